@@ -1,0 +1,157 @@
+"""The in-memory scene every reader produces and every writer, encoder and renderer consumes.
+
+Attributes are kept in the parametrisation of the reference 3DGS training code (log scales, opacity
+logits, SH coefficients), because that is what every file format round-trips to and what the
+quantizers work on. Arrays are float32, C-contiguous, one row per splat.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+SH_C0 = 0.28209479177387814
+# Number of non-DC SH coefficients per colour channel for degree 0..3, and per band.
+SH_REST_COEFFS = (0, 3, 8, 15)
+SH_BAND_COEFFS = {1: 3, 2: 5, 3: 7}
+# First rest-coefficient index of each band inside the (K, 3) rest array.
+SH_BAND_START = {1: 0, 2: 3, 3: 8}
+
+
+def sh_degree_for_rest_coeffs(k: int) -> int:
+    """SH degree from the number of rest coefficients per channel (0, 3, 8, 15)."""
+    try:
+        return SH_REST_COEFFS.index(k)
+    except ValueError:
+        raise ValueError(f"{k} rest coefficients per channel is no SH degree (expected 0, 3, 8 or 15)") from None
+
+
+def sigmoid(x: np.ndarray) -> np.ndarray:
+    return (1.0 / (1.0 + np.exp(-x.astype(np.float32)))).astype(np.float32)
+
+
+def logit(p: np.ndarray, eps: float = 1e-7) -> np.ndarray:
+    p = np.clip(p.astype(np.float64), eps, 1.0 - eps)
+    return np.log(p / (1.0 - p)).astype(np.float32)
+
+
+@dataclass
+class Gaussians:
+    """A set of 3D Gaussians.
+
+    positions:      (N, 3) world-space centres
+    rotations:      (N, 4) unit quaternions, (w, x, y, z)
+    log_scales:     (N, 3) natural log of the standard deviations along the local axes
+    opacity_logits: (N,)   opacity before the sigmoid
+    sh_dc:          (N, 3) SH band 0 (f_dc_0..2); colour = 0.5 + SH_C0 * sh_dc
+    sh_rest:        (N, K, 3) SH bands 1..degree, coefficient-major, channels last (K = 0, 3, 8 or 15)
+    """
+
+    positions: np.ndarray
+    rotations: np.ndarray
+    log_scales: np.ndarray
+    opacity_logits: np.ndarray
+    sh_dc: np.ndarray
+    sh_rest: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = len(self.positions)
+        shapes = {
+            "positions": (n, 3), "rotations": (n, 4), "log_scales": (n, 3),
+            "opacity_logits": (n,), "sh_dc": (n, 3),
+        }
+        for name, shape in shapes.items():
+            arr = np.ascontiguousarray(getattr(self, name), dtype=np.float32)
+            if arr.shape != shape:
+                raise ValueError(f"Gaussians.{name}: shape {arr.shape}, expected {shape}")
+            setattr(self, name, arr)
+        rest = np.ascontiguousarray(self.sh_rest, dtype=np.float32)
+        if rest.ndim != 3 or rest.shape[0] != n or rest.shape[2] != 3:
+            raise ValueError(f"Gaussians.sh_rest: shape {rest.shape}, expected ({n}, K, 3)")
+        sh_degree_for_rest_coeffs(rest.shape[1])
+        self.sh_rest = rest
+
+    def __len__(self) -> int:
+        return len(self.positions)
+
+    @property
+    def sh_degree(self) -> int:
+        return sh_degree_for_rest_coeffs(self.sh_rest.shape[1])
+
+    @property
+    def opacities(self) -> np.ndarray:
+        return sigmoid(self.opacity_logits)
+
+    @property
+    def scales(self) -> np.ndarray:
+        return np.exp(self.log_scales)
+
+    @property
+    def base_colors(self) -> np.ndarray:
+        """View-independent colour (SH band 0 only), before clamping."""
+        return (0.5 + SH_C0 * self.sh_dc).astype(np.float32)
+
+    def band(self, band: int) -> np.ndarray:
+        """SH coefficients of one band (1..3) as (N, 2*band+1, 3)."""
+        start = SH_BAND_START[band]
+        return self.sh_rest[:, start:start + SH_BAND_COEFFS[band]]
+
+    def subset(self, index: np.ndarray) -> Gaussians:
+        return Gaussians(self.positions[index], self.rotations[index], self.log_scales[index],
+                         self.opacity_logits[index], self.sh_dc[index], self.sh_rest[index])
+
+    def with_sh_degree(self, degree: int) -> Gaussians:
+        """Drop bands above `degree`, or pad missing bands with zeros."""
+        k = SH_REST_COEFFS[degree]
+        rest = self.sh_rest[:, :k]
+        if rest.shape[1] < k:
+            rest = np.concatenate([rest, np.zeros((len(self), k - rest.shape[1], 3), np.float32)], axis=1)
+        return Gaussians(self.positions, self.rotations, self.log_scales, self.opacity_logits, self.sh_dc, rest)
+
+    @staticmethod
+    def concatenate(parts: list[Gaussians]) -> Gaussians:
+        if not parts:
+            raise ValueError("no Gaussians to concatenate")
+        degree = max(p.sh_degree for p in parts)
+        parts = [p.with_sh_degree(degree) for p in parts]
+        return Gaussians(*(np.concatenate([getattr(p, f) for p in parts]) for f in
+                           ("positions", "rotations", "log_scales", "opacity_logits", "sh_dc", "sh_rest")))
+
+    @staticmethod
+    def empty(sh_degree: int = 0) -> Gaussians:
+        k = SH_REST_COEFFS[sh_degree]
+        return Gaussians(np.zeros((0, 3)), np.zeros((0, 4)), np.zeros((0, 3)), np.zeros(0), np.zeros((0, 3)),
+                         np.zeros((0, k, 3)))
+
+
+def normalize_quaternions(q: np.ndarray) -> np.ndarray:
+    """Unit quaternions with w >= 0 (q and -q are the same rotation). Zero-length rows stay zero."""
+    q = q.astype(np.float32, copy=True)
+    norm = np.linalg.norm(q, axis=1, keepdims=True)
+    np.divide(q, norm, out=q, where=norm > 0)
+    q *= np.where(q[:, :1] < 0, -1.0, 1.0).astype(np.float32)
+    return q
+
+
+def rotation_matrices(q: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) rotation matrices from unit (w, x, y, z) quaternions."""
+    w, x, y, z = (q[:, i].astype(np.float64) for i in range(4))
+    r = np.empty((len(q), 3, 3), np.float64)
+    r[:, 0, 0] = 1 - 2 * (y * y + z * z)
+    r[:, 0, 1] = 2 * (x * y - w * z)
+    r[:, 0, 2] = 2 * (x * z + w * y)
+    r[:, 1, 0] = 2 * (x * y + w * z)
+    r[:, 1, 1] = 1 - 2 * (x * x + z * z)
+    r[:, 1, 2] = 2 * (y * z - w * x)
+    r[:, 2, 0] = 2 * (x * z - w * y)
+    r[:, 2, 1] = 2 * (y * z + w * x)
+    r[:, 2, 2] = 1 - 2 * (x * x + y * y)
+    return r
+
+
+def covariances(g: Gaussians) -> np.ndarray:
+    """(N, 3, 3) world-space covariance R S S^T R^T, float64."""
+    r = rotation_matrices(g.rotations)
+    s = np.exp(g.log_scales.astype(np.float64))
+    m = r * s[:, None, :]
+    return m @ np.transpose(m, (0, 2, 1))

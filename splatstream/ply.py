@@ -1,0 +1,270 @@
+"""PLY files: a general header/element reader, and the standard 3DGS PLY reader and writer.
+
+The 3DGS conventions (property names, channel-major f_rest, logit opacity, log scales, (w, x, y, z)
+quaternions) are those of the reference training code; see format_spec/foreign_formats.md.
+"""
+from __future__ import annotations
+
+import os
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import InputError
+from .gaussians import SH_REST_COEFFS, Gaussians, normalize_quaternions
+
+PLY_TYPES = {
+    "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
+    "short": "i2", "int16": "i2", "ushort": "u2", "uint16": "u2",
+    "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+    "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
+}
+MAX_HEADER_BYTES = 1 << 20
+REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
+            "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+
+
+@dataclass
+class PlyElement:
+    name: str
+    count: int
+    properties: list[tuple[str, str]] = field(default_factory=list)  # (name, numpy type code without order)
+
+    def dtype(self, order: str) -> np.dtype:
+        return np.dtype([(n, order + t) for n, t in self.properties])
+
+
+@dataclass
+class PlyHeader:
+    format: str  # "binary_little_endian" | "binary_big_endian" | "ascii"
+    elements: list[PlyElement]
+    size: int  # bytes up to and including the end_header line
+    comments: list[str] = field(default_factory=list)
+
+    def element(self, name: str) -> PlyElement | None:
+        return next((e for e in self.elements if e.name == name), None)
+
+
+def read_header(path: str | os.PathLike, head: bytes | None = None) -> PlyHeader:
+    """Parse a PLY header. Raises InputError naming the file and the offending line."""
+    if head is None:
+        with open(path, "rb") as f:
+            head = f.read(MAX_HEADER_BYTES)
+    if not head:
+        raise InputError(path, None, "file is empty (expected a PLY header starting with 'ply')")
+    if not head.startswith(b"ply\n") and not head.startswith(b"ply\r\n"):
+        raise InputError(path, None, "not a PLY file (expected the first line to be 'ply')")
+    end = head.find(b"end_header")
+    if end < 0:
+        raise InputError(path, "header", f"no 'end_header' line in the first {len(head)} bytes")
+    nl = head.find(b"\n", end)
+    if nl < 0:
+        raise InputError(path, "header", "file ends inside the 'end_header' line")
+    try:
+        lines = head[:end].decode("ascii").splitlines()
+    except UnicodeDecodeError:
+        raise InputError(path, "header", "header is not ASCII text") from None
+    fmt = None
+    elements: list[PlyElement] = []
+    comments: list[str] = []
+    for lineno, line in enumerate(lines[1:], start=2):
+        words = line.split()
+        if not words:
+            continue
+        key = words[0]
+        if key in ("comment", "obj_info"):
+            comments.append(line[len(key):].strip())
+        elif key == "format":
+            if len(words) != 3 or words[1] not in ("binary_little_endian", "binary_big_endian", "ascii"):
+                raise InputError(path, f"header line {lineno}",
+                                 f"unsupported format {line!r} (expected binary_little_endian, "
+                                 "binary_big_endian or ascii)")
+            fmt = words[1]
+        elif key == "element":
+            if len(words) != 3 or not words[2].isdigit():
+                raise InputError(path, f"header line {lineno}", f"bad element line {line!r} "
+                                 "(expected 'element NAME COUNT')")
+            elements.append(PlyElement(words[1], int(words[2])))
+        elif key == "property":
+            if not elements:
+                raise InputError(path, f"header line {lineno}", "property before any element")
+            if len(words) >= 2 and words[1] == "list":
+                raise InputError(path, f"element {elements[-1].name}",
+                                 f"list property {' '.join(words[2:])!r} is not supported in splat files")
+            if len(words) != 3 or words[1] not in PLY_TYPES:
+                raise InputError(path, f"header line {lineno}",
+                                 f"bad property line {line!r} (expected 'property TYPE NAME' with TYPE one of "
+                                 "char, uchar, short, ushort, int, uint, float, double)")
+            names = [p[0] for p in elements[-1].properties]
+            if words[2] in names:
+                raise InputError(path, f"element {elements[-1].name}", f"property {words[2]!r} declared twice")
+            elements[-1].properties.append((words[2], PLY_TYPES[words[1]]))
+        else:
+            raise InputError(path, f"header line {lineno}", f"unknown header keyword {key!r}")
+    if fmt is None:
+        raise InputError(path, "header", "no 'format' line")
+    return PlyHeader(fmt, elements, nl + 1, comments)
+
+
+def read_elements(path: str | os.PathLike, header: PlyHeader | None = None) -> tuple[PlyHeader, dict[str, np.ndarray]]:
+    """Read every element of a PLY file into a structured array, checking sizes against the file length."""
+    path = os.fspath(path)
+    header = header or read_header(path)
+    file_size = os.path.getsize(path)
+    out: dict[str, np.ndarray] = {}
+    if header.format == "ascii":
+        with open(path, "rb") as f:
+            f.seek(header.size)
+            tokens = f.read().split()
+        pos = 0
+        for el in header.elements:
+            width = len(el.properties)
+            need = el.count * width
+            if len(tokens) - pos < need:
+                raise InputError(path, f"element {el.name}",
+                                 f"truncated: header declares {el.count} rows of {width} values, "
+                                 f"only {max(0, len(tokens) - pos) // max(width, 1)} complete rows follow")
+            try:
+                values = np.array(tokens[pos:pos + need], dtype=np.float64).reshape(el.count, width)
+            except ValueError:
+                raise InputError(path, f"element {el.name}", "non-numeric value in ASCII data") from None
+            arr = np.empty(el.count, el.dtype("<"))
+            for i, (name, _) in enumerate(el.properties):
+                arr[name] = values[:, i]
+            out[el.name] = arr
+            pos += need
+        if pos != len(tokens):
+            raise InputError(path, "header", f"{len(tokens) - pos} values after the last element: "
+                             "the element counts in the header do not match the data")
+        return header, out
+    order = "<" if header.format == "binary_little_endian" else ">"
+    offset = header.size
+    for el in header.elements:
+        dt = el.dtype(order)
+        # Counts are capped by the file size before anything is allocated (a hostile header cannot ask
+        # for a huge array).
+        need = el.count * dt.itemsize
+        if offset + need > file_size:
+            have = max(0, file_size - offset)
+            raise InputError(path, f"element {el.name}",
+                             f"truncated: header declares {el.count} rows of {dt.itemsize} bytes "
+                             f"({need} bytes) but only {have} bytes follow "
+                             f"({have // max(dt.itemsize, 1)} complete rows)")
+        out[el.name] = np.fromfile(path, dtype=dt, count=el.count, offset=offset)
+        offset += need
+    if offset != file_size:
+        raise InputError(path, "header", f"{file_size - offset} bytes after the last element: the element "
+                         "counts in the header do not match the data")
+    return header, out
+
+
+def _columns(path: str, arr: np.ndarray, names: list[str]) -> np.ndarray:
+    """(N, len(names)) float32 matrix of the named columns of a structured array."""
+    fields = arr.dtype.fields
+    if all(fields[n][0] == np.dtype("<f4") for n in names) and len(set(fields[n][0] for n in fields)) == 1:
+        # Fast path: every property is float32 LE, so the records are a plain float matrix.
+        all_names = list(arr.dtype.names)
+        mat = arr.view("<f4").reshape(len(arr), len(all_names))
+        return mat[:, [all_names.index(n) for n in names]]
+    out = np.empty((len(arr), len(names)), np.float32)
+    for i, n in enumerate(names):
+        out[:, i] = arr[n]
+    return out
+
+
+def read_gaussians_ply(path: str | os.PathLike, drop_invalid: bool = False) -> Gaussians:
+    """Read a standard 3DGS PLY (any PLY format, float or double, any property order)."""
+    path = os.fspath(path)
+    header = read_header(path)
+    vertex = header.element("vertex")
+    if vertex is None:
+        raise InputError(path, "header", "no 'vertex' element (a 3DGS PLY stores splats as vertices)")
+    names = [p[0] for p in vertex.properties]
+    if "packed_position" in names or header.element("chunk") is not None:
+        raise InputError(path, "header", "this is a PlayCanvas compressed PLY, not a standard 3DGS PLY")
+    missing = [n for n in REQUIRED if n not in names]
+    if missing:
+        raise InputError(path, "element vertex", f"missing required properties {', '.join(missing)} "
+                         "(a 3DGS PLY needs x y z f_dc_0..2 opacity scale_0..2 rot_0..3)")
+    rest = sorted((n for n in names if n.startswith("f_rest_")), key=lambda n: int(n[7:]) if n[7:].isdigit() else -1)
+    n_rest = len(rest)
+    if n_rest not in (0, 9, 24, 45):
+        raise InputError(path, "element vertex", f"{n_rest} f_rest_* properties: expected 0, 9, 24 or 45 "
+                         "(SH degree 0, 1, 2 or 3)")
+    if rest != [f"f_rest_{i}" for i in range(n_rest)]:
+        raise InputError(path, "element vertex", f"f_rest_* properties must be numbered 0..{n_rest - 1}")
+    _, elements = read_elements(path, header)
+    arr = elements["vertex"]
+    wanted = REQUIRED + rest
+    mat = _columns(path, arr, wanted)
+    finite = np.isfinite(mat)
+    bad_rows = ~finite.all(axis=1)
+    n = len(mat)
+    col = {name: i for i, name in enumerate(wanted)}
+    q = mat[:, [col["rot_0"], col["rot_1"], col["rot_2"], col["rot_3"]]]
+    zero_q = ~bad_rows & ~(np.abs(q) > 0).any(axis=1)
+    if bad_rows.any():
+        per_field = {name: int((~finite[:, i]).sum()) for i, name in enumerate(wanted) if not finite[:, i].all()}
+        detail = ", ".join(f"{k}: {v}" for k, v in per_field.items())
+        msg = f"{int(bad_rows.sum())} of {n} splats have non-finite values (NaN or inf) ({detail})"
+        if not drop_invalid:
+            raise InputError(path, "element vertex", msg + "; pass --drop-invalid to drop them")
+        warnings.warn(f"{path}: {msg}; dropped", stacklevel=2)
+    if zero_q.any():
+        msg = f"{int(zero_q.sum())} of {n} splats have a zero-length quaternion (rot_0..rot_3 all 0)"
+        if not drop_invalid:
+            raise InputError(path, "element vertex", msg + "; pass --drop-invalid to drop them")
+        warnings.warn(f"{path}: {msg}; dropped", stacklevel=2)
+    keep = ~(bad_rows | zero_q)
+    if not keep.all():
+        mat = mat[keep]
+        q = q[keep]
+    k = n_rest // 3
+    sh_rest = mat[:, 14:14 + n_rest].reshape(len(mat), 3, k).transpose(0, 2, 1) if k else np.zeros((len(mat), 0, 3))
+    return Gaussians(
+        positions=mat[:, 0:3],
+        rotations=normalize_quaternions(q),
+        log_scales=mat[:, 7:10],
+        opacity_logits=mat[:, 6],
+        sh_dc=mat[:, 3:6],
+        sh_rest=sh_rest,
+    )
+
+
+def gaussians_ply_dtype(sh_degree: int, normals: bool = True) -> np.dtype:
+    k = SH_REST_COEFFS[sh_degree]
+    names = ["x", "y", "z"] + (["nx", "ny", "nz"] if normals else []) + ["f_dc_0", "f_dc_1", "f_dc_2"]
+    names += [f"f_rest_{i}" for i in range(3 * k)]
+    names += ["opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
+    return np.dtype([(n, "<f4") for n in names])
+
+
+def gaussians_to_records(g: Gaussians, normals: bool = True) -> np.ndarray:
+    dt = gaussians_ply_dtype(g.sh_degree, normals)
+    n = len(g)
+    mat = np.zeros((n, len(dt.names)), np.float32)
+    c = 6 if normals else 3
+    mat[:, 0:3] = g.positions
+    mat[:, c:c + 3] = g.sh_dc
+    k = g.sh_rest.shape[1]
+    mat[:, c + 3:c + 3 + 3 * k] = g.sh_rest.transpose(0, 2, 1).reshape(n, 3 * k)
+    o = c + 3 + 3 * k
+    mat[:, o] = g.opacity_logits
+    mat[:, o + 1:o + 4] = g.log_scales
+    mat[:, o + 4:o + 8] = g.rotations
+    return mat.view(dt).reshape(n)
+
+
+def write_gaussians_ply(g: Gaussians, path: str | os.PathLike, normals: bool = True) -> None:
+    """Write a standard binary little-endian 3DGS PLY (atomically: temporary name, then rename)."""
+    from .atomic import atomic_file
+
+    records = gaussians_to_records(g, normals)
+    lines = ["ply", "format binary_little_endian 1.0", "comment written by splatstream",
+             f"element vertex {len(g)}"]
+    lines += [f"property float {n}" for n in records.dtype.names]
+    lines.append("end_header")
+    with atomic_file(path) as f:
+        f.write(("\n".join(lines) + "\n").encode("ascii"))
+        records.tofile(f)
