@@ -1,0 +1,241 @@
+"""Quantisation of splat attributes into texel planes and back (format_spec/format.md, "Planes").
+
+Pure functions over numpy arrays. For every plane the encoder and the decoder here are exact inverses
+up to the texel format's quantisation; the tests bound the round-trip error per preset and attribute.
+
+Plane values are kept as (N, L, C) arrays: N splats, L layers (1, or the coefficients of an SH band),
+C components. Ranged planes store t = (v - min) / (max - min) against per-chunk, per-layer, per-component
+ranges; rotations are unit quaternions and need no range.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .gaussians import SH_BAND_COEFFS, Gaussians, logit, normalize_quaternions, sigmoid
+from .layout import CHUNK_SIZE, chunks_to_image, image_to_chunks, texture_size
+from .texformats import decode_image, encode_image, get_format
+
+SQRT2 = math.sqrt(2.0)
+# Opacity is stored after the sigmoid; decoding takes the logit of a value clamped to this interval.
+OPACITY_EPS = 1e-6
+
+
+@dataclass(frozen=True)
+class PlaneSpec:
+    name: str
+    attribute: str       # preset attribute whose texel format this plane uses
+    components: int
+    layers: int
+    range_dtype: str     # "" (not ranged), "<f4" or "<f2"
+
+
+BASE_PLANES = (
+    PlaneSpec("position", "position", 3, 1, "<f4"),
+    PlaneSpec("rotation", "rotation", 4, 1, ""),
+    PlaneSpec("scale", "scale", 3, 1, "<f2"),
+    PlaneSpec("color", "color", 4, 1, "<f2"),
+)
+
+
+def band_plane(band: int) -> PlaneSpec:
+    return PlaneSpec(f"sh{band}", "sh", 3, SH_BAND_COEFFS[band], "<f2")
+
+
+def group_planes(group: str) -> tuple[PlaneSpec, ...]:
+    if group == "base":
+        return BASE_PLANES
+    return (band_plane(int(group[2:])),)
+
+
+def groups_for_degree(sh_degree: int) -> list[str]:
+    return ["base"] + [f"sh{b}" for b in range(1, sh_degree + 1)]
+
+
+def f16_floor(x: np.ndarray) -> np.ndarray:
+    """Largest float16 <= x (so a stored minimum never exceeds the true one)."""
+    h = x.astype(np.float16)
+    over = h.astype(np.float32) > x
+    h[over] = np.nextafter(h[over], np.float16(-np.inf))
+    return h
+
+
+def f16_ceil(x: np.ndarray) -> np.ndarray:
+    h = x.astype(np.float16)
+    under = h.astype(np.float32) < x
+    h[under] = np.nextafter(h[under], np.float16(np.inf))
+    return h
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Attribute values of a plane
+
+
+def plane_values(g: Gaussians, spec: PlaneSpec) -> np.ndarray:
+    """(N, L, C) float32 values the plane stores (before normalisation)."""
+    if spec.name == "position":
+        return g.positions[:, None, :]
+    if spec.name == "rotation":
+        return g.rotations[:, None, :]
+    if spec.name == "scale":
+        return g.log_scales[:, None, :]
+    if spec.name == "color":
+        return np.concatenate([g.sh_dc, sigmoid(g.opacity_logits)[:, None]], axis=1)[:, None, :]
+    return g.band(int(spec.name[2:]))
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Rotations
+
+
+def rotation_mode(fmt_name: str) -> str:
+    """How a texel format holds a quaternion: 'full' (w,x,y,z), 'smallest3' (3 comps + index), 'xyz' (w >= 0)."""
+    fmt = get_format(fmt_name)
+    if fmt.levels[0] == 0:
+        return "full"
+    if fmt.components == 4 and fmt.block == 1:
+        return "smallest3"
+    return "xyz"
+
+
+def encode_rotations(q: np.ndarray, fmt_name: str) -> np.ndarray:
+    """(N, 4) unit quaternions (w, x, y, z) -> (N, 4) normalised texel values."""
+    mode = rotation_mode(fmt_name)
+    if mode == "full":
+        return (q + 1.0) * 0.5
+    if mode == "xyz":
+        q = normalize_quaternions(q)  # w >= 0, so w is recovered from x, y, z
+        t = np.zeros_like(q)
+        t[:, :3] = (q[:, 1:] + 1.0) * 0.5
+        return t
+    n = len(q)
+    largest = np.argmax(np.abs(q), axis=1)
+    sign = np.where(q[np.arange(n), largest] < 0, -1.0, 1.0).astype(np.float32)
+    qs = q * sign[:, None]
+    keep = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])[largest]
+    small = np.take_along_axis(qs, keep, axis=1)
+    t = np.empty((n, 4), np.float32)
+    t[:, :3] = (small * SQRT2 + 1.0) * 0.5
+    levels = get_format(fmt_name).levels[3]
+    t[:, 3] = largest / levels
+    return t
+
+
+def decode_rotations(t: np.ndarray, fmt_name: str) -> np.ndarray:
+    """(N, 4) normalised texel values -> (N, 4) unit quaternions (w, x, y, z) with w >= 0."""
+    mode = rotation_mode(fmt_name)
+    if mode == "full":
+        return normalize_quaternions(t * 2.0 - 1.0)
+    if mode == "xyz":
+        xyz = t[:, :3] * 2.0 - 1.0
+        w = np.sqrt(np.maximum(0.0, 1.0 - (xyz * xyz).sum(axis=1)))
+        return normalize_quaternions(np.concatenate([w[:, None], xyz], axis=1))
+    n = len(t)
+    levels = get_format(fmt_name).levels[3]
+    largest = np.clip(np.rint(t[:, 3] * levels), 0, 3).astype(np.int64)
+    small = (t[:, :3] * 2.0 - 1.0) / SQRT2
+    big = np.sqrt(np.maximum(0.0, 1.0 - (small * small).sum(axis=1)))
+    q = np.empty((n, 4), np.float32)
+    keep = np.array([[1, 2, 3], [0, 2, 3], [0, 1, 3], [0, 1, 2]])[largest]
+    np.put_along_axis(q, keep, small.astype(np.float32), axis=1)
+    q[np.arange(n), largest] = big
+    return normalize_quaternions(q)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Planes
+
+
+@dataclass
+class EncodedPlane:
+    spec: PlaneSpec
+    format: str
+    width: int
+    height: int
+    texels: np.ndarray        # uint8 blob, layers concatenated
+    ranges: np.ndarray | None  # (chunks, 2, L, C) in range_dtype, [:, 0] = min, [:, 1] = max
+
+
+def _pad_to_chunks(values: np.ndarray) -> np.ndarray:
+    """Pad (N, ...) to a whole number of chunks by repeating the last row (keeps ranges and BC blocks tight)."""
+    n = len(values)
+    padded = -(-n // CHUNK_SIZE) * CHUNK_SIZE
+    if padded == n:
+        return values
+    return np.concatenate([values, np.repeat(values[-1:], padded - n, axis=0)])
+
+
+def chunk_ranges(values: np.ndarray, range_dtype: str) -> tuple[np.ndarray, np.ndarray]:
+    """Per-chunk (min, max) of (N, L, C) values, widened to what range_dtype can hold exactly."""
+    v = _pad_to_chunks(values).reshape(-1, CHUNK_SIZE, *values.shape[1:])
+    lo, hi = v.min(axis=1), v.max(axis=1)
+    if range_dtype == "<f2":
+        lo, hi = f16_floor(lo), f16_ceil(hi)
+    else:
+        lo, hi = lo.astype(np.float32), hi.astype(np.float32)
+    return lo, hi
+
+
+def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str) -> EncodedPlane:
+    """Quantise (N, L, C) plane values into a texture blob (+ per-chunk ranges)."""
+    n = len(values)
+    chunks = max(1, -(-n // CHUNK_SIZE))
+    width, height = texture_size(chunks)
+    if n == 0:
+        values = np.zeros((1, spec.layers, spec.components), np.float32)
+    ranges = None
+    if spec.range_dtype:
+        lo, hi = chunk_ranges(values, spec.range_dtype)
+        lo32, hi32 = lo.astype(np.float32), hi.astype(np.float32)
+        extent = hi32 - lo32
+        inv = np.divide(1.0, extent, out=np.zeros_like(extent), where=extent > 0)
+        v = _pad_to_chunks(values).reshape(chunks, CHUNK_SIZE, spec.layers, spec.components)
+        t = np.clip((v - lo32[:, None]) * inv[:, None], 0.0, 1.0)
+        ranges = np.stack([lo, hi], axis=1).astype(spec.range_dtype)
+    else:
+        t = _pad_to_chunks(encode_rotations(values[:, 0], fmt_name)).reshape(chunks, CHUNK_SIZE, 1, 4)
+    blobs = []
+    for layer in range(spec.layers):
+        t4 = np.zeros((chunks, CHUNK_SIZE, 4), np.float32)
+        t4[..., : t.shape[-1]] = t[:, :, layer]
+        blobs.append(encode_image(fmt_name, chunks_to_image(t4, width, height)))
+    return EncodedPlane(spec, fmt_name, width, height, np.concatenate(blobs), ranges)
+
+
+def decode_plane(plane: EncodedPlane, n: int) -> np.ndarray:
+    """Texture blob (+ ranges) back to (N, L, C) float32 plane values."""
+    spec = plane.spec
+    chunks = max(1, -(-n // CHUNK_SIZE))
+    layer_bytes = plane.texels.size // spec.layers
+    ts = []
+    for layer in range(spec.layers):
+        blob = plane.texels[layer * layer_bytes:(layer + 1) * layer_bytes]
+        img = decode_image(plane.format, blob, plane.width, plane.height)
+        ts.append(image_to_chunks(img, chunks))
+    t = np.stack(ts, axis=2)  # (chunks, 256, L, 4)
+    if not spec.range_dtype:
+        q = decode_rotations(t.reshape(-1, 4)[:n], plane.format)
+        return q[:, None, :]
+    lo = plane.ranges[:, 0].astype(np.float32)
+    hi = plane.ranges[:, 1].astype(np.float32)
+    v = lo[:, None] + t[..., : spec.components] * (hi - lo)[:, None]
+    return v.reshape(chunks * CHUNK_SIZE, spec.layers, spec.components)[:n].astype(np.float32)
+
+
+def assemble_gaussians(planes: dict[str, np.ndarray], sh_degree: int) -> Gaussians:
+    """Gaussians from decoded plane values (missing SH bands above sh_degree are left out)."""
+    color = planes["color"][:, 0]
+    opacity = np.clip(color[:, 3], OPACITY_EPS, 1.0 - OPACITY_EPS)
+    n = len(color)
+    rest = [planes[f"sh{b}"] for b in range(1, sh_degree + 1)]
+    sh_rest = np.concatenate(rest, axis=1) if rest else np.zeros((n, 0, 3), np.float32)
+    return Gaussians(
+        positions=planes["position"][:, 0],
+        rotations=planes["rotation"][:, 0],
+        log_scales=planes["scale"][:, 0],
+        opacity_logits=logit(opacity),
+        sh_dc=color[:, :3],
+        sh_rest=sh_rest,
+    )

@@ -1,0 +1,70 @@
+"""`splatstream encode INPUT OUTPUT_DIR`."""
+from __future__ import annotations
+
+import argparse
+import sys
+
+from ..encoder import ATTRIBUTES, DEFAULT_PRESET, PRESETS, encode_file
+from ..errors import UsageError
+from ..progress import ProgressPrinter
+from ..texformats import FORMATS
+
+
+def parse_vector(text: str, what: str) -> tuple[float, float, float]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3:
+        raise UsageError(f"{what}: expected three comma-separated numbers like 0,0,1, got {text!r}")
+    return values  # type: ignore[return-value]
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "encode", help="encode a splat file into a compact, streamable scene directory",
+        description="Read a 3DGS scene (standard PLY and other supported formats) and write a scene directory: "
+                    "Morton-ordered 256-splat chunks quantised per chunk into GPU texture planes, SH bands in "
+                    "separate payloads, LOD tiles, a msgpack manifest. Presets (texel formats per attribute): "
+                    + "; ".join(f"{k}: " + ", ".join(f"{a}={f}" for a, f in v.items()) for k, v in PRESETS.items()),
+    )
+    p.add_argument("input", help="input splat file (.ply; other formats are detected by content)")
+    p.add_argument("output_dir", help="scene directory to write (replaced atomically if it exists)")
+    p.add_argument("--preset", default=DEFAULT_PRESET, choices=list(PRESETS), help="quality preset (default medium)")
+    for attr in ATTRIBUTES:
+        p.add_argument(f"--{attr}", dest=f"fmt_{attr}", choices=list(FORMATS), metavar="FORMAT",
+                       help=f"texel format of {attr}, overriding the preset ({', '.join(FORMATS)})")
+    p.add_argument("--sh-degree", type=int, choices=[0, 1, 2, 3], help="drop SH bands above this degree")
+    p.add_argument("--no-lod", action="store_true", help="write one tile holding every splat (no LOD tree)")
+    p.add_argument("--max-leaf-splats", type=int, default=65536, help="splats per leaf tile at most (default 65536)")
+    p.add_argument("--reduction", type=float, default=4.0,
+                   help="each LOD level keeps about 1/REDUCTION of the splats of the level below (default 4)")
+    p.add_argument("--zstd-level", type=int, default=9, help="zstd level of the payloads (1..22, default 9)")
+    p.add_argument("--name", help="scene name recorded in the manifest (default: input file name)")
+    p.add_argument("--up", help="up vector of the scene, e.g. 0,0,1 (default) or 0,-1,0 for COLMAP captures")
+    p.add_argument("--drop-invalid", action="store_true",
+                   help="drop splats with non-finite values or zero-length quaternions (with a warning)")
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress display")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    overrides = {a: getattr(args, f"fmt_{a}") for a in ATTRIBUTES if getattr(args, f"fmt_{a}")}
+    if args.max_leaf_splats < 256:
+        raise UsageError("--max-leaf-splats must be at least 256 (one chunk)")
+    if args.reduction <= 1.0:
+        raise UsageError("--reduction must be greater than 1")
+    if not 1 <= args.zstd_level <= 22:
+        raise UsageError("--zstd-level must be between 1 and 22")
+    up = parse_vector(args.up, "--up") if args.up else None
+    progress = ProgressPrinter("encode", enabled=not args.quiet)
+    m = encode_file(args.input, args.output_dir, preset=args.preset, drop_invalid=args.drop_invalid,
+                    progress=progress, overrides=overrides, sh_degree=args.sh_degree, zstd_level=args.zstd_level,
+                    lod=not args.no_lod, max_leaf_splats=args.max_leaf_splats, reduction=args.reduction,
+                    name=args.name, up=up)
+    if not args.quiet:
+        print(f"wrote {args.output_dir}: {m['splats']} splats, SH degree {m['sh_degree']}, preset {m['preset']}, "
+              f"{len(m['tiles'])} tiles, {m['bytes_on_disk'] / 1e6:.2f} MB on disk "
+              f"({m['bytes_on_disk'] / m['splats']:.2f} B/splat), {m['gpu_bytes_per_splat']:.2f} B/splat on the GPU, "
+              f"{m['encode_seconds']:.2f}s", file=sys.stderr)
+    return 0

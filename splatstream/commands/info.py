@@ -1,0 +1,65 @@
+"""`splatstream info SCENE_DIR [--json]`."""
+from __future__ import annotations
+
+import argparse
+import json
+
+from ..manifest import load_manifest, scene_summary
+
+
+def scene_info(m: dict) -> dict:
+    s = scene_summary(m)
+    leaves = [t for t in m["tiles"] if not t.get("children")]
+    s.update({
+        "leaf_splats": sum(t["splats"] for t in leaves),
+        "leaf_tiles": len(leaves),
+        "leaf_bytes_on_disk": m.get("leaf_bytes_on_disk"),
+        "bytes_per_splat_on_disk": m["bytes_on_disk"] / max(1, m["splats"]),
+        "formats": m.get("formats"),
+        "attributes": m.get("attributes"),
+        "bytes_per_level": _bytes_per_level(m),
+        "camera": m.get("camera"),
+        "up": m.get("up"),
+    })
+    return s
+
+
+def _bytes_per_level(m: dict) -> list[dict]:
+    levels: dict[int, dict] = {}
+    for t in m["tiles"]:
+        lv = levels.setdefault(t.get("level", 0), {"level": t.get("level", 0), "tiles": 0, "splats": 0,
+                                                   "bytes_on_disk": 0, "gpu_bytes": 0})
+        lv["tiles"] += 1
+        lv["splats"] += t["splats"]
+        for g in t["groups"].values():
+            lv["bytes_on_disk"] += g["bytes"]
+            lv["gpu_bytes"] += g["gpu_bytes"]
+    return [levels[k] for k in sorted(levels)]
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser("info", help="describe an encoded scene directory",
+                       description="Print the facts of an encoded scene: splats, SH degree, preset, sizes on disk and "
+                                   "in GPU memory per attribute, tiles and levels.")
+    p.add_argument("scene_dir")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    info = scene_info(load_manifest(args.scene_dir))
+    if args.json:
+        print(json.dumps(info))
+        return 0
+    print(f"scene      {info['name']}  (format version {info['version'][0]}.{info['version'][1]})")
+    print(f"splats     {info['splats']}  SH degree {info['sh_degree']}  preset {info['preset']}")
+    print(f"tiles      {info['tiles']} in {info['levels']} levels, {info['leaf_tiles']} leaves holding "
+          f"{info['leaf_splats']} splats")
+    print(f"on disk    {info['bytes_on_disk']} bytes ({info['bytes_per_splat_on_disk']:.2f} B/splat, all levels)")
+    print(f"GPU        {info['gpu_bytes']} bytes ({info['gpu_bytes_per_splat']:.2f} B/splat, full detail)")
+    for name, a in (info["attributes"] or {}).items():
+        print(f"  {name:<9} {a['format']:<9} GPU {a['gpu_bytes'] / info['splats']:7.2f} B/splat   "
+              f"disk {a['disk_bytes'] / info['splats']:7.2f} B/splat")
+    for lv in info["bytes_per_level"]:
+        print(f"  level {lv['level']}: {lv['tiles']} tiles, {lv['splats']} splats, {lv['bytes_on_disk']} bytes on disk")
+    return 0

@@ -1,0 +1,137 @@
+"""Payload files (format_spec/format.md, "Payloads"): one zstd frame per (tile, group) holding its planes.
+
+A payload decompresses to the concatenation of its sections (texels of each plane, then its ranges),
+each starting at a 16-byte aligned offset and stored through the filter its manifest entry names.
+The manifest records, per section, where it starts and how to read it; per payload, the SHA-256 of the
+file bytes (which is also the file name) so every fetch can be verified.
+"""
+from __future__ import annotations
+
+import numpy as np
+import zstandard
+
+from .codec import EncodedPlane, PlaneSpec, group_planes
+from .errors import FormatError
+from .manifest import sha256_hex
+from .texformats import blob_size, get_format, shuffle_bytes, unshuffle_bytes
+
+ALIGN = 16
+# A payload may not claim to decompress to more than this (guards readers against decompression bombs).
+MAX_PAYLOAD_RAW_BYTES = 2 << 30
+
+
+def _filter_for(element: int) -> str:
+    return f"shuffle{element}" if element > 1 else "none"
+
+
+def _element_of(filter_name: str) -> int:
+    if filter_name == "none":
+        return 1
+    if filter_name.startswith("shuffle") and filter_name[7:].isdigit():
+        return int(filter_name[7:])
+    raise ValueError(filter_name)
+
+
+def pack_group(planes: list[EncodedPlane], level: int = 9, shuffle: bool = True) -> tuple[bytes, dict]:
+    """Build a payload. Returns (file bytes, manifest group entry without 'file')."""
+    parts: list[np.ndarray] = []
+    sections = []
+    offset = 0
+    gpu_bytes = 0
+
+    def add(name: str, blob: np.ndarray, element: int, extra: dict) -> None:
+        nonlocal offset
+        filt = _filter_for(element) if shuffle else "none"
+        data = shuffle_bytes(blob, element) if filt != "none" else blob
+        pad = (-offset) % ALIGN
+        if pad:
+            parts.append(np.zeros(pad, np.uint8))
+            offset += pad
+        sections.append({"name": name, "offset": offset, "size": int(data.size), "filter": filt, **extra})
+        parts.append(data)
+        offset += data.size
+
+    for p in planes:
+        fmt = get_format(p.format)
+        add(p.spec.name, p.texels, fmt.shuffle, {"kind": "texels", "format": p.format, "width": p.width,
+                                                 "height": p.height, "layers": p.spec.layers})
+        gpu_bytes += p.texels.size
+        if p.ranges is not None:
+            r = np.ascontiguousarray(p.ranges)
+            add(p.spec.name + ".range", r.reshape(-1).view(np.uint8), r.dtype.itemsize,
+                {"kind": "range", "dtype": "f32" if r.dtype.itemsize == 4 else "f16", "shape": list(r.shape)})
+            gpu_bytes += r.nbytes
+    raw = np.concatenate(parts) if parts else np.zeros(0, np.uint8)
+    compressed = zstandard.ZstdCompressor(level=level, threads=-1, write_content_size=True).compress(raw.tobytes())
+    entry = {"sha256": sha256_hex(compressed), "bytes": len(compressed), "raw_bytes": int(raw.size),
+             "gpu_bytes": int(gpu_bytes), "sections": sections}
+    return compressed, entry
+
+
+def verify_payload(data: bytes, entry: dict, source: str) -> None:
+    if len(data) != entry["bytes"]:
+        raise FormatError(source, "bytes", f"payload is {len(data)} bytes, the manifest says {entry['bytes']}")
+    if sha256_hex(data) != entry["sha256"]:
+        raise FormatError(source, "sha256", "checksum mismatch: the payload is corrupt or was replaced")
+
+
+def unpack_group(data: bytes, entry: dict, group: str, splats: int, source: str) -> dict[str, EncodedPlane]:
+    """Decompress and parse a payload into planes, checking every size against the manifest."""
+    raw_size = entry.get("raw_bytes")
+    if not isinstance(raw_size, int) or not 0 <= raw_size <= MAX_PAYLOAD_RAW_BYTES:
+        raise FormatError(source, "raw_bytes", f"expected an integer 0..{MAX_PAYLOAD_RAW_BYTES}, got {raw_size!r}")
+    try:
+        raw = zstandard.ZstdDecompressor().decompress(data, max_output_size=raw_size)
+    except zstandard.ZstdError as exc:
+        raise FormatError(source, None, f"not a valid zstd payload ({exc})") from None
+    if len(raw) != raw_size:
+        raise FormatError(source, "raw_bytes", f"payload decompresses to {len(raw)} bytes, expected {raw_size}")
+    buf = np.frombuffer(raw, np.uint8)
+    sections = {s["name"]: s for s in entry["sections"]}
+    planes: dict[str, EncodedPlane] = {}
+    for spec in group_planes(group):
+        planes[spec.name] = _read_plane(buf, sections, spec, splats, source)
+    return planes
+
+
+def _section(buf: np.ndarray, sections: dict, name: str, source: str) -> tuple[dict, np.ndarray]:
+    s = sections.get(name)
+    if s is None:
+        raise FormatError(source, f"section {name}", "missing from the manifest entry")
+    off, size = s.get("offset"), s.get("size")
+    if not (isinstance(off, int) and isinstance(size, int) and 0 <= off and off + size <= buf.size):
+        raise FormatError(source, f"section {name}", f"offset {off!r} + size {size!r} outside the {buf.size}-byte "
+                          "payload")
+    try:
+        element = _element_of(s.get("filter", "none"))
+    except ValueError:
+        raise FormatError(source, f"section {name}.filter", f"unknown filter {s.get('filter')!r} "
+                          "(expected none or shuffleN)") from None
+    return s, unshuffle_bytes(buf[off:off + size], element)
+
+
+def _read_plane(buf: np.ndarray, sections: dict, spec: PlaneSpec, splats: int, source: str) -> EncodedPlane:
+    s, texels = _section(buf, sections, spec.name, source)
+    try:
+        fmt = get_format(s.get("format"))
+    except Exception:
+        raise FormatError(source, f"section {spec.name}.format", f"unknown texel format {s.get('format')!r}") from None
+    width, height, layers = s.get("width"), s.get("height"), s.get("layers")
+    chunks = max(1, -(-splats // 256))
+    if not (isinstance(width, int) and isinstance(height, int) and width % 16 == 0 and height % 16 == 0
+            and width > 0 and height > 0 and (width // 16) * (height // 16) >= chunks):
+        raise FormatError(source, f"section {spec.name}", f"texture {width}x{height} cannot hold {chunks} chunks")
+    if layers != spec.layers or texels.size != blob_size(fmt, width, height, layers):
+        raise FormatError(source, f"section {spec.name}", f"{texels.size} bytes for {layers} layers of {width}x"
+                          f"{height} {fmt.name}, expected {spec.layers} layers")
+    ranges = None
+    if spec.range_dtype:
+        r, data = _section(buf, sections, spec.name + ".range", source)
+        dtype = np.dtype("<f4" if r.get("dtype") == "f32" else "<f2")
+        shape = (chunks, 2, spec.layers, spec.components)
+        if list(r.get("shape", [])) != list(shape) or data.size != int(np.prod(shape)) * dtype.itemsize:
+            raise FormatError(source, f"section {spec.name}.range", f"shape {r.get('shape')!r}, expected {list(shape)}")
+        ranges = data.view(dtype).reshape(shape)
+        if not np.isfinite(ranges).all():
+            raise FormatError(source, f"section {spec.name}.range", "non-finite range values")
+    return EncodedPlane(spec, fmt.name, width, height, texels, ranges)

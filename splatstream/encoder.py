@@ -1,0 +1,255 @@
+"""`splatstream encode`: Gaussians -> scene directory (manifest + content-addressed payloads).
+
+The encoder wires the pure pieces together: LOD tiles (lod.py), Morton order (layout.py), quantisation
+(codec.py), payload packing (container.py) and the manifest (manifest.py). Output goes to a temporary
+directory that replaces the target only when everything is written.
+"""
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import __version__
+from .atomic import atomic_directory
+from .codec import BASE_PLANES, band_plane, encode_plane, groups_for_degree, plane_values
+from .container import pack_group
+from .errors import UsageError
+from .gaussians import Gaussians
+from .layout import CHUNK_SIZE, morton_order, texture_size
+from .manifest import DATA_DIR, FORMAT_NAME, FORMAT_VERSION, MANIFEST_NAME, pack_manifest, payload_name
+from .texformats import FORMATS, get_format
+
+ATTRIBUTES = ("position", "rotation", "scale", "color", "sh")
+
+# Texel format per attribute. The seed's table (Very High .. Very Low) is the baseline these must beat.
+PRESETS: dict[str, dict[str, str]] = {
+    "very-high": {"position": "f32x4", "rotation": "f32x4", "scale": "f32x4", "color": "f32x4", "sh": "f32x4"},
+    "high": {"position": "f16x4", "rotation": "norm10_2", "scale": "norm11", "color": "f16x4", "sh": "norm11"},
+    "medium": {"position": "norm11", "rotation": "norm10_2", "scale": "norm11", "color": "norm8x4", "sh": "norm565"},
+    "low": {"position": "norm11", "rotation": "norm10_2", "scale": "norm565", "color": "bc7", "sh": "bc1"},
+    "very-low": {"position": "bc7", "rotation": "bc7", "scale": "bc7", "color": "bc7", "sh": "bc1"},
+}
+DEFAULT_PRESET = "medium"
+
+Progress = Callable[[str, float], None]
+
+
+@dataclass
+class EncodeOptions:
+    preset: str = DEFAULT_PRESET
+    overrides: dict[str, str] = field(default_factory=dict)
+    sh_degree: int | None = None  # drop bands above this
+    zstd_level: int = 9
+    shuffle: bool = True
+    lod: bool = True
+    max_leaf_splats: int = 65536
+    reduction: float = 4.0
+    name: str | None = None
+    up: tuple[float, float, float] | None = None
+
+
+def resolve_formats(preset: str, overrides: dict[str, str]) -> dict[str, str]:
+    if preset not in PRESETS:
+        raise UsageError(f"unknown preset {preset!r} (choose one of {', '.join(PRESETS)})")
+    formats = dict(PRESETS[preset])
+    for attr, fmt in overrides.items():
+        if attr not in ATTRIBUTES:
+            raise UsageError(f"unknown attribute {attr!r} in a format override (expected one of "
+                             f"{', '.join(ATTRIBUTES)})")
+        get_format(fmt)
+        if attr == "color" and FORMATS[fmt].components < 4:
+            raise UsageError(f"color holds SH0 and opacity and needs a 4-component format; {fmt} has 3 "
+                             f"(use one of {', '.join(n for n, f in FORMATS.items() if f.components == 4)})")
+        formats[attr] = fmt
+    return formats
+
+
+def extent_bounds(g: Gaussians, sigmas: float = 3.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Box and bounding sphere of the splats' `sigmas`-sigma extents (largest axis, rotation-free bound)."""
+    if len(g) == 0:
+        z = np.zeros(3)
+        return z, z, z, 0.0
+    r = sigmas * np.exp(g.log_scales.max(axis=1).astype(np.float64))
+    p = g.positions.astype(np.float64)
+    lo = (p - r[:, None]).min(axis=0)
+    hi = (p + r[:, None]).max(axis=0)
+    center = (lo + hi) / 2
+    radius = float((np.linalg.norm(p - center, axis=1) + r).max())
+    return lo, hi, center, radius
+
+
+@dataclass
+class _TileToEncode:
+    id: int
+    level: int
+    children: list[int]
+    gaussians: Gaussians
+    geometric_error: float
+    box_min: np.ndarray
+    box_max: np.ndarray
+    sphere_center: np.ndarray
+    sphere_radius: float
+
+
+def _build_tiles(g: Gaussians, opts: EncodeOptions, progress: Progress) -> list:
+    if opts.lod and len(g) > opts.max_leaf_splats:
+        from .lod import build_tiles
+
+        return build_tiles(g, max_leaf_splats=opts.max_leaf_splats, reduction=opts.reduction, progress=progress)
+    lo, hi, c, r = extent_bounds(g)
+    return [_TileToEncode(0, 0, [], g, 0.0, lo, hi, c, r)]
+
+
+def _suggested_camera(g: Gaussians, up: np.ndarray) -> dict:
+    try:
+        from .camera import suggested_camera
+
+        cam = suggested_camera(g.positions, up=tuple(float(u) for u in up))
+        return {"eye": [float(v) for v in cam.eye], "target": [float(v) for v in cam.target],
+                "up": [float(v) for v in cam.up], "fov_y": float(cam.fov_y_deg)}
+    except ImportError:
+        c = np.median(g.positions, axis=0)
+        side = float(np.percentile(np.abs(g.positions - c), 95)) or 1.0
+        eye = c + np.array([-side, -side, 0.6 * side]) * 2
+        return {"eye": eye.tolist(), "target": c.tolist(), "up": up.tolist(), "fov_y": 50.0}
+
+
+def encode_tile_groups(g: Gaussians, formats: dict[str, str], sh_degree: int, opts: EncodeOptions):
+    """Encode one tile (already Morton-ordered): yields (group name, payload bytes, group entry)."""
+    for group in groups_for_degree(sh_degree):
+        specs = BASE_PLANES if group == "base" else (band_plane(int(group[2:])),)
+        planes = [encode_plane(plane_values(g, s), s, formats[s.attribute]) for s in specs]
+        data, entry = pack_group(planes, level=opts.zstd_level, shuffle=opts.shuffle)
+        yield group, data, entry
+
+
+def encode_gaussians(g: Gaussians, out_dir: str | os.PathLike, opts: EncodeOptions | None = None,
+                     progress: Progress | None = None, source_name: str | None = None) -> dict:
+    """Encode Gaussians into a scene directory; returns the manifest written."""
+    opts = opts or EncodeOptions()
+    progress = progress or (lambda stage, fraction: None)
+    formats = resolve_formats(opts.preset, opts.overrides)
+    if len(g) == 0:
+        raise UsageError("the input holds no splats; nothing to encode")
+    sh_degree = g.sh_degree if opts.sh_degree is None else min(opts.sh_degree, g.sh_degree)
+    if sh_degree != g.sh_degree:
+        g = g.with_sh_degree(sh_degree)
+    t0 = time.perf_counter()
+    progress("tiles", 0.0)
+    tiles = _build_tiles(g, opts, progress)
+    progress("tiles", 1.0)
+    up = np.array(opts.up if opts.up is not None else (0.0, 0.0, 1.0), np.float64)
+    total_splats = sum(len(t.gaussians) for t in tiles)
+    out_dir = os.fspath(out_dir)
+    tile_entries = []
+    attr_gpu = dict.fromkeys(ATTRIBUTES, 0)
+    attr_disk = dict.fromkeys(ATTRIBUTES, 0)
+    bytes_on_disk = 0
+    leaf_gpu = 0
+    leaf_disk = 0
+    done = 0
+    with atomic_directory(out_dir) as tmp:
+        os.makedirs(os.path.join(tmp, DATA_DIR))
+        written: set[str] = set()
+
+        def encode_one(tile):
+            order = morton_order(tile.gaussians.positions)
+            tg = tile.gaussians.subset(order)
+            return tile, list(encode_tile_groups(tg, formats, sh_degree, opts))
+
+        # Tiles are independent; numpy, zstd and etcpak release the GIL, so two workers keep both cores busy.
+        with ThreadPoolExecutor(max_workers=min(2, os.cpu_count() or 1)) as pool:
+            for tile, groups in pool.map(encode_one, tiles):
+                n = len(tile.gaussians)
+                chunks = -(-n // CHUNK_SIZE)
+                width, height = texture_size(chunks)
+                group_entries = {}
+                for group, data, entry in groups:
+                    rel = payload_name(entry["sha256"])
+                    if rel not in written:
+                        with open(os.path.join(tmp, rel), "wb") as f:
+                            f.write(data)
+                        written.add(rel)
+                        bytes_on_disk += len(data)
+                    entry = {"file": rel, **entry}
+                    group_entries[group] = entry
+                    attrs = [p.attribute for p in BASE_PLANES] if group == "base" else ["sh"]
+                    # Per-attribute sizes: GPU exactly per section; disk shared out by raw size.
+                    for sec in entry["sections"]:
+                        attr = "sh" if sec["name"].startswith("sh") else sec["name"].split(".")[0]
+                        if attr in attrs:
+                            attr_gpu[attr] += sec["size"] if not tile.children else 0
+                            attr_disk[attr] += len(data) * sec["size"] / max(1, entry["raw_bytes"])
+                    if not tile.children:
+                        leaf_gpu += entry["gpu_bytes"]
+                        leaf_disk += len(data)
+                tile_entries.append({
+                    "id": int(tile.id), "level": int(tile.level), "children": [int(c) for c in tile.children],
+                    "splats": n, "chunks": chunks, "texture": [width, height],
+                    "box": {"min": [float(v) for v in tile.box_min], "max": [float(v) for v in tile.box_max]},
+                    "sphere": {"center": [float(v) for v in tile.sphere_center], "radius": float(tile.sphere_radius)},
+                    "geometric_error": float(tile.geometric_error),
+                    "groups": group_entries,
+                })
+                done += n
+                progress("encode", done / total_splats)
+        tile_entries.sort(key=lambda t: t["id"])
+        leaf_splats = sum(t["splats"] for t in tile_entries if not t["children"])
+        lo = g.positions.min(axis=0)
+        hi = g.positions.max(axis=0)
+        root = tile_entries[0]
+        manifest = {
+            "format": FORMAT_NAME,
+            "version": list(FORMAT_VERSION),
+            "generator": f"splatstream {__version__}",
+            "name": opts.name or (os.path.splitext(os.path.basename(source_name))[0] if source_name else
+                                  os.path.basename(os.path.abspath(out_dir))),
+            "splats": len(g),
+            "leaf_splats": leaf_splats,
+            "sh_degree": sh_degree,
+            "preset": opts.preset,
+            "formats": formats,
+            "chunk_size": CHUNK_SIZE,
+            "bounds": {"min": [float(v) for v in lo], "max": [float(v) for v in hi]},
+            "extent_bounds": root["box"],
+            "up": [float(v) for v in up],
+            "camera": _suggested_camera(g, up),
+            "lod": {"enabled": len(tiles) > 1, "max_leaf_splats": opts.max_leaf_splats,
+                    "reduction": opts.reduction, "refine": "replace"},
+            "root": 0,
+            "tiles": tile_entries,
+            "gpu_bytes": int(leaf_gpu),
+            "gpu_bytes_per_splat": leaf_gpu / len(g),
+            "leaf_bytes_on_disk": int(leaf_disk),
+            "attributes": {a: {"format": formats[a], "gpu_bytes": int(attr_gpu[a]), "disk_bytes": int(attr_disk[a])}
+                           for a in ATTRIBUTES if a != "sh" or sh_degree > 0},
+            "encode_seconds": round(time.perf_counter() - t0, 3),
+        }
+        raw_manifest = pack_manifest(manifest)
+        # bytes_on_disk counts the manifest too; its own size changes the msgpack length, so settle it twice.
+        for _ in range(2):
+            manifest["bytes_on_disk"] = bytes_on_disk + len(raw_manifest)
+            raw_manifest = pack_manifest(manifest)
+        with open(os.path.join(tmp, MANIFEST_NAME), "wb") as f:
+            f.write(raw_manifest)
+    return manifest
+
+
+def encode_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, preset: str = DEFAULT_PRESET,
+                drop_invalid: bool = False, progress: Progress | None = None, **options) -> dict:
+    """Read any supported splat file and encode it into `out_dir`."""
+    from .io import read_gaussians
+
+    opts = EncodeOptions(preset=preset, **options)
+    resolve_formats(opts.preset, opts.overrides)  # fail before the (possibly long) read
+    if progress:
+        progress("read", 0.0)
+    g = read_gaussians(input_path, drop_invalid=drop_invalid)
+    if progress:
+        progress("read", 1.0)
+    return encode_gaussians(g, out_dir, opts, progress, source_name=os.fspath(input_path))
