@@ -15,8 +15,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .gaussians import SH_BAND_COEFFS, Gaussians, logit, normalize_quaternions, sigmoid
-from .layout import CHUNK_SIZE, chunks_to_image, image_to_chunks, texture_size
-from .texformats import decode_image, encode_image, get_format
+from .layout import CHUNK_SIZE, chunk_texel_index, texture_size
+from .texformats import TEXEL_DTYPES, decode_image, encode_bc_image, get_format, pack_texels, unpack_texels
 
 SQRT2 = math.sqrt(2.0)
 # Opacity is stored after the sigmoid; decoding takes the logit of a value clamped to this interval.
@@ -180,6 +180,7 @@ def chunk_ranges(values: np.ndarray, range_dtype: str) -> tuple[np.ndarray, np.n
 
 def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str) -> EncodedPlane:
     """Quantise (N, L, C) plane values into a texture blob (+ per-chunk ranges)."""
+    fmt = get_format(fmt_name)
     n = len(values)
     chunks = max(1, -(-n // CHUNK_SIZE))
     width, height = texture_size(chunks)
@@ -196,32 +197,47 @@ def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str) -> EncodedP
         ranges = np.stack([lo, hi], axis=1).astype(spec.range_dtype)
     else:
         t = _pad_to_chunks(encode_rotations(values[:, 0], fmt_name)).reshape(chunks, CHUNK_SIZE, 1, 4)
+    t = t.reshape(chunks * CHUNK_SIZE, spec.layers, t.shape[-1])
+    dest = chunk_texel_index(chunks, width)
     blobs = []
     for layer in range(spec.layers):
-        t4 = np.zeros((chunks, CHUNK_SIZE, 4), np.float32)
-        t4[..., : t.shape[-1]] = t[:, :, layer]
-        blobs.append(encode_image(fmt_name, chunks_to_image(t4, width, height)))
+        tl = t[:, layer]
+        if tl.shape[1] < 4:
+            tl = np.concatenate([tl, np.zeros((len(tl), 4 - tl.shape[1]), np.float32)], axis=1)
+        if fmt.block == 1:
+            texels = pack_texels(fmt_name, tl)
+            img = np.zeros((width * height,) + texels.shape[1:], texels.dtype)
+            img[dest] = texels
+            blobs.append(img.reshape(-1).view(np.uint8))
+        else:
+            img = np.zeros((width * height, 4), np.uint8)
+            img[dest] = np.rint(tl * 255.0).astype(np.uint8)
+            blobs.append(encode_bc_image(fmt_name, img.reshape(height, width, 4)))
     return EncodedPlane(spec, fmt_name, width, height, np.concatenate(blobs), ranges)
 
 
 def decode_plane(plane: EncodedPlane, n: int) -> np.ndarray:
     """Texture blob (+ ranges) back to (N, L, C) float32 plane values."""
     spec = plane.spec
+    fmt = get_format(plane.format)
     chunks = max(1, -(-n // CHUNK_SIZE))
     layer_bytes = plane.texels.size // spec.layers
+    src = chunk_texel_index(chunks, plane.width)[:n]
     ts = []
     for layer in range(spec.layers):
         blob = plane.texels[layer * layer_bytes:(layer + 1) * layer_bytes]
-        img = decode_image(plane.format, blob, plane.width, plane.height)
-        ts.append(image_to_chunks(img, chunks))
-    t = np.stack(ts, axis=2)  # (chunks, 256, L, 4)
+        if fmt.block == 1:
+            texels = np.frombuffer(blob, TEXEL_DTYPES[fmt.name])
+            ts.append(unpack_texels(fmt.name, texels[src]))
+        else:
+            ts.append(decode_image(fmt.name, blob, plane.width, plane.height).reshape(-1, 4)[src])
+    t = np.stack(ts, axis=1)  # (N, L, 4)
     if not spec.range_dtype:
-        q = decode_rotations(t.reshape(-1, 4)[:n], plane.format)
-        return q[:, None, :]
-    lo = plane.ranges[:, 0].astype(np.float32)
-    hi = plane.ranges[:, 1].astype(np.float32)
-    v = lo[:, None] + t[..., : spec.components] * (hi - lo)[:, None]
-    return v.reshape(chunks * CHUNK_SIZE, spec.layers, spec.components)[:n].astype(np.float32)
+        return decode_rotations(t[:, 0], plane.format)[:, None, :]
+    chunk = np.arange(n) // CHUNK_SIZE
+    lo = plane.ranges[:, 0].astype(np.float32)[chunk]
+    hi = plane.ranges[:, 1].astype(np.float32)[chunk]
+    return (lo + t[..., : spec.components] * (hi - lo)).astype(np.float32)
 
 
 def assemble_gaussians(planes: dict[str, np.ndarray], sh_degree: int) -> Gaussians:

@@ -119,15 +119,6 @@ def _suggested_camera(g: Gaussians, up: np.ndarray) -> dict:
         return {"eye": eye.tolist(), "target": c.tolist(), "up": up.tolist(), "fov_y": 50.0}
 
 
-def encode_tile_groups(g: Gaussians, formats: dict[str, str], sh_degree: int, opts: EncodeOptions):
-    """Encode one tile (already Morton-ordered): yields (group name, payload bytes, group entry)."""
-    for group in groups_for_degree(sh_degree):
-        specs = BASE_PLANES if group == "base" else (band_plane(int(group[2:])),)
-        planes = [encode_plane(plane_values(g, s), s, formats[s.attribute]) for s in specs]
-        data, entry = pack_group(planes, level=opts.zstd_level, shuffle=opts.shuffle)
-        yield group, data, entry
-
-
 def encode_gaussians(g: Gaussians, out_dir: str | os.PathLike, opts: EncodeOptions | None = None,
                      progress: Progress | None = None, source_name: str | None = None) -> dict:
     """Encode Gaussians into a scene directory; returns the manifest written."""
@@ -157,14 +148,26 @@ def encode_gaussians(g: Gaussians, out_dir: str | os.PathLike, opts: EncodeOptio
         os.makedirs(os.path.join(tmp, DATA_DIR))
         written: set[str] = set()
 
-        def encode_one(tile):
-            order = morton_order(tile.gaussians.positions)
-            tg = tile.gaussians.subset(order)
-            return tile, list(encode_tile_groups(tg, formats, sh_degree, opts))
+        def order_tile(tile):
+            tile.gaussians = tile.gaussians.subset(morton_order(tile.gaussians.positions))
+            return tile
 
-        # Tiles are independent; numpy, zstd and etcpak release the GIL, so two workers keep both cores busy.
+        group_names = groups_for_degree(sh_degree)
+
+        def encode_group(job):
+            tile, group = job
+            specs = BASE_PLANES if group == "base" else (band_plane(int(group[2:])),)
+            planes = [encode_plane(plane_values(tile.gaussians, s), s, formats[s.attribute]) for s in specs]
+            return pack_group(planes, level=opts.zstd_level, shuffle=opts.shuffle)
+
+        # Tiles and groups are independent; numpy, zstd and etcpak release the GIL, so two workers keep both
+        # cores busy. Results come back in submission order, so the output is deterministic.
         with ThreadPoolExecutor(max_workers=min(2, os.cpu_count() or 1)) as pool:
-            for tile, groups in pool.map(encode_one, tiles):
+            tiles = list(pool.map(order_tile, tiles))
+            jobs = [(tile, group) for tile in tiles for group in group_names]
+            results = iter(pool.map(encode_group, jobs))
+            for tile in tiles:
+                groups = [(group, *next(results)) for group in group_names]
                 n = len(tile.gaussians)
                 chunks = -(-n // CHUNK_SIZE)
                 width, height = texture_size(chunks)

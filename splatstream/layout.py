@@ -113,3 +113,9 @@ def image_to_chunks(img: np.ndarray, chunks: int) -> np.ndarray:
     out = np.empty((chunks, CHUNK_SIZE, c), img.dtype)
     out[:, _BLOCK_TO_INDEX] = grid[:chunks]
     return out
+
+
+def chunk_texel_index(chunks: int, width: int) -> np.ndarray:
+    """Flat texel index (y * width + x) of every splat slot 0..chunks*256-1, in splat order."""
+    x, y = texel_coords(chunks * CHUNK_SIZE, width)
+    return y.astype(np.int64) * width + x

@@ -159,18 +159,25 @@ def read_elements(path: str | os.PathLike, header: PlyHeader | None = None) -> t
     return header, out
 
 
-def _columns(path: str, arr: np.ndarray, names: list[str]) -> np.ndarray:
-    """(N, len(names)) float32 matrix of the named columns of a structured array."""
+def _column_reader(arr: np.ndarray):
+    """Function name-list -> (N, len) float32 matrix of those columns of a structured array.
+
+    When every property is float32 little-endian the records are a plain float matrix and each output is
+    one fancy-index gather from it (no intermediate copy of the whole table: keeps peak memory low).
+    """
     fields = arr.dtype.fields
-    if all(fields[n][0] == np.dtype("<f4") for n in names) and len(set(fields[n][0] for n in fields)) == 1:
-        # Fast path: every property is float32 LE, so the records are a plain float matrix.
-        all_names = list(arr.dtype.names)
+    all_names = list(arr.dtype.names)
+    if all(f[0] == np.dtype("<f4") for f in fields.values()):
         mat = arr.view("<f4").reshape(len(arr), len(all_names))
-        return mat[:, [all_names.index(n) for n in names]]
-    out = np.empty((len(arr), len(names)), np.float32)
-    for i, n in enumerate(names):
-        out[:, i] = arr[n]
-    return out
+        return lambda names: mat[:, [all_names.index(n) for n in names]]
+
+    def gather(names: list[str]) -> np.ndarray:
+        out = np.empty((len(arr), len(names)), np.float32)
+        for i, n in enumerate(names):
+            out[:, i] = arr[n]
+        return out
+
+    return gather
 
 
 def read_gaussians_ply(path: str | os.PathLike, drop_invalid: bool = False) -> Gaussians:
@@ -195,17 +202,29 @@ def read_gaussians_ply(path: str | os.PathLike, drop_invalid: bool = False) -> G
     if rest != [f"f_rest_{i}" for i in range(n_rest)]:
         raise InputError(path, "element vertex", f"f_rest_* properties must be numbered 0..{n_rest - 1}")
     _, elements = read_elements(path, header)
-    arr = elements["vertex"]
-    wanted = REQUIRED + rest
-    mat = _columns(path, arr, wanted)
-    finite = np.isfinite(mat)
-    bad_rows = ~finite.all(axis=1)
-    n = len(mat)
-    col = {name: i for i, name in enumerate(wanted)}
-    q = mat[:, [col["rot_0"], col["rot_1"], col["rot_2"], col["rot_3"]]]
+    columns = _column_reader(elements.pop("vertex"))
+    groups = {
+        "positions": ["x", "y", "z"], "sh_dc": ["f_dc_0", "f_dc_1", "f_dc_2"], "opacity_logits": ["opacity"],
+        "log_scales": ["scale_0", "scale_1", "scale_2"], "rotations": ["rot_0", "rot_1", "rot_2", "rot_3"],
+        # Coefficient-major, channels last, so the gathered matrix reshapes to (N, K, 3) without a copy.
+        "sh_rest": [f"f_rest_{c * (n_rest // 3) + j}" for j in range(n_rest // 3) for c in range(3)],
+    }
+    values = {k: columns(v) for k, v in groups.items()}
+    del columns  # drops the raw records
+    n = len(values["positions"])
+    bad_rows = np.zeros(n, bool)
+    per_field: dict[str, int] = {}
+    for key, cols in groups.items():
+        finite = np.isfinite(values[key])
+        if not finite.all():
+            for i, name in enumerate(cols):
+                bad = int((~finite[:, i]).sum())
+                if bad:
+                    per_field[name] = bad
+            bad_rows |= ~finite.all(axis=1)
+    q = values["rotations"]
     zero_q = ~bad_rows & ~(np.abs(q) > 0).any(axis=1)
     if bad_rows.any():
-        per_field = {name: int((~finite[:, i]).sum()) for i, name in enumerate(wanted) if not finite[:, i].all()}
         detail = ", ".join(f"{k}: {v}" for k, v in per_field.items())
         msg = f"{int(bad_rows.sum())} of {n} splats have non-finite values (NaN or inf) ({detail})"
         if not drop_invalid:
@@ -218,16 +237,16 @@ def read_gaussians_ply(path: str | os.PathLike, drop_invalid: bool = False) -> G
         warnings.warn(f"{path}: {msg}; dropped", stacklevel=2)
     keep = ~(bad_rows | zero_q)
     if not keep.all():
-        mat = mat[keep]
-        q = q[keep]
+        values = {k: v[keep] for k, v in values.items()}
     k = n_rest // 3
-    sh_rest = mat[:, 14:14 + n_rest].reshape(len(mat), 3, k).transpose(0, 2, 1) if k else np.zeros((len(mat), 0, 3))
+    m = len(values["positions"])
+    sh_rest = values["sh_rest"].reshape(m, k, 3)
     return Gaussians(
-        positions=mat[:, 0:3],
-        rotations=normalize_quaternions(q),
-        log_scales=mat[:, 7:10],
-        opacity_logits=mat[:, 6],
-        sh_dc=mat[:, 3:6],
+        positions=values["positions"],
+        rotations=normalize_quaternions(values["rotations"]),
+        log_scales=values["log_scales"],
+        opacity_logits=values["opacity_logits"][:, 0],
+        sh_dc=values["sh_dc"],
         sh_rest=sh_rest,
     )
 

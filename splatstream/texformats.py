@@ -78,30 +78,74 @@ def _bc_module():
     return etcpak, texture2ddecoder
 
 
+TEXEL_DTYPES = {
+    "f32x4": np.dtype(("<f4", 4)), "f16x4": np.dtype(("<f2", 4)), "norm10_2": np.dtype("<u4"),
+    "norm11": np.dtype("<u4"), "norm8x4": np.dtype((np.uint8, 4)), "norm565": np.dtype("<u2"),
+}
+
+
+def pack_texels(fmt_name: str, t: np.ndarray) -> np.ndarray:
+    """(M, 4) normalised values -> (M,) texels (non-BC formats), in the same order."""
+    fmt = get_format(fmt_name)
+    if fmt.name == "f32x4":
+        return np.ascontiguousarray(t, dtype="<f4")
+    if fmt.name == "f16x4":
+        return np.clip(t, 0.0, 1.0).astype("<f2")
+    if fmt.name == "norm10_2":
+        return (_q(t[:, 0], 1023) | (_q(t[:, 1], 1023) << 10) | (_q(t[:, 2], 1023) << 20)
+                | (_q(t[:, 3], 3) << 30)).astype("<u4")
+    if fmt.name == "norm11":
+        return (_q(t[:, 0], 2047) | (_q(t[:, 1], 1023) << 11) | (_q(t[:, 2], 2047) << 21)).astype("<u4")
+    if fmt.name == "norm8x4":
+        return _q(t, 255).astype(np.uint8)
+    if fmt.name == "norm565":
+        return (_q(t[:, 0], 31) | (_q(t[:, 1], 63) << 5) | (_q(t[:, 2], 31) << 11)).astype("<u2")
+    raise ValueError(f"{fmt.name} is a block format: use encode_image")
+
+
+def unpack_texels(fmt_name: str, texels: np.ndarray) -> np.ndarray:
+    """(M,) texels (as pack_texels returns them, or raw bytes) -> (M, 4) float32 normalised values."""
+    fmt = get_format(fmt_name)
+    if fmt.name in ("f32x4", "f16x4", "norm8x4"):
+        raw = np.frombuffer(np.ascontiguousarray(texels), TEXEL_DTYPES[fmt.name].base).reshape(-1, 4)
+        return raw / np.float32(255.0) if fmt.name == "norm8x4" else raw.astype(np.float32)
+    word = np.frombuffer(np.ascontiguousarray(texels), TEXEL_DTYPES[fmt.name]).astype(np.uint32)
+    out = np.zeros((word.size, 4), np.float32)
+    if fmt.name == "norm10_2":
+        out[:, 0] = (word & 1023) / 1023.0
+        out[:, 1] = ((word >> 10) & 1023) / 1023.0
+        out[:, 2] = ((word >> 20) & 1023) / 1023.0
+        out[:, 3] = (word >> 30) / 3.0
+    elif fmt.name == "norm11":
+        out[:, 0] = (word & 2047) / 2047.0
+        out[:, 1] = ((word >> 11) & 1023) / 1023.0
+        out[:, 2] = (word >> 21) / 2047.0
+    elif fmt.name == "norm565":
+        out[:, 0] = (word & 31) / 31.0
+        out[:, 1] = ((word >> 5) & 63) / 63.0
+        out[:, 2] = (word >> 11) / 31.0
+    else:
+        raise ValueError(f"{fmt.name} is a block format: use decode_image")
+    return out
+
+
 def encode_image(fmt_name: str, t: np.ndarray) -> np.ndarray:
     """Encode (H, W, 4) normalised values into the texture blob (uint8 array)."""
     fmt = get_format(fmt_name)
     h, w = t.shape[:2]
-    if fmt.name == "f32x4":
-        return np.ascontiguousarray(t, dtype="<f4").reshape(-1).view(np.uint8)
-    if fmt.name == "f16x4":
-        return np.ascontiguousarray(np.clip(t, 0.0, 1.0), dtype="<f2").reshape(-1).view(np.uint8)
-    if fmt.name == "norm10_2":
-        word = _q(t[..., 0], 1023) | (_q(t[..., 1], 1023) << 10) | (_q(t[..., 2], 1023) << 20) | (_q(t[..., 3], 3) << 30)
-        return word.astype("<u4").reshape(-1).view(np.uint8)
-    if fmt.name == "norm11":
-        word = _q(t[..., 0], 2047) | (_q(t[..., 1], 1023) << 11) | (_q(t[..., 2], 2047) << 21)
-        return word.astype("<u4").reshape(-1).view(np.uint8)
-    if fmt.name == "norm8x4":
-        return _q(t, 255).astype(np.uint8).reshape(-1)
-    if fmt.name == "norm565":
-        word = _q(t[..., 0], 31) | (_q(t[..., 1], 63) << 5) | (_q(t[..., 2], 31) << 11)
-        return word.astype("<u2").reshape(-1).view(np.uint8)
+    if fmt.block == 1:
+        return pack_texels(fmt.name, t.reshape(-1, 4)).reshape(-1).view(np.uint8)
+    return encode_bc_image(fmt.name, _q(t, 255).astype(np.uint8))
+
+
+def encode_bc_image(fmt_name: str, rgba: np.ndarray) -> np.ndarray:
+    """(H, W, 4) uint8 image -> BC1/BC7 blocks, row-major block order."""
     etcpak, _ = _bc_module()
+    h, w = rgba.shape[:2]
     if h % 4 or w % 4:
-        raise ValueError(f"{fmt.name}: image {w}x{h} is not a multiple of 4x4 blocks")
-    rgba = _q(t, 255).astype(np.uint8)
-    if fmt.name == "bc1":
+        raise ValueError(f"{fmt_name}: image {w}x{h} is not a multiple of 4x4 blocks")
+    if fmt_name == "bc1":
+        rgba = rgba.copy()
         rgba[..., 3] = 255
         return np.frombuffer(etcpak.compress_bc1(np.ascontiguousarray(rgba).tobytes(), w, h), np.uint8)
     return np.frombuffer(etcpak.compress_bc7(np.ascontiguousarray(rgba).tobytes(), w, h), np.uint8)
@@ -114,37 +158,12 @@ def decode_image(fmt_name: str, blob: np.ndarray | bytes, width: int, height: in
     expected = blob_size(fmt, width, height)
     if raw.size != expected:
         raise ValueError(f"{fmt.name}: blob of {raw.size} bytes for {width}x{height} texels, expected {expected}")
-    out = np.zeros((height, width, 4), np.float32)
-    if fmt.name == "f32x4":
-        return raw.view("<f4").reshape(height, width, 4).astype(np.float32)
-    if fmt.name == "f16x4":
-        return raw.view("<f2").reshape(height, width, 4).astype(np.float32)
-    if fmt.name == "norm10_2":
-        word = raw.view("<u4").reshape(height, width)
-        out[..., 0] = (word & 1023) / 1023.0
-        out[..., 1] = ((word >> 10) & 1023) / 1023.0
-        out[..., 2] = ((word >> 20) & 1023) / 1023.0
-        out[..., 3] = (word >> 30) / 3.0
-        return out
-    if fmt.name == "norm11":
-        word = raw.view("<u4").reshape(height, width)
-        out[..., 0] = (word & 2047) / 2047.0
-        out[..., 1] = ((word >> 11) & 1023) / 1023.0
-        out[..., 2] = (word >> 21) / 2047.0
-        return out
-    if fmt.name == "norm8x4":
-        return raw.reshape(height, width, 4) / np.float32(255.0)
-    if fmt.name == "norm565":
-        word = raw.view("<u2").reshape(height, width).astype(np.uint32)
-        out[..., 0] = (word & 31) / 31.0
-        out[..., 1] = ((word >> 5) & 63) / 63.0
-        out[..., 2] = (word >> 11) / 31.0
-        return out
+    if fmt.block == 1:
+        return unpack_texels(fmt.name, raw).reshape(height, width, 4)
     _, t2d = _bc_module()
     decode = t2d.decode_bc1 if fmt.name == "bc1" else t2d.decode_bc7
     bgra = np.frombuffer(decode(raw.tobytes(), width, height), np.uint8).reshape(height, width, 4)
-    out[..., :] = bgra[..., [2, 1, 0, 3]] / np.float32(255.0)
-    return out
+    return bgra[..., [2, 1, 0, 3]] / np.float32(255.0)
 
 
 def shuffle_bytes(blob: np.ndarray, element: int) -> np.ndarray:
