@@ -1,0 +1,264 @@
+"""The aiohttp application: routes, thin handlers, error and CORS handling (format_spec/http.md)."""
+from __future__ import annotations
+
+import asyncio
+import gzip
+import hashlib
+import json
+import logging
+import os
+import sys
+import time
+from collections.abc import Iterable
+from typing import TextIO
+
+from aiohttp import web
+from aiohttp.abc import AbstractAccessLogger
+
+from . import http as h
+from .paths import PathRejected, parse_scene_path
+from .scenes import NotFound, OpenedFile, SceneRoot
+
+log = logging.getLogger("splatstream.server")
+
+SERVER_NAME = "splatstream"
+CLIENT_MAX_SIZE = 1024  # request bodies: nothing we serve takes one
+HANDLER_LIMITS = {"max_line_size": 8190, "max_field_size": 8190, "max_headers": 64}
+SHUTDOWN_TIMEOUT = 30.0  # seconds in-flight responses get to finish after SIGTERM
+
+SCENE_ROOT = web.AppKey("scene_root", SceneRoot)
+CORS = web.AppKey("cors", "CorsPolicy")
+
+
+class CorsPolicy:
+    """Which Origins may read our responses. '*' allows every origin (no credentials are ever involved)."""
+
+    def __init__(self, origins: Iterable[str] = ()):
+        self.origins = frozenset(o.rstrip("/") for o in origins)
+        self.any = "*" in self.origins
+        self.enabled = bool(self.origins)
+
+    def allow(self, origin: str | None) -> str | None:
+        if origin is None or not self.enabled:
+            return None
+        if self.any:
+            return "*"
+        return origin if origin in self.origins else None
+
+
+# -- responses -----------------------------------------------------------------------------------------------------
+def json_response(request: web.Request, payload: object, *, status: int = 200, cache: str = h.CACHE_REVALIDATE,
+                  headers: dict[str, str] | None = None, etag: bool = False) -> web.Response:
+    body = json.dumps(payload, separators=(",", ":")).encode()
+    hdrs = {"Content-Type": f"{h.JSON_TYPE}; charset=utf-8", "Cache-Control": cache, "Vary": "Accept-Encoding"}
+    if headers:
+        hdrs.update(headers)
+    if etag:
+        # Weak: the same JSON goes out gzipped or not, so the tag names the content, not the bytes.
+        tag = h.weak_etag(hashlib.sha256(body).hexdigest()[:32])
+        hdrs["ETag"] = tag
+        if request.method in ("GET", "HEAD") and h.none_match(request.headers.get("If-None-Match"), tag):
+            return web.Response(status=304, headers=hdrs)
+    if len(body) >= h.GZIP_MIN_BYTES and h.accepts_gzip(request.headers.get("Accept-Encoding")):
+        body = gzip.compress(body, compresslevel=6, mtime=0)
+        hdrs["Content-Encoding"] = "gzip"
+    return web.Response(body=body, status=status, headers=hdrs)
+
+
+def error_response(request: web.Request, status: int, message: str,
+                   headers: dict[str, str] | None = None) -> web.Response:
+    return json_response(request, h.error_body(status, message), status=status, cache=h.CACHE_NONE, headers=headers)
+
+
+class SendfileResponse(web.StreamResponse):
+    """Sends `count` bytes of an open file from `offset` with sendfile(2); headers are set by the caller.
+
+    Never compressed (payloads are zstd already), Content-Length always known, the file closed when done.
+    """
+
+    def __init__(self, opened: OpenedFile, offset: int, count: int, *, status: int, headers: dict[str, str]):
+        super().__init__(status=status, headers=headers)
+        self.content_length = count
+        self._opened = opened
+        self._offset = offset
+        self._count = count
+        self._started = False
+
+    async def prepare(self, request):  # type: ignore[override]
+        if self._started:
+            return await super().prepare(request)
+        self._started = True
+        try:
+            writer = await super().prepare(request)
+            if request.method == "HEAD" or self._count == 0 or writer is None:
+                return writer
+            transport = request.transport
+            if transport is None:
+                raise ConnectionResetError("connection lost")
+            with os.fdopen(self._opened.fd, "rb", closefd=False) as fobj:
+                try:
+                    await asyncio.get_running_loop().sendfile(transport, fobj, self._offset, self._count)
+                except NotImplementedError:  # e.g. TLS transports
+                    offset, end = self._offset, self._offset + self._count
+                    while offset < end:
+                        chunk = os.pread(self._opened.fd, min(1 << 20, end - offset), offset)
+                        if not chunk:
+                            raise ConnectionResetError("file shrank while being sent") from None
+                        await writer.write(chunk)
+                        offset += len(chunk)
+            await super().write_eof()
+            return writer
+        finally:
+            self._opened.close()
+
+
+def file_response(request: web.Request, opened: OpenedFile, content_type: str, cache: str) -> web.StreamResponse:
+    """Conditional (If-Match, If-None-Match), range (Range, If-Range) and HEAD handling for one open file."""
+    etag = h.strong_etag(opened.etag_token)
+    headers = {"ETag": etag, "Cache-Control": cache, "Accept-Ranges": "bytes"}
+    size = opened.size
+    if not h.match(request.headers.get("If-Match"), etag):
+        opened.close()
+        return error_response(request, 412, "If-Match does not match the current ETag", headers)
+    if h.none_match(request.headers.get("If-None-Match"), etag):
+        opened.close()
+        return web.Response(status=304, headers=headers)
+    headers["Content-Type"] = content_type
+    status, offset, count = 200, 0, size
+    if request.method == "GET" and "Range" in request.headers and \
+            h.if_range_allows(request.headers.get("If-Range"), etag):
+        try:
+            rng = h.parse_range(request.headers["Range"], size)
+        except h.RangeNotSatisfiable:
+            opened.close()
+            headers["Content-Range"] = f"bytes */{size}"
+            del headers["Content-Type"]
+            return error_response(request, 416, f"range not satisfiable: the file has {size} bytes", headers)
+        if rng is not None:
+            status, offset, count = 206, rng.start, rng.length
+            headers["Content-Range"] = rng.content_range(size)
+    if opened.data is not None:
+        body = opened.data if count == size else opened.data[offset:offset + count]
+        opened.close()
+        return web.Response(body=body, status=status, headers=headers)
+    return SendfileResponse(opened, offset, count, status=status, headers=headers)
+
+
+# -- handlers ------------------------------------------------------------------------------------------------------
+async def scene_file(request: web.Request) -> web.StreamResponse:
+    sp = parse_scene_path(request.rel_url.raw_path)
+    opened = request.app[SCENE_ROOT].open(sp)
+    if sp.kind == "payload":
+        return file_response(request, opened, h.PAYLOAD_TYPE, h.CACHE_IMMUTABLE)
+    return file_response(request, opened, h.MANIFEST_TYPE, h.CACHE_REVALIDATE)
+
+
+async def list_scenes(request: web.Request) -> web.Response:
+    scenes = request.app[SCENE_ROOT].list_scenes()
+    return json_response(request, {"scenes": scenes}, etag=True)
+
+
+async def healthz(request: web.Request) -> web.Response:
+    return json_response(request, {"status": "ok"}, cache=h.CACHE_NONE)
+
+
+async def options(request: web.Request) -> web.Response:
+    """OPTIONS, including CORS preflight: CORS headers for allowed origins are added by `_on_prepare`."""
+    headers = {"Allow": h.ALLOWED_METHODS, "Cache-Control": h.CACHE_NONE}
+    policy: CorsPolicy = request.app[CORS]
+    method = request.headers.get("Access-Control-Request-Method")
+    if method is not None and policy.allow(request.headers.get("Origin")) and method in ("GET", "HEAD"):
+        headers.update({
+            "Access-Control-Allow-Methods": h.ALLOWED_METHODS,
+            "Access-Control-Allow-Headers": h.CORS_ALLOW_HEADERS,
+            "Access-Control-Max-Age": h.CORS_MAX_AGE,
+        })
+    return web.Response(status=204, headers=headers)
+
+
+# -- cross-cutting -------------------------------------------------------------------------------------------------
+@web.middleware
+async def errors_middleware(request: web.Request, handler) -> web.StreamResponse:
+    """Every error leaves as {"error": {"status", "message"}}; unexpected exceptions as a bare 500."""
+    try:
+        return await handler(request)
+    except PathRejected as exc:
+        return error_response(request, exc.status, exc.message)
+    except NotFound as exc:
+        return error_response(request, 404, str(exc))
+    except web.HTTPException as exc:
+        if exc.status < 400:
+            raise
+        headers = {}
+        if exc.status == 405:
+            headers["Allow"] = h.ALLOWED_METHODS
+            message = f"method {request.method} is not allowed here; allowed: {h.ALLOWED_METHODS}"
+        elif exc.status == 404:
+            message = "not found: scenes are under /scenes/<scene id>/, the scene list at /api/scenes"
+        else:
+            message = exc.reason
+        return error_response(request, exc.status, message, headers)
+    except (asyncio.CancelledError, ConnectionError):
+        raise
+    except Exception:
+        log.exception("unexpected error serving %s %s", request.method, request.path_qs[:200])
+        return error_response(request, 500, "internal server error")
+
+
+async def _on_prepare(request: web.Request, response: web.StreamResponse) -> None:
+    response.headers["Server"] = SERVER_NAME
+    policy: CorsPolicy = request.app[CORS]
+    if not policy.enabled:
+        return
+    if not policy.any:
+        vary = response.headers.get("Vary")
+        response.headers["Vary"] = f"{vary}, Origin" if vary else "Origin"
+    allowed = policy.allow(request.headers.get("Origin"))
+    if allowed:
+        response.headers["Access-Control-Allow-Origin"] = allowed
+        response.headers["Access-Control-Expose-Headers"] = h.CORS_EXPOSE_HEADERS
+
+
+def create_app(root: str | os.PathLike, cors_origins: Iterable[str] = ()) -> web.Application:
+    app = web.Application(middlewares=[errors_middleware], client_max_size=CLIENT_MAX_SIZE)
+    app[SCENE_ROOT] = SceneRoot(root)
+    app[CORS] = CorsPolicy(cors_origins)
+    app.on_response_prepare.append(_on_prepare)
+    for path, handler in (("/healthz", healthz), ("/api/scenes", list_scenes), ("/scenes/{tail:.+}", scene_file)):
+        app.router.add_get(path, handler)  # also HEAD
+        app.router.add_route("OPTIONS", path, options)
+    return app
+
+
+class AccessLog(AbstractAccessLogger):
+    """One line per request, Common Log Format plus the response time, written straight to a stream.
+
+    Cheaper than aiohttp's default logger (no logging.Logger, no format parsing per request); lines are
+    buffered and flushed at least every FLUSH_SECONDS.
+    """
+
+    FLUSH_SECONDS = 0.5
+    stream: TextIO = sys.stderr
+    _last_flush = 0.0
+
+    def log(self, request, response, duration: float) -> None:
+        now = time.time()
+        peer = request.remote or "-"
+        t = time.strftime("%d/%b/%Y:%H:%M:%S +0000", time.gmtime(now))
+        size = 0 if request.method == "HEAD" else (response.content_length or 0)
+        AccessLog.stream.write(f'{peer} - - [{t}] "{request.method} {request.path_qs[:512]} HTTP/'
+                               f'{request.version.major}.{request.version.minor}" {response.status} {size} '
+                               f'{duration:.6f}\n')
+        if now - AccessLog._last_flush >= self.FLUSH_SECONDS:
+            AccessLog._last_flush = now
+            AccessLog.stream.flush()
+
+    @property
+    def enabled(self) -> bool:
+        return self.logger is not None
+
+
+def create_runner(app: web.Application, access_log: bool = True,
+                  shutdown_timeout: float = SHUTDOWN_TIMEOUT) -> web.AppRunner:
+    return web.AppRunner(app, access_log_class=AccessLog, access_log=log if access_log else None,
+                         shutdown_timeout=shutdown_timeout, **HANDLER_LIMITS)

@@ -1,0 +1,137 @@
+"""Pure validation of request paths and scene ids (format_spec/http.md, "URLs").
+
+Works on the raw, still percent-encoded URL path, so encoded separators and double encoding can be told apart
+from ordinary characters. Nothing here touches the file system; `server.scenes` opens what this accepts and
+checks, on the opened file, that it lies inside the root.
+"""
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass
+
+from splatstream.manifest import DATA_DIR, MANIFEST_NAME, PAYLOAD_NAME_RE
+
+SCENES_PREFIX = "/scenes/"
+SEGMENT_RE = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9._-]*$")  # a scene-id segment: safe characters, no leading dot
+MAX_SCENE_DEPTH = 8  # segments in a scene id
+MAX_SEGMENT_CHARS = 255
+MAX_PATH_CHARS = 2048
+_HEX = frozenset("0123456789abcdefABCDEF")
+
+
+class PathRejected(ValueError):
+    """The path can never name a file this server serves; `status` is the HTTP status to answer with."""
+
+    def __init__(self, status: int, message: str):
+        super().__init__(message)
+        self.status = status
+        self.message = message
+
+
+@dataclass(frozen=True)
+class ScenePath:
+    scene_id: str  # "a/b": segments joined with "/"
+    rel: str  # path inside the scene directory: "manifest.msgpack" or "data/<sha256>.bin"
+    kind: str  # "manifest" or "payload"
+    sha256: str | None = None  # payloads: the content hash their name carries
+
+    @property
+    def segments(self) -> list[str]:
+        return self.scene_id.split("/") + self.rel.split("/")
+
+
+def percent_decode(raw: str) -> str:
+    """Decode %XX escapes once. Rejects what no file we serve can contain: encoded '/', '\\', '%' (double
+    encoding), NUL and other control characters, malformed escapes and non-ASCII bytes."""
+    if "%" not in raw:
+        decoded = raw
+    else:
+        out = []
+        i = 0
+        n = len(raw)
+        while i < n:
+            c = raw[i]
+            if c != "%":
+                out.append(c)
+                i += 1
+                continue
+            hx = raw[i + 1:i + 3]
+            if len(hx) != 2 or not set(hx) <= _HEX:
+                raise PathRejected(400, "malformed percent-encoding in the path")
+            ch = chr(int(hx, 16))
+            if ch in "/\\":
+                raise PathRejected(400, "encoded path separators (%2F, %5C) are not allowed")
+            if ch == "%":
+                raise PathRejected(400, "double percent-encoding (%25) is not allowed")
+            out.append(ch)
+            i += 3
+        decoded = "".join(out)
+    for ch in decoded:
+        o = ord(ch)
+        if o < 0x20 or o == 0x7F:
+            raise PathRejected(400, "control characters (NUL, ...) are not allowed in the path")
+        if o > 0x7E:
+            raise PathRejected(400, "non-ASCII characters are not allowed in the path")
+    if "\\" in decoded:
+        raise PathRejected(400, "backslashes are not allowed in the path")
+    return decoded
+
+
+def check_segment(seg: str) -> None:
+    if seg == "":
+        raise PathRejected(404, "empty path segment (directories are not listed)")
+    if seg in (".", ".."):
+        raise PathRejected(400, "'.' and '..' path segments are not allowed")
+    if seg.startswith("."):
+        raise PathRejected(404, "hidden names (leading '.') are never served")
+    if len(seg) > MAX_SEGMENT_CHARS or not SEGMENT_RE.match(seg):
+        raise PathRejected(400, f"path segments use only the characters A-Z a-z 0-9 . _ - (got {seg[:64]!r})")
+
+
+def parse_scene_path(raw_path: str) -> ScenePath:
+    """Split a raw request path '/scenes/<scene id>/<file>' into scene id and file.
+
+    Served files are exactly '<scene id>/manifest.msgpack' and '<scene id>/data/<sha256 hex>.bin'; anything
+    else under /scenes/ is 404 (no directory listing, no other files). Raises PathRejected.
+    """
+    if len(raw_path) > MAX_PATH_CHARS:
+        raise PathRejected(400, f"path longer than {MAX_PATH_CHARS} characters")
+    if not raw_path.startswith(SCENES_PREFIX):
+        raise PathRejected(404, "not under /scenes/")
+    if "\\" in raw_path:
+        raise PathRejected(400, "backslashes are not allowed in the path")
+    segments = raw_path[len(SCENES_PREFIX):].split("/")
+    decoded = [percent_decode(s) for s in segments]  # per segment: a decoded '/' never splits anything
+    for seg in decoded:
+        check_segment(seg)
+    if decoded[-1] == MANIFEST_NAME:
+        scene, rel, kind, sha = decoded[:-1], MANIFEST_NAME, "manifest", None
+    elif len(decoded) >= 2 and decoded[-2] == DATA_DIR and PAYLOAD_NAME_RE.match(decoded[-1]):
+        scene, rel, kind, sha = decoded[:-2], f"{DATA_DIR}/{decoded[-1]}", "payload", decoded[-1][:64]
+    else:
+        raise PathRejected(404, f"a scene serves only {MANIFEST_NAME} and {DATA_DIR}/<sha256>.bin")
+    if not scene:
+        raise PathRejected(404, "no scene id in the path")
+    if len(scene) > MAX_SCENE_DEPTH:
+        raise PathRejected(404, f"scene ids have at most {MAX_SCENE_DEPTH} segments")
+    return ScenePath("/".join(scene), rel, kind, sha)
+
+
+def is_valid_scene_id(scene_id: str) -> bool:
+    segs = scene_id.split("/")
+    if not 1 <= len(segs) <= MAX_SCENE_DEPTH:
+        return False
+    try:
+        for seg in segs:
+            check_segment(seg)
+    except PathRejected:
+        return False
+    return True
+
+
+def is_inside(path: str, root: str) -> bool:
+    """True when the resolved `path` lies strictly inside the resolved directory `root`."""
+    root = root.rstrip(os.sep) or os.sep
+    prefix = root if root == os.sep else root + os.sep
+    return path.startswith(prefix) and len(path) > len(prefix)

@@ -1,0 +1,174 @@
+"""Running the server: bind, optional pre-forked workers, graceful shutdown (`splatstream serve`)."""
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import errno
+import io
+import os
+import signal
+import socket
+import sys
+from collections.abc import Iterable
+
+from aiohttp import web
+
+from splatstream.manifest import MANIFEST_NAME
+
+from .app import SHUTDOWN_TIMEOUT, AccessLog, create_app, create_runner
+from .scenes import SceneRoot
+
+EXIT_OK = 0
+EXIT_ERROR = 1  # the port is taken, a worker died
+EXIT_BAD_ROOT = 2  # ROOT missing, not a directory, or holds no scene
+
+
+class ServeError(Exception):
+    def __init__(self, message: str, code: int):
+        super().__init__(message)
+        self.code = code
+
+
+def check_root(root: str) -> list[str]:
+    """The scene ids under `root`; ServeError when there is nothing to serve."""
+    if not os.path.exists(root):
+        raise ServeError(f"{root}: no such directory", EXIT_BAD_ROOT)
+    if not os.path.isdir(root):
+        raise ServeError(f"{root}: not a directory", EXIT_BAD_ROOT)
+    ids = [sid for sid, _ in SceneRoot(root).scan()]
+    if not ids:
+        hint = ""
+        if os.path.isfile(os.path.join(root, MANIFEST_NAME)):
+            hint = (f"; {root} is itself a scene directory: serve its parent and open it as "
+                    f"/scenes/{os.path.basename(os.path.abspath(root))}/{MANIFEST_NAME}")
+        raise ServeError(f"{root}: holds no scene (a scene is a directory with {MANIFEST_NAME}){hint}",
+                         EXIT_BAD_ROOT)
+    return ids
+
+
+def bind(host: str, port: int, backlog: int = 1024) -> socket.socket:
+    try:
+        infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
+    except socket.gaierror as exc:
+        raise ServeError(f"cannot resolve host {host!r}: {exc}", EXIT_ERROR) from None
+    family, _, _, _, addr = infos[0]
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    try:
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+        sock.bind(addr)
+        sock.listen(backlog)
+    except OSError as exc:
+        sock.close()
+        if exc.errno == errno.EADDRINUSE:
+            raise ServeError(f"port {port} on {host} is already in use (another server is running there?); "
+                             f"choose another with --port", EXIT_ERROR) from None
+        if exc.errno == errno.EACCES:
+            raise ServeError(f"no permission to listen on {host}:{port} (ports below 1024 need privileges)",
+                             EXIT_ERROR) from None
+        raise ServeError(f"cannot listen on {host}:{port}: {exc.strerror}", EXIT_ERROR) from None
+    sock.setblocking(False)
+    return sock
+
+
+async def _serve_socket(sock: socket.socket, root: str, cors_origins: Iterable[str], access_log: bool,
+                        shutdown_timeout: float) -> None:
+    loop = asyncio.get_running_loop()
+    stop = asyncio.Event()
+    for sig in (signal.SIGTERM, signal.SIGINT):
+        loop.add_signal_handler(sig, stop.set)
+    runner = create_runner(create_app(root, cors_origins), access_log=access_log, shutdown_timeout=shutdown_timeout)
+    await runner.setup()
+    await web.SockSite(runner, sock, backlog=1024).start()
+    flusher = loop.create_task(_flush_access_log()) if access_log else None
+    try:
+        await stop.wait()
+    finally:
+        # Stop accepting; in-flight responses finish (up to shutdown_timeout); idle keep-alives close.
+        await runner.cleanup()
+        if flusher:
+            flusher.cancel()
+        with contextlib.suppress(Exception):
+            AccessLog.stream.flush()
+
+
+async def _flush_access_log() -> None:
+    while True:
+        await asyncio.sleep(AccessLog.FLUSH_SECONDS)
+        AccessLog.stream.flush()
+
+
+def _run_worker(sock: socket.socket, root: str, cors: list[str], access_log: bool, shutdown_timeout: float) -> None:
+    if access_log:
+        # Buffered (flushed every FLUSH_SECONDS and at exit) instead of stderr's write per line.
+        AccessLog.stream = io.TextIOWrapper(io.FileIO(os.dup(2), "w"), encoding="utf-8", errors="replace",
+                                            line_buffering=False, write_through=False)
+    asyncio.run(_serve_socket(sock, root, cors, access_log, shutdown_timeout))
+
+
+def serve(root: str, host: str = "127.0.0.1", port: int = 8000, cors_origins: Iterable[str] = (),
+          workers: int = 1, access_log: bool = True, shutdown_timeout: float = SHUTDOWN_TIMEOUT) -> int:
+    """Serve every scene under `root` until SIGTERM/SIGINT; the exit code."""
+    cors = list(cors_origins)
+    try:
+        ids = check_root(root)
+        sock = bind(host, port)
+    except ServeError as exc:
+        print(f"splatstream serve: error: {exc}", file=sys.stderr)
+        return exc.code
+    bound = sock.getsockname()
+    shown = f"[{bound[0]}]" if sock.family == socket.AF_INET6 else bound[0]
+    print(f"splatstream serve: {len(ids)} scene{'s' if len(ids) != 1 else ''} from {os.path.abspath(root)} at "
+          f"http://{shown}:{bound[1]}/ ({workers} worker{'s' if workers != 1 else ''}; scene list at /api/scenes; "
+          f"SIGTERM or Ctrl-C stops)", file=sys.stderr, flush=True)
+    if workers <= 1:
+        _run_worker(sock, root, cors, access_log, shutdown_timeout)
+        print("splatstream serve: stopped", file=sys.stderr, flush=True)
+        return EXIT_OK
+    return _prefork(sock, root, cors, access_log, shutdown_timeout, workers)
+
+
+def _prefork(sock: socket.socket, root: str, cors: list[str], access_log: bool, shutdown_timeout: float,
+             workers: int) -> int:
+    """`workers` processes accept on the one listening socket; the parent forwards SIGTERM/SIGINT and waits."""
+    children: list[int] = []
+    stopping = False
+
+    def forward(signum, frame):
+        nonlocal stopping
+        stopping = True
+        for pid in children:
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(pid, signal.SIGTERM)
+
+    old = {s: signal.signal(s, forward) for s in (signal.SIGTERM, signal.SIGINT)}
+    for _ in range(workers):
+        pid = os.fork()
+        if pid == 0:
+            code = EXIT_OK
+            try:
+                for s, handler in old.items():
+                    signal.signal(s, handler)
+                _run_worker(sock, root, cors, access_log, shutdown_timeout)
+            except BaseException:
+                code = EXIT_ERROR
+            finally:
+                os._exit(code)
+        children.append(pid)
+    sock.close()
+    code = EXIT_OK
+    while children:
+        try:
+            pid, status = os.wait()
+        except ChildProcessError:
+            break
+        except InterruptedError:
+            continue
+        if pid in children:
+            children.remove(pid)
+        rc = os.waitstatus_to_exitcode(status)
+        if rc != 0 and not stopping:
+            print(f"splatstream serve: worker {pid} exited with {rc}; stopping", file=sys.stderr, flush=True)
+            code = EXIT_ERROR
+            forward(signal.SIGTERM, None)
+    print("splatstream serve: stopped", file=sys.stderr, flush=True)
+    return code

@@ -1,0 +1,212 @@
+"""The scene root on disk: opening served files safely, discovering scenes, caching what is cheap to cache.
+
+Nothing is cached that could mix two versions of a scene: files are opened per request (an open file keeps
+its bytes even when an encoder swaps the scene directory away), and the caches hold only facts derived from
+one manifest file, keyed by its (device, inode, mtime_ns, size) taken from the open file.
+"""
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+import stat
+from collections import OrderedDict
+from dataclasses import dataclass
+
+from splatstream.errors import SplatstreamError
+from splatstream.manifest import MANIFEST_NAME, MAX_MANIFEST_BYTES, parse_manifest, scene_summary
+
+from .paths import MAX_SCENE_DEPTH, SEGMENT_RE, ScenePath, is_inside
+
+log = logging.getLogger("splatstream.server")
+
+SMALL_FILE_BYTES = 64 << 10  # files up to this size are read into memory; larger ones go out with sendfile
+MAX_SCAN_DIRS = 10_000
+_CACHE_ENTRIES = 1024
+_PROC_FD = "/proc/self/fd"
+
+
+class NotFound(Exception):
+    pass
+
+
+@dataclass
+class OpenedFile:
+    fd: int
+    size: int
+    etag_token: str  # the SHA-256 hex of the bytes
+    data: bytes | None  # the whole file when it is small (or was read to hash it)
+
+    def close(self) -> None:
+        if self.fd >= 0:
+            os.close(self.fd)
+            self.fd = -1
+
+
+class _LRU(OrderedDict):
+    def get_fresh(self, key):
+        value = self.get(key)
+        if value is not None:
+            self.move_to_end(key)
+        return value
+
+    def put(self, key, value) -> None:
+        self[key] = value
+        self.move_to_end(key)
+        while len(self) > _CACHE_ENTRIES:
+            self.popitem(last=False)
+
+
+def _real_path_of_fd(fd: int, fallback: str) -> str:
+    try:
+        path = os.readlink(f"{_PROC_FD}/{fd}")
+    except OSError:
+        return os.path.realpath(fallback)
+    return path.removesuffix(" (deleted)")
+
+
+class SceneRoot:
+    def __init__(self, root: str | os.PathLike):
+        self.root = os.path.realpath(os.fspath(root))
+        self._manifest_hashes: _LRU = _LRU()  # (dev, ino, mtime_ns, size) -> sha256 hex
+        self._summaries: _LRU = _LRU()  # (path, dev, ino, mtime_ns, size) -> summary dict or None
+        self._have_proc_fd = os.path.isdir(_PROC_FD)
+
+    # -- serving files -----------------------------------------------------------------------------------------
+    def open(self, sp: ScenePath) -> OpenedFile:
+        """Open a validated scene file; NotFound unless it is a regular file of a scene, inside the root."""
+        scene_dir = os.path.join(self.root, *sp.scene_id.split("/"))
+        if sp.kind == "payload" and not os.path.isfile(os.path.join(scene_dir, MANIFEST_NAME)):
+            raise NotFound(f"no scene {sp.scene_id!r}")
+        path = os.path.join(scene_dir, *sp.rel.split("/"))
+        try:
+            # O_NONBLOCK: opening a FIFO planted in the tree must not hang the server.
+            fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC | os.O_NONBLOCK)
+        except OSError:
+            raise NotFound(f"no scene {sp.scene_id!r}" if sp.kind == "manifest" else
+                           f"no file {sp.rel!r} in scene {sp.scene_id!r}") from None
+        try:
+            st = os.fstat(fd)
+            if not stat.S_ISREG(st.st_mode):
+                raise NotFound(f"{sp.rel!r} in scene {sp.scene_id!r} is not a file")
+            real = _real_path_of_fd(fd, path) if self._have_proc_fd else os.path.realpath(path)
+            if not is_inside(real, self.root):
+                log.warning("refused %s/%s: resolves outside the root (%s)", sp.scene_id, sp.rel, real)
+                raise NotFound(f"no file {sp.rel!r} in scene {sp.scene_id!r}")
+            size = st.st_size
+            data = None
+            if sp.kind == "payload":
+                token = sp.sha256
+                if size <= SMALL_FILE_BYTES:
+                    data = _read_all(fd, size)
+                    size = len(data)
+            else:
+                if size > MAX_MANIFEST_BYTES:
+                    raise NotFound(f"manifest of scene {sp.scene_id!r} is larger than {MAX_MANIFEST_BYTES} bytes")
+                key = (st.st_dev, st.st_ino, st.st_mtime_ns, size)
+                token = self._manifest_hashes.get_fresh(key)
+                if token is None or size <= SMALL_FILE_BYTES:
+                    data = _read_all(fd, size)
+                    size = len(data)
+                    if token is None:
+                        token = hashlib.sha256(data).hexdigest()
+                        self._manifest_hashes.put(key, token)
+            assert token is not None
+            return OpenedFile(fd, size, token, data)
+        except BaseException:
+            os.close(fd)
+            raise
+
+    # -- discovering scenes ------------------------------------------------------------------------------------
+    def scan(self) -> list[tuple[str, str]]:
+        """(scene id, directory) of every scene under the root, sorted by id.
+
+        Walks non-hidden directories with safe names, at most MAX_SCENE_DEPTH deep, following symbolic links
+        only where they stay inside the root, and does not look inside a scene (a scene's data/ is no scene).
+        """
+        found: list[tuple[str, str]] = []
+        stack: list[tuple[str, tuple[str, ...]]] = [(self.root, ())]
+        visited = 0
+        while stack:
+            directory, segs = stack.pop()
+            visited += 1
+            if visited > MAX_SCAN_DIRS:
+                log.warning("scene scan stopped after %d directories", MAX_SCAN_DIRS)
+                break
+            try:
+                entries = list(os.scandir(directory))
+            except OSError:
+                continue
+            for e in entries:
+                if not SEGMENT_RE.match(e.name) or len(segs) >= MAX_SCENE_DEPTH:
+                    continue
+                try:
+                    if not e.is_dir():
+                        continue
+                    if e.is_symlink() and not is_inside(os.path.realpath(e.path), self.root):
+                        continue
+                except OSError:
+                    continue
+                child = (*segs, e.name)
+                if os.path.isfile(os.path.join(e.path, MANIFEST_NAME)):
+                    found.append(("/".join(child), e.path))
+                else:
+                    stack.append((e.path, child))
+        found.sort()
+        return found
+
+    def summary(self, scene_id: str, directory: str) -> dict | None:
+        """The /api/scenes entry of one scene, or None when its manifest is unreadable or invalid."""
+        path = os.path.join(directory, MANIFEST_NAME)
+        try:
+            fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC | os.O_NONBLOCK)
+        except OSError:
+            return None
+        try:
+            st = os.fstat(fd)
+            if not stat.S_ISREG(st.st_mode) or st.st_size > MAX_MANIFEST_BYTES:
+                return None
+            key = (path, st.st_dev, st.st_ino, st.st_mtime_ns, st.st_size)
+            cached = self._summaries.get_fresh(key)
+            if cached is not None:
+                return cached or None
+            raw = _read_all(fd, st.st_size)
+        finally:
+            os.close(fd)
+        try:
+            m = parse_manifest(raw, f"{scene_id}/{MANIFEST_NAME}")
+            s = scene_summary(m)
+            size = s.get("bytes_on_disk")
+            if not isinstance(size, int):
+                size = len(raw) + sum(int(g.get("bytes", 0)) for t in m["tiles"] for g in t["groups"].values())
+            entry = {
+                "id": scene_id,
+                "name": s["name"],
+                "splats": s["splats"],
+                "sh_degree": s["sh_degree"],
+                "preset": s["preset"],
+                "bounds": s["bounds"],
+                "bytes": size,
+                "manifest": f"/scenes/{scene_id}/{MANIFEST_NAME}",
+            }
+        except (SplatstreamError, KeyError, TypeError, ValueError, AttributeError) as exc:
+            log.warning("scene %s: skipped, its manifest is not valid: %s", scene_id, exc)
+            entry = {}
+        self._summaries.put(key, entry)
+        return entry or None
+
+    def list_scenes(self) -> list[dict]:
+        return [s for sid, d in self.scan() if (s := self.summary(sid, d)) is not None]
+
+
+def _read_all(fd: int, size: int) -> bytes:
+    """The first `size` bytes (fewer if the file is shorter)."""
+    data = os.pread(fd, size, 0)
+    if len(data) == size or not data:
+        return data
+    chunks = [data]
+    offset = len(data)
+    while offset < size and (chunk := os.pread(fd, size - offset, offset)):
+        chunks.append(chunk)
+        offset += len(chunk)
+    return b"".join(chunks)
