@@ -1,0 +1,90 @@
+"""The encode / info / decode commands end to end, as a user runs them."""
+import json
+
+import numpy as np
+import pytest
+
+from conftest import real, run_cli
+from splatstream.cli import COMMANDS, build_parser
+from splatstream.decoder import decode_scene
+from splatstream.encoder import EncodeOptions, encode_gaussians
+from splatstream.ply import read_gaussians_ply
+
+
+def test_encode_info_decode(tmp_path):
+    src = real("fruit_drops_sh3.ply")
+    r = run_cli("encode", src, tmp_path / "scene", "--preset", "high")
+    assert r.returncode == 0, r.stderr
+    assert "encode:" in r.stderr  # progress is shown
+    r = run_cli("info", tmp_path / "scene", "--json")
+    info = json.loads(r.stdout)
+    for key in ("splats", "sh_degree", "preset", "bytes_on_disk", "gpu_bytes_per_splat", "attributes", "tiles",
+                "levels", "leaf_splats"):
+        assert key in info, key
+    assert info["splats"] == 4721 and info["sh_degree"] == 3 and info["preset"] == "high"
+    assert info["leaf_splats"] == info["splats"]
+    assert set(info["attributes"]) == {"position", "rotation", "scale", "color", "sh"}
+    assert info["attributes"]["scale"]["format"] == "norm11"
+    disk = sum(f.stat().st_size for f in (tmp_path / "scene").rglob("*") if f.is_file())
+    assert info["bytes_on_disk"] == disk
+    assert info["bytes_on_disk"] < info["gpu_bytes"]
+    r = run_cli("decode", tmp_path / "scene", tmp_path / "out.ply")
+    assert r.returncode == 0, r.stderr
+    back = read_gaussians_ply(tmp_path / "out.ply")
+    d = decode_scene(tmp_path / "scene")
+    assert np.array_equal(back.positions, d.positions) and np.array_equal(back.sh_rest, d.sh_rest)
+    r = run_cli("info", tmp_path / "scene")
+    assert "preset high" in r.stdout
+
+
+def test_format_overrides(tmp_path):
+    r = run_cli("encode", real("donut_sh0_no_normals.ply"), tmp_path / "s", "--preset", "medium",
+                "--position", "f32x4", "--color", "f16x4", "-q")
+    assert r.returncode == 0, r.stderr
+    info = json.loads(run_cli("info", tmp_path / "s", "--json").stdout)
+    assert info["formats"]["position"] == "f32x4" and info["formats"]["color"] == "f16x4"
+    assert info["formats"]["rotation"] == "norm10_2"
+    r = run_cli("encode", real("donut_sh0_no_normals.ply"), tmp_path / "t", "--color", "norm565", "-q")
+    assert r.returncode == 2 and "4-component" in r.stderr and not (tmp_path / "t").exists()
+
+
+def test_help_everywhere():
+    parser = build_parser()
+    registered = next(a for a in parser._actions if a.dest == "command").choices
+    assert {"encode", "decode", "info"} <= set(registered) <= set(COMMANDS)
+    for command in registered:
+        r = run_cli(command, "--help")
+        assert r.returncode == 0 and "usage:" in r.stdout, command
+
+
+def test_failed_encode_leaves_old_scene_and_no_temporaries(tmp_path, monkeypatch):
+    g = read_gaussians_ply(real("fruit_drops_sh3.ply"))
+    encode_gaussians(g, tmp_path / "scene", EncodeOptions(preset="medium"))
+    before = sorted(p.name for p in (tmp_path / "scene" / "data").iterdir())
+
+    import splatstream.encoder as enc
+
+    def boom(*args, **kwargs):
+        raise RuntimeError("disk on fire")
+
+    monkeypatch.setattr(enc, "pack_group", boom)
+    with pytest.raises(RuntimeError):
+        encode_gaussians(g, tmp_path / "scene", EncodeOptions(preset="high"))
+    assert sorted(p.name for p in (tmp_path / "scene" / "data").iterdir()) == before
+    assert [p.name for p in tmp_path.iterdir()] == ["scene"]
+
+
+def test_reencode_replaces_scene(tmp_path):
+    g = read_gaussians_ply(real("fruit_drops_sh3.ply"))
+    encode_gaussians(g, tmp_path / "scene", EncodeOptions(preset="medium"))
+    m = encode_gaussians(g, tmp_path / "scene", EncodeOptions(preset="high"))
+    files = {p.name for p in (tmp_path / "scene" / "data").iterdir()}
+    assert files == {e["file"].split("/")[1] for t in m["tiles"] for e in t["groups"].values()}
+    assert [p.name for p in tmp_path.iterdir()] == ["scene"]
+
+
+def test_encoding_is_deterministic(tmp_path):
+    g = read_gaussians_ply(real("fruit_drops_sh3.ply"))
+    a = encode_gaussians(g, tmp_path / "a", EncodeOptions(preset="medium"))
+    b = encode_gaussians(g, tmp_path / "b", EncodeOptions(preset="medium"))
+    assert [t["groups"] for t in a["tiles"]] == [t["groups"] for t in b["tiles"]]

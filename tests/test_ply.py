@@ -1,0 +1,159 @@
+"""The standard 3DGS PLY reader: every variant the reference writers produce, and every kind of bad input."""
+import numpy as np
+import pytest
+
+from conftest import real, run_cli
+from splatstream.errors import InputError
+from splatstream.gaussians import SH_REST_COEFFS
+from splatstream.ply import gaussians_to_records, read_gaussians_ply, write_gaussians_ply
+
+RNG = np.random.default_rng(7)
+
+
+def make_records(n=300, degree=3, normals=True):
+    from splatstream.gaussians import Gaussians, normalize_quaternions
+
+    g = Gaussians(RNG.normal(size=(n, 3)), normalize_quaternions(RNG.normal(size=(n, 4))), RNG.normal(-4, 1, (n, 3)),
+                  RNG.normal(size=n), RNG.normal(size=(n, 3)), RNG.normal(0, 0.1, (n, SH_REST_COEFFS[degree], 3)))
+    return g, gaussians_to_records(g, normals)
+
+
+def write_ply(path, records, fmt="binary_little_endian", dtype="float", order=None, extra=None, count=None):
+    names = list(records.dtype.names)
+    if extra:
+        names.append(extra)
+    if order is not None:
+        names = [names[i] for i in order]
+    cols = {n: records[n] if n in records.dtype.names else np.ones(len(records), np.float32) for n in names}
+    n = len(records) if count is None else count
+    header = ["ply", f"format {fmt} 1.0", "comment test", f"element vertex {n}"]
+    header += [f"property {dtype} {name}" for name in names] + ["end_header"]
+    with open(path, "wb") as f:
+        f.write(("\n".join(header) + "\n").encode())
+        if fmt == "ascii":
+            mat = np.stack([cols[name] for name in names], 1)
+            f.write("\n".join(" ".join(repr(float(v)) for v in row) for row in mat).encode() + b"\n")
+        else:
+            bo = "<" if fmt == "binary_little_endian" else ">"
+            t = "f4" if dtype == "float" else "f8"
+            arr = np.empty(len(records), [(name, bo + t) for name in names])
+            for name in names:
+                arr[name] = cols[name]
+            f.write(arr.tobytes())
+
+
+def assert_same(a, b, atol=1e-6):
+    for field in ("positions", "rotations", "log_scales", "opacity_logits", "sh_dc", "sh_rest"):
+        assert np.allclose(getattr(a, field), getattr(b, field), atol=atol), field
+
+
+@pytest.mark.parametrize("fmt", ["binary_little_endian", "binary_big_endian", "ascii"])
+@pytest.mark.parametrize("dtype", ["float", "double"])
+def test_formats_and_property_types(tmp_path, fmt, dtype):
+    g, rec = make_records(50)
+    write_ply(tmp_path / "a.ply", rec, fmt=fmt, dtype=dtype)
+    assert_same(read_gaussians_ply(tmp_path / "a.ply"), g, atol=1e-5 if fmt == "ascii" else 1e-6)
+
+
+@pytest.mark.parametrize("degree", [0, 1, 2, 3])
+def test_sh_degree_inferred_and_normals_optional(tmp_path, degree):
+    g, rec = make_records(40, degree=degree, normals=degree % 2 == 0)
+    write_ply(tmp_path / "a.ply", rec)
+    back = read_gaussians_ply(tmp_path / "a.ply")
+    assert back.sh_degree == degree
+    assert_same(back, g)
+
+
+def test_any_property_order_and_unknown_properties(tmp_path):
+    g, rec = make_records(60)
+    order = list(RNG.permutation(len(rec.dtype.names) + 1))
+    write_ply(tmp_path / "a.ply", rec, order=order, extra="transform")
+    assert_same(read_gaussians_ply(tmp_path / "a.ply"), g)
+
+
+def test_quaternions_are_normalised(tmp_path):
+    g, rec = make_records(20)
+    for i in range(4):
+        rec[f"rot_{i}"] *= 3.0
+    write_ply(tmp_path / "a.ply", rec)
+    back = read_gaussians_ply(tmp_path / "a.ply")
+    assert np.allclose(np.linalg.norm(back.rotations, axis=1), 1.0, atol=1e-6)
+    assert np.all(back.rotations[:, 0] >= 0)
+
+
+def test_real_scenes_read_and_write_back(tmp_path):
+    g = read_gaussians_ply(real("fruit_drops_sh3.ply"))  # carries an extra 'transform' property
+    assert len(g) == 4721 and g.sh_degree == 3
+    assert np.abs(g.sh_rest).max() > 0
+    write_gaussians_ply(g, tmp_path / "b.ply")
+    assert_same(read_gaussians_ply(tmp_path / "b.ply"), g, atol=0)
+    d = read_gaussians_ply(real("donut_sh0_no_normals.ply"))
+    assert len(d) == 45624 and d.sh_degree == 0
+
+
+# ----------------------------------------------------------------------------------------------------------------
+# Bad input: a clear message naming the file and what is wrong, exit code 2, no traceback, no output left behind.
+
+
+def bad_inputs(tmp_path):
+    g, rec = make_records(100)
+    cases = {}
+    write_ply(tmp_path / "good.ply", rec)
+    data = (tmp_path / "good.ply").read_bytes()
+    (tmp_path / "truncated.ply").write_bytes(data[:-1000])
+    cases["truncated.ply"] = "truncated"
+    write_ply(tmp_path / "lying_more.ply", rec, count=150)
+    cases["lying_more.ply"] = "declares 150 rows"
+    write_ply(tmp_path / "lying_less.ply", rec, count=80)
+    cases["lying_less.ply"] = "do not match"
+    nan = rec.copy()
+    nan["x"][3] = np.nan
+    nan["opacity"][5] = np.inf
+    write_ply(tmp_path / "nan.ply", nan)
+    cases["nan.ply"] = "2 of 100 splats have non-finite values"
+    zero = rec.copy()
+    for i in range(4):
+        zero[f"rot_{i}"][7] = 0
+    write_ply(tmp_path / "zero_quat.ply", zero)
+    cases["zero_quat.ply"] = "zero-length quaternion"
+    names = [n for n in rec.dtype.names if n != "scale_1"]
+    write_ply(tmp_path / "missing.ply", rec[names])
+    cases["missing.ply"] = "missing required properties scale_1"
+    (tmp_path / "empty.ply").write_bytes(b"")
+    cases["empty.ply"] = "empty"
+    (tmp_path / "notply.ply").write_bytes(b"\x89PNG\r\n\x1a\n" + bytes(100))
+    cases["notply.ply"] = "unrecognised file format"
+    (tmp_path / "noend.ply").write_bytes(b"ply\nformat binary_little_endian 1.0\nelement vertex 3\n")
+    cases["noend.ply"] = "end_header"
+    return cases
+
+
+def test_bad_inputs_raise_clear_errors(tmp_path):
+    for name, needle in bad_inputs(tmp_path).items():
+        if name == "notply.ply":
+            continue  # sniffed by the CLI's reader dispatch, see the CLI test
+        with pytest.raises(InputError) as exc:
+            read_gaussians_ply(tmp_path / name)
+        assert name in str(exc.value) and needle in str(exc.value), (name, str(exc.value))
+
+
+def test_bad_inputs_through_the_cli(tmp_path):
+    for name, needle in bad_inputs(tmp_path).items():
+        out = tmp_path / f"out_{name}"
+        r = run_cli("encode", tmp_path / name, out, "-q")
+        assert r.returncode == 2, (name, r.returncode, r.stderr)
+        assert "Traceback" not in r.stderr and needle in r.stderr and name in r.stderr, (name, r.stderr)
+        assert not out.exists()
+    leftovers = [p.name for p in tmp_path.iterdir() if p.name.startswith(".")]
+    assert leftovers == [], leftovers
+
+
+def test_drop_invalid_drops_with_a_warning(tmp_path):
+    bad_inputs(tmp_path)
+    r = run_cli("encode", tmp_path / "nan.ply", tmp_path / "scene", "--drop-invalid", "-q")
+    assert r.returncode == 0, r.stderr
+    assert "warning" in r.stderr and "dropped" in r.stderr
+    r = run_cli("info", tmp_path / "scene", "--json")
+    import json
+
+    assert json.loads(r.stdout)["splats"] == 98
