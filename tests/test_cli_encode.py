@@ -3,8 +3,8 @@ import json
 
 import numpy as np
 import pytest
-
 from conftest import real, run_cli
+
 from splatstream.cli import COMMANDS, build_parser
 from splatstream.decoder import decode_scene
 from splatstream.encoder import EncodeOptions, encode_gaussians

@@ -2,8 +2,8 @@
 (BC formats: bounded RMS error), and SH bands that decode on their own."""
 import numpy as np
 import pytest
-
 from conftest import REAL_PLYS, real
+
 from splatstream.codec import band_plane, decode_plane, group_planes, groups_for_degree, plane_values, rotation_mode
 from splatstream.container import unpack_group
 from splatstream.decoder import decode_group, decode_scene, read_payload

@@ -1,8 +1,8 @@
 """The standard 3DGS PLY reader: every variant the reference writers produce, and every kind of bad input."""
 import numpy as np
 import pytest
-
 from conftest import real, run_cli
+
 from splatstream.errors import InputError
 from splatstream.gaussians import SH_REST_COEFFS
 from splatstream.ply import gaussians_to_records, read_gaussians_ply, write_gaussians_ply
