@@ -1,0 +1,41 @@
+"""Regenerate the test vectors: python format_spec/vectors/make_vectors.py (from the repository root)."""
+import json
+import pathlib
+import shutil
+
+from splatstream.decoder import decode_scene
+from splatstream.encoder import EncodeOptions, encode_gaussians
+from splatstream.layout import morton_order
+from splatstream.ply import read_gaussians_ply
+
+HERE = pathlib.Path(__file__).resolve().parent
+SOURCE = HERE.parents[1].parent / "shared" / "data" / "real" / "fruit_drops_sh3.ply"
+PRESETS = ["high", "medium", "very-low"]
+SPLATS = 260
+
+
+def expected_values(g) -> dict:
+    return {
+        "splats": len(g),
+        "positions": g.positions.tolist(),
+        "rotations": g.rotations.tolist(),
+        "log_scales": g.log_scales.tolist(),
+        "opacities": g.opacities.tolist(),
+        "sh_dc": g.sh_dc.tolist(),
+        "sh_rest": g.sh_rest.tolist(),
+    }
+
+
+def main() -> None:
+    g = read_gaussians_ply(SOURCE)
+    g = g.subset(morton_order(g.positions)[:SPLATS])
+    for preset in PRESETS:
+        out = HERE / preset
+        shutil.rmtree(out, ignore_errors=True)
+        encode_gaussians(g, out, EncodeOptions(preset=preset, name=f"vector-{preset}", zstd_level=19))
+        (out / "expected.json").write_text(json.dumps(expected_values(decode_scene(out))) + "\n")
+        print("wrote", out)
+
+
+if __name__ == "__main__":
+    main()
