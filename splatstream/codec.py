@@ -169,8 +169,12 @@ def _pad_to_chunks(values: np.ndarray) -> np.ndarray:
 
 def chunk_ranges(values: np.ndarray, range_dtype: str) -> tuple[np.ndarray, np.ndarray]:
     """Per-chunk (min, max) of (N, L, C) values, widened to what range_dtype can hold exactly."""
-    v = _pad_to_chunks(values).reshape(-1, CHUNK_SIZE, *values.shape[1:])
+    full = len(values) // CHUNK_SIZE * CHUNK_SIZE
+    v = values[:full].reshape(-1, CHUNK_SIZE, *values.shape[1:])
     lo, hi = v.min(axis=1), v.max(axis=1)
+    if full < len(values):
+        lo = np.concatenate([lo, values[full:].min(axis=0, keepdims=True)])
+        hi = np.concatenate([hi, values[full:].max(axis=0, keepdims=True)])
     if range_dtype == "<f2":
         lo, hi = f16_floor(lo), f16_ceil(hi)
     else:
@@ -192,8 +196,9 @@ def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str) -> EncodedP
         lo32, hi32 = lo.astype(np.float32), hi.astype(np.float32)
         extent = hi32 - lo32
         inv = np.divide(1.0, extent, out=np.zeros_like(extent), where=extent > 0)
-        v = _pad_to_chunks(values).reshape(chunks, CHUNK_SIZE, spec.layers, spec.components)
-        t = np.clip((v - lo32[:, None]) * inv[:, None], 0.0, 1.0)
+        t = _pad_to_chunks(values).reshape(chunks, CHUNK_SIZE, spec.layers, spec.components) - lo32[:, None]
+        t *= inv[:, None]
+        np.clip(t, 0.0, 1.0, out=t)
         ranges = np.stack([lo, hi], axis=1).astype(spec.range_dtype)
     else:
         t = _pad_to_chunks(encode_rotations(values[:, 0], fmt_name)).reshape(chunks, CHUNK_SIZE, 1, 4)
@@ -202,8 +207,6 @@ def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str) -> EncodedP
     blobs = []
     for layer in range(spec.layers):
         tl = t[:, layer]
-        if tl.shape[1] < 4:
-            tl = np.concatenate([tl, np.zeros((len(tl), 4 - tl.shape[1]), np.float32)], axis=1)
         if fmt.block == 1:
             texels = pack_texels(fmt_name, tl)
             img = np.zeros((width * height,) + texels.shape[1:], texels.dtype)
@@ -211,7 +214,7 @@ def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str) -> EncodedP
             blobs.append(img.reshape(-1).view(np.uint8))
         else:
             img = np.zeros((width * height, 4), np.uint8)
-            img[dest] = np.rint(tl * 255.0).astype(np.uint8)
+            img[dest, :tl.shape[1]] = np.rint(tl * 255.0).astype(np.uint8)
             blobs.append(encode_bc_image(fmt_name, img.reshape(height, width, 4)))
     return EncodedPlane(spec, fmt_name, width, height, np.concatenate(blobs), ranges)
 

@@ -149,22 +149,21 @@ def encode_gaussians(g: Gaussians, out_dir: str | os.PathLike, opts: EncodeOptio
         written: set[str] = set()
 
         def order_tile(tile):
-            tile.gaussians = tile.gaussians.subset(morton_order(tile.gaussians.positions))
-            return tile
+            return tile, morton_order(tile.gaussians.positions)
 
         group_names = groups_for_degree(sh_degree)
 
         def encode_group(job):
-            tile, group = job
+            (tile, order), group = job
             specs = BASE_PLANES if group == "base" else (band_plane(int(group[2:])),)
-            planes = [encode_plane(plane_values(tile.gaussians, s), s, formats[s.attribute]) for s in specs]
+            planes = [encode_plane(plane_values(tile.gaussians, s)[order], s, formats[s.attribute]) for s in specs]
             return pack_group(planes, level=opts.zstd_level, shuffle=opts.shuffle)
 
         # Tiles and groups are independent; numpy, zstd and etcpak release the GIL, so two workers keep both
         # cores busy. Results come back in submission order, so the output is deterministic.
         with ThreadPoolExecutor(max_workers=min(2, os.cpu_count() or 1)) as pool:
-            tiles = list(pool.map(order_tile, tiles))
-            jobs = [(tile, group) for tile in tiles for group in group_names]
+            ordered = list(pool.map(order_tile, tiles))
+            jobs = [(t, group) for t in ordered for group in group_names]
             results = iter(pool.map(encode_group, jobs))
             for tile in tiles:
                 groups = [(group, *next(results)) for group in group_names]
