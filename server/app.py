@@ -137,7 +137,7 @@ def file_response(request: web.Request, opened: OpenedFile, content_type: str, c
         if rng is not None:
             status, offset, count = 206, rng.start, rng.length
             headers["Content-Range"] = rng.content_range(size)
-    if opened.data is not None:
+    if opened.data is not None and count > 0:  # (aiohttp's Response leaves out 'Content-Length: 0' on HEAD)
         body = opened.data if count == size else opened.data[offset:offset + count]
         opened.close()
         return web.Response(body=body, status=status, headers=headers)

@@ -1,0 +1,603 @@
+"""The scene server, tested over real loopback HTTP (an in-process aiohttp runner in a thread, and the CLI as a
+subprocess): statuses, headers, rejections, concurrency, scenes swapped while served, shutdown."""
+from __future__ import annotations
+
+import asyncio
+import gzip
+import hashlib
+import http.client
+import json
+import os
+import re
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import aiohttp
+import msgpack
+import pytest
+
+from server.app import SCENE_ROOT, create_app, create_runner
+from server.run import bind
+from server.scenes import SMALL_FILE_BYTES
+from server.testing import write_fake_scene
+from splatstream.manifest import MANIFEST_NAME, iter_payloads, parse_manifest
+
+REPO = Path(__file__).resolve().parents[1]
+REAL_PLY = Path("/work/shared/data/real/fruit_drops_sh3.ply")
+ORIGIN = "https://viewer.example"
+SIZES = [0, 1, 1000, SMALL_FILE_BYTES, SMALL_FILE_BYTES + 1, 3 << 20]  # both the in-memory and sendfile paths
+sha = hashlib.sha256
+
+
+class ServerThread:
+    """A real server on 127.0.0.1:<free port>, its event loop in a daemon thread."""
+
+    def __init__(self, root: Path, cors=(ORIGIN,), shutdown_timeout: float = 5.0):
+        self.app = create_app(root, cors_origins=cors)
+        self.runner = create_runner(self.app, access_log=False, shutdown_timeout=shutdown_timeout)
+        self.sock = bind("127.0.0.1", 0)
+        self.port = self.sock.getsockname()[1]
+        self.loop = asyncio.new_event_loop()
+        ready = threading.Event()
+
+        def main():
+            asyncio.set_event_loop(self.loop)
+
+            async def start():
+                from aiohttp import web
+                await self.runner.setup()
+                await web.SockSite(self.runner, self.sock).start()
+
+            self.loop.run_until_complete(start())
+            ready.set()
+            self.loop.run_forever()
+
+        self.thread = threading.Thread(target=main, daemon=True)
+        self.thread.start()
+        assert ready.wait(10)
+
+    def stop(self) -> None:
+        asyncio.run_coroutine_threadsafe(self.runner.cleanup(), self.loop).result(10)
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(10)
+
+
+def request(port: int, path: str, method: str = "GET", headers: dict | None = None, body: bytes | None = None):
+    """One request with the path sent exactly as given; (status, headers, body)."""
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+    try:
+        conn.putrequest(method, path, skip_host=False, skip_accept_encoding=True)
+        for k, v in (headers or {}).items():
+            conn.putheader(k, v)
+        if body is not None:
+            conn.putheader("Content-Length", str(len(body)))
+        conn.endheaders(body)
+        resp = conn.getresponse()
+        data = resp.read()
+        return resp.status, resp.headers, data
+    finally:
+        conn.close()
+
+
+def raw_request(port: int, data: bytes) -> bytes:
+    with socket.create_connection(("127.0.0.1", port), timeout=10) as s:
+        s.sendall(data)
+        out = b""
+        while chunk := s.recv(65536):
+            out += chunk
+        return out
+
+
+def assert_error(status: int, headers, body: bytes, expected: int) -> None:
+    assert status == expected, body
+    assert headers["Content-Type"].startswith("application/json")
+    err = json.loads(body)["error"]
+    assert err["status"] == expected and isinstance(err["message"], str) and err["message"]
+    assert "Traceback" not in err["message"]
+
+
+@pytest.fixture(scope="module")
+def root(tmp_path_factory) -> Path:
+    root = tmp_path_factory.mktemp("root")
+    write_fake_scene(root / "a", SIZES, seed=1)
+    write_fake_scene(root / "nested" / "b", [10, 20], seed=2)
+    write_fake_scene(root / ".a.tmp", [5], seed=3)  # a build in progress: never served
+    (root / "a" / "other.txt").write_text("not a scene file")
+    (root / "empty").mkdir()
+    write_fake_scene(root / "nomanifest", [7], seed=4)
+    (root / "nomanifest" / MANIFEST_NAME).unlink()
+    (root / "broken").mkdir()
+    (root / "broken" / MANIFEST_NAME).write_bytes(b"not msgpack \xc1")
+    outside = tmp_path_factory.mktemp("outside")
+    write_fake_scene(outside / "secret", [11], seed=5)
+    (root / "evil").symlink_to(outside / "secret")  # scene directory leaving the root
+    write_fake_scene(root / "c", [12], seed=6)
+    secret_payload = next((outside / "secret" / "data").iterdir())
+    (root / "c" / "data" / secret_payload.name).symlink_to(secret_payload)  # payload leaving the root
+    (root / "alias").symlink_to(root / "a")  # a link inside the root is fine
+    os.mkfifo(root / "fifo_scene_manifest")
+    (root / "fifo").mkdir()
+    os.mkfifo(root / "fifo" / MANIFEST_NAME)
+    return root
+
+
+@pytest.fixture(scope="module")
+def srv(root):
+    s = ServerThread(root)
+    yield s
+    s.stop()
+
+
+def payloads(root: Path, scene: str) -> dict[str, bytes]:
+    d = root / scene / "data"
+    return {p.name: p.read_bytes() for p in sorted(d.iterdir())}
+
+
+# -- basics --------------------------------------------------------------------------------------------------------
+def test_healthz(srv):
+    status, headers, body = request(srv.port, "/healthz")
+    assert status == 200 and json.loads(body) == {"status": "ok"}
+    assert headers["Cache-Control"] == "no-store"
+    status, headers, body = request(srv.port, "/healthz", "HEAD")
+    assert status == 200 and body == b"" and int(headers["Content-Length"]) > 0
+
+
+def test_scene_list(srv):
+    status, headers, body = request(srv.port, "/api/scenes")
+    assert status == 200
+    assert headers["Content-Type"] == "application/json; charset=utf-8"
+    assert headers["Cache-Control"] == "no-cache"
+    scenes = json.loads(body)["scenes"]
+    ids = [s["id"] for s in scenes]
+    assert ids == ["a", "alias", "c", "nested/b"]  # not hidden, not broken, not outside the root, not without manifest
+    a = scenes[0]
+    assert set(a) == {"id", "name", "splats", "sh_degree", "preset", "bounds", "bytes", "manifest"}
+    assert a["manifest"] == "/scenes/a/manifest.msgpack"
+    assert a["splats"] == 1000 and a["sh_degree"] == 0 and a["preset"] == "medium"
+    assert a["bounds"] == {"min": [-1.0, -1.0, -1.0], "max": [1.0, 1.0, 1.0]}
+    assert a["bytes"] == sum(SIZES) + len(request(srv.port, a["manifest"])[2])
+    # revalidation
+    status, h2, body2 = request(srv.port, "/api/scenes", headers={"If-None-Match": headers["ETag"]})
+    assert status == 304 and body2 == b"" and h2["ETag"] == headers["ETag"]
+
+
+def test_scene_list_gzip(srv):
+    status, headers, body = request(srv.port, "/api/scenes", headers={"Accept-Encoding": "gzip, br"})
+    assert status == 200 and headers["Content-Encoding"] == "gzip"
+    assert "Accept-Encoding" in headers["Vary"]
+    assert json.loads(gzip.decompress(body))["scenes"][0]["id"] == "a"
+    assert int(headers["Content-Length"]) == len(body)
+    status, headers, body = request(srv.port, "/api/scenes", headers={"Accept-Encoding": "gzip;q=0, br"})
+    assert status == 200 and "Content-Encoding" not in headers and json.loads(body)
+
+
+def test_manifest(srv, root):
+    raw = (root / "a" / MANIFEST_NAME).read_bytes()
+    for method in ("GET", "HEAD"):
+        status, headers, body = request(srv.port, "/scenes/a/manifest.msgpack", method)
+        assert status == 200
+        assert body == (raw if method == "GET" else b"")
+        assert headers["Content-Type"] == "application/vnd.msgpack"
+        assert headers["Content-Length"] == str(len(raw))
+        assert headers["ETag"] == f'"{sha(raw).hexdigest()}"'
+        assert headers["Cache-Control"] == "no-cache"
+        assert headers["Accept-Ranges"] == "bytes"
+    parse_manifest(body or raw)
+    etag = headers["ETag"]
+    for inm in (etag, f"W/{etag}", f'"nope", {etag}', "*"):
+        status, h304, body = request(srv.port, "/scenes/a/manifest.msgpack", headers={"If-None-Match": inm})
+        assert status == 304 and body == b"" and h304["ETag"] == etag and h304["Cache-Control"] == "no-cache"
+    status, _, body = request(srv.port, "/scenes/a/manifest.msgpack", headers={"If-None-Match": '"other"'})
+    assert status == 200 and body == raw
+
+
+@pytest.mark.parametrize("size", SIZES)
+def test_payload(srv, root, size):
+    name, data = next((n, d) for n, d in payloads(root, "a").items() if len(d) == size)
+    url = f"/scenes/a/data/{name}"
+    status, headers, body = request(srv.port, url, headers={"Accept-Encoding": "gzip, deflate, br, zstd"})
+    assert status == 200 and body == data and sha(body).hexdigest() == name[:64]
+    assert headers["ETag"] == f'"{name[:64]}"'
+    assert headers["Cache-Control"] == "public, max-age=31536000, immutable"
+    assert headers["Content-Type"] == "application/octet-stream"
+    assert headers["Content-Length"] == str(size)
+    assert "Content-Encoding" not in headers  # payloads are zstd already: never compressed again
+    status, headers, body = request(srv.port, url, "HEAD")
+    assert status == 200 and body == b"" and headers["Content-Length"] == str(size)
+    status, headers, body = request(srv.port, url, headers={"If-None-Match": f'"{name[:64]}"'})
+    assert status == 304 and body == b"" and headers["Cache-Control"].endswith("immutable")
+    status, headers, body = request(srv.port, url, headers={"If-Match": '"different"'})
+    assert_error(status, headers, body, 412)
+
+
+def test_alias_inside_root(srv, root):
+    status, _, body = request(srv.port, "/scenes/alias/manifest.msgpack")
+    assert status == 200 and body == (root / "a" / MANIFEST_NAME).read_bytes()
+
+
+# -- ranges --------------------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("size", [1000, 3 << 20])
+@pytest.mark.parametrize("spec, first, last", [
+    ("bytes=0-9", 0, 9), ("bytes=10-", 10, None), ("bytes=-10", -10, None), ("bytes=5-99999999", 5, None),
+    ("bytes=0-0", 0, 0),
+])
+def test_range(srv, root, size, spec, first, last):
+    name, data = next((n, d) for n, d in payloads(root, "a").items() if len(d) == size)
+    status, headers, body = request(srv.port, f"/scenes/a/data/{name}", headers={"Range": spec})
+    want = data[first:] if last is None else data[first:last + 1]
+    start = first % size
+    assert status == 206 and body == want
+    assert headers["Content-Range"] == f"bytes {start}-{start + len(want) - 1}/{size}"
+    assert headers["Content-Length"] == str(len(want))
+    assert headers["ETag"] == f'"{name[:64]}"'
+
+
+def test_range_if_range(srv, root):
+    name, data = next((n, d) for n, d in payloads(root, "a").items() if len(d) == 1000)
+    url = f"/scenes/a/data/{name}"
+    status, _, body = request(srv.port, url, headers={"Range": "bytes=0-9", "If-Range": f'"{name[:64]}"'})
+    assert status == 206 and body == data[:10]
+    for stale in ('"other"', f'W/"{name[:64]}"', "Sat, 21 Nov 2026 04:00:00 GMT"):
+        status, headers, body = request(srv.port, url, headers={"Range": "bytes=0-9", "If-Range": stale})
+        assert status == 200 and body == data and "Content-Range" not in headers
+
+
+@pytest.mark.parametrize("spec", ["bytes=9-5", "bytes=0-1,5-6", "items=0-5", "bytes=x-y", "bytes=-"])
+def test_range_ignored(srv, root, spec):
+    name, data = next((n, d) for n, d in payloads(root, "a").items() if len(d) == 1000)
+    status, headers, body = request(srv.port, f"/scenes/a/data/{name}", headers={"Range": spec})
+    assert status == 200 and body == data and "Content-Range" not in headers
+
+
+@pytest.mark.parametrize("spec", ["bytes=1000-", "bytes=5000-6000", "bytes=-0"])
+def test_range_not_satisfiable(srv, root, spec):
+    name, _ = next((n, d) for n, d in payloads(root, "a").items() if len(d) == 1000)
+    status, headers, body = request(srv.port, f"/scenes/a/data/{name}", headers={"Range": spec})
+    assert_error(status, headers, body, 416)
+    assert headers["Content-Range"] == "bytes */1000"
+
+
+def test_range_empty_file_and_head(srv, root):
+    name = next(n for n, d in payloads(root, "a").items() if len(d) == 0)
+    status, headers, body = request(srv.port, f"/scenes/a/data/{name}", headers={"Range": "bytes=0-"})
+    assert_error(status, headers, body, 416)
+    assert headers["Content-Range"] == "bytes */0"
+    name = next(n for n, d in payloads(root, "a").items() if len(d) == 1000)
+    status, headers, body = request(srv.port, f"/scenes/a/data/{name}", "HEAD", headers={"Range": "bytes=0-9"})
+    assert status == 200 and body == b"" and headers["Content-Length"] == "1000"  # Range applies to GET only
+
+
+# -- rejections ----------------------------------------------------------------------------------------------------
+def _secret_name(root: Path) -> str:
+    return next(p.name for p in (root / "c" / "data").iterdir() if p.is_symlink())
+
+
+@pytest.mark.parametrize("path, status", [
+    ("/scenes/../etc/passwd", 400),
+    ("/scenes/a/../a/manifest.msgpack", 400),
+    ("/scenes/a/./manifest.msgpack", 400),
+    ("/scenes/%2e%2e/%2e%2e/%2e%2e/etc/passwd", 400),
+    ("/scenes/a/%2E%2E/a/manifest.msgpack", 400),
+    ("/scenes/a%2Fmanifest.msgpack", 400),
+    ("/scenes/nested%2fb/manifest.msgpack", 400),
+    ("/scenes/%2Fetc%2Fpasswd", 400),
+    ("/scenes/%252e%252e/a/manifest.msgpack", 400),
+    ("/scenes/nested%252Fb/manifest.msgpack", 400),
+    ("/scenes/a%5Cmanifest.msgpack", 400),
+    ("/scenes/a%00/manifest.msgpack", 400),
+    ("/scenes/a%00.msgpack", 400),
+    ("/scenes//etc/passwd", 404),
+    ("//etc/passwd", 404),
+    ("/etc/passwd", 404),
+    ("/", 404),
+    ("/scenes/", 404),
+    ("/scenes/a", 404),
+    ("/scenes/a/", 404),
+    ("/scenes/a/data/", 404),
+    ("/scenes/a/other.txt", 404),
+    ("/scenes/.a.tmp/manifest.msgpack", 404),
+    ("/scenes/%2ea.tmp/manifest.msgpack", 404),
+    ("/scenes/nope/manifest.msgpack", 404),
+    ("/scenes/empty/manifest.msgpack", 404),
+    (f"/scenes/a/data/{'0' * 64}.bin", 404),
+    (f"/scenes/nope/data/{'0' * 64}.bin", 404),
+    ("/scenes/evil/manifest.msgpack", 404),  # symlinked scene leaving the root
+    ("/scenes/fifo/manifest.msgpack", 404),  # not a regular file (and must not hang)
+    ("/scenes/a/manifest.msgpack/", 404),
+])
+def test_rejected_paths(srv, path, status):
+    for method in ("GET", "HEAD"):
+        st, headers, body = request(srv.port, path, method)
+        if method == "GET":
+            assert_error(st, headers, body, status)
+        else:
+            assert st == status and body == b""
+        assert headers["Cache-Control"] == "no-store"
+
+
+def test_rejected_symlinks(srv, root):
+    name = _secret_name(root)
+    assert (root / "c" / "data" / name).read_bytes()  # the link works on disk ...
+    st, headers, body = request(srv.port, f"/scenes/c/data/{name}")
+    assert_error(st, headers, body, 404)  # ... but leaves the root, so it is not served
+    st, headers, body = request(srv.port, f"/scenes/evil/data/{name}")
+    assert_error(st, headers, body, 404)
+
+
+def test_payload_of_directory_without_manifest(srv, root):
+    name = next((root / "nomanifest" / "data").iterdir()).name
+    assert_error(*request(srv.port, f"/scenes/nomanifest/data/{name}"), 404)
+
+
+def test_raw_backslash_and_literal_nul(srv):
+    for target in (b"/scenes/a\\..\\a/manifest.msgpack", b"/scenes/..\\..\\etc\\passwd"):
+        out = raw_request(srv.port, b"GET " + target + b" HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
+        assert out.startswith(b"HTTP/1.1 400 "), out[:200]
+    # a literal NUL never reaches a handler: the HTTP parser refuses the request line
+    out = raw_request(srv.port, b"GET /scenes/a\x00/manifest.msgpack HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
+    assert re.match(rb"HTTP/1.[01] 400 ", out), out[:200]
+
+
+def test_absolute_form_target(srv):
+    out = raw_request(srv.port, b"GET http://127.0.0.1/scenes/../../etc/passwd HTTP/1.1\r\nHost: x\r\n"
+                                b"Connection: close\r\n\r\n")
+    assert re.match(rb"HTTP/1.1 40[04] ", out), out[:200]
+    assert b"root:" not in out
+
+
+@pytest.mark.parametrize("method", ["POST", "PUT", "DELETE", "PATCH"])
+@pytest.mark.parametrize("path", ["/scenes/a/manifest.msgpack", "/api/scenes", "/healthz"])
+def test_method_not_allowed(srv, method, path):
+    st, headers, body = request(srv.port, path, method, body=b"x")
+    assert_error(st, headers, body, 405)
+    assert headers["Allow"] == "GET, HEAD, OPTIONS"
+
+
+def test_request_limits(srv):
+    st, _, _ = request(srv.port, "/healthz", headers={"X-Big": "x" * 20000})
+    assert st in (400, 431)
+    st, _, _ = request(srv.port, "/healthz", headers={f"X-H{i}": "1" for i in range(200)})
+    assert st in (400, 431)
+    st, _, _ = request(srv.port, "/" + "a" * 20000)
+    assert st in (400, 414)
+    st, headers, body = request(srv.port, "/healthz", "POST", body=b"x" * 100_000)
+    assert st == 405
+
+
+def test_unexpected_exception_is_a_json_500(root):
+    s = ServerThread(root)
+    try:
+        def boom(sp):
+            raise RuntimeError("secret internal detail")
+
+        s.app[SCENE_ROOT].open = boom
+        st, headers, body = request(s.port, "/scenes/a/manifest.msgpack")
+        assert_error(st, headers, body, 500)
+        assert b"secret" not in body and b"RuntimeError" not in body
+        assert request(s.port, "/healthz")[0] == 200  # still serving
+    finally:
+        s.stop()
+
+
+# -- CORS ----------------------------------------------------------------------------------------------------------
+def test_cors(srv, root):
+    name = next(n for n, d in payloads(root, "a").items() if len(d) == 1000)
+    for path in ("/scenes/a/manifest.msgpack", f"/scenes/a/data/{name}", "/api/scenes", "/scenes/nope/x"):
+        st, headers, _ = request(srv.port, path, headers={"Origin": ORIGIN})
+        assert headers["Access-Control-Allow-Origin"] == ORIGIN, path
+        expose = {v.strip() for v in headers["Access-Control-Expose-Headers"].split(",")}
+        assert {"ETag", "Content-Range", "Content-Length"} <= expose
+        assert "Origin" in headers["Vary"]
+        st, headers, _ = request(srv.port, path, headers={"Origin": "https://evil.example"})
+        assert "Access-Control-Allow-Origin" not in headers
+    st, headers, _ = request(srv.port, f"/scenes/a/data/{name}", headers={"Origin": ORIGIN, "Range": "bytes=0-1"})
+    assert st == 206 and headers["Access-Control-Allow-Origin"] == ORIGIN
+
+
+def test_cors_preflight(srv):
+    pre = {"Origin": ORIGIN, "Access-Control-Request-Method": "GET",
+           "Access-Control-Request-Headers": "range, if-none-match"}
+    st, headers, body = request(srv.port, "/scenes/a/manifest.msgpack", "OPTIONS", headers=pre)
+    assert st == 204 and body == b""
+    assert headers["Access-Control-Allow-Origin"] == ORIGIN
+    assert "GET" in headers["Access-Control-Allow-Methods"]
+    allowed = {v.strip().lower() for v in headers["Access-Control-Allow-Headers"].split(",")}
+    assert {"range", "if-none-match"} <= allowed
+    assert int(headers["Access-Control-Max-Age"]) > 0
+    st, headers, _ = request(srv.port, "/scenes/a/manifest.msgpack", "OPTIONS",
+                             headers={**pre, "Origin": "https://evil.example"})
+    assert st == 204 and "Access-Control-Allow-Origin" not in headers
+    assert "Access-Control-Allow-Methods" not in headers
+    st, headers, _ = request(srv.port, "/api/scenes", "OPTIONS")
+    assert st == 204 and headers["Allow"] == "GET, HEAD, OPTIONS"
+
+
+def test_cors_any_origin(root):
+    s = ServerThread(root, cors=("*",))
+    try:
+        st, headers, _ = request(s.port, "/scenes/a/manifest.msgpack", headers={"Origin": "https://x.example"})
+        assert st == 200 and headers["Access-Control-Allow-Origin"] == "*"
+    finally:
+        s.stop()
+
+
+# -- load and change -----------------------------------------------------------------------------------------------
+def test_200_concurrent_downloads(srv, root):
+    files = [f"/scenes/a/data/{n}" for n in payloads(root, "a")] + \
+            [f"/scenes/nested/b/data/{n}" for n in payloads(root, "nested/b")]
+
+    async def main():
+        conn = aiohttp.TCPConnector(limit=200, force_close=False)
+        async with aiohttp.ClientSession(connector=conn, auto_decompress=False) as session:
+            async def one(i):
+                url = files[i % len(files)]
+                async with session.get(f"http://127.0.0.1:{srv.port}{url}") as r:
+                    assert r.status == 200
+                    body = await r.read()
+                    return url, sha(body).hexdigest()
+
+            return await asyncio.gather(*(one(i) for i in range(200)))
+
+    results = asyncio.run(main())
+    assert len(results) == 200
+    for url, digest in results:
+        assert url.endswith(f"/{digest}.bin")
+
+
+def _fetch_scene(port: int, scene: str) -> tuple[bytes, dict[str, bytes | None]]:
+    """The manifest and every payload it references (None where 404)."""
+    st, _, raw = request(port, f"/scenes/{scene}/manifest.msgpack")
+    assert st == 200
+    m = parse_manifest(raw)
+    got = {}
+    for _, _, g in iter_payloads(m):
+        st, _, body = request(port, f"/scenes/{scene}/{g['file']}")
+        assert st in (200, 404)
+        got[g["sha256"]] = body if st == 200 else None
+    return raw, got
+
+
+def test_scene_swapped_while_served(tmp_path):
+    root = tmp_path / "root"
+    versions = {}
+    versions[0] = write_fake_scene(root / "s", [4 << 20, 100, 2000], seed=100)
+    s = ServerThread(root)
+    try:
+        manifests = {request(s.port, "/scenes/s/manifest.msgpack")[2]}
+        # A large download in flight (read slowly) across the swap still delivers the old, complete bytes.
+        big = versions[0][0]
+        conn = http.client.HTTPConnection("127.0.0.1", s.port, timeout=10)
+        conn.request("GET", f"/scenes/s/data/{big}.bin")
+        resp = conn.getresponse()
+        head = resp.read(1024)
+        stop = threading.Event()
+        errors: list[str] = []
+        seen: list[bytes] = []
+
+        def reader():
+            while not stop.is_set():
+                try:
+                    raw, got = _fetch_scene(s.port, "s")
+                except Exception as exc:  # noqa: BLE001 - reported below
+                    errors.append(repr(exc))
+                    return
+                seen.append(raw)
+                for digest, body in got.items():
+                    if body is not None and sha(body).hexdigest() != digest:
+                        errors.append(f"payload {digest} served with wrong bytes")
+
+        threads = [threading.Thread(target=reader) for _ in range(3)]
+        for t in threads:
+            t.start()
+        for v in range(1, 9):
+            versions[v] = write_fake_scene(root / "s", [4 << 20, 100 + v, 2000 + v], seed=100 + v)
+            manifests.add((root / "s" / MANIFEST_NAME).read_bytes())
+            time.sleep(0.03)
+        stop.set()
+        for t in threads:
+            t.join(30)
+        rest = resp.read()
+        conn.close()
+        assert sha(head + rest).hexdigest() == big
+        assert not errors, errors[:5]
+        assert seen and set(seen) <= manifests  # every manifest served was one whole version, never a mix
+        raw, got = _fetch_scene(s.port, "s")
+        assert raw == (root / "s" / MANIFEST_NAME).read_bytes()
+        assert all(body is not None and sha(body).hexdigest() == d for d, body in got.items())
+        assert set(got) == set(versions[8])
+        assert_error(*request(s.port, f"/scenes/s/data/{versions[0][1]}.bin"), 404)  # old payloads are gone
+        # a scene added while the server runs shows up at once
+        write_fake_scene(root / "t", [10], seed=7)
+        assert [x["id"] for x in json.loads(request(s.port, "/api/scenes")[2])["scenes"]] == ["s", "t"]
+    finally:
+        s.stop()
+
+
+@pytest.mark.skipif(not REAL_PLY.exists(), reason="real scene not available")
+def test_real_encoded_scene(tmp_path):
+    from splatstream.encoder import encode_file
+
+    m = encode_file(REAL_PLY, tmp_path / "root" / "fruit")
+    s = ServerThread(tmp_path / "root")
+    try:
+        scenes = json.loads(request(s.port, "/api/scenes")[2])["scenes"]
+        assert [(x["id"], x["splats"], x["sh_degree"]) for x in scenes] == [("fruit", m["splats"], m["sh_degree"])]
+        raw, got = _fetch_scene(s.port, "fruit")
+        assert msgpack.unpackb(raw) == msgpack.unpackb(msgpack.packb(m))
+        assert got and all(body is not None and sha(body).hexdigest() == d for d, body in got.items())
+    finally:
+        s.stop()
+
+
+# -- the command ---------------------------------------------------------------------------------------------------
+def _cli(*args: str, **kw) -> subprocess.Popen:
+    return subprocess.Popen([sys.executable, "-m", "splatstream.cli", "serve", *args], cwd=REPO,
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
+
+
+def _started(proc: subprocess.Popen) -> int:
+    line = proc.stderr.readline()
+    m = re.search(r"at http://127\.0\.0\.1:(\d+)/", line)
+    assert m, line + proc.stderr.read() if proc.poll() is not None else line
+    return int(m.group(1))
+
+
+@pytest.mark.parametrize("setup, message", [
+    (lambda p: p / "missing", "no such directory"),
+    (lambda p: ((p / "e").mkdir(), p / "e")[1], "holds no scene"),
+    (lambda p: ((p / "f").write_text("x"), p / "f")[1], "not a directory"),
+    (lambda p: (write_fake_scene(p / "sc", [1]), p / "sc")[1], "is itself a scene directory"),
+])
+def test_cli_bad_root(tmp_path, setup, message):
+    proc = _cli(str(setup(tmp_path)), "--port", "0")
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 2 and message in err and "Traceback" not in err
+
+
+def test_cli_port_in_use(root):
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen(1)
+        port = taken.getsockname()[1]
+        proc = _cli(str(root), "--port", str(port))
+        out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 1 and "already in use" in err and "Traceback" not in err
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_cli_graceful_sigterm(tmp_path, workers):
+    root = tmp_path / "root"
+    (big,) = write_fake_scene(root / "big", [32 << 20], seed=9)
+    proc = _cli(str(root), "--port", "0", "--workers", str(workers))
+    try:
+        port = _started(proc)
+        assert request(port, "/healthz")[0] == 200
+        with socket.create_connection(("127.0.0.1", port), timeout=10) as s:
+            s.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 65536)
+            s.sendall(f"GET /scenes/big/data/{big}.bin HTTP/1.1\r\nHost: x\r\n\r\n".encode())
+            data = bytearray(s.recv(65536))
+            assert data.startswith(b"HTTP/1.1 200 ")
+            time.sleep(0.2)  # the server is blocked on a full socket: the response is in flight
+            proc.send_signal(signal.SIGTERM)
+            time.sleep(0.3)
+            assert proc.poll() is None  # still sending
+            end = data.index(b"\r\n\r\n") + 4 + (32 << 20)
+            while len(data) < end and (chunk := s.recv(1 << 20)):
+                data += chunk
+        head, _, body = bytes(data).partition(b"\r\n\r\n")
+        assert sha(body).hexdigest() == big  # the in-flight response finished
+        assert proc.wait(timeout=30) == 0
+        err = proc.stderr.read()
+        assert "stopped" in err and "Traceback" not in err
+        assert f"GET /scenes/big/data/{big}.bin HTTP/1.1\" 200 {32 << 20}" in err  # the access log
+        with pytest.raises(OSError):
+            socket.create_connection(("127.0.0.1", port), timeout=2).close()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
