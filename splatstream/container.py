@@ -7,6 +7,10 @@ file bytes (which is also the file name) so every fetch can be verified.
 """
 from __future__ import annotations
 
+import hashlib
+import io
+from typing import BinaryIO
+
 import numpy as np
 import zstandard
 
@@ -32,40 +36,63 @@ def _element_of(filter_name: str) -> int:
     raise ValueError(filter_name)
 
 
-def pack_group(planes: list[EncodedPlane], level: int = 9, shuffle: bool = True) -> tuple[bytes, dict]:
-    """Build a payload. Returns (file bytes, manifest group entry without 'file')."""
-    parts: list[np.ndarray] = []
+def write_group(planes: list[EncodedPlane], out: BinaryIO, level: int = 9, shuffle: bool = True) -> dict:
+    """Stream a payload into `out` (zstd, hashing as it goes). Returns the manifest group entry without 'file'.
+
+    Sections are laid out first and then compressed one layer at a time, so the encoder never holds a whole
+    decompressed payload or its compressed copy in memory.
+    """
     sections = []
+    pieces: list[tuple[int, np.ndarray, int]] = []  # (padding before, bytes, shuffle element)
     offset = 0
     gpu_bytes = 0
 
-    def add(name: str, blob: np.ndarray, element: int, extra: dict) -> None:
+    def add(name: str, units: list[np.ndarray], element: int, extra: dict) -> None:
         nonlocal offset
         filt = _filter_for(element) if shuffle else "none"
-        data = shuffle_bytes(blob, element) if filt != "none" else blob
         pad = (-offset) % ALIGN
-        if pad:
-            parts.append(np.zeros(pad, np.uint8))
-            offset += pad
-        sections.append({"name": name, "offset": offset, "size": int(data.size), "filter": filt, **extra})
-        parts.append(data)
-        offset += data.size
+        offset += pad
+        size = sum(u.size for u in units)
+        sections.append({"name": name, "offset": offset, "size": int(size), "filter": filt, **extra})
+        for i, unit in enumerate(units):
+            pieces.append((pad if i == 0 else 0, unit, element if filt != "none" else 1))
+        offset += size
 
     for p in planes:
         fmt = get_format(p.format)
-        add(p.spec.name, p.texels, fmt.shuffle, {"kind": "texels", "format": p.format, "width": p.width,
+        add(p.spec.name, p.layers, fmt.shuffle, {"kind": "texels", "format": p.format, "width": p.width,
                                                  "height": p.height, "layers": p.spec.layers})
-        gpu_bytes += p.texels.size
+        gpu_bytes += p.texel_bytes
         if p.ranges is not None:
             r = np.ascontiguousarray(p.ranges)
-            add(p.spec.name + ".range", r.reshape(-1).view(np.uint8), r.dtype.itemsize,
+            add(p.spec.name + ".range", [r.reshape(-1).view(np.uint8)], r.dtype.itemsize,
                 {"kind": "range", "dtype": "f32" if r.dtype.itemsize == 4 else "f16", "shape": list(r.shape)})
             gpu_bytes += r.nbytes
-    raw = np.concatenate(parts) if parts else np.zeros(0, np.uint8)
-    compressed = zstandard.ZstdCompressor(level=level, threads=-1, write_content_size=True).compress(raw.tobytes())
-    entry = {"sha256": sha256_hex(compressed), "bytes": len(compressed), "raw_bytes": int(raw.size),
-             "gpu_bytes": int(gpu_bytes), "sections": sections}
-    return compressed, entry
+    digest = hashlib.sha256()
+    written = 0
+
+    class _Sink:
+        def write(self, data: bytes) -> int:
+            nonlocal written
+            digest.update(data)
+            written += len(data)
+            return out.write(data)
+
+    cctx = zstandard.ZstdCompressor(level=level, threads=-1, write_content_size=True)
+    with cctx.stream_writer(_Sink(), size=offset, closefd=False) as stream:
+        for pad, unit, element in pieces:
+            if pad:
+                stream.write(bytes(pad))
+            stream.write(shuffle_bytes(unit, element).data if element > 1 else unit.data)
+    return {"sha256": digest.hexdigest(), "bytes": written, "raw_bytes": int(offset), "gpu_bytes": int(gpu_bytes),
+            "sections": sections}
+
+
+def pack_group(planes: list[EncodedPlane], level: int = 9, shuffle: bool = True) -> tuple[bytes, dict]:
+    """In-memory payload: (file bytes, manifest group entry without 'file')."""
+    buf = io.BytesIO()
+    entry = write_group(planes, buf, level, shuffle)
+    return buf.getvalue(), entry
 
 
 def verify_payload(data: bytes, entry: dict, source: str) -> None:
@@ -94,7 +121,7 @@ def unpack_group(data: bytes, entry: dict, group: str, splats: int, source: str)
     return planes
 
 
-def _section(buf: np.ndarray, sections: dict, name: str, source: str) -> tuple[dict, np.ndarray]:
+def _section(buf: np.ndarray, sections: dict, name: str, source: str) -> tuple[dict, np.ndarray, int]:
     s = sections.get(name)
     if s is None:
         raise FormatError(source, f"section {name}", "missing from the manifest entry")
@@ -107,11 +134,11 @@ def _section(buf: np.ndarray, sections: dict, name: str, source: str) -> tuple[d
     except ValueError:
         raise FormatError(source, f"section {name}.filter", f"unknown filter {s.get('filter')!r} "
                           "(expected none or shuffleN)") from None
-    return s, unshuffle_bytes(buf[off:off + size], element)
+    return s, buf[off:off + size], element
 
 
 def _read_plane(buf: np.ndarray, sections: dict, spec: PlaneSpec, splats: int, source: str) -> EncodedPlane:
-    s, texels = _section(buf, sections, spec.name, source)
+    s, texels, element = _section(buf, sections, spec.name, source)
     try:
         fmt = get_format(s.get("format"))
     except Exception:
@@ -124,9 +151,12 @@ def _read_plane(buf: np.ndarray, sections: dict, spec: PlaneSpec, splats: int, s
     if layers != spec.layers or texels.size != blob_size(fmt, width, height, layers):
         raise FormatError(source, f"section {spec.name}", f"{texels.size} bytes for {layers} layers of {width}x"
                           f"{height} {fmt.name}, expected {spec.layers} layers")
+    layer_size = texels.size // spec.layers
+    layers = [unshuffle_bytes(texels[i * layer_size:(i + 1) * layer_size], element) for i in range(spec.layers)]
     ranges = None
     if spec.range_dtype:
-        r, data = _section(buf, sections, spec.name + ".range", source)
+        r, data, element = _section(buf, sections, spec.name + ".range", source)
+        data = unshuffle_bytes(data, element)
         dtype = np.dtype("<f4" if r.get("dtype") == "f32" else "<f2")
         shape = (chunks, 2, spec.layers, spec.components)
         if list(r.get("shape", [])) != list(shape) or data.size != int(np.prod(shape)) * dtype.itemsize:
@@ -134,4 +164,4 @@ def _read_plane(buf: np.ndarray, sections: dict, spec: PlaneSpec, splats: int, s
         ranges = data.view(dtype).reshape(shape)
         if not np.isfinite(ranges).all():
             raise FormatError(source, f"section {spec.name}.range", "non-finite range values")
-    return EncodedPlane(spec, fmt.name, width, height, texels, ranges)
+    return EncodedPlane(spec, fmt.name, width, height, layers, ranges)

@@ -7,6 +7,7 @@ directory that replaces the target only when everything is written.
 from __future__ import annotations
 
 import os
+import tempfile
 import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
@@ -17,7 +18,7 @@ import numpy as np
 from . import __version__
 from .atomic import atomic_directory
 from .codec import BASE_PLANES, band_plane, encode_plane, groups_for_degree, plane_values
-from .container import pack_group
+from .container import write_group
 from .errors import UsageError
 from .gaussians import Gaussians
 from .layout import CHUNK_SIZE, morton_order, texture_size
@@ -44,7 +45,7 @@ class EncodeOptions:
     preset: str = DEFAULT_PRESET
     overrides: dict[str, str] = field(default_factory=dict)
     sh_degree: int | None = None  # drop bands above this
-    zstd_level: int = 9
+    zstd_level: int = 3
     shuffle: bool = True
     lod: bool = True
     max_leaf_splats: int = 65536
@@ -74,12 +75,13 @@ def extent_bounds(g: Gaussians, sigmas: float = 3.0) -> tuple[np.ndarray, np.nda
     if len(g) == 0:
         z = np.zeros(3)
         return z, z, z, 0.0
-    r = sigmas * np.exp(g.log_scales.max(axis=1).astype(np.float64))
-    p = g.positions.astype(np.float64)
-    lo = (p - r[:, None]).min(axis=0)
-    hi = (p + r[:, None]).max(axis=0)
+    r = np.float32(sigmas) * np.exp(g.log_scales.max(axis=1))
+    p = g.positions
+    lo = (p - r[:, None]).min(axis=0).astype(np.float64)
+    hi = (p + r[:, None]).max(axis=0).astype(np.float64)
     center = (lo + hi) / 2
-    radius = float((np.linalg.norm(p - center, axis=1) + r).max())
+    d = p - center.astype(np.float32)
+    radius = float((np.sqrt(np.einsum("ij,ij->i", d, d)) + r).max()) * (1 + 1e-6)
     return lo, hi, center, radius
 
 
@@ -156,8 +158,13 @@ def encode_gaussians(g: Gaussians, out_dir: str | os.PathLike, opts: EncodeOptio
         def encode_group(job):
             (tile, order), group = job
             specs = BASE_PLANES if group == "base" else (band_plane(int(group[2:])),)
-            planes = [encode_plane(plane_values(tile.gaussians, s)[order], s, formats[s.attribute]) for s in specs]
-            return pack_group(planes, level=opts.zstd_level, shuffle=opts.shuffle)
+            planes = [encode_plane(plane_values(tile.gaussians, s), s, formats[s.attribute], order) for s in specs]
+            fd, tmp_path = tempfile.mkstemp(prefix=".payload.", dir=os.path.join(tmp, DATA_DIR))
+            with os.fdopen(fd, "wb") as f:
+                entry = write_group(planes, f, level=opts.zstd_level, shuffle=opts.shuffle)
+            final = os.path.join(tmp, payload_name(entry["sha256"]))
+            os.replace(tmp_path, final)  # identical content has an identical name
+            return entry
 
         # Tiles and groups are independent; numpy, zstd and etcpak release the GIL, so two workers keep both
         # cores busy. Results come back in submission order, so the output is deterministic.
@@ -166,18 +173,16 @@ def encode_gaussians(g: Gaussians, out_dir: str | os.PathLike, opts: EncodeOptio
             jobs = [(t, group) for t in ordered for group in group_names]
             results = iter(pool.map(encode_group, jobs))
             for tile in tiles:
-                groups = [(group, *next(results)) for group in group_names]
+                groups = [(group, next(results)) for group in group_names]
                 n = len(tile.gaussians)
                 chunks = -(-n // CHUNK_SIZE)
                 width, height = texture_size(chunks)
                 group_entries = {}
-                for group, data, entry in groups:
+                for group, entry in groups:
                     rel = payload_name(entry["sha256"])
                     if rel not in written:
-                        with open(os.path.join(tmp, rel), "wb") as f:
-                            f.write(data)
                         written.add(rel)
-                        bytes_on_disk += len(data)
+                        bytes_on_disk += entry["bytes"]
                     entry = {"file": rel, **entry}
                     group_entries[group] = entry
                     attrs = [p.attribute for p in BASE_PLANES] if group == "base" else ["sh"]
@@ -186,10 +191,10 @@ def encode_gaussians(g: Gaussians, out_dir: str | os.PathLike, opts: EncodeOptio
                         attr = "sh" if sec["name"].startswith("sh") else sec["name"].split(".")[0]
                         if attr in attrs:
                             attr_gpu[attr] += sec["size"] if not tile.children else 0
-                            attr_disk[attr] += len(data) * sec["size"] / max(1, entry["raw_bytes"])
+                            attr_disk[attr] += entry["bytes"] * sec["size"] / max(1, entry["raw_bytes"])
                     if not tile.children:
                         leaf_gpu += entry["gpu_bytes"]
-                        leaf_disk += len(data)
+                        leaf_disk += entry["bytes"]
                 tile_entries.append({
                     "id": int(tile.id), "level": int(tile.level), "children": [int(c) for c in tile.children],
                     "splats": n, "chunks": chunks, "texture": [width, height],

@@ -67,7 +67,7 @@ def test_failed_encode_leaves_old_scene_and_no_temporaries(tmp_path, monkeypatch
     def boom(*args, **kwargs):
         raise RuntimeError("disk on fire")
 
-    monkeypatch.setattr(enc, "pack_group", boom)
+    monkeypatch.setattr(enc, "write_group", boom)
     with pytest.raises(RuntimeError):
         encode_gaussians(g, tmp_path / "scene", EncodeOptions(preset="high"))
     assert sorted(p.name for p in (tmp_path / "scene" / "data").iterdir()) == before

@@ -32,7 +32,7 @@ def main() -> None:
     for preset in PRESETS:
         out = HERE / preset
         shutil.rmtree(out, ignore_errors=True)
-        encode_gaussians(g, out, EncodeOptions(preset=preset, name=f"vector-{preset}", zstd_level=19))
+        encode_gaussians(g, out, EncodeOptions(preset=preset, name=f"vector-{preset}", zstd_level=3))
         (out / "expected.json").write_text(json.dumps(expected_values(decode_scene(out))) + "\n")
         print("wrote", out)
 

@@ -39,7 +39,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--max-leaf-splats", type=int, default=65536, help="splats per leaf tile at most (default 65536)")
     p.add_argument("--reduction", type=float, default=4.0,
                    help="each LOD level keeps about 1/REDUCTION of the splats of the level below (default 4)")
-    p.add_argument("--zstd-level", type=int, default=9, help="zstd level of the payloads (1..22, default 9)")
+    p.add_argument("--zstd-level", type=int, default=3,
+                   help="zstd level of the payloads (1..22, default 3: on shuffled texels higher levels gain <1%%)")
     p.add_argument("--name", help="scene name recorded in the manifest (default: input file name)")
     p.add_argument("--up", help="up vector of the scene, e.g. 0,0,1 (default) or 0,-1,0 for COLMAP captures")
     p.add_argument("--drop-invalid", action="store_true",
