@@ -1,0 +1,324 @@
+"""Pinhole cameras shared by the reference rasterizer, the GL client and the evaluation.
+
+Conventions (normative text in format_spec/camera.md):
+
+* World space is the file's space as stored, right-handed, no axis flips.
+* The camera looks from `eye` towards `target`; `up` picks the roll (it need not be orthogonal to the view direction).
+* `view_matrix()` is the OpenGL look-at matrix (camera space: x right, y up, looking down -z);
+  `world_to_camera_cv()` is the same rotation in the reference 3DGS / COLMAP convention (x right, y down, z forward).
+* Image row 0 is at the top; pixel (col, row) has its centre at continuous image coordinate (col + 0.5, row + 0.5).
+* Square pixels: fy = height / (2 tan(fov_y / 2)), fx = fy; principal point at the image centre (width/2, height/2).
+* Splats with view depth <= `near` are culled (the reference CUDA rasterizer uses 0.2).
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+Vec3 = tuple[float, float, float]
+
+DEFAULT_UP: Vec3 = (0.0, 0.0, 1.0)
+DEFAULT_FOV_Y_DEG = 50.0
+REFERENCE_NEAR = 0.2
+
+
+def _vec3(v: Sequence[float] | np.ndarray, name: str) -> Vec3:
+    a = np.asarray(v, dtype=np.float64).reshape(-1)
+    if a.shape != (3,) or not np.all(np.isfinite(a)):
+        raise ValueError(f"camera {name}: expected 3 finite numbers, got {v!r}")
+    return (float(a[0]), float(a[1]), float(a[2]))
+
+
+def _normalize(v: np.ndarray) -> np.ndarray:
+    n = np.linalg.norm(v)
+    if n == 0:
+        raise ValueError("zero-length vector")
+    return v / n
+
+
+@dataclass
+class Camera:
+    """A pinhole camera. All fields are plain Python numbers so the camera serialises to JSON as is."""
+
+    eye: Vec3
+    target: Vec3
+    up: Vec3 = DEFAULT_UP
+    fov_y_deg: float = DEFAULT_FOV_Y_DEG
+    width: int = 512
+    height: int = 512
+    near: float = REFERENCE_NEAR
+    far: float = 1000.0
+    extra: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        self.eye = _vec3(self.eye, "eye")
+        self.target = _vec3(self.target, "target")
+        self.up = _vec3(self.up, "up")
+        self.fov_y_deg = float(self.fov_y_deg)
+        self.width = int(self.width)
+        self.height = int(self.height)
+        self.near = float(self.near)
+        self.far = float(self.far)
+        if self.eye == self.target:
+            raise ValueError("camera eye and target coincide")
+        if not 0.0 < self.fov_y_deg < 180.0:
+            raise ValueError(f"camera fov_y_deg must lie in (0, 180), got {self.fov_y_deg}")
+        if self.width <= 0 or self.height <= 0:
+            raise ValueError(f"camera size must be positive, got {self.width}x{self.height}")
+        if not 0.0 < self.near < self.far:
+            raise ValueError(f"camera needs 0 < near < far, got near={self.near} far={self.far}")
+        if np.linalg.norm(self.up) == 0:
+            raise ValueError("camera up vector is zero")
+
+    # --- intrinsics -------------------------------------------------------------------------------------------
+    @property
+    def aspect(self) -> float:
+        return self.width / self.height
+
+    @property
+    def tan_half_fov_y(self) -> float:
+        return math.tan(math.radians(self.fov_y_deg) / 2.0)
+
+    @property
+    def tan_half_fov_x(self) -> float:
+        return self.tan_half_fov_y * self.aspect
+
+    @property
+    def fov_x_deg(self) -> float:
+        return math.degrees(2.0 * math.atan(self.tan_half_fov_x))
+
+    @property
+    def focal(self) -> tuple[float, float]:
+        """(fx, fy) in pixels; square pixels."""
+        fy = self.height / (2.0 * self.tan_half_fov_y)
+        return fy, fy
+
+    @property
+    def principal_point(self) -> tuple[float, float]:
+        """(cx, cy) in continuous image coordinates (pixel centres at +0.5)."""
+        return self.width / 2.0, self.height / 2.0
+
+    def intrinsics(self) -> np.ndarray:
+        """3x3 K with image coordinates u right, v down (pixel centres at +0.5)."""
+        fx, fy = self.focal
+        cx, cy = self.principal_point
+        return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+
+    # --- extrinsics -------------------------------------------------------------------------------------------
+    def basis(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """World-space unit (right, true_up, forward) of the camera."""
+        eye = np.array(self.eye)
+        forward = _normalize(np.array(self.target) - eye)
+        up = _normalize(np.array(self.up))
+        right = np.cross(forward, up)
+        if np.linalg.norm(right) < 1e-9:  # up parallel to the view direction: pick any perpendicular roll
+            alt = np.array([1.0, 0.0, 0.0]) if abs(forward[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+            right = np.cross(forward, alt)
+        right = _normalize(right)
+        true_up = np.cross(right, forward)
+        return right, true_up, forward
+
+    @property
+    def position(self) -> np.ndarray:
+        return np.array(self.eye)
+
+    def view_matrix(self) -> np.ndarray:
+        """4x4 OpenGL look-at (world -> camera, camera looks down -z, y up), float64, row-major (M @ p)."""
+        right, true_up, forward = self.basis()
+        eye = np.array(self.eye)
+        m = np.eye(4)
+        m[0, :3], m[1, :3], m[2, :3] = right, true_up, -forward
+        m[:3, 3] = -m[:3, :3] @ eye
+        return m
+
+    def world_to_camera_cv(self) -> np.ndarray:
+        """4x4 world -> camera in the reference 3DGS (COLMAP) convention: x right, y down, z forward."""
+        right, true_up, forward = self.basis()
+        eye = np.array(self.eye)
+        m = np.eye(4)
+        m[0, :3], m[1, :3], m[2, :3] = right, -true_up, forward
+        m[:3, 3] = -m[:3, :3] @ eye
+        return m
+
+    def projection_matrix(self) -> np.ndarray:
+        """4x4 OpenGL perspective (clip z in [-w, w]) matching `focal` and `principal_point`."""
+        f = 1.0 / self.tan_half_fov_y
+        n, fa = self.near, self.far
+        p = np.zeros((4, 4))
+        p[0, 0] = f / self.aspect
+        p[1, 1] = f
+        p[2, 2] = (fa + n) / (n - fa)
+        p[2, 3] = 2.0 * fa * n / (n - fa)
+        p[3, 2] = -1.0
+        return p
+
+    def view_projection(self) -> np.ndarray:
+        return self.projection_matrix() @ self.view_matrix()
+
+    def project(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """World points (N, 3) -> (continuous image coordinates (N, 2), view depth (N,)).
+
+        Pixel (col, row) covers [col, col+1) x [row, row+1); depth is the distance along the view axis.
+        """
+        p = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        m = self.world_to_camera_cv()
+        t = p @ m[:3, :3].T + m[:3, 3]
+        fx, fy = self.focal
+        cx, cy = self.principal_point
+        with np.errstate(divide="ignore", invalid="ignore"):
+            uv = np.stack([fx * t[:, 0] / t[:, 2] + cx, fy * t[:, 1] / t[:, 2] + cy], axis=1)
+        return uv, t[:, 2]
+
+    # --- (de)serialisation ------------------------------------------------------------------------------------
+    def with_size(self, width: int, height: int) -> Camera:
+        return Camera(self.eye, self.target, self.up, self.fov_y_deg, width, height, self.near, self.far)
+
+    def to_dict(self) -> dict:
+        return {"eye": list(self.eye), "target": list(self.target), "up": list(self.up),
+                "fov_y_deg": self.fov_y_deg, "width": self.width, "height": self.height,
+                "near": self.near, "far": self.far}
+
+    @staticmethod
+    def from_dict(d: dict) -> Camera:
+        fov = d.get("fov_y_deg", d.get("fov_y", DEFAULT_FOV_Y_DEG))
+        return Camera(d["eye"], d["target"], d.get("up", DEFAULT_UP), fov, d.get("width", 512),
+                      d.get("height", 512), d.get("near", REFERENCE_NEAR), d.get("far", 1000.0))
+
+
+def look_at(eye: Sequence[float], target: Sequence[float], up: Sequence[float] = DEFAULT_UP,
+            fov_y_deg: float = DEFAULT_FOV_Y_DEG, width: int = 512, height: int = 512,
+            near: float = REFERENCE_NEAR, far: float = 1000.0) -> Camera:
+    """A camera at `eye` looking at `target`."""
+    return Camera(tuple(eye), tuple(target), tuple(up), fov_y_deg, width, height, near, far)
+
+
+def _positions(positions: np.ndarray) -> np.ndarray:
+    p = np.asarray(positions, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3 or len(p) == 0:
+        raise ValueError(f"expected a non-empty (N, 3) array of positions, got shape {p.shape}")
+    finite = np.all(np.isfinite(p), axis=1)
+    if not finite.all():
+        p = p[finite]
+        if len(p) == 0:
+            raise ValueError("no finite positions")
+    return p
+
+
+def _sample(p: np.ndarray, limit: int = 2_000_000) -> np.ndarray:
+    """A deterministic subsample for percentile statistics on very large scenes."""
+    if len(p) <= limit:
+        return p
+    return p[:: int(math.ceil(len(p) / limit))]
+
+
+def standard_benchmark_view(positions: np.ndarray, width: int = 1920, height: int = 1080) -> Camera:
+    """The standard benchmark view of /work/shared/data/README.md for make_scene.py scenes.
+
+    target c = per-axis median of positions; side = 95th percentile of |x - c.x| and |y - c.y| taken together;
+    eye = c + (-side, -side, 0.6 side); up = +z; vertical FOV 50 degrees.
+    """
+    p = _positions(positions)
+    c = np.median(p, axis=0)
+    d = np.concatenate([np.abs(p[:, 0] - c[0]), np.abs(p[:, 1] - c[1])])
+    side = float(np.percentile(d, 95))
+    if side == 0:
+        side = 1.0
+    eye = c + np.array([-side, -side, 0.6 * side])
+    far = max(1000.0, 10.0 * side)
+    return Camera(tuple(eye), tuple(c), DEFAULT_UP, DEFAULT_FOV_Y_DEG, width, height, REFERENCE_NEAR, far)
+
+
+def robust_bounds(positions: np.ndarray, percentile: float = 95.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(median, lo, hi): per-axis median and the central `percentile` % box of the positions."""
+    p = _sample(_positions(positions))
+    tail = (100.0 - percentile) / 2.0
+    lo, med, hi = np.percentile(p, [tail, 50.0, 100.0 - tail], axis=0)
+    return med, lo, hi
+
+
+def _diagonal(up: np.ndarray) -> np.ndarray:
+    """Unit direction from the target towards the eye: (-1, -1, 0.6) in a frame whose third axis is `up`."""
+    up = _normalize(up)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    a = _normalize(helper - up * (helper @ up))
+    b = np.cross(up, a)
+    return _normalize(-a - b + 0.6 * up)
+
+
+def fit_distance(radius: float, camera_fov_y_deg: float, aspect: float) -> float:
+    """Distance at which a sphere of `radius` fits in the narrower field of view."""
+    half = math.radians(camera_fov_y_deg) / 2.0
+    half_x = math.atan(math.tan(half) * aspect)
+    return radius / math.sin(min(half, half_x))
+
+
+def suggested_camera(positions: np.ndarray | None = None, up: Sequence[float] = DEFAULT_UP, width: int = 1280,
+                     height: int = 720, fov_y_deg: float = DEFAULT_FOV_Y_DEG,
+                     bounds: tuple[Sequence[float], Sequence[float]] | None = None,
+                     center: Sequence[float] | None = None, percentile: float = 95.0) -> Camera:
+    """Default camera for a scene: looks at the median along a diagonal, from outside the robust bounds.
+
+    Give `positions` (N, 3), or `bounds=(lo, hi)` (and optionally `center`). The central `percentile` % box of
+    the positions (outliers ignored) is framed so that its bounding sphere fits the view. `up` defaults to +z;
+    the view comes from the (-1, -1, 0.6) diagonal of a frame whose third axis is `up`.
+    """
+    if positions is not None:
+        med, lo, hi = robust_bounds(positions, percentile)
+    elif bounds is not None:
+        lo, hi = (np.asarray(b, dtype=np.float64) for b in bounds)
+        med = (lo + hi) / 2.0
+    else:
+        raise ValueError("suggested_camera needs positions or bounds")
+    if center is not None:
+        med = np.asarray(center, dtype=np.float64)
+    radius = float(np.linalg.norm(np.maximum(hi - med, med - lo)))
+    if not radius > 0:
+        radius = 1.0
+    dist = fit_distance(radius, fov_y_deg, width / height)
+    eye = med + _diagonal(np.asarray(up, dtype=np.float64)) * dist
+    near = min(REFERENCE_NEAR, 0.01 * dist)
+    far = max(1000.0, 10.0 * (dist + radius))
+    return Camera(tuple(eye), tuple(med), tuple(up), fov_y_deg, width, height, near, far)
+
+
+def orbit_views(center: Sequence[float], radius: float, n: int, up: Sequence[float] = DEFAULT_UP,
+                elevation_deg: float = 25.0, fov_y_deg: float = DEFAULT_FOV_Y_DEG, width: int = 512,
+                height: int = 512, near: float | None = None, far: float | None = None,
+                start_deg: float = 225.0) -> list[Camera]:
+    """`n` cameras evenly spaced on a circle around `center` (about the `up` axis), all looking at `center`.
+
+    `radius` is the distance from the centre; `elevation_deg` lifts the eyes above the plane normal to `up`.
+    The first eye sits at azimuth `start_deg` (225 degrees: the (-1, -1) diagonal, as suggested_camera).
+    """
+    if n < 1:
+        raise ValueError(f"orbit_views needs n >= 1, got {n}")
+    if not radius > 0:
+        raise ValueError(f"orbit_views needs a positive radius, got {radius}")
+    c = np.asarray(center, dtype=np.float64)
+    u = _normalize(np.asarray(up, dtype=np.float64))
+    helper = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    a = _normalize(helper - u * (helper @ u))
+    b = np.cross(u, a)
+    el = math.radians(elevation_deg)
+    near = min(REFERENCE_NEAR, 0.01 * radius) if near is None else near
+    far = max(1000.0, 10.0 * radius) if far is None else far
+    cams = []
+    for i in range(n):
+        az = math.radians(start_deg) + 2.0 * math.pi * i / n
+        d = math.cos(el) * (math.cos(az) * a + math.sin(az) * b) + math.sin(el) * u
+        cams.append(Camera(tuple(c + radius * d), tuple(c), tuple(u), fov_y_deg, width, height, near, far))
+    return cams
+
+
+def scene_orbit_views(positions: np.ndarray, n: int, width: int = 512, height: int = 512,
+                      up: Sequence[float] = DEFAULT_UP, elevation_deg: float = 25.0,
+                      fov_y_deg: float = DEFAULT_FOV_Y_DEG, percentile: float = 95.0,
+                      distance_scale: float = 1.0) -> list[Camera]:
+    """Evaluation views for a scene: `orbit_views` around the median, at the distance that fits the robust bounds."""
+    med, lo, hi = robust_bounds(positions, percentile)
+    radius = float(np.linalg.norm(np.maximum(hi - med, med - lo))) or 1.0
+    dist = fit_distance(radius, fov_y_deg, width / height) * distance_scale
+    return orbit_views(med, dist, n, up, elevation_deg, fov_y_deg, width, height)

@@ -1,0 +1,102 @@
+import json
+import math
+
+import numpy as np
+import pytest
+
+from splatstream.camera import (
+    Camera,
+    look_at,
+    orbit_views,
+    scene_orbit_views,
+    standard_benchmark_view,
+    suggested_camera,
+)
+
+
+def test_view_matrix_is_look_at():
+    cam = look_at((1.0, 2.0, 3.0), (4.0, 2.0, 3.0), up=(0, 0, 1))
+    v = cam.view_matrix()
+    np.testing.assert_allclose(v[:3, :3] @ v[:3, :3].T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(v[:3, :3]) == pytest.approx(1.0)  # a rotation: no axis flips
+    np.testing.assert_allclose(v @ [1, 2, 3, 1], [0, 0, 0, 1], atol=1e-12)
+    np.testing.assert_allclose(v @ [4, 2, 3, 1], [0, 0, -3, 1], atol=1e-12)  # target straight ahead on -z
+    np.testing.assert_allclose(v @ [1, 2, 4, 1], [0, 1, 0, 1], atol=1e-12)   # world up is camera up
+    np.testing.assert_allclose(v @ [1, 1, 3, 1], [1, 0, 0, 1], atol=1e-12)   # looking along +x, -y is right
+    cv = cam.world_to_camera_cv()
+    np.testing.assert_allclose(cv @ [4, 2, 3, 1], [0, 0, 3, 1], atol=1e-12)
+    np.testing.assert_allclose(cv @ [1, 2, 4, 1], [0, -1, 0, 1], atol=1e-12)
+
+
+def test_intrinsics_and_pixel_convention():
+    cam = look_at((0, 0, 0), (0, 0, -1), up=(0, 1, 0), fov_y_deg=60, width=200, height=100)
+    fx, fy = cam.focal
+    assert fy == pytest.approx(100 / (2 * math.tan(math.radians(30))))
+    assert fx == fy
+    uv, depth = cam.project(np.array([[0, 0, -1.0], [0, math.tan(math.radians(30)), -1.0]]))
+    np.testing.assert_allclose(uv[0], [100, 50])        # image centre = corner between the four middle pixels
+    np.testing.assert_allclose(uv[1], [100, 0], atol=1e-9)  # world up is row 0 (the top)
+    assert depth[0] == pytest.approx(1.0)
+    # the GL projection agrees with the pixel mapping
+    clip = cam.view_projection() @ [0.3, -0.2, -2.0, 1.0]
+    ndc = clip[:3] / clip[3]
+    u = (ndc[0] + 1) / 2 * 200
+    v = (1 - ndc[1]) / 2 * 100
+    uv2, _ = cam.project(np.array([[0.3, -0.2, -2.0]]))
+    np.testing.assert_allclose([u, v], uv2[0], atol=1e-9)
+    assert -1 < ndc[2] < 1
+
+
+def test_standard_benchmark_view_definition():
+    rng = np.random.default_rng(0)
+    p = rng.normal(size=(10000, 3)) * [10, 5, 1] + [1, 2, 3]
+    cam = standard_benchmark_view(p)
+    c = np.median(p, axis=0)
+    side = np.percentile(np.concatenate([np.abs(p[:, 0] - c[0]), np.abs(p[:, 1] - c[1])]), 95)
+    np.testing.assert_allclose(cam.target, c)
+    np.testing.assert_allclose(cam.eye, c + [-side, -side, 0.6 * side])
+    assert cam.up == (0.0, 0.0, 1.0) and cam.fov_y_deg == 50.0
+    assert (cam.width, cam.height) == (1920, 1080)
+
+
+def test_suggested_camera_frames_robust_bounds():
+    rng = np.random.default_rng(1)
+    p = rng.uniform(-1, 1, size=(5000, 3))
+    p[:10] = 1000.0  # outliers are ignored
+    cam = suggested_camera(p, width=400, height=300)
+    assert np.linalg.norm(cam.target) < 0.1
+    uv, depth = cam.project(np.array([[x, y, z] for x in (-.9, .9) for y in (-.9, .9) for z in (-.9, .9)]))
+    assert (depth > cam.near).all()
+    assert (uv >= 0).all() and (uv[:, 0] <= 400).all() and (uv[:, 1] <= 300).all()
+    d = np.subtract(cam.eye, cam.target)
+    assert d[0] < 0 and d[1] < 0 and d[2] > 0
+    flipped = suggested_camera(p, up=(0, -1, 0))
+    assert flipped.up == (0.0, -1.0, 0.0)
+    assert np.subtract(flipped.eye, flipped.target)[1] < 0  # above the scene along -y
+    boxed = suggested_camera(bounds=((-1, -1, -1), (1, 1, 1)))
+    np.testing.assert_allclose(boxed.target, [0, 0, 0])
+
+
+def test_orbit_views():
+    cams = orbit_views((1, 2, 3), 5.0, 8, up=(0, 0, 1), elevation_deg=30, width=64, height=48)
+    assert len(cams) == 8
+    eyes = np.array([c.eye for c in cams])
+    np.testing.assert_allclose(np.linalg.norm(eyes - [1, 2, 3], axis=1), 5.0)
+    np.testing.assert_allclose(eyes[:, 2] - 3, 5.0 * math.sin(math.radians(30)))
+    assert len({tuple(np.round(e, 6)) for e in eyes}) == 8
+    np.testing.assert_allclose(eyes.mean(axis=0)[:2], [1, 2], atol=1e-9)
+    views = scene_orbit_views(np.random.default_rng(2).normal(size=(100, 3)), 3)
+    assert len(views) == 3
+
+
+def test_camera_json_round_trip_and_validation():
+    cam = look_at((1, 2, 3), (0, 0, 0), width=64, height=32, fov_y_deg=40)
+    again = Camera.from_dict(json.loads(json.dumps(cam.to_dict())))
+    assert again == cam
+    with pytest.raises(ValueError):
+        look_at((0, 0, 0), (0, 0, 0))
+    with pytest.raises(ValueError):
+        look_at((0, 0, 1), (0, 0, 0), fov_y_deg=0)
+    # up parallel to the view direction still gives a valid rotation
+    v = look_at((0, 0, 5), (0, 0, 0), up=(0, 0, 1)).view_matrix()
+    np.testing.assert_allclose(v[:3, :3] @ v[:3, :3].T, np.eye(3), atol=1e-12)
