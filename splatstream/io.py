@@ -1,4 +1,8 @@
-"""Reading and writing splat scenes in any supported format, chosen by content, not only by extension."""
+"""Reading and writing splat scenes in any supported format, chosen by content, not only by extension.
+
+Readable: standard 3DGS PLY, PlayCanvas compressed PLY, Niantic SPZ (versions 2, 3, 4), antimatter15 .splat.
+Writable: .ply (standard 3DGS) and .splat. See format_spec/foreign_formats.md for what each format keeps.
+"""
 from __future__ import annotations
 
 import os
@@ -6,41 +10,89 @@ import os
 from .errors import InputError
 from .gaussians import Gaussians
 
+FORMAT_NAMES = {
+    "ply": "standard 3DGS PLY",
+    "compressed_ply": "PlayCanvas compressed PLY",
+    "spz": "Niantic SPZ",
+    "splat": "antimatter15 .splat",
+}
+WRITABLE_EXTENSIONS = {".ply": "ply", ".splat": "splat"}
+SPLAT_RECORD_BYTES = 32
+
 
 def sniff_format(path: str | os.PathLike) -> str:
-    """Name of the format of a file, from its first bytes: 'ply' (standard 3DGS PLY)."""
+    """Name of the format of a file, from its content: 'ply', 'compressed_ply', 'spz' or 'splat'.
+
+    PLY and SPZ are recognised by their magic bytes whatever the file is called. A .splat file has no magic
+    at all, so it is recognised only as "none of the above, named .splat, length a multiple of 32"; its
+    reader then checks that the records are plausible.
+    """
+    from .ply import MAX_HEADER_BYTES, read_header
+    from .readers.compressed_ply import is_compressed_ply
+
     path = os.fspath(path)
     try:
         with open(path, "rb") as f:
-            head = f.read(4096)
+            head = f.read(MAX_HEADER_BYTES)
     except IsADirectoryError:
         raise InputError(path, None, "is a directory (expected a splat file)") from None
     if not head:
         raise InputError(path, None, "file is empty")
     if head.startswith(b"ply\n") or head.startswith(b"ply\r\n"):
-        return "ply"
-    raise InputError(path, None, "unrecognised file format (expected a 3DGS PLY)")
+        return "compressed_ply" if is_compressed_ply(read_header(path, head)) else "ply"
+    if head.startswith(b"NGSP") or head.startswith(b"\x1f\x8b"):
+        return "spz"  # the SPZ reader tells a gzip file that is not SPZ apart
+    if os.path.splitext(path)[1].lower() == ".splat":
+        size = os.path.getsize(path)
+        if size % SPLAT_RECORD_BYTES:
+            raise InputError(path, "file length", f"{size} bytes is not a multiple of 32 (a .splat file is a sequence "
+                             f"of 32-byte records; {size % 32} bytes left over: truncated?)")
+        return "splat"
+    raise InputError(path, None, "unrecognised file format (expected a 3DGS PLY, a PlayCanvas compressed PLY, an "
+                     "SPZ file, or a .splat file)")
 
 
 def read_gaussians(path: str | os.PathLike, drop_invalid: bool = False) -> Gaussians:
     """Read any supported splat file into Gaussians."""
-    from .ply import read_gaussians_ply
-
     path = os.fspath(path)
     if not os.path.exists(path):
         raise InputError(path, None, "no such file")
     fmt = sniff_format(path)
     if fmt == "ply":
+        from .ply import read_gaussians_ply
+
         return read_gaussians_ply(path, drop_invalid=drop_invalid)
+    if fmt == "compressed_ply":
+        from .readers.compressed_ply import read_compressed_ply
+
+        return read_compressed_ply(path, drop_invalid=drop_invalid)
+    if fmt == "spz":
+        from .readers.spz import read_spz
+
+        return read_spz(path, drop_invalid=drop_invalid)
+    if fmt == "splat":
+        from .readers.splat import read_splat
+
+        return read_splat(path, drop_invalid=drop_invalid)
     raise InputError(path, None, f"no reader for format {fmt!r}")
 
 
-def write_gaussians(g: Gaussians, path: str | os.PathLike) -> None:
-    """Write Gaussians to a file whose format follows the extension (.ply)."""
-    from .ply import write_gaussians_ply
-
+def output_format(path: str | os.PathLike) -> str:
+    """Writer for an output path, from its extension; raises InputError for extensions we cannot write."""
     ext = os.path.splitext(os.fspath(path))[1].lower()
-    if ext == ".ply":
+    if ext not in WRITABLE_EXTENSIONS:
+        raise InputError(path, None, f"cannot write {ext or 'extensionless'} files (expected .ply or .splat)")
+    return WRITABLE_EXTENSIONS[ext]
+
+
+def write_gaussians(g: Gaussians, path: str | os.PathLike) -> None:
+    """Write Gaussians (atomically) to a file whose format follows the extension (.ply or .splat)."""
+    fmt = output_format(path)
+    if fmt == "ply":
+        from .ply import write_gaussians_ply
+
         write_gaussians_ply(g, path)
-        return
-    raise InputError(path, None, f"cannot write {ext or 'extensionless'} files (expected .ply)")
+    else:
+        from .readers.splat import write_splat
+
+        write_splat(g, path)

@@ -1,0 +1,48 @@
+"""`splatstream convert IN OUT`: any readable splat format to .ply or .splat."""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import time
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "convert", help="convert between splat file formats",
+        description="Read a splat file (standard 3DGS PLY, PlayCanvas compressed PLY, Niantic SPZ v2-v4, "
+                    "antimatter15 .splat; recognised by content) and write it as a standard 3DGS PLY (.ply) or "
+                    ".splat, chosen by OUT's extension. The output appears only when complete. What each "
+                    "format keeps is documented in format_spec/foreign_formats.md.")
+    p.add_argument("input", help="input splat file")
+    p.add_argument("output", help="output file (.ply or .splat)")
+    p.add_argument("--drop-invalid", action="store_true",
+                   help="drop splats with non-finite or degenerate values instead of refusing the input")
+    p.add_argument("-q", "--quiet", action="store_true", help="no progress messages on stderr")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    from ..errors import UsageError
+    from ..io import FORMAT_NAMES, output_format, read_gaussians, sniff_format, write_gaussians
+
+    out_format = output_format(args.output)  # refuse an unwritable output before reading anything
+    if os.path.exists(args.output) and os.path.exists(args.input) and os.path.samefile(args.input, args.output):
+        raise UsageError(f"{args.output}: output is the input file")
+    start = time.perf_counter()
+
+    def say(message: str) -> None:
+        if not args.quiet:
+            print(f"convert: {message} ({time.perf_counter() - start:.1f}s)", file=sys.stderr, flush=True)
+
+    say(f"reading {args.input}")
+    if os.path.isfile(args.input):
+        say(f"format: {FORMAT_NAMES[sniff_format(args.input)]}")
+    g = read_gaussians(args.input, drop_invalid=args.drop_invalid)
+    say(f"read {len(g)} splats, SH degree {g.sh_degree}")
+    if out_format == "splat" and g.sh_degree > 0:
+        say(f"note: .splat has no SH bands; bands 1..{g.sh_degree} are dropped")
+    say(f"writing {args.output} ({FORMAT_NAMES[out_format]})")
+    write_gaussians(g, args.output)
+    say("done")
+    return 0
