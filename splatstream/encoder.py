@@ -21,7 +21,7 @@ from .codec import BASE_PLANES, band_plane, encode_plane, groups_for_degree, pla
 from .container import write_group
 from .errors import UsageError
 from .gaussians import Gaussians
-from .layout import CHUNK_SIZE, morton_order, texture_size
+from .layout import CHUNK_SIZE, MAX_BLOCK_ROWS, MAX_BLOCKS_PER_ROW, morton_order, texture_size
 from .manifest import DATA_DIR, FORMAT_NAME, FORMAT_VERSION, MANIFEST_NAME, pack_manifest, payload_name
 from .texformats import FORMATS, get_format
 
@@ -103,6 +103,9 @@ def _build_tiles(g: Gaussians, opts: EncodeOptions, progress: Progress) -> list:
         from .lod import build_tiles
 
         return build_tiles(g, max_leaf_splats=opts.max_leaf_splats, reduction=opts.reduction, progress=progress)
+    limit = MAX_BLOCKS_PER_ROW * MAX_BLOCK_ROWS * CHUNK_SIZE
+    if len(g) > limit:
+        raise UsageError(f"{len(g)} splats do not fit one tile (at most {limit}); encode with LOD (drop --no-lod)")
     lo, hi, c, r = extent_bounds(g)
     return [_TileToEncode(0, 0, [], g, 0.0, lo, hi, c, r)]
 

@@ -11,6 +11,7 @@ import numpy as np
 CHUNK_SIZE = 256
 BLOCK = 16  # a chunk is a BLOCK x BLOCK texel square
 MAX_BLOCKS_PER_ROW = 128  # texture width at most 2048 texels
+MAX_BLOCK_ROWS = 1024  # texture height at most 16384 texels, the GL 4.3 guaranteed minimum of GL_MAX_TEXTURE_SIZE
 MORTON_BITS = 21
 
 
@@ -52,10 +53,19 @@ def morton2d_decode_16(j: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def texture_size(chunks: int) -> tuple[int, int]:
-    """(width, height) in texels of a texture holding `chunks` 16x16 blocks."""
-    cols = max(1, min(chunks, MAX_BLOCKS_PER_ROW))
-    rows = max(1, -(-chunks // cols))
-    return cols * BLOCK, rows * BLOCK
+    """(width, height) in texels of a texture holding `chunks` 16x16 blocks.
+
+    The row length (at most 128 blocks) is the one that leaves the fewest unused blocks, the widest on ties:
+    GPU memory is allocated for the whole rectangle, so padding would count against bytes per splat.
+    """
+    chunks = max(1, chunks)
+    if chunks > MAX_BLOCKS_PER_ROW * MAX_BLOCK_ROWS:
+        raise ValueError(f"{chunks} chunks do not fit one texture ({MAX_BLOCKS_PER_ROW * MAX_BLOCK_ROWS} at most)")
+    # At least 64 blocks per row (or all of them) keeps textures from becoming needlessly tall and thin.
+    narrowest = max(-(-chunks // MAX_BLOCK_ROWS), min(chunks, 64))
+    widest = min(chunks, MAX_BLOCKS_PER_ROW)
+    cols = min(range(narrowest, widest + 1), key=lambda k: (-(-chunks // k) * k, -k))
+    return cols * BLOCK, -(-chunks // cols) * BLOCK
 
 
 def texel_coords(n: int, width: int) -> tuple[np.ndarray, np.ndarray]:
