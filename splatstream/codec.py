@@ -10,6 +10,7 @@ ranges; rotations are unit quaternions and need no range.
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -154,12 +155,12 @@ class EncodedPlane:
     format: str
     width: int
     height: int
-    layers: list[np.ndarray]   # one uint8 texture blob per layer
+    layers: list[np.ndarray] | Iterator[np.ndarray]  # one uint8 texture blob per layer (see encode_plane's lazy)
     ranges: np.ndarray | None  # (chunks, 2, L, C) in range_dtype, [:, 0] = min, [:, 1] = max
 
     @property
-    def texel_bytes(self) -> int:
-        return sum(b.size for b in self.layers)
+    def chunks(self) -> int:
+        return (self.width // 16) * (self.height // 16)
 
 
 def _pad_to_chunks(values: np.ndarray) -> np.ndarray:
@@ -208,10 +209,13 @@ def _quantize_u8(t: np.ndarray) -> np.ndarray:
     return q.astype(np.uint8)
 
 
-def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.ndarray | None = None) -> EncodedPlane:
+def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.ndarray | None = None,
+                 lazy: bool = False) -> EncodedPlane:
     """Quantise (N, L, C) plane values into one texture blob per layer (+ per-chunk ranges).
 
-    `order` (a permutation, the tile's Morton order) is applied with one gather of the whole plane.
+    `order` (a permutation, the tile's Morton order) is applied with one gather of the whole plane. With
+    `lazy`, `layers` is an iterator that encodes each layer when asked for it and `ranges` is filled in once it
+    is exhausted, so a payload writer holds one layer at a time.
     """
     get_format(fmt_name)
     n = len(values)
@@ -221,28 +225,35 @@ def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.n
         values, order = np.zeros((1, spec.layers, spec.components), np.float32), None
     if order is not None:
         values = np.take(values, order, axis=0)
-    blobs, lows, highs = [], [], []
-    for layer in range(spec.layers):
-        v = values[:, layer]
-        if spec.range_dtype:
-            lo, hi = chunk_ranges(v, spec.range_dtype)
-            lo32, hi32 = lo.astype(np.float32), hi.astype(np.float32)
-            extent = hi32 - lo32
-            inv = np.divide(1.0, extent, out=np.zeros_like(extent), where=extent > 0)
-            t = _pad_to_chunks(v).reshape(chunks, CHUNK_SIZE, spec.components) - lo32[:, None]
-            t *= inv[:, None]
-            np.clip(t, 0.0, 1.0, out=t)
-            t = t.reshape(-1, spec.components)
-            lows.append(lo)
-            highs.append(hi)
-        else:
-            t = _pad_to_chunks(encode_rotations(v, fmt_name))
-        del v
-        blobs.append(_texture_blob(t, fmt_name, chunks, width, height))
-    ranges = None
-    if spec.range_dtype:
-        ranges = np.stack([np.stack(lows, axis=1), np.stack(highs, axis=1)], axis=1).astype(spec.range_dtype)
-    return EncodedPlane(spec, fmt_name, width, height, blobs, ranges)
+    plane = EncodedPlane(spec, fmt_name, width, height, [], None)
+
+    def layers():
+        lows, highs = [], []
+        for layer in range(spec.layers):
+            v = values[:, layer]
+            if spec.range_dtype:
+                lo, hi = chunk_ranges(v, spec.range_dtype)
+                lo32, hi32 = lo.astype(np.float32), hi.astype(np.float32)
+                extent = hi32 - lo32
+                inv = np.divide(1.0, extent, out=np.zeros_like(extent), where=extent > 0)
+                t = _pad_to_chunks(v).reshape(chunks, CHUNK_SIZE, spec.components) - lo32[:, None]
+                t *= inv[:, None]
+                np.clip(t, 0.0, 1.0, out=t)
+                t = t.reshape(-1, spec.components)
+                lows.append(lo)
+                highs.append(hi)
+            else:
+                t = _pad_to_chunks(encode_rotations(v, fmt_name))
+            del v
+            blob = _texture_blob(t, fmt_name, chunks, width, height)
+            del t
+            if layer == spec.layers - 1 and spec.range_dtype:
+                plane.ranges = np.stack([np.stack(lows, axis=1), np.stack(highs, axis=1)], axis=1).astype(
+                    spec.range_dtype)
+            yield blob
+
+    plane.layers = layers() if lazy else list(layers())
+    return plane
 
 
 def decode_plane(plane: EncodedPlane, n: int) -> np.ndarray:

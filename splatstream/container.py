@@ -36,38 +36,32 @@ def _element_of(filter_name: str) -> int:
     raise ValueError(filter_name)
 
 
-def write_group(planes: list[EncodedPlane], out: BinaryIO, level: int = 9, shuffle: bool = True) -> dict:
+def write_group(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level: int = 3, shuffle: bool = True) -> dict:
     """Stream a payload into `out` (zstd, hashing as it goes). Returns the manifest group entry without 'file'.
 
-    Sections are laid out first and then compressed one layer at a time, so the encoder never holds a whole
-    decompressed payload or its compressed copy in memory.
+    The section table is laid out from the sizes alone; texels are then compressed one layer at a time as the
+    planes produce them (planes from `encode_plane(..., lazy=True)`), so the encoder never holds a whole
+    decompressed payload or its compressed copy in memory. `chunks` is the tile's chunk count (range shapes).
     """
     sections = []
-    pieces: list[tuple[int, np.ndarray, int]] = []  # (padding before, bytes, shuffle element)
     offset = 0
-    gpu_bytes = 0
 
-    def add(name: str, units: list[np.ndarray], element: int, extra: dict) -> None:
+    def add(name: str, size: int, element: int, extra: dict) -> None:
         nonlocal offset
+        offset += (-offset) % ALIGN
         filt = _filter_for(element) if shuffle else "none"
-        pad = (-offset) % ALIGN
-        offset += pad
-        size = sum(u.size for u in units)
         sections.append({"name": name, "offset": offset, "size": int(size), "filter": filt, **extra})
-        for i, unit in enumerate(units):
-            pieces.append((pad if i == 0 else 0, unit, element if filt != "none" else 1))
         offset += size
 
     for p in planes:
         fmt = get_format(p.format)
-        add(p.spec.name, p.layers, fmt.shuffle, {"kind": "texels", "format": p.format, "width": p.width,
-                                                 "height": p.height, "layers": p.spec.layers})
-        gpu_bytes += p.texel_bytes
-        if p.ranges is not None:
-            r = np.ascontiguousarray(p.ranges)
-            add(p.spec.name + ".range", [r.reshape(-1).view(np.uint8)], r.dtype.itemsize,
-                {"kind": "range", "dtype": "f32" if r.dtype.itemsize == 4 else "f16", "shape": list(r.shape)})
-            gpu_bytes += r.nbytes
+        add(p.spec.name, blob_size(fmt, p.width, p.height, p.spec.layers), fmt.shuffle,
+            {"kind": "texels", "format": p.format, "width": p.width, "height": p.height, "layers": p.spec.layers})
+        if p.spec.range_dtype:
+            item = np.dtype(p.spec.range_dtype).itemsize
+            shape = [chunks, 2, p.spec.layers, p.spec.components]
+            add(p.spec.name + ".range", int(np.prod(shape)) * item, item,
+                {"kind": "range", "dtype": "f32" if item == 4 else "f16", "shape": shape})
     digest = hashlib.sha256()
     written = 0
 
@@ -78,20 +72,39 @@ def write_group(planes: list[EncodedPlane], out: BinaryIO, level: int = 9, shuff
             written += len(data)
             return out.write(data)
 
+    position = 0
+    gpu_bytes = 0
     cctx = zstandard.ZstdCompressor(level=level, threads=-1, write_content_size=True)
     with cctx.stream_writer(_Sink(), size=offset, closefd=False) as stream:
-        for pad, unit, element in pieces:
-            if pad:
-                stream.write(bytes(pad))
-            stream.write(shuffle_bytes(unit, element).data if element > 1 else unit.data)
-    return {"sha256": digest.hexdigest(), "bytes": written, "raw_bytes": int(offset), "gpu_bytes": int(gpu_bytes),
+
+        def emit(section: dict, units) -> None:
+            nonlocal position, gpu_bytes
+            stream.write(bytes(section["offset"] - position))
+            position = section["offset"]
+            size = 0
+            for unit in units:
+                element = _element_of(section["filter"])
+                stream.write((shuffle_bytes(unit, element) if element > 1 else unit).data)
+                size += unit.size
+            if size != section["size"]:
+                raise AssertionError(f"section {section['name']}: {size} bytes, laid out as {section['size']}")
+            position += size
+            gpu_bytes += size
+
+        it = iter(sections)
+        for p in planes:
+            emit(next(it), p.layers)
+            if p.spec.range_dtype:
+                emit(next(it), [np.ascontiguousarray(p.ranges).reshape(-1).view(np.uint8)])
+    return {"sha256": digest.hexdigest(), "bytes": written, "raw_bytes": int(position), "gpu_bytes": int(gpu_bytes),
             "sections": sections}
 
 
-def pack_group(planes: list[EncodedPlane], level: int = 9, shuffle: bool = True) -> tuple[bytes, dict]:
+def pack_group(planes: list[EncodedPlane], level: int = 3, shuffle: bool = True) -> tuple[bytes, dict]:
     """In-memory payload: (file bytes, manifest group entry without 'file')."""
     buf = io.BytesIO()
-    entry = write_group(planes, buf, level, shuffle)
+    chunks = len(planes[0].ranges) if planes[0].ranges is not None else planes[0].chunks
+    entry = write_group(planes, buf, chunks, level, shuffle)
     return buf.getvalue(), entry
 
 

@@ -161,10 +161,12 @@ def encode_gaussians(g: Gaussians, out_dir: str | os.PathLike, opts: EncodeOptio
         def encode_group(job):
             (tile, order), group = job
             specs = BASE_PLANES if group == "base" else (band_plane(int(group[2:])),)
-            planes = [encode_plane(plane_values(tile.gaussians, s), s, formats[s.attribute], order) for s in specs]
+            planes = [encode_plane(plane_values(tile.gaussians, s), s, formats[s.attribute], order, lazy=True)
+                      for s in specs]
             fd, tmp_path = tempfile.mkstemp(prefix=".payload.", dir=os.path.join(tmp, DATA_DIR))
             with os.fdopen(fd, "wb") as f:
-                entry = write_group(planes, f, level=opts.zstd_level, shuffle=opts.shuffle)
+                entry = write_group(planes, f, chunks=-(-len(order) // CHUNK_SIZE), level=opts.zstd_level,
+                                    shuffle=opts.shuffle)
             final = os.path.join(tmp, payload_name(entry["sha256"]))
             os.replace(tmp_path, final)  # identical content has an identical name
             return entry
