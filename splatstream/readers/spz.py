@@ -111,7 +111,8 @@ def _read_legacy(path: str, data: bytes) -> tuple[dict, dict[str, bytes]]:
     body = _gunzip_bounded(path, data, LEGACY_HEADER.size + needed)
     if len(body) != LEGACY_HEADER.size + needed:
         raise InputError(path, "gzip stream", f"decompresses to {len(body)} bytes; {n} points of version {version} "
-                         f"with SH degree {sh_degree} need exactly {LEGACY_HEADER.size + needed}")
+                         f"with SH degree {sh_degree} need exactly {LEGACY_HEADER.size + needed} "
+                         "(the data is truncated or the header is wrong)")
     streams: dict[str, bytes] = {}
     offset = LEGACY_HEADER.size
     for name in STREAMS:
