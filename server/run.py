@@ -4,7 +4,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import errno
-import io
+import logging
 import os
 import signal
 import socket
@@ -12,6 +12,7 @@ import sys
 from collections.abc import Iterable
 
 from aiohttp import web
+from aiohttp.http_exceptions import HttpProcessingError
 
 from splatstream.manifest import MANIFEST_NAME
 
@@ -27,6 +28,30 @@ class ServeError(Exception):
     def __init__(self, message: str, code: int):
         super().__init__(message)
         self.code = code
+
+
+class _OneLineClientErrors(logging.Filter):
+    """Requests the HTTP parser refuses (the client's fault) are logged in one line, without a traceback."""
+
+    def filter(self, record: logging.LogRecord) -> bool:
+        exc = record.exc_info[1] if record.exc_info else None
+        if isinstance(exc, HttpProcessingError):
+            record.msg = f"{record.getMessage()}: {exc.code} {str(exc.message).strip().splitlines()[0]}"
+            record.args = ()
+            record.exc_info = None
+            record.exc_text = None
+        return True
+
+
+def setup_logging() -> None:
+    handler = logging.StreamHandler(sys.stderr)
+    handler.setFormatter(logging.Formatter("splatstream serve: %(levelname)s: %(name)s: %(message)s"))
+    handler.addFilter(_OneLineClientErrors())
+    for name in ("splatstream.server", "aiohttp"):
+        logger = logging.getLogger(name)
+        logger.addHandler(handler)
+        logger.setLevel(logging.WARNING)
+        logger.propagate = False
 
 
 def check_root(root: str) -> list[str]:
@@ -87,21 +112,16 @@ async def _serve_socket(sock: socket.socket, root: str, cors_origins: Iterable[s
         await runner.cleanup()
         if flusher:
             flusher.cancel()
-        with contextlib.suppress(Exception):
-            AccessLog.stream.flush()
+        AccessLog.flush()
 
 
 async def _flush_access_log() -> None:
     while True:
         await asyncio.sleep(AccessLog.FLUSH_SECONDS)
-        AccessLog.stream.flush()
+        AccessLog.flush()
 
 
 def _run_worker(sock: socket.socket, root: str, cors: list[str], access_log: bool, shutdown_timeout: float) -> None:
-    if access_log:
-        # Buffered (flushed every FLUSH_SECONDS and at exit) instead of stderr's write per line.
-        AccessLog.stream = io.TextIOWrapper(io.FileIO(os.dup(2), "w"), encoding="utf-8", errors="replace",
-                                            line_buffering=False, write_through=False)
     asyncio.run(_serve_socket(sock, root, cors, access_log, shutdown_timeout))
 
 
@@ -109,6 +129,7 @@ def serve(root: str, host: str = "127.0.0.1", port: int = 8000, cors_origins: It
           workers: int = 1, access_log: bool = True, shutdown_timeout: float = SHUTDOWN_TIMEOUT) -> int:
     """Serve every scene under `root` until SIGTERM/SIGINT; the exit code."""
     cors = list(cors_origins)
+    setup_logging()
     try:
         ids = check_root(root)
         sock = bind(host, port)
