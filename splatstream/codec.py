@@ -213,7 +213,7 @@ def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.n
                  lazy: bool = False) -> EncodedPlane:
     """Quantise (N, L, C) plane values into one texture blob per layer (+ per-chunk ranges).
 
-    `order` (a permutation, the tile's Morton order) is applied with one gather of the whole plane. With
+    `order` (a permutation, the tile's Morton order) is applied one layer at a time. With
     `lazy`, `layers` is an iterator that encodes each layer when asked for it and `ranges` is filled in once it
     is exhausted, so a payload writer holds one layer at a time.
     """
@@ -223,14 +223,13 @@ def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.n
     width, height = texture_size(chunks)
     if n == 0:
         values, order = np.zeros((1, spec.layers, spec.components), np.float32), None
-    if order is not None:
-        values = np.take(values, order, axis=0)
     plane = EncodedPlane(spec, fmt_name, width, height, [], None)
 
     def layers():
         lows, highs = [], []
         for layer in range(spec.layers):
-            v = values[:, layer]
+            # Gathering layer by layer keeps one layer in memory, not the whole (N, L, C) plane.
+            v = values[:, layer] if order is None else np.take(values[:, layer], order, axis=0)
             if spec.range_dtype:
                 lo, hi = chunk_ranges(v, spec.range_dtype)
                 lo32, hi32 = lo.astype(np.float32), hi.astype(np.float32)
