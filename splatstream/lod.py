@@ -1,0 +1,404 @@
+"""LOD tile tree: a spatial tree of tiles whose leaves partition the original splats and whose interior tiles
+hold merged (moment-matched) Gaussians standing in for their whole subtree (format_spec/lod.md).
+
+Shape of the tree. A balanced kd-tree of median splits on the longest axis of the splat centres cuts the scene
+into 2**d leaves of at most `max_leaf_splats` splats each (median splits adapt to density: dense regions get
+small tiles). Tile levels take every log2(branching) kd depths, branching = 2**round(log2(reduction)), so with
+reduction 4 a tile has 4 children and with 8 it has 8; the root may have fewer. Refinement is REPLACE.
+
+Merging. Each interior tile merges the concatenation of its children's sets down to ~1/reduction of their count
+(never above max_leaf_splats). Groups are cells of a binary Morton-prefix grid over the tile, at the one prefix
+length whose cell count is just below the target, with the most populated cells split once more to hit the
+target exactly: a uniform grid per tile, so sparse regions keep their splats and dense ones merge. Each group
+becomes one Gaussian by moment matching with weights w = opacity * area, where area is the mean cross-section
+s1*s2 + s2*s3 + s1*s3 (s = standard deviations), i.e. the coverage a splat contributes seen from a random
+direction. The mass w is carried up the tree so every level matches the moments of the ORIGINAL mixture, and the
+merged opacity is mass / merged area (clamped), which keeps the coverage of the group.
+
+Geometric error (world units): per group a bound on the Hausdorff distance between the union of the members'
+3-sigma balls and the merged splat's 3-sigma ball; a tile's error is the max over its groups plus the largest
+error of its children (triangle inequality: the children were themselves approximations), 0 for leaves.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from .gaussians import Gaussians, normalize_quaternions, rotation_matrices
+from .layout import morton_codes
+
+# Bounds and errors use this many standard deviations (the 3DGS rasteriser's cut-off and KHR "ellipse" kernel).
+EXTENT_SIGMAS = 3.0
+# Merged opacity ceiling: a single merged Gaussian must not turn into a hard-edged opaque blob; members above
+# it keep their own opacity (a singleton group is copied unchanged).
+MAX_MERGED_OPACITY = 0.99
+
+Progress = Callable[[str, float], None]
+
+
+@dataclass
+class Tile:
+    id: int  # 0 = root, breadth-first numbering, children ids > parent id
+    level: int  # 0 = root
+    children: list[int]  # empty for leaves; refinement is REPLACE: children together replace the tile
+    gaussians: Gaussians  # leaves: the original splats (exact partition); interior: merged splats
+    geometric_error: float  # world units, 0 for leaves, non-increasing from root to leaves
+    box_min: np.ndarray  # (3,) axis-aligned box covering the splats' 3-sigma extents (and the children's boxes)
+    box_max: np.ndarray
+    sphere_center: np.ndarray  # (3,) bounding sphere covering the same extents
+    sphere_radius: float
+
+
+# ---------------------------------------------------------------------------------------------- geometry
+
+
+def _sigma_axes(g: Gaussians) -> np.ndarray:
+    """(N, 3) world-axis standard deviations sqrt(diag Sigma): the half-extents of the 1-sigma ellipsoid's box."""
+    r = rotation_matrices(g.rotations)
+    s2 = np.exp(2.0 * g.log_scales.astype(np.float64))
+    return np.sqrt(np.einsum("nij,nj->ni", r * r, s2))
+
+
+def extent_bounds(g: Gaussians, sigmas: float = EXTENT_SIGMAS) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Exact box of the splats' `sigmas`-sigma ellipsoids, and a sphere (centred on the box) covering them."""
+    if len(g) == 0:
+        z = np.zeros(3)
+        return z, z.copy(), z.copy(), 0.0
+    p = g.positions.astype(np.float64)
+    half = sigmas * _sigma_axes(g)
+    lo = (p - half).min(axis=0)
+    hi = (p + half).max(axis=0)
+    center = (lo + hi) / 2
+    reach = sigmas * np.exp(g.log_scales.max(axis=1).astype(np.float64))
+    radius = float((np.linalg.norm(p - center, axis=1) + reach).max())
+    return lo, hi, center, radius
+
+
+def _matrices_to_quaternions(r: np.ndarray) -> np.ndarray:
+    """(N, 4) unit (w, x, y, z) quaternions of proper rotation matrices, branch-free (Shepperd's method)."""
+    m00, m01, m02 = r[:, 0, 0], r[:, 0, 1], r[:, 0, 2]
+    m10, m11, m12 = r[:, 1, 0], r[:, 1, 1], r[:, 1, 2]
+    m20, m21, m22 = r[:, 2, 0], r[:, 2, 1], r[:, 2, 2]
+    # Four candidate solutions, each well conditioned when its leading component is the largest.
+    cands = np.stack([
+        np.stack([1 + m00 + m11 + m22, m21 - m12, m02 - m20, m10 - m01], 1),
+        np.stack([m21 - m12, 1 + m00 - m11 - m22, m01 + m10, m02 + m20], 1),
+        np.stack([m02 - m20, m01 + m10, 1 - m00 + m11 - m22, m12 + m21], 1),
+        np.stack([m10 - m01, m02 + m20, m12 + m21, 1 - m00 - m11 + m22], 1),
+    ], 1)
+    pick = np.argmax(np.stack([m00 + m11 + m22, m00, m11, m22], 1), axis=1)
+    q = cands[np.arange(len(r)), pick]
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return normalize_quaternions(q)
+
+
+def _coverage_area(log_scales: np.ndarray, blur: float = 0.0) -> np.ndarray:
+    """Mean cross-section proxy s1*s2 + s2*s3 + s1*s3 (float64): what a splat covers from a random direction,
+    after adding `blur` (a variance, world units squared) to every axis."""
+    s = np.sqrt(np.exp(2.0 * log_scales.astype(np.float64)) + blur)
+    return s[:, 0] * s[:, 1] + s[:, 1] * s[:, 2] + s[:, 0] * s[:, 2]
+
+
+def splat_mass(g: Gaussians) -> np.ndarray:
+    """Merge weight of original splats: opacity * coverage area."""
+    alpha = 1.0 / (1.0 + np.exp(-g.opacity_logits.astype(np.float64)))
+    return alpha * _coverage_area(g.log_scales)
+
+
+# ---------------------------------------------------------------------------------------------- grouping
+
+
+def _group_starts(positions: np.ndarray, target: int) -> tuple[np.ndarray, np.ndarray]:
+    """Morton order of the splats and the start index of each group in that order (about `target` groups).
+
+    Groups are cells of the binary Morton-prefix grid (prefix length b splits the box b times, cycling x, y, z).
+    We take the longest prefix with at most `target` cells, then split the most populated cells once more."""
+    n = len(positions)
+    codes = morton_codes(positions)
+    order = np.argsort(codes, kind="stable")
+    codes = codes[order]
+    if target >= n:
+        return order, np.arange(n)
+
+    def boundaries(bits: int) -> np.ndarray:
+        key = codes >> np.uint64(63 - bits)
+        return key[1:] != key[:-1]
+
+    lo_bits, hi_bits = 0, 63  # invariant: cells(lo_bits) <= target
+    if 1 + int(np.count_nonzero(boundaries(hi_bits))) <= target:
+        lo_bits = hi_bits
+    while hi_bits - lo_bits > 1:
+        mid = (lo_bits + hi_bits) // 2
+        if 1 + int(np.count_nonzero(boundaries(mid))) <= target:
+            lo_bits = mid
+        else:
+            hi_bits = mid
+    bnd = boundaries(lo_bits)
+    cells = 1 + int(np.count_nonzero(bnd))
+    if cells < target and lo_bits < 63:
+        finer = boundaries(lo_bits + 1)
+        cell_of = np.concatenate([[0], np.cumsum(bnd)])  # cell index per splat (sorted order)
+        cell_start = np.concatenate([[0], np.flatnonzero(bnd) + 1])
+        sizes = np.diff(np.append(cell_start, n))
+        splittable = np.zeros(cells, bool)
+        splittable[cell_of[1:][finer & ~bnd]] = True
+        # Split the biggest cells first: evens out group sizes, which keeps merged splats of similar size.
+        candidates = np.flatnonzero(splittable)
+        extra = min(target - cells, len(candidates))
+        chosen = candidates[np.argsort(-sizes[candidates], kind="stable")[:extra]]
+        split = np.zeros(cells, bool)
+        split[chosen] = True
+        bnd = bnd | (finer & split[cell_of[1:]])
+    starts = np.concatenate([[0], np.flatnonzero(bnd) + 1])
+    return order, starts
+
+
+def merge_gaussians(g: Gaussians, mass: np.ndarray, target: int) -> tuple[Gaussians, np.ndarray, np.ndarray]:
+    """Merge `g` (with carried masses) into about `target` Gaussians in Morton order.
+
+    Returns the merged Gaussians, their masses (sums of the members' masses) and for each input splat the
+    index of the merged splat it went into."""
+    n = len(g)
+    if n == 0:
+        return g, mass, np.zeros(0, np.int64)
+    order, starts = _group_starts(g.positions, max(1, target))
+    counts = np.diff(np.append(starts, n))
+    group_of = np.repeat(np.arange(len(starts)), counts)
+
+    mass = mass[order]
+    w = mass + 1e-300  # all-transparent groups still get a defined (uniform) mean
+    wsum = np.add.reduceat(w, starts)
+    wn = w / wsum[group_of]  # normalised weights, sum to 1 per group
+
+    p = g.positions[order].astype(np.float64)
+    origin = p.mean(axis=0)  # work relative to the set's centre for precision
+    p -= origin
+    mu = np.add.reduceat(p * wn[:, None], starts)
+    d = p - mu[group_of]
+    rot = rotation_matrices(g.rotations[order])
+    log_s = g.log_scales[order]
+    m = rot * np.exp(log_s.astype(np.float64))[:, None, :]
+    cov = m @ np.transpose(m, (0, 2, 1))
+    cov += d[:, :, None] * d[:, None, :]
+    cov *= wn[:, None, None]
+    merged_cov = np.add.reduceat(cov, starts)
+    del cov, m, rot
+
+    evals, evecs = np.linalg.eigh(merged_cov)
+    # A proper rotation: flip one axis of left-handed eigenbases.
+    evecs[:, :, 0] *= np.sign(np.linalg.det(evecs))[:, None]
+    # Flat members stay flat but not flatter than their flattest member (eigh can return ~0 or tiny negatives).
+    floor = np.exp(2.0 * np.minimum.reduceat(log_s.min(axis=1), starts).astype(np.float64))
+    evals = np.maximum(evals, floor[:, None])
+    merged_log_scales = 0.5 * np.log(evals)
+    merged_rot = _matrices_to_quaternions(evecs)
+
+    merged_mass = np.add.reduceat(mass, starts)
+    alpha = merged_mass / _coverage_area(merged_log_scales)
+    if MAX_INFLATION > 1.0:
+        # Opaque groups need more than the opacity ceiling: a sum of overlapping opaque splats is flat-topped
+        # with sharp edges, the moment-matched Gaussian peaked and soft, and clamping its opacity drops up to
+        # half the coverage. Spend that excess on size instead (area grows with the square of the factor).
+        grow = np.clip(np.sqrt(alpha / MAX_MERGED_OPACITY), 1.0, MAX_INFLATION)
+        grow[counts == 1] = 1.0
+        merged_log_scales = merged_log_scales + np.log(grow)[:, None]
+        evals = evals * (grow * grow)[:, None]
+        alpha = alpha / (grow * grow)
+    member_alpha = 1.0 / (1.0 + np.exp(-g.opacity_logits[order].astype(np.float64)))
+    cap = np.maximum(MAX_MERGED_OPACITY, np.maximum.reduceat(member_alpha, starts))
+    alpha = np.clip(alpha, 1e-7, cap)
+    single = counts == 1
+    merged_logits = np.where(single, g.opacity_logits[order][starts], np.log(alpha / (1.0 - alpha)))
+
+    wn32 = wn.astype(np.float32)
+    sh_dc = np.add.reduceat(g.sh_dc[order] * wn32[:, None], starts)
+    if g.sh_rest.shape[1]:
+        sh_rest = np.add.reduceat(g.sh_rest[order] * wn32[:, None, None], starts)
+    else:
+        sh_rest = np.zeros((len(starts), 0, 3), np.float32)
+
+    merged = Gaussians(mu + origin, merged_rot, merged_log_scales, merged_logits, sh_dc, sh_rest)
+    assign = np.empty(n, np.int64)
+    assign[order] = group_of
+    return merged, merged_mass, assign
+
+
+# ---------------------------------------------------------------------------------------------- tree
+
+
+# Variance (px^2) the rasteriser adds to projected covariances (reference 3DGS), and the screen-space error (px)
+# at which coarse tiles are meant to be seen: their opacities are matched at that scale.
+LOW_PASS_PX2 = 0.3
+OPACITY_MATCH_SSE_PX = 1.0
+MATCH_SCREEN_COVERAGE = True
+MAX_INFLATION = 1.0
+# Error statistic over a tile's merged splats: "max" is a strict bound; a high quantile ignores a few outliers.
+ERROR_STAT: str | float = "max"
+# Standard deviations of the balls the error compares.
+ERROR_SIGMAS = EXTENT_SIGMAS
+
+
+def merge_errors(originals_pos: np.ndarray, originals_reach: np.ndarray, merged: Gaussians,
+                 assign: np.ndarray) -> np.ndarray:
+    """Per merged splat, a bound on the Hausdorff distance between the union of its ORIGINAL members' balls and
+    its own ball (balls of ERROR_SIGMAS standard deviations along the largest axis), in world units.
+
+    The union's farthest point outside the merged ball is max(dist + r_i - R); the merged ball's farthest point
+    outside the union is at most min(dist + R - r_i) (its distance to any one member ball bounds it)."""
+    mu = merged.positions.astype(np.float64)[assign]
+    big = ERROR_SIGMAS * np.exp(merged.log_scales.max(axis=1).astype(np.float64))
+    dist = np.linalg.norm(originals_pos.astype(np.float64) - mu, axis=1)
+    poke = np.full(len(merged), -np.inf)
+    np.maximum.at(poke, assign, dist + originals_reach - big[assign])
+    overreach = np.full(len(merged), np.inf)
+    np.minimum.at(overreach, assign, dist - originals_reach + big[assign])
+    return np.maximum(np.maximum(poke, overreach), 0.0)
+
+
+def screen_matched_logits(merged: Gaussians, originals: Gaussians, represented_by: np.ndarray,
+                          pixel: float) -> np.ndarray:
+    """Opacity logits of merged splats that keep the ORIGINALS' coverage as the renderer draws it at the tile's
+    viewing scale: pixels of `pixel` world units.
+
+    3DGS rasterisers add a 0.3 px^2 low-pass to every projected covariance without lowering the opacity, so a
+    sub-pixel splat covers about opacity * (dilated area), more than its mass. Coarse tiles are drawn exactly when
+    their members are sub-pixel; plain mass preservation then loses coverage (holes, dark silhouettes). Both
+    sides are therefore measured after the same blur: alpha = sum alpha_i A(Sigma_i + b) / A(Sigma + b)."""
+    blur = LOW_PASS_PX2 * pixel * pixel
+    alpha_i = 1.0 / (1.0 + np.exp(-originals.opacity_logits.astype(np.float64)))
+    covered = np.bincount(represented_by, weights=alpha_i * _coverage_area(originals.log_scales, blur),
+                          minlength=len(merged))
+    alpha = np.clip(covered / _coverage_area(merged.log_scales, blur), 1e-7, MAX_MERGED_OPACITY)
+    logits = np.log(alpha / (1.0 - alpha)).astype(np.float32)
+    # A splat standing for one original is that original (merge_gaussians copies singletons).
+    single = np.bincount(represented_by, minlength=len(merged)) == 1
+    return np.where(single, merged.opacity_logits, logits)
+
+
+def _tile_error(errors: np.ndarray) -> float:
+    if not len(errors):
+        return 0.0
+    if ERROR_STAT == "max":
+        return float(errors.max())
+    return float(np.quantile(errors, float(ERROR_STAT)))
+
+
+def _kd_leaves(positions: np.ndarray, depth: int, progress: Progress) -> list[np.ndarray]:
+    """Balanced kd-tree by median splits on the longest centre-box axis; leaf index sets in kd order."""
+    nodes = [np.arange(len(positions))]
+    for level in range(depth):
+        split: list[np.ndarray] = []
+        for idx in nodes:
+            p = positions[idx]
+            axis = int(np.argmax(p.max(axis=0) - p.min(axis=0)))
+            half = len(idx) // 2
+            part = np.argpartition(p[:, axis], half)
+            split += [idx[part[:half]], idx[part[half:]]]
+        nodes = split
+        progress("lod-split", (level + 1) / depth)
+    return nodes
+
+
+def _leaf_orders(positions: np.ndarray, leaves: list[np.ndarray]) -> np.ndarray:
+    """Concatenated leaf index sets, each in 3D Morton order over its own centre box."""
+    return np.concatenate([idx[np.argsort(morton_codes(positions[idx]), kind="stable")] for idx in leaves])
+
+
+def _permute(g: Gaussians, perm: np.ndarray) -> Gaussians:
+    # One gather per attribute; leaves are then slices (views) of these arrays.
+    return Gaussians(g.positions[perm], g.rotations[perm], g.log_scales[perm], g.opacity_logits[perm],
+                     g.sh_dc[perm], g.sh_rest[perm])
+
+
+def _slice(g: Gaussians, a: int, b: int) -> Gaussians:
+    return Gaussians(g.positions[a:b], g.rotations[a:b], g.log_scales[a:b], g.opacity_logits[a:b],
+                     g.sh_dc[a:b], g.sh_rest[a:b])
+
+
+def build_tiles(g: Gaussians, max_leaf_splats: int = 65536, reduction: float = 4.0,
+                progress: Progress | None = None) -> list[Tile]:
+    """The LOD tile tree of `g`, as a list indexed by tile id (0 = root, breadth-first)."""
+    if max_leaf_splats < 1:
+        raise ValueError(f"max_leaf_splats must be at least 1, got {max_leaf_splats}")
+    if not reduction > 1.0:
+        raise ValueError(f"reduction must be above 1, got {reduction}")
+    progress = progress or (lambda stage, fraction: None)
+    n = len(g)
+    if n <= max_leaf_splats:
+        order = np.argsort(morton_codes(g.positions), kind="stable") if n else np.zeros(0, np.int64)
+        leaf = _permute(g, order)
+        lo, hi, c, r = extent_bounds(leaf)
+        progress("lod-merge", 1.0)
+        return [Tile(0, 0, [], leaf, 0.0, lo, hi, c, r)]
+
+    depth = math.ceil(math.log2(n / max_leaf_splats))
+    step = max(1, round(math.log2(reduction)))  # kd depths per tile level
+    # kd depths that are tile levels: the leaves, every `step` above them, and the root.
+    kd_depths = sorted({0, *range(depth, 0, -step)})
+    leaves = _kd_leaves(g.positions, depth, progress)
+    perm = _leaf_orders(g.positions, leaves)
+    ordered = _permute(g, perm)
+    del perm
+    progress("lod-leaves", 1.0)
+
+    # Breadth-first ids: level L holds 2**kd_depths[L] tiles in kd order. A tile's subtree covers one
+    # contiguous range of `ordered` (leaves are kd-ordered), which the error pass compares against.
+    first_id = np.cumsum([0] + [2**k for k in kd_depths])
+    tiles: list[Tile | None] = [None] * int(first_id[-1])
+    spans: dict[int, tuple[int, int]] = {}
+    masses: dict[int, np.ndarray] = {}
+    # For each original splat of the tile's span: index of the tile splat that represents it.
+    represented_by: dict[int, np.ndarray] = {}
+    leaf_level = len(kd_depths) - 1
+    start = 0
+    for j, idx in enumerate(leaves):
+        tid = int(first_id[leaf_level]) + j
+        part = _slice(ordered, start, start + len(idx))
+        spans[tid] = (start, start + len(idx))
+        start += len(idx)
+        lo, hi, c, r = extent_bounds(part)
+        tiles[tid] = Tile(tid, leaf_level, [], part, 0.0, lo, hi, c, r)
+        masses[tid] = splat_mass(part)
+        represented_by[tid] = np.arange(len(idx))
+    del leaves
+    reach = ERROR_SIGMAS * np.exp(ordered.log_scales.max(axis=1).astype(np.float64))
+
+    total_merges = int(first_id[leaf_level])
+    merges_done = 0
+    for level in range(leaf_level - 1, -1, -1):
+        fan = 2 ** (kd_depths[level + 1] - kd_depths[level])
+        for j in range(2 ** kd_depths[level]):
+            tid = int(first_id[level]) + j
+            child_ids = [int(first_id[level + 1]) + j * fan + k for k in range(fan)]
+            kids = [tiles[c] for c in child_ids]
+            members = Gaussians.concatenate([k.gaussians for k in kids])
+            member_mass = np.concatenate([masses.pop(c) for c in child_ids])
+            target = min(max_leaf_splats, math.ceil(len(members) / reduction))
+            merged, merged_mass, assign = merge_gaussians(members, member_mass, target)
+            del members, member_mass
+            offsets = np.cumsum([0] + [len(k.gaussians) for k in kids])
+            represented_by[tid] = assign[np.concatenate(
+                [represented_by.pop(c) + offsets[k] for k, c in enumerate(child_ids)])]
+            a, b = spans[child_ids[0]][0], spans[child_ids[-1]][1]
+            spans[tid] = (a, b)
+            errors = merge_errors(ordered.positions[a:b], reach[a:b], merged, represented_by[tid])
+            masses[tid] = merged_mass
+            lo, hi, own_c, own_r = extent_bounds(merged)
+            # The parent's volume also encloses its children's, so culling a parent never hides a child.
+            lo = np.minimum(lo, np.min([k.box_min for k in kids], axis=0))
+            hi = np.maximum(hi, np.max([k.box_max for k in kids], axis=0))
+            c = (lo + hi) / 2
+            r = max(float(np.linalg.norm(k.sphere_center - c)) + k.sphere_radius for k in kids)
+            r = max(r, float(np.linalg.norm(own_c - c)) + own_r)
+            # Errors are measured against the originals; the max with the children keeps them monotone.
+            error = max(_tile_error(errors), *(k.geometric_error for k in kids))
+            if MATCH_SCREEN_COVERAGE:
+                merged.opacity_logits = screen_matched_logits(merged, _slice(ordered, a, b), represented_by[tid],
+                                                              error / OPACITY_MATCH_SSE_PX)
+            tiles[tid] = Tile(tid, level, child_ids, merged, error, lo, hi, c, r)
+            merges_done += 1
+            progress("lod-merge", merges_done / total_merges)
+    return tiles  # type: ignore[return-value]
