@@ -178,21 +178,22 @@ def rasterize(p: Projected, width: int, height: int, background=(0.0, 0.0, 0.0),
                 s = lst[pos:pos + batch]
                 pos += batch
                 batch = min(batch * 2, max_batch)
-                dx = p.xy[s, 0][:, None] - pxs[None, :]
-                dy = p.xy[s, 1][:, None] - pys[None, :]
-                power = -0.5 * (ca[s, None] * dx * dx + cc[s, None] * dy * dy) - cb[s, None] * dx * dy
-                alpha = np.minimum(ALPHA_MAX, p.opacity[s, None] * np.exp(np.minimum(power, 0.0)))
+                # pixel-major (256, batch) arrays: the running product runs along contiguous memory
+                dx = p.xy[s, 0][None, :] - pxs[:, None]
+                dy = p.xy[s, 1][None, :] - pys[:, None]
+                power = -0.5 * (ca[None, s] * dx * dx + cc[None, s] * dy * dy) - cb[None, s] * dx * dy
+                alpha = np.minimum(ALPHA_MAX, p.opacity[None, s] * np.exp(np.minimum(power, 0.0)))
                 alpha[(power > 0) | (alpha < ALPHA_MIN)] = 0.0
-                alpha[:, done] = 0.0
-                tcum = np.empty((len(s) + 1, TILE * TILE))
-                tcum[0] = t_cur
-                tcum[1:] = 1.0 - alpha
-                np.cumprod(tcum, axis=0, out=tcum)
-                valid = tcum[1:] >= T_MIN  # a prefix per pixel: T never grows
-                n_valid = valid.sum(axis=0)
-                weights = np.where(valid, alpha * tcum[:-1], 0.0)
-                col += weights.T @ p.color[s]
-                t_cur = tcum[n_valid, np.arange(TILE * TILE)]
+                alpha[done] = 0.0
+                tcum = np.empty((TILE * TILE, len(s) + 1))
+                tcum[:, 0] = t_cur
+                np.subtract(1.0, alpha, out=tcum[:, 1:])
+                np.cumprod(tcum, axis=1, out=tcum)
+                valid = tcum[:, 1:] >= T_MIN  # a prefix per pixel: T never grows
+                n_valid = valid.sum(axis=1)
+                weights = np.where(valid, alpha * tcum[:, :-1], 0.0)
+                col += weights @ p.color[s]
+                t_cur = tcum[np.arange(TILE * TILE), n_valid]
                 done |= n_valid < len(s)
                 if done.all():
                     break

@@ -1,0 +1,96 @@
+"""`splatstream eval INPUT [--presets ...] [--views N] [--size WxH] [--json OUT] [--plot OUT.png] [--encoded DIR]
+[--compare FILE ...]`: rate-distortion table of the presets (and of other tools' outputs) on one scene."""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+
+from ..errors import InputError, UsageError
+from ..evaluate import PRESET_ORDER, EvalOptions, evaluate, plot_rate_distortion, report_markdown
+
+
+def parse_size(text: str) -> tuple[int, int]:
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise UsageError(f"--size: expected WIDTHxHEIGHT like 512x512, got {text!r}") from None
+    if w < 11 or h < 11 or w > 8192 or h > 8192:
+        raise UsageError(f"--size: {w}x{h} is out of range (11..8192 per side)")
+    return w, h
+
+
+def parse_list(text: str) -> list[str]:
+    return [p.strip() for p in text.split(",") if p.strip()]
+
+
+def parse_up(text: str) -> tuple[float, float, float]:
+    try:
+        v = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        v = ()
+    if len(v) != 3 or v == (0.0, 0.0, 0.0):
+        raise UsageError(f"--up: expected a non-zero vector like 0,0,1, got {text!r}")
+    return v  # type: ignore[return-value]
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "eval", help="rate-distortion evaluation: PSNR/SSIM and bytes per splat of every preset on a scene",
+        description="Encode INPUT with each preset, decode it, render the original and every version from N "
+                    "orbit views around the scene and report PSNR and SSIM against the original's renders, bytes "
+                    "per splat in GPU memory and on disk, compression against the input file, encode time. "
+                    "Writes a Markdown table to stdout, and optionally JSON (with the cameras) and a plot.",
+    )
+    p.add_argument("input", help="input scene (standard 3DGS PLY or another supported format)")
+    p.add_argument("--presets", default=",".join(PRESET_ORDER),
+                   help=f"comma-separated presets (default {','.join(PRESET_ORDER)}); 'none' for peers only")
+    p.add_argument("--views", type=int, default=8, help="number of orbit views (default 8)")
+    p.add_argument("--size", default="512x512", help="render size WIDTHxHEIGHT (default 512x512)")
+    p.add_argument("--up", default="0,0,1", help="scene up vector for the orbit (default 0,0,1)")
+    p.add_argument("--elevation", type=float, default=25.0, help="orbit elevation in degrees (default 25)")
+    p.add_argument("--json", dest="json_out", metavar="OUT.json", help="write the full report as JSON")
+    p.add_argument("--plot", metavar="OUT.png", help="write a rate-versus-PSNR plot (PNG)")
+    p.add_argument("--markdown", metavar="OUT.md", help="also write the table to this file")
+    p.add_argument("--encoded", metavar="DIR", help="keep the encoded scenes under DIR/<preset> (default: discard)")
+    p.add_argument("--compare", nargs="+", default=[], metavar="[LABEL=]FILE[@SIZED]",
+                   help="other tools' outputs to put in the table: a file we can read (PLY, compressed PLY, SPZ, "
+                        ".splat); @SIZED names the file or directory whose size counts (e.g. a .sog converted back "
+                        "to PLY for reading)")
+    p.add_argument("--attribution", default="", metavar="PRESETS",
+                   help="for these presets, also encode with one attribute lossless (f32x4) at a time and with "
+                        "only one attribute quantised, to show which attribute's error dominates")
+    p.add_argument("--renderer", choices=["auto", "gl", "ref"], default="auto",
+                   help="auto: the GL client if available, else the numpy reference rasterizer")
+    p.add_argument("--lod", action="store_true", help="encode the LOD tree too and count its bytes on disk")
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress lines on stderr")
+    p.set_defaults(func=run)
+
+
+def run(args: argparse.Namespace) -> int:
+    if not os.path.isfile(args.input):
+        raise InputError(args.input, None, "no such file")
+    w, h = parse_size(args.size)
+    presets = [] if args.presets.strip().lower() == "none" else parse_list(args.presets)
+    if not presets and not args.compare:
+        raise UsageError("nothing to evaluate: give --presets or --compare")
+    for out in (args.json_out, args.plot, args.markdown):
+        if out and os.path.dirname(os.path.abspath(out)) and not os.path.isdir(os.path.dirname(os.path.abspath(out))):
+            raise UsageError(f"output directory of {out} does not exist")
+    opts = EvalOptions(presets=presets, views=args.views, width=w, height=h, up=parse_up(args.up),
+                       elevation_deg=args.elevation, encoded_dir=args.encoded, compare=args.compare,
+                       renderer=args.renderer, lod=args.lod, attribution=parse_list(args.attribution))
+    log = None if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
+    report = evaluate(args.input, opts, log)
+    md = report_markdown(report)
+    sys.stdout.write(md)
+    if args.markdown:
+        with open(args.markdown, "w") as f:
+            f.write(md)
+    if args.json_out:
+        with open(args.json_out, "w") as f:
+            json.dump(report, f, indent=1, allow_nan=False)
+    if args.plot:
+        plot_rate_distortion(report, args.plot)
+    return 0

@@ -1,0 +1,465 @@
+"""Rate-distortion evaluation of the encoder presets (and of other tools' outputs) on one scene.
+
+The original scene and every encoded version are rendered from the same orbit cameras (camera.scene_orbit_views);
+PSNR and SSIM are taken against the render of the original. Sizes: bytes per splat of the full-detail data in GPU
+memory and on disk, and the compression ratio against the input file. Everything needed to reproduce the
+numbers (cameras, renderer, formats, options) goes into the JSON.
+"""
+from __future__ import annotations
+
+import math
+import os
+import platform
+import shutil
+import tempfile
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import __version__
+from .camera import DEFAULT_UP, Camera, scene_orbit_views
+from .errors import InputError, UsageError
+from .gaussians import Gaussians
+from .metrics import psnr_from_mse, ssim
+
+Renderer = Callable[[Gaussians, Camera], np.ndarray]
+
+LOSSLESS_FORMAT = "f32x4"
+PRESET_ORDER = ("very-high", "high", "medium", "low", "very-low")
+
+# The seed's published table (Aras P., "Making Gaussian Splats smaller", 2023; bike scene, SH3, 248-byte PLY).
+# bytes_sh3 = 248 / Compr. `texels` are the seed's formats; their sizes give a seed-equivalent at other SH degrees.
+SEED = {
+    "very-high": {"compr": 0.8, "psnr": None, "formats": ("F32x4", "F32x4", "F32x4", "F32x4", "F32x4")},
+    "high": {"compr": 2.9, "psnr": 54.82, "formats": ("F16x4", "Norm10_2", "Norm11", "F16x4", "Norm11")},
+    "medium": {"compr": 5.2, "psnr": 47.82, "formats": ("Norm11", "Norm10_2", "Norm11", "Norm8x4", "Norm565")},
+    "low": {"compr": 12.2, "psnr": 34.79, "formats": ("Norm11", "Norm10_2", "Norm565", "BC7", "BC1")},
+    "very-low": {"compr": 18.7, "psnr": 24.02, "formats": ("BC7", "BC7", "BC7", "BC7", "BC1")},
+}
+SEED_TEXEL_BYTES = {"F32x4": 16.0, "F16x4": 8.0, "Norm10_2": 4.0, "Norm11": 4.0, "Norm8x4": 4.0, "Norm565": 2.0,
+                    "BC7": 1.0, "BC1": 0.5}
+# Project goals (issue 6): medium >= 47.5 dB; low >= 35 dB at <= 12 bytes/splat on disk.
+GOALS = {"medium": {"psnr": 47.5}, "low": {"psnr": 35.0, "disk_bytes_per_splat": 12.0}}
+
+
+def seed_bytes_per_splat(preset: str, sh_degree: int) -> float:
+    """The seed's bytes per splat for a scene of `sh_degree`: its SH3 figure minus the SH texels it would not need."""
+    s = SEED[preset]
+    full = 248.0 / s["compr"]
+    sh_fmt = s["formats"][4]
+    sh_texel = SEED_TEXEL_BYTES[sh_fmt]
+    coeffs = {0: 0, 1: 3, 2: 8, 3: 15}[sh_degree]
+    return full - (15 - coeffs) * sh_texel
+
+
+# --- renderers --------------------------------------------------------------------------------------------------
+
+def _gl_renderer() -> tuple[Renderer, str] | None:
+    """The GL client's headless renderer, if it is installed and can open a context."""
+    candidates = (("client_gl.headless", "render_gaussians"), ("client_gl.render", "render_gaussians"),
+                  ("client_gl", "render_gaussians"))
+    import importlib
+
+    for module_name, attr in candidates:
+        try:
+            module = importlib.import_module(module_name)
+        except Exception:  # noqa: BLE001 - a missing or broken optional renderer means: use the reference one
+            continue
+        fn = getattr(module, attr, None)
+        if callable(fn):
+            return fn, f"{module_name}.{attr}"
+    return None
+
+
+def get_renderer(kind: str = "auto") -> tuple[Renderer, str]:
+    """('auto' | 'gl' | 'ref') -> (render(g, camera) -> (H, W, 3) float array, description)."""
+    if kind not in ("auto", "gl", "ref"):
+        raise UsageError(f"unknown renderer {kind!r} (choose auto, gl or ref)")
+    if kind in ("auto", "gl"):
+        found = _gl_renderer()
+        if found is not None:
+            fn, name = found
+            return (lambda g, cam: np.asarray(fn(g, cam), dtype=np.float32)), f"gl ({name})"
+        if kind == "gl":
+            raise UsageError("the GL renderer (client_gl render_gaussians) is not available here; use --renderer ref")
+    from .render_ref import render
+
+    return (lambda g, cam: render(g, cam)), "numpy reference (splatstream.render_ref)"
+
+
+# --- evaluation ---------------------------------------------------------------------------------------------------
+
+@dataclass
+class EvalOptions:
+    presets: Sequence[str] = PRESET_ORDER
+    views: int = 8
+    width: int = 512
+    height: int = 512
+    up: tuple[float, float, float] = DEFAULT_UP
+    elevation_deg: float = 25.0
+    encoded_dir: str | None = None     # keep encoded scenes here (default: a temporary directory)
+    compare: Sequence[str] = ()        # other tools' outputs: "[LABEL=]FILE[@SIZE_FILE_OR_DIR]"
+    renderer: str = "auto"
+    lod: bool = False                  # encode the LOD tree too (its bytes then count on disk)
+    attribution: Sequence[str] = ()    # presets whose error is attributed to attributes
+    zstd_level: int | None = None
+    extra: dict = field(default_factory=dict)
+
+
+@dataclass
+class Row:
+    label: str
+    kind: str                           # "preset", "attribution" or "compare"
+    formats: dict[str, str]
+    splats: int
+    gpu_bytes_per_splat: float | None
+    disk_bytes: int
+    disk_bytes_per_splat: float
+    compression: float
+    psnr: list[float]
+    ssim: list[float]
+    encode_seconds: float | None = None
+    info: dict = field(default_factory=dict)
+
+    @property
+    def psnr_mean(self) -> float:
+        """PSNR of the mean MSE over the views (so one identical view does not make it infinite)."""
+        mses = [10 ** (-p / 10) if math.isfinite(p) else 0.0 for p in self.psnr]
+        return psnr_from_mse(float(np.mean(mses)))
+
+    @property
+    def psnr_worst(self) -> float:
+        return min(self.psnr)
+
+    @property
+    def ssim_mean(self) -> float:
+        return float(np.mean(self.ssim))
+
+    @property
+    def ssim_worst(self) -> float:
+        return min(self.ssim)
+
+    def to_json(self) -> dict:
+        def num(v):
+            return None if v is None or not math.isfinite(v) else round(float(v), 6)
+
+        return {
+            "label": self.label, "kind": self.kind, "formats": self.formats, "splats": self.splats,
+            "gpu_bytes_per_splat": num(self.gpu_bytes_per_splat), "disk_bytes": self.disk_bytes,
+            "disk_bytes_per_splat": num(self.disk_bytes_per_splat), "compression": num(self.compression),
+            "psnr_mean": num(self.psnr_mean), "psnr_worst": num(self.psnr_worst),
+            "ssim_mean": num(self.ssim_mean), "ssim_worst": num(self.ssim_worst),
+            "psnr_per_view": [num(p) for p in self.psnr], "ssim_per_view": [num(s) for s in self.ssim],
+            "identical_views": sum(1 for p in self.psnr if not math.isfinite(p)),
+            "encode_seconds": num(self.encode_seconds), **self.info,
+        }
+
+
+def path_size(path: str) -> int:
+    if os.path.isdir(path):
+        return sum(os.path.getsize(os.path.join(d, f)) for d, _, files in os.walk(path) for f in files)
+    return os.path.getsize(path)
+
+
+def parse_compare(spec: str) -> tuple[str, str, str]:
+    """"[LABEL=]FILE[@SIZE_PATH]" -> (label, file to read, path whose size counts)."""
+    label = None
+    if "=" in spec and not os.path.exists(spec):
+        label, spec = spec.split("=", 1)
+    size_path = None
+    if "@" in spec and not os.path.exists(spec):
+        spec, size_path = spec.rsplit("@", 1)
+    if not os.path.exists(spec):
+        raise InputError(spec, None, "no such file to compare")
+    if size_path is not None and not os.path.exists(size_path):
+        raise InputError(size_path, None, "no such file (size of the compared encoding)")
+    name = os.path.basename(size_path or spec)
+    return label or name, spec, size_path or spec
+
+
+def _quality(renderer: Renderer, g: Gaussians, cameras: list[Camera],
+             references: list[np.ndarray]) -> tuple[list[float], list[float], list[np.ndarray]]:
+    ps, ss, imgs = [], [], []
+    for cam, ref in zip(cameras, references, strict=True):
+        img = renderer(g, cam)
+        a = np.clip(img.astype(np.float64), 0, 1)
+        b = np.clip(ref.astype(np.float64), 0, 1)
+        ps.append(psnr_from_mse(float(np.mean((a - b) ** 2))))
+        ss.append(ssim(a, b))
+        imgs.append(img)
+    return ps, ss, imgs
+
+
+def evaluate(input_path: str, opts: EvalOptions | None = None,
+             log: Callable[[str], None] | None = None) -> dict:
+    """Run the evaluation; returns the JSON-ready report (see `report_markdown`, `plot_rate_distortion`)."""
+    from .decoder import decode_scene
+    from .encoder import PRESETS, EncodeOptions, encode_gaussians, resolve_formats
+    from .io import read_gaussians
+
+    opts = opts or EvalOptions()
+    log = log or (lambda msg: None)
+    for p in list(opts.presets) + list(opts.attribution):
+        resolve_formats(p, {})  # UsageError for unknown presets, before any work
+    if opts.views < 1:
+        raise UsageError("--views must be at least 1")
+    if opts.width < 11 or opts.height < 11:
+        raise UsageError("--size must be at least 11x11 (the SSIM window)")
+    compares = [parse_compare(c) for c in opts.compare]
+    input_path = os.fspath(input_path)
+    input_size = os.path.getsize(input_path)
+    t = time.perf_counter()
+    g = read_gaussians(input_path)
+    log(f"read {input_path}: {len(g)} splats, SH degree {g.sh_degree} ({time.perf_counter() - t:.1f} s)")
+    if len(g) == 0:
+        raise InputError(input_path, None, "the scene holds no splats")
+    renderer, renderer_name = get_renderer(opts.renderer)
+    cameras = scene_orbit_views(g.positions, opts.views, opts.width, opts.height, up=opts.up,
+                                elevation_deg=opts.elevation_deg)
+    t = time.perf_counter()
+    references = [renderer(g, cam) for cam in cameras]
+    render_s = (time.perf_counter() - t) / len(cameras)
+    log(f"rendered {len(cameras)} reference views at {opts.width}x{opts.height} with {renderer_name} "
+        f"({render_s:.2f} s per view)")
+    coverage = float(np.mean([np.mean(r.max(axis=2) > 1e-3) for r in references]))
+
+    tmp = None
+    out_root = opts.encoded_dir
+    if out_root is None:
+        tmp = tempfile.mkdtemp(prefix="splatstream-eval-")
+        out_root = tmp
+    rows: list[Row] = []
+    try:
+        def encode_and_measure(label: str, kind: str, preset: str, overrides: dict[str, str]) -> Row:
+            out = os.path.join(out_root, label.replace(" ", "_").replace("=", "-").replace("+", "_"))
+            eo = EncodeOptions(preset=preset, overrides=overrides, lod=opts.lod, up=tuple(opts.up))
+            if opts.zstd_level is not None:
+                eo.zstd_level = opts.zstd_level
+            t0 = time.perf_counter()
+            m = encode_gaussians(g, out, eo, source_name=input_path)
+            enc_s = time.perf_counter() - t0
+            dec = decode_scene(out)
+            ps, ss, _ = _quality(renderer, dec, cameras, references)
+            disk = int(m["bytes_on_disk"])
+            leaf = int(m.get("leaf_bytes_on_disk", disk))
+            disk_counted = disk if opts.lod else leaf
+            row = Row(label, kind, dict(m["formats"]), len(g), float(m["gpu_bytes_per_splat"]), disk_counted,
+                      disk_counted / len(g), input_size / disk_counted, ps, ss, enc_s,
+                      {"preset": preset, "overrides": overrides, "bytes_on_disk_total": disk,
+                       "leaf_bytes_on_disk": leaf, "gpu_bytes": int(m["gpu_bytes"]),
+                       "attributes": m.get("attributes", {}), "encoded_dir": out if tmp is None else None})
+            log(f"{label:>28}: {row.disk_bytes_per_splat:7.2f} B/splat disk, {row.gpu_bytes_per_splat:7.2f} GPU, "
+                f"PSNR {row.psnr_mean:6.2f} dB (worst {row.psnr_worst:6.2f}), SSIM {row.ssim_mean:.5f}, "
+                f"encode {enc_s:.2f} s")
+            return row
+
+        for preset in opts.presets:
+            rows.append(encode_and_measure(preset, "preset", preset, {}))
+        for preset in opts.attribution:
+            formats = PRESETS[preset]
+            for attr, fmt in formats.items():
+                if attr == "sh" and g.sh_degree == 0:
+                    continue
+                if fmt != LOSSLESS_FORMAT:
+                    rows.append(encode_and_measure(f"{preset} {attr}={LOSSLESS_FORMAT}", "attribution", preset,
+                                                   {attr: LOSSLESS_FORMAT}))
+            for attr, fmt in formats.items():
+                if attr == "sh" and g.sh_degree == 0:
+                    continue
+                if fmt != LOSSLESS_FORMAT:
+                    lossless_rest = {a: LOSSLESS_FORMAT for a in formats if a != attr}
+                    rows.append(encode_and_measure(f"{preset} only {attr}", "attribution", preset, lossless_rest))
+        for label, path, size_path in compares:
+            other = read_gaussians(path)
+            ps, ss, _ = _quality(renderer, other, cameras, references)
+            size = path_size(size_path)
+            row = Row(label, "compare", {}, len(other), None, size, size / max(1, len(other)), input_size / size,
+                      ps, ss, None, {"file": path, "size_of": size_path})
+            log(f"{label:>28}: {row.disk_bytes_per_splat:7.2f} B/splat disk, PSNR {row.psnr_mean:6.2f} dB "
+                f"(worst {row.psnr_worst:6.2f}), SSIM {row.ssim_mean:.5f}")
+            rows.append(row)
+    finally:
+        if tmp is not None:
+            shutil.rmtree(tmp, ignore_errors=True)
+
+    report = {
+        "tool": f"splatstream {__version__} eval",
+        "input": {"path": input_path, "bytes": input_size, "splats": len(g), "sh_degree": g.sh_degree,
+                  "bytes_per_splat": input_size / len(g)},
+        "renderer": renderer_name,
+        "render_seconds_per_view": round(render_s, 4),
+        "reference_coverage": round(coverage, 4),
+        "size": [opts.width, opts.height],
+        "metrics": {"psnr": "10 log10(1 / MSE) over RGB clamped to [0, 1]; 'mean' is the PSNR of the mean MSE over "
+                            "views, 'worst' the lowest view",
+                    "ssim": "Wang et al. 2004, 11x11 Gaussian window sigma 1.5, valid region, per RGB channel, "
+                            "averaged; 'mean' over views"},
+        "sizes": {"disk": "full-detail payloads + manifest" + (" + LOD levels" if opts.lod else
+                                                                " (encoded without LOD levels)"),
+                  "gpu": "bytes of the full-detail textures per splat (manifest gpu_bytes_per_splat)",
+                  "compression": "input file bytes / disk bytes"},
+        "cameras": [c.to_dict() for c in cameras],
+        "camera_rule": {"function": "splatstream.camera.scene_orbit_views", "views": opts.views,
+                        "up": list(opts.up), "elevation_deg": opts.elevation_deg},
+        "encode_options": {"lod": opts.lod, "zstd_level": opts.zstd_level},
+        "machine": {"python": platform.python_version(), "cpus": os.cpu_count(), "platform": platform.platform()},
+        "rows": [r.to_json() for r in rows],
+        "seed": {p: {"bytes_per_splat": round(seed_bytes_per_splat(p, g.sh_degree), 2), "psnr": SEED[p]["psnr"],
+                     "formats": SEED[p]["formats"]} for p in SEED},
+        "goals": check_goals(rows, g.sh_degree),
+    }
+    return report
+
+
+def check_goals(rows: list[Row], sh_degree: int) -> list[dict]:
+    out = []
+    by = {r.label: r for r in rows if r.kind == "preset"}
+    for preset, row in by.items():
+        seed_b = seed_bytes_per_splat(preset, sh_degree)
+        seed_psnr = SEED[preset]["psnr"]
+        psnr_ok = seed_psnr is None or row.psnr_mean >= seed_psnr
+        out.append({"preset": preset, "goal": f"smaller than the seed ({seed_b:.1f} B/splat at SH{sh_degree}) at "
+                                              f"PSNR >= the seed's ({seed_psnr if seed_psnr else 'n/a'} dB)",
+                    "disk_ok": row.disk_bytes_per_splat < seed_b,
+                    "gpu_ok": row.gpu_bytes_per_splat is not None and row.gpu_bytes_per_splat < seed_b,
+                    "psnr_ok": bool(psnr_ok)})
+        goal = GOALS.get(preset)
+        if goal:
+            ok = row.psnr_mean >= goal["psnr"]
+            text = f"PSNR >= {goal['psnr']} dB"
+            if "disk_bytes_per_splat" in goal:
+                ok = ok and row.disk_bytes_per_splat <= goal["disk_bytes_per_splat"]
+                text += f" at <= {goal['disk_bytes_per_splat']} B/splat on disk"
+            out.append({"preset": preset, "goal": text, "ok": bool(ok)})
+    return out
+
+
+# --- output -------------------------------------------------------------------------------------------------------
+
+def _fmt_psnr(v: float | None) -> str:
+    return "inf" if v is None or not math.isfinite(v) else f"{v:.2f}"
+
+
+def report_markdown(report: dict) -> str:
+    """The seed-shaped table plus the goal checks."""
+    inp = report["input"]
+    lines = [f"Scene `{os.path.basename(inp['path'])}`: {inp['splats']:,} splats, SH{inp['sh_degree']}, "
+             f"{inp['bytes']:,} bytes ({inp['bytes_per_splat']:.1f} B/splat). {len(report['cameras'])} views at "
+             f"{report['size'][0]}x{report['size'][1]}, renderer: {report['renderer']}. PSNR/SSIM: mean over views "
+             f"(worst view in brackets).", "",
+             "| Quality | Pos | Rot | Scl | Col | SH | bytes/splat GPU | disk | Compr | PSNR | SSIM | encode s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in report["rows"]:
+        f = r["formats"]
+        cells = [f.get(a, "-") for a in ("position", "rotation", "scale", "color", "sh")]
+        if inp["sh_degree"] == 0 and r["kind"] != "compare":
+            cells[4] = "(none)"
+        gpu = "-" if r["gpu_bytes_per_splat"] is None else f"{r['gpu_bytes_per_splat']:.2f}"
+        enc = "-" if r["encode_seconds"] is None else f"{r['encode_seconds']:.2f}"
+        psnr = f"{_fmt_psnr(r['psnr_mean'])} ({_fmt_psnr(r['psnr_worst'])})"
+        ssim_s = f"{r['ssim_mean']:.4f} ({r['ssim_worst']:.4f})"
+        lines.append(f"| {r['label']} | " + " | ".join(cells) + f" | {gpu} | {r['disk_bytes_per_splat']:.2f} | "
+                     f"{r['compression']:.1f}x | {psnr} | {ssim_s} | {enc} |")
+    lines += ["", f"Seed (published, bike scene, SH3) scaled to SH{inp['sh_degree']}: " + ", ".join(
+        f"{p} {v['bytes_per_splat']:.1f} B/splat" + (f" @ {v['psnr']} dB" if v["psnr"] else "")
+        for p, v in report["seed"].items()), ""]
+    for gl in report["goals"]:
+        if "ok" in gl:
+            lines.append(f"- {gl['preset']}: {gl['goal']}: **{'met' if gl['ok'] else 'MISSED'}**")
+        else:
+            lines.append(f"- {gl['preset']}: {gl['goal']}: disk {'yes' if gl['disk_ok'] else 'NO'}, "
+                         f"GPU {'yes' if gl['gpu_ok'] else 'NO'}, PSNR {'yes' if gl['psnr_ok'] else 'NO'}")
+    return "\n".join(lines) + "\n"
+
+
+def plot_rate_distortion(report: dict, path: str, size: tuple[int, int] = (900, 600)) -> None:
+    """PSNR (mean over views) against disk bytes per splat (log axis), drawn with Pillow."""
+    from PIL import Image, ImageDraw, ImageFont
+
+    rows = report["rows"]
+    w, h = size
+    img = Image.new("RGB", (w, h), "white")
+    d = ImageDraw.Draw(img)
+    try:
+        font = ImageFont.load_default(size=14)
+    except TypeError:  # Pillow < 10.1
+        font = ImageFont.load_default()
+    left, right, top, bottom = 80, w - 210, 50, h - 70
+    finite = [r["psnr_mean"] for r in rows if r["psnr_mean"] is not None]
+    ymax_data = max(finite) if finite else 50.0
+    ymin_data = min(finite) if finite else 20.0
+    lossless_y = ymax_data + 5.0  # identical renders ("inf") are drawn on a line above the data
+    y0 = 5.0 * math.floor(min(ymin_data, lossless_y) / 5.0 - 0.2)
+    y1 = 5.0 * math.ceil(lossless_y / 5.0 + 0.2)
+    xs = [r["disk_bytes_per_splat"] for r in rows if r["disk_bytes_per_splat"]]
+    x0 = 10 ** math.floor(math.log10(min(xs)) if xs else 0)
+    x1 = 10 ** math.ceil(math.log10(max(xs)) if xs else 3)
+
+    def px(x: float) -> float:
+        return left + (math.log10(x) - math.log10(x0)) / (math.log10(x1) - math.log10(x0)) * (right - left)
+
+    def py(y: float) -> float:
+        return bottom - (y - y0) / (y1 - y0) * (bottom - top)
+
+    # grid and ticks
+    for dec in range(int(round(math.log10(x0))), int(round(math.log10(x1))) + 1):
+        for m in (1, 2, 5):
+            x = m * 10.0 ** dec
+            if x0 <= x <= x1:
+                xp = px(x)
+                d.line([(xp, top), (xp, bottom)], fill=(225, 225, 225))
+                d.line([(xp, bottom), (xp, bottom + 5)], fill="black")
+                label = f"{x:g}"
+                d.text((xp - d.textlength(label, font=font) / 2, bottom + 8), label, fill="black", font=font)
+    step = 5.0 if y1 - y0 <= 60 else 10.0
+    y = y0
+    while y <= y1 + 1e-9:
+        yp = py(y)
+        d.line([(left, yp), (right, yp)], fill=(225, 225, 225))
+        d.line([(left - 5, yp), (left, yp)], fill="black")
+        label = f"{y:g}"
+        d.text((left - 10 - d.textlength(label, font=font), yp - 8), label, fill="black", font=font)
+        y += step
+    if any(r["psnr_mean"] is None for r in rows):
+        d.line([(left, py(lossless_y)), (right, py(lossless_y))], fill=(200, 200, 255))
+        d.text((left + 4, py(lossless_y) - 18), "identical to the original (PSNR = inf)", fill=(120, 120, 200),
+               font=font)
+    d.rectangle([left, top, right, bottom], outline="black")
+    d.text(((left + right) / 2 - 110, h - 30), "bytes per splat on disk (log scale)", fill="black", font=font)
+    d.text((left - 70, top - 30), "PSNR (dB), mean over views", fill="black", font=font)
+    inp = report["input"]
+    title = f"{os.path.basename(inp['path'])}: {inp['splats']:,} splats, SH{inp['sh_degree']}"
+    d.text(((left + right) / 2 - d.textlength(title, font=font) / 2, 12), title, fill="black", font=font)
+
+    palette = [(220, 50, 47), (38, 139, 210), (133, 153, 0), (211, 54, 130), (181, 137, 0), (42, 161, 152),
+               (108, 113, 196), (203, 75, 22)]
+    series: list[tuple[str, list[dict], tuple[int, int, int], bool]] = []
+    presets = [r for r in rows if r["kind"] == "preset"]
+    if presets:
+        series.append(("splatstream presets", presets, (0, 0, 0), True))
+    for i, r in enumerate(r for r in rows if r["kind"] == "compare"):
+        series.append((r["label"], [r], palette[i % len(palette)], False))
+    attribution = [r for r in rows if r["kind"] == "attribution"]
+    if attribution:
+        series.append(("attribution runs", attribution, (160, 160, 160), False))
+    ly = top
+    for name, pts, colour, connect in series:
+        coords = [(px(r["disk_bytes_per_splat"]), py(r["psnr_mean"] if r["psnr_mean"] is not None else lossless_y))
+                  for r in pts]
+        if connect and len(coords) > 1:
+            d.line(coords, fill=colour, width=2)
+        for (cx, cy), r in zip(coords, pts, strict=True):
+            d.ellipse([cx - 5, cy - 5, cx + 5, cy + 5], fill=colour, outline="black")
+            if connect:
+                d.text((cx + 8, cy - 16), r["label"], fill=colour, font=font)
+        d.ellipse([right + 15, ly + 3, right + 25, ly + 13], fill=colour, outline="black")
+        d.text((right + 32, ly), name[:24], fill="black", font=font)
+        ly += 22
+    img.save(path)
+
+
+def cameras_from_report(report: dict) -> list[Camera]:
+    """The evaluation cameras of a JSON report, to reproduce its renders."""
+    return [Camera.from_dict(c) for c in report["cameras"]]

@@ -1,0 +1,96 @@
+import json
+import math
+import os
+
+import numpy as np
+import pytest
+from conftest import real, run_cli
+from PIL import Image
+
+from splatstream.camera import Camera
+from splatstream.evaluate import EvalOptions, cameras_from_report, evaluate, parse_compare, seed_bytes_per_splat
+from splatstream.io import read_gaussians
+from splatstream.render_ref import render
+
+
+def test_eval_cli_table_json_plot(tmp_path):
+    src = real("fruit_drops_sh3.ply")
+    out_json, out_png, out_md = tmp_path / "r.json", tmp_path / "r.png", tmp_path / "r.md"
+    res = run_cli("eval", src, "--presets", "medium,low", "--views", "2", "--size", "128x96", "--renderer", "ref",
+                  "--json", out_json, "--plot", out_png, "--markdown", out_md, "--compare", f"self={src}")
+    assert res.returncode == 0, res.stderr
+    lines = res.stdout.splitlines()
+    header = "| Quality | Pos | Rot | Scl | Col | SH | bytes/splat GPU | disk | Compr | PSNR | SSIM | encode s |"
+    assert header in lines
+    medium = next(line for line in lines if line.startswith("| medium |"))
+    assert "| norm11 | norm10_2 | norm11 | norm8x4 | norm565 |" in medium
+    assert any(line.startswith("| self |") and "inf (inf)" in line for line in lines)
+    assert out_md.read_text() == res.stdout
+    report = json.loads(out_json.read_text())
+    rows = {r["label"]: r for r in report["rows"]}
+    assert set(rows) == {"medium", "low", "self"}
+    assert len(report["cameras"]) == 2 and report["size"] == [128, 96]
+    assert rows["medium"]["psnr_mean"] > rows["low"]["psnr_mean"] > 20
+    assert rows["medium"]["ssim_mean"] > 0.99
+    assert rows["self"]["psnr_mean"] is None and rows["self"]["identical_views"] == 2  # inf is not JSON
+    assert rows["self"]["ssim_mean"] == pytest.approx(1.0)
+    for label in ("medium", "low"):
+        r = rows[label]
+        assert 0 < r["disk_bytes_per_splat"] < 60 and 0 < r["gpu_bytes_per_splat"] < 60
+        assert r["compression"] == pytest.approx(os.path.getsize(src) / r["disk_bytes"])
+        assert r["encode_seconds"] > 0 and len(r["psnr_per_view"]) == 2
+    assert any(g["preset"] == "medium" and "ok" in g for g in report["goals"])
+    with Image.open(out_png) as im:
+        assert im.size == (900, 600)
+        assert len(im.getcolors(100000)) > 10  # something was drawn
+    # the cameras in the JSON reproduce the reference renders
+    cams = cameras_from_report(report)
+    assert all(isinstance(c, Camera) and (c.width, c.height) == (128, 96) for c in cams)
+
+
+def test_eval_api_reproducible_cameras_and_encoded_dir(tmp_path):
+    src = real("donut_sh0_no_normals.ply")
+    opts = EvalOptions(presets=["high"], views=1, width=48, height=40, renderer="ref", encoded_dir=str(tmp_path))
+    rep = evaluate(str(src), opts)
+    (row,) = rep["rows"]
+    assert row["formats"]["position"] == "f16x4"
+    assert os.path.isfile(tmp_path / "high" / "manifest.msgpack")  # --encoded keeps the scenes
+    assert rep["input"]["sh_degree"] == 0
+    # PSNR recomputed from the JSON camera matches the report
+    g = read_gaussians(src)
+    from splatstream.decoder import decode_scene
+    from splatstream.metrics import psnr
+
+    cam = cameras_from_report(rep)[0]
+    p = psnr(render(g, cam), render(decode_scene(tmp_path / "high"), cam))
+    assert p == pytest.approx(row["psnr_mean"], abs=1e-4)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--presets", "ultra"], "unknown preset"),
+    (["--size", "big"], "--size"),
+    (["--views", "0"], "--views"),
+    (["--compare", "/nonexistent/x.ply"], "no such file"),
+])
+def test_eval_cli_bad_arguments(args, message):
+    res = run_cli("eval", real("fruit_drops_sh3.ply"), "--renderer", "ref", "--size", "32x32", *args)
+    assert res.returncode == 2
+    assert message in res.stderr
+
+
+def test_eval_cli_missing_input(tmp_path):
+    res = run_cli("eval", tmp_path / "nope.ply")
+    assert res.returncode == 2 and "no such file" in res.stderr
+
+
+def test_parse_compare_and_seed_sizes(tmp_path):
+    f = tmp_path / "a.ply"
+    f.write_bytes(b"x")
+    d = tmp_path / "a.sog"
+    d.write_bytes(b"yy")
+    assert parse_compare(str(f)) == ("a.ply", str(f), str(f))
+    assert parse_compare(f"peer={f}@{d}") == ("peer", str(f), str(d))
+    assert seed_bytes_per_splat("medium", 3) == pytest.approx(248 / 5.2)
+    assert seed_bytes_per_splat("medium", 0) == pytest.approx(248 / 5.2 - 15 * 2)
+    assert math.isclose(seed_bytes_per_splat("low", 3) - seed_bytes_per_splat("low", 0), 7.5)
+    assert np.isfinite(seed_bytes_per_splat("very-high", 1))
