@@ -40,9 +40,16 @@ def sniff_format(path: str | os.PathLike) -> str:
         raise InputError(path, None, "file is empty")
     if head.startswith(b"ply\n") or head.startswith(b"ply\r\n"):
         return "compressed_ply" if is_compressed_ply(read_header(path, head)) else "ply"
-    if head.startswith(b"NGSP") or head.startswith(b"\x1f\x8b"):
-        return "spz"  # the SPZ reader tells a gzip file that is not SPZ apart
-    if os.path.splitext(path)[1].lower() == ".splat":
+    is_splat_name = os.path.splitext(path)[1].lower() == ".splat"
+    if head.startswith(b"NGSP"):
+        return "spz"
+    if head.startswith(b"\x1f\x8b"):
+        # A .splat record can begin with these two bytes by chance (1 in 65536 for the first x coordinate), so
+        # for a .splat-named file only a gzip stream that really holds an SPZ header counts as SPZ. Otherwise
+        # the SPZ reader reports what is wrong with the gzip stream.
+        if not is_splat_name or _gzip_starts_with(head, b"NGSP"):
+            return "spz"
+    if is_splat_name:
         size = os.path.getsize(path)
         if size % SPLAT_RECORD_BYTES:
             raise InputError(path, "file length", f"{size} bytes is not a multiple of 32 (a .splat file is a sequence "
@@ -50,6 +57,15 @@ def sniff_format(path: str | os.PathLike) -> str:
         return "splat"
     raise InputError(path, None, "unrecognised file format (expected a 3DGS PLY, a PlayCanvas compressed PLY, an "
                      "SPZ file, or a .splat file)")
+
+
+def _gzip_starts_with(head: bytes, prefix: bytes) -> bool:
+    import zlib
+
+    try:
+        return zlib.decompressobj(16 + zlib.MAX_WBITS).decompress(head, len(prefix)) == prefix
+    except zlib.error:
+        return False
 
 
 def read_gaussians(path: str | os.PathLike, drop_invalid: bool = False) -> Gaussians:

@@ -187,6 +187,19 @@ def test_sniffing_is_by_content(tmp_path):
         read_gaussians(unknown)
 
 
+def test_splat_starting_with_gzip_magic_is_still_splat(tmp_path):
+    records = splat_records(read_gaussians(SOURCE_PLY))
+    raw = bytearray(records.tobytes())
+    raw[0:2] = b"\x1f\x8b"  # low bytes of the first x coordinate: a tiny change of a valid position
+    path = tmp_path / "lucky.splat"
+    path.write_bytes(bytes(raw))
+    assert sniff_format(path) == "splat"
+    assert len(read_gaussians(path)) == FIXTURE_COUNT
+    spz_named_splat = tmp_path / "really_spz.splat"
+    shutil.copy(FIXTURES / "fruit_drops_v3.spz", spz_named_splat)
+    assert sniff_format(spz_named_splat) == "spz"
+
+
 def test_splat_plausibility(tmp_path):
     noise = tmp_path / "noise.splat"
     noise.write_bytes(np.random.default_rng(1).integers(0, 256, 32 * 200, dtype=np.uint8).tobytes())
