@@ -243,11 +243,17 @@ class AccessLog(AbstractAccessLogger):
     _lines: list[str] = []
     _size = 0
     _last_flush = 0.0
+    _stamp_second = -1
+    _stamp = ""
 
     def log(self, request, response, duration: float) -> None:
         now = time.time()
         size = 0 if request.method == "HEAD" else (response.content_length or 0)
-        line = (f'{request.remote or "-"} - - [{time.strftime("%d/%b/%Y:%H:%M:%S +0000", time.gmtime(now))}] '
+        second = int(now)
+        if second != AccessLog._stamp_second:
+            AccessLog._stamp_second = second
+            AccessLog._stamp = time.strftime("%d/%b/%Y:%H:%M:%S +0000", time.gmtime(second))
+        line = (f'{request.remote or "-"} - - [{AccessLog._stamp}] '
                 f'"{request.method} {request.path_qs[:512]} HTTP/{request.version.major}.{request.version.minor}" '
                 f"{response.status} {size} {duration:.6f}\n")
         AccessLog._lines.append(line)

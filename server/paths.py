@@ -18,6 +18,10 @@ MAX_SCENE_DEPTH = 8  # segments in a scene id
 MAX_SEGMENT_CHARS = 255
 MAX_PATH_CHARS = 2048
 _HEX = frozenset("0123456789abcdefABCDEF")
+_BAD_CHAR_RE = re.compile(r"[^\x20-\x7e]")
+# The common case in one match: plain characters, a valid scene id, one of the two served file names.
+_FAST_RE = re.compile(rf"/scenes/((?:[A-Za-z0-9_-][A-Za-z0-9._-]{{0,254}}/){{1,{MAX_SCENE_DEPTH}}})"
+                      r"(manifest\.msgpack|data/([0-9a-f]{64})\.bin)")
 
 
 class PathRejected(ValueError):
@@ -67,12 +71,11 @@ def percent_decode(raw: str) -> str:
             out.append(ch)
             i += 3
         decoded = "".join(out)
-    for ch in decoded:
-        o = ord(ch)
-        if o < 0x20 or o == 0x7F:
+    bad = _BAD_CHAR_RE.search(decoded)
+    if bad:
+        if ord(bad.group()) < 0x20 or bad.group() == "\x7f":
             raise PathRejected(400, "control characters (NUL, ...) are not allowed in the path")
-        if o > 0x7E:
-            raise PathRejected(400, "non-ASCII characters are not allowed in the path")
+        raise PathRejected(400, "non-ASCII characters are not allowed in the path")
     if "\\" in decoded:
         raise PathRejected(400, "backslashes are not allowed in the path")
     return decoded
@@ -95,6 +98,17 @@ def parse_scene_path(raw_path: str) -> ScenePath:
     Served files are exactly '<scene id>/manifest.msgpack' and '<scene id>/data/<sha256 hex>.bin'; anything
     else under /scenes/ is 404 (no directory listing, no other files). Raises PathRejected.
     """
+    if len(raw_path) > MAX_PATH_CHARS:
+        raise PathRejected(400, f"path longer than {MAX_PATH_CHARS} characters")
+    m = _FAST_RE.fullmatch(raw_path)
+    if m:
+        kind = "payload" if m.group(3) else "manifest"
+        return ScenePath(m.group(1)[:-1], m.group(2), kind, m.group(3))
+    return parse_scene_path_general(raw_path)
+
+
+def parse_scene_path_general(raw_path: str) -> ScenePath:
+    """parse_scene_path without its fast path (which must agree with this wherever it matches)."""
     if len(raw_path) > MAX_PATH_CHARS:
         raise PathRejected(400, f"path longer than {MAX_PATH_CHARS} characters")
     if not raw_path.startswith(SCENES_PREFIX):

@@ -4,7 +4,14 @@ from __future__ import annotations
 import pytest
 
 from server import http as h
-from server.paths import PathRejected, is_inside, is_valid_scene_id, parse_scene_path, percent_decode
+from server.paths import (
+    PathRejected,
+    is_inside,
+    is_valid_scene_id,
+    parse_scene_path,
+    parse_scene_path_general,
+    percent_decode,
+)
 
 SHA = "ab" * 32
 
@@ -20,6 +27,17 @@ def test_accepts(raw, scene, rel, kind):
     sp = parse_scene_path(raw)
     assert (sp.scene_id, sp.rel, sp.kind) == (scene, rel, kind)
     assert sp.sha256 == (SHA if kind == "payload" else None)
+    assert parse_scene_path_general(raw) == sp  # the fast path agrees with the general one
+
+
+@pytest.mark.parametrize("raw", [
+    "/scenes/manifest.msgpack/manifest.msgpack", f"/scenes/a/data/data/{SHA}.bin", f"/scenes/data/data/{SHA}.bin",
+    "/scenes/data/manifest.msgpack", "/scenes/" + "a/" * 8 + "manifest.msgpack",
+    "/scenes/" + "x" * 255 + "/manifest.msgpack",
+    f"/scenes/-/_/data/{SHA}.bin",
+])
+def test_fast_path_agrees(raw):
+    assert parse_scene_path(raw) == parse_scene_path_general(raw)
 
 
 @pytest.mark.parametrize("raw, status", [
@@ -62,13 +80,15 @@ def test_accepts(raw, scene, rel, kind):
     (f"/scenes/a/data/{SHA[:-1]}.bin", 404),
     (f"/scenes/a/{SHA}.bin", 404),
     ("/scenes/" + "a/" * 9 + "manifest.msgpack", 404),
+    ("/scenes/" + "x" * 256 + "/manifest.msgpack", 400),
     ("/etc/passwd", 404),
 ])
 def test_rejects(raw, status):
-    with pytest.raises(PathRejected) as info:
-        parse_scene_path(raw)
-    assert info.value.status == status
-    assert info.value.message
+    for parse in (parse_scene_path, parse_scene_path_general):
+        with pytest.raises(PathRejected) as info:
+            parse(raw)
+        assert info.value.status == status
+        assert info.value.message
 
 
 def test_percent_decode():
