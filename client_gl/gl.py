@@ -1,0 +1,224 @@
+"""The few raw OpenGL calls moderngl does not offer: textures in the packed and block-compressed texel formats.
+
+moderngl cannot create RGB10_A2 textures from packed words or upload BC blocks (`ctx.texture()` rejects raw
+compressed data), so the plane atlases are plain GL texture names driven through ctypes. Function pointers come
+from eglGetProcAddress (EGL 1.5 returns core functions too) or, failing that, from the process's libGL/libOpenGL.
+Everything here acts on the context current on the calling thread (the one moderngl made current).
+"""
+from __future__ import annotations
+
+import ctypes
+import ctypes.util
+from functools import lru_cache
+
+import numpy as np
+
+GL_TEXTURE_2D = 0x0DE1
+GL_TEXTURE_2D_ARRAY = 0x8C1A
+GL_TEXTURE0 = 0x84C0
+GL_TEXTURE_MAG_FILTER = 0x2800
+GL_TEXTURE_MIN_FILTER = 0x2801
+GL_TEXTURE_BASE_LEVEL = 0x813C
+GL_TEXTURE_MAX_LEVEL = 0x813D
+GL_NEAREST = 0x2600
+GL_UNPACK_ALIGNMENT = 0x0CF5
+GL_UNPACK_ROW_LENGTH = 0x0CF2
+GL_PIXEL_UNPACK_BUFFER = 0x88EC
+GL_NO_ERROR = 0
+
+GL_RGBA = 0x1908
+GL_RED_INTEGER = 0x8D94
+GL_RGBA_INTEGER = 0x8D99
+GL_FLOAT = 0x1406
+GL_HALF_FLOAT = 0x140B
+GL_UNSIGNED_BYTE = 0x1401
+GL_UNSIGNED_SHORT = 0x1403
+GL_UNSIGNED_INT = 0x1405
+GL_UNSIGNED_INT_2_10_10_10_REV = 0x8368
+
+GL_RGBA32F = 0x8814
+GL_RGBA16F = 0x881A
+GL_RGB10_A2 = 0x8059
+GL_R32UI = 0x8236
+GL_R16UI = 0x8234
+GL_RGBA8 = 0x8058
+GL_RGBA32UI = 0x8D70
+GL_COMPRESSED_RGBA_BPTC_UNORM = 0x8E8C
+GL_COMPRESSED_RGB_S3TC_DXT1_EXT = 0x83F0
+
+# GL internal-format names as texformats.TexelFormat.gl_internal spells them.
+INTERNAL_FORMATS = {
+    "RGBA32F": GL_RGBA32F, "RGBA16F": GL_RGBA16F, "RGB10_A2": GL_RGB10_A2, "R32UI": GL_R32UI,
+    "RGBA8": GL_RGBA8, "R16UI": GL_R16UI, "RGBA32UI": GL_RGBA32UI,
+    "COMPRESSED_RGBA_BPTC_UNORM": GL_COMPRESSED_RGBA_BPTC_UNORM,
+    "COMPRESSED_RGB_S3TC_DXT1": GL_COMPRESSED_RGB_S3TC_DXT1_EXT,
+}
+# (pixel format, pixel type, bytes per texel) for uncompressed uploads.
+PIXEL_TRANSFER = {
+    GL_RGBA32F: (GL_RGBA, GL_FLOAT, 16), GL_RGBA16F: (GL_RGBA, GL_HALF_FLOAT, 8),
+    GL_RGB10_A2: (GL_RGBA, GL_UNSIGNED_INT_2_10_10_10_REV, 4), GL_R32UI: (GL_RED_INTEGER, GL_UNSIGNED_INT, 4),
+    GL_RGBA8: (GL_RGBA, GL_UNSIGNED_BYTE, 4), GL_R16UI: (GL_RED_INTEGER, GL_UNSIGNED_SHORT, 2),
+    GL_RGBA32UI: (GL_RGBA_INTEGER, GL_UNSIGNED_INT, 16),
+}
+# Bytes per 4x4 block of the compressed formats.
+BLOCK_BYTES = {GL_COMPRESSED_RGBA_BPTC_UNORM: 16, GL_COMPRESSED_RGB_S3TC_DXT1_EXT: 8}
+
+_u = ctypes.c_uint
+_i = ctypes.c_int
+_p = ctypes.c_void_p
+_SIGNATURES = {
+    "glGetError": (_u, ()),
+    "glGenTextures": (None, (_i, ctypes.POINTER(_u))),
+    "glDeleteTextures": (None, (_i, ctypes.POINTER(_u))),
+    "glBindTexture": (None, (_u, _u)),
+    "glActiveTexture": (None, (_u,)),
+    "glTexParameteri": (None, (_u, _u, _i)),
+    "glPixelStorei": (None, (_u, _i)),
+    "glBindBuffer": (None, (_u, _u)),
+    "glTexImage2D": (None, (_u, _i, _i, _i, _i, _i, _u, _u, _p)),
+    "glTexImage3D": (None, (_u, _i, _i, _i, _i, _i, _i, _u, _u, _p)),
+    "glTexSubImage2D": (None, (_u, _i, _i, _i, _i, _i, _u, _u, _p)),
+    "glTexSubImage3D": (None, (_u, _i, _i, _i, _i, _i, _i, _i, _u, _u, _p)),
+    "glCompressedTexImage2D": (None, (_u, _i, _u, _i, _i, _i, _i, _p)),
+    "glCompressedTexImage3D": (None, (_u, _i, _u, _i, _i, _i, _i, _i, _p)),
+    "glCompressedTexSubImage2D": (None, (_u, _i, _i, _i, _i, _i, _u, _i, _p)),
+    "glCompressedTexSubImage3D": (None, (_u, _i, _i, _i, _i, _i, _i, _i, _u, _i, _p)),
+}
+
+
+class GLError(RuntimeError):
+    pass
+
+
+@lru_cache(maxsize=1)
+def _loaders():
+    loaders = []
+    for name in ("libEGL.so.1", "libEGL.so", ctypes.util.find_library("EGL")):
+        if not name:
+            continue
+        try:
+            egl = ctypes.CDLL(name)
+        except OSError:
+            continue
+        egl.eglGetProcAddress.restype = ctypes.c_void_p
+        egl.eglGetProcAddress.argtypes = [ctypes.c_char_p]
+        loaders.append(lambda fn, egl=egl: egl.eglGetProcAddress(fn.encode()))
+        break
+    for name in ("libOpenGL.so.0", "libGL.so.1", ctypes.util.find_library("GL"), ctypes.util.find_library("OpenGL")):
+        if not name:
+            continue
+        try:
+            lib = ctypes.CDLL(name)
+        except OSError:
+            continue
+
+        def dlsym(fn, lib=lib):
+            try:
+                return ctypes.cast(getattr(lib, fn), ctypes.c_void_p).value
+            except AttributeError:
+                return None
+        loaders.append(dlsym)
+    return loaders
+
+
+class _GL:
+    """Lazily resolved GL entry points."""
+
+    def __getattr__(self, name: str):
+        restype, argtypes = _SIGNATURES[name]
+        for load in _loaders():
+            addr = load(name)
+            if addr:
+                fn = ctypes.CFUNCTYPE(restype, *argtypes)(addr)
+                setattr(self, name, fn)
+                return fn
+        raise GLError(f"OpenGL function {name} not found")
+
+
+gl = _GL()
+
+
+def check(what: str) -> None:
+    err = gl.glGetError()
+    if err != GL_NO_ERROR:
+        raise GLError(f"{what}: GL error 0x{err:04x}")
+
+
+def _ptr(data: np.ndarray | None):
+    return None if data is None else data.ctypes.data_as(ctypes.c_void_p)
+
+
+class RawTexture:
+    """A 2D texture or 2D texture array (layers > 0) with a fixed internal format and no mipmaps."""
+
+    def __init__(self, internal: int, width: int, height: int, layers: int = 0):
+        self.internal, self.width, self.height, self.layers = internal, width, height, layers
+        self.target = GL_TEXTURE_2D_ARRAY if layers else GL_TEXTURE_2D
+        self.compressed = internal in BLOCK_BYTES
+        name = _u(0)
+        gl.glGetError()  # clear stale errors left by others
+        gl.glGenTextures(1, ctypes.byref(name))
+        self.glo = name.value
+        gl.glBindTexture(self.target, self.glo)
+        for pname, value in ((GL_TEXTURE_MIN_FILTER, GL_NEAREST), (GL_TEXTURE_MAG_FILTER, GL_NEAREST),
+                             (GL_TEXTURE_BASE_LEVEL, 0), (GL_TEXTURE_MAX_LEVEL, 0)):
+            gl.glTexParameteri(self.target, pname, value)
+        gl.glBindBuffer(GL_PIXEL_UNPACK_BUFFER, 0)
+        gl.glPixelStorei(GL_UNPACK_ALIGNMENT, 1)
+        gl.glPixelStorei(GL_UNPACK_ROW_LENGTH, 0)
+        depth = max(1, layers)
+        if self.compressed:
+            size = (width // 4) * (height // 4) * BLOCK_BYTES[internal] * depth
+            zeros = np.zeros(size, np.uint8)
+            if layers:
+                gl.glCompressedTexImage3D(self.target, 0, internal, width, height, layers, 0, size, _ptr(zeros))
+            else:
+                gl.glCompressedTexImage2D(self.target, 0, internal, width, height, 0, size, _ptr(zeros))
+        else:
+            fmt, typ, _ = PIXEL_TRANSFER[internal]
+            if layers:
+                gl.glTexImage3D(self.target, 0, internal, width, height, layers, 0, fmt, typ, None)
+            else:
+                gl.glTexImage2D(self.target, 0, internal, width, height, 0, fmt, typ, None)
+        check(f"creating a {width}x{height}x{depth} texture of format 0x{internal:04x}")
+
+    @property
+    def nbytes(self) -> int:
+        depth = max(1, self.layers)
+        if self.compressed:
+            return (self.width // 4) * (self.height // 4) * BLOCK_BYTES[self.internal] * depth
+        return self.width * self.height * PIXEL_TRANSFER[self.internal][2] * depth
+
+    def write(self, data: np.ndarray, x: int, y: int, w: int, h: int, layer: int = 0) -> None:
+        """Upload a w x h region at (x, y): texels row-major (row y first), or BC blocks in row-major block order."""
+        data = np.ascontiguousarray(data)
+        stale = gl.glGetError()
+        if stale != GL_NO_ERROR:
+            raise GLError(f"GL error 0x{stale:04x} pending before a texture upload")
+        gl.glBindTexture(self.target, self.glo)
+        gl.glBindBuffer(GL_PIXEL_UNPACK_BUFFER, 0)
+        gl.glPixelStorei(GL_UNPACK_ALIGNMENT, 1)
+        gl.glPixelStorei(GL_UNPACK_ROW_LENGTH, 0)
+        if self.compressed:
+            if self.layers:
+                gl.glCompressedTexSubImage3D(self.target, 0, x, y, layer, w, h, 1, self.internal, data.nbytes,
+                                             _ptr(data))
+            else:
+                gl.glCompressedTexSubImage2D(self.target, 0, x, y, w, h, self.internal, data.nbytes, _ptr(data))
+        else:
+            fmt, typ, _ = PIXEL_TRANSFER[self.internal]
+            if self.layers:
+                gl.glTexSubImage3D(self.target, 0, x, y, layer, w, h, 1, fmt, typ, _ptr(data))
+            else:
+                gl.glTexSubImage2D(self.target, 0, x, y, w, h, fmt, typ, _ptr(data))
+        check(f"uploading a {w}x{h} region at ({x}, {y}) layer {layer}")
+
+    def bind(self, unit: int) -> None:
+        gl.glActiveTexture(GL_TEXTURE0 + unit)
+        gl.glBindTexture(self.target, self.glo)
+
+    def release(self) -> None:
+        if self.glo:
+            name = _u(self.glo)
+            gl.glDeleteTextures(1, ctypes.byref(name))
+            self.glo = 0

@@ -1,0 +1,253 @@
+"""GPU residency of encoded splats: a pool of 256-splat chunk slots in one texture atlas per plane.
+
+Tiles JOIN and LEAVE: a tile's chunk blocks (16x16 texels, exactly as the file stores them, still in their texel
+format) are copied into free slots of the atlases, and its per-chunk ranges into the slot's row of the range table;
+leaving frees the slots (their splat count becomes 0, so culling skips them). One draw covers every resident chunk.
+
+Atlas layout: slot s is the 16x16 block at ((s % cols) * 16, (s // cols) * 16), cols = atlas width / 16, the same
+block layout as a tile texture (format_spec/format.md 4.1). Global splat index = s * 256 + j.
+
+Range table: an RGBA32UI texture with 16 texels (64 words) per slot at ((s % cols) * 16, s // cols); word offsets
+are RANGE_WORDS (f32 position ranges, f16 pairs for the others, as the file stores them).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from splatstream.codec import EncodedPlane
+from splatstream.errors import UsageError
+from splatstream.gaussians import SH_BAND_COEFFS
+from splatstream.texformats import get_format
+
+from .gl import BLOCK_BYTES, GL_RGBA32UI, INTERNAL_FORMATS, RawTexture
+
+CHUNK = 256
+BLOCK = 16
+MAX_COLS = 128
+SH_BAND_LAYERS = dict(SH_BAND_COEFFS)
+# Word offsets inside a slot's 64-word range record.
+RANGE_WORDS = {"position": 0, "count": 6, "tile": 7, "scale": 8, "color": 11, "sh1": 15, "sh2": 24, "sh3": 39}
+RANGE_RECORD_WORDS = 64
+PLANE_ATTRIBUTE = {"position": "position", "rotation": "rotation", "scale": "scale", "color": "color",
+                   "sh1": "sh", "sh2": "sh", "sh3": "sh"}
+
+
+@dataclass
+class TileData:
+    """One tile's planes as the file stores them (EncodedPlane per plane name) and its splat count."""
+
+    splats: int
+    planes: dict[str, EncodedPlane]
+
+
+@dataclass
+class _Resident:
+    slots: np.ndarray
+    splats: int
+
+
+@dataclass
+class HostMirror:
+    """What the CPU sort path needs per splat slot: decoded centres, opacity, largest log scale."""
+
+    positions: np.ndarray
+    opacity: np.ndarray
+    max_log_scale: np.ndarray
+    counts: np.ndarray = field(default=None)  # splats per slot
+
+
+def _runs(slots: np.ndarray, cols: int) -> list[tuple[int, int, int]]:
+    """(first index into slots, first slot, length) of runs of consecutive slots within one atlas row."""
+    runs = []
+    i = 0
+    while i < len(slots):
+        j = i + 1
+        while j < len(slots) and slots[j] == slots[j - 1] + 1 and slots[j] % cols != 0:
+            j += 1
+        runs.append((i, int(slots[i]), j - i))
+        i = j
+    return runs
+
+
+def layer_blob(plane: EncodedPlane, layer: int) -> np.ndarray:
+    """One layer's texture blob (uint8) of an encoded plane."""
+    layers = getattr(plane, "layers", None)
+    if isinstance(layers, (list, tuple)):
+        return np.frombuffer(layers[layer], np.uint8)
+    if layers is not None:  # a lazy iterator: materialise once
+        plane.layers = [np.asarray(b) for b in layers]
+        return np.frombuffer(plane.layers[layer], np.uint8)
+    texels = plane.texels  # single-blob form (layers concatenated)
+    size = texels.size // plane.spec.layers
+    return texels[layer * size:(layer + 1) * size]
+
+
+def _chunk_blocks(plane: EncodedPlane, layer: int, chunks: int) -> np.ndarray:
+    """(chunks, rows, cols, bytes) blocks of one layer: 16x16 texels, or 4x4 BC blocks for block formats."""
+    fmt = get_format(plane.format)
+    blob = layer_blob(plane, layer)
+    if fmt.block > 1:
+        unit, side = BLOCK_BYTES[INTERNAL_FORMATS[fmt.gl_internal]], BLOCK // 4
+        h, w = plane.height // 4, plane.width // 4
+    else:
+        unit, side = fmt.bits_per_texel // 8, BLOCK
+        h, w = plane.height, plane.width
+    img = blob.reshape(h // side, side, w // side, side, unit)
+    return img.transpose(0, 2, 1, 3, 4).reshape(-1, side, side, unit)[:chunks]
+
+
+class ChunkPool:
+    """Atlases for `capacity` splats in fixed texel formats (one per plane) with `sh_degree` bands resident."""
+
+    def __init__(self, ctx, formats: dict[str, str], sh_degree: int, capacity: int, keep_host_mirror: bool = True):
+        self.ctx = ctx
+        self.formats = dict(formats)
+        self.sh_degree = int(sh_degree)
+        self.slots = max(1, -(-int(capacity) // CHUNK))
+        self.cols = min(MAX_COLS, self.slots)
+        self.rows = -(-self.slots // self.cols)
+        self.width, self.height = self.cols * BLOCK, self.rows * BLOCK
+        max_size = ctx.info.get("GL_MAX_TEXTURE_SIZE", 16384)
+        if self.height > max_size:
+            raise UsageError(f"{capacity} splats need a {self.width}x{self.height} atlas; this GL allows "
+                             f"{max_size} texels per side")
+        self.planes = ["position", "rotation", "scale", "color"] + [f"sh{b}" for b in range(1, self.sh_degree + 1)]
+        self.textures: dict[str, RawTexture] = {}
+        for plane in self.planes:
+            fmt = get_format(self.formats[PLANE_ATTRIBUTE[plane]])
+            layers = SH_BAND_LAYERS[int(plane[2:])] if plane.startswith("sh") else 0
+            self.textures[plane] = RawTexture(INTERNAL_FORMATS[fmt.gl_internal], self.width, self.height, layers)
+        self.ranges = RawTexture(GL_RGBA32UI, self.width, self.rows)
+        self._free = list(range(self.slots))  # kept sorted: allocation takes the lowest slots
+        self.tiles: dict[int, _Resident] = {}
+        self.counts = np.zeros(self.slots, np.uint32)
+        self.mirror: HostMirror | None = None
+        if keep_host_mirror:
+            n = self.slots * CHUNK
+            self.mirror = HostMirror(np.zeros((n, 3), np.float32), np.zeros(n, np.float32),
+                                     np.zeros(n, np.float32), self.counts)
+
+    # --- accounting -----------------------------------------------------------------------------------------
+    @property
+    def texel_bytes(self) -> int:
+        return sum(t.nbytes for t in self.textures.values())
+
+    @property
+    def range_bytes(self) -> int:
+        return self.ranges.nbytes
+
+    @property
+    def gpu_bytes(self) -> int:
+        return self.texel_bytes + self.range_bytes
+
+    @property
+    def bytes_per_splat(self) -> float:
+        """GPU bytes per splat slot (atlases + range table), i.e. per splat of a full pool."""
+        return self.gpu_bytes / (self.slots * CHUNK)
+
+    @property
+    def resident_splats(self) -> int:
+        return sum(t.splats for t in self.tiles.values())
+
+    @property
+    def used_slots(self) -> int:
+        """Highest used slot + 1 (culling scans this many)."""
+        used = np.nonzero(self.counts)[0]
+        return int(used[-1]) + 1 if used.size else 0
+
+    # --- join / leave ---------------------------------------------------------------------------------------
+    def join(self, tile_id: int, tile: TileData) -> np.ndarray:
+        """Upload a tile's chunks into free slots; returns the slots (chunk c of the tile -> slots[c])."""
+        if tile_id in self.tiles:
+            raise UsageError(f"tile {tile_id} is already resident")
+        n = int(tile.splats)
+        chunks = -(-n // CHUNK)
+        if chunks > len(self._free):
+            raise UsageError(f"tile {tile_id} needs {chunks} chunk slots, {len(self._free)} of {self.slots} are free")
+        for plane in self.planes:
+            p = tile.planes.get(plane)
+            if p is None:
+                raise UsageError(f"tile {tile_id} has no {plane} plane")
+            want = self.formats[PLANE_ATTRIBUTE[plane]]
+            if p.format != want:
+                raise UsageError(f"tile {tile_id}: {plane} is {p.format}, this pool holds {want}")
+        slots = np.array(self._free[:chunks], np.int64)
+        del self._free[:chunks]
+        runs = _runs(slots, self.cols)
+        for plane in self.planes:
+            self._upload_plane(self.textures[plane], tile.planes[plane], chunks, runs)
+        self._upload_ranges(tile_id, tile, n, chunks, slots, runs)
+        self.counts[slots] = np.minimum(CHUNK, n - np.arange(chunks) * CHUNK).astype(np.uint32)
+        if self.mirror is not None:
+            self._fill_mirror(tile, n, slots)
+        self.tiles[tile_id] = _Resident(slots, n)
+        return slots
+
+    def leave(self, tile_id: int) -> None:
+        res = self.tiles.pop(tile_id, None)
+        if res is None:
+            raise UsageError(f"tile {tile_id} is not resident")
+        zeros = np.zeros((1, BLOCK * 4), np.uint32)
+        for s in res.slots:
+            self.ranges.write(zeros, int(s % self.cols) * BLOCK, int(s // self.cols), BLOCK, 1)
+        self.counts[res.slots] = 0
+        self._free = sorted(self._free + [int(s) for s in res.slots])
+
+    def clear(self) -> None:
+        for tile_id in list(self.tiles):
+            self.leave(tile_id)
+
+    # --- uploads ----------------------------------------------------------------------------------------------
+    def _upload_plane(self, tex: RawTexture, plane: EncodedPlane, chunks: int, runs) -> None:
+        layers = max(1, tex.layers)
+        for layer in range(layers):
+            blocks = _chunk_blocks(plane, layer, chunks)
+            side = blocks.shape[1]
+            for first, slot, length in runs:
+                strip = blocks[first:first + length].transpose(1, 0, 2, 3).reshape(side, length * side, -1)
+                tex.write(strip, (slot % self.cols) * BLOCK, (slot // self.cols) * BLOCK, length * BLOCK, BLOCK, layer)
+
+    def _upload_ranges(self, tile_id: int, tile: TileData, n: int, chunks: int, slots: np.ndarray, runs) -> None:
+        rec = np.zeros((chunks, RANGE_RECORD_WORDS), np.uint32)
+        w = RANGE_WORDS
+
+        def put(name: str, ranges: np.ndarray, dtype: str) -> None:
+            words = np.ascontiguousarray(ranges.astype(dtype)).reshape(chunks, -1).view(np.uint32)
+            rec[:, w[name]:w[name] + words.shape[1]] = words
+
+        put("position", tile.planes["position"].ranges, "<f4")
+        put("scale", tile.planes["scale"].ranges, "<f2")
+        put("color", tile.planes["color"].ranges, "<f2")
+        for b in range(1, self.sh_degree + 1):
+            put(f"sh{b}", tile.planes[f"sh{b}"].ranges, "<f2")
+        rec[:, w["count"]] = np.minimum(CHUNK, n - np.arange(chunks) * CHUNK)
+        rec[:, w["tile"]] = np.uint32(tile_id & 0xFFFFFFFF)
+        texels = rec.reshape(chunks, BLOCK, 4)
+        for first, slot, length in runs:
+            self.ranges.write(texels[first:first + length].reshape(1, length * BLOCK, 4),
+                              (slot % self.cols) * BLOCK, slot // self.cols, length * BLOCK, 1)
+
+    def _fill_mirror(self, tile: TileData, n: int, slots: np.ndarray) -> None:
+        from splatstream.codec import decode_plane
+
+        idx = (slots[np.arange(n) // CHUNK] * CHUNK + np.arange(n) % CHUNK)
+        self.mirror.positions[idx] = decode_plane(tile.planes["position"], n)[:, 0]
+        self.mirror.opacity[idx] = np.clip(decode_plane(tile.planes["color"], n)[:, 0, 3], 0.0, 1.0)
+        self.mirror.max_log_scale[idx] = decode_plane(tile.planes["scale"], n)[:, 0].max(axis=1)
+
+    def bind(self) -> None:
+        from .shadergen import TEXTURE_UNITS
+
+        for plane, tex in self.textures.items():
+            tex.bind(TEXTURE_UNITS[plane])
+        self.ranges.bind(TEXTURE_UNITS["ranges"])
+
+    def release(self) -> None:
+        for tex in self.textures.values():
+            tex.release()
+        self.ranges.release()
+        self.textures.clear()
+
+

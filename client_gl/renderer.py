@@ -1,0 +1,341 @@
+"""The per-frame pipeline: cull + depth keys (compute), radix sort (compute), one instanced draw (indirect).
+
+GPU path (GL >= 4.3 with compute shaders, a hardware GL):
+  1. cull.comp, one work group per resident chunk slot: decode position/rotation/scale/opacity from the atlases,
+     drop splats behind the near plane, with opacity < 1/255, or whose alpha >= 1/255 ellipse misses the image;
+     compact survivors with work-group aggregated atomics into (key = ~bits(depth), value = splat index).
+  2. indirect_setup.comp turns the count into sort dispatch sizes and the draw's instance count.
+  3. GpuRadixSort sorts only the visible keys (8 passes of count/reduce/scan/scan-add/scatter).
+  4. One glDrawArraysIndirect-style instanced draw of 4-vertex strips: the sorted values are the per-instance
+     attribute, back to front, premultiplied colour blended with (ONE, ONE_MINUS_SRC_ALPHA).
+CPU path (GL < 4.3, software GL, or sort="cpu"): cull and depth sort in numpy on a worker thread, index buffer
+upload, the same vertex and fragment shaders.
+"""
+from __future__ import annotations
+
+import math
+import struct
+import time
+from dataclasses import dataclass, field
+
+import moderngl
+import numpy as np
+
+from splatstream.camera import Camera
+from splatstream.errors import UsageError
+
+from . import shadergen
+from .pool import CHUNK, ChunkPool
+from .shadergen import TEXTURE_UNITS
+from .sort import CpuSorter, GpuRadixSort, depth_order
+
+SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swiftshader", "software rasterizer")
+MAX_GROUPS_PER_DISPATCH = 65535
+SORT_MODES = ("auto", "cpu", "gpu")
+
+
+def has_compute(ctx) -> bool:
+    return ctx.version_code >= 430
+
+
+def is_software(ctx) -> bool:
+    name = str(ctx.info.get("GL_RENDERER", "")).lower()
+    return any(s in name for s in SOFTWARE_RENDERERS)
+
+
+def choose_sort(ctx, mode: str = "auto") -> str:
+    """'gpu' or 'cpu' for a context: auto picks the CPU sort without compute shaders or on a software GL."""
+    if mode not in SORT_MODES:
+        raise UsageError(f"unknown sort mode {mode!r} (choose one of {', '.join(SORT_MODES)})")
+    if mode == "gpu":
+        if not has_compute(ctx):
+            raise UsageError(f"--sort gpu needs OpenGL 4.3 compute shaders; this context is {ctx.version_code}")
+        return "gpu"
+    if mode == "cpu":
+        return "cpu"
+    return "gpu" if has_compute(ctx) and not is_software(ctx) else "cpu"
+
+
+@dataclass
+class FrameStats:
+    sort: str
+    visible: int | None = None          # known on the CPU path, or after read_visible_count()
+    cull_ms: float | None = None        # GPU time (timer queries) when timing was requested
+    sort_ms: float | None = None
+    draw_ms: float | None = None
+    cpu_ms: dict = field(default_factory=dict)
+
+    @property
+    def total_ms(self) -> float | None:
+        if self.cull_ms is None:
+            return None
+        return self.cull_ms + self.sort_ms + self.draw_ms
+
+
+def _set(prog, name: str, value) -> None:
+    """Set a uniform if the program uses it (unused uniforms are optimised away)."""
+    try:
+        member = prog[name]
+    except KeyError:
+        return
+    if isinstance(value, np.ndarray):
+        member.write(value.astype("f4").tobytes())
+    else:
+        member.value = value
+
+
+def camera_uniforms(cam: Camera) -> dict:
+    """Uniform values of the projection shared by the cull and vertex shaders (camera.py conventions)."""
+    view = cam.world_to_camera_cv()
+    n, f = cam.near, cam.far
+    return {
+        # GLSL matrices are column-major: write the transpose so that the shader's u_view equals `view`.
+        "u_view": np.ascontiguousarray(view.T),
+        "u_focal": tuple(float(v) for v in cam.focal),
+        "u_principal": tuple(float(v) for v in cam.principal_point),
+        "u_tan_fov": (cam.tan_half_fov_x, cam.tan_half_fov_y),
+        "u_size": (float(cam.width), float(cam.height)),
+        "u_near": n,
+        "u_far": f,
+        "u_eye": tuple(float(v) for v in cam.eye),
+        "u_depth_ab": ((f + n) / (f - n), -2.0 * f * n / (f - n)),
+    }
+
+
+class SplatRenderer:
+    """Draws the splats resident in a ChunkPool from a camera into an offscreen framebuffer."""
+
+    def __init__(self, ctx, pool: ChunkPool, sort: str = "auto", color_dtype: str = "f4"):
+        self.ctx = ctx
+        self.pool = pool
+        self.sort_mode = choose_sort(ctx, sort)
+        self.color_dtype = color_dtype
+        version = 430 if has_compute(ctx) else 410
+        self.header = shadergen.decode_header(pool.formats, pool.sh_degree)
+        vert, frag = shadergen.render_sources(self.header, version)
+        self.program = ctx.program(vertex_shader=vert, fragment_shader=frag)
+        self._bind_samplers(self.program)
+        self.capacity = pool.slots * CHUNK
+        self._fbo = None
+        self._fbo_size = None
+        self._cpu_sorter: CpuSorter | None = None
+        self._index_buffer = None
+        self._vao_cpu = None
+        self._ids_cache = None
+        if self.sort_mode == "gpu":
+            self.cull = ctx.compute_shader(shadergen.compute_source("cull.comp", self.header))
+            self._bind_samplers(self.cull)
+            self.sorter = GpuRadixSort(ctx, self.capacity)
+            self.params = ctx.buffer(reserve=16)
+            self.keys = ctx.buffer(reserve=self.capacity * 4)
+            self.values = ctx.buffer(reserve=self.capacity * 4)
+            self.vao_gpu = ctx.vertex_array(self.program, [(self.values, "1u /i", "a_id")])
+        else:
+            self._cpu_sorter = CpuSorter()
+            if pool.mirror is None:
+                raise UsageError("the CPU sort path needs a pool with a host mirror of the splat centres")
+
+    def _bind_samplers(self, prog) -> None:
+        for plane, unit in TEXTURE_UNITS.items():
+            _set(prog, "u_" + plane, unit)
+        _set(prog, "u_cols", self.pool.cols)
+
+    # --- memory --------------------------------------------------------------------------------------------
+    @property
+    def work_bytes(self) -> int:
+        """GPU bytes of per-frame work buffers (keys, values, sort scratch), beside the pool's splat data."""
+        if self.sort_mode == "gpu":
+            return self.keys.size + self.values.size + self.params.size + self.sorter.gpu_bytes
+        return self._index_buffer.size if self._index_buffer is not None else 0
+
+    # --- framebuffer ---------------------------------------------------------------------------------------
+    def framebuffer(self, width: int, height: int):
+        """The offscreen target (colour + depth) for this size, shared by all renderers of the context.
+
+        Framebuffers are kept for the context's lifetime: moderngl re-binds the last framebuffer after creating
+        another one, so releasing a bound one leaves a dangling binding (GL_INVALID_OPERATION).
+        """
+        cache = self.ctx.extra if isinstance(self.ctx.extra, dict) else {}
+        self.ctx.extra = cache
+        key = ("splat_fbo", width, height, self.color_dtype)
+        if key not in cache:
+            color = self.ctx.texture((width, height), 4, dtype=self.color_dtype)
+            depth = self.ctx.depth_renderbuffer((width, height))
+            cache[key] = self.ctx.framebuffer([color], depth)
+        self._fbo = cache[key]
+        self._fbo_size = (width, height)
+        return self._fbo
+
+    def read_image(self) -> np.ndarray:
+        """(H, W, 4) float32 of the last frame, row 0 at the top (premultiplied RGB over the background, alpha)."""
+        w, h = self._fbo_size
+        raw = self._fbo.read(components=4, dtype="f4")
+        return np.frombuffer(raw, np.float32).reshape(h, w, 4)[::-1].copy()
+
+    # --- frame ---------------------------------------------------------------------------------------------
+    def render(self, cam: Camera, sh_degree: int | None = None, background=(0.0, 0.0, 0.0), clear: bool = True,
+               timing: bool = False) -> FrameStats:
+        degree = self.pool.sh_degree if sh_degree is None else max(0, min(int(sh_degree), self.pool.sh_degree))
+        fbo = self.framebuffer(cam.width, cam.height)
+        uniforms = camera_uniforms(cam)
+        uniforms["u_sh_degree"] = degree
+        if clear:
+            fbo.depth_mask = True
+            fbo.use()
+            fbo.clear(float(background[0]), float(background[1]), float(background[2]), 0.0, depth=1.0)
+        fbo.depth_mask = False
+        fbo.use()
+        if self.sort_mode == "gpu":
+            return self._render_gpu(cam, uniforms, timing)
+        return self._render_cpu(cam, uniforms, timing)
+
+    def _draw_state(self) -> None:
+        ctx = self.ctx
+        ctx.disable(moderngl.CULL_FACE)
+        ctx.enable(moderngl.BLEND | moderngl.DEPTH_TEST)
+        ctx.blend_func = moderngl.ONE, moderngl.ONE_MINUS_SRC_ALPHA
+        ctx.blend_equation = moderngl.FUNC_ADD
+        ctx.depth_func = "<"
+
+    def _render_gpu(self, cam: Camera, uniforms: dict, timing: bool) -> FrameStats:
+        ctx = self.ctx
+        stats = FrameStats("gpu")
+        queries = [ctx.query(time=True) for _ in range(3)] if timing else None
+        slots = self.pool.used_slots
+        self.params.write(struct.pack("4I", 0, 0, 0, 0))
+        for name, value in uniforms.items():
+            _set(self.cull, name, value)
+            _set(self.program, name, value)
+        _set(self.cull, "u_slots", slots)
+        self.pool.bind()
+        self.params.bind_to_storage_buffer(0)
+        self.keys.bind_to_storage_buffer(1)
+        self.values.bind_to_storage_buffer(2)
+
+        def cull():
+            for base in range(0, slots, MAX_GROUPS_PER_DISPATCH):
+                _set(self.cull, "u_slot_base", base)
+                self.cull.run(min(MAX_GROUPS_PER_DISPATCH, slots - base))
+            ctx.memory_barrier()
+            self.sorter.setup(self.params)
+
+        def sort():
+            self.sorter.sort(self.params, self.keys, self.values)
+
+        def draw():
+            self._draw_state()
+            self.pool.bind()
+            self.vao_gpu.render_indirect(self.sorter.draw, mode=moderngl.TRIANGLE_STRIP, count=1)
+
+        for i, step in enumerate((cull, sort, draw)):
+            if timing:
+                with queries[i]:
+                    step()
+            else:
+                step()
+        if timing:
+            stats.cull_ms, stats.sort_ms, stats.draw_ms = (q.elapsed / 1e6 for q in queries)
+            for q in queries:
+                q.release()
+        return stats
+
+    def read_visible_count(self) -> int:
+        """The GPU path's visible-splat count of the last frame (a readback: for tests and benchmarks only)."""
+        return struct.unpack("I", self.params.read(4))[0]
+
+    # --- CPU path ------------------------------------------------------------------------------------------
+    def _resident_ids(self) -> np.ndarray:
+        counts = self.pool.counts
+        key = counts.tobytes()
+        if self._ids_cache is None or self._ids_cache[0] != key:
+            j = np.arange(CHUNK, dtype=np.uint32)
+            mask = j[None, :] < counts[:, None]
+            ids = (np.arange(len(counts), dtype=np.uint32)[:, None] * CHUNK + j[None, :])[mask]
+            self._ids_cache = (key, ids)
+        return self._ids_cache[1]
+
+    def cpu_visible_order(self, cam: Camera) -> np.ndarray:
+        """Visible splat ids back to front (conservative cull; the vertex shader drops the rest exactly)."""
+        ids = self._resident_ids()
+        m = self.pool.mirror
+        view = cam.world_to_camera_cv()
+        pos = m.positions[ids]
+        t = pos @ view[:3, :3].T.astype(np.float32) + view[:3, 3].astype(np.float32)
+        z = t[:, 2]
+        op = m.opacity[ids]
+        keep = (z > cam.near) & (z < cam.far) & (op >= 1.0 / 255.0)
+        fx, fy = cam.focal
+        cx, cy = cam.principal_point
+        lim = 1.3 * np.array([cam.tan_half_fov_x, cam.tan_half_fov_y])
+        jnorm = math.sqrt(1.0 + lim[0] ** 2 + lim[1] ** 2)  # bound on |J| / (f / z) with the reference's clamp
+        with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+            k = np.sqrt(2.0 * np.log(np.maximum(op, 1.0 / 255.0) * 255.0))
+            r = k * (fy * np.exp(m.max_log_scale[ids]) / z * jnorm + math.sqrt(0.3)) + 1.0
+            u = fx * t[:, 0] / z + cx
+            v = fy * t[:, 1] / z + cy
+            keep &= (u + r > 0) & (u - r < cam.width) & (v + r > 0) & (v - r < cam.height)
+        vis = ids[keep]
+        return vis[depth_order(z[keep])]
+
+    def _render_cpu(self, cam: Camera, uniforms: dict, timing: bool) -> FrameStats:
+        ctx = self.ctx
+        stats = FrameStats("cpu")
+        t0 = time.perf_counter()
+        order = self._cpu_sorter.submit(self.cpu_visible_order, cam).result()
+        t1 = time.perf_counter()
+        n = len(order)
+        stats.visible = n
+        if n:
+            data = order.astype(np.uint32).tobytes()
+            if self._index_buffer is None or self._index_buffer.size < len(data):
+                if self._vao_cpu is not None:
+                    self._vao_cpu.release()
+                    self._index_buffer.release()
+                self._index_buffer = ctx.buffer(reserve=max(len(data), 1 << 16), dynamic=True)
+                self._vao_cpu = ctx.vertex_array(self.program, [(self._index_buffer, "1u /i", "a_id")])
+            self._index_buffer.write(data)
+            for name, value in uniforms.items():
+                _set(self.program, name, value)
+            self._draw_state()
+            self.pool.bind()
+            q = ctx.query(time=True) if timing else None
+            if q is not None:
+                with q:
+                    self._vao_cpu.render(mode=moderngl.TRIANGLE_STRIP, vertices=4, instances=n)
+                stats.draw_ms = q.elapsed / 1e6
+                q.release()
+            else:
+                self._vao_cpu.render(mode=moderngl.TRIANGLE_STRIP, vertices=4, instances=n)
+        stats.cpu_ms = {"cull_sort": (t1 - t0) * 1e3, "upload_draw": (time.perf_counter() - t1) * 1e3}
+        return stats
+
+    # --- test hook -----------------------------------------------------------------------------------------
+    def decode_debug(self, ids: np.ndarray) -> np.ndarray:
+        """(len(ids), DEBUG_STRIDE) float32 decoded by the shaders' decoders (decode_debug.comp)."""
+        ctx = self.ctx
+        if not hasattr(self, "_debug"):
+            self._debug = ctx.compute_shader(shadergen.compute_source("decode_debug.comp", self.header))
+            self._bind_samplers(self._debug)
+        n = len(ids)
+        ids_buf = ctx.buffer(np.ascontiguousarray(ids, np.uint32).tobytes())
+        out = ctx.buffer(reserve=max(4, n * shadergen.DEBUG_STRIDE * 4))
+        ids_buf.bind_to_storage_buffer(1)
+        out.bind_to_storage_buffer(2)
+        self.pool.bind()
+        _set(self._debug, "u_n", n)
+        self._debug.run(-(-n // 64))
+        ctx.memory_barrier()
+        res = np.frombuffer(out.read(), np.float32).reshape(n, shadergen.DEBUG_STRIDE).copy()
+        ids_buf.release()
+        out.release()
+        return res
+
+    def release(self) -> None:
+        if self._cpu_sorter is not None:
+            self._cpu_sorter.close()
+        buffers = [self._index_buffer]
+        if self.sort_mode == "gpu":
+            buffers += [self.params, self.keys, self.values]
+        for b in buffers:
+            if b is not None:
+                b.release()

@@ -1,0 +1,221 @@
+"""GLSL sources for a pool's texel formats, generated from the one source of truth in Python.
+
+The texel decoders follow splatstream.texformats / splatstream.codec (format_spec/format.md 4.2-4.5), the SH constants
+and basis come from splatstream.sh, the chunk-slot layout and the range-table word offsets from client_gl.pool.
+Static code lives in client_gl/shaders/*.glsl; `#include "name"` lines are expanded here.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+from splatstream import sh
+from splatstream.codec import rotation_mode
+from splatstream.texformats import get_format
+
+from .pool import RANGE_WORDS, SH_BAND_LAYERS
+
+# Radix sort geometry: 4-bit digits, 256 threads x ITEMS keys per work group, scans of 256 x SCAN_ITEMS values.
+RADIX_BITS = 4
+SORT_ITEMS = 8
+SCAN_ITEMS = 8
+SORT_TILE = 256 * SORT_ITEMS
+SCAN_TILE = 256 * SCAN_ITEMS
+DEBUG_STRIDE = 80  # floats per splat written by decode_debug.comp
+
+# Texture unit of each plane's atlas (and of the range table).
+TEXTURE_UNITS = {"position": 0, "rotation": 1, "scale": 2, "color": 3, "sh1": 4, "sh2": 5, "sh3": 6, "ranges": 7}
+
+_INTEGER_FORMATS = {"norm11", "norm565"}
+
+
+def read_shader(name: str) -> str:
+    return (Path(__file__).parent / "shaders" / name).read_text()
+
+
+def _expand_includes(src: str) -> str:
+    out = []
+    for line in src.splitlines():
+        s = line.strip()
+        if s.startswith("#include"):
+            out.append(_expand_includes(read_shader(s.split('"')[1])))
+        else:
+            out.append(line)
+    return "\n".join(out)
+
+
+def _f(x: float) -> str:
+    return repr(float(x))
+
+
+def _t_fetch(plane: str, fmt_name: str, array: bool) -> str:
+    """GLSL `vec4 t_<plane>(ivec2 p[, int layer])`: normalised texel values exactly as texformats decodes them."""
+    fmt = get_format(fmt_name)
+    args = "ivec2 p, int layer" if array else "ivec2 p"
+    coord = "ivec3(p, layer)" if array else "p"
+    fetch = f"texelFetch(u_{plane}, {coord}, 0)"
+    if fmt.name == "norm11":
+        body = (f"uint w = {fetch}.r;\n    return vec4(float(w & 2047u) / 2047.0, float((w >> 11) & 1023u) / 1023.0, "
+                "float(w >> 21) / 2047.0, 0.0);")
+    elif fmt.name == "norm565":
+        body = (f"uint w = {fetch}.r;\n    return vec4(float(w & 31u) / 31.0, float((w >> 5) & 63u) / 63.0, "
+                "float(w >> 11) / 31.0, 0.0);")
+    else:  # float, unorm and BC formats: the texture unit returns the normalised values
+        body = f"return {fetch};"
+    return f"vec4 t_{plane}({args}) {{\n    {body}\n}}\n"
+
+
+def _sampler(plane: str, fmt_name: str, array: bool) -> str:
+    prefix = "u" if fmt_name in _INTEGER_FORMATS else ""
+    kind = "sampler2DArray" if array else "sampler2D"
+    return f"uniform {prefix}{kind} u_{plane};\n"
+
+
+def _rotation_decoder(fmt_name: str) -> str:
+    mode = rotation_mode(fmt_name)
+    if mode == "full":
+        body = "vec4 q = t * 2.0 - 1.0;"
+    elif mode == "xyz":
+        body = "vec3 v = t.xyz * 2.0 - 1.0;\n    vec4 q = vec4(sqrt(max(0.0, 1.0 - dot(v, v))), v);"
+    else:
+        levels = get_format(fmt_name).levels[3]
+        body = (f"int largest = clamp(int(round(t.w * {_f(levels)})), 0, 3);\n"
+                f"    vec3 small = (t.xyz * 2.0 - 1.0) / {_f(math.sqrt(2.0))};\n"
+                "    float big = sqrt(max(0.0, 1.0 - dot(small, small)));\n"
+                "    vec4 q;\n    int k = 0;\n"
+                "    for (int c = 0; c < 4; ++c) {\n"
+                "        if (c == largest) q[c] = big; else { q[c] = small[k]; ++k; }\n"
+                "    }")
+    return ("// Unit quaternion (w, x, y, z) in (.x, .y, .z, .w), w >= 0 (codec.decode_rotations).\n"
+            f"vec4 decode_rotation(ivec2 p) {{\n    vec4 t = t_rotation(p);\n    {body}\n"
+            "    float len = length(q);\n    q = len > 0.0 ? q / len : q;\n    return q.x < 0.0 ? -q : q;\n}\n")
+
+
+def _sh_code(sh_degree: int) -> str:
+    lines = [f"const float SH_C0 = {_f(sh.SH_C0)};", f"const float SH_C1 = {_f(sh.SH_C1)};",
+             "const float SH_C2[5] = float[5](" + ", ".join(_f(c) for c in sh.SH_C2) + ");",
+             "const float SH_C3[7] = float[7](" + ", ".join(_f(c) for c in sh.SH_C3) + ");", ""]
+    lines.append("// Sum over the resident bands of basis(dir) * coefficient (no +0.5, no clamp): splatstream.sh.")
+    lines.append("vec3 eval_sh(uint id, ivec2 p, vec3 dir, int degree, vec3 dc) {")
+    lines.append("    float x = dir.x, y = dir.y, z = dir.z;")
+    const, poly = sh.SH_BASIS[0]
+    lines.append(f"    vec3 c = ({const}) * ({poly}) * dc;")
+    k = 1
+    for band in range(1, sh_degree + 1):
+        lines.append(f"    if (degree >= {band}) {{")
+        for layer in range(SH_BAND_LAYERS[band]):
+            const, poly = sh.SH_BASIS[k]
+            lines.append(f"        c += ({const}) * ({poly}) * decode_sh{band}(id, p, {layer});")
+            k += 1
+        lines.append("    }")
+    lines.append("    return c;")
+    lines.append("}")
+    return "\n".join(lines) + "\n"
+
+
+def decode_header(formats: dict[str, str], sh_degree: int) -> str:
+    """Samplers, texel decoders and attribute decoders of a pool with these formats and resident SH bands."""
+    w = RANGE_WORDS
+    parts = [f"// ---- generated by client_gl/shadergen.py ----\n#define SH_DEGREE {sh_degree}\n"
+             f"#define DEBUG_STRIDE {DEBUG_STRIDE}u\n"]
+    for plane in ("position", "rotation", "scale", "color"):
+        parts.append(_sampler(plane, formats[plane], False))
+    for band in range(1, sh_degree + 1):
+        parts.append(_sampler(f"sh{band}", formats["sh"], True))
+    parts.append("uniform usampler2D u_ranges;\nuniform uint u_cols;  // chunk blocks per atlas row\n\n")
+    parts.append("""// Texel of global splat index id = slot * 256 + j: slot's 16x16 block, j at the 2D Morton decode.
+ivec2 splat_texel(uint id) {
+    uint slot = id >> 8;
+    uint j = id & 255u;
+    uint mx = (j & 1u) | ((j >> 1) & 2u) | ((j >> 2) & 4u) | ((j >> 3) & 8u);
+    uint my = ((j >> 1) & 1u) | ((j >> 2) & 2u) | ((j >> 3) & 4u) | ((j >> 4) & 8u);
+    return ivec2(int((slot % u_cols) * 16u + mx), int((slot / u_cols) * 16u + my));
+}
+
+uint range_word(uint slot, uint w) {
+    return texelFetch(u_ranges, ivec2(int((slot % u_cols) * 16u + (w >> 2)), int(slot / u_cols)), 0)[w & 3u];
+}
+float range_f32(uint slot, uint w) { return uintBitsToFloat(range_word(slot, w)); }
+#if __VERSION__ >= 420
+float half_bits_to_float(uint h) { return unpackHalf2x16(h).x; }
+#else
+float half_bits_to_float(uint h) {  // finite halves only (ranges are validated finite)
+    uint e = (h >> 10) & 31u;
+    float m = float(h & 1023u);
+    float v = e == 0u ? m * exp2(-24.0) : (1.0 + m / 1024.0) * exp2(float(e) - 15.0);
+    return (h & 0x8000u) != 0u ? -v : v;
+}
+#endif
+float range_f16(uint slot, uint w0, uint k) {
+    return half_bits_to_float((range_word(slot, w0 + (k >> 1)) >> ((k & 1u) * 16u)) & 0xFFFFu);
+}
+""")
+    parts.append(f"uint range_count(uint slot) {{ return range_word(slot, {w['count']}u); }}\n\n")
+    for plane in ("position", "rotation", "scale", "color"):
+        parts.append(_t_fetch(plane, formats[plane], False))
+    for band in range(1, sh_degree + 1):
+        parts.append(_t_fetch(f"sh{band}", formats["sh"], True))
+    parts.append(f"""
+vec3 decode_position(uint id, ivec2 p) {{
+    uint s = id >> 8;
+    uint w = {w['position']}u;
+    vec3 lo = vec3(range_f32(s, w), range_f32(s, w + 1u), range_f32(s, w + 2u));
+    vec3 hi = vec3(range_f32(s, w + 3u), range_f32(s, w + 4u), range_f32(s, w + 5u));
+    return lo + t_position(p).xyz * (hi - lo);
+}}
+
+vec3 decode_log_scale(uint id, ivec2 p) {{
+    uint s = id >> 8;
+    vec3 lo = vec3(range_f16(s, {w['scale']}u, 0u), range_f16(s, {w['scale']}u, 1u), range_f16(s, {w['scale']}u, 2u));
+    vec3 hi = vec3(range_f16(s, {w['scale']}u, 3u), range_f16(s, {w['scale']}u, 4u), range_f16(s, {w['scale']}u, 5u));
+    return lo + t_scale(p).xyz * (hi - lo);
+}}
+
+// SH0 (rgb) and opacity after the sigmoid (a).
+vec4 decode_color(uint id, ivec2 p) {{
+    uint s = id >> 8;
+    vec4 lo = vec4(range_f16(s, {w['color']}u, 0u), range_f16(s, {w['color']}u, 1u), range_f16(s, {w['color']}u, 2u),
+                   range_f16(s, {w['color']}u, 3u));
+    vec4 hi = vec4(range_f16(s, {w['color']}u, 4u), range_f16(s, {w['color']}u, 5u), range_f16(s, {w['color']}u, 6u),
+                   range_f16(s, {w['color']}u, 7u));
+    return lo + t_color(p) * (hi - lo);
+}}
+""")
+    parts.append(_rotation_decoder(formats["rotation"]))
+    for band in range(1, sh_degree + 1):
+        layers = SH_BAND_LAYERS[band]
+        w0 = w[f"sh{band}"]
+        parts.append(f"""
+// Coefficient `layer` of SH band {band} (rgb); ranges are [min/max][layer][component] halves.
+vec3 decode_sh{band}(uint id, ivec2 p, int layer) {{
+    uint s = id >> 8;
+    uint k = uint(layer) * 3u;
+    vec3 lo = vec3(range_f16(s, {w0}u, k), range_f16(s, {w0}u, k + 1u), range_f16(s, {w0}u, k + 2u));
+    vec3 hi = vec3(range_f16(s, {w0}u, {layers * 3}u + k), range_f16(s, {w0}u, {layers * 3 + 1}u + k),
+                   range_f16(s, {w0}u, {layers * 3 + 2}u + k));
+    return lo + t_sh{band}(p, layer).xyz * (hi - lo);
+}}
+""")
+    parts.append(_sh_code(sh_degree))
+    parts.append("// ---- end of generated code ----\n")
+    return "".join(parts)
+
+
+def sort_defines() -> str:
+    return (f"#define RADIX {1 << RADIX_BITS}u\n#define ITEMS {SORT_ITEMS}u\n#define TILE {SORT_TILE}u\n"
+            f"#define SCAN_ITEMS {SCAN_ITEMS}\n#define SCAN_TILE {SCAN_TILE}u\n")
+
+
+def compute_source(name: str, header: str = "", version: int = 430) -> str:
+    """A compute shader: version line, sort defines, optional decode header + common code, then the file."""
+    body = _expand_includes(read_shader(name))
+    common = header + _expand_includes(read_shader("common.glsl")) if header else ""
+    return f"#version {version}\n{sort_defines()}{common}\n{body}\n"
+
+
+def render_sources(header: str, version: int = 430) -> tuple[str, str]:
+    """(vertex, fragment) sources of the splat draw. GL 4.1 is enough for these two (the CPU-sort path)."""
+    vert = (f"#version {version}\n{header}{_expand_includes(read_shader('common.glsl'))}\n"
+            f"{read_shader('splat.vert')}\n")
+    frag = f"#version {version}\n{read_shader('splat.frag')}\n"
+    return vert, frag

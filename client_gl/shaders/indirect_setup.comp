@@ -1,0 +1,16 @@
+// Turns the visible count into dispatch sizes for the radix sort and the instanced draw's arguments,
+// so the CPU never reads the count back.
+layout(local_size_x = 1) in;
+
+layout(std430, binding = 0) buffer Params { uint count; uint pad[3]; };
+layout(std430, binding = 3) writeonly buffer Dispatch { uint dispatch[8]; };   // (sort groups, 1, 1), (scan groups, 1, 1)
+layout(std430, binding = 4) writeonly buffer Draw { uint draw[4]; };          // count, instances, first, base instance
+
+void main() {
+    uint n = count;
+    uint groups = (n + TILE - 1u) / TILE;
+    uint table = groups * RADIX;
+    dispatch[0] = groups; dispatch[1] = 1u; dispatch[2] = 1u;
+    dispatch[4] = (table + SCAN_TILE - 1u) / SCAN_TILE; dispatch[5] = 1u; dispatch[6] = 1u;
+    draw[0] = 4u; draw[1] = n; draw[2] = 0u; draw[3] = 0u;
+}
