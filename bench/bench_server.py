@@ -6,7 +6,7 @@ snippet in format_spec/http.md) on 127.0.0.1, checks both answer the same bytes 
 requests/s with p50/p99 latency for small files at 64 connections, MB/s for large payloads, server RSS before and
 after. Both servers are stopped at the end. Needs `wrk` and `nginx` (Debian: apt-get install -y wrk nginx).
 
-    .venv/bin/python bench/bench_server.py [--workers 2] [--duration 8] [--json out.json]
+    .venv/bin/python bench/bench_server.py [--workers 2] [--duration 5] [--rounds 3] [--json out.json]
 """
 from __future__ import annotations
 
@@ -19,6 +19,7 @@ import re
 import shutil
 import signal
 import socket
+import statistics
 import subprocess
 import sys
 import tempfile
@@ -200,7 +201,8 @@ def conformance(ours: int, nginx: int, small: list[str], large: list[str]) -> li
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--workers", type=int, default=2, help="worker processes for both servers (default 2)")
-    ap.add_argument("--duration", type=int, default=8, help="seconds per wrk run (default 8)")
+    ap.add_argument("--duration", type=int, default=5, help="seconds per wrk run (default 5)")
+    ap.add_argument("--rounds", type=int, default=3, help="interleaved rounds; medians are reported (default 3)")
     ap.add_argument("--connections", type=int, default=64, help="wrk connections for small files (default 64)")
     ap.add_argument("--large-connections", type=int, default=8, help="wrk connections for large files (default 8)")
     ap.add_argument("--no-access-log", action="store_true", help="run both servers without access logs")
@@ -247,26 +249,46 @@ def main() -> int:
         for p in problems:
             print(f"conformance: {p}", file=sys.stderr)
 
-        results: dict = {"workers": args.workers, "duration_s": args.duration, "connections": args.connections,
-                         "large_connections": args.large_connections, "access_log": not args.no_access_log,
-                         "cpus": os.cpu_count(), "conformance_problems": problems}
+        results: dict = {"workers": args.workers, "duration_s": args.duration, "rounds": args.rounds,
+                         "connections": args.connections, "large_connections": args.large_connections,
+                         "access_log": not args.no_access_log, "cpus": os.cpu_count(),
+                         "loadavg_before": os.getloadavg(), "conformance_problems": problems}
         servers = {"ours": (p_ours, ours.pid), "nginx": (p_nginx, nginx.pid)}
-        for name, (_, pid) in servers.items():
+        runs: dict = {name: {"small": [], "large": []} for name in servers}
+        for name, (port, pid) in servers.items():
+            for p in small + large:
+                fetch(port, p)  # warm the page cache and the servers
             results[name] = {"rss_kib_before": tree_rss_kib(pid)}
-        # Alternate the servers per test so that drift in the shared machine's load hits both alike.
-        for test, paths, conns in (("small", small, args.connections), ("large", large, args.large_connections)):
-            for name, (port, _) in servers.items():
-                for p in paths[:1]:
-                    fetch(port, p)  # warm the page cache
-                results[name][test] = wrk(port, paths, conns, args.duration, work)
-                results[name][test]["rss_kib_after"] = tree_rss_kib(servers[name][1])
-                print(f"{name:6s} {test:6s} {json.dumps(results[name][test])}", file=sys.stderr, flush=True)
+        # Interleaved rounds (ours, nginx, ours, ...) so that drift in the shared machine's load hits both alike;
+        # the summary is the median round.
+        for rnd in range(args.rounds):
+            for test, paths, conns in (("small", small, args.connections), ("large", large, args.large_connections)):
+                for name, (port, pid) in servers.items():
+                    r = wrk(port, paths, conns, args.duration, work)
+                    r["rss_kib_after"] = tree_rss_kib(pid)
+                    runs[name][test].append(r)
+                    print(f"round {rnd + 1} {name:6s} {test:6s} {json.dumps(r)}", file=sys.stderr, flush=True)
         for name, (_, pid) in servers.items():
+            for test in ("small", "large"):
+                results[name][test] = {k: statistics.median(r[k] for r in runs[name][test])
+                                       for k in ("rps", "MiB_s", "p50_ms", "p99_ms")}
+                results[name][test]["non_2xx"] = sum(r["non_2xx"] for r in runs[name][test])
+                results[name][test]["runs"] = runs[name][test]
             results[name]["rss_kib_after"] = tree_rss_kib(pid)
+        results["loadavg_after"] = os.getloadavg()
         results["ratio"] = {
             "small_rps": results["ours"]["small"]["rps"] / results["nginx"]["small"]["rps"],
             "large_MiB_s": results["ours"]["large"]["MiB_s"] / results["nginx"]["large"]["MiB_s"],
+            "large_MiB_s_per_round": [a["MiB_s"] / b["MiB_s"]
+                                      for a, b in zip(runs["ours"]["large"], runs["nginx"]["large"], strict=True)],
         }
+        summary = {name: {t: {k: results[name][t][k] for k in ("rps", "MiB_s", "p50_ms", "p99_ms")}
+                          for t in ("small", "large")} | {"rss_kib": [results[name]["rss_kib_before"],
+                                                                      results[name]["rss_kib_after"]]}
+                   for name in servers}
+        print(json.dumps({"summary": summary, "ratio": results["ratio"],
+                          "loadavg": [results["loadavg_before"], results["loadavg_after"]]}, indent=1),
+              file=sys.stderr)
         print(json.dumps(results, indent=2))
         if args.json:
             Path(args.json).write_text(json.dumps(results, indent=2) + "\n")
