@@ -21,7 +21,7 @@ from .codec import BASE_PLANES, band_plane, encode_plane, groups_for_degree, pla
 from .container import write_group
 from .errors import UsageError
 from .gaussians import Gaussians
-from .layout import CHUNK_SIZE, MAX_BLOCK_ROWS, MAX_BLOCKS_PER_ROW, morton_order, texture_size
+from .layout import CHUNK_SIZE, MAX_BLOCK_ROWS, MAX_BLOCKS_PER_ROW, morton_order, order_within_chunks, texture_size
 from .manifest import DATA_DIR, FORMAT_NAME, FORMAT_VERSION, MANIFEST_NAME, pack_manifest, payload_name
 from .texformats import FORMATS, get_format
 
@@ -52,6 +52,29 @@ class EncodeOptions:
     reduction: float = 4.0
     name: str | None = None
     up: tuple[float, float, float] | None = None
+    chunk_order: str = "auto"  # "morton", "luminance", or "auto" (luminance when only colour/SH are BC-compressed)
+
+
+CHUNK_ORDERS = ("auto", "morton", "luminance")
+
+
+def resolve_chunk_order(chunk_order: str, formats: dict[str, str]) -> str:
+    """In-chunk order: luminance groups similar colours into the same 4x4 BC block (on fruit_drops, BC7 colour
+    went from 34.1 to 41.1 dB PSNR), but BC-compressed positions need spatially coherent blocks instead."""
+    if chunk_order not in CHUNK_ORDERS:
+        raise UsageError(f"unknown chunk order {chunk_order!r} (expected one of {', '.join(CHUNK_ORDERS)})")
+    if chunk_order != "auto":
+        return chunk_order
+    bc = {a for a, f in formats.items() if get_format(f).block > 1}
+    return "luminance" if bc & {"color", "sh"} and not bc & {"position", "rotation", "scale"} else "morton"
+
+
+def splat_order(g: Gaussians, chunk_order: str) -> np.ndarray:
+    """Order of a tile's splats: 3D Morton, then optionally re-sorted inside each chunk."""
+    order = morton_order(g.positions)
+    if chunk_order == "luminance":
+        order = order_within_chunks(order, g.base_colors @ np.array([0.299, 0.587, 0.114], np.float32))
+    return order
 
 
 def resolve_formats(preset: str, overrides: dict[str, str]) -> dict[str, str]:
@@ -130,6 +153,7 @@ def encode_gaussians(g: Gaussians, out_dir: str | os.PathLike, opts: EncodeOptio
     opts = opts or EncodeOptions()
     progress = progress or (lambda stage, fraction: None)
     formats = resolve_formats(opts.preset, opts.overrides)
+    chunk_order = resolve_chunk_order(opts.chunk_order, formats)
     if len(g) == 0:
         raise UsageError("the input holds no splats; nothing to encode")
     sh_degree = g.sh_degree if opts.sh_degree is None else min(opts.sh_degree, g.sh_degree)
@@ -154,7 +178,7 @@ def encode_gaussians(g: Gaussians, out_dir: str | os.PathLike, opts: EncodeOptio
         written: set[str] = set()
 
         def order_tile(tile):
-            return tile, morton_order(tile.gaussians.positions)
+            return tile, splat_order(tile.gaussians, chunk_order)
 
         group_names = groups_for_degree(sh_degree)
 
@@ -227,6 +251,7 @@ def encode_gaussians(g: Gaussians, out_dir: str | os.PathLike, opts: EncodeOptio
             "preset": opts.preset,
             "formats": formats,
             "chunk_size": CHUNK_SIZE,
+            "chunk_order": chunk_order,
             "bounds": {"min": [float(v) for v in lo], "max": [float(v) for v in hi]},
             "extent_bounds": root["box"],
             "up": [float(v) for v in up],

@@ -129,3 +129,13 @@ def chunk_texel_index(chunks: int, width: int) -> np.ndarray:
     """Flat texel index (y * width + x) of every splat slot 0..chunks*256-1, in splat order."""
     x, y = texel_coords(chunks * CHUNK_SIZE, width)
     return y.astype(np.int64) * width + x
+
+
+def order_within_chunks(order: np.ndarray, key: np.ndarray) -> np.ndarray:
+    """Re-sort each chunk of 256 consecutive entries of `order` by `key` (indexed like the splats).
+
+    Chunk membership is unchanged (chunks stay spatially compact); only the order inside a chunk changes, so
+    the 16 consecutive splats of each 4x4 BC block are similar in `key`.
+    """
+    chunk = np.arange(len(order)) // CHUNK_SIZE
+    return order[np.lexsort((key[order], chunk))]

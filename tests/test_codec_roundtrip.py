@@ -7,7 +7,7 @@ from conftest import REAL_PLYS, real
 from splatstream.codec import band_plane, decode_plane, group_planes, groups_for_degree, plane_values, rotation_mode
 from splatstream.container import unpack_group
 from splatstream.decoder import decode_group, decode_scene, read_payload
-from splatstream.encoder import PRESETS, EncodeOptions, encode_gaussians
+from splatstream.encoder import PRESETS, EncodeOptions, encode_gaussians, resolve_chunk_order, splat_order
 from splatstream.layout import CHUNK_SIZE, morton_order
 from splatstream.manifest import load_manifest
 from splatstream.ply import read_gaussians_ply
@@ -30,6 +30,7 @@ def test_every_attribute_round_trips_within_one_step(scene, preset, tmp_path):
     if any(get_format(f).block > 1 for f in PRESETS[preset].values()):
         pytest.importorskip("etcpak")
     m = encode_gaussians(g, tmp_path / "s", EncodeOptions(preset=preset, lod=False))
+    g = g.subset(splat_order(g, m["chunk_order"]))  # the order the encoder stored
     tile = m["tiles"][0]
     n = len(g)
     assert tile["splats"] == n and m["splats"] == n
@@ -93,3 +94,16 @@ def test_decode_scene_matches_input_order_and_values(tmp_path):
     assert np.allclose(d.positions, ordered.positions, atol=1e-6)
     assert np.allclose(d.opacities, ordered.opacities, atol=1e-6)
     assert d.sh_degree == 0
+
+
+def test_luminance_chunk_order_keeps_chunk_membership():
+    g = read_gaussians_ply(real("fruit_drops_sh3.ply"))
+    morton = splat_order(g, "morton")
+    lum = splat_order(g, "luminance")
+    assert resolve_chunk_order("auto", PRESETS["low"]) == "luminance"
+    assert resolve_chunk_order("auto", PRESETS["very-low"]) == "morton"
+    assert resolve_chunk_order("auto", PRESETS["medium"]) == "morton"
+    for c in range(0, len(g), CHUNK_SIZE):
+        assert set(morton[c:c + CHUNK_SIZE].tolist()) == set(lum[c:c + CHUNK_SIZE].tolist())
+        y = g.base_colors[lum[c:c + CHUNK_SIZE]] @ np.array([0.299, 0.587, 0.114], np.float32)
+        assert np.all(np.diff(y) >= 0)

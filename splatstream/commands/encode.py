@@ -41,6 +41,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="each LOD level keeps about 1/REDUCTION of the splats of the level below (default 4)")
     p.add_argument("--zstd-level", type=int, default=3,
                    help="zstd level of the payloads (1..22, default 3: on shuffled texels higher levels gain <1%%)")
+    p.add_argument("--chunk-order", default="auto", choices=["auto", "morton", "luminance"],
+                   help="order of splats inside each chunk: luminance groups similar colours into the same BC block; "
+                        "auto (default) uses it when colour or SH, but not position/rotation/scale, are BC-compressed")
     p.add_argument("--name", help="scene name recorded in the manifest (default: input file name)")
     p.add_argument("--up", help="up vector of the scene, e.g. 0,0,1 (default) or 0,-1,0 for COLMAP captures")
     p.add_argument("--drop-invalid", action="store_true",
@@ -62,7 +65,7 @@ def run(args: argparse.Namespace) -> int:
     m = encode_file(args.input, args.output_dir, preset=args.preset, drop_invalid=args.drop_invalid,
                     progress=progress, overrides=overrides, sh_degree=args.sh_degree, zstd_level=args.zstd_level,
                     lod=not args.no_lod, max_leaf_splats=args.max_leaf_splats, reduction=args.reduction,
-                    name=args.name, up=up)
+                    name=args.name, up=up, chunk_order=args.chunk_order)
     if not args.quiet:
         print(f"wrote {args.output_dir}: {m['splats']} splats, SH degree {m['sh_degree']}, preset {m['preset']}, "
               f"{len(m['tiles'])} tiles, {m['bytes_on_disk'] / 1e6:.2f} MB on disk "
