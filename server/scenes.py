@@ -67,7 +67,9 @@ def _real_path_of_fd(fd: int, fallback: str) -> str:
 
 class SceneRoot:
     def __init__(self, root: str | os.PathLike):
-        self.root = os.path.realpath(os.fspath(root))
+        # Kept as given (made absolute), resolved per request: a root that is a symbolic link switched to a new
+        # release directory ("current" -> "release-42") is followed at the next request.
+        self.root = os.path.abspath(os.fspath(root))
         self._manifest_hashes: _LRU = _LRU()  # (dev, ino, mtime_ns, size) -> sha256 hex
         self._summaries: _LRU = _LRU()  # (path, dev, ino, mtime_ns, size) -> summary dict or None
         self._have_proc_fd = os.path.isdir(_PROC_FD)
@@ -75,6 +77,7 @@ class SceneRoot:
     # -- serving files -----------------------------------------------------------------------------------------
     def open(self, sp: ScenePath) -> OpenedFile:
         """Open a validated scene file; NotFound unless it is a regular file of a scene, inside the root."""
+        real_root = os.path.realpath(self.root)
         scene_dir = os.path.join(self.root, *sp.scene_id.split("/"))
         if sp.kind == "payload" and not os.path.isfile(os.path.join(scene_dir, MANIFEST_NAME)):
             raise NotFound(f"no scene {sp.scene_id!r}")
@@ -90,7 +93,7 @@ class SceneRoot:
             if not stat.S_ISREG(st.st_mode):
                 raise NotFound(f"{sp.rel!r} in scene {sp.scene_id!r} is not a file")
             real = _real_path_of_fd(fd, path) if self._have_proc_fd else os.path.realpath(path)
-            if not is_inside(real, self.root):
+            if not is_inside(real, real_root) and not is_inside(real, os.path.realpath(self.root)):
                 log.warning("refused %s/%s: resolves outside the root (%s)", sp.scene_id, sp.rel, real)
                 raise NotFound(f"no file {sp.rel!r} in scene {sp.scene_id!r}")
             size = st.st_size
@@ -125,6 +128,7 @@ class SceneRoot:
         only where they stay inside the root, and does not look inside a scene (a scene's data/ is no scene).
         """
         found: list[tuple[str, str]] = []
+        real_root = os.path.realpath(self.root)
         stack: list[tuple[str, tuple[str, ...]]] = [(self.root, ())]
         visited = 0
         while stack:
@@ -143,7 +147,7 @@ class SceneRoot:
                 try:
                     if not e.is_dir():
                         continue
-                    if e.is_symlink() and not is_inside(os.path.realpath(e.path), self.root):
+                    if e.is_symlink() and not is_inside(os.path.realpath(e.path), real_root):
                         continue
                 except OSError:
                     continue

@@ -518,6 +518,23 @@ def test_scene_swapped_while_served(tmp_path):
         s.stop()
 
 
+def test_root_symlink_switched(tmp_path):
+    """Deploying by switching a 'current' link to a new release directory takes effect at the next request."""
+    write_fake_scene(tmp_path / "r1" / "s", [10], seed=1)
+    write_fake_scene(tmp_path / "r2" / "s", [20], seed=2)
+    (tmp_path / "current").symlink_to(tmp_path / "r1")
+    s = ServerThread(tmp_path / "current")
+    try:
+        assert request(s.port, "/scenes/s/manifest.msgpack")[2] == (tmp_path / "r1" / "s" / MANIFEST_NAME).read_bytes()
+        (tmp_path / "next").symlink_to(tmp_path / "r2")
+        os.replace(tmp_path / "next", tmp_path / "current")
+        assert request(s.port, "/scenes/s/manifest.msgpack")[2] == (tmp_path / "r2" / "s" / MANIFEST_NAME).read_bytes()
+        name = next((tmp_path / "r2" / "s" / "data").iterdir()).name
+        assert request(s.port, f"/scenes/s/data/{name}")[0] == 200
+    finally:
+        s.stop()
+
+
 @pytest.mark.skipif(not REAL_PLY.exists(), reason="real scene not available")
 def test_real_encoded_scene(tmp_path):
     from splatstream.encoder import encode_file
