@@ -1,0 +1,102 @@
+"""Shader texel decoding (client_gl.shadergen) against the numpy decoders (splatstream.texformats / codec)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import real
+
+from splatstream.codec import decode_plane
+from splatstream.io import read_gaussians
+from splatstream.layout import chunk_texel_index
+from splatstream.texformats import FORMATS, TEXEL_DTYPES, decode_image, unpack_texels
+
+pytest.importorskip("moderngl")
+
+N = 700  # 3 chunks, the last one partial
+
+
+@pytest.fixture(scope="module")
+def ctx():
+    from client_gl.headless import GLUnavailableError, create_context
+
+    try:
+        c = create_context()
+    except GLUnavailableError as exc:
+        pytest.skip(f"no OpenGL context: {exc}")
+    if c.version_code < 430:
+        pytest.skip("the decode test hook is a compute shader (GL 4.3)")
+    yield c
+    c.release()
+
+
+@pytest.fixture(scope="module")
+def gaussians():
+    g = read_gaussians(real("fruit_drops_sh3.ply"))
+    return g.subset(np.arange(N))
+
+
+def _numpy_t(plane, n: int) -> np.ndarray:
+    """Normalised texel values (n, 4) of layer 0 as texformats decodes them, in splat order."""
+    from client_gl.pool import layer_blob
+
+    blob = layer_blob(plane, 0)
+    src = chunk_texel_index(-(-n // 256), plane.width)[:n]
+    if FORMATS[plane.format].block == 1:
+        return unpack_texels(plane.format, np.frombuffer(blob, TEXEL_DTYPES[plane.format])[src])
+    return decode_image(plane.format, blob, plane.width, plane.height).reshape(-1, 4)[src]
+
+
+@pytest.mark.parametrize("fmt", list(FORMATS))
+def test_shader_decode_equals_numpy(ctx, gaussians, fmt):
+    from client_gl.pool import ChunkPool
+    from client_gl.renderer import SplatRenderer
+    from client_gl.scene import tiles_from_gaussians
+
+    if FORMATS[fmt].block > 1:
+        pytest.importorskip("etcpak")
+        pytest.importorskip("texture2ddecoder")
+    color = fmt if FORMATS[fmt].components == 4 else "f16x4"
+    overrides = {"position": fmt, "rotation": fmt, "scale": fmt, "color": color, "sh": fmt}
+    scene = tiles_from_gaussians(gaussians, "very-high", overrides=overrides)
+    tile = scene.tiles[0]
+    pool = ChunkPool(ctx, scene.formats, scene.sh_degree, 2048)  # 8 slots
+    pool.join(5, tile)  # slots 0..2
+    pool.leave(5)
+    pool.join(6, tile)  # same slots again, written twice
+    renderer = SplatRenderer(ctx, pool, "cpu")
+    out = renderer.decode_debug(np.arange(N, dtype=np.uint32))
+    renderer.release()
+    pool.release()
+
+    planes = tile.planes
+    ref = {name: decode_plane(p, N)[:, :, :] for name, p in planes.items()}
+    block = FORMATS[fmt].block > 1
+    # Raw normalised texels: the numpy decode to 1 ulp (BC: hardware and numpy BC decoders may differ by one step).
+    for k, (name, f) in enumerate((("position", fmt), ("rotation", fmt), ("scale", fmt), ("color", color))):
+        t_gpu = out[:, 59 + 4 * k: 63 + 4 * k]
+        t_np = _numpy_t(planes[name], N)
+        comps = FORMATS[f].components
+        if FORMATS[f].block > 1:
+            assert np.abs(t_gpu[:, :comps] - t_np[:, :comps]).max() <= 1.0 / 255 + 1e-6, name
+        else:  # GL's unorm conversion (c / (2^b - 1)) need not round exactly as numpy's float64 division: 1 ulp
+            np.testing.assert_array_max_ulp(t_gpu[:, :comps], t_np[:, :comps].astype(np.float32), maxulp=1)
+    # Decoded attribute values: the numpy arithmetic up to float rounding (plus one BC step of the range).
+    def extent(name: str) -> float:  # largest per-chunk range: one BC step of t moves a value by extent / 255
+        r = planes[name].ranges.astype(np.float32)
+        return float((r[:, 1] - r[:, 0]).max())
+
+    def close(gpu, cpu, what, scale=1.0):
+        tol = 2e-6 * max(1.0, float(np.abs(cpu).max())) + (scale / 255 if block else 0.0)
+        assert np.abs(gpu - cpu).max() <= tol, (what, np.abs(gpu - cpu).max(), tol)
+
+    close(out[:, 0:3], ref["position"][:, 0], "position", extent("position"))
+    q_gpu, q_np = out[:, 3:7], ref["rotation"][:, 0]
+    dots = np.abs(np.sum(q_gpu * q_np, axis=1))
+    assert dots.min() >= 1 - (2e-2 if block else 1e-6), "rotation"
+    if not block:
+        np.testing.assert_allclose(q_gpu, q_np, atol=2e-6)
+    close(out[:, 7:10], ref["scale"][:, 0], "scale", extent("scale"))
+    close(out[:, 10:14], ref["color"][:, 0], "color", extent("color"))
+    rest = out[:, 14:59].reshape(N, 15, 3)
+    np_rest = np.concatenate([ref[f"sh{b}"] for b in (1, 2, 3)], axis=1)
+    close(rest, np_rest, "sh", max(extent(f"sh{b}") for b in (1, 2, 3)))
