@@ -1,0 +1,145 @@
+"""`splatstream render SCENE --out IMAGE.png`: headless GPU render (EGL) of an encoded scene or a splat file."""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+import time
+
+import numpy as np
+
+from ..camera import DEFAULT_FOV_Y_DEG, REFERENCE_NEAR, Camera, suggested_camera
+from ..errors import UsageError
+
+DEFAULT_SIZE = (1280, 720)
+
+
+def _vector(text: str | None, what: str) -> tuple[float, float, float] | None:
+    if text is None:
+        return None
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise UsageError(f"{what}: expected three comma-separated numbers like 0,0,1, got {text!r}")
+    return values  # type: ignore[return-value]
+
+
+def _size(text: str) -> tuple[int, int]:
+    parts = text.lower().split("x")
+    try:
+        w, h = (int(p) for p in parts)
+    except ValueError:
+        raise UsageError(f"--size: expected WIDTHxHEIGHT like 1280x720, got {text!r}") from None
+    if not (0 < w <= 16384 and 0 < h <= 16384):
+        raise UsageError(f"--size: {w}x{h} is out of range (1..16384 per side)")
+    return w, h
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "render", help="render a scene to an image on the GPU (headless, EGL)",
+        description="Render an encoded scene directory (its splats stay in their texel formats on the GPU) or a "
+                    "splat file (encoded in memory at --preset) with the GL renderer. Camera defaults come from "
+                    "the manifest's suggested camera, or for files from the scene's robust bounds.",
+    )
+    p.add_argument("scene", help="scene directory (manifest.msgpack) or splat file (.ply, ...)")
+    p.add_argument("--out", "-o", required=True, help="output image (.png)")
+    p.add_argument("--eye", help="camera position X,Y,Z")
+    p.add_argument("--target", help="point looked at X,Y,Z")
+    p.add_argument("--up", help="up vector X,Y,Z (default: the scene's, or 0,0,1)")
+    p.add_argument("--fov-y", type=float, help=f"vertical field of view in degrees (default {DEFAULT_FOV_Y_DEG:g})")
+    p.add_argument("--size", default=f"{DEFAULT_SIZE[0]}x{DEFAULT_SIZE[1]}", help="image size WxH (default 1280x720)")
+    p.add_argument("--sh-degree", type=int, choices=[0, 1, 2, 3], help="SH bands to evaluate (default: all)")
+    p.add_argument("--background", default="0,0,0", help="background colour R,G,B in [0, 1] (default black)")
+    p.add_argument("--sort", default="auto", choices=["auto", "cpu", "gpu"],
+                   help="depth sort: gpu (compute-shader radix sort), cpu (numpy on a worker thread), or auto "
+                        "(gpu unless compute shaders are missing or the GL is a software renderer)")
+    p.add_argument("--preset", default="very-high",
+                   help="texel formats for a splat file encoded in memory (default very-high: f32 planes)")
+    p.add_argument("--quiet", "-q", action="store_true", help="print nothing on success")
+    p.set_defaults(func=run)
+
+
+def _camera(args, scene_camera: dict | None, positions: np.ndarray | None, scene_up, size) -> Camera:
+    width, height = size
+    up = _vector(args.up, "--up") or (tuple(scene_up) if scene_up is not None else (0.0, 0.0, 1.0))
+    if scene_camera is not None:
+        default = Camera(scene_camera["eye"], scene_camera["target"], scene_camera.get("up", up),
+                         scene_camera.get("fov_y", scene_camera.get("fov_y_deg", DEFAULT_FOV_Y_DEG)), width, height)
+    else:
+        default = suggested_camera(positions, up=up, width=width, height=height)
+    eye = _vector(args.eye, "--eye") or default.eye
+    target = _vector(args.target, "--target") or default.target
+    if args.up is None and scene_camera is not None:
+        up = default.up
+    fov = args.fov_y if args.fov_y is not None else default.fov_y_deg
+    dist = float(np.linalg.norm(np.subtract(eye, target)))
+    near = min(REFERENCE_NEAR, 0.01 * dist) if dist > 0 else REFERENCE_NEAR
+    try:
+        return Camera(eye, target, up, fov, width, height, near, max(1000.0, 100.0 * dist))
+    except ValueError as exc:
+        raise UsageError(f"bad camera: {exc}") from None
+
+
+def run(args: argparse.Namespace) -> int:
+    from client_gl.headless import HeadlessRenderer
+
+    from ..encoder import PRESETS
+    from ..manifest import is_scene_dir, load_manifest
+
+    size = _size(args.size)
+    background = _vector(args.background, "--background")
+    if args.preset not in PRESETS:
+        raise UsageError(f"unknown preset {args.preset!r} (choose one of {', '.join(PRESETS)})")
+    ext = os.path.splitext(args.out)[1].lower()
+    if ext not in (".png", ""):
+        raise UsageError(f"--out: only .png images are written, got {args.out!r}")
+    t0 = time.perf_counter()
+    if os.path.isdir(args.scene):
+        if not is_scene_dir(args.scene):
+            raise UsageError(f"{args.scene}: a directory without manifest.msgpack is not a scene")
+        manifest = load_manifest(args.scene)
+        cam = _camera(args, manifest.get("camera"), None, manifest.get("up"), size)
+        source = ("scene", args.scene)
+        splats = manifest["splats"]
+    else:
+        from ..io import read_gaussians
+
+        g = read_gaussians(args.scene)
+        if len(g) == 0:
+            raise UsageError(f"{args.scene}: no splats to render")
+        cam = _camera(args, None, g.positions, None, size)
+        source = ("gaussians", g)
+        splats = len(g)
+    renderer = HeadlessRenderer(sort=args.sort)
+    try:
+        if source[0] == "scene":
+            renderer.load_scene(source[1], args.sh_degree)
+        else:
+            renderer.load_gaussians(source[1], args.preset, args.sh_degree)
+        t1 = time.perf_counter()
+        img = renderer.render(cam, args.sh_degree, background)
+        t2 = time.perf_counter()
+        gl_name = renderer.ctx.info.get("GL_RENDERER", "?")
+        sort = renderer.sort_mode
+        per_splat = renderer.pool.bytes_per_splat
+    finally:
+        renderer.close()
+    _write_png(args.out, img)
+    if not args.quiet:
+        print(f"wrote {args.out}: {cam.width}x{cam.height}, {splats} splats, sort {sort}, {gl_name}, "
+              f"{per_splat:.1f} GPU B/splat, load {t1 - t0:.2f}s, render {(t2 - t1) * 1e3:.0f} ms", file=sys.stderr)
+    return 0
+
+
+def _write_png(path: str, img: np.ndarray) -> None:
+    from PIL import Image
+
+    from ..atomic import atomic_file
+
+    rgb8 = (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    with atomic_file(path) as f:
+        Image.fromarray(rgb8, "RGB").save(f, format="PNG")

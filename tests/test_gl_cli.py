@@ -1,0 +1,68 @@
+"""`splatstream render` end to end (a separate process, as a user runs it)."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import real, run_cli
+
+pytest.importorskip("moderngl")
+
+
+@pytest.fixture(scope="module")
+def gl_ok():
+    from client_gl.headless import GLUnavailableError, create_context
+
+    try:
+        create_context().release()
+    except GLUnavailableError as exc:
+        pytest.skip(f"no OpenGL context: {exc}")
+
+
+def _png(path) -> np.ndarray:
+    from PIL import Image
+
+    return np.asarray(Image.open(path).convert("RGB")).astype(np.float32) / 255.0
+
+
+def test_render_encoded_scene_both_sorts(gl_ok, tmp_path):
+    scene = tmp_path / "fruit"
+    r = run_cli("encode", real("fruit_drops_sh3.ply"), scene, "--preset", "medium", "--no-lod", "-q")
+    assert r.returncode == 0, r.stderr
+    images = {}
+    for sort in ("cpu", "gpu"):
+        out = tmp_path / f"{sort}.png"
+        r = run_cli("render", scene, "--size", "96x64", "--sort", sort, "--out", out)
+        assert r.returncode == 0, r.stderr
+        assert f"sort {sort}" in r.stderr
+        images[sort] = _png(out)
+        assert images[sort].shape == (64, 96, 3) and images[sort].mean() > 0.02
+    assert np.abs(images["cpu"] - images["gpu"]).max() <= 2 / 255
+
+
+def test_render_ply_with_camera(gl_ok, tmp_path):
+    out = tmp_path / "a.png"
+    r = run_cli("render", real("fruit_drops_sh3.ply"), "--eye", "1,1,1", "--target", "0,0,0", "--up", "0,1,0",
+                "--fov-y", "60", "--size", "64x48", "--sh-degree", "1", "--background", "0,0,1", "--out", out)
+    assert r.returncode == 0, r.stderr
+    img = _png(out)
+    assert img.shape == (48, 64, 3)
+
+
+@pytest.mark.parametrize("args, message", [
+    (["--size", "12"], "--size"),
+    (["--eye", "1,2"], "--eye"),
+    (["--background", "red"], "--background"),
+    (["--eye", "0,0,0", "--target", "0,0,0"], "camera"),
+])
+def test_bad_arguments(gl_ok, tmp_path, args, message):
+    out = tmp_path / "x.png"
+    r = run_cli("render", real("fruit_drops_sh3.ply"), *args, "--out", out)
+    assert r.returncode == 2
+    assert message in r.stderr
+    assert not out.exists()
+
+
+def test_missing_input(tmp_path):
+    r = run_cli("render", tmp_path / "nope.ply", "--out", tmp_path / "x.png")
+    assert r.returncode == 2
+    assert "no such file" in r.stderr
