@@ -221,10 +221,10 @@ def encode_gaussians(g: Gaussians, out_dir: str | os.PathLike, opts: EncodeOptio
                     group_entries[group] = entry
                     attrs = [p.attribute for p in BASE_PLANES] if group == "base" else ["sh"]
                     # Per-attribute sizes: GPU exactly per section; disk shared out by raw size.
-                    for sec in entry["sections"]:
+                    for sec in entry["sections"] if not tile.children else ():
                         attr = "sh" if sec["name"].startswith("sh") else sec["name"].split(".")[0]
                         if attr in attrs:
-                            attr_gpu[attr] += sec["size"] if not tile.children else 0
+                            attr_gpu[attr] += sec["size"]
                             attr_disk[attr] += entry["bytes"] * sec["size"] / max(1, entry["raw_bytes"])
                     if not tile.children:
                         leaf_gpu += entry["gpu_bytes"]
