@@ -24,7 +24,7 @@ from .errors import InputError, UsageError
 from .gaussians import Gaussians
 from .metrics import psnr_from_mse, ssim
 
-Renderer = Callable[[Gaussians, Camera], np.ndarray]
+Renderer = Callable[[Gaussians | str, Camera], np.ndarray]
 
 LOSSLESS_FORMAT = "f32x4"
 PRESET_ORDER = ("very-high", "high", "medium", "low", "very-low")
@@ -56,37 +56,40 @@ def seed_bytes_per_splat(preset: str, sh_degree: int) -> float:
 
 # --- renderers --------------------------------------------------------------------------------------------------
 
-def _gl_renderer() -> tuple[Renderer, str] | None:
-    """The GL client's headless renderer, if it is installed and can open a context."""
-    candidates = (("client_gl.headless", "render_gaussians"), ("client_gl.render", "render_gaussians"),
-                  ("client_gl", "render_gaussians"))
-    import importlib
+def _gl_renderer() -> tuple[Callable, str] | None:
+    """The GL client's headless renderer (client_gl.headless.render_image), if it can open a context here."""
+    try:
+        from client_gl import headless
+    except Exception:  # noqa: BLE001 - a missing or broken optional renderer means: use the reference one
+        return None
+    fn = getattr(headless, "render_image", None)
+    if not callable(fn):
+        return None
+    try:
+        headless.get_renderer()  # opens the shared context now, so a machine without GL falls back cleanly
+    except Exception:  # noqa: BLE001
+        return None
+    return fn, "client_gl.headless.render_image"
 
-    for module_name, attr in candidates:
-        try:
-            module = importlib.import_module(module_name)
-        except Exception:  # noqa: BLE001 - a missing or broken optional renderer means: use the reference one
-            continue
-        fn = getattr(module, attr, None)
-        if callable(fn):
-            return fn, f"{module_name}.{attr}"
-    return None
 
+def get_renderer(kind: str = "auto") -> tuple[Renderer, str, str]:
+    """('auto' | 'gl' | 'ref') -> (render(source, camera) -> (H, W, 3) float32, description, 'gl' or 'ref').
 
-def get_renderer(kind: str = "auto") -> tuple[Renderer, str]:
-    """('auto' | 'gl' | 'ref') -> (render(g, camera) -> (H, W, 3) float array, description)."""
+    `source` is Gaussians or, for the GL renderer only, an encoded scene directory (rendered from its textures as
+    the client does; the reference renderer gets the decoded Gaussians instead).
+    """
     if kind not in ("auto", "gl", "ref"):
         raise UsageError(f"unknown renderer {kind!r} (choose auto, gl or ref)")
     if kind in ("auto", "gl"):
         found = _gl_renderer()
         if found is not None:
             fn, name = found
-            return (lambda g, cam: np.asarray(fn(g, cam), dtype=np.float32)), f"gl ({name})"
+            return (lambda src, cam: np.asarray(fn(src, cam), dtype=np.float32)), f"gl ({name})", "gl"
         if kind == "gl":
-            raise UsageError("the GL renderer (client_gl render_gaussians) is not available here; use --renderer ref")
+            raise UsageError("the GL renderer (client_gl.headless) cannot render here; use --renderer ref")
     from .render_ref import render
 
-    return (lambda g, cam: render(g, cam)), "numpy reference (splatstream.render_ref)"
+    return (lambda src, cam: render(src, cam)), "numpy reference (splatstream.render_ref)", "ref"
 
 
 # --- evaluation ---------------------------------------------------------------------------------------------------
@@ -179,7 +182,7 @@ def parse_compare(spec: str) -> tuple[str, str, str]:
     return label or name, spec, size_path or spec
 
 
-def _quality(renderer: Renderer, g: Gaussians, cameras: list[Camera],
+def _quality(renderer: Renderer, g: Gaussians | str, cameras: list[Camera],
              references: list[np.ndarray]) -> tuple[list[float], list[float], list[np.ndarray]]:
     ps, ss, imgs = [], [], []
     for cam, ref in zip(cameras, references, strict=True):
@@ -215,7 +218,7 @@ def evaluate(input_path: str, opts: EvalOptions | None = None,
     log(f"read {input_path}: {len(g)} splats, SH degree {g.sh_degree} ({time.perf_counter() - t:.1f} s)")
     if len(g) == 0:
         raise InputError(input_path, None, "the scene holds no splats")
-    renderer, renderer_name = get_renderer(opts.renderer)
+    renderer, renderer_name, renderer_kind = get_renderer(opts.renderer)
     cameras = scene_orbit_views(g.positions, opts.views, opts.width, opts.height, up=opts.up,
                                 elevation_deg=opts.elevation_deg)
     t = time.perf_counter()
@@ -240,8 +243,9 @@ def evaluate(input_path: str, opts: EvalOptions | None = None,
             t0 = time.perf_counter()
             m = encode_gaussians(g, out, eo, source_name=input_path)
             enc_s = time.perf_counter() - t0
-            dec = decode_scene(out)
-            ps, ss, _ = _quality(renderer, dec, cameras, references)
+            # GL draws the encoded textures themselves (what the client shows); the reference renders the decode
+            source = out if renderer_kind == "gl" else decode_scene(out)
+            ps, ss, _ = _quality(renderer, source, cameras, references)
             disk = int(m["bytes_on_disk"])
             leaf = int(m.get("leaf_bytes_on_disk", disk))
             disk_counted = disk if opts.lod else leaf
@@ -289,6 +293,10 @@ def evaluate(input_path: str, opts: EvalOptions | None = None,
         "input": {"path": input_path, "bytes": input_size, "splats": len(g), "sh_degree": g.sh_degree,
                   "bytes_per_splat": input_size / len(g)},
         "renderer": renderer_name,
+        "renderer_note": ("GL: originals and --compare inputs are uploaded as very-high (f32x4) textures, encoded "
+                          "scenes are drawn from their own textures" if renderer_kind == "gl" else
+                          "numpy reference of the 3DGS forward pass (format_spec/camera.md); encoded scenes decoded "
+                          "with splatstream.decoder"),
         "render_seconds_per_view": round(render_s, 4),
         "reference_coverage": round(coverage, 4),
         "size": [opts.width, opts.height],

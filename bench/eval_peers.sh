@@ -1,0 +1,35 @@
+#!/usr/bin/env bash
+# Produce peer encodings of a scene with PlayCanvas splat-transform (npm @playcanvas/splat-transform), and
+# decode each back to a standard PLY with the same tool, so `splatstream eval --compare` can read them:
+#
+#   bench/eval_peers.sh INPUT.ply OUT_DIR
+#
+# Writes OUT_DIR/<stem>.compressed.ply, .spz, .sog (the encodings whose sizes count) and OUT_DIR/<stem>.<fmt>.dec.ply
+# (decoded by splat-transform), and prints the matching `--compare LABEL=DECODED@ENCODED` arguments on stdout
+# (one per line). The tool is installed under $PEERS_PREFIX (default /tmp/peers) on first use; node >= 18.
+# SOG is encoded on the CPU (-g cpu: no WebGPU here), with the tool's default 10 SH k-means iterations.
+set -euo pipefail
+in=${1:?usage: eval_peers.sh INPUT.ply OUT_DIR}
+out=${2:?usage: eval_peers.sh INPUT.ply OUT_DIR}
+prefix=${PEERS_PREFIX:-/tmp/peers}
+version=${SPLAT_TRANSFORM_VERSION:-2.7.1}
+st="$prefix/node_modules/.bin/splat-transform"
+if [ ! -x "$st" ]; then
+  mkdir -p "$prefix"
+  (cd "$prefix" && npm install --silent "@playcanvas/splat-transform@$version" >&2)
+fi
+mkdir -p "$out"
+stem=$(basename "$in" .ply)
+echo "splat-transform $version on $in" >&2
+for fmt in compressed.ply spz sog; do
+  enc="$out/$stem.$fmt"
+  dec="$out/$stem.$fmt.dec.ply"
+  extra=()
+  [ "$fmt" = sog ] && extra=(-g cpu)
+  start=$(date +%s.%N)
+  "$st" -q -w "${extra[@]}" "$in" "$enc" >&2
+  end=$(date +%s.%N)
+  "$st" -q -w "$enc" "$dec" >&2
+  printf 'encoded %s: %d bytes in %.2f s\n' "$fmt" "$(stat -c %s "$enc")" "$(echo "$end - $start" | bc)" >&2
+  echo "st-$fmt=$dec@$enc"
+done

@@ -1,0 +1,46 @@
+#!/usr/bin/env bash
+# Rate-distortion numbers of the presets (and of PlayCanvas splat-transform as a peer) on the benchmark scenes.
+#
+#   bench/run_eval.sh [OUT_DIR]        (default bench/out; env: VIEWS=8 SIZE=512x512 RENDERER=ref PEERS=1
+#                                       ATTRIBUTION=low,medium SCENES="fruit donut s1m")
+#
+# Scenes: /work/shared/data/real/fruit_drops_sh3.ply, donut_sh0_no_normals.ply and a 1M-splat make_scene.py scene
+# (python3 /work/shared/tools/make_scene.py --splats 1000000 --seed 0 --out $OUT/s1m.ply). Per scene it writes
+# <scene>.md (the table), <scene>.json (everything, cameras included) and <scene>.png (rate vs PSNR).
+# Peers need node + npm (bench/eval_peers.sh); PEERS=0 skips them. The numpy reference renderer is the default so
+# the numbers are the exact 3DGS forward pass; RENDERER=auto uses the GL client when it is available.
+set -euo pipefail
+here=$(cd "$(dirname "$0")/.." && pwd)
+out=${1:-$here/bench/out}
+py=${PYTHON:-$here/.venv/bin/python}
+views=${VIEWS:-8}
+size=${SIZE:-512x512}
+renderer=${RENDERER:-ref}
+attribution=${ATTRIBUTION:-low,medium}
+shared=${SPLATSTREAM_SHARED:-/work/shared}
+mkdir -p "$out"
+
+scene_path() {
+  case "$1" in
+    fruit) echo "$shared/data/real/fruit_drops_sh3.ply" ;;
+    donut) echo "$shared/data/real/donut_sh0_no_normals.ply" ;;
+    s1m)
+      if [ ! -f "$out/s1m.ply" ]; then
+        python3 "$shared/tools/make_scene.py" --splats 1000000 --seed 0 --out "$out/s1m.ply" >&2
+      fi
+      echo "$out/s1m.ply" ;;
+    *) echo "unknown scene $1" >&2; exit 2 ;;
+  esac
+}
+
+for scene in ${SCENES:-fruit donut s1m}; do
+  input=$(scene_path "$scene")
+  compare=()
+  if [ "${PEERS:-1}" = 1 ] && command -v npm >/dev/null; then
+    mapfile -t compare < <("$here/bench/eval_peers.sh" "$input" "$out/peers/$scene")
+  fi
+  echo "== $scene: $input" >&2
+  (cd "$here" && "$py" -m splatstream.cli eval "$input" --views "$views" --size "$size" --renderer "$renderer" \
+      --attribution "$attribution" --json "$out/$scene.json" --plot "$out/$scene.png" --markdown "$out/$scene.md" \
+      ${compare[@]:+--compare "${compare[@]}"})
+done
