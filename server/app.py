@@ -253,9 +253,12 @@ class AccessLog(AbstractAccessLogger):
         if second != AccessLog._stamp_second:
             AccessLog._stamp_second = second
             AccessLog._stamp = time.strftime("%d/%b/%Y:%H:%M:%S +0000", time.gmtime(second))
-        line = (f'{request.remote or "-"} - - [{AccessLog._stamp}] '
-                f'"{request.method} {request.path_qs[:512]} HTTP/{request.version.major}.{request.version.minor}" '
-                f"{response.status} {size} {duration:.6f}\n")
+        target = request.raw_path[:512]  # as the client sent it, like nginx's $request
+        if '"' in target:
+            target = target.replace('"', "%22")
+        version = request.version
+        line = (f'{request.remote or "-"} - - [{AccessLog._stamp}] "{request.method} {target} HTTP/{version.major}.'
+                f'{version.minor}" {response.status} {size} {duration:.6f}\n')
         AccessLog._lines.append(line)
         AccessLog._size += len(line)
         if AccessLog._size >= self.FLUSH_BYTES or now - AccessLog._last_flush >= self.FLUSH_SECONDS:

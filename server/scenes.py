@@ -70,14 +70,20 @@ class SceneRoot:
         # Kept as given (made absolute), resolved per request: a root that is a symbolic link switched to a new
         # release directory ("current" -> "release-42") is followed at the next request.
         self.root = os.path.abspath(os.fspath(root))
+        self._real_root = os.path.realpath(self.root)  # re-resolved whenever a containment check fails
         self._manifest_hashes: _LRU = _LRU()  # (dev, ino, mtime_ns, size) -> sha256 hex
         self._summaries: _LRU = _LRU()  # (path, dev, ino, mtime_ns, size) -> summary dict or None
         self._have_proc_fd = os.path.isdir(_PROC_FD)
 
+    def _resolve_root(self) -> str:
+        """The root's real path now. A file opened through a root link that was switched since the last
+        resolution lies outside the cached real root: the check then resolves again before refusing."""
+        self._real_root = os.path.realpath(self.root)
+        return self._real_root
+
     # -- serving files -----------------------------------------------------------------------------------------
     def open(self, sp: ScenePath) -> OpenedFile:
         """Open a validated scene file; NotFound unless it is a regular file of a scene, inside the root."""
-        real_root = os.path.realpath(self.root)
         scene_dir = os.path.join(self.root, *sp.scene_id.split("/"))
         if sp.kind == "payload" and not os.path.isfile(os.path.join(scene_dir, MANIFEST_NAME)):
             raise NotFound(f"no scene {sp.scene_id!r}")
@@ -93,7 +99,7 @@ class SceneRoot:
             if not stat.S_ISREG(st.st_mode):
                 raise NotFound(f"{sp.rel!r} in scene {sp.scene_id!r} is not a file")
             real = _real_path_of_fd(fd, path) if self._have_proc_fd else os.path.realpath(path)
-            if not is_inside(real, real_root) and not is_inside(real, os.path.realpath(self.root)):
+            if not is_inside(real, self._real_root) and not is_inside(real, self._resolve_root()):
                 log.warning("refused %s/%s: resolves outside the root (%s)", sp.scene_id, sp.rel, real)
                 raise NotFound(f"no file {sp.rel!r} in scene {sp.scene_id!r}")
             size = st.st_size
@@ -128,7 +134,7 @@ class SceneRoot:
         only where they stay inside the root, and does not look inside a scene (a scene's data/ is no scene).
         """
         found: list[tuple[str, str]] = []
-        real_root = os.path.realpath(self.root)
+        real_root = self._resolve_root()
         stack: list[tuple[str, tuple[str, ...]]] = [(self.root, ())]
         visited = 0
         while stack:
