@@ -69,7 +69,7 @@ class SceneRoot:
     def __init__(self, root: str | os.PathLike):
         # Kept as given (made absolute), resolved per request: a root that is a symbolic link switched to a new
         # release directory ("current" -> "release-42") is followed at the next request.
-        self.root = os.path.abspath(os.fspath(root))
+        self.root = os.path.abspath(os.fspath(root)).rstrip("/") or "/"
         self._real_root = os.path.realpath(self.root)  # re-resolved whenever a containment check fails
         self._manifest_hashes: _LRU = _LRU()  # (dev, ino, mtime_ns, size) -> sha256 hex
         self._summaries: _LRU = _LRU()  # (path, dev, ino, mtime_ns, size) -> summary dict or None
@@ -84,10 +84,14 @@ class SceneRoot:
     # -- serving files -----------------------------------------------------------------------------------------
     def open(self, sp: ScenePath) -> OpenedFile:
         """Open a validated scene file; NotFound unless it is a regular file of a scene, inside the root."""
-        scene_dir = os.path.join(self.root, *sp.scene_id.split("/"))
-        if sp.kind == "payload" and not os.path.isfile(os.path.join(scene_dir, MANIFEST_NAME)):
-            raise NotFound(f"no scene {sp.scene_id!r}")
-        path = os.path.join(scene_dir, *sp.rel.split("/"))
+        scene_dir = f"{self.root}/{sp.scene_id}"  # ids and rel use "/" (POSIX only, like the rest of serve)
+        if sp.kind == "payload":
+            try:
+                if not stat.S_ISREG(os.stat(f"{scene_dir}/{MANIFEST_NAME}").st_mode):
+                    raise NotFound(f"no scene {sp.scene_id!r}")
+            except OSError:
+                raise NotFound(f"no scene {sp.scene_id!r}") from None
+        path = f"{scene_dir}/{sp.rel}"
         try:
             # O_NONBLOCK: opening a FIFO planted in the tree must not hang the server.
             fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC | os.O_NONBLOCK)
