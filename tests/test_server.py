@@ -215,6 +215,18 @@ def test_payload(srv, root, size):
     assert_error(status, headers, body, 412)
 
 
+def test_query_string_ignored(srv, root):
+    status, _, body = request(srv.port, "/scenes/a/manifest.msgpack?v=3&x=%2F..")
+    assert status == 200 and body == (root / "a" / MANIFEST_NAME).read_bytes()
+
+
+def test_manifest_range(srv, root):
+    raw = (root / "a" / MANIFEST_NAME).read_bytes()
+    status, headers, body = request(srv.port, "/scenes/a/manifest.msgpack", headers={"Range": "bytes=-16"})
+    n = len(raw)
+    assert status == 206 and body == raw[-16:] and headers["Content-Range"] == f"bytes {n - 16}-{n - 1}/{n}"
+
+
 def test_alias_inside_root(srv, root):
     status, _, body = request(srv.port, "/scenes/alias/manifest.msgpack")
     assert status == 200 and body == (root / "a" / MANIFEST_NAME).read_bytes()
