@@ -50,10 +50,11 @@ def create_context(require: int = 430):
 class HeadlessRenderer:
     """One GL context; load Gaussians or an encoded scene, then render any number of cameras."""
 
-    def __init__(self, sort: str = "auto", ctx=None, color_dtype: str = "f4"):
+    def __init__(self, sort: str = "auto", ctx=None, color_dtype: str = "f4", draw: str = "instanced"):
         self.ctx = ctx or create_context()
         self.sort = sort
         self.color_dtype = color_dtype
+        self.draw = draw
         self.pool: ChunkPool | None = None
         self.renderer: SplatRenderer | None = None
         self.scene: SceneTiles | None = None
@@ -67,7 +68,7 @@ class HeadlessRenderer:
         self.pool = ChunkPool(self.ctx, scene.formats, scene.sh_degree, cap)
         for tile_id, tile in scene.tiles.items():
             self.pool.join(tile_id, tile)
-        self.renderer = SplatRenderer(self.ctx, self.pool, self.sort, self.color_dtype)
+        self.renderer = SplatRenderer(self.ctx, self.pool, self.sort, self.color_dtype, self.draw)
         self.scene = scene
 
     def load_gaussians(self, g: Gaussians, preset: str = DEFAULT_PRESET, sh_degree: int | None = None) -> None:

@@ -32,6 +32,8 @@ from .sort import CpuSorter, GpuRadixSort, depth_order
 SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swiftshader", "software rasterizer")
 MAX_GROUPS_PER_DISPATCH = 65535
 SORT_MODES = ("auto", "cpu", "gpu")
+DRAW_MODES = ("instanced", "triangles")
+RECORD_BYTES = 48  # per visible splat, written by cull.comp
 
 
 def has_compute(ctx) -> bool:
@@ -105,7 +107,7 @@ def camera_uniforms(cam: Camera) -> dict:
 class SplatRenderer:
     """Draws the splats resident in a ChunkPool from a camera into an offscreen framebuffer."""
 
-    def __init__(self, ctx, pool: ChunkPool, sort: str = "auto", color_dtype: str = "f4"):
+    def __init__(self, ctx, pool: ChunkPool, sort: str = "auto", color_dtype: str = "f4", draw: str = "instanced"):
         self.ctx = ctx
         self.pool = pool
         self.sort_mode = choose_sort(ctx, sort)
@@ -122,6 +124,9 @@ class SplatRenderer:
         self._index_buffer = None
         self._vao_cpu = None
         self._ids_cache = None
+        if draw not in DRAW_MODES:
+            raise UsageError(f"unknown draw mode {draw!r} (choose one of {', '.join(DRAW_MODES)})")
+        self.draw_mode = draw
         if self.sort_mode == "gpu":
             self.cull = ctx.compute_shader(shadergen.compute_source("cull.comp", self.header))
             self._bind_samplers(self.cull)
@@ -129,7 +134,10 @@ class SplatRenderer:
             self.params = ctx.buffer(reserve=16)
             self.keys = ctx.buffer(reserve=self.capacity * 4)
             self.values = ctx.buffer(reserve=self.capacity * 4)
-            self.vao_gpu = ctx.vertex_array(self.program, [(self.values, "1u /i", "a_id")])
+            self.records = ctx.buffer(reserve=self.capacity * RECORD_BYTES)
+            vert, frag = shadergen.projected_render_sources(triangles=draw == "triangles")
+            self.program_gpu = ctx.program(vertex_shader=vert, fragment_shader=frag)
+            self.vao_gpu = ctx.vertex_array(self.program_gpu, [])
         else:
             self._cpu_sorter = CpuSorter()
             if pool.mirror is None:
@@ -145,7 +153,7 @@ class SplatRenderer:
     def work_bytes(self) -> int:
         """GPU bytes of per-frame work buffers (keys, values, sort scratch), beside the pool's splat data."""
         if self.sort_mode == "gpu":
-            return self.keys.size + self.values.size + self.params.size + self.sorter.gpu_bytes
+            return self.keys.size + self.values.size + self.records.size + self.params.size + self.sorter.gpu_bytes
         return self._index_buffer.size if self._index_buffer is not None else 0
 
     # --- framebuffer ---------------------------------------------------------------------------------------
@@ -200,17 +208,18 @@ class SplatRenderer:
     def _render_gpu(self, cam: Camera, uniforms: dict, timing: bool) -> FrameStats:
         ctx = self.ctx
         stats = FrameStats("gpu")
-        queries = [ctx.query(time=True) for _ in range(3)] if timing else None
+        queries = self._queries(3) if timing else None
         slots = self.pool.used_slots
         self.params.write(struct.pack("4I", 0, 0, 0, 0))
         for name, value in uniforms.items():
             _set(self.cull, name, value)
-            _set(self.program, name, value)
+        _set(self.program_gpu, "u_size", uniforms["u_size"])
         _set(self.cull, "u_slots", slots)
         self.pool.bind()
         self.params.bind_to_storage_buffer(0)
         self.keys.bind_to_storage_buffer(1)
         self.values.bind_to_storage_buffer(2)
+        self.records.bind_to_storage_buffer(3)
 
         def cull():
             for base in range(0, slots, MAX_GROUPS_PER_DISPATCH):
@@ -224,8 +233,12 @@ class SplatRenderer:
 
         def draw():
             self._draw_state()
-            self.pool.bind()
-            self.vao_gpu.render_indirect(self.sorter.draw, mode=moderngl.TRIANGLE_STRIP, count=1)
+            self.records.bind_to_storage_buffer(0)
+            self.values.bind_to_storage_buffer(1)
+            if self.draw_mode == "triangles":
+                self.vao_gpu.render_indirect(self.sorter.draw_tri, mode=moderngl.TRIANGLES, count=1)
+            else:
+                self.vao_gpu.render_indirect(self.sorter.draw, mode=moderngl.TRIANGLE_STRIP, count=1)
 
         for i, step in enumerate((cull, sort, draw)):
             if timing:
@@ -235,9 +248,13 @@ class SplatRenderer:
                 step()
         if timing:
             stats.cull_ms, stats.sort_ms, stats.draw_ms = (q.elapsed / 1e6 for q in queries)
-            for q in queries:
-                q.release()
         return stats
+
+    def _queries(self, n: int) -> list:
+        """Reusable GL_TIME_ELAPSED queries (moderngl queries cannot be released one by one)."""
+        if not hasattr(self, "_query_pool"):
+            self._query_pool = [self.ctx.query(time=True) for _ in range(3)]
+        return self._query_pool[:n]
 
     def read_visible_count(self) -> int:
         """The GPU path's visible-splat count of the last frame (a readback: for tests and benchmarks only)."""
@@ -298,12 +315,11 @@ class SplatRenderer:
                 _set(self.program, name, value)
             self._draw_state()
             self.pool.bind()
-            q = ctx.query(time=True) if timing else None
-            if q is not None:
+            if timing:
+                q = self._queries(1)[0]
                 with q:
                     self._vao_cpu.render(mode=moderngl.TRIANGLE_STRIP, vertices=4, instances=n)
                 stats.draw_ms = q.elapsed / 1e6
-                q.release()
             else:
                 self._vao_cpu.render(mode=moderngl.TRIANGLE_STRIP, vertices=4, instances=n)
         stats.cpu_ms = {"cull_sort": (t1 - t0) * 1e3, "upload_draw": (time.perf_counter() - t1) * 1e3}
@@ -335,7 +351,8 @@ class SplatRenderer:
             self._cpu_sorter.close()
         buffers = [self._index_buffer]
         if self.sort_mode == "gpu":
-            buffers += [self.params, self.keys, self.values]
+            buffers += [self.params, self.keys, self.values, self.records]
+            self.sorter.release()
         for b in buffers:
             if b is not None:
                 b.release()

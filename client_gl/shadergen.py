@@ -213,6 +213,13 @@ def compute_source(name: str, header: str = "", version: int = 430) -> str:
     return f"#version {version}\n{sort_defines()}{common}\n{body}\n"
 
 
+def projected_render_sources(triangles: bool = False) -> tuple[str, str]:
+    """(vertex, fragment) sources of the GPU path's draw, which reads the cull pass's projected records."""
+    define = "#define DRAW_TRIANGLES\n" if triangles else ""
+    vert = f"#version 430\n{define}{_expand_includes(read_shader('splat_pre.vert'))}\n"
+    return vert, f"#version 430\n{read_shader('splat.frag')}\n"
+
+
 def render_sources(header: str, version: int = 430) -> tuple[str, str]:
     """(vertex, fragment) sources of the splat draw. GL 4.1 is enough for these two (the CPU-sort path)."""
     vert = (f"#version {version}\n{header}{_expand_includes(read_shader('common.glsl'))}\n"

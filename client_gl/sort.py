@@ -43,18 +43,25 @@ class GpuRadixSort:
         self.keys_tmp = ctx.buffer(reserve=self.capacity * 4)
         self.values_tmp = ctx.buffer(reserve=self.capacity * 4)
         self.dispatch = ctx.buffer(reserve=32)
-        self.draw = ctx.buffer(reserve=16)
+        self.draw = ctx.buffer(reserve=16)       # instanced: (4, n, 0, 0)
+        self.draw_tri = ctx.buffer(reserve=16)   # non-instanced triangles: (6 n, 1, 0, 0)
         self._params: object | None = None
 
     @property
     def gpu_bytes(self) -> int:
-        return sum(b.size for b in (self.table, self.reduced, self.keys_tmp, self.values_tmp, self.dispatch, self.draw))
+        return sum(b.size for b in (self.table, self.reduced, self.keys_tmp, self.values_tmp, self.dispatch, self.draw,
+                                     self.draw_tri))
+
+    def release(self) -> None:
+        for b in (self.table, self.reduced, self.keys_tmp, self.values_tmp, self.dispatch, self.draw, self.draw_tri):
+            b.release()
 
     def setup(self, params) -> None:
         """Fill the indirect dispatch and draw arguments from params.count (a GPU-side count)."""
         params.bind_to_storage_buffer(0)
         self.dispatch.bind_to_storage_buffer(3)
         self.draw.bind_to_storage_buffer(4)
+        self.draw_tri.bind_to_storage_buffer(5)
         self.setup_shader.run(1)
         self.ctx.memory_barrier()
 

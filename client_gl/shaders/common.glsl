@@ -1,13 +1,17 @@
 // Shared by the cull compute shader, the splat vertex shader and the decode test shader.
 // Generated definitions (texel decoders, range offsets, SH constants) are prepended by client_gl/shadergen.py.
 
+#include "quad.glsl"
+
 uniform mat4 u_view;        // world -> camera in the reference 3DGS convention (x right, y down, z forward)
 uniform vec2 u_focal;       // (fx, fy) in pixels
 uniform vec2 u_principal;   // (cx, cy): image coordinates of the optical axis (pixel centres at +0.5)
 uniform vec2 u_tan_fov;     // (tan(fov_x / 2), tan(fov_y / 2))
-uniform vec2 u_size;        // image (width, height) in pixels
 uniform float u_near;       // splats with view depth <= near are culled (reference: 0.2)
 uniform float u_far;
+uniform vec3 u_eye;         // camera position (SH view directions)
+uniform int u_sh_degree;    // bands evaluated (<= resident bands)
+uniform vec2 u_depth_ab;    // NDC depth = a + b / view depth (OpenGL perspective with near/far)
 
 const float ALPHA_MIN = 1.0 / 255.0;
 
@@ -50,4 +54,19 @@ bool project_splat(vec3 pos, vec4 q, vec3 log_scale, out vec2 center, out vec3 c
 // Half extent (in sigmas) of the ellipse where opacity * exp(-d^2 / 2) falls to 1/255.
 float cutoff_sigmas(float opacity) {
     return sqrt(2.0 * log(max(opacity, ALPHA_MIN) * 255.0));
+}
+
+// Screen-space quad of a projected splat: conic (inverse covariance) for the fragment shader, and the ellipse's
+// semi-axes where alpha reaches 1/255: axis1 (major, a vector) and the minor half-length (along axis1 rotated +90).
+void splat_quad(vec3 cov, float opacity, out vec3 conic, out vec2 axis1, out float minor) {
+    float det = cov.x * cov.z - cov.y * cov.y;
+    conic = vec3(cov.z, -cov.y, cov.x) / det;
+    float mid = 0.5 * (cov.x + cov.z);
+    float disc = sqrt(max(0.0, 0.25 * (cov.x - cov.z) * (cov.x - cov.z) + cov.y * cov.y));
+    float l1 = mid + disc;
+    float l2 = max(mid - disc, 0.0);
+    vec2 e1 = abs(cov.y) > 1e-12 ? normalize(vec2(cov.y, l1 - cov.x)) : (cov.x >= cov.z ? vec2(1.0, 0.0) : vec2(0.0, 1.0));
+    float k = cutoff_sigmas(opacity);
+    axis1 = e1 * (k * sqrt(l1));
+    minor = k * sqrt(l2);
 }

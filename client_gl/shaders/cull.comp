@@ -1,11 +1,14 @@
-// Frustum and opacity culling plus view-depth sort keys for every resident splat; compacts the visible ones.
-// One work group per chunk slot (256 splats). Visible splats get key = ~floatBitsToUint(depth) (ascending key =
-// back to front) and value = global splat index. The count goes to params.count (work-group aggregated atomics).
+// Frustum and opacity culling, projection and colour of every resident splat; compacts the visible ones.
+// One work group per chunk slot (256 splats). Visible splat number i (order of compaction) gets
+// key = ~floatBitsToUint(depth) (ascending key = back to front), value = i and a 48-byte record for the draw:
+// (center.xy, ndc z, opacity), (conic.xyz, minor half-axis), (rgb, packHalf2x16(major half-axis vector)).
+// The count goes to params.count (work-group aggregated atomics).
 layout(local_size_x = 256) in;
 
 layout(std430, binding = 0) buffer Params { uint count; uint pad[3]; };
 layout(std430, binding = 1) writeonly buffer Keys { uint keys[]; };
 layout(std430, binding = 2) writeonly buffer Values { uint values[]; };
+layout(std430, binding = 3) writeonly buffer Records { uvec4 records[]; };
 
 uniform uint u_slots;       // slots to scan (highest used slot + 1)
 uniform uint u_slot_base;   // first slot of this dispatch (dispatches are split to stay under the group limit)
@@ -21,16 +24,20 @@ void main() {
     bool visible = false;
     uint key = 0u;
     uint id = slot * 256u + j;
+    ivec2 p = splat_texel(id);
+    vec3 pos;
+    vec4 col;
+    vec2 center;
+    vec3 cov;
+    float depth;
     if (slot < u_slots && j < range_count(slot)) {
-        ivec2 p = splat_texel(id);
-        float opacity = clamp(decode_color(id, p).a, 0.0, 1.0);
-        if (opacity >= ALPHA_MIN) {
-            vec2 center;
-            vec3 cov;
-            float depth;
-            if (project_splat(decode_position(id, p), decode_rotation(p), decode_log_scale(id, p), center, cov, depth)) {
+        col = decode_color(id, p);
+        col.a = clamp(col.a, 0.0, 1.0);
+        if (col.a >= ALPHA_MIN) {
+            pos = decode_position(id, p);
+            if (project_splat(pos, decode_rotation(p), decode_log_scale(id, p), center, cov, depth)) {
                 // Axis-aligned box of the ellipse where alpha reaches 1/255 (the quad the vertex shader draws).
-                vec2 ext = cutoff_sigmas(opacity) * sqrt(vec2(cov.x, cov.z));
+                vec2 ext = cutoff_sigmas(col.a) * sqrt(vec2(cov.x, cov.z));
                 visible = all(greaterThan(center + ext, vec2(0.0))) && all(lessThan(center - ext, u_size));
                 key = 0xFFFFFFFFu - floatBitsToUint(depth);
             }
@@ -42,7 +49,17 @@ void main() {
     if (j == 0u) s_base = atomicAdd(count, s_local);
     barrier();
     if (visible) {
-        keys[s_base + local] = key;
-        values[s_base + local] = id;
+        uint i = s_base + local;
+        keys[i] = key;
+        values[i] = i;
+        vec3 conic;
+        vec2 axis1;
+        float minor;
+        splat_quad(cov, col.a, conic, axis1, minor);
+        vec3 rgb = max(eval_sh(id, p, normalize(pos - u_eye), u_sh_degree, col.rgb) + 0.5, vec3(0.0));
+        float z = u_depth_ab.x + u_depth_ab.y / depth;
+        records[3u * i] = uvec4(floatBitsToUint(center), floatBitsToUint(z), floatBitsToUint(col.a));
+        records[3u * i + 1u] = uvec4(floatBitsToUint(conic), floatBitsToUint(minor));
+        records[3u * i + 2u] = uvec4(floatBitsToUint(rgb), packHalf2x16(axis1));
     }
 }
