@@ -230,20 +230,31 @@ def _private_render(g: Gaussians, eye, target, up, fov_y_deg: float, size: int, 
     uv = f * t[:, :2] / z[:, None] + size / 2
     colour = np.maximum(0.5 + SH_C0 * g.sh_dc[keep].astype(float), 0)
     opacity = g.opacities[keep].astype(float)
-    ys, xs = np.mgrid[0:size, 0:size] + 0.5
-    pix = np.stack([xs.ravel(), ys.ravel()], 1)
-    img, trans = np.zeros((size * size, 3)), np.ones(size * size)
-    for b in range(0, len(z), 512):
-        sl = np.argsort(z, kind="stable")[b:b + 512]
-        d = pix[:, None, :] - uv[sl][None]
-        power = (-0.5 * (conic[sl, 0] * d[..., 0] ** 2 + conic[sl, 2] * d[..., 1] ** 2)
-                 - conic[sl, 1] * d[..., 0] * d[..., 1])
-        alpha = np.minimum(0.99, opacity[sl] * np.exp(np.minimum(power, 0)))
-        alpha[alpha < 1 / 255] = 0
-        before = np.cumprod(np.concatenate([np.ones((len(pix), 1)), 1 - alpha[:, :-1]], 1), axis=1) * trans[:, None]
-        img += (before * alpha) @ colour[sl]
-        trans = before[:, -1] * (1 - alpha[:, -1])
-    return img.reshape(size, size, 3), 1 - trans.reshape(size, size)
+    radius = 3 * np.sqrt(np.maximum(c2[:, 0, 0], c2[:, 1, 1]))
+    by_depth = np.argsort(z, kind="stable")
+    img, trans = np.zeros((size, size, 3)), np.ones((size, size))
+    block = 16  # composite per 16x16 pixel block, over the splats whose 3-sigma box touches it
+    for y0 in range(0, size, block):
+        for x0 in range(0, size, block):
+            ys, xs = np.mgrid[y0:min(y0 + block, size), x0:min(x0 + block, size)] + 0.5
+            pix = np.stack([xs.ravel(), ys.ravel()], 1)
+            u, v, r = uv[by_depth, 0], uv[by_depth, 1], radius[by_depth]
+            touch = by_depth[(u + r > x0) & (u - r < x0 + block) & (v + r > y0) & (v - r < y0 + block)]
+            col, tr = np.zeros((len(pix), 3)), np.ones(len(pix))
+            for b in range(0, len(touch), 256):
+                sl = touch[b:b + 256]
+                d = pix[:, None, :] - uv[sl][None]
+                power = (-0.5 * (conic[sl, 0] * d[..., 0] ** 2 + conic[sl, 2] * d[..., 1] ** 2)
+                         - conic[sl, 1] * d[..., 0] * d[..., 1])
+                alpha = np.minimum(0.99, opacity[sl] * np.exp(np.minimum(power, 0)))
+                alpha[alpha < 1 / 255] = 0
+                before = np.cumprod(np.concatenate([np.ones((len(pix), 1)), 1 - alpha[:, :-1]], 1), axis=1)
+                before *= tr[:, None]
+                col += (before * alpha) @ colour[sl]
+                tr = before[:, -1] * (1 - alpha[:, -1])
+            img[y0:y0 + block, x0:x0 + block] = col.reshape(ys.shape + (3,))
+            trans[y0:y0 + block, x0:x0 + block] = tr.reshape(ys.shape)
+    return img, 1 - trans
 
 
 def _renderer():
