@@ -117,7 +117,7 @@ def file_response(request: web.Request, opened: OpenedFile, content_type: str, c
     size = opened.size
     if not h.match(request.headers.get("If-Match"), etag):
         opened.close()
-        return error_response(request, 412, "If-Match does not match the current ETag", headers)
+        return error_response(request, 412, "If-Match does not match the current ETag", {"ETag": etag})
     if h.none_match(request.headers.get("If-None-Match"), etag):
         opened.close()
         return web.Response(status=304, headers=headers)
@@ -129,9 +129,8 @@ def file_response(request: web.Request, opened: OpenedFile, content_type: str, c
             rng = h.parse_range(request.headers["Range"], size)
         except h.RangeNotSatisfiable:
             opened.close()
-            headers["Content-Range"] = f"bytes */{size}"
-            del headers["Content-Type"]
-            return error_response(request, 416, f"range not satisfiable: the file has {size} bytes", headers)
+            return error_response(request, 416, f"range not satisfiable: the file has {size} bytes",
+                                  {"ETag": etag, "Accept-Ranges": "bytes", "Content-Range": f"bytes */{size}"})
         if rng is not None:
             status, offset, count = 206, rng.start, rng.length
             headers["Content-Range"] = rng.content_range(size)

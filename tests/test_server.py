@@ -213,6 +213,9 @@ def test_payload(srv, root, size):
     assert status == 304 and body == b"" and headers["Cache-Control"].endswith("immutable")
     status, headers, body = request(srv.port, url, headers={"If-Match": '"different"'})
     assert_error(status, headers, body, 412)
+    assert headers["Cache-Control"] == "no-store"
+    status, _, body = request(srv.port, url, headers={"If-Match": f'"{name[:64]}"'})
+    assert status == 200 and body == data
 
 
 def test_query_string_ignored(srv, root):
@@ -272,6 +275,7 @@ def test_range_not_satisfiable(srv, root, spec):
     status, headers, body = request(srv.port, f"/scenes/a/data/{name}", headers={"Range": spec})
     assert_error(status, headers, body, 416)
     assert headers["Content-Range"] == "bytes */1000"
+    assert headers["Cache-Control"] == "no-store"  # an error is never cached like the immutable payload
 
 
 def test_range_empty_file_and_head(srv, root):
