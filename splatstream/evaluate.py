@@ -370,6 +370,7 @@ def report_markdown(report: dict) -> str:
         ssim_s = f"{r['ssim_mean']:.4f} ({r['ssim_worst']:.4f})"
         lines.append(f"| {r['label']} | " + " | ".join(cells) + f" | {gpu} | {r['disk_bytes_per_splat']:.2f} | "
                      f"{r['compression']:.1f}x | {psnr} | {ssim_s} | {enc} |")
+    lines += attribution_markdown(report)
     lines += ["", f"Seed (published, bike scene, SH3) scaled to SH{inp['sh_degree']}: " + ", ".join(
         f"{p} {v['bytes_per_splat']:.1f} B/splat" + (f" @ {v['psnr']} dB" if v["psnr"] else "")
         for p, v in report["seed"].items()), ""]
@@ -380,6 +381,34 @@ def report_markdown(report: dict) -> str:
             lines.append(f"- {gl['preset']}: {gl['goal']}: disk {'yes' if gl['disk_ok'] else 'NO'}, "
                          f"GPU {'yes' if gl['gpu_ok'] else 'NO'}, PSNR {'yes' if gl['psnr_ok'] else 'NO'}")
     return "\n".join(lines) + "\n"
+
+
+def attribution_markdown(report: dict) -> list[str]:
+    """Per attribute of each attributed preset: its bytes, the PSNR with only it quantised (all else lossless), and
+    the PSNR of the preset with it made lossless."""
+    rows = {r["label"]: r for r in report["rows"]}
+    splats = report["input"]["splats"]
+    out: list[str] = []
+    for preset in dict.fromkeys(r["preset"] for r in report["rows"] if r["kind"] == "attribution"):
+        base = rows.get(preset)
+        out += ["", f"Error attribution for {preset}"
+                + (f" (preset: PSNR {_fmt_psnr(base['psnr_mean'])} dB, {base['disk_bytes_per_splat']:.2f} B/splat "
+                   f"on disk)" if base else "") + ":", "",
+                "| attribute | format | disk B/splat | GPU B/splat | PSNR, only this quantised | "
+                "PSNR, this one lossless |", "|---|---|---|---|---|---|"]
+        attrs = (base or {}).get("attributes", {})
+        for attr in ("position", "rotation", "scale", "color", "sh"):
+            only = rows.get(f"{preset} only {attr}")
+            swap = rows.get(f"{preset} {attr}={LOSSLESS_FORMAT}")
+            if only is None and swap is None:
+                continue
+            a = attrs.get(attr, {})
+            disk = f"{a['disk_bytes'] / splats:.2f}" if "disk_bytes" in a else "-"
+            gpu = f"{a['gpu_bytes'] / splats:.2f}" if "gpu_bytes" in a else "-"
+            fmt = (only or swap)["formats"].get(attr, "-") if only else "-"
+            out.append(f"| {attr} | {fmt} | {disk} | {gpu} | {_fmt_psnr(only['psnr_mean']) if only else '-'} | "
+                       f"{_fmt_psnr(swap['psnr_mean']) if swap else '-'} |")
+    return out
 
 
 def plot_rate_distortion(report: dict, path: str, size: tuple[int, int] = (900, 600)) -> None:

@@ -110,3 +110,19 @@ def test_eval_gl_agrees_with_reference():
     # GL draws the encoded textures, the reference renders the decoded splats: the same scene either way
     assert gl_row["psnr_mean"] == pytest.approx(ref_row["psnr_mean"], abs=1.0)
     assert gl_row["disk_bytes"] == ref_row["disk_bytes"]
+
+
+def test_attribution_rows_and_markdown():
+    from splatstream.evaluate import report_markdown
+
+    rep = evaluate(str(real("fruit_drops_sh3.ply")),
+                   EvalOptions(presets=["low"], attribution=["low"], views=1, width=32, height=32, renderer="ref"))
+    labels = [r["label"] for r in rep["rows"]]
+    assert labels[0] == "low"
+    for attr in ("position", "rotation", "scale", "color", "sh"):
+        assert f"low {attr}=f32x4" in labels and f"low only {attr}" in labels
+    only_color = next(r for r in rep["rows"] if r["label"] == "low only color")
+    assert only_color["formats"]["color"] == "bc7" and only_color["formats"]["position"] == "f32x4"
+    md = report_markdown(rep)
+    assert "Error attribution for low" in md
+    assert "| color | bc7 |" in md
