@@ -415,7 +415,7 @@ def plot_rate_distortion(report: dict, path: str, size: tuple[int, int] = (900, 
     """PSNR (mean over views) against disk bytes per splat (log axis), drawn with Pillow."""
     from PIL import Image, ImageDraw, ImageFont
 
-    rows = report["rows"]
+    rows = [r for r in report["rows"] if r["kind"] != "attribution"]  # those are diagnostics, not rate points
     w, h = size
     img = Image.new("RGB", (w, h), "white")
     d = ImageDraw.Draw(img)
@@ -478,9 +478,6 @@ def plot_rate_distortion(report: dict, path: str, size: tuple[int, int] = (900, 
         series.append(("splatstream presets", presets, (0, 0, 0), True))
     for i, r in enumerate(r for r in rows if r["kind"] == "compare"):
         series.append((r["label"], [r], palette[i % len(palette)], False))
-    attribution = [r for r in rows if r["kind"] == "attribution"]
-    if attribution:
-        series.append(("attribution runs", attribution, (160, 160, 160), False))
     ly = top
     for name, pts, colour, connect in series:
         coords = [(px(r["disk_bytes_per_splat"]), py(r["psnr_mean"] if r["psnr_mean"] is not None else lossless_y))
