@@ -120,7 +120,6 @@ def root(tmp_path_factory) -> Path:
     secret_payload = next((outside / "secret" / "data").iterdir())
     (root / "c" / "data" / secret_payload.name).symlink_to(secret_payload)  # payload leaving the root
     (root / "alias").symlink_to(root / "a")  # a link inside the root is fine
-    os.mkfifo(root / "fifo_scene_manifest")
     (root / "fifo").mkdir()
     os.mkfifo(root / "fifo" / MANIFEST_NAME)
     return root
