@@ -199,7 +199,7 @@ def main() -> int:
     ap.add_argument("--workdir", default="/tmp/splatstream-bench")
     ap.add_argument("--color", nargs="+", default=["f2"], choices=["f1", "f2", "f4"],
                     help="colour buffer types to time (default RGBA16F; the first is the reported one)")
-    ap.add_argument("--draw", nargs="+", default=["instanced"], choices=["instanced", "triangles"],
+    ap.add_argument("--draw", nargs="+", default=["instanced"], choices=["instanced", "triangles", "fetch", "points"],
                     help="GPU-path draw modes to time (the first is the reported one)")
     ap.add_argument("--no-cpu-sort", action="store_true", help="skip the CPU-sort path")
     ap.add_argument("--gsplat", action="store_true", help="also time gsplat (CUDA) on the same scene and camera")

@@ -32,7 +32,7 @@ from .sort import CpuSorter, GpuRadixSort, depth_order
 SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swiftshader", "software rasterizer")
 MAX_GROUPS_PER_DISPATCH = 65535
 SORT_MODES = ("auto", "cpu", "gpu")
-DRAW_MODES = ("instanced", "triangles")
+DRAW_MODES = ("instanced", "triangles", "fetch", "points")
 RECORD_BYTES = 48  # per visible splat, written by cull.comp
 
 
@@ -135,7 +135,7 @@ class SplatRenderer:
             self.keys = ctx.buffer(reserve=self.capacity * 4)
             self.values = ctx.buffer(reserve=self.capacity * 4)
             self.records = ctx.buffer(reserve=self.capacity * RECORD_BYTES)
-            vert, frag = shadergen.projected_render_sources(triangles=draw == "triangles")
+            vert, frag = shadergen.projected_render_sources(draw)
             self.program_gpu = ctx.program(vertex_shader=vert, fragment_shader=frag)
             self.vao_gpu = ctx.vertex_array(self.program_gpu, [])
         else:
@@ -214,6 +214,7 @@ class SplatRenderer:
         for name, value in uniforms.items():
             _set(self.cull, name, value)
         _set(self.program_gpu, "u_size", uniforms["u_size"])
+        _set(self.program_gpu, "u_max_point", float(ctx.info.get("GL_POINT_SIZE_RANGE", (1.0, 64.0))[1]))
         _set(self.cull, "u_slots", slots)
         self.pool.bind()
         self.params.bind_to_storage_buffer(0)
@@ -237,6 +238,9 @@ class SplatRenderer:
             self.values.bind_to_storage_buffer(1)
             if self.draw_mode == "triangles":
                 self.vao_gpu.render_indirect(self.sorter.draw_tri, mode=moderngl.TRIANGLES, count=1)
+            elif self.draw_mode == "points":
+                ctx.enable(moderngl.PROGRAM_POINT_SIZE)
+                self.vao_gpu.render_indirect(self.sorter.draw_points, mode=moderngl.POINTS, count=1)
             else:
                 self.vao_gpu.render_indirect(self.sorter.draw, mode=moderngl.TRIANGLE_STRIP, count=1)
 

@@ -213,11 +213,21 @@ def compute_source(name: str, header: str = "", version: int = 430) -> str:
     return f"#version {version}\n{sort_defines()}{common}\n{body}\n"
 
 
-def projected_render_sources(triangles: bool = False) -> tuple[str, str]:
-    """(vertex, fragment) sources of the GPU path's draw, which reads the cull pass's projected records."""
-    define = "#define DRAW_TRIANGLES\n" if triangles else ""
-    vert = f"#version 430\n{define}{_expand_includes(read_shader('splat_pre.vert'))}\n"
-    return vert, f"#version 430\n{read_shader('splat.frag')}\n"
+def projected_render_sources(mode: str = "instanced") -> tuple[str, str]:
+    """(vertex, fragment) sources of the GPU path's draw, which reads the cull pass's projected records.
+
+    instanced: 4-vertex strips, attributes passed as flat varyings; triangles: non-instanced, 6 vertices a splat;
+    fetch: instanced strips passing only the record index (the fragment shader reads the record);
+    points: point sprites with the record fetch (measurement only: GL drops points centred off screen).
+    """
+    if mode in ("instanced", "triangles"):
+        define = "#define DRAW_TRIANGLES\n" if mode == "triangles" else ""
+        vert = f"#version 430\n{define}{_expand_includes(read_shader('splat_pre.vert'))}\n"
+        return vert, f"#version 430\n{read_shader('splat.frag')}\n"
+    # Instanced quads index order[] by instance; points draw one instance of n vertices (stride 1, instance 0).
+    define = "#define DRAW_POINTS\n#define POINTS_STRIDE 1u\n" if mode == "points" else "#define POINTS_STRIDE 0u\n"
+    vert = f"#version 430\n{define}{_expand_includes(read_shader('splat_fetch.vert'))}\n"
+    return vert, f"#version 430\n{read_shader('splat_fetch.frag')}\n"
 
 
 def render_sources(header: str, version: int = 430) -> tuple[str, str]:

@@ -45,15 +45,17 @@ class GpuRadixSort:
         self.dispatch = ctx.buffer(reserve=32)
         self.draw = ctx.buffer(reserve=16)       # instanced: (4, n, 0, 0)
         self.draw_tri = ctx.buffer(reserve=16)   # non-instanced triangles: (6 n, 1, 0, 0)
+        self.draw_points = ctx.buffer(reserve=16)  # points: (n, 1, 0, 0)
         self._params: object | None = None
 
     @property
     def gpu_bytes(self) -> int:
         return sum(b.size for b in (self.table, self.reduced, self.keys_tmp, self.values_tmp, self.dispatch, self.draw,
-                                     self.draw_tri))
+                                     self.draw_tri, self.draw_points))
 
     def release(self) -> None:
-        for b in (self.table, self.reduced, self.keys_tmp, self.values_tmp, self.dispatch, self.draw, self.draw_tri):
+        for b in (self.table, self.reduced, self.keys_tmp, self.values_tmp, self.dispatch, self.draw, self.draw_tri,
+                  self.draw_points):
             b.release()
 
     def setup(self, params) -> None:
@@ -62,6 +64,7 @@ class GpuRadixSort:
         self.dispatch.bind_to_storage_buffer(3)
         self.draw.bind_to_storage_buffer(4)
         self.draw_tri.bind_to_storage_buffer(5)
+        self.draw_points.bind_to_storage_buffer(6)
         self.setup_shader.run(1)
         self.ctx.memory_barrier()
 

@@ -31,6 +31,7 @@ def renderers():
     if ctx.version_code >= 430:
         out["gpu"] = HeadlessRenderer(sort="gpu", ctx=ctx)  # forced even on llvmpipe
         out["gpu-triangles"] = HeadlessRenderer(sort="gpu", ctx=ctx, draw="triangles")
+        out["gpu-fetch"] = HeadlessRenderer(sort="gpu", ctx=ctx, draw="fetch")
     yield out
     for r in out.values():
         r.unload()
@@ -38,7 +39,7 @@ def renderers():
 
 
 @pytest.mark.parametrize("name", REAL_PLYS)
-@pytest.mark.parametrize("sort", ["cpu", "gpu", "gpu-triangles"])
+@pytest.mark.parametrize("sort", ["cpu", "gpu", "gpu-triangles", "gpu-fetch"])
 def test_real_scene_matches_reference(renderers, name, sort):
     if sort not in renderers:
         pytest.skip("no compute shaders")

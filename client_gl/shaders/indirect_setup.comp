@@ -6,6 +6,7 @@ layout(std430, binding = 0) buffer Params { uint count; uint pad[3]; };
 layout(std430, binding = 3) writeonly buffer Dispatch { uint dispatch[8]; };   // (sort groups, 1, 1), (scan groups, 1, 1)
 layout(std430, binding = 4) writeonly buffer Draw { uint draw[4]; };          // instanced: 4 vertices, n instances
 layout(std430, binding = 5) writeonly buffer DrawTri { uint draw_tri[4]; };   // triangles: 6 n vertices, 1 instance
+layout(std430, binding = 6) writeonly buffer DrawPts { uint draw_pts[4]; };   // points: n vertices, 1 instance
 
 void main() {
     uint n = count;
@@ -15,4 +16,5 @@ void main() {
     dispatch[4] = (table + SCAN_TILE - 1u) / SCAN_TILE; dispatch[5] = 1u; dispatch[6] = 1u;
     draw[0] = 4u; draw[1] = n; draw[2] = 0u; draw[3] = 0u;
     draw_tri[0] = 6u * n; draw_tri[1] = 1u; draw_tri[2] = 0u; draw_tri[3] = 0u;
+    draw_pts[0] = n; draw_pts[1] = 1u; draw_pts[2] = 0u; draw_pts[3] = 0u;
 }
