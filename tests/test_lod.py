@@ -99,6 +99,25 @@ def test_small_scene_is_a_single_leaf_root_in_morton_order():
     assert np.all(np.diff(codes.astype(np.float64)) >= 0)
 
 
+@pytest.mark.parametrize("n,max_leaf,reduction,fan", [(2001, 2000, 4.0, 2), (5000, 300, 3.0, 4), (5000, 300, 2.0, 2)])
+def test_odd_sizes_and_reductions(n, max_leaf, reduction, fan):
+    g = random_gaussians(n, seed=n)
+    tiles = lod.build_tiles(g, max_leaf_splats=max_leaf, reduction=reduction)
+    leaves = [t for t in tiles if not t.children]
+    np.testing.assert_array_equal(rows(Gaussians.concatenate([t.gaussians for t in leaves])), rows(g))
+    assert all(len(t.gaussians) <= max_leaf for t in tiles)
+    assert all(len(t.children) == fan for t in tiles[1:] if t.children)
+    for t in tiles:
+        if t.children:
+            below = sum(len(tiles[c].gaussians) for c in t.children)
+            assert len(t.gaussians) == min(max_leaf, math.ceil(below / reduction))
+
+
+def test_empty_scene_is_an_empty_leaf():
+    tiles = lod.build_tiles(Gaussians.empty(3))
+    assert len(tiles) == 1 and len(tiles[0].gaussians) == 0 and tiles[0].children == []
+
+
 def test_progress_reports_fractions_up_to_one():
     calls = []
     lod.build_tiles(random_gaussians(3000), max_leaf_splats=200, progress=lambda s, f: calls.append((s, f)))
