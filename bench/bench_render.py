@@ -103,12 +103,12 @@ def bench_sort_random(ctx, n: int, reps: int = 10) -> dict:
     params = ctx.buffer(struct.pack("4I", n, 0, 0, 0))
     s.setup(params)
     times = []
-    for i in range(reps + 2):
+    for i in range(reps + 10):  # warm-up: the clocks ramp up from idle
         kb.write(keys.tobytes())
         q = ctx.query(time=True)
         with q:
             s.sort(params, kb, vb)
-        if i >= 2:
+        if i >= 10:
             times.append(q.elapsed / 1e6)
     out_k = np.frombuffer(kb.read(), np.uint32)
     ok = bool(np.all(out_k[1:] >= out_k[:-1]))
@@ -199,8 +199,9 @@ def main() -> int:
     ap.add_argument("--workdir", default="/tmp/splatstream-bench")
     ap.add_argument("--color", nargs="+", default=["f2"], choices=["f1", "f2", "f4"],
                     help="colour buffer types to time (default RGBA16F; the first is the reported one)")
-    ap.add_argument("--draw", nargs="+", default=["instanced"], choices=["instanced", "triangles", "fetch", "points"],
-                    help="GPU-path draw modes to time (the first is the reported one)")
+    ap.add_argument("--draw", nargs="+", default=["instanced"],
+                    help="GPU-path draw modes to time: instanced, triangles, fetch, points, optionally with "
+                         "measurement flags +nodepth, +noblend, +discard (e.g. fetch+discard); the first is reported")
     ap.add_argument("--no-cpu-sort", action="store_true", help="skip the CPU-sort path")
     ap.add_argument("--gsplat", action="store_true", help="also time gsplat (CUDA) on the same scene and camera")
     ap.add_argument("--check", action="store_true", help="PSNR of the GL paths against render_ref on a real scene")
@@ -286,7 +287,7 @@ def main() -> int:
             cpu_txt = (f"{c_['cpu_cull_sort_ms']:.1f} / {c_['cpu_upload_draw_ms']:.1f} / {c_['draw_ms'] or 0:.2f} ms"
                        if c_ else "-")
             for g_ in res["variants"]:
-                print(f"{e['splats']:>8} {preset:<10} {g_['draw'][:4]}/{g_['color']}  {g_['visible']:>9} "
+                print(f"{e['splats']:>8} {preset:<10} {g_['draw'][:13]:<13}/{g_['color']} {g_['visible']:>8} "
                       f"{g_['cull_ms']:>8.2f} {g_['sort_ms']:>7.2f} {g_['draw_ms']:>7.2f} {g_['gpu_ms']:>8.2f} "
                       f"{g_['wall_ms']:>7.2f} {g_['sort_keys_per_s'] / 1e9:>8.2f} G"
                       f"   {g_['pool_bytes_per_splat']:.1f}+{g_['work_bytes_per_splat']:.1f}   {cpu_txt}")

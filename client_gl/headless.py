@@ -50,7 +50,7 @@ def create_context(require: int = 430):
 class HeadlessRenderer:
     """One GL context; load Gaussians or an encoded scene, then render any number of cameras."""
 
-    def __init__(self, sort: str = "auto", ctx=None, color_dtype: str = "f4", draw: str = "instanced"):
+    def __init__(self, sort: str = "auto", ctx=None, color_dtype: str = "f4", draw: str = "auto"):
         self.ctx = ctx or create_context()
         self.sort = sort
         self.color_dtype = color_dtype

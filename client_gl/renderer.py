@@ -33,6 +33,9 @@ SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swiftshader", "software rasterize
 MAX_GROUPS_PER_DISPATCH = 65535
 SORT_MODES = ("auto", "cpu", "gpu")
 DRAW_MODES = ("instanced", "triangles", "fetch", "points")
+# "auto": point sprites (one primitive per splat: the raster path's primitive rate is the bottleneck on big GPUs)
+# when the GL's point sprites are at least as wide as the image, else fetch quads.
+DRAW_CHOICES = ("auto",) + DRAW_MODES
 RECORD_BYTES = 48  # per visible splat, written by cull.comp
 
 
@@ -107,7 +110,7 @@ def camera_uniforms(cam: Camera) -> dict:
 class SplatRenderer:
     """Draws the splats resident in a ChunkPool from a camera into an offscreen framebuffer."""
 
-    def __init__(self, ctx, pool: ChunkPool, sort: str = "auto", color_dtype: str = "f4", draw: str = "instanced"):
+    def __init__(self, ctx, pool: ChunkPool, sort: str = "auto", color_dtype: str = "f4", draw: str = "auto"):
         self.ctx = ctx
         self.pool = pool
         self.sort_mode = choose_sort(ctx, sort)
@@ -124,9 +127,16 @@ class SplatRenderer:
         self._index_buffer = None
         self._vao_cpu = None
         self._ids_cache = None
-        if draw not in DRAW_MODES:
-            raise UsageError(f"unknown draw mode {draw!r} (choose one of {', '.join(DRAW_MODES)})")
-        self.draw_mode = draw
+        # A draw mode may carry measurement flags: "fetch+nodepth", "fetch+noblend", "fetch+discard".
+        base, *flags = draw.split("+")
+        if base not in DRAW_CHOICES or not set(flags) <= {"nodepth", "noblend", "discard"}:
+            raise UsageError(f"unknown draw mode {draw!r} (choose one of {', '.join(DRAW_CHOICES)})")
+        self.max_point = float(ctx.info.get("GL_POINT_SIZE_RANGE", (1.0, 1.0))[1])
+        self.draw_request = base
+        self.draw_mode = base if base != "auto" else "points"
+        self.debug_flags = set(flags)
+        # Test splats against opaque geometry already in the framebuffer's depth (draw it first, render(clear=False)).
+        self.depth_test = "nodepth" not in flags
         if self.sort_mode == "gpu":
             self.cull = ctx.compute_shader(shadergen.compute_source("cull.comp", self.header))
             self._bind_samplers(self.cull)
@@ -135,13 +145,26 @@ class SplatRenderer:
             self.keys = ctx.buffer(reserve=self.capacity * 4)
             self.values = ctx.buffer(reserve=self.capacity * 4)
             self.records = ctx.buffer(reserve=self.capacity * RECORD_BYTES)
-            vert, frag = shadergen.projected_render_sources(draw)
-            self.program_gpu = ctx.program(vertex_shader=vert, fragment_shader=frag)
-            self.vao_gpu = ctx.vertex_array(self.program_gpu, [])
+            self._programs: dict[str, tuple] = {}
+            self._select_program(self.draw_mode)
         else:
             self._cpu_sorter = CpuSorter()
             if pool.mirror is None:
                 raise UsageError("the CPU sort path needs a pool with a host mirror of the splat centres")
+
+    def _select_program(self, mode: str) -> None:
+        if mode not in self._programs:
+            vert, frag = shadergen.projected_render_sources(mode)
+            if "discard" in self.debug_flags:
+                frag = frag.replace("void main() {", "void main() {\n    discard;", 1)
+            prog = self.ctx.program(vertex_shader=vert, fragment_shader=frag)
+            self._programs[mode] = (prog, self.ctx.vertex_array(prog, []))
+        self.draw_mode = mode
+        self.program_gpu, self.vao_gpu = self._programs[mode]
+
+    def read_oversized_count(self) -> int:
+        """Visible splats of the last GPU frame wider than the largest point sprite (clamped in the points mode)."""
+        return struct.unpack("4I", self.params.read(16))[1]
 
     def _bind_samplers(self, prog) -> None:
         for plane, unit in TEXTURE_UNITS.items():
@@ -201,6 +224,10 @@ class SplatRenderer:
         ctx = self.ctx
         ctx.disable(moderngl.CULL_FACE)
         ctx.enable(moderngl.BLEND | moderngl.DEPTH_TEST)
+        if not self.depth_test:
+            ctx.disable(moderngl.DEPTH_TEST)
+        if "noblend" in self.debug_flags:
+            ctx.disable(moderngl.BLEND)
         ctx.blend_func = moderngl.ONE, moderngl.ONE_MINUS_SRC_ALPHA
         ctx.blend_equation = moderngl.FUNC_ADD
         ctx.depth_func = "<"
@@ -210,11 +237,16 @@ class SplatRenderer:
         stats = FrameStats("gpu")
         queries = self._queries(3) if timing else None
         slots = self.pool.used_slots
+        if self.draw_request == "auto":
+            self._select_program("points" if self.max_point >= max(cam.width, cam.height) else "fetch")
         self.params.write(struct.pack("4I", 0, 0, 0, 0))
         for name, value in uniforms.items():
             _set(self.cull, name, value)
         _set(self.program_gpu, "u_size", uniforms["u_size"])
-        _set(self.program_gpu, "u_max_point", float(ctx.info.get("GL_POINT_SIZE_RANGE", (1.0, 64.0))[1]))
+        guard = float(int(self.max_point) // 2 + 1)
+        _set(self.program_gpu, "u_max_point", self.max_point)
+        _set(self.program_gpu, "u_guard", guard)
+        _set(self.cull, "u_max_point", self.max_point if self.draw_mode == "points" else 1e30)
         _set(self.cull, "u_slots", slots)
         self.pool.bind()
         self.params.bind_to_storage_buffer(0)
@@ -240,7 +272,10 @@ class SplatRenderer:
                 self.vao_gpu.render_indirect(self.sorter.draw_tri, mode=moderngl.TRIANGLES, count=1)
             elif self.draw_mode == "points":
                 ctx.enable(moderngl.PROGRAM_POINT_SIZE)
+                g = int(guard)
+                ctx.viewport = (-g, -g, cam.width + 2 * g, cam.height + 2 * g)  # guard band (splat_fetch.vert)
                 self.vao_gpu.render_indirect(self.sorter.draw_points, mode=moderngl.POINTS, count=1)
+                ctx.viewport = (0, 0, cam.width, cam.height)
             else:
                 self.vao_gpu.render_indirect(self.sorter.draw, mode=moderngl.TRIANGLE_STRIP, count=1)
 

@@ -5,13 +5,14 @@
 // The count goes to params.count (work-group aggregated atomics).
 layout(local_size_x = 256) in;
 
-layout(std430, binding = 0) buffer Params { uint count; uint pad[3]; };
+layout(std430, binding = 0) buffer Params { uint count; uint oversized; uint pad[2]; };
 layout(std430, binding = 1) writeonly buffer Keys { uint keys[]; };
 layout(std430, binding = 2) writeonly buffer Values { uint values[]; };
 layout(std430, binding = 3) writeonly buffer Records { uvec4 records[]; };
 
 uniform uint u_slots;       // slots to scan (highest used slot + 1)
 uniform uint u_slot_base;   // first slot of this dispatch (dispatches are split to stay under the group limit)
+uniform float u_max_point;  // largest point sprite (points draw mode): wider splats are counted in params.oversized
 
 shared uint s_local;
 shared uint s_base;
@@ -39,6 +40,7 @@ void main() {
                 // Axis-aligned box of the ellipse where alpha reaches 1/255 (the quad the vertex shader draws).
                 vec2 ext = cutoff_sigmas(col.a) * sqrt(vec2(cov.x, cov.z));
                 visible = all(greaterThan(center + ext, vec2(0.0))) && all(lessThan(center - ext, u_size));
+                if (visible && 2.0 * max(ext.x, ext.y) + 1.0 > u_max_point) atomicAdd(oversized, 1u);
                 key = 0xFFFFFFFFu - floatBitsToUint(depth);
             }
         }
