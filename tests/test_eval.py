@@ -126,3 +126,28 @@ def test_attribution_rows_and_markdown():
     md = report_markdown(rep)
     assert "Error attribution for low" in md
     assert "| color | bc7 |" in md
+
+
+def test_read_compare_clamps_infinite_opacity(tmp_path):
+    from splatstream.evaluate import read_compare
+    from splatstream.gaussians import Gaussians, normalize_quaternions
+    from splatstream.ply import gaussians_ply_dtype, read_header, write_gaussians_ply
+
+    rng = np.random.default_rng(5)
+    n = 20
+    g = Gaussians(rng.normal(size=(n, 3)), normalize_quaternions(rng.normal(size=(n, 4))), rng.normal(size=(n, 3)),
+                  rng.normal(size=n), rng.normal(size=(n, 3)), rng.normal(size=(n, 15, 3)))
+    path = tmp_path / "peer.ply"
+    write_gaussians_ply(g, path)
+    header = read_header(path)
+    data = np.memmap(path, dtype=gaussians_ply_dtype(3), mode="r+", offset=header.size, shape=(n,))
+    data["opacity"][[1, 4]] = [np.inf, -np.inf]
+    data.flush()
+    del data
+    got, clamped = read_compare(str(path))
+    assert clamped == 2
+    np.testing.assert_array_equal(got.sh_rest, g.sh_rest)
+    np.testing.assert_array_equal(got.positions, g.positions)
+    np.testing.assert_allclose(got.rotations, g.rotations, atol=1e-7)
+    assert got.opacity_logits[1] == 30.0 and got.opacity_logits[4] == -30.0
+    np.testing.assert_array_equal(np.delete(got.opacity_logits, [1, 4]), np.delete(g.opacity_logits, [1, 4]))
