@@ -69,6 +69,8 @@ def bench_gl(ctx, scene, cam: Camera, frames: int, sort: str, color_dtype: str, 
     out["wall_ms"] = wall
     if r.sort_mode == "gpu":
         out["visible"] = rend.read_visible_count()
+        out["draw"] = draw if draw == rend.draw_mode else f"{draw}->{rend.draw_mode}"
+        out["oversized"] = rend.read_oversized_count()
         out["cull_ms"] = median([s.cull_ms for s in stats])
         out["sort_ms"] = median([s.sort_ms for s in stats])
         out["draw_ms"] = median([s.draw_ms for s in stats])
@@ -102,14 +104,17 @@ def bench_sort_random(ctx, n: int, reps: int = 10) -> dict:
     vb = ctx.buffer(np.arange(n, dtype=np.uint32).tobytes())
     params = ctx.buffer(struct.pack("4I", n, 0, 0, 0))
     s.setup(params)
+    t_end = time.perf_counter() + 1.0  # warm-up: the clocks ramp up from idle
+    while time.perf_counter() < t_end:
+        s.sort(params, kb, vb)
+        ctx.finish()
     times = []
-    for i in range(reps + 10):  # warm-up: the clocks ramp up from idle
+    q = ctx.query(time=True)
+    for _ in range(reps):
         kb.write(keys.tobytes())
-        q = ctx.query(time=True)
         with q:
             s.sort(params, kb, vb)
-        if i >= 10:
-            times.append(q.elapsed / 1e6)
+        times.append(q.elapsed / 1e6)
     out_k = np.frombuffer(kb.read(), np.uint32)
     ok = bool(np.all(out_k[1:] >= out_k[:-1]))
     ms = median(times)
@@ -199,7 +204,7 @@ def main() -> int:
     ap.add_argument("--workdir", default="/tmp/splatstream-bench")
     ap.add_argument("--color", nargs="+", default=["f2"], choices=["f1", "f2", "f4"],
                     help="colour buffer types to time (default RGBA16F; the first is the reported one)")
-    ap.add_argument("--draw", nargs="+", default=["instanced"],
+    ap.add_argument("--draw", nargs="+", default=["auto"],
                     help="GPU-path draw modes to time: instanced, triangles, fetch, points, optionally with "
                          "measurement flags +nodepth, +noblend, +discard (e.g. fetch+discard); the first is reported")
     ap.add_argument("--no-cpu-sort", action="store_true", help="skip the CPU-sort path")
@@ -213,7 +218,8 @@ def main() -> int:
     from client_gl.headless import create_context
 
     ctx = create_context()
-    info = {k: ctx.info.get(k) for k in ("GL_RENDERER", "GL_VERSION", "GL_VENDOR")}
+    info = {k: ctx.info.get(k) for k in ("GL_RENDERER", "GL_VERSION", "GL_VENDOR", "GL_POINT_SIZE_RANGE",
+                                         "GL_MAX_VIEWPORT_DIMS")}
     log("GL:", info)
     results = {"gl": info, "host": platform.node(), "size": [width, height], "frames": args.frames,
                "seed": args.seed, "color_buffer": args.color, "scenes": []}
@@ -287,10 +293,11 @@ def main() -> int:
             cpu_txt = (f"{c_['cpu_cull_sort_ms']:.1f} / {c_['cpu_upload_draw_ms']:.1f} / {c_['draw_ms'] or 0:.2f} ms"
                        if c_ else "-")
             for g_ in res["variants"]:
-                print(f"{e['splats']:>8} {preset:<10} {g_['draw'][:13]:<13}/{g_['color']} {g_['visible']:>8} "
+                print(f"{e['splats']:>8} {preset:<10} {g_['draw'][:14]:<14}/{g_['color']} {g_['visible']:>8} "
                       f"{g_['cull_ms']:>8.2f} {g_['sort_ms']:>7.2f} {g_['draw_ms']:>7.2f} {g_['gpu_ms']:>8.2f} "
                       f"{g_['wall_ms']:>7.2f} {g_['sort_keys_per_s'] / 1e9:>8.2f} G"
-                      f"   {g_['pool_bytes_per_splat']:.1f}+{g_['work_bytes_per_splat']:.1f}   {cpu_txt}")
+                      f"   {g_['pool_bytes_per_splat']:.1f}+{g_['work_bytes_per_splat']:.1f} "
+                      f"(clamped {g_.get('oversized', 0)})   {cpu_txt}")
                 cpu_txt = ""
         s = e["sort_random"]
         print(f"{e['splats']:>8} random-key radix sort: {s['ms']:.2f} ms, {s['keys_per_s'] / 1e9:.2f} G keys/s, "
