@@ -288,7 +288,7 @@ def merge_errors(originals_pos: np.ndarray, originals_reach: np.ndarray, merged:
 
 
 def match_screen_appearance(merged: Gaussians, originals: Gaussians, represented_by: np.ndarray,
-                            pixel: float) -> bool:
+                            pixel: float) -> np.ndarray:
     """Set the opacities and base colours (SH band 0) of merged splats, in place, from their ORIGINAL members
     as the renderer draws them at the tile's viewing scale: pixels of `pixel` world units.
 
@@ -298,21 +298,21 @@ def match_screen_appearance(merged: Gaussians, originals: Gaussians, represented
     lets big members outweigh the many small ones that dominate the picture (fine sprinkles on a donut's icing).
     Both sides are therefore measured after the same blur b: alpha = sum alpha_i A(Sigma_i + b) / A(Sigma + b),
     colour = mean of the members' colours weighted by alpha_i A(Sigma_i + b). Higher SH bands keep the
-    hierarchical mass-weighted mean (view-dependent residuals, cheap)."""
+    hierarchical mass-weighted mean (view-dependent residuals, cheap). Where alpha would exceed the ceiling the
+    scales grow by up to MAX_INFLATION instead; returns the indices of the merged splats that grew."""
     blur = LOW_PASS_PX2 * pixel * pixel
     alpha_i = 1.0 / (1.0 + np.exp(-originals.opacity_logits.astype(np.float64)))
     shown = alpha_i * _coverage_area(originals.log_scales, blur)
     covered = np.bincount(represented_by, weights=shown, minlength=len(merged))
     single = np.bincount(represented_by, minlength=len(merged)) == 1
     need = covered / _coverage_area(merged.log_scales, blur)
-    grown = False
+    grow_rows = np.zeros(0, np.int64)
     if MAX_INFLATION > 1.0:
         # More coverage than one Gaussian can give under the opacity ceiling: the members' sum is flat-topped
         # with a sharp rim, the merged Gaussian peaked and soft, so clamping drops coverage at silhouettes.
         # Spend the excess on size: the smallest growth k of the scales with cap * A(k^2 Sigma + b) >= covered.
         grow_rows = np.flatnonzero((need > MAX_MERGED_OPACITY) & ~single)
-        grown = len(grow_rows) > 0
-        if grown:
+        if len(grow_rows):
             ls = merged.log_scales[grow_rows].astype(np.float64)
             lo_k, hi_k = np.zeros(len(grow_rows)), np.full(len(grow_rows), math.log(MAX_INFLATION))
             for _ in range(20):
@@ -331,7 +331,7 @@ def match_screen_appearance(merged: Gaussians, originals: Gaussians, represented
     # A splat standing for one original is that original (merge_gaussians copies singletons).
     merged.opacity_logits = np.where(single, merged.opacity_logits, logits)
     merged.sh_dc = np.where(single[:, None], merged.sh_dc, sh_dc.astype(np.float32))
-    return grown
+    return grow_rows
 
 
 def _tile_error(errors: np.ndarray) -> float:
@@ -445,12 +445,17 @@ def build_tiles(g: Gaussians, max_leaf_splats: int = 65536, reduction: float = 4
             originals = _slice(ordered, a, b)
             masses[tid] = merged_mass
             # Errors are measured against the originals; the max with the children keeps them monotone.
-            error = max(_tile_error(merge_errors(originals.positions, reach[a:b], merged, represented_by[tid])),
-                        *(k.geometric_error for k in kids))
-            if match_screen_appearance(merged, originals, represented_by[tid], error / OPACITY_MATCH_SSE_PX):
-                # Some splats grew to carry their coverage: measure again, keep the larger error.
-                error = max(error, _tile_error(merge_errors(originals.positions, reach[a:b], merged,
-                                                            represented_by[tid])))
+            rep = represented_by[tid]
+            errors = merge_errors(originals.positions, reach[a:b], merged, rep)
+            error = max(_tile_error(errors), *(k.geometric_error for k in kids))
+            grown = match_screen_appearance(merged, originals, rep, error / OPACITY_MATCH_SSE_PX)
+            if len(grown):
+                # Some splats grew to carry their coverage: measure those again, keep the larger tile error.
+                is_grown = np.zeros(len(merged), bool)
+                is_grown[grown] = True
+                sel = is_grown[rep]
+                errors[grown] = merge_errors(originals.positions[sel], reach[a:b][sel], merged, rep[sel])[grown]
+                error = max(error, _tile_error(errors))
             lo, hi, own_c, own_r = extent_bounds(merged)
             # The parent's volume also encloses its children's, so culling a parent never hides a child.
             lo = np.minimum(lo, np.min([k.box_min for k in kids], axis=0))
