@@ -33,9 +33,11 @@ SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swiftshader", "software rasterize
 MAX_GROUPS_PER_DISPATCH = 65535
 SORT_MODES = ("auto", "cpu", "gpu")
 DRAW_MODES = ("instanced", "triangles", "fetch", "points")
-# "auto": point sprites (one primitive per splat: the raster path's primitive rate is the bottleneck on big GPUs)
-# when the GL's point sprites are at least as wide as the image, else fetch quads.
+# "auto": point sprites (one primitive per splat; measured on an H200 at 6M splats the raster path's primitive rate is
+# the bottleneck: 29 ms against 35 ms for fetch quads) when at least AUTO_POINTS_MIN_SPLATS are resident and point
+# sprites are at least as wide as the image; otherwise fetch quads (tighter, fewer fragments: 9.6 vs 10.7 ms at 1M).
 DRAW_CHOICES = ("auto",) + DRAW_MODES
+AUTO_POINTS_MIN_SPLATS = 2_000_000
 RECORD_BYTES = 48  # per visible splat, written by cull.comp
 
 
@@ -133,7 +135,7 @@ class SplatRenderer:
             raise UsageError(f"unknown draw mode {draw!r} (choose one of {', '.join(DRAW_CHOICES)})")
         self.max_point = float(ctx.info.get("GL_POINT_SIZE_RANGE", (1.0, 1.0))[1])
         self.draw_request = base
-        self.draw_mode = base if base != "auto" else "points"
+        self.draw_mode = base if base != "auto" else "fetch"
         self.debug_flags = set(flags)
         # Test splats against opaque geometry already in the framebuffer's depth (draw it first, render(clear=False)).
         self.depth_test = "nodepth" not in flags
@@ -238,7 +240,9 @@ class SplatRenderer:
         queries = self._queries(3) if timing else None
         slots = self.pool.used_slots
         if self.draw_request == "auto":
-            self._select_program("points" if self.max_point >= max(cam.width, cam.height) else "fetch")
+            wide = self.max_point >= max(cam.width, cam.height)
+            points = wide and self.pool.resident_splats >= AUTO_POINTS_MIN_SPLATS
+            self._select_program("points" if points else "fetch")
         self.params.write(struct.pack("4I", 0, 0, 0, 0))
         for name, value in uniforms.items():
             _set(self.cull, name, value)
