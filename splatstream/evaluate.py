@@ -330,6 +330,7 @@ def evaluate(input_path: str, opts: EvalOptions | None = None,
 
     report = {
         "tool": f"splatstream {__version__} eval",
+        "source": source_version(),
         "input": {"path": input_path, "bytes": input_size, "splats": len(g), "sh_degree": g.sh_degree,
                   "bytes_per_splat": input_size / len(g)},
         "renderer": renderer_name,
@@ -359,6 +360,21 @@ def evaluate(input_path: str, opts: EvalOptions | None = None,
         "goals": check_goals(rows, g.sh_degree),
     }
     return report
+
+
+def source_version() -> dict:
+    """Commit of the splatstream checkout (and whether it has local changes), so numbers can be tied to code."""
+    import subprocess
+
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    try:
+        commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=10,
+                                check=True).stdout.strip()
+        dirty = subprocess.run(["git", "status", "--porcelain", "--untracked-files=no", "--", "splatstream"],
+                               cwd=root, capture_output=True, text=True, timeout=10, check=True).stdout.strip()
+    except (OSError, subprocess.SubprocessError):
+        return {"version": __version__}
+    return {"version": __version__, "commit": commit, "local_changes": bool(dirty)}
 
 
 def check_goals(rows: list[Row], sh_degree: int) -> list[dict]:
@@ -396,7 +412,8 @@ def report_markdown(report: dict) -> str:
     lines = [f"Scene `{os.path.basename(inp['path'])}`: {inp['splats']:,} splats, SH{inp['sh_degree']}, "
              f"{inp['bytes']:,} bytes ({inp['bytes_per_splat']:.1f} B/splat). {len(report['cameras'])} views at "
              f"{report['size'][0]}x{report['size'][1]}, renderer: {report['renderer']}. PSNR/SSIM: mean over views "
-             f"(worst view in brackets).", "",
+             f"(worst view in brackets). splatstream {report.get('source', {}).get('commit', '')[:10]}"
+             + (" with local changes" if report.get("source", {}).get("local_changes") else "") + ".", "",
              "| Quality | Pos | Rot | Scl | Col | SH | bytes/splat GPU | disk | Compr | PSNR | SSIM | encode s |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in report["rows"]:
