@@ -1,6 +1,7 @@
 """Benchmark of the LOD tile tree (splatstream/lod.py) on make_scene scenes.
 
     .venv/bin/python bench/bench_lod.py [--splats 1000000 6000000] [--reductions 4 8] [--max-leaf 65536]
+                                        [--reorder-input]
 
 Each (scene, reduction) runs in its own process, so the peak resident size (getrusage ru_maxrss) is that run's:
 reading the PLY (the reader's own peak included), then building the tree; "build MB" is the peak of the build's
@@ -30,7 +31,7 @@ def peak_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: KiB
 
 
-def run_one(path: str, reduction: float, max_leaf: int) -> dict:
+def run_one(path: str, reduction: float, max_leaf: int, reorder_input: bool) -> dict:
     """Read `path`, build the tree, return the measurements (runs inside the child process)."""
     sys.path.insert(0, str(ROOT))
     from splatstream.lod import build_tiles
@@ -50,7 +51,8 @@ def run_one(path: str, reduction: float, max_leaf: int) -> dict:
 
     cpu0, t0 = time.process_time(), time.perf_counter()
     tracemalloc.start()  # numpy reports its buffers to tracemalloc: the build's own allocations, input excluded
-    tiles = build_tiles(g, max_leaf_splats=max_leaf, reduction=reduction, progress=progress)
+    tiles = build_tiles(g, max_leaf_splats=max_leaf, reduction=reduction, progress=progress,
+                        reorder_input=reorder_input)
     build_peak = tracemalloc.get_traced_memory()[1] / 2**20
     tracemalloc.stop()
     wall, cpu = time.perf_counter() - t0, time.process_time() - cpu0
@@ -59,6 +61,7 @@ def run_one(path: str, reduction: float, max_leaf: int) -> dict:
     tiles_per_level = [sum(1 for t in tiles if t.level == level) for level in range(levels)]
     return {
         "splats": len(g), "sh_degree": g.sh_degree, "reduction": reduction, "max_leaf_splats": max_leaf,
+        "reorder_input": reorder_input,
         "build_s": round(wall, 2), "build_cpu_s": round(cpu, 2),
         "stages_s": {k: round(v, 2) for k, v in stages.items()},
         "input_mb": round(input_mb), "peak_rss_mb_after_read": round(after_read), "peak_rss_mb": round(peak_mb()),
@@ -76,10 +79,11 @@ def main() -> None:
     ap.add_argument("--reductions", type=float, nargs="+", default=[4.0, 8.0])
     ap.add_argument("--max-leaf", type=int, default=65536)
     ap.add_argument("--seed", type=int, default=0)
-    ap.add_argument("--child", nargs=3, metavar=("PATH", "REDUCTION", "MAX_LEAF"), help=argparse.SUPPRESS)
+    ap.add_argument("--reorder-input", action="store_true", help="build_tiles(..., reorder_input=True)")
+    ap.add_argument("--child", nargs=4, metavar=("PATH", "REDUCTION", "MAX_LEAF", "REORDER"), help=argparse.SUPPRESS)
     a = ap.parse_args()
     if a.child:
-        print(json.dumps(run_one(a.child[0], float(a.child[1]), int(a.child[2]))))
+        print(json.dumps(run_one(a.child[0], float(a.child[1]), int(a.child[2]), a.child[3] == "1")))
         return
     results = []
     with tempfile.TemporaryDirectory(prefix="bench_lod_") as tmp:
@@ -88,8 +92,8 @@ def main() -> None:
             subprocess.run([sys.executable, str(MAKE_SCENE), "--splats", str(n), "--seed", str(a.seed), "--out", path],
                            check=True, stdout=subprocess.DEVNULL)
             for r in a.reductions:
-                out = subprocess.run([sys.executable, __file__, "--child", path, str(r), str(a.max_leaf)], check=True,
-                                     capture_output=True, text=True).stdout
+                out = subprocess.run([sys.executable, __file__, "--child", path, str(r), str(a.max_leaf),
+                                      str(int(a.reorder_input))], check=True, capture_output=True, text=True).stdout
                 result = json.loads(out.strip().splitlines()[-1])
                 print(json.dumps(result), flush=True)
                 results.append(result)

@@ -369,14 +369,29 @@ def _permute(g: Gaussians, perm: np.ndarray) -> Gaussians:
                      g.sh_dc[perm], g.sh_rest[perm])
 
 
+def _permute_in_place(g: Gaussians, perm: np.ndarray, block_floats: int = 12) -> Gaussians:
+    """Reorder the rows of `g`'s own arrays by `perm`, a few columns at a time, so the extra memory is
+    n * block_floats floats instead of a second copy of the scene."""
+    for name in ("positions", "rotations", "log_scales", "opacity_logits", "sh_dc", "sh_rest"):
+        arr = getattr(g, name)
+        flat = arr.reshape(len(arr), -1)  # a view: the arrays are C-contiguous
+        for c in range(0, flat.shape[1], block_floats):
+            flat[:, c:c + block_floats] = flat[perm, c:c + block_floats]
+    return g
+
+
 def _slice(g: Gaussians, a: int, b: int) -> Gaussians:
     return Gaussians(g.positions[a:b], g.rotations[a:b], g.log_scales[a:b], g.opacity_logits[a:b],
                      g.sh_dc[a:b], g.sh_rest[a:b])
 
 
 def build_tiles(g: Gaussians, max_leaf_splats: int = 65536, reduction: float = 4.0,
-                progress: Progress | None = None) -> list[Tile]:
-    """The LOD tile tree of `g`, as a list indexed by tile id (0 = root, breadth-first)."""
+                progress: Progress | None = None, reorder_input: bool = False) -> list[Tile]:
+    """The LOD tile tree of `g`, as a list indexed by tile id (0 = root, breadth-first).
+
+    Leaves are slices of one array per attribute holding the splats in leaf order: a copy of `g` by default, or,
+    with `reorder_input`, `g`'s own arrays reordered in place (the caller's `g` then holds the same splats in
+    another order), which saves a copy of the whole scene."""
     if max_leaf_splats < 1:
         raise ValueError(f"max_leaf_splats must be at least 1, got {max_leaf_splats}")
     if not reduction > 1.0:
@@ -385,7 +400,7 @@ def build_tiles(g: Gaussians, max_leaf_splats: int = 65536, reduction: float = 4
     n = len(g)
     if n <= max_leaf_splats:
         order = np.argsort(_morton(g.positions), kind="stable") if n else np.zeros(0, np.int64)
-        leaf = _permute(g, order)
+        leaf = _permute_in_place(g, order) if reorder_input else _permute(g, order)
         lo, hi, c, r = extent_bounds(leaf)
         progress("lod-merge", 1.0)
         return [Tile(0, 0, [], leaf, 0.0, lo, hi, c, r)]
@@ -396,7 +411,7 @@ def build_tiles(g: Gaussians, max_leaf_splats: int = 65536, reduction: float = 4
     kd_depths = sorted({0, *range(depth, 0, -step)})
     leaves = _kd_leaves(g.positions, depth, progress)
     perm = _leaf_orders(g.positions, leaves)
-    ordered = _permute(g, perm)
+    ordered = _permute_in_place(g, perm) if reorder_input else _permute(g, perm)
     del perm
     progress("lod-leaves", 1.0)
 

@@ -113,6 +113,23 @@ def test_odd_sizes_and_reductions(n, max_leaf, reduction, fan):
             assert len(t.gaussians) == min(max_leaf, math.ceil(below / reduction))
 
 
+@pytest.mark.parametrize("n", [300, 3000])
+def test_reorder_input_gives_the_same_tree_without_a_copy(n):
+    g = random_gaussians(n, seed=7, sh_degree=3)
+    before = rows(g)
+    copied = lod.build_tiles(g, max_leaf_splats=400)
+    np.testing.assert_array_equal(rows(g), before)  # the default leaves the input alone
+    in_place = lod.build_tiles(g, max_leaf_splats=400, reorder_input=True)
+    np.testing.assert_array_equal(rows(g), before)  # same splats, new order
+    assert len(copied) == len(in_place)
+    for a, b in zip(copied, in_place, strict=True):
+        for f in ("positions", "rotations", "log_scales", "opacity_logits", "sh_dc", "sh_rest"):
+            np.testing.assert_array_equal(getattr(a.gaussians, f), getattr(b.gaussians, f))
+        assert a.geometric_error == b.geometric_error
+    leaves = [t for t in in_place if not t.children]
+    assert all(np.shares_memory(t.gaussians.sh_rest, g.sh_rest) for t in leaves)
+
+
 def test_empty_scene_is_an_empty_leaf():
     tiles = lod.build_tiles(Gaussians.empty(3))
     assert len(tiles) == 1 and len(tiles[0].gaussians) == 0 and tiles[0].children == []
