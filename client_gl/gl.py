@@ -83,6 +83,7 @@ _SIGNATURES = {
     "glCompressedTexImage3D": (None, (_u, _i, _u, _i, _i, _i, _i, _i, _p)),
     "glCompressedTexSubImage2D": (None, (_u, _i, _i, _i, _i, _i, _u, _i, _p)),
     "glCompressedTexSubImage3D": (None, (_u, _i, _i, _i, _i, _i, _i, _i, _u, _i, _p)),
+    "glCopyImageSubData": (None, (_u, _u, _i, _i, _i, _i, _u, _u, _i, _i, _i, _i, _i, _i, _i)),
 }
 
 
@@ -212,6 +213,13 @@ class RawTexture:
             else:
                 gl.glTexSubImage2D(self.target, 0, x, y, w, h, fmt, typ, _ptr(data))
         check(f"uploading a {w}x{h} region at ({x}, {y}) layer {layer}")
+
+    def copy_to(self, dst: RawTexture, sx: int, sy: int, dx: int, dy: int, w: int, h: int) -> None:
+        """Copy a w x h region (all layers) into another texture of the same format (GL 4.3 glCopyImageSubData)."""
+        gl.glGetError()
+        gl.glCopyImageSubData(self.glo, self.target, 0, sx, sy, 0, dst.glo, dst.target, 0, dx, dy, 0, w, h,
+                              max(1, self.layers))
+        check(f"copying a {w}x{h} region between textures")
 
     def bind(self, unit: int) -> None:
         gl.glActiveTexture(GL_TEXTURE0 + unit)

@@ -101,33 +101,82 @@ def _chunk_blocks(plane: EncodedPlane, layer: int, chunks: int) -> np.ndarray:
 class ChunkPool:
     """Atlases for `capacity` splats in fixed texel formats (one per plane) with `sh_degree` bands resident."""
 
-    def __init__(self, ctx, formats: dict[str, str], sh_degree: int, capacity: int, keep_host_mirror: bool = True):
+    def __init__(self, ctx, formats: dict[str, str], sh_degree: int, capacity: int, keep_host_mirror: bool = True,
+                 growable: bool = True):
         self.ctx = ctx
         self.formats = dict(formats)
         self.sh_degree = int(sh_degree)
-        self.slots = max(1, -(-int(capacity) // CHUNK))
-        self.cols = min(MAX_COLS, self.slots)
-        self.rows = -(-self.slots // self.cols)
-        self.width, self.height = self.cols * BLOCK, self.rows * BLOCK
-        max_size = ctx.info.get("GL_MAX_TEXTURE_SIZE", 16384)
-        if self.height > max_size:
-            raise UsageError(f"{capacity} splats need a {self.width}x{self.height} atlas; this GL allows "
-                             f"{max_size} texels per side")
+        self.growable = growable
         self.planes = ["position", "rotation", "scale", "color"] + [f"sh{b}" for b in range(1, self.sh_degree + 1)]
         self.textures: dict[str, RawTexture] = {}
-        for plane in self.planes:
-            fmt = get_format(self.formats[PLANE_ATTRIBUTE[plane]])
-            layers = SH_BAND_LAYERS[int(plane[2:])] if plane.startswith("sh") else 0
-            self.textures[plane] = RawTexture(INTERNAL_FORMATS[fmt.gl_internal], self.width, self.height, layers)
-        self.ranges = RawTexture(GL_RGBA32UI, self.width, self.rows)
+        self.slots = 0
+        self._allocate(max(1, -(-int(capacity) // CHUNK)))
         self._free = list(range(self.slots))  # kept sorted: allocation takes the lowest slots
         self.tiles: dict[int, _Resident] = {}
-        self.counts = np.zeros(self.slots, np.uint32)
         self.mirror: HostMirror | None = None
         if keep_host_mirror:
             n = self.slots * CHUNK
             self.mirror = HostMirror(np.zeros((n, 3), np.float32), np.zeros(n, np.float32),
                                      np.zeros(n, np.float32), self.counts)
+
+    def _allocate(self, slots: int) -> None:
+        """(Re)create the atlases and the range table for `slots` slots, copying the used blocks of the old ones."""
+        cols = min(MAX_COLS, slots)
+        rows = -(-slots // cols)
+        width, height = cols * BLOCK, rows * BLOCK
+        max_size = self.ctx.info.get("GL_MAX_TEXTURE_SIZE", 16384)
+        if height > max_size:
+            raise UsageError(f"{slots * CHUNK} splats need a {width}x{height} atlas; this GL allows "
+                             f"{max_size} texels per side")
+        old = (self.textures, getattr(self, "ranges", None), self.slots, getattr(self, "cols", 1))
+        textures = {}
+        for plane in self.planes:
+            fmt = get_format(self.formats[PLANE_ATTRIBUTE[plane]])
+            layers = SH_BAND_LAYERS[int(plane[2:])] if plane.startswith("sh") else 0
+            textures[plane] = RawTexture(INTERNAL_FORMATS[fmt.gl_internal], width, height, layers)
+        ranges = RawTexture(GL_RGBA32UI, width, rows)
+        old_textures, old_ranges, old_slots, old_cols = old
+        if old_ranges is not None:
+            # Slot numbers (and so splat ids) stay; only their block positions change when the row width does.
+            used = [int(s) for s in np.nonzero(self.counts)[0]]
+            if old_cols == cols and used:  # same row width: the blocks keep their positions, copy whole rows
+                last_row = used[-1] // cols + 1
+                for plane, tex in old_textures.items():
+                    tex.copy_to(textures[plane], 0, 0, 0, 0, cols * BLOCK, last_row * BLOCK)
+                old_ranges.copy_to(ranges, 0, 0, 0, 0, cols * BLOCK, last_row)
+                used = []
+            for s in used:
+                sx, sy, dx, dy = s % old_cols, s // old_cols, s % cols, s // cols
+                for plane, tex in old_textures.items():
+                    tex.copy_to(textures[plane], sx * BLOCK, sy * BLOCK, dx * BLOCK, dy * BLOCK, BLOCK, BLOCK)
+                old_ranges.copy_to(ranges, sx * BLOCK, sy, dx * BLOCK, dy, BLOCK, 1)
+            for tex in old_textures.values():
+                tex.release()
+            old_ranges.release()
+        self.textures, self.ranges = textures, ranges
+        self.slots, self.cols, self.rows, self.width, self.height = slots, cols, rows, width, height
+        counts = np.zeros(slots, np.uint32)
+        if old_ranges is not None:
+            counts[:old_slots] = self.counts
+        self.counts = counts
+        if getattr(self, "mirror", None) is not None:
+            n = slots * CHUNK
+            m = self.mirror
+            grow = n - len(m.opacity)
+            self.mirror = HostMirror(np.concatenate([m.positions, np.zeros((grow, 3), np.float32)]),
+                                     np.concatenate([m.opacity, np.zeros(grow, np.float32)]),
+                                     np.concatenate([m.max_log_scale, np.zeros(grow, np.float32)]), counts)
+
+    def grow(self, capacity: int) -> None:
+        """Make room for `capacity` splats (GL 4.3: atlases are copied on the GPU; slot numbers are kept)."""
+        slots = -(-int(capacity) // CHUNK)
+        if slots <= self.slots:
+            return
+        if self.ctx.version_code < 430:
+            raise UsageError(f"the chunk pool is full ({self.slots * CHUNK} splats) and growing it needs GL 4.3")
+        old = self.slots
+        self._allocate(slots)
+        self._free = sorted(self._free + list(range(old, slots)))
 
     # --- accounting -----------------------------------------------------------------------------------------
     @property
@@ -165,7 +214,10 @@ class ChunkPool:
         n = int(tile.splats)
         chunks = -(-n // CHUNK)
         if chunks > len(self._free):
-            raise UsageError(f"tile {tile_id} needs {chunks} chunk slots, {len(self._free)} of {self.slots} are free")
+            if not self.growable:
+                raise UsageError(f"tile {tile_id} needs {chunks} chunk slots, {len(self._free)} of {self.slots} "
+                                 "are free")
+            self.grow(max(2 * self.slots, self.slots + chunks - len(self._free)) * CHUNK)
         for plane in self.planes:
             p = tile.planes.get(plane)
             if p is None:

@@ -142,17 +142,37 @@ class SplatRenderer:
         if self.sort_mode == "gpu":
             self.cull = ctx.compute_shader(shadergen.compute_source("cull.comp", self.header))
             self._bind_samplers(self.cull)
-            self.sorter = GpuRadixSort(ctx, self.capacity)
             self.params = ctx.buffer(reserve=16)
-            self.keys = ctx.buffer(reserve=self.capacity * 4)
-            self.values = ctx.buffer(reserve=self.capacity * 4)
-            self.records = ctx.buffer(reserve=self.capacity * RECORD_BYTES)
+            self._work_buffers()
             self._programs: dict[str, tuple] = {}
             self._select_program(self.draw_mode)
         else:
             self._cpu_sorter = CpuSorter()
             if pool.mirror is None:
                 raise UsageError("the CPU sort path needs a pool with a host mirror of the splat centres")
+
+    def _work_buffers(self) -> None:
+        """(Re)allocate the per-frame GPU buffers for the pool's capacity."""
+        for name in ("keys", "values", "records"):
+            if hasattr(self, name):
+                getattr(self, name).release()
+        if hasattr(self, "sorter"):
+            self.sorter.release()
+        self.sorter = GpuRadixSort(self.ctx, self.capacity)
+        self.keys = self.ctx.buffer(reserve=self.capacity * 4)
+        self.values = self.ctx.buffer(reserve=self.capacity * 4)
+        self.records = self.ctx.buffer(reserve=self.capacity * RECORD_BYTES)
+
+    def _follow_pool(self) -> None:
+        """The pool grew: new atlas row width and capacity."""
+        if self.pool.slots * CHUNK == self.capacity:
+            return
+        self.capacity = self.pool.slots * CHUNK
+        for prog in (self.program, getattr(self, "cull", None), getattr(self, "_debug", None)):
+            if prog is not None:
+                _set(prog, "u_cols", self.pool.cols)
+        if self.sort_mode == "gpu":
+            self._work_buffers()
 
     def _select_program(self, mode: str) -> None:
         if mode not in self._programs:
@@ -208,6 +228,7 @@ class SplatRenderer:
     # --- frame ---------------------------------------------------------------------------------------------
     def render(self, cam: Camera, sh_degree: int | None = None, background=(0.0, 0.0, 0.0), clear: bool = True,
                timing: bool = False) -> FrameStats:
+        self._follow_pool()
         degree = self.pool.sh_degree if sh_degree is None else max(0, min(int(sh_degree), self.pool.sh_degree))
         fbo = self.framebuffer(cam.width, cam.height)
         uniforms = camera_uniforms(cam)
@@ -372,6 +393,7 @@ class SplatRenderer:
     def decode_debug(self, ids: np.ndarray) -> np.ndarray:
         """(len(ids), DEBUG_STRIDE) float32 decoded by the shaders' decoders (decode_debug.comp)."""
         ctx = self.ctx
+        self._follow_pool()
         if not hasattr(self, "_debug"):
             self._debug = ctx.compute_shader(shadergen.compute_source("decode_debug.comp", self.header))
             self._bind_samplers(self._debug)
