@@ -7,7 +7,8 @@
 # Writes OUT_DIR/<stem>.compressed.ply, .spz, .sog (the encodings whose sizes count) and OUT_DIR/<stem>.<fmt>.dec.ply
 # (decoded by splat-transform), and prints the matching `--compare LABEL=DECODED@ENCODED` arguments on stdout
 # (one per line). The tool is installed under $PEERS_PREFIX (default /tmp/peers) on first use; node >= 18.
-# SOG is encoded on the CPU (-g cpu: no WebGPU here), with the tool's default 10 SH k-means iterations.
+# SOG is encoded on the CPU (-g cpu: no WebGPU here), with the tool's default 10 SH k-means iterations (1M splats:
+# ~7 minutes on 2 cores). Existing outputs newer than the input are reused unless PEERS_FORCE=1.
 set -euo pipefail
 in=${1:?usage: eval_peers.sh INPUT.ply OUT_DIR}
 out=${2:?usage: eval_peers.sh INPUT.ply OUT_DIR}
@@ -24,6 +25,11 @@ echo "splat-transform $version on $in" >&2
 for fmt in compressed.ply spz sog; do
   enc="$out/$stem.$fmt"
   dec="$out/$stem.$fmt.dec.ply"
+  if [ "${PEERS_FORCE:-0}" != 1 ] && [ -s "$dec" ] && [ "$enc" -nt "$in" ] && [ "$dec" -nt "$enc" ]; then
+    echo "reusing $enc ($(stat -c %s "$enc") bytes; PEERS_FORCE=1 re-encodes)" >&2
+    echo "st-$fmt=$dec@$enc"
+    continue
+  fi
   extra=()
   [ "$fmt" = sog ] && extra=(-g cpu)
   start=$(date +%s.%N)
