@@ -16,8 +16,8 @@ rasteriser shows them at the tile's viewing scale (see match_screen_appearance),
 w-weighted means.
 
 Geometric error (world units): per merged splat, a bound on the Hausdorff distance between its original members'
-1-sigma balls and its own; a tile's error is the 99th percentile over its splats, at least its children's
-errors (monotone), 0 for leaves.
+1-sigma balls and its own; a tile's error is the 99th percentile of that over the originals it stands for (each
+original counts with its merged splat's error), at least its children's errors (monotone), 0 for leaves.
 """
 from __future__ import annotations
 
@@ -38,7 +38,8 @@ MAX_MERGED_OPACITY = 0.99
 # at which coarse tiles are meant to be seen: their opacities are matched at that scale.
 LOW_PASS_PX2 = 0.3
 OPACITY_MATCH_SSE_PX = 1.0
-# Error statistic over a tile's merged splats: "max" is a strict bound; a high quantile ignores a few outliers.
+# Error statistic over a tile's ORIGINAL splats, each taking the error of the merged splat that stands for it
+# (so untouched singletons cannot hide a merged blob): "max" is a strict bound; a quantile ignores a few outliers.
 ERROR_STAT: str | float = 0.99
 # Standard deviations of the balls the error compares: at 1 sigma, merging two point-like splats d apart costs
 # about d, the size of the detail lost (3 sigma would double it; the client's threshold would absorb the factor).
@@ -462,7 +463,7 @@ def build_tiles(g: Gaussians, max_leaf_splats: int = 65536, reduction: float = 4
             # Errors are measured against the originals; the max with the children keeps them monotone.
             rep = represented_by[tid]
             errors = merge_errors(originals.positions, reach[a:b], merged, rep)
-            error = max(_tile_error(errors), *(k.geometric_error for k in kids))
+            error = max(_tile_error(errors[rep]), *(k.geometric_error for k in kids))
             grown = match_screen_appearance(merged, originals, rep, error / OPACITY_MATCH_SSE_PX)
             if len(grown):
                 # Some splats grew to carry their coverage: measure those again, keep the larger tile error.
@@ -470,7 +471,7 @@ def build_tiles(g: Gaussians, max_leaf_splats: int = 65536, reduction: float = 4
                 is_grown[grown] = True
                 sel = is_grown[rep]
                 errors[grown] = merge_errors(originals.positions[sel], reach[a:b][sel], merged, rep[sel])[grown]
-                error = max(error, _tile_error(errors))
+                error = max(error, _tile_error(errors[rep]))
             lo, hi, own_c, own_r = extent_bounds(merged)
             # The parent's volume also encloses its children's, so culling a parent never hides a child.
             lo = np.minimum(lo, np.min([k.box_min for k in kids], axis=0))

@@ -130,6 +130,21 @@ def test_reorder_input_gives_the_same_tree_without_a_copy(n):
     assert all(np.shares_memory(t.gaussians.sh_rest, g.sh_rest) for t in leaves)
 
 
+def test_error_sees_a_merged_blob_among_untouched_outliers():
+    # 995 isolated splats on a lattice stay single, a dense blob of 3000 merges into a handful: over 99 % of the
+    # merged splats are untouched copies, so a percentile over merged splats would say 0. The error must not.
+    blob = random_gaussians(3000, seed=11)
+    blob.positions = blob.positions * 0.01 + 50.0
+    lonely = random_gaussians(995, seed=13)
+    lattice = np.stack(np.meshgrid(*[np.arange(10)] * 3, indexing="ij"), -1).reshape(-1, 3)[:995]
+    lonely.positions = (lattice * 100.0).astype(np.float32)
+    lonely.log_scales[:] = -6.0
+    tiles = lod.build_tiles(Gaussians.concatenate([blob, lonely]), max_leaf_splats=1000)
+    root = tiles[0]
+    assert len(root.gaussians) < 1000 and root.children
+    assert root.geometric_error > 0.0
+
+
 def test_empty_scene_is_an_empty_leaf():
     tiles = lod.build_tiles(Gaussians.empty(3))
     assert len(tiles) == 1 and len(tiles[0].gaussians) == 0 and tiles[0].children == []
