@@ -83,6 +83,8 @@ _SIGNATURES = {
     "glCompressedTexImage3D": (None, (_u, _i, _u, _i, _i, _i, _i, _i, _p)),
     "glCompressedTexSubImage2D": (None, (_u, _i, _i, _i, _i, _i, _u, _i, _p)),
     "glCompressedTexSubImage3D": (None, (_u, _i, _i, _i, _i, _i, _i, _i, _u, _i, _p)),
+    "glTextureBarrier": (None, ()),
+    "glTextureBarrierNV": (None, ()),
     "glCopyImageSubData": (None, (_u, _u, _i, _i, _i, _i, _u, _u, _i, _i, _i, _i, _i, _i, _i)),
 }
 
@@ -143,6 +145,17 @@ def check(what: str) -> None:
     err = gl.glGetError()
     if err != GL_NO_ERROR:
         raise GLError(f"{what}: GL error 0x{err:04x}")
+
+
+def texture_barrier() -> bool:
+    """glTextureBarrier (GL 4.5 / ARB_texture_barrier) or glTextureBarrierNV; False when neither exists."""
+    for name in ("glTextureBarrier", "glTextureBarrierNV"):
+        try:
+            getattr(gl, name)()
+            return True
+        except GLError:
+            continue
+    return False
 
 
 def _ptr(data: np.ndarray | None):

@@ -129,9 +129,10 @@ class SplatRenderer:
         self._index_buffer = None
         self._vao_cpu = None
         self._ids_cache = None
-        # A draw mode may carry measurement flags: "fetch+nodepth", "fetch+noblend", "fetch+discard".
+        # A draw mode may carry flags: "+f2b" (front to back in batches with saturation passes: experimental) and the
+        # measurement flags "+nodepth", "+noblend", "+discard".
         base, *flags = draw.split("+")
-        if base not in DRAW_CHOICES or not set(flags) <= {"nodepth", "noblend", "discard"}:
+        if base not in DRAW_CHOICES or not set(flags) <= {"nodepth", "noblend", "discard", "f2b"}:
             raise UsageError(f"unknown draw mode {draw!r} (choose one of {', '.join(DRAW_CHOICES)})")
         self.max_point = float(ctx.info.get("GL_POINT_SIZE_RANGE", (1.0, 1.0))[1])
         self.draw_request = base
@@ -139,6 +140,10 @@ class SplatRenderer:
         self.debug_flags = set(flags)
         # Test splats against opaque geometry already in the framebuffer's depth (draw it first, render(clear=False)).
         self.depth_test = "nodepth" not in flags
+        self.front_to_back = "f2b" in flags
+        if self.front_to_back and (self.sort_mode != "gpu" or base not in ("auto", "fetch", "points")):
+            raise UsageError("the front-to-back draw (+f2b) needs the GPU sort and the fetch or points draw mode")
+        self._background = (0.0, 0.0, 0.0)
         if self.sort_mode == "gpu":
             self.cull = ctx.compute_shader(shadergen.compute_source("cull.comp", self.header))
             self._bind_samplers(self.cull)
@@ -162,6 +167,10 @@ class SplatRenderer:
         self.keys = self.ctx.buffer(reserve=self.capacity * 4)
         self.values = self.ctx.buffer(reserve=self.capacity * 4)
         self.records = self.ctx.buffer(reserve=self.capacity * RECORD_BYTES)
+        if getattr(self, "_programs", None):  # VAOs of the front-to-back quads read `values` as an attribute
+            mode = self.draw_mode
+            self._programs = {}
+            self._select_program(mode)
 
     def _follow_pool(self) -> None:
         """The pool grew: new atlas row width and capacity."""
@@ -176,13 +185,61 @@ class SplatRenderer:
 
     def _select_program(self, mode: str) -> None:
         if mode not in self._programs:
-            vert, frag = shadergen.projected_render_sources(mode)
+            vert, frag = shadergen.projected_render_sources(mode, self.front_to_back)
             if "discard" in self.debug_flags:
                 frag = frag.replace("void main() {", "void main() {\n    discard;", 1)
             prog = self.ctx.program(vertex_shader=vert, fragment_shader=frag)
-            self._programs[mode] = (prog, self.ctx.vertex_array(prog, []))
+            if self.front_to_back and mode != "points":
+                vao = self.ctx.vertex_array(prog, [(self.values, "1u /i", "a_order")])
+            else:
+                vao = self.ctx.vertex_array(prog, [])
+            self._programs[mode] = (prog, vao)
         self.draw_mode = mode
         self.program_gpu, self.vao_gpu = self._programs[mode]
+
+    def _draw_front_to_back(self, cam: Camera, guard: int) -> None:
+        """Batches front to back; between them a saturation pass writes depth 0 where T < 1e-4 (early stop)."""
+        from .gl import texture_barrier
+
+        ctx = self.ctx
+        fbo = self._fbo
+        color = fbo.color_attachments[0]
+        if not hasattr(self, "_saturate"):
+            vert, frag = shadergen.saturate_sources()
+            self._saturate = ctx.program(vertex_shader=vert, fragment_shader=frag)
+            self._saturate_vao = ctx.vertex_array(self._saturate, [])
+            self._batch_cmd = ctx.buffer(reserve=16)
+        points = self.draw_mode == "points"
+        batches = shadergen.F2B_BATCHES
+        for b in range(batches):
+            ctx.copy_buffer(self._batch_cmd, self.sorter.batches, size=16, read_offset=32 * b + (16 if points else 0))
+            if points:
+                ctx.enable(moderngl.PROGRAM_POINT_SIZE)
+                ctx.viewport = (-guard, -guard, cam.width + 2 * guard, cam.height + 2 * guard)
+                self.vao_gpu.render_indirect(self._batch_cmd, mode=moderngl.POINTS, count=1)
+                ctx.viewport = (0, 0, cam.width, cam.height)
+            else:
+                self.vao_gpu.render_indirect(self._batch_cmd, mode=moderngl.TRIANGLE_STRIP, count=1)
+            if b == batches - 1:
+                break
+            # Saturation pass: colour writes off, depth written (0) where the accumulated alpha saturated.
+            if not texture_barrier():
+                raise UsageError("the front-to-back draw needs glTextureBarrier (GL 4.5 or NV_texture_barrier)")
+            fbo.color_mask = (False, False, False, False)
+            fbo.depth_mask = True
+            fbo.use()
+            ctx.disable(moderngl.BLEND)
+            ctx.enable(moderngl.DEPTH_TEST)
+            ctx.depth_func = "1"  # always
+            color.use(8)
+            _set(self._saturate, "u_accum", 8)
+            self._saturate_vao.render(mode=moderngl.TRIANGLES, vertices=3)
+            fbo.color_mask = (True, True, True, True)
+            fbo.depth_mask = False
+            fbo.use()
+            self._draw_state()
+            self.records.bind_to_storage_buffer(0)
+            self.values.bind_to_storage_buffer(1)
 
     def read_oversized_count(self) -> int:
         """Visible splats of the last GPU frame wider than the largest point sprite (clamped in the points mode)."""
@@ -223,7 +280,10 @@ class SplatRenderer:
         """(H, W, 4) float32 of the last frame, row 0 at the top (premultiplied RGB over the background, alpha)."""
         w, h = self._fbo_size
         raw = self._fbo.read(components=4, dtype="f4")
-        return np.frombuffer(raw, np.float32).reshape(h, w, 4)[::-1].copy()
+        img = np.frombuffer(raw, np.float32).reshape(h, w, 4)[::-1].copy()
+        if self.front_to_back:
+            img[..., :3] += (1.0 - img[..., 3:4]) * np.asarray(self._background, np.float32)
+        return img
 
     # --- frame ---------------------------------------------------------------------------------------------
     def render(self, cam: Camera, sh_degree: int | None = None, background=(0.0, 0.0, 0.0), clear: bool = True,
@@ -233,10 +293,14 @@ class SplatRenderer:
         fbo = self.framebuffer(cam.width, cam.height)
         uniforms = camera_uniforms(cam)
         uniforms["u_sh_degree"] = degree
+        self._background = tuple(float(c) for c in background)
         if clear:
             fbo.depth_mask = True
             fbo.use()
-            fbo.clear(float(background[0]), float(background[1]), float(background[2]), 0.0, depth=1.0)
+            if self.front_to_back:  # accumulates C and 1 - T from zero; the background is composited on read-back
+                fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
+            else:
+                fbo.clear(float(background[0]), float(background[1]), float(background[2]), 0.0, depth=1.0)
         fbo.depth_mask = False
         fbo.use()
         if self.sort_mode == "gpu":
@@ -251,7 +315,10 @@ class SplatRenderer:
             ctx.disable(moderngl.DEPTH_TEST)
         if "noblend" in self.debug_flags:
             ctx.disable(moderngl.BLEND)
-        ctx.blend_func = moderngl.ONE, moderngl.ONE_MINUS_SRC_ALPHA
+        if self.front_to_back:  # "under": C += (1 - A) alpha c, A += (1 - A) alpha
+            ctx.blend_func = moderngl.ONE_MINUS_DST_ALPHA, moderngl.ONE
+        else:
+            ctx.blend_func = moderngl.ONE, moderngl.ONE_MINUS_SRC_ALPHA
         ctx.blend_equation = moderngl.FUNC_ADD
         ctx.depth_func = "<"
 
@@ -273,6 +340,7 @@ class SplatRenderer:
         _set(self.program_gpu, "u_guard", guard)
         _set(self.cull, "u_max_point", self.max_point if self.draw_mode == "points" else 1e30)
         _set(self.cull, "u_slots", slots)
+        _set(self.cull, "u_key_xor", 0 if self.front_to_back else 0xFFFFFFFF)
         self.pool.bind()
         self.params.bind_to_storage_buffer(0)
         self.keys.bind_to_storage_buffer(1)
@@ -293,7 +361,9 @@ class SplatRenderer:
             self._draw_state()
             self.records.bind_to_storage_buffer(0)
             self.values.bind_to_storage_buffer(1)
-            if self.draw_mode == "triangles":
+            if self.front_to_back:
+                self._draw_front_to_back(cam, int(guard))
+            elif self.draw_mode == "triangles":
                 self.vao_gpu.render_indirect(self.sorter.draw_tri, mode=moderngl.TRIANGLES, count=1)
             elif self.draw_mode == "points":
                 ctx.enable(moderngl.PROGRAM_POINT_SIZE)

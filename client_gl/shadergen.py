@@ -22,6 +22,7 @@ SCAN_ITEMS = 8
 SORT_TILE = 256 * SORT_ITEMS
 SCAN_TILE = 256 * SCAN_ITEMS
 DEBUG_STRIDE = 80  # floats per splat written by decode_debug.comp
+F2B_BATCHES = 8  # front-to-back draws: batches separated by saturation passes
 
 # Texture unit of each plane's atlas (and of the range table).
 TEXTURE_UNITS = {"position": 0, "rotation": 1, "scale": 2, "color": 3, "sh1": 4, "sh2": 5, "sh3": 6, "ranges": 7}
@@ -203,7 +204,7 @@ vec3 decode_sh{band}(uint id, ivec2 p, int layer) {{
 
 def sort_defines() -> str:
     return (f"#define RADIX {1 << RADIX_BITS}u\n#define ITEMS {SORT_ITEMS}u\n#define TILE {SORT_TILE}u\n"
-            f"#define SCAN_ITEMS {SCAN_ITEMS}\n#define SCAN_TILE {SCAN_TILE}u\n")
+            f"#define SCAN_ITEMS {SCAN_ITEMS}\n#define SCAN_TILE {SCAN_TILE}u\n#define BATCHES {F2B_BATCHES}u\n")
 
 
 def compute_source(name: str, header: str = "", version: int = 430) -> str:
@@ -213,7 +214,11 @@ def compute_source(name: str, header: str = "", version: int = 430) -> str:
     return f"#version {version}\n{sort_defines()}{common}\n{body}\n"
 
 
-def projected_render_sources(mode: str = "instanced") -> tuple[str, str]:
+def saturate_sources() -> tuple[str, str]:
+    return f"#version 430\n{read_shader('saturate.vert')}\n", f"#version 430\n{read_shader('saturate.frag')}\n"
+
+
+def projected_render_sources(mode: str = "instanced", front_to_back: bool = False) -> tuple[str, str]:
     """(vertex, fragment) sources of the GPU path's draw, which reads the cull pass's projected records.
 
     instanced: 4-vertex strips, attributes passed as flat varyings; triangles: non-instanced, 6 vertices a splat;
@@ -226,8 +231,11 @@ def projected_render_sources(mode: str = "instanced") -> tuple[str, str]:
         return vert, f"#version 430\n{read_shader('splat.frag')}\n"
     # Instanced quads index order[] by instance; points draw one instance of n vertices (stride 1, instance 0).
     define = "#define DRAW_POINTS\n#define POINTS_STRIDE 1u\n" if mode == "points" else "#define POINTS_STRIDE 0u\n"
+    if front_to_back and mode != "points":
+        define += "#define ORDER_ATTRIBUTE\n"  # batches start at a base instance; gl_InstanceID ignores it
     vert = f"#version 430\n{define}{_expand_includes(read_shader('splat_fetch.vert'))}\n"
-    return vert, f"#version 430\n{read_shader('splat_fetch.frag')}\n"
+    early = "#define EARLY_TESTS\n" if front_to_back else ""
+    return vert, f"#version 430\n{early}{read_shader('splat_fetch.frag')}\n"
 
 
 def render_sources(header: str, version: int = 430) -> tuple[str, str]:

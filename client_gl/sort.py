@@ -46,16 +46,17 @@ class GpuRadixSort:
         self.draw = ctx.buffer(reserve=16)       # instanced: (4, n, 0, 0)
         self.draw_tri = ctx.buffer(reserve=16)   # non-instanced triangles: (6 n, 1, 0, 0)
         self.draw_points = ctx.buffer(reserve=16)  # points: (n, 1, 0, 0)
+        self.batches = ctx.buffer(reserve=32 * shadergen.F2B_BATCHES)  # front-to-back batch commands
         self._params: object | None = None
 
     @property
     def gpu_bytes(self) -> int:
         return sum(b.size for b in (self.table, self.reduced, self.keys_tmp, self.values_tmp, self.dispatch, self.draw,
-                                     self.draw_tri, self.draw_points))
+                                     self.draw_tri, self.draw_points, self.batches))
 
     def release(self) -> None:
         for b in (self.table, self.reduced, self.keys_tmp, self.values_tmp, self.dispatch, self.draw, self.draw_tri,
-                  self.draw_points):
+                  self.draw_points, self.batches):
             b.release()
 
     def setup(self, params) -> None:
@@ -65,6 +66,7 @@ class GpuRadixSort:
         self.draw.bind_to_storage_buffer(4)
         self.draw_tri.bind_to_storage_buffer(5)
         self.draw_points.bind_to_storage_buffer(6)
+        self.batches.bind_to_storage_buffer(7)
         self.setup_shader.run(1)
         self.ctx.memory_barrier()
 

@@ -30,7 +30,7 @@ def renderers():
     out = {"cpu": HeadlessRenderer(sort="cpu", ctx=ctx)}
     if ctx.version_code >= 430:
         out["gpu"] = HeadlessRenderer(sort="gpu", ctx=ctx)  # forced even on llvmpipe; draw "auto"
-        for mode in ("instanced", "triangles", "fetch", "points"):
+        for mode in ("instanced", "triangles", "fetch", "points", "fetch+f2b", "points+f2b"):
             out[f"gpu-{mode}"] = HeadlessRenderer(sort="gpu", ctx=ctx, draw=mode)
     yield out
     for r in out.values():
@@ -39,7 +39,8 @@ def renderers():
 
 
 @pytest.mark.parametrize("name", REAL_PLYS)
-@pytest.mark.parametrize("sort", ["cpu", "gpu", "gpu-instanced", "gpu-triangles", "gpu-fetch", "gpu-points"])
+@pytest.mark.parametrize("sort", ["cpu", "gpu", "gpu-instanced", "gpu-triangles", "gpu-fetch", "gpu-points",
+                                  "gpu-fetch+f2b", "gpu-points+f2b"])
 def test_real_scene_matches_reference(renderers, name, sort):
     if sort not in renderers:
         pytest.skip("no compute shaders")

@@ -13,6 +13,7 @@ layout(std430, binding = 3) writeonly buffer Records { uvec4 records[]; };
 uniform uint u_slots;       // slots to scan (highest used slot + 1)
 uniform uint u_slot_base;   // first slot of this dispatch (dispatches are split to stay under the group limit)
 uniform float u_max_point;  // largest point sprite (points draw mode): wider splats are counted in params.oversized
+uniform uint u_key_xor;     // 0xFFFFFFFF: back to front (default); 0: front to back
 
 shared uint s_local;
 shared uint s_base;
@@ -41,7 +42,7 @@ void main() {
                 vec2 ext = cutoff_sigmas(col.a) * sqrt(vec2(cov.x, cov.z));
                 visible = all(greaterThan(center + ext, vec2(0.0))) && all(lessThan(center - ext, u_size));
                 if (visible && 2.0 * max(ext.x, ext.y) + 1.0 > u_max_point) atomicAdd(oversized, 1u);
-                key = 0xFFFFFFFFu - floatBitsToUint(depth);
+                key = floatBitsToUint(depth) ^ u_key_xor;
             }
         }
     }

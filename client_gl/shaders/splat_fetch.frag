@@ -1,5 +1,8 @@
 // Fragment shader of the GPU path's "fetch" draw modes: the vertex stage passes only the record index, the
 // fragment reads the 48-byte record (cached: every fragment of a splat reads the same one).
+#ifdef EARLY_TESTS
+layout(early_fragment_tests) in;  // front-to-back draw: saturated pixels (depth 0) reject fragments before shading
+#endif
 layout(std430, binding = 0) readonly buffer Records { uvec4 records[]; };
 
 flat in uint v_record;

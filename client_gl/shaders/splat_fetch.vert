@@ -13,8 +13,16 @@ flat out uint v_record;
 
 #include "quad.glsl"
 
+#ifdef ORDER_ATTRIBUTE
+layout(location = 0) in uint a_order;  // per instance: honours the base instance of batched indirect draws
+#endif
+
 void main() {
+#ifdef ORDER_ATTRIBUTE
+    uint rec = a_order;
+#else
     uint rec = order[uint(gl_InstanceID) + uint(gl_VertexID) * POINTS_STRIDE];
+#endif
     v_record = rec;
     uint r = rec * 3u;
     uvec4 a = records[r];
