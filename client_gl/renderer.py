@@ -1,15 +1,17 @@
 """The per-frame pipeline: cull + depth keys (compute), radix sort (compute), one instanced draw (indirect).
 
 GPU path (GL >= 4.3 with compute shaders, a hardware GL):
-  1. cull.comp, one work group per resident chunk slot: decode position/rotation/scale/opacity from the atlases,
-     drop splats behind the near plane, with opacity < 1/255, or whose alpha >= 1/255 ellipse misses the image;
-     compact survivors with work-group aggregated atomics into (key = ~bits(depth), value = splat index).
-  2. indirect_setup.comp turns the count into sort dispatch sizes and the draw's instance count.
+  1. cull.comp, one work group per resident chunk slot: decode the splat from the atlases, drop it when behind the
+     near plane, with opacity < 1/255, or when its alpha >= 1/255 ellipse misses the image; survivors are compacted
+     with work-group aggregated atomics into (key = ~bits(depth), value = i) plus a 48-byte projected record
+     (EWA covariance, conic, quad axes, SH colour), so the raster stage only expands quads.
+  2. indirect_setup.comp turns the count into sort dispatch sizes and the draw's arguments.
   3. GpuRadixSort sorts only the visible keys (8 passes of count/reduce/scan/scan-add/scatter).
-  4. One glDrawArraysIndirect-style instanced draw of 4-vertex strips: the sorted values are the per-instance
-     attribute, back to front, premultiplied colour blended with (ONE, ONE_MINUS_SRC_ALPHA).
+  4. One indirect draw (quads or point sprites, see DRAW_MODES) back to front, premultiplied colour blended with
+     (ONE, ONE_MINUS_SRC_ALPHA), depth-tested against the framebuffer's depth without writing it.
 CPU path (GL < 4.3, software GL, or sort="cpu"): cull and depth sort in numpy on a worker thread, index buffer
-upload, the same vertex and fragment shaders.
+upload, one instanced draw whose vertex shader decodes, projects and evaluates SH (splat.vert, GL 4.1).
+format_spec/renderer.md describes both and what they measured.
 """
 from __future__ import annotations
 
