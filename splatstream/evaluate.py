@@ -249,6 +249,8 @@ def evaluate(input_path: str, opts: EvalOptions | None = None,
     if opts.width < 11 or opts.height < 11:
         raise UsageError("--size must be at least 11x11 (the SSIM window)")
     compares = [parse_compare(c) for c in opts.compare]
+    for _, path, _ in compares:  # fail before the (long) preset runs, not after them
+        read_compare(path)
     input_path = os.fspath(input_path)
     input_size = os.path.getsize(input_path)
     t = time.perf_counter()
