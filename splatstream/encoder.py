@@ -57,6 +57,9 @@ class EncodeOptions:
     name: str | None = None
     up: tuple[float, float, float] | None = None
     chunk_order: str = "auto"  # "morton", "luminance", or "auto" (luminance when only colour/SH are BC-compressed)
+    # Let the LOD builder permute the input's arrays in place instead of copying the scene (saves one copy of
+    # the whole scene). Only for callers that own the Gaussians and do not need their order afterwards.
+    reorder_input: bool = False
 
 
 CHUNK_ORDERS = ("auto", "morton", "luminance")
@@ -129,7 +132,8 @@ def _build_tiles(g: Gaussians, opts: EncodeOptions, progress: Progress) -> list:
     if opts.lod and len(g) > opts.max_leaf_splats:
         from .lod import build_tiles
 
-        return build_tiles(g, max_leaf_splats=opts.max_leaf_splats, reduction=opts.reduction, progress=progress)
+        return build_tiles(g, max_leaf_splats=opts.max_leaf_splats, reduction=opts.reduction, progress=progress,
+                           reorder_input=opts.reorder_input)
     limit = MAX_BLOCKS_PER_ROW * MAX_BLOCK_ROWS * CHUNK_SIZE
     if len(g) > limit:
         raise UsageError(f"{len(g)} splats do not fit one tile (at most {limit}); encode with LOD (drop --no-lod)")
@@ -287,7 +291,7 @@ def encode_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, prese
     """Read any supported splat file and encode it into `out_dir`."""
     from .io import read_gaussians
 
-    opts = EncodeOptions(preset=preset, **options)
+    opts = EncodeOptions(preset=preset, reorder_input=True, **options)
     resolve_formats(opts.preset, opts.overrides)  # fail before the (possibly long) read
     if progress:
         progress("read", 0.0)
