@@ -38,9 +38,13 @@ DRAW_MODES = ("instanced", "triangles", "fetch", "points")
 # "auto": point sprites (one primitive per splat; measured on an H200 at 6M splats the raster path's primitive rate is
 # the bottleneck: 29 ms against 35 ms for fetch quads) when at least AUTO_POINTS_MIN_SPLATS are resident and point
 # sprites are at least as wide as the image; otherwise fetch quads (tighter, fewer fragments: 9.6 vs 10.7 ms at 1M).
-DRAW_CHOICES = ("auto",) + DRAW_MODES
+# "compute": the compute-shader tile rasterizer (client_gl/compute_raster.py), no raster hardware.
+DRAW_CHOICES = ("auto",) + DRAW_MODES + ("compute",)
 AUTO_POINTS_MIN_SPLATS = 2_000_000
 RECORD_BYTES = 48  # per visible splat, written by cull.comp
+# "auto" on the GPU path (a hardware GL with compute shaders): the compute rasterizer when AUTO_COMPUTE.
+AUTO_COMPUTE = False
+BIN_CHECK_FRAMES = 2  # compute draw: frames after an allocation whose entry count is read back (overflow -> grow)
 
 
 def has_compute(ctx) -> bool:
@@ -72,13 +76,15 @@ class FrameStats:
     cull_ms: float | None = None        # GPU time (timer queries) when timing was requested
     sort_ms: float | None = None
     draw_ms: float | None = None
+    bin_ms: float | None = None         # compute draw mode: tile binning (count, scan, emit)
+    tile_sort_ms: float | None = None   # compute draw mode: sort of the entries by tile, tile ranges
     cpu_ms: dict = field(default_factory=dict)
 
     @property
     def total_ms(self) -> float | None:
         if self.cull_ms is None:
             return None
-        return self.cull_ms + self.sort_ms + self.draw_ms
+        return self.cull_ms + self.sort_ms + self.draw_ms + (self.bin_ms or 0.0) + (self.tile_sort_ms or 0.0)
 
 
 def _set(prog, name: str, value) -> None:
@@ -117,6 +123,11 @@ class SplatRenderer:
     def __init__(self, ctx, pool: ChunkPool, sort: str = "auto", color_dtype: str = "f4", draw: str = "auto"):
         self.ctx = ctx
         self.pool = pool
+        compute_draw = draw.split("+")[0] == "compute"
+        if compute_draw and sort == "auto" and has_compute(ctx):
+            sort = "gpu"  # the compute rasterizer needs the GPU path, also on a software GL
+        if compute_draw and sort != "gpu":
+            raise UsageError("the compute draw mode needs OpenGL 4.3 compute shaders and the GPU sort")
         self.sort_mode = choose_sort(ctx, sort)
         self.color_dtype = color_dtype
         version = 430 if has_compute(ctx) else 410
@@ -143,6 +154,8 @@ class SplatRenderer:
         # Test splats against opaque geometry already in the framebuffer's depth (draw it first, render(clear=False)).
         self.depth_test = "nodepth" not in flags
         self.front_to_back = "f2b" in flags
+        if compute_draw and flags:
+            raise UsageError(f"the compute draw mode takes no flags, got {draw!r}")
         if self.front_to_back and (self.sort_mode != "gpu" or base not in ("auto", "fetch", "points")):
             raise UsageError("the front-to-back draw (+f2b) needs the GPU sort and the fetch or points draw mode")
         self._background = (0.0, 0.0, 0.0)
@@ -169,6 +182,9 @@ class SplatRenderer:
         self.keys = self.ctx.buffer(reserve=self.capacity * 4)
         self.values = self.ctx.buffer(reserve=self.capacity * 4)
         self.records = self.ctx.buffer(reserve=self.capacity * RECORD_BYTES)
+        if getattr(self, "craster", None) is not None:
+            self.craster.resize(self.capacity)
+            self._bin_checks = BIN_CHECK_FRAMES
         if getattr(self, "_programs", None):  # VAOs of the front-to-back quads read `values` as an attribute
             mode = self.draw_mode
             self._programs = {}
@@ -186,6 +202,15 @@ class SplatRenderer:
             self._work_buffers()
 
     def _select_program(self, mode: str) -> None:
+        if mode == "compute":
+            if getattr(self, "craster", None) is None:
+                from .compute_raster import ComputeRaster
+
+                self.craster = ComputeRaster(self.ctx, self.color_dtype, self.capacity)
+                self._bin_checks = BIN_CHECK_FRAMES
+            self.draw_mode = mode
+            self.program_gpu = self.vao_gpu = None
+            return
         if mode not in self._programs:
             vert, frag = shadergen.projected_render_sources(mode, self.front_to_back)
             if "discard" in self.debug_flags:
@@ -257,7 +282,9 @@ class SplatRenderer:
     def work_bytes(self) -> int:
         """GPU bytes of per-frame work buffers (keys, values, sort scratch), beside the pool's splat data."""
         if self.sort_mode == "gpu":
-            return self.keys.size + self.values.size + self.records.size + self.params.size + self.sorter.gpu_bytes
+            extra = self.craster.gpu_bytes if getattr(self, "craster", None) is not None else 0
+            return (self.keys.size + self.values.size + self.records.size + self.params.size + self.sorter.gpu_bytes
+                    + extra)
         return self._index_buffer.size if self._index_buffer is not None else 0
 
     # --- framebuffer ---------------------------------------------------------------------------------------
@@ -327,12 +354,17 @@ class SplatRenderer:
     def _render_gpu(self, cam: Camera, uniforms: dict, timing: bool) -> FrameStats:
         ctx = self.ctx
         stats = FrameStats("gpu")
+        if self.draw_request == "auto":
+            if AUTO_COMPUTE and not self.front_to_back:
+                self._select_program("compute")
+            else:
+                wide = self.max_point >= max(cam.width, cam.height)
+                points = wide and self.pool.resident_splats >= AUTO_POINTS_MIN_SPLATS
+                self._select_program("points" if points else "fetch")
+        if self.draw_mode == "compute":
+            return self._render_compute(cam, uniforms, timing)
         queries = self._queries(3) if timing else None
         slots = self.pool.used_slots
-        if self.draw_request == "auto":
-            wide = self.max_point >= max(cam.width, cam.height)
-            points = wide and self.pool.resident_splats >= AUTO_POINTS_MIN_SPLATS
-            self._select_program("points" if points else "fetch")
         self.params.write(struct.pack("4I", 0, 0, 0, 0))
         for name, value in uniforms.items():
             _set(self.cull, name, value)
@@ -389,8 +421,68 @@ class SplatRenderer:
     def _queries(self, n: int) -> list:
         """Reusable GL_TIME_ELAPSED queries (moderngl queries cannot be released one by one)."""
         if not hasattr(self, "_query_pool"):
-            self._query_pool = [self.ctx.query(time=True) for _ in range(3)]
+            self._query_pool = [self.ctx.query(time=True) for _ in range(5)]
         return self._query_pool[:n]
+
+    def _render_compute(self, cam: Camera, uniforms: dict, timing: bool) -> FrameStats:
+        """Cull + keys (front to back), depth sort, tile binning, tile sort, tile raster (compute_raster.py)."""
+        ctx = self.ctx
+        stats = FrameStats("gpu")
+        cr = self.craster
+        slots = self.pool.used_slots
+        self.params.write(struct.pack("4I", 0, 0, 0, 0))
+        for name, value in uniforms.items():
+            _set(self.cull, name, value)
+        _set(self.cull, "u_max_point", 1e30)
+        _set(self.cull, "u_slots", slots)
+        _set(self.cull, "u_key_xor", 0)  # ascending key = front to back
+        w, h = cam.width, cam.height
+        color = self._fbo.color_attachments[0]
+
+        def cull():
+            self.pool.bind()
+            self.params.bind_to_storage_buffer(0)
+            self.keys.bind_to_storage_buffer(1)
+            self.values.bind_to_storage_buffer(2)
+            self.records.bind_to_storage_buffer(3)
+            for base in range(0, slots, MAX_GROUPS_PER_DISPATCH):
+                _set(self.cull, "u_slot_base", base)
+                self.cull.run(min(MAX_GROUPS_PER_DISPATCH, slots - base))
+            ctx.memory_barrier()
+            self.sorter.setup(self.params)
+
+        steps = (
+            cull,
+            lambda: self.sorter.sort(self.params, self.keys, self.values),
+            lambda: cr.bin(self.params, self.values, self.records, self.sorter.dispatch, w, h),
+            cr.sort,
+            lambda: cr.raster(self.records, color, w, h, self._background),
+        )
+        if timing:
+            queries = self._queries(5)
+            for q, step in zip(queries, steps, strict=True):
+                with q:
+                    step()
+            stats.cull_ms, stats.sort_ms, stats.bin_ms, stats.tile_sort_ms, stats.draw_ms = (
+                q.elapsed / 1e6 for q in queries)
+        else:
+            for step in steps:
+                step()
+        if self._bin_checks > 0:  # the first frames after an allocation check the entry buffer's capacity
+            self._bin_checks -= 1
+            if cr.grow_if_needed():
+                return self._render_compute(cam, uniforms, timing)
+        return stats
+
+    def check_bins(self) -> bool:
+        """Compute draw: grow the entry buffer if the last frame overflowed it (True: render the frame again)."""
+        if self.draw_mode != "compute":
+            return False
+        return self.craster.grow_if_needed()
+
+    def read_bin_counts(self) -> tuple[int, int]:
+        """Compute draw: (entries sorted, entries needed) of the last frame (a read-back: tests, benchmarks)."""
+        return self.craster.read_bins()
 
     def read_visible_count(self) -> int:
         """The GPU path's visible-splat count of the last frame (a readback: for tests and benchmarks only)."""
@@ -490,6 +582,8 @@ class SplatRenderer:
         if self.sort_mode == "gpu":
             buffers += [self.params, self.keys, self.values, self.records]
             self.sorter.release()
+            if getattr(self, "craster", None) is not None:
+                self.craster.release()
         for b in buffers:
             if b is not None:
                 b.release()

@@ -1,0 +1,175 @@
+"""Compute-shader tile rasterizer (draw mode "compute"), in the style of gsplat / the reference CUDA rasterizer.
+
+Runs after the renderer's cull pass (48-byte projected records, keys = depth bits, front to back) and its depth
+radix sort (values = record indices, front to back):
+
+  1. bin_count.comp: per work group of SCAN_TILE sorted splats, the number of (tile, splat) entries (16x16-pixel
+     tiles overlapped by the alpha >= 1/255 box of each splat);
+  2. bin_scan.comp (one work group): exclusive scan of the group sums, the entry total (`bins`), zeroed tile ranges;
+  3. bin_emit.comp: block-local exclusive scans + group offsets; each splat writes (tile id, record index) entries
+     in (depth, tile) order;
+  4. a stable radix sort of the entries by tile id only (ceil(log2(tiles)) bits: 4 passes of 4 bits at 1080p), so
+     each tile's run stays front to back;
+  5. tile_ranges.comp: [start, end) per tile by boundary detection;
+  6. raster.comp: one work group per tile, one thread per pixel, batches of 256 splats in shared memory, the
+     reference's blending and early stop (T < 1e-4), imageStore into the colour texture.
+
+Dispatch sizes come from indirect buffers filled on the GPU (no read-back in the frame). The entry buffer has a
+fixed capacity; entries beyond it are dropped and `bins.total` records the need: `read_bins()` / `grow_if_needed()`
+check it between frames (the renderer does after the first frames and on request, HeadlessRenderer after every
+image it reads back) and re-allocate.
+"""
+from __future__ import annotations
+
+import struct
+
+from . import shadergen
+from .shadergen import SCAN_TILE, SORT_TILE
+from .sort import GpuRadixSort
+
+TILE_PX = 16
+MIN_ENTRIES = 1 << 16
+ENTRIES_PER_SPLAT = 4  # initial entry capacity per splat of the pool's capacity
+IMAGE_FORMATS = {"f4": "rgba32f", "f2": "rgba16f", "f1": "rgba8"}
+
+assert SCAN_TILE == SORT_TILE, "bin_count/bin_emit run on the depth sort's dispatch sizes"
+
+
+def _source(name: str, defines: str = "") -> str:
+    src = shadergen.compute_source(name)
+    first, rest = src.split("\n", 1)
+    return f"{first}\n{defines}{rest}"
+
+
+class ComputeRaster:
+    """GPU buffers and programs of the tile rasterizer for one renderer."""
+
+    def __init__(self, ctx, color_dtype: str, visible_capacity: int, entry_capacity: int | None = None):
+        self.ctx = ctx
+        self.color_dtype = color_dtype
+        self.count_shader = ctx.compute_shader(_source("bin_count.comp"))
+        self.scan_shader = ctx.compute_shader(_source("bin_scan.comp"))
+        self.emit_shader = ctx.compute_shader(_source("bin_emit.comp"))
+        self.ranges_shader = ctx.compute_shader(_source("tile_ranges.comp"))
+        fmt = IMAGE_FORMATS[color_dtype]
+        self.raster_shader = ctx.compute_shader(_source("raster.comp", f"#define OUT_FORMAT {fmt}\n"))
+        self.bins = ctx.buffer(reserve=16)
+        self.gsum = None
+        self.ranges = None
+        self.tile_sorter = None
+        self.tile_keys = None
+        self.tile_values = None
+        self.tiles = 0
+        self.grid = (0, 0)
+        self.visible_capacity = 0
+        self.entry_capacity = 0
+        self.resize(visible_capacity, entry_capacity or max(MIN_ENTRIES, ENTRIES_PER_SPLAT * visible_capacity))
+
+    # --- buffers ---------------------------------------------------------------------------------------------
+    def resize(self, visible_capacity: int, entry_capacity: int | None = None) -> None:
+        """Group-sum buffer for `visible_capacity` splats; entry buffers (and their sorter) for `entry_capacity`."""
+        visible_capacity = max(1, int(visible_capacity))
+        if visible_capacity != self.visible_capacity:
+            if self.gsum is not None:
+                self.gsum.release()
+            self.gsum = self.ctx.buffer(reserve=4 * max(1, -(-visible_capacity // SCAN_TILE)))
+            self.visible_capacity = visible_capacity
+        if entry_capacity is not None and int(entry_capacity) != self.entry_capacity:
+            for b in (self.tile_keys, self.tile_values):
+                if b is not None:
+                    b.release()
+            if self.tile_sorter is not None:
+                self.tile_sorter.release()
+            self.entry_capacity = int(entry_capacity)
+            self.tile_sorter = GpuRadixSort(self.ctx, self.entry_capacity)
+            self.tile_keys = self.ctx.buffer(reserve=4 * self.entry_capacity)
+            self.tile_values = self.ctx.buffer(reserve=4 * self.entry_capacity)
+
+    def _grid_for(self, width: int, height: int) -> None:
+        grid = (-(-width // TILE_PX), -(-height // TILE_PX))
+        if grid != self.grid:
+            if self.ranges is not None:
+                self.ranges.release()
+            self.grid = grid
+            self.tiles = grid[0] * grid[1]
+            self.ranges = self.ctx.buffer(reserve=8 * self.tiles)
+
+    @property
+    def gpu_bytes(self) -> int:
+        bufs = (self.bins, self.gsum, self.ranges, self.tile_keys, self.tile_values)
+        return sum(b.size for b in bufs if b is not None) + self.tile_sorter.gpu_bytes
+
+    def release(self) -> None:
+        for b in (self.bins, self.gsum, self.ranges, self.tile_keys, self.tile_values):
+            if b is not None:
+                b.release()
+        self.tile_sorter.release()
+
+    # --- overflow ----------------------------------------------------------------------------------------------
+    def read_bins(self) -> tuple[int, int]:
+        """(entries sorted, entries needed) of the last frame: a read-back, for between frames."""
+        entries, total = struct.unpack("2I", self.bins.read(8))
+        return entries, total
+
+    def grow_if_needed(self) -> bool:
+        """Re-allocate the entry buffers when the last frame needed more entries than they hold (True: re-render)."""
+        _, total = self.read_bins()
+        if total <= self.entry_capacity:
+            return False
+        self.resize(self.visible_capacity, max(2 * self.entry_capacity, total + total // 4))
+        return True
+
+    # --- frame -----------------------------------------------------------------------------------------------
+    def bin(self, params, order, records, dispatch, width: int, height: int) -> None:
+        """Steps 1-3: entries of the `params.count` splats of `order` (depth-sorted record indices).
+
+        `dispatch` is the depth sort's indirect buffer (offset 0: ceil(count / SCAN_TILE) groups).
+        """
+        ctx = self.ctx
+        self._grid_for(width, height)
+        params.bind_to_storage_buffer(0)
+        order.bind_to_storage_buffer(1)
+        records.bind_to_storage_buffer(2)
+        self.gsum.bind_to_storage_buffer(3)
+        self.bins.bind_to_storage_buffer(4)
+        self.ranges.bind_to_storage_buffer(5)
+        self.tile_keys.bind_to_storage_buffer(6)
+        self.tile_values.bind_to_storage_buffer(7)
+        for prog in (self.count_shader, self.emit_shader):
+            prog["u_grid"] = self.grid
+        self.scan_shader["u_capacity"] = self.entry_capacity
+        self.scan_shader["u_tiles"] = self.tiles
+        self.emit_shader["u_capacity"] = self.entry_capacity
+        self.count_shader.run_indirect(dispatch, 0)
+        ctx.memory_barrier()
+        self.scan_shader.run(1)
+        ctx.memory_barrier()
+        self.emit_shader.run_indirect(dispatch, 0)
+        ctx.memory_barrier()
+        self.tile_sorter.setup(self.bins)
+
+    @property
+    def tile_bits(self) -> int:
+        return max(1, (self.tiles - 1).bit_length())
+
+    def sort(self) -> None:
+        """Steps 4-5: stable sort of the entries by tile id, tile ranges."""
+        self.tile_sorter.sort(self.bins, self.tile_keys, self.tile_values, bits=self.tile_bits)
+        self.bins.bind_to_storage_buffer(4)
+        self.ranges.bind_to_storage_buffer(5)
+        self.tile_keys.bind_to_storage_buffer(6)
+        self.ranges_shader.run_indirect(self.tile_sorter.dispatch, 0)
+        self.ctx.memory_barrier()
+
+    def raster(self, records, texture, width: int, height: int, background) -> None:
+        """Step 6 into `texture` (the colour attachment, bound as image unit 0)."""
+        records.bind_to_storage_buffer(2)
+        self.ranges.bind_to_storage_buffer(5)
+        self.tile_values.bind_to_storage_buffer(7)
+        texture.bind_to_image(0, read=False, write=True)
+        prog = self.raster_shader
+        prog["u_grid"] = self.grid
+        prog["u_pixels"] = (width, height)
+        prog["u_background"] = tuple(float(c) for c in background)
+        prog.run(self.grid[0], self.grid[1])
+        self.ctx.memory_barrier()
