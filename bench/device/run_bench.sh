@@ -4,6 +4,7 @@
 #   .whl          cp312 wheels: moderngl, glcontext, zstandard, gsplat (py3-none-any, JIT-compiles its CUDA)
 #   .bench_carry  tools/make_scene.py and data/real/* (copies of ../shared) so make_scene.py runs there
 # Usage: bash bench/device/run_bench.sh [bench_render.py args...]   (results in $OUT/bench.json, PNGs in $OUT)
+# BENCH=bench/device/bench_compute.py: the same with the compute rasterizer's stages (binning, tile sort).
 set -u
 for f in .gl/*.deb; do dpkg -x "$f" /; done
 ldconfig
@@ -22,7 +23,7 @@ if ! python3 -c "$probe"; then
   export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
   python3 -c "$probe" || exit 1
 fi
-python3 bench/bench_render.py --make-scene .bench_carry/tools/make_scene.py --workdir /tmp/bench \
+python3 "${BENCH:-bench/bench_render.py}" --make-scene .bench_carry/tools/make_scene.py --workdir /tmp/bench \
   --json "$OUT/bench.json" --images "$OUT" "$@"
 rc=$?
 tail -3 "$OUT/gsplat_build.log"
