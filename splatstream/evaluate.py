@@ -107,6 +107,7 @@ class EvalOptions:
     renderer: str = "auto"
     lod: bool = False                  # encode the LOD tree too (its bytes then count on disk)
     attribution: Sequence[str] = ()    # presets whose error is attributed to attributes
+    variants: Sequence[str] = ()       # extra encodes: "NAME:PRESET[,ATTRIBUTE=FORMAT...][,sh_degree=D]"
     zstd_level: int | None = None
     extra: dict = field(default_factory=dict)
 
@@ -114,7 +115,7 @@ class EvalOptions:
 @dataclass
 class Row:
     label: str
-    kind: str                           # "preset", "attribution" or "compare"
+    kind: str                           # "preset", "variant", "attribution" or "compare"
     formats: dict[str, str]
     splats: int
     gpu_bytes_per_splat: float | None
@@ -158,6 +159,31 @@ class Row:
             "identical_views": sum(1 for p in self.psnr if not math.isfinite(p)),
             "encode_seconds": num(self.encode_seconds), **self.info,
         }
+
+
+def parse_variant(spec: str) -> tuple[str, str, dict[str, str], int | None]:
+    """"NAME:PRESET[,ATTRIBUTE=FORMAT...][,sh_degree=D]" -> (name, preset, overrides, sh_degree)."""
+    from .encoder import ATTRIBUTES, resolve_formats
+
+    name, sep, rest = spec.partition(":")
+    parts = [p.strip() for p in rest.split(",") if p.strip()]
+    if not sep or not name or not parts:
+        raise UsageError(f"variant {spec!r}: expected NAME:PRESET[,ATTRIBUTE=FORMAT...][,sh_degree=D]")
+    preset, overrides, sh_degree = parts[0], {}, None
+    for kv in parts[1:]:
+        key, eq, value = kv.partition("=")
+        if not eq:
+            raise UsageError(f"variant {spec!r}: {kv!r} is not KEY=VALUE")
+        if key == "sh_degree":
+            if value not in ("0", "1", "2", "3"):
+                raise UsageError(f"variant {spec!r}: sh_degree must be 0..3")
+            sh_degree = int(value)
+        elif key in ATTRIBUTES:
+            overrides[key] = value
+        else:
+            raise UsageError(f"variant {spec!r}: unknown key {key!r} (attributes: {', '.join(ATTRIBUTES)}; sh_degree)")
+    resolve_formats(preset, overrides)
+    return name, preset, overrides, sh_degree
 
 
 def path_size(path: str) -> int:
@@ -249,6 +275,7 @@ def evaluate(input_path: str, opts: EvalOptions | None = None,
     if opts.width < 11 or opts.height < 11:
         raise UsageError("--size must be at least 11x11 (the SSIM window)")
     compares = [parse_compare(c) for c in opts.compare]
+    variants = [parse_variant(v) for v in opts.variants]
     for _, path, _ in compares:  # fail before the (long) preset runs, not after them
         read_compare(path)
     input_path = os.fspath(input_path)
@@ -275,9 +302,11 @@ def evaluate(input_path: str, opts: EvalOptions | None = None,
         out_root = tmp
     rows: list[Row] = []
     try:
-        def encode_and_measure(label: str, kind: str, preset: str, overrides: dict[str, str]) -> Row:
+        def encode_and_measure(label: str, kind: str, preset: str, overrides: dict[str, str],
+                               sh_degree: int | None = None) -> Row:
             out = os.path.join(out_root, label.replace(" ", "_").replace("=", "-").replace("+", "_"))
-            eo = EncodeOptions(preset=preset, overrides=overrides, lod=opts.lod, up=tuple(opts.up))
+            eo = EncodeOptions(preset=preset, overrides=overrides, lod=opts.lod, up=tuple(opts.up),
+                               sh_degree=sh_degree)
             if opts.zstd_level is not None:
                 eo.zstd_level = opts.zstd_level
             t0 = time.perf_counter()
@@ -291,7 +320,8 @@ def evaluate(input_path: str, opts: EvalOptions | None = None,
             disk_counted = disk if opts.lod else leaf
             row = Row(label, kind, dict(m["formats"]), len(g), float(m["gpu_bytes_per_splat"]), disk_counted,
                       disk_counted / len(g), input_size / disk_counted, ps, ss, enc_s,
-                      {"preset": preset, "overrides": overrides, "bytes_on_disk_total": disk,
+                      {"preset": preset, "overrides": overrides, "sh_degree": int(m["sh_degree"]),
+                       "bytes_on_disk_total": disk,
                        "leaf_bytes_on_disk": leaf, "gpu_bytes": int(m["gpu_bytes"]),
                        "attributes": m.get("attributes", {}), "encoded_dir": out if tmp is None else None})
             log(f"{label:>28}: {row.disk_bytes_per_splat:7.2f} B/splat disk, {row.gpu_bytes_per_splat:7.2f} GPU, "
@@ -301,6 +331,8 @@ def evaluate(input_path: str, opts: EvalOptions | None = None,
 
         for preset in opts.presets:
             rows.append(encode_and_measure(preset, "preset", preset, {}))
+        for name, preset, overrides, sh_degree in variants:
+            rows.append(encode_and_measure(name, "variant", preset, overrides, sh_degree))
         for preset in opts.attribution:
             formats = PRESETS[preset]
             for attr, fmt in formats.items():
@@ -423,6 +455,8 @@ def report_markdown(report: dict) -> str:
         cells = [f.get(a, "-") for a in ("position", "rotation", "scale", "color", "sh")]
         if inp["sh_degree"] == 0 and r["kind"] != "compare":
             cells[4] = "(none)"
+        elif r.get("sh_degree") is not None and r["sh_degree"] < inp["sh_degree"]:
+            cells[4] = f"{cells[4]} (SH{r['sh_degree']})"
         gpu = "-" if r["gpu_bytes_per_splat"] is None else f"{r['gpu_bytes_per_splat']:.2f}"
         enc = "-" if r["encode_seconds"] is None else f"{r['encode_seconds']:.2f}"
         psnr = f"{_fmt_psnr(r['psnr_mean'])} ({_fmt_psnr(r['psnr_worst'])})"
@@ -537,6 +571,9 @@ def plot_rate_distortion(report: dict, path: str, size: tuple[int, int] = (900, 
         series.append(("splatstream presets", presets, (0, 0, 0), True))
     for i, r in enumerate(r for r in rows if r["kind"] == "compare"):
         series.append((r["label"], [r], palette[i % len(palette)], False))
+    variants = [r for r in rows if r["kind"] == "variant"]
+    if variants:
+        series.append(("splatstream variants", variants, (150, 150, 150), False))
     ly = top
     for name, pts, colour, connect in series:
         coords = [(px(r["disk_bytes_per_splat"]), py(r["psnr_mean"] if r["psnr_mean"] is not None else lossless_y))
@@ -545,8 +582,9 @@ def plot_rate_distortion(report: dict, path: str, size: tuple[int, int] = (900, 
             d.line(coords, fill=colour, width=2)
         for (cx, cy), r in zip(coords, pts, strict=True):
             d.ellipse([cx - 5, cy - 5, cx + 5, cy + 5], fill=colour, outline="black")
-            if connect:
-                d.text((cx + 8, cy - 16), r["label"], fill=colour, font=font)
+            if connect or r["kind"] == "variant":
+                d.text((cx + 8, cy - 16), r["label"], fill=(90, 90, 90) if r["kind"] == "variant" else colour,
+                       font=font)
         d.ellipse([right + 15, ly + 3, right + 25, ly + 13], fill=colour, outline="black")
         d.text((right + 32, ly), name[:24], fill="black", font=font)
         ly += 22

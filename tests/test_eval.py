@@ -151,3 +151,19 @@ def test_read_compare_clamps_infinite_opacity(tmp_path):
     np.testing.assert_allclose(got.rotations, g.rotations, atol=1e-7)
     assert got.opacity_logits[1] == 30.0 and got.opacity_logits[4] == -30.0
     np.testing.assert_array_equal(np.delete(got.opacity_logits, [1, 4]), np.delete(g.opacity_logits, [1, 4]))
+
+
+def test_variants_parse_and_run():
+    from splatstream.errors import UsageError
+    from splatstream.evaluate import parse_variant, report_markdown
+
+    assert parse_variant("x:low,rotation=norm565,sh_degree=2") == ("x", "low", {"rotation": "norm565"}, 2)
+    for bad in ("x", "x:", "x:ultra", "x:low,rotation", "x:low,colour=bc7", "x:low,sh_degree=5", "x:low,scale=nope"):
+        with pytest.raises(UsageError):
+            parse_variant(bad)
+    rep = evaluate(str(real("fruit_drops_sh3.ply")),
+                   EvalOptions(presets=[], variants=["low-sh1:low,sh_degree=1"], views=1, width=32, height=32,
+                               renderer="ref"))
+    (row,) = rep["rows"]
+    assert row["kind"] == "variant" and row["sh_degree"] == 1
+    assert "| low-sh1 | norm11 | norm10_2 | norm565 | bc7 | bc1 (SH1) |" in report_markdown(rep)

@@ -61,6 +61,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--attribution", default="", metavar="PRESETS",
                    help="for these presets, also encode with one attribute lossless (f32x4) at a time and with "
                         "only one attribute quantised, to show which attribute's error dominates")
+    p.add_argument("--variants", nargs="+", default=[], metavar="NAME:PRESET[,ATTR=FORMAT...][,sh_degree=D]",
+                   help="extra encodes to put in the table and plot, e.g. low-sh2:low,sh_degree=2 or "
+                        "low-rot565:low,rotation=norm565")
     p.add_argument("--renderer", choices=["auto", "gl", "ref"], default="auto",
                    help="auto: the GL client if available, else the numpy reference rasterizer")
     p.add_argument("--lod", action="store_true", help="encode the LOD tree too and count its bytes on disk")
@@ -73,14 +76,15 @@ def run(args: argparse.Namespace) -> int:
         raise InputError(args.input, None, "no such file")
     w, h = parse_size(args.size)
     presets = [] if args.presets.strip().lower() == "none" else parse_list(args.presets)
-    if not presets and not args.compare:
-        raise UsageError("nothing to evaluate: give --presets or --compare")
+    if not presets and not args.compare and not args.variants:
+        raise UsageError("nothing to evaluate: give --presets, --variants or --compare")
     for out in (args.json_out, args.plot, args.markdown):
         if out and os.path.dirname(os.path.abspath(out)) and not os.path.isdir(os.path.dirname(os.path.abspath(out))):
             raise UsageError(f"output directory of {out} does not exist")
     opts = EvalOptions(presets=presets, views=args.views, width=w, height=h, up=parse_up(args.up),
                        elevation_deg=args.elevation, encoded_dir=args.encoded, compare=args.compare,
-                       renderer=args.renderer, lod=args.lod, attribution=parse_list(args.attribution))
+                       renderer=args.renderer, lod=args.lod, attribution=parse_list(args.attribution),
+                       variants=args.variants)
     log = None if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
     report = evaluate(args.input, opts, log)
     md = report_markdown(report)
