@@ -8,7 +8,10 @@ GPU path (GL >= 4.3 with compute shaders, a hardware GL):
   2. indirect_setup.comp turns the count into sort dispatch sizes and the draw's arguments.
   3. GpuRadixSort sorts only the visible keys (8 passes of count/reduce/scan/scan-add/scatter).
   4. One indirect draw (quads or point sprites, see DRAW_MODES) back to front, premultiplied colour blended with
-     (ONE, ONE_MINUS_SRC_ALPHA), depth-tested against the framebuffer's depth without writing it.
+     (ONE, ONE_MINUS_SRC_ALPHA), depth-tested against the framebuffer's depth without writing it;
+     or, draw mode "compute" (the default of "auto" on a hardware GL when the target is cleared), keys front to back
+     and the compute-shader tile rasterizer of client_gl/compute_raster.py (binning, tile sort, per-tile blending
+     with the reference's early stop, imageStore into the colour target; no depth test, the target is overwritten).
 CPU path (GL < 4.3, software GL, or sort="cpu"): cull and depth sort in numpy on a worker thread, index buffer
 upload, one instanced draw whose vertex shader decodes, projects and evaluates SH (splat.vert, GL 4.1).
 format_spec/renderer.md describes both and what they measured.
@@ -42,8 +45,10 @@ DRAW_MODES = ("instanced", "triangles", "fetch", "points")
 DRAW_CHOICES = ("auto",) + DRAW_MODES + ("compute",)
 AUTO_POINTS_MIN_SPLATS = 2_000_000
 RECORD_BYTES = 48  # per visible splat, written by cull.comp
-# "auto" on the GPU path (a hardware GL with compute shaders): the compute rasterizer when AUTO_COMPUTE.
-AUTO_COMPUTE = False
+# "auto" on the GPU path of a hardware GL: the compute rasterizer (H200, 1080p: 2.5 ms at 1M splats, 7.9 ms at 6M,
+# against 10.1 / 30.9 ms for the raster draws) unless render(clear=False) draws over opaque geometry (depth test).
+AUTO_COMPUTE = True
+COMPUTE_FLAGS = {"t8", "u1", "u2"}  # measurement options of the compute draw (client_gl/compute_raster.py)
 BIN_CHECK_FRAMES = 2  # compute draw: frames after an allocation whose entry count is read back (overflow -> grow)
 
 
@@ -129,6 +134,7 @@ class SplatRenderer:
         if compute_draw and sort != "gpu":
             raise UsageError("the compute draw mode needs OpenGL 4.3 compute shaders and the GPU sort")
         self.sort_mode = choose_sort(ctx, sort)
+        self._software = is_software(ctx)
         self.color_dtype = color_dtype
         version = 430 if has_compute(ctx) else 410
         self.header = shadergen.decode_header(pool.formats, pool.sh_degree)
@@ -145,7 +151,7 @@ class SplatRenderer:
         # A draw mode may carry flags: "+f2b" (front to back in batches with saturation passes: experimental) and the
         # measurement flags "+nodepth", "+noblend", "+discard".
         base, *flags = draw.split("+")
-        if base not in DRAW_CHOICES or not set(flags) <= {"nodepth", "noblend", "discard", "f2b"}:
+        if base not in DRAW_CHOICES or not set(flags) <= {"nodepth", "noblend", "discard", "f2b"} | COMPUTE_FLAGS:
             raise UsageError(f"unknown draw mode {draw!r} (choose one of {', '.join(DRAW_CHOICES)})")
         self.max_point = float(ctx.info.get("GL_POINT_SIZE_RANGE", (1.0, 1.0))[1])
         self.draw_request = base
@@ -154,8 +160,9 @@ class SplatRenderer:
         # Test splats against opaque geometry already in the framebuffer's depth (draw it first, render(clear=False)).
         self.depth_test = "nodepth" not in flags
         self.front_to_back = "f2b" in flags
-        if compute_draw and flags:
-            raise UsageError(f"the compute draw mode takes no flags, got {draw!r}")
+        if compute_draw and not set(flags) <= COMPUTE_FLAGS:
+            raise UsageError(f"the compute draw mode takes only the measurement flags +t8 (8x8-pixel tiles), +u1, +u2 "
+                             f"(raster loop unrolled 1 or 2 times instead of 4), got {draw!r}")
         if self.front_to_back and (self.sort_mode != "gpu" or base not in ("auto", "fetch", "points")):
             raise UsageError("the front-to-back draw (+f2b) needs the GPU sort and the fetch or points draw mode")
         self._background = (0.0, 0.0, 0.0)
@@ -206,7 +213,9 @@ class SplatRenderer:
             if getattr(self, "craster", None) is None:
                 from .compute_raster import ComputeRaster
 
-                self.craster = ComputeRaster(self.ctx, self.color_dtype, self.capacity)
+                tile_px = 8 if "t8" in self.debug_flags else 16
+                unroll = 2 if "u2" in self.debug_flags else 1 if "u1" in self.debug_flags else 4
+                self.craster = ComputeRaster(self.ctx, self.color_dtype, self.capacity, tile_px=tile_px, unroll=unroll)
                 self._bin_checks = BIN_CHECK_FRAMES
             self.draw_mode = mode
             self.program_gpu = self.vao_gpu = None
@@ -333,7 +342,7 @@ class SplatRenderer:
         fbo.depth_mask = False
         fbo.use()
         if self.sort_mode == "gpu":
-            return self._render_gpu(cam, uniforms, timing)
+            return self._render_gpu(cam, uniforms, timing, clear)
         return self._render_cpu(cam, uniforms, timing)
 
     def _draw_state(self) -> None:
@@ -351,11 +360,12 @@ class SplatRenderer:
         ctx.blend_equation = moderngl.FUNC_ADD
         ctx.depth_func = "<"
 
-    def _render_gpu(self, cam: Camera, uniforms: dict, timing: bool) -> FrameStats:
+    def _render_gpu(self, cam: Camera, uniforms: dict, timing: bool, clear: bool = True) -> FrameStats:
         ctx = self.ctx
         stats = FrameStats("gpu")
         if self.draw_request == "auto":
-            if AUTO_COMPUTE and not self.front_to_back:
+            # The compute rasterizer overwrites the target and ignores its depth: raster draws over opaque geometry.
+            if AUTO_COMPUTE and clear and not self.debug_flags and not self._software:
                 self._select_program("compute")
             else:
                 wide = self.max_point >= max(cam.width, cam.height)

@@ -1,4 +1,4 @@
-// Tile binning of the compute rasterizer: the 16x16-pixel tiles a projected splat touches.
+// Tile binning of the compute rasterizer: the TILE_PX x TILE_PX-pixel tiles (16 by default) a projected splat touches.
 // Records are cull.comp's 48-byte records: (center.xy, ndc z, opacity), (conic.xyz, minor), (rgb, axis).
 layout(std430, binding = 2) readonly buffer Records { uvec4 records[]; };
 
@@ -14,8 +14,8 @@ void tile_rect(uint r, out uvec2 lo, out uvec2 hi) {
     float det = q.x * q.z - q.y * q.y;
     float k = sqrt(2.0 * log(max(op, 1.0 / 255.0) * 255.0));
     vec2 ext = k * sqrt(max(vec2(q.z, q.x) / det, vec2(0.0)));
-    vec2 l = (c - ext) / 16.0;
-    vec2 h = (c + ext) / 16.0;
+    vec2 l = (c - ext) / float(TILE_PX);
+    vec2 h = (c + ext) / float(TILE_PX);
     lo = uvec2(0u);
     hi = uvec2(0u);
     if (!(det > 0.0) || any(isnan(l)) || any(isnan(h)) || any(isinf(l)) || any(isinf(h))) return;

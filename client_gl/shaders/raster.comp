@@ -1,9 +1,16 @@
-// Compute rasterizer: one work group per 16x16 tile, one thread per pixel. The tile's splats (front to back) are
-// loaded in batches of 256 into shared memory; per pixel, as the reference rasterizer (render_ref / forward.cu):
+// Compute rasterizer: one work group per tile (TILE_PX x TILE_PX pixels, 16 by default), one thread per pixel. The
+// tile's splats (front to back) are loaded in batches of BATCH (one per thread) into shared memory; per pixel, as the
+// reference rasterizer (render_ref / forward.cu):
 // power = -0.5 (a dx^2 + c dy^2) - b dx dy, skipped if > 0; alpha = min(0.99, opacity exp(power)), skipped if
 // < 1/255; the pixel stops (this splat excluded) once T (1 - alpha) < 1e-4; C += rgb alpha T; T *= 1 - alpha.
 // Output (C + T background, 1 - T), row 0 of the image at the bottom of the texture (GL convention).
-layout(local_size_x = 16, local_size_y = 16) in;
+// Most (pixel, splat) pairs have alpha < 1/255: power < -ln(255 opacity) (less a margin far above float rounding)
+// rejects them before the exponential; the exact tests follow for the rest.
+#define BATCH uint(TILE_PX * TILE_PX)
+#ifndef UNROLL
+#define UNROLL 4  // splats evaluated per loop step (independent power evaluations hide latency)
+#endif
+layout(local_size_x = TILE_PX, local_size_y = TILE_PX) in;
 
 layout(std430, binding = 2) readonly buffer Records { uvec4 records[]; };
 layout(std430, binding = 5) readonly buffer Ranges { uvec2 ranges[]; };
@@ -14,10 +21,27 @@ uniform uvec2 u_grid;
 uniform uvec2 u_pixels;  // image width, height
 uniform vec3 u_background;
 
-shared vec4 s_xyo[256];    // center.xy, opacity
-shared vec4 s_conic[256];  // conic a, b, c
-shared vec4 s_rgb[256];
-shared uint s_done;
+// power = A dx^2 + B dx dy + C dy^2 with (A, B, C) = (-a / 2, -b, -c / 2) of the conic (a, b, c).
+shared vec4 s_geo[BATCH];   // center.xy, A, B
+shared vec4 s_geo2[BATCH];  // C, power below which alpha < 1/255 for sure, opacity
+shared vec4 s_rgb[BATCH];
+shared uint s_done;         // pixels done (outside the image, or stopped at T < 1e-4)
+
+// One splat j of the batch with its power at this pixel: the reference's tests, early stop, blending.
+#define BLEND(power, h, j)                                                  \
+    if (!(power > 0.0 || power < h.y)) {                                    \
+        float alpha = min(0.99, h.z * exp(power));                          \
+        if (alpha >= 1.0 / 255.0) {                                         \
+            float test_t = T * (1.0 - alpha);                               \
+            if (test_t < 1e-4) {                                            \
+                done = true;                                                \
+                atomicAdd(s_done, 1u);                                      \
+                break;                                                      \
+            }                                                               \
+            C += s_rgb[j].rgb * (alpha * T);                                \
+            T = test_t;                                                     \
+        }                                                                   \
+    }
 
 void main() {
     uint lid = gl_LocalInvocationIndex;
@@ -32,37 +56,69 @@ void main() {
     if (lid == 0u) s_done = 0u;
     barrier();
     if (done) atomicAdd(s_done, 1u);
-    for (uint base = range.x; base < range.y; base += 256u) {
+    for (uint base = range.x; base < range.y; base += BATCH) {
         barrier();
-        if (s_done == 256u) break;  // uniform: increments happen after the next barrier only
+        if (s_done == BATCH) break;  // uniform: increments happen after the next barrier only
         uint idx = base + lid;
         if (idx < range.y) {
             uint r = 3u * tile_values[idx];
             uvec4 a = records[r];
-            s_xyo[lid] = vec4(uintBitsToFloat(a.xy), uintBitsToFloat(a.w), 0.0);
-            s_conic[lid] = vec4(uintBitsToFloat(records[r + 1u].xyz), 0.0);
+            vec3 q = uintBitsToFloat(records[r + 1u].xyz);
+            float op = uintBitsToFloat(a.w);
+            s_geo[lid] = vec4(uintBitsToFloat(a.xy), -0.5 * q.x, -q.y);
+            s_geo2[lid] = vec4(-0.5 * q.z, -log(255.0 * op) - 1e-3, op, 0.0);
             s_rgb[lid] = vec4(uintBitsToFloat(records[r + 2u].xyz), 0.0);
         }
         barrier();
-        if (!done) {
-            uint m = min(256u, range.y - base);
-            for (uint j = 0u; j < m; ++j) {
-                vec4 xyo = s_xyo[j];
-                vec3 q = s_conic[j].xyz;
-                vec2 d = xyo.xy - p;
-                float power = -0.5 * (q.x * d.x * d.x + q.z * d.y * d.y) - q.y * d.x * d.y;
-                if (power > 0.0) continue;
-                float alpha = min(0.99, xyo.z * exp(power));
-                if (alpha < 1.0 / 255.0) continue;
-                float test_t = T * (1.0 - alpha);
-                if (test_t < 1e-4) {
-                    done = true;
-                    atomicAdd(s_done, 1u);
-                    break;
-                }
-                C += s_rgb[j].rgb * (alpha * T);
-                T = test_t;
-            }
+        if (done) continue;
+        uint m = min(BATCH, range.y - base);
+        uint j = 0u;
+#if UNROLL >= 4
+        for (; j + 3u < m; j += 4u) {  // four independent power evaluations per step
+            vec4 g0 = s_geo[j];
+            vec4 h0 = s_geo2[j];
+            vec4 g1 = s_geo[j + 1u];
+            vec4 h1 = s_geo2[j + 1u];
+            vec4 g2 = s_geo[j + 2u];
+            vec4 h2 = s_geo2[j + 2u];
+            vec4 g3 = s_geo[j + 3u];
+            vec4 h3 = s_geo2[j + 3u];
+            vec2 d0 = g0.xy - p;
+            vec2 d1 = g1.xy - p;
+            vec2 d2 = g2.xy - p;
+            vec2 d3 = g3.xy - p;
+            float power0 = g0.z * d0.x * d0.x + h0.x * d0.y * d0.y + g0.w * d0.x * d0.y;
+            float power1 = g1.z * d1.x * d1.x + h1.x * d1.y * d1.y + g1.w * d1.x * d1.y;
+            float power2 = g2.z * d2.x * d2.x + h2.x * d2.y * d2.y + g2.w * d2.x * d2.y;
+            float power3 = g3.z * d3.x * d3.x + h3.x * d3.y * d3.y + g3.w * d3.x * d3.y;
+            BLEND(power0, h0, j)
+            BLEND(power1, h1, j + 1u)
+            BLEND(power2, h2, j + 2u)
+            BLEND(power3, h3, j + 3u)
+        }
+        if (done) continue;
+#endif
+#if UNROLL >= 2
+        for (; j + 1u < m; j += 2u) {  // two independent power evaluations per step (latency hiding)
+            vec4 g0 = s_geo[j];
+            vec4 h0 = s_geo2[j];
+            vec4 g1 = s_geo[j + 1u];
+            vec4 h1 = s_geo2[j + 1u];
+            vec2 d0 = g0.xy - p;
+            vec2 d1 = g1.xy - p;
+            float power0 = g0.z * d0.x * d0.x + h0.x * d0.y * d0.y + g0.w * d0.x * d0.y;
+            float power1 = g1.z * d1.x * d1.x + h1.x * d1.y * d1.y + g1.w * d1.x * d1.y;
+            BLEND(power0, h0, j)
+            BLEND(power1, h1, j + 1u)
+        }
+        if (done) continue;
+#endif
+        for (; j < m; ++j) {
+            vec4 g = s_geo[j];
+            vec4 h = s_geo2[j];
+            vec2 d = g.xy - p;
+            float power = g.z * d.x * d.x + h.x * d.y * d.y + g.w * d.x * d.y;
+            BLEND(power, h, j)
         }
     }
     if (inside) {
