@@ -74,7 +74,8 @@ def write_group(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level: i
 
     position = 0
     gpu_bytes = 0
-    cctx = zstandard.ZstdCompressor(level=level, threads=-1, write_content_size=True)
+    # Single-threaded: the encoder already runs one job per core; zstd workers on top only contend.
+    cctx = zstandard.ZstdCompressor(level=level, write_content_size=True)
     with cctx.stream_writer(_Sink(), size=offset, closefd=False) as stream:
 
         def emit(section: dict, units) -> None:
