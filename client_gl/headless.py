@@ -90,6 +90,8 @@ class HeadlessRenderer:
                timing: bool = False) -> np.ndarray:
         """(H, W, 3) float32 linear colour (composited over `background`), row 0 at the top."""
         self.render_frame(camera, sh_degree, background, timing)
+        if self.renderer.check_bins():  # compute draw: the entry buffer overflowed and grew; read back anyway
+            self.render_frame(camera, sh_degree, background, timing)
         return self.renderer.read_image()[..., :3]
 
     def render_frame(self, camera: Camera, sh_degree: int | None = None, background=(0.0, 0.0, 0.0),

@@ -57,6 +57,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sort", default="auto", choices=["auto", "cpu", "gpu"],
                    help="depth sort: gpu (compute-shader radix sort), cpu (numpy on a worker thread), or auto "
                         "(gpu unless compute shaders are missing or the GL is a software renderer)")
+    p.add_argument("--draw", default="auto", choices=["auto", "compute", "fetch", "points", "instanced", "triangles"],
+                   help="GPU-path rasterizer: compute (compute-shader tile rasterizer), the hardware raster draws "
+                        "fetch, points, instanced, triangles, or auto (compute on a hardware GL); compute also runs "
+                        "on a software GL (forces the GPU sort)")
     p.add_argument("--preset", default="very-high",
                    help="texel formats for a splat file encoded in memory (default very-high: f32 planes)")
     p.add_argument("--quiet", "-q", action="store_true", help="print nothing on success")
@@ -114,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
         cam = _camera(args, None, g.positions, None, size)
         source = ("gaussians", g)
         splats = len(g)
-    renderer = HeadlessRenderer(sort=args.sort)
+    renderer = HeadlessRenderer(sort=args.sort, draw=getattr(args, "draw", "auto"))
     try:
         if source[0] == "scene":
             renderer.load_scene(source[1], args.sh_degree)
@@ -125,6 +129,8 @@ def run(args: argparse.Namespace) -> int:
         t2 = time.perf_counter()
         gl_name = renderer.ctx.info.get("GL_RENDERER", "?")
         sort = renderer.sort_mode
+        if sort == "gpu":
+            sort += f", draw {renderer.renderer.draw_mode}"
         per_splat = renderer.pool.bytes_per_splat
     finally:
         renderer.close()
