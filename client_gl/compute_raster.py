@@ -46,7 +46,8 @@ class ComputeRaster:
     """GPU buffers and programs of the tile rasterizer for one renderer."""
 
     def __init__(self, ctx, color_dtype: str, visible_capacity: int, entry_capacity: int | None = None,
-                 tile_px: int = TILE_PX, unroll: int = UNROLL):
+                 tile_px: int = TILE_PX, unroll: int = UNROLL,
+                 warp_cull: bool = False):
         self.ctx = ctx
         self.color_dtype = color_dtype
         self.tile_px = int(tile_px)
@@ -61,7 +62,12 @@ class ComputeRaster:
         if unroll not in (1, 2, 4):
             raise ValueError(f"unroll {unroll}: 1, 2 or 4")
         self.unroll = unroll
+        if warp_cull and self.tile_px != 16:
+            raise ValueError("the per-block splat lists (warp_cull) need 16x16 tiles")
+        self.warp_cull = warp_cull
         defines = f"{tile}#define UNROLL {unroll}\n#define OUT_FORMAT {fmt}\n"
+        if warp_cull:
+            defines += "#define WARP_CULL\n"
         self.raster_shader = ctx.compute_shader(_source("raster.comp", defines))
         self.bins = ctx.buffer(reserve=16)
         self.gsum = None

@@ -48,7 +48,7 @@ RECORD_BYTES = 48  # per visible splat, written by cull.comp
 # "auto" on the GPU path of a hardware GL: the compute rasterizer (H200, 1080p: 2.5 ms at 1M splats, 7.9 ms at 6M,
 # against 10.1 / 30.9 ms for the raster draws) unless render(clear=False) draws over opaque geometry (depth test).
 AUTO_COMPUTE = True
-COMPUTE_FLAGS = {"t8", "u1", "u2"}  # measurement options of the compute draw (client_gl/compute_raster.py)
+COMPUTE_FLAGS = {"t8", "u1", "u2", "wc"}  # measurement options of the compute draw (client_gl/compute_raster.py)
 BIN_CHECK_FRAMES = 2  # compute draw: frames after an allocation whose entry count is read back (overflow -> grow)
 
 
@@ -162,7 +162,8 @@ class SplatRenderer:
         self.front_to_back = "f2b" in flags
         if compute_draw and not set(flags) <= COMPUTE_FLAGS:
             raise UsageError(f"the compute draw mode takes only the measurement flags +t8 (8x8-pixel tiles), +u1, +u2 "
-                             f"(raster loop unrolled 1 or 2 times instead of 4), got {draw!r}")
+                             f"(raster loop unrolled 1 or 2 times instead of 4), +wc (per-block splat lists), "
+                             f"got {draw!r}")
         if self.front_to_back and (self.sort_mode != "gpu" or base not in ("auto", "fetch", "points")):
             raise UsageError("the front-to-back draw (+f2b) needs the GPU sort and the fetch or points draw mode")
         self._background = (0.0, 0.0, 0.0)
@@ -215,7 +216,8 @@ class SplatRenderer:
 
                 tile_px = 8 if "t8" in self.debug_flags else 16
                 unroll = 2 if "u2" in self.debug_flags else 1 if "u1" in self.debug_flags else 4
-                self.craster = ComputeRaster(self.ctx, self.color_dtype, self.capacity, tile_px=tile_px, unroll=unroll)
+                self.craster = ComputeRaster(self.ctx, self.color_dtype, self.capacity, tile_px=tile_px, unroll=unroll,
+                                             warp_cull="wc" in self.debug_flags)
                 self._bin_checks = BIN_CHECK_FRAMES
             self.draw_mode = mode
             self.program_gpu = self.vao_gpu = None

@@ -200,7 +200,7 @@ def test_variants_and_modes(ctx, fruit):
 
     cam = close_camera(fruit, 120, 90)
     ref = render_ref.render(fruit, cam)
-    for draw in ("compute+t8", "compute+u1", "compute+u2"):
+    for draw in ("compute+t8", "compute+u1", "compute+u2", "compute+wc", "compute+wc+u1"):
         r = HeadlessRenderer(ctx=ctx, draw=draw, color_dtype="f2")
         r.load_gaussians(fruit)
         assert psnr(r.render(cam), ref) >= 40.0, draw

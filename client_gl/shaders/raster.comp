@@ -26,6 +26,12 @@ shared vec4 s_geo[BATCH];   // center.xy, A, B
 shared vec4 s_geo2[BATCH];  // C, power below which alpha < 1/255 for sure, opacity
 shared vec4 s_rgb[BATCH];
 shared uint s_done;         // pixels done (outside the image, or stopped at T < 1e-4)
+#ifdef WARP_CULL
+// Blocks of 8x4 pixels (a warp of 32 threads each, TILE_PX 16): block b = bx + 2 by. s_bits[b * 8 + w], bit i: splat
+// 32 w + i of the batch has its alpha >= 1/255 box over a pixel centre of block b. Each block walks its own bits, in
+// order (front to back), and never evaluates splats that miss it.
+shared uint s_bits[64];
+#endif
 
 // One splat j of the batch with its power at this pixel: the reference's tests, early stop, blending.
 #define BLEND(power, h, j)                                                  \
@@ -45,7 +51,12 @@ shared uint s_done;         // pixels done (outside the image, or stopped at T <
 
 void main() {
     uint lid = gl_LocalInvocationIndex;
+#ifdef WARP_CULL
+    uint blk = lid >> 5;
+    uvec2 pix = gl_WorkGroupID.xy * 16u + uvec2((lid & 7u) | ((blk & 1u) << 3), ((lid >> 3) & 3u) | ((blk >> 1) << 2));
+#else
     uvec2 pix = gl_GlobalInvocationID.xy;
+#endif
     uint tile = gl_WorkGroupID.y * u_grid.x + gl_WorkGroupID.x;
     uvec2 range = ranges[tile];
     bool inside = all(lessThan(pix, u_pixels));
@@ -59,6 +70,10 @@ void main() {
     for (uint base = range.x; base < range.y; base += BATCH) {
         barrier();
         if (s_done == BATCH) break;  // uniform: increments happen after the next barrier only
+#ifdef WARP_CULL
+        if (lid < 64u) s_bits[lid] = 0u;
+        barrier();
+#endif
         uint idx = base + lid;
         if (idx < range.y) {
             uint r = 3u * tile_values[idx];
@@ -68,9 +83,50 @@ void main() {
             s_geo[lid] = vec4(uintBitsToFloat(a.xy), -0.5 * q.x, -q.y);
             s_geo2[lid] = vec4(-0.5 * q.z, -log(255.0 * op) - 1e-3, op, 0.0);
             s_rgb[lid] = vec4(uintBitsToFloat(records[r + 2u].xyz), 0.0);
+#ifdef WARP_CULL
+            float det = q.x * q.z - q.y * q.y;
+            float k = sqrt(2.0 * log(max(op, 1.0 / 255.0) * 255.0));
+            vec2 ext = k * sqrt(max(vec2(q.z, q.x) / det, vec2(0.0))) + 0.05;  // margin over float rounding
+            vec2 o = vec2(gl_WorkGroupID.xy * 16u);
+            vec2 lo = uintBitsToFloat(a.xy) - ext - o;
+            vec2 hi = uintBitsToFloat(a.xy) + ext - o;
+            for (uint b = 0u; b < 8u; ++b) {
+                vec2 b0 = vec2(float((b & 1u) * 8u) + 0.5, float((b >> 1) * 4u) + 0.5);  // first pixel centre
+                vec2 b1 = b0 + vec2(7.0, 3.0);                                           // last pixel centre
+                if (all(greaterThanEqual(hi, b0)) && all(lessThanEqual(lo, b1))) {
+                    atomicOr(s_bits[b * 8u + (lid >> 5)], 1u << (lid & 31u));
+                }
+            }
+#endif
         }
         barrier();
         if (done) continue;
+#ifdef WARP_CULL
+        for (uint w = 0u; w < 8u && !done; ++w) {
+            uint bits = s_bits[blk * 8u + w];
+            while (bits != 0u) {
+                uint j0 = w * 32u + uint(findLSB(bits));
+                bits &= bits - 1u;
+                vec4 g0 = s_geo[j0];
+                vec4 h0 = s_geo2[j0];
+                vec2 d0 = g0.xy - p;
+                float power0 = g0.z * d0.x * d0.x + h0.x * d0.y * d0.y + g0.w * d0.x * d0.y;
+                if (bits != 0u) {  // two independent power evaluations per step
+                    uint j1 = w * 32u + uint(findLSB(bits));
+                    bits &= bits - 1u;
+                    vec4 g1 = s_geo[j1];
+                    vec4 h1 = s_geo2[j1];
+                    vec2 d1 = g1.xy - p;
+                    float power1 = g1.z * d1.x * d1.x + h1.x * d1.y * d1.y + g1.w * d1.x * d1.y;
+                    BLEND(power0, h0, j0)
+                    BLEND(power1, h1, j1)
+                } else {
+                    BLEND(power0, h0, j0)
+                }
+            }
+        }
+        continue;
+#endif
         uint m = min(BATCH, range.y - base);
         uint j = 0u;
 #if UNROLL >= 4
