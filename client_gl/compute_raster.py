@@ -36,6 +36,11 @@ IMAGE_FORMATS = {"f4": "rgba32f", "f2": "rgba16f", "f1": "rgba8"}
 assert SCAN_TILE == SORT_TILE, "bin_count/bin_emit run on the depth sort's dispatch sizes"
 
 
+def default_entries(visible_capacity: int) -> int:
+    """Initial entry capacity for a pool of this many splats (grown on overflow)."""
+    return max(MIN_ENTRIES, ENTRIES_PER_SPLAT * int(visible_capacity))
+
+
 def _source(name: str, defines: str = "") -> str:
     src = shadergen.compute_source(name)
     first, rest = src.split("\n", 1)
@@ -79,7 +84,7 @@ class ComputeRaster:
         self.grid = (0, 0)
         self.visible_capacity = 0
         self.entry_capacity = 0
-        self.resize(visible_capacity, entry_capacity or max(MIN_ENTRIES, ENTRIES_PER_SPLAT * visible_capacity))
+        self.resize(visible_capacity, entry_capacity or default_entries(visible_capacity))
 
     # --- buffers ---------------------------------------------------------------------------------------------
     def resize(self, visible_capacity: int, entry_capacity: int | None = None) -> None:
@@ -100,6 +105,10 @@ class ComputeRaster:
             self.tile_sorter = GpuRadixSort(self.ctx, self.entry_capacity)
             self.tile_keys = self.ctx.buffer(reserve=4 * self.entry_capacity)
             self.tile_values = self.ctx.buffer(reserve=4 * self.entry_capacity)
+
+    def follow_pool(self, visible_capacity: int) -> None:
+        """The pool's capacity changed: group sums for it, entry buffers at least its default share."""
+        self.resize(visible_capacity, max(self.entry_capacity, default_entries(visible_capacity)))
 
     def _grid_for(self, width: int, height: int) -> None:
         grid = (-(-width // self.tile_px), -(-height // self.tile_px))

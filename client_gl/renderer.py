@@ -38,7 +38,8 @@ SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swiftshader", "software rasterize
 MAX_GROUPS_PER_DISPATCH = 65535
 SORT_MODES = ("auto", "cpu", "gpu")
 DRAW_MODES = ("instanced", "triangles", "fetch", "points")
-# "auto": point sprites (one primitive per splat; measured on an H200 at 6M splats the raster path's primitive rate is
+# "auto" among the raster draws (a software GL, render(clear=False); otherwise auto is "compute", see AUTO_COMPUTE):
+# point sprites (one primitive per splat; measured on an H200 at 6M splats the raster path's primitive rate is
 # the bottleneck: 29 ms against 35 ms for fetch quads) when at least AUTO_POINTS_MIN_SPLATS are resident and point
 # sprites are at least as wide as the image; otherwise fetch quads (tighter, fewer fragments: 9.6 vs 10.7 ms at 1M).
 # "compute": the compute-shader tile rasterizer (client_gl/compute_raster.py), no raster hardware.
@@ -191,7 +192,7 @@ class SplatRenderer:
         self.values = self.ctx.buffer(reserve=self.capacity * 4)
         self.records = self.ctx.buffer(reserve=self.capacity * RECORD_BYTES)
         if getattr(self, "craster", None) is not None:
-            self.craster.resize(self.capacity)
+            self.craster.follow_pool(self.capacity)
             self._bin_checks = BIN_CHECK_FRAMES
         if getattr(self, "_programs", None):  # VAOs of the front-to-back quads read `values` as an attribute
             mode = self.draw_mode
