@@ -122,9 +122,9 @@ class _TileToEncode:
     children: list[int]
     gaussians: Gaussians
     geometric_error: float
-    box_min: np.ndarray
-    box_max: np.ndarray
-    sphere_center: np.ndarray
+    box_min: np.ndarray | None
+    box_max: np.ndarray | None
+    sphere_center: np.ndarray | None
     sphere_radius: float
 
 
@@ -137,8 +137,8 @@ def _build_tiles(g: Gaussians, opts: EncodeOptions, progress: Progress) -> list:
     limit = MAX_BLOCKS_PER_ROW * MAX_BLOCK_ROWS * CHUNK_SIZE
     if len(g) > limit:
         raise UsageError(f"{len(g)} splats do not fit one tile (at most {limit}); encode with LOD (drop --no-lod)")
-    lo, hi, c, r = extent_bounds(g)
-    return [_TileToEncode(0, 0, [], g, 0.0, lo, hi, c, r)]
+    # Bounds are filled in by encode_gaussians, on the worker pool, alongside the payload jobs.
+    return [_TileToEncode(0, 0, [], g, 0.0, None, None, None, 0.0)]
 
 
 def _suggested_camera(g: Gaussians, up: np.ndarray) -> dict:
@@ -208,8 +208,13 @@ def encode_gaussians(g: Gaussians, out_dir: str | os.PathLike, opts: EncodeOptio
         # cores busy. Results come back in submission order, so the output is deterministic.
         with ThreadPoolExecutor(max_workers=min(2, os.cpu_count() or 1)) as pool:
             ordered = list(pool.map(order_tile, tiles))
+            camera = pool.submit(_suggested_camera, g, up)
+            unbounded = [t for t in tiles if t.box_min is None]
+            bounds = [pool.submit(extent_bounds, t.gaussians) for t in unbounded]
             jobs = [(t, group) for t in ordered for group in group_names]
             results = iter(pool.map(encode_group, jobs))
+            for tile, future in zip(unbounded, bounds, strict=True):
+                tile.box_min, tile.box_max, tile.sphere_center, tile.sphere_radius = future.result()
             for tile in tiles:
                 groups = [(group, next(results)) for group in group_names]
                 n = len(tile.gaussians)
@@ -264,7 +269,7 @@ def encode_gaussians(g: Gaussians, out_dir: str | os.PathLike, opts: EncodeOptio
             "bounds": {"min": [float(v) for v in lo], "max": [float(v) for v in hi]},
             "extent_bounds": root["box"],
             "up": [float(v) for v in up],
-            "camera": _suggested_camera(g, up),
+            "camera": camera.result(),
             "lod": {"enabled": len(tiles) > 1, "max_leaf_splats": opts.max_leaf_splats,
                     "reduction": opts.reduction, "refine": "replace"},
             "root": 0,
