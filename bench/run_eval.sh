@@ -18,7 +18,7 @@ views=${VIEWS:-8}
 size=${SIZE:-512x512}
 renderer=${RENDERER:-auto}
 attribution=${ATTRIBUTION:-low,medium}
-shared=${SPLATSTREAM_SHARED:-/work/shared}
+shared=${SPLATSTREAM_SHARED:-$here/../shared}
 mkdir -p "$out"
 
 scene_path() {
