@@ -8,16 +8,7 @@ from ..encoder import ATTRIBUTES, DEFAULT_PRESET, PRESETS, encode_file
 from ..errors import UsageError
 from ..progress import ProgressPrinter
 from ..texformats import FORMATS
-
-
-def parse_vector(text: str, what: str) -> tuple[float, float, float]:
-    try:
-        values = tuple(float(v) for v in text.split(","))
-    except ValueError:
-        values = ()
-    if len(values) != 3:
-        raise UsageError(f"{what}: expected three comma-separated numbers like 0,0,1, got {text!r}")
-    return values  # type: ignore[return-value]
+from .args import parse_vector
 
 
 def register(sub: argparse._SubParsersAction) -> None:

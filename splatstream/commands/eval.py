@@ -9,30 +9,11 @@ import sys
 
 from ..errors import InputError, UsageError
 from ..evaluate import PRESET_ORDER, EvalOptions, evaluate, plot_rate_distortion, report_markdown
-
-
-def parse_size(text: str) -> tuple[int, int]:
-    try:
-        w, h = (int(v) for v in text.lower().split("x"))
-    except ValueError:
-        raise UsageError(f"--size: expected WIDTHxHEIGHT like 512x512, got {text!r}") from None
-    if w < 11 or h < 11 or w > 8192 or h > 8192:
-        raise UsageError(f"--size: {w}x{h} is out of range (11..8192 per side)")
-    return w, h
+from .args import parse_size, parse_vector
 
 
 def parse_list(text: str) -> list[str]:
     return [p.strip() for p in text.split(",") if p.strip()]
-
-
-def parse_up(text: str) -> tuple[float, float, float]:
-    try:
-        v = tuple(float(x) for x in text.split(","))
-    except ValueError:
-        v = ()
-    if len(v) != 3 or v == (0.0, 0.0, 0.0):
-        raise UsageError(f"--up: expected a non-zero vector like 0,0,1, got {text!r}")
-    return v  # type: ignore[return-value]
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -74,14 +55,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     if not os.path.isfile(args.input):
         raise InputError(args.input, None, "no such file")
-    w, h = parse_size(args.size)
+    w, h = parse_size(args.size, smallest=11, largest=8192)
     presets = [] if args.presets.strip().lower() == "none" else parse_list(args.presets)
     if not presets and not args.compare and not args.variants:
         raise UsageError("nothing to evaluate: give --presets, --variants or --compare")
     for out in (args.json_out, args.plot, args.markdown):
         if out and os.path.dirname(os.path.abspath(out)) and not os.path.isdir(os.path.dirname(os.path.abspath(out))):
             raise UsageError(f"output directory of {out} does not exist")
-    opts = EvalOptions(presets=presets, views=args.views, width=w, height=h, up=parse_up(args.up),
+    up = parse_vector(args.up, "--up", nonzero=True)
+    opts = EvalOptions(presets=presets, views=args.views, width=w, height=h, up=up,
                        elevation_deg=args.elevation, encoded_dir=args.encoded, compare=args.compare,
                        renderer=args.renderer, lod=args.lod, attribution=parse_list(args.attribution),
                        variants=args.variants)

@@ -2,7 +2,6 @@
 from __future__ import annotations
 
 import argparse
-import math
 import os
 import sys
 import time
@@ -11,31 +10,13 @@ import numpy as np
 
 from ..camera import DEFAULT_FOV_Y_DEG, REFERENCE_NEAR, Camera, suggested_camera
 from ..errors import UsageError
+from .args import parse_size, parse_vector
 
 DEFAULT_SIZE = (1280, 720)
 
 
-def _vector(text: str | None, what: str) -> tuple[float, float, float] | None:
-    if text is None:
-        return None
-    try:
-        values = tuple(float(v) for v in text.split(","))
-    except ValueError:
-        values = ()
-    if len(values) != 3 or not all(math.isfinite(v) for v in values):
-        raise UsageError(f"{what}: expected three comma-separated numbers like 0,0,1, got {text!r}")
-    return values  # type: ignore[return-value]
-
-
-def _size(text: str) -> tuple[int, int]:
-    parts = text.lower().split("x")
-    try:
-        w, h = (int(p) for p in parts)
-    except ValueError:
-        raise UsageError(f"--size: expected WIDTHxHEIGHT like 1280x720, got {text!r}") from None
-    if not (0 < w <= 16384 and 0 < h <= 16384):
-        raise UsageError(f"--size: {w}x{h} is out of range (1..16384 per side)")
-    return w, h
+def _optional_vector(text: str | None, what: str) -> tuple[float, float, float] | None:
+    return None if text is None else parse_vector(text, what)
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -69,14 +50,14 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def _camera(args, scene_camera: dict | None, positions: np.ndarray | None, scene_up, size) -> Camera:
     width, height = size
-    up = _vector(args.up, "--up") or (tuple(scene_up) if scene_up is not None else (0.0, 0.0, 1.0))
+    up = _optional_vector(args.up, "--up") or (tuple(scene_up) if scene_up is not None else (0.0, 0.0, 1.0))
     if scene_camera is not None:
         default = Camera(scene_camera["eye"], scene_camera["target"], scene_camera.get("up", up),
                          scene_camera.get("fov_y", scene_camera.get("fov_y_deg", DEFAULT_FOV_Y_DEG)), width, height)
     else:
         default = suggested_camera(positions, up=up, width=width, height=height)
-    eye = _vector(args.eye, "--eye") or default.eye
-    target = _vector(args.target, "--target") or default.target
+    eye = _optional_vector(args.eye, "--eye") or default.eye
+    target = _optional_vector(args.target, "--target") or default.target
     if args.up is None and scene_camera is not None:
         up = default.up
     fov = args.fov_y if args.fov_y is not None else default.fov_y_deg
@@ -94,8 +75,8 @@ def run(args: argparse.Namespace) -> int:
     from ..encoder import PRESETS
     from ..manifest import is_scene_dir, load_manifest
 
-    size = _size(args.size)
-    background = _vector(args.background, "--background")
+    size = parse_size(args.size)
+    background = _optional_vector(args.background, "--background")
     if args.preset not in PRESETS:
         raise UsageError(f"unknown preset {args.preset!r} (choose one of {', '.join(PRESETS)})")
     ext = os.path.splitext(args.out)[1].lower()

@@ -1,0 +1,29 @@
+"""Parsers for the option values the commands share (vectors, image sizes), with the CLI's error messages."""
+from __future__ import annotations
+
+import math
+
+from ..errors import UsageError
+
+
+def parse_vector(text: str, what: str, nonzero: bool = False) -> tuple[float, float, float]:
+    """'X,Y,Z' -> three finite floats (not all zero when `nonzero`); `what` names the option in errors."""
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) for v in values) or (nonzero and not any(values)):
+        kind = "a non-zero vector" if nonzero else "three comma-separated numbers"
+        raise UsageError(f"{what}: expected {kind} like 0,0,1, got {text!r}")
+    return values  # type: ignore[return-value]
+
+
+def parse_size(text: str, smallest: int = 1, largest: int = 16384, what: str = "--size") -> tuple[int, int]:
+    """'WxH' -> (width, height), each within [smallest, largest]."""
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise UsageError(f"{what}: expected WIDTHxHEIGHT like 1280x720, got {text!r}") from None
+    if not (smallest <= w <= largest and smallest <= h <= largest):
+        raise UsageError(f"{what}: {w}x{h} is out of range ({smallest}..{largest} per side)")
+    return w, h
