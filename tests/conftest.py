@@ -22,3 +22,18 @@ def run_cli(*args: str, cwd=None) -> subprocess.CompletedProcess:
     """Run the installed CLI the way a user does (a separate process, no stdin)."""
     return subprocess.run([sys.executable, "-m", "splatstream.cli", *map(str, args)], capture_output=True, text=True,
                           cwd=cwd, stdin=subprocess.DEVNULL, timeout=600)
+
+
+def open_gl_context(compute: bool = False):
+    """A headless GL context, or skip the test (no EGL here, or no compute shaders where they are needed)."""
+    pytest.importorskip("moderngl")
+    from client_gl.headless import GLUnavailableError, create_context
+
+    try:
+        ctx = create_context()
+    except GLUnavailableError as exc:
+        pytest.skip(f"no OpenGL context: {exc}")
+    if compute and ctx.version_code < 430:
+        ctx.release()
+        pytest.skip("no GL 4.3 compute shaders")
+    return ctx

@@ -3,19 +3,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import real, run_cli
+from conftest import open_gl_context, real, run_cli
 
 pytest.importorskip("moderngl")
 
 
 @pytest.fixture(scope="module")
 def gl_ok():
-    from client_gl.headless import GLUnavailableError, create_context
-
-    try:
-        create_context().release()
-    except GLUnavailableError as exc:
-        pytest.skip(f"no OpenGL context: {exc}")
+    open_gl_context().release()
 
 
 def _png(path) -> np.ndarray:

@@ -4,34 +4,22 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import REAL_PLYS, real, run_cli
+from conftest import REAL_PLYS, open_gl_context, real, run_cli
 
 from splatstream import render_ref
 from splatstream.camera import look_at, suggested_camera
 from splatstream.errors import UsageError
 from splatstream.io import read_gaussians
+from splatstream.metrics import psnr
 
 pytest.importorskip("moderngl")
 
 W, H = 128, 96
 
 
-def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    mse = float(np.mean((np.clip(a, 0, 1) - np.clip(b, 0, 1)) ** 2))
-    return float("inf") if mse == 0 else 10 * np.log10(1.0 / mse)
-
-
 @pytest.fixture(scope="module")
 def ctx():
-    from client_gl.headless import GLUnavailableError, create_context
-
-    try:
-        c = create_context()
-    except GLUnavailableError as exc:
-        pytest.skip(f"no OpenGL context: {exc}")
-    if c.version_code < 430:
-        c.release()
-        pytest.skip("no compute shaders")
+    c = open_gl_context(compute=True)
     yield c
     c.release()
 

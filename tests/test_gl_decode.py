@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import real
+from conftest import open_gl_context, real
 
 from splatstream.codec import decode_plane
 from splatstream.io import read_gaussians
@@ -17,14 +17,7 @@ N = 700  # 3 chunks, the last one partial
 
 @pytest.fixture(scope="module")
 def ctx():
-    from client_gl.headless import GLUnavailableError, create_context
-
-    try:
-        c = create_context()
-    except GLUnavailableError as exc:
-        pytest.skip(f"no OpenGL context: {exc}")
-    if c.version_code < 430:
-        pytest.skip("the decode test hook is a compute shader (GL 4.3)")
+    c = open_gl_context(compute=True)
     yield c
     c.release()
 

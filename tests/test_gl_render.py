@@ -3,30 +3,23 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import REAL_PLYS, real
+from conftest import REAL_PLYS, open_gl_context, real
 
 from splatstream import render_ref
 from splatstream.camera import look_at, suggested_camera
 from splatstream.io import read_gaussians
+from splatstream.metrics import psnr
 
 pytest.importorskip("moderngl")
 
 W, H = 128, 96
 
 
-def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    mse = float(np.mean((np.clip(a, 0, 1) - np.clip(b, 0, 1)) ** 2))
-    return float("inf") if mse == 0 else 10 * np.log10(1.0 / mse)
-
-
 @pytest.fixture(scope="module")
 def renderers():
-    from client_gl.headless import GLUnavailableError, HeadlessRenderer, create_context
+    from client_gl.headless import HeadlessRenderer
 
-    try:
-        ctx = create_context()
-    except GLUnavailableError as exc:
-        pytest.skip(f"no OpenGL context: {exc}")
+    ctx = open_gl_context()
     out = {"cpu": HeadlessRenderer(sort="cpu", ctx=ctx)}
     if ctx.version_code >= 430:
         out["gpu"] = HeadlessRenderer(sort="gpu", ctx=ctx)  # forced even on llvmpipe; draw "auto"

@@ -3,20 +3,14 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import open_gl_context
 
 moderngl = pytest.importorskip("moderngl")
 
 
 @pytest.fixture(scope="module")
 def ctx():
-    from client_gl.headless import GLUnavailableError, create_context
-
-    try:
-        c = create_context()
-    except GLUnavailableError as exc:
-        pytest.skip(f"no OpenGL context: {exc}")
-    if c.version_code < 430:
-        pytest.skip("GL 4.3 compute shaders not available")
+    c = open_gl_context(compute=True)
     yield c
     c.release()
 
