@@ -6,6 +6,8 @@ decode of j (x from the even bits, y from the odd bits), so 4x4 BC blocks hold s
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 CHUNK_SIZE = 256
@@ -125,10 +127,14 @@ def image_to_chunks(img: np.ndarray, chunks: int) -> np.ndarray:
     return out
 
 
+@functools.lru_cache(maxsize=16)
 def chunk_texel_index(chunks: int, width: int) -> np.ndarray:
-    """Flat texel index (y * width + x) of every splat slot 0..chunks*256-1, in splat order."""
+    """Flat texel index (y * width + x) of every splat slot 0..chunks*256-1, in splat order (read-only, cached:
+    every plane and layer of a tile uses the same one)."""
     x, y = texel_coords(chunks * CHUNK_SIZE, width)
-    return y.astype(np.int64) * width + x
+    index = y.astype(np.int64) * width + x
+    index.setflags(write=False)
+    return index
 
 
 def order_within_chunks(order: np.ndarray, key: np.ndarray) -> np.ndarray:
