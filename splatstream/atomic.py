@@ -24,6 +24,10 @@ _RENAME_EXCHANGE = 2
 def atomic_file(path: str | os.PathLike) -> Iterator[BinaryIO]:
     path = os.fspath(path)
     directory = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(directory):
+        from .errors import UsageError
+
+        raise UsageError(f"{path}: the output directory {directory} does not exist")
     fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=directory)
     try:
         with os.fdopen(fd, "wb") as f:

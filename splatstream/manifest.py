@@ -55,6 +55,9 @@ def parse_manifest(raw: bytes, source: str = MANIFEST_NAME) -> dict:
 
 
 def load_manifest(scene_dir: str | os.PathLike) -> dict:
+    if not os.path.isdir(scene_dir):
+        what = "no such directory" if not os.path.exists(scene_dir) else "not a directory"
+        raise FormatError(scene_dir, None, f"{what} (expected a scene directory holding {MANIFEST_NAME})")
     path = os.path.join(os.fspath(scene_dir), MANIFEST_NAME)
     try:
         size = os.path.getsize(path)

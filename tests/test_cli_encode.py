@@ -88,3 +88,15 @@ def test_encoding_is_deterministic(tmp_path):
     a = encode_gaussians(g, tmp_path / "a", EncodeOptions(preset="medium"))
     b = encode_gaussians(g, tmp_path / "b", EncodeOptions(preset="medium"))
     assert [t["groups"] for t in a["tiles"]] == [t["groups"] for t in b["tiles"]]
+
+
+def test_wrong_paths_give_clear_errors(tmp_path):
+    (tmp_path / "file.ply").write_text("x")
+    r = run_cli("info", tmp_path / "file.ply")
+    assert r.returncode == 2 and "not a directory" in r.stderr and "Traceback" not in r.stderr
+    r = run_cli("info", tmp_path / "missing")
+    assert r.returncode == 2 and "no such directory" in r.stderr
+    r = run_cli("encode", real("donut_sh0_no_normals.ply"), tmp_path / "s", "-q")
+    assert r.returncode == 0, r.stderr
+    r = run_cli("decode", tmp_path / "s", tmp_path / "nodir" / "out.ply")
+    assert r.returncode == 2 and "output directory" in r.stderr and "Traceback" not in r.stderr
