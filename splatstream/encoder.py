@@ -17,11 +17,13 @@ import numpy as np
 
 from . import __version__
 from .atomic import atomic_directory
+from .camera import suggested_camera
 from .codec import BASE_PLANES, band_plane, encode_plane, groups_for_degree, plane_values
 from .container import write_group
 from .errors import UsageError
 from .gaussians import Gaussians
 from .layout import CHUNK_SIZE, MAX_BLOCK_ROWS, MAX_BLOCKS_PER_ROW, morton_order, order_within_chunks, texture_size
+from .lod import Tile, build_tiles, extent_bounds
 from .manifest import DATA_DIR, FORMAT_NAME, FORMAT_VERSION, MANIFEST_NAME, pack_manifest, payload_name
 from .texformats import FORMATS, get_format
 
@@ -100,59 +102,21 @@ def resolve_formats(preset: str, overrides: dict[str, str]) -> dict[str, str]:
     return formats
 
 
-def extent_bounds(g: Gaussians, sigmas: float = 3.0) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
-    """Box and bounding sphere of the splats' `sigmas`-sigma extents (largest axis, rotation-free bound)."""
-    if len(g) == 0:
-        z = np.zeros(3)
-        return z, z, z, 0.0
-    r = np.float32(sigmas) * np.exp(g.log_scales.max(axis=1))
-    p = g.positions
-    lo = (p - r[:, None]).min(axis=0).astype(np.float64)
-    hi = (p + r[:, None]).max(axis=0).astype(np.float64)
-    center = (lo + hi) / 2
-    d = p - center.astype(np.float32)
-    radius = float((np.sqrt(np.einsum("ij,ij->i", d, d)) + r).max()) * (1 + 1e-6)
-    return lo, hi, center, radius
-
-
-@dataclass
-class _TileToEncode:
-    id: int
-    level: int
-    children: list[int]
-    gaussians: Gaussians
-    geometric_error: float
-    box_min: np.ndarray | None
-    box_max: np.ndarray | None
-    sphere_center: np.ndarray | None
-    sphere_radius: float
-
-
-def _build_tiles(g: Gaussians, opts: EncodeOptions, progress: Progress) -> list:
+def _build_tiles(g: Gaussians, opts: EncodeOptions, progress: Progress) -> list[Tile]:
     if opts.lod and len(g) > opts.max_leaf_splats:
-        from .lod import build_tiles
-
         return build_tiles(g, max_leaf_splats=opts.max_leaf_splats, reduction=opts.reduction, progress=progress,
                            reorder_input=opts.reorder_input)
     limit = MAX_BLOCKS_PER_ROW * MAX_BLOCK_ROWS * CHUNK_SIZE
     if len(g) > limit:
         raise UsageError(f"{len(g)} splats do not fit one tile (at most {limit}); encode with LOD (drop --no-lod)")
-    # Bounds are filled in by encode_gaussians, on the worker pool, alongside the payload jobs.
-    return [_TileToEncode(0, 0, [], g, 0.0, None, None, None, 0.0)]
+    # Bounds (None here) are filled in by encode_gaussians, on the worker pool, alongside the payload jobs.
+    return [Tile(0, 0, [], g, 0.0, None, None, None, 0.0)]
 
 
 def _suggested_camera(g: Gaussians, up: np.ndarray) -> dict:
-    try:
-        from .camera import suggested_camera
-
-        cam = suggested_camera(g.positions, up=tuple(float(u) for u in up))
-        return {"eye": [float(v) for v in cam.eye], "target": [float(v) for v in cam.target],
-                "up": [float(v) for v in cam.up], "fov_y": float(cam.fov_y_deg)}
-    except ImportError:
-        c = np.median(g.positions, axis=0)
-        side = float(np.percentile(np.abs(g.positions - c), 95)) or 1.0
-        eye = c + np.array([-side, -side, 0.6 * side]) * 2
-        return {"eye": eye.tolist(), "target": c.tolist(), "up": up.tolist(), "fov_y": 50.0}
+    cam = suggested_camera(g.positions, up=tuple(float(u) for u in up))
+    return {"eye": [float(v) for v in cam.eye], "target": [float(v) for v in cam.target],
+            "up": [float(v) for v in cam.up], "fov_y": float(cam.fov_y_deg)}
 
 
 def encode_gaussians(g: Gaussians, out_dir: str | os.PathLike, opts: EncodeOptions | None = None,

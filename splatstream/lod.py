@@ -59,9 +59,11 @@ class Tile:
     children: list[int]  # empty for leaves; refinement is REPLACE: children together replace the tile
     gaussians: Gaussians  # leaves: the original splats (exact partition); interior: merged splats
     geometric_error: float  # world units, 0 for leaves, non-increasing from root to leaves
-    box_min: np.ndarray  # (3,) axis-aligned box covering the splats' 3-sigma extents (and the children's boxes)
-    box_max: np.ndarray
-    sphere_center: np.ndarray  # (3,) bounding sphere covering the same extents
+    # (3,) axis-aligned box covering the splats' 3-sigma extents (and the children's boxes). None only while a
+    # caller that built a single tile itself has not computed them yet (the encoder does so on its worker pool).
+    box_min: np.ndarray | None
+    box_max: np.ndarray | None
+    sphere_center: np.ndarray | None  # (3,) bounding sphere covering the same extents
     sphere_radius: float
 
 
