@@ -14,7 +14,7 @@ from collections import OrderedDict
 from dataclasses import dataclass
 
 from splatstream.errors import SplatstreamError
-from splatstream.manifest import MANIFEST_NAME, MAX_MANIFEST_BYTES, parse_manifest, scene_summary
+from splatstream.manifest import MANIFEST_NAME, MAX_MANIFEST_BYTES, iter_payloads, parse_manifest, scene_summary
 
 from .paths import MAX_SCENE_DEPTH, SEGMENT_RE, ScenePath, is_inside
 
@@ -192,7 +192,7 @@ class SceneRoot:
             s = scene_summary(m)
             size = s.get("bytes_on_disk")
             if not isinstance(size, int):
-                size = len(raw) + sum(int(g.get("bytes", 0)) for t in m["tiles"] for g in t["groups"].values())
+                size = len(raw) + sum(int(g.get("bytes", 0)) for _, _, g in iter_payloads(m))
             entry = {
                 "id": scene_id,
                 "name": s["name"],

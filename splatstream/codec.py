@@ -42,17 +42,30 @@ BASE_PLANES = (
 )
 
 
+# With an SH codebook, a tile's sh1 payload holds this plane: each splat's codebook entry (texel format index16).
+SH_INDEX_PLANE = PlaneSpec("sh_index", "sh", 1, 1, "")
+SH_INDEX_FORMAT = "index16"
+
+
 def band_plane(band: int) -> PlaneSpec:
     return PlaneSpec(f"sh{band}", "sh", 3, SH_BAND_COEFFS[band], "<f2")
 
 
-def group_planes(group: str) -> tuple[PlaneSpec, ...]:
+def group_planes(group: str, codebook: bool = False) -> tuple[PlaneSpec, ...]:
+    """Planes of a tile payload group; with an SH codebook the tile's sh1 group holds the index plane."""
     if group == "base":
         return BASE_PLANES
+    if codebook:
+        if group != "sh1":
+            raise ValueError(f"with an SH codebook a tile has no {group!r} group")
+        return (SH_INDEX_PLANE,)
     return (band_plane(int(group[2:])),)
 
 
-def groups_for_degree(sh_degree: int) -> list[str]:
+def groups_for_degree(sh_degree: int, codebook: bool = False) -> list[str]:
+    """Payload groups of a tile: base, then one per SH band (only sh1, the index, with a codebook)."""
+    if codebook:
+        return ["base"] + (["sh1"] if sh_degree >= 1 else [])
     return ["base"] + [f"sh{b}" for b in range(1, sh_degree + 1)]
 
 
@@ -257,6 +270,51 @@ def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.n
 
     plane.layers = layers() if lazy else list(layers())
     return plane
+
+
+def encode_index_plane(indices: np.ndarray, order: np.ndarray | None = None) -> EncodedPlane:
+    """Per-splat codebook indices (N,) -> an index16 plane in the chunk-block layout (padding repeats the last)."""
+    idx = np.asarray(indices, np.int64)
+    if order is not None:
+        idx = idx[order]
+    if idx.size and (idx.min() < 0 or idx.max() > 65535):
+        raise ValueError("codebook indices must be 0..65535")
+    n = len(idx)
+    chunks = max(1, -(-n // CHUNK_SIZE))
+    width, height = texture_size(chunks)
+    padded = _pad_to_chunks(idx) if n else np.zeros(CHUNK_SIZE, np.int64)
+    img = np.zeros(width * height, "<u2")
+    img[chunk_texel_index(chunks, width)] = padded.astype("<u2")
+    return EncodedPlane(SH_INDEX_PLANE, SH_INDEX_FORMAT, width, height, [img.view(np.uint8)], None)
+
+
+def decode_index_plane(plane: EncodedPlane, n: int) -> np.ndarray:
+    """index16 plane -> (N,) int64 codebook indices."""
+    chunks = max(1, -(-n // CHUNK_SIZE))
+    src = chunk_texel_index(chunks, plane.width)[:n]
+    blob = plane.layers[0] if isinstance(plane.layers, list) else next(iter(plane.layers))
+    return np.frombuffer(blob, "<u2")[src].astype(np.int64)
+
+
+def codebook_rows(g: Gaussians) -> np.ndarray:
+    """(N, 3 * coefficients) rows the SH codebook quantises: a splat's SH1..SHd coefficients, band after band."""
+    return np.ascontiguousarray(g.sh_rest.reshape(len(g.sh_rest), -1), np.float32)
+
+
+def codebook_weights(g: Gaussians) -> np.ndarray:
+    """Importance of each splat's SH to the image, for fitting the codebook: opacity x the area of its two
+    largest axes. On fruit_drops (64 entries) this took PSNR from 35.2 dB (unweighted) to 38.4 dB; opacity alone
+    gave 35.8, opacity x volume 37.8."""
+    largest_two = np.sort(g.log_scales, axis=1)[:, 1:].sum(axis=1).astype(np.float64)
+    return sigmoid(g.opacity_logits).astype(np.float64) * np.exp(np.clip(largest_two, -60.0, 60.0))
+
+
+def codebook_band_values(entries: np.ndarray, band: int) -> np.ndarray:
+    """(K, L, 3) values of one band of a codebook whose rows are laid out as codebook_rows."""
+    k = len(entries)
+    rest = entries.reshape(k, -1, 3)
+    first = sum(SH_BAND_COEFFS[b] for b in range(1, band))
+    return rest[:, first:first + SH_BAND_COEFFS[band]]
 
 
 def decode_plane(plane: EncodedPlane, n: int) -> np.ndarray:

@@ -120,8 +120,11 @@ def verify_payload(data: bytes, entry: dict, source: str) -> None:
         raise FormatError(source, "sha256", "checksum mismatch: the payload is corrupt or was replaced")
 
 
-def unpack_group(data: bytes, entry: dict, group: str, splats: int, source: str) -> dict[str, EncodedPlane]:
-    """Decompress and parse a payload into planes, checking every size against the manifest."""
+def unpack_group(data: bytes, entry: dict, group: str, splats: int, source: str,
+                 codebook: bool = False) -> dict[str, EncodedPlane]:
+    """Decompress and parse a payload into planes, checking every size against the manifest.
+
+    With `codebook`, a tile's sh1 group holds the SH index plane (format_spec/format.md 4.7)."""
     raw_size = entry.get("raw_bytes")
     if not isinstance(raw_size, int) or not 0 <= raw_size <= MAX_PAYLOAD_RAW_BYTES:
         raise FormatError(source, "raw_bytes", f"expected an integer 0..{MAX_PAYLOAD_RAW_BYTES}, got {raw_size!r}")
@@ -134,7 +137,7 @@ def unpack_group(data: bytes, entry: dict, group: str, splats: int, source: str)
     buf = np.frombuffer(raw, np.uint8)
     sections = {s["name"]: s for s in entry["sections"]}
     planes: dict[str, EncodedPlane] = {}
-    for spec in group_planes(group):
+    for spec in group_planes(group, codebook):
         planes[spec.name] = _read_plane(buf, sections, spec, splats, source)
     return planes
 

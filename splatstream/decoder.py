@@ -5,7 +5,7 @@ import os
 
 import numpy as np
 
-from .codec import assemble_gaussians, decode_plane
+from .codec import EncodedPlane, assemble_gaussians, decode_index_plane, decode_plane
 from .container import unpack_group, verify_payload
 from .errors import FormatError
 from .gaussians import Gaussians
@@ -33,15 +33,66 @@ def decode_group(data: bytes, entry: dict, group: str, splats: int, source: str 
     return {name: decode_plane(p, splats) for name, p in planes.items()}
 
 
-def decode_tile(scene_dir: str | os.PathLike, tile: dict, sh_degree: int) -> Gaussians:
+def codebook_info(manifest: dict, source: str = "manifest.msgpack") -> dict | None:
+    """The manifest's SH codebook entry, validated (None when the scene has none)."""
+    cb = manifest.get("sh_codebook")
+    if cb is None:
+        return None
+    if not isinstance(cb, dict) or not isinstance(cb.get("entries"), int) or not 1 <= cb["entries"] <= 65536:
+        raise FormatError(source, "sh_codebook.entries", "expected an integer 1..65536")
+    if cb.get("index_format") != "index16":
+        raise FormatError(source, "sh_codebook.index_format", f"expected 'index16', got {cb.get('index_format')!r}")
+    groups = cb.get("groups")
+    if not isinstance(groups, dict):
+        raise FormatError(source, "sh_codebook.groups", "missing or not a map")
+    for b in range(1, manifest["sh_degree"] + 1):
+        if not isinstance(groups.get(f"sh{b}"), dict):
+            raise FormatError(source, "sh_codebook.groups", f"no 'sh{b}' group for SH degree {manifest['sh_degree']}")
+    return cb
+
+
+def read_codebook(scene_dir: str | os.PathLike, manifest: dict, sh_degree: int) -> dict[str, EncodedPlane] | None:
+    """The SH codebook's band planes sh1..sh{sh_degree} as stored (K entries each), or None without a codebook."""
+    cb = codebook_info(manifest, os.path.join(os.fspath(scene_dir), "manifest.msgpack"))
+    if cb is None:
+        return None
+    planes: dict[str, EncodedPlane] = {}
+    for b in range(1, sh_degree + 1):
+        entry = cb["groups"][f"sh{b}"]
+        data = read_payload(scene_dir, entry)
+        planes.update(unpack_group(data, entry, f"sh{b}", cb["entries"], os.path.join(scene_dir, entry["file"])))
+    return planes
+
+
+def decode_codebook(planes: dict[str, EncodedPlane], entries: int) -> dict[str, np.ndarray]:
+    """Codebook band planes -> {"sh1": (K, 3, 3), ...} float32 values."""
+    return {name: decode_plane(p, entries) for name, p in planes.items()}
+
+
+def decode_tile(scene_dir: str | os.PathLike, tile: dict, sh_degree: int,
+                codebook: dict[str, np.ndarray] | None = None) -> Gaussians:
+    """Decode one tile; `codebook` (decode_codebook's values) is required for scenes with an SH codebook."""
     values: dict[str, np.ndarray] = {}
-    for group in ["base"] + [f"sh{b}" for b in range(1, sh_degree + 1)]:
+    groups = ["base"] + (["sh1"] if codebook is not None and sh_degree >= 1 else
+                         [f"sh{b}" for b in range(1, sh_degree + 1)])
+    manifest_path = os.path.join(scene_dir, "manifest.msgpack")
+    for group in groups:
         entry = tile["groups"].get(group)
         if entry is None:
-            raise FormatError(os.path.join(scene_dir, "manifest.msgpack"), f"tile {tile['id']}.groups",
-                              f"no {group!r} group")
+            raise FormatError(manifest_path, f"tile {tile['id']}.groups", f"no {group!r} group")
         data = read_payload(scene_dir, entry)
-        values.update(decode_group(data, entry, group, tile["splats"], os.path.join(scene_dir, entry["file"])))
+        source = os.path.join(scene_dir, entry["file"])
+        if codebook is not None and group == "sh1":
+            planes = unpack_group(data, entry, group, tile["splats"], source, codebook=True)
+            index = decode_index_plane(planes["sh_index"], tile["splats"])
+            k = len(next(iter(codebook.values())))
+            if index.size and index.max() >= k:
+                raise FormatError(source, "sh_index", f"codebook index {int(index.max())} out of range (the "
+                                  f"codebook has {k} entries)")
+            for b in range(1, sh_degree + 1):
+                values[f"sh{b}"] = codebook[f"sh{b}"][index]
+        else:
+            values.update(decode_group(data, entry, group, tile["splats"], source))
     return assemble_gaussians(values, sh_degree)
 
 
@@ -62,5 +113,7 @@ def decode_scene(scene_dir: str | os.PathLike, sh_degree: int | None = None, til
         if missing:
             raise FormatError(os.path.join(scene_dir, "manifest.msgpack"), "tiles", f"no tiles with ids {missing}")
         chosen = [by_id[i] for i in tiles]
-    parts = [decode_tile(scene_dir, t, degree) for t in chosen]
+    planes = read_codebook(scene_dir, manifest, degree) if degree >= 1 else None
+    codebook = decode_codebook(planes, manifest["sh_codebook"]["entries"]) if planes is not None else None
+    parts = [decode_tile(scene_dir, t, degree, codebook) for t in chosen]
     return Gaussians.concatenate(parts) if parts else Gaussians.empty(degree)

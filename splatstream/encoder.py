@@ -18,14 +18,26 @@ import numpy as np
 from . import __version__
 from .atomic import atomic_directory
 from .camera import suggested_camera
-from .codec import BASE_PLANES, band_plane, encode_plane, groups_for_degree, plane_values
+from .codec import (
+    BASE_PLANES,
+    SH_INDEX_FORMAT,
+    band_plane,
+    codebook_band_values,
+    codebook_rows,
+    codebook_weights,
+    encode_index_plane,
+    encode_plane,
+    groups_for_degree,
+    plane_values,
+)
 from .container import write_group
 from .errors import UsageError
 from .gaussians import Gaussians
 from .layout import CHUNK_SIZE, MAX_BLOCK_ROWS, MAX_BLOCKS_PER_ROW, morton_order, order_within_chunks, texture_size
 from .lod import Tile, build_tiles, extent_bounds
-from .manifest import DATA_DIR, FORMAT_NAME, FORMAT_VERSION, MANIFEST_NAME, pack_manifest, payload_name
-from .texformats import FORMATS, get_format
+from .manifest import BASE_VERSION, DATA_DIR, FORMAT_NAME, FORMAT_VERSION, MANIFEST_NAME, pack_manifest, payload_name
+from .texformats import FORMATS, VALUE_FORMATS, get_format
+from .vq import Codebook, build_codebook, parse_entries
 
 ATTRIBUTES = ("position", "rotation", "scale", "color", "sh")
 
@@ -34,13 +46,20 @@ PRESETS: dict[str, dict[str, str]] = {
     "very-high": {"position": "f32x4", "rotation": "f32x4", "scale": "f32x4", "color": "f32x4", "sh": "f32x4"},
     "high": {"position": "f16x4", "rotation": "norm10_2", "scale": "norm11", "color": "f16x4", "sh": "norm11"},
     "medium": {"position": "norm11", "rotation": "norm10_2", "scale": "norm11", "color": "norm8x4", "sh": "norm565"},
-    "low": {"position": "norm11", "rotation": "norm10_2", "scale": "norm565", "color": "bc7", "sh": "bc1"},
+    # low and very-low keep SH1..SH3 in a scene-wide codebook (PRESET_SH_CODEBOOK; sh is the codebook's format).
+    # On fruit_drops low went from 35.2 dB at 19.4 B/splat (BC1 SH, norm11/norm10_2/norm565 for position,
+    # rotation, scale) to 38.4 dB at 11.7 B/splat: the codebook frees 6 B/splat, a third of which buys 8-bit
+    # scales (+1.7 dB); 8-bit positions and rotations cost under 0.1 dB there.
+    "low": {"position": "norm8x4", "rotation": "norm8x4", "scale": "norm8x4", "color": "bc7", "sh": "norm565"},
     # The seed's very-low (BC7 for position, rotation and scale) measured 18 dB on fruit_drops: BC7 scales are
-    # the worst of it. Packed 16-bit scales and rotations with SH up to band 1 gave 31 dB at fewer bytes.
-    "very-low": {"position": "norm11", "rotation": "norm565", "scale": "norm565", "color": "bc7", "sh": "bc1"},
+    # the worst of it. Packed 16-bit scales and rotations gave 31 dB at fewer bytes (SH1 in BC1); the codebook
+    # keeps all three bands for less.
+    "very-low": {"position": "norm8x4", "rotation": "norm565", "scale": "norm565", "color": "bc7", "sh": "norm565"},
 }
 # Highest SH band a preset keeps (a lower --sh-degree still wins).
-PRESET_MAX_SH_DEGREE = {"very-low": 1}
+PRESET_MAX_SH_DEGREE: dict[str, int] = {}
+# Presets whose SH bands go through a scene-wide codebook ("auto": sized from the splat count; see vq.py).
+PRESET_SH_CODEBOOK: dict[str, str] = {"low": "auto", "very-low": "auto"}
 DEFAULT_PRESET = "medium"
 
 Progress = Callable[[str, float], None]
@@ -59,6 +78,8 @@ class EncodeOptions:
     name: str | None = None
     up: tuple[float, float, float] | None = None
     chunk_order: str = "auto"  # "morton", "luminance", or "auto" (luminance when only colour/SH are BC-compressed)
+    # SH codebook: None = the preset's choice, "off", "auto" or an entry count (format_spec/format.md 4.7).
+    sh_codebook: str | int | None = None
     # Let the LOD builder permute the input's arrays in place instead of copying the scene (saves one copy of
     # the whole scene). Only for callers that own the Gaussians and do not need their order afterwards.
     reorder_input: bool = False
@@ -95,6 +116,9 @@ def resolve_formats(preset: str, overrides: dict[str, str]) -> dict[str, str]:
             raise UsageError(f"unknown attribute {attr!r} in a format override (expected one of "
                              f"{', '.join(ATTRIBUTES)})")
         get_format(fmt)
+        if fmt not in VALUE_FORMATS:
+            raise UsageError(f"{fmt} holds codebook indices, not attribute values (choose one of "
+                             f"{', '.join(VALUE_FORMATS)})")
         if attr == "color" and FORMATS[fmt].components < 4:
             raise UsageError(f"color holds SH0 and opacity and needs a 4-component format; {fmt} has 3 "
                              f"(use one of {', '.join(n for n, f in FORMATS.items() if f.components == 4)})")
@@ -133,6 +157,13 @@ def encode_gaussians(g: Gaussians, out_dir: str | os.PathLike, opts: EncodeOptio
     if sh_degree != g.sh_degree:
         g = g.with_sh_degree(sh_degree)
     t0 = time.perf_counter()
+    choice = opts.sh_codebook if opts.sh_codebook is not None else PRESET_SH_CODEBOOK.get(opts.preset, "off")
+    entries = parse_entries(choice, len(g)) if sh_degree >= 1 else 0
+    codebook: Codebook | None = None
+    if entries:
+        progress("codebook", 0.0)
+        codebook = build_codebook(codebook_rows(g), entries, weights=codebook_weights(g))
+        progress("codebook", 1.0)
     progress("tiles", 0.0)
     tiles = _build_tiles(g, opts, progress)
     progress("tiles", 1.0)
@@ -153,20 +184,43 @@ def encode_gaussians(g: Gaussians, out_dir: str | os.PathLike, opts: EncodeOptio
         def order_tile(tile):
             return tile, splat_order(tile.gaussians, chunk_order)
 
-        group_names = groups_for_degree(sh_degree)
+        group_names = groups_for_degree(sh_degree, codebook is not None)
 
-        def encode_group(job):
-            (tile, order), group = job
-            specs = BASE_PLANES if group == "base" else (band_plane(int(group[2:])),)
-            planes = [encode_plane(plane_values(tile.gaussians, s), s, formats[s.attribute], order, lazy=True)
-                      for s in specs]
+        def write_payload(planes, chunks: int) -> dict:
             fd, tmp_path = tempfile.mkstemp(prefix=".payload.", dir=os.path.join(tmp, DATA_DIR))
             with os.fdopen(fd, "wb") as f:
-                entry = write_group(planes, f, chunks=-(-len(order) // CHUNK_SIZE), level=opts.zstd_level,
-                                    shuffle=opts.shuffle)
+                entry = write_group(planes, f, chunks=chunks, level=opts.zstd_level, shuffle=opts.shuffle)
             final = os.path.join(tmp, payload_name(entry["sha256"]))
             os.replace(tmp_path, final)  # identical content has an identical name
             return entry
+
+        def encode_group(job):
+            (tile, order), group = job
+            if codebook is not None and group == "sh1":
+                planes = [encode_index_plane(codebook.assign(codebook_rows(tile.gaussians)), order)]
+            else:
+                specs = BASE_PLANES if group == "base" else (band_plane(int(group[2:])),)
+                planes = [encode_plane(plane_values(tile.gaussians, s), s, formats[s.attribute], order, lazy=True)
+                          for s in specs]
+            return write_payload(planes, -(-len(order) // CHUNK_SIZE))
+
+        codebook_entry = None
+        if codebook is not None:
+            k = len(codebook.entries)
+            codebook_entry = {"entries": k, "format": formats["sh"], "index_format": SH_INDEX_FORMAT, "groups": {}}
+            for band in range(1, sh_degree + 1):
+                plane = encode_plane(codebook_band_values(codebook.entries, band), band_plane(band), formats["sh"],
+                                     lazy=True)
+                entry = write_payload([plane], -(-k // CHUNK_SIZE))
+                rel = payload_name(entry["sha256"])
+                if rel not in written:
+                    written.add(rel)
+                    bytes_on_disk += entry["bytes"]
+                codebook_entry["groups"][f"sh{band}"] = {"file": rel, **entry}
+                leaf_gpu += entry["gpu_bytes"]
+                leaf_disk += entry["bytes"]
+                attr_gpu["sh"] += entry["gpu_bytes"]
+                attr_disk["sh"] += entry["bytes"]
 
         # Tiles and groups are independent; numpy, zstd and etcpak release the GIL, so two workers keep both
         # cores busy. Results come back in submission order, so the output is deterministic.
@@ -219,7 +273,7 @@ def encode_gaussians(g: Gaussians, out_dir: str | os.PathLike, opts: EncodeOptio
         root = tile_entries[0]
         manifest = {
             "format": FORMAT_NAME,
-            "version": list(FORMAT_VERSION),
+            "version": list(FORMAT_VERSION if codebook is not None else BASE_VERSION),
             "generator": f"splatstream {__version__}",
             "name": opts.name or (os.path.splitext(os.path.basename(source_name))[0] if source_name else
                                   os.path.basename(os.path.abspath(out_dir))),
@@ -234,6 +288,7 @@ def encode_gaussians(g: Gaussians, out_dir: str | os.PathLike, opts: EncodeOptio
             "extent_bounds": root["box"],
             "up": [float(v) for v in up],
             "camera": camera.result(),
+            **({"sh_codebook": codebook_entry} if codebook_entry else {}),
             "lod": {"enabled": len(tiles) > 1, "max_leaf_splats": opts.max_leaf_splats,
                     "reduction": opts.reduction, "refine": "replace"},
             "root": 0,

@@ -161,15 +161,17 @@ class Row:
         }
 
 
-def parse_variant(spec: str) -> tuple[str, str, dict[str, str], int | None]:
-    """"NAME:PRESET[,ATTRIBUTE=FORMAT...][,sh_degree=D]" -> (name, preset, overrides, sh_degree)."""
+def parse_variant(spec: str) -> tuple[str, str, dict[str, str], int | None, str | None]:
+    """"NAME:PRESET[,ATTRIBUTE=FORMAT...][,sh_degree=D][,sh_codebook=off|auto|N]"
+    -> (name, preset, overrides, sh_degree, sh_codebook)."""
     from .encoder import ATTRIBUTES, resolve_formats
+    from .vq import parse_entries
 
     name, sep, rest = spec.partition(":")
     parts = [p.strip() for p in rest.split(",") if p.strip()]
     if not sep or not name or not parts:
         raise UsageError(f"variant {spec!r}: expected NAME:PRESET[,ATTRIBUTE=FORMAT...][,sh_degree=D]")
-    preset, overrides, sh_degree = parts[0], {}, None
+    preset, overrides, sh_degree, sh_codebook = parts[0], {}, None, None
     for kv in parts[1:]:
         key, eq, value = kv.partition("=")
         if not eq:
@@ -178,12 +180,16 @@ def parse_variant(spec: str) -> tuple[str, str, dict[str, str], int | None]:
             if value not in ("0", "1", "2", "3"):
                 raise UsageError(f"variant {spec!r}: sh_degree must be 0..3")
             sh_degree = int(value)
+        elif key == "sh_codebook":
+            parse_entries(value, 1)
+            sh_codebook = value
         elif key in ATTRIBUTES:
             overrides[key] = value
         else:
-            raise UsageError(f"variant {spec!r}: unknown key {key!r} (attributes: {', '.join(ATTRIBUTES)}; sh_degree)")
+            raise UsageError(f"variant {spec!r}: unknown key {key!r} (attributes: {', '.join(ATTRIBUTES)}; "
+                             "sh_degree; sh_codebook)")
     resolve_formats(preset, overrides)
-    return name, preset, overrides, sh_degree
+    return name, preset, overrides, sh_degree, sh_codebook
 
 
 def path_size(path: str) -> int:
@@ -303,10 +309,10 @@ def evaluate(input_path: str, opts: EvalOptions | None = None,
     rows: list[Row] = []
     try:
         def encode_and_measure(label: str, kind: str, preset: str, overrides: dict[str, str],
-                               sh_degree: int | None = None) -> Row:
+                               sh_degree: int | None = None, sh_codebook: str | None = None) -> Row:
             out = os.path.join(out_root, label.replace(" ", "_").replace("=", "-").replace("+", "_"))
             eo = EncodeOptions(preset=preset, overrides=overrides, lod=opts.lod, up=tuple(opts.up),
-                               sh_degree=sh_degree)
+                               sh_degree=sh_degree, sh_codebook=sh_codebook)
             if opts.zstd_level is not None:
                 eo.zstd_level = opts.zstd_level
             t0 = time.perf_counter()
@@ -317,10 +323,11 @@ def evaluate(input_path: str, opts: EvalOptions | None = None,
             ps, ss, _ = _quality(renderer, source, cameras, references)
             disk = int(m["bytes_on_disk"])
             leaf = int(m.get("leaf_bytes_on_disk", disk))
-            disk_counted = disk if opts.lod else leaf
+            disk_counted = disk  # every file, the manifest included (with --lod: the coarse levels too)
             row = Row(label, kind, dict(m["formats"]), len(g), float(m["gpu_bytes_per_splat"]), disk_counted,
                       disk_counted / len(g), input_size / disk_counted, ps, ss, enc_s,
                       {"preset": preset, "overrides": overrides, "sh_degree": int(m["sh_degree"]),
+                       "sh_codebook_entries": (m.get("sh_codebook") or {}).get("entries"),
                        "bytes_on_disk_total": disk,
                        "leaf_bytes_on_disk": leaf, "gpu_bytes": int(m["gpu_bytes"]),
                        "attributes": m.get("attributes", {}), "encoded_dir": out if tmp is None else None})
@@ -331,16 +338,18 @@ def evaluate(input_path: str, opts: EvalOptions | None = None,
 
         for preset in opts.presets:
             rows.append(encode_and_measure(preset, "preset", preset, {}))
-        for name, preset, overrides, sh_degree in variants:
-            rows.append(encode_and_measure(name, "variant", preset, overrides, sh_degree))
+        for name, preset, overrides, sh_degree, sh_codebook in variants:
+            rows.append(encode_and_measure(name, "variant", preset, overrides, sh_degree, sh_codebook))
         for preset in opts.attribution:
             formats = PRESETS[preset]
             for attr, fmt in formats.items():
                 if attr == "sh" and g.sh_degree == 0:
                     continue
                 if fmt != LOSSLESS_FORMAT:
+                    # Lossless SH means no codebook either.
                     rows.append(encode_and_measure(f"{preset} {attr}={LOSSLESS_FORMAT}", "attribution", preset,
-                                                   {attr: LOSSLESS_FORMAT}))
+                                                   {attr: LOSSLESS_FORMAT},
+                                                   sh_codebook="off" if attr == "sh" else None))
             for attr, fmt in formats.items():
                 if attr == "sh" and g.sh_degree == 0:
                     continue
@@ -455,8 +464,11 @@ def report_markdown(report: dict) -> str:
         cells = [f.get(a, "-") for a in ("position", "rotation", "scale", "color", "sh")]
         if inp["sh_degree"] == 0 and r["kind"] != "compare":
             cells[4] = "(none)"
-        elif r.get("sh_degree") is not None and r["sh_degree"] < inp["sh_degree"]:
-            cells[4] = f"{cells[4]} (SH{r['sh_degree']})"
+        else:
+            if r.get("sh_codebook_entries"):
+                cells[4] = f"{cells[4]} VQ{r['sh_codebook_entries']}"
+            if r.get("sh_degree") is not None and r["sh_degree"] < inp["sh_degree"]:
+                cells[4] = f"{cells[4]} (SH{r['sh_degree']})"
         gpu = "-" if r["gpu_bytes_per_splat"] is None else f"{r['gpu_bytes_per_splat']:.2f}"
         enc = "-" if r["encode_seconds"] is None else f"{r['encode_seconds']:.2f}"
         psnr = f"{_fmt_psnr(r['psnr_mean'])} ({_fmt_psnr(r['psnr_worst'])})"

@@ -14,7 +14,9 @@ import msgpack
 from .errors import FormatError
 
 FORMAT_NAME = "splatstream"
-FORMAT_VERSION = (1, 0)  # (major, minor): readers accept any minor of their major and ignore unknown keys
+FORMAT_VERSION = (1, 1)  # (major, minor): readers accept any minor of their major and ignore unknown keys
+# Scenes without 1.1 features (the SH codebook) are written as 1.0, so 1.0 readers still read them.
+BASE_VERSION = (1, 0)
 MANIFEST_NAME = "manifest.msgpack"
 DATA_DIR = "data"
 PAYLOAD_SUFFIX = ".bin"
@@ -74,10 +76,12 @@ def pack_manifest(m: dict) -> bytes:
 
 
 def iter_payloads(m: dict):
-    """Yield (tile, group_name, group) for every payload group the manifest references."""
+    """Yield (tile, group_name, group) for every payload group the manifest references (tile None: codebook)."""
     for tile in m["tiles"]:
         for name, group in tile["groups"].items():
             yield tile, name, group
+    for name, group in (m.get("sh_codebook") or {}).get("groups", {}).items():
+        yield None, name, group
 
 
 def scene_summary(m: dict) -> dict:
@@ -93,5 +97,6 @@ def scene_summary(m: dict) -> dict:
         "gpu_bytes_per_splat": m.get("gpu_bytes_per_splat"),
         "tiles": len(m["tiles"]),
         "levels": 1 + max((t.get("level", 0) for t in m["tiles"]), default=0),
+        "sh_codebook_entries": (m.get("sh_codebook") or {}).get("entries"),
         "version": m["version"],
     }

@@ -50,7 +50,11 @@ FORMATS: dict[str, TexelFormat] = {f.name: f for f in (
     TexelFormat("norm565", 16, 3, (31, 63, 31), "R16UI", shuffle=2),
     TexelFormat("bc7", 8, 4, (255, 255, 255, 255), "COMPRESSED_RGBA_BPTC_UNORM", block=4),
     TexelFormat("bc1", 4, 3, (31, 63, 31), "COMPRESSED_RGB_S3TC_DXT1", block=4),
+    # Not a value format: a codebook entry index (0..65535) per texel, for the SH codebook's per-splat index.
+    TexelFormat("index16", 16, 1, (65535,), "R16UI", shuffle=2),
 )}
+# Formats an attribute can be quantised to (index16 only holds codebook indices).
+VALUE_FORMATS = tuple(name for name in FORMATS if name != "index16")
 
 
 def get_format(name: str) -> TexelFormat:
@@ -85,6 +89,7 @@ def _bc_module():
 TEXEL_DTYPES = {
     "f32x4": np.dtype(("<f4", 4)), "f16x4": np.dtype(("<f2", 4)), "norm10_2": np.dtype("<u4"),
     "norm11": np.dtype("<u4"), "norm8x4": np.dtype((np.uint8, 4)), "norm565": np.dtype("<u2"),
+    "index16": np.dtype("<u2"),
 }
 
 
@@ -106,6 +111,8 @@ def pack_texels(fmt_name: str, t: np.ndarray) -> np.ndarray:
         return _q(t, 255).astype(np.uint8)
     if fmt.name == "norm565":
         return (_q(t[:, 0], 31) | (_q(t[:, 1], 63) << 5) | (_q(t[:, 2], 31) << 11)).astype("<u2")
+    if fmt.name == "index16":
+        return _q(t[:, 0], 65535).astype("<u2")
     raise ValueError(f"{fmt.name} is a block format: use encode_image")
 
 
@@ -130,6 +137,8 @@ def unpack_texels(fmt_name: str, texels: np.ndarray) -> np.ndarray:
         out[:, 0] = (word & 31) / 31.0
         out[:, 1] = ((word >> 5) & 63) / 63.0
         out[:, 2] = (word >> 11) / 31.0
+    elif fmt.name == "index16":
+        out[:, 0] = word / 65535.0
     else:
         raise ValueError(f"{fmt.name} is a block format: use decode_image")
     return out

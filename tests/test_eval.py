@@ -157,7 +157,8 @@ def test_variants_parse_and_run():
     from splatstream.errors import UsageError
     from splatstream.evaluate import parse_variant, report_markdown
 
-    assert parse_variant("x:low,rotation=norm565,sh_degree=2") == ("x", "low", {"rotation": "norm565"}, 2)
+    assert parse_variant("x:low,rotation=norm565,sh_degree=2") == ("x", "low", {"rotation": "norm565"}, 2, None)
+    assert parse_variant("y:medium,sh_codebook=256") == ("y", "medium", {}, None, "256")
     for bad in ("x", "x:", "x:ultra", "x:low,rotation", "x:low,colour=bc7", "x:low,sh_degree=5", "x:low,scale=nope"):
         with pytest.raises(UsageError):
             parse_variant(bad)
@@ -166,4 +167,4 @@ def test_variants_parse_and_run():
                                renderer="ref"))
     (row,) = rep["rows"]
     assert row["kind"] == "variant" and row["sh_degree"] == 1
-    assert "| low-sh1 | norm11 | norm10_2 | norm565 | bc7 | bc1 (SH1) |" in report_markdown(rep)
+    assert "| low-sh1 | norm8x4 | norm8x4 | norm8x4 | bc7 | norm565 VQ64 (SH1) |" in report_markdown(rep)

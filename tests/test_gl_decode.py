@@ -8,7 +8,7 @@ from conftest import open_gl_context, real
 from splatstream.codec import decode_plane
 from splatstream.io import read_gaussians
 from splatstream.layout import chunk_texel_index
-from splatstream.texformats import FORMATS, TEXEL_DTYPES, decode_image, unpack_texels
+from splatstream.texformats import FORMATS, TEXEL_DTYPES, VALUE_FORMATS, decode_image, unpack_texels
 
 pytest.importorskip("moderngl")
 
@@ -39,7 +39,7 @@ def _numpy_t(plane, n: int) -> np.ndarray:
     return decode_image(plane.format, blob, plane.width, plane.height).reshape(-1, 4)[src]
 
 
-@pytest.mark.parametrize("fmt", list(FORMATS))
+@pytest.mark.parametrize("fmt", list(VALUE_FORMATS))
 def test_shader_decode_equals_numpy(ctx, gaussians, fmt):
     from client_gl.pool import ChunkPool
     from client_gl.renderer import SplatRenderer

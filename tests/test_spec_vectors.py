@@ -11,14 +11,16 @@ from splatstream.manifest import load_manifest
 VECTORS = pathlib.Path(__file__).resolve().parents[1] / "format_spec" / "vectors"
 
 
-@pytest.mark.parametrize("preset", ["high", "medium", "very-low"])
+@pytest.mark.parametrize("preset", ["high", "medium", "low", "very-low"])
 def test_vector_decodes_to_expected_values(preset):
-    if preset == "very-low":
+    if preset in ("low", "very-low"):
         pytest.importorskip("texture2ddecoder")
     scene = VECTORS / preset
     expected = json.loads((scene / "expected.json").read_text())
     m = load_manifest(scene)
-    assert m["version"] == [1, 0] and m["preset"] == preset and m["splats"] == expected["splats"] == 260
+    codebook = preset in ("low", "very-low")  # format 1.1: SH codebook
+    assert m["version"] == ([1, 1] if codebook else [1, 0]) and ("sh_codebook" in m) == codebook
+    assert m["preset"] == preset and m["splats"] == expected["splats"] == 260
     g = decode_scene(scene)
     for field in ("positions", "rotations", "log_scales", "opacities", "sh_dc", "sh_rest"):
         got = getattr(g, field)

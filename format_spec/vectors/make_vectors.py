@@ -10,7 +10,7 @@ from splatstream.ply import read_gaussians_ply
 
 HERE = pathlib.Path(__file__).resolve().parent
 SOURCE = HERE.parents[1].parent / "shared" / "data" / "real" / "fruit_drops_sh3.ply"
-PRESETS = ["high", "medium", "very-low"]
+PRESETS = ["high", "medium", "low", "very-low"]
 SPLATS = 260
 
 

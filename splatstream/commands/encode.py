@@ -7,7 +7,7 @@ import sys
 from ..encoder import ATTRIBUTES, DEFAULT_PRESET, PRESETS, encode_file
 from ..errors import UsageError
 from ..progress import ProgressPrinter
-from ..texformats import FORMATS
+from ..texformats import VALUE_FORMATS
 from .args import parse_vector
 
 
@@ -23,9 +23,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("output_dir", help="scene directory to write (replaced atomically if it exists)")
     p.add_argument("--preset", default=DEFAULT_PRESET, choices=list(PRESETS), help="quality preset (default medium)")
     for attr in ATTRIBUTES:
-        p.add_argument(f"--{attr}", dest=f"fmt_{attr}", choices=list(FORMATS), metavar="FORMAT",
-                       help=f"texel format of {attr}, overriding the preset ({', '.join(FORMATS)})")
+        p.add_argument(f"--{attr}", dest=f"fmt_{attr}", choices=list(VALUE_FORMATS), metavar="FORMAT",
+                       help=f"texel format of {attr}, overriding the preset ({', '.join(VALUE_FORMATS)})")
     p.add_argument("--sh-degree", type=int, choices=[0, 1, 2, 3], help="drop SH bands above this degree")
+    p.add_argument("--sh-codebook", metavar="off|auto|N",
+                   help="vector-quantise SH bands 1..3 into a scene-wide codebook of N entries (at most 65536; "
+                        "auto: about one per 64 splats) with a 16-bit index per splat; the sh format then applies "
+                        "to the codebook. Default: the preset's choice (low and very-low use auto)")
     p.add_argument("--no-lod", action="store_true", help="write one tile holding every splat (no LOD tree)")
     p.add_argument("--max-leaf-splats", type=int, default=65536, help="splats per leaf tile at most (default 65536)")
     p.add_argument("--reduction", type=float, default=4.0,
@@ -56,7 +60,7 @@ def run(args: argparse.Namespace) -> int:
     m = encode_file(args.input, args.output_dir, preset=args.preset, drop_invalid=args.drop_invalid,
                     progress=progress, overrides=overrides, sh_degree=args.sh_degree, zstd_level=args.zstd_level,
                     lod=not args.no_lod, max_leaf_splats=args.max_leaf_splats, reduction=args.reduction,
-                    name=args.name, up=up, chunk_order=args.chunk_order)
+                    name=args.name, up=up, chunk_order=args.chunk_order, sh_codebook=args.sh_codebook)
     if not args.quiet:
         print(f"wrote {args.output_dir}: {m['splats']} splats, SH degree {m['sh_degree']}, preset {m['preset']}, "
               f"{len(m['tiles'])} tiles, {m['bytes_on_disk'] / 1e6:.2f} MB on disk "

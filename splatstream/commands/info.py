@@ -20,8 +20,18 @@ def scene_info(m: dict) -> dict:
         "bytes_per_level": _bytes_per_level(m),
         "camera": m.get("camera"),
         "up": m.get("up"),
+        "sh_codebook": _codebook(m),
     })
     return s
+
+
+def _codebook(m: dict) -> dict | None:
+    cb = m.get("sh_codebook")
+    if not cb:
+        return None
+    groups = cb.get("groups", {}).values()
+    return {"entries": cb.get("entries"), "format": cb.get("format"), "index_format": cb.get("index_format"),
+            "bytes_on_disk": sum(g["bytes"] for g in groups), "gpu_bytes": sum(g["gpu_bytes"] for g in groups)}
 
 
 def _bytes_per_level(m: dict) -> list[dict]:
@@ -60,6 +70,10 @@ def run(args: argparse.Namespace) -> int:
     for name, a in (info["attributes"] or {}).items():
         print(f"  {name:<9} {a['format']:<9} GPU {a['gpu_bytes'] / info['splats']:7.2f} B/splat   "
               f"disk {a['disk_bytes'] / info['splats']:7.2f} B/splat")
+    cb = info["sh_codebook"]
+    if cb:
+        print(f"  SH codebook: {cb['entries']} entries in {cb['format']}, {cb['bytes_on_disk']} bytes on disk, "
+              f"{cb['gpu_bytes']} on the GPU, shared by every tile ({cb['index_format']} index per splat)")
     for lv in info["bytes_per_level"]:
         print(f"  level {lv['level']}: {lv['tiles']} tiles, {lv['splats']} splats, {lv['bytes_on_disk']} bytes on disk")
     return 0

@@ -1,0 +1,175 @@
+"""SH codebook (format 1.1): the vector quantiser, its planes in the payloads, decoding, LOD and bad input."""
+import numpy as np
+import pytest
+from conftest import real, run_cli
+
+from splatstream.codec import (
+    SH_INDEX_PLANE,
+    codebook_band_values,
+    codebook_rows,
+    codebook_weights,
+    decode_index_plane,
+    decode_plane,
+    encode_index_plane,
+)
+from splatstream.container import unpack_group
+from splatstream.decoder import decode_scene, read_codebook, read_payload
+from splatstream.encoder import EncodeOptions, encode_gaussians, splat_order
+from splatstream.errors import FormatError, UsageError
+from splatstream.layout import morton_order
+from splatstream.manifest import MANIFEST_NAME, iter_payloads, load_manifest, pack_manifest
+from splatstream.ply import read_gaussians_ply
+from splatstream.texformats import get_format
+from splatstream.vq import MAX_ENTRIES, auto_entries, build_codebook, parse_entries
+
+
+@pytest.fixture(scope="module")
+def fruit():
+    return read_gaussians_ply(real("fruit_drops_sh3.ply"))
+
+
+def test_auto_size_and_parsing():
+    assert auto_entries(4721) == 64 and auto_entries(1_000_000) == 16384 and auto_entries(6_000_000) == 65536
+    assert auto_entries(10) == 64
+    assert parse_entries("off", 10) == 0 and parse_entries("auto", 1_000_000) == 16384
+    assert parse_entries("300", 1) == 300
+    for bad in ("0x10", "-1", str(MAX_ENTRIES + 1), "many"):
+        with pytest.raises(UsageError):
+            parse_entries(bad, 1000)
+
+
+def test_codebook_is_exact_when_rows_repeat():
+    rng = np.random.default_rng(1)
+    distinct = rng.normal(size=(300, 45)).astype(np.float32)
+    rows = distinct[rng.integers(0, 300, 20000)]
+    cb = build_codebook(rows, 512)
+    assert len(cb.entries) == 300
+    np.testing.assert_array_equal(cb.entries[cb.assign(rows)], rows)
+
+
+def test_tree_codebook_beats_uniform_noise_floor_and_assigns_consistently():
+    rng = np.random.default_rng(2)
+    centres = rng.normal(size=(2000, 45)).astype(np.float32)
+    rows = centres[rng.integers(0, 2000, 60000)] + 0.05 * rng.normal(size=(60000, 45)).astype(np.float32)
+    cb = build_codebook(rows, 4096)  # 60,000 x 4096 pairs: the two-level tree
+    assert len(cb.top) < len(cb.entries) <= 4096
+    labels = cb.assign(rows)
+    assert labels.min() >= 0 and labels.max() < len(cb.entries)
+    rmse = float(np.sqrt(np.mean((rows - cb.entries[labels]) ** 2)))
+    assert rmse < 0.06, rmse  # the noise is 0.05 RMS; the centres are 1.0 RMS apart
+    np.testing.assert_array_equal(cb.assign(rows[:1000]), labels[:1000])
+
+
+def test_weights_pull_entries_towards_important_rows():
+    rows = np.concatenate([np.zeros((1000, 3)), np.ones((10, 3))]).astype(np.float32)
+    rows[:, 0] += np.linspace(0, 0.1, 1010, dtype=np.float32)  # keep rows distinct
+    light = build_codebook(rows, 1)
+    heavy = build_codebook(rows, 1, weights=np.r_[np.ones(1000), np.full(10, 1e5)])
+    assert light.entries[0, 1] < 0.1 and heavy.entries[0, 1] > 0.9
+
+
+def test_index_plane_round_trips():
+    idx = np.random.default_rng(3).integers(0, 65536, 700)
+    plane = encode_index_plane(idx)
+    assert plane.format == "index16" and plane.spec is SH_INDEX_PLANE and get_format("index16").bits_per_texel == 16
+    np.testing.assert_array_equal(decode_index_plane(plane, 700), idx)
+    order = np.random.default_rng(4).permutation(700)
+    np.testing.assert_array_equal(decode_index_plane(encode_index_plane(idx, order), 700), idx[order])
+    with pytest.raises(ValueError):
+        encode_index_plane(np.array([65536]))
+
+
+def test_encoded_codebook_round_trips_within_one_step(fruit, tmp_path):
+    m = encode_gaussians(fruit, tmp_path / "s", EncodeOptions(preset="low", lod=False))
+    cb = m["sh_codebook"]
+    assert m["version"] == [1, 1] and cb["entries"] == 64 and cb["index_format"] == "index16"
+    assert cb["format"] == m["formats"]["sh"] == "norm565"
+    assert set(cb["groups"]) == {"sh1", "sh2", "sh3"} and set(m["tiles"][0]["groups"]) == {"base", "sh1"}
+    # The codebook the encoder fitted (deterministic: it does not depend on the input order).
+    fitted = build_codebook(codebook_rows(fruit), 64, weights=codebook_weights(fruit))
+    planes = read_codebook(tmp_path / "s", m, 3)
+    fmt = get_format("norm565")
+    for band in (1, 2, 3):
+        plane = planes[f"sh{band}"]
+        want = codebook_band_values(fitted.entries, band)
+        got = decode_plane(plane, 64)
+        chunk = np.arange(64) // 256
+        extent = (plane.ranges[:, 1].astype(np.float32) - plane.ranges[:, 0].astype(np.float32))[chunk]
+        for c in range(3):
+            assert np.all(np.abs(got[..., c] - want[..., c]) <= fmt.step(c) * extent[..., c] + 1e-6)
+    # Each splat points at its nearest entry (64 entries: a flat codebook, so exactly nearest).
+    g = fruit.subset(splat_order(fruit, m["chunk_order"]))
+    tile = m["tiles"][0]
+    entry = tile["groups"]["sh1"]
+    index_plane = unpack_group(read_payload(tmp_path / "s", entry), entry, "sh1", len(g), "t", codebook=True)
+    index = decode_index_plane(index_plane["sh_index"], len(g))
+    rows = codebook_rows(g)
+    d = ((rows[:, None, :] - fitted.entries[None]) ** 2).sum(-1)
+    np.testing.assert_array_equal(index, d.argmin(1))
+    # The decoder puts the entries back per splat, band by band; lower degrees need fewer payloads.
+    dec = decode_scene(tmp_path / "s")
+    assert dec.sh_degree == 3
+    full = np.concatenate([decode_plane(planes[f"sh{b}"], 64) for b in (1, 2, 3)], axis=1)
+    np.testing.assert_array_equal(dec.sh_rest, full[index])
+    assert decode_scene(tmp_path / "s", sh_degree=1).sh_rest.shape == (len(g), 3, 3)
+    assert decode_scene(tmp_path / "s", sh_degree=0).sh_degree == 0
+    # Payloads: every codebook group is listed, and the bytes are counted.
+    listed = [name for tile_, name, _ in iter_payloads(m) if tile_ is None]
+    assert listed == ["sh1", "sh2", "sh3"]
+    cb_disk = sum(g_["bytes"] for g_ in cb["groups"].values())
+    assert m["leaf_bytes_on_disk"] == cb_disk + sum(g_["bytes"] for g_ in tile["groups"].values())
+    assert m["attributes"]["sh"]["gpu_bytes"] == sum(g_["gpu_bytes"] for g_ in cb["groups"].values()) + \
+        tile["groups"]["sh1"]["gpu_bytes"]
+
+
+def test_codebook_rms_error_is_bounded(fruit, tmp_path):
+    """Weighted RMS SH error of the 64-entry codebook on fruit_drops: measured 0.046, bounded at 0.06."""
+    encode_gaussians(fruit, tmp_path / "s", EncodeOptions(preset="low", lod=False))
+    dec = decode_scene(tmp_path / "s")
+    g = fruit.subset(splat_order(fruit, load_manifest(tmp_path / "s")["chunk_order"]))
+    w = codebook_weights(g)
+    err = ((dec.sh_rest - g.sh_rest) ** 2).sum(axis=(1, 2))
+    assert float(np.sqrt((w * err).sum() / w.sum() / 45)) < 0.06
+
+
+def test_lod_tiles_share_one_codebook(fruit, tmp_path):
+    m = encode_gaussians(fruit, tmp_path / "s", EncodeOptions(preset="very-low", max_leaf_splats=1024))
+    assert m["lod"]["enabled"] and len(m["tiles"]) > 4 and m["sh_degree"] == 3
+    for tile in m["tiles"]:
+        assert set(tile["groups"]) == {"base", "sh1"}
+    every = decode_scene(tmp_path / "s", tiles=[t["id"] for t in m["tiles"]])
+    assert every.sh_rest.shape[1:] == (15, 3) and np.isfinite(every.sh_rest).all()
+    leaves = decode_scene(tmp_path / "s")
+    assert len(leaves) == len(fruit)
+
+
+def test_medium_has_no_codebook_and_stays_version_1_0(fruit, tmp_path):
+    m = encode_gaussians(fruit.subset(morton_order(fruit.positions)[:600]), tmp_path / "s",
+                         EncodeOptions(preset="medium"))
+    assert m["version"] == [1, 0] and "sh_codebook" not in m
+    m = encode_gaussians(fruit.subset(np.arange(600)), tmp_path / "t", EncodeOptions(preset="medium", sh_codebook=32))
+    assert m["sh_codebook"]["entries"] == 32 and m["formats"]["sh"] == "norm565"
+
+
+def test_bad_codebook_input_gives_clear_errors(fruit, tmp_path):
+    encode_gaussians(fruit.subset(np.arange(300)), tmp_path / "s", EncodeOptions(preset="low", lod=False))
+    m = load_manifest(tmp_path / "s")
+    m["sh_codebook"]["entries"] = 2  # indices now point past the end
+    (tmp_path / "s" / MANIFEST_NAME).write_bytes(pack_manifest(m))
+    with pytest.raises(FormatError, match="codebook"):
+        decode_scene(tmp_path / "s")
+    del m["sh_codebook"]["groups"]["sh2"]
+    (tmp_path / "s" / MANIFEST_NAME).write_bytes(pack_manifest(m))
+    with pytest.raises(FormatError, match="sh_codebook.groups"):
+        decode_scene(tmp_path / "s")
+
+
+def test_cli_codebook_option(tmp_path):
+    out = tmp_path / "o"
+    r = run_cli("encode", str(real("fruit_drops_sh3.ply")), str(out), "--preset", "medium", "--sh-codebook", "128",
+                "-q")
+    assert r.returncode == 0, r.stderr
+    assert load_manifest(out)["sh_codebook"]["entries"] == 128
+    r = run_cli("encode", str(real("fruit_drops_sh3.ply")), str(tmp_path / "x"), "--sh-codebook", "70000")
+    assert r.returncode == 2 and "65536" in r.stderr and "Traceback" not in r.stderr
+    assert not (tmp_path / "x").exists()
