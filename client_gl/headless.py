@@ -65,7 +65,7 @@ class HeadlessRenderer:
         """Make a pool for the scene's formats and upload all its tiles."""
         self.unload()
         cap = max(capacity or 0, scene.splats, 1)
-        self.pool = ChunkPool(self.ctx, scene.formats, scene.sh_degree, cap)
+        self.pool = ChunkPool(self.ctx, scene.formats, scene.sh_degree, cap, codebook=scene.codebook)
         for tile_id, tile in scene.tiles.items():
             self.pool.join(tile_id, tile)
         self.renderer = SplatRenderer(self.ctx, self.pool, self.sort, self.color_dtype, self.draw)

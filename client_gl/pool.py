@@ -9,6 +9,13 @@ block layout as a tile texture (format_spec/format.md 4.1). Global splat index =
 
 Range table: an RGBA32UI texture with 16 texels (64 words) per slot at ((s % cols) * 16, s // cols); word offsets
 are RANGE_WORDS (f32 position ranges, f16 pairs for the others, as the file stores them).
+
+SH codebook (format v1.1, format_spec/format.md): the pool holds an `sh_index` atlas (index16, R16UI, one texel
+per splat: its codebook entry) instead of the sh1..sh3 atlases, and the codebook: one array texture per band in
+the codebook's stored texel format and block layout (entry e at chunk e >> 8, Morton j = e & 255), and a codebook
+range table, an RGBA32UI texture of one 64-word record (16 texels) per codebook chunk, row c = chunk c, with the
+band ranges at the same RANGE_WORDS offsets as the pool's range table. Uploaded once per pool; bands can be set
+later (progressive SH); a band not set yet decodes to 0 (its ranges are zero).
 """
 from __future__ import annotations
 
@@ -16,7 +23,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from splatstream.codec import EncodedPlane
+from splatstream.codec import SH_INDEX_FORMAT, EncodedPlane
 from splatstream.errors import UsageError
 from splatstream.gaussians import SH_BAND_COEFFS
 from splatstream.texformats import get_format
@@ -31,7 +38,7 @@ SH_BAND_LAYERS = dict(SH_BAND_COEFFS)
 RANGE_WORDS = {"position": 0, "count": 6, "tile": 7, "scale": 8, "color": 11, "sh1": 15, "sh2": 24, "sh3": 39}
 RANGE_RECORD_WORDS = 64
 PLANE_ATTRIBUTE = {"position": "position", "rotation": "rotation", "scale": "scale", "color": "color",
-                   "sh1": "sh", "sh2": "sh", "sh3": "sh"}
+                   "sh1": "sh", "sh2": "sh", "sh3": "sh", "sh_index": "sh"}
 
 
 @dataclass
@@ -102,12 +109,23 @@ class ChunkPool:
     """Atlases for `capacity` splats in fixed texel formats (one per plane) with `sh_degree` bands resident."""
 
     def __init__(self, ctx, formats: dict[str, str], sh_degree: int, capacity: int, keep_host_mirror: bool = True,
-                 growable: bool = True):
+                 growable: bool = True, codebook: dict[str, EncodedPlane] | None = None):
+        """`codebook`: the SH codebook's band planes ("sh1".."shD", as splatstream.decoder.read_codebook returns
+        them) for scenes encoded with one; tiles then bring an `sh_index` plane instead of their SH bands. Bands
+        may be missing and set later with set_codebook_band (they decode to 0 until then)."""
         self.ctx = ctx
         self.formats = dict(formats)
         self.sh_degree = int(sh_degree)
         self.growable = growable
-        self.planes = ["position", "rotation", "scale", "color"] + [f"sh{b}" for b in range(1, self.sh_degree + 1)]
+        self.codebook_format: str | None = None  # texel format of the codebook bands; None: no codebook
+        self.codebook_textures: dict[str, RawTexture] = {}
+        self.codebook_ranges: RawTexture | None = None
+        if codebook and self.sh_degree >= 1:
+            self._init_codebook(codebook)
+        if self.codebook_format is not None:
+            self.planes = ["position", "rotation", "scale", "color", "sh_index"]
+        else:
+            self.planes = ["position", "rotation", "scale", "color"] + [f"sh{b}" for b in range(1, self.sh_degree + 1)]
         self.textures: dict[str, RawTexture] = {}
         self.slots = 0
         self._allocate(max(1, -(-int(capacity) // CHUNK)))
@@ -131,8 +149,8 @@ class ChunkPool:
         old = (self.textures, getattr(self, "ranges", None), self.slots, getattr(self, "cols", 1))
         textures = {}
         for plane in self.planes:
-            fmt = get_format(self.formats[PLANE_ATTRIBUTE[plane]])
-            layers = SH_BAND_LAYERS[int(plane[2:])] if plane.startswith("sh") else 0
+            fmt = get_format(self.plane_format(plane))
+            layers = SH_BAND_LAYERS[int(plane[2:])] if plane[2:].isdigit() else 0
             textures[plane] = RawTexture(INTERNAL_FORMATS[fmt.gl_internal], width, height, layers)
         ranges = RawTexture(GL_RGBA32UI, width, rows)
         old_textures, old_ranges, old_slots, old_cols = old
@@ -167,6 +185,66 @@ class ChunkPool:
                                      np.concatenate([m.opacity, np.zeros(grow, np.float32)]),
                                      np.concatenate([m.max_log_scale, np.zeros(grow, np.float32)]), counts)
 
+    def plane_format(self, plane: str) -> str:
+        """Texel format of a plane's atlas."""
+        if plane == "sh_index":
+            return SH_INDEX_FORMAT
+        return self.formats[PLANE_ATTRIBUTE[plane]]
+
+    # --- SH codebook ------------------------------------------------------------------------------------------
+    @property
+    def uses_codebook(self) -> bool:
+        return self.codebook_format is not None
+
+    def _init_codebook(self, codebook: dict[str, EncodedPlane]) -> None:
+        bands = {}
+        for name, plane in codebook.items():
+            band = int(name[2:]) if name.startswith("sh") and name[2:].isdigit() else 0
+            if not 1 <= band <= 3:
+                raise UsageError(f"SH codebook plane {name!r}: expected sh1..sh3")
+            if band <= self.sh_degree:
+                bands[band] = plane
+        if not bands:
+            return
+        first = bands[min(bands)]
+        self.codebook_format = first.format
+        self._cb_size = (int(first.width), int(first.height))
+        self._cb_chunks = max(1, (first.width // BLOCK) * (first.height // BLOCK))
+        internal = INTERNAL_FORMATS[get_format(self.codebook_format).gl_internal]
+        for b in range(1, self.sh_degree + 1):  # every resident band's texture now: progressive bands fill them
+            tex = RawTexture(internal, *self._cb_size, SH_BAND_LAYERS[b])
+            self.codebook_textures[f"sh{b}"] = tex
+            zeros = np.zeros(tex.nbytes // SH_BAND_LAYERS[b], np.uint8)
+            for layer in range(SH_BAND_LAYERS[b]):
+                tex.write(zeros, 0, 0, tex.width, tex.height, layer)
+        self._cb_records = np.zeros((self._cb_chunks, RANGE_RECORD_WORDS), np.uint32)
+        self.codebook_ranges = RawTexture(GL_RGBA32UI, BLOCK, self._cb_chunks)
+        self.codebook_ranges.write(self._cb_records.reshape(self._cb_chunks, BLOCK, 4), 0, 0, BLOCK, self._cb_chunks)
+        for b, plane in sorted(bands.items()):
+            self.set_codebook_band(b, plane)
+
+    def set_codebook_band(self, band: int, plane: EncodedPlane) -> None:
+        """Upload (or replace) one band of the SH codebook: its texels as stored and its per-chunk ranges."""
+        if not self.uses_codebook:
+            raise UsageError("this pool was made without an SH codebook")
+        if not 1 <= band <= self.sh_degree:
+            raise UsageError(f"SH codebook band {band}: this pool holds bands 1..{self.sh_degree}")
+        if plane.format != self.codebook_format:
+            raise UsageError(f"SH codebook band {band} is {plane.format}, this pool's codebook is "
+                             f"{self.codebook_format}")
+        if (plane.width, plane.height) != self._cb_size:
+            raise UsageError(f"SH codebook band {band} is {plane.width}x{plane.height} texels, the codebook's other "
+                             f"bands {self._cb_size[0]}x{self._cb_size[1]}")
+        tex = self.codebook_textures[f"sh{band}"]
+        for layer in range(SH_BAND_LAYERS[band]):
+            tex.write(layer_blob(plane, layer), 0, 0, tex.width, tex.height, layer)
+        ranges = np.ascontiguousarray(np.asarray(plane.ranges).astype("<f2"))
+        chunks = len(ranges)
+        words = ranges.reshape(chunks, -1).view(np.uint32)
+        w = RANGE_WORDS[f"sh{band}"]
+        self._cb_records[:chunks, w:w + words.shape[1]] = words
+        self.codebook_ranges.write(self._cb_records.reshape(self._cb_chunks, BLOCK, 4), 0, 0, BLOCK, self._cb_chunks)
+
     def grow(self, capacity: int) -> None:
         """Make room for `capacity` splats (GL 4.3: atlases are copied on the GPU; slot numbers are kept)."""
         slots = -(-int(capacity) // CHUNK)
@@ -188,12 +266,19 @@ class ChunkPool:
         return self.ranges.nbytes
 
     @property
+    def codebook_bytes(self) -> int:
+        """The SH codebook's textures (bands and range table); 0 without a codebook."""
+        if self.codebook_ranges is None:
+            return 0
+        return sum(t.nbytes for t in self.codebook_textures.values()) + self.codebook_ranges.nbytes
+
+    @property
     def gpu_bytes(self) -> int:
-        return self.texel_bytes + self.range_bytes
+        return self.texel_bytes + self.range_bytes + self.codebook_bytes
 
     @property
     def bytes_per_splat(self) -> float:
-        """GPU bytes per splat slot (atlases + range table), i.e. per splat of a full pool."""
+        """GPU bytes per splat slot (atlases + range table + codebook), i.e. per splat of a full pool."""
         return self.gpu_bytes / (self.slots * CHUNK)
 
     @property
@@ -221,8 +306,12 @@ class ChunkPool:
         for plane in self.planes:
             p = tile.planes.get(plane)
             if p is None:
+                if plane == "sh_index" or (plane.startswith("sh") and "sh_index" in tile.planes):
+                    mode = "with" if plane == "sh_index" else "without"
+                    raise UsageError(f"tile {tile_id} has no {plane} plane: this pool holds scenes {mode} an SH "
+                                     "codebook")
                 raise UsageError(f"tile {tile_id} has no {plane} plane")
-            want = self.formats[PLANE_ATTRIBUTE[plane]]
+            want = self.plane_format(plane)
             if p.format != want:
                 raise UsageError(f"tile {tile_id}: {plane} is {p.format}, this pool holds {want}")
         slots = np.array(self._free[:chunks], np.int64)
@@ -272,8 +361,9 @@ class ChunkPool:
         put("position", tile.planes["position"].ranges, "<f4")
         put("scale", tile.planes["scale"].ranges, "<f2")
         put("color", tile.planes["color"].ranges, "<f2")
-        for b in range(1, self.sh_degree + 1):
-            put(f"sh{b}", tile.planes[f"sh{b}"].ranges, "<f2")
+        if not self.uses_codebook:  # codebook scenes: the SH ranges are the codebook's (codebook_ranges)
+            for b in range(1, self.sh_degree + 1):
+                put(f"sh{b}", tile.planes[f"sh{b}"].ranges, "<f2")
         rec[:, w["count"]] = np.minimum(CHUNK, n - np.arange(chunks) * CHUNK)
         rec[:, w["tile"]] = np.uint32(tile_id & 0xFFFFFFFF)
         texels = rec.reshape(chunks, BLOCK, 4)
@@ -295,11 +385,21 @@ class ChunkPool:
         for plane, tex in self.textures.items():
             tex.bind(TEXTURE_UNITS[plane])
         self.ranges.bind(TEXTURE_UNITS["ranges"])
+        for name, tex in self.codebook_textures.items():
+            tex.bind(TEXTURE_UNITS["cb_" + name])
+        if self.codebook_ranges is not None:
+            self.codebook_ranges.bind(TEXTURE_UNITS["cb_ranges"])
 
     def release(self) -> None:
         for tex in self.textures.values():
             tex.release()
         self.ranges.release()
         self.textures.clear()
+        for tex in self.codebook_textures.values():
+            tex.release()
+        self.codebook_textures.clear()
+        if self.codebook_ranges is not None:
+            self.codebook_ranges.release()
+            self.codebook_ranges = None
 
 

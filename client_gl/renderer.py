@@ -138,7 +138,7 @@ class SplatRenderer:
         self._software = is_software(ctx)
         self.color_dtype = color_dtype
         version = 430 if has_compute(ctx) else 410
-        self.header = shadergen.decode_header(pool.formats, pool.sh_degree)
+        self.header = shadergen.decode_header(pool.formats, pool.sh_degree, getattr(pool, "codebook_format", None))
         vert, frag = shadergen.render_sources(self.header, version)
         self.program = ctx.program(vertex_shader=vert, fragment_shader=frag)
         self._bind_samplers(self.program)

@@ -4,9 +4,9 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 
-from splatstream.codec import BASE_PLANES, band_plane, encode_plane, groups_for_degree, plane_values
+from splatstream.codec import BASE_PLANES, EncodedPlane, band_plane, encode_plane, groups_for_degree, plane_values
 from splatstream.container import unpack_group
-from splatstream.decoder import leaf_tiles, read_payload
+from splatstream.decoder import leaf_tiles, read_codebook, read_payload
 from splatstream.encoder import resolve_formats
 from splatstream.gaussians import Gaussians
 from splatstream.layout import morton_order
@@ -23,6 +23,9 @@ class SceneTiles:
     sh_degree: int
     tiles: dict[int, TileData]
     manifest: dict | None = None
+    # SH codebook scenes (format v1.1): the codebook's band planes "sh1".."sh{sh_degree}" as stored (K entries
+    # each); the tiles then hold an `sh_index` plane instead of their SH bands. None without a codebook.
+    codebook: dict[str, EncodedPlane] | None = None
 
     @property
     def splats(self) -> int:
@@ -30,28 +33,69 @@ class SceneTiles:
 
 
 def tiles_from_gaussians(g: Gaussians, preset: str = DEFAULT_PRESET, sh_degree: int | None = None,
-                         overrides: dict[str, str] | None = None) -> SceneTiles:
-    """Encode Gaussians in memory into one tile (Morton order, as the encoder writes it) at a preset."""
+                         overrides: dict[str, str] | None = None,
+                         sh_codebook: str | int | None = None) -> SceneTiles:
+    """Encode Gaussians in memory into one tile (Morton order, as the encoder writes it) at a preset.
+
+    sh_codebook: "off", "auto" or an entry count for an SH codebook (format v1.1) as the encoder builds it; None:
+    the preset's choice (splatstream.encoder.PRESET_SH_CODEBOOK, as `encode` does).
+    """
     formats = resolve_formats(preset, overrides or {})
     degree = g.sh_degree if sh_degree is None else min(int(sh_degree), g.sh_degree)
     order = morton_order(g.positions)
-    specs = list(BASE_PLANES) + [band_plane(b) for b in range(1, degree + 1)]
+    codebook = _codebook_planes(g, preset, degree, formats["sh"], sh_codebook, order)
+    specs = list(BASE_PLANES)
+    if codebook is None:
+        specs += [band_plane(b) for b in range(1, degree + 1)]
     planes = {}
     for s in specs:
         try:
             planes[s.name] = encode_plane(plane_values(g, s), s, formats[s.attribute], order=order)
         except TypeError:  # codec without the `order` argument
             planes[s.name] = encode_plane(plane_values(g, s)[order], s, formats[s.attribute])
-    return SceneTiles(formats, degree, {0: TileData(len(g), planes)})
+    if codebook is not None:
+        planes["sh_index"] = codebook.pop("sh_index")
+    return SceneTiles(formats, degree, {0: TileData(len(g), planes)}, codebook=codebook)
 
 
-def load_tile(scene_dir: str | os.PathLike, tile: dict, sh_degree: int) -> TileData:
-    """A tile's planes from its payloads (verified, decompressed, unshuffled; texels stay encoded)."""
+def _codebook_planes(g: Gaussians, preset: str, degree: int, fmt: str, choice: str | int | None,
+                     order) -> dict[str, EncodedPlane] | None:
+    """Codebook band planes sh1..sh{degree} and the splats' index plane ("sh_index"), or None (no codebook)."""
+    if degree < 1:
+        return None
+    if choice is None:
+        from splatstream import encoder
+
+        choice = getattr(encoder, "PRESET_SH_CODEBOOK", {}).get(preset, "off")
+    if choice in ("off", 0, "0"):
+        return None
+    from splatstream.codec import codebook_band_values, codebook_rows, codebook_weights, encode_index_plane
+    from splatstream.vq import build_codebook, parse_entries
+
+    if degree < g.sh_degree:
+        g = g.with_sh_degree(degree)
+    entries = parse_entries(choice, len(g))
+    if not entries:
+        return None
+    rows = codebook_rows(g)
+    book = build_codebook(rows, entries, weights=codebook_weights(g))  # as splatstream.encoder builds it
+    out = {f"sh{b}": encode_plane(codebook_band_values(book.entries, b), band_plane(b), fmt)
+           for b in range(1, degree + 1)}
+    out["sh_index"] = encode_index_plane(book.assign(rows), order)
+    return out
+
+
+def load_tile(scene_dir: str | os.PathLike, tile: dict, sh_degree: int, codebook: bool = False) -> TileData:
+    """A tile's planes from its payloads (verified, decompressed, unshuffled; texels stay encoded).
+
+    codebook: the scene has an SH codebook (manifest "sh_codebook"): the tile's sh1 payload is its sh_index plane.
+    """
     planes = {}
-    for group in groups_for_degree(sh_degree):
+    for group in groups_for_degree(sh_degree, codebook):
         entry = tile["groups"][group]
         data = read_payload(scene_dir, entry)
-        planes.update(unpack_group(data, entry, group, tile["splats"], os.path.join(scene_dir, entry["file"])))
+        source = os.path.join(scene_dir, entry["file"])
+        planes.update(unpack_group(data, entry, group, tile["splats"], source, codebook=codebook))
     return TileData(int(tile["splats"]), planes)
 
 
@@ -65,5 +109,7 @@ def tiles_from_scene(scene_dir: str | os.PathLike, sh_degree: int | None = None,
     else:
         by_id = {t["id"]: t for t in manifest["tiles"]}
         chosen = [by_id[i] for i in tile_ids]
-    tiles = {int(t["id"]): load_tile(scene_dir, t, degree) for t in chosen}
-    return SceneTiles(dict(manifest["formats"]), degree, tiles, manifest)
+    codebook = read_codebook(scene_dir, manifest, degree) if degree >= 1 else None
+    cb = codebook is not None
+    tiles = {int(t["id"]): load_tile(scene_dir, t, degree, cb) for t in chosen}
+    return SceneTiles(dict(manifest["formats"]), degree, tiles, manifest, codebook)
