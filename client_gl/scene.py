@@ -61,27 +61,14 @@ def tiles_from_gaussians(g: Gaussians, preset: str = DEFAULT_PRESET, sh_degree: 
 def _codebook_planes(g: Gaussians, preset: str, degree: int, fmt: str, choice: str | int | None,
                      order) -> dict[str, EncodedPlane] | None:
     """Codebook band planes sh1..sh{degree} and the splats' index plane ("sh_index"), or None (no codebook)."""
-    if degree < 1:
-        return None
-    if choice is None:
-        from splatstream import encoder
+    from splatstream.codec import codebook_rows, encode_index_plane
+    from splatstream.encoder import codebook_planes, fit_sh_codebook
 
-        choice = getattr(encoder, "PRESET_SH_CODEBOOK", {}).get(preset, "off")
-    if choice in ("off", 0, "0"):
+    book = fit_sh_codebook(g, preset, choice, degree)  # exactly as the encoder fits it
+    if book is None:
         return None
-    from splatstream.codec import codebook_band_values, codebook_rows, codebook_weights, encode_index_plane
-    from splatstream.vq import build_codebook, parse_entries
-
-    if degree < g.sh_degree:
-        g = g.with_sh_degree(degree)
-    entries = parse_entries(choice, len(g))
-    if not entries:
-        return None
-    rows = codebook_rows(g)
-    book = build_codebook(rows, entries, weights=codebook_weights(g))  # as splatstream.encoder builds it
-    out = {f"sh{b}": encode_plane(codebook_band_values(book.entries, b), band_plane(b), fmt)
-           for b in range(1, degree + 1)}
-    out["sh_index"] = encode_index_plane(book.assign(rows), order)
+    out = codebook_planes(book, degree, fmt)
+    out["sh_index"] = encode_index_plane(book.assign(codebook_rows(g.with_sh_degree(degree))), order)
     return out
 
 

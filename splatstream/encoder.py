@@ -21,6 +21,7 @@ from .camera import suggested_camera
 from .codec import (
     BASE_PLANES,
     SH_INDEX_FORMAT,
+    EncodedPlane,
     band_plane,
     codebook_band_values,
     codebook_rows,
@@ -126,6 +127,25 @@ def resolve_formats(preset: str, overrides: dict[str, str]) -> dict[str, str]:
     return formats
 
 
+def fit_sh_codebook(g: Gaussians, preset: str, choice: str | int | None, sh_degree: int) -> Codebook | None:
+    """The SH codebook the encoder stores for these splats (None: no codebook). `choice`: None (the preset's),
+    "off", "auto" or an entry count. The one place that decides how a codebook is fitted (client_gl uses it too)."""
+    if choice is None:
+        choice = PRESET_SH_CODEBOOK.get(preset, "off")
+    entries = parse_entries(choice, len(g)) if sh_degree >= 1 else 0
+    if not entries:
+        return None
+    if sh_degree < g.sh_degree:
+        g = g.with_sh_degree(sh_degree)
+    return build_codebook(codebook_rows(g), entries, weights=codebook_weights(g))
+
+
+def codebook_planes(codebook: Codebook, sh_degree: int, fmt: str, lazy: bool = False) -> dict[str, EncodedPlane]:
+    """The codebook's band planes sh1..sh{sh_degree} (K entries each) in texel format `fmt`."""
+    return {f"sh{b}": encode_plane(codebook_band_values(codebook.entries, b), band_plane(b), fmt, lazy=lazy)
+            for b in range(1, sh_degree + 1)}
+
+
 def _build_tiles(g: Gaussians, opts: EncodeOptions, progress: Progress) -> list[Tile]:
     if opts.lod and len(g) > opts.max_leaf_splats:
         return build_tiles(g, max_leaf_splats=opts.max_leaf_splats, reduction=opts.reduction, progress=progress,
@@ -157,13 +177,9 @@ def encode_gaussians(g: Gaussians, out_dir: str | os.PathLike, opts: EncodeOptio
     if sh_degree != g.sh_degree:
         g = g.with_sh_degree(sh_degree)
     t0 = time.perf_counter()
-    choice = opts.sh_codebook if opts.sh_codebook is not None else PRESET_SH_CODEBOOK.get(opts.preset, "off")
-    entries = parse_entries(choice, len(g)) if sh_degree >= 1 else 0
-    codebook: Codebook | None = None
-    if entries:
-        progress("codebook", 0.0)
-        codebook = build_codebook(codebook_rows(g), entries, weights=codebook_weights(g))
-        progress("codebook", 1.0)
+    progress("codebook", 0.0)
+    codebook = fit_sh_codebook(g, opts.preset, opts.sh_codebook, sh_degree)
+    progress("codebook", 1.0)
     progress("tiles", 0.0)
     tiles = _build_tiles(g, opts, progress)
     progress("tiles", 1.0)
@@ -208,15 +224,13 @@ def encode_gaussians(g: Gaussians, out_dir: str | os.PathLike, opts: EncodeOptio
         if codebook is not None:
             k = len(codebook.entries)
             codebook_entry = {"entries": k, "format": formats["sh"], "index_format": SH_INDEX_FORMAT, "groups": {}}
-            for band in range(1, sh_degree + 1):
-                plane = encode_plane(codebook_band_values(codebook.entries, band), band_plane(band), formats["sh"],
-                                     lazy=True)
+            for band, plane in codebook_planes(codebook, sh_degree, formats["sh"], lazy=True).items():
                 entry = write_payload([plane], -(-k // CHUNK_SIZE))
                 rel = payload_name(entry["sha256"])
                 if rel not in written:
                     written.add(rel)
                     bytes_on_disk += entry["bytes"]
-                codebook_entry["groups"][f"sh{band}"] = {"file": rel, **entry}
+                codebook_entry["groups"][band] = {"file": rel, **entry}
                 leaf_gpu += entry["gpu_bytes"]
                 leaf_disk += entry["bytes"]
                 attr_gpu["sh"] += entry["gpu_bytes"]
