@@ -49,9 +49,10 @@ PRESETS: dict[str, dict[str, str]] = {
     "medium": {"position": "norm11", "rotation": "norm10_2", "scale": "norm11", "color": "norm8x4", "sh": "norm565"},
     # low and very-low keep SH1..SH3 in a scene-wide codebook (PRESET_SH_CODEBOOK; sh is the codebook's format).
     # On fruit_drops low went from 35.2 dB at 19.4 B/splat (BC1 SH, norm11/norm10_2/norm565 for position,
-    # rotation, scale) to 38.4 dB at 11.7 B/splat: the codebook frees 6 B/splat, a third of which buys 8-bit
-    # scales (+1.7 dB); 8-bit positions and rotations cost under 0.1 dB there.
-    "low": {"position": "norm8x4", "rotation": "norm8x4", "scale": "norm8x4", "color": "bc7", "sh": "norm565"},
+    # rotation, scale) to 35.9 dB at 11.2 B/splat (manifest included): the codebook frees 6 B/splat, part of which
+    # buys 8-bit scales (+1.7 dB on fruit); 8-bit positions cost under 0.1 dB there. 8-bit smallest-three
+    # rotations would add 2.3 dB on fruit (0.75 on the 1M scene) for 1.2 B/splat more, past 12 B/splat on fruit.
+    "low": {"position": "norm8x4", "rotation": "norm565", "scale": "norm8x4", "color": "bc7", "sh": "norm565"},
     # The seed's very-low (BC7 for position, rotation and scale) measured 18 dB on fruit_drops: BC7 scales are
     # the worst of it. Packed 16-bit scales and rotations gave 31 dB at fewer bytes (SH1 in BC1); the codebook
     # keeps all three bands for less.

@@ -167,4 +167,4 @@ def test_variants_parse_and_run():
                                renderer="ref"))
     (row,) = rep["rows"]
     assert row["kind"] == "variant" and row["sh_degree"] == 1
-    assert "| low-sh1 | norm8x4 | norm8x4 | norm8x4 | bc7 | norm565 VQ64 (SH1) |" in report_markdown(rep)
+    assert "| low-sh1 | norm8x4 | norm565 | norm8x4 | bc7 | norm565 VQ64 (SH1) |" in report_markdown(rep)
