@@ -2,7 +2,8 @@
 # Rate-distortion numbers of the presets (and of PlayCanvas splat-transform as a peer) on the benchmark scenes.
 #
 #   bench/run_eval.sh [OUT_DIR]        (default bench/out; env: VIEWS=8 SIZE=512x512 RENDERER=auto PEERS=1
-#                                       ATTRIBUTION=low,medium SCENES="fruit donut s1m")
+#                                       ATTRIBUTION=low,medium SCENES="fruit donut s1m"
+#                                       VARIANTS="NAME:PRESET,ATTR=FORMAT ..." extra encodes, see eval --help)
 #
 # Scenes: /work/shared/data/real/fruit_drops_sh3.ply, donut_sh0_no_normals.ply and a 1M-splat make_scene.py scene
 # (python3 /work/shared/tools/make_scene.py --splats 1000000 --seed 0 --out $OUT/s1m.ply). Per scene it writes
@@ -42,6 +43,6 @@ for scene in ${SCENES:-fruit donut s1m}; do
   fi
   echo "== $scene: $input" >&2
   (cd "$here" && "$py" -m splatstream.cli eval "$input" --views "$views" --size "$size" --renderer "$renderer" \
-      --attribution "$attribution" --json "$out/$scene.json" --plot "$out/$scene.png" --markdown "$out/$scene.md" \
+      --attribution "$attribution" ${VARIANTS:+--variants $VARIANTS} --json "$out/$scene.json" --plot "$out/$scene.png" --markdown "$out/$scene.md" \
       ${compare[@]:+--compare "${compare[@]}"})
 done
