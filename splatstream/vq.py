@@ -93,6 +93,25 @@ class Codebook:
         return labels
 
 
+def _unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(index of the first occurrence of each distinct row, index into those of every row), through a 64-bit hash
+    of each row: a sort of N hashes instead of N rows (np.unique on whole rows held another copy of them, which
+    put the encoder's peak above 3x the input). Hash collisions are checked for and fall back to exact rows."""
+    words = rows.view(np.uint32)
+    h = np.full(len(rows), 0xCBF29CE484222325, np.uint64)
+    prime = np.uint64(0x100000001B3)
+    for j in range(words.shape[1]):  # FNV-1a over 32-bit words
+        h ^= words[:, j]
+        h *= prime
+    _, first, inverse = np.unique(h, return_index=True, return_inverse=True)
+    inverse = inverse.reshape(-1)
+    for i in range(0, len(rows), ASSIGN_BLOCK):
+        if not np.array_equal(rows[first[inverse[i:i + ASSIGN_BLOCK]]], rows[i:i + ASSIGN_BLOCK]):
+            _, first, inverse = np.unique(_row_keys(rows), return_index=True, return_inverse=True)
+            return first, inverse.reshape(-1)
+    return first, inverse
+
+
 def _row_keys(rows: np.ndarray) -> np.ndarray:
     """Each float32 row as one opaque (void) value, for exact lookups."""
     return rows.view(np.dtype((np.void, rows.dtype.itemsize * rows.shape[1]))).reshape(-1)
@@ -166,16 +185,15 @@ def build_codebook(rows: np.ndarray, entries: int, weights: np.ndarray | None = 
     if not 1 <= entries <= MAX_ENTRIES:
         raise ValueError(f"entries must be 1..{MAX_ENTRIES}")
     rng = np.random.default_rng(seed)
-    distinct, first, inverse = np.unique(rows.view(np.dtype((np.void, rows.dtype.itemsize * rows.shape[1]))),
-                                         return_index=True, return_inverse=True)
-    inverse = inverse.reshape(-1)
-    uniq = rows[first]
+    first, inverse = _unique_rows(rows)
+    uniq = rows if len(first) == len(rows) else rows[first]  # all distinct (real scenes): no copy
+    if len(first) == len(rows):
+        inverse = np.arange(len(rows))
     if weights is None:
         uw = np.bincount(inverse, minlength=len(uniq)).astype(np.float32)
     else:
         uw = np.bincount(inverse, weights=np.asarray(weights, np.float64), minlength=len(uniq)).astype(np.float32)
         uw = np.maximum(uw, 1e-12)
-    del distinct
     if len(uniq) * entries <= FLAT_LIMIT:
         flat = kmeans(uniq, min(entries, len(uniq)), rng, uw, iterations=2 * ITERATIONS).astype(np.float32)
         return Codebook(flat, flat, np.arange(len(flat) + 1, dtype=np.int64))

@@ -85,7 +85,7 @@ def test_encoded_codebook_round_trips_within_one_step(fruit, tmp_path):
     assert m["version"] == [1, 1] and cb["entries"] == 64 and cb["index_format"] == "index16"
     assert cb["format"] == m["formats"]["sh"] == "norm565"
     assert set(cb["groups"]) == {"sh1", "sh2", "sh3"} and set(m["tiles"][0]["groups"]) == {"base", "sh1"}
-    # The codebook the encoder fitted (deterministic: it does not depend on the input order).
+    # The codebook the encoder fitted (deterministic for the same input).
     fitted = build_codebook(codebook_rows(fruit), 64, weights=codebook_weights(fruit))
     planes = read_codebook(tmp_path / "s", m, 3)
     fmt = get_format("norm565")
