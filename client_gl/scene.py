@@ -61,14 +61,14 @@ def tiles_from_gaussians(g: Gaussians, preset: str = DEFAULT_PRESET, sh_degree: 
 def _codebook_planes(g: Gaussians, preset: str, degree: int, fmt: str, choice: str | int | None,
                      order) -> dict[str, EncodedPlane] | None:
     """Codebook band planes sh1..sh{degree} and the splats' index plane ("sh_index"), or None (no codebook)."""
-    from splatstream.codec import codebook_rows, encode_index_plane
-    from splatstream.encoder import codebook_planes, fit_sh_codebook
+    from splatstream.codec import encode_index_plane
+    from splatstream.encoder import assign_sh_codebook, codebook_planes, fit_sh_codebook
 
     book = fit_sh_codebook(g, preset, choice, degree)  # exactly as the encoder fits it
     if book is None:
         return None
     out = codebook_planes(book, degree, fmt)
-    out["sh_index"] = encode_index_plane(book.assign(codebook_rows(g.with_sh_degree(degree))), order)
+    out["sh_index"] = encode_index_plane(assign_sh_codebook(book, g.with_sh_degree(degree)), order)
     return out
 
 

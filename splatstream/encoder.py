@@ -141,12 +141,11 @@ def fit_sh_codebook(g: Gaussians, preset: str, choice: str | int | None, sh_degr
     return build_codebook(codebook_rows(g), entries, weights=codebook_weights(g))
 
 
-def _assign_blockwise(codebook: Codebook, g: Gaussians, block: int = 1 << 16) -> np.ndarray:
+def assign_sh_codebook(codebook: Codebook, g: Gaussians, block: int = 1 << 16) -> np.ndarray:
     """Codebook index of every splat, a block of rows at a time (never a second copy of all SH rows)."""
     labels = np.empty(len(g), np.int64)
     for i in range(0, len(g), block):
-        rest = g.sh_rest[i:i + block]
-        labels[i:i + block] = codebook.assign(np.ascontiguousarray(rest.reshape(len(rest), -1), np.float32))
+        labels[i:i + block] = codebook.assign(codebook_rows(g.subset(slice(i, i + block))))
     return labels
 
 
@@ -223,7 +222,7 @@ def encode_gaussians(g: Gaussians, out_dir: str | os.PathLike, opts: EncodeOptio
         def encode_group(job):
             (tile, order), group = job
             if codebook is not None and group == "sh1":
-                planes = [encode_index_plane(_assign_blockwise(codebook, tile.gaussians), order)]
+                planes = [encode_index_plane(assign_sh_codebook(codebook, tile.gaussians), order)]
             else:
                 specs = BASE_PLANES if group == "base" else (band_plane(int(group[2:])),)
                 planes = [encode_plane(plane_values(tile.gaussians, s), s, formats[s.attribute], order, lazy=True)

@@ -82,15 +82,19 @@ class Codebook:
     def _search(self, rows: np.ndarray) -> np.ndarray:
         parent = _nearest(rows, self.top)
         labels = np.empty(len(rows), np.int64)
-        order = np.argsort(parent, kind="stable")
-        bounds = np.searchsorted(parent[order], np.arange(len(self.top) + 1))
-        for t in range(len(self.top)):
-            members = order[bounds[t]:bounds[t + 1]]
+        for t, members in enumerate(_members(parent, len(self.top))):
             if len(members) == 0:
                 continue
             s, e = int(self.starts[t]), int(self.starts[t + 1])
             labels[members] = s + _nearest(rows[members], self.entries[s:e])
         return labels
+
+
+def _members(labels: np.ndarray, k: int) -> list[np.ndarray]:
+    """For each label 0..k-1, the ascending indices of the rows that carry it (one sort, not k scans)."""
+    order = np.argsort(labels, kind="stable")
+    bounds = np.searchsorted(labels[order], np.arange(k + 1))
+    return [order[bounds[t]:bounds[t + 1]] for t in range(k)]
 
 
 def _unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -186,13 +190,14 @@ def build_codebook(rows: np.ndarray, entries: int, weights: np.ndarray | None = 
         raise ValueError(f"entries must be 1..{MAX_ENTRIES}")
     rng = np.random.default_rng(seed)
     first, inverse = _unique_rows(rows)
-    uniq = rows if len(first) == len(rows) else rows[first]  # all distinct (real scenes): no copy
-    if len(first) == len(rows):
-        inverse = np.arange(len(rows))
-    if weights is None:
-        uw = np.bincount(inverse, minlength=len(uniq)).astype(np.float32)
+    if len(first) == len(rows):  # all distinct (real scenes): no copy, each row its own weight
+        uniq = rows
+        uw = np.ones(len(rows), np.float32) if weights is None else np.asarray(weights, np.float64).astype(np.float32)
     else:
-        uw = np.bincount(inverse, weights=np.asarray(weights, np.float64), minlength=len(uniq)).astype(np.float32)
+        uniq = rows[first]
+        uw = np.bincount(inverse, weights=None if weights is None else np.asarray(weights, np.float64),
+                         minlength=len(uniq)).astype(np.float32)
+    if weights is not None:
         uw = np.maximum(uw, 1e-12)
     if len(uniq) * entries <= FLAT_LIMIT:
         flat = kmeans(uniq, min(entries, len(uniq)), rng, uw, iterations=2 * ITERATIONS).astype(np.float32)
@@ -207,8 +212,7 @@ def build_codebook(rows: np.ndarray, entries: int, weights: np.ndarray | None = 
     counts = np.bincount(parent, minlength=top_k)
     share = _apportion(spread + 1e-12 * counts, counts, entries)
     blocks, starts = [], [0]
-    for t in range(top_k):
-        members = np.flatnonzero(parent == t)
+    for t, members in enumerate(_members(parent, top_k)):
         k = int(share[t])
         if k == 0 or len(members) == 0:
             block = top[t:t + 1] if len(members) == 0 else uniq[members[:1]]
@@ -221,7 +225,6 @@ def build_codebook(rows: np.ndarray, entries: int, weights: np.ndarray | None = 
 
 def _apportion(score: np.ndarray, cap: np.ndarray, total: int) -> np.ndarray:
     """Integers >= 1 (where cap >= 1) summing to at most `total`, roughly proportional to score, each <= cap."""
-    n = len(score)
     share = np.minimum(cap, 1).astype(np.int64)
     budget = total - int(share.sum())
     room = cap - share
@@ -237,6 +240,4 @@ def _apportion(score: np.ndarray, cap: np.ndarray, total: int) -> np.ndarray:
         share += extra
         room -= extra
         budget = total - int(share.sum())
-        if n == 0:
-            break
     return share
