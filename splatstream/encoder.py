@@ -340,6 +340,8 @@ def encode_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, prese
 
     opts = EncodeOptions(preset=preset, reorder_input=True, **options)
     resolve_formats(opts.preset, opts.overrides)  # fail before the (possibly long) read
+    if opts.sh_codebook is not None:
+        parse_entries(opts.sh_codebook, 1)
     if progress:
         progress("read", 0.0)
     g = read_gaussians(input_path, drop_invalid=drop_invalid)
