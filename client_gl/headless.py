@@ -14,6 +14,7 @@ import numpy as np
 
 from splatstream.camera import Camera
 from splatstream.errors import SplatstreamError, UsageError
+from splatstream.format.names import MANIFEST_NAME
 from splatstream.gaussians import Gaussians
 
 from .pool import ChunkPool
@@ -117,7 +118,7 @@ def _source_key(source) -> tuple:
     if isinstance(source, Gaussians):
         return ("g", id(source), len(source))
     path = os.path.realpath(os.fspath(source))
-    manifest = os.path.join(path, "manifest.msgpack")
+    manifest = os.path.join(path, MANIFEST_NAME)
     return ("dir", path, os.path.getmtime(manifest) if os.path.exists(manifest) else None)
 
 

@@ -23,10 +23,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from splatstream.codec import SH_INDEX_FORMAT, EncodedPlane
 from splatstream.errors import UsageError
+from splatstream.format.codec import EncodedPlane
+from splatstream.format.planes import SH_INDEX_FORMAT
+from splatstream.format.texformats import get_format
 from splatstream.gaussians import SH_BAND_COEFFS
-from splatstream.texformats import get_format
 
 from .gl import BLOCK_BYTES, GL_RGBA32UI, INTERNAL_FORMATS, RawTexture
 
@@ -372,7 +373,7 @@ class ChunkPool:
                               (slot % self.cols) * BLOCK, slot // self.cols, length * BLOCK, 1)
 
     def _fill_mirror(self, tile: TileData, n: int, slots: np.ndarray) -> None:
-        from splatstream.codec import decode_plane
+        from splatstream.format.codec import decode_plane
 
         idx = (slots[np.arange(n) // CHUNK] * CHUNK + np.arange(n) % CHUNK)
         self.mirror.positions[idx] = decode_plane(tile.planes["position"], n)[:, 0]

@@ -1,16 +1,19 @@
-"""Tiles for the pool: from an encoded scene directory (payloads as stored) or from Gaussians encoded in memory."""
+"""Tiles for the pool, read from any scene store (a directory, or Gaussians encoded in memory by the encoder).
+
+Both paths are the same: payload bytes -> splatstream.format.decode -> planes as stored (texels stay encoded).
+"""
 from __future__ import annotations
 
 import os
 from dataclasses import dataclass
 
-from splatstream.codec import BASE_PLANES, EncodedPlane, band_plane, encode_plane, groups_for_degree, plane_values
-from splatstream.container import unpack_group
-from splatstream.decoder import leaf_tiles, read_codebook, read_payload
-from splatstream.encoder import resolve_formats
+from splatstream.decoder import read_codebook
+from splatstream.encode import EncodeOptions, encode_in_memory
+from splatstream.format.codec import EncodedPlane
+from splatstream.format.decode import codebook_index, decode_payload, tile_groups_for
+from splatstream.format.manifest import Manifest, TileEntry
 from splatstream.gaussians import Gaussians
-from splatstream.layout import morton_order
-from splatstream.manifest import load_manifest
+from splatstream.store import SceneStore, open_store, read_manifest
 
 from .pool import TileData
 
@@ -22,7 +25,7 @@ class SceneTiles:
     formats: dict[str, str]
     sh_degree: int
     tiles: dict[int, TileData]
-    manifest: dict | None = None
+    manifest: Manifest
     # SH codebook scenes (format v1.1): the codebook's band planes "sh1".."sh{sh_degree}" as stored (K entries
     # each); the tiles then hold an `sh_index` plane instead of their SH bands. None without a codebook.
     codebook: dict[str, EncodedPlane] | None = None
@@ -32,71 +35,38 @@ class SceneTiles:
         return sum(t.splats for t in self.tiles.values())
 
 
+def load_tile(store: SceneStore, manifest: Manifest, tile: TileEntry, sh_degree: int) -> TileData:
+    """A tile's planes from its payloads (verified, decompressed, unshuffled; texels stay encoded)."""
+    planes: dict[str, EncodedPlane] = {}
+    for group in tile_groups_for(manifest, sh_degree):
+        entry = tile.groups[group]
+        source = store.payload_source(entry)
+        planes.update(decode_payload(store.read_payload(entry), entry, group, source, manifest.uses_codebook))
+        if group == "sh1" and manifest.uses_codebook:  # an index >= K is an error for every reader (format.md 4.7)
+            codebook_index(planes, tile.splats, manifest.sh_codebook.entries, source)
+    return TileData(tile.splats, planes)
+
+
+def tiles_from_scene(source: str | os.PathLike | SceneStore, sh_degree: int | None = None,
+                     tile_ids: list[int] | None = None) -> SceneTiles:
+    """The full-detail (leaf) tiles of a scene, or the listed tile ids."""
+    store = open_store(source)
+    manifest = read_manifest(store)
+    degree = manifest.sh_degree if sh_degree is None else max(0, min(int(sh_degree), manifest.sh_degree))
+    chosen = manifest.leaves if tile_ids is None else [manifest.tile(i) for i in tile_ids]
+    codebook = read_codebook(store, manifest, degree) if degree >= 1 else None
+    tiles = {t.id: load_tile(store, manifest, t, degree) for t in chosen}
+    return SceneTiles(dict(manifest.formats), degree, tiles, manifest, codebook)
+
+
+
 def tiles_from_gaussians(g: Gaussians, preset: str = DEFAULT_PRESET, sh_degree: int | None = None,
                          overrides: dict[str, str] | None = None,
                          sh_codebook: str | int | None = None) -> SceneTiles:
-    """Encode Gaussians in memory into one tile (Morton order, as the encoder writes it) at a preset.
+    """Gaussians encoded in memory by the encoder (one tile, as `encode --no-lod` writes it) at a preset.
 
-    sh_codebook: "off", "auto" or an entry count for an SH codebook (format v1.1) as the encoder builds it; None:
-    the preset's choice (splatstream.encoder.PRESET_SH_CODEBOOK, as `encode` does).
+    sh_codebook: "off", "auto" or an entry count for an SH codebook; None: the preset's choice (as `encode` does).
     """
-    formats = resolve_formats(preset, overrides or {})
-    degree = g.sh_degree if sh_degree is None else min(int(sh_degree), g.sh_degree)
-    order = morton_order(g.positions)
-    codebook = _codebook_planes(g, preset, degree, formats["sh"], sh_codebook, order)
-    specs = list(BASE_PLANES)
-    if codebook is None:
-        specs += [band_plane(b) for b in range(1, degree + 1)]
-    planes = {}
-    for s in specs:
-        try:
-            planes[s.name] = encode_plane(plane_values(g, s), s, formats[s.attribute], order=order)
-        except TypeError:  # codec without the `order` argument
-            planes[s.name] = encode_plane(plane_values(g, s)[order], s, formats[s.attribute])
-    if codebook is not None:
-        planes["sh_index"] = codebook.pop("sh_index")
-    return SceneTiles(formats, degree, {0: TileData(len(g), planes)}, codebook=codebook)
-
-
-def _codebook_planes(g: Gaussians, preset: str, degree: int, fmt: str, choice: str | int | None,
-                     order) -> dict[str, EncodedPlane] | None:
-    """Codebook band planes sh1..sh{degree} and the splats' index plane ("sh_index"), or None (no codebook)."""
-    from splatstream.codec import encode_index_plane
-    from splatstream.encoder import assign_sh_codebook, codebook_planes, fit_sh_codebook
-
-    book = fit_sh_codebook(g, preset, choice, degree)  # exactly as the encoder fits it
-    if book is None:
-        return None
-    out = codebook_planes(book, degree, fmt)
-    out["sh_index"] = encode_index_plane(assign_sh_codebook(book, g.with_sh_degree(degree)), order)
-    return out
-
-
-def load_tile(scene_dir: str | os.PathLike, tile: dict, sh_degree: int, codebook: bool = False) -> TileData:
-    """A tile's planes from its payloads (verified, decompressed, unshuffled; texels stay encoded).
-
-    codebook: the scene has an SH codebook (manifest "sh_codebook"): the tile's sh1 payload is its sh_index plane.
-    """
-    planes = {}
-    for group in groups_for_degree(sh_degree, codebook):
-        entry = tile["groups"][group]
-        data = read_payload(scene_dir, entry)
-        source = os.path.join(scene_dir, entry["file"])
-        planes.update(unpack_group(data, entry, group, tile["splats"], source, codebook=codebook))
-    return TileData(int(tile["splats"]), planes)
-
-
-def tiles_from_scene(scene_dir: str | os.PathLike, sh_degree: int | None = None,
-                     tile_ids: list[int] | None = None) -> SceneTiles:
-    """The full-detail (leaf) tiles of an encoded scene, or the listed tile ids."""
-    manifest = load_manifest(scene_dir)
-    degree = manifest["sh_degree"] if sh_degree is None else min(int(sh_degree), manifest["sh_degree"])
-    if tile_ids is None:
-        chosen = leaf_tiles(manifest)
-    else:
-        by_id = {t["id"]: t for t in manifest["tiles"]}
-        chosen = [by_id[i] for i in tile_ids]
-    codebook = read_codebook(scene_dir, manifest, degree) if degree >= 1 else None
-    cb = codebook is not None
-    tiles = {int(t["id"]): load_tile(scene_dir, t, degree, cb) for t in chosen}
-    return SceneTiles(dict(manifest["formats"]), degree, tiles, manifest, codebook)
+    opts = EncodeOptions(preset=preset, overrides=dict(overrides or {}), sh_degree=sh_degree, lod=False,
+                         sh_codebook=sh_codebook)
+    return tiles_from_scene(encode_in_memory(g, opts))

@@ -10,8 +10,8 @@ import math
 from pathlib import Path
 
 from splatstream import sh
-from splatstream.codec import rotation_mode
-from splatstream.texformats import get_format
+from splatstream.format.codec import rotation_mode
+from splatstream.format.texformats import get_format
 
 from .pool import RANGE_WORDS, SH_BAND_LAYERS
 

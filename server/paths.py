@@ -10,7 +10,7 @@ import os
 import re
 from dataclasses import dataclass
 
-from splatstream.manifest import DATA_DIR, MANIFEST_NAME, PAYLOAD_NAME_RE
+from splatstream.format.names import DATA_DIR, MANIFEST_NAME, PAYLOAD_NAME_RE
 
 SCENES_PREFIX = "/scenes/"
 SEGMENT_RE = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9._-]*$")  # a scene-id segment: safe characters, no leading dot

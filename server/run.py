@@ -14,7 +14,7 @@ from collections.abc import Iterable
 from aiohttp import web
 from aiohttp.http_exceptions import HttpProcessingError
 
-from splatstream.manifest import MANIFEST_NAME
+from splatstream.format.names import MANIFEST_NAME
 
 from .app import SHUTDOWN_TIMEOUT, AccessLog, create_app, create_runner
 from .scenes import SceneRoot

@@ -14,7 +14,8 @@ from collections import OrderedDict
 from dataclasses import dataclass
 
 from splatstream.errors import SplatstreamError
-from splatstream.manifest import MANIFEST_NAME, MAX_MANIFEST_BYTES, iter_payloads, parse_manifest, scene_summary
+from splatstream.format.manifest import MAX_MANIFEST_BYTES, parse_manifest, scene_summary
+from splatstream.format.names import MANIFEST_NAME
 
 from .paths import MAX_SCENE_DEPTH, SEGMENT_RE, ScenePath, is_inside
 
@@ -190,9 +191,7 @@ class SceneRoot:
         try:
             m = parse_manifest(raw, f"{scene_id}/{MANIFEST_NAME}")
             s = scene_summary(m)
-            size = s.get("bytes_on_disk")
-            if not isinstance(size, int):
-                size = len(raw) + sum(int(g.get("bytes", 0)) for _, _, g in iter_payloads(m))
+            size = m.bytes_on_disk
             entry = {
                 "id": scene_id,
                 "name": s["name"],
@@ -203,7 +202,7 @@ class SceneRoot:
                 "bytes": size,
                 "manifest": f"/scenes/{scene_id}/{MANIFEST_NAME}",
             }
-        except (SplatstreamError, KeyError, TypeError, ValueError, AttributeError) as exc:
+        except SplatstreamError as exc:
             log.warning("scene %s: skipped, its manifest is not valid: %s", scene_id, exc)
             entry = {}
         self._summaries.put(key, entry)

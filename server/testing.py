@@ -1,5 +1,6 @@
-"""Synthetic scene directories for the server's tests and benchmark: a valid manifest, random payloads named by
-their SHA-256. Not real splat data (use splatstream.encoder for that)."""
+"""Synthetic scene directories for the server's tests and benchmark: a manifest that passes validation and
+random payloads of chosen sizes named by their SHA-256. Not real splat data (use splatstream.encode for that): the
+payload bytes are never decoded by the server, only served."""
 from __future__ import annotations
 
 import os
@@ -7,26 +8,70 @@ import random
 from collections.abc import Sequence
 
 from splatstream.atomic import atomic_directory
-from splatstream.manifest import DATA_DIR, FORMAT_NAME, FORMAT_VERSION, MANIFEST_NAME, pack_manifest, payload_name
-from splatstream.manifest import sha256_hex as _sha
+from splatstream.format.layout import ALIGN, texture_size
+from splatstream.format.manifest import (
+    FORMAT_VERSION,
+    AttributeSize,
+    Box,
+    CameraEntry,
+    LodInfo,
+    Manifest,
+    PayloadEntry,
+    Section,
+    TileEntry,
+    expected_sections,
+    pack_manifest,
+)
+from splatstream.format.names import DATA_DIR, MANIFEST_NAME, payload_name, sha256_hex
+from splatstream.format.presets import PRESETS
+from splatstream.format.texformats import FORMATS, blob_size
+
+FORMATS_USED = PRESETS["very-high"]  # f32x4 everywhere: the largest raw size per chunk (about 16.5 KB)
+CHUNK_RAW_BYTES = 4 * 16 * 16 * 16
 
 
-def fake_manifest(name: str, groups: Sequence[tuple[str, int]], splats: int = 1000) -> dict:
-    """A manifest with one tile whose groups are (sha256 hex, bytes)."""
-    return {
-        "format": FORMAT_NAME,
-        "version": list(FORMAT_VERSION),
-        "name": name,
-        "splats": splats,
-        "sh_degree": 0,
-        "preset": "medium",
-        "bounds": {"min": [-1.0, -1.0, -1.0], "max": [1.0, 1.0, 1.0]},
-        "tiles": [{
-            "id": 0, "level": 0, "children": [], "splats": splats,
-            "groups": {f"g{i}": {"file": payload_name(sha), "bytes": n, "sha256": sha}
-                       for i, (sha, n) in enumerate(groups)},
-        }],
-    }
+def _payload(sha: str, size: int) -> tuple[PayloadEntry, int, tuple[int, int]]:
+    """A base payload entry whose section table can hold a file of `size` bytes; (entry, splats, texture)."""
+    chunks = size // CHUNK_RAW_BYTES + 1
+    width, height = texture_size(chunks)
+    sections, offset = [], 0
+    for name, props in expected_sections("base", False, FORMATS_USED, chunks):
+        offset += (-offset) % ALIGN
+        if props["kind"] == "texels":
+            n = blob_size(FORMATS[props["format"]], width, height, props["layers"])
+            sections.append(Section(name, "texels", offset, n, "shuffle4", format=props["format"], width=width,
+                                    height=height, layers=props["layers"]))
+        else:
+            n = (4 if props["dtype"] == "f32" else 2) * chunks * 2 * props["shape"][2] * props["shape"][3]
+            sections.append(Section(name, "range", offset, n, "shuffle4", dtype=props["dtype"],
+                                    shape=tuple(props["shape"])))
+        offset += n
+    entry = PayloadEntry(payload_name(sha), sha, size, offset, sum(s.size for s in sections), tuple(sections))
+    return entry, chunks * 256, (width, height)
+
+
+def fake_manifest(name: str, groups: Sequence[tuple[str, int]]) -> Manifest:
+    """A manifest naming the payloads (sha256 hex, bytes): payload 0 is the root tile's, the others its children's."""
+    box = Box((-1.0, -1.0, -1.0), (1.0, 1.0, 1.0))
+    tiles = []
+    for i, (sha, size) in enumerate(groups):
+        entry, splats, texture = _payload(sha, size)
+        children = tuple(range(1, len(groups))) if i == 0 else ()
+        tiles.append(TileEntry(i, 0 if i == 0 else 1, children, splats, -(-splats // 256), texture, box,
+                               (0.0, 0.0, 0.0), 1.8, 0.0 if children == () else 0.1, {"base": entry}))
+    leaves = [t for t in tiles if t.is_leaf]
+    splats = sum(t.splats for t in leaves)
+    m = Manifest(
+        version=FORMAT_VERSION, generator="server.testing", name=name, splats=splats, leaf_splats=splats,
+        sh_degree=0, preset="very-high", formats=dict(FORMATS_USED), chunk_size=256, chunk_order="morton",
+        bounds=box, extent_bounds=box, up=(0.0, 0.0, 1.0),
+        camera=CameraEntry((3.0, 3.0, 3.0), (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 50.0), sh_codebook=None,
+        lod=LodInfo(len(tiles) > 1, 65536, 4.0), root=0, tiles=tuple(tiles),
+        gpu_bytes=sum(t.groups["base"].gpu_bytes for t in leaves), gpu_bytes_per_splat=1.0,
+        leaf_bytes_on_disk=sum(t.groups["base"].bytes for t in leaves),
+        attributes={a: AttributeSize(FORMATS_USED[a], 0, 0) for a in ("position", "rotation", "scale", "color")},
+        encode_seconds=0.0)
+    return m.with_bytes_on_disk(m.payload_bytes())
 
 
 def write_fake_scene(directory: str | os.PathLike, sizes: Sequence[int], seed: int = 0, name: str | None = None,
@@ -40,7 +85,7 @@ def write_fake_scene(directory: str | os.PathLike, sizes: Sequence[int], seed: i
         groups = []
         for n in sizes:
             data = rng.randbytes(n)
-            sha = _sha(data)
+            sha = sha256_hex(data)
             with open(os.path.join(target, payload_name(sha)), "wb") as f:
                 f.write(data)
             groups.append((sha, n))

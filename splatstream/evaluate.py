@@ -56,40 +56,23 @@ def seed_bytes_per_splat(preset: str, sh_degree: int) -> float:
 
 # --- renderers --------------------------------------------------------------------------------------------------
 
-def _gl_renderer() -> tuple[Callable, str] | None:
-    """The GL client's headless renderer (client_gl.headless.render_image), if it can open a context here."""
-    try:
-        from client_gl import headless
-    except Exception:  # noqa: BLE001 - a missing or broken optional renderer means: use the reference one
-        return None
-    fn = getattr(headless, "render_image", None)
-    if not callable(fn):
-        return None
-    try:
-        headless.get_renderer()  # opens the shared context now, so a machine without GL falls back cleanly
-    except Exception:  # noqa: BLE001
-        return None
-    return fn, "client_gl.headless.render_image"
+@dataclass(frozen=True)
+class EvalRenderer:
+    """What evaluate() renders with: handed in by the caller (the CLI picks the GL client or the reference).
+
+    `render(source, camera)` -> (H, W, 3) float32; `source` is Gaussians or, when `draws_scenes`, an encoded scene
+    directory (drawn from its own textures, as the client does); otherwise encoded scenes are decoded first."""
+
+    render: Renderer
+    name: str
+    kind: str  # "gl" or "ref"
+    draws_scenes: bool = False
 
 
-def get_renderer(kind: str = "auto") -> tuple[Renderer, str, str]:
-    """('auto' | 'gl' | 'ref') -> (render(source, camera) -> (H, W, 3) float32, description, 'gl' or 'ref').
-
-    `source` is Gaussians or, for the GL renderer only, an encoded scene directory (rendered from its textures as
-    the client does; the reference renderer gets the decoded Gaussians instead).
-    """
-    if kind not in ("auto", "gl", "ref"):
-        raise UsageError(f"unknown renderer {kind!r} (choose auto, gl or ref)")
-    if kind in ("auto", "gl"):
-        found = _gl_renderer()
-        if found is not None:
-            fn, name = found
-            return (lambda src, cam: np.asarray(fn(src, cam), dtype=np.float32)), f"gl ({name})", "gl"
-        if kind == "gl":
-            raise UsageError("the GL renderer (client_gl.headless) cannot render here; use --renderer ref")
+def reference_renderer() -> EvalRenderer:
     from .render_ref import render
 
-    return (lambda src, cam: render(src, cam)), "numpy reference (splatstream.render_ref)", "ref"
+    return EvalRenderer(lambda src, cam: render(src, cam), "numpy reference (splatstream.render_ref)", "ref")
 
 
 # --- evaluation ---------------------------------------------------------------------------------------------------
@@ -104,7 +87,6 @@ class EvalOptions:
     elevation_deg: float = 25.0
     encoded_dir: str | None = None     # keep encoded scenes here (default: a temporary directory)
     compare: Sequence[str] = ()        # other tools' outputs: "[LABEL=]FILE[@SIZE_FILE_OR_DIR]"
-    renderer: str = "auto"
     lod: bool = False                  # encode the LOD tree too (its bytes then count on disk)
     attribution: Sequence[str] = ()    # presets whose error is attributed to attributes
     variants: Sequence[str] = ()       # extra encodes: "NAME:PRESET[,ATTRIBUTE=FORMAT...][,sh_degree=D]"
@@ -164,7 +146,7 @@ class Row:
 def parse_variant(spec: str) -> tuple[str, str, dict[str, str], int | None, str | None]:
     """"NAME:PRESET[,ATTRIBUTE=FORMAT...][,sh_degree=D][,sh_codebook=off|auto|N]"
     -> (name, preset, overrides, sh_degree, sh_codebook)."""
-    from .encoder import ATTRIBUTES, resolve_formats
+    from .format.presets import ATTRIBUTES, resolve_formats
     from .vq import parse_entries
 
     name, sep, rest = spec.partition(":")
@@ -265,11 +247,14 @@ def _quality(renderer: Renderer, g: Gaussians | str, cameras: list[Camera],
     return ps, ss, imgs
 
 
-def evaluate(input_path: str, opts: EvalOptions | None = None,
-             log: Callable[[str], None] | None = None) -> dict:
-    """Run the evaluation; returns the JSON-ready report (see `report_markdown`, `plot_rate_distortion`)."""
+def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[str], None] | None = None,
+             renderer: EvalRenderer | None = None) -> dict:
+    """Run the evaluation; returns the JSON-ready report (see `report_markdown`, `plot_rate_distortion`).
+
+    `renderer`: what draws the views (default: the numpy reference renderer)."""
     from .decoder import decode_scene
-    from .encoder import PRESETS, EncodeOptions, encode_gaussians, resolve_formats
+    from .encode import EncodeOptions, encode_gaussians
+    from .format.presets import PRESETS, resolve_formats
     from .io import read_gaussians
 
     opts = opts or EvalOptions()
@@ -291,7 +276,8 @@ def evaluate(input_path: str, opts: EvalOptions | None = None,
     log(f"read {input_path}: {len(g)} splats, SH degree {g.sh_degree} ({time.perf_counter() - t:.1f} s)")
     if len(g) == 0:
         raise InputError(input_path, None, "the scene holds no splats")
-    renderer, renderer_name, renderer_kind = get_renderer(opts.renderer)
+    evr = renderer or reference_renderer()
+    renderer, renderer_name, renderer_kind = evr.render, evr.name, evr.kind
     cameras = scene_orbit_views(g.positions, opts.views, opts.width, opts.height, up=opts.up,
                                 elevation_deg=opts.elevation_deg)
     t = time.perf_counter()
@@ -319,18 +305,19 @@ def evaluate(input_path: str, opts: EvalOptions | None = None,
             m = encode_gaussians(g, out, eo, source_name=input_path)
             enc_s = time.perf_counter() - t0
             # GL draws the encoded textures themselves (what the client shows); the reference renders the decode
-            source = out if renderer_kind == "gl" else decode_scene(out)
+            source = out if evr.draws_scenes else decode_scene(out)
             ps, ss, _ = _quality(renderer, source, cameras, references)
-            disk = int(m["bytes_on_disk"])
-            leaf = int(m.get("leaf_bytes_on_disk", disk))
+            disk = m.bytes_on_disk
+            leaf = m.leaf_bytes_on_disk
             disk_counted = disk  # every file, the manifest included (with --lod: the coarse levels too)
-            row = Row(label, kind, dict(m["formats"]), len(g), float(m["gpu_bytes_per_splat"]), disk_counted,
+            row = Row(label, kind, dict(m.formats), len(g), m.gpu_bytes_per_splat, disk_counted,
                       disk_counted / len(g), input_size / disk_counted, ps, ss, enc_s,
-                      {"preset": preset, "overrides": overrides, "sh_degree": int(m["sh_degree"]),
-                       "sh_codebook_entries": (m.get("sh_codebook") or {}).get("entries"),
+                      {"preset": preset, "overrides": overrides, "sh_degree": m.sh_degree,
+                       "sh_codebook_entries": m.sh_codebook.entries if m.sh_codebook else None,
                        "bytes_on_disk_total": disk,
-                       "leaf_bytes_on_disk": leaf, "gpu_bytes": int(m["gpu_bytes"]),
-                       "attributes": m.get("attributes", {}), "encoded_dir": out if tmp is None else None})
+                       "leaf_bytes_on_disk": leaf, "gpu_bytes": m.gpu_bytes,
+                       "attributes": {a: s.to_dict() for a, s in m.attributes.items()},
+                       "encoded_dir": out if tmp is None else None})
             log(f"{label:>28}: {row.disk_bytes_per_splat:7.2f} B/splat disk, {row.gpu_bytes_per_splat:7.2f} GPU, "
                 f"PSNR {row.psnr_mean:6.2f} dB (worst {row.psnr_worst:6.2f}), SSIM {row.ssim_mean:.5f}, "
                 f"encode {enc_s:.2f} s")

@@ -27,8 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .format.layout import morton_codes
 from .gaussians import Gaussians, normalize_quaternions, rotation_matrices
-from .layout import morton_codes
 
 # Bounds and errors use this many standard deviations (the 3DGS rasteriser's cut-off and KHR "ellipse" kernel).
 EXTENT_SIGMAS = 3.0

@@ -37,3 +37,27 @@ def open_gl_context(compute: bool = False):
         ctx.release()
         pytest.skip("no GL 4.3 compute shaders")
     return ctx
+
+
+def group_planes_of(scene_dir, manifest, tile, group: str) -> dict:
+    """One payload group of a tile of an encoded scene, verified and unpacked (texels still encoded)."""
+    from splatstream.format.decode import decode_payload
+    from splatstream.store import DirectoryStore
+
+    store = DirectoryStore(scene_dir)
+    entry = tile.groups[group]
+    return decode_payload(store.read_payload(entry), entry, group, store.payload_source(entry),
+                          manifest.uses_codebook)
+
+
+def read_manifest_dict(scene_dir) -> dict:
+    """The raw manifest map, for tests that damage it on purpose."""
+    import msgpack
+
+    return msgpack.unpackb((pathlib.Path(scene_dir) / "manifest.msgpack").read_bytes(), raw=False)
+
+
+def write_manifest_dict(scene_dir, m: dict) -> None:
+    import msgpack
+
+    (pathlib.Path(scene_dir) / "manifest.msgpack").write_bytes(msgpack.packb(m, use_bin_type=True))

@@ -7,7 +7,7 @@ from conftest import real, run_cli
 
 from splatstream.cli import COMMANDS, build_parser
 from splatstream.decoder import decode_scene
-from splatstream.encoder import EncodeOptions, encode_gaussians
+from splatstream.encode import EncodeOptions, encode_gaussians
 from splatstream.ply import read_gaussians_ply
 
 
@@ -62,12 +62,12 @@ def test_failed_encode_leaves_old_scene_and_no_temporaries(tmp_path, monkeypatch
     encode_gaussians(g, tmp_path / "scene", EncodeOptions(preset="medium"))
     before = sorted(p.name for p in (tmp_path / "scene" / "data").iterdir())
 
-    import splatstream.encoder as enc
+    import splatstream.encode.local as enc
 
     def boom(*args, **kwargs):
         raise RuntimeError("disk on fire")
 
-    monkeypatch.setattr(enc, "write_group", boom)
+    monkeypatch.setattr(enc, "encode_group", boom)
     with pytest.raises(RuntimeError):
         encode_gaussians(g, tmp_path / "scene", EncodeOptions(preset="high"))
     assert sorted(p.name for p in (tmp_path / "scene" / "data").iterdir()) == before
@@ -79,7 +79,7 @@ def test_reencode_replaces_scene(tmp_path):
     encode_gaussians(g, tmp_path / "scene", EncodeOptions(preset="medium"))
     m = encode_gaussians(g, tmp_path / "scene", EncodeOptions(preset="high"))
     files = {p.name for p in (tmp_path / "scene" / "data").iterdir()}
-    assert files == {e["file"].split("/")[1] for t in m["tiles"] for e in t["groups"].values()}
+    assert files == {e.file.split("/")[1] for t in m.tiles for e in t.groups.values()}
     assert [p.name for p in tmp_path.iterdir()] == ["scene"]
 
 
@@ -87,7 +87,7 @@ def test_encoding_is_deterministic(tmp_path):
     g = read_gaussians_ply(real("fruit_drops_sh3.ply"))
     a = encode_gaussians(g, tmp_path / "a", EncodeOptions(preset="medium"))
     b = encode_gaussians(g, tmp_path / "b", EncodeOptions(preset="medium"))
-    assert [t["groups"] for t in a["tiles"]] == [t["groups"] for t in b["tiles"]]
+    assert [t.groups for t in a.tiles] == [t.groups for t in b.tiles]
 
 
 def test_wrong_paths_give_clear_errors(tmp_path):

@@ -2,16 +2,19 @@
 (BC formats: bounded RMS error), and SH bands that decode on their own."""
 import numpy as np
 import pytest
-from conftest import REAL_PLYS, real
+from conftest import REAL_PLYS, group_planes_of, real
 
-from splatstream.codec import band_plane, decode_plane, group_planes, groups_for_degree, plane_values, rotation_mode
-from splatstream.container import unpack_group
-from splatstream.decoder import decode_group, decode_scene, read_payload
-from splatstream.encoder import PRESETS, EncodeOptions, encode_gaussians, resolve_chunk_order, splat_order
-from splatstream.layout import CHUNK_SIZE, morton_order
-from splatstream.manifest import load_manifest
+from splatstream.decoder import decode_scene
+from splatstream.encode import EncodeOptions, encode_gaussians
+from splatstream.encode.jobs import splat_order
+from splatstream.format.codec import decode_plane, plane_values, rotation_mode
+from splatstream.format.decode import decode_planes
+from splatstream.format.layout import CHUNK_SIZE, morton_order
+from splatstream.format.planes import band_plane, group_planes, groups_for_degree
+from splatstream.format.presets import PRESETS, resolve_chunk_order
+from splatstream.format.texformats import get_format
 from splatstream.ply import read_gaussians_ply
-from splatstream.texformats import get_format
+from splatstream.store import load_manifest
 
 # RMS error bounds for block-compressed planes, in normalised units (t; quaternion components for rotations).
 # Measured on the three real scenes (worst: 0.093 t, 0.29 for BC7 rotations) plus a margin.
@@ -30,16 +33,15 @@ def test_every_attribute_round_trips_within_one_step(scene, preset, tmp_path):
     if any(get_format(f).block > 1 for f in PRESETS[preset].values()):
         pytest.importorskip("etcpak")
     m = encode_gaussians(g, tmp_path / "s", EncodeOptions(preset=preset, lod=False))
-    g = g.subset(splat_order(g, m["chunk_order"]))  # the order the encoder stored
-    tile = m["tiles"][0]
+    g = g.subset(splat_order(g, m.chunk_order))  # the order the encoder stored
+    tile = m.tiles[0]
     n = len(g)
-    assert tile["splats"] == n and m["splats"] == n
+    assert tile.splats == n and m.splats == n
     chunk = np.arange(n) // CHUNK_SIZE
-    assert m["sh_degree"] == g.sh_degree
-    codebook = "sh_codebook" in m  # its planes and indices: tests/test_sh_codebook.py
-    for group in groups_for_degree(m["sh_degree"], codebook):
-        entry = tile["groups"][group]
-        planes = unpack_group(read_payload(tmp_path / "s", entry), entry, group, n, name, codebook)
+    assert m.sh_degree == g.sh_degree
+    codebook = m.uses_codebook  # its planes and indices: tests/test_sh_codebook.py
+    for group in groups_for_degree(m.sh_degree, codebook):
+        planes = group_planes_of(tmp_path / "s", m, tile, group)
         for spec in group_planes(group, codebook):
             if spec.name == "sh_index":
                 continue
@@ -85,10 +87,9 @@ def test_sh_bands_decode_independently(tmp_path):
     g = g.subset(morton_order(g.positions))
     encode_gaussians(g, tmp_path / "s", EncodeOptions(preset="high", lod=False))
     m = load_manifest(tmp_path / "s")
-    tile = m["tiles"][0]
+    tile = m.tiles[0]
     for band in (3, 1, 2):  # any order, each on its own
-        entry = tile["groups"][f"sh{band}"]
-        values = decode_group(read_payload(tmp_path / "s", entry), entry, f"sh{band}", len(g))
+        values = decode_planes(group_planes_of(tmp_path / "s", m, tile, f"sh{band}"), len(g))
         assert list(values) == [f"sh{band}"]
         assert np.abs(values[f"sh{band}"] - g.band(band)).max() < 2e-3 * max(1.0, np.abs(g.band(band)).max())
     base = decode_scene(tmp_path / "s", sh_degree=0)

@@ -51,7 +51,7 @@ def test_eval_cli_table_json_plot(tmp_path):
 
 def test_eval_api_reproducible_cameras_and_encoded_dir(tmp_path):
     src = real("donut_sh0_no_normals.ply")
-    opts = EvalOptions(presets=["high"], views=1, width=48, height=40, renderer="ref", encoded_dir=str(tmp_path))
+    opts = EvalOptions(presets=["high"], views=1, width=48, height=40, encoded_dir=str(tmp_path))
     rep = evaluate(str(src), opts)
     (row,) = rep["rows"]
     assert row["formats"]["position"] == "f16x4"
@@ -98,12 +98,13 @@ def test_parse_compare_and_seed_sizes(tmp_path):
 
 
 def test_eval_gl_agrees_with_reference():
-    from splatstream.evaluate import _gl_renderer
+    from splatstream.commands.renderers import gl_renderer, pick_renderer
 
-    if _gl_renderer() is None:
+    if gl_renderer() is None:
         pytest.skip("no GL context here")
     src = str(real("donut_sh0_no_normals.ply"))
-    reps = {kind: evaluate(src, EvalOptions(presets=["low"], views=1, width=64, height=64, renderer=kind))
+    reps = {kind: evaluate(src, EvalOptions(presets=["low"], views=1, width=64, height=64),
+                           renderer=pick_renderer(kind))
             for kind in ("gl", "ref")}
     assert reps["gl"]["renderer"].startswith("gl")
     gl_row, ref_row = reps["gl"]["rows"][0], reps["ref"]["rows"][0]
@@ -116,7 +117,7 @@ def test_attribution_rows_and_markdown():
     from splatstream.evaluate import report_markdown
 
     rep = evaluate(str(real("fruit_drops_sh3.ply")),
-                   EvalOptions(presets=["low"], attribution=["low"], views=1, width=32, height=32, renderer="ref"))
+                   EvalOptions(presets=["low"], attribution=["low"], views=1, width=32, height=32))
     labels = [r["label"] for r in rep["rows"]]
     assert labels[0] == "low"
     for attr in ("position", "rotation", "scale", "color", "sh"):
@@ -163,8 +164,7 @@ def test_variants_parse_and_run():
         with pytest.raises(UsageError):
             parse_variant(bad)
     rep = evaluate(str(real("fruit_drops_sh3.ply")),
-                   EvalOptions(presets=[], variants=["low-sh1:low,sh_degree=1"], views=1, width=32, height=32,
-                               renderer="ref"))
+                   EvalOptions(presets=[], variants=["low-sh1:low,sh_degree=1"], views=1, width=32, height=32))
     (row,) = rep["rows"]
     assert row["kind"] == "variant" and row["sh_degree"] == 1
     assert "| low-sh1 | norm8x4 | norm565 | norm8x4 | bc7 | norm565 VQ64 (SH1) |" in report_markdown(rep)

@@ -34,7 +34,7 @@ def gaussians():
 @pytest.fixture(scope="module")
 def encoded(tmp_path_factory, gaussians):
     """Scene directories: {(preset, sh texel format or None, entries): path}, encoded on demand."""
-    from splatstream.encoder import EncodeOptions, encode_gaussians
+    from splatstream.encode import EncodeOptions, encode_gaussians
 
     cache = {}
 
@@ -62,8 +62,8 @@ def _pool_ids(pool, scene) -> np.ndarray:
 
 def test_scene_loads_index_plane_and_codebook(encoded):
     from client_gl.scene import tiles_from_scene
-    from splatstream.codec import decode_index_plane, decode_plane
     from splatstream.decoder import decode_scene
+    from splatstream.format.codec import decode_index_plane, decode_plane
 
     path = encoded()
     scene = tiles_from_scene(path)
@@ -261,7 +261,8 @@ def test_in_memory_codebook_tiles(ctx, gaussians):
     """tiles_from_gaussians builds the codebook as the encoder does; GL renders it like the numpy decode."""
     from client_gl.headless import HeadlessRenderer
     from client_gl.scene import tiles_from_gaussians
-    from splatstream.codec import BASE_PLANES, assemble_gaussians, decode_index_plane, decode_plane
+    from splatstream.format.codec import assemble_gaussians, decode_index_plane, decode_plane
+    from splatstream.format.planes import BASE_PLANES
 
     scene = tiles_from_gaussians(gaussians, "medium", sh_codebook=K)
     tile = scene.tiles[0]
@@ -291,16 +292,16 @@ def test_lod_scene_tiles_share_the_codebook(ctx, tmp_path, gaussians):
     from client_gl.renderer import SplatRenderer
     from client_gl.scene import tiles_from_scene
     from splatstream.decoder import decode_scene
-    from splatstream.encoder import EncodeOptions, encode_gaussians
-    from splatstream.manifest import load_manifest
+    from splatstream.encode import EncodeOptions, encode_gaussians
+    from splatstream.store import load_manifest
 
     encode_gaussians(gaussians, tmp_path, EncodeOptions(preset="medium", sh_codebook=128, lod=True,
                                                         max_leaf_splats=1000))
     manifest = load_manifest(tmp_path)
-    assert len(manifest["tiles"]) > 2
+    assert len(manifest.tiles) > 2
     leaves = tiles_from_scene(tmp_path)
     assert len(leaves.tiles) > 1
-    everything = tiles_from_scene(tmp_path, tile_ids=[t["id"] for t in manifest["tiles"]])
+    everything = tiles_from_scene(tmp_path, tile_ids=[t.id for t in manifest.tiles])
     pool = ChunkPool(ctx, leaves.formats, leaves.sh_degree, 256, codebook=leaves.codebook)  # grows as tiles join
     for tile_id, tile in everything.tiles.items():
         pool.join(tile_id, tile)

@@ -5,10 +5,10 @@ import numpy as np
 import pytest
 from conftest import open_gl_context, real
 
-from splatstream.codec import decode_plane
+from splatstream.format.codec import decode_plane
+from splatstream.format.layout import chunk_texel_index
+from splatstream.format.texformats import FORMATS, TEXEL_DTYPES, VALUE_FORMATS, decode_image, unpack_texels
 from splatstream.io import read_gaussians
-from splatstream.layout import chunk_texel_index
-from splatstream.texformats import FORMATS, TEXEL_DTYPES, VALUE_FORMATS, decode_image, unpack_texels
 
 pytest.importorskip("moderngl")
 

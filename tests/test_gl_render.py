@@ -152,7 +152,7 @@ def test_pool_grows_full_rows(renderers):
 
 
 def _decoded(tiles, degree):
-    from splatstream.codec import assemble_gaussians, decode_plane
+    from splatstream.format.codec import assemble_gaussians, decode_plane
     from splatstream.gaussians import Gaussians
 
     parts = [assemble_gaussians({k: decode_plane(p, t.splats) for k, p in t.planes.items()}, degree) for t in tiles]
@@ -164,7 +164,7 @@ def test_encoded_scene_directory(renderers, tmp_path, preset):
     """Planes stay in their texel formats on the GPU; the render matches the reference of the decoded scene."""
     pytest.importorskip("etcpak")
     from splatstream.decoder import decode_scene
-    from splatstream.encoder import EncodeOptions, encode_gaussians
+    from splatstream.encode import EncodeOptions, encode_gaussians
 
     g = read_gaussians(real("fruit_drops_sh3.ply"))
     scene = tmp_path / "scene"

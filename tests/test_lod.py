@@ -93,7 +93,7 @@ def test_small_scene_is_a_single_leaf_root_in_morton_order():
     root = tiles[0]
     assert root.children == [] and root.level == 0 and root.geometric_error == 0.0
     np.testing.assert_array_equal(rows(root.gaussians), rows(g))
-    from splatstream.layout import morton_codes
+    from splatstream.format.layout import morton_codes
 
     codes = morton_codes(root.gaussians.positions)
     assert np.all(np.diff(codes.astype(np.float64)) >= 0)

@@ -18,14 +18,14 @@ import time
 from pathlib import Path
 
 import aiohttp
-import msgpack
 import pytest
 
 from server.app import SCENE_ROOT, create_app, create_runner
 from server.run import bind
 from server.scenes import SMALL_FILE_BYTES
 from server.testing import write_fake_scene
-from splatstream.manifest import MANIFEST_NAME, iter_payloads, parse_manifest
+from splatstream.format.manifest import pack_manifest, parse_manifest
+from splatstream.format.names import MANIFEST_NAME
 
 REPO = Path(__file__).resolve().parents[1]
 REAL_PLY = Path("/work/shared/data/real/fruit_drops_sh3.ply")
@@ -157,7 +157,8 @@ def test_scene_list(srv):
     a = scenes[0]
     assert set(a) == {"id", "name", "splats", "sh_degree", "preset", "bounds", "bytes", "manifest"}
     assert a["manifest"] == "/scenes/a/manifest.msgpack"
-    assert a["splats"] == 1000 and a["sh_degree"] == 0 and a["preset"] == "medium"
+    m = parse_manifest(request(srv.port, a["manifest"])[2])
+    assert a["splats"] == m.splats > 1000 and a["sh_degree"] == 0 and a["preset"] == "very-high"
     assert a["bounds"] == {"min": [-1.0, -1.0, -1.0], "max": [1.0, 1.0, 1.0]}
     assert a["bytes"] == sum(SIZES) + len(request(srv.port, a["manifest"])[2])
     # revalidation
@@ -470,10 +471,10 @@ def _fetch_scene(port: int, scene: str) -> tuple[bytes, dict[str, bytes | None]]
     assert st == 200
     m = parse_manifest(raw)
     got = {}
-    for _, _, g in iter_payloads(m):
-        st, _, body = request(port, f"/scenes/{scene}/{g['file']}")
+    for _, _, g in m.payloads():
+        st, _, body = request(port, f"/scenes/{scene}/{g.file}")
         assert st in (200, 404)
-        got[g["sha256"]] = body if st == 200 else None
+        got[g.sha256] = body if st == 200 else None
     return raw, got
 
 
@@ -552,15 +553,15 @@ def test_root_symlink_switched(tmp_path):
 
 @pytest.mark.skipif(not REAL_PLY.exists(), reason="real scene not available")
 def test_real_encoded_scene(tmp_path):
-    from splatstream.encoder import encode_file
+    from splatstream.encode import encode_file
 
     m = encode_file(REAL_PLY, tmp_path / "root" / "fruit")
     s = ServerThread(tmp_path / "root")
     try:
         scenes = json.loads(request(s.port, "/api/scenes")[2])["scenes"]
-        assert [(x["id"], x["splats"], x["sh_degree"]) for x in scenes] == [("fruit", m["splats"], m["sh_degree"])]
+        assert [(x["id"], x["splats"], x["sh_degree"]) for x in scenes] == [("fruit", m.splats, m.sh_degree)]
         raw, got = _fetch_scene(s.port, "fruit")
-        assert msgpack.unpackb(raw) == msgpack.unpackb(msgpack.packb(m))
+        assert raw == pack_manifest(m)
         assert got and all(body is not None and sha(body).hexdigest() == d for d, body in got.items())
     finally:
         s.stop()

@@ -1,25 +1,19 @@
 """SH codebook (format 1.1): the vector quantiser, its planes in the payloads, decoding, LOD and bad input."""
 import numpy as np
 import pytest
-from conftest import real, run_cli
+from conftest import group_planes_of, read_manifest_dict, real, run_cli, write_manifest_dict
 
-from splatstream.codec import (
-    SH_INDEX_PLANE,
-    codebook_band_values,
-    codebook_rows,
-    codebook_weights,
-    decode_index_plane,
-    decode_plane,
-    encode_index_plane,
-)
-from splatstream.container import unpack_group
-from splatstream.decoder import decode_scene, read_codebook, read_payload
-from splatstream.encoder import EncodeOptions, encode_gaussians, splat_order
+from splatstream.decoder import decode_scene, read_codebook
+from splatstream.encode import EncodeOptions, encode_gaussians
+from splatstream.encode.codebook import codebook_rows, codebook_weights
+from splatstream.encode.jobs import splat_order
 from splatstream.errors import FormatError, UsageError
-from splatstream.layout import morton_order
-from splatstream.manifest import MANIFEST_NAME, iter_payloads, load_manifest, pack_manifest
+from splatstream.format.codec import codebook_band_values, decode_index_plane, decode_plane, encode_index_plane
+from splatstream.format.layout import morton_order
+from splatstream.format.planes import SH_INDEX_PLANE
+from splatstream.format.texformats import get_format
 from splatstream.ply import read_gaussians_ply
-from splatstream.texformats import get_format
+from splatstream.store import DirectoryStore, load_manifest
 from splatstream.vq import MAX_ENTRIES, auto_entries, build_codebook, parse_entries
 
 
@@ -81,13 +75,13 @@ def test_index_plane_round_trips():
 
 def test_encoded_codebook_round_trips_within_one_step(fruit, tmp_path):
     m = encode_gaussians(fruit, tmp_path / "s", EncodeOptions(preset="low", lod=False))
-    cb = m["sh_codebook"]
-    assert m["version"] == [1, 1] and cb["entries"] == 64 and cb["index_format"] == "index16"
-    assert cb["format"] == m["formats"]["sh"] == "norm565"
-    assert set(cb["groups"]) == {"sh1", "sh2", "sh3"} and set(m["tiles"][0]["groups"]) == {"base", "sh1"}
+    cb = m.sh_codebook
+    assert m.version == (1, 1) and cb.entries == 64 and cb.index_format == "index16"
+    assert cb.format == m.formats["sh"] == "norm565"
+    assert set(cb.groups) == {"sh1", "sh2", "sh3"} and set(m.tiles[0].groups) == {"base", "sh1"}
     # The codebook the encoder fitted (deterministic for the same input).
     fitted = build_codebook(codebook_rows(fruit), 64, weights=codebook_weights(fruit))
-    planes = read_codebook(tmp_path / "s", m, 3)
+    planes = read_codebook(DirectoryStore(tmp_path / "s"), m, 3)
     fmt = get_format("norm565")
     for band in (1, 2, 3):
         plane = planes[f"sh{band}"]
@@ -98,10 +92,9 @@ def test_encoded_codebook_round_trips_within_one_step(fruit, tmp_path):
         for c in range(3):
             assert np.all(np.abs(got[..., c] - want[..., c]) <= fmt.step(c) * extent[..., c] + 1e-6)
     # Each splat points at its nearest entry (64 entries: a flat codebook, so exactly nearest).
-    g = fruit.subset(splat_order(fruit, m["chunk_order"]))
-    tile = m["tiles"][0]
-    entry = tile["groups"]["sh1"]
-    index_plane = unpack_group(read_payload(tmp_path / "s", entry), entry, "sh1", len(g), "t", codebook=True)
+    g = fruit.subset(splat_order(fruit, m.chunk_order))
+    tile = m.tiles[0]
+    index_plane = group_planes_of(tmp_path / "s", m, tile, "sh1")
     index = decode_index_plane(index_plane["sh_index"], len(g))
     rows = codebook_rows(g)
     d = ((rows[:, None, :] - fitted.entries[None]) ** 2).sum(-1)
@@ -114,19 +107,19 @@ def test_encoded_codebook_round_trips_within_one_step(fruit, tmp_path):
     assert decode_scene(tmp_path / "s", sh_degree=1).sh_rest.shape == (len(g), 3, 3)
     assert decode_scene(tmp_path / "s", sh_degree=0).sh_degree == 0
     # Payloads: every codebook group is listed, and the bytes are counted.
-    listed = [name for tile_, name, _ in iter_payloads(m) if tile_ is None]
+    listed = [name for tile_, name, _ in m.payloads() if tile_ is None]
     assert listed == ["sh1", "sh2", "sh3"]
-    cb_disk = sum(g_["bytes"] for g_ in cb["groups"].values())
-    assert m["leaf_bytes_on_disk"] == cb_disk + sum(g_["bytes"] for g_ in tile["groups"].values())
-    assert m["attributes"]["sh"]["gpu_bytes"] == sum(g_["gpu_bytes"] for g_ in cb["groups"].values()) + \
-        tile["groups"]["sh1"]["gpu_bytes"]
+    cb_disk = sum(g_.bytes for g_ in cb.groups.values())
+    assert m.leaf_bytes_on_disk == cb_disk + sum(g_.bytes for g_ in tile.groups.values())
+    assert m.attributes["sh"].gpu_bytes == sum(g_.gpu_bytes for g_ in cb.groups.values()) + \
+        tile.groups["sh1"].gpu_bytes
 
 
 def test_codebook_rms_error_is_bounded(fruit, tmp_path):
     """Weighted RMS SH error of the 64-entry codebook on fruit_drops: measured 0.046, bounded at 0.06."""
     encode_gaussians(fruit, tmp_path / "s", EncodeOptions(preset="low", lod=False))
     dec = decode_scene(tmp_path / "s")
-    g = fruit.subset(splat_order(fruit, load_manifest(tmp_path / "s")["chunk_order"]))
+    g = fruit.subset(splat_order(fruit, load_manifest(tmp_path / "s").chunk_order))
     w = codebook_weights(g)
     err = ((dec.sh_rest - g.sh_rest) ** 2).sum(axis=(1, 2))
     assert float(np.sqrt((w * err).sum() / w.sum() / 45)) < 0.06
@@ -134,10 +127,10 @@ def test_codebook_rms_error_is_bounded(fruit, tmp_path):
 
 def test_lod_tiles_share_one_codebook(fruit, tmp_path):
     m = encode_gaussians(fruit, tmp_path / "s", EncodeOptions(preset="very-low", max_leaf_splats=1024))
-    assert m["lod"]["enabled"] and len(m["tiles"]) > 4 and m["sh_degree"] == 3
-    for tile in m["tiles"]:
-        assert set(tile["groups"]) == {"base", "sh1"}
-    every = decode_scene(tmp_path / "s", tiles=[t["id"] for t in m["tiles"]])
+    assert m.lod.enabled and len(m.tiles) > 4 and m.sh_degree == 3
+    for tile in m.tiles:
+        assert set(tile.groups) == {"base", "sh1"}
+    every = decode_scene(tmp_path / "s", tiles=[t.id for t in m.tiles])
     assert every.sh_rest.shape[1:] == (15, 3) and np.isfinite(every.sh_rest).all()
     leaves = decode_scene(tmp_path / "s")
     assert len(leaves) == len(fruit)
@@ -146,20 +139,20 @@ def test_lod_tiles_share_one_codebook(fruit, tmp_path):
 def test_medium_has_no_codebook_and_stays_version_1_0(fruit, tmp_path):
     m = encode_gaussians(fruit.subset(morton_order(fruit.positions)[:600]), tmp_path / "s",
                          EncodeOptions(preset="medium"))
-    assert m["version"] == [1, 0] and "sh_codebook" not in m
+    assert m.version == (1, 0) and m.sh_codebook is None
     m = encode_gaussians(fruit.subset(np.arange(600)), tmp_path / "t", EncodeOptions(preset="medium", sh_codebook=32))
-    assert m["sh_codebook"]["entries"] == 32 and m["formats"]["sh"] == "norm565"
+    assert m.sh_codebook.entries == 32 and m.formats["sh"] == "norm565"
 
 
 def test_bad_codebook_input_gives_clear_errors(fruit, tmp_path):
     encode_gaussians(fruit.subset(np.arange(300)), tmp_path / "s", EncodeOptions(preset="low", lod=False))
-    m = load_manifest(tmp_path / "s")
+    m = read_manifest_dict(tmp_path / "s")
     m["sh_codebook"]["entries"] = 2  # indices now point past the end
-    (tmp_path / "s" / MANIFEST_NAME).write_bytes(pack_manifest(m))
+    write_manifest_dict(tmp_path / "s", m)
     with pytest.raises(FormatError, match="codebook"):
         decode_scene(tmp_path / "s")
     del m["sh_codebook"]["groups"]["sh2"]
-    (tmp_path / "s" / MANIFEST_NAME).write_bytes(pack_manifest(m))
+    write_manifest_dict(tmp_path / "s", m)
     with pytest.raises(FormatError, match="sh_codebook.groups"):
         decode_scene(tmp_path / "s")
 
@@ -169,7 +162,7 @@ def test_cli_codebook_option(tmp_path):
     r = run_cli("encode", str(real("fruit_drops_sh3.ply")), str(out), "--preset", "medium", "--sh-codebook", "128",
                 "-q")
     assert r.returncode == 0, r.stderr
-    assert load_manifest(out)["sh_codebook"]["entries"] == 128
+    assert load_manifest(out).sh_codebook.entries == 128
     r = run_cli("encode", str(real("fruit_drops_sh3.ply")), str(tmp_path / "x"), "--sh-codebook", "70000")
     assert r.returncode == 2 and "65536" in r.stderr and "Traceback" not in r.stderr
     assert not (tmp_path / "x").exists()

@@ -1,8 +1,15 @@
 import numpy as np
 import pytest
 
-from splatstream import layout
-from splatstream.texformats import FORMATS, decode_image, encode_image, get_format, shuffle_bytes, unshuffle_bytes
+from splatstream.format import layout
+from splatstream.format.texformats import (
+    FORMATS,
+    decode_image,
+    encode_image,
+    get_format,
+    shuffle_bytes,
+    unshuffle_bytes,
+)
 
 RNG = np.random.default_rng(1)
 

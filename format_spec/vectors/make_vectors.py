@@ -4,8 +4,8 @@ import pathlib
 import shutil
 
 from splatstream.decoder import decode_scene
-from splatstream.encoder import EncodeOptions, encode_gaussians
-from splatstream.layout import morton_order
+from splatstream.encode import EncodeOptions, encode_gaussians
+from splatstream.format.layout import morton_order
 from splatstream.ply import read_gaussians_ply
 
 HERE = pathlib.Path(__file__).resolve().parent

@@ -4,10 +4,11 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..encoder import ATTRIBUTES, DEFAULT_PRESET, PRESETS, encode_file
+from ..encode import encode_file
 from ..errors import UsageError
+from ..format.presets import ATTRIBUTES, DEFAULT_PRESET, PRESETS
+from ..format.texformats import VALUE_FORMATS
 from ..progress import ProgressPrinter
-from ..texformats import VALUE_FORMATS
 from .args import parse_vector
 
 
@@ -62,8 +63,8 @@ def run(args: argparse.Namespace) -> int:
                     lod=not args.no_lod, max_leaf_splats=args.max_leaf_splats, reduction=args.reduction,
                     name=args.name, up=up, chunk_order=args.chunk_order, sh_codebook=args.sh_codebook)
     if not args.quiet:
-        print(f"wrote {args.output_dir}: {m['splats']} splats, SH degree {m['sh_degree']}, preset {m['preset']}, "
-              f"{len(m['tiles'])} tiles, {m['bytes_on_disk'] / 1e6:.2f} MB on disk "
-              f"({m['bytes_on_disk'] / m['splats']:.2f} B/splat), {m['gpu_bytes_per_splat']:.2f} B/splat on the GPU, "
-              f"{m['encode_seconds']:.2f}s", file=sys.stderr)
+        print(f"wrote {args.output_dir}: {m.splats} splats, SH degree {m.sh_degree}, preset {m.preset}, "
+              f"{len(m.tiles)} tiles, {m.bytes_on_disk / 1e6:.2f} MB on disk "
+              f"({m.bytes_on_disk / m.splats:.2f} B/splat), {m.gpu_bytes_per_splat:.2f} B/splat on the GPU, "
+              f"{m.encode_seconds:.2f}s", file=sys.stderr)
     return 0

@@ -10,6 +10,7 @@ import sys
 from ..errors import InputError, UsageError
 from ..evaluate import PRESET_ORDER, EvalOptions, evaluate, plot_rate_distortion, report_markdown
 from .args import parse_size, parse_vector
+from .renderers import RENDERER_CHOICES, pick_renderer
 
 
 def parse_list(text: str) -> list[str]:
@@ -45,7 +46,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--variants", nargs="+", default=[], metavar="NAME:PRESET[,ATTR=FORMAT...][,sh_degree=D]",
                    help="extra encodes to put in the table and plot, e.g. low-sh2:low,sh_degree=2 or "
                         "low-rot565:low,rotation=norm565")
-    p.add_argument("--renderer", choices=["auto", "gl", "ref"], default="auto",
+    p.add_argument("--renderer", choices=RENDERER_CHOICES, default="auto",
                    help="auto: the GL client if available, else the numpy reference rasterizer")
     p.add_argument("--lod", action="store_true", help="encode the LOD tree too and count its bytes on disk")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress lines on stderr")
@@ -65,10 +66,10 @@ def run(args: argparse.Namespace) -> int:
     up = parse_vector(args.up, "--up", nonzero=True)
     opts = EvalOptions(presets=presets, views=args.views, width=w, height=h, up=up,
                        elevation_deg=args.elevation, encoded_dir=args.encoded, compare=args.compare,
-                       renderer=args.renderer, lod=args.lod, attribution=parse_list(args.attribution),
+                       lod=args.lod, attribution=parse_list(args.attribution),
                        variants=args.variants)
     log = None if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
-    report = evaluate(args.input, opts, log)
+    report = evaluate(args.input, opts, log, pick_renderer(args.renderer))
     md = report_markdown(report)
     sys.stdout.write(md)
     if args.markdown:

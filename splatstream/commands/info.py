@@ -4,46 +4,46 @@ from __future__ import annotations
 import argparse
 import json
 
-from ..manifest import load_manifest, scene_summary
+from ..format.manifest import Manifest, scene_summary
+from ..store import load_manifest
 
 
-def scene_info(m: dict) -> dict:
+def scene_info(m: Manifest) -> dict:
     s = scene_summary(m)
-    leaves = [t for t in m["tiles"] if not t.get("children")]
+    leaves = m.leaves
     s.update({
-        "leaf_splats": sum(t["splats"] for t in leaves),
+        "leaf_splats": sum(t.splats for t in leaves),
         "leaf_tiles": len(leaves),
-        "leaf_bytes_on_disk": m.get("leaf_bytes_on_disk"),
-        "bytes_per_splat_on_disk": m["bytes_on_disk"] / max(1, m["splats"]),
-        "formats": m.get("formats"),
-        "attributes": m.get("attributes"),
+        "leaf_bytes_on_disk": m.leaf_bytes_on_disk,
+        "bytes_per_splat_on_disk": m.bytes_on_disk / m.splats,
+        "formats": dict(m.formats),
+        "attributes": {a: v.to_dict() for a, v in m.attributes.items()},
         "bytes_per_level": _bytes_per_level(m),
-        "camera": m.get("camera"),
-        "up": m.get("up"),
+        "camera": m.camera.to_dict(),
         "sh_codebook": _codebook(m),
     })
     return s
 
 
-def _codebook(m: dict) -> dict | None:
-    cb = m.get("sh_codebook")
-    if not cb:
+def _codebook(m: Manifest) -> dict | None:
+    cb = m.sh_codebook
+    if cb is None:
         return None
-    groups = cb.get("groups", {}).values()
-    return {"entries": cb.get("entries"), "format": cb.get("format"), "index_format": cb.get("index_format"),
-            "bytes_on_disk": sum(g["bytes"] for g in groups), "gpu_bytes": sum(g["gpu_bytes"] for g in groups)}
+    groups = cb.groups.values()
+    return {"entries": cb.entries, "format": cb.format, "index_format": cb.index_format,
+            "bytes_on_disk": sum(g.bytes for g in groups), "gpu_bytes": sum(g.gpu_bytes for g in groups)}
 
 
-def _bytes_per_level(m: dict) -> list[dict]:
+def _bytes_per_level(m: Manifest) -> list[dict]:
     levels: dict[int, dict] = {}
-    for t in m["tiles"]:
-        lv = levels.setdefault(t.get("level", 0), {"level": t.get("level", 0), "tiles": 0, "splats": 0,
-                                                   "bytes_on_disk": 0, "gpu_bytes": 0})
+    for t in m.tiles:
+        lv = levels.setdefault(t.level, {"level": t.level, "tiles": 0, "splats": 0, "bytes_on_disk": 0,
+                                         "gpu_bytes": 0})
         lv["tiles"] += 1
-        lv["splats"] += t["splats"]
-        for g in t["groups"].values():
-            lv["bytes_on_disk"] += g["bytes"]
-            lv["gpu_bytes"] += g["gpu_bytes"]
+        lv["splats"] += t.splats
+        for g in t.groups.values():
+            lv["bytes_on_disk"] += g.bytes
+            lv["gpu_bytes"] += g.gpu_bytes
     return [levels[k] for k in sorted(levels)]
 
 

@@ -72,8 +72,8 @@ def _camera(args, scene_camera: dict | None, positions: np.ndarray | None, scene
 def run(args: argparse.Namespace) -> int:
     from client_gl.headless import HeadlessRenderer
 
-    from ..encoder import PRESETS
-    from ..manifest import is_scene_dir, load_manifest
+    from ..format.presets import PRESETS
+    from ..store import is_scene_dir, load_manifest
 
     size = parse_size(args.size)
     background = _optional_vector(args.background, "--background")
@@ -87,9 +87,9 @@ def run(args: argparse.Namespace) -> int:
         if not is_scene_dir(args.scene):
             raise UsageError(f"{args.scene}: a directory without manifest.msgpack is not a scene")
         manifest = load_manifest(args.scene)
-        cam = _camera(args, manifest.get("camera"), None, manifest.get("up"), size)
+        cam = _camera(args, manifest.camera.to_dict(), None, manifest.up, size)
         source = ("scene", args.scene)
-        splats = manifest["splats"]
+        splats = manifest.splats
     else:
         from ..io import read_gaussians
 

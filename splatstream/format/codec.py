@@ -15,58 +15,15 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .gaussians import SH_BAND_COEFFS, Gaussians, logit, normalize_quaternions, sigmoid
+from ..gaussians import SH_BAND_COEFFS, Gaussians, logit, normalize_quaternions, sigmoid
 from .layout import CHUNK_SIZE, chunk_texel_index, texture_size
+from .planes import SH_INDEX_FORMAT, SH_INDEX_PLANE, PlaneSpec
 from .texformats import TEXEL_DTYPES, decode_image, encode_bc_image, get_format, pack_texels, unpack_texels
 
 SQRT2 = math.sqrt(2.0)
 WHOLE_PLANE_GATHER_BYTES = 64 << 20
 # Opacity is stored after the sigmoid; decoding takes the logit of a value clamped to this interval.
 OPACITY_EPS = 1e-6
-
-
-@dataclass(frozen=True)
-class PlaneSpec:
-    name: str
-    attribute: str       # preset attribute whose texel format this plane uses
-    components: int
-    layers: int
-    range_dtype: str     # "" (not ranged), "<f4" or "<f2"
-
-
-BASE_PLANES = (
-    PlaneSpec("position", "position", 3, 1, "<f4"),
-    PlaneSpec("rotation", "rotation", 4, 1, ""),
-    PlaneSpec("scale", "scale", 3, 1, "<f2"),
-    PlaneSpec("color", "color", 4, 1, "<f2"),
-)
-
-
-# With an SH codebook, a tile's sh1 payload holds this plane: each splat's codebook entry (texel format index16).
-SH_INDEX_PLANE = PlaneSpec("sh_index", "sh", 1, 1, "")
-SH_INDEX_FORMAT = "index16"
-
-
-def band_plane(band: int) -> PlaneSpec:
-    return PlaneSpec(f"sh{band}", "sh", 3, SH_BAND_COEFFS[band], "<f2")
-
-
-def group_planes(group: str, codebook: bool = False) -> tuple[PlaneSpec, ...]:
-    """Planes of a tile payload group; with an SH codebook the tile's sh1 group holds the index plane."""
-    if group == "base":
-        return BASE_PLANES
-    if codebook:
-        if group != "sh1":
-            raise ValueError(f"with an SH codebook a tile has no {group!r} group")
-        return (SH_INDEX_PLANE,)
-    return (band_plane(int(group[2:])),)
-
-
-def groups_for_degree(sh_degree: int, codebook: bool = False) -> list[str]:
-    """Payload groups of a tile: base, then one per SH band (only sh1, the index, with a codebook)."""
-    if codebook:
-        return ["base"] + (["sh1"] if sh_degree >= 1 else [])
-    return ["base"] + [f"sh{b}" for b in range(1, sh_degree + 1)]
 
 
 def f16_floor(x: np.ndarray) -> np.ndarray:
@@ -294,19 +251,6 @@ def decode_index_plane(plane: EncodedPlane, n: int) -> np.ndarray:
     src = chunk_texel_index(chunks, plane.width)[:n]
     blob = plane.layers[0] if isinstance(plane.layers, list) else next(iter(plane.layers))
     return np.frombuffer(blob, "<u2")[src].astype(np.int64)
-
-
-def codebook_rows(g: Gaussians) -> np.ndarray:
-    """(N, 3 * coefficients) rows the SH codebook quantises: a splat's SH1..SHd coefficients, band after band."""
-    return np.ascontiguousarray(g.sh_rest.reshape(len(g.sh_rest), -1), np.float32)
-
-
-def codebook_weights(g: Gaussians) -> np.ndarray:
-    """Importance of each splat's SH to the image, for fitting the codebook: opacity x the area of its two
-    largest axes. On fruit_drops (64 entries) this took PSNR from 35.2 dB (unweighted) to 38.4 dB; opacity alone
-    gave 35.8, opacity x volume 37.8."""
-    largest_two = np.sort(g.log_scales, axis=1)[:, 1:].sum(axis=1).astype(np.float64)
-    return sigmoid(g.opacity_logits).astype(np.float64) * np.exp(np.clip(largest_two, -60.0, 60.0))
 
 
 def codebook_band_values(entries: np.ndarray, band: int) -> np.ndarray:

@@ -11,6 +11,7 @@ import functools
 import numpy as np
 
 CHUNK_SIZE = 256
+ALIGN = 16  # payload sections start at multiples of this many bytes (format.md 5)
 BLOCK = 16  # a chunk is a BLOCK x BLOCK texel square
 MAX_BLOCKS_PER_ROW = 128  # texture width at most 2048 texels
 MAX_BLOCK_ROWS = 1024  # texture height at most 16384 texels, the GL 4.3 guaranteed minimum of GL_MAX_TEXTURE_SIZE

@@ -1,0 +1,51 @@
+"""The SH codebook the encoder stores (format_spec/format.md 4.7): which rows it quantises, how it is fitted and
+how splats are assigned. The one place that decides it; the in-memory scenes of the client go through it too."""
+from __future__ import annotations
+
+import numpy as np
+
+from ..format.codec import EncodedPlane, codebook_band_values, encode_plane
+from ..format.planes import band_plane
+from ..format.presets import PRESET_SH_CODEBOOK
+from ..gaussians import Gaussians, sigmoid
+from ..vq import Codebook, build_codebook, parse_entries
+
+
+def codebook_rows(g: Gaussians) -> np.ndarray:
+    """(N, 3 * coefficients) rows the SH codebook quantises: a splat's SH1..SHd coefficients, band after band."""
+    return np.ascontiguousarray(g.sh_rest.reshape(len(g.sh_rest), -1), np.float32)
+
+
+def codebook_weights(g: Gaussians) -> np.ndarray:
+    """Importance of each splat's SH to the image, for fitting the codebook: opacity x the area of its two
+    largest axes. On fruit_drops (64 entries) this took PSNR from 35.2 dB (unweighted) to 38.4 dB; opacity alone
+    gave 35.8, opacity x volume 37.8."""
+    largest_two = np.sort(g.log_scales, axis=1)[:, 1:].sum(axis=1).astype(np.float64)
+    return sigmoid(g.opacity_logits).astype(np.float64) * np.exp(np.clip(largest_two, -60.0, 60.0))
+
+
+def fit_sh_codebook(g: Gaussians, preset: str, choice: str | int | None, sh_degree: int) -> Codebook | None:
+    """The SH codebook the encoder stores for these splats (None: no codebook). `choice`: None (the preset's),
+    "off", "auto" or an entry count."""
+    if choice is None:
+        choice = PRESET_SH_CODEBOOK.get(preset, "off")
+    entries = parse_entries(choice, len(g)) if sh_degree >= 1 else 0
+    if not entries:
+        return None
+    if sh_degree < g.sh_degree:
+        g = g.with_sh_degree(sh_degree)
+    return build_codebook(codebook_rows(g), entries, weights=codebook_weights(g))
+
+
+def assign_sh_codebook(codebook: Codebook, g: Gaussians, block: int = 1 << 16) -> np.ndarray:
+    """Codebook index of every splat, a block of rows at a time (never a second copy of all SH rows)."""
+    labels = np.empty(len(g), np.int64)
+    for i in range(0, len(g), block):
+        labels[i:i + block] = codebook.assign(codebook_rows(g.subset(slice(i, i + block))))
+    return labels
+
+
+def codebook_planes(codebook: Codebook, sh_degree: int, fmt: str, lazy: bool = False) -> dict[str, EncodedPlane]:
+    """The codebook's band planes sh1..sh{sh_degree} (K entries each) in texel format `fmt`."""
+    return {f"sh{b}": encode_plane(codebook_band_values(codebook.entries, b), band_plane(b), fmt, lazy=lazy)
+            for b in range(1, sh_degree + 1)}

@@ -1,0 +1,34 @@
+"""What an encode is asked to do (the CLI's options, as one value every stage of the encoder reads)."""
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+from ..format.presets import DEFAULT_PRESET
+
+# progress(stage, fraction in [0, 1]); stages: codebook, tiles, encode
+Progress = Callable[[str, float], None]
+
+
+def no_progress(stage: str, fraction: float) -> None:
+    return None
+
+
+@dataclass
+class EncodeOptions:
+    preset: str = DEFAULT_PRESET
+    overrides: dict[str, str] = field(default_factory=dict)
+    sh_degree: int | None = None  # drop bands above this
+    zstd_level: int = 3
+    shuffle: bool = True
+    lod: bool = True
+    max_leaf_splats: int = 65536
+    reduction: float = 4.0
+    name: str | None = None
+    up: tuple[float, float, float] | None = None
+    chunk_order: str = "auto"  # "morton", "luminance", or "auto" (luminance when only colour/SH are BC-compressed)
+    # SH codebook: None = the preset's choice, "off", "auto" or an entry count (format_spec/format.md 4.7).
+    sh_codebook: str | int | None = None
+    # Let the LOD builder permute the input's arrays in place instead of copying the scene (saves one copy of
+    # the whole scene). Only for callers that own the Gaussians and do not need their order afterwards.
+    reorder_input: bool = False

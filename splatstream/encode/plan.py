@@ -1,0 +1,105 @@
+"""Plan: the scene-wide steps of an encode, done once before any tile is written.
+
+Formats and SH degree from the options, the SH codebook (fitted on every splat), the LOD tile tree (lod.py) and
+the scene's facts (bounds, up, suggested camera). What comes out is everything a per-tile job needs
+(`TileContext`) plus the tiles themselves; jobs.py encodes tiles, reduce.py builds the manifest.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..camera import suggested_camera
+from ..errors import UsageError
+from ..format.layout import CHUNK_SIZE, MAX_BLOCK_ROWS, MAX_BLOCKS_PER_ROW
+from ..format.manifest import Box, CameraEntry
+from ..format.presets import resolve_chunk_order, resolve_formats
+from ..gaussians import Gaussians
+from ..lod import Tile, build_tiles
+from ..vq import Codebook
+from .codebook import fit_sh_codebook
+from .options import EncodeOptions, Progress, no_progress
+
+DEFAULT_UP = (0.0, 0.0, 1.0)
+
+
+@dataclass(frozen=True)
+class TileContext:
+    """What a per-tile job needs besides its tile: small, picklable (a worker on another machine gets a copy)."""
+
+    formats: dict[str, str]
+    chunk_order: str
+    sh_degree: int
+    codebook: Codebook | None
+    zstd_level: int = 3
+    shuffle: bool = True
+
+
+@dataclass
+class EncodePlan:
+    context: TileContext
+    tiles: list[Tile]  # breadth-first, root first; a single tile's bounds may still be None (jobs compute them)
+    options: EncodeOptions
+    name: str
+    splats: int
+    bounds: Box
+    up: tuple[float, float, float]
+
+
+def resolve_sh_degree(opts: EncodeOptions, g: Gaussians) -> int:
+    return g.sh_degree if opts.sh_degree is None else min(opts.sh_degree, g.sh_degree)
+
+
+def scene_name(opts: EncodeOptions, source_name: str | None, out_name: str | None) -> str:
+    if opts.name:
+        return opts.name
+    if source_name:
+        return os.path.splitext(os.path.basename(source_name))[0]
+    return out_name or "scene"
+
+
+def plan_tiles(g: Gaussians, opts: EncodeOptions, progress: Progress) -> list[Tile]:
+    """The LOD tree, or one tile holding every splat (bounds left to the jobs) when LOD is off or not needed."""
+    if opts.lod and len(g) > opts.max_leaf_splats:
+        return build_tiles(g, max_leaf_splats=opts.max_leaf_splats, reduction=opts.reduction, progress=progress,
+                           reorder_input=opts.reorder_input)
+    limit = MAX_BLOCKS_PER_ROW * MAX_BLOCK_ROWS * CHUNK_SIZE
+    if len(g) > limit:
+        raise UsageError(f"{len(g)} splats do not fit one tile (at most {limit}); encode with LOD (drop --no-lod)")
+    return [Tile(0, 0, [], g, 0.0, None, None, None, 0.0)]
+
+
+def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progress,
+                source_name: str | None = None, out_name: str | None = None) -> EncodePlan:
+    formats = resolve_formats(opts.preset, opts.overrides)
+    chunk_order = resolve_chunk_order(opts.chunk_order, formats)
+    if len(g) == 0:
+        raise UsageError("the input holds no splats; nothing to encode")
+    sh_degree = resolve_sh_degree(opts, g)
+    if sh_degree != g.sh_degree:
+        g = g.with_sh_degree(sh_degree)
+    codebook = None
+    if sh_degree >= 1:
+        progress("codebook", 0.0)
+        codebook = fit_sh_codebook(g, opts.preset, opts.sh_codebook, sh_degree)
+        progress("codebook", 1.0)
+    bounds = Box(tuple(float(v) for v in g.positions.min(axis=0)), tuple(float(v) for v in g.positions.max(axis=0)))
+    up = tuple(float(v) for v in (opts.up if opts.up is not None else DEFAULT_UP))
+    progress("tiles", 0.0)
+    tiles = plan_tiles(g, opts, progress)
+    progress("tiles", 1.0)
+    context = TileContext(formats, chunk_order, sh_degree, codebook, opts.zstd_level, opts.shuffle)
+    return EncodePlan(context, tiles, opts, scene_name(opts, source_name, out_name), len(g), bounds, up)
+
+
+def plan_camera(g: Gaussians, up: tuple[float, float, float]) -> CameraEntry:
+    """The suggested initial camera (format_spec/camera.md)."""
+    cam = suggested_camera(g.positions, up=up)
+    return CameraEntry(tuple(float(v) for v in cam.eye), tuple(float(v) for v in cam.target),
+                       tuple(float(v) for v in cam.up), float(cam.fov_y_deg))
+
+
+def positions_box(positions: np.ndarray) -> Box:
+    return Box(tuple(float(v) for v in positions.min(axis=0)), tuple(float(v) for v in positions.max(axis=0)))

@@ -1,0 +1,88 @@
+"""Reduce: the manifest from the plan and every tile's entry (what the jobs returned, in any order)."""
+from __future__ import annotations
+
+from .. import __version__
+from ..format.layout import CHUNK_SIZE
+from ..format.manifest import (
+    BASE_VERSION,
+    FORMAT_VERSION,
+    AttributeSize,
+    CameraEntry,
+    LodInfo,
+    Manifest,
+    PayloadEntry,
+    SHCodebookEntry,
+    TileEntry,
+)
+from ..format.planes import BASE_PLANE_NAMES
+from ..format.presets import ATTRIBUTES
+from .plan import EncodePlan
+
+
+def section_attribute(section_name: str) -> str:
+    """The preset attribute a section's bytes count towards (`position.range` -> position, `sh2` -> sh)."""
+    return "sh" if section_name.startswith("sh") else section_name.split(".")[0]
+
+
+class _Sizes:
+    """GPU and disk bytes of the full-detail scene per attribute: leaf tiles and the SH codebook."""
+
+    def __init__(self) -> None:
+        self.gpu = dict.fromkeys(ATTRIBUTES, 0)
+        self.disk = dict.fromkeys(ATTRIBUTES, 0.0)
+        self.leaf_gpu = 0
+        self.leaf_disk = 0
+
+    def add(self, entry: PayloadEntry, attributes: tuple[str, ...]) -> None:
+        # GPU bytes exactly per section; a payload's file bytes shared out by the sections' raw sizes.
+        for sec in entry.sections:
+            attr = section_attribute(sec.name)
+            if attr in attributes:
+                self.gpu[attr] += sec.size
+                self.disk[attr] += entry.bytes * sec.size / max(1, entry.raw_bytes)
+        self.leaf_gpu += entry.gpu_bytes
+        self.leaf_disk += entry.bytes
+
+
+def build_manifest(plan: EncodePlan, camera: CameraEntry, tiles: list[TileEntry],
+                   codebook: SHCodebookEntry | None, encode_seconds: float) -> Manifest:
+    """`tiles` in the plan's tile order (the per-attribute sums add up in that order); bytes_on_disk settled."""
+    ctx = plan.context
+    sizes = _Sizes()
+    if codebook is not None:
+        for entry in codebook.groups.values():
+            sizes.add(entry, ("sh",))
+    for tile in tiles:
+        if tile.is_leaf:
+            for group, entry in tile.groups.items():
+                sizes.add(entry, BASE_PLANE_NAMES if group == "base" else ("sh",))
+    ordered = tuple(sorted(tiles, key=lambda t: t.id))
+    root = ordered[0]
+    opts = plan.options
+    m = Manifest(
+        version=FORMAT_VERSION if codebook is not None else BASE_VERSION,
+        generator=f"splatstream {__version__}",
+        name=plan.name,
+        splats=plan.splats,
+        leaf_splats=sum(t.splats for t in ordered if t.is_leaf),
+        sh_degree=ctx.sh_degree,
+        preset=opts.preset,
+        formats=dict(ctx.formats),
+        chunk_size=CHUNK_SIZE,
+        chunk_order=ctx.chunk_order,
+        bounds=plan.bounds,
+        extent_bounds=root.box,
+        up=plan.up,
+        camera=camera,
+        sh_codebook=codebook,
+        lod=LodInfo(len(ordered) > 1, opts.max_leaf_splats, float(opts.reduction), "replace"),
+        root=root.id,
+        tiles=ordered,
+        gpu_bytes=int(sizes.leaf_gpu),
+        gpu_bytes_per_splat=sizes.leaf_gpu / plan.splats,
+        leaf_bytes_on_disk=int(sizes.leaf_disk),
+        attributes={a: AttributeSize(ctx.formats[a], int(sizes.gpu[a]), int(sizes.disk[a]))
+                    for a in ATTRIBUTES if a != "sh" or ctx.sh_degree > 0},
+        encode_seconds=round(encode_seconds, 3),
+    )
+    return m.with_bytes_on_disk(m.payload_bytes())

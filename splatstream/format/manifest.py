@@ -1,0 +1,706 @@
+"""The scene manifest (format_spec/format.md 6), typed: parsed and validated once, then trusted.
+
+`parse_manifest(bytes)` turns a msgpack manifest into a frozen `Manifest` (tiles as `TileEntry`, payloads as
+`PayloadEntry` with their `Section`s) or raises FormatError naming the field (`tiles[3].groups.base.bytes`) and
+what was expected. Everything a reader later relies on is checked here: types, ranges, the tile tree (one root,
+every tile reachable once, levels), splat and chunk counts, texture sizes, and every payload's section table
+against the planes its group must hold. `Manifest.to_dict()` gives back the spec's map (the encoder writes it).
+"""
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Iterator
+from dataclasses import dataclass, field, replace
+
+import msgpack
+import numpy as np
+
+from ..errors import FormatError
+from .layout import ALIGN, BLOCK, CHUNK_SIZE
+from .names import MANIFEST_NAME, SHA256_HEX_RE, payload_name
+from .planes import (
+    MAX_SH_DEGREE,
+    RANGE_DTYPE_NAMES,
+    SH_INDEX_FORMAT,
+    band_plane,
+    chunks_for,
+    group_planes,
+    groups_for_degree,
+)
+from .texformats import FORMATS, VALUE_FORMATS, blob_size
+
+FORMAT_NAME = "splatstream"
+FORMAT_VERSION = (1, 1)  # (major, minor) this code reads and writes
+# Scenes without 1.1 features (the SH codebook) are written as 1.0, so 1.0 readers still read them.
+BASE_VERSION = (1, 0)
+MAX_MANIFEST_BYTES = 64 << 20
+# A payload may not claim to decompress to more than this (guards readers against decompression bombs).
+MAX_PAYLOAD_RAW_BYTES = 2 << 30
+MAX_TILES = 1 << 20
+CHUNK_ORDER_NAMES = ("morton", "luminance")
+FILTERS_DOC = "none or shuffleN"
+
+Vec3 = tuple[float, float, float]
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Entries
+
+
+@dataclass(frozen=True)
+class Section:
+    """One section of a decompressed payload (format.md 5): a plane's texels or its per-chunk ranges."""
+
+    name: str
+    kind: str  # "texels" or "range"
+    offset: int
+    size: int
+    filter: str  # "none" or "shuffleN"
+    format: str = ""  # texels: texel format
+    width: int = 0
+    height: int = 0
+    layers: int = 0
+    dtype: str = ""  # range: "f32" or "f16"
+    shape: tuple[int, ...] = ()
+
+    @property
+    def element(self) -> int:
+        """Byte-shuffle element size of the filter (1: none)."""
+        return filter_element(self.filter)
+
+    def to_dict(self) -> dict:
+        d = {"name": self.name, "offset": self.offset, "size": self.size, "filter": self.filter, "kind": self.kind}
+        if self.kind == "texels":
+            d.update(format=self.format, width=self.width, height=self.height, layers=self.layers)
+        else:
+            d.update(dtype=self.dtype, shape=list(self.shape))
+        return d
+
+
+@dataclass(frozen=True)
+class PayloadEntry:
+    """A payload file (a tile's group, or a band of the SH codebook): where it is and how to read it."""
+
+    file: str
+    sha256: str
+    bytes: int
+    raw_bytes: int
+    gpu_bytes: int
+    sections: tuple[Section, ...]
+
+    def section(self, name: str) -> Section:
+        for s in self.sections:
+            if s.name == name:
+                return s
+        raise KeyError(name)
+
+    def to_dict(self) -> dict:
+        return {"file": self.file, "sha256": self.sha256, "bytes": self.bytes, "raw_bytes": self.raw_bytes,
+                "gpu_bytes": self.gpu_bytes, "sections": [s.to_dict() for s in self.sections]}
+
+
+@dataclass(frozen=True)
+class Box:
+    min: Vec3
+    max: Vec3
+
+    def to_dict(self) -> dict:
+        return {"min": list(self.min), "max": list(self.max)}
+
+
+@dataclass(frozen=True)
+class TileEntry:
+    """One tile of the LOD tree (format_spec/lod.md 1)."""
+
+    id: int
+    level: int
+    children: tuple[int, ...]
+    splats: int
+    chunks: int
+    texture: tuple[int, int]
+    box: Box
+    sphere_center: Vec3
+    sphere_radius: float
+    geometric_error: float
+    groups: dict[str, PayloadEntry]  # read-only by convention (frozen dataclasses cannot freeze a dict)
+
+    @property
+    def is_leaf(self) -> bool:
+        return not self.children
+
+    def to_dict(self) -> dict:
+        return {"id": self.id, "level": self.level, "children": list(self.children), "splats": self.splats,
+                "chunks": self.chunks, "texture": list(self.texture), "box": self.box.to_dict(),
+                "sphere": {"center": list(self.sphere_center), "radius": self.sphere_radius},
+                "geometric_error": self.geometric_error,
+                "groups": {name: p.to_dict() for name, p in self.groups.items()}}
+
+
+@dataclass(frozen=True)
+class SHCodebookEntry:
+    """The scene-wide SH codebook (format.md 4.7)."""
+
+    entries: int
+    format: str
+    index_format: str
+    groups: dict[str, PayloadEntry]
+
+    def to_dict(self) -> dict:
+        return {"entries": self.entries, "format": self.format, "index_format": self.index_format,
+                "groups": {name: p.to_dict() for name, p in self.groups.items()}}
+
+
+@dataclass(frozen=True)
+class CameraEntry:
+    eye: Vec3
+    target: Vec3
+    up: Vec3
+    fov_y: float
+
+    def to_dict(self) -> dict:
+        return {"eye": list(self.eye), "target": list(self.target), "up": list(self.up), "fov_y": self.fov_y}
+
+
+@dataclass(frozen=True)
+class LodInfo:
+    enabled: bool
+    max_leaf_splats: int
+    reduction: float
+    refine: str = "replace"
+
+    def to_dict(self) -> dict:
+        return {"enabled": self.enabled, "max_leaf_splats": self.max_leaf_splats, "reduction": self.reduction,
+                "refine": self.refine}
+
+
+@dataclass(frozen=True)
+class AttributeSize:
+    format: str
+    gpu_bytes: int
+    disk_bytes: int
+
+    def to_dict(self) -> dict:
+        return {"format": self.format, "gpu_bytes": self.gpu_bytes, "disk_bytes": self.disk_bytes}
+
+
+@dataclass(frozen=True)
+class TileArrays:
+    """The tile tree as arrays (index = position in `Manifest.tiles`), for selection and culling over numpy."""
+
+    ids: np.ndarray             # (T,) int64
+    parent: np.ndarray          # (T,) int64 index of the parent, -1 for the root
+    level: np.ndarray           # (T,) int64
+    splats: np.ndarray          # (T,) int64
+    box_min: np.ndarray         # (T, 3) float64
+    box_max: np.ndarray         # (T, 3) float64
+    sphere_center: np.ndarray   # (T, 3) float64
+    sphere_radius: np.ndarray   # (T,) float64
+    geometric_error: np.ndarray  # (T,) float64
+    children: tuple[tuple[int, ...], ...]  # indices of each tile's children
+    base_bytes: np.ndarray      # (T,) int64 bytes of the base payload
+    band_bytes: np.ndarray      # (T, 3) int64 bytes of the tile's sh1..sh3 payloads (0: none)
+    gpu_bytes: np.ndarray       # (T,) int64 GPU bytes of every group of the tile
+
+
+@dataclass(frozen=True)
+class Manifest:
+    version: tuple[int, int]
+    generator: str
+    name: str
+    splats: int
+    leaf_splats: int
+    sh_degree: int
+    preset: str
+    formats: dict[str, str]
+    chunk_size: int
+    chunk_order: str
+    bounds: Box
+    extent_bounds: Box
+    up: Vec3
+    camera: CameraEntry
+    sh_codebook: SHCodebookEntry | None
+    lod: LodInfo
+    root: int
+    tiles: tuple[TileEntry, ...]
+    gpu_bytes: int
+    gpu_bytes_per_splat: float
+    leaf_bytes_on_disk: int
+    attributes: dict[str, AttributeSize]
+    encode_seconds: float
+    bytes_on_disk: int = 0
+    format: str = field(default=FORMAT_NAME)
+
+    # --- derived views (cached: a Manifest never changes) ------------------------------------------------------
+    @functools.cached_property
+    def tile_by_id(self) -> dict[int, TileEntry]:
+        return {t.id: t for t in self.tiles}
+
+    @functools.cached_property
+    def index_of(self) -> dict[int, int]:
+        """Tile id -> position in `tiles`."""
+        return {t.id: i for i, t in enumerate(self.tiles)}
+
+    @property
+    def leaves(self) -> list[TileEntry]:
+        return [t for t in self.tiles if t.is_leaf]
+
+    @property
+    def uses_codebook(self) -> bool:
+        return self.sh_codebook is not None
+
+    @property
+    def levels(self) -> int:
+        return 1 + max((t.level for t in self.tiles), default=0)
+
+    def tile(self, tile_id: int) -> TileEntry:
+        return self.tile_by_id[tile_id]
+
+    def tile_groups(self) -> list[str]:
+        return groups_for_degree(self.sh_degree, self.uses_codebook)
+
+    def payloads(self) -> Iterator[tuple[TileEntry | None, str, PayloadEntry]]:
+        """(tile, group name, payload) for every payload the manifest names (tile None: the SH codebook's)."""
+        for tile in self.tiles:
+            for name, p in tile.groups.items():
+                yield tile, name, p
+        if self.sh_codebook is not None:
+            for name, p in self.sh_codebook.groups.items():
+                yield None, name, p
+
+    def payload_bytes(self) -> int:
+        """Bytes of every distinct payload file (content-addressed: equal payloads are one file)."""
+        return sum({p.file: p.bytes for _, _, p in self.payloads()}.values())
+
+    @functools.cached_property
+    def arrays(self) -> TileArrays:
+        tiles = self.tiles
+        n = len(tiles)
+        idx = self.index_of
+        parent = np.full(n, -1, np.int64)
+        children = []
+        for i, t in enumerate(tiles):
+            kids = tuple(idx[c] for c in t.children)
+            children.append(kids)
+            for k in kids:
+                parent[k] = i
+        band_bytes = np.zeros((n, MAX_SH_DEGREE), np.int64)
+        for i, t in enumerate(tiles):
+            for b in range(1, MAX_SH_DEGREE + 1):
+                p = t.groups.get(f"sh{b}")
+                band_bytes[i, b - 1] = p.bytes if p is not None else 0
+        return TileArrays(
+            ids=np.array([t.id for t in tiles], np.int64), parent=parent,
+            level=np.array([t.level for t in tiles], np.int64),
+            splats=np.array([t.splats for t in tiles], np.int64),
+            box_min=np.array([t.box.min for t in tiles], np.float64).reshape(n, 3),
+            box_max=np.array([t.box.max for t in tiles], np.float64).reshape(n, 3),
+            sphere_center=np.array([t.sphere_center for t in tiles], np.float64).reshape(n, 3),
+            sphere_radius=np.array([t.sphere_radius for t in tiles], np.float64),
+            geometric_error=np.array([t.geometric_error for t in tiles], np.float64),
+            children=tuple(children),
+            base_bytes=np.array([t.groups["base"].bytes for t in tiles], np.int64),
+            band_bytes=band_bytes,
+            gpu_bytes=np.array([sum(p.gpu_bytes for p in t.groups.values()) for t in tiles], np.int64))
+
+    def to_dict(self) -> dict:
+        """The manifest map of format.md 6, keys in the order the encoder has always written them."""
+        d = {
+            "format": self.format, "version": list(self.version), "generator": self.generator, "name": self.name,
+            "splats": self.splats, "leaf_splats": self.leaf_splats, "sh_degree": self.sh_degree,
+            "preset": self.preset, "formats": dict(self.formats), "chunk_size": self.chunk_size,
+            "chunk_order": self.chunk_order, "bounds": self.bounds.to_dict(),
+            "extent_bounds": self.extent_bounds.to_dict(), "up": list(self.up), "camera": self.camera.to_dict(),
+        }
+        if self.sh_codebook is not None:
+            d["sh_codebook"] = self.sh_codebook.to_dict()
+        d.update({
+            "lod": self.lod.to_dict(), "root": self.root, "tiles": [t.to_dict() for t in self.tiles],
+            "gpu_bytes": self.gpu_bytes, "gpu_bytes_per_splat": self.gpu_bytes_per_splat,
+            "leaf_bytes_on_disk": self.leaf_bytes_on_disk,
+            "attributes": {a: s.to_dict() for a, s in self.attributes.items()},
+            "encode_seconds": self.encode_seconds, "bytes_on_disk": self.bytes_on_disk,
+        })
+        return d
+
+    def with_bytes_on_disk(self, payload_bytes: int) -> Manifest:
+        """This manifest with `bytes_on_disk` = payload bytes + its own packed size (which depends on the value)."""
+        m = self
+        for _ in range(3):  # the msgpack length of the number can change the length once; settled after two
+            m = replace(m, bytes_on_disk=payload_bytes + len(pack_manifest(m)))
+        return m
+
+
+def pack_manifest(m: Manifest) -> bytes:
+    return msgpack.packb(m.to_dict(), use_bin_type=True)
+
+
+def filter_element(name: str) -> int:
+    if name == "none":
+        return 1
+    if name.startswith("shuffle") and name[7:].isdigit() and 1 < int(name[7:]) <= 16:
+        return int(name[7:])
+    raise ValueError(name)
+
+
+def filter_for(element: int) -> str:
+    return f"shuffle{element}" if element > 1 else "none"
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Parsing and validation
+
+
+class _Map:
+    """A msgpack map being read: typed getters that raise FormatError naming `path.key`; unknown keys checked."""
+
+    def __init__(self, source: str, path: str, value, strict: bool):
+        if not isinstance(value, dict):
+            raise FormatError(source, path or None, f"expected a map, got {type(value).__name__}")
+        self.source, self.path, self.d, self.strict = source, path, value, strict
+        self.used: set[str] = set()
+
+    def where(self, key: str) -> str:
+        return f"{self.path}.{key}" if self.path else key
+
+    def fail(self, key: str | None, problem: str):
+        raise FormatError(self.source, self.where(key) if key else (self.path or None), problem)
+
+    def raw(self, key: str, optional: bool = False):
+        self.used.add(key)
+        if key not in self.d:
+            if optional:
+                return None
+            self.fail(key, "missing")
+        return self.d[key]
+
+    def int(self, key: str, lo: int = 0, hi: int = 2**62) -> int:
+        v = self.raw(key)
+        if isinstance(v, bool) or not isinstance(v, int) or not lo <= v <= hi:
+            self.fail(key, f"expected an integer {lo}..{hi}, got {v!r}")
+        return v
+
+    def float(self, key: str, lo: float = -math.inf, hi: float = math.inf) -> float:
+        v = self.raw(key)
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or not lo <= v <= hi:
+            self.fail(key, f"expected a finite number in [{lo}, {hi}], got {v!r}")
+        return float(v)
+
+    def str(self, key: str, choices: tuple[str, ...] | None = None) -> str:
+        v = self.raw(key)
+        if not isinstance(v, str) or (choices is not None and v not in choices):
+            want = f"one of {', '.join(choices)}" if choices else "a string"
+            self.fail(key, f"expected {want}, got {v!r}")
+        return v
+
+    def bool(self, key: str) -> bool:
+        v = self.raw(key)
+        if not isinstance(v, bool):
+            self.fail(key, f"expected true or false, got {v!r}")
+        return v
+
+    def vec(self, key: str, n: int = 3) -> tuple[float, ...]:
+        v = self.raw(key)
+        if (not isinstance(v, (list, tuple)) or len(v) != n
+                or not all(isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x) for x in v)):
+            self.fail(key, f"expected {n} finite numbers, got {v!r}")
+        return tuple(float(x) for x in v)
+
+    def ints(self, key: str, n: int | None = None, lo: int = 0, hi: int = 2**62) -> tuple[int, ...]:
+        v = self.raw(key)
+        if (not isinstance(v, (list, tuple)) or (n is not None and len(v) != n)
+                or not all(isinstance(x, int) and not isinstance(x, bool) and lo <= x <= hi for x in v)):
+            count = f"{n} " if n is not None else ""
+            self.fail(key, f"expected a list of {count}integers {lo}..{hi}, got {v!r}")
+        return tuple(v)
+
+    def map(self, key: str) -> _Map:
+        return _Map(self.source, self.where(key), self.raw(key), self.strict)
+
+    def list(self, key: str, limit: int = MAX_TILES) -> list:
+        v = self.raw(key)
+        if not isinstance(v, (list, tuple)) or len(v) > limit:
+            self.fail(key, f"expected a list of at most {limit} items, got {type(v).__name__}")
+        return list(v)
+
+    def done(self) -> None:
+        """Unknown keys are errors in a manifest of a version this reader knows (format.md 6, Versioning)."""
+        if self.strict:
+            extra = sorted(str(k) for k in self.d if k not in self.used)
+            if extra:
+                self.fail(None, f"unknown key{'s' if len(extra) > 1 else ''} {', '.join(map(repr, extra))}")
+
+
+def _box(m: _Map, key: str) -> Box:
+    b = m.map(key)
+    lo, hi = b.vec("min"), b.vec("max")
+    if any(a > c for a, c in zip(lo, hi, strict=True)):
+        b.fail(None, f"min {lo} exceeds max {hi}")
+    b.done()
+    return Box(lo, hi)
+
+
+def _payload(m: _Map, key: str, expect: list[tuple[str, dict]], chunks: int) -> PayloadEntry:
+    """Parse a payload entry; `expect` is [(section name, {kind, format, layers, dtype, shape, ...})]."""
+    p = m.map(key)
+    sha = p.str("sha256")
+    if not SHA256_HEX_RE.match(sha):
+        p.fail("sha256", f"expected 64 lowercase hex digits, got {sha!r}")
+    file = p.str("file")
+    if file != payload_name(sha):
+        p.fail("file", f"expected {payload_name(sha)!r} (the payload's name is its SHA-256), got {file!r}")
+    raw_bytes = p.int("raw_bytes", 0, MAX_PAYLOAD_RAW_BYTES)
+    # zstd never expands data by more than a small bound; a larger claim is a lie a client must not allocate for.
+    size = p.int("bytes", 0, raw_bytes + raw_bytes // 128 + 1024)
+    gpu_bytes = p.int("gpu_bytes", 0, MAX_PAYLOAD_RAW_BYTES)
+    items = p.list("sections", 64)
+    expected = dict(expect)
+    sections = []
+    for i, item in enumerate(items):
+        s = _Map(p.source, f"{p.path}.sections[{i}]", item, p.strict)
+        name = s.str("name")
+        want = expected.pop(name, None)
+        if want is None:
+            s.fail("name", f"unexpected section {name!r} (this payload holds {', '.join(n for n, _ in expect)})")
+        kind = s.str("kind", ("texels", "range"))
+        if kind != want["kind"]:
+            s.fail("kind", f"expected {want['kind']!r}, got {kind!r}")
+        offset = s.int("offset", 0, raw_bytes)
+        length = s.int("size", 0, raw_bytes)
+        if offset % ALIGN:
+            s.fail("offset", f"{offset} is not a multiple of {ALIGN}")
+        if offset + length > raw_bytes:
+            s.fail("size", f"offset {offset} + size {length} lies outside the {raw_bytes}-byte payload")
+        filt = s.str("filter")
+        try:
+            filter_element(filt)
+        except ValueError:
+            s.fail("filter", f"unknown filter {filt!r} (expected {FILTERS_DOC})")
+        if kind == "texels":
+            fmt = s.str("format", tuple(FORMATS))
+            if fmt != want["format"]:
+                s.fail("format", f"expected {want['format']!r} (the manifest's format for this plane), got {fmt!r}")
+            width, height = s.int("width", BLOCK, 1 << 16), s.int("height", BLOCK, 1 << 16)
+            if width % BLOCK or height % BLOCK or (width // BLOCK) * (height // BLOCK) < chunks:
+                s.fail(None, f"texture {width}x{height} cannot hold {chunks} chunks of {BLOCK}x{BLOCK} texels")
+            layers = s.int("layers", 1, 64)
+            if layers != want["layers"]:
+                s.fail("layers", f"expected {want['layers']}, got {layers}")
+            need = blob_size(FORMATS[fmt], width, height, layers)
+            if length != need:
+                s.fail("size", f"{length} bytes for {layers} layers of {width}x{height} {fmt}, expected {need}")
+            sections.append(Section(name, kind, offset, length, filt, format=fmt, width=width, height=height,
+                                    layers=layers))
+        else:
+            dtype = s.str("dtype", ("f32", "f16"))
+            if dtype != want["dtype"]:
+                s.fail("dtype", f"expected {want['dtype']!r}, got {dtype!r}")
+            shape = s.ints("shape", 4, 0, 1 << 24)
+            if list(shape) != list(want["shape"]):
+                s.fail("shape", f"expected {list(want['shape'])}, got {list(shape)}")
+            need = int(np.prod(shape)) * (4 if dtype == "f32" else 2)
+            if length != need:
+                s.fail("size", f"{length} bytes for a {dtype} range of shape {list(shape)}, expected {need}")
+            sections.append(Section(name, kind, offset, length, filt, dtype=dtype, shape=tuple(shape)))
+        s.done()
+    if expected:
+        p.fail("sections", f"missing section{'s' if len(expected) > 1 else ''} {', '.join(map(repr, expected))}")
+    ordered = sorted(sections, key=lambda s: s.offset)
+    for a, b in zip(ordered, ordered[1:], strict=False):
+        if a.offset + a.size > b.offset:
+            p.fail("sections", f"sections {a.name!r} and {b.name!r} overlap")
+    end = max((s.offset + s.size for s in sections), default=0)
+    if raw_bytes != end:
+        p.fail("raw_bytes", f"{raw_bytes}, but the sections end at byte {end}")
+    if gpu_bytes != sum(s.size for s in sections):
+        p.fail("gpu_bytes", f"{gpu_bytes}, but the sections hold {sum(s.size for s in sections)} bytes")
+    p.done()
+    return PayloadEntry(file, sha, size, raw_bytes, gpu_bytes, tuple(sections))
+
+
+def expected_sections(group: str, codebook: bool, formats: dict[str, str], chunks: int,
+                      codebook_format: str | None = None) -> list[tuple[str, dict]]:
+    """The sections a payload group must hold: [(name, properties)] (format.md 4.4, 4.7, 5).
+
+    `group` is a tile group (`codebook`: the scene has an SH codebook), or `cb:sh<b>` for a codebook band."""
+    if group.startswith("cb:"):
+        specs = (band_plane(int(group[5:])),)
+    else:
+        specs = group_planes(group, codebook)
+    out = []
+    for spec in specs:
+        if spec.name == "sh_index":
+            fmt = SH_INDEX_FORMAT
+        elif group.startswith("cb:"):
+            fmt = codebook_format
+        else:
+            fmt = formats[spec.attribute]
+        out.append((spec.name, {"kind": "texels", "format": fmt, "layers": spec.layers}))
+        if spec.range_dtype:
+            out.append((spec.range_name, {"kind": "range", "dtype": RANGE_DTYPE_NAMES[spec.range_dtype],
+                                          "shape": [chunks, 2, spec.layers, spec.components]}))
+    return out
+
+
+def parse_manifest(raw: bytes, source: str = MANIFEST_NAME) -> Manifest:
+    try:
+        d = msgpack.unpackb(raw, raw=False, strict_map_key=False)
+    except Exception as exc:  # msgpack raises several unrelated types for garbage
+        raise FormatError(source, None, f"not a msgpack manifest ({exc.__class__.__name__}: {exc})") from None
+    return manifest_from_dict(d, source)
+
+
+def manifest_from_dict(d, source: str = MANIFEST_NAME) -> Manifest:
+    """Validate a manifest map (format.md 6) into a Manifest; FormatError names the first field that is wrong."""
+    if not isinstance(d, dict) or d.get("format") != FORMAT_NAME:
+        raise FormatError(source, "format", f"expected {FORMAT_NAME!r}; this is not a splatstream manifest")
+    version = d.get("version")
+    if not (isinstance(version, (list, tuple)) and len(version) == 2
+            and all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in version)):
+        raise FormatError(source, "version", f"expected [major, minor], got {version!r}")
+    if version[0] != FORMAT_VERSION[0]:
+        raise FormatError(source, "version", f"format version {version[0]}.{version[1]} is not supported by this "
+                          f"reader (it reads major version {FORMAT_VERSION[0]}); upgrade splatstream")
+    # Keys are added only in new minor versions: in a version this reader knows, an unknown key is damage.
+    strict = version[1] <= FORMAT_VERSION[1]
+    m = _Map(source, "", d, strict)
+    m.raw("format")
+    m.raw("version")
+    splats = m.int("splats", 1)
+    sh_degree = m.int("sh_degree", 0, MAX_SH_DEGREE)
+    fm = m.map("formats")
+    formats = {a: fm.str(a, VALUE_FORMATS) for a in ("position", "rotation", "scale", "color", "sh")}
+    fm.done()
+    if FORMATS[formats["color"]].components < 4:
+        fm.fail("color", f"{formats['color']} has 3 components; color needs 4")
+    chunk_size = m.int("chunk_size", CHUNK_SIZE, CHUNK_SIZE)
+    codebook = None
+    if m.raw("sh_codebook", optional=True) is not None:
+        c = m.map("sh_codebook")
+        entries = c.int("entries", 1, 65536)
+        cb_format = c.str("format", VALUE_FORMATS)
+        index_format = c.str("index_format", (SH_INDEX_FORMAT,))
+        g = c.map("groups")
+        cb_chunks = chunks_for(entries)
+        cb_groups = {}
+        for b in range(1, sh_degree + 1):
+            cb_groups[f"sh{b}"] = _payload(g, f"sh{b}", expected_sections(f"cb:sh{b}", True, formats, cb_chunks,
+                                                                          cb_format), cb_chunks)
+        g.done()
+        c.done()
+        codebook = SHCodebookEntry(entries, cb_format, index_format, cb_groups)
+    group_names = groups_for_degree(sh_degree, codebook is not None)
+    tiles = []
+    ids: set[int] = set()
+    for i, item in enumerate(m.list("tiles")):
+        t = _Map(source, f"tiles[{i}]", item, strict)
+        tid = t.int("id", 0, 2**31 - 1)
+        if tid in ids:
+            t.fail("id", f"tile id {tid} appears twice")
+        ids.add(tid)
+        n = t.int("splats", 1, 1 << 31)
+        chunks = t.int("chunks", 1, 1 << 24)
+        if chunks != chunks_for(n):
+            t.fail("chunks", f"{chunks}, but {n} splats make {chunks_for(n)} chunks")
+        texture = t.ints("texture", 2, BLOCK, 1 << 16)
+        if texture[0] % BLOCK or texture[1] % BLOCK or (texture[0] // BLOCK) * (texture[1] // BLOCK) < chunks:
+            t.fail("texture", f"{texture[0]}x{texture[1]} cannot hold {chunks} chunks")
+        sphere = t.map("sphere")
+        center, radius = sphere.vec("center"), sphere.float("radius", 0.0)
+        sphere.done()
+        gm = t.map("groups")
+        groups = {}
+        for name in group_names:
+            groups[name] = _payload(gm, name, expected_sections(name, codebook is not None, formats, chunks), chunks)
+            for s in groups[name].sections:
+                if s.kind == "texels" and (s.width, s.height) != texture:
+                    gm.fail(f"{name}.sections", f"{s.name} is {s.width}x{s.height}, the tile's texture "
+                            f"{texture[0]}x{texture[1]}")
+        gm.done()
+        tiles.append(TileEntry(tid, t.int("level", 0, 64), t.ints("children", None, 0, 2**31 - 1), n, chunks,
+                               (texture[0], texture[1]), _box(t, "box"), center, radius,
+                               t.float("geometric_error", 0.0), groups))
+        t.done()
+    if not tiles:
+        m.fail("tiles", "no tiles: a scene has at least its root tile")
+    root = m.int("root", 0, 2**31 - 1)
+    _check_tree(source, tiles, root)
+    leaf_splats = m.int("leaf_splats", 1)
+    leaf_sum = sum(t.splats for t in tiles if t.is_leaf)
+    if leaf_splats != leaf_sum or splats != leaf_sum:
+        m.fail("splats", f"splats {splats} and leaf_splats {leaf_splats} must both equal the leaf tiles' "
+               f"{leaf_sum} splats")
+    cam = m.map("camera")
+    camera = CameraEntry(cam.vec("eye"), cam.vec("target"), cam.vec("up"), cam.float("fov_y", 1e-3, 179.0))
+    if camera.eye == camera.target:
+        cam.fail("eye", "the camera's eye and target coincide")
+    if not any(camera.up):
+        cam.fail("up", "zero-length up vector")
+    cam.done()
+    up = m.vec("up")
+    if not any(up):
+        m.fail("up", "zero-length up vector")
+    lod = m.map("lod")
+    lod_info = LodInfo(lod.bool("enabled"), lod.int("max_leaf_splats", 1), lod.float("reduction", 1.0),
+                       lod.str("refine", ("replace",)))
+    lod.done()
+    am = m.map("attributes")
+    attributes = {}
+    for a in [k for k in ("position", "rotation", "scale", "color", "sh") if k in am.d]:
+        s = am.map(a)
+        attributes[a] = AttributeSize(s.str("format", VALUE_FORMATS), s.int("gpu_bytes"), s.int("disk_bytes"))
+        s.done()
+    am.done()
+    manifest = Manifest(
+        version=(version[0], version[1]), generator=m.str("generator"), name=m.str("name"), splats=splats,
+        leaf_splats=leaf_splats, sh_degree=sh_degree, preset=m.str("preset"), formats=formats,
+        chunk_size=chunk_size, chunk_order=m.str("chunk_order", CHUNK_ORDER_NAMES), bounds=_box(m, "bounds"),
+        extent_bounds=_box(m, "extent_bounds"), up=up, camera=camera, sh_codebook=codebook, lod=lod_info,
+        root=root, tiles=tuple(tiles), gpu_bytes=m.int("gpu_bytes"),
+        gpu_bytes_per_splat=m.float("gpu_bytes_per_splat", 0.0), leaf_bytes_on_disk=m.int("leaf_bytes_on_disk"),
+        attributes=attributes, encode_seconds=m.float("encode_seconds", 0.0),
+        bytes_on_disk=m.int("bytes_on_disk"))
+    m.done()
+    return manifest
+
+
+def _check_tree(source: str, tiles: list[TileEntry], root: int) -> None:
+    """One root at level 0; every other tile is the child of exactly one tile, one level below it."""
+    by_id = {t.id: t for t in tiles}
+    if root not in by_id:
+        raise FormatError(source, "root", f"no tile with id {root}")
+    parent: dict[int, int] = {}
+    for i, t in enumerate(tiles):
+        for c in t.children:
+            if c not in by_id:
+                raise FormatError(source, f"tiles[{i}].children", f"no tile with id {c}")
+            if c in parent or c == root:
+                raise FormatError(source, f"tiles[{i}].children", f"tile {c} has more than one parent")
+            parent[c] = t.id
+            if by_id[c].level != t.level + 1:
+                raise FormatError(source, f"tiles[{i}].children", f"tile {c} is at level {by_id[c].level}, "
+                                  f"expected {t.level + 1} (one below its parent)")
+    if by_id[root].level != 0:
+        raise FormatError(source, "root", f"the root tile is at level {by_id[root].level}, expected 0")
+    orphans = [t.id for t in tiles if t.id != root and t.id not in parent]
+    if orphans:
+        raise FormatError(source, "tiles", f"tiles {orphans[:8]} are not reachable from the root {root}")
+
+
+def scene_summary(m: Manifest) -> dict:
+    """JSON-ready facts about a scene, as `splatstream info` and the server's /api/scenes give them."""
+    return {
+        "name": m.name,
+        "splats": m.splats,
+        "sh_degree": m.sh_degree,
+        "preset": m.preset,
+        "bounds": m.bounds.to_dict(),
+        "up": list(m.up),
+        "bytes_on_disk": m.bytes_on_disk,
+        "gpu_bytes": m.gpu_bytes,
+        "gpu_bytes_per_splat": m.gpu_bytes_per_splat,
+        "tiles": len(m.tiles),
+        "levels": m.levels,
+        "sh_codebook_entries": m.sh_codebook.entries if m.sh_codebook else None,
+        "version": list(m.version),
+    }

@@ -1,0 +1,45 @@
+"""Names inside a scene and on the wire (format_spec/format.md 1, format_spec/http.md 2).
+
+A scene is `manifest.msgpack` plus content-addressed payloads `data/<sha256>.bin`. Servers, stores, clients and
+the encoder build and check every name here, so nothing else spells a file name or a URL pattern.
+"""
+from __future__ import annotations
+
+import hashlib
+import re
+
+MANIFEST_NAME = "manifest.msgpack"
+DATA_DIR = "data"
+PAYLOAD_SUFFIX = ".bin"
+SHA256_HEX_RE = re.compile(r"^[0-9a-f]{64}$")
+PAYLOAD_NAME_RE = re.compile(r"^[0-9a-f]{64}\.bin$")
+# A payload's path relative to its scene: data/<64 lowercase hex>.bin
+PAYLOAD_PATH_RE = re.compile(r"^data/[0-9a-f]{64}\.bin$")
+SCENES_URL_PREFIX = "/scenes/"
+
+
+def payload_name(sha256_hex: str) -> str:
+    """Relative path of a payload file: named by the SHA-256 of its bytes, so it is immutable."""
+    return f"{DATA_DIR}/{sha256_hex}{PAYLOAD_SUFFIX}"
+
+
+def sha256_hex(data: bytes | memoryview) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def is_payload_path(rel: str) -> bool:
+    return isinstance(rel, str) and PAYLOAD_PATH_RE.match(rel) is not None
+
+
+def manifest_url(base_url: str) -> str:
+    """URL of a scene's manifest from the scene URL (`http://host/scenes/ID`, with or without a trailing slash,
+    or the manifest URL itself)."""
+    base = base_url.split("?", 1)[0].split("#", 1)[0]
+    if base.endswith("/" + MANIFEST_NAME):
+        return base
+    return base.rstrip("/") + "/" + MANIFEST_NAME
+
+
+def payload_url(manifest_url_: str, rel: str) -> str:
+    """A payload's URL: its manifest path resolved against the manifest's URL (format_spec/http.md 2)."""
+    return manifest_url_.rsplit("/", 1)[0] + "/" + rel

@@ -1,0 +1,236 @@
+"""Where a scene's bytes live: a directory on disk or memory (the HTTP client has its own, asynchronous side).
+
+Readers take a `SceneStore` (manifest bytes, payload bytes by relative path) and never open files themselves;
+the encoder writes through a `SceneWriter` (payloads streamed in, the manifest last, published atomically).
+The byte layout and names come from splatstream.format; nothing here decodes.
+"""
+from __future__ import annotations
+
+import contextlib
+import os
+import stat
+import tempfile
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from typing import BinaryIO, Protocol
+
+from .atomic import atomic_directory
+from .errors import FormatError, InputError
+from .format.manifest import MAX_MANIFEST_BYTES, Manifest, PayloadEntry, pack_manifest, parse_manifest
+from .format.names import DATA_DIR, MANIFEST_NAME, is_payload_path
+
+
+class SceneStore(Protocol):
+    """Read access to one scene's files."""
+
+    location: str  # the scene's path or URL, for messages
+
+    def read_manifest(self) -> bytes: ...
+
+    def read_payload(self, entry: PayloadEntry) -> bytes: ...
+
+    def payload_source(self, entry: PayloadEntry) -> str:
+        """Where a payload is, for messages."""
+        ...
+
+
+def _read_regular(path: str, limit: int) -> bytes:
+    """A regular file's bytes; FIFOs, devices and directories are refused before any read could block."""
+    try:
+        fd = os.open(path, os.O_RDONLY | os.O_NONBLOCK | getattr(os, "O_CLOEXEC", 0))
+    except FileNotFoundError:
+        raise FormatError(path, None, "no such file") from None
+    except IsADirectoryError:
+        raise FormatError(path, None, "is a directory, expected a file") from None
+    except OSError as exc:
+        raise FormatError(path, None, f"cannot open ({exc.strerror})") from None
+    try:
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
+            raise FormatError(path, None, "not a regular file (a FIFO, device or socket cannot be a scene file)")
+        if st.st_size > limit:
+            raise FormatError(path, None, f"{st.st_size} bytes, more than the {limit} bytes expected")
+        with os.fdopen(fd, "rb", closefd=False) as f:
+            return f.read(limit + 1)
+    finally:
+        os.close(fd)
+
+
+@dataclass
+class DirectoryStore:
+    """A scene directory on the local file system."""
+
+    path: str
+
+    def __post_init__(self) -> None:
+        self.path = os.fspath(self.path)
+        if not os.path.isdir(self.path):
+            what = "no such directory" if not os.path.exists(self.path) else "not a directory"
+            raise FormatError(self.path, None, f"{what} (expected a scene directory holding {MANIFEST_NAME})")
+
+    @property
+    def location(self) -> str:
+        return self.path
+
+    @property
+    def manifest_path(self) -> str:
+        return os.path.join(self.path, MANIFEST_NAME)
+
+    def read_manifest(self) -> bytes:
+        path = self.manifest_path
+        if not os.path.lexists(path):
+            raise FormatError(path, None, "no such file: not a splatstream scene directory")
+        return _read_regular(path, MAX_MANIFEST_BYTES)
+
+    def payload_source(self, entry: PayloadEntry) -> str:
+        return os.path.join(self.path, entry.file)
+
+    def read_payload(self, entry: PayloadEntry) -> bytes:
+        if not is_payload_path(entry.file):  # a validated manifest never names another path; belt and braces
+            raise FormatError(self.manifest_path, "file", f"unsafe payload path {entry.file!r}")
+        path = self.payload_source(entry)
+        if not os.path.lexists(path):
+            raise FormatError(path, None, "payload file named in the manifest is missing")
+        return _read_regular(path, entry.bytes)
+
+
+@dataclass
+class MemoryStore:
+    """A scene held in memory (encoded from a splat file for viewing, or built by tests)."""
+
+    manifest_bytes: bytes
+    payloads: dict[str, bytes] = field(default_factory=dict)  # relative path -> bytes
+    location: str = "<memory>"
+
+    def read_manifest(self) -> bytes:
+        return self.manifest_bytes
+
+    def payload_source(self, entry: PayloadEntry) -> str:
+        return f"{self.location}/{entry.file}"
+
+    def read_payload(self, entry: PayloadEntry) -> bytes:
+        try:
+            return self.payloads[entry.file]
+        except KeyError:
+            raise FormatError(self.payload_source(entry), None, "payload named in the manifest is missing") from None
+
+
+def open_store(source: str | os.PathLike | SceneStore) -> SceneStore:
+    if isinstance(source, (str, os.PathLike)):
+        return DirectoryStore(os.fspath(source))
+    return source
+
+
+def read_manifest(store: SceneStore) -> Manifest:
+    source = store.manifest_path if isinstance(store, DirectoryStore) else f"{store.location}/{MANIFEST_NAME}"
+    return parse_manifest(store.read_manifest(), source)
+
+
+def load_manifest(scene: str | os.PathLike | SceneStore) -> Manifest:
+    """The validated manifest of a scene directory (or store)."""
+    return read_manifest(open_store(scene))
+
+
+def is_scene_dir(path: str | os.PathLike) -> bool:
+    return os.path.isfile(os.path.join(path, MANIFEST_NAME))
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Writing
+
+
+class SceneWriter(Protocol):
+    """Where the encoder puts a scene: payloads first (content-addressed, any order, from any worker thread),
+    then the manifest, which publishes the scene."""
+
+    def payload_file(self) -> contextlib.AbstractContextManager[tuple[BinaryIO, callable]]: ...
+
+    def write_manifest(self, m: Manifest) -> None: ...
+
+
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+class DirectoryWriter:
+    """Builds a scene under a hidden temporary directory and swaps it into place when the manifest is written.
+
+    Use as a context manager: leaving it with an exception removes everything written."""
+
+    def __init__(self, out_dir: str | os.PathLike):
+        self.out_dir = os.fspath(out_dir)
+        self._atomic = atomic_directory(self.out_dir)
+        self._mode = 0o666 & ~_umask()  # payloads as readable as any file the user writes (mkstemp gives 0600)
+        self.tmp = ""
+        self.published = False
+
+    def __enter__(self) -> DirectoryWriter:
+        self.tmp = self._atomic.__enter__()
+        os.makedirs(os.path.join(self.tmp, DATA_DIR))
+        return self
+
+    def __exit__(self, *exc) -> bool | None:
+        return self._atomic.__exit__(*exc)
+
+    @contextlib.contextmanager
+    def payload_file(self) -> Iterator[tuple[BinaryIO, callable]]:
+        """(file to stream into, finish(entry)): finish names the file by its checksum."""
+        fd, tmp_path = tempfile.mkstemp(prefix=".payload.", dir=os.path.join(self.tmp, DATA_DIR))
+        done = False
+
+        def finish(entry: PayloadEntry) -> None:
+            nonlocal done
+            os.chmod(tmp_path, self._mode)
+            os.replace(tmp_path, os.path.join(self.tmp, entry.file))  # identical content has an identical name
+            done = True
+
+        try:
+            with os.fdopen(fd, "wb") as f:
+                yield f, finish
+        finally:
+            if not done:
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(tmp_path)
+
+    def write_manifest(self, m: Manifest) -> None:
+        path = os.path.join(self.tmp, MANIFEST_NAME)
+        with open(path, "wb") as f:
+            f.write(pack_manifest(m))
+        os.chmod(path, self._mode)
+
+
+class MemoryWriter:
+    """Collects a scene in memory; `store()` gives it back as a MemoryStore."""
+
+    def __init__(self, location: str = "<memory>"):
+        self.payloads: dict[str, bytes] = {}
+        self.manifest: Manifest | None = None
+        self.location = location
+
+    def __enter__(self) -> MemoryWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        return None
+
+    @contextlib.contextmanager
+    def payload_file(self) -> Iterator[tuple[BinaryIO, callable]]:
+        import io
+
+        buf = io.BytesIO()
+
+        def finish(entry: PayloadEntry) -> None:
+            self.payloads[entry.file] = buf.getvalue()
+
+        yield buf, finish
+
+    def write_manifest(self, m: Manifest) -> None:
+        self.manifest = m
+
+    def store(self) -> MemoryStore:
+        if self.manifest is None:
+            raise InputError(self.location, None, "the scene has no manifest yet")
+        return MemoryStore(pack_manifest(self.manifest), dict(self.payloads), self.location)
+
