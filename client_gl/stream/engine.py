@@ -1,0 +1,337 @@
+"""The streaming engine: from a camera per frame to what is resident on the GPU and what is drawn.
+
+    engine = StreamEngine(fetcher, residency, StreamOptions(...))     # fetcher: fetch.py; residency: a GPU pool
+    update = engine.update(camera)                                   # once per frame, on the render thread
+    renderer.render(camera, draw_set=update.draw)                    # tile ids, a hole-free REPLACE cut
+
+Each frame: select the wanted cut and bands (selection.py), tell the fetcher the complete priority-ordered list
+of payloads wanted now (it cancels what fell off it), hand fetched bytes to decode workers (verify -> decode, off
+the render thread), upload decoded tiles into the pool under a per-frame byte budget (evicting the least recently
+drawn tiles nobody wants when slots run out; the root is never evicted), and compute the draw set. No GL here:
+`residency` is anything with the pool's residency API (client_gl.gpu.pool.ChunkPool; tests use a plain one).
+"""
+from __future__ import annotations
+
+import queue
+import time
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, field
+from typing import Any, Protocol
+
+import numpy as np
+
+from splatstream.camera import Camera
+from splatstream.errors import SplatstreamError
+from splatstream.format.decode import codebook_index, decode_payload
+from splatstream.format.manifest import Manifest, PayloadEntry, parse_manifest
+from splatstream.format.planes import band_of
+
+from .selection import Selection, SelectionOptions, TileView, draw_set, prefetch, select, view_numbers, wanted_bands
+
+Key = tuple[int | None, str]  # (tile id, group) or (None, "sh<b>") for a band of the SH codebook
+
+
+class Residency(Protocol):
+    """What the engine needs of a GPU pool (client_gl.gpu.pool.ChunkPool provides it)."""
+
+    @property
+    def capacity_slots(self) -> int: ...
+
+    @property
+    def free_slots(self) -> int: ...
+
+    def join(self, tile_id: int, tile: Any) -> Any: ...
+
+    def add_band(self, tile_id: int, band: int, planes: dict) -> None: ...
+
+    def leave(self, tile_id: int) -> None: ...
+
+    def set_codebook_band(self, band: int, plane: Any) -> None: ...
+
+
+class FetcherLike(Protocol):
+    def manifest(self) -> bytes: ...
+
+    def want(self, requests: list[tuple[float, Key, PayloadEntry]]) -> None: ...
+
+    def done(self) -> list[tuple[Key, PayloadEntry, bytes]]: ...
+
+    def stats(self) -> dict: ...
+
+
+@dataclass(frozen=True)
+class StreamOptions:
+    selection: SelectionOptions = SelectionOptions()
+    upload_bytes_per_frame: int = 48 << 20  # decoded bytes uploaded per frame at most (one tile always goes)
+    target_fraction: float = 0.8  # of the pool the wanted cut may fill; the rest holds tiles in transition
+    prefetch: bool = True
+    decode_workers: int = 2
+    ready_bytes: int = 512 << 20  # decoded payloads waiting for upload (prefetched ones are dropped first)
+
+
+@dataclass
+class FrameUpdate:
+    draw: list[int]  # tile ids to draw
+    converged: bool  # nothing the view wants is missing, nothing in flight
+    uploaded_bytes: int
+    resident_tiles: int
+    resident_splats: int
+    drawn_splats: int
+    wanted_tiles: int
+    in_flight: int
+    selection: Selection | None = None
+    events: list[str] = field(default_factory=list)
+
+
+@dataclass
+class TileData:
+    """A tile's decoded base planes (texels still encoded) as the pool joins them; `prepare` may add to it."""
+
+    splats: int
+    planes: dict
+    extra: Any = None
+
+
+@dataclass
+class _Ready:
+    key: Key
+    planes: dict
+    extra: Any
+    nbytes: int
+
+
+def planes_nbytes(planes: dict) -> int:
+    total = 0
+    for p in planes.values():
+        total += sum(int(np.asarray(layer).nbytes) for layer in p.layers)
+        if p.ranges is not None:
+            total += int(p.ranges.nbytes)
+    return total
+
+
+class StreamEngine:
+    def __init__(self, fetcher: FetcherLike, residency: Residency, options: StreamOptions = StreamOptions(),
+                 slot_bytes: int = 1, manifest: Manifest | None = None,
+                 prepare: Callable[[str, dict, int], Any] | None = None, location: str = "scene"):
+        """`slot_bytes`: GPU bytes of one 256-splat slot (tile costs are counted in them); `prepare(group,
+        planes, splats)` runs on a decode worker after decoding (e.g. the CPU-sort path's host arrays)."""
+        self.fetcher = fetcher
+        self.residency = residency
+        self.options = options
+        self.location = location
+        self.manifest = manifest or parse_manifest(fetcher.manifest(), f"{location}/manifest.msgpack")
+        m = self.manifest
+        self.arrays = m.arrays
+        self.root = m.index_of[m.root]
+        self.ids = self.arrays.ids
+        chunks = np.array([t.chunks for t in m.tiles], np.int64)
+        self.slots_needed = chunks
+        self.cost = chunks.astype(np.float64) * float(slot_bytes)
+        self.slot_bytes = slot_bytes
+        self.codebook = m.uses_codebook
+        self.prepare = prepare
+        t = len(m.tiles)
+        self.resident = np.zeros(t, bool)
+        self.bands = np.zeros(t, np.int64)  # SH bands resident per tile
+        self.codebook_bands: set[int] = set()
+        self.last_drawn = np.zeros(t, np.int64)
+        self.frame = 0
+        self.refined: frozenset[int] = frozenset()
+        self._ready: dict[Key, _Ready] = {}
+        self._ready_bytes = 0
+        self._decoding: set[Key] = set()
+        self._decoded: queue.Queue = queue.Queue()
+        self._pool = ThreadPoolExecutor(max_workers=options.decode_workers, thread_name_prefix="splat-decode")
+        self.errors: list[str] = []
+        self.uploaded_bytes_total = 0
+
+    # --- keys -------------------------------------------------------------------------------------------------
+    def entry(self, key: Key) -> PayloadEntry:
+        tile_id, group = key
+        if tile_id is None:
+            return self.manifest.sh_codebook.groups[group]
+        return self.manifest.tile(tile_id).groups[group]
+
+    def _have(self, key: Key) -> bool:
+        tile_id, group = key
+        if tile_id is None:
+            return band_of(group) in self.codebook_bands
+        i = self.manifest.index_of[tile_id]
+        if group == "base":
+            return bool(self.resident[i])
+        return bool(self.resident[i]) and self.bands[i] >= band_of(group)
+
+    # --- the frame --------------------------------------------------------------------------------------------
+    def wanted(self, cam: Camera) -> tuple[TileView, Selection, dict[int, int], list[Key], list[Key]]:
+        """(view, selection, bands per cut tile, keys wanted now in priority order, prefetch keys)."""
+        a, opts = self.arrays, self.options.selection
+        view = view_numbers(a, cam, opts)
+        budget = self.residency.capacity_slots * self.slot_bytes * self.options.target_fraction
+        sel_opts = SelectionOptions(**{**opts.__dict__, "budget": min(budget, opts.budget or budget)})
+        sel = select(a, view, self.cost, self.root, sel_opts, self.refined, float(cam.width * cam.height))
+        self.refined = sel.refined
+        bands = wanted_bands(view, sel.cut, opts, self.manifest.sh_degree)
+        ids = self.ids
+        keys: list[Key] = [(int(ids[self.root]), "base")]
+        keys += [(int(ids[i]), "base") for i in sel.cut if i != self.root]
+        top = max(bands.values(), default=0)
+        if self.codebook:
+            keys += [(None, f"sh{b}") for b in range(1, top + 1)]
+            keys += [(int(ids[i]), "sh1") for i in sel.cut if bands[i] >= 1]
+        else:
+            for b in range(1, top + 1):
+                keys += [(int(ids[i]), f"sh{b}") for i in sel.cut if bands[i] >= b]
+        extra: list[Key] = []
+        if self.options.prefetch:
+            extra = [(int(ids[i]), "base") for _, i in prefetch(a, view, sel, opts)]
+        return view, sel, bands, keys, extra
+
+    def update(self, cam: Camera) -> FrameUpdate:
+        self.frame += 1
+        view, sel, bands, keys, extra = self.wanted(cam)
+        missing = [k for k in keys if not self._have(k)]
+        want = [k for k in missing if k not in self._ready and k not in self._decoding]
+        idle = len(want) == 0
+        pre = [k for k in extra if not self._have(k) and k not in self._ready and k not in self._decoding
+               and k not in want] if idle else []
+        n = len(want) + len(pre)
+        self.fetcher.want([(float(n - r), k, self.entry(k)) for r, k in enumerate(want + pre)])
+        self._collect()
+        uploaded, events = self._upload(missing, keys, sel)
+        resident_idx = self.resident
+        drawn = draw_set(self.arrays, view, sel, resident_idx, self.root)
+        self.last_drawn[drawn] = self.frame
+        stats = self.fetcher.stats()
+        in_flight = int(stats.get("in_flight", 0)) + int(stats.get("queued", 0))
+        still_missing = [k for k in keys if not self._have(k)]
+        converged = not still_missing and not self._decoding and in_flight == 0
+        return FrameUpdate(
+            draw=[int(self.ids[i]) for i in drawn], converged=converged, uploaded_bytes=uploaded,
+            resident_tiles=int(self.resident.sum()), resident_splats=int(self.arrays.splats[self.resident].sum()),
+            drawn_splats=int(self.arrays.splats[drawn].sum()) if drawn else 0, wanted_tiles=len(sel.cut),
+            in_flight=in_flight + len(self._decoding), selection=sel, events=events)
+
+    # --- decode -----------------------------------------------------------------------------------------------
+    def _collect(self) -> None:
+        for key, entry, data in self.fetcher.done():
+            if self._have(key) or key in self._ready or key in self._decoding:
+                continue
+            self._decoding.add(key)
+            self._pool.submit(self._decode, key, entry, data)
+        while True:
+            try:
+                item = self._decoded.get_nowait()
+            except queue.Empty:
+                break
+            key = item[0]
+            self._decoding.discard(key)
+            if isinstance(item[1], str):
+                self.errors.append(item[1])
+                continue
+            ready = item[1]
+            self._ready[key] = ready
+            self._ready_bytes += ready.nbytes
+
+    def _decode(self, key: Key, entry: PayloadEntry, data: bytes) -> None:
+        tile_id, group = key
+        where = f"{self.location}/{entry.file}"
+        try:
+            codebook_tile = self.codebook and tile_id is not None
+            planes = decode_payload(data, entry, group, where, codebook_tile)
+            extra = None
+            if tile_id is not None:
+                splats = self.manifest.tile(tile_id).splats
+                if codebook_tile and group == "sh1":
+                    codebook_index(planes, splats, self.manifest.sh_codebook.entries, where)
+                if self.prepare is not None:
+                    extra = self.prepare(group, planes, splats)
+            self._decoded.put((key, _Ready(key, planes, extra, planes_nbytes(planes))))
+        except SplatstreamError as exc:  # verified bytes that do not decode: the scene is broken, not the link
+            self._decoded.put((key, str(exc)))
+
+    # --- residency --------------------------------------------------------------------------------------------
+    def _protected(self, sel: Selection) -> np.ndarray:
+        """Tiles that must not be evicted now: the root, the wanted cut and everything drawn this frame."""
+        keep = np.zeros(len(self.resident), bool)
+        keep[self.root] = True
+        keep[list(sel.cut)] = True
+        keep[self.last_drawn >= self.frame - 1] = True
+        return keep
+
+    def _make_room(self, slots: int, sel: Selection) -> bool:
+        free = self.residency.free_slots
+        if free >= slots:
+            return True
+        keep = self._protected(sel)
+        candidates = np.nonzero(self.resident & ~keep)[0]
+        for i in candidates[np.argsort(self.last_drawn[candidates], kind="stable")]:
+            self._evict(int(i))
+            free = self.residency.free_slots
+            if free >= slots:
+                return True
+        return False
+
+    def _evict(self, i: int) -> None:
+        self.residency.leave(int(self.ids[i]))
+        self.resident[i] = False
+        self.bands[i] = 0
+
+    def _upload(self, missing: list[Key], keys: list[Key], sel: Selection) -> tuple[int, list[str]]:
+        budget = self.options.upload_bytes_per_frame
+        done = 0
+        events: list[str] = []
+        order = {k: r for r, k in enumerate(keys)}
+        for key in sorted(self._ready, key=lambda k: order.get(k, len(order))):
+            if done >= budget and done > 0:
+                break
+            if key not in order:
+                continue  # prefetched, not wanted yet: stays ready
+            r = self._ready[key]
+            tile_id, group = key
+            if tile_id is None:
+                band = band_of(group)
+                plane = r.planes[group]
+                self.residency.set_codebook_band(band, plane)
+                self.codebook_bands.add(band)
+            else:
+                i = self.manifest.index_of[tile_id]
+                if group == "base":
+                    if self.resident[i]:
+                        pass
+                    elif not self._make_room(int(self.slots_needed[i]), sel):
+                        continue  # no room now (everything resident is wanted or drawn): try next frame
+                    else:
+                        self.residency.join(tile_id, TileData(self.manifest.tile(tile_id).splats, r.planes, r.extra))
+                        self.resident[i] = True
+                        self.bands[i] = 0
+                        events.append(f"join {tile_id}")
+                else:
+                    band = band_of(group)
+                    if not self.resident[i] or self.bands[i] != band - 1:
+                        continue  # bands join in order, after the base
+                    self.residency.add_band(tile_id, band, r.planes)
+                    self.bands[i] = band
+            del self._ready[key]
+            self._ready_bytes -= r.nbytes
+            done += r.nbytes
+        self._trim_ready(order)
+        self.uploaded_bytes_total += done
+        return done, events
+
+    def _trim_ready(self, order: dict) -> None:
+        if self._ready_bytes <= self.options.ready_bytes:
+            return
+        for key in sorted(self._ready, key=lambda k: -order.get(k, len(order) + 1)):
+            if self._ready_bytes <= self.options.ready_bytes:
+                break
+            self._ready_bytes -= self._ready.pop(key).nbytes
+
+    def wait(self, timeout_s: float = 0.05) -> None:
+        """Block briefly until a decode finishes (loops without a display use it instead of spinning)."""
+        deadline = time.monotonic() + timeout_s
+        while self._decoding and self._decoded.empty() and time.monotonic() < deadline:
+            time.sleep(0.002)
+
+    def close(self) -> None:
+        self._pool.shutdown(wait=True, cancel_futures=True)

@@ -1,0 +1,203 @@
+"""Which tiles and SH bands a view wants: pure functions over the manifest's tile arrays (format_spec/client.md).
+
+Per frame: `view_numbers` projects every tile (screen-space error, frustum test, projected radius); `select`
+refines the tree from the root, best first by error removed per byte, under a splat and a byte budget, with
+hysteresis; `wanted_bands` picks SH bands by projected size; `draw_set` turns what is resident into a hole-free
+REPLACE cut (a tile stays drawn until every child in view can replace it); `prefetch` names what the view will
+probably want next. No GL, no network, no clocks: the engine (engine.py) calls these and acts on the answers.
+"""
+from __future__ import annotations
+
+import heapq
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from splatstream.camera import Camera
+from splatstream.format.manifest import TileArrays
+
+INF = float("inf")
+
+
+@dataclass(frozen=True)
+class SelectionOptions:
+    max_sse: float = 1.5  # px: refine a tile while its screen-space error exceeds this (lod.md 3)
+    max_splats: int | None = None  # the cut's splats at most (None: no limit)
+    budget: float | None = None  # the cut's cost at most, in the units of the `cost` array (GPU bytes)
+    hysteresis: float = 0.8  # a tile refined last frame stays refined until its sse drops below max_sse * this
+    sh_degree: int = 3  # highest SH band wanted
+    # A tile in the cut wants SH band b when its bounding sphere's projected radius is at least band_min_px[b - 1]
+    # pixels (measured: bench/bench_stream.py and format_spec/client.md 4).
+    band_min_px: tuple[float, float, float] = (48.0, 96.0, 192.0)
+    prefetch_margin: float = 1.25  # prefetch tiles whose sse is above max_sse / this, and a frustum this much wider
+
+
+@dataclass(frozen=True)
+class TileView:
+    """Per-tile numbers of one view (index = position in the manifest's tiles)."""
+
+    sse: np.ndarray  # (T,) px, inf when the eye is inside the bounding sphere
+    visible: np.ndarray  # (T,) bool: the 3-sigma box intersects the view frustum
+    radius_px: np.ndarray  # (T,) projected radius of the bounding sphere, px (inf inside it)
+    distance: np.ndarray  # (T,) distance from the eye to the sphere, world units (<= 0 inside)
+    visible_wide: np.ndarray  # (T,) bool: intersects a frustum widened by prefetch_margin
+
+
+@dataclass(frozen=True)
+class Selection:
+    cut: tuple[int, ...]  # tiles the view wants drawn: a REPLACE cut of the visible tree
+    refined: frozenset[int]  # tiles whose (visible) children replace them
+    priority: dict[int, float]  # cut tile -> fetch priority: error removed per byte by having it (root: inf)
+    splats: int
+    cost: float
+
+
+def frustum_planes(cam: Camera, widen: float = 1.0) -> np.ndarray:
+    """(5, 4) inward planes (normal, d) of the view frustum without its far plane: n . p + d >= 0 inside."""
+    right, up, forward = cam.basis()
+    eye = np.asarray(cam.eye, np.float64)
+    tx, ty = cam.tan_half_fov_x * widen, cam.tan_half_fov_y * widen
+    normals = [forward]
+    for axis, t in ((right, tx), (-right, tx), (up, ty), (-up, ty)):
+        n = forward * t - axis  # the plane through the eye containing the edge direction forward + t*axis
+        normals.append(n / np.linalg.norm(n))
+    planes = np.zeros((5, 4))
+    for k, n in enumerate(normals):
+        planes[k, :3] = n
+        planes[k, 3] = -float(n @ eye)
+    planes[0, 3] -= cam.near
+    return planes
+
+
+def boxes_in_frustum(box_min: np.ndarray, box_max: np.ndarray, planes: np.ndarray) -> np.ndarray:
+    """(T,) True where an axis-aligned box is not entirely outside any plane (conservative)."""
+    n = planes[:, :3]
+    # The box corner farthest along each plane's normal ("positive vertex").
+    pv = np.where(n[None, :, :] >= 0, box_max[:, None, :], box_min[:, None, :])
+    return np.all(np.einsum("tpk,pk->tp", pv, n) + planes[None, :, 3] >= 0, axis=1)
+
+
+def view_numbers(a: TileArrays, cam: Camera, opts: SelectionOptions = SelectionOptions()) -> TileView:
+    eye = np.asarray(cam.eye, np.float64)
+    centre_dist = np.linalg.norm(a.sphere_center - eye, axis=1)
+    distance = centre_dist - a.sphere_radius
+    focal = cam.height / (2.0 * cam.tan_half_fov_y)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        sse = np.where(distance > 0, a.geometric_error * focal / distance, INF)
+        radius_px = np.where(distance > 0, a.sphere_radius * focal / np.maximum(centre_dist, 1e-12), INF)
+    visible = boxes_in_frustum(a.box_min, a.box_max, frustum_planes(cam))
+    wide = boxes_in_frustum(a.box_min, a.box_max, frustum_planes(cam, opts.prefetch_margin))
+    return TileView(sse, visible, radius_px, distance, wide)
+
+
+def _area_px(view: TileView, i: int, screen: float) -> float:
+    r = view.radius_px[i]
+    return screen if not math.isfinite(r) else min(screen, math.pi * r * r)
+
+
+def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: SelectionOptions,
+           previous_refined: frozenset[int] = frozenset(), screen_px: float = 1.0) -> Selection:
+    """The cut the view wants: REPLACE refinement from the root, best first by error removed per byte.
+
+    A visible tile whose sse exceeds the threshold is a candidate; candidates are refined in order of
+    sse x projected area / (cost of its visible children - its own cost) while the cut stays within the splat and
+    cost budgets. Children outside the frustum are dropped from the cut (they draw nothing)."""
+    refined: set[int] = set()
+    cut: set[int] = {root}
+    priority: dict[int, float] = {root: INF}
+    splats = int(a.splats[root])
+    total = float(cost[root])
+    heap: list[tuple[float, int]] = []
+
+    def consider(i: int) -> None:
+        if not a.children[i] or not view.visible[i]:
+            return
+        threshold = opts.max_sse * (opts.hysteresis if i in previous_refined else 1.0)
+        if view.sse[i] <= threshold:
+            return
+        kids = [k for k in a.children[i] if view.visible[k]]
+        delta = sum(float(cost[k]) for k in kids) - float(cost[i])
+        benefit = min(float(view.sse[i]), 1e9) * _area_px(view, i, screen_px)
+        heapq.heappush(heap, (-benefit / max(delta, 1.0), i))
+
+    consider(root)
+    while heap:
+        neg_priority, i = heapq.heappop(heap)
+        kids = [k for k in a.children[i] if view.visible[k]]
+        new_splats = splats - int(a.splats[i]) + sum(int(a.splats[k]) for k in kids)
+        new_total = total - float(cost[i]) + sum(float(cost[k]) for k in kids)
+        if opts.max_splats is not None and new_splats > opts.max_splats and new_splats > splats:
+            continue
+        if opts.budget is not None and new_total > opts.budget and new_total > total:
+            continue
+        cut.discard(i)
+        refined.add(i)
+        splats, total = new_splats, new_total
+        for k in kids:
+            cut.add(k)
+            priority[k] = -neg_priority
+            consider(k)
+    cut_sorted = tuple(sorted(cut, key=lambda i: (-priority.get(i, 0.0), float(view.distance[i]))))
+    return Selection(cut_sorted, frozenset(refined), {i: priority.get(i, 0.0) for i in cut_sorted}, splats, total)
+
+
+def wanted_bands(view: TileView, tiles: tuple[int, ...] | list[int], opts: SelectionOptions,
+                 scene_degree: int) -> dict[int, int]:
+    """SH bands each tile wants: band b when its projected radius is at least band_min_px[b - 1]."""
+    top = min(opts.sh_degree, scene_degree)
+    out = {}
+    for i in tiles:
+        r = float(view.radius_px[i])
+        out[i] = sum(1 for b in range(1, top + 1) if r >= opts.band_min_px[b - 1])
+    return out
+
+
+def draw_set(a: TileArrays, view: TileView, sel: Selection, resident: np.ndarray, root: int) -> list[int]:
+    """The tiles to draw now: the wanted cut where resident, else what covers the same region without holes.
+
+    A tile the selection refines is replaced by its visible children only when every one of them can be drawn
+    (resident, or covered by its own resident descendants); otherwise the tile itself is drawn. A wanted tile
+    that is not resident yet is covered by its resident descendants if they cover its view (they were wanted
+    before the camera moved back), else by an ancestor. Never a tile together with a descendant."""
+
+    def cover(i: int) -> list[int] | None:
+        kids = [k for k in a.children[i] if view.visible[k]]
+        if i in sel.refined:
+            parts = _cover_all(kids)
+            if parts is not None:
+                return parts
+        if resident[i]:
+            return [i]
+        if kids and i not in sel.refined:
+            return _cover_all(kids)  # finer tiles still resident stand in for a coarser tile not yet loaded
+        return None
+
+    def _cover_all(kids: list[int]) -> list[int] | None:
+        out: list[int] = []
+        for k in kids:
+            p = cover(k)
+            if p is None:
+                return None
+            out += p
+        return out
+
+    return cover(root) or []
+
+
+def prefetch(a: TileArrays, view: TileView, sel: Selection, opts: SelectionOptions) -> list[tuple[float, int]]:
+    """Tiles the view will probably want next, best first: children of cut tiles close to the refinement
+    threshold (the camera moving closer) and tiles just outside the frustum (the camera turning)."""
+    out: list[tuple[float, int]] = []
+    cut = set(sel.cut)
+    for i in sel.cut:
+        if a.children[i] and view.sse[i] > opts.max_sse / opts.prefetch_margin:
+            for k in a.children[i]:
+                if view.visible_wide[k]:
+                    out.append((float(view.sse[i]) / opts.max_sse, k))
+    for i in range(len(a.ids)):
+        if i not in cut and view.visible_wide[i] and not view.visible[i] and a.parent[i] >= 0 \
+                and a.parent[i] in sel.refined:
+            out.append((0.5, i))
+    out.sort(key=lambda x: -x[0])
+    return out

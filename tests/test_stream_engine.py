@@ -1,0 +1,144 @@
+"""The streaming engine's decisions (client_gl/stream/engine.py) without GL or network: a real encoded scene in
+memory, a fetcher that hands over a few payloads per frame, and a pool that only counts slots."""
+import numpy as np
+import pytest
+from conftest import real
+
+from client_gl.stream.engine import StreamEngine, StreamOptions
+from client_gl.stream.selection import SelectionOptions, view_numbers
+from splatstream.camera import Camera
+from splatstream.encode import EncodeOptions, encode_in_memory
+from splatstream.ply import read_gaussians_ply
+from splatstream.store import read_manifest
+
+
+class StepFetcher:
+    """Delivers at most `per_frame` wanted payloads per want() call, in the order asked (a slow link)."""
+
+    def __init__(self, store, per_frame: int = 2):
+        self.store, self.per_frame = store, per_frame
+        self.out, self.wants, self.fetched = [], [], []
+
+    def manifest(self):
+        return self.store.read_manifest()
+
+    def want(self, requests):
+        self.wants.append([k for _, k, _ in requests])
+        for _, key, entry in requests[: self.per_frame]:
+            self.out.append((key, entry, self.store.read_payload(entry)))
+            self.fetched.append(key)
+
+    def done(self):
+        out, self.out = self.out, []
+        return out
+
+    def stats(self):
+        return {"in_flight": 0, "queued": 0}
+
+
+class CountingPool:
+    def __init__(self, slots: int):
+        self.capacity_slots, self.used = slots, 0
+        self.tiles, self.bands, self.codebook = {}, {}, set()
+
+    @property
+    def free_slots(self):
+        return self.capacity_slots - self.used
+
+    def join(self, tile_id, tile):
+        chunks = -(-tile.splats // 256)
+        assert chunks <= self.free_slots, "the engine must make room before joining"
+        assert set(tile.planes) == {"position", "rotation", "scale", "color"}
+        self.tiles[tile_id] = chunks
+        self.used += chunks
+        self.bands[tile_id] = 0
+
+    def add_band(self, tile_id, band, planes):
+        assert self.bands[tile_id] == band - 1
+        self.bands[tile_id] = band
+
+    def leave(self, tile_id):
+        self.used -= self.tiles.pop(tile_id)
+        del self.bands[tile_id]
+
+    def set_codebook_band(self, band, plane):
+        self.codebook.add(band)
+
+
+@pytest.fixture(scope="module")
+def store():
+    g = read_gaussians_ply(real("fruit_drops_sh3.ply"))
+    return encode_in_memory(g, EncodeOptions(preset="medium", max_leaf_splats=300))
+
+
+def orbit(m, distance, angle, size=(320, 240)):
+    root = m.tiles[m.index_of[m.root]]
+    c, r = np.array(root.sphere_center), root.sphere_radius
+    eye = c + r * distance * np.array([np.cos(angle), np.sin(angle), 0.4])
+    return Camera(tuple(eye), tuple(c), (0, 0, 1), 50.0, *size, near=0.01 * r)
+
+
+def run_until_converged(engine, cam, limit=500):
+    for frame in range(limit):
+        u = engine.update(cam)
+        engine.wait(0.05)
+        if u.converged:
+            return frame, u
+    raise AssertionError("did not converge")
+
+
+def test_converges_to_the_wanted_cut_base_first(store):
+    m = read_manifest(store)
+    fetcher = StepFetcher(store)
+    pool = CountingPool(10_000)
+    engine = StreamEngine(fetcher, pool, StreamOptions(SelectionOptions(max_sse=1.0, band_min_px=(20, 40, 80))))
+    cam = orbit(m, 1.6, 0.3)
+    first = engine.update(cam)
+    assert first.draw in ([], [m.root])  # at most the root after one frame
+    frames, u = run_until_converged(engine, cam)
+    sel = u.selection
+    assert sorted(u.draw) == sorted(int(m.arrays.ids[i]) for i in sel.cut)
+    # the root came first; every base of the cut before any SH band
+    assert fetcher.fetched[0] == (m.root, "base")
+    groups = [g for _, g in fetcher.fetched]
+    last_base = max(k for k, g in enumerate(groups) if g == "base")
+    first_band = min((k for k, g in enumerate(groups) if g != "base"), default=len(groups))
+    assert first_band > last_base - fetcher.per_frame
+    # bands follow the projected-size rule
+    view = view_numbers(m.arrays, cam, engine.options.selection)
+    for i in sel.cut:
+        want = sum(1 for b in (1, 2, 3) if view.radius_px[i] >= engine.options.selection.band_min_px[b - 1])
+        assert pool.bands[int(m.arrays.ids[i])] == want
+    engine.close()
+
+
+def test_budget_holds_and_eviction_follows_the_camera():
+    g = read_gaussians_ply(real("fruit_drops_sh3.ply"))
+    store = encode_in_memory(g, EncodeOptions(preset="medium", max_leaf_splats=256))
+    m = read_manifest(store)
+    leaf_chunks = sum(t.chunks for t in m.leaves)
+    pool = CountingPool(leaf_chunks // 3)  # a third of the full detail fits
+    fetcher = StepFetcher(store, per_frame=4)
+    engine = StreamEngine(fetcher, pool, StreamOptions(SelectionOptions(max_sse=0.5)))
+    lo, hi = np.array(m.bounds.min), np.array(m.bounds.max)
+    evicted, converged = 0, 0
+    for step in range(12):  # fly along the scene, looking across it from close by
+        eye = lo + (hi - lo) * np.array([step / 11, 0.5, 0.5]) - np.array([0, (hi - lo)[1] * 0.8, 0])
+        cam = Camera(tuple(eye), tuple(eye + np.array([0, 1.0, 0])), (0, 0, 1), 40.0, 320, 240, near=1e-3)
+        for _ in range(8):
+            before = set(pool.tiles)
+            u = engine.update(cam)
+            engine.wait(0.02)
+            evicted += len(before - set(pool.tiles))
+            assert pool.used <= pool.capacity_slots
+            assert m.root in pool.tiles or not u.draw
+            assert all(t in pool.tiles for t in u.draw)
+            drawn = {m.index_of[t] for t in u.draw}
+            for i in drawn:  # never a tile together with one of its ancestors
+                k = i
+                while m.arrays.parent[k] >= 0:
+                    k = int(m.arrays.parent[k])
+                    assert k not in drawn
+        converged += u.converged
+    assert evicted > 0 and converged >= 8
+    engine.close()

@@ -1,0 +1,172 @@
+"""Tile selection for streaming (client_gl/stream/selection.py): pure numpy over a real encoded LOD tree."""
+import math
+
+import numpy as np
+import pytest
+from conftest import real
+
+from client_gl.stream.selection import (
+    SelectionOptions,
+    draw_set,
+    frustum_planes,
+    select,
+    view_numbers,
+    wanted_bands,
+)
+from splatstream.camera import Camera
+from splatstream.encode import EncodeOptions, encode_in_memory
+from splatstream.ply import read_gaussians_ply
+from splatstream.store import read_manifest
+
+
+@pytest.fixture(scope="module")
+def scene():
+    g = read_gaussians_ply(real("fruit_drops_sh3.ply"))
+    store = encode_in_memory(g, EncodeOptions(preset="medium", max_leaf_splats=300))
+    m = read_manifest(store)
+    assert m.levels >= 3
+    return m, g
+
+
+def camera_at(m, distance: float, size=(320, 240)) -> Camera:
+    c = np.array(m.tiles[m.index_of[m.root]].sphere_center)
+    r = m.tiles[m.index_of[m.root]].sphere_radius
+    eye = c + np.array([0.3, -1.0, 0.4]) / np.linalg.norm([0.3, -1.0, 0.4]) * r * distance
+    return Camera(tuple(eye), tuple(c), (0, 0, 1), 50.0, *size, near=0.01 * r)
+
+
+def is_valid_cut(m, cut, visible) -> bool:
+    """No tile with an ancestor, and every visible leaf is covered by exactly one cut tile."""
+    a = m.arrays
+    covered = np.zeros(len(m.tiles), int)
+    for i in cut:
+        stack = [i]
+        while stack:
+            k = stack.pop()
+            covered[k] += 1
+            stack += list(a.children[k])
+    leaves = [m.index_of[t.id] for t in m.leaves]
+    return all(covered[k] <= 1 for k in range(len(covered))) and all(
+        covered[k] == 1 for k in leaves if visible[k] and all(visible[p] for p in ancestors(m, k)))
+
+
+def ancestors(m, k):
+    a = m.arrays
+    out = []
+    while a.parent[k] >= 0:
+        k = int(a.parent[k])
+        out.append(k)
+    return out
+
+
+def test_sse_follows_lod_md(scene):
+    m, _ = scene
+    cam = camera_at(m, 3.0)
+    v = view_numbers(m.arrays, cam)
+    a = m.arrays
+    for i in range(len(m.tiles)):
+        d = np.linalg.norm(a.sphere_center[i] - np.array(cam.eye)) - a.sphere_radius[i]
+        want = a.geometric_error[i] * cam.height / (2 * d * math.tan(math.radians(25))) if d > 0 else math.inf
+        assert v.sse[i] == pytest.approx(want, rel=1e-9)
+    inside = Camera(tuple(a.sphere_center[m.index_of[m.root]]), (0, 0, 100), (0, 1, 0))
+    assert math.isinf(view_numbers(a, inside).sse[m.index_of[m.root]])
+
+
+def test_frustum_culls_what_is_behind(scene):
+    m, _ = scene
+    a = m.arrays
+    cam = camera_at(m, 3.0)
+    assert view_numbers(a, cam).visible[m.index_of[m.root]]
+    away = Camera(cam.eye, tuple(2 * np.array(cam.eye) - np.array(cam.target)), (0, 0, 1))
+    assert not view_numbers(a, away).visible.any()
+    planes = frustum_planes(cam)
+    assert np.all(planes[:, :3] @ (np.array(cam.target) - np.array(cam.eye)) > 0)  # the view axis is inside
+
+
+def test_far_coarse_near_fine(scene):
+    m, _ = scene
+    a = m.arrays
+    cost = np.array([t.chunks for t in m.tiles], float)
+    root = m.index_of[m.root]
+    far = select(a, view_numbers(a, camera_at(m, 200.0)), cost, root, SelectionOptions())
+    assert far.cut == (root,)
+    near_view = view_numbers(a, camera_at(m, 1.5))
+    near = select(a, near_view, cost, root, SelectionOptions(max_sse=1.0))
+    assert len(near.cut) > 1 and is_valid_cut(m, near.cut, near_view.visible)
+    full = select(a, near_view, cost, root, SelectionOptions(max_sse=0.0))
+    visible_leaves = {m.index_of[t.id] for t in m.leaves if near_view.visible[m.index_of[t.id]]}
+    assert set(full.cut) <= visible_leaves and is_valid_cut(m, full.cut, near_view.visible)
+    assert full.splats >= near.splats
+
+
+def test_budgets_are_respected_and_spent_where_error_is(scene):
+    m, _ = scene
+    a = m.arrays
+    cost = np.array([t.chunks for t in m.tiles], float)
+    root = m.index_of[m.root]
+    view = view_numbers(a, camera_at(m, 1.5))
+    unlimited = select(a, view, cost, root, SelectionOptions(max_sse=0.0))
+    for frac in (0.3, 0.6):
+        budget = unlimited.cost * frac
+        sel = select(a, view, cost, root, SelectionOptions(max_sse=0.0, budget=budget))
+        assert sel.cost <= budget + 1e-9 and is_valid_cut(m, sel.cut, view.visible)
+        # best first: the tiles left unrefined have no more error than the worst one that was refined
+        left = [i for i in sel.cut if a.children[i]]
+        if left and sel.refined:
+            assert max(view.sse[i] for i in left) <= max(view.sse[i] for i in sel.refined) + 1e-9
+    capped = select(a, view, cost, root, SelectionOptions(max_sse=0.0, max_splats=unlimited.splats // 2))
+    assert capped.splats <= unlimited.splats // 2
+
+
+def test_hysteresis_keeps_refined_tiles(scene):
+    m, _ = scene
+    a = m.arrays
+    cost = np.array([t.chunks for t in m.tiles], float)
+    root = m.index_of[m.root]
+    view = view_numbers(a, camera_at(m, 3.0))
+    sse_root = float(view.sse[root])
+    above = select(a, view, cost, root, SelectionOptions(max_sse=sse_root * 0.95))
+    assert root in above.refined
+    # camera moved back a little: root's sse is now 5 % under the threshold
+    threshold = sse_root * 1.05
+    kept = select(a, view, cost, root, SelectionOptions(max_sse=threshold, hysteresis=0.8), above.refined)
+    fresh = select(a, view, cost, root, SelectionOptions(max_sse=threshold, hysteresis=0.8))
+    assert root in kept.refined and root not in fresh.refined
+
+
+def test_draw_set_has_no_holes_while_loading(scene):
+    m, _ = scene
+    a = m.arrays
+    cost = np.array([t.chunks for t in m.tiles], float)
+    root = m.index_of[m.root]
+    view = view_numbers(a, camera_at(m, 1.5))
+    sel = select(a, view, cost, root, SelectionOptions(max_sse=0.0))
+    resident = np.zeros(len(m.tiles), bool)
+    assert draw_set(a, view, sel, resident, root) == []
+    resident[root] = True
+    assert draw_set(a, view, sel, resident, root) == [root]
+    # some but not all of the cut: parents stay where their children are incomplete
+    for i in sel.cut[: len(sel.cut) // 2]:
+        resident[i] = True
+    drawn = draw_set(a, view, sel, resident, root)
+    assert is_valid_cut(m, drawn, view.visible) and all(resident[i] for i in drawn)
+    for i in sel.cut:
+        resident[i] = True
+    assert sorted(draw_set(a, view, sel, resident, root)) == sorted(sel.cut)
+    # camera moves away: the coarse root is wanted again while only fine tiles are resident -> fine tiles stay drawn
+    resident[root] = False
+    far = select(a, view, cost, root, SelectionOptions(max_sse=1e9))
+    assert far.cut == (root,)
+    drawn = draw_set(a, view, far, resident, root)
+    assert sorted(drawn) == sorted(sel.cut)
+
+
+def test_bands_by_projected_size(scene):
+    m, _ = scene
+    a = m.arrays
+    root = m.index_of[m.root]
+    near, far = view_numbers(a, camera_at(m, 1.2)), view_numbers(a, camera_at(m, 50.0))
+    opts = SelectionOptions(band_min_px=(10.0, 40.0, 160.0))
+    assert wanted_bands(far, [root], opts, 3)[root] < wanted_bands(near, [root], opts, 3)[root]
+    assert wanted_bands(near, [root], SelectionOptions(sh_degree=1), 3)[root] <= 1
+    assert wanted_bands(near, [root], opts, 0)[root] == 0
