@@ -25,7 +25,7 @@ def encode_to(g: Gaussians, writer: SceneWriter, opts: EncodeOptions, progress: 
     plan = plan_encode(g, opts, progress, source_name, out_name)
     ctx = plan.context
     groups = tile_group_names(ctx)
-    total = sum(len(t.gaussians) for t in plan.tiles)
+    total = sum(len(t.gaussians) for t in plan.tiles) * len(groups)
     codebook = encode_codebook(ctx.codebook, ctx, writer) if ctx.codebook is not None else None
     entries: list[TileEntry] = []
     with ThreadPoolExecutor(max_workers=min(2, os.cpu_count() or 1)) as pool:
@@ -39,9 +39,12 @@ def encode_to(g: Gaussians, writer: SceneWriter, opts: EncodeOptions, progress: 
         for tile in plan.tiles:
             if id(tile) in bounds:
                 bounds[id(tile)].result()
-            entries.append(tile_entry(tile, {group: next(results) for group in groups}))
-            done += len(tile.gaussians)
-            progress("encode", done / total)
+            payloads = {}
+            for group in groups:  # progress per payload: a large tile's groups take seconds each
+                payloads[group] = next(results)
+                done += len(tile.gaussians)
+                progress("encode", done / total)
+            entries.append(tile_entry(tile, payloads))
         m = build_manifest(plan, camera.result(), entries, codebook, time.perf_counter() - t0)
     writer.write_manifest(m)
     return m
