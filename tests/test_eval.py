@@ -27,6 +27,7 @@ def test_eval_cli_table_json_plot(tmp_path):
     assert "| norm11 | norm10_2 | norm11 | norm8x4 | norm565 |" in medium
     assert any(line.startswith("| self |") and "inf (inf)" in line for line in lines)
     assert out_md.read_text() == res.stdout
+    assert "Seed" not in res.stdout and "goal" not in res.stdout.lower() and "MISSED" not in res.stdout
     report = json.loads(out_json.read_text())
     rows = {r["label"]: r for r in report["rows"]}
     assert set(rows) == {"medium", "low", "self"}
@@ -40,7 +41,8 @@ def test_eval_cli_table_json_plot(tmp_path):
         assert 0 < r["disk_bytes_per_splat"] < 60 and 0 < r["gpu_bytes_per_splat"] < 60
         assert r["compression"] == pytest.approx(os.path.getsize(src) / r["disk_bytes"])
         assert r["encode_seconds"] > 0 and len(r["psnr_per_view"]) == 2
-    assert any(g["preset"] == "medium" and "ok" in g for g in report["goals"])
+    assert "goals" not in report and set(report["reference_table"]["presets"]) == {"very-high", "high", "medium",
+                                                                                   "low", "very-low"}
     with Image.open(out_png) as im:
         assert im.size == (900, 600)
         assert len(im.getcolors(100000)) > 10  # something was drawn
@@ -168,3 +170,11 @@ def test_variants_parse_and_run():
     (row,) = rep["rows"]
     assert row["kind"] == "variant" and row["sh_degree"] == 1
     assert "| low-sh1 | norm8x4 | norm565 | norm8x4 | bc7 | norm565 VQ64 (SH1) |" in report_markdown(rep)
+
+
+def test_reference_table_only_on_request(tmp_path):
+    src = real("fruit_drops_sh3.ply")
+    res = run_cli("eval", src, "--presets", "medium", "--views", "1", "--size", "32x32", "--renderer", "ref",
+                  "--reference-table", "-q")
+    assert res.returncode == 0, res.stderr
+    assert "Reference, not measured here" in res.stdout and "| medium | " in res.stdout

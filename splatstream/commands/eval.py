@@ -49,6 +49,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--renderer", choices=RENDERER_CHOICES, default="auto",
                    help="auto: the GL client if available, else the numpy reference rasterizer")
     p.add_argument("--lod", action="store_true", help="encode the LOD tree too and count its bytes on disk")
+    p.add_argument("--reference-table", action="store_true",
+                   help="also print the published preset table of a Unity splat renderer (Aras P., 2023; bike scene) "
+                        "as a labelled reference")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress lines on stderr")
     p.set_defaults(func=run)
 
@@ -70,7 +73,7 @@ def run(args: argparse.Namespace) -> int:
                        variants=args.variants)
     log = None if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
     report = evaluate(args.input, opts, log, pick_renderer(args.renderer))
-    md = report_markdown(report)
+    md = report_markdown(report, reference_table=args.reference_table)
     sys.stdout.write(md)
     if args.markdown:
         with open(args.markdown, "w") as f:
