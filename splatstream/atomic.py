@@ -20,6 +20,29 @@ _AT_FDCWD = -100
 _RENAME_EXCHANGE = 2
 
 
+def check_output(path: str | os.PathLike, directory: bool = False) -> None:
+    """Fail now, before a long computation, if `path` cannot be written the way atomic_file / atomic_directory will
+    write it (a missing or unwritable parent, a file where a scene directory goes, or the reverse)."""
+    from .errors import UsageError
+
+    given = os.fspath(path)
+    path = os.path.abspath(given)
+    parent = os.path.dirname(path)
+    if directory and os.path.lexists(path) and not os.path.isdir(path):
+        raise UsageError(f"{given}: exists and is not a directory (a scene is written as a directory)")
+    if not directory and os.path.isdir(path):
+        raise UsageError(f"{given}: is a directory, expected a file name")
+    if not directory and not os.path.isdir(parent):
+        raise UsageError(f"{given}: the output directory {parent} does not exist")
+    probe = parent
+    while not os.path.isdir(probe):  # a scene's missing parents are created: check the nearest existing one
+        probe = os.path.dirname(probe)
+    try:
+        os.rmdir(tempfile.mkdtemp(prefix=".check.", dir=probe))
+    except OSError as exc:
+        raise UsageError(f"{given}: cannot write in {probe} ({exc.strerror})") from None
+
+
 @contextlib.contextmanager
 def atomic_file(path: str | os.PathLike) -> Iterator[BinaryIO]:
     path = os.fspath(path)
@@ -28,7 +51,16 @@ def atomic_file(path: str | os.PathLike) -> Iterator[BinaryIO]:
         from .errors import UsageError
 
         raise UsageError(f"{path}: the output directory {directory} does not exist")
-    fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=directory)
+    if os.path.isdir(path):
+        from .errors import UsageError
+
+        raise UsageError(f"{path}: is a directory, expected a file name")
+    try:
+        fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=directory)
+    except OSError as exc:
+        from .errors import UsageError
+
+        raise UsageError(f"{path}: cannot write in {directory} ({exc.strerror})") from None
     try:
         with os.fdopen(fd, "wb") as f:
             yield f
@@ -57,10 +89,18 @@ def _exchange(a: str, b: str) -> bool:
 @contextlib.contextmanager
 def atomic_directory(path: str | os.PathLike) -> Iterator[str]:
     """Yield a temporary directory next to `path`; on success it replaces `path` in one step."""
-    path = os.path.abspath(os.fspath(path))
+    from .errors import UsageError
+
+    given = os.fspath(path)
+    path = os.path.abspath(given)
     parent = os.path.dirname(path)
-    os.makedirs(parent, exist_ok=True)
-    tmp = tempfile.mkdtemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=parent)
+    if os.path.lexists(path) and not os.path.isdir(path):
+        raise UsageError(f"{given}: exists and is not a directory (a scene is written as a directory)")
+    try:
+        os.makedirs(parent, exist_ok=True)
+        tmp = tempfile.mkdtemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=parent)
+    except OSError as exc:
+        raise UsageError(f"{given}: cannot write a scene directory here ({exc.strerror})") from None
     try:
         yield tmp
         os.chmod(tmp, 0o755)
@@ -74,7 +114,7 @@ def atomic_directory(path: str | os.PathLike) -> Iterator[str]:
             shutil.rmtree(old, ignore_errors=True)
         else:
             if os.path.lexists(path):
-                raise FileExistsError(f"{path}: exists and is not a directory")
+                raise UsageError(f"{given}: exists and is not a directory (a scene is written as a directory)")
             os.rename(tmp, path)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)

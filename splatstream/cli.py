@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 import warnings
 
@@ -12,11 +13,22 @@ from .errors import SplatstreamError
 
 COMMANDS = ["encode", "decode", "info", "convert", "render", "eval", "serve"]
 
+# Exit codes (README "Exit codes"): 0 success, 2 bad input or usage (the user can fix it: a file, an argument, a
+# path, a port), 1 a failure inside splatstream or the machine (a bug, out of memory, a disk error), 130 Ctrl-C.
+EXIT_FAILURE = 1
 EXIT_BAD_INPUT = 2
+EXIT_INTERRUPTED = 130
+
+
+class _Parser(argparse.ArgumentParser):
+    """Usage errors as one line naming the command (exit 2), like every other error of the CLI."""
+
+    def error(self, message: str):
+        self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = _Parser(
         prog="splatstream",
         description="Compact, streamable 3D Gaussian Splatting scenes.",
     )
@@ -49,10 +61,20 @@ def main(argv: list[str] | None = None) -> int:
         return EXIT_BAD_INPUT
     except KeyboardInterrupt:
         print(f"splatstream {args.command}: interrupted", file=sys.stderr)
-        return 130
-    except (OSError, MemoryError) as exc:
-        print(f"splatstream {args.command}: error: {exc}", file=sys.stderr)
-        return 1
+        return EXIT_INTERRUPTED
+    except MemoryError:
+        print(f"splatstream {args.command}: error: out of memory", file=sys.stderr)
+        return EXIT_FAILURE
+    except OSError as exc:
+        where = f"{exc.filename}: " if exc.filename else ""
+        print(f"splatstream {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
+        return EXIT_FAILURE
+    except Exception as exc:  # a bug: one line, not a traceback (SPLATSTREAM_DEBUG=1 shows it)
+        if os.environ.get("SPLATSTREAM_DEBUG"):
+            raise
+        print(f"splatstream {args.command}: internal error: {exc.__class__.__name__}: {exc} (please report it; "
+              "SPLATSTREAM_DEBUG=1 shows the traceback)", file=sys.stderr)
+        return EXIT_FAILURE
     return int(rc or 0)
 
 

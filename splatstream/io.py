@@ -20,6 +20,24 @@ WRITABLE_EXTENSIONS = {".ply": "ply", ".splat": "splat"}
 SPLAT_RECORD_BYTES = 32
 
 
+def check_regular_file(path: str) -> None:
+    """Refuse what is not a regular file before anything reads it (a FIFO or a device would block or never end)."""
+    import stat
+
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        raise InputError(path, None, "no such file") from None
+    except OSError as exc:
+        raise InputError(path, None, f"cannot read ({exc.strerror})") from None
+    if stat.S_ISDIR(st.st_mode):
+        raise InputError(path, None, "is a directory (expected a splat file)")
+    if not stat.S_ISREG(st.st_mode):
+        raise InputError(path, None, "not a regular file (a FIFO, device or socket cannot be read as a splat file)")
+    if not os.access(path, os.R_OK):
+        raise InputError(path, None, "cannot read (permission denied)")
+
+
 def sniff_format(path: str | os.PathLike) -> str:
     """Name of the format of a file, from its content: 'ply', 'compressed_ply', 'spz' or 'splat'.
 
@@ -31,11 +49,9 @@ def sniff_format(path: str | os.PathLike) -> str:
     from .readers.compressed_ply import is_compressed_ply
 
     path = os.fspath(path)
-    try:
-        with open(path, "rb") as f:
-            head = f.read(MAX_HEADER_BYTES)
-    except IsADirectoryError:
-        raise InputError(path, None, "is a directory (expected a splat file)") from None
+    check_regular_file(path)
+    with open(path, "rb") as f:
+        head = f.read(MAX_HEADER_BYTES)
     if not head:
         raise InputError(path, None, "file is empty")
     if head.startswith(b"ply\n") or head.startswith(b"ply\r\n"):
@@ -70,10 +86,8 @@ def _gzip_starts_with(head: bytes, prefix: bytes) -> bool:
 
 def read_gaussians(path: str | os.PathLike, drop_invalid: bool = False) -> Gaussians:
     """Read any supported splat file into Gaussians."""
+    fmt = sniff_format(os.fspath(path))
     path = os.fspath(path)
-    if not os.path.exists(path):
-        raise InputError(path, None, "no such file")
-    fmt = sniff_format(path)
     if fmt == "ply":
         from .ply import read_gaussians_ply
 

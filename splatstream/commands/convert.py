@@ -23,21 +23,22 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ..atomic import check_output
     from ..errors import UsageError
     from ..io import FORMAT_NAMES, output_format, read_gaussians, sniff_format, write_gaussians
 
     out_format = output_format(args.output)  # refuse an unwritable output before reading anything
-    if os.path.exists(args.output) and os.path.exists(args.input) and os.path.samefile(args.input, args.output):
+    in_format = sniff_format(args.input)
+    if os.path.exists(args.output) and os.path.samefile(args.input, args.output):
         raise UsageError(f"{args.output}: output is the input file")
+    check_output(args.output)
     start = time.perf_counter()
 
     def say(message: str) -> None:
         if not args.quiet:
             print(f"convert: {message} ({time.perf_counter() - start:.1f}s)", file=sys.stderr, flush=True)
 
-    say(f"reading {args.input}")
-    if os.path.isfile(args.input):
-        say(f"format: {FORMAT_NAMES[sniff_format(args.input)]}")
+    say(f"reading {args.input} ({FORMAT_NAMES[in_format]})")
     g = read_gaussians(args.input, drop_invalid=args.drop_invalid)
     say(f"read {len(g)} splats, SH degree {g.sh_degree}")
     if out_format == "splat" and g.sh_degree > 0:

@@ -28,6 +28,11 @@ def run(args: argparse.Namespace) -> int:
             tiles = [int(t) for t in args.tiles.split(",")]
         except ValueError:
             raise UsageError(f"--tiles: expected comma-separated integers, got {args.tiles!r}") from None
+    from ..atomic import check_output
+    from ..io import output_format
+
+    output_format(args.output)
+    check_output(args.output)
     g = decode_scene(args.scene_dir, sh_degree=args.sh_degree, tiles=tiles)
     write_gaussians(g, args.output)
     print(f"wrote {args.output}: {len(g)} splats, SH degree {g.sh_degree}", file=sys.stderr)

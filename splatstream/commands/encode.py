@@ -56,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--reduction must be greater than 1")
     if not 1 <= args.zstd_level <= 22:
         raise UsageError("--zstd-level must be between 1 and 22")
-    up = parse_vector(args.up, "--up") if args.up else None
+    up = parse_vector(args.up, "--up", nonzero=True) if args.up else None
     progress = ProgressPrinter("encode", enabled=not args.quiet)
     m = encode_file(args.input, args.output_dir, preset=args.preset, drop_invalid=args.drop_invalid,
                     progress=progress, overrides=overrides, sh_degree=args.sh_degree, zstd_level=args.zstd_level,

@@ -57,6 +57,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if os.path.isdir(args.input):
+        raise InputError(args.input, None, "is a directory; eval takes the original splat file (a 3DGS PLY or "
+                         "another format `convert` reads) and encodes it itself")
     if not os.path.isfile(args.input):
         raise InputError(args.input, None, "no such file")
     w, h = parse_size(args.size, smallest=11, largest=8192)

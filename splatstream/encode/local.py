@@ -71,14 +71,17 @@ def encode_in_memory(g: Gaussians, opts: EncodeOptions | None = None, progress: 
 def encode_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, preset: str | None = None,
                 drop_invalid: bool = False, progress: Progress | None = None, **options) -> Manifest:
     """Read any supported splat file and encode it into `out_dir`."""
+    from ..atomic import check_output
     from ..format.presets import DEFAULT_PRESET, resolve_formats
-    from ..io import read_gaussians
+    from ..io import read_gaussians, sniff_format
     from ..vq import parse_entries
 
     opts = EncodeOptions(preset=preset or DEFAULT_PRESET, reorder_input=True, **options)
     resolve_formats(opts.preset, opts.overrides)  # fail before the (possibly long) read
     if opts.sh_codebook is not None:
         parse_entries(opts.sh_codebook, 1)
+    sniff_format(input_path)  # a missing, unreadable or unknown input fails before any output or progress
+    check_output(out_dir, directory=True)
     if progress:
         progress("read", 0.0)
     g = read_gaussians(input_path, drop_invalid=drop_invalid)

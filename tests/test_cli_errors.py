@@ -1,0 +1,62 @@
+"""One exit-code convention for every command: bad input or usage exits 2 with one line naming the path or option
+and what was expected; never a traceback; no output left behind."""
+import pytest
+from conftest import ROOT, run_cli
+
+DONUT = ROOT / "samples" / "donut.ply"
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    out = tmp_path_factory.mktemp("scene") / "donut"
+    r = run_cli("encode", DONUT, out, "-q")
+    assert r.returncode == 0, r.stderr
+    return out
+
+
+def cases(tmp, scene):
+    (tmp / "a_file").write_text("x")
+    (tmp / "a_dir").mkdir()
+    return [
+        (["encode", tmp / "missing.ply", tmp / "o"], "missing.ply"),
+        (["encode", DONUT, tmp / "o", "--up", "0,0,0"], "--up"),
+        (["encode", DONUT, tmp / "o", "--up", "1,x,0"], "--up"),
+        (["encode", DONUT, "/proc/o"], "/proc/o"),
+        (["encode", DONUT, tmp / "a_file"], "a_file"),
+        (["encode", DONUT, tmp / "o", "--preset", "ultra"], "--preset"),
+        (["encode", DONUT, tmp / "o", "--zstd-level", "99"], "--zstd-level"),
+        (["encode", DONUT, tmp / "o", "--sh-codebook", "many"], "many"),
+        (["encode", tmp / "a_dir", tmp / "o"], "a_dir"),
+        (["encode", tmp / "a_file", tmp / "o"], "a_file"),
+        (["decode", tmp / "missing", tmp / "o.ply"], "missing"),
+        (["decode", scene, "/proc/o.ply"], "/proc/o.ply"),
+        (["decode", scene, tmp / "a_dir"], "a_dir"),
+        (["info", tmp / "missing"], "missing"),
+        (["info", tmp / "a_file"], "a_file"),
+        (["info", tmp / "a_dir"], "a_dir"),
+        (["convert", tmp / "missing.ply", tmp / "o.ply"], "missing.ply"),
+        (["convert", DONUT, tmp / "o.xyz"], "o.xyz"),
+        (["render", tmp / "missing", "--out", tmp / "o.png"], "missing"),
+        (["render", scene, "--out", tmp / "o.jpg"], "o.jpg"),
+        (["render", scene, "--size", "0x0", "--out", tmp / "o.png"], "--size"),
+        (["render", scene, "--eye", "1,1", "--out", tmp / "o.png"], "--eye"),
+        (["eval", scene], "is a directory"),
+        (["eval", tmp / "missing.ply"], "missing.ply"),
+        (["eval", DONUT, "--size", "5x5"], "--size"),
+        (["serve", tmp / "missing"], "missing"),
+        (["serve", tmp / "a_dir", "--port", "70000"], "--port"),
+        (["nonsense"], "nonsense"),
+    ]
+
+
+def test_bad_arguments_exit_2_with_one_line(tmp_path, scene):
+    for args, named in cases(tmp_path, scene):
+        r = run_cli(*args)
+        where = " ".join(map(str, args))
+        assert r.returncode == 2, (where, r.returncode, r.stderr)
+        assert "Traceback" not in r.stderr, where
+        lines = [ln for ln in r.stderr.strip().splitlines() if ln]
+        assert len(lines) == 1, (where, r.stderr)
+        assert named in lines[0], (where, lines[0])
+        assert not (tmp_path / "o").exists() and not (tmp_path / "o.ply").exists() and not (tmp_path / "o.png").exists()
+        assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")], where  # no temporaries left
