@@ -70,7 +70,9 @@ def _camera(args, scene_camera: dict | None, positions: np.ndarray | None, scene
 
 
 def run(args: argparse.Namespace) -> int:
-    from client_gl.headless import HeadlessRenderer
+    from .renderers import gl_client
+
+    HeadlessRenderer = gl_client().HeadlessRenderer  # noqa: N806 - a class
 
     from ..format.presets import PRESETS
     from ..store import is_scene_dir, load_manifest

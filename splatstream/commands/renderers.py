@@ -12,6 +12,18 @@ from ..evaluate import EvalRenderer, reference_renderer
 RENDERER_CHOICES = ("auto", "gl", "ref")
 
 
+GL_EXTRA_HINT = "pip install 'splatstream[view]'"
+
+
+def gl_client():
+    """client_gl.headless, or a UsageError saying how to install the GL client."""
+    try:
+        from client_gl import headless
+    except ImportError as exc:
+        raise UsageError(f"the GL client is not installed ({exc.name or exc}): {GL_EXTRA_HINT}") from None
+    return headless
+
+
 def gl_renderer() -> EvalRenderer | None:
     """The GL client's headless renderer, if moderngl is installed and a context opens here."""
     try:
