@@ -44,6 +44,7 @@ def test_format_overrides(tmp_path):
     info = json.loads(run_cli("info", tmp_path / "s", "--json").stdout)
     assert info["formats"]["position"] == "f32x4" and info["formats"]["color"] == "f16x4"
     assert info["formats"]["rotation"] == "norm10_2"
+    assert "sh" not in info["formats"] and "sh" not in info["attributes"]  # an SH0 scene has no SH format
     r = run_cli("encode", real("donut_sh0_no_normals.ply"), tmp_path / "t", "--color", "norm565", "-q")
     assert r.returncode == 2 and "4-component" in r.stderr and not (tmp_path / "t").exists()
 

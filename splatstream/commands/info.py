@@ -16,7 +16,7 @@ def scene_info(m: Manifest) -> dict:
         "leaf_tiles": len(leaves),
         "leaf_bytes_on_disk": m.leaf_bytes_on_disk,
         "bytes_per_splat_on_disk": m.bytes_on_disk / m.splats,
-        "formats": dict(m.formats),
+        "formats": {a: f for a, f in m.formats.items() if a != "sh" or m.sh_degree > 0},
         "attributes": {a: v.to_dict() for a, v in m.attributes.items()},
         "bytes_per_level": _bytes_per_level(m),
         "camera": m.camera.to_dict(),
