@@ -239,9 +239,17 @@ def robust_bounds(positions: np.ndarray, percentile: float = 95.0) -> tuple[np.n
     return med, lo, hi
 
 
-def _diagonal(up: np.ndarray) -> np.ndarray:
-    """Unit direction from the target towards the eye: (-1, -1, 0.6) in a frame whose third axis is `up`."""
+def _diagonal(up: np.ndarray, side: float = 0.0) -> np.ndarray:
+    """Unit direction from the target towards the eye of the default view.
+
+    Scenes with up along y (the 3DGS / COLMAP axes) are seen along their z axis, as a capture sees them, raised 20
+    degrees towards up: from the `side` (+1: +z, -1: -z; 0: -z for y down, +z for y up). Otherwise (-1, -1, 0.6)
+    in a frame whose third axis is `up`."""
     up = _normalize(up)
+    if abs(up[1]) > 0.9:
+        el = math.radians(20.0)
+        behind = side if side else (-1.0 if up[1] < 0 else 1.0)
+        return _normalize(np.array([0.0, 0.0, behind * math.cos(el)]) + math.sin(el) * up)
     helper = np.array([1.0, 0.0, 0.0]) if abs(up[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
     a = _normalize(helper - up * (helper @ up))
     b = np.cross(up, a)
@@ -258,12 +266,12 @@ def fit_distance(radius: float, camera_fov_y_deg: float, aspect: float) -> float
 def suggested_camera(positions: np.ndarray | None = None, up: Sequence[float] = DEFAULT_UP, width: int = 1280,
                      height: int = 720, fov_y_deg: float = DEFAULT_FOV_Y_DEG,
                      bounds: tuple[Sequence[float], Sequence[float]] | None = None,
-                     center: Sequence[float] | None = None, percentile: float = 95.0) -> Camera:
+                     center: Sequence[float] | None = None, percentile: float = 95.0, side: float = 0.0) -> Camera:
     """Default camera for a scene: looks at the median along a diagonal, from outside the robust bounds.
 
     Give `positions` (N, 3), or `bounds=(lo, hi)` (and optionally `center`). The central `percentile` % box of
     the positions (outliers ignored) is framed so that its bounding sphere fits the view. `up` defaults to +z;
-    the view comes from the (-1, -1, 0.6) diagonal of a frame whose third axis is `up`.
+    the view direction is _diagonal's (from the front for 3DGS-convention scenes, else a diagonal).
     """
     if positions is not None:
         med, lo, hi = robust_bounds(positions, percentile)
@@ -278,7 +286,7 @@ def suggested_camera(positions: np.ndarray | None = None, up: Sequence[float] = 
     if not radius > 0:
         radius = 1.0
     dist = fit_distance(radius, fov_y_deg, width / height)
-    eye = med + _diagonal(np.asarray(up, dtype=np.float64)) * dist
+    eye = med + _diagonal(np.asarray(up, dtype=np.float64), side) * dist
     near = min(REFERENCE_NEAR, 0.01 * dist)
     far = max(1000.0, 10.0 * (dist + radius))
     return Camera(tuple(eye), tuple(med), tuple(up), fov_y_deg, width, height, near, far)

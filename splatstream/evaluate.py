@@ -19,10 +19,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import __version__
-from .camera import DEFAULT_UP, Camera, scene_orbit_views
+from .camera import Camera, scene_orbit_views
 from .errors import InputError, UsageError
 from .gaussians import Gaussians
 from .metrics import psnr_from_mse, ssim
+from .orientation import detect_up
 
 Renderer = Callable[[Gaussians | str, Camera], np.ndarray]
 
@@ -81,7 +82,7 @@ class EvalOptions:
     views: int = 8
     width: int = 512
     height: int = 512
-    up: tuple[float, float, float] = DEFAULT_UP
+    up: tuple[float, float, float] | None = None  # None: detected (splatstream.orientation)
     elevation_deg: float = 25.0
     encoded_dir: str | None = None     # keep encoded scenes here (default: a temporary directory)
     compare: Sequence[str] = ()        # other tools' outputs: "[LABEL=]FILE[@SIZE_FILE_OR_DIR]"
@@ -276,7 +277,8 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
         raise InputError(input_path, None, "the scene holds no splats")
     evr = renderer or reference_renderer()
     renderer, renderer_name, renderer_kind = evr.render, evr.name, evr.kind
-    cameras = scene_orbit_views(g.positions, opts.views, opts.width, opts.height, up=opts.up,
+    up = opts.up if opts.up is not None else detect_up(g).up
+    cameras = scene_orbit_views(g.positions, opts.views, opts.width, opts.height, up=up,
                                 elevation_deg=opts.elevation_deg)
     t = time.perf_counter()
     references = [renderer(g, cam) for cam in cameras]
@@ -295,7 +297,7 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
         def encode_and_measure(label: str, kind: str, preset: str, overrides: dict[str, str],
                                sh_degree: int | None = None, sh_codebook: str | None = None) -> Row:
             out = os.path.join(out_root, label.replace(" ", "_").replace("=", "-").replace("+", "_"))
-            eo = EncodeOptions(preset=preset, overrides=overrides, lod=opts.lod, up=tuple(opts.up),
+            eo = EncodeOptions(preset=preset, overrides=overrides, lod=opts.lod, up=tuple(up),
                                sh_degree=sh_degree, sh_codebook=sh_codebook)
             if opts.zstd_level is not None:
                 eo.zstd_level = opts.zstd_level
@@ -379,7 +381,7 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
                   "compression": "input file bytes / disk bytes"},
         "cameras": [c.to_dict() for c in cameras],
         "camera_rule": {"function": "splatstream.camera.scene_orbit_views", "views": opts.views,
-                        "up": list(opts.up), "elevation_deg": opts.elevation_deg},
+                        "up": list(up), "elevation_deg": opts.elevation_deg},
         "encode_options": {"lod": opts.lod, "zstd_level": opts.zstd_level},
         "machine": {"python": platform.python_version(), "cpus": os.cpu_count(), "platform": platform.platform()},
         "rows": [r.to_json() for r in rows],

@@ -1,6 +1,8 @@
 """Progress display on stderr: a redrawn bar on a terminal, a line per stage and 25% step otherwise."""
 from __future__ import annotations
 
+import contextlib
+import logging
 import sys
 import time
 
@@ -38,3 +40,30 @@ class ProgressPrinter:
             self.stream.write(f"{self.label}: {stage} {fraction * 100:.0f}% ({elapsed:.1f}s)\n")
             self.stream.flush()
             self._last_stage, self._last_step = stage, step
+
+    def note(self, message: str) -> None:
+        """A line of information between progress updates (on a terminal, above the bar)."""
+        if not self.enabled:
+            return
+        self.stream.write(("\r\033[K" if self.tty else "") + f"{self.label}: {message}\n")
+        self.stream.flush()
+        self._last_draw = 0.0
+
+    @contextlib.contextmanager
+    def library_notes(self, logger: str = "splatstream"):
+        """Show the library's INFO messages (e.g. the up direction it chose) as notes while the block runs."""
+        printer = self
+
+        class _Handler(logging.Handler):
+            def emit(self, record: logging.LogRecord) -> None:
+                printer.note(record.getMessage())
+
+        log = logging.getLogger(logger)
+        handler, level = _Handler(logging.INFO), log.level
+        log.addHandler(handler)
+        log.setLevel(logging.INFO)
+        try:
+            yield self
+        finally:
+            log.removeHandler(handler)
+            log.setLevel(level)

@@ -41,7 +41,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="order of splats inside each chunk: luminance groups similar colours into the same BC block; "
                         "auto (default) uses it when colour or SH, but not position/rotation/scale, are BC-compressed")
     p.add_argument("--name", help="scene name recorded in the manifest (default: input file name)")
-    p.add_argument("--up", help="up vector of the scene, e.g. 0,0,1 (default) or 0,-1,0 for COLMAP captures")
+    p.add_argument("--up", help="up vector of the scene, e.g. 0,-1,0 (3DGS/COLMAP captures) or 0,0,1 (z-up tools); "
+                               "default: detected (y down unless the splats' surfaces show z up)")
     p.add_argument("--drop-invalid", action="store_true",
                    help="drop splats with non-finite values or zero-length quaternions (with a warning)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress display")
@@ -58,10 +59,11 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--zstd-level must be between 1 and 22")
     up = parse_vector(args.up, "--up", nonzero=True) if args.up else None
     progress = ProgressPrinter("encode", enabled=not args.quiet)
-    m = encode_file(args.input, args.output_dir, preset=args.preset, drop_invalid=args.drop_invalid,
-                    progress=progress, overrides=overrides, sh_degree=args.sh_degree, zstd_level=args.zstd_level,
-                    lod=not args.no_lod, max_leaf_splats=args.max_leaf_splats, reduction=args.reduction,
-                    name=args.name, up=up, chunk_order=args.chunk_order, sh_codebook=args.sh_codebook)
+    with progress.library_notes():
+        m = encode_file(args.input, args.output_dir, preset=args.preset, drop_invalid=args.drop_invalid,
+                        progress=progress, overrides=overrides, sh_degree=args.sh_degree, zstd_level=args.zstd_level,
+                        lod=not args.no_lod, max_leaf_splats=args.max_leaf_splats, reduction=args.reduction,
+                        name=args.name, up=up, chunk_order=args.chunk_order, sh_codebook=args.sh_codebook)
     if not args.quiet:
         print(f"wrote {args.output_dir}: {m.splats} splats, SH degree {m.sh_degree}, preset {m.preset}, "
               f"{len(m.tiles)} tiles, {m.bytes_on_disk / 1e6:.2f} MB on disk "

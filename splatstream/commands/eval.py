@@ -30,7 +30,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"comma-separated presets (default {','.join(PRESET_ORDER)}); 'none' for peers only")
     p.add_argument("--views", type=int, default=8, help="number of orbit views (default 8)")
     p.add_argument("--size", default="512x512", help="render size WIDTHxHEIGHT (default 512x512)")
-    p.add_argument("--up", default="0,0,1", help="scene up vector for the orbit (default 0,0,1)")
+    p.add_argument("--up", help="scene up vector for the orbit (default: detected as `encode` does)")
     p.add_argument("--elevation", type=float, default=25.0, help="orbit elevation in degrees (default 25)")
     p.add_argument("--json", dest="json_out", metavar="OUT.json", help="write the full report as JSON")
     p.add_argument("--plot", metavar="OUT.png", help="write a rate-versus-PSNR plot (PNG)")
@@ -69,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
     for out in (args.json_out, args.plot, args.markdown):
         if out and os.path.dirname(os.path.abspath(out)) and not os.path.isdir(os.path.dirname(os.path.abspath(out))):
             raise UsageError(f"output directory of {out} does not exist")
-    up = parse_vector(args.up, "--up", nonzero=True)
+    up = parse_vector(args.up, "--up", nonzero=True) if args.up else None
     opts = EvalOptions(presets=presets, views=args.views, width=w, height=h, up=up,
                        elevation_deg=args.elevation, encoded_dir=args.encoded, compare=args.compare,
                        lod=args.lod, attribution=parse_list(args.attribution),

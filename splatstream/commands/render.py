@@ -30,7 +30,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--out", "-o", required=True, help="output image (.png)")
     p.add_argument("--eye", help="camera position X,Y,Z")
     p.add_argument("--target", help="point looked at X,Y,Z")
-    p.add_argument("--up", help="up vector X,Y,Z (default: the scene's, or 0,0,1)")
+    p.add_argument("--up", help="up vector X,Y,Z (default: the scene's; for a splat file, detected as `encode` does)")
     p.add_argument("--fov-y", type=float, help=f"vertical field of view in degrees (default {DEFAULT_FOV_Y_DEG:g})")
     p.add_argument("--size", default=f"{DEFAULT_SIZE[0]}x{DEFAULT_SIZE[1]}", help="image size WxH (default 1280x720)")
     p.add_argument("--sh-degree", type=int, choices=[0, 1, 2, 3], help="SH bands to evaluate (default: all)")
@@ -48,14 +48,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.set_defaults(func=run)
 
 
-def _camera(args, scene_camera: dict | None, positions: np.ndarray | None, scene_up, size) -> Camera:
+def _camera(args, scene_camera: dict | None, positions: np.ndarray | None, scene_up, size,
+            side: float = 0.0) -> Camera:
     width, height = size
-    up = _optional_vector(args.up, "--up") or (tuple(scene_up) if scene_up is not None else (0.0, 0.0, 1.0))
+    up = _optional_vector(args.up, "--up") or tuple(scene_up)
     if scene_camera is not None:
         default = Camera(scene_camera["eye"], scene_camera["target"], scene_camera.get("up", up),
                          scene_camera.get("fov_y", scene_camera.get("fov_y_deg", DEFAULT_FOV_Y_DEG)), width, height)
     else:
-        default = suggested_camera(positions, up=up, width=width, height=height)
+        default = suggested_camera(positions, up=up, width=width, height=height, side=side)
     eye = _optional_vector(args.eye, "--eye") or default.eye
     target = _optional_vector(args.target, "--target") or default.target
     if args.up is None and scene_camera is not None:
@@ -98,7 +99,10 @@ def run(args: argparse.Namespace) -> int:
         g = read_gaussians(args.scene)
         if len(g) == 0:
             raise UsageError(f"{args.scene}: no splats to render")
-        cam = _camera(args, None, g.positions, None, size)
+        from ..orientation import detect_up, view_side
+
+        up = _optional_vector(args.up, "--up") or detect_up(g).up
+        cam = _camera(args, None, g.positions, up, size, view_side(g, up))
         source = ("gaussians", g)
         splats = len(g)
     renderer = HeadlessRenderer(sort=args.sort, draw=getattr(args, "draw", "auto"))

@@ -6,6 +6,7 @@ the scene's facts (bounds, up, suggested camera). What comes out is everything a
 """
 from __future__ import annotations
 
+import logging
 import os
 from dataclasses import dataclass
 
@@ -18,11 +19,12 @@ from ..format.manifest import Box, CameraEntry
 from ..format.presets import resolve_chunk_order, resolve_formats
 from ..gaussians import Gaussians
 from ..lod import Tile, build_tiles
+from ..orientation import detect_up, view_side
 from ..vq import Codebook
 from .codebook import fit_sh_codebook
 from .options import EncodeOptions, Progress, no_progress
 
-DEFAULT_UP = (0.0, 0.0, 1.0)
+log = logging.getLogger("splatstream.encode")
 
 
 @dataclass(frozen=True)
@@ -86,7 +88,12 @@ def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progr
         codebook = fit_sh_codebook(g, opts.preset, opts.sh_codebook, sh_degree)
         progress("codebook", 1.0)
     bounds = Box(tuple(float(v) for v in g.positions.min(axis=0)), tuple(float(v) for v in g.positions.max(axis=0)))
-    up = tuple(float(v) for v in (opts.up if opts.up is not None else DEFAULT_UP))
+    if opts.up is not None:
+        up = tuple(float(v) for v in opts.up)
+    else:
+        choice = detect_up(g)
+        up = choice.up
+        log.info("up %s: %s (--up overrides it)", ",".join(f"{v:g}" for v in up), choice.reason)
     progress("tiles", 0.0)
     tiles = plan_tiles(g, opts, progress)
     progress("tiles", 1.0)
@@ -96,7 +103,7 @@ def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progr
 
 def plan_camera(g: Gaussians, up: tuple[float, float, float]) -> CameraEntry:
     """The suggested initial camera (format_spec/camera.md)."""
-    cam = suggested_camera(g.positions, up=up)
+    cam = suggested_camera(g.positions, up=up, side=view_side(g, up))
     return CameraEntry(tuple(float(v) for v in cam.eye), tuple(float(v) for v in cam.target),
                        tuple(float(v) for v in cam.up), float(cam.fov_y_deg))
 
