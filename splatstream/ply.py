@@ -212,6 +212,20 @@ def read_gaussians_ply(path: str | os.PathLike, drop_invalid: bool = False) -> G
     values = {k: columns(v) for k, v in groups.items()}
     del columns  # drops the raw records
     n = len(values["positions"])
+    # An infinite opacity logit is alpha exactly 1 (+inf) or 0 (-inf): splat-transform writes +inf for fully
+    # opaque splats. It is a value, not corruption: clamp it to the finite logit every 8-bit-alpha reader uses
+    # for alpha 1 or 0. NaN stays invalid (below).
+    opacity = values["opacity_logits"]
+    infinite = np.isinf(opacity)
+    if infinite.any():
+        from .readers import opacity_logits_from_unit
+
+        limit = float(opacity_logits_from_unit(np.ones(1))[0])
+        positive = int((opacity > 0)[infinite].sum())
+        opacity[infinite] = np.where(opacity[infinite] > 0, limit, -limit)
+        warnings.warn(f"{path}: {int(infinite.sum())} of {n} splats have an infinite opacity logit ({positive} +inf "
+                      f"= alpha 1, {int(infinite.sum()) - positive} -inf = alpha 0); read as +-{limit:.2f}",
+                      stacklevel=2)
     bad_rows = np.zeros(n, bool)
     per_field: dict[str, int] = {}
     for key, cols in groups.items():
