@@ -162,7 +162,7 @@ def test_drop_invalid_drops_with_a_warning(tmp_path):
 def test_infinite_opacity_is_alpha_one_or_zero(tmp_path):
     """splat-transform writes an opacity logit of +inf for fully opaque splats: +-inf are alpha 1 / 0, read as the
     finite logit of the 8-bit-alpha readers (+-13.8) with a count in the warning; NaN stays an error."""
-    rec = make_records(100, 0)
+    _, rec = make_records(100, 0)
     rec["opacity"][3] = np.inf
     rec["opacity"][4] = np.inf
     rec["opacity"][7] = -np.inf
