@@ -280,9 +280,8 @@ def _read_unit(source: _Source, meta_name: str) -> Gaussians:
             palette = _int(label, "shN.count", shn.get("count"), 1, 1 << 16)
             sh_book = _floats(label, "shN.codebook", shn.get("codebook"), max_length=256)
             centroids_name, labels_name = _files(label, "shN", shn, 2)
-            rows = -(-palette // 64)
-            centroids = _texture(source, name_of(centroids_name), "shN.files[0]", 0, 64 * k * rows,
-                                 width=64 * k)
+            # 64 palette entries per row, each k texels wide; at most 65536 entries (16-bit labels).
+            centroids = _texture(source, name_of(centroids_name), "shN.files[0]", 0, 64 * k * 1024, width=64 * k)
             labels = _texture(source, name_of(labels_name), "shN.files[1]", count, max_texels)[:count]
             index = labels[:, 0].astype(np.int64) | (labels[:, 1].astype(np.int64) << 8)
             del labels
