@@ -108,6 +108,19 @@ def test_tool_spz_of_degree_zero_reads():
     assert np.abs(g.opacities - src.opacities).max() <= 0.5 / 255 + 1e-6
 
 
+def test_tool_ply_with_infinite_opacity_reads():
+    """splat-transform 2.7.1 (Niantic's loader) converts SPZ alpha bytes 255 and 0 to opacity logits +inf and
+    -inf in its PLY (fixture opaque_v4.spz.tool.ply): read as alpha 1 and 0, with a count in the warning."""
+    with pytest.warns(UserWarning, match=r"7 of 24 splats have an infinite opacity logit \(5 \+inf = alpha 1, "
+                      r"2 -inf = alpha 0\)"):
+        g = read_gaussians(FIXTURES / "opaque_v4.spz.tool.ply")
+    spz = read_gaussians(FIXTURES / "opaque_v4.spz")
+    assert len(g) == len(spz) == 24
+    np.testing.assert_allclose(g.opacities, spz.opacities, atol=1e-6)
+    np.testing.assert_allclose(g.opacity_logits[:7], spz.opacity_logits[:7], atol=1e-4)
+    assert (g.opacities[:5] > 0.99999).all() and (g.opacities[5:7] < 1e-5).all()
+
+
 def test_spz_large_coordinates_use_fewer_fractional_bits():
     src = random_gaussians(50, 1, extent=5000.0)
     with pytest.warns(UserWarning, match="10 fractional bits"):
