@@ -21,7 +21,7 @@ import subprocess
 import numpy as np
 import pytest
 from conftest import ROOT, real
-from test_open_formats import check_sog_against_source, match_by_position
+from test_open_formats import check_sog_against_source
 from test_readers import same_sign, tool_output
 
 from splatstream.axes import RDF_TO_RUB, turn
