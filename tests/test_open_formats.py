@@ -42,7 +42,12 @@ def random_gaussians(n: int, degree: int, extent: float = 1.0) -> Gaussians:
 
 
 def rotation_angle(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    return 2 * np.arccos(np.clip(np.abs((a.astype(np.float64) * b).sum(axis=1)), 0, 1))
+    """Angle of the rotation between unit quaternions (q and -q alike), accurate also for tiny angles (arccos of
+    a float32 dot product cannot resolve angles below about 1e-3)."""
+    a = a.astype(np.float64) / np.linalg.norm(a, axis=1, keepdims=True)
+    b = b.astype(np.float64) / np.linalg.norm(b, axis=1, keepdims=True)
+    b = b * np.where((a * b).sum(axis=1) < 0, -1.0, 1.0)[:, None]
+    return 4 * np.arctan2(np.linalg.norm(a - b, axis=1), np.linalg.norm(a + b, axis=1))
 
 
 def match_by_position(g: Gaussians, src: Gaussians) -> tuple[Gaussians, float]:
