@@ -25,6 +25,14 @@ REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
             "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
 
 
+class InfiniteOpacityWarning(UserWarning):
+    """Opacity logits of +-inf (alpha 1 or 0) were read as finite logits; `count` says how many."""
+
+    def __init__(self, message: str, count: int):
+        super().__init__(message)
+        self.count = count
+
+
 @dataclass
 class PlyElement:
     name: str
@@ -223,9 +231,10 @@ def read_gaussians_ply(path: str | os.PathLike, drop_invalid: bool = False) -> G
         limit = float(opacity_logits_from_unit(np.ones(1))[0])
         positive = int((opacity > 0)[infinite].sum())
         opacity[infinite] = np.where(opacity[infinite] > 0, limit, -limit)
-        warnings.warn(f"{path}: {int(infinite.sum())} of {n} splats have an infinite opacity logit ({positive} +inf "
-                      f"= alpha 1, {int(infinite.sum()) - positive} -inf = alpha 0); read as +-{limit:.2f}",
-                      stacklevel=2)
+        warnings.warn(InfiniteOpacityWarning(
+            f"{path}: {int(infinite.sum())} of {n} splats have an infinite opacity logit ({positive} +inf = alpha 1, "
+            f"{int(infinite.sum()) - positive} -inf = alpha 0); read as +-{limit:.2f}", int(infinite.sum())),
+            stacklevel=2)
     bad_rows = np.zeros(n, bool)
     per_field: dict[str, int] = {}
     for key, cols in groups.items():
