@@ -278,6 +278,10 @@ def test_glb_spz_round_trip(tmp_path):
     assert splat["extensions"] == {"KHR_gaussian_splatting_compression_spz_2": {"bufferView": 0}}
     assert gltf["extensionsRequired"] == ["KHR_gaussian_splatting", "KHR_gaussian_splatting_compression_spz_2"]
     assert all("bufferView" not in a and a["count"] == 296 for a in gltf["accessors"])
+    # The attributes the extension maps from SPZ (alphas go to COLOR_0): no OPACITY, no SH degree 0.
+    assert set(gltf["meshes"][0]["primitives"][0]["attributes"]) == {
+        "POSITION", "COLOR_0", "KHR_gaussian_splatting:ROTATION", "KHR_gaussian_splatting:SCALE",
+        *sh_attribute_names(3)}
     view = gltf["bufferViews"][0]
     json_length = struct.unpack_from("<I", data, 12)[0]
     blob = data[28 + json_length + view["byteOffset"]:][:view["byteLength"]]
@@ -286,6 +290,20 @@ def test_glb_spz_round_trip(tmp_path):
     path.write_bytes(data)
     assert_same_gaussians(read_gaussians(path), decode_spz("x", blob))
     assert len(data) < 0.2 * len(glb_bytes(src))
+    # spz_axes="luf": the glTF values stored unconverted (what CesiumJS's loader expects); same scene back.
+    from splatstream.readers.gltf import read_gltf
+
+    luf = glb_bytes(src, "spz", spz_axes="luf")
+    path.write_bytes(luf)
+    back, spec = read_gltf(path, spz_axes="luf"), decode_spz("x", blob)
+    np.testing.assert_array_equal(back.positions, spec.positions)
+    np.testing.assert_allclose(covariances(back), covariances(spec), rtol=1e-4, atol=1e-12)
+    np.testing.assert_array_equal(back.opacity_logits, spec.opacity_logits)
+    # SPZ's SH buckets are not symmetric about 0: values whose sign the turn flips may move one bucket.
+    assert np.abs(back.sh_rest - spec.sh_rest).max() <= 16 / 128 + 1e-6
+    luf_blob = luf[28 + struct.unpack_from("<I", luf, 12)[0]:][:glb_json(luf)["bufferViews"][0]["byteLength"]]
+    stored = turn(decode_spz("x", luf_blob), RDF_TO_RUB)  # undo the SPZ reader's RUB -> RDF: the raw values
+    np.testing.assert_allclose(stored.positions, turn(src, RDF_TO_LUF).positions, atol=0.5 / 4096 + 1e-6)
 
 
 def test_tool_glb_reads_like_its_source():

@@ -334,7 +334,8 @@ def _sh_degree(path: str, field: str, attributes: dict) -> int:
     return degree
 
 
-def _primitive(doc: _Document, mesh: int, number: int, primitive: dict, drop_invalid: bool) -> Gaussians:
+def _primitive(doc: _Document, mesh: int, number: int, primitive: dict, drop_invalid: bool,
+               spz_axes: str) -> Gaussians:
     field = f"meshes[{mesh}].primitives[{number}]"
     splat = primitive["extensions"][EXTENSION]
     if not isinstance(splat, dict):
@@ -365,10 +366,11 @@ def _primitive(doc: _Document, mesh: int, number: int, primitive: dict, drop_inv
             raise InputError(doc.path, f"{field} POSITION accessor", f"count {position_count!r}, but the SPZ data "
                              f"holds {len(g)} splats")
         # SPZ content is packed from glTF's LUF into SPZ's RUB; our SPZ decoder returns RDF: turn to LUF so node
-        # transforms apply in glTF space like for plain accessors.
-        from ..axes import turn
+        # transforms apply in glTF space like for plain accessors. With spz_axes "luf" the SPZ holds the glTF values
+        # unconverted (as CesiumJS reads it): undo the decoder's RUB -> RDF turn instead.
+        from ..axes import RDF_TO_RUB, turn
 
-        return turn(g, LUF_TO_RDF)
+        return turn(g, LUF_TO_RDF if spz_axes == "rub" else RDF_TO_RUB)
     for name in ("ROTATION", "SCALE", "OPACITY", "SH_DEGREE_0_COEF_0"):
         if PREFIX + name not in attributes:
             raise InputError(doc.path, f"{field} attributes", f"missing {PREFIX}{name} (required by {EXTENSION})")
@@ -411,8 +413,11 @@ def _primitive(doc: _Document, mesh: int, number: int, primitive: dict, drop_inv
                      sh_rest=sh_rest)
 
 
-def read_gltf(path: str | os.PathLike, drop_invalid: bool = False) -> Gaussians:
-    """Every KHR_gaussian_splatting primitive of a .glb / .gltf, in world space, in our RDF axes."""
+def read_gltf(path: str | os.PathLike, drop_invalid: bool = False, spz_axes: str = "rub") -> Gaussians:
+    """Every KHR_gaussian_splatting primitive of a .glb / .gltf, in world space, in our RDF axes.
+
+    spz_axes: how SPZ content stores glTF's axes: "rub" (the extension's text) or "luf" (unconverted, as CesiumJS
+    reads it; see splatstream/writers/glb.py)."""
     from ..axes import turn
 
     path = os.fspath(path)
@@ -431,7 +436,7 @@ def read_gltf(path: str | os.PathLike, drop_invalid: bool = False) -> Gaussians:
         for number, primitive in enumerate(primitives):
             if not isinstance(primitive, dict) or EXTENSION not in (primitive.get("extensions") or {}):
                 continue
-            g = _primitive(doc, mesh, number, primitive, drop_invalid)
+            g = _primitive(doc, mesh, number, primitive, drop_invalid, spz_axes)
             parts.append(_apply_matrix(path, g, world))
     if not parts:
         hint = "" if isinstance(used, list) and EXTENSION in used else f" (extensionsUsed does not list {EXTENSION})"

@@ -14,8 +14,15 @@ alpha = opacity), KHR_gaussian_splatting:ROTATION (x, y, z, w), :SCALE (linear =
 :OPACITY (sigmoid(logit)), :SH_DEGREE_0_COEF_0 (f_dc), :SH_DEGREE_l_COEF_n (l = 1..3, n = 0..2l, RGB).
 
 SPZ form: the SPZ file (of the same scene in glTF axes, packed "from LUF", i.e. stored in SPZ's RUB like any
-SPZ) is buffer view 0 and the extension object points to it; the attributes keep accessors with `count`,
-`type` and `componentType` but no buffer view (POSITION keeps min/max), as the extension specifies.
+SPZ) is buffer view 0 and the extension object points to it; the attributes the extension maps from SPZ
+(POSITION with min/max, COLOR_0, SCALE, ROTATION, SH_DEGREE_l_COEF_n for l >= 1) keep accessors with `count`,
+`type` and `componentType` but no buffer view. OPACITY and SH_DEGREE_0_COEF_0 are not listed: the extension maps
+SPZ's alphas and colours to COLOR_0, and CesiumJS's loader fills only the attributes of that mapping.
+
+`spz_axes="luf"` stores the glTF (LUF) values in the SPZ unconverted instead: CesiumJS decodes SPZ content with
+`coordinateSystem: "UNSPECIFIED"` (no conversion) and uses the values as glTF coordinates, which the extension
+text (pack from LUF, i.e. into RUB) contradicts; which of the two CesiumJS draws in place is for the 3D Tiles
+browser test to decide.
 """
 from __future__ import annotations
 
@@ -25,7 +32,7 @@ import struct
 
 import numpy as np
 
-from ..axes import RDF_TO_LUF, turn
+from ..axes import RDF_TO_LUF, RDF_TO_RUB, turn
 from ..errors import UsageError
 from ..gaussians import SH_BAND_COEFFS, Gaussians, sigmoid
 
@@ -45,6 +52,7 @@ SPLAT_PROPERTIES = {"kernel": "ellipse", "colorSpace": "srgb_rec709_display", "p
 # reads those. Version 4 (zstd) is on request.
 DEFAULT_SPZ_VERSION = 3
 COMPRESSIONS = ("none", "spz")
+SPZ_AXES = ("rub", "luf")
 
 
 def sh_attribute_names(degree: int) -> list[str]:
@@ -70,15 +78,17 @@ def _pad4(data: bytes, fill: bytes = b"\x00") -> bytes:
 
 def glb_bytes(g: Gaussians, compression: str = "none", spz_version: int = DEFAULT_SPZ_VERSION,
               matrix: list[float] | None = None, generator: str = "splatstream",
-              extras: dict | None = None) -> bytes:
+              extras: dict | None = None, spz_axes: str = "rub") -> bytes:
     """A GLB holding `g` (RDF axes) as one KHR_gaussian_splatting point primitive.
 
     compression: "none" (plain float accessors) or "spz" (KHR_gaussian_splatting_compression_spz_2 with an SPZ
     file of `spz_version`). matrix: optional column-major 4x4 node matrix (glTF convention). extras: merged into
-    the asset's `extras`.
+    the asset's `extras`. spz_axes: "rub" (the extension's text) or "luf" (glTF values stored unconverted).
     """
     if compression not in COMPRESSIONS:
         raise UsageError(f"glTF compression {compression!r} is not supported (expected one of {COMPRESSIONS})")
+    if spz_axes not in SPZ_AXES:
+        raise UsageError(f"SPZ axes {spz_axes!r} (expected one of {SPZ_AXES})")
     if matrix is not None and (len(matrix) != 16 or not np.isfinite(np.asarray(matrix, np.float64)).all()):
         raise UsageError("a glTF node matrix needs 16 finite numbers (column-major)")
     n = len(g)
@@ -89,6 +99,8 @@ def glb_bytes(g: Gaussians, compression: str = "none", spz_version: int = DEFAUL
     position_max = luf.positions.max(axis=0).astype(np.float64).tolist()
     names = ["POSITION", "COLOR_0", f"{PREFIX}ROTATION", f"{PREFIX}SCALE", f"{PREFIX}OPACITY",
              f"{PREFIX}SH_DEGREE_0_COEF_0", *sh_attribute_names(g.sh_degree)]
+    if compression == "spz":
+        names = [n for n in names if n not in (f"{PREFIX}OPACITY", f"{PREFIX}SH_DEGREE_0_COEF_0")]
     kinds = {"POSITION": ("VEC3", FLOAT), "COLOR_0": ("VEC4", UNSIGNED_BYTE), f"{PREFIX}ROTATION": ("VEC4", FLOAT),
              f"{PREFIX}OPACITY": ("SCALAR", FLOAT)}
     accessors: list[dict] = []
@@ -110,11 +122,11 @@ def glb_bytes(g: Gaussians, compression: str = "none", spz_version: int = DEFAUL
         from .spz import spz_bytes
 
         # Packed from glTF's LUF into SPZ's RUB: the same bytes as an SPZ file of the RDF scene.
-        blob = spz_bytes(g, spz_version)
+        blob = spz_bytes(g, spz_version, axes=RDF_TO_RUB if spz_axes == "rub" else RDF_TO_LUF)
         # The bounds a viewer gets are those of the decoded (quantised) positions.
         from ..readers.spz import decode_spz
 
-        decoded = turn(decode_spz("<spz content>", blob), RDF_TO_LUF).positions
+        decoded = turn(decode_spz("<spz content>", blob), RDF_TO_LUF if spz_axes == "rub" else RDF_TO_RUB).positions
         accessors[0]["min"] = decoded.min(axis=0).astype(np.float64).tolist()
         accessors[0]["max"] = decoded.max(axis=0).astype(np.float64).tolist()
         buffer_views.append({"buffer": 0, "byteOffset": 0, "byteLength": len(blob)})
