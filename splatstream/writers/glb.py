@@ -94,9 +94,10 @@ def glb_bytes(g: Gaussians, compression: str = "none", spz_version: int = DEFAUL
     n = len(g)
     if n == 0:
         raise UsageError("a glTF splat primitive needs at least one splat (accessor count must be >= 1)")
-    luf = turn(g, RDF_TO_LUF)
-    position_min = luf.positions.min(axis=0).astype(np.float64).tolist()
-    position_max = luf.positions.max(axis=0).astype(np.float64).tolist()
+    # Plain accessors hold the scene in glTF axes; the SPZ form packs from `g` directly (below).
+    luf = turn(g, RDF_TO_LUF) if compression == "none" else None
+    position_min = luf.positions.min(axis=0).astype(np.float64).tolist() if luf is not None else None
+    position_max = luf.positions.max(axis=0).astype(np.float64).tolist() if luf is not None else None
     names = ["POSITION", "COLOR_0", f"{PREFIX}ROTATION", f"{PREFIX}SCALE", f"{PREFIX}OPACITY",
              f"{PREFIX}SH_DEGREE_0_COEF_0", *sh_attribute_names(g.sh_degree)]
     if compression == "spz":
@@ -135,6 +136,7 @@ def glb_bytes(g: Gaussians, compression: str = "none", spz_version: int = DEFAUL
         extensions_required = [EXTENSION, SPZ_EXTENSION]  # no uncompressed fallback data
         binary = _pad4(blob)
     else:
+        assert luf is not None
         rest = [luf.sh_rest[:, k] for k in range(luf.sh_rest.shape[1])]
         arrays = [luf.positions, _color0(luf), luf.rotations[:, [1, 2, 3, 0]], np.exp(luf.log_scales),
                   sigmoid(luf.opacity_logits), luf.sh_dc, *rest]
