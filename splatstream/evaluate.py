@@ -199,38 +199,23 @@ def read_compare(path: str) -> tuple[Gaussians, int]:
     """Read another tool's output; returns (Gaussians, number of opacity logits that were +-inf and got clamped).
 
     Tools that store opacity in 8 bits decode 0 and 255 to logits of -inf and +inf; a renderer reads them as opacity
-    0 and 1, so they are clamped to -+30 (sigmoid saturates) instead of being rejected as invalid.
+    0 and 1, and so does our PLY reader (it clamps them to the finite logit +-13.8 and warns with the count).
     """
+    import warnings
+
     from .io import read_gaussians
+    from .ply import InfiniteOpacityWarning
 
-    try:
-        return read_gaussians(path), 0
-    except InputError as exc:
-        if "opacity" not in str(exc) or "non-finite" not in str(exc):
-            raise
-    from .gaussians import normalize_quaternions
-    from .ply import read_elements
-
-    _, elements = read_elements(path)
-    v = elements["vertex"]
-    names = v.dtype.names or ()
-
-    def cols(prefix: str, n: int | None = None) -> np.ndarray:
-        keys = sorted((k for k in names if k.startswith(prefix)), key=lambda k: int(k[len(prefix):]))
-        return np.stack([v[k].astype(np.float32) for k in keys], axis=1) if keys else np.zeros((len(v), 0), np.float32)
-
-    opacity = v["opacity"].astype(np.float32)
-    bad = np.isinf(opacity)
-    opacity = np.clip(opacity, -30.0, 30.0)
-    rest = cols("f_rest_")
-    k = rest.shape[1] // 3
-    g = Gaussians(np.stack([v["x"], v["y"], v["z"]], axis=1), normalize_quaternions(cols("rot_")), cols("scale_"),
-                  opacity, cols("f_dc_"), rest.reshape(len(v), 3, k).transpose(0, 2, 1))
-    bad_other = ~np.all(np.isfinite(np.concatenate([g.positions, g.rotations, g.log_scales, g.sh_dc], axis=1)), axis=1)
-    if bad_other.any():
-        raise InputError(path, "element vertex", f"{int(bad_other.sum())} splats have non-finite values besides "
-                         "opacity")
-    return g, int(bad.sum())
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", InfiniteOpacityWarning)
+        g = read_gaussians(path)
+    clamped = 0
+    for w in caught:
+        if isinstance(w.message, InfiniteOpacityWarning):
+            clamped += w.message.count
+        else:
+            warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
+    return g, clamped
 
 
 def _quality(renderer: Renderer, g: Gaussians | str, cameras: list[Camera],
@@ -346,7 +331,7 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
         for label, path, size_path in compares:
             other, clamped = read_compare(path)
             if clamped:
-                log(f"{label}: {clamped} opacity logits of +-inf (8-bit opacity 0 or 1) clamped to +-30")
+                log(f"{label}: {clamped} opacity logits of +-inf (8-bit opacity 0 or 1) read as +-13.8")
             ps, ss, _ = _quality(renderer, other, cameras, references)
             size = path_size(size_path)
             row = Row(label, "compare", {}, len(other), None, size, size / max(1, len(other)), input_size / size,

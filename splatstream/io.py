@@ -1,7 +1,10 @@
 """Reading and writing splat scenes in any supported format, chosen by content, not only by extension.
 
-Readable: standard 3DGS PLY, PlayCanvas compressed PLY, Niantic SPZ (versions 2, 3, 4), antimatter15 .splat.
-Writable: .ply (standard 3DGS) and .splat. See format_spec/foreign_formats.md for what each format keeps.
+Readable: standard 3DGS PLY, PlayCanvas compressed PLY, Niantic SPZ (versions 2, 3, 4), antimatter15 .splat,
+PlayCanvas SOG (bundled .sog, unbundled meta.json directory, streamed lod-meta.json), glTF/GLB with
+KHR_gaussian_splatting (plain or SPZ-compressed).
+Writable, chosen by the output's extension: .ply (standard 3DGS), .splat, .spz (SPZ v4 or v3), .glb
+(KHR_gaussian_splatting, plain or SPZ-compressed). See format_spec/foreign_formats.md for what each format keeps.
 """
 from __future__ import annotations
 
@@ -15,8 +18,11 @@ FORMAT_NAMES = {
     "compressed_ply": "PlayCanvas compressed PLY",
     "spz": "Niantic SPZ",
     "splat": "antimatter15 .splat",
+    "sog": "PlayCanvas SOG",
+    "lod_sog": "PlayCanvas streamed SOG (finest level)",
+    "gltf": "glTF with KHR_gaussian_splatting",
 }
-WRITABLE_EXTENSIONS = {".ply": "ply", ".splat": "splat"}
+WRITABLE_EXTENSIONS = {".ply": "ply", ".splat": "splat", ".spz": "spz", ".glb": "gltf"}
 SPLAT_RECORD_BYTES = 32
 
 
@@ -47,13 +53,27 @@ def sniff_format(path: str | os.PathLike) -> str:
     """
     from .ply import MAX_HEADER_BYTES, read_header
     from .readers.compressed_ply import is_compressed_ply
+    from .readers.sog import sog_kind
 
     path = os.fspath(path)
+    if os.path.isdir(path):
+        kind = sog_kind(path)
+        if kind is None:
+            raise InputError(path, None, "is a directory without meta.json or lod-meta.json (expected a splat file "
+                             "or a SOG scene directory)")
+        return "lod_sog" if kind == "lod" else "sog"
     check_regular_file(path)
     with open(path, "rb") as f:
         head = f.read(MAX_HEADER_BYTES)
     if not head:
         raise InputError(path, None, "file is empty")
+    if head.startswith(b"glTF"):
+        return "gltf"
+    kind = sog_kind(path) if head.startswith(b"PK\x03\x04") or head.lstrip().startswith(b"{") else None
+    if kind is not None:
+        return "lod_sog" if kind == "lod" else "sog"
+    if head.lstrip().startswith(b"{") and os.path.splitext(path)[1].lower() == ".gltf":
+        return "gltf"
     if head.startswith(b"ply\n") or head.startswith(b"ply\r\n"):
         return "compressed_ply" if is_compressed_ply(read_header(path, head)) else "ply"
     is_splat_name = os.path.splitext(path)[1].lower() == ".splat"
@@ -72,7 +92,8 @@ def sniff_format(path: str | os.PathLike) -> str:
                              f"of 32-byte records; {size % 32} bytes left over: truncated?)")
         return "splat"
     raise InputError(path, None, "unrecognised file format (expected a 3DGS PLY, a PlayCanvas compressed PLY, an "
-                     "SPZ file, or a .splat file)")
+                     "SPZ file, a .splat file, a SOG scene (.sog, meta.json, lod-meta.json) or a glTF/GLB file with "
+                     "KHR_gaussian_splatting)")
 
 
 def _gzip_starts_with(head: bytes, prefix: bytes) -> bool:
@@ -104,6 +125,14 @@ def read_gaussians(path: str | os.PathLike, drop_invalid: bool = False) -> Gauss
         from .readers.splat import read_splat
 
         return read_splat(path, drop_invalid=drop_invalid)
+    if fmt in ("sog", "lod_sog"):
+        from .readers.sog import read_sog
+
+        return read_sog(path, drop_invalid=drop_invalid)
+    if fmt == "gltf":
+        from .readers.gltf import read_gltf
+
+        return read_gltf(path, drop_invalid=drop_invalid)
     raise InputError(path, None, f"no reader for format {fmt!r}")
 
 
@@ -111,17 +140,30 @@ def output_format(path: str | os.PathLike) -> str:
     """Writer for an output path, from its extension; raises InputError for extensions we cannot write."""
     ext = os.path.splitext(os.fspath(path))[1].lower()
     if ext not in WRITABLE_EXTENSIONS:
-        raise InputError(path, None, f"cannot write {ext or 'extensionless'} files (expected .ply or .splat)")
+        raise InputError(path, None, f"cannot write {ext or 'extensionless'} files (expected one of "
+                         f"{', '.join(WRITABLE_EXTENSIONS)})")
     return WRITABLE_EXTENSIONS[ext]
 
 
-def write_gaussians(g: Gaussians, path: str | os.PathLike) -> None:
-    """Write Gaussians (atomically) to a file whose format follows the extension (.ply or .splat)."""
+def write_gaussians(g: Gaussians, path: str | os.PathLike, spz_version: int = 4,
+                    glb_compression: str = "none") -> None:
+    """Write Gaussians (atomically) to a file whose format follows the extension (.ply, .splat, .spz, .glb).
+
+    spz_version: 3 or 4 for .spz outputs. glb_compression: "none" or "spz" for .glb outputs.
+    """
     fmt = output_format(path)
     if fmt == "ply":
         from .ply import write_gaussians_ply
 
         write_gaussians_ply(g, path)
+    elif fmt == "spz":
+        from .writers.spz import write_spz
+
+        write_spz(g, path, spz_version)
+    elif fmt == "gltf":
+        from .writers.glb import write_glb
+
+        write_glb(g, path, glb_compression)
     else:
         from .readers.splat import write_splat
 

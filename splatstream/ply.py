@@ -25,6 +25,14 @@ REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
             "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
 
 
+class InfiniteOpacityWarning(UserWarning):
+    """Opacity logits of +-inf (alpha 1 or 0) were read as finite logits; `count` says how many."""
+
+    def __init__(self, message: str, count: int):
+        super().__init__(message)
+        self.count = count
+
+
 @dataclass
 class PlyElement:
     name: str
@@ -212,6 +220,21 @@ def read_gaussians_ply(path: str | os.PathLike, drop_invalid: bool = False) -> G
     values = {k: columns(v) for k, v in groups.items()}
     del columns  # drops the raw records
     n = len(values["positions"])
+    # An infinite opacity logit is alpha exactly 1 (+inf) or 0 (-inf): splat-transform writes +inf for fully
+    # opaque splats. It is a value, not corruption: clamp it to the finite logit every 8-bit-alpha reader uses
+    # for alpha 1 or 0. NaN stays invalid (below).
+    opacity = values["opacity_logits"]
+    infinite = np.isinf(opacity)
+    if infinite.any():
+        from .readers import opacity_logits_from_unit
+
+        limit = float(opacity_logits_from_unit(np.ones(1))[0])
+        positive = int((opacity > 0)[infinite].sum())
+        opacity[infinite] = np.where(opacity[infinite] > 0, limit, -limit)
+        warnings.warn(InfiniteOpacityWarning(
+            f"{path}: {int(infinite.sum())} of {n} splats have an infinite opacity logit ({positive} +inf = alpha 1, "
+            f"{int(infinite.sum()) - positive} -inf = alpha 0); read as +-{limit:.2f}", int(infinite.sum())),
+            stacklevel=2)
     bad_rows = np.zeros(n, bool)
     per_field: dict[str, int] = {}
     for key, cols in groups.items():

@@ -152,7 +152,9 @@ def test_read_compare_clamps_infinite_opacity(tmp_path):
     np.testing.assert_array_equal(got.sh_rest, g.sh_rest)
     np.testing.assert_array_equal(got.positions, g.positions)
     np.testing.assert_allclose(got.rotations, g.rotations, atol=1e-7)
-    assert got.opacity_logits[1] == 30.0 and got.opacity_logits[4] == -30.0
+    limit = np.log((1 - 1e-6) / 1e-6)  # the PLY reader's finite logit for alpha 1 (issue 17)
+    assert got.opacity_logits[1] == pytest.approx(limit, rel=1e-6) and got.opacity_logits[4] == pytest.approx(-limit,
+                                                                                                           rel=1e-6)
     np.testing.assert_array_equal(np.delete(got.opacity_logits, [1, 4]), np.delete(g.opacity_logits, [1, 4]))
 
 

@@ -108,7 +108,7 @@ def bad_inputs(tmp_path):
     cases["lying_less.ply"] = "do not match"
     nan = rec.copy()
     nan["x"][3] = np.nan
-    nan["opacity"][5] = np.inf
+    nan["opacity"][5] = np.nan  # an infinite opacity logit is alpha 0 or 1 and is read (test_infinite_opacity)
     write_ply(tmp_path / "nan.ply", nan)
     cases["nan.ply"] = "2 of 100 splats have non-finite values"
     zero = rec.copy()
@@ -157,3 +157,28 @@ def test_drop_invalid_drops_with_a_warning(tmp_path):
     import json
 
     assert json.loads(r.stdout)["splats"] == 98
+
+
+def test_infinite_opacity_is_alpha_one_or_zero(tmp_path):
+    """splat-transform writes an opacity logit of +inf for fully opaque splats: +-inf are alpha 1 / 0, read as the
+    finite logit of the 8-bit-alpha readers (+-13.8) with a count in the warning; NaN stays an error."""
+    _, rec = make_records(100, 0)
+    rec["opacity"][3] = np.inf
+    rec["opacity"][4] = np.inf
+    rec["opacity"][7] = -np.inf
+    write_ply(tmp_path / "inf.ply", rec)
+    with pytest.warns(UserWarning, match=r"3 of 100 splats have an infinite opacity logit \(2 \+inf = alpha 1, 1 "
+                      r"-inf = alpha 0\)"):
+        g = read_gaussians_ply(tmp_path / "inf.ply")
+    assert len(g) == 100
+    limit = np.log((1 - 1e-6) / 1e-6)
+    assert g.opacity_logits[3] == g.opacity_logits[4] == pytest.approx(limit, rel=1e-6)
+    assert g.opacity_logits[7] == pytest.approx(-limit, rel=1e-6)
+    assert g.opacities[3] == pytest.approx(1.0, abs=1e-6) and g.opacities[7] == pytest.approx(0.0, abs=1e-6)
+    others = np.setdiff1d(np.arange(100), [3, 4, 7])
+    assert np.array_equal(g.opacity_logits[others], rec["opacity"][others])
+    rec["opacity"][9] = np.nan
+    write_ply(tmp_path / "nan.ply", rec)
+    with pytest.raises(InputError, match="1 of 100 splats have non-finite values.*opacity: 1"), \
+            pytest.warns(UserWarning, match="infinite opacity"):
+        read_gaussians_ply(tmp_path / "nan.ply")

@@ -1,4 +1,4 @@
-"""`splatstream convert IN OUT`: any readable splat format to .ply or .splat."""
+"""`splatstream convert IN OUT`: any readable splat format to .ply, .splat, .spz or .glb."""
 from __future__ import annotations
 
 import argparse
@@ -10,12 +10,19 @@ import time
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "convert", help="convert between splat file formats",
-        description="Read a splat file (standard 3DGS PLY, PlayCanvas compressed PLY, Niantic SPZ v2-v4, "
-                    "antimatter15 .splat; recognised by content) and write it as a standard 3DGS PLY (.ply) or "
-                    ".splat, chosen by OUT's extension. The output appears only when complete. What each "
-                    "format keeps is documented in format_spec/foreign_formats.md.")
-    p.add_argument("input", help="input splat file")
-    p.add_argument("output", help="output file (.ply or .splat)")
+        description="Read a splat scene (standard 3DGS PLY, PlayCanvas compressed PLY, Niantic SPZ v2-v4, "
+                    "antimatter15 .splat, PlayCanvas SOG as a .sog file, a meta.json or its directory, streamed SOG "
+                    "as a lod-meta.json or its directory (finest level), glTF/GLB with KHR_gaussian_splatting; "
+                    "recognised by content) and write it as a standard 3DGS PLY (.ply), .splat, SPZ (.spz) or "
+                    "glTF binary with KHR_gaussian_splatting (.glb), chosen by OUT's extension. The output appears "
+                    "only when complete. What each format keeps is documented in format_spec/foreign_formats.md.")
+    p.add_argument("input", help="input splat file or SOG directory")
+    p.add_argument("output", help="output file (.ply, .splat, .spz or .glb)")
+    p.add_argument("--spz-version", type=int, choices=(3, 4), default=4,
+                   help="SPZ version for .spz output: 4 (zstd streams, default) or 3 (gzip, for older readers)")
+    p.add_argument("--glb-compression", choices=("none", "spz"), default="none",
+                   help="for .glb output: plain float accessors (default) or SPZ-compressed content "
+                        "(KHR_gaussian_splatting_compression_spz_2)")
     p.add_argument("--drop-invalid", action="store_true",
                    help="drop splats with non-finite or degenerate values instead of refusing the input")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages on stderr")
@@ -43,7 +50,8 @@ def run(args: argparse.Namespace) -> int:
     say(f"read {len(g)} splats, SH degree {g.sh_degree}")
     if out_format == "splat" and g.sh_degree > 0:
         say(f"note: .splat has no SH bands; bands 1..{g.sh_degree} are dropped")
-    say(f"writing {args.output} ({FORMAT_NAMES[out_format]})")
-    write_gaussians(g, args.output)
+    detail = {"spz": f", version {args.spz_version}", "gltf": f", {args.glb_compression} compression"}
+    say(f"writing {args.output} ({FORMAT_NAMES[out_format]}{detail.get(out_format, '')})")
+    write_gaussians(g, args.output, spz_version=args.spz_version, glb_compression=args.glb_compression)
     say("done")
     return 0

@@ -136,9 +136,19 @@ def _read_v4(path: str, data: bytes) -> tuple[dict, dict[str, bytes]]:
                          "3 are gzip-wrapped; a plaintext header must be version 4)")
     if any(reserved):
         raise InputError(path, "header reserved", f"bytes {reserved.hex()} (expected 12 zero bytes)")
-    if num_streams != len(STREAMS):
-        raise InputError(path, "header numStreams", f"{num_streams} (expected {len(STREAMS)}: positions, alphas, "
-                         "colours, scales, rotations, SH)")
+    sizes = _point_sizes(version, sh_degree)
+    # The reference writer gives an array of zero bytes no stream (SH at degree 0; everything for 0 points), so
+    # the count follows from the header; all six (empty ones with compressedSize 0 or an empty frame) are also
+    # accepted.
+    present = [name for name in STREAMS if n * sizes[name]]
+    if num_streams == len(present):
+        names = present
+    elif num_streams == len(STREAMS):
+        names = list(STREAMS)
+    else:
+        raise InputError(path, "header numStreams", f"{num_streams}, but {n} points with SH degree {sh_degree} have "
+                         f"{len(present)} non-empty arrays ({', '.join(present) or 'none'}; expected {len(present)} "
+                         f"or {len(STREAMS)})")
     toc_end = toc_offset + num_streams * TOC_ENTRY.size
     if toc_offset < V4_HEADER.size or toc_end > len(data):
         raise InputError(path, "header tocByteOffset", f"{toc_offset}: the table of contents must start at or "
@@ -147,8 +157,7 @@ def _read_v4(path: str, data: bytes) -> tuple[dict, dict[str, bytes]]:
         raise InputError(path, "header tocByteOffset", f"{toc_offset} but the extensions flag is not set "
                          "(expected 32)")
     _skip_extensions(path, data[V4_HEADER.size:toc_offset])
-    sizes = _point_sizes(version, sh_degree)
-    streams: dict[str, bytes] = {}
+    streams: dict[str, bytes] = {name: b"" for name in STREAMS}
     offset = toc_end
     toc = [TOC_ENTRY.unpack_from(data, toc_offset + i * TOC_ENTRY.size) for i in range(num_streams)]
     total_compressed = sum(c for c, _ in toc)
@@ -157,7 +166,7 @@ def _read_v4(path: str, data: bytes) -> tuple[dict, dict[str, bytes]]:
                          f"{len(data) - toc_end} bytes follow the table (truncated or corrupt)")
     _check_count(path, n, n * sum(sizes.values()), total_compressed)
     decompressor = zstandard.ZstdDecompressor()
-    for name, (compressed, uncompressed) in zip(STREAMS, toc, strict=True):
+    for name, (compressed, uncompressed) in zip(names, toc, strict=True):
         expected = n * sizes[name]
         if uncompressed != expected:
             raise InputError(path, f"table of contents, {name} stream", f"uncompressedSize {uncompressed}; {n} points "
@@ -265,6 +274,11 @@ def read_spz(path: str | os.PathLike, drop_invalid: bool = False) -> Gaussians:
     path = os.fspath(path)
     with open(path, "rb") as f:
         data = f.read()
+    return decode_spz(path, data)
+
+
+def decode_spz(path: str, data: bytes) -> Gaussians:
+    """Decode SPZ bytes (a file, or a glTF buffer view); `path` names the source in error messages."""
     if data[:4] == MAGIC:
         info, streams = _read_v4(path, data)
     elif data[:2] == b"\x1f\x8b":
