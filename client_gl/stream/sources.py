@@ -180,9 +180,9 @@ class HttpSource:
 
 def _reason(exc: BaseException) -> str:
     text = str(exc).strip().splitlines()[0] if str(exc).strip() else ""
-    os_error = getattr(exc, "os_error", None)
-    if isinstance(os_error, OSError) and os_error.strerror:
-        text = os_error.strerror.lower()
+    os_error = getattr(exc, "os_error", exc)
+    if isinstance(os_error, OSError) and os_error.errno:  # asyncio's strerror is "Connect call failed (...)"
+        text = os.strerror(os_error.errno).lower()
     return text or type(exc).__name__
 
 
