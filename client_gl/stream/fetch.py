@@ -58,6 +58,8 @@ MANIFEST_NETWORK = "network"          # downloaded (status 200)
 MANIFEST_REVALIDATED = "revalidated"  # the cached copy, confirmed current by a 304
 MANIFEST_OFFLINE = "cache-offline"    # the cached copy, unconfirmed: the server could not be reached
 MANIFEST_LOCAL = "local"              # read from a local store
+# While every network slot is busy, how far down the wanted list a pump looks for disk-cache hits to start.
+CACHE_LOOKAHEAD = 256
 
 
 @dataclass(frozen=True)
@@ -320,10 +322,15 @@ class Fetcher:
             link_open = now >= self._link_until
             busy_shas = {j.entry.sha256 for j in self._jobs.values()}
             wake = float("inf") if link_open else self._link_until
+            lookahead = CACHE_LOOKAHEAD
             for key, (_, entry) in self._wanted.items():
                 net_full = net >= self.max_in_flight or not link_open
-                if net_full and (self.cache is None or disk >= self.cache_readers):
-                    break
+                if net_full:
+                    # Only disk-cache hits can start now; look for them near the front of the list only, so a
+                    # long list costs little per completion.
+                    lookahead -= 1
+                    if self.cache is None or disk >= self.cache_readers or lookahead < 0:
+                        break
                 if key in self._jobs:
                     continue
                 at = self._retry_at.get(key)
