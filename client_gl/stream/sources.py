@@ -16,6 +16,9 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Protocol, runtime_checkable
 
+import aiohttp  # imported with the module, not at the first request: the first frame should not wait for it
+import yarl
+
 from splatstream.errors import InputError, UsageError
 from splatstream.format.manifest import MAX_MANIFEST_BYTES, PayloadEntry
 from splatstream.format.names import MANIFEST_NAME, manifest_url, payload_url
@@ -86,8 +89,6 @@ class HttpSource:
     use in the running event loop; `aclose()` closes it."""
 
     def __init__(self, url: str, *, connections: int = 8):
-        import yarl
-
         try:
             parsed = yarl.URL(url)
         except (ValueError, TypeError) as exc:
@@ -107,9 +108,7 @@ class HttpSource:
     def payload_url(self, entry: PayloadEntry) -> str:
         return payload_url(self.manifest_url, entry.file)
 
-    def _get_session(self):
-        import aiohttp
-
+    def _get_session(self) -> aiohttp.ClientSession:
         loop = asyncio.get_running_loop()
         if self._session is None or self._session_loop is not loop or self._session.closed:
             connector = aiohttp.TCPConnector(limit=self.connections, enable_cleanup_closed=True)
@@ -128,8 +127,6 @@ class HttpSource:
     async def _get(self, url: str, limit: int, what: str, on_bytes: OnBytes | None,
                    headers: dict[str, str] | None = None) -> tuple[int, bytes, str | None]:
         """(status, body, ETag) of a GET; the body is refused beyond `limit` bytes; errors as FetchError."""
-        import aiohttp
-
         try:
             async with self._get_session().get(url, headers=headers, allow_redirects=True) as resp:
                 if on_bytes:
