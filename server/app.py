@@ -16,6 +16,7 @@ from aiohttp.abc import AbstractAccessLogger
 from . import http as h
 from .paths import PathRejected, parse_scene_path
 from .scenes import NotFound, OpenedFile, SceneRoot
+from .throttle import Link
 
 log = logging.getLogger("splatstream.server")
 
@@ -81,6 +82,20 @@ class SendfileResponse(web.StreamResponse):
         self._offset = offset
         self._count = count
         self._started = False
+
+    def read_body(self) -> bytes:
+        """The bytes this response would send, read now (and the file closed): server/throttle.py paces them."""
+        try:
+            parts, offset, end = [], self._offset, self._offset + self._count
+            while offset < end:
+                chunk = os.pread(self._opened.fd, min(1 << 24, end - offset), offset)
+                if not chunk:
+                    raise ConnectionResetError("file shrank while being sent")
+                parts.append(chunk)
+                offset += len(chunk)
+            return b"".join(parts)
+        finally:
+            self._opened.close()
 
     async def prepare(self, request):  # type: ignore[override]
         if self._started:
@@ -216,8 +231,11 @@ async def _on_prepare(request: web.Request, response: web.StreamResponse) -> Non
         response.headers["Access-Control-Expose-Headers"] = h.CORS_EXPOSE_HEADERS
 
 
-def create_app(root: str | os.PathLike, cors_origins: Iterable[str] = ()) -> web.Application:
-    app = web.Application(middlewares=[errors_middleware], client_max_size=CLIENT_MAX_SIZE)
+def create_app(root: str | os.PathLike, cors_origins: Iterable[str] = (),
+               throttle: Link | None = None) -> web.Application:
+    # throttle: a simulated link for tests and benchmarks (server/throttle.py), outermost so errors are paced too.
+    middlewares = [throttle.middleware()] if throttle is not None else []
+    app = web.Application(middlewares=[*middlewares, errors_middleware], client_max_size=CLIENT_MAX_SIZE)
     app[SCENE_ROOT] = SceneRoot(root)
     app[CORS] = CorsPolicy(cors_origins)
     app.on_response_prepare.append(_on_prepare)

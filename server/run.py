@@ -18,6 +18,7 @@ from splatstream.format.names import MANIFEST_NAME
 
 from .app import SHUTDOWN_TIMEOUT, AccessLog, create_app, create_runner
 from .scenes import SceneRoot
+from .throttle import Link
 
 EXIT_OK = 0
 EXIT_ERROR = 1  # the port is taken, a worker died
@@ -96,12 +97,13 @@ def bind(host: str, port: int, backlog: int = 1024) -> socket.socket:
 
 
 async def _serve_socket(sock: socket.socket, root: str, cors_origins: Iterable[str], access_log: bool,
-                        shutdown_timeout: float) -> None:
+                        shutdown_timeout: float, throttle: Link | None = None) -> None:
     loop = asyncio.get_running_loop()
     stop = asyncio.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, stop.set)
-    runner = create_runner(create_app(root, cors_origins), access_log=access_log, shutdown_timeout=shutdown_timeout)
+    runner = create_runner(create_app(root, cors_origins, throttle), access_log=access_log,
+                           shutdown_timeout=shutdown_timeout)
     await runner.setup()
     await web.SockSite(runner, sock, backlog=1024).start()
     flusher = loop.create_task(_flush_access_log()) if access_log else None
@@ -121,16 +123,21 @@ async def _flush_access_log() -> None:
         AccessLog.flush()
 
 
-def _run_worker(sock: socket.socket, root: str, cors: list[str], access_log: bool, shutdown_timeout: float) -> None:
-    asyncio.run(_serve_socket(sock, root, cors, access_log, shutdown_timeout))
+def _run_worker(sock: socket.socket, root: str, cors: list[str], access_log: bool, shutdown_timeout: float,
+                throttle: Link | None = None) -> None:
+    asyncio.run(_serve_socket(sock, root, cors, access_log, shutdown_timeout, throttle))
 
 
 def serve(root: str, host: str = "127.0.0.1", port: int = 8000, cors_origins: Iterable[str] = (),
-          workers: int = 1, access_log: bool = True, shutdown_timeout: float = SHUTDOWN_TIMEOUT) -> int:
-    """Serve every scene under `root` until SIGTERM/SIGINT; the exit code."""
+          workers: int = 1, access_log: bool = True, shutdown_timeout: float = SHUTDOWN_TIMEOUT,
+          throttle: Link | None = None) -> int:
+    """Serve every scene under `root` until SIGTERM/SIGINT; the exit code. `throttle`: a simulated link
+    (server/throttle.py; one process only, so that its rate is shared by every connection)."""
     cors = list(cors_origins)
     setup_logging()
     try:
+        if throttle is not None and workers > 1:
+            raise ServeError("a throttled link needs --workers 1 (each worker would get the whole rate)", EXIT_ERROR)
         ids = check_root(root)
         sock = bind(host, port)
     except ServeError as exc:
@@ -141,8 +148,10 @@ def serve(root: str, host: str = "127.0.0.1", port: int = 8000, cors_origins: It
     print(f"splatstream serve: {len(ids)} scene{'s' if len(ids) != 1 else ''} from {os.path.abspath(root)} at "
           f"http://{shown}:{bound[1]}/ ({workers} worker{'s' if workers != 1 else ''}; scene list at /api/scenes; "
           f"SIGTERM or Ctrl-C stops)", file=sys.stderr, flush=True)
+    if throttle is not None:
+        print(f"splatstream serve: {throttle.describe()} (a test tool)", file=sys.stderr, flush=True)
     if workers <= 1:
-        _run_worker(sock, root, cors, access_log, shutdown_timeout)
+        _run_worker(sock, root, cors, access_log, shutdown_timeout, throttle)
         print("splatstream serve: stopped", file=sys.stderr, flush=True)
         return EXIT_OK
     return _prefork(sock, root, cors, access_log, shutdown_timeout, workers)

@@ -1,2 +1,3 @@
-"""The streaming client's engine, free of GL and windows: which tiles and bands a view wants (selection.py), getting
-their bytes (sources.py, fetch.py, cache.py) and keeping the GPU pool filled with them (engine.py)."""
+"""The streaming client's GL-free side: where scene bytes come from (sources), the disk cache, the fetcher, the
+tile selection and the engine that ties them together. Nothing here imports moderngl or client_gl.gpu: it is
+unit-tested without a GL context (ARCHITECTURE.md)."""

@@ -1,0 +1,538 @@
+"""The fetcher: payloads in priority order over a bounded number of requests, verified, retried, cached.
+
+A `Fetcher` runs its own asyncio event loop on a background thread; the render thread talks to it through three
+thread-safe calls:
+
+* `manifest()`: the scene's manifest bytes (blocking; retried; revalidated against the disk cache with its ETag;
+  the cached copy when the server cannot be reached: offline mode).
+* `want(requests)`: the complete list of payloads the engine wants now, best first, as (priority, key, entry).
+  The fetcher starts the first ones (up to `max_in_flight` network requests), keeps the rest queued in that
+  order, and cancels in-flight requests whose key is no longer listed. Disk-cache hits are read beside the
+  network requests, without a request.
+* `done()`: the payloads completed since the last call, as (key, entry, bytes). Every one was checked against its
+  manifest entry (size and SHA-256) first; nothing unverified is ever delivered.
+
+Failures are retried as long as the key stays wanted, with capped exponential backoff and full jitter: per
+payload for its own failures (5xx, 404, checksum mismatch, truncated body, stall), and for all network requests
+together when the link fails (connection refused or lost, no answer in time), so a server that goes away is
+polled gently and streaming resumes when it returns.
+"""
+from __future__ import annotations
+
+import asyncio
+import concurrent.futures
+import concurrent.futures.thread  # registers its exit hook before ours (below), so ours runs first
+import logging
+import random
+import threading
+import time
+import weakref
+from collections.abc import Awaitable, Callable, Hashable, Iterable
+from dataclasses import dataclass, field
+
+from splatstream.errors import FormatError, UsageError
+from splatstream.format.container import verify_payload
+from splatstream.format.manifest import PayloadEntry, parse_manifest
+
+from .cache import DiskCache
+from .sources import (
+    CHECKSUM,
+    LINK_KINDS,
+    NOT_A_SCENE,
+    STALL,
+    TIMEOUT,
+    FetchError,
+    ManifestReply,
+    OnBytes,
+    SceneSource,
+)
+
+log = logging.getLogger("splatstream.stream")
+
+Key = Hashable
+Request = tuple[float, Key, PayloadEntry]
+Result = tuple[Key, PayloadEntry, bytes]
+
+# Where the manifest came from (FetchStats.manifest_source)
+MANIFEST_NETWORK = "network"          # downloaded (status 200)
+MANIFEST_REVALIDATED = "revalidated"  # the cached copy, confirmed current by a 304
+MANIFEST_OFFLINE = "cache-offline"    # the cached copy, unconfirmed: the server could not be reached
+MANIFEST_LOCAL = "local"              # read from a local store
+# While every network slot is busy, how far down the wanted list a pump looks for disk-cache hits to start.
+CACHE_LOOKAHEAD = 256
+
+
+@dataclass(frozen=True)
+class RetryPolicy:
+    """Capped exponential backoff with full jitter: after the n-th consecutive failure wait
+    uniform(0, min(cap_s, base_s * 2**(n-1))) seconds."""
+
+    base_s: float = 0.25
+    cap_s: float = 10.0
+
+    def delay(self, failures: int, rng: random.Random) -> float:
+        return rng.uniform(0.0, min(self.cap_s, self.base_s * 2.0 ** max(failures - 1, 0)))
+
+
+@dataclass(frozen=True)
+class FetchStats:
+    """A snapshot of the fetcher's counters."""
+
+    bytes_downloaded: int = 0   # bytes received from the source: payload bodies (also of failed requests) and manifests
+    bytes_from_cache: int = 0   # payload and manifest bytes read from the disk cache instead
+    requests: int = 0           # requests sent to the source (manifest and payloads)
+    retries: int = 0            # failed attempts that will be (or were) tried again
+    failures: dict[str, int] = field(default_factory=dict)  # failed attempts by kind (sources.KINDS)
+    cancelled: int = 0          # in-flight requests cancelled because their key left the wanted list
+    delivered: int = 0          # payloads handed to done()
+    cache_hits: int = 0         # of which read from the disk cache
+    in_flight: int = 0          # requests running now (network and disk cache)
+    queued: int = 0             # wanted keys waiting (not in flight, not delivered)
+    offline: bool = False       # the last network attempt could not reach the server (or the manifest is unconfirmed)
+    manifest_source: str = ""   # MANIFEST_*
+    last_error: str = ""        # the last failure's one-line message
+
+
+_LIVE: weakref.WeakSet[Fetcher] = weakref.WeakSet()
+
+
+def _close_live_fetchers() -> None:
+    """At interpreter exit, before the thread pools stop: close fetchers their owners left open (no tracebacks
+    from a loop that loses its executor mid-request)."""
+    for fetcher in list(_LIVE):
+        fetcher.close(0.5)
+
+
+# threading's exit hooks run before atexit's and before concurrent.futures stops its pools (last registered,
+# first run); a fetcher's loop thread is a daemon, so nothing else would stop it in time.
+getattr(threading, "_register_atexit", lambda fn: None)(_close_live_fetchers)
+
+
+class _Job:
+    __slots__ = ("key", "entry", "via_cache", "task")
+
+    def __init__(self, key: Key, entry: PayloadEntry, via_cache: bool):
+        self.key, self.entry, self.via_cache = key, entry, via_cache
+        self.task: asyncio.Task | None = None
+
+
+class Fetcher:
+    """Fetches a scene's manifest and payloads from `source` on a background event loop (see the module doc).
+
+    `request_timeout_s`: longest wait for a response's headers (connect included). `stall_timeout_s`: longest
+    gap without body bytes once the headers came. `manifest_timeout_s`: how long `manifest()` keeps retrying.
+    `cache_readers`: disk-cache reads running beside the network requests. `seed`: the jitter's random seed."""
+
+    def __init__(self, source: SceneSource, *, cache: DiskCache | None = None, max_in_flight: int = 6,
+                 request_timeout_s: float = 15.0, stall_timeout_s: float = 10.0, retry: RetryPolicy | None = None,
+                 manifest_timeout_s: float = 30.0, cache_readers: int = 2, seed: int | None = None):
+        if max_in_flight < 1 or cache_readers < 1:
+            raise UsageError(f"max_in_flight {max_in_flight}, cache_readers {cache_readers}: expected at least 1")
+        if request_timeout_s <= 0 or stall_timeout_s <= 0 or manifest_timeout_s < 0:
+            raise UsageError("request, stall and manifest timeouts must be positive")
+        self.source = source
+        # Local stores are not worth a disk cache: their bytes are on this machine already.
+        self.cache = cache if getattr(source, "cache_key", None) else None
+        self.max_in_flight = max_in_flight
+        self.cache_readers = cache_readers
+        self.request_timeout_s = request_timeout_s
+        self.stall_timeout_s = stall_timeout_s
+        self.manifest_timeout_s = manifest_timeout_s
+        self.retry = retry or RetryPolicy()
+        self._rng = random.Random(seed)
+
+        self._lock = threading.Lock()
+        self._wanted: dict[Key, tuple[float, PayloadEntry]] = {}  # insertion order = service order
+        self._jobs: dict[Key, _Job] = {}        # in flight
+        self._ready: list[Result] = []          # delivered, not yet drained by done()
+        self._undrained: set[Key] = set()
+        self._retry_at: dict[Key, float] = {}   # per-key backoff (loop time)
+        self._key_failures: dict[Key, int] = {}
+        self._link_failures = 0
+        self._link_until = 0.0                  # no network request before this loop time
+        self._counts = {"bytes_downloaded": 0, "bytes_from_cache": 0, "requests": 0, "retries": 0, "cancelled": 0,
+                        "delivered": 0, "cache_hits": 0}
+        self._failures: dict[str, int] = {}
+        self._offline = False
+        self._manifest_source = ""
+        self._last_error = ""
+
+        self._loop: asyncio.AbstractEventLoop | None = None
+        self._thread: threading.Thread | None = None
+        self._closed = False
+        self._pump_pending = False
+        self._timer: asyncio.TimerHandle | None = None
+        self._timer_at = float("inf")
+
+    # -- life cycle -----------------------------------------------------------------------------------------------
+    def start(self) -> Fetcher:
+        if self._thread is not None:
+            return self
+        if self._closed:
+            raise UsageError("this fetcher was closed; make a new one")
+        self._loop = asyncio.new_event_loop()
+        self._loop.set_exception_handler(_log_loop_exception)
+        started = threading.Event()
+
+        def main() -> None:
+            asyncio.set_event_loop(self._loop)
+            self._loop.call_soon(started.set)
+            try:
+                self._loop.run_forever()
+            finally:
+                try:
+                    self._loop.run_until_complete(self._loop.shutdown_asyncgens())
+                    self._loop.run_until_complete(self._loop.shutdown_default_executor())
+                finally:
+                    self._loop.close()
+
+        self._thread = threading.Thread(target=main, name="splatstream-fetch", daemon=True)
+        self._thread.start()
+        started.wait()
+        _LIVE.add(self)
+        if self.cache is not None:  # read the cache's index now, not in the first pump
+            self._loop.call_soon_threadsafe(lambda: self._loop.run_in_executor(None, self.cache.contains, ""))
+        return self
+
+    def close(self, timeout_s: float = 1.0) -> None:
+        """Cancel everything, close the source's connections and stop the loop thread (within about timeout_s)."""
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+        if self._loop is None or self._thread is None:
+            return
+        deadline = time.monotonic() + timeout_s
+        try:
+            asyncio.run_coroutine_threadsafe(self._shutdown(timeout_s * 0.5), self._loop).result(timeout_s)
+        except (concurrent.futures.TimeoutError, concurrent.futures.CancelledError, RuntimeError):
+            pass
+        self._loop.call_soon_threadsafe(self._loop.stop)
+        self._thread.join(max(0.0, deadline - time.monotonic()) + 0.5)
+
+    async def _shutdown(self, timeout_s: float) -> None:
+        if self._timer is not None:
+            self._timer.cancel()
+        current = asyncio.current_task()
+        tasks = [t for t in asyncio.all_tasks() if t is not current]
+        for t in tasks:
+            t.cancel()
+        if tasks:
+            await asyncio.wait(tasks, timeout=timeout_s)
+        try:
+            async with asyncio.timeout(timeout_s):
+                await self.source.aclose()
+        except (TimeoutError, Exception):  # closing is best effort: never a traceback at exit
+            log.debug("closing %s failed", self.source.location, exc_info=True)
+
+    def __enter__(self) -> Fetcher:
+        return self.start()
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def _require_running(self) -> asyncio.AbstractEventLoop:
+        if self._loop is None:
+            raise UsageError("the fetcher is not started (call start() or use it as a context manager)")
+        if self._closed:
+            raise UsageError("the fetcher is closed")
+        return self._loop
+
+    # -- the render thread's API ----------------------------------------------------------------------------------
+    def manifest(self, timeout_s: float | None = None) -> bytes:
+        """The manifest's bytes (validated by parse_manifest), retried on transient failures for up to
+        `timeout_s` (default manifest_timeout_s). Raises FetchError: at once when the scene does not exist or is
+        not a scene, at the deadline when the server stays unreachable and nothing is cached."""
+        loop = self._require_running()
+        limit = self.manifest_timeout_s if timeout_s is None else timeout_s
+        fut = asyncio.run_coroutine_threadsafe(self._get_manifest(limit), loop)
+        try:
+            return fut.result()
+        except concurrent.futures.CancelledError:
+            raise FetchError(self.source.location, "closed", "the fetcher was closed", transient=False) from None
+
+    def want(self, requests: Iterable[Request]) -> None:
+        """Replace the wanted list: (priority, key, entry), best first (the list's order is the service order;
+        `priority` is informative). List only what you do not hold yet; keys whose bytes wait in done() are
+        ignored, and a key leaves the list when it is delivered. Keys in flight that are no longer listed
+        (or now name another payload) are cancelled: no result for them is delivered after this call returns."""
+        loop = self._require_running()
+        wanted: dict[Key, tuple[float, PayloadEntry]] = {}
+        for priority, key, entry in requests:
+            if key not in wanted:
+                wanted[key] = (priority, entry)
+        cancelled = []
+        with self._lock:
+            for key in self._undrained:  # delivered already: its bytes wait in done()
+                wanted.pop(key, None)
+            for key, job in list(self._jobs.items()):
+                w = wanted.get(key)
+                if w is None or w[1].sha256 != job.entry.sha256:
+                    del self._jobs[key]
+                    cancelled.append(job)
+            for key in [k for k in self._retry_at if k not in wanted]:
+                del self._retry_at[key]
+                self._key_failures.pop(key, None)
+            self._counts["cancelled"] += len(cancelled)
+            self._wanted = wanted
+            self._schedule_pump()
+        for job in cancelled:
+            if job.task is not None:
+                loop.call_soon_threadsafe(job.task.cancel)
+
+    def done(self) -> list[Result]:
+        """Verified payloads completed since the last call: (key, entry, bytes), in completion order."""
+        with self._lock:
+            out, self._ready = self._ready, []
+            for key, _, _ in out:
+                self._undrained.discard(key)
+        return out
+
+    def stats(self) -> FetchStats:
+        with self._lock:
+            queued = sum(1 for k in self._wanted if k not in self._jobs)
+            return FetchStats(failures=dict(self._failures), in_flight=len(self._jobs), queued=queued,
+                              offline=self._offline, manifest_source=self._manifest_source,
+                              last_error=self._last_error, **self._counts)
+
+    @property
+    def idle(self) -> bool:
+        """Nothing wanted is waiting or in flight (everything listed was delivered)."""
+        with self._lock:
+            return not self._jobs and not self._wanted
+
+    # -- the loop thread ------------------------------------------------------------------------------------------
+    def _schedule_pump(self) -> None:
+        """(lock held) Run _pump soon on the loop, once however many changes come before it runs."""
+        if not self._pump_pending and not self._closed:
+            self._pump_pending = True
+            self._loop.call_soon_threadsafe(self._pump)
+
+    def _pump(self) -> None:
+        """Start the best wanted keys that can start: network requests up to max_in_flight (unless the link is
+        backing off), disk-cache reads up to cache_readers."""
+        loop = self._loop
+        with self._lock:
+            self._pump_pending = False
+            if self._closed:
+                return
+            now = loop.time()
+            net = sum(1 for j in self._jobs.values() if not j.via_cache)
+            disk = len(self._jobs) - net
+            link_open = now >= self._link_until
+            busy_shas = {j.entry.sha256 for j in self._jobs.values()}
+            wake = float("inf") if link_open else self._link_until
+            lookahead = CACHE_LOOKAHEAD
+            for key, (_, entry) in self._wanted.items():
+                net_full = net >= self.max_in_flight or not link_open
+                if net_full:
+                    # Only disk-cache hits can start now; look for them near the front of the list only, so a
+                    # long list costs little per completion.
+                    lookahead -= 1
+                    if self.cache is None or disk >= self.cache_readers or lookahead < 0:
+                        break
+                if key in self._jobs:
+                    continue
+                at = self._retry_at.get(key)
+                if at is not None and at > now:
+                    wake = min(wake, at)
+                    continue
+                if entry.sha256 in busy_shas:  # the same bytes are on their way for another key
+                    continue
+                via_cache = self.cache is not None and self.cache.contains(entry.sha256)
+                if via_cache:
+                    if disk >= self.cache_readers:
+                        continue
+                    disk += 1
+                else:
+                    if net_full:
+                        continue
+                    net += 1
+                    self._counts["requests"] += 1
+                busy_shas.add(entry.sha256)
+                job = _Job(key, entry, via_cache)
+                self._jobs[key] = job
+                job.task = loop.create_task(self._run(job))
+            if wake < self._timer_at:
+                if self._timer is not None:
+                    self._timer.cancel()
+                self._timer_at = wake
+                self._timer = loop.call_at(wake, self._on_timer)
+
+    def _on_timer(self) -> None:
+        with self._lock:
+            self._timer, self._timer_at = None, float("inf")
+        self._pump()
+
+    async def _run(self, job: _Job) -> None:
+        loop = asyncio.get_running_loop()
+        entry = job.entry
+        try:
+            if job.via_cache:
+                data = await loop.run_in_executor(None, self.cache.get, entry)
+                self._complete(job, data, from_cache=True)  # None (damaged or evicted meanwhile): to the network
+                return
+            where = getattr(self.source, "payload_url", None)
+            where = where(entry) if where else f"{self.source.location}/{entry.file}"
+            data = await self._timed(lambda on_bytes: self.source.fetch_payload(entry, on_bytes), where)
+            try:
+                await loop.run_in_executor(None, verify_payload, data, entry, where)
+            except FormatError as exc:
+                raise FetchError(where, CHECKSUM, exc.problem) from None
+            if self._complete(job, data, from_cache=False) and self.cache is not None:
+                loop.run_in_executor(None, self.cache.put, entry, data)  # never raises; awaited at shutdown
+        except asyncio.CancelledError:
+            raise
+        except FetchError as exc:
+            self._failed(job, exc)
+        except Exception as exc:  # a bug must not kill the loop or leave the key stuck: log, count, retry
+            if self._closed:
+                return
+            log.exception("fetching %s failed unexpectedly", entry.file)
+            self._failed(job, FetchError(self.source.location, "internal", f"{type(exc).__name__}: {exc}"))
+
+    async def _timed(self, request: Callable[[OnBytes], Awaitable], where: str):
+        """Run one request: TIMEOUT when its headers take longer than request_timeout_s, STALL when its body
+        pauses for stall_timeout_s; every byte received is counted."""
+        loop = asyncio.get_running_loop()
+        headers = False
+        cm = asyncio.timeout(self.request_timeout_s)
+
+        def on_bytes(n: int) -> None:
+            nonlocal headers
+            if not headers:
+                headers = True
+                self._link_up()
+            if n:
+                with self._lock:
+                    self._counts["bytes_downloaded"] += n
+            cm.reschedule(loop.time() + self.stall_timeout_s)
+
+        try:
+            async with cm:
+                return await request(on_bytes)
+        except TimeoutError:
+            if not cm.expired():
+                raise
+            if headers:
+                raise FetchError(where, STALL, f"no data for {self.stall_timeout_s:g} s (stalled)") from None
+            raise FetchError(where, TIMEOUT, f"no answer within {self.request_timeout_s:g} s") from None
+
+    def _link_up(self) -> None:
+        with self._lock:
+            self._link_failures = 0
+            self._link_until = 0.0
+            self._offline = False
+
+    def _complete(self, job: _Job, data: bytes | None, from_cache: bool) -> bool:
+        """Deliver verified bytes to the job's key and every other waiting key of the same payload; False when the
+        job was cancelled meanwhile (nothing delivered)."""
+        with self._lock:
+            if self._jobs.get(job.key) is not job:
+                return False
+            del self._jobs[job.key]
+            if data is not None:
+                sha = job.entry.sha256
+                keys = [job.key] + [k for k, (_, e) in self._wanted.items()
+                                    if e.sha256 == sha and k != job.key and k not in self._jobs]
+                for key in keys:
+                    self._ready.append((key, self._wanted.pop(key, (0.0, job.entry))[1], data))
+                    self._undrained.add(key)
+                    self._retry_at.pop(key, None)
+                    self._key_failures.pop(key, None)
+                self._counts["delivered"] += len(keys)
+                if from_cache:
+                    self._counts["cache_hits"] += 1
+                    self._counts["bytes_from_cache"] += len(data)
+            self._schedule_pump()
+            return data is not None
+
+    def _failed(self, job: _Job, exc: FetchError) -> None:
+        with self._lock:
+            self._failures[exc.kind] = self._failures.get(exc.kind, 0) + 1
+            self._last_error = str(exc)
+            if self._jobs.get(job.key) is not job:
+                return  # cancelled meanwhile
+            del self._jobs[job.key]
+            now = self._loop.time()
+            if exc.kind in LINK_KINDS:
+                self._link_failures += 1
+                self._link_until = now + self.retry.delay(self._link_failures, self._rng)
+                self._offline = True
+            else:
+                n = self._key_failures[job.key] = self._key_failures.get(job.key, 0) + 1
+                self._retry_at[job.key] = now + self.retry.delay(n, self._rng)
+            self._counts["retries"] += 1
+            self._schedule_pump()
+        log.debug("retrying: %s", exc)
+
+    # -- the manifest ---------------------------------------------------------------------------------------------
+    async def _get_manifest(self, limit_s: float) -> bytes:
+        loop = asyncio.get_running_loop()
+        key = getattr(self.source, "cache_key", None)
+        cached = None
+        if self.cache is not None and key:
+            cached = await loop.run_in_executor(None, self.cache.get_manifest, key)
+        revalidate = getattr(self.source, "revalidate_manifest", None)
+        deadline = loop.time() + limit_s
+        attempt = 0
+        while True:
+            with self._lock:
+                self._counts["requests"] += 1
+            try:
+                if revalidate is not None:
+                    etag = cached.etag if cached is not None else None
+                    reply = await self._timed(lambda on_bytes, etag=etag: revalidate(etag, on_bytes),
+                                              self.source.location)
+                else:
+                    reply = ManifestReply(await self._timed(self.source.fetch_manifest, self.source.location), None)
+                if reply.data is None:
+                    if cached is None:
+                        raise FetchError(self.source.location, NOT_A_SCENE, "304 Not Modified for a manifest "
+                                         "that was not asked for conditionally", transient=False)
+                    return self._manifest_done(cached.data, MANIFEST_REVALIDATED, from_cache=True)
+                try:
+                    parse_manifest(reply.data, self.source.location)
+                except FormatError as exc:
+                    raise FetchError(self.source.location, NOT_A_SCENE, f"not a splatstream manifest "
+                                     f"({exc.field + ': ' if exc.field else ''}{exc.problem})",
+                                     transient=False) from None
+                if self.cache is not None and key:
+                    await loop.run_in_executor(None, self.cache.put_manifest, key, reply.data, reply.etag)
+                return self._manifest_done(reply.data, MANIFEST_LOCAL if key is None else MANIFEST_NETWORK)
+            except FetchError as exc:
+                with self._lock:
+                    self._failures[exc.kind] = self._failures.get(exc.kind, 0) + 1
+                    self._last_error = str(exc)
+                    if exc.kind in LINK_KINDS:
+                        self._offline = True
+                if not exc.transient:
+                    raise
+                if cached is not None and exc.kind in LINK_KINDS:
+                    return self._manifest_done(cached.data, MANIFEST_OFFLINE, from_cache=True)
+                attempt += 1
+                delay = self.retry.delay(attempt, self._rng)
+                if loop.time() + delay > deadline:
+                    if cached is not None:
+                        return self._manifest_done(cached.data, MANIFEST_OFFLINE, from_cache=True)
+                    raise
+                with self._lock:
+                    self._counts["retries"] += 1
+                await asyncio.sleep(delay)
+
+    def _manifest_done(self, data: bytes, source: str, from_cache: bool = False) -> bytes:
+        with self._lock:
+            self._manifest_source = source
+            if source == MANIFEST_OFFLINE:
+                self._offline = True
+            if from_cache:
+                self._counts["bytes_from_cache"] += len(data)
+        return data
+
+
+def _log_loop_exception(loop: asyncio.AbstractEventLoop, context: dict) -> None:
+    """Nothing on the fetcher's loop may print a traceback: unexpected exceptions go to the debug log."""
+    log.debug("fetch loop: %s", context.get("message"), exc_info=context.get("exception"))
+
+
+__all__ = ["Fetcher", "FetchStats", "RetryPolicy", "FetchError", "TIMEOUT", "STALL"]
