@@ -5,6 +5,7 @@ import pytest
 from conftest import real
 
 from client_gl.stream.engine import StreamEngine, StreamOptions
+from client_gl.stream.fetch import FetchStats
 from client_gl.stream.selection import SelectionOptions, view_numbers
 from splatstream.camera import Camera
 from splatstream.encode import EncodeOptions, encode_in_memory
@@ -33,7 +34,7 @@ class StepFetcher:
         return out
 
     def stats(self):
-        return {"in_flight": 0, "queued": 0}
+        return FetchStats()
 
 
 class CountingPool:

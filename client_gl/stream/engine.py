@@ -57,7 +57,7 @@ class FetcherLike(Protocol):
 
     def done(self) -> list[tuple[Key, PayloadEntry, bytes]]: ...
 
-    def stats(self) -> dict: ...
+    def stats(self) -> Any: ...  # with .in_flight and .queued (fetch.FetchStats)
 
 
 @dataclass(frozen=True)
@@ -203,7 +203,7 @@ class StreamEngine:
         drawn = draw_set(self.arrays, view, sel, resident_idx, self.root)
         self.last_drawn[drawn] = self.frame
         stats = self.fetcher.stats()
-        in_flight = int(stats.get("in_flight", 0)) + int(stats.get("queued", 0))
+        in_flight = stats.in_flight + stats.queued
         still_missing = [k for k in keys if not self._have(k)]
         converged = not still_missing and not self._decoding and in_flight == 0
         return FrameUpdate(
