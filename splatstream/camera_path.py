@@ -77,8 +77,9 @@ def _camera(eye, target, up, fov_y, width, height, near, far) -> Camera:
 
 
 def _vec(value, where: str, path: str) -> np.ndarray:
-    if (not isinstance(value, (list, tuple)) or len(value) != 3
-            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in value)):
+    if (not isinstance(value, (list, tuple, np.ndarray)) or len(value) != 3
+            or not all(isinstance(v, (int, float, np.floating)) and not isinstance(v, bool) and math.isfinite(v)
+                       for v in value)):
         raise InputError(path, where, f"expected three finite numbers, got {value!r}")
     return np.asarray(value, float)
 
