@@ -7,6 +7,7 @@ import hashlib
 import json
 import logging
 import os
+import socket
 import time
 from collections.abc import Iterable
 
@@ -14,8 +15,9 @@ from aiohttp import web
 from aiohttp.abc import AbstractAccessLogger
 
 from . import http as h
+from .limits import RETRY_AFTER_SECONDS, ConnectionGuard, Limits
 from .paths import PathRejected, parse_scene_path
-from .scenes import NotFound, OpenedFile, SceneRoot
+from .scenes import Forbidden, NotFound, OpenedFile, OutOfResources, SceneRoot
 from .throttle import Link
 
 log = logging.getLogger("splatstream.server")
@@ -24,9 +26,17 @@ SERVER_NAME = "splatstream"
 CLIENT_MAX_SIZE = 1024  # request bodies: nothing we serve takes one
 HANDLER_LIMITS = {"max_line_size": 8190, "max_field_size": 8190, "max_headers": 64}
 SHUTDOWN_TIMEOUT = 30.0  # seconds in-flight responses get to finish after SIGTERM
+# sendfile in pieces, each to be taken by the client within the send timeout (so a client that stops reading is
+# cut off): from SEND_CHUNK_MIN, doubled while the client reads a piece in under 1/16 of the timeout (halved over
+# 1/4), up to SEND_CHUNK_MAX (each piece costs a few event-loop round trips: 1 MiB pieces throughout took about 2.5x
+# the server CPU of one sendfile call per file; growing pieces, within noise of it).
+SEND_CHUNK_MIN = 1 << 20
+SEND_CHUNK_MAX = 64 << 20
 
 SCENE_ROOT = web.AppKey("scene_root", SceneRoot)
 CORS = web.AppKey("cors", "CorsPolicy")
+LIMITS = web.AppKey("limits", Limits)
+HANDLER_ARGS = web.AppKey("handler_args", dict)
 
 
 class CorsPolicy:
@@ -108,11 +118,36 @@ class SendfileResponse(web.StreamResponse):
             transport = request.transport
             if transport is None:
                 raise ConnectionResetError("connection lost")
+            send_timeout = request.app[LIMITS].send_timeout if LIMITS in request.app else None
+            offset, end = self._offset, self._offset + self._count
             with os.fdopen(self._opened.fd, "rb", closefd=False) as fobj:
                 try:
-                    await asyncio.get_running_loop().sendfile(transport, fobj, self._offset, self._count)
-                except NotImplementedError:  # e.g. TLS transports
-                    offset, end = self._offset, self._offset + self._count
+                    # In pieces, each given the send timeout: a client that stops reading is cut off (an aborted
+                    # transport under a running sendfile would leave it waiting forever, so it is cancelled first).
+                    loop = asyncio.get_running_loop()
+                    chunk = SEND_CHUNK_MIN
+                    while offset < end:
+                        n = min(chunk, end - offset)
+                        started = loop.time()
+                        if transport.is_closing():
+                            raise ConnectionResetError("the client closed the connection")
+                        try:
+                            await asyncio.wait_for(loop.sendfile(transport, fobj, offset, n), send_timeout)
+                        except TimeoutError:
+                            transport.abort()
+                            raise ConnectionResetError(f"the client took less than {n} bytes in {send_timeout} s") \
+                                from None
+                        except RuntimeError:  # "Transport is closing": the client went away meanwhile
+                            if transport.is_closing():
+                                raise ConnectionResetError("the client closed the connection") from None
+                            raise
+                        offset += n
+                        took = loop.time() - started
+                        if send_timeout is None or took < send_timeout / 16:
+                            chunk = min(2 * chunk, SEND_CHUNK_MAX)
+                        elif took > send_timeout / 4:
+                            chunk = max(chunk // 2, SEND_CHUNK_MIN)
+                except NotImplementedError:  # e.g. TLS transports: flow control (pause_writing) applies instead
                     while offset < end:
                         chunk = os.pread(self._opened.fd, min(1 << 20, end - offset), offset)
                         if not chunk:
@@ -190,6 +225,21 @@ async def options(request: web.Request) -> web.Response:
 
 # -- cross-cutting -------------------------------------------------------------------------------------------------
 @web.middleware
+async def overflow_middleware(request: web.Request, handler) -> web.StreamResponse:
+    """A connection of the reserve beyond the cap (server.limits) gets one answer: /healthz as usual, anything
+    else 503 with Retry-After; then it is closed."""
+    if not getattr(request.protocol, "overflow", False):
+        return await handler(request)
+    if request.path == "/healthz":
+        response = await handler(request)
+    else:
+        response = error_response(request, 503, "server busy: too many open connections; retry later",
+                                  {"Retry-After": str(RETRY_AFTER_SECONDS)})
+    response.force_close()
+    return response
+
+
+@web.middleware
 async def errors_middleware(request: web.Request, handler) -> web.StreamResponse:
     """Every error leaves as {"error": {"status", "message"}}; unexpected exceptions as a bare 500."""
     try:
@@ -198,6 +248,10 @@ async def errors_middleware(request: web.Request, handler) -> web.StreamResponse
         return error_response(request, exc.status, exc.message)
     except NotFound as exc:
         return error_response(request, 404, str(exc))
+    except Forbidden as exc:
+        return error_response(request, 403, str(exc))
+    except OutOfResources as exc:
+        return error_response(request, 503, str(exc), {"Retry-After": str(RETRY_AFTER_SECONDS)})
     except web.HTTPException as exc:
         if exc.status < 400:
             raise
@@ -235,7 +289,8 @@ def create_app(root: str | os.PathLike, cors_origins: Iterable[str] = (),
                throttle: Link | None = None) -> web.Application:
     # throttle: a simulated link for tests and benchmarks (server/throttle.py), outermost so errors are paced too.
     middlewares = [throttle.middleware()] if throttle is not None else []
-    app = web.Application(middlewares=[*middlewares, errors_middleware], client_max_size=CLIENT_MAX_SIZE)
+    app = web.Application(middlewares=[*middlewares, overflow_middleware, errors_middleware],
+                          client_max_size=CLIENT_MAX_SIZE)
     app[SCENE_ROOT] = SceneRoot(root)
     app[CORS] = CorsPolicy(cors_origins)
     app.on_response_prepare.append(_on_prepare)
@@ -300,7 +355,20 @@ class AccessLog(AbstractAccessLogger):
         return self.logger is not None
 
 
-def create_runner(app: web.Application, access_log: bool = True,
-                  shutdown_timeout: float = SHUTDOWN_TIMEOUT) -> web.AppRunner:
-    return web.AppRunner(app, access_log_class=AccessLog, access_log=log if access_log else None,
-                         shutdown_timeout=shutdown_timeout, **HANDLER_LIMITS)
+def create_runner(app: web.Application, access_log: bool = True, shutdown_timeout: float = SHUTDOWN_TIMEOUT,
+                  limits: Limits | None = None) -> web.AppRunner:
+    """The runner of `app`; start serving with `start_site` (not aiohttp's sites: see server.limits)."""
+    limits = (limits or Limits()).with_reserve()
+    handler_args = dict(access_log_class=AccessLog, access_log=log if access_log else None,
+                        keepalive_timeout=limits.keepalive_timeout, **HANDLER_LIMITS)
+    app[LIMITS] = limits
+    app[HANDLER_ARGS] = handler_args
+    return web.AppRunner(app, shutdown_timeout=shutdown_timeout, **handler_args)
+
+
+async def start_site(runner: web.AppRunner, sock: socket.socket) -> ConnectionGuard:
+    """Accept connections on the listening `sock` through a ConnectionGuard (after `runner.setup()`); call the
+    guard's close() before `runner.cleanup()`."""
+    guard = ConnectionGuard(runner, runner.app[LIMITS], runner.app[HANDLER_ARGS])
+    await guard.listen(sock)
+    return guard

@@ -8,21 +8,20 @@ import logging
 import os
 import signal
 import socket
+import stat
 import sys
 from collections.abc import Iterable
 
-from aiohttp import web
-from aiohttp.http_exceptions import HttpProcessingError
+from splatstream.format.names import DATA_DIR, MANIFEST_NAME
 
-from splatstream.format.names import MANIFEST_NAME
-
-from .app import SHUTDOWN_TIMEOUT, AccessLog, create_app, create_runner
+from .app import SHUTDOWN_TIMEOUT, AccessLog, create_app, create_runner, start_site
+from .limits import FdLimitTooLow, Limits, accept_error_handler, fit_to_fd_limit
 from .scenes import SceneRoot
 from .throttle import Link
 
 EXIT_OK = 0
-EXIT_ERROR = 1  # the port is taken, a worker died
-EXIT_BAD_ROOT = 2  # ROOT missing, not a directory, or holds no scene
+EXIT_ERROR = 1  # a worker died, the server failed
+EXIT_BAD_ROOT = 2  # usage (README "Exit codes"): ROOT missing or empty, a host or port that cannot be used
 
 
 class ServeError(Exception):
@@ -31,24 +30,10 @@ class ServeError(Exception):
         self.code = code
 
 
-class _OneLineClientErrors(logging.Filter):
-    """Requests the HTTP parser refuses (the client's fault) are logged in one line, without a traceback."""
-
-    def filter(self, record: logging.LogRecord) -> bool:
-        exc = record.exc_info[1] if record.exc_info else None
-        if isinstance(exc, HttpProcessingError):
-            record.msg = f"{record.getMessage()}: {exc.code} {str(exc.message).strip().splitlines()[0]}"
-            record.args = ()
-            record.exc_info = None
-            record.exc_text = None
-        return True
-
-
 def setup_logging() -> None:
     handler = logging.StreamHandler(sys.stderr)
     handler.setFormatter(logging.Formatter("splatstream serve: %(levelname)s: %(name)s: %(message)s"))
-    handler.addFilter(_OneLineClientErrors())
-    for name in ("splatstream.server", "aiohttp"):
+    for name in ("splatstream.server", "aiohttp", "asyncio"):
         logger = logging.getLogger(name)
         logger.addHandler(handler)
         logger.setLevel(logging.WARNING)
@@ -72,11 +57,37 @@ def check_root(root: str) -> list[str]:
     return ids
 
 
+def unreadable_files(root: str, limit: int = 5) -> tuple[list[str], int]:
+    """Scene files this process may not read (at most `limit` named, and how many scenes have some): each scene's
+    manifest and first payload are checked, so a tree written by another user with mode 0600 is reported at
+    start, not as a 403 per request."""
+    named: list[str] = []
+    scenes = 0
+    for _, directory in SceneRoot(root).scan():
+        candidates = [os.path.join(directory, MANIFEST_NAME)]
+        try:
+            with os.scandir(os.path.join(directory, DATA_DIR)) as it:
+                candidates += [e.path for e in it if e.name.endswith(".bin")][:1]
+        except OSError:
+            pass
+        bad = [p for p in candidates if not os.access(p, os.R_OK)]
+        if bad:
+            scenes += 1
+            if len(named) < limit:
+                try:
+                    st = os.stat(bad[0])
+                    why = f"mode {stat.S_IMODE(st.st_mode):04o}, owner uid {st.st_uid}"
+                except OSError as exc:
+                    why = exc.strerror or str(exc)
+                named.append(f"{os.path.relpath(bad[0], root)} ({why})")
+    return named, scenes
+
+
 def bind(host: str, port: int, backlog: int = 1024) -> socket.socket:
     try:
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
     except socket.gaierror as exc:
-        raise ServeError(f"cannot resolve host {host!r}: {exc}", EXIT_ERROR) from None
+        raise ServeError(f"cannot resolve host {host!r}: {exc}", EXIT_BAD_ROOT) from None
     family, _, _, _, addr = infos[0]
     sock = socket.socket(family, socket.SOCK_STREAM)
     try:
@@ -87,30 +98,32 @@ def bind(host: str, port: int, backlog: int = 1024) -> socket.socket:
         sock.close()
         if exc.errno == errno.EADDRINUSE:
             raise ServeError(f"port {port} on {host} is already in use (another server is running there?); "
-                             f"choose another with --port", EXIT_ERROR) from None
+                             f"choose another with --port", EXIT_BAD_ROOT) from None
         if exc.errno == errno.EACCES:
             raise ServeError(f"no permission to listen on {host}:{port} (ports below 1024 need privileges)",
-                             EXIT_ERROR) from None
+                             EXIT_BAD_ROOT) from None
         raise ServeError(f"cannot listen on {host}:{port}: {exc.strerror}", EXIT_ERROR) from None
     sock.setblocking(False)
     return sock
 
 
 async def _serve_socket(sock: socket.socket, root: str, cors_origins: Iterable[str], access_log: bool,
-                        shutdown_timeout: float, throttle: Link | None = None) -> None:
+                        shutdown_timeout: float, limits: Limits, throttle: Link | None = None) -> None:
     loop = asyncio.get_running_loop()
+    loop.set_exception_handler(accept_error_handler)
     stop = asyncio.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         loop.add_signal_handler(sig, stop.set)
     runner = create_runner(create_app(root, cors_origins, throttle), access_log=access_log,
-                           shutdown_timeout=shutdown_timeout)
+                           shutdown_timeout=shutdown_timeout, limits=limits)
     await runner.setup()
-    await web.SockSite(runner, sock, backlog=1024).start()
+    guard = await start_site(runner, sock)
     flusher = loop.create_task(_flush_access_log()) if access_log else None
     try:
         await stop.wait()
     finally:
         # Stop accepting; in-flight responses finish (up to shutdown_timeout); idle keep-alives close.
+        guard.close()
         await runner.cleanup()
         if flusher:
             flusher.cancel()
@@ -124,41 +137,56 @@ async def _flush_access_log() -> None:
 
 
 def _run_worker(sock: socket.socket, root: str, cors: list[str], access_log: bool, shutdown_timeout: float,
-                throttle: Link | None = None) -> None:
-    asyncio.run(_serve_socket(sock, root, cors, access_log, shutdown_timeout, throttle))
+                limits: Limits, throttle: Link | None = None) -> None:
+    asyncio.run(_serve_socket(sock, root, cors, access_log, shutdown_timeout, limits, throttle))
 
 
 def serve(root: str, host: str = "127.0.0.1", port: int = 8000, cors_origins: Iterable[str] = (),
           workers: int = 1, access_log: bool = True, shutdown_timeout: float = SHUTDOWN_TIMEOUT,
-          throttle: Link | None = None) -> int:
+          limits: Limits | None = None, throttle: Link | None = None) -> int:
     """Serve every scene under `root` until SIGTERM/SIGINT; the exit code. `throttle`: a simulated link
     (server/throttle.py; one process only, so that its rate is shared by every connection)."""
     cors = list(cors_origins)
     setup_logging()
+    requested = (limits or Limits()).with_reserve()
     try:
         if throttle is not None and workers > 1:
             raise ServeError("a throttled link needs --workers 1 (each worker would get the whole rate)", EXIT_ERROR)
         ids = check_root(root)
+        try:
+            limits, fd_limit, lowered = fit_to_fd_limit(requested)
+        except FdLimitTooLow as exc:
+            raise ServeError(str(exc), EXIT_ERROR) from None
         sock = bind(host, port)
     except ServeError as exc:
         print(f"splatstream serve: error: {exc}", file=sys.stderr)
         return exc.code
+    named, scenes = unreadable_files(root)
+    if scenes:
+        print(f"splatstream serve: warning: {scenes} scene{'s' if scenes != 1 else ''} with files this server "
+              f"(uid {os.geteuid()}) may not read; they answer 403: {', '.join(named)}"
+              f"{', ...' if scenes > len(named) else ''}", file=sys.stderr, flush=True)
+    if lowered:
+        print(f"splatstream serve: warning: --max-connections lowered from {requested.max_connections} to "
+              f"{limits.max_connections} per worker to fit the file descriptor limit {fd_limit} (ulimit -n)",
+              file=sys.stderr, flush=True)
     bound = sock.getsockname()
     shown = f"[{bound[0]}]" if sock.family == socket.AF_INET6 else bound[0]
     print(f"splatstream serve: {len(ids)} scene{'s' if len(ids) != 1 else ''} from {os.path.abspath(root)} at "
-          f"http://{shown}:{bound[1]}/ ({workers} worker{'s' if workers != 1 else ''}; scene list at /api/scenes; "
+          f"http://{shown}:{bound[1]}/ ({workers} worker{'s' if workers != 1 else ''} of at most "
+          f"{limits.max_connections} connections; scene list at /api/scenes; "
           f"SIGTERM or Ctrl-C stops)", file=sys.stderr, flush=True)
     if throttle is not None:
         print(f"splatstream serve: {throttle.describe()} (a test tool)", file=sys.stderr, flush=True)
     if workers <= 1:
-        _run_worker(sock, root, cors, access_log, shutdown_timeout, throttle)
+        _run_worker(sock, root, cors, access_log, shutdown_timeout, limits, throttle)
         print("splatstream serve: stopped", file=sys.stderr, flush=True)
         return EXIT_OK
-    return _prefork(sock, root, cors, access_log, shutdown_timeout, workers)
+    return _prefork(sock, root, cors, access_log, shutdown_timeout, limits, workers)
 
 
 def _prefork(sock: socket.socket, root: str, cors: list[str], access_log: bool, shutdown_timeout: float,
-             workers: int) -> int:
+             limits: Limits, workers: int) -> int:
     """`workers` processes accept on the one listening socket; the parent forwards SIGTERM/SIGINT and waits."""
     children: list[int] = []
     stopping = False
@@ -178,7 +206,7 @@ def _prefork(sock: socket.socket, root: str, cors: list[str], access_log: bool, 
             try:
                 for s, handler in old.items():
                     signal.signal(s, handler)
-                _run_worker(sock, root, cors, access_log, shutdown_timeout)
+                _run_worker(sock, root, cors, access_log, shutdown_timeout, limits)
             except BaseException:
                 code = EXIT_ERROR
             finally:

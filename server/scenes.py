@@ -6,6 +6,7 @@ one manifest file, keyed by its (device, inode, mtime_ns, size) taken from the o
 """
 from __future__ import annotations
 
+import errno
 import hashlib
 import logging
 import os
@@ -17,6 +18,7 @@ from splatstream.errors import SplatstreamError
 from splatstream.format.manifest import MAX_MANIFEST_BYTES, parse_manifest, scene_summary
 from splatstream.format.names import MANIFEST_NAME
 
+from .limits import rate_limited
 from .paths import MAX_SCENE_DEPTH, SEGMENT_RE, ScenePath, is_inside
 
 log = logging.getLogger("splatstream.server")
@@ -29,6 +31,14 @@ _PROC_FD = "/proc/self/fd"
 
 class NotFound(Exception):
     pass
+
+
+class Forbidden(Exception):
+    """The file exists but this server may not read it (its mode): answered 403, and the operator is told."""
+
+
+class OutOfResources(Exception):
+    """No descriptor or memory left to open a file: answered 503 (try again), never 404."""
 
 
 @dataclass
@@ -82,6 +92,38 @@ class SceneRoot:
         self._real_root = os.path.realpath(self.root)
         return self._real_root
 
+    def _open_inside(self, path: str, missing: str, what: str) -> tuple[int, os.stat_result]:
+        """Open the regular file `path` for reading if its real path lies inside the root: (fd, stat).
+
+        NotFound(missing) when it does not exist, is not a regular file or leads out of the root (the same rule
+        for serving and for the scene list); Forbidden when its permissions keep this server from reading it
+        (`what` names it in that message).
+        """
+        try:
+            # O_NONBLOCK: opening a FIFO planted in the tree must not hang the server.
+            fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC | os.O_NONBLOCK)
+        except PermissionError:
+            _report_unreadable(path)
+            raise Forbidden(f"the server may not read {what} (file permissions)") from None
+        except OSError as exc:
+            if exc.errno in (errno.EMFILE, errno.ENFILE, errno.ENOMEM):
+                rate_limited("open", logging.WARNING, "cannot open %s: %s; answered 503", path, exc.strerror)
+                raise OutOfResources(f"server busy: cannot open {what} now; retry later") from None
+            raise NotFound(missing) from None
+        try:
+            st = os.fstat(fd)
+            if not stat.S_ISREG(st.st_mode):
+                raise NotFound(missing)
+            real = _real_path_of_fd(fd, path) if self._have_proc_fd else os.path.realpath(path)
+            if not is_inside(real, self._real_root) and not is_inside(real, self._resolve_root()):
+                # A client can ask again and again: INFO (not shown by default), once per interval.
+                rate_limited("outside", logging.INFO, "refused %s: resolves outside the root (%s)", path, real)
+                raise NotFound(missing)
+            return fd, st
+        except BaseException:
+            os.close(fd)
+            raise
+
     # -- serving files -----------------------------------------------------------------------------------------
     def open(self, sp: ScenePath) -> OpenedFile:
         """Open a validated scene file; NotFound unless it is a regular file of a scene, inside the root."""
@@ -92,21 +134,10 @@ class SceneRoot:
                     raise NotFound(f"no scene {sp.scene_id!r}")
             except OSError:
                 raise NotFound(f"no scene {sp.scene_id!r}") from None
-        path = f"{scene_dir}/{sp.rel}"
+        missing = f"no scene {sp.scene_id!r}" if sp.kind == "manifest" else \
+            f"no file {sp.rel!r} in scene {sp.scene_id!r}"
+        fd, st = self._open_inside(f"{scene_dir}/{sp.rel}", missing, f"{sp.rel} of scene {sp.scene_id!r}")
         try:
-            # O_NONBLOCK: opening a FIFO planted in the tree must not hang the server.
-            fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC | os.O_NONBLOCK)
-        except OSError:
-            raise NotFound(f"no scene {sp.scene_id!r}" if sp.kind == "manifest" else
-                           f"no file {sp.rel!r} in scene {sp.scene_id!r}") from None
-        try:
-            st = os.fstat(fd)
-            if not stat.S_ISREG(st.st_mode):
-                raise NotFound(f"{sp.rel!r} in scene {sp.scene_id!r} is not a file")
-            real = _real_path_of_fd(fd, path) if self._have_proc_fd else os.path.realpath(path)
-            if not is_inside(real, self._real_root) and not is_inside(real, self._resolve_root()):
-                log.warning("refused %s/%s: resolves outside the root (%s)", sp.scene_id, sp.rel, real)
-                raise NotFound(f"no file {sp.rel!r} in scene {sp.scene_id!r}")
             size = st.st_size
             data = None
             if sp.kind == "payload":
@@ -150,7 +181,9 @@ class SceneRoot:
                 break
             try:
                 entries = list(os.scandir(directory))
-            except OSError:
+            except OSError as exc:
+                if exc.errno in (errno.EMFILE, errno.ENFILE, errno.ENOMEM):
+                    raise OutOfResources("server busy: cannot list the scenes now; retry later") from None
                 continue
             for e in entries:
                 if not SEGMENT_RE.match(e.name) or len(segs) >= MAX_SCENE_DEPTH:
@@ -174,12 +207,12 @@ class SceneRoot:
         """The /api/scenes entry of one scene, or None when its manifest is unreadable or invalid."""
         path = os.path.join(directory, MANIFEST_NAME)
         try:
-            fd = os.open(path, os.O_RDONLY | os.O_CLOEXEC | os.O_NONBLOCK)
-        except OSError:
-            return None
+            # The rule of serving: a manifest leading out of the root is no scene here (it would leak its facts).
+            fd, st = self._open_inside(path, f"no scene {scene_id!r}", f"the manifest of scene {scene_id!r}")
+        except (NotFound, Forbidden):
+            return None  # (OutOfResources goes up: a list missing scenes must not look complete)
         try:
-            st = os.fstat(fd)
-            if not stat.S_ISREG(st.st_mode) or st.st_size > MAX_MANIFEST_BYTES:
+            if st.st_size > MAX_MANIFEST_BYTES:
                 return None
             key = (path, st.st_dev, st.st_ino, st.st_mtime_ns, st.st_size)
             cached = self._summaries.get_fresh(key)
@@ -210,6 +243,17 @@ class SceneRoot:
 
     def list_scenes(self) -> list[dict]:
         return [s for sid, d in self.scan() if (s := self.summary(sid, d)) is not None]
+
+
+def _report_unreadable(path: str) -> None:
+    """Tell the operator why a file answers 403 (files written 0600 by another user's encoder, for instance)."""
+    try:
+        st = os.stat(path)
+        why = f"mode {stat.S_IMODE(st.st_mode):04o}, owner uid {st.st_uid}"
+    except OSError as exc:
+        why = exc.strerror or str(exc)
+    rate_limited("unreadable", logging.WARNING, "cannot read %s: permission denied (%s; this server runs as uid %d); "
+                 "answered 403", path, why, os.geteuid())
 
 
 def _read_all(fd: int, size: int) -> bytes:

@@ -1,10 +1,15 @@
-"""Synthetic scene directories for the server's tests and benchmark: a manifest that passes validation and
-random payloads of chosen sizes named by their SHA-256. Not real splat data (use splatstream.encode for that): the
-payload bytes are never decoded by the server, only served."""
+"""For the server's tests and benchmark: synthetic scene directories (a manifest that passes validation, random
+payloads of chosen sizes named by their SHA-256; not real splat data, use splatstream.encode for that: the payload
+bytes are never decoded by the server, only served), a real server on loopback in a thread, and plain HTTP/1.1
+requests sent exactly as written."""
 from __future__ import annotations
 
+import asyncio
+import http.client
 import os
 import random
+import socket
+import threading
 from collections.abc import Sequence
 
 from splatstream.atomic import atomic_directory
@@ -28,6 +33,8 @@ from splatstream.format.texformats import FORMATS, blob_size
 
 FORMATS_USED = PRESETS["very-high"]  # f32x4 everywhere: the largest raw size per chunk (about 16.5 KB)
 CHUNK_RAW_BYTES = 4 * 16 * 16 * 16
+
+ORIGIN = "https://viewer.example"
 
 
 def _payload(sha: str, size: int) -> tuple[PayloadEntry, int, tuple[int, int]]:
@@ -98,3 +105,68 @@ def write_fake_scene(directory: str | os.PathLike, sizes: Sequence[int], seed: i
         return fill(directory)
     with atomic_directory(directory) as tmp:
         return fill(tmp)
+
+
+class ServerThread:
+    """A real server on 127.0.0.1:<free port>, its event loop in a daemon thread."""
+
+    def __init__(self, root: str | os.PathLike, cors=(ORIGIN,), shutdown_timeout: float = 5.0, limits=None):
+        from .app import create_app, create_runner, start_site  # aiohttp only where a server runs
+        from .run import bind
+
+        self.app = create_app(root, cors_origins=cors)
+        self.runner = create_runner(self.app, access_log=False, shutdown_timeout=shutdown_timeout, limits=limits)
+        self.sock = bind("127.0.0.1", 0)
+        self.port = self.sock.getsockname()[1]
+        self.loop = asyncio.new_event_loop()
+        ready = threading.Event()
+
+        def main():
+            asyncio.set_event_loop(self.loop)
+
+            async def start():
+                await self.runner.setup()
+                self.guard = await start_site(self.runner, self.sock)
+
+            self.loop.run_until_complete(start())
+            ready.set()
+            self.loop.run_forever()
+
+        self.thread = threading.Thread(target=main, daemon=True)
+        self.thread.start()
+        assert ready.wait(10)
+
+    def stop(self) -> None:
+        async def stop():
+            self.guard.close()
+            await self.runner.cleanup()
+
+        asyncio.run_coroutine_threadsafe(stop(), self.loop).result(10)
+        self.loop.call_soon_threadsafe(self.loop.stop)
+        self.thread.join(10)
+
+
+def request(port: int, path: str, method: str = "GET", headers: dict | None = None, body: bytes | None = None):
+    """One request with the path sent exactly as given; (status, headers, body)."""
+    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
+    try:
+        conn.putrequest(method, path, skip_host=False, skip_accept_encoding=True)
+        for k, v in (headers or {}).items():
+            conn.putheader(k, v)
+        if body is not None:
+            conn.putheader("Content-Length", str(len(body)))
+        conn.endheaders(body)
+        resp = conn.getresponse()
+        data = resp.read()
+        return resp.status, resp.headers, data
+    finally:
+        conn.close()
+
+
+def raw_request(port: int, data: bytes) -> bytes:
+    with socket.create_connection(("127.0.0.1", port), timeout=10) as s:
+        s.sendall(data)
+        out = b""
+        while chunk := s.recv(65536):
+            out += chunk
+        return out

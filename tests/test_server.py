@@ -7,6 +7,7 @@ import gzip
 import hashlib
 import http.client
 import json
+import logging
 import os
 import re
 import signal
@@ -20,77 +21,16 @@ from pathlib import Path
 import aiohttp
 import pytest
 
-from server.app import SCENE_ROOT, create_app, create_runner
-from server.run import bind
+from server.app import SCENE_ROOT
 from server.scenes import SMALL_FILE_BYTES
-from server.testing import write_fake_scene
+from server.testing import ORIGIN, ServerThread, raw_request, request, write_fake_scene
 from splatstream.format.manifest import pack_manifest, parse_manifest
 from splatstream.format.names import MANIFEST_NAME
 
 REPO = Path(__file__).resolve().parents[1]
 REAL_PLY = Path("/work/shared/data/real/fruit_drops_sh3.ply")
-ORIGIN = "https://viewer.example"
 SIZES = [0, 1, 1000, SMALL_FILE_BYTES, SMALL_FILE_BYTES + 1, 3 << 20]  # both the in-memory and sendfile paths
 sha = hashlib.sha256
-
-
-class ServerThread:
-    """A real server on 127.0.0.1:<free port>, its event loop in a daemon thread."""
-
-    def __init__(self, root: Path, cors=(ORIGIN,), shutdown_timeout: float = 5.0):
-        self.app = create_app(root, cors_origins=cors)
-        self.runner = create_runner(self.app, access_log=False, shutdown_timeout=shutdown_timeout)
-        self.sock = bind("127.0.0.1", 0)
-        self.port = self.sock.getsockname()[1]
-        self.loop = asyncio.new_event_loop()
-        ready = threading.Event()
-
-        def main():
-            asyncio.set_event_loop(self.loop)
-
-            async def start():
-                from aiohttp import web
-                await self.runner.setup()
-                await web.SockSite(self.runner, self.sock).start()
-
-            self.loop.run_until_complete(start())
-            ready.set()
-            self.loop.run_forever()
-
-        self.thread = threading.Thread(target=main, daemon=True)
-        self.thread.start()
-        assert ready.wait(10)
-
-    def stop(self) -> None:
-        asyncio.run_coroutine_threadsafe(self.runner.cleanup(), self.loop).result(10)
-        self.loop.call_soon_threadsafe(self.loop.stop)
-        self.thread.join(10)
-
-
-def request(port: int, path: str, method: str = "GET", headers: dict | None = None, body: bytes | None = None):
-    """One request with the path sent exactly as given; (status, headers, body)."""
-    conn = http.client.HTTPConnection("127.0.0.1", port, timeout=10)
-    try:
-        conn.putrequest(method, path, skip_host=False, skip_accept_encoding=True)
-        for k, v in (headers or {}).items():
-            conn.putheader(k, v)
-        if body is not None:
-            conn.putheader("Content-Length", str(len(body)))
-        conn.endheaders(body)
-        resp = conn.getresponse()
-        data = resp.read()
-        return resp.status, resp.headers, data
-    finally:
-        conn.close()
-
-
-def raw_request(port: int, data: bytes) -> bytes:
-    with socket.create_connection(("127.0.0.1", port), timeout=10) as s:
-        s.sendall(data)
-        out = b""
-        while chunk := s.recv(65536):
-            out += chunk
-        return out
 
 
 def assert_error(status: int, headers, body: bytes, expected: int) -> None:
@@ -120,6 +60,8 @@ def root(tmp_path_factory) -> Path:
     secret_payload = next((outside / "secret" / "data").iterdir())
     (root / "c" / "data" / secret_payload.name).symlink_to(secret_payload)  # payload leaving the root
     (root / "alias").symlink_to(root / "a")  # a link inside the root is fine
+    (root / "leak").mkdir()  # a scene directory inside the root whose manifest is a link leaving it
+    (root / "leak" / MANIFEST_NAME).symlink_to(outside / "secret" / MANIFEST_NAME)
     (root / "fifo").mkdir()
     os.mkfifo(root / "fifo" / MANIFEST_NAME)
     return root
@@ -345,6 +287,19 @@ def test_rejected_symlinks(srv, root):
     assert_error(st, headers, body, 404)
 
 
+def test_manifest_link_leaving_the_root_is_not_listed(srv, root):
+    """Issue 19 finding 10: the scene list applies the containment rule of serving, so it never shows the name,
+    splat count, bounds or size of a manifest outside the root."""
+    assert (root / "leak" / MANIFEST_NAME).read_bytes()  # readable on disk through the link
+    assert_error(*request(srv.port, "/scenes/leak/manifest.msgpack"), 404)
+    status, _, body = request(srv.port, "/api/scenes")
+    assert status == 200
+    scenes = json.loads(body)["scenes"]
+    assert "leak" not in [x["id"] for x in scenes]
+    assert "secret" not in [x["name"] for x in scenes]
+    assert b"secret" not in body
+
+
 def test_payload_of_directory_without_manifest(srv, root):
     name = next((root / "nomanifest" / "data").iterdir()).name
     assert_error(*request(srv.port, f"/scenes/nomanifest/data/{name}"), 404)
@@ -385,7 +340,8 @@ def test_request_limits(srv):
     assert st == 405
 
 
-def test_unexpected_exception_is_a_json_500(root):
+def test_unexpected_exception_is_a_json_500(root, caplog):
+    caplog.set_level(logging.INFO, logger="splatstream.server")
     s = ServerThread(root)
     try:
         def boom(sp):
@@ -396,6 +352,10 @@ def test_unexpected_exception_is_a_json_500(root):
         assert_error(st, headers, body, 500)
         assert b"secret" not in body and b"RuntimeError" not in body
         assert request(s.port, "/healthz")[0] == 200  # still serving
+        # a server fault is logged at ERROR, with its traceback (client errors are not: test_server_limits.py)
+        faults = [r for r in caplog.records if r.levelno == logging.ERROR]
+        assert len(faults) == 1 and "GET /scenes/a/manifest.msgpack" in faults[0].getMessage()
+        assert "secret internal detail" in caplog.text
     finally:
         s.stop()
 
@@ -599,7 +559,7 @@ def test_cli_port_in_use(root):
         port = taken.getsockname()[1]
         proc = _cli(str(root), "--port", str(port))
         out, err = proc.communicate(timeout=30)
-    assert proc.returncode == 1 and "already in use" in err and "Traceback" not in err
+    assert proc.returncode == 2 and "already in use" in err and "Traceback" not in err
 
 
 @pytest.mark.parametrize("workers", [1, 2])

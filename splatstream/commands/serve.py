@@ -1,4 +1,4 @@
-"""`splatstream serve ROOT [--host H] [--port P] [--cors-origin ORIGIN ...] [--workers N]
+"""`splatstream serve ROOT [--host H] [--port P] [--cors-origin ORIGIN ...] [--workers N] [connection limits]
 [--throttle-mbps R] [--latency-ms L]`."""
 from __future__ import annotations
 
@@ -22,6 +22,18 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="worker processes sharing the port (default: %(default)s; about one per CPU core)")
     p.add_argument("--no-access-log", dest="access_log", action="store_false",
                    help="do not write one line per request to stderr")
+    limits = p.add_argument_group("connection limits (per worker; format_spec/http.md section 11)")
+    limits.add_argument("--max-connections", type=int, default=1024, metavar="N",
+                        help="open connections per worker (default: %(default)s); at the cap, idle ones are closed to "
+                             "make room, and a small reserve beyond it answers /healthz and 503 for anything else")
+    limits.add_argument("--header-timeout", type=float, default=10.0, metavar="SECONDS",
+                        help="a request's headers must arrive within this time of its first byte, or of the "
+                             "connection's opening (default: %(default)s)")
+    limits.add_argument("--keepalive-timeout", type=float, default=30.0, metavar="SECONDS",
+                        help="close a keep-alive connection idle for this long (default: %(default)s)")
+    limits.add_argument("--send-timeout", type=float, default=60.0, metavar="SECONDS",
+                        help="abort a response whose client reads nothing (less than 1 MiB of a large file) for this "
+                             "long (default: %(default)s)")
     p.add_argument("--throttle-mbps", type=float, default=None, metavar="R",
                    help="test tool: send response bodies over a simulated link of R Mbit/s shared by all "
                         "connections (needs --workers 1)")
@@ -31,26 +43,35 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from server.run import serve  # aiohttp is imported only when serving
+    from server.limits import MIN_CONNECTIONS, Limits  # aiohttp is imported only when serving
+    from server.run import serve
+
+    def bad(option: str, value: object, expected: str) -> int:
+        print(f"splatstream serve: error: {option} {value}: expected {expected}", file=sys.stderr)
+        return 2
 
     if not 0 <= args.port <= 65535:
-        print(f"splatstream serve: error: --port {args.port}: expected 0..65535", file=sys.stderr)
-        return 2
+        return bad("--port", args.port, "0..65535")
     if args.workers < 1:
-        print(f"splatstream serve: error: --workers {args.workers}: expected at least 1", file=sys.stderr)
-        return 2
+        return bad("--workers", args.workers, "at least 1")
+    if args.max_connections < MIN_CONNECTIONS:
+        return bad("--max-connections", args.max_connections, f"at least {MIN_CONNECTIONS}")
+    for option in ("header_timeout", "keepalive_timeout", "send_timeout"):
+        value = getattr(args, option)
+        if not 0 < value <= 86400:  # also refuses nan
+            return bad("--" + option.replace("_", "-"), value, "seconds, more than 0 and at most 86400")
     if args.throttle_mbps is not None and not (args.throttle_mbps > 0 and args.throttle_mbps < float("inf")):
-        print(f"splatstream serve: error: --throttle-mbps {args.throttle_mbps}: expected a positive number",
-              file=sys.stderr)
-        return 2
+        return bad("--throttle-mbps", args.throttle_mbps, "a positive number")
     if not 0 <= args.latency_ms < float("inf"):
-        print(f"splatstream serve: error: --latency-ms {args.latency_ms}: expected 0 or more", file=sys.stderr)
-        return 2
+        return bad("--latency-ms", args.latency_ms, "0 or more")
     if (args.throttle_mbps is not None or args.latency_ms) and args.workers != 1:
         print("splatstream serve: error: --throttle-mbps and --latency-ms need --workers 1 (the simulated link "
               "is shared within one process)", file=sys.stderr)
         return 2
     from server.throttle import Link
 
+    limits = Limits(max_connections=args.max_connections, header_timeout=args.header_timeout,
+                    keepalive_timeout=args.keepalive_timeout, send_timeout=args.send_timeout)
     return serve(args.root, host=args.host, port=args.port, cors_origins=args.cors_origin, workers=args.workers,
-                 access_log=args.access_log, throttle=Link.from_args(args.throttle_mbps, args.latency_ms))
+                 access_log=args.access_log, limits=limits,
+                 throttle=Link.from_args(args.throttle_mbps, args.latency_ms))
