@@ -70,6 +70,7 @@ def _camera(args, scene_camera: dict | None, positions: np.ndarray | None, scene
 
 
 def run(args: argparse.Namespace) -> int:
+    from client_gl.gpu.renderer import RenderOptions
     from client_gl.headless import HeadlessRenderer
 
     from ..format.presets import PRESETS
@@ -99,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
         cam = _camera(args, None, g.positions, None, size)
         source = ("gaussians", g)
         splats = len(g)
-    renderer = HeadlessRenderer(sort=args.sort, draw=getattr(args, "draw", "auto"))
+    renderer = HeadlessRenderer(RenderOptions(sort=args.sort, draw=args.draw))
     try:
         if source[0] == "scene":
             renderer.load_scene(source[1], args.sh_degree)
