@@ -64,12 +64,13 @@ class SlotAllocator:
         slots = np.asarray(slots, np.int64).reshape(-1)
         if slots.size == 0:
             return
-        if slots.min() < 0 or slots.max() >= self.capacity:
-            raise UsageError(f"slot {int(slots.max() if slots.max() >= self.capacity else slots.min())} is out of "
-                             f"range (capacity {self.capacity})")
-        if len(np.unique(slots)) != len(slots) or not self._used[slots].all():
-            bad = next(int(s) for s in slots if not self._used[s] or (slots == s).sum() > 1)
-            raise UsageError(f"slot {bad} is not allocated (freed twice?)")
+        outside = slots[(slots < 0) | (slots >= self.capacity)]
+        if outside.size:
+            raise UsageError(f"slot {int(outside[0])} is out of range (capacity {self.capacity})")
+        unique, counts = np.unique(slots, return_counts=True)
+        bad = unique[(counts > 1) | ~self._used[unique]]
+        if bad.size:
+            raise UsageError(f"slot {int(bad[0])} is not allocated (freed twice?)")
         self._used[slots] = False
         self._free_count += len(slots)
 
