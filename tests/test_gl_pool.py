@@ -125,7 +125,7 @@ def test_bands_join_later(gl_context, scenes, sorts, fruit, kind):
         r_later.render(cam)
         _same(r_later.read_image(), refs[2], sort, (kind, "dropped to 2"))
         later.leave(7)  # a tile leaves with all its bands
-        assert 7 not in later and later.free_slots == later.capacity
+        assert 7 not in later and later.free_slots == later.capacity_slots
         r_later.release()
         r_whole.release()
     whole.release()
@@ -268,7 +268,7 @@ def test_pool_within_its_gpu_budget(gl_context, scenes, kind):
     pool = ChunkPool.for_budget(gl_context, budget, scene.formats, scene.sh_degree, codebook=scene.codebook_layout)
     for band in range(1, 4) if scene.codebook else ():
         pool.set_codebook_band(band, scene.codebook[f"sh{band}"])
-    assert pool.capacity == _slots(a) + 3
+    assert pool.capacity_slots == _slots(a) + 3
     assert budget - per_slot < pool.gpu_bytes <= budget
     bytes_made = pool.gpu_bytes
     pool.join(1, _base(a))

@@ -125,7 +125,7 @@ def test_tiles_join_and_leave(renderers):
         rend.render(cam)
         assert psnr(rend.read_image()[..., :3], both) >= 60.0
         pool.clear()
-        assert pool.free_slots == pool.capacity and pool.scan_slots == 0
+        assert pool.free_slots == pool.capacity_slots and pool.scan_slots == 0
         rend.release()
     pool.release()
 
@@ -141,7 +141,7 @@ def test_full_pool_refuses_a_tile(renderers):
     r0 = next(iter(renderers.values()))
     pool = ChunkPool(r0.ctx, scene.formats, scene.sh_degree, 6)
     try:
-        assert pool.capacity == 6
+        assert pool.capacity_slots == 6
         pool.join(1, scene.tiles[0])
         with pytest.raises(UsageError, match="4 slots needed, 2 of 6 are free"):
             pool.join(2, scene.tiles[0])

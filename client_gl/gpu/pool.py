@@ -172,13 +172,13 @@ class ChunkPool:
         return self.layout.sh_degree
 
     @property
-    def capacity(self) -> int:
+    def capacity_slots(self) -> int:
         """Slots (fixed when the pool is made)."""
         return self._allocator.capacity
 
     @property
     def splat_capacity(self) -> int:
-        return self.capacity * CHUNK
+        return self.capacity_slots * CHUNK
 
     @property
     def atlas_columns(self) -> int:
@@ -267,7 +267,7 @@ class ChunkPool:
 
     @property
     def gpu_bytes(self) -> int:
-        """Everything the pool allocated on the GPU (= layout.pool_bytes(capacity))."""
+        """Everything the pool allocated on the GPU (= layout.pool_bytes(capacity_slots))."""
         return self.texel_bytes + self.range_bytes + self.state_bytes + self.codebook_bytes
 
     @property
