@@ -48,10 +48,29 @@ def make_scene(script: str, n: int, path: str, seed: int) -> None:
     log(f"made {path} in {time.perf_counter() - t:.1f}s")
 
 
+# Measurement flags of a --draw value ("fetch+f2b", "compute+t8+u2", ...) -> RenderOptions fields.
+DRAW_FLAGS = {"f2b": {"front_to_back": True}, "nodepth": {"depth_test": False}, "noblend": {"blend": False},
+              "discard": {"discard_fragments": True}, "t8": {"tile_px": 8}, "u1": {"unroll": 1}, "u2": {"unroll": 2},
+              "wc": {"warp_cull": True}}
+
+
+def render_options(sort: str, draw: str, color_dtype: str):
+    """RenderOptions of a --draw value: a draw mode with optional +flags (DRAW_FLAGS)."""
+    from client_gl.gpu.renderer import RenderOptions
+
+    mode, *flags = draw.split("+")
+    fields = {}
+    for flag in flags:
+        if flag not in DRAW_FLAGS:
+            raise SystemExit(f"--draw {draw}: unknown flag +{flag} (known: {', '.join(DRAW_FLAGS)})")
+        fields.update(DRAW_FLAGS[flag])
+    return RenderOptions(sort=sort, draw=mode, color_dtype=color_dtype, **fields)
+
+
 def bench_gl(ctx, scene, cam: Camera, frames: int, sort: str, color_dtype: str, draw: str = "instanced") -> dict:
     from client_gl.headless import HeadlessRenderer
 
-    r = HeadlessRenderer(sort=sort, ctx=ctx, color_dtype=color_dtype, draw=draw)
+    r = HeadlessRenderer(render_options(sort, draw, color_dtype), ctx=ctx)
     t = time.perf_counter()
     r.load_tiles(scene)
     ctx.finish()
@@ -95,7 +114,7 @@ def bench_gl(ctx, scene, cam: Camera, frames: int, sort: str, color_dtype: str, 
 
 def bench_sort_random(ctx, n: int, reps: int = 10) -> dict:
     """Standalone GPU radix sort of n random uint32 keys with uint32 values (GPU time, timer queries)."""
-    from client_gl.sort import GpuRadixSort
+    from client_gl.gpu.sort import GpuRadixSort
 
     s = GpuRadixSort(ctx, n)
     rng = np.random.default_rng(0)
@@ -167,6 +186,7 @@ def psnr(a, b) -> float:
 
 def check_correctness(ctx, real_dir: str) -> dict:
     """GPU path on this GL vs the numpy reference on a real scene (small image)."""
+    from client_gl.gpu.renderer import RenderOptions
     from client_gl.headless import HeadlessRenderer
     from splatstream import render_ref
     from splatstream.camera import suggested_camera
@@ -179,7 +199,7 @@ def check_correctness(ctx, real_dir: str) -> dict:
     cam = suggested_camera(g.positions, width=256, height=192)
     ref = render_ref.render(g, cam)
     for sort in ("gpu", "cpu"):
-        r = HeadlessRenderer(sort=sort, ctx=ctx)
+        r = HeadlessRenderer(RenderOptions(sort=sort), ctx=ctx)
         for preset in ("very-high", "medium"):
             r.load_gaussians(g, preset)
             out[f"{sort}/{preset}"] = psnr(r.render(cam), ref)
@@ -205,8 +225,9 @@ def main() -> int:
     ap.add_argument("--color", nargs="+", default=["f2"], choices=["f1", "f2", "f4"],
                     help="colour buffer types to time (default RGBA16F; the first is the reported one)")
     ap.add_argument("--draw", nargs="+", default=["auto"],
-                    help="GPU-path draw modes to time: instanced, triangles, fetch, points, optionally with "
-                         "measurement flags +nodepth, +noblend, +discard (e.g. fetch+discard); the first is reported")
+                    help="GPU-path draw modes to time: auto, compute, instanced, triangles, fetch, points, optionally "
+                         "with measurement flags +f2b, +nodepth, +noblend, +discard (raster draws), +t8, +u1, +u2, "
+                         "+wc (compute) (e.g. fetch+discard); the first is reported")
     ap.add_argument("--no-cpu-sort", action="store_true", help="skip the CPU-sort path")
     ap.add_argument("--gsplat", action="store_true", help="also time gsplat (CUDA) on the same scene and camera")
     ap.add_argument("--check", action="store_true", help="PSNR of the GL paths against render_ref on a real scene")

@@ -2,8 +2,12 @@
 
     from client_gl.headless import render_image, HeadlessRenderer
     img = render_image(gaussians_or_scene_dir, camera)          # (H, W, 3) float32, linear, not clamped above
+    r = HeadlessRenderer(RenderOptions(sort="cpu"))                # client_gl.gpu.renderer.RenderOptions
+    r.load_scene(scene_dir)
+    img = r.render(camera)
 
-One GL context (and the renderer of the last loaded source) is kept per sort mode and reused across calls.
+One GL context (shared_context) and one renderer per sort mode (with the last source it loaded) are kept and reused
+across calls.
 """
 from __future__ import annotations
 
@@ -17,8 +21,8 @@ from splatstream.errors import SplatstreamError, UsageError
 from splatstream.format.names import MANIFEST_NAME
 from splatstream.gaussians import Gaussians
 
-from .pool import ChunkPool
-from .renderer import FrameStats, SplatRenderer
+from .gpu.pool import ChunkPool
+from .gpu.renderer import FrameStats, RenderOptions, SplatRenderer, resolve_sort
 from .scene import DEFAULT_PRESET, SceneTiles, tiles_from_gaussians, tiles_from_scene
 
 
@@ -51,32 +55,46 @@ def create_context(require: int = 430):
 class HeadlessRenderer:
     """One GL context; load Gaussians or an encoded scene, then render any number of cameras."""
 
-    def __init__(self, sort: str = "auto", ctx=None, color_dtype: str = "f4", draw: str = "auto"):
+    def __init__(self, options: RenderOptions | None = None, ctx=None):
         self.ctx = ctx or create_context()
-        self.sort = sort
-        self.color_dtype = color_dtype
-        self.draw = draw
+        self.options = options or RenderOptions()
+        # The CPU-sort path culls on the host: only then do the tiles carry (and the pool keep) a host mirror.
+        self.needs_host_mirror = resolve_sort(self.ctx, self.options) == "cpu"
         self.pool: ChunkPool | None = None
         self.renderer: SplatRenderer | None = None
         self.scene: SceneTiles | None = None
-        self.source_key = None
+        self._source: tuple[tuple, object] | None = None  # (key, source object) of load_cached's last source
 
     # --- loading ---------------------------------------------------------------------------------------------
-    def load_tiles(self, scene: SceneTiles, capacity: int | None = None) -> None:
-        """Make a pool for the scene's formats and upload all its tiles."""
+    def load_tiles(self, scene: SceneTiles) -> None:
+        """Make a pool of exactly the scene's slots and upload all its tiles (with their SH bands)."""
         self.unload()
-        cap = max(capacity or 0, scene.splats, 1)
-        self.pool = ChunkPool(self.ctx, scene.formats, scene.sh_degree, cap, codebook=scene.codebook)
+        self.pool = ChunkPool(self.ctx, scene.formats, scene.sh_degree, max(1, scene.slots),
+                              codebook=scene.codebook_layout, host_mirror=self.needs_host_mirror)
+        for name, plane in sorted((scene.codebook or {}).items()):
+            self.pool.set_codebook_band(int(name[2:]), plane)
         for tile_id, tile in scene.tiles.items():
             self.pool.join(tile_id, tile)
-        self.renderer = SplatRenderer(self.ctx, self.pool, self.sort, self.color_dtype, self.draw)
+        self.renderer = SplatRenderer(self.ctx, self.pool, self.options)
         self.scene = scene
 
     def load_gaussians(self, g: Gaussians, preset: str = DEFAULT_PRESET, sh_degree: int | None = None) -> None:
-        self.load_tiles(tiles_from_gaussians(g, preset, sh_degree))
+        self.load_tiles(tiles_from_gaussians(g, preset, sh_degree, with_mirror=self.needs_host_mirror))
 
     def load_scene(self, scene_dir: str | os.PathLike, sh_degree: int | None = None) -> None:
-        self.load_tiles(tiles_from_scene(scene_dir, sh_degree))
+        self.load_tiles(tiles_from_scene(scene_dir, sh_degree, with_mirror=self.needs_host_mirror))
+
+    def load_cached(self, source: Gaussians | str | os.PathLike, preset: str = DEFAULT_PRESET) -> None:
+        """Load Gaussians (encoded at `preset`) or a scene directory unless it is the one loaded last (the same
+        object, or the same directory with an unchanged manifest)."""
+        key = _source_key(source) + ((preset,) if isinstance(source, Gaussians) else ())
+        if self._source is not None and self._source[0] == key:
+            return
+        if isinstance(source, Gaussians):
+            self.load_gaussians(source, preset)
+        else:
+            self.load_scene(source)
+        self._source = (key, source)  # the object stays referenced, so its id stays unique while cached
 
     def unload(self) -> None:
         if self.renderer is not None:
@@ -84,7 +102,7 @@ class HeadlessRenderer:
         if self.pool is not None:
             self.pool.release()
         self.pool = self.renderer = self.scene = None
-        self.source_key = None
+        self._source = None
 
     # --- rendering -------------------------------------------------------------------------------------------
     def render(self, camera: Camera, sh_degree: int | None = None, background=(0.0, 0.0, 0.0),
@@ -99,7 +117,7 @@ class HeadlessRenderer:
                      timing: bool = False) -> FrameStats:
         if self.renderer is None:
             raise UsageError("nothing loaded: call load_gaussians() or load_scene() first")
-        return self.renderer.render(camera, sh_degree, background, timing=timing)
+        return self.renderer.render(camera, sh_degree=sh_degree, background=background, timing=timing)
 
     @property
     def sort_mode(self) -> str | None:
@@ -111,7 +129,20 @@ class HeadlessRenderer:
 
 
 _shared: dict[str, HeadlessRenderer] = {}
+_shared_context = None
 _lock = threading.Lock()
+
+
+def shared_context():
+    """The process's shared headless GL context (created on first use; GLUnavailableError where none opens).
+
+    One context for every shared renderer and for tests: moderngl and the raw GL calls act on the context current
+    on the thread, so objects of several contexts used in turn would end up in the wrong one."""
+    global _shared_context
+    with _lock:
+        if _shared_context is None:
+            _shared_context = create_context()
+        return _shared_context
 
 
 def _source_key(source) -> tuple:
@@ -123,10 +154,12 @@ def _source_key(source) -> tuple:
 
 
 def get_renderer(sort: str = "auto") -> HeadlessRenderer:
+    """The shared renderer of a sort mode, on the shared context."""
+    ctx = shared_context()
     with _lock:
         r = _shared.get(sort)
         if r is None:
-            r = _shared[sort] = HeadlessRenderer(sort=sort)
+            r = _shared[sort] = HeadlessRenderer(RenderOptions(sort=sort), ctx=ctx)
         return r
 
 
@@ -138,12 +171,5 @@ def render_image(source: Gaussians | str | os.PathLike, camera: Camera, sh_degre
     or directory: no re-upload).
     """
     r = get_renderer(sort)
-    key = _source_key(source) + ((preset,) if isinstance(source, Gaussians) else ())
-    if r.source_key != key:
-        if isinstance(source, Gaussians):
-            r.load_gaussians(source, preset)
-            r._source_ref = source  # keep the object alive so its id stays unique while cached
-        else:
-            r.load_scene(source)
-        r.source_key = key
+    r.load_cached(source, preset)
     return r.render(camera, sh_degree, background)

@@ -1,6 +1,7 @@
 """Tiles for the pool, read from any scene store (a directory, or Gaussians encoded in memory by the encoder).
 
-Both paths are the same: payload bytes -> splatstream.format.decode -> planes as stored (texels stay encoded).
+Both paths are the same: payload bytes -> splatstream.format.decode (verified, texels still encoded) -> TileData
+(planes + the host mirror the CPU-sort path needs) -> ChunkPool.join / add_band.
 """
 from __future__ import annotations
 
@@ -15,7 +16,8 @@ from splatstream.format.manifest import Manifest, TileEntry
 from splatstream.gaussians import Gaussians
 from splatstream.store import SceneStore, open_store, read_manifest
 
-from .pool import TileData
+from .gpu.residency_layout import CHUNK, CodebookLayout
+from .tiledata import TileData, host_mirror
 
 DEFAULT_PRESET = "very-high"
 
@@ -34,39 +36,67 @@ class SceneTiles:
     def splats(self) -> int:
         return sum(t.splats for t in self.tiles.values())
 
+    @property
+    def slots(self) -> int:
+        """Pool slots the tiles take (one per 256-splat chunk)."""
+        return sum(-(-t.splats // CHUNK) for t in self.tiles.values())
 
-def load_tile(store: SceneStore, manifest: Manifest, tile: TileEntry, sh_degree: int) -> TileData:
-    """A tile's planes from its payloads (verified, decompressed, unshuffled; texels stay encoded)."""
+    @property
+    def codebook_layout(self) -> CodebookLayout | None:
+        """The shape a pool needs for this scene's SH codebook (None: no codebook loaded)."""
+        cb = self.manifest.sh_codebook
+        if self.codebook is None or cb is None:
+            return None
+        return CodebookLayout(cb.format, cb.entries)
+
+
+def _group_planes(store: SceneStore, manifest: Manifest, tile: TileEntry, group: str) -> dict[str, EncodedPlane]:
+    entry = tile.groups[group]
+    source = store.payload_source(entry)
+    planes = decode_payload(store.read_payload(entry), entry, group, source, manifest.uses_codebook)
+    if group == "sh1" and manifest.uses_codebook:  # an index >= K is an error for every reader (format.md 4.7)
+        codebook_index(planes, tile.splats, manifest.sh_codebook.entries, source)
+    return planes
+
+
+def load_tile(store: SceneStore, manifest: Manifest, tile: TileEntry, sh_degree: int,
+              with_mirror: bool = True) -> TileData:
+    """A tile's planes from its payloads (base and the SH groups up to sh_degree) and, with_mirror, its host
+    mirror."""
     planes: dict[str, EncodedPlane] = {}
     for group in tile_groups_for(manifest, sh_degree):
-        entry = tile.groups[group]
-        source = store.payload_source(entry)
-        planes.update(decode_payload(store.read_payload(entry), entry, group, source, manifest.uses_codebook))
-        if group == "sh1" and manifest.uses_codebook:  # an index >= K is an error for every reader (format.md 4.7)
-            codebook_index(planes, tile.splats, manifest.sh_codebook.entries, source)
-    return TileData(tile.splats, planes)
+        planes.update(_group_planes(store, manifest, tile, group))
+    return TileData(tile.splats, planes, host_mirror(planes, tile.splats) if with_mirror else None)
+
+
+def load_band(store: SceneStore, manifest: Manifest, tile: TileEntry, band: int) -> dict[str, EncodedPlane]:
+    """The planes ChunkPool.add_band takes for SH band `band` of a tile: its sh<band> payload, or with an SH
+    codebook its index (band 1) and nothing for bands 2..3 (the codebook's)."""
+    if manifest.uses_codebook and band > 1:
+        return {}
+    return _group_planes(store, manifest, tile, f"sh{band}")
 
 
 def tiles_from_scene(source: str | os.PathLike | SceneStore, sh_degree: int | None = None,
-                     tile_ids: list[int] | None = None) -> SceneTiles:
+                     tile_ids: list[int] | None = None, with_mirror: bool = True) -> SceneTiles:
     """The full-detail (leaf) tiles of a scene, or the listed tile ids."""
     store = open_store(source)
     manifest = read_manifest(store)
     degree = manifest.sh_degree if sh_degree is None else max(0, min(int(sh_degree), manifest.sh_degree))
     chosen = manifest.leaves if tile_ids is None else [manifest.tile(i) for i in tile_ids]
     codebook = read_codebook(store, manifest, degree) if degree >= 1 else None
-    tiles = {t.id: load_tile(store, manifest, t, degree) for t in chosen}
+    tiles = {t.id: load_tile(store, manifest, t, degree, with_mirror) for t in chosen}
     return SceneTiles(dict(manifest.formats), degree, tiles, manifest, codebook)
-
 
 
 def tiles_from_gaussians(g: Gaussians, preset: str = DEFAULT_PRESET, sh_degree: int | None = None,
                          overrides: dict[str, str] | None = None,
-                         sh_codebook: str | int | None = None) -> SceneTiles:
+                         sh_codebook: str | int | None = None, with_mirror: bool = True) -> SceneTiles:
     """Gaussians encoded in memory by the encoder (one tile, as `encode --no-lod` writes it) at a preset.
 
     sh_codebook: "off", "auto" or an entry count for an SH codebook; None: the preset's choice (as `encode` does).
     """
     opts = EncodeOptions(preset=preset, overrides=dict(overrides or {}), sh_degree=sh_degree, lod=False,
                          sh_codebook=sh_codebook)
-    return tiles_from_scene(encode_in_memory(g, opts))
+    return tiles_from_scene(encode_in_memory(g, opts), with_mirror=with_mirror)
+

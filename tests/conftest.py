@@ -24,19 +24,25 @@ def run_cli(*args: str, cwd=None) -> subprocess.CompletedProcess:
                           cwd=cwd, stdin=subprocess.DEVNULL, timeout=600)
 
 
-def open_gl_context(compute: bool = False):
-    """A headless GL context, or skip the test (no EGL here, or no compute shaders where they are needed)."""
+@pytest.fixture(scope="session")
+def gl_context():
+    """The process's shared headless GL context (client_gl.headless.shared_context, also behind render_image), or
+    skip the test where none opens. One context only: GL objects act on the current context."""
     pytest.importorskip("moderngl")
-    from client_gl.headless import GLUnavailableError, create_context
+    from client_gl.headless import GLUnavailableError, shared_context
 
     try:
-        ctx = create_context()
+        return shared_context()
     except GLUnavailableError as exc:
         pytest.skip(f"no OpenGL context: {exc}")
-    if compute and ctx.version_code < 430:
-        ctx.release()
+
+
+@pytest.fixture(scope="session")
+def gl_compute_context(gl_context):
+    """The shared GL context where it has GL 4.3 compute shaders (else the test is skipped)."""
+    if gl_context.version_code < 430:
         pytest.skip("no GL 4.3 compute shaders")
-    return ctx
+    return gl_context
 
 
 def group_planes_of(scene_dir, manifest, tile, group: str) -> dict:

@@ -3,14 +3,19 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import open_gl_context, real, run_cli
+from conftest import real, run_cli
+
+from splatstream import render_ref
+from splatstream.camera import look_at
+from splatstream.io import read_gaussians
+from splatstream.metrics import psnr
 
 pytest.importorskip("moderngl")
 
 
 @pytest.fixture(scope="module")
-def gl_ok():
-    open_gl_context().release()
+def gl_ok(gl_context):
+    """The CLI opens its own context; this skips the tests where none opens."""
 
 
 def _png(path) -> np.ndarray:
@@ -41,6 +46,12 @@ def test_render_ply_with_camera(gl_ok, tmp_path):
     assert r.returncode == 0, r.stderr
     img = _png(out)
     assert img.shape == (48, 64, 3)
+    # The camera the command builds from these arguments (near = 1% of the eye's distance: render.py).
+    dist = float(np.sqrt(3.0))
+    cam = look_at((1, 1, 1), (0, 0, 0), (0, 1, 0), 60, 64, 48, near=min(0.2, 0.01 * dist), far=1000.0)
+    ref = render_ref.render(read_gaussians(real("fruit_drops_sh3.ply")), cam, sh_degree=1, background=(0, 0, 1))
+    assert np.abs(ref - (0, 0, 1)).max() > 0.2  # the view shows splats
+    assert psnr(img, ref) >= 40.0  # 8-bit PNG against the float reference
 
 
 @pytest.mark.parametrize("args, message", [

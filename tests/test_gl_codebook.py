@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import open_gl_context, real
+from conftest import real
 
 from splatstream import render_ref
 from splatstream.camera import suggested_camera
@@ -16,13 +16,6 @@ pytest.importorskip("moderngl")
 N = 3000  # 12 chunks, the last one partial
 K = 300   # codebook entries: 2 codebook chunks, the second partial
 W, H = 128, 96
-
-
-@pytest.fixture(scope="module")
-def ctx():
-    c = open_gl_context()
-    yield c
-    c.release()
 
 
 @pytest.fixture(scope="module")
@@ -52,12 +45,18 @@ def encoded(tmp_path_factory, gaussians):
 
 def _pool_ids(pool, scene) -> np.ndarray:
     """Global splat ids of the scene's tiles in the order decode_scene concatenates them (leaf order)."""
-    ids = []
-    for tile_id, tile in scene.tiles.items():
-        slots = pool.tiles[tile_id].slots
-        j = np.arange(tile.splats)
-        ids.append(slots[j // 256] * 256 + j % 256)
-    return np.concatenate(ids).astype(np.uint32)
+    return np.concatenate([pool.splat_ids(tile_id) for tile_id in scene.tiles])
+
+
+def _codebook_pool(ctx, scene, slots: int, bands: int | None = None, host_mirror: bool = True):
+    """A pool for a codebook scene with its first `bands` codebook bands uploaded (None: all loaded)."""
+    from client_gl.gpu.pool import ChunkPool
+
+    pool = ChunkPool(ctx, scene.formats, scene.sh_degree, slots, codebook=scene.codebook_layout,
+                     host_mirror=host_mirror)
+    for band in range(1, (len(scene.codebook) if bands is None else bands) + 1):
+        pool.set_codebook_band(band, scene.codebook[f"sh{band}"])
+    return pool
 
 
 def test_scene_loads_index_plane_and_codebook(encoded):
@@ -88,29 +87,27 @@ def test_scene_loads_index_plane_and_codebook(encoded):
 
 
 @pytest.mark.parametrize("sh_fmt", ["f32x4", "f16x4", "norm11", "norm565", "norm8x4", "norm10_2", "bc1", "bc7"])
-def test_shader_decode_equals_numpy(ctx, encoded, sh_fmt):
-    if ctx.version_code < 430:
-        pytest.skip("no GL 4.3 compute shaders (decode_debug.comp)")
+def test_shader_decode_equals_numpy(gl_compute_context, encoded, sh_fmt):
+    ctx = gl_compute_context
     block = sh_fmt.startswith("bc")
     if block:
         pytest.importorskip("etcpak")
         pytest.importorskip("texture2ddecoder")
-    from client_gl.pool import ChunkPool
-    from client_gl.renderer import SplatRenderer
+    from client_gl.gpu.renderer import RenderOptions, SplatRenderer
     from client_gl.scene import tiles_from_scene
     from splatstream.decoder import decode_scene
 
     path = encoded(sh=sh_fmt)
     scene = tiles_from_scene(path)
     assert scene.codebook["sh1"].format == sh_fmt
-    pool = ChunkPool(ctx, scene.formats, scene.sh_degree, 4096, codebook=scene.codebook)  # 16 slots
-    assert pool.uses_codebook and "sh_index" in pool.textures and "sh1" not in pool.textures
+    pool = _codebook_pool(ctx, scene, 16)
+    assert pool.layout.uses_codebook and pool.layout.planes == ("position", "rotation", "scale", "color", "sh_index")
     first = next(iter(scene.tiles))
     pool.join(first + 100, scene.tiles[first])  # written twice into the same slots
     pool.leave(first + 100)
     for tile_id, tile in scene.tiles.items():
         pool.join(tile_id, tile)
-    renderer = SplatRenderer(ctx, pool, "cpu")
+    renderer = SplatRenderer(ctx, pool, RenderOptions(sort="cpu"))
     try:
         out = renderer.decode_debug(_pool_ids(pool, scene))
     finally:
@@ -129,21 +126,20 @@ def test_shader_decode_equals_numpy(ctx, encoded, sh_fmt):
     np.testing.assert_allclose(out[:, 10:13], g.sh_dc, atol=2e-6)
 
 
-def test_progressive_codebook_bands(ctx, encoded):
-    if ctx.version_code < 430:
-        pytest.skip("no GL 4.3 compute shaders (decode_debug.comp)")
-    from client_gl.pool import ChunkPool
-    from client_gl.renderer import SplatRenderer
+def test_progressive_codebook_bands(gl_compute_context, encoded):
+    from client_gl.gpu.renderer import RenderOptions, SplatRenderer
     from client_gl.scene import tiles_from_scene
     from splatstream.decoder import decode_scene
 
+    ctx = gl_compute_context
     path = encoded()
     scene = tiles_from_scene(path)
-    pool = ChunkPool(ctx, scene.formats, 3, N, codebook={"sh1": scene.codebook["sh1"]})
+    pool = _codebook_pool(ctx, scene, scene.slots, bands=1)
     for tile_id, tile in scene.tiles.items():
         pool.join(tile_id, tile)
+    assert pool.codebook_bands == 1
     full = pool.codebook_bytes
-    renderer = SplatRenderer(ctx, pool, "cpu")
+    renderer = SplatRenderer(ctx, pool, RenderOptions(sort="cpu"))
     try:
         ids = _pool_ids(pool, scene)
         g = decode_scene(path)
@@ -152,6 +148,7 @@ def test_progressive_codebook_bands(ctx, encoded):
         assert not out[:, 3:].any()  # bands not uploaded yet decode to 0
         pool.set_codebook_band(2, scene.codebook["sh2"])
         pool.set_codebook_band(3, scene.codebook["sh3"])
+        assert pool.codebook_bands == 3
         out = renderer.decode_debug(ids)[:, 14:59].reshape(len(ids), 15, 3)
         np.testing.assert_allclose(out, g.sh_rest, atol=2e-6)
         assert pool.codebook_bytes == full  # every band's texture was allocated up front
@@ -160,53 +157,55 @@ def test_progressive_codebook_bands(ctx, encoded):
         pool.release()
 
 
-def test_gpu_bytes_count_the_codebook(ctx, encoded):
-    from client_gl.gl import GL_RGBA32F
-    from client_gl.pool import ChunkPool
+def test_gpu_bytes_count_the_codebook(gl_context, encoded):
+    from client_gl.gpu.pool import ChunkPool
     from client_gl.scene import tiles_from_scene
 
+    ctx = gl_context
     path = encoded()
     scene = tiles_from_scene(path)
-    pool = ChunkPool(ctx, scene.formats, scene.sh_degree, N, codebook=scene.codebook)
-    plain = ChunkPool(ctx, scene.formats, scene.sh_degree, N)
+    slots = scene.slots
+    pool = _codebook_pool(ctx, scene, slots)
+    plain = ChunkPool(ctx, scene.formats, scene.sh_degree, slots)
     try:
         cb = scene.codebook["sh1"]
+        assert cb.format == "f32x4"
         texels = cb.width * cb.height
-        assert all(t.internal == GL_RGBA32F for t in pool.codebook_textures.values())  # stored format: f32x4
         expected = texels * 16 * (3 + 5 + 7) + cb.chunks * 16 * 16  # bands + one 64-word range record per chunk
         assert pool.codebook_bytes == expected
-        assert pool.gpu_bytes == pool.texel_bytes + pool.range_bytes + pool.codebook_bytes
-        assert pool.textures["sh_index"].nbytes == pool.width * pool.height * 2  # R16UI, one texel per splat
+        assert pool.gpu_bytes == pool.texel_bytes + pool.range_bytes + pool.state_bytes + pool.codebook_bytes
+        assert pool.gpu_bytes == pool.layout.pool_bytes(slots)
+        assert pool.atlas_bytes("sh_index") == slots * 256 * 2  # R16UI, one texel per splat
         # Instead of 15 f32x4 texels a splat: one 16-bit index + the shared codebook.
-        assert pool.gpu_bytes == plain.gpu_bytes - pool.width * pool.height * (15 * 16 - 2) + expected
+        assert pool.gpu_bytes == plain.gpu_bytes - slots * 256 * (15 * 16 - 2) + expected
         assert pool.bytes_per_splat < plain.bytes_per_splat
-        # The pool grows its index atlas like the others; the codebook stays.
-        for tile_id, tile in scene.tiles.items():
+        for tile_id, tile in scene.tiles.items():  # joining tiles allocates nothing
             pool.join(tile_id, tile)
-        pool.grow(4 * N)
-        assert pool.codebook_bytes == expected and pool.textures["sh_index"].nbytes == pool.width * pool.height * 2
+        assert pool.gpu_bytes == pool.layout.pool_bytes(slots) and pool.free_slots == 0
     finally:
         pool.release()
         plain.release()
 
 
-def test_codebook_tiles_need_a_codebook_pool(ctx, encoded):
-    from client_gl.pool import ChunkPool
+def test_codebook_tiles_need_a_codebook_pool(gl_context, encoded):
+    from client_gl.gpu.pool import ChunkPool
     from client_gl.scene import tiles_from_gaussians, tiles_from_scene
     from splatstream.errors import UsageError
 
+    ctx = gl_context
     scene = tiles_from_scene(encoded())
     tile = next(iter(scene.tiles.values()))
-    plain = ChunkPool(ctx, scene.formats, 3, N)
-    with_cb = ChunkPool(ctx, scene.formats, 3, N, codebook=scene.codebook)
+    plain = ChunkPool(ctx, scene.formats, 3, scene.slots)
+    with_cb = _codebook_pool(ctx, scene, scene.slots)
     try:
-        with pytest.raises(UsageError, match="codebook"):
+        with pytest.raises(UsageError, match="without an SH codebook"):
             plain.join(1, tile)
         other = tiles_from_gaussians(read_gaussians(real("fruit_drops_sh3.ply")).subset(np.arange(300)))
-        with pytest.raises(UsageError, match="codebook"):
+        with pytest.raises(UsageError, match="with an SH codebook"):
             with_cb.join(2, other.tiles[0])
-        with pytest.raises(UsageError):
+        with pytest.raises(UsageError, match="without an SH codebook"):
             plain.set_codebook_band(1, scene.codebook["sh1"])
+        assert plain.tile_ids == () and with_cb.tile_ids == ()
     finally:
         plain.release()
         with_cb.release()
@@ -216,10 +215,12 @@ RENDER_MODES = ["cpu", "gpu-fetch", "gpu-instanced", "gpu-compute"]
 
 
 @pytest.mark.parametrize("preset", ["low", "very-high"])
-def test_render_matches_reference(ctx, encoded, preset):
+def test_render_matches_reference(gl_context, encoded, preset):
+    from client_gl.gpu.renderer import RenderOptions
     from client_gl.headless import HeadlessRenderer
     from splatstream.decoder import decode_scene
 
+    ctx = gl_context
     path = encoded(preset=preset, entries=64 if preset == "very-high" else "auto")
     g = decode_scene(path)
     cam = suggested_camera(g.positions, width=W, height=H)
@@ -230,10 +231,10 @@ def test_render_matches_reference(ctx, encoded, preset):
         sort, _, draw = mode.partition("-")
         if sort == "gpu" and ctx.version_code < 430:
             continue
-        r = HeadlessRenderer(sort=sort, ctx=ctx, draw=draw or "auto")
+        r = HeadlessRenderer(RenderOptions(sort=sort, draw=draw or "auto"), ctx=ctx)
         try:
             r.load_scene(path)
-            assert r.pool.uses_codebook
+            assert r.pool.layout.uses_codebook and r.pool.codebook_bands == 3
             for degree, ref in refs.items():
                 img = r.render(cam, sh_degree=degree)
                 assert psnr(img, ref) >= 40.0, (mode, degree, psnr(img, ref))
@@ -257,8 +258,9 @@ def test_render_image_of_a_codebook_scene(encoded):
     assert psnr(img, render_ref.render(g, cam)) >= 40.0
 
 
-def test_in_memory_codebook_tiles(ctx, gaussians):
+def test_in_memory_codebook_tiles(gl_context, gaussians):
     """tiles_from_gaussians builds the codebook as the encoder does; GL renders it like the numpy decode."""
+    from client_gl.gpu.renderer import RenderOptions
     from client_gl.headless import HeadlessRenderer
     from client_gl.scene import tiles_from_gaussians
     from splatstream.format.codec import assemble_gaussians, decode_index_plane, decode_plane
@@ -277,20 +279,21 @@ def test_in_memory_codebook_tiles(ctx, gaussians):
     g = assemble_gaussians(values, 3)
     cam = suggested_camera(g.positions, width=W, height=H)
     ref = render_ref.render(g, cam)
-    r = HeadlessRenderer(sort="cpu", ctx=ctx)
+    r = HeadlessRenderer(RenderOptions(sort="cpu"), ctx=gl_context)
     try:
         r.load_tiles(scene)
-        assert r.pool.uses_codebook
+        assert r.pool.layout.uses_codebook
         assert psnr(r.render(cam), ref) >= 40.0
     finally:
         r.unload()
 
 
-def test_lod_scene_tiles_share_the_codebook(ctx, tmp_path, gaussians):
+def test_lod_scene_tiles_share_the_codebook(gl_context, tmp_path, gaussians):
     """Several tiles (LOD leaves and interior tiles) index one codebook; leaves decode as decode_scene does."""
-    from client_gl.pool import ChunkPool
-    from client_gl.renderer import SplatRenderer
+    from client_gl.gpu.renderer import RenderOptions, SplatRenderer
     from client_gl.scene import tiles_from_scene
+
+    ctx = gl_context
     from splatstream.decoder import decode_scene
     from splatstream.encode import EncodeOptions, encode_gaussians
     from splatstream.store import load_manifest
@@ -302,7 +305,7 @@ def test_lod_scene_tiles_share_the_codebook(ctx, tmp_path, gaussians):
     leaves = tiles_from_scene(tmp_path)
     assert len(leaves.tiles) > 1
     everything = tiles_from_scene(tmp_path, tile_ids=[t.id for t in manifest.tiles])
-    pool = ChunkPool(ctx, leaves.formats, leaves.sh_degree, 256, codebook=leaves.codebook)  # grows as tiles join
+    pool = _codebook_pool(ctx, everything, everything.slots)
     for tile_id, tile in everything.tiles.items():
         pool.join(tile_id, tile)
     for tile_id in everything.tiles:
@@ -310,7 +313,7 @@ def test_lod_scene_tiles_share_the_codebook(ctx, tmp_path, gaussians):
             pool.leave(tile_id)
     g = decode_scene(tmp_path)
     cam = suggested_camera(g.positions, width=W, height=H)
-    renderer = SplatRenderer(ctx, pool, "cpu")
+    renderer = SplatRenderer(ctx, pool, RenderOptions(sort="cpu"))
     try:
         if ctx.version_code >= 430:
             out = renderer.decode_debug(_pool_ids(pool, leaves))

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import REAL_PLYS, open_gl_context, real, run_cli
+from conftest import REAL_PLYS, real, run_cli
 
 from splatstream import render_ref
 from splatstream.camera import look_at, suggested_camera
@@ -18,17 +18,16 @@ W, H = 128, 96
 
 
 @pytest.fixture(scope="module")
-def ctx():
-    c = open_gl_context(compute=True)
-    yield c
-    c.release()
+def ctx(gl_compute_context):
+    return gl_compute_context
 
 
 @pytest.fixture(scope="module")
 def renderer(ctx):
+    from client_gl.gpu.renderer import RenderOptions
     from client_gl.headless import HeadlessRenderer
 
-    r = HeadlessRenderer(ctx=ctx, draw="compute")  # sort "auto": the compute draw forces the GPU sort
+    r = HeadlessRenderer(RenderOptions(draw="compute"), ctx=ctx)  # sort "auto": the compute draw forces the GPU sort
     yield r
     r.unload()
 
@@ -167,7 +166,7 @@ def test_entry_buffer_grows(renderer, fruit):
     rend = renderer.renderer
     cr = rend.craster
     cr.resize(cr.visible_capacity, 64)
-    rend._bin_checks = 0  # no automatic check: see the overflow
+    rend.check_bins_after(0)  # no automatic check: see the overflow
     renderer.render_frame(cam)
     entries, needed = rend.read_bin_counts()
     assert entries == 64 and needed > 64  # overflow: entries past the capacity dropped
@@ -177,32 +176,39 @@ def test_entry_buffer_grows(renderer, fruit):
     assert psnr(img, ref) >= 40.0
     # The renderer's own check in the first frames after an allocation.
     cr.resize(cr.visible_capacity, 64)
-    rend._bin_checks = 1
+    rend.check_bins_after(1)
     renderer.render_frame(cam)
     assert cr.entry_capacity >= needed
     assert psnr(rend.read_image()[..., :3], ref) >= 40.0
 
 
 def test_variants_and_modes(ctx, fruit):
+    from client_gl.gpu.renderer import RenderOptions, is_software
     from client_gl.headless import HeadlessRenderer
 
     cam = close_camera(fruit, 120, 90)
     ref = render_ref.render(fruit, cam)
-    for draw in ("compute+t8", "compute+u1", "compute+u2", "compute+wc", "compute+wc+u1"):
-        r = HeadlessRenderer(ctx=ctx, draw=draw, color_dtype="f2")
+    variants = [dict(tile_px=8), dict(unroll=1), dict(unroll=2), dict(warp_cull=True), dict(warp_cull=True, unroll=1)]
+    for variant in variants:
+        r = HeadlessRenderer(RenderOptions(draw="compute", color_dtype="f2", **variant), ctx=ctx)
         r.load_gaussians(fruit)
-        assert psnr(r.render(cam), ref) >= 40.0, draw
+        assert psnr(r.render(cam), ref) >= 40.0, variant
+        assert r.renderer.craster.tile_px == variant.get("tile_px", 16)
         r.unload()
     # auto keeps the raster draws on a software GL; the compute draw needs the GPU sort
-    r = HeadlessRenderer(ctx=ctx, sort="gpu")
+    r = HeadlessRenderer(RenderOptions(sort="gpu"), ctx=ctx)
     r.load_gaussians(fruit)
     r.render(cam)
-    assert r.renderer.draw_mode != "compute"
+    assert r.renderer.draw_mode == ("fetch" if is_software(ctx) else "compute")
     r.unload()
-    with pytest.raises(UsageError):
-        HeadlessRenderer(ctx=ctx, sort="cpu", draw="compute").load_gaussians(fruit)
-    with pytest.raises(UsageError):
-        HeadlessRenderer(ctx=ctx, draw="compute+f2b").load_gaussians(fruit)
+    with pytest.raises(UsageError, match="GPU sort"):
+        HeadlessRenderer(RenderOptions(sort="cpu", draw="compute"), ctx=ctx)
+    with pytest.raises(UsageError, match="raster-draw options"):
+        RenderOptions(draw="compute", front_to_back=True)
+    with pytest.raises(UsageError, match="options of the compute draw"):
+        RenderOptions(draw="fetch", tile_px=8)
+    with pytest.raises(UsageError, match="unknown draw mode"):
+        RenderOptions(draw="compute+t8")
 
 
 def test_cli_draw_compute(ctx, tmp_path):
@@ -214,13 +220,13 @@ def test_cli_draw_compute(ctx, tmp_path):
 
 def test_empty_pool(ctx, fruit):
     """No resident splats at all (a pool before any tile joined, or after all left)."""
-    from client_gl.pool import ChunkPool
-    from client_gl.renderer import SplatRenderer
+    from client_gl.gpu.pool import ChunkPool
+    from client_gl.gpu.renderer import RenderOptions, SplatRenderer
     from client_gl.scene import tiles_from_gaussians
 
     scene = tiles_from_gaussians(fruit.subset(np.arange(300)))
-    pool = ChunkPool(ctx, scene.formats, scene.sh_degree, 512)
-    r = SplatRenderer(ctx, pool, sort="gpu", draw="compute")
+    pool = ChunkPool(ctx, scene.formats, scene.sh_degree, 2)
+    r = SplatRenderer(ctx, pool, RenderOptions(sort="gpu", draw="compute"))
     cam = suggested_camera(fruit.positions, width=40, height=30)
     bg = (0.1, 0.2, 0.3)
     r.render(cam, background=bg)
@@ -238,32 +244,33 @@ def test_empty_pool(ctx, fruit):
     pool.release()
 
 
-def test_pool_growth(ctx, fruit):
-    """The pool grows under a compute renderer: work and entry buffers follow, the image matches the reference."""
-    from client_gl.pool import ChunkPool
-    from client_gl.renderer import SplatRenderer
+def test_work_buffers_fixed_while_tiles_come_and_go(ctx, fruit):
+    """The renderer sizes its work buffers once, for the pool's capacity: tiles joining and leaving reallocate
+    nothing, and the image matches the reference of what is resident."""
+    from client_gl.gpu.compute_raster import default_entries
+    from client_gl.gpu.pool import ChunkPool
+    from client_gl.gpu.renderer import RenderOptions, SplatRenderer
     from client_gl.scene import tiles_from_gaussians
 
     small = tiles_from_gaussians(fruit.subset(np.arange(200)))
-    pool = ChunkPool(ctx, small.formats, small.sh_degree, 256)
-    r = SplatRenderer(ctx, pool, sort="gpu", draw="compute")
+    g = fruit.subset(np.arange(200, len(fruit)))
+    big = tiles_from_gaussians(g)
+    pool = ChunkPool(ctx, small.formats, small.sh_degree, big.slots)
+    r = SplatRenderer(ctx, pool, RenderOptions(sort="gpu", draw="compute"))
+    buffers = (r.keys.glo, r.values.glo, r.records.glo, r.craster.gsum.glo, r.craster.tile_keys.glo)
+    assert r.craster.visible_capacity == pool.splat_capacity == big.slots * 256
+    assert r.craster.entry_capacity == default_entries(pool.splat_capacity)
     cam = suggested_camera(fruit.positions, width=W, height=H)
     for tile_id, tile in small.tiles.items():
         pool.join(tile_id, tile)
     r.render(cam)
-    gsum_small = r.craster.gsum.size
-    g = fruit.subset(np.arange(200, len(fruit)))
-    big = tiles_from_gaussians(g)
     for tile_id in small.tiles:
         pool.leave(tile_id)
     for tile_id, tile in big.tiles.items():
         pool.join(tile_id + 1000, tile)
-    assert pool.slots * 256 >= len(g)  # grew
+    assert pool.free_slots == 0
     r.render(cam)
-    from client_gl.compute_raster import default_entries
-
-    assert r.craster.visible_capacity == r.capacity == pool.slots * 256
-    assert r.craster.gsum.size >= gsum_small and r.craster.entry_capacity >= default_entries(r.capacity)
+    assert (r.keys.glo, r.values.glo, r.records.glo, r.craster.gsum.glo, r.craster.tile_keys.glo) == buffers
     entries, needed = r.read_bin_counts()
     assert entries == needed > 0
     assert psnr(r.read_image()[..., :3], render_ref.render(g, cam)) >= 40.0

@@ -1,9 +1,9 @@
-"""Shader texel decoding (client_gl.shadergen) against the numpy decoders (splatstream.texformats / codec)."""
+"""Shader texel decoding (client_gl.gpu.shadergen) against the numpy decoders (splatstream.format)."""
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import open_gl_context, real
+from conftest import real
 
 from splatstream.format.codec import decode_plane
 from splatstream.format.layout import chunk_texel_index
@@ -16,13 +16,6 @@ N = 700  # 3 chunks, the last one partial
 
 
 @pytest.fixture(scope="module")
-def ctx():
-    c = open_gl_context(compute=True)
-    yield c
-    c.release()
-
-
-@pytest.fixture(scope="module")
 def gaussians():
     g = read_gaussians(real("fruit_drops_sh3.ply"))
     return g.subset(np.arange(N))
@@ -30,7 +23,7 @@ def gaussians():
 
 def _numpy_t(plane, n: int) -> np.ndarray:
     """Normalised texel values (n, 4) of layer 0 as texformats decodes them, in splat order."""
-    from client_gl.pool import layer_blob
+    from client_gl.gpu.pool import layer_blob
 
     blob = layer_blob(plane, 0)
     src = chunk_texel_index(-(-n // 256), plane.width)[:n]
@@ -40,11 +33,12 @@ def _numpy_t(plane, n: int) -> np.ndarray:
 
 
 @pytest.mark.parametrize("fmt", list(VALUE_FORMATS))
-def test_shader_decode_equals_numpy(ctx, gaussians, fmt):
-    from client_gl.pool import ChunkPool
-    from client_gl.renderer import SplatRenderer
+def test_shader_decode_equals_numpy(gl_compute_context, gaussians, fmt):
+    from client_gl.gpu.pool import ChunkPool
+    from client_gl.gpu.renderer import RenderOptions, SplatRenderer
     from client_gl.scene import tiles_from_gaussians
 
+    ctx = gl_compute_context
     if FORMATS[fmt].block > 1:
         pytest.importorskip("etcpak")
         pytest.importorskip("texture2ddecoder")
@@ -52,12 +46,12 @@ def test_shader_decode_equals_numpy(ctx, gaussians, fmt):
     overrides = {"position": fmt, "rotation": fmt, "scale": fmt, "color": color, "sh": fmt}
     scene = tiles_from_gaussians(gaussians, "very-high", overrides=overrides)
     tile = scene.tiles[0]
-    pool = ChunkPool(ctx, scene.formats, scene.sh_degree, 2048)  # 8 slots
-    pool.join(5, tile)  # slots 0..2
+    pool = ChunkPool(ctx, scene.formats, scene.sh_degree, 8)
+    np.testing.assert_array_equal(pool.join(5, tile), [0, 1, 2])
     pool.leave(5)
-    pool.join(6, tile)  # same slots again, written twice
-    renderer = SplatRenderer(ctx, pool, "cpu")
-    out = renderer.decode_debug(np.arange(N, dtype=np.uint32))
+    np.testing.assert_array_equal(pool.join(6, tile), [0, 1, 2])  # same slots again, written twice
+    renderer = SplatRenderer(ctx, pool, RenderOptions(sort="cpu"))
+    out = renderer.decode_debug(pool.splat_ids(6))
     renderer.release()
     pool.release()
 

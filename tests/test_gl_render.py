@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import REAL_PLYS, open_gl_context, real
+from conftest import REAL_PLYS, real
 
 from splatstream import render_ref
 from splatstream.camera import look_at, suggested_camera
@@ -16,19 +16,22 @@ W, H = 128, 96
 
 
 @pytest.fixture(scope="module")
-def renderers():
+def renderers(gl_context):
+    from client_gl.gpu.renderer import RenderOptions
     from client_gl.headless import HeadlessRenderer
 
-    ctx = open_gl_context()
-    out = {"cpu": HeadlessRenderer(sort="cpu", ctx=ctx)}
+    ctx = gl_context
+    out = {"cpu": HeadlessRenderer(RenderOptions(sort="cpu"), ctx=ctx)}
     if ctx.version_code >= 430:
-        out["gpu"] = HeadlessRenderer(sort="gpu", ctx=ctx)  # forced even on llvmpipe; draw "auto"
-        for mode in ("instanced", "triangles", "fetch", "points", "fetch+f2b", "points+f2b"):
-            out[f"gpu-{mode}"] = HeadlessRenderer(sort="gpu", ctx=ctx, draw=mode)
+        out["gpu"] = HeadlessRenderer(RenderOptions(sort="gpu"), ctx=ctx)  # forced even on llvmpipe; draw "auto"
+        for mode in ("instanced", "triangles", "fetch", "points"):
+            out[f"gpu-{mode}"] = HeadlessRenderer(RenderOptions(sort="gpu", draw=mode), ctx=ctx)
+            if mode in ("fetch", "points"):
+                options = RenderOptions(sort="gpu", draw=mode, front_to_back=True)
+                out[f"gpu-{mode}+f2b"] = HeadlessRenderer(options, ctx=ctx)
     yield out
     for r in out.values():
         r.unload()
-    ctx.release()
 
 
 @pytest.mark.parametrize("name", REAL_PLYS)
@@ -63,13 +66,40 @@ def test_background_sh_degree_and_close_view(renderers):
                 refs[degree] = render_ref.render(g, cam, sh_degree=degree, background=bg)
             img = r.render(cam, sh_degree=degree, background=bg)
             assert psnr(img, refs[degree]) >= 40.0, (sort, degree)
-        if sort.startswith("gpu"):
-            assert r.renderer.read_oversized_count() >= 0  # splats wider than a point sprite (clamped in points mode)
+
+
+def test_points_count_the_splats_wider_than_a_point_sprite(renderers):
+    """The cull pass counts visible splats whose bounding square is wider than the largest point sprite (the points
+    draw clamps them); the other draws count none."""
+    if "gpu-points" not in renderers:
+        pytest.skip("no compute shaders")
+    g = read_gaussians(real("fruit_drops_sh3.ply"))
+    cam = suggested_camera(g.positions, width=W, height=H)
+    fetch, points = renderers["gpu-fetch"], renderers["gpu-points"]
+    fetch.load_gaussians(g)
+    fetch.render(cam)
+    assert fetch.renderer.read_oversized_count() == 0
+    points.load_gaussians(g)
+    rend = points.renderer
+    rend.max_point = 6.0  # pretend the GL's largest point sprite is 6 px wide
+    try:
+        points.render(cam)
+    finally:
+        rend.max_point = float(points.ctx.info["GL_POINT_SIZE_RANGE"][1])
+    n = rend.read_visible_count()
+    rec = np.frombuffer(rend.records.read(n * 48), np.float32).reshape(n, 12).astype(np.float64)
+    a, b, c, opacity = rec[:, 4], rec[:, 5], rec[:, 6], rec[:, 3]  # conic (inverse covariance), opacity
+    det = a * c - b * b
+    k = np.sqrt(2 * np.log(np.maximum(opacity, 1 / 255) * 255))
+    width = 2 * k * np.sqrt(np.maximum(c / det, a / det)) + 1  # the quad's bounding square (cull.comp)
+    expected = int((width > 6.0).sum())
+    assert 0.1 * n < expected < n  # the view has both
+    assert abs(rend.read_oversized_count() - expected) <= max(1, expected // 1000)  # float32 vs float64 at 6.0
 
 
 def test_tiles_join_and_leave(renderers):
-    from client_gl.pool import ChunkPool
-    from client_gl.renderer import SplatRenderer
+    from client_gl.gpu.pool import ChunkPool
+    from client_gl.gpu.renderer import RenderOptions, SplatRenderer
     from client_gl.scene import tiles_from_gaussians
 
     g = read_gaussians(real("fruit_drops_sh3.ply"))
@@ -78,11 +108,12 @@ def test_tiles_join_and_leave(renderers):
     a = tiles_from_gaussians(g.subset(np.arange(half)), "very-high")
     b = tiles_from_gaussians(g.subset(np.arange(half, len(g))), "very-high")
     r0 = next(iter(renderers.values()))
-    pool = ChunkPool(r0.ctx, a.formats, a.sh_degree, len(g) + 1024)
+    pool = ChunkPool(r0.ctx, a.formats, a.sh_degree, a.slots + b.slots)
     for sort in ("cpu", "gpu") if "gpu" in renderers else ("cpu",):
-        rend = SplatRenderer(r0.ctx, pool, sort)
+        rend = SplatRenderer(r0.ctx, pool, RenderOptions(sort=sort))
         pool.join(1, a.tiles[0])
         pool.join(2, b.tiles[0])
+        assert pool.free_slots == 0 and pool.resident_splats == len(g)
         rend.render(cam)
         both = rend.read_image()[..., :3]
         assert psnr(both, render_ref.render(g, cam)) >= 40.0
@@ -94,69 +125,31 @@ def test_tiles_join_and_leave(renderers):
         rend.render(cam)
         assert psnr(rend.read_image()[..., :3], both) >= 60.0
         pool.clear()
+        assert pool.free_slots == pool.capacity_slots and pool.scan_slots == 0
         rend.release()
     pool.release()
 
 
-def test_pool_grows_when_tiles_join(renderers):
-    """Joining past the capacity grows the atlases (GPU copy, slot numbers kept) and renders stay right."""
-    from client_gl.pool import ChunkPool
-    from client_gl.renderer import SplatRenderer
+def test_full_pool_refuses_a_tile(renderers):
+    """The pool's capacity is fixed: a tile that does not fit raises and changes nothing."""
+    from client_gl.gpu.pool import ChunkPool
     from client_gl.scene import tiles_from_gaussians
+    from splatstream.errors import UsageError
 
     g = read_gaussians(real("fruit_drops_sh3.ply"))
-    cam = suggested_camera(g.positions, width=W, height=H)
+    scene = tiles_from_gaussians(g.subset(np.arange(1000)), "medium")  # 4 slots
     r0 = next(iter(renderers.values()))
-    if r0.ctx.version_code < 430:
-        pytest.skip("growing needs GL 4.3")
-    parts = [g.subset(np.arange(i, min(len(g), i + 1000))) for i in range(0, len(g), 1000)]
-    tiles = [tiles_from_gaussians(p, "medium").tiles[0] for p in parts]
-    formats = tiles_from_gaussians(parts[0], "medium").formats
-    ref = render_ref.render(g, cam)
-    for sort in ("cpu", "gpu") if "gpu" in renderers else ("cpu",):
-        pool = ChunkPool(r0.ctx, formats, 3, 256)  # one slot: every join after the first grows it
-        rend = SplatRenderer(r0.ctx, pool, sort)
-        rend.render(cam)
-        for i, t in enumerate(tiles):
-            pool.join(i, t)
-        assert pool.slots >= sum(-(-t.splats // 256) for t in tiles) and pool.cols > 1
-        rend.render(cam)
-        dec = render_ref.render(_decoded(tiles, 3), cam)
-        assert psnr(rend.read_image()[..., :3], dec) >= 40.0
-        assert psnr(rend.read_image()[..., :3], ref) >= 30.0  # medium quantisation
-        rend.release()
+    pool = ChunkPool(r0.ctx, scene.formats, scene.sh_degree, 6)
+    try:
+        assert pool.capacity_slots == 6
+        pool.join(1, scene.tiles[0])
+        with pytest.raises(UsageError, match="4 slots needed, 2 of 6 are free"):
+            pool.join(2, scene.tiles[0])
+        assert 2 not in pool and pool.tile_ids == (1,) and pool.free_slots == 2
+        pool.leave(1)
+        np.testing.assert_array_equal(pool.join(2, scene.tiles[0]), [0, 1, 2, 3])
+    finally:
         pool.release()
-
-
-def test_pool_grows_full_rows(renderers):
-    """Growing a pool whose rows are already 128 blocks wide copies whole rows."""
-    from client_gl.pool import ChunkPool
-    from client_gl.renderer import SplatRenderer
-    from client_gl.scene import tiles_from_gaussians
-
-    g = read_gaussians(real("fruit_drops_sh3.ply"))
-    cam = suggested_camera(g.positions, width=W, height=H)
-    r0 = next(iter(renderers.values()))
-    if r0.ctx.version_code < 430:
-        pytest.skip("growing needs GL 4.3")
-    scene = tiles_from_gaussians(g, "very-high")
-    pool = ChunkPool(r0.ctx, scene.formats, scene.sh_degree, 129 * 256)
-    pool.join(0, scene.tiles[0])
-    pool.grow(300 * 256)
-    assert pool.cols == 128 and pool.slots == 300
-    rend = SplatRenderer(r0.ctx, pool, "cpu")
-    rend.render(cam)
-    assert psnr(rend.read_image()[..., :3], render_ref.render(g, cam)) >= 40.0
-    rend.release()
-    pool.release()
-
-
-def _decoded(tiles, degree):
-    from splatstream.format.codec import assemble_gaussians, decode_plane
-    from splatstream.gaussians import Gaussians
-
-    parts = [assemble_gaussians({k: decode_plane(p, t.splats) for k, p in t.planes.items()}, degree) for t in tiles]
-    return Gaussians.concatenate(parts)
 
 
 @pytest.mark.parametrize("preset", ["medium", "very-low"])
@@ -174,7 +167,7 @@ def test_encoded_scene_directory(renderers, tmp_path, preset):
     ref = render_ref.render(dec, cam)
     for r in renderers.values():
         r.load_scene(scene)
-        assert r.pool.formats["sh"] == "norm565"  # very-low: the SH codebook's entries
+        assert r.pool.layout.formats["sh"] == "norm565"  # medium and very-low store SH as norm565
         # BC decoders may differ from the numpy one by a rounding step; the rest match exactly.
         assert psnr(r.render(cam), ref) >= 40.0
 

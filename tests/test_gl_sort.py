@@ -3,23 +3,17 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from conftest import open_gl_context
 
 moderngl = pytest.importorskip("moderngl")
 
 
 @pytest.fixture(scope="module")
-def ctx():
-    c = open_gl_context(compute=True)
-    yield c
-    c.release()
+def sorter(gl_compute_context):
+    from client_gl.gpu.sort import GpuRadixSort
 
-
-@pytest.fixture(scope="module")
-def sorter(ctx):
-    from client_gl.sort import GpuRadixSort
-
-    return GpuRadixSort(ctx, 40000)
+    s = GpuRadixSort(gl_compute_context, 40000)
+    yield s
+    s.release()
 
 
 def _check(sorter, keys: np.ndarray) -> None:
@@ -57,14 +51,15 @@ def test_depth_keys_give_back_to_front(sorter):
     depths[100:200] = depths[50]  # ties keep index order
     keys = np.uint32(0xFFFFFFFF) - depths.view(np.uint32)
     _, ids = sorter.sort_arrays(keys)
-    from client_gl.sort import depth_order
+    from client_gl.gpu.sort import depth_order
 
     np.testing.assert_array_equal(ids, depth_order(depths))
 
 
-def test_auto_sort_choice(ctx):
-    from client_gl.renderer import choose_sort, is_software
+def test_auto_sort_choice(gl_compute_context):
+    from client_gl.gpu.renderer import choose_sort, is_software
 
+    ctx = gl_compute_context
     expected = "cpu" if is_software(ctx) or ctx.version_code < 430 else "gpu"
     assert choose_sort(ctx, "auto") == expected
     assert choose_sort(ctx, "cpu") == "cpu"

@@ -73,7 +73,7 @@ def _camera(args, scene_camera: dict | None, positions: np.ndarray | None, scene
 def run(args: argparse.Namespace) -> int:
     from .renderers import gl_client
 
-    HeadlessRenderer = gl_client().HeadlessRenderer  # noqa: N806 - a class
+    headless = gl_client()
 
     from ..format.presets import PRESETS
     from ..store import is_scene_dir, load_manifest
@@ -105,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
         cam = _camera(args, None, g.positions, up, size, view_side(g, up))
         source = ("gaussians", g)
         splats = len(g)
-    renderer = HeadlessRenderer(sort=args.sort, draw=getattr(args, "draw", "auto"))
+    renderer = headless.HeadlessRenderer(headless.RenderOptions(sort=args.sort, draw=args.draw))
     try:
         if source[0] == "scene":
             renderer.load_scene(source[1], args.sh_degree)

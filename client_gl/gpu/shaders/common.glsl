@@ -10,7 +10,7 @@ uniform vec2 u_tan_fov;     // (tan(fov_x / 2), tan(fov_y / 2))
 uniform float u_near;       // splats with view depth <= near are culled (reference: 0.2)
 uniform float u_far;
 uniform vec3 u_eye;         // camera position (SH view directions)
-uniform int u_sh_degree;    // bands evaluated (<= resident bands)
+uniform int u_sh_degree;    // bands requested (eval_sh lowers it to each slot's resident bands)
 uniform vec2 u_depth_ab;    // NDC depth = a + b / view depth (OpenGL perspective with near/far)
 
 const float ALPHA_MIN = 1.0 / 255.0;

@@ -27,7 +27,7 @@ from . import shadergen
 from .shadergen import SCAN_TILE, SORT_TILE
 from .sort import GpuRadixSort
 
-TILE_PX = 16  # default tile size (pixels); 8 is a measurement option (draw "compute+t8")
+TILE_PX = 16  # default tile size (pixels); 8 is a measurement option (RenderOptions.tile_px)
 UNROLL = 4  # splats per raster loop step (H200, 6M splats: raster 7.35 ms unrolled 1, 5.69 ms 2, 5.19 ms 4)
 MIN_ENTRIES = 1 << 16
 ENTRIES_PER_SPLAT = 4  # initial entry capacity per splat of the pool's capacity
@@ -51,8 +51,7 @@ class ComputeRaster:
     """GPU buffers and programs of the tile rasterizer for one renderer."""
 
     def __init__(self, ctx, color_dtype: str, visible_capacity: int, entry_capacity: int | None = None,
-                 tile_px: int = TILE_PX, unroll: int = UNROLL,
-                 warp_cull: bool = False):
+                 tile_px: int = TILE_PX, unroll: int = UNROLL, warp_cull: bool = False):
         self.ctx = ctx
         self.color_dtype = color_dtype
         self.tile_px = int(tile_px)
@@ -105,10 +104,6 @@ class ComputeRaster:
             self.tile_sorter = GpuRadixSort(self.ctx, self.entry_capacity)
             self.tile_keys = self.ctx.buffer(reserve=4 * self.entry_capacity)
             self.tile_values = self.ctx.buffer(reserve=4 * self.entry_capacity)
-
-    def follow_pool(self, visible_capacity: int) -> None:
-        """The pool's capacity changed: group sums for it, entry buffers at least its default share."""
-        self.resize(visible_capacity, max(self.entry_capacity, default_entries(visible_capacity)))
 
     def _grid_for(self, width: int, height: int) -> None:
         grid = (-(-width // self.tile_px), -(-height // self.tile_px))

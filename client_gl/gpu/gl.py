@@ -28,6 +28,7 @@ GL_NO_ERROR = 0
 
 GL_RGBA = 0x1908
 GL_RED_INTEGER = 0x8D94
+GL_RG_INTEGER = 0x8228
 GL_RGBA_INTEGER = 0x8D99
 GL_FLOAT = 0x1406
 GL_HALF_FLOAT = 0x140B
@@ -41,6 +42,7 @@ GL_RGBA16F = 0x881A
 GL_RGB10_A2 = 0x8059
 GL_R32UI = 0x8236
 GL_R16UI = 0x8234
+GL_RG8UI = 0x8238
 GL_RGBA8 = 0x8058
 GL_RGBA32UI = 0x8D70
 GL_COMPRESSED_RGBA_BPTC_UNORM = 0x8E8C
@@ -49,7 +51,7 @@ GL_COMPRESSED_RGB_S3TC_DXT1_EXT = 0x83F0
 # GL internal-format names as texformats.TexelFormat.gl_internal spells them.
 INTERNAL_FORMATS = {
     "RGBA32F": GL_RGBA32F, "RGBA16F": GL_RGBA16F, "RGB10_A2": GL_RGB10_A2, "R32UI": GL_R32UI,
-    "RGBA8": GL_RGBA8, "R16UI": GL_R16UI, "RGBA32UI": GL_RGBA32UI,
+    "RGBA8": GL_RGBA8, "R16UI": GL_R16UI, "RGBA32UI": GL_RGBA32UI, "RG8UI": GL_RG8UI,
     "COMPRESSED_RGBA_BPTC_UNORM": GL_COMPRESSED_RGBA_BPTC_UNORM,
     "COMPRESSED_RGB_S3TC_DXT1": GL_COMPRESSED_RGB_S3TC_DXT1_EXT,
 }
@@ -58,7 +60,7 @@ PIXEL_TRANSFER = {
     GL_RGBA32F: (GL_RGBA, GL_FLOAT, 16), GL_RGBA16F: (GL_RGBA, GL_HALF_FLOAT, 8),
     GL_RGB10_A2: (GL_RGBA, GL_UNSIGNED_INT_2_10_10_10_REV, 4), GL_R32UI: (GL_RED_INTEGER, GL_UNSIGNED_INT, 4),
     GL_RGBA8: (GL_RGBA, GL_UNSIGNED_BYTE, 4), GL_R16UI: (GL_RED_INTEGER, GL_UNSIGNED_SHORT, 2),
-    GL_RGBA32UI: (GL_RGBA_INTEGER, GL_UNSIGNED_INT, 16),
+    GL_RGBA32UI: (GL_RGBA_INTEGER, GL_UNSIGNED_INT, 16), GL_RG8UI: (GL_RG_INTEGER, GL_UNSIGNED_BYTE, 2),
 }
 # Bytes per 4x4 block of the compressed formats.
 BLOCK_BYTES = {GL_COMPRESSED_RGBA_BPTC_UNORM: 16, GL_COMPRESSED_RGB_S3TC_DXT1_EXT: 8}
@@ -85,7 +87,6 @@ _SIGNATURES = {
     "glCompressedTexSubImage3D": (None, (_u, _i, _i, _i, _i, _i, _i, _i, _u, _i, _p)),
     "glTextureBarrier": (None, ()),
     "glTextureBarrierNV": (None, ()),
-    "glCopyImageSubData": (None, (_u, _u, _i, _i, _i, _i, _u, _u, _i, _i, _i, _i, _i, _i, _i)),
 }
 
 
@@ -226,13 +227,6 @@ class RawTexture:
             else:
                 gl.glTexSubImage2D(self.target, 0, x, y, w, h, fmt, typ, _ptr(data))
         check(f"uploading a {w}x{h} region at ({x}, {y}) layer {layer}")
-
-    def copy_to(self, dst: RawTexture, sx: int, sy: int, dx: int, dy: int, w: int, h: int) -> None:
-        """Copy a w x h region (all layers) into another texture of the same format (GL 4.3 glCopyImageSubData)."""
-        gl.glGetError()
-        gl.glCopyImageSubData(self.glo, self.target, 0, sx, sy, 0, dst.glo, dst.target, 0, dx, dy, 0, w, h,
-                              max(1, self.layers))
-        check(f"copying a {w}x{h} region between textures")
 
     def bind(self, unit: int) -> None:
         gl.glActiveTexture(GL_TEXTURE0 + unit)

@@ -1,26 +1,30 @@
 """The per-frame pipeline: cull + depth keys (compute), radix sort (compute), one instanced draw (indirect).
 
 GPU path (GL >= 4.3 with compute shaders, a hardware GL):
-  1. cull.comp, one work group per resident chunk slot: decode the splat from the atlases, drop it when behind the
-     near plane, with opacity < 1/255, or when its alpha >= 1/255 ellipse misses the image; survivors are compacted
-     with work-group aggregated atomics into (key = ~bits(depth), value = i) plus a 48-byte projected record
-     (EWA covariance, conic, quad axes, SH colour), so the raster stage only expands quads.
+  1. cull.comp, one work group per used chunk slot: skip slots outside the frame's draw set (the pool's draw mask),
+     decode the splat from the atlases, drop it when behind the near plane, with opacity < 1/255, or when its
+     alpha >= 1/255 ellipse misses the image; survivors are compacted with work-group aggregated atomics into
+     (key = ~bits(depth), value = i) plus a 48-byte projected record (EWA covariance, conic, quad axes, SH colour),
+     so the raster stage only expands quads.
   2. indirect_setup.comp turns the count into sort dispatch sizes and the draw's arguments.
   3. GpuRadixSort sorts only the visible keys (8 passes of count/reduce/scan/scan-add/scatter).
   4. One indirect draw (quads or point sprites, see DRAW_MODES) back to front, premultiplied colour blended with
      (ONE, ONE_MINUS_SRC_ALPHA), depth-tested against the framebuffer's depth without writing it;
      or, draw mode "compute" (the default of "auto" on a hardware GL when the target is cleared), keys front to back
-     and the compute-shader tile rasterizer of client_gl/compute_raster.py (binning, tile sort, per-tile blending
-     with the reference's early stop, imageStore into the colour target; no depth test, the target is overwritten).
-CPU path (GL < 4.3, software GL, or sort="cpu"): cull and depth sort in numpy on a worker thread, index buffer
-upload, one instanced draw whose vertex shader decodes, projects and evaluates SH (splat.vert, GL 4.1).
-format_spec/renderer.md describes both and what they measured.
+     and the compute-shader tile rasterizer of client_gl/gpu/compute_raster.py (binning, tile sort, per-tile
+     blending with the reference's early stop, imageStore into the colour target; no depth test, the target is
+     overwritten).
+CPU path (GL < 4.3, software GL, or sort="cpu"): cull and depth sort in numpy on a worker thread over the pool's
+drawn splats and host mirror, index buffer upload, one instanced draw whose vertex shader decodes, projects and
+evaluates SH (splat.vert, GL 4.1).
+The renderer reads only the pool's public API; format_spec/renderer.md describes both paths and what they measured.
 """
 from __future__ import annotations
 
 import math
 import struct
 import time
+from collections.abc import Iterable
 from dataclasses import dataclass, field
 
 import moderngl
@@ -30,8 +34,10 @@ from splatstream.camera import Camera
 from splatstream.errors import UsageError
 
 from . import shadergen
-from .pool import CHUNK, ChunkPool
-from .shadergen import TEXTURE_UNITS
+from .compute_raster import ComputeRaster
+from .gl import texture_barrier
+from .pool import ChunkPool
+from .residency_layout import TEXTURE_UNITS
 from .sort import CpuSorter, GpuRadixSort, depth_order
 
 SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swiftshader", "software rasterizer")
@@ -40,17 +46,18 @@ SORT_MODES = ("auto", "cpu", "gpu")
 DRAW_MODES = ("instanced", "triangles", "fetch", "points")
 # "auto" among the raster draws (a software GL, render(clear=False); otherwise auto is "compute", see AUTO_COMPUTE):
 # point sprites (one primitive per splat; measured on an H200 at 6M splats the raster path's primitive rate is
-# the bottleneck: 29 ms against 35 ms for fetch quads) when at least AUTO_POINTS_MIN_SPLATS are resident and point
+# the bottleneck: 29 ms against 35 ms for fetch quads) when at least AUTO_POINTS_MIN_SPLATS are drawn and point
 # sprites are at least as wide as the image; otherwise fetch quads (tighter, fewer fragments: 9.6 vs 10.7 ms at 1M).
-# "compute": the compute-shader tile rasterizer (client_gl/compute_raster.py), no raster hardware.
+# "compute": the compute-shader tile rasterizer (client_gl/gpu/compute_raster.py), no raster hardware.
 DRAW_CHOICES = ("auto",) + DRAW_MODES + ("compute",)
+COLOR_DTYPES = ("f1", "f2", "f4")  # RGBA8, RGBA16F, RGBA32F colour target
 AUTO_POINTS_MIN_SPLATS = 2_000_000
 RECORD_BYTES = 48  # per visible splat, written by cull.comp
 # "auto" on the GPU path of a hardware GL: the compute rasterizer (H200, 1080p: 2.5 ms at 1M splats, 7.9 ms at 6M,
 # against 10.1 / 30.9 ms for the raster draws) unless render(clear=False) draws over opaque geometry (depth test).
 AUTO_COMPUTE = True
-COMPUTE_FLAGS = {"t8", "u1", "u2", "wc"}  # measurement options of the compute draw (client_gl/compute_raster.py)
 BIN_CHECK_FRAMES = 2  # compute draw: frames after an allocation whose entry count is read back (overflow -> grow)
+TIMER_QUERIES = 5  # GL_TIME_ELAPSED queries a frame uses at most (the compute draw's five stages)
 
 
 def has_compute(ctx) -> bool:
@@ -75,6 +82,66 @@ def choose_sort(ctx, mode: str = "auto") -> str:
     return "gpu" if has_compute(ctx) and not is_software(ctx) else "cpu"
 
 
+@dataclass(frozen=True)
+class RenderOptions:
+    """How a SplatRenderer draws, fixed for its lifetime. The defaults are the product's; the rest are measurement
+    options (bench/bench_render.py spells them as draw-mode suffixes such as "fetch+f2b" or "compute+t8")."""
+
+    sort: str = "auto"  # auto | cpu | gpu (choose_sort)
+    draw: str = "auto"  # auto | instanced | triangles | fetch | points | compute (GPU path)
+    color_dtype: str = "f4"  # colour target: f1 (RGBA8), f2 (RGBA16F), f4 (RGBA32F)
+    # Raster draws of the GPU path:
+    front_to_back: bool = False  # experimental: batches front to back with saturation passes (fetch, points)
+    depth_test: bool = True  # test splats against the framebuffer's depth (opaque geometry drawn first)
+    blend: bool = True  # False: blending off (measurement)
+    discard_fragments: bool = False  # True: the fragment shader discards at once (measurement)
+    # Compute draw (client_gl/gpu/compute_raster.py):
+    tile_px: int = 16  # 16 or 8 pixel tiles
+    unroll: int = 4  # raster loop unrolled 4, 2 or 1 times
+    warp_cull: bool = False  # per 8x4-pixel block splat lists
+
+    def __post_init__(self) -> None:
+        if self.sort not in SORT_MODES:
+            raise UsageError(f"unknown sort mode {self.sort!r} (choose one of {', '.join(SORT_MODES)})")
+        if self.draw not in DRAW_CHOICES:
+            raise UsageError(f"unknown draw mode {self.draw!r} (choose one of {', '.join(DRAW_CHOICES)})")
+        if self.color_dtype not in COLOR_DTYPES:
+            raise UsageError(f"unknown colour type {self.color_dtype!r} (choose one of {', '.join(COLOR_DTYPES)})")
+        if self.tile_px not in (8, 16) or self.unroll not in (1, 2, 4):
+            raise UsageError(f"compute draw: tiles of 8 or 16 pixels, unrolled 1, 2 or 4 times; got {self.tile_px} "
+                             f"and {self.unroll}")
+        if self.warp_cull and self.tile_px != 16:
+            raise UsageError("the per-block splat lists (warp_cull) need 16x16-pixel tiles")
+        if self.draw != "compute" and not self.compute_defaults:
+            raise UsageError("tile_px, unroll and warp_cull are options of the compute draw mode")
+        if self.draw == "compute" and not self.raster_defaults:
+            raise UsageError("the compute draw mode takes no raster-draw options (front_to_back, depth_test, blend, "
+                             "discard_fragments)")
+        if self.front_to_back and (self.sort == "cpu" or self.draw not in ("auto", "fetch", "points")):
+            raise UsageError("the front-to-back draw needs the GPU sort and the fetch or points draw mode")
+
+    @property
+    def raster_defaults(self) -> bool:
+        return self.depth_test and self.blend and not self.front_to_back and not self.discard_fragments
+
+    @property
+    def compute_defaults(self) -> bool:
+        return self.tile_px == 16 and self.unroll == 4 and not self.warp_cull
+
+
+def resolve_sort(ctx, options: RenderOptions) -> str:
+    """The sort path a renderer with these options takes on this context ('gpu' or 'cpu')."""
+    if options.draw == "compute":
+        if options.sort == "auto" and has_compute(ctx):
+            return "gpu"  # the compute rasterizer needs the GPU path, also on a software GL
+        if options.sort != "gpu":
+            raise UsageError("the compute draw mode needs OpenGL 4.3 compute shaders and the GPU sort")
+    sort = choose_sort(ctx, options.sort)
+    if options.front_to_back and sort != "gpu":
+        raise UsageError("the front-to-back draw needs the GPU sort")
+    return sort
+
+
 @dataclass
 class FrameStats:
     sort: str
@@ -84,7 +151,7 @@ class FrameStats:
     draw_ms: float | None = None
     bin_ms: float | None = None         # compute draw mode: tile binning (count, scan, emit)
     tile_sort_ms: float | None = None   # compute draw mode: sort of the entries by tile, tile ranges
-    cpu_ms: dict = field(default_factory=dict)
+    cpu_ms: dict[str, float] = field(default_factory=dict)
 
     @property
     def total_ms(self) -> float | None:
@@ -124,111 +191,77 @@ def camera_uniforms(cam: Camera) -> dict:
 
 
 class SplatRenderer:
-    """Draws the splats resident in a ChunkPool from a camera into an offscreen framebuffer."""
+    """Draws the splats of a ChunkPool (those of the frame's draw set) from a camera into an offscreen framebuffer.
 
-    def __init__(self, ctx, pool: ChunkPool, sort: str = "auto", color_dtype: str = "f4", draw: str = "auto"):
+    The pool's slot count is fixed, so every per-frame buffer is allocated here, once."""
+
+    def __init__(self, ctx, pool: ChunkPool, options: RenderOptions | None = None):
         self.ctx = ctx
         self.pool = pool
-        compute_draw = draw.split("+")[0] == "compute"
-        if compute_draw and sort == "auto" and has_compute(ctx):
-            sort = "gpu"  # the compute rasterizer needs the GPU path, also on a software GL
-        if compute_draw and sort != "gpu":
-            raise UsageError("the compute draw mode needs OpenGL 4.3 compute shaders and the GPU sort")
-        self.sort_mode = choose_sort(ctx, sort)
+        self.options = options or RenderOptions()
+        self.sort_mode = resolve_sort(ctx, self.options)
         self._software = is_software(ctx)
-        self.color_dtype = color_dtype
-        version = 430 if has_compute(ctx) else 410
-        self.header = shadergen.decode_header(pool.formats, pool.sh_degree, getattr(pool, "codebook_format", None))
-        vert, frag = shadergen.render_sources(self.header, version)
-        self.program = ctx.program(vertex_shader=vert, fragment_shader=frag)
-        self._bind_samplers(self.program)
-        self.capacity = pool.slots * CHUNK
+        self.header = shadergen.decode_header(pool.layout)
+        self.max_point = float(ctx.info.get("GL_POINT_SIZE_RANGE", (1.0, 1.0))[1])
         self._fbo = None
-        self._fbo_size = None
+        self._fbo_size: tuple[int, int] | None = None
+        self._background = (0.0, 0.0, 0.0)
+        self._queries = [ctx.query(time=True) for _ in range(TIMER_QUERIES)]
+        self._debug = None  # decode_debug's program, compiled on first use (a test hook)
+        capacity = pool.splat_capacity
+        # CPU path
         self._cpu_sorter: CpuSorter | None = None
+        self._cpu_program = None
         self._index_buffer = None
         self._vao_cpu = None
-        self._ids_cache = None
-        # A draw mode may carry flags: "+f2b" (front to back in batches with saturation passes: experimental) and the
-        # measurement flags "+nodepth", "+noblend", "+discard".
-        base, *flags = draw.split("+")
-        if base not in DRAW_CHOICES or not set(flags) <= {"nodepth", "noblend", "discard", "f2b"} | COMPUTE_FLAGS:
-            raise UsageError(f"unknown draw mode {draw!r} (choose one of {', '.join(DRAW_CHOICES)})")
-        self.max_point = float(ctx.info.get("GL_POINT_SIZE_RANGE", (1.0, 1.0))[1])
-        self.draw_request = base
-        self.draw_mode = base if base != "auto" else "fetch"
-        self.debug_flags = set(flags)
-        # Test splats against opaque geometry already in the framebuffer's depth (draw it first, render(clear=False)).
-        self.depth_test = "nodepth" not in flags
-        self.front_to_back = "f2b" in flags
-        if compute_draw and not set(flags) <= COMPUTE_FLAGS:
-            raise UsageError(f"the compute draw mode takes only the measurement flags +t8 (8x8-pixel tiles), +u1, +u2 "
-                             f"(raster loop unrolled 1 or 2 times instead of 4), +wc (per-block splat lists), "
-                             f"got {draw!r}")
-        if self.front_to_back and (self.sort_mode != "gpu" or base not in ("auto", "fetch", "points")):
-            raise UsageError("the front-to-back draw (+f2b) needs the GPU sort and the fetch or points draw mode")
-        self._background = (0.0, 0.0, 0.0)
+        # GPU path
+        self.cull = None
+        self.params = self.keys = self.values = self.records = None
+        self.sorter: GpuRadixSort | None = None
+        self.craster: ComputeRaster | None = None
+        self._bin_checks = 0
+        self._programs: dict[str, tuple] = {}
+        self._saturate = self._saturate_vao = self._batch_cmd = None
+        self.draw_mode = "fetch" if self.options.draw == "auto" else self.options.draw
+        self.program_gpu = self.vao_gpu = None
         if self.sort_mode == "gpu":
             self.cull = ctx.compute_shader(shadergen.compute_source("cull.comp", self.header))
             self._bind_samplers(self.cull)
             self.params = ctx.buffer(reserve=16)
-            self._work_buffers()
-            self._programs: dict[str, tuple] = {}
+            self.sorter = GpuRadixSort(ctx, capacity)
+            self.keys = ctx.buffer(reserve=capacity * 4)
+            self.values = ctx.buffer(reserve=capacity * 4)
+            self.records = ctx.buffer(reserve=capacity * RECORD_BYTES)
+            if self.options.front_to_back:
+                vert, frag = shadergen.saturate_sources()
+                self._saturate = ctx.program(vertex_shader=vert, fragment_shader=frag)
+                self._saturate_vao = ctx.vertex_array(self._saturate, [])
+                self._batch_cmd = ctx.buffer(reserve=16)
             self._select_program(self.draw_mode)
         else:
-            self._cpu_sorter = CpuSorter()
-            if pool.mirror is None:
+            if pool.host_mirror is None:
                 raise UsageError("the CPU sort path needs a pool with a host mirror of the splat centres")
-
-    def _work_buffers(self) -> None:
-        """(Re)allocate the per-frame GPU buffers for the pool's capacity."""
-        for name in ("keys", "values", "records"):
-            if hasattr(self, name):
-                getattr(self, name).release()
-        if hasattr(self, "sorter"):
-            self.sorter.release()
-        self.sorter = GpuRadixSort(self.ctx, self.capacity)
-        self.keys = self.ctx.buffer(reserve=self.capacity * 4)
-        self.values = self.ctx.buffer(reserve=self.capacity * 4)
-        self.records = self.ctx.buffer(reserve=self.capacity * RECORD_BYTES)
-        if getattr(self, "craster", None) is not None:
-            self.craster.follow_pool(self.capacity)
-            self._bin_checks = BIN_CHECK_FRAMES
-        if getattr(self, "_programs", None):  # VAOs of the front-to-back quads read `values` as an attribute
-            mode = self.draw_mode
-            self._programs = {}
-            self._select_program(mode)
-
-    def _follow_pool(self) -> None:
-        """The pool grew: new atlas row width and capacity."""
-        if self.pool.slots * CHUNK == self.capacity:
-            return
-        self.capacity = self.pool.slots * CHUNK
-        for prog in (self.program, getattr(self, "cull", None), getattr(self, "_debug", None)):
-            if prog is not None:
-                _set(prog, "u_cols", self.pool.cols)
-        if self.sort_mode == "gpu":
-            self._work_buffers()
+            vert, frag = shadergen.render_sources(self.header, 430 if has_compute(ctx) else 410)
+            self._cpu_program = ctx.program(vertex_shader=vert, fragment_shader=frag)
+            self._bind_samplers(self._cpu_program)
+            self._cpu_sorter = CpuSorter()
 
     def _select_program(self, mode: str) -> None:
+        opts = self.options
         if mode == "compute":
-            if getattr(self, "craster", None) is None:
-                from .compute_raster import ComputeRaster
-
-                tile_px = 8 if "t8" in self.debug_flags else 16
-                unroll = 2 if "u2" in self.debug_flags else 1 if "u1" in self.debug_flags else 4
-                self.craster = ComputeRaster(self.ctx, self.color_dtype, self.capacity, tile_px=tile_px, unroll=unroll,
-                                             warp_cull="wc" in self.debug_flags)
+            if self.craster is None:
+                self.craster = ComputeRaster(self.ctx, opts.color_dtype, self.pool.splat_capacity,
+                                             tile_px=opts.tile_px, unroll=opts.unroll, warp_cull=opts.warp_cull)
                 self._bin_checks = BIN_CHECK_FRAMES
             self.draw_mode = mode
             self.program_gpu = self.vao_gpu = None
             return
         if mode not in self._programs:
-            vert, frag = shadergen.projected_render_sources(mode, self.front_to_back)
-            if "discard" in self.debug_flags:
+            vert, frag = shadergen.projected_render_sources(mode, opts.front_to_back)
+            if opts.discard_fragments:
                 frag = frag.replace("void main() {", "void main() {\n    discard;", 1)
             prog = self.ctx.program(vertex_shader=vert, fragment_shader=frag)
-            if self.front_to_back and mode != "points":
+            if opts.front_to_back and mode != "points":
                 vao = self.ctx.vertex_array(prog, [(self.values, "1u /i", "a_order")])
             else:
                 vao = self.ctx.vertex_array(prog, [])
@@ -238,16 +271,9 @@ class SplatRenderer:
 
     def _draw_front_to_back(self, cam: Camera, guard: int) -> None:
         """Batches front to back; between them a saturation pass writes depth 0 where T < 1e-4 (early stop)."""
-        from .gl import texture_barrier
-
         ctx = self.ctx
         fbo = self._fbo
         color = fbo.color_attachments[0]
-        if not hasattr(self, "_saturate"):
-            vert, frag = shadergen.saturate_sources()
-            self._saturate = ctx.program(vertex_shader=vert, fragment_shader=frag)
-            self._saturate_vao = ctx.vertex_array(self._saturate, [])
-            self._batch_cmd = ctx.buffer(reserve=16)
         points = self.draw_mode == "points"
         batches = shadergen.F2B_BATCHES
         for b in range(batches):
@@ -287,14 +313,14 @@ class SplatRenderer:
     def _bind_samplers(self, prog) -> None:
         for plane, unit in TEXTURE_UNITS.items():
             _set(prog, "u_" + plane, unit)
-        _set(prog, "u_cols", self.pool.cols)
+        _set(prog, "u_cols", self.pool.atlas_columns)
 
     # --- memory --------------------------------------------------------------------------------------------
     @property
     def work_bytes(self) -> int:
         """GPU bytes of per-frame work buffers (keys, values, sort scratch), beside the pool's splat data."""
         if self.sort_mode == "gpu":
-            extra = self.craster.gpu_bytes if getattr(self, "craster", None) is not None else 0
+            extra = self.craster.gpu_bytes if self.craster is not None else 0
             return (self.keys.size + self.values.size + self.records.size + self.params.size + self.sorter.gpu_bytes
                     + extra)
         return self._index_buffer.size if self._index_buffer is not None else 0
@@ -308,9 +334,9 @@ class SplatRenderer:
         """
         cache = self.ctx.extra if isinstance(self.ctx.extra, dict) else {}
         self.ctx.extra = cache
-        key = ("splat_fbo", width, height, self.color_dtype)
+        key = ("splat_fbo", width, height, self.options.color_dtype)
         if key not in cache:
-            color = self.ctx.texture((width, height), 4, dtype=self.color_dtype)
+            color = self.ctx.texture((width, height), 4, dtype=self.options.color_dtype)
             depth = self.ctx.depth_renderbuffer((width, height))
             cache[key] = self.ctx.framebuffer([color], depth)
         self._fbo = cache[key]
@@ -319,26 +345,32 @@ class SplatRenderer:
 
     def read_image(self) -> np.ndarray:
         """(H, W, 4) float32 of the last frame, row 0 at the top (premultiplied RGB over the background, alpha)."""
+        if self._fbo is None:
+            raise UsageError("no frame rendered yet")
         w, h = self._fbo_size
         raw = self._fbo.read(components=4, dtype="f4")
         img = np.frombuffer(raw, np.float32).reshape(h, w, 4)[::-1].copy()
-        if self.front_to_back:
+        if self.options.front_to_back:
             img[..., :3] += (1.0 - img[..., 3:4]) * np.asarray(self._background, np.float32)
         return img
 
     # --- frame ---------------------------------------------------------------------------------------------
-    def render(self, cam: Camera, sh_degree: int | None = None, background=(0.0, 0.0, 0.0), clear: bool = True,
-               timing: bool = False) -> FrameStats:
-        self._follow_pool()
+    def render(self, cam: Camera, *, sh_degree: int | None = None, background=(0.0, 0.0, 0.0), clear: bool = True,
+               timing: bool = False, draw_set: Iterable[int] | None = None) -> FrameStats:
+        """One frame. sh_degree: bands to evaluate (None: the pool's; each tile evaluates at most its resident
+        bands). draw_set: the resident tile ids to draw (None: all); the pool uploads its draw mask only when
+        the set changed. clear=False draws over what the framebuffer holds (opaque geometry, depth tested)."""
+        self.pool.set_draw_set(draw_set)
         degree = self.pool.sh_degree if sh_degree is None else max(0, min(int(sh_degree), self.pool.sh_degree))
         fbo = self.framebuffer(cam.width, cam.height)
         uniforms = camera_uniforms(cam)
         uniforms["u_sh_degree"] = degree
+        uniforms["u_cb_bands"] = self.pool.codebook_bands
         self._background = tuple(float(c) for c in background)
         if clear:
             fbo.depth_mask = True
             fbo.use()
-            if self.front_to_back:  # accumulates C and 1 - T from zero; the background is composited on read-back
+            if self.options.front_to_back:  # accumulates C and 1 - T from zero; the background is added on read-back
                 fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
             else:
                 fbo.clear(float(background[0]), float(background[1]), float(background[2]), 0.0, depth=1.0)
@@ -352,54 +384,59 @@ class SplatRenderer:
         ctx = self.ctx
         ctx.disable(moderngl.CULL_FACE)
         ctx.enable(moderngl.BLEND | moderngl.DEPTH_TEST)
-        if not self.depth_test:
+        if not self.options.depth_test:
             ctx.disable(moderngl.DEPTH_TEST)
-        if "noblend" in self.debug_flags:
+        if not self.options.blend:
             ctx.disable(moderngl.BLEND)
-        if self.front_to_back:  # "under": C += (1 - A) alpha c, A += (1 - A) alpha
+        if self.options.front_to_back:  # "under": C += (1 - A) alpha c, A += (1 - A) alpha
             ctx.blend_func = moderngl.ONE_MINUS_DST_ALPHA, moderngl.ONE
         else:
             ctx.blend_func = moderngl.ONE, moderngl.ONE_MINUS_SRC_ALPHA
         ctx.blend_equation = moderngl.FUNC_ADD
         ctx.depth_func = "<"
 
-    def _render_gpu(self, cam: Camera, uniforms: dict, timing: bool, clear: bool = True) -> FrameStats:
-        ctx = self.ctx
-        stats = FrameStats("gpu")
-        if self.draw_request == "auto":
-            # The compute rasterizer overwrites the target and ignores its depth: raster draws over opaque geometry.
-            if AUTO_COMPUTE and clear and not self.debug_flags and not self._software:
-                self._select_program("compute")
-            else:
-                wide = self.max_point >= max(cam.width, cam.height)
-                points = wide and self.pool.resident_splats >= AUTO_POINTS_MIN_SPLATS
-                self._select_program("points" if points else "fetch")
-        if self.draw_mode == "compute":
-            return self._render_compute(cam, uniforms, timing)
-        queries = self._queries(3) if timing else None
-        slots = self.pool.used_slots
+    def _start_cull(self, uniforms: dict, max_point: float, key_xor: int) -> int:
+        """Uniforms of the cull pass, pool and buffers bound; returns the slots to scan."""
+        slots = self.pool.scan_slots
         self.params.write(struct.pack("4I", 0, 0, 0, 0))
         for name, value in uniforms.items():
             _set(self.cull, name, value)
-        _set(self.program_gpu, "u_size", uniforms["u_size"])
-        guard = float(int(self.max_point) // 2 + 1)
-        _set(self.program_gpu, "u_max_point", self.max_point)
-        _set(self.program_gpu, "u_guard", guard)
-        _set(self.cull, "u_max_point", self.max_point if self.draw_mode == "points" else 1e30)
+        _set(self.cull, "u_max_point", max_point)
         _set(self.cull, "u_slots", slots)
-        _set(self.cull, "u_key_xor", 0 if self.front_to_back else 0xFFFFFFFF)
+        _set(self.cull, "u_key_xor", key_xor)
         self.pool.bind()
         self.params.bind_to_storage_buffer(0)
         self.keys.bind_to_storage_buffer(1)
         self.values.bind_to_storage_buffer(2)
         self.records.bind_to_storage_buffer(3)
+        return slots
 
-        def cull():
-            for base in range(0, slots, MAX_GROUPS_PER_DISPATCH):
-                _set(self.cull, "u_slot_base", base)
-                self.cull.run(min(MAX_GROUPS_PER_DISPATCH, slots - base))
-            ctx.memory_barrier()
-            self.sorter.setup(self.params)
+    def _cull(self, slots: int) -> None:
+        for base in range(0, slots, MAX_GROUPS_PER_DISPATCH):
+            _set(self.cull, "u_slot_base", base)
+            self.cull.run(min(MAX_GROUPS_PER_DISPATCH, slots - base))
+        self.ctx.memory_barrier()
+        self.sorter.setup(self.params)
+
+    def _render_gpu(self, cam: Camera, uniforms: dict, timing: bool, clear: bool = True) -> FrameStats:
+        ctx = self.ctx
+        stats = FrameStats("gpu")
+        if self.options.draw == "auto":
+            # The compute rasterizer overwrites the target and ignores its depth: raster draws over opaque geometry.
+            if AUTO_COMPUTE and clear and self.options.raster_defaults and not self._software:
+                self._select_program("compute")
+            else:
+                wide = self.max_point >= max(cam.width, cam.height)
+                points = wide and self.pool.drawn_splats >= AUTO_POINTS_MIN_SPLATS
+                self._select_program("points" if points else "fetch")
+        if self.draw_mode == "compute":
+            return self._render_compute(cam, uniforms, timing)
+        _set(self.program_gpu, "u_size", uniforms["u_size"])
+        guard = float(int(self.max_point) // 2 + 1)
+        _set(self.program_gpu, "u_max_point", self.max_point)
+        _set(self.program_gpu, "u_guard", guard)
+        key_xor = 0 if self.options.front_to_back else 0xFFFFFFFF
+        slots = self._start_cull(uniforms, self.max_point if self.draw_mode == "points" else 1e30, key_xor)
 
         def sort():
             self.sorter.sort(self.params, self.keys, self.values)
@@ -408,7 +445,7 @@ class SplatRenderer:
             self._draw_state()
             self.records.bind_to_storage_buffer(0)
             self.values.bind_to_storage_buffer(1)
-            if self.front_to_back:
+            if self.options.front_to_back:
                 self._draw_front_to_back(cam, int(guard))
             elif self.draw_mode == "triangles":
                 self.vao_gpu.render_indirect(self.sorter.draw_tri, mode=moderngl.TRIANGLES, count=1)
@@ -421,63 +458,37 @@ class SplatRenderer:
             else:
                 self.vao_gpu.render_indirect(self.sorter.draw, mode=moderngl.TRIANGLE_STRIP, count=1)
 
-        for i, step in enumerate((cull, sort, draw)):
-            if timing:
-                with queries[i]:
-                    step()
-            else:
-                step()
+        steps = (lambda: self._cull(slots), sort, draw)
         if timing:
-            stats.cull_ms, stats.sort_ms, stats.draw_ms = (q.elapsed / 1e6 for q in queries)
+            for q, step in zip(self._queries, steps, strict=False):
+                with q:
+                    step()
+            stats.cull_ms, stats.sort_ms, stats.draw_ms = (q.elapsed / 1e6 for q in self._queries[:3])
+        else:
+            for step in steps:
+                step()
         return stats
-
-    def _queries(self, n: int) -> list:
-        """Reusable GL_TIME_ELAPSED queries (moderngl queries cannot be released one by one)."""
-        if not hasattr(self, "_query_pool"):
-            self._query_pool = [self.ctx.query(time=True) for _ in range(5)]
-        return self._query_pool[:n]
 
     def _render_compute(self, cam: Camera, uniforms: dict, timing: bool) -> FrameStats:
         """Cull + keys (front to back), depth sort, tile binning, tile sort, tile raster (compute_raster.py)."""
-        ctx = self.ctx
         stats = FrameStats("gpu")
         cr = self.craster
-        slots = self.pool.used_slots
-        self.params.write(struct.pack("4I", 0, 0, 0, 0))
-        for name, value in uniforms.items():
-            _set(self.cull, name, value)
-        _set(self.cull, "u_max_point", 1e30)
-        _set(self.cull, "u_slots", slots)
-        _set(self.cull, "u_key_xor", 0)  # ascending key = front to back
         w, h = cam.width, cam.height
         color = self._fbo.color_attachments[0]
-
-        def cull():
-            self.pool.bind()
-            self.params.bind_to_storage_buffer(0)
-            self.keys.bind_to_storage_buffer(1)
-            self.values.bind_to_storage_buffer(2)
-            self.records.bind_to_storage_buffer(3)
-            for base in range(0, slots, MAX_GROUPS_PER_DISPATCH):
-                _set(self.cull, "u_slot_base", base)
-                self.cull.run(min(MAX_GROUPS_PER_DISPATCH, slots - base))
-            ctx.memory_barrier()
-            self.sorter.setup(self.params)
-
+        slots = self._start_cull(uniforms, 1e30, 0)  # ascending key = front to back
         steps = (
-            cull,
+            lambda: self._cull(slots),
             lambda: self.sorter.sort(self.params, self.keys, self.values),
             lambda: cr.bin(self.params, self.values, self.records, self.sorter.dispatch, w, h),
             cr.sort,
             lambda: cr.raster(self.records, color, w, h, self._background),
         )
         if timing:
-            queries = self._queries(5)
-            for q, step in zip(queries, steps, strict=True):
+            for q, step in zip(self._queries, steps, strict=True):
                 with q:
                     step()
             stats.cull_ms, stats.sort_ms, stats.bin_ms, stats.tile_sort_ms, stats.draw_ms = (
-                q.elapsed / 1e6 for q in queries)
+                q.elapsed / 1e6 for q in self._queries)
         else:
             for step in steps:
                 step()
@@ -493,6 +504,10 @@ class SplatRenderer:
             return False
         return self.craster.grow_if_needed()
 
+    def check_bins_after(self, frames: int) -> None:
+        """Compute draw: read the entry count back after each of the next `frames` frames (overflow -> grow)."""
+        self._bin_checks = int(frames)
+
     def read_bin_counts(self) -> tuple[int, int]:
         """Compute draw: (entries sorted, entries needed) of the last frame (a read-back: tests, benchmarks)."""
         return self.craster.read_bins()
@@ -502,20 +517,12 @@ class SplatRenderer:
         return struct.unpack("I", self.params.read(4))[0]
 
     # --- CPU path ------------------------------------------------------------------------------------------
-    def _resident_ids(self) -> np.ndarray:
-        counts = self.pool.counts
-        key = counts.tobytes()
-        if self._ids_cache is None or self._ids_cache[0] != key:
-            j = np.arange(CHUNK, dtype=np.uint32)
-            mask = j[None, :] < counts[:, None]
-            ids = (np.arange(len(counts), dtype=np.uint32)[:, None] * CHUNK + j[None, :])[mask]
-            self._ids_cache = (key, ids)
-        return self._ids_cache[1]
+    def cpu_visible_order(self, cam: Camera, ids: np.ndarray | None = None) -> np.ndarray:
+        """Visible splat ids back to front (conservative cull; the vertex shader drops the rest exactly).
 
-    def cpu_visible_order(self, cam: Camera) -> np.ndarray:
-        """Visible splat ids back to front (conservative cull; the vertex shader drops the rest exactly)."""
-        ids = self._resident_ids()
-        m = self.pool.mirror
+        ids: the candidates (default: every splat the draw set draws, pool.drawn_ids())."""
+        ids = self.pool.drawn_ids() if ids is None else ids
+        m = self.pool.host_mirror
         view = cam.world_to_camera_cv()
         pos = m.positions[ids]
         t = pos @ view[:3, :3].T.astype(np.float32) + view[:3, 3].astype(np.float32)
@@ -539,7 +546,8 @@ class SplatRenderer:
         ctx = self.ctx
         stats = FrameStats("cpu")
         t0 = time.perf_counter()
-        order = self._cpu_sorter.submit(self.cpu_visible_order, cam).result()
+        # The drawn ids are taken here, on the render thread: the pool is not shared with the worker.
+        order = self._cpu_sorter.submit(self.cpu_visible_order, cam, self.pool.drawn_ids()).result()
         t1 = time.perf_counter()
         n = len(order)
         stats.visible = n
@@ -550,14 +558,14 @@ class SplatRenderer:
                     self._vao_cpu.release()
                     self._index_buffer.release()
                 self._index_buffer = ctx.buffer(reserve=max(len(data), 1 << 16), dynamic=True)
-                self._vao_cpu = ctx.vertex_array(self.program, [(self._index_buffer, "1u /i", "a_id")])
+                self._vao_cpu = ctx.vertex_array(self._cpu_program, [(self._index_buffer, "1u /i", "a_id")])
             self._index_buffer.write(data)
             for name, value in uniforms.items():
-                _set(self.program, name, value)
+                _set(self._cpu_program, name, value)
             self._draw_state()
             self.pool.bind()
             if timing:
-                q = self._queries(1)[0]
+                q = self._queries[0]
                 with q:
                     self._vao_cpu.render(mode=moderngl.TRIANGLE_STRIP, vertices=4, instances=n)
                 stats.draw_ms = q.elapsed / 1e6
@@ -570,33 +578,30 @@ class SplatRenderer:
     def decode_debug(self, ids: np.ndarray) -> np.ndarray:
         """(len(ids), DEBUG_STRIDE) float32 decoded by the shaders' decoders (decode_debug.comp)."""
         ctx = self.ctx
-        self._follow_pool()
-        if not hasattr(self, "_debug"):
+        if self._debug is None:
             self._debug = ctx.compute_shader(shadergen.compute_source("decode_debug.comp", self.header))
             self._bind_samplers(self._debug)
         n = len(ids)
-        ids_buf = ctx.buffer(np.ascontiguousarray(ids, np.uint32).tobytes())
+        ids_buf = ctx.buffer(np.ascontiguousarray(ids, np.uint32).tobytes() or b"\0" * 4)
         out = ctx.buffer(reserve=max(4, n * shadergen.DEBUG_STRIDE * 4))
         ids_buf.bind_to_storage_buffer(1)
         out.bind_to_storage_buffer(2)
         self.pool.bind()
         _set(self._debug, "u_n", n)
-        self._debug.run(-(-n // 64))
+        self._debug.run(max(1, -(-n // 64)))
         ctx.memory_barrier()
-        res = np.frombuffer(out.read(), np.float32).reshape(n, shadergen.DEBUG_STRIDE).copy()
+        res = np.frombuffer(out.read(), np.float32)[:n * shadergen.DEBUG_STRIDE].reshape(n, shadergen.DEBUG_STRIDE)
         ids_buf.release()
         out.release()
-        return res
+        return res.copy()
 
     def release(self) -> None:
         if self._cpu_sorter is not None:
             self._cpu_sorter.close()
-        buffers = [self._index_buffer]
-        if self.sort_mode == "gpu":
-            buffers += [self.params, self.keys, self.values, self.records]
-            self.sorter.release()
-            if getattr(self, "craster", None) is not None:
-                self.craster.release()
-        for b in buffers:
+        for b in (self._index_buffer, self.params, self.keys, self.values, self.records, self._batch_cmd):
             if b is not None:
                 b.release()
+        if self.sorter is not None:
+            self.sorter.release()
+        if self.craster is not None:
+            self.craster.release()

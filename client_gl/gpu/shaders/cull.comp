@@ -1,7 +1,8 @@
-// Frustum and opacity culling, projection and colour of every resident splat; compacts the visible ones.
-// One work group per chunk slot (256 splats). Visible splat number i (order of compaction) gets
-// key = ~floatBitsToUint(depth) (ascending key = back to front), value = i and a 48-byte record for the draw:
-// (center.xy, ndc z, opacity), (conic.xyz, minor half-axis), (rgb, packHalf2x16(major half-axis vector)).
+// Frustum and opacity culling, projection and colour of every drawn resident splat (the slot-state draw mask skips
+// the others); compacts the visible ones. One work group per chunk slot (256 splats). Visible splat number i
+// (order of compaction) gets key = ~floatBitsToUint(depth) (ascending key = back to front), value = i and a 48-byte
+// record for the draw: (center.xy, ndc z, opacity), (conic.xyz, minor half-axis), (rgb, packHalf2x16(major
+// half-axis vector)).
 // The count goes to params.count (work-group aggregated atomics).
 layout(local_size_x = 256) in;
 
@@ -32,7 +33,7 @@ void main() {
     vec2 center;
     vec3 cov;
     float depth;
-    if (slot < u_slots && j < range_count(slot)) {
+    if (slot < u_slots && j < range_count(slot) && slot_drawn(slot)) {  // slots outside the draw set are masked
         col = decode_color(id, p);
         col.a = clamp(col.a, 0.0, 1.0);
         if (col.a >= ALPHA_MIN) {
