@@ -6,8 +6,11 @@ Both paths are the same: payload bytes -> splatstream.format.decode (verified, t
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
+import numpy as np
+
+from splatstream.camera import Camera
 from splatstream.decoder import read_codebook
 from splatstream.encode import EncodeOptions, encode_in_memory
 from splatstream.format.codec import EncodedPlane
@@ -17,6 +20,7 @@ from splatstream.gaussians import Gaussians
 from splatstream.store import SceneStore, open_store, read_manifest
 
 from .gpu.residency_layout import CHUNK, CodebookLayout
+from .stream.selection import SelectionOptions, select, view_numbers, wanted_bands
 from .tiledata import TileData, host_mirror
 
 DEFAULT_PRESET = "very-high"
@@ -100,3 +104,26 @@ def tiles_from_gaussians(g: Gaussians, preset: str = DEFAULT_PRESET, sh_degree: 
                          sh_codebook=sh_codebook)
     return tiles_from_scene(encode_in_memory(g, opts), with_mirror=with_mirror)
 
+
+
+def tiles_for_view(source: str | os.PathLike | SceneStore, camera: Camera, options: SelectionOptions,
+                   sh_degree: int | None = None, with_mirror: bool = True) -> SceneTiles:
+    """The tiles and SH bands the streaming client wants for this view (client_gl/stream/selection.py, without a
+    byte budget): what `render --max-sse` draws, so a converged stream can be compared with it."""
+    store = open_store(source)
+    manifest = read_manifest(store)
+    degree = manifest.sh_degree if sh_degree is None else max(0, min(int(sh_degree), manifest.sh_degree))
+    opts = replace(options, sh_degree=min(options.sh_degree, degree))
+    a = manifest.arrays
+    view = view_numbers(a, camera, opts)
+    cost = np.array([t.chunks for t in manifest.tiles], np.float64)
+    root = manifest.index_of[manifest.root]
+    sel = select(a, view, cost, root, opts, screen_px=float(camera.width * camera.height))
+    bands = wanted_bands(a, view, sel.cut, opts, manifest.sh_degree)
+    top = max(bands.values(), default=0)
+    codebook = read_codebook(store, manifest, top) if top >= 1 else None
+    tiles = {}
+    for i in sel.cut:
+        tile = manifest.tiles[i]
+        tiles[tile.id] = load_tile(store, manifest, tile, bands[i], with_mirror)
+    return SceneTiles(dict(manifest.formats), top, tiles, manifest, codebook)

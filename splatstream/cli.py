@@ -11,7 +11,7 @@ import warnings
 from . import __version__
 from .errors import SplatstreamError
 
-COMMANDS = ["encode", "decode", "info", "convert", "render", "eval", "serve"]
+COMMANDS = ["encode", "decode", "info", "convert", "render", "view", "eval", "serve"]
 
 # Exit codes (README "Exit codes"): 0 success, 2 bad input or usage (the user can fix it: a file, an argument, a
 # path, a port), 1 a failure inside splatstream or the machine (a bug, out of memory, a disk error), 130 Ctrl-C.

@@ -6,7 +6,7 @@ from conftest import real
 
 from client_gl.stream.engine import StreamEngine, StreamOptions
 from client_gl.stream.fetch import FetchStats
-from client_gl.stream.selection import SelectionOptions, view_numbers
+from client_gl.stream.selection import SelectionOptions, view_numbers, wanted_bands
 from splatstream.camera import Camera
 from splatstream.encode import EncodeOptions, encode_in_memory
 from splatstream.ply import read_gaussians_ply
@@ -92,7 +92,7 @@ def test_converges_to_the_wanted_cut_base_first(store):
     m = read_manifest(store)
     fetcher = StepFetcher(store)
     pool = CountingPool(10_000)
-    engine = StreamEngine(fetcher, pool, StreamOptions(SelectionOptions(max_sse=1.0, band_min_px=(20, 40, 80))))
+    engine = StreamEngine(fetcher, pool, StreamOptions(SelectionOptions(max_sse=1.0, band_area_share=(0.95, 0.8, 0.6))))
     cam = orbit(m, 1.6, 0.3)
     first = engine.update(cam)
     assert first.draw in ([], [m.root])  # at most the root after one frame
@@ -107,9 +107,9 @@ def test_converges_to_the_wanted_cut_base_first(store):
     assert first_band > last_base - fetcher.per_frame
     # bands follow the projected-size rule
     view = view_numbers(m.arrays, cam, engine.options.selection)
+    want = wanted_bands(m.arrays, view, sel.cut, engine.options.selection, m.sh_degree)
     for i in sel.cut:
-        want = sum(1 for b in (1, 2, 3) if view.radius_px[i] >= engine.options.selection.band_min_px[b - 1])
-        assert pool.bands[int(m.arrays.ids[i])] == want
+        assert pool.bands[int(m.arrays.ids[i])] == want[i]
     engine.close()
 
 

@@ -166,7 +166,20 @@ def test_bands_by_projected_size(scene):
     a = m.arrays
     root = m.index_of[m.root]
     near, far = view_numbers(a, camera_at(m, 1.2)), view_numbers(a, camera_at(m, 50.0))
-    opts = SelectionOptions(band_min_px=(10.0, 40.0, 160.0))
-    assert wanted_bands(far, [root], opts, 3)[root] < wanted_bands(near, [root], opts, 3)[root]
-    assert wanted_bands(near, [root], SelectionOptions(sh_degree=1), 3)[root] <= 1
-    assert wanted_bands(near, [root], opts, 0)[root] == 0
+    cost = np.array([t.chunks for t in m.tiles], float)
+    view = view_numbers(a, camera_at(m, 1.5))
+    sel = select(a, view, cost, root, SelectionOptions(max_sse=0.5))
+    assert len(sel.cut) > 4
+    every = wanted_bands(a, view, sel.cut, SelectionOptions(band_area_share=(1.0, 1.0, 1.0)), 3)
+    assert set(every.values()) == {3}
+    some = wanted_bands(a, view, sel.cut, SelectionOptions(band_area_share=(0.9, 0.6, 0.3)), 3)
+    # bands go to the tiles covering most of the view per byte, in order, each band to fewer tiles
+    assert sum(v >= 1 for v in some.values()) > sum(v >= 2 for v in some.values()) > sum(v >= 3 for v in some.values())
+    area = {i: view.area_px[i] for i in sel.cut}
+    total = sum(area.values())
+    covered1 = sum(area[i] for i, v in some.items() if v >= 1)
+    assert 0.9 * total <= covered1 < total
+    assert wanted_bands(a, view, sel.cut, SelectionOptions(sh_degree=1), 3)[sel.cut[0]] <= 1
+    assert set(wanted_bands(a, view, sel.cut, SelectionOptions(), 0).values()) == {0}
+    assert set(wanted_bands(a, view, sel.cut, SelectionOptions(max_sse=0.0), 3).values()) == {3}
+    assert far is not None and near is not None

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import queue
 import time
-from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Protocol
@@ -27,6 +26,7 @@ from splatstream.format.decode import codebook_index, decode_payload
 from splatstream.format.manifest import Manifest, PayloadEntry, parse_manifest
 from splatstream.format.planes import band_of
 
+from ..tiledata import TileData, host_mirror
 from .selection import Selection, SelectionOptions, TileView, draw_set, prefetch, select, view_numbers, wanted_bands
 
 Key = tuple[int | None, str]  # (tile id, group) or (None, "sh<b>") for a band of the SH codebook
@@ -85,15 +85,6 @@ class FrameUpdate:
 
 
 @dataclass
-class TileData:
-    """A tile's decoded base planes (texels still encoded) as the pool joins them; `prepare` may add to it."""
-
-    splats: int
-    planes: dict
-    extra: Any = None
-
-
-@dataclass
 class _Ready:
     key: Key
     planes: dict
@@ -112,10 +103,10 @@ def planes_nbytes(planes: dict) -> int:
 
 class StreamEngine:
     def __init__(self, fetcher: FetcherLike, residency: Residency, options: StreamOptions = StreamOptions(),
-                 slot_bytes: int = 1, manifest: Manifest | None = None,
-                 prepare: Callable[[str, dict, int], Any] | None = None, location: str = "scene"):
-        """`slot_bytes`: GPU bytes of one 256-splat slot (tile costs are counted in them); `prepare(group,
-        planes, splats)` runs on a decode worker after decoding (e.g. the CPU-sort path's host arrays)."""
+                 slot_bytes: int = 1, manifest: Manifest | None = None, with_mirror: bool = False,
+                 location: str = "scene"):
+        """`slot_bytes`: GPU bytes of one 256-splat slot (tile costs are counted in them); `with_mirror`: decode
+        workers also compute each tile's host mirror (pools of the CPU-sort path keep one)."""
         self.fetcher = fetcher
         self.residency = residency
         self.options = options
@@ -130,7 +121,7 @@ class StreamEngine:
         self.cost = chunks.astype(np.float64) * float(slot_bytes)
         self.slot_bytes = slot_bytes
         self.codebook = m.uses_codebook
-        self.prepare = prepare
+        self.with_mirror = with_mirror
         t = len(m.tiles)
         self.resident = np.zeros(t, bool)
         self.bands = np.zeros(t, np.int64)  # SH bands resident per tile
@@ -138,6 +129,7 @@ class StreamEngine:
         self.last_drawn = np.zeros(t, np.int64)
         self.frame = 0
         self.refined: frozenset[int] = frozenset()
+        self._bands_wanted: dict[int, int] = {}
         self._ready: dict[Key, _Ready] = {}
         self._ready_bytes = 0
         self._decoding: set[Key] = set()
@@ -145,6 +137,7 @@ class StreamEngine:
         self._pool = ThreadPoolExecutor(max_workers=options.decode_workers, thread_name_prefix="splat-decode")
         self.errors: list[str] = []
         self.uploaded_bytes_total = 0
+        self.evictions = 0
 
     # --- keys -------------------------------------------------------------------------------------------------
     def entry(self, key: Key) -> PayloadEntry:
@@ -171,7 +164,8 @@ class StreamEngine:
         sel_opts = SelectionOptions(**{**opts.__dict__, "budget": min(budget, opts.budget or budget)})
         sel = select(a, view, self.cost, self.root, sel_opts, self.refined, float(cam.width * cam.height))
         self.refined = sel.refined
-        bands = wanted_bands(view, sel.cut, opts, self.manifest.sh_degree)
+        bands = wanted_bands(a, view, sel.cut, opts, self.manifest.sh_degree)
+        self._bands_wanted = bands
         ids = self.ids
         keys: list[Key] = [(int(ids[self.root]), "base")]
         keys += [(int(ids[i]), "base") for i in sel.cut if i != self.root]
@@ -244,8 +238,8 @@ class StreamEngine:
                 splats = self.manifest.tile(tile_id).splats
                 if codebook_tile and group == "sh1":
                     codebook_index(planes, splats, self.manifest.sh_codebook.entries, where)
-                if self.prepare is not None:
-                    extra = self.prepare(group, planes, splats)
+                if self.with_mirror and group == "base":
+                    extra = host_mirror(planes, splats)
             self._decoded.put((key, _Ready(key, planes, extra, planes_nbytes(planes))))
         except SplatstreamError as exc:  # verified bytes that do not decode: the scene is broken, not the link
             self._decoded.put((key, str(exc)))
@@ -273,6 +267,7 @@ class StreamEngine:
         return False
 
     def _evict(self, i: int) -> None:
+        self.evictions += 1
         self.residency.leave(int(self.ids[i]))
         self.resident[i] = False
         self.bands[i] = 0
@@ -291,8 +286,9 @@ class StreamEngine:
             tile_id, group = key
             if tile_id is None:
                 band = band_of(group)
-                plane = r.planes[group]
-                self.residency.set_codebook_band(band, plane)
+                if band - 1 not in self.codebook_bands and band > 1:
+                    continue  # codebook bands join in order
+                self.residency.set_codebook_band(band, r.planes[group])
                 self.codebook_bands.add(band)
             else:
                 i = self.manifest.index_of[tile_id]
@@ -315,9 +311,21 @@ class StreamEngine:
             del self._ready[key]
             self._ready_bytes -= r.nbytes
             done += r.nbytes
+        if self.codebook:
+            self._codebook_tile_bands(sel)
         self._trim_ready(order)
         self.uploaded_bytes_total += done
         return done, events
+
+    def _codebook_tile_bands(self, sel: Selection) -> None:
+        """With an SH codebook a tile's bands 2 and 3 need no payload of its own: once its index (band 1) and the
+        codebook's band are resident, the tile gains the band."""
+        for i in sel.cut:
+            want = self._bands_wanted.get(i, 0)
+            tile_id = int(self.ids[i])
+            while self.resident[i] and 1 <= self.bands[i] < want and self.bands[i] + 1 in self.codebook_bands:
+                self.residency.add_band(tile_id, int(self.bands[i]) + 1, {})
+                self.bands[i] += 1
 
     def _trim_ready(self, order: dict) -> None:
         if self._ready_bytes <= self.options.ready_bytes:

@@ -2,9 +2,10 @@
 
 Per frame: `view_numbers` projects every tile (screen-space error, frustum test, projected radius); `select`
 refines the tree from the root, best first by error removed per byte, under a splat and a byte budget, with
-hysteresis; `wanted_bands` picks SH bands by projected size; `draw_set` turns what is resident into a hole-free
-REPLACE cut (a tile stays drawn until every child in view can replace it); `prefetch` names what the view will
-probably want next. No GL, no network, no clocks: the engine (engine.py) calls these and acts on the answers.
+hysteresis; `wanted_bands` gives SH bands to the tiles covering most of the view; `draw_set` turns what is
+resident into a hole-free REPLACE cut (a tile stays drawn until every child in view can replace it); `prefetch`
+names what the view will probably want next. No GL, no network, no clocks: the engine (engine.py) calls these
+and acts on the answers.
 """
 from __future__ import annotations
 
@@ -27,9 +28,11 @@ class SelectionOptions:
     budget: float | None = None  # the cut's cost at most, in the units of the `cost` array (GPU bytes)
     hysteresis: float = 0.8  # a tile refined last frame stays refined until its sse drops below max_sse * this
     sh_degree: int = 3  # highest SH band wanted
-    # A tile in the cut wants SH band b when its bounding sphere's projected radius is at least band_min_px[b - 1]
-    # pixels (measured: bench/bench_stream.py and format_spec/client.md 4).
-    band_min_px: tuple[float, float, float] = (48.0, 96.0, 192.0)
+    # SH bands by need: band b goes to the tiles of the cut that cover the largest share of the view per byte of the
+    # band, until they cover band_area_share[b - 1] of the cut's projected area (the rest are too small on screen
+    # for their view-dependent colour to matter). 1.0: every tile. max_sse 0 (full detail) takes every band.
+    # Measured: bench/bench_stream.py, format_spec/client.md 4.
+    band_area_share: tuple[float, float, float] = (0.97, 0.9, 0.8)
     prefetch_margin: float = 1.25  # prefetch tiles whose sse is above max_sse / this, and a frustum this much wider
 
 
@@ -40,6 +43,7 @@ class TileView:
     sse: np.ndarray  # (T,) px, inf when the eye is inside the bounding sphere
     visible: np.ndarray  # (T,) bool: the 3-sigma box intersects the view frustum
     radius_px: np.ndarray  # (T,) projected radius of the bounding sphere, px (inf inside it)
+    area_px: np.ndarray  # (T,) pixels of the image inside the projected sphere's bounding square (0 when culled)
     distance: np.ndarray  # (T,) distance from the eye to the sphere, world units (<= 0 inside)
     visible_wide: np.ndarray  # (T,) bool: intersects a frustum widened by prefetch_margin
 
@@ -88,7 +92,15 @@ def view_numbers(a: TileArrays, cam: Camera, opts: SelectionOptions = SelectionO
         radius_px = np.where(distance > 0, a.sphere_radius * focal / np.maximum(centre_dist, 1e-12), INF)
     visible = boxes_in_frustum(a.box_min, a.box_max, frustum_planes(cam))
     wide = boxes_in_frustum(a.box_min, a.box_max, frustum_planes(cam, opts.prefetch_margin))
-    return TileView(sse, visible, radius_px, distance, wide)
+    uv, depth = cam.project(a.sphere_center)
+    with np.errstate(invalid="ignore"):
+        r = np.where(np.isfinite(radius_px), radius_px, 0.0)
+        w = np.clip(uv[:, 0] + r, 0, cam.width) - np.clip(uv[:, 0] - r, 0, cam.width)
+        h = np.clip(uv[:, 1] + r, 0, cam.height) - np.clip(uv[:, 1] - r, 0, cam.height)
+        area = np.where(depth > 0, np.nan_to_num(w * h), 0.0)
+    area = np.where(np.isfinite(radius_px), area, float(cam.width * cam.height))  # the eye inside: everywhere
+    area = np.where(visible, area, 0.0)
+    return TileView(sse, visible, radius_px, area, distance, wide)
 
 
 def _area_px(view: TileView, i: int, screen: float) -> float:
@@ -142,14 +154,27 @@ def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: Sel
     return Selection(cut_sorted, frozenset(refined), {i: priority.get(i, 0.0) for i in cut_sorted}, splats, total)
 
 
-def wanted_bands(view: TileView, tiles: tuple[int, ...] | list[int], opts: SelectionOptions,
+def wanted_bands(a: TileArrays, view: TileView, tiles: tuple[int, ...] | list[int], opts: SelectionOptions,
                  scene_degree: int) -> dict[int, int]:
-    """SH bands each tile wants: band b when its projected radius is at least band_min_px[b - 1]."""
+    """SH bands each tile wants: band b for the tiles that cover the first band_area_share[b - 1] of the cut's
+    projected area, taken in order of area per byte of the band (a tile gets band b only with band b - 1)."""
     top = min(opts.sh_degree, scene_degree)
-    out = {}
-    for i in tiles:
-        r = float(view.radius_px[i])
-        out[i] = sum(1 for b in range(1, top + 1) if r >= opts.band_min_px[b - 1])
+    out = dict.fromkeys(tiles, 0)
+    if opts.max_sse <= 0:  # full detail: every band of every tile
+        return dict.fromkeys(tiles, top)
+    area = {i: float(view.area_px[i]) for i in tiles}
+    total = sum(area.values())
+    for b in range(1, top + 1):
+        share = opts.band_area_share[b - 1]
+        band_bytes = a.band_bytes[:, b - 1]
+        order = sorted((i for i in tiles if out[i] == b - 1),
+                       key=lambda i: (-area[i] / max(1.0, float(band_bytes[i])), i))
+        covered = 0.0
+        for i in order:
+            if covered >= share * total and share < 1.0:
+                break
+            out[i] = b
+            covered += area[i]
     return out
 
 

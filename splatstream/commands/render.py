@@ -44,6 +44,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "on a software GL (forces the GPU sort)")
     p.add_argument("--preset", default="very-high",
                    help="texel formats for a splat file encoded in memory (default very-high: f32 planes)")
+    p.add_argument("--max-sse", type=float, metavar="PX",
+                   help="draw the tiles and SH bands `view` streams for this camera at this screen-space error "
+                        "(default: every full-detail tile with all its bands)")
     p.add_argument("--quiet", "-q", action="store_true", help="print nothing on success")
     p.set_defaults(func=run)
 
@@ -85,6 +88,8 @@ def run(args: argparse.Namespace) -> int:
     ext = os.path.splitext(args.out)[1].lower()
     if ext not in (".png", ""):
         raise UsageError(f"--out: only .png images are written, got {args.out!r}")
+    if args.max_sse is not None and not args.max_sse >= 0:
+        raise UsageError(f"--max-sse {args.max_sse}: expected 0 or more pixels")
     t0 = time.perf_counter()
     if os.path.isdir(args.scene):
         if not is_scene_dir(args.scene):
@@ -107,7 +112,15 @@ def run(args: argparse.Namespace) -> int:
         splats = len(g)
     renderer = headless.HeadlessRenderer(headless.RenderOptions(sort=args.sort, draw=args.draw))
     try:
-        if source[0] == "scene":
+        if source[0] == "scene" and args.max_sse is not None:
+            from client_gl.scene import tiles_for_view
+            from client_gl.stream.selection import SelectionOptions
+
+            scene = tiles_for_view(source[1], cam, SelectionOptions(max_sse=args.max_sse), args.sh_degree,
+                                   with_mirror=renderer.needs_host_mirror)
+            renderer.load_tiles(scene)
+            splats = scene.splats
+        elif source[0] == "scene":
             renderer.load_scene(source[1], args.sh_degree)
         else:
             renderer.load_gaussians(source[1], args.preset, args.sh_degree)
@@ -118,7 +131,7 @@ def run(args: argparse.Namespace) -> int:
         sort = renderer.sort_mode
         if sort == "gpu":
             sort += f", draw {renderer.renderer.draw_mode}"
-        per_splat = renderer.pool.bytes_per_splat
+        per_splat = renderer.scene.manifest.gpu_bytes_per_splat  # the scene's, as `info` reports it
     finally:
         renderer.close()
     _write_png(args.out, img)

@@ -1,0 +1,205 @@
+"""A streamed scene on a GL context: the engine (client_gl/stream, GL-free) wired to a GPU pool and a renderer.
+
+    session = StreamingSession.open("http://127.0.0.1:8000/scenes/garden", ctx, ViewOptions(gpu_mem_mb=1024))
+    frame = session.frame(camera)          # select, fetch, decode, upload, draw (into the renderer's framebuffer)
+    image = session.read_image()           # (H, W, 3) float32
+    session.close()
+
+Both the headless runner (client_gl/view_headless.py) and the window (client_gl/window.py) drive this class, so the
+picture, the budgets and the metrics are the same with and without a display. Metrics follow issue 13:
+`first_frame_s` counts from the start of the manifest request to the first frame with splats drawn.
+"""
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from splatstream.camera import Camera
+from splatstream.errors import UsageError
+from splatstream.format.manifest import Manifest, parse_manifest
+
+from .gpu.pool import ChunkPool
+from .gpu.renderer import FrameStats, RenderOptions, SplatRenderer, resolve_sort
+from .gpu.residency_layout import CodebookLayout, PoolLayout
+from .stream.cache import DiskCache
+from .stream.engine import FrameUpdate, StreamEngine, StreamOptions
+from .stream.fetch import Fetcher
+from .stream.selection import SelectionOptions
+from .stream.sources import Progress, SceneSource, open_source
+
+DEFAULT_GPU_MEM_MB = 1024.0
+
+
+@dataclass(frozen=True)
+class ViewOptions:
+    """What a user sets about streaming (the command line's --gpu-mem-mb, --max-splats, --max-sse, ...)."""
+
+    gpu_mem_mb: float = DEFAULT_GPU_MEM_MB  # splat data on the GPU at most (the pool's atlases and range table)
+    max_splats: int | None = None
+    max_sse: float = SelectionOptions.max_sse
+    sh_degree: int = 3
+    band_area_share: tuple[float, float, float] = SelectionOptions.band_area_share
+    prefetch: bool = True
+    cache: bool = True  # disk cache of payloads (HTTP sources)
+    cache_dir: str | None = None
+    max_in_flight: int = 6
+    upload_bytes_per_frame: int = StreamOptions.upload_bytes_per_frame
+    render: RenderOptions = field(default_factory=RenderOptions)
+    background: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    request_timeout_s: float = 15.0
+    stall_timeout_s: float = 10.0
+
+    def selection(self) -> SelectionOptions:
+        return SelectionOptions(max_sse=self.max_sse, max_splats=self.max_splats, sh_degree=self.sh_degree,
+                                band_area_share=self.band_area_share)
+
+
+@dataclass
+class FrameRecord:
+    """One frame of the metrics series (METRICS.json "frames")."""
+
+    t: float  # seconds since the manifest request started
+    bytes: int  # downloaded so far (network; cache reads not counted)
+    drawn_splats: int
+    resident_splats: int
+    resident_tiles: int
+    in_flight: int
+    gpu_bytes: int
+    frame_ms: float  # CPU time of the frame on the render thread (select, uploads, draw submission)
+    uploaded_bytes: int
+    converged: bool
+
+    def to_json(self) -> dict:
+        return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in self.__dict__.items()}
+
+
+@dataclass
+class StreamMetrics:
+    start: float  # perf_counter at the manifest request
+    gpu_budget_bytes: int
+    first_frame_s: float | None = None
+    bytes_first_frame: int | None = None
+    converged_s: float | None = None
+    gpu_bytes_peak: int = 0
+    evictions: int = 0
+    frames: list[FrameRecord] = field(default_factory=list)
+
+    def to_json(self, fetch_stats=None) -> dict:
+        last = self.frames[-1] if self.frames else None
+        out = {
+            "first_frame_s": self.first_frame_s, "converged_s": self.converged_s,
+            "bytes_downloaded": last.bytes if last else 0, "bytes_first_frame": self.bytes_first_frame,
+            "gpu_bytes_peak": self.gpu_bytes_peak, "gpu_budget_bytes": self.gpu_budget_bytes,
+            "frames": [f.to_json() for f in self.frames],
+        }
+        if fetch_stats is not None:
+            out["fetch"] = {k: v for k, v in fetch_stats.__dict__.items()}
+        out["evictions"] = self.evictions
+        return out
+
+
+class StreamingSession:
+    def __init__(self, source: SceneSource, ctx, options: ViewOptions = ViewOptions(), fetcher: Fetcher | None = None,
+                 start: float | None = None):
+        self.options = options
+        self.ctx = ctx
+        self.source = source
+        start = time.perf_counter() if start is None else start
+        cache = None
+        if options.cache and getattr(source, "cache_key", None):
+            cache = DiskCache(options.cache_dir)
+        self.fetcher = fetcher or Fetcher(source, cache=cache, max_in_flight=options.max_in_flight,
+                                          request_timeout_s=options.request_timeout_s,
+                                          stall_timeout_s=options.stall_timeout_s)
+        self.fetcher.start()
+        try:
+            self.manifest: Manifest = parse_manifest(self.fetcher.manifest(), f"{source.location}")
+            m = self.manifest
+            degree = min(options.sh_degree, m.sh_degree)
+            codebook = CodebookLayout(m.sh_codebook.format, m.sh_codebook.entries) if m.sh_codebook else None
+            budget = int(options.gpu_mem_mb * (1 << 20))
+            self.with_mirror = resolve_sort(ctx, options.render) == "cpu"
+            self.pool = ChunkPool.for_budget(ctx, budget, m.formats, degree, codebook=codebook,
+                                             host_mirror=self.with_mirror)
+            self.renderer = SplatRenderer(ctx, self.pool, options.render)
+            layout: PoolLayout = self.pool.layout
+            stream_opts = StreamOptions(selection=replace(options.selection(), sh_degree=degree),
+                                        upload_bytes_per_frame=options.upload_bytes_per_frame,
+                                        prefetch=options.prefetch)
+            self.engine = StreamEngine(self.fetcher, self.pool, stream_opts, slot_bytes=layout.slot_bytes(),
+                                       manifest=m, with_mirror=self.with_mirror, location=source.location)
+        except BaseException:
+            self.fetcher.close()
+            raise
+        self.metrics = StreamMetrics(start, budget)
+        self.last: FrameUpdate | None = None
+        self.last_stats: FrameStats | None = None
+        self.paused = False
+
+    @classmethod
+    def open(cls, spec: str | os.PathLike, ctx, options: ViewOptions = ViewOptions(),
+             progress: Progress | None = None) -> StreamingSession:
+        """A session for a URL, a scene directory or a splat file (encoded in memory, with progress)."""
+        start = time.perf_counter()
+        return cls(open_source(spec, progress=progress), ctx, options, start=start)
+
+    # --- the frame ----------------------------------------------------------------------------------------------
+    def frame(self, cam: Camera, sh_degree: int | None = None, clear: bool = True,
+              timing: bool = False) -> FrameRecord:
+        """Stream (unless paused) and draw one frame into the renderer's framebuffer."""
+        t0 = time.perf_counter()
+        if not self.paused:
+            self.last = self.engine.update(cam)
+        draw = self.last.draw if self.last is not None else []
+        self.last_stats = self.renderer.render(cam, sh_degree=sh_degree, background=self.options.background,
+                                               clear=clear, timing=timing, draw_set=draw)
+        if self.renderer.check_bins():  # the compute draw's entry buffer grew: draw this frame again
+            self.last_stats = self.renderer.render(cam, sh_degree=sh_degree, background=self.options.background,
+                                                   clear=clear, timing=timing, draw_set=draw)
+        frame_ms = (time.perf_counter() - t0) * 1e3
+        return self._record(frame_ms)
+
+    def _record(self, frame_ms: float) -> FrameRecord:
+        u = self.last
+        stats = self.fetcher.stats()
+        now = time.perf_counter() - self.metrics.start
+        gpu = self.pool.gpu_bytes
+        rec = FrameRecord(now, stats.bytes_downloaded, u.drawn_splats if u else 0, u.resident_splats if u else 0,
+                          u.resident_tiles if u else 0, u.in_flight if u else 0, gpu, frame_ms,
+                          u.uploaded_bytes if u else 0, bool(u and u.converged))
+        m = self.metrics
+        m.frames.append(rec)
+        m.gpu_bytes_peak = max(m.gpu_bytes_peak, gpu)
+        m.evictions = self.engine.evictions
+        if m.first_frame_s is None and rec.drawn_splats > 0:
+            m.first_frame_s, m.bytes_first_frame = now, rec.bytes
+        if rec.converged and m.converged_s is None:
+            m.converged_s = now
+        elif not rec.converged:
+            m.converged_s = None  # converged means: and stayed so until now
+        return rec
+
+    @property
+    def converged(self) -> bool:
+        return bool(self.last and self.last.converged)
+
+    def wait(self, timeout_s: float = 0.01) -> None:
+        """Block briefly for a decode to finish (loops without vsync use it instead of spinning)."""
+        self.engine.wait(timeout_s)
+
+    def read_image(self) -> np.ndarray:
+        return self.renderer.read_image()[..., :3]
+
+    def close(self) -> None:
+        self.fetcher.close()
+        self.engine.close()
+        self.renderer.release()
+        self.pool.release()
+
+
+def check_gpu_budget(options: ViewOptions) -> None:
+    if not options.gpu_mem_mb > 0:
+        raise UsageError(f"--gpu-mem-mb {options.gpu_mem_mb}: expected a positive number of megabytes")

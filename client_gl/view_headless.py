@@ -1,0 +1,117 @@
+"""`splatstream view SOURCE --headless`: stream a scene without a window, for scripts, tests and benchmarks.
+
+The same StreamingSession as the window, on a headless EGL context, driven by a fixed camera or a camera path on
+the wall clock. It stops when the view has converged (and the path has ended), or at the timeout; on the way it
+writes PNG frames, a final screenshot and the metrics JSON (client_gl/streaming.py: FrameRecord, StreamMetrics).
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+import time
+from dataclasses import dataclass
+
+from splatstream.camera import Camera
+from splatstream.camera_path import CameraPath
+
+from .streaming import StreamingSession, ViewOptions
+
+EXIT_OK = 0
+EXIT_NOT_CONVERGED = 1
+
+
+@dataclass
+class HeadlessRun:
+    source: str
+    options: ViewOptions
+    size: tuple[int, int]
+    camera: Camera | None = None  # None: the scene's suggested camera (at `size`)
+    path: CameraPath | None = None
+    until_converged: bool = True
+    timeout_s: float = 120.0
+    record: str | None = None
+    screenshot: str | None = None
+    frames_dir: str | None = None
+    frame_every: int = 10
+    sh_degree: int | None = None
+    quiet: bool = False
+
+
+def scene_camera(session: StreamingSession, size: tuple[int, int]) -> Camera:
+    c = session.manifest.camera
+    dist = sum((a - b) ** 2 for a, b in zip(c.eye, c.target, strict=True)) ** 0.5
+    return Camera(c.eye, c.target, c.up, c.fov_y, size[0], size[1], min(0.01, 0.01 * dist), max(1000.0, 100 * dist))
+
+
+def write_png(path: str, image) -> None:
+    import numpy as np
+    from PIL import Image
+
+    from splatstream.atomic import atomic_file
+
+    rgb8 = (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    with atomic_file(path) as f:
+        Image.fromarray(rgb8, "RGB").save(f, format="PNG")
+
+
+def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
+    """Stream until done; (exit code, metrics JSON)."""
+    say = (lambda msg: None) if run.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
+    tty = sys.stderr.isatty() and not run.quiet
+
+    def encode_progress(stage: str, fraction: float) -> None:
+        if fraction >= 1.0 or fraction == 0.0:
+            say(f"view: {stage} {fraction * 100:.0f}%")
+
+    session = StreamingSession.open(run.source, ctx, run.options, progress=encode_progress)
+    try:
+        w, h = run.size
+        fixed = run.camera or scene_camera(session, run.size)
+        start = time.perf_counter()
+        frame = 0
+        last_line = 0.0
+        code = EXIT_OK
+        while True:
+            now = time.perf_counter() - start
+            cam = run.path.camera(now, w, h) if run.path is not None else fixed
+            rec = session.frame(cam, sh_degree=run.sh_degree)
+            frame += 1
+            if run.frames_dir and frame % max(1, run.frame_every) == 0:
+                write_png(os.path.join(run.frames_dir, f"frame_{frame:06d}.png"), session.read_image())
+            path_done = run.path is None or now >= run.path.end
+            done = path_done and (session.converged or not run.until_converged)
+            if time.perf_counter() - last_line > 0.25 or done:
+                last_line = time.perf_counter()
+                stats = session.fetcher.stats()
+                line = (f"view: {rec.t:6.2f}s  {stats.bytes_downloaded / 1e6:8.2f} MB  {rec.drawn_splats:>10,} drawn  "
+                        f"{rec.resident_tiles:>4} tiles  {rec.in_flight:>3} in flight  "
+                        f"{'converged' if rec.converged else 'streaming'}")
+                if tty:
+                    sys.stderr.write("\r" + line + ("\n" if done else ""))
+                    sys.stderr.flush()
+                elif done or frame % 20 == 1:
+                    say(line)
+            if done:
+                break
+            if now > run.timeout_s:
+                say(f"view: not converged after {run.timeout_s:g} s (timeout)")
+                code = EXIT_NOT_CONVERGED
+                break
+            if not rec.uploaded_bytes:
+                session.wait(0.005)  # nothing arrived: wait for a decode instead of spinning
+        if run.screenshot:
+            write_png(run.screenshot, session.read_image())
+            say(f"view: wrote {run.screenshot}")
+        report = session.metrics.to_json(session.fetcher.stats())
+        report.update({"source": run.source, "frames_rendered": frame, "size": [w, h],
+                       "camera_path": run.path is not None, "gl_renderer": ctx.info.get("GL_RENDERER", "?"),
+                       "draw": session.renderer.draw_mode if session.renderer.sort_mode == "gpu" else "cpu"})
+        if run.record:
+            from splatstream.atomic import atomic_file
+
+            with atomic_file(run.record) as f:
+                f.write(json.dumps(report, indent=1).encode())
+        return code, report
+    finally:
+        session.close()

@@ -1,0 +1,152 @@
+"""`splatstream view SOURCE [--headless]`: stream a scene (URL, scene directory or splat file) into a window, or
+headless for scripts and benchmarks."""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+
+from ..errors import UsageError
+from .args import parse_size, parse_vector
+
+DRAWS = ["auto", "compute", "fetch", "points", "instanced", "triangles"]
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    p = sub.add_parser(
+        "view", help="stream a scene into a window (or headless): coarse tiles first, detail and SH bands as needed",
+        description="Stream SOURCE, an http(s):// scene URL served by `splatstream serve` (or any static server), a "
+                    "local scene directory, or a splat file (encoded in memory first). Tiles are chosen by "
+                    "screen-space error within a GPU memory budget, fetched by priority, decoded off the render "
+                    "thread and drawn coarse to fine; SH bands follow where they change the picture "
+                    "(format_spec/client.md). Without --headless a window opens with orbit and fly cameras and an "
+                    "overlay (H shows the controls).")
+    p.add_argument("source", help="http(s)://HOST/scenes/ID, a scene directory, or a splat file (.ply, .spz, ...)")
+    p.add_argument("--headless", action="store_true", help="no window: stream, then write what is asked for")
+    cam = p.add_argument_group("camera (default: the scene's suggested camera)")
+    cam.add_argument("--eye", help="camera position X,Y,Z")
+    cam.add_argument("--target", help="point looked at X,Y,Z")
+    cam.add_argument("--up", help="up vector X,Y,Z (default: the scene's)")
+    cam.add_argument("--fov-y", type=float, help="vertical field of view in degrees")
+    cam.add_argument("--size", default="1280x720", help="image (framebuffer) size WxH (default 1280x720)")
+    cam.add_argument("--camera-path", metavar="PATH.json",
+                     help="keyframes {time, eye, target[, up][, fov_y]} played on the wall clock")
+    s = p.add_argument_group("streaming")
+    s.add_argument("--gpu-mem-mb", type=float, default=1024.0, help="GPU memory for splat data (default 1024)")
+    s.add_argument("--max-splats", type=int, help="splats drawn at most (default: as the memory allows)")
+    s.add_argument("--max-sse", type=float, default=1.5,
+                   help="screen-space error in pixels under which a tile is not refined (default 1.5; 0: full detail)")
+    s.add_argument("--sh-degree", type=int, choices=[0, 1, 2, 3], help="SH bands fetched and drawn at most")
+    s.add_argument("--no-cache", action="store_true", help="do not use the disk cache of payloads")
+    s.add_argument("--no-prefetch", action="store_true", help="fetch only what the view needs now")
+    s.add_argument("--sort", default="auto", choices=["auto", "cpu", "gpu"], help="depth sort (as `render`)")
+    s.add_argument("--draw", default="auto", choices=DRAWS, help="GPU-path rasterizer (as `render`)")
+    h = p.add_argument_group("headless output")
+    h.add_argument("--until-converged", action="store_true",
+                   help="with --camera-path: keep going after the path ends until the view has converged")
+    h.add_argument("--timeout", type=float, default=120.0, metavar="S",
+                   help="give up after S seconds (exit 1; default 120)")
+    h.add_argument("--record", metavar="METRICS.json", help="write first-frame and convergence times, bytes and a "
+                   "per-frame series")
+    h.add_argument("--screenshot", metavar="FINAL.png", help="write the last frame")
+    h.add_argument("--frames-dir", metavar="DIR", help="write a PNG every --frame-every frames")
+    h.add_argument("--frame-every", type=int, default=10, metavar="N")
+    w = p.add_argument_group("window")
+    w.add_argument("--exit-when-converged", action="store_true",
+                   help="close the window once the view has converged (after --screenshot, if given)")
+    w.add_argument("--no-vsync", action="store_true", help="draw as fast as possible")
+    p.add_argument("--quiet", "-q", action="store_true", help="no progress line")
+    p.set_defaults(func=run)
+
+
+def _options(args):
+    from client_gl.gpu.renderer import RenderOptions
+    from client_gl.streaming import ViewOptions
+
+    if not (args.gpu_mem_mb > 0 and math.isfinite(args.gpu_mem_mb)):
+        raise UsageError(f"--gpu-mem-mb {args.gpu_mem_mb}: expected a positive number of megabytes")
+    if not (args.max_sse >= 0 and math.isfinite(args.max_sse)):
+        raise UsageError(f"--max-sse {args.max_sse}: expected 0 or more pixels")
+    if args.max_splats is not None and args.max_splats < 1:
+        raise UsageError(f"--max-splats {args.max_splats}: expected at least 1")
+    if not args.timeout > 0:
+        raise UsageError(f"--timeout {args.timeout}: expected a positive number of seconds")
+    if args.frame_every < 1:
+        raise UsageError(f"--frame-every {args.frame_every}: expected at least 1")
+    if args.fov_y is not None and not 0 < args.fov_y < 180:
+        raise UsageError(f"--fov-y {args.fov_y}: expected degrees in (0, 180)")
+    return ViewOptions(gpu_mem_mb=args.gpu_mem_mb, max_splats=args.max_splats, max_sse=args.max_sse,
+                       sh_degree=3 if args.sh_degree is None else args.sh_degree, prefetch=not args.no_prefetch,
+                       cache=not args.no_cache, render=RenderOptions(sort=args.sort, draw=args.draw))
+
+
+def _fixed_camera(args, size):
+    """A camera from --eye/--target (both needed), or None for the scene's suggested camera."""
+    from ..camera import DEFAULT_FOV_Y_DEG, Camera
+
+    if args.eye is None and args.target is None:
+        return None
+    if args.eye is None or args.target is None:
+        raise UsageError("--eye and --target go together (or give neither for the scene's camera)")
+    eye, target = parse_vector(args.eye, "--eye"), parse_vector(args.target, "--target")
+    up = parse_vector(args.up, "--up", nonzero=True) if args.up else (0.0, 0.0, 1.0)
+    dist = math.dist(eye, target)
+    try:
+        return Camera(eye, target, up, args.fov_y or DEFAULT_FOV_Y_DEG, size[0], size[1], min(0.01, 0.01 * dist),
+                      max(1000.0, 100 * dist))
+    except ValueError as exc:
+        raise UsageError(f"bad camera: {exc}") from None
+
+
+def _check_outputs(args) -> None:
+    from ..atomic import check_output
+
+    for out in (args.record, args.screenshot):
+        if out:
+            check_output(out)
+    if args.screenshot and os.path.splitext(args.screenshot)[1].lower() not in (".png", ""):
+        raise UsageError(f"--screenshot: only .png images are written, got {args.screenshot!r}")
+    if args.frames_dir:
+        if not os.path.isdir(args.frames_dir):
+            raise UsageError(f"--frames-dir {args.frames_dir}: no such directory")
+
+
+def run(args: argparse.Namespace) -> int:
+    from .renderers import gl_client
+
+    size = parse_size(args.size)
+    options = _options(args)
+    camera = _fixed_camera(args, size)
+    path = None
+    if args.camera_path:
+        from ..camera_path import load_camera_path
+
+        path = load_camera_path(args.camera_path)
+    _check_outputs(args)
+    headless = gl_client()
+    if not args.headless:
+        from client_gl.window import WindowRun, run_window
+
+        return run_window(WindowRun(args.source, options, size, camera, path, screenshot=args.screenshot,
+                                    exit_when_converged=args.exit_when_converged, vsync=not args.no_vsync,
+                                    timeout_s=args.timeout, quiet=args.quiet, sh_degree=args.sh_degree))
+    from client_gl.view_headless import HeadlessRun, run_headless
+
+    ctx = headless.create_context()
+    try:
+        code, report = run_headless(HeadlessRun(
+            args.source, options, size, camera, path, until_converged=args.until_converged or path is None,
+            timeout_s=args.timeout, record=args.record, screenshot=args.screenshot, frames_dir=args.frames_dir,
+            frame_every=args.frame_every, sh_degree=args.sh_degree, quiet=args.quiet), ctx)
+    finally:
+        ctx.release()
+    if not args.quiet:
+        ff = report["first_frame_s"]
+        conv = report["converged_s"]
+        print(f"view: first frame {ff:.3f} s, " if ff is not None else "view: no frame drawn, ", end="",
+              file=sys.stderr)
+        print(f"converged {conv:.3f} s, " if conv is not None else "not converged, ", end="", file=sys.stderr)
+        print(f"{report['bytes_downloaded'] / 1e6:.2f} MB downloaded, GPU {report['gpu_bytes_peak'] / 1e6:.1f} MB "
+              f"of {report['gpu_budget_bytes'] / 1e6:.1f} MB", file=sys.stderr)
+    return code
