@@ -31,15 +31,13 @@ from .decoder import decode_tile, read_codebook
 from .errors import FormatError, UsageError
 from .format.decode import decode_planes
 from .format.manifest import Manifest
+from .format.names import TILESET_CONTENT_DIR, TILESET_NAME, tileset_content_name
 from .gaussians import Gaussians, covariances, normalize_quaternions
 from .readers.gltf import sh_rotation
 from .readers.spz import decode_spz
 from .store import SceneStore, open_store, read_manifest
 from .writers.glb import DEFAULT_SPZ_VERSION, glb_bytes
 
-TILESET_NAME = "tileset.json"
-CONTENT_DIR = "tiles"
-CONTENT_SUFFIX = ".glb"
 CONTENT_KINDS = ("spz", "plain")
 SPZ_AXES = ("luf", "rub")
 # How SPZ content stores glTF's axes. "luf": the glTF values unconverted, which is what CesiumJS (1.145) reads:
@@ -288,7 +286,7 @@ def tile_content(g: Gaussians, options: ExportOptions) -> TileContent:
         lo, hi = np.minimum(lo, lo2), np.maximum(hi, hi2)
     else:
         lo, hi = extent_box(g)
-    name = f"{CONTENT_DIR}/{hashlib.sha256(data).hexdigest()}{CONTENT_SUFFIX}"
+    name = tileset_content_name(hashlib.sha256(data).hexdigest())
     return TileContent(name, data, lo, hi)
 
 
@@ -389,7 +387,7 @@ def export_tileset(scene: str | os.PathLike | SceneStore, out_dir: str | os.Path
     written: dict[str, int] = {}
     report = progress or (lambda stage, fraction: None)
     with atomic_directory(out) as tmp:
-        os.makedirs(os.path.join(tmp, CONTENT_DIR))
+        os.makedirs(os.path.join(tmp, TILESET_CONTENT_DIR))
         for done, tile in enumerate(manifest.tiles):
             g = decode_tile(store, manifest, tile, degree, codebook)
             if len(g) == 0:
@@ -407,9 +405,9 @@ def export_tileset(scene: str | os.PathLike | SceneStore, out_dir: str | os.Path
         data = json.dumps(tileset, separators=(",", ":")).encode("utf-8")
         with open(os.path.join(tmp, TILESET_NAME), "wb") as f:  # last: a tileset directory is complete with it
             f.write(data)
-        for name in os.listdir(os.path.join(tmp, CONTENT_DIR)):
-            os.chmod(os.path.join(tmp, CONTENT_DIR, name), 0o644)
-        os.chmod(os.path.join(tmp, CONTENT_DIR), 0o755)
+        for name in os.listdir(os.path.join(tmp, TILESET_CONTENT_DIR)):
+            os.chmod(os.path.join(tmp, TILESET_CONTENT_DIR, name), 0o644)
+        os.chmod(os.path.join(tmp, TILESET_CONTENT_DIR), 0o755)
         os.chmod(os.path.join(tmp, TILESET_NAME), 0o644)
     return ExportReport(tiles=len(manifest.tiles), files=len(written), content_bytes=sum(written.values()),
                         tileset_bytes=len(data), splats=manifest.splats, transform=tileset["root"]["transform"])
