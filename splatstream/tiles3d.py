@@ -7,11 +7,12 @@ units, taken as metres) and bounding boxes from our 3-sigma boxes. Each tile's c
 (frames, boxes, the tileset map) are what the tests pin down; `export_tileset` wires them to a scene store and an
 output directory written atomically.
 
-Frames (format_spec/tiles3d.md 2): our scene's model axes (RDF, with the manifest's `up`) -> the tileset's local
-frame L (x east, y north, z up: the scene's up turned onto +z by the shortest rotation) -> the glTF content, which
-is y-up: 3D Tiles runtimes turn glTF content into the tile's z-up frame with the fixed rotation Y_UP_TO_Z_UP, so
-the content holds `Y_UP_TO_Z_UP^-1 L`. The root tile's transform takes L to the Earth-fixed frame (ECEF): an
-east-north-up frame at a longitude, latitude and height, turned by a heading.
+Frames (format_spec/tiles3d.md 2): our scene's model axes (RDF, with the manifest's `up`); the tileset's local frame
+L (x east, y north, z up: the scene's up turned onto +z by the shortest rotation); the glTF content, which is
+y-up: 3D Tiles runtimes turn glTF content into the tile's z-up frame F with the fixed rotation Y_UP_TO_Z_UP. The
+splats themselves only get a sign turn (exact, and what CesiumJS draws correctly); the rotation from F to L, the
+anchor, the heading and the east-north-up frame at a longitude, latitude and height make the root tile's
+transform (F -> ECEF).
 """
 from __future__ import annotations
 
@@ -95,14 +96,33 @@ def model_to_local(up: tuple[float, float, float]) -> np.ndarray:
     return up_to_z(up)
 
 
-def content_rotation(up: tuple[float, float, float]) -> np.ndarray:
-    """(3, 3) rotation A applied to a tile's splats (model axes) before the glTF writer's own RDF -> LUF turn, so
-    that the content, once a runtime applies Y_UP_TO_Z_UP, lies in L: Y_UP_TO_Z_UP @ MODEL_TO_GLTF @ A = L.
+# The sign turns (180 degrees about a model axis, or none) the content may get: exact for every attribute (SH
+# coefficients only change sign), unlike a general rotation.
+_TURNS = [np.eye(3), np.diag([-1.0, 1.0, -1.0]), np.diag([1.0, -1.0, -1.0]), np.diag([-1.0, -1.0, 1.0])]
 
-    For up = -y, A is diag(-1, 1, -1) (180 degrees about y: no SH rotation needed, the content is the scene in
-    RUB axes: y up, the cameras' side facing +z, glTF's front)."""
-    a = MODEL_TO_GLTF.T @ Y_UP_TO_Z_UP.T @ model_to_local(up)
-    return np.where(np.abs(a) < 1e-15, 0.0, a)
+
+def content_rotation(up: tuple[float, float, float]) -> np.ndarray:
+    """(3, 3) sign turn A applied to a tile's splats (model axes) before the glTF writer's own RDF -> LUF turn: the
+    one that brings the content closest to L once a runtime applies Y_UP_TO_Z_UP (exactly for up = +-y: the
+    content is then y-up; for up = -y, A = diag(-1, 1, -1), the scene in RUB axes, its cameras' side facing +z,
+    glTF's front). What is left (`residual_rotation`) goes into the root tile's transform, never into the splats:
+    CesiumJS 1.145 draws SPZ content whose splat rotations were composed with a rotation other than a sign turn
+    with wrongly oriented splats (format_spec/tiles3d.md 2), while it applies tile transforms correctly."""
+    target = model_to_local(up)
+    best = max(_TURNS, key=lambda a: float(np.trace(target.T @ Y_UP_TO_Z_UP @ MODEL_TO_GLTF @ a)))
+    return best.copy()
+
+
+def tile_frame(up: tuple[float, float, float]) -> np.ndarray:
+    """(3, 3) rotation from model axes to the frame F in which a runtime holds the content after Y_UP_TO_Z_UP:
+    the frame of the tileset's bounding volumes, below the root transform."""
+    return Y_UP_TO_Z_UP @ MODEL_TO_GLTF @ content_rotation(up)
+
+
+def residual_rotation(up: tuple[float, float, float]) -> np.ndarray:
+    """(3, 3) rotation from F to L, part of the root transform (identity for up = -y)."""
+    r = model_to_local(up) @ tile_frame(up).T
+    return np.where(np.abs(r) < 1e-15, 0.0, r)
 
 
 def _signed_diagonal(r: np.ndarray) -> tuple[float, float, float] | None:
@@ -193,13 +213,24 @@ class Placement:
             raise UsageError(f"--anchor: expected one of {', '.join(ANCHORS)}, got {self.anchor!r}")
 
 
-def root_transform(placement: Placement, anchor_local: np.ndarray) -> np.ndarray:
-    """(4, 4) matrix from L to ECEF: ENU frame at the placement, heading, then `anchor_local` (a point of L) moved
-    to the frame's origin."""
+def root_transform(placement: Placement, anchor_local: np.ndarray, residual: np.ndarray | None = None) -> np.ndarray:
+    """(4, 4) matrix from F (or L when `residual` is None) to ECEF: `residual` (F -> L), `anchor_local` (a point
+    of L) moved to the origin, the heading, the ENU frame at the placement."""
     shift = np.eye(4)
     shift[:3, 3] = -np.asarray(anchor_local, np.float64)
+    turn_to_local = np.eye(4)
+    if residual is not None:
+        turn_to_local[:3, :3] = residual
     return enu_frame(placement.longitude, placement.latitude, placement.height) @ heading_rotation(
-        placement.heading) @ shift
+        placement.heading) @ shift @ turn_to_local
+
+
+def model_to_fixed(tileset: dict, up: tuple[float, float, float]) -> np.ndarray:
+    """(4, 4) matrix from a scene's model coordinates to ECEF for a tileset exported from it (the root transform
+    after the model -> F rotation): puts a camera of ours into a 3D Tiles viewer's world."""
+    m = np.eye(4)
+    m[:3, :3] = tile_frame(up)
+    return np.asarray(tileset["root"]["transform"], np.float64).reshape(4, 4).T @ m
 
 
 def column_major(m: np.ndarray) -> list[float]:
@@ -311,19 +342,20 @@ def build_tileset(manifest: Manifest, uris: dict[int, str], boxes: dict[int, tup
                   options: ExportOptions, generator: str = "splatstream") -> dict:
     """The tileset.json map. `boxes` are in the content's splat axes (`content_rotation` applied); `uris` name
     each tile's content file."""
-    to_local = Y_UP_TO_Z_UP @ MODEL_TO_GLTF  # content splat axes -> L (content_rotation already applied)
-    local = {tid: rotated_box(lo, hi, to_local) for tid, (lo, hi) in boxes.items()}
-    root_lo, root_hi = local[manifest.root]
+    to_frame = Y_UP_TO_Z_UP @ MODEL_TO_GLTF  # content splat axes -> F (content_rotation already applied)
+    framed = {tid: rotated_box(lo, hi, to_frame) for tid, (lo, hi) in boxes.items()}  # a signed permutation: exact
+    residual = residual_rotation(manifest.up)
+    root_lo, root_hi = rotated_box(*framed[manifest.root], residual)  # the root's box in L
     placement = options.placement
     if placement.anchor == "origin":
         anchor = np.zeros(3)
     else:
         anchor = np.array([(root_lo[0] + root_hi[0]) / 2, (root_lo[1] + root_hi[1]) / 2, root_lo[2]])
-    transform = root_transform(placement, anchor)
+    transform = root_transform(placement, anchor, residual)
 
     def tile_json(tile_id: int) -> dict:
         t = manifest.tile(tile_id)
-        d: dict = {"boundingVolume": {"box": box_volume(*local[tile_id])},
+        d: dict = {"boundingVolume": {"box": box_volume(*framed[tile_id])},
                    "geometricError": float(t.geometric_error), "refine": "REPLACE",
                    "content": {"uri": uris[tile_id]}}
         if t.children:
@@ -334,7 +366,7 @@ def build_tileset(manifest: Manifest, uris: dict[int, str], boxes: dict[int, tup
     root["transform"] = column_major(transform)
     # The tileset's error is the error of drawing nothing: at least the scene's size (its box diagonal), so a
     # runtime draws the root as soon as the scene covers a pixel or so, never less than the root's own error.
-    diagonal = float(np.linalg.norm(root_hi - root_lo))
+    diagonal = float(np.linalg.norm(framed[manifest.root][1] - framed[manifest.root][0]))
     used = [EXTENSION] + ([SPZ_EXTENSION] if options.content == "spz" else [])
     return {
         "asset": {

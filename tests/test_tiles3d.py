@@ -31,8 +31,11 @@ from splatstream.tiles3d import (
     extent_box,
     geodetic_to_ecef,
     heading_rotation,
+    model_to_fixed,
     model_to_local,
+    residual_rotation,
     rotate_gaussians,
+    tile_frame,
     up_to_z,
 )
 
@@ -69,12 +72,18 @@ def test_up_to_z_for_the_conventions_and_any_direction():
         assert np.allclose(r @ (np.asarray(up) / np.linalg.norm(up)), [0, 0, 1], atol=1e-8)
 
 
-def test_content_rotation_lands_glTF_content_in_the_local_frame():
+def test_content_gets_a_sign_turn_and_the_root_transform_the_rest():
     """What a 3D Tiles runtime does to glTF content (Y_UP_TO_Z_UP) after our writer's RDF -> LUF turn, applied to
-    the rotated splats, is the model -> local frame rotation; for y-down scenes the rotation is a sign turn."""
+    the turned splats, is the frame F; the residual rotation (in the root transform) takes F to L. For y-down
+    scenes the content is exactly L (no residual)."""
     assert np.array_equal(content_rotation((0, -1, 0)), np.diag([-1.0, 1.0, -1.0]))
-    for up in [(0, -1, 0), (0, 0, 1), (0.3, -0.9, 0.2), (0, 1, 0)]:
-        assert np.allclose(Y_UP_TO_Z_UP @ MODEL_TO_GLTF @ content_rotation(up), model_to_local(up), atol=1e-12)
+    assert np.array_equal(residual_rotation((0, -1, 0)), np.eye(3))
+    assert np.array_equal(residual_rotation((0, 1, 0)), np.eye(3))
+    for up in [(0, -1, 0), (0, 0, 1), (0.3, -0.9, 0.2), (0, 1, 0), (1, 0, 0)]:
+        a = content_rotation(up)
+        assert np.array_equal(np.abs(a), np.eye(3)) and np.linalg.det(a) == 1.0  # a sign turn: exact
+        assert np.allclose(Y_UP_TO_Z_UP @ MODEL_TO_GLTF @ a, tile_frame(up))
+        assert np.allclose(residual_rotation(up) @ tile_frame(up), model_to_local(up), atol=1e-12)
     # CesiumJS's Axis.Y_UP_TO_Z_UP is a rotation of +90 degrees about x: glTF's up (+y) becomes +z.
     assert np.array_equal(Y_UP_TO_Z_UP @ [0, 1, 0], [0, 0, 1]) and np.array_equal(Y_UP_TO_Z_UP @ [0, 0, 1], [0, -1, 0])
 
@@ -172,7 +181,6 @@ def test_export_real_scene_tree_boxes_errors_and_content(scenes, tmp_path, which
     # Our tree, in our (breadth-first) order of children, with our errors; the tileset's error covers the scene.
     by_uri = {}
     leaf_splats = 0
-    l_frame = model_to_local(manifest.up)
     for (tile, parent), entry in zip(tiles, sorted(manifest.tiles, key=lambda t: _preorder(manifest)[t.id]),
                                      strict=True):
         assert tile["refine"] == "REPLACE"
@@ -188,17 +196,18 @@ def test_export_real_scene_tree_boxes_errors_and_content(scenes, tmp_path, which
         by_uri[uri] = data
         content = read_gltf(out / uri, spz_axes="luf")  # in the content's splat axes (A @ model)
         assert len(content) == entry.splats
-        # The box (in L) holds every 3-sigma extent of what the content holds.
+        # The box (in F, below the root transform) holds every 3-sigma extent of what the content holds.
         lo, hi = extent_box(content)
-        to_local = Y_UP_TO_Z_UP @ MODEL_TO_GLTF
+        to_frame = Y_UP_TO_Z_UP @ MODEL_TO_GLTF
         corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
         blo, bhi = box_bounds(tile["boundingVolume"]["box"])
-        local = corners @ to_local.T
-        assert (local.min(axis=0) >= blo - 1e-9).all() and (local.max(axis=0) <= bhi + 1e-9).all()
-        # And the manifest's box, turned into L, too (our 3-sigma boxes are the starting point).
+        framed = corners @ to_frame.T
+        assert (framed.min(axis=0) >= blo - 1e-9).all() and (framed.max(axis=0) <= bhi + 1e-9).all()
+        # And the manifest's box, turned into F, too (our 3-sigma boxes are the starting point).
         mlo, mhi = np.asarray(entry.box.min), np.asarray(entry.box.max)
         mc = np.array([[x, y, z] for x in (mlo[0], mhi[0]) for y in (mlo[1], mhi[1]) for z in (mlo[2], mhi[2])])
-        assert ((mc @ l_frame.T).min(axis=0) >= blo - 1e-9).all()
+        f = tile_frame(manifest.up)
+        assert ((mc @ f.T).min(axis=0) >= blo - 1e-9).all() and ((mc @ f.T).max(axis=0) <= bhi + 1e-9).all()
         if entry.is_leaf:
             leaf_splats += len(content)
         # The content is the tile's splats turned by A, in order, on SPZ's 12-bit position grid (half a step).
@@ -211,10 +220,15 @@ def test_export_real_scene_tree_boxes_errors_and_content(scenes, tmp_path, which
     assert tileset["geometricError"] >= tileset["root"]["geometricError"]
     # Default placement: the bottom centre of the scene's box on the ellipsoid at longitude 0, latitude 0.
     m = local_to_fixed(tileset)
-    bottom = np.array([(root_lo[0] + root_hi[0]) / 2, (root_lo[1] + root_hi[1]) / 2, root_lo[2], 1.0])
-    assert np.allclose(m @ bottom, [WGS84_A, 0, 0, 1], atol=1e-6)
-    # The scene's up is the Earth's up there (+x at longitude 0, latitude 0).
-    assert np.allclose(m[:3, :3] @ l_frame @ np.asarray(manifest.up), [1, 0, 0], atol=1e-12)
+    residual = residual_rotation(manifest.up)
+    llo, lhi = (np.minimum(residual @ root_lo, residual @ root_hi), np.maximum(residual @ root_lo, residual @ root_hi))
+    bottom_local = np.array([(llo[0] + lhi[0]) / 2, (llo[1] + lhi[1]) / 2, llo[2]])
+    assert np.allclose(m @ [*(residual.T @ bottom_local), 1.0], [WGS84_A, 0, 0, 1], atol=1e-6)
+    # The scene's up is the Earth's up there (+x at longitude 0, latitude 0); its model axes reach ECEF through
+    # model_to_fixed.
+    fixed = model_to_fixed(tileset, manifest.up)
+    assert np.allclose(fixed[:3, :3] @ np.asarray(manifest.up), [1, 0, 0], atol=1e-12)
+    assert np.allclose(fixed[:3, :3], m[:3, :3] @ tile_frame(manifest.up))
 
 
 def _preorder(manifest) -> dict[int, int]:
@@ -251,13 +265,13 @@ def test_georeferenced_placement_puts_the_origin_at_the_position(scenes, tmp_pat
                 "--height", "400", "--heading", "30", "--quiet")
     assert r.returncode == 0, r.stderr
     tileset = json.loads((tmp_path / "geo" / "tileset.json").read_text())
-    m = local_to_fixed(tileset)
+    up = load_manifest(scene).up
+    m = model_to_fixed(tileset, up)
     assert np.allclose(m[:3, 3], geodetic_to_ecef(8.54, 47.37, 400.0), atol=1e-6)  # anchor origin
     enu = enu_frame(8.54, 47.37, 400.0)
-    up = load_manifest(scene).up
-    assert np.allclose(m[:3, :3] @ model_to_local(up) @ up, enu[:3, 2], atol=1e-12)
-    # Heading 30: the scene's local north points 30 degrees east of north.
-    north = m[:3, :3] @ [0, 1, 0]
+    assert np.allclose(m[:3, :3] @ up, enu[:3, 2], atol=1e-12)
+    # Heading 30: the scene's local north (L's +y) points 30 degrees east of north.
+    north = m[:3, :3] @ model_to_local(up).T @ [0, 1, 0]
     assert math.isclose(math.degrees(math.atan2(north @ enu[:3, 0], north @ enu[:3, 1])), 30.0, abs_tol=1e-9)
     assert tileset["asset"]["extras"]["splatstream"]["georeferenced"] is True
 
