@@ -341,37 +341,43 @@ def test_tile_content_passes_the_khronos_gltf_validator(scenes, tmp_path, conten
         assert {m["code"] for m in report["issues"]["messages"] if m["severity"] == 1} == set()  # no warnings
 
 
-def tiles_validator() -> str:
+def tiles_validator() -> list[str]:
     tool = os.environ.get("TILES_VALIDATOR") or str(NODE_MODULES / ".bin" / "3d-tiles-validator")
     if shutil.which("node") is None or not (shutil.which(tool) or os.path.isfile(tool)):
         pytest.skip("the official 3d-tiles-validator is not installed (the npm registry reachable here answers 404 "
                     "for it; set TILES_VALIDATOR to a built copy, format_spec/tiles3d.md 6)")
-    return tool
+    return ["node", tool] if tool.endswith(".js") else [tool]
 
 
-def test_tileset_passes_the_official_3d_tiles_validator(scenes, tmp_path):
+@pytest.mark.parametrize("content", ["spz", "plain"])
+def test_tileset_passes_the_official_3d_tiles_validator(scenes, tmp_path, content):
+    """No issue at all but the embedded glTF validator's reports of KHR_gaussian_splatting attributes (it does not
+    know the extension, as in real_gltf_errors). Checked with 3d-tiles-validator 0.6.1 built from its sources."""
     tool = tiles_validator()
     out = tmp_path / "ts"
-    export_tileset(scenes["donut"], out, ExportOptions())
+    export_tileset(scenes["donut"], out, ExportOptions(content=content))
     report = tmp_path / "report.json"
-    r = subprocess.run([tool, "--tilesetFile", str(out / "tileset.json"), "--reportFile", str(report)],
-                       capture_output=True, text=True, timeout=600)
+    r = subprocess.run([*tool, "--tilesetFile", str(out / "tileset.json"), "--reportFile", str(report)],
+                       capture_output=True, text=True, timeout=600, stdin=subprocess.DEVNULL)
     issues = json.loads(report.read_text())
-    errors = [i for i in _flatten(issues.get("issues", [])) if i.get("severity") == "ERROR"
-              and not _gltf_extension_attribute(i)]
-    assert errors == [], json.dumps(issues, indent=1)[:4000]
-    assert r.returncode in (0, 1)
+    assert issues["numWarnings"] == 0, json.dumps(issues, indent=1)[:4000]
+    unexpected = [i for i in issues.get("issues", []) if not _only_extension_attributes(i)]
+    assert unexpected == [], json.dumps(unexpected, indent=1)[:4000]
+    assert issues["numErrors"] == len(issues.get("issues", [])), r.stdout[-2000:]
 
 
-def _flatten(issues: list[dict]):
-    for issue in issues:
+def _leaves(issue: dict):
+    causes = issue.get("causes") or []
+    if not causes:
         yield issue
-        yield from _flatten(issue.get("causes", []))
+    for cause in causes:
+        yield from _leaves(cause)
 
 
-def _gltf_extension_attribute(issue: dict) -> bool:
-    """The embedded glTF validator's reports of KHR_gaussian_splatting attributes (see real_gltf_errors)."""
-    text = json.dumps(issue)
-    return issue.get("type") == "CONTENT_VALIDATION_ERROR" and "KHR_gaussian_splatting:" in text and all(
-        c.get("type") in ("MESH_PRIMITIVE_INVALID_ATTRIBUTE", "CONTENT_VALIDATION_ERROR")
-        for c in _flatten(issue.get("causes", [])))
+def _only_extension_attributes(issue: dict) -> bool:
+    """A tile content's report whose only errors are 'Invalid attribute name.' for KHR_gaussian_splatting:*
+    attributes (the rest informational: unsupported extension, an SPZ buffer view no accessor uses)."""
+    errors = [c for c in _leaves(issue) if c.get("severity") != "INFO"]
+    return issue.get("type") == "CONTENT_VALIDATION_ERROR" and bool(errors) and all(
+        c.get("message") == "Invalid attribute name." and "/attributes/KHR_gaussian_splatting:" in c.get("path", "")
+        for c in errors)
