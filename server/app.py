@@ -15,10 +15,12 @@ from aiohttp import web
 from aiohttp.abc import AbstractAccessLogger
 
 from . import http as h
+from . import tilesets
 from .limits import RETRY_AFTER_SECONDS, ConnectionGuard, Limits
 from .paths import PathRejected, parse_scene_path
 from .scenes import Forbidden, NotFound, OpenedFile, OutOfResources, SceneRoot
 from .throttle import Link
+from .tilesets import TilesetPath, open_tileset_file, parse_tileset_path
 
 log = logging.getLogger("splatstream.server")
 
@@ -193,11 +195,21 @@ def file_response(request: web.Request, opened: OpenedFile, content_type: str, c
 
 # -- handlers ------------------------------------------------------------------------------------------------------
 async def scene_file(request: web.Request) -> web.StreamResponse:
+    tp = parse_tileset_path(request.rel_url.raw_path)  # exported 3D Tiles (server/tilesets.py)
+    if tp is not None:
+        return tileset_file(request, tp)
     sp = parse_scene_path(request.rel_url.raw_path)
     opened = request.app[SCENE_ROOT].open(sp)
     if sp.kind == "payload":
         return file_response(request, opened, h.PAYLOAD_TYPE, h.CACHE_IMMUTABLE)
     return file_response(request, opened, h.MANIFEST_TYPE, h.CACHE_REVALIDATE)
+
+
+def tileset_file(request: web.Request, tp: TilesetPath) -> web.StreamResponse:
+    opened = open_tileset_file(request.app[SCENE_ROOT], tp)
+    if tp.kind == "content":
+        return file_response(request, opened, tilesets.CONTENT_TYPE, h.CACHE_IMMUTABLE)
+    return file_response(request, opened, tilesets.TILESET_TYPE, h.CACHE_REVALIDATE)
 
 
 async def list_scenes(request: web.Request) -> web.Response:

@@ -18,6 +18,7 @@ from .app import SHUTDOWN_TIMEOUT, AccessLog, create_app, create_runner, start_s
 from .limits import FdLimitTooLow, Limits, accept_error_handler, fit_to_fd_limit
 from .scenes import SceneRoot
 from .throttle import Link
+from .tilesets import find_tilesets
 
 EXIT_OK = 0
 EXIT_ERROR = 1  # a worker died, the server failed
@@ -47,13 +48,15 @@ def check_root(root: str) -> list[str]:
     if not os.path.isdir(root):
         raise ServeError(f"{root}: not a directory", EXIT_BAD_ROOT)
     ids = [sid for sid, _ in SceneRoot(root).scan()]
-    if not ids:
+    if not ids and not find_tilesets(root):
         hint = ""
         if os.path.isfile(os.path.join(root, MANIFEST_NAME)):
             hint = (f"; {root} is itself a scene directory: serve its parent and open it as "
                     f"/scenes/{os.path.basename(os.path.abspath(root))}/{MANIFEST_NAME}")
-        raise ServeError(f"{root}: holds no scene (a scene is a directory with {MANIFEST_NAME}){hint}",
-                         EXIT_BAD_ROOT)
+        elif os.path.isfile(os.path.join(root, "tileset.json")):
+            hint = f"; {root} is itself a tileset directory: serve its parent"
+        raise ServeError(f"{root}: holds no scene (a scene is a directory with {MANIFEST_NAME}) and no tileset "
+                         f"(a directory with tileset.json){hint}", EXIT_BAD_ROOT)
     return ids
 
 

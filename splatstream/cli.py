@@ -11,7 +11,7 @@ import warnings
 from . import __version__
 from .errors import SplatstreamError
 
-COMMANDS = ["encode", "decode", "info", "convert", "render", "view", "eval", "serve"]
+COMMANDS = ["encode", "decode", "info", "convert", "render", "view", "eval", "serve", "export-3dtiles"]
 
 # Exit codes (README "Exit codes"): 0 success, 2 bad input or usage (the user can fix it: a file, an argument, a
 # path, a port), 1 a failure inside splatstream or the machine (a bug, out of memory, a disk error), 130 Ctrl-C.
@@ -37,9 +37,9 @@ def build_parser() -> argparse.ArgumentParser:
     sub.required = True
     for name in COMMANDS:
         try:
-            module = importlib.import_module(f".commands.{name}", __package__)
+            module = importlib.import_module(f".commands.{name.replace('-', '_')}", __package__)
         except ModuleNotFoundError as exc:
-            if exc.name == f"{__package__}.commands.{name}":
+            if exc.name == f"{__package__}.commands.{name.replace('-', '_')}":
                 continue
             raise
         module.register(sub)

@@ -43,3 +43,16 @@ def manifest_url(base_url: str) -> str:
 def payload_url(manifest_url_: str, rel: str) -> str:
     """A payload's URL: its manifest path resolved against the manifest's URL (format_spec/http.md 2)."""
     return manifest_url_.rsplit("/", 1)[0] + "/" + rel
+
+
+# An exported 3D Tiles tileset (format_spec/tiles3d.md, format_spec/http.md 14): `tileset.json` plus one glTF
+# binary per tile, named by the SHA-256 of its bytes (immutable like payloads).
+TILESET_NAME = "tileset.json"
+TILESET_CONTENT_DIR = "tiles"
+TILESET_CONTENT_SUFFIX = ".glb"
+TILESET_CONTENT_NAME_RE = re.compile(r"^[0-9a-f]{64}\.glb$")
+
+
+def tileset_content_name(sha256_hex_: str) -> str:
+    """Relative path of a tile's content file in a tileset directory."""
+    return f"{TILESET_CONTENT_DIR}/{sha256_hex_}{TILESET_CONTENT_SUFFIX}"

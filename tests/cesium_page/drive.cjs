@@ -1,0 +1,51 @@
+// Headless Chromium (Debian's, software WebGL) opens the page at argv[2], waits for window.splatResult and
+// writes a screenshot of the page to argv[3]; prints the result as JSON. Every request that does not go to a
+// loopback address is refused, so nothing leaves the machine. Run with NODE_PATH pointing at .ci/node/node_modules.
+"use strict";
+const fs = require("fs");
+const os = require("os");
+const path = require("path");
+const { chromium } = require("playwright-core");
+
+async function main() {
+  const [url, out, size = "640x480", executable = "/usr/bin/chromium"] = process.argv.slice(2);
+  const [width, height] = size.split("x").map(Number);
+  const profile = fs.mkdtempSync(path.join(os.tmpdir(), "splat-chromium-"));
+  const logs = [];
+  let context;
+  try {
+    context = await chromium.launchPersistentContext(profile, {
+      executablePath: executable, headless: true, viewport: { width, height }, deviceScaleFactor: 1,
+      args: ["--no-sandbox", "--disable-gpu", "--use-angle=swiftshader", "--enable-unsafe-swiftshader",
+             "--disable-background-networking", "--disable-component-update", "--no-first-run",
+             "--disable-default-apps", "--disable-sync", "--mute-audio"],
+    });
+    const page = context.pages()[0] || await context.newPage();
+    await page.route("**/*", (route) => {
+      const host = new URL(route.request().url()).hostname;
+      if (host === "127.0.0.1" || host === "localhost" || host === "[::1]") return route.continue();
+      logs.push(`refused ${route.request().url()}`);
+      return route.abort();
+    });
+    page.on("console", (m) => logs.push(`console.${m.type()}: ${m.text()}`));
+    page.on("pageerror", (e) => logs.push(`pageerror: ${e}`));
+    await page.goto(url, { waitUntil: "load", timeout: 60000 });
+    await page.waitForFunction(() => window.splatResult !== undefined, null, { timeout: 240000, polling: 250 });
+    const result = await page.evaluate(() => window.splatResult);
+    await page.screenshot({ path: out });
+    const gl = await page.evaluate(() => {
+      const c = document.createElement("canvas").getContext("webgl2");
+      const ext = c && c.getExtension("WEBGL_debug_renderer_info");
+      return c ? String(ext ? c.getParameter(ext.UNMASKED_RENDERER_WEBGL) : c.getParameter(c.RENDERER)) : "none";
+    });
+    console.log(JSON.stringify({ result, gl, logs }));
+  } catch (e) {
+    console.log(JSON.stringify({ result: { status: "driver-error", error: String(e) }, logs }));
+    process.exitCode = 1;
+  } finally {
+    if (context) await context.close();
+    fs.rmSync(profile, { recursive: true, force: true });
+  }
+}
+
+main();
