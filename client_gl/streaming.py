@@ -101,50 +101,91 @@ class StreamMetrics:
         return out
 
 
-class StreamingSession:
-    def __init__(self, source: SceneSource, ctx, options: ViewOptions = ViewOptions(), fetcher: Fetcher | None = None,
-                 start: float | None = None):
-        self.options = options
-        self.ctx = ctx
-        self.source = source
-        start = time.perf_counter() if start is None else start
+@dataclass
+class PreparedSource:
+    """The GL-free first half of a session: the source opened (a splat file encoded), the fetcher running and the
+    manifest fetched and validated. A window prepares it on a worker thread, so it never freezes meanwhile."""
+
+    source: SceneSource
+    fetcher: Fetcher
+    manifest: Manifest
+    start: float  # perf_counter when the manifest request started
+
+    @classmethod
+    def open(cls, spec: str | os.PathLike | SceneSource, options: ViewOptions = ViewOptions(),
+             progress: Progress | None = None) -> PreparedSource:
+        start = time.perf_counter()
+        source = spec if isinstance(spec, SceneSource) else open_source(spec, progress=progress)
         cache = None
         if options.cache and getattr(source, "cache_key", None):
             cache = DiskCache(options.cache_dir)
-        self.fetcher = fetcher or Fetcher(source, cache=cache, max_in_flight=options.max_in_flight,
-                                          request_timeout_s=options.request_timeout_s,
-                                          stall_timeout_s=options.stall_timeout_s)
-        self.fetcher.start()
+        fetcher = Fetcher(source, cache=cache, max_in_flight=options.max_in_flight,
+                          request_timeout_s=options.request_timeout_s, stall_timeout_s=options.stall_timeout_s)
+        fetcher.start()
         try:
-            self.manifest: Manifest = parse_manifest(self.fetcher.manifest(), f"{source.location}")
-            m = self.manifest
-            degree = min(options.sh_degree, m.sh_degree)
-            codebook = CodebookLayout(m.sh_codebook.format, m.sh_codebook.entries) if m.sh_codebook else None
-            budget = int(options.gpu_mem_mb * (1 << 20))
-            self.with_mirror = resolve_sort(ctx, options.render) == "cpu"
-            self.pool = ChunkPool.for_budget(ctx, budget, m.formats, degree, codebook=codebook,
-                                             host_mirror=self.with_mirror)
-            self.renderer = SplatRenderer(ctx, self.pool, options.render)
-            layout: PoolLayout = self.pool.layout
-            stream_opts = StreamOptions(selection=replace(options.selection(), sh_degree=degree),
-                                        upload_bytes_per_frame=options.upload_bytes_per_frame,
-                                        prefetch=options.prefetch)
-            self.engine = StreamEngine(self.fetcher, self.pool, stream_opts, slot_bytes=layout.slot_bytes(),
-                                       manifest=m, with_mirror=self.with_mirror, location=source.location)
+            manifest = parse_manifest(fetcher.manifest(), f"{source.location}")
+        except BaseException:
+            fetcher.close()
+            raise
+        return cls(source, fetcher, manifest, start)
+
+
+class StreamingSession:
+    def __init__(self, prepared: PreparedSource, ctx, options: ViewOptions = ViewOptions()):
+        self.options = options
+        self.ctx = ctx
+        self.source = prepared.source
+        self.fetcher = prepared.fetcher
+        self.manifest: Manifest = prepared.manifest
+        try:
+            self._build(ctx, options)
         except BaseException:
             self.fetcher.close()
             raise
-        self.metrics = StreamMetrics(start, budget)
+        self.metrics = StreamMetrics(prepared.start, self.budget)
         self.last: FrameUpdate | None = None
         self.last_stats: FrameStats | None = None
         self.paused = False
+
+    def _build(self, ctx, options: ViewOptions) -> None:
+        """The GPU pool, the renderer and the engine for these options (again when the budget changes)."""
+        m = self.manifest
+        degree = min(options.sh_degree, m.sh_degree)
+        codebook = CodebookLayout(m.sh_codebook.format, m.sh_codebook.entries) if m.sh_codebook else None
+        self.budget = int(options.gpu_mem_mb * (1 << 20))
+        self.with_mirror = resolve_sort(ctx, options.render) == "cpu"
+        self.pool = ChunkPool.for_budget(ctx, self.budget, m.formats, degree, codebook=codebook,
+                                         host_mirror=self.with_mirror)
+        self.renderer = SplatRenderer(ctx, self.pool, options.render)
+        layout: PoolLayout = self.pool.layout
+        stream_opts = StreamOptions(selection=replace(options.selection(), sh_degree=degree),
+                                    upload_bytes_per_frame=options.upload_bytes_per_frame, prefetch=options.prefetch)
+        self.engine = StreamEngine(self.fetcher, self.pool, stream_opts, slot_bytes=layout.slot_bytes(),
+                                   manifest=m, with_mirror=self.with_mirror, location=self.source.location)
 
     @classmethod
     def open(cls, spec: str | os.PathLike, ctx, options: ViewOptions = ViewOptions(),
              progress: Progress | None = None) -> StreamingSession:
         """A session for a URL, a scene directory or a splat file (encoded in memory, with progress)."""
-        start = time.perf_counter()
-        return cls(open_source(spec, progress=progress), ctx, options, start=start)
+        return cls(PreparedSource.open(spec, options, progress), ctx, options)
+
+    def reconfigure(self, options: ViewOptions) -> None:
+        """New streaming options: the selection's change at once; a new GPU budget, SH degree or draw path builds
+        a new pool (what was resident is fetched again, from the disk cache for HTTP scenes)."""
+        rebuild = (options.gpu_mem_mb != self.options.gpu_mem_mb or options.sh_degree != self.options.sh_degree
+                   or options.render != self.options.render)
+        self.options = options
+        if rebuild:
+            self.engine.close()
+            self.renderer.release()
+            self.pool.release()
+            self._build(self.ctx, options)
+            self.metrics.gpu_budget_bytes = self.budget
+        else:
+            degree = min(options.sh_degree, self.manifest.sh_degree)
+            self.engine.options = replace(self.engine.options,
+                                          selection=replace(options.selection(), sh_degree=degree),
+                                          prefetch=options.prefetch)
 
     # --- the frame ----------------------------------------------------------------------------------------------
     def frame(self, cam: Camera, sh_degree: int | None = None, clear: bool = True,

@@ -1,0 +1,465 @@
+"""`splatstream view SOURCE`: the interactive viewer. A window (moderngl-window, GLFW backend), the same
+StreamingSession as `view --headless`, orbit and fly cameras (camera_control.py) and a Dear ImGui overlay.
+
+The window opens at once; the source is opened and the manifest fetched on a worker thread (a splat file is
+encoded there), so the window keeps drawing (a progress line) until the scene can stream. Splats are drawn into
+the renderer's own framebuffer at the window's framebuffer size (HiDPI: physical pixels), copied to the window,
+and the overlay is drawn over the copy only: a screenshot (P) is the renderer's framebuffer, full resolution,
+without the overlay.
+"""
+from __future__ import annotations
+
+import json
+import os
+import sys
+import threading
+import time
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from splatstream.camera import Camera
+from splatstream.camera_path import CameraPath
+from splatstream.errors import SplatstreamError, UsageError
+
+from .camera_control import CameraController, state_from_camera
+from .streaming import PreparedSource, StreamingSession, ViewOptions
+
+EXIT_OK = 0
+EXIT_NOT_CONVERGED = 1
+LEVEL_COLOURS = [(1.0, 0.35, 0.3), (1.0, 0.75, 0.2), (0.5, 0.9, 0.3), (0.3, 0.8, 1.0), (0.6, 0.5, 1.0),
+                 (1.0, 0.5, 0.9), (0.9, 0.9, 0.9)]
+CONTROLS = [
+    ("left drag", "orbit (fly mode: look around)"),
+    ("right / middle drag", "pan"),
+    ("wheel", "zoom toward the cursor"),
+    ("W A S D", "move forward / left / back / right"),
+    ("Q / E", "move down / up"),
+    ("shift", "move faster"),
+    ("C", "switch orbit / fly camera"),
+    ("R", "reset to the scene's camera"),
+    ("F", "frame the whole scene"),
+    ("B", "show tile bounds, coloured by LOD level"),
+    ("space", "pause / resume streaming"),
+    ("P", "save a screenshot (PNG, full resolution, no overlay)"),
+    ("O", "show / hide the overlay"),
+    ("H or ?", "show / hide these controls"),
+    ("Esc", "quit"),
+]
+
+_BLIT_VS = """#version 410
+out vec2 uv;
+void main() {
+    vec2 p = vec2((gl_VertexID << 1) & 2, gl_VertexID & 2);
+    uv = p;
+    gl_Position = vec4(p * 2.0 - 1.0, 0.0, 1.0);
+}
+"""
+_BLIT_FS = """#version 410
+uniform sampler2D u_image;
+in vec2 uv;
+out vec4 colour;
+void main() { colour = vec4(clamp(texture(u_image, uv).rgb, 0.0, 1.0), 1.0); }
+"""
+_LINES_VS = """#version 410
+uniform mat4 u_mvp;
+in vec3 in_pos;
+in vec3 in_colour;
+out vec3 colour;
+void main() { colour = in_colour; gl_Position = u_mvp * vec4(in_pos, 1.0); }
+"""
+_LINES_FS = """#version 410
+in vec3 colour;
+out vec4 frag;
+void main() { frag = vec4(colour, 1.0); }
+"""
+_BOX_EDGES = [(0, 1), (1, 3), (3, 2), (2, 0), (4, 5), (5, 7), (7, 6), (6, 4), (0, 4), (1, 5), (2, 6), (3, 7)]
+
+
+@dataclass
+class WindowRun:
+    source: str
+    options: ViewOptions
+    size: tuple[int, int]
+    camera: Camera | None = None
+    path: CameraPath | None = None
+    screenshot: str | None = None
+    exit_when_converged: bool = False
+    vsync: bool = True
+    timeout_s: float = 120.0
+    quiet: bool = False
+    sh_degree: int | None = None
+
+
+def open_window(size: tuple[int, int], vsync: bool, title: str):
+    """A GLFW window with an OpenGL >= 4.1 core context, or a UsageError saying what is missing."""
+    if not (os.environ.get("DISPLAY") or os.environ.get("WAYLAND_DISPLAY")) and sys.platform.startswith("linux"):
+        raise UsageError("cannot open a window: no display (DISPLAY is not set); use --headless, or run under a "
+                         "virtual display (xvfb-run)")
+    try:
+        import moderngl_window as mglw
+        from moderngl_window.conf import settings
+    except ImportError as exc:
+        raise UsageError(f"the viewer needs moderngl-window ({exc.name}): pip install 'splatstream[view]'") from None
+    settings.WINDOW.update(dict(class_="moderngl_window.context.glfw.Window", gl_version=(4, 1), size=size,
+                                title=title, vsync=vsync, resizable=True, aspect_ratio=None, samples=0))
+    try:
+        return mglw.create_window_from_settings()
+    except Exception as exc:  # GLFW and the GL loader raise plain exceptions with their own message
+        raise UsageError(f"cannot open a window with OpenGL 4.1 ({exc.__class__.__name__}: {exc}); use --headless") \
+            from None
+
+
+class Viewer:
+    def __init__(self, run: WindowRun):
+        self.run = run
+        self.wnd = open_window(run.size, run.vsync, f"splatstream - {os.path.basename(run.source.rstrip('/'))}")
+        self.ctx = self.wnd.ctx
+        from imgui_bundle import imgui
+        from moderngl_window.integrations.imgui_bundle import ModernglWindowRenderer
+
+        self.imgui = imgui
+        imgui.create_context()
+        imgui.get_io().set_ini_filename("")  # no imgui.ini in the user's directory
+        self.gui = ModernglWindowRenderer(self.wnd)
+        self.blit = self.ctx.program(vertex_shader=_BLIT_VS, fragment_shader=_BLIT_FS)
+        self.blit_vao = self.ctx.vertex_array(self.blit, [])
+        self.lines = self.ctx.program(vertex_shader=_LINES_VS, fragment_shader=_LINES_FS)
+        self.line_vbo = None
+        self.line_vao = None
+        self.session: StreamingSession | None = None
+        self.prepared: PreparedSource | None = None
+        self.load_error: str | None = None
+        self.load_exception: BaseException | None = None
+        self.load_stage = "opening"
+        self.controller: CameraController | None = None
+        self.keys_down: set[int] = set()
+        self.show_help = False
+        self.show_overlay = True
+        self.show_bounds = False
+        self.fps = 0.0
+        self.frame_ms = 0.0
+        self.rate = 0.0
+        self._rate_window: list[tuple[float, int]] = []
+        self.messages: list[str] = []
+        self.screenshots: list[str] = []
+        self.exit_code = EXIT_OK
+        self.start = time.perf_counter()
+        self.ui_sse = run.options.max_sse
+        self.ui_budget = run.options.gpu_mem_mb
+        self.ui_degree = run.options.sh_degree
+        self._wire_events()
+        self._loader = threading.Thread(target=self._prepare, name="splat-open", daemon=True)
+        self._loader.start()
+
+    # --- loading (worker thread) --------------------------------------------------------------------------------
+    def _prepare(self) -> None:
+        def progress(stage: str, fraction: float) -> None:
+            self.load_stage = f"{stage} {fraction * 100:.0f}%"
+
+        try:
+            self.load_stage = "fetching the manifest"
+            self.prepared = PreparedSource.open(self.run.source, self.run.options, progress)
+        except Exception as exc:  # shown in the window and raised again on exit (the CLI prints one line)
+            self.load_error = str(exc) if isinstance(exc, SplatstreamError) else f"{exc.__class__.__name__}: {exc}"
+            self.load_exception = exc
+
+    def _start_session(self) -> None:
+        self.session = StreamingSession(self.prepared, self.ctx, self.run.options)
+        m = self.session.manifest
+        w, h = self.wnd.buffer_size
+        if self.run.camera is not None:
+            home = state_from_camera(self.run.camera)
+        else:
+            c = m.camera
+            home = state_from_camera(Camera(c.eye, c.target, c.up, c.fov_y, w, h))
+        root = m.tile(m.root)
+        self.controller = CameraController(home, np.array(root.sphere_center), float(root.sphere_radius))
+
+    # --- events (the path every user input takes) ----------------------------------------------------------------
+    def _wire_events(self) -> None:
+        w = self.wnd
+        w.key_event_func = self.on_key
+        w.mouse_drag_event_func = self.on_drag
+        w.mouse_scroll_event_func = self.on_scroll
+        w.mouse_press_event_func = self.gui.mouse_press_event
+        w.mouse_release_event_func = self.gui.mouse_release_event
+        w.mouse_position_event_func = self.on_mouse_move
+        w.resize_func = self.gui.resize
+        w.unicode_char_entered_func = self.on_char
+
+    def _gui_wants_mouse(self) -> bool:
+        return bool(self.show_overlay and self.imgui.get_io().want_capture_mouse)
+
+    def on_mouse_move(self, x, y, dx, dy) -> None:
+        self.gui.mouse_position_event(x, y, dx, dy)
+        self._cursor = (x, y)
+
+    def on_drag(self, x, y, dx, dy) -> None:
+        self.gui.mouse_drag_event(x, y, dx, dy)
+        self._cursor = (x, y)
+        if self.controller is None or self._gui_wants_mouse():
+            return
+        states = self.wnd.mouse_states
+        ratio = self.wnd.pixel_ratio
+        if states.left:
+            if self.controller.mode == "fly":
+                self.controller.look(dx, dy)
+            else:
+                self.controller.orbit(dx, dy)
+        elif states.right or states.middle:
+            self.controller.pan(dx * ratio, dy * ratio, self.wnd.buffer_size[1])
+
+    def on_scroll(self, x_offset, y_offset) -> None:
+        self.gui.mouse_scroll_event(x_offset, y_offset)
+        if self.controller is None or self._gui_wants_mouse():
+            return
+        self.controller.zoom(y_offset, getattr(self, "_cursor", None), self.wnd.size)
+
+    def on_char(self, char) -> None:
+        self.gui.unicode_char_entered(char)
+        if char == "?":
+            self.show_help = not self.show_help
+
+    def on_key(self, key, action, modifiers) -> None:
+        self.gui.key_event(key, action, modifiers)
+        keys = self.wnd.keys
+        if action == keys.ACTION_PRESS:
+            self.keys_down.add(key)
+        elif action == keys.ACTION_RELEASE:
+            self.keys_down.discard(key)
+            return
+        else:
+            return
+        if self.show_overlay and self.imgui.get_io().want_capture_keyboard:
+            return
+        if key == keys.ESCAPE:
+            self.wnd.close()
+        elif key == keys.H:
+            self.show_help = not self.show_help
+        elif key == keys.O:
+            self.show_overlay = not self.show_overlay
+        elif key == keys.B:
+            self.show_bounds = not self.show_bounds
+        elif key == keys.P:
+            self.screenshot()
+        elif self.controller is not None:
+            if key == keys.C:
+                self.controller.set_mode("fly" if self.controller.mode == "orbit" else "orbit")
+            elif key == keys.R:
+                self.controller.reset()
+            elif key == keys.F:
+                w, h = self.wnd.buffer_size
+                self.controller.frame_scene(w / max(1, h))
+            elif key == keys.SPACE and self.session is not None:
+                self.session.paused = not self.session.paused
+
+    def _held_motion(self, dt: float) -> None:
+        k = self.wnd.keys
+        down = self.keys_down
+        forward = (k.W in down) - (k.S in down)
+        right = (k.D in down) - (k.A in down)
+        up = (k.E in down) - (k.Q in down)
+        if forward or right or up:
+            run = bool(self.wnd.modifiers.shift)
+            self.controller.move(forward, right, up, dt, run)
+
+    # --- frame ----------------------------------------------------------------------------------------------------
+    def camera(self) -> Camera:
+        w, h = self.wnd.buffer_size
+        if self.run.path is not None:
+            return self.run.path.camera(time.perf_counter() - self.path_start, w, h)
+        return self.controller.camera(w, h)
+
+    def draw_frame(self, dt: float) -> None:
+        ctx = self.ctx
+        if self.session is None and self.prepared is not None:
+            self._start_session()
+            self.path_start = time.perf_counter()
+        self.wnd.use()
+        ctx.clear(0.0, 0.0, 0.0, 1.0)
+        if self.session is not None:
+            self._held_motion(dt)
+            self.controller.update(dt)
+            cam = self.camera()
+            self.last_camera = cam
+            t0 = time.perf_counter()
+            self.session.frame(cam, sh_degree=self.run.sh_degree)
+            self.frame_ms = (time.perf_counter() - t0) * 1e3
+            fbo = self.session.renderer.framebuffer(cam.width, cam.height)
+            self.wnd.use()
+            ctx.viewport = (0, 0, *self.wnd.buffer_size)
+            ctx.disable(ctx.DEPTH_TEST | ctx.BLEND)
+            fbo.color_attachments[0].use(0)
+            self.blit["u_image"].value = 0
+            self.blit_vao.render(vertices=3)
+            if self.show_bounds:
+                self._draw_bounds(cam)
+        if self.show_overlay:
+            self._overlay()
+
+    def _draw_bounds(self, cam: Camera) -> None:
+        s = self.session
+        m = s.manifest
+        a = m.arrays
+        drawn = s.last.draw if s.last is not None else []
+        verts = []
+        for tile_id in drawn:
+            i = m.index_of[tile_id]
+            lo, hi = a.box_min[i], a.box_max[i]
+            corners = [np.array([(lo, hi)[b & 1][0], (lo, hi)[(b >> 1) & 1][1], (lo, hi)[(b >> 2) & 1][2]])
+                       for b in range(8)]
+            colour = LEVEL_COLOURS[min(int(a.level[i]), len(LEVEL_COLOURS) - 1)]
+            for p, q in _BOX_EDGES:
+                verts += [*corners[p], *colour, *corners[q], *colour]
+        if not verts:
+            return
+        data = np.asarray(verts, np.float32).tobytes()
+        if self.line_vbo is None or self.line_vbo.size < len(data):
+            if self.line_vbo is not None:
+                self.line_vao.release()
+                self.line_vbo.release()
+            self.line_vbo = self.ctx.buffer(reserve=max(len(data), 1 << 16), dynamic=True)
+            self.line_vao = self.ctx.vertex_array(self.lines, [(self.line_vbo, "3f 3f", "in_pos", "in_colour")])
+        self.line_vbo.write(data)
+        mvp = cam.projection_matrix() @ cam.view_matrix()
+        self.lines["u_mvp"].write(np.ascontiguousarray(mvp.T, np.float32).tobytes())
+        self.line_vao.render(self.ctx.LINES, vertices=len(data) // 24)
+
+    def _overlay(self) -> None:
+        imgui = self.imgui
+        imgui.new_frame()
+        imgui.set_next_window_pos((10, 10), imgui.Cond_.first_use_ever)
+        imgui.begin("splatstream", None, imgui.WindowFlags_.always_auto_resize)
+        if self.session is None:
+            imgui.text(f"{self.run.source}")
+            imgui.text(self.load_error or f"loading: {self.load_stage}")
+        else:
+            self._stats(imgui)
+            self._controls(imgui)
+        for line in self.messages[-3:]:
+            imgui.text_wrapped(line)
+        imgui.text("H: controls")
+        imgui.end()
+        if self.show_help:
+            imgui.set_next_window_pos((10, 330), imgui.Cond_.first_use_ever)
+            imgui.begin("controls", None, imgui.WindowFlags_.always_auto_resize)
+            for key, what in CONTROLS:
+                imgui.text(f"{key:<20} {what}")
+            imgui.end()
+        imgui.render()
+        self.gui.render(imgui.get_draw_data())
+
+    def _stats(self, imgui) -> None:
+        s = self.session
+        u = s.last
+        stats = s.fetcher.stats()
+        now = time.perf_counter()
+        self._rate_window.append((now, stats.bytes_downloaded))
+        while len(self._rate_window) > 2 and now - self._rate_window[0][0] > 1.0:
+            self._rate_window.pop(0)
+        (t0, b0), (t1, b1) = self._rate_window[0], self._rate_window[-1]
+        self.rate = (b1 - b0) / max(1e-6, t1 - t0)
+        path = s.renderer.sort_mode
+        if path == "gpu":
+            path = f"GPU sort, {s.renderer.draw_mode} draw"
+        else:
+            path = "CPU sort, raster draw"
+        imgui.text(f"{self.fps:6.1f} fps   frame {self.frame_ms:6.2f} ms (CPU)")
+        imgui.text(f"splats  {u.drawn_splats if u else 0:,} drawn / {u.resident_splats if u else 0:,} resident")
+        imgui.text(f"tiles   {u.resident_tiles if u else 0} resident / {u.in_flight if u else 0} in flight"
+                   f"{'  (paused)' if s.paused else ''}{'  converged' if s.converged else ''}")
+        imgui.text(f"network {stats.bytes_downloaded / 1e6:.1f} MB, {self.rate * 8 / 1e6:.1f} Mbit/s"
+                   f"{'  OFFLINE' if stats.offline else ''}")
+        imgui.text(f"GPU     {s.pool.gpu_bytes / 1e6:.0f} MB of {s.budget / 1e6:.0f} MB budget")
+        degree = min(s.options.sh_degree, s.manifest.sh_degree)
+        imgui.text(f"SH      degree {degree} (scene {s.manifest.sh_degree})   {path}")
+        imgui.text(f"camera  {self.controller.mode} (C switches)")
+
+    def _controls(self, imgui) -> None:
+        s = self.session
+        changed, self.ui_sse = imgui.slider_float("max SSE px", self.ui_sse, 0.0, 16.0, "%.2f")
+        if changed:
+            s.reconfigure(replace(s.options, max_sse=self.ui_sse))
+        _, self.ui_budget = imgui.input_float("GPU MB", self.ui_budget, 64.0, 256.0, "%.0f")
+        if imgui.is_item_deactivated_after_edit() and self.ui_budget > 1:
+            s.reconfigure(replace(s.options, gpu_mem_mb=float(self.ui_budget)))
+        changed, self.ui_degree = imgui.slider_int("SH degree", self.ui_degree, 0, s.manifest.sh_degree)
+        if changed:
+            self.run = replace(self.run, sh_degree=self.ui_degree)
+            s.reconfigure(replace(s.options, sh_degree=self.ui_degree))
+        _, self.show_bounds = imgui.checkbox("tile bounds (by level)", self.show_bounds)
+        _, s.paused = imgui.checkbox("pause streaming", s.paused)
+
+    # --- output ---------------------------------------------------------------------------------------------------
+    def screenshot(self, path: str | None = None) -> str | None:
+        """P: the renderer's framebuffer (full resolution, no overlay) as a PNG; prints the path and the camera."""
+        from .view_headless import write_png
+
+        if self.session is None:
+            return None
+        path = path or self.run.screenshot or os.path.abspath(time.strftime("splatstream-%Y%m%d-%H%M%S.png"))
+        if os.path.exists(path) and not self.run.screenshot:
+            path = path[:-4] + f"-{len(self.screenshots)}.png"
+        write_png(path, self.session.read_image())
+        cam = self.last_camera
+        with open(path + ".camera.json", "w") as f:
+            json.dump(cam.to_dict(), f)
+        def vec(v) -> str:
+            return ",".join(f"{x:.6g}" for x in v)
+
+        # --opt=value: a vector starting with a minus sign would read as an option
+        message = (f"saved {path} ({cam.width}x{cam.height}; camera: --eye={vec(cam.eye)} --target={vec(cam.target)} "
+                   f"--up={vec(cam.up)} --fov-y={cam.fov_y_deg:.6g})")
+        print(message, flush=True)
+        self.messages.append(f"saved {os.path.basename(path)}")
+        self.screenshots.append(path)
+        return path
+
+    def loop(self) -> int:
+        last = time.perf_counter()
+        fps_frames, fps_start = 0, last
+        while not self.wnd.is_closing:
+            now = time.perf_counter()
+            dt, last = now - last, now
+            self.draw_frame(dt)
+            self.wnd.swap_buffers()
+            fps_frames += 1
+            if now - fps_start >= 0.5:
+                self.fps, fps_frames, fps_start = fps_frames / (now - fps_start), 0, now
+            if self.load_error is not None and self.run.exit_when_converged:
+                break
+            if self.run.exit_when_converged and self.session is not None:
+                path_done = self.run.path is None or now - self.path_start >= self.run.path.end
+                still = not self.controller.update(0.0) if self.controller else True
+                if self.session.converged and path_done and still:
+                    if self.run.screenshot:
+                        self.screenshot(self.run.screenshot)
+                    break
+                if now - self.start > self.run.timeout_s:
+                    print(f"view: not converged after {self.run.timeout_s:g} s (timeout)", file=sys.stderr)
+                    self.exit_code = EXIT_NOT_CONVERGED
+                    break
+            if self.session is None and self.load_error is None:
+                time.sleep(0.005)
+        return self.exit_code
+
+    def close(self) -> None:
+        if self.session is not None:
+            self.session.close()
+        elif self.prepared is not None:
+            self.prepared.fetcher.close()
+        self.wnd.destroy()
+
+
+def run_window(run: WindowRun) -> int:
+    viewer = Viewer(run)
+    try:
+        code = viewer.loop()
+    except KeyboardInterrupt:
+        code = 130
+    finally:
+        viewer.close()
+    if viewer.load_exception is not None and viewer.run.exit_when_converged:
+        raise viewer.load_exception
+    return code
