@@ -388,7 +388,7 @@ def _slice(g: Gaussians, a: int, b: int) -> Gaussians:
                      g.sh_dc[a:b], g.sh_rest[a:b])
 
 
-def build_tiles(g: Gaussians, max_leaf_splats: int = 65536, reduction: float = 4.0,
+def build_tiles(g: Gaussians, max_leaf_splats: int = 16384, reduction: float = 4.0,
                 progress: Progress | None = None, reorder_input: bool = False) -> list[Tile]:
     """The LOD tile tree of `g`, as a list indexed by tile id (0 = root, breadth-first).
 

@@ -32,7 +32,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "auto: about one per 64 splats) with a 16-bit index per splat; the sh format then applies "
                         "to the codebook. Default: the preset's choice (low and very-low use auto)")
     p.add_argument("--no-lod", action="store_true", help="write one tile holding every splat (no LOD tree)")
-    p.add_argument("--max-leaf-splats", type=int, default=65536, help="splats per leaf tile at most (default 65536)")
+    p.add_argument("--max-leaf-splats", type=int, default=16384,
+                   help="splats per leaf tile at most (default 16384: measured best for streaming)")
     p.add_argument("--reduction", type=float, default=4.0,
                    help="each LOD level keeps about 1/REDUCTION of the splats of the level below (default 4)")
     p.add_argument("--zstd-level", type=int, default=3,
