@@ -157,7 +157,9 @@ class ChunkPool:
             self._codebook_records = np.zeros((cb.chunks, RANGE_RECORD_WORDS), np.uint32)
             self._codebook_ranges = RawTexture(GL_RGBA32UI, BLOCK, cb.chunks)
             self._write_codebook_records()
-        self._write_records(np.arange(capacity, dtype=np.int64))
+        # The range table is not uploaded here: a frame scans slots below the allocator's high-water mark only, and
+        # slots are handed out lowest first, so every one of those has been written by a join (or a leave). At a
+        # 4 GB budget the upload of the whole table took most of the two seconds before a first frame (llvmpipe).
 
     @classmethod
     def for_budget(cls, ctx, gpu_budget_bytes: int, formats: Mapping[str, str], sh_degree: int, *,

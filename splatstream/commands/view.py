@@ -38,6 +38,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--max-sse", type=float, default=1.5,
                    help="screen-space error in pixels under which a tile is not refined (default 1.5; 0: full detail)")
     s.add_argument("--sh-degree", type=int, choices=[0, 1, 2, 3], help="SH bands fetched and drawn at most")
+    s.add_argument("--sh-bands", choices=["need", "all"], default="need",
+                   help="need (default): SH bands only for the tiles that cover most of the view; all: every band of "
+                        "every selected tile")
     s.add_argument("--no-cache", action="store_true", help="do not use the disk cache of payloads")
     s.add_argument("--no-prefetch", action="store_true", help="fetch only what the view needs now")
     s.add_argument("--sort", default="auto", choices=["auto", "cpu", "gpu"], help="depth sort (as `render`)")
@@ -78,7 +81,8 @@ def _options(args):
         raise UsageError(f"--fov-y {args.fov_y}: expected degrees in (0, 180)")
     return ViewOptions(gpu_mem_mb=args.gpu_mem_mb, max_splats=args.max_splats, max_sse=args.max_sse,
                        sh_degree=3 if args.sh_degree is None else args.sh_degree, prefetch=not args.no_prefetch,
-                       cache=not args.no_cache, render=RenderOptions(sort=args.sort, draw=args.draw))
+                       cache=not args.no_cache, render=RenderOptions(sort=args.sort, draw=args.draw),
+                       **({"band_area_share": (1.0, 1.0, 1.0)} if args.sh_bands == "all" else {}))
 
 
 def _fixed_camera(args, size):

@@ -1,0 +1,143 @@
+"""Frame times while streaming: a large scene served on loopback, a scripted fly-through, a splat budget.
+
+Runs the viewer's StreamingSession (the same code as `view`) headless at 1920x1080 along a camera path that starts
+at the standard overview of a make_scene scene and flies in over it, with `--max-splats` (default 2M); every frame
+ends with glFinish, so its wall time includes the GPU's work. Then, at the converged end of the path, the same tiles
+and bands are loaded whole into the plain renderer (`splatstream render`'s HeadlessRenderer) and both draw the same
+view N times: the streaming session's converged frame time against the renderer's.
+
+    python bench/bench_flythrough.py --scene SCENE_DIR_OR_URL --ply SCENE.ply --json out.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+
+from splatstream.camera import standard_benchmark_view  # noqa: E402
+from splatstream.camera_path import parse_camera_path  # noqa: E402
+
+
+def fly_path(ply: str, seconds: float) -> dict:
+    """Overview -> in over the scene -> a turn -> back up: keyframes every `seconds` / 4."""
+    from splatstream.io import read_gaussians
+
+    g = read_gaussians(ply)
+    over = standard_benchmark_view(g.positions)
+    c, eye = np.array(over.target), np.array(over.eye)
+    d = eye - c
+    side = np.array([-d[1], d[0], 0.0])
+    keys = [eye, c + d * 0.35, c + d * 0.15 + side * 0.2, c + d * 0.1 - side * 0.2, c + d * 0.5]
+    targets = [c, c, c + side * 0.1, c - side * 0.1, c]
+    step = seconds / (len(keys) - 1)
+    return {"fov_y": over.fov_y_deg, "up": [0, 0, 1], "keyframes": [
+        {"time": k * step, "eye": e.tolist(), "target": t.tolist()} for k, (e, t) in enumerate(zip(keys, targets,
+                                                                                                   strict=True))]}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scene", required=True, help="scene directory (served on loopback here) or URL")
+    ap.add_argument("--ply", required=True, help="the scene's source PLY (for the standard view)")
+    ap.add_argument("--size", default="1920x1080")
+    ap.add_argument("--max-splats", type=int, default=2_000_000)
+    ap.add_argument("--gpu-mem-mb", type=float, default=2048)
+    ap.add_argument("--seconds", type=float, default=12.0)
+    ap.add_argument("--repeat", type=int, default=60, help="converged frames timed at the end")
+    ap.add_argument("--json", dest="json_out")
+    args = ap.parse_args()
+    from client_gl.headless import HeadlessRenderer, RenderOptions, create_context
+    from client_gl.scene import SceneTiles, load_tile
+    from client_gl.streaming import StreamingSession, ViewOptions
+    from splatstream.decoder import read_codebook
+    from splatstream.store import DirectoryStore
+
+    w, h = (int(v) for v in args.size.split("x"))
+    server = None
+    url = args.scene
+    if "://" not in url:
+        root = os.path.dirname(os.path.abspath(args.scene))
+        server = subprocess.Popen([sys.executable, "-m", "splatstream.cli", "serve", root, "--port", "0",
+                                   "--no-access-log"], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+        base = server.stderr.readline().split(" at ", 1)[1].split(" ", 1)[0].rstrip("/")
+        url = f"{base}/scenes/{os.path.basename(os.path.abspath(args.scene))}"
+    path = parse_camera_path(fly_path(args.ply, args.seconds))
+    ctx = create_context()
+    out: dict = {"size": [w, h], "max_splats": args.max_splats, "gpu_mem_mb": args.gpu_mem_mb,
+                 "gl_renderer": ctx.info.get("GL_RENDERER"), "path_seconds": args.seconds}
+    try:
+        session = StreamingSession.open(url, ctx, ViewOptions(gpu_mem_mb=args.gpu_mem_mb, max_splats=args.max_splats,
+                                                              cache=False))
+        start = time.perf_counter()
+        walls, drawn = [], []
+        last = time.perf_counter()
+        while True:
+            now = time.perf_counter() - start
+            cam = path.camera(now, w, h)
+            rec = session.frame(cam)
+            ctx.finish()
+            t = time.perf_counter()
+            walls.append((t - last) * 1e3)
+            drawn.append(rec.drawn_splats)
+            last = t
+            if now > path.end and session.converged:
+                break
+            if now > path.end + 60:
+                break
+        out["streaming"] = {"frames": len(walls), "median_ms": float(np.median(walls)),
+                            "p99_ms": float(np.percentile(walls, 99)), "max_ms": float(np.max(walls)),
+                            "max_drawn_splats": int(max(drawn)), "first_frame_s": session.metrics.first_frame_s,
+                            "bytes": session.fetcher.stats().bytes_downloaded,
+                            "converged_after_path_s": time.perf_counter() - start - path.end}
+        cam = path.camera(path.end, w, h)
+        times = []
+        for _ in range(args.repeat):
+            t = time.perf_counter()
+            session.frame(cam)
+            ctx.finish()
+            times.append((time.perf_counter() - t) * 1e3)
+        tiles = list(session.last.draw)
+        bands = {t: session.pool.tile_bands(t) for t in tiles}
+        out["converged_stream_ms"] = float(np.median(times[5:]))
+        out["converged_drawn_splats"] = int(session.last.drawn_splats)
+        manifest = session.manifest
+        session.close()
+        # the same tiles and bands, loaded whole, drawn by the plain renderer
+        store = DirectoryStore(args.scene) if "://" not in args.scene else None
+        if store is not None:
+            top = max(bands.values(), default=0)
+            r = HeadlessRenderer(RenderOptions(), ctx=ctx)
+            loaded = {t: load_tile(store, manifest, manifest.tile(t), bands[t], with_mirror=r.needs_host_mirror)
+                      for t in tiles}
+            cb = read_codebook(store, manifest, top) if top else None
+            r.load_tiles(SceneTiles(dict(manifest.formats), top, loaded, manifest, cb))
+            times = []
+            for _ in range(args.repeat):
+                t = time.perf_counter()
+                r.render_frame(cam)
+                ctx.finish()
+                times.append((time.perf_counter() - t) * 1e3)
+            out["render_same_set_ms"] = float(np.median(times[5:]))
+            out["stream_vs_render"] = out["converged_stream_ms"] / out["render_same_set_ms"]
+            r.unload()
+    finally:
+        if server is not None:
+            server.send_signal(signal.SIGTERM)
+            server.wait(10)
+    print(json.dumps(out, indent=1))
+    if args.json_out:
+        with open(args.json_out, "w") as f:
+            json.dump(out, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
