@@ -1,0 +1,36 @@
+#!/bin/bash
+# GPU-machine driver for the streaming client's benchmarks (device `run` tool), from the repo root, carrying:
+#   .gl           GL loader .debs (libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2, amd64)
+#   .whl          cp312 wheels: moderngl glcontext zstandard msgpack aiohttp (+ its deps) platformdirs
+#   .bench_carry  tools/make_scene.py and data/real/* (copies of ../shared) so make_scene.py runs there
+# Usage: bash bench/device/run_client.sh [stream|fly|all]   (results under $OUT)
+set -u
+for f in .gl/*.deb; do dpkg -x "$f" /; done
+ldconfig
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl \
+  || exit 1
+export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 SPLATSTREAM_SHARED=$PWD/.bench_carry
+OUT=${OUT:-/tmp/out}
+mkdir -p "$OUT"
+nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader
+probe='import moderngl; c = moderngl.create_context(standalone=True, backend="egl", require=430); print(c.info["GL_RENDERER"], c.info["GL_VERSION"])'
+if ! python3 -c "$probe"; then
+  export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
+  python3 -c "$probe" || exit 1
+fi
+what=${1:-all}
+W=/tmp/stream-work
+mkdir -p $W
+if [ "$what" = stream ] || [ "$what" = all ]; then
+  # first frames and bytes on loopback and at 100 Mbit/s; bands by need against all bands at 20 Mbit/s + 40 ms
+  python3 bench/bench_stream.py --splats 1000000,6000000 --links loopback,100:0 --modes need --frame-every 4 \
+    --workdir $W --out "$OUT/stream_fast" 2>&1 | tail -20
+  python3 bench/bench_stream.py --splats 1000000,6000000 --links 20:40 --modes need,all --frame-every 4 \
+    --workdir $W --out "$OUT/stream_20" 2>&1 | tail -20
+  # at most 8 files come back: keep stream.json, stream.md and stream.png of each run, not the per-run folders
+  for d in stream_fast stream_20; do find "$OUT/$d" -mindepth 1 -maxdepth 1 -type d -exec rm -rf {} +; done
+fi
+if [ "$what" = fly ] || [ "$what" = all ]; then
+  python3 bench/bench_flythrough.py --scene $W/root/s6000000 --ply $W/s6000000.ply --json "$OUT/flythrough.json" \
+    2>&1 | tail -30
+fi
