@@ -127,6 +127,10 @@ class PreparedSource:
         except BaseException:
             fetcher.close()
             raise
+        # The root's base is wanted whatever the view: ask for it now, so it arrives while the GPU pool and the
+        # shaders are built (the engine's first wish list names it again; the fetcher takes it once).
+        root = manifest.tile(manifest.root)
+        fetcher.want([(1.0, (root.id, "base"), root.groups["base"])])
         return cls(source, fetcher, manifest, start)
 
 

@@ -440,8 +440,82 @@ def _box(m: _Map, key: str) -> Box:
     return Box(lo, hi)
 
 
+_PAYLOAD_KEYS = frozenset({"file", "sha256", "bytes", "raw_bytes", "gpu_bytes", "sections"})
+_TEXELS_KEYS = frozenset({"name", "kind", "offset", "size", "filter", "format", "width", "height", "layers"})
+_RANGE_KEYS = frozenset({"name", "kind", "offset", "size", "filter", "dtype", "shape"})
+_FILTERS = frozenset(["none"] + [f"shuffle{n}" for n in range(2, 17)])
+
+
+def _is_int(v) -> bool:
+    return type(v) is int  # not bool, not float
+
+
+def _payload_fast(v, expect: list[tuple[str, dict]], chunks: int, strict: bool) -> PayloadEntry | None:
+    """The same checks as _payload with plain dict operations (a 6M-splat scene's manifest has thousands of
+    sections: this is most of the time a client waits for it); None when anything is off, and _payload then says
+    what, naming the field."""
+    if type(v) is not dict or not (v.keys() == _PAYLOAD_KEYS if strict else v.keys() >= _PAYLOAD_KEYS):
+        return None
+    sha, file, raw, size, gpu, items = (v["sha256"], v["file"], v["raw_bytes"], v["bytes"], v["gpu_bytes"],
+                                        v["sections"])
+    if not (type(sha) is str and SHA256_HEX_RE.match(sha) and file == payload_name(sha) and _is_int(raw)
+            and 0 <= raw <= MAX_PAYLOAD_RAW_BYTES and _is_int(size) and 0 <= size <= raw + raw // 128 + 1024
+            and _is_int(gpu) and 0 <= gpu <= MAX_PAYLOAD_RAW_BYTES and type(items) is list
+            and len(items) == len(expect)):
+        return None
+    expected = dict(expect)
+    sections = []
+    for item in items:
+        if type(item) is not dict:
+            return None
+        want = expected.pop(item.get("name"), None)
+        if want is None or item.get("kind") != want["kind"]:
+            return None
+        kind = want["kind"]
+        if not (item.keys() == (_TEXELS_KEYS if kind == "texels" else _RANGE_KEYS) or not strict and
+                item.keys() >= (_TEXELS_KEYS if kind == "texels" else _RANGE_KEYS)):
+            return None
+        offset, length, filt = item["offset"], item["size"], item["filter"]
+        if not (_is_int(offset) and _is_int(length) and 0 <= offset and offset % ALIGN == 0 and 0 <= length
+                and offset + length <= raw and filt in _FILTERS):
+            return None
+        if kind == "texels":
+            fmt, width, height, layers = item["format"], item["width"], item["height"], item["layers"]
+            if not (fmt == want["format"] and _is_int(width) and _is_int(height) and _is_int(layers)
+                    and BLOCK <= width <= 1 << 16 and BLOCK <= height <= 1 << 16 and width % BLOCK == 0
+                    and height % BLOCK == 0 and (width // BLOCK) * (height // BLOCK) >= chunks
+                    and layers == want["layers"] and length == blob_size(FORMATS[fmt], width, height, layers)):
+                return None
+            sections.append(Section(item["name"], kind, offset, length, filt, format=fmt, width=width,
+                                    height=height, layers=layers))
+        else:
+            dtype, shape = item["dtype"], item["shape"]
+            if not (dtype == want["dtype"] and type(shape) is list and shape == list(want["shape"])):
+                return None
+            n = 4 if dtype == "f32" else 2
+            for k in shape:
+                n *= k
+            if length != n:
+                return None
+            sections.append(Section(item["name"], kind, offset, length, filt, dtype=dtype, shape=tuple(shape)))
+    if expected:
+        return None
+    ordered = sorted(sections, key=lambda sec: sec.offset)
+    for a, b in zip(ordered, ordered[1:], strict=False):
+        if a.offset + a.size > b.offset:
+            return None
+    end = max((sec.offset + sec.size for sec in sections), default=0)
+    if raw != end or gpu != sum(sec.size for sec in sections):
+        return None
+    return PayloadEntry(file, sha, size, raw, gpu, tuple(sections))
+
+
 def _payload(m: _Map, key: str, expect: list[tuple[str, dict]], chunks: int) -> PayloadEntry:
     """Parse a payload entry; `expect` is [(section name, {kind, format, layers, dtype, shape, ...})]."""
+    m.used.add(key)
+    fast = _payload_fast(m.d.get(key), expect, chunks, m.strict)
+    if fast is not None:
+        return fast
     p = m.map(key)
     sha = p.str("sha256")
     if not SHA256_HEX_RE.match(sha):
