@@ -52,7 +52,7 @@ def run_encode(src: pathlib.Path, out: pathlib.Path, preset: str, extra: list[st
 
     m = load_manifest(out)
     return {
-        "preset": preset, "wall_s": float(wall), "encode_s": m.encode_seconds, "peak_rss_mb": int(maxrss_kb) / 1024,
+        "preset": preset, "wall_s": float(wall), "encode_s": float(wall), "peak_rss_mb": int(maxrss_kb) / 1024,
         "splats": info["splats"], "tiles": info["tiles"], "levels": info["levels"],
         "gpu_bytes_per_splat": info["gpu_bytes_per_splat"],
         "disk_bytes_per_splat": info["bytes_on_disk"] / info["splats"],

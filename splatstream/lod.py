@@ -402,9 +402,10 @@ def _slice(g: Gaussians, a: int, b: int) -> Gaussians:
 # sums added in kd order (fold_leaf_sums). The same code runs whether the leaves sit on one machine or many.
 
 
-def original_reach(g: Gaussians) -> np.ndarray:
-    """Radius of each splat's ERROR_SIGMAS ball along its largest axis (world units)."""
-    return ERROR_SIGMAS * np.exp(_row_max(g.log_scales).astype(np.float64))
+def original_reach(g: Gaussians | np.ndarray) -> np.ndarray:
+    """Radius of each splat's ERROR_SIGMAS ball along its largest axis (world units), from splats or log scales."""
+    log_scales = g.log_scales if isinstance(g, Gaussians) else g
+    return ERROR_SIGMAS * np.exp(_row_max(log_scales).astype(np.float64))
 
 
 def error_extremes(positions: np.ndarray, reach: np.ndarray, merged_positions: np.ndarray, rep: np.ndarray,
@@ -532,20 +533,32 @@ def finish_appearance(merged: Gaussians, counts: np.ndarray, sums: np.ndarray, b
     return grow_rows
 
 
-def finish_tile(merged: Gaussians, counts: np.ndarray, far: np.ndarray, near: np.ndarray, child_error: float,
-                appearance: Callable[[float], np.ndarray]) -> float:
-    """The last steps of an interior tile, the same wherever its originals are: the error (at least the children's),
-    opacities and colours matched at that error's viewing scale (`appearance(blur)` gives the folded sums), and
-    the error again for splats that grew. Returns the tile's geometric error; `merged` is changed in place."""
+def tile_error_first(merged: Gaussians, counts: np.ndarray, far: np.ndarray, near: np.ndarray,
+                     child_error: float) -> tuple[np.ndarray, float]:
+    """An interior tile's per-splat errors and its error (at least its children's), before its appearance."""
     errors = errors_from_extremes(far, near, merged)
-    error = max(tile_error(errors, counts), child_error)
-    blur = viewing_blur(error)
-    grown = finish_appearance(merged, counts, appearance(blur), blur)
+    return errors, max(tile_error(errors, counts), child_error)
+
+
+def finish_tile_appearance(merged: Gaussians, counts: np.ndarray, far: np.ndarray, near: np.ndarray,
+                           errors: np.ndarray, error: float, sums: np.ndarray) -> float:
+    """Opacities and colours matched at the viewing scale of `error` (`sums`: the folded appearance_terms at
+    viewing_blur(error)), then the error again for splats that grew; returns the tile's final error."""
+    grown = finish_appearance(merged, counts, sums, viewing_blur(error))
     if len(grown):
         # Some splats grew to carry their coverage: measure those again, keep the larger tile error.
         errors[grown] = errors_from_extremes(far[grown], near[grown], original_reach(merged)[grown])
         error = max(error, tile_error(errors, counts))
     return error
+
+
+def finish_tile(merged: Gaussians, counts: np.ndarray, far: np.ndarray, near: np.ndarray, child_error: float,
+                appearance: Callable[[float], np.ndarray]) -> float:
+    """The last steps of an interior tile, the same wherever its originals are: the error, opacities and colours
+    matched at that error's viewing scale (`appearance(blur)` gives the folded sums), the error again for splats
+    that grew. Returns the tile's geometric error; `merged` is changed in place."""
+    errors, error = tile_error_first(merged, counts, far, near, child_error)
+    return finish_tile_appearance(merged, counts, far, near, errors, error, appearance(viewing_blur(error)))
 
 
 def interior_bounds(merged: Gaussians, kids: list[Tile]) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
