@@ -279,6 +279,7 @@ def _gaussians_from_records(records: np.ndarray, n_rest: int) -> tuple[Gaussians
     """Gaussians from 3DGS vertex records: +-inf opacities clamped, rows with non-finite values or zero-length
     quaternions found (and dropped: the caller decides from the stats whether that is an error)."""
     columns = _column_reader(records)
+    del records  # the column reader holds the raw records until `columns` goes
     groups = {
         "positions": ["x", "y", "z"], "sh_dc": ["f_dc_0", "f_dc_1", "f_dc_2"], "opacity_logits": ["opacity"],
         "log_scales": ["scale_0", "scale_1", "scale_2"], "rotations": ["rot_0", "rot_1", "rot_2", "rot_3"],
@@ -357,9 +358,8 @@ def read_ply_rows(layout: VertexLayout, start: int, stop: int) -> tuple[Gaussian
     """Rows start..stop of a binary 3DGS PLY: one byte range of the file. Invalid rows are dropped and counted;
     check_rows on the summed stats reports them as read_gaussians_ply would."""
     count = max(0, min(stop, layout.rows) - start)
-    records = np.fromfile(layout.path, dtype=layout.dtype, count=count,
-                          offset=layout.offset + start * layout.dtype.itemsize)
-    return _gaussians_from_records(records, layout.rest)
+    return _gaussians_from_records(np.fromfile(layout.path, dtype=layout.dtype, count=count,
+                                               offset=layout.offset + start * layout.dtype.itemsize), layout.rest)
 
 
 def read_gaussians_ply(path: str | os.PathLike, drop_invalid: bool = False) -> Gaussians:
