@@ -10,6 +10,8 @@ reaches the caller's progress display; partition tasks also report their own pro
 from __future__ import annotations
 
 import os
+import threading
+import time
 import uuid
 
 from ..errors import UsageError
@@ -40,6 +42,7 @@ class DaskEngine:
                 raise UsageError(f"--scheduler {scheduler}: cannot reach the Dask scheduler ({exc})") from None
         else:
             n = workers or os.cpu_count() or 1
+            _keep_malloc_adaptive()
             self.cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=processes,
                                                     dashboard_address=None, silence_logs=40)
             self.client = distributed.Client(self.cluster)
@@ -53,22 +56,45 @@ class DaskEngine:
         self.threads_per_task = 1
         self._progress: dict[str, float] = {}
 
-    def map(self, fn, args: list[tuple], stage: str, progress: Progress, heavy: bool = False) -> list:
+    def map(self, fn, args: list[tuple], stage: str, progress: Progress, heavy: bool = False,
+            task_progress: bool = False) -> list:
         distributed = _import_distributed()
         token = uuid.uuid4().hex[:8]
         keys = [f"{stage}-{fn.__name__}-{i}-{token}" for i in range(len(args))]
+        partial: dict[str, float] = {}
+        lock = threading.Lock()
+        finished = [0]
+
+        def show() -> None:
+            progress(stage, (finished[0] + sum(partial.values())) / len(keys))
+
+        def on_event(event) -> None:  # runs on the client's event loop thread
+            key, fraction = event[1]
+            with lock:
+                if key in partial:
+                    partial[key] = float(fraction)
+                    show()
+
+        if task_progress:
+            partial.update(dict.fromkeys(keys, 0.0))
+            args = [(*a, WorkerProgress(k)) for a, k in zip(args, keys, strict=True)]
+            self.client.subscribe_topic(PROGRESS_TOPIC, on_event)
         futures = [self.client.submit(fn, *a, key=k, pure=False) for k, a in zip(keys, args, strict=True)]
-        done = 0
         try:
             for future in distributed.as_completed(futures):
                 if future.status == "error":
                     future.result()  # raises the task's own exception (an InputError stays one)
-                done += 1
-                progress(stage, done / len(futures))
+                with lock:
+                    partial.pop(future.key, None)
+                    finished[0] += 1
+                    show()
             return self.client.gather(futures)
         except BaseException:
             self.client.cancel(futures)
             raise
+        finally:
+            if task_progress:
+                self.client.unsubscribe_topic(PROGRESS_TOPIC)
 
     def close(self) -> None:
         try:
@@ -76,6 +102,40 @@ class DaskEngine:
         finally:
             if self.cluster is not None:
                 self.cluster.close()
+
+
+class WorkerProgress:
+    """A task's progress reporter on a worker: events on PROGRESS_TOPIC, at most a few a second."""
+
+    def __init__(self, key: str):
+        self.key = key
+        self.last = 0.0
+
+    def __call__(self, fraction: float) -> None:
+        now = time.monotonic()
+        if now - self.last < 0.5 and fraction < 1.0:
+            return
+        self.last = now
+        try:
+            from distributed import get_worker
+
+            get_worker().log_event(PROGRESS_TOPIC, (self.key, fraction))
+        except ValueError:  # not on a worker (a task run in the client by a test)
+            pass
+
+
+def _keep_malloc_adaptive() -> None:
+    """Dask starts workers with MALLOC_TRIM_THRESHOLD_=65536, which also switches off glibc's adaptive mmap
+    threshold: every large numpy temporary is then a fresh mmap, zero-filled page by page. Measured on a 250k-splat
+    LOD build: 3.1 s in a worker against 1.7 s without the variable. The encoder's workers hold a partition at a
+    time and free it whole, so they do without it (for an existing cluster, set this in its own config)."""
+    import dask
+
+    key = "distributed.nanny.pre-spawn-environ"
+    env = dict(dask.config.get(key, {}) or {})
+    if "MALLOC_TRIM_THRESHOLD_" in env:
+        env.pop("MALLOC_TRIM_THRESHOLD_")
+        dask.config.set({key: env})
 
 
 def _takes_n_workers(client) -> bool:

@@ -89,10 +89,13 @@ class LocalEngine:
         self.memory_per_worker = int(memory_per_worker or default_memory_per_worker())
         self.threads_per_task = threads or min(2, os.cpu_count() or 1)
 
-    def map(self, fn, args: list[tuple], stage: str, progress: Progress, heavy: bool = False) -> list:
+    def map(self, fn, args: list[tuple], stage: str, progress: Progress, heavy: bool = False,
+            task_progress: bool = False) -> list:
         results = []
-        if heavy or self.threads_per_task <= 1 or len(args) <= 1:
+        if heavy or task_progress or self.threads_per_task <= 1 or len(args) <= 1:
             for i, a in enumerate(args):
+                if task_progress:
+                    a = (*a, lambda f, i=i: progress(stage, (i + f) / len(args)))
                 results.append(fn(*a))
                 progress(stage, (i + 1) / len(args))
             return results

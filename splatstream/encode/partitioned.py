@@ -80,7 +80,11 @@ class Engine(Protocol):
     memory_per_worker: int  # bytes a task may use
     threads_per_task: int
 
-    def map(self, fn: Callable, args: list[tuple], stage: str, progress: Progress, heavy: bool = False) -> list: ...
+    def map(self, fn: Callable, args: list[tuple], stage: str, progress: Progress, heavy: bool = False,
+            task_progress: bool = False) -> list:
+        """`heavy`: tasks that need a worker's memory (one at a time per worker). `task_progress`: each task gets
+        one more argument, a callable fraction -> None reporting its own progress (from wherever it runs)."""
+        ...
 
 
 # ---------------------------------------------------------------------------------------------- input rows
@@ -281,11 +285,19 @@ def _load_tile(scratch: Scratch, tid: int) -> tuple[Tile, np.ndarray]:
     return tile, a["mass"]
 
 
-def _encode_tiles(tiles: list[Tile], ctx: TileContext, writer, threads: int) -> list[TileEntry]:
+def _encode_tiles(tiles: list[Tile], ctx: TileContext, writer, threads: int,
+                  done: Callable[[float], None]) -> list[TileEntry]:
+    out = []
     if threads <= 1 or len(tiles) <= 1:
-        return [encode_tile(t, ctx, writer) for t in tiles]
+        for t in tiles:
+            out.append(encode_tile(t, ctx, writer))
+            done(len(out) / len(tiles))
+        return out
     with ThreadPoolExecutor(max_workers=threads) as pool:
-        return list(pool.map(lambda t: encode_tile(t, ctx, writer), tiles))
+        for entry in pool.map(lambda t: encode_tile(t, ctx, writer), tiles):
+            out.append(entry)
+            done(len(out) / len(tiles))
+    return out
 
 
 @dataclass
@@ -296,14 +308,20 @@ class PartitionResult:
 
 
 def build_partition(p: int, level: int, shape: TreeShape, chunk_counts: list[np.ndarray], scratch: Scratch,
-                    ctx: TileContext, writer, threads: int, keep_originals: bool) -> PartitionResult:
+                    ctx: TileContext, writer, threads: int, keep_originals: bool,
+                    report: Callable[[float], None]) -> PartitionResult:
     """One partition: read its rows, build its subtree, write its tiles' payloads; its root and (for the tiles
-    above) its originals go to scratch."""
+    above) its originals go to scratch. `report(fraction)`: the task's progress."""
     g, index = _read_partition(scratch, p, chunk_counts, ctx.sh_degree)
     n = len(g)
-    sub = build_subtree(g, index, shape, level, p, reorder_input=True)
+
+    def build_progress(stage: str, fraction: float) -> None:
+        if stage == "lod-merge":
+            report(0.6 * fraction)
+
+    sub = build_subtree(g, index, shape, level, p, progress=build_progress, reorder_input=True)
     del g, index
-    entries = _encode_tiles(list(sub.tiles.values()), ctx, writer, threads)
+    entries = _encode_tiles(list(sub.tiles.values()), ctx, writer, threads, lambda f: report(0.6 + 0.4 * f))
     if keep_originals:
         o = sub.ordered
         scratch.save(f"originals/{p}", positions=o.positions, log_scales=o.log_scales, opacity=o.opacity_logits,
@@ -462,7 +480,7 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
 
     results = engine.map(build_partition, [(p, level, shape, chunk_counts, scratch, ctx, payloads,
                                             engine.threads_per_task, level > 0) for p in range(partitions)],
-                         "tiles", progress, heavy=True)
+                         "tiles", progress, heavy=True, task_progress=True)
     entries = [e for r in results for e in r.entries]
     entries += _upper_tiles(engine, scratch, shape, level, [r.root_splats for r in results], ctx, payloads,
                             progress)
