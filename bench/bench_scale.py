@@ -64,13 +64,61 @@ def synthetic_scene(path: pathlib.Path, splats: int, seed: int = 0, chunk: int =
     os.replace(tmp, path)
 
 
+def stream_make_scene(path: pathlib.Path, splats: int, seed: int = 0) -> None:
+    """The bytes of `make_scene.py --splats N --seed S --sh-degree 3` (its loop, the same random draws), written
+    object by object: make_scene.py concatenates the whole scene three times over and runs out of memory on this
+    24 GB machine at 30M splats."""
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("make_scene", MAKE_SCENE)
+    ms = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ms)
+    rng = np.random.default_rng(seed)
+    real = ms.REAL
+    sources = [ms.as_arrays(ms.read_ply(real / n)) for n in
+               ("fruit_drops_sh3.ply", "lod_tile_sh3_zero_rest.ply", "donut_sh0_no_normals.ply")]
+    sources.append(ms.as_arrays(ms.read_splat(real / "winter_fountain.splat")))
+    sh_bank = sources[0][2]
+    n_rest = 45
+    names = ["x", "y", "z", "nx", "ny", "nz"] + [f"f_dc_{i}" for i in range(3)] + \
+            [f"f_rest_{i}" for i in range(n_rest)] + ["opacity"] + [f"scale_{i}" for i in range(3)] + \
+            [f"rot_{i}" for i in range(4)]
+    header = f"ply\nformat binary_little_endian 1.0\nelement vertex {splats}\n"
+    header += "".join(f"property float {n}\n" for n in names) + "end_header\n"
+    side = max(1.0, np.sqrt(splats / 30000.0)) * 4.0 * 1.0
+    total = 0
+    tmp = path.with_suffix(".tmp")
+    with open(tmp, "wb") as f:
+        f.write(header.encode("ascii"))
+        while total < splats:
+            pos, dc, rest, op, scale, rot = sources[rng.integers(len(sources))]
+            centre = pos.mean(0)
+            size = np.percentile(np.linalg.norm(pos - centre, axis=1), 95) + 1e-9
+            target = rng.uniform(0.5, 2.5)
+            k = target / size
+            ang = rng.uniform(0, 2 * np.pi)
+            c, s = np.cos(ang / 2), np.sin(ang / 2)
+            qz = np.array([[c, 0.0, 0.0, s]], np.float32)
+            rz = np.array([[np.cos(ang), -np.sin(ang), 0], [np.sin(ang), np.cos(ang), 0], [0, 0, 1]], np.float32)
+            off = np.array([rng.uniform(-side, side), rng.uniform(-side, side), target], np.float32)
+            p = (pos - centre) * k @ rz.T + off
+            r = ms.quat_mul(np.repeat(qz, len(rot), 0), rot / np.linalg.norm(rot, axis=1, keepdims=True))
+            real_rest = rest if rest.shape[1] == 45 and np.abs(rest).max() > 0 else \
+                sh_bank[rng.integers(len(sh_bank), size=len(pos))]
+            sh = real_rest.reshape(-1, 3, 15)[:, :, :15].reshape(len(pos), n_rest)
+            take = min(len(pos), splats - total)
+            rows = np.concatenate([p, np.zeros_like(p), dc, sh, op, scale + np.log(k), r], 1)[:take]
+            f.write(rows.astype("<f4").tobytes())
+            total += len(pos)
+    os.replace(tmp, path)
+
+
 def make_scene(splats: int, directory: pathlib.Path, generator: str) -> pathlib.Path:
     path = directory / f"scene_{splats}.ply"
     if path.exists():
         return path
     if generator == "make_scene" or (generator == "auto" and MAKE_SCENE.exists()):
-        subprocess.run([sys.executable, str(MAKE_SCENE), "--splats", str(splats), "--seed", "0", "--out", str(path)],
-                       check=True)
+        stream_make_scene(path, splats)
     else:
         synthetic_scene(path, splats)
     return path
