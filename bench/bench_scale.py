@@ -221,7 +221,9 @@ def main() -> None:
         runs += [(f"dask-{w}", ["--workers", str(w), "--memory-per-worker", a.memory_per_worker]) for w in workers]
         for name, extra in runs:
             out = directory / f"out_{n}_{name}"
+            load = os.getloadavg()[0]
             r = run_encode(scene, out, ["--preset", a.preset, *extra])
+            r["load_before"], r["load_after"] = round(load, 1), round(os.getloadavg()[0], 1)
             shutil.rmtree(out, ignore_errors=True)
             r.update({"splats": n, "engine": name, "input_mb": round(input_mb),
                       "us_per_splat": round(r["wall_s"] / n * 1e6, 3)})

@@ -164,7 +164,8 @@ def test_invalid_rows_are_reported_for_the_whole_file(scene, tmp_path):
     assert str(partitioned.value) == str(single.value)
     assert "2 of 5321 splats have non-finite values (NaN or inf) (y: 2)" in str(single.value)
     assert not (tmp_path / "out").exists()
-    m = encode_file(path, tmp_path / "out", memory_per_worker=SMALL_MEMORY, drop_invalid=True, **TREE)
+    with pytest.warns(UserWarning, match="2 of 5321 splats have non-finite values .*; dropped"):
+        m = encode_file(path, tmp_path / "out", memory_per_worker=SMALL_MEMORY, drop_invalid=True, **TREE)
     assert m.splats == len(g) - 2
 
 
@@ -181,6 +182,27 @@ def test_memory_url_output_reads_back_the_same(scene_ply, reference):
     a, b = decode_scene(store), decode_scene(reference)
     np.testing.assert_array_equal(a.positions, b.positions)
     np.testing.assert_array_equal(a.sh_rest, b.sh_rest)
+    # The streaming client reads the same scene from the URL.
+    import asyncio
+
+    from client_gl.stream.sources import StoreSource, open_source
+
+    source = open_source(url)
+    assert isinstance(source, StoreSource)
+    root = m.tiles[0].groups["base"]
+    assert asyncio.run(source.fetch_manifest()) == files["manifest.msgpack"]
+    assert asyncio.run(source.fetch_payload(root)) == files[root.file]
+
+
+def test_cli_cluster_options_are_checked(scene_ply, tmp_path):
+    from conftest import run_cli
+
+    for args, message in ((["--workers", "0"], "--workers: expected a worker count of at least 1 or auto"),
+                          (["--workers", "2", "--scheduler", "tcp://127.0.0.1:1"], "give one of them"),
+                          (["--memory-per-worker", "lots"], "--memory-per-worker: expected a size")):
+        r = run_cli("encode", scene_ply, tmp_path / "out", *args)
+        assert r.returncode == 2 and message in r.stderr, r.stderr
+    assert not (tmp_path / "out").exists()
 
 
 def _free_port() -> int:
