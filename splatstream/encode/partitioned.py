@@ -434,7 +434,9 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
     sh_degree = opts.sh_degree if opts.sh_degree is not None else rows.sh_degree
     sh_degree = min(sh_degree, rows.sh_degree)
     row_bytes = _row_bytes(sh_degree)
-    chunk_rows = int(min(1 << 22, max(1 << 16, engine.memory_per_worker // (8 * row_bytes))))
+    # Chunks small enough for a worker's memory and numerous enough to keep every worker busy in the passes.
+    chunk_rows = min(engine.memory_per_worker // (8 * row_bytes), -(-rows.rows // (4 * engine.workers)))
+    chunk_rows = int(min(1 << 22, max(1 << 16, chunk_rows)))
     spans = [(s, min(s + chunk_rows, rows.rows)) for s in range(0, rows.rows, chunk_rows)]
 
     scans = engine.map(scan_chunk, [(rows, i, s, e, scratch) for i, (s, e) in enumerate(spans)], "read", progress)
