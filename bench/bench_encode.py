@@ -48,11 +48,8 @@ def run_encode(src: pathlib.Path, out: pathlib.Path, preset: str, extra: list[st
     _, rc, wall, maxrss_kb = line.split()
     info = json.loads(subprocess.run([sys.executable, "-m", "splatstream.cli", "info", str(out), "--json"],
                                      capture_output=True, text=True, check=True).stdout)
-    from splatstream.store import load_manifest
-
-    m = load_manifest(out)
     return {
-        "preset": preset, "wall_s": float(wall), "encode_s": m.encode_seconds, "peak_rss_mb": int(maxrss_kb) / 1024,
+        "preset": preset, "wall_s": float(wall), "encode_s": float(wall), "peak_rss_mb": int(maxrss_kb) / 1024,
         "splats": info["splats"], "tiles": info["tiles"], "levels": info["levels"],
         "gpu_bytes_per_splat": info["gpu_bytes_per_splat"],
         "disk_bytes_per_splat": info["bytes_on_disk"] / info["splats"],

@@ -270,100 +270,107 @@ def merge_gaussians(g: Gaussians, mass: np.ndarray, target: int) -> tuple[Gaussi
     return merged, merged_mass, assign
 
 
-# ---------------------------------------------------------------------------------------------- tree
+# ---------------------------------------------------------------------------------------------- tree shape
 
 
-def merge_errors(originals_pos: np.ndarray, originals_reach: np.ndarray, merged: Gaussians,
-                 assign: np.ndarray) -> np.ndarray:
-    """Per merged splat, a bound on the Hausdorff distance between the union of its ORIGINAL members' balls and
-    its own ball (balls of ERROR_SIGMAS standard deviations along the largest axis), in world units.
+@dataclass(frozen=True)
+class TreeShape:
+    """The shape of the tile tree of `splats` splats. It depends on the splat count and the options only, so every
+    worker of a partitioned encode derives the same ids from it."""
 
-    The union's farthest point outside the merged ball is max(dist + r_i - R); the merged ball's farthest point
-    outside the union is at most min(dist + R - r_i) (its distance to any one member ball bounds it)."""
-    mu = merged.positions.astype(np.float64)[assign]
-    big = ERROR_SIGMAS * np.exp(_row_max(merged.log_scales).astype(np.float64))
-    dist = _row_norm(originals_pos.astype(np.float64) - mu)
-    poke = np.full(len(merged), -np.inf)
-    np.maximum.at(poke, assign, dist + originals_reach - big[assign])
-    overreach = np.full(len(merged), np.inf)
-    np.minimum.at(overreach, assign, dist - originals_reach + big[assign])
-    return np.maximum(np.maximum(poke, overreach), 0.0)
+    splats: int
+    max_leaf_splats: int
+    reduction: float
+    depth: int  # kd depth of the leaves
+    kd_depths: tuple[int, ...]  # kd depth of each tile level, the root's (0) first
+    first_id: tuple[int, ...]  # first tile id of each level (breadth-first); the last entry is the tile count
 
+    @staticmethod
+    def of(splats: int, max_leaf_splats: int, reduction: float) -> TreeShape:
+        if max_leaf_splats < 1:
+            raise ValueError(f"max_leaf_splats must be at least 1, got {max_leaf_splats}")
+        if not reduction > 1.0:
+            raise ValueError(f"reduction must be above 1, got {reduction}")
+        depth = math.ceil(math.log2(splats / max_leaf_splats)) if splats > max_leaf_splats else 0
+        step = max(1, round(math.log2(reduction)))  # kd depths per tile level
+        # kd depths that are tile levels: the leaves, every `step` above them, and the root.
+        kd_depths = tuple(sorted({0, *range(depth, 0, -step)}))
+        first_id = tuple(int(v) for v in np.cumsum([0] + [2**k for k in kd_depths]))
+        return TreeShape(splats, max_leaf_splats, float(reduction), depth, kd_depths, first_id)
 
-def match_screen_appearance(merged: Gaussians, originals: Gaussians, represented_by: np.ndarray,
-                            pixel: float) -> np.ndarray:
-    """Set the opacities and base colours (SH band 0) of merged splats, in place, from their ORIGINAL members
-    as the renderer draws them at the tile's viewing scale: pixels of `pixel` world units.
+    @property
+    def leaf_level(self) -> int:
+        return len(self.kd_depths) - 1
 
-    3DGS rasterisers add a 0.3 px^2 low-pass to every projected covariance without lowering the opacity, so a
-    sub-pixel splat covers about opacity * (dilated area), far more than its mass. Coarse tiles are drawn exactly
-    when their members are sub-pixel. Plain mass preservation then loses coverage (holes, dark silhouettes) and
-    lets big members outweigh the many small ones that dominate the picture (fine sprinkles on a donut's icing).
-    Both sides are therefore measured after the same blur b: alpha = sum alpha_i A(Sigma_i + b) / A(Sigma + b),
-    colour = mean of the members' colours weighted by alpha_i A(Sigma_i + b). Higher SH bands keep the
-    hierarchical mass-weighted mean (view-dependent residuals, cheap). Where alpha would exceed the ceiling the
-    scales grow by up to MAX_INFLATION instead; returns the indices of the merged splats that grew."""
-    blur = LOW_PASS_PX2 * pixel * pixel
-    alpha_i = 1.0 / (1.0 + np.exp(-originals.opacity_logits.astype(np.float64)))
-    shown = alpha_i * _coverage_area(originals.log_scales, blur)
-    covered = np.bincount(represented_by, weights=shown, minlength=len(merged))
-    single = np.bincount(represented_by, minlength=len(merged)) == 1
-    need = covered / _coverage_area(merged.log_scales, blur)
-    grow_rows = np.zeros(0, np.int64)
-    if MAX_INFLATION > 1.0:
-        # More coverage than one Gaussian can give under the opacity ceiling: the members' sum is flat-topped
-        # with a sharp rim, the merged Gaussian peaked and soft, so clamping drops coverage at silhouettes.
-        # Spend the excess on size: the smallest growth k of the scales with cap * A(k^2 Sigma + b) >= covered.
-        grow_rows = np.flatnonzero((need > MAX_MERGED_OPACITY) & ~single)
-        if len(grow_rows):
-            ls = merged.log_scales[grow_rows].astype(np.float64)
-            lo_k, hi_k = np.zeros(len(grow_rows)), np.full(len(grow_rows), math.log(MAX_INFLATION))
-            for _ in range(20):
-                mid = (lo_k + hi_k) / 2
-                ok = MAX_MERGED_OPACITY * _coverage_area(ls + mid[:, None], blur) >= covered[grow_rows]
-                hi_k = np.where(ok, mid, hi_k)
-                lo_k = np.where(ok, lo_k, mid)
-            merged.log_scales[grow_rows] = (ls + hi_k[:, None]).astype(np.float32)
-            need[grow_rows] = covered[grow_rows] / _coverage_area(merged.log_scales[grow_rows], blur)
-    alpha = np.clip(need, 1e-7, MAX_MERGED_OPACITY)
-    logits = np.log(alpha / (1.0 - alpha)).astype(np.float32)
-    weight = shown + 1e-300
-    total = np.bincount(represented_by, weights=weight, minlength=len(merged))
-    sh_dc = np.stack([np.bincount(represented_by, weights=weight * originals.sh_dc[:, k], minlength=len(merged))
-                      for k in range(3)], 1) / total[:, None]
-    # A splat standing for one original is that original (merge_gaussians copies singletons).
-    merged.opacity_logits = np.where(single, merged.opacity_logits, logits)
-    merged.sh_dc = np.where(single[:, None], merged.sh_dc, sh_dc.astype(np.float32))
-    return grow_rows
+    @property
+    def tiles(self) -> int:
+        return self.first_id[-1]
+
+    def tile_id(self, level: int, position: int) -> int:
+        """Id of the `position`-th tile (kd order) of tile level `level`."""
+        return self.first_id[level] + position
+
+    def fan(self, level: int) -> int:
+        """Children of each tile of `level`."""
+        return 2 ** (self.kd_depths[level + 1] - self.kd_depths[level])
+
+    def children(self, level: int, position: int) -> list[int]:
+        fan = self.fan(level)
+        return [self.tile_id(level + 1, position * fan + k) for k in range(fan)]
 
 
-def _tile_error(errors: np.ndarray) -> float:
-    if not len(errors):
-        return 0.0
-    if ERROR_STAT == "max":
-        return float(errors.max())
-    return float(np.quantile(errors, float(ERROR_STAT)))
+# ---------------------------------------------------------------------------------------------- kd splits
 
 
-def _kd_leaves(positions: np.ndarray, depth: int, progress: Progress) -> list[np.ndarray]:
-    """Balanced kd-tree by median splits on the longest centre-box axis; leaf index sets in kd order."""
+def sort_keys(values: np.ndarray, index: np.ndarray) -> np.ndarray:
+    """uint64 keys that order splats by (value, global index): the float32 value's bits made order-preserving in
+    the high half (-0.0 sorts before +0.0), the splat's index in the input in the low half. Keys are unique, so a
+    median split by key is the same on every machine and in every partitioning (numpy's argpartition on the values
+    alone puts ties on either side arbitrarily)."""
+    bits = np.ascontiguousarray(values, np.float32).view(np.uint32)
+    ordered = np.where(bits >> np.uint32(31), ~bits, bits | np.uint32(0x80000000))
+    return (ordered.astype(np.uint64) << np.uint64(32)) | index.astype(np.uint64)
+
+
+def split_axis(lo: np.ndarray, hi: np.ndarray) -> int:
+    """The kd split axis of a node from its centre box (float32 min and max): the longest side, first on ties."""
+    return int(np.argmax(hi - lo))
+
+
+def kd_split(positions: np.ndarray, index: np.ndarray, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """Median split of the splats `rows` (ascending): (lower rows, upper rows, axis, pivot key). The lower half
+    holds the len(rows) // 2 splats of smallest key on the longest axis; both halves stay ascending."""
+    p = positions[rows]
+    axis = split_axis(_col_min(p), _col_max(p))
+    keys = sort_keys(p[:, axis], index[rows])
+    pivot = np.partition(keys, len(rows) // 2)[len(rows) // 2]
+    below = keys < pivot
+    return rows[below], rows[~below], axis, int(pivot)
+
+
+def kd_route(positions: np.ndarray, index: np.ndarray, splits: list[tuple[np.ndarray, np.ndarray]]) -> np.ndarray:
+    """The kd node (at depth len(splits)) of every splat, from the splits of the levels above: per level, each
+    node's axis and pivot key (a splat goes up when its key is >= the pivot)."""
+    node = np.zeros(len(positions), np.int64)
+    rows = np.arange(len(positions))
+    for axes, pivots in splits:
+        keys = sort_keys(positions[rows, axes[node]], index)
+        node = 2 * node + (keys >= pivots[node])
+    return node
+
+
+def _kd_leaves(positions: np.ndarray, index: np.ndarray, levels: int, progress: Progress) -> list[np.ndarray]:
+    """`levels` rounds of median splits; leaf row sets (ascending) in kd order."""
     nodes = [np.arange(len(positions))]
-    for level in range(depth):
-        split: list[np.ndarray] = []
-        for idx in nodes:
-            p = positions[idx]
-            axis = int(np.argmax(_col_max(p) - _col_min(p)))
-            half = len(idx) // 2
-            part = np.argpartition(p[:, axis], half)
-            split += [idx[part[:half]], idx[part[half:]]]
-        nodes = split
-        progress("lod-split", (level + 1) / depth)
+    for level in range(levels):
+        nodes = [half for rows in nodes for half in kd_split(positions, index, rows)[:2]]
+        progress("lod-split", (level + 1) / levels)
     return nodes
 
 
 def _leaf_orders(positions: np.ndarray, leaves: list[np.ndarray]) -> np.ndarray:
-    """Concatenated leaf index sets, each in 3D Morton order over its own centre box."""
-    return np.concatenate([idx[np.argsort(_morton(positions[idx]), kind="stable")] for idx in leaves])
+    """Concatenated leaf row sets, each in 3D Morton order over its own centre box (ties: input order)."""
+    return np.concatenate([rows[np.argsort(_morton(positions[rows]), kind="stable")] for rows in leaves])
 
 
 def _permute(g: Gaussians, perm: np.ndarray) -> Gaussians:
@@ -388,6 +395,285 @@ def _slice(g: Gaussians, a: int, b: int) -> Gaussians:
                      g.sh_dc[a:b], g.sh_rest[a:b])
 
 
+# ---------------------------------------------------------------------------------------------- reductions over
+# the ORIGINAL splats a merged splat stands for. A partitioned encode computes them for the tiles above its
+# partitions from the workers' partial results, so each is either exact in any order (max, min, integer counts)
+# or a float sum taken in one fixed order: per leaf tile (np.bincount, in the leaf's row order), then the leaves'
+# sums added in kd order (fold_leaf_sums). The same code runs whether the leaves sit on one machine or many.
+
+
+def original_reach(g: Gaussians | np.ndarray) -> np.ndarray:
+    """Radius of each splat's ERROR_SIGMAS ball along its largest axis (world units), from splats or log scales."""
+    log_scales = g.log_scales if isinstance(g, Gaussians) else g
+    return ERROR_SIGMAS * np.exp(_row_max(log_scales).astype(np.float64))
+
+
+def error_extremes(positions: np.ndarray, reach: np.ndarray, merged_positions: np.ndarray, rep: np.ndarray,
+                   size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per merged splat, max of (d_i + r_i) and min of (d_i - r_i) over the originals i it stands for (d_i: the
+    distance of their centres). Exact in any order: partial results combine with np.maximum / np.minimum."""
+    mu = merged_positions.astype(np.float64)[rep]
+    dist = _row_norm(positions.astype(np.float64) - mu)
+    far = np.full(size, -np.inf)
+    np.maximum.at(far, rep, dist + reach)
+    near = np.full(size, np.inf)
+    np.minimum.at(near, rep, dist - reach)
+    return far, near
+
+
+def errors_from_extremes(far: np.ndarray, near: np.ndarray, merged: Gaussians | np.ndarray) -> np.ndarray:
+    """Per merged splat, the Hausdorff bound e_m of lod.md section 3 (world units), from error_extremes: the union
+    of the members' balls sticks out of the merged ball by max(d + r) - R; the merged ball reaches beyond the best
+    covering member by min(d - r) + R. (Subtracting R after the max is the same float result as before it.)"""
+    radius = original_reach(merged) if isinstance(merged, Gaussians) else merged
+    return np.maximum(np.maximum(far - radius, near + radius), 0.0)
+
+
+def merge_errors(originals_pos: np.ndarray, originals_reach: np.ndarray, merged: Gaussians,
+                 assign: np.ndarray) -> np.ndarray:
+    """Per merged splat, a bound on the Hausdorff distance between the union of its ORIGINAL members' balls and
+    its own ball (balls of ERROR_SIGMAS standard deviations along the largest axis), in world units."""
+    far, near = error_extremes(originals_pos, originals_reach, merged.positions, assign, len(merged))
+    return errors_from_extremes(far, near, merged)
+
+
+def tile_error(errors: np.ndarray, counts: np.ndarray) -> float:
+    """ERROR_STAT over a tile's originals, each original counting with its merged splat's error, from the
+    (error, member count) pairs: np.quantile(np.repeat(errors, counts), q) (linear interpolation) without the
+    repeat, so counts summed over workers give the exact value."""
+    keep = counts > 0
+    e, c = errors[keep], counts[keep]
+    if not len(e):
+        return 0.0
+    if ERROR_STAT == "max":
+        return float(e.max())
+    order = np.argsort(e, kind="stable")
+    e = e[order]
+    ends = np.cumsum(c[order])
+    n = int(ends[-1])
+    q = float(ERROR_STAT)
+    virtual = (n - 1) * q
+    below = min(int(math.floor(virtual)), n - 1)
+    frac = virtual - below
+    a = e[np.searchsorted(ends, below, side="right")]
+    b = e[np.searchsorted(ends, min(below + 1, n - 1), side="right")]
+    return float(a + (b - a) * frac) if frac < 0.5 else float(b - (b - a) * (1.0 - frac))
+
+
+def viewing_blur(error: float) -> float:
+    """The low-pass variance (world units squared) of a tile drawn at OPACITY_MATCH_SSE_PX screen-space error."""
+    pixel = error / OPACITY_MATCH_SSE_PX
+    return LOW_PASS_PX2 * pixel * pixel
+
+
+APPEARANCE_TERMS = 5  # shown coverage, colour weight, colour weight x SH band 0 (3)
+
+
+def appearance_terms(opacity_logits: np.ndarray, log_scales: np.ndarray, sh_dc: np.ndarray,
+                     blur: float) -> np.ndarray:
+    """(5, N) per original: its coverage as the rasteriser shows it after the blur (alpha x dilated area), the
+    colour weight (the same, kept positive) and the weight times each SH band 0 channel."""
+    alpha = 1.0 / (1.0 + np.exp(-opacity_logits.astype(np.float64)))
+    shown = alpha * _coverage_area(log_scales, blur)
+    weight = shown + 1e-300  # all-transparent groups still get a defined colour
+    return np.stack([shown, weight, weight * sh_dc[:, 0], weight * sh_dc[:, 1], weight * sh_dc[:, 2]])
+
+
+def leaf_sums(rep: np.ndarray, terms: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """One leaf's sums of `terms` per merged splat: (merged splats present, (terms, present) sums in row order)."""
+    present = np.flatnonzero(np.bincount(rep, minlength=size))
+    return present, np.stack([np.bincount(rep, weights=t, minlength=size)[present] for t in terms])
+
+
+def fold_leaf_sums(parts: list[tuple[np.ndarray, np.ndarray]], size: int) -> np.ndarray:
+    """The leaves' sums (leaf_sums, in kd order) added one leaf after the other: (terms, size)."""
+    acc = np.zeros((APPEARANCE_TERMS, size))
+    for present, sums in parts:
+        acc[:, present] += sums
+    return acc
+
+
+def finish_appearance(merged: Gaussians, counts: np.ndarray, sums: np.ndarray, blur: float) -> np.ndarray:
+    """Set the opacities and base colours (SH band 0) of merged splats, in place, from their ORIGINAL members as
+    the renderer draws them at the tile's viewing scale (`sums`: fold_leaf_sums of appearance_terms).
+
+    3DGS rasterisers add a 0.3 px^2 low-pass to every projected covariance without lowering the opacity, so a
+    sub-pixel splat covers about opacity * (dilated area), far more than its mass. Coarse tiles are drawn exactly
+    when their members are sub-pixel. Plain mass preservation then loses coverage (holes, dark silhouettes) and
+    lets big members outweigh the many small ones that dominate the picture (fine sprinkles on a donut's icing).
+    Both sides are therefore measured after the same blur b: alpha = sum alpha_i A(Sigma_i + b) / A(Sigma + b),
+    colour = mean of the members' colours weighted by alpha_i A(Sigma_i + b). Higher SH bands keep the
+    hierarchical mass-weighted mean (view-dependent residuals, cheap). Where alpha would exceed the ceiling the
+    scales grow by up to MAX_INFLATION instead; returns the indices of the merged splats that grew."""
+    covered, total = sums[0], sums[1]
+    single = counts == 1
+    need = covered / _coverage_area(merged.log_scales, blur)
+    grow_rows = np.zeros(0, np.int64)
+    if MAX_INFLATION > 1.0:
+        # More coverage than one Gaussian can give under the opacity ceiling: the members' sum is flat-topped
+        # with a sharp rim, the merged Gaussian peaked and soft, so clamping drops coverage at silhouettes.
+        # Spend the excess on size: the smallest growth k of the scales with cap * A(k^2 Sigma + b) >= covered.
+        grow_rows = np.flatnonzero((need > MAX_MERGED_OPACITY) & ~single)
+        if len(grow_rows):
+            ls = merged.log_scales[grow_rows].astype(np.float64)
+            lo_k, hi_k = np.zeros(len(grow_rows)), np.full(len(grow_rows), math.log(MAX_INFLATION))
+            for _ in range(20):
+                mid = (lo_k + hi_k) / 2
+                ok = MAX_MERGED_OPACITY * _coverage_area(ls + mid[:, None], blur) >= covered[grow_rows]
+                hi_k = np.where(ok, mid, hi_k)
+                lo_k = np.where(ok, lo_k, mid)
+            merged.log_scales[grow_rows] = (ls + hi_k[:, None]).astype(np.float32)
+            need[grow_rows] = covered[grow_rows] / _coverage_area(merged.log_scales[grow_rows], blur)
+    alpha = np.clip(need, 1e-7, MAX_MERGED_OPACITY)
+    logits = np.log(alpha / (1.0 - alpha)).astype(np.float32)
+    sh_dc = sums[2:5].T / total[:, None]
+    # A splat standing for one original is that original (merge_gaussians copies singletons).
+    merged.opacity_logits = np.where(single, merged.opacity_logits, logits)
+    merged.sh_dc = np.where(single[:, None], merged.sh_dc, sh_dc.astype(np.float32))
+    return grow_rows
+
+
+def tile_error_first(merged: Gaussians, counts: np.ndarray, far: np.ndarray, near: np.ndarray,
+                     child_error: float) -> tuple[np.ndarray, float]:
+    """An interior tile's per-splat errors and its error (at least its children's), before its appearance."""
+    errors = errors_from_extremes(far, near, merged)
+    return errors, max(tile_error(errors, counts), child_error)
+
+
+def finish_tile_appearance(merged: Gaussians, counts: np.ndarray, far: np.ndarray, near: np.ndarray,
+                           errors: np.ndarray, error: float, sums: np.ndarray) -> float:
+    """Opacities and colours matched at the viewing scale of `error` (`sums`: the folded appearance_terms at
+    viewing_blur(error)), then the error again for splats that grew; returns the tile's final error."""
+    grown = finish_appearance(merged, counts, sums, viewing_blur(error))
+    if len(grown):
+        # Some splats grew to carry their coverage: measure those again, keep the larger tile error.
+        errors[grown] = errors_from_extremes(far[grown], near[grown], original_reach(merged)[grown])
+        error = max(error, tile_error(errors, counts))
+    return error
+
+
+def finish_tile(merged: Gaussians, counts: np.ndarray, far: np.ndarray, near: np.ndarray, child_error: float,
+                appearance: Callable[[float], np.ndarray]) -> float:
+    """The last steps of an interior tile, the same wherever its originals are: the error, opacities and colours
+    matched at that error's viewing scale (`appearance(blur)` gives the folded sums), the error again for splats
+    that grew. Returns the tile's geometric error; `merged` is changed in place."""
+    errors, error = tile_error_first(merged, counts, far, near, child_error)
+    return finish_tile_appearance(merged, counts, far, near, errors, error, appearance(viewing_blur(error)))
+
+
+def interior_bounds(merged: Gaussians, kids: list[Tile]) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+    """Box and sphere of an interior tile: its merged splats' extents and its children's volumes (so culling a
+    parent never hides a child)."""
+    lo, hi, own_c, own_r = extent_bounds(merged)
+    lo = np.minimum(lo, np.min([k.box_min for k in kids], axis=0))
+    hi = np.maximum(hi, np.max([k.box_max for k in kids], axis=0))
+    c = (lo + hi) / 2
+    r = max(float(np.linalg.norm(k.sphere_center - c)) + k.sphere_radius for k in kids)
+    r = max(r, float(np.linalg.norm(own_c - c)) + own_r)
+    return lo, hi, c, r
+
+
+# ---------------------------------------------------------------------------------------------- tree
+
+
+@dataclass
+class Subtree:
+    """The tiles of one subtree (the whole tree, or a partition of a partitioned encode) and what the tiles above
+    it need from its originals."""
+
+    tiles: dict[int, Tile]  # by global id
+    root: Tile
+    root_mass: np.ndarray  # carried merge weights of the root's splats
+    ordered: Gaussians  # the subtree's original splats in leaf order; leaves are slices of it
+    leaf_starts: np.ndarray  # (leaves + 1,) row offsets of the leaves in `ordered`
+    represented_by: np.ndarray  # per row of `ordered`: the root splat standing for it
+
+
+def build_subtree(g: Gaussians, index: np.ndarray, shape: TreeShape, level: int = 0, position: int = 0,
+                  progress: Progress | None = None, reorder_input: bool = False) -> Subtree:
+    """The tiles under tile `position` of tile level `level` (the whole tree for level 0), from exactly that
+    subtree's splats `g`, whose global indices `index` are ascending (the input's order).
+
+    Leaves are slices of one array per attribute holding the splats in leaf order: a copy of `g` by default, or,
+    with `reorder_input`, `g`'s own arrays reordered in place, which saves a copy."""
+    progress = progress or (lambda stage, fraction: None)
+    kd0 = shape.kd_depths[level]
+    leaves = _kd_leaves(g.positions, index, shape.depth - kd0, progress)
+    perm = _leaf_orders(g.positions, leaves)
+    ordered = _permute_in_place(g, perm) if reorder_input else _permute(g, perm)
+    del perm
+    progress("lod-leaves", 1.0)
+
+    def span(lvl: int) -> int:  # tiles of tile level `lvl` in this subtree
+        return 2 ** (shape.kd_depths[lvl] - kd0)
+
+    leaf_level = shape.leaf_level
+    leaf_starts = np.cumsum([0] + [len(rows) for rows in leaves])
+    del leaves
+    tiles: dict[int, Tile] = {}
+    spans: dict[int, tuple[int, int]] = {}  # tile id -> its leaves (first, end) in leaf order
+    masses: dict[int, np.ndarray] = {}
+    # For each original splat of the tile's span: index of the tile splat that represents it.
+    represented_by: dict[int, np.ndarray] = {}
+    for j in range(span(leaf_level)):
+        tid = shape.tile_id(leaf_level, position * span(leaf_level) + j)
+        a, b = int(leaf_starts[j]), int(leaf_starts[j + 1])
+        part = _slice(ordered, a, b)
+        spans[tid] = (j, j + 1)
+        lo, hi, c, r = extent_bounds(part)
+        tiles[tid] = Tile(tid, leaf_level, [], part, 0.0, lo, hi, c, r)
+        masses[tid] = splat_mass(part)
+        represented_by[tid] = np.arange(b - a)
+    reach = original_reach(ordered)
+
+    total_merges = sum(span(lvl) for lvl in range(level, leaf_level))
+    merges_done = 0
+    for lvl in range(leaf_level - 1, level - 1, -1):
+        for j in range(span(lvl)):
+            tid = shape.tile_id(lvl, position * span(lvl) + j)
+            child_ids = shape.children(lvl, position * span(lvl) + j)
+            kids = [tiles[c] for c in child_ids]
+            first, end = spans[child_ids[0]][0], spans[child_ids[-1]][1]
+            spans[tid] = (first, end)
+            a, b = int(leaf_starts[first]), int(leaf_starts[end])
+            # Leaf children are adjacent slices of `ordered`: merge them in place instead of copying.
+            members = (_slice(ordered, a, b) if lvl == leaf_level - 1
+                       else Gaussians.concatenate([k.gaussians for k in kids]))
+            member_mass = np.concatenate([masses.pop(c) for c in child_ids])
+            target = min(shape.max_leaf_splats, math.ceil(len(members) / shape.reduction))
+            merged, merged_mass, assign = merge_gaussians(members, member_mass, target)
+            del members, member_mass
+            offsets = np.cumsum([0] + [len(k.gaussians) for k in kids])
+            rep = assign[np.concatenate([represented_by.pop(c) + offsets[k] for k, c in enumerate(child_ids)])]
+            represented_by[tid] = rep
+            masses[tid] = merged_mass
+            originals = _slice(ordered, a, b)
+            size = len(merged)
+            # Errors and appearance are measured against the originals (lod.md 3, 6).
+            far, near = error_extremes(originals.positions, reach[a:b], merged.positions, rep, size)
+
+            def appearance(blur: float, a: int = a, first: int = first, end: int = end,
+                           rep: np.ndarray = rep, size: int = size) -> np.ndarray:
+                parts = []
+                for leaf in range(first, end):
+                    s, e = int(leaf_starts[leaf]), int(leaf_starts[leaf + 1])
+                    terms = appearance_terms(ordered.opacity_logits[s:e], ordered.log_scales[s:e],
+                                             ordered.sh_dc[s:e], blur)
+                    parts.append(leaf_sums(rep[s - a:e - a], terms, size))
+                return fold_leaf_sums(parts, size)
+
+            error = finish_tile(merged, np.bincount(rep, minlength=size), far, near,
+                                max(k.geometric_error for k in kids), appearance)
+            lo, hi, c, r = interior_bounds(merged, kids)
+            tiles[tid] = Tile(tid, lvl, child_ids, merged, error, lo, hi, c, r)
+            merges_done += 1
+            progress("lod-merge", merges_done / total_merges)
+    root_id = shape.tile_id(level, position)
+    if not total_merges:
+        progress("lod-merge", 1.0)
+    return Subtree(tiles, tiles[root_id], masses[root_id], ordered, leaf_starts, represented_by[root_id])
+
+
 def build_tiles(g: Gaussians, max_leaf_splats: int = 16384, reduction: float = 4.0,
                 progress: Progress | None = None, reorder_input: bool = False) -> list[Tile]:
     """The LOD tile tree of `g`, as a list indexed by tile id (0 = root, breadth-first).
@@ -395,93 +681,9 @@ def build_tiles(g: Gaussians, max_leaf_splats: int = 16384, reduction: float = 4
     Leaves are slices of one array per attribute holding the splats in leaf order: a copy of `g` by default, or,
     with `reorder_input`, `g`'s own arrays reordered in place (the caller's `g` then holds the same splats in
     another order), which saves a copy of the whole scene."""
-    if max_leaf_splats < 1:
-        raise ValueError(f"max_leaf_splats must be at least 1, got {max_leaf_splats}")
-    if not reduction > 1.0:
-        raise ValueError(f"reduction must be above 1, got {reduction}")
-    progress = progress or (lambda stage, fraction: None)
-    n = len(g)
-    if n <= max_leaf_splats:
-        order = np.argsort(_morton(g.positions), kind="stable") if n else np.zeros(0, np.int64)
-        leaf = _permute_in_place(g, order) if reorder_input else _permute(g, order)
-        lo, hi, c, r = extent_bounds(leaf)
-        progress("lod-merge", 1.0)
-        return [Tile(0, 0, [], leaf, 0.0, lo, hi, c, r)]
-
-    depth = math.ceil(math.log2(n / max_leaf_splats))
-    step = max(1, round(math.log2(reduction)))  # kd depths per tile level
-    # kd depths that are tile levels: the leaves, every `step` above them, and the root.
-    kd_depths = sorted({0, *range(depth, 0, -step)})
-    leaves = _kd_leaves(g.positions, depth, progress)
-    perm = _leaf_orders(g.positions, leaves)
-    ordered = _permute_in_place(g, perm) if reorder_input else _permute(g, perm)
-    del perm
-    progress("lod-leaves", 1.0)
-
-    # Breadth-first ids: level L holds 2**kd_depths[L] tiles in kd order. A tile's subtree covers one
-    # contiguous range of `ordered` (leaves are kd-ordered), which the error pass compares against.
-    first_id = np.cumsum([0] + [2**k for k in kd_depths])
-    tiles: list[Tile | None] = [None] * int(first_id[-1])
-    spans: dict[int, tuple[int, int]] = {}
-    masses: dict[int, np.ndarray] = {}
-    # For each original splat of the tile's span: index of the tile splat that represents it.
-    represented_by: dict[int, np.ndarray] = {}
-    leaf_level = len(kd_depths) - 1
-    start = 0
-    for j, idx in enumerate(leaves):
-        tid = int(first_id[leaf_level]) + j
-        part = _slice(ordered, start, start + len(idx))
-        spans[tid] = (start, start + len(idx))
-        start += len(idx)
-        lo, hi, c, r = extent_bounds(part)
-        tiles[tid] = Tile(tid, leaf_level, [], part, 0.0, lo, hi, c, r)
-        masses[tid] = splat_mass(part)
-        represented_by[tid] = np.arange(len(idx))
-    del leaves
-    reach = ERROR_SIGMAS * np.exp(_row_max(ordered.log_scales).astype(np.float64))
-
-    total_merges = int(first_id[leaf_level])
-    merges_done = 0
-    for level in range(leaf_level - 1, -1, -1):
-        fan = 2 ** (kd_depths[level + 1] - kd_depths[level])
-        for j in range(2 ** kd_depths[level]):
-            tid = int(first_id[level]) + j
-            child_ids = [int(first_id[level + 1]) + j * fan + k for k in range(fan)]
-            kids = [tiles[c] for c in child_ids]
-            a, b = spans[child_ids[0]][0], spans[child_ids[-1]][1]
-            spans[tid] = (a, b)
-            # Leaf children are adjacent slices of `ordered`: merge them in place instead of copying.
-            members = (_slice(ordered, a, b) if level == leaf_level - 1
-                       else Gaussians.concatenate([k.gaussians for k in kids]))
-            member_mass = np.concatenate([masses.pop(c) for c in child_ids])
-            target = min(max_leaf_splats, math.ceil(len(members) / reduction))
-            merged, merged_mass, assign = merge_gaussians(members, member_mass, target)
-            del members, member_mass
-            offsets = np.cumsum([0] + [len(k.gaussians) for k in kids])
-            represented_by[tid] = assign[np.concatenate(
-                [represented_by.pop(c) + offsets[k] for k, c in enumerate(child_ids)])]
-            originals = _slice(ordered, a, b)
-            masses[tid] = merged_mass
-            # Errors are measured against the originals; the max with the children keeps them monotone.
-            rep = represented_by[tid]
-            errors = merge_errors(originals.positions, reach[a:b], merged, rep)
-            error = max(_tile_error(errors[rep]), *(k.geometric_error for k in kids))
-            grown = match_screen_appearance(merged, originals, rep, error / OPACITY_MATCH_SSE_PX)
-            if len(grown):
-                # Some splats grew to carry their coverage: measure those again, keep the larger tile error.
-                is_grown = np.zeros(len(merged), bool)
-                is_grown[grown] = True
-                sel = is_grown[rep]
-                errors[grown] = merge_errors(originals.positions[sel], reach[a:b][sel], merged, rep[sel])[grown]
-                error = max(error, _tile_error(errors[rep]))
-            lo, hi, own_c, own_r = extent_bounds(merged)
-            # The parent's volume also encloses its children's, so culling a parent never hides a child.
-            lo = np.minimum(lo, np.min([k.box_min for k in kids], axis=0))
-            hi = np.maximum(hi, np.max([k.box_max for k in kids], axis=0))
-            c = (lo + hi) / 2
-            r = max(float(np.linalg.norm(k.sphere_center - c)) + k.sphere_radius for k in kids)
-            r = max(r, float(np.linalg.norm(own_c - c)) + own_r)
-            tiles[tid] = Tile(tid, level, child_ids, merged, error, lo, hi, c, r)
-            merges_done += 1
-            progress("lod-merge", merges_done / total_merges)
-    return tiles  # type: ignore[return-value]
+    shape = TreeShape.of(len(g), max_leaf_splats, reduction)
+    if len(g) == 0:
+        progress and progress("lod-merge", 1.0)
+        return [Tile(0, 0, [], g, 0.0, *extent_bounds(g))]
+    sub = build_subtree(g, np.arange(len(g)), shape, 0, 0, progress, reorder_input)
+    return [sub.tiles[i] for i in range(shape.tiles)]

@@ -54,12 +54,16 @@ def flat_normal_shares(g: Gaussians) -> np.ndarray:
     return np.array([(weight * (np.abs(normals[:, a]) > ALIGNED_COS)).sum() / total for a in range(3)])
 
 
-def detect_up(g: Gaussians) -> UpChoice:
-    """The up vector of splats in the 3DGS (COLMAP) axes: -y, unless the scene is recognisably z-up."""
+def detect_up(g: Gaussians, positions: np.ndarray | None = None) -> UpChoice:
+    """The up vector of splats in the 3DGS (COLMAP) axes: -y, unless the scene is recognisably z-up.
+
+    `positions`: the centres whose 5-95 % extent is measured (default all of `g`'s; the encoder passes its
+    deterministic sample of the scene, encode/sample.py, so that a partitioned encode decides the same)."""
     if len(g) == 0:
         return UpChoice(Y_DOWN_UP, "the 3DGS convention (y down)")
     shares = flat_normal_shares(g)
-    p = g.positions[np.isfinite(g.positions).all(axis=1)]
+    p = g.positions if positions is None else positions
+    p = p[np.isfinite(p).all(axis=1)]
     extent = np.percentile(p, 95, axis=0) - np.percentile(p, 5, axis=0) if len(p) else np.ones(3)
     z_thick = extent[2] >= MIN_Z_EXTENT * max(float(extent.max()), 1e-30)
     if shares[2] >= MIN_Z_SHARE and shares[2] >= Z_DOMINANCE * max(shares[0], shares[1]) and z_thick:

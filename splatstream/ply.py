@@ -188,10 +188,43 @@ def _column_reader(arr: np.ndarray):
     return gather
 
 
-def read_gaussians_ply(path: str | os.PathLike, drop_invalid: bool = False) -> Gaussians:
-    """Read a standard 3DGS PLY (any PLY format, float or double, any property order)."""
-    path = os.fspath(path)
-    header = read_header(path)
+@dataclass
+class VertexLayout:
+    """Where the splats of a binary 3DGS PLY lie: fixed-size records, so any range of rows is one byte range."""
+
+    path: str
+    rows: int
+    offset: int  # byte offset of row 0
+    dtype: np.dtype  # one record
+    rest: int  # f_rest_* properties (0, 9, 24, 45)
+    names: list[str] = field(default_factory=list)
+
+    @property
+    def sh_degree(self) -> int:
+        return (0, 9, 24, 45).index(self.rest)
+
+
+@dataclass
+class RowStats:
+    """What reading some rows found wrong (summed over the parts of a file read piece by piece)."""
+
+    rows: int = 0
+    bad_rows: int = 0
+    per_field: dict[str, int] = field(default_factory=dict)
+    zero_q: int = 0
+    infinite: int = 0
+    infinite_positive: int = 0
+
+    def __add__(self, other: RowStats) -> RowStats:
+        fields = dict(self.per_field)
+        for k, v in other.per_field.items():
+            fields[k] = fields.get(k, 0) + v
+        return RowStats(self.rows + other.rows, self.bad_rows + other.bad_rows, fields, self.zero_q + other.zero_q,
+                        self.infinite + other.infinite, self.infinite_positive + other.infinite_positive)
+
+
+def _vertex_header(path: str, header: PlyHeader) -> tuple[PlyElement, int]:
+    """The checks of a 3DGS PLY's header: its vertex element and its f_rest_* count."""
     vertex = header.element("vertex")
     if vertex is None:
         raise InputError(path, "header", "no 'vertex' element (a 3DGS PLY stores splats as vertices)")
@@ -209,8 +242,44 @@ def read_gaussians_ply(path: str | os.PathLike, drop_invalid: bool = False) -> G
                          "(SH degree 0, 1, 2 or 3)")
     if rest != [f"f_rest_{i}" for i in range(n_rest)]:
         raise InputError(path, "element vertex", f"f_rest_* properties must be numbered 0..{n_rest - 1}")
-    _, elements = read_elements(path, header)
-    columns = _column_reader(elements.pop("vertex"))
+    return vertex, n_rest
+
+
+def vertex_layout(path: str | os.PathLike) -> VertexLayout | None:
+    """The row layout of a binary 3DGS PLY (after the same checks as read_gaussians_ply, the file's length
+    included), or None for an ASCII PLY (rows of varying length: read it whole)."""
+    path = os.fspath(path)
+    header = read_header(path)
+    vertex, n_rest = _vertex_header(path, header)
+    if header.format == "ascii":
+        return None
+    order = "<" if header.format == "binary_little_endian" else ">"
+    file_size = os.path.getsize(path)
+    offset, vertex_offset = header.size, 0
+    for el in header.elements:
+        dt = el.dtype(order)
+        need = el.count * dt.itemsize
+        if offset + need > file_size:
+            have = max(0, file_size - offset)
+            raise InputError(path, f"element {el.name}",
+                             f"truncated: header declares {el.count} rows of {dt.itemsize} bytes "
+                             f"({need} bytes) but only {have} bytes follow "
+                             f"({have // max(dt.itemsize, 1)} complete rows)")
+        if el is vertex:
+            vertex_offset = offset
+        offset += need
+    if offset != file_size:
+        raise InputError(path, "header", f"{file_size - offset} bytes after the last element: the element "
+                         "counts in the header do not match the data")
+    return VertexLayout(path, vertex.count, vertex_offset, vertex.dtype(order), n_rest,
+                        [p[0] for p in vertex.properties])
+
+
+def _gaussians_from_records(records: np.ndarray, n_rest: int) -> tuple[Gaussians, RowStats]:
+    """Gaussians from 3DGS vertex records: +-inf opacities clamped, rows with non-finite values or zero-length
+    quaternions found (and dropped: the caller decides from the stats whether that is an error)."""
+    columns = _column_reader(records)
+    del records  # the column reader holds the raw records until `columns` goes
     groups = {
         "positions": ["x", "y", "z"], "sh_dc": ["f_dc_0", "f_dc_1", "f_dc_2"], "opacity_logits": ["opacity"],
         "log_scales": ["scale_0", "scale_1", "scale_2"], "rotations": ["rot_0", "rot_1", "rot_2", "rot_3"],
@@ -220,6 +289,7 @@ def read_gaussians_ply(path: str | os.PathLike, drop_invalid: bool = False) -> G
     values = {k: columns(v) for k, v in groups.items()}
     del columns  # drops the raw records
     n = len(values["positions"])
+    stats = RowStats(rows=n)
     # An infinite opacity logit is alpha exactly 1 (+inf) or 0 (-inf): splat-transform writes +inf for fully
     # opaque splats. It is a value, not corruption: clamp it to the finite logit every 8-bit-alpha reader uses
     # for alpha 1 or 0. NaN stays invalid (below).
@@ -229,49 +299,78 @@ def read_gaussians_ply(path: str | os.PathLike, drop_invalid: bool = False) -> G
         from .readers import opacity_logits_from_unit
 
         limit = float(opacity_logits_from_unit(np.ones(1))[0])
-        positive = int((opacity > 0)[infinite].sum())
+        stats.infinite = int(infinite.sum())
+        stats.infinite_positive = int((opacity > 0)[infinite].sum())
         opacity[infinite] = np.where(opacity[infinite] > 0, limit, -limit)
-        warnings.warn(InfiniteOpacityWarning(
-            f"{path}: {int(infinite.sum())} of {n} splats have an infinite opacity logit ({positive} +inf = alpha 1, "
-            f"{int(infinite.sum()) - positive} -inf = alpha 0); read as +-{limit:.2f}", int(infinite.sum())),
-            stacklevel=2)
     bad_rows = np.zeros(n, bool)
-    per_field: dict[str, int] = {}
     for key, cols in groups.items():
         finite = np.isfinite(values[key])
         if not finite.all():
             for i, name in enumerate(cols):
                 bad = int((~finite[:, i]).sum())
                 if bad:
-                    per_field[name] = bad
+                    stats.per_field[name] = bad
             bad_rows |= ~finite.all(axis=1)
     q = values["rotations"]
     zero_q = ~bad_rows & ~(np.abs(q) > 0).any(axis=1)
-    if bad_rows.any():
-        detail = ", ".join(f"{k}: {v}" for k, v in per_field.items())
-        msg = f"{int(bad_rows.sum())} of {n} splats have non-finite values (NaN or inf) ({detail})"
-        if not drop_invalid:
-            raise InputError(path, "element vertex", msg + "; pass --drop-invalid to drop them")
-        warnings.warn(f"{path}: {msg}; dropped", stacklevel=2)
-    if zero_q.any():
-        msg = f"{int(zero_q.sum())} of {n} splats have a zero-length quaternion (rot_0..rot_3 all 0)"
-        if not drop_invalid:
-            raise InputError(path, "element vertex", msg + "; pass --drop-invalid to drop them")
-        warnings.warn(f"{path}: {msg}; dropped", stacklevel=2)
+    stats.bad_rows, stats.zero_q = int(bad_rows.sum()), int(zero_q.sum())
     keep = ~(bad_rows | zero_q)
     if not keep.all():
         values = {k: v[keep] for k, v in values.items()}
-    k = n_rest // 3
     m = len(values["positions"])
-    sh_rest = values["sh_rest"].reshape(m, k, 3)
-    return Gaussians(
+    g = Gaussians(
         positions=values["positions"],
         rotations=normalize_quaternions(values["rotations"]),
         log_scales=values["log_scales"],
         opacity_logits=values["opacity_logits"][:, 0],
         sh_dc=values["sh_dc"],
-        sh_rest=sh_rest,
+        sh_rest=values["sh_rest"].reshape(m, n_rest // 3, 3),
     )
+    return g, stats
+
+
+def check_rows(path: str, stats: RowStats, drop_invalid: bool) -> None:
+    """Warn about clamped opacities and dropped rows, or raise InputError for invalid rows without drop_invalid:
+    one message for the whole file, however many pieces it was read in."""
+    n = stats.rows
+    if stats.infinite:
+        from .readers import opacity_logits_from_unit
+
+        limit = float(opacity_logits_from_unit(np.ones(1))[0])
+        warnings.warn(InfiniteOpacityWarning(
+            f"{path}: {stats.infinite} of {n} splats have an infinite opacity logit ({stats.infinite_positive} +inf "
+            f"= alpha 1, {stats.infinite - stats.infinite_positive} -inf = alpha 0); read as +-{limit:.2f}",
+            stats.infinite), stacklevel=3)
+    if stats.bad_rows:
+        detail = ", ".join(f"{k}: {v}" for k, v in stats.per_field.items())
+        msg = f"{stats.bad_rows} of {n} splats have non-finite values (NaN or inf) ({detail})"
+        if not drop_invalid:
+            raise InputError(path, "element vertex", msg + "; pass --drop-invalid to drop them")
+        warnings.warn(f"{path}: {msg}; dropped", stacklevel=3)
+    if stats.zero_q:
+        msg = f"{stats.zero_q} of {n} splats have a zero-length quaternion (rot_0..rot_3 all 0)"
+        if not drop_invalid:
+            raise InputError(path, "element vertex", msg + "; pass --drop-invalid to drop them")
+        warnings.warn(f"{path}: {msg}; dropped", stacklevel=3)
+
+
+def read_ply_rows(layout: VertexLayout, start: int, stop: int) -> tuple[Gaussians, RowStats]:
+    """Rows start..stop of a binary 3DGS PLY: one byte range of the file. Invalid rows are dropped and counted;
+    check_rows on the summed stats reports them as read_gaussians_ply would."""
+    count = max(0, min(stop, layout.rows) - start)
+    return _gaussians_from_records(np.fromfile(layout.path, dtype=layout.dtype, count=count,
+                                               offset=layout.offset + start * layout.dtype.itemsize), layout.rest)
+
+
+def read_gaussians_ply(path: str | os.PathLike, drop_invalid: bool = False) -> Gaussians:
+    """Read a standard 3DGS PLY (any PLY format, float or double, any property order)."""
+    path = os.fspath(path)
+    header = read_header(path)
+    _, n_rest = _vertex_header(path, header)
+    _, elements = read_elements(path, header)
+    g, stats = _gaussians_from_records(elements.pop("vertex"), n_rest)
+    check_rows(path, stats, drop_invalid)
+    return g
 
 
 def gaussians_ply_dtype(sh_degree: int, normals: bool = True) -> np.dtype:

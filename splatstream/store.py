@@ -115,9 +115,74 @@ class MemoryStore:
             raise FormatError(self.payload_source(entry), None, "payload named in the manifest is missing") from None
 
 
+def is_url(location: str | os.PathLike) -> bool:
+    """A location given as an fsspec URL (`s3://`, `gs://`, `memory://`, ...), not a local path."""
+    return isinstance(location, str) and "://" in location and not location.startswith("file://")
+
+
+def local_path(location: str | os.PathLike) -> str:
+    """A local path, `file://` URLs included."""
+    location = os.fspath(location)
+    return location[len("file://"):] if location.startswith("file://") else location
+
+
+def _fsspec(url: str):
+    """(filesystem, root path) of an fsspec URL; fsspec is optional (`pip install 'splatstream[cluster]'`)."""
+    from .errors import UsageError
+
+    try:
+        import fsspec
+    except ImportError:
+        raise UsageError(f"{url}: object-store and fsspec URLs need fsspec "
+                         "(pip install 'splatstream[cluster]', plus s3fs or gcsfs for s3:// or gs://)") from None
+    try:
+        fs, root = fsspec.core.url_to_fs(url)
+    except (ImportError, ValueError) as exc:
+        raise UsageError(f"{url}: cannot open this URL ({exc})") from None
+    return fs, root.rstrip("/")
+
+
+class FsspecStore:
+    """A scene under an fsspec URL (an object store bucket prefix, `memory://` in tests): the layout of a scene
+    directory (format_spec/format.md 1), read object by object."""
+
+    def __init__(self, url: str):
+        self.url = url.rstrip("/")
+        self.fs, self.root = _fsspec(url)
+
+    @property
+    def location(self) -> str:
+        return self.url
+
+    def _read(self, name: str, limit: int, what: str) -> bytes:
+        path = f"{self.root}/{name}"
+        try:
+            data = self.fs.cat_file(path)
+        except FileNotFoundError:
+            raise FormatError(f"{self.url}/{name}", None, f"no such object{what}") from None
+        except OSError as exc:
+            raise FormatError(f"{self.url}/{name}", None, f"cannot read ({exc})") from None
+        if len(data) > limit:
+            raise FormatError(f"{self.url}/{name}", None, f"{len(data)} bytes, more than the {limit} bytes expected")
+        return data
+
+    def read_manifest(self) -> bytes:
+        return self._read(MANIFEST_NAME, MAX_MANIFEST_BYTES, ": not a splatstream scene")
+
+    def payload_source(self, entry: PayloadEntry) -> str:
+        return f"{self.url}/{entry.file}"
+
+    def read_payload(self, entry: PayloadEntry) -> bytes:
+        if not is_payload_path(entry.file):
+            raise FormatError(f"{self.url}/{MANIFEST_NAME}", "file", f"unsafe payload path {entry.file!r}")
+        return self._read(entry.file, entry.bytes, " (payload named in the manifest is missing)")
+
+
 def open_store(source: str | os.PathLike | SceneStore) -> SceneStore:
     if isinstance(source, (str, os.PathLike)):
-        return DirectoryStore(os.fspath(source))
+        if is_url(source):
+            return FsspecStore(source)
+        return DirectoryStore(local_path(source))
     return source
 
 
@@ -147,6 +212,44 @@ class SceneWriter(Protocol):
 
     def write_manifest(self, m: Manifest) -> None: ...
 
+    def payload_writer(self) -> PayloadWriter:
+        """What a worker (another thread, process or machine) writes payloads through: small and picklable."""
+        ...
+
+
+class PayloadWriter(Protocol):
+    def payload_file(self) -> contextlib.AbstractContextManager[tuple[BinaryIO, callable]]: ...
+
+
+@dataclass
+class DirectoryPayloads:
+    """Payload files written straight into a scene directory's `data/` (under a DirectoryWriter's temporary
+    directory): a temporary name, then a rename to the checksum's name, so a worker that dies halfway leaves no
+    payload under a real name, and two workers writing the same payload write the same bytes."""
+
+    directory: str
+    mode: int = 0o644
+
+    @contextlib.contextmanager
+    def payload_file(self) -> Iterator[tuple[BinaryIO, callable]]:
+        """(file to stream into, finish(entry)): finish names the file by its checksum."""
+        fd, tmp_path = tempfile.mkstemp(prefix=".payload.", dir=os.path.join(self.directory, DATA_DIR))
+        done = False
+
+        def finish(entry: PayloadEntry) -> None:
+            nonlocal done
+            os.chmod(tmp_path, self.mode)
+            os.replace(tmp_path, os.path.join(self.directory, entry.file))  # identical content, identical name
+            done = True
+
+        try:
+            with os.fdopen(fd, "wb") as f:
+                yield f, finish
+        finally:
+            if not done:
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(tmp_path)
+
 
 def _umask() -> int:
     mask = os.umask(0)
@@ -174,25 +277,11 @@ class DirectoryWriter:
     def __exit__(self, *exc) -> bool | None:
         return self._atomic.__exit__(*exc)
 
-    @contextlib.contextmanager
-    def payload_file(self) -> Iterator[tuple[BinaryIO, callable]]:
-        """(file to stream into, finish(entry)): finish names the file by its checksum."""
-        fd, tmp_path = tempfile.mkstemp(prefix=".payload.", dir=os.path.join(self.tmp, DATA_DIR))
-        done = False
+    def payload_writer(self) -> DirectoryPayloads:
+        return DirectoryPayloads(self.tmp, self._mode)
 
-        def finish(entry: PayloadEntry) -> None:
-            nonlocal done
-            os.chmod(tmp_path, self._mode)
-            os.replace(tmp_path, os.path.join(self.tmp, entry.file))  # identical content has an identical name
-            done = True
-
-        try:
-            with os.fdopen(fd, "wb") as f:
-                yield f, finish
-        finally:
-            if not done:
-                with contextlib.suppress(FileNotFoundError):
-                    os.unlink(tmp_path)
+    def payload_file(self) -> contextlib.AbstractContextManager[tuple[BinaryIO, callable]]:
+        return self.payload_writer().payload_file()
 
     def write_manifest(self, m: Manifest) -> None:
         path = os.path.join(self.tmp, MANIFEST_NAME)
@@ -229,8 +318,73 @@ class MemoryWriter:
     def write_manifest(self, m: Manifest) -> None:
         self.manifest = m
 
+    def payload_writer(self) -> MemoryWriter:
+        return self  # in this process only
+
     def store(self) -> MemoryStore:
         if self.manifest is None:
             raise InputError(self.location, None, "the scene has no manifest yet")
         return MemoryStore(pack_manifest(self.manifest), dict(self.payloads), self.location)
 
+
+
+class FsspecWriter:
+    """Writes a scene under an fsspec URL (`s3://bucket/scene`, `gs://...`, `memory://...`).
+
+    Payloads are written first, each as one object named by its checksum (an object store's PUT is atomic, so a
+    reader never sees half a payload; workers on any machine write them with no coordination); the manifest is
+    written last and only after every payload it names is listed under the prefix, so the scene appears, or
+    changes to the new version, in one step. An interrupted encode writes no manifest: payloads it wrote stay
+    as unreferenced objects (named by content, harmless; `delete_unreferenced` can remove them). Payloads of an
+    earlier scene at the same URL are kept (clients may still be streaming it)."""
+
+    def __init__(self, url: str):
+        self.url = url.rstrip("/")
+        self.fs, self.root = _fsspec(url)
+
+    def __enter__(self) -> FsspecWriter:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        return None
+
+    def __getstate__(self) -> dict:
+        return {"url": self.url}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__init__(state["url"])
+
+    def payload_writer(self) -> FsspecWriter:
+        return self
+
+    @contextlib.contextmanager
+    def payload_file(self) -> Iterator[tuple[BinaryIO, callable]]:
+        import io
+
+        buf = io.BytesIO()
+
+        def finish(entry: PayloadEntry) -> None:
+            self.fs.pipe_file(f"{self.root}/{entry.file}", buf.getvalue())
+
+        yield buf, finish
+
+    def written_payloads(self) -> set[str]:
+        try:
+            found = self.fs.find(f"{self.root}/{DATA_DIR}")
+        except FileNotFoundError:
+            return set()
+        return {f"{DATA_DIR}/{p.rstrip('/').rsplit('/', 1)[-1]}" for p in found}
+
+    def write_manifest(self, m: Manifest) -> None:
+        missing = {p.file for _, _, p in m.payloads()} - self.written_payloads()
+        if missing:
+            raise FormatError(self.url, None, f"{len(missing)} payloads named by the manifest are not in the store "
+                              f"(e.g. {sorted(missing)[0]}); the manifest is not written")
+        self.fs.pipe_file(f"{self.root}/{MANIFEST_NAME}", pack_manifest(m))
+
+
+def open_writer(location: str | os.PathLike) -> DirectoryWriter | FsspecWriter:
+    """The SceneWriter for a local directory (atomic directory swap) or an fsspec URL (manifest last)."""
+    if is_url(location):
+        return FsspecWriter(os.fspath(location))
+    return DirectoryWriter(local_path(location))

@@ -22,7 +22,7 @@ import yarl
 from splatstream.errors import InputError, UsageError
 from splatstream.format.manifest import MAX_MANIFEST_BYTES, PayloadEntry
 from splatstream.format.names import MANIFEST_NAME, manifest_url, payload_url
-from splatstream.store import DirectoryStore, MemoryStore, SceneStore
+from splatstream.store import DirectoryStore, FsspecStore, MemoryStore, SceneStore
 
 # on_bytes(n): called with 0 when a response's headers arrive, then with the size of each body chunk received.
 OnBytes = Callable[[int], None]
@@ -242,6 +242,9 @@ class StoreSource:
 # What the user typed
 
 
+OBJECT_STORE_SCHEMES = ("s3", "gs", "gcs", "az", "abfs", "memory")
+
+
 def open_source(spec: str | os.PathLike, *, encode_options=None, progress: Progress | None = None,
                 connections: int = 8) -> SceneSource:
     """A source for an `http(s)://` scene URL, a scene directory (or its manifest.msgpack), or a splat file
@@ -249,11 +252,17 @@ def open_source(spec: str | os.PathLike, *, encode_options=None, progress: Progr
     follows the read and the encode; `encode_options` an EncodeOptions). Raises UsageError or InputError with
     one line naming `spec` and what was expected."""
     text = os.fspath(spec)
+    if text.startswith("file://"):
+        text = text[len("file://"):]
     if "://" in text:
         scheme = text.split("://", 1)[0].lower()
+        if scheme in OBJECT_STORE_SCHEMES:
+            # An object store (through fsspec): the scene layout read object by object.
+            return StoreSource(FsspecStore(text))
         if scheme not in ("http", "https"):
-            raise UsageError(f"{text}: unsupported URL scheme {scheme!r} (expected http:// or https://, a scene "
-                             f"directory or a splat file)")
+            raise UsageError(f"{text}: unsupported URL scheme {scheme!r} (expected http:// or https://, an object "
+                             f"store URL ({', '.join(s + '://' for s in OBJECT_STORE_SCHEMES)}), a scene directory "
+                             f"or a splat file)")
         return HttpSource(text, connections=connections)
     if not os.path.exists(text):
         raise InputError(text, None, "no such file or directory (expected an http(s):// scene URL, a scene "

@@ -27,3 +27,22 @@ def parse_size(text: str, smallest: int = 1, largest: int = 16384, what: str = "
     if not (smallest <= w <= largest and smallest <= h <= largest):
         raise UsageError(f"{what}: {w}x{h} is out of range ({smallest}..{largest} per side)")
     return w, h
+
+
+_UNITS = {"": 1, "b": 1, "k": 1e3, "kb": 1e3, "kib": 1024, "m": 1e6, "mb": 1e6, "mib": 1 << 20,
+          "g": 1e9, "gb": 1e9, "gib": 1 << 30, "t": 1e12, "tb": 1e12, "tib": 1 << 40}
+
+
+def parse_bytes(text: str, what: str) -> int:
+    """'4GB', '512MiB', '2e9' -> bytes (at least 1 MiB)."""
+    import re
+
+    match = re.fullmatch(r"\s*([0-9.]+(?:e[0-9]+)?)\s*([a-zA-Z]*)\s*", text or "")
+    unit = match.group(2).lower() if match else ""
+    try:
+        value = float(match.group(1)) * _UNITS[unit] if match else math.nan
+    except (KeyError, ValueError):
+        value = math.nan
+    if not math.isfinite(value) or value < (1 << 20):
+        raise UsageError(f"{what}: expected a size of at least 1MiB like 4GB or 512MiB, got {text!r}")
+    return int(value)

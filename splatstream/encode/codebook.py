@@ -24,6 +24,14 @@ def codebook_weights(g: Gaussians) -> np.ndarray:
     return sigmoid(g.opacity_logits).astype(np.float64) * np.exp(np.clip(largest_two, -60.0, 60.0))
 
 
+def codebook_choice(opts, sh_degree: int) -> str | int:
+    """The codebook an encode asks for: "off", "auto" or an entry count (the option, else the preset's)."""
+    choice = opts.sh_codebook if opts.sh_codebook is not None else PRESET_SH_CODEBOOK.get(opts.preset, "off")
+    if sh_degree < 1 or choice in ("off", 0, "0"):
+        return "off"
+    return choice
+
+
 def fit_sh_codebook(g: Gaussians, preset: str, choice: str | int | None, sh_degree: int) -> Codebook | None:
     """The SH codebook the encoder stores for these splats (None: no codebook). `choice`: None (the preset's),
     "off", "auto" or an entry count."""

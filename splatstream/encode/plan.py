@@ -1,7 +1,8 @@
 """Plan: the scene-wide steps of an encode, done once before any tile is written.
 
-Formats and SH degree from the options, the SH codebook (fitted on every splat), the LOD tile tree (lod.py) and
-the scene's facts (bounds, up, suggested camera). What comes out is everything a per-tile job needs
+Formats and SH degree from the options, the SH codebook, the up direction and the suggested camera (from the
+deterministic samples of sample.py, the same a partitioned encode takes), the LOD tile tree (lod.py) and the
+bounds. What comes out is everything a per-tile job needs
 (`TileContext`) plus the tiles themselves; jobs.py encodes tiles, reduce.py builds the manifest.
 """
 from __future__ import annotations
@@ -12,17 +13,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..camera import suggested_camera
 from ..errors import UsageError
 from ..format.layout import CHUNK_SIZE, MAX_BLOCK_ROWS, MAX_BLOCKS_PER_ROW
 from ..format.manifest import Box, CameraEntry
 from ..format.presets import resolve_chunk_order, resolve_formats
 from ..gaussians import Gaussians
 from ..lod import Tile, build_tiles
-from ..orientation import detect_up, view_side
 from ..vq import Codebook
-from .codebook import fit_sh_codebook
+from .codebook import codebook_choice
 from .options import EncodeOptions, Progress, no_progress
+from .sample import SceneSample
 
 log = logging.getLogger("splatstream.encode")
 
@@ -48,6 +48,7 @@ class EncodePlan:
     splats: int
     bounds: Box
     up: tuple[float, float, float]
+    sample: SceneSample | None = None
 
 
 def resolve_sh_degree(opts: EncodeOptions, g: Gaussians) -> int:
@@ -82,30 +83,33 @@ def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progr
     sh_degree = resolve_sh_degree(opts, g)
     if sh_degree != g.sh_degree:
         g = g.with_sh_degree(sh_degree)
+    choice = codebook_choice(opts, sh_degree)
+    sample = SceneSample.of(g, with_codebook=choice != "off")
     codebook = None
-    if sh_degree >= 1:
+    if choice != "off":
         progress("codebook", 0.0)
-        codebook = fit_sh_codebook(g, opts.preset, opts.sh_codebook, sh_degree)
+        codebook = sample.codebook(choice)
         progress("codebook", 1.0)
     bounds = Box(tuple(float(v) for v in g.positions.min(axis=0)), tuple(float(v) for v in g.positions.max(axis=0)))
-    if opts.up is not None:
-        up = tuple(float(v) for v in opts.up)
-    else:
-        choice = detect_up(g)
-        up = choice.up
-        log.info("up %s: %s (--up overrides it)", ",".join(f"{v:g}" for v in up), choice.reason)
+    up = plan_up(opts, sample)
     progress("tiles", 0.0)
     tiles = plan_tiles(g, opts, progress)
     progress("tiles", 1.0)
     context = TileContext(formats, chunk_order, sh_degree, codebook, opts.zstd_level, opts.shuffle)
-    return EncodePlan(context, tiles, opts, scene_name(opts, source_name, out_name), len(g), bounds, up)
+    return EncodePlan(context, tiles, opts, scene_name(opts, source_name, out_name), len(g), bounds, up, sample)
 
 
-def plan_camera(g: Gaussians, up: tuple[float, float, float]) -> CameraEntry:
-    """The suggested initial camera (format_spec/camera.md)."""
-    cam = suggested_camera(g.positions, up=up, side=view_side(g, up))
-    return CameraEntry(tuple(float(v) for v in cam.eye), tuple(float(v) for v in cam.target),
-                       tuple(float(v) for v in cam.up), float(cam.fov_y_deg))
+def plan_up(opts: EncodeOptions, sample: SceneSample) -> tuple[float, float, float]:
+    if opts.up is not None:
+        return tuple(float(v) for v in opts.up)
+    choice = sample.up()
+    log.info("up %s: %s (--up overrides it)", ",".join(f"{v:g}" for v in choice.up), choice.reason)
+    return choice.up
+
+
+def plan_camera(plan: EncodePlan) -> CameraEntry:
+    """The suggested initial camera (format_spec/camera.md), from the scene sample."""
+    return plan.sample.camera(plan.up)
 
 
 def positions_box(positions: np.ndarray) -> Box:

@@ -45,8 +45,11 @@ class _Sizes:
 
 
 def build_manifest(plan: EncodePlan, camera: CameraEntry, tiles: list[TileEntry],
-                   codebook: SHCodebookEntry | None, encode_seconds: float) -> Manifest:
-    """`tiles` in the plan's tile order (the per-attribute sums add up in that order); bytes_on_disk settled."""
+                   codebook: SHCodebookEntry | None) -> Manifest:
+    """`tiles` in the plan's tile order (the per-attribute sums add up in that order); bytes_on_disk settled.
+
+    Deterministic: the same plan and entries give the same bytes (`encode_seconds` is written as 0, format.md 6),
+    so encodes of the same input with the same options, on one machine or many, give identical manifests."""
     ctx = plan.context
     sizes = _Sizes()
     if codebook is not None:
@@ -83,6 +86,6 @@ def build_manifest(plan: EncodePlan, camera: CameraEntry, tiles: list[TileEntry]
         leaf_bytes_on_disk=int(sizes.leaf_disk),
         attributes={a: AttributeSize(ctx.formats[a], int(sizes.gpu[a]), int(sizes.disk[a]))
                     for a in ATTRIBUTES if a != "sh" or ctx.sh_degree > 0},
-        encode_seconds=round(encode_seconds, 3),
+        encode_seconds=0.0,
     )
     return m.with_bytes_on_disk(m.payload_bytes())

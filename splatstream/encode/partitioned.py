@@ -1,0 +1,554 @@
+"""Partitioned encoding: scenes larger than one machine's memory, on any engine that can map tasks (this process,
+encode/local.py; a Dask cluster, encode/distributed.py). Design and guarantees: format_spec/lod.md section 6,
+ARCHITECTURE.md "Distributed encoding".
+
+1. scan: the input is read in row ranges (a binary PLY's fixed-size records: one byte range each); each task
+   checks its rows, writes their centres to scratch and returns its counts and centre box.
+2. top splits: the kd median splits above the partitions, exact, by radix selection over the keys
+   (value, input index) of lod.sort_keys: counting passes over the centres, then a gather of the few candidates.
+3. route: every row goes to its partition (a subtree of the tile tree); each chunk writes one scratch file with a
+   section per partition, and its part of the scene samples (sample.py).
+4. plan: the SH codebook, up and camera from the samples, on the client.
+5. partitions: each task reads its sections, builds its subtree (lod.build_subtree, the code the single-process
+   encoder runs on the whole scene), writes its tiles' payloads (content-addressed: no coordination) and keeps its
+   originals in scratch for the tiles above.
+6. upper tiles: level by level on the client from the partition roots' splats; the errors and appearance they
+   take from the ORIGINAL splats come from two passes over the partitions (max/min and integer counts, which
+   combine exactly; per-leaf sums, folded in kd order, as lod.build_subtree folds them).
+7. the manifest, last.
+
+The output is byte-identical whatever the number of workers and partitions, and identical to encode_to's.
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from ..errors import UsageError
+from ..format.manifest import Box, TileEntry
+from ..format.presets import resolve_chunk_order, resolve_formats
+from ..gaussians import SH_REST_COEFFS, Gaussians
+from ..lod import (
+    Tile,
+    TreeShape,
+    _col_max,
+    _col_min,
+    appearance_terms,
+    build_subtree,
+    error_extremes,
+    finish_tile_appearance,
+    fold_leaf_sums,
+    interior_bounds,
+    kd_route,
+    leaf_sums,
+    merge_gaussians,
+    original_reach,
+    sort_keys,
+    split_axis,
+    tile_error_first,
+    viewing_blur,
+)
+from ..ply import RowStats, check_rows, read_ply_rows, vertex_layout
+from ..store import SceneWriter
+from .codebook import codebook_choice
+from .jobs import encode_codebook, encode_tile
+from .options import EncodeOptions, Progress, no_progress
+from .plan import EncodePlan, TileContext, plan_up, scene_name
+from .reduce import build_manifest
+from .sample import SceneSample
+from .scratch import Scratch
+
+# Bytes a partition task needs per splat of its partition, as a multiple of its Gaussians' bytes: the splats, the
+# build's temporaries (kd index sets, Morton orders, the first merge's float64 moments) and the encoder's.
+PARTITION_MEMORY_FACTOR = 4.0
+# Largest count of candidate keys per node gathered to the client to finish a median selection.
+GATHER_KEYS = 1 << 22
+# Upper tiles merged at once on the client (their splats and their members): bounds the client's memory.
+UPPER_BATCH_SPLATS = 1 << 20
+ATTRIBUTES = ("positions", "rotations", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
+
+
+class Engine(Protocol):
+    """Runs tasks: module-level functions and picklable arguments, results in the order of the arguments."""
+
+    workers: int
+    memory_per_worker: int  # bytes a task may use
+    threads_per_task: int
+
+    def map(self, fn: Callable, args: list[tuple], stage: str, progress: Progress, heavy: bool = False,
+            task_progress: bool = False) -> list:
+        """`heavy`: tasks that need a worker's memory (one at a time per worker). `task_progress`: each task gets
+        one more argument, a callable fraction -> None reporting its own progress (from wherever it runs)."""
+        ...
+
+
+# ---------------------------------------------------------------------------------------------- input rows
+
+
+@dataclass
+class PlyRows:
+    """A binary 3DGS PLY: each chunk of rows is one byte range of the file."""
+
+    layout: object  # ply.VertexLayout
+    path: str
+
+    @property
+    def rows(self) -> int:
+        return self.layout.rows
+
+    @property
+    def sh_degree(self) -> int:
+        return self.layout.sh_degree
+
+    def read(self, start: int, stop: int) -> tuple[Gaussians, RowStats]:
+        return read_ply_rows(self.layout, start, stop)
+
+
+@dataclass
+class ArrayRows:
+    """Gaussians already in memory (tests, and inputs read whole): chunks are slices."""
+
+    g: Gaussians
+
+    @property
+    def rows(self) -> int:
+        return len(self.g)
+
+    @property
+    def sh_degree(self) -> int:
+        return self.g.sh_degree
+
+    def read(self, start: int, stop: int) -> tuple[Gaussians, RowStats]:
+        part = self.g.subset(slice(start, stop))
+        return part, RowStats(rows=len(part))
+
+
+@dataclass
+class SpilledRows:
+    """An input that cannot be read by rows (compressed formats, ASCII PLY), read once and written to scratch in
+    chunks."""
+
+    scratch: Scratch
+    chunk_rows: int
+    rows: int
+    sh_degree: int
+
+    def read(self, start: int, stop: int) -> tuple[Gaussians, RowStats]:
+        a = self.scratch.load(f"input/{start // self.chunk_rows}")
+        return Gaussians(*(a[k] for k in ATTRIBUTES)), RowStats(rows=int(len(a["positions"])))
+
+
+def open_rows(path: str, scratch: Scratch, chunk_rows: int, drop_invalid: bool, progress: Progress):
+    """The input as rows to read in chunks: a binary PLY in byte ranges, anything else read once and spilled."""
+    from ..io import read_gaussians, sniff_format
+
+    if sniff_format(path) == "ply":
+        layout = vertex_layout(path)
+        if layout is not None:
+            return PlyRows(layout, path)
+    progress("read", 0.0)
+    g = read_gaussians(path, drop_invalid=drop_invalid)
+    for i, start in enumerate(range(0, len(g), chunk_rows)):
+        part = g.subset(slice(start, start + chunk_rows))
+        scratch.save(f"input/{i}", **{k: getattr(part, k) for k in ATTRIBUTES})
+    progress("read", 1.0)
+    return SpilledRows(scratch, chunk_rows, len(g), g.sh_degree)
+
+
+# ---------------------------------------------------------------------------------------------- tasks
+
+
+def scan_chunk(rows, i: int, start: int, stop: int, scratch: Scratch) -> tuple[int, RowStats, np.ndarray, np.ndarray]:
+    """Read one chunk: its valid row count, what was wrong, its centre box; its centres go to scratch."""
+    g, stats = rows.read(start, stop)
+    scratch.save(f"pos/{i}", p=g.positions)
+    if not len(g):
+        return 0, stats, np.full(3, np.inf, np.float32), np.full(3, -np.inf, np.float32)
+    return len(g), stats, _col_min(g.positions), _col_max(g.positions)
+
+
+def _chunk_keys(scratch: Scratch, i: int, offset: int, splits: list, axes: np.ndarray):
+    p = scratch.load(f"pos/{i}")["p"]
+    index = offset + np.arange(len(p), dtype=np.int64)
+    node = kd_route(p, index, splits)
+    return p, node, index
+
+
+def chunk_boxes(scratch: Scratch, i: int, offset: int, splits: list, nodes: int) -> tuple[np.ndarray, np.ndarray]:
+    """Centre box of every kd node (at depth len(splits)) over one chunk."""
+    p, node, _ = _chunk_keys(scratch, i, offset, splits, None)
+    lo = np.full((nodes, 3), np.inf, np.float32)
+    hi = np.full((nodes, 3), -np.inf, np.float32)
+    for k in range(3):
+        np.minimum.at(lo[:, k], node, p[:, k])
+        np.maximum.at(hi[:, k], node, p[:, k])
+    return lo, hi
+
+
+def chunk_select(scratch: Scratch, i: int, offset: int, splits: list, axes: np.ndarray, prefix: np.ndarray,
+                 bits: np.ndarray, gather: np.ndarray) -> dict[int, tuple[np.ndarray, np.ndarray] | np.ndarray]:
+    """One counting pass of the radix selection over one chunk. For every node still open: the keys that share
+    its `bits`-bit prefix either counted by their next 16 bits, or (where `gather`) returned."""
+    p, node, index = _chunk_keys(scratch, i, offset, splits, axes)
+    keys = sort_keys(p[np.arange(len(p)), axes[node]], index)
+    out: dict[int, tuple[np.ndarray, np.ndarray] | np.ndarray] = {}
+    order = np.argsort(node, kind="stable")
+    bounds = np.searchsorted(node[order], np.arange(len(axes) + 1))
+    for j in np.flatnonzero(bits >= 0):
+        k = keys[order[bounds[j]:bounds[j + 1]]]
+        b = int(bits[j])
+        if b:
+            k = k[(k >> np.uint64(64 - b)) == (np.uint64(prefix[j]) >> np.uint64(64 - b))]
+        if gather[j]:
+            out[int(j)] = k
+        else:
+            digits, counts = np.unique((k >> np.uint64(48 - b)) & np.uint64(0xFFFF), return_counts=True)
+            out[int(j)] = (digits, counts)
+    return out
+
+
+def _section_widths(sh_degree: int) -> list[tuple[str, int]]:
+    return [("positions", 3), ("rotations", 4), ("log_scales", 3), ("opacity_logits", 1), ("sh_dc", 3),
+            ("sh_rest", 3 * SH_REST_COEFFS[sh_degree])]
+
+
+def _row_bytes(sh_degree: int) -> int:
+    return 4 * sum(w for _, w in _section_widths(sh_degree)) + 8
+
+
+def route_chunk(rows, i: int, start: int, stop: int, offset: int, splits: list, partitions: int, scratch: Scratch,
+                sh_degree: int, splats: int, with_codebook: bool) -> tuple[np.ndarray, SceneSample]:
+    """Send every row of a chunk to its partition: one scratch file, a section per partition (each attribute's
+    rows, then their input indices), rows in input order. Returns the rows per partition and the chunk's part of
+    the scene samples."""
+    g, _ = rows.read(start, stop)
+    if sh_degree != g.sh_degree:
+        g = g.with_sh_degree(sh_degree)
+    index = offset + np.arange(len(g), dtype=np.int64)
+    part = kd_route(g.positions, index, splits) if splits else np.zeros(len(g), np.int64)
+    order = np.argsort(part, kind="stable")
+    counts = np.bincount(part, minlength=partitions)
+    starts = np.concatenate([[0], np.cumsum(counts)])
+    blocks: list[bytes] = []
+    for q in range(partitions):
+        rows_q = order[starts[q]:starts[q + 1]]
+        for name, _ in _section_widths(sh_degree):
+            blocks.append(getattr(g, name)[rows_q].tobytes())
+        blocks.append(index[rows_q].tobytes())
+    scratch.write(f"route/{i}", blocks)
+    return counts, SceneSample.part(g, offset, splats, with_codebook)
+
+
+def _read_partition(scratch: Scratch, p: int, chunk_counts: list[np.ndarray], sh_degree: int
+                    ) -> tuple[Gaussians, np.ndarray]:
+    widths = _section_widths(sh_degree)
+    row_bytes = _row_bytes(sh_degree)
+    n = int(sum(int(c[p]) for c in chunk_counts))
+    arrays = {name: np.empty((n, w), np.float32) for name, w in widths}
+    index = np.empty(n, np.int64)
+    at = 0
+    for i, counts in enumerate(chunk_counts):
+        m = int(counts[p])
+        if not m:
+            continue
+        first = int(counts[:p].sum()) * row_bytes
+        data = scratch.read(f"route/{i}", first, first + m * row_bytes)
+        pos = 0
+        for name, w in widths:
+            arrays[name][at:at + m] = np.frombuffer(data, np.float32, m * w, pos).reshape(m, w)
+            pos += 4 * m * w
+        index[at:at + m] = np.frombuffer(data, np.int64, m, pos)
+        at += m
+    g = Gaussians(arrays["positions"], arrays["rotations"], arrays["log_scales"], arrays["opacity_logits"][:, 0],
+                  arrays["sh_dc"], arrays["sh_rest"].reshape(n, SH_REST_COEFFS[sh_degree], 3))
+    return g, index
+
+
+def _save_tile(scratch: Scratch, tile: Tile, mass: np.ndarray) -> None:
+    g = tile.gaussians
+    scratch.save(f"tile/{tile.id}", mass=mass, level=np.array(tile.level), error=np.array(tile.geometric_error),
+                 box_min=tile.box_min, box_max=tile.box_max, sphere_center=tile.sphere_center,
+                 sphere_radius=np.array(tile.sphere_radius), children=np.array(tile.children, np.int64),
+                 **{k: getattr(g, k) for k in ATTRIBUTES})
+
+
+def _load_tile(scratch: Scratch, tid: int) -> tuple[Tile, np.ndarray]:
+    a = scratch.load(f"tile/{tid}")
+    g = Gaussians(*(a[k] for k in ATTRIBUTES))
+    tile = Tile(tid, int(a["level"]), [int(c) for c in a["children"]], g, float(a["error"]), a["box_min"],
+                a["box_max"], a["sphere_center"], float(a["sphere_radius"]))
+    return tile, a["mass"]
+
+
+def _encode_tiles(tiles: list[Tile], ctx: TileContext, writer, threads: int,
+                  done: Callable[[float], None]) -> list[TileEntry]:
+    out = []
+    if threads <= 1 or len(tiles) <= 1:
+        for t in tiles:
+            out.append(encode_tile(t, ctx, writer))
+            done(len(out) / len(tiles))
+        return out
+    with ThreadPoolExecutor(max_workers=threads) as pool:
+        for entry in pool.map(lambda t: encode_tile(t, ctx, writer), tiles):
+            out.append(entry)
+            done(len(out) / len(tiles))
+    return out
+
+
+@dataclass
+class PartitionResult:
+    entries: list[TileEntry]
+    root_splats: int
+    splats: int
+
+
+def build_partition(p: int, level: int, shape: TreeShape, chunk_counts: list[np.ndarray], scratch: Scratch,
+                    ctx: TileContext, writer, threads: int, keep_originals: bool,
+                    report: Callable[[float], None]) -> PartitionResult:
+    """One partition: read its rows, build its subtree, write its tiles' payloads; its root and (for the tiles
+    above) its originals go to scratch. `report(fraction)`: the task's progress."""
+    g, index = _read_partition(scratch, p, chunk_counts, ctx.sh_degree)
+    n = len(g)
+
+    def build_progress(stage: str, fraction: float) -> None:
+        if stage == "lod-merge":
+            report(0.6 * fraction)
+
+    sub = build_subtree(g, index, shape, level, p, progress=build_progress, reorder_input=True)
+    del g, index
+    entries = _encode_tiles(list(sub.tiles.values()), ctx, writer, threads, lambda f: report(0.6 + 0.4 * f))
+    if keep_originals:
+        o = sub.ordered
+        scratch.save(f"originals/{p}", positions=o.positions, log_scales=o.log_scales, opacity=o.opacity_logits,
+                     sh_dc=o.sh_dc, rep=sub.represented_by.astype(np.int32), leaf_starts=sub.leaf_starts)
+        _save_tile(scratch, sub.root, sub.root_mass)
+    return PartitionResult(entries, len(sub.root.gaussians), n)
+
+
+def partition_extremes(scratch: Scratch, p: int, mapping: np.ndarray, merged_positions: np.ndarray, size: int
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Pass A over a partition's originals for its ancestor tile: per merged splat present, member counts and the
+    error extremes (lod.error_extremes)."""
+    a = scratch.load(f"originals/{p}")
+    rep = mapping[a["rep"]]
+    far, near = error_extremes(a["positions"], original_reach(a["log_scales"]), merged_positions, rep, size)
+    counts = np.bincount(rep, minlength=size)
+    present = np.flatnonzero(counts)
+    return present, counts[present], far[present], near[present]
+
+
+def partition_sums(scratch: Scratch, p: int, mapping: np.ndarray, size: int, blur: float
+                   ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Pass B: the appearance sums of each of the partition's leaves (lod.leaf_sums), in kd order."""
+    a = scratch.load(f"originals/{p}")
+    rep = mapping[a["rep"]]
+    starts = a["leaf_starts"]
+    parts = []
+    for s, e in zip(starts[:-1], starts[1:], strict=True):
+        terms = appearance_terms(a["opacity"][s:e], a["log_scales"][s:e], a["sh_dc"][s:e], blur)
+        parts.append(leaf_sums(rep[s:e], terms, size))
+    return parts
+
+
+def encode_saved_tile(scratch: Scratch, tid: int, ctx: TileContext, writer) -> TileEntry:
+    tile, _ = _load_tile(scratch, tid)
+    return encode_tile(tile, ctx, writer)
+
+
+# ---------------------------------------------------------------------------------------------- the client
+
+
+def partition_level(shape: TreeShape, row_bytes: int, engine: Engine) -> int:
+    """The tile level whose tiles are the partitions: the shallowest whose subtrees fit a worker's memory, and
+    deep enough to give every worker a partition. The output does not depend on it."""
+    fits = [lvl for lvl, kd in enumerate(shape.kd_depths)
+            if shape.splats / 2**kd * row_bytes * PARTITION_MEMORY_FACTOR <= engine.memory_per_worker]
+    level = fits[0] if fits else shape.leaf_level
+    while level < shape.leaf_level and 2 ** shape.kd_depths[level] < engine.workers:
+        level += 1
+    return level
+
+
+def _select_pivots(engine: Engine, scratch: Scratch, chunks: list[tuple[int, int]], splits: list,
+                   axes: np.ndarray, ranks: np.ndarray, progress: Progress, stage: str) -> np.ndarray:
+    """Exact radix selection: for every node, the key of rank `ranks[node]` (0-based) among its splats' keys."""
+    nodes = len(axes)
+    prefix = np.zeros(nodes, np.uint64)
+    bits = np.zeros(nodes, np.int64)  # -1: resolved
+    remaining = ranks.astype(np.int64).copy()
+    candidates = np.full(nodes, np.iinfo(np.int64).max)
+    pivots = np.zeros(nodes, np.uint64)
+    while (bits >= 0).any():
+        gather = (candidates <= max(1 << 16, GATHER_KEYS // nodes)) | (bits >= 64)
+        results = engine.map(chunk_select, [(scratch, i, offset, splits, axes, prefix, bits, gather)
+                                            for i, (offset, _) in enumerate(chunks)], stage, progress)
+        for j in np.flatnonzero(bits >= 0):
+            if gather[j]:
+                keys = np.sort(np.concatenate([r[int(j)] for r in results]))
+                pivots[j] = keys[remaining[j]]
+                bits[j] = -1
+                continue
+            digits = np.concatenate([r[int(j)][0] for r in results])
+            counts = np.concatenate([r[int(j)][1] for r in results])
+            total = np.bincount(digits.astype(np.int64), weights=counts, minlength=1 << 16).astype(np.int64)
+            ends = np.cumsum(total)
+            digit = int(np.searchsorted(ends, remaining[j], side="right"))
+            remaining[j] -= int(ends[digit] - total[digit])
+            b = int(bits[j])
+            prefix[j] = prefix[j] | (np.uint64(digit) << np.uint64(48 - b))
+            bits[j] = b + 16
+            candidates[j] = int(total[digit])
+    return pivots
+
+
+def _top_splits(engine: Engine, scratch: Scratch, chunks: list[tuple[int, int]], depth: int, splats: int,
+                progress: Progress) -> list[tuple[np.ndarray, np.ndarray]]:
+    splits: list[tuple[np.ndarray, np.ndarray]] = []
+    sizes = np.array([splats], np.int64)
+    for d in range(depth):
+        nodes = 2 ** d
+        boxes = engine.map(chunk_boxes, [(scratch, i, offset, splits, nodes) for i, (offset, _) in enumerate(chunks)],
+                           "split", progress)
+        lo = np.min([b[0] for b in boxes], axis=0)
+        hi = np.max([b[1] for b in boxes], axis=0)
+        axes = np.array([split_axis(lo[j], hi[j]) for j in range(nodes)], np.int64)
+        pivots = _select_pivots(engine, scratch, chunks, splits, axes, sizes // 2, progress, "split")
+        splits.append((axes, pivots))
+        sizes = np.stack([sizes // 2, sizes - sizes // 2], 1).reshape(-1)
+    return splits
+
+
+def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: Engine, scratch: Scratch,
+                       progress: Progress = no_progress, source_name: str | None = None,
+                       out_name: str | None = None, drop_invalid: bool = False):
+    """Encode the rows of an input (PlyRows, ArrayRows, SpilledRows) through a writer on an engine."""
+    formats = resolve_formats(opts.preset, opts.overrides)
+    chunk_order = resolve_chunk_order(opts.chunk_order, formats)
+    if not opts.lod:
+        raise UsageError("a partitioned encode needs LOD (--no-lod keeps the whole scene in one tile)")
+    sh_degree = opts.sh_degree if opts.sh_degree is not None else rows.sh_degree
+    sh_degree = min(sh_degree, rows.sh_degree)
+    row_bytes = _row_bytes(sh_degree)
+    # Chunks small enough for a worker's memory and numerous enough to keep every worker busy in the passes.
+    chunk_rows = min(engine.memory_per_worker // (8 * row_bytes), -(-rows.rows // (4 * engine.workers)))
+    chunk_rows = int(min(1 << 22, max(1 << 16, chunk_rows)))
+    spans = [(s, min(s + chunk_rows, rows.rows)) for s in range(0, rows.rows, chunk_rows)]
+
+    scans = engine.map(scan_chunk, [(rows, i, s, e, scratch) for i, (s, e) in enumerate(spans)], "read", progress)
+    stats = RowStats()
+    for _, st, _, _ in scans:
+        stats = stats + st
+    if isinstance(rows, PlyRows):
+        check_rows(rows.path, stats, drop_invalid)
+    kept = np.array([s[0] for s in scans], np.int64)
+    splats = int(kept.sum())
+    if splats == 0:
+        raise UsageError("the input holds no splats; nothing to encode")
+    if splats >= 1 << 32:
+        raise UsageError(f"{splats} splats: a partitioned encode handles at most 2^32 - 1")
+    offsets = np.concatenate([[0], np.cumsum(kept)])
+    chunks = [(int(offsets[i]), int(offsets[i + 1])) for i in range(len(spans))]
+    lo = np.min([s[2] for s in scans], axis=0)
+    hi = np.max([s[3] for s in scans], axis=0)
+    bounds = Box(tuple(float(v) for v in lo), tuple(float(v) for v in hi))
+
+    shape = TreeShape.of(splats, opts.max_leaf_splats, opts.reduction)
+    level = partition_level(shape, row_bytes, engine)
+    kd = shape.kd_depths[level]
+    partitions = 2 ** kd
+    splits = _top_splits(engine, scratch, chunks, kd, splats, progress)
+
+    choice = codebook_choice(opts, sh_degree)
+    routed = engine.map(route_chunk, [(rows, i, s, e, chunks[i][0], splits, partitions, scratch, sh_degree, splats,
+                                       choice != "off") for i, (s, e) in enumerate(spans)], "route", progress)
+    chunk_counts = [r[0] for r in routed]
+    sample = SceneSample.join([r[1] for r in routed])
+    del routed
+    codebook = None
+    if choice != "off":
+        progress("codebook", 0.0)
+        codebook = sample.codebook(choice)
+        progress("codebook", 1.0)
+    sample.codebook_rows = sample.codebook_weights = None
+    up = plan_up(opts, sample)
+    ctx = TileContext(formats, chunk_order, sh_degree, codebook, opts.zstd_level, opts.shuffle)
+    payloads = writer.payload_writer()
+    codebook_entry = encode_codebook(codebook, ctx, payloads) if codebook is not None else None
+
+    results = engine.map(build_partition, [(p, level, shape, chunk_counts, scratch, ctx, payloads,
+                                            engine.threads_per_task, level > 0) for p in range(partitions)],
+                         "tiles", progress, heavy=True, task_progress=True)
+    entries = [e for r in results for e in r.entries]
+    entries += _upper_tiles(engine, scratch, shape, level, [r.root_splats for r in results], ctx, payloads,
+                            progress)
+    plan = EncodePlan(ctx, [], opts, scene_name(opts, source_name, out_name), splats, bounds, up, sample)
+    m = build_manifest(plan, sample.camera(up), sorted(entries, key=lambda t: t.id), codebook_entry)
+    writer.write_manifest(m)
+    return m
+
+
+def _upper_tiles(engine: Engine, scratch: Scratch, shape: TreeShape, level: int, root_splats: list[int],
+                 ctx: TileContext, payloads, progress: Progress) -> list[TileEntry]:
+    """The tiles above the partitions, level by level (in batches of tiles, for the client's memory)."""
+    entries: list[TileEntry] = []
+    kd_p = shape.kd_depths[level]
+    maps = [np.arange(n) for n in root_splats]  # per partition: its root's splats -> the current ancestor's
+    for lvl in range(level - 1, -1, -1):
+        per_tile = 2 ** (kd_p - shape.kd_depths[lvl])  # partitions under each tile of this level
+        per_child = 2 ** (kd_p - shape.kd_depths[lvl + 1])
+        tiles_here = 2 ** shape.kd_depths[lvl]
+        batch_tiles = max(1, UPPER_BATCH_SPLATS // shape.max_leaf_splats)
+        for first in range(0, tiles_here, batch_tiles):
+            batch = range(first, min(tiles_here, first + batch_tiles))
+            merged: dict[int, tuple] = {}
+            for j in batch:
+                kids = [_load_tile(scratch, c) for c in shape.children(lvl, j)]
+                members = Gaussians.concatenate([k.gaussians for k, _ in kids])
+                target = min(shape.max_leaf_splats, math.ceil(len(members) / shape.reduction))
+                g, mass, assign = merge_gaussians(members, np.concatenate([m for _, m in kids]), target)
+                offsets = np.cumsum([0] + [len(k.gaussians) for k, _ in kids])
+                for k, _ in kids:
+                    k.gaussians = Gaussians.empty(0)  # only their bounds are needed from here on
+                merged[j] = (g, mass, assign, offsets, [k for k, _ in kids])
+            parts = [p for j in batch for p in range(j * per_tile, (j + 1) * per_tile)]
+            for p in parts:
+                j = p // per_tile
+                g, mass, assign, offsets, kids = merged[j]
+                maps[p] = assign[offsets[p // per_child - j * shape.fan(lvl)] + maps[p]]
+            ext = engine.map(partition_extremes, [(scratch, p, maps[p], merged[p // per_tile][0].positions,
+                                                   len(merged[p // per_tile][0])) for p in parts], "upper", progress)
+            state = {}
+            for j in batch:
+                g = merged[j][0]
+                size = len(g)
+                counts = np.zeros(size, np.int64)
+                far = np.full(size, -np.inf)
+                near = np.full(size, np.inf)
+                for p, (present, c, f, n) in zip(parts, ext, strict=True):
+                    if p // per_tile == j:
+                        counts[present] += c
+                        far[present] = np.maximum(far[present], f)
+                        near[present] = np.minimum(near[present], n)
+                child_error = max(k.geometric_error for k in merged[j][4])
+                errors, error = tile_error_first(g, counts, far, near, child_error)
+                state[j] = (counts, far, near, errors, error)
+            sums = engine.map(partition_sums, [(scratch, p, maps[p], len(merged[p // per_tile][0]),
+                                                viewing_blur(state[p // per_tile][4])) for p in parts],
+                              "upper", progress)
+            for j in batch:
+                g, mass, _, _, kids = merged[j]
+                leaf_parts = [lp for p, s in zip(parts, sums, strict=True) if p // per_tile == j for lp in s]
+                counts, far, near, errors, error = state[j]
+                error = finish_tile_appearance(g, counts, far, near, errors, error, fold_leaf_sums(leaf_parts, len(g)))
+                lo, hi, c, r = interior_bounds(g, kids)
+                tid = shape.tile_id(lvl, j)
+                _save_tile(scratch, Tile(tid, lvl, [k.id for k in kids], g, error, lo, hi, c, r), mass)
+            del merged, state, sums, ext
+            entries += engine.map(encode_saved_tile, [(scratch, shape.tile_id(lvl, j), ctx, payloads)
+                                                      for j in batch], "upper", progress)
+    return entries

@@ -1,0 +1,251 @@
+"""Partitioned encoding (encode/partitioned.py) in this process and on Dask: the output is byte-identical to the
+single-process encoder's whatever the number of workers and partitions; a killed worker, object-store outputs,
+an interrupted encode."""
+from __future__ import annotations
+
+import hashlib
+import os
+import socket
+
+import numpy as np
+import pytest
+from conftest import real
+
+from splatstream.decoder import decode_scene
+from splatstream.encode import EncodeOptions, encode_file, encode_in_memory
+from splatstream.encode.local import LocalEngine
+from splatstream.encode.partitioned import ArrayRows, encode_partitioned
+from splatstream.encode.scratch import Scratch
+from splatstream.errors import InputError
+from splatstream.gaussians import Gaussians
+from splatstream.io import read_gaussians
+from splatstream.ply import write_gaussians_ply
+from splatstream.store import FsspecStore, MemoryWriter, load_manifest
+
+# Small leaves so a few thousand splats make a tree of 4 tile levels; a small memory per worker so it is split
+# into partitions (8 at 1 MiB: 650 splats each) with two levels of tiles above them.
+TREE = {"max_leaf_splats": 300}
+SMALL_MEMORY = 1 << 20
+
+
+@pytest.fixture(scope="module")
+def scene() -> Gaussians:
+    g = read_gaussians(real("fruit_drops_sh3.ply"))
+    # Repeated splats: equal centres, so the kd median splits meet ties (resolved by input index).
+    return Gaussians.concatenate([g, g.subset(slice(0, 600))])
+
+
+@pytest.fixture(scope="module")
+def scene_ply(scene, tmp_path_factory) -> str:
+    path = tmp_path_factory.mktemp("input") / "scene.ply"
+    write_gaussians_ply(scene, path)
+    return str(path)
+
+
+def tree_digest(path: str) -> dict[str, str]:
+    out = {}
+    for root, _, files in os.walk(path):
+        for f in files:
+            full = os.path.join(root, f)
+            out[os.path.relpath(full, path)] = hashlib.sha256(open(full, "rb").read()).hexdigest()
+    return out
+
+
+def store_digest(files: dict[str, bytes]) -> dict[str, str]:
+    return {k: hashlib.sha256(v).hexdigest() for k, v in files.items()}
+
+
+@pytest.fixture(scope="module")
+def reference(scene_ply, tmp_path_factory) -> str:
+    """The single-process encode (the whole scene in memory) of the test scene."""
+    out = str(tmp_path_factory.mktemp("ref") / "scene")
+    encode_file(scene_ply, out, preset="low", **TREE)
+    return out
+
+
+def copy_of(g: Gaussians) -> Gaussians:
+    return Gaussians(g.positions.copy(), g.rotations.copy(), g.log_scales.copy(), g.opacity_logits.copy(),
+                     g.sh_dc.copy(), g.sh_rest.copy())
+
+
+@pytest.mark.parametrize("preset", ["medium", "low"])
+def test_partitions_of_every_size_give_the_single_process_bytes(scene, tmp_path, preset):
+    opts = EncodeOptions(preset=preset, **TREE)
+    ref = encode_in_memory(copy_of(scene), opts, name="s")
+    tiles = None
+    # From one partition (the whole scene) down to partitions that are single leaves.
+    for memory in (1 << 40, 4 << 20, SMALL_MEMORY, 200_000):
+        writer = MemoryWriter("s")
+        space = Scratch.create(str(tmp_path))
+        m = encode_partitioned(ArrayRows(scene), writer, opts, LocalEngine(memory), space, source_name="s")
+        space.remove()
+        got = writer.store()
+        assert got.manifest_bytes == ref.manifest_bytes, memory
+        assert got.payloads == ref.payloads
+        tiles = len(m.tiles)
+    assert tiles == 1 + 2 + 8 + 32  # kd depths 0, 1, 3, 5
+    assert os.listdir(tmp_path) == []  # scratch removed
+
+
+def test_ply_read_by_row_ranges_matches(scene_ply, reference, tmp_path):
+    out = str(tmp_path / "part")
+    encode_file(scene_ply, out, preset="low", memory_per_worker=SMALL_MEMORY, **TREE)
+    assert tree_digest(out) == tree_digest(reference)
+    assert load_manifest(out).encode_seconds == 0.0
+    assert sorted(os.listdir(tmp_path)) == ["part"]
+
+
+def test_dask_1_2_4_workers_identical(scene_ply, reference, tmp_path):
+    pytest.importorskip("distributed")
+    want = tree_digest(reference)
+    for workers in (1, 2, 4):
+        out = str(tmp_path / f"w{workers}")
+        encode_file(scene_ply, out, preset="low", workers=workers, memory_per_worker=SMALL_MEMORY, **TREE)
+        assert tree_digest(out) == want, workers
+    assert sorted(os.listdir(tmp_path)) == ["w1", "w2", "w4"]
+
+
+def test_a_killed_worker_is_retried_and_the_scene_is_unchanged(scene_ply, reference, tmp_path):
+    distributed = pytest.importorskip("distributed")
+    from splatstream.encode.distributed import DaskEngine
+    from splatstream.encode.partitioned import PlyRows
+    from splatstream.ply import vertex_layout
+    from splatstream.store import open_writer
+
+    marker = tmp_path / "killed"
+
+    class KillOnFirstPartition(distributed.WorkerPlugin):
+        """Kills its worker process (SIGKILL, no clean-up) when the first partition task starts running."""
+
+        def __init__(self, marker: str):
+            self.marker = marker
+
+        def transition(self, key, start, finish, **kwargs):
+            if finish == "executing" and "build_partition" in str(key) and not os.path.exists(self.marker):
+                open(self.marker, "w").close()
+                os.kill(os.getpid(), 9)
+
+    engine = DaskEngine(workers=2, memory_per_worker=SMALL_MEMORY)
+    try:
+        engine.client.register_plugin(KillOnFirstPartition(str(marker)))
+        out = str(tmp_path / "scene")
+        with open_writer(out) as writer:
+            space = Scratch.create(str(tmp_path))
+            encode_partitioned(PlyRows(vertex_layout(scene_ply), scene_ply), writer,
+                               EncodeOptions(preset="low", **TREE), engine, space, source_name=scene_ply)
+            space.remove()
+    finally:
+        engine.close()
+    assert marker.exists()  # a worker did die mid-encode
+    assert tree_digest(out) == tree_digest(reference)
+
+
+def test_interrupted_encode_leaves_no_partial_scene(scene_ply, tmp_path):
+    out = tmp_path / "scene"
+
+    def interrupt(stage: str, fraction: float) -> None:
+        if stage == "tiles" and fraction > 0.3:
+            raise KeyboardInterrupt
+
+    with pytest.raises(KeyboardInterrupt):
+        encode_file(scene_ply, out, preset="low", memory_per_worker=SMALL_MEMORY, progress=interrupt, **TREE)
+    assert os.listdir(tmp_path) == []  # neither the scene, nor its temporary directory, nor scratch
+
+
+def test_invalid_rows_are_reported_for_the_whole_file(scene, tmp_path):
+    g = copy_of(scene)
+    g.positions[[5, 4000], 1] = np.nan
+    path = tmp_path / "bad.ply"
+    write_gaussians_ply(g, path)
+    with pytest.raises(InputError) as single:
+        read_gaussians(path)
+    with pytest.raises(InputError) as partitioned:
+        encode_file(path, tmp_path / "out", memory_per_worker=SMALL_MEMORY, **TREE)
+    assert str(partitioned.value) == str(single.value)
+    assert "2 of 5321 splats have non-finite values (NaN or inf) (y: 2)" in str(single.value)
+    assert not (tmp_path / "out").exists()
+    with pytest.warns(UserWarning, match="2 of 5321 splats have non-finite values .*; dropped"):
+        m = encode_file(path, tmp_path / "out", memory_per_worker=SMALL_MEMORY, drop_invalid=True, **TREE)
+    assert m.splats == len(g) - 2
+
+
+def test_memory_url_output_reads_back_the_same(scene_ply, reference):
+    pytest.importorskip("fsspec")
+    url = "memory://scenes/fruit"
+    encode_file(scene_ply, url, preset="low", memory_per_worker=SMALL_MEMORY, **TREE)
+    store = FsspecStore(url)
+    files = {"manifest.msgpack": store.read_manifest()}
+    m = load_manifest(store)
+    for _, _, p in m.payloads():
+        files[p.file] = store.read_payload(p)
+    assert store_digest(files) == tree_digest(reference)
+    a, b = decode_scene(store), decode_scene(reference)
+    np.testing.assert_array_equal(a.positions, b.positions)
+    np.testing.assert_array_equal(a.sh_rest, b.sh_rest)
+    # The streaming client reads the same scene from the URL.
+    import asyncio
+
+    from client_gl.stream.sources import StoreSource, open_source
+
+    source = open_source(url)
+    assert isinstance(source, StoreSource)
+    root = m.tiles[0].groups["base"]
+    assert asyncio.run(source.fetch_manifest()) == files["manifest.msgpack"]
+    assert asyncio.run(source.fetch_payload(root)) == files[root.file]
+
+
+def test_cli_cluster_options_are_checked(scene_ply, tmp_path):
+    from conftest import run_cli
+
+    for args, message in ((["--workers", "0"], "--workers: expected a worker count of at least 1 or auto"),
+                          (["--workers", "2", "--scheduler", "tcp://127.0.0.1:1"], "give one of them"),
+                          (["--memory-per-worker", "lots"], "--memory-per-worker: expected a size")):
+        r = run_cli("encode", scene_ply, tmp_path / "out", *args)
+        assert r.returncode == 2 and message in r.stderr, r.stderr
+    assert not (tmp_path / "out").exists()
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+@pytest.fixture
+def s3_server(monkeypatch):
+    """A local S3 server (moto) on loopback with one bucket, and fsspec's s3:// pointed at it."""
+    pytest.importorskip("s3fs")
+    server_mod = pytest.importorskip("moto.server")
+    import fsspec
+
+    port = _free_port()
+    server = server_mod.ThreadedMotoServer(ip_address="127.0.0.1", port=port, verbose=False)
+    server.start()
+    endpoint = f"http://127.0.0.1:{port}"
+    env = {"AWS_ACCESS_KEY_ID": "test", "AWS_SECRET_ACCESS_KEY": "test", "AWS_DEFAULT_REGION": "us-east-1",
+           "FSSPEC_S3_ENDPOINT_URL": endpoint}
+    for k, v in env.items():
+        monkeypatch.setenv(k, v)
+    monkeypatch.setitem(fsspec.config.conf, "s3", {"endpoint_url": endpoint})
+    fs = fsspec.filesystem("s3", skip_instance_cache=True)
+    fs.mkdir("scenes")
+    try:
+        yield "s3://scenes"
+    finally:
+        server.stop()
+
+
+def test_s3_output_on_dask_workers(scene_ply, reference, s3_server):
+    pytest.importorskip("distributed")
+    import fsspec
+
+    url = f"{s3_server}/fruit"
+    encode_file(scene_ply, url, preset="low", workers=2, memory_per_worker=SMALL_MEMORY, **TREE)
+    fs = fsspec.filesystem("s3", skip_instance_cache=True)
+    names = sorted(p.split("/fruit/", 1)[1] for p in fs.find("scenes/fruit"))
+    assert names == sorted(tree_digest(reference))  # no scratch or temporary objects left
+    store = FsspecStore(url)
+    files = {n: store.fs.cat_file(f"scenes/fruit/{n}") for n in names}
+    assert store_digest(files) == tree_digest(reference)
+    a, b = decode_scene(store), decode_scene(reference)
+    np.testing.assert_array_equal(a.sh_dc, b.sh_dc)
