@@ -78,7 +78,7 @@ def main() -> None:
         session = StreamingSession.open(url, ctx, ViewOptions(gpu_mem_mb=args.gpu_mem_mb, max_splats=args.max_splats,
                                                               cache=False))
         start = time.perf_counter()
-        walls, drawn = [], []
+        walls, drawn, updates, uploads = [], [], [], []
         last = time.perf_counter()
         while True:
             now = time.perf_counter() - start
@@ -88,6 +88,8 @@ def main() -> None:
             t = time.perf_counter()
             walls.append((t - last) * 1e3)
             drawn.append(rec.drawn_splats)
+            updates.append(rec.update_ms)
+            uploads.append(rec.uploaded_bytes)
             last = t
             if now > path.end and session.converged:
                 break
@@ -98,6 +100,16 @@ def main() -> None:
                             "max_drawn_splats": int(max(drawn)), "first_frame_s": session.metrics.first_frame_s,
                             "bytes": session.fetcher.stats().bytes_downloaded,
                             "converged_after_path_s": time.perf_counter() - start - path.end}
+        walls_a, up_a, upd_a = np.array(walls), np.array(uploads), np.array(updates)
+        with_up = up_a > 0
+        out["streaming"].update({
+            "frames_with_uploads": int(with_up.sum()),
+            "p99_ms_with_uploads": float(np.percentile(walls_a[with_up], 99)) if with_up.any() else None,
+            "p99_ms_without_uploads": float(np.percentile(walls_a[~with_up], 99)) if (~with_up).any() else None,
+            "median_upload_mb": float(np.median(up_a[with_up]) / 1e6) if with_up.any() else 0.0,
+            "update_ms_median": float(np.median(upd_a)), "update_ms_p99": float(np.percentile(upd_a, 99)),
+            "slowest": sorted(zip(np.round(walls_a, 1).tolist(), up_a.tolist(), np.round(upd_a, 2).tolist(),
+                                  strict=True), reverse=True)[:12]})
         cam = path.camera(path.end, w, h)
         times = []
         for _ in range(args.repeat):

@@ -71,6 +71,7 @@ class FrameRecord:
     frame_ms: float  # CPU time of the frame on the render thread (select, uploads, draw submission)
     uploaded_bytes: int
     converged: bool
+    update_ms: float = 0.0  # of frame_ms: the engine (selection, wish list, uploads), the rest is the draw's submission
 
     def to_json(self) -> dict:
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in self.__dict__.items()}
@@ -198,23 +199,24 @@ class StreamingSession:
         t0 = time.perf_counter()
         if not self.paused:
             self.last = self.engine.update(cam)
+        t1 = time.perf_counter()
         draw = self.last.draw if self.last is not None else []
         self.last_stats = self.renderer.render(cam, sh_degree=sh_degree, background=self.options.background,
                                                clear=clear, timing=timing, draw_set=draw)
         if self.renderer.check_bins():  # the compute draw's entry buffer grew: draw this frame again
             self.last_stats = self.renderer.render(cam, sh_degree=sh_degree, background=self.options.background,
                                                    clear=clear, timing=timing, draw_set=draw)
-        frame_ms = (time.perf_counter() - t0) * 1e3
-        return self._record(frame_ms)
+        t2 = time.perf_counter()
+        return self._record((t2 - t0) * 1e3, (t1 - t0) * 1e3)
 
-    def _record(self, frame_ms: float) -> FrameRecord:
+    def _record(self, frame_ms: float, update_ms: float) -> FrameRecord:
         u = self.last
         stats = self.fetcher.stats()
         now = time.perf_counter() - self.metrics.start
         gpu = self.pool.gpu_bytes
         rec = FrameRecord(now, stats.bytes_downloaded, u.drawn_splats if u else 0, u.resident_splats if u else 0,
                           u.resident_tiles if u else 0, u.in_flight if u else 0, gpu, frame_ms,
-                          u.uploaded_bytes if u else 0, bool(u and u.converged))
+                          u.uploaded_bytes if u else 0, bool(u and u.converged), update_ms)
         m = self.metrics
         m.frames.append(rec)
         m.gpu_bytes_peak = max(m.gpu_bytes_peak, gpu)

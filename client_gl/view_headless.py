@@ -36,6 +36,7 @@ class HeadlessRun:
     frame_every: int = 10
     sh_degree: int | None = None
     quiet: bool = False
+    measure_frames: int = 0  # once converged, time this many frames (glFinish each) into the report
 
 
 def scene_camera(session: StreamingSession, size: tuple[int, int]) -> Camera:
@@ -100,10 +101,19 @@ def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
                 break
             if not rec.uploaded_bytes:
                 session.wait(0.005)  # nothing arrived: wait for a decode instead of spinning
+        measured = []
+        for _ in range(run.measure_frames if code == EXIT_OK else 0):
+            t = time.perf_counter()
+            session.frame(cam, sh_degree=run.sh_degree)
+            ctx.finish()
+            measured.append((time.perf_counter() - t) * 1e3)
         if run.screenshot:
             write_png(run.screenshot, session.read_image())
             say(f"view: wrote {run.screenshot}")
         report = session.metrics.to_json(session.fetcher.stats())
+        if measured:
+            report["measured_frames_ms"] = measured
+            report["measured_frame_ms_median"] = sorted(measured)[len(measured) // 2]
         report.update({"source": run.source, "frames_rendered": frame, "size": [w, h],
                        "camera_path": run.path is not None, "gl_renderer": ctx.info.get("GL_RENDERER", "?"),
                        "draw": session.renderer.draw_mode if session.renderer.sort_mode == "gpu" else "cpu"})

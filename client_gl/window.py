@@ -89,6 +89,8 @@ class WindowRun:
     timeout_s: float = 120.0
     quiet: bool = False
     sh_degree: int | None = None
+    record: str | None = None  # metrics JSON at exit (as view --headless writes it)
+    measure_frames: int = 0  # with exit_when_converged: time this many more frames (swap and glFinish) first
 
 
 def open_window(size: tuple[int, int], vsync: bool, title: str):
@@ -435,6 +437,7 @@ class Viewer:
                 if self.session.converged and path_done and still:
                     if self.run.screenshot:
                         self.screenshot(self.run.screenshot)
+                    self._measure()
                     break
                 if now - self.start > self.run.timeout_s:
                     print(f"view: not converged after {self.run.timeout_s:g} s (timeout)", file=sys.stderr)
@@ -444,7 +447,33 @@ class Viewer:
                 time.sleep(0.005)
         return self.exit_code
 
+    def _measure(self) -> None:
+        """Time converged frames through the window path (draw, copy, overlay, swap; glFinish each)."""
+        times = []
+        for _ in range(self.run.measure_frames):
+            t = time.perf_counter()
+            self.draw_frame(0.0)
+            self.wnd.swap_buffers()
+            self.ctx.finish()
+            times.append((time.perf_counter() - t) * 1e3)
+        self.measured = times
+
+    def write_record(self) -> None:
+        if not self.run.record or self.session is None:
+            return
+        from splatstream.atomic import atomic_file
+
+        report = self.session.metrics.to_json(self.session.fetcher.stats())
+        report.update({"source": self.run.source, "window": True, "size": list(self.wnd.buffer_size),
+                       "gl_renderer": self.ctx.info.get("GL_RENDERER", "?"), "overlay": self.show_overlay})
+        if getattr(self, "measured", None):
+            report["measured_frames_ms"] = self.measured
+            report["measured_frame_ms_median"] = sorted(self.measured)[len(self.measured) // 2]
+        with atomic_file(self.run.record) as f:
+            f.write(json.dumps(report, indent=1).encode())
+
     def close(self) -> None:
+        self.write_record()
         if self.session is not None:
             self.session.close()
         elif self.prepared is not None:

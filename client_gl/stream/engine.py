@@ -30,6 +30,7 @@ from ..tiledata import TileData, host_mirror
 from .selection import Selection, SelectionOptions, TileView, draw_set, prefetch, select, view_numbers, wanted_bands
 
 Key = tuple[int | None, str]  # (tile id, group) or (None, "sh<b>") for a band of the SH codebook
+_GROUP_BAND = {"base": 0, "sh1": 1, "sh2": 2, "sh3": 3}
 
 
 class Residency(Protocol):
@@ -157,12 +158,11 @@ class StreamEngine:
 
     def _have(self, key: Key) -> bool:
         tile_id, group = key
+        band = _GROUP_BAND[group]
         if tile_id is None:
-            return band_of(group) in self.codebook_bands
+            return band in self.codebook_bands
         i = self.manifest.index_of[tile_id]
-        if group == "base":
-            return bool(self.resident[i])
-        return bool(self.resident[i]) and self.bands[i] >= band_of(group)
+        return bool(self.resident[i]) and (band == 0 or self.bands[i] >= band)
 
     # --- the frame --------------------------------------------------------------------------------------------
     def wanted(self, cam: Camera) -> tuple[TileView, Selection, dict[int, int], list[Key], list[Key]]:

@@ -57,19 +57,37 @@ class Selection:
     cost: float
 
 
-def frustum_planes(cam: Camera, widen: float = 1.0) -> np.ndarray:
-    """(5, 4) inward planes (normal, d) of the view frustum without its far plane: n . p + d >= 0 inside."""
-    right, up, forward = cam.basis()
+def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
+
+
+def _basis(cam: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(eye, right, up, forward) of a camera, as Camera.basis computes them (without numpy's general cross)."""
     eye = np.asarray(cam.eye, np.float64)
+    forward = np.asarray(cam.target, np.float64) - eye
+    forward /= np.linalg.norm(forward)
+    up = np.asarray(cam.up, np.float64)
+    right = _cross(forward, up)
+    n = np.linalg.norm(right)
+    if n < 1e-9 * np.linalg.norm(up):
+        right, true_up, forward = (np.asarray(v, np.float64) for v in cam.basis())
+        return eye, right, true_up, forward
+    right /= n
+    return eye, right, _cross(right, forward), forward
+
+
+def frustum_planes(cam: Camera, widen: float = 1.0, basis=None) -> np.ndarray:
+    """(5, 4) inward planes (normal, d) of the view frustum without its far plane: n . p + d >= 0 inside."""
+    eye, right, up, forward = basis if basis is not None else _basis(cam)
     tx, ty = cam.tan_half_fov_x * widen, cam.tan_half_fov_y * widen
-    normals = [forward]
-    for axis, t in ((right, tx), (-right, tx), (up, ty), (-up, ty)):
+    normals = np.empty((5, 3))
+    normals[0] = forward
+    for k, (axis, t) in enumerate(((right, tx), (-right, tx), (up, ty), (-up, ty)), start=1):
         n = forward * t - axis  # the plane through the eye containing the edge direction forward + t*axis
-        normals.append(n / np.linalg.norm(n))
-    planes = np.zeros((5, 4))
-    for k, n in enumerate(normals):
-        planes[k, :3] = n
-        planes[k, 3] = -float(n @ eye)
+        normals[k] = n / np.linalg.norm(n)
+    planes = np.empty((5, 4))
+    planes[:, :3] = normals
+    planes[:, 3] = -(normals @ eye)
     planes[0, 3] -= cam.near
     return planes
 
@@ -83,20 +101,24 @@ def boxes_in_frustum(box_min: np.ndarray, box_max: np.ndarray, planes: np.ndarra
 
 
 def view_numbers(a: TileArrays, cam: Camera, opts: SelectionOptions = SelectionOptions()) -> TileView:
-    eye = np.asarray(cam.eye, np.float64)
-    centre_dist = np.linalg.norm(a.sphere_center - eye, axis=1)
+    basis = _basis(cam)
+    eye, right, up, forward = basis
+    rel = a.sphere_center - eye
+    centre_dist = np.sqrt(np.einsum("ij,ij->i", rel, rel))
     distance = centre_dist - a.sphere_radius
     focal = cam.height / (2.0 * cam.tan_half_fov_y)
     with np.errstate(divide="ignore", invalid="ignore"):
         sse = np.where(distance > 0, a.geometric_error * focal / distance, INF)
         radius_px = np.where(distance > 0, a.sphere_radius * focal / np.maximum(centre_dist, 1e-12), INF)
-    visible = boxes_in_frustum(a.box_min, a.box_max, frustum_planes(cam))
-    wide = boxes_in_frustum(a.box_min, a.box_max, frustum_planes(cam, opts.prefetch_margin))
-    uv, depth = cam.project(a.sphere_center)
-    with np.errstate(invalid="ignore"):
+    visible = boxes_in_frustum(a.box_min, a.box_max, frustum_planes(cam, 1.0, basis))
+    wide = boxes_in_frustum(a.box_min, a.box_max, frustum_planes(cam, opts.prefetch_margin, basis))
+    depth = rel @ forward  # the centres in the camera's frame: image x right, y down (camera.md)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = focal * (rel @ right) / depth + cam.width / 2.0
+        v = -focal * (rel @ up) / depth + cam.height / 2.0
         r = np.where(np.isfinite(radius_px), radius_px, 0.0)
-        w = np.clip(uv[:, 0] + r, 0, cam.width) - np.clip(uv[:, 0] - r, 0, cam.width)
-        h = np.clip(uv[:, 1] + r, 0, cam.height) - np.clip(uv[:, 1] - r, 0, cam.height)
+        w = np.clip(u + r, 0, cam.width) - np.clip(u - r, 0, cam.width)
+        h = np.clip(v + r, 0, cam.height) - np.clip(v - r, 0, cam.height)
         area = np.where(depth > 0, np.nan_to_num(w * h), 0.0)
     area = np.where(np.isfinite(radius_px), area, float(cam.width * cam.height))  # the eye inside: everywhere
     area = np.where(visible, area, 0.0)

@@ -55,6 +55,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     h.add_argument("--screenshot", metavar="FINAL.png", help="write the last frame")
     h.add_argument("--frames-dir", metavar="DIR", help="write a PNG every --frame-every frames")
     h.add_argument("--frame-every", type=int, default=10, metavar="N")
+    h.add_argument("--measure-frames", type=int, default=0, metavar="N",
+                   help="once converged, time N more frames (GPU work included) into --record's measured_frames_ms")
     w = p.add_argument_group("window")
     w.add_argument("--exit-when-converged", action="store_true",
                    help="close the window once the view has converged (after --screenshot, if given)")
@@ -134,7 +136,8 @@ def run(args: argparse.Namespace) -> int:
 
         return run_window(WindowRun(args.source, options, size, camera, path, screenshot=args.screenshot,
                                     exit_when_converged=args.exit_when_converged, vsync=not args.no_vsync,
-                                    timeout_s=args.timeout, quiet=args.quiet, sh_degree=args.sh_degree))
+                                    timeout_s=args.timeout, quiet=args.quiet, sh_degree=args.sh_degree,
+                                    record=args.record, measure_frames=args.measure_frames))
     from client_gl.view_headless import HeadlessRun, run_headless
 
     ctx = headless.create_context()
@@ -142,7 +145,8 @@ def run(args: argparse.Namespace) -> int:
         code, report = run_headless(HeadlessRun(
             args.source, options, size, camera, path, until_converged=args.until_converged or path is None,
             timeout_s=args.timeout, record=args.record, screenshot=args.screenshot, frames_dir=args.frames_dir,
-            frame_every=args.frame_every, sh_degree=args.sh_degree, quiet=args.quiet), ctx)
+            frame_every=args.frame_every, sh_degree=args.sh_degree, quiet=args.quiet,
+            measure_frames=args.measure_frames), ctx)
     finally:
         ctx.release()
     if not args.quiet:

@@ -1,0 +1,55 @@
+#!/bin/bash
+# GPU-machine driver for the viewer's window path (device `run` tool), from the repo root, carrying:
+#   .gl           GL loader .debs (as run_client.sh)
+#   .xroot        Xvfb and the X11 client libraries as Debian .debs, unpacked under /tmp/xroot (not into /)
+#   .whl, .whl_win  cp312 wheels: run_client.sh's, and glfw, moderngl-window, imgui-bundle
+#   .bench_carry  tools/make_scene.py and data/real/*
+# The window is a GLX window on Xvfb drawn by the NVIDIA driver (__GLX_VENDOR_LIBRARY_NAME=nvidia). It streams a
+# 6M-splat scene from loopback at 1920x1080, and its converged frames are timed against `view --headless`'s.
+# Usage: bash bench/device/run_window.sh [fly]   (results under $OUT)
+set -u
+for f in .gl/*.deb; do dpkg -x "$f" /; done
+ldconfig
+mkdir -p /tmp/xroot
+for f in .xroot/*.deb; do dpkg -x "$f" /tmp/xroot; done
+[ -x /usr/bin/xkbcomp ] || cp /tmp/xroot/usr/bin/xkbcomp /usr/bin/xkbcomp  # Xvfb runs it by this path
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site \
+  .whl/*.whl .whl_win/*.whl || exit 1
+export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 SPLATSTREAM_SHARED=$PWD/.bench_carry
+OUT=${OUT:-/tmp/out}
+mkdir -p "$OUT"
+W=/tmp/win-work
+mkdir -p $W/root
+python3 .bench_carry/tools/make_scene.py --splats 6000000 --seed 0 --out $W/s6m.ply | tail -1
+python3 -m splatstream.cli encode $W/s6m.ply $W/root/s6m --up 0,0,1 -q || exit 1
+python3 -m splatstream.cli serve $W/root --port 8765 --no-access-log 2> $W/serve.log &
+sleep 2
+URL=http://127.0.0.1:8765/scenes/s6m
+echo "== headless"
+probe='import moderngl; c = moderngl.create_context(standalone=True, backend="egl", require=430); print(c.info["GL_RENDERER"])'
+python3 -c "$probe" || export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
+python3 -m splatstream.cli view $URL --headless --size 1920x1080 --measure-frames 120 --record "$OUT/headless.json" \
+  --screenshot "$OUT/headless.png" --no-cache 2>&1 | tail -2
+echo "== window"
+LD_LIBRARY_PATH=/tmp/xroot/usr/lib/x86_64-linux-gnu /tmp/xroot/usr/bin/Xvfb :99 -screen 0 1920x1200x24 \
+  -xkbdir /tmp/xroot/usr/share/X11/xkb -nolisten tcp > $W/xvfb.log 2>&1 &
+sleep 2
+export DISPLAY=:99 __GLX_VENDOR_LIBRARY_NAME=nvidia LD_LIBRARY_PATH=/tmp/xroot/usr/lib/x86_64-linux-gnu
+timeout 240 python3 -m splatstream.cli view $URL --size 1920x1080 --exit-when-converged --measure-frames 120 \
+  --no-vsync --record "$OUT/window.json" --screenshot "$OUT/window.png" --no-cache 2>&1 | tail -5
+echo "window rc=$?"; tail -5 $W/xvfb.log
+python3 - "$OUT" <<'PY'
+import json, sys
+out = sys.argv[1]
+for name in ("headless", "window"):
+    try:
+        r = json.load(open(f"{out}/{name}.json"))
+    except OSError:
+        print(name, "no record"); continue
+    print(name, r.get("gl_renderer"), "first frame", r.get("first_frame_s"), "converged", r.get("converged_s"),
+          "median converged frame ms", r.get("measured_frame_ms_median"))
+PY
+if [ "${1:-}" = fly ]; then
+  python3 bench/bench_flythrough.py --scene $W/root/s6m --ply $W/s6m.ply --json "$OUT/flythrough.json" 2>&1 | \
+    grep -v '^   \|^  \]\|^  \[' | tail -40
+fi
