@@ -54,6 +54,7 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=12.0)
     ap.add_argument("--repeat", type=int, default=60, help="converged frames timed at the end")
     ap.add_argument("--json", dest="json_out")
+    ap.add_argument("--profile", action="store_true", help="print where the streaming loop's time went (cProfile)")
     args = ap.parse_args()
     from client_gl.headless import HeadlessRenderer, RenderOptions, create_context
     from client_gl.scene import SceneTiles, load_tile
@@ -77,6 +78,12 @@ def main() -> None:
     try:
         session = StreamingSession.open(url, ctx, ViewOptions(gpu_mem_mb=args.gpu_mem_mb, max_splats=args.max_splats,
                                                               cache=False))
+        import cProfile
+        import pstats
+
+        profiler = cProfile.Profile() if args.profile else None
+        if profiler:
+            profiler.enable()
         start = time.perf_counter()
         walls, drawn, updates, uploads = [], [], [], []
         last = time.perf_counter()
@@ -95,6 +102,9 @@ def main() -> None:
                 break
             if now > path.end + 60:
                 break
+        if profiler:
+            profiler.disable()
+            pstats.Stats(profiler).sort_stats("tottime").print_stats(25)
         out["streaming"] = {"frames": len(walls), "median_ms": float(np.median(walls)),
                             "p99_ms": float(np.percentile(walls, 99)), "max_ms": float(np.max(walls)),
                             "max_drawn_splats": int(max(drawn)), "first_frame_s": session.metrics.first_frame_s,

@@ -3,7 +3,6 @@
 #   .gl           GL loader .debs (as run_client.sh)
 #   .xroot        Xvfb and the X11 client libraries as Debian .debs, unpacked under /tmp/xroot (not into /)
 #   .whl, .whl_win  cp312 wheels: run_client.sh's, and glfw, moderngl-window, imgui-bundle
-#   .bench_carry  tools/make_scene.py and data/real/*
 # The window is a GLX window on Xvfb drawn by the NVIDIA driver (__GLX_VENDOR_LIBRARY_NAME=nvidia). It streams a
 # 6M-splat scene from loopback at 1920x1080, and its converged frames are timed against `view --headless`'s.
 # Usage: bash bench/device/run_window.sh [fly]   (results under $OUT)
@@ -15,14 +14,15 @@ for f in .xroot/*.deb; do dpkg -x "$f" /tmp/xroot; done
 [ -x /usr/bin/xkbcomp ] || cp /tmp/xroot/usr/bin/xkbcomp /usr/bin/xkbcomp  # Xvfb runs it by this path
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site \
   .whl/*.whl .whl_win/*.whl || exit 1
-export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 SPLATSTREAM_SHARED=$PWD/.bench_carry
+export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
 OUT=${OUT:-/tmp/out}
 mkdir -p "$OUT"
 W=/tmp/win-work
 mkdir -p $W/root
-python3 .bench_carry/tools/make_scene.py --splats 6000000 --seed 0 --out $W/s6m.ply | tail -1
+python3 bench/tile_scene.py samples/donut.ply --splats 6000000 --seed 0 --out $W/s6m.ply | tail -1  # no data to carry
 python3 -m splatstream.cli encode $W/s6m.ply $W/root/s6m --up 0,0,1 -q || exit 1
-python3 -m splatstream.cli serve $W/root --port 8765 --no-access-log 2> $W/serve.log &
+python3 -m splatstream.cli serve $W/root --port 8765 --no-access-log > $W/serve.log 2>&1 &
+SERVE=$!
 sleep 2
 URL=http://127.0.0.1:8765/scenes/s6m
 echo "== headless"
@@ -32,12 +32,26 @@ python3 -m splatstream.cli view $URL --headless --size 1920x1080 --measure-frame
   --screenshot "$OUT/headless.png" --no-cache 2>&1 | tail -2
 echo "== window"
 LD_LIBRARY_PATH=/tmp/xroot/usr/lib/x86_64-linux-gnu /tmp/xroot/usr/bin/Xvfb :99 -screen 0 1920x1200x24 \
-  -xkbdir /tmp/xroot/usr/share/X11/xkb -nolisten tcp > $W/xvfb.log 2>&1 &
+  -xkbdir /tmp/xroot/usr/share/X11/xkb -nolisten tcp > $W/xvfb.log 2>&1 < /dev/null &
+XVFB=$!
 sleep 2
 export DISPLAY=:99 __GLX_VENDOR_LIBRARY_NAME=nvidia LD_LIBRARY_PATH=/tmp/xroot/usr/lib/x86_64-linux-gnu
-timeout 240 python3 -m splatstream.cli view $URL --size 1920x1080 --exit-when-converged --measure-frames 120 \
-  --no-vsync --record "$OUT/window.json" --screenshot "$OUT/window.png" --no-cache 2>&1 | tail -5
-echo "window rc=$?"; tail -5 $W/xvfb.log
+echo "xvfb log:"; head -5 $W/xvfb.log
+timeout 30 python3 - > $W/probe.log 2>&1 <<'PY'
+import glfw
+assert glfw.init(), "glfw.init failed"
+glfw.window_hint(glfw.CONTEXT_VERSION_MAJOR, 4); glfw.window_hint(glfw.CONTEXT_VERSION_MINOR, 1)
+glfw.window_hint(glfw.OPENGL_PROFILE, glfw.OPENGL_CORE_PROFILE)
+w = glfw.create_window(640, 480, "probe", None, None)
+assert w, "no window"
+glfw.make_context_current(w)
+import moderngl
+print("window GL:", moderngl.create_context().info["GL_RENDERER"])
+PY
+echo "probe rc=$?"; tail -5 $W/probe.log
+timeout 200 python3 -m splatstream.cli view $URL --size 1920x1080 --exit-when-converged --measure-frames 120 \
+  --no-vsync --record "$OUT/window.json" --screenshot "$OUT/window.png" --no-cache > $W/view.log 2>&1 < /dev/null
+echo "window rc=$?"; tail -5 $W/view.log; tail -3 $W/xvfb.log
 python3 - "$OUT" <<'PY'
 import json, sys
 out = sys.argv[1]
@@ -49,7 +63,11 @@ for name in ("headless", "window"):
     print(name, r.get("gl_renderer"), "first frame", r.get("first_frame_s"), "converged", r.get("converged_s"),
           "median converged frame ms", r.get("measured_frame_ms_median"))
 PY
+kill $XVFB 2>/dev/null
 if [ "${1:-}" = fly ]; then
-  python3 bench/bench_flythrough.py --scene $W/root/s6m --ply $W/s6m.ply --json "$OUT/flythrough.json" 2>&1 | \
-    grep -v '^   \|^  \]\|^  \[' | tail -40
+  python3 bench/bench_flythrough.py --scene $W/root/s6m --ply $W/s6m.ply --json "$OUT/flythrough.json" --profile \
+    > $W/fly.log 2>&1
+  grep -v '^   \|^  \]\|^  \[' $W/fly.log | tail -75
 fi
+kill $SERVE 2>/dev/null
+wait 2>/dev/null
