@@ -44,6 +44,30 @@ def fly_path(ply: str, seconds: float) -> dict:
                                                                                                    strict=True))]}
 
 
+class StepTimer:
+    """Milliseconds spent in named methods during the current frame (wraps them on their classes; bench only)."""
+
+    def __init__(self) -> None:
+        self.now: dict[str, float] = {}
+
+    def wrap(self, cls, names) -> None:
+        for name in names:
+            setattr(cls, name, self._timed(getattr(cls, name), f"{cls.__name__}.{name}"))
+
+    def _timed(self, fn, label):
+        def timed(*args, **kwargs):
+            t = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self.now[label] = self.now.get(label, 0.0) + (time.perf_counter() - t) * 1e3
+        return timed
+
+    def take(self) -> dict[str, float]:
+        out, self.now = {k: round(v, 2) for k, v in self.now.items() if v >= 0.05}, {}
+        return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scene", required=True, help="scene directory (served on loopback here) or URL")
@@ -54,6 +78,11 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=12.0)
     ap.add_argument("--repeat", type=int, default=60, help="converged frames timed at the end")
     ap.add_argument("--json", dest="json_out")
+    ap.add_argument("--switch-interval", type=float,
+                    help="the interpreter's switch interval in seconds, set after the session opens (an A/B of "
+                         "client_gl.streaming.favour_frame_loop)")
+    ap.add_argument("--breakdown", action="store_true",
+                    help="time the engine's and the pool's steps in each frame; the slowest frames' split is reported")
     ap.add_argument("--profile", action="store_true", help="print where the streaming loop's time went (cProfile)")
     args = ap.parse_args()
     from client_gl.headless import HeadlessRenderer, RenderOptions, create_context
@@ -78,6 +107,9 @@ def main() -> None:
     try:
         session = StreamingSession.open(url, ctx, ViewOptions(gpu_mem_mb=args.gpu_mem_mb, max_splats=args.max_splats,
                                                               cache=False))
+        if args.switch_interval:
+            sys.setswitchinterval(args.switch_interval)
+        out["switch_interval_s"] = sys.getswitchinterval()
         import cProfile
         import pstats
 
@@ -85,7 +117,17 @@ def main() -> None:
         if profiler:
             profiler.enable()
         start = time.perf_counter()
-        walls, drawn, updates, uploads = [], [], [], []
+        steps = StepTimer() if args.breakdown else None
+        if steps:
+            from client_gl.gpu.pool import ChunkPool
+            from client_gl.gpu.renderer import SplatRenderer
+            from client_gl.stream.engine import StreamEngine
+
+            steps.wrap(StreamEngine, ["wanted", "_collect", "_upload", "_make_room", "_trim_ready"])
+            steps.wrap(ChunkPool, ["join", "add_band", "leave", "set_codebook_band", "_upload_plane", "_write_records",
+                                   "set_draw_set", "bind"])
+            steps.wrap(SplatRenderer, ["render"])
+        walls, drawn, updates, uploads, splits = [], [], [], [], []
         last = time.perf_counter()
         while True:
             now = time.perf_counter() - start
@@ -97,6 +139,7 @@ def main() -> None:
             drawn.append(rec.drawn_splats)
             updates.append(rec.update_ms)
             uploads.append(rec.uploaded_bytes)
+            splits.append(steps.take() if steps else {})
             last = t
             if now > path.end and session.converged:
                 break
@@ -118,8 +161,9 @@ def main() -> None:
             "p99_ms_without_uploads": float(np.percentile(walls_a[~with_up], 99)) if (~with_up).any() else None,
             "median_upload_mb": float(np.median(up_a[with_up]) / 1e6) if with_up.any() else 0.0,
             "update_ms_median": float(np.median(upd_a)), "update_ms_p99": float(np.percentile(upd_a, 99)),
-            "slowest": sorted(zip(np.round(walls_a, 1).tolist(), up_a.tolist(), np.round(upd_a, 2).tolist(),
-                                  strict=True), reverse=True)[:12]})
+            "slowest": [{"ms": round(float(walls_a[i]), 1), "uploaded_bytes": int(up_a[i]),
+                         "update_ms": round(float(upd_a[i]), 2), "steps_ms": splits[i]}
+                        for i in np.argsort(-walls_a, kind="stable")[:12]]})
         cam = path.camera(path.end, w, h)
         times = []
         for _ in range(args.repeat):
