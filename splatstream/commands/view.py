@@ -33,7 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     cam.add_argument("--camera-path", metavar="PATH.json",
                      help="keyframes {time, eye, target[, up][, fov_y]} played on the wall clock")
     s = p.add_argument_group("streaming")
-    s.add_argument("--gpu-mem-mb", type=float, default=1024.0, help="GPU memory for splat data (default 1024)")
+    s.add_argument("--gpu-mem-mb", type=float, default=1024.0, help="GPU memory for splat data, MiB (default 1024)")
     s.add_argument("--max-splats", type=int, help="splats drawn at most (default: as the memory allows)")
     s.add_argument("--max-sse", type=float, default=1.5,
                    help="screen-space error in pixels under which a tile is not refined (default 1.5; 0: full detail)")
@@ -52,7 +52,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="give up after S seconds (exit 1; default 120)")
     h.add_argument("--record", metavar="METRICS.json", help="write first-frame and convergence times, bytes and a "
                    "per-frame series")
-    h.add_argument("--screenshot", metavar="FINAL.png", help="write the last frame")
+    h.add_argument("--screenshot", metavar="FINAL.png",
+                   help="write the converged frame (headless: the last one; a window that stays open: the first "
+                        "converged one, without the overlay)")
     h.add_argument("--frames-dir", metavar="DIR", help="write a PNG every --frame-every frames")
     h.add_argument("--frame-every", type=int, default=10, metavar="N")
     h.add_argument("--measure-frames", type=int, default=0, metavar="N",
@@ -155,6 +157,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"view: first frame {ff:.3f} s, " if ff is not None else "view: no frame drawn, ", end="",
               file=sys.stderr)
         print(f"converged {conv:.3f} s, " if conv is not None else "not converged, ", end="", file=sys.stderr)
-        print(f"{report['bytes_downloaded'] / 1e6:.2f} MB downloaded, GPU {report['gpu_bytes_peak'] / 1e6:.1f} MB "
-              f"of {report['gpu_budget_bytes'] / 1e6:.1f} MB", file=sys.stderr)
+        print(f"{report['bytes_downloaded'] / 1e6:.2f} MB downloaded, GPU {report['gpu_bytes_peak'] / 2**20:.1f} "
+              f"of {report['gpu_budget_bytes'] / 2**20:.0f} MiB", file=sys.stderr)
     return code
