@@ -43,6 +43,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "every selected tile")
     s.add_argument("--no-cache", action="store_true", help="do not use the disk cache of payloads")
     s.add_argument("--no-prefetch", action="store_true", help="fetch only what the view needs now")
+    s.add_argument("--skip-levels", action="store_true",
+                   help="fetch the wanted tiles without the LOD levels above them (fewer bytes; the picture stays "
+                        "coarse longer and then changes in larger steps)")
     s.add_argument("--sort", default="auto", choices=["auto", "cpu", "gpu"], help="depth sort (as `render`)")
     s.add_argument("--draw", default="auto", choices=DRAWS, help="GPU-path rasterizer (as `render`)")
     h = p.add_argument_group("headless output")
@@ -85,7 +88,8 @@ def _options(args):
         raise UsageError(f"--fov-y {args.fov_y}: expected degrees in (0, 180)")
     return ViewOptions(gpu_mem_mb=args.gpu_mem_mb, max_splats=args.max_splats, max_sse=args.max_sse,
                        sh_degree=3 if args.sh_degree is None else args.sh_degree, prefetch=not args.no_prefetch,
-                       cache=not args.no_cache, render=RenderOptions(sort=args.sort, draw=args.draw),
+                       fill_levels=not args.skip_levels, cache=not args.no_cache,
+                       render=RenderOptions(sort=args.sort, draw=args.draw),
                        **({"band_area_share": (1.0, 1.0, 1.0)} if args.sh_bands == "all" else {}))
 
 
