@@ -12,7 +12,6 @@ picture, the budgets and the metrics are the same with and without a display. Me
 from __future__ import annotations
 
 import os
-import sys
 import time
 from dataclasses import dataclass, field, replace
 
@@ -30,18 +29,6 @@ from .stream.engine import FrameUpdate, StreamEngine, StreamOptions
 from .stream.fetch import Fetcher
 from .stream.selection import SelectionOptions
 from .stream.sources import Progress, SceneSource, open_source
-
-# The frame loop shares the GIL with the fetch loop and the decode workers. Each time it gives the GIL up (a numpy
-# copy, a checksum) it may wait a whole switch interval for it to come back (CPython's is 5 ms), many times in a frame
-# that uploads tiles. A shorter interval bounds each wait (bench/bench_flythrough.py --switch-interval, BENCHMARKS.md).
-FRAME_LOOP_SWITCH_INTERVAL_S = 0.0005
-
-
-def favour_frame_loop() -> None:
-    """Shorten the interpreter's switch interval (never lengthen it) for a process that streams while it draws."""
-    if sys.getswitchinterval() > FRAME_LOOP_SWITCH_INTERVAL_S:
-        sys.setswitchinterval(FRAME_LOOP_SWITCH_INTERVAL_S)
-
 
 DEFAULT_GPU_MEM_MB = 1024.0
 
@@ -130,7 +117,6 @@ class PreparedSource:
     def open(cls, spec: str | os.PathLike | SceneSource, options: ViewOptions = ViewOptions(),
              progress: Progress | None = None) -> PreparedSource:
         start = time.perf_counter()
-        favour_frame_loop()
         source = spec if isinstance(spec, SceneSource) else open_source(spec, progress=progress)
         cache = None
         if options.cache and getattr(source, "cache_key", None):
