@@ -97,7 +97,8 @@ def stream_once(url: str, cam: Camera, mode: str, out: str, args) -> dict:
               "--gpu-mem-mb", str(args.gpu_mem_mb), "--no-cache", "--timeout", str(args.timeout),
               "--record", os.path.join(out, "metrics.json"), "--screenshot", os.path.join(out, "final.png"),
               "--frames-dir", frames, "--frame-every", str(args.frame_every), "-q",
-              *(["--sh-bands", "need", "--skip-levels"] if mode == "skip" else ["--sh-bands", mode]))
+              *(["--sh-bands", "need", "--skip-levels"] if mode == "skip" else
+                ["--sh-bands", "need", "--fill-gap", mode[3:]] if mode.startswith("gap") else ["--sh-bands", mode]))
     r = run(cmd)
     if r.returncode not in (0, 1):
         raise SystemExit(f"{' '.join(cmd)}\n{r.stderr}")
@@ -161,7 +162,8 @@ def main() -> None:
     ap.add_argument("--links", default="loopback,20:40,100:0", help="loopback or MBIT:LATENCY_MS, comma-separated")
     ap.add_argument("--cameras", default="overview,close-up")
     ap.add_argument("--modes", default="need,all",
-                    help="need: SH bands by need; all: every band; skip: need, without the levels above the cut")
+                    help="need: SH bands by need; all: every band; skip: need, without the levels above the cut; "
+                         "gapN: need, filling levels from N above the cut")
     ap.add_argument("--size", default="1920x1080")
     ap.add_argument("--gpu-mem-mb", type=float, default=1024, help="the view's default")
     ap.add_argument("--frame-every", type=int, default=3)

@@ -180,3 +180,21 @@ def test_coarse_to_fine_fills_each_level_before_the_next(store):
     assert set(skipped) == {m.root} | {int(a.ids[i]) for i in u.selection.cut}
     assert len(skipped) < len(bases)
     engine.close()
+
+
+def test_fill_gap_skips_the_levels_just_above_the_cut():
+    g = read_gaussians_ply(real("fruit_drops_sh3.ply"))
+    store = encode_in_memory(g, EncodeOptions(preset="medium", max_leaf_splats=80))  # four levels
+    m = read_manifest(store)
+    a = m.arrays
+    cam = orbit(m, 1.6, 0.3)
+    fetcher = StepFetcher(store, per_frame=1)
+    engine = StreamEngine(fetcher, CountingPool(10_000),
+                          StreamOptions(SelectionOptions(max_sse=0.0), prefetch=False, fill_gap=2))
+    _, u = run_until_converged(engine, cam)
+    cut = set(u.selection.cut)
+    parents = {int(a.parent[i]) for i in cut} - {m.index_of[m.root]}
+    fetched = {m.index_of[t] for t, g in fetcher.fetched if g == "base"}
+    assert cut <= fetched and not parents & fetched
+    assert any(i not in cut for i in fetched - {m.index_of[m.root]})  # the levels above them were filled in
+    engine.close()

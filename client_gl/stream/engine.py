@@ -71,6 +71,7 @@ class StreamOptions:
     # the picture improves with every level that arrives (a cut is drawn in place of an ancestor only once all of
     # the ancestor's part of it is there). False skips straight to the cut (fewer bytes, long plateaus).
     fill_levels: bool = True
+    fill_gap: int = 1  # the finest ancestor filled in is this many levels above its cut tile (2: not the parents)
     decode_workers: int = 2
     ready_bytes: int = 512 << 20  # decoded payloads waiting for upload (prefetched ones are dropped first)
 
@@ -250,6 +251,8 @@ class StreamEngine:
             if self.resident[i]:
                 continue
             j = int(a.parent[i])
+            for _ in range(self.options.fill_gap - 1):  # levels just above the cut are skipped
+                j = int(a.parent[j]) if j >= 0 else j
             while j >= 0 and j not in rank:
                 rank[j] = r
                 j = int(a.parent[j])

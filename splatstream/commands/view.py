@@ -46,6 +46,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--skip-levels", action="store_true",
                    help="fetch the wanted tiles without the LOD levels above them (fewer bytes; the picture stays "
                         "coarse longer and then changes in larger steps)")
+    s.add_argument("--fill-gap", type=int, default=1, metavar="N",
+                   help="fill in the LOD levels from N levels above each wanted tile up (default 1: every level)")
     s.add_argument("--sort", default="auto", choices=["auto", "cpu", "gpu"], help="depth sort (as `render`)")
     s.add_argument("--draw", default="auto", choices=DRAWS, help="GPU-path rasterizer (as `render`)")
     h = p.add_argument_group("headless output")
@@ -84,11 +86,14 @@ def _options(args):
         raise UsageError(f"--timeout {args.timeout}: expected a positive number of seconds")
     if args.frame_every < 1:
         raise UsageError(f"--frame-every {args.frame_every}: expected at least 1")
+    if args.fill_gap < 1:
+        raise UsageError(f"--fill-gap {args.fill_gap}: expected 1 or more levels")
     if args.fov_y is not None and not 0 < args.fov_y < 180:
         raise UsageError(f"--fov-y {args.fov_y}: expected degrees in (0, 180)")
     return ViewOptions(gpu_mem_mb=args.gpu_mem_mb, max_splats=args.max_splats, max_sse=args.max_sse,
                        sh_degree=3 if args.sh_degree is None else args.sh_degree, prefetch=not args.no_prefetch,
-                       fill_levels=not args.skip_levels, cache=not args.no_cache,
+                       fill_levels=not args.skip_levels, fill_gap=args.fill_gap,
+                       cache=not args.no_cache,
                        render=RenderOptions(sort=args.sort, draw=args.draw),
                        **({"band_area_share": (1.0, 1.0, 1.0)} if args.sh_bands == "all" else {}))
 
