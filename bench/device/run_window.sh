@@ -6,7 +6,7 @@
 #   .xwin         winsite.tar.xz: glfw, moderngl-window, pyglm and imgui-bundle unpacked (demos and stubs removed;
 #                 xz, to fit the carry limit), and xglx.tar.xz: Mesa's swrast DRI driver built without LLVM
 #                 (softpipe), which Xvfb's GLX extension needs to start (the device README: Xvfb, Mesa and the
-#                 NVIDIA GLX client library); see .xwin/README for how both were made
+#                 NVIDIA GLX client library); bench/device/make_xwin.sh makes them and .xroot
 # The window is a GLX window on Xvfb drawn by the NVIDIA driver (__GLX_VENDOR_LIBRARY_NAME=nvidia). It streams a
 # 6M-splat scene from loopback at 1920x1080, and its converged frames are timed against `view --headless`'s.
 # Usage: bash bench/device/run_window.sh [fly]   (results under $OUT)
