@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .format.layout import morton_codes
+from .format.limits import MAX_LOG_SCALE, MIN_LOG_SCALE
 from .gaussians import Gaussians, normalize_quaternions, rotation_matrices
 
 # Bounds and errors use this many standard deviations (the 3DGS rasteriser's cut-off and KHR "ellipse" kernel).
@@ -243,7 +244,9 @@ def merge_gaussians(g: Gaussians, mass: np.ndarray, target: int) -> tuple[Gaussi
     # Flat members stay flat but not flatter than their flattest member (eigh can return ~0 or tiny negatives).
     floor = np.exp(2.0 * np.minimum.reduceat(_row_min(log_s), starts).astype(np.float64))
     evals = np.maximum(evals, floor[:, None])
-    merged_log_scales = 0.5 * np.log(evals)
+    # Inside the format's log-scale domain (format.md 4.8): members spread over a huge box merge into a splat
+    # whose moment-matched size can exceed what any member had.
+    merged_log_scales = np.clip(0.5 * np.log(evals), MIN_LOG_SCALE, MAX_LOG_SCALE)
     merged_rot = _matrices_to_quaternions(evecs)
 
     merged_mass = np.add.reduceat(mass, starts)
@@ -323,7 +326,7 @@ def match_screen_appearance(merged: Gaussians, originals: Gaussians, represented
                 ok = MAX_MERGED_OPACITY * _coverage_area(ls + mid[:, None], blur) >= covered[grow_rows]
                 hi_k = np.where(ok, mid, hi_k)
                 lo_k = np.where(ok, lo_k, mid)
-            merged.log_scales[grow_rows] = (ls + hi_k[:, None]).astype(np.float32)
+            merged.log_scales[grow_rows] = np.minimum(ls + hi_k[:, None], MAX_LOG_SCALE).astype(np.float32)
             need[grow_rows] = covered[grow_rows] / _coverage_area(merged.log_scales[grow_rows], blur)
     alpha = np.clip(need, 1e-7, MAX_MERGED_OPACITY)
     logits = np.log(alpha / (1.0 - alpha)).astype(np.float32)

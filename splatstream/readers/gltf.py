@@ -24,7 +24,7 @@ import numpy as np
 from ..errors import InputError
 from ..gaussians import SH_BAND_COEFFS, Gaussians, normalize_quaternions
 from ..sh import sh_basis
-from . import memory_budget, opacity_logits_from_unit
+from . import memory_budget, opacity_logits_from_unit, read_regular_file
 from .splat import MIN_LOG_SCALE
 
 GLB_HEADER = struct.Struct("<4sII")
@@ -108,10 +108,7 @@ class _Document:
         full = os.path.realpath(os.path.join(root, unquote(uri)))
         if os.path.commonpath([root, full]) != root or not os.path.isfile(full):
             raise InputError(self.path, f"buffers[{index}].uri", f"{uri!r} is not a file inside {root}")
-        if os.path.getsize(full) > memory_budget():
-            raise InputError(full, None, "larger than the memory budget")
-        with open(full, "rb") as f:
-            return f.read()
+        return read_regular_file(full, memory_budget(), self.path, f"buffers[{index}].uri")
 
     def buffer_view(self, index: object) -> tuple[bytes, int, int, int | None]:
         """(buffer, byteOffset, byteLength, byteStride) of a buffer view, checked against its buffer."""
