@@ -58,6 +58,8 @@ def read_manifest_dict(scene_dir) -> dict:
 
 
 def write_manifest_dict(scene_dir, m: dict) -> None:
-    import msgpack
+    """Write a (damaged) manifest map as a file of its version: from 1.2 on with a valid checksum, so the damage
+    under test is what the reader finds (tests of the checksum itself damage the bytes)."""
+    from splatstream.format.manifest import pack_manifest_dict
 
-    (pathlib.Path(scene_dir) / "manifest.msgpack").write_bytes(msgpack.packb(m, use_bin_type=True))
+    (pathlib.Path(scene_dir) / "manifest.msgpack").write_bytes(pack_manifest_dict(m))
