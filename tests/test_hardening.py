@@ -149,7 +149,7 @@ def rewrite_payload(scene: pathlib.Path, section: str, change) -> None:
     sha = hashlib.sha256(data).hexdigest()
     (scene / "data" / f"{sha}.bin").write_bytes(data)
     entry.update(file=f"data/{sha}.bin", sha256=sha, bytes=len(data))
-    write_manifest_dict(scene, d)
+    write_manifest_dict(scene, d, settle=True)
 
 
 @pytest.fixture(scope="module")
@@ -400,3 +400,64 @@ def test_after_sigkill_the_next_write_removes_stale_temporaries(tmp_path):
     stale.write_bytes(b"half a PLY")
     r = run_cli("convert", "-q", SUB64, tmp_path / "o.ply")
     assert r.returncode == 0 and not stale.exists() and (tmp_path / "o.ply").is_file()
+
+
+# ------------------------------------------------------------------------- found by the campaign (bench/fuzz.py)
+
+
+def test_splat_writer_refuses_what_splat_readers_take_for_garbage(tmp_path):
+    """A position of 1e18 is inside the scene format's domain but beyond what a .splat reader accepts (the format
+    has no header, so plausibility is all a reader has): convert refuses instead of writing an unreadable file."""
+    g = read_gaussians_ply(SUB64)
+    g.positions[3, 0] = 5e7
+    src = tmp_path / "far.ply"
+    from splatstream.ply import write_gaussians_ply
+
+    write_gaussians_ply(g, src)
+    out = tmp_path / "far.splat"
+    fails_cleanly(run_cli("convert", "-q", src, out), str(out), "1 of 74 splats have a position beyond +-1e7")
+    assert not out.exists()
+    no_temp_left(tmp_path)
+    fails_cleanly(run_cli("convert", "-q", src, tmp_path / "far.spz"), str(tmp_path / "far.spz"), "SPZ cannot hold")
+    assert run_cli("convert", "-q", src, tmp_path / "far.glb").returncode == 0
+
+
+def test_nothing_left_after_dropping_is_an_error_naming_the_input(tmp_path):
+    """--drop-invalid dropping every splat once wrote an empty .splat that nothing can read back."""
+    src = tmp_path / "bad.ply"
+    rewrite_ply_field(SUB64, src, "f_rest_35", dict.fromkeys(range(74), 65520.0))
+    for command in (["convert", "-q", "--drop-invalid", src, tmp_path / "o.splat"],
+                    ["encode", "-q", "--drop-invalid", src, tmp_path / "s"]):
+        fails_cleanly(run_cli(*command), str(src), "holds no splats")
+    assert not (tmp_path / "o.splat").exists() and not (tmp_path / "s").exists()
+
+
+def test_huge_finite_quaternions_and_transforms_give_no_numpy_warnings():
+    from splatstream.gaussians import normalize_quaternions
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        q = normalize_quaternions(np.array([[1e30, 1e30, 0, 0], [0.5, 0.5, 0.5, 0.5], [np.inf, 0, 0, 0]],
+                                           np.float32))
+    assert np.allclose(q[0], [2**-0.5, 2**-0.5, 0, 0]) and np.allclose(q[1], [0.5] * 4)
+    assert not np.isfinite(q[2]).all()  # left for the readers' value screen to report
+
+
+def test_gltf_node_transforms_must_be_finite(tmp_path):
+    import json
+
+    from splatstream.readers.gltf import read_gltf
+
+    data = (FOREIGN / "fruit_drops_sub64_sh1.glb").read_bytes()
+    json_len = struct.unpack_from("<I", data, 12)[0]
+    doc = json.loads(data[20:20 + json_len])
+    doc["nodes"][0]["translation"] = [float("inf"), 0, 0]
+    text = json.dumps(doc).encode()
+    text += b" " * (-len(text) % 4)
+    body = struct.pack("<II", len(text), 0x4E4F534A) + text + data[20 + json_len:]
+    path = tmp_path / "t.glb"
+    path.write_bytes(struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        with pytest.raises(InputError, match="nodes\\[0\\]: .* or not finite"):
+            read_gltf(path)

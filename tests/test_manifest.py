@@ -170,7 +170,7 @@ def _payload_case(tmp_path, mutate):
     sha = hashlib.sha256(data).hexdigest()
     (tmp_path / "s" / "data" / f"{sha}.bin").write_bytes(data)
     base.update(file=f"data/{sha}.bin", sha256=sha, bytes=len(data))
-    write_manifest_dict(tmp_path / "s", d)
+    write_manifest_dict(tmp_path / "s", d, settle=True)
     return tmp_path / "s"
 
 
@@ -293,3 +293,18 @@ def test_older_manifests_without_checksum_still_read(tmp_path, raw):
     d["version"] = [1, 0]
     write_manifest_dict(tmp_path / "m", d)  # written as a 1.0 file: no checksum
     assert "checksum" not in read_manifest_dict(tmp_path / "m") and len(decode_scene(tmp_path / "m")) == 260
+
+
+def test_totals_are_cross_checked(tmp_path, raw):
+    """gpu_bytes and leaf_bytes_on_disk are recomputed from the entries, bytes_on_disk from the files (1.2)."""
+    for key, delta in (("gpu_bytes", 16), ("leaf_bytes_on_disk", -1)):
+        d = copy.deepcopy(raw)
+        d[key] += delta
+        with pytest.raises(FormatError, match=f"^m: {key}: "):
+            manifest_from_dict(d, "m")
+    d = copy.deepcopy(raw)
+    d["bytes_on_disk"] += 1
+    from splatstream.format.manifest import pack_manifest_dict
+
+    with pytest.raises(FormatError, match="bytes_on_disk: .* but the payload files and the manifest are"):
+        parse_manifest(pack_manifest_dict(d), "m")

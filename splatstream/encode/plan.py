@@ -79,7 +79,8 @@ def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progr
     formats = resolve_formats(opts.preset, opts.overrides)
     chunk_order = resolve_chunk_order(opts.chunk_order, formats)
     if len(g) == 0:
-        raise UsageError("the input holds no splats; nothing to encode")
+        raise InputError(source_name or "<gaussians>", None, "holds no splats (none, or none left after dropping "
+                         "invalid ones); nothing to encode")
     # The encoder never writes what its readers refuse: values beyond the format's domain (format.md 4.8) would
     # make a range non-finite or decode to NaN. Files read through io.read_gaussians are screened already.
     violations = domain_violations(g)

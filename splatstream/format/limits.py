@@ -23,7 +23,7 @@ BLOCK_ROWS = 1 << 18  # rows checked at a time (bounds the temporaries on scenes
 
 def _within(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
     """Rows of (N, ...) values whose every entry is finite and in [lo, hi] (NaN compares False)."""
-    flat = values.reshape(len(values), -1)
+    flat = values.reshape(len(values), int(np.prod(values.shape[1:], dtype=np.int64)))
     ok = np.empty(len(values), bool)
     for start in range(0, len(values), BLOCK_ROWS):
         block = flat[start:start + BLOCK_ROWS]

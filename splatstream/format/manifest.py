@@ -591,7 +591,11 @@ def parse_manifest(raw: bytes, source: str = MANIFEST_NAME) -> Manifest:
     version = _check_format_and_version(d, source)
     if version >= CHECKSUM_VERSION:
         _verify_checksum(raw, d, source)
-    return manifest_from_dict(d, source)
+    manifest = manifest_from_dict(d, source)
+    if CHECKSUM_VERSION <= version <= FORMAT_VERSION and manifest.bytes_on_disk != manifest.payload_bytes() + len(raw):
+        raise FormatError(source, "bytes_on_disk", f"{manifest.bytes_on_disk}, but the payload files and the "
+                          f"manifest are {manifest.payload_bytes() + len(raw)} bytes")
+    return manifest
 
 
 def _check_format_and_version(d, source: str) -> tuple[int, int]:
@@ -713,6 +717,19 @@ def manifest_from_dict(d, source: str = MANIFEST_NAME) -> Manifest:
         attributes=attributes, encode_seconds=m.float("encode_seconds", 0.0),
         bytes_on_disk=m.int("bytes_on_disk"))
     m.done()
+    if not strict:  # a newer minor version may add payloads these totals count; only its own keys are checked
+        return manifest
+    # Totals a reader can recompute must agree (a resealed but edited manifest, or a writer's bug).
+    leaf_entries = [p for t in manifest.leaves for p in t.groups.values()]
+    if codebook is not None:
+        leaf_entries += list(codebook.groups.values())
+    gpu = sum(p.gpu_bytes for p in leaf_entries)
+    if manifest.gpu_bytes != gpu:
+        m.fail("gpu_bytes", f"{manifest.gpu_bytes}, but the leaf tiles' and codebook's sections hold {gpu} bytes")
+    disk = sum(p.bytes for p in leaf_entries)
+    if manifest.leaf_bytes_on_disk != disk:
+        m.fail("leaf_bytes_on_disk", f"{manifest.leaf_bytes_on_disk}, but the leaf tiles' and codebook's payloads "
+               f"are {disk} bytes")
     return manifest
 
 

@@ -244,17 +244,18 @@ def _local_matrix(path: str, index: int, node: dict) -> np.ndarray:
     try:
         if "matrix" in node:
             m = np.asarray(node["matrix"], np.float64)
-            if m.shape != (16,):
+            if m.shape != (16,) or not np.isfinite(m).all():
                 raise ValueError
             return m.reshape(4, 4).T  # column-major
         t = np.asarray(node.get("translation", [0, 0, 0]), np.float64)
         x, y, z, w = np.asarray(node.get("rotation", [0, 0, 0, 1]), np.float64)
         s = np.asarray(node.get("scale", [1, 1, 1]), np.float64)
-        if t.shape != (3,) or s.shape != (3,):
+        if t.shape != (3,) or s.shape != (3,) or not (np.isfinite(t).all() and np.isfinite(s).all() and
+                                                       np.isfinite([x, y, z, w]).all()):
             raise ValueError
     except (ValueError, TypeError):
         raise InputError(path, f"nodes[{index}]", "matrix / translation / rotation / scale of the wrong shape "
-                         "or type") from None
+                         "or type, or not finite") from None
     r = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
                   [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
                   [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
@@ -290,13 +291,15 @@ def _apply_matrix(path: str, g: Gaussians, m: np.ndarray) -> Gaussians:
     if not np.isfinite(m).all() or np.abs(m[3] - [0, 0, 0, 1]).max() > 1e-9:
         raise InputError(path, "node transform", "not a finite affine matrix")
     norms = np.linalg.norm(a, axis=0)
-    rotation = a / norms[None, :]
-    if norms.min() <= 0 or norms.max() / norms.min() > 1 + 1e-5 or \
-            np.abs(rotation.T @ rotation - np.eye(3)).max() > 1e-5 or np.linalg.det(rotation) < 0:
+    if not norms.min() > 0 or norms.max() / norms.min() > 1 + 1e-5 or \
+            np.abs((a / norms).T @ (a / norms) - np.eye(3)).max() > 1e-5 or np.linalg.det(a / norms) < 0:
         raise InputError(path, "node transform", f"column lengths {norms.round(6).tolist()}: only rotations with a "
                          "uniform positive scale are supported (the extension leaves other transforms undefined)")
+    rotation = a / norms[None, :]
     scale = float(norms.mean())
-    positions = (g.positions.astype(np.float64) @ a.T + m[:3, 3]).astype(np.float32)
+    # A huge scale or translation overflows float32 here; the value screen of io.read_gaussians reports those.
+    with np.errstate(over="ignore", invalid="ignore"):
+        positions = (g.positions.astype(np.float64) @ a.T + m[:3, 3]).astype(np.float32)
     # Node rotation as a quaternion (w, x, y, z), composed in front of every splat's rotation.
     qn = _matrix_to_quaternion(rotation)
     q = g.rotations.astype(np.float64)

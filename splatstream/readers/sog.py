@@ -244,7 +244,8 @@ def _read_unit(source: _Source, meta_name: str) -> Gaussians:
     value = (lo[:, :3].astype(np.float64) + 256.0 * hi[:, :3]) / 65535.0
     span = np.where(maxs - mins == 0, 1.0, maxs - mins)
     logged = mins + span * value
-    positions = (np.sign(logged) * np.expm1(np.abs(logged))).astype(np.float32)
+    with np.errstate(over="ignore"):  # beyond float32: reported by the value screen of io.read_gaussians
+        positions = (np.sign(logged) * np.expm1(np.abs(logged))).astype(np.float32)
     del lo, hi, value, logged
 
     quats = _texture(source, name_of(_files(label, "quats", meta["quats"], 1)[0]), "quats.files[0]", count,

@@ -91,5 +91,14 @@ def write_splat(g: Gaussians, path: str | os.PathLike) -> None:
     from ..atomic import atomic_file
 
     records = splat_records(g)
+    # The format has no header: readers (ours included) tell a .splat file from other bytes by plausible values,
+    # so records beyond those bounds would make the file unreadable. Refuse rather than write it.
+    with np.errstate(invalid="ignore"):
+        implausible = ~(np.abs(records["position"]) < PLAUSIBLE_POSITION).all(axis=1) | \
+            ~(records["scale"] < PLAUSIBLE_SCALE).all(axis=1) | (records["scale"] == 0).all(axis=1)
+    if implausible.any():
+        raise InputError(path, None, f"{int(implausible.sum())} of {len(g)} splats have a position beyond +-1e7 or a "
+                         "scale of 1e7 or more (or none at all), which .splat readers take for garbage (the format has "
+                         "no header); write .ply, .spz or .glb instead")
     with atomic_file(path) as f:
         records.tofile(f)

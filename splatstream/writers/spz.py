@@ -148,6 +148,9 @@ def write_spz(g: Gaussians, path: str | os.PathLike, version: int = 4) -> None:
     """Write an SPZ file atomically (temporary name, then rename)."""
     from ..atomic import atomic_file
 
-    data = spz_bytes(g, version)
+    try:
+        data = spz_bytes(g, version)
+    except UsageError as exc:  # name the file being written
+        raise UsageError(f"{os.fspath(path)}: {exc}") from None
     with atomic_file(path) as f:
         f.write(data)
