@@ -1267,6 +1267,8 @@ class Campaign:
         self.keep = keep
         self.timeout = timeout
         self.seeds = build_seeds(workdir / "seeds", use_real)
+        # Never parse a mutant in this process (its manifest may be a symlink to /dev/zero): tile ids of the seeds.
+        self.tile_ids = {s: [t["id"] for t in _manifest_dict(s)["tiles"]] for s in self.seeds["scene"]}
         self.local = threading.local()
         self.runners: list = []
         self.runners_lock = threading.Lock()
@@ -1310,7 +1312,7 @@ class Campaign:
             seed = rng.choice(self.seeds[fmt])
             path, case.description = make_input(rng, fmt, seed, case_dir)
             if fmt == "scene":
-                self._scene_commands(rng, case, case_dir, path, render)
+                self._scene_commands(rng, case, case_dir, path, seed, render)
             else:
                 self._file_commands(rng, case, case_dir, path, render)
         except Exception as exc:  # a bug of the campaign itself: reported, never counted as a good outcome
@@ -1381,13 +1383,11 @@ class Campaign:
                     self._nan_check(case, check)
 
     def _scene_commands(self, rng: random.Random, case: Case, case_dir: pathlib.Path, scene: pathlib.Path,
-                        render: bool) -> None:
+                        seed: pathlib.Path, render: bool) -> None:
         check = case_dir / "check.ply"
         args = ["decode", scene, check]
-        if rng.random() < 0.3:
-            with contextlib.suppress(Exception):
-                ids = [t["id"] for t in _manifest_dict(scene)["tiles"]]
-                args += ["--tiles", ",".join(map(str, ids))]
+        if rng.random() < 0.3:  # every tile, not only the leaves (ids from the seed: the mutant may be anything)
+            args += ["--tiles", ",".join(map(str, self.tile_ids[seed]))]
         if render and self.gl:
             out = case_dir / "o.png"
             run = self.cli(case, case_dir, "render", scene, "--out", out, "--size", RENDER_SIZE, "-q")
@@ -1477,6 +1477,36 @@ def table(cases: list[Case]) -> str:
     return "\n".join(lines)
 
 
+def mutation_family(case: Case) -> str:
+    """The kind of mutation of a case, for the breakdown of a format's outcomes."""
+    text = case.description.split(": ", 1)[-1] if ": " in case.description else case.description
+    if case.description.startswith("non-regular"):
+        return "non-regular input"
+    if case.format == "scene":
+        for family in ("manifest field (resealed)", "manifest bytes (not resealed)", "payload bytes",
+                       "manifest (resealed)"):
+            if text.startswith(family):
+                return family
+        if text.startswith("payload section"):
+            return "payload values (resealed)"
+        return "missing, FIFO, directory or symlink: " + ("payload" if text.startswith(("payload", "data/"))
+                                                          else "manifest")
+    return text.split(":", 1)[0]
+
+
+def breakdown(cases: list[Case], fmt: str) -> str:
+    """Outcomes of one format's cases per mutation family (Markdown)."""
+    rows: dict[str, Counter] = {}
+    for c in cases:
+        if c.format == fmt:
+            rows.setdefault(mutation_family(c), Counter())[c.outcome] += 1
+    lines = [f"| {fmt} mutation | cases | clean_error | success | bad |", "|---|---:|---:|---:|---:|"]
+    for family, c in sorted(rows.items(), key=lambda kv: -sum(kv[1].values())):
+        bad = sum(v for k, v in c.items() if k not in GOOD)
+        lines.append(f"| {family} | {sum(c.values())} | {c['clean_error']} | {c['success']} | {bad} |")
+    return "\n".join(lines)
+
+
 def run_campaign(cases_per_format: int, seed: int = 1, jobs: int = 2, formats: list[str] | None = None,
                  render: int = 0, workdir: pathlib.Path | None = None, spawn: bool = False, use_real: bool = True,
                  keep: pathlib.Path | None = None, progress: bool = False,
@@ -1519,6 +1549,9 @@ def main() -> int:
                          use_real=not args.no_real, keep=keep, progress=True, only=only)
     seconds = time.monotonic() - t0
     print(table(cases))
+    if any(c.format == "scene" for c in cases):
+        print()
+        print(breakdown(cases, "scene"))
     runs = sum(len(c.runs) for c in cases)
     print(f"\n{len(cases)} cases, {runs} commands, {seconds:.0f} s ({args.jobs} jobs, "
           f"{'spawn' if args.spawn else 'fork server'}, seed {args.seed})")

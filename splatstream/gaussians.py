@@ -27,7 +27,8 @@ def sh_degree_for_rest_coeffs(k: int) -> int:
 
 
 def sigmoid(x: np.ndarray) -> np.ndarray:
-    return (1.0 / (1.0 + np.exp(-x.astype(np.float32)))).astype(np.float32)
+    with np.errstate(over="ignore"):  # exp overflows to inf below -88: the sigmoid is then exactly 0
+        return (1.0 / (1.0 + np.exp(-x.astype(np.float32)))).astype(np.float32)
 
 
 def logit(p: np.ndarray, eps: float = 1e-7) -> np.ndarray:

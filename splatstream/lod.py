@@ -150,7 +150,8 @@ def _coverage_area(log_scales: np.ndarray, blur: float = 0.0) -> np.ndarray:
 
 def splat_mass(g: Gaussians) -> np.ndarray:
     """Merge weight of original splats: opacity * coverage area."""
-    alpha = 1.0 / (1.0 + np.exp(-g.opacity_logits.astype(np.float64)))
+    with np.errstate(over="ignore"):  # a logit below -709: exp overflows to inf, alpha is exactly 0
+        alpha = 1.0 / (1.0 + np.exp(-g.opacity_logits.astype(np.float64)))
     return alpha * _coverage_area(g.log_scales)
 
 
@@ -307,7 +308,8 @@ def match_screen_appearance(merged: Gaussians, originals: Gaussians, represented
     hierarchical mass-weighted mean (view-dependent residuals, cheap). Where alpha would exceed the ceiling the
     scales grow by up to MAX_INFLATION instead; returns the indices of the merged splats that grew."""
     blur = LOW_PASS_PX2 * pixel * pixel
-    alpha_i = 1.0 / (1.0 + np.exp(-originals.opacity_logits.astype(np.float64)))
+    with np.errstate(over="ignore"):
+        alpha_i = 1.0 / (1.0 + np.exp(-originals.opacity_logits.astype(np.float64)))
     shown = alpha_i * _coverage_area(originals.log_scales, blur)
     covered = np.bincount(represented_by, weights=shown, minlength=len(merged))
     single = np.bincount(represented_by, minlength=len(merged)) == 1

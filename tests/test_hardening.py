@@ -461,3 +461,34 @@ def test_gltf_node_transforms_must_be_finite(tmp_path):
         warnings.simplefilter("error")
         with pytest.raises(InputError, match="nodes\\[0\\]: .* or not finite"):
             read_gltf(path)
+
+
+def test_gltf_primitive_extensions_of_the_wrong_type(tmp_path):
+    """A primitive whose `extensions` is a number once gave a TypeError traceback."""
+    import json
+
+    data = (FOREIGN / "fruit_drops_sub64_sh1.glb").read_bytes()
+    json_len = struct.unpack_from("<I", data, 12)[0]
+    doc = json.loads(data[20:20 + json_len])
+    for value in (-1e18, ["KHR_gaussian_splatting"], "KHR_gaussian_splatting"):
+        doc["meshes"][0]["primitives"][0]["extensions"] = value
+        text = json.dumps(doc).encode()
+        text += b" " * (-len(text) % 4)
+        body = struct.pack("<II", len(text), 0x4E4F534A) + text + data[20 + json_len:]
+        path = tmp_path / "t.glb"
+        path.write_bytes(struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body)
+        with pytest.raises(InputError, match="no primitive with KHR_gaussian_splatting"):
+            read_gaussians(path)
+
+
+def test_extreme_but_finite_opacity_logits_encode_without_numpy_warnings(tmp_path):
+    """An opacity logit of -7e4 is finite (alpha 0) and inside the domain; every sigmoid on the way (orientation,
+    LOD masses, the colour plane, SPZ) once printed 'overflow encountered in exp'."""
+    src = tmp_path / "o.ply"
+    rewrite_ply_field(SUB64, src, "opacity", {0: -7e4, 1: 7e4})
+    for args in (["encode", "-q", "--max-leaf-splats", "256", src, tmp_path / "s"],
+                 ["convert", "-q", src, tmp_path / "o.spz"]):
+        r = run_cli(*args)
+        assert r.returncode == 0 and r.stderr == "", r.stderr
+    g = decode_scene(tmp_path / "s")
+    assert sorted(g.opacity_logits)[0] == pytest.approx(-13.8155, abs=1e-3)  # alpha clamped to 1e-6 on decode

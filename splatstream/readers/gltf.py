@@ -434,7 +434,8 @@ def read_gltf(path: str | os.PathLike, drop_invalid: bool = False, spz_axes: str
         if not isinstance(primitives, list):
             raise InputError(path, f"meshes[{mesh}].primitives", "expected a list")
         for number, primitive in enumerate(primitives):
-            if not isinstance(primitive, dict) or EXTENSION not in (primitive.get("extensions") or {}):
+            extensions = primitive.get("extensions") if isinstance(primitive, dict) else None
+            if not isinstance(extensions, dict) or EXTENSION not in extensions:
                 continue
             g = _primitive(doc, mesh, number, primitive, drop_invalid, spz_axes)
             parts.append(_apply_matrix(path, g, world))

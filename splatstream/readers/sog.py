@@ -196,7 +196,8 @@ def _texture(source: _Source, name: str, field: str, count: int, max_texels: int
 def _codebook_lookup(label: str, field: str, codebook: np.ndarray, indices: np.ndarray) -> np.ndarray:
     if len(indices) and int(indices.max()) >= len(codebook):
         raise InputError(label, field, f"texel index {int(indices.max())} is past the {len(codebook)}-entry codebook")
-    return codebook[indices].astype(np.float32)
+    with np.errstate(over="ignore"):  # beyond float32: reported by the value screen of io.read_gaussians
+        return codebook[indices].astype(np.float32)
 
 
 def _read_unit(source: _Source, meta_name: str) -> Gaussians:
