@@ -492,3 +492,52 @@ def test_extreme_but_finite_opacity_logits_encode_without_numpy_warnings(tmp_pat
         assert r.returncode == 0 and r.stderr == "", r.stderr
     g = decode_scene(tmp_path / "s")
     assert sorted(g.opacity_logits)[0] == pytest.approx(-13.8155, abs=1e-3)  # alpha clamped to 1e-6 on decode
+
+
+@pytest.mark.parametrize("preset", ["low", "high"])
+def test_values_at_the_f16_edge_survive_codebook_and_lod_means(tmp_path, preset):
+    """An SH coefficient of 65504 (float16's largest) in every splat: the SH codebook's entries and merged LOD
+    splats are means of it, which float rounding put an ulp above 65504, and the encoder once wrote that range as
+    +inf (a scene its own decoder refused). Ranges are now clamped to the plane's domain."""
+    src = tmp_path / "edge.ply"
+    rewrite_ply_field(real("fruit_drops_sh3.ply"), src, "f_rest_14", dict.fromkeys(range(4721), 65504.0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        g = read_gaussians(src)
+        m = encode_gaussians(g, tmp_path / "s", EncodeOptions(preset=preset, max_leaf_splats=1024))
+        every = decode_scene(tmp_path / "s", tiles=[t.id for t in m.tiles])
+    assert len(m.tiles) > 4 and np.isfinite(every.sh_rest).all()
+    assert every.sh_rest[:, 14, 0].max() == 65504.0  # f_rest_14: coefficient 14 of the red channel (channel-major)
+
+
+def test_gltf_json_values_of_the_wrong_type(tmp_path):
+    """Unhashable JSON values where names or indices belong once gave TypeError tracebacks."""
+    import json
+
+    data = (FOREIGN / "fruit_drops_sub64_sh1.glb").read_bytes()
+    json_len = struct.unpack_from("<I", data, 12)[0]
+    original = json.loads(data[20:20 + json_len])
+    for edit, message in ((lambda d: d.__setitem__("extensionsRequired", [[0, 0, 0]]), "extensionsRequired"),
+                          (lambda d: d["bufferViews"][0].__setitem__("buffer", {"a": 1}), "buffers: index")):
+        doc = json.loads(json.dumps(original))
+        edit(doc)
+        text = json.dumps(doc).encode()
+        text += b" " * (-len(text) % 4)
+        body = struct.pack("<II", len(text), 0x4E4F534A) + text + data[20 + json_len:]
+        path = tmp_path / "t.glb"
+        path.write_bytes(struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body)
+        with pytest.raises(InputError, match=message):
+            read_gaussians(path)
+
+
+def test_pack_manifest_dict_takes_any_damaged_map():
+    """The test and campaign helper writes damaged maps; a version of the wrong type is written without a
+    checksum (and then refused by the reader naming `version`), not a TypeError."""
+    import msgpack
+
+    from splatstream.format.manifest import pack_manifest_dict, parse_manifest
+
+    data = pack_manifest_dict({"format": "splatstream", "version": ["x", 2], "checksum": "0" * 64})
+    assert msgpack.unpackb(data) == {"format": "splatstream", "version": ["x", 2]}
+    with pytest.raises(FormatError, match="version: expected \\[major, minor\\]"):
+        parse_manifest(data, "m")

@@ -21,6 +21,12 @@ MAX_ABS_SH = 65504.0  # the largest finite float16
 BLOCK_ROWS = 1 << 18  # rows checked at a time (bounds the temporaries on scenes of millions of splats)
 
 
+def plane_limits(plane: str) -> tuple[float, float]:
+    """[lo, hi] the values of a ranged plane (format.md 4.4) lie in: the domain of its quantity."""
+    return {"position": (-MAX_ABS_POSITION, MAX_ABS_POSITION),
+            "scale": (MIN_LOG_SCALE, MAX_LOG_SCALE)}.get(plane, (-MAX_ABS_SH, MAX_ABS_SH))
+
+
 def _within(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
     """Rows of (N, ...) values whose every entry is finite and in [lo, hi] (NaN compares False)."""
     flat = values.reshape(len(values), int(np.prod(values.shape[1:], dtype=np.int64)))

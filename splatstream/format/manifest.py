@@ -345,7 +345,9 @@ def pack_manifest_dict(d: dict) -> bytes:
     map is packed with 64 ASCII '0' as its value, hashed, and the digest patched in); before 1.2 it is left out."""
     d = {k: v for k, v in d.items() if k != CHECKSUM_KEY}
     version = d.get("version")
-    if not (isinstance(version, (list, tuple)) and tuple(version) >= CHECKSUM_VERSION):
+    two_ints = isinstance(version, (list, tuple)) and len(version) == 2 and all(
+        isinstance(v, int) and not isinstance(v, bool) for v in version)
+    if not (two_ints and tuple(version) >= CHECKSUM_VERSION):
         return msgpack.packb(d, use_bin_type=True)
     d[CHECKSUM_KEY] = CHECKSUM_PLACEHOLDER.decode()
     packed = msgpack.packb(d, use_bin_type=True)

@@ -70,10 +70,10 @@ class _Document:
             raise InputError(self.path, key, f"index {index!r} does not name one of the {len(items)} {key}")
         return items[index]
 
-    def buffer(self, index: int) -> bytes:
+    def buffer(self, index: object) -> bytes:
+        buffer = self.item("buffers", index)  # checks the index (a JSON value of any type) first
         if index in self.buffers:
             return self.buffers[index]
-        buffer = self.item("buffers", index)
         length = buffer.get("byteLength")
         if not isinstance(length, int) or length < 0:
             raise InputError(self.path, f"buffers[{index}].byteLength", f"{length!r} (expected a byte count)")
@@ -425,7 +425,9 @@ def read_gltf(path: str | os.PathLike, drop_invalid: bool = False, spz_axes: str
     used = doc.gltf.get("extensionsUsed", [])
     required = doc.gltf.get("extensionsRequired", [])
     supported = {EXTENSION, SPZ_EXTENSION}
-    unknown = [e for e in required if e not in supported] if isinstance(required, list) else []
+    if not isinstance(required, list) or not all(isinstance(e, str) for e in required):
+        raise InputError(path, "extensionsRequired", f"{required!r} (expected a list of extension names)")
+    unknown = [e for e in required if e not in supported]
     if unknown:
         raise InputError(path, "extensionsRequired", f"{unknown} are not supported (we read {sorted(supported)})")
     parts: list[Gaussians] = []
