@@ -541,3 +541,20 @@ def test_pack_manifest_dict_takes_any_damaged_map():
     assert msgpack.unpackb(data) == {"format": "splatstream", "version": ["x", 2]}
     with pytest.raises(FormatError, match="version: expected \\[major, minor\\]"):
         parse_manifest(data, "m")
+
+
+def test_gltf_node_cycle_is_refused_at_once(tmp_path):
+    """A node that is its own child was walked 65,536 times (9 s of CPU) before being refused."""
+    import json
+
+    data = (FOREIGN / "fruit_drops_sub64_sh1.glb").read_bytes()
+    json_len = struct.unpack_from("<I", data, 12)[0]
+    doc = json.loads(data[20:20 + json_len])
+    doc["nodes"][0]["children"] = [0]
+    text = json.dumps(doc).encode()
+    text += b" " * (-len(text) % 4)
+    body = struct.pack("<II", len(text), 0x4E4F534A) + text + data[20 + json_len:]
+    path = tmp_path / "t.glb"
+    path.write_bytes(struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body)
+    with pytest.raises(InputError, match="nodes\\[0\\]: reached twice"):  # at the second visit, not the 65,536th
+        read_gaussians(path)
