@@ -4,7 +4,6 @@ from __future__ import annotations
 from .. import __version__
 from ..format.layout import CHUNK_SIZE
 from ..format.manifest import (
-    BASE_VERSION,
     FORMAT_VERSION,
     AttributeSize,
     CameraEntry,
@@ -63,7 +62,7 @@ def build_manifest(plan: EncodePlan, camera: CameraEntry, tiles: list[TileEntry]
     root = ordered[0]
     opts = plan.options
     m = Manifest(
-        version=FORMAT_VERSION if codebook is not None else BASE_VERSION,
+        version=FORMAT_VERSION,
         generator=f"splatstream {__version__}",
         name=plan.name,
         splats=plan.splats,
