@@ -81,10 +81,19 @@ def main() -> None:
     ap.add_argument("--switch-interval", type=float,
                     help="the interpreter's switch interval in seconds, set after the session opens (CPython's is "
                          "0.005; 0.0005 made upload frames slower on the GPU machine, BENCHMARKS.md)")
+    ap.add_argument("--gl-release-gil", action="store_true",
+                    help="the A/B of client_gl.gpu.gl.FUNCTION_TYPE: our GL entry points as CFUNCTYPE (released "
+                         "the GIL in every call) instead of PYFUNCTYPE")
     ap.add_argument("--breakdown", action="store_true",
                     help="time the engine's and the pool's steps in each frame; the slowest frames' split is reported")
     ap.add_argument("--profile", action="store_true", help="print where the streaming loop's time went (cProfile)")
     args = ap.parse_args()
+    if args.gl_release_gil:
+        import ctypes
+
+        from client_gl.gpu import gl as gl_entry_points
+
+        gl_entry_points.FUNCTION_TYPE = ctypes.CFUNCTYPE
     from client_gl.headless import HeadlessRenderer, RenderOptions, create_context
     from client_gl.scene import SceneTiles, load_tile
     from client_gl.streaming import StreamingSession, ViewOptions
@@ -110,6 +119,7 @@ def main() -> None:
         if args.switch_interval:
             sys.setswitchinterval(args.switch_interval)
         out["switch_interval_s"] = sys.getswitchinterval()
+        out["gl_calls_release_gil"] = bool(args.gl_release_gil)
         import cProfile
         import pstats
 

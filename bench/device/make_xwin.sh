@@ -2,7 +2,7 @@
 # Makes what bench/device/run_window.sh carries besides .gl, .xroot and .whl (all under .git/info/exclude):
 #   .xroot/*.deb        Xvfb and the X11 client libraries (Debian 12 packages, unpacked on the GPU machine under
 #                       /tmp/xroot, never into /)
-#   .xwin/winsite.tar.xz  glfw, moderngl-window, pyglm and imgui-bundle for CPython 3.12 unpacked, demos, stubs and
+#   .xwin/winsite.tar.xz  glfw, moderngl-window, pyglm, imgui-bundle and what they import for CPython 3.12 unpacked, demos, stubs and
 #                       tests removed, xz: as wheels they would not fit the 64 MiB carry limit beside the rest
 #   .xwin/xglx.tar.xz   Mesa 22.3.6's swrast DRI driver built without LLVM (softpipe) and what it links that the
 #                       GPU machine lacks. Xvfb's GLX extension loads swrast_dri.so to start at all (without it
@@ -24,7 +24,8 @@ work=$(mktemp -d)
 trap 'rm -rf "$work"' EXIT
 python3 -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
   --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 -d "$work/w" \
-  glfw==2.11.0 moderngl-window==3.1.1 pyglm==2.8.3 imgui-bundle==1.6.3
+  glfw==2.11.0 moderngl-window==3.1.1 pyglm==2.8.3 imgui-bundle==1.6.3 pydantic==2.14.3 pydantic-core==2.50.4 \
+  munch==4.0.0 typing-inspection==0.4.5 typing-extensions==4.16.0 annotated-types==0.8.0
 mkdir -p "$work/site"
 for w in "$work"/w/*.whl; do python3 -m zipfile -e "$w" "$work/site"; done
 find "$work/site" \( -name demos_* -o -name '*.pyi' -o -name tests -o -name __pycache__ \) -prune -exec rm -rf {} +

@@ -9,7 +9,8 @@
 #                 NVIDIA GLX client library); bench/device/make_xwin.sh makes them and .xroot
 # The window is a GLX window on Xvfb drawn by the NVIDIA driver (__GLX_VENDOR_LIBRARY_NAME=nvidia). It streams a
 # 6M-splat scene from loopback at 1920x1080, and its converged frames are timed against `view --headless`'s.
-# Usage: bash bench/device/run_window.sh [fly]   (results under $OUT)
+# Usage: bash bench/device/run_window.sh [fly]   (results under $OUT; fly: the fly-through A/B of GL calls that
+# keep the GIL against calls that release it, with the per-step split of the slowest frames)
 set -u
 for f in .gl/*.deb; do dpkg -x "$f" /; done
 ldconfig
@@ -68,16 +69,21 @@ for name in ("headless", "window"):
     except OSError:
         print(name, "no record"); continue
     print(name, r.get("gl_renderer"), "first frame", r.get("first_frame_s"), "converged", r.get("converged_s"),
-          "median converged frame ms", r.get("measured_frame_ms_median"))
+          "median converged frame ms", r.get("measured_frame_ms_median"), "of which before the swap",
+          r.get("measured_draw_ms_median"))
 PY
 kill $XVFB 2>/dev/null
 if [ "${1:-}" = fly ]; then
-  python3 bench/bench_flythrough.py --scene $W/root/s6m --ply $W/s6m.ply --json "$OUT/flythrough.json" --breakdown \
-    > $W/fly.log 2>&1
-  python3 -c "import json,sys; d=json.load(open(sys.argv[1])); s=d['streaming']; print({k: s[k] for k in \
-    ('frames','median_ms','p99_ms','p99_ms_with_uploads','p99_ms_without_uploads','update_ms_p99')}, \
-    'converged', d['converged_stream_ms'], 'render', d['render_same_set_ms']); [print(x) for x in s['slowest'][:6]]" \
-    "$OUT/flythrough.json" || tail -20 $W/fly.log
+  # our GL entry points keeping the GIL (PYFUNCTYPE, the default) against releasing it in every call (CFUNCTYPE)
+  for ab in keep release; do
+    flag=""; [ $ab = release ] && flag=--gl-release-gil
+    python3 bench/bench_flythrough.py --scene $W/root/s6m --ply $W/s6m.ply --json "$OUT/fly_$ab.json" --breakdown \
+      $flag > $W/fly_$ab.log 2>&1
+    python3 -c "import json,sys; d=json.load(open(sys.argv[1])); s=d['streaming']; print(sys.argv[2], {k: s[k] for k \
+      in ('frames','median_ms','p99_ms','p99_ms_with_uploads','p99_ms_without_uploads','update_ms_p99')}, \
+      'converged', d['converged_stream_ms'], 'render', d['render_same_set_ms']); [print(x) for x in s['slowest'][:4]]" \
+      "$OUT/fly_$ab.json" $ab || tail -20 $W/fly_$ab.log
+  done
 fi
 kill $SERVE 2>/dev/null
 wait 2>/dev/null

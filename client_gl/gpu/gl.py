@@ -96,6 +96,13 @@ class GLError(RuntimeError):
     pass
 
 
+# PYFUNCTYPE keeps the GIL through the call. CFUNCTYPE would release it, and the frame loop then waits for it again
+# behind the fetch and decode threads (up to a switch interval, 5 ms, per call): frames that uploaded tiles spent
+# 100-350 ms in these calls on a 16-core machine (BENCHMARKS.md). bench_flythrough --gl-release-gil sets CFUNCTYPE
+# for the A/B before any entry point is resolved.
+FUNCTION_TYPE = ctypes.PYFUNCTYPE
+
+
 @lru_cache(maxsize=1)
 def _loaders():
     loaders = []
@@ -135,10 +142,7 @@ class _GL:
         for load in _loaders():
             addr = load(name)
             if addr:
-                # PYFUNCTYPE keeps the GIL through the call. CFUNCTYPE would release it, and the frame loop then
-                # waits for it again behind the fetch and decode threads (up to a switch interval, 5 ms, per call):
-                # frames that uploaded tiles spent 100-350 ms in these calls on a 16-core machine (BENCHMARKS.md).
-                fn = ctypes.PYFUNCTYPE(restype, *argtypes)(addr)
+                fn = FUNCTION_TYPE(restype, *argtypes)(addr)
                 setattr(self, name, fn)
                 return fn
         raise GLError(f"OpenGL function {name} not found")
