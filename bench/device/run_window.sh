@@ -75,7 +75,7 @@ PY
 kill $XVFB 2>/dev/null
 if [ "${1:-}" = fly ]; then
   # our GL entry points keeping the GIL (PYFUNCTYPE, the default) against releasing it in every call (CFUNCTYPE)
-  for ab in keep release; do
+  for ab in ${FLY_AB:-keep release}; do  # FLY_AB=keep: the default alone
     flag=""; [ $ab = release ] && flag=--gl-release-gil
     python3 bench/bench_flythrough.py --scene $W/root/s6m --ply $W/s6m.ply --json "$OUT/fly_$ab.json" --breakdown \
       $flag > $W/fly_$ab.log 2>&1
