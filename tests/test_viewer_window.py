@@ -129,7 +129,10 @@ def test_window_input_screenshot_and_overlay(display, served, tmp_path):
     assert viewer.returncode == 0, err
     assert "Traceback" not in err
     assert f"saved {shots[0]}" in out
-    assert json.loads((tmp_path / "record.json").read_text())["window_backend"] == "glfw"  # not pyglet's fallback
+    record = json.loads((tmp_path / "record.json").read_text())
+    assert record["window_backend"] == "glfw"  # not pyglet's fallback
+    assert record["gl_version"] >= 430  # compute shaders in the window
+    assert record["sort"] == "cpu"  # as choose_sort picks on a software GL (llvmpipe); the GPU sort on a real GPU
     shot = np.asarray(Image.open(shots[0]), np.float32) / 255.0
     assert shot.shape == (SIZE[1], SIZE[0], 3)
     cam = json.loads(Path(str(shots[0]) + ".camera.json").read_text())
