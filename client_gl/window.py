@@ -90,6 +90,7 @@ class WindowRun:
     quiet: bool = False
     sh_degree: int | None = None
     record: str | None = None  # metrics JSON at exit (as view --headless writes it)
+    overlay: bool = True  # the overlay shown on open (O toggles it)
     measure_frames: int = 0  # with exit_when_converged: time this many more frames (swap and glFinish) first
 
 
@@ -145,7 +146,7 @@ class Viewer:
         self.controller: CameraController | None = None
         self.keys_down: set[int] = set()
         self.show_help = False
-        self.show_overlay = True
+        self.show_overlay = run.overlay
         self.show_bounds = False
         self.fps = 0.0
         self.frame_ms = 0.0

@@ -59,11 +59,13 @@ PY
 echo "probe rc=$?"; tail -5 $W/probe.log
 timeout 200 python3 -m splatstream.cli view $URL --size 1920x1080 --exit-when-converged --measure-frames 120 \
   --no-vsync --record "$OUT/window.json" --screenshot "$OUT/window.png" --no-cache > $W/view.log 2>&1 < /dev/null
+timeout 200 python3 -m splatstream.cli view $URL --size 1920x1080 --exit-when-converged --measure-frames 120 \
+  --no-vsync --record "$OUT/window_no_overlay.json" --no-cache --no-overlay > $W/view2.log 2>&1 < /dev/null
 echo "window rc=$?"; tail -5 $W/view.log; tail -3 $W/xvfb.log
 python3 - "$OUT" <<'PY'
 import json, sys
 out = sys.argv[1]
-for name in ("headless", "window"):
+for name in ("headless", "window", "window_no_overlay"):
     try:
         r = json.load(open(f"{out}/{name}.json"))
     except OSError:

@@ -68,6 +68,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     w.add_argument("--exit-when-converged", action="store_true",
                    help="close the window once the view has converged (after --screenshot, if given)")
     w.add_argument("--no-vsync", action="store_true", help="draw as fast as possible")
+    w.add_argument("--no-overlay", action="store_true", help="open with the overlay hidden (O shows it)")
     p.add_argument("--quiet", "-q", action="store_true", help="no progress line")
     p.set_defaults(func=run)
 
@@ -148,7 +149,8 @@ def run(args: argparse.Namespace) -> int:
         return run_window(WindowRun(args.source, options, size, camera, path, screenshot=args.screenshot,
                                     exit_when_converged=args.exit_when_converged, vsync=not args.no_vsync,
                                     timeout_s=args.timeout, quiet=args.quiet, sh_degree=args.sh_degree,
-                                    record=args.record, measure_frames=args.measure_frames))
+                                    record=args.record, measure_frames=args.measure_frames,
+                                    overlay=not args.no_overlay))
     from client_gl.view_headless import HeadlessRun, run_headless
 
     ctx = headless.create_context()
