@@ -288,7 +288,8 @@ class Viewer:
             self._start_session()
             self.path_start = time.perf_counter()
         self.wnd.use()
-        ctx.clear(0.0, 0.0, 0.0, 1.0)
+        if self.session is None:  # otherwise the blit below covers every pixel: one pass over the window's pixels less
+            ctx.clear(0.0, 0.0, 0.0, 1.0)
         if self.session is not None:
             self._held_motion(dt)
             self.controller.update(dt)
