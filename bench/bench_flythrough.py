@@ -79,8 +79,8 @@ def main() -> None:
     ap.add_argument("--repeat", type=int, default=60, help="converged frames timed at the end")
     ap.add_argument("--json", dest="json_out")
     ap.add_argument("--switch-interval", type=float,
-                    help="the interpreter's switch interval in seconds, set after the session opens (an A/B of "
-                         "client_gl.streaming.favour_frame_loop)")
+                    help="the interpreter's switch interval in seconds, set after the session opens (CPython's is "
+                         "0.005; 0.0005 made upload frames slower on the GPU machine, BENCHMARKS.md)")
     ap.add_argument("--breakdown", action="store_true",
                     help="time the engine's and the pool's steps in each frame; the slowest frames' split is reported")
     ap.add_argument("--profile", action="store_true", help="print where the streaming loop's time went (cProfile)")

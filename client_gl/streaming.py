@@ -12,7 +12,6 @@ picture, the budgets and the metrics are the same with and without a display. Me
 from __future__ import annotations
 
 import os
-import sys
 import time
 from dataclasses import dataclass, field, replace
 
@@ -31,18 +30,6 @@ from .stream.fetch import Fetcher
 from .stream.selection import SelectionOptions
 from .stream.sources import Progress, SceneSource, open_source
 
-# The frame loop shares the GIL with the fetch loop and the decode workers. Each time it gives the GIL up (a numpy
-# copy, a checksum) it may wait a whole switch interval for it to come back (CPython's is 5 ms), many times in a frame
-# that uploads tiles. A shorter interval bounds each wait (bench/bench_flythrough.py --switch-interval, BENCHMARKS.md).
-FRAME_LOOP_SWITCH_INTERVAL_S = 0.0005
-
-
-def favour_frame_loop() -> None:
-    """Shorten the interpreter's switch interval (never lengthen it) for a process that streams while it draws."""
-    if sys.getswitchinterval() > FRAME_LOOP_SWITCH_INTERVAL_S:
-        sys.setswitchinterval(FRAME_LOOP_SWITCH_INTERVAL_S)
-
-
 DEFAULT_GPU_MEM_MB = 1024.0
 
 
@@ -56,6 +43,8 @@ class ViewOptions:
     sh_degree: int = 3
     band_area_share: tuple[float, float, float] = SelectionOptions.band_area_share
     prefetch: bool = True
+    fill_levels: bool = StreamOptions.fill_levels  # coarse to fine through every level (False: --skip-levels)
+    fill_gap: int = StreamOptions.fill_gap
     cache: bool = True  # disk cache of payloads (HTTP sources)
     cache_dir: str | None = None
     max_in_flight: int = 6
@@ -129,7 +118,6 @@ class PreparedSource:
     def open(cls, spec: str | os.PathLike | SceneSource, options: ViewOptions = ViewOptions(),
              progress: Progress | None = None) -> PreparedSource:
         start = time.perf_counter()
-        favour_frame_loop()
         source = spec if isinstance(spec, SceneSource) else open_source(spec, progress=progress)
         cache = None
         if options.cache and getattr(source, "cache_key", None):
@@ -178,7 +166,8 @@ class StreamingSession:
         self.renderer = SplatRenderer(ctx, self.pool, options.render)
         layout: PoolLayout = self.pool.layout
         stream_opts = StreamOptions(selection=replace(options.selection(), sh_degree=degree),
-                                    upload_bytes_per_frame=options.upload_bytes_per_frame, prefetch=options.prefetch)
+                                    upload_bytes_per_frame=options.upload_bytes_per_frame, prefetch=options.prefetch,
+                                    fill_levels=options.fill_levels, fill_gap=options.fill_gap)
         self.engine = StreamEngine(self.fetcher, self.pool, stream_opts, slot_bytes=layout.slot_bytes(),
                                    manifest=m, with_mirror=self.with_mirror, location=self.source.location)
 

@@ -373,7 +373,7 @@ class Viewer:
                    f"{'  (paused)' if s.paused else ''}{'  converged' if s.converged else ''}")
         imgui.text(f"network {stats.bytes_downloaded / 1e6:.1f} MB, {self.rate * 8 / 1e6:.1f} Mbit/s"
                    f"{'  OFFLINE' if stats.offline else ''}")
-        imgui.text(f"GPU     {s.pool.gpu_bytes / 1e6:.0f} MB of {s.budget / 1e6:.0f} MB budget")
+        imgui.text(f"GPU     {s.pool.gpu_bytes / 2**20:.0f} of {s.budget / 2**20:.0f} MiB budget")
         degree = min(s.options.sh_degree, s.manifest.sh_degree)
         imgui.text(f"SH      degree {degree} (scene {s.manifest.sh_degree})   {path}")
         imgui.text(f"camera  {self.controller.mode} (C switches)")
@@ -383,9 +383,10 @@ class Viewer:
         changed, self.ui_sse = imgui.slider_float("max SSE px", self.ui_sse, 0.0, 16.0, "%.2f")
         if changed:
             s.reconfigure(replace(s.options, max_sse=self.ui_sse))
-        _, self.ui_budget = imgui.input_float("GPU MB", self.ui_budget, 64.0, 256.0, "%.0f")
+        _, self.ui_budget = imgui.input_float("GPU MiB", self.ui_budget, 64.0, 256.0, "%.0f")
         if imgui.is_item_deactivated_after_edit() and self.ui_budget > 1:
             s.reconfigure(replace(s.options, gpu_mem_mb=float(self.ui_budget)))
+        self.ui_degree = min(self.ui_degree, s.manifest.sh_degree)  # the slider shows what the scene can have
         changed, self.ui_degree = imgui.slider_int("SH degree", self.ui_degree, 0, s.manifest.sh_degree)
         if changed:
             self.run = replace(self.run, sh_degree=self.ui_degree)
@@ -431,6 +432,9 @@ class Viewer:
                 self.fps, fps_frames, fps_start = fps_frames / (now - fps_start), 0, now
             if self.load_error is not None and self.run.exit_when_converged:
                 break
+            if (self.run.screenshot and not self.run.exit_when_converged and not self.screenshots
+                    and self.session is not None and self.session.converged):
+                self.screenshot(self.run.screenshot)  # a window that stays open: written when the view converges
             if self.run.exit_when_converged and self.session is not None:
                 path_done = self.run.path is None or now - self.path_start >= self.run.path.end
                 still = not self.controller.update(0.0) if self.controller else True

@@ -2,7 +2,11 @@
 # GPU-machine driver for the viewer's window path (device `run` tool), from the repo root, carrying:
 #   .gl           GL loader .debs (as run_client.sh)
 #   .xroot        Xvfb and the X11 client libraries as Debian .debs, unpacked under /tmp/xroot (not into /)
-#   .whl, .whl_win  cp312 wheels: run_client.sh's, and glfw, moderngl-window, imgui-bundle
+#   .whl          cp312 wheels: run_client.sh's
+#   .xwin         winsite.tar.xz: glfw, moderngl-window, pyglm and imgui-bundle unpacked (demos and stubs removed;
+#                 xz, to fit the carry limit), and xglx.tar.xz: Mesa's swrast DRI driver built without LLVM
+#                 (softpipe), which Xvfb's GLX extension needs to start (the device README: Xvfb, Mesa and the
+#                 NVIDIA GLX client library); bench/device/make_xwin.sh makes them and .xroot
 # The window is a GLX window on Xvfb drawn by the NVIDIA driver (__GLX_VENDOR_LIBRARY_NAME=nvidia). It streams a
 # 6M-splat scene from loopback at 1920x1080, and its converged frames are timed against `view --headless`'s.
 # Usage: bash bench/device/run_window.sh [fly]   (results under $OUT)
@@ -11,9 +15,11 @@ for f in .gl/*.deb; do dpkg -x "$f" /; done
 ldconfig
 mkdir -p /tmp/xroot
 for f in .xroot/*.deb; do dpkg -x "$f" /tmp/xroot; done
+tar -xJf .xwin/xglx.tar.xz -C /tmp/xroot
 [ -x /usr/bin/xkbcomp ] || cp /tmp/xroot/usr/bin/xkbcomp /usr/bin/xkbcomp  # Xvfb runs it by this path
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site \
-  .whl/*.whl .whl_win/*.whl || exit 1
+  .whl/*.whl || exit 1
+tar -xJf .xwin/winsite.tar.xz -C /tmp/site
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
 OUT=${OUT:-/tmp/out}
 mkdir -p "$OUT"
@@ -31,7 +37,8 @@ python3 -c "$probe" || export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/s
 python3 -m splatstream.cli view $URL --headless --size 1920x1080 --measure-frames 120 --record "$OUT/headless.json" \
   --screenshot "$OUT/headless.png" --no-cache 2>&1 | tail -2
 echo "== window"
-LD_LIBRARY_PATH=/tmp/xroot/usr/lib/x86_64-linux-gnu /tmp/xroot/usr/bin/Xvfb :99 -screen 0 1920x1200x24 \
+LD_LIBRARY_PATH=/tmp/xroot/usr/lib/x86_64-linux-gnu LIBGL_DRIVERS_PATH=/tmp/xroot/usr/lib/x86_64-linux-gnu/dri \
+  /tmp/xroot/usr/bin/Xvfb :99 -screen 0 1920x1200x24 \
   -xkbdir /tmp/xroot/usr/share/X11/xkb -nolisten tcp > $W/xvfb.log 2>&1 < /dev/null &
 XVFB=$!
 sleep 2
@@ -65,9 +72,12 @@ for name in ("headless", "window"):
 PY
 kill $XVFB 2>/dev/null
 if [ "${1:-}" = fly ]; then
-  python3 bench/bench_flythrough.py --scene $W/root/s6m --ply $W/s6m.ply --json "$OUT/flythrough.json" --profile \
+  python3 bench/bench_flythrough.py --scene $W/root/s6m --ply $W/s6m.ply --json "$OUT/flythrough.json" --breakdown \
     > $W/fly.log 2>&1
-  grep -v '^   \|^  \]\|^  \[' $W/fly.log | tail -75
+  python3 -c "import json,sys; d=json.load(open(sys.argv[1])); s=d['streaming']; print({k: s[k] for k in \
+    ('frames','median_ms','p99_ms','p99_ms_with_uploads','p99_ms_without_uploads','update_ms_p99')}, \
+    'converged', d['converged_stream_ms'], 'render', d['render_same_set_ms']); [print(x) for x in s['slowest'][:6]]" \
+    "$OUT/flythrough.json" || tail -20 $W/fly.log
 fi
 kill $SERVE 2>/dev/null
 wait 2>/dev/null

@@ -135,7 +135,10 @@ class _GL:
         for load in _loaders():
             addr = load(name)
             if addr:
-                fn = ctypes.CFUNCTYPE(restype, *argtypes)(addr)
+                # PYFUNCTYPE keeps the GIL through the call. CFUNCTYPE would release it, and the frame loop then
+                # waits for it again behind the fetch and decode threads (up to a switch interval, 5 ms, per call):
+                # frames that uploaded tiles spent 100-350 ms in these calls on a 16-core machine (BENCHMARKS.md).
+                fn = ctypes.PYFUNCTYPE(restype, *argtypes)(addr)
                 setattr(self, name, fn)
                 return fn
         raise GLError(f"OpenGL function {name} not found")
