@@ -97,7 +97,11 @@ class Settle:
 # Measurement flags of a --draw value ("fetch+f2b", "compute+t8+u2", ...) -> RenderOptions fields.
 DRAW_FLAGS = {"f2b": {"front_to_back": True}, "nodepth": {"depth_test": False}, "noblend": {"blend": False},
               "discard": {"discard_fragments": True}, "t8": {"tile_px": 8}, "u1": {"unroll": 1}, "u2": {"unroll": 2},
-              "wc": {"warp_cull": True}}
+              "wc": {"warp_cull": True}, "r8": {"radix_bits": 8}, "classic": {"fused_sort": False},
+              "fb": {"full_barriers": True},
+              # dense-scene variants of the compute draw (RenderOptions; default off until measured):
+              "fl": {"flush": "cull"}, "fls": {"flush": "stages"}, "tb": {"tight_bins": True},
+              "er": {"emit_rects": True}, "tr8": {"tile_radix_bits": 8}}
 
 
 def render_options(sort: str, draw: str, color_dtype: str):
@@ -159,6 +163,9 @@ def bench_gl(ctx, scene, cam: Camera, frames: int, sort: str, color_dtype: str, 
         out["cull_ms"] = median([s.cull_ms for s in stats])
         out["sort_ms"] = median([s.sort_ms for s in stats])
         out["draw_ms"] = median([s.draw_ms for s in stats])
+        if stats[0].bin_ms is not None:  # compute draw: binning and tile sort
+            out["bin_ms"] = median([s.bin_ms for s in stats])
+            out["tile_sort_ms"] = median([s.tile_sort_ms for s in stats])
         out["gpu_ms"] = median([s.total_ms for s in stats])
         out["sort_keys_per_s"] = out["visible"] / (out["sort_ms"] * 1e-3) if out["sort_ms"] else None
     else:
@@ -305,7 +312,8 @@ def summary(results: dict, args, info: dict, width: int, height: int) -> None:
     print(f"\nGL: {info['GL_RENDERER']} | {info['GL_VERSION']} | {width}x{height}, median of {args.frames} frames "
           "after a settled warm-up; times in ms; wall = render + glFinish, submit = render() returning")
     print(f"{'scene':<14} {'preset':<10} {'draw/colour':<22} {'visible':>9} {'cull':>6} {'sort':>6} {'bin':>6} "
-          f"{'tsort':>6} {'draw':>6} {'GPU':>6} {'wall':>6} {'submit':>6}  {'vs gsplat':>9}  B/splat")
+          f"{'tsort':>6} {'draw':>6} {'GPU':>6} {'wall':>6} {'submit':>6}  {'vs gsplat':>9} {'entries':>10} "
+          f"{'diff':>7}  B/splat")
     for e in results["scenes"]:
         gs = e.get("gsplat", {})
         gs_wall = gs.get("wall_ms")
@@ -315,9 +323,11 @@ def summary(results: dict, args, info: dict, width: int, height: int) -> None:
                     v = g_.get(key)
                     return f"{v:>6.2f}" if isinstance(v, (int, float)) else f"{'-':>6}"
                 speed = f"{gs_wall / g_['wall_ms']:>8.2f}x" if gs_wall and g_.get("wall_ms") else f"{'-':>9}"
+                diff = f"{g_['max_diff_vs_first']:.2g}" if "max_diff_vs_first" in g_ else "-"
                 print(f"{e['label']:<14} {preset:<10} {(g_['draw'] + '/' + g_['color'])[:22]:<22} "
                       f"{g_.get('visible') or 0:>9} {f('cull_ms')} {f('sort_ms')} {f('bin_ms')} {f('tile_sort_ms')} "
-                      f"{f('draw_ms')} {f('gpu_ms')} {f('wall_ms')} {f('submit_ms')}  {speed}  "
+                      f"{f('draw_ms')} {f('gpu_ms')} {f('wall_ms')} {f('submit_ms')}  {speed} "
+                      f"{g_.get('entries', '-'):>10} {diff:>7}  "
                       f"{g_['pool_bytes_per_splat']:.1f}+{g_['work_bytes_per_splat']:.1f}")
             c_ = res.get("cpu_sort")
             if c_:
@@ -357,6 +367,9 @@ def main() -> int:
                     help="GPU-path draw modes to time: auto, compute, instanced, triangles, fetch, points, optionally "
                          "with measurement flags " + ", ".join("+" + f for f in DRAW_FLAGS) +
                          " (e.g. fetch+discard, compute+t8); the first is reported")
+    ap.add_argument("--variants", nargs="+", default=[],
+                    help="flag sets measured after the first --draw, each as that mode with these flags: "
+                         "'fl tb tb+fls' adds compute+fl, compute+tb and compute+tb+fls when --draw is compute")
     ap.add_argument("--no-cpu-sort", action="store_true", help="skip the CPU-sort path")
     ap.add_argument("--no-sort-random", action="store_true", help="skip the standalone sort of random keys")
     ap.add_argument("--gsplat", action="store_true", help="also time gsplat (CUDA) on the same scene and camera")
@@ -367,6 +380,14 @@ def main() -> int:
     ap.add_argument("--json", help="write all numbers here")
     args = ap.parse_args()
     width, height = (int(v) for v in args.size.lower().split("x"))
+    args.draw = list(args.draw) + [f"{args.draw[0]}+{v.lstrip('+')}" for v in args.variants]
+    from splatstream.errors import SplatstreamError
+
+    for draw in args.draw:  # a typo fails here, before any scene is made
+        try:
+            render_options("gpu", draw, args.color[0])
+        except SplatstreamError as exc:
+            raise SystemExit(f"--draw/--variants {draw}: {exc}") from None
     settle = Settle(args.warmup_min, args.warmup_max, args.settle_window, args.settle_tol, args.warmup_s)
 
     from client_gl.headless import create_context
@@ -405,12 +426,19 @@ def main() -> int:
             scene = tiles_from_gaussians(g, preset)
             enc = time.perf_counter() - t
             res = {"encode_s": enc, "variants": []}
+            first_image = None
             for draw in args.draw:
                 for color in args.color:
                     gpu = bench_gl(ctx, scene, cam, args.frames, "gpu", color, draw, settle)
                     rgpu = gpu.pop("_renderer")
+                    img = rgpu.render(cam)
+                    if rgpu.renderer.draw_mode == "compute":
+                        gpu["entries"] = rgpu.renderer.read_bin_counts()[1]  # (tile, splat) pairs binned
+                    if first_image is None:
+                        first_image = img
+                    elif color == args.color[0]:  # the variants change no pixel: how far from the first one
+                        gpu["max_diff_vs_first"] = float(np.abs(img - first_image).max())
                     if draw == args.draw[0] and color == args.color[0]:
-                        img = rgpu.render(cam)
                         if preset == args.psnr_preset:
                             gl_image = img
                         if args.images:

@@ -54,7 +54,8 @@ class ComputeRaster:
 
     def __init__(self, ctx, color_dtype: str, visible_capacity: int, entry_capacity: int | None = None,
                  tile_px: int = TILE_PX, unroll: int = UNROLL, warp_cull: bool = False, radix_bits: int = RADIX_BITS,
-                 fused_sort: bool = True, barrier_bits: int = CHAIN_BARRIER):
+                 fused_sort: bool = True, barrier_bits: int = CHAIN_BARRIER, tight_bins: bool = False,
+                 emit_rects: bool = False):
         self.ctx = ctx
         self.color_dtype = color_dtype
         self.tile_px = int(tile_px)
@@ -64,9 +65,15 @@ class ComputeRaster:
         self.fused_sort = fused_sort
         self.barrier_bits = barrier_bits
         tile = f"#define TILE_PX {self.tile_px}\n"
-        self.count_shader = ctx.compute_shader(_source("bin_count.comp", tile))
+        # tight_bins: tiles tested against the splat's ellipse (bin_common.glsl's tile_hit), the same code in the count
+        # and the emit so that both agree on every splat's entries.
+        self.tight_bins = bool(tight_bins)
+        self.emit_rects = bool(emit_rects)
+        binning = tile + ("#define TIGHT_BINS\n" if self.tight_bins else "")
+        self.count_shader = ctx.compute_shader(_source("bin_count.comp", binning))
         self.scan_shader = ctx.compute_shader(_source("bin_scan.comp", tile, radix_bits))
-        self.emit_shader = ctx.compute_shader(_source("bin_emit.comp", tile))
+        self.emit_shader = ctx.compute_shader(
+            _source("bin_emit.comp", binning + ("#define EMIT_RECTS\n" if self.emit_rects else "")))
         self.ranges_shader = ctx.compute_shader(_source("tile_ranges.comp", tile))
         fmt = IMAGE_FORMATS[color_dtype]
         if unroll not in (1, 2, 4):

@@ -35,6 +35,7 @@ from splatstream.errors import UsageError
 
 from . import shadergen
 from .compute_raster import ComputeRaster
+from .gl import flush as gl_flush
 from .gl import texture_barrier
 from .pool import ChunkPool
 from .residency_layout import TEXTURE_UNITS
@@ -51,7 +52,8 @@ DRAW_MODES = ("instanced", "triangles", "fetch", "points")
 # sprites are at least as wide as the image; otherwise fetch quads (tighter, fewer fragments: 9.6 vs 10.7 ms at 1M).
 # "compute": the compute-shader tile rasterizer (client_gl/gpu/compute_raster.py), no raster hardware.
 DRAW_CHOICES = ("auto",) + DRAW_MODES + ("compute",)
-COLOR_DTYPES = ("f1", "f2", "f4")  # RGBA8, RGBA16F, RGBA32F colour target
+COLOR_DTYPES = ("f1", "f2", "f4")
+FLUSH_CHOICES = ("none", "cull", "stages")  # RGBA8, RGBA16F, RGBA32F colour target
 AUTO_POINTS_MIN_SPLATS = 2_000_000
 RECORD_BYTES = 48  # per visible splat, written by cull.comp
 # "auto" on the GPU path of a hardware GL: the compute rasterizer (H200, 1080p: 2.5 ms at 1M splats, 7.9 ms at 6M,
@@ -106,6 +108,12 @@ class RenderOptions:
     radix_bits: int = 4  # digit width of the radix sorts: 4 (8 passes over depth keys) or 8 (4 passes)
     fused_sort: bool = True  # 3 dispatches a sort pass (False: the 5 of count, reduce, scan, scan-add, scatter)
     full_barriers: bool = False  # compute draw: glMemoryBarrier(ALL) between dispatches (default: the bits needed)
+    # Compute-draw variants on dense scenes (measurement options until the GPU machine measured them):
+    flush: str = "none"  # glFlush: none | cull (after the cull) | stages (after each stage but the last), so that the
+    #                      GPU starts on the frame while the CPU still issues the rest of it (FLUSH_CHOICES)
+    tight_bins: bool = False  # binning: only tiles whose pixel centres the alpha >= 1/255 ellipse reaches (not its box)
+    emit_rects: bool = False  # binning: bin_emit keeps each splat's tile box from its first pass (no second read)
+    tile_radix_bits: int | None = None  # digit width of the tile sort (None: radix_bits)
 
     def __post_init__(self) -> None:
         if self.sort not in SORT_MODES:
@@ -119,10 +127,15 @@ class RenderOptions:
                              f"and {self.unroll}")
         if self.radix_bits not in RADIX_CHOICES:
             raise UsageError(f"radix sort digits of {self.radix_bits} bits: choose one of {RADIX_CHOICES}")
+        if self.tile_radix_bits is not None and self.tile_radix_bits not in RADIX_CHOICES:
+            raise UsageError(f"tile sort digits of {self.tile_radix_bits} bits: choose one of {RADIX_CHOICES}")
+        if self.flush not in FLUSH_CHOICES:
+            raise UsageError(f"unknown flush mode {self.flush!r} (choose one of {', '.join(FLUSH_CHOICES)})")
         if self.warp_cull and self.tile_px != 16:
             raise UsageError("the per-block splat lists (warp_cull) need 16x16-pixel tiles")
         if self.draw != "compute" and not self.compute_defaults:
-            raise UsageError("tile_px, unroll and warp_cull are options of the compute draw mode")
+            raise UsageError("tile_px, unroll, warp_cull, full_barriers, flush, tight_bins, emit_rects and "
+                             "tile_radix_bits are options of the compute draw mode")
         if self.draw == "compute" and not self.raster_defaults:
             raise UsageError("the compute draw mode takes no raster-draw options (front_to_back, depth_test, blend, "
                              "discard_fragments)")
@@ -135,7 +148,9 @@ class RenderOptions:
 
     @property
     def compute_defaults(self) -> bool:
-        return self.tile_px == 16 and self.unroll == 4 and not self.warp_cull and not self.full_barriers
+        return (self.tile_px == 16 and self.unroll == 4 and not self.warp_cull and not self.full_barriers
+                and self.flush == "none" and not self.tight_bins and not self.emit_rects
+                and self.tile_radix_bits is None)
 
 
 def resolve_sort(ctx, options: RenderOptions) -> str:
@@ -273,8 +288,9 @@ class SplatRenderer:
             if self.craster is None:
                 self.craster = ComputeRaster(self.ctx, opts.color_dtype, self.pool.splat_capacity,
                                              tile_px=opts.tile_px, unroll=opts.unroll, warp_cull=opts.warp_cull,
-                                             radix_bits=opts.radix_bits, fused_sort=opts.fused_sort,
-                                             barrier_bits=self._chain_barrier("compute"))
+                                             radix_bits=opts.tile_radix_bits or opts.radix_bits,
+                                             fused_sort=opts.fused_sort, barrier_bits=self._chain_barrier("compute"),
+                                             tight_bins=opts.tight_bins, emit_rects=opts.emit_rects)
                 self._bin_checks = BIN_CHECK_FRAMES
             self.draw_mode = mode
             self.program_gpu = self.vao_gpu = None
@@ -535,10 +551,19 @@ class SplatRenderer:
             stats.cull_ms, stats.sort_ms, stats.bin_ms, stats.tile_sort_ms, stats.draw_ms = (
                 q.elapsed / 1e6 for q in self._queries)
         else:
+            flush = self.options.flush
             self._cull(slots)
+            if flush != "none":
+                gl_flush()
             self.sorter.sort(self.params, self.keys, self.values)
+            if flush == "stages":
+                gl_flush()
             cr.bin(self.params, self.values, self.records, self.sorter.dispatch, w, h)
+            if flush == "stages":
+                gl_flush()
             cr.sort()
+            if flush == "stages":
+                gl_flush()
             cr.raster(self.records, color, w, h, self._background)
         if self._bin_checks > 0:  # the first frames after an allocation check the entry buffer's capacity
             self._bin_checks -= 1
