@@ -276,3 +276,96 @@ def test_work_buffers_fixed_while_tiles_come_and_go(ctx, fruit):
     assert psnr(r.read_image()[..., :3], render_ref.render(g, cam)) >= 40.0
     r.release()
     pool.release()
+
+
+DENSE_VARIANTS = [dict(tight_bins=True), dict(emit_rects=True), dict(tight_bins=True, emit_rects=True),
+                  dict(flush="cull"), dict(flush="stages"), dict(tile_radix_bits=8)]
+
+
+@pytest.mark.parametrize("variant", DENSE_VARIANTS, ids=lambda v: "+".join(f"{k}={v[k]}" for k in v))
+def test_dense_variants_match_default(ctx, fruit, variant):
+    """The measurement variants for dense scenes change how a frame is binned, sorted or submitted, never a pixel:
+    the same image as the default, bit for bit, and the reference's."""
+    from client_gl.gpu.renderer import RenderOptions
+    from client_gl.headless import HeadlessRenderer
+
+    cam = close_camera(fruit, 120, 90)
+    images, bins = [], []
+    for options in (RenderOptions(draw="compute"), RenderOptions(draw="compute", **variant)):
+        r = HeadlessRenderer(options, ctx=ctx)
+        r.load_gaussians(fruit)
+        images.append(r.render(cam))
+        bins.append(r.renderer.read_bin_counts())
+        r.unload()
+    assert np.array_equal(images[0], images[1])
+    assert psnr(images[1], render_ref.render(fruit, cam)) >= 40.0
+    default_entries_, variant_entries = bins[0][0], bins[1][0]
+    assert bins[1][0] == bins[1][1]
+    if variant.get("tight_bins"):
+        assert 0 < variant_entries < 0.9 * default_entries_  # 19 % fewer on this view
+    else:
+        assert variant_entries == default_entries_
+
+
+def test_tight_bins_keep_every_reached_tile(ctx, fruit):
+    """tight_bins: each splat's entries are the tiles of its box where its alpha reaches 1/255 at a pixel centre
+    (numpy, float64), in (tile, depth) order, no tile twice; tiles that the ellipse misses even between the pixel
+    centres (the shader bounds the rectangle of pixel centres, not the centres one by one) are not entries."""
+    from client_gl.gpu.renderer import RenderOptions
+    from client_gl.headless import HeadlessRenderer
+
+    cam = close_camera(fruit, 120, 90)
+    r = HeadlessRenderer(RenderOptions(draw="compute", tight_bins=True), ctx=ctx)
+    r.load_gaussians(fruit)
+    r.render(cam)
+    rend = r.renderer
+    cr = rend.craster
+    n = rend.read_visible_count()
+    entries, needed = rend.read_bin_counts()
+    gx, gy = cr.grid
+    rec = np.frombuffer(rend.records.read(n * 48), np.float32).reshape(n, 12).astype(np.float64)
+    order = np.frombuffer(rend.values.read(n * 4), np.uint32)
+    keys = np.frombuffer(cr.tile_keys.read(entries * 4), np.uint32)
+    vals = np.frombuffer(cr.tile_values.read(entries * 4), np.uint32)
+    r.unload()
+    assert entries == needed > 0
+    assert np.all(np.diff(keys.astype(np.int64)) >= 0)
+    rank = np.empty(n, np.int64)
+    rank[order] = np.arange(n)
+    same_tile = keys[1:] == keys[:-1]
+    assert np.all(rank[vals[1:]][same_tile] > rank[vals[:-1]][same_tile])
+    got = set(zip(vals.tolist(), keys.tolist(), strict=True))
+    assert len(got) == entries
+
+    c, op = rec[:, 0:2], rec[:, 3]
+    a, b, cc = rec[:, 4], rec[:, 5], rec[:, 6]
+    valid = a * cc - b * b > 0
+    lim = np.log(np.maximum(op, 1 / 255) * 255)  # alpha >= 1/255 where power >= -lim, power = -Q / 2
+
+    def q(dx, dy):
+        return a * dx * dx + 2 * b * dx * dy + cc * dy * dy
+
+    offs = np.arange(16) + 0.5
+    reached = 0
+    for t in range(gx * gy):
+        x0, y0 = (t % gx) * 16 + 0.5, (t // gx) * 16 + 0.5
+        # at the pixel centres
+        dx = (x0 - 0.5 + offs)[None, None, :] - c[:, 0, None, None]
+        dy = (y0 - 0.5 + offs)[None, :, None] - c[:, 1, None, None]
+        power = -0.5 * (a[:, None, None] * dx * dx + cc[:, None, None] * dy * dy) - b[:, None, None] * dx * dy
+        best = power.reshape(n, -1).max(axis=1) + lim
+        # over the rectangle of the pixel centres (0 inside; else the clamped minima along the four edges)
+        lo_x, lo_y, hi_x, hi_y = x0 - c[:, 0], y0 - c[:, 1], x0 + 15 - c[:, 0], y0 + 15 - c[:, 1]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            qmin = np.minimum.reduce([
+                q(lo_x, np.clip(-b * lo_x / cc, lo_y, hi_y)), q(hi_x, np.clip(-b * hi_x / cc, lo_y, hi_y)),
+                q(np.clip(-b * lo_y / a, lo_x, hi_x), lo_y), q(np.clip(-b * hi_y / a, lo_x, hi_x), hi_y)])
+        inside = (lo_x <= 0) & (hi_x >= 0) & (lo_y <= 0) & (hi_y >= 0)
+        qmin[inside] = 0.0
+        have = np.array([(i, t) in got for i in range(n)])
+        must = valid & (best >= 1e-3)  # reached at a pixel centre: an entry
+        must_not = valid & (0.5 * qmin > lim + 0.05)  # missed by the whole rectangle
+        assert np.all(have[must]), t
+        assert not np.any(have[must_not]), t
+        reached += int(must.sum())
+    assert reached > 0.7 * entries

@@ -64,3 +64,47 @@ def test_auto_sort_choice(gl_compute_context):
     assert choose_sort(ctx, "auto") == expected
     assert choose_sort(ctx, "cpu") == "cpu"
     assert choose_sort(ctx, "gpu") == "gpu"
+
+
+@pytest.mark.parametrize("radix_bits,fused", [(4, False), (8, True), (8, False)])
+def test_variants_sort_like_numpy(gl_compute_context, radix_bits, fused):
+    """The measurement variants (8-bit digits, the five-dispatch pass) sort as the default does, and the fused
+    pass leaves its block sums at zero for the next sort (several sorts of different sizes in a row)."""
+    from client_gl.gpu.sort import GpuRadixSort
+
+    s = GpuRadixSort(gl_compute_context, 30000, radix_bits=radix_bits, fused=fused)
+    assert s.passes() == (8 if radix_bits == 4 else 4)
+    rng = np.random.default_rng(radix_bits)
+    for n in (0, 1, 2049, 30000, 777):
+        _check(s, rng.integers(0, 2**32, n, dtype=np.uint64))
+    for kind in ("few_values", "high_bits"):
+        keys = rng.integers(0, 3, 9001) if kind == "few_values" else rng.integers(0, 16, 9001) << 28
+        _check(s, keys.astype(np.uint64))
+    if fused:
+        assert not np.frombuffer(s.reduced.read(), np.uint32).any()
+    s.release()
+
+
+@pytest.mark.parametrize("radix_bits", [4, 8])
+def test_low_bits_sort_is_stable(gl_compute_context, radix_bits):
+    """A sort by the low bits only (the tile sort: 13 bits at 1080p) is a stable sort by those bits."""
+    import struct
+
+    from client_gl.gpu.sort import GpuRadixSort
+
+    ctx = gl_compute_context
+    s = GpuRadixSort(ctx, 20000, radix_bits=radix_bits)
+    n = 20000
+    rng = np.random.default_rng(5)
+    keys = rng.integers(0, 8160, n).astype(np.uint32)
+    values = np.arange(n, dtype=np.uint32)
+    kb, vb = ctx.buffer(keys.tobytes()), ctx.buffer(values.tobytes())
+    params = ctx.buffer(struct.pack("4I", n, 0, 0, 0))
+    s.setup(params)
+    s.sort(params, kb, vb, bits=13)
+    order = np.argsort(keys, kind="stable")
+    np.testing.assert_array_equal(np.frombuffer(kb.read(), np.uint32), keys[order])
+    np.testing.assert_array_equal(np.frombuffer(vb.read(), np.uint32), values[order])
+    for b in (kb, vb, params):
+        b.release()
+    s.release()

@@ -137,3 +137,19 @@ def test_pure_modules_import_without_moderngl():
             "print('ok')")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert r.returncode == 0 and r.stdout.strip() == "ok", r.stderr
+
+
+def test_high_water_cached_matches_a_scan():
+    """high_water is cached (read every frame): after any sequence of allocations and frees it equals a scan."""
+    rng = np.random.default_rng(0)
+    a = SlotAllocator(300)
+    held = []
+    for _ in range(1500):
+        if held and rng.random() < 0.5:
+            a.free(held.pop(int(rng.integers(len(held)))))
+        else:
+            n = int(rng.integers(0, 12))
+            if n <= a.free_count:
+                held.append(a.allocate(n))
+        used = np.flatnonzero([a.is_used(s) for s in range(a.capacity)])
+        assert a.high_water == (int(used[-1]) + 1 if used.size else 0)

@@ -14,7 +14,8 @@ radix sort (values = record indices, front to back):
   6. raster.comp: one work group per tile, one thread per pixel, batches of 256 splats in shared memory, the
      reference's blending and early stop (T < 1e-4), imageStore into the colour texture.
 
-Dispatch sizes come from indirect buffers filled on the GPU (no read-back in the frame). The entry buffer has a
+Dispatch sizes come from indirect buffers filled on the GPU (no read-back in the frame; bin_scan.comp writes the tile
+sort's). Uniforms are written only when they change (ProgramUniforms). The entry buffer has a
 fixed capacity; entries beyond it are dropped and `bins.total` records the need: `read_bins()` / `grow_if_needed()`
 check it between frames (the renderer does after the first frames and on request, HeadlessRenderer after every
 image it reads back) and re-allocate.
@@ -24,8 +25,9 @@ from __future__ import annotations
 import struct
 
 from . import shadergen
-from .shadergen import SCAN_TILE, SORT_TILE
-from .sort import GpuRadixSort
+from .shadergen import RADIX_BITS, SCAN_TILE, SORT_TILE
+from .sort import CHAIN_BARRIER, GpuRadixSort
+from .uniforms import ProgramUniforms
 
 TILE_PX = 16  # default tile size (pixels); 8 is a measurement option (RenderOptions.tile_px)
 UNROLL = 4  # splats per raster loop step (H200, 6M splats: raster 7.35 ms unrolled 1, 5.69 ms 2, 5.19 ms 4)
@@ -41,8 +43,8 @@ def default_entries(visible_capacity: int) -> int:
     return max(MIN_ENTRIES, ENTRIES_PER_SPLAT * int(visible_capacity))
 
 
-def _source(name: str, defines: str = "") -> str:
-    src = shadergen.compute_source(name)
+def _source(name: str, defines: str = "", radix_bits: int = RADIX_BITS) -> str:
+    src = shadergen.compute_source(name, radix_bits=radix_bits)
     first, rest = src.split("\n", 1)
     return f"{first}\n{defines}{rest}"
 
@@ -51,16 +53,27 @@ class ComputeRaster:
     """GPU buffers and programs of the tile rasterizer for one renderer."""
 
     def __init__(self, ctx, color_dtype: str, visible_capacity: int, entry_capacity: int | None = None,
-                 tile_px: int = TILE_PX, unroll: int = UNROLL, warp_cull: bool = False):
+                 tile_px: int = TILE_PX, unroll: int = UNROLL, warp_cull: bool = False, radix_bits: int = RADIX_BITS,
+                 fused_sort: bool = True, barrier_bits: int = CHAIN_BARRIER, tight_bins: bool = False,
+                 emit_rects: bool = False):
         self.ctx = ctx
         self.color_dtype = color_dtype
         self.tile_px = int(tile_px)
         if self.tile_px not in (8, 16):
             raise ValueError(f"tile size {tile_px}: 8 or 16 pixels")
+        self.radix_bits = radix_bits
+        self.fused_sort = fused_sort
+        self.barrier_bits = barrier_bits
         tile = f"#define TILE_PX {self.tile_px}\n"
-        self.count_shader = ctx.compute_shader(_source("bin_count.comp", tile))
-        self.scan_shader = ctx.compute_shader(_source("bin_scan.comp", tile))
-        self.emit_shader = ctx.compute_shader(_source("bin_emit.comp", tile))
+        # tight_bins: tiles tested against the splat's ellipse (bin_common.glsl's tile_hit), the same code in the count
+        # and the emit so that both agree on every splat's entries.
+        self.tight_bins = bool(tight_bins)
+        self.emit_rects = bool(emit_rects)
+        binning = tile + ("#define TIGHT_BINS\n" if self.tight_bins else "")
+        self.count_shader = ctx.compute_shader(_source("bin_count.comp", binning))
+        self.scan_shader = ctx.compute_shader(_source("bin_scan.comp", tile, radix_bits))
+        self.emit_shader = ctx.compute_shader(
+            _source("bin_emit.comp", binning + ("#define EMIT_RECTS\n" if self.emit_rects else "")))
         self.ranges_shader = ctx.compute_shader(_source("tile_ranges.comp", tile))
         fmt = IMAGE_FORMATS[color_dtype]
         if unroll not in (1, 2, 4):
@@ -73,6 +86,8 @@ class ComputeRaster:
         if warp_cull:
             defines += "#define WARP_CULL\n"
         self.raster_shader = ctx.compute_shader(_source("raster.comp", defines))
+        self._u_count, self._u_scan, self._u_emit, self._u_raster = (
+            ProgramUniforms(p) for p in (self.count_shader, self.scan_shader, self.emit_shader, self.raster_shader))
         self.bins = ctx.buffer(reserve=16)
         self.gsum = None
         self.ranges = None
@@ -98,11 +113,11 @@ class ComputeRaster:
             for b in (self.tile_keys, self.tile_values):
                 if b is not None:
                     b.release()
+            if self.tile_sorter is not None:
+                self.tile_sorter.release()
             self.entry_capacity = int(entry_capacity)
-            if self.tile_sorter is None:
-                self.tile_sorter = GpuRadixSort(self.ctx, self.entry_capacity)
-            else:
-                self.tile_sorter.resize(self.entry_capacity)
+            self.tile_sorter = GpuRadixSort(self.ctx, self.entry_capacity, self.radix_bits, self.fused_sort,
+                                            self.barrier_bits)
             self.tile_keys = self.ctx.buffer(reserve=4 * self.entry_capacity)
             self.tile_values = self.ctx.buffer(reserve=4 * self.entry_capacity)
 
@@ -144,9 +159,11 @@ class ComputeRaster:
     def bin(self, params, order, records, dispatch, width: int, height: int) -> None:
         """Steps 1-3: entries of the `params.count` splats of `order` (depth-sorted record indices).
 
-        `dispatch` is the depth sort's indirect buffer (offset 0: ceil(count / SCAN_TILE) groups).
+        `dispatch` is the depth sort's indirect buffer (offset 0: ceil(count / SCAN_TILE) groups). bin_scan.comp
+        also writes the tile sort's dispatch sizes.
         """
-        ctx = self.ctx
+        barrier = self.ctx.memory_barrier
+        bits = self.barrier_bits
         self._grid_for(width, height)
         params.bind_to_storage_buffer(0)
         order.bind_to_storage_buffer(1)
@@ -156,18 +173,19 @@ class ComputeRaster:
         self.ranges.bind_to_storage_buffer(5)
         self.tile_keys.bind_to_storage_buffer(6)
         self.tile_values.bind_to_storage_buffer(7)
-        for prog in (self.count_shader, self.emit_shader):
-            prog["u_grid"] = self.grid
-        self.scan_shader["u_capacity"] = self.entry_capacity
-        self.scan_shader["u_tiles"] = self.tiles
-        self.emit_shader["u_capacity"] = self.entry_capacity
+        self._u_count.set("u_grid", self.grid)
+        self._u_emit.set("u_grid", self.grid)
+        self._u_scan.set("u_capacity", self.entry_capacity)
+        self._u_scan.set("u_tiles", self.tiles)
+        self._u_emit.set("u_capacity", self.entry_capacity)
         self.count_shader.run_indirect(dispatch, 0)
-        ctx.memory_barrier()
+        barrier(bits)
+        self.tile_sorter.dispatch.bind_to_storage_buffer(1)
         self.scan_shader.run(1)
-        ctx.memory_barrier()
+        barrier(bits)
+        order.bind_to_storage_buffer(1)
         self.emit_shader.run_indirect(dispatch, 0)
-        ctx.memory_barrier()
-        self.tile_sorter.setup(self.bins)
+        barrier(bits)
 
     @property
     def tile_bits(self) -> int:
@@ -180,7 +198,7 @@ class ComputeRaster:
         self.ranges.bind_to_storage_buffer(5)
         self.tile_keys.bind_to_storage_buffer(6)
         self.ranges_shader.run_indirect(self.tile_sorter.dispatch, 0)
-        self.ctx.memory_barrier()
+        self.ctx.memory_barrier(self.barrier_bits)
 
     def raster(self, records, texture, width: int, height: int, background) -> None:
         """Step 6 into `texture` (the colour attachment, bound as image unit 0)."""
@@ -188,9 +206,9 @@ class ComputeRaster:
         self.ranges.bind_to_storage_buffer(5)
         self.tile_values.bind_to_storage_buffer(7)
         texture.bind_to_image(0, read=False, write=True)
-        prog = self.raster_shader
-        prog["u_grid"] = self.grid
-        prog["u_pixels"] = (width, height)
-        prog["u_background"] = tuple(float(c) for c in background)
-        prog.run(self.grid[0], self.grid[1])
-        self.ctx.memory_barrier()
+        u = self._u_raster
+        u.set("u_grid", self.grid)
+        u.set("u_pixels", (width, height))
+        u.set("u_background", background)
+        self.raster_shader.run(self.grid[0], self.grid[1])
+        self.ctx.memory_barrier()  # all bits: the image is read back, sampled or blitted next

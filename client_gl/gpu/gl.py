@@ -89,6 +89,7 @@ _SIGNATURES = {
     "glCompressedTexSubImage3D": (None, (_u, _i, _i, _i, _i, _i, _i, _i, _u, _i, _p)),
     "glTextureBarrier": (None, ()),
     "glTextureBarrierNV": (None, ()),
+    "glFlush": (None, ()),
 }
 
 
@@ -166,6 +167,11 @@ def texture_barrier() -> bool:
         except GLError:
             continue
     return False
+
+
+def flush() -> None:
+    """glFlush: hand the commands issued so far to the GPU now (moderngl offers finish() only)."""
+    gl.glFlush()
 
 
 def _ptr(data: np.ndarray | None):

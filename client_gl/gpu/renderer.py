@@ -35,10 +35,12 @@ from splatstream.errors import UsageError
 
 from . import shadergen
 from .compute_raster import ComputeRaster
+from .gl import flush as gl_flush
 from .gl import texture_barrier
 from .pool import ChunkPool
 from .residency_layout import TEXTURE_UNITS
-from .sort import CpuSorter, GpuRadixSort, depth_order
+from .sort import CHAIN_BARRIER, RADIX_CHOICES, CpuSorter, GpuRadixSort, depth_order
+from .uniforms import ProgramUniforms
 
 SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swiftshader", "software rasterizer")
 MAX_GROUPS_PER_DISPATCH = 65535
@@ -50,7 +52,8 @@ DRAW_MODES = ("instanced", "triangles", "fetch", "points")
 # sprites are at least as wide as the image; otherwise fetch quads (tighter, fewer fragments: 9.6 vs 10.7 ms at 1M).
 # "compute": the compute-shader tile rasterizer (client_gl/gpu/compute_raster.py), no raster hardware.
 DRAW_CHOICES = ("auto",) + DRAW_MODES + ("compute",)
-COLOR_DTYPES = ("f1", "f2", "f4")  # RGBA8, RGBA16F, RGBA32F colour target
+COLOR_DTYPES = ("f1", "f2", "f4")
+FLUSH_CHOICES = ("none", "cull", "stages")  # RGBA8, RGBA16F, RGBA32F colour target
 AUTO_POINTS_MIN_SPLATS = 2_000_000
 RECORD_BYTES = 48  # per visible splat, written by cull.comp
 # "auto" on the GPU path of a hardware GL: the compute rasterizer (H200, 1080p: 2.5 ms at 1M splats, 7.9 ms at 6M,
@@ -58,6 +61,8 @@ RECORD_BYTES = 48  # per visible splat, written by cull.comp
 AUTO_COMPUTE = True
 BIN_CHECK_FRAMES = 2  # compute draw: frames after an allocation whose entry count is read back (overflow -> grow)
 TIMER_QUERIES = 5  # GL_TIME_ELAPSED queries a frame uses at most (the compute draw's five stages)
+ALL_BARRIER_BITS = 0xFFFFFFFF
+ZERO_PARAMS = bytes(16)  # params: visible count, oversized count, padding
 
 
 def has_compute(ctx) -> bool:
@@ -99,6 +104,16 @@ class RenderOptions:
     tile_px: int = 16  # 16 or 8 pixel tiles
     unroll: int = 4  # raster loop unrolled 4, 2 or 1 times
     warp_cull: bool = False  # per 8x4-pixel block splat lists
+    # GPU sort (client_gl/gpu/sort.py), all GPU-path draws:
+    radix_bits: int = 4  # digit width of the radix sorts: 4 (8 passes over depth keys) or 8 (4 passes)
+    fused_sort: bool = True  # 3 dispatches a sort pass (False: the 5 of count, reduce, scan, scan-add, scatter)
+    full_barriers: bool = False  # compute draw: glMemoryBarrier(ALL) between dispatches (default: the bits needed)
+    # Compute-draw variants on dense scenes (measurement options until the GPU machine measured them):
+    flush: str = "none"  # glFlush: none | cull (after the cull) | stages (after each stage but the last), so that the
+    #                      GPU starts on the frame while the CPU still issues the rest of it (FLUSH_CHOICES)
+    tight_bins: bool = False  # binning: only tiles whose pixel centres the alpha >= 1/255 ellipse reaches (not its box)
+    emit_rects: bool = False  # binning: bin_emit keeps each splat's tile box from its first pass (no second read)
+    tile_radix_bits: int | None = None  # digit width of the tile sort (None: radix_bits)
 
     def __post_init__(self) -> None:
         if self.sort not in SORT_MODES:
@@ -110,10 +125,17 @@ class RenderOptions:
         if self.tile_px not in (8, 16) or self.unroll not in (1, 2, 4):
             raise UsageError(f"compute draw: tiles of 8 or 16 pixels, unrolled 1, 2 or 4 times; got {self.tile_px} "
                              f"and {self.unroll}")
+        if self.radix_bits not in RADIX_CHOICES:
+            raise UsageError(f"radix sort digits of {self.radix_bits} bits: choose one of {RADIX_CHOICES}")
+        if self.tile_radix_bits is not None and self.tile_radix_bits not in RADIX_CHOICES:
+            raise UsageError(f"tile sort digits of {self.tile_radix_bits} bits: choose one of {RADIX_CHOICES}")
+        if self.flush not in FLUSH_CHOICES:
+            raise UsageError(f"unknown flush mode {self.flush!r} (choose one of {', '.join(FLUSH_CHOICES)})")
         if self.warp_cull and self.tile_px != 16:
             raise UsageError("the per-block splat lists (warp_cull) need 16x16-pixel tiles")
         if self.draw != "compute" and not self.compute_defaults:
-            raise UsageError("tile_px, unroll and warp_cull are options of the compute draw mode")
+            raise UsageError("tile_px, unroll, warp_cull, full_barriers, flush, tight_bins, emit_rects and "
+                             "tile_radix_bits are options of the compute draw mode")
         if self.draw == "compute" and not self.raster_defaults:
             raise UsageError("the compute draw mode takes no raster-draw options (front_to_back, depth_test, blend, "
                              "discard_fragments)")
@@ -126,7 +148,9 @@ class RenderOptions:
 
     @property
     def compute_defaults(self) -> bool:
-        return self.tile_px == 16 and self.unroll == 4 and not self.warp_cull
+        return (self.tile_px == 16 and self.unroll == 4 and not self.warp_cull and not self.full_barriers
+                and self.flush == "none" and not self.tight_bins and not self.emit_rects
+                and self.tile_radix_bits is None)
 
 
 def resolve_sort(ctx, options: RenderOptions) -> str:
@@ -168,6 +192,8 @@ def _set(prog, name: str, value) -> None:
         return
     if isinstance(value, np.ndarray):
         member.write(value.astype("f4").tobytes())
+    elif isinstance(value, bytes):
+        member.write(value)
     else:
         member.value = value
 
@@ -206,6 +232,8 @@ class SplatRenderer:
         self._fbo = None
         self._fbo_size: tuple[int, int] | None = None
         self._background = (0.0, 0.0, 0.0)
+        self._camera_key: tuple | None = None  # camera_values() cache
+        self._camera_values: dict = {}
         self._queries = [ctx.query(time=True) for _ in range(TIMER_QUERIES)]
         self._debug = None  # decode_debug's program, compiled on first use (a test hook)
         capacity = pool.splat_capacity
@@ -227,8 +255,9 @@ class SplatRenderer:
         if self.sort_mode == "gpu":
             self.cull = ctx.compute_shader(shadergen.compute_source("cull.comp", self.header))
             self._bind_samplers(self.cull)
+            self._cull_uniforms = ProgramUniforms(self.cull)
             self.params = ctx.buffer(reserve=16)
-            self.sorter = GpuRadixSort(ctx, capacity)
+            self.sorter = GpuRadixSort(ctx, capacity, self.options.radix_bits, self.options.fused_sort)
             self.keys = ctx.buffer(reserve=capacity * 4)
             self.values = ctx.buffer(reserve=capacity * 4)
             self.records = ctx.buffer(reserve=capacity * RECORD_BYTES)
@@ -246,12 +275,22 @@ class SplatRenderer:
             self._bind_samplers(self._cpu_program)
             self._cpu_sorter = CpuSorter()
 
+    def _chain_barrier(self, mode: str) -> int:
+        """glMemoryBarrier bits between the dispatches of a frame: the compute draw's chain needs shader storage and
+        indirect commands only; the raster draws (vertex attributes, indirect draws) keep all bits."""
+        return CHAIN_BARRIER if mode == "compute" and not self.options.full_barriers else ALL_BARRIER_BITS
+
     def _select_program(self, mode: str) -> None:
         opts = self.options
+        if self.sorter is not None:
+            self.sorter.barrier_bits = self._chain_barrier(mode)
         if mode == "compute":
             if self.craster is None:
                 self.craster = ComputeRaster(self.ctx, opts.color_dtype, self.pool.splat_capacity,
-                                             tile_px=opts.tile_px, unroll=opts.unroll, warp_cull=opts.warp_cull)
+                                             tile_px=opts.tile_px, unroll=opts.unroll, warp_cull=opts.warp_cull,
+                                             radix_bits=opts.tile_radix_bits or opts.radix_bits,
+                                             fused_sort=opts.fused_sort, barrier_bits=self._chain_barrier("compute"),
+                                             tight_bins=opts.tight_bins, emit_rects=opts.emit_rects)
                 self._bin_checks = BIN_CHECK_FRAMES
             self.draw_mode = mode
             self.program_gpu = self.vao_gpu = None
@@ -363,10 +402,13 @@ class SplatRenderer:
         self.pool.set_draw_set(draw_set)
         degree = self.pool.sh_degree if sh_degree is None else max(0, min(int(sh_degree), self.pool.sh_degree))
         fbo = self.framebuffer(cam.width, cam.height)
-        uniforms = camera_uniforms(cam)
-        uniforms["u_sh_degree"] = degree
-        uniforms["u_cb_bands"] = self.pool.codebook_bands
-        self._background = tuple(float(c) for c in background)
+        uniforms = self.camera_values(cam)
+        self._background = (float(background[0]), float(background[1]), float(background[2]))
+        if self.sort_mode == "gpu":
+            self._choose_draw(cam, clear)
+        if self.draw_mode == "compute" and self.sort_mode == "gpu":
+            # The tile rasterizer writes every pixel (colour over the background, alpha) and ignores depth: no clear.
+            return self._render_compute(cam, uniforms, degree, timing)
         if clear:
             fbo.depth_mask = True
             fbo.use()
@@ -377,8 +419,18 @@ class SplatRenderer:
         fbo.depth_mask = False
         fbo.use()
         if self.sort_mode == "gpu":
-            return self._render_gpu(cam, uniforms, timing, clear)
+            return self._render_gpu(cam, uniforms, degree, timing)
+        uniforms = dict(uniforms, u_sh_degree=degree, u_cb_bands=self.pool.codebook_bands)
         return self._render_cpu(cam, uniforms, timing)
+
+    def camera_values(self, cam: Camera) -> dict:
+        """camera_uniforms(cam) with u_view as float32 bytes, computed again only when the camera changed."""
+        key = (cam.eye, cam.target, cam.up, cam.fov_y_deg, cam.width, cam.height, cam.near, cam.far)
+        if key != self._camera_key:
+            values = camera_uniforms(cam)
+            values["u_view"] = values["u_view"].astype("f4").tobytes()
+            self._camera_key, self._camera_values = key, values
+        return self._camera_values
 
     def _draw_state(self) -> None:
         ctx = self.ctx
@@ -395,15 +447,18 @@ class SplatRenderer:
         ctx.blend_equation = moderngl.FUNC_ADD
         ctx.depth_func = "<"
 
-    def _start_cull(self, uniforms: dict, max_point: float, key_xor: int) -> int:
-        """Uniforms of the cull pass, pool and buffers bound; returns the slots to scan."""
+    def _start_cull(self, uniforms: dict, degree: int, max_point: float, key_xor: int) -> int:
+        """Uniforms of the cull pass (written when they changed), pool and buffers bound; returns the slots to scan."""
         slots = self.pool.scan_slots
-        self.params.write(struct.pack("4I", 0, 0, 0, 0))
+        self.params.write(ZERO_PARAMS)
+        u = self._cull_uniforms
         for name, value in uniforms.items():
-            _set(self.cull, name, value)
-        _set(self.cull, "u_max_point", max_point)
-        _set(self.cull, "u_slots", slots)
-        _set(self.cull, "u_key_xor", key_xor)
+            u.set(name, value)
+        u.set("u_sh_degree", degree)
+        u.set("u_cb_bands", self.pool.codebook_bands)
+        u.set("u_max_point", max_point)
+        u.set("u_slots", slots)
+        u.set("u_key_xor", key_xor)
         self.pool.bind()
         self.params.bind_to_storage_buffer(0)
         self.keys.bind_to_storage_buffer(1)
@@ -412,31 +467,37 @@ class SplatRenderer:
         return slots
 
     def _cull(self, slots: int) -> None:
+        u = self._cull_uniforms
         for base in range(0, slots, MAX_GROUPS_PER_DISPATCH):
-            _set(self.cull, "u_slot_base", base)
+            u.set("u_slot_base", base)
             self.cull.run(min(MAX_GROUPS_PER_DISPATCH, slots - base))
-        self.ctx.memory_barrier()
+        self.ctx.memory_barrier(self.sorter.barrier_bits)
         self.sorter.setup(self.params)
 
-    def _render_gpu(self, cam: Camera, uniforms: dict, timing: bool, clear: bool = True) -> FrameStats:
+    def _choose_draw(self, cam: Camera, clear: bool) -> None:
+        """The draw mode of this frame ("auto": see DRAW_CHOICES)."""
+        if self.options.draw != "auto":
+            return
+        # The compute rasterizer overwrites the target and ignores its depth: raster draws over opaque geometry.
+        if AUTO_COMPUTE and clear and self.options.raster_defaults and not self._software:
+            mode = "compute"
+        else:
+            wide = self.max_point >= max(cam.width, cam.height)
+            points = wide and self.pool.drawn_splats >= AUTO_POINTS_MIN_SPLATS
+            mode = "points" if points else "fetch"
+        if mode != self.draw_mode or (mode == "compute" and self.craster is None):
+            self._select_program(mode)
+
+    def _render_gpu(self, cam: Camera, uniforms: dict, degree: int, timing: bool) -> FrameStats:
+        """The raster draws of the GPU path (cull, sort, one indirect draw)."""
         ctx = self.ctx
         stats = FrameStats("gpu")
-        if self.options.draw == "auto":
-            # The compute rasterizer overwrites the target and ignores its depth: raster draws over opaque geometry.
-            if AUTO_COMPUTE and clear and self.options.raster_defaults and not self._software:
-                self._select_program("compute")
-            else:
-                wide = self.max_point >= max(cam.width, cam.height)
-                points = wide and self.pool.drawn_splats >= AUTO_POINTS_MIN_SPLATS
-                self._select_program("points" if points else "fetch")
-        if self.draw_mode == "compute":
-            return self._render_compute(cam, uniforms, timing)
         _set(self.program_gpu, "u_size", uniforms["u_size"])
         guard = float(int(self.max_point) // 2 + 1)
         _set(self.program_gpu, "u_max_point", self.max_point)
         _set(self.program_gpu, "u_guard", guard)
         key_xor = 0 if self.options.front_to_back else 0xFFFFFFFF
-        slots = self._start_cull(uniforms, self.max_point if self.draw_mode == "points" else 1e30, key_xor)
+        slots = self._start_cull(uniforms, degree, self.max_point if self.draw_mode == "points" else 1e30, key_xor)
 
         def sort():
             self.sorter.sort(self.params, self.keys, self.values)
@@ -469,33 +530,45 @@ class SplatRenderer:
                 step()
         return stats
 
-    def _render_compute(self, cam: Camera, uniforms: dict, timing: bool) -> FrameStats:
+    def _render_compute(self, cam: Camera, uniforms: dict, degree: int, timing: bool) -> FrameStats:
         """Cull + keys (front to back), depth sort, tile binning, tile sort, tile raster (compute_raster.py)."""
         stats = FrameStats("gpu")
         cr = self.craster
         w, h = cam.width, cam.height
         color = self._fbo.color_attachments[0]
-        slots = self._start_cull(uniforms, 1e30, 0)  # ascending key = front to back
-        steps = (
-            lambda: self._cull(slots),
-            lambda: self.sorter.sort(self.params, self.keys, self.values),
-            lambda: cr.bin(self.params, self.values, self.records, self.sorter.dispatch, w, h),
-            cr.sort,
-            lambda: cr.raster(self.records, color, w, h, self._background),
-        )
+        slots = self._start_cull(uniforms, degree, 1e30, 0)  # ascending key = front to back
         if timing:
+            steps = (
+                lambda: self._cull(slots),
+                lambda: self.sorter.sort(self.params, self.keys, self.values),
+                lambda: cr.bin(self.params, self.values, self.records, self.sorter.dispatch, w, h),
+                cr.sort,
+                lambda: cr.raster(self.records, color, w, h, self._background),
+            )
             for q, step in zip(self._queries, steps, strict=True):
                 with q:
                     step()
             stats.cull_ms, stats.sort_ms, stats.bin_ms, stats.tile_sort_ms, stats.draw_ms = (
                 q.elapsed / 1e6 for q in self._queries)
         else:
-            for step in steps:
-                step()
+            flush = self.options.flush
+            self._cull(slots)
+            if flush != "none":
+                gl_flush()
+            self.sorter.sort(self.params, self.keys, self.values)
+            if flush == "stages":
+                gl_flush()
+            cr.bin(self.params, self.values, self.records, self.sorter.dispatch, w, h)
+            if flush == "stages":
+                gl_flush()
+            cr.sort()
+            if flush == "stages":
+                gl_flush()
+            cr.raster(self.records, color, w, h, self._background)
         if self._bin_checks > 0:  # the first frames after an allocation check the entry buffer's capacity
             self._bin_checks -= 1
             if cr.grow_if_needed():
-                return self._render_compute(cam, uniforms, timing)
+                return self._render_compute(cam, uniforms, degree, timing)
         return stats
 
     def check_bins(self) -> bool:

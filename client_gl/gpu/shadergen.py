@@ -279,16 +279,17 @@ vec3 decode_sh{band}(uint id, ivec2 p, int layer) {{
     return "".join(parts)
 
 
-def sort_defines() -> str:
-    return (f"#define RADIX {1 << RADIX_BITS}u\n#define ITEMS {SORT_ITEMS}u\n#define TILE {SORT_TILE}u\n"
+def sort_defines(radix_bits: int = RADIX_BITS) -> str:
+    return (f"#define RADIX_BITS {radix_bits}u\n#define RADIX {1 << radix_bits}u\n"
+            f"#define ITEMS {SORT_ITEMS}u\n#define TILE {SORT_TILE}u\n"
             f"#define SCAN_ITEMS {SCAN_ITEMS}\n#define SCAN_TILE {SCAN_TILE}u\n#define BATCHES {F2B_BATCHES}u\n")
 
 
-def compute_source(name: str, header: str = "", version: int = 430) -> str:
+def compute_source(name: str, header: str = "", version: int = 430, radix_bits: int = RADIX_BITS) -> str:
     """A compute shader: version line, sort defines, optional decode header + common code, then the file."""
     body = _expand_includes(read_shader(name))
     common = header + _expand_includes(read_shader("common.glsl")) if header else ""
-    return f"#version {version}\n{sort_defines()}{common}\n{body}\n"
+    return f"#version {version}\n{sort_defines(radix_bits)}{common}\n{body}\n"
 
 
 def saturate_sources() -> tuple[str, str]:

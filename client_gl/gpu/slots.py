@@ -24,6 +24,7 @@ class SlotAllocator:
             raise UsageError(f"a slot allocator needs at least one slot, got {capacity}")
         self._used = np.zeros(capacity, bool)
         self._free_count = capacity
+        self._high_water: int | None = 0  # cached: read every frame; None after a free (recomputed on demand)
 
     @property
     def capacity(self) -> int:
@@ -40,8 +41,10 @@ class SlotAllocator:
     @property
     def high_water(self) -> int:
         """Highest used slot + 1 (0 when none is used): the slots a frame has to scan."""
-        used = np.flatnonzero(self._used)
-        return int(used[-1]) + 1 if used.size else 0
+        if self._high_water is None:  # a scan of every slot (30 us at 23k slots): only after slots were freed
+            used = np.flatnonzero(self._used)
+            self._high_water = int(used[-1]) + 1 if used.size else 0
+        return self._high_water
 
     def is_used(self, slot: int) -> bool:
         return bool(self._used[slot])
@@ -57,6 +60,8 @@ class SlotAllocator:
         slots = np.flatnonzero(~self._used)[:count].astype(np.int64)
         self._used[slots] = True
         self._free_count -= count
+        if count and self._high_water is not None:
+            self._high_water = max(self._high_water, int(slots[-1]) + 1)
         return slots
 
     def free(self, slots) -> None:
@@ -73,6 +78,7 @@ class SlotAllocator:
             raise UsageError(f"slot {int(bad[0])} is not allocated (freed twice?)")
         self._used[slots] = False
         self._free_count += len(slots)
+        self._high_water = None
 
 
 def slots_for_budget(gpu_budget_bytes: int, formats: Mapping[str, str], sh_degree: int,

@@ -1,11 +1,13 @@
 """Sorting splats back to front: a GPU radix sort in GL 4.3 compute shaders and a CPU fallback.
 
-GPU: LSD radix sort of 32-bit keys with 32-bit values, 4 bits per pass (8 passes), each pass the five steps of seed
-002 / FidelityFX: count (per work-group digit histograms, digit-major table), reduce (block sums of the table),
-scan (one work group scans the block sums), scan-add (block-local exclusive scan + block offset) and scatter (a
-stable reorder: ranks from per-digit bit masks of each 256-key round). The element count is read on the GPU from
-the params buffer; dispatch sizes come from an indirect buffer that `indirect_setup.comp` fills, so nothing is read
-back. After the even number of passes the result is back in the input buffers.
+GPU: LSD radix sort of 32-bit keys with 32-bit values, 4 bits per pass (8 passes; 8 bits and 4 passes as an option),
+each pass the steps of seed 002 / FidelityFX: count (per work-group digit histograms, digit-major table), reduce
+(block sums of the table), scan (one work group scans the block sums), scan-add (block-local exclusive scan + block
+offset) and scatter (a stable reorder: ranks from per-digit bit masks of each 256-key round). By default the reduce
+is folded into the count (atomic block sums) and the scan into the scan-add (each work group sums the block sums
+before its own): three dispatches a pass instead of five. The element count is read on the GPU from the params
+buffer; dispatch sizes come from an indirect buffer that `indirect_setup.comp` fills, so nothing is read back.
+After the even number of passes the result is back in the input buffers.
 
 CPU: numpy argsort of depths on a worker thread (for GL < 4.3 or software GL), uploaded as an index buffer.
 """
@@ -19,23 +21,64 @@ import numpy as np
 from . import shadergen
 from .shadergen import RADIX_BITS, SCAN_TILE, SORT_TILE
 
-PASSES = 32 // RADIX_BITS
+RADIX_CHOICES = (4, 8)  # digit widths: 4 (16 buckets, 8 passes of 32-bit keys) or 8 (256 buckets, 4 passes)
+GL_SHADER_STORAGE_BARRIER_BIT = 0x2000
+GL_COMMAND_BARRIER_BIT = 0x40
+# Between two dispatches of a chain: shader storage writes seen by the next dispatch's reads, indirect arguments.
+CHAIN_BARRIER = GL_SHADER_STORAGE_BARRIER_BIT | GL_COMMAND_BARRIER_BIT
+
+
+def compute_program(ctx, name: str, defines: str = "", radix_bits: int = RADIX_BITS):
+    """A compute shader of client_gl/gpu/shaders without a decode header, compiled once per context and source.
+
+    Only programs without uniforms are shared this way (several sorters use the same ones)."""
+    cache = ctx.extra if isinstance(ctx.extra, dict) else {}
+    ctx.extra = cache
+    key = ("compute_program", name, defines, radix_bits)
+    prog = cache.get(key)
+    if prog is None:
+        src = shadergen.compute_source(name, radix_bits=radix_bits)
+        first, rest = src.split("\n", 1)
+        prog = cache[key] = ctx.compute_shader(f"{first}\n{defines}{rest}")
+    return prog
 
 
 class GpuRadixSort:
-    """Sorts (keys, values) uint32 buffer pairs of up to `capacity` elements in place (stable, ascending)."""
+    """Sorts (keys, values) uint32 buffer pairs of up to `capacity` elements in place (stable, ascending).
 
-    def __init__(self, ctx, capacity: int):
+    radix_bits: digit width (4: 8 passes over 32-bit keys; 8: 4 passes). fused: three dispatches a pass (count with
+    block sums by atomics, scan-add with its own block offset, scatter) instead of five (count, reduce, scan,
+    scan-add, scatter). Each pass runs programs compiled for it (digit shift and buffer pair as constants), so a
+    pass binds nothing and sets no uniform. barrier_bits: glMemoryBarrier bits between dispatches."""
+
+    def __init__(self, ctx, capacity: int, radix_bits: int = RADIX_BITS, fused: bool = True,
+                 barrier_bits: int = CHAIN_BARRIER):
+        if radix_bits not in RADIX_CHOICES:
+            raise ValueError(f"radix sort digits of {radix_bits} bits: {RADIX_CHOICES}")
         self.ctx = ctx
         self.capacity = max(1, int(capacity))
-        self.count_shader = ctx.compute_shader(shadergen.compute_source("radix_count.comp"))
-        self.reduce_shader = ctx.compute_shader(shadergen.compute_source("radix_reduce.comp"))
-        self.scan_shader = ctx.compute_shader(shadergen.compute_source("radix_scan.comp"))
-        self.scanadd_shader = ctx.compute_shader(shadergen.compute_source("radix_scanadd.comp"))
-        self.scatter_shader = ctx.compute_shader(shadergen.compute_source("radix_scatter.comp"))
-        self.setup_shader = ctx.compute_shader(shadergen.compute_source("indirect_setup.comp"))
-        self.table = self.reduced = self.keys_tmp = self.values_tmp = None
-        self.resize(self.capacity)
+        self.radix_bits = int(radix_bits)
+        self.fused = bool(fused)
+        self.barrier_bits = int(barrier_bits)
+        radix = 1 << self.radix_bits
+        self.max_passes = -(-32 // self.radix_bits)
+        self.setup_shader = compute_program(ctx, "indirect_setup.comp", radix_bits=self.radix_bits)
+        if not self.fused:
+            self.reduce_shader = compute_program(ctx, "radix_reduce.comp", radix_bits=self.radix_bits)
+            self.scan_shader = compute_program(ctx, "radix_scan.comp", radix_bits=self.radix_bits)
+        self._pass_programs: dict[int, tuple] = {}
+        groups = -(-self.capacity // SORT_TILE)
+        table = groups * radix
+        blocks = -(-table // SCAN_TILE)
+        if not self.fused and blocks > SCAN_TILE:
+            raise ValueError(f"{capacity} keys exceed the single-group scan of this radix sort")
+        self.table = ctx.buffer(reserve=max(4, table * 4))
+        # Block sums of the table; fused: one row per pass, all zero between sorts (each pass's scatter clears its
+        # row after use).
+        rows = self.max_passes if self.fused else 1
+        self.reduced = ctx.buffer(bytes(max(4, blocks * rows * 4)))
+        self.keys_tmp = ctx.buffer(reserve=self.capacity * 4)
+        self.values_tmp = ctx.buffer(reserve=self.capacity * 4)
         self.dispatch = ctx.buffer(reserve=32)
         self.draw = ctx.buffer(reserve=16)       # instanced: (4, n, 0, 0)
         self.draw_tri = ctx.buffer(reserve=16)   # non-instanced triangles: (6 n, 1, 0, 0)
@@ -43,22 +86,23 @@ class GpuRadixSort:
         self.batches = ctx.buffer(reserve=32 * shadergen.F2B_BATCHES)  # front-to-back batch commands
         self._params: object | None = None
 
-    def resize(self, capacity: int) -> None:
-        """Scratch buffers for up to `capacity` keys. The programs stay: compiling the six of them again took about
-        200 ms a growth on the GPU machine, a frame the fly-through saw as a stall."""
-        capacity = max(1, int(capacity))
-        groups = -(-capacity // SORT_TILE)
-        table = groups * (1 << RADIX_BITS)
-        if -(-table // SCAN_TILE) > SCAN_TILE:
-            raise ValueError(f"{capacity} keys exceed the single-group scan of this radix sort")
-        for b in (self.table, self.reduced, self.keys_tmp, self.values_tmp):
-            if b is not None:
-                b.release()
-        self.capacity = capacity
-        self.table = self.ctx.buffer(reserve=max(4, table * 4))
-        self.reduced = self.ctx.buffer(reserve=max(4, -(-table // SCAN_TILE) * 4))
-        self.keys_tmp = self.ctx.buffer(reserve=capacity * 4)
-        self.values_tmp = self.ctx.buffer(reserve=capacity * 4)
+    def _programs(self, p: int) -> tuple:
+        """(count, scan-add, scatter) of pass p: digit shift p * radix_bits, buffer pair p % 2 -> the other."""
+        progs = self._pass_programs.get(p)
+        if progs is None:
+            src, dst = ((1, 2), (3, 4)) if p % 2 == 0 else ((3, 4), (1, 2))
+            defines = (f"#define PASS {p}u\n#define SHIFT {p * self.radix_bits}u\n#define KEYS_IN {src[0]}\n"
+                       f"#define VALUES_IN {src[1]}\n#define KEYS_OUT {dst[0]}\n#define VALUES_OUT {dst[1]}\n")
+            if self.fused:
+                defines += "#define FUSED\n"
+            progs = self._pass_programs[p] = tuple(
+                compute_program(self.ctx, name, defines, self.radix_bits)
+                for name in ("radix_count.comp", "radix_scanadd.comp", "radix_scatter.comp"))
+        return progs
+
+    @property
+    def dispatches_per_pass(self) -> int:
+        return 3 if self.fused else 5
 
     @property
     def gpu_bytes(self) -> int:
@@ -67,8 +111,7 @@ class GpuRadixSort:
 
     def release(self) -> None:
         for b in (self.table, self.reduced, self.keys_tmp, self.values_tmp, self.dispatch, self.draw, self.draw_tri,
-                  self.draw_points, self.batches, self.count_shader, self.reduce_shader, self.scan_shader,
-                  self.scanadd_shader, self.scatter_shader, self.setup_shader):
+                  self.draw_points, self.batches):
             b.release()
 
     def setup(self, params) -> None:
@@ -80,40 +123,41 @@ class GpuRadixSort:
         self.draw_points.bind_to_storage_buffer(6)
         self.batches.bind_to_storage_buffer(7)
         self.setup_shader.run(1)
-        self.ctx.memory_barrier()
+        self.ctx.memory_barrier(self.barrier_bits)
+
+    def passes(self, bits: int = 32) -> int:
+        """Passes a sort of `bits`-bit keys runs: even, so that the result ends in the input buffers."""
+        passes = -(-bits // self.radix_bits)
+        return passes + passes % 2
 
     def sort(self, params, keys, values, bits: int = 32) -> None:
         """Sort the first params.count elements of keys/values (GL buffers) by the low `bits` key bits.
 
         `setup(params)` must have run since the count last changed.
         """
-        ctx = self.ctx
-        passes = -(-bits // RADIX_BITS)
-        passes += passes % 2  # even: the result ends in the input buffers
-        src = (keys, values)
-        dst = (self.keys_tmp, self.values_tmp)
+        barrier = self.ctx.memory_barrier
+        bits_ = self.barrier_bits
+        dispatch = self.dispatch
         params.bind_to_storage_buffer(0)
+        keys.bind_to_storage_buffer(1)
+        values.bind_to_storage_buffer(2)
+        self.keys_tmp.bind_to_storage_buffer(3)
+        self.values_tmp.bind_to_storage_buffer(4)
         self.table.bind_to_storage_buffer(5)
         self.reduced.bind_to_storage_buffer(6)
-        for p in range(passes):
-            shift = p * RADIX_BITS
-            src[0].bind_to_storage_buffer(1)
-            src[1].bind_to_storage_buffer(2)
-            self.count_shader["u_shift"] = shift
-            self.count_shader.run_indirect(self.dispatch, 0)
-            ctx.memory_barrier()
-            self.reduce_shader.run_indirect(self.dispatch, 16)
-            ctx.memory_barrier()
-            self.scan_shader.run(1)
-            ctx.memory_barrier()
-            self.scanadd_shader.run_indirect(self.dispatch, 16)
-            ctx.memory_barrier()
-            dst[0].bind_to_storage_buffer(3)
-            dst[1].bind_to_storage_buffer(4)
-            self.scatter_shader["u_shift"] = shift
-            self.scatter_shader.run_indirect(self.dispatch, 0)
-            ctx.memory_barrier()
-            src, dst = dst, src
+        for p in range(self.passes(bits)):
+            count, scanadd, scatter = self._programs(p)
+            count.run_indirect(dispatch, 0)
+            barrier(bits_)
+            if not self.fused:
+                self.reduce_shader.run_indirect(dispatch, 16)
+                barrier(bits_)
+                self.scan_shader.run(1)
+                barrier(bits_)
+            scanadd.run_indirect(dispatch, 16)
+            barrier(bits_)
+            scatter.run_indirect(dispatch, 0)
+            barrier(bits_)
 
     def sort_arrays(self, keys: np.ndarray, values: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Convenience for tests and benchmarks: upload, sort, read back. Returns (sorted keys, values)."""

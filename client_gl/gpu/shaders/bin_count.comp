@@ -20,8 +20,16 @@ void main() {
         uint idx = g * SCAN_TILE + i * 256u + lid;
         if (idx < n) {
             uvec2 lo, hi;
+#ifdef TIGHT_BINS
+            vec2 c;
+            vec3 q;
+            float op;
+            tile_rect(order[idx], lo, hi, c, q, op);
+            sum += splat_entries(lo, hi, c, q, op);
+#else
             tile_rect(order[idx], lo, hi);
             sum += rect_tiles(lo, hi);
+#endif
         }
     }
     atomicAdd(s_sum, sum);
