@@ -99,8 +99,10 @@ DRAW_FLAGS = {"f2b": {"front_to_back": True}, "nodepth": {"depth_test": False}, 
               "discard": {"discard_fragments": True}, "t8": {"tile_px": 8}, "u1": {"unroll": 1}, "u2": {"unroll": 2},
               "wc": {"warp_cull": True}, "r8": {"radix_bits": 8}, "classic": {"fused_sort": False},
               "fb": {"full_barriers": True},
-              # dense-scene variants of the compute draw (RenderOptions; default off until measured):
-              "fl": {"flush": "cull"}, "fls": {"flush": "stages"}, "tb": {"tight_bins": True},
+              # dense-scene variants of the compute draw (RenderOptions; fls is the default since measured, nofl the
+              # former default):
+              "fl": {"flush": "cull"}, "fls": {"flush": "stages"}, "nofl": {"flush": "none"},
+              "tb": {"tight_bins": True},
               "er": {"emit_rects": True}, "tr8": {"tile_radix_bits": 8}}
 
 

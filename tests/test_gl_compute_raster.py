@@ -279,7 +279,7 @@ def test_work_buffers_fixed_while_tiles_come_and_go(ctx, fruit):
 
 
 DENSE_VARIANTS = [dict(tight_bins=True), dict(emit_rects=True), dict(tight_bins=True, emit_rects=True),
-                  dict(flush="cull"), dict(flush="stages"), dict(tile_radix_bits=8)]
+                  dict(flush="cull"), dict(flush="none"), dict(tile_radix_bits=8)]
 
 
 @pytest.mark.parametrize("variant", DENSE_VARIANTS, ids=lambda v: "+".join(f"{k}={v[k]}" for k in v))
