@@ -21,7 +21,7 @@ _HEX = frozenset("0123456789abcdefABCDEF")
 _BAD_CHAR_RE = re.compile(r"[^\x20-\x7e]")
 # The common case in one match: plain characters, a valid scene id, one of the two served file names.
 _FAST_RE = re.compile(rf"/scenes/((?:[A-Za-z0-9_-][A-Za-z0-9._-]{{0,254}}/){{1,{MAX_SCENE_DEPTH}}})"
-                      r"(manifest\.msgpack|data/([0-9a-f]{64})\.bin)")
+                      rf"({re.escape(MANIFEST_NAME)}|{re.escape(DATA_DIR)}/([0-9a-f]{{64}})\.bin)")
 
 
 class PathRejected(ValueError):

@@ -21,6 +21,7 @@ EXIT_FAILURE = 1
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
 EXIT_TERMINATED = 143  # 128 + SIGTERM, what a shell reports for a process SIGTERM ended
+EXIT_BROKEN_PIPE = 141  # 128 + SIGPIPE: the reader of stdout closed it (a shell reports the same for `cmd | head`)
 
 
 class Terminated(KeyboardInterrupt):
@@ -83,6 +84,12 @@ def main(argv: list[str] | None = None) -> int:
     except MemoryError:
         print(f"splatstream {args.command}: error: out of memory", file=sys.stderr)
         return EXIT_FAILURE
+    except BrokenPipeError:
+        # The reader of our output went away (`splatstream info ... | head`): nothing to report. Later writes to
+        # stdout, at interpreter exit too, go nowhere instead of raising again.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        return EXIT_BROKEN_PIPE
     except OSError as exc:
         where = f"{exc.filename}: " if exc.filename else ""
         print(f"splatstream {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)

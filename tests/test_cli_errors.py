@@ -45,6 +45,13 @@ def cases(tmp, scene):
         (["eval", DONUT, "--size", "5x5"], "--size"),
         (["serve", tmp / "missing"], "missing"),
         (["serve", tmp / "a_dir", "--port", "70000"], "--port"),
+        (["view", tmp / "missing", "--headless"], "missing"),
+        (["view", scene, "--headless", "--size", "0x0"], "--size"),
+        (["view", scene, "--headless", "--screenshot", tmp / "o.jpg"], "o.jpg"),
+        (["view", scene, "--headless", "--fill-gap", "0"], "--fill-gap"),
+        (["export-3dtiles", tmp / "missing", tmp / "t"], "missing"),
+        (["export-3dtiles", scene, tmp / "t", "--latitude", "10"], "--longitude"),
+        (["export-3dtiles", scene, tmp / "t", "--content", "weird"], "--content"),
         (["nonsense"], "nonsense"),
     ]
 
@@ -60,3 +67,18 @@ def test_bad_arguments_exit_2_with_one_line(tmp_path, scene):
         assert named in lines[0], (where, lines[0])
         assert not (tmp_path / "o").exists() and not (tmp_path / "o.ply").exists() and not (tmp_path / "o.png").exists()
         assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")], where  # no temporaries left
+
+
+def test_view_without_the_gl_client_says_how_to_install_it():
+    """`view` where moderngl is missing (installed without the [view] extra): the install hint, exit 2."""
+    import subprocess
+    import sys
+
+    code = ("import sys; sys.modules['moderngl'] = None\n"
+            "from splatstream.cli import main\n"
+            f"sys.argv = ['splatstream', 'view', {str(DONUT)!r}, '--headless']\n"
+            "sys.exit(main())\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode == 2, r.stderr
+    assert "Traceback" not in r.stderr
+    assert "pip install 'splatstream[view]'" in r.stderr.strip().splitlines()[-1]

@@ -133,6 +133,7 @@ def _check_outputs(args) -> None:
 def run(args: argparse.Namespace) -> int:
     from .renderers import gl_client
 
+    headless = gl_client()  # first: the options below import the client
     size = parse_size(args.size)
     options = _options(args)
     camera = _fixed_camera(args, size)
@@ -142,7 +143,6 @@ def run(args: argparse.Namespace) -> int:
 
         path = load_camera_path(args.camera_path)
     _check_outputs(args)
-    headless = gl_client()
     if not args.headless:
         from client_gl.window import WindowRun, run_window
 
