@@ -88,6 +88,10 @@ class StreamMetrics:
     converged_s: float | None = None
     gpu_bytes_peak: int = 0
     evictions: int = 0
+    # Where the time to the first frame went: the manifest fetched and parsed, then the GPU pool, the renderer's
+    # buffers and programs and the engine built (seconds from `start`).
+    manifest_s: float | None = None
+    built_s: float | None = None
     frames: list[FrameRecord] = field(default_factory=list)
 
     def to_json(self, fetch_stats=None) -> dict:
@@ -96,6 +100,7 @@ class StreamMetrics:
             "first_frame_s": self.first_frame_s, "converged_s": self.converged_s,
             "bytes_downloaded": last.bytes if last else 0, "bytes_first_frame": self.bytes_first_frame,
             "gpu_bytes_peak": self.gpu_bytes_peak, "gpu_budget_bytes": self.gpu_budget_bytes,
+            "manifest_s": self.manifest_s, "built_s": self.built_s,
             "frames": [f.to_json() for f in self.frames],
         }
         if fetch_stats is not None:
@@ -113,6 +118,7 @@ class PreparedSource:
     fetcher: Fetcher
     manifest: Manifest
     start: float  # perf_counter when the manifest request started
+    manifest_s: float = 0.0  # seconds from start until the manifest was parsed
 
     @classmethod
     def open(cls, spec: str | os.PathLike | SceneSource, options: ViewOptions = ViewOptions(),
@@ -134,7 +140,7 @@ class PreparedSource:
         # shaders are built (the engine's first wish list names it again; the fetcher takes it once).
         root = manifest.tile(manifest.root)
         fetcher.want([(1.0, (root.id, "base"), root.groups["base"])])
-        return cls(source, fetcher, manifest, start)
+        return cls(source, fetcher, manifest, start, time.perf_counter() - start)
 
 
 class StreamingSession:
@@ -149,7 +155,8 @@ class StreamingSession:
         except BaseException:
             self.fetcher.close()
             raise
-        self.metrics = StreamMetrics(prepared.start, self.budget)
+        self.metrics = StreamMetrics(prepared.start, self.budget, manifest_s=prepared.manifest_s,
+                                     built_s=time.perf_counter() - prepared.start)
         self.last: FrameUpdate | None = None
         self.last_stats: FrameStats | None = None
         self.paused = False
