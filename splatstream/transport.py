@@ -284,6 +284,14 @@ def encode_fields_zstd(data: np.ndarray, fmt: str, width: int, height: int, laye
 
 def _encode_fields(data: np.ndarray, fmt: str, width: int, height: int, layers: int, level: int,
                    modes: list[list[tuple[bool, int | None]]] | None) -> tuple[bytes, list]:
+    raw, chosen = fields_content(data, fmt, width, height, layers, modes)
+    return zstandard.ZstdCompressor(level=level, write_content_size=True).compress(raw), chosen
+
+
+def fields_content(data: np.ndarray, fmt: str, width: int, height: int, layers: int,
+                   modes: list[list[tuple[bool, int | None]]] | None = None) -> tuple[bytes, list]:
+    """The `fields1` filter: a texels section's GPU bytes -> its stored bytes (header, per-block parameters, byte
+    planes of the residuals; format_spec/transport_draft.md), and the modes used (chosen per layer unless given)."""
     data = np.ascontiguousarray(data, np.uint8).reshape(-1)
     unit = data.size // layers
     bits = _fields(fmt)
@@ -303,8 +311,7 @@ def _encode_fields(data: np.ndarray, fmt: str, width: int, height: int, layers: 
                 params += [slope.tobytes(), intercept.tobytes()]
                 pred = _cross_prediction(fields[ref], slope, intercept)
             planes += _planes(_residual(fields[i], bits[i], delta, pred), bits[i])
-    raw = bytes(header) + b"".join(params) + b"".join(p.tobytes() for p in planes)
-    return zstandard.ZstdCompressor(level=level, write_content_size=True).compress(raw), chosen
+    return bytes(header) + b"".join(params) + b"".join(p.tobytes() for p in planes), chosen
 
 
 def encode_section(texel_bytes: bytes | np.ndarray, texel_format: str, width: int, height: int, layers: int,
@@ -336,6 +343,39 @@ def encode_section(texel_bytes: bytes | np.ndarray, texel_format: str, width: in
     if len(fields) < len(shuffled):
         return _encode_fields(data, texel_format, width, height, layers, level, modes)[0], {"coding": "fields-zstd"}
     return encode_shuffle_zstd(data, element, layers, level), {"coding": "shuffle-zstd", "element": element}
+
+
+def filter_section(texel_bytes: bytes | np.ndarray, texel_format: str, width: int, height: int, layers: int,
+                   level: int = 3) -> tuple[bytes, str]:
+    """Section filter for a payload that stays one zstd frame (the integration format.md 5 would take): the
+    section's stored bytes and its `filter` value, `fields1` or today's `shuffleN` / `none`, whichever
+    encode_section finds smaller."""
+    data = np.frombuffer(texel_bytes, np.uint8) if isinstance(texel_bytes, bytes | bytearray | memoryview) \
+        else np.ascontiguousarray(texel_bytes, np.uint8).reshape(-1)
+    _, descriptor = encode_section(data, texel_format, width, height, layers, level)
+    if descriptor["coding"] == "fields-zstd":
+        return fields_content(data, texel_format, width, height, layers)[0], "fields1"
+    element = descriptor["element"]
+    unit = data.size // layers
+    parts = [shuffle_bytes(data[i * unit:(i + 1) * unit], element) for i in range(layers)]
+    return np.concatenate(parts).tobytes(), (f"shuffle{element}" if element > 1 else "none")
+
+
+def unfilter_section(stored: bytes | np.ndarray, filter_name: str, texel_format: str, width: int, height: int,
+                     layers: int, source: str = "section") -> np.ndarray:
+    """Inverse of filter_section (stored bytes of a decompressed payload -> GPU bytes)."""
+    buf = np.frombuffer(stored, np.uint8) if isinstance(stored, bytes | bytearray | memoryview) else stored
+    if filter_name == "fields1":
+        return unfilter_fields(buf, texel_format, width, height, layers, source)
+    if filter_name == "none" or (filter_name.startswith("shuffle") and filter_name[7:].isdigit()):
+        element = 1 if filter_name == "none" else int(filter_name[7:])
+        _check_geometry(texel_format, width, height, layers, source)
+        if buf.size != blob_size(FORMATS[texel_format], width, height, layers):
+            raise FormatError(source, "size", f"{buf.size} bytes for {layers} layers of {width}x{height} "
+                              f"{texel_format}")
+        unit = buf.size // layers
+        return np.concatenate([_unshuffle(buf[i * unit:(i + 1) * unit], element) for i in range(layers)])
+    raise FormatError(source, "filter", f"unknown filter {filter_name!r} (expected none, shuffleN or fields1)")
 
 
 def _band(data: np.ndarray, fmt: str, width: int, height: int, layers: int) -> tuple[np.ndarray, int]:
@@ -430,15 +470,33 @@ def decode_section(data: bytes, descriptor: dict, texel_format: str | None, widt
     raise FormatError(source, "coding", f"unknown coding {coding!r} (expected one of {', '.join(CODINGS)})")
 
 
+def fields_content_limit(fmt: str, width: int, height: int, layers: int) -> int:
+    """Largest `fields1` content a texels section can have (every non-anchor field predicted)."""
+    bits = _fields(fmt)
+    n = width * height
+    return 1 + len(bits) * layers + n * sum((b + 7) // 8 for b in bits) * layers \
+        + 3 * (n // BLOCK_TEXELS) * len(bits) * layers
+
+
 def _decode_fields(data: bytes, fmt: str, width: int, height: int, layers: int, source: str) -> np.ndarray:
+    raw = _decompress(data, fields_content_limit(fmt, width, height, layers), source)
+    return unfilter_fields(np.frombuffer(raw, np.uint8), fmt, width, height, layers, source)
+
+
+def unfilter_fields(raw: np.ndarray, fmt: str, width: int, height: int, layers: int,
+                    source: str = "section") -> np.ndarray:
+    """Inverse of fields_content: a section's stored bytes -> its GPU bytes (uint8), bit-exact; FormatError for
+    anything that is not a well-formed `fields1` content of exactly its size."""
+    if fmt not in FIELD_LAYOUTS:
+        raise FormatError(source, "filter", f"fields1 does not apply to texel format {fmt!r}")
+    _check_geometry(fmt, width, height, layers, source)
+    raw = np.frombuffer(raw, np.uint8) if isinstance(raw, bytes | bytearray | memoryview) else raw
     bits = _fields(fmt)
     nf = len(bits)
     n = width * height
     blocks = n // BLOCK_TEXELS
     plane_bytes = n * sum((b + 7) // 8 for b in bits) * layers
     header_bytes = 1 + nf * layers
-    limit = header_bytes + plane_bytes + 3 * blocks * nf * layers
-    raw = np.frombuffer(_decompress(data, limit, source), np.uint8)
     if raw.size < header_bytes or raw[0] != FIELDS_VERSION:
         raise FormatError(source, "coding", f"fields-zstd stream of {raw.size} bytes has no version-"
                           f"{FIELDS_VERSION} header")

@@ -252,3 +252,21 @@ def test_bad_descriptors_and_geometry_raise_format_error():
             decode_section(coded, d, *geometry)
     with pytest.raises(FormatError):
         decode_section(coded, {"coding": "shuffle-zstd", "element": 2}, None, size=-1)
+
+
+def test_payload_filters_round_trip_and_reject_unknown_names():
+    """filter_section / unfilter_section: the same codings as section filters inside one zstd payload frame."""
+    from splatstream.transport import filter_section, unfilter_section
+
+    data = _correlated_rgb565(64, 32, 2, seed=7)
+    stored, name = filter_section(data, "norm565", 64, 32, 2)
+    assert name == "fields1"
+    np.testing.assert_array_equal(unfilter_section(stored, name, "norm565", 64, 32, 2), data)
+    noise = np.random.default_rng(8).integers(0, 256, blob_size(FORMATS["bc7"], 64, 32), dtype=np.uint8)
+    stored, name = filter_section(noise, "bc7", 64, 32, 1)
+    assert name == "none" and stored == noise.tobytes()
+    np.testing.assert_array_equal(unfilter_section(stored, name, "bc7", 64, 32, 1), noise)
+    with pytest.raises(FormatError, match="unknown filter"):
+        unfilter_section(stored, "lzma", "bc7", 64, 32, 1)
+    with pytest.raises(FormatError):
+        unfilter_section(stored[:-1], "none", "bc7", 64, 32, 1)

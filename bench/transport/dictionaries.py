@@ -13,14 +13,12 @@ import os
 import tempfile
 from collections import defaultdict
 
-import numpy as np
 import zstandard
+from collect import dump_sections  # noqa: I001 (bench script next to this one)
 
 from splatstream.encoder import EncodeOptions, encode_gaussians
 from splatstream.io import read_gaussians
 from splatstream.transport import encode_section
-
-from collect import dump_sections  # noqa: I001 (bench script next to this one)
 
 
 def main() -> None:
