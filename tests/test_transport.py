@@ -270,3 +270,25 @@ def test_payload_filters_round_trip_and_reject_unknown_names():
         unfilter_section(stored, "lzma", "bc7", 64, 32, 1)
     with pytest.raises(FormatError):
         unfilter_section(stored[:-1], "none", "bc7", 64, 32, 1)
+
+
+VECTORS = os.path.join(os.path.dirname(__file__), "..", "format_spec", "vectors", "transport")
+
+
+def test_fields1_spec_vectors_decode_exactly():
+    """format_spec/vectors/transport: stored `fields1` contents and the texel bytes they decode to (every mode)."""
+    import json
+
+    from splatstream.transport import unfilter_fields
+
+    index = json.load(open(os.path.join(VECTORS, "vectors.json")))
+    assert set(index) == {"norm11", "norm10_2", "norm565", "norm8x4", "f16x4", "index16"}
+    modes_seen = set()
+    for fmt, v in index.items():
+        stored = open(os.path.join(VECTORS, f"{fmt}.fields1.bin"), "rb").read()
+        texels = open(os.path.join(VECTORS, f"{fmt}.texels.bin"), "rb").read()
+        assert len(stored) == v["stored_bytes"] and len(texels) == v["texel_bytes"]
+        decoded = unfilter_fields(stored, fmt, v["width"], v["height"], v["layers"], f"{fmt}.fields1.bin")
+        assert decoded.tobytes() == texels, fmt
+        modes_seen |= {(m["delta"], m["ref"] is not None) for layer in v["modes"] for m in layer}
+    assert modes_seen == {(False, False), (True, False), (False, True), (True, True)}
