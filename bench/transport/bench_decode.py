@@ -6,7 +6,8 @@
 Encodes the scene (LOD tiles of at most --leaf splats, or one tile), then times decoding the base payload of every
 leaf tile: today = container.unpack_group (zstd + unshuffle of every section, no float conversion); transport = the
 payload as the proposed integration stores it (one zstd frame, sections through transport.filter_section, ranges
-shuffled) decompressed and every section unfiltered with transport.unfilter_section. Times are CPU seconds of the one thread (time.thread_time: the machine is shared, wall time moved by 2-3x), median of --runs runs over all
+shuffled) decompressed and every section unfiltered with transport.unfilter_section. Times are CPU seconds of
+the one thread (time.thread_time: the machine is shared, wall time moved by 2-3x), median of --runs runs over all
 tiles; both paths are checked to give identical bytes. Prints M splats/s and the machine's load average.
 """
 from __future__ import annotations
