@@ -124,9 +124,9 @@ def join_layer(fields: list[np.ndarray], fmt: str, width: int, height: int) -> n
         else:
             out[index] = slots
         return out.reshape(-1).view(np.uint8)
-    acc = fields[0].astype(word_dtype)
+    acc = fields[0].astype(word_dtype)  # a copy: it is written to below
     for field, (shift, _) in zip(fields[1:], layout[1:], strict=True):
-        acc |= field.astype(word_dtype) << word_dtype.type(shift)
+        acc |= field.astype(word_dtype, copy=False) << word_dtype.type(shift)
     out = np.empty(n, word_dtype)
     out[index] = acc
     return out.view(np.uint8)
@@ -503,17 +503,19 @@ def unfilter_fields(raw: np.ndarray, fmt: str, width: int, height: int, layers: 
     if raw.size < header_bytes or raw[0] != FIELDS_VERSION:
         raise FormatError(source, "coding", f"fields-zstd stream of {raw.size} bytes has no version-"
                           f"{FIELDS_VERSION} header")
-    modes = raw[1:header_bytes].reshape(layers, nf)
-    refs = (modes >> 4).astype(np.int64) - 1
-    if (modes & MODE_RESERVED).any():
+    # the header as Python ints: numpy scalar access costs more than the arithmetic on a small section
+    flat = raw[1:header_bytes].tolist()
+    modes = [flat[layer * nf:(layer + 1) * nf] for layer in range(layers)]
+    refs = [[(m >> 4) - 1 for m in layer_modes] for layer_modes in modes]
+    if any(m & MODE_RESERVED for m in flat):
         raise FormatError(source, "coding", "reserved mode bits set")
     for layer in range(layers):
         for i in range(nf):
-            r = int(refs[layer, i])
-            if r >= 0 and (r >= nf or r == i or refs[layer, r] >= 0 or bits[i] > 16 or bits[r] > 16):
+            r = refs[layer][i]
+            if r >= 0 and (r >= nf or r == i or refs[layer][r] >= 0 or bits[i] > 16 or bits[r] > 16):
                 raise FormatError(source, "coding", f"layer {layer} field {i}: reference field {r} is not an anchor "
                                   "field of the same texel")
-    crossed = int((refs >= 0).sum())
+    crossed = sum(r >= 0 for layer_refs in refs for r in layer_refs)
     expected = header_bytes + 3 * blocks * crossed + plane_bytes
     if raw.size != expected:
         raise FormatError(source, "coding", f"fields-zstd stream holds {raw.size} bytes, expected {expected}")
@@ -521,7 +523,7 @@ def unfilter_fields(raw: np.ndarray, fmt: str, width: int, height: int, layers: 
     params = {}
     for layer in range(layers):
         for i in range(nf):
-            if refs[layer, i] >= 0:
+            if refs[layer][i] >= 0:
                 slope = raw[pos:pos + blocks].view(np.int8)
                 intercept = raw[pos + blocks:pos + 3 * blocks].view("<i2")
                 params[(layer, i)] = (slope, intercept)
@@ -537,14 +539,14 @@ def unfilter_fields(raw: np.ndarray, fmt: str, width: int, height: int, layers: 
             # byte planes -> one code per slot (low byte first)
             codes.append(planes if nbytes == 1 else _join_planes(planes, nbytes, np.uint32))
         fields: list[np.ndarray | None] = [None] * nf
-        for i in sorted(range(nf), key=lambda k: refs[layer, k] >= 0):  # anchors first
+        for i in sorted(range(nf), key=lambda k: refs[layer][k] >= 0):  # anchors first
             # Fields of up to 16 bits are reconstructed in uint32 (the result modulo 2^32 masked to the field's
             # bits equals the arithmetic modulo 2^|T| of the spec): numpy's running sum and arithmetic are several
             # times faster on 32-bit words than on 8- or 16-bit ones.
             x = codes[i] if bits[i] <= 8 else _unzigzag(codes[i])
-            if modes[layer, i] & MODE_DELTA:
+            if modes[layer][i] & MODE_DELTA:
                 x = np.cumsum(x, dtype=np.uint32)
-            r = int(refs[layer, i])
+            r = refs[layer][i]
             if r < 0 and x.dtype == np.uint8:
                 fields[i] = x  # a plain 8-bit field is its byte plane
                 continue
