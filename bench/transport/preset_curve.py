@@ -15,25 +15,29 @@ import json
 import os
 from collections import defaultdict
 
-# preset -> the formats it stands for (position, rotation, scale, color, sh, SH codebook on?)
+# preset -> (position, rotation, scale, color, sh formats, SH codebook size rule: None, "auto" or "auto16")
 PROPOSED = {
-    "very-high": ("f32x4", "f32x4", "f32x4", "f32x4", "f32x4", False),
-    "high": ("f16x4", "norm10_2", "norm11", "f16x4", "norm11", False),
-    "medium": ("norm11", "norm10_2", "norm11", "norm8x4", "norm565", False),
-    "medium-low": ("norm11", "norm8x4", "norm8x4", "norm8x4", "norm565", True),
-    "low-plus": ("norm8x4", "norm8x4", "norm8x4", "norm8x4", "norm565", True),
-    "low": ("norm8x4", "norm565", "norm8x4", "norm8x4", "norm565", True),
-    "very-low": ("norm8x4", "norm565", "norm565", "bc7", "norm565", True),
+    "very-high": ("f32x4", "f32x4", "f32x4", "f32x4", "f32x4", None),
+    "high": ("f16x4", "norm10_2", "norm11", "f16x4", "norm11", None),
+    "medium": ("norm11", "norm10_2", "norm11", "norm8x4", "norm565", None),
+    "medium-low": ("norm11", "norm8x4", "norm8x4", "norm8x4", "norm565", "auto16"),
+    "low-plus": ("norm8x4", "norm8x4", "norm8x4", "norm8x4", "norm565", "auto"),
+    "low": ("norm8x4", "norm565", "norm8x4", "norm8x4", "norm565", "auto"),
+    "very-low": ("norm8x4", "norm565", "norm565", "bc7", "norm565", "auto"),
 }
-TODAY = {"low": ("norm8x4", "norm565", "norm8x4", "bc7", "norm565", True)}
 
 
-def key(row: dict, sh_degree: int) -> tuple:
-    f = row["formats"]
-    codebook = bool(row.get("sh_codebook_entries")) if sh_degree > 0 else True
-    auto = row.get("overrides", {}) is not None and "sh_codebook" not in str(row.get("label", ""))
-    return (f["position"], f["rotation"], f["scale"], f["color"], f["sh"] if sh_degree > 0 else "norm565",
-            codebook), auto
+def codebook_entries(rule: str | None, splats: int) -> int | None:
+    """Entries the rule gives: "auto" is vq.auto_entries (a power of two near N / 64, 64..65536); "auto16" a power
+    of two near N / 16, 256..65536 (the larger codebook medium-low needs on real SH3: fruit_drops 43.0 dB with 64
+    entries, 46.6 dB with 256)."""
+    import math
+
+    if rule is None:
+        return None
+    per, low = (64, 64) if rule == "auto" else (16, 256)
+    k = 2 ** int(round(math.log2(max(1.0, splats / per))))
+    return int(min(65536, max(low, k)))
 
 
 def main() -> None:
@@ -51,22 +55,22 @@ def main() -> None:
             if row["kind"] == "compare":
                 s["peers"][row["label"]] = row
             elif row["kind"] in ("preset", "variant") and "transport_disk_bytes_per_splat" in row:
-                # codebook sizes other than auto are separate points, not the presets
-                if row["kind"] == "variant" and any(k in row["label"] for k in ("cb", "vq1024", "vq4096", "vq256")):
-                    continue
-                (k, _) = key(row, report["input"]["sh_degree"])
-                s["rows"][k] = row
+                f = row["formats"]
+                s["rows"][(f["position"], f["rotation"], f["scale"], f["color"], f["sh"],
+                           row.get("sh_codebook_entries"))] = row
     lines = []
     for name, s in scenes.items():
         sh = s["input"]["sh_degree"]
         lines += [f"**{name}** ({s['input']['splats']:,} splats, SH{sh})", "",
                   "| preset | B/splat (transport) | B/splat today | PSNR dB (worst) |", "|---|---|---|---|"]
         points = {}
+        degenerate = {k[5] for k in s["rows"] if k[5]} == {1}  # every SH row equal: a 1-entry codebook
         for preset, formats in PROPOSED.items():
-            f = formats if sh > 0 else formats[:4] + ("norm565", True)
-            row = s["rows"].get(f)
-            if row is None and sh == 0:
-                row = s["rows"].get(formats[:4] + ("norm565", False))
+            entries = codebook_entries(formats[5], s["input"]["splats"]) if sh > 0 else None
+            candidates = [r for k, r in s["rows"].items() if k[:4] == formats[:4]
+                          and (sh == 0 or k[4] == formats[4])
+                          and (sh == 0 or k[5] == entries or (degenerate and entries and k[5] == 1))]
+            row = candidates[-1] if candidates else None
             if row is None:
                 lines.append(f"| {preset} | not measured | | |")
                 continue
