@@ -64,19 +64,22 @@ def main() -> None:
         lines += [f"**{name}** ({s['input']['splats']:,} splats, SH{sh})", "",
                   "| preset | B/splat (transport) | B/splat today | PSNR dB (worst) |", "|---|---|---|---|"]
         points = {}
-        degenerate = {k[5] for k in s["rows"] if k[5]} == {1}  # every SH row equal: a 1-entry codebook
         for preset, formats in PROPOSED.items():
             entries = codebook_entries(formats[5], s["input"]["splats"]) if sh > 0 else None
-            candidates = [r for k, r in s["rows"].items() if k[:4] == formats[:4]
-                          and (sh == 0 or k[4] == formats[4])
-                          and (sh == 0 or k[5] == entries or (degenerate and entries and k[5] == 1))]
-            row = candidates[-1] if candidates else None
+            candidates = [(k[5], r) for k, r in s["rows"].items() if k[:4] == formats[:4]
+                          and (sh == 0 or (k[4] == formats[4] and bool(k[5]) == bool(entries)))]
+            # the rule's entry count; else (a scene with fewer distinct SH rows than that, or a variant run with
+            # another size) the nearest size measured, named in the table
+            candidates.sort(key=lambda c: (abs((c[0] or 0) - (entries or 0)), -(c[0] or 0)))
+            row = candidates[0][1] if candidates else None
+            note = "" if row is None or not entries or candidates[0][0] == entries else \
+                f" (codebook {candidates[0][0]}, rule {entries})"
             if row is None:
                 lines.append(f"| {preset} | not measured | | |")
                 continue
             psnr = row["psnr_mean"]
             points[preset] = (row["transport_disk_bytes_per_splat"], psnr if psnr is not None else float("inf"))
-            lines.append(f"| {preset} | {row['transport_disk_bytes_per_splat']:.2f} | "
+            lines.append(f"| {preset}{note} | {row['transport_disk_bytes_per_splat']:.2f} | "
                          f"{row['disk_bytes_per_splat']:.2f} | "
                          f"{'inf' if psnr is None else format(psnr, '.2f')} "
                          f"({'inf' if row['psnr_worst'] is None else format(row['psnr_worst'], '.2f')}) |")
