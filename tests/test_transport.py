@@ -1,7 +1,9 @@
-"""Transport coding of payload sections (splatstream/transport.py, format_spec/transport_draft.md): every coding
-gives back the GPU bytes exactly, and malformed streams fail with a FormatError."""
+"""The `fields1` transport coding of texels sections (splatstream/format/transport.py, format_spec/format.md 5.2):
+every section decodes back to exactly the GPU bytes, scenes decode to the same splats whatever the transport, and
+malformed contents, section tables and payloads fail with a FormatError."""
 from __future__ import annotations
 
+import json
 import os
 import zlib
 
@@ -9,60 +11,97 @@ import numpy as np
 import pytest
 import zstandard
 
-from splatstream.encoder import EncodeOptions, encode_gaussians
+from splatstream.decoder import decode_scene
+from splatstream.encode import EncodeOptions, encode_gaussians
 from splatstream.errors import FormatError
-from splatstream.io import read_gaussians
-from splatstream.manifest import load_manifest
-from splatstream.texformats import FORMATS, blob_size, unshuffle_bytes
-from splatstream.transport import (
+from splatstream.format.manifest import manifest_from_dict
+from splatstream.format.texformats import FORMATS, blob_size, shuffle_bytes
+from splatstream.format.transport import (
     BLOCK_TEXELS,
+    FIELD_LAYOUTS,
+    FIELDS1,
     FIELDS_VERSION,
-    decode_section,
-    encode_range_section,
-    encode_section,
+    content_bounds,
+    fields_content,
+    filter_texels,
     join_layer,
+    shuffle,
     slot_to_texel,
     split_layer,
+    unfilter_fields,
+    unfilter_texels,
+    unshuffle,
 )
+from splatstream.io import read_gaussians
+from splatstream.store import load_manifest
 
 REAL = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "real")
 FRUIT = os.path.join(REAL, "fruit_drops_sh3.ply")
+VECTORS = os.path.join(os.path.dirname(__file__), "..", "format_spec", "vectors", "transport")
 GEOMETRIES = [(16, 16, 1), (48, 32, 3), (64, 16, 7)]
 
 
-def roundtrip(data: np.ndarray, fmt: str, w: int, h: int, layers: int, codings=None) -> tuple[bytes, dict]:
-    kwargs = {} if codings is None else {"codings": codings}
-    coded, descriptor = encode_section(data, fmt, w, h, layers, **kwargs)
-    back = decode_section(coded, descriptor, fmt, w, h, layers)
-    assert back.dtype == np.uint8 and back.size == data.size
-    np.testing.assert_array_equal(back, data)
-    return coded, descriptor
+def layers_of(data: np.ndarray, layers: int) -> list[np.ndarray]:
+    unit = data.size // layers
+    return [data[k * unit:(k + 1) * unit] for k in range(layers)]
+
+
+def stored_bytes(parts) -> np.ndarray:
+    return np.frombuffer(b"".join(bytes(memoryview(p)) for p in parts), np.uint8)
+
+
+def roundtrip(data: np.ndarray, fmt: str, w: int, h: int, layers: int, transport: str = "fields") -> tuple[str, int]:
+    """filter_texels then unfilter_texels: the same bytes back; returns (filter, stored size)."""
+    filt, parts = filter_texels(layers_of(data, layers), fmt, w, h, layers, transport=transport)
+    stored = stored_bytes(parts)
+    back = unfilter_texels(stored, filt, fmt, w, h, layers, "test")
+    assert len(back) == layers
+    np.testing.assert_array_equal(np.concatenate(back), data)
+    return filt, stored.size
+
+
+def fields_roundtrip(data: np.ndarray, fmt: str, w: int, h: int, layers: int, modes=None) -> bytes:
+    content, _ = fields_content(data, fmt, w, h, layers, modes)
+    lo, hi = content_bounds(fmt, w, h, layers)
+    assert lo <= len(content) <= hi
+    np.testing.assert_array_equal(unfilter_fields(content, fmt, w, h, layers), data)
+    return content
+
+
+def zstd_size(data) -> int:
+    return len(zstandard.ZstdCompressor(level=3).compress(bytes(data)))
 
 
 @pytest.mark.parametrize("fmt", sorted(FORMATS))
 @pytest.mark.parametrize("geometry", GEOMETRIES)
-def test_random_texels_round_trip_exactly_with_every_coding(fmt, geometry):
+def test_random_texels_round_trip_exactly_with_every_transport(fmt, geometry):
     w, h, layers = geometry
     rng = np.random.default_rng(zlib.crc32(f"{fmt} {geometry}".encode()))
     data = rng.integers(0, 256, blob_size(FORMATS[fmt], w, h, layers), dtype=np.uint8)
-    _, chosen = roundtrip(data, fmt, w, h, layers)
-    _, shuffled = roundtrip(data, fmt, w, h, layers, codings=("shuffle-zstd",))
-    assert shuffled == {"coding": "shuffle-zstd", "element": max(1, FORMATS[fmt].shuffle)}
-    if fmt in ("bc7", "bc1"):
-        assert chosen["coding"] == "shuffle-zstd"  # BC blocks are not split into fields
+    element = max(1, FORMATS[fmt].shuffle)
+    assert roundtrip(data, fmt, w, h, layers, "shuffle") == (f"shuffle{element}" if element > 1 else "none",
+                                                              data.size)
+    assert roundtrip(data, fmt, w, h, layers, "none") == ("none", data.size)
+    filt, _ = roundtrip(data, fmt, w, h, layers)
+    if fmt in FIELD_LAYOUTS:
+        fields_roundtrip(data, fmt, w, h, layers)  # forced, whatever the encoder would pick for noise
     else:
-        _, forced = roundtrip(data, fmt, w, h, layers, codings=("fields-zstd",))
-        assert forced == {"coding": "fields-zstd"}
+        assert filt == "none"  # BC blocks are never split into fields
 
 
-@pytest.mark.parametrize("fmt", ["norm11", "norm10_2", "norm565", "norm8x4", "f16x4", "f32x4", "index16"])
+@pytest.mark.parametrize("fmt", sorted(FIELD_LAYOUTS))
 def test_extreme_values_round_trip(fmt):
-    """All-zero, all-ones and alternating extremes: residuals wrap around modulo 2^bits in both directions."""
+    """All-zero, all-ones and alternating extremes: residuals wrap around modulo 2^bits in both directions, with
+    every combination of delta and reference the format allows."""
     w, h = 32, 32
     size = blob_size(FORMATS[fmt], w, h)
+    nf = len(fields_content(np.zeros(size, np.uint8), fmt, w, h, 1)[1][0])
     for data in (np.zeros(size, np.uint8), np.full(size, 255, np.uint8),
                  np.tile(np.array([0, 0, 0, 0, 255, 255, 255, 255], np.uint8), size // 8)):
-        roundtrip(data, fmt, w, h, 1, codings=("fields-zstd",))
+        fields_roundtrip(data, fmt, w, h, 1)
+        for delta in (False, True):
+            modes = [(delta, None)] + [(not delta, 0 if fmt != "f32x4" else None)] * (nf - 1)
+            fields_roundtrip(data, fmt, w, h, 1, [modes])
 
 
 def test_split_and_join_are_inverse_and_follow_the_slot_order():
@@ -78,6 +117,19 @@ def test_split_and_join_are_inverse_and_follow_the_slot_order():
     np.testing.assert_array_equal(fields[1], (words[order] >> 11) & 1023)
     np.testing.assert_array_equal(fields[2], words[order] >> 21)
     np.testing.assert_array_equal(join_layer(fields, "norm11", w, h), words.view(np.uint8))
+    rgba = rng.integers(0, 256, (w * h, 4), dtype=np.uint8)
+    fields = split_layer(rgba.reshape(-1), "norm8x4", w, h)
+    assert [f.dtype for f in fields] == [np.uint8] * 4
+    np.testing.assert_array_equal(fields[2], rgba[order, 2])
+    np.testing.assert_array_equal(join_layer(fields, "norm8x4", w, h), rgba.reshape(-1))
+
+
+def test_shuffle_matches_the_reference_byte_shuffle():
+    rng = np.random.default_rng(9)
+    for element in (1, 2, 4, 3):
+        data = rng.integers(0, 256, 96 * 4, dtype=np.uint8)
+        np.testing.assert_array_equal(shuffle(data, element), shuffle_bytes(data, element))
+        np.testing.assert_array_equal(unshuffle(shuffle(data, element), element), data)
 
 
 def _correlated_rgb565(w: int, h: int, layers: int, seed: int) -> np.ndarray:
@@ -99,19 +151,26 @@ def _correlated_rgb565(w: int, h: int, layers: int, seed: int) -> np.ndarray:
 def test_fields_coding_wins_on_correlated_channels_and_stays_exact():
     w, h, layers = 128, 64, 3
     data = _correlated_rgb565(w, h, layers, seed=2)
-    coded, descriptor = roundtrip(data, "norm565", w, h, layers)
-    shuffled, _ = encode_section(data, "norm565", w, h, layers, codings=("shuffle-zstd",))
-    assert descriptor == {"coding": "fields-zstd"}
+    filt, _ = roundtrip(data, "norm565", w, h, layers)
+    assert filt == FIELDS1
+    content, modes = fields_content(data, "norm565", w, h, layers)
+    shuffled = np.concatenate([shuffle(x, 2) for x in layers_of(data, layers)])
     # G steps by -2..2 along the slots (2.3 bits), R and B are G/2 (or 31 - G/2) plus 1.6 bits of noise (about 2
-    # bits each after rounding): 6.3 bits of entropy a texel against 16 stored; zstd's literal coding reaches
-    # 8.3 bits here (measured 25,553 bytes for 49,152; byte shuffle 44,165)
-    assert len(coded) < 0.55 * data.size, (len(coded), len(shuffled), data.size)
-    assert len(coded) < 0.65 * len(shuffled), (len(coded), len(shuffled))
-    raw = zstandard.ZstdDecompressor().decompress(coded)
-    assert raw[0] == FIELDS_VERSION
-    modes = np.frombuffer(raw[1:1 + 3 * layers], np.uint8).reshape(layers, 3)
+    # bits each after rounding): 6.3 bits of entropy a texel against 16 stored; zstd reaches about 8.3 bits here
+    # (measured 25,553 bytes for 49,152; byte shuffle 44,165)
+    assert zstd_size(content) < 0.55 * data.size, (zstd_size(content), zstd_size(shuffled), data.size)
+    assert zstd_size(content) < 0.65 * zstd_size(shuffled)
+    assert content[0] == FIELDS_VERSION
+    mode_bytes = np.frombuffer(content[1:1 + 3 * layers], np.uint8).reshape(layers, 3)
     # in every layer some field is predicted from another one (reference in the high nibble)
-    assert ((modes >> 4) > 0).any(axis=1).all()
+    assert ((mode_bytes >> 4) > 0).any(axis=1).all()
+    assert all(any(r is not None for _, r in layer) for layer in modes)
+
+
+def test_encoder_keeps_the_shuffle_where_fields_do_not_pay():
+    """Random bytes: fields1 adds its header and gains nothing, so the byte shuffle is kept."""
+    data = np.random.default_rng(3).integers(0, 256, blob_size(FORMATS["norm11"], 64, 64), dtype=np.uint8)
+    assert roundtrip(data, "norm11", 64, 64, 1) == ("shuffle4", data.size)
 
 
 def test_slopes_and_intercepts_that_clip_still_round_trip():
@@ -121,166 +180,89 @@ def test_slopes_and_intercepts_that_clip_still_round_trip():
     g = np.arange(n, dtype=np.int64) % 64
     r = (g * 31) % 32  # slope far outside what an int8 / 64 can say
     data = (r | (g << 5) | (((63 - g) // 2) << 11)).astype("<u2").view(np.uint8)
-    roundtrip(data, "norm565", w, h, 1, codings=("fields-zstd",))
+    fields_roundtrip(data, "norm565", w, h, 1, [[(False, 1), (False, None), (True, 1)]])
     words = np.zeros(n, "<u4")
     words |= (np.arange(n) * 7 % 2048).astype("<u4")
     words |= ((np.arange(n) * 13 % 1024).astype("<u4")) << 11
     words |= ((2047 - np.arange(n) % 2048).astype("<u4")) << 21
-    roundtrip(words.view(np.uint8), "norm11", w, h, 1, codings=("fields-zstd",))
+    fields_roundtrip(words.view(np.uint8), "norm11", w, h, 1, [[(False, 2), (True, 2), (False, None)]])
 
 
 def test_encoding_is_deterministic():
     data = _correlated_rgb565(64, 32, 2, seed=3)
-    assert encode_section(data, "norm565", 64, 32, 2) == encode_section(data, "norm565", 64, 32, 2)
+    assert fields_content(data, "norm565", 64, 32, 2) == fields_content(data.copy(), "norm565", 64, 32, 2)
 
 
-def test_range_sections_round_trip():
-    rng = np.random.default_rng(4)
-    ranges = rng.normal(size=(19, 2, 3, 3)).astype("<f2").view(np.uint8).reshape(-1)
-    coded, d = encode_range_section(ranges, 2)
-    assert d == {"coding": "shuffle-zstd", "element": 2}
-    np.testing.assert_array_equal(decode_section(coded, d, None, size=ranges.size), ranges)
+# --- whole scenes -------------------------------------------------------------------------------------------------
+
+needs_fruit = pytest.mark.skipif(not os.path.exists(FRUIT), reason="real scenes not present")
 
 
-def _scene_sections(scene_dir: str):
-    """Every section of every payload of an encoded scene, as GPU bytes (unshuffled)."""
-    m = load_manifest(scene_dir)
-    entries = [e for t in m["tiles"] for e in t["groups"].values()]
-    entries += list((m.get("sh_codebook") or {}).get("groups", {}).values())
-    for e in entries:
-        raw = np.frombuffer(zstandard.ZstdDecompressor().decompress(
-            open(os.path.join(scene_dir, e["file"]), "rb").read()), np.uint8)
-        for s in e["sections"]:
-            element = 1 if s["filter"] == "none" else int(s["filter"][7:])
-            buf = raw[s["offset"]:s["offset"] + s["size"]]
-            layers = s.get("layers", 1)
-            unit = buf.size // layers
-            yield s, np.concatenate([unshuffle_bytes(buf[i * unit:(i + 1) * unit], element) for i in range(layers)])
-
-
-@pytest.mark.skipif(not os.path.exists(FRUIT), reason="real scenes not present")
+@needs_fruit
 @pytest.mark.parametrize("preset", ["very-high", "high", "medium", "low"])
-def test_real_scene_sections_round_trip_and_shrink(tmp_path, preset):
-    g = read_gaussians(FRUIT)
-    encode_gaussians(g, tmp_path / "s", EncodeOptions(preset=preset, lod=False))
-    today = coded_total = 0
-    formats = set()
-    for s, buf in _scene_sections(str(tmp_path / "s")):
-        if s["kind"] == "texels":
-            formats.add(s["format"])
-            coded, d = roundtrip(buf, s["format"], s["width"], s["height"], s["layers"])
-            shuffled, _ = encode_section(buf, s["format"], s["width"], s["height"], s["layers"],
-                                         codings=("shuffle-zstd",))
-            assert len(coded) <= len(shuffled) * 1.01  # the band decision may misjudge a section by a little
-            today += len(shuffled)
-            coded_total += len(coded)
-        else:
-            element = 4 if s["dtype"] == "f32" else 2
-            coded, d = encode_range_section(buf, element)
-            np.testing.assert_array_equal(decode_section(coded, d, None, size=buf.size), buf)
-    if preset == "medium":
-        # measured: 13.9 % smaller on fruit_drops medium (position, colour and SH through fields-zstd)
-        assert coded_total < 0.9 * today, (coded_total, today)
+def test_scenes_decode_to_the_same_splats_with_either_transport(tmp_path, preset):
     if preset == "low":
-        assert {"bc7", "index16"} <= formats
+        pytest.importorskip("etcpak")
+    g = read_gaussians(FRUIT)
+    sizes, decoded, manifests = {}, {}, {}
+    for transport in ("shuffle", "fields"):
+        out = tmp_path / transport
+        encode_gaussians(g, out, EncodeOptions(preset=preset, lod=False, transport=transport))
+        manifests[transport] = m = load_manifest(out)
+        sizes[transport] = m.bytes_on_disk
+        decoded[transport] = decode_scene(out)
+    old, new = manifests["shuffle"], manifests["fields"]
+    filters = {s.filter for _, _, p in new.payloads() for s in p.sections}
+    assert FIELDS1 in filters and new.version == (1, 2)
+    assert FIELDS1 not in {s.filter for _, _, p in old.payloads() for s in p.sections}
+    assert old.version == ((1, 1) if old.uses_codebook else (1, 0))
+    # the GPU side is untouched: same texel sizes per payload, same decoded splats bit for bit
+    assert new.gpu_bytes == old.gpu_bytes
+    assert [p.gpu_bytes for _, _, p in new.payloads()] == [p.gpu_bytes for _, _, p in old.payloads()]
+    for name in ("positions", "rotations", "log_scales", "opacity_logits", "sh_dc", "sh_rest"):
+        np.testing.assert_array_equal(getattr(decoded["fields"], name), getattr(decoded["shuffle"], name))
+    # measured on fruit_drops (B/splat, shuffle -> fields): medium 42.2 -> 37.1, high 78.9 -> 73.1, very-high
+    # 208.5 -> 181.0, low 10.79 -> 10.54
+    limit = {"medium": 0.9, "high": 0.95, "very-high": 0.9, "low": 0.99}[preset]
+    assert sizes["fields"] < limit * sizes["shuffle"], sizes
 
 
 # --- hostile input ------------------------------------------------------------------------------------------------
 
-def _valid_stream(fmt="norm565", w=32, h=16, layers=2):
-    data = _correlated_rgb565(w, h, layers, seed=5) if fmt == "norm565" else \
-        np.random.default_rng(5).integers(0, 256, blob_size(FORMATS[fmt], w, h, layers), dtype=np.uint8)
-    coded, d = encode_section(data, fmt, w, h, layers, codings=("fields-zstd",))
-    return coded, d, (fmt, w, h, layers)
-
-
-def _zstd(raw: bytes, content_size: bool = True) -> bytes:
-    return zstandard.ZstdCompressor(level=3, write_content_size=content_size).compress(raw)
+def _valid_content(layers=2):
+    data = _correlated_rgb565(32, 16, layers, seed=5)
+    content, _ = fields_content(data, "norm565", 32, 16, layers)
+    return bytearray(content), ("norm565", 32, 16, layers)
 
 
 @pytest.mark.parametrize("cut", [0, 1, 5, 17, -1])
-def test_truncated_streams_raise_format_error(cut):
-    coded, d, geometry = _valid_stream()
+def test_truncated_contents_raise_format_error(cut):
+    content, geometry = _valid_content()
     with pytest.raises(FormatError):
-        decode_section(coded[:cut] if cut >= 0 else coded[:-1], d, *geometry)
+        unfilter_fields(bytes(content[:cut] if cut >= 0 else content[:-1]), *geometry)
 
 
-def test_garbage_and_wrong_payloads_raise_format_error():
-    coded, d, (fmt, w, h, layers) = _valid_stream()
+def test_garbage_and_malformed_contents_raise_format_error():
+    content, geometry = _valid_content()
     rng = np.random.default_rng(6)
-    for data in (b"", b"\x00" * 64, rng.integers(0, 256, 4096, dtype=np.uint8).tobytes(),
-                 b"\x28\xb5\x2f\xfd" + bytes(100)):
+    for data in (b"", b"\x00" * 64, rng.integers(0, 256, 4096, dtype=np.uint8).tobytes(), bytes(content) + b"\0"):
         with pytest.raises(FormatError):
-            decode_section(data, d, fmt, w, h, layers)
-    raw = bytearray(zstandard.ZstdDecompressor().decompress(coded))
-    for patch in ({0: FIELDS_VERSION + 1}, {1: 0x02}, {1: 0x10 | 0x00}, {2: 0x30}, {1: 0x20, 2: 0x10}):
-        bad = bytearray(raw)
+            unfilter_fields(data, *geometry)
+    for patch in ({0: FIELDS_VERSION + 1}, {1: 0x02}, {1: 0x10}, {2: 0x30}, {1: 0x20, 2: 0x10}, {1: 0x40}):
+        bad = bytearray(content)
         for k, v in patch.items():
             bad[k] = v
-        with pytest.raises(FormatError):  # wrong version, reserved bits, self or chained or missing references
-            decode_section(_zstd(bytes(bad)), d, fmt, w, h, layers)
-    with pytest.raises(FormatError):
-        decode_section(_zstd(bytes(raw[:-1])), d, fmt, w, h, layers)  # one byte short
-    with pytest.raises(FormatError):
-        decode_section(_zstd(bytes(raw) + b"\x00"), d, fmt, w, h, layers)  # one byte long
-    with pytest.raises(FormatError):
-        decode_section(_zstd(bytes(raw), content_size=False), d, fmt, w, h, layers)  # size not declared
-
-
-def test_decompression_bombs_are_refused_before_allocating():
-    """A frame that declares (or would inflate to) far more than the section holds is refused from its header."""
-    bomb = _zstd(bytes(256 << 20))  # 256 MiB of zeros in about 8 KB
-    assert len(bomb) < 64 << 10
-    for d in ({"coding": "fields-zstd"}, {"coding": "shuffle-zstd", "element": 2}):
-        with pytest.raises(FormatError, match="declares"):
-            decode_section(bomb, d, "norm565", 16, 16, 1)
-    with pytest.raises(FormatError, match="declares"):
-        decode_section(bomb, {"coding": "shuffle-zstd", "element": 2}, None, size=1024)
-
-
-def test_bad_descriptors_and_geometry_raise_format_error():
-    coded, d, (fmt, w, h, layers) = _valid_stream()
-    for bad in (None, [], {"coding": "webp"}, {"coding": "shuffle-zstd"}, {"coding": "shuffle-zstd", "element": 0},
-                {"coding": "shuffle-zstd", "element": "4"}):
-        with pytest.raises(FormatError):
-            decode_section(coded, bad, fmt, w, h, layers)
+        with pytest.raises(FormatError):  # wrong version, reserved bits, self / chained / missing references
+            unfilter_fields(bytes(bad), *geometry)
     with pytest.raises(FormatError, match="does not apply"):
-        decode_section(coded, d, "bc7", w, h, layers)
-    for geometry in (("norm565", 30, 16, 2), ("norm565", 32, 0, 2), ("norm565", 32, 16, 0), ("rgba9", 32, 16, 2),
-                     ("norm565", 4096, 16, 1)):
+        unfilter_fields(bytes(content), "bc7", 32, 16, 2)
+    for geometry in (("norm565", 30, 16, 2), ("norm565", 32, 0, 2), ("norm565", 32, 16, 0), ("norm565", 4096, 16, 1)):
         with pytest.raises(FormatError):
-            decode_section(coded, d, *geometry)
-    with pytest.raises(FormatError):
-        decode_section(coded, {"coding": "shuffle-zstd", "element": 2}, None, size=-1)
+            unfilter_fields(bytes(content), *geometry)
 
 
-def test_payload_filters_round_trip_and_reject_unknown_names():
-    """filter_section / unfilter_section: the same codings as section filters inside one zstd payload frame."""
-    from splatstream.transport import filter_section, unfilter_section
-
-    data = _correlated_rgb565(64, 32, 2, seed=7)
-    stored, name = filter_section(data, "norm565", 64, 32, 2)
-    assert name == "fields1"
-    np.testing.assert_array_equal(unfilter_section(stored, name, "norm565", 64, 32, 2), data)
-    noise = np.random.default_rng(8).integers(0, 256, blob_size(FORMATS["bc7"], 64, 32), dtype=np.uint8)
-    stored, name = filter_section(noise, "bc7", 64, 32, 1)
-    assert name == "none" and stored == noise.tobytes()
-    np.testing.assert_array_equal(unfilter_section(stored, name, "bc7", 64, 32, 1), noise)
-    with pytest.raises(FormatError, match="unknown filter"):
-        unfilter_section(stored, "lzma", "bc7", 64, 32, 1)
-    with pytest.raises(FormatError):
-        unfilter_section(stored[:-1], "none", "bc7", 64, 32, 1)
-
-
-VECTORS = os.path.join(os.path.dirname(__file__), "..", "format_spec", "vectors", "transport")
-
-
-def test_fields1_spec_vectors_decode_exactly():
-    """format_spec/vectors/transport: stored `fields1` contents and the texel bytes they decode to (every mode)."""
-    import json
-
-    from splatstream.transport import unfilter_fields
-
+def test_fields1_vectors_decode_exactly():
+    """format_spec/vectors/transport: stored fields1 contents and the texel bytes they decode to (every mode)."""
     index = json.load(open(os.path.join(VECTORS, "vectors.json")))
     assert set(index) == {"norm11", "norm10_2", "norm565", "norm8x4", "f16x4", "index16"}
     modes_seen = set()
@@ -290,5 +272,69 @@ def test_fields1_spec_vectors_decode_exactly():
         assert len(stored) == v["stored_bytes"] and len(texels) == v["texel_bytes"]
         decoded = unfilter_fields(stored, fmt, v["width"], v["height"], v["layers"], f"{fmt}.fields1.bin")
         assert decoded.tobytes() == texels, fmt
+        modes = [[(m["delta"], m["ref"]) for m in layer] for layer in v["modes"]]
+        # the encoder gives the same content for the recorded modes
+        assert fields_content(np.frombuffer(texels, np.uint8), fmt, v["width"], v["height"], v["layers"],
+                              modes)[0] == stored, fmt
         modes_seen |= {(m["delta"], m["ref"] is not None) for layer in v["modes"] for m in layer}
     assert modes_seen == {(False, False), (True, False), (False, True), (True, True)}
+
+
+def _fields1_scene(tmp_path):
+    from conftest import read_manifest_dict
+
+    g = read_gaussians(FRUIT).subset(slice(0, 700))
+    encode_gaussians(g, tmp_path / "s", EncodeOptions(preset="medium", lod=False, sh_degree=1))
+    return read_manifest_dict(tmp_path / "s")
+
+
+@needs_fruit
+def test_section_tables_with_bad_fields1_entries_are_rejected(tmp_path):
+    d = _fields1_scene(tmp_path)
+    base = d["tiles"][0]["groups"]["base"]
+    position = next(s for s in base["sections"] if s["name"] == "position")
+    assert position["filter"] == FIELDS1
+    manifest_from_dict(d)  # valid as written
+
+    def rejected(mutate, match):
+        bad = json.loads(json.dumps(d))
+        sec = next(s for s in bad["tiles"][0]["groups"]["base"]["sections"] if s["name"] == mutate[0])
+        sec[mutate[1]] = mutate[2]
+        with pytest.raises(FormatError, match=match):
+            manifest_from_dict(bad)
+
+    rejected(("position.range", "filter", FIELDS1), "position.range.*filter|unknown filter")
+    lo, hi = content_bounds("norm11", position["width"], position["height"], 1)
+    rejected(("position", "size", lo - 16), "expected")
+    rejected(("position", "size", hi + 16), "size|expected")
+    rejected(("rotation", "filter", "fields2"), "unknown filter 'fields2'")
+    # gpu_bytes counts the texels a section decodes to, not its stored bytes
+    bad = json.loads(json.dumps(d))
+    bad["tiles"][0]["groups"]["base"]["gpu_bytes"] = sum(s["size"] for s in base["sections"])
+    with pytest.raises(FormatError, match="gpu_bytes"):
+        manifest_from_dict(bad)
+
+
+@needs_fruit
+def test_damaged_fields1_sections_in_a_payload_raise_format_error(tmp_path):
+    """A payload whose checksum matches but whose fields1 content is wrong (a writer's bug, or a forged scene)."""
+    from splatstream.format.decode import decode_payload
+    from splatstream.format.names import sha256_hex
+
+    d = _fields1_scene(tmp_path)
+    m = manifest_from_dict(d)
+    entry = m.tiles[0].groups["base"]
+    sec = entry.section("position")
+    data = (tmp_path / "s" / entry.file).read_bytes()
+    raw = bytearray(zstandard.ZstdDecompressor().decompress(data))
+    for patch in ({sec.offset: 9}, {sec.offset + 1: 0x0E}):  # version, reserved mode bits
+        bad = bytearray(raw)
+        for k, v in patch.items():
+            bad[k] = v
+        forged = zstandard.ZstdCompressor(write_content_size=True).compress(bytes(bad))
+        sha = sha256_hex(forged)
+        from dataclasses import replace
+
+        forged_entry = replace(entry, sha256=sha, file=f"data/{sha}.bin", bytes=len(forged))
+        with pytest.raises(FormatError, match="section position"):
+            decode_payload(forged, forged_entry, "base", "forged")

@@ -4,6 +4,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
+from ..format.container import DEFAULT_ZSTD_LEVEL
 from ..format.presets import DEFAULT_PRESET
 
 # progress(stage, fraction in [0, 1]); stages: codebook, tiles, encode
@@ -19,8 +20,10 @@ class EncodeOptions:
     preset: str = DEFAULT_PRESET
     overrides: dict[str, str] = field(default_factory=dict)
     sh_degree: int | None = None  # drop bands above this
-    zstd_level: int = 3
-    shuffle: bool = True
+    zstd_level: int = DEFAULT_ZSTD_LEVEL
+    # How payload sections are stored (format/transport.py): "fields" (the fields1 filter where it is smaller than
+    # the byte shuffle; format 1.2), "shuffle" (what 1.0/1.1 readers read), "none".
+    transport: str = "fields"
     lod: bool = True
     # Leaf tile size: measured against bytes to converge and requests on a 20 Mbit/s + 40 ms link (BENCHMARKS.md,
     # "Tile size"): 16,384 converged an overview 12 % and a close-up 26 % sooner than 65,536, with a 192 KB manifest

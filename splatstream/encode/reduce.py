@@ -5,7 +5,8 @@ from .. import __version__
 from ..format.layout import CHUNK_SIZE
 from ..format.manifest import (
     BASE_VERSION,
-    FORMAT_VERSION,
+    CODEBOOK_VERSION,
+    FIELDS1_VERSION,
     AttributeSize,
     CameraEntry,
     LodInfo,
@@ -16,6 +17,7 @@ from ..format.manifest import (
 )
 from ..format.planes import BASE_PLANE_NAMES
 from ..format.presets import ATTRIBUTES
+from ..format.transport import FIELDS1
 from .plan import EncodePlan
 
 
@@ -38,7 +40,7 @@ class _Sizes:
         for sec in entry.sections:
             attr = section_attribute(sec.name)
             if attr in attributes:
-                self.gpu[attr] += sec.size
+                self.gpu[attr] += sec.gpu_size
                 self.disk[attr] += entry.bytes * sec.size / max(1, entry.raw_bytes)
         self.leaf_gpu += entry.gpu_bytes
         self.leaf_disk += entry.bytes
@@ -60,10 +62,12 @@ def build_manifest(plan: EncodePlan, camera: CameraEntry, tiles: list[TileEntry]
             for group, entry in tile.groups.items():
                 sizes.add(entry, BASE_PLANE_NAMES if group == "base" else ("sh",))
     ordered = tuple(sorted(tiles, key=lambda t: t.id))
+    payloads = [p for t in ordered for p in t.groups.values()] + list(codebook.groups.values() if codebook else [])
+    fields1 = any(s.filter == FIELDS1 for p in payloads for s in p.sections)
     root = ordered[0]
     opts = plan.options
     m = Manifest(
-        version=FORMAT_VERSION if codebook is not None else BASE_VERSION,
+        version=FIELDS1_VERSION if fields1 else CODEBOOK_VERSION if codebook is not None else BASE_VERSION,
         generator=f"splatstream {__version__}",
         name=plan.name,
         splats=plan.splats,
