@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import threading
 from typing import BinaryIO
 
 import numpy as np
@@ -117,6 +118,17 @@ def verify_payload(data: bytes | memoryview, entry: PayloadEntry, source: str) -
         raise FormatError(source, "sha256", "checksum mismatch: the payload is corrupt or was replaced")
 
 
+_local = threading.local()
+
+
+def _decompressor() -> zstandard.ZstdDecompressor:
+    """This thread's zstd decompressor (a context is not thread-safe; reusing one saves its setup per payload)."""
+    d = getattr(_local, "decompressor", None)
+    if d is None:
+        d = _local.decompressor = zstandard.ZstdDecompressor()
+    return d
+
+
 def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, source: str,
                    codebook: bool = False) -> dict[str, EncodedPlane]:
     """Decompress verified payload bytes into planes (texels still encoded; ranges as stored).
@@ -125,7 +137,7 @@ def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, so
     what is checked here is what only the bytes can tell. With `codebook`, a tile's sh1 group holds the SH index
     plane (format_spec/format.md 4.7)."""
     try:
-        raw = zstandard.ZstdDecompressor().decompress(data, max_output_size=entry.raw_bytes)
+        raw = _decompressor().decompress(data, max_output_size=entry.raw_bytes)
     except zstandard.ZstdError as exc:
         raise FormatError(source, None, f"not a valid zstd payload ({exc})") from None
     if len(raw) != entry.raw_bytes:
