@@ -5,7 +5,7 @@ from conftest import group_planes_of, read_manifest_dict, real, run_cli, write_m
 
 from splatstream.decoder import decode_scene, read_codebook
 from splatstream.encode import EncodeOptions, encode_gaussians
-from splatstream.encode.codebook import codebook_rows, codebook_weights
+from splatstream.encode.codebook import codebook_rows, codebook_weights, order_by_use
 from splatstream.encode.jobs import splat_order
 from splatstream.errors import FormatError, UsageError
 from splatstream.format.codec import codebook_band_values, decode_index_plane, decode_plane, encode_index_plane
@@ -79,8 +79,9 @@ def test_encoded_codebook_round_trips_within_one_step(fruit, tmp_path):
     assert m.version == (1, 2) and cb.entries == 64 and cb.index_format == "index16"  # 1.2: fields1 sections
     assert cb.format == m.formats["sh"] == "norm565"
     assert set(cb.groups) == {"sh1", "sh2", "sh3"} and set(m.tiles[0].groups) == {"base", "sh1"}
-    # The codebook the encoder fitted (deterministic for the same input).
-    fitted = build_codebook(codebook_rows(fruit), 64, weights=codebook_weights(fruit))
+    # The codebook the encoder fitted (deterministic for the same input), entries numbered by falling use.
+    fitted = order_by_use(build_codebook(codebook_rows(fruit), 64, weights=codebook_weights(fruit)),
+                          codebook_rows(fruit))
     planes = read_codebook(DirectoryStore(tmp_path / "s"), m, 3)
     fmt = get_format("norm565")
     for band in (1, 2, 3):
@@ -99,6 +100,8 @@ def test_encoded_codebook_round_trips_within_one_step(fruit, tmp_path):
     rows = codebook_rows(g)
     d = ((rows[:, None, :] - fitted.entries[None]) ** 2).sum(-1)
     np.testing.assert_array_equal(index, d.argmin(1))
+    uses = np.bincount(index, minlength=64)
+    assert (np.diff(uses) <= 0).all() and uses[0] > uses[-1]
     # The decoder puts the entries back per splat, band by band; lower degrees need fewer payloads.
     dec = decode_scene(tmp_path / "s")
     assert dec.sh_degree == 3
@@ -170,3 +173,24 @@ def test_cli_codebook_option(tmp_path):
     r = run_cli("encode", str(real("fruit_drops_sh3.ply")), str(tmp_path / "x"), "--sh-codebook", "70000")
     assert r.returncode == 2 and "65536" in r.stderr and "Traceback" not in r.stderr
     assert not (tmp_path / "x").exists()
+
+
+def test_renumbering_by_use_keeps_every_assignment(monkeypatch):
+    """ordered_by_use permutes the entries; every row still gets the same entry (now under its new number), through
+    the value lookup and through the tree search alike."""
+    import splatstream.vq as vq
+
+    rng = np.random.default_rng(11)
+    rows = np.concatenate([rng.normal(size=(3000, 9)), rng.normal(size=(200, 9)) * 0.1 + 2]).astype(np.float32)
+    for entries, flat_limit in ((32, vq.FLAT_LIMIT), (256, 0)):  # a flat codebook, then a two-level tree
+        monkeypatch.setattr(vq, "FLAT_LIMIT", flat_limit)
+        cb = build_codebook(rows, entries)
+        assert (len(cb.top) == len(cb.entries)) == (flat_limit > 0)
+        labels = cb.assign(rows)
+        counts = np.bincount(labels, minlength=len(cb.entries))
+        sorted_cb = cb.ordered_by_use(counts)
+        new = sorted_cb.assign(rows)
+        np.testing.assert_array_equal(sorted_cb.entries[new], cb.entries[labels])
+        uses = np.bincount(new, minlength=len(cb.entries))
+        assert (np.diff(uses) <= 0).all()
+        np.testing.assert_array_equal(sorted_cb.assign(cb.entries), np.argsort(-counts, kind="stable").argsort())
