@@ -14,7 +14,7 @@ from splatstream.format.planes import SH_INDEX_PLANE
 from splatstream.format.texformats import get_format
 from splatstream.ply import read_gaussians_ply
 from splatstream.store import DirectoryStore, load_manifest
-from splatstream.vq import MAX_ENTRIES, auto_entries, build_codebook, parse_entries
+from splatstream.vq import MAX_ENTRIES, auto_entries, build_codebook, fine_entries, parse_entries
 
 
 @pytest.fixture(scope="module")
@@ -27,6 +27,10 @@ def test_auto_size_and_parsing():
     assert auto_entries(10) == 64
     assert parse_entries("off", 10) == 0 and parse_entries("auto", 1_000_000) == 16384
     assert parse_entries("300", 1) == 300
+    # fine: a power of two near N / 16, at least 256, capped at 16,384 (or auto's size where that is larger).
+    assert fine_entries(4721) == 256 and fine_entries(10) == 256 and fine_entries(14_051) == 1024
+    assert fine_entries(1_000_000) == 16384 and fine_entries(6_000_000) == 65536
+    assert parse_entries("fine", 152_746) == 8192
     for bad in ("0x10", "-1", str(MAX_ENTRIES + 1), "many"):
         with pytest.raises(UsageError):
             parse_entries(bad, 1000)
