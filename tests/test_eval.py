@@ -125,10 +125,10 @@ def test_attribution_rows_and_markdown():
     for attr in ("position", "rotation", "scale", "color", "sh"):
         assert f"low {attr}=f32x4" in labels and f"low only {attr}" in labels
     only_color = next(r for r in rep["rows"] if r["label"] == "low only color")
-    assert only_color["formats"]["color"] == "bc7" and only_color["formats"]["position"] == "f32x4"
+    assert only_color["formats"]["color"] == "norm8x4" and only_color["formats"]["position"] == "f32x4"
     md = report_markdown(rep)
     assert "Error attribution for low" in md
-    assert "| color | bc7 |" in md
+    assert "| color | norm8x4 |" in md
 
 
 def test_read_compare_clamps_infinite_opacity(tmp_path):
@@ -171,7 +171,7 @@ def test_variants_parse_and_run():
                    EvalOptions(presets=[], variants=["low-sh1:low,sh_degree=1"], views=1, width=32, height=32))
     (row,) = rep["rows"]
     assert row["kind"] == "variant" and row["sh_degree"] == 1
-    assert "| low-sh1 | norm8x4 | norm565 | norm8x4 | bc7 | norm565 VQ64 (SH1) |" in report_markdown(rep)
+    assert "| low-sh1 | norm8x4 | norm565 | norm8x4 | norm8x4 | norm565 VQ64 (SH1) |" in report_markdown(rep)
 
 
 def test_reference_table_only_on_request(tmp_path):

@@ -8,7 +8,7 @@ import time
 from ..encode import encode_file
 from ..errors import UsageError
 from ..format.container import DEFAULT_ZSTD_LEVEL
-from ..format.presets import ATTRIBUTES, DEFAULT_PRESET, PRESET_SH_CODEBOOK, PRESETS
+from ..format.presets import ATTRIBUTES, DEFAULT_PRESET, PRESET_SH_CODEBOOK, PRESET_SUMMARY, PRESETS
 from ..format.texformats import VALUE_FORMATS
 from ..format.transport import TRANSPORTS
 from ..progress import ProgressPrinter
@@ -21,13 +21,18 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Read a 3DGS scene (standard PLY and other supported formats) and write a scene directory: "
                     "Morton-ordered 256-splat chunks quantised per chunk into GPU texture planes, SH bands in "
                     "separate payloads, LOD tiles, a msgpack manifest. Presets (texel formats per attribute): "
-                    + "; ".join(f"{k}: " + ", ".join(f"{a}={f}" for a, f in v.items()) for k, v in PRESETS.items()),
+                    + "; ".join(f"{k}: " + ", ".join(f"{a}={f}" for a, f in v.items()) for k, v in PRESETS.items())
+                    + ". SH bands 1..3 in a scene-wide codebook: "
+                    + ", ".join(f"{k} ({v})" for k, v in PRESET_SH_CODEBOOK.items()),
     )
     p.add_argument("input", help="input splat file (.ply; other formats are detected by content)")
     p.add_argument("output_dir", help="scene directory to write (replaced atomically if it exists), or an fsspec URL "
                                       "(s3://bucket/scene, gs://..., needs the cluster extra): payloads first, the "
                                       "manifest last")
-    p.add_argument("--preset", default=DEFAULT_PRESET, choices=list(PRESETS), help="quality preset (default medium)")
+    p.add_argument("--preset", default=DEFAULT_PRESET, choices=list(PRESETS), metavar="PRESET",
+                   help="quality preset, from the largest files to the smallest: "
+                        + "; ".join(f"{k} ({v})" for k, v in PRESET_SUMMARY.items()).replace("%", "%%")
+                        + f". Default {DEFAULT_PRESET}")
     for attr in ATTRIBUTES:
         p.add_argument(f"--{attr}", dest=f"fmt_{attr}", choices=list(VALUE_FORMATS), metavar="FORMAT",
                        help=f"texel format of {attr}, overriding the preset ({', '.join(VALUE_FORMATS)})")
