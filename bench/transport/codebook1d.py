@@ -14,8 +14,8 @@ import sys
 
 import numpy as np
 
+from splatstream.format.layout import CHUNK_SIZE, morton_order
 from splatstream.io import read_gaussians
-from splatstream.layout import CHUNK_SIZE, morton_order
 
 
 def entropy_bytes(sym: np.ndarray) -> float:

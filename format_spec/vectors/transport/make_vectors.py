@@ -1,4 +1,4 @@
-"""Regenerate the `fields1` test vectors (format_spec/transport_draft.md, section 4).
+"""Regenerate the `fields1` test vectors (format_spec/format.md 5.2 and 8).
 
     python format_spec/vectors/transport/make_vectors.py
 
@@ -14,7 +14,14 @@ import os
 
 import numpy as np
 
-from splatstream.transport import FIELD_LAYOUTS, _fields, choose_modes, fields_content, slot_to_texel, split_layer
+from splatstream.format.transport import (
+    FIELD_LAYOUTS,
+    choose_modes,
+    field_bits,
+    fields_content,
+    slot_to_texel,
+    split_layer,
+)
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 WIDTH, HEIGHT, LAYERS = 32, 16, 2
@@ -23,8 +30,8 @@ FORMATS = ("norm11", "norm10_2", "norm565", "norm8x4", "f16x4", "index16")
 
 def texels(fmt: str, rng: np.random.Generator) -> np.ndarray:
     """2 layers of texels whose fields follow a shared random walk along the slot order."""
-    dtype, layout = FIELD_LAYOUTS[fmt]
-    bits = _fields(fmt)
+    dtype, _, layout = FIELD_LAYOUTS[fmt]
+    bits = field_bits(fmt)
     n = WIDTH * HEIGHT
     out = []
     for _ in range(LAYERS):
@@ -45,7 +52,7 @@ def texels(fmt: str, rng: np.random.Generator) -> np.ndarray:
 
 
 def hand_modes(fmt: str) -> list[tuple[bool, int | None]]:
-    nf = len(_fields(fmt))
+    nf = len(field_bits(fmt))
     if nf == 1:
         return [(True, None)]
     if fmt in ("norm8x4", "f16x4"):
@@ -60,7 +67,7 @@ def main() -> None:
     for fmt in FORMATS:
         data = texels(fmt, rng)
         unit = data.size // LAYERS
-        auto = choose_modes(split_layer(data[unit:], fmt, WIDTH, HEIGHT), _fields(fmt))
+        auto = choose_modes(split_layer(data[unit:], fmt, WIDTH, HEIGHT), field_bits(fmt))
         modes = [hand_modes(fmt), auto]
         content, _ = fields_content(data, fmt, WIDTH, HEIGHT, LAYERS, modes)
         with open(os.path.join(HERE, f"{fmt}.fields1.bin"), "wb") as f:
