@@ -4,20 +4,96 @@ Files are written under a hidden temporary name in the target's directory and re
 Scene directories are built under a hidden temporary name and then swapped into place with
 renameat2(RENAME_EXCHANGE) where the kernel has it, so a server reading the old scene sees either
 the old or the new one, never a mix. Hidden names (leading '.') are never served.
+
+An exception, Ctrl-C or SIGTERM (the CLI raises it like Ctrl-C) removes the temporary. SIGKILL or a power cut
+cannot be caught, so temporaries are named `.<target>.<pid>.<random>.tmp` and locked (flock) by their writer
+while it lives: the next write to the same target removes those whose writer is gone (no lock held, and no
+process with that pid).
 """
 from __future__ import annotations
 
 import contextlib
 import ctypes
 import ctypes.util
+import fcntl
 import os
+import re
 import shutil
+import stat
 import tempfile
 from collections.abc import Iterator
 from typing import BinaryIO
 
 _AT_FDCWD = -100
 _RENAME_EXCHANGE = 2
+
+
+def _temp_prefix(path: str) -> str:
+    return f".{os.path.basename(path)}.{os.getpid()}."
+
+
+def _temp_pattern(path: str) -> re.Pattern:
+    """Names of temporaries (and the .old of a non-atomic swap) a writer of `path` makes, with its pid."""
+    return re.compile(re.escape(f".{os.path.basename(path)}.") + r"(\d+)\.[A-Za-z0-9_]+\.tmp(?:\.old)?")
+
+
+def _process_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def _lock(fd: int) -> bool:
+    """Take the writer's lock on an open temporary; False if another process holds it."""
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return False
+    except OSError:  # a file system without flock: the pid check alone decides
+        return True
+    return True
+
+
+def remove_stale_temporaries(path: str | os.PathLike) -> list[str]:
+    """Remove the temporaries of earlier writes to `path` whose writer died without cleaning up (SIGKILL, a
+    crash, a power cut): a temporary is stale when no process holds its lock and none has its pid. Returns the
+    names removed."""
+    path = os.path.abspath(os.fspath(path))
+    parent = os.path.dirname(path)
+    pattern = _temp_pattern(path)
+    removed = []
+    try:
+        names = os.listdir(parent)
+    except OSError:
+        return removed
+    for name in names:
+        match = pattern.fullmatch(name)
+        if match is None or int(match.group(1)) == os.getpid() or _process_alive(int(match.group(1))):
+            continue
+        full = os.path.join(parent, name)
+        try:
+            st = os.lstat(full)
+            if not (stat.S_ISDIR(st.st_mode) or stat.S_ISREG(st.st_mode)):
+                continue
+            fd = os.open(full, os.O_RDONLY | os.O_NONBLOCK)
+        except OSError:
+            continue
+        try:
+            if not _lock(fd):
+                continue  # a writer on another host (same pid number, shared file system) still holds it
+            if stat.S_ISDIR(st.st_mode):
+                shutil.rmtree(full, ignore_errors=True)
+            else:
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(full)
+            removed.append(name)
+        finally:
+            os.close(fd)
+    return removed
 
 
 def check_output(path: str | os.PathLike, directory: bool = False) -> None:
@@ -55,13 +131,15 @@ def atomic_file(path: str | os.PathLike) -> Iterator[BinaryIO]:
         from .errors import UsageError
 
         raise UsageError(f"{path}: is a directory, expected a file name")
+    remove_stale_temporaries(path)
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=directory)
+        fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(path), suffix=".tmp", dir=directory)
     except OSError as exc:
         from .errors import UsageError
 
         raise UsageError(f"{path}: cannot write in {directory} ({exc.strerror})") from None
     try:
+        _lock(fd)
         with os.fdopen(fd, "wb") as f:
             yield f
             f.flush()
@@ -98,10 +176,17 @@ def atomic_directory(path: str | os.PathLike) -> Iterator[str]:
         raise UsageError(f"{given}: exists and is not a directory (a scene is written as a directory)")
     try:
         os.makedirs(parent, exist_ok=True)
-        tmp = tempfile.mkdtemp(prefix=f".{os.path.basename(path)}.", suffix=".tmp", dir=parent)
+        remove_stale_temporaries(path)
+        tmp = tempfile.mkdtemp(prefix=_temp_prefix(path), suffix=".tmp", dir=parent)
+        try:
+            lock = os.open(tmp, os.O_RDONLY)
+        except OSError:
+            os.rmdir(tmp)
+            raise
     except OSError as exc:
         raise UsageError(f"{given}: cannot write a scene directory here ({exc.strerror})") from None
     try:
+        _lock(lock)  # held while this process lives: the lock travels with the directory through the renames
         yield tmp
         os.chmod(tmp, 0o755)
         if os.path.isdir(path) and not os.path.islink(path):
@@ -119,3 +204,5 @@ def atomic_directory(path: str | os.PathLike) -> Iterator[str]:
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+    finally:
+        os.close(lock)

@@ -5,7 +5,9 @@ from __future__ import annotations
 import argparse
 import importlib
 import os
+import signal
 import sys
+import threading
 import warnings
 
 from . import __version__
@@ -18,6 +20,17 @@ COMMANDS = ["encode", "decode", "info", "convert", "render", "view", "eval", "se
 EXIT_FAILURE = 1
 EXIT_BAD_INPUT = 2
 EXIT_INTERRUPTED = 130
+EXIT_TERMINATED = 143  # 128 + SIGTERM, what a shell reports for a process SIGTERM ended
+
+
+class Terminated(KeyboardInterrupt):
+    """SIGTERM, raised in the main thread like Ctrl-C, so every cleanup path (atomic outputs, worker pools) that
+    runs on Ctrl-C runs on `kill`, `timeout` or a service manager's stop too."""
+
+
+def _on_sigterm(signum, frame) -> None:
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)  # a second SIGTERM must not cut the cleanup short
+    raise Terminated()
 
 
 class _Parser(argparse.ArgumentParser):
@@ -54,11 +67,16 @@ def main(argv: list[str] | None = None) -> int:
     warnings.showwarning = _show_warning
     parser = build_parser()
     args = parser.parse_args(argv)
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _on_sigterm)  # `serve` installs its own (aiohttp's graceful shutdown)
     try:
         rc = args.func(args)
     except SplatstreamError as exc:
         print(f"splatstream {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except Terminated:
+        print(f"splatstream {args.command}: terminated (SIGTERM); partial output removed", file=sys.stderr)
+        return EXIT_TERMINATED
     except KeyboardInterrupt:
         print(f"splatstream {args.command}: interrupted", file=sys.stderr)
         return EXIT_INTERRUPTED

@@ -27,7 +27,8 @@ def sh_degree_for_rest_coeffs(k: int) -> int:
 
 
 def sigmoid(x: np.ndarray) -> np.ndarray:
-    return (1.0 / (1.0 + np.exp(-x.astype(np.float32)))).astype(np.float32)
+    with np.errstate(over="ignore"):  # exp overflows to inf below -88: the sigmoid is then exactly 0
+        return (1.0 / (1.0 + np.exp(-x.astype(np.float32)))).astype(np.float32)
 
 
 def logit(p: np.ndarray, eps: float = 1e-7) -> np.ndarray:
@@ -61,11 +62,15 @@ class Gaussians:
             "opacity_logits": (n,), "sh_dc": (n, 3),
         }
         for name, shape in shapes.items():
-            arr = np.ascontiguousarray(getattr(self, name), dtype=np.float32)
+            # float64 values beyond float32 become +-inf without a warning: readers screen every value afterwards
+            # (io.read_gaussians), and the encoder checks its input, naming the field.
+            with np.errstate(over="ignore"):
+                arr = np.ascontiguousarray(getattr(self, name), dtype=np.float32)
             if arr.shape != shape:
                 raise ValueError(f"Gaussians.{name}: shape {arr.shape}, expected {shape}")
             setattr(self, name, arr)
-        rest = np.ascontiguousarray(self.sh_rest, dtype=np.float32)
+        with np.errstate(over="ignore"):
+            rest = np.ascontiguousarray(self.sh_rest, dtype=np.float32)
         if rest.ndim != 3 or rest.shape[0] != n or rest.shape[2] != 3:
             raise ValueError(f"Gaussians.sh_rest: shape {rest.shape}, expected ({n}, K, 3)")
         sh_degree_for_rest_coeffs(rest.shape[1])
@@ -127,8 +132,15 @@ class Gaussians:
 def normalize_quaternions(q: np.ndarray) -> np.ndarray:
     """Unit quaternions with w >= 0 (q and -q are the same rotation). Zero-length rows stay zero."""
     q = q.astype(np.float32, copy=True)
-    norm = np.linalg.norm(q, axis=1, keepdims=True)
-    np.divide(q, norm, out=q, where=norm > 0)
+    with np.errstate(over="ignore", invalid="ignore"):
+        norm = np.linalg.norm(q, axis=1, keepdims=True)
+        # Finite components beyond 1.8e19 overflow the squares: those rows (only) are divided by their largest
+        # component first (still a valid direction). Non-finite rows stay non-finite for the readers to report.
+        overflow = np.flatnonzero(np.isinf(norm[:, 0]) & np.isfinite(q).all(axis=1))
+        if len(overflow):
+            q[overflow] /= np.abs(q[overflow]).max(axis=1, keepdims=True)
+            norm[overflow] = np.linalg.norm(q[overflow], axis=1, keepdims=True)
+        np.divide(q, norm, out=q, where=norm > 0)
     q *= np.where(q[:, :1] < 0, -1.0, 1.0).astype(np.float32)
     return q
 

@@ -106,9 +106,31 @@ def _gzip_starts_with(head: bytes, prefix: bytes) -> bool:
 
 
 def read_gaussians(path: str | os.PathLike, drop_invalid: bool = False) -> Gaussians:
-    """Read any supported splat file into Gaussians."""
-    fmt = sniff_format(os.fspath(path))
+    """Read any supported splat file into Gaussians, screened against the scene format's value domain (so
+    whatever is read can be encoded and written again: format_spec/format.md 4.8)."""
     path = os.fspath(path)
+    return screen_gaussians(_read_any(path, drop_invalid), path, drop_invalid)
+
+
+def screen_gaussians(g: Gaussians, path: str, drop_invalid: bool = False) -> Gaussians:
+    """`g` if every splat lies in the value domain of format.md 4.8; otherwise an InputError naming the file,
+    each offending field and its splat count, or with `drop_invalid` `g` without those splats (a warning)."""
+    import warnings
+
+    from .format.limits import describe_violations, domain_violations
+
+    violations = domain_violations(g)
+    if not violations:
+        return g
+    bad, message = describe_violations(violations, len(g))
+    if not drop_invalid:
+        raise InputError(path, None, message + "; pass --drop-invalid to drop them")
+    warnings.warn(f"{path}: {message}; dropped", stacklevel=3)
+    return g.subset(~bad)
+
+
+def _read_any(path: str, drop_invalid: bool) -> Gaussians:
+    fmt = sniff_format(path)
     if fmt == "ply":
         from .ply import read_gaussians_ply
 

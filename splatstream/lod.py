@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .format.layout import morton_codes
+from .format.limits import MAX_LOG_SCALE, MIN_LOG_SCALE
 from .gaussians import Gaussians, normalize_quaternions, rotation_matrices
 
 # Bounds and errors use this many standard deviations (the 3DGS rasteriser's cut-off and KHR "ellipse" kernel).
@@ -149,7 +150,8 @@ def _coverage_area(log_scales: np.ndarray, blur: float = 0.0) -> np.ndarray:
 
 def splat_mass(g: Gaussians) -> np.ndarray:
     """Merge weight of original splats: opacity * coverage area."""
-    alpha = 1.0 / (1.0 + np.exp(-g.opacity_logits.astype(np.float64)))
+    with np.errstate(over="ignore"):  # a logit below -709: exp overflows to inf, alpha is exactly 0
+        alpha = 1.0 / (1.0 + np.exp(-g.opacity_logits.astype(np.float64)))
     return alpha * _coverage_area(g.log_scales)
 
 
@@ -243,7 +245,9 @@ def merge_gaussians(g: Gaussians, mass: np.ndarray, target: int) -> tuple[Gaussi
     # Flat members stay flat but not flatter than their flattest member (eigh can return ~0 or tiny negatives).
     floor = np.exp(2.0 * np.minimum.reduceat(_row_min(log_s), starts).astype(np.float64))
     evals = np.maximum(evals, floor[:, None])
-    merged_log_scales = 0.5 * np.log(evals)
+    # Inside the format's log-scale domain (format.md 4.8): members spread over a huge box merge into a splat
+    # whose moment-matched size can exceed what any member had.
+    merged_log_scales = np.clip(0.5 * np.log(evals), MIN_LOG_SCALE, MAX_LOG_SCALE)
     merged_rot = _matrices_to_quaternions(evecs)
 
     merged_mass = np.add.reduceat(mass, starts)
@@ -473,7 +477,8 @@ def appearance_terms(opacity_logits: np.ndarray, log_scales: np.ndarray, sh_dc: 
                      blur: float) -> np.ndarray:
     """(5, N) per original: its coverage as the rasteriser shows it after the blur (alpha x dilated area), the
     colour weight (the same, kept positive) and the weight times each SH band 0 channel."""
-    alpha = 1.0 / (1.0 + np.exp(-opacity_logits.astype(np.float64)))
+    with np.errstate(over="ignore"):  # a logit below -709: exp overflows to inf, alpha is exactly 0
+        alpha = 1.0 / (1.0 + np.exp(-opacity_logits.astype(np.float64)))
     shown = alpha * _coverage_area(log_scales, blur)
     weight = shown + 1e-300  # all-transparent groups still get a defined colour
     return np.stack([shown, weight, weight * sh_dc[:, 0], weight * sh_dc[:, 1], weight * sh_dc[:, 2]])
@@ -522,7 +527,7 @@ def finish_appearance(merged: Gaussians, counts: np.ndarray, sums: np.ndarray, b
                 ok = MAX_MERGED_OPACITY * _coverage_area(ls + mid[:, None], blur) >= covered[grow_rows]
                 hi_k = np.where(ok, mid, hi_k)
                 lo_k = np.where(ok, lo_k, mid)
-            merged.log_scales[grow_rows] = (ls + hi_k[:, None]).astype(np.float32)
+            merged.log_scales[grow_rows] = np.minimum(ls + hi_k[:, None], MAX_LOG_SCALE).astype(np.float32)
             need[grow_rows] = covered[grow_rows] / _coverage_area(merged.log_scales[grow_rows], blur)
     alpha = np.clip(need, 1e-7, MAX_MERGED_OPACITY)
     logits = np.log(alpha / (1.0 - alpha)).astype(np.float32)

@@ -47,7 +47,8 @@ def flat_normal_shares(g: Gaussians) -> np.ndarray:
     smallest = order[:, 0]
     flat = (np.take_along_axis(s, order[:, 1:2], 1)[:, 0] - s[np.arange(len(g)), smallest]) > FLAT_LOG_RATIO
     normals = rotation_matrices(g.rotations)[np.arange(len(g)), :, smallest]
-    weight = flat / (1.0 + np.exp(-g.opacity_logits.astype(np.float64)))
+    with np.errstate(over="ignore"):  # a logit below -709 is alpha 0 (exp overflows to inf)
+        weight = flat / (1.0 + np.exp(-g.opacity_logits.astype(np.float64)))
     total = weight.sum()
     if total <= 0:
         return np.zeros(3)
@@ -85,7 +86,8 @@ def view_side(g: Gaussians, up: tuple[float, float, float]) -> float:
     if len(g) > SAMPLE:
         g = g.subset(np.linspace(0, len(g) - 1, SAMPLE).astype(np.int64))
     size = np.exp(g.log_scales.astype(np.float64)).max(axis=1)
-    weight = 1.0 / (1.0 + np.exp(-g.opacity_logits.astype(np.float64)))
+    with np.errstate(over="ignore"):
+        weight = 1.0 / (1.0 + np.exp(-g.opacity_logits.astype(np.float64)))
     z = g.positions[:, 2].astype(np.float64)
     ok = np.isfinite(z) & np.isfinite(size)
     z, size, weight = z[ok], size[ok], weight[ok]

@@ -6,6 +6,7 @@ quaternions) are those of the reference training code; see format_spec/foreign_f
 from __future__ import annotations
 
 import os
+import re
 import warnings
 from dataclasses import dataclass, field
 
@@ -21,6 +22,7 @@ PLY_TYPES = {
     "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",
 }
 MAX_HEADER_BYTES = 1 << 20
+SH_REST_DEGREES = {0: 0, 9: 1, 24: 2, 45: 3}  # f_rest_* properties -> SH degree
 REQUIRED = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity",
             "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
 
@@ -93,6 +95,9 @@ def read_header(path: str | os.PathLike, head: bytes | None = None) -> PlyHeader
             if len(words) != 3 or not words[2].isdigit():
                 raise InputError(path, f"header line {lineno}", f"bad element line {line!r} "
                                  "(expected 'element NAME COUNT')")
+            if any(e.name == words[1] for e in elements):
+                # Readers look elements up by name: a second one would be silently ignored.
+                raise InputError(path, f"header line {lineno}", f"element {words[1]!r} declared twice")
             elements.append(PlyElement(words[1], int(words[2])))
         elif key == "property":
             if not elements:
@@ -122,9 +127,23 @@ def read_elements(path: str | os.PathLike, header: PlyHeader | None = None) -> t
     file_size = os.path.getsize(path)
     out: dict[str, np.ndarray] = {}
     if header.format == "ascii":
+        data_bytes = file_size - header.size
+        # Every value takes at least one character and a separator: counts are capped by the file size before
+        # anything is read, and the token list (about 60 bytes a token) must fit the memory budget.
+        declared = sum(el.count * len(el.properties) for el in header.elements)
+        if declared > (data_bytes + 1) // 2:
+            raise InputError(path, "header", f"the elements declare {declared} ASCII values, but {data_bytes} bytes "
+                             f"of data hold at most {(data_bytes + 1) // 2} (truncated, or a wrong count)")
+        from .readers import check_memory
+
+        check_memory(path, None, declared, ASCII_BYTES_PER_VALUE)
         with open(path, "rb") as f:
             f.seek(header.size)
-            tokens = f.read().split()
+            data = f.read()
+        tokens = data.split()
+        # Letters or other characters anywhere: check each token against the number grammar.
+        strict = bool(data.translate(None, _ASCII_NUMBER_CHARS + b" \t\r\n\v\f"))
+        del data
         pos = 0
         for el in header.elements:
             width = len(el.properties)
@@ -133,38 +152,79 @@ def read_elements(path: str | os.PathLike, header: PlyHeader | None = None) -> t
                 raise InputError(path, f"element {el.name}",
                                  f"truncated: header declares {el.count} rows of {width} values, "
                                  f"only {max(0, len(tokens) - pos) // max(width, 1)} complete rows follow")
-            try:
-                values = np.array(tokens[pos:pos + need], dtype=np.float64).reshape(el.count, width)
-            except ValueError:
-                raise InputError(path, f"element {el.name}", "non-numeric value in ASCII data") from None
+            values = _ascii_values(path, el, tokens[pos:pos + need], strict)
             arr = np.empty(el.count, el.dtype("<"))
-            for i, (name, _) in enumerate(el.properties):
-                arr[name] = values[:, i]
+            for i, (name, code) in enumerate(el.properties):
+                column = values[:, i]
+                if code[0] in "iu":
+                    info = np.iinfo(code)
+                    bad = ~((column == np.round(column)) & (column >= info.min) & (column <= info.max))
+                    if bad.any():
+                        row = int(np.argmax(bad))
+                        raise InputError(path, f"element {el.name}, row {row}, property {name}",
+                                         f"{column[row]!r} is not an integer in {info.min}..{info.max}")
+                arr[name] = column
             out[el.name] = arr
             pos += need
         if pos != len(tokens):
             raise InputError(path, "header", f"{len(tokens) - pos} values after the last element: "
                              "the element counts in the header do not match the data")
         return header, out
+    check_element_sizes(path, header)
     order = "<" if header.format == "binary_little_endian" else ">"
     offset = header.size
     for el in header.elements:
         dt = el.dtype(order)
-        # Counts are capped by the file size before anything is allocated (a hostile header cannot ask
-        # for a huge array).
-        need = el.count * dt.itemsize
+        out[el.name] = np.fromfile(path, dtype=dt, count=el.count, offset=offset)
+        offset += el.count * dt.itemsize
+    return header, out
+
+
+def check_element_sizes(path: str, header: PlyHeader) -> None:
+    """A binary PLY's element counts against the file length, before anything is allocated (a hostile header
+    cannot ask for a huge array). ASCII files are checked by read_elements."""
+    if header.format == "ascii":
+        return
+    file_size = os.path.getsize(path)
+    offset = header.size
+    for el in header.elements:
+        itemsize = el.dtype("<").itemsize
+        need = el.count * itemsize
         if offset + need > file_size:
             have = max(0, file_size - offset)
             raise InputError(path, f"element {el.name}",
-                             f"truncated: header declares {el.count} rows of {dt.itemsize} bytes "
+                             f"truncated: header declares {el.count} rows of {itemsize} bytes "
                              f"({need} bytes) but only {have} bytes follow "
-                             f"({have // max(dt.itemsize, 1)} complete rows)")
-        out[el.name] = np.fromfile(path, dtype=dt, count=el.count, offset=offset)
+                             f"({have // max(itemsize, 1)} complete rows)")
         offset += need
     if offset != file_size:
         raise InputError(path, "header", f"{file_size - offset} bytes after the last element: the element "
                          "counts in the header do not match the data")
-    return header, out
+
+
+# Memory per ASCII value while parsing: the token (a bytes object and its list slot) and its float64.
+ASCII_BYTES_PER_VALUE = 72
+# What a C printf writes for a number (and nan / inf, which the 3DGS checks then report as non-finite). Python's
+# float() also takes "1_000", " 1 " and other spellings a careful reader refuses.
+_ASCII_NUMBER = re.compile(rb"[+-]?(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?|[+-]?(?:nan|inf|infinity)", re.IGNORECASE)
+_ASCII_NUMBER_CHARS = b"0123456789+-.eE"
+
+
+def _ascii_values(path: str, el: PlyElement, tokens: list[bytes], strict: bool) -> np.ndarray:
+    """(count, width) float64 values of an element's ASCII tokens, each checked to be a plain number."""
+    width = len(el.properties)
+    try:
+        if strict:
+            raise ValueError
+        values = np.array(tokens, dtype=np.float64)
+    except ValueError:
+        for k, token in enumerate(tokens):
+            if not _ASCII_NUMBER.fullmatch(token):
+                row, column = divmod(k, max(width, 1))
+                raise InputError(path, f"element {el.name}, row {row}, property {el.properties[column][0]}",
+                                 f"{token[:40].decode('ascii', 'backslashreplace')!r} is not a number") from None
+        values = np.array(tokens, dtype=np.float64)
+    return values.reshape(el.count, width)
 
 
 def _column_reader(arr: np.ndarray):
@@ -366,7 +426,12 @@ def read_gaussians_ply(path: str | os.PathLike, drop_invalid: bool = False) -> G
     """Read a standard 3DGS PLY (any PLY format, float or double, any property order)."""
     path = os.fspath(path)
     header = read_header(path)
-    _, n_rest = _vertex_header(path, header)
+    vertex, n_rest = _vertex_header(path, header)
+    from .readers import check_memory, model_bytes_per_splat
+
+    check_element_sizes(path, header)
+    check_memory(path, "element vertex", vertex.count,
+                 vertex.dtype("<").itemsize + 3 * model_bytes_per_splat(SH_REST_DEGREES.get(n_rest, 3)))
     _, elements = read_elements(path, header)
     g, stats = _gaussians_from_records(elements.pop("vertex"), n_rest)
     check_rows(path, stats, drop_invalid)

@@ -63,7 +63,26 @@ def read_manifest_dict(scene_dir) -> dict:
     return msgpack.unpackb((pathlib.Path(scene_dir) / "manifest.msgpack").read_bytes(), raw=False)
 
 
-def write_manifest_dict(scene_dir, m: dict) -> None:
-    import msgpack
+def write_manifest_dict(scene_dir, m: dict, settle: bool = False) -> None:
+    """Write a (damaged) manifest map as a file of its version: from 1.2 on with a valid checksum, so the damage
+    under test is what the reader finds (tests of the checksum itself damage the bytes). With `settle`, the totals
+    a reader recomputes (gpu_bytes, leaf_bytes_on_disk, bytes_on_disk) are made to agree with the entries first,
+    for tests that replace a payload and mean only its content to be wrong."""
+    from splatstream.format.manifest import pack_manifest_dict
 
-    (pathlib.Path(scene_dir) / "manifest.msgpack").write_bytes(msgpack.packb(m, use_bin_type=True))
+    if settle:
+        settle_totals(m)
+    (pathlib.Path(scene_dir) / "manifest.msgpack").write_bytes(pack_manifest_dict(m))
+
+
+def settle_totals(m: dict) -> None:
+    from splatstream.format.manifest import pack_manifest_dict
+
+    leaves = [p for t in m["tiles"] if not t["children"] for p in t["groups"].values()]
+    leaves += list((m.get("sh_codebook") or {}).get("groups", {}).values())
+    m["gpu_bytes"] = sum(p["gpu_bytes"] for p in leaves)
+    m["leaf_bytes_on_disk"] = sum(p["bytes"] for p in leaves)
+    every = {p["file"]: p["bytes"] for t in m["tiles"] for p in t["groups"].values()}
+    every.update({p["file"]: p["bytes"] for p in (m.get("sh_codebook") or {}).get("groups", {}).values()})
+    for _ in range(3):  # the number's own msgpack length can change the manifest's length once
+        m["bytes_on_disk"] = sum(every.values()) + len(pack_manifest_dict(m))

@@ -170,7 +170,7 @@ def _payload_case(tmp_path, mutate):
     sha = hashlib.sha256(data).hexdigest()
     (tmp_path / "s" / "data" / f"{sha}.bin").write_bytes(data)
     base.update(file=f"data/{sha}.bin", sha256=sha, bytes=len(data))
-    write_manifest_dict(tmp_path / "s", d)
+    write_manifest_dict(tmp_path / "s", d, settle=True)
     return tmp_path / "s"
 
 
@@ -209,3 +209,102 @@ def test_non_regular_payload_is_refused_without_blocking(tmp_path):
         decode_scene(tmp_path / "s")
     r = run_cli("render", tmp_path / "s", "--out", tmp_path / "o.png")
     assert r.returncode == 2 and "not a regular file" in r.stderr and "Traceback" not in r.stderr
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The manifest's own checksum (format 1.2, format.md 6 "Checksum"; issue 19 finding 8)
+
+
+def test_checksum_is_the_sha256_of_the_file_with_its_value_zeroed():
+    import hashlib
+
+    for preset in ("high", "low"):
+        data = (VECTORS / preset / "manifest.msgpack").read_bytes()
+        d = msgpack.unpackb(data, raw=False)
+        assert list(d)[-1] == "checksum" and d["version"] == [1, 2]
+        assert data.endswith(d["checksum"].encode()) and len(d["checksum"]) == 64
+        assert hashlib.sha256(data[:-64] + b"0" * 64).hexdigest() == d["checksum"]
+
+
+def test_every_flipped_bit_of_a_manifest_is_detected():
+    """Each byte of the manifest with one bit flipped: never accepted (the checksum or the parser says so)."""
+    data = (VECTORS / "medium" / "manifest.msgpack").read_bytes()
+    outcomes: dict[str, int] = {}
+    for i in range(len(data)):
+        corrupt = bytearray(data)
+        corrupt[i] ^= 1 << (i % 8)
+        with pytest.raises(FormatError) as err:
+            parse_manifest(bytes(corrupt), "m")
+        kind = "checksum" if "checksum" in str(err.value) else "other"
+        outcomes[kind] = outcomes.get(kind, 0) + 1
+    # The rest break the msgpack structure, the format or version key first (each still a FormatError).
+    assert outcomes["checksum"] > 0.7 * len(data), outcomes
+
+
+@pytest.mark.parametrize("command", ["info", "decode", "render"])
+def test_cli_reports_a_corrupt_manifest(tmp_path, command):
+    """The campaign's `fil4er`, `shuffle0` and offset-by-4 edits, made in the bytes (no reseal): the checksum
+    names the file (before 1.2 only the schema could catch them, and only some)."""
+    shutil.copytree(VECTORS / "medium", tmp_path / "s")
+    path = tmp_path / "s" / "manifest.msgpack"
+    data = path.read_bytes()
+    path.write_bytes(data.replace(b"shuffle4", b"shuffle2", 1))
+    args = {"info": [], "decode": [tmp_path / "o.ply"], "render": ["--out", tmp_path / "o.png"]}[command]
+    r = run_cli(command, tmp_path / "s", *args)
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert f"{path}: checksum: checksum mismatch" in r.stderr and len(r.stderr.strip().splitlines()) == 1
+
+
+def test_checksum_must_be_present_last_and_well_formed(tmp_path, raw):
+    base = msgpack.packb(raw, use_bin_type=True)
+    assert parse_manifest(base, "m").version == (1, 2)
+    d = copy.deepcopy(raw)
+    del d["checksum"]
+    with pytest.raises(FormatError, match="checksum: missing"):
+        parse_manifest(msgpack.packb(d, use_bin_type=True), "m")
+    d = copy.deepcopy(raw)
+    d = {"checksum": d.pop("checksum"), **d}  # first instead of last
+    with pytest.raises(FormatError, match="checksum: not the manifest's last key"):
+        parse_manifest(msgpack.packb(d, use_bin_type=True), "m")
+    d = copy.deepcopy(raw)
+    d["checksum"] = d["checksum"].upper()
+    with pytest.raises(FormatError, match="checksum: expected 64 lowercase hex digits"):
+        parse_manifest(msgpack.packb(d, use_bin_type=True), "m")
+    with pytest.raises(FormatError, match="not a msgpack manifest"):  # bytes after the map
+        parse_manifest(base + b"\x00", "m")
+
+
+def test_older_manifests_without_checksum_still_read(tmp_path, raw):
+    """1.0 and 1.1 manifests have no checksum and still read; in them a `checksum` key is an unknown key."""
+    from splatstream.decoder import decode_scene
+
+    shutil.copytree(VECTORS / "low", tmp_path / "s")
+    d = copy.deepcopy(raw)
+    del d["checksum"]
+    d["version"] = [1, 1]
+    (tmp_path / "s" / "manifest.msgpack").write_bytes(msgpack.packb(d, use_bin_type=True))
+    assert len(decode_scene(tmp_path / "s")) == 260
+    d["checksum"] = raw["checksum"]
+    (tmp_path / "s" / "manifest.msgpack").write_bytes(msgpack.packb(d, use_bin_type=True))
+    with pytest.raises(FormatError, match="unknown key 'checksum'"):
+        decode_scene(tmp_path / "s")
+    shutil.copytree(VECTORS / "medium", tmp_path / "m")
+    d = read_manifest_dict(tmp_path / "m")
+    d["version"] = [1, 0]
+    write_manifest_dict(tmp_path / "m", d)  # written as a 1.0 file: no checksum
+    assert "checksum" not in read_manifest_dict(tmp_path / "m") and len(decode_scene(tmp_path / "m")) == 260
+
+
+def test_totals_are_cross_checked(tmp_path, raw):
+    """gpu_bytes and leaf_bytes_on_disk are recomputed from the entries, bytes_on_disk from the files (1.2)."""
+    for key, delta in (("gpu_bytes", 16), ("leaf_bytes_on_disk", -1)):
+        d = copy.deepcopy(raw)
+        d[key] += delta
+        with pytest.raises(FormatError, match=f"^m: {key}: "):
+            manifest_from_dict(d, "m")
+    d = copy.deepcopy(raw)
+    d["bytes_on_disk"] += 1
+    from splatstream.format.manifest import pack_manifest_dict
+
+    with pytest.raises(FormatError, match="bytes_on_disk: .* but the payload files and the manifest are"):
+        parse_manifest(pack_manifest_dict(d), "m")

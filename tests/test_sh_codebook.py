@@ -80,7 +80,7 @@ def test_index_plane_round_trips():
 def test_encoded_codebook_round_trips_within_one_step(fruit, tmp_path):
     m = encode_gaussians(fruit, tmp_path / "s", EncodeOptions(preset="low", lod=False))
     cb = m.sh_codebook
-    assert m.version == (1, 2) and cb.entries == 64 and cb.index_format == "index16"  # 1.2: fields1 sections
+    assert m.version == (1, 2) and cb.entries == 64 and cb.index_format == "index16"
     assert cb.format == m.formats["sh"] == "norm565"
     assert set(cb.groups) == {"sh1", "sh2", "sh3"} and set(m.tiles[0].groups) == {"base", "sh1"}
     # The codebook the encoder fitted (deterministic for the same input), entries numbered by falling use.
@@ -143,14 +143,15 @@ def test_lod_tiles_share_one_codebook(fruit, tmp_path):
     assert len(leaves) == len(fruit)
 
 
-def test_scenes_get_the_lowest_version_that_has_their_features(fruit, tmp_path):
+def test_every_scene_is_version_1_2(fruit, tmp_path):
+    # Before 1.2 a scene without a codebook was written as 1.0 (1.1 with one); every scene a writer makes now has a
+    # manifest checksum, so it is 1.2 (format.md 6), with fields1 sections or (--transport shuffle) without.
     few = fruit.subset(morton_order(fruit.positions)[:600])
-    m = encode_gaussians(few, tmp_path / "s", EncodeOptions(preset="medium", transport="shuffle"))
-    assert m.version == (1, 0) and m.sh_codebook is None
-    m = encode_gaussians(few, tmp_path / "s", EncodeOptions(preset="low", transport="shuffle"))
-    assert m.version == (1, 1) and m.sh_codebook is not None
     m = encode_gaussians(few, tmp_path / "s", EncodeOptions(preset="medium"))
-    assert m.version == (1, 2) and m.sh_codebook is None  # fields1 sections
+    assert m.version == (1, 2) and m.sh_codebook is None
+    m = encode_gaussians(few, tmp_path / "s", EncodeOptions(preset="low", transport="shuffle"))
+    assert m.version == (1, 2) and m.sh_codebook is not None
+    assert {s.filter for _, _, p in m.payloads() for s in p.sections} <= {"none", "shuffle2", "shuffle4"}
     m = encode_gaussians(fruit.subset(np.arange(600)), tmp_path / "t", EncodeOptions(preset="medium", sh_codebook=32))
     assert m.sh_codebook.entries == 32 and m.formats["sh"] == "norm565"
 

@@ -18,8 +18,8 @@ def test_vector_decodes_to_expected_values(preset):
     scene = VECTORS / preset
     expected = json.loads((scene / "expected.json").read_text())
     m = load_manifest(scene)
-    codebook = preset in ("low", "very-low")  # format 1.1: SH codebook
-    assert m.version == ((1, 1) if codebook else (1, 0)) and m.uses_codebook == codebook
+    codebook = preset in ("low", "very-low")  # SH codebook (format 1.1 and later)
+    assert m.version == (1, 2) and m.uses_codebook == codebook  # 1.2: the manifest carries its checksum
     assert m.preset == preset and m.splats == expected["splats"] == 260
     g = decode_scene(scene)
     for field in ("positions", "rotations", "log_scales", "opacities", "sh_dc", "sh_rest"):

@@ -47,6 +47,11 @@ def run(args: argparse.Namespace) -> int:
 
     say(f"reading {args.input} ({FORMAT_NAMES[in_format]})")
     g = read_gaussians(args.input, drop_invalid=args.drop_invalid)
+    if len(g) == 0:  # an empty .splat (or any format without a count) could not be read back
+        from ..errors import InputError
+
+        raise InputError(args.input, None, "holds no splats (none, or none left after dropping invalid ones); "
+                         "nothing to convert")
     say(f"read {len(g)} splats, SH degree {g.sh_degree}")
     if out_format == "splat" and g.sh_degree > 0:
         say(f"note: .splat has no SH bands; bands 1..{g.sh_degree} are dropped")

@@ -91,9 +91,9 @@ def run(args: argparse.Namespace) -> int:
     if args.max_sse is not None and not args.max_sse >= 0:
         raise UsageError(f"--max-sse {args.max_sse}: expected 0 or more pixels")
     t0 = time.perf_counter()
-    if os.path.isdir(args.scene):
-        if not is_scene_dir(args.scene):
-            raise UsageError(f"{args.scene}: a directory without manifest.msgpack is not a scene")
+    # A directory is an encoded scene (or a damaged one: it has data/), else a SOG scene directory or nothing
+    # readable, which read_gaussians reports.
+    if os.path.isdir(args.scene) and (is_scene_dir(args.scene) or os.path.isdir(os.path.join(args.scene, "data"))):
         manifest = load_manifest(args.scene)
         cam = _camera(args, manifest.camera.to_dict(), None, manifest.up, size)
         source = ("scene", args.scene)

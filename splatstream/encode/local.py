@@ -6,8 +6,10 @@ come back in submission order, so the output does not depend on scheduling.
 """
 from __future__ import annotations
 
+import contextlib
 import os
 import tempfile
+from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 
 from ..format.manifest import Manifest, TileEntry
@@ -28,7 +30,7 @@ def encode_to(g: Gaussians, writer: SceneWriter, opts: EncodeOptions, progress: 
     total = sum(len(t.gaussians) for t in plan.tiles) * len(groups)
     codebook = encode_codebook(ctx.codebook, ctx, writer) if ctx.codebook is not None else None
     entries: list[TileEntry] = []
-    with ThreadPoolExecutor(max_workers=min(2, os.cpu_count() or 1)) as pool:
+    with _pool(min(2, os.cpu_count() or 1)) as pool:
         orders = list(pool.map(lambda t: splat_order(t.gaussians, ctx.chunk_order), plan.tiles))
         camera = pool.submit(plan_camera, plan)
         # A single tile's bounds (the LOD tree computes its own) beside the payload jobs.
@@ -48,6 +50,19 @@ def encode_to(g: Gaussians, writer: SceneWriter, opts: EncodeOptions, progress: 
         m = build_manifest(plan, camera.result(), entries, codebook)
     writer.write_manifest(m)
     return m
+
+
+@contextlib.contextmanager
+def _pool(workers: int) -> Iterator[ThreadPoolExecutor]:
+    """A worker pool that, when the encode fails or is interrupted (Ctrl-C, SIGTERM), drops the jobs not yet
+    started and waits only for the running ones, so the writer can remove its temporary directory at once."""
+    pool = ThreadPoolExecutor(max_workers=workers)
+    try:
+        yield pool
+    except BaseException:
+        pool.shutdown(wait=True, cancel_futures=True)
+        raise
+    pool.shutdown(wait=True)
 
 
 def encode_gaussians(g: Gaussians, out_dir: str | os.PathLike, opts: EncodeOptions | None = None,

@@ -13,9 +13,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..errors import UsageError
+from ..errors import InputError, UsageError
 from ..format.container import DEFAULT_ZSTD_LEVEL
 from ..format.layout import CHUNK_SIZE, MAX_BLOCK_ROWS, MAX_BLOCKS_PER_ROW
+from ..format.limits import describe_violations, domain_violations
 from ..format.manifest import Box, CameraEntry
 from ..format.presets import resolve_chunk_order, resolve_formats
 from ..gaussians import Gaussians
@@ -80,7 +81,13 @@ def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progr
     formats = resolve_formats(opts.preset, opts.overrides)
     chunk_order = resolve_chunk_order(opts.chunk_order, formats)
     if len(g) == 0:
-        raise UsageError("the input holds no splats; nothing to encode")
+        raise InputError(source_name or "<gaussians>", None, "holds no splats (none, or none left after dropping "
+                         "invalid ones); nothing to encode")
+    # The encoder never writes what its readers refuse: values beyond the format's domain (format.md 4.8) would
+    # make a range non-finite or decode to NaN. Files read through io.read_gaussians are screened already.
+    violations = domain_violations(g)
+    if violations:
+        raise InputError(source_name or "<gaussians>", None, describe_violations(violations, len(g))[1])
     sh_degree = resolve_sh_degree(opts, g)
     if sh_degree != g.sh_degree:
         g = g.with_sh_degree(sh_degree)

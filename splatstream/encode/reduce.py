@@ -4,9 +4,7 @@ from __future__ import annotations
 from .. import __version__
 from ..format.layout import CHUNK_SIZE
 from ..format.manifest import (
-    BASE_VERSION,
-    CODEBOOK_VERSION,
-    FIELDS1_VERSION,
+    FORMAT_VERSION,
     AttributeSize,
     CameraEntry,
     LodInfo,
@@ -17,7 +15,6 @@ from ..format.manifest import (
 )
 from ..format.planes import BASE_PLANE_NAMES
 from ..format.presets import ATTRIBUTES
-from ..format.transport import FIELDS1
 from .plan import EncodePlan
 
 
@@ -62,12 +59,10 @@ def build_manifest(plan: EncodePlan, camera: CameraEntry, tiles: list[TileEntry]
             for group, entry in tile.groups.items():
                 sizes.add(entry, BASE_PLANE_NAMES if group == "base" else ("sh",))
     ordered = tuple(sorted(tiles, key=lambda t: t.id))
-    payloads = [p for t in ordered for p in t.groups.values()] + list(codebook.groups.values() if codebook else [])
-    fields1 = any(s.filter == FIELDS1 for p in payloads for s in p.sections)
     root = ordered[0]
     opts = plan.options
     m = Manifest(
-        version=FIELDS1_VERSION if fields1 else CODEBOOK_VERSION if codebook is not None else BASE_VERSION,
+        version=FORMAT_VERSION,  # every scene this writes is 1.2 (the manifest checksum), fields1 or not
         generator=f"splatstream {__version__}",
         name=plan.name,
         splats=plan.splats,

@@ -17,6 +17,7 @@ import numpy as np
 
 from ..gaussians import SH_BAND_COEFFS, Gaussians, logit, normalize_quaternions, sigmoid
 from .layout import CHUNK_SIZE, chunk_texel_index, texture_size
+from .limits import plane_limits
 from .planes import SH_INDEX_FORMAT, SH_INDEX_PLANE, PlaneSpec
 from .texformats import TEXEL_DTYPES, decode_image, encode_bc_image, get_format, pack_texels, unpack_texels
 
@@ -143,8 +144,14 @@ def _pad_to_chunks(values: np.ndarray) -> np.ndarray:
     return np.concatenate([values, np.repeat(values[-1:], padded - n, axis=0)])
 
 
-def chunk_ranges(values: np.ndarray, range_dtype: str) -> tuple[np.ndarray, np.ndarray]:
-    """Per-chunk (min, max) over axis 0 of (N, ...) values, widened to what range_dtype can hold exactly."""
+def chunk_ranges(values: np.ndarray, range_dtype: str,
+                 limits: tuple[float, float] | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Per-chunk (min, max) over axis 0 of (N, ...) values, widened to what range_dtype can hold exactly.
+
+    `limits`: the plane's value domain (format.md 4.8). Values the encoder made itself (SH codebook entries, merged
+    LOD splats) are weighted means of values inside it, but float rounding can put them an ulp outside: 65504 +
+    an ulp would round out to an infinite f16 range. The range is clamped to the domain (such values then decode
+    to its edge)."""
     full = len(values) // CHUNK_SIZE * CHUNK_SIZE
     # Reduce along a contiguous axis of 256: numpy is several times faster there than over a middle axis.
     v = np.moveaxis(values[:full], 0, -1).copy().reshape(*values.shape[1:], -1, CHUNK_SIZE)
@@ -153,6 +160,8 @@ def chunk_ranges(values: np.ndarray, range_dtype: str) -> tuple[np.ndarray, np.n
     if full < len(values):
         lo = np.concatenate([lo, values[full:].min(axis=0, keepdims=True)])
         hi = np.concatenate([hi, values[full:].max(axis=0, keepdims=True)])
+    if limits is not None:
+        lo, hi = np.clip(lo, *limits), np.clip(hi, *limits)
     if range_dtype == "<f2":
         lo, hi = f16_floor(lo), f16_ceil(hi)
     else:
@@ -205,7 +214,7 @@ def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.n
         for layer in range(spec.layers):
             v = values[:, layer] if order is None else np.take(values[:, layer], order, axis=0)
             if spec.range_dtype:
-                lo, hi = chunk_ranges(v, spec.range_dtype)
+                lo, hi = chunk_ranges(v, spec.range_dtype, plane_limits(spec.name))
                 lo32, hi32 = lo.astype(np.float32), hi.astype(np.float32)
                 extent = hi32 - lo32
                 inv = np.divide(1.0, extent, out=np.zeros_like(extent), where=extent > 0)

@@ -22,9 +22,11 @@ import zstandard
 from ..errors import FormatError
 from .codec import EncodedPlane
 from .layout import ALIGN
+from .limits import MAX_ABS_POSITION, MAX_LOG_SCALE, MIN_LOG_SCALE
 from .manifest import PayloadEntry, Section
 from .names import payload_name, sha256_hex
 from .planes import RANGE_DTYPE_NAMES, group_planes
+from .texformats import TEXEL_DTYPES
 from .transport import filter_texels, shuffle, shuffle_filter, unfilter_texels, unshuffle
 
 WORKER_MODE_MAX_BYTES = 32 << 20
@@ -149,13 +151,46 @@ def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, so
         s = entry.section(spec.name)
         layers = unfilter_texels(buf[s.offset:s.offset + s.size], s.filter, s.format, s.width, s.height,
                                  spec.layers, f"{source} section {s.name}")
+        if s.format in FLOAT_TEXEL_FORMATS:
+            _check_float_texels(layers, s, source)
         ranges = None
         if spec.range_dtype:
             r = entry.section(spec.range_name)
             data_r = unshuffle(buf[r.offset:r.offset + r.size], r.element)
             ranges = data_r.view(np.dtype(spec.range_dtype)).reshape(r.shape)
-            if not np.isfinite(ranges).all():
-                raise FormatError(source, f"section {r.name}", "non-finite range values")
+            _check_ranges(ranges, spec.name, r.name, source)
         planes[spec.name] = EncodedPlane(spec, s.format, s.width, s.height, layers, ranges)
     return planes
+
+
+# Float texel formats store t as a float, which could hold anything; integer and BC formats cannot leave [0, 1].
+FLOAT_TEXEL_FORMATS = ("f32x4", "f16x4")
+# Where a plane's values may lie (format.md 4.8); the other ranged planes are bounded by their f16 storage.
+RANGE_LIMITS = {"position": (-MAX_ABS_POSITION, MAX_ABS_POSITION), "scale": (MIN_LOG_SCALE, MAX_LOG_SCALE)}
+
+
+def _check_float_texels(layers: list[np.ndarray], s: Section, source: str) -> None:
+    """format.md 4.2: every texel of a float format holds t in [0, 1] (a hostile t would decode to inf or NaN)."""
+    dtype = TEXEL_DTYPES[s.format].base
+    for layer in layers:
+        t = np.frombuffer(layer, dtype)
+        if not ((t >= 0) & (t <= 1)).all():  # NaN compares False
+            bad = t[~((t >= 0) & (t <= 1))]
+            raise FormatError(source, f"section {s.name}", f"{bad.size} {s.format} texel values outside [0, 1] "
+                              f"(first {float(bad[0])!r})")
+
+
+def _check_ranges(ranges: np.ndarray, plane: str, name: str, source: str) -> None:
+    """format.md 4.3 and 4.8: finite, min <= max, inside the plane's value domain. Then min + t (max - min) is
+    finite for every t in [0, 1], in every decoder (numpy here, the GL client's shaders)."""
+    lo, hi = ranges[:, 0].astype(np.float64), ranges[:, 1].astype(np.float64)
+    if not (np.isfinite(lo).all() and np.isfinite(hi).all()):
+        raise FormatError(source, f"section {name}", "non-finite range values")
+    if (lo > hi).any():
+        chunk = int(np.argmax((lo > hi).reshape(len(lo), -1).any(axis=1)))
+        raise FormatError(source, f"section {name}", f"chunk {chunk}: a range minimum exceeds its maximum")
+    limit = RANGE_LIMITS.get(plane)
+    if limit is not None and (lo.min() < limit[0] or hi.max() > limit[1]):
+        raise FormatError(source, f"section {name}", f"range [{lo.min():g}, {hi.max():g}] leaves the {plane} "
+                          f"domain [{limit[0]:g}, {limit[1]:g}] (format.md 4.8)")
 

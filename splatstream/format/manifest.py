@@ -9,6 +9,7 @@ against the planes its group must hold. `Manifest.to_dict()` gives back the spec
 from __future__ import annotations
 
 import functools
+import hashlib
 import math
 from collections.abc import Iterator
 from dataclasses import dataclass, field, replace
@@ -32,12 +33,13 @@ from .texformats import FORMATS, VALUE_FORMATS, blob_size
 from .transport import FIELD_LAYOUTS, FIELDS1, content_bounds
 
 FORMAT_NAME = "splatstream"
-FORMAT_VERSION = (1, 2)  # (major, minor) this code reads and writes
-# Scenes are written with the lowest version that has their features, so older readers still read them:
-# 1.0 without them, 1.1 with the SH codebook (format.md 4.7), 1.2 with a `fields1` section (format.md 5.2).
-BASE_VERSION = (1, 0)
-CODEBOOK_VERSION = (1, 1)
-FIELDS1_VERSION = (1, 2)
+FORMAT_VERSION = (1, 2)  # (major, minor) this code reads and writes; every scene it writes is 1.2
+# Version 1.2 added two things (format.md, version history): the manifest's last key `checksum`, the SHA-256 of the
+# file with that value's 64 bytes read as ASCII '0' (format.md 6, "Checksum"), so a flipped byte in the manifest is
+# caught like one in a payload; and the `fields1` transport coding of texels sections (format.md 5.2).
+CHECKSUM_VERSION = (1, 2)
+CHECKSUM_KEY = "checksum"
+CHECKSUM_PLACEHOLDER = b"0" * 64
 MAX_MANIFEST_BYTES = 64 << 20
 # A payload may not claim to decompress to more than this (guards readers against decompression bombs).
 MAX_PAYLOAD_RAW_BYTES = 2 << 30
@@ -342,7 +344,45 @@ class Manifest:
 
 
 def pack_manifest(m: Manifest) -> bytes:
-    return msgpack.packb(m.to_dict(), use_bin_type=True)
+    """The manifest file's bytes (with its checksum from version 1.2 on)."""
+    return pack_manifest_dict(m.to_dict())
+
+
+def pack_manifest_dict(d: dict) -> bytes:
+    """A manifest map as the file of its version: from 1.2 on `checksum` is moved to the end and computed (the
+    map is packed with 64 ASCII '0' as its value, hashed, and the digest patched in); before 1.2 it is left out."""
+    d = {k: v for k, v in d.items() if k != CHECKSUM_KEY}
+    version = d.get("version")
+    two_ints = isinstance(version, (list, tuple)) and len(version) == 2 and all(
+        isinstance(v, int) and not isinstance(v, bool) for v in version)
+    if not (two_ints and tuple(version) >= CHECKSUM_VERSION):
+        return msgpack.packb(d, use_bin_type=True)
+    d[CHECKSUM_KEY] = CHECKSUM_PLACEHOLDER.decode()
+    packed = msgpack.packb(d, use_bin_type=True)
+    assert packed.endswith(CHECKSUM_PLACEHOLDER)  # a 64-character str is the last thing in the map
+    return packed[:-64] + manifest_checksum(packed).encode()
+
+
+def manifest_checksum(raw: bytes) -> str:
+    """SHA-256 (hex) of manifest bytes whose last 64 bytes are the checksum value, read as 64 ASCII '0'."""
+    return hashlib.sha256(raw[:-64] + CHECKSUM_PLACEHOLDER).hexdigest()
+
+
+def _verify_checksum(raw: bytes, d: dict, source: str) -> None:
+    """format.md 6, Checksum: a 1.2+ manifest's last key is `checksum`, its value the file's last 64 bytes."""
+    keys = list(d)
+    if CHECKSUM_KEY not in d:
+        raise FormatError(source, CHECKSUM_KEY, f"missing (a version {d['version'][0]}.{d['version'][1]} manifest "
+                          "ends with its checksum)")
+    value = d[CHECKSUM_KEY]
+    if not isinstance(value, str) or not SHA256_HEX_RE.match(value):
+        raise FormatError(source, CHECKSUM_KEY, f"expected 64 lowercase hex digits, got {value!r}")
+    if keys[-1] != CHECKSUM_KEY or raw[-64:] != value.encode():
+        raise FormatError(source, CHECKSUM_KEY, "not the manifest's last key and value")
+    actual = manifest_checksum(raw)
+    if actual != value:
+        raise FormatError(source, CHECKSUM_KEY, f"checksum mismatch: the manifest is corrupt (it records {value}, "
+                          f"its bytes hash to {actual})")
 
 
 def filter_element(name: str) -> int:
@@ -643,15 +683,22 @@ def expected_sections(group: str, codebook: bool, formats: dict[str, str], chunk
 
 
 def parse_manifest(raw: bytes, source: str = MANIFEST_NAME) -> Manifest:
+    """Parse and validate manifest file bytes; from version 1.2 on the checksum is verified first."""
     try:
         d = msgpack.unpackb(raw, raw=False, strict_map_key=False)
     except Exception as exc:  # msgpack raises several unrelated types for garbage
         raise FormatError(source, None, f"not a msgpack manifest ({exc.__class__.__name__}: {exc})") from None
-    return manifest_from_dict(d, source)
+    version = _check_format_and_version(d, source)
+    if version >= CHECKSUM_VERSION:
+        _verify_checksum(raw, d, source)
+    manifest = manifest_from_dict(d, source)
+    if CHECKSUM_VERSION <= version <= FORMAT_VERSION and manifest.bytes_on_disk != manifest.payload_bytes() + len(raw):
+        raise FormatError(source, "bytes_on_disk", f"{manifest.bytes_on_disk}, but the payload files and the "
+                          f"manifest are {manifest.payload_bytes() + len(raw)} bytes")
+    return manifest
 
 
-def manifest_from_dict(d, source: str = MANIFEST_NAME) -> Manifest:
-    """Validate a manifest map (format.md 6) into a Manifest; FormatError names the first field that is wrong."""
+def _check_format_and_version(d, source: str) -> tuple[int, int]:
     if not isinstance(d, dict) or d.get("format") != FORMAT_NAME:
         raise FormatError(source, "format", f"expected {FORMAT_NAME!r}; this is not a splatstream manifest")
     version = d.get("version")
@@ -661,11 +708,20 @@ def manifest_from_dict(d, source: str = MANIFEST_NAME) -> Manifest:
     if version[0] != FORMAT_VERSION[0]:
         raise FormatError(source, "version", f"format version {version[0]}.{version[1]} is not supported by this "
                           f"reader (it reads major version {FORMAT_VERSION[0]}); upgrade splatstream")
+    return version[0], version[1]
+
+
+def manifest_from_dict(d, source: str = MANIFEST_NAME) -> Manifest:
+    """Validate a manifest map (format.md 6) into a Manifest; FormatError names the first field that is wrong.
+    (The checksum, a property of the file's bytes, is verified by parse_manifest.)"""
+    version = _check_format_and_version(d, source)
     # Keys are added only in new minor versions: in a version this reader knows, an unknown key is damage.
     strict = version[1] <= FORMAT_VERSION[1]
     m = _Map(source, "", d, strict)
     m.raw("format")
     m.raw("version")
+    if version >= CHECKSUM_VERSION:
+        m.raw(CHECKSUM_KEY, optional=True)
     splats = m.int("splats", 1)
     sh_degree = m.int("sh_degree", 0, MAX_SH_DEGREE)
     fm = m.map("formats")
@@ -761,6 +817,19 @@ def manifest_from_dict(d, source: str = MANIFEST_NAME) -> Manifest:
         attributes=attributes, encode_seconds=m.float("encode_seconds", 0.0),
         bytes_on_disk=m.int("bytes_on_disk"))
     m.done()
+    if not strict:  # a newer minor version may add payloads these totals count; only its own keys are checked
+        return manifest
+    # Totals a reader can recompute must agree (a resealed but edited manifest, or a writer's bug).
+    leaf_entries = [p for t in manifest.leaves for p in t.groups.values()]
+    if codebook is not None:
+        leaf_entries += list(codebook.groups.values())
+    gpu = sum(p.gpu_bytes for p in leaf_entries)
+    if manifest.gpu_bytes != gpu:
+        m.fail("gpu_bytes", f"{manifest.gpu_bytes}, but the leaf tiles' and codebook's sections hold {gpu} bytes")
+    disk = sum(p.bytes for p in leaf_entries)
+    if manifest.leaf_bytes_on_disk != disk:
+        m.fail("leaf_bytes_on_disk", f"{manifest.leaf_bytes_on_disk}, but the leaf tiles' and codebook's payloads "
+               f"are {disk} bytes")
     return manifest
 
 

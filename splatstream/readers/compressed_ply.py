@@ -15,14 +15,15 @@ import numpy as np
 
 from ..errors import InputError
 from ..gaussians import SH_C0, Gaussians, normalize_quaternions
-from ..ply import PlyHeader, read_elements, read_header
-from . import opacity_logits_from_unit
+from ..ply import PlyHeader, check_element_sizes, read_elements, read_header
+from . import check_memory, model_bytes_per_splat, opacity_logits_from_unit
 
 CHUNK_SIZE = 256
 CHUNK_BOUNDS = ["min_x", "min_y", "min_z", "max_x", "max_y", "max_z",
                 "min_scale_x", "min_scale_y", "min_scale_z", "max_scale_x", "max_scale_y", "max_scale_z"]
 CHUNK_COLOR_BOUNDS = ["min_r", "min_g", "min_b", "max_r", "max_g", "max_b"]
 PACKED = ["packed_position", "packed_rotation", "packed_scale", "packed_color"]
+SH_DEGREE_OF = {3: 1, 8: 2, 15: 3}  # SH rest coefficients per channel -> degree
 
 
 def is_compressed_ply(header: PlyHeader) -> bool:
@@ -111,6 +112,9 @@ def read_compressed_ply(path: str | os.PathLike, drop_invalid: bool = False) -> 
     if header.format != "binary_little_endian":
         raise InputError(path, "header", f"format {header.format}: a compressed PLY is binary_little_endian")
     n, has_color, k = _check_schema(path, header)
+    check_element_sizes(path, header)
+    # Packed words, SH bytes, and the float64 temporaries of decoding (about 6x the float32 model).
+    check_memory(path, "element vertex", n, 16 + 3 * k + 6 * model_bytes_per_splat(k and SH_DEGREE_OF[k]))
     _, elements = read_elements(path, header)  # checks every element's size against the file length
     chunk, vertex = elements["chunk"], elements["vertex"]
     bound_names = CHUNK_BOUNDS + (CHUNK_COLOR_BOUNDS if has_color else [])

@@ -24,7 +24,7 @@ import numpy as np
 from ..errors import InputError
 from ..gaussians import SH_BAND_COEFFS, Gaussians, normalize_quaternions
 from ..sh import sh_basis
-from . import memory_budget, opacity_logits_from_unit
+from . import memory_budget, opacity_logits_from_unit, read_regular_file
 from .splat import MIN_LOG_SCALE
 
 GLB_HEADER = struct.Struct("<4sII")
@@ -70,10 +70,10 @@ class _Document:
             raise InputError(self.path, key, f"index {index!r} does not name one of the {len(items)} {key}")
         return items[index]
 
-    def buffer(self, index: int) -> bytes:
+    def buffer(self, index: object) -> bytes:
+        buffer = self.item("buffers", index)  # checks the index (a JSON value of any type) first
         if index in self.buffers:
             return self.buffers[index]
-        buffer = self.item("buffers", index)
         length = buffer.get("byteLength")
         if not isinstance(length, int) or length < 0:
             raise InputError(self.path, f"buffers[{index}].byteLength", f"{length!r} (expected a byte count)")
@@ -108,10 +108,7 @@ class _Document:
         full = os.path.realpath(os.path.join(root, unquote(uri)))
         if os.path.commonpath([root, full]) != root or not os.path.isfile(full):
             raise InputError(self.path, f"buffers[{index}].uri", f"{uri!r} is not a file inside {root}")
-        if os.path.getsize(full) > memory_budget():
-            raise InputError(full, None, "larger than the memory budget")
-        with open(full, "rb") as f:
-            return f.read()
+        return read_regular_file(full, memory_budget(), self.path, f"buffers[{index}].uri")
 
     def buffer_view(self, index: object) -> tuple[bytes, int, int, int | None]:
         """(buffer, byteOffset, byteLength, byteStride) of a buffer view, checked against its buffer."""
@@ -226,12 +223,18 @@ def _node_matrices(doc: _Document) -> list[tuple[int, np.ndarray]]:
         raise InputError(doc.path, "scene.nodes", "expected a list")
     out: list[tuple[int, np.ndarray]] = []
     stack = [(r, np.eye(4)) for r in reversed(roots)]
-    visited = 0
+    visited: set[int] = set()
     while stack:
         index, parent = stack.pop()
-        visited += 1
-        if visited > MAX_NODES:
-            raise InputError(doc.path, "nodes", f"more than {MAX_NODES} node visits (a cycle?)")
+        # glTF nodes form disjoint strict trees: a node reached twice is a cycle or a shared child (refused at
+        # once: a cycle used to be walked 65,536 times, 9 s).
+        if isinstance(index, int) and index in visited:
+            raise InputError(doc.path, f"nodes[{index}]", "reached twice: the node hierarchy is not a set of trees "
+                             "(a cycle, or a node with two parents)")
+        if isinstance(index, int):
+            visited.add(index)
+        if len(visited) > MAX_NODES:
+            raise InputError(doc.path, "nodes", f"more than {MAX_NODES} nodes")
         node = doc.item("nodes", index)
         world = parent @ _local_matrix(doc.path, index, node)
         if "mesh" in node:
@@ -247,17 +250,18 @@ def _local_matrix(path: str, index: int, node: dict) -> np.ndarray:
     try:
         if "matrix" in node:
             m = np.asarray(node["matrix"], np.float64)
-            if m.shape != (16,):
+            if m.shape != (16,) or not np.isfinite(m).all():
                 raise ValueError
             return m.reshape(4, 4).T  # column-major
         t = np.asarray(node.get("translation", [0, 0, 0]), np.float64)
         x, y, z, w = np.asarray(node.get("rotation", [0, 0, 0, 1]), np.float64)
         s = np.asarray(node.get("scale", [1, 1, 1]), np.float64)
-        if t.shape != (3,) or s.shape != (3,):
+        if t.shape != (3,) or s.shape != (3,) or not (np.isfinite(t).all() and np.isfinite(s).all() and
+                                                       np.isfinite([x, y, z, w]).all()):
             raise ValueError
     except (ValueError, TypeError):
         raise InputError(path, f"nodes[{index}]", "matrix / translation / rotation / scale of the wrong shape "
-                         "or type") from None
+                         "or type, or not finite") from None
     r = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)],
                   [2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)],
                   [2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)]])
@@ -293,13 +297,15 @@ def _apply_matrix(path: str, g: Gaussians, m: np.ndarray) -> Gaussians:
     if not np.isfinite(m).all() or np.abs(m[3] - [0, 0, 0, 1]).max() > 1e-9:
         raise InputError(path, "node transform", "not a finite affine matrix")
     norms = np.linalg.norm(a, axis=0)
-    rotation = a / norms[None, :]
-    if norms.min() <= 0 or norms.max() / norms.min() > 1 + 1e-5 or \
-            np.abs(rotation.T @ rotation - np.eye(3)).max() > 1e-5 or np.linalg.det(rotation) < 0:
+    if not norms.min() > 0 or norms.max() / norms.min() > 1 + 1e-5 or \
+            np.abs((a / norms).T @ (a / norms) - np.eye(3)).max() > 1e-5 or np.linalg.det(a / norms) < 0:
         raise InputError(path, "node transform", f"column lengths {norms.round(6).tolist()}: only rotations with a "
                          "uniform positive scale are supported (the extension leaves other transforms undefined)")
+    rotation = a / norms[None, :]
     scale = float(norms.mean())
-    positions = (g.positions.astype(np.float64) @ a.T + m[:3, 3]).astype(np.float32)
+    # A huge scale or translation overflows float32 here; the value screen of io.read_gaussians reports those.
+    with np.errstate(over="ignore", invalid="ignore"):
+        positions = (g.positions.astype(np.float64) @ a.T + m[:3, 3]).astype(np.float32)
     # Node rotation as a quaternion (w, x, y, z), composed in front of every splat's rotation.
     qn = _matrix_to_quaternion(rotation)
     q = g.rotations.astype(np.float64)
@@ -425,7 +431,9 @@ def read_gltf(path: str | os.PathLike, drop_invalid: bool = False, spz_axes: str
     used = doc.gltf.get("extensionsUsed", [])
     required = doc.gltf.get("extensionsRequired", [])
     supported = {EXTENSION, SPZ_EXTENSION}
-    unknown = [e for e in required if e not in supported] if isinstance(required, list) else []
+    if not isinstance(required, list) or not all(isinstance(e, str) for e in required):
+        raise InputError(path, "extensionsRequired", f"{required!r} (expected a list of extension names)")
+    unknown = [e for e in required if e not in supported]
     if unknown:
         raise InputError(path, "extensionsRequired", f"{unknown} are not supported (we read {sorted(supported)})")
     parts: list[Gaussians] = []
@@ -434,7 +442,8 @@ def read_gltf(path: str | os.PathLike, drop_invalid: bool = False, spz_axes: str
         if not isinstance(primitives, list):
             raise InputError(path, f"meshes[{mesh}].primitives", "expected a list")
         for number, primitive in enumerate(primitives):
-            if not isinstance(primitive, dict) or EXTENSION not in (primitive.get("extensions") or {}):
+            extensions = primitive.get("extensions") if isinstance(primitive, dict) else None
+            if not isinstance(extensions, dict) or EXTENSION not in extensions:
                 continue
             g = _primitive(doc, mesh, number, primitive, drop_invalid, spz_axes)
             parts.append(_apply_matrix(path, g, world))

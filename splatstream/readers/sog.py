@@ -36,12 +36,15 @@ import numpy as np
 
 from ..errors import InputError
 from ..gaussians import SH_REST_COEFFS, Gaussians, normalize_quaternions
-from . import memory_budget, opacity_logits_from_unit
+from . import memory_budget, opacity_logits_from_unit, read_regular_file
 
 MAX_JSON_BYTES = 64 << 20
 # Bytes of memory a decoded splat costs at peak (six RGBA textures plus the float32 model and temporaries).
 BYTES_PER_SPLAT = 6 * 4 + 4 * (3 + 4 + 3 + 1 + 3 + 45) * 3
 MAX_LOD_NODES = 1 << 20
+# The low bytes of positions are close to noise: lossless WebP keeps about 3 bytes a splat of them (6 bytes a splat
+# for both position textures on the fixture). A count beyond 16 splats per byte of the two is not a real scene.
+MAX_SPLATS_PER_MEANS_BYTE = 16
 QUAT_ORDER = ((1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2))  # the three stored components per largest index
 
 
@@ -98,16 +101,9 @@ def _dir_source(directory: str, label: str) -> _Source:
         full = os.path.realpath(os.path.join(root, name))
         if os.path.commonpath([root, full]) != root:
             raise InputError(label, field, f"file name {name!r} leads outside the scene directory")
-        try:
-            size = os.path.getsize(full)
-            if size > memory_budget():
-                raise InputError(full, None, f"{size} bytes is more than the memory budget ({memory_budget()})")
-            with open(full, "rb") as f:
-                return f.read()
-        except FileNotFoundError:
-            raise InputError(label, field, f"names {name!r}, which does not exist in {directory}") from None
-        except IsADirectoryError:
-            raise InputError(label, field, f"names {name!r}, which is a directory") from None
+        if not os.path.lexists(full):
+            raise InputError(label, field, f"names {name!r}, which does not exist in {directory}")
+        return read_regular_file(full, memory_budget(), label, field)
 
     return _Source(directory, label, read)
 
@@ -170,11 +166,12 @@ def webp_size(data: bytes) -> tuple[int, int] | None:
 
 
 def _texture(source: _Source, name: str, field: str, count: int, max_texels: int,
-             width: int | None = None) -> np.ndarray:
+             width: int | None = None, data: bytes | None = None) -> np.ndarray:
     """Decode a lossless WebP into (texels, 4) uint8 after checking its size against what `count` implies."""
     from PIL import Image
 
-    data = source.read(name, field)
+    if data is None:
+        data = source.read(name, field)
     size = webp_size(data)
     if size is None:
         raise InputError(source.label, f"{field} ({name})", "not a lossless WebP image (SOG textures must be "
@@ -199,7 +196,8 @@ def _texture(source: _Source, name: str, field: str, count: int, max_texels: int
 def _codebook_lookup(label: str, field: str, codebook: np.ndarray, indices: np.ndarray) -> np.ndarray:
     if len(indices) and int(indices.max()) >= len(codebook):
         raise InputError(label, field, f"texel index {int(indices.max())} is past the {len(codebook)}-entry codebook")
-    return codebook[indices].astype(np.float32)
+    with np.errstate(over="ignore"):  # beyond float32: reported by the value screen of io.read_gaussians
+        return codebook[indices].astype(np.float32)
 
 
 def _read_unit(source: _Source, meta_name: str) -> Gaussians:
@@ -235,12 +233,20 @@ def _read_unit(source: _Source, meta_name: str) -> Gaussians:
     # twice the count plus slack is a generous ceiling that still bounds the decoded size by `count`.
     max_texels = 2 * count + 4096
     lo_name, hi_name = _files(label, "means", means, 2)
-    lo = _texture(source, name_of(lo_name), "means.files[0]", count, max_texels)[:count]
-    hi = _texture(source, name_of(hi_name), "means.files[1]", count, max_texels)[:count]
+    lo_data, hi_data = source.read(name_of(lo_name), "means.files[0]"), source.read(name_of(hi_name), "means.files[1]")
+    plausible = MAX_SPLATS_PER_MEANS_BYTE * (len(lo_data) + len(hi_data)) + 4096
+    if count > plausible:
+        raise InputError(label, "count", f"{count} splats, but the two position textures hold only "
+                         f"{len(lo_data) + len(hi_data)} bytes (at most {plausible} splats: positions of real "
+                         "scenes never compress that far; a corrupt count or a decompression bomb)")
+    lo = _texture(source, name_of(lo_name), "means.files[0]", count, max_texels, data=lo_data)[:count]
+    hi = _texture(source, name_of(hi_name), "means.files[1]", count, max_texels, data=hi_data)[:count]
+    del lo_data, hi_data
     value = (lo[:, :3].astype(np.float64) + 256.0 * hi[:, :3]) / 65535.0
     span = np.where(maxs - mins == 0, 1.0, maxs - mins)
     logged = mins + span * value
-    positions = (np.sign(logged) * np.expm1(np.abs(logged))).astype(np.float32)
+    with np.errstate(over="ignore"):  # beyond float32: reported by the value screen of io.read_gaussians
+        positions = (np.sign(logged) * np.expm1(np.abs(logged))).astype(np.float32)
     del lo, hi, value, logged
 
     quats = _texture(source, name_of(_files(label, "quats", meta["quats"], 1)[0]), "quats.files[0]", count,

@@ -12,7 +12,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..gaussians import SH_C0, Gaussians, normalize_quaternions, sigmoid
-from . import opacity_logits_from_unit
+from . import check_memory, model_bytes_per_splat, opacity_logits_from_unit
 
 SPLAT_RECORD = np.dtype([("position", "<f4", (3,)), ("scale", "<f4", (3,)), ("rgba", "u1", (4,)),
                          ("rotation", "u1", (4,))])
@@ -34,18 +34,21 @@ def read_splat(path: str | os.PathLike, drop_invalid: bool = False) -> Gaussians
     if size % SPLAT_RECORD.itemsize:
         raise InputError(path, "file length", f"{size} bytes is not a multiple of 32 (a .splat file is a sequence of "
                          f"32-byte records; {size % 32} bytes left over: truncated or not a .splat file)")
+    check_memory(path, None, size // SPLAT_RECORD.itemsize, SPLAT_RECORD.itemsize + 3 * model_bytes_per_splat(0))
     records = np.fromfile(path, SPLAT_RECORD)
     n = len(records)
     positions = records["position"]
     scales = records["scale"]
     with np.errstate(invalid="ignore"):
         bad_position = ~(np.abs(positions) < PLAUSIBLE_POSITION).all(axis=1)  # NaN compares False
-        bad_scale = ~((scales >= 0) & (scales < PLAUSIBLE_SCALE)).all(axis=1)
+        # A scale of 0 on one axis is a flat splat (a writer's exp() underflowed); 0 on all three is no splat at
+        # all, and what a zero-filled file or padding reads as.
+        bad_scale = ~((scales >= 0) & (scales < PLAUSIBLE_SCALE)).all(axis=1) | (scales == 0).all(axis=1)
     zero_rotation = (records["rotation"] == 128).all(axis=1)
     bad = bad_position | bad_scale | zero_rotation
     if bad.any():
         counts = (f"{int(bad_position.sum())} with a non-finite or implausible position (|x| >= 1e7), "
-                  f"{int(bad_scale.sum())} with a non-finite, negative or implausible scale, "
+                  f"{int(bad_scale.sum())} with a non-finite, negative, implausible (>= 1e7) or all-zero scale, "
                   f"{int(zero_rotation.sum())} with a zero-length quaternion (all four bytes 128)")
         if bad.sum() * 2 > n:
             raise InputError(path, "records", f"{int(bad.sum())} of {n} records are implausible ({counts}): "
@@ -88,5 +91,14 @@ def write_splat(g: Gaussians, path: str | os.PathLike) -> None:
     from ..atomic import atomic_file
 
     records = splat_records(g)
+    # The format has no header: readers (ours included) tell a .splat file from other bytes by plausible values,
+    # so records beyond those bounds would make the file unreadable. Refuse rather than write it.
+    with np.errstate(invalid="ignore"):
+        implausible = ~(np.abs(records["position"]) < PLAUSIBLE_POSITION).all(axis=1) | \
+            ~(records["scale"] < PLAUSIBLE_SCALE).all(axis=1) | (records["scale"] == 0).all(axis=1)
+    if implausible.any():
+        raise InputError(path, None, f"{int(implausible.sum())} of {len(g)} splats have a position beyond +-1e7 or a "
+                         "scale of 1e7 or more (or none at all), which .splat readers take for garbage (the format has "
+                         "no header); write .ply, .spz or .glb instead")
     with atomic_file(path) as f:
         records.tofile(f)

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..gaussians import SH_REST_COEFFS, Gaussians, normalize_quaternions
-from . import opacity_logits_from_unit
+from . import check_memory, model_bytes_per_splat, opacity_logits_from_unit
 
 MAGIC = b"NGSP"
 LEGACY_HEADER = struct.Struct("<4sIIBBBB")  # magic, version, numPoints, shDegree, fractionalBits, flags, reserved
@@ -31,10 +31,13 @@ FLAG_HAS_EXTENSIONS = 0x2
 STREAMS = ("positions", "alphas", "colors", "scales", "rotations", "sh")
 SH_DIM = {0: 0, 1: 3, 2: 8, 3: 15, 4: 24}  # SH coefficients per channel (beyond DC) for each degree
 COLOR_SCALE = 0.15  # SPZ stores colour bytes as f_dc * 0.15 * 255 + 127.5
-# Deflate cannot expand more than 1032:1, so a gzip stream of S bytes holds at most 1032 * S bytes; zstd can
-# in theory go further, but only for data with no entropy, which real attribute streams never are. A header
-# declaring more than this is hostile or corrupt, and is refused before anything is allocated.
-MAX_EXPANSION = 1032
+# Deflate cannot expand more than 1032:1 and zstd goes further only on data without entropy, but real attribute
+# streams are never near that: SPZ files of the real scenes (v3 and v4, SH degree 0 to 3, one with every SH
+# coefficient zero) hold 1.4 to 4.0 bytes of attributes per compressed byte. A header declaring more than 64 per
+# byte (plus 64 KiB for tiny files) describes a decompression bomb or a corrupt count, and is refused before
+# anything is allocated, as is one whose decoded splats would not fit the memory budget.
+MAX_EXPANSION = 64
+EXPANSION_SLACK = 64 << 10
 # RUB -> RDF is a 180 degree rotation about x: y and z flip, so do the quaternion's y and z, and each SH
 # basis function changes sign with its parity in (y, z). Per coefficient for degrees 1..4 (the order of the
 # reference code's flipSh for this conversion).
@@ -64,11 +67,13 @@ def _check_header(path: str, version: int, n: int, sh_degree: int, fractional_bi
                          "and 0x2 extensions)")
 
 
-def _check_count(path: str, n: int, needed: int, compressed: int) -> None:
-    if needed > MAX_EXPANSION * compressed + 4096:
-        raise InputError(path, "header numPoints", f"{n} points need {needed} bytes of attributes, but "
-                         f"{compressed} compressed bytes cannot hold more than {MAX_EXPANSION}x that "
-                         "(corrupt or hostile header)")
+def _check_count(path: str, n: int, needed: int, compressed: int, sh_degree: int) -> None:
+    if needed > MAX_EXPANSION * compressed + EXPANSION_SLACK:
+        raise InputError(path, "header numPoints", f"{n} points need {needed} bytes of attributes, but no real SPZ "
+                         f"file compresses its attributes more than {MAX_EXPANSION}:1 and this one has {compressed} "
+                         "compressed bytes (a decompression bomb, or a corrupt header)")
+    # The attribute bytes, the model, and the float temporaries of decoding (measured peak: about 3x the model).
+    check_memory(path, "header numPoints", n, needed // max(n, 1) + 3 * model_bytes_per_splat(sh_degree))
 
 
 def _gunzip_bounded(path: str, data: bytes, limit: int) -> bytes:
@@ -83,6 +88,10 @@ def _gunzip_bounded(path: str, data: bytes, limit: int) -> bytes:
     if not d.eof:
         raise InputError(path, "gzip stream", f"truncated: stream ends after {len(out)} of {limit} "
                          "decompressed bytes")
+    if d.unused_data:
+        what = "a second gzip member" if d.unused_data[:2] == b"\x1f\x8b" else "trailing bytes"
+        raise InputError(path, "gzip stream", f"{len(d.unused_data)} bytes follow the end of the SPZ gzip stream "
+                         f"({what}; an SPZ v2/v3 file is exactly one gzip member)")
     return out
 
 
@@ -107,7 +116,7 @@ def _read_legacy(path: str, data: bytes) -> tuple[dict, dict[str, bytes]]:
         raise InputError(path, "header flags", "extension records in a version 2/3 file are not supported")
     sizes = _point_sizes(version, sh_degree)
     needed = n * sum(sizes.values())
-    _check_count(path, n, needed, len(data))
+    _check_count(path, n, needed, len(data), sh_degree)
     body = _gunzip_bounded(path, data, LEGACY_HEADER.size + needed)
     if len(body) != LEGACY_HEADER.size + needed:
         raise InputError(path, "gzip stream", f"decompresses to {len(body)} bytes; {n} points of version {version} "
@@ -164,7 +173,7 @@ def _read_v4(path: str, data: bytes) -> tuple[dict, dict[str, bytes]]:
     if toc_end + total_compressed != len(data):
         raise InputError(path, "table of contents", f"streams total {total_compressed} compressed bytes, but "
                          f"{len(data) - toc_end} bytes follow the table (truncated or corrupt)")
-    _check_count(path, n, n * sum(sizes.values()), total_compressed)
+    _check_count(path, n, n * sum(sizes.values()), total_compressed, sh_degree)
     decompressor = zstandard.ZstdDecompressor()
     for name, (compressed, uncompressed) in zip(names, toc, strict=True):
         expected = n * sizes[name]

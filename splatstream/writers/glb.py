@@ -181,6 +181,9 @@ def write_glb(g: Gaussians, path: str | os.PathLike, compression: str = "none",
     """Write a .glb atomically (temporary name, then rename)."""
     from ..atomic import atomic_file
 
-    data = glb_bytes(g, compression, spz_version)
+    try:
+        data = glb_bytes(g, compression, spz_version)
+    except UsageError as exc:  # name the file being written
+        raise UsageError(f"{os.fspath(path)}: {exc}") from None
     with atomic_file(path) as f:
         f.write(data)

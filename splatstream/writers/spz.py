@@ -96,7 +96,8 @@ def _quantize_sh(x: np.ndarray, bucket: int) -> np.ndarray:
 
 def pack_streams(g: Gaussians, fractional_bits: int) -> dict[str, bytes]:
     """The six attribute arrays of `g` (already in SPZ's axes), in the reference packer's byte layout."""
-    alpha = np.float32(1) / (np.float32(1) + np.exp(-g.opacity_logits.astype(np.float32)))
+    with np.errstate(over="ignore"):  # exp overflows to inf for logits below -88: alpha is then exactly 0
+        alpha = np.float32(1) / (np.float32(1) + np.exp(-g.opacity_logits.astype(np.float32)))
     sh = g.sh_rest
     packed_sh = np.empty(sh.shape, np.uint8)
     packed_sh[:, :3] = _quantize_sh(sh[:, :3], 1 << (8 - SH1_BITS))
@@ -148,6 +149,9 @@ def write_spz(g: Gaussians, path: str | os.PathLike, version: int = 4) -> None:
     """Write an SPZ file atomically (temporary name, then rename)."""
     from ..atomic import atomic_file
 
-    data = spz_bytes(g, version)
+    try:
+        data = spz_bytes(g, version)
+    except UsageError as exc:  # name the file being written
+        raise UsageError(f"{os.fspath(path)}: {exc}") from None
     with atomic_file(path) as f:
         f.write(data)
