@@ -8,7 +8,14 @@ import time
 from ..encode import encode_file
 from ..errors import UsageError
 from ..format.container import DEFAULT_ZSTD_LEVEL
-from ..format.presets import ATTRIBUTES, DEFAULT_PRESET, PRESET_SH_CODEBOOK, PRESET_SUMMARY, PRESETS
+from ..format.presets import (
+    ATTRIBUTES,
+    DEFAULT_PRESET,
+    PRESET_SH_CODEBOOK,
+    PRESET_SUMMARY,
+    PRESET_ZSTD_LEVEL,
+    PRESETS,
+)
 from ..format.texformats import VALUE_FORMATS
 from ..format.transport import TRANSPORTS
 from ..progress import ProgressPrinter
@@ -47,9 +54,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="splats per leaf tile at most (default 16384: measured best for streaming)")
     p.add_argument("--reduction", type=float, default=4.0,
                    help="each LOD level keeps about 1/REDUCTION of the splats of the level below (default 4)")
-    p.add_argument("--zstd-level", type=int, default=DEFAULT_ZSTD_LEVEL,
-                   help=f"zstd level of the payloads (1..22, default {DEFAULT_ZSTD_LEVEL}: as small as level 3 on the "
-                        "transport-coded planes and twice as fast; higher levels gain 1-4%% at 20-50x the time)")
+    p.add_argument("--zstd-level", type=int, default=None,
+                   help=f"zstd level of the payloads (1..22; default {DEFAULT_ZSTD_LEVEL}, "
+                        + ", ".join(f"{k} {v}" for k, v in PRESET_ZSTD_LEVEL.items())
+                        + ": level 1 is as small as level 3 on the transport-coded planes and twice as fast; "
+                        "higher levels gain 0-4%% at 5-50x the time)")
     p.add_argument("--transport", default="fields", choices=list(TRANSPORTS),
                    help="how payload sections are stored: fields (default; the fields1 coding where it is smaller "
                         "than the byte shuffle, format 1.2), shuffle (format 1.0/1.1, for readers before 1.2), none")
@@ -87,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--max-leaf-splats must be at least 256 (one chunk)")
     if args.reduction <= 1.0:
         raise UsageError("--reduction must be greater than 1")
-    if not 1 <= args.zstd_level <= 22:
+    if args.zstd_level is not None and not 1 <= args.zstd_level <= 22:
         raise UsageError("--zstd-level must be between 1 and 22")
     up = parse_vector(args.up, "--up", nonzero=True) if args.up else None
     workers = None

@@ -103,7 +103,7 @@ def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progr
     progress("tiles", 0.0)
     tiles = plan_tiles(g, opts, progress)
     progress("tiles", 1.0)
-    context = TileContext(formats, chunk_order, sh_degree, codebook, opts.zstd_level, opts.transport)
+    context = TileContext(formats, chunk_order, sh_degree, codebook, opts.resolved_zstd_level, opts.transport)
     return EncodePlan(context, tiles, opts, scene_name(opts, source_name, out_name), len(g), bounds, up, sample)
 
 
