@@ -44,6 +44,30 @@ def fly_path(ply: str, seconds: float) -> dict:
                                                                                                    strict=True))]}
 
 
+class StepTimer:
+    """Milliseconds spent in named methods during the current frame (wraps them on their classes; bench only)."""
+
+    def __init__(self) -> None:
+        self.now: dict[str, float] = {}
+
+    def wrap(self, cls, names) -> None:
+        for name in names:
+            setattr(cls, name, self._timed(getattr(cls, name), f"{cls.__name__}.{name}"))
+
+    def _timed(self, fn, label):
+        def timed(*args, **kwargs):
+            t = time.perf_counter()
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self.now[label] = self.now.get(label, 0.0) + (time.perf_counter() - t) * 1e3
+        return timed
+
+    def take(self) -> dict[str, float]:
+        out, self.now = {k: round(v, 2) for k, v in self.now.items() if v >= 0.05}, {}
+        return out
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scene", required=True, help="scene directory (served on loopback here) or URL")
@@ -54,7 +78,22 @@ def main() -> None:
     ap.add_argument("--seconds", type=float, default=12.0)
     ap.add_argument("--repeat", type=int, default=60, help="converged frames timed at the end")
     ap.add_argument("--json", dest="json_out")
+    ap.add_argument("--switch-interval", type=float,
+                    help="the interpreter's switch interval in seconds, set after the session opens (CPython's is "
+                         "0.005; 0.0005 made upload frames slower on the GPU machine, BENCHMARKS.md)")
+    ap.add_argument("--gl-release-gil", action="store_true",
+                    help="the A/B of client_gl.gpu.gl.FUNCTION_TYPE: our GL entry points as CFUNCTYPE (released "
+                         "the GIL in every call) instead of PYFUNCTYPE")
+    ap.add_argument("--breakdown", action="store_true",
+                    help="time the engine's and the pool's steps in each frame; the slowest frames' split is reported")
+    ap.add_argument("--profile", action="store_true", help="print where the streaming loop's time went (cProfile)")
     args = ap.parse_args()
+    if args.gl_release_gil:
+        import ctypes
+
+        from client_gl.gpu import gl as gl_entry_points
+
+        gl_entry_points.FUNCTION_TYPE = ctypes.CFUNCTYPE
     from client_gl.headless import HeadlessRenderer, RenderOptions, create_context
     from client_gl.scene import SceneTiles, load_tile
     from client_gl.streaming import StreamingSession, ViewOptions
@@ -77,8 +116,28 @@ def main() -> None:
     try:
         session = StreamingSession.open(url, ctx, ViewOptions(gpu_mem_mb=args.gpu_mem_mb, max_splats=args.max_splats,
                                                               cache=False))
+        if args.switch_interval:
+            sys.setswitchinterval(args.switch_interval)
+        out["switch_interval_s"] = sys.getswitchinterval()
+        out["gl_calls_release_gil"] = bool(args.gl_release_gil)
+        import cProfile
+        import pstats
+
+        profiler = cProfile.Profile() if args.profile else None
+        if profiler:
+            profiler.enable()
         start = time.perf_counter()
-        walls, drawn, updates, uploads = [], [], [], []
+        steps = StepTimer() if args.breakdown else None
+        if steps:
+            from client_gl.gpu.pool import ChunkPool
+            from client_gl.gpu.renderer import SplatRenderer
+            from client_gl.stream.engine import StreamEngine
+
+            steps.wrap(StreamEngine, ["wanted", "_collect", "_upload", "_make_room", "_trim_ready"])
+            steps.wrap(ChunkPool, ["join", "add_band", "leave", "set_codebook_band", "_upload_plane", "_write_records",
+                                   "set_draw_set", "bind"])
+            steps.wrap(SplatRenderer, ["render"])
+        walls, drawn, updates, uploads, splits = [], [], [], [], []
         last = time.perf_counter()
         while True:
             now = time.perf_counter() - start
@@ -90,11 +149,15 @@ def main() -> None:
             drawn.append(rec.drawn_splats)
             updates.append(rec.update_ms)
             uploads.append(rec.uploaded_bytes)
+            splits.append(steps.take() if steps else {})
             last = t
             if now > path.end and session.converged:
                 break
             if now > path.end + 60:
                 break
+        if profiler:
+            profiler.disable()
+            pstats.Stats(profiler).sort_stats("tottime").print_stats(25)
         out["streaming"] = {"frames": len(walls), "median_ms": float(np.median(walls)),
                             "p99_ms": float(np.percentile(walls, 99)), "max_ms": float(np.max(walls)),
                             "max_drawn_splats": int(max(drawn)), "first_frame_s": session.metrics.first_frame_s,
@@ -108,8 +171,9 @@ def main() -> None:
             "p99_ms_without_uploads": float(np.percentile(walls_a[~with_up], 99)) if (~with_up).any() else None,
             "median_upload_mb": float(np.median(up_a[with_up]) / 1e6) if with_up.any() else 0.0,
             "update_ms_median": float(np.median(upd_a)), "update_ms_p99": float(np.percentile(upd_a, 99)),
-            "slowest": sorted(zip(np.round(walls_a, 1).tolist(), up_a.tolist(), np.round(upd_a, 2).tolist(),
-                                  strict=True), reverse=True)[:12]})
+            "slowest": [{"ms": round(float(walls_a[i]), 1), "uploaded_bytes": int(up_a[i]),
+                         "update_ms": round(float(upd_a[i]), 2), "steps_ms": splits[i]}
+                        for i in np.argsort(-walls_a, kind="stable")[:12]]})
         cam = path.camera(path.end, w, h)
         times = []
         for _ in range(args.repeat):

@@ -96,7 +96,9 @@ def stream_once(url: str, cam: Camera, mode: str, out: str, args) -> dict:
               f"--up={vec(cam.up)}", "--fov-y", str(cam.fov_y_deg), "--size", f"{cam.width}x{cam.height}",
               "--gpu-mem-mb", str(args.gpu_mem_mb), "--no-cache", "--timeout", str(args.timeout),
               "--record", os.path.join(out, "metrics.json"), "--screenshot", os.path.join(out, "final.png"),
-              "--frames-dir", frames, "--frame-every", str(args.frame_every), "--sh-bands", mode, "-q")
+              "--frames-dir", frames, "--frame-every", str(args.frame_every), "-q",
+              *(["--sh-bands", "need", "--skip-levels"] if mode == "skip" else
+                ["--sh-bands", "need", "--fill-gap", mode[3:]] if mode.startswith("gap") else ["--sh-bands", mode]))
     r = run(cmd)
     if r.returncode not in (0, 1):
         raise SystemExit(f"{' '.join(cmd)}\n{r.stderr}")
@@ -159,7 +161,9 @@ def main() -> None:
     ap.add_argument("--preset", default="medium")
     ap.add_argument("--links", default="loopback,20:40,100:0", help="loopback or MBIT:LATENCY_MS, comma-separated")
     ap.add_argument("--cameras", default="overview,close-up")
-    ap.add_argument("--modes", default="need,all")
+    ap.add_argument("--modes", default="need,all",
+                    help="need: SH bands by need; all: every band; skip: need, without the levels above the cut; "
+                         "gapN: need, filling levels from N above the cut")
     ap.add_argument("--size", default="1920x1080")
     ap.add_argument("--gpu-mem-mb", type=float, default=1024, help="the view's default")
     ap.add_argument("--frame-every", type=int, default=3)
@@ -219,10 +223,17 @@ def main() -> None:
         f.write(report(results))
 
 
+def time_to(r: dict, db: float) -> str:
+    """Seconds until the picture first comes within `db` of the converged frame (PSNR), '-' if never."""
+    t = next((p["t"] for p in r["psnr_series"] if p["psnr"] >= db), None)
+    return "-" if t is None else f"{t:.2f}"
+
+
 def report(results: list[dict]) -> str:
     lines = ["| scene | camera | link | SH | first frame s | MB at first frame | converged s | MB | share of scene | "
-             "max PSNR drop dB | frame ms median / p99 | bands by need: bytes saved, PSNR vs all bands |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "max PSNR drop dB | s to 30 / 40 dB | frame ms median / p99 | bands by need: bytes saved, PSNR vs all "
+             "bands |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         ff = r["first_frame_s"]
         conv = r["converged_s"]
@@ -232,7 +243,8 @@ def report(results: list[dict]) -> str:
                      f"| {r['splats'] // 1000}k | {r['camera']} | {r['link']} | {r['mode']} | - | - | ")
         lines[-1] += (f"{conv:.2f} | " if conv is not None else "- | ") + (
             f"{r['bytes_downloaded'] / 1e6:.1f} | {r['bytes_downloaded'] / r['scene_bytes']:.0%} | "
-            f"{r['max_psnr_drop_db']} | {np.median(fm):.1f} / {np.percentile(fm, 99):.1f} | ")
+            f"{r['max_psnr_drop_db']} | {time_to(r, 30.0)} / {time_to(r, 40.0)} | "
+            f"{np.median(fm):.1f} / {np.percentile(fm, 99):.1f} | ")
         if "psnr_vs_all_bands" in r:
             lines[-1] += f"{r['bytes_saved_vs_all_bands']:.0%}, {r['psnr_vs_all_bands']} dB |"
         else:

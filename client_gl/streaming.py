@@ -43,6 +43,8 @@ class ViewOptions:
     sh_degree: int = 3
     band_area_share: tuple[float, float, float] = SelectionOptions.band_area_share
     prefetch: bool = True
+    fill_levels: bool = StreamOptions.fill_levels  # coarse to fine through every level (False: --skip-levels)
+    fill_gap: int = StreamOptions.fill_gap
     cache: bool = True  # disk cache of payloads (HTTP sources)
     cache_dir: str | None = None
     max_in_flight: int = 6
@@ -164,7 +166,8 @@ class StreamingSession:
         self.renderer = SplatRenderer(ctx, self.pool, options.render)
         layout: PoolLayout = self.pool.layout
         stream_opts = StreamOptions(selection=replace(options.selection(), sh_degree=degree),
-                                    upload_bytes_per_frame=options.upload_bytes_per_frame, prefetch=options.prefetch)
+                                    upload_bytes_per_frame=options.upload_bytes_per_frame, prefetch=options.prefetch,
+                                    fill_levels=options.fill_levels, fill_gap=options.fill_gap)
         self.engine = StreamEngine(self.fetcher, self.pool, stream_opts, slot_bytes=layout.slot_bytes(),
                                    manifest=m, with_mirror=self.with_mirror, location=self.source.location)
 

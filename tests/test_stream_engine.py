@@ -143,3 +143,58 @@ def test_budget_holds_and_eviction_follows_the_camera():
         converged += u.converged
     assert evicted > 0 and converged >= 8
     engine.close()
+
+
+def test_coarse_to_fine_fills_each_level_before_the_next(store):
+    m = read_manifest(store)
+    a = m.arrays
+    cam = orbit(m, 1.6, 0.3)
+    opts = SelectionOptions(max_sse=0.0)  # full detail: the cut is every visible leaf
+    levels_drawn = []
+    fetcher = StepFetcher(store, per_frame=1)
+    engine = StreamEngine(fetcher, CountingPool(10_000), StreamOptions(opts, prefetch=False))
+    for _ in range(500):
+        u = engine.update(cam)
+        engine.wait(0.05)
+        if u.draw:
+            levels_drawn.append(max(int(a.level[m.index_of[t]]) for t in u.draw))
+        if u.converged:
+            break
+    assert u.converged and sorted(u.draw) == sorted(int(a.ids[i]) for i in u.selection.cut)
+    bases = [t for t, g in fetcher.fetched if g == "base"]
+    fetched_levels = [int(a.level[m.index_of[t]]) for t in bases]
+    assert fetched_levels == sorted(fetched_levels)  # level by level, the root first
+    deepest = int(a.level[list(u.selection.cut)].max())
+    assert deepest >= 2
+    assert set(fetched_levels) == set(range(deepest + 1))
+    assert len(bases) == len(set(bases))  # no ancestor was fetched twice
+    # the picture refines through every level on the way, not from the root straight to the leaves
+    assert sorted(set(levels_drawn)) == list(range(deepest + 1))
+    assert levels_drawn == sorted(levels_drawn)
+    engine.close()
+
+    skipping = StepFetcher(store, per_frame=1)
+    engine = StreamEngine(skipping, CountingPool(10_000), StreamOptions(opts, prefetch=False, fill_levels=False))
+    run_until_converged(engine, cam)
+    skipped = [t for t, g in skipping.fetched if g == "base"]
+    assert set(skipped) == {m.root} | {int(a.ids[i]) for i in u.selection.cut}
+    assert len(skipped) < len(bases)
+    engine.close()
+
+
+def test_fill_gap_skips_the_levels_just_above_the_cut():
+    g = read_gaussians_ply(real("fruit_drops_sh3.ply"))
+    store = encode_in_memory(g, EncodeOptions(preset="medium", max_leaf_splats=80))  # four levels
+    m = read_manifest(store)
+    a = m.arrays
+    cam = orbit(m, 1.6, 0.3)
+    fetcher = StepFetcher(store, per_frame=1)
+    engine = StreamEngine(fetcher, CountingPool(10_000),
+                          StreamOptions(SelectionOptions(max_sse=0.0), prefetch=False, fill_gap=2))
+    _, u = run_until_converged(engine, cam)
+    cut = set(u.selection.cut)
+    parents = {int(a.parent[i]) for i in cut} - {m.index_of[m.root]}
+    fetched = {m.index_of[t] for t, g in fetcher.fetched if g == "base"}
+    assert cut <= fetched and not parents & fetched
+    assert any(i not in cut for i in fetched - {m.index_of[m.root]})  # the levels above them were filled in
+    engine.close()

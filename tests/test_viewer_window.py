@@ -96,7 +96,8 @@ def test_window_input_screenshot_and_overlay(display, served, tmp_path):
 
     env = {**os.environ, "DISPLAY": display, "SPLATSTREAM_CACHE_DIR": str(tmp_path / "cache")}
     viewer = subprocess.Popen([sys.executable, "-m", "splatstream.cli", "view", served, "--size",
-                               f"{SIZE[0]}x{SIZE[1]}", "--gpu-mem-mb", "64", "--no-vsync"], env=env, cwd=tmp_path,
+                               f"{SIZE[0]}x{SIZE[1]}", "--gpu-mem-mb", "64", "--no-vsync",
+                               "--record", str(tmp_path / "record.json")], env=env, cwd=tmp_path,
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     try:
         window = wait_for_window(display)
@@ -128,6 +129,10 @@ def test_window_input_screenshot_and_overlay(display, served, tmp_path):
     assert viewer.returncode == 0, err
     assert "Traceback" not in err
     assert f"saved {shots[0]}" in out
+    record = json.loads((tmp_path / "record.json").read_text())
+    assert record["window_backend"] == "glfw"  # not pyglet's fallback
+    assert record["gl_version"] >= 430  # compute shaders in the window
+    assert record["sort"] == "cpu"  # as choose_sort picks on a software GL (llvmpipe); the GPU sort on a real GPU
     shot = np.asarray(Image.open(shots[0]), np.float32) / 255.0
     assert shot.shape == (SIZE[1], SIZE[0], 3)
     cam = json.loads(Path(str(shots[0]) + ".camera.json").read_text())

@@ -3,7 +3,7 @@
 #   .gl           GL loader .debs (libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2, amd64)
 #   .whl          cp312 wheels: moderngl glcontext zstandard msgpack aiohttp (+ its deps) platformdirs
 #   .bench_carry  tools/make_scene.py and data/real/* (copies of ../shared) so make_scene.py runs there
-# Usage: bash bench/device/run_client.sh [stream|fly|all]   (results under $OUT)
+# Usage: bash bench/device/run_client.sh [stream|levels|fly|flyab|all]   (results under $OUT)
 set -u
 for f in .gl/*.deb; do dpkg -x "$f" /; done
 ldconfig
@@ -29,6 +29,24 @@ if [ "$what" = stream ] || [ "$what" = all ]; then
     --workdir $W --out "$OUT/stream_20" 2>&1 | tail -20
   # at most 8 files come back: keep stream.json, stream.md and stream.png of each run, not the per-run folders
   for d in stream_fast stream_20; do find "$OUT/$d" -mindepth 1 -maxdepth 1 -type d -exec rm -rf {} +; done
+fi
+if [ "$what" = levels ]; then
+  # coarse to fine through every level against skipping to the cut, at 20 Mbit/s + 40 ms
+  python3 bench/bench_stream.py --splats 1000000,6000000 --links 20:40 --modes need,skip --frame-every 2 \
+    --workdir $W --out "$OUT/levels" 2>&1 | tail -12
+  find "$OUT/levels" -mindepth 1 -maxdepth 1 -type d -exec rm -rf {} +
+fi
+if [ "$what" = flyab ] || [ "$what" = levels ]; then
+  # the frame loop's switch interval: 0.5 ms (the client's) against CPython's 5 ms, with the per-step split
+  [ -d $W/root/s6000000 ] || python3 bench/bench_stream.py --splats 6000000 --links loopback --cameras overview \
+    --modes need --workdir $W --out /tmp/prep > /dev/null 2>&1
+  for si in 0.0005 0.005; do
+    python3 bench/bench_flythrough.py --scene $W/root/s6000000 --ply $W/s6000000.ply --breakdown \
+      --switch-interval $si --json "$OUT/fly_si$si.json" > $W/fly_$si.log 2>&1
+    python3 -c "import json,sys; d=json.load(open(sys.argv[1]))['streaming']; print(sys.argv[2], {k: d[k] for k in \
+      ('frames','median_ms','p99_ms','p99_ms_with_uploads','p99_ms_without_uploads','update_ms_p99')})" \
+      "$OUT/fly_si$si.json" "$si" || tail -5 $W/fly_$si.log
+  done
 fi
 if [ "$what" = fly ] || [ "$what" = all ]; then
   python3 bench/bench_flythrough.py --scene $W/root/s6000000 --ply $W/s6000000.ply --json "$OUT/flythrough.json" \

@@ -2,27 +2,34 @@
 # GPU-machine driver for the viewer's window path (device `run` tool), from the repo root, carrying:
 #   .gl           GL loader .debs (as run_client.sh)
 #   .xroot        Xvfb and the X11 client libraries as Debian .debs, unpacked under /tmp/xroot (not into /)
-#   .whl, .whl_win  cp312 wheels: run_client.sh's, and glfw, moderngl-window, imgui-bundle
-#   .bench_carry  tools/make_scene.py and data/real/*
+#   .whl          cp312 wheels: run_client.sh's
+#   .xwin         winsite.tar.xz: glfw, moderngl-window, pyglm and imgui-bundle unpacked (demos and stubs removed;
+#                 xz, to fit the carry limit), and xglx.tar.xz: Mesa's swrast DRI driver built without LLVM
+#                 (softpipe), which Xvfb's GLX extension needs to start (the device README: Xvfb, Mesa and the
+#                 NVIDIA GLX client library); bench/device/make_xwin.sh makes them and .xroot
 # The window is a GLX window on Xvfb drawn by the NVIDIA driver (__GLX_VENDOR_LIBRARY_NAME=nvidia). It streams a
 # 6M-splat scene from loopback at 1920x1080, and its converged frames are timed against `view --headless`'s.
-# Usage: bash bench/device/run_window.sh [fly]   (results under $OUT)
+# Usage: bash bench/device/run_window.sh [fly]   (results under $OUT; fly: the fly-through A/B of GL calls that
+# keep the GIL against calls that release it, with the per-step split of the slowest frames)
 set -u
 for f in .gl/*.deb; do dpkg -x "$f" /; done
 ldconfig
 mkdir -p /tmp/xroot
 for f in .xroot/*.deb; do dpkg -x "$f" /tmp/xroot; done
+tar -xJf .xwin/xglx.tar.xz -C /tmp/xroot
 [ -x /usr/bin/xkbcomp ] || cp /tmp/xroot/usr/bin/xkbcomp /usr/bin/xkbcomp  # Xvfb runs it by this path
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site \
-  .whl/*.whl .whl_win/*.whl || exit 1
-export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1 SPLATSTREAM_SHARED=$PWD/.bench_carry
+  .whl/*.whl || exit 1
+tar -xJf .xwin/winsite.tar.xz -C /tmp/site
+export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
 OUT=${OUT:-/tmp/out}
 mkdir -p "$OUT"
 W=/tmp/win-work
 mkdir -p $W/root
-python3 .bench_carry/tools/make_scene.py --splats 6000000 --seed 0 --out $W/s6m.ply | tail -1
+python3 bench/tile_scene.py samples/donut.ply --splats 6000000 --seed 0 --out $W/s6m.ply | tail -1  # no data to carry
 python3 -m splatstream.cli encode $W/s6m.ply $W/root/s6m --up 0,0,1 -q || exit 1
-python3 -m splatstream.cli serve $W/root --port 8765 --no-access-log 2> $W/serve.log &
+python3 -m splatstream.cli serve $W/root --port 8765 --no-access-log > $W/serve.log 2>&1 &
+SERVE=$!
 sleep 2
 URL=http://127.0.0.1:8765/scenes/s6m
 echo "== headless"
@@ -31,13 +38,28 @@ python3 -c "$probe" || export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/s
 python3 -m splatstream.cli view $URL --headless --size 1920x1080 --measure-frames 120 --record "$OUT/headless.json" \
   --screenshot "$OUT/headless.png" --no-cache 2>&1 | tail -2
 echo "== window"
-LD_LIBRARY_PATH=/tmp/xroot/usr/lib/x86_64-linux-gnu /tmp/xroot/usr/bin/Xvfb :99 -screen 0 1920x1200x24 \
-  -xkbdir /tmp/xroot/usr/share/X11/xkb -nolisten tcp > $W/xvfb.log 2>&1 &
+LD_LIBRARY_PATH=/tmp/xroot/usr/lib/x86_64-linux-gnu LIBGL_DRIVERS_PATH=/tmp/xroot/usr/lib/x86_64-linux-gnu/dri \
+  /tmp/xroot/usr/bin/Xvfb :99 -screen 0 1920x1200x24 \
+  -xkbdir /tmp/xroot/usr/share/X11/xkb -nolisten tcp > $W/xvfb.log 2>&1 < /dev/null &
+XVFB=$!
 sleep 2
 export DISPLAY=:99 __GLX_VENDOR_LIBRARY_NAME=nvidia LD_LIBRARY_PATH=/tmp/xroot/usr/lib/x86_64-linux-gnu
-timeout 240 python3 -m splatstream.cli view $URL --size 1920x1080 --exit-when-converged --measure-frames 120 \
-  --no-vsync --record "$OUT/window.json" --screenshot "$OUT/window.png" --no-cache 2>&1 | tail -5
-echo "window rc=$?"; tail -5 $W/xvfb.log
+echo "xvfb log:"; head -5 $W/xvfb.log
+timeout 30 python3 - > $W/probe.log 2>&1 <<'PY'
+import glfw
+assert glfw.init(), "glfw.init failed"
+glfw.window_hint(glfw.CONTEXT_VERSION_MAJOR, 4); glfw.window_hint(glfw.CONTEXT_VERSION_MINOR, 1)
+glfw.window_hint(glfw.OPENGL_PROFILE, glfw.OPENGL_CORE_PROFILE)
+w = glfw.create_window(640, 480, "probe", None, None)
+assert w, "no window"
+glfw.make_context_current(w)
+import moderngl
+print("window GL:", moderngl.create_context().info["GL_RENDERER"])
+PY
+echo "probe rc=$?"; tail -5 $W/probe.log
+timeout 200 python3 -m splatstream.cli view $URL --size 1920x1080 --exit-when-converged --measure-frames 120 \
+  --no-vsync --record "$OUT/window.json" --screenshot "$OUT/window.png" --no-cache > $W/view.log 2>&1 < /dev/null
+echo "window rc=$?"; tail -5 $W/view.log; tail -3 $W/xvfb.log
 python3 - "$OUT" <<'PY'
 import json, sys
 out = sys.argv[1]
@@ -47,9 +69,21 @@ for name in ("headless", "window"):
     except OSError:
         print(name, "no record"); continue
     print(name, r.get("gl_renderer"), "first frame", r.get("first_frame_s"), "converged", r.get("converged_s"),
-          "median converged frame ms", r.get("measured_frame_ms_median"))
+          "median converged frame ms", r.get("measured_frame_ms_median"), "of which before the swap",
+          r.get("measured_draw_ms_median"))
 PY
+kill $XVFB 2>/dev/null
 if [ "${1:-}" = fly ]; then
-  python3 bench/bench_flythrough.py --scene $W/root/s6m --ply $W/s6m.ply --json "$OUT/flythrough.json" 2>&1 | \
-    grep -v '^   \|^  \]\|^  \[' | tail -40
+  # our GL entry points keeping the GIL (PYFUNCTYPE, the default) against releasing it in every call (CFUNCTYPE)
+  for ab in ${FLY_AB:-keep release}; do  # FLY_AB=keep: the default alone
+    flag=""; [ $ab = release ] && flag=--gl-release-gil
+    python3 bench/bench_flythrough.py --scene $W/root/s6m --ply $W/s6m.ply --json "$OUT/fly_$ab.json" --breakdown \
+      $flag > $W/fly_$ab.log 2>&1
+    python3 -c "import json,sys; d=json.load(open(sys.argv[1])); s=d['streaming']; print(sys.argv[2], {k: s[k] for k \
+      in ('frames','median_ms','p99_ms','p99_ms_with_uploads','p99_ms_without_uploads','update_ms_p99')}, \
+      'converged', d['converged_stream_ms'], 'render', d['render_same_set_ms']); [print(x) for x in s['slowest'][:4]]" \
+      "$OUT/fly_$ab.json" $ab || tail -20 $W/fly_$ab.log
+  done
 fi
+kill $SERVE 2>/dev/null
+wait 2>/dev/null

@@ -98,10 +98,11 @@ class ComputeRaster:
             for b in (self.tile_keys, self.tile_values):
                 if b is not None:
                     b.release()
-            if self.tile_sorter is not None:
-                self.tile_sorter.release()
             self.entry_capacity = int(entry_capacity)
-            self.tile_sorter = GpuRadixSort(self.ctx, self.entry_capacity)
+            if self.tile_sorter is None:
+                self.tile_sorter = GpuRadixSort(self.ctx, self.entry_capacity)
+            else:
+                self.tile_sorter.resize(self.entry_capacity)
             self.tile_keys = self.ctx.buffer(reserve=4 * self.entry_capacity)
             self.tile_values = self.ctx.buffer(reserve=4 * self.entry_capacity)
 

@@ -23,6 +23,8 @@ GL_TEXTURE_MAX_LEVEL = 0x813D
 GL_NEAREST = 0x2600
 GL_UNPACK_ALIGNMENT = 0x0CF5
 GL_UNPACK_ROW_LENGTH = 0x0CF2
+GL_UNPACK_SKIP_ROWS = 0x0CF3
+GL_UNPACK_SKIP_PIXELS = 0x0CF4
 GL_PIXEL_UNPACK_BUFFER = 0x88EC
 GL_NO_ERROR = 0
 
@@ -94,6 +96,13 @@ class GLError(RuntimeError):
     pass
 
 
+# PYFUNCTYPE keeps the GIL through the call. CFUNCTYPE would release it, and the frame loop then waits for it again
+# behind the fetch and decode threads (up to a switch interval, 5 ms, per call): frames that uploaded tiles spent
+# 100-350 ms in these calls on a 16-core machine (BENCHMARKS.md). bench_flythrough --gl-release-gil sets CFUNCTYPE
+# for the A/B before any entry point is resolved.
+FUNCTION_TYPE = ctypes.PYFUNCTYPE
+
+
 @lru_cache(maxsize=1)
 def _loaders():
     loaders = []
@@ -133,7 +142,7 @@ class _GL:
         for load in _loaders():
             addr = load(name)
             if addr:
-                fn = ctypes.CFUNCTYPE(restype, *argtypes)(addr)
+                fn = FUNCTION_TYPE(restype, *argtypes)(addr)
                 setattr(self, name, fn)
                 return fn
         raise GLError(f"OpenGL function {name} not found")
@@ -227,6 +236,35 @@ class RawTexture:
             else:
                 gl.glTexSubImage2D(self.target, 0, x, y, w, h, fmt, typ, _ptr(data))
         check(f"uploading a {w}x{h} region at ({x}, {y}) layer {layer}")
+
+    def write_region(self, image: np.ndarray, image_width: int, src_x: int, src_y: int, x: int, y: int, w: int,
+                     h: int, layer: int = 0) -> None:
+        """Upload the w x h region at (src_x, src_y) of a contiguous image `image_width` texels wide (uncompressed
+        formats) to (x, y): GL reads the rows in place (UNPACK_ROW_LENGTH / SKIP_*), nothing is copied here."""
+        if self.compressed:
+            raise GLError("write_region: compressed textures take whole blocks through write()")
+        if not image.flags.c_contiguous:
+            raise GLError("write_region needs a contiguous image")
+        stale = gl.glGetError()
+        if stale != GL_NO_ERROR:
+            raise GLError(f"GL error 0x{stale:04x} pending before a texture upload")
+        gl.glBindTexture(self.target, self.glo)
+        gl.glBindBuffer(GL_PIXEL_UNPACK_BUFFER, 0)
+        gl.glPixelStorei(GL_UNPACK_ALIGNMENT, 1)
+        gl.glPixelStorei(GL_UNPACK_ROW_LENGTH, image_width)
+        gl.glPixelStorei(GL_UNPACK_SKIP_PIXELS, src_x)
+        gl.glPixelStorei(GL_UNPACK_SKIP_ROWS, src_y)
+        fmt, typ, _ = PIXEL_TRANSFER[self.internal]
+        try:
+            if self.layers:
+                gl.glTexSubImage3D(self.target, 0, x, y, layer, w, h, 1, fmt, typ, _ptr(image))
+            else:
+                gl.glTexSubImage2D(self.target, 0, x, y, w, h, fmt, typ, _ptr(image))
+        finally:
+            gl.glPixelStorei(GL_UNPACK_ROW_LENGTH, 0)
+            gl.glPixelStorei(GL_UNPACK_SKIP_PIXELS, 0)
+            gl.glPixelStorei(GL_UNPACK_SKIP_ROWS, 0)
+        check(f"uploading a {w}x{h} region at ({x}, {y}) layer {layer} from ({src_x}, {src_y})")
 
     def bind(self, unit: int) -> None:
         gl.glActiveTexture(GL_TEXTURE0 + unit)

@@ -34,20 +34,31 @@ class GpuRadixSort:
         self.scanadd_shader = ctx.compute_shader(shadergen.compute_source("radix_scanadd.comp"))
         self.scatter_shader = ctx.compute_shader(shadergen.compute_source("radix_scatter.comp"))
         self.setup_shader = ctx.compute_shader(shadergen.compute_source("indirect_setup.comp"))
-        groups = -(-self.capacity // SORT_TILE)
-        table = groups * (1 << RADIX_BITS)
-        if -(-table // SCAN_TILE) > SCAN_TILE:
-            raise ValueError(f"{capacity} keys exceed the single-group scan of this radix sort")
-        self.table = ctx.buffer(reserve=max(4, table * 4))
-        self.reduced = ctx.buffer(reserve=max(4, -(-table // SCAN_TILE) * 4))
-        self.keys_tmp = ctx.buffer(reserve=self.capacity * 4)
-        self.values_tmp = ctx.buffer(reserve=self.capacity * 4)
+        self.table = self.reduced = self.keys_tmp = self.values_tmp = None
+        self.resize(self.capacity)
         self.dispatch = ctx.buffer(reserve=32)
         self.draw = ctx.buffer(reserve=16)       # instanced: (4, n, 0, 0)
         self.draw_tri = ctx.buffer(reserve=16)   # non-instanced triangles: (6 n, 1, 0, 0)
         self.draw_points = ctx.buffer(reserve=16)  # points: (n, 1, 0, 0)
         self.batches = ctx.buffer(reserve=32 * shadergen.F2B_BATCHES)  # front-to-back batch commands
         self._params: object | None = None
+
+    def resize(self, capacity: int) -> None:
+        """Scratch buffers for up to `capacity` keys. The programs stay: compiling the six of them again took about
+        200 ms a growth on the GPU machine, a frame the fly-through saw as a stall."""
+        capacity = max(1, int(capacity))
+        groups = -(-capacity // SORT_TILE)
+        table = groups * (1 << RADIX_BITS)
+        if -(-table // SCAN_TILE) > SCAN_TILE:
+            raise ValueError(f"{capacity} keys exceed the single-group scan of this radix sort")
+        for b in (self.table, self.reduced, self.keys_tmp, self.values_tmp):
+            if b is not None:
+                b.release()
+        self.capacity = capacity
+        self.table = self.ctx.buffer(reserve=max(4, table * 4))
+        self.reduced = self.ctx.buffer(reserve=max(4, -(-table // SCAN_TILE) * 4))
+        self.keys_tmp = self.ctx.buffer(reserve=capacity * 4)
+        self.values_tmp = self.ctx.buffer(reserve=capacity * 4)
 
     @property
     def gpu_bytes(self) -> int:
@@ -56,7 +67,8 @@ class GpuRadixSort:
 
     def release(self) -> None:
         for b in (self.table, self.reduced, self.keys_tmp, self.values_tmp, self.dispatch, self.draw, self.draw_tri,
-                  self.draw_points, self.batches):
+                  self.draw_points, self.batches, self.count_shader, self.reduce_shader, self.scan_shader,
+                  self.scanadd_shader, self.scatter_shader, self.setup_shader):
             b.release()
 
     def setup(self, params) -> None:

@@ -67,6 +67,11 @@ class StreamOptions:
     upload_bytes_per_frame: int = 16 << 20  # decoded bytes uploaded per frame at most (one payload always goes)
     target_fraction: float = 0.8  # of the pool the wanted cut may fill; the rest holds tiles in transition
     prefetch: bool = True
+    # Coarse to fine: a tile of the cut that is not resident also wants its ancestors, fetched level by level, so
+    # the picture improves with every level that arrives (a cut is drawn in place of an ancestor only once all of
+    # the ancestor's part of it is there). False skips straight to the cut (fewer bytes, long plateaus).
+    fill_levels: bool = True
+    fill_gap: int = 1  # the finest ancestor filled in is this many levels above its cut tile (2: not the parents)
     decode_workers: int = 2
     ready_bytes: int = 512 << 20  # decoded payloads waiting for upload (prefetched ones are dropped first)
 
@@ -138,6 +143,8 @@ class StreamEngine:
         self._version = 0
         self._state_seen: tuple | None = None
         self._missing: list[Key] = []
+        self._keys: list[Key] = []  # the wish list of the current state (with the ancestors being filled in)
+        self._filling = np.zeros(t, bool)  # ancestors of the cut in that list (fill_levels)
         self._listed: tuple = ()
         self._draw_cache: tuple | None = None
         self._ready: dict[Key, _Ready] = {}
@@ -205,7 +212,8 @@ class StreamEngine:
         view, sel, bands, keys, extra = self.wanted(cam)
         state = (self._wanted_serial, self._version)
         if state != self._state_seen:  # the wish list or what we hold changed: tell the fetcher what is missing now
-            self._missing = [k for k in keys if not self._have(k)]
+            self._keys = self._coarse_to_fine(keys, sel) if self.options.fill_levels else keys
+            self._missing = [k for k in self._keys if not self._have(k)]
             want = [k for k in self._missing if k not in self._ready and k not in self._decoding]
             pre = [] if want else [k for k in extra if not self._have(k) and k not in self._ready
                                    and k not in self._decoding]
@@ -216,6 +224,7 @@ class StreamEngine:
                 self._listed = listed
             self._state_seen = state
         self._collect()
+        keys = self._keys
         uploaded, events = self._upload(self._missing, keys, sel) if self._ready else (0, [])
         if uploaded or events or self._draw_cache is None or self._draw_cache[0] != state:
             drawn = draw_set(self.arrays, view, sel, self.resident, self.root)
@@ -231,6 +240,28 @@ class StreamEngine:
             resident_tiles=int(self.resident.sum()), resident_splats=int(self.arrays.splats[self.resident].sum()),
             drawn_splats=int(self.arrays.splats[drawn].sum()) if drawn else 0, wanted_tiles=len(sel.cut),
             in_flight=in_flight + len(self._decoding), selection=sel, events=events)
+
+    def _coarse_to_fine(self, keys: list[Key], sel: Selection) -> list[Key]:
+        """The wish list with the ancestors of every cut tile not resident yet, bases ordered by level (then by
+        the cut's priority: an ancestor takes the rank of its first descendant), SH bands after every base."""
+        a = self.arrays
+        rank: dict[int, int] = {}
+        for r, i in enumerate(sel.cut):
+            rank.setdefault(i, r)
+            if self.resident[i]:
+                continue
+            j = int(a.parent[i])
+            for _ in range(self.options.fill_gap - 1):  # levels just above the cut are skipped
+                j = int(a.parent[j]) if j >= 0 else j
+            while j >= 0 and j not in rank:
+                rank[j] = r
+                j = int(a.parent[j])
+        rank[self.root] = -1
+        base = sorted(rank, key=lambda i: (int(a.level[i]), rank[i]))
+        self._filling = np.zeros(len(self.resident), bool)
+        self._filling[[i for i in rank if i not in sel.cut]] = True
+        ids = self.ids
+        return [(int(ids[i]), "base") for i in base] + [k for k in keys if k[1] != "base"]
 
     # --- decode -----------------------------------------------------------------------------------------------
     def _collect(self) -> None:
@@ -282,12 +313,17 @@ class StreamEngine:
         return keep
 
     def _make_room(self, slots: int, sel: Selection) -> bool:
+        """Evict until `slots` are free: first tiles nobody wants (least recently drawn first), then ancestors
+        being filled in that are not drawn (the finest first), never the cut or what is drawn."""
         free = self.residency.free_slots
         if free >= slots:
             return True
         keep = self._protected(sel)
-        candidates = np.nonzero(self.resident & ~keep)[0]
-        for i in candidates[np.argsort(self.last_drawn[candidates], kind="stable")]:
+        spare = np.nonzero(self.resident & ~keep & ~self._filling)[0]
+        filling = np.nonzero(self.resident & ~keep & self._filling)[0]
+        order = [spare[np.argsort(self.last_drawn[spare], kind="stable")],
+                 filling[np.argsort(-self.arrays.level[filling], kind="stable")]]
+        for i in np.concatenate(order):
             self._evict(int(i))
             free = self.residency.free_slots
             if free >= slots:

@@ -33,7 +33,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     cam.add_argument("--camera-path", metavar="PATH.json",
                      help="keyframes {time, eye, target[, up][, fov_y]} played on the wall clock")
     s = p.add_argument_group("streaming")
-    s.add_argument("--gpu-mem-mb", type=float, default=1024.0, help="GPU memory for splat data (default 1024)")
+    s.add_argument("--gpu-mem-mb", type=float, default=1024.0, help="GPU memory for splat data, MiB (default 1024)")
     s.add_argument("--max-splats", type=int, help="splats drawn at most (default: as the memory allows)")
     s.add_argument("--max-sse", type=float, default=1.5,
                    help="screen-space error in pixels under which a tile is not refined (default 1.5; 0: full detail)")
@@ -43,6 +43,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "every selected tile")
     s.add_argument("--no-cache", action="store_true", help="do not use the disk cache of payloads")
     s.add_argument("--no-prefetch", action="store_true", help="fetch only what the view needs now")
+    s.add_argument("--skip-levels", action="store_true",
+                   help="fetch the wanted tiles without the LOD levels above them (fewer bytes; the picture stays "
+                        "coarse longer and then changes in larger steps)")
+    s.add_argument("--fill-gap", type=int, default=1, metavar="N",
+                   help="fill in the LOD levels from N levels above each wanted tile up (default 1: every level)")
     s.add_argument("--sort", default="auto", choices=["auto", "cpu", "gpu"], help="depth sort (as `render`)")
     s.add_argument("--draw", default="auto", choices=DRAWS, help="GPU-path rasterizer (as `render`)")
     h = p.add_argument_group("headless output")
@@ -52,7 +57,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="give up after S seconds (exit 1; default 120)")
     h.add_argument("--record", metavar="METRICS.json", help="write first-frame and convergence times, bytes and a "
                    "per-frame series")
-    h.add_argument("--screenshot", metavar="FINAL.png", help="write the last frame")
+    h.add_argument("--screenshot", metavar="FINAL.png",
+                   help="write the converged frame (headless: the last one; a window that stays open: the first "
+                        "converged one, without the overlay)")
     h.add_argument("--frames-dir", metavar="DIR", help="write a PNG every --frame-every frames")
     h.add_argument("--frame-every", type=int, default=10, metavar="N")
     h.add_argument("--measure-frames", type=int, default=0, metavar="N",
@@ -79,11 +86,15 @@ def _options(args):
         raise UsageError(f"--timeout {args.timeout}: expected a positive number of seconds")
     if args.frame_every < 1:
         raise UsageError(f"--frame-every {args.frame_every}: expected at least 1")
+    if args.fill_gap < 1:
+        raise UsageError(f"--fill-gap {args.fill_gap}: expected 1 or more levels")
     if args.fov_y is not None and not 0 < args.fov_y < 180:
         raise UsageError(f"--fov-y {args.fov_y}: expected degrees in (0, 180)")
     return ViewOptions(gpu_mem_mb=args.gpu_mem_mb, max_splats=args.max_splats, max_sse=args.max_sse,
                        sh_degree=3 if args.sh_degree is None else args.sh_degree, prefetch=not args.no_prefetch,
-                       cache=not args.no_cache, render=RenderOptions(sort=args.sort, draw=args.draw),
+                       fill_levels=not args.skip_levels, fill_gap=args.fill_gap,
+                       cache=not args.no_cache,
+                       render=RenderOptions(sort=args.sort, draw=args.draw),
                        **({"band_area_share": (1.0, 1.0, 1.0)} if args.sh_bands == "all" else {}))
 
 
@@ -155,6 +166,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"view: first frame {ff:.3f} s, " if ff is not None else "view: no frame drawn, ", end="",
               file=sys.stderr)
         print(f"converged {conv:.3f} s, " if conv is not None else "not converged, ", end="", file=sys.stderr)
-        print(f"{report['bytes_downloaded'] / 1e6:.2f} MB downloaded, GPU {report['gpu_bytes_peak'] / 1e6:.1f} MB "
-              f"of {report['gpu_budget_bytes'] / 1e6:.1f} MB", file=sys.stderr)
+        print(f"{report['bytes_downloaded'] / 1e6:.2f} MB downloaded, GPU {report['gpu_bytes_peak'] / 2**20:.1f} "
+              f"of {report['gpu_budget_bytes'] / 2**20:.0f} MiB", file=sys.stderr)
     return code
