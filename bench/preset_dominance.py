@@ -1,6 +1,6 @@
 """Named presets against the peers' points (issue 15's "Done when"), from `splatstream eval` reports.
 
-    python bench/preset_dominance.py REPORT.json ... [--markdown OUT.md] [--plot OUT.png]
+    python bench/preset_dominance.py REPORT.json ... [--markdown OUT.md] [--table OUT.md] [--plot OUT.png]
 
 Each REPORT.json is one scene's eval (bench/run_eval.sh writes <scene>.json; reports of the same scene are merged,
 later files winning on equal labels). For every peer point (rows of kind `compare`: splat-transform's
@@ -86,6 +86,27 @@ def markdown(scenes: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
+def preset_table(scenes: dict[str, dict]) -> str:
+    """Disk B/splat and mean PSNR of every preset and peer, one column per scene."""
+    from splatstream.format.presets import PRESETS
+
+    def cell(r: dict | None) -> str:
+        if r is None:
+            return "not run"
+        return f"{r['disk_bytes_per_splat']:.2f} B, " + \
+            ("lossless" if r["psnr_mean"] is None else f"{r['psnr_mean']:.1f} dB")
+
+    head = [f"{os.path.splitext(n)[0]} ({s['input']['splats']:,}, SH{s['input']['sh_degree']})"
+            for n, s in scenes.items()]
+    lines = ["| preset | " + " | ".join(head) + " |", "|---|" + "---|" * len(head)]
+    for p in PRESETS:
+        lines.append(f"| {p} | " + " | ".join(cell(s["presets"].get(p)) for s in scenes.values()) + " |")
+    for peer in sorted({k for s in scenes.values() for k in s["peers"]}):
+        lines.append(f"| {peer.replace('st-', 'splat-transform ')} | "
+                     + " | ".join(cell(s["peers"].get(peer)) for s in scenes.values()) + " |")
+    return "\n".join(lines)
+
+
 def plot(scenes: dict[str, dict], out: str) -> None:
     """One panel per scene (splatstream.evaluate's rate-distortion plot of its presets and peers), in a grid."""
     import tempfile
@@ -116,12 +137,15 @@ def main() -> None:
     ap.add_argument("reports", nargs="+")
     ap.add_argument("--markdown")
     ap.add_argument("--plot")
+    ap.add_argument("--table", help="also write the presets' and peers' bytes and PSNR per scene (Markdown) here")
     args = ap.parse_args()
     scenes = load(args.reports)
     text = markdown(scenes)
     print(text)
     if args.markdown:
         open(args.markdown, "w").write(text + "\n")
+    if args.table:
+        open(args.table, "w").write(preset_table(scenes) + "\n")
     if args.plot:
         plot(scenes, args.plot)
 
