@@ -48,15 +48,16 @@ DEFAULT_PRESET = "medium"
 # fields1 transport coding at SH3 / SH0 and the mean PSNR measured on the benchmark scenes (BENCHMARKS.md, "Size
 # against quality").
 PRESET_SUMMARY: dict[str, str] = {
-    "very-high": "32-bit floats, lossless; about 180 B/splat at SH3, 45 at SH0",
-    "high": "16-bit positions and colour; about 72 B/splat at SH3, 18 at SH0; 61-72 dB",
-    "medium": "the default: 11-bit positions, 8-bit colour, 16-bit SH; about 38 B/splat at SH3, 15 at SH0; 56-71 dB",
+    "very-high": "32-bit floats, lossless; about 180 B/splat at SH3, 43 at SH0",
+    "high": "16-bit positions and colour; about 73 B/splat at SH3, 18 at SH0; 61-71 dB",
+    "medium": "the default: 11-bit positions, 8-bit colour, 16-bit SH; about 37 B/splat at SH3, 14-15 at SH0; "
+              "56-72 dB",
     "medium-low": "medium's positions, 8-bit rotations and scales, SH codebook (about 1 entry per 16 splats); "
-                  "about 15 B/splat at SH3, 13 at SH0; 47-68 dB",
-    "low-plus": "8-bit positions, rotations, scales and colour, SH codebook (1 per 64); about 13.5 B/splat at SH3, "
-                "11.5 at SH0; 42-56 dB",
-    "low": "low-plus with 16-bit rotations; about 12 B/splat at SH3, 10.5 at SH0; 37-51 dB",
-    "very-low": "16-bit scales, BC7 colour, SH codebook; about 9.5 B/splat at SH3, 8 at SH0; 32-47 dB",
+                  "about 13-15.5 B/splat at SH3, 12-13 at SH0; 47-68 dB",
+    "low-plus": "8-bit positions, rotations, scales and colour, SH codebook (1 per 64); about 12-13.5 B/splat at "
+                "SH3, 11-12 at SH0; 44-57 dB",
+    "low": "low-plus with 16-bit rotations; about 11-12 B/splat at SH3, 10-10.6 at SH0; 37-52 dB",
+    "very-low": "16-bit scales, BC7 colour, SH codebook; about 8-9.5 B/splat at SH3, 7.5-8 at SH0; 32-47 dB",
 }
 CHUNK_ORDERS = ("auto", "morton", "luminance")
 
