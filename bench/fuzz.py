@@ -1023,8 +1023,7 @@ def _payload_files(scene: pathlib.Path) -> list[pathlib.Path]:
 def _reseal_payload(rng: random.Random, scene: pathlib.Path) -> str:
     """Change values inside one payload (a range to NaN/inf/inverted/out of domain, float texels out of [0, 1],
     random texel bytes, random bytes of a fields1 content), recompress, rename and point the manifest at it
-    (checksums valid): only the values
-    can be wrong."""
+    (checksums valid): only the values can be wrong."""
     import hashlib
 
     import numpy as np
