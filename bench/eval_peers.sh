@@ -6,14 +6,14 @@
 #
 # Writes OUT_DIR/<stem>.compressed.ply, .spz, .sog (the encodings whose sizes count) and OUT_DIR/<stem>.<fmt>.dec.ply
 # (decoded by splat-transform), and prints the matching `--compare LABEL=DECODED@ENCODED` arguments on stdout
-# (one per line). The tool is installed under $PEERS_PREFIX (default /tmp/peers) on first use; node >= 18.
+# (one per line). The tool is installed under $PEERS_PREFIX (default /tmp/peers-VERSION) on first use; node >= 18.
 # SOG is encoded on the CPU (-g cpu: no WebGPU here), with the tool's default 10 SH k-means iterations (1M splats:
 # ~7 minutes on 2 cores). Existing outputs newer than the input are reused unless PEERS_FORCE=1.
 set -euo pipefail
 in=${1:?usage: eval_peers.sh INPUT.ply OUT_DIR}
 out=${2:?usage: eval_peers.sh INPUT.ply OUT_DIR}
-prefix=${PEERS_PREFIX:-/tmp/peers}
-version=${SPLAT_TRANSFORM_VERSION:-2.7.1}
+version=${SPLAT_TRANSFORM_VERSION:-3.7.0}  # the newest on npm when measured (npm view @playcanvas/splat-transform)
+prefix=${PEERS_PREFIX:-/tmp/peers-$version}
 st="$prefix/node_modules/.bin/splat-transform"
 if [ ! -x "$st" ]; then
   mkdir -p "$prefix"

@@ -1022,8 +1022,8 @@ def _payload_files(scene: pathlib.Path) -> list[pathlib.Path]:
 
 def _reseal_payload(rng: random.Random, scene: pathlib.Path) -> str:
     """Change values inside one payload (a range to NaN/inf/inverted/out of domain, float texels out of [0, 1],
-    random texel bytes), recompress, rename and point the manifest at it (checksums valid): only the values
-    can be wrong."""
+    random texel bytes, random bytes of a fields1 content), recompress, rename and point the manifest at it
+    (checksums valid): only the values can be wrong."""
     import hashlib
 
     import numpy as np
@@ -1039,7 +1039,10 @@ def _reseal_payload(rng: random.Random, scene: pathlib.Path) -> str:
     raw = bytearray(zstandard.ZstdDecompressor().decompress((scene / entry["file"]).read_bytes()))
     s = rng.choice(entry["sections"])
     element = int(s["filter"][7:]) if s["filter"].startswith("shuffle") else 1
-    if s["kind"] == "range":
+    if s["filter"] == "fields1":  # transport-coded texels (format.md 5.2): random bytes of the stored content
+        dtype = np.dtype("u1")
+        units = 1
+    elif s["kind"] == "range":
         dtype = np.dtype("<f4") if s["dtype"] == "f32" else np.dtype("<f2")
         units = 1
     else:
@@ -1066,7 +1069,7 @@ def _reseal_payload(rng: random.Random, scene: pathlib.Path) -> str:
     else:
         at = rng.randrange(len(values))
         values[at:at + 16] = np.frombuffer(os.urandom(len(values[at:at + 16])), np.uint8)
-        desc = f"16 texel bytes at {at} random"
+        desc = f"16 {'fields1 content' if s['filter'] == 'fields1' else 'texel'} bytes at {at} random"
     raw[start:start + unit] = shuffle_bytes(values.view(np.uint8), element).tobytes()
     data = zstandard.ZstdCompressor().compress(bytes(raw))
     sha = hashlib.sha256(data).hexdigest()

@@ -21,6 +21,7 @@ import numpy as np
 from . import __version__
 from .camera import Camera, scene_orbit_views
 from .errors import InputError, UsageError
+from .format.presets import PRESETS
 from .gaussians import Gaussians
 from .metrics import psnr_from_mse, ssim
 from .orientation import detect_up
@@ -28,7 +29,7 @@ from .orientation import detect_up
 Renderer = Callable[[Gaussians | str, Camera], np.ndarray]
 
 LOSSLESS_FORMAT = "f32x4"
-PRESET_ORDER = ("very-high", "high", "medium", "low", "very-low")
+PRESET_ORDER = tuple(PRESETS)  # largest files first
 
 # The seed's published table (Aras P., "Making Gaussian Splats smaller", 2023; bike scene, SH3, 248-byte PLY).
 # bytes_sh3 = 248 / Compr. `texels` are the seed's formats; their sizes give a seed-equivalent at other SH degrees.

@@ -34,7 +34,8 @@ def test_encode_info_decode(tmp_path):
     d = decode_scene(tmp_path / "scene")
     assert np.array_equal(back.positions, d.positions) and np.array_equal(back.sh_rest, d.sh_rest)
     r = run_cli("info", tmp_path / "scene")
-    assert "preset high" in r.stdout
+    assert "preset high" in r.stdout and "preset     high: 16-bit positions" in r.stdout and "differs" not in r.stdout
+    assert info["preset_overrides"] == {} and info["section_filters"]["fields1"] > 0  # format 1.2 transport coding
 
 
 def test_format_overrides(tmp_path):
@@ -45,6 +46,8 @@ def test_format_overrides(tmp_path):
     assert info["formats"]["position"] == "f32x4" and info["formats"]["color"] == "f16x4"
     assert info["formats"]["rotation"] == "norm10_2"
     assert "sh" not in info["formats"] and "sh" not in info["attributes"]  # an SH0 scene has no SH format
+    assert info["preset_overrides"] == {"position": "f32x4", "color": "f16x4"}
+    assert "differs from it in: position=f32x4, color=f16x4" in run_cli("info", tmp_path / "s").stdout
     r = run_cli("encode", real("donut_sh0_no_normals.ply"), tmp_path / "t", "--color", "norm565", "-q")
     assert r.returncode == 2 and "4-component" in r.stderr and not (tmp_path / "t").exists()
 

@@ -111,9 +111,10 @@ def test_luminance_chunk_order_keeps_chunk_membership():
     g = read_gaussians_ply(real("fruit_drops_sh3.ply"))
     morton = splat_order(g, "morton")
     lum = splat_order(g, "luminance")
-    assert resolve_chunk_order("auto", PRESETS["low"]) == "luminance"
+    assert resolve_chunk_order("auto", PRESETS["low"]) == "morton"  # norm8x4 colour since format 1.2
     assert resolve_chunk_order("auto", PRESETS["very-low"]) == "luminance"
-    assert resolve_chunk_order("auto", {**PRESETS["low"], "position": "bc7"}) == "morton"
+    assert resolve_chunk_order("auto", {**PRESETS["low"], "color": "bc7"}) == "luminance"
+    assert resolve_chunk_order("auto", {**PRESETS["low"], "color": "bc7", "position": "bc7"}) == "morton"
     assert resolve_chunk_order("auto", PRESETS["medium"]) == "morton"
     for c in range(0, len(g), CHUNK_SIZE):
         assert set(morton[c:c + CHUNK_SIZE].tolist()) == set(lum[c:c + CHUNK_SIZE].tolist())

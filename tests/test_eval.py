@@ -125,10 +125,10 @@ def test_attribution_rows_and_markdown():
     for attr in ("position", "rotation", "scale", "color", "sh"):
         assert f"low {attr}=f32x4" in labels and f"low only {attr}" in labels
     only_color = next(r for r in rep["rows"] if r["label"] == "low only color")
-    assert only_color["formats"]["color"] == "bc7" and only_color["formats"]["position"] == "f32x4"
+    assert only_color["formats"]["color"] == "norm8x4" and only_color["formats"]["position"] == "f32x4"
     md = report_markdown(rep)
     assert "Error attribution for low" in md
-    assert "| color | bc7 |" in md
+    assert "| color | norm8x4 |" in md
 
 
 def test_read_compare_clamps_infinite_opacity(tmp_path):
@@ -171,7 +171,7 @@ def test_variants_parse_and_run():
                    EvalOptions(presets=[], variants=["low-sh1:low,sh_degree=1"], views=1, width=32, height=32))
     (row,) = rep["rows"]
     assert row["kind"] == "variant" and row["sh_degree"] == 1
-    assert "| low-sh1 | norm8x4 | norm565 | norm8x4 | bc7 | norm565 VQ64 (SH1) |" in report_markdown(rep)
+    assert "| low-sh1 | norm8x4 | norm565 | norm8x4 | norm8x4 | norm565 VQ64 (SH1) |" in report_markdown(rep)
 
 
 def test_reference_table_only_on_request(tmp_path):
@@ -180,3 +180,17 @@ def test_reference_table_only_on_request(tmp_path):
                   "--reference-table", "-q")
     assert res.returncode == 0, res.stderr
     assert "Reference, not measured here" in res.stdout and "| medium | " in res.stdout
+
+
+@pytest.mark.parametrize("scene", ["fruit_drops_sh3.ply", "lod_tile_sh3_zero_rest.ply"])
+def test_low_meets_its_bound_on_real_sh3(scene):
+    """Issue 15: `low` at 35 dB or more with 12 B/splat or fewer on disk on the real SH3 scenes (measured at 8 views
+    of 512x512: fruit_drops 37.6 dB at 11.67 B, lod_tile 37.3 dB at 10.77 B). Here 2 small views with the reference
+    rasterizer, which measured 37.9 and 41.4 dB; the bound keeps the issue's 35 dB."""
+    from splatstream.commands.renderers import pick_renderer
+
+    rep = evaluate(str(real(scene)), EvalOptions(presets=["low"], views=2, width=96, height=96),
+                   renderer=pick_renderer("ref"))
+    (row,) = rep["rows"]
+    assert row["disk_bytes_per_splat"] <= 12.0 and row["psnr_mean"] >= 35.0, row
+    assert row["sh_codebook_entries"] is not None and row["formats"]["color"] == "norm8x4"

@@ -5,7 +5,7 @@ from conftest import group_planes_of, read_manifest_dict, real, run_cli, write_m
 
 from splatstream.decoder import decode_scene, read_codebook
 from splatstream.encode import EncodeOptions, encode_gaussians
-from splatstream.encode.codebook import codebook_rows, codebook_weights
+from splatstream.encode.codebook import codebook_rows, codebook_weights, order_by_use
 from splatstream.encode.jobs import splat_order
 from splatstream.errors import FormatError, UsageError
 from splatstream.format.codec import codebook_band_values, decode_index_plane, decode_plane, encode_index_plane
@@ -14,7 +14,7 @@ from splatstream.format.planes import SH_INDEX_PLANE
 from splatstream.format.texformats import get_format
 from splatstream.ply import read_gaussians_ply
 from splatstream.store import DirectoryStore, load_manifest
-from splatstream.vq import MAX_ENTRIES, auto_entries, build_codebook, parse_entries
+from splatstream.vq import MAX_ENTRIES, auto_entries, build_codebook, fine_entries, parse_entries
 
 
 @pytest.fixture(scope="module")
@@ -27,6 +27,10 @@ def test_auto_size_and_parsing():
     assert auto_entries(10) == 64
     assert parse_entries("off", 10) == 0 and parse_entries("auto", 1_000_000) == 16384
     assert parse_entries("300", 1) == 300
+    # fine: a power of two near N / 16, at least 256, capped at 16,384 (or auto's size where that is larger).
+    assert fine_entries(4721) == 256 and fine_entries(10) == 256 and fine_entries(14_051) == 1024
+    assert fine_entries(1_000_000) == 16384 and fine_entries(6_000_000) == 65536
+    assert parse_entries("fine", 152_746) == 8192
     for bad in ("0x10", "-1", str(MAX_ENTRIES + 1), "many"):
         with pytest.raises(UsageError):
             parse_entries(bad, 1000)
@@ -79,8 +83,9 @@ def test_encoded_codebook_round_trips_within_one_step(fruit, tmp_path):
     assert m.version == (1, 2) and cb.entries == 64 and cb.index_format == "index16"
     assert cb.format == m.formats["sh"] == "norm565"
     assert set(cb.groups) == {"sh1", "sh2", "sh3"} and set(m.tiles[0].groups) == {"base", "sh1"}
-    # The codebook the encoder fitted (deterministic for the same input).
-    fitted = build_codebook(codebook_rows(fruit), 64, weights=codebook_weights(fruit))
+    # The codebook the encoder fitted (deterministic for the same input), entries numbered by falling use.
+    fitted = order_by_use(build_codebook(codebook_rows(fruit), 64, weights=codebook_weights(fruit)),
+                          codebook_rows(fruit))
     planes = read_codebook(DirectoryStore(tmp_path / "s"), m, 3)
     fmt = get_format("norm565")
     for band in (1, 2, 3):
@@ -99,6 +104,8 @@ def test_encoded_codebook_round_trips_within_one_step(fruit, tmp_path):
     rows = codebook_rows(g)
     d = ((rows[:, None, :] - fitted.entries[None]) ** 2).sum(-1)
     np.testing.assert_array_equal(index, d.argmin(1))
+    uses = np.bincount(index, minlength=64)
+    assert (np.diff(uses) <= 0).all() and uses[0] > uses[-1]
     # The decoder puts the entries back per splat, band by band; lower degrees need fewer payloads.
     dec = decode_scene(tmp_path / "s")
     assert dec.sh_degree == 3
@@ -136,12 +143,15 @@ def test_lod_tiles_share_one_codebook(fruit, tmp_path):
     assert len(leaves) == len(fruit)
 
 
-def test_medium_has_no_codebook_and_is_version_1_2(fruit, tmp_path):
-    # Before the manifest checksum a scene without a codebook was written as 1.0 (1.1 with one); every scene a
-    # writer makes now has a checksum, so it is 1.2 (format.md 6).
-    m = encode_gaussians(fruit.subset(morton_order(fruit.positions)[:600]), tmp_path / "s",
-                         EncodeOptions(preset="medium"))
+def test_every_scene_is_version_1_2(fruit, tmp_path):
+    # Before 1.2 a scene without a codebook was written as 1.0 (1.1 with one); every scene a writer makes now has a
+    # manifest checksum, so it is 1.2 (format.md 6), with fields1 sections or (--transport shuffle) without.
+    few = fruit.subset(morton_order(fruit.positions)[:600])
+    m = encode_gaussians(few, tmp_path / "s", EncodeOptions(preset="medium"))
     assert m.version == (1, 2) and m.sh_codebook is None
+    m = encode_gaussians(few, tmp_path / "s", EncodeOptions(preset="low", transport="shuffle"))
+    assert m.version == (1, 2) and m.sh_codebook is not None
+    assert {s.filter for _, _, p in m.payloads() for s in p.sections} <= {"none", "shuffle2", "shuffle4"}
     m = encode_gaussians(fruit.subset(np.arange(600)), tmp_path / "t", EncodeOptions(preset="medium", sh_codebook=32))
     assert m.sh_codebook.entries == 32 and m.formats["sh"] == "norm565"
 
@@ -168,3 +178,24 @@ def test_cli_codebook_option(tmp_path):
     r = run_cli("encode", str(real("fruit_drops_sh3.ply")), str(tmp_path / "x"), "--sh-codebook", "70000")
     assert r.returncode == 2 and "65536" in r.stderr and "Traceback" not in r.stderr
     assert not (tmp_path / "x").exists()
+
+
+def test_renumbering_by_use_keeps_every_assignment(monkeypatch):
+    """ordered_by_use permutes the entries; every row still gets the same entry (now under its new number), through
+    the value lookup and through the tree search alike."""
+    import splatstream.vq as vq
+
+    rng = np.random.default_rng(11)
+    rows = np.concatenate([rng.normal(size=(3000, 9)), rng.normal(size=(200, 9)) * 0.1 + 2]).astype(np.float32)
+    for entries, flat_limit in ((32, vq.FLAT_LIMIT), (256, 0)):  # a flat codebook, then a two-level tree
+        monkeypatch.setattr(vq, "FLAT_LIMIT", flat_limit)
+        cb = build_codebook(rows, entries)
+        assert (len(cb.top) == len(cb.entries)) == (flat_limit > 0)
+        labels = cb.assign(rows)
+        counts = np.bincount(labels, minlength=len(cb.entries))
+        sorted_cb = cb.ordered_by_use(counts)
+        new = sorted_cb.assign(rows)
+        np.testing.assert_array_equal(sorted_cb.entries[new], cb.entries[labels])
+        uses = np.bincount(new, minlength=len(cb.entries))
+        assert (np.diff(uses) <= 0).all()
+        np.testing.assert_array_equal(sorted_cb.assign(cb.entries), np.argsort(-counts, kind="stable").argsort())

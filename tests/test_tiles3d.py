@@ -298,7 +298,8 @@ def test_export_replaces_atomically_and_refuses_bad_input_in_one_line(scenes, tm
     broken = tmp_path / "broken"
     shutil.copytree(scene, broken)
     payload = next((broken / "data").iterdir())
-    payload.write_bytes(payload.read_bytes()[:-1] + b"\0")
+    data = payload.read_bytes()
+    payload.write_bytes(data[:-1] + bytes([data[-1] ^ 0xFF]))  # (writing a 0 left a payload ending in 0 intact)
     r = run_cli("export-3dtiles", broken, tmp_path / "o5", "--quiet")
     assert r.returncode == 2 and "checksum mismatch" in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
     assert not (tmp_path / "o5").exists()

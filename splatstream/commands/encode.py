@@ -7,8 +7,17 @@ import time
 
 from ..encode import encode_file
 from ..errors import UsageError
-from ..format.presets import ATTRIBUTES, DEFAULT_PRESET, PRESETS
+from ..format.container import DEFAULT_ZSTD_LEVEL
+from ..format.presets import (
+    ATTRIBUTES,
+    DEFAULT_PRESET,
+    PRESET_SH_CODEBOOK,
+    PRESET_SUMMARY,
+    PRESET_ZSTD_LEVEL,
+    PRESETS,
+)
 from ..format.texformats import VALUE_FORMATS
+from ..format.transport import TRANSPORTS
 from ..progress import ProgressPrinter
 from .args import parse_bytes, parse_vector
 
@@ -19,28 +28,40 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Read a 3DGS scene (standard PLY and other supported formats) and write a scene directory: "
                     "Morton-ordered 256-splat chunks quantised per chunk into GPU texture planes, SH bands in "
                     "separate payloads, LOD tiles, a msgpack manifest. Presets (texel formats per attribute): "
-                    + "; ".join(f"{k}: " + ", ".join(f"{a}={f}" for a, f in v.items()) for k, v in PRESETS.items()),
+                    + "; ".join(f"{k}: " + ", ".join(f"{a}={f}" for a, f in v.items()) for k, v in PRESETS.items())
+                    + ". SH bands 1..3 in a scene-wide codebook: "
+                    + ", ".join(f"{k} ({v})" for k, v in PRESET_SH_CODEBOOK.items()),
     )
     p.add_argument("input", help="input splat file (.ply; other formats are detected by content)")
     p.add_argument("output_dir", help="scene directory to write (replaced atomically if it exists), or an fsspec URL "
                                       "(s3://bucket/scene, gs://..., needs the cluster extra): payloads first, the "
                                       "manifest last")
-    p.add_argument("--preset", default=DEFAULT_PRESET, choices=list(PRESETS), help="quality preset (default medium)")
+    p.add_argument("--preset", default=DEFAULT_PRESET, choices=list(PRESETS), metavar="PRESET",
+                   help="quality preset, from the largest files to the smallest: "
+                        + "; ".join(f"{k} ({v})" for k, v in PRESET_SUMMARY.items()).replace("%", "%%")
+                        + f". Default {DEFAULT_PRESET}")
     for attr in ATTRIBUTES:
         p.add_argument(f"--{attr}", dest=f"fmt_{attr}", choices=list(VALUE_FORMATS), metavar="FORMAT",
                        help=f"texel format of {attr}, overriding the preset ({', '.join(VALUE_FORMATS)})")
     p.add_argument("--sh-degree", type=int, choices=[0, 1, 2, 3], help="drop SH bands above this degree")
-    p.add_argument("--sh-codebook", metavar="off|auto|N",
+    p.add_argument("--sh-codebook", metavar="off|auto|fine|N",
                    help="vector-quantise SH bands 1..3 into a scene-wide codebook of N entries (at most 65536; "
-                        "auto: about one per 64 splats) with a 16-bit index per splat; the sh format then applies "
-                        "to the codebook. Default: the preset's choice (low and very-low use auto)")
+                        "auto: about one per 64 splats; fine: about one per 16, 256..16384) with a 16-bit index per "
+                        "splat; the sh format then applies to the codebook. Default: the preset's choice ("
+                        + ", ".join(f"{k}: {v}" for k, v in PRESET_SH_CODEBOOK.items()) + "; the others: off)")
     p.add_argument("--no-lod", action="store_true", help="write one tile holding every splat (no LOD tree)")
     p.add_argument("--max-leaf-splats", type=int, default=16384,
                    help="splats per leaf tile at most (default 16384: measured best for streaming)")
     p.add_argument("--reduction", type=float, default=4.0,
                    help="each LOD level keeps about 1/REDUCTION of the splats of the level below (default 4)")
-    p.add_argument("--zstd-level", type=int, default=3,
-                   help="zstd level of the payloads (1..22, default 3: on shuffled texels higher levels gain <1%%)")
+    p.add_argument("--zstd-level", type=int, default=None,
+                   help=f"zstd level of the payloads (1..22; default {DEFAULT_ZSTD_LEVEL}, "
+                        + ", ".join(f"{k} {v}" for k, v in PRESET_ZSTD_LEVEL.items())
+                        + ": level 1 is as small as level 3 on the transport-coded planes and twice as fast; "
+                        "higher levels gain 0-4%% at 5-50x the time)")
+    p.add_argument("--transport", default="fields", choices=list(TRANSPORTS),
+                   help="how payload sections are stored: fields (default; the fields1 coding where it is smaller "
+                        "than the byte shuffle, format 1.2), shuffle (format 1.0/1.1, for readers before 1.2), none")
     p.add_argument("--chunk-order", default="auto", choices=["auto", "morton", "luminance"],
                    help="order of splats inside each chunk: luminance groups similar colours into the same BC block; "
                         "auto (default) uses it when colour or SH, but not position/rotation/scale, are BC-compressed")
@@ -75,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--max-leaf-splats must be at least 256 (one chunk)")
     if args.reduction <= 1.0:
         raise UsageError("--reduction must be greater than 1")
-    if not 1 <= args.zstd_level <= 22:
+    if args.zstd_level is not None and not 1 <= args.zstd_level <= 22:
         raise UsageError("--zstd-level must be between 1 and 22")
     up = parse_vector(args.up, "--up", nonzero=True) if args.up else None
     workers = None
@@ -97,6 +118,7 @@ def run(args: argparse.Namespace) -> int:
         m = encode_file(args.input, args.output_dir, preset=args.preset, drop_invalid=args.drop_invalid,
                         progress=progress, workers=workers, scheduler=args.scheduler, memory_per_worker=memory,
                         scratch=args.scratch, overrides=overrides, sh_degree=args.sh_degree, zstd_level=args.zstd_level,
+                        transport=args.transport,
                         lod=not args.no_lod, max_leaf_splats=args.max_leaf_splats, reduction=args.reduction,
                         name=args.name, up=up, chunk_order=args.chunk_order, sh_codebook=args.sh_codebook)
     if not args.quiet:

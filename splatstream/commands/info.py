@@ -3,8 +3,10 @@ from __future__ import annotations
 
 import argparse
 import json
+from collections import Counter
 
 from ..format.manifest import Manifest, scene_summary
+from ..format.presets import PRESET_SH_CODEBOOK, PRESET_SUMMARY, PRESETS
 from ..store import load_manifest
 
 
@@ -21,8 +23,21 @@ def scene_info(m: Manifest) -> dict:
         "bytes_per_level": _bytes_per_level(m),
         "camera": m.camera.to_dict(),
         "sh_codebook": _codebook(m),
+        "preset_summary": PRESET_SUMMARY.get(m.preset),
+        "preset_overrides": _overrides(m),
+        "section_filters": dict(sorted(Counter(sec.filter for _, _, p in m.payloads() for sec in p.sections).items())),
     })
     return s
+
+
+def _overrides(m: Manifest) -> dict[str, str] | None:
+    """What the scene's formats and codebook change from its preset's (None: a preset this version does not know)."""
+    if m.preset not in PRESETS:
+        return None
+    out = {a: f for a, f in m.formats.items() if PRESETS[m.preset].get(a) != f and (a != "sh" or m.sh_degree > 0)}
+    if m.sh_degree > 0 and m.uses_codebook != (m.preset in PRESET_SH_CODEBOOK):
+        out["sh_codebook"] = str(m.sh_codebook.entries) if m.sh_codebook else "off"
+    return out
 
 
 def _codebook(m: Manifest) -> dict | None:
@@ -63,6 +78,12 @@ def run(args: argparse.Namespace) -> int:
         return 0
     print(f"scene      {info['name']}  (format version {info['version'][0]}.{info['version'][1]})")
     print(f"splats     {info['splats']}  SH degree {info['sh_degree']}  preset {info['preset']}")
+    overrides = info["preset_overrides"]
+    if info["preset_summary"]:
+        changed = f"; differs from it in: {', '.join(f'{a}={f}' for a, f in overrides.items())}" if overrides else ""
+        print(f"preset     {info['preset']}: {info['preset_summary']}{changed}")
+    else:
+        print(f"preset     {info['preset']} is not a preset of this version; the formats below are what counts")
     print(f"tiles      {info['tiles']} in {info['levels']} levels, {info['leaf_tiles']} leaves holding "
           f"{info['leaf_splats']} splats")
     print(f"on disk    {info['bytes_on_disk']} bytes ({info['bytes_per_splat_on_disk']:.2f} B/splat, all levels)")
@@ -70,6 +91,8 @@ def run(args: argparse.Namespace) -> int:
     for name, a in (info["attributes"] or {}).items():
         print(f"  {name:<9} {a['format']:<9} GPU {a['gpu_bytes'] / info['splats']:7.2f} B/splat   "
               f"disk {a['disk_bytes'] / info['splats']:7.2f} B/splat")
+    filters = ", ".join(f"{n} {f}" for f, n in info["section_filters"].items())
+    print(f"payloads   sections stored as: {filters} (format.md 5)")
     cb = info["sh_codebook"]
     if cb:
         print(f"  SH codebook: {cb['entries']} entries in {cb['format']}, {cb['bytes_on_disk']} bytes on disk, "

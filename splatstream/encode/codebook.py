@@ -24,6 +24,18 @@ def codebook_weights(g: Gaussians) -> np.ndarray:
     return sigmoid(g.opacity_logits).astype(np.float64) * np.exp(np.clip(largest_two, -60.0, 60.0))
 
 
+# Use counts for the renumbering are taken on at most this many of the fitting rows (evenly spaced): ranks of
+# frequent entries settle long before, and assigning 2M distinct rows to 16k entries would take seconds.
+USE_COUNT_ROWS = 1 << 18
+
+
+def order_by_use(codebook: Codebook, rows: np.ndarray) -> Codebook:
+    """The codebook with entries renumbered by falling use among `rows` (the rows it was fitted on)."""
+    step = max(1, -(-len(rows) // USE_COUNT_ROWS))
+    counts = np.bincount(codebook.assign(rows[::step]), minlength=len(codebook.entries))
+    return codebook.ordered_by_use(counts)
+
+
 def codebook_choice(opts, sh_degree: int) -> str | int:
     """The codebook an encode asks for: "off", "auto" or an entry count (the option, else the preset's)."""
     choice = opts.sh_codebook if opts.sh_codebook is not None else PRESET_SH_CODEBOOK.get(opts.preset, "off")
@@ -42,7 +54,8 @@ def fit_sh_codebook(g: Gaussians, preset: str, choice: str | int | None, sh_degr
         return None
     if sh_degree < g.sh_degree:
         g = g.with_sh_degree(sh_degree)
-    return build_codebook(codebook_rows(g), entries, weights=codebook_weights(g))
+    rows = codebook_rows(g)
+    return order_by_use(build_codebook(rows, entries, weights=codebook_weights(g)), rows)
 
 
 def assign_sh_codebook(codebook: Codebook, g: Gaussians, block: int = 1 << 16) -> np.ndarray:

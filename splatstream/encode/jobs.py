@@ -36,7 +36,7 @@ def tile_group_names(ctx: TileContext) -> list[str]:
 
 def write_planes(planes: list[EncodedPlane], chunks: int, ctx: TileContext, writer: SceneWriter) -> PayloadEntry:
     with writer.payload_file() as (f, finish):
-        entry = write_payload(planes, f, chunks, level=ctx.zstd_level, shuffle=ctx.shuffle)
+        entry = write_payload(planes, f, chunks, level=ctx.zstd_level, transport=ctx.transport)
         f.flush()
         finish(entry)
     return entry

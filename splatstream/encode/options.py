@@ -4,7 +4,8 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-from ..format.presets import DEFAULT_PRESET
+from ..format.container import DEFAULT_ZSTD_LEVEL
+from ..format.presets import DEFAULT_PRESET, preset_zstd_level
 
 # progress(stage, fraction in [0, 1]); stages: codebook, tiles, encode
 Progress = Callable[[str, float], None]
@@ -19,8 +20,10 @@ class EncodeOptions:
     preset: str = DEFAULT_PRESET
     overrides: dict[str, str] = field(default_factory=dict)
     sh_degree: int | None = None  # drop bands above this
-    zstd_level: int = 3
-    shuffle: bool = True
+    zstd_level: int | None = None  # None: the preset's (format/presets.py PRESET_ZSTD_LEVEL), else DEFAULT_ZSTD_LEVEL
+    # How payload sections are stored (format/transport.py): "fields" (the fields1 filter where it is smaller than
+    # the byte shuffle; format 1.2), "shuffle" (what 1.0/1.1 readers read), "none".
+    transport: str = "fields"
     lod: bool = True
     # Leaf tile size: measured against bytes to converge and requests on a 20 Mbit/s + 40 ms link (BENCHMARKS.md,
     # "Tile size"): 16,384 converged an overview 12 % and a close-up 26 % sooner than 65,536, with a 192 KB manifest
@@ -35,3 +38,9 @@ class EncodeOptions:
     # Let the LOD builder permute the input's arrays in place instead of copying the scene (saves one copy of
     # the whole scene). Only for callers that own the Gaussians and do not need their order afterwards.
     reorder_input: bool = False
+
+    @property
+    def resolved_zstd_level(self) -> int:
+        """The zstd level the payloads are written with: the option, else the preset's, else the default."""
+        return self.zstd_level if self.zstd_level is not None else preset_zstd_level(self.preset, DEFAULT_ZSTD_LEVEL)
+

@@ -476,7 +476,7 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
         progress("codebook", 1.0)
     sample.codebook_rows = sample.codebook_weights = None
     up = plan_up(opts, sample)
-    ctx = TileContext(formats, chunk_order, sh_degree, codebook, opts.zstd_level, opts.shuffle)
+    ctx = TileContext(formats, chunk_order, sh_degree, codebook, opts.resolved_zstd_level, opts.transport)
     payloads = writer.payload_writer()
     codebook_entry = encode_codebook(codebook, ctx, payloads) if codebook is not None else None
 

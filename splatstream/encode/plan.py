@@ -14,6 +14,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import InputError, UsageError
+from ..format.container import DEFAULT_ZSTD_LEVEL
 from ..format.layout import CHUNK_SIZE, MAX_BLOCK_ROWS, MAX_BLOCKS_PER_ROW
 from ..format.limits import describe_violations, domain_violations
 from ..format.manifest import Box, CameraEntry
@@ -36,8 +37,8 @@ class TileContext:
     chunk_order: str
     sh_degree: int
     codebook: Codebook | None
-    zstd_level: int = 3
-    shuffle: bool = True
+    zstd_level: int = DEFAULT_ZSTD_LEVEL
+    transport: str = "fields"  # format/transport.py TRANSPORTS
 
 
 @dataclass
@@ -102,7 +103,7 @@ def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progr
     progress("tiles", 0.0)
     tiles = plan_tiles(g, opts, progress)
     progress("tiles", 1.0)
-    context = TileContext(formats, chunk_order, sh_degree, codebook, opts.zstd_level, opts.shuffle)
+    context = TileContext(formats, chunk_order, sh_degree, codebook, opts.resolved_zstd_level, opts.transport)
     return EncodePlan(context, tiles, opts, scene_name(opts, source_name, out_name), len(g), bounds, up, sample)
 
 

@@ -37,7 +37,7 @@ class _Sizes:
         for sec in entry.sections:
             attr = section_attribute(sec.name)
             if attr in attributes:
-                self.gpu[attr] += sec.size
+                self.gpu[attr] += sec.gpu_size
                 self.disk[attr] += entry.bytes * sec.size / max(1, entry.raw_bytes)
         self.leaf_gpu += entry.gpu_bytes
         self.leaf_disk += entry.bytes
@@ -62,7 +62,7 @@ def build_manifest(plan: EncodePlan, camera: CameraEntry, tiles: list[TileEntry]
     root = ordered[0]
     opts = plan.options
     m = Manifest(
-        version=FORMAT_VERSION,
+        version=FORMAT_VERSION,  # every scene this writes is 1.2 (the manifest checksum), fields1 or not
         generator=f"splatstream {__version__}",
         name=plan.name,
         splats=plan.splats,

@@ -23,7 +23,7 @@ from ..gaussians import Gaussians
 from ..orientation import SAMPLE as ORIENT_SAMPLE
 from ..orientation import UpChoice, detect_up, view_side
 from ..vq import Codebook, build_codebook, parse_entries
-from .codebook import codebook_rows, codebook_weights
+from .codebook import codebook_rows, codebook_weights, order_by_use
 
 POSITION_SAMPLE = 2_000_000
 # 2M rows of 45 SH values (360 MB): about 32 rows per entry of the largest codebook (65,536), where the k-means
@@ -96,4 +96,5 @@ class SceneSample:
         entries = parse_entries(choice, self.splats) if self.codebook_rows is not None else 0
         if not entries:
             return None
-        return build_codebook(self.codebook_rows, entries, weights=self.codebook_weights)
+        return order_by_use(build_codebook(self.codebook_rows, entries, weights=self.codebook_weights),
+                            self.codebook_rows)

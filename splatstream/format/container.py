@@ -1,7 +1,8 @@
 """Payload files (format_spec/format.md 5): one zstd frame per (tile, group) holding its planes.
 
 A payload decompresses to the concatenation of its sections (texels of each plane, then its ranges),
-each starting at a 16-byte aligned offset and stored through the filter its manifest entry names.
+each starting at a 16-byte aligned offset and stored through the filter its manifest entry names (the byte
+shuffle, or for texels the `fields1` transport coding of transport.py).
 The manifest records, per section, where it starts and how to read it; per payload, the SHA-256 of the
 file bytes (which is also the file name) so every fetch can be verified.
 
@@ -12,6 +13,7 @@ from __future__ import annotations
 
 import hashlib
 import io
+import threading
 from typing import BinaryIO
 
 import numpy as np
@@ -21,41 +23,58 @@ from ..errors import FormatError
 from .codec import EncodedPlane
 from .layout import ALIGN
 from .limits import MAX_ABS_POSITION, MAX_LOG_SCALE, MIN_LOG_SCALE
-from .manifest import PayloadEntry, Section, filter_for
+from .manifest import PayloadEntry, Section
 from .names import payload_name, sha256_hex
 from .planes import RANGE_DTYPE_NAMES, group_planes
-from .texformats import TEXEL_DTYPES, blob_size, get_format, shuffle_bytes, unshuffle_bytes
+from .texformats import TEXEL_DTYPES
+from .transport import filter_texels, shuffle, shuffle_filter, unfilter_texels, unshuffle
 
 WORKER_MODE_MAX_BYTES = 32 << 20
+# zstd level of the encoder's payloads. With a zstd block per byte plane, level 1 measured as small as level 3 or
+# smaller (1M scene medium: 36.5 against 37.6 B/splat without LOD, 49.5 against 51.4 with 16k-splat tiles; fields1
+# planes are near noise, where level 3's extra short matches cost more than they save) and compresses about twice
+# as fast; levels up to 19 gained 1-4 % at 20-50 times the time.
+DEFAULT_ZSTD_LEVEL = 1
 
 
-def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level: int = 3,
-                  shuffle: bool = True) -> PayloadEntry:
-    """Stream a payload into `out` (zstd, hashing as it goes) and return its manifest entry.
+def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level: int = DEFAULT_ZSTD_LEVEL,
+                  transport: str = "fields") -> PayloadEntry:
+    """Write a payload into `out` (zstd, hashing as it goes) and return its manifest entry.
 
-    The section table is laid out from the sizes alone; texels are then compressed one layer at a time as the
-    planes produce them (planes from `encode_plane(..., lazy=True)`), so the encoder never holds a whole
-    decompressed payload or its compressed copy in memory. `chunks` is the tile's chunk count (range shapes).
+    Each plane's texels are taken one layer at a time as the plane produces them (planes from
+    `encode_plane(..., lazy=True)`) and stored through the filter `transport` picks (format.md 5.2: `fields1` where
+    it is smaller than the byte shuffle); their stored sizes lay out the section table, then the sections go through
+    one zstd frame, a zstd block ending with each part of a section (a byte plane; a layer of BC blocks; a range):
+    every part gets its own literal table, which measured 2-12 % smaller sections than one table across planes of
+    different statistics (format.md 5.3). The payload's stored sections are held until then, never its texels as
+    a whole.
+    `chunks` is the tile's chunk count (range shapes).
     """
     sections: list[Section] = []
+    contents: list[list] = []
     offset = 0
 
-    def add(name: str, kind: str, size: int, element: int, **extra) -> None:
+    def add(name: str, kind: str, filt: str, parts: list, **extra) -> None:
         nonlocal offset
         offset += (-offset) % ALIGN
-        filt = filter_for(element) if shuffle else "none"
-        sections.append(Section(name, kind, offset, int(size), filt, **extra))
+        size = sum(memoryview(p).nbytes for p in parts)
+        sections.append(Section(name, kind, offset, size, filt, **extra))
+        contents.append(parts)
         offset += size
 
     for p in planes:
-        fmt = get_format(p.format)
-        add(p.spec.name, "texels", blob_size(fmt, p.width, p.height, p.spec.layers), fmt.shuffle,
-            format=p.format, width=p.width, height=p.height, layers=p.spec.layers)
+        layers = p.spec.layers
+        filt, parts = filter_texels(p.layers, p.format, p.width, p.height, layers, level, transport)
+        add(p.spec.name, "texels", filt, parts, format=p.format, width=p.width, height=p.height, layers=layers)
         if p.spec.range_dtype:
             item = np.dtype(p.spec.range_dtype).itemsize
-            shape = (chunks, 2, p.spec.layers, p.spec.components)
-            add(p.spec.range_name, "range", int(np.prod(shape)) * item, item,
-                dtype=RANGE_DTYPE_NAMES[p.spec.range_dtype], shape=shape)
+            ranges = np.ascontiguousarray(p.ranges, p.spec.range_dtype)
+            expected = (chunks, 2, layers, p.spec.components)
+            if ranges.shape != expected:
+                raise AssertionError(f"{p.spec.range_name}: ranges of shape {ranges.shape}, expected {expected}")
+            element = item if transport != "none" else 1
+            add(p.spec.range_name, "range", shuffle_filter(element), [shuffle(ranges, element)],
+                dtype=RANGE_DTYPE_NAMES[p.spec.range_dtype], shape=expected)
     digest = hashlib.sha256()
     written = 0
 
@@ -73,34 +92,23 @@ def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level:
     threads = -1 if offset <= WORKER_MODE_MAX_BYTES else 0
     cctx = zstandard.ZstdCompressor(level=level, threads=threads, write_content_size=True)
     with cctx.stream_writer(_Sink(), size=offset, closefd=False) as stream:
-
-        def emit(section: Section, units) -> None:
-            nonlocal position
+        for section, parts in zip(sections, contents, strict=True):
             stream.write(bytes(section.offset - position))
-            position = section.offset
-            size = 0
-            for unit in units:
-                stream.write((shuffle_bytes(unit, section.element) if section.element > 1 else unit).data)
-                size += unit.size
-            if size != section.size:
-                raise AssertionError(f"section {section.name}: {size} bytes, laid out as {section.size}")
-            position += size
-
-        it = iter(sections)
-        for p in planes:
-            emit(next(it), p.layers)
-            if p.spec.range_dtype:
-                emit(next(it), [np.ascontiguousarray(p.ranges).reshape(-1).view(np.uint8)])
+            for part in parts:
+                stream.write(part)
+                stream.flush(zstandard.FLUSH_BLOCK)
+            position = section.offset + section.size
     sha = digest.hexdigest()
-    return PayloadEntry(payload_name(sha), sha, written, int(position), sum(s.size for s in sections),
+    return PayloadEntry(payload_name(sha), sha, written, int(position), sum(s.gpu_size for s in sections),
                         tuple(sections))
 
 
-def pack_payload(planes: list[EncodedPlane], level: int = 3, shuffle: bool = True) -> tuple[bytes, PayloadEntry]:
+def pack_payload(planes: list[EncodedPlane], level: int = DEFAULT_ZSTD_LEVEL,
+                 transport: str = "fields") -> tuple[bytes, PayloadEntry]:
     """In-memory payload: (file bytes, manifest entry)."""
     buf = io.BytesIO()
     chunks = len(planes[0].ranges) if planes[0].ranges is not None else planes[0].chunks
-    entry = write_payload(planes, buf, chunks, level, shuffle)
+    entry = write_payload(planes, buf, chunks, level, transport)
     return buf.getvalue(), entry
 
 
@@ -112,6 +120,17 @@ def verify_payload(data: bytes | memoryview, entry: PayloadEntry, source: str) -
         raise FormatError(source, "sha256", "checksum mismatch: the payload is corrupt or was replaced")
 
 
+_local = threading.local()
+
+
+def _decompressor() -> zstandard.ZstdDecompressor:
+    """This thread's zstd decompressor (a context is not thread-safe; reusing one saves its setup per payload)."""
+    d = getattr(_local, "decompressor", None)
+    if d is None:
+        d = _local.decompressor = zstandard.ZstdDecompressor()
+    return d
+
+
 def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, source: str,
                    codebook: bool = False) -> dict[str, EncodedPlane]:
     """Decompress verified payload bytes into planes (texels still encoded; ranges as stored).
@@ -120,7 +139,7 @@ def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, so
     what is checked here is what only the bytes can tell. With `codebook`, a tile's sh1 group holds the SH index
     plane (format_spec/format.md 4.7)."""
     try:
-        raw = zstandard.ZstdDecompressor().decompress(data, max_output_size=entry.raw_bytes)
+        raw = _decompressor().decompress(data, max_output_size=entry.raw_bytes)
     except zstandard.ZstdError as exc:
         raise FormatError(source, None, f"not a valid zstd payload ({exc})") from None
     if len(raw) != entry.raw_bytes:
@@ -130,15 +149,14 @@ def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, so
     planes: dict[str, EncodedPlane] = {}
     for spec in group_planes(group, codebook):
         s = entry.section(spec.name)
-        texels = buf[s.offset:s.offset + s.size]
-        unit = s.size // spec.layers
-        layers = [unshuffle_bytes(texels[i * unit:(i + 1) * unit], s.element) for i in range(spec.layers)]
+        layers = unfilter_texels(buf[s.offset:s.offset + s.size], s.filter, s.format, s.width, s.height,
+                                 spec.layers, f"{source} section {s.name}")
         if s.format in FLOAT_TEXEL_FORMATS:
             _check_float_texels(layers, s, source)
         ranges = None
         if spec.range_dtype:
             r = entry.section(spec.range_name)
-            data_r = unshuffle_bytes(buf[r.offset:r.offset + r.size], r.element)
+            data_r = unshuffle(buf[r.offset:r.offset + r.size], r.element)
             ranges = data_r.view(np.dtype(spec.range_dtype)).reshape(r.shape)
             _check_ranges(ranges, spec.name, r.name, source)
         planes[spec.name] = EncodedPlane(spec, s.format, s.width, s.height, layers, ranges)

@@ -30,11 +30,13 @@ from .planes import (
     groups_for_degree,
 )
 from .texformats import FORMATS, VALUE_FORMATS, blob_size
+from .transport import FIELD_LAYOUTS, FIELDS1, content_bounds
 
 FORMAT_NAME = "splatstream"
 FORMAT_VERSION = (1, 2)  # (major, minor) this code reads and writes; every scene it writes is 1.2
-# Since 1.2 the manifest's last key is `checksum`: the SHA-256 of the file with that value's 64 bytes read as
-# ASCII '0' (format.md 6, "Checksum"), so a flipped byte in the manifest is caught like one in a payload.
+# Version 1.2 added two things (format.md, version history): the manifest's last key `checksum`, the SHA-256 of the
+# file with that value's 64 bytes read as ASCII '0' (format.md 6, "Checksum"), so a flipped byte in the manifest is
+# caught like one in a payload; and the `fields1` transport coding of texels sections (format.md 5.2).
 CHECKSUM_VERSION = (1, 2)
 CHECKSUM_KEY = "checksum"
 CHECKSUM_PLACEHOLDER = b"0" * 64
@@ -43,7 +45,7 @@ MAX_MANIFEST_BYTES = 64 << 20
 MAX_PAYLOAD_RAW_BYTES = 2 << 30
 MAX_TILES = 1 << 20
 CHUNK_ORDER_NAMES = ("morton", "luminance")
-FILTERS_DOC = "none or shuffleN"
+FILTERS_DOC = "none, shuffleN or, for texels, fields1"
 
 Vec3 = tuple[float, float, float]
 
@@ -60,7 +62,7 @@ class Section:
     kind: str  # "texels" or "range"
     offset: int
     size: int
-    filter: str  # "none" or "shuffleN"
+    filter: str  # "none", "shuffleN" or (texels) "fields1"
     format: str = ""  # texels: texel format
     width: int = 0
     height: int = 0
@@ -72,6 +74,12 @@ class Section:
     def element(self) -> int:
         """Byte-shuffle element size of the filter (1: none)."""
         return filter_element(self.filter)
+
+    @property
+    def gpu_size(self) -> int:
+        """Bytes the section decodes to: its texels (whatever the filter stores), or its ranges."""
+        return blob_size(FORMATS[self.format], self.width, self.height, self.layers) if self.kind == "texels" \
+            else self.size
 
     def to_dict(self) -> dict:
         d = {"name": self.name, "offset": self.offset, "size": self.size, "filter": self.filter, "kind": self.kind}
@@ -519,14 +527,15 @@ def _payload_fast(v, expect: list[tuple[str, dict]], chunks: int, strict: bool) 
             return None
         offset, length, filt = item["offset"], item["size"], item["filter"]
         if not (_is_int(offset) and _is_int(length) and 0 <= offset and offset % ALIGN == 0 and 0 <= length
-                and offset + length <= raw and filt in _FILTERS):
+                and offset + length <= raw and (filt in _FILTERS or filt == FIELDS1 and kind == "texels")):
             return None
         if kind == "texels":
             fmt, width, height, layers = item["format"], item["width"], item["height"], item["layers"]
             if not (fmt == want["format"] and _is_int(width) and _is_int(height) and _is_int(layers)
                     and BLOCK <= width <= 1 << 16 and BLOCK <= height <= 1 << 16 and width % BLOCK == 0
                     and height % BLOCK == 0 and (width // BLOCK) * (height // BLOCK) >= chunks
-                    and layers == want["layers"] and length == blob_size(FORMATS[fmt], width, height, layers)):
+                    and layers == want["layers"] and _stored_size_problem(fmt, width, height, layers, filt, length)
+                    is None):
                 return None
             sections.append(Section(item["name"], kind, offset, length, filt, format=fmt, width=width,
                                     height=height, layers=layers))
@@ -547,9 +556,23 @@ def _payload_fast(v, expect: list[tuple[str, dict]], chunks: int, strict: bool) 
         if a.offset + a.size > b.offset:
             return None
     end = max((sec.offset + sec.size for sec in sections), default=0)
-    if raw != end or gpu != sum(sec.size for sec in sections):
+    if raw != end or gpu != sum(sec.gpu_size for sec in sections):
         return None
     return PayloadEntry(file, sha, size, raw, gpu, tuple(sections))
+
+
+def _stored_size_problem(fmt: str, width: int, height: int, layers: int, filt: str, length: int) -> str | None:
+    """What is wrong with a texels section's stored size, or None: the texture's bytes for none/shuffleN, a size
+    within what the fields1 layout allows (format.md 5.2; the exact size depends on modes only the bytes hold)."""
+    if filt != FIELDS1:
+        need = blob_size(FORMATS[fmt], width, height, layers)
+        return None if length == need else f"{length} bytes for {layers} layers of {width}x{height} {fmt}, " \
+            f"expected {need}"
+    if fmt not in FIELD_LAYOUTS:
+        return f"fields1 does not apply to texel format {fmt}"
+    lo, hi = content_bounds(fmt, width, height, layers)
+    return None if lo <= length <= hi else f"{length} bytes of fields1 content for {layers} layers of " \
+        f"{width}x{height} {fmt}, expected {lo}..{hi}"
 
 
 def _payload(m: _Map, key: str, expect: list[tuple[str, dict]], chunks: int) -> PayloadEntry:
@@ -591,7 +614,8 @@ def _payload(m: _Map, key: str, expect: list[tuple[str, dict]], chunks: int) -> 
         try:
             filter_element(filt)
         except ValueError:
-            s.fail("filter", f"unknown filter {filt!r} (expected {FILTERS_DOC})")
+            if filt != FIELDS1 or kind != "texels":
+                s.fail("filter", f"unknown filter {filt!r} (expected {FILTERS_DOC})")
         if kind == "texels":
             fmt = s.str("format", tuple(FORMATS))
             if fmt != want["format"]:
@@ -602,9 +626,9 @@ def _payload(m: _Map, key: str, expect: list[tuple[str, dict]], chunks: int) -> 
             layers = s.int("layers", 1, 64)
             if layers != want["layers"]:
                 s.fail("layers", f"expected {want['layers']}, got {layers}")
-            need = blob_size(FORMATS[fmt], width, height, layers)
-            if length != need:
-                s.fail("size", f"{length} bytes for {layers} layers of {width}x{height} {fmt}, expected {need}")
+            problem = _stored_size_problem(fmt, width, height, layers, filt, length)
+            if problem is not None:
+                s.fail("filter" if problem.startswith("fields1") else "size", problem)
             sections.append(Section(name, kind, offset, length, filt, format=fmt, width=width, height=height,
                                     layers=layers))
         else:
@@ -628,8 +652,8 @@ def _payload(m: _Map, key: str, expect: list[tuple[str, dict]], chunks: int) -> 
     end = max((s.offset + s.size for s in sections), default=0)
     if raw_bytes != end:
         p.fail("raw_bytes", f"{raw_bytes}, but the sections end at byte {end}")
-    if gpu_bytes != sum(s.size for s in sections):
-        p.fail("gpu_bytes", f"{gpu_bytes}, but the sections hold {sum(s.size for s in sections)} bytes")
+    if gpu_bytes != sum(s.gpu_size for s in sections):
+        p.fail("gpu_bytes", f"{gpu_bytes}, but the sections decode to {sum(s.gpu_size for s in sections)} bytes")
     p.done()
     return PayloadEntry(file, sha, size, raw_bytes, gpu_bytes, tuple(sections))
 

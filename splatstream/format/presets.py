@@ -10,25 +10,55 @@ from .texformats import FORMATS, VALUE_FORMATS, get_format
 
 ATTRIBUTES = ("position", "rotation", "scale", "color", "sh")
 
-# Texel format per attribute. The seed's table (Very High .. Very Low) is the baseline these must beat.
+# Texel format per attribute, from the largest files to the smallest. The seed's table (Very High .. Very Low) is
+# the baseline these must beat; the two presets between medium and low fill the hole where SPZ and SOG sit (issue
+# 15; BENCHMARKS.md, "Size against quality"). Sizes below are disk bytes per splat with the fields1 transport
+# coding, PSNR the mean over 8 views (fruit_drops: real SH3, 4.7k splats; make_scene 1M).
 PRESETS: dict[str, dict[str, str]] = {
     "very-high": {"position": "f32x4", "rotation": "f32x4", "scale": "f32x4", "color": "f32x4", "sh": "f32x4"},
     "high": {"position": "f16x4", "rotation": "norm10_2", "scale": "norm11", "color": "f16x4", "sh": "norm11"},
     "medium": {"position": "norm11", "rotation": "norm10_2", "scale": "norm11", "color": "norm8x4", "sh": "norm565"},
-    # low and very-low keep SH1..SH3 in a scene-wide codebook (PRESET_SH_CODEBOOK; sh is the codebook's format).
-    # On fruit_drops low went from 35.2 dB at 19.4 B/splat (BC1 SH, norm11/norm10_2/norm565 for position,
-    # rotation, scale) to 35.9 dB at 11.2 B/splat (manifest included): the codebook frees 6 B/splat, part of which
-    # buys 8-bit scales (+1.7 dB on fruit); 8-bit positions cost under 0.1 dB there. 8-bit smallest-three
-    # rotations would add 2.3 dB on fruit (0.75 on the 1M scene) for 1.2 B/splat more, past 12 B/splat on fruit.
-    "low": {"position": "norm8x4", "rotation": "norm565", "scale": "norm8x4", "color": "bc7", "sh": "norm565"},
+    # medium's positions, 8-bit smallest-three rotations, 8-bit scales and the SH codebook at its finer size: on
+    # the 1M scene within 1.2 dB of medium at 40 % of its bytes; on fruit_drops 46.6 dB at 15.3 B.
+    "medium-low": {"position": "norm11", "rotation": "norm8x4", "scale": "norm8x4", "color": "norm8x4",
+                   "sh": "norm565"},
+    # low with 8-bit smallest-three rotations: +4.4 dB on fruit_drops, +2.8 dB on the 1M scene for 1.2-1.3 B.
+    "low-plus": {"position": "norm8x4", "rotation": "norm8x4", "scale": "norm8x4", "color": "norm8x4",
+                 "sh": "norm565"},
+    # low keeps SH1..SH3 in a scene-wide codebook (PRESET_SH_CODEBOOK; sh is the codebook's format). Its colour was
+    # BC7 until format 1.2: norm8x4 colour gains 1.3-5.4 dB on real scenes (fruit_drops 36.1 -> 37.9 dB, the 1M
+    # scene 45.2 -> 50.0) and, coded with fields1, costs about 1 B/splat more (fruit_drops 11.2 -> 11.7 B).
+    # Rotations stay norm565 (3 x 5/6/5 bits, w from the rest) to keep real SH3 scenes under 12 B/splat.
+    "low": {"position": "norm8x4", "rotation": "norm565", "scale": "norm8x4", "color": "norm8x4", "sh": "norm565"},
     # The seed's very-low (BC7 for position, rotation and scale) measured 18 dB on fruit_drops: BC7 scales are
     # the worst of it. Packed 16-bit scales and rotations gave 31 dB at fewer bytes (SH1 in BC1); the codebook
     # keeps all three bands for less.
     "very-low": {"position": "norm8x4", "rotation": "norm565", "scale": "norm565", "color": "bc7", "sh": "norm565"},
 }
-# Presets whose SH bands go through a scene-wide codebook ("auto": sized from the splat count; see vq.py).
-PRESET_SH_CODEBOOK: dict[str, str] = {"low": "auto", "very-low": "auto"}
+# Presets whose SH bands go through a scene-wide codebook (vq.py: "auto" about one entry per 64 splats, "fine" one
+# per 16, at least 256, at most 16,384 below 1M splats).
+PRESET_SH_CODEBOOK: dict[str, str] = {"medium-low": "fine", "low-plus": "auto", "low": "auto", "very-low": "auto"}
+# zstd level per preset where it is not the encoder's default (DEFAULT_ZSTD_LEVEL, 1; `--zstd-level` overrides
+# both). medium-low at 9: 0.3-1.0 % smaller than at 1 on the real scenes (lod_tile 13.40 -> 13.26 B/splat, which
+# puts it under 0.90 of SOG's bytes there), for about 1 s more per million splats; low-plus and low gained nothing
+# (+-0.5 %), and medium keeps level 1 for its encode speed.
+PRESET_ZSTD_LEVEL: dict[str, int] = {"medium-low": 9}
 DEFAULT_PRESET = "medium"
+# What each preset is for, in the words the CLI (`encode --help`, `info`) shows: disk bytes per splat with the
+# fields1 transport coding at SH3 / SH0 and the mean PSNR measured on the benchmark scenes (BENCHMARKS.md, "Size
+# against quality").
+PRESET_SUMMARY: dict[str, str] = {
+    "very-high": "32-bit floats, lossless; about 180 B/splat at SH3, 43 at SH0",
+    "high": "16-bit positions and colour; about 73 B/splat at SH3, 18 at SH0; 61-71 dB",
+    "medium": "the default: 11-bit positions, 8-bit colour, 16-bit SH; about 37 B/splat at SH3, 14-15 at SH0; "
+              "56-72 dB",
+    "medium-low": "medium's positions, 8-bit rotations and scales, SH codebook (about 1 entry per 16 splats); "
+                  "about 13-15.5 B/splat at SH3, 12-13 at SH0; 47-68 dB",
+    "low-plus": "8-bit positions, rotations, scales and colour, SH codebook (1 per 64); about 12-13.5 B/splat at "
+                "SH3, 11-12 at SH0; 44-57 dB",
+    "low": "low-plus with 16-bit rotations; about 11-12 B/splat at SH3, 10-10.6 at SH0; 37-52 dB",
+    "very-low": "16-bit scales, BC7 colour, SH codebook; about 8-9.5 B/splat at SH3, 7.5-8 at SH0; 32-47 dB",
+}
 CHUNK_ORDERS = ("auto", "morton", "luminance")
 
 
@@ -50,6 +80,11 @@ def resolve_formats(preset: str, overrides: dict[str, str] | None = None) -> dic
                              f"(use one of {', '.join(n for n, f in FORMATS.items() if f.components == 4)})")
         formats[attr] = fmt
     return formats
+
+
+def preset_zstd_level(preset: str, default: int) -> int:
+    """The zstd level an encode of `preset` uses when none is given (`default`: the encoder's)."""
+    return PRESET_ZSTD_LEVEL.get(preset, default)
 
 
 def resolve_chunk_order(chunk_order: str, formats: dict[str, str]) -> str:

@@ -1,0 +1,107 @@
+"""Decode speed of payloads to GPU texels, one thread: what the streaming client's decode workers do per payload.
+
+    python bench/bench_decode.py SCENE.ply [--presets medium,low,high] [--leaf 16384] [--no-lod] [--runs 5]
+        [--groups base] [--transport fields,shuffle] [--json OUT]
+
+Encodes the scene in memory (LOD tiles of at most --leaf splats, the encoder's default, or one tile with --no-lod),
+then times `format.decode.decode_payload` (size and SHA-256 check, zstd, unfiltering every section into the texel
+bytes the GPU takes and the ranges) over every tile's payloads of the listed groups, and the same without the
+checksum (`container.unpack_payload`). Times are CPU seconds of this one thread (time.thread_time: other jobs on a
+shared machine move wall time by 2-3x), the median of --runs passes over all tiles; splats/s counts each tile's
+splats once per group. Every transport gives the same texels (checked).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import statistics
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+from splatstream.encode import EncodeOptions  # noqa: E402
+from splatstream.encode.local import encode_in_memory  # noqa: E402
+from splatstream.format.container import unpack_payload  # noqa: E402
+from splatstream.format.decode import decode_payload  # noqa: E402
+from splatstream.io import read_gaussians  # noqa: E402
+from splatstream.store import read_manifest  # noqa: E402
+
+
+def time_decode(jobs: list, runs: int, verify: bool, codebook: bool) -> float:
+    """Median CPU seconds of one pass over every (bytes, entry, group) job."""
+    times = []
+    for _ in range(runs):
+        start = time.thread_time()
+        for data, entry, group in jobs:
+            if verify:
+                decode_payload(data, entry, group, "bench", codebook)
+            else:
+                unpack_payload(data, entry, group, "bench", codebook)
+        times.append(time.thread_time() - start)
+    return statistics.median(times)
+
+
+def texels(jobs: list, codebook: bool) -> list[bytes]:
+    out = []
+    for data, entry, group in jobs:
+        for p in unpack_payload(data, entry, group, "bench", codebook).values():
+            out += [np.asarray(layer).tobytes() for layer in p.layers]
+    return out
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("scene")
+    ap.add_argument("--presets", default="medium,low,high")
+    ap.add_argument("--leaf", type=int, default=16384)
+    ap.add_argument("--no-lod", action="store_true")
+    ap.add_argument("--runs", type=int, default=5)
+    ap.add_argument("--groups", default="base", help="payload groups timed (base, sh1, ...; comma-separated)")
+    ap.add_argument("--transport", default="fields,shuffle")
+    ap.add_argument("--json")
+    args = ap.parse_args()
+    g = read_gaussians(args.scene)
+    groups = args.groups.split(",")
+    results = []
+    for preset in args.presets.split(","):
+        reference = None
+        for transport in args.transport.split(","):
+            store = encode_in_memory(g, EncodeOptions(preset=preset, lod=not args.no_lod,
+                                                      max_leaf_splats=args.leaf, transport=transport))
+            m = read_manifest(store)
+            jobs = [(store.read_payload(t.groups[gr]), t.groups[gr], gr) for t in m.tiles for gr in groups
+                    if gr in t.groups]
+            splats = sum(t.splats for t in m.tiles for gr in groups if gr in t.groups)
+            got = texels(jobs, m.uses_codebook)
+            if reference is None:
+                reference = got
+            elif got != reference:
+                raise SystemExit(f"{preset}: {transport} decodes to other texels than {args.transport.split(',')[0]}")
+            with_check = time_decode(jobs, args.runs, True, m.uses_codebook)
+            without = time_decode(jobs, args.runs, False, m.uses_codebook)
+            row = {
+                "scene": os.path.basename(args.scene), "preset": preset, "transport": transport,
+                "groups": groups, "tiles": len(m.tiles), "payloads": len(jobs), "splats": splats,
+                "median_tile_splats": int(statistics.median(t.splats for t in m.tiles)),
+                "payload_bytes": sum(len(d) for d, _, _ in jobs),
+                "bytes_per_splat": sum(len(d) for d, _, _ in jobs) / splats,
+                "msplats_s": splats / with_check / 1e6, "msplats_s_no_checksum": splats / without / 1e6,
+                "load_average": os.getloadavg()[0],
+            }
+            results.append(row)
+            print(f"{row['scene']} {preset:>10} {transport:>8} {','.join(groups)}: {len(jobs)} payloads, "
+                  f"{row['bytes_per_splat']:.2f} B/splat, {row['msplats_s']:.1f} M splats/s "
+                  f"({row['msplats_s_no_checksum']:.1f} without the checksum), load {row['load_average']:.1f}",
+                  flush=True)
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(results, f, indent=1)
+            f.write("\n")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,597 @@
+"""Transport coding of texels sections (format_spec/format.md 5.2): the `fields1` section filter.
+
+What a payload stores and sends may differ from the texel bytes the GPU holds, as long as decoding gives back those
+bytes exactly. `fields1` splits every texel into its fields (norm11 -> 11, 10 and 11-bit integers, norm565 ->
+5/6/5, f16x4 -> four 16-bit words, ...), lays each field out in **slot order** (16x16 blocks in row-major block
+order, Morton order inside a block: the splat order of format.md 4.1) and predicts it: optionally from another
+field of the same texel through a per-block linear model (colour R and B from G, SH coefficient R and B from G: the
+channels of one value are strongly correlated, while per-chunk normalisation leaves little between chunks), then
+optionally from the previous slot (delta: Morton-ordered splats are near neighbours). Residuals modulo 2^bits are
+zigzag-mapped and stored as byte planes; the payload's one zstd frame does the entropy coding.
+
+The encoder (`filter_texels`) decides per section, on a band of its first layer coded both ways, whether `fields1`
+or the byte shuffle of format.md 5.1 is smaller; rotations and scales usually keep the shuffle, BC blocks always do.
+Decoding (`unfilter_fields`) is numpy-vectorised: running sums, shifts and one scatter per layer back to texture
+order.
+
+Pure functions; every malformed content raises FormatError, and no decode allocates more than the section's texel
+size (plus its small per-block parameters).
+"""
+from __future__ import annotations
+
+import functools
+from collections.abc import Iterable
+from dataclasses import dataclass, field
+
+import numpy as np
+import zstandard
+
+from ..errors import FormatError
+from .layout import BLOCK
+from .texformats import FORMATS
+
+FIELDS1 = "fields1"
+BLOCK_TEXELS = BLOCK * BLOCK
+FIELDS_VERSION = 1
+SLOPE_SHIFT = 6  # per-block slopes are in units of 1/64
+SLOPE_MIN, SLOPE_MAX = -128, 127
+INTERCEPT_MIN, INTERCEPT_MAX = -32768, 32767
+MODE_DELTA = 0x01
+MODE_RESERVED = 0x0E
+# Encoder: modes are chosen on about this many slots (whole blocks spread over the layer; 16,384 chose the same
+# modes as 65,536 on the 1M scene's medium planes, at a third of the time), and fields1 is tried against the byte
+# shuffle on a band of the first layer (BAND_SLOTS, whole block rows).
+SAMPLE_SLOTS = 1 << 14
+BAND_SLOTS = 1 << 17
+# Transport choices of the encoder: "fields" (fields1 where it is smaller, format 1.2), "shuffle" (format 1.0/1.1
+# filters only, for old readers), "none" (stored as the GPU holds them).
+TRANSPORTS = ("fields", "shuffle", "none")
+
+# Field layout of each texel format fields1 applies to: (word dtype, words per texel, [(shift, bits)] low bits first).
+FIELD_LAYOUTS: dict[str, tuple[str, int, tuple[tuple[int, int], ...]]] = {
+    "f32x4": ("<u4", 4, ((0, 32),)),
+    "f16x4": ("<u2", 4, ((0, 16),)),
+    "norm10_2": ("<u4", 1, ((0, 10), (10, 10), (20, 10), (30, 2))),
+    "norm11": ("<u4", 1, ((0, 11), (11, 10), (21, 11))),
+    "norm8x4": ("<u1", 4, ((0, 8),)),
+    "norm565": ("<u2", 1, ((0, 5), (5, 6), (11, 5))),
+    "index16": ("<u2", 1, ((0, 16),)),
+}
+# Unsigned type that holds one whole texel, for moving texels as single elements.
+_TEXEL_UINT = {4: np.dtype("<u4"), 8: np.dtype("<u8"), 2: np.dtype("<u2")}
+
+
+@functools.lru_cache(maxsize=16)
+def field_bits(fmt: str) -> tuple[int, ...]:
+    """Bit width of each field of one texel, in field order (format.md 5.2)."""
+    _, words, layout = FIELD_LAYOUTS[fmt]
+    return tuple(bits for _, bits in layout) * words
+
+
+@functools.lru_cache(maxsize=32)
+def slot_to_texel(width: int, height: int) -> np.ndarray:
+    """Texel index (y * width + x) of every slot: blocks in row-major block order, Morton order inside a block."""
+    j = np.arange(BLOCK_TEXELS, dtype=np.intp)
+    bx = (j & 1) | ((j >> 1) & 2) | ((j >> 2) & 4) | ((j >> 3) & 8)
+    by = ((j >> 1) & 1) | ((j >> 2) & 2) | ((j >> 3) & 4) | ((j >> 4) & 8)
+    cols, rows = width // BLOCK, height // BLOCK
+    b = np.arange(cols * rows, dtype=np.intp)
+    x0, y0 = (b % cols) * BLOCK, (b // cols) * BLOCK
+    index = ((y0[:, None] + by[None, :]) * width + x0[:, None] + bx[None, :]).reshape(-1)
+    index.setflags(write=False)
+    return index
+
+
+def content_bounds(fmt: str, width: int, height: int, layers: int) -> tuple[int, int]:
+    """Smallest and largest `fields1` content of a section (no field predicted / every field that may be)."""
+    bits = field_bits(fmt)
+    n = width * height
+    planes = n * layers * sum((b + 7) // 8 for b in bits)
+    predictable = sum(b <= 16 for b in bits)
+    predicted = predictable - 1 if predictable > 1 else 0  # at least one anchor
+    smallest = 1 + len(bits) * layers + planes
+    return smallest, smallest + 3 * (n // BLOCK_TEXELS) * predicted * layers
+
+
+def _check_geometry(fmt: str, width: int, height: int, layers: int, source: str) -> None:
+    if fmt not in FIELD_LAYOUTS:
+        raise FormatError(source, "filter", f"fields1 does not apply to texel format {fmt!r}")
+    if not (type(width) is int and type(height) is int and type(layers) is int and 0 < width <= 2048
+            and 0 < height <= 16384 and 0 < layers <= 64 and width % BLOCK == 0 and height % BLOCK == 0):
+        raise FormatError(source, "texture", f"{width}x{height}x{layers} is not a texture of 16x16 blocks "
+                          "(width <= 2048, height <= 16384, 1..64 layers)")
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Field split and join (one layer)
+
+
+def split_layer(layer: np.ndarray, fmt: str, width: int, height: int) -> list[np.ndarray]:
+    """One layer's texel bytes -> one array per field in slot order (uint8 for 8-bit fields, uint16 up to 16 bits,
+    uint32 for 32-bit ones)."""
+    dtype, words, layout = FIELD_LAYOUTS[fmt]
+    word_dtype = np.dtype(dtype)
+    index = slot_to_texel(width, height)
+    texel_bytes = word_dtype.itemsize * words
+    if texel_bytes in _TEXEL_UINT:
+        slots = np.asarray(layer).view(_TEXEL_UINT[texel_bytes])[index].view(word_dtype).reshape(-1, words)
+    else:  # f32x4: 16 bytes a texel
+        slots = np.asarray(layer).view(word_dtype).reshape(-1, words)[index]
+    out = []
+    for w in range(words):
+        column = slots[:, w]
+        for shift, bits in layout:
+            if bits == word_dtype.itemsize * 8:
+                out.append(np.ascontiguousarray(column))
+            else:
+                t = _field_dtype(bits)
+                out.append(((column >> word_dtype.type(shift)) & word_dtype.type((1 << bits) - 1)).astype(t))
+    return out
+
+
+def join_layer(fields: list[np.ndarray], fmt: str, width: int, height: int,
+               out: np.ndarray | None = None) -> np.ndarray:
+    """Inverse of split_layer: field arrays in slot order (any unsigned type; only the field's bits are used when
+    the format packs several fields in a word) -> the layer's texel bytes in texture order, written into `out`
+    (uint8, the layer's size) when given."""
+    dtype, words, layout = FIELD_LAYOUTS[fmt]
+    word_dtype = np.dtype(dtype)
+    n = width * height
+    index = slot_to_texel(width, height)
+    texel_bytes = word_dtype.itemsize * words
+    if out is None:
+        out = np.empty(n * texel_bytes, np.uint8)
+    if len(layout) == 1:
+        # one field per word: interleave the words of a texel in slot order, then one scatter of whole texels
+        if words == 1:
+            slots = fields[0].astype(word_dtype, copy=False)
+        else:
+            slots = np.empty((n, words), word_dtype)
+            for k, f in enumerate(fields):
+                slots[:, k] = f
+        if texel_bytes in _TEXEL_UINT:
+            out.view(_TEXEL_UINT[texel_bytes])[index] = slots.reshape(-1).view(_TEXEL_UINT[texel_bytes])
+        else:
+            out.view(word_dtype).reshape(n, words)[index] = slots
+        return out
+    acc = fields[0].astype(np.uint32)  # a copy: it is written to below
+    for f, (shift, _) in zip(fields[1:], layout[1:], strict=True):
+        acc |= f.astype(np.uint32, copy=False) << np.uint32(shift)
+    out.view(word_dtype)[index] = acc
+    return out
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Prediction
+
+
+def _field_dtype(bits: int) -> type:
+    """Unsigned type a field's residuals are computed in (wrap-around arithmetic modulo its size, then masked)."""
+    return np.uint8 if bits <= 8 else np.uint16 if bits <= 16 else np.uint32
+
+
+def _zigzag(u: np.ndarray, bits: int) -> np.ndarray:
+    """Residual modulo 2^bits (two's complement in `bits` bits) -> zigzag code 2v (v >= 0) or -2v - 1 (v < 0)."""
+    t = u.dtype.type
+    mask = t((1 << bits) - 1)
+    return ((u << t(1)) ^ np.negative(u >> t(bits - 1))) & mask
+
+
+def _unzigzag(z: np.ndarray) -> np.ndarray:
+    """Zigzag codes -> residuals modulo the dtype's size (the caller masks to the field's bits)."""
+    t = z.dtype.type
+    return (z >> t(1)) ^ np.negative(z & t(1))  # np.negative of an unsigned array wraps, and is faster than 0 - x
+
+
+def _cross_prediction(ref: np.ndarray, slope: np.ndarray, intercept: np.ndarray) -> np.ndarray:
+    """Per-block linear prediction floor((slope * ref + 64 * intercept + 32) / 64), as int32 (slot order); `ref`
+    holds values below 2^16 (any integer type)."""
+    ref = ref.view(np.int32) if ref.dtype == np.uint32 else ref.astype(np.int32)
+    r = np.multiply(ref.reshape(len(slope), BLOCK_TEXELS), slope.astype(np.int32)[:, None])
+    r += ((intercept.astype(np.int32) << SLOPE_SHIFT) + (1 << (SLOPE_SHIFT - 1)))[:, None]
+    r >>= SLOPE_SHIFT
+    return r.reshape(-1)
+
+
+def _fit_cross(values: np.ndarray, ref: np.ndarray, bits: int = 16) -> tuple[np.ndarray, np.ndarray]:
+    """Per-block least-squares slope (1/64 units) and intercept of values against ref. The block sums are exact
+    (so the fit is the same on every machine): in float32 for fields of up to 8 bits (256 products below 2^16 sum
+    below 2^24), else in float64."""
+    t = np.float32 if bits <= 8 else np.float64
+    v = values.reshape(-1, BLOCK_TEXELS).astype(t)
+    r = ref.reshape(-1, BLOCK_TEXELS).astype(t)
+    sv, sr = v.sum(axis=1, dtype=np.float64), r.sum(axis=1, dtype=np.float64)
+    cov = np.einsum("ij,ij->i", r, v).astype(np.float64) * BLOCK_TEXELS - sr * sv
+    var = np.einsum("ij,ij->i", r, r).astype(np.float64) * BLOCK_TEXELS - sr * sr
+    slope = np.divide(cov, var, out=np.zeros(len(var)), where=var > 0)
+    slope = np.clip(np.rint(slope * (1 << SLOPE_SHIFT)), SLOPE_MIN, SLOPE_MAX)
+    intercept = np.rint((sv - slope / (1 << SLOPE_SHIFT) * sr) / BLOCK_TEXELS)
+    return slope.astype(np.int8), np.clip(intercept, INTERCEPT_MIN, INTERCEPT_MAX).astype("<i2")
+
+
+def _residual(values: np.ndarray, bits: int, delta: bool, pred: np.ndarray | None) -> np.ndarray:
+    """Stored code of every slot: (values - pred) modulo 2^bits, delta to the previous slot if asked; fields of more
+    than 8 bits as zigzag codes (so small residuals of either sign have a zero high byte)."""
+    t = _field_dtype(bits)
+    x = values.astype(t)  # a copy
+    if pred is not None:
+        x -= pred.astype(t)
+    if delta:
+        x[1:] -= x[:-1].copy()
+    if bits not in (8, 16, 32):
+        x &= t((1 << bits) - 1)
+    return x if bits <= 8 else _zigzag(x, bits)
+
+
+def _planes(z: np.ndarray, bits: int) -> list[np.ndarray]:
+    """Codes -> contiguous byte planes, low byte first."""
+    nbytes = (bits + 7) // 8
+    if nbytes == 1:
+        return [z.astype(np.uint8, copy=False)]
+    b = z.view(np.uint8).reshape(-1, z.dtype.itemsize)
+    return [np.ascontiguousarray(b[:, i]) for i in range(nbytes)]
+
+
+def _plane_cost(z: np.ndarray, bits: int) -> float:
+    """Order-0 entropy of the byte planes in bytes (what zstd's Huffman stage roughly reaches)."""
+    total = 0.0
+    nbytes = (bits + 7) // 8
+    b = z.view(np.uint8).reshape(-1, z.dtype.itemsize)
+    for k in range(nbytes):
+        counts = np.bincount(b[:, k], minlength=256)
+        counts = counts[counts > 0]
+        total += float((counts * np.log2(counts.sum() / counts)).sum()) / 8
+    return total
+
+
+def _sample_blocks(blocks: int) -> np.ndarray | None:
+    """Blocks the encoder measures modes on: all of them (None), or an even spread of about SAMPLE_SLOTS slots."""
+    want = max(1, SAMPLE_SLOTS // BLOCK_TEXELS)
+    if blocks <= want:
+        return None
+    return np.linspace(0, blocks - 1, want).astype(np.intp)
+
+
+Modes = list[tuple[bool, int | None]]  # per field: (delta, reference field or None)
+
+
+def choose_modes(fields: list[np.ndarray], bits: tuple[int, ...]) -> Modes:
+    """Per field (delta, reference field or None), chosen on a sample of blocks by the byte-plane entropy.
+
+    Fields with a reference are predicted from an **anchor** (a field without one) of the same texel. Every set of
+    anchors is tried (4 fields at most: 15 sets), each other field taking its best anchor or none.
+    """
+    nf = len(fields)
+    blocks = len(fields[0]) // BLOCK_TEXELS
+    pick = _sample_blocks(blocks)
+    sample = fields if pick is None else [f.reshape(blocks, BLOCK_TEXELS)[pick].reshape(-1) for f in fields]
+    alone = []
+    for f, b in zip(sample, bits, strict=True):
+        costs = {d: _plane_cost(_residual(f, b, d, None), b) for d in (False, True)}
+        d = min(costs, key=costs.get)
+        alone.append((costs[d], d))
+    cross: dict[tuple[int, int], tuple[float, bool]] = {}
+    param_cost = 3.0 * len(sample[0]) // BLOCK_TEXELS  # i8 slope + i16 intercept per block, before zstd
+    for i in range(nf):
+        for r in range(nf):
+            if i == r or bits[i] > 16 or bits[r] > 16:
+                continue
+            slope, intercept = _fit_cross(sample[i], sample[r], max(bits[i], bits[r]))
+            pred = _cross_prediction(sample[r], slope, intercept)
+            costs = {d: _plane_cost(_residual(sample[i], bits[i], d, pred), bits[i]) + param_cost
+                     for d in (False, True)}
+            d = min(costs, key=costs.get)
+            cross[(i, r)] = (costs[d], d)
+    best_total, best = float("inf"), None
+    for mask in range(1, 1 << nf):
+        anchors = [i for i in range(nf) if mask >> i & 1]
+        total, modes = 0.0, []
+        for i in range(nf):
+            options = [(alone[i][0], alone[i][1], None)]
+            if i not in anchors:
+                options += [(cross[(i, r)][0], cross[(i, r)][1], r) for r in anchors if (i, r) in cross]
+            cost, d, r = min(options, key=lambda o: o[0])
+            total += cost
+            modes.append((d, r))
+        if total < best_total:
+            best_total, best = total, modes
+    return best
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Encoder
+
+
+@dataclass
+class CodedLayer:
+    """One layer of a fields1 content: mode bytes, per-block parameters of its predicted fields, byte planes."""
+
+    modes: Modes
+    params: list[np.ndarray] = field(default_factory=list)
+    planes: list[np.ndarray] = field(default_factory=list)
+
+    def mode_bytes(self) -> bytes:
+        return bytes((MODE_DELTA if d else 0) | ((0 if r is None else r + 1) << 4) for d, r in self.modes)
+
+
+def code_layer(layer: np.ndarray, fmt: str, width: int, height: int, modes: Modes | None = None) -> CodedLayer:
+    """One layer's texel bytes -> its part of the fields1 content (modes chosen on a sample unless given)."""
+    bits = field_bits(fmt)
+    fields = split_layer(layer, fmt, width, height)
+    coded = CodedLayer(modes if modes is not None else choose_modes(fields, bits))
+    for i, (delta, ref) in enumerate(coded.modes):
+        pred = None
+        if ref is not None:
+            slope, intercept = _fit_cross(fields[i], fields[ref], max(bits[i], bits[ref]))
+            coded.params += [slope, intercept]
+            pred = _cross_prediction(fields[ref], slope, intercept)
+        coded.planes += _planes(_residual(fields[i], bits[i], delta, pred), bits[i])
+    return coded
+
+
+def assemble(layers: list[CodedLayer]) -> list[bytes | np.ndarray]:
+    """The fields1 content of a section as parts to write in order: the version, modes and parameters as one part,
+    then every byte plane (the payload writer ends a zstd block after each part)."""
+    head = bytes([FIELDS_VERSION]) + b"".join(c.mode_bytes() for c in layers) + \
+        b"".join(p.tobytes() for c in layers for p in c.params)
+    return [head] + [p for c in layers for p in c.planes]
+
+
+def fields_content(data: np.ndarray | bytes, fmt: str, width: int, height: int, layers: int,
+                   modes: list[Modes] | None = None) -> tuple[bytes, list[Modes]]:
+    """The fields1 content of a whole texels section (GPU bytes, layer after layer) and the modes used (chosen per
+    layer unless given): the normative encoder of format.md 5.2, for tests and test vectors."""
+    data = np.frombuffer(data, np.uint8) if isinstance(data, bytes | bytearray) else np.ravel(data).view(np.uint8)
+    unit = data.size // layers
+    coded = [code_layer(data[k * unit:(k + 1) * unit], fmt, width, height, None if modes is None else modes[k])
+             for k in range(layers)]
+    return b"".join(bytes(p) for p in assemble(coded)), [c.modes for c in coded]
+
+
+def shuffle_element(fmt: str) -> int:
+    """Byte-shuffle element of a texel format (format.md 5.1): 1 for BC blocks (no shuffle)."""
+    return max(1, FORMATS[fmt].shuffle)
+
+
+def shuffle_filter(element: int) -> str:
+    return f"shuffle{element}" if element > 1 else "none"
+
+
+def shuffle_planes(data: np.ndarray, element: int) -> list[np.ndarray]:
+    """Byte shuffle of one unit (format.md 5.1) as its byte planes: all first bytes of every element, then all
+    second bytes, ... (one part, the unit itself, when there is nothing to shuffle)."""
+    data = np.ravel(data).view(np.uint8)
+    if element <= 1 or data.size % element:
+        return [data]
+    if element in (2, 4):
+        words = data.view(f"<u{element}")
+        return [(words >> (8 * k)).astype(np.uint8) for k in range(element)]
+    return list(np.ascontiguousarray(data.reshape(-1, element).T))
+
+
+def shuffle(data: np.ndarray, element: int) -> np.ndarray:
+    """Byte shuffle of one unit (format.md 5.1) as one array."""
+    planes = shuffle_planes(data, element)
+    return planes[0] if len(planes) == 1 else np.concatenate(planes)
+
+
+def _band(layer: np.ndarray, fmt: str, width: int, height: int) -> tuple[np.ndarray, int]:
+    """The middle band of whole block rows of a layer holding about BAND_SLOTS slots, and its height."""
+    block_rows = height // BLOCK
+    rows = max(1, min(block_rows, -(-BAND_SLOTS // (width * BLOCK))))
+    if rows == block_rows:
+        return layer, height
+    start = (block_rows - rows) // 2 * BLOCK
+    row_bytes = width * FORMATS[fmt].bits_per_texel // 8
+    return layer[start * row_bytes:(start + rows * BLOCK) * row_bytes], rows * BLOCK
+
+
+def _zstd_size(parts: list, level: int) -> int:
+    """Compressed size of parts coded as the payload writer codes them (a zstd block ending with each part)."""
+    c = zstandard.ZstdCompressor(level=level).compressobj()
+    size = 0
+    for p in parts:
+        size += len(c.compress(p)) + len(c.flush(zstandard.COMPRESSOBJ_FLUSH_BLOCK))
+    return size + len(c.flush())
+
+
+def filter_texels(layers: Iterable[np.ndarray], fmt: str, width: int, height: int, count: int, level: int = 1,
+                  transport: str = "fields") -> tuple[str, list[bytes | np.ndarray]]:
+    """A texels section's stored form: (filter name, parts to write in order), layers taken one at a time as the
+    iterable yields them (each is dropped once coded).
+
+    With transport "fields" the first layer decides: a band of it (about BAND_SLOTS slots, all of a small layer)
+    is coded with fields1 and with the byte shuffle, both compressed with zstd at `level`, and the smaller
+    wins for every layer of the section (SH coefficients of one band behave alike). The band's modes serve
+    the whole first layer; the other layers choose their own."""
+    element = shuffle_element(fmt)
+    it = iter(layers)
+    if transport == "none":
+        return "none", [np.ravel(layer).view(np.uint8) for layer in it]
+    if transport == "shuffle" or fmt not in FIELD_LAYOUTS:
+        return shuffle_filter(element), [p for layer in it for p in shuffle_planes(layer, element)]
+    if transport != "fields":
+        raise ValueError(f"unknown transport {transport!r} (expected one of {', '.join(TRANSPORTS)})")
+    first = np.ravel(next(it)).view(np.uint8)
+    band, band_height = _band(first, fmt, width, height)
+    trial = code_layer(band, fmt, width, band_height)
+    shuffled = shuffle_planes(band, element)
+    if _zstd_size(assemble([trial]), level) >= _zstd_size(shuffled, level):
+        if band_height != height:
+            shuffled = shuffle_planes(first, element)
+        return shuffle_filter(element), shuffled + [p for layer in it for p in shuffle_planes(layer, element)]
+    coded = [trial if band_height == height else code_layer(first, fmt, width, height, trial.modes)]
+    del first, band, shuffled
+    coded += [code_layer(np.ravel(layer).view(np.uint8), fmt, width, height) for layer in it]
+    if len(coded) != count:
+        raise ValueError(f"{len(coded)} layers, expected {count}")
+    return FIELDS1, assemble(coded)
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Decoder
+
+
+def _join_planes(planes: np.ndarray, nbytes: int) -> np.ndarray:
+    """`nbytes` byte planes (low byte first) -> (n,) uint32 codes; shifts and ors are several times faster than
+    numpy's strided transpose copy."""
+    v = planes.reshape(nbytes, -1)
+    z = v[nbytes - 1].astype(np.uint32)
+    for k in range(nbytes - 2, -1, -1):
+        z <<= np.uint32(8)
+        z |= v[k]
+    return z
+
+
+def unshuffle(buf: np.ndarray, element: int) -> np.ndarray:
+    """Inverse byte shuffle (format.md 5.1) of one unit, as bytes (a view of `buf` when there is nothing to do)."""
+    if element <= 1 or buf.size % element:
+        return buf
+    if element in (2, 4):
+        v = buf.reshape(element, -1)
+        word = np.uint16 if element == 2 else np.uint32
+        z = v[element - 1].astype(word)
+        for k in range(element - 2, -1, -1):
+            z <<= word(8)
+            z |= v[k]
+        return z.view(np.uint8)
+    return np.ascontiguousarray(buf.reshape(element, -1).T).reshape(-1)
+
+
+@functools.lru_cache(maxsize=16)
+def _packed(fmt: str) -> tuple[np.dtype, np.ndarray]:
+    """A one-word texel (norm11, norm10_2, norm565, index16): its dtype and the bit offset of every field."""
+    dtype, _, layout = FIELD_LAYOUTS[fmt]
+    return np.dtype(dtype), np.array([shift for shift, _ in layout], np.uint32)
+
+
+@functools.lru_cache(maxsize=4096)
+def _decode_plan(fmt: str, width: int, height: int, layers: int, head: bytes) -> tuple:
+    """Checks the header of a fields1 content (the version byte and the modes) once per distinct header; returns
+    (expected content size, reference field of every (layer, field) or -1, delta flags), or an error message."""
+    bits = field_bits(fmt)
+    nf = len(bits)
+    if head[0] != FIELDS_VERSION:
+        return f"content has no version-{FIELDS_VERSION} header (version {head[0]})"
+    modes = head[1:]
+    if any(m & MODE_RESERVED for m in modes):
+        return "reserved mode bits set"
+    refs = tuple((m >> 4) - 1 for m in modes)
+    for layer in range(layers):
+        lr = refs[layer * nf:(layer + 1) * nf]
+        for i, r in enumerate(lr):
+            if r >= 0 and (r >= nf or r == i or lr[r] >= 0 or bits[i] > 16 or bits[r] > 16):
+                return f"layer {layer} field {i}: reference field {r} is not an anchor field of the same texel"
+    n = width * height
+    crossed = sum(r >= 0 for r in refs)
+    size = 1 + nf * layers + 3 * (n // BLOCK_TEXELS) * crossed + n * layers * sum((b + 7) // 8 for b in bits)
+    return size, refs, tuple(bool(m & MODE_DELTA) for m in modes)
+
+
+def unfilter_fields(raw: np.ndarray | bytes, fmt: str, width: int, height: int, layers: int,
+                    source: str = "section") -> np.ndarray:
+    """Inverse of fields_content: a section's stored bytes -> its GPU bytes (uint8, layer after layer), bit-exact;
+    FormatError for anything that is not a well-formed fields1 content of exactly its size (format.md 5.2).
+
+    All fields of a layer are decoded together as one (fields, slots) uint32 array, so a layer costs a dozen numpy
+    calls whatever its field count: on the 10-16k-splat tiles a client streams, per-call overhead is most of the
+    time. Arithmetic modulo 2^32, masked to each field's bits, equals the spec's arithmetic modulo 2^|T|."""
+    _check_geometry(fmt, width, height, layers, source)
+    raw = np.frombuffer(raw, np.uint8) if isinstance(raw, bytes | bytearray | memoryview) else raw
+    bits = field_bits(fmt)
+    nf = len(bits)
+    header_bytes = 1 + nf * layers
+    if raw.size < header_bytes:
+        raise FormatError(source, "fields1", f"{raw.size}-byte content is shorter than its header")
+    plan = _decode_plan(fmt, width, height, layers, raw[:header_bytes].tobytes())
+    if isinstance(plan, str):
+        raise FormatError(source, "fields1", plan)
+    expected, refs, deltas = plan
+    if raw.size != expected:
+        raise FormatError(source, "fields1", f"content of {raw.size} bytes, expected {expected} for its modes")
+    n = width * height
+    blocks = n // BLOCK_TEXELS
+    pos = header_bytes
+    params = {}
+    for k, r in enumerate(refs):
+        if r >= 0:
+            params[k] = (raw[pos:pos + blocks].view(np.int8), raw[pos + blocks:pos + 3 * blocks].view("<i2"))
+            pos += 3 * blocks
+    nbytes = [(b + 7) // 8 for b in bits]
+    uniform = len(set(nbytes)) == 1
+    zig = [i for i, b in enumerate(bits) if b > 8]
+    masks = np.array([(1 << b) - 1 for b in bits], np.uint64).astype(np.uint32)[:, None]
+    dtype, words, _ = FIELD_LAYOUTS[fmt]
+    word_dtype = np.dtype(dtype)
+    index = slot_to_texel(width, height)
+    texel_bytes = FORMATS[fmt].bits_per_texel // 8
+    out = np.empty(n * texel_bytes * layers, np.uint8)
+    for layer in range(layers):
+        base = layer * nf
+        seg = raw[pos:pos + n * sum(nbytes)]
+        pos += seg.size
+        if uniform:
+            planes = seg.reshape(nf, nbytes[0], n)
+            z = planes[:, nbytes[0] - 1].astype(np.uint32)
+            for k in range(nbytes[0] - 2, -1, -1):
+                z <<= np.uint32(8)
+                z |= planes[:, k]
+        else:
+            z = np.empty((nf, n), np.uint32)
+            start = 0
+            for i, nb in enumerate(nbytes):
+                z[i] = _join_planes(seg[start:start + n * nb], nb)
+                start += n * nb
+        if zig:
+            rows = z if len(zig) == nf else z[:len(zig)] if zig == list(range(len(zig))) else None
+            if rows is None:
+                z[zig] = _unzigzag(z[zig])
+            else:
+                low = rows & np.uint32(1)
+                rows >>= np.uint32(1)
+                rows ^= np.negative(low)
+        layer_deltas = deltas[base:base + nf]
+        if all(layer_deltas):
+            np.cumsum(z, axis=1, dtype=np.uint32, out=z)
+        else:
+            for i in range(nf):
+                if layer_deltas[i]:
+                    np.cumsum(z[i], dtype=np.uint32, out=z[i])
+        if any(b < 32 for b in bits):
+            z &= masks
+        for i in range(nf):
+            r = refs[base + i]
+            if r >= 0:
+                z[i] += _cross_prediction(z[r], *params[base + i]).view(np.uint32)
+                z[i] &= masks[i]
+        unit = out[layer * n * texel_bytes:(layer + 1) * n * texel_bytes]
+        if words > 1:  # norm8x4, f16x4, f32x4: one field a word; a column copy per word beats shifting in u64
+            slots = np.empty((n, words), word_dtype)
+            for k in range(words):
+                slots[:, k] = z[k]
+            if texel_bytes in _TEXEL_UINT:
+                unit.view(_TEXEL_UINT[texel_bytes])[index] = slots.view(_TEXEL_UINT[texel_bytes]).reshape(n)
+            else:
+                unit.view(word_dtype).reshape(n, words)[index] = slots
+            continue
+        word, shifts = _packed(fmt)
+        if nf > 1:
+            z <<= shifts[:, None]
+        unit.view(word)[index] = np.bitwise_or.reduce(z, axis=0) if nf > 1 else z[0]
+    return out
+
+
+def unfilter_texels(stored: np.ndarray, filter_name: str, fmt: str, width: int, height: int, layers: int,
+                    source: str) -> list[np.ndarray]:
+    """A texels section's stored bytes -> its GPU bytes, one uint8 array per layer. The filter name was checked
+    against the format by the manifest; the stored size of shuffled sections too."""
+    if filter_name == FIELDS1:
+        texels = unfilter_fields(stored, fmt, width, height, layers, source)
+    else:
+        texels = stored
+    unit = texels.size // layers
+    parts = [texels[k * unit:(k + 1) * unit] for k in range(layers)]
+    if filter_name in (FIELDS1, "none"):
+        return parts
+    element = int(filter_name[7:])
+    return [unshuffle(p, element) for p in parts]
