@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -98,6 +98,9 @@ def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progr
         progress("codebook", 0.0)
         codebook = sample.codebook(choice)
         progress("codebook", 1.0)
+        # The fitting rows are not needed again: below the sample size they are every splat's SH (180 MB at 1M
+        # splats of SH3), which kept the codebook presets' LOD encode above 3x the input in peak memory.
+        sample = replace(sample, codebook_rows=None, codebook_weights=None)
     bounds = Box(tuple(float(v) for v in g.positions.min(axis=0)), tuple(float(v) for v in g.positions.max(axis=0)))
     up = plan_up(opts, sample)
     progress("tiles", 0.0)

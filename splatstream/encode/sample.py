@@ -66,7 +66,9 @@ class SceneSample:
                            np.zeros((len(o), 0, 3), np.float32))
         rows = weights = None
         if with_codebook:
-            sub = g.subset(local(codebook_indices(splats)))
+            picked = local(codebook_indices(splats))
+            # Every row of this part (a scene below the sample size): its own arrays, not a copy of them.
+            sub = g if len(picked) == len(g) else g.subset(picked)
             rows, weights = codebook_rows(sub), codebook_weights(sub)
         return SceneSample(splats, orient, g.positions[local(position_indices(splats))], rows, weights)
 
