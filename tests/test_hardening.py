@@ -560,3 +560,22 @@ def test_gltf_node_cycle_is_refused_at_once(tmp_path):
     path.write_bytes(struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body)
     with pytest.raises(InputError, match="nodes\\[0\\]: reached twice"):  # at the second visit, not the 65,536th
         read_gaussians(path)
+
+
+@pytest.mark.parametrize("fmt,dtype", [("f16x4", "<f2"), ("f32x4", "<f4")])
+def test_float_texel_check_by_bits_accepts_exactly_zero_to_one(fmt, dtype):
+    """The decoder's fast check of float texels (their bits as unsigned integers) accepts what t >= 0 and t <= 1
+    accept, -0.0 and subnormals included, and refuses the rest with the count and the first bad value."""
+    from splatstream.errors import FormatError
+    from splatstream.format.container import _check_float_texels
+    from splatstream.format.manifest import Section
+
+    info = np.finfo(np.dtype(dtype))
+    section = Section("position", "texels", 0, 0, "none", format=fmt)
+    good = np.array([0.0, -0.0, 1.0, 0.5, info.smallest_subnormal, np.nextafter(np.float32(1), 0)], dtype)
+    _check_float_texels([good.tobytes()], section, "t")
+    above_one = np.nextafter(np.array(1.0, dtype), np.array(2.0, dtype))
+    for bad in (above_one, -info.smallest_subnormal, np.nan, np.inf, -np.inf, -1.0):
+        layer = np.concatenate([good, np.array([bad], dtype)])
+        with pytest.raises(FormatError, match="1 " + fmt + " texel values outside"):
+            _check_float_texels([layer.tobytes()], section, "t")
