@@ -110,11 +110,12 @@ def write_fake_scene(directory: str | os.PathLike, sizes: Sequence[int], seed: i
 class ServerThread:
     """A real server on 127.0.0.1:<free port>, its event loop in a daemon thread."""
 
-    def __init__(self, root: str | os.PathLike, cors=(ORIGIN,), shutdown_timeout: float = 5.0, limits=None):
+    def __init__(self, root: str | os.PathLike, cors=(ORIGIN,), shutdown_timeout: float = 5.0, limits=None,
+                 throttle=None):
         from .app import create_app, create_runner, start_site  # aiohttp only where a server runs
         from .run import bind
 
-        self.app = create_app(root, cors_origins=cors)
+        self.app = create_app(root, cors_origins=cors, throttle=throttle)
         self.runner = create_runner(self.app, access_log=False, shutdown_timeout=shutdown_timeout, limits=limits)
         self.sock = bind("127.0.0.1", 0)
         self.port = self.sock.getsockname()[1]

@@ -2,51 +2,18 @@
 sockets. The rates are long-run averages over seconds, so the tolerances (15 %) are far above timer noise."""
 from __future__ import annotations
 
-import asyncio
 import http.client
 import threading
 import time
 from pathlib import Path
 
 import pytest
-from aiohttp import web
 from conftest import run_cli
 
-from server.app import create_app, create_runner
-from server.run import bind
-from server.testing import write_fake_scene
+from server.testing import ServerThread, write_fake_scene
 from server.throttle import MBIT, Link
 
 FOUR_MB = 4 << 20
-
-
-class ThrottledServer:
-    def __init__(self, root: Path, link: Link):
-        self.runner = create_runner(create_app(root, throttle=link), access_log=False, shutdown_timeout=1)
-        self.sock = bind("127.0.0.1", 0)
-        self.port = self.sock.getsockname()[1]
-        self.loop = asyncio.new_event_loop()
-        ready = threading.Event()
-
-        def main():
-            asyncio.set_event_loop(self.loop)
-
-            async def start():
-                await self.runner.setup()
-                await web.SockSite(self.runner, self.sock).start()
-
-            self.loop.run_until_complete(start())
-            ready.set()
-            self.loop.run_forever()
-
-        self.thread = threading.Thread(target=main, daemon=True)
-        self.thread.start()
-        assert ready.wait(10)
-
-    def stop(self) -> None:
-        asyncio.run_coroutine_threadsafe(self.runner.cleanup(), self.loop).result(10)
-        self.loop.call_soon_threadsafe(self.loop.stop)
-        self.thread.join(10)
 
 
 def get(port: int, path: str, headers: dict | None = None) -> tuple[float, int, dict, bytes]:
@@ -76,7 +43,7 @@ def payload_paths(root: Path) -> dict[int, str]:
 
 
 def test_a_4mb_payload_over_20_mbit(root):
-    srv = ThrottledServer(root, Link(20 * MBIT))
+    srv = ServerThread(root, throttle=Link(20 * MBIT), shutdown_timeout=1)
     try:
         path = payload_paths(root)[FOUR_MB]
         seconds, status, headers, body = get(srv.port, path)
@@ -90,7 +57,7 @@ def test_a_4mb_payload_over_20_mbit(root):
 
 
 def test_the_rate_is_shared_by_all_connections(root):
-    srv = ThrottledServer(root, Link(20 * MBIT))
+    srv = ServerThread(root, throttle=Link(20 * MBIT), shutdown_timeout=1)
     path = payload_paths(root)[FOUR_MB]
     times = []
     try:
@@ -109,7 +76,7 @@ def test_the_rate_is_shared_by_all_connections(root):
 
 
 def test_latency_is_added_to_every_request(root):
-    srv = ThrottledServer(root, Link(None, 0.15))
+    srv = ServerThread(root, throttle=Link(None, 0.15), shutdown_timeout=1)
     try:
         small = payload_paths(root)[100_000]
         seconds, status, _, body = get(srv.port, small)
@@ -126,7 +93,7 @@ def test_latency_is_added_to_every_request(root):
 
 
 def test_range_and_head_pass_through(root):
-    srv = ThrottledServer(root, Link(50 * MBIT, 0.0))
+    srv = ServerThread(root, throttle=Link(50 * MBIT, 0.0), shutdown_timeout=1)
     try:
         small = payload_paths(root)[100_000]
         data = (root / "s" / small.removeprefix("/scenes/s/")).read_bytes()
