@@ -165,28 +165,33 @@ def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, so
 
 # Float texel formats store t as a float, which could hold anything; integer and BC formats cannot leave [0, 1].
 FLOAT_TEXEL_FORMATS = ("f32x4", "f16x4")
+
+
+def _float_bits(fmt: str) -> tuple[np.dtype, np.dtype, int, int]:
+    """A float texel format's float type, the unsigned type of its width, and the bit patterns of 1.0 and -0.0.
+    A float in [0, 1] is a bit pattern in [0, that of 1.0] or -0.0 (IEEE 754 orders non-negative floats like their
+    bits; NaN, inf and negatives lie above): comparing the bits as unsigned integers is several times faster than
+    float comparisons, for float16 above all (decode speed, issue 15)."""
+    float_type = TEXEL_DTYPES[fmt].base.newbyteorder("<")
+    bits = np.dtype(f"<u{float_type.itemsize}")
+    return float_type, bits, int(np.array(1.0, float_type).view(bits)), int(np.array(-0.0, float_type).view(bits))
+
+
+FLOAT_TEXEL_BITS = {fmt: _float_bits(fmt) for fmt in FLOAT_TEXEL_FORMATS}
 # Where a plane's values may lie (format.md 4.8); the other ranged planes are bounded by their f16 storage.
 RANGE_LIMITS = {"position": (-MAX_ABS_POSITION, MAX_ABS_POSITION), "scale": (MIN_LOG_SCALE, MAX_LOG_SCALE)}
 
 
-# Bit patterns of 1.0 and -0.0 per float texel type: a float in [0, 1] is a bit pattern in [0, that of 1.0] or -0.0
-# (IEEE 754 orders non-negative floats like their bits; NaN, inf and negatives lie above). Comparing the bits as
-# unsigned integers is several times faster than float comparisons, for float16 above all (decode speed, issue 15).
-_FLOAT_BITS = {np.dtype("<f2"): (np.dtype("<u2"), 0x3C00, 0x8000), np.dtype("<f4"): (np.dtype("<u4"), 0x3F800000,
-                                                                                        0x80000000)}
-
-
 def _check_float_texels(layers: list[np.ndarray], s: Section, source: str) -> None:
     """format.md 4.2: every texel of a float format holds t in [0, 1] (a hostile t would decode to inf or NaN)."""
-    dtype = TEXEL_DTYPES[s.format].base
-    bits, one, negative_zero = _FLOAT_BITS[dtype.newbyteorder("<")]
+    float_type, bits, one, negative_zero = FLOAT_TEXEL_BITS[s.format]
     for layer in layers:
         u = np.frombuffer(layer, bits)
-        if u.size == 0 or u.max() <= one or ((u <= one) | (u == negative_zero)).all():
+        if u.size == 0 or u.max() <= one:
             continue
-        t = np.frombuffer(layer, dtype)
-        if not ((t >= 0) & (t <= 1)).all():  # NaN compares False
-            bad = t[~((t >= 0) & (t <= 1))]
+        inside = (u <= one) | (u == negative_zero)
+        if not inside.all():
+            bad = np.frombuffer(layer, float_type)[~inside]
             raise FormatError(source, f"section {s.name}", f"{bad.size} {s.format} texel values outside [0, 1] "
                               f"(first {float(bad[0])!r})")
 
