@@ -57,11 +57,16 @@ import moderngl
 print("window GL:", moderngl.create_context().info["GL_RENDERER"])
 PY
 echo "probe rc=$?"; tail -5 $W/probe.log
-timeout 200 python3 -m splatstream.cli view $URL --size 1920x1080 --exit-when-converged --measure-frames 120 \
-  --no-vsync --record "$OUT/window.json" --screenshot "$OUT/window.png" --no-cache > $W/view.log 2>&1 < /dev/null
-timeout 200 python3 -m splatstream.cli view $URL --size 1920x1080 --exit-when-converged --measure-frames 120 \
-  --no-vsync --record "$OUT/window_no_overlay.json" --no-cache --no-overlay > $W/view2.log 2>&1 < /dev/null
-echo "window rc=$?"; tail -5 $W/view.log; tail -3 $W/xvfb.log
+window() {  # window <name> <more view options>: one timed window run, its record as $OUT/<name>.json
+  local name=$1
+  shift
+  timeout 200 python3 -m splatstream.cli view $URL --size 1920x1080 --exit-when-converged --measure-frames 120 \
+    --no-vsync --no-cache --record "$OUT/$name.json" "$@" > $W/$name.log 2>&1 < /dev/null
+  echo "$name rc=$?"; tail -5 $W/$name.log
+}
+window window --screenshot "$OUT/window.png"
+window window_no_overlay --no-overlay
+tail -3 $W/xvfb.log
 python3 - "$OUT" <<'PY'
 import json, sys
 out = sys.argv[1]
