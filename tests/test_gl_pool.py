@@ -331,3 +331,33 @@ def _band_as(tile, band: int):
 
     values = decode_plane(tile.planes[f"sh{band}"], tile.splats)
     return encode_plane(values, band_plane(band), "f32x4")
+
+
+def test_work_buffers_grow_with_what_is_drawn(gl_context, scenes, sorts, fruit, monkeypatch):
+    """The renderer's per-frame work buffers follow the slots the pool holds, not its capacity (a large pool made
+    for a GPU budget does not make gigabytes of scratch), and a frame after they grew draws what a renderer made
+    for the whole set draws."""
+    from client_gl.gpu import renderer as renderer_module
+    from client_gl.gpu.renderer import SplatRenderer
+
+    monkeypatch.setattr(renderer_module, "MIN_WORK_SPLATS", 256)
+    scene, a, b = scenes["bands"]
+    cam = suggested_camera(fruit.positions, width=W, height=H)
+    for sort in [s for s in sorts if s != "cpu"]:
+        pool = _pool(gl_context, scene, 4096)  # about a million splats of capacity
+        grown = SplatRenderer(gl_context, pool, _options(sort))
+        small = grown.work_bytes
+        pool.join(1, a)
+        grown.render(cam)
+        after_a = grown.work_bytes
+        pool.join(2, b)
+        grown.render(cam)
+        # (made for the pool's capacity of 1M splats they would take about 130 MB)
+        assert small < after_a < grown.work_bytes < 4 << 20, (sort, small, after_a, grown.work_bytes)
+        whole = SplatRenderer(gl_context, pool, _options(sort))  # made with both tiles resident
+        whole.render(cam)
+        _same(grown.read_image(), whole.read_image(), sort, "grown work buffers")
+        assert grown.read_visible_count() == whole.read_visible_count() > 0
+        grown.release()
+        whole.release()
+        pool.release()

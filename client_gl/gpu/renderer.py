@@ -34,11 +34,11 @@ from splatstream.camera import Camera
 from splatstream.errors import UsageError
 
 from . import shadergen
-from .compute_raster import ComputeRaster
+from .compute_raster import ComputeRaster, default_entries
 from .gl import flush as gl_flush
 from .gl import texture_barrier
 from .pool import ChunkPool
-from .residency_layout import TEXTURE_UNITS
+from .residency_layout import CHUNK, TEXTURE_UNITS
 from .sort import CHAIN_BARRIER, RADIX_CHOICES, CpuSorter, GpuRadixSort, depth_order
 from .uniforms import ProgramUniforms
 
@@ -59,6 +59,7 @@ RECORD_BYTES = 48  # per visible splat, written by cull.comp
 # "auto" on the GPU path of a hardware GL: the compute rasterizer (H200, 1080p: 2.5 ms at 1M splats, 7.9 ms at 6M,
 # against 10.1 / 30.9 ms for the raster draws) unless render(clear=False) draws over opaque geometry (depth test).
 AUTO_COMPUTE = True
+MIN_WORK_SPLATS = 1 << 20  # work buffers are made for at least this many splats (about 130 MB with the draw's)
 BIN_CHECK_FRAMES = 2  # compute draw: frames after an allocation whose entry count is read back (overflow -> grow)
 TIMER_QUERIES = 5  # GL_TIME_ELAPSED queries a frame uses at most (the compute draw's five stages)
 ALL_BARRIER_BITS = 0xFFFFFFFF
@@ -239,7 +240,6 @@ class SplatRenderer:
         self._camera_values: dict = {}
         self._queries = [ctx.query(time=True) for _ in range(TIMER_QUERIES)]
         self._debug = None  # decode_debug's program, compiled on first use (a test hook)
-        capacity = pool.splat_capacity
         # CPU path
         self._cpu_sorter: CpuSorter | None = None
         self._cpu_program = None
@@ -260,10 +260,8 @@ class SplatRenderer:
             self._bind_samplers(self.cull)
             self._cull_uniforms = ProgramUniforms(self.cull)
             self.params = ctx.buffer(reserve=16)
-            self.sorter = GpuRadixSort(ctx, capacity, self.options.radix_bits, self.options.fused_sort)
-            self.keys = ctx.buffer(reserve=capacity * 4)
-            self.values = ctx.buffer(reserve=capacity * 4)
-            self.records = ctx.buffer(reserve=capacity * RECORD_BYTES)
+            self._work_splats = 0
+            self._ensure_work(max(1, pool.scan_slots * CHUNK))
             if self.options.front_to_back:
                 vert, frag = shadergen.saturate_sources()
                 self._saturate = ctx.program(vertex_shader=vert, fragment_shader=frag)
@@ -278,6 +276,40 @@ class SplatRenderer:
             self._bind_samplers(self._cpu_program)
             self._cpu_sorter = CpuSorter()
 
+    def _ensure_work(self, splats: int) -> None:
+        """Per-frame work buffers (keys, values, records, the depth sort's scratch, the compute draw's entries) for
+        `splats` scanned splats. They grow with what the pool holds (by half again, never beyond its capacity), not
+        with the pool's capacity: a 1 GiB pool holds 23M splats, whose work buffers (2.9 GB) took most of the time
+        to a streamed first frame, for a view that draws a few hundred thousand. Their contents live one frame, so
+        growing copies nothing."""
+        if splats <= self._work_splats:
+            return
+        capacity = self.pool.splat_capacity
+        n = min(capacity, max(splats + splats // 2, 2 * self._work_splats, MIN_WORK_SPLATS))
+        for b in (self.keys, self.values, self.records):
+            if b is not None:
+                b.release()
+        if self.sorter is not None:
+            self.sorter.release()
+        ctx = self.ctx
+        self.sorter = GpuRadixSort(ctx, n, self.options.radix_bits, self.options.fused_sort)
+        self.sorter.barrier_bits = self._chain_barrier(self.draw_mode)
+        self.keys = ctx.buffer(reserve=n * 4)
+        self.values = ctx.buffer(reserve=n * 4)
+        self.records = ctx.buffer(reserve=n * RECORD_BYTES)
+        self._work_splats = n
+        if self.craster is not None:
+            self.craster.resize(n, max(self.craster.entry_capacity, default_entries(n)))
+            self._bin_checks = BIN_CHECK_FRAMES
+        if self.options.front_to_back:  # their vertex arrays read `values`: made again with it
+            for _prog, vao in self._programs.values():
+                vao.release()
+            self._programs = {mode: (prog, self.ctx.vertex_array(prog, [(self.values, "1u /i", "a_order")])
+                                     if mode != "points" else self.ctx.vertex_array(prog, []))
+                              for mode, (prog, _) in self._programs.items()}
+            if self.draw_mode in self._programs:
+                self.program_gpu, self.vao_gpu = self._programs[self.draw_mode]
+
     def _chain_barrier(self, mode: str) -> int:
         """glMemoryBarrier bits between the dispatches of a frame: the compute draw's chain needs shader storage and
         indirect commands only; the raster draws (vertex attributes, indirect draws) keep all bits."""
@@ -289,7 +321,7 @@ class SplatRenderer:
             self.sorter.barrier_bits = self._chain_barrier(mode)
         if mode == "compute":
             if self.craster is None:
-                self.craster = ComputeRaster(self.ctx, opts.color_dtype, self.pool.splat_capacity,
+                self.craster = ComputeRaster(self.ctx, opts.color_dtype, self._work_splats,
                                              tile_px=opts.tile_px, unroll=opts.unroll, warp_cull=opts.warp_cull,
                                              radix_bits=opts.tile_radix_bits or opts.radix_bits,
                                              fused_sort=opts.fused_sort, barrier_bits=self._chain_barrier("compute"),
@@ -453,6 +485,7 @@ class SplatRenderer:
     def _start_cull(self, uniforms: dict, degree: int, max_point: float, key_xor: int) -> int:
         """Uniforms of the cull pass (written when they changed), pool and buffers bound; returns the slots to scan."""
         slots = self.pool.scan_slots
+        self._ensure_work(slots * CHUNK)
         self.params.write(ZERO_PARAMS)
         u = self._cull_uniforms
         for name, value in uniforms.items():
