@@ -56,16 +56,36 @@ class StepTimer:
 
     def _timed(self, fn, label):
         def timed(*args, **kwargs):
-            t = time.perf_counter()
+            t, c = time.perf_counter(), time.thread_time()
             try:
                 return fn(*args, **kwargs)
             finally:
                 self.now[label] = self.now.get(label, 0.0) + (time.perf_counter() - t) * 1e3
+                self.now[label + " cpu"] = self.now.get(label + " cpu", 0.0) + (time.thread_time() - c) * 1e3
         return timed
 
     def take(self) -> dict[str, float]:
         out, self.now = {k: round(v, 2) for k, v in self.now.items() if v >= 0.05}, {}
         return out
+
+
+def thread_cpu_seconds() -> dict[str, float]:
+    """CPU seconds (user + system) of each thread of this process so far, by thread name (Linux /proc): which
+    threads compete with the frame loop for the interpreter lock and the cores."""
+    import threading
+
+    names = {t.native_id: t.name for t in threading.enumerate()}
+    tick = os.sysconf("SC_CLK_TCK")
+    out: dict[str, float] = {}
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            with open(f"/proc/self/task/{tid}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        name = names.get(int(tid), f"native-{tid}")
+        out[name] = out.get(name, 0.0) + round((int(fields[11]) + int(fields[12])) / tick, 2)
+    return out
 
 
 def main() -> None:
@@ -86,6 +106,9 @@ def main() -> None:
                          "the GIL in every call) instead of PYFUNCTYPE")
     ap.add_argument("--breakdown", action="store_true",
                     help="time the engine's and the pool's steps in each frame; the slowest frames' split is reported")
+    ap.add_argument("--decode-workers", type=int, default=2, help="decode threads (StreamOptions.decode_workers)")
+    ap.add_argument("--decode-processes", type=int, default=0,
+                    help="decode in this many processes instead of threads (StreamOptions.decode_processes)")
     ap.add_argument("--profile", action="store_true", help="print where the streaming loop's time went (cProfile)")
     args = ap.parse_args()
     if args.gl_release_gil:
@@ -115,7 +138,9 @@ def main() -> None:
                  "gl_renderer": ctx.info.get("GL_RENDERER"), "path_seconds": args.seconds}
     try:
         session = StreamingSession.open(url, ctx, ViewOptions(gpu_mem_mb=args.gpu_mem_mb, max_splats=args.max_splats,
-                                                              cache=False))
+                                                              cache=False, decode_workers=args.decode_workers,
+                                                              decode_processes=args.decode_processes))
+        out["decode_workers"], out["decode_processes"] = args.decode_workers, args.decode_processes
         if args.switch_interval:
             sys.setswitchinterval(args.switch_interval)
         out["switch_interval_s"] = sys.getswitchinterval()
@@ -155,6 +180,8 @@ def main() -> None:
                 break
             if now > path.end + 60:
                 break
+        out["thread_cpu_s"] = thread_cpu_seconds()
+        out["streaming_wall_s"] = time.perf_counter() - start
         if profiler:
             profiler.disable()
             pstats.Stats(profiler).sort_stats("tottime").print_stats(25)

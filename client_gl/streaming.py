@@ -49,6 +49,8 @@ class ViewOptions:
     cache_dir: str | None = None
     max_in_flight: int = 6
     upload_bytes_per_frame: int = StreamOptions.upload_bytes_per_frame
+    decode_workers: int = StreamOptions.decode_workers
+    decode_processes: int = StreamOptions.decode_processes
     render: RenderOptions = field(default_factory=RenderOptions)
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     request_timeout_s: float = 15.0
@@ -87,10 +89,13 @@ class StreamMetrics:
     bytes_first_frame: int | None = None
     converged_s: float | None = None
     gpu_bytes_peak: int = 0
+    work_bytes_peak: int = 0  # the renderer's per-frame buffers (sort, draw), beside the budgeted pool
     evictions: int = 0
+    process_decodes: int = 0  # payloads decoded in decode processes (ViewOptions.decode_processes)
     # Where the time to the first frame went: the manifest fetched and parsed, then the GPU pool, the renderer's
     # buffers and programs and the engine built (seconds from `start`).
     manifest_s: float | None = None
+    pool_s: float | None = None
     built_s: float | None = None
     frames: list[FrameRecord] = field(default_factory=list)
 
@@ -100,12 +105,14 @@ class StreamMetrics:
             "first_frame_s": self.first_frame_s, "converged_s": self.converged_s,
             "bytes_downloaded": last.bytes if last else 0, "bytes_first_frame": self.bytes_first_frame,
             "gpu_bytes_peak": self.gpu_bytes_peak, "gpu_budget_bytes": self.gpu_budget_bytes,
-            "manifest_s": self.manifest_s, "built_s": self.built_s,
+            "work_bytes_peak": self.work_bytes_peak,
+            "manifest_s": self.manifest_s, "pool_s": self.pool_s, "built_s": self.built_s,
             "frames": [f.to_json() for f in self.frames],
         }
         if fetch_stats is not None:
             out["fetch"] = {k: v for k, v in fetch_stats.__dict__.items()}
         out["evictions"] = self.evictions
+        out["process_decodes"] = self.process_decodes
         return out
 
 
@@ -156,6 +163,7 @@ class StreamingSession:
             self.fetcher.close()
             raise
         self.metrics = StreamMetrics(prepared.start, self.budget, manifest_s=prepared.manifest_s,
+                                     pool_s=self._pool_done - prepared.start,
                                      built_s=time.perf_counter() - prepared.start)
         self.last: FrameUpdate | None = None
         self.last_stats: FrameStats | None = None
@@ -170,11 +178,14 @@ class StreamingSession:
         self.with_mirror = resolve_sort(ctx, options.render) == "cpu"
         self.pool = ChunkPool.for_budget(ctx, self.budget, m.formats, degree, codebook=codebook,
                                          host_mirror=self.with_mirror)
+        self._pool_done = time.perf_counter()
         self.renderer = SplatRenderer(ctx, self.pool, options.render)
         layout: PoolLayout = self.pool.layout
         stream_opts = StreamOptions(selection=replace(options.selection(), sh_degree=degree),
                                     upload_bytes_per_frame=options.upload_bytes_per_frame, prefetch=options.prefetch,
-                                    fill_levels=options.fill_levels, fill_gap=options.fill_gap)
+                                    fill_levels=options.fill_levels, fill_gap=options.fill_gap,
+                                    decode_workers=options.decode_workers,
+                                    decode_processes=options.decode_processes)
         self.engine = StreamEngine(self.fetcher, self.pool, stream_opts, slot_bytes=layout.slot_bytes(),
                                    manifest=m, with_mirror=self.with_mirror, location=self.source.location)
 
@@ -230,7 +241,9 @@ class StreamingSession:
         m = self.metrics
         m.frames.append(rec)
         m.gpu_bytes_peak = max(m.gpu_bytes_peak, gpu)
+        m.work_bytes_peak = max(m.work_bytes_peak, self.renderer.work_bytes)
         m.evictions = self.engine.evictions
+        m.process_decodes = self.engine.process_decodes
         if m.first_frame_s is None and rec.drawn_splats > 0:
             m.first_frame_s, m.bytes_first_frame = now, rec.bytes
         if rec.converged and m.converged_s is None:

@@ -14,8 +14,9 @@ from __future__ import annotations
 
 import queue
 import time
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import CancelledError, Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field
+from multiprocessing import get_context
 from typing import Any, Protocol
 
 import numpy as np
@@ -73,6 +74,9 @@ class StreamOptions:
     fill_levels: bool = True
     fill_gap: int = 1  # the finest ancestor filled in is this many levels above its cut tile (2: not the parents)
     decode_workers: int = 2
+    # Decode in this many worker processes instead of threads (0: threads). Processes keep the decoders' Python off
+    # the render thread's interpreter lock; until they have started, payloads are decoded on the threads.
+    decode_processes: int = 0
     ready_bytes: int = 512 << 20  # decoded payloads waiting for upload (prefetched ones are dropped first)
 
 
@@ -96,6 +100,25 @@ class _Ready:
     planes: dict
     extra: Any
     nbytes: int
+
+
+def decode_job(data: bytes, entry: PayloadEntry, group: str, where: str, codebook_tile: bool, splats: int,
+               codebook_entries: int, with_mirror: bool) -> tuple[dict, Any] | str:
+    """A verified payload decoded into planes (and the CPU-sort path's host mirror of a base): on a decode thread or
+    in a decode process (plain arguments, so it pickles). A payload that does not decode gives the error's message:
+    the bytes matched their checksum, so the scene is broken, not the link."""
+    try:
+        planes = decode_payload(data, entry, group, where, codebook_tile)
+        if codebook_tile and group == "sh1":
+            codebook_index(planes, splats, codebook_entries, where)
+        return planes, (host_mirror(planes, splats) if with_mirror else None)
+    except SplatstreamError as exc:
+        return str(exc)
+
+
+def _warm_up() -> bool:
+    """Runs once in each decode process before it takes payloads: the imports are done by then."""
+    return True
 
 
 def planes_nbytes(planes: dict) -> int:
@@ -152,7 +175,15 @@ class StreamEngine:
         self._decoding: set[Key] = set()
         self._decoded: queue.Queue = queue.Queue()
         self._pool = ThreadPoolExecutor(max_workers=options.decode_workers, thread_name_prefix="splat-decode")
+        self._closing = False
+        self._processes: ProcessPoolExecutor | None = None
+        self._processes_ready: Future = Future()
+        if options.decode_processes > 0:
+            # forkserver: a clean child (this process has GL and network threads that a fork would copy mid-state)
+            self._processes = ProcessPoolExecutor(options.decode_processes, get_context("forkserver"))
+            self._processes_ready = self._processes.submit(_warm_up)
         self.errors: list[str] = []
+        self.process_decodes = 0  # payloads decoded in the decode processes (decode_processes > 0)
         self.uploaded_bytes_total = 0
         self.evictions = 0
 
@@ -270,7 +301,7 @@ class StreamEngine:
                 continue
             self._decoding.add(key)
             self._version += 1
-            self._pool.submit(self._decode, key, entry, data)
+            self._submit(key, entry, data)
         while True:
             try:
                 item = self._decoded.get_nowait()
@@ -287,21 +318,39 @@ class StreamEngine:
             self._ready_bytes += ready.nbytes
 
     def _decode(self, key: Key, entry: PayloadEntry, data: bytes) -> None:
+        self._decoded.put((key, self._finish(key, decode_job(*self._job_args(key, entry, data)))))
+
+    def _job_args(self, key: Key, entry: PayloadEntry, data: bytes) -> tuple:
         tile_id, group = key
-        where = f"{self.location}/{entry.file}"
-        try:
-            codebook_tile = self.codebook and tile_id is not None
-            planes = decode_payload(data, entry, group, where, codebook_tile)
-            extra = None
-            if tile_id is not None:
-                splats = self.manifest.tile(tile_id).splats
-                if codebook_tile and group == "sh1":
-                    codebook_index(planes, splats, self.manifest.sh_codebook.entries, where)
-                if self.with_mirror and group == "base":
-                    extra = host_mirror(planes, splats)
-            self._decoded.put((key, _Ready(key, planes, extra, planes_nbytes(planes))))
-        except SplatstreamError as exc:  # verified bytes that do not decode: the scene is broken, not the link
-            self._decoded.put((key, str(exc)))
+        codebook_tile = self.codebook and tile_id is not None
+        splats = self.manifest.tile(tile_id).splats if tile_id is not None else 0
+        entries = self.manifest.sh_codebook.entries if codebook_tile else 0
+        return (data, entry, group, f"{self.location}/{entry.file}", codebook_tile, splats, entries,
+                self.with_mirror and group == "base" and tile_id is not None)
+
+    def _finish(self, key: Key, result: tuple | str) -> _Ready | str:
+        if isinstance(result, str):
+            return result
+        planes, extra = result
+        return _Ready(key, planes, extra, planes_nbytes(planes))
+
+    def _submit(self, key: Key, entry: PayloadEntry, data: bytes) -> None:
+        procs = self._processes
+        if procs is not None and self._processes_ready.done() and not self._processes_ready.exception():
+            future = procs.submit(decode_job, *self._job_args(key, entry, data))
+
+            def done(f, key=key):
+                try:
+                    item = self._finish(key, f.result())
+                except Exception as exc:  # a worker process died: decode here instead
+                    if not self._closing and not isinstance(exc, CancelledError):
+                        self._pool.submit(self._decode, key, entry, data)
+                    return
+                self.process_decodes += 1
+                self._decoded.put((key, item))
+            future.add_done_callback(done)
+        else:
+            self._pool.submit(self._decode, key, entry, data)
 
     # --- residency --------------------------------------------------------------------------------------------
     def _protected(self, sel: Selection) -> np.ndarray:
@@ -410,4 +459,7 @@ class StreamEngine:
             time.sleep(0.002)
 
     def close(self) -> None:
+        self._closing = True
+        if self._processes is not None:
+            self._processes.shutdown(wait=True, cancel_futures=True)
         self._pool.shutdown(wait=True, cancel_futures=True)
