@@ -66,29 +66,40 @@ window() {  # window <name> <more view options>: one timed window run, its recor
 }
 window window --screenshot "$OUT/window.png"
 window window_no_overlay --no-overlay
+# the renderer's image into the window by glBlitFramebuffer instead of a full-window triangle
+SPLATSTREAM_WINDOW_PRESENT=copy window window_copy --no-overlay
 tail -3 $W/xvfb.log
 python3 - "$OUT" <<'PY'
 import json, sys
 out = sys.argv[1]
-for name in ("headless", "window", "window_no_overlay"):
+for name in ("headless", "window", "window_no_overlay", "window_copy"):
     try:
         r = json.load(open(f"{out}/{name}.json"))
     except OSError:
         print(name, "no record"); continue
     print(name, r.get("gl_renderer"), "first frame", r.get("first_frame_s"), "converged", r.get("converged_s"),
           "median converged frame ms", r.get("measured_frame_ms_median"), "of which before the swap",
-          r.get("measured_draw_ms_median"))
+          r.get("measured_draw_ms_median"), "back to back", r.get("measured_back_to_back_ms"),
+          "first frame split: manifest", r.get("manifest_s"), "pool", r.get("pool_s"), "built", r.get("built_s"))
 PY
 kill $XVFB 2>/dev/null
 if [ "${1:-}" = fly ]; then
-  # our GL entry points keeping the GIL (PYFUNCTYPE, the default) against releasing it in every call (CFUNCTYPE)
+  # keep: our GL entry points keeping the GIL (PYFUNCTYPE, the default); release: releasing it in every call
+  # (CFUNCTYPE); procN: decoding in N processes instead of 2 threads; si20: a 20 ms interpreter switch interval
   for ab in ${FLY_AB:-keep release}; do  # FLY_AB=keep: the default alone
-    flag=""; [ $ab = release ] && flag=--gl-release-gil
+    flag=""
+    case $ab in
+      release) flag=--gl-release-gil ;;
+      proc*) flag="--decode-processes ${ab#proc}" ;;
+      si20) flag="--switch-interval 0.02" ;;
+      dec1) flag="--decode-workers 1" ;;
+    esac
     python3 bench/bench_flythrough.py --scene $W/root/s6m --ply $W/s6m.ply --json "$OUT/fly_$ab.json" --breakdown \
       $flag > $W/fly_$ab.log 2>&1
     python3 -c "import json,sys; d=json.load(open(sys.argv[1])); s=d['streaming']; print(sys.argv[2], {k: s[k] for k \
       in ('frames','median_ms','p99_ms','p99_ms_with_uploads','p99_ms_without_uploads','update_ms_p99')}, \
-      'converged', d['converged_stream_ms'], 'render', d['render_same_set_ms']); [print(x) for x in s['slowest'][:4]]" \
+      'converged', d['converged_stream_ms'], 'render', d['render_same_set_ms'], 'threads cpu s', d['thread_cpu_s'], \
+      'wall s', d['streaming_wall_s']); [print(x) for x in s['slowest'][:4]]" \
       "$OUT/fly_$ab.json" $ab || tail -20 $W/fly_$ab.log
   done
 fi
