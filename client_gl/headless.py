@@ -109,7 +109,7 @@ class HeadlessRenderer:
                timing: bool = False) -> np.ndarray:
         """(H, W, 3) float32 linear colour (composited over `background`), row 0 at the top."""
         self.render_frame(camera, sh_degree, background, timing)
-        if self.renderer.check_bins():  # compute draw: the entry buffer overflowed and grew; read back anyway
+        if self.renderer.check_bins(exact=True):  # compute draw: the entry buffer overflowed and grew
             self.render_frame(camera, sh_degree, background, timing)
         return self.renderer.read_image()[..., :3]
 

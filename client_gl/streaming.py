@@ -167,6 +167,7 @@ class StreamingSession:
                                      built_s=time.perf_counter() - prepared.start)
         self.last: FrameUpdate | None = None
         self.last_stats: FrameStats | None = None
+        self._drawn_with: tuple | None = None
         self.paused = False
 
     def _build(self, ctx, options: ViewOptions) -> None:
@@ -218,6 +219,7 @@ class StreamingSession:
               timing: bool = False) -> FrameRecord:
         """Stream (unless paused) and draw one frame into the renderer's framebuffer."""
         t0 = time.perf_counter()
+        self._drawn_with = (cam, sh_degree, clear)
         if not self.paused:
             self.last = self.engine.update(cam)
         t1 = time.perf_counter()
@@ -261,6 +263,13 @@ class StreamingSession:
         self.engine.wait(timeout_s)
 
     def read_image(self) -> np.ndarray:
+        """The last frame (H, W, 3); drawn again first if the compute draw's entries overflowed in it (the
+        per-frame check looks at an earlier frame's count, so as not to wait for the GPU)."""
+        if self._drawn_with is not None and self.renderer.check_bins(exact=True):
+            cam, degree, clear = self._drawn_with
+            draw = self.last.draw if self.last is not None else []
+            self.renderer.render(cam, sh_degree=degree, background=self.options.background, clear=clear,
+                                 draw_set=draw)
         return self.renderer.read_image()[..., :3]
 
     def close(self) -> None:

@@ -198,3 +198,24 @@ def test_fill_gap_skips_the_levels_just_above_the_cut():
     assert cut <= fetched and not parents & fetched
     assert any(i not in cut for i in fetched - {m.index_of[m.root]})  # the levels above them were filled in
     engine.close()
+
+
+def test_decode_processes_give_the_same_residency(store):
+    """decode_processes: once the worker processes are up, payloads are decoded there and the engine converges to
+    what the decode threads give (the same tiles and bands)."""
+    m = read_manifest(store)
+    cam = orbit(m, 1.6, 0.3)
+    results = []
+    for processes in (0, 2):
+        pool = CountingPool(10_000)
+        engine = StreamEngine(StepFetcher(store), pool, StreamOptions(SelectionOptions(max_sse=1.0),
+                                                                      decode_processes=processes))
+        if processes:
+            assert engine._processes_ready.result(timeout=60)
+        _, u = run_until_converged(engine, cam)
+        results.append((sorted(u.draw), dict(pool.bands), engine.process_decodes))
+        engine.close()
+    (draw0, bands0, in_procs0), (draw2, bands2, in_procs2) = results
+    assert draw0 == draw2 and bands0 == bands2
+    # every payload drawn was decoded in the processes (prefetched ones may come on top)
+    assert in_procs0 == 0 and in_procs2 >= len(bands2) + sum(bands2.values())

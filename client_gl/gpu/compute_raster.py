@@ -89,6 +89,10 @@ class ComputeRaster:
         self._u_count, self._u_scan, self._u_emit, self._u_raster = (
             ProgramUniforms(p) for p in (self.count_shader, self.scan_shader, self.emit_shader, self.raster_shader))
         self.bins = ctx.buffer(reserve=16)
+        # (entries sorted, entries needed) of the last two frames, copied from `bins` after each binning: the
+        # overflow check reads the previous frame's, which the GPU has finished, instead of stalling on this one's
+        self._counts = [ctx.buffer(reserve=8), ctx.buffer(reserve=8)]
+        self._frames = 0
         self.gsum = None
         self.ranges = None
         self.tile_sorter = None
@@ -136,7 +140,7 @@ class ComputeRaster:
         return sum(b.size for b in bufs if b is not None) + self.tile_sorter.gpu_bytes
 
     def release(self) -> None:
-        for b in (self.bins, self.gsum, self.ranges, self.tile_keys, self.tile_values):
+        for b in (*self._counts, self.bins, self.gsum, self.ranges, self.tile_keys, self.tile_values):
             if b is not None:
                 b.release()
         self.tile_sorter.release()
@@ -154,6 +158,19 @@ class ComputeRaster:
             return False
         self.resize(self.visible_capacity, max(2 * self.entry_capacity, total + total // 4))
         return True
+
+    def grow_ahead(self) -> bool:
+        """The check a frame loop makes every frame without waiting for the GPU: the frame before the last one's
+        entry count (finished by now), grown at 85 % of the capacity so that a frame seldom overflows. True when
+        that frame overflowed (the last one probably did too: draw it again)."""
+        if self._frames < 2:
+            return False
+        _, total = struct.unpack("2I", self._counts[self._frames % 2].read(8))  # written two binnings ago
+        old = self.entry_capacity
+        if total <= old * 0.85:
+            return False
+        self.resize(self.visible_capacity, max(2 * old, total + total // 2))
+        return total > old
 
     # --- frame -----------------------------------------------------------------------------------------------
     def bin(self, params, order, records, dispatch, width: int, height: int) -> None:
@@ -186,6 +203,8 @@ class ComputeRaster:
         order.bind_to_storage_buffer(1)
         self.emit_shader.run_indirect(dispatch, 0)
         barrier(bits)
+        self.ctx.copy_buffer(self._counts[self._frames % 2], self.bins, 8)
+        self._frames += 1
 
     @property
     def tile_bits(self) -> int:

@@ -607,11 +607,14 @@ class SplatRenderer:
                 return self._render_compute(cam, uniforms, degree, timing)
         return stats
 
-    def check_bins(self) -> bool:
-        """Compute draw: grow the entry buffer if the last frame overflowed it (True: render the frame again)."""
+    def check_bins(self, exact: bool = False) -> bool:
+        """Compute draw, once a frame: grow the entry buffer ahead of need from an earlier frame's count, without
+        waiting for this frame's (a read-back of it would stall every frame until the GPU is done: no overlap of
+        one frame's GPU work with the next one's CPU work). exact: this frame's count (waits; before a read-back of
+        the image). True: a frame overflowed, render this one again."""
         if self.draw_mode != "compute":
             return False
-        return self.craster.grow_if_needed()
+        return self.craster.grow_if_needed() if exact else self.craster.grow_ahead()
 
     def check_bins_after(self, frames: int) -> None:
         """Compute draw: read the entry count back after each of the next `frames` frames (overflow -> grow)."""
