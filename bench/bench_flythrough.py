@@ -109,6 +109,9 @@ def main() -> None:
     ap.add_argument("--decode-workers", type=int, default=2, help="decode threads (StreamOptions.decode_workers)")
     ap.add_argument("--decode-processes", type=int, default=0,
                     help="decode in this many processes instead of threads (StreamOptions.decode_processes)")
+    ap.add_argument("--finish-keeps-gil", action="store_true",
+                    help="wait for the GPU after each frame with moderngl's finish() (keeps the GIL) instead of "
+                         "client_gl.gpu.gl.wait_for_gpu (releases it, as a display's swap does)")
     ap.add_argument("--profile", action="store_true", help="print where the streaming loop's time went (cProfile)")
     args = ap.parse_args()
     if args.gl_release_gil:
@@ -117,6 +120,7 @@ def main() -> None:
         from client_gl.gpu import gl as gl_entry_points
 
         gl_entry_points.FUNCTION_TYPE = ctypes.CFUNCTYPE
+    from client_gl.gpu.gl import wait_for_gpu
     from client_gl.headless import HeadlessRenderer, RenderOptions, create_context
     from client_gl.scene import SceneTiles, load_tile
     from client_gl.streaming import StreamingSession, ViewOptions
@@ -134,6 +138,7 @@ def main() -> None:
         url = f"{base}/scenes/{os.path.basename(os.path.abspath(args.scene))}"
     path = parse_camera_path(fly_path(args.ply, args.seconds))
     ctx = create_context()
+    finish = ctx.finish if args.finish_keeps_gil else wait_for_gpu
     out: dict = {"size": [w, h], "max_splats": args.max_splats, "gpu_mem_mb": args.gpu_mem_mb,
                  "gl_renderer": ctx.info.get("GL_RENDERER"), "path_seconds": args.seconds}
     try:
@@ -141,6 +146,7 @@ def main() -> None:
                                                               cache=False, decode_workers=args.decode_workers,
                                                               decode_processes=args.decode_processes))
         out["decode_workers"], out["decode_processes"] = args.decode_workers, args.decode_processes
+        out["finish_keeps_gil"] = bool(args.finish_keeps_gil)
         if args.switch_interval:
             sys.setswitchinterval(args.switch_interval)
         out["switch_interval_s"] = sys.getswitchinterval()
@@ -168,7 +174,7 @@ def main() -> None:
             now = time.perf_counter() - start
             cam = path.camera(now, w, h)
             rec = session.frame(cam)
-            ctx.finish()
+            finish()
             t = time.perf_counter()
             walls.append((t - last) * 1e3)
             drawn.append(rec.drawn_splats)

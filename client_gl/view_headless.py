@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from splatstream.camera import Camera
 from splatstream.camera_path import CameraPath
 
+from .gpu.gl import wait_for_gpu
 from .streaming import StreamingSession, ViewOptions
 
 EXIT_OK = 0
@@ -77,6 +78,7 @@ def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
             now = time.perf_counter() - start
             cam = run.path.camera(now, w, h) if run.path is not None else fixed
             rec = session.frame(cam, sh_degree=run.sh_degree)
+            wait_for_gpu()  # as a display's swap would: the decoders run meanwhile, not in the next frame's work
             frame += 1
             if run.frames_dir and frame % max(1, run.frame_every) == 0:
                 write_png(os.path.join(run.frames_dir, f"frame_{frame:06d}.png"), session.read_image())

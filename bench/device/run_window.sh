@@ -35,6 +35,11 @@ URL=http://127.0.0.1:8765/scenes/s6m
 echo "== headless"
 probe='import moderngl; c = moderngl.create_context(standalone=True, backend="egl", require=430); print(c.info["GL_RENDERER"])'
 python3 -c "$probe" || export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
+# where the time to the first frame goes: on a fresh machine (the driver compiles every shader), then again
+for run in cold warm; do
+  echo "-- first frame, $run"
+  python3 bench/bench_first_frame.py --scene $W/root/s6m --json "$OUT/first_frame_$run.json" 2>&1 | tail -28
+done
 python3 -m splatstream.cli view $URL --headless --size 1920x1080 --measure-frames 120 --record "$OUT/headless.json" \
   --screenshot "$OUT/headless.png" --no-cache 2>&1 | tail -2
 echo "== window"
@@ -85,7 +90,8 @@ PY
 kill $XVFB 2>/dev/null
 if [ "${1:-}" = fly ]; then
   # keep: our GL entry points keeping the GIL (PYFUNCTYPE, the default); release: releasing it in every call
-  # (CFUNCTYPE); procN: decoding in N processes instead of 2 threads; si20: a 20 ms interpreter switch interval
+  # (CFUNCTYPE); procN: decoding in N processes instead of 2 threads; si20: a 20 ms interpreter switch interval;
+  # finishgil: each frame's wait for the GPU with moderngl's finish() (keeps the GIL) instead of wait_for_gpu
   for ab in ${FLY_AB:-keep release}; do  # FLY_AB=keep: the default alone
     flag=""
     case $ab in
@@ -93,6 +99,7 @@ if [ "${1:-}" = fly ]; then
       proc*) flag="--decode-processes ${ab#proc}" ;;
       si20) flag="--switch-interval 0.02" ;;
       dec1) flag="--decode-workers 1" ;;
+      finishgil) flag="--finish-keeps-gil" ;;
     esac
     python3 bench/bench_flythrough.py --scene $W/root/s6m --ply $W/s6m.ply --json "$OUT/fly_$ab.json" --breakdown \
       $flag > $W/fly_$ab.log 2>&1

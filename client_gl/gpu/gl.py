@@ -174,6 +174,22 @@ def flush() -> None:
     gl.glFlush()
 
 
+@lru_cache(maxsize=1)
+def _finish_releasing_gil():
+    for load in _loaders():
+        addr = load("glFinish")
+        if addr:
+            return ctypes.CFUNCTYPE(None)(addr)
+    raise GLError("OpenGL function glFinish not found")
+
+
+def wait_for_gpu() -> None:
+    """glFinish with the interpreter lock released (moderngl's finish() keeps it): the frame loop's wait for the
+    GPU is when the fetch and decode threads run their Python, instead of in the frame loop's next CPU work (where
+    each of them takes up to a switch interval, 5 ms, from it)."""
+    _finish_releasing_gil()()
+
+
 def _ptr(data: np.ndarray | None):
     return None if data is None else data.ctypes.data_as(ctypes.c_void_p)
 

@@ -38,7 +38,7 @@ from .compute_raster import ComputeRaster, default_entries
 from .gl import flush as gl_flush
 from .gl import texture_barrier
 from .pool import ChunkPool
-from .residency_layout import CHUNK, TEXTURE_UNITS
+from .residency_layout import TEXTURE_UNITS
 from .sort import CHAIN_BARRIER, RADIX_CHOICES, CpuSorter, GpuRadixSort, depth_order
 from .uniforms import ProgramUniforms
 
@@ -261,7 +261,7 @@ class SplatRenderer:
             self._cull_uniforms = ProgramUniforms(self.cull)
             self.params = ctx.buffer(reserve=16)
             self._work_splats = 0
-            self._ensure_work(max(1, pool.scan_slots * CHUNK))
+            self._ensure_work(max(1, pool.drawn_splats))
             if self.options.front_to_back:
                 vert, frag = shadergen.saturate_sources()
                 self._saturate = ctx.program(vertex_shader=vert, fragment_shader=frag)
@@ -278,14 +278,15 @@ class SplatRenderer:
 
     def _ensure_work(self, splats: int) -> None:
         """Per-frame work buffers (keys, values, records, the depth sort's scratch, the compute draw's entries) for
-        `splats` scanned splats. They grow with what the pool holds (by half again, never beyond its capacity), not
-        with the pool's capacity: a 1 GiB pool holds 23M splats, whose work buffers (2.9 GB) took most of the time
-        to a streamed first frame, for a view that draws a few hundred thousand. Their contents live one frame, so
-        growing copies nothing."""
+        `splats` drawn splats (the cull pass writes the visible ones of the drawn tiles, compacted). They grow with
+        what is drawn (to twice that, never beyond the pool's capacity), not with the pool's capacity: a 1 GiB pool
+        holds 23M splats, whose work buffers (2.9 GB) took most of the time to a streamed first frame, for a view
+        that draws a few hundred thousand. Their contents live one frame, so growing copies nothing; each growth
+        costs an allocation (50-80 ms for hundreds of MB on the H100), hence the doubling."""
         if splats <= self._work_splats:
             return
         capacity = self.pool.splat_capacity
-        n = min(capacity, max(splats + splats // 2, 2 * self._work_splats, MIN_WORK_SPLATS))
+        n = min(capacity, max(2 * splats, 2 * self._work_splats, MIN_WORK_SPLATS))
         for b in (self.keys, self.values, self.records):
             if b is not None:
                 b.release()
@@ -485,7 +486,7 @@ class SplatRenderer:
     def _start_cull(self, uniforms: dict, degree: int, max_point: float, key_xor: int) -> int:
         """Uniforms of the cull pass (written when they changed), pool and buffers bound; returns the slots to scan."""
         slots = self.pool.scan_slots
-        self._ensure_work(slots * CHUNK)
+        self._ensure_work(self.pool.drawn_splats)  # cull keeps drawn splats only, compacted
         self.params.write(ZERO_PARAMS)
         u = self._cull_uniforms
         for name, value in uniforms.items():

@@ -1,0 +1,118 @@
+"""Where the time to the first frame goes: `view --headless`'s session, with its steps timed (wall clock).
+
+Streams a scene from a URL (or a scene directory, served here on loopback) with a fixed camera until the first
+frame with splats drawn, timing the manifest, the pool, the renderer, program compiles (`compute_shader`), buffer
+allocations and each frame's engine update and draw. Run it twice on a fresh machine: the first run shows the GL
+driver's cold shader compiles, the second its disk cache.
+
+    python bench/bench_first_frame.py --scene bench/out/stream-work/root/s1000000 --json out.json
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+
+
+class Timeline:
+    """Wall-clock milliseconds spent in wrapped callables, in order, with their start time since t0."""
+
+    def __init__(self) -> None:
+        self.t0 = time.perf_counter()
+        self.events: list[tuple[float, str, float]] = []
+        self.depth = 0
+
+    def wrap(self, owner, name: str, label: str) -> None:
+        fn = getattr(owner, name)
+
+        def timed(*args, **kwargs):
+            t = time.perf_counter()
+            self.depth += 1
+            try:
+                return fn(*args, **kwargs)
+            finally:
+                self.depth -= 1
+                if self.depth == 0 or label.startswith("compile") or label.startswith("alloc"):
+                    self.events.append((round((t - self.t0) * 1e3, 2), label,
+                                        round((time.perf_counter() - t) * 1e3, 2)))
+        setattr(owner, name, timed)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--scene", required=True, help="scene directory (served on loopback here) or URL")
+    ap.add_argument("--size", default="1920x1080")
+    ap.add_argument("--json", dest="json_out")
+    args = ap.parse_args()
+    import moderngl
+
+    from client_gl.gpu import compute_raster, pool, renderer, sort
+    from client_gl.headless import create_context
+    from client_gl.stream import engine
+    from client_gl.streaming import PreparedSource, StreamingSession, ViewOptions
+    from splatstream.camera import Camera
+
+    w, h = (int(v) for v in args.size.split("x"))
+    server, url = None, args.scene
+    if "://" not in url:
+        root = os.path.dirname(os.path.abspath(args.scene))
+        server = subprocess.Popen([sys.executable, "-m", "splatstream.cli", "serve", root, "--port", "0",
+                                   "--no-access-log"], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+        base = server.stderr.readline().split(" at ", 1)[1].split(" ", 1)[0].rstrip("/")
+        url = f"{base}/scenes/{os.path.basename(os.path.abspath(args.scene))}"
+    t = time.perf_counter()
+    ctx = create_context()
+    context_ms = (time.perf_counter() - t) * 1e3
+    tl = Timeline()
+    tl.wrap(moderngl.Context, "compute_shader", "compile compute")
+    tl.wrap(moderngl.Context, "program", "compile program")
+    tl.wrap(moderngl.Context, "buffer", "alloc buffer")
+    tl.wrap(PreparedSource, "open", "manifest (PreparedSource.open)")
+    tl.wrap(pool.ChunkPool, "__init__", "pool")
+    tl.wrap(renderer.SplatRenderer, "__init__", "renderer")
+    tl.wrap(compute_raster.ComputeRaster, "__init__", "compute raster")
+    tl.wrap(sort.GpuRadixSort, "__init__", "radix sort")
+    tl.wrap(engine.StreamEngine, "update", "engine.update")
+    tl.wrap(renderer.SplatRenderer, "render", "render")
+    tl.wrap(pool.ChunkPool, "join", "pool.join")
+    out: dict = {"url": url, "size": [w, h], "gl_renderer": ctx.info.get("GL_RENDERER"), "context_ms": context_ms}
+    try:
+        prepared = PreparedSource.open(url, ViewOptions(cache=False))
+        session = StreamingSession(prepared, ctx, ViewOptions(cache=False))
+        cam_info = session.manifest.camera
+        cam = Camera(cam_info.eye, cam_info.target, cam_info.up, cam_info.fov_y, w, h)
+        frames = 0
+        while frames < 400:
+            rec = session.frame(cam)
+            ctx.finish()
+            frames += 1
+            tl.events.append((round((time.perf_counter() - tl.t0) * 1e3, 2), f"frame {frames} done "
+                              f"({rec.drawn_splats} drawn)", 0.0))
+            if rec.drawn_splats:
+                break
+            session.wait(0.002)
+        m = session.metrics
+        out.update(first_frame_s=m.first_frame_s, manifest_s=m.manifest_s, pool_s=m.pool_s, built_s=m.built_s,
+                   frames=frames, timeline=tl.events)
+        session.close()
+    finally:
+        if server is not None:
+            server.send_signal(signal.SIGTERM)
+            server.wait(10)
+    for t_ms, label, ms in tl.events:
+        print(f"{t_ms:9.1f} ms  {label:34s} {ms:8.1f} ms")
+    print({k: out[k] for k in ("first_frame_s", "manifest_s", "pool_s", "built_s", "context_ms")})
+    if args.json_out:
+        with open(args.json_out, "w") as f:
+            json.dump(out, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
