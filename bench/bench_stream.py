@@ -98,7 +98,8 @@ def stream_once(url: str, cam: Camera, mode: str, out: str, args) -> dict:
               "--record", os.path.join(out, "metrics.json"), "--screenshot", os.path.join(out, "final.png"),
               "--frames-dir", frames, "--frame-every", str(args.frame_every), "-q",
               *(["--sh-bands", "need", "--skip-levels"] if mode == "skip" else
-                ["--sh-bands", "need", "--fill-gap", mode[3:]] if mode.startswith("gap") else ["--sh-bands", mode]))
+                ["--sh-bands", "need", "--fill-gap", mode[3:]] if mode.startswith("gap") else
+                ["--sh-bands", mode[5:].replace("-", ",")] if mode.startswith("share") else ["--sh-bands", mode]))
     r = run(cmd)
     if r.returncode not in (0, 1):
         raise SystemExit(f"{' '.join(cmd)}\n{r.stderr}")
@@ -124,6 +125,8 @@ def plot(results: list[dict], path: str) -> None:
     from PIL import Image, ImageDraw
 
     runs = [r for r in results if r["psnr_series"]]
+    if not runs:
+        return
     w, h = 1100, 560
     img = Image.new("RGB", (w, h), "white")
     d = ImageDraw.Draw(img)
@@ -154,6 +157,21 @@ def plot(results: list[dict], path: str) -> None:
     img.save(path)
 
 
+def band_costs(r: dict, all_bands: dict | None, scene: str, cam: Camera, n: int, args) -> None:
+    """Bytes saved against every band and PSNR against the all-bands frame and the full-detail render."""
+    from PIL import Image
+
+    if all_bands is None:
+        return
+    a, b = (np.asarray(Image.open(x["final_png"]), np.float32) / 255.0 for x in (r, all_bands))
+    ref = full_detail(scene, cam, os.path.join(args.out, f"full_{n}_{r['camera']}.png"))
+    r["psnr_vs_all_bands"] = round(min(psnr_from_mse(float(np.mean((a - b) ** 2))), 99.0), 2)
+    r["bytes_saved_vs_all_bands"] = round(1 - r["bytes_downloaded"] / all_bands["bytes_downloaded"], 3)
+    r["psnr_vs_full_detail"] = round(min(psnr_from_mse(float(np.mean((a - ref) ** 2))), 99.0), 2)
+    all_ref = round(min(psnr_from_mse(float(np.mean((b - ref) ** 2))), 99.0), 2)
+    r["band_psnr_cost_db"] = round(all_ref - r["psnr_vs_full_detail"], 3)
+
+
 def full_detail(scene: str, cam: Camera, out: str) -> np.ndarray:
     """`splatstream render` of every leaf with every band from this camera, (H, W, 3) in [0, 1]."""
     from PIL import Image
@@ -175,7 +193,8 @@ def main() -> None:
     ap.add_argument("--cameras", default="overview,close-up")
     ap.add_argument("--modes", default="need,all",
                     help="need: SH bands by need; all: every band; skip: need, without the levels above the cut; "
-                         "gapN: need, filling levels from N above the cut")
+                         "gapN: need, filling levels from N above the cut; shareA-B-C: bands by need with these "
+                         "area shares (view --sh-bands A,B,C)")
     ap.add_argument("--size", default="1920x1080")
     ap.add_argument("--gpu-mem-mb", type=float, default=1024, help="the view's default")
     ap.add_argument("--frame-every", type=int, default=3)
@@ -215,6 +234,8 @@ def main() -> None:
                               f"{r['bytes_downloaded'] / 1e6:.1f} MB of {m.bytes_on_disk / 1e6:.1f}", flush=True)
                         results.append(r)
                     by_mode = {r["mode"]: r for r in results[-len(args.modes.split(",")):]}
+                    for extra in [k for k in by_mode if k.startswith("share")]:
+                        band_costs(by_mode[extra], by_mode.get("all"), scene, cams[cam_name], n, args)
                     if "need" in by_mode and "all" in by_mode:
                         from PIL import Image
 

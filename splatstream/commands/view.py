@@ -38,9 +38,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--max-sse", type=float, default=1.5,
                    help="screen-space error in pixels under which a tile is not refined (default 1.5; 0: full detail)")
     s.add_argument("--sh-degree", type=int, choices=[0, 1, 2, 3], help="SH bands fetched and drawn at most")
-    s.add_argument("--sh-bands", choices=["need", "all"], default="need",
-                   help="need (default): SH bands only for the tiles that cover most of the view; all: every band of "
-                        "every selected tile")
+    s.add_argument("--sh-bands", default="need", metavar="need|all|S1,S2,S3",
+                   help="need (default): SH bands only for the tiles that cover most of the view (bands 1, 2, 3 until "
+                        "they cover 97, 90, 80 %% of its area); all: every band of every selected tile; S1,S2,S3: "
+                        "those shares of the area (0-1) instead")
     s.add_argument("--no-cache", action="store_true", help="do not use the disk cache of payloads")
     s.add_argument("--no-prefetch", action="store_true", help="fetch only what the view needs now")
     s.add_argument("--skip-levels", action="store_true",
@@ -96,7 +97,23 @@ def _options(args):
                        fill_levels=not args.skip_levels, fill_gap=args.fill_gap,
                        cache=not args.no_cache,
                        render=RenderOptions(sort=args.sort, draw=args.draw),
-                       **({"band_area_share": (1.0, 1.0, 1.0)} if args.sh_bands == "all" else {}))
+                       **_band_shares(args.sh_bands))
+
+
+def _band_shares(text: str) -> dict:
+    """--sh-bands: need (the default shares), all, or three shares of the view's area for bands 1..3."""
+    if text == "need":
+        return {}
+    if text == "all":
+        return {"band_area_share": (1.0, 1.0, 1.0)}
+    try:
+        shares = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        shares = ()
+    if len(shares) != 3 or not all(0.0 <= v <= 1.0 for v in shares):
+        raise UsageError(f"--sh-bands {text}: expected need, all, or three shares of the view's area in [0, 1] "
+                         "(e.g. 0.97,0.9,0.8)")
+    return {"band_area_share": shares}
 
 
 def _fixed_camera(args, size):
