@@ -139,7 +139,8 @@ class PreparedSource:
                           request_timeout_s=options.request_timeout_s, stall_timeout_s=options.stall_timeout_s)
         fetcher.start()
         try:
-            manifest = parse_manifest(fetcher.manifest(), f"{source.location}")
+            data = fetcher.manifest()
+            manifest = fetcher.parsed_manifest(data) or parse_manifest(data, f"{source.location}")
         except BaseException:
             fetcher.close()
             raise

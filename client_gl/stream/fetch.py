@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 
 from splatstream.errors import FormatError, UsageError
 from splatstream.format.container import verify_payload
-from splatstream.format.manifest import PayloadEntry, parse_manifest
+from splatstream.format.manifest import Manifest, PayloadEntry, parse_manifest
 
 from .cache import DiskCache
 from .sources import (
@@ -155,6 +155,7 @@ class Fetcher:
         self._failures: dict[str, int] = {}
         self._offline = False
         self._manifest_source = ""
+        self._parsed: tuple[bytes, Manifest] | None = None
         self._last_error = ""
 
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -250,6 +251,12 @@ class Fetcher:
             return fut.result()
         except concurrent.futures.CancelledError:
             raise FetchError(self.source.location, "closed", "the fetcher was closed", transient=False) from None
+
+    def parsed_manifest(self, data: bytes) -> Manifest | None:
+        """The Manifest this fetcher parsed (to validate it) from exactly these bytes, if it did: a client need not
+        parse a large manifest twice (0.15-0.3 s for a 6M-splat scene's)."""
+        parsed = self._parsed
+        return parsed[1] if parsed is not None and parsed[0] is data else None
 
     def want(self, requests: Iterable[Request]) -> None:
         """Replace the wanted list: (priority, key, entry), best first (the list's order is the service order;
@@ -492,13 +499,14 @@ class Fetcher:
                                          "that was not asked for conditionally", transient=False)
                     return self._manifest_done(cached.data, MANIFEST_REVALIDATED, from_cache=True)
                 try:
-                    parse_manifest(reply.data, self.source.location)
+                    parsed = parse_manifest(reply.data, self.source.location)
                 except FormatError as exc:
                     raise FetchError(self.source.location, NOT_A_SCENE, f"not a splatstream manifest "
                                      f"({exc.field + ': ' if exc.field else ''}{exc.problem})",
                                      transient=False) from None
                 if self.cache is not None and key:
                     await loop.run_in_executor(None, self.cache.put_manifest, key, reply.data, reply.etag)
+                self._parsed = (reply.data, parsed)
                 return self._manifest_done(reply.data, MANIFEST_LOCAL if key is None else MANIFEST_NETWORK)
             except FetchError as exc:
                 with self._lock:
