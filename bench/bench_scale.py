@@ -8,7 +8,10 @@ Scenes: /work/shared/tools/make_scene.py (--seed 0) where it exists, else a buil
 clustered objects on a ground grid, SH degree 3, the same PLY layout), written once per size under --scenes and
 removed after unless --keep. Memory is the sum of the proportional set sizes (PSS, shared pages split between
 the processes that map them) of the encode process and all its descendants, sampled every 0.2 s; also the
-largest single process. Needs only numpy and, for --workers, dask/distributed (and what splatstream needs).
+largest single process. Phases: the encoder's progress lines (stderr, one per stage and 25 % step) give the
+time at which each stage first reported (a task of it finished): "start" is up to the first (imports, the local
+cluster's start, the first chunk read), each stage runs until the next one reports, the last until the process
+ends (the manifest). Needs only numpy and, for --workers, dask/distributed (and what splatstream needs).
 """
 from __future__ import annotations
 
@@ -17,6 +20,7 @@ import json
 import os
 import pathlib
 import platform
+import re
 import shutil
 import subprocess
 import sys
@@ -176,8 +180,29 @@ class TreeMemory(threading.Thread):
             self.stop.wait(self.interval)
 
 
+PROGRESS_LINE = re.compile(r"^encode: (\S+) \d+% \(([\d.]+)s\)$")
+DONE_LINE = re.compile(r"^wrote .*, ([\d.]+)s$")
+
+
+def phases(stderr: str, wall: float) -> dict[str, float]:
+    """Seconds per stage from the encoder's progress lines (a stage seen again later adds to its first entry).
+    The lines count from the encode's start; the imports before it go to "start"."""
+    lines = stderr.splitlines()
+    marks = [(m[1], float(m[2])) for m in map(PROGRESS_LINE.match, lines) if m]
+    done = [float(m[1]) for m in map(DONE_LINE.match, lines) if m]
+    end = done[-1] if done else wall
+    out: dict[str, float] = {"start": wall - end}
+    previous, since = "start", 0.0
+    for stage, t in marks:
+        if stage != previous:
+            out[previous] = out.get(previous, 0.0) + t - since
+            previous, since = stage, t
+    out[previous] = out.get(previous, 0.0) + max(0.0, end - since)
+    return {k: round(v, 1) for k, v in out.items()}
+
+
 def run_encode(scene: pathlib.Path, out: pathlib.Path, extra: list[str]) -> dict:
-    cmd = [sys.executable, "-m", "splatstream.cli", "encode", str(scene), str(out), "-q", *extra]
+    cmd = [sys.executable, "-m", "splatstream.cli", "encode", str(scene), str(out), *extra]
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
     mem = TreeMemory(proc.pid)
@@ -190,7 +215,8 @@ def run_encode(scene: pathlib.Path, out: pathlib.Path, extra: list[str]) -> dict
         raise SystemExit(f"encode failed ({' '.join(cmd)}):\n{err}")
     size = sum(f.stat().st_size for f in out.rglob("*") if f.is_file())
     return {"wall_s": round(wall, 2), "peak_tree_mb": round(mem.peak / 2**20), "peak_process_mb":
-            round(mem.peak_one / 2**20), "processes": mem.peak_procs, "output_mb": round(size / 1e6, 1)}
+            round(mem.peak_one / 2**20), "processes": mem.peak_procs, "output_mb": round(size / 1e6, 1),
+            "phases_s": phases(err, wall)}
 
 
 def main() -> None:

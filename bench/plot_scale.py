@@ -2,6 +2,8 @@
 for several worker counts, the speed-up). Pillow only.
 
     python bench/plot_scale.py bench/results/bench_scale_2core.json bench/results/bench_scale_2core.png
+    python bench/plot_scale.py bench/results/bench_scale_16core_16m.json bench/results/bench_scale_16core_60m.json \
+        bench/results/bench_scale_16core_60m.png
 """
 from __future__ import annotations
 
@@ -16,7 +18,7 @@ COLOURS = [(31, 119, 180), (214, 39, 40), (44, 160, 44), (148, 103, 189), (255, 
 
 
 def panel(draw: ImageDraw.ImageDraw, ox: int, title: str, xlabel: str, ylabel: str,
-          series: dict[str, list[tuple[float, float]]], log_x: bool) -> None:
+          series: dict[str, list[tuple[float, float]]], log_x: bool, legend_left: bool = False) -> None:
     xs = [x for pts in series.values() for x, _ in pts]
     ys = [y for pts in series.values() for _, y in pts]
     fx = (lambda v: math.log10(v)) if log_x else (lambda v: v)
@@ -41,39 +43,66 @@ def panel(draw: ImageDraw.ImageDraw, ox: int, title: str, xlabel: str, ylabel: s
         xx, _ = px(x, 0)
         draw.line([xx, bottom, xx, bottom + 4], fill=(0, 0, 0))
         draw.text((xx - 12, bottom + 8), f"{x / 1e6:g}M" if log_x else f"{x:g}", fill=(0, 0, 0))
+    legend_x = left + 10 if legend_left else right - 10 - max(draw.textlength(n) for n in series)
     for i, (name, pts) in enumerate(series.items()):
-        c = COLOURS[i % len(COLOURS)]
+        c = (128, 128, 128) if name == "ideal" else COLOURS[i % len(COLOURS)]
         pts = sorted(pts)
         coords = [px(x, y) for x, y in pts]
         if len(coords) > 1:
             draw.line(coords, fill=c, width=2)
         for xx, yy in coords:
             draw.ellipse([xx - 3, yy - 3, xx + 3, yy + 3], fill=c)
-        draw.text((right - 110, top + 8 + 14 * i), name, fill=c)
+        draw.text((legend_x, top + 8 + 14 * i), name, fill=c)
+
+
+def speedup_series(runs: list[dict]) -> tuple[dict, dict]:
+    """Speed-up against one worker and peak memory per worker, one curve per scene size. A size without a
+    1-worker run is compared with the 1-worker time per splat of the nearest size that has one (named in the
+    legend): the partitioned encoder's time per splat is about flat in scene size."""
+    dask = [r for r in runs if r["engine"].startswith("dask-")]
+    one = {r["splats"]: r["us_per_splat"] for r in dask if r["engine"] == "dask-1"}
+    speed, mem = {}, {}
+    for n in sorted({r["splats"] for r in dask}):
+        here = sorted((int(r["engine"].split("-")[1]), r) for r in dask if r["splats"] == n)
+        base_n = n if n in one else min(one, key=lambda m: abs(m - n), default=None)
+        if base_n is None:  # no 1-worker run at all: relative to the fewest workers, as if they scaled perfectly
+            base_s = here[0][1]["wall_s"] * here[0][0]
+            label = f"{n / 1e6:g}M (base: {here[0][0]} workers x {here[0][0]})"
+        else:
+            base_s = one[base_n] * n / 1e6
+            label = f"{n / 1e6:g}M" + ("" if base_n == n else f" (1-worker us/splat of {base_n / 1e6:g}M)")
+        speed[label] = [(w, base_s / r["wall_s"]) for w, r in here]
+        mem[f"{n / 1e6:g}M largest process"] = [(w, r["peak_process_mb"] / 1024) for w, r in here]
+        mem[f"{n / 1e6:g}M tree / workers"] = [(w, r["peak_tree_mb"] / 1024 / w) for w, r in here]
+    workers = sorted({w for pts in speed.values() for w, _ in pts} | {1})
+    speed["ideal"] = [(w, float(w)) for w in workers]
+    return speed, mem
 
 
 def main() -> None:
-    data = json.load(open(sys.argv[1]))
-    runs = data["runs"]
+    """plot_scale.py RESULTS.json [MORE.json ...] OUT.png"""
+    if len(sys.argv) < 3:
+        raise SystemExit(main.__doc__)
+    files = [json.load(open(f)) for f in sys.argv[1:-1]]
+    data = files[0]
+    runs = [r for f in files for r in f["runs"]]
     engines = sorted({r["engine"] for r in runs})
     sizes = sorted({r["splats"] for r in runs})
+    workers = {r["engine"] for r in runs if r["engine"].startswith("dask-")}
     img = Image.new("RGB", (2 * W, H), (255, 255, 255))
     d = ImageDraw.Draw(img)
-    if len(sizes) > 1:
+    if len(workers) <= 1:
         mem = {e: [(r["splats"], r["peak_tree_mb"] / 1024) for r in runs if r["engine"] == e] for e in engines}
         per = {e: [(r["splats"], r["us_per_splat"]) for r in runs if r["engine"] == e] for e in engines}
         panel(d, 0, f"peak memory, whole process tree ({data['machine']['cpus']} cores)", "splats", "GiB", mem, True)
         panel(d, W, "wall time per splat", "splats", "us / splat", per, True)
     else:
-        dask = sorted((int(r["engine"].split("-")[1]), r) for r in runs if r["engine"].startswith("dask-"))
-        base = dask[0][1]["wall_s"] * dask[0][0]
-        panel(d, 0, f"speed-up, {sizes[0] / 1e6:g}M splats", "workers", "x",
-              {"measured": [(w, base / r["wall_s"]) for w, r in dask], "ideal": [(w, float(w)) for w, _ in dask]},
-              False)
-        panel(d, W, "peak memory per worker process", "workers", "GiB",
-              {"largest process": [(w, r["peak_process_mb"] / 1024) for w, r in dask],
-               "tree / workers": [(w, r["peak_tree_mb"] / 1024 / w) for w, r in dask]}, False)
-    img.save(sys.argv[2])
+        speed, mem = speedup_series(runs)
+        title = ", ".join(f"{n / 1e6:g}M" for n in sizes)
+        panel(d, 0, f"speed-up against 1 worker ({data['machine']['cpus']} cores; {title} splats)", "workers", "x",
+              speed, False, legend_left=True)
+        panel(d, W, "peak memory per worker (PSS)", "workers", "GiB", mem, False)
+    img.save(sys.argv[-1])
 
 
 if __name__ == "__main__":
