@@ -3,7 +3,7 @@
 #   .gl           GL loader .debs (libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2, amd64)
 #   .whl          cp312 wheels: moderngl glcontext zstandard msgpack aiohttp (+ its deps) platformdirs
 #   .bench_carry  tools/make_scene.py and data/real/* (copies of ../shared) so make_scene.py runs there
-# Usage: bash bench/device/run_client.sh [stream|levels|fly|flyab|all]   (results under $OUT)
+# Usage: bash bench/device/run_client.sh [stream|first|levels|fly|flyab|all]   (results under $OUT)
 set -u
 for f in .gl/*.deb; do dpkg -x "$f" /; done
 ldconfig
@@ -21,12 +21,14 @@ fi
 what=${1:-all}
 W=/tmp/stream-work
 mkdir -p $W
-if [ "$what" = stream ] || [ "$what" = all ]; then
+lscpu | grep -E "^(Model name|Socket|Core|Thread|CPU\(s\))" || true
+if [ "$what" = stream ] || [ "$what" = first ] || [ "$what" = all ]; then
   # first frames on loopback (a first run compiles the driver's shaders: run once before, as a user's second start)
   python3 bench/bench_stream.py --splats 1000000 --links loopback --cameras overview --modes need \
     --workdir $W --out /tmp/warmup > /dev/null 2>&1
   python3 bench/bench_stream.py --splats 1000000,6000000 --links loopback --modes need --frame-every 4 \
     --workdir $W --out "$OUT/stream_loopback" 2>&1 | tail -8
+  if [ "$what" = first ]; then rm -rf "$OUT/stream_loopback"/*/; exit 0; fi
   # SH bands by need (default shares and two others) against every band: bytes (the link does not change them)
   # and PSNR against the all-bands frame and the full-detail render
   python3 bench/bench_stream.py --splats 1000000,6000000 --links 100:0 \
