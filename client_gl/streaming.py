@@ -221,15 +221,20 @@ class StreamingSession:
         """Stream (unless paused) and draw one frame into the renderer's framebuffer."""
         t0 = time.perf_counter()
         self._drawn_with = (cam, sh_degree, clear)
-        if not self.paused:
-            self.last = self.engine.update(cam)
-        t1 = time.perf_counter()
-        draw = self.last.draw if self.last is not None else []
-        self.last_stats = self.renderer.render(cam, sh_degree=sh_degree, background=self.options.background,
-                                               clear=clear, timing=timing, draw_set=draw)
-        if self.renderer.check_bins():  # the compute draw's entry buffer grew: draw this frame again
+        self.engine.frame_started()
+        try:
+            if not self.paused:
+                self.last = self.engine.update(cam)
+            t1 = time.perf_counter()
+            draw = self.last.draw if self.last is not None else []
             self.last_stats = self.renderer.render(cam, sh_degree=sh_degree, background=self.options.background,
                                                    clear=clear, timing=timing, draw_set=draw)
+            if self.renderer.check_bins():  # the compute draw's entry buffer grew: draw this frame again
+                self.last_stats = self.renderer.render(cam, sh_degree=sh_degree,
+                                                       background=self.options.background, clear=clear,
+                                                       timing=timing, draw_set=draw)
+        finally:
+            self.engine.frame_submitted()
         t2 = time.perf_counter()
         return self._record((t2 - t0) * 1e3, (t1 - t0) * 1e3)
 

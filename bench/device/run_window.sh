@@ -35,6 +35,7 @@ URL=http://127.0.0.1:8765/scenes/s6m
 echo "== headless"
 probe='import moderngl; c = moderngl.create_context(standalone=True, backend="egl", require=430); print(c.info["GL_RENDERER"])'
 python3 -c "$probe" || export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
+if [ "${WINDOW:-1}" = 1 ]; then  # WINDOW=0: the fly-through alone
 # where the time to the first frame goes: on a fresh machine (the driver compiles every shader), then again
 for run in cold warm; do
   echo "-- first frame, $run"
@@ -88,6 +89,7 @@ for name in ("headless", "window", "window_no_overlay", "window_copy"):
           "first frame split: manifest", r.get("manifest_s"), "pool", r.get("pool_s"), "built", r.get("built_s"))
 PY
 kill $XVFB 2>/dev/null
+fi
 if [ "${1:-}" = fly ]; then
   # keep: our GL entry points keeping the GIL (PYFUNCTYPE, the default); release: releasing it in every call
   # (CFUNCTYPE); procN: decoding in N processes instead of 2 threads; si20: a 20 ms interpreter switch interval;

@@ -13,6 +13,7 @@ drawn tiles nobody wants when slots run out; the root is never evicted), and com
 from __future__ import annotations
 
 import queue
+import threading
 import time
 from concurrent.futures import CancelledError, Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field
@@ -60,6 +61,9 @@ class FetcherLike(Protocol):
     def done(self) -> list[tuple[Key, PayloadEntry, bytes]]: ...
 
     def stats(self) -> Any: ...  # with .in_flight and .queued (fetch.FetchStats)
+
+
+DECODE_WAIT_S = 0.05  # a decode thread waits at most this long for the frame loop to finish its CPU work
 
 
 @dataclass(frozen=True)
@@ -176,6 +180,13 @@ class StreamEngine:
         self._decoded: queue.Queue = queue.Queue()
         self._pool = ThreadPoolExecutor(max_workers=options.decode_workers, thread_name_prefix="splat-decode")
         self._closing = False
+        # Set while the frame loop is not in its CPU work (engine update, draw submission): decode threads start a
+        # payload only then. Decoding is mostly numpy and zstd, but its Python in between, on two threads, took
+        # the interpreter lock from the frame loop every switch interval (5 ms): frames that uploaded spent two
+        # thirds of their time waiting for it (BENCHMARKS.md). A frame loop that never says when it works (tests,
+        # tools) leaves it set.
+        self._loop_idle = threading.Event()
+        self._loop_idle.set()
         self._processes: ProcessPoolExecutor | None = None
         self._processes_ready: Future = Future()
         if options.decode_processes > 0:
@@ -317,7 +328,16 @@ class StreamEngine:
             self._ready[key] = ready
             self._ready_bytes += ready.nbytes
 
+    def frame_started(self) -> None:
+        """The frame loop begins its CPU work (update, uploads, draw submission): decode threads wait."""
+        self._loop_idle.clear()
+
+    def frame_submitted(self) -> None:
+        """The frame loop waits for the GPU or the display now: decode threads may run."""
+        self._loop_idle.set()
+
     def _decode(self, key: Key, entry: PayloadEntry, data: bytes) -> None:
+        self._loop_idle.wait(DECODE_WAIT_S)
         self._decoded.put((key, self._finish(key, decode_job(*self._job_args(key, entry, data)))))
 
     def _job_args(self, key: Key, entry: PayloadEntry, data: bytes) -> tuple:
