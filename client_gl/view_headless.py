@@ -16,7 +16,7 @@ from splatstream.camera import Camera
 from splatstream.camera_path import CameraPath
 
 from .gpu.gl import wait_for_gpu
-from .streaming import StreamingSession, ViewOptions
+from .streaming import StreamingSession, ViewOptions, freeze_long_lived
 
 EXIT_OK = 0
 EXIT_NOT_CONVERGED = 1
@@ -67,6 +67,7 @@ def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
             say(f"view: {stage} {fraction * 100:.0f}%")
 
     session = StreamingSession.open(run.source, ctx, run.options, progress=encode_progress)
+    freeze_long_lived()
     try:
         w, h = run.size
         fixed = run.camera or scene_camera(session, run.size)

@@ -23,7 +23,7 @@ from splatstream.camera_path import CameraPath
 from splatstream.errors import SplatstreamError, UsageError
 
 from .camera_control import CameraController, state_from_camera
-from .streaming import PreparedSource, StreamingSession, ViewOptions
+from .streaming import PreparedSource, StreamingSession, ViewOptions, freeze_long_lived
 
 EXIT_OK = 0
 EXIT_NOT_CONVERGED = 1
@@ -189,6 +189,7 @@ class Viewer:
             home = state_from_camera(Camera(c.eye, c.target, c.up, c.fov_y, w, h))
         root = m.tile(m.root)
         self.controller = CameraController(home, np.array(root.sphere_center), float(root.sphere_radius))
+        freeze_long_lived()
 
     # --- events (the path every user input takes) ----------------------------------------------------------------
     def _wire_events(self) -> None:

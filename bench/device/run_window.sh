@@ -102,7 +102,9 @@ if [ "${1:-}" = fly ]; then
       si20) flag="--switch-interval 0.02" ;;
       dec1) flag="--decode-workers 1" ;;
       finishgil) flag="--finish-keeps-gil" ;;
+      nofreeze) flag="--no-gc-freeze" ;;
     esac
+    n=0; while [ -e "$OUT/fly_$ab.json" ]; do n=$((n+1)); ab=${ab%%-*}-$n; done  # a variant named twice: _keep-1
     python3 bench/bench_flythrough.py --scene $W/root/s6m --ply $W/s6m.ply --json "$OUT/fly_$ab.json" --breakdown \
       $flag > $W/fly_$ab.log 2>&1
     python3 -c "import json,sys; d=json.load(open(sys.argv[1])); s=d['streaming']; print(sys.argv[2], {k: s[k] for k \

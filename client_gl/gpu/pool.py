@@ -35,7 +35,7 @@ from splatstream.format.codec import EncodedPlane
 from splatstream.format.texformats import get_format
 
 from ..tiledata import HostMirror, TileData
-from .gl import BLOCK_BYTES, GL_RG8UI, GL_RGBA32UI, INTERNAL_FORMATS, RawTexture
+from .gl import BLOCK_BYTES, GL_RG8UI, GL_RGBA32UI, INTERNAL_FORMATS, RawTexture, StagingBuffer
 from .residency_layout import (
     BASE_PLANE_NAMES,
     BLOCK,
@@ -127,6 +127,7 @@ class ChunkPool:
             fmt = get_format(self.layout.plane_format(plane))
             self._atlases[plane] = RawTexture(INTERNAL_FORMATS[fmt.gl_internal], width, height,
                                               self.layout.plane_layers(plane))
+        self._staging = StagingBuffer(ctx)  # texel uploads go through it (the GPU copies, not the driver's CPU)
         self._ranges = RawTexture(GL_RGBA32UI, width, rows)
         self._state_texture = RawTexture(GL_RG8UI, cols, rows)
         self._records = np.zeros((capacity, RANGE_RECORD_WORDS), np.uint32)  # host copy of the range table
@@ -426,6 +427,7 @@ class ChunkPool:
             textures.append(self._codebook_ranges)
         for tex in textures:
             tex.release()
+        self._staging.release()
         self._atlases.clear()
         self._codebook_textures.clear()
         self._codebook_ranges = None
@@ -503,16 +505,16 @@ class ChunkPool:
         splat tile's plane goes up in one call per layer, with no copy on the CPU."""
         tw = plane.width // BLOCK
         for layer in range(max(1, tex.layers)):
-            blob = layer_blob(plane, layer)
-            for first, slot, length in runs:
-                c, end = first, first + length
-                while c < end:  # split the run where it crosses a block row of the tile's texture
-                    piece = min(end, (c // tw + 1) * tw) - c
-                    dst = slot + (c - first)
-                    tex.write_region(blob, plane.width, (c % tw) * BLOCK, (c // tw) * BLOCK,
-                                     (dst % self._cols) * BLOCK, (dst // self._cols) * BLOCK, piece * BLOCK, BLOCK,
-                                     layer)
-                    c += piece
+            with self._staging.staged(layer_blob(plane, layer)):
+                for first, slot, length in runs:
+                    c, end = first, first + length
+                    while c < end:  # split the run where it crosses a block row of the tile's texture
+                        piece = min(end, (c // tw + 1) * tw) - c
+                        dst = slot + (c - first)
+                        tex.write_region(None, plane.width, (c % tw) * BLOCK, (c // tw) * BLOCK,
+                                         (dst % self._cols) * BLOCK, (dst // self._cols) * BLOCK, piece * BLOCK,
+                                         BLOCK, layer)
+                        c += piece
 
     def _write_records(self, slots: np.ndarray, runs=None) -> None:
         """Upload the host range records of these slots (runs of consecutive slots in one atlas row at once)."""
