@@ -69,6 +69,28 @@ class StepTimer:
         return out
 
 
+class GcPauses:
+    """The garbage collector's pauses while it runs (gc.callbacks): count, longest and total ms per generation."""
+
+    def __init__(self) -> None:
+        import gc
+
+        self.gc, self.t = gc, 0.0
+        self.by_gen: dict[int, list[float]] = {0: [], 1: [], 2: []}
+        gc.callbacks.append(self._cb)
+
+    def _cb(self, phase: str, info: dict) -> None:
+        if phase == "start":
+            self.t = time.perf_counter()
+        else:
+            self.by_gen[info["generation"]].append((time.perf_counter() - self.t) * 1e3)
+
+    def stop(self) -> dict:
+        self.gc.callbacks.remove(self._cb)
+        return {f"gen{g}": {"count": len(v), "max_ms": round(max(v, default=0.0), 2), "total_ms": round(sum(v), 1)}
+                for g, v in self.by_gen.items()}
+
+
 def thread_cpu_seconds() -> dict[str, float]:
     """CPU seconds (user + system) of each thread of this process so far, by thread name (Linux /proc): which
     threads compete with the frame loop for the interpreter lock and the cores."""
@@ -162,6 +184,7 @@ def main() -> None:
         profiler = cProfile.Profile() if args.profile else None
         if profiler:
             profiler.enable()
+        gc_pauses = GcPauses()
         start = time.perf_counter()
         steps = StepTimer() if args.breakdown else None
         if steps:
@@ -191,6 +214,7 @@ def main() -> None:
                 break
             if now > path.end + 60:
                 break
+        out["gc_pauses"] = gc_pauses.stop()
         out["thread_cpu_s"] = thread_cpu_seconds()
         out["streaming_wall_s"] = time.perf_counter() - start
         if profiler:

@@ -110,7 +110,7 @@ if [ "${1:-}" = fly ]; then
     python3 -c "import json,sys; d=json.load(open(sys.argv[1])); s=d['streaming']; print(sys.argv[2], {k: s[k] for k \
       in ('frames','median_ms','p99_ms','p99_ms_with_uploads','p99_ms_without_uploads','update_ms_p99')}, \
       'converged', d['converged_stream_ms'], 'render', d['render_same_set_ms'], 'threads cpu s', d['thread_cpu_s'], \
-      'wall s', d['streaming_wall_s']); [print(x) for x in s['slowest'][:4]]" \
+      'wall s', d['streaming_wall_s'], 'gc', d.get('gc_pauses')); [print(x) for x in s['slowest'][:4]]" \
       "$OUT/fly_$ab.json" $ab || tail -20 $W/fly_$ab.log
   done
 fi
