@@ -219,7 +219,9 @@ def main() -> None:
         out["streaming_wall_s"] = time.perf_counter() - start
         if profiler:
             profiler.disable()
-            pstats.Stats(profiler).sort_stats("tottime").print_stats(25)
+            stats = pstats.Stats(profiler)
+            stats.sort_stats("tottime").print_stats(25)
+            stats.sort_stats("cumulative").print_callees("wanted")
         out["streaming"] = {"frames": len(walls), "median_ms": float(np.median(walls)),
                             "p99_ms": float(np.percentile(walls, 99)), "max_ms": float(np.max(walls)),
                             "max_drawn_splats": int(max(drawn)), "first_frame_s": session.metrics.first_frame_s,

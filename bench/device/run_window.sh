@@ -103,6 +103,7 @@ if [ "${1:-}" = fly ]; then
       dec1) flag="--decode-workers 1" ;;
       finishgil) flag="--finish-keeps-gil" ;;
       nofreeze) flag="--no-gc-freeze" ;;
+      profile) flag="--profile" ;;
     esac
     n=0; while [ -e "$OUT/fly_$ab.json" ]; do n=$((n+1)); ab=${ab%%-*}-$n; done  # a variant named twice: _keep-1
     python3 bench/bench_flythrough.py --scene $W/root/s6m --ply $W/s6m.ply --json "$OUT/fly_$ab.json" --breakdown \
