@@ -181,7 +181,7 @@ def test_entry_buffer_grows(renderer, fruit):
     assert cr.entry_capacity >= needed
     assert psnr(rend.read_image()[..., :3], ref) >= 40.0
     # A frame loop's check reads an earlier frame's count (no wait) and grows at 85 % of the capacity, ahead of
-    # an overflow: not before two frames are binned, then from the count of the frame before the last.
+    # an overflow: the count copied every COUNT_EVERY binnings, read two binnings after its copy.
     cr.resize(cr.visible_capacity, needed + needed // 10)  # 91 % full: no overflow, but over the 85 % mark
     rend.check_bins_after(0)
     cr._frames = 0
@@ -190,10 +190,13 @@ def test_entry_buffer_grows(renderer, fruit):
     renderer.render_frame(cam)
     assert not rend.check_bins()  # grew ahead; the frame had not overflowed: no second draw
     assert cr.entry_capacity >= needed + needed // 2
+    renderer.render_frame(cam)
+    assert not rend.check_bins()  # not a frame that reads the count
     cr.resize(cr.visible_capacity, 64)
+    cr._frames = 0
     renderer.render_frame(cam)
     renderer.render_frame(cam)
-    assert rend.check_bins()  # the frame before the last overflowed: grown, draw again
+    assert rend.check_bins()  # the counted frame overflowed: grown, draw again
     renderer.render_frame(cam)
     assert cr.entry_capacity >= needed and psnr(rend.read_image()[..., :3], ref) >= 40.0
 

@@ -32,6 +32,7 @@ from .uniforms import ProgramUniforms
 TILE_PX = 16  # default tile size (pixels); 8 is a measurement option (RenderOptions.tile_px)
 UNROLL = 4  # splats per raster loop step (H200, 6M splats: raster 7.35 ms unrolled 1, 5.69 ms 2, 5.19 ms 4)
 MIN_ENTRIES = 1 << 16
+COUNT_EVERY = 4  # binnings between two copies of the entry count for the frame loop's overflow check
 ENTRIES_PER_SPLAT = 4  # initial entry capacity per splat of the pool's capacity
 IMAGE_FORMATS = {"f4": "rgba32f", "f2": "rgba16f", "f1": "rgba8"}
 
@@ -89,9 +90,10 @@ class ComputeRaster:
         self._u_count, self._u_scan, self._u_emit, self._u_raster = (
             ProgramUniforms(p) for p in (self.count_shader, self.scan_shader, self.emit_shader, self.raster_shader))
         self.bins = ctx.buffer(reserve=16)
-        # (entries sorted, entries needed) of the last two frames, copied from `bins` after each binning: the
-        # overflow check reads the previous frame's, which the GPU has finished, instead of stalling on this one's
-        self._counts = [ctx.buffer(reserve=8), ctx.buffer(reserve=8)]
+        # (entries sorted, entries needed), copied from `bins` every COUNT_EVERY binnings: the frame loop's overflow
+        # check reads it two binnings later, when the GPU is done with it, instead of stalling on this frame's
+        # (the copy cost 0.8 ms of CPU on the H100's driver, hence not every frame)
+        self._counts = ctx.buffer(reserve=8)
         self._frames = 0
         self.gsum = None
         self.ranges = None
@@ -140,7 +142,7 @@ class ComputeRaster:
         return sum(b.size for b in bufs if b is not None) + self.tile_sorter.gpu_bytes
 
     def release(self) -> None:
-        for b in (*self._counts, self.bins, self.gsum, self.ranges, self.tile_keys, self.tile_values):
+        for b in (self._counts, self.bins, self.gsum, self.ranges, self.tile_keys, self.tile_values):
             if b is not None:
                 b.release()
         self.tile_sorter.release()
@@ -160,12 +162,12 @@ class ComputeRaster:
         return True
 
     def grow_ahead(self) -> bool:
-        """The check a frame loop makes every frame without waiting for the GPU: the frame before the last one's
-        entry count (finished by now), grown at 85 % of the capacity so that a frame seldom overflows. True when
-        that frame overflowed (the last one probably did too: draw it again)."""
-        if self._frames < 2:
+        """The check a frame loop makes every frame without waiting for the GPU: every COUNT_EVERY frames, the
+        entry count copied two binnings ago (finished by now), grown at 85 % of the capacity so that a frame seldom
+        overflows. True when that frame overflowed (the last one probably did too: draw it again)."""
+        if self._frames % COUNT_EVERY != 2 % COUNT_EVERY or self._frames < 2:
             return False
-        _, total = struct.unpack("2I", self._counts[self._frames % 2].read(8))  # written two binnings ago
+        _, total = struct.unpack("2I", self._counts.read(8))
         old = self.entry_capacity
         if total <= old * 0.85:
             return False
@@ -203,7 +205,8 @@ class ComputeRaster:
         order.bind_to_storage_buffer(1)
         self.emit_shader.run_indirect(dispatch, 0)
         barrier(bits)
-        self.ctx.copy_buffer(self._counts[self._frames % 2], self.bins, 8)
+        if self._frames % COUNT_EVERY == 0:
+            self.ctx.copy_buffer(self._counts, self.bins, 8)
         self._frames += 1
 
     @property
