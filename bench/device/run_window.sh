@@ -104,6 +104,7 @@ if [ "${1:-}" = fly ]; then
       finishgil) flag="--finish-keeps-gil" ;;
       nofreeze) flag="--no-gc-freeze" ;;
       profile) flag="--profile" ;;
+      blas1) flag=""; export OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 ;;
     esac
     n=0; while [ -e "$OUT/fly_$ab.json" ]; do n=$((n+1)); ab=${ab%%-*}-$n; done  # a variant named twice: _keep-1
     python3 bench/bench_flythrough.py --scene $W/root/s6m --ply $W/s6m.ply --json "$OUT/fly_$ab.json" --breakdown \

@@ -87,7 +87,7 @@ def frustum_planes(cam: Camera, widen: float = 1.0, basis=None) -> np.ndarray:
         normals[k] = n / np.linalg.norm(n)
     planes = np.empty((5, 4))
     planes[:, :3] = normals
-    planes[:, 3] = -(normals @ eye)
+    planes[:, 3] = -np.einsum("pk,k->p", normals, eye)
     planes[0, 3] -= cam.near
     return planes
 
@@ -112,10 +112,12 @@ def view_numbers(a: TileArrays, cam: Camera, opts: SelectionOptions = SelectionO
         radius_px = np.where(distance > 0, a.sphere_radius * focal / np.maximum(centre_dist, 1e-12), INF)
     visible = boxes_in_frustum(a.box_min, a.box_max, frustum_planes(cam, 1.0, basis))
     wide = boxes_in_frustum(a.box_min, a.box_max, frustum_planes(cam, opts.prefetch_margin, basis))
-    depth = rel @ forward  # the centres in the camera's frame: image x right, y down (camera.md)
+    # The centres in the camera's frame (image x right, y down: camera.md). einsum, not @: a matrix product goes to
+    # the BLAS library, whose worker threads (16 on the GPU machine) cost more than these few thousand products.
+    depth = np.einsum("ij,j->i", rel, forward)
     with np.errstate(divide="ignore", invalid="ignore"):
-        u = focal * (rel @ right) / depth + cam.width / 2.0
-        v = -focal * (rel @ up) / depth + cam.height / 2.0
+        u = focal * np.einsum("ij,j->i", rel, right) / depth + cam.width / 2.0
+        v = -focal * np.einsum("ij,j->i", rel, up) / depth + cam.height / 2.0
         r = np.where(np.isfinite(radius_px), radius_px, 0.0)
         w = np.clip(u + r, 0, cam.width) - np.clip(u - r, 0, cam.width)
         h = np.clip(v + r, 0, cam.height) - np.clip(v - r, 0, cam.height)
