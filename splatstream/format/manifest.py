@@ -561,6 +561,7 @@ def _payload_fast(v, expect: list[tuple[str, dict]], chunks: int, strict: bool) 
     return PayloadEntry(file, sha, size, raw, gpu, tuple(sections))
 
 
+@functools.lru_cache(maxsize=4096)  # a large scene's thousands of sections repeat a few shapes
 def _stored_size_problem(fmt: str, width: int, height: int, layers: int, filt: str, length: int) -> str | None:
     """What is wrong with a texels section's stored size, or None: the texture's bytes for none/shuffleN, a size
     within what the fields1 layout allows (format.md 5.2; the exact size depends on modes only the bytes hold)."""
@@ -663,6 +664,13 @@ def expected_sections(group: str, codebook: bool, formats: dict[str, str], chunk
     """The sections a payload group must hold: [(name, properties)] (format.md 4.4, 4.7, 5).
 
     `group` is a tile group (`codebook`: the scene has an SH codebook), or `cb:sh<b>` for a codebook band."""
+    return _expected_sections(group, codebook, tuple(sorted(formats.items())), chunks, codebook_format)
+
+
+@functools.lru_cache(maxsize=1024)  # the same few groups and chunk counts for every tile of a scene
+def _expected_sections(group: str, codebook: bool, format_items: tuple, chunks: int,
+                       codebook_format: str | None) -> list[tuple[str, dict]]:
+    formats = dict(format_items)
     if group.startswith("cb:"):
         specs = (band_plane(int(group[5:])),)
     else:
