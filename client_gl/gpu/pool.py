@@ -127,6 +127,7 @@ class ChunkPool:
             fmt = get_format(self.layout.plane_format(plane))
             self._atlases[plane] = RawTexture(INTERNAL_FORMATS[fmt.gl_internal], width, height,
                                               self.layout.plane_layers(plane))
+        self._gpu_bytes: int | None = None
         self._staging = StagingBuffer(ctx)  # texel uploads go through it (the GPU copies, not the driver's CPU)
         self._ranges = RawTexture(GL_RGBA32UI, width, rows)
         self._state_texture = RawTexture(GL_RG8UI, cols, rows)
@@ -270,8 +271,11 @@ class ChunkPool:
 
     @property
     def gpu_bytes(self) -> int:
-        """Everything the pool allocated on the GPU (= layout.pool_bytes(capacity_slots))."""
-        return self.texel_bytes + self.range_bytes + self.state_bytes + self.codebook_bytes
+        """Everything the pool allocated on the GPU (= layout.pool_bytes(capacity_slots); all of it is made with
+        the pool, so the sum is taken once)."""
+        if self._gpu_bytes is None:
+            self._gpu_bytes = self.texel_bytes + self.range_bytes + self.state_bytes + self.codebook_bytes
+        return self._gpu_bytes
 
     @property
     def bytes_per_splat(self) -> float:

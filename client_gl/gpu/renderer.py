@@ -240,6 +240,9 @@ class SplatRenderer:
         self._camera_values: dict = {}
         self._queries = [ctx.query(time=True) for _ in range(TIMER_QUERIES)]
         self._debug = None  # decode_debug's program, compiled on first use (a test hook)
+        self._work_bytes_key: tuple | None = None
+        self._work_bytes = 0
+        self._work_splats = 0
         # CPU path
         self._cpu_sorter: CpuSorter | None = None
         self._cpu_program = None
@@ -260,7 +263,6 @@ class SplatRenderer:
             self._bind_samplers(self.cull)
             self._cull_uniforms = ProgramUniforms(self.cull)
             self.params = ctx.buffer(reserve=16)
-            self._work_splats = 0
             self._ensure_work(max(1, pool.drawn_splats))
             if self.options.front_to_back:
                 vert, frag = shadergen.saturate_sources()
@@ -393,7 +395,16 @@ class SplatRenderer:
     # --- memory --------------------------------------------------------------------------------------------
     @property
     def work_bytes(self) -> int:
-        """GPU bytes of per-frame work buffers (keys, values, sort scratch), beside the pool's splat data."""
+        """GPU bytes of per-frame work buffers (keys, values, sort scratch), beside the pool's splat data (summed
+        again only when a buffer may have changed: a frame loop asks every frame)."""
+        cr = self.craster
+        key = (self._work_splats if self.sort_mode == "gpu" else 0, id(cr), cr.entry_capacity if cr else 0,
+               cr.grid if cr else None, self._index_buffer.size if self._index_buffer is not None else 0)
+        if key != self._work_bytes_key:
+            self._work_bytes_key, self._work_bytes = key, self._sum_work_bytes()
+        return self._work_bytes
+
+    def _sum_work_bytes(self) -> int:
         if self.sort_mode == "gpu":
             extra = self.craster.gpu_bytes if self.craster is not None else 0
             return (self.keys.size + self.values.size + self.records.size + self.params.size + self.sorter.gpu_bytes
