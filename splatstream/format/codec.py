@@ -22,7 +22,7 @@ from .planes import SH_INDEX_FORMAT, SH_INDEX_PLANE, PlaneSpec
 from .texformats import TEXEL_DTYPES, decode_image, encode_bc_image, get_format, pack_texels, unpack_texels
 
 SQRT2 = math.sqrt(2.0)
-WHOLE_PLANE_GATHER_BYTES = 64 << 20
+WHOLE_PLANE_GATHER_BYTES = 32 << 20
 # Opacity is stored after the sigmoid; decoding takes the logit of a value clamped to this interval.
 OPACITY_EPS = 1e-6
 
