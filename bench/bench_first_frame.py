@@ -13,12 +13,13 @@ import argparse
 import json
 import os
 import signal
-import subprocess
 import sys
 import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
+
+from bench_stream import serve_scene  # noqa: E402 (bench/ is on the path: scripts run from it)
 
 
 class Timeline:
@@ -60,13 +61,7 @@ def main() -> None:
     from splatstream.camera import Camera
 
     w, h = (int(v) for v in args.size.split("x"))
-    server, url = None, args.scene
-    if "://" not in url:
-        root = os.path.dirname(os.path.abspath(args.scene))
-        server = subprocess.Popen([sys.executable, "-m", "splatstream.cli", "serve", root, "--port", "0",
-                                   "--no-access-log"], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
-        base = server.stderr.readline().split(" at ", 1)[1].split(" ", 1)[0].rstrip("/")
-        url = f"{base}/scenes/{os.path.basename(os.path.abspath(args.scene))}"
+    server, url = (None, args.scene) if "://" in args.scene else serve_scene(args.scene)
     t = time.perf_counter()
     ctx = create_context()
     context_ms = (time.perf_counter() - t) * 1e3

@@ -14,7 +14,6 @@ import argparse
 import json
 import os
 import signal
-import subprocess
 import sys
 import time
 
@@ -22,6 +21,8 @@ import numpy as np
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, ROOT)
+
+from bench_stream import serve_scene  # noqa: E402 (bench/ is on the path: scripts run from it)
 
 from splatstream.camera import standard_benchmark_view  # noqa: E402
 from splatstream.camera_path import parse_camera_path  # noqa: E402
@@ -152,14 +153,7 @@ def main() -> None:
     from splatstream.store import DirectoryStore
 
     w, h = (int(v) for v in args.size.split("x"))
-    server = None
-    url = args.scene
-    if "://" not in url:
-        root = os.path.dirname(os.path.abspath(args.scene))
-        server = subprocess.Popen([sys.executable, "-m", "splatstream.cli", "serve", root, "--port", "0",
-                                   "--no-access-log"], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
-        base = server.stderr.readline().split(" at ", 1)[1].split(" ", 1)[0].rstrip("/")
-        url = f"{base}/scenes/{os.path.basename(os.path.abspath(args.scene))}"
+    server, url = (None, args.scene) if "://" in args.scene else serve_scene(args.scene)
     path = parse_camera_path(fly_path(args.ply, args.seconds))
     ctx = create_context()
     finish = ctx.finish if args.finish_keeps_gil else wait_for_gpu

@@ -184,6 +184,12 @@ def full_detail(scene: str, cam: Camera, out: str) -> np.ndarray:
     return np.asarray(Image.open(out).convert("RGB"), np.float32) / 255.0
 
 
+def serve_scene(scene_dir: str) -> tuple[subprocess.Popen, str]:
+    """`splatstream serve` of a scene directory's parent on loopback: (server process, the scene's URL)."""
+    proc, base = serve(os.path.dirname(os.path.abspath(scene_dir)), "loopback")
+    return proc, f"{base}/scenes/{os.path.basename(os.path.abspath(scene_dir))}"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--splats", default="1000000", help="comma-separated scene sizes (make_scene.py)")
