@@ -21,6 +21,10 @@ shared uint s_base;
 
 void main() {
     uint slot = gl_WorkGroupID.x + u_slot_base;
+    // A slot outside the draw set (or past the used ones) leaves at once, the whole group together (slot is the
+    // same for all of it, so no barrier is skipped by part of the group): a pool that holds many more splats than
+    // it draws scans them for a texel fetch each, not for barriers and an atomic.
+    if (slot >= u_slots || !slot_drawn(slot)) return;
     uint j = gl_LocalInvocationID.x;
     if (j == 0u) s_local = 0u;
     barrier();
@@ -33,7 +37,7 @@ void main() {
     vec2 center;
     vec3 cov;
     float depth;
-    if (slot < u_slots && j < range_count(slot) && slot_drawn(slot)) {  // slots outside the draw set are masked
+    if (j < range_count(slot)) {
         col = decode_color(id, p);
         col.a = clamp(col.a, 0.0, 1.0);
         if (col.a >= ALPHA_MIN) {
@@ -50,7 +54,7 @@ void main() {
     uint local = 0u;
     if (visible) local = atomicAdd(s_local, 1u);
     barrier();
-    if (j == 0u) s_base = atomicAdd(count, s_local);
+    if (j == 0u && s_local > 0u) s_base = atomicAdd(count, s_local);
     barrier();
     if (visible) {
         uint i = s_base + local;
