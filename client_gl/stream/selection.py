@@ -127,11 +127,6 @@ def view_numbers(a: TileArrays, cam: Camera, opts: SelectionOptions = SelectionO
     return TileView(sse, visible, radius_px, area, distance, wide)
 
 
-def _area_px(view: TileView, i: int, screen: float) -> float:
-    r = view.radius_px[i]
-    return screen if not math.isfinite(r) else min(screen, math.pi * r * r)
-
-
 def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: SelectionOptions,
            previous_refined: frozenset[int] = frozenset(), screen_px: float = 1.0) -> Selection:
     """The cut the view wants: REPLACE refinement from the root, best first by error removed per byte.
@@ -139,30 +134,41 @@ def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: Sel
     A visible tile whose sse exceeds the threshold is a candidate; candidates are refined in order of
     sse x projected area / (cost of its visible children - its own cost) while the cut stays within the splat and
     cost budgets. Children outside the frustum are dropped from the cut (they draw nothing)."""
+    # Per-tile numbers over numpy first (visible children's cost and splats, benefit, priority): the greedy loop
+    # below then does only heap work and list lookups (0.70 -> 0.40 ms a frame on the 6M-splat scene). The sums
+    # are of whole numbers in float64, exact in any order, so the cut is the same as summing child by child.
+    visible = view.visible
+    parent = a.parent
+    child = parent >= 0
+    n = len(parent)
+    kid_cost = np.bincount(parent[child], weights=np.where(visible, cost, 0.0)[child], minlength=n)
+    kid_splats = np.bincount(parent[child], weights=np.where(visible, a.splats, 0).astype(np.float64)[child],
+                             minlength=n)
+    has_kids = np.bincount(parent[child], minlength=n) > 0
+    r = view.radius_px
+    finite = np.isfinite(r)
+    rf = np.where(finite, r, 0.0)
+    area = np.where(finite, np.minimum(screen_px, (math.pi * rf) * rf), screen_px)  # the eye inside: everything
+    benefit = np.minimum(view.sse, 1e9) * area
+    threshold = np.full(n, float(opts.max_sse))
+    if previous_refined:
+        threshold[list(previous_refined)] *= opts.hysteresis
+    candidate = (has_kids & visible & (view.sse > threshold)).tolist()
+    prio = (-benefit / np.maximum(kid_cost - cost, 1.0)).tolist()
+    kid_cost_l, kid_splats_l, cost_l, splats_l = kid_cost.tolist(), kid_splats.tolist(), cost.tolist(), \
+        a.splats.tolist()
+    visible_l = visible.tolist()
+
     refined: set[int] = set()
     cut: set[int] = {root}
     priority: dict[int, float] = {root: INF}
-    splats = int(a.splats[root])
-    total = float(cost[root])
-    heap: list[tuple[float, int]] = []
-
-    def consider(i: int) -> None:
-        if not a.children[i] or not view.visible[i]:
-            return
-        threshold = opts.max_sse * (opts.hysteresis if i in previous_refined else 1.0)
-        if view.sse[i] <= threshold:
-            return
-        kids = [k for k in a.children[i] if view.visible[k]]
-        delta = sum(float(cost[k]) for k in kids) - float(cost[i])
-        benefit = min(float(view.sse[i]), 1e9) * _area_px(view, i, screen_px)
-        heapq.heappush(heap, (-benefit / max(delta, 1.0), i))
-
-    consider(root)
+    splats = int(splats_l[root])
+    total = float(cost_l[root])
+    heap: list[tuple[float, int]] = [(prio[root], root)] if candidate[root] else []
     while heap:
         neg_priority, i = heapq.heappop(heap)
-        kids = [k for k in a.children[i] if view.visible[k]]
-        new_splats = splats - int(a.splats[i]) + sum(int(a.splats[k]) for k in kids)
-        new_total = total - float(cost[i]) + sum(float(cost[k]) for k in kids)
+        new_splats = splats - int(splats_l[i]) + int(kid_splats_l[i])
+        new_total = total - cost_l[i] + kid_cost_l[i]
         if opts.max_splats is not None and new_splats > opts.max_splats and new_splats > splats:
             continue
         if opts.budget is not None and new_total > opts.budget and new_total > total:
@@ -170,10 +176,13 @@ def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: Sel
         cut.discard(i)
         refined.add(i)
         splats, total = new_splats, new_total
-        for k in kids:
+        for k in a.children[i]:
+            if not visible_l[k]:
+                continue
             cut.add(k)
             priority[k] = -neg_priority
-            consider(k)
+            if candidate[k]:
+                heapq.heappush(heap, (prio[k], k))
     cut_sorted = tuple(sorted(cut, key=lambda i: (-priority.get(i, 0.0), float(view.distance[i]))))
     return Selection(cut_sorted, frozenset(refined), {i: priority.get(i, 0.0) for i in cut_sorted}, splats, total)
 
