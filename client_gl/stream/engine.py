@@ -149,6 +149,8 @@ class StreamEngine:
         self.arrays = m.arrays
         self.root = m.index_of[m.root]
         self.ids = self.arrays.ids
+        self._parent: list[int] = self.arrays.parent.tolist()  # plain lists: the per-frame loops index them often
+        self._level: list[int] = self.arrays.level.tolist()
         chunks = np.array([t.chunks for t in m.tiles], np.int64)
         self.slots_needed = chunks
         self.cost = chunks.astype(np.float64) * float(slot_bytes)
@@ -286,22 +288,24 @@ class StreamEngine:
     def _coarse_to_fine(self, keys: list[Key], sel: Selection) -> list[Key]:
         """The wish list with the ancestors of every cut tile not resident yet, bases ordered by level (then by
         the cut's priority: an ancestor takes the rank of its first descendant), SH bands after every base."""
-        a = self.arrays
+        parent, level = self._parent, self._level
+        resident = self.resident
         rank: dict[int, int] = {}
         for r, i in enumerate(sel.cut):
             rank.setdefault(i, r)
-            if self.resident[i]:
+            if resident[i]:
                 continue
-            j = int(a.parent[i])
+            j = parent[i]
             for _ in range(self.options.fill_gap - 1):  # levels just above the cut are skipped
-                j = int(a.parent[j]) if j >= 0 else j
+                j = parent[j] if j >= 0 else j
             while j >= 0 and j not in rank:
                 rank[j] = r
-                j = int(a.parent[j])
+                j = parent[j]
         rank[self.root] = -1
-        base = sorted(rank, key=lambda i: (int(a.level[i]), rank[i]))
+        base = sorted(rank, key=lambda i: (level[i], rank[i]))
         self._filling = np.zeros(len(self.resident), bool)
-        self._filling[[i for i in rank if i not in sel.cut]] = True
+        cut = set(sel.cut)
+        self._filling[[i for i in rank if i not in cut]] = True
         ids = self.ids
         return [(int(ids[i]), "base") for i in base] + [k for k in keys if k[1] != "base"]
 
