@@ -183,3 +183,61 @@ def test_bands_by_projected_size(scene):
     assert set(wanted_bands(a, view, sel.cut, SelectionOptions(), 0).values()) == {0}
     assert set(wanted_bands(a, view, sel.cut, SelectionOptions(max_sse=0.0), 3).values()) == {3}
     assert far is not None and near is not None
+
+
+def _select_child_by_child(a, view, cost, root, opts, previous_refined, screen_px):
+    """The selection written plainly (every candidate's visible children summed one by one): what `select`, which
+    sums them over numpy first, must return exactly."""
+    import heapq
+
+    def area(i):
+        r = view.radius_px[i]
+        return screen_px if not math.isfinite(r) else min(screen_px, (math.pi * r) * r)
+
+    refined, cut, priority, heap = set(), {root}, {root: math.inf}, []
+    splats, total = int(a.splats[root]), float(cost[root])
+
+    def consider(i):
+        threshold = opts.max_sse * (opts.hysteresis if i in previous_refined else 1.0)
+        if a.children[i] and view.visible[i] and view.sse[i] > threshold:
+            kids = [k for k in a.children[i] if view.visible[k]]
+            delta = sum(float(cost[k]) for k in kids) - float(cost[i])
+            heapq.heappush(heap, (-min(float(view.sse[i]), 1e9) * area(i) / max(delta, 1.0), i))
+
+    consider(root)
+    while heap:
+        neg, i = heapq.heappop(heap)
+        kids = [k for k in a.children[i] if view.visible[k]]
+        new_splats = splats - int(a.splats[i]) + sum(int(a.splats[k]) for k in kids)
+        new_total = total - float(cost[i]) + sum(float(cost[k]) for k in kids)
+        if (opts.max_splats is not None and new_splats > opts.max_splats and new_splats > splats) or \
+                (opts.budget is not None and new_total > opts.budget and new_total > total):
+            continue
+        cut.discard(i)
+        refined.add(i)
+        splats, total = new_splats, new_total
+        for k in kids:
+            cut.add(k)
+            priority[k] = -neg
+            consider(k)
+    return cut, refined, priority, splats, total
+
+
+@pytest.mark.parametrize("max_splats,budget,max_sse", [(None, None, 1.5), (4000, None, 1.5), (None, 3e5, 0.5),
+                                                       (None, None, 0.0)])
+def test_select_equals_child_by_child_sums(scene, max_splats, budget, max_sse):
+    m, _ = scene
+    a = m.arrays
+    cost = np.array([t.chunks for t in m.tiles], np.float64) * 4096.0
+    opts = SelectionOptions(max_splats=max_splats, budget=budget, max_sse=max_sse)
+    refined = frozenset()
+    for k, distance in enumerate((6.0, 3.0, 1.5, 0.9, 0.5, 0.3, 0.6, 2.0)):
+        cam = camera_at(m, distance, size=(640, 360) if k % 2 else (320, 240))
+        view = view_numbers(a, cam, opts)
+        sel = select(a, view, cost, m.index_of[m.root], opts, refined, float(cam.width * cam.height))
+        cut, ref, priority, splats, total = _select_child_by_child(a, view, cost, m.index_of[m.root], opts, refined,
+                                                                    float(cam.width * cam.height))
+        assert set(sel.cut) == cut and sel.refined == ref and sel.splats == splats and sel.cost == total
+        assert sel.priority == {i: priority.get(i, 0.0) for i in sel.cut}
+        refined = sel.refined  # hysteresis carried as the engine does
+    assert len(sel.cut) > 1
