@@ -157,19 +157,30 @@ def plot(results: list[dict], path: str) -> None:
     img.save(path)
 
 
-def band_costs(r: dict, all_bands: dict | None, scene: str, cam: Camera, n: int, args) -> None:
-    """Bytes saved against every band and PSNR against the all-bands frame and the full-detail render."""
+def band_costs(by_mode: dict[str, dict], scene: str, cam: Camera, n: int, args) -> None:
+    """For every bands-by-need run of one view (`need`, `shareA-B-C`), against the `all` run: bytes saved, PSNR
+    against the all-bands frame and against the full-detail render (`render` of every leaf with every band), and
+    the PSNR lost against full detail (all bands minus by need)."""
     from PIL import Image
 
-    if all_bands is None:
-        return
-    a, b = (np.asarray(Image.open(x["final_png"]), np.float32) / 255.0 for x in (r, all_bands))
-    ref = full_detail(scene, cam, os.path.join(args.out, f"full_{n}_{r['camera']}.png"))
-    r["psnr_vs_all_bands"] = round(min(psnr_from_mse(float(np.mean((a - b) ** 2))), 99.0), 2)
-    r["bytes_saved_vs_all_bands"] = round(1 - r["bytes_downloaded"] / all_bands["bytes_downloaded"], 3)
-    r["psnr_vs_full_detail"] = round(min(psnr_from_mse(float(np.mean((a - ref) ** 2))), 99.0), 2)
-    all_ref = round(min(psnr_from_mse(float(np.mean((b - ref) ** 2))), 99.0), 2)
-    r["band_psnr_cost_db"] = round(all_ref - r["psnr_vs_full_detail"], 3)
+    def image(path: str) -> np.ndarray:
+        return np.asarray(Image.open(path), np.float32) / 255.0
+
+    def db(x: np.ndarray, y: np.ndarray) -> float:
+        return round(min(psnr_from_mse(float(np.mean((x - y) ** 2))), 99.0), 2)
+
+    everything = by_mode["all"]
+    b = image(everything["final_png"])
+    ref = full_detail(scene, cam, os.path.join(args.out, f"full_{n}_{everything['camera']}.png"))
+    everything["psnr_vs_full_detail"] = db(b, ref)
+    for mode, r in by_mode.items():
+        if mode != "need" and not mode.startswith("share"):
+            continue
+        a = image(r["final_png"])
+        r["psnr_vs_all_bands"] = db(a, b)
+        r["bytes_saved_vs_all_bands"] = round(1 - r["bytes_downloaded"] / everything["bytes_downloaded"], 3)
+        r["psnr_vs_full_detail"] = db(a, ref)
+        r["band_psnr_cost_db"] = round(everything["psnr_vs_full_detail"] - r["psnr_vs_full_detail"], 3)
 
 
 def full_detail(scene: str, cam: Camera, out: str) -> np.ndarray:
@@ -240,25 +251,8 @@ def main() -> None:
                               f"{r['bytes_downloaded'] / 1e6:.1f} MB of {m.bytes_on_disk / 1e6:.1f}", flush=True)
                         results.append(r)
                     by_mode = {r["mode"]: r for r in results[-len(args.modes.split(",")):]}
-                    for extra in [k for k in by_mode if k.startswith("share")]:
-                        band_costs(by_mode[extra], by_mode.get("all"), scene, cams[cam_name], n, args)
-                    if "need" in by_mode and "all" in by_mode:
-                        from PIL import Image
-
-                        a, b = (np.asarray(Image.open(by_mode[k]["final_png"]), np.float32) / 255.0
-                                for k in ("need", "all"))
-                        cost = psnr_from_mse(float(np.mean((a - b) ** 2)))
-                        by_mode["need"]["psnr_vs_all_bands"] = round(min(cost, 99.0), 2)
-                        # the issue's PSNR cost: both converged frames against the full-detail render (every leaf,
-                        # every band: `render` of the scene), all bands minus by need
-                        ref = full_detail(scene, cams[cam_name], os.path.join(args.out, f"full_{n}_{cam_name}.png"))
-                        for k, img in (("need", a), ("all", b)):
-                            by_mode[k]["psnr_vs_full_detail"] = round(
-                                min(psnr_from_mse(float(np.mean((img - ref) ** 2))), 99.0), 2)
-                        by_mode["need"]["band_psnr_cost_db"] = round(
-                            by_mode["all"]["psnr_vs_full_detail"] - by_mode["need"]["psnr_vs_full_detail"], 3)
-                        by_mode["need"]["bytes_saved_vs_all_bands"] = round(
-                            1 - by_mode["need"]["bytes_downloaded"] / by_mode["all"]["bytes_downloaded"], 3)
+                    if "all" in by_mode:
+                        band_costs(by_mode, scene, cams[cam_name], n, args)
             finally:
                 proc.send_signal(signal.SIGTERM)
                 proc.wait(10)

@@ -71,12 +71,8 @@ class Tile:
 # ---------------------------------------------------------------------------------------------- geometry
 
 
-def _sigma_axes(g: Gaussians) -> np.ndarray:
+def _sigma_axes(rotations: np.ndarray, log_scales: np.ndarray) -> np.ndarray:
     """(N, 3) world-axis standard deviations sqrt(diag Sigma): the half-extents of the 1-sigma ellipsoid's box."""
-    return _sigma_axes_of(g.rotations, g.log_scales)
-
-
-def _sigma_axes_of(rotations: np.ndarray, log_scales: np.ndarray) -> np.ndarray:
     r = rotation_matrices(rotations)
     s2 = np.exp(2.0 * log_scales.astype(np.float64))
     return np.sqrt(np.einsum("nij,nj->ni", r * r, s2))
@@ -97,7 +93,7 @@ def extent_bounds(g: Gaussians, sigmas: float = EXTENT_SIGMAS) -> tuple[np.ndarr
     for a in range(0, n, EXTENT_BLOCK_ROWS):
         rows = slice(a, a + EXTENT_BLOCK_ROWS)
         p = g.positions[rows].astype(np.float64)
-        half = sigmas * _sigma_axes_of(g.rotations[rows], g.log_scales[rows])
+        half = sigmas * _sigma_axes(g.rotations[rows], g.log_scales[rows])
         lows.append(_col_min(p - half))
         highs.append(_col_max(p + half))
     lo, hi = np.min(lows, axis=0), np.max(highs, axis=0)

@@ -141,13 +141,17 @@ class _GL:
 
     def __getattr__(self, name: str):
         restype, argtypes = _SIGNATURES[name]
-        for load in _loaders():
-            addr = load(name)
-            if addr:
-                fn = FUNCTION_TYPE(restype, *argtypes)(addr)
-                setattr(self, name, fn)
-                return fn
-        raise GLError(f"OpenGL function {name} not found")
+        fn = FUNCTION_TYPE(restype, *argtypes)(_address(name))
+        setattr(self, name, fn)
+        return fn
+
+
+def _address(name: str) -> int:
+    for load in _loaders():
+        addr = load(name)
+        if addr:
+            return addr
+    raise GLError(f"OpenGL function {name} not found")
 
 
 gl = _GL()
@@ -177,11 +181,7 @@ def flush() -> None:
 
 @lru_cache(maxsize=1)
 def _finish_releasing_gil():
-    for load in _loaders():
-        addr = load("glFinish")
-        if addr:
-            return ctypes.CFUNCTYPE(None)(addr)
-    raise GLError("OpenGL function glFinish not found")
+    return ctypes.CFUNCTYPE(None)(_address("glFinish"))
 
 
 def wait_for_gpu() -> None:

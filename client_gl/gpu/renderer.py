@@ -307,11 +307,16 @@ class SplatRenderer:
         if self.options.front_to_back:  # their vertex arrays read `values`: made again with it
             for _prog, vao in self._programs.values():
                 vao.release()
-            self._programs = {mode: (prog, self.ctx.vertex_array(prog, [(self.values, "1u /i", "a_order")])
-                                     if mode != "points" else self.ctx.vertex_array(prog, []))
+            self._programs = {mode: (prog, self._vertex_array(mode, prog))
                               for mode, (prog, _) in self._programs.items()}
             if self.draw_mode in self._programs:
                 self.program_gpu, self.vao_gpu = self._programs[self.draw_mode]
+
+    def _vertex_array(self, mode: str, prog):
+        """A raster draw's vertex array: front to back, the sorted order (`values`) as an instanced attribute."""
+        if self.options.front_to_back and mode != "points":
+            return self.ctx.vertex_array(prog, [(self.values, "1u /i", "a_order")])
+        return self.ctx.vertex_array(prog, [])
 
     def _chain_barrier(self, mode: str) -> int:
         """glMemoryBarrier bits between the dispatches of a frame: the compute draw's chain needs shader storage and
@@ -338,11 +343,7 @@ class SplatRenderer:
             if opts.discard_fragments:
                 frag = frag.replace("void main() {", "void main() {\n    discard;", 1)
             prog = self.ctx.program(vertex_shader=vert, fragment_shader=frag)
-            if opts.front_to_back and mode != "points":
-                vao = self.ctx.vertex_array(prog, [(self.values, "1u /i", "a_order")])
-            else:
-                vao = self.ctx.vertex_array(prog, [])
-            self._programs[mode] = (prog, vao)
+            self._programs[mode] = (prog, self._vertex_array(mode, prog))
         self.draw_mode = mode
         self.program_gpu, self.vao_gpu = self._programs[mode]
 
