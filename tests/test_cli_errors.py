@@ -49,6 +49,7 @@ def cases(tmp, scene):
         (["view", scene, "--headless", "--size", "0x0"], "--size"),
         (["view", scene, "--headless", "--screenshot", tmp / "o.jpg"], "o.jpg"),
         (["view", scene, "--headless", "--fill-gap", "0"], "--fill-gap"),
+        (["view", scene, "--headless", "--sh-bands", "0.9,x,1"], "--sh-bands"),
         (["export-3dtiles", tmp / "missing", tmp / "t"], "missing"),
         (["export-3dtiles", scene, tmp / "t", "--latitude", "10"], "--longitude"),
         (["export-3dtiles", scene, tmp / "t", "--content", "weird"], "--content"),
