@@ -30,17 +30,21 @@ class Timeline:
         self.events: list[tuple[float, str, float]] = []
         self.depth = 0
 
-    def wrap(self, owner, name: str, label: str) -> None:
+    def wrap(self, owner, name: str, label: str, finish=None) -> None:
+        """Time owner.name under `label`; finish: called (the GPU waited for) before the step's time is taken."""
         fn = getattr(owner, name)
 
         def timed(*args, **kwargs):
             t = time.perf_counter()
             self.depth += 1
             try:
-                return fn(*args, **kwargs)
+                out = fn(*args, **kwargs)
+                if finish is not None:
+                    finish()
+                return out
             finally:
                 self.depth -= 1
-                if self.depth == 0 or label.startswith("compile") or label.startswith("alloc"):
+                if self.depth == 0 or label.startswith(("compile", "alloc", "step")):
                     self.events.append((round((t - self.t0) * 1e3, 2), label,
                                         round((time.perf_counter() - t) * 1e3, 2)))
         setattr(owner, name, timed)
@@ -51,6 +55,9 @@ def main() -> None:
     ap.add_argument("--scene", required=True, help="scene directory (served on loopback here) or URL")
     ap.add_argument("--size", default="1920x1080")
     ap.add_argument("--json", dest="json_out")
+    ap.add_argument("--sync", action="store_true",
+                    help="wait for the GPU (glFinish) after each renderer and pool step, so that each step's time "
+                         "includes its GPU work: which step the first frame with splats waits for")
     args = ap.parse_args()
     import moderngl
 
@@ -77,7 +84,16 @@ def main() -> None:
     tl.wrap(engine.StreamEngine, "update", "engine.update")
     tl.wrap(renderer.SplatRenderer, "render", "render")
     tl.wrap(pool.ChunkPool, "join", "pool.join")
-    out: dict = {"url": url, "size": [w, h], "gl_renderer": ctx.info.get("GL_RENDERER"), "context_ms": context_ms}
+    if args.sync:
+        steps = [(renderer.SplatRenderer, ("_ensure_work", "_start_cull", "_cull", "check_bins")),
+                 (sort.GpuRadixSort, ("sort",)),
+                 (compute_raster.ComputeRaster, ("bin", "sort", "raster", "grow_if_needed", "grow_ahead")),
+                 (pool.ChunkPool, ("join", "add_band", "set_draw_set", "bind"))]
+        for owner, names in steps:
+            for name in names:
+                tl.wrap(owner, name, f"step {owner.__name__}.{name} (+GPU)", finish=ctx.finish)
+    out: dict = {"url": url, "size": [w, h], "gl_renderer": ctx.info.get("GL_RENDERER"), "context_ms": context_ms,
+                 "sync_steps": bool(args.sync)}
     try:
         prepared = PreparedSource.open(url, ViewOptions(cache=False))
         session = StreamingSession(prepared, ctx, ViewOptions(cache=False))

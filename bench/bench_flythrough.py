@@ -92,6 +92,24 @@ class GcPauses:
                 for g, v in self.by_gen.items()}
 
 
+def thread_usage() -> tuple[float, float, int, int, int]:
+    """(user s, system s, minor page faults, voluntary, involuntary context switches) of the calling thread."""
+    import resource
+
+    r = resource.getrusage(resource.RUSAGE_THREAD)
+    return r.ru_utime, r.ru_stime, r.ru_minflt, r.ru_nvcsw, r.ru_nivcsw
+
+
+def machine_steal_s() -> float | None:
+    """Seconds the hypervisor ran other guests on this machine's CPUs, all CPUs together (/proc/stat 'steal')."""
+    try:
+        with open("/proc/stat") as f:
+            fields = f.readline().split()
+        return int(fields[8]) / os.sysconf("SC_CLK_TCK")
+    except (OSError, IndexError, ValueError):
+        return None
+
+
 def thread_cpu_seconds() -> dict[str, float]:
     """CPU seconds (user + system) of each thread of this process so far, by thread name (Linux /proc): which
     threads compete with the frame loop for the interpreter lock and the cores."""
@@ -192,12 +210,15 @@ def main() -> None:
             steps.wrap(ChunkPool, ["join", "add_band", "leave", "set_codebook_band", "_upload_plane", "_write_records",
                                    "set_draw_set", "bind"])
             steps.wrap(SplatRenderer, ["render"])
-        walls, drawn, updates, uploads, splits = [], [], [], [], []
+        walls, drawn, updates, uploads, splits, usage = [], [], [], [], [], []
+        steal0 = machine_steal_s()
         last = time.perf_counter()
         while True:
             now = time.perf_counter() - start
             cam = path.camera(now, w, h)
+            u0 = thread_usage()
             rec = session.frame(cam)
+            u1 = thread_usage()
             finish()
             t = time.perf_counter()
             walls.append((t - last) * 1e3)
@@ -205,12 +226,18 @@ def main() -> None:
             updates.append(rec.update_ms)
             uploads.append(rec.uploaded_bytes)
             splits.append(steps.take() if steps else {})
+            # the frame call's own thread: CPU split user/system, page faults, switches (why a frame's CPU spikes)
+            usage.append({"user_ms": round((u1[0] - u0[0]) * 1e3, 2), "system_ms": round((u1[1] - u0[1]) * 1e3, 2),
+                          "minor_faults": u1[2] - u0[2], "voluntary_switches": u1[3] - u0[3],
+                          "involuntary_switches": u1[4] - u0[4]})
             last = t
             if now > path.end and session.converged:
                 break
             if now > path.end + 60:
                 break
         out["gc_pauses"] = gc_pauses.stop()
+        steal1 = machine_steal_s()
+        out["machine_steal_s"] = None if steal0 is None else round(steal1 - steal0, 2)
         out["thread_cpu_s"] = thread_cpu_seconds()
         out["streaming_wall_s"] = time.perf_counter() - start
         if profiler:
@@ -230,9 +257,14 @@ def main() -> None:
             "p99_ms_with_uploads": float(np.percentile(walls_a[with_up], 99)) if with_up.any() else None,
             "p99_ms_without_uploads": float(np.percentile(walls_a[~with_up], 99)) if (~with_up).any() else None,
             "median_upload_mb": float(np.median(up_a[with_up]) / 1e6) if with_up.any() else 0.0,
+            "thread_user_ms_total": round(sum(u["user_ms"] for u in usage), 1),
+            "thread_system_ms_total": round(sum(u["system_ms"] for u in usage), 1),
+            "thread_minor_faults_total": sum(u["minor_faults"] for u in usage),
+            "thread_involuntary_switches_total": sum(u["involuntary_switches"] for u in usage),
             "update_ms_median": float(np.median(upd_a)), "update_ms_p99": float(np.percentile(upd_a, 99)),
             "slowest": [{"ms": round(float(walls_a[i]), 1), "uploaded_bytes": int(up_a[i]),
-                         "update_ms": round(float(upd_a[i]), 2), "steps_ms": splits[i]}
+                         "update_ms": round(float(upd_a[i]), 2), "steps_ms": splits[i],
+                         "thread": usage[i]}
                         for i in np.argsort(-walls_a, kind="stable")[:12]]})
         cam = path.camera(path.end, w, h)
         times = []

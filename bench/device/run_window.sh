@@ -37,9 +37,10 @@ probe='import moderngl; c = moderngl.create_context(standalone=True, backend="eg
 python3 -c "$probe" || export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
 if [ "${WINDOW:-1}" = 1 ]; then  # WINDOW=0: the fly-through alone
 # where the time to the first frame goes: on a fresh machine (the driver compiles every shader), then again
-for run in cold warm; do
+for run in cold warm sync; do  # sync: warm, each renderer and pool step waited for (its GPU work included)
   echo "-- first frame, $run"
-  python3 bench/bench_first_frame.py --scene $W/root/s6m --json "$OUT/first_frame_$run.json" 2>&1 | tail -28
+  python3 bench/bench_first_frame.py --scene $W/root/s6m --json "$OUT/first_frame_$run.json" \
+    $([ $run = sync ] && echo --sync) 2>&1 | grep -v "compile \|alloc buffer" | tail -40
 done
 python3 -m splatstream.cli view $URL --headless --size 1920x1080 --measure-frames 120 --record "$OUT/headless.json" \
   --screenshot "$OUT/headless.png" --no-cache 2>&1 | tail -2
@@ -74,11 +75,13 @@ window window --screenshot "$OUT/window.png"
 window window_no_overlay --no-overlay
 # the renderer's image into the window by glBlitFramebuffer instead of a full-window triangle
 SPLATSTREAM_WINDOW_PRESENT=copy window window_copy --no-overlay
+# the NVIDIA driver's own worker thread for GL calls (its swap's copy to the X server may then overlap our next frame)
+__GL_THREADED_OPTIMIZATIONS=1 window window_threaded --no-overlay
 tail -3 $W/xvfb.log
 python3 - "$OUT" <<'PY'
 import json, sys
 out = sys.argv[1]
-for name in ("headless", "window", "window_no_overlay", "window_copy"):
+for name in ("headless", "window", "window_no_overlay", "window_copy", "window_threaded"):
     try:
         r = json.load(open(f"{out}/{name}.json"))
     except OSError:
@@ -94,8 +97,10 @@ if [ "${1:-}" = fly ]; then
   # keep: our GL entry points keeping the GIL (PYFUNCTYPE, the default); release: releasing it in every call
   # (CFUNCTYPE); procN: decoding in N processes instead of 2 threads; si20: a 20 ms interpreter switch interval;
   # finishgil: each frame's wait for the GPU with moderngl's finish() (keeps the GIL) instead of wait_for_gpu
+  uname -r; echo "THP: $(cat /sys/kernel/mm/transparent_hugepage/enabled) defrag: \
+$(cat /sys/kernel/mm/transparent_hugepage/defrag)"; python3 -c "import sys; print(sys.version)"
   for ab in ${FLY_AB:-keep release}; do  # FLY_AB=keep: the default alone
-    flag=""
+    flag=""; envs=""
     case $ab in
       release) flag=--gl-release-gil ;;
       proc*) flag="--decode-processes ${ab#proc}" ;;
@@ -104,17 +109,23 @@ if [ "${1:-}" = fly ]; then
       finishgil) flag="--finish-keeps-gil" ;;
       nofreeze) flag="--no-gc-freeze" ;;
       profile) flag="--profile" ;;
-      blas1) flag=""; export OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1 ;;
+      blas1) envs="OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1" ;;
+      # glibc malloc with fixed thresholds: large arrays stay on the heap, freed memory is not handed back (no page
+      # faults for fresh pages in every frame)
+      malloc) envs="MALLOC_MMAP_THRESHOLD_=1073741824 MALLOC_TRIM_THRESHOLD_=4294967296 MALLOC_TOP_PAD_=268435456" ;;
     esac
     n=0; while [ -e "$OUT/fly_$ab.json" ]; do n=$((n+1)); ab=${ab%%-*}-$n; done  # a variant named twice: _keep-1
-    python3 bench/bench_flythrough.py --scene $W/root/s6m --ply $W/s6m.ply --json "$OUT/fly_$ab.json" --breakdown \
+    env $envs python3 bench/bench_flythrough.py --scene $W/root/s6m --ply $W/s6m.ply --json "$OUT/fly_$ab.json" --breakdown \
       $flag > $W/fly_$ab.log 2>&1
     python3 -c "import json,sys; d=json.load(open(sys.argv[1])); s=d['streaming']; print(sys.argv[2], {k: s[k] for k \
       in ('frames','median_ms','p99_ms','p99_ms_with_uploads','p99_ms_without_uploads','update_ms_p99')}, \
       'converged', d['converged_stream_ms'], 'render', d['render_same_set_ms'], 'threads cpu s', d['thread_cpu_s'], \
-      'wall s', d['streaming_wall_s'], 'gc', d.get('gc_pauses')); [print(x) for x in s['slowest'][:4]]" \
+      'wall s', d['streaming_wall_s'], 'gc', d.get('gc_pauses'), 'steal s', d.get('machine_steal_s'), \
+      {k: v for k, v in s.items() if k.startswith('thread_')}); [print(x) for x in s['slowest'][:4]]" \
       "$OUT/fly_$ab.json" $ab || tail -20 $W/fly_$ab.log
   done
 fi
 kill $SERVE 2>/dev/null
 wait 2>/dev/null
+# the device tool brings back a few files only: everything in one archive
+(cd "$OUT" && tar -czf /tmp/window_results.tgz -- * && rm -rf -- "${OUT:?}"/* && mv /tmp/window_results.tgz "$OUT/")
