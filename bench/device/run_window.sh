@@ -35,6 +35,8 @@ URL=http://127.0.0.1:8765/scenes/s6m
 echo "== headless"
 probe='import moderngl; c = moderngl.create_context(standalone=True, backend="egl", require=430); print(c.info["GL_RENDERER"])'
 python3 -c "$probe" || export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
+# PROBE=1: what large GPU allocations cost the CPU, and when (bench/probe_gpu_alloc.py)
+[ "${PROBE:-0}" = 1 ] && python3 bench/probe_gpu_alloc.py --mb 256 1024 --json "$OUT/probe_gpu_alloc.json"
 if [ "${WINDOW:-1}" = 1 ]; then  # WINDOW=0: the fly-through alone
 # where the time to the first frame goes: on a fresh machine (the driver compiles every shader), then again
 for run in cold warm sync; do  # sync: warm, each renderer and pool step waited for (its GPU work included)

@@ -107,12 +107,13 @@ class _Ready:
 
 
 def decode_job(data: bytes, entry: PayloadEntry, group: str, where: str, codebook_tile: bool, splats: int,
-               codebook_entries: int, with_mirror: bool) -> tuple[dict, Any] | str:
+               codebook_entries: int, with_mirror: bool, between=None) -> tuple[dict, Any] | str:
     """A verified payload decoded into planes (and the CPU-sort path's host mirror of a base): on a decode thread or
     in a decode process (plain arguments, so it pickles). A payload that does not decode gives the error's message:
-    the bytes matched their checksum, so the scene is broken, not the link."""
+    the bytes matched their checksum, so the scene is broken, not the link. between: a decode thread's wait for the
+    frame loop, between the payload's steps (decode_payload)."""
     try:
-        planes = decode_payload(data, entry, group, where, codebook_tile)
+        planes = decode_payload(data, entry, group, where, codebook_tile, between)
         if codebook_tile and group == "sh1":
             codebook_index(planes, splats, codebook_entries, where)
         return planes, (host_mirror(planes, splats) if with_mirror else None)
@@ -341,8 +342,15 @@ class StreamEngine:
         self._loop_idle.set()
 
     def _decode(self, key: Key, entry: PayloadEntry, data: bytes) -> None:
+        # Between every step of the payload, not only before it: a decode running into the frame loop's CPU work
+        # takes the interpreter lock from it at each of its numpy calls (a payload has hundreds), and every hand-over
+        # cost the loop about 0.1 ms on the GPU machine: 10-20 ms in the frames that upload.
+        self._wait_for_loop()
+        self._decoded.put((key, self._finish(key, decode_job(*self._job_args(key, entry, data),
+                                                             between=self._wait_for_loop))))
+
+    def _wait_for_loop(self) -> None:
         self._loop_idle.wait(DECODE_WAIT_S)
-        self._decoded.put((key, self._finish(key, decode_job(*self._job_args(key, entry, data)))))
 
     def _job_args(self, key: Key, entry: PayloadEntry, data: bytes) -> tuple:
         tile_id, group = key

@@ -14,6 +14,7 @@ from __future__ import annotations
 import hashlib
 import io
 import threading
+from collections.abc import Callable
 from typing import BinaryIO
 
 import numpy as np
@@ -132,12 +133,13 @@ def _decompressor() -> zstandard.ZstdDecompressor:
 
 
 def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, source: str,
-                   codebook: bool = False) -> dict[str, EncodedPlane]:
+                   codebook: bool = False, between: Callable[[], object] | None = None) -> dict[str, EncodedPlane]:
     """Decompress verified payload bytes into planes (texels still encoded; ranges as stored).
 
     The entry comes from a validated manifest, so the section table is consistent with the planes of `group`;
     what is checked here is what only the bytes can tell. With `codebook`, a tile's sh1 group holds the SH index
-    plane (format_spec/format.md 4.7)."""
+    plane (format_spec/format.md 4.7). `between` is called before each plane: a decode thread's point to wait
+    while another thread needs the interpreter (the streaming client's frame loop)."""
     try:
         raw = _decompressor().decompress(data, max_output_size=entry.raw_bytes)
     except zstandard.ZstdError as exc:
@@ -148,6 +150,8 @@ def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, so
     buf = np.frombuffer(raw, np.uint8)
     planes: dict[str, EncodedPlane] = {}
     for spec in group_planes(group, codebook):
+        if between is not None:
+            between()
         s = entry.section(spec.name)
         layers = unfilter_texels(buf[s.offset:s.offset + s.size], s.filter, s.format, s.width, s.height,
                                  spec.layers, f"{source} section {s.name}")

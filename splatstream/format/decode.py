@@ -9,6 +9,8 @@ these functions, so checksums, sizes and codebook indices are checked in one pla
 """
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 
 from ..errors import FormatError
@@ -20,12 +22,15 @@ from .planes import band_of
 
 
 def decode_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, source: str,
-                   codebook: bool = False) -> dict[str, EncodedPlane]:
+                   codebook: bool = False, between: Callable[[], object] | None = None) -> dict[str, EncodedPlane]:
     """Verify payload bytes against their manifest entry and unpack them into planes (texels as stored).
 
-    `codebook`: the scene has an SH codebook, so a tile's `sh1` group is its `sh_index` plane."""
+    `codebook`: the scene has an SH codebook, so a tile's `sh1` group is its `sh_index` plane. `between`: called
+    between steps (after the checksum, before each plane; see unpack_payload)."""
     verify_payload(data, entry, source)
-    return unpack_payload(data, entry, group, source, codebook)
+    if between is not None:
+        between()
+    return unpack_payload(data, entry, group, source, codebook, between)
 
 
 def decode_planes(planes: dict[str, EncodedPlane], splats: int) -> dict[str, np.ndarray]:

@@ -1,0 +1,123 @@
+"""What a large GPU allocation costs the CPU, and when: the pool's atlases and the renderer's work buffers.
+
+On the H100 the first texel upload into a fresh 1 GiB-budget pool took 140-200 ms of the frame loop's CPU (139,521
+minor page faults, about the pool's 570 MB), and each growth of the work buffers 30-40 ms: both land in frames (the
+first frame with splats, the fly-through's slowest frames). This times, for each allocation method, the creation,
+the first small write (with the GPU waited for) and a second one, with the process's minor page faults:
+
+    python bench/probe_gpu_alloc.py --mb 256 1024
+"""
+from __future__ import annotations
+
+import argparse
+import ctypes
+import json
+import os
+import resource
+import sys
+import time
+
+import numpy as np
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, ROOT)
+
+GL_TEXTURE_2D_ARRAY = 0x8C1A
+GL_RGBA32UI = 0x8D70
+GL_RGBA_INTEGER = 0x8D99
+GL_UNSIGNED_INT = 0x1405
+GL_SHADER_STORAGE_BUFFER = 0x90D2
+GL_DYNAMIC_STORAGE_BIT = 0x0100
+
+
+def faults() -> int:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--mb", type=int, nargs="+", default=[256, 1024])
+    ap.add_argument("--json", dest="json_out")
+    args = ap.parse_args()
+    from client_gl.gpu.gl import _address
+    from client_gl.headless import create_context
+
+    ctx = create_context()
+    u, i, p = ctypes.c_uint, ctypes.c_int, ctypes.c_void_p
+    fn = {name: ctypes.CFUNCTYPE(None, *sig)(_address(name)) for name, sig in {
+        "glGenTextures": (i, p), "glBindTexture": (u, u), "glDeleteTextures": (i, p),
+        "glTexImage3D": (u, i, i, i, i, i, i, u, u, p), "glTexStorage3D": (u, i, u, i, i, i),
+        "glTexSubImage3D": (u, i, i, i, i, i, i, i, u, u, p), "glGenBuffers": (i, p), "glBindBuffer": (u, u),
+        "glBufferStorage": (u, ctypes.c_ssize_t, p, u), "glBufferSubData": (u, ctypes.c_ssize_t, ctypes.c_ssize_t, p),
+        "glDeleteBuffers": (i, p), "glClearTexImage": (u, i, u, u, p)}.items()}
+    texel = np.arange(16 * 16 * 4, dtype=np.uint32)
+
+    def texture(method: str, mb: int):
+        layers = 4
+        side = int((mb * (1 << 20) / (16 * layers)) ** 0.5) // 16 * 16
+        name = ctypes.c_uint(0)
+        fn["glGenTextures"](1, ctypes.byref(name))
+        fn["glBindTexture"](GL_TEXTURE_2D_ARRAY, name.value)
+        if method == "teximage":
+            fn["glTexImage3D"](GL_TEXTURE_2D_ARRAY, 0, GL_RGBA32UI, side, side, layers, 0, GL_RGBA_INTEGER,
+                               GL_UNSIGNED_INT, None)
+        else:
+            fn["glTexStorage3D"](GL_TEXTURE_2D_ARRAY, 1, GL_RGBA32UI, side, side, layers)
+            if method == "texstorage+clear":
+                fn["glClearTexImage"](name.value, 0, GL_RGBA_INTEGER, GL_UNSIGNED_INT, None)
+
+        def write():
+            fn["glBindTexture"](GL_TEXTURE_2D_ARRAY, name.value)
+            fn["glTexSubImage3D"](GL_TEXTURE_2D_ARRAY, 0, 16, 16, 1, 16, 16, 1, GL_RGBA_INTEGER, GL_UNSIGNED_INT,
+                                  texel.ctypes.data_as(p))
+
+        def free():
+            fn["glDeleteTextures"](1, ctypes.byref(name))
+        return write, free
+
+    def buffer(method: str, mb: int):
+        size = mb << 20
+        if method == "moderngl reserve":
+            buf = ctx.buffer(reserve=size)
+            return (lambda: buf.write(texel.tobytes(), offset=4096)), buf.release
+        name = ctypes.c_uint(0)
+        fn["glGenBuffers"](1, ctypes.byref(name))
+        fn["glBindBuffer"](GL_SHADER_STORAGE_BUFFER, name.value)
+        fn["glBufferStorage"](GL_SHADER_STORAGE_BUFFER, size, None, GL_DYNAMIC_STORAGE_BIT)
+
+        def write():
+            fn["glBindBuffer"](GL_SHADER_STORAGE_BUFFER, name.value)
+            fn["glBufferSubData"](GL_SHADER_STORAGE_BUFFER, 4096, texel.nbytes, texel.ctypes.data_as(p))
+        return write, (lambda: fn["glDeleteBuffers"](1, ctypes.byref(name)))
+
+    rows = []
+    for mb in args.mb:
+        for kind, make, methods in (("texture", texture, ("teximage", "texstorage", "texstorage+clear")),
+                                    ("buffer", buffer, ("moderngl reserve", "bufferstorage"))):
+            for method in methods:
+                ctx.finish()
+                f0, t0 = faults(), time.perf_counter()
+                write, free = make(method, mb)
+                ctx.finish()
+                f1, t1 = faults(), time.perf_counter()
+                write()
+                ctx.finish()
+                f2, t2 = faults(), time.perf_counter()
+                write()
+                ctx.finish()
+                t3 = time.perf_counter()
+                free()
+                ctx.finish()
+                row = {"kind": kind, "method": method, "mb": mb, "create_ms": round((t1 - t0) * 1e3, 2),
+                       "create_faults": f1 - f0, "first_write_ms": round((t2 - t1) * 1e3, 2),
+                       "first_write_faults": f2 - f1, "second_write_ms": round((t3 - t2) * 1e3, 2)}
+                rows.append(row)
+                print(row, flush=True)
+    out = {"gl_renderer": ctx.info.get("GL_RENDERER"), "rows": rows}
+    if args.json_out:
+        with open(args.json_out, "w") as f:
+            json.dump(out, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
