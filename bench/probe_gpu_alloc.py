@@ -28,6 +28,7 @@ GL_RGBA_INTEGER = 0x8D99
 GL_UNSIGNED_INT = 0x1405
 GL_SHADER_STORAGE_BUFFER = 0x90D2
 GL_DYNAMIC_STORAGE_BIT = 0x0100
+GL_MAP_READ_BIT = 0x0001
 
 
 def faults() -> int:
@@ -83,7 +84,8 @@ def main() -> None:
         name = ctypes.c_uint(0)
         fn["glGenBuffers"](1, ctypes.byref(name))
         fn["glBindBuffer"](GL_SHADER_STORAGE_BUFFER, name.value)
-        fn["glBufferStorage"](GL_SHADER_STORAGE_BUFFER, size, None, GL_DYNAMIC_STORAGE_BIT)
+        flags = GL_DYNAMIC_STORAGE_BIT | (GL_MAP_READ_BIT if method.endswith("+read") else 0)
+        fn["glBufferStorage"](GL_SHADER_STORAGE_BUFFER, size, None, flags)
 
         def write():
             fn["glBindBuffer"](GL_SHADER_STORAGE_BUFFER, name.value)
@@ -93,7 +95,7 @@ def main() -> None:
     rows = []
     for mb in args.mb:
         for kind, make, methods in (("texture", texture, ("teximage", "texstorage", "texstorage+clear")),
-                                    ("buffer", buffer, ("moderngl reserve", "bufferstorage"))):
+                                    ("buffer", buffer, ("moderngl reserve", "bufferstorage", "bufferstorage+read"))):
             for method in methods:
                 ctx.finish()
                 f0, t0 = faults(), time.perf_counter()

@@ -37,13 +37,15 @@ probe='import moderngl; c = moderngl.create_context(standalone=True, backend="eg
 python3 -c "$probe" || export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
 # PROBE=1: what large GPU allocations cost the CPU, and when (bench/probe_gpu_alloc.py)
 [ "${PROBE:-0}" = 1 ] && python3 bench/probe_gpu_alloc.py --mb 256 1024 --json "$OUT/probe_gpu_alloc.json"
-if [ "${WINDOW:-1}" = 1 ]; then  # WINDOW=0: the fly-through alone
+if [ "${FIRST:-${WINDOW:-1}}" = 1 ]; then  # FIRST=1: the first-frame runs even with WINDOW=0
 # where the time to the first frame goes: on a fresh machine (the driver compiles every shader), then again
 for run in cold warm sync; do  # sync: warm, each renderer and pool step waited for (its GPU work included)
   echo "-- first frame, $run"
   python3 bench/bench_first_frame.py --scene $W/root/s6m --json "$OUT/first_frame_$run.json" \
     $([ $run = sync ] && echo --sync) 2>&1 | grep -v "compile \|alloc buffer" | tail -40
 done
+fi
+if [ "${WINDOW:-1}" = 1 ]; then  # WINDOW=0: the fly-through alone
 python3 -m splatstream.cli view $URL --headless --size 1920x1080 --measure-frames 120 --record "$OUT/headless.json" \
   --screenshot "$OUT/headless.png" --no-cache 2>&1 | tail -2
 echo "== window"

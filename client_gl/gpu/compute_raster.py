@@ -25,6 +25,7 @@ from __future__ import annotations
 import struct
 
 from . import shadergen
+from .gl import work_buffer
 from .shadergen import RADIX_BITS, SCAN_TILE, SORT_TILE
 from .sort import CHAIN_BARRIER, GpuRadixSort
 from .uniforms import ProgramUniforms
@@ -113,7 +114,7 @@ class ComputeRaster:
         if visible_capacity != self.visible_capacity:
             if self.gsum is not None:
                 self.gsum.release()
-            self.gsum = self.ctx.buffer(reserve=4 * max(1, -(-visible_capacity // SCAN_TILE)))
+            self.gsum = work_buffer(self.ctx, 4 * max(1, -(-visible_capacity // SCAN_TILE)))
             self.visible_capacity = visible_capacity
         if entry_capacity is not None and int(entry_capacity) != self.entry_capacity:
             for b in (self.tile_keys, self.tile_values):
@@ -124,8 +125,8 @@ class ComputeRaster:
             self.entry_capacity = int(entry_capacity)
             self.tile_sorter = GpuRadixSort(self.ctx, self.entry_capacity, self.radix_bits, self.fused_sort,
                                             self.barrier_bits)
-            self.tile_keys = self.ctx.buffer(reserve=4 * self.entry_capacity)
-            self.tile_values = self.ctx.buffer(reserve=4 * self.entry_capacity)
+            self.tile_keys = work_buffer(self.ctx, 4 * self.entry_capacity)
+            self.tile_values = work_buffer(self.ctx, 4 * self.entry_capacity)
 
     def _grid_for(self, width: int, height: int) -> None:
         grid = (-(-width // self.tile_px), -(-height // self.tile_px))
@@ -134,7 +135,7 @@ class ComputeRaster:
                 self.ranges.release()
             self.grid = grid
             self.tiles = grid[0] * grid[1]
-            self.ranges = self.ctx.buffer(reserve=8 * self.tiles)
+            self.ranges = work_buffer(self.ctx, 8 * self.tiles)
 
     @property
     def gpu_bytes(self) -> int:

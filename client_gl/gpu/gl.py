@@ -12,6 +12,7 @@ import ctypes.util
 from contextlib import contextmanager
 from functools import lru_cache
 
+import moderngl
 import numpy as np
 
 GL_TEXTURE_2D = 0x0DE1
@@ -27,6 +28,11 @@ GL_UNPACK_ROW_LENGTH = 0x0CF2
 GL_UNPACK_SKIP_ROWS = 0x0CF3
 GL_UNPACK_SKIP_PIXELS = 0x0CF4
 GL_PIXEL_UNPACK_BUFFER = 0x88EC
+GL_COPY_WRITE_BUFFER = 0x8F37
+GL_MAJOR_VERSION = 0x821B
+GL_MINOR_VERSION = 0x821C
+GL_MAP_READ_BIT = 0x0001
+GL_DYNAMIC_STORAGE_BIT = 0x0100
 GL_NO_ERROR = 0
 
 GL_RGBA = 0x1908
@@ -91,6 +97,12 @@ _SIGNATURES = {
     "glTextureBarrier": (None, ()),
     "glTextureBarrierNV": (None, ()),
     "glFlush": (None, ()),
+    "glGetIntegerv": (None, (_u, _p)),
+    "glTexStorage2D": (None, (_u, _i, _u, _i, _i)),
+    "glTexStorage3D": (None, (_u, _i, _u, _i, _i, _i)),
+    "glGenBuffers": (None, (_i, _p)),
+    "glDeleteBuffers": (None, (_i, _p)),
+    "glBufferStorage": (None, (_u, ctypes.c_ssize_t, _p, _u)),
 }
 
 
@@ -195,6 +207,46 @@ def _ptr(data: np.ndarray | None):
     return None if data is None else data.ctypes.data_as(ctypes.c_void_p)
 
 
+def gl_version() -> int:
+    """The current context's OpenGL version as 10 * major + minor (43 for 4.3)."""
+    major, minor = ctypes.c_int(0), ctypes.c_int(0)
+    gl.glGetIntegerv(GL_MAJOR_VERSION, ctypes.byref(major))
+    gl.glGetIntegerv(GL_MINOR_VERSION, ctypes.byref(minor))
+    return 10 * major.value + minor.value
+
+
+class WorkBuffer(moderngl.Buffer):
+    """A moderngl Buffer over immutable storage (glBufferStorage) that it owns: moderngl's own buffers are mutable
+    (glBufferData), and the NVIDIA driver allocated those at their first use, 50 ms of the frame loop per GB (H100,
+    bench/probe_gpu_alloc.py); immutable storage is allocated when it is created, in microseconds."""
+
+    def release(self) -> None:
+        glo = getattr(self, "_owned_glo", 0)
+        if glo:
+            self._owned_glo = 0
+            name = _u(glo)
+            gl.glDeleteBuffers(1, ctypes.byref(name))
+        super().release()
+
+
+def work_buffer(ctx, size: int) -> moderngl.Buffer:
+    """A GPU buffer of `size` bytes (contents undefined) that shaders fill: written by write() and read back by
+    read() like any moderngl Buffer. Immutable storage where the GL has it (4.4), else ctx.buffer(reserve=size)."""
+    size = max(4, int(size))
+    if gl_version() < 44 or size >= 1 << 32:  # moderngl's external_buffer takes a 32-bit size
+        return ctx.buffer(reserve=size)
+    name = _u(0)
+    gl.glGenBuffers(1, ctypes.byref(name))
+    gl.glBindBuffer(GL_COPY_WRITE_BUFFER, name.value)
+    gl.glBufferStorage(GL_COPY_WRITE_BUFFER, size, None, GL_DYNAMIC_STORAGE_BIT | GL_MAP_READ_BIT)
+    gl.glBindBuffer(GL_COPY_WRITE_BUFFER, 0)
+    check(f"allocating a {size}-byte buffer")
+    buf = ctx.external_buffer(name.value, size)
+    buf.__class__ = WorkBuffer
+    buf._owned_glo = name.value
+    return buf
+
+
 class StagingBuffer:
     """A pixel-unpack buffer that texture uploads read from. From client memory the NVIDIA driver copied on the
     calling thread in every glTexSubImage (13 ms of CPU for 0.76 MB of tiles in one frame, H100); from a buffer the
@@ -244,7 +296,16 @@ class RawTexture:
         gl.glPixelStorei(GL_UNPACK_ALIGNMENT, 1)
         gl.glPixelStorei(GL_UNPACK_ROW_LENGTH, 0)
         depth = max(1, layers)
-        if self.compressed:
+        if gl_version() >= 42:
+            # Immutable storage, contents undefined (the pool writes every slot it draws). Compressed textures had
+            # been created from a host array of zeros, which the NVIDIA driver read only at the first upload into the
+            # texture: 200-290 ms and one page fault per 4 KB of the whole pool in the first frame with splats
+            # (H100, 570 MB pool; bench/probe_gpu_alloc.py).
+            if layers:
+                gl.glTexStorage3D(self.target, 1, internal, width, height, layers)
+            else:
+                gl.glTexStorage2D(self.target, 1, internal, width, height)
+        elif self.compressed:  # GL 4.1 (the raster path): no glTexStorage
             size = (width // 4) * (height // 4) * BLOCK_BYTES[internal] * depth
             zeros = np.zeros(size, np.uint8)
             if layers:

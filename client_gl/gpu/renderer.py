@@ -36,7 +36,7 @@ from splatstream.errors import UsageError
 from . import shadergen
 from .compute_raster import ComputeRaster, default_entries
 from .gl import flush as gl_flush
-from .gl import texture_barrier
+from .gl import texture_barrier, work_buffer
 from .pool import ChunkPool
 from .residency_layout import TEXTURE_UNITS
 from .sort import CHAIN_BARRIER, RADIX_CHOICES, CpuSorter, GpuRadixSort, depth_order
@@ -297,9 +297,9 @@ class SplatRenderer:
         ctx = self.ctx
         self.sorter = GpuRadixSort(ctx, n, self.options.radix_bits, self.options.fused_sort)
         self.sorter.barrier_bits = self._chain_barrier(self.draw_mode)
-        self.keys = ctx.buffer(reserve=n * 4)
-        self.values = ctx.buffer(reserve=n * 4)
-        self.records = ctx.buffer(reserve=n * RECORD_BYTES)
+        self.keys = work_buffer(ctx, n * 4)
+        self.values = work_buffer(ctx, n * 4)
+        self.records = work_buffer(ctx, n * RECORD_BYTES)
         self._work_splats = n
         if self.craster is not None:
             self.craster.resize(n, max(self.craster.entry_capacity, default_entries(n)))

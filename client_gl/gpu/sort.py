@@ -19,6 +19,7 @@ import struct
 import numpy as np
 
 from . import shadergen
+from .gl import work_buffer
 from .shadergen import RADIX_BITS, SCAN_TILE, SORT_TILE
 
 RADIX_CHOICES = (4, 8)  # digit widths: 4 (16 buckets, 8 passes of 32-bit keys) or 8 (256 buckets, 4 passes)
@@ -72,13 +73,13 @@ class GpuRadixSort:
         blocks = -(-table // SCAN_TILE)
         if not self.fused and blocks > SCAN_TILE:
             raise ValueError(f"{capacity} keys exceed the single-group scan of this radix sort")
-        self.table = ctx.buffer(reserve=max(4, table * 4))
+        self.table = work_buffer(ctx, table * 4)
         # Block sums of the table; fused: one row per pass, all zero between sorts (each pass's scatter clears its
         # row after use).
         rows = self.max_passes if self.fused else 1
         self.reduced = ctx.buffer(bytes(max(4, blocks * rows * 4)))
-        self.keys_tmp = ctx.buffer(reserve=self.capacity * 4)
-        self.values_tmp = ctx.buffer(reserve=self.capacity * 4)
+        self.keys_tmp = work_buffer(ctx, self.capacity * 4)
+        self.values_tmp = work_buffer(ctx, self.capacity * 4)
         self.dispatch = ctx.buffer(reserve=32)
         self.draw = ctx.buffer(reserve=16)       # instanced: (4, n, 0, 0)
         self.draw_tri = ctx.buffer(reserve=16)   # non-instanced triangles: (6 n, 1, 0, 0)
