@@ -35,10 +35,97 @@ def faults() -> int:
     return resource.getrusage(resource.RUSAGE_SELF).ru_minflt
 
 
+def pool_steps(ctx, budget_mb: int) -> list[dict]:
+    """A streaming session's pool (the 6M donut's formats, SH0) and its first writes, one step at a time."""
+    from client_gl.gpu.gl import GL_PIXEL_UNPACK_BUFFER, StagingBuffer, gl
+    from client_gl.gpu.pool import ChunkPool
+
+    formats = {"position": "norm11", "rotation": "norm10_2", "scale": "norm11", "color": "norm8x4", "sh": "norm565"}
+    rows = []
+
+    def step(label: str, fn) -> None:
+        ctx.finish()
+        f0, t0 = faults(), time.perf_counter()
+        fn()
+        ctx.finish()
+        row = {"kind": "pool", "method": label, "mb": budget_mb, "ms": round((time.perf_counter() - t0) * 1e3, 2),
+               "faults": faults() - f0}
+        rows.append(row)
+        print(row, flush=True)
+
+    holder = {}
+    step("create pool", lambda: holder.setdefault("pool", ChunkPool.for_budget(ctx, budget_mb << 20, formats, 0,
+                                                                               host_mirror=False)))
+    pool = holder["pool"]
+    atlases = list(pool._atlases.items())
+    texels = np.zeros(16 * 16, np.uint32)
+    staging = StagingBuffer(ctx)
+    def client(tex, x):
+        tex.write(texels.view(np.uint8).reshape(16, 16, 4)[..., :tex_bytes(tex)], x, 0, 16, 16)
+
+    def staged(tex, x):
+        with staging.staged(np.zeros(16 * 16 * 4, np.uint8)):
+            tex.write_region(None, 16, 0, 0, x, 0, 16, 16)
+        gl.glBindBuffer(GL_PIXEL_UNPACK_BUFFER, 0)
+
+    # the order of the writes matters on the NVIDIA driver: each texture gets one order
+    orders = [("client", "staged", "client"), ("staged", "staged", "client"), ("client", "client", "staged"),
+              ("staged", "client", "staged")]
+    for (name, tex), order in zip(atlases, orders, strict=False):
+        for n, how in enumerate(order):
+            step(f"{name} write {n + 1} ({how})", lambda tex=tex, how=how, n=n: (client if how == "client" else
+                                                                                 staged)(tex, 16 * n))
+    # the atlases written by a compute shader (imageStore, the texture bound as an r32ui image: GL allows an image
+    # format of the texture's size class), from a storage buffer
+    import ctypes as c
+
+    from client_gl.gpu.gl import _address
+    bind_image = c.CFUNCTYPE(None, c.c_uint, c.c_uint, c.c_int, c.c_ubyte, c.c_int, c.c_uint, c.c_uint)(
+        _address("glBindImageTexture"))
+    shader = ctx.compute_shader("""#version 430
+layout(local_size_x = 16, local_size_y = 16) in;
+layout(r32ui, binding = 0) writeonly uniform uimage2D atlas;
+layout(std430, binding = 0) readonly buffer Src { uint words[]; };
+uniform ivec2 u_at;
+void main() {
+    ivec2 p = ivec2(gl_GlobalInvocationID.xy);
+    imageStore(atlas, u_at + p, uvec4(words[p.y * 16 + p.x]));
+}""")
+    src = ctx.buffer(np.arange(256, dtype=np.uint32).tobytes())
+    fresh = {}
+    for name in ("position", "rotation"):  # R32UI and RGB10_A2, fresh ones
+        old = pool._atlases[name]
+        fresh[name] = type(old)(old.internal, old.width, old.height, old.layers)
+
+    def compute(tex, x):
+        bind_image(0, tex.glo, 0, 0, 0, 0x88B9, 0x8236)  # GL_WRITE_ONLY, GL_R32UI
+        src.bind_to_storage_buffer(0)
+        shader["u_at"] = (x, 0)
+        shader.run(1, 1)
+        ctx.memory_barrier()
+
+    for name, tex in fresh.items():
+        for n, how in enumerate(("compute", "compute", "client", "compute", "staged")):
+            fn = {"compute": compute, "client": client, "staged": staged}[how]
+            step(f"fresh {name} write {n + 1} ({how})", lambda tex=tex, fn=fn, n=n: fn(tex, 16 * n))
+        tex.release()
+    step("range records", lambda: pool._write_records(np.arange(4)))
+    step("bind (state upload)", pool.bind)
+    gl.glBindBuffer(GL_PIXEL_UNPACK_BUFFER, 0)
+    pool.release()
+    return rows
+
+
+def tex_bytes(tex) -> int:
+    from client_gl.gpu.gl import PIXEL_TRANSFER
+    return PIXEL_TRANSFER[tex.internal][2]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--mb", type=int, nargs="+", default=[256, 1024])
     ap.add_argument("--json", dest="json_out")
+    ap.add_argument("--pool-mb", type=int, default=1024, help="GPU budget of the pool whose first uploads are timed")
     args = ap.parse_args()
     from client_gl.gpu.gl import _address
     from client_gl.headless import create_context
@@ -115,6 +202,7 @@ def main() -> None:
                        "first_write_faults": f2 - f1, "second_write_ms": round((t3 - t2) * 1e3, 2)}
                 rows.append(row)
                 print(row, flush=True)
+    rows += pool_steps(ctx, args.pool_mb)
     out = {"gl_renderer": ctx.info.get("GL_RENDERER"), "rows": rows}
     if args.json_out:
         with open(args.json_out, "w") as f:

@@ -26,6 +26,11 @@ OUT=${OUT:-/tmp/out}
 mkdir -p "$OUT"
 W=/tmp/win-work
 mkdir -p $W/root
+probe='import moderngl; c = moderngl.create_context(standalone=True, backend="egl", require=430); print(c.info["GL_RENDERER"])'
+python3 -c "$probe" || export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
+# PROBE=1: what large GPU allocations cost the CPU, and when (bench/probe_gpu_alloc.py)
+[ "${PROBE:-0}" = 1 ] && python3 bench/probe_gpu_alloc.py --mb 256 1024 --json "$OUT/probe_gpu_alloc.json"
+[ "${PROBE:-0}" = only ] && python3 bench/probe_gpu_alloc.py --mb 256 --json "$OUT/probe_gpu_alloc.json" && exit
 python3 bench/tile_scene.py samples/donut.ply --splats 6000000 --seed 0 --out $W/s6m.ply | tail -1  # no data to carry
 python3 -m splatstream.cli encode $W/s6m.ply $W/root/s6m --up 0,0,1 -q || exit 1
 python3 -m splatstream.cli serve $W/root --port 8765 --no-access-log > $W/serve.log 2>&1 &
@@ -33,10 +38,6 @@ SERVE=$!
 sleep 2
 URL=http://127.0.0.1:8765/scenes/s6m
 echo "== headless"
-probe='import moderngl; c = moderngl.create_context(standalone=True, backend="egl", require=430); print(c.info["GL_RENDERER"])'
-python3 -c "$probe" || export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
-# PROBE=1: what large GPU allocations cost the CPU, and when (bench/probe_gpu_alloc.py)
-[ "${PROBE:-0}" = 1 ] && python3 bench/probe_gpu_alloc.py --mb 256 1024 --json "$OUT/probe_gpu_alloc.json"
 if [ "${FIRST:-${WINDOW:-1}}" = 1 ]; then  # FIRST=1: the first-frame runs even with WINDOW=0
 # where the time to the first frame goes: on a fresh machine (the driver compiles every shader), then again
 for run in cold warm sync; do  # sync: warm, each renderer and pool step waited for (its GPU work included)

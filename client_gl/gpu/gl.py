@@ -29,6 +29,7 @@ GL_UNPACK_SKIP_ROWS = 0x0CF3
 GL_UNPACK_SKIP_PIXELS = 0x0CF4
 GL_PIXEL_UNPACK_BUFFER = 0x88EC
 GL_COPY_WRITE_BUFFER = 0x8F37
+GL_WRITE_ONLY = 0x88B9
 GL_MAJOR_VERSION = 0x821B
 GL_MINOR_VERSION = 0x821C
 GL_MAP_READ_BIT = 0x0001
@@ -56,6 +57,11 @@ GL_RGBA8 = 0x8058
 GL_RGBA32UI = 0x8D70
 GL_COMPRESSED_RGBA_BPTC_UNORM = 0x8E8C
 GL_COMPRESSED_RGB_S3TC_DXT1_EXT = 0x83F0
+
+GL_RG32UI = 0x823C
+# Unsigned image formats by texel size in bytes: (GLSL layout name, GL internal format).
+IMAGE_WORD_FORMATS = {2: ("r16ui", GL_R16UI), 4: ("r32ui", GL_R32UI), 8: ("rg32ui", GL_RG32UI),
+                      16: ("rgba32ui", GL_RGBA32UI)}
 
 # GL internal-format names as texformats.TexelFormat.gl_internal spells them.
 INTERNAL_FORMATS = {
@@ -98,6 +104,7 @@ _SIGNATURES = {
     "glTextureBarrierNV": (None, ()),
     "glFlush": (None, ()),
     "glGetIntegerv": (None, (_u, _p)),
+    "glBindImageTexture": (None, (_u, _u, _i, ctypes.c_ubyte, _i, _u, _u)),
     "glTexStorage2D": (None, (_u, _i, _u, _i, _i)),
     "glTexStorage3D": (None, (_u, _i, _u, _i, _i, _i)),
     "glGenBuffers": (None, (_i, _p)),
@@ -381,6 +388,17 @@ class RawTexture:
             gl.glPixelStorei(GL_UNPACK_SKIP_PIXELS, 0)
             gl.glPixelStorei(GL_UNPACK_SKIP_ROWS, 0)
         check(f"uploading a {w}x{h} region at ({x}, {y}) layer {layer} from ({src_x}, {src_y})")
+
+    @property
+    def texel_bytes(self) -> int:
+        return PIXEL_TRANSFER[self.internal][2]
+
+    def bind_image_words(self, unit: int, layer: int = 0) -> str:
+        """Bind one layer of this (uncompressed) texture to image unit `unit` for writing, in the unsigned image
+        format of its texel size (GL matches image formats to textures by size); returns that format's GLSL name."""
+        glsl, internal = IMAGE_WORD_FORMATS[self.texel_bytes]
+        gl.glBindImageTexture(unit, self.glo, 0, 0, layer, GL_WRITE_ONLY, internal)
+        return glsl
 
     def bind(self, unit: int) -> None:
         gl.glActiveTexture(GL_TEXTURE0 + unit)

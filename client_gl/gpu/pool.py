@@ -35,7 +35,7 @@ from splatstream.format.codec import EncodedPlane
 from splatstream.format.texformats import get_format
 
 from ..tiledata import HostMirror, TileData
-from .gl import BLOCK_BYTES, GL_RG8UI, GL_RGBA32UI, INTERNAL_FORMATS, RawTexture, StagingBuffer
+from .gl import BLOCK_BYTES, GL_RG8UI, GL_RGBA32UI, IMAGE_WORD_FORMATS, INTERNAL_FORMATS, RawTexture, StagingBuffer
 from .residency_layout import (
     BASE_PLANE_NAMES,
     BLOCK,
@@ -49,6 +49,7 @@ from .residency_layout import (
     atlas_grid,
 )
 from .slots import SlotAllocator, slots_for_budget
+from .sort import compute_program
 
 
 @dataclass
@@ -129,6 +130,7 @@ class ChunkPool:
                                               self.layout.plane_layers(plane))
         self._gpu_bytes: int | None = None
         self._staging = StagingBuffer(ctx)  # texel uploads go through it (the GPU copies, not the driver's CPU)
+        self._prime_atlases()
         self._ranges = RawTexture(GL_RGBA32UI, width, rows)
         self._state_texture = RawTexture(GL_RG8UI, cols, rows)
         self._records = np.zeros((capacity, RANGE_RECORD_WORDS), np.uint32)  # host copy of the range table
@@ -162,6 +164,20 @@ class ChunkPool:
         # The range table is not uploaded here: a frame scans slots below the allocator's high-water mark only, and
         # slots are handed out lowest first, so every one of those has been written by a join (or a leave). At a
         # 4 GB budget the upload of the whole table took most of the two seconds before a first frame (llvmpipe).
+
+    def _prime_atlases(self) -> None:
+        """A shader writes one texel of every atlas that uploads go to through the staging buffer, before the first
+        upload (prime_texels.comp says why: 200-290 ms in the first frame with splats of a 1 GiB pool otherwise)."""
+        if self.ctx.version_code < 430:
+            return
+        for tex in self._atlases.values():
+            if tex.compressed:
+                continue
+            fmt = IMAGE_WORD_FORMATS[tex.texel_bytes][0]
+            prog = compute_program(self.ctx, "prime_texels.comp", f"#define TEXEL_FORMAT {fmt}\n")
+            tex.bind_image_words(0)
+            prog.run(1)
+        self.ctx.memory_barrier()
 
     @classmethod
     def for_budget(cls, ctx, gpu_budget_bytes: int, formats: Mapping[str, str], sh_degree: int, *,
