@@ -92,6 +92,26 @@ class GcPauses:
                 for g, v in self.by_gen.items()}
 
 
+def converged_split(frame, ctx, repeat: int = 20) -> dict:
+    """Where a converged frame's time goes: the CPU's part (the call returning, no wait) and the GPU's stage timers,
+    medians over `repeat` frames. frame(timing) draws one frame and returns its FrameStats."""
+    submit, stages = [], []
+    for _ in range(repeat):
+        t = time.perf_counter()
+        frame(False)
+        submit.append((time.perf_counter() - t) * 1e3)
+        ctx.finish()
+    for _ in range(repeat):
+        st = frame(True)
+        stages.append({k: getattr(st, k) for k in ("cull_ms", "sort_ms", "bin_ms", "tile_sort_ms", "draw_ms")})
+    out = {"submit_ms": round(float(np.median(submit)), 3)}
+    for k in stages[0]:
+        vals = [x[k] for x in stages if x[k] is not None]
+        if vals:
+            out[k] = round(float(np.median(vals)), 3)
+    return out
+
+
 def thread_usage() -> tuple[float, float, int, int, int]:
     """(user s, system s, minor page faults, voluntary, involuntary context switches) of the calling thread."""
     import resource
@@ -276,6 +296,10 @@ def main() -> None:
         tiles = list(session.last.draw)
         bands = {t: session.pool.tile_bands(t) for t in tiles}
         out["converged_stream_ms"] = float(np.median(times[5:]))
+        def stream_frame(timing: bool):
+            session.frame(cam, timing=timing)
+            return session.last_stats
+        out["converged_stream_split"] = converged_split(stream_frame, ctx)
         out["converged_drawn_splats"] = int(session.last.drawn_splats)
         manifest = session.manifest
         session.close()
@@ -295,6 +319,7 @@ def main() -> None:
                 ctx.finish()
                 times.append((time.perf_counter() - t) * 1e3)
             out["render_same_set_ms"] = float(np.median(times[5:]))
+            out["render_same_set_split"] = converged_split(lambda timing: r.render_frame(cam, timing=timing), ctx)
             out["stream_vs_render"] = out["converged_stream_ms"] / out["render_same_set_ms"]
             r.unload()
     finally:

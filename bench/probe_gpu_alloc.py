@@ -104,11 +104,26 @@ void main() {
         shader.run(1, 1)
         ctx.memory_barrier()
 
+    reader = ctx.compute_shader("""#version 430
+layout(local_size_x = 1) in;
+uniform usampler2D u_tex;
+layout(std430, binding = 1) buffer Out { uint sum; };
+void main() { sum += texelFetch(u_tex, ivec2(0), 0).x; }""")
+    sink = ctx.buffer(reserve=16)
+
+    def read(tex, x):  # the first time a shader samples the texture (the cull pass's texelFetch)
+        tex.bind(0)
+        reader["u_tex"] = 0
+        sink.bind_to_storage_buffer(1)
+        reader.run(1)
+
     for name, tex in fresh.items():
-        for n, how in enumerate(("compute", "compute", "client", "compute", "staged")):
-            fn = {"compute": compute, "client": client, "staged": staged}[how]
+        for n, how in enumerate(("compute", "compute", "client", "compute", "staged", "read", "read")):
+            fn = {"compute": compute, "client": client, "staged": staged, "read": read}[how]
             step(f"fresh {name} write {n + 1} ({how})", lambda tex=tex, fn=fn, n=n: fn(tex, 16 * n))
         tex.release()
+    for name, tex in pool._atlases.items():
+        step(f"pool {name} first read", lambda tex=tex: read(tex, 0))
     step("range records", lambda: pool._write_records(np.arange(4)))
     step("bind (state upload)", pool.bind)
     gl.glBindBuffer(GL_PIXEL_UNPACK_BUFFER, 0)

@@ -124,7 +124,7 @@ $(cat /sys/kernel/mm/transparent_hugepage/defrag)"; python3 -c "import sys; prin
       $flag > $W/fly_$ab.log 2>&1
     python3 -c "import json,sys; d=json.load(open(sys.argv[1])); s=d['streaming']; print(sys.argv[2], {k: s[k] for k \
       in ('frames','median_ms','p99_ms','p99_ms_with_uploads','p99_ms_without_uploads','update_ms_p99')}, \
-      'converged', d['converged_stream_ms'], 'render', d['render_same_set_ms'], 'threads cpu s', d['thread_cpu_s'], \
+      'converged', d['converged_stream_ms'], d.get('converged_stream_split'), 'render', d['render_same_set_ms'], d.get('render_same_set_split'), 'threads cpu s', d['thread_cpu_s'], \
       'wall s', d['streaming_wall_s'], 'gc', d.get('gc_pauses'), 'steal s', d.get('machine_steal_s'), \
       {k: v for k, v in s.items() if k.startswith('thread_')}); [print(x) for x in s['slowest'][:4]]" \
       "$OUT/fly_$ab.json" $ab || tail -20 $W/fly_$ab.log
