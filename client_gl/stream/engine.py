@@ -135,6 +135,19 @@ def planes_nbytes(planes: dict) -> int:
     return total
 
 
+class _Prefetch:
+    """Iterates over the base keys that prefetch() names for a view, computed on first use and kept."""
+
+    def __init__(self, arrays, view, sel, opts, ids) -> None:
+        self._args, self._ids, self._keys = (arrays, view, sel, opts), ids, None
+
+    def __iter__(self):
+        if self._keys is None:
+            ids = self._ids
+            self._keys = [(int(ids[i]), "base") for _, i in prefetch(*self._args)]
+        return iter(self._keys)
+
+
 class StreamEngine:
     def __init__(self, fetcher: FetcherLike, residency: Residency, options: StreamOptions = StreamOptions(),
                  slot_bytes: int = 1, manifest: Manifest | None = None, with_mirror: bool = False,
@@ -244,9 +257,8 @@ class StreamEngine:
         else:
             for b in range(1, top + 1):
                 keys += [(int(ids[i]), f"sh{b}") for i in sel.cut if bands[i] >= b]
-        extra: list[Key] = []
-        if self.options.prefetch:
-            extra = [(int(ids[i]), "base") for _, i in prefetch(a, view, sel, opts)]
+        # prefetch only when asked for (update asks only when nothing the view wants is missing): 0.2-0.3 ms a frame
+        extra = _Prefetch(a, view, sel, opts, ids) if self.options.prefetch else ()
         result = (view, sel, bands, keys, extra)
         self._wanted_cache = (key, result)
         self._wanted_serial += 1

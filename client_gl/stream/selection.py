@@ -9,9 +9,10 @@ and acts on the answers.
 """
 from __future__ import annotations
 
+import functools
 import heapq
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -45,7 +46,14 @@ class TileView:
     radius_px: np.ndarray  # (T,) projected radius of the bounding sphere, px (inf inside it)
     area_px: np.ndarray  # (T,) pixels of the image inside the projected sphere's bounding square (0 when culled)
     distance: np.ndarray  # (T,) distance from the eye to the sphere, world units (<= 0 inside)
-    visible_wide: np.ndarray  # (T,) bool: intersects a frustum widened by prefetch_margin
+    # (box_min, box_max, planes) of the frustum widened by prefetch_margin: visible_wide tests it when asked (only
+    # prefetch needs it, and the engine asks for prefetch only when nothing is missing)
+    wide_frustum: tuple = field(repr=False, compare=False, default=())
+
+    @functools.cached_property
+    def visible_wide(self) -> np.ndarray:
+        """(T,) bool: the box intersects a frustum widened by prefetch_margin."""
+        return boxes_in_frustum(*self.wide_frustum)
 
 
 @dataclass(frozen=True)
@@ -111,7 +119,7 @@ def view_numbers(a: TileArrays, cam: Camera, opts: SelectionOptions = SelectionO
         sse = np.where(distance > 0, a.geometric_error * focal / distance, INF)
         radius_px = np.where(distance > 0, a.sphere_radius * focal / np.maximum(centre_dist, 1e-12), INF)
     visible = boxes_in_frustum(a.box_min, a.box_max, frustum_planes(cam, 1.0, basis))
-    wide = boxes_in_frustum(a.box_min, a.box_max, frustum_planes(cam, opts.prefetch_margin, basis))
+    wide = (a.box_min, a.box_max, frustum_planes(cam, opts.prefetch_margin, basis))
     # The centres in the camera's frame (image x right, y down: camera.md). einsum, not @: a matrix product goes to
     # the BLAS library, whose worker threads (16 on the GPU machine) cost more than these few thousand products.
     depth = np.einsum("ij,j->i", rel, forward)
@@ -183,7 +191,8 @@ def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: Sel
             priority[k] = -neg_priority
             if candidate[k]:
                 heapq.heappush(heap, (prio[k], k))
-    cut_sorted = tuple(sorted(cut, key=lambda i: (-priority.get(i, 0.0), float(view.distance[i]))))
+    distance = view.distance.tolist()
+    cut_sorted = tuple(sorted(cut, key=lambda i: (-priority[i], distance[i])))
     return Selection(cut_sorted, frozenset(refined), {i: priority.get(i, 0.0) for i in cut_sorted}, splats, total)
 
 
@@ -247,15 +256,18 @@ def prefetch(a: TileArrays, view: TileView, sel: Selection, opts: SelectionOptio
     """Tiles the view will probably want next, best first: children of cut tiles close to the refinement
     threshold (the camera moving closer) and tiles just outside the frustum (the camera turning)."""
     out: list[tuple[float, int]] = []
-    cut = set(sel.cut)
+    wide = view.visible_wide
+    wide_l = wide.tolist()
+    sse = view.sse
     for i in sel.cut:
-        if a.children[i] and view.sse[i] > opts.max_sse / opts.prefetch_margin:
-            for k in a.children[i]:
-                if view.visible_wide[k]:
-                    out.append((float(view.sse[i]) / opts.max_sse, k))
-    for i in range(len(a.ids)):
-        if i not in cut and view.visible_wide[i] and not view.visible[i] and a.parent[i] >= 0 \
-                and a.parent[i] in sel.refined:
-            out.append((0.5, i))
+        if a.children[i] and sse[i] > opts.max_sse / opts.prefetch_margin:
+            score = float(sse[i]) / opts.max_sse
+            out += [(score, k) for k in a.children[i] if wide_l[k]]
+    # just outside the frustum, children of refined tiles (a cut tile is visible, so never one of these)
+    parent = a.parent
+    refined = np.zeros(len(parent) + 1, bool)  # index -1 (the root's parent) reads the extra False
+    refined[list(sel.refined)] = True
+    edge = np.flatnonzero(wide & ~view.visible & refined[parent])
+    out += [(0.5, int(i)) for i in edge]
     out.sort(key=lambda x: -x[0])
     return out
