@@ -138,11 +138,6 @@ class Viewer:
         # How the renderer's image reaches the window: "draw" (a full-window triangle sampling it, any size) or
         # "copy" (glBlitFramebuffer, same size only); a bench hook for the window-against-headless measurement.
         self.present = os.environ.get("SPLATSTREAM_WINDOW_PRESENT", "draw")
-        # pipelined: the window shows the frame before the one being drawn (two offscreen targets, one frame of
-        # latency), and puts its commands ahead of the frame's, so that a swap that copies the window to the
-        # display (a virtual display) can run while the GPU draws the next frame.
-        self.pipelined = os.environ.get("SPLATSTREAM_WINDOW_PIPELINE", "0") == "1"
-        self._shown: tuple | None = None  # pipelined: (framebuffer, camera) of the frame the window shows next
         self.lines = self.ctx.program(vertex_shader=_LINES_VS, fragment_shader=_LINES_FS)
         self.line_vbo = None
         self.line_vao = None
@@ -304,39 +299,23 @@ class Viewer:
             self.controller.update(dt)
             cam = self.camera()
             self.last_camera = cam
-            if self.pipelined:
-                if self._shown is not None:
-                    self._show(*self._shown)
-                else:
-                    ctx.clear(0.0, 0.0, 0.0, 1.0)
-                if self.show_overlay:
-                    self._overlay()
-                self.session.renderer.next_output_target()
             t0 = time.perf_counter()
             self.session.frame(cam, sh_degree=self.run.sh_degree)
             self.frame_ms = (time.perf_counter() - t0) * 1e3
             fbo = self.session.renderer.framebuffer(cam.width, cam.height)
-            if self.pipelined:
-                self._shown = (fbo, cam)
-                return
-            self._show(fbo, cam)
+            self.wnd.use()
+            ctx.viewport = (0, 0, *self.wnd.buffer_size)
+            if self.present == "copy" and tuple(self.wnd.buffer_size) == (cam.width, cam.height):
+                ctx.copy_framebuffer(ctx.screen, fbo)
+            else:
+                ctx.disable(ctx.DEPTH_TEST | ctx.BLEND)
+                fbo.color_attachments[0].use(0)
+                self.blit["u_image"].value = 0
+                self.blit_vao.render(vertices=3)
+            if self.show_bounds:
+                self._draw_bounds(cam)
         if self.show_overlay:
             self._overlay()
-
-    def _show(self, fbo, cam: Camera) -> None:
-        """The renderer's image into the window (and the tile bounds over it)."""
-        ctx = self.ctx
-        self.wnd.use()
-        ctx.viewport = (0, 0, *self.wnd.buffer_size)
-        if self.present == "copy" and tuple(self.wnd.buffer_size) == (cam.width, cam.height):
-            ctx.copy_framebuffer(ctx.screen, fbo)
-        else:
-            ctx.disable(ctx.DEPTH_TEST | ctx.BLEND)
-            fbo.color_attachments[0].use(0)
-            self.blit["u_image"].value = 0
-            self.blit_vao.render(vertices=3)
-        if self.show_bounds:
-            self._draw_bounds(cam)
 
     def _draw_bounds(self, cam: Camera) -> None:
         s = self.session
