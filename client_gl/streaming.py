@@ -26,7 +26,7 @@ from .gpu.pool import ChunkPool
 from .gpu.renderer import FrameStats, RenderOptions, SplatRenderer, resolve_sort
 from .gpu.residency_layout import CodebookLayout, PoolLayout
 from .stream.cache import DiskCache
-from .stream.engine import FrameUpdate, StreamEngine, StreamOptions
+from .stream.engine import DECODE_WAIT_S, FrameUpdate, StreamEngine, StreamOptions
 from .stream.fetch import Fetcher
 from .stream.selection import SelectionOptions
 from .stream.sources import Progress, SceneSource, open_source
@@ -191,6 +191,7 @@ class StreamingSession:
                                     decode_processes=options.decode_processes)
         self.engine = StreamEngine(self.fetcher, self.pool, stream_opts, slot_bytes=layout.slot_bytes(),
                                    manifest=m, with_mirror=self.with_mirror, location=self.source.location)
+        self.fetcher.yield_to(self.engine.loop_idle, DECODE_WAIT_S)
 
     @classmethod
     def open(cls, spec: str | os.PathLike, ctx, options: ViewOptions = ViewOptions(),

@@ -110,6 +110,8 @@ $(cat /sys/kernel/mm/transparent_hugepage/defrag)"; python3 -c "import sys; prin
       release) flag=--gl-release-gil ;;
       proc*) flag="--decode-processes ${ab#proc}" ;;
       si20) flag="--switch-interval 0.02" ;;
+      si1) flag="--switch-interval 0.001" ;;
+      si05) flag="--switch-interval 0.0005" ;;
       dec1) flag="--decode-workers 1" ;;
       finishgil) flag="--finish-keeps-gil" ;;
       nofreeze) flag="--no-gc-freeze" ;;

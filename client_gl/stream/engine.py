@@ -345,6 +345,12 @@ class StreamEngine:
             self._ready[key] = ready
             self._ready_bytes += ready.nbytes
 
+    @property
+    def loop_idle(self) -> threading.Event:
+        """Set while the frame loop is not in its CPU work (frame_started / frame_submitted): what background
+        threads that run Python wait for (the decode threads here; the fetcher through Fetcher.yield_to)."""
+        return self._loop_idle
+
     def frame_started(self) -> None:
         """The frame loop begins its CPU work (update, uploads, draw submission): decode threads wait."""
         self._loop_idle.clear()

@@ -24,6 +24,7 @@ import concurrent.futures
 import concurrent.futures.thread  # registers its exit hook before ours (below), so ours runs first
 import logging
 import random
+import selectors
 import threading
 import time
 import weakref
@@ -116,6 +117,19 @@ class _Job:
         self.task: asyncio.Task | None = None
 
 
+class _GatedSelector(selectors.DefaultSelector):
+    """The event loop's selector: after a wait that found I/O, waits for the gate's event (Fetcher.yield_to)."""
+
+    gate: tuple[threading.Event, float] | None = None
+
+    def select(self, timeout=None):
+        ready = super().select(timeout)
+        gate = self.gate
+        if ready and gate is not None:
+            gate[0].wait(gate[1])
+        return ready
+
+
 class Fetcher:
     """Fetches a scene's manifest and payloads from `source` on a background event loop (see the module doc).
 
@@ -158,6 +172,7 @@ class Fetcher:
         self._parsed: tuple[bytes, Manifest] | None = None
         self._last_error = ""
 
+        self._selector = _GatedSelector()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self._closed = False
@@ -171,7 +186,7 @@ class Fetcher:
             return self
         if self._closed:
             raise UsageError("this fetcher was closed; make a new one")
-        self._loop = asyncio.new_event_loop()
+        self._loop = asyncio.SelectorEventLoop(self._selector)
         self._loop.set_exception_handler(_log_loop_exception)
         started = threading.Event()
 
@@ -194,6 +209,12 @@ class Fetcher:
         if self.cache is not None:  # read the cache's index now, not in the first pump
             self._loop.call_soon_threadsafe(lambda: self._loop.run_in_executor(None, self.cache.contains, ""))
         return self
+
+    def yield_to(self, idle: threading.Event | None, timeout_s: float = 0.05) -> None:
+        """When I/O is ready, handle it only while `idle` is set (at most timeout_s later): a frame loop clears it
+        during its CPU work. The loop's Python (responses, callbacks) then runs while the frame loop waits for the
+        GPU, instead of taking the interpreter lock from it at each of its numpy calls. None: no waiting."""
+        self._selector.gate = None if idle is None else (idle, float(timeout_s))
 
     def close(self, timeout_s: float = 1.0) -> None:
         """Cancel everything, close the source's connections and stop the loop thread (within about timeout_s)."""
