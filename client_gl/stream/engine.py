@@ -285,17 +285,21 @@ class StreamEngine:
         uploaded, events = self._upload(self._missing, keys, sel) if self._ready else (0, [])
         if uploaded or events or self._draw_cache is None or self._draw_cache[0] != state:
             drawn = draw_set(self.arrays, view, sel, self.resident, self.root)
-            self._draw_cache = ((self._wanted_serial, self._version), drawn)
-        drawn = self._draw_cache[1]
+            # what a frame reports of the draw set and the residency, kept while neither changes (a still, converged
+            # view then costs no numpy work a frame)
+            counts = ([int(self.ids[i]) for i in drawn], int(self.resident.sum()),
+                      int(self.arrays.splats[self.resident].sum()),
+                      int(self.arrays.splats[drawn].sum()) if drawn else 0)
+            self._draw_cache = ((self._wanted_serial, self._version), drawn, counts)
+        _, drawn, (draw_ids, resident_tiles, resident_splats, drawn_splats) = self._draw_cache
         self.last_drawn[drawn] = self.frame
         stats = self.fetcher.stats()
         in_flight = stats.in_flight + stats.queued
         still_missing = any(not self._have(k) for k in self._missing) if self._missing else False
         converged = not still_missing and not self._decoding and in_flight == 0
         return FrameUpdate(
-            draw=[int(self.ids[i]) for i in drawn], converged=converged, uploaded_bytes=uploaded,
-            resident_tiles=int(self.resident.sum()), resident_splats=int(self.arrays.splats[self.resident].sum()),
-            drawn_splats=int(self.arrays.splats[drawn].sum()) if drawn else 0, wanted_tiles=len(sel.cut),
+            draw=list(draw_ids), converged=converged, uploaded_bytes=uploaded, resident_tiles=resident_tiles,
+            resident_splats=resident_splats, drawn_splats=drawn_splats, wanted_tiles=len(sel.cut),
             in_flight=in_flight + len(self._decoding), selection=sel, events=events)
 
     def _coarse_to_fine(self, keys: list[Key], sel: Selection) -> list[Key]:
