@@ -69,6 +69,11 @@ import moderngl
 print("window GL:", moderngl.create_context().info["GL_RENDERER"])
 PY
 echo "probe rc=$?"; tail -5 $W/probe.log
+if [ -n "${OVERLAP:-}" ]; then  # OVERLAP="200 800": bench/probe_window_overlap.py at these iteration counts
+  for it in $OVERLAP; do
+    timeout 120 python3 bench/probe_window_overlap.py --iterations $it --json "$OUT/overlap_$it.json" 2>&1 | tail -1
+  done
+fi
 window() {  # window <name> <more view options>: one timed window run, its record as $OUT/<name>.json
   local name=$1
   shift
