@@ -73,6 +73,7 @@ if [ -n "${OVERLAP:-}" ]; then  # OVERLAP="200 800": bench/probe_window_overlap.
   for it in $OVERLAP; do
     timeout 120 python3 bench/probe_window_overlap.py --iterations $it --json "$OUT/overlap_$it.json" 2>&1 | tail -1
   done
+  [ "${OVERLAP_ONLY:-0}" = 1 ] && { kill $XVFB $SERVE; exit 0; }
 fi
 window() {  # window <name> <more view options>: one timed window run, its record as $OUT/<name>.json
   local name=$1
