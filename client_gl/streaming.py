@@ -263,6 +263,11 @@ class StreamingSession:
         return rec
 
     @property
+    def drawn_camera(self) -> Camera | None:
+        """The camera of the last frame drawn (what read_image shows)."""
+        return self._drawn_with[0] if self._drawn_with is not None else None
+
+    @property
     def converged(self) -> bool:
         return bool(self.last and self.last.converged)
 

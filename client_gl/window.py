@@ -23,6 +23,7 @@ from splatstream.camera_path import CameraPath
 from splatstream.errors import SplatstreamError, UsageError
 
 from .camera_control import CameraController, state_from_camera
+from .render_thread import WAIT_S, Frame, RenderThread, fence, wait_on_gpu
 from .streaming import PreparedSource, StreamingSession, ViewOptions, freeze_long_lived
 
 EXIT_OK = 0
@@ -138,6 +139,14 @@ class Viewer:
         # How the renderer's image reaches the window: "draw" (a full-window triangle sampling it, any size) or
         # "copy" (glBlitFramebuffer, same size only); a bench hook for the window-against-headless measurement.
         self.present = os.environ.get("SPLATSTREAM_WINDOW_PRESENT", "draw")
+        # Frames drawn on a render thread in a context of its own (render_thread.py says why); "0": in the window's
+        # context on this thread, as before (also the fallback where no second context opens).
+        self.threaded = os.environ.get("SPLATSTREAM_WINDOW_THREAD", "1") != "0"
+        self.render: RenderThread | None = None
+        self._shown: Frame | None = None  # threaded: the frame the window shows (drawn from an earlier camera)
+        self._released: int | None = None  # threaded: fence after the window's last read of a frame
+        self._pending = False  # threaded: a camera was handed to the render thread
+        self._textures: dict = {}  # threaded: the render thread's targets as textures of this context
         self.lines = self.ctx.program(vertex_shader=_LINES_VS, fragment_shader=_LINES_FS)
         self.line_vbo = None
         self.line_vao = None
@@ -179,8 +188,20 @@ class Viewer:
             self.load_exception = exc
 
     def _start_session(self) -> None:
-        self.session = StreamingSession(self.prepared, self.ctx, self.run.options)
-        m = self.session.manifest
+        """The session: on a render thread (it opens there; draw_frame picks it up when ready), or here."""
+        m = self.prepared.manifest
+        if self.threaded and self.ctx.version_code >= 430:
+            prepared, options = self.prepared, self.run.options
+            try:
+                self.render = RenderThread(self.wnd._window, self.wnd.gl_version,
+                                           lambda ctx: StreamingSession(prepared, ctx, options))
+                self.render.start()
+            except RuntimeError as exc:
+                self.render = None
+                self.messages.append(f"drawing in the window's context ({exc})")
+        if self.render is None:
+            self.session = StreamingSession(self.prepared, self.ctx, self.run.options)
+            freeze_long_lived()
         w, h = self.wnd.buffer_size
         if self.run.camera is not None:
             home = state_from_camera(self.run.camera)
@@ -189,6 +210,18 @@ class Viewer:
             home = state_from_camera(Camera(c.eye, c.target, c.up, c.fov_y, w, h))
         root = m.tile(m.root)
         self.controller = CameraController(home, np.array(root.sphere_center), float(root.sphere_radius))
+
+    def _render_thread_ready(self) -> None:
+        """Threaded: the session once the render thread has opened it (or its error, as a load error)."""
+        r = self.render
+        if self.session is not None or r is None or not r.ready.is_set():
+            return
+        if r.error is not None:
+            exc = r.error
+            self.load_error = str(exc) if isinstance(exc, SplatstreamError) else f"{exc.__class__.__name__}: {exc}"
+            self.load_exception = exc
+            return
+        self.session = r.session
         freeze_long_lived()
 
     # --- events (the path every user input takes) ----------------------------------------------------------------
@@ -288,9 +321,10 @@ class Viewer:
 
     def draw_frame(self, dt: float) -> None:
         ctx = self.ctx
-        if self.session is None and self.prepared is not None:
+        if self.controller is None and self.prepared is not None:
             self._start_session()
             self.path_start = time.perf_counter()
+        self._render_thread_ready()
         self.wnd.use()
         if self.session is None:  # otherwise the blit below covers every pixel: one pass over the window's pixels less
             ctx.clear(0.0, 0.0, 0.0, 1.0)
@@ -298,6 +332,11 @@ class Viewer:
             self._held_motion(dt)
             self.controller.update(dt)
             cam = self.camera()
+            if self.render is not None:
+                self._threaded_frame(cam)
+                if self.show_overlay:
+                    self._overlay()
+                return
             self.last_camera = cam
             t0 = time.perf_counter()
             self.session.frame(cam, sh_degree=self.run.sh_degree)
@@ -316,6 +355,40 @@ class Viewer:
                 self._draw_bounds(cam)
         if self.show_overlay:
             self._overlay()
+
+    def _threaded_frame(self, cam: Camera) -> None:
+        """Show the frame the render thread drew from the camera before (waiting for it up to WAIT_S), and hand it
+        this frame's camera: it draws while this thread shows and swaps."""
+        frame = self.render.take(WAIT_S if self._shown is not None or self._pending else 0.0)
+        self.render.submit(cam, self.run.sh_degree, self._released)
+        self._released = None
+        self._pending = True
+        if frame is not None:
+            wait_on_gpu(frame.sync)
+            self._shown = frame
+            self.last_camera = frame.camera
+            self.frame_ms = frame.frame_ms
+        if self._shown is None:
+            self.ctx.clear(0.0, 0.0, 0.0, 1.0)
+            return
+        f = self._shown
+        key = (f.texture, f.size, f.dtype)
+        tex = self._textures.get(key)
+        if tex is None:
+            tex = self._textures[key] = self.ctx.external_texture(f.texture, f.size, 4, 0, f.dtype)
+        self._show_texture(tex, f.camera)
+        self._released = fence()
+
+    def _show_texture(self, tex, cam: Camera) -> None:
+        ctx = self.ctx
+        self.wnd.use()
+        ctx.viewport = (0, 0, *self.wnd.buffer_size)
+        ctx.disable(ctx.DEPTH_TEST | ctx.BLEND)
+        tex.use(0)
+        self.blit["u_image"].value = 0
+        self.blit_vao.render(vertices=3)
+        if self.show_bounds:
+            self._draw_bounds(cam)
 
     def _draw_bounds(self, cam: Camera) -> None:
         s = self.session
@@ -399,17 +472,26 @@ class Viewer:
         s = self.session
         changed, self.ui_sse = imgui.slider_float("max SSE px", self.ui_sse, 0.0, 16.0, "%.2f")
         if changed:
-            s.reconfigure(replace(s.options, max_sse=self.ui_sse))
+            self._reconfigure(max_sse=self.ui_sse)
         _, self.ui_budget = imgui.input_float("GPU MiB", self.ui_budget, 64.0, 256.0, "%.0f")
         if imgui.is_item_deactivated_after_edit() and self.ui_budget > 1:
-            s.reconfigure(replace(s.options, gpu_mem_mb=float(self.ui_budget)))
+            self._reconfigure(gpu_mem_mb=float(self.ui_budget))
         self.ui_degree = min(self.ui_degree, s.manifest.sh_degree)  # the slider shows what the scene can have
         changed, self.ui_degree = imgui.slider_int("SH degree", self.ui_degree, 0, s.manifest.sh_degree)
         if changed:
             self.run = replace(self.run, sh_degree=self.ui_degree)
-            s.reconfigure(replace(s.options, sh_degree=self.ui_degree))
+            self._reconfigure(sh_degree=self.ui_degree)
         _, self.show_bounds = imgui.checkbox("tile bounds (by level)", self.show_bounds)
         _, s.paused = imgui.checkbox("pause streaming", s.paused)
+
+    def _reconfigure(self, **changes) -> None:
+        """Session options changed from the overlay: on the thread that owns the session's GL objects."""
+        def apply(s: StreamingSession) -> None:
+            s.reconfigure(replace(s.options, **changes))
+        if self.render is not None:
+            self.render.call(apply)
+        else:
+            apply(self.session)
 
     # --- output ---------------------------------------------------------------------------------------------------
     def screenshot(self, path: str | None = None) -> str | None:
@@ -421,8 +503,11 @@ class Viewer:
         path = path or self.run.screenshot or os.path.abspath(time.strftime("splatstream-%Y%m%d-%H%M%S.png"))
         if os.path.exists(path) and not self.run.screenshot:
             path = path[:-4] + f"-{len(self.screenshots)}.png"
-        write_png(path, self.session.read_image())
-        cam = self.last_camera
+        if self.render is not None:  # the image is the render thread's: read there, in its context
+            image, cam = self.render.call(lambda s: (s.read_image(), s.drawn_camera)).result(timeout=60)
+        else:
+            image, cam = self.session.read_image(), self.last_camera
+        write_png(path, image)
         with open(path + ".camera.json", "w") as f:
             json.dump(cam.to_dict(), f)
         def vec(v) -> str:
@@ -514,7 +599,9 @@ class Viewer:
 
     def close(self) -> None:
         self.write_record()
-        if self.session is not None:
+        if self.render is not None:
+            self.render.close()  # closes the session in its context
+        elif self.session is not None:
             self.session.close()
         elif self.prepared is not None:
             self.prepared.fetcher.close()

@@ -85,7 +85,8 @@ window() {  # window <name> <more view options>: one timed window run, its recor
 window window --screenshot "$OUT/window.png"
 window window_no_overlay --no-overlay
 # the renderer's image into the window by glBlitFramebuffer instead of a full-window triangle
-SPLATSTREAM_WINDOW_PRESENT=copy window window_copy --no-overlay
+# frames drawn in the window's own context on its thread (the viewer before its render thread)
+SPLATSTREAM_WINDOW_THREAD=0 window window_one_thread --no-overlay
 # the NVIDIA driver's own worker thread for GL calls (its swap's copy to the X server may then overlap our next frame)
 __GL_THREADED_OPTIMIZATIONS=1 window window_threaded --no-overlay
 tail -3 $W/xvfb.log

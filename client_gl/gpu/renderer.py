@@ -234,6 +234,7 @@ class SplatRenderer:
         self.header = shadergen.decode_header(pool.layout)
         self.max_point = float(ctx.info.get("GL_POINT_SIZE_RANGE", (1.0, 1.0))[1])
         self._fbo = None
+        self.output_target = 0  # which of two offscreen targets frames go to (next_output_target)
         self._fbo_size: tuple[int, int] | None = None
         self._background = (0.0, 0.0, 0.0)
         self._camera_key: tuple | None = None  # camera_values() cache
@@ -421,7 +422,7 @@ class SplatRenderer:
         """
         cache = self.ctx.extra if isinstance(self.ctx.extra, dict) else {}
         self.ctx.extra = cache
-        key = ("splat_fbo", width, height, self.options.color_dtype)
+        key = ("splat_fbo", width, height, self.options.color_dtype, self.output_target)
         if key not in cache:
             color = self.ctx.texture((width, height), 4, dtype=self.options.color_dtype)
             depth = self.ctx.depth_renderbuffer((width, height))
@@ -429,6 +430,11 @@ class SplatRenderer:
         self._fbo = cache[key]
         self._fbo_size = (width, height)
         return self._fbo
+
+    def next_output_target(self) -> None:
+        """Draw the next frames into the other of two offscreen targets: a window shows a frame while the next one
+        is drawn (render_thread.py)."""
+        self.output_target ^= 1
 
     def read_image(self) -> np.ndarray:
         """(H, W, 4) float32 of the last frame, row 0 at the top (premultiplied RGB over the background, alpha)."""
