@@ -93,7 +93,7 @@ tail -3 $W/xvfb.log
 python3 - "$OUT" <<'PY'
 import json, sys
 out = sys.argv[1]
-for name in ("headless", "window", "window_no_overlay", "window_copy", "window_threaded"):
+for name in ("headless", "window", "window_no_overlay", "window_one_thread"):
     try:
         r = json.load(open(f"{out}/{name}.json"))
     except OSError:
