@@ -359,6 +359,8 @@ class Viewer:
     def _threaded_frame(self, cam: Camera) -> None:
         """Show the frame the render thread drew from the camera before (waiting for it up to WAIT_S), and hand it
         this frame's camera: it draws while this thread shows and swaps."""
+        if self.render.error is not None:  # the render thread stopped on an error: it ends the viewer, as here
+            raise self.render.error
         frame = self.render.take(WAIT_S if self._shown is not None or self._pending else 0.0)
         self.render.submit(cam, self.run.sh_degree, self._released)
         self._released = None
