@@ -5,7 +5,8 @@ The window opens at once; the source is opened and the manifest fetched on a wor
 encoded there), so the window keeps drawing (a progress line) until the scene can stream. Splats are drawn into
 the renderer's own framebuffer at the window's framebuffer size (HiDPI: physical pixels), copied to the window,
 and the overlay is drawn over the copy only: a screenshot (P) is the renderer's framebuffer, full resolution,
-without the overlay.
+without the overlay. The session and its frames live on a render thread with a GL context of its own
+(render_thread.py): the window shows frame N while frame N+1 is drawn.
 """
 from __future__ import annotations
 
