@@ -361,3 +361,52 @@ def test_work_buffers_grow_with_what_is_drawn(gl_context, scenes, sorts, fruit, 
         grown.release()
         whole.release()
         pool.release()
+
+
+def test_work_buffers_and_primed_atlases(gl_context):
+    """Work buffers on immutable storage (gl.work_buffer) write, read back and bind like moderngl's, and release
+    once; a new pool's uncompressed atlases get one texel from a shader (prime_texels.comp) and still upload and
+    read what a tile puts there (the pool tests above draw through them)."""
+    from client_gl.gpu.gl import WorkBuffer, gl_version, work_buffer
+    from client_gl.gpu.pool import ChunkPool
+
+    ctx = gl_context
+    buf = work_buffer(ctx, 1 << 20)
+    if gl_version() >= 44:
+        assert isinstance(buf, WorkBuffer)
+    buf.write(b"splatstream", offset=4096)
+    assert buf.read(11, offset=4096) == b"splatstream" and buf.size == 1 << 20
+    buf.bind_to_storage_buffer(0)
+    buf.release()
+    buf.release()  # a second release is a no-op, as moderngl's
+    formats = {"position": "norm11", "rotation": "norm10_2", "scale": "norm11", "color": "norm8x4", "sh": "norm565"}
+    pool = ChunkPool.for_budget(ctx, 16 << 20, formats, 0, host_mirror=False)
+    try:
+        assert pool.gpu_bytes <= 16 << 20
+    finally:
+        pool.release()
+
+
+def test_two_output_targets(gl_context, scenes, fruit):
+    """next_output_target: frames go to the other of two framebuffers (a window shows one while the next is drawn);
+    each holds the frame drawn into it and read_image reads the last one drawn."""
+    from client_gl.headless import HeadlessRenderer, RenderOptions
+
+    r = HeadlessRenderer(RenderOptions(), ctx=gl_context)
+    r.load_gaussians(fruit)
+    cam = suggested_camera(fruit.positions, width=96, height=64)
+    try:
+        first = r.render(cam)
+        fbo0 = r.renderer.framebuffer(96, 64)
+        img0 = r.renderer.read_image()
+        r.renderer.next_output_target()
+        blue = r.render(cam, background=(0.0, 0.0, 1.0))  # a different picture into the second target
+        fbo1 = r.renderer.framebuffer(96, 64)
+        assert fbo0.glo != fbo1.glo
+        assert not np.array_equal(first, blue)
+        r.renderer.next_output_target()
+        assert r.renderer.framebuffer(96, 64).glo == fbo0.glo
+        np.testing.assert_array_equal(r.renderer.read_image(), img0)  # the first target kept its frame
+    finally:
+        r.renderer.output_target = 0
+        r.unload()

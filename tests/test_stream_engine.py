@@ -219,3 +219,24 @@ def test_decode_processes_give_the_same_residency(store):
     assert draw0 == draw2 and bands0 == bands2
     # every payload drawn was decoded in the processes (prefetched ones may come on top)
     assert in_procs0 == 0 and in_procs2 >= len(bands2) + sum(bands2.values())
+
+
+def test_decode_waits_between_steps_of_a_payload(store):
+    """decode_payload's `between` hook: called after the checksum and before each plane of the group (a decode thread
+    waits there while the frame loop works); the planes equal those decoded without it."""
+    from splatstream.format.decode import decode_payload
+    from splatstream.format.planes import group_planes
+
+    m = read_manifest(store)
+    tile = m.tile(m.root)
+    assert len(tile.groups) == 4  # base and three SH bands
+    for group, entry in tile.groups.items():
+        data = store.read_payload(entry)
+        calls = []
+        planes = decode_payload(data, entry, group, "x", between=lambda calls=calls: calls.append(1))
+        assert len(calls) == 1 + len(group_planes(group, False))
+        plain = decode_payload(data, entry, group, "x")
+        assert planes.keys() == plain.keys()
+        for name in planes:
+            for a, b in zip(planes[name].layers, plain[name].layers, strict=True):
+                assert bytes(a) == bytes(b)

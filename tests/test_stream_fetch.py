@@ -469,3 +469,30 @@ def test_a_missing_local_payload_is_retried_not_delivered(root, manifest, tmp_pa
         os.rename(moved, scene / "data" / f"{victim}.bin")  # back: the next retry gets it
         results += collect(f, len(bad))
     assert_exact(root, results, reqs)
+
+
+def test_io_waits_for_the_frame_loop_when_asked(root, manifest, server):
+    """Fetcher.yield_to: while the frame loop is in its CPU work (the event clear), responses are not handled; they
+    are once it waits for the GPU (the event set), and the bytes are exact. A gate that stays closed only delays
+    (each wait is bounded)."""
+    import threading
+
+    idle = threading.Event()
+    reqs = requests_of(manifest)[:4]
+    f = fetcher(HttpSource(server.url(SCENE)))
+    try:
+        f.manifest()
+        f.yield_to(idle, timeout_s=5.0)
+        f.want(reqs)
+        time.sleep(0.3)
+        assert f.done() == [] and f.stats().delivered == 0  # the loop is waiting at the gate
+        idle.set()
+        results = collect(f, len(reqs), timeout_s=10.0)
+        assert_exact(root, results, reqs)
+        idle.clear()
+        f.yield_to(idle, timeout_s=0.01)  # never opened: every wait times out, the fetch still completes
+        more = requests_of(manifest)[4:8]
+        f.want(more)
+        assert_exact(root, collect(f, len(more), timeout_s=10.0), more)
+    finally:
+        f.close()
