@@ -17,7 +17,6 @@ and prints the median frame interval of each. Run under a display (xvfb-run loca
 from __future__ import annotations
 
 import argparse
-import ctypes
 import json
 import threading
 import time
@@ -37,34 +36,6 @@ void main() {
     imageStore(u_out, p, vec4(c, 1.0));
 }
 """
-_VS = """#version 410
-out vec2 uv;
-void main() {
-    vec2 p = vec2((gl_VertexID << 1) & 2, gl_VertexID & 2);
-    uv = p;
-    gl_Position = vec4(p * 2.0 - 1.0, 0.0, 1.0);
-}
-"""
-_FS = """#version 410
-uniform sampler2D u_image;
-in vec2 uv;
-out vec4 colour;
-void main() { colour = vec4(texture(u_image, uv).rgb, 1.0); }
-"""
-GL_SYNC_GPU_COMMANDS_COMPLETE = 0x9117
-GL_TIMEOUT_IGNORED = 0xFFFFFFFFFFFFFFFF
-
-
-def _sync_functions():
-    from client_gl.gpu.gl import _address
-
-    fence = ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.c_uint, ctypes.c_uint)(_address("glFenceSync"))
-    wait = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_uint, ctypes.c_uint64)(_address("glWaitSync"))
-    delete = ctypes.CFUNCTYPE(None, ctypes.c_void_p)(_address("glDeleteSync"))
-    flush = ctypes.CFUNCTYPE(None)(_address("glFlush"))
-    return fence, wait, delete, flush
-
-
 class Frames:
     """The synthetic frame: `iterations` steps of a compute shader over a width x height RGBA8 image."""
 
@@ -108,8 +79,10 @@ def main() -> None:
     glfw.make_context_current(window)
     glfw.swap_interval(0)
     ctx = moderngl.create_context()
-    fence, wait_sync, delete_sync, flush = _sync_functions()
-    blit = ctx.program(vertex_shader=_VS, fragment_shader=_FS)
+    from client_gl.render_thread import fence, wait_on_gpu
+    from client_gl.window import _BLIT_FS, _BLIT_VS
+
+    blit = ctx.program(vertex_shader=_BLIT_VS, fragment_shader=_BLIT_FS)
     vao = ctx.vertex_array(blit, [])
     frames = Frames(ctx, (w, h), args.iterations)
     out: dict = {"gl_renderer": ctx.info["GL_RENDERER"], "size": [w, h], "iterations": args.iterations}
@@ -144,14 +117,12 @@ def main() -> None:
         glfw.make_context_current(hidden)
         rctx = moderngl.create_context()
         rframes = Frames(rctx, (w, h), args.iterations)
-        rfence, _, rdelete, rflush = _sync_functions()
         while not stop.is_set():
             with lock:  # at most two frames ahead of the display (two targets)
                 while len(ready) >= 1 and not stop.is_set():
                     lock.wait(0.05)
             tex = rframes.draw()
-            sync = rfence(GL_SYNC_GPU_COMMANDS_COMPLETE, 0)
-            rflush()
+            sync = fence()
             drawn[0] += 1
             with lock:
                 ready.append((tex.glo, sync))
@@ -167,8 +138,7 @@ def main() -> None:
                 lock.wait(0.05)
             glo, sync = ready.pop(0)
             lock.notify_all()
-        wait_sync(sync, 0, GL_TIMEOUT_IGNORED)  # the GPU waits for the render context's frame, not this thread
-        delete_sync(sync)
+        wait_on_gpu(sync)  # the GPU waits for the render context's frame, not this thread
         tex = shown.get(glo)
         if tex is None:
             tex = shown[glo] = ctx.external_texture(glo, (w, h), 4, 0, "f1")
