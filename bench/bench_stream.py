@@ -246,7 +246,7 @@ def main() -> None:
                         # varies by a last bit at 80-90 dB): drops are measured on values capped there.
                         s = [min(p["psnr"], PSNR_SAME) for p in r["psnr_series"]]
                         drops = [a - b for a, b in zip(s, s[1:], strict=False)]
-                        r["max_psnr_drop_db"] = round(max(drops, default=0.0), 2)
+                        r["max_psnr_drop_db"] = round(max([0.0, *drops]), 2)  # 0: it only rose
                         print(f"{label}: first frame {r['first_frame_s']}, converged {r['converged_s']}, "
                               f"{r['bytes_downloaded'] / 1e6:.1f} MB of {m.bytes_on_disk / 1e6:.1f}", flush=True)
                         results.append(r)
