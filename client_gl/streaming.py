@@ -141,7 +141,7 @@ class PreparedSource:
         fetcher.start()
         try:
             data = fetcher.manifest()
-            manifest = fetcher.parsed_manifest(data) or parse_manifest(data, f"{source.location}")
+            manifest = fetcher.parsed_manifest(data) or parse_manifest(data, f"{source.location}", lazy_payloads=True)
         except BaseException:
             fetcher.close()
             raise

@@ -308,3 +308,38 @@ def test_totals_are_cross_checked(tmp_path, raw):
 
     with pytest.raises(FormatError, match="bytes_on_disk: .* but the payload files and the manifest are"):
         parse_manifest(pack_manifest_dict(d), "m")
+
+
+TILE_CASES = [c for c in CASES if c[0][:2] == ["tiles", 0] and "groups" in c[0]]
+
+
+@pytest.mark.parametrize("path,value,field", TILE_CASES,
+                         ids=[".".join(map(str, c[0])) + f"={c[1]!r}"[:40] for c in TILE_CASES])
+def test_lazily_checked_payload_entries_name_the_same_field(raw, path, value, field):
+    """parse_manifest(lazy_payloads=True), the streaming client's: a damaged payload entry raises the FormatError the
+    eager parse raises, at the parse (where the damage reaches the totals) or when the entry is first read."""
+    assert len(TILE_CASES) >= 10
+    d = copy.deepcopy(raw)
+    _set(d, path, value)
+    with pytest.raises(FormatError) as eager:
+        manifest_from_dict(d, "m")
+    try:
+        m = manifest_from_dict(d, "m", lazy_payloads=True)
+        tile = next(t for t in m.tiles if t.id == d["tiles"][0]["id"])
+        for name in tile.groups:
+            tile.groups[name]
+    except FormatError as exc:
+        lazy = str(exc)
+    else:
+        pytest.fail("the damaged entry was never refused")
+    assert lazy == str(eager.value)
+
+
+def test_lazy_parse_reads_the_same_manifest():
+    """The lazily checked manifest has the same entries, totals and per-tile arrays as the eager one."""
+    data = (VECTORS / "low" / "manifest.msgpack").read_bytes()
+    eager, lazy = parse_manifest(data), parse_manifest(data, lazy_payloads=True)
+    assert [dict(t.groups) for t in lazy.tiles] == [dict(t.groups) for t in eager.tiles]
+    assert lazy.payload_bytes() == eager.payload_bytes()
+    for f in ("base_bytes", "band_bytes", "gpu_bytes", "splats", "parent"):
+        assert (getattr(lazy.arrays, f) == getattr(eager.arrays, f)).all(), f

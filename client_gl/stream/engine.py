@@ -158,7 +158,8 @@ class StreamEngine:
         self.residency = residency
         self.options = options
         self.location = location
-        self.manifest = manifest or parse_manifest(fetcher.manifest(), f"{location}/manifest.msgpack")
+        self.manifest = manifest or parse_manifest(fetcher.manifest(), f"{location}/manifest.msgpack",
+                                                      lazy_payloads=True)
         m = self.manifest
         self.arrays = m.arrays
         self.root = m.index_of[m.root]

@@ -520,7 +520,7 @@ class Fetcher:
                                          "that was not asked for conditionally", transient=False)
                     return self._manifest_done(cached.data, MANIFEST_REVALIDATED, from_cache=True)
                 try:
-                    parsed = parse_manifest(reply.data, self.source.location)
+                    parsed = parse_manifest(reply.data, self.source.location, lazy_payloads=True)
                 except FormatError as exc:
                     raise FetchError(self.source.location, NOT_A_SCENE, f"not a splatstream manifest "
                                      f"({exc.field + ': ' if exc.field else ''}{exc.problem})",

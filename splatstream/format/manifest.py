@@ -14,7 +14,7 @@ import gc
 import hashlib
 import math
 import operator
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass, field, replace
 
 import msgpack
@@ -300,10 +300,16 @@ class Manifest:
             for k in kids:
                 parent[k] = i
         band_bytes = np.zeros((n, MAX_SH_DEGREE), np.int64)
+        base_bytes = np.zeros(n, np.int64)
+        gpu_bytes = np.zeros(n, np.int64)
         for i, t in enumerate(tiles):
-            for b in range(1, MAX_SH_DEGREE + 1):
-                p = t.groups.get(f"sh{b}")
-                band_bytes[i, b - 1] = p.bytes if p is not None else 0
+            for name in t.groups:
+                gpu, size = _entry_fields(t.groups, name, ("gpu_bytes", "bytes"))
+                gpu_bytes[i] += gpu
+                if name == "base":
+                    base_bytes[i] = size
+                elif name.startswith("sh") and name[2:].isdigit() and 1 <= int(name[2:]) <= MAX_SH_DEGREE:
+                    band_bytes[i, int(name[2:]) - 1] = size
         return TileArrays(
             ids=np.array([t.id for t in tiles], np.int64), parent=parent,
             level=np.array([t.level for t in tiles], np.int64),
@@ -314,9 +320,7 @@ class Manifest:
             sphere_radius=np.array([t.sphere_radius for t in tiles], np.float64),
             geometric_error=np.array([t.geometric_error for t in tiles], np.float64),
             children=tuple(children),
-            base_bytes=np.array([t.groups["base"].bytes for t in tiles], np.int64),
-            band_bytes=band_bytes,
-            gpu_bytes=np.array([sum(p.gpu_bytes for p in t.groups.values()) for t in tiles], np.int64))
+            base_bytes=base_bytes, band_bytes=band_bytes, gpu_bytes=gpu_bytes)
 
     def to_dict(self) -> dict:
         """The manifest map of format.md 6, keys in the order the encoder has always written them."""
@@ -714,10 +718,15 @@ def _expected_sections(group: str, codebook: bool, format_items: tuple, chunks: 
     return out
 
 
-def parse_manifest(raw: bytes, source: str = MANIFEST_NAME) -> Manifest:
-    """Parse and validate manifest file bytes; from version 1.2 on the checksum is verified first."""
+def parse_manifest(raw: bytes, source: str = MANIFEST_NAME, lazy_payloads: bool = False) -> Manifest:
+    """Parse and validate manifest file bytes; from version 1.2 on the checksum is verified first.
+
+    lazy_payloads (the streaming client): each tile's payload entries are checked when first read (a FormatError
+    naming the field then), not here; everything else, totals included, is checked now. They are most of the parse
+    of a large scene's manifest (a 6M-splat scene's: 2,732 entries, 27,000 sections), which a client waits for
+    before its first frame and then reads a few at a time."""
     with _collector_paused():
-        return _parse_manifest(raw, source)
+        return _parse_manifest(raw, source, lazy_payloads)
 
 
 @contextlib.contextmanager
@@ -733,7 +742,7 @@ def _collector_paused():
             gc.enable()
 
 
-def _parse_manifest(raw: bytes, source: str) -> Manifest:
+def _parse_manifest(raw: bytes, source: str, lazy_payloads: bool) -> Manifest:
     try:
         d = msgpack.unpackb(raw, raw=False, strict_map_key=False)
     except Exception as exc:  # msgpack raises several unrelated types for garbage
@@ -741,11 +750,99 @@ def _parse_manifest(raw: bytes, source: str) -> Manifest:
     version = _check_format_and_version(d, source)
     if version >= CHECKSUM_VERSION:
         _verify_checksum(raw, d, source)
-    manifest = manifest_from_dict(d, source)
-    if CHECKSUM_VERSION <= version <= FORMAT_VERSION and manifest.bytes_on_disk != manifest.payload_bytes() + len(raw):
-        raise FormatError(source, "bytes_on_disk", f"{manifest.bytes_on_disk}, but the payload files and the "
-                          f"manifest are {manifest.payload_bytes() + len(raw)} bytes")
+    manifest = manifest_from_dict(d, source, lazy_payloads)
+    if CHECKSUM_VERSION <= version <= FORMAT_VERSION:
+        files = _payload_file_bytes(manifest)
+        if manifest.bytes_on_disk != files + len(raw):
+            _check_all_entries(manifest.tiles)
+            raise FormatError(source, "bytes_on_disk", f"{manifest.bytes_on_disk}, but the payload files and the "
+                              f"manifest are {files + len(raw)} bytes")
     return manifest
+
+
+def _payload_file_bytes(manifest: Manifest) -> int:
+    """Manifest.payload_bytes, reading lazily checked entries' names and sizes without checking them all."""
+    sizes: dict = {}
+    for t in manifest.tiles:
+        for name in t.groups:
+            f, b = _entry_fields(t.groups, name, ("file", "bytes"))
+            sizes[f] = b
+    if manifest.sh_codebook is not None:
+        for p in manifest.sh_codebook.groups.values():
+            sizes[p.file] = p.bytes
+    return sum(sizes.values())
+
+
+def _check_all_entries(tiles) -> None:
+    """Read every payload entry of these tiles: a lazily checked one that is wrong raises its own FormatError."""
+    for t in tiles:
+        for name in t.groups:
+            t.groups[name]
+
+
+def _entry_fields(groups: Mapping[str, PayloadEntry], name: str, fields: tuple[str, ...]) -> tuple:
+    """Fields of one payload entry: from the raw map where it is checked lazily and they have the right types."""
+    if isinstance(groups, LazyPayloads):
+        return groups.raw_fields(name, fields)
+    entry = groups[name]
+    return tuple(getattr(entry, f) for f in fields)
+
+
+class LazyPayloads(Mapping):
+    """A tile's payload entries (group name -> PayloadEntry), each checked when first read, as manifest_from_dict
+    checks them (parse_manifest(..., lazy_payloads=True)); a bad one raises the same FormatError, naming the field."""
+
+    def __init__(self, raw: dict, names: tuple[str, ...], codebook: bool, formats: dict[str, str], chunks: int,
+                 strict: bool, texture: tuple[int, int], source: str, path: str):
+        self._raw, self._names, self._codebook, self._formats = raw, names, codebook, formats
+        self._chunks, self._strict, self._texture, self._source, self._path = chunks, strict, texture, source, path
+        self._checked: dict[str, PayloadEntry] = {}
+
+    def __getitem__(self, name: str) -> PayloadEntry:
+        entry = self._checked.get(name)
+        if entry is None:
+            if name not in self._names:
+                raise KeyError(name)
+            entry = self._checked[name] = _checked_group(self._raw, name, self._codebook, self._formats,
+                                                         self._chunks, self._strict, self._texture, self._source,
+                                                         self._path)
+        return entry
+
+    def __iter__(self):
+        return iter(self._names)
+
+    def __len__(self) -> int:
+        return len(self._names)
+
+    def raw_fields(self, name: str, fields: tuple[str, ...]) -> tuple:
+        """Fields of an entry as stored, where they are a non-negative integer or a payload file name; otherwise the
+        entry is checked (and a bad one raises)."""
+        raw = self._raw.get(name)
+        if name in self._names and type(raw) is dict:
+            values = tuple(raw.get(f) for f in fields)
+            if all((_is_int(v) and v >= 0) if f != "file" else type(v) is str for f, v in zip(fields, values,
+                                                                                               strict=True)):
+                return values
+        entry = self[name]
+        return tuple(getattr(entry, f) for f in fields)
+
+
+def _checked_group(raw_groups: dict, name: str, codebook: bool, formats: dict[str, str], chunks: int, strict: bool,
+                   texture: tuple[int, int], source: str, path: str) -> PayloadEntry:
+    """One tile group's payload entry, checked as manifest_from_dict checks it (the fast path, then the one that
+    names what is wrong)."""
+    expect = expected_sections(name, codebook, formats, chunks)
+    entry = _payload_fast(raw_groups.get(name), expect, chunks, strict)
+    if entry is not None and all(sec.kind != "texels" or (sec.width, sec.height) == texture
+                                 for sec in entry.sections):
+        return entry
+    gm = _Map(source, path, raw_groups, strict)
+    entry = _payload(gm, name, expect, chunks)
+    for sec in entry.sections:
+        if sec.kind == "texels" and (sec.width, sec.height) != texture:
+            gm.fail(f"{name}.sections", f"{sec.name} is {sec.width}x{sec.height}, the tile's texture "
+                    f"{texture[0]}x{texture[1]}")
+    return entry
 
 
 def _check_format_and_version(d, source: str) -> tuple[int, int]:
@@ -761,7 +858,7 @@ def _check_format_and_version(d, source: str) -> tuple[int, int]:
     return version[0], version[1]
 
 
-def manifest_from_dict(d, source: str = MANIFEST_NAME) -> Manifest:
+def manifest_from_dict(d, source: str = MANIFEST_NAME, lazy_payloads: bool = False) -> Manifest:
     """Validate a manifest map (format.md 6) into a Manifest; FormatError names the first field that is wrong.
     (The checksum, a property of the file's bytes, is verified by parse_manifest.)"""
     version = _check_format_and_version(d, source)
@@ -799,7 +896,8 @@ def manifest_from_dict(d, source: str = MANIFEST_NAME) -> Manifest:
     tiles = []
     ids: set[int] = set()
     for i, item in enumerate(m.list("tiles")):
-        fast = _tile_fast(item, group_names, codebook is not None, formats, strict)
+        fast = _tile_fast(item, group_names, codebook is not None, formats, strict,
+                          (source, f"tiles[{i}].groups") if lazy_payloads else None)
         if fast is not None and fast.id not in ids:
             ids.add(fast.id)
             tiles.append(fast)
@@ -875,13 +973,15 @@ def manifest_from_dict(d, source: str = MANIFEST_NAME) -> Manifest:
     if not strict:  # a newer minor version may add payloads these totals count; only its own keys are checked
         return manifest
     # Totals a reader can recompute must agree (a resealed but edited manifest, or a writer's bug).
-    leaf_entries = [p for t in manifest.leaves for p in t.groups.values()]
+    leaf_sizes = [_entry_fields(t.groups, name, ("gpu_bytes", "bytes")) for t in manifest.leaves for name in t.groups]
     if codebook is not None:
-        leaf_entries += list(codebook.groups.values())
-    gpu = sum(p.gpu_bytes for p in leaf_entries)
+        leaf_sizes += [(p.gpu_bytes, p.bytes) for p in codebook.groups.values()]
+    gpu = sum(g for g, _ in leaf_sizes)
+    disk = sum(b for _, b in leaf_sizes)
+    if manifest.gpu_bytes != gpu or manifest.leaf_bytes_on_disk != disk:
+        _check_all_entries(manifest.leaves)  # a lazily checked entry at fault is named, not only the total
     if manifest.gpu_bytes != gpu:
         m.fail("gpu_bytes", f"{manifest.gpu_bytes}, but the leaf tiles' and codebook's sections hold {gpu} bytes")
-    disk = sum(p.bytes for p in leaf_entries)
     if manifest.leaf_bytes_on_disk != disk:
         m.fail("leaf_bytes_on_disk", f"{manifest.leaf_bytes_on_disk}, but the leaf tiles' and codebook's payloads "
                f"are {disk} bytes")
@@ -897,7 +997,8 @@ def _finite3(v) -> bool:
             and all(math.isfinite(x) for x in v))
 
 
-def _tile_fast(v, group_names, codebook: bool, formats: dict[str, str], strict: bool) -> TileEntry | None:
+def _tile_fast(v, group_names, codebook: bool, formats: dict[str, str], strict: bool,
+               lazy: tuple[str, str] | None = None) -> TileEntry | None:
     """The checks of manifest_from_dict's tile loop with plain dict operations (a 6M-splat scene has thousands of
     tiles: with _payload_fast, the manifest of the 6M scene parses in a third of the time); None when anything is
     off, and the loop's _Map checks then say what, naming the field."""
@@ -919,8 +1020,13 @@ def _tile_fast(v, group_names, codebook: bool, formats: dict[str, str], strict: 
             and type(error) in (float, int) and math.isfinite(error) and error >= 0 and type(groups) is dict
             and (groups.keys() == set(group_names) if strict else groups.keys() >= set(group_names))):
         return None
-    entries = {}
     size = (texture[0], texture[1])
+    if lazy is not None:  # (source, path): the entries are checked when read (LazyPayloads)
+        entries = LazyPayloads(groups, tuple(group_names), codebook, formats, chunks, strict, size, *lazy)
+        return TileEntry(tid, level, tuple(children), n, chunks, size,
+                         Box(tuple(float(x) for x in box["min"]), tuple(float(x) for x in box["max"])),
+                         tuple(float(x) for x in sphere["center"]), float(sphere["radius"]), float(error), entries)
+    entries = {}
     for name in group_names:
         entry = _payload_fast(groups[name], expected_sections(name, codebook, formats, chunks), chunks, strict)
         if entry is None or any(sec.kind == "texels" and (sec.width, sec.height) != size for sec in entry.sections):
