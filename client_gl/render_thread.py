@@ -178,9 +178,10 @@ class RenderThread:
                     return
                 calls, self._calls = self._calls, []
                 job = self._camera if not self._frames else None
-                if job is not None:
+                released = None
+                if job is not None:  # the window's release fence goes with the frame that needs it
                     self._camera = None
-                released, self._released = self._released, None
+                    released, self._released = self._released, None
             for fn, future in calls:
                 try:
                     future.set_result(fn(session))
