@@ -27,6 +27,7 @@ from .planes import (
     MAX_SH_DEGREE,
     RANGE_DTYPE_NAMES,
     SH_INDEX_FORMAT,
+    band_of,
     band_plane,
     chunks_for,
     group_planes,
@@ -284,8 +285,17 @@ class Manifest:
                 yield None, name, p
 
     def payload_bytes(self) -> int:
-        """Bytes of every distinct payload file (content-addressed: equal payloads are one file)."""
-        return sum({p.file: p.bytes for _, _, p in self.payloads()}.values())
+        """Bytes of every distinct payload file (content-addressed: equal payloads are one file). Lazily checked
+        entries are read as stored (they are checked when read for anything else)."""
+        sizes = {}
+        for t in self.tiles:
+            for name in t.groups:
+                file, size = _entry_fields(t.groups, name, ("file", "bytes"))
+                sizes[file] = size
+        if self.sh_codebook is not None:
+            for p in self.sh_codebook.groups.values():
+                sizes[p.file] = p.bytes
+        return sum(sizes.values())
 
     @functools.cached_property
     def arrays(self) -> TileArrays:
@@ -306,10 +316,11 @@ class Manifest:
             for name in t.groups:
                 gpu, size = _entry_fields(t.groups, name, ("gpu_bytes", "bytes"))
                 gpu_bytes[i] += gpu
-                if name == "base":
+                band = band_of(name)
+                if band:
+                    band_bytes[i, band - 1] = size
+                else:
                     base_bytes[i] = size
-                elif name.startswith("sh") and name[2:].isdigit() and 1 <= int(name[2:]) <= MAX_SH_DEGREE:
-                    band_bytes[i, int(name[2:]) - 1] = size
         return TileArrays(
             ids=np.array([t.id for t in tiles], np.int64), parent=parent,
             level=np.array([t.level for t in tiles], np.int64),
@@ -752,25 +763,12 @@ def _parse_manifest(raw: bytes, source: str, lazy_payloads: bool) -> Manifest:
         _verify_checksum(raw, d, source)
     manifest = manifest_from_dict(d, source, lazy_payloads)
     if CHECKSUM_VERSION <= version <= FORMAT_VERSION:
-        files = _payload_file_bytes(manifest)
+        files = manifest.payload_bytes()
         if manifest.bytes_on_disk != files + len(raw):
             _check_all_entries(manifest.tiles)
             raise FormatError(source, "bytes_on_disk", f"{manifest.bytes_on_disk}, but the payload files and the "
                               f"manifest are {files + len(raw)} bytes")
     return manifest
-
-
-def _payload_file_bytes(manifest: Manifest) -> int:
-    """Manifest.payload_bytes, reading lazily checked entries' names and sizes without checking them all."""
-    sizes: dict = {}
-    for t in manifest.tiles:
-        for name in t.groups:
-            f, b = _entry_fields(t.groups, name, ("file", "bytes"))
-            sizes[f] = b
-    if manifest.sh_codebook is not None:
-        for p in manifest.sh_codebook.groups.values():
-            sizes[p.file] = p.bytes
-    return sum(sizes.values())
 
 
 def _check_all_entries(tiles) -> None:
@@ -827,17 +825,24 @@ class LazyPayloads(Mapping):
         return tuple(getattr(entry, f) for f in fields)
 
 
+def _fast_group(raw_groups: dict, name: str, codebook: bool, formats: dict[str, str], chunks: int, strict: bool,
+                texture: tuple[int, int]) -> PayloadEntry | None:
+    """_payload_fast of one tile group, with its texels the tile's texture size; None when anything is off."""
+    entry = _payload_fast(raw_groups.get(name), expected_sections(name, codebook, formats, chunks), chunks, strict)
+    if entry is None or any(sec.kind == "texels" and (sec.width, sec.height) != texture for sec in entry.sections):
+        return None
+    return entry
+
+
 def _checked_group(raw_groups: dict, name: str, codebook: bool, formats: dict[str, str], chunks: int, strict: bool,
                    texture: tuple[int, int], source: str, path: str) -> PayloadEntry:
     """One tile group's payload entry, checked as manifest_from_dict checks it (the fast path, then the one that
     names what is wrong)."""
-    expect = expected_sections(name, codebook, formats, chunks)
-    entry = _payload_fast(raw_groups.get(name), expect, chunks, strict)
-    if entry is not None and all(sec.kind != "texels" or (sec.width, sec.height) == texture
-                                 for sec in entry.sections):
+    entry = _fast_group(raw_groups, name, codebook, formats, chunks, strict, texture)
+    if entry is not None:
         return entry
     gm = _Map(source, path, raw_groups, strict)
-    entry = _payload(gm, name, expect, chunks)
+    entry = _payload(gm, name, expected_sections(name, codebook, formats, chunks), chunks)
     for sec in entry.sections:
         if sec.kind == "texels" and (sec.width, sec.height) != texture:
             gm.fail(f"{name}.sections", f"{sec.name} is {sec.width}x{sec.height}, the tile's texture "
@@ -920,11 +925,9 @@ def manifest_from_dict(d, source: str = MANIFEST_NAME, lazy_payloads: bool = Fal
         gm = t.map("groups")
         groups = {}
         for name in group_names:
-            groups[name] = _payload(gm, name, expected_sections(name, codebook is not None, formats, chunks), chunks)
-            for s in groups[name].sections:
-                if s.kind == "texels" and (s.width, s.height) != texture:
-                    gm.fail(f"{name}.sections", f"{s.name} is {s.width}x{s.height}, the tile's texture "
-                            f"{texture[0]}x{texture[1]}")
+            groups[name] = _checked_group(gm.d, name, codebook is not None, formats, chunks, strict,
+                                          (texture[0], texture[1]), source, gm.path)
+            gm.used.add(name)
         gm.done()
         tiles.append(TileEntry(tid, t.int("level", 0, 64), t.ints("children", None, 0, 2**31 - 1), n, chunks,
                                (texture[0], texture[1]), _box(t, "box"), center, radius,
@@ -1028,8 +1031,8 @@ def _tile_fast(v, group_names, codebook: bool, formats: dict[str, str], strict: 
                          tuple(float(x) for x in sphere["center"]), float(sphere["radius"]), float(error), entries)
     entries = {}
     for name in group_names:
-        entry = _payload_fast(groups[name], expected_sections(name, codebook, formats, chunks), chunks, strict)
-        if entry is None or any(sec.kind == "texels" and (sec.width, sec.height) != size for sec in entry.sections):
+        entry = _fast_group(groups, name, codebook, formats, chunks, strict, size)
+        if entry is None:
             return None
         entries[name] = entry
     return TileEntry(tid, level, tuple(children), n, chunks, size,
