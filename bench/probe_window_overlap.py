@@ -79,7 +79,7 @@ def main() -> None:
     glfw.make_context_current(window)
     glfw.swap_interval(0)
     ctx = moderngl.create_context()
-    from client_gl.render_thread import fence, wait_on_gpu
+    from client_gl.gpu.gl import fence, gpu_wait
     from client_gl.window import _BLIT_FS, _BLIT_VS
 
     blit = ctx.program(vertex_shader=_BLIT_VS, fragment_shader=_BLIT_FS)
@@ -138,7 +138,7 @@ def main() -> None:
                 lock.wait(0.05)
             glo, sync = ready.pop(0)
             lock.notify_all()
-        wait_on_gpu(sync)  # the GPU waits for the render context's frame, not this thread
+        gpu_wait(sync)  # the GPU waits for the render context's frame, not this thread
         tex = shown.get(glo)
         if tex is None:
             tex = shown[glo] = ctx.external_texture(glo, (w, h), 4, 0, "f1")

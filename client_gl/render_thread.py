@@ -8,52 +8,22 @@ two threads, the window shows and swaps frame N while this thread draws frame N+
 4.61 ms a frame against 6.59 in one context, for a 3.74 ms frame; BENCHMARKS.md).
 
 The window's thread (main) calls submit(camera) once per frame, take() for the frame drawn from the camera before,
-waits for it on the GPU (wait_on_gpu: glWaitSync, the CPU does not wait), draws it, swaps, and hands a fence back
+waits for it on the GPU (gpu.gl.gpu_wait: glWaitSync, the CPU does not wait), draws it, swaps, and hands a fence back
 with the next submit so that this thread draws into that frame's target only after the window has read it. The
 session lives on this thread: anything that changes it goes through call(fn), run here before the next frame.
 """
 from __future__ import annotations
 
-import ctypes
 import threading
 from collections.abc import Callable
 from concurrent.futures import Future
 from dataclasses import dataclass
-from functools import lru_cache
 
 from splatstream.camera import Camera
 
-GL_SYNC_GPU_COMMANDS_COMPLETE = 0x9117
-GL_TIMEOUT_IGNORED = 0xFFFFFFFFFFFFFFFF
+from .gpu.gl import delete_fence, fence, gpu_wait
+
 WAIT_S = 0.05  # longest wait for a camera or a frame before looking at stop requests and pending calls again
-
-
-@lru_cache(maxsize=1)
-def _sync_calls():
-    """glFenceSync, glWaitSync, glDeleteSync and glFlush (they act on the calling thread's current context)."""
-    from .gpu.gl import _address
-
-    fence = ctypes.CFUNCTYPE(ctypes.c_void_p, ctypes.c_uint, ctypes.c_uint)(_address("glFenceSync"))
-    wait = ctypes.CFUNCTYPE(None, ctypes.c_void_p, ctypes.c_uint, ctypes.c_uint64)(_address("glWaitSync"))
-    delete = ctypes.CFUNCTYPE(None, ctypes.c_void_p)(_address("glDeleteSync"))
-    flush = ctypes.CFUNCTYPE(None)(_address("glFlush"))
-    return fence, wait, delete, flush
-
-
-def fence() -> int:
-    """A fence after the commands issued so far in the current context, flushed to the GPU (a GLsync handle)."""
-    make, _, _, flush = _sync_calls()
-    sync = make(GL_SYNC_GPU_COMMANDS_COMPLETE, 0)
-    flush()
-    return sync
-
-
-def wait_on_gpu(sync: int | None) -> None:
-    """Make the current context's next commands wait for `sync` on the GPU, then delete it (the CPU goes on)."""
-    if sync:
-        _, wait, delete, _ = _sync_calls()
-        wait(sync, 0, GL_TIMEOUT_IGNORED)
-        delete(sync)
 
 
 @dataclass
@@ -103,8 +73,7 @@ class RenderThread:
         with self._cond:
             self._camera = (camera, sh_degree)
             if released is not None:
-                if self._released is not None:
-                    _sync_calls()[2](self._released)
+                delete_fence(self._released)  # superseded: the new one comes after it
                 self._released = released
             self._cond.notify_all()
 
@@ -190,7 +159,7 @@ class RenderThread:
             if job is None:
                 continue
             camera, sh_degree = job
-            wait_on_gpu(released)  # the window has read the target this frame is about to overwrite
+            gpu_wait(released)  # the window has read the target this frame is about to overwrite
             session.renderer.next_output_target()
             frame = session.frame(camera, sh_degree=sh_degree)
             fbo = session.renderer.framebuffer(camera.width, camera.height)

@@ -24,7 +24,8 @@ from splatstream.camera_path import CameraPath
 from splatstream.errors import SplatstreamError, UsageError
 
 from .camera_control import CameraController, state_from_camera
-from .render_thread import WAIT_S, Frame, RenderThread, fence, wait_on_gpu
+from .gpu.gl import fence, gpu_wait
+from .render_thread import WAIT_S, Frame, RenderThread
 from .streaming import PreparedSource, StreamingSession, ViewOptions, freeze_long_lived
 
 EXIT_OK = 0
@@ -335,25 +336,13 @@ class Viewer:
             cam = self.camera()
             if self.render is not None:
                 self._threaded_frame(cam)
-                if self.show_overlay:
-                    self._overlay()
-                return
-            self.last_camera = cam
-            t0 = time.perf_counter()
-            self.session.frame(cam, sh_degree=self.run.sh_degree)
-            self.frame_ms = (time.perf_counter() - t0) * 1e3
-            fbo = self.session.renderer.framebuffer(cam.width, cam.height)
-            self.wnd.use()
-            ctx.viewport = (0, 0, *self.wnd.buffer_size)
-            if self.present == "copy" and tuple(self.wnd.buffer_size) == (cam.width, cam.height):
-                ctx.copy_framebuffer(ctx.screen, fbo)
             else:
-                ctx.disable(ctx.DEPTH_TEST | ctx.BLEND)
-                fbo.color_attachments[0].use(0)
-                self.blit["u_image"].value = 0
-                self.blit_vao.render(vertices=3)
-            if self.show_bounds:
-                self._draw_bounds(cam)
+                self.last_camera = cam
+                t0 = time.perf_counter()
+                self.session.frame(cam, sh_degree=self.run.sh_degree)
+                self.frame_ms = (time.perf_counter() - t0) * 1e3
+                fbo = self.session.renderer.framebuffer(cam.width, cam.height)
+                self._show_texture(fbo.color_attachments[0], cam, fbo)
         if self.show_overlay:
             self._overlay()
 
@@ -367,7 +356,7 @@ class Viewer:
         self._released = None
         self._pending = True
         if frame is not None:
-            wait_on_gpu(frame.sync)
+            gpu_wait(frame.sync)
             self._shown = frame
             self.last_camera = frame.camera
             self.frame_ms = frame.frame_ms
@@ -382,14 +371,19 @@ class Viewer:
         self._show_texture(tex, f.camera)
         self._released = fence()
 
-    def _show_texture(self, tex, cam: Camera) -> None:
+    def _show_texture(self, tex, cam: Camera, fbo=None) -> None:
+        """A frame's image into the window (and the tile bounds over it). fbo: its framebuffer in this context,
+        which the "copy" present mode blits from."""
         ctx = self.ctx
         self.wnd.use()
         ctx.viewport = (0, 0, *self.wnd.buffer_size)
-        ctx.disable(ctx.DEPTH_TEST | ctx.BLEND)
-        tex.use(0)
-        self.blit["u_image"].value = 0
-        self.blit_vao.render(vertices=3)
+        if fbo is not None and self.present == "copy" and tuple(self.wnd.buffer_size) == (cam.width, cam.height):
+            ctx.copy_framebuffer(ctx.screen, fbo)
+        else:
+            ctx.disable(ctx.DEPTH_TEST | ctx.BLEND)
+            tex.use(0)
+            self.blit["u_image"].value = 0
+            self.blit_vao.render(vertices=3)
         if self.show_bounds:
             self._draw_bounds(cam)
 

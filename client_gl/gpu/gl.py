@@ -34,6 +34,8 @@ GL_MAJOR_VERSION = 0x821B
 GL_MINOR_VERSION = 0x821C
 GL_MAP_READ_BIT = 0x0001
 GL_DYNAMIC_STORAGE_BIT = 0x0100
+GL_SYNC_GPU_COMMANDS_COMPLETE = 0x9117
+GL_TIMEOUT_IGNORED = 0xFFFFFFFFFFFFFFFF
 GL_NO_ERROR = 0
 
 GL_RGBA = 0x1908
@@ -110,6 +112,9 @@ _SIGNATURES = {
     "glGenBuffers": (None, (_i, _p)),
     "glDeleteBuffers": (None, (_i, _p)),
     "glBufferStorage": (None, (_u, ctypes.c_ssize_t, _p, _u)),
+    "glFenceSync": (_p, (_u, _u)),
+    "glWaitSync": (None, (_p, _u, ctypes.c_uint64)),
+    "glDeleteSync": (None, (_p,)),
 }
 
 
@@ -208,6 +213,26 @@ def wait_for_gpu() -> None:
     GPU is when the fetch and decode threads run their Python, instead of in the frame loop's next CPU work (where
     each of them takes up to a switch interval, 5 ms, from it)."""
     _finish_releasing_gil()()
+
+
+def fence() -> int:
+    """A fence after the commands issued so far in the current context, flushed to the GPU (a GLsync handle; sync
+    objects are shared by contexts that share objects)."""
+    sync = gl.glFenceSync(GL_SYNC_GPU_COMMANDS_COMPLETE, 0)
+    gl.glFlush()
+    return sync
+
+
+def gpu_wait(sync: int | None) -> None:
+    """The current context's next commands wait for `sync` on the GPU (the CPU goes on); the fence is deleted."""
+    if sync:
+        gl.glWaitSync(sync, 0, GL_TIMEOUT_IGNORED)
+        gl.glDeleteSync(sync)
+
+
+def delete_fence(sync: int | None) -> None:
+    if sync:
+        gl.glDeleteSync(sync)
 
 
 def _ptr(data: np.ndarray | None):

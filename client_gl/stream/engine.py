@@ -197,11 +197,10 @@ class StreamEngine:
         self._decoded: queue.Queue = queue.Queue()
         self._pool = ThreadPoolExecutor(max_workers=options.decode_workers, thread_name_prefix="splat-decode")
         self._closing = False
-        # Set while the frame loop is not in its CPU work (engine update, draw submission): decode threads start a
-        # payload only then. Decoding is mostly numpy and zstd, but its Python in between, on two threads, took
-        # the interpreter lock from the frame loop every switch interval (5 ms): frames that uploaded spent two
-        # thirds of their time waiting for it (BENCHMARKS.md). A frame loop that never says when it works (tests,
-        # tools) leaves it set.
+        # Set while the frame loop is not in its CPU work (engine update, draw submission): decode threads run each
+        # step of a payload only then, and the fetcher handles its I/O only then (Fetcher.yield_to). Their Python
+        # took the interpreter lock from the frame loop at each of its numpy calls: frames spent most of their time
+        # waiting for it (BENCHMARKS.md). A frame loop that never says when it works (tests, tools) leaves it set.
         self._loop_idle = threading.Event()
         self._loop_idle.set()
         self._processes: ProcessPoolExecutor | None = None
@@ -357,11 +356,11 @@ class StreamEngine:
         return self._loop_idle
 
     def frame_started(self) -> None:
-        """The frame loop begins its CPU work (update, uploads, draw submission): decode threads wait."""
+        """The frame loop begins its CPU work (update, uploads, draw submission): decoding and fetching wait."""
         self._loop_idle.clear()
 
     def frame_submitted(self) -> None:
-        """The frame loop waits for the GPU or the display now: decode threads may run."""
+        """The frame loop waits for the GPU or the display now: decoding and fetching may run."""
         self._loop_idle.set()
 
     def _decode(self, key: Key, entry: PayloadEntry, data: bytes) -> None:
