@@ -35,6 +35,7 @@ class DaskEngine:
                  memory_per_worker: int | None = None, processes: bool = True):
         distributed = _import_distributed()
         self.cluster = None
+        self._config = None
         if scheduler:
             try:
                 self.client = distributed.Client(scheduler, timeout="30s")
@@ -43,8 +44,12 @@ class DaskEngine:
         else:
             n = workers or os.cpu_count() or 1
             _keep_malloc_adaptive()
+            self._config = _fork_workers()
+            # env: a forked worker would otherwise see the environment of the first engine in this process
+            # (the fork server's), not today's (e.g. object-store credentials set since)
+            extra = {"env": dict(os.environ)} if processes else {}
             self.cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=processes,
-                                                    dashboard_address=None, silence_logs=40)
+                                                    dashboard_address=None, silence_logs=40, **extra)
             self.client = distributed.Client(self.cluster)
         info = self.client.scheduler_info(n_workers=-1)["workers"] if _takes_n_workers(self.client) else \
             self.client.scheduler_info()["workers"]
@@ -102,6 +107,9 @@ class DaskEngine:
         finally:
             if self.cluster is not None:
                 self.cluster.close()
+            if self._config is not None:
+                self._config.__exit__(None, None, None)
+                self._config = None
 
 
 class WorkerProgress:
@@ -136,6 +144,24 @@ def _keep_malloc_adaptive() -> None:
     if "MALLOC_TRIM_THRESHOLD_" in env:
         env.pop("MALLOC_TRIM_THRESHOLD_")
         dask.config.set({key: env})
+
+
+def _fork_workers():
+    """A local cluster's worker processes forked from a server process that has imported the encoder, where the
+    platform has one (Linux, macOS), instead of spawned: each spawned process starts a fresh interpreter and imports
+    Dask, numpy and then the encoder with its first task. Measured: 16 workers started in 4.5 s spawned and 1.3 s
+    forked on a 2-core machine; the cluster's start was 16 % of a 16-worker encode on a 16-core one (BENCHMARKS.md).
+    Returns the config setting, undone when the engine closes (a worker the nanny restarts is forked the same way
+    until then)."""
+    import multiprocessing
+
+    import dask
+
+    if "forkserver" not in multiprocessing.get_all_start_methods():
+        return None
+    # Only read when the server process starts (once per interpreter); later engines share it.
+    multiprocessing.set_forkserver_preload(["numpy", "distributed", "splatstream.encode.partitioned"])
+    return dask.config.set({"distributed.worker.multiprocessing-method": "forkserver"})
 
 
 def _takes_n_workers(client) -> bool:
