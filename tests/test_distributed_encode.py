@@ -249,3 +249,50 @@ def test_s3_output_on_dask_workers(scene_ply, reference, s3_server):
     assert store_digest(files) == tree_digest(reference)
     a, b = decode_scene(store), decode_scene(reference)
     np.testing.assert_array_equal(a.sh_dc, b.sh_dc)
+
+
+class _CountingEngine(LocalEngine):
+    def __init__(self):
+        super().__init__(threads=1)
+        self.calls: list[str] = []
+
+    def map(self, fn, args, stage, progress, heavy=False, task_progress=False):
+        self.calls.append(fn.__name__)
+        return super().map(fn, args, stage, progress, heavy, task_progress)
+
+
+def test_bracketed_kd_splits_are_the_exact_medians(tmp_path):
+    """The top kd splits from one bracketed pass per level (brackets from a sample) equal lod.kd_split's on the
+    whole scene; a sample too thin gathers whole nodes, and a misleading one falls back to the radix selection."""
+    from splatstream.encode.partitioned import _top_splits
+    from splatstream.lod import kd_split
+
+    rng = np.random.default_rng(3)
+    n, depth = 60_000, 4
+    p = (rng.normal(size=(n, 3)) * [4.0, 2.0, 1.0]).astype(np.float32)
+    p[:700] = p[0]  # ties, resolved by input index
+    idx = np.arange(n, dtype=np.int64)
+    scratch = Scratch.create(str(tmp_path))
+    spans = [(s, min(s + 7_000, n)) for s in range(0, n, 7_000)] + [(n, n)]  # and an empty chunk
+    for i, (s, e) in enumerate(spans):
+        scratch.save(f"pos/{i}", p=p[s:e])
+    expected, nodes = [], [idx]
+    for _ in range(depth):
+        parts = [kd_split(p, idx, rows) for rows in nodes]
+        expected.append((np.array([a for _, _, a, _ in parts]), np.array([k for _, _, _, k in parts], np.uint64)))
+        nodes = [half for lo, hi, _, _ in parts for half in (lo, hi)]
+    bounds = (p.min(axis=0), p.max(axis=0))
+    samples = {"good": ((p[::5], idx[::5]), "chunk_bracket"), "thin": ((p[::4_000], idx[::4_000]), "chunk_bracket"),
+               "misleading": ((p[::5] * 0.5, idx[::5]), "chunk_select")}
+    for name, (sample, used) in samples.items():
+        engine = _CountingEngine()
+        splits = _top_splits(engine, scratch, spans, depth, n, bounds, sample, lambda *a: None)
+        for (axes, pivots), (want_axes, want_pivots) in zip(splits, expected, strict=True):
+            np.testing.assert_array_equal(axes, want_axes, err_msg=name)
+            np.testing.assert_array_equal(pivots, want_pivots, err_msg=name)
+        assert used in engine.calls, (name, engine.calls)
+    assert _CountingEngine().calls == []
+    engine = _CountingEngine()
+    _top_splits(engine, scratch, spans, depth, n, bounds, samples["good"][0], lambda *a: None)
+    assert engine.calls == ["chunk_bracket"] * depth  # one pass per level, no box or radix passes
+    scratch.remove()

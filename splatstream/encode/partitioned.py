@@ -68,6 +68,8 @@ from .scratch import Scratch
 PARTITION_MEMORY_FACTOR = 4.0
 # Largest count of candidate keys per node gathered to the client to finish a median selection.
 GATHER_KEYS = 1 << 22
+# Centres the scan keeps as the sample that brackets each kd median (every n-th row; about this many in all).
+SPLIT_SAMPLE = 1 << 20
 # Upper tiles merged at once on the client (their splats and their members): bounds the client's memory.
 UPPER_BATCH_SPLATS = 1 << 20
 ATTRIBUTES = ("positions", "rotations", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
@@ -163,13 +165,16 @@ def open_rows(path: str, scratch: Scratch, chunk_rows: int, drop_invalid: bool, 
 # ---------------------------------------------------------------------------------------------- tasks
 
 
-def scan_chunk(rows, i: int, start: int, stop: int, scratch: Scratch) -> tuple[int, RowStats, np.ndarray, np.ndarray]:
-    """Read one chunk: its valid row count, what was wrong, its centre box; its centres go to scratch."""
+def scan_chunk(rows, i: int, start: int, stop: int, scratch: Scratch, stride: int = 1
+               ) -> tuple[int, RowStats, np.ndarray, np.ndarray, np.ndarray]:
+    """Read one chunk: its valid row count, what was wrong, its centre box, and every `stride`-th valid row's centre
+    (the split sample; row i * stride of the chunk's valid rows); its centres go to scratch."""
     g, stats = rows.read(start, stop)
     scratch.save(f"pos/{i}", p=g.positions)
+    sample = np.ascontiguousarray(g.positions[::stride])
     if not len(g):
-        return 0, stats, np.full(3, np.inf, np.float32), np.full(3, -np.inf, np.float32)
-    return len(g), stats, _col_min(g.positions), _col_max(g.positions)
+        return 0, stats, np.full(3, np.inf, np.float32), np.full(3, -np.inf, np.float32), sample
+    return len(g), stats, _col_min(g.positions), _col_max(g.positions), sample
 
 
 def _chunk_keys(scratch: Scratch, i: int, offset: int, splits: list, axes: np.ndarray):
@@ -210,6 +215,31 @@ def chunk_select(scratch: Scratch, i: int, offset: int, splits: list, axes: np.n
             digits, counts = np.unique((k >> np.uint64(48 - b)) & np.uint64(0xFFFF), return_counts=True)
             out[int(j)] = (digits, counts)
     return out
+
+
+def chunk_bracket(scratch: Scratch, i: int, offset: int, splits: list, axes: np.ndarray, lo_key: np.ndarray,
+                  hi_key: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """One pass of the bracketed median selection over one chunk: per node (at depth len(splits)), the count of its
+    keys below `lo_key`, the centre boxes of its splats below and above the bracket [lo_key, hi_key] (rows 0..2 of
+    `boxes`: below, above; lo then hi), and the node, key and centre of every splat inside the bracket."""
+    p, node, index = _chunk_keys(scratch, i, offset, splits, axes)
+    nodes = len(axes)
+    keys = sort_keys(p[np.arange(len(p)), axes[node]], index)
+    side = (keys >= lo_key[node]).astype(np.int64) + (keys > hi_key[node])  # 0 below, 1 inside, 2 above
+    below = np.bincount(node[side == 0], minlength=nodes)
+    outside = side != 1
+    group = 2 * node[outside] + (side[outside] == 2)
+    lo = np.full(2 * nodes, np.inf, np.float32)
+    hi = np.full(2 * nodes, -np.inf, np.float32)
+    boxes = np.empty((2, 2, nodes, 3), np.float32)  # [below/above][lo/hi][node]
+    for k in range(3):
+        lo[:], hi[:] = np.inf, -np.inf
+        np.minimum.at(lo, group, p[outside, k])
+        np.maximum.at(hi, group, p[outside, k])
+        boxes[:, 0, :, k] = lo.reshape(nodes, 2).T
+        boxes[:, 1, :, k] = hi.reshape(nodes, 2).T
+    inside = np.flatnonzero(side == 1)
+    return below, boxes, node[inside], keys[inside], p[inside]
 
 
 def _section_widths(sh_degree: int) -> list[tuple[str, int]]:
@@ -406,18 +436,98 @@ def _select_pivots(engine: Engine, scratch: Scratch, chunks: list[tuple[int, int
     return pivots
 
 
+def _brackets(sample: tuple[np.ndarray, np.ndarray], node: np.ndarray, axes: np.ndarray, ranks: np.ndarray,
+              sizes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """Per node, a key interval that holds its key of rank `ranks[node]` unless the sample misleads: the sample's
+    keys 4 standard deviations of a sampled median's rank either side. `node`: each sample's node. Returns the
+    intervals' ends and the samples' keys, or None when the intervals would gather too many keys."""
+    positions, index = sample
+    nodes = len(axes)
+    lo_key = np.zeros(nodes, np.uint64)
+    hi_key = np.full(nodes, np.iinfo(np.uint64).max, np.uint64)
+    keys = sort_keys(positions[np.arange(len(positions)), axes[node]], index)
+    order = np.argsort(node, kind="stable")
+    bounds = np.searchsorted(node[order], np.arange(nodes + 1))
+    gathered = 0.0
+    for j in range(nodes):
+        n = int(bounds[j + 1] - bounds[j])
+        if n < 64:
+            gathered += sizes[j]
+            continue
+        at = ranks[j] * n / sizes[j]
+        margin = 2.0 * math.sqrt(n) + 16.0  # the sampled rank's standard deviation is about sqrt(n) / 2
+        a, b = max(math.floor(at - margin), 0), min(math.ceil(at + margin), n - 1)
+        ks = np.partition(keys[order[bounds[j]:bounds[j + 1]]], [a, b])
+        if a > 0:
+            lo_key[j] = ks[a]
+        if b < n - 1:
+            hi_key[j] = ks[b]
+        gathered += (b - a + 1) * sizes[j] / n
+    return (lo_key, hi_key, keys) if gathered <= GATHER_KEYS else None
+
+
+def _bracketed_pivots(engine: Engine, scratch: Scratch, chunks: list[tuple[int, int]], splits: list, axes: np.ndarray,
+                      sizes: np.ndarray, sample: tuple[np.ndarray, np.ndarray], sample_node: np.ndarray,
+                      progress: Progress) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray], np.ndarray] | None:
+    """The exact median keys of every node in one pass over the centres, the centre boxes of the nodes one level
+    down and the samples' nodes there, when the sample's brackets hold every median; None otherwise (the radix
+    selection then decides)."""
+    ranks = sizes // 2
+    brackets = _brackets(sample, sample_node, axes, ranks, sizes)
+    if brackets is None:
+        return None
+    lo_key, hi_key, sample_keys = brackets
+    nodes = len(axes)
+    results = engine.map(chunk_bracket, [(scratch, i, offset, splits, axes, lo_key, hi_key)
+                                         for i, (offset, _) in enumerate(chunks)], "split", progress)
+    below = np.sum([r[0] for r in results], axis=0)
+    side_lo = np.min([r[1][:, 0] for r in results], axis=0)  # [below/above][node]
+    side_hi = np.max([r[1][:, 1] for r in results], axis=0)
+    node = np.concatenate([r[2] for r in results])
+    keys = np.concatenate([r[3] for r in results])
+    centres = np.concatenate([r[4] for r in results])
+    order = np.lexsort((keys, node))
+    node, keys, centres = node[order], keys[order], centres[order]
+    bounds = np.searchsorted(node, np.arange(nodes + 1))
+    pivots = np.zeros(nodes, np.uint64)
+    lo = np.full((2 * nodes, 3), np.inf, np.float32)
+    hi = np.full((2 * nodes, 3), -np.inf, np.float32)
+    for j in range(nodes):
+        r = int(ranks[j] - below[j])
+        a, b = bounds[j], bounds[j + 1]
+        if not 0 <= r < b - a:
+            return None
+        pivots[j] = keys[a + r]
+        for child, side, part in ((2 * j, 0, centres[a:a + r]), (2 * j + 1, 1, centres[a + r:b])):
+            lo[child] = np.minimum(side_lo[side, j], part.min(axis=0) if len(part) else np.inf)
+            hi[child] = np.maximum(side_hi[side, j], part.max(axis=0) if len(part) else -np.inf)
+    return pivots, (lo, hi), 2 * sample_node + (sample_keys >= pivots[sample_node])
+
+
 def _top_splits(engine: Engine, scratch: Scratch, chunks: list[tuple[int, int]], depth: int, splats: int,
-                progress: Progress) -> list[tuple[np.ndarray, np.ndarray]]:
+                bounds: tuple[np.ndarray, np.ndarray], sample: tuple[np.ndarray, np.ndarray], progress: Progress
+                ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The kd splits above the partitions (per level: each node's axis and median key), exact. Each level is one
+    pass over the centres when the sample brackets every median (the pass also gives the next level's boxes), and
+    a box pass plus radix selection rounds when it does not."""
     splits: list[tuple[np.ndarray, np.ndarray]] = []
     sizes = np.array([splats], np.int64)
+    boxes: tuple[np.ndarray, np.ndarray] | None = (bounds[0][None], bounds[1][None])  # the root's: from the scan
+    sample_node = np.zeros(len(sample[0]), np.int64)
     for d in range(depth):
         nodes = 2 ** d
-        boxes = engine.map(chunk_boxes, [(scratch, i, offset, splits, nodes) for i, (offset, _) in enumerate(chunks)],
-                           "split", progress)
-        lo = np.min([b[0] for b in boxes], axis=0)
-        hi = np.max([b[1] for b in boxes], axis=0)
+        if boxes is None:
+            found = engine.map(chunk_boxes, [(scratch, i, offset, splits, nodes)
+                                             for i, (offset, _) in enumerate(chunks)], "split", progress)
+            boxes = np.min([b[0] for b in found], axis=0), np.max([b[1] for b in found], axis=0)
+        lo, hi = boxes
         axes = np.array([split_axis(lo[j], hi[j]) for j in range(nodes)], np.int64)
-        pivots = _select_pivots(engine, scratch, chunks, splits, axes, sizes // 2, progress, "split")
+        bracketed = _bracketed_pivots(engine, scratch, chunks, splits, axes, sizes, sample, sample_node, progress)
+        if bracketed is not None:
+            pivots, boxes, sample_node = bracketed
+        else:
+            pivots, boxes = _select_pivots(engine, scratch, chunks, splits, axes, sizes // 2, progress, "split"), None
+            sample_node = kd_route(*sample, [*splits, (axes, pivots)])
         splits.append((axes, pivots))
         sizes = np.stack([sizes // 2, sizes - sizes // 2], 1).reshape(-1)
     return splits
@@ -439,9 +549,11 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
     chunk_rows = int(min(1 << 22, max(1 << 16, chunk_rows)))
     spans = [(s, min(s + chunk_rows, rows.rows)) for s in range(0, rows.rows, chunk_rows)]
 
-    scans = engine.map(scan_chunk, [(rows, i, s, e, scratch) for i, (s, e) in enumerate(spans)], "read", progress)
+    stride = max(1, rows.rows // SPLIT_SAMPLE)
+    scans = engine.map(scan_chunk, [(rows, i, s, e, scratch, stride) for i, (s, e) in enumerate(spans)], "read",
+                       progress)
     stats = RowStats()
-    for _, st, _, _ in scans:
+    for _, st, _, _, _ in scans:
         stats = stats + st
     if isinstance(rows, PlyRows):
         check_rows(rows.path, stats, drop_invalid)
@@ -461,7 +573,10 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
     level = partition_level(shape, row_bytes, engine)
     kd = shape.kd_depths[level]
     partitions = 2 ** kd
-    splits = _top_splits(engine, scratch, chunks, kd, splats, progress)
+    sample = (np.concatenate([s[4] for s in scans]),
+              np.concatenate([offsets[i] + stride * np.arange(len(s[4]), dtype=np.int64) for i, s in enumerate(scans)]))
+    splits = _top_splits(engine, scratch, chunks, kd, splats, (lo, hi), sample, progress)
+    del sample
 
     choice = codebook_choice(opts, sh_degree)
     routed = engine.map(route_chunk, [(rows, i, s, e, chunks[i][0], splits, partitions, scratch, sh_degree, splats,
