@@ -4,8 +4,9 @@ ARCHITECTURE.md "Distributed encoding".
 
 1. scan: the input is read in row ranges (a binary PLY's fixed-size records: one byte range each); each task
    checks its rows, writes their centres to scratch and returns its counts and centre box.
-2. top splits: the kd median splits above the partitions, exact, by radix selection over the keys
-   (value, input index) of lod.sort_keys: counting passes over the centres, then a gather of the few candidates.
+2. top splits: the kd median splits above the partitions, exact, over the keys (value, input index) of
+   lod.sort_keys: one pass per level that counts the keys below a bracket taken from the scan's sample and gathers
+   those inside it; radix selection (counting passes, then a gather of the few candidates) where a bracket misses.
 3. route: every row goes to its partition (a subtree of the tile tree); each chunk writes one scratch file with a
    section per partition, and its part of the scene samples (sample.py).
 4. plan: the SH codebook, up and camera from the samples, on the client.
