@@ -219,28 +219,39 @@ def chunk_select(scratch: Scratch, i: int, offset: int, splits: list, axes: np.n
 
 
 def chunk_bracket(scratch: Scratch, i: int, offset: int, splits: list, axes: np.ndarray, lo_key: np.ndarray,
-                  hi_key: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                  hi_key: np.ndarray, routed: bool = False
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """One pass of the bracketed median selection over one chunk: per node (at depth len(splits)), the count of its
-    keys below `lo_key`, the centre boxes of its splats below and above the bracket [lo_key, hi_key] (rows 0..2 of
-    `boxes`: below, above; lo then hi), and the node, key and centre of every splat inside the bracket."""
-    p, node, index = _chunk_keys(scratch, i, offset, splits, axes)
+    keys below `lo_key`, the centre boxes of its splats below and above the bracket [lo_key, hi_key] (`boxes`:
+    [below/above][lo/hi][node]), and the node, key and centre of every splat inside the bracket. The chunk's nodes
+    at this depth go to scratch; `routed`: the pass of the level above saved its own, so one routing step is left."""
+    p = scratch.load(f"pos/{i}")["p"]
+    index = offset + np.arange(len(p), dtype=np.int64)
+    rows = np.arange(len(p))
+    depth = len(splits)
+    if routed and depth:
+        above = scratch.load(f"node/{depth - 1}/{i}")["n"].astype(np.int64)
+        split_axes, pivots = splits[-1]
+        node = 2 * above + (sort_keys(p[rows, split_axes[above]], index) >= pivots[above])
+    else:
+        node = kd_route(p, index, splits)
     nodes = len(axes)
-    keys = sort_keys(p[np.arange(len(p)), axes[node]], index)
-    side = (keys >= lo_key[node]).astype(np.int64) + (keys > hi_key[node])  # 0 below, 1 inside, 2 above
-    below = np.bincount(node[side == 0], minlength=nodes)
-    outside = side != 1
-    group = 2 * node[outside] + (side[outside] == 2)
-    lo = np.full(2 * nodes, np.inf, np.float32)
-    hi = np.full(2 * nodes, -np.inf, np.float32)
-    boxes = np.empty((2, 2, nodes, 3), np.float32)  # [below/above][lo/hi][node]
+    scratch.save(f"node/{depth}/{i}", n=node.astype(np.uint16 if nodes <= 1 << 16 else np.int64))
+    keys = sort_keys(p[rows, axes[node]], index)
+    is_below = keys < lo_key[node]
+    is_above = keys > hi_key[node]
+    below = np.bincount(node[is_below], minlength=nodes)
+    # groups 2 node (below) and 2 node + 1 (above); splats inside the bracket go to a last group, left out
+    group = np.where(is_below | is_above, 2 * node + is_above, 2 * nodes)
+    columns = np.ascontiguousarray(p.T)
+    lo = np.full((3, 2 * nodes + 1), np.inf, np.float32)
+    hi = np.full((3, 2 * nodes + 1), -np.inf, np.float32)
     for k in range(3):
-        lo[:], hi[:] = np.inf, -np.inf
-        np.minimum.at(lo, group, p[outside, k])
-        np.maximum.at(hi, group, p[outside, k])
-        boxes[:, 0, :, k] = lo.reshape(nodes, 2).T
-        boxes[:, 1, :, k] = hi.reshape(nodes, 2).T
-    inside = np.flatnonzero(side == 1)
-    return below, boxes, node[inside], keys[inside], p[inside]
+        np.minimum.at(lo[k], group, columns[k])
+        np.maximum.at(hi[k], group, columns[k])
+    boxes = np.stack([lo[:, :-1].T.reshape(nodes, 2, 3), hi[:, :-1].T.reshape(nodes, 2, 3)])  # [lo/hi][node][side]
+    inside = np.flatnonzero(~(is_below | is_above))
+    return below, boxes.transpose(2, 0, 1, 3), node[inside], keys[inside], p[inside]
 
 
 def _section_widths(sh_degree: int) -> list[tuple[str, int]]:
@@ -361,6 +372,21 @@ def build_partition(p: int, level: int, shape: TreeShape, chunk_counts: list[np.
     return PartitionResult(entries, len(sub.root.gaussians), n)
 
 
+def merge_children(scratch: Scratch, shape: TreeShape, lvl: int, j: int
+                   ) -> tuple[Gaussians, np.ndarray, np.ndarray, np.ndarray, list[Tile]]:
+    """Tile j of level lvl (above the partitions) from its children's splats, as lod.build_subtree merges them:
+    (merged splats, their mass, each member's merged splat, the children's offsets among the members, the children
+    without their splats: only their bounds are needed from here on)."""
+    kids = [_load_tile(scratch, c) for c in shape.children(lvl, j)]
+    members = Gaussians.concatenate([k.gaussians for k, _ in kids])
+    target = min(shape.max_leaf_splats, math.ceil(len(members) / shape.reduction))
+    g, mass, assign = merge_gaussians(members, np.concatenate([m for _, m in kids]), target)
+    offsets = np.cumsum([0] + [len(k.gaussians) for k, _ in kids])
+    for k, _ in kids:
+        k.gaussians = Gaussians.empty(0)
+    return g, mass, assign, offsets, [k for k, _ in kids]
+
+
 def partition_extremes(scratch: Scratch, p: int, mapping: np.ndarray, merged_positions: np.ndarray, size: int
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Pass A over a partition's originals for its ancestor tile: per merged splat present, member counts and the
@@ -469,7 +495,8 @@ def _brackets(sample: tuple[np.ndarray, np.ndarray], node: np.ndarray, axes: np.
 
 def _bracketed_pivots(engine: Engine, scratch: Scratch, chunks: list[tuple[int, int]], splits: list, axes: np.ndarray,
                       sizes: np.ndarray, sample: tuple[np.ndarray, np.ndarray], sample_node: np.ndarray,
-                      progress: Progress) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray], np.ndarray] | None:
+                      routed: bool, progress: Progress
+                      ) -> tuple[np.ndarray, tuple[np.ndarray, np.ndarray], np.ndarray] | None:
     """The exact median keys of every node in one pass over the centres, the centre boxes of the nodes one level
     down and the samples' nodes there, when the sample's brackets hold every median; None otherwise (the radix
     selection then decides)."""
@@ -479,7 +506,7 @@ def _bracketed_pivots(engine: Engine, scratch: Scratch, chunks: list[tuple[int, 
         return None
     lo_key, hi_key, sample_keys = brackets
     nodes = len(axes)
-    results = engine.map(chunk_bracket, [(scratch, i, offset, splits, axes, lo_key, hi_key)
+    results = engine.map(chunk_bracket, [(scratch, i, offset, splits, axes, lo_key, hi_key, routed)
                                          for i, (offset, _) in enumerate(chunks)], "split", progress)
     below = np.sum([r[0] for r in results], axis=0)
     side_lo = np.min([r[1][:, 0] for r in results], axis=0)  # [below/above][node]
@@ -515,6 +542,7 @@ def _top_splits(engine: Engine, scratch: Scratch, chunks: list[tuple[int, int]],
     sizes = np.array([splats], np.int64)
     boxes: tuple[np.ndarray, np.ndarray] | None = (bounds[0][None], bounds[1][None])  # the root's: from the scan
     sample_node = np.zeros(len(sample[0]), np.int64)
+    boxes_from_bracket = False  # the level above was a bracketed pass (which saved each chunk's nodes)
     for d in range(depth):
         nodes = 2 ** d
         if boxes is None:
@@ -523,7 +551,9 @@ def _top_splits(engine: Engine, scratch: Scratch, chunks: list[tuple[int, int]],
             boxes = np.min([b[0] for b in found], axis=0), np.max([b[1] for b in found], axis=0)
         lo, hi = boxes
         axes = np.array([split_axis(lo[j], hi[j]) for j in range(nodes)], np.int64)
-        bracketed = _bracketed_pivots(engine, scratch, chunks, splits, axes, sizes, sample, sample_node, progress)
+        bracketed = _bracketed_pivots(engine, scratch, chunks, splits, axes, sizes, sample, sample_node,
+                                      routed=d > 0 and boxes_from_bracket, progress=progress)
+        boxes_from_bracket = bracketed is not None
         if bracketed is not None:
             pivots, boxes, sample_node = bracketed
         else:
@@ -621,16 +651,8 @@ def _upper_tiles(engine: Engine, scratch: Scratch, shape: TreeShape, level: int,
         batch_tiles = max(1, UPPER_BATCH_SPLATS // shape.max_leaf_splats)
         for first in range(0, tiles_here, batch_tiles):
             batch = range(first, min(tiles_here, first + batch_tiles))
-            merged: dict[int, tuple] = {}
-            for j in batch:
-                kids = [_load_tile(scratch, c) for c in shape.children(lvl, j)]
-                members = Gaussians.concatenate([k.gaussians for k, _ in kids])
-                target = min(shape.max_leaf_splats, math.ceil(len(members) / shape.reduction))
-                g, mass, assign = merge_gaussians(members, np.concatenate([m for _, m in kids]), target)
-                offsets = np.cumsum([0] + [len(k.gaussians) for k, _ in kids])
-                for k, _ in kids:
-                    k.gaussians = Gaussians.empty(0)  # only their bounds are needed from here on
-                merged[j] = (g, mass, assign, offsets, [k for k, _ in kids])
+            merged = dict(zip(batch, engine.map(merge_children, [(scratch, shape, lvl, j) for j in batch], "upper",
+                                                progress), strict=True))
             parts = [p for j in batch for p in range(j * per_tile, (j + 1) * per_tile)]
             for p in parts:
                 j = p // per_tile
