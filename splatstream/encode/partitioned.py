@@ -412,6 +412,13 @@ def partition_sums(scratch: Scratch, p: int, mapping: np.ndarray, size: int, blu
     return parts
 
 
+def delete_scratch(scratch: Scratch, names: list[str]) -> None:
+    """Scratch objects no longer needed, deleted on the workers as soon as a stage is done: a 60M-splat scene
+    spills about 18 GB, and deleting it all at the end, in one process, took about 10 s of a 118 s encode on 16
+    workers (the kernel frees every cached page of a deleted file)."""
+    scratch.delete(names)
+
+
 def encode_saved_tile(scratch: Scratch, tid: int, ctx: TileContext, writer) -> TileEntry:
     tile, _ = _load_tile(scratch, tid)
     return encode_tile(tile, ctx, writer)
@@ -613,6 +620,8 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
     routed = engine.map(route_chunk, [(rows, i, s, e, chunks[i][0], splits, partitions, scratch, sh_degree, splats,
                                        choice != "off") for i, (s, e) in enumerate(spans)], "route", progress)
     chunk_counts = [r[0] for r in routed]
+    engine.map(delete_scratch, [(scratch, [f"pos/{i}", *(f"node/{d}/{i}" for d in range(kd))])
+                                for i in range(len(spans))], "cleanup", progress)
     sample = SceneSample.join([r[1] for r in routed])
     del routed
     codebook = None
@@ -630,8 +639,11 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
                                             engine.threads_per_task, level > 0) for p in range(partitions)],
                          "tiles", progress, heavy=True, task_progress=True)
     entries = [e for r in results for e in r.entries]
+    engine.map(delete_scratch, [(scratch, [f"route/{i}"]) for i in range(len(spans))], "cleanup", progress)
     entries += _upper_tiles(engine, scratch, shape, level, [r.root_splats for r in results], ctx, payloads,
                             progress)
+    if level > 0:
+        engine.map(delete_scratch, [(scratch, [f"originals/{p}"]) for p in range(partitions)], "cleanup", progress)
     plan = EncodePlan(ctx, [], opts, scene_name(opts, source_name, out_name), splats, bounds, up, sample)
     m = build_manifest(plan, sample.camera(up), sorted(entries, key=lambda t: t.id), codebook_entry)
     writer.write_manifest(m)

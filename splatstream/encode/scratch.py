@@ -85,6 +85,16 @@ class Scratch:
         with np.load(io.BytesIO(self.read(name))) as z:
             return {k: z[k] for k in z.files}
 
+    def delete(self, names: list[str]) -> None:
+        """Delete objects (those already gone are skipped: a task run again after its worker died)."""
+        for name in names:
+            path = self._path(name)
+            with contextlib.suppress(FileNotFoundError):
+                if self.remote:
+                    self._fs.rm_file(path)
+                else:
+                    os.unlink(path)
+
     def remove(self) -> None:
         if self.remote:
             with contextlib.suppress(FileNotFoundError):
