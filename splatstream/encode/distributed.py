@@ -147,20 +147,18 @@ def _keep_malloc_adaptive() -> None:
 
 
 def _fork_workers():
-    """A local cluster's worker processes forked from a server process that has imported the encoder, where the
-    platform has one (Linux, macOS), instead of spawned: each spawned process starts a fresh interpreter and imports
-    Dask, numpy and then the encoder with its first task. Measured: 16 workers started in 4.5 s spawned and 1.3 s
-    forked on a 2-core machine; the cluster's start was 16 % of a 16-worker encode on a 16-core one (BENCHMARKS.md).
-    Returns the config setting, undone when the engine closes (a worker the nanny restarts is forked the same way
-    until then)."""
+    """A local cluster's worker processes forked from a server process that has imported Dask and its packages
+    (Dask sets that preload list itself), where the platform has one (Linux, macOS), instead of spawned: each
+    spawned process starts a fresh interpreter and imports them again. Measured: 16 workers started in 4.5 s spawned
+    and 1.3 s forked on a 2-core machine; the cluster's start was 16 % of a 16-worker encode on a 16-core one
+    (BENCHMARKS.md). Each worker imports the encoder with its first task (0.1 s). Returns the config setting, undone
+    when the engine closes (a worker the nanny restarts is forked the same way until then)."""
     import multiprocessing
 
     import dask
 
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return None
-    # Only read when the server process starts (once per interpreter); later engines share it.
-    multiprocessing.set_forkserver_preload(["numpy", "distributed", "splatstream.encode.partitioned"])
     return dask.config.set({"distributed.worker.multiprocessing-method": "forkserver"})
 
 
