@@ -9,8 +9,8 @@ clustered objects on a ground grid, SH degree 3, the same PLY layout), written o
 removed after unless --keep. Memory is the sum of the proportional set sizes (PSS, shared pages split between
 the processes that map them) of the encode process and all its descendants, sampled every 0.2 s; also the
 largest single process. Phases: the encoder's progress lines (stderr, one per stage and 25 % step) give the
-time at which each stage first reported (a task of it finished): "start" is up to the first (imports, the local
-cluster's start, the first chunk read), each stage runs until the next one reports, the last until the process
+time at which each stage started (the engine reports 0 % when it submits a stage's tasks): "start" is up to the
+first (imports, the local cluster's start), each stage runs until the next one starts, the last until the process
 ends (the manifest). Needs only numpy and, for --workers, dask/distributed (and what splatstream needs).
 """
 from __future__ import annotations

@@ -84,6 +84,7 @@ class DaskEngine:
             partial.update(dict.fromkeys(keys, 0.0))
             args = [(*a, WorkerProgress(k)) for a, k in zip(args, keys, strict=True)]
             self.client.subscribe_topic(PROGRESS_TOPIC, on_event)
+        progress(stage, 0.0)  # the stage starts now (a long first task would otherwise show the stage before)
         futures = [self.client.submit(fn, *a, key=k, pure=False) for k, a in zip(keys, args, strict=True)]
         try:
             for future in distributed.as_completed(futures):

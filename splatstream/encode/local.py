@@ -106,6 +106,7 @@ class LocalEngine:
 
     def map(self, fn, args: list[tuple], stage: str, progress: Progress, heavy: bool = False,
             task_progress: bool = False) -> list:
+        progress(stage, 0.0)  # the stage starts now (a long first task would otherwise show the stage before)
         results = []
         if heavy or task_progress or self.threads_per_task <= 1 or len(args) <= 1:
             for i, a in enumerate(args):
