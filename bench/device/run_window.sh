@@ -93,7 +93,7 @@ tail -3 $W/xvfb.log
 python3 - "$OUT" <<'PY'
 import json, sys
 out = sys.argv[1]
-for name in ("headless", "window", "window_no_overlay", "window_one_thread"):
+for name in ("headless", "window", "window_no_overlay", "window_one_thread", "window_threaded"):
     try:
         r = json.load(open(f"{out}/{name}.json"))
     except OSError:
@@ -101,6 +101,7 @@ for name in ("headless", "window", "window_no_overlay", "window_one_thread"):
     print(name, r.get("gl_renderer"), "first frame", r.get("first_frame_s"), "converged", r.get("converged_s"),
           "median converged frame ms", r.get("measured_frame_ms_median"), "of which before the swap",
           r.get("measured_draw_ms_median"), "back to back", r.get("measured_back_to_back_ms"),
+          "its split (medians)", r.get("measured_back_to_back_split_median"),
           "first frame split: manifest", r.get("manifest_s"), "pool", r.get("pool_s"), "built", r.get("built_s"))
 PY
 kill $XVFB 2>/dev/null
