@@ -178,16 +178,24 @@ def scan_chunk(rows, i: int, start: int, stop: int, scratch: Scratch, stride: in
     return len(g), stats, _col_min(g.positions), _col_max(g.positions), sample
 
 
-def _chunk_keys(scratch: Scratch, i: int, offset: int, splits: list, axes: np.ndarray):
+def _chunk_keys(scratch: Scratch, i: int, offset: int, splits: list, routed: bool = False
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One chunk's centres, their kd nodes at depth len(splits) and their input indices. `routed`: the chunk's nodes
+    one level up are in scratch (saved by chunk_bracket), so one routing step is left."""
     p = scratch.load(f"pos/{i}")["p"]
     index = offset + np.arange(len(p), dtype=np.int64)
-    node = kd_route(p, index, splits)
+    if routed and splits:
+        above = scratch.load(f"node/{len(splits) - 1}/{i}")["n"].astype(np.int64)
+        axes, pivots = splits[-1]
+        node = 2 * above + (sort_keys(p[np.arange(len(p)), axes[above]], index) >= pivots[above])
+    else:
+        node = kd_route(p, index, splits)
     return p, node, index
 
 
 def chunk_boxes(scratch: Scratch, i: int, offset: int, splits: list, nodes: int) -> tuple[np.ndarray, np.ndarray]:
     """Centre box of every kd node (at depth len(splits)) over one chunk."""
-    p, node, _ = _chunk_keys(scratch, i, offset, splits, None)
+    p, node, _ = _chunk_keys(scratch, i, offset, splits)
     lo = np.full((nodes, 3), np.inf, np.float32)
     hi = np.full((nodes, 3), -np.inf, np.float32)
     for k in range(3):
@@ -200,7 +208,7 @@ def chunk_select(scratch: Scratch, i: int, offset: int, splits: list, axes: np.n
                  bits: np.ndarray, gather: np.ndarray) -> dict[int, tuple[np.ndarray, np.ndarray] | np.ndarray]:
     """One counting pass of the radix selection over one chunk. For every node still open: the keys that share
     its `bits`-bit prefix either counted by their next 16 bits, or (where `gather`) returned."""
-    p, node, index = _chunk_keys(scratch, i, offset, splits, axes)
+    p, node, index = _chunk_keys(scratch, i, offset, splits)
     keys = sort_keys(p[np.arange(len(p)), axes[node]], index)
     out: dict[int, tuple[np.ndarray, np.ndarray] | np.ndarray] = {}
     order = np.argsort(node, kind="stable")
@@ -225,19 +233,10 @@ def chunk_bracket(scratch: Scratch, i: int, offset: int, splits: list, axes: np.
     keys below `lo_key`, the centre boxes of its splats below and above the bracket [lo_key, hi_key] (`boxes`:
     [below/above][lo/hi][node]), and the node, key and centre of every splat inside the bracket. The chunk's nodes
     at this depth go to scratch; `routed`: the pass of the level above saved its own, so one routing step is left."""
-    p = scratch.load(f"pos/{i}")["p"]
-    index = offset + np.arange(len(p), dtype=np.int64)
-    rows = np.arange(len(p))
-    depth = len(splits)
-    if routed and depth:
-        above = scratch.load(f"node/{depth - 1}/{i}")["n"].astype(np.int64)
-        split_axes, pivots = splits[-1]
-        node = 2 * above + (sort_keys(p[rows, split_axes[above]], index) >= pivots[above])
-    else:
-        node = kd_route(p, index, splits)
+    p, node, index = _chunk_keys(scratch, i, offset, splits, routed)
     nodes = len(axes)
-    scratch.save(f"node/{depth}/{i}", n=node.astype(np.uint16 if nodes <= 1 << 16 else np.int64))
-    keys = sort_keys(p[rows, axes[node]], index)
+    scratch.save(f"node/{len(splits)}/{i}", n=node.astype(np.uint16 if nodes <= 1 << 16 else np.int64))
+    keys = sort_keys(p[np.arange(len(p)), axes[node]], index)
     is_below = keys < lo_key[node]
     is_above = keys > hi_key[node]
     below = np.bincount(node[is_below], minlength=nodes)

@@ -1026,15 +1026,13 @@ def _tile_fast(v, group_names, codebook: bool, formats: dict[str, str], strict: 
     size = (texture[0], texture[1])
     if lazy is not None:  # (source, path): the entries are checked when read (LazyPayloads)
         entries = LazyPayloads(groups, tuple(group_names), codebook, formats, chunks, strict, size, *lazy)
-        return TileEntry(tid, level, tuple(children), n, chunks, size,
-                         Box(tuple(float(x) for x in box["min"]), tuple(float(x) for x in box["max"])),
-                         tuple(float(x) for x in sphere["center"]), float(sphere["radius"]), float(error), entries)
-    entries = {}
-    for name in group_names:
-        entry = _fast_group(groups, name, codebook, formats, chunks, strict, size)
-        if entry is None:
-            return None
-        entries[name] = entry
+    else:
+        entries = {}
+        for name in group_names:
+            entry = _fast_group(groups, name, codebook, formats, chunks, strict, size)
+            if entry is None:
+                return None
+            entries[name] = entry
     return TileEntry(tid, level, tuple(children), n, chunks, size,
                      Box(tuple(float(x) for x in box["min"]), tuple(float(x) for x in box["max"])),
                      tuple(float(x) for x in sphere["center"]), float(sphere["radius"]), float(error), entries)
