@@ -608,8 +608,8 @@ class Viewer:
             self.render.close()  # closes the session in its context
         elif self.session is not None:
             self.session.close()
-        elif self.prepared is not None:
-            self.prepared.fetcher.close()
+        if self.session is None and self.prepared is not None:
+            self.prepared.fetcher.close()  # no session took it over (none opened, or the render thread's failed)
         self.wnd.destroy()
 
 
