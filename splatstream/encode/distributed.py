@@ -60,6 +60,7 @@ class DaskEngine:
         self.memory_per_worker = int(memory_per_worker or limit * 0.5)
         self.threads_per_task = 1
         self._progress: dict[str, float] = {}
+        self._behind: list = []
 
     def map(self, fn, args: list[tuple], stage: str, progress: Progress, heavy: bool = False,
             task_progress: bool = False) -> list:
@@ -102,7 +103,21 @@ class DaskEngine:
             if task_progress:
                 self.client.unsubscribe_topic(PROGRESS_TOPIC)
 
+    def map_behind(self, fn, args: list[tuple], stage: str) -> None:
+        """Below the default priority: the scheduler gives them to a worker only when no task of `map` waits, so
+        they fill the ends of the stages that follow (the last partitions, the narrow rounds of the upper tiles)
+        instead of being rounds of their own."""
+        token = uuid.uuid4().hex[:8]
+        self._behind += [self.client.submit(fn, *a, key=f"{stage}-{fn.__name__}-{i}-{token}", pure=False,
+                                            priority=-1) for i, a in enumerate(args)]
+
+    def settle(self) -> None:
+        behind, self._behind = self._behind, []
+        if behind:
+            self.client.gather(behind)
+
     def close(self) -> None:
+        self._behind = []
         try:
             self.client.close()
         finally:

@@ -121,6 +121,14 @@ class LocalEngine:
                 progress(stage, (i + 1) / len(args))
         return results
 
+    def map_behind(self, fn, args: list[tuple], stage: str) -> None:
+        """At once: in one process nothing else could run beside them."""
+        for a in args:
+            fn(*a)
+
+    def settle(self) -> None:
+        return None
+
     def close(self) -> None:
         return None
 
