@@ -15,7 +15,6 @@ from collections.abc import Sequence
 from splatstream.atomic import atomic_directory
 from splatstream.format.layout import ALIGN, texture_size
 from splatstream.format.manifest import (
-    FORMAT_VERSION,
     AttributeSize,
     Box,
     CameraEntry,
@@ -26,6 +25,7 @@ from splatstream.format.manifest import (
     TileEntry,
     expected_sections,
     pack_manifest,
+    writer_version,
 )
 from splatstream.format.names import DATA_DIR, MANIFEST_NAME, payload_name, sha256_hex
 from splatstream.format.presets import PRESETS
@@ -69,7 +69,7 @@ def fake_manifest(name: str, groups: Sequence[tuple[str, int]]) -> Manifest:
     leaves = [t for t in tiles if t.is_leaf]
     splats = sum(t.splats for t in leaves)
     m = Manifest(
-        version=FORMAT_VERSION, generator="server.testing", name=name, splats=splats, leaf_splats=splats,
+        version=writer_version(FORMATS_USED), generator="server.testing", name=name, splats=splats, leaf_splats=splats,
         sh_degree=0, preset="very-high", formats=dict(FORMATS_USED), chunk_size=256, chunk_order="morton",
         bounds=box, extent_bounds=box, up=(0.0, 0.0, 1.0),
         camera=CameraEntry((3.0, 3.0, 3.0), (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 50.0), sh_codebook=None,

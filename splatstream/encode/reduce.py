@@ -4,7 +4,6 @@ from __future__ import annotations
 from .. import __version__
 from ..format.layout import CHUNK_SIZE
 from ..format.manifest import (
-    FORMAT_VERSION,
     AttributeSize,
     CameraEntry,
     LodInfo,
@@ -12,6 +11,7 @@ from ..format.manifest import (
     PayloadEntry,
     SHCodebookEntry,
     TileEntry,
+    writer_version,
 )
 from ..format.planes import BASE_PLANE_NAMES
 from ..format.presets import ATTRIBUTES
@@ -62,7 +62,8 @@ def build_manifest(plan: EncodePlan, camera: CameraEntry, tiles: list[TileEntry]
     root = ordered[0]
     opts = plan.options
     m = Manifest(
-        version=FORMAT_VERSION,  # every scene this writes is 1.2 (the manifest checksum), fields1 or not
+        # 1.2 (the manifest checksum), fields1 or not; 1.3 where a plane is norm16x4 (format.md 9)
+        version=writer_version(ctx.formats, codebook.format if codebook is not None else None),
         generator=f"splatstream {__version__}",
         name=plan.name,
         splats=plan.splats,

@@ -37,11 +37,15 @@ from .texformats import FORMATS, VALUE_FORMATS, blob_size
 from .transport import FIELD_LAYOUTS, FIELDS1, content_bounds
 
 FORMAT_NAME = "splatstream"
-FORMAT_VERSION = (1, 2)  # (major, minor) this code reads and writes; every scene it writes is 1.2
+FORMAT_VERSION = (1, 3)  # (major, minor) this code reads; what it writes: writer_version
 # Version 1.2 added two things (format.md, version history): the manifest's last key `checksum`, the SHA-256 of the
 # file with that value's 64 bytes read as ASCII '0' (format.md 6, "Checksum"), so a flipped byte in the manifest is
 # caught like one in a payload; and the `fields1` transport coding of texels sections (format.md 5.2).
 CHECKSUM_VERSION = (1, 2)
+# Version 1.3 added the texel format norm16x4 (format.md 4.2). Like the 1.1 codebook it is written only by scenes
+# that use it, so every other scene stays 1.2 and readers of 1.2 keep reading it.
+NORM16_VERSION = (1, 3)
+NORM16_FORMATS = ("norm16x4",)
 CHECKSUM_KEY = "checksum"
 CHECKSUM_PLACEHOLDER = b"0" * 64
 MAX_MANIFEST_BYTES = 64 << 20
@@ -863,6 +867,13 @@ def _check_format_and_version(d, source: str) -> tuple[int, int]:
     return version[0], version[1]
 
 
+def writer_version(formats: Mapping[str, str], codebook_format: str | None = None) -> tuple[int, int]:
+    """The version a writer writes a scene of these texel formats as: 1.3 with a norm16x4 plane (or SH codebook),
+    1.2 otherwise (every scene carries the 1.2 manifest checksum)."""
+    used = set(formats.values()) | ({codebook_format} if codebook_format else set())
+    return NORM16_VERSION if used & set(NORM16_FORMATS) else CHECKSUM_VERSION
+
+
 def manifest_from_dict(d, source: str = MANIFEST_NAME, lazy_payloads: bool = False) -> Manifest:
     """Validate a manifest map (format.md 6) into a Manifest; FormatError names the first field that is wrong.
     (The checksum, a property of the file's bytes, is verified by parse_manifest.)"""
@@ -879,6 +890,9 @@ def manifest_from_dict(d, source: str = MANIFEST_NAME, lazy_payloads: bool = Fal
     fm = m.map("formats")
     formats = {a: fm.str(a, VALUE_FORMATS) for a in ("position", "rotation", "scale", "color", "sh")}
     fm.done()
+    for a, f in formats.items():
+        if f in NORM16_FORMATS and version < NORM16_VERSION:
+            fm.fail(a, f"{f} is a version 1.3 texel format; the manifest is version {version[0]}.{version[1]}")
     if FORMATS[formats["color"]].components < 4:
         fm.fail("color", f"{formats['color']} has 3 components; color needs 4")
     chunk_size = m.int("chunk_size", CHUNK_SIZE, CHUNK_SIZE)
@@ -887,6 +901,9 @@ def manifest_from_dict(d, source: str = MANIFEST_NAME, lazy_payloads: bool = Fal
         c = m.map("sh_codebook")
         entries = c.int("entries", 1, 65536)
         cb_format = c.str("format", VALUE_FORMATS)
+        if cb_format in NORM16_FORMATS and version < NORM16_VERSION:
+            c.fail("format", f"{cb_format} is a version 1.3 texel format; the manifest is version "
+                   f"{version[0]}.{version[1]}")
         index_format = c.str("index_format", (SH_INDEX_FORMAT,))
         g = c.map("groups")
         cb_chunks = chunks_for(entries)

@@ -47,6 +47,8 @@ FORMATS: dict[str, TexelFormat] = {f.name: f for f in (
     TexelFormat("norm10_2", 32, 4, (1023, 1023, 1023, 3), "RGB10_A2", shuffle=4),
     TexelFormat("norm11", 32, 3, (2047, 1023, 2047), "R32UI", shuffle=4),
     TexelFormat("norm8x4", 32, 4, (255, 255, 255, 255), "RGBA8", shuffle=4),
+    # Format 1.3: 16-bit unorm components, the per-chunk-ranged position format between norm11 and f16x4 (issue 15).
+    TexelFormat("norm16x4", 64, 4, (65535, 65535, 65535, 65535), "RGBA16", shuffle=2),
     TexelFormat("norm565", 16, 3, (31, 63, 31), "R16UI", shuffle=2),
     TexelFormat("bc7", 8, 4, (255, 255, 255, 255), "COMPRESSED_RGBA_BPTC_UNORM", block=4),
     TexelFormat("bc1", 4, 3, (31, 63, 31), "COMPRESSED_RGB_S3TC_DXT1", block=4),
@@ -89,7 +91,7 @@ def _bc_module():
 TEXEL_DTYPES = {
     "f32x4": np.dtype(("<f4", 4)), "f16x4": np.dtype(("<f2", 4)), "norm10_2": np.dtype("<u4"),
     "norm11": np.dtype("<u4"), "norm8x4": np.dtype((np.uint8, 4)), "norm565": np.dtype("<u2"),
-    "index16": np.dtype("<u2"),
+    "norm16x4": np.dtype(("<u2", 4)), "index16": np.dtype("<u2"),
 }
 
 
@@ -109,6 +111,8 @@ def pack_texels(fmt_name: str, t: np.ndarray) -> np.ndarray:
         return (_q(t[:, 0], 2047) | (_q(t[:, 1], 1023) << 11) | (_q(t[:, 2], 2047) << 21)).astype("<u4")
     if fmt.name == "norm8x4":
         return _q(t, 255).astype(np.uint8)
+    if fmt.name == "norm16x4":
+        return _q(t, 65535).astype("<u2")
     if fmt.name == "norm565":
         return (_q(t[:, 0], 31) | (_q(t[:, 1], 63) << 5) | (_q(t[:, 2], 31) << 11)).astype("<u2")
     if fmt.name == "index16":
@@ -119,9 +123,13 @@ def pack_texels(fmt_name: str, t: np.ndarray) -> np.ndarray:
 def unpack_texels(fmt_name: str, texels: np.ndarray) -> np.ndarray:
     """(M,) texels (as pack_texels returns them, or raw bytes) -> (M, 4) float32 normalised values."""
     fmt = get_format(fmt_name)
-    if fmt.name in ("f32x4", "f16x4", "norm8x4"):
+    if fmt.name in ("f32x4", "f16x4", "norm8x4", "norm16x4"):
         raw = np.frombuffer(np.ascontiguousarray(texels), TEXEL_DTYPES[fmt.name].base).reshape(-1, 4)
-        return raw / np.float32(255.0) if fmt.name == "norm8x4" else raw.astype(np.float32)
+        if fmt.name == "norm8x4":
+            return raw / np.float32(255.0)
+        if fmt.name == "norm16x4":
+            return raw / np.float32(65535.0)
+        return raw.astype(np.float32)
     word = np.frombuffer(np.ascontiguousarray(texels), TEXEL_DTYPES[fmt.name]).astype(np.uint32)
     out = np.zeros((word.size, 4), np.float32)
     if fmt.name == "norm10_2":

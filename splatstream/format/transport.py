@@ -54,6 +54,7 @@ FIELD_LAYOUTS: dict[str, tuple[str, int, tuple[tuple[int, int], ...]]] = {
     "norm10_2": ("<u4", 1, ((0, 10), (10, 10), (20, 10), (30, 2))),
     "norm11": ("<u4", 1, ((0, 11), (11, 10), (21, 11))),
     "norm8x4": ("<u1", 4, ((0, 8),)),
+    "norm16x4": ("<u2", 4, ((0, 16),)),
     "norm565": ("<u2", 1, ((0, 5), (5, 6), (11, 5))),
     "index16": ("<u2", 1, ((0, 16),)),
 }
@@ -565,7 +566,7 @@ def unfilter_fields(raw: np.ndarray | bytes, fmt: str, width: int, height: int, 
                 z[i] += _cross_prediction(z[r], *params[base + i]).view(np.uint32)
                 z[i] &= masks[i]
         unit = out[layer * n * texel_bytes:(layer + 1) * n * texel_bytes]
-        if words > 1:  # norm8x4, f16x4, f32x4: one field a word; a column copy per word beats shifting in u64
+        if words > 1:  # norm8x4, norm16x4, f16x4, f32x4: one field a word; a column copy per word beats shifting in u64
             slots = np.empty((n, words), word_dtype)
             for k in range(words):
                 slots[:, k] = z[k]
