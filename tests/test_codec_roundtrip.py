@@ -27,12 +27,20 @@ def scene(request):
     return request.param, g.subset(morton_order(g.positions))
 
 
-@pytest.mark.parametrize("preset", list(PRESETS))
-def test_every_attribute_round_trips_within_one_step(scene, preset, tmp_path):
+# Every preset, and every attribute in the 16-bit unorm format (format 1.3; `medium` has no SH codebook, so the SH
+# bands are norm16x4 planes too, and its rotation is the smallest-three of 4.5 with L_A = 65535).
+ALL_NORM16 = dict.fromkeys(("position", "rotation", "scale", "color", "sh"), "norm16x4")
+ROUND_TRIP_CASES = [pytest.param(p, {}, id=p) for p in PRESETS] + [pytest.param("medium", ALL_NORM16, id="norm16x4")]
+
+
+@pytest.mark.parametrize("preset,overrides", ROUND_TRIP_CASES)
+def test_every_attribute_round_trips_within_one_step(scene, preset, overrides, tmp_path):
     name, g = scene
-    if any(get_format(f).block > 1 for f in PRESETS[preset].values()):
+    if any(get_format(f).block > 1 for f in {**PRESETS[preset], **overrides}.values()):
         pytest.importorskip("etcpak")
-    m = encode_gaussians(g, tmp_path / "s", EncodeOptions(preset=preset, lod=False))
+    m = encode_gaussians(g, tmp_path / "s", EncodeOptions(preset=preset, overrides=overrides, lod=False))
+    assert m.version == ((1, 3) if overrides else (1, 2))
+    assert all(m.formats[a] == f for a, f in overrides.items())
     g = g.subset(splat_order(g, m.chunk_order))  # the order the encoder stored
     tile = m.tiles[0]
     n = len(g)

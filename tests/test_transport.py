@@ -264,7 +264,7 @@ def test_garbage_and_malformed_contents_raise_format_error():
 def test_fields1_vectors_decode_exactly():
     """format_spec/vectors/transport: stored fields1 contents and the texel bytes they decode to (every mode)."""
     index = json.load(open(os.path.join(VECTORS, "vectors.json")))
-    assert set(index) == {"norm11", "norm10_2", "norm565", "norm8x4", "f16x4", "index16"}
+    assert set(index) == {"norm11", "norm10_2", "norm565", "norm8x4", "f16x4", "index16", "norm16x4"}
     modes_seen = set()
     for fmt, v in index.items():
         stored = open(os.path.join(VECTORS, f"{fmt}.fields1.bin"), "rb").read()

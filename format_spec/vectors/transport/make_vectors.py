@@ -25,7 +25,7 @@ from splatstream.format.transport import (
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 WIDTH, HEIGHT, LAYERS = 32, 16, 2
-FORMATS = ("norm11", "norm10_2", "norm565", "norm8x4", "f16x4", "index16")
+FORMATS = ("norm11", "norm10_2", "norm565", "norm8x4", "f16x4", "index16", "norm16x4")  # appended: same rng draws
 
 
 def texels(fmt: str, rng: np.random.Generator) -> np.ndarray:
@@ -55,7 +55,7 @@ def hand_modes(fmt: str) -> list[tuple[bool, int | None]]:
     nf = len(field_bits(fmt))
     if nf == 1:
         return [(True, None)]
-    if fmt in ("norm8x4", "f16x4"):
+    if fmt in ("norm8x4", "f16x4", "norm16x4"):
         return [(False, 1), (True, None), (True, 1), (False, None)]
     modes = [(False, 1), (True, None), (True, 1)]
     return modes + [(False, None)] * (nf - 3)
