@@ -46,14 +46,15 @@ class TileView:
     radius_px: np.ndarray  # (T,) projected radius of the bounding sphere, px (inf inside it)
     area_px: np.ndarray  # (T,) pixels of the image inside the projected sphere's bounding square (0 when culled)
     distance: np.ndarray  # (T,) distance from the eye to the sphere, world units (<= 0 inside)
-    # (box_min, box_max, planes) of the frustum widened by prefetch_margin: visible_wide tests it when asked (only
-    # prefetch needs it, and the engine asks for prefetch only when nothing is missing)
+    # (tile arrays, camera, its basis, widening) of the frustum widened by prefetch_margin: visible_wide tests it
+    # when asked (only prefetch needs it, and the engine asks for prefetch only when nothing is missing)
     wide_frustum: tuple = field(repr=False, compare=False, default=())
 
     @functools.cached_property
     def visible_wide(self) -> np.ndarray:
         """(T,) bool: the box intersects a frustum widened by prefetch_margin."""
-        return boxes_in_frustum(*self.wide_frustum)
+        a, cam, basis, widen = self.wide_frustum
+        return boxes_in_frustum(a.box_min, a.box_max, frustum_planes(cam, widen, basis), _box_corners(a))
 
 
 @dataclass(frozen=True)
@@ -100,12 +101,27 @@ def frustum_planes(cam: Camera, widen: float = 1.0, basis=None) -> np.ndarray:
     return planes
 
 
-def boxes_in_frustum(box_min: np.ndarray, box_max: np.ndarray, planes: np.ndarray) -> np.ndarray:
-    """(T,) True where an axis-aligned box is not entirely outside any plane (conservative)."""
+def _box_corners(a: TileArrays) -> np.ndarray:
+    """(T, 6) every tile's box as [max, min] (the frustum test's one product), kept with the arrays."""
+    corners = a.__dict__.get("_box_corners")
+    if corners is None:
+        corners = np.ascontiguousarray(np.concatenate([a.box_max, a.box_min], axis=1))
+        a.__dict__["_box_corners"] = corners  # TileArrays is frozen: its __dict__ still takes a cache
+    return corners
+
+
+def boxes_in_frustum(box_min: np.ndarray, box_max: np.ndarray, planes: np.ndarray,
+                     corners: np.ndarray | None = None) -> np.ndarray:
+    """(T,) True where an axis-aligned box is not entirely outside any plane (conservative). `corners`: the boxes
+    as (T, 6) [max, min] (_box_corners), when the caller keeps them."""
     n = planes[:, :3]
-    # The box corner farthest along each plane's normal ("positive vertex").
-    pv = np.where(n[None, :, :] >= 0, box_max[:, None, :], box_min[:, None, :])
-    return np.all(np.einsum("tpk,pk->tp", pv, n) + planes[None, :, 3] >= 0, axis=1)
+    if corners is None:
+        corners = np.concatenate([box_max, box_min], axis=1)
+    # The box corner farthest along each plane's normal ("positive vertex"), dotted with the normal: the max
+    # corner's coordinates where the normal is positive, the min corner's where it is negative, in one product
+    # (einsum, not @: see view_numbers).
+    split = np.concatenate([np.maximum(n, 0.0), np.minimum(n, 0.0)], axis=1)
+    return np.all(np.einsum("tk,pk->tp", corners, split) + planes[None, :, 3] >= 0, axis=1)
 
 
 def view_numbers(a: TileArrays, cam: Camera, opts: SelectionOptions = SelectionOptions()) -> TileView:
@@ -114,25 +130,51 @@ def view_numbers(a: TileArrays, cam: Camera, opts: SelectionOptions = SelectionO
     rel = a.sphere_center - eye
     centre_dist = np.sqrt(np.einsum("ij,ij->i", rel, rel))
     distance = centre_dist - a.sphere_radius
+    ahead = distance > 0  # the eye outside the bounding sphere
     focal = cam.height / (2.0 * cam.tan_half_fov_y)
+    visible = boxes_in_frustum(a.box_min, a.box_max, frustum_planes(cam, 1.0, basis), _box_corners(a))
+    # The centres in the camera's frame (image x right, y down: camera.md), in one product. einsum, not @: a matrix
+    # product goes to the BLAS library, whose worker threads (16 on the GPU machine) cost more than these few
+    # thousand products.
+    frame = np.einsum("ij,kj->ik", rel, np.stack([right, up, forward]))
+    depth = frame[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
-        sse = np.where(distance > 0, a.geometric_error * focal / distance, INF)
-        radius_px = np.where(distance > 0, a.sphere_radius * focal / np.maximum(centre_dist, 1e-12), INF)
-    visible = boxes_in_frustum(a.box_min, a.box_max, frustum_planes(cam, 1.0, basis))
-    wide = (a.box_min, a.box_max, frustum_planes(cam, opts.prefetch_margin, basis))
-    # The centres in the camera's frame (image x right, y down: camera.md). einsum, not @: a matrix product goes to
-    # the BLAS library, whose worker threads (16 on the GPU machine) cost more than these few thousand products.
-    depth = np.einsum("ij,j->i", rel, forward)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = focal * np.einsum("ij,j->i", rel, right) / depth + cam.width / 2.0
-        v = -focal * np.einsum("ij,j->i", rel, up) / depth + cam.height / 2.0
-        r = np.where(np.isfinite(radius_px), radius_px, 0.0)
+        sse = np.where(ahead, a.geometric_error * focal / distance, INF)
+        radius_px = np.where(ahead, a.sphere_radius * focal / np.maximum(centre_dist, 1e-12), INF)
+        u = focal * frame[:, 0] / depth + cam.width / 2.0
+        v = -focal * frame[:, 1] / depth + cam.height / 2.0
+        r = np.where(ahead, radius_px, 0.0)
         w = np.clip(u + r, 0, cam.width) - np.clip(u - r, 0, cam.width)
         h = np.clip(v + r, 0, cam.height) - np.clip(v - r, 0, cam.height)
         area = np.where(depth > 0, np.nan_to_num(w * h), 0.0)
-    area = np.where(np.isfinite(radius_px), area, float(cam.width * cam.height))  # the eye inside: everywhere
+    area = np.where(ahead, area, float(cam.width * cam.height))  # the eye inside: everywhere
     area = np.where(visible, area, 0.0)
-    return TileView(sse, visible, radius_px, area, distance, wide)
+    return TileView(sse, visible, radius_px, area, distance, (a, cam, basis, opts.prefetch_margin))
+
+
+@dataclass(frozen=True)
+class _Tree:
+    """What select() needs of the tree and the cost array every frame, computed once per (arrays, cost array)."""
+
+    child: np.ndarray  # (T,) bool: the tile has a parent
+    parent_of_child: np.ndarray  # parent of each such tile
+    has_kids: np.ndarray  # (T,) bool
+    cost_l: list[float]
+    splats_l: list[int]
+    splats_f: np.ndarray  # (T,) float64
+    cost: np.ndarray  # the cost array these were made for
+
+
+def _tree(a: TileArrays, cost: np.ndarray) -> _Tree:
+    cached = a.__dict__.get("_select_tree")
+    if cached is not None and cached.cost is cost:  # the engine passes the same cost array every frame
+        return cached
+    child = a.parent >= 0
+    parent_of_child = a.parent[child]
+    tree = _Tree(child, parent_of_child, np.bincount(parent_of_child, minlength=len(a.parent)) > 0, cost.tolist(),
+                 a.splats.tolist(), a.splats.astype(np.float64), cost)
+    a.__dict__["_select_tree"] = tree  # TileArrays is frozen: its __dict__ still takes a cache
+    return tree
 
 
 def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: SelectionOptions,
@@ -146,13 +188,11 @@ def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: Sel
     # below then does only heap work and list lookups (0.70 -> 0.40 ms a frame on the 6M-splat scene). The sums
     # are of whole numbers in float64, exact in any order, so the cut is the same as summing child by child.
     visible = view.visible
-    parent = a.parent
-    child = parent >= 0
-    n = len(parent)
-    kid_cost = np.bincount(parent[child], weights=np.where(visible, cost, 0.0)[child], minlength=n)
-    kid_splats = np.bincount(parent[child], weights=np.where(visible, a.splats, 0).astype(np.float64)[child],
-                             minlength=n)
-    has_kids = np.bincount(parent[child], minlength=n) > 0
+    tree = _tree(a, cost)
+    child, has_kids, cost_l, splats_l = tree.child, tree.has_kids, tree.cost_l, tree.splats_l
+    n = len(a.parent)
+    kid_cost = np.bincount(tree.parent_of_child, weights=np.where(visible, cost, 0.0)[child], minlength=n)
+    kid_splats = np.bincount(tree.parent_of_child, weights=np.where(visible, tree.splats_f, 0.0)[child], minlength=n)
     r = view.radius_px
     finite = np.isfinite(r)
     rf = np.where(finite, r, 0.0)
@@ -163,8 +203,7 @@ def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: Sel
         threshold[list(previous_refined)] *= opts.hysteresis
     candidate = (has_kids & visible & (view.sse > threshold)).tolist()
     prio = (-benefit / np.maximum(kid_cost - cost, 1.0)).tolist()
-    kid_cost_l, kid_splats_l, cost_l, splats_l = kid_cost.tolist(), kid_splats.tolist(), cost.tolist(), \
-        a.splats.tolist()
+    kid_cost_l, kid_splats_l = kid_cost.tolist(), kid_splats.tolist()
     visible_l = visible.tolist()
 
     refined: set[int] = set()
