@@ -30,7 +30,10 @@ def scene(request):
 # Every preset, and every attribute in the 16-bit unorm format (format 1.3; `medium` has no SH codebook, so the SH
 # bands are norm16x4 planes too, and its rotation is the smallest-three of 4.5 with L_A = 65535).
 ALL_NORM16 = dict.fromkeys(("position", "rotation", "scale", "color", "sh"), "norm16x4")
-ROUND_TRIP_CASES = [pytest.param(p, {}, id=p) for p in PRESETS] + [pytest.param("medium", ALL_NORM16, id="norm16x4")]
+# 9-bit grids (format 1.3) for every three-component attribute (rotation: the xyz mode of 4.5); colour needs four
+ALL_NORM9 = {**dict.fromkeys(("position", "rotation", "scale", "sh"), "norm9x3"), "color": "norm8x4"}
+ROUND_TRIP_CASES = [pytest.param(p, {}, id=p) for p in PRESETS] + [
+    pytest.param("medium", ALL_NORM16, id="norm16x4"), pytest.param("medium", ALL_NORM9, id="norm9x3")]
 
 
 @pytest.mark.parametrize("preset,overrides", ROUND_TRIP_CASES)

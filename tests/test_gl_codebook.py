@@ -86,8 +86,8 @@ def test_scene_loads_index_plane_and_codebook(encoded):
         "position", "rotation", "scale", "color"}
 
 
-@pytest.mark.parametrize("sh_fmt", ["f32x4", "f16x4", "norm16x4", "norm11", "norm565", "norm8x4", "norm10_2", "bc1",
-                                    "bc7"])
+@pytest.mark.parametrize("sh_fmt", ["f32x4", "f16x4", "norm16x4", "norm11", "norm9x3", "norm565", "norm8x4", "norm10_2",
+                                    "bc1", "bc7"])
 def test_shader_decode_equals_numpy(gl_compute_context, encoded, sh_fmt):
     ctx = gl_compute_context
     block = sh_fmt.startswith("bc")

@@ -31,6 +31,7 @@ from splatstream.format.transport import (
     unfilter_fields,
     unfilter_texels,
     unshuffle,
+    unused_bits,
 )
 from splatstream.io import read_gaussians
 from splatstream.store import load_manifest
@@ -68,6 +69,14 @@ def fields_roundtrip(data: np.ndarray, fmt: str, w: int, h: int, layers: int, mo
     return content
 
 
+def valid_texels(data: np.ndarray, fmt: str) -> np.ndarray:
+    """`data` with the bits no field holds cleared (bits 27-31 of norm9x3 MUST be 0, format.md 4.2)."""
+    if fmt in FIELD_LAYOUTS and unused_bits(fmt):
+        dtype = FIELD_LAYOUTS[fmt][0]
+        data = (data.view(dtype) & np.dtype(dtype).type(~unused_bits(fmt) & 0xFFFFFFFF)).view(np.uint8)
+    return data
+
+
 def zstd_size(data) -> int:
     return len(zstandard.ZstdCompressor(level=3).compress(bytes(data)))
 
@@ -77,7 +86,7 @@ def zstd_size(data) -> int:
 def test_random_texels_round_trip_exactly_with_every_transport(fmt, geometry):
     w, h, layers = geometry
     rng = np.random.default_rng(zlib.crc32(f"{fmt} {geometry}".encode()))
-    data = rng.integers(0, 256, blob_size(FORMATS[fmt], w, h, layers), dtype=np.uint8)
+    data = valid_texels(rng.integers(0, 256, blob_size(FORMATS[fmt], w, h, layers), dtype=np.uint8), fmt)
     element = max(1, FORMATS[fmt].shuffle)
     assert roundtrip(data, fmt, w, h, layers, "shuffle") == (f"shuffle{element}" if element > 1 else "none",
                                                               data.size)
@@ -98,6 +107,7 @@ def test_extreme_values_round_trip(fmt):
     nf = len(fields_content(np.zeros(size, np.uint8), fmt, w, h, 1)[1][0])
     for data in (np.zeros(size, np.uint8), np.full(size, 255, np.uint8),
                  np.tile(np.array([0, 0, 0, 0, 255, 255, 255, 255], np.uint8), size // 8)):
+        data = valid_texels(data, fmt)
         fields_roundtrip(data, fmt, w, h, 1)
         for delta in (False, True):
             modes = [(delta, None)] + [(not delta, 0 if fmt != "f32x4" else None)] * (nf - 1)
@@ -264,7 +274,7 @@ def test_garbage_and_malformed_contents_raise_format_error():
 def test_fields1_vectors_decode_exactly():
     """format_spec/vectors/transport: stored fields1 contents and the texel bytes they decode to (every mode)."""
     index = json.load(open(os.path.join(VECTORS, "vectors.json")))
-    assert set(index) == {"norm11", "norm10_2", "norm565", "norm8x4", "f16x4", "index16", "norm16x4"}
+    assert set(index) == {"norm11", "norm10_2", "norm565", "norm8x4", "f16x4", "index16", "norm16x4", "norm9x3"}
     modes_seen = set()
     for fmt, v in index.items():
         stored = open(os.path.join(VECTORS, f"{fmt}.fields1.bin"), "rb").read()

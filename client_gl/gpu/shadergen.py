@@ -25,7 +25,7 @@ SCAN_TILE = 256 * SCAN_ITEMS
 DEBUG_STRIDE = 80  # floats per splat written by decode_debug.comp
 F2B_BATCHES = 8  # front-to-back draws: batches separated by saturation passes
 
-_INTEGER_FORMATS = {"norm11", "norm565"}
+_INTEGER_FORMATS = {"norm11", "norm9x3", "norm565"}
 
 
 def read_shader(name: str) -> str:
@@ -56,6 +56,9 @@ def _t_fetch(plane: str, fmt_name: str, array: bool) -> str:
     if fmt.name == "norm11":
         body = (f"uint w = {fetch}.r;\n    return vec4(float(w & 2047u) / 2047.0, float((w >> 11) & 1023u) / 1023.0, "
                 "float(w >> 21) / 2047.0, 0.0);")
+    elif fmt.name == "norm9x3":  # bits 27-31 are zero (format.md 4.2); the masks ignore them anyway
+        body = (f"uint w = {fetch}.r;\n    return vec4(float(w & 511u) / 511.0, float((w >> 9) & 511u) / 511.0, "
+                "float((w >> 18) & 511u) / 511.0, 0.0);")
     elif fmt.name == "norm565":
         body = (f"uint w = {fetch}.r;\n    return vec4(float(w & 31u) / 31.0, float((w >> 5) & 63u) / 63.0, "
                 "float(w >> 11) / 31.0, 0.0);")

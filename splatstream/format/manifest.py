@@ -42,10 +42,10 @@ FORMAT_VERSION = (1, 3)  # (major, minor) this code reads; what it writes: write
 # file with that value's 64 bytes read as ASCII '0' (format.md 6, "Checksum"), so a flipped byte in the manifest is
 # caught like one in a payload; and the `fields1` transport coding of texels sections (format.md 5.2).
 CHECKSUM_VERSION = (1, 2)
-# Version 1.3 added the texel format norm16x4 (format.md 4.2). Like the 1.1 codebook it is written only by scenes
-# that use it, so every other scene stays 1.2 and readers of 1.2 keep reading it.
-NORM16_VERSION = (1, 3)
-NORM16_FORMATS = ("norm16x4",)
+# Version 1.3 added the texel formats norm16x4 and norm9x3 (format.md 4.2). Like the 1.1 codebook it is written only
+# by scenes that use them, so every other scene stays 1.2 and readers of 1.2 keep reading it.
+VERSION_1_3 = (1, 3)
+FORMATS_1_3 = ("norm16x4", "norm9x3")
 CHECKSUM_KEY = "checksum"
 CHECKSUM_PLACEHOLDER = b"0" * 64
 MAX_MANIFEST_BYTES = 64 << 20
@@ -868,10 +868,10 @@ def _check_format_and_version(d, source: str) -> tuple[int, int]:
 
 
 def writer_version(formats: Mapping[str, str], codebook_format: str | None = None) -> tuple[int, int]:
-    """The version a writer writes a scene of these texel formats as: 1.3 with a norm16x4 plane (or SH codebook),
-    1.2 otherwise (every scene carries the 1.2 manifest checksum)."""
+    """The version a writer writes a scene of these texel formats as: 1.3 with a norm16x4 or norm9x3 plane (or SH
+    codebook), 1.2 otherwise (every scene carries the 1.2 manifest checksum)."""
     used = set(formats.values()) | ({codebook_format} if codebook_format else set())
-    return NORM16_VERSION if used & set(NORM16_FORMATS) else CHECKSUM_VERSION
+    return VERSION_1_3 if used & set(FORMATS_1_3) else CHECKSUM_VERSION
 
 
 def manifest_from_dict(d, source: str = MANIFEST_NAME, lazy_payloads: bool = False) -> Manifest:
@@ -891,7 +891,7 @@ def manifest_from_dict(d, source: str = MANIFEST_NAME, lazy_payloads: bool = Fal
     formats = {a: fm.str(a, VALUE_FORMATS) for a in ("position", "rotation", "scale", "color", "sh")}
     fm.done()
     for a, f in formats.items():
-        if f in NORM16_FORMATS and version < NORM16_VERSION:
+        if f in FORMATS_1_3 and version < VERSION_1_3:
             fm.fail(a, f"{f} is a version 1.3 texel format; the manifest is version {version[0]}.{version[1]}")
     if FORMATS[formats["color"]].components < 4:
         fm.fail("color", f"{formats['color']} has 3 components; color needs 4")
@@ -901,7 +901,7 @@ def manifest_from_dict(d, source: str = MANIFEST_NAME, lazy_payloads: bool = Fal
         c = m.map("sh_codebook")
         entries = c.int("entries", 1, 65536)
         cb_format = c.str("format", VALUE_FORMATS)
-        if cb_format in NORM16_FORMATS and version < NORM16_VERSION:
+        if cb_format in FORMATS_1_3 and version < VERSION_1_3:
             c.fail("format", f"{cb_format} is a version 1.3 texel format; the manifest is version "
                    f"{version[0]}.{version[1]}")
         index_format = c.str("index_format", (SH_INDEX_FORMAT,))

@@ -53,6 +53,8 @@ FIELD_LAYOUTS: dict[str, tuple[str, int, tuple[tuple[int, int], ...]]] = {
     "f16x4": ("<u2", 4, ((0, 16),)),
     "norm10_2": ("<u4", 1, ((0, 10), (10, 10), (20, 10), (30, 2))),
     "norm11": ("<u4", 1, ((0, 11), (11, 10), (21, 11))),
+    # bits 27-31 of a norm9x3 texel are zero (format.md 4.2): no field holds them, so they decode as zero
+    "norm9x3": ("<u4", 1, ((0, 9), (9, 9), (18, 9))),
     "norm8x4": ("<u1", 4, ((0, 8),)),
     "norm16x4": ("<u2", 4, ((0, 16),)),
     "norm565": ("<u2", 1, ((0, 5), (5, 6), (11, 5))),
@@ -67,6 +69,17 @@ def field_bits(fmt: str) -> tuple[int, ...]:
     """Bit width of each field of one texel, in field order (format.md 5.2)."""
     _, words, layout = FIELD_LAYOUTS[fmt]
     return tuple(bits for _, bits in layout) * words
+
+
+@functools.lru_cache(maxsize=16)
+def unused_bits(fmt: str) -> int:
+    """Mask of the word bits no field covers (bits 27-31 of norm9x3; 0 for every other format): they MUST be zero
+    in a texel, since fields1 restores them as zero."""
+    dtype, _, layout = FIELD_LAYOUTS[fmt]
+    covered = 0
+    for shift, bits in layout:
+        covered |= ((1 << bits) - 1) << shift
+    return ((1 << (np.dtype(dtype).itemsize * 8)) - 1) & ~covered
 
 
 @functools.lru_cache(maxsize=32)
@@ -114,6 +127,10 @@ def split_layer(layer: np.ndarray, fmt: str, width: int, height: int) -> list[np
     word_dtype = np.dtype(dtype)
     index = slot_to_texel(width, height)
     texel_bytes = word_dtype.itemsize * words
+    unused = unused_bits(fmt)
+    if unused and (np.asarray(layer).view(word_dtype) & word_dtype.type(unused)).any():
+        # a writer's bug: fields1 would drop these bits, and the decoded texels would differ from the GPU bytes
+        raise ValueError(f"{fmt} texels with bits outside their fields set (mask {unused:#x}): they must be zero")
     if texel_bytes in _TEXEL_UINT:
         slots = np.asarray(layer).view(_TEXEL_UINT[texel_bytes])[index].view(word_dtype).reshape(-1, words)
     else:  # f32x4: 16 bytes a texel
@@ -461,7 +478,7 @@ def unshuffle(buf: np.ndarray, element: int) -> np.ndarray:
 
 @functools.lru_cache(maxsize=16)
 def _packed(fmt: str) -> tuple[np.dtype, np.ndarray]:
-    """A one-word texel (norm11, norm10_2, norm565, index16): its dtype and the bit offset of every field."""
+    """A one-word texel (norm11, norm9x3, norm10_2, norm565, index16): its dtype and the bit offset of every field."""
     dtype, _, layout = FIELD_LAYOUTS[fmt]
     return np.dtype(dtype), np.array([shift for shift, _ in layout], np.uint32)
 

@@ -25,7 +25,8 @@ from splatstream.format.transport import (
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 WIDTH, HEIGHT, LAYERS = 32, 16, 2
-FORMATS = ("norm11", "norm10_2", "norm565", "norm8x4", "f16x4", "index16", "norm16x4")  # appended: same rng draws
+# appended formats come last, so the earlier ones keep their rng draws and bytes
+FORMATS = ("norm11", "norm10_2", "norm565", "norm8x4", "f16x4", "index16", "norm16x4", "norm9x3")
 
 
 def texels(fmt: str, rng: np.random.Generator) -> np.ndarray:
