@@ -11,7 +11,7 @@ from .texformats import FORMATS, VALUE_FORMATS, get_format
 ATTRIBUTES = ("position", "rotation", "scale", "color", "sh")
 
 # Texel format per attribute, from the largest files to the smallest. The seed's table (Very High .. Very Low) is
-# the baseline these must beat; the two presets between medium and low fill the hole where SPZ and SOG sit (issue
+# the baseline these must beat; the three presets between medium and low fill the hole where SPZ and SOG sit (issue
 # 15; BENCHMARKS.md, "Size against quality"). Sizes below are disk bytes per splat with the fields1 transport
 # coding, PSNR the mean over 8 views (fruit_drops: real SH3, 4.7k splats; make_scene 1M).
 PRESETS: dict[str, dict[str, str]] = {
@@ -22,6 +22,11 @@ PRESETS: dict[str, dict[str, str]] = {
     # the 1M scene within 1.2 dB of medium at 40 % of its bytes; on fruit_drops 46.6 dB at 15.3 B.
     "medium-low": {"position": "norm11", "rotation": "norm8x4", "scale": "norm8x4", "color": "norm8x4",
                    "sh": "norm565"},
+    # medium-low with 9-bit positions (norm9x3, format 1.3) and zstd level 16: between low-plus and medium-low on
+    # every benchmark scene, 0.7-0.9 B/splat under medium-low for 3.5-7.5 dB less (fruit_drops: 14.5 B, 47.7 dB, no
+    # loss: its SH codebook's error dominates); on the biker scene 11.39 B at 60.6 dB, 0.898 of SOG's bytes at +1.1 dB.
+    "medium-low-9bit": {"position": "norm9x3", "rotation": "norm8x4", "scale": "norm8x4", "color": "norm8x4",
+                        "sh": "norm565"},
     # low with 8-bit smallest-three rotations: +4.4 dB on fruit_drops, +2.8 dB on the 1M scene for 1.2-1.3 B.
     "low-plus": {"position": "norm8x4", "rotation": "norm8x4", "scale": "norm8x4", "color": "norm8x4",
                  "sh": "norm565"},
@@ -37,12 +42,15 @@ PRESETS: dict[str, dict[str, str]] = {
 }
 # Presets whose SH bands go through a scene-wide codebook (vq.py: "auto" about one entry per 64 splats, "fine" one
 # per 16, at least 256, at most 16,384 below 1M splats).
-PRESET_SH_CODEBOOK: dict[str, str] = {"medium-low": "fine", "low-plus": "auto", "low": "auto", "very-low": "auto"}
+PRESET_SH_CODEBOOK: dict[str, str] = {"medium-low": "fine", "medium-low-9bit": "fine", "low-plus": "auto",
+                                      "low": "auto", "very-low": "auto"}
 # zstd level per preset where it is not the encoder's default (DEFAULT_ZSTD_LEVEL, 1; `--zstd-level` overrides
 # both). medium-low at 9: 0.3-1.0 % smaller than at 1 on the real scenes (lod_tile 13.40 -> 13.26 B/splat, which
 # puts it under 0.90 of SOG's bytes there), for about 1 s more per million splats; low-plus and low gained nothing
-# (+-0.5 %), and medium keeps level 1 for its encode speed.
-PRESET_ZSTD_LEVEL: dict[str, int] = {"medium-low": 9}
+# (+-0.5 %), and medium keeps level 1 for its encode speed. medium-low-9bit at 16 (zstd's btultra): 0.3-1.5 % smaller
+# than at 9 on biker, donut, fruit_drops and the 1M scene (biker 11.44 -> 11.39 B/splat, which puts it under 0.90 of
+# SOG's bytes there; lod_tile +0.3 %), for about 3.5 s more per million splats on 2 cores (bench/results/pos9_levels_*).
+PRESET_ZSTD_LEVEL: dict[str, int] = {"medium-low": 9, "medium-low-9bit": 16}
 DEFAULT_PRESET = "medium"
 # What each preset is for, in the words the CLI (`encode --help`, `info`) shows: disk bytes per splat with the
 # fields1 transport coding at SH3 / SH0 and the mean PSNR measured on the benchmark scenes (BENCHMARKS.md, "Size
@@ -54,6 +62,8 @@ PRESET_SUMMARY: dict[str, str] = {
               "56-72 dB",
     "medium-low": "medium's positions, 8-bit rotations and scales, SH codebook (about 1 entry per 16 splats); "
                   "about 13-15.5 B/splat at SH3, 12-13 at SH0; 47-68 dB",
+    "medium-low-9bit": "medium-low with 9-bit positions, zstd level 16; about 12.5-14.5 B/splat at SH3, 11.4-12.3 "
+                       "at SH0; 47-61 dB",
     "low-plus": "8-bit positions, rotations, scales and colour, SH codebook (1 per 64); about 12-13.5 B/splat at "
                 "SH3, 11-12 at SH0; 44-57 dB",
     "low": "low-plus with 16-bit rotations; about 11-12 B/splat at SH3, 10-10.6 at SH0; 37-52 dB",
