@@ -2,8 +2,8 @@
 # GPU-machine check of the texel formats of format 1.3 (norm16x4, norm9x3; issue 15) on the NVIDIA GL driver (EGL): the shader
 # decode of every texel format against the numpy reference (tests/test_gl_decode.py; norm16x4 = GL_RGBA16 unorm
 # read through a sampler2D, norm9x3 = R32UI unpacked in the shader), the SH codebook in them
-# (tests/test_gl_codebook.py) and scenes using them rendered (tests/test_norm16x4.py, tests/test_norm9x3.py). About a
-# minute. From the repo root (device `run` tool), carrying as
+# (tests/test_gl_codebook.py), and the formats' own tests (tests/test_format_1_3.py: bit layouts, scenes encoded and
+# decoded). About a minute. From the repo root (device `run` tool), carrying as
 # bench/device/run_client.sh does:
 #   .gl           GL loader .debs (libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2, amd64)
 #   .whl          cp312 wheels: moderngl glcontext zstandard msgpack platformdirs, and pytest with its
@@ -30,5 +30,5 @@ if ! python3 -c "$probe"; then
 fi
 python3 -m pytest --version || { echo "pytest is not in .whl: add pytest iniconfig pluggy packaging wheels"; exit 1; }
 # -rs: a skipped test (no GL context, no real scene) is reported, not taken for a pass
-python3 -m pytest -q -rs -p no:cacheprovider tests/test_gl_decode.py tests/test_norm16x4.py tests/test_norm9x3.py \
+python3 -m pytest -q -rs -p no:cacheprovider tests/test_gl_decode.py tests/test_format_1_3.py \
   "tests/test_gl_codebook.py::test_shader_decode_equals_numpy"
