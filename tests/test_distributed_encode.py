@@ -144,6 +144,33 @@ def test_a_killed_worker_is_retried_and_the_scene_is_unchanged(scene_ply, refere
     assert not left & {"pos", "node", "route", "originals"}, left
 
 
+def _fail_on(path: str, bad: str) -> None:
+    if path == bad:
+        raise InputError(path, None, "cannot delete")
+    open(path, "w").close()
+
+
+def test_tasks_behind_run_and_settle_raises_their_error(tmp_path):
+    """Engine.map_behind on Dask: nobody waits for the tasks until settle, which waits for all and raises the
+    first error as the task raised it."""
+    pytest.importorskip("distributed")
+    from splatstream.encode.distributed import DaskEngine
+
+    engine = DaskEngine(workers=2, memory_per_worker=SMALL_MEMORY)
+    try:
+        paths = [str(tmp_path / f"m{i}") for i in range(6)]
+        engine.map_behind(_fail_on, [(p, "") for p in paths], "cleanup")
+        assert engine.map(_fail_on, [(str(tmp_path / "x"), "")], "tiles", lambda *a: None) == [None]
+        engine.settle()
+        assert all(os.path.exists(p) for p in paths)
+        engine.map_behind(_fail_on, [(p, paths[3]) for p in paths], "cleanup")
+        with pytest.raises(InputError, match="m3.*cannot delete"):
+            engine.settle()
+        engine.settle()  # settled: nothing left to wait for
+    finally:
+        engine.close()
+
+
 def test_interrupted_encode_leaves_no_partial_scene(scene_ply, tmp_path):
     out = tmp_path / "scene"
 
