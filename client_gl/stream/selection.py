@@ -54,7 +54,7 @@ class TileView:
     def visible_wide(self) -> np.ndarray:
         """(T,) bool: the box intersects a frustum widened by prefetch_margin."""
         a, cam, basis, widen = self.wide_frustum
-        return boxes_in_frustum(a.box_min, a.box_max, frustum_planes(cam, widen, basis), _box_corners(a))
+        return boxes_in_frustum(a.box_min, a.box_max, frustum_planes(cam, widen, basis), a.box_corners)
 
 
 @dataclass(frozen=True)
@@ -101,19 +101,10 @@ def frustum_planes(cam: Camera, widen: float = 1.0, basis=None) -> np.ndarray:
     return planes
 
 
-def _box_corners(a: TileArrays) -> np.ndarray:
-    """(T, 6) every tile's box as [max, min] (the frustum test's one product), kept with the arrays."""
-    corners = a.__dict__.get("_box_corners")
-    if corners is None:
-        corners = np.ascontiguousarray(np.concatenate([a.box_max, a.box_min], axis=1))
-        a.__dict__["_box_corners"] = corners  # TileArrays is frozen: its __dict__ still takes a cache
-    return corners
-
-
 def boxes_in_frustum(box_min: np.ndarray, box_max: np.ndarray, planes: np.ndarray,
                      corners: np.ndarray | None = None) -> np.ndarray:
     """(T,) True where an axis-aligned box is not entirely outside any plane (conservative). `corners`: the boxes
-    as (T, 6) [max, min] (_box_corners), when the caller keeps them."""
+    as (T, 6) [max, min] (TileArrays.box_corners), when the caller has them."""
     n = planes[:, :3]
     if corners is None:
         corners = np.concatenate([box_max, box_min], axis=1)
@@ -132,7 +123,7 @@ def view_numbers(a: TileArrays, cam: Camera, opts: SelectionOptions = SelectionO
     distance = centre_dist - a.sphere_radius
     ahead = distance > 0  # the eye outside the bounding sphere
     focal = cam.height / (2.0 * cam.tan_half_fov_y)
-    visible = boxes_in_frustum(a.box_min, a.box_max, frustum_planes(cam, 1.0, basis), _box_corners(a))
+    visible = boxes_in_frustum(a.box_min, a.box_max, frustum_planes(cam, 1.0, basis), a.box_corners)
     # The centres in the camera's frame (image x right, y down: camera.md), in one product. einsum, not @: a matrix
     # product goes to the BLAS library, whose worker threads (16 on the GPU machine) cost more than these few
     # thousand products.
@@ -152,31 +143,6 @@ def view_numbers(a: TileArrays, cam: Camera, opts: SelectionOptions = SelectionO
     return TileView(sse, visible, radius_px, area, distance, (a, cam, basis, opts.prefetch_margin))
 
 
-@dataclass(frozen=True)
-class _Tree:
-    """What select() needs of the tree and the cost array every frame, computed once per (arrays, cost array)."""
-
-    child: np.ndarray  # (T,) bool: the tile has a parent
-    parent_of_child: np.ndarray  # parent of each such tile
-    has_kids: np.ndarray  # (T,) bool
-    cost_l: list[float]
-    splats_l: list[int]
-    splats_f: np.ndarray  # (T,) float64
-    cost: np.ndarray  # the cost array these were made for
-
-
-def _tree(a: TileArrays, cost: np.ndarray) -> _Tree:
-    cached = a.__dict__.get("_select_tree")
-    if cached is not None and cached.cost is cost:  # the engine passes the same cost array every frame
-        return cached
-    child = a.parent >= 0
-    parent_of_child = a.parent[child]
-    tree = _Tree(child, parent_of_child, np.bincount(parent_of_child, minlength=len(a.parent)) > 0, cost.tolist(),
-                 a.splats.tolist(), a.splats.astype(np.float64), cost)
-    a.__dict__["_select_tree"] = tree  # TileArrays is frozen: its __dict__ still takes a cache
-    return tree
-
-
 def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: SelectionOptions,
            previous_refined: frozenset[int] = frozenset(), screen_px: float = 1.0) -> Selection:
     """The cut the view wants: REPLACE refinement from the root, best first by error removed per byte.
@@ -188,11 +154,10 @@ def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: Sel
     # below then does only heap work and list lookups (0.70 -> 0.40 ms a frame on the 6M-splat scene). The sums
     # are of whole numbers in float64, exact in any order, so the cut is the same as summing child by child.
     visible = view.visible
-    tree = _tree(a, cost)
-    child, has_kids, cost_l, splats_l = tree.child, tree.has_kids, tree.cost_l, tree.splats_l
+    child, has_kids, cost_l, splats_l = a.has_parent, a.has_children, cost.tolist(), a.splats_list
     n = len(a.parent)
-    kid_cost = np.bincount(tree.parent_of_child, weights=np.where(visible, cost, 0.0)[child], minlength=n)
-    kid_splats = np.bincount(tree.parent_of_child, weights=np.where(visible, tree.splats_f, 0.0)[child], minlength=n)
+    kid_cost = np.bincount(a.parent_of_child, weights=np.where(visible, cost, 0.0)[child], minlength=n)
+    kid_splats = np.bincount(a.parent_of_child, weights=np.where(visible, a.splats_f64, 0.0)[child], minlength=n)
     r = view.radius_px
     finite = np.isfinite(r)
     rf = np.where(finite, r, 0.0)

@@ -222,6 +222,36 @@ class TileArrays:
     band_bytes: np.ndarray      # (T, 3) int64 bytes of the tile's sh1..sh3 payloads (0: none)
     gpu_bytes: np.ndarray       # (T,) int64 GPU bytes of every group of the tile
 
+    # Derived once, for the per-frame selection (client_gl/stream/selection.py): a frozen dataclass keeps a
+    # cached_property in its __dict__.
+    @functools.cached_property
+    def box_corners(self) -> np.ndarray:
+        """(T, 6) every box as [max, min]: the frustum test's positive vertex in one product."""
+        return np.ascontiguousarray(np.concatenate([self.box_max, self.box_min], axis=1))
+
+    @functools.cached_property
+    def has_parent(self) -> np.ndarray:
+        """(T,) bool: every tile but the root."""
+        return self.parent >= 0
+
+    @functools.cached_property
+    def parent_of_child(self) -> np.ndarray:
+        """The parent of every tile that has one (in tile order)."""
+        return self.parent[self.has_parent]
+
+    @functools.cached_property
+    def has_children(self) -> np.ndarray:
+        """(T,) bool."""
+        return np.bincount(self.parent_of_child, minlength=len(self.parent)) > 0
+
+    @functools.cached_property
+    def splats_list(self) -> list[int]:
+        return self.splats.tolist()
+
+    @functools.cached_property
+    def splats_f64(self) -> np.ndarray:
+        return self.splats.astype(np.float64)
+
 
 @dataclass(frozen=True)
 class Manifest:
