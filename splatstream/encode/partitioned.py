@@ -568,7 +568,7 @@ def _top_splits(engine: Engine, scratch: Scratch, chunks: list[tuple[int, int]],
         lo, hi = boxes
         axes = np.array([split_axis(lo[j], hi[j]) for j in range(nodes)], np.int64)
         bracketed = _bracketed_pivots(engine, scratch, chunks, splits, axes, sizes, sample, sample_node,
-                                      routed=d > 0 and boxes_from_bracket, progress=progress)
+                                      routed=boxes_from_bracket, progress=progress)
         boxes_from_bracket = bracketed is not None
         if bracketed is not None:
             pivots, boxes, sample_node = bracketed
@@ -620,10 +620,11 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
     level = partition_level(shape, row_bytes, engine)
     kd = shape.kd_depths[level]
     partitions = 2 ** kd
-    sample = (np.concatenate([s[4] for s in scans]),
-              np.concatenate([offsets[i] + stride * np.arange(len(s[4]), dtype=np.int64) for i, s in enumerate(scans)]))
-    splits = _top_splits(engine, scratch, chunks, kd, splats, (lo, hi), sample, progress)
-    del sample
+    split_sample = (np.concatenate([s[4] for s in scans]),
+                    np.concatenate([offsets[i] + stride * np.arange(len(s[4]), dtype=np.int64)
+                                    for i, s in enumerate(scans)]))
+    splits = _top_splits(engine, scratch, chunks, kd, splats, (lo, hi), split_sample, progress)
+    del split_sample
 
     choice = codebook_choice(opts, sh_degree)
     routed = engine.map(route_chunk, [(rows, i, s, e, chunks[i][0], splits, partitions, scratch, sh_degree, splats,
