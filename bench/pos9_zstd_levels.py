@@ -17,13 +17,8 @@ import tempfile
 import time
 
 from splatstream.encode import EncodeOptions, encode_gaussians
+from splatstream.evaluate import parse_variant
 from splatstream.io import read_gaussians
-
-
-def parse_variant(text: str) -> tuple[str, str, dict[str, str]]:
-    name, _, rest = text.partition(":")
-    preset, *pairs = rest.split(",")
-    return name, preset, dict(p.split("=", 1) for p in pairs)
 
 
 def main() -> None:
@@ -41,7 +36,7 @@ def main() -> None:
     print("| variant | " + " | ".join(f"level {lv}" for lv in levels) + " |")
     print("|---|" + "---|" * len(levels))
     for text in a.variants:
-        name, preset, overrides = parse_variant(text)
+        name, preset, overrides, _, _ = parse_variant(text)  # eval's --variants syntax
         cells = []
         for level in levels:
             with tempfile.TemporaryDirectory(prefix="pos9-") as tmp:
