@@ -99,11 +99,13 @@ DRAW_FLAGS = {"f2b": {"front_to_back": True}, "nodepth": {"depth_test": False}, 
               "discard": {"discard_fragments": True}, "t8": {"tile_px": 8}, "u1": {"unroll": 1}, "u2": {"unroll": 2},
               "wc": {"warp_cull": True}, "r8": {"radix_bits": 8}, "classic": {"fused_sort": False},
               "fb": {"full_barriers": True},
-              # dense-scene variants of the compute draw (RenderOptions; fls is the default since measured, nofl the
-              # former default):
+              # dense-scene variants of the compute draw (RenderOptions; issue 20). Former defaults: nofl (no flush),
+              # tpe (a thread a splat in bin_emit), d32 (32-bit depth keys), tr4 (4-bit tile sort digits).
               "fl": {"flush": "cull"}, "fls": {"flush": "stages"}, "nofl": {"flush": "none"},
-              "tb": {"tight_bins": True},
-              "er": {"emit_rects": True}, "tr8": {"tile_radix_bits": 8}}
+              "tb": {"tight_bins": True}, "er": {"emit_rects": True}, "tpe": {"balanced_emit": False},
+              "tr4": {"tile_radix_bits": 4}, "tr5": {"tile_radix_bits": 5}, "tr8": {"tile_radix_bits": 8},
+              "dr5": {"radix_bits": 5}, "dr6": {"radix_bits": 6},
+              "d16": {"depth_bits": 16}, "d20": {"depth_bits": 20}, "d32": {"depth_bits": 32}}
 
 
 def render_options(sort: str, draw: str, color_dtype: str):

@@ -2,6 +2,8 @@
 model of its binning (tile rectangles, (depth, tile) order, tile ranges)."""
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from conftest import REAL_PLYS, real, run_cli
@@ -298,19 +300,22 @@ def test_work_buffers_fixed_while_tiles_come_and_go(ctx, fruit):
 
 
 DENSE_VARIANTS = [dict(tight_bins=True), dict(emit_rects=True), dict(tight_bins=True, emit_rects=True),
-                  dict(flush="cull"), dict(flush="none"), dict(tile_radix_bits=8)]
+                  dict(flush="cull"), dict(flush="none"), dict(tile_radix_bits=8), dict(tile_radix_bits=4),
+                  dict(balanced_emit=False), dict(radix_bits=6, tile_radix_bits=5)]
 
 
 @pytest.mark.parametrize("variant", DENSE_VARIANTS, ids=lambda v: "+".join(f"{k}={v[k]}" for k in v))
 def test_dense_variants_match_default(ctx, fruit, variant):
     """The measurement variants for dense scenes change how a frame is binned, sorted or submitted, never a pixel:
-    the same image as the default, bit for bit, and the reference's."""
+    the same image as the default, bit for bit, and the reference's. With 32-bit depth keys: the default's 24 bits
+    tie splats of nearly equal depth, which the cull's compaction (atomics) then orders differently from run to run."""
     from client_gl.gpu.renderer import RenderOptions
     from client_gl.headless import HeadlessRenderer
 
     cam = close_camera(fruit, 120, 90)
     images, bins = [], []
-    for options in (RenderOptions(draw="compute"), RenderOptions(draw="compute", **variant)):
+    base = RenderOptions(draw="compute", depth_bits=32)
+    for options in (base, replace(base, **variant)):
         r = HeadlessRenderer(options, ctx=ctx)
         r.load_gaussians(fruit)
         images.append(r.render(cam))
@@ -322,8 +327,30 @@ def test_dense_variants_match_default(ctx, fruit, variant):
     assert bins[1][0] == bins[1][1]
     if variant.get("tight_bins"):
         assert 0 < variant_entries < 0.9 * default_entries_  # 19 % fewer on this view
-    else:
+    elif "tile_px" not in variant:
         assert variant_entries == default_entries_
+
+
+@pytest.mark.parametrize("bits, min_db", [(32, 120.0), (16, 70.0)])
+def test_depth_keys_of_fewer_bits(ctx, fruit, bits, min_db):
+    """Depth keys of 24 bits (the default) or 16 (depth_key_range between the near and far planes) sort as the
+    32-bit float bits do but for depths closer than their resolution: 24 bits change no pixel by more than float
+    rounding (136 dB against 32 bits on this close view), 16 bits by 75 dB; both keep the reference's 40 dB."""
+    from client_gl.gpu.renderer import RenderOptions, depth_key_range
+    from client_gl.headless import HeadlessRenderer
+
+    cam = close_camera(fruit, 120, 90)
+    lo, shift, top = depth_key_range(cam.near, cam.far, bits)
+    assert top == (1 << bits) - 1 and (int(np.float32(cam.far).view(np.uint32)) - lo) >> shift <= top
+    assert shift == 0 or (int(np.float32(cam.far).view(np.uint32)) - lo) >> (shift - 1) > top  # the smallest shift
+    images = []
+    for options in (RenderOptions(draw="compute"), RenderOptions(draw="compute", depth_bits=bits)):
+        r = HeadlessRenderer(options, ctx=ctx)
+        r.load_gaussians(fruit)
+        images.append(r.render(cam))
+        r.unload()
+    assert psnr(images[1], images[0]) >= min_db
+    assert psnr(images[1], render_ref.render(fruit, cam)) >= 40.0
 
 
 def test_tight_bins_keep_every_reached_tile(ctx, fruit):

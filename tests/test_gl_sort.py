@@ -66,14 +66,15 @@ def test_auto_sort_choice(gl_compute_context):
     assert choose_sort(ctx, "gpu") == "gpu"
 
 
-@pytest.mark.parametrize("radix_bits,fused", [(4, False), (8, True), (8, False)])
+@pytest.mark.parametrize("radix_bits,fused", [(4, False), (5, True), (6, True), (7, True), (8, True), (8, False)])
 def test_variants_sort_like_numpy(gl_compute_context, radix_bits, fused):
     """The measurement variants (8-bit digits, the five-dispatch pass) sort as the default does, and the fused
     pass leaves its block sums at zero for the next sort (several sorts of different sizes in a row)."""
     from client_gl.gpu.sort import GpuRadixSort
 
     s = GpuRadixSort(gl_compute_context, 30000, radix_bits=radix_bits, fused=fused)
-    assert s.passes() == (8 if radix_bits == 4 else 4)
+    assert s.passes() == {4: 8, 5: 8, 6: 6, 7: 6, 8: 4}[radix_bits]
+    assert s.passes(24) == {4: 6, 5: 6, 6: 4, 7: 4, 8: 4}[radix_bits]
     rng = np.random.default_rng(radix_bits)
     for n in (0, 1, 2049, 30000, 777):
         _check(s, rng.integers(0, 2**32, n, dtype=np.uint64))
@@ -85,7 +86,7 @@ def test_variants_sort_like_numpy(gl_compute_context, radix_bits, fused):
     s.release()
 
 
-@pytest.mark.parametrize("radix_bits", [4, 8])
+@pytest.mark.parametrize("radix_bits", [4, 6, 7, 8])
 def test_low_bits_sort_is_stable(gl_compute_context, radix_bits):
     """A sort by the low bits only (the tile sort: 13 bits at 1080p) is a stable sort by those bits."""
     import struct

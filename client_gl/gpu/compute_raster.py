@@ -57,7 +57,7 @@ class ComputeRaster:
     def __init__(self, ctx, color_dtype: str, visible_capacity: int, entry_capacity: int | None = None,
                  tile_px: int = TILE_PX, unroll: int = UNROLL, warp_cull: bool = False, radix_bits: int = RADIX_BITS,
                  fused_sort: bool = True, barrier_bits: int = CHAIN_BARRIER, tight_bins: bool = False,
-                 emit_rects: bool = False):
+                 emit_rects: bool = False, balanced_emit: bool = True):
         self.ctx = ctx
         self.color_dtype = color_dtype
         self.tile_px = int(tile_px)
@@ -71,11 +71,14 @@ class ComputeRaster:
         # and the emit so that both agree on every splat's entries.
         self.tight_bins = bool(tight_bins)
         self.emit_rects = bool(emit_rects)
+        # The balanced emit expands whole tile boxes: tight_bins and emit_rects keep a thread a splat.
+        self.balanced_emit = bool(balanced_emit) and not self.tight_bins and not self.emit_rects
         binning = tile + ("#define TIGHT_BINS\n" if self.tight_bins else "")
         self.count_shader = ctx.compute_shader(_source("bin_count.comp", binning))
         self.scan_shader = ctx.compute_shader(_source("bin_scan.comp", tile, radix_bits))
-        self.emit_shader = ctx.compute_shader(
-            _source("bin_emit.comp", binning + ("#define EMIT_RECTS\n" if self.emit_rects else "")))
+        emit = "#define EMIT_RECTS\n" if self.emit_rects else ""
+        emit += "#define BALANCED\n" if self.balanced_emit else ""
+        self.emit_shader = ctx.compute_shader(_source("bin_emit.comp", binning + emit))
         self.ranges_shader = ctx.compute_shader(_source("tile_ranges.comp", tile))
         fmt = IMAGE_FORMATS[color_dtype]
         if unroll not in (1, 2, 4):

@@ -106,7 +106,7 @@ class RenderOptions:
     unroll: int = 4  # raster loop unrolled 4, 2 or 1 times
     warp_cull: bool = False  # per 8x4-pixel block splat lists
     # GPU sort (client_gl/gpu/sort.py), all GPU-path draws:
-    radix_bits: int = 4  # digit width of the radix sorts: 4 (8 passes over depth keys) or 8 (4 passes)
+    radix_bits: int = 4  # digit width of the depth sort (RADIX_CHOICES: 4 to 8; 6-bit digits measured slower at 6M)
     fused_sort: bool = True  # 3 dispatches a sort pass (False: the 5 of count, reduce, scan, scan-add, scatter)
     full_barriers: bool = False  # compute draw: glMemoryBarrier(ALL) between dispatches (default: the bits needed)
     # glFlush: none | cull (after the cull) | stages (after each stage but the last), so that the GPU starts on the
@@ -114,10 +114,20 @@ class RenderOptions:
     # 1080p: wall clock per frame 2.30 -> 2.10 ms at 1M, 5.93 -> 5.84 ms at 6M, GPU time unchanged (BENCHMARKS.md).
     flush: str = "stages"
     # Compute-draw variants on dense scenes, measured and left off: tight_bins made binning 5x slower at 1M (2.43
-    # against 0.48 ms) for 28 % fewer entries; 8-bit digits (radix_bits, tile_radix_bits) gained nothing at 6M.
+    # against 0.48 ms) for 28 % fewer entries; 8-bit digits gained nothing at 6M (BENCHMARKS.md, issue 20).
     tight_bins: bool = False  # binning: only tiles whose pixel centres the alpha >= 1/255 ellipse reaches (not its box)
     emit_rects: bool = False  # binning: bin_emit keeps each splat's tile box from its first pass (no second read)
-    tile_radix_bits: int | None = None  # digit width of the tile sort (None: radix_bits)
+    # binning: each work group writes its splats' entries together, a thread an entry (bin_emit.comp's BALANCED; not
+    # with tight_bins or emit_rects, which keep a thread a splat). H100, 6M dense at 1080p: binning 1.37 -> 0.68 ms.
+    balanced_emit: bool = True
+    # Digit width of the tile sort (None: radix_bits). 7: two passes over 1080p's 13-bit tile ids where 4-bit digits
+    # take four; H100, dense scenes: tile sort 0.93 -> 0.88 ms at 6M, 0.51 -> 0.47 at 1M (5 and 8 bits slower).
+    tile_radix_bits: int | None = 7
+    # Bits of the depth keys (all GPU-sort draws): the depth's float bits between the near and far planes mapped to
+    # 2**depth_bits values (depth_key_range); fewer bits, fewer radix passes (32: 8 passes of 4 bits, 24: 6, 16: 4).
+    # H100, 6M dense at 1080p: depth sort 0.98 -> 0.78 ms at 24 bits, with no pixel changed by more than float
+    # rounding on llvmpipe (tests); 16 bits (0.43 ms) moves pixels by up to 0.5 there, so it stays an option.
+    depth_bits: int = 24
 
     def __post_init__(self) -> None:
         if self.sort not in SORT_MODES:
@@ -133,13 +143,15 @@ class RenderOptions:
             raise UsageError(f"radix sort digits of {self.radix_bits} bits: choose one of {RADIX_CHOICES}")
         if self.tile_radix_bits is not None and self.tile_radix_bits not in RADIX_CHOICES:
             raise UsageError(f"tile sort digits of {self.tile_radix_bits} bits: choose one of {RADIX_CHOICES}")
+        if self.depth_bits not in DEPTH_BITS_CHOICES:
+            raise UsageError(f"depth keys of {self.depth_bits} bits: choose one of {DEPTH_BITS_CHOICES}")
         if self.flush not in FLUSH_CHOICES:
             raise UsageError(f"unknown flush mode {self.flush!r} (choose one of {', '.join(FLUSH_CHOICES)})")
         if self.warp_cull and self.tile_px != 16:
             raise UsageError("the per-block splat lists (warp_cull) need 16x16-pixel tiles")
         if self.draw != "compute" and not self.compute_defaults:
-            raise UsageError("tile_px, unroll, warp_cull, full_barriers, flush, tight_bins, emit_rects and "
-                             "tile_radix_bits are options of the compute draw mode")
+            raise UsageError("tile_px, unroll, warp_cull, full_barriers, flush, tight_bins, emit_rects, balanced_emit "
+                             "and tile_radix_bits are options of the compute draw mode")
         if self.draw == "compute" and not self.raster_defaults:
             raise UsageError("the compute draw mode takes no raster-draw options (front_to_back, depth_test, blend, "
                              "discard_fragments)")
@@ -153,8 +165,8 @@ class RenderOptions:
     @property
     def compute_defaults(self) -> bool:
         return (self.tile_px == 16 and self.unroll == 4 and not self.warp_cull and not self.full_barriers
-                and self.flush == "stages" and not self.tight_bins and not self.emit_rects
-                and self.tile_radix_bits is None)
+                and self.flush == "stages" and not self.tight_bins and not self.emit_rects and self.balanced_emit
+                and self.tile_radix_bits == 7)
 
 
 def resolve_sort(ctx, options: RenderOptions) -> str:
@@ -200,6 +212,19 @@ def _set(prog, name: str, value) -> None:
         member.write(value)
     else:
         member.value = value
+
+
+DEPTH_BITS_CHOICES = (16, 20, 24, 32)
+
+
+def depth_key_range(near: float, far: float, bits: int) -> tuple[int, int, int]:
+    """(bits of near, right shift, largest key) of cull.comp's depth keys: depths in (near, far] as float32 bits less
+    those of near, shifted right until far's fit in `bits` bits. Order-preserving (positive floats' bits grow with
+    them); depths whose bits differ only in the bits shifted out tie (the stable sort keeps compaction order)."""
+    lo = int(np.float32(near).view(np.uint32))
+    hi = int(np.float32(far).view(np.uint32))
+    shift = max(0, (hi - lo).bit_length() - bits)
+    return lo, shift, (1 << bits) - 1
 
 
 def camera_uniforms(cam: Camera) -> dict:
@@ -335,7 +360,8 @@ class SplatRenderer:
                                              tile_px=opts.tile_px, unroll=opts.unroll, warp_cull=opts.warp_cull,
                                              radix_bits=opts.tile_radix_bits or opts.radix_bits,
                                              fused_sort=opts.fused_sort, barrier_bits=self._chain_barrier("compute"),
-                                             tight_bins=opts.tight_bins, emit_rects=opts.emit_rects)
+                                             tight_bins=opts.tight_bins, emit_rects=opts.emit_rects,
+                                             balanced_emit=opts.balanced_emit)
                 self._bin_checks = BIN_CHECK_FRAMES
             self.draw_mode = mode
             self.program_gpu = self.vao_gpu = None
@@ -517,7 +543,11 @@ class SplatRenderer:
         u.set("u_cb_bands", self.pool.codebook_bands)
         u.set("u_max_point", max_point)
         u.set("u_slots", slots)
-        u.set("u_key_xor", key_xor)
+        bits = self.options.depth_bits
+        lo, shift, top = depth_key_range(uniforms["u_near"], uniforms["u_far"], bits)
+        u.set("u_key_range", (lo, shift))
+        u.set("u_key_max", top)
+        u.set("u_key_xor", key_xor & top)
         self.pool.bind()
         self.params.bind_to_storage_buffer(0)
         self.keys.bind_to_storage_buffer(1)
@@ -559,7 +589,7 @@ class SplatRenderer:
         slots = self._start_cull(uniforms, degree, self.max_point if self.draw_mode == "points" else 1e30, key_xor)
 
         def sort():
-            self.sorter.sort(self.params, self.keys, self.values)
+            self.sorter.sort(self.params, self.keys, self.values, self.options.depth_bits)
 
         def draw():
             self._draw_state()
@@ -599,7 +629,7 @@ class SplatRenderer:
         if timing:
             steps = (
                 lambda: self._cull(slots),
-                lambda: self.sorter.sort(self.params, self.keys, self.values),
+                lambda: self.sorter.sort(self.params, self.keys, self.values, self.options.depth_bits),
                 lambda: cr.bin(self.params, self.values, self.records, self.sorter.dispatch, w, h),
                 cr.sort,
                 lambda: cr.raster(self.records, color, w, h, self._background),
@@ -614,7 +644,7 @@ class SplatRenderer:
             self._cull(slots)
             if flush != "none":
                 gl_flush()
-            self.sorter.sort(self.params, self.keys, self.values)
+            self.sorter.sort(self.params, self.keys, self.values, self.options.depth_bits)
             if flush == "stages":
                 gl_flush()
             cr.bin(self.params, self.values, self.records, self.sorter.dispatch, w, h)

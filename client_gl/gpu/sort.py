@@ -1,6 +1,7 @@
 """Sorting splats back to front: a GPU radix sort in GL 4.3 compute shaders and a CPU fallback.
 
-GPU: LSD radix sort of 32-bit keys with 32-bit values, 4 bits per pass (8 passes; 8 bits and 4 passes as an option),
+GPU: LSD radix sort of 32-bit keys with 32-bit values, 4 bits per pass (8 passes; 5 to 8 bits as options; keys of
+fewer bits, fewer passes, always an even number),
 each pass the steps of seed 002 / FidelityFX: count (per work-group digit histograms, digit-major table), reduce
 (block sums of the table), scan (one work group scans the block sums), scan-add (block-local exclusive scan + block
 offset) and scatter (a stable reorder: ranks from per-digit bit masks of each 256-key round). By default the reduce
@@ -22,7 +23,7 @@ from . import shadergen
 from .gl import work_buffer
 from .shadergen import RADIX_BITS, SCAN_TILE, SORT_TILE
 
-RADIX_CHOICES = (4, 8)  # digit widths: 4 (16 buckets, 8 passes of 32-bit keys) or 8 (256 buckets, 4 passes)
+RADIX_CHOICES = (4, 5, 6, 7, 8)  # digit widths: 4 (16 buckets, 8 passes of 32-bit keys) to 8 (256 buckets, 4 passes)
 GL_SHADER_STORAGE_BARRIER_BIT = 0x2000
 GL_COMMAND_BARRIER_BIT = 0x40
 # Between two dispatches of a chain: shader storage writes seen by the next dispatch's reads, indirect arguments.
@@ -62,7 +63,6 @@ class GpuRadixSort:
         self.fused = bool(fused)
         self.barrier_bits = int(barrier_bits)
         radix = 1 << self.radix_bits
-        self.max_passes = -(-32 // self.radix_bits)
         self.setup_shader = compute_program(ctx, "indirect_setup.comp", radix_bits=self.radix_bits)
         if not self.fused:
             self.reduce_shader = compute_program(ctx, "radix_reduce.comp", radix_bits=self.radix_bits)
@@ -76,7 +76,7 @@ class GpuRadixSort:
         self.table = work_buffer(ctx, table * 4)
         # Block sums of the table; fused: one row per pass, all zero between sorts (each pass's scatter clears its
         # row after use).
-        rows = self.max_passes if self.fused else 1
+        rows = self.passes(32) if self.fused else 1
         self.reduced = ctx.buffer(bytes(max(4, blocks * rows * 4)))
         self.keys_tmp = work_buffer(ctx, self.capacity * 4)
         self.values_tmp = work_buffer(ctx, self.capacity * 4)
@@ -92,7 +92,10 @@ class GpuRadixSort:
         progs = self._pass_programs.get(p)
         if progs is None:
             src, dst = ((1, 2), (3, 4)) if p % 2 == 0 else ((3, 4), (1, 2))
-            defines = (f"#define PASS {p}u\n#define SHIFT {p * self.radix_bits}u\n#define KEYS_IN {src[0]}\n"
+            # A pass past the key's 32 bits (the even count's padding with 5 or 7-bit digits) sorts by the top digit:
+            # a stable sort by a digit that grows with the key leaves sorted keys as they are.
+            shift = min(p * self.radix_bits, 32 - self.radix_bits)
+            defines = (f"#define PASS {p}u\n#define SHIFT {shift}u\n#define KEYS_IN {src[0]}\n"
                        f"#define VALUES_IN {src[1]}\n#define KEYS_OUT {dst[0]}\n#define VALUES_OUT {dst[1]}\n")
             if self.fused:
                 defines += "#define FUSED\n"

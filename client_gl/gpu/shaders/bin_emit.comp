@@ -3,6 +3,10 @@
 // then leaves each tile's splats front to back. Entries past the capacity are dropped (bins.total tells).
 // TIGHT_BINS: only the tiles of the box that tile_hit keeps (bin_count.comp counts them with the same code).
 // EMIT_RECTS: the tile boxes of the first pass are kept (packed 16-bit corners) instead of read and computed again.
+// BALANCED: after the block's scan, the work group writes its entries together, thread t the entries t, t + 256, ...
+// of the group's run (each finds its splat by a binary search of the offsets in shared memory): every thread writes
+// as many entries, and neighbouring threads neighbouring words, where one thread a splat leaves a warp waiting on its
+// largest splat's tiles. The same entries in the same order as one thread a splat (not with TIGHT_BINS).
 layout(local_size_x = 256) in;
 
 layout(std430, binding = 0) readonly buffer Params { uint count; uint pad[3]; };
@@ -16,17 +20,29 @@ uniform uint u_capacity;
 
 #include "scan_block.glsl"
 
+#ifdef BALANCED
+shared uint s_off[SCAN_TILE];  // exclusive entry offset of each splat of the group, in depth order
+shared uint s_lo[SCAN_TILE];   // its tile box's first tile, x | y << 16
+shared uint s_w[SCAN_TILE];    // its tile box's width in tiles
+#endif
+
 void main() {
     uint n = count;
     uint lid = gl_LocalInvocationID.x;
     uint g = gl_WorkGroupID.x;
     uint vals[SCAN_ITEMS];
+#ifdef BALANCED
+    uvec2 los[SCAN_ITEMS];  // (first tile x | y << 16, box width in tiles)
+#endif
 #ifdef EMIT_RECTS
     uvec2 rects[SCAN_ITEMS];  // (lo.x | lo.y << 16, hi.x | hi.y << 16)
 #endif
     for (uint i = 0u; i < SCAN_ITEMS; ++i) {
         uint idx = g * SCAN_TILE + lid * SCAN_ITEMS + i;
         vals[i] = 0u;
+#ifdef BALANCED
+        los[i] = uvec2(0u);
+#endif
 #ifdef EMIT_RECTS
         rects[i] = uvec2(0u);
 #endif
@@ -44,6 +60,9 @@ void main() {
 #ifdef EMIT_RECTS
             rects[i] = uvec2(lo.x | (lo.y << 16), hi.x | (hi.y << 16));
 #endif
+#ifdef BALANCED
+            los[i] = uvec2(lo.x | (lo.y << 16), hi.x - lo.x);
+#endif
         }
     }
 #ifdef TIGHT_BINS
@@ -51,6 +70,34 @@ void main() {
     for (uint i = 0u; i < SCAN_ITEMS; ++i) counts[i] = vals[i];
 #endif
     uint tot;
+#ifdef BALANCED
+    block_exclusive_scan(vals, tot);
+    for (uint i = 0u; i < SCAN_ITEMS; ++i) {
+        uint k = lid * SCAN_ITEMS + i;
+        s_off[k] = vals[i];
+        s_lo[k] = los[i].x;
+        s_w[k] = los[i].y;
+    }
+    barrier();
+    uint base = gsum[g];
+    for (uint o = lid; o < tot; o += 256u) {
+        uint a = 0u, b = SCAN_TILE;  // the last splat whose offset is at most o (it has entries: the next starts later)
+        while (a < b) {
+            uint m = (a + b) >> 1;
+            if (s_off[m] <= o) a = m + 1u; else b = m;
+        }
+        uint k = a - 1u;
+        uint t = o - s_off[k];
+        uint w = s_w[k];
+        uint lo = s_lo[k];
+        uint x = (lo & 0xFFFFu) + t % w, y = (lo >> 16) + t / w;
+        if (base + o < u_capacity) {
+            tile_keys[base + o] = y * u_grid.x + x;
+            tile_values[base + o] = order[g * SCAN_TILE + k];
+        }
+    }
+    return;
+#else
     block_exclusive_scan(vals, tot);
     uint base = gsum[g];
     for (uint i = 0u; i < SCAN_ITEMS; ++i) {
@@ -87,4 +134,5 @@ void main() {
             }
         }
     }
+#endif
 }

@@ -1,6 +1,7 @@
 // Frustum and opacity culling, projection and colour of every drawn resident splat (the slot-state draw mask skips
 // the others); compacts the visible ones. One work group per chunk slot (256 splats). Visible splat number i
-// (order of compaction) gets key = ~floatBitsToUint(depth) (ascending key = back to front), value = i and a 48-byte
+// (order of compaction) gets key = the depth's float bits mapped to u_key_max + 1 values, inverted (ascending key =
+// back to front), value = i and a 48-byte
 // record for the draw: (center.xy, ndc z, opacity), (conic.xyz, minor half-axis), (rgb, packHalf2x16(major
 // half-axis vector)).
 // The count goes to params.count (work-group aggregated atomics).
@@ -14,7 +15,11 @@ layout(std430, binding = 3) writeonly buffer Records { uvec4 records[]; };
 uniform uint u_slots;       // slots to scan (highest used slot + 1)
 uniform uint u_slot_base;   // first slot of this dispatch (dispatches are split to stay under the group limit)
 uniform float u_max_point;  // largest point sprite (points draw mode): wider splats are counted in params.oversized
-uniform uint u_key_xor;     // 0xFFFFFFFF: back to front (default); 0: front to back
+uniform uint u_key_xor;     // the key's bits (all ones): back to front (default); 0: front to back
+// Depth keys of fewer than 32 bits (fewer radix passes): the float bits of the depth, less those of the near plane,
+// shifted right so that the far plane's fit in the key (depth is in (near, far]: project_splat culls the rest).
+uniform uvec2 u_key_range;  // (bits of near, right shift)
+uniform uint u_key_max;     // largest key
 
 shared uint s_local;
 shared uint s_base;
@@ -47,7 +52,7 @@ void main() {
                 vec2 ext = cutoff_sigmas(col.a) * sqrt(vec2(cov.x, cov.z));
                 visible = all(greaterThan(center + ext, vec2(0.0))) && all(lessThan(center - ext, u_size));
                 if (visible && 2.0 * max(ext.x, ext.y) + 1.0 > u_max_point) atomicAdd(oversized, 1u);
-                key = floatBitsToUint(depth) ^ u_key_xor;
+                key = min((floatBitsToUint(depth) - u_key_range.x) >> u_key_range.y, u_key_max) ^ u_key_xor;
             }
         }
     }
