@@ -57,7 +57,7 @@ class ComputeRaster:
     def __init__(self, ctx, color_dtype: str, visible_capacity: int, entry_capacity: int | None = None,
                  tile_px: int = TILE_PX, unroll: int = UNROLL, warp_cull: bool = False, radix_bits: int = RADIX_BITS,
                  fused_sort: bool = True, barrier_bits: int = CHAIN_BARRIER, tight_bins: bool = False,
-                 emit_rects: bool = False, balanced_emit: bool = True):
+                 emit_rects: bool = False, balanced_emit: bool = True, row_bins: bool = False):
         self.ctx = ctx
         self.color_dtype = color_dtype
         self.tile_px = int(tile_px)
@@ -71,9 +71,13 @@ class ComputeRaster:
         # and the emit so that both agree on every splat's entries.
         self.tight_bins = bool(tight_bins)
         self.emit_rects = bool(emit_rects)
-        # The balanced emit expands whole tile boxes: tight_bins and emit_rects keep a thread a splat.
+        # The balanced emit expands whole tile boxes or row_bins' rows: tight_bins and emit_rects keep a thread a splat.
         self.balanced_emit = bool(balanced_emit) and not self.tight_bins and not self.emit_rects
+        self.row_bins = bool(row_bins)
+        if self.row_bins and not self.balanced_emit:
+            raise ValueError("row_bins needs the balanced emit (not with tight_bins or emit_rects)")
         binning = tile + ("#define TIGHT_BINS\n" if self.tight_bins else "")
+        binning += "#define ROW_BINS\n" if self.row_bins else ""
         self.count_shader = ctx.compute_shader(_source("bin_count.comp", binning))
         self.scan_shader = ctx.compute_shader(_source("bin_scan.comp", tile, radix_bits))
         emit = "#define EMIT_RECTS\n" if self.emit_rects else ""
@@ -179,11 +183,12 @@ class ComputeRaster:
         return total > old
 
     # --- frame -----------------------------------------------------------------------------------------------
-    def bin(self, params, order, records, dispatch, width: int, height: int) -> None:
+    def bin(self, params, order, records, dispatch, width: int, height: int, scratch=None) -> None:
         """Steps 1-3: entries of the `params.count` splats of `order` (depth-sorted record indices).
 
         `dispatch` is the depth sort's indirect buffer (offset 0: ceil(count / SCAN_TILE) groups). bin_scan.comp
-        also writes the tile sort's dispatch sizes.
+        also writes the tile sort's dispatch sizes. scratch: a buffer of a word per splat that row_bins needs (the
+        count pass leaves each splat's entry count there for the emit; the depth sort's keys, spent by now).
         """
         barrier = self.ctx.memory_barrier
         bits = self.barrier_bits
@@ -201,12 +206,20 @@ class ComputeRaster:
         self._u_scan.set("u_capacity", self.entry_capacity)
         self._u_scan.set("u_tiles", self.tiles)
         self._u_emit.set("u_capacity", self.entry_capacity)
+        if self.row_bins:
+            if scratch is None:
+                raise ValueError("row_bins: bin() needs a scratch buffer of a word per splat")
+            scratch.bind_to_storage_buffer(5)
         self.count_shader.run_indirect(dispatch, 0)
         barrier(bits)
         self.tile_sorter.dispatch.bind_to_storage_buffer(1)
+        if self.row_bins:
+            self.ranges.bind_to_storage_buffer(5)
         self.scan_shader.run(1)
         barrier(bits)
         order.bind_to_storage_buffer(1)
+        if self.row_bins:
+            scratch.bind_to_storage_buffer(5)
         self.emit_shader.run_indirect(dispatch, 0)
         barrier(bits)
         if self._frames % COUNT_EVERY == 0:

@@ -120,6 +120,9 @@ class RenderOptions:
     # binning: each work group writes its splats' entries together, a thread an entry (bin_emit.comp's BALANCED; not
     # with tight_bins or emit_rects, which keep a thread a splat). H100, 6M dense at 1080p: binning 1.37 -> 0.68 ms.
     balanced_emit: bool = True
+    # binning with the balanced emit: a splat's tiles row by row where its alpha >= 1/255 ellipse reaches a pixel
+    # centre (bin_common.glsl's row_tiles, closed form per row), not its whole box: tight_bins' entries, cheaply
+    row_bins: bool = False
     # Digit width of the tile sort (None: radix_bits). 7: two passes over 1080p's 13-bit tile ids where 4-bit digits
     # take four; H100, dense scenes: tile sort 0.93 -> 0.88 ms at 6M, 0.51 -> 0.47 at 1M (5 and 8 bits slower).
     tile_radix_bits: int | None = 7
@@ -147,11 +150,13 @@ class RenderOptions:
             raise UsageError(f"depth keys of {self.depth_bits} bits: choose one of {DEPTH_BITS_CHOICES}")
         if self.flush not in FLUSH_CHOICES:
             raise UsageError(f"unknown flush mode {self.flush!r} (choose one of {', '.join(FLUSH_CHOICES)})")
+        if self.row_bins and (not self.balanced_emit or self.tight_bins or self.emit_rects):
+            raise UsageError("row_bins needs the balanced emit (not with tight_bins or emit_rects)")
         if self.warp_cull and self.tile_px != 16:
             raise UsageError("the per-block splat lists (warp_cull) need 16x16-pixel tiles")
         if self.draw != "compute" and not self.compute_defaults:
-            raise UsageError("tile_px, unroll, warp_cull, full_barriers, flush, tight_bins, emit_rects, balanced_emit "
-                             "and tile_radix_bits are options of the compute draw mode")
+            raise UsageError("tile_px, unroll, warp_cull, full_barriers, flush, tight_bins, emit_rects, balanced_emit, "
+                             "row_bins and tile_radix_bits are options of the compute draw mode")
         if self.draw == "compute" and not self.raster_defaults:
             raise UsageError("the compute draw mode takes no raster-draw options (front_to_back, depth_test, blend, "
                              "discard_fragments)")
@@ -166,6 +171,7 @@ class RenderOptions:
     def compute_defaults(self) -> bool:
         return (self.tile_px == 16 and self.unroll == 4 and not self.warp_cull and not self.full_barriers
                 and self.flush == "stages" and not self.tight_bins and not self.emit_rects and self.balanced_emit
+                and not self.row_bins
                 and self.tile_radix_bits == 7)
 
 
@@ -361,7 +367,7 @@ class SplatRenderer:
                                              radix_bits=opts.tile_radix_bits or opts.radix_bits,
                                              fused_sort=opts.fused_sort, barrier_bits=self._chain_barrier("compute"),
                                              tight_bins=opts.tight_bins, emit_rects=opts.emit_rects,
-                                             balanced_emit=opts.balanced_emit)
+                                             balanced_emit=opts.balanced_emit, row_bins=opts.row_bins)
                 self._bin_checks = BIN_CHECK_FRAMES
             self.draw_mode = mode
             self.program_gpu = self.vao_gpu = None
@@ -630,7 +636,7 @@ class SplatRenderer:
             steps = (
                 lambda: self._cull(slots),
                 lambda: self.sorter.sort(self.params, self.keys, self.values, self.options.depth_bits),
-                lambda: cr.bin(self.params, self.values, self.records, self.sorter.dispatch, w, h),
+                lambda: cr.bin(self.params, self.values, self.records, self.sorter.dispatch, w, h, self.keys),
                 cr.sort,
                 lambda: cr.raster(self.records, color, w, h, self._background),
             )
@@ -647,7 +653,7 @@ class SplatRenderer:
             self.sorter.sort(self.params, self.keys, self.values, self.options.depth_bits)
             if flush == "stages":
                 gl_flush()
-            cr.bin(self.params, self.values, self.records, self.sorter.dispatch, w, h)
+            cr.bin(self.params, self.values, self.records, self.sorter.dispatch, w, h, self.keys)
             if flush == "stages":
                 gl_flush()
             cr.sort()

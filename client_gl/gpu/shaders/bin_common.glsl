@@ -76,3 +76,55 @@ uint splat_entries(uvec2 lo, uvec2 hi, vec2 c, vec3 q, float op) {
     return n;
 }
 #endif
+
+#ifdef ROW_BINS
+// A splat's ellipse Q(d) <= L for row_tiles: Q(d) = a dx^2 + 2 b dx dy + c dy^2 (q = (a, b, c)), L = 2 (ln(255
+// opacity) + 0.01) (the alpha >= 1/255 level plus the margin tile_hit keeps); det = ac - b^2, ey its half height,
+// s = sqrt(L / (det c)).
+struct RowSplat { vec2 c; vec3 q; float L; float det; float ey; float s; };
+
+RowSplat row_splat(vec2 c, vec3 q, float op) {
+    RowSplat e;
+    e.c = c;
+    e.q = q;
+    precise float L = 2.0 * (log(max(op, 1.0 / 255.0) * 255.0) + 0.01);
+    precise float det = q.x * q.z - q.y * q.y;
+    precise float ey = sqrt(L * q.x / det);
+    precise float s = sqrt(L / (det * q.z));
+    e.L = L;
+    e.det = det;
+    e.ey = ey;
+    e.s = s;
+    return e;
+}
+
+// Tiles [x.x, x.y) of tile row ty (within the box [lo, hi)) whose rectangle of pixel centres the ellipse reaches:
+// its slice over the row's band of pixel-centre rows is convex, so the tiles it reaches are those whose pixel-centre
+// columns meet its x extent, the smallest left and largest right boundary over the band. The left boundary, convex
+// in dy, is smallest at the band's point nearest dy = b s (the ellipse's leftmost point), the right one largest
+// nearest dy = -b s. Count and emit evaluate it with this same code; 0.001 px of margin on either side.
+uvec2 row_tiles(uint ty, uvec2 lo, uvec2 hi, RowSplat e) {
+    precise float y0 = float(ty * uint(TILE_PX)) + 0.5 - e.c.y;
+    precise float d0 = max(y0, -e.ey), d1 = min(y0 + float(TILE_PX - 1), e.ey);
+    if (!(d0 <= d1)) return uvec2(lo.x);
+    precise float dl = clamp(e.q.y * e.s, d0, d1), dr = clamp(-e.q.y * e.s, d0, d1);
+    precise float xl = e.c.x + (-e.q.y * dl - sqrt(max(e.q.x * e.L - e.det * dl * dl, 0.0))) / e.q.x - 1e-3;
+    precise float xr = e.c.x + (-e.q.y * dr + sqrt(max(e.q.x * e.L - e.det * dr * dr, 0.0))) / e.q.x + 1e-3;
+    float t = float(TILE_PX);
+    float f0 = max(ceil((xl - (t - 0.5)) / t), float(lo.x));
+    float f1 = min(floor((xr - 0.5) / t) + 1.0, float(hi.x));
+    if (!(f0 < f1)) return uvec2(lo.x);
+    return uvec2(uint(f0), uint(f1));
+}
+
+uint row_entries(uvec2 lo, uvec2 hi, vec2 c, vec3 q, float op) {
+    if (hi.y - lo.y == 1u && hi.x - lo.x == 1u) return 1u;  // one tile: the box is exact
+    RowSplat e = row_splat(c, q, op);
+    uint n = 0u;
+    for (uint y = lo.y; y < hi.y; ++y) {
+        uvec2 x = row_tiles(y, lo, hi, e);
+        n += x.y - x.x;
+    }
+    return n;
+}
+#endif

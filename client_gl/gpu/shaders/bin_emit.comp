@@ -7,6 +7,9 @@
 // of the group's run (each finds its splat by a binary search of the offsets in shared memory): every thread writes
 // as many entries, and neighbouring threads neighbouring words, where one thread a splat leaves a warp waiting on its
 // largest splat's tiles. The same entries in the same order as one thread a splat (not with TIGHT_BINS).
+// ROW_BINS (with BALANCED): a splat's entries are, row by row, the tiles bin_common.glsl's row_tiles keeps (the
+// tiles whose pixel centres its alpha >= 1/255 ellipse reaches, as TIGHT_BINS, found per row in closed form); an
+// entry finds its row by walking the splat's rows.
 layout(local_size_x = 256) in;
 
 layout(std430, binding = 0) readonly buffer Params { uint count; uint pad[3]; };
@@ -15,6 +18,9 @@ layout(std430, binding = 1) readonly buffer Order { uint order[]; };
 layout(std430, binding = 3) readonly buffer GroupSums { uint gsum[]; };
 layout(std430, binding = 6) writeonly buffer TileKeys { uint tile_keys[]; };
 layout(std430, binding = 7) writeonly buffer TileValues { uint tile_values[]; };
+#ifdef ROW_BINS
+layout(std430, binding = 5) readonly buffer Counts { uint counts[]; };  // bin_count's entries of each sorted splat
+#endif
 
 uniform uint u_capacity;
 
@@ -46,13 +52,17 @@ void main() {
 #ifdef EMIT_RECTS
         rects[i] = uvec2(0u);
 #endif
+#ifdef ROW_BINS
+        if (idx < n) vals[i] = counts[idx];
+        continue;
+#endif
         if (idx < n) {
             uvec2 lo, hi;
             vec2 c;
             vec3 q;
             float op;
             tile_rect(order[idx], lo, hi, c, q, op);
-#ifdef TIGHT_BINS
+#if defined(TIGHT_BINS)
             vals[i] = splat_entries(lo, hi, c, q, op);
 #else
             vals[i] = rect_tiles(lo, hi);
@@ -88,6 +98,35 @@ void main() {
         }
         uint k = a - 1u;
         uint t = o - s_off[k];
+#ifdef ROW_BINS
+        // the entry's row: the splat's rows in order, each as many entries as row_tiles keeps
+        uint r = order[g * SCAN_TILE + k];
+        uvec2 lo, hi;
+        vec2 c;
+        vec3 q;
+        float op;
+        tile_rect(r, lo, hi, c, q, op);
+        if (hi.y - lo.y == 1u && hi.x - lo.x == 1u) {  // one tile (row_entries counts it without row_tiles)
+            if (base + o < u_capacity) {
+                tile_keys[base + o] = lo.y * u_grid.x + lo.x;
+                tile_values[base + o] = r;
+            }
+            continue;
+        }
+        RowSplat e = row_splat(c, q, op);
+        for (uint y = lo.y; y < hi.y; ++y) {
+            uvec2 xs = row_tiles(y, lo, hi, e);
+            uint w = xs.y - xs.x;
+            if (t < w) {
+                if (base + o < u_capacity) {
+                    tile_keys[base + o] = y * u_grid.x + xs.x + t;
+                    tile_values[base + o] = r;
+                }
+                break;
+            }
+            t -= w;
+        }
+#else
         uint w = s_w[k];
         uint lo = s_lo[k];
         uint x = (lo & 0xFFFFu) + t % w, y = (lo >> 16) + t / w;
@@ -95,6 +134,7 @@ void main() {
             tile_keys[base + o] = y * u_grid.x + x;
             tile_values[base + o] = order[g * SCAN_TILE + k];
         }
+#endif
     }
     return;
 #else
