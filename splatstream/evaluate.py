@@ -380,6 +380,38 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
     return report
 
 
+def preset_for_target(rows: Sequence[dict], target_psnr: float | None = None,
+                      target_bytes: float | None = None) -> dict:
+    """The preset row (a report's "rows" entry of kind "preset") a quality or size target picks.
+
+    target_psnr: the smallest files (disk bytes per splat) among the presets whose mean PSNR is at least the target;
+    target_bytes: the highest mean PSNR among those of at most that many bytes per splat (ties: the smaller files).
+    An identical render (PSNR None in the JSON: infinite) meets every PSNR target. Raises UsageError when no preset
+    meets the target, naming the closest one."""
+    if (target_psnr is None) == (target_bytes is None):
+        raise UsageError("give one target: a PSNR in dB or a size in bytes per splat")
+    presets = [r for r in rows if r.get("kind") == "preset"]
+    if not presets:
+        raise UsageError("no preset was measured")
+
+    def db(r: dict) -> float:
+        return math.inf if r.get("psnr_mean") is None else float(r["psnr_mean"])
+
+    if target_psnr is not None:
+        meet = [r for r in presets if db(r) >= target_psnr]
+        if not meet:
+            best = max(presets, key=db)
+            raise UsageError(f"--target-psnr {target_psnr:g}: no preset reaches it on this scene (the highest: "
+                             f"{best['label']} at {db(best):.2f} dB)")
+        return min(meet, key=lambda r: (r["disk_bytes_per_splat"], -db(r)))
+    meet = [r for r in presets if r["disk_bytes_per_splat"] <= target_bytes]
+    if not meet:
+        small = min(presets, key=lambda r: r["disk_bytes_per_splat"])
+        raise UsageError(f"--target-size {target_bytes:g}: no preset is that small on this scene (the smallest: "
+                         f"{small['label']} at {small['disk_bytes_per_splat']:.2f} B/splat)")
+    return max(meet, key=lambda r: (db(r), -r["disk_bytes_per_splat"]))
+
+
 def source_version() -> dict:
     """Commit of the splatstream checkout (and whether it has local changes), so numbers can be tied to code."""
     import subprocess

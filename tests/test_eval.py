@@ -194,3 +194,66 @@ def test_low_meets_its_bound_on_real_sh3(scene):
     (row,) = rep["rows"]
     assert row["disk_bytes_per_splat"] <= 12.0 and row["psnr_mean"] >= 35.0, row
     assert row["sh_codebook_entries"] is not None and row["formats"]["color"] == "norm8x4"
+
+
+def _preset_row(label: str, size: float, db: float | None) -> dict:
+    return {"label": label, "kind": "preset", "disk_bytes_per_splat": size, "psnr_mean": db}
+
+
+def test_preset_for_target_picks_smallest_meeting_psnr_and_best_under_size():
+    from splatstream.errors import UsageError
+    from splatstream.evaluate import preset_for_target
+
+    rows = [_preset_row("very-high", 43.1, None), _preset_row("medium", 15.1, 60.4),
+            _preset_row("medium-low", 13.0, 60.0), _preset_row("low-plus", 11.9, 52.1),
+            _preset_row("low", 10.6, 49.2), _preset_row("very-low", 7.7, 41.9),
+            {"label": "spz", "kind": "compare", "disk_bytes_per_splat": 5.0, "psnr_mean": 70.0}]
+    assert preset_for_target(rows, target_psnr=50)["label"] == "low-plus"
+    assert preset_for_target(rows, target_psnr=60)["label"] == "medium-low"  # 60.0 meets 60: the smaller files
+    assert preset_for_target(rows, target_psnr=61)["label"] == "very-high"  # identical (None) meets any target
+    assert preset_for_target(rows, target_bytes=12)["label"] == "low-plus"
+    assert preset_for_target(rows, target_bytes=100)["label"] == "very-high"
+    assert preset_for_target(rows, target_bytes=7.7)["label"] == "very-low"
+    # a preset that is larger and worse than another never wins either way
+    rows.append(_preset_row("odd", 14.0, 59.0))
+    assert preset_for_target(rows, target_psnr=59)["label"] == "medium-low"
+    assert preset_for_target(rows, target_bytes=14.5)["label"] == "medium-low"
+    with pytest.raises(UsageError, match="smallest: very-low at 7.70"):
+        preset_for_target(rows, target_bytes=5)
+    with pytest.raises(UsageError, match="one target"):
+        preset_for_target(rows, target_psnr=50, target_bytes=12)
+    with pytest.raises(UsageError, match="highest: medium at 60.40"):
+        preset_for_target(rows[1:], target_psnr=70)
+
+
+def test_encode_target_psnr_and_size_pick_what_eval_measures(tmp_path):
+    """`encode --target-psnr` / `--target-size` encode with the preset eval's numbers pick (same views, same
+    renderer), and refuse what cannot work together or cannot be met, in one line."""
+    src = real("fruit_drops_sh3.ply")
+    res = run_cli("eval", src, "--views", "2", "--size", "512x512", "--json", tmp_path / "r.json")
+    assert res.returncode == 0, res.stderr
+    rows = json.loads((tmp_path / "r.json").read_text())["rows"]
+    from splatstream.evaluate import preset_for_target
+
+    target_db = 40.0
+    want = preset_for_target(rows, target_psnr=target_db)["label"]
+    res = run_cli("encode", src, tmp_path / "a", "--target-psnr", target_db, "--target-views", "2", "--no-lod")
+    assert res.returncode == 0, res.stderr
+    assert f"PSNR >= 40 dB: preset {want} (" in res.stderr
+    assert json.loads(run_cli("info", tmp_path / "a", "--json").stdout)["preset"] == want
+    size = preset_for_target(rows, target_psnr=target_db)["disk_bytes_per_splat"] - 0.01
+    want_small = preset_for_target(rows, target_bytes=size)["label"]
+    assert want_small != want
+    res = run_cli("encode", src, tmp_path / "b", "--target-size", size, "--target-views", "2", "-q")
+    assert res.returncode == 0, res.stderr
+    assert res.stderr == ""
+    assert json.loads(run_cli("info", tmp_path / "b", "--json").stdout)["preset"] == want_small
+    for args, message in ((["--target-size", "1", "--target-views", "1"], "no preset is that small"),
+                          (["--target-psnr", "40", "--preset", "low"], "choose the preset"),
+                          (["--target-psnr", "40", "--target-size", "9"], "not allowed with argument"),
+                          (["--target-psnr", "-3"], "expected a PSNR above 0"),
+                          (["--target-size", "9", "--target-views", "0"], "expected at least 1")):
+        res = run_cli("encode", src, tmp_path / "c", *args, "-q")
+        assert res.returncode == 2 and message in res.stderr and "Traceback" not in res.stderr, (args, res.stderr)
+        assert len(res.stderr.strip().splitlines()) <= 3  # argparse's usage lines, or our one line
+        assert not (tmp_path / "c").exists()

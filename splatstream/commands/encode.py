@@ -21,6 +21,10 @@ from ..format.transport import TRANSPORTS
 from ..progress import ProgressPrinter
 from .args import parse_bytes, parse_vector
 
+# The views --target-psnr / --target-size measure presets on: `splatstream eval`'s defaults.
+TARGET_VIEWS = 8
+TARGET_SIZE = 512
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -36,10 +40,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("output_dir", help="scene directory to write (replaced atomically if it exists), or an fsspec URL "
                                       "(s3://bucket/scene, gs://..., needs the cluster extra): payloads first, the "
                                       "manifest last")
-    p.add_argument("--preset", default=DEFAULT_PRESET, choices=list(PRESETS), metavar="PRESET",
+    p.add_argument("--preset", default=None, choices=list(PRESETS), metavar="PRESET",
                    help="quality preset, from the largest files to the smallest: "
                         + "; ".join(f"{k} ({v})" for k, v in PRESET_SUMMARY.items()).replace("%", "%%")
                         + f". Default {DEFAULT_PRESET}")
+    target = p.add_mutually_exclusive_group()
+    target.add_argument("--target-psnr", type=float, metavar="DB",
+                        help="instead of --preset: measure every preset on this scene as `splatstream eval` does "
+                             f"(--target-views orbit views at {TARGET_SIZE}x{TARGET_SIZE}, PSNR against the "
+                             "original, the GL renderer where it opens, else the numpy reference) and encode with "
+                             "the one of the smallest files whose mean PSNR is at least DB")
+    target.add_argument("--target-size", type=float, metavar="B",
+                        help="instead of --preset: as --target-psnr, the preset of the highest PSNR whose "
+                             "full-detail files take at most B bytes per splat")
+    p.add_argument("--target-views", type=int, default=TARGET_VIEWS, metavar="N",
+                   help=f"orbit views --target-psnr / --target-size measure on (default {TARGET_VIEWS}: fewer, "
+                        "faster and noisier)")
     for attr in ATTRIBUTES:
         p.add_argument(f"--{attr}", dest=f"fmt_{attr}", choices=list(VALUE_FORMATS), metavar="FORMAT",
                        help=f"texel format of {attr}, overriding the preset ({', '.join(VALUE_FORMATS)})")
@@ -112,10 +128,16 @@ def run(args: argparse.Namespace) -> int:
     if workers is not None and args.scheduler:
         raise UsageError("--workers starts a local cluster, --scheduler uses an existing one: give one of them")
     memory = parse_bytes(args.memory_per_worker, "--memory-per-worker") if args.memory_per_worker else None
-    progress = ProgressPrinter("encode", enabled=not args.quiet)
     t0 = time.perf_counter()
+    preset = args.preset or DEFAULT_PRESET
+    if args.target_psnr is not None or args.target_size is not None:
+        if args.preset or overrides or args.sh_degree is not None or args.sh_codebook is not None:
+            raise UsageError("--target-psnr / --target-size choose the preset: give them without --preset, texel "
+                             "formats, --sh-degree or --sh-codebook")
+        preset = _preset_for_target(args, up)
+    progress = ProgressPrinter("encode", enabled=not args.quiet)
     with progress.library_notes():
-        m = encode_file(args.input, args.output_dir, preset=args.preset, drop_invalid=args.drop_invalid,
+        m = encode_file(args.input, args.output_dir, preset=preset, drop_invalid=args.drop_invalid,
                         progress=progress, workers=workers, scheduler=args.scheduler, memory_per_worker=memory,
                         scratch=args.scratch, overrides=overrides, sh_degree=args.sh_degree, zstd_level=args.zstd_level,
                         transport=args.transport,
@@ -127,3 +149,30 @@ def run(args: argparse.Namespace) -> int:
               f"({m.bytes_on_disk / m.splats:.2f} B/splat), {m.gpu_bytes_per_splat:.2f} B/splat on the GPU, "
               f"{time.perf_counter() - t0:.2f}s", file=sys.stderr)
     return 0
+
+
+def _preset_for_target(args: argparse.Namespace, up: tuple[float, float, float] | None) -> str:
+    """Measure every preset on the input (splatstream.evaluate) and pick the one the target asks for."""
+    from ..evaluate import EvalOptions, evaluate, preset_for_target
+    from .renderers import pick_renderer
+
+    if args.target_psnr is not None and not args.target_psnr > 0:
+        raise UsageError(f"--target-psnr {args.target_psnr}: expected a PSNR above 0 dB")
+    if args.target_size is not None and not args.target_size > 0:
+        raise UsageError(f"--target-size {args.target_size}: expected a size above 0 bytes per splat")
+
+    def log(msg: str) -> None:
+        if not args.quiet:
+            print(f"target: {msg.strip()}", file=sys.stderr)
+
+    if args.target_views < 1:
+        raise UsageError(f"--target-views {args.target_views}: expected at least 1")
+    opts = EvalOptions(views=args.target_views, width=TARGET_SIZE, height=TARGET_SIZE, up=up,
+                       zstd_level=args.zstd_level)
+    report = evaluate(args.input, opts, log=log, renderer=pick_renderer("auto"))
+    row = preset_for_target(report["rows"], target_psnr=args.target_psnr, target_bytes=args.target_size)
+    psnr = "identical" if row["psnr_mean"] is None else f"{row['psnr_mean']:.2f} dB"
+    what = f"PSNR >= {args.target_psnr:g} dB" if args.target_psnr is not None else f"<= {args.target_size:g} B/splat"
+    log(f"{what}: preset {row['label']} ({row['disk_bytes_per_splat']:.2f} B/splat full detail, {psnr} mean PSNR "
+        f"over {args.target_views} views)")
+    return str(row["label"])
