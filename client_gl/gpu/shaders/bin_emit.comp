@@ -53,7 +53,29 @@ void main() {
         rects[i] = uvec2(0u);
 #endif
 #ifdef ROW_BINS
-        if (idx < n) vals[i] = counts[idx];
+        // bin_count's counts (what its group sums add up); the rows of boxes at most two tiles high and 255 wide
+        // kept as (lo.x | lo.y << 16, first row's [x0, x1) | second row's << 16, 8 bits each from lo.x), so their
+        // entries need no walk; taller boxes are marked 0xFFFFFFFF and walked.
+        if (idx < n) {
+            vals[i] = counts[idx];
+            uvec2 lo, hi;
+            vec2 c;
+            vec3 q;
+            float op;
+            tile_rect(order[idx], lo, hi, c, q, op);
+            los[i] = uvec2(0xFFFFFFFFu, 0u);
+            if (hi.y - lo.y <= 2u && hi.x - lo.x <= 255u) {
+                uvec2 r0 = uvec2(lo.x, hi.x), r1 = uvec2(lo.x);
+                if (hi.y - lo.y == 2u || hi.x - lo.x > 1u) {  // not one tile (row_entries counts that as 1)
+                    RowSplat e = row_splat(c, q, op);
+                    r0 = row_tiles(lo.y, lo, hi, e);
+                    if (hi.y - lo.y == 2u) r1 = row_tiles(lo.y + 1u, lo, hi, e);
+                }
+                r0 -= lo.x;
+                r1 -= lo.x;
+                los[i] = uvec2(lo.x | (lo.y << 16), r0.x | (r0.y << 8) | (r1.x << 16) | (r1.y << 24));
+            }
+        }
         continue;
 #endif
         if (idx < n) {
@@ -99,20 +121,31 @@ void main() {
         uint k = a - 1u;
         uint t = o - s_off[k];
 #ifdef ROW_BINS
-        // the entry's row: the splat's rows in order, each as many entries as row_tiles keeps
         uint r = order[g * SCAN_TILE + k];
+        uint lo0 = s_lo[k];
+        if (lo0 != 0xFFFFFFFFu) {  // rows kept in shared memory
+            uint rows = s_w[k];
+            uint w0 = ((rows >> 8) & 0xFFu) - (rows & 0xFFu);
+            uint x, y;
+            if (t < w0) {
+                x = (lo0 & 0xFFFFu) + (rows & 0xFFu) + t;
+                y = lo0 >> 16;
+            } else {
+                x = (lo0 & 0xFFFFu) + ((rows >> 16) & 0xFFu) + t - w0;
+                y = (lo0 >> 16) + 1u;
+            }
+            if (base + o < u_capacity) {
+                tile_keys[base + o] = y * u_grid.x + x;
+                tile_values[base + o] = r;
+            }
+            continue;
+        }
+        // a taller box: the entry's row by walking the splat's rows, each as many entries as row_tiles keeps
         uvec2 lo, hi;
         vec2 c;
         vec3 q;
         float op;
         tile_rect(r, lo, hi, c, q, op);
-        if (hi.y - lo.y == 1u && hi.x - lo.x == 1u) {  // one tile (row_entries counts it without row_tiles)
-            if (base + o < u_capacity) {
-                tile_keys[base + o] = lo.y * u_grid.x + lo.x;
-                tile_values[base + o] = r;
-            }
-            continue;
-        }
         RowSplat e = row_splat(c, q, op);
         for (uint y = lo.y; y < hi.y; ++y) {
             uvec2 xs = row_tiles(y, lo, hi, e);
