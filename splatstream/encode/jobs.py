@@ -47,7 +47,8 @@ def group_planes_of(g: Gaussians, order: np.ndarray, group: str, ctx: TileContex
     if ctx.codebook is not None and group == "sh1":
         return [encode_index_plane(assign_sh_codebook(ctx.codebook, g), order)]
     specs = BASE_PLANES if group == "base" else (band_plane(band_of(group)),)
-    return [encode_plane(plane_values(g, s), s, ctx.formats[s.attribute], order, lazy=True) for s in specs]
+    return [encode_plane(plane_values(g, s), s, ctx.formats[s.attribute], order, lazy=True,
+                         step=ctx.steps.get(s.attribute)) for s in specs]
 
 
 def encode_group(g: Gaussians, order: np.ndarray, group: str, ctx: TileContext, writer: SceneWriter) -> PayloadEntry:

@@ -32,7 +32,7 @@ import numpy as np
 
 from ..errors import UsageError
 from ..format.manifest import Box, TileEntry
-from ..format.presets import resolve_chunk_order, resolve_formats
+from ..format.presets import preset_steps, resolve_chunk_order, resolve_formats
 from ..gaussians import SH_REST_COEFFS, Gaussians
 from ..lod import (
     Tile,
@@ -641,7 +641,8 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
         progress("codebook", 1.0)
     sample.codebook_rows = sample.codebook_weights = None
     up = plan_up(opts, sample)
-    ctx = TileContext(formats, chunk_order, sh_degree, codebook, opts.resolved_zstd_level, opts.transport)
+    ctx = TileContext(formats, chunk_order, sh_degree, codebook, opts.resolved_zstd_level, opts.transport,
+                      preset_steps(opts.preset, opts.overrides))
     payloads = writer.payload_writer()
     codebook_entry = encode_codebook(codebook, ctx, payloads) if codebook is not None else None
 

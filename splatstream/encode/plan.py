@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import logging
 import os
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
@@ -18,7 +18,8 @@ from ..format.container import DEFAULT_ZSTD_LEVEL
 from ..format.layout import CHUNK_SIZE, MAX_BLOCK_ROWS, MAX_BLOCKS_PER_ROW
 from ..format.limits import describe_violations, domain_violations
 from ..format.manifest import Box, CameraEntry
-from ..format.presets import resolve_chunk_order, resolve_formats
+from ..format.presets import preset_steps, resolve_chunk_order, resolve_formats
+from ..format.steps import TileStep
 from ..gaussians import Gaussians
 from ..lod import Tile, build_tiles
 from ..vq import Codebook
@@ -39,6 +40,8 @@ class TileContext:
     codebook: Codebook | None
     zstd_level: int = DEFAULT_ZSTD_LEVEL
     transport: str = "fields"  # format/transport.py TRANSPORTS
+    # Tile-wide quantisation steps per attribute (format/steps.py): the preset's, for attributes it keeps the format of
+    steps: dict[str, TileStep] = field(default_factory=dict)
 
 
 @dataclass
@@ -106,7 +109,8 @@ def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progr
     progress("tiles", 0.0)
     tiles = plan_tiles(g, opts, progress)
     progress("tiles", 1.0)
-    context = TileContext(formats, chunk_order, sh_degree, codebook, opts.resolved_zstd_level, opts.transport)
+    context = TileContext(formats, chunk_order, sh_degree, codebook, opts.resolved_zstd_level, opts.transport,
+                          preset_steps(opts.preset, opts.overrides))
     return EncodePlan(context, tiles, opts, scene_name(opts, source_name, out_name), len(g), bounds, up, sample)
 
 

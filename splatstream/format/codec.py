@@ -19,6 +19,7 @@ from ..gaussians import SH_BAND_COEFFS, Gaussians, logit, normalize_quaternions,
 from .layout import CHUNK_SIZE, chunk_texel_index, texture_size
 from .limits import plane_limits
 from .planes import SH_INDEX_FORMAT, SH_INDEX_PLANE, PlaneSpec
+from .steps import TileStep, widened_max
 from .texformats import TEXEL_DTYPES, decode_image, encode_bc_image, get_format, pack_texels, unpack_texels
 
 SQRT2 = math.sqrt(2.0)
@@ -190,8 +191,11 @@ def _quantize_u8(t: np.ndarray) -> np.ndarray:
 
 
 def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.ndarray | None = None,
-                 lazy: bool = False) -> EncodedPlane:
+                 lazy: bool = False, step: TileStep | None = None) -> EncodedPlane:
     """Quantise (N, L, C) plane values into one texture blob per layer (+ per-chunk ranges).
+
+    `step`: quantise a ranged plane on one step per component over the tile instead of per-chunk grids, by widening
+    each chunk's stored max (steps.py, format.md 4.3.1).
 
     `order` (a permutation, the tile's Morton order) is applied before quantising. With
     `lazy`, `layers` is an iterator that encodes each layer when asked for it and `ranges` is filled in once it
@@ -215,6 +219,8 @@ def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.n
             v = values[:, layer] if order is None else np.take(values[:, layer], order, axis=0)
             if spec.range_dtype:
                 lo, hi = chunk_ranges(v, spec.range_dtype, plane_limits(spec.name))
+                if step is not None:
+                    hi = widened_max(lo, hi, fmt_name, step, spec.range_dtype, plane_limits(spec.name))
                 lo32, hi32 = lo.astype(np.float32), hi.astype(np.float32)
                 extent = hi32 - lo32
                 inv = np.divide(1.0, extent, out=np.zeros_like(extent), where=extent > 0)

@@ -1,0 +1,66 @@
+"""Tile-wide quantisation steps: a coarser grid than the texel format's, written by widening chunk ranges
+(format_spec/format.md 4.3.1). Encoder only: a reader decodes such a plane like any other.
+
+A ranged plane quantises chunk c's component k on `levels` steps of (max - min) / levels. Per-chunk ranges give every
+chunk the same number of levels, so a chunk whose values spread wide gets a coarse step and a tight chunk a fine
+one. With a tile step, every chunk of a tile takes the same step s_k = (median over the tile's chunks of their
+extent) / `levels[k]`: a chunk of extent e stores `max' = min + L (e / n)`, n = clamp(e / s_k, 1, L) its number of
+steps and L the format's levels, so its values quantise to q = 0..n (texel codes stay small and their Morton deltas
+cheap) at step e / n = s_k, or finer where a chunk spreads wider than L steps. On donut (issue 15) one absolute step
+for positions, scales and colour measured 0.3 B/splat smaller than per-chunk grids at the same PSNR.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import UsageError
+from .texformats import get_format
+
+
+@dataclass(frozen=True)
+class TileStep:
+    """Levels the median chunk of a tile gets, per component. The first `shared` components share one step: the
+    median over chunks of their largest extent / levels[0] (positions: the same error along every axis; log scales
+    and SH0 R, G, B alike); every later component has its own, the median chunk's extent / its levels."""
+
+    levels: tuple[float, ...]
+    shared: int = 1
+
+    def check(self, fmt_name: str, components: int) -> None:
+        fmt = get_format(fmt_name)
+        if fmt.levels[0] == 0 or fmt.block > 1:
+            raise UsageError(f"a tile step needs an integer texel format, not {fmt_name}")
+        if len(self.levels) != components or min(self.levels) < 1 or not 1 <= self.shared <= components:
+            raise UsageError(f"tile step levels {self.levels} (shared {self.shared}) for {components} components")
+
+
+def step_sizes(extent: np.ndarray, step: TileStep) -> np.ndarray:
+    """(C,) step per component from the chunks' extents (chunks, C)."""
+    size = np.median(extent, axis=0) / np.array(step.levels, np.float64)
+    size[:step.shared] = np.median(extent[:, :step.shared].max(axis=1)) / step.levels[0]
+    return size
+
+
+def widened_max(lo: np.ndarray, hi: np.ndarray, fmt_name: str, step: TileStep, range_dtype: str,
+                limits: tuple[float, float]) -> np.ndarray:
+    """The stored max of every chunk (chunks, C) under a tile step; `lo`, `hi` the chunk ranges as stored (in
+    `range_dtype`). Never below `hi` (every value stays inside its range) nor above the plane's limit."""
+    components = lo.shape[-1]
+    step.check(fmt_name, components)
+    fmt_levels = np.array(get_format(fmt_name).levels[:components], np.float64)
+    lo64, hi64 = lo.astype(np.float64), hi.astype(np.float64)
+    extent = hi64 - lo64
+    size = step_sizes(extent, step)
+    steps = np.clip(np.divide(extent, size, out=np.zeros_like(extent), where=size > 0), 1.0, fmt_levels)
+    wide = lo64 + extent * (fmt_levels / steps)
+    if range_dtype == "<f2":
+        from .codec import f16_ceil  # codec imports this module
+
+        stored = f16_ceil(wide.astype(np.float32)).astype(np.float64)
+    else:
+        stored = wide.astype(np.float32).astype(np.float64)
+    # At the plane's limit (or f16's largest value) keep the tight range: a reader rejects ranges outside the limits.
+    stored = np.where(np.isfinite(stored) & (stored <= limits[1]), np.maximum(stored, hi64), hi64)
+    return stored.astype(range_dtype)
