@@ -87,3 +87,30 @@ def test_shader_decode_equals_numpy(gl_compute_context, gaussians, fmt):
     rest = out[:, 14:59].reshape(N, 15, 3)
     np_rest = np.concatenate([ref[f"sh{b}"] for b in (1, 2, 3)], axis=1)
     close(rest, np_rest, "sh", max(extent(f"sh{b}") for b in (1, 2, 3)))
+
+
+def test_shader_decode_equals_numpy_on_tile_steps(gl_compute_context, gaussians):
+    """medium-low-12bit (format.md 4.3.1): widened ranges decode in the shader as numpy decodes them."""
+    from client_gl.gpu.pool import ChunkPool
+    from client_gl.gpu.renderer import RenderOptions, SplatRenderer
+    from client_gl.scene import tiles_from_gaussians
+
+    scene = tiles_from_gaussians(gaussians, "medium-low-12bit", sh_codebook="off")
+    tile = scene.tiles[0]
+    planes = tile.planes
+    r = planes["position"].ranges.astype(np.float64)
+    assert np.all(r[:, 1] - r[:, 0] > 0)
+    t_position = _numpy_t(planes["position"], N)[:, :3]
+    assert 0 < np.median(t_position) < 0.05  # codes on the tile's step (about 4095 of the 65535 levels), not all
+    pool = ChunkPool(gl_compute_context, scene.formats, scene.sh_degree, 8)
+    pool.join(5, tile)
+    renderer = SplatRenderer(gl_compute_context, pool, RenderOptions(sort="cpu"))
+    out = renderer.decode_debug(pool.splat_ids(5))
+    renderer.release()
+    pool.release()
+    for k, name in enumerate(("position", "rotation", "scale", "color")):
+        t_np = _numpy_t(planes[name], N).astype(np.float32)
+        np.testing.assert_array_max_ulp(out[:, 59 + 4 * k: 63 + 4 * k][:, :3], t_np[:, :3], maxulp=1)
+    for name, cols in (("position", slice(0, 3)), ("scale", slice(7, 10)), ("color", slice(10, 14))):
+        cpu = decode_plane(planes[name], N)[:, 0]
+        assert np.abs(out[:, cols] - cpu).max() <= 2e-6 * max(1.0, float(np.abs(cpu).max())), name

@@ -3,7 +3,8 @@
 # decode of every texel format against the numpy reference (tests/test_gl_decode.py; norm16x4 = GL_RGBA16 unorm
 # read through a sampler2D, norm9x3 = R32UI unpacked in the shader), the SH codebook in them
 # (tests/test_gl_codebook.py), and the formats' own tests (tests/test_format_1_3.py: bit layouts, scenes encoded and
-# decoded). About a minute. From the repo root (device `run` tool), carrying as
+# decoded), and tile steps (format.md 4.3.1, preset medium-low-12bit: widened ranges;
+# tests/test_gl_decode.py::test_shader_decode_equals_numpy_on_tile_steps and tests/test_tile_steps.py). About a minute. From the repo root (device `run` tool), carrying as
 # bench/device/run_client.sh does:
 #   .gl           GL loader .debs (libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2, amd64)
 #   .whl          cp312 wheels: moderngl glcontext zstandard msgpack platformdirs, and pytest with its
@@ -30,5 +31,5 @@ if ! python3 -c "$probe"; then
 fi
 python3 -m pytest --version || { echo "pytest is not in .whl: add pytest iniconfig pluggy packaging wheels"; exit 1; }
 # -rs: a skipped test (no GL context, no real scene) is reported, not taken for a pass
-python3 -m pytest -q -rs -p no:cacheprovider tests/test_gl_decode.py tests/test_format_1_3.py \
+python3 -m pytest -q -rs -p no:cacheprovider tests/test_gl_decode.py tests/test_format_1_3.py tests/test_tile_steps.py \
   "tests/test_gl_codebook.py::test_shader_decode_equals_numpy"

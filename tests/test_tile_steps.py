@@ -1,0 +1,111 @@
+"""Tile steps (format.md 4.3.1, format/steps.py): a ranged plane quantised on one step per tile by widening chunk
+ranges; the preset medium-low-12bit that uses them. The shader decode of such a scene: test_gl_decode.py."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from conftest import real, run_cli
+
+from splatstream.decoder import decode_scene
+from splatstream.encode import EncodeOptions, encode_gaussians
+from splatstream.errors import UsageError
+from splatstream.format.codec import decode_plane, encode_plane
+from splatstream.format.layout import CHUNK_SIZE, chunk_texel_index
+from splatstream.format.planes import BASE_PLANES
+from splatstream.format.presets import PRESET_STEPS, PRESETS, preset_steps
+from splatstream.format.steps import TileStep, step_sizes, widened_max
+from splatstream.io import read_gaussians
+
+POSITION, SCALE = BASE_PLANES[0], BASE_PLANES[2]
+
+
+def test_widened_max_gives_every_chunk_the_median_chunks_step():
+    lo = np.zeros((4, 3), np.float32)
+    hi = np.array([[1, 0.5, 0], [2, 1, 1], [4, 0, 0], [1000, 1, 1]], np.float32)
+    step = TileStep((100.0,) * 3, shared=3)
+    # largest extents 1, 2, 4, 1000: median 3, so one step of 0.03 on every axis
+    np.testing.assert_allclose(step_sizes(hi.astype(np.float64), step), [0.03] * 3)
+    wide = widened_max(lo, hi, "norm8x4", step, "<f4", (-1e18, 1e18))
+    # n = e / 0.03 steps (at least 1, at most 255): max = e * 255 / n = 255 * 0.03 = 7.65, except where e / 0.03 > 255
+    # (the 1000 chunk keeps its tight range, 255 steps of 1000/255) or e = 0 (max = min = 0: one step, nothing widened)
+    np.testing.assert_allclose(wide, [[7.65, 7.65, 0], [7.65, 7.65, 7.65], [7.65, 0, 0], [1000, 7.65, 7.65]],
+                               rtol=1e-6)
+    assert np.all(wide >= hi) and wide.dtype == np.float32
+    per_axis = widened_max(lo, hi, "norm8x4", TileStep((100.0, 100.0, 100.0), shared=1), "<f4", (-1e18, 1e18))
+    # per axis: median extents 3, 0.75, 0.5 over 100 levels; chunk 1 (extents 2, 1, 1) gets 255 of those steps
+    np.testing.assert_allclose(per_axis[1], [255 * 0.03, 255 * 0.0075, 255 * 0.005], rtol=1e-6)
+
+
+def test_f16_ranges_round_up_and_stay_inside_the_limits():
+    lo = np.array([[-5.0, 30.0, 39.0]], np.float16)
+    hi = np.array([[-4.9, 31.0, 39.9]], np.float16)
+    wide = widened_max(lo, hi, "norm8x4", TileStep((10.0,) * 3, shared=3), "<f2", (-80.0, 40.0))
+    assert wide.dtype == np.float16
+    # one chunk whose largest extent is 1: one step of 0.1 on all three, so max = lo + 255 * 0.1 where e / 0.1 >= 1
+    assert float(wide[0, 0]) == 20.5  # e = 0.1016 (f16 -4.9 rounds to -4.898): one step, max = lo + 255 e / 1.016
+    # 30 + 25.5 and 39 + 25.5 are above the log-scale limit 40: kept tight
+    assert wide[0, 1:].tolist() == hi[0, 1:].tolist()
+    with pytest.raises(UsageError, match="integer texel format"):
+        widened_max(lo, hi, "f16x4", TileStep((10.0,) * 3, shared=3), "<f2", (-80.0, 40.0))
+    with pytest.raises(UsageError, match="tile step levels"):
+        widened_max(lo, hi, "norm8x4", TileStep((10.0,) * 2, shared=2), "<f2", (-80.0, 40.0))
+
+
+@pytest.mark.parametrize("fmt", ["norm16x4", "norm8x4"])
+def test_plane_on_a_tile_step_decodes_within_half_a_step_and_stores_small_codes(fmt):
+    rng = np.random.default_rng(3)
+    spread = np.repeat([0.5, 1.0, 2.0, 3.0, 4000.0], CHUNK_SIZE)[:, None]
+    values = (rng.random((len(spread), 1, 3)) * spread[:, None]).astype(np.float32) + 10.0
+    levels = 200.0
+    plane = encode_plane(values, POSITION, fmt, step=TileStep((levels,) * 3, shared=3))
+    chunk_lo = values.reshape(5, CHUNK_SIZE, 3).min(axis=1)
+    extent = values.reshape(5, CHUNK_SIZE, 3).max(axis=1) - chunk_lo
+    size = np.median(extent.max(axis=1)) / levels  # about 2 / 200
+    back = decode_plane(plane, len(values))
+    err = np.abs(back - values)[:, 0].reshape(5, CHUNK_SIZE, 3).max(axis=1)
+    L = 65535 if fmt == "norm16x4" else 255
+    # every chunk at the tile's step (the widest one at its format's finest, e / L), plus f32 rounding of the range
+    bound = np.maximum(size, extent / L) / 2 * (1 + 1e-3) + 1e-5
+    assert np.all(err <= bound), (err, bound)
+    assert err[:4].max() > size / 4  # a real grid of that step, not the format's finer one
+    texel_of_splat = chunk_texel_index(5, plane.width)
+    words = np.frombuffer(plane.layers[0], "<u2" if fmt == "norm16x4" else np.uint8).reshape(-1, 4)[texel_of_splat]
+    assert words[:, :3].max() <= L
+    tight = encode_plane(values, POSITION, fmt)
+    assert np.frombuffer(tight.layers[0], words.dtype).max() == L  # per-chunk grids use every level
+    assert words[: 4 * CHUNK_SIZE, :3].max() <= np.ceil(4 / size) + 1  # the tile step's codes: about e / size
+
+
+def test_preset_steps_follow_the_preset_and_are_dropped_with_an_override():
+    assert PRESETS["medium-low-12bit"]["position"] == "norm16x4"
+    assert set(preset_steps("medium-low-12bit")) == {"position", "scale", "color"}
+    assert preset_steps("medium-low-12bit", {"position": "norm11"}).keys() == {"scale", "color"}
+    assert preset_steps("medium-low-12bit", {"position": "norm16x4"}).keys() == {"position", "scale", "color"}
+    assert preset_steps("medium") == {}
+    assert PRESET_STEPS["medium-low-12bit"]["color"].levels == (255.0, 255.0, 255.0, 55.0)
+
+
+@pytest.fixture(scope="module")
+def scene_12bit(tmp_path_factory):
+    g = read_gaussians(real("fruit_drops_sh3.ply")).subset(np.arange(1800))
+    out = tmp_path_factory.mktemp("ml12") / "s"
+    m = encode_gaussians(g, out, EncodeOptions(preset="medium-low-12bit", lod=False))
+    return g, out, m
+
+
+def test_preset_scene_is_1_3_and_decodes_on_its_steps(scene_12bit):
+    g, out, m = scene_12bit
+    assert m.version == (1, 3) and m.formats["position"] == "norm16x4" and m.preset == "medium-low-12bit"
+    dec = decode_scene(out)
+    dist = np.abs(dec.positions[:, None, :] - g.positions[None, :, :]).max(axis=2)
+    nearest = dist.argmin(axis=1)
+    err = np.abs(dec.positions - g.positions[nearest]).max()
+    lo, hi = g.positions.min(axis=0), g.positions.max(axis=0)
+    # a chunk of 256 of 1800 splats spans less than the scene: the step (median chunk / 4095) is under the scene's
+    # extent / 4095, and no worse than 1/8 of norm9x3's grid over the scene
+    assert 0 < err <= float((hi - lo).max()) / 4095
+    # scales on the 180-level step of the median chunk: within a step of the input, and on a grid coarser than 8 bits
+    err_scale = np.abs(dec.log_scales - g.log_scales[nearest]).max()
+    assert 0 < err_scale <= float(g.log_scales.max() - g.log_scales.min()) / 180
+    r = run_cli("info", out)
+    assert r.returncode == 0 and "medium-low-12bit" in r.stdout
