@@ -83,6 +83,21 @@ def test_preset_steps_follow_the_preset_and_are_dropped_with_an_override():
     assert preset_steps("medium-low-12bit", {"position": "norm16x4"}).keys() == {"position", "scale", "color"}
     assert preset_steps("medium") == {}
     assert PRESET_STEPS["medium-low-12bit"]["color"].levels == (255.0, 255.0, 255.0, 55.0)
+    # every preset with tile steps puts them on integer formats of the planes they name
+    for preset, steps in PRESET_STEPS.items():
+        for attr, step in steps.items():
+            step.check(PRESETS[preset][attr], 4 if attr == "color" else 3)
+    assert PRESETS["low-plus-9bit"]["position"] == "norm9x3" and PRESET_STEPS["low-plus-9bit"]["position"].shared == 3
+
+
+def test_low_plus_9bit_scene_is_1_3_with_a_codebook_and_its_positions_on_the_step(tmp_path):
+    g = read_gaussians(real("fruit_drops_sh3.ply")).subset(np.arange(1800))
+    m = encode_gaussians(g, tmp_path / "s", EncodeOptions(preset="low-plus-9bit", lod=False))
+    assert m.version == (1, 3) and m.formats["position"] == "norm9x3" and m.uses_codebook
+    dec = decode_scene(tmp_path / "s")
+    dist = np.abs(dec.positions[:, None, :] - g.positions[None, :, :]).max(axis=2)
+    err = dist.min(axis=1).max()
+    assert 0 < err <= float((g.positions.max(axis=0) - g.positions.min(axis=0)).max()) / 400
 
 
 @pytest.fixture(scope="module")

@@ -33,6 +33,11 @@ PRESETS: dict[str, dict[str, str]] = {
     # for the donut scene, where SOG's 16-bit positions sat above every preset (bench/results/donut_summary.md).
     "medium-low-12bit": {"position": "norm16x4", "rotation": "norm8x4", "scale": "norm8x4", "color": "norm8x4",
                          "sh": "norm565"},
+    # low-plus with 9-bit positions on one step per tile (PRESET_STEPS), and scales and opacity on coarser steps:
+    # on fruit_drops, lod_tile, donut and the 1M scene fewer bytes and more PSNR than low-plus (1M: 12.55 B at 57.1 dB
+    # against 13.42 B at 54.2; 0.88 of SOG's bytes at +3.8 dB there); on biker 0.6 B less for 0.6 dB less.
+    "low-plus-9bit": {"position": "norm9x3", "rotation": "norm8x4", "scale": "norm8x4", "color": "norm8x4",
+                      "sh": "norm565"},
     # low with 8-bit smallest-three rotations: +4.4 dB on fruit_drops, +2.8 dB on the 1M scene for 1.2-1.3 B.
     "low-plus": {"position": "norm8x4", "rotation": "norm8x4", "scale": "norm8x4", "color": "norm8x4",
                  "sh": "norm565"},
@@ -49,7 +54,7 @@ PRESETS: dict[str, dict[str, str]] = {
 # Presets whose SH bands go through a scene-wide codebook (vq.py: "auto" about one entry per 64 splats, "fine" one
 # per 16, at least 256, at most 16,384 below 1M splats).
 PRESET_SH_CODEBOOK: dict[str, str] = {"medium-low": "fine", "medium-low-12bit": "fine", "medium-low-9bit": "fine",
-                                      "low-plus": "auto", "low": "auto", "very-low": "auto"}
+                                      "low-plus-9bit": "auto", "low-plus": "auto", "low": "auto", "very-low": "auto"}
 # Tile-wide quantisation steps (format/steps.py, format.md 4.3.1): levels of the tile's median chunk per component,
 # the first `shared` components on one step. Per-chunk grids give a chunk of widely spread values a coarse step and a
 # tight chunk a fine one; one step per tile spends the bits where values spread. On donut one step for positions
@@ -58,6 +63,8 @@ PRESET_SH_CODEBOOK: dict[str, str] = {"medium-low": "fine", "medium-low-12bit": 
 PRESET_STEPS: dict[str, dict[str, TileStep]] = {
     "medium-low-12bit": {"position": TileStep((4095.0,) * 3, shared=3), "scale": TileStep((180.0,) * 3, shared=3),
                          "color": TileStep((255.0, 255.0, 255.0, 55.0), shared=3)},
+    "low-plus-9bit": {"position": TileStep((400.0,) * 3, shared=3), "scale": TileStep((200.0,) * 3, shared=3),
+                      "color": TileStep((255.0, 255.0, 255.0, 55.0), shared=3)},
 }
 # zstd level per preset where it is not the encoder's default (DEFAULT_ZSTD_LEVEL, 1; `--zstd-level` overrides
 # both). medium-low at 9: 0.3-1.0 % smaller than at 1 on the real scenes (lod_tile 13.40 -> 13.26 B/splat, which
@@ -65,7 +72,8 @@ PRESET_STEPS: dict[str, dict[str, TileStep]] = {
 # (+-0.5 %), and medium keeps level 1 for its encode speed. medium-low-9bit at 16 (zstd's btultra): 0.3-1.5 % smaller
 # than at 9 on biker, donut, fruit_drops and the 1M scene (biker 11.44 -> 11.39 B/splat, which puts it under 0.90 of
 # SOG's bytes there; lod_tile +0.3 %), for about 3.5 s more per million splats on 2 cores (bench/results/pos9_levels_*).
-PRESET_ZSTD_LEVEL: dict[str, int] = {"medium-low": 9, "medium-low-12bit": 16, "medium-low-9bit": 16}
+PRESET_ZSTD_LEVEL: dict[str, int] = {"medium-low": 9, "medium-low-12bit": 16, "medium-low-9bit": 16,
+                                     "low-plus-9bit": 16}
 DEFAULT_PRESET = "medium"
 # What each preset is for, in the words the CLI (`encode --help`, `info`) shows: disk bytes per splat with the
 # fields1 transport coding at SH3 / SH0 and the mean PSNR measured on the benchmark scenes (BENCHMARKS.md, "Size
@@ -78,9 +86,12 @@ PRESET_SUMMARY: dict[str, str] = {
     "medium-low": "medium's positions, 8-bit rotations and scales, SH codebook (about 1 entry per 16 splats); "
                   "about 13-15.5 B/splat at SH3, 12-13 at SH0; 47-68 dB",
     "medium-low-12bit": "medium-low with about 12-bit positions (16-bit texels on one step per tile), coarser "
-                        "scales and opacity, zstd level 16; donut (SH0): 12.5 B/splat, 62.6 dB",
+                        "scales and opacity, zstd level 16; about 12.9-14.7 B/splat at SH3, 11.7-12.5 at SH0; "
+                        "47-64 dB",
     "medium-low-9bit": "medium-low with 9-bit positions, zstd level 16; about 12.5-14.5 B/splat at SH3, 11.4-12.3 "
                        "at SH0; 47-61 dB",
+    "low-plus-9bit": "low-plus with 9-bit positions on one step per tile, coarser scales and opacity, zstd level "
+                     "16; about 12.4-12.6 B/splat at SH3, 10.4-11.3 at SH0; 44-57 dB",
     "low-plus": "8-bit positions, rotations, scales and colour, SH codebook (1 per 64); about 12-13.5 B/splat at "
                 "SH3, 11-12 at SH0; 44-57 dB",
     "low": "low-plus with 16-bit rotations; about 11-12 B/splat at SH3, 10-10.6 at SH0; 37-52 dB",
