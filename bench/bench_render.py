@@ -100,10 +100,11 @@ DRAW_FLAGS = {"f2b": {"front_to_back": True}, "nodepth": {"depth_test": False}, 
               "wc": {"warp_cull": True}, "r8": {"radix_bits": 8}, "classic": {"fused_sort": False},
               "fb": {"full_barriers": True},
               # dense-scene variants of the compute draw (RenderOptions; issue 20). Former defaults: nofl (no flush),
-              # tpe (a thread a splat in bin_emit), d32 (32-bit depth keys), tr4 (4-bit tile sort digits).
+              # tpe (a thread a splat in bin_emit, whole boxes), box (whole boxes, balanced emit), d32 (32-bit depth
+              # keys), tr4 (4-bit tile sort digits).
               "fl": {"flush": "cull"}, "fls": {"flush": "stages"}, "nofl": {"flush": "none"},
               "tb": {"tight_bins": True}, "er": {"emit_rects": True}, "tpe": {"balanced_emit": False},
-              "rb": {"row_bins": True},
+              "box": {"row_bins": False},
               "tr4": {"tile_radix_bits": 4}, "tr5": {"tile_radix_bits": 5}, "tr8": {"tile_radix_bits": 8},
               "dr5": {"radix_bits": 5}, "dr6": {"radix_bits": 6},
               "d16": {"depth_bits": 16}, "d20": {"depth_bits": 20}, "d32": {"depth_bits": 32}}

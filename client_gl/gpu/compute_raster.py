@@ -57,7 +57,7 @@ class ComputeRaster:
     def __init__(self, ctx, color_dtype: str, visible_capacity: int, entry_capacity: int | None = None,
                  tile_px: int = TILE_PX, unroll: int = UNROLL, warp_cull: bool = False, radix_bits: int = RADIX_BITS,
                  fused_sort: bool = True, barrier_bits: int = CHAIN_BARRIER, tight_bins: bool = False,
-                 emit_rects: bool = False, balanced_emit: bool = True, row_bins: bool = False):
+                 emit_rects: bool = False, balanced_emit: bool = True, row_bins: bool = True):
         self.ctx = ctx
         self.color_dtype = color_dtype
         self.tile_px = int(tile_px)
@@ -73,9 +73,8 @@ class ComputeRaster:
         self.emit_rects = bool(emit_rects)
         # The balanced emit expands whole tile boxes or row_bins' rows: tight_bins and emit_rects keep a thread a splat.
         self.balanced_emit = bool(balanced_emit) and not self.tight_bins and not self.emit_rects
-        self.row_bins = bool(row_bins)
-        if self.row_bins and not self.balanced_emit:
-            raise ValueError("row_bins needs the balanced emit (not with tight_bins or emit_rects)")
+        # Row bins need the balanced emit (its rows in shared memory): off with tight_bins, emit_rects or without it.
+        self.row_bins = bool(row_bins) and self.balanced_emit
         binning = tile + ("#define TIGHT_BINS\n" if self.tight_bins else "")
         binning += "#define ROW_BINS\n" if self.row_bins else ""
         self.count_shader = ctx.compute_shader(_source("bin_count.comp", binning))

@@ -117,7 +117,14 @@ uvec2 row_tiles(uint ty, uvec2 lo, uvec2 hi, RowSplat e) {
     return uvec2(uint(f0), uint(f1));
 }
 
+// Whether a splat's entries are its rows' tiles (boxes at most ROW_BINS_ROWS tiles high and 255 wide, whose rows
+// bin_emit keeps in shared memory) or its whole box (taller ones: a thread a splat over many rows would keep its warp
+// waiting, as the per-entry walk of an earlier version did).
+#define ROW_BINS_ROWS 2u
+bool row_binned(uvec2 lo, uvec2 hi) { return hi.y - lo.y <= ROW_BINS_ROWS && hi.x - lo.x <= 255u; }
+
 uint row_entries(uvec2 lo, uvec2 hi, vec2 c, vec3 q, float op) {
+    if (!row_binned(lo, hi)) return rect_tiles(lo, hi);
     if (hi.y - lo.y == 1u && hi.x - lo.x == 1u) return 1u;  // one tile: the box is exact
     RowSplat e = row_splat(c, q, op);
     uint n = 0u;

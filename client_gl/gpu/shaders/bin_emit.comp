@@ -7,9 +7,9 @@
 // of the group's run (each finds its splat by a binary search of the offsets in shared memory): every thread writes
 // as many entries, and neighbouring threads neighbouring words, where one thread a splat leaves a warp waiting on its
 // largest splat's tiles. The same entries in the same order as one thread a splat (not with TIGHT_BINS).
-// ROW_BINS (with BALANCED): a splat's entries are, row by row, the tiles bin_common.glsl's row_tiles keeps (the
-// tiles whose pixel centres its alpha >= 1/255 ellipse reaches, as TIGHT_BINS, found per row in closed form); an
-// entry finds its row by walking the splat's rows.
+// ROW_BINS (with BALANCED): a splat whose box is at most two tiles high (bin_common.glsl's row_binned) has, row by
+// row, the tiles row_tiles keeps (those whose pixel centres its alpha >= 1/255 ellipse reaches, as TIGHT_BINS, found
+// per row in closed form); a taller one its whole box.
 layout(local_size_x = 256) in;
 
 layout(std430, binding = 0) readonly buffer Params { uint count; uint pad[3]; };
@@ -53,9 +53,9 @@ void main() {
         rects[i] = uvec2(0u);
 #endif
 #ifdef ROW_BINS
-        // bin_count's counts (what its group sums add up); the rows of boxes at most two tiles high and 255 wide
-        // kept as (lo.x | lo.y << 16, first row's [x0, x1) | second row's << 16, 8 bits each from lo.x), so their
-        // entries need no walk; taller boxes are marked 0xFFFFFFFF and walked.
+        // bin_count's counts (what its group sums add up); a row-binned splat's rows kept as (lo.x | lo.y << 16,
+        // first row's [x0, x1) | second row's << 16, 8 bits each from lo.x); a taller box as the box mode's
+        // (lo.x | lo.y << 16, width | 1 << 31).
         if (idx < n) {
             vals[i] = counts[idx];
             uvec2 lo, hi;
@@ -63,8 +63,8 @@ void main() {
             vec3 q;
             float op;
             tile_rect(order[idx], lo, hi, c, q, op);
-            los[i] = uvec2(0xFFFFFFFFu, 0u);
-            if (hi.y - lo.y <= 2u && hi.x - lo.x <= 255u) {
+            los[i] = uvec2(lo.x | (lo.y << 16), (hi.x - lo.x) | 0x80000000u);
+            if (row_binned(lo, hi)) {
                 uvec2 r0 = uvec2(lo.x, hi.x), r1 = uvec2(lo.x);
                 if (hi.y - lo.y == 2u || hi.x - lo.x > 1u) {  // not one tile (row_entries counts that as 1)
                     RowSplat e = row_splat(c, q, op);
@@ -123,10 +123,14 @@ void main() {
 #ifdef ROW_BINS
         uint r = order[g * SCAN_TILE + k];
         uint lo0 = s_lo[k];
-        if (lo0 != 0xFFFFFFFFu) {  // rows kept in shared memory
-            uint rows = s_w[k];
+        uint rows = s_w[k];
+        uint x, y;
+        if ((rows & 0x80000000u) != 0u) {  // a taller box: all of it, as the box mode
+            uint w = rows & 0x7FFFFFFFu;
+            x = (lo0 & 0xFFFFu) + t % w;
+            y = (lo0 >> 16) + t / w;
+        } else {
             uint w0 = ((rows >> 8) & 0xFFu) - (rows & 0xFFu);
-            uint x, y;
             if (t < w0) {
                 x = (lo0 & 0xFFFFu) + (rows & 0xFFu) + t;
                 y = lo0 >> 16;
@@ -134,30 +138,10 @@ void main() {
                 x = (lo0 & 0xFFFFu) + ((rows >> 16) & 0xFFu) + t - w0;
                 y = (lo0 >> 16) + 1u;
             }
-            if (base + o < u_capacity) {
-                tile_keys[base + o] = y * u_grid.x + x;
-                tile_values[base + o] = r;
-            }
-            continue;
         }
-        // a taller box: the entry's row by walking the splat's rows, each as many entries as row_tiles keeps
-        uvec2 lo, hi;
-        vec2 c;
-        vec3 q;
-        float op;
-        tile_rect(r, lo, hi, c, q, op);
-        RowSplat e = row_splat(c, q, op);
-        for (uint y = lo.y; y < hi.y; ++y) {
-            uvec2 xs = row_tiles(y, lo, hi, e);
-            uint w = xs.y - xs.x;
-            if (t < w) {
-                if (base + o < u_capacity) {
-                    tile_keys[base + o] = y * u_grid.x + xs.x + t;
-                    tile_values[base + o] = r;
-                }
-                break;
-            }
-            t -= w;
+        if (base + o < u_capacity) {
+            tile_keys[base + o] = y * u_grid.x + x;
+            tile_values[base + o] = r;
         }
 #else
         uint w = s_w[k];
