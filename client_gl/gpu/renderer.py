@@ -21,6 +21,7 @@ The renderer reads only the pool's public API; format_spec/renderer.md describes
 """
 from __future__ import annotations
 
+import functools
 import math
 import struct
 import time
@@ -223,6 +224,7 @@ def _set(prog, name: str, value) -> None:
 DEPTH_BITS_CHOICES = (16, 20, 24, 32)
 
 
+@functools.lru_cache(maxsize=64)  # once per camera's planes, not every frame
 def depth_key_range(near: float, far: float, bits: int) -> tuple[int, int, int]:
     """(bits of near, right shift, largest key) of cull.comp's depth keys: depths in (near, far] as float32 bits less
     those of near, shifted right until far's fit in `bits` bits. Order-preserving (positive floats' bits grow with

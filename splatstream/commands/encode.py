@@ -160,13 +160,13 @@ def _preset_for_target(args: argparse.Namespace, up: tuple[float, float, float] 
         raise UsageError(f"--target-psnr {args.target_psnr}: expected a PSNR above 0 dB")
     if args.target_size is not None and not args.target_size > 0:
         raise UsageError(f"--target-size {args.target_size}: expected a size above 0 bytes per splat")
+    if args.target_views < 1:
+        raise UsageError(f"--target-views {args.target_views}: expected at least 1")
 
     def log(msg: str) -> None:
         if not args.quiet:
             print(f"target: {msg.strip()}", file=sys.stderr)
 
-    if args.target_views < 1:
-        raise UsageError(f"--target-views {args.target_views}: expected at least 1")
     opts = EvalOptions(views=args.target_views, width=TARGET_SIZE, height=TARGET_SIZE, up=up,
                        zstd_level=args.zstd_level)
     report = evaluate(args.input, opts, log=log, renderer=pick_renderer("auto"))

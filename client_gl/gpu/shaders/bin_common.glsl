@@ -123,15 +123,21 @@ uvec2 row_tiles(uint ty, uvec2 lo, uvec2 hi, RowSplat e) {
 #define ROW_BINS_ROWS 2u
 bool row_binned(uvec2 lo, uvec2 hi) { return hi.y - lo.y <= ROW_BINS_ROWS && hi.x - lo.x <= 255u; }
 
+// A row-binned splat's tile spans [x0, x1): its first row's in .xy, its second row's in .zw (empty: lo.x, lo.x).
+// bin_count counts them and bin_emit keeps them: one code, so both agree.
+uvec4 row_spans(uvec2 lo, uvec2 hi, vec2 c, vec3 q, float op) {
+    if (hi.y - lo.y == 1u && hi.x - lo.x == 1u) return uvec4(lo.x, hi.x, lo.x, lo.x);  // one tile: the box is exact
+    uvec4 s = uvec4(lo.x);
+    if (hi.y == lo.y) return s;
+    RowSplat e = row_splat(c, q, op);
+    s.xy = row_tiles(lo.y, lo, hi, e);
+    if (hi.y - lo.y == 2u) s.zw = row_tiles(lo.y + 1u, lo, hi, e);
+    return s;
+}
+
 uint row_entries(uvec2 lo, uvec2 hi, vec2 c, vec3 q, float op) {
     if (!row_binned(lo, hi)) return rect_tiles(lo, hi);
-    if (hi.y - lo.y == 1u && hi.x - lo.x == 1u) return 1u;  // one tile: the box is exact
-    RowSplat e = row_splat(c, q, op);
-    uint n = 0u;
-    for (uint y = lo.y; y < hi.y; ++y) {
-        uvec2 x = row_tiles(y, lo, hi, e);
-        n += x.y - x.x;
-    }
-    return n;
+    uvec4 s = row_spans(lo, hi, c, q, op);
+    return (s.y - s.x) + (s.w - s.z);
 }
 #endif

@@ -29,7 +29,7 @@ uniform uint u_capacity;
 #ifdef BALANCED
 shared uint s_off[SCAN_TILE];  // exclusive entry offset of each splat of the group, in depth order
 shared uint s_lo[SCAN_TILE];   // its tile box's first tile, x | y << 16
-shared uint s_w[SCAN_TILE];    // its tile box's width in tiles
+shared uint s_w[SCAN_TILE];    // its tile box's width in tiles (ROW_BINS: its packed row spans, or width | 1 << 31)
 #endif
 
 void main() {
@@ -65,15 +65,8 @@ void main() {
             tile_rect(order[idx], lo, hi, c, q, op);
             los[i] = uvec2(lo.x | (lo.y << 16), (hi.x - lo.x) | 0x80000000u);
             if (row_binned(lo, hi)) {
-                uvec2 r0 = uvec2(lo.x, hi.x), r1 = uvec2(lo.x);
-                if (hi.y - lo.y == 2u || hi.x - lo.x > 1u) {  // not one tile (row_entries counts that as 1)
-                    RowSplat e = row_splat(c, q, op);
-                    r0 = row_tiles(lo.y, lo, hi, e);
-                    if (hi.y - lo.y == 2u) r1 = row_tiles(lo.y + 1u, lo, hi, e);
-                }
-                r0 -= lo.x;
-                r1 -= lo.x;
-                los[i] = uvec2(lo.x | (lo.y << 16), r0.x | (r0.y << 8) | (r1.x << 16) | (r1.y << 24));
+                uvec4 r = row_spans(lo, hi, c, q, op) - lo.x;
+                los[i].y = r.x | (r.y << 8) | (r.z << 16) | (r.w << 24);
             }
         }
         continue;
