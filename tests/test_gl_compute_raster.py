@@ -409,7 +409,7 @@ def test_tight_bins_keep_every_reached_tile(ctx, fruit, option):
             ey, ex = k * np.sqrt(a / det) * 1.001 + 1e-3, k * np.sqrt(cc / det) * 1.001 + 1e-3
         rows = np.floor((c[:, 1] + ey) / 16) - np.floor((c[:, 1] - ey) / 16) + 1
         cols = np.floor((c[:, 0] + ex) / 16) - np.floor((c[:, 0] - ex) / 16) + 1
-        row_binned = (rows <= 2) & (cols <= 255)
+        row_binned = (rows <= 2) & (cols <= 127)
         assert row_binned.sum() > 0.5 * valid.sum()
     else:
         row_binned = np.ones(n, bool)
@@ -437,3 +437,25 @@ def test_tight_bins_keep_every_reached_tile(ctx, fruit, option):
         assert not np.any(have[must_not]), t
         reached += int(must.sum())
     assert reached > 0.7 * entries
+
+
+def test_wide_flat_splat_keeps_its_tiles(ctx):
+    """A splat two tiles high and 128 or more wide (a thin streak across a 4096-pixel image): row bins pack its rows'
+    bounds in 7 bits each, so a wider one keeps its whole box; its entries and the image are the reference's."""
+    from client_gl.gpu.renderer import RenderOptions
+    from client_gl.headless import HeadlessRenderer
+    from splatstream.gaussians import Gaussians
+
+    g = Gaussians(positions=np.zeros((1, 3)), rotations=np.array([[1.0, 0.0, 0.0, 0.0]]),
+                  log_scales=np.log([[40.0, 0.05, 0.05]]), opacity_logits=np.array([4.0]),
+                  sh_dc=np.array([[1.0, 0.5, -0.5]]), sh_rest=np.zeros((1, 0, 3)))
+    cam = look_at((0.0, -5.0, 0.0), (0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0), fov_y_deg=60, width=4096, height=64)
+    r = HeadlessRenderer(RenderOptions(draw="compute"), ctx=ctx)
+    r.load_gaussians(g)
+    img = r.render(cam)
+    entries, needed = r.renderer.read_bin_counts()
+    r.unload()
+    ref = render_ref.render(g, cam)
+    lit = ref.max(axis=2) > 0.05
+    assert lit.any(axis=0).sum() > 1900 and entries == needed  # its box: 181 tiles wide, rows 1 and 2
+    assert psnr(img, ref) >= 40.0

@@ -117,11 +117,12 @@ uvec2 row_tiles(uint ty, uvec2 lo, uvec2 hi, RowSplat e) {
     return uvec2(uint(f0), uint(f1));
 }
 
-// Whether a splat's entries are its rows' tiles (boxes at most ROW_BINS_ROWS tiles high and 255 wide, whose rows
-// bin_emit keeps in shared memory) or its whole box (taller ones: a thread a splat over many rows would keep its warp
-// waiting, as the per-entry walk of an earlier version did).
+// Whether a splat's entries are its rows' tiles (boxes at most ROW_BINS_ROWS tiles high and 127 wide, whose rows
+// bin_emit keeps in shared memory: four bounds of 8 bits in a word whose top bit, clear below 128, tells them from a
+// whole box) or its whole box (taller ones: a thread a splat over many rows would keep its warp waiting, as the
+// per-entry walk of an earlier version did; wider ones, seen only on images over 2,048 pixels wide).
 #define ROW_BINS_ROWS 2u
-bool row_binned(uvec2 lo, uvec2 hi) { return hi.y - lo.y <= ROW_BINS_ROWS && hi.x - lo.x <= 255u; }
+bool row_binned(uvec2 lo, uvec2 hi) { return hi.y - lo.y <= ROW_BINS_ROWS && hi.x - lo.x <= 127u; }
 
 // A row-binned splat's tile spans [x0, x1): its first row's in .xy, its second row's in .zw (empty: lo.x, lo.x).
 // bin_count counts them and bin_emit keeps them: one code, so both agree.
