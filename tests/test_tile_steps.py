@@ -124,3 +124,35 @@ def test_preset_scene_is_1_3_and_decodes_on_its_steps(scene_12bit):
     assert 0 < err_scale <= float(g.log_scales.max() - g.log_scales.min()) / 180
     r = run_cli("info", out)
     assert r.returncode == 0 and "medium-low-12bit" in r.stdout
+
+
+COLOR = BASE_PLANES[3]
+
+
+@pytest.mark.parametrize("fmt, exact", [("norm8x4", True), ("norm16x4", True), ("f16x4", False), ("bc7", False)])
+def test_opacities_on_the_8_bit_grid_keep_it(fmt, exact):
+    """An input's 8-bit opacities (k / 255, through a float32 logit and back as the readers give them) quantise to
+    their own codes: chunk ranges [0, 1] for opacity, so they decode to k / 255 where per-chunk ranges put a second
+    grid over the first; other opacities keep their tight ranges."""
+    from splatstream.format.steps import keep_opacity_grid, opacity_on_grid
+
+    rng = np.random.default_rng(7)
+    n = 3 * CHUNK_SIZE + 40
+    k = rng.integers(1, 256, n)
+    logits = np.log(k / 255 / (1 - k / 255 + 1e-12)).astype(np.float32)
+    opacity = (1 / (1 + np.exp(-logits.astype(np.float64)))).astype(np.float32)
+    assert opacity_on_grid(opacity) and not opacity_on_grid(opacity + np.float32(4e-4))
+    assert not opacity_on_grid(rng.random(n))
+    values = np.concatenate([rng.normal(0, 1, (n, 3)).astype(np.float32), opacity[:, None]], axis=1)[:, None, :]
+    plane = encode_plane(values, COLOR, fmt)
+    back = decode_plane(plane, n)[:, 0, 3]
+    ranges = plane.ranges[:, :, 0, 3].astype(np.float32)
+    if exact:
+        assert np.all(ranges[:, 0] == 0) and np.all(ranges[:, 1] == 1)
+        assert np.abs(back * 255 - k).max() < 1e-3
+    else:
+        assert not np.all(ranges[:, 0] == 0)
+    per_chunk = encode_plane(values * np.float32([1, 1, 1, 0.999]), COLOR, fmt)  # off the grid: tight ranges
+    assert float(per_chunk.ranges[:, 0, 0, 3].astype(np.float32).min()) > 0
+    lo, hi = np.zeros((2, 4), np.float16), np.ones((2, 4), np.float16)
+    assert keep_opacity_grid(lo, hi, "norm565", 3) is False  # no opacity component

@@ -19,7 +19,7 @@ from ..gaussians import SH_BAND_COEFFS, Gaussians, logit, normalize_quaternions,
 from .layout import CHUNK_SIZE, chunk_texel_index, texture_size
 from .limits import plane_limits
 from .planes import SH_INDEX_FORMAT, SH_INDEX_PLANE, PlaneSpec
-from .steps import TileStep, widened_max
+from .steps import TileStep, keep_opacity_grid, opacity_on_grid, widened_max
 from .texformats import TEXEL_DTYPES, decode_image, encode_bc_image, get_format, pack_texels, unpack_texels
 
 SQRT2 = math.sqrt(2.0)
@@ -45,6 +45,9 @@ def f16_ceil(x: np.ndarray) -> np.ndarray:
 
 # ---------------------------------------------------------------------------------------------------------------
 # Attribute values of a plane
+
+
+OPACITY = 3  # the colour plane's opacity component (after SH0's R, G, B)
 
 
 def plane_values(g: Gaussians, spec: PlaneSpec) -> np.ndarray:
@@ -221,6 +224,8 @@ def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.n
                 lo, hi = chunk_ranges(v, spec.range_dtype, plane_limits(spec.name))
                 if step is not None:
                     hi = widened_max(lo, hi, fmt_name, step, spec.range_dtype, plane_limits(spec.name))
+                if spec.name == "color" and opacity_on_grid(v[:, OPACITY]):
+                    keep_opacity_grid(lo, hi, fmt_name, OPACITY)
                 lo32, hi32 = lo.astype(np.float32), hi.astype(np.float32)
                 extent = hi32 - lo32
                 inv = np.divide(1.0, extent, out=np.zeros_like(extent), where=extent > 0)
