@@ -23,7 +23,10 @@ LUMINANCE = np.array([0.299, 0.587, 0.114], np.float32)
 
 
 def splat_order(g: Gaussians, chunk_order: str) -> np.ndarray:
-    """Order of a tile's splats: 3D Morton, then optionally re-sorted inside each chunk (format.md 3)."""
+    """Order of a tile's splats: 3D Morton, then optionally re-sorted inside each chunk; `input`: as they came
+    (format.md 3)."""
+    if chunk_order == "input":
+        return np.arange(len(g.positions))
     order = morton_order(g.positions)
     if chunk_order == "luminance":
         order = order_within_chunks(order, g.base_colors @ LUMINANCE)

@@ -63,7 +63,7 @@ def build_manifest(plan: EncodePlan, camera: CameraEntry, tiles: list[TileEntry]
     opts = plan.options
     m = Manifest(
         # 1.2 (the manifest checksum), fields1 or not; 1.3 where a plane is norm16x4 or norm9x3 (format.md 9)
-        version=writer_version(ctx.formats, codebook.format if codebook is not None else None),
+        version=writer_version(ctx.formats, codebook.format if codebook is not None else None, ctx.chunk_order),
         generator=f"splatstream {__version__}",
         name=plan.name,
         splats=plan.splats,

@@ -37,7 +37,7 @@ from .texformats import FORMATS, VALUE_FORMATS, blob_size
 from .transport import FIELD_LAYOUTS, FIELDS1, content_bounds
 
 FORMAT_NAME = "splatstream"
-FORMAT_VERSION = (1, 3)  # (major, minor) this code reads; what it writes: writer_version
+FORMAT_VERSION = (1, 4)  # (major, minor) this code reads; what it writes: writer_version
 # Version 1.2 added two things (format.md, version history): the manifest's last key `checksum`, the SHA-256 of the
 # file with that value's 64 bytes read as ASCII '0' (format.md 6, "Checksum"), so a flipped byte in the manifest is
 # caught like one in a payload; and the `fields1` transport coding of texels sections (format.md 5.2).
@@ -46,13 +46,17 @@ CHECKSUM_VERSION = (1, 2)
 # by scenes that use them, so every other scene stays 1.2 and readers of 1.2 keep reading it.
 VERSION_1_3 = (1, 3)
 FORMATS_1_3 = ("norm16x4", "norm9x3")
+# Version 1.4 added the chunk order `input` (format.md 3): a one-tile scene whose splats keep the order of an input
+# that was already cut into quantised chunks of 256 (compressed.ply), so its chunks, and their grids, are the input's.
+VERSION_1_4 = (1, 4)
+CHUNK_ORDERS_1_4 = ("input",)
 CHECKSUM_KEY = "checksum"
 CHECKSUM_PLACEHOLDER = b"0" * 64
 MAX_MANIFEST_BYTES = 64 << 20
 # A payload may not claim to decompress to more than this (guards readers against decompression bombs).
 MAX_PAYLOAD_RAW_BYTES = 2 << 30
 MAX_TILES = 1 << 20
-CHUNK_ORDER_NAMES = ("morton", "luminance")
+CHUNK_ORDER_NAMES = ("morton", "luminance", "input")
 FILTERS_DOC = "none, shuffleN or, for texels, fields1"
 
 Vec3 = tuple[float, float, float]
@@ -897,9 +901,13 @@ def _check_format_and_version(d, source: str) -> tuple[int, int]:
     return version[0], version[1]
 
 
-def writer_version(formats: Mapping[str, str], codebook_format: str | None = None) -> tuple[int, int]:
-    """The version a writer writes a scene of these texel formats as: 1.3 with a norm16x4 or norm9x3 plane (or SH
-    codebook), 1.2 otherwise (every scene carries the 1.2 manifest checksum)."""
+def writer_version(formats: Mapping[str, str], codebook_format: str | None = None,
+                   chunk_order: str = "morton") -> tuple[int, int]:
+    """The version a writer writes a scene of these texel formats and chunk order as: 1.4 in the chunk order
+    `input`, 1.3 with a norm16x4 or norm9x3 plane (or SH codebook), 1.2 otherwise (every scene carries the 1.2
+    manifest checksum)."""
+    if chunk_order in CHUNK_ORDERS_1_4:
+        return VERSION_1_4
     used = set(formats.values()) | ({codebook_format} if codebook_format else set())
     return VERSION_1_3 if used & set(FORMATS_1_3) else CHECKSUM_VERSION
 
@@ -926,6 +934,10 @@ def manifest_from_dict(d, source: str = MANIFEST_NAME, lazy_payloads: bool = Fal
     if FORMATS[formats["color"]].components < 4:
         fm.fail("color", f"{formats['color']} has 3 components; color needs 4")
     chunk_size = m.int("chunk_size", CHUNK_SIZE, CHUNK_SIZE)
+    chunk_order = m.str("chunk_order", CHUNK_ORDER_NAMES)
+    if chunk_order in CHUNK_ORDERS_1_4 and version < VERSION_1_4:
+        m.fail("chunk_order", f"{chunk_order} is a version 1.4 chunk order; the manifest is version "
+               f"{version[0]}.{version[1]}")
     codebook = None
     if m.raw("sh_codebook", optional=True) is not None:
         c = m.map("sh_codebook")
@@ -1013,7 +1025,7 @@ def manifest_from_dict(d, source: str = MANIFEST_NAME, lazy_payloads: bool = Fal
     manifest = Manifest(
         version=(version[0], version[1]), generator=m.str("generator"), name=m.str("name"), splats=splats,
         leaf_splats=leaf_splats, sh_degree=sh_degree, preset=m.str("preset"), formats=formats,
-        chunk_size=chunk_size, chunk_order=m.str("chunk_order", CHUNK_ORDER_NAMES), bounds=_box(m, "bounds"),
+        chunk_size=chunk_size, chunk_order=chunk_order, bounds=_box(m, "bounds"),
         extent_bounds=_box(m, "extent_bounds"), up=up, camera=camera, sh_codebook=codebook, lod=lod_info,
         root=root, tiles=tuple(tiles), gpu_bytes=m.int("gpu_bytes"),
         gpu_bytes_per_splat=m.float("gpu_bytes_per_splat", 0.0), leaf_bytes_on_disk=m.int("leaf_bytes_on_disk"),
