@@ -20,6 +20,7 @@ size (plus its small per-block parameters).
 from __future__ import annotations
 
 import functools
+import threading
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 
@@ -195,17 +196,13 @@ def _zigzag(u: np.ndarray, bits: int) -> np.ndarray:
     return ((u << t(1)) ^ np.negative(u >> t(bits - 1))) & mask
 
 
-def _unzigzag(z: np.ndarray) -> np.ndarray:
-    """Zigzag codes -> residuals modulo the dtype's size (the caller masks to the field's bits)."""
-    t = z.dtype.type
-    return (z >> t(1)) ^ np.negative(z & t(1))  # np.negative of an unsigned array wraps, and is faster than 0 - x
-
-
-def _cross_prediction(ref: np.ndarray, slope: np.ndarray, intercept: np.ndarray) -> np.ndarray:
-    """Per-block linear prediction floor((slope * ref + 64 * intercept + 32) / 64), as int32 (slot order); `ref`
-    holds values below 2^16 (any integer type)."""
+def _cross_prediction(ref: np.ndarray, slope: np.ndarray, intercept: np.ndarray,
+                      out: np.ndarray | None = None) -> np.ndarray:
+    """Per-block linear prediction floor((slope * ref + 64 * intercept + 32) / 64), as int32 (slot order), into
+    `out` (int32, the slots' size) when given; `ref` holds values below 2^16 (any integer type)."""
     ref = ref.view(np.int32) if ref.dtype == np.uint32 else ref.astype(np.int32)
-    r = np.multiply(ref.reshape(len(slope), BLOCK_TEXELS), slope.astype(np.int32)[:, None])
+    r = np.multiply(ref.reshape(len(slope), BLOCK_TEXELS), slope.astype(np.int32)[:, None],
+                    out=None if out is None else out.reshape(len(slope), BLOCK_TEXELS))
     r += ((intercept.astype(np.int32) << SLOPE_SHIFT) + (1 << (SLOPE_SHIFT - 1)))[:, None]
     r >>= SLOPE_SHIFT
     return r.reshape(-1)
@@ -450,17 +447,6 @@ def filter_texels(layers: Iterable[np.ndarray], fmt: str, width: int, height: in
 # Decoder
 
 
-def _join_planes(planes: np.ndarray, nbytes: int) -> np.ndarray:
-    """`nbytes` byte planes (low byte first) -> (n,) uint32 codes; shifts and ors are several times faster than
-    numpy's strided transpose copy."""
-    v = planes.reshape(nbytes, -1)
-    z = v[nbytes - 1].astype(np.uint32)
-    for k in range(nbytes - 2, -1, -1):
-        z <<= np.uint32(8)
-        z |= v[k]
-    return z
-
-
 def unshuffle(buf: np.ndarray, element: int) -> np.ndarray:
     """Inverse byte shuffle (format.md 5.1) of one unit, as bytes (a view of `buf` when there is nothing to do)."""
     if element <= 1 or buf.size % element:
@@ -476,17 +462,59 @@ def unshuffle(buf: np.ndarray, element: int) -> np.ndarray:
     return np.ascontiguousarray(buf.reshape(element, -1).T).reshape(-1)
 
 
-@functools.lru_cache(maxsize=16)
-def _packed(fmt: str) -> tuple[np.dtype, np.ndarray]:
-    """A one-word texel (norm11, norm9x3, norm10_2, norm565, index16): its dtype and the bit offset of every field."""
-    dtype, _, layout = FIELD_LAYOUTS[fmt]
-    return np.dtype(dtype), np.array([shift for shift, _ in layout], np.uint32)
+@functools.lru_cache(maxsize=32)
+def texel_to_slot(width: int, height: int) -> np.ndarray:
+    """Slot of every texel (the inverse of slot_to_texel): a gather with it (np.take, mode "clip": no index
+    checks, and every index is in range) puts slot-order texels in texture order about 1.5x faster than a scatter."""
+    index = slot_to_texel(width, height)
+    inverse = np.empty_like(index)
+    inverse[index] = np.arange(index.size, dtype=np.intp)
+    inverse.setflags(write=False)
+    return inverse
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """What unfilter_fields needs of a (format, width, height), worked out once: per-call Python work is a good
+    part of a small tile's decode time."""
+
+    bits: tuple[int, ...]
+    nbytes: tuple[int, ...]  # byte planes per field
+    runs: tuple[tuple[int, int, int, int], ...]  # (first field, end field, first byte, bytes a plane) of equal nbytes
+    masks: np.ndarray  # (fields,) uint32: each field's bits
+    word: np.dtype  # the texel's word
+    words: int  # words a texel (one field each) or 1 (fields packed in one word)
+    shifts: np.ndarray  # (fields, 1) uint32: bit offset of each field in its word (packed formats)
+    texel_bytes: int
+    texel: np.dtype  # the texel as one element: uint16/32/64, or V16 for f32x4
+    inverse: np.ndarray  # texel_to_slot
+
+
+@functools.lru_cache(maxsize=64, typed=True)
+def _layout(fmt: str, width: int, height: int) -> _Layout:
+    bits = field_bits(fmt)
+    nbytes = tuple((b + 7) // 8 for b in bits)
+    runs, start, byte = [], 0, 0
+    for i in range(1, len(bits) + 1):
+        if i == len(bits) or nbytes[i] != nbytes[start]:
+            runs.append((start, i, byte, nbytes[start]))
+            byte += (i - start) * nbytes[start] * width * height
+            start = i
+    dtype, words, layout = FIELD_LAYOUTS[fmt]
+    texel_bytes = FORMATS[fmt].bits_per_texel // 8
+    masks = np.array([(1 << b) - 1 for b in bits], np.uint64).astype(np.uint32)
+    shifts = np.array([shift for shift, _ in layout], np.uint32)[:, None]
+    for a in (masks, shifts):
+        a.setflags(write=False)
+    return _Layout(bits, nbytes, tuple(runs), masks, np.dtype(dtype), words, shifts, texel_bytes,
+                   _TEXEL_UINT.get(texel_bytes, np.dtype("V16")), texel_to_slot(width, height))
 
 
 @functools.lru_cache(maxsize=4096)
 def _decode_plan(fmt: str, width: int, height: int, layers: int, head: bytes) -> tuple:
     """Checks the header of a fields1 content (the version byte and the modes) once per distinct header; returns
-    (expected content size, reference field of every (layer, field) or -1, delta flags), or an error message."""
+    (expected content size, reference field of every (layer, field) or -1, the _layer_plan of every layer), or an
+    error message."""
     bits = field_bits(fmt)
     nf = len(bits)
     if head[0] != FIELDS_VERSION:
@@ -503,7 +531,101 @@ def _decode_plan(fmt: str, width: int, height: int, layers: int, head: bytes) ->
     n = width * height
     crossed = sum(r >= 0 for r in refs)
     size = 1 + nf * layers + 3 * (n // BLOCK_TEXELS) * crossed + n * layers * sum((b + 7) // 8 for b in bits)
-    return size, refs, tuple(bool(m & MODE_DELTA) for m in modes)
+    deltas = tuple(bool(m & MODE_DELTA) for m in modes)
+    plans = tuple(_layer_plan(fmt, refs[k * nf:(k + 1) * nf], deltas[k * nf:(k + 1) * nf]) for k in range(layers))
+    return size, refs, plans
+
+
+def _layer_plan(fmt: str, refs: tuple[int, ...], deltas: tuple[bool, ...]) -> tuple:
+    """The steps of decoding one layer of a fields1 content with these modes: (delta rows, rows masked before the
+    cross predictions, (field, reference) pairs, rows masked after them), rows of the (fields, slots) work array
+    as one slice where they are consecutive (one numpy call for them all).
+
+    A field is cut to its bits only where that changes the texel: where its uint32 value may exceed the field (a
+    running sum, or a negative residual modulo 2^32) and it is the reference of a prediction (the spec predicts
+    from the field's value) or bits above the field would reach the texel word (packed formats: the next field;
+    norm9x3: the unused bits 27-31). Word-per-field formats (norm8x4, norm16x4, f16x4) need no cut: the copy into
+    their words drops the high bits."""
+    bits = field_bits(fmt)
+    nf = len(bits)
+    dtype, _, layout = FIELD_LAYOUTS[fmt]
+    word_bits = np.dtype(dtype).itemsize * 8
+    room = [word_bits - shift for shift, _ in layout] * (nf // len(layout))  # field bits that reach the word
+    anchors = {r for r in refs if r >= 0}
+    wide = [i for i in range(nf) if bits[i] < 32 and (deltas[i] or bits[i] > 8)]
+    pre_mask = [i for i in wide if i in anchors or (refs[i] < 0 and bits[i] < room[i])]
+    crossed = tuple((i, r) for i, r in enumerate(refs) if r >= 0)
+    post_mask = tuple(i for i, _ in crossed if bits[i] < room[i])
+    return _rows([i for i in range(nf) if deltas[i]]), _rows(pre_mask), crossed, post_mask
+
+
+def _rows(rows: list[int]) -> tuple[slice, ...]:
+    """Rows as one slice when they are consecutive, else one slice a row."""
+    if rows and rows == list(range(rows[0], rows[-1] + 1)):
+        return (slice(rows[0], rows[-1] + 1),)
+    return tuple(slice(i, i + 1) for i in rows)
+
+
+_work = threading.local()
+# Work buffers up to this size are kept per thread between calls (a decode thread's sections are alike in size).
+KEEP_WORK_BYTES = 1 << 24
+
+
+def _work_arrays(nf: int, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """This thread's work arrays for `nf` fields of `n` slots (contents undefined), reused from call to call:
+    z and spare (nf, n) uint32, and two (nf, n) uint8.
+
+    Why: the arrays of a tile's section are 40-160 KB, around glibc's mmap threshold, so fresh ones often come as
+    new pages, and on this VM every first touch of a page is a fault of several microseconds: profiling the
+    decode of biker's tiles put two thirds of the unfilter time in page faults (issue 15). Buffers larger than
+    KEEP_WORK_BYTES (no-LOD tiles of millions of splats) are allocated per call and not kept."""
+    views = getattr(_work, "views", None)
+    if views is not None and views[0] == (nf, n):
+        return views[1]
+    size = 10 * nf * n
+    buf = getattr(_work, "buffer", None)
+    if buf is None or buf.size < size:
+        if size > KEEP_WORK_BYTES:
+            buf = np.empty(size, np.uint8)
+        else:
+            buf = _work.buffer = np.empty(min(KEEP_WORK_BYTES, 1 << max(16, (size - 1).bit_length())), np.uint8)
+    m = nf * n
+    arrays = (buf[:4 * m].view(np.uint32).reshape(nf, n), buf[4 * m:8 * m].view(np.uint32).reshape(nf, n),
+              buf[8 * m:9 * m].reshape(nf, n), buf[9 * m:10 * m].reshape(nf, n))
+    if buf is getattr(_work, "buffer", None):
+        _work.views = ((nf, n), arrays)
+    return arrays
+
+
+def _join_zigzag16(planes: np.ndarray, z: np.ndarray, spare: np.ndarray, t: np.ndarray, u: np.ndarray) -> None:
+    """(fields, 2, slots) byte planes of 16-bit zigzag codes (low byte first) -> z, their residuals modulo 2^32.
+
+    The code is c = 256 hi + lo and the residual (c >> 1) ^ -(c & 1) = (hi << 7) ^ t, where t, the int8
+    (lo >> 1) ^ -(lo & 1), sign-extends to the all-ones mask for odd codes: four byte-sized passes and three
+    uint32 passes instead of seven, and no mixed-type ufunc (numpy runs those several times slower)."""
+    lo, hi = planes[:, 0], planes[:, 1]
+    np.bitwise_and(lo, np.uint8(1), out=t)
+    np.negative(t, out=t)
+    np.right_shift(lo, np.uint8(1), out=u)
+    t ^= u
+    np.copyto(spare.view(np.int32), t.view(np.int8))  # sign extension
+    np.copyto(z, hi)
+    z <<= np.uint32(7)
+    z ^= spare
+
+
+def _join_zigzag(planes: np.ndarray, z: np.ndarray, spare: np.ndarray) -> None:
+    """(fields, nbytes, slots) byte planes of zigzag codes -> z, their residuals modulo 2^32 (the general case)."""
+    nbytes = planes.shape[1]
+    np.copyto(z, planes[:, nbytes - 1])
+    for k in range(nbytes - 2, -1, -1):
+        z <<= np.uint32(8)
+        np.copyto(spare, planes[:, k])
+        z |= spare
+    np.bitwise_and(z, np.uint32(1), out=spare)
+    z >>= np.uint32(1)
+    np.negative(spare, out=spare)
+    z ^= spare
 
 
 def unfilter_fields(raw: np.ndarray | bytes, fmt: str, width: int, height: int, layers: int,
@@ -511,20 +633,22 @@ def unfilter_fields(raw: np.ndarray | bytes, fmt: str, width: int, height: int, 
     """Inverse of fields_content: a section's stored bytes -> its GPU bytes (uint8, layer after layer), bit-exact;
     FormatError for anything that is not a well-formed fields1 content of exactly its size (format.md 5.2).
 
-    All fields of a layer are decoded together as one (fields, slots) uint32 array, so a layer costs a dozen numpy
-    calls whatever its field count: on the 10-16k-splat tiles a client streams, per-call overhead is most of the
-    time. Arithmetic modulo 2^32, masked to each field's bits, equals the spec's arithmetic modulo 2^|T|."""
+    All fields of a layer are decoded together in one (fields, slots) uint32 work array, so a layer costs a dozen
+    numpy calls whatever its field count (on the 10-16k-splat tiles a client streams, per-call overhead is much of
+    the time), every step in place in this thread's work arrays (no page faults of fresh arrays). Arithmetic
+    modulo 2^32, then cut to each field's bits, equals the spec's arithmetic modulo 2^|T|; the running sums run on
+    an int32 view, which numpy accumulates about 3x faster than uint32 (the same bits: both wrap modulo 2^32)."""
     _check_geometry(fmt, width, height, layers, source)
     raw = np.frombuffer(raw, np.uint8) if isinstance(raw, bytes | bytearray | memoryview) else raw
-    bits = field_bits(fmt)
-    nf = len(bits)
+    lay = _layout(fmt, width, height)
+    nf = len(lay.bits)
     header_bytes = 1 + nf * layers
     if raw.size < header_bytes:
         raise FormatError(source, "fields1", f"{raw.size}-byte content is shorter than its header")
     plan = _decode_plan(fmt, width, height, layers, raw[:header_bytes].tobytes())
     if isinstance(plan, str):
         raise FormatError(source, "fields1", plan)
-    expected, refs, deltas = plan
+    expected, refs, layer_plans = plan
     if raw.size != expected:
         raise FormatError(source, "fields1", f"content of {raw.size} bytes, expected {expected} for its modes")
     n = width * height
@@ -535,67 +659,41 @@ def unfilter_fields(raw: np.ndarray | bytes, fmt: str, width: int, height: int, 
         if r >= 0:
             params[k] = (raw[pos:pos + blocks].view(np.int8), raw[pos + blocks:pos + 3 * blocks].view("<i2"))
             pos += 3 * blocks
-    nbytes = [(b + 7) // 8 for b in bits]
-    uniform = len(set(nbytes)) == 1
-    zig = [i for i, b in enumerate(bits) if b > 8]
-    masks = np.array([(1 << b) - 1 for b in bits], np.uint64).astype(np.uint32)[:, None]
-    dtype, words, _ = FIELD_LAYOUTS[fmt]
-    word_dtype = np.dtype(dtype)
-    index = slot_to_texel(width, height)
-    texel_bytes = FORMATS[fmt].bits_per_texel // 8
-    out = np.empty(n * texel_bytes * layers, np.uint8)
-    for layer in range(layers):
-        base = layer * nf
-        seg = raw[pos:pos + n * sum(nbytes)]
-        pos += seg.size
-        if uniform:
-            planes = seg.reshape(nf, nbytes[0], n)
-            z = planes[:, nbytes[0] - 1].astype(np.uint32)
-            for k in range(nbytes[0] - 2, -1, -1):
-                z <<= np.uint32(8)
-                z |= planes[:, k]
-        else:
-            z = np.empty((nf, n), np.uint32)
-            start = 0
-            for i, nb in enumerate(nbytes):
-                z[i] = _join_planes(seg[start:start + n * nb], nb)
-                start += n * nb
-        if zig:
-            rows = z if len(zig) == nf else z[:len(zig)] if zig == list(range(len(zig))) else None
-            if rows is None:
-                z[zig] = _unzigzag(z[zig])
+    layer_bytes = n * lay.texel_bytes
+    out = np.empty(layer_bytes * layers, np.uint8)
+    z, spare, t, u = _work_arrays(nf, n)
+    signed = z.view(np.int32)
+    for layer, (delta_rows, pre_mask, crossed, post_mask) in enumerate(layer_plans):
+        for first, end, start, nb in lay.runs:
+            planes = raw[pos + start:pos + start + (end - first) * nb * n].reshape(end - first, nb, n)
+            if nb == 1:  # fields of up to 8 bits: no zigzag
+                np.copyto(z[first:end], planes[:, 0])
+            elif nb == 2:
+                _join_zigzag16(planes, z[first:end], spare[first:end], t[first:end], u[first:end])
             else:
-                low = rows & np.uint32(1)
-                rows >>= np.uint32(1)
-                rows ^= np.negative(low)
-        layer_deltas = deltas[base:base + nf]
-        if all(layer_deltas):
-            np.cumsum(z, axis=1, dtype=np.uint32, out=z)
-        else:
-            for i in range(nf):
-                if layer_deltas[i]:
-                    np.cumsum(z[i], dtype=np.uint32, out=z[i])
-        if any(b < 32 for b in bits):
-            z &= masks
-        for i in range(nf):
-            r = refs[base + i]
-            if r >= 0:
-                z[i] += _cross_prediction(z[r], *params[base + i]).view(np.uint32)
-                z[i] &= masks[i]
-        unit = out[layer * n * texel_bytes:(layer + 1) * n * texel_bytes]
-        if words > 1:  # norm8x4, norm16x4, f16x4, f32x4: one field a word; a column copy per word beats shifting in u64
-            slots = np.empty((n, words), word_dtype)
-            for k in range(words):
+                _join_zigzag(planes, z[first:end], spare[first:end])
+        pos += n * sum(lay.nbytes)
+        for rows in delta_rows:
+            np.add.accumulate(signed[rows], axis=1, out=signed[rows])
+        for rows in pre_mask:
+            z[rows] &= lay.masks[rows, None]
+        for i, r in crossed:
+            z[i] += _cross_prediction(z[r], *params[layer * nf + i], out=spare[i].view(np.int32)).view(np.uint32)
+        for i in post_mask:
+            z[i] &= lay.masks[i]
+        unit = out[layer * layer_bytes:(layer + 1) * layer_bytes].view(lay.texel)
+        if lay.words > 1:  # norm8x4, norm16x4, f16x4, f32x4: one field a word, interleaved by a column copy a word
+            slots = spare.reshape(-1)[:layer_bytes // 4].view(lay.word).reshape(n, lay.words)
+            for k in range(lay.words):
                 slots[:, k] = z[k]
-            if texel_bytes in _TEXEL_UINT:
-                unit.view(_TEXEL_UINT[texel_bytes])[index] = slots.view(_TEXEL_UINT[texel_bytes]).reshape(n)
+        else:  # fields packed in one word
+            if nf > 1:
+                z <<= lay.shifts
+                np.bitwise_or.reduce(z, axis=0, out=spare[0])
             else:
-                unit.view(word_dtype).reshape(n, words)[index] = slots
-            continue
-        word, shifts = _packed(fmt)
-        if nf > 1:
-            z <<= shifts[:, None]
-        unit.view(word)[index] = np.bitwise_or.reduce(z, axis=0) if nf > 1 else z[0]
+                spare[0] = z[0]
+            slots = spare[0] if lay.word.itemsize == 4 else spare[0].astype(lay.word)
+        np.take(slots.reshape(-1).view(lay.texel), lay.inverse, out=unit, mode="clip")
     return out
 
 
