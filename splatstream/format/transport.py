@@ -447,10 +447,16 @@ def filter_texels(layers: Iterable[np.ndarray], fmt: str, width: int, height: in
 # Decoder
 
 
+# Up to this size, a shuffled unit is undone by numpy's transposing copy (measured faster below 2-4 KB).
+SMALL_UNSHUFFLE_BYTES = 2048
+
+
 def unshuffle(buf: np.ndarray, element: int) -> np.ndarray:
     """Inverse byte shuffle (format.md 5.1) of one unit, as bytes (a view of `buf` when there is nothing to do)."""
     if element <= 1 or buf.size % element:
         return buf
+    if buf.size <= SMALL_UNSHUFFLE_BYTES:  # ranges: one transposing copy beats the shifts' several numpy calls
+        return np.ascontiguousarray(buf.reshape(element, -1).T).reshape(-1)
     if element in (2, 4):
         v = buf.reshape(element, -1)
         word = np.uint16 if element == 2 else np.uint32
@@ -597,6 +603,9 @@ def _work_arrays(nf: int, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, n
     return arrays
 
 
+_U8_ONE, _U32_SEVEN = np.uint8(1), np.uint32(7)
+
+
 def _join_zigzag16(planes: np.ndarray, z: np.ndarray, spare: np.ndarray, t: np.ndarray, u: np.ndarray) -> None:
     """(fields, 2, slots) byte planes of 16-bit zigzag codes (low byte first) -> z, their residuals modulo 2^32.
 
@@ -604,13 +613,13 @@ def _join_zigzag16(planes: np.ndarray, z: np.ndarray, spare: np.ndarray, t: np.n
     (lo >> 1) ^ -(lo & 1), sign-extends to the all-ones mask for odd codes: four byte-sized passes and three
     uint32 passes instead of seven, and no mixed-type ufunc (numpy runs those several times slower)."""
     lo, hi = planes[:, 0], planes[:, 1]
-    np.bitwise_and(lo, np.uint8(1), out=t)
+    np.bitwise_and(lo, _U8_ONE, out=t)
     np.negative(t, out=t)
-    np.right_shift(lo, np.uint8(1), out=u)
+    np.right_shift(lo, _U8_ONE, out=u)
     t ^= u
     np.copyto(spare.view(np.int32), t.view(np.int8))  # sign extension
     np.copyto(z, hi)
-    z <<= np.uint32(7)
+    z <<= _U32_SEVEN
     z ^= spare
 
 
@@ -693,7 +702,7 @@ def unfilter_fields(raw: np.ndarray | bytes, fmt: str, width: int, height: int, 
             else:
                 spare[0] = z[0]
             slots = spare[0] if lay.word.itemsize == 4 else spare[0].astype(lay.word)
-        np.take(slots.reshape(-1).view(lay.texel), lay.inverse, out=unit, mode="clip")
+        slots.reshape(-1).view(lay.texel).take(lay.inverse, out=unit, mode="clip")
     return out
 
 
