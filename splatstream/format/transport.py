@@ -548,17 +548,19 @@ def _layer_plan(fmt: str, refs: tuple[int, ...], deltas: tuple[bool, ...]) -> tu
     as one slice where they are consecutive (one numpy call for them all).
 
     A field is cut to its bits only where that changes the texel: where its uint32 value may exceed the field (a
-    running sum, or a negative residual modulo 2^32) and it is the reference of a prediction (the spec predicts
-    from the field's value) or bits above the field would reach the texel word (packed formats: the next field;
-    norm9x3: the unused bits 27-31). Word-per-field formats (norm8x4, norm16x4, f16x4) need no cut: the copy into
-    their words drops the high bits."""
+    running sum, a negative residual modulo 2^32, a stored byte wider than the field) and it is the reference of a
+    prediction (the spec predicts from the field's value) or bits above the field would reach the texel word
+    (packed formats: the next field; norm9x3: the unused bits 27-31). Word-per-field formats (norm8x4, norm16x4,
+    f16x4) need no cut: the copy into their words drops the high bits."""
     bits = field_bits(fmt)
     nf = len(bits)
     dtype, _, layout = FIELD_LAYOUTS[fmt]
     word_bits = np.dtype(dtype).itemsize * 8
     room = [word_bits - shift for shift, _ in layout] * (nf // len(layout))  # field bits that reach the word
     anchors = {r for r in refs if r >= 0}
-    wide = [i for i in range(nf) if bits[i] < 32 and (deltas[i] or bits[i] > 8)]
+    # a value may exceed its field after a running sum, as a zigzag residual (negative ones are near 2^32), or
+    # when its stored byte has more bits than the field (norm565, the 2-bit field of norm10_2)
+    wide = [i for i in range(nf) if bits[i] < 32 and (deltas[i] or bits[i] != 8)]
     pre_mask = [i for i in wide if i in anchors or (refs[i] < 0 and bits[i] < room[i])]
     crossed = tuple((i, r) for i, r in enumerate(refs) if r >= 0)
     post_mask = tuple(i for i, _ in crossed if bits[i] < room[i])
