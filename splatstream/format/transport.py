@@ -11,8 +11,8 @@ zigzag-mapped and stored as byte planes; the payload's one zstd frame does the e
 
 The encoder (`filter_texels`) decides per section, on a band of its first layer coded both ways, whether `fields1`
 or the byte shuffle of format.md 5.1 is smaller; rotations and scales usually keep the shuffle, BC blocks always do.
-Decoding (`unfilter_fields`) is numpy-vectorised: running sums, shifts and one scatter per layer back to texture
-order.
+Decoding (`unfilter_fields`) is numpy-vectorised: running sums, shifts and one gather per layer back to texture
+order, in work arrays kept per thread.
 
 Pure functions; every malformed content raises FormatError, and no decode allocates more than the section's texel
 size (plus its small per-block parameters).
@@ -196,13 +196,11 @@ def _zigzag(u: np.ndarray, bits: int) -> np.ndarray:
     return ((u << t(1)) ^ np.negative(u >> t(bits - 1))) & mask
 
 
-def _cross_prediction(ref: np.ndarray, slope: np.ndarray, intercept: np.ndarray,
-                      out: np.ndarray | None = None) -> np.ndarray:
-    """Per-block linear prediction floor((slope * ref + 64 * intercept + 32) / 64), as int32 (slot order), into
-    `out` (int32, the slots' size) when given; `ref` holds values below 2^16 (any integer type)."""
+def _cross_prediction(ref: np.ndarray, slope: np.ndarray, intercept: np.ndarray) -> np.ndarray:
+    """Per-block linear prediction floor((slope * ref + 64 * intercept + 32) / 64), as int32 (slot order); `ref`
+    holds values below 2^16 (any integer type)."""
     ref = ref.view(np.int32) if ref.dtype == np.uint32 else ref.astype(np.int32)
-    r = np.multiply(ref.reshape(len(slope), BLOCK_TEXELS), slope.astype(np.int32)[:, None],
-                    out=None if out is None else out.reshape(len(slope), BLOCK_TEXELS))
+    r = np.multiply(ref.reshape(len(slope), BLOCK_TEXELS), slope.astype(np.int32)[:, None])
     r += ((intercept.astype(np.int32) << SLOPE_SHIFT) + (1 << (SLOPE_SHIFT - 1)))[:, None]
     r >>= SLOPE_SHIFT
     return r.reshape(-1)
@@ -668,7 +666,11 @@ def unfilter_fields(raw: np.ndarray | bytes, fmt: str, width: int, height: int, 
     params = {}
     for k, r in enumerate(refs):
         if r >= 0:
-            params[k] = (raw[pos:pos + blocks].view(np.int8), raw[pos + blocks:pos + 3 * blocks].view("<i2"))
+            # per block: slope, and 64 * intercept + 32 (the prediction's rounding), as int32 columns
+            bias = raw[pos + blocks:pos + 3 * blocks].view("<i2").astype(np.int32)
+            bias <<= SLOPE_SHIFT
+            bias += 1 << (SLOPE_SHIFT - 1)
+            params[k] = (raw[pos:pos + blocks].view(np.int8).astype(np.int32)[:, None], bias[:, None])
             pos += 3 * blocks
     layer_bytes = n * lay.texel_bytes
     out = np.empty(layer_bytes * layers, np.uint8)
@@ -688,8 +690,13 @@ def unfilter_fields(raw: np.ndarray | bytes, fmt: str, width: int, height: int, 
             np.add.accumulate(signed[rows], axis=1, out=signed[rows])
         for rows in pre_mask:
             z[rows] &= lay.masks[rows, None]
-        for i, r in crossed:
-            z[i] += _cross_prediction(z[r], *params[layer * nf + i], out=spare[i].view(np.int32)).view(np.uint32)
+        for i, r in crossed:  # z[i] += floor((slope * z[r] + 64 * intercept + 32) / 64), as _cross_prediction
+            slope, bias = params[layer * nf + i]
+            prediction = spare[i].view(np.int32).reshape(blocks, BLOCK_TEXELS)
+            np.multiply(signed[r].reshape(blocks, BLOCK_TEXELS), slope, out=prediction)
+            prediction += bias
+            prediction >>= SLOPE_SHIFT
+            z[i] += spare[i]
         for i in post_mask:
             z[i] &= lay.masks[i]
         unit = out[layer * layer_bytes:(layer + 1) * layer_bytes].view(lay.texel)
