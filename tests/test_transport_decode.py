@@ -164,3 +164,40 @@ def test_threads_and_work_buffer_sizes_do_not_mix_sections(monkeypatch):
     monkeypatch.setattr(transport, "_work", threading.local())
     work(99)
     assert failures == []
+
+
+@pytest.mark.parametrize("transport_name", ["none", "fields"])
+def test_decoded_planes_do_not_share_the_reused_payload_buffer(transport_name):
+    """unpack_payload decompresses into a buffer kept per thread: whatever it returns (texels of "none" sections,
+    ranges, fields1 texels) must survive the next payloads decoded on the thread, and equal a decode in another
+    thread."""
+    from splatstream.encode import EncodeOptions
+    from splatstream.encode.local import encode_in_memory
+    from splatstream.format.decode import decode_payload
+    from splatstream.gaussians import Gaussians
+    from splatstream.store import read_manifest
+
+    rng = np.random.default_rng(3)
+    n = 3000
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    g = Gaussians(rng.normal(size=(n, 3)), q, rng.normal(-3, 0.5, size=(n, 3)), rng.normal(0, 2, size=n),
+                  rng.normal(size=(n, 3)), rng.normal(0, 0.1, size=(n, 3, 3)))
+    store = encode_in_memory(g, EncodeOptions(preset="very-low", max_leaf_splats=512, transport=transport_name,
+                                              sh_codebook="off"))
+    m = read_manifest(store)
+    jobs = [(store.read_payload(t.groups[gr]), t.groups[gr], gr) for t in m.tiles for gr in t.groups]
+    assert len(jobs) > 4
+
+    def snapshot(planes: dict) -> list[bytes]:
+        return [np.asarray(a).tobytes() for p in planes.values() for a in [*p.layers, p.ranges] if a is not None]
+
+    first = [decode_payload(d, e, gr, "test", m.uses_codebook) for d, e, gr in jobs]  # all kept, one thread
+    elsewhere: list = []
+    t = threading.Thread(target=lambda: elsewhere.extend(
+        snapshot(decode_payload(d, e, gr, "test", m.uses_codebook)) for d, e, gr in jobs))
+    t.start()
+    t.join()
+    assert [snapshot(p) for p in first] == elsewhere
+    if transport_name == "none":
+        assert any(s.filter == "none" for _, e, _ in jobs for s in e.sections if s.kind == "texels")

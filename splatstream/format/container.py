@@ -132,6 +132,45 @@ def _decompressor() -> zstandard.ZstdDecompressor:
     return d
 
 
+# Payloads that decompress to at most this many bytes go into a buffer kept per thread (see _decompress).
+KEEP_RAW_BYTES = 1 << 24
+
+
+def _decompress(data: bytes | memoryview, size: int, source: str) -> tuple[np.ndarray, bool]:
+    """The payload's `size` decompressed bytes and whether they lie in this thread's reused buffer (else, above
+    KEEP_RAW_BYTES, in a fresh array). FormatError unless `data` is one zstd frame of exactly `size` bytes.
+
+    Why a kept buffer: a tile's payload decompresses to a few hundred KB, above glibc's mmap threshold, and on
+    this VM a fresh buffer's page faults measured as much as a third of zstd's time in the decode of biker's
+    tiles (issue 15). The bytes are only valid until this thread's next call: unpack_payload copies what of them
+    it returns as views."""
+    kept = size <= KEEP_RAW_BYTES
+    if kept:
+        buf = getattr(_local, "raw", None)
+        if buf is None or buf.size < size:
+            buf = _local.raw = np.empty(min(KEEP_RAW_BYTES, 1 << max(16, (size - 1).bit_length())), np.uint8)
+        buf = buf[:size]
+    else:
+        buf = np.empty(size, np.uint8)
+    got, extra = 0, b""
+    try:
+        with _decompressor().stream_reader(data) as reader:
+            while got < size:
+                k = reader.readinto(buf[got:])
+                if not k:
+                    break
+                got += k
+            extra = reader.read(1)
+    except zstandard.ZstdError as exc:
+        raise FormatError(source, None, f"not a valid zstd payload ({exc})") from None
+    if extra:  # a bomb is cut off here: nothing past size + 1 bytes is decompressed
+        raise FormatError(source, "raw_bytes", f"payload decompresses to more than the {size} bytes expected")
+    if got != size:
+        raise FormatError(source, "raw_bytes", f"payload decompresses to {got} bytes, expected {size} (a short "
+                          "or truncated zstd frame)")
+    return buf, kept
+
+
 def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, source: str,
                    codebook: bool = False, between: Callable[[], object] | None = None) -> dict[str, EncodedPlane]:
     """Decompress verified payload bytes into planes (texels still encoded; ranges as stored).
@@ -140,14 +179,7 @@ def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, so
     what is checked here is what only the bytes can tell. With `codebook`, a tile's sh1 group holds the SH index
     plane (format_spec/format.md 4.7). `between` is called before each plane: a decode thread's point to wait
     while another thread needs the interpreter (the streaming client's frame loop)."""
-    try:
-        raw = _decompressor().decompress(data, max_output_size=entry.raw_bytes)
-    except zstandard.ZstdError as exc:
-        raise FormatError(source, None, f"not a valid zstd payload ({exc})") from None
-    if len(raw) != entry.raw_bytes:
-        raise FormatError(source, "raw_bytes", f"payload decompresses to {len(raw)} bytes, expected "
-                          f"{entry.raw_bytes}")
-    buf = np.frombuffer(raw, np.uint8)
+    buf, kept = _decompress(data, entry.raw_bytes, source)
     planes: dict[str, EncodedPlane] = {}
     for spec in group_planes(group, codebook):
         if between is not None:
@@ -163,6 +195,10 @@ def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, so
             data_r = unshuffle(buf[r.offset:r.offset + r.size], r.element)
             ranges = data_r.view(np.dtype(spec.range_dtype)).reshape(r.shape)
             _check_ranges(ranges, spec.name, r.name, source)
+        if kept:  # what is still a view of this thread's buffer is copied: the next payload overwrites it
+            layers = [p.copy() if np.may_share_memory(p, buf) else p for p in layers]
+            if ranges is not None and np.may_share_memory(ranges, buf):
+                ranges = ranges.copy()
         planes[spec.name] = EncodedPlane(spec, s.format, s.width, s.height, layers, ranges)
     return planes
 
