@@ -492,6 +492,7 @@ class _Layout:
     texel_bytes: int
     texel: np.dtype  # the texel as one element: uint16/32/64, or V16 for f32x4
     inverse: np.ndarray  # texel_to_slot
+    plane_bytes: int  # byte planes a slot (the sum of nbytes)
 
 
 @functools.lru_cache(maxsize=64, typed=True)
@@ -511,14 +512,13 @@ def _layout(fmt: str, width: int, height: int) -> _Layout:
     for a in (masks, shifts):
         a.setflags(write=False)
     return _Layout(bits, nbytes, tuple(runs), masks, np.dtype(dtype), words, shifts, texel_bytes,
-                   _TEXEL_UINT.get(texel_bytes, np.dtype("V16")), texel_to_slot(width, height))
+                   _TEXEL_UINT.get(texel_bytes, np.dtype("V16")), texel_to_slot(width, height), sum(nbytes))
 
 
 @functools.lru_cache(maxsize=4096)
 def _decode_plan(fmt: str, width: int, height: int, layers: int, head: bytes) -> tuple:
     """Checks the header of a fields1 content (the version byte and the modes) once per distinct header; returns
-    (expected content size, reference field of every (layer, field) or -1, the _layer_plan of every layer), or an
-    error message."""
+    (expected content size, number of predicted fields, the _layer_plan of every layer), or an error message."""
     bits = field_bits(fmt)
     nf = len(bits)
     if head[0] != FIELDS_VERSION:
@@ -536,14 +536,17 @@ def _decode_plan(fmt: str, width: int, height: int, layers: int, head: bytes) ->
     crossed = sum(r >= 0 for r in refs)
     size = 1 + nf * layers + 3 * (n // BLOCK_TEXELS) * crossed + n * layers * sum((b + 7) // 8 for b in bits)
     deltas = tuple(bool(m & MODE_DELTA) for m in modes)
-    plans = tuple(_layer_plan(fmt, refs[k * nf:(k + 1) * nf], deltas[k * nf:(k + 1) * nf]) for k in range(layers))
-    return size, refs, plans
+    plans = tuple(_layer_plan(fmt, refs[k * nf:(k + 1) * nf], deltas[k * nf:(k + 1) * nf],
+                              sum(r >= 0 for r in refs[:k * nf])) for k in range(layers))
+    return size, crossed, plans
 
 
-def _layer_plan(fmt: str, refs: tuple[int, ...], deltas: tuple[bool, ...]) -> tuple:
+def _layer_plan(fmt: str, refs: tuple[int, ...], deltas: tuple[bool, ...], first_param: int) -> tuple:
     """The steps of decoding one layer of a fields1 content with these modes: (delta rows, rows masked before the
-    cross predictions, (field, reference) pairs, rows masked after them), rows of the (fields, slots) work array
-    as one slice where they are consecutive (one numpy call for them all).
+    cross predictions, cross groups, rows masked after them), rows of the (fields, slots) work array as one slice
+    where they are consecutive (one numpy call for them all). A cross group is (reference field, predicted rows as
+    a slice, index of their first parameter set in the content, count): all predicted fields of a layer in one
+    group when they share their reference and are evenly spaced (colour R and B from G), else one group each.
 
     A field is cut to its bits only where that changes the texel: where its uint32 value may exceed the field (a
     running sum, a negative residual modulo 2^32, a stored byte wider than the field) and it is the reference of a
@@ -560,9 +563,15 @@ def _layer_plan(fmt: str, refs: tuple[int, ...], deltas: tuple[bool, ...]) -> tu
     # when its stored byte has more bits than the field (norm565, the 2-bit field of norm10_2)
     wide = [i for i in range(nf) if bits[i] < 32 and (deltas[i] or bits[i] != 8)]
     pre_mask = [i for i in wide if i in anchors or (refs[i] < 0 and bits[i] < room[i])]
-    crossed = tuple((i, r) for i, r in enumerate(refs) if r >= 0)
-    post_mask = tuple(i for i, _ in crossed if bits[i] < room[i])
-    return _rows([i for i in range(nf) if deltas[i]]), _rows(pre_mask), crossed, post_mask
+    crossed = [(i, r) for i, r in enumerate(refs) if r >= 0]
+    rows = [i for i, _ in crossed]
+    step = rows[1] - rows[0] if len(rows) > 1 else 1
+    if crossed and len(anchors) == 1 and rows == list(range(rows[0], rows[-1] + 1, step)):
+        groups = ((crossed[0][1], slice(rows[0], rows[-1] + 1, step), first_param, len(rows)),)
+    else:
+        groups = tuple((r, slice(i, i + 1), first_param + k, 1) for k, (i, r) in enumerate(crossed))
+    post_mask = tuple(slice(i, i + 1) for i in rows if bits[i] < room[i])
+    return _rows([i for i in range(nf) if deltas[i]]), _rows(pre_mask), groups, post_mask
 
 
 def _rows(rows: list[int]) -> tuple[slice, ...]:
@@ -577,30 +586,60 @@ _work = threading.local()
 KEEP_WORK_BYTES = 1 << 24
 
 
-def _work_arrays(nf: int, n: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """This thread's work arrays for `nf` fields of `n` slots (contents undefined), reused from call to call:
-    z and spare (nf, n) uint32, and two (nf, n) uint8.
+class _Work:
+    """This thread's work arrays for one (format, slots), views of one buffer (contents undefined): z and spare
+    (fields, slots) uint32, z as int32, two (fields, slots) uint8, each run's rows of them, and for word-per-field
+    formats the texels in slot order (in spare) with a view of each word's column."""
+
+    __slots__ = ("z", "spare", "signed", "runs", "columns", "texels")
+
+    def __init__(self, buf: np.ndarray, lay: _Layout, n: int) -> None:
+        nf = len(lay.bits)
+        m = nf * n
+        self.z = buf[:4 * m].view(np.uint32).reshape(nf, n)
+        self.spare = buf[4 * m:8 * m].view(np.uint32).reshape(nf, n)
+        self.signed = self.z.view(np.int32)
+        t, u = buf[8 * m:9 * m].reshape(nf, n), buf[9 * m:10 * m].reshape(nf, n)
+        self.runs = tuple((start, (end - first) * nb * n, end - first, nb, self.z[first:end], self.spare[first:end],
+                           t[first:end], u[first:end]) for first, end, start, nb in lay.runs)
+        slots = self.spare.reshape(-1)[:n * lay.texel_bytes // 4]
+        if lay.words > 1:
+            columns = slots.view(lay.word).reshape(n, lay.words)
+            self.columns = tuple((columns[:, k], self.z[k]) for k in range(lay.words))
+        else:
+            self.columns = ()
+        self.texels = slots.view(lay.texel)
+
+
+def _work_for(fmt: str, lay: _Layout, n: int) -> _Work:
+    """This thread's _Work for (fmt, n), reused from call to call.
 
     Why: the arrays of a tile's section are 40-160 KB, around glibc's mmap threshold, so fresh ones often come as
     new pages, and on this VM every first touch of a page is a fault of several microseconds: profiling the
-    decode of biker's tiles put two thirds of the unfilter time in page faults (issue 15). Buffers larger than
-    KEEP_WORK_BYTES (no-LOD tiles of millions of splats) are allocated per call and not kept."""
-    views = getattr(_work, "views", None)
-    if views is not None and views[0] == (nf, n):
-        return views[1]
-    size = 10 * nf * n
+    decode of biker's tiles put two thirds of the unfilter time in page faults (issue 15); and building the views
+    once saves a good part of a small section's per-call work. Buffers larger than KEEP_WORK_BYTES (no-LOD tiles
+    of millions of splats) are allocated per call and not kept."""
+    cache = getattr(_work, "views", None)
+    if cache is not None:
+        work = cache.get((fmt, n))
+        if work is not None:
+            return work
+    size = 10 * len(lay.bits) * n
     buf = getattr(_work, "buffer", None)
-    if buf is None or buf.size < size:
-        if size > KEEP_WORK_BYTES:
-            buf = np.empty(size, np.uint8)
-        else:
-            buf = _work.buffer = np.empty(min(KEEP_WORK_BYTES, 1 << max(16, (size - 1).bit_length())), np.uint8)
-    m = nf * n
-    arrays = (buf[:4 * m].view(np.uint32).reshape(nf, n), buf[4 * m:8 * m].view(np.uint32).reshape(nf, n),
-              buf[8 * m:9 * m].reshape(nf, n), buf[9 * m:10 * m].reshape(nf, n))
-    if buf is getattr(_work, "buffer", None):
-        _work.views = ((nf, n), arrays)
-    return arrays
+    if buf is not None and buf.size >= size:
+        work = _Work(buf, lay, n)
+    elif size > KEEP_WORK_BYTES:
+        return _Work(np.empty(size, np.uint8), lay, n)
+    else:
+        buf = _work.buffer = np.empty(min(KEEP_WORK_BYTES, 1 << max(16, (size - 1).bit_length())), np.uint8)
+        _work.views = cache = {}  # views of the old buffer go with it
+        work = _Work(buf, lay, n)
+    if cache is None:
+        _work.views = cache = {}
+    if len(cache) >= 64:
+        cache.clear()
+    cache[(fmt, n)] = work
+    return work
 
 
 _U8_ONE, _U32_SEVEN = np.uint8(1), np.uint32(7)
@@ -657,61 +696,59 @@ def unfilter_fields(raw: np.ndarray | bytes, fmt: str, width: int, height: int, 
     plan = _decode_plan(fmt, width, height, layers, raw[:header_bytes].tobytes())
     if isinstance(plan, str):
         raise FormatError(source, "fields1", plan)
-    expected, refs, layer_plans = plan
-    if raw.size != expected:
-        raise FormatError(source, "fields1", f"content of {raw.size} bytes, expected {expected} for its modes")
     n = width * height
     blocks = n // BLOCK_TEXELS
-    pos = header_bytes
-    params = {}
-    for k, r in enumerate(refs):
-        if r >= 0:
-            # per block: slope, and 64 * intercept + 32 (the prediction's rounding), as int32 columns
-            bias = raw[pos + blocks:pos + 3 * blocks].view("<i2").astype(np.int32)
-            bias <<= SLOPE_SHIFT
-            bias += 1 << (SLOPE_SHIFT - 1)
-            params[k] = (raw[pos:pos + blocks].view(np.int8).astype(np.int32)[:, None], bias[:, None])
-            pos += 3 * blocks
+    expected, crossed, layer_plans = plan
+    if raw.size != expected:
+        raise FormatError(source, "fields1", f"content of {raw.size} bytes, expected {expected} for its modes")
+    pos = header_bytes + 3 * blocks * crossed
+    if crossed:
+        # per predicted field and block: slope, and 64 * intercept + 32 (the prediction's rounding), as int32
+        params = raw[header_bytes:pos].reshape(crossed, 3 * blocks)
+        slopes = params[:, :blocks].view(np.int8).astype(np.int32)[:, :, None]
+        biases = params[:, blocks:].view("<i2").astype(np.int32)
+        biases <<= SLOPE_SHIFT
+        biases += 1 << (SLOPE_SHIFT - 1)
+        biases = biases[:, :, None]
     layer_bytes = n * lay.texel_bytes
     out = np.empty(layer_bytes * layers, np.uint8)
-    z, spare, t, u = _work_arrays(nf, n)
-    signed = z.view(np.int32)
-    for layer, (delta_rows, pre_mask, crossed, post_mask) in enumerate(layer_plans):
-        for first, end, start, nb in lay.runs:
-            planes = raw[pos + start:pos + start + (end - first) * nb * n].reshape(end - first, nb, n)
+    work = _work_for(fmt, lay, n)
+    z, spare, signed = work.z, work.spare, work.signed
+    for layer, (delta_rows, pre_mask, cross_groups, post_mask) in enumerate(layer_plans):
+        for start, size, fields, nb, z_rows, spare_rows, t_rows, u_rows in work.runs:
+            planes = raw[pos + start:pos + start + size].reshape(fields, nb, n)
             if nb == 1:  # fields of up to 8 bits: no zigzag
-                np.copyto(z[first:end], planes[:, 0])
+                np.copyto(z_rows, planes[:, 0])
             elif nb == 2:
-                _join_zigzag16(planes, z[first:end], spare[first:end], t[first:end], u[first:end])
+                _join_zigzag16(planes, z_rows, spare_rows, t_rows, u_rows)
             else:
-                _join_zigzag(planes, z[first:end], spare[first:end])
-        pos += n * sum(lay.nbytes)
+                _join_zigzag(planes, z_rows, spare_rows)
+        pos += n * lay.plane_bytes
         for rows in delta_rows:
             np.add.accumulate(signed[rows], axis=1, out=signed[rows])
         for rows in pre_mask:
             z[rows] &= lay.masks[rows, None]
-        for i, r in crossed:  # z[i] += floor((slope * z[r] + 64 * intercept + 32) / 64), as _cross_prediction
-            slope, bias = params[layer * nf + i]
-            prediction = spare[i].view(np.int32).reshape(blocks, BLOCK_TEXELS)
-            np.multiply(signed[r].reshape(blocks, BLOCK_TEXELS), slope, out=prediction)
-            prediction += bias
+        for ref, rows, first, count in cross_groups:
+            # z[rows] += floor((slope * z[ref] + 64 * intercept + 32) / 64) per block, as _cross_prediction
+            prediction = spare[:count].view(np.int32).reshape(count, blocks, BLOCK_TEXELS)
+            np.multiply(signed[ref].reshape(blocks, BLOCK_TEXELS), slopes[first:first + count], out=prediction)
+            prediction += biases[first:first + count]
             prediction >>= SLOPE_SHIFT
-            z[i] += spare[i]
-        for i in post_mask:
-            z[i] &= lay.masks[i]
-        unit = out[layer * layer_bytes:(layer + 1) * layer_bytes].view(lay.texel)
+            z[rows] += spare[:count]
+        for rows in post_mask:
+            z[rows] &= lay.masks[rows, None]
         if lay.words > 1:  # norm8x4, norm16x4, f16x4, f32x4: one field a word, interleaved by a column copy a word
-            slots = spare.reshape(-1)[:layer_bytes // 4].view(lay.word).reshape(n, lay.words)
-            for k in range(lay.words):
-                slots[:, k] = z[k]
+            for column, row in work.columns:
+                column[...] = row
+            texels = work.texels
         else:  # fields packed in one word
-            if nf > 1:
+            if len(lay.bits) > 1:
                 z <<= lay.shifts
                 np.bitwise_or.reduce(z, axis=0, out=spare[0])
             else:
                 spare[0] = z[0]
-            slots = spare[0] if lay.word.itemsize == 4 else spare[0].astype(lay.word)
-        slots.reshape(-1).view(lay.texel).take(lay.inverse, out=unit, mode="clip")
+            texels = spare[0] if lay.word.itemsize == 4 else spare[0].astype(lay.word)
+        texels.take(lay.inverse, out=out[layer * layer_bytes:(layer + 1) * layer_bytes].view(lay.texel), mode="clip")
     return out
 
 
