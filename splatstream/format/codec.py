@@ -306,7 +306,7 @@ def decode_plane(plane: EncodedPlane, n: int) -> np.ndarray:
 def assemble_gaussians(planes: dict[str, np.ndarray], sh_degree: int) -> Gaussians:
     """Gaussians from decoded plane values (missing SH bands above sh_degree are left out)."""
     color = planes["color"][:, 0]
-    opacity = np.clip(color[:, 3], OPACITY_EPS, 1.0 - OPACITY_EPS)
+    opacity = np.clip(color[:, OPACITY], OPACITY_EPS, 1.0 - OPACITY_EPS)
     n = len(color)
     rest = [planes[f"sh{b}"] for b in range(1, sh_degree + 1)]
     sh_rest = np.concatenate(rest, axis=1) if rest else np.zeros((n, 0, 3), np.float32)

@@ -72,10 +72,16 @@ OPACITY_GRID = 255
 OPACITY_GRID_TOLERANCE = 1e-3
 
 
+def on_grid(steps: np.ndarray, tolerance: float) -> bool:
+    """Whether every value, counted in steps of some grid, is within `tolerance` of a whole step (and there are any):
+    the mark of values an earlier quantiser wrote."""
+    steps = np.asarray(steps, np.float64)
+    return steps.size > 0 and bool(np.all(np.abs(steps - np.rint(steps)) <= tolerance))
+
+
 def opacity_on_grid(opacity: np.ndarray) -> bool:
     """Whether every opacity is k / 255 (to float rounding): a quantised input's own grid."""
-    a = np.asarray(opacity, np.float64) * OPACITY_GRID
-    return a.size > 0 and bool(np.all(np.abs(a - np.rint(a)) <= OPACITY_GRID_TOLERANCE))
+    return on_grid(np.asarray(opacity, np.float64) * OPACITY_GRID, OPACITY_GRID_TOLERANCE)
 
 
 def keep_opacity_grid(lo: np.ndarray, hi: np.ndarray, fmt_name: str, component: int) -> bool:
