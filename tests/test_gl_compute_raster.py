@@ -307,7 +307,9 @@ def test_work_buffers_fixed_while_tiles_come_and_go(ctx, fruit):
 
 DENSE_VARIANTS = [dict(tight_bins=True), dict(emit_rects=True), dict(tight_bins=True, emit_rects=True),
                   dict(flush="cull"), dict(flush="none"), dict(tile_radix_bits=8), dict(tile_radix_bits=4),
-                  dict(balanced_emit=False), dict(radix_bits=6, tile_radix_bits=5), dict(row_bins=False)]
+                  dict(balanced_emit=False), dict(radix_bits=6, tile_radix_bits=5), dict(row_bins=False),
+                  dict(local_scatter=False, radix_bits=4), dict(local_scatter=False),
+                  dict(radix_bits=4), dict(radix_bits=8, tile_radix_bits=8)]
 
 
 @pytest.mark.parametrize("variant", DENSE_VARIANTS, ids=lambda v: "+".join(f"{k}={v[k]}" for k in v))

@@ -57,7 +57,8 @@ class ComputeRaster:
     def __init__(self, ctx, color_dtype: str, visible_capacity: int, entry_capacity: int | None = None,
                  tile_px: int = TILE_PX, unroll: int = UNROLL, warp_cull: bool = False, radix_bits: int = RADIX_BITS,
                  fused_sort: bool = True, barrier_bits: int = CHAIN_BARRIER, tight_bins: bool = False,
-                 emit_rects: bool = False, balanced_emit: bool = True, row_bins: bool = True):
+                 emit_rects: bool = False, balanced_emit: bool = True, row_bins: bool = True,
+                 local_scatter: bool = True):
         self.ctx = ctx
         self.color_dtype = color_dtype
         self.tile_px = int(tile_px)
@@ -65,6 +66,7 @@ class ComputeRaster:
             raise ValueError(f"tile size {tile_px}: 8 or 16 pixels")
         self.radix_bits = radix_bits
         self.fused_sort = fused_sort
+        self.local_scatter = bool(local_scatter)
         self.barrier_bits = barrier_bits
         tile = f"#define TILE_PX {self.tile_px}\n"
         # tight_bins: tiles tested against the splat's ellipse (bin_common.glsl's tile_hit), the same code in the count
@@ -130,7 +132,7 @@ class ComputeRaster:
                 self.tile_sorter.release()
             self.entry_capacity = int(entry_capacity)
             self.tile_sorter = GpuRadixSort(self.ctx, self.entry_capacity, self.radix_bits, self.fused_sort,
-                                            self.barrier_bits)
+                                            self.barrier_bits, local_scatter=self.local_scatter)
             self.tile_keys = work_buffer(self.ctx, 4 * self.entry_capacity)
             self.tile_values = work_buffer(self.ctx, 4 * self.entry_capacity)
 

@@ -107,8 +107,15 @@ class RenderOptions:
     unroll: int = 4  # raster loop unrolled 4, 2 or 1 times
     warp_cull: bool = False  # per 8x4-pixel block splat lists
     # GPU sort (client_gl/gpu/sort.py), all GPU-path draws:
-    radix_bits: int = 4  # digit width of the depth sort (RADIX_CHOICES: 4 to 8; 6-bit digits measured slower at 6M)
+    # Digit width of the depth sort (RADIX_CHOICES: 4 to 8). 6: four passes over the 24-bit depth keys; with the local
+    # scatter, H100, 6M dense at 1080p: depth sort 0.78 -> 0.50 ms against 4-bit digits and the global scatter (5 and
+    # 8 bits slower; BENCHMARKS.md).
+    radix_bits: int = 6
     fused_sort: bool = True  # 3 dispatches a sort pass (False: the 5 of count, reduce, scan, scan-add, scatter)
+    # Both GPU sorts (depth and tiles): each scatter work group reorders its tile by digit in shared memory and writes
+    # each digit's run in one piece (radix_scatter_local.comp), where the global scatter's threads write up to
+    # 2**bits runs a round. H100, 6M dense at 1080p: tile sort 0.81 -> 0.69 ms (BENCHMARKS.md).
+    local_scatter: bool = True
     full_barriers: bool = False  # compute draw: glMemoryBarrier(ALL) between dispatches (default: the bits needed)
     # glFlush: none | cull (after the cull) | stages (after each stage but the last), so that the GPU starts on the
     # frame while the CPU still issues the rest of it (FLUSH_CHOICES). "stages" measured on an H100, dense scenes at
@@ -330,7 +337,8 @@ class SplatRenderer:
         if self.sorter is not None:
             self.sorter.release()
         ctx = self.ctx
-        self.sorter = GpuRadixSort(ctx, n, self.options.radix_bits, self.options.fused_sort)
+        self.sorter = GpuRadixSort(ctx, n, self.options.radix_bits, self.options.fused_sort,
+                                   local_scatter=self.options.local_scatter)
         self.sorter.barrier_bits = self._chain_barrier(self.draw_mode)
         self.keys = work_buffer(ctx, n * 4)
         self.values = work_buffer(ctx, n * 4)
@@ -369,7 +377,8 @@ class SplatRenderer:
                                              radix_bits=opts.tile_radix_bits or opts.radix_bits,
                                              fused_sort=opts.fused_sort, barrier_bits=self._chain_barrier("compute"),
                                              tight_bins=opts.tight_bins, emit_rects=opts.emit_rects,
-                                             balanced_emit=opts.balanced_emit, row_bins=opts.row_bins)
+                                             balanced_emit=opts.balanced_emit, row_bins=opts.row_bins,
+                                             local_scatter=opts.local_scatter)
                 self._bin_checks = BIN_CHECK_FRAMES
             self.draw_mode = mode
             self.program_gpu = self.vao_gpu = None
