@@ -122,7 +122,7 @@ def test_budget_holds_and_eviction_follows_the_camera():
     fetcher = StepFetcher(store, per_frame=4)
     engine = StreamEngine(fetcher, pool, StreamOptions(SelectionOptions(max_sse=0.5)))
     lo, hi = np.array(m.bounds.min), np.array(m.bounds.max)
-    evicted, converged = 0, 0
+    evicted, converged, root_joined = 0, 0, False
     for step in range(12):  # fly along the scene, looking across it from close by
         eye = lo + (hi - lo) * np.array([step / 11, 0.5, 0.5]) - np.array([0, (hi - lo)[1] * 0.8, 0])
         cam = Camera(tuple(eye), tuple(eye + np.array([0, 1.0, 0])), (0, 0, 1), 40.0, 320, 240, near=1e-3)
@@ -132,7 +132,10 @@ def test_budget_holds_and_eviction_follows_the_camera():
             engine.wait(0.02)
             evicted += len(before - set(pool.tiles))
             assert pool.used <= pool.capacity_slots
-            assert m.root in pool.tiles or not u.draw
+            # the root, once resident, is never evicted (its children may join first when their decodes finish
+            # first, and draw alone where they cover the view: client.md 1.9)
+            root_joined = root_joined or m.root in pool.tiles
+            assert m.root in pool.tiles or not root_joined
             assert all(t in pool.tiles for t in u.draw)
             drawn = {m.index_of[t] for t in u.draw}
             for i in drawn:  # never a tile together with one of its ancestors
