@@ -86,48 +86,12 @@ def test_variants_sort_like_numpy(gl_compute_context, radix_bits, fused):
     s.release()
 
 
-@pytest.mark.parametrize("radix_bits", [4, 6, 7, 8])
-def test_low_bits_sort_is_stable(gl_compute_context, radix_bits):
-    """A sort by the low bits only (the tile sort: 13 bits at 1080p) is a stable sort by those bits."""
+def _check_low_bits(ctx, s, seed: int) -> None:
+    """Sorting 20,000 keys by their low 13 bits (the tile sort at 1080p) is a stable sort by those bits."""
     import struct
 
-    from client_gl.gpu.sort import GpuRadixSort
-
-    ctx = gl_compute_context
-    s = GpuRadixSort(ctx, 20000, radix_bits=radix_bits)
     n = 20000
-    rng = np.random.default_rng(5)
-    keys = rng.integers(0, 8160, n).astype(np.uint32)
-    values = np.arange(n, dtype=np.uint32)
-    kb, vb = ctx.buffer(keys.tobytes()), ctx.buffer(values.tobytes())
-    params = ctx.buffer(struct.pack("4I", n, 0, 0, 0))
-    s.setup(params)
-    s.sort(params, kb, vb, bits=13)
-    order = np.argsort(keys, kind="stable")
-    np.testing.assert_array_equal(np.frombuffer(kb.read(), np.uint32), keys[order])
-    np.testing.assert_array_equal(np.frombuffer(vb.read(), np.uint32), values[order])
-    for b in (kb, vb, params):
-        b.release()
-    s.release()
-
-
-@pytest.mark.parametrize("radix_bits", [4, 5, 6, 7, 8])
-def test_local_scatter_sorts_like_numpy(gl_compute_context, radix_bits):
-    """The scatter that reorders each tile in shared memory first (local_scatter) is a stable sort like the default:
-    random keys, partial last tiles, few values, keys of one digit, the low bits only; block sums left at zero."""
-    import struct
-
-    from client_gl.gpu.sort import GpuRadixSort
-
-    ctx = gl_compute_context
-    s = GpuRadixSort(ctx, 30000, radix_bits=radix_bits, local_scatter=True)
-    rng = np.random.default_rng(10 + radix_bits)
-    for n in (0, 1, 255, 2049, 30000, 777):
-        _check(s, rng.integers(0, 2**32, n, dtype=np.uint64))
-    for keys in (rng.integers(0, 3, 9001), rng.integers(0, 16, 9001) << 28, np.full(4097, 0xDEADBEEF)):
-        _check(s, keys.astype(np.uint64))
-    assert not np.frombuffer(s.reduced.read(), np.uint32).any()
-    n = 20000
+    rng = np.random.default_rng(seed)
     keys = rng.integers(0, 8160, n).astype(np.uint32)
     values = rng.permutation(n).astype(np.uint32)
     kb, vb = ctx.buffer(keys.tobytes()), ctx.buffer(values.tobytes())
@@ -139,4 +103,31 @@ def test_local_scatter_sorts_like_numpy(gl_compute_context, radix_bits):
     np.testing.assert_array_equal(np.frombuffer(vb.read(), np.uint32), values[order])
     for b in (kb, vb, params):
         b.release()
+
+
+@pytest.mark.parametrize("radix_bits", [4, 6, 7, 8])
+def test_low_bits_sort_is_stable(gl_compute_context, radix_bits):
+    """A sort by the low bits only (the tile sort: 13 bits at 1080p) is a stable sort by those bits."""
+    from client_gl.gpu.sort import GpuRadixSort
+
+    s = GpuRadixSort(gl_compute_context, 20000, radix_bits=radix_bits)
+    _check_low_bits(gl_compute_context, s, 5)
+    s.release()
+
+
+@pytest.mark.parametrize("radix_bits", [4, 5, 6, 7, 8])
+def test_global_scatter_sorts_like_numpy(gl_compute_context, radix_bits):
+    """The scatter that writes each key from its round straight to its place (local_scatter=False, the default
+    before the tile-local reorder) sorts as the default does: random keys, partial last tiles, few values, keys of
+    one digit, the low bits only; block sums left at zero."""
+    from client_gl.gpu.sort import GpuRadixSort
+
+    s = GpuRadixSort(gl_compute_context, 30000, radix_bits=radix_bits, local_scatter=False)
+    rng = np.random.default_rng(10 + radix_bits)
+    for n in (0, 1, 255, 2049, 30000, 777):
+        _check(s, rng.integers(0, 2**32, n, dtype=np.uint64))
+    for keys in (rng.integers(0, 3, 9001), rng.integers(0, 16, 9001) << 28, np.full(4097, 0xDEADBEEF)):
+        _check(s, keys.astype(np.uint64))
+    assert not np.frombuffer(s.reduced.read(), np.uint32).any()
+    _check_low_bits(gl_compute_context, s, 6)
     s.release()
