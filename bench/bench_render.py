@@ -97,8 +97,8 @@ class Settle:
 # Measurement flags of a --draw value ("fetch+f2b", "compute+t8+u2", ...) -> RenderOptions fields.
 DRAW_FLAGS = {"f2b": {"front_to_back": True}, "nodepth": {"depth_test": False}, "noblend": {"blend": False},
               "discard": {"discard_fragments": True}, "t8": {"tile_px": 8}, "u1": {"unroll": 1}, "u2": {"unroll": 2},
-              "wc": {"warp_cull": True}, "r8": {"radix_bits": 8}, "classic": {"fused_sort": False},
-              "fb": {"full_barriers": True},
+              "wc": {"warp_cull": True}, "nowc": {"warp_cull": False}, "r8": {"radix_bits": 8},
+              "classic": {"fused_sort": False}, "fb": {"full_barriers": True},
               # dense-scene variants of the compute draw (RenderOptions; issue 20). Former defaults: nofl (no flush),
               # tpe (a thread a splat in bin_emit, whole boxes), box (whole boxes, balanced emit), d32 (32-bit depth
               # keys), tr4 (4-bit tile sort digits).

@@ -55,7 +55,7 @@ class ComputeRaster:
     """GPU buffers and programs of the tile rasterizer for one renderer."""
 
     def __init__(self, ctx, color_dtype: str, visible_capacity: int, entry_capacity: int | None = None,
-                 tile_px: int = TILE_PX, unroll: int = UNROLL, warp_cull: bool = False, radix_bits: int = RADIX_BITS,
+                 tile_px: int = TILE_PX, unroll: int = UNROLL, warp_cull: bool = True, radix_bits: int = RADIX_BITS,
                  fused_sort: bool = True, barrier_bits: int = CHAIN_BARRIER, tight_bins: bool = False,
                  emit_rects: bool = False, balanced_emit: bool = True, row_bins: bool = True,
                  local_scatter: bool = True):
@@ -89,11 +89,9 @@ class ComputeRaster:
         if unroll not in (1, 2, 4):
             raise ValueError(f"unroll {unroll}: 1, 2 or 4")
         self.unroll = unroll
-        if warp_cull and self.tile_px != 16:
-            raise ValueError("the per-block splat lists (warp_cull) need 16x16 tiles")
-        self.warp_cull = warp_cull
+        self.warp_cull = bool(warp_cull) and self.tile_px == 16  # the blocks are 8x4 pixels of a 16x16 tile
         defines = f"{tile}#define UNROLL {unroll}\n#define OUT_FORMAT {fmt}\n"
-        if warp_cull:
+        if self.warp_cull:
             defines += "#define WARP_CULL\n"
         self.raster_shader = ctx.compute_shader(_source("raster.comp", defines))
         self._u_count, self._u_scan, self._u_emit, self._u_raster = (

@@ -29,7 +29,8 @@ shared uint s_done;         // pixels done (outside the image, or stopped at T <
 #ifdef WARP_CULL
 // Blocks of 8x4 pixels (a warp of 32 threads each, TILE_PX 16): block b = bx + 2 by. s_bits[b * 8 + w], bit i: splat
 // 32 w + i of the batch has its alpha >= 1/255 box over a pixel centre of block b. Each block walks its own bits, in
-// order (front to back), and never evaluates splats that miss it.
+// order (front to back), and never evaluates splats that miss it; a block that most of the batch reaches walks the
+// whole batch (the same splats in the same order: those that miss it fail the alpha test there).
 shared uint s_bits[64];
 #endif
 
@@ -101,33 +102,39 @@ void main() {
         }
         barrier();
         if (done) continue;
+        uint m = min(BATCH, range.y - base);
 #ifdef WARP_CULL
-        for (uint w = 0u; w < 8u && !done; ++w) {
-            uint bits = s_bits[blk * 8u + w];
-            while (bits != 0u) {
-                uint j0 = w * 32u + uint(findLSB(bits));
-                bits &= bits - 1u;
-                vec4 g0 = s_geo[j0];
-                vec4 h0 = s_geo2[j0];
-                vec2 d0 = g0.xy - p;
-                float power0 = g0.z * d0.x * d0.x + h0.x * d0.y * d0.y + g0.w * d0.x * d0.y;
-                if (bits != 0u) {  // two independent power evaluations per step
-                    uint j1 = w * 32u + uint(findLSB(bits));
+        // A block whose bits name most of the batch walks all of it in the unrolled loop below instead (large
+        // splats: the bit walk costs more a splat than the loop, and skips little).
+        uint hits = 0u;
+        for (uint w = 0u; w < 8u; ++w) hits += uint(bitCount(s_bits[blk * 8u + w]));
+        if (hits * 4u < m * 3u) {
+            for (uint w = 0u; w < 8u && !done; ++w) {
+                uint bits = s_bits[blk * 8u + w];
+                while (bits != 0u) {
+                    uint j0 = w * 32u + uint(findLSB(bits));
                     bits &= bits - 1u;
-                    vec4 g1 = s_geo[j1];
-                    vec4 h1 = s_geo2[j1];
-                    vec2 d1 = g1.xy - p;
-                    float power1 = g1.z * d1.x * d1.x + h1.x * d1.y * d1.y + g1.w * d1.x * d1.y;
-                    BLEND(power0, h0, j0)
-                    BLEND(power1, h1, j1)
-                } else {
-                    BLEND(power0, h0, j0)
+                    vec4 g0 = s_geo[j0];
+                    vec4 h0 = s_geo2[j0];
+                    vec2 d0 = g0.xy - p;
+                    float power0 = g0.z * d0.x * d0.x + h0.x * d0.y * d0.y + g0.w * d0.x * d0.y;
+                    if (bits != 0u) {  // two independent power evaluations per step
+                        uint j1 = w * 32u + uint(findLSB(bits));
+                        bits &= bits - 1u;
+                        vec4 g1 = s_geo[j1];
+                        vec4 h1 = s_geo2[j1];
+                        vec2 d1 = g1.xy - p;
+                        float power1 = g1.z * d1.x * d1.x + h1.x * d1.y * d1.y + g1.w * d1.x * d1.y;
+                        BLEND(power0, h0, j0)
+                        BLEND(power1, h1, j1)
+                    } else {
+                        BLEND(power0, h0, j0)
+                    }
                 }
             }
+            continue;
         }
-        continue;
 #endif
-        uint m = min(BATCH, range.y - base);
         uint j = 0u;
 #if UNROLL >= 4
         for (; j + 3u < m; j += 4u) {  // four independent power evaluations per step
