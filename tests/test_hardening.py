@@ -370,9 +370,13 @@ def test_sigterm_during_the_write_phase_cleans_up_like_ctrl_c(tmp_path):
     src = real("donut_sh0_no_normals.ply")
     for sig, code, word in ((signal.SIGTERM, 143, "terminated"), (signal.SIGINT, 130, "interrupted")):
         out = tmp_path / f"scene_{word}"
-        proc, temp = start_slow_encode(src, out)
-        proc.send_signal(sig)
-        _, err = proc.communicate(timeout=120)
+        for _attempt in range(3):  # on a loaded machine the write phase can end before the signal is sent: again
+            proc, temp = start_slow_encode(src, out)
+            proc.send_signal(sig)
+            _, err = proc.communicate(timeout=120)
+            if proc.returncode != 0:
+                break
+            shutil.rmtree(out)
         assert proc.returncode == code, (proc.returncode, err)
         assert err.strip() == f"splatstream encode: {word}" + (" (SIGTERM); partial output removed"
                                                               if sig == signal.SIGTERM else ""), err
