@@ -1,10 +1,11 @@
 """Sorting splats back to front: a GPU radix sort in GL 4.3 compute shaders and a CPU fallback.
 
-GPU: LSD radix sort of 32-bit keys with 32-bit values, 4 bits per pass (8 passes; 5 to 8 bits as options; keys of
-fewer bits, fewer passes, always an even number),
+GPU: LSD radix sort of 32-bit keys with 32-bit values, 4 to 8 bits per pass (the renderer's depth sort: 6, four
+passes over 24-bit keys; keys of fewer bits, fewer passes, always an even number),
 each pass the steps of seed 002 / FidelityFX: count (per work-group digit histograms, digit-major table), reduce
 (block sums of the table), scan (one work group scans the block sums), scan-add (block-local exclusive scan + block
-offset) and scatter (a stable reorder: ranks from per-digit bit masks of each 256-key round). By default the reduce
+offset) and scatter (a stable reorder: ranks from per-digit bit masks of each 256-key round; by default the work
+group reorders its tile in shared memory first and writes each digit's run in one piece). By default the reduce
 is folded into the count (atomic block sums) and the scan into the scan-add (each work group sums the block sums
 before its own): three dispatches a pass instead of five. The element count is read on the GPU from the params
 buffer; dispatch sizes come from an indirect buffer that `indirect_setup.comp` fills, so nothing is read back.
