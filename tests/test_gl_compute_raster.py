@@ -215,8 +215,7 @@ def test_variants_and_modes(ctx, fruit):
 
     cam = close_camera(fruit, 120, 90)
     ref = render_ref.render(fruit, cam)
-    variants = [dict(tile_px=8), dict(unroll=1), dict(unroll=2), dict(warp_cull=False), dict(unroll=1),
-                dict(warp_cull=False, unroll=1)]
+    variants = [dict(tile_px=8), dict(unroll=1), dict(unroll=2), dict(warp_cull=False), dict(warp_cull=False, unroll=1)]
     for variant in variants:
         r = HeadlessRenderer(RenderOptions(draw="compute", color_dtype="f2", **variant), ctx=ctx)
         r.load_gaussians(fruit)

@@ -107,7 +107,7 @@ class RenderOptions:
     unroll: int = 4  # raster loop unrolled 4, 2 or 1 times
     # Per 8x4-pixel block splat lists (16-pixel tiles; 8-pixel tiles have none): each warp walks only the splats of
     # the batch whose alpha >= 1/255 box reaches its block, or the whole batch when most do. H100, 6M dense at 1080p:
-    # raster 1.61 -> 1.25 ms (BENCHMARKS.md).
+    # raster 1.61 -> 1.19 ms (BENCHMARKS.md).
     warp_cull: bool = True
     # GPU sort (client_gl/gpu/sort.py), all GPU-path draws:
     # Digit width of the depth sort (RADIX_CHOICES: 4 to 8). 6: four passes over the 24-bit depth keys; with the local
