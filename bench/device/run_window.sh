@@ -109,7 +109,8 @@ fi
 if [ "${1:-}" = fly ]; then
   # keep: our GL entry points keeping the GIL (PYFUNCTYPE, the default); release: releasing it in every call
   # (CFUNCTYPE); procN: decoding in N processes instead of 2 threads; si20: a 20 ms interpreter switch interval;
-  # finishgil: each frame's wait for the GPU with moderngl's finish() (keeps the GIL) instead of wait_for_gpu
+  # presize: work buffers made for the splat budget up front; finishgil: each frame's wait for the GPU with
+  # moderngl's finish() (keeps the GIL) instead of wait_for_gpu
   uname -r; echo "THP: $(cat /sys/kernel/mm/transparent_hugepage/enabled) defrag: \
 $(cat /sys/kernel/mm/transparent_hugepage/defrag)"; python3 -c "import sys; print(sys.version)"
   for ab in ${FLY_AB:-keep release}; do  # FLY_AB=keep: the default alone
@@ -124,6 +125,7 @@ $(cat /sys/kernel/mm/transparent_hugepage/defrag)"; python3 -c "import sys; prin
       finishgil) flag="--finish-keeps-gil" ;;
       nofreeze) flag="--no-gc-freeze" ;;
       profile) flag="--profile" ;;
+      presize) flag="--work-splats 2000000" ;;  # the renderer's work buffers made for the 2M budget up front
       blas1) envs="OPENBLAS_NUM_THREADS=1 OMP_NUM_THREADS=1 MKL_NUM_THREADS=1" ;;
       # glibc malloc with fixed thresholds: large arrays stay on the heap, freed memory is not handed back (no page
       # faults for fresh pages in every frame)
@@ -134,7 +136,7 @@ $(cat /sys/kernel/mm/transparent_hugepage/defrag)"; python3 -c "import sys; prin
       $flag > $W/fly_$ab.log 2>&1
     python3 -c "import json,sys; d=json.load(open(sys.argv[1])); s=d['streaming']; print(sys.argv[2], {k: s[k] for k \
       in ('frames','median_ms','p99_ms','p99_ms_with_uploads','p99_ms_without_uploads','update_ms_p99')}, \
-      'converged', d['converged_stream_ms'], d.get('converged_stream_split'), 'render', d['render_same_set_ms'], d.get('render_same_set_split'), 'threads cpu s', d['thread_cpu_s'], \
+      'converged', d['converged_stream_ms'], 'update', d.get('converged_stream_update_ms'), d.get('converged_stream_split'), 'render', d['render_same_set_ms'], d.get('render_same_set_split'), 'threads cpu s', d['thread_cpu_s'], \
       'wall s', d['streaming_wall_s'], 'gc', d.get('gc_pauses'), 'steal s', d.get('machine_steal_s'), \
       {k: v for k, v in s.items() if k.startswith('thread_')}); [print(x) for x in s['slowest'][:4]]" \
       "$OUT/fly_$ab.json" $ab || tail -20 $W/fly_$ab.log
