@@ -1,5 +1,7 @@
 """The streaming engine's decisions (client_gl/stream/engine.py) without GL or network: a real encoded scene in
 memory, a fetcher that hands over a few payloads per frame, and a pool that only counts slots."""
+from dataclasses import replace
+
 import numpy as np
 import pytest
 from conftest import real
@@ -243,3 +245,31 @@ def test_decode_waits_between_steps_of_a_payload(store):
         for name in planes:
             for a, b in zip(planes[name].layers, plain[name].layers, strict=True):
                 assert bytes(a) == bytes(b)
+
+
+def test_prefetched_payloads_wait_until_wanted_then_join_without_a_second_fetch(store):
+    """A still, converged view skips the upload pass while only prefetched payloads wait (engine._upload's idle
+    memo); once a finer threshold wants them, they join from what was prefetched, with nothing fetched again."""
+    m = read_manifest(store)
+    fetcher = StepFetcher(store, per_frame=4)
+    pool = CountingPool(10_000)
+    opts = SelectionOptions(max_sse=8.0, prefetch_margin=4.0, sh_degree=0)
+    engine = StreamEngine(fetcher, pool, StreamOptions(opts))
+    cam = orbit(m, 1.6, 0.3)
+    run_until_converged(engine, cam)
+    for _ in range(40):  # the link is idle: prefetch fills the ready list
+        engine.update(cam)
+        engine.wait(0.05)
+    waiting = {k for k in engine._ready if k[0] is not None and k[0] not in pool.tiles}
+    assert waiting, "nothing was prefetched"
+    u = engine.update(cam)
+    assert u.converged and engine._upload_idle is not None  # a still view: the upload pass is skipped
+    fetched_before = len(fetcher.fetched)
+    # half the threshold: the cut's tiles within a factor 2 of it refine into children prefetched at a margin of 4
+    engine.options = replace(engine.options, selection=replace(opts, max_sse=4.0))
+    frames, u = run_until_converged(engine, cam, limit=50)
+    joined = {k[0] for k in waiting} & set(pool.tiles)
+    assert joined, "no prefetched tile joined once wanted"
+    assert {k[0] for k in fetcher.fetched[fetched_before:]} & joined == set()  # from the ready list, not the link
+    assert sorted(u.draw) == sorted(int(m.arrays.ids[i]) for i in u.selection.cut)
+    engine.close()

@@ -139,6 +139,7 @@ class ChunkPool:
         self._slot_splats = np.zeros(capacity, np.int32)
         self._tiles: dict[int, _Resident] = {}
         self._draw_set: frozenset[int] | None = None
+        self._draw_listed: tuple | None = None  # the ids of the last set_draw_set, as given
         self._drawn_ids: np.ndarray | None = None  # cache of drawn_ids()
         self._mirror: HostMirror | None = None
         if host_mirror:
@@ -393,7 +394,13 @@ class ChunkPool:
     def set_draw_set(self, tile_ids: Iterable[int] | None) -> None:
         """Draw only these resident tiles (None: every resident tile); tiles not resident are ignored. The draw mask
         reaches the GPU at the next bind(), only when it changed."""
-        new = None if tile_ids is None else frozenset(int(t) for t in tile_ids)
+        # A frame loop passes the same ids frame after frame: compared as given first (a tuple of a few hundred ids
+        # is a fraction of the set built from them, which a still view would otherwise pay every frame).
+        listed = None if tile_ids is None else tuple(tile_ids)
+        if listed == self._draw_listed and (listed is not None or self._draw_set is None):
+            return
+        new = None if listed is None else frozenset(int(t) for t in listed)
+        self._draw_listed = listed
         if new == self._draw_set:
             return
         self._draw_set = new

@@ -188,6 +188,8 @@ class StreamEngine:
         self._state_seen: tuple | None = None
         self._missing: list[Key] = []
         self._keys: list[Key] = []  # the wish list of the current state (with the ancestors being filled in)
+        self._order_of: tuple[list[Key], dict[Key, int]] | None = None  # a wish list and its keys' ranks (_upload)
+        self._upload_idle: tuple[int, int] | None = None  # (version, id of the wish list) with nothing to upload
         self._filling = np.zeros(t, bool)  # ancestors of the cut in that list (fill_levels)
         self._listed: tuple = ()
         self._draw_cache: tuple | None = None
@@ -296,7 +298,7 @@ class StreamEngine:
             counts = ([int(self.ids[i]) for i in drawn], int(self.resident.sum()),
                       int(self.arrays.splats[self.resident].sum()),
                       int(self.arrays.splats[drawn].sum()) if drawn else 0)
-            self._draw_cache = ((self._wanted_serial, self._version), drawn, counts)
+            self._draw_cache = ((self._wanted_serial, self._version), np.asarray(drawn, np.intp), counts)
         _, drawn, (draw_ids, resident_tiles, resident_splats, drawn_splats) = self._draw_cache
         self.last_drawn[drawn] = self.frame
         stats = self.fetcher.stats()
@@ -450,12 +452,21 @@ class StreamEngine:
         budget = self.options.upload_bytes_per_frame
         done = 0
         events: list[str] = []
-        order = {k: r for r, k in enumerate(keys)}
+        # The wish list's ranks, made again only with a new list: a still view with prefetched payloads waiting in
+        # `_ready` comes here every frame, and the ranks of a 6M-splat cut (hundreds of keys) cost more than the rest
+        # of its frame's bookkeeping together.
+        if self._upload_idle == (self._version, id(keys)):
+            return 0, events  # nothing ready is wanted, and neither the payloads nor the wish list changed since
+        if self._order_of is None or self._order_of[0] is not keys:
+            self._order_of = (keys, {k: r for r, k in enumerate(keys)})
+        order = self._order_of[1]
+        wanted_ready = False
         for key in sorted(self._ready, key=lambda k: order.get(k, len(order))):
             if done >= budget and done > 0:
                 break
             if key not in order:
                 continue  # prefetched, not wanted yet: stays ready
+            wanted_ready = True
             r = self._ready[key]
             tile_id, group = key
             if tile_id is None:
@@ -490,6 +501,10 @@ class StreamEngine:
             self._codebook_tile_bands(sel)
         self._trim_ready(order)
         self.uploaded_bytes_total += done
+        # Only prefetched payloads wait (a still, converged view): the next frames skip this until one of them is
+        # wanted or another arrives (each changes the version or the list). Not after a payload that found no room:
+        # room depends on what was drawn lately, and is tried again every frame.
+        self._upload_idle = None if wanted_ready else (self._version, id(keys))
         return done, events
 
     def _codebook_tile_bands(self, sel: Selection) -> None:
