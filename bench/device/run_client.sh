@@ -3,7 +3,7 @@
 #   .gl           GL loader .debs (libegl1 libglvnd0 libopengl0 libgl1 libglx0 libgles2, amd64)
 #   .whl          cp312 wheels: moderngl glcontext zstandard msgpack aiohttp (+ its deps) platformdirs
 #   .bench_carry  tools/make_scene.py and data/real/* (copies of ../shared) so make_scene.py runs there
-# Usage: bash bench/device/run_client.sh [stream|first|levels|fly|flyab|all]   (results under $OUT)
+# Usage: bash bench/device/run_client.sh [stream|first|levels|fly|flyab|oracle|all]   (results under $OUT)
 set -u
 for f in .gl/*.deb; do dpkg -x "$f" /; done
 ldconfig
@@ -56,6 +56,17 @@ if [ "$what" = flyab ] || [ "$what" = levels ]; then
     python3 -c "import json,sys; d=json.load(open(sys.argv[1]))['streaming']; print(sys.argv[2], {k: d[k] for k in \
       ('frames','median_ms','p99_ms','p99_ms_with_uploads','p99_ms_without_uploads','update_ms_p99')})" \
       "$OUT/fly_si$si.json" "$si" || tail -5 $W/fly_$si.log
+  done
+fi
+if [ "$what" = oracle ]; then
+  # how many SH-band bytes any per-tile band rule could save, and at what PSNR (bench/probe_band_oracle.py)
+  for n in 1000000 6000000; do
+    python3 -c "import sys; sys.path.insert(0, 'bench'); from bench_stream import make_scene, encode; \
+encode(make_scene($n, 0, '$W'), '$W/root/s$n', 'medium')" || exit 1
+    for cam in overview close-up; do
+      python3 bench/probe_band_oracle.py --scene $W/root/s$n --ply $W/s$n.ply --camera $cam --full-detail \
+        --json "$OUT/band_oracle_${n}_$cam.json" 2>&1 | grep "tiles,\|renders\|'target': 0.3\|Error" | cut -c1-250
+    done
   done
 fi
 if [ "$what" = fly ] || [ "$what" = all ]; then
