@@ -65,7 +65,7 @@ if [ "$what" = oracle ]; then
 encode(make_scene($n, 0, '$W'), '$W/root/s$n', 'medium')" || exit 1
     for cam in overview close-up; do
       python3 bench/probe_band_oracle.py --scene $W/root/s$n --ply $W/s$n.ply --camera $cam --full-detail \
-        --json "$OUT/band_oracle_${n}_$cam.json" 2>&1 | grep "tiles,\|renders\|'target': 0.3\|Error" | cut -c1-250
+        --json "$OUT/band_oracle_${n}_$cam.json" 2>&1 | grep "tiles,\|renders\|shares\|'target': 0.3\|Error" | cut -c1-210
     done
   done
 fi
