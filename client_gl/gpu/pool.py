@@ -397,7 +397,7 @@ class ChunkPool:
         # A frame loop passes the same ids frame after frame: compared as given first (a tuple of a few hundred ids
         # is a fraction of the set built from them, which a still view would otherwise pay every frame).
         listed = None if tile_ids is None else tuple(tile_ids)
-        if listed == self._draw_listed and (listed is not None or self._draw_set is None):
+        if listed == self._draw_listed:
             return
         new = None if listed is None else frozenset(int(t) for t in listed)
         self._draw_listed = listed

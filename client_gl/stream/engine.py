@@ -189,7 +189,7 @@ class StreamEngine:
         self._missing: list[Key] = []
         self._keys: list[Key] = []  # the wish list of the current state (with the ancestors being filled in)
         self._order_of: tuple[list[Key], dict[Key, int]] | None = None  # a wish list and its keys' ranks (_upload)
-        self._upload_idle: tuple[int, int] | None = None  # (version, id of the wish list) with nothing to upload
+        self._upload_idle: tuple[int, list[Key]] | None = None  # (version, wish list) with nothing to upload
         self._filling = np.zeros(t, bool)  # ancestors of the cut in that list (fill_levels)
         self._listed: tuple = ()
         self._draw_cache: tuple | None = None
@@ -452,11 +452,12 @@ class StreamEngine:
         budget = self.options.upload_bytes_per_frame
         done = 0
         events: list[str] = []
+        idle = self._upload_idle
+        if idle is not None and idle[0] == self._version and idle[1] is keys:
+            return 0, events  # nothing ready is wanted, and neither the payloads nor the wish list changed since
         # The wish list's ranks, made again only with a new list: a still view with prefetched payloads waiting in
         # `_ready` comes here every frame, and the ranks of a 6M-splat cut (hundreds of keys) cost more than the rest
         # of its frame's bookkeeping together.
-        if self._upload_idle == (self._version, id(keys)):
-            return 0, events  # nothing ready is wanted, and neither the payloads nor the wish list changed since
         if self._order_of is None or self._order_of[0] is not keys:
             self._order_of = (keys, {k: r for r, k in enumerate(keys)})
         order = self._order_of[1]
@@ -504,7 +505,7 @@ class StreamEngine:
         # Only prefetched payloads wait (a still, converged view): the next frames skip this until one of them is
         # wanted or another arrives (each changes the version or the list). Not after a payload that found no room:
         # room depends on what was drawn lately, and is tried again every frame.
-        self._upload_idle = None if wanted_ready else (self._version, id(keys))
+        self._upload_idle = None if wanted_ready else (self._version, keys)
         return done, events
 
     def _codebook_tile_bands(self, sel: Selection) -> None:
