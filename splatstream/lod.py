@@ -45,10 +45,17 @@ ERROR_STAT: str | float = 0.99
 # Standard deviations of the balls the error compares: at 1 sigma, merging two point-like splats d apart costs
 # about d, the size of the detail lost (3 sigma would double it; the client's threshold would absorb the factor).
 ERROR_SIGMAS = 1.0
-# Largest growth of a merged splat's scales spent on coverage its opacity cannot carry (see
-# match_screen_appearance). Measured on the real scenes: 1.0 loses up to 19 % of a far root's coverage, 1.5 puts
-# faint halos around small objects, 1.25 keeps coverage within 13 % without halos.
-MAX_INFLATION = 1.25
+# Shape of the tile tree (TreeShape.of): the root holds about ROOT_FRACTION of the splats, within these bounds; the
+# smallest tiles of the top levels about 1/MIN_TILES_FOR_SMALLEST of the scene (never under MIN_TILE_SPLATS); at
+# least MIN_LEAF_TILES leaves of at least MIN_LEAF_TILE_SPLATS each. So a splat budget of a few percent of the
+# scene is spent in steps of a fraction of a percent (format_spec/lod.md 1).
+ROOT_FRACTION = 0.01
+ROOT_MIN_SPLATS = 256
+ROOT_MAX_SPLATS = 4096
+MIN_TILES_FOR_SMALLEST = 1024
+MIN_TILE_SPLATS = 64
+MIN_LEAF_TILES = 32
+MIN_LEAF_TILE_SPLATS = 1024
 
 Progress = Callable[[str, float], None]
 
@@ -299,21 +306,41 @@ class TreeShape:
     max_leaf_splats: int
     reduction: float
     depth: int  # kd depth of the leaves
-    kd_depths: tuple[int, ...]  # kd depth of each tile level, the root's (0) first
+    kd_depths: tuple[int, ...]  # kd depth of each tile level, the root's (0) first; equal depths: a chain
     first_id: tuple[int, ...]  # first tile id of each level (breadth-first); the last entry is the tile count
 
     @staticmethod
     def of(splats: int, max_leaf_splats: int, reduction: float) -> TreeShape:
+        """Levels `reduction` apart in splats (the leaves N, the level above N / reduction, ...) up to a root of
+        about 1 % of the scene (ROOT_FRACTION, between ROOT_MIN_SPLATS and ROOT_MAX_SPLATS). The kd depth of a
+        level is the deepest whose tiles still hold about `min_tile_splats` splats: the top levels are many small
+        tiles (so a splat budget can be spent in small steps), and below the leaves' kd depth a level is a chain
+        (each tile one child covering the same region with `reduction` times its splats)."""
         if max_leaf_splats < 1:
             raise ValueError(f"max_leaf_splats must be at least 1, got {max_leaf_splats}")
         if not reduction > 1.0:
             raise ValueError(f"reduction must be above 1, got {reduction}")
-        depth = math.ceil(math.log2(splats / max_leaf_splats)) if splats > max_leaf_splats else 0
-        step = max(1, round(math.log2(reduction)))  # kd depths per tile level
-        # kd depths that are tile levels: the leaves, every `step` above them, and the root.
-        kd_depths = tuple(sorted({0, *range(depth, 0, -step)}))
-        first_id = tuple(int(v) for v in np.cumsum([0] + [2**k for k in kd_depths]))
-        return TreeShape(splats, max_leaf_splats, float(reduction), depth, kd_depths, first_id)
+        if splats <= max_leaf_splats:
+            return TreeShape(splats, max_leaf_splats, float(reduction), 0, (0,), (0, 1))
+        depth = math.ceil(math.log2(splats / max_leaf_splats))
+        # At least MIN_LEAF_TILES leaves where they keep MIN_LEAF_TILE_SPLATS: a small scene's budgets of a few
+        # percent need tiles of that size to be spent without waste.
+        depth = max(depth, min(int(math.log2(MIN_LEAF_TILES)), int(math.log2(max(1, splats // MIN_LEAF_TILE_SPLATS)))))
+        root = min(ROOT_MAX_SPLATS, max(ROOT_MIN_SPLATS, ROOT_FRACTION * splats))
+        above = max(1, math.ceil(math.log(splats / root) / math.log(reduction) - 1e-9))
+        tile_min = min(max(splats / MIN_TILES_FOR_SMALLEST, MIN_TILE_SPLATS), max_leaf_splats / 4)
+        kd = [0]
+        for lvl in range(1, above):
+            level_splats = splats / reduction ** (above - lvl)
+            fits = int(math.floor(math.log2(max(1.0, level_splats / tile_min))))
+            kd.append(min(depth, max(kd[-1], fits)))
+        kd.append(depth)
+        first_id = tuple(int(v) for v in np.cumsum([0] + [2**k for k in kd]))
+        return TreeShape(splats, max_leaf_splats, float(reduction), depth, tuple(kd), first_id)
+
+    def target(self, members: int) -> int:
+        """Splats of an interior tile whose children hold `members` splats."""
+        return max(1, min(self.max_leaf_splats, math.ceil(members / self.reduction)))
 
     @property
     def leaf_level(self) -> int:
@@ -511,7 +538,7 @@ def fold_leaf_sums(parts: list[tuple[np.ndarray, np.ndarray]], size: int) -> np.
     return acc
 
 
-def finish_appearance(merged: Gaussians, counts: np.ndarray, sums: np.ndarray, blur: float) -> np.ndarray:
+def finish_appearance(merged: Gaussians, counts: np.ndarray, sums: np.ndarray, blur: float) -> None:
     """Set the opacities and base colours (SH band 0) of merged splats, in place, from their ORIGINAL members as
     the renderer draws them at the tile's viewing scale (`sums`: fold_leaf_sums of appearance_terms).
 
@@ -521,34 +548,19 @@ def finish_appearance(merged: Gaussians, counts: np.ndarray, sums: np.ndarray, b
     lets big members outweigh the many small ones that dominate the picture (fine sprinkles on a donut's icing).
     Both sides are therefore measured after the same blur b: alpha = sum alpha_i A(Sigma_i + b) / A(Sigma + b),
     colour = mean of the members' colours weighted by alpha_i A(Sigma_i + b). Higher SH bands keep the
-    hierarchical mass-weighted mean (view-dependent residuals, cheap). Where alpha would exceed the ceiling the
-    scales grow by up to MAX_INFLATION instead; returns the indices of the merged splats that grew."""
+    hierarchical mass-weighted mean (view-dependent residuals, cheap).
+
+    Scales are left as moment matching made them. Growing them where alpha hits the ceiling (up to 1.25x, the
+    rule of the 4x tree) compounded level after level on the 2x tree and lowered every level's PSNR (BENCHMARKS.md,
+    "LOD merges")."""
     covered, total = sums[0], sums[1]
     single = counts == 1
-    need = covered / _coverage_area(merged.log_scales, blur)
-    grow_rows = np.zeros(0, np.int64)
-    if MAX_INFLATION > 1.0:
-        # More coverage than one Gaussian can give under the opacity ceiling: the members' sum is flat-topped
-        # with a sharp rim, the merged Gaussian peaked and soft, so clamping drops coverage at silhouettes.
-        # Spend the excess on size: the smallest growth k of the scales with cap * A(k^2 Sigma + b) >= covered.
-        grow_rows = np.flatnonzero((need > MAX_MERGED_OPACITY) & ~single)
-        if len(grow_rows):
-            ls = merged.log_scales[grow_rows].astype(np.float64)
-            lo_k, hi_k = np.zeros(len(grow_rows)), np.full(len(grow_rows), math.log(MAX_INFLATION))
-            for _ in range(20):
-                mid = (lo_k + hi_k) / 2
-                ok = MAX_MERGED_OPACITY * _coverage_area(ls + mid[:, None], blur) >= covered[grow_rows]
-                hi_k = np.where(ok, mid, hi_k)
-                lo_k = np.where(ok, lo_k, mid)
-            merged.log_scales[grow_rows] = np.minimum(ls + hi_k[:, None], MAX_LOG_SCALE).astype(np.float32)
-            need[grow_rows] = covered[grow_rows] / _coverage_area(merged.log_scales[grow_rows], blur)
-    alpha = np.clip(need, 1e-7, MAX_MERGED_OPACITY)
+    alpha = np.clip(covered / _coverage_area(merged.log_scales, blur), 1e-7, MAX_MERGED_OPACITY)
     logits = np.log(alpha / (1.0 - alpha)).astype(np.float32)
     sh_dc = sums[2:5].T / total[:, None]
     # A splat standing for one original is that original (merge_gaussians copies singletons).
     merged.opacity_logits = np.where(single, merged.opacity_logits, logits)
     merged.sh_dc = np.where(single[:, None], merged.sh_dc, sh_dc.astype(np.float32))
-    return grow_rows
 
 
 def tile_error_first(merged: Gaussians, counts: np.ndarray, far: np.ndarray, near: np.ndarray,
@@ -561,20 +573,16 @@ def tile_error_first(merged: Gaussians, counts: np.ndarray, far: np.ndarray, nea
 def finish_tile_appearance(merged: Gaussians, counts: np.ndarray, far: np.ndarray, near: np.ndarray,
                            errors: np.ndarray, error: float, sums: np.ndarray) -> float:
     """Opacities and colours matched at the viewing scale of `error` (`sums`: the folded appearance_terms at
-    viewing_blur(error)), then the error again for splats that grew; returns the tile's final error."""
-    grown = finish_appearance(merged, counts, sums, viewing_blur(error))
-    if len(grown):
-        # Some splats grew to carry their coverage: measure those again, keep the larger tile error.
-        errors[grown] = errors_from_extremes(far[grown], near[grown], original_reach(merged)[grown])
-        error = max(error, tile_error(errors, counts))
+    viewing_blur(error)); returns the tile's error."""
+    finish_appearance(merged, counts, sums, viewing_blur(error))
     return error
 
 
 def finish_tile(merged: Gaussians, counts: np.ndarray, far: np.ndarray, near: np.ndarray, child_error: float,
                 appearance: Callable[[float], np.ndarray]) -> float:
-    """The last steps of an interior tile, the same wherever its originals are: the error, opacities and colours
-    matched at that error's viewing scale (`appearance(blur)` gives the folded sums), the error again for splats
-    that grew. Returns the tile's geometric error; `merged` is changed in place."""
+    """The last steps of an interior tile, the same wherever its originals are: the error, then opacities and
+    colours matched at that error's viewing scale (`appearance(blur)` gives the folded sums). Returns the tile's
+    geometric error; `merged` is changed in place."""
     errors, error = tile_error_first(merged, counts, far, near, child_error)
     return finish_tile_appearance(merged, counts, far, near, errors, error, appearance(viewing_blur(error)))
 
@@ -658,7 +666,7 @@ def build_subtree(g: Gaussians, index: np.ndarray, shape: TreeShape, level: int 
             members = (_slice(ordered, a, b) if lvl == leaf_level - 1
                        else Gaussians.concatenate([k.gaussians for k in kids]))
             member_mass = np.concatenate([masses.pop(c) for c in child_ids])
-            target = min(shape.max_leaf_splats, math.ceil(len(members) / shape.reduction))
+            target = shape.target(len(members))
             merged, merged_mass, assign = merge_gaussians(members, member_mass, target)
             del members, member_mass
             offsets = np.cumsum([0] + [len(k.gaussians) for k in kids])

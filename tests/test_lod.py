@@ -75,42 +75,47 @@ def test_tree_shape_ids_levels_and_counts(name):
             assert len(t.gaussians) == min(MAX_LEAF, math.ceil(below / 4.0))
 
 
-@pytest.mark.parametrize("reduction,fan", [(4.0, 4), (8.0, 8)])
-def test_reduction_sets_branching_and_per_level_counts(reduction, fan):
+@pytest.mark.parametrize("reduction", [2.0, 4.0])
+def test_reduction_sets_per_level_counts_and_a_small_root(reduction):
+    g = scene("donut_sh0_no_normals.ply")
     tiles = tree("donut_sh0_no_normals.ply", reduction)
     levels = max(t.level for t in tiles) + 1
     assert levels >= 3
     per_level = [sum(len(t.gaussians) for t in tiles if t.level == level) for level in range(levels)]
     for upper, lower in zip(per_level[1:-1], per_level[2:], strict=True):
-        assert upper == pytest.approx(lower / reduction, rel=0.01)
-    assert all(len(t.children) == fan for t in tiles[1:] if t.children)
+        assert upper == pytest.approx(lower / reduction, rel=0.02)
+    # the root about 1 % of the scene (lod.ROOT_FRACTION, at least ROOT_MIN_SPLATS): any budget of a few percent
+    # can be spent from it
+    assert len(tiles[0].gaussians) <= max(lod.ROOT_MIN_SPLATS, lod.ROOT_FRACTION * len(g))
 
 
-def test_small_scene_is_a_single_leaf_root_in_morton_order():
-    g = random_gaussians(500)
-    tiles = lod.build_tiles(g, max_leaf_splats=500)
-    assert len(tiles) == 1
-    root = tiles[0]
-    assert root.children == [] and root.level == 0 and root.geometric_error == 0.0
-    np.testing.assert_array_equal(rows(root.gaussians), rows(g))
-    from splatstream.format.layout import morton_codes
+def test_shape_small_tiles_on_top_chains_below():
+    # 542k splats at leaves of 16,384: 64 leaves; the top levels split into many small tiles, the levels just above
+    # the leaves are chains (one child, the same region) whose tiles grow by the reduction.
+    shape = lod.TreeShape.of(542_104, 16384, 2.0)
+    assert shape.kd_depths[0] == 0 and shape.kd_depths[-1] == shape.depth == 6
+    assert list(shape.kd_depths) == sorted(shape.kd_depths)
+    assert shape.kd_depths.count(6) >= 3  # chains above the leaves
+    assert 542_104 / 2 ** (len(shape.kd_depths) - 1) <= lod.ROOT_MAX_SPLATS
+    for level in range(len(shape.kd_depths) - 1):
+        assert shape.fan(level) == 2 ** (shape.kd_depths[level + 1] - shape.kd_depths[level])
+    assert lod.TreeShape.of(1000, 1000, 2.0).tiles == 1
 
-    codes = morton_codes(root.gaussians.positions)
-    assert np.all(np.diff(codes.astype(np.float64)) >= 0)
 
-
-@pytest.mark.parametrize("n,max_leaf,reduction,fan", [(2001, 2000, 4.0, 2), (5000, 300, 3.0, 4), (5000, 300, 2.0, 2)])
-def test_odd_sizes_and_reductions(n, max_leaf, reduction, fan):
+@pytest.mark.parametrize("n,max_leaf,reduction", [(2001, 2000, 4.0), (5000, 300, 3.0), (5000, 300, 2.0),
+                                                  (45_000, 16384, 1.75)])
+def test_odd_sizes_and_reductions(n, max_leaf, reduction):
     g = random_gaussians(n, seed=n)
     tiles = lod.build_tiles(g, max_leaf_splats=max_leaf, reduction=reduction)
     leaves = [t for t in tiles if not t.children]
     np.testing.assert_array_equal(rows(Gaussians.concatenate([t.gaussians for t in leaves])), rows(g))
     assert all(len(t.gaussians) <= max_leaf for t in tiles)
-    assert all(len(t.children) == fan for t in tiles[1:] if t.children)
+    assert len({t.level for t in leaves}) == 1
     for t in tiles:
         if t.children:
             below = sum(len(tiles[c].gaussians) for c in t.children)
             assert len(t.gaussians) == min(max_leaf, math.ceil(below / reduction))
+            assert len(t.children) in (1, 2, 4, 8, 16, 32, 64) or t.id == 0
 
 
 @pytest.mark.parametrize("n", [300, 3000])
@@ -352,17 +357,20 @@ def level_views(name: str):
 
 @pytest.mark.parametrize("name", REAL_PLYS)
 def test_each_level_looks_like_the_full_scene_at_one_pixel_error(name):
-    for level, _, (full, full_cov), (coarse, coarse_cov) in level_views(name):
+    for level, n, (full, full_cov), (coarse, coarse_cov) in level_views(name):
         # Measured (96x96, reference rasteriser): 34.6-48.8 dB over the image on these scenes.
         assert psnr(full, coarse) > 33.0, (level, psnr(full, coarse))
-        # Same coverage (measured ratio 0.86-1.00), same mean colour where covered (measured within 15 %).
-        assert 0.85 < coarse_cov.sum() / full_cov.sum() < 1.10, level
+        # Nearly the same coverage (measured ratio 0.72-1.00: the roots of 50-75 pixels lose most, since merged
+        # scales are no longer grown for coverage, which blurred every budgeted view; lod.finish_appearance).
+        assert 0.68 < coarse_cov.sum() / full_cov.sum() < 1.10, level
+        # Mean colour where covered: measured within 15 %, except fruit_drops' 74-splat root (a 44-pixel
+        # footprint whose soft rim covers less): 31 % brighter.
         np.testing.assert_allclose(coarse.sum((0, 1)) / coarse_cov.sum(), full.sum((0, 1)) / full_cov.sum(),
-                                   rtol=0.15, err_msg=str(level))
+                                   rtol=0.35 if n < 100 else 0.17, err_msg=str(level))
         halo = (coarse_cov > 0.05) & (full_cov < 0.01)
         hole = (full_cov > 0.5) & (coarse_cov < 0.25)
-        # Measured: no halo pixels; up to 7 hole pixels on the rim of the 10-pixel-wide donut root.
-        assert halo.sum() + hole.sum() <= 0.10 * (full_cov > 0.01).sum() + 2, level
+        # Measured: up to 9 halo or hole pixels on the rims of the 50-75 pixel roots.
+        assert halo.sum() + hole.sum() <= 0.20 * (full_cov > 0.01).sum() + 2, level
 
 
 def test_private_splatter_agrees_with_reference_rasteriser():

@@ -157,7 +157,7 @@ def test_coarse_to_fine_fills_each_level_before_the_next(store):
     opts = SelectionOptions(max_sse=0.0)  # full detail: the cut is every visible leaf
     levels_drawn = []
     fetcher = StepFetcher(store, per_frame=1)
-    engine = StreamEngine(fetcher, CountingPool(10_000), StreamOptions(opts, prefetch=False))
+    engine = StreamEngine(fetcher, CountingPool(10_000), StreamOptions(opts, prefetch=False, fill_gap=1, fill_step=1))
     for _ in range(500):
         u = engine.update(cam)
         engine.wait(0.05)
@@ -176,6 +176,17 @@ def test_coarse_to_fine_fills_each_level_before_the_next(store):
     # the picture refines through every level on the way, not from the root straight to the leaves
     assert sorted(set(levels_drawn)) == list(range(deepest + 1))
     assert levels_drawn == sorted(levels_drawn)
+    engine.close()
+
+    # By default only every third level above the cut is filled in (levels are 2x apart in splats): fewer
+    # bases, still level by level from the root.
+    stepping = StepFetcher(store, per_frame=1)
+    engine = StreamEngine(stepping, CountingPool(10_000), StreamOptions(opts, prefetch=False))
+    run_until_converged(engine, cam)
+    stepped = [int(a.level[m.index_of[t]]) for t, g in stepping.fetched if g == "base"]
+    assert stepped == sorted(stepped) and set(stepped) < set(fetched_levels)
+    # three levels above the deepest cut tiles (fill_gap 3), then every third level above that, and the root
+    assert {deepest - 3 * k for k in range(1, deepest // 3 + 1)} | {0} <= set(stepped)
     engine.close()
 
     skipping = StepFetcher(store, per_frame=1)
@@ -253,7 +264,7 @@ def test_prefetched_payloads_wait_until_wanted_then_join_without_a_second_fetch(
     m = read_manifest(store)
     fetcher = StepFetcher(store, per_frame=4)
     pool = CountingPool(10_000)
-    opts = SelectionOptions(max_sse=8.0, prefetch_margin=4.0, sh_degree=0)
+    opts = SelectionOptions(max_sse=8.0, prefetch_margin=4.0, sh_degree=0, prefetch_share=1.0)
     engine = StreamEngine(fetcher, pool, StreamOptions(opts))
     cam = orbit(m, 1.6, 0.3)
     run_until_converged(engine, cam)

@@ -23,7 +23,7 @@ from typing import Any, Protocol
 import numpy as np
 
 from splatstream.camera import Camera
-from splatstream.errors import SplatstreamError
+from splatstream.errors import SplatstreamError, UsageError
 from splatstream.format.decode import codebook_index, decode_payload
 from splatstream.format.manifest import Manifest, PayloadEntry, parse_manifest
 from splatstream.format.planes import band_of
@@ -76,7 +76,10 @@ class StreamOptions:
     # the picture improves with every level that arrives (a cut is drawn in place of an ancestor only once all of
     # the ancestor's part of it is there). False skips straight to the cut (fewer bytes, long plateaus).
     fill_levels: bool = True
-    fill_gap: int = 1  # the finest ancestor filled in is this many levels above its cut tile (2: not the parents)
+    # The finest ancestor filled in is this many levels above its cut tile, then every fill_step-th level up to the
+    # root: with levels 2x apart in splats, 3 and 3 add about 1/7 of the cut's bytes (1 and 1: about as many again).
+    fill_gap: int = 3
+    fill_step: int = 3  # (the `--fill-gap` default of commands/view.py is the same 3)
     decode_workers: int = 2
     # Decode in this many worker processes instead of threads (0: threads). Processes keep the decoders' Python off
     # the render thread's interpreter lock; until they have started, payloads are decoded on the threads.
@@ -138,8 +141,8 @@ def planes_nbytes(planes: dict) -> int:
 class _Prefetch:
     """Iterates over the base keys that prefetch() names for a view, computed on first use and kept."""
 
-    def __init__(self, arrays, view, sel, opts, ids) -> None:
-        self._args, self._ids, self._keys = (arrays, view, sel, opts), ids, None
+    def __init__(self, arrays, view, sel, opts, ids, cost) -> None:
+        self._args, self._ids, self._keys = (arrays, view, sel, opts, cost), ids, None
 
     def __iter__(self):
         if self._keys is None:
@@ -163,6 +166,11 @@ class StreamEngine:
         m = self.manifest
         self.arrays = m.arrays
         self.root = m.index_of[m.root]
+        max_splats = options.selection.max_splats
+        root_splats = int(self.arrays.splats[self.root])
+        if max_splats is not None and max_splats < root_splats:
+            raise UsageError(f"{location}: --max-splats {max_splats} is below the scene's coarsest level (its root "
+                             f"tile holds {root_splats} splats): expected at least {root_splats}")
         self.ids = self.arrays.ids
         self._parent: list[int] = self.arrays.parent.tolist()  # plain lists: the per-frame loops index them often
         self._level: list[int] = self.arrays.level.tolist()
@@ -266,7 +274,7 @@ class StreamEngine:
             for b in range(1, top + 1):
                 keys += [(int(ids[i]), f"sh{b}") for i in sel.cut if bands[i] >= b]
         # prefetch only when asked for (update asks only when nothing the view wants is missing): 0.2-0.3 ms a frame
-        extra = _Prefetch(a, view, sel, opts, ids) if self.options.prefetch else ()
+        extra = _Prefetch(a, view, sel, opts, ids, self.cost) if self.options.prefetch else ()
         result = (view, sel, bands, keys, extra)
         self._wanted_cache = (key, result)
         self._wanted_serial += 1
@@ -316,16 +324,23 @@ class StreamEngine:
         parent, level = self._parent, self._level
         resident = self.resident
         rank: dict[int, int] = {}
+        gap, step = self.options.fill_gap, self.options.fill_step
+        walked: set[tuple[int, int]] = set()
         for r, i in enumerate(sel.cut):
             rank.setdefault(i, r)
             if resident[i]:
                 continue
-            j = parent[i]
-            for _ in range(self.options.fill_gap - 1):  # levels just above the cut are skipped
-                j = parent[j] if j >= 0 else j
-            while j >= 0 and j not in rank:
-                rank[j] = r
-                j = parent[j]
+            # Every fill_step-th ancestor, from fill_gap levels up: levels `reduction` apart in splats would
+            # otherwise add about as many bytes as the cut itself (1/2 + 1/4 + ... at reduction 2).
+            j, d = parent[i], 1
+            while j >= 0:
+                phase = (j, d % step if d >= gap else -d)
+                if phase in walked:
+                    break
+                walked.add(phase)
+                if d >= gap and (d - gap) % step == 0:
+                    rank.setdefault(j, r)
+                j, d = parent[j], d + 1
         rank[self.root] = -1
         base = sorted(rank, key=lambda i: (level[i], rank[i]))
         self._filling = np.zeros(len(self.resident), bool)

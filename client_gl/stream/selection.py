@@ -35,6 +35,9 @@ class SelectionOptions:
     # Measured: bench/bench_stream.py, format_spec/client.md 4.
     band_area_share: tuple[float, float, float] = (0.97, 0.9, 0.8)
     prefetch_margin: float = 1.25  # prefetch tiles whose sse is above max_sse / this, and a frustum this much wider
+    # Prefetch at most this share of the cut's cost: with the ancestors filled in coarse to fine (every third
+    # level) the bytes fetched at convergence stay within 1.2x of the drawn tiles' (format_spec/client.md 1).
+    prefetch_share: float = 0.04
 
 
 @dataclass(frozen=True)
@@ -64,6 +67,9 @@ class Selection:
     priority: dict[int, float]  # cut tile -> fetch priority: error removed per byte by having it (root: inf)
     splats: int
     cost: float
+    # A refinement the view wanted did not fit the splat or byte budget: the budget, not the error, ends the cut
+    # (prefetch then leaves out the children of cut tiles: the budget would not let them in).
+    budget_limited: bool = False
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -177,13 +183,18 @@ def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: Sel
     splats = int(splats_l[root])
     total = float(cost_l[root])
     heap: list[tuple[float, int]] = [(prio[root], root)] if candidate[root] else []
+    limited = False
     while heap:
         neg_priority, i = heapq.heappop(heap)
         new_splats = splats - int(splats_l[i]) + int(kid_splats_l[i])
         new_total = total - cost_l[i] + kid_cost_l[i]
+        # A refinement that does not fit is skipped, not the end: a smaller one further down the queue may fit, so
+        # the budget is spent to within the smallest refinement's size.
         if opts.max_splats is not None and new_splats > opts.max_splats and new_splats > splats:
+            limited = True
             continue
         if opts.budget is not None and new_total > opts.budget and new_total > total:
+            limited = True
             continue
         cut.discard(i)
         refined.add(i)
@@ -197,7 +208,8 @@ def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: Sel
                 heapq.heappush(heap, (prio[k], k))
     distance = view.distance.tolist()
     cut_sorted = tuple(sorted(cut, key=lambda i: (-priority[i], distance[i])))
-    return Selection(cut_sorted, frozenset(refined), {i: priority.get(i, 0.0) for i in cut_sorted}, splats, total)
+    return Selection(cut_sorted, frozenset(refined), {i: priority.get(i, 0.0) for i in cut_sorted}, splats, total,
+                     limited)
 
 
 def wanted_bands(a: TileArrays, view: TileView, tiles: tuple[int, ...] | list[int], opts: SelectionOptions,
@@ -256,17 +268,22 @@ def draw_set(a: TileArrays, view: TileView, sel: Selection, resident: np.ndarray
     return cover(root) or []
 
 
-def prefetch(a: TileArrays, view: TileView, sel: Selection, opts: SelectionOptions) -> list[tuple[float, int]]:
+def prefetch(a: TileArrays, view: TileView, sel: Selection, opts: SelectionOptions,
+             cost: np.ndarray | None = None) -> list[tuple[float, int]]:
     """Tiles the view will probably want next, best first: children of cut tiles close to the refinement
-    threshold (the camera moving closer) and tiles just outside the frustum (the camera turning)."""
+    threshold (the camera moving closer) and tiles just outside the frustum (the camera turning).
+
+    Bounded by the budget: no children of cut tiles when the budget ended the cut (it would not let them in), and
+    with `cost` (per tile, the units of sel.cost) the list stops at prefetch_share of the cut's cost."""
     out: list[tuple[float, int]] = []
     wide = view.visible_wide
     wide_l = wide.tolist()
     sse = view.sse
-    for i in sel.cut:
-        if a.children[i] and sse[i] > opts.max_sse / opts.prefetch_margin:
-            score = float(sse[i]) / opts.max_sse
-            out += [(score, k) for k in a.children[i] if wide_l[k]]
+    if not sel.budget_limited and opts.max_sse > 0:
+        for i in sel.cut:
+            if a.children[i] and sse[i] > opts.max_sse / opts.prefetch_margin:
+                score = float(sse[i]) / opts.max_sse
+                out += [(score, k) for k in a.children[i] if wide_l[k]]
     # just outside the frustum, children of refined tiles (a cut tile is visible, so never one of these)
     parent = a.parent
     refined = np.zeros(len(parent) + 1, bool)  # index -1 (the root's parent) reads the extra False
@@ -274,4 +291,8 @@ def prefetch(a: TileArrays, view: TileView, sel: Selection, opts: SelectionOptio
     edge = np.flatnonzero(wide & ~view.visible & refined[parent])
     out += [(0.5, int(i)) for i in edge]
     out.sort(key=lambda x: -x[0])
+    if cost is not None:
+        allowance = opts.prefetch_share * sel.cost
+        spent = np.cumsum([float(cost[i]) for _, i in out])
+        out = out[:int(np.searchsorted(spent, allowance, side="right"))]
     return out

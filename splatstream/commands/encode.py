@@ -68,8 +68,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--no-lod", action="store_true", help="write one tile holding every splat (no LOD tree)")
     p.add_argument("--max-leaf-splats", type=int, default=16384,
                    help="splats per leaf tile at most (default 16384: measured best for streaming)")
-    p.add_argument("--reduction", type=float, default=4.0,
-                   help="each LOD level keeps about 1/REDUCTION of the splats of the level below (default 4)")
+    p.add_argument("--reduction", type=float, default=2.0,
+                   help="each LOD level keeps about 1/REDUCTION of the splats of the level below (default 2)")
     p.add_argument("--zstd-level", type=int, default=None,
                    help=f"zstd level of the payloads (1..22; default {DEFAULT_ZSTD_LEVEL}, "
                         + ", ".join(f"{k} {v}" for k, v in PRESET_ZSTD_LEVEL.items())

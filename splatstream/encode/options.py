@@ -29,7 +29,9 @@ class EncodeOptions:
     # "Tile size"): 16,384 converged an overview 12 % and a close-up 26 % sooner than 65,536, with a 192 KB manifest
     # at 1M splats (4,096 halves the tiles' bytes no further and doubles the manifest and the requests).
     max_leaf_splats: int = 16384
-    reduction: float = 4.0
+    # Splats between LOD levels: 2x steps spend a splat budget in small steps and measured sharper at equal splat
+    # counts than 4x steps (BENCHMARKS.md, "LOD merges").
+    reduction: float = 2.0
     name: str | None = None
     up: tuple[float, float, float] | None = None
     chunk_order: str = "auto"  # "morton", "luminance", or "auto" (luminance when only colour/SH are BC-compressed)
