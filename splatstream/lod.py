@@ -49,8 +49,8 @@ ERROR_SIGMAS = 1.0
 # smallest tiles of the top levels about 1/MIN_TILES_FOR_SMALLEST of the scene (never under MIN_TILE_SPLATS); at
 # least MIN_LEAF_TILES leaves of at least MIN_LEAF_TILE_SPLATS each. So a splat budget of a few percent of the
 # scene is spent in steps of a fraction of a percent (format_spec/lod.md 1).
-ROOT_FRACTION = 0.01
-ROOT_MIN_SPLATS = 256
+ROOT_FRACTION = 0.0025
+ROOT_MIN_SPLATS = 128
 ROOT_MAX_SPLATS = 4096
 MIN_TILES_FOR_SMALLEST = 1024
 MIN_TILE_SPLATS = 64
@@ -312,7 +312,7 @@ class TreeShape:
     @staticmethod
     def of(splats: int, max_leaf_splats: int, reduction: float) -> TreeShape:
         """Levels `reduction` apart in splats (the leaves N, the level above N / reduction, ...) up to a root of
-        about 1 % of the scene (ROOT_FRACTION, between ROOT_MIN_SPLATS and ROOT_MAX_SPLATS). The kd depth of a
+        about 0.25 % of the scene (ROOT_FRACTION, between ROOT_MIN_SPLATS and ROOT_MAX_SPLATS). The kd depth of a
         level is the deepest whose tiles still hold about `min_tile_splats` splats: the top levels are many small
         tiles (so a splat budget can be spent in small steps), and below the leaves' kd depth a level is a chain
         (each tile one child covering the same region with `reduction` times its splats)."""

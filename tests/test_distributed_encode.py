@@ -83,7 +83,7 @@ def test_partitions_of_every_size_give_the_single_process_bytes(scene, tmp_path,
         assert got.manifest_bytes == ref.manifest_bytes, memory
         assert got.payloads == ref.payloads
         tiles = len(m.tiles)
-    assert tiles == 1 + 4 + 8 + 16 + 32 + 32  # kd depths 0, 2, 3, 4, 5 and a chain above the leaves
+    assert tiles == 1 + 2 + 4 + 8 + 16 + 32 + 32  # kd depths 0 to 5 and a chain above the 32 leaves
     assert os.listdir(tmp_path) == []  # scratch removed
 
 

@@ -84,7 +84,7 @@ def test_reduction_sets_per_level_counts_and_a_small_root(reduction):
     per_level = [sum(len(t.gaussians) for t in tiles if t.level == level) for level in range(levels)]
     for upper, lower in zip(per_level[1:-1], per_level[2:], strict=True):
         assert upper == pytest.approx(lower / reduction, rel=0.02)
-    # the root about 1 % of the scene (lod.ROOT_FRACTION, at least ROOT_MIN_SPLATS): any budget of a few percent
+    # the root about 0.25 % of the scene (lod.ROOT_FRACTION, at least ROOT_MIN_SPLATS): any budget of a few percent
     # can be spent from it
     assert len(tiles[0].gaussians) <= max(lod.ROOT_MIN_SPLATS, lod.ROOT_FRACTION * len(g))
 
@@ -360,17 +360,18 @@ def test_each_level_looks_like_the_full_scene_at_one_pixel_error(name):
     for level, n, (full, full_cov), (coarse, coarse_cov) in level_views(name):
         # Measured (96x96, reference rasteriser): 34.6-48.8 dB over the image on these scenes.
         assert psnr(full, coarse) > 33.0, (level, psnr(full, coarse))
-        # Nearly the same coverage (measured ratio 0.72-1.00: the roots of 50-75 pixels lose most, since merged
-        # scales are no longer grown for coverage, which blurred every budgeted view; lod.finish_appearance).
-        assert 0.68 < coarse_cov.sum() / full_cov.sum() < 1.10, level
+        # Nearly the same coverage (measured ratio 0.70-1.00 for levels of 100 splats or more: small roots lose
+        # most at their rims, since merged scales are no longer grown for coverage, which blurred every budgeted
+        # view; lod.finish_appearance). The 45-74-splat roots of these small scenes: 0.51-0.84.
+        assert (0.68 if n >= 100 else 0.45) < coarse_cov.sum() / full_cov.sum() < 1.10, level
         # Mean colour where covered: measured within 15 %, except fruit_drops' 74-splat root (a 44-pixel
         # footprint whose soft rim covers less): 31 % brighter.
         np.testing.assert_allclose(coarse.sum((0, 1)) / coarse_cov.sum(), full.sum((0, 1)) / full_cov.sum(),
                                    rtol=0.35 if n < 100 else 0.17, err_msg=str(level))
         halo = (coarse_cov > 0.05) & (full_cov < 0.01)
         hole = (full_cov > 0.5) & (coarse_cov < 0.25)
-        # Measured: up to 9 halo or hole pixels on the rims of the 50-75 pixel roots.
-        assert halo.sum() + hole.sum() <= 0.20 * (full_cov > 0.01).sum() + 2, level
+        # Measured: up to 12 halo or hole pixels on the rims of roots 32-75 pixels wide.
+        assert halo.sum() + hole.sum() <= (0.20 if n >= 100 else 0.40) * (full_cov > 0.01).sum() + 2, level
 
 
 def test_private_splatter_agrees_with_reference_rasteriser():
