@@ -157,6 +157,8 @@ def peer_levels(peers: Peers, scene_dir: str, full: str, counts: list[int], want
         ply = os.path.join(scene_dir, f"st-adaptive_{n}.ply")
         meta_path = ply + ".json"
         meta = json.load(open(meta_path)) if os.path.exists(meta_path) and os.path.exists(ply) else None
+        if meta is not None and meta.get("input") != os.path.basename(src):  # built from another level: redo
+            meta = None
         if meta is None:
             say(f"  splat-transform --decimate-adaptive {n} <- {os.path.basename(src)}")
             cmd, secs = peers.decimate(src, n, ply)
@@ -174,6 +176,134 @@ def peer_levels(peers: Peers, scene_dir: str, full: str, counts: list[int], want
         levels.append(meta)
         src = ply
     return levels
+
+
+# --- Spark ------------------------------------------------------------------------------------------------------
+
+SPARK_C0 = 0.28209479177387814
+
+
+def spark_tree(node_bin: str, full: str, prefix: str) -> dict:
+    """Spark's quality LoD tree of the scene (bench/peers/spark_lod.mjs, cached), decoded from its ExtSplats arrays
+    (rust/spark-lib/src/splat_encode.rs: encode_ext_splat, encode_lod_tree)."""
+    if not os.path.exists(prefix + ".json"):
+        os.makedirs(os.path.dirname(prefix), exist_ok=True)
+        say("  spark bhatt-lod (node bench/peers/spark_lod.mjs)")
+        secs = run([os.path.join(node_bin, "node"), os.path.join(HERE, "peers", "spark_lod.mjs"), full, prefix])
+        meta = json.load(open(prefix + ".json"))
+        meta["seconds"] = round(secs, 2)
+        json.dump(meta, open(prefix + ".json", "w"), indent=1)
+    meta = json.load(open(prefix + ".json"))
+    n = meta["nodes"]
+    e0 = np.fromfile(prefix + ".ext0.u32", np.uint32)[:4 * n].reshape(n, 4)
+    e1 = np.fromfile(prefix + ".ext1.u32", np.uint32)[:4 * n].reshape(n, 4)
+    lt = np.fromfile(prefix + ".lodTree.u32", np.uint32)[:4 * n].reshape(n, 4)
+
+    def f16(words: np.ndarray, high: bool) -> np.ndarray:
+        return ((words >> 16) if high else (words & 0xFFFF)).astype(np.uint16).view(np.float16).astype(np.float32)
+
+    sh_words = [np.fromfile(f"{prefix}.{k}.u32", np.uint32)[:4 * n].reshape(n, 4)
+                for k in ("sh1", "sh2", "sh3a", "sh3b") if k in meta["fields"]]
+    coeffs = {0: 0, 1: 3, 2: 8, 3: 15}[meta.get("maxShDegree", 0)]
+    sh_rest = (np.concatenate([_ext_rgb(w) for w in sh_words], axis=1)[:, :coeffs] if coeffs and sh_words
+               else np.zeros((n, 0, 3), np.float32))
+    q = e1[:, 3]
+    u, v, r = (q & 0x3FF).astype(np.float32), ((q >> 10) & 0x3FF).astype(np.float32), (q >> 20).astype(np.float32)
+    x, y = u / 1023 * 2 - 1, v / 1023 * 2 - 1
+    z = 1 - np.abs(x) - np.abs(y)
+    t = np.maximum(-z, 0)
+    x, y = np.where(x >= 0, x - t, x + t), np.where(y >= 0, y - t, y + t)
+    norm = np.sqrt(x * x + y * y + z * z)
+    half = r / 4095 * 0.5 * np.pi
+    sin = np.sin(half)
+    return {
+        "meta": meta, "n": n,
+        "positions": e0[:, :3].copy().view(np.float32),
+        "opacity": f16(e0[:, 3], False),
+        "rgb": np.stack([f16(e1[:, 0], False), f16(e1[:, 0], True), f16(e1[:, 1], False)], 1),
+        "ln_scales": np.stack([f16(e1[:, 1], True), f16(e1[:, 2], False), f16(e1[:, 2], True)], 1),
+        "quat_wxyz": np.stack([np.cos(half), x / norm * sin, y / norm * sin, z / norm * sin], 1),
+        "lod_center": np.stack([f16(lt[:, 0], False), f16(lt[:, 0], True), f16(lt[:, 1], False)], 1),
+        "size": f16(lt[:, 1], True),
+        "sh_rest": sh_rest,
+        "child_count": (lt[:, 2] & 0xFFFF).astype(np.int64),
+        "child_start": lt[:, 3].astype(np.int64),
+    }
+
+
+def _ext_rgb(words: np.ndarray) -> np.ndarray:
+    """(N, k) shared-exponent RGB words (splat_encode.rs decode_ext_rgb) -> (N, k, 3) float32."""
+    base = ((words >> 27) & 0x1F).astype(np.int32)
+    div = np.exp2((base - 15).astype(np.float32)) / 255.0
+    rgb = np.stack([(words >> s) & 0xFF for s in (0, 8, 16)], -1).astype(np.float32) * div[..., None]
+    signs = np.stack([(words >> b) & 1 for b in (24, 25, 26)], -1).astype(bool)
+    return np.where(signs, -rgb, rgb).astype(np.float32)
+
+
+def spark_cut(tree: dict, cam, max_splats: int, behind: float = 0.2, cone_foveate: float = 0.4,
+              cone_fov0: float = 90.0, cone_fov: float = 120.0) -> np.ndarray:
+    """The cut Spark's runtime draws for a camera at a splat budget (rust/spark-rs/src/lod_tree.rs
+    traverse_lod_trees and compute_pixel_scale, SparkRenderer's default foveation and one-pixel limit): from the
+    root, refine the node of the largest size/distance while the count stays within the budget."""
+    import heapq
+
+    eye = np.asarray(cam.eye, np.float64)
+    fwd = np.asarray(cam.target, np.float64) - eye
+    fwd /= np.linalg.norm(fwd)
+    limit = 2 * math.tan(math.radians(cam.fov_y_deg) / 2) / cam.height
+    dot0 = math.cos(math.radians(cone_fov0 / 2))
+    dot1 = min(math.cos(math.radians(cone_fov / 2)), dot0)
+    centers, sizes = tree["lod_center"].astype(np.float64), tree["size"].astype(np.float64)
+    cc, cs = tree["child_count"], tree["child_start"]
+
+    def scale(idx: np.ndarray) -> np.ndarray:
+        delta = centers[idx] - eye
+        dist = np.maximum(np.linalg.norm(delta, axis=1), 1e-6)
+        ps = sizes[idx] / dist
+        d = delta @ fwd / dist
+        fov = np.where(d >= dot0, 1.0, np.where(d >= dot1, cone_foveate + (1 - cone_foveate) * (d - dot1) /
+                                                max(dot0 - dot1, 1e-9),
+                                                behind + (cone_foveate - behind) * np.maximum(d, 0) / dot1))
+        return np.where(delta @ fwd <= 0, behind, fov) * ps
+
+    out: list[int] = []
+    frontier = [(-float(scale(np.array([0]))[0]), 0)]
+    count = 1
+    while frontier:
+        neg, i = frontier[0]
+        if -neg <= limit:
+            break
+        if cc[i] == 0:
+            heapq.heappop(frontier)
+            out.append(i)
+            continue
+        if count - 1 + cc[i] > max_splats:
+            break
+        heapq.heappop(frontier)
+        kids = np.arange(cs[i], cs[i] + cc[i])
+        for k, ps in zip(kids.tolist(), scale(kids).tolist(), strict=True):
+            if ps <= limit:
+                out.append(k)
+            else:
+                heapq.heappush(frontier, (-ps, k))
+        count += int(cc[i]) - 1
+    out.extend(i for _, i in frontier)
+    return np.asarray(out, np.int64)
+
+
+def spark_gaussians(tree: dict, idx: np.ndarray):
+    """Gaussians of Spark LoD nodes. Merged nodes carry Spark's extended opacity (1..2 encodes 1..5); drawn the way
+    Spark's `lodInflate` option draws them (splatVertex.glsl): opacity 1, scales times exp((a^2 - 1) / e)^(1/3)."""
+    from splatstream.gaussians import Gaussians
+
+    a = tree["opacity"][idx].astype(np.float64)
+    ext = np.minimum(a * 4 - 3, 5.0)
+    inflate = np.where(a > 1, np.log(np.exp((ext * ext - 1) / math.e)) / 3, 0.0)
+    op = np.clip(np.where(a > 1, 1.0, a), 1e-6, 1 - 1e-6)
+    return Gaussians(positions=tree["positions"][idx], rotations=tree["quat_wxyz"][idx],
+                     log_scales=tree["ln_scales"][idx] + inflate[:, None],
+                     opacity_logits=np.log(op / (1 - op)), sh_dc=(tree["rgb"][idx] - 0.5) / SPARK_C0,
+                     sh_rest=tree["sh_rest"][idx])
 
 
 # --- ours -----------------------------------------------------------------------------------------------------------
@@ -329,7 +459,7 @@ def run_scene(scene: Scene, args, peers: Peers | None) -> dict | None:
                              "elevation_deg=25); near/far as `splatstream view --eye/--target`: "
                              "min(0.01, 0.01 d), max(1000, 100 d)",
               "coverage": round(float(np.mean([np.mean(r.max(axis=2) > 1e-3) for r in refs])), 4),
-              "peers": [], "ours": []}
+              "peers": [], "spark": [], "ours": []}
     del g
 
     if peers is not None:
@@ -353,6 +483,36 @@ def run_scene(scene: Scene, args, peers: Peers | None) -> dict | None:
             result["peers"].append(row)
             say(f"  peer {row['budget']:>8,}: {row['psnr_mean']} dB (worst {row['psnr_worst']}), "
                 f"SSIM {row['ssim_mean']}, {row['ply_bytes']:,} B ply")
+
+    if peers is not None and args.spark:
+        prefix = os.path.join(sdir, "spark", "tree")
+        tree = spark_tree(peers.bin, full, prefix)
+        for nb in counts:
+            mpath = prefix + f".metrics_{nb}_{key}.json"
+            if os.path.exists(mpath) and os.path.getmtime(mpath) >= os.path.getmtime(prefix + ".json"):
+                m = json.load(open(mpath))
+            else:
+                imgs, drawn = [], []
+                for cam in cameras:
+                    idx = spark_cut(tree, cam, nb)
+                    drawn.append(len(idx))
+                    imgs += render_views(spark_gaussians(tree, idx), [cam])
+                m = measure(imgs, refs) | {"splats_drawn_per_view": drawn}
+                json.dump(m, open(mpath, "w"))
+                if not scene.no_images and args.save_images:
+                    _save_pngs(os.path.join(sdir, "png"), f"spark_{nb}", imgs)
+            meta = tree["meta"]
+            row = {"label": "spark bhatt-lod, per-view cut", "budget": nb,
+                   "splats_drawn": int(round(float(np.mean(m["splats_drawn_per_view"])))),
+                   "tree_nodes": meta["nodes"], "lod_base": meta["lodBase"], "build_seconds": meta.get("seconds"),
+                   "sh_degree_drawn": meta.get("maxShDegree", 0),
+                   "versions": {"spark": meta["spark"], "node": meta["node"]},
+                   "command": "node bench/peers/spark_lod.mjs full.ply tree (bhatt_lod(1.75)); cut per view as "
+                              "traverse_lod_trees; merged nodes drawn as lodInflate", **m}
+            result["spark"].append(row)
+            say(f"  spark {nb:>8,}: {row['psnr_mean']} dB (worst {row['psnr_worst']}), SSIM {row['ssim_mean']}, "
+                f"drawn {m['splats_drawn_per_view']}")
+        del tree
 
     if not args.skip_ours:
         out = os.path.join(args.our_scene_dir, scene.name)
@@ -397,24 +557,28 @@ def _save_pngs(d: str, stem: str, imgs: list[np.ndarray]) -> None:
 # --- outputs --------------------------------------------------------------------------------------------------------
 
 def write_table(results: list[dict], path: str) -> str:
-    lines = ["| scene | splats | budget | peer splats | peer PSNR (worst) | peer SSIM | peer PLY / SOG bytes | "
-             "ours drawn | ours PSNR (worst) | ours SSIM | ours downloaded | ours drawn-tile bytes |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    lines = ["| scene | splats | budget | splat-transform PSNR (worst) | SSIM | PLY / SOG bytes | "
+             "Spark drawn | Spark PSNR (worst) | SSIM | ours drawn | ours PSNR (worst) | SSIM | "
+             "ours downloaded | ours drawn-tile bytes |",
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
 
     def db(r):
         return "-" if r is None else f"{_f(r['psnr_mean'])} ({_f(r['psnr_worst'])})"
 
+    def ss(r):
+        return "-" if r is None else f"{r['ssim_mean']:.4f}"
+
     for res in results:
         peers = {r["budget"]: r for r in res["peers"]}
+        spark = {r["budget"]: r for r in res.get("spark", [])}
         ours = {r["budget"]: r for r in res["ours"]}
         for b, nb in zip(res["budgets"], res["budget_splats"], strict=True):
-            p, o = peers.get(nb), ours.get(nb)
+            p, k, o = peers.get(nb), spark.get(nb), ours.get(nb)
             pb = "-" if p is None else f"{p['ply_bytes']:,}" + (f" / {p['sog_bytes']:,}" if p.get("sog_bytes") else "")
             lines.append(
-                f"| {res['scene']} | {res['splats']:,} | {b:g}{'' if b > 1 else ' ×'} = {nb:,} | "
-                f"{'-' if p is None else format(p['splats_drawn'], ',')} | {db(p)} | "
-                f"{'-' if p is None else p['ssim_mean']} | {pb} | "
-                f"{'-' if o is None else _drawn(o)} | {db(o)} | {'-' if o is None else o['ssim_mean']} | "
+                f"| {res['scene']} | {res['splats']:,} | {nb:,} ({b * 100:g} %) | {db(p)} | {ss(p)} | {pb} | "
+                f"{'-' if k is None else _drawn(k)} | {db(k)} | {ss(k)} | "
+                f"{'-' if o is None else _drawn(o)} | {db(o)} | {ss(o)} | "
                 f"{'-' if o is None else format(o['bytes_downloaded_mean'], ',')} | "
                 f"{'-' if o is None else format(o['drawn_tile_bytes_mean'], ',')} |")
     text = "\n".join(lines) + "\n"
@@ -428,7 +592,7 @@ def _f(v) -> str:
 
 
 def _drawn(o: dict) -> str:
-    d = o["splats_drawn_per_view"]
+    d = o.get("splats_drawn_per_view") or [o["splats_drawn"]]
     s = f"{min(d):,}" if min(d) == max(d) else f"{min(d):,}-{max(d):,}"
     return s + (" (over)" if max(d) > o["budget"] else "")
 
@@ -448,15 +612,16 @@ def plot(results: list[dict], path: str) -> None:
     except TypeError:
         font = big = ImageFont.load_default()
     d.text((10, 10), "PSNR (dB, mean of views vs full detail) against splats drawn (log); red: splat-transform "
-           "adaptive levels, blue: splatstream view --max-splats (budget marked by grey ticks)", fill="black",
-           font=big)
-    colours = {"peers": (220, 50, 47), "ours": (38, 100, 210)}
+           "adaptive levels, green: Spark bhatt-lod cuts, blue: splatstream view --max-splats (grey ticks: budgets)",
+           fill="black", font=big)
+    colours = {"peers": (220, 50, 47), "spark": (40, 160, 60), "ours": (38, 100, 210)}
+    series = ("peers", "spark", "ours")
     for k, res in enumerate(results):
         ox, oy = (k % cols) * pw, 40 + (k // cols) * ph
         left, right, top, bottom = ox + 50, ox + pw - 15, oy + 25, oy + ph - 40
-        pts = {s: [(r["splats_drawn"], r["psnr_mean"]) for r in res[s] if r["psnr_mean"] is not None]
-               for s in ("peers", "ours")}
-        allp = pts["peers"] + pts["ours"]
+        pts = {s: [(r["splats_drawn"], r["psnr_mean"]) for r in res.get(s, []) if r["psnr_mean"] is not None]
+               for s in series}
+        allp = [p for s in series for p in pts[s]]
         if not allp:
             continue
         xs = [x for x, _ in allp] + list(res["budget_splats"])
@@ -491,13 +656,15 @@ def plot(results: list[dict], path: str) -> None:
         d.text((left + (right - left) / 2 - d.textlength(title, font=font) / 2, oy + 6), title, fill="black",
                font=font)
         d.text((left + (right - left) / 2 - 30, bottom + 20), "splats drawn", fill=(90, 90, 90), font=font)
-        for s in ("peers", "ours"):
+        for s in series:
             c = [(px(x), py(y)) for x, y in sorted(pts[s])]
             if len(c) > 1:
                 d.line(c, fill=colours[s], width=2)
             for cx, cy in c:
                 if s == "peers":
                     d.ellipse([cx - 4, cy - 4, cx + 4, cy + 4], fill=colours[s], outline="black")
+                elif s == "spark":
+                    d.polygon([(cx, cy - 5), (cx - 5, cy + 4), (cx + 5, cy + 4)], fill=colours[s], outline="black")
                 else:
                     d.rectangle([cx - 4, cy - 4, cx + 4, cy + 4], fill=colours[s], outline="black")
     img.save(path)
@@ -527,6 +694,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--min-splats", type=int, default=45000)
     ap.add_argument("--skip-peers", action="store_true", help="only our side (peer rows from earlier JSON kept)")
     ap.add_argument("--skip-ours", action="store_true")
+    ap.add_argument("--no-spark", dest="spark", action="store_false",
+                    help="without Spark's LoD (its tree build and per-view cuts)")
     ap.add_argument("--peer-sog", action="store_true", help="also write each peer level as .sog for its size")
     ap.add_argument("--save-images", action="store_true", help="PNGs of every render under CACHE/SCENE/png")
     ap.add_argument("--report-only", action="store_true", help="only the table and plot from --out-dir's JSONs")
@@ -549,11 +718,14 @@ def main(argv: list[str] | None = None) -> int:
         if res is None:
             continue
         jpath = os.path.join(args.out_dir, f"{name}.json")
-        if peers is None and os.path.exists(jpath):  # keep the peer rows measured before
+        if os.path.exists(jpath) and (peers is None or not args.spark):  # keep the peer rows measured before
             old = json.load(open(jpath))
             if old.get("cameras") == res["cameras"]:
-                res["peers"] = old.get("peers", [])
-                res["peer_versions"] = old.get("peer_versions")
+                if peers is None:
+                    res["peers"] = old.get("peers", [])
+                    res["peer_versions"] = old.get("peer_versions")
+                if not res["spark"]:
+                    res["spark"] = old.get("spark", [])
         if peers is not None:
             res["peer_versions"] = peers.versions
         if args.skip_ours and os.path.exists(jpath):
