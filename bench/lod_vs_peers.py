@@ -54,6 +54,7 @@ class Scene:
     name: str
     source: str  # relative to --data-dir
     no_images: bool = False  # licence forbids derived images: nothing rendered is written to disk
+    shipped_levels: tuple[int, ...] = ()  # LOD levels the source itself carries (streamed SOG), measured too
 
 
 SCENES: dict[str, Scene] = {s.name: s for s in [
@@ -61,7 +62,7 @@ SCENES: dict[str, Scene] = {s.name: s for s in [
     Scene("winter_fountain", "winter_fountain.splat"),
     Scene("guitar", "guitar.compressed.ply"),
     Scene("biker", "biker.compressed.ply", no_images=True),
-    Scene("flowers", "flowers_lod/lod-meta.json"),
+    Scene("flowers", "flowers_lod/lod-meta.json", shipped_levels=(1, 2, 3)),
     *[Scene(f"statue-{s}", f"statues/{s}.sog") for s in STATUES],
 ]}
 
@@ -291,17 +292,20 @@ def spark_cut(tree: dict, cam, max_splats: int, behind: float = 0.2, cone_foveat
     return np.asarray(out, np.int64)
 
 
-def spark_gaussians(tree: dict, idx: np.ndarray):
-    """Gaussians of Spark LoD nodes. Merged nodes carry Spark's extended opacity (1..2 encodes 1..5); drawn the way
-    Spark's `lodInflate` option draws them (splatVertex.glsl): opacity 1, scales times exp((a^2 - 1) / e)^(1/3)."""
+def spark_gaussians(tree: dict, idx: np.ndarray, mode: str = "inflate"):
+    """Gaussians of Spark LoD nodes. Merged nodes carry Spark's extended opacity a in 1..2 (encoding 1..5), which
+    Spark's default kernel draws as a flat-topped disc (splatFragment.glsl: 1 - (1 - g)^exp((a'^2 - 1) / e)) that a
+    3DGS renderer cannot draw. Two standard stand-ins bracket it: "inflate", Spark's own `lodInflate` option
+    (splatVertex.glsl: opacity 1, scales times exp((a'^2 - 1) / e)^(1/3); wider than the disc), and "clamp"
+    (opacity 1, scales as stored; narrower)."""
     from splatstream.gaussians import Gaussians
 
     a = tree["opacity"][idx].astype(np.float64)
     ext = np.minimum(a * 4 - 3, 5.0)
-    inflate = np.where(a > 1, np.log(np.exp((ext * ext - 1) / math.e)) / 3, 0.0)
+    grow = np.where(a > 1, (ext * ext - 1) / math.e / 3, 0.0) if mode == "inflate" else np.zeros_like(a)
     op = np.clip(np.where(a > 1, 1.0, a), 1e-6, 1 - 1e-6)
     return Gaussians(positions=tree["positions"][idx], rotations=tree["quat_wxyz"][idx],
-                     log_scales=tree["ln_scales"][idx] + inflate[:, None],
+                     log_scales=tree["ln_scales"][idx] + grow[:, None],
                      opacity_logits=np.log(op / (1 - op)), sh_dc=(tree["rgb"][idx] - 0.5) / SPARK_C0,
                      sh_rest=tree["sh_rest"][idx])
 
@@ -459,7 +463,7 @@ def run_scene(scene: Scene, args, peers: Peers | None) -> dict | None:
                              "elevation_deg=25); near/far as `splatstream view --eye/--target`: "
                              "min(0.01, 0.01 d), max(1000, 100 d)",
               "coverage": round(float(np.mean([np.mean(r.max(axis=2) > 1e-3) for r in refs])), 4),
-              "peers": [], "spark": [], "ours": []}
+              "peers": [], "spark": [], "spark_clamp": [], "shipped": [], "ours": []}
     del g
 
     if peers is not None:
@@ -484,34 +488,54 @@ def run_scene(scene: Scene, args, peers: Peers | None) -> dict | None:
             say(f"  peer {row['budget']:>8,}: {row['psnr_mean']} dB (worst {row['psnr_worst']}), "
                 f"SSIM {row['ssim_mean']}, {row['ply_bytes']:,} B ply")
 
+    if peers is not None and scene.shipped_levels:
+        for lv in scene.shipped_levels:
+            ply = os.path.join(sdir, f"shipped_L{lv}.ply")
+            if not os.path.exists(ply):
+                say(f"  splat-transform -L {lv} {scene.source} -> {os.path.basename(ply)}")
+                run(["splat-transform", "-w", "--no-tty", "-q", "-L", str(lv), src, ply], env=peers.env)
+            mpath = ply + f".metrics_{key}.json"
+            if os.path.exists(mpath) and os.path.getmtime(mpath) >= os.path.getmtime(ply):
+                m = json.load(open(mpath))
+            else:
+                gl = read_gaussians(ply)
+                m = measure(render_views(gl, cameras), refs) | {"splats": len(gl)}
+                json.dump(m, open(mpath, "w"))
+                del gl
+            row = {"label": f"shipped level {lv} of {scene.source}", "level": lv, "budget": None,
+                   "splats_drawn": m["splats"], **{k: v for k, v in m.items() if k != "splats"}}
+            result["shipped"].append(row)
+            say(f"  shipped L{lv} {row['splats_drawn']:>8,}: {row['psnr_mean']} dB (worst {row['psnr_worst']})")
+
     if peers is not None and args.spark:
         prefix = os.path.join(sdir, "spark", "tree")
         tree = spark_tree(peers.bin, full, prefix)
-        for nb in counts:
-            mpath = prefix + f".metrics_{nb}_{key}.json"
-            if os.path.exists(mpath) and os.path.getmtime(mpath) >= os.path.getmtime(prefix + ".json"):
-                m = json.load(open(mpath))
-            else:
-                imgs, drawn = [], []
-                for cam in cameras:
-                    idx = spark_cut(tree, cam, nb)
-                    drawn.append(len(idx))
-                    imgs += render_views(spark_gaussians(tree, idx), [cam])
-                m = measure(imgs, refs) | {"splats_drawn_per_view": drawn}
-                json.dump(m, open(mpath, "w"))
-                if not scene.no_images and args.save_images:
-                    _save_pngs(os.path.join(sdir, "png"), f"spark_{nb}", imgs)
-            meta = tree["meta"]
-            row = {"label": "spark bhatt-lod, per-view cut", "budget": nb,
-                   "splats_drawn": int(round(float(np.mean(m["splats_drawn_per_view"])))),
-                   "tree_nodes": meta["nodes"], "lod_base": meta["lodBase"], "build_seconds": meta.get("seconds"),
-                   "sh_degree_drawn": meta.get("maxShDegree", 0),
-                   "versions": {"spark": meta["spark"], "node": meta["node"]},
-                   "command": "node bench/peers/spark_lod.mjs full.ply tree (bhatt_lod(1.75)); cut per view as "
-                              "traverse_lod_trees; merged nodes drawn as lodInflate", **m}
-            result["spark"].append(row)
-            say(f"  spark {nb:>8,}: {row['psnr_mean']} dB (worst {row['psnr_worst']}), SSIM {row['ssim_mean']}, "
-                f"drawn {m['splats_drawn_per_view']}")
+        for mode, series in (("inflate", "spark"), ("clamp", "spark_clamp")):
+            for nb in counts:
+                mpath = prefix + (".metrics" if mode == "inflate" else f".{mode}_metrics") + f"_{nb}_{key}.json"
+                if os.path.exists(mpath) and os.path.getmtime(mpath) >= os.path.getmtime(prefix + ".json"):
+                    m = json.load(open(mpath))
+                else:
+                    imgs, drawn = [], []
+                    for cam in cameras:
+                        idx = spark_cut(tree, cam, nb)
+                        drawn.append(len(idx))
+                        imgs += render_views(spark_gaussians(tree, idx, mode), [cam])
+                    m = measure(imgs, refs) | {"splats_drawn_per_view": drawn}
+                    json.dump(m, open(mpath, "w"))
+                    if not scene.no_images and args.save_images:
+                        _save_pngs(os.path.join(sdir, "png"), f"spark_{mode}_{nb}", imgs)
+                meta = tree["meta"]
+                row = {"label": f"spark bhatt-lod, per-view cut, merged nodes as {mode}", "budget": nb,
+                       "splats_drawn": int(round(float(np.mean(m["splats_drawn_per_view"])))),
+                       "tree_nodes": meta["nodes"], "lod_base": meta["lodBase"],
+                       "build_seconds": meta.get("seconds"), "sh_degree_drawn": meta.get("maxShDegree", 0),
+                       "versions": {"spark": meta["spark"], "node": meta["node"]},
+                       "command": "node bench/peers/spark_lod.mjs full.ply tree (bhatt_lod(1.75)); cut per view as "
+                                  f"traverse_lod_trees; merged nodes drawn as {mode}", **m}
+                result[series].append(row)
+                say(f"  {series} {nb:>8,}: {row['psnr_mean']} dB (worst {row['psnr_worst']}), "
+                    f"SSIM {row['ssim_mean']}, drawn {m['splats_drawn_per_view']}")
         del tree
 
     if not args.skip_ours:
@@ -558,9 +582,10 @@ def _save_pngs(d: str, stem: str, imgs: list[np.ndarray]) -> None:
 
 def write_table(results: list[dict], path: str) -> str:
     lines = ["| scene | splats | budget | splat-transform PSNR (worst) | SSIM | PLY / SOG bytes | "
-             "Spark drawn | Spark PSNR (worst) | SSIM | ours drawn | ours PSNR (worst) | SSIM | "
+             "Spark drawn | Spark PSNR inflate (worst) | SSIM | Spark PSNR clamp (worst) | SSIM | "
+             "ours drawn | ours PSNR (worst) | SSIM | "
              "ours downloaded | ours drawn-tile bytes |",
-             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
+             "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
 
     def db(r):
         return "-" if r is None else f"{_f(r['psnr_mean'])} ({_f(r['psnr_worst'])})"
@@ -571,16 +596,22 @@ def write_table(results: list[dict], path: str) -> str:
     for res in results:
         peers = {r["budget"]: r for r in res["peers"]}
         spark = {r["budget"]: r for r in res.get("spark", [])}
+        clamp = {r["budget"]: r for r in res.get("spark_clamp", [])}
         ours = {r["budget"]: r for r in res["ours"]}
         for b, nb in zip(res["budgets"], res["budget_splats"], strict=True):
-            p, k, o = peers.get(nb), spark.get(nb), ours.get(nb)
+            p, k, c, o = peers.get(nb), spark.get(nb), clamp.get(nb), ours.get(nb)
             pb = "-" if p is None else f"{p['ply_bytes']:,}" + (f" / {p['sog_bytes']:,}" if p.get("sog_bytes") else "")
             lines.append(
                 f"| {res['scene']} | {res['splats']:,} | {nb:,} ({b * 100:g} %) | {db(p)} | {ss(p)} | {pb} | "
-                f"{'-' if k is None else _drawn(k)} | {db(k)} | {ss(k)} | "
+                f"{'-' if k is None else _drawn(k)} | {db(k)} | {ss(k)} | {db(c)} | {ss(c)} | "
                 f"{'-' if o is None else _drawn(o)} | {db(o)} | {ss(o)} | "
                 f"{'-' if o is None else format(o['bytes_downloaded_mean'], ',')} | "
                 f"{'-' if o is None else format(o['drawn_tile_bytes_mean'], ',')} |")
+    shipped = [(res["scene"], r) for res in results for r in res.get("shipped", [])]
+    if shipped:
+        lines += ["", "Levels a source ships itself (its streamed SOG's own LOD levels, read with splat-transform -L):", "",
+                  "| scene | level | splats | PSNR (worst) | SSIM |", "|---|---:|---:|---:|---:|"]
+        lines += [f"| {name} | {r['level']} | {r['splats_drawn']:,} | {db(r)} | {ss(r)} |" for name, r in shipped]
     text = "\n".join(lines) + "\n"
     with open(path, "w") as f:
         f.write(text)
@@ -612,10 +643,12 @@ def plot(results: list[dict], path: str) -> None:
     except TypeError:
         font = big = ImageFont.load_default()
     d.text((10, 10), "PSNR (dB, mean of views vs full detail) against splats drawn (log); red: splat-transform "
-           "adaptive levels, green: Spark bhatt-lod cuts, blue: splatstream view --max-splats (grey ticks: budgets)",
+           "levels, green: Spark cuts (dark: lodInflate, light: clamped), blue: splatstream view "
+           "--max-splats; orange: a source's own levels; grey ticks: budgets",
            fill="black", font=big)
-    colours = {"peers": (220, 50, 47), "spark": (40, 160, 60), "ours": (38, 100, 210)}
-    series = ("peers", "spark", "ours")
+    colours = {"peers": (220, 50, 47), "spark": (40, 160, 60), "spark_clamp": (150, 210, 150),
+               "shipped": (240, 150, 30), "ours": (38, 100, 210)}
+    series = ("peers", "spark", "spark_clamp", "shipped", "ours")
     for k, res in enumerate(results):
         ox, oy = (k % cols) * pw, 40 + (k // cols) * ph
         left, right, top, bottom = ox + 50, ox + pw - 15, oy + 25, oy + ph - 40
@@ -661,9 +694,9 @@ def plot(results: list[dict], path: str) -> None:
             if len(c) > 1:
                 d.line(c, fill=colours[s], width=2)
             for cx, cy in c:
-                if s == "peers":
+                if s in ("peers", "shipped"):
                     d.ellipse([cx - 4, cy - 4, cx + 4, cy + 4], fill=colours[s], outline="black")
-                elif s == "spark":
+                elif s.startswith("spark"):
                     d.polygon([(cx, cy - 5), (cx - 5, cy + 4), (cx + 5, cy + 4)], fill=colours[s], outline="black")
                 else:
                     d.rectangle([cx - 4, cy - 4, cx + 4, cy + 4], fill=colours[s], outline="black")
@@ -724,8 +757,9 @@ def main(argv: list[str] | None = None) -> int:
                 if peers is None:
                     res["peers"] = old.get("peers", [])
                     res["peer_versions"] = old.get("peer_versions")
-                if not res["spark"]:
-                    res["spark"] = old.get("spark", [])
+                for k in ("spark", "spark_clamp", "shipped"):
+                    if not res[k]:
+                        res[k] = old.get(k, [])
         if peers is not None:
             res["peer_versions"] = peers.versions
         if args.skip_ours and os.path.exists(jpath):
