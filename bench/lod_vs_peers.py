@@ -609,7 +609,7 @@ def write_table(results: list[dict], path: str) -> str:
                 f"{'-' if o is None else format(o['drawn_tile_bytes_mean'], ',')} |")
     shipped = [(res["scene"], r) for res in results for r in res.get("shipped", [])]
     if shipped:
-        lines += ["", "Levels a source ships itself (its streamed SOG's own LOD levels, read with splat-transform -L):", "",
+        lines += ["", "Levels a source ships itself (its streamed SOG's own LOD levels, splat-transform -L):", "",
                   "| scene | level | splats | PSNR (worst) | SSIM |", "|---|---:|---:|---:|---:|"]
         lines += [f"| {name} | {r['level']} | {r['splats_drawn']:,} | {db(r)} | {ss(r)} |" for name, r in shipped]
     text = "\n".join(lines) + "\n"
