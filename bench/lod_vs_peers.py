@@ -675,9 +675,7 @@ def plot(results: list[dict], path: str) -> None:
                 x = m * 10.0 ** dec
                 if x0 <= x <= x1:
                     d.line([(px(x), top), (px(x), bottom)], fill=(230, 230, 230))
-                    lab = f"{x:,.0f}" if x < 1e6 else f"{x / 1e6:g}M"
-                    if x >= 1e3:
-                        lab = f"{x / 1e3:g}k"
+                    lab = f"{x / 1e6:g}M" if x >= 1e6 else f"{x / 1e3:g}k" if x >= 1e3 else f"{x:,.0f}"
                     d.text((px(x) - d.textlength(lab, font=font) / 2, bottom + 4), lab, fill="black", font=font)
         for y in range(int(y0), int(y1) + 1, 5):
             d.line([(left, py(y)), (right, py(y))], fill=(230, 230, 230))
