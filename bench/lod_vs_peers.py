@@ -139,7 +139,8 @@ class Peers:
         }
 
     def _out(self, cmd: list[str]) -> str:
-        return subprocess.run(cmd, check=True, capture_output=True, text=True, env=self.env).stdout.strip()
+        r = subprocess.run(cmd, check=True, capture_output=True, text=True, env=self.env)
+        return (r.stdout.strip() or r.stderr.strip()).splitlines()[-1]  # splat-transform prints it on stderr
 
     def decimate(self, src: str, n: int, out: str) -> tuple[list[str], float]:
         cmd = ["splat-transform", "-w", "-g", "cpu", "--no-tty", src, "--decimate-adaptive", str(n), out]
@@ -483,7 +484,7 @@ def run_scene(scene: Scene, args, peers: Peers | None) -> dict | None:
             row = {"label": "splat-transform --decimate-adaptive", "budget": lv["splats_target"],
                    "splats_drawn": m["splats"], "ply_bytes": lv["ply_bytes"], "sog_bytes": lv.get("sog_bytes"),
                    "build_seconds": lv["seconds"], "built_from": lv["input"], "command": lv["command"],
-                   "versions": lv["versions"], **{k: v for k, v in m.items() if k != "splats"}}
+                   "versions": peers.versions, **{k: v for k, v in m.items() if k != "splats"}}
             result["peers"].append(row)
             say(f"  peer {row['budget']:>8,}: {row['psnr_mean']} dB (worst {row['psnr_worst']}), "
                 f"SSIM {row['ssim_mean']}, {row['ply_bytes']:,} B ply")
