@@ -1,0 +1,96 @@
+"""The parts of bench/lod_vs_peers.py (issue 31) that need neither GL nor the peer tools: budgets, the decoding of
+Spark's ExtSplats words and the per-view cut of a Spark LoD tree."""
+from __future__ import annotations
+
+import importlib.util
+import math
+import pathlib
+import sys
+
+import numpy as np
+
+from splatstream.camera import Camera
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def load():
+    spec = importlib.util.spec_from_file_location("splatstream_bench_lod_vs_peers", ROOT / "bench" / "lod_vs_peers.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses look their module up while the file executes
+    spec.loader.exec_module(module)
+    return module
+
+
+L = load()
+
+
+def encode_ext_rgb(rgb) -> int:
+    """rust/spark-lib/src/splat_encode.rs encode_ext_rgb, ported."""
+    m = max(abs(v) for v in rgb)
+    base = int(round(min(max(math.floor(math.log2(m)) + 15.0, 0.0), 31.0))) if m > 0 else 0
+    div = 2.0 ** (base - 15) / 255.0
+    u = [min(max(round(abs(v) / div), 0), 255) for v in rgb]
+    signs = sum(1 << k for k, v in enumerate(rgb) if v < 0)
+    return u[0] | (u[1] << 8) | (u[2] << 16) | (((base << 3) | signs) << 24)
+
+
+def test_budget_counts_fractions_and_counts():
+    assert L.budget_counts(45624, [0.02, 0.06, 0.25, 0.5]) == [912, 2737, 11406, 22812]
+    assert L.budget_counts(1000, [3000.0, 1.0]) == [3000, 1000]
+
+
+def test_ext_rgb_decodes_spark_shared_exponent_words():
+    vals = [(0.5, -0.25, 0.125), (-1.5, 0.0, 0.75), (0.01, 0.02, -0.03)]
+    words = np.array([[encode_ext_rgb(v) for v in vals]], np.uint32)
+    got = L._ext_rgb(words)[0]
+    for v, g in zip(vals, got, strict=True):
+        m = max(abs(x) for x in v)
+        top = 2.0 ** math.floor(math.log2(m))  # the encoder keeps at most 2^floor(log2 max): Spark clips the rest
+        want = [math.copysign(min(abs(x), top), x) for x in v]
+        assert np.allclose(g, want, atol=top / 255 * 0.51)
+
+
+def tree(n_leaves_per_child: int = 4) -> dict:
+    """Root 0 -> children 1, 2 -> each n leaves; every node of size 1, spread along x."""
+    kids = [1, 2]
+    leaves = list(range(3, 3 + 2 * n_leaves_per_child))
+    n = 3 + len(leaves)
+    cc = np.zeros(n, np.int64)
+    cs = np.zeros(n, np.int64)
+    cc[0], cs[0] = 2, 1
+    for k, c in enumerate(kids):
+        cc[c], cs[c] = n_leaves_per_child, 3 + k * n_leaves_per_child
+    centers = np.zeros((n, 3), np.float32)
+    centers[:, 0] = np.linspace(-1, 1, n)
+    return {"lod_center": centers, "size": np.ones(n, np.float32) * np.array([4.0, 2.0, 2.0] + [1.0] * len(leaves)),
+            "child_count": cc, "child_start": cs}
+
+
+def cam() -> Camera:
+    return Camera((0.0, -10.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 50.0, 64, 64)
+
+
+def test_spark_cut_stays_within_the_budget_and_covers_the_tree():
+    t = tree()
+    assert sorted(L.spark_cut(t, cam(), 1)) == [0]
+    assert sorted(L.spark_cut(t, cam(), 2)) == [1, 2]
+    five = L.spark_cut(t, cam(), 5)  # one child refined (2 - 1 + 4 = 5), the other kept
+    assert len(five) == 5 and len(set(five) & {1, 2}) == 1
+    assert sorted(L.spark_cut(t, cam(), 100)) == list(range(3, 11))
+
+
+def test_spark_gaussians_inflate_and_clamp():
+    n = 3
+    t = {"positions": np.zeros((n, 3), np.float32), "quat_wxyz": np.tile([1.0, 0, 0, 0], (n, 1)),
+         "ln_scales": np.zeros((n, 3), np.float32), "opacity": np.array([0.5, 1.0, 2.0], np.float32),
+         "rgb": np.full((n, 3), 0.5, np.float32), "sh_rest": np.zeros((n, 0, 3), np.float32)}
+    idx = np.arange(n)
+    inflated = L.spark_gaussians(t, idx, "inflate")
+    clamped = L.spark_gaussians(t, idx, "clamp")
+    sig = 1 / (1 + np.exp(-inflated.opacity_logits))
+    assert np.allclose(sig, [0.5, 1.0, 1.0], atol=1e-5)
+    # a = 2 encodes 5: scales grow by exp((25 - 1) / e)^(1/3)
+    assert np.allclose(inflated.log_scales[2], 24 / math.e / 3, atol=1e-5)
+    assert np.allclose(inflated.log_scales[:2], 0) and np.allclose(clamped.log_scales, 0)
+    assert np.allclose(clamped.sh_dc, 0)
