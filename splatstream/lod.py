@@ -228,10 +228,16 @@ def merge_gaussians(g: Gaussians, mass: np.ndarray, target: int) -> tuple[Gaussi
 
     Returns the merged Gaussians, their masses (sums of the members' masses) and for each input splat the
     index of the merged splat it went into."""
-    n = len(g)
-    if n == 0:
+    if len(g) == 0:
         return g, mass, np.zeros(0, np.int64)
-    order, starts = _group_starts(g.positions, max(1, target))
+    return merge_groups(g, mass, *_group_starts(g.positions, max(1, target)))
+
+
+def merge_groups(g: Gaussians, mass: np.ndarray, order: np.ndarray, starts: np.ndarray
+                 ) -> tuple[Gaussians, np.ndarray, np.ndarray]:
+    """Merge `g` (with carried masses) group by group: the groups are runs of `order` starting at `starts`.
+    Returns what merge_gaussians returns."""
+    n = len(g)
     counts = np.diff(np.append(starts, n))
     group_of = np.repeat(np.arange(len(starts)), counts)
 
