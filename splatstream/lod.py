@@ -22,7 +22,9 @@ original counts with its merged splat's error), at least its children's errors (
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -622,7 +624,8 @@ class Subtree:
 
 
 def build_subtree(g: Gaussians, index: np.ndarray, shape: TreeShape, level: int = 0, position: int = 0,
-                  progress: Progress | None = None, reorder_input: bool = False) -> Subtree:
+                  progress: Progress | None = None, reorder_input: bool = False, threads: int | None = None
+                  ) -> Subtree:
     """The tiles under tile `position` of tile level `level` (the whole tree for level 0), from exactly that
     subtree's splats `g`, whose global indices `index` are ascending (the input's order).
 
@@ -660,46 +663,56 @@ def build_subtree(g: Gaussians, index: np.ndarray, shape: TreeShape, level: int 
 
     total_merges = sum(span(lvl) for lvl in range(level, leaf_level))
     merges_done = 0
-    for lvl in range(leaf_level - 1, level - 1, -1):
-        for j in range(span(lvl)):
-            tid = shape.tile_id(lvl, position * span(lvl) + j)
-            child_ids = shape.children(lvl, position * span(lvl) + j)
-            kids = [tiles[c] for c in child_ids]
-            first, end = spans[child_ids[0]][0], spans[child_ids[-1]][1]
-            spans[tid] = (first, end)
-            a, b = int(leaf_starts[first]), int(leaf_starts[end])
-            # Leaf children are adjacent slices of `ordered`: merge them in place instead of copying.
-            members = (_slice(ordered, a, b) if lvl == leaf_level - 1
-                       else Gaussians.concatenate([k.gaussians for k in kids]))
-            member_mass = np.concatenate([masses.pop(c) for c in child_ids])
-            target = shape.target(len(members))
-            merged, merged_mass, assign = merge_gaussians(members, member_mass, target)
-            del members, member_mass
-            offsets = np.cumsum([0] + [len(k.gaussians) for k in kids])
-            rep = assign[np.concatenate([represented_by.pop(c) + offsets[k] for k, c in enumerate(child_ids)])]
-            represented_by[tid] = rep
-            masses[tid] = merged_mass
-            originals = _slice(ordered, a, b)
-            size = len(merged)
-            # Errors and appearance are measured against the originals (lod.md 3, 6).
-            far, near = error_extremes(originals.positions, reach[a:b], merged.positions, rep, size)
 
-            def appearance(blur: float, a: int = a, first: int = first, end: int = end,
-                           rep: np.ndarray = rep, size: int = size) -> np.ndarray:
-                parts = []
-                for leaf in range(first, end):
-                    s, e = int(leaf_starts[leaf]), int(leaf_starts[leaf + 1])
-                    terms = appearance_terms(ordered.opacity_logits[s:e], ordered.log_scales[s:e],
-                                             ordered.sh_dc[s:e], blur)
-                    parts.append(leaf_sums(rep[s - a:e - a], terms, size))
-                return fold_leaf_sums(parts, size)
+    def merge_tile(lvl: int, tid: int, child_ids: list[int], kids: list[Tile], member_mass: np.ndarray,
+                   kid_reps: list[np.ndarray], first: int, end: int) -> tuple[Tile, np.ndarray, np.ndarray]:
+        """One interior tile from its children (pure: reads `ordered`, writes nothing shared)."""
+        a, b = int(leaf_starts[first]), int(leaf_starts[end])
+        # Leaf children are adjacent slices of `ordered`: merge them in place instead of copying.
+        members = (_slice(ordered, a, b) if lvl == leaf_level - 1
+                   else Gaussians.concatenate([k.gaussians for k in kids]))
+        merged, merged_mass, assign = merge_gaussians(members, member_mass, shape.target(len(members)))
+        del members
+        offsets = np.cumsum([0] + [len(k.gaussians) for k in kids])
+        rep = assign[np.concatenate([r + offsets[k] for k, r in enumerate(kid_reps)])]
+        size = len(merged)
+        # Errors and appearance are measured against the originals (lod.md 3, 6).
+        far, near = error_extremes(ordered.positions[a:b], reach[a:b], merged.positions, rep, size)
 
-            error = finish_tile(merged, np.bincount(rep, minlength=size), far, near,
-                                max(k.geometric_error for k in kids), appearance)
-            lo, hi, c, r = interior_bounds(merged, kids)
-            tiles[tid] = Tile(tid, lvl, child_ids, merged, error, lo, hi, c, r)
-            merges_done += 1
-            progress("lod-merge", merges_done / total_merges)
+        def appearance(blur: float) -> np.ndarray:
+            parts = []
+            for leaf in range(first, end):
+                s, e = int(leaf_starts[leaf]), int(leaf_starts[leaf + 1])
+                terms = appearance_terms(ordered.opacity_logits[s:e], ordered.log_scales[s:e],
+                                         ordered.sh_dc[s:e], blur)
+                parts.append(leaf_sums(rep[s - a:e - a], terms, size))
+            return fold_leaf_sums(parts, size)
+
+        error = finish_tile(merged, np.bincount(rep, minlength=size), far, near,
+                            max(k.geometric_error for k in kids), appearance)
+        lo, hi, c, r = interior_bounds(merged, kids)
+        return Tile(tid, lvl, child_ids, merged, error, lo, hi, c, r), merged_mass, rep
+
+    # The tiles of one level are independent: merged on threads (numpy's sorts, reductions and eigh release the
+    # interpreter), each a pure function of its children, so the tree is the same with any number of threads.
+    with ThreadPoolExecutor(max_workers=max(1, threads or os.cpu_count() or 1)) as pool:
+        for lvl in range(leaf_level - 1, level - 1, -1):
+            jobs = []
+            for j in range(span(lvl)):
+                tid = shape.tile_id(lvl, position * span(lvl) + j)
+                child_ids = shape.children(lvl, position * span(lvl) + j)
+                first, end = spans[child_ids[0]][0], spans[child_ids[-1]][1]
+                spans[tid] = (first, end)
+                jobs.append(pool.submit(merge_tile, lvl, tid, child_ids, [tiles[c] for c in child_ids],
+                                        np.concatenate([masses.pop(c) for c in child_ids]),
+                                        [represented_by.pop(c) for c in child_ids], first, end))
+            for job in jobs:
+                tile, merged_mass, rep = job.result()
+                tiles[tile.id] = tile
+                masses[tile.id] = merged_mass
+                represented_by[tile.id] = rep
+                merges_done += 1
+                progress("lod-merge", merges_done / total_merges)
     root_id = shape.tile_id(level, position)
     if not total_merges:
         progress("lod-merge", 1.0)
