@@ -56,6 +56,8 @@ class ViewOptions:
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     request_timeout_s: float = 15.0
     stall_timeout_s: float = 10.0
+    request_deadline_s: float = 60.0  # one request in all (a server dripping bytes resets no stall timer)
+    manifest_timeout_s: float = 30.0  # the manifest in all, retries included (view: at most its --timeout)
 
     def selection(self) -> SelectionOptions:
         return SelectionOptions(max_sse=self.max_sse, max_splats=self.max_splats, sh_degree=self.sh_degree,
@@ -137,7 +139,9 @@ class PreparedSource:
         if options.cache and getattr(source, "cache_key", None):
             cache = DiskCache(options.cache_dir)
         fetcher = Fetcher(source, cache=cache, max_in_flight=options.max_in_flight,
-                          request_timeout_s=options.request_timeout_s, stall_timeout_s=options.stall_timeout_s)
+                          request_timeout_s=options.request_timeout_s, stall_timeout_s=options.stall_timeout_s,
+                          request_deadline_s=options.request_deadline_s,
+                          manifest_timeout_s=options.manifest_timeout_s)
         fetcher.start()
         try:
             data = fetcher.manifest()

@@ -10,7 +10,7 @@ import json
 import os
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from splatstream.camera import Camera
 from splatstream.camera_path import CameraPath
@@ -66,7 +66,9 @@ def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
         if fraction >= 1.0 or fraction == 0.0:
             say(f"view: {stage} {fraction * 100:.0f}%")
 
-    session = StreamingSession.open(run.source, ctx, run.options, progress=encode_progress)
+    # The timeout counts from here: the manifest's request (however slowly it arrives) is inside it.
+    options = replace(run.options, manifest_timeout_s=min(run.options.manifest_timeout_s, run.timeout_s))
+    session = StreamingSession.open(run.source, ctx, options, progress=encode_progress)
     freeze_long_lived()
     try:
         w, h = run.size
@@ -98,7 +100,7 @@ def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
                     say(line)
             if done:
                 break
-            if now > run.timeout_s:
+            if time.perf_counter() - session.metrics.start > run.timeout_s:
                 say(f"view: not converged after {run.timeout_s:g} s (timeout)")
                 code = EXIT_NOT_CONVERGED
                 break

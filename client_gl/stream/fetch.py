@@ -134,16 +134,19 @@ class Fetcher:
     """Fetches a scene's manifest and payloads from `source` on a background event loop (see the module doc).
 
     `request_timeout_s`: longest wait for a response's headers (connect included). `stall_timeout_s`: longest
-    gap without body bytes once the headers came. `manifest_timeout_s`: how long `manifest()` keeps retrying.
+    gap without body bytes once the headers came. `request_deadline_s`: longest time one request may take in all.
+    `manifest_timeout_s`: how long `manifest()` may take in all, retries included.
     `cache_readers`: disk-cache reads running beside the network requests. `seed`: the jitter's random seed."""
 
     def __init__(self, source: SceneSource, *, cache: DiskCache | None = None, max_in_flight: int = 6,
                  request_timeout_s: float = 15.0, stall_timeout_s: float = 10.0, retry: RetryPolicy | None = None,
-                 manifest_timeout_s: float = 30.0, cache_readers: int = 2, seed: int | None = None):
+                 manifest_timeout_s: float = 30.0, cache_readers: int = 2, seed: int | None = None,
+                 request_deadline_s: float = 60.0):
         if max_in_flight < 1 or cache_readers < 1:
             raise UsageError(f"max_in_flight {max_in_flight}, cache_readers {cache_readers}: expected at least 1")
-        if request_timeout_s <= 0 or stall_timeout_s <= 0 or manifest_timeout_s < 0:
-            raise UsageError("request, stall and manifest timeouts must be positive")
+        if request_timeout_s <= 0 or stall_timeout_s <= 0 or manifest_timeout_s < 0 or request_deadline_s <= 0:
+            raise UsageError("request, stall, deadline and manifest timeouts must be positive")
+        self.request_deadline_s = request_deadline_s
         self.source = source
         # Local stores are not worth a disk cache: their bytes are on this machine already.
         self.cache = cache if getattr(source, "cache_key", None) else None
@@ -419,22 +422,30 @@ class Fetcher:
             log.exception("fetching %s failed unexpectedly", entry.file)
             self._failed(job, FetchError(self.source.location, "internal", f"{type(exc).__name__}: {exc}"))
 
-    async def _timed(self, request: Callable[[OnBytes], Awaitable], where: str):
+    async def _timed(self, request: Callable[[OnBytes], Awaitable], where: str, until: float | None = None):
         """Run one request: TIMEOUT when its headers take longer than request_timeout_s, STALL when its body
-        pauses for stall_timeout_s; every byte received is counted."""
+        pauses for stall_timeout_s or the whole request takes longer than request_deadline_s (a server that drips
+        a byte at a time resets no timer for ever); every byte received is counted. `until`: a loop time by which
+        the request must be complete, whatever the timers say (FetchError TIMEOUT, not transient)."""
         loop = asyncio.get_running_loop()
+        started = loop.time()
+        hard = started + self.request_deadline_s
+        if until is not None:
+            hard = min(hard, until)
         headers = False
-        cm = asyncio.timeout(self.request_timeout_s)
+        received = 0
+        cm = asyncio.timeout(min(started + self.request_timeout_s, hard) - started)
 
         def on_bytes(n: int) -> None:
-            nonlocal headers
+            nonlocal headers, received
             if not headers:
                 headers = True
                 self._link_up()
             if n:
+                received += n
                 with self._lock:
                     self._counts["bytes_downloaded"] += n
-            cm.reschedule(loop.time() + self.stall_timeout_s)
+            cm.reschedule(min(loop.time() + self.stall_timeout_s, hard))
 
         try:
             async with cm:
@@ -442,6 +453,15 @@ class Fetcher:
         except TimeoutError:
             if not cm.expired():
                 raise
+            now = loop.time()
+            if until is not None and now >= until - 1e-3:
+                raise FetchError(where, TIMEOUT, f"not complete within {until - started:.3g} s "
+                                 f"({'no answer' if not headers else f'{received} bytes received'})",
+                                 transient=False) from None
+            if now >= hard - 1e-3:
+                raise FetchError(where, STALL, f"not complete within {self.request_deadline_s:g} s "
+                                 f"({'no answer' if not headers else f'{received} bytes received'}: too slow)"
+                                 ) from None
             if headers:
                 raise FetchError(where, STALL, f"no data for {self.stall_timeout_s:g} s (stalled)") from None
             raise FetchError(where, TIMEOUT, f"no answer within {self.request_timeout_s:g} s") from None
@@ -503,6 +523,7 @@ class Fetcher:
             cached = await loop.run_in_executor(None, self.cache.get_manifest, key)
         revalidate = getattr(self.source, "revalidate_manifest", None)
         deadline = loop.time() + limit_s
+        until = deadline if limit_s > 0 else None  # 0: one attempt, as long as the request's own timers allow
         attempt = 0
         while True:
             with self._lock:
@@ -511,9 +532,10 @@ class Fetcher:
                 if revalidate is not None:
                     etag = cached.etag if cached is not None else None
                     reply = await self._timed(lambda on_bytes, etag=etag: revalidate(etag, on_bytes),
-                                              self.source.location)
+                                              self.source.location, until)
                 else:
-                    reply = ManifestReply(await self._timed(self.source.fetch_manifest, self.source.location), None)
+                    reply = ManifestReply(await self._timed(self.source.fetch_manifest, self.source.location,
+                                                            until), None)
                 if reply.data is None:
                     if cached is None:
                         raise FetchError(self.source.location, NOT_A_SCENE, "304 Not Modified for a manifest "
@@ -536,6 +558,12 @@ class Fetcher:
                     if exc.kind in LINK_KINDS:
                         self._offline = True
                 if not exc.transient:
+                    if cached is not None and exc.kind == TIMEOUT:
+                        return self._manifest_done(cached.data, MANIFEST_OFFLINE, from_cache=True)
+                    raise
+                if exc.unreachable and cached is None and attempt == 0:
+                    # Nothing cached and the server was never reached (refused, unknown host): say so at once
+                    # rather than polling a server that is probably not there (a user runs the command again).
                     raise
                 if cached is not None and exc.kind in LINK_KINDS:
                     return self._manifest_done(cached.data, MANIFEST_OFFLINE, from_cache=True)
