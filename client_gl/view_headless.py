@@ -67,7 +67,9 @@ def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
             say(f"view: {stage} {fraction * 100:.0f}%")
 
     # The timeout counts from here: the manifest's request (however slowly it arrives) is inside it.
-    options = replace(run.options, manifest_timeout_s=min(run.options.manifest_timeout_s, run.timeout_s))
+    # A request that takes half the timeout (a server dripping bytes) fails and is named before the timeout ends.
+    options = replace(run.options, manifest_timeout_s=min(run.options.manifest_timeout_s, run.timeout_s),
+                      request_deadline_s=min(run.options.request_deadline_s, max(5.0, run.timeout_s / 2)))
     session = StreamingSession.open(run.source, ctx, options, progress=encode_progress)
     freeze_long_lived()
     try:
@@ -99,9 +101,14 @@ def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
                 elif done or frame % 20 == 1:
                     say(line)
             if done:
+                if session.engine.failed:  # converged without payloads that do not decode: not the scene's picture
+                    say(f"view: {session.problem()}")
+                    code = EXIT_NOT_CONVERGED
                 break
             if time.perf_counter() - session.metrics.start > run.timeout_s:
-                say(f"view: not converged after {run.timeout_s:g} s (timeout)")
+                problem = session.problem()
+                say(f"view: not converged after {run.timeout_s:g} s: {problem}" if problem else
+                    f"view: not converged after {run.timeout_s:g} s (timeout)")
                 code = EXIT_NOT_CONVERGED
                 break
             if not rec.uploaded_bytes:

@@ -155,7 +155,7 @@ class HttpSource:
         except FetchError:
             raise
         except aiohttp.ClientPayloadError as exc:
-            raise FetchError(url, TRUNCATED, f"{what}: the body was cut short ({_reason(exc)})") from None
+            raise FetchError(url, TRUNCATED, f"{what}: the body was cut short ({_payload_reason(exc)})") from None
         except aiohttp.ClientConnectorDNSError as exc:
             raise FetchError(url, CONNECTION, f"unknown host {exc.host!r} (the name does not resolve: "
                              f"{_dns_reason(exc)})", unreachable=True) from None
@@ -194,6 +194,17 @@ def _reason(exc: BaseException) -> str:
     if isinstance(os_error, OSError) and os_error.errno:  # asyncio's strerror is "Connect call failed (...)"
         text = os.strerror(os_error.errno).lower()
     return text or type(exc).__name__
+
+
+def _payload_reason(exc: BaseException) -> str:
+    """aiohttp's payload errors nest reprs ("Response payload is not completed: <ContentLengthError: 400, ...>"):
+    the byte counts when it gives them, else its first line."""
+    import re
+
+    m = re.search(r"received (\d+) of (\d+) bytes", str(exc))
+    if m:
+        return f"{m.group(1)} of {m.group(2)} bytes received, then the connection closed"
+    return _reason(exc)
 
 
 def _dns_reason(exc: BaseException) -> str:
