@@ -826,7 +826,10 @@ def check_msgpack_bomb(raw: bytes, source: str) -> None:
     byte as the lead byte of a value bounds what any parse builds), or whose top level is not a map."""
     if not raw or not (0x80 <= raw[0] <= 0x8F or raw[0] in (0xDE, 0xDF)):
         raise FormatError(source, None, "not a msgpack manifest (expected a map at the top)")
-    counts = np.bincount(np.frombuffer(raw, np.uint8), minlength=256)
+    counts = np.zeros(256, np.int64)
+    view = np.frombuffer(raw, np.uint8)
+    for start in range(0, len(view), 1 << 22):  # bincount widens to int64: 8 bytes per byte, so in 4 MiB pieces
+        counts += np.bincount(view[start:start + (1 << 22)], minlength=256)
     estimate = int(counts @ _OBJECT_BYTES)
     if estimate > MAX_MANIFEST_OBJECT_BYTES:
         containers = int(counts[0x80:0xA0].sum() + counts[0xDC:0xE0].sum())
