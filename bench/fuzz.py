@@ -1523,6 +1523,346 @@ def run_campaign(cases_per_format: int, seed: int = 1, jobs: int = 2, formats: l
         return campaign.run(cases_per_format, formats, only, progress)
 
 
+# --------------------------------------------------------------------------------------------------------------
+# The network campaign (issue 37): a hostile HTTP server (tests/hostile_server.py) against `view --headless` and
+# the library's fetcher. Each case ends either with the clean picture (compared with a clean run) or with a
+# non-zero exit and one line naming the URL and the problem, within the timeout plus 5 s, under 1 GB; the disk
+# cache holds only verified payloads afterwards.
+
+
+@dataclasses.dataclass(frozen=True)
+class NetCase:
+    name: str
+    fault: str | None            # None: the clean server
+    target: str = "payload"
+    times: int | None = None     # None: permanent
+    scene: str = "s"             # which served scene the client asks for
+    expect: str = "picture"      # "picture" (the clean one), "picture2" (the re-encoded scene's), "error" or
+    #                              "either" (10 s stalls of all 44 payloads may outlast the timeout: then named)
+
+
+NET_CASES = [
+    NetCase("clean", None),
+    NetCase("manifest drip 1 B/s", "drip", "manifest", expect="error"),
+    NetCase("manifest stall", "stall", "manifest", expect="error"),
+    NetCase("manifest reset (permanent)", "reset", "manifest", expect="error"),
+    NetCase("manifest reset once", "reset", "manifest", 1),
+    NetCase("manifest truncated once", "truncate", "manifest", 1),
+    NetCase("manifest 500 permanent", "500", "manifest", expect="error"),
+    NetCase("manifest 503 twice", "503", "manifest", 2),
+    NetCase("manifest 404", "404", "manifest", expect="error"),
+    NetCase("manifest redirect loop", "redirect_loop", "manifest", expect="error"),
+    NetCase("manifest gzip", "gzip", "manifest"),
+    NetCase("manifest 100 MiB", "huge_manifest", "manifest", expect="error"),
+    NetCase("manifest msgpack bomb 64 MiB", "manifest_bomb", "manifest", expect="error"),
+    NetCase("manifest nested 200k deep", "nested_manifest", "manifest", expect="error"),
+    NetCase("payloads drip 1 B/s", "drip", "root", expect="error"),
+    NetCase("payloads stall", "stall", "root", expect="error"),
+    NetCase("a payload stalls once", "stall", "root", 1),
+    NetCase("every payload stalls once", "stall", "payload", 1, expect="either"),
+    NetCase("payloads reset once", "reset", "payload", 1),
+    NetCase("payloads reset permanent", "reset", "root", expect="error"),
+    NetCase("payloads truncated once", "truncate", "payload", 1),
+    NetCase("payloads truncated permanent", "truncate", "root", expect="error"),
+    NetCase("payloads wrong body once", "wrong", "payload", 1),
+    NetCase("payloads wrong body permanent", "wrong", "root", expect="error"),
+    NetCase("payloads gzip", "gzip", "payload"),
+    NetCase("payloads 500 once", "500", "payload", 1),
+    NetCase("payloads 500 permanent", "500", "root", expect="error"),
+    NetCase("payloads 503 twice", "503", "payload", 2),
+    NetCase("payloads 404 once", "404", "payload", 1),
+    NetCase("payloads 404 permanent", "404", "root", expect="error"),
+    NetCase("payloads redirect loop", "redirect_loop", "root", expect="error"),
+    NetCase("scene re-encoded mid-stream", "reencode", times=1, expect="picture2"),
+    NetCase("payload checksum-valid, undecodable", None, scene="s_bad", expect="error"),
+    NetCase("1-splat tile declares 8192x8192", None, scene="s_tex", expect="error"),
+]
+
+
+@dataclasses.dataclass
+class NetResult:
+    case: str
+    client: str        # "view" or "fetcher"
+    outcome: str       # "picture", "named_error" or BAD: "wrong_picture", "unnamed_error", "traceback", "late",
+    seconds: float     # "hang", "bad_cache", "oom"
+    peak_mb: float
+    exit: int | None
+    message: str
+
+
+def _net_scenes(workdir: pathlib.Path) -> dict[str, pathlib.Path]:
+    sys.path.insert(0, str(ROOT / "tests"))
+    from hostile_server import texture_bomb_scene, undecodable_scene
+
+    from splatstream.encode import encode_file
+
+    src = REAL / "fruit_drops_sh3.ply"
+    if not src.exists():
+        src = FOREIGN / "fruit_drops_sub64.ply"
+    root = workdir / "root"
+    encode_file(src, root / "s", max_leaf_splats=1000)
+    encode_file(src, workdir / "s2", max_leaf_splats=300)  # the re-encoded version (other payloads)
+    undecodable_scene(root / "s", root / "s_bad")
+    texture_bomb_scene(root / "s", root / "s_tex")
+    return {"root": root, "alt": workdir / "s2"}
+
+
+def _view(url: str, out: pathlib.Path, cache: pathlib.Path, timeout_s: float) -> tuple[int | None, float, float, str]:
+    """`view --headless` in a child: (exit status or None when killed, seconds, peak RSS in MB, stderr)."""
+    cmd = [sys.executable, "-m", "splatstream.cli", "view", url, "--headless", "--timeout", f"{timeout_s:g}",
+           "--size", "320x240", "--gpu-mem-mb", "64", "--screenshot", str(out)]
+    env = child_env({"SPLATSTREAM_CACHE_DIR": str(cache)})
+    t0 = time.monotonic()
+    peak_kb = 0
+    with open(out.with_suffix(".err"), "wb") as err:
+        proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=err, stdin=subprocess.DEVNULL, env=env)
+        deadline = t0 + timeout_s + 60
+        status = None
+        while time.monotonic() < deadline:
+            peak_kb = max(peak_kb, _vm_hwm_kb(proc.pid))
+            pid, st, _ = os.wait4(proc.pid, os.WNOHANG)
+            if pid:
+                status = os.waitstatus_to_exitcode(st)
+                break
+            time.sleep(0.02)
+        else:
+            proc.kill()
+            os.wait4(proc.pid, 0)
+        proc.returncode = status if status is not None else -9
+    seconds = time.monotonic() - t0
+    return status, seconds, peak_kb / 1024, out.with_suffix(".err").read_text(errors="replace")
+
+
+def _vm_hwm_kb(pid: int) -> int:
+    """The process's peak resident memory so far (VmHWM; ru_maxrss of a child would include its parent's peak
+    from before the exec)."""
+    try:
+        with open(f"/proc/{pid}/status") as f:
+            for line in f:
+                if line.startswith("VmHWM:"):
+                    return int(line.split()[1])
+    except (OSError, ValueError):
+        pass
+    return 0
+
+
+def _image_psnr(a: pathlib.Path, b: pathlib.Path) -> float:
+    import numpy as np
+    from PIL import Image
+
+    x = np.asarray(Image.open(a), np.float64)
+    y = np.asarray(Image.open(b), np.float64)
+    if x.shape != y.shape:
+        return 0.0
+    mse = float(((x - y) ** 2).mean())
+    return float("inf") if mse == 0 else 10 * np.log10(255.0 ** 2 / mse)
+
+
+def cache_is_verified(cache: pathlib.Path) -> str:
+    """'' when every payload file in the disk cache hashes to its name, else the first that does not."""
+    import hashlib
+
+    for f in (cache / "payloads").rglob("*.bin") if (cache / "payloads").is_dir() else ():
+        if hashlib.sha256(f.read_bytes()).hexdigest() != f.stem:
+            return str(f)
+    return ""
+
+
+def _classify_view(case: NetCase, status, seconds, peak_mb, err, shot, clean, clean2, url, timeout_s,
+                   cache) -> tuple[str, str]:
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    last = lines[-1] if lines else ""
+    if "Traceback" in err or "internal error" in err:
+        return "traceback", last
+    if status is None:
+        return "hang", last
+    if peak_mb > 1024:
+        return "oom", last
+    if cache_is_verified(cache):
+        return "bad_cache", cache_is_verified(cache)
+    if seconds > timeout_s + 5:
+        return "late", last
+    if status == 0:
+        want = clean2 if case.expect == "picture2" else clean
+        psnr = _image_psnr(shot, want) if shot.exists() else 0.0
+        return ("picture" if psnr >= 40 else "wrong_picture"), f"{psnr:.1f} dB against the clean run"
+    errors = [ln for ln in lines if ln.startswith("splatstream view: error:") or ": not converged after" in ln
+              or ln.startswith("view: http")]
+    named = errors and url.split("/scenes/")[0] in errors[-1]
+    return ("named_error" if named else "unnamed_error"), (errors[-1] if errors else last)
+
+
+def _fetch_case(server, case: NetCase, timeout_s: float, cache: pathlib.Path) -> NetResult:
+    """The library's fetcher: the manifest, then every payload; ends with every payload exact, or with a named
+    failure (the manifest's FetchError, or failing() at the timeout)."""
+    import resource
+
+    from client_gl.stream.cache import DiskCache
+    from client_gl.stream.fetch import Fetcher
+    from client_gl.stream.sources import HttpSource
+    from splatstream.errors import SplatstreamError
+    from splatstream.format.manifest import parse_manifest
+
+    url = server.url(case.scene)
+    t0 = time.monotonic()
+    outcome, message = "picture", ""
+    f = Fetcher(HttpSource(url), cache=DiskCache(cache), manifest_timeout_s=timeout_s,
+                request_deadline_s=max(1.0, timeout_s / 2)).start()
+    try:
+        try:
+            data = f.manifest()
+            m = f.parsed_manifest(data) or parse_manifest(data, url, lazy_payloads=True)
+            wanted = {(t.id if t is not None else None, g): p for t, g, p in m.payloads()}
+        except SplatstreamError as exc:
+            outcome, message = "named_error", str(exc)
+        else:
+            f.want([(0.0, k, e) for k, e in wanted.items()])
+            got = {}
+            while len(got) < len(wanted) and time.monotonic() - t0 < timeout_s:
+                for key, entry, body in f.done():
+                    if wanted.get(key) is entry:
+                        got[key] = body
+                new = f.take_new_manifest()  # the scene was re-encoded (payloads answered 404): follow it
+                if new is not None:
+                    wanted = {(t.id if t is not None else None, g): p for t, g, p in new[1].payloads()}
+                    got = {}
+                    f.want([(0.0, k, e) for k, e in wanted.items()])
+                time.sleep(0.01)
+            if len(got) < len(wanted):
+                failing = f.failing()
+                message = failing[0][1] if failing else f"{len(wanted) - len(got)} payloads missing, none failing"
+                outcome = "named_error" if failing and url.split("/scenes/")[0] in message else "unnamed_error"
+            else:
+                outcome = "exact_bytes"
+    except Exception as exc:  # noqa: BLE001 - a campaign records every escape
+        outcome, message = "traceback", f"{type(exc).__name__}: {exc}"
+    finally:
+        f.close()
+    seconds = time.monotonic() - t0
+    if cache_is_verified(cache):
+        outcome, message = "bad_cache", cache_is_verified(cache)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # the campaign's process, server included
+    return NetResult(case.name, "fetcher", outcome, seconds, peak, None, message)
+
+
+NET_GOOD = ("picture", "exact_bytes", "named_error")
+
+
+def run_network_campaign(workdir: pathlib.Path, timeout_s: float = 20.0, cases: list[NetCase] | None = None,
+                         clients: tuple[str, ...] = ("view", "fetcher"), progress: bool = False) -> list[NetResult]:
+    sys.path.insert(0, str(ROOT / "tests"))
+    from hostile_server import HostileServer, Mode
+
+    scenes = _net_scenes(workdir)
+    results: list[NetResult] = []
+    with HostileServer(scenes["root"]) as server:
+        clean = workdir / "clean.png"
+        clean2 = workdir / "clean2.png"
+        if "view" in clients:
+            _view(server.url("s"), clean, workdir / "cache-clean", timeout_s)
+            (scenes["root"] / "s2").symlink_to(scenes["alt"])
+            _view(server.url("s2"), clean2, workdir / "cache-clean2", timeout_s)
+        for i, case in enumerate(cases or NET_CASES):
+            expected_ok = {"picture": ("picture", "exact_bytes"), "picture2": ("picture", "exact_bytes"),
+                           "error": ("named_error",), "either": NET_GOOD}[case.expect]
+            for client in clients:
+                mode = None
+                if case.fault is not None:
+                    mode = Mode(case.fault, case.target, case.times, alt=str(scenes["alt"]))
+                server.set_mode(mode)
+                cache = workdir / f"cache-{i}-{client}"
+                if client == "view":
+                    shot = workdir / f"case-{i}.png"
+                    url = server.url(case.scene)
+                    status, seconds, peak, err = _view(url, shot, cache, timeout_s)
+                    outcome, message = _classify_view(case, status, seconds, peak, err, shot, clean, clean2, url,
+                                                      timeout_s, cache)
+                    r = NetResult(case.name, "view", outcome, seconds, peak, status, message)
+                else:
+                    r = _fetch_case(server, case, timeout_s, cache)
+                if r.outcome in NET_GOOD and r.outcome not in expected_ok and not (
+                        client == "fetcher" and case.scene == "s_bad"):  # the fetcher does not decode
+                    r.outcome = f"unexpected_{r.outcome}"
+                results.append(r)
+                if progress:
+                    print(f"{client:7} {case.name:40} {r.outcome:14} {r.seconds:6.1f} s {r.peak_mb:7.0f} MB  "
+                          f"{r.message[:150]}", flush=True)
+    return results
+
+
+def network_table(results: list[NetResult]) -> str:
+    out = ["| mode | client | outcome | time (s) | peak memory (MB) | exit | message |",
+           "| --- | --- | --- | ---: | ---: | ---: | --- |"]
+    for r in results:
+        msg = r.message.replace("|", "\\|")
+        if len(msg) > 160:
+            msg = msg[:157] + "..."
+        out.append(f"| {r.case} | {r.client} | {r.outcome} | {r.seconds:.1f} | {r.peak_mb:.0f} | "
+                   f"{'' if r.exit is None else r.exit} | {msg} |")
+    return "\n".join(out)
+
+
+def reader_bombs(workdir: pathlib.Path) -> list[tuple[str, str, float, float]]:
+    """Bombs for the SOG, glTF, SPZ and PLY readers, each read by `convert` in a child: (name, outcome, seconds,
+    peak MB)."""
+    bombs = workdir / "bombs"
+    bombs.mkdir(parents=True, exist_ok=True)
+    made = []
+    # SOG: meta.json inflating to 3.5 GiB (declared), and textures with huge declared sizes
+    src = zipfile.ZipFile(FOREIGN / "fruit_drops.sog")
+    with zipfile.ZipFile(bombs / "meta_bomb.sog", "w", zipfile.ZIP_DEFLATED) as z:
+        for name in src.namelist():
+            if name == "meta.json":
+                with z.open("meta.json", "w", force_zip64=True) as f:
+                    f.write(b"{")
+                    zeros = b" " * (1 << 24)
+                    for _ in range(224):  # 3.5 GiB
+                        f.write(zeros)
+                    f.write(b"}")
+            else:
+                z.writestr(name, src.read(name))
+    made.append(bombs / "meta_bomb.sog")
+    # glTF: a buffer claiming 4 GiB; SPZ v2 gzip declaring 2^31 splats; PLY declaring 10^9 vertices
+    data = (FOREIGN / "fruit_drops_sub64_sh1.glb").read_bytes()
+    json_len = struct.unpack_from("<I", data, 12)[0]
+    doc = json.loads(data[20:20 + json_len])
+    doc["buffers"][0]["byteLength"] = 4 << 30
+    doc["accessors"][0]["count"] = 1 << 31
+    text = json.dumps(doc).encode()
+    text += b" " * (-len(text) % 4)
+    body = struct.pack("<II", len(text), 0x4E4F534A) + text + data[20 + json_len:]
+    (bombs / "bomb.glb").write_bytes(struct.pack("<4sII", b"glTF", 2, 12 + len(body)) + body)
+    made.append(bombs / "bomb.glb")
+    (bombs / "bomb.spz").write_bytes(gzip.compress(struct.pack("<4sIIBBBB", b"NGSP", 2, (1 << 31) - 1, 0, 12, 0, 0)
+                                                   + bytes(1 << 24), 9))
+    made.append(bombs / "bomb.spz")
+    ply = (FOREIGN / "fruit_drops_sub64.ply").read_bytes().replace(b"element vertex 74\n",
+                                                                     b"element vertex 1000000000\n", 1)
+    (bombs / "bomb.ply").write_bytes(ply)
+    made.append(bombs / "bomb.ply")
+    out = []
+    for path in made:
+        t0 = time.monotonic()
+        errfile = path.with_suffix(".err")
+        with open(errfile, "wb") as errf:
+            proc = subprocess.Popen([sys.executable, "-m", "splatstream.cli", "convert", "-q", str(path),
+                                     str(path.with_suffix(".out.ply"))], env=child_env(), stdout=subprocess.DEVNULL,
+                                    stderr=errf, stdin=subprocess.DEVNULL)
+            peak_kb = 0
+            while True:
+                peak_kb = max(peak_kb, _vm_hwm_kb(proc.pid))
+                pid, st, _ = os.wait4(proc.pid, os.WNOHANG)
+                if pid:
+                    break
+                time.sleep(0.01)
+        err = errfile.read_text(errors="replace").strip().splitlines()
+        code = os.waitstatus_to_exitcode(st)
+        ok = code == 2 and err and "Traceback" not in "\n".join(err) and str(path.name) in err[-1]
+        out.append((path.name, ("refused: " + err[-1]) if ok else f"BAD exit {code}: {err[-1:]}",
+                    time.monotonic() - t0, peak_kb / 1024))
+    return out
+
+
 def main() -> int:
     if "--fork-server" in sys.argv:
         fork_server_main()
@@ -1538,7 +1878,14 @@ def main() -> int:
     p.add_argument("--keep", help="copy the directories of bad cases here (with case.json)")
     p.add_argument("--json", help="write every case's record here")
     p.add_argument("--only", help="FORMAT:INDEX, one case (to reproduce it)")
+    p.add_argument("--network", action="store_true", help="the network campaign instead (issue 37): every mode of "
+                   "tests/hostile_server.py against `view --headless` and the fetcher, and the reader bombs")
+    p.add_argument("--timeout", type=float, default=20.0, help="--network: view's --timeout (default 20)")
+    p.add_argument("--clients", default="view,fetcher", help="--network: view, fetcher or both")
+    p.add_argument("--cases-matching", help="--network: only the cases whose name contains one of these (a,b,...)")
     args = p.parse_args()
+    if args.network:
+        return network_main(args)
     formats = args.formats.split(",") if args.formats else None
     only = None
     if args.only:
@@ -1567,6 +1914,24 @@ def main() -> int:
         print(f"BAD {c.format}:{c.index} {c.outcome}: {c.description} -> {c.detail}")
     if args.json:
         pathlib.Path(args.json).write_text(json.dumps([case_record(c) for c in cases], indent=1))
+    return 1 if bad else 0
+
+
+def network_main(args) -> int:
+    with tempfile.TemporaryDirectory(prefix="splatstream-net-") as tmp:
+        work = pathlib.Path(args.keep) if args.keep else pathlib.Path(tmp)
+        wanted = args.cases_matching.split(",") if args.cases_matching else None
+        cases = [c for c in NET_CASES if wanted is None or any(w in c.name for w in wanted)]
+        results = run_network_campaign(work, args.timeout, cases, tuple(args.clients.split(",")), progress=True)
+        bombs = reader_bombs(work)
+    print(network_table(results))
+    print()
+    print("| reader bomb | outcome | time (s) | peak memory (MB) |\n| --- | --- | ---: | ---: |")
+    for name, outcome, seconds, peak in bombs:
+        print(f"| {name} | {outcome.replace('|', '/')} | {seconds:.2f} | {peak:.0f} |")
+    bad = [r for r in results if r.outcome not in NET_GOOD] + [b for b in bombs if b[1].startswith("BAD")]
+    if args.json:
+        pathlib.Path(args.json).write_text(json.dumps([dataclasses.asdict(r) for r in results], indent=1))
     return 1 if bad else 0
 
 

@@ -12,6 +12,7 @@ picture, the budgets and the metrics are the same with and without a display. Me
 from __future__ import annotations
 
 import gc
+import math
 import os
 import time
 from dataclasses import dataclass, field, replace
@@ -56,6 +57,8 @@ class ViewOptions:
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     request_timeout_s: float = 15.0
     stall_timeout_s: float = 10.0
+    request_deadline_s: float = 60.0  # one request in all (a server dripping bytes resets no stall timer)
+    manifest_timeout_s: float = 30.0  # the manifest in all, retries included (view: at most its --timeout)
 
     def selection(self) -> SelectionOptions:
         return SelectionOptions(max_sse=self.max_sse, max_splats=self.max_splats, sh_degree=self.sh_degree,
@@ -137,7 +140,9 @@ class PreparedSource:
         if options.cache and getattr(source, "cache_key", None):
             cache = DiskCache(options.cache_dir)
         fetcher = Fetcher(source, cache=cache, max_in_flight=options.max_in_flight,
-                          request_timeout_s=options.request_timeout_s, stall_timeout_s=options.stall_timeout_s)
+                          request_timeout_s=options.request_timeout_s, stall_timeout_s=options.stall_timeout_s,
+                          request_deadline_s=options.request_deadline_s,
+                          manifest_timeout_s=options.manifest_timeout_s)
         fetcher.start()
         try:
             data = fetcher.manifest()
@@ -171,6 +176,7 @@ class StreamingSession:
         self.last_stats: FrameStats | None = None
         self._drawn_with: tuple | None = None
         self.paused = False
+        self.manifest_changes = 0  # new versions of the scene continued with (_follow_new_manifest)
 
     def _build(self, ctx, options: ViewOptions) -> None:
         """The GPU pool, the renderer and the engine for these options (again when the budget changes)."""
@@ -178,6 +184,7 @@ class StreamingSession:
         degree = min(options.sh_degree, m.sh_degree)
         codebook = CodebookLayout(m.sh_codebook.format, m.sh_codebook.entries) if m.sh_codebook else None
         self.budget = int(options.gpu_mem_mb * (1 << 20))
+        check_root_fits(m, self.budget, degree, codebook, options.gpu_mem_mb)
         self.with_mirror = resolve_sort(ctx, options.render) == "cpu"
         self.pool = ChunkPool.for_budget(ctx, self.budget, m.formats, degree, codebook=codebook,
                                          host_mirror=self.with_mirror)
@@ -217,11 +224,28 @@ class StreamingSession:
                                           selection=replace(options.selection(), sh_degree=degree),
                                           prefetch=options.prefetch)
 
+    def _follow_new_manifest(self) -> None:
+        """The scene was re-encoded while streamed (payloads answered 404, the fetcher found a new manifest:
+        http.md 10): continue with the new version, a new pool and engine (what was resident comes back from
+        the disk cache where payloads did not change)."""
+        new = self.fetcher.take_new_manifest()
+        if new is None:
+            return
+        self.manifest = new[1]
+        self.engine.close()
+        self.renderer.release()
+        self.pool.release()
+        self._build(self.ctx, self.options)
+        self.last = None
+        self.manifest_changes += 1
+
     # --- the frame ----------------------------------------------------------------------------------------------
     def frame(self, cam: Camera, sh_degree: int | None = None, clear: bool = True,
               timing: bool = False) -> FrameRecord:
         """Stream (unless paused) and draw one frame into the renderer's framebuffer."""
         t0 = time.perf_counter()
+        if not self.paused:
+            self._follow_new_manifest()
         self._drawn_with = (cam, sh_degree, clear)
         self.engine.frame_started()
         try:
@@ -262,6 +286,21 @@ class StreamingSession:
             m.converged_s = None  # converged means: and stayed so until now
         return rec
 
+    def problem(self) -> str | None:
+        """One line naming what keeps the view from converging, or None: a payload that does not decode (the
+        scene is broken), else the payload failing most often (its URL and last failure), else the last failure."""
+        if self.engine.failed:
+            first = next(iter(self.engine.failed.values()))
+            more = len(self.engine.failed) - 1
+            return f"{first} (does not decode{f'; {more} more payloads neither' if more else ''})"
+        failing = self.fetcher.failing()
+        if failing:
+            _, message, attempts = failing[0]
+            more = len(failing) - 1
+            return (f"{message} ({attempts} failed attempt{'s' if attempts > 1 else ''}"
+                    f"{f'; {more} more payloads failing' if more else ''})")
+        return None
+
     @property
     def drawn_camera(self) -> Camera | None:
         """The camera of the last frame drawn (what read_image shows)."""
@@ -298,6 +337,19 @@ def freeze_long_lived() -> None:
     whichever frame allocated next. gc.freeze() moves what exists now out of the collector's walks (no collection
     first: that would be the same stall before the first frame)."""
     gc.freeze()
+
+
+def check_root_fits(manifest: Manifest, budget: int, sh_degree: int, codebook: CodebookLayout | None,
+                    gpu_mem_mb: float) -> None:
+    """UsageError naming the minimum when the GPU budget cannot hold the scene's root tile (nothing would ever be
+    drawn: every view starts from the root)."""
+    layout = PoolLayout(manifest.formats, sh_degree, codebook)
+    root = manifest.tile(manifest.root)
+    need = layout.fixed_bytes() + layout.slot_bytes() * max(1, root.chunks)
+    if budget < need:
+        minimum = math.ceil(need / (1 << 20) * 100) / 100
+        raise UsageError(f"--gpu-mem-mb {gpu_mem_mb:g}: too small for this scene: its root tile alone takes "
+                         f"{need} bytes of GPU memory (give --gpu-mem-mb {minimum:g} or more)")
 
 
 def check_gpu_budget(options: ViewOptions) -> None:

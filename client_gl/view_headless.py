@@ -10,7 +10,7 @@ import json
 import os
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 from splatstream.camera import Camera
 from splatstream.camera_path import CameraPath
@@ -66,7 +66,11 @@ def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
         if fraction >= 1.0 or fraction == 0.0:
             say(f"view: {stage} {fraction * 100:.0f}%")
 
-    session = StreamingSession.open(run.source, ctx, run.options, progress=encode_progress)
+    # The timeout counts from here: the manifest's request (however slowly it arrives) is inside it.
+    # A request that takes half the timeout (a server dripping bytes) fails and is named before the timeout ends.
+    options = replace(run.options, manifest_timeout_s=min(run.options.manifest_timeout_s, run.timeout_s),
+                      request_deadline_s=min(run.options.request_deadline_s, max(5.0, run.timeout_s / 2)))
+    session = StreamingSession.open(run.source, ctx, options, progress=encode_progress)
     freeze_long_lived()
     try:
         w, h = run.size
@@ -97,9 +101,14 @@ def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
                 elif done or frame % 20 == 1:
                     say(line)
             if done:
+                if session.engine.failed:  # converged without payloads that do not decode: not the scene's picture
+                    say(f"view: {session.problem()}")
+                    code = EXIT_NOT_CONVERGED
                 break
-            if now > run.timeout_s:
-                say(f"view: not converged after {run.timeout_s:g} s (timeout)")
+            if time.perf_counter() - session.metrics.start > run.timeout_s:
+                problem = session.problem()
+                say(f"view: not converged after {run.timeout_s:g} s: {problem}" if problem else
+                    f"view: not converged after {run.timeout_s:g} s (timeout)")
                 code = EXIT_NOT_CONVERGED
                 break
             if not rec.uploaded_bytes:

@@ -543,7 +543,9 @@ class Viewer:
                     self._measure()
                     break
                 if now - self.start > self.run.timeout_s:
-                    print(f"view: not converged after {self.run.timeout_s:g} s (timeout)", file=sys.stderr)
+                    problem = self.session.problem()
+                    print(f"view: not converged after {self.run.timeout_s:g} s: {problem}" if problem else
+                          f"view: not converged after {self.run.timeout_s:g} s (timeout)", file=sys.stderr)
                     self.exit_code = EXIT_NOT_CONVERGED
                     break
             if self.session is None and self.load_error is None:

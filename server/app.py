@@ -17,7 +17,7 @@ from aiohttp.abc import AbstractAccessLogger
 from . import http as h
 from . import tilesets
 from .limits import RETRY_AFTER_SECONDS, ConnectionGuard, Limits
-from .paths import PathRejected, parse_scene_path
+from .paths import PathRejected, parse_scene_path, unservable_path
 from .scenes import Forbidden, NotFound, OpenedFile, OutOfResources, SceneRoot
 from .throttle import Link
 from .tilesets import TilesetPath, open_tileset_file, parse_tileset_path
@@ -272,6 +272,9 @@ async def errors_middleware(request: web.Request, handler) -> web.StreamResponse
             headers["Allow"] = h.ALLOWED_METHODS
             message = f"method {request.method} is not allowed here; allowed: {h.ALLOWED_METHODS}"
         elif exc.status == 404:
+            problem = unservable_path(request.rel_url.raw_path)
+            if problem is not None:
+                return error_response(request, 400, problem)
             message = "not found: scenes are under /scenes/<scene id>/, the scene list at /api/scenes"
         else:
             message = exc.reason

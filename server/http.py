@@ -20,7 +20,15 @@ CORS_MAX_AGE = "86400"
 GZIP_MIN_BYTES = 256  # smaller JSON bodies are sent as they are: gzip would not make them shorter
 
 _ETAG_RE = re.compile(r'\s*(W/)?"([\x21\x23-\x7e\x80-\xff]*)"\s*(?:,|$)')
-_RANGE_SPEC_RE = re.compile(r"^(\d{0,19})-(\d{0,19})$")
+# Any number of digits (a start of 2^64 or more is a valid range beyond any file: 416, not ignored); longer
+# numbers than _RANGE_DIGITS digits are not converted (they exceed any file anyway).
+_RANGE_SPEC_RE = re.compile(r"^(\d*)-(\d*)$")
+_RANGE_DIGITS = 4000  # below Python's int() digit limit (4300); a header line holds at most 8190 bytes
+
+
+def _range_number(digits: str) -> int:
+    digits = digits.lstrip("0") or "0"
+    return int(digits) if len(digits) <= _RANGE_DIGITS else 10 ** _RANGE_DIGITS
 
 
 def strong_etag(token: str) -> str:
@@ -123,16 +131,16 @@ def parse_range(header: str | None, size: int) -> ByteRange | None:
     if first == "":
         if last == "":
             return None
-        suffix = int(last)
+        suffix = _range_number(last)
         if suffix == 0 or size == 0:
             raise RangeNotSatisfiable(spec)
         return ByteRange(max(0, size - suffix), size - 1)
-    start = int(first)
-    if last != "" and int(last) < start:
+    start = _range_number(first)
+    if last != "" and _range_number(last) < start:
         return None
     if start >= size:
         raise RangeNotSatisfiable(spec)
-    end = size - 1 if last == "" else min(int(last), size - 1)
+    end = size - 1 if last == "" else min(_range_number(last), size - 1)
     return ByteRange(start, end)
 
 

@@ -81,6 +81,24 @@ def percent_decode(raw: str) -> str:
     return decoded
 
 
+def unservable_path(raw_path: str) -> str | None:
+    """Why a raw path outside the served URLs can never name a file (http.md 9: answered 400, not 404): control
+    characters (also encoded, as a smuggled CR LF), malformed or double escapes, encoded separators, non-ASCII,
+    backslashes, '.' and '..' segments, over MAX_PATH_CHARS. None when it is merely unknown (404)."""
+    if len(raw_path) > MAX_PATH_CHARS:
+        return f"path longer than {MAX_PATH_CHARS} characters"
+    if "\\" in raw_path:
+        return "backslashes are not allowed in the path"
+    for seg in raw_path.split("/"):
+        try:
+            decoded = percent_decode(seg)
+        except PathRejected as exc:
+            return exc.message
+        if decoded in (".", ".."):
+            return "'.' and '..' path segments are not allowed"
+    return None
+
+
 def check_segment(seg: str) -> None:
     if seg == "":
         raise PathRejected(404, "empty path segment (directories are not listed)")

@@ -327,3 +327,29 @@ def test_bracketed_kd_splits_are_the_exact_medians(tmp_path):
     _top_splits(engine, scratch, spans, depth, n, bounds, samples["good"][0], lambda *a: None)
     assert engine.calls == ["chunk_bracket"] * depth  # one pass per level, no box or radix passes
     scratch.remove()
+
+
+def test_scratch_of_a_killed_encode_is_removed_by_the_next(tmp_path):
+    """Issue 37: SIGKILL of an encode left its .splatstream-scratch-* directory beside the output for good. A
+    scratch directory is locked by its process (flock, dropped by the kernel when it dies): the next encode's
+    Scratch.create removes those nobody holds, never one of a running encode nor a directory without the lock."""
+    import signal
+    import subprocess
+    import sys
+
+    code = ("import os, signal, sys; from splatstream.encode.scratch import Scratch; "
+            "s = Scratch.create(sys.argv[1]); s.save('pos/0', p=__import__('numpy').zeros(10)); "
+            "print(s.location, flush=True); os.kill(os.getpid(), signal.SIGKILL)")
+    r = subprocess.run([sys.executable, "-c", code, str(tmp_path)], capture_output=True, text=True, timeout=120)
+    assert r.returncode == -signal.SIGKILL
+    dead = r.stdout.strip()
+    assert os.path.isdir(dead) and os.path.isfile(os.path.join(dead, "pos", "0"))
+    foreign = tmp_path / ".splatstream-scratch-foreign"  # no owner lock: not known to be ours, kept
+    foreign.mkdir()
+    live = Scratch.create(str(tmp_path))  # this process holds it
+    assert not os.path.exists(dead)
+    again = Scratch.create(str(tmp_path))
+    assert os.path.isdir(live.location) and foreign.is_dir()
+    again.remove()
+    live.remove()
+    assert sorted(os.listdir(tmp_path)) == [foreign.name]

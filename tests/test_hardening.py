@@ -524,7 +524,15 @@ def test_gltf_json_values_of_the_wrong_type(tmp_path):
     json_len = struct.unpack_from("<I", data, 12)[0]
     original = json.loads(data[20:20 + json_len])
     for edit, message in ((lambda d: d.__setitem__("extensionsRequired", [[0, 0, 0]]), "extensionsRequired"),
-                          (lambda d: d["bufferViews"][0].__setitem__("buffer", {"a": 1}), "buffers: index")):
+                          (lambda d: d["bufferViews"][0].__setitem__("buffer", {"a": 1}), "buffers: index"),
+                          # issue 37: accessor fields of the wrong JSON type gave "internal error: TypeError"
+                          (lambda d: d["accessors"][0].__setitem__("componentType", []),
+                           r"accessor 0 \(POSITION\) componentType: \[\] \(expected an integer"),
+                          (lambda d: d["accessors"][0].__setitem__("componentType", {}), "componentType: {}"),
+                          (lambda d: d["accessors"][0].__setitem__("count", True), "count True"),
+                          (lambda d: d["accessors"][3].__setitem__("normalized", "yes"),
+                           "normalized: 'yes' \\(expected true or false\\)"),
+                          (lambda d: d["bufferViews"][0].__setitem__("byteLength", True), "bufferViews\\[0\\]")):
         doc = json.loads(json.dumps(original))
         edit(doc)
         text = json.dumps(doc).encode()

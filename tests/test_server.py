@@ -211,7 +211,8 @@ def test_range_ignored(srv, root, spec):
     assert status == 200 and body == data and "Content-Range" not in headers
 
 
-@pytest.mark.parametrize("spec", ["bytes=1000-", "bytes=5000-6000", "bytes=-0"])
+@pytest.mark.parametrize("spec", ["bytes=1000-", "bytes=5000-6000", "bytes=-0", "bytes=18446744073709551616-",
+                                  "bytes=18446744073709551615-18446744073709551616", "bytes=" + "9" * 5000 + "-"])
 def test_range_not_satisfiable(srv, root, spec):
     name, _ = next((n, d) for n, d in payloads(root, "a").items() if len(d) == 1000)
     status, headers, body = request(srv.port, f"/scenes/a/data/{name}", headers={"Range": spec})
@@ -249,6 +250,13 @@ def _secret_name(root: Path) -> str:
     ("/scenes/a%5Cmanifest.msgpack", 400),
     ("/scenes/a%00/manifest.msgpack", 400),
     ("/scenes/a%00.msgpack", 400),
+    # issue 37: an encoded CR LF is a control character wherever it is (the router's patterns do not match it)
+    ("/scenes/a%0d%0a/manifest.msgpack", 400),
+    ("/scenes/a/manifest.msgpack%0D%0A", 400),
+    (f"/scenes/a/data/{'0' * 64}.bin%0d%0aX-Injected:%201", 400),
+    ("/%0d%0a", 400),
+    ("/healthz%0a", 400),
+    ("/api/%2e%2e/scenes", 400),
     ("/scenes//etc/passwd", 404),
     ("//etc/passwd", 404),
     ("/etc/passwd", 404),

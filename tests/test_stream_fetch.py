@@ -367,8 +367,9 @@ def test_close_with_requests_in_flight_is_quick_and_quiet(root, manifest, server
     assert "Traceback" not in err and "Unclosed" not in err
 
 
-def test_close_while_manifest_waits_for_a_server_that_is_away(capfd):
-    f = fetcher(HttpSource(f"http://127.0.0.1:{_free_port()}/scenes/x"), manifest_timeout_s=30)
+def test_close_while_manifest_waits_for_a_server_that_does_not_answer(server, capfd):
+    server.add_fault("manifest", "hang")
+    f = fetcher(HttpSource(server.url(SCENE)), manifest_timeout_s=30)
     import threading
 
     outcome = []
@@ -416,6 +417,33 @@ def test_manifest_errors_are_one_line_and_name_the_url(root, server, tmp_path):
         with pytest.raises(FetchError, match="/scenes/broken/manifest.msgpack: not a splatstream manifest"):
             f.manifest()
     assert DiskCache(tmp_path / "c").get_manifest(server.url("broken") + "/manifest.msgpack") is None
+
+
+def test_an_unreachable_server_is_reported_at_once(tmp_path):
+    """Connection refused or an unknown host, nothing cached: one line at once, not after the manifest timeout."""
+    port = _free_port()
+    for url, expected in [(f"http://127.0.0.1:{port}/scenes/x", f"cannot connect to 127.0.0.1:{port} (connection "
+                                                                 f"refused)"),
+                          ("http://no-such-host.invalid/scenes/x", "unknown host 'no-such-host.invalid'")]:
+        with fetcher(HttpSource(url), manifest_timeout_s=30, cache=DiskCache(tmp_path / "c")) as f:
+            t0 = time.monotonic()
+            with pytest.raises(FetchError) as exc:
+                f.manifest()
+            assert time.monotonic() - t0 < 10  # DNS of a .invalid name may take a moment; never the 30 s
+        msg = str(exc.value)
+        assert msg.startswith(url + "/manifest.msgpack: ") and expected in msg and "\n" not in msg, msg
+        assert "unknown error" not in msg
+
+
+def test_a_dripping_manifest_ends_at_the_manifest_deadline(root, server):
+    server.slow_bytes_per_s = 20
+    server.add_fault("manifest", "slow")
+    with fetcher(HttpSource(server.url(SCENE)), manifest_timeout_s=1.5, stall_timeout_s=5) as f:
+        t0 = time.monotonic()
+        with pytest.raises(FetchError, match=r"/scenes/fruit/manifest.msgpack: no complete manifest within 1.5 s: "
+                                             r"not complete in time \(\d+ bytes received in the last attempt"):
+            f.manifest()
+        assert time.monotonic() - t0 < 5
 
 
 def test_manifest_is_retried_through_server_errors(root, server):

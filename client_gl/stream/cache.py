@@ -149,6 +149,13 @@ class DiskCache:
             self.stats.hits += 1
         return data
 
+    def discard(self, sha256: str) -> None:
+        """Remove a payload (it verified but does not decode: nothing bad stays in the cache)."""
+        with contextlib.suppress(OSError):
+            os.unlink(self.payload_path(sha256))
+        with self._lock:
+            self._forget(sha256)
+
     def _forget(self, sha256: str) -> None:
         index = self._ensure_index()
         old = index.pop(sha256, None)

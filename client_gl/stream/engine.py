@@ -221,6 +221,8 @@ class StreamEngine:
             self._processes_ready = self._processes.submit(_warm_up)
         self._entries: dict[Key, PayloadEntry] = {}
         self.errors: list[str] = []
+        # Payloads that verified but do not decode: never wanted again, nor the bands above them (issue 37).
+        self.failed: dict[Key, str] = {}
         self.process_decodes = 0  # payloads decoded in the decode processes (decode_processes > 0)
         self.uploaded_bytes_total = 0
         self.evictions = 0
@@ -286,7 +288,7 @@ class StreamEngine:
         state = (self._wanted_serial, self._version)
         if state != self._state_seen:  # the wish list or what we hold changed: tell the fetcher what is missing now
             self._keys = self._coarse_to_fine(keys, sel) if self.options.fill_levels else keys
-            self._missing = [k for k in self._keys if not self._have(k)]
+            self._missing = [k for k in self._keys if not self._have(k) and not self._blocked(k)]
             want = [k for k in self._missing if k not in self._ready and k not in self._decoding]
             pre = [] if want else [k for k in extra if not self._have(k) and k not in self._ready
                                    and k not in self._decoding]
@@ -367,10 +369,22 @@ class StreamEngine:
             self._version += 1
             if isinstance(item[1], str):
                 self.errors.append(item[1])
+                self.failed[key] = item[1]
+                reject = getattr(self.fetcher, "reject", None)
+                if reject is not None:
+                    reject(self.entry(key))
                 continue
             ready = item[1]
             self._ready[key] = ready
             self._ready_bytes += ready.nbytes
+
+    def _blocked(self, key: Key) -> bool:
+        """The payload, or a lower band of its tile, did not decode (self.failed): it cannot be drawn."""
+        if not self.failed:
+            return False
+        tile_id, group = key
+        band = _GROUP_BAND[group]
+        return any(k[0] == tile_id and _GROUP_BAND[k[1]] <= band for k in self.failed)
 
     @property
     def loop_idle(self) -> threading.Event:
@@ -402,7 +416,8 @@ class StreamEngine:
         codebook_tile = self.codebook and tile_id is not None
         splats = self.manifest.tile(tile_id).splats if tile_id is not None else 0
         entries = self.manifest.sh_codebook.entries if codebook_tile else 0
-        return (data, entry, group, f"{self.location}/{entry.file}", codebook_tile, splats, entries,
+        where = self.fetcher.where(entry) if hasattr(self.fetcher, "where") else f"{self.location}/{entry.file}"
+        return (data, entry, group, where, codebook_tile, splats, entries,
                 self.with_mirror and group == "base" and tile_id is not None)
 
     def _finish(self, key: Key, result: tuple | str) -> _Ready | str:

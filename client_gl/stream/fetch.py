@@ -40,6 +40,7 @@ from .sources import (
     CHECKSUM,
     LINK_KINDS,
     NOT_A_SCENE,
+    NOT_FOUND,
     STALL,
     TIMEOUT,
     FetchError,
@@ -61,6 +62,8 @@ MANIFEST_OFFLINE = "cache-offline"    # the cached copy, unconfirmed: the server
 MANIFEST_LOCAL = "local"              # read from a local store
 # While every network slot is busy, how far down the wanted list a pump looks for disk-cache hits to start.
 CACHE_LOOKAHEAD = 256
+# After a payload answers 404, the manifest is revalidated at most this often (seconds): a re-encoded scene.
+MANIFEST_RECHECK_S = 2.0
 
 
 @dataclass(frozen=True)
@@ -134,16 +137,19 @@ class Fetcher:
     """Fetches a scene's manifest and payloads from `source` on a background event loop (see the module doc).
 
     `request_timeout_s`: longest wait for a response's headers (connect included). `stall_timeout_s`: longest
-    gap without body bytes once the headers came. `manifest_timeout_s`: how long `manifest()` keeps retrying.
+    gap without body bytes once the headers came. `request_deadline_s`: longest time one request may take in all.
+    `manifest_timeout_s`: how long `manifest()` may take in all, retries included.
     `cache_readers`: disk-cache reads running beside the network requests. `seed`: the jitter's random seed."""
 
     def __init__(self, source: SceneSource, *, cache: DiskCache | None = None, max_in_flight: int = 6,
                  request_timeout_s: float = 15.0, stall_timeout_s: float = 10.0, retry: RetryPolicy | None = None,
-                 manifest_timeout_s: float = 30.0, cache_readers: int = 2, seed: int | None = None):
+                 manifest_timeout_s: float = 30.0, cache_readers: int = 2, seed: int | None = None,
+                 request_deadline_s: float = 60.0):
         if max_in_flight < 1 or cache_readers < 1:
             raise UsageError(f"max_in_flight {max_in_flight}, cache_readers {cache_readers}: expected at least 1")
-        if request_timeout_s <= 0 or stall_timeout_s <= 0 or manifest_timeout_s < 0:
-            raise UsageError("request, stall and manifest timeouts must be positive")
+        if request_timeout_s <= 0 or stall_timeout_s <= 0 or manifest_timeout_s < 0 or request_deadline_s <= 0:
+            raise UsageError("request, stall, deadline and manifest timeouts must be positive")
+        self.request_deadline_s = request_deadline_s
         self.source = source
         # Local stores are not worth a disk cache: their bytes are on this machine already.
         self.cache = cache if getattr(source, "cache_key", None) else None
@@ -171,6 +177,13 @@ class Fetcher:
         self._manifest_source = ""
         self._parsed: tuple[bytes, Manifest] | None = None
         self._last_error = ""
+        self._key_errors: dict[Key, tuple[str, int]] = {}  # wanted keys failing now: (last message, attempts)
+        self._rejected: set[str] = set()  # SHA-256 of payloads that verified but do not decode (reject())
+        self._manifest_etag: str | None = None
+        self._manifest_data: bytes | None = None
+        self._recheck: asyncio.Task | None = None
+        self._recheck_at = -float("inf")
+        self._new_manifest: tuple[bytes, Manifest] | None = None
 
         self._selector = _GatedSelector()
         self._loop: asyncio.AbstractEventLoop | None = None
@@ -301,6 +314,8 @@ class Fetcher:
             for key in [k for k in self._retry_at if k not in wanted]:
                 del self._retry_at[key]
                 self._key_failures.pop(key, None)
+            for key in [k for k in self._key_errors if k not in wanted]:
+                del self._key_errors[key]
             self._counts["cancelled"] += len(cancelled)
             self._wanted = wanted
             self._schedule_pump()
@@ -322,6 +337,32 @@ class Fetcher:
             return FetchStats(failures=dict(self._failures), in_flight=len(self._jobs), queued=queued,
                               offline=self._offline, manifest_source=self._manifest_source,
                               last_error=self._last_error, **self._counts)
+
+    def where(self, entry: PayloadEntry) -> str:
+        """The payload's URL (or path), as messages name it."""
+        url = getattr(self.source, "payload_url", None)
+        return url(entry) if url else f"{self.source.location}/{entry.file}"
+
+    def failing(self) -> list[tuple[Key, str, int]]:
+        """Wanted payloads whose last attempt failed: (key, the failure's one-line message naming the URL, failed
+        attempts in a row), most attempts first."""
+        with self._lock:
+            return sorted(((k, m, n) for k, (m, n) in self._key_errors.items()), key=lambda t: -t[2])
+
+    def reject(self, entry: PayloadEntry) -> None:
+        """A delivered payload matched its checksum but does not decode (the scene is broken): drop it from the
+        disk cache, and never cache it again in this fetcher."""
+        with self._lock:
+            self._rejected.add(entry.sha256)
+        if self.cache is not None:
+            self.cache.discard(entry.sha256)
+
+    def take_new_manifest(self) -> tuple[bytes, Manifest] | None:
+        """A newer manifest of the scene, found after payloads of the one held answered 404 (the scene was
+        re-encoded, http.md 10), once: (bytes, parsed). The caller continues with it (StreamingSession)."""
+        with self._lock:
+            out, self._new_manifest = self._new_manifest, None
+        return out
 
     @property
     def idle(self) -> bool:
@@ -400,15 +441,14 @@ class Fetcher:
                 data = await loop.run_in_executor(None, self.cache.get, entry)
                 self._complete(job, data, from_cache=True)  # None (damaged or evicted meanwhile): to the network
                 return
-            where = getattr(self.source, "payload_url", None)
-            where = where(entry) if where else f"{self.source.location}/{entry.file}"
+            where = self.where(entry)
             data = await self._timed(lambda on_bytes: self.source.fetch_payload(entry, on_bytes), where)
             try:
                 await loop.run_in_executor(None, verify_payload, data, entry, where)
             except FormatError as exc:
                 raise FetchError(where, CHECKSUM, exc.problem) from None
             if self._complete(job, data, from_cache=False) and self.cache is not None:
-                loop.run_in_executor(None, self.cache.put, entry, data)  # never raises; awaited at shutdown
+                loop.run_in_executor(None, self._cache_put, entry, data)  # never raises; awaited at shutdown
         except asyncio.CancelledError:
             raise
         except FetchError as exc:
@@ -419,22 +459,30 @@ class Fetcher:
             log.exception("fetching %s failed unexpectedly", entry.file)
             self._failed(job, FetchError(self.source.location, "internal", f"{type(exc).__name__}: {exc}"))
 
-    async def _timed(self, request: Callable[[OnBytes], Awaitable], where: str):
+    async def _timed(self, request: Callable[[OnBytes], Awaitable], where: str, until: float | None = None):
         """Run one request: TIMEOUT when its headers take longer than request_timeout_s, STALL when its body
-        pauses for stall_timeout_s; every byte received is counted."""
+        pauses for stall_timeout_s or the whole request takes longer than request_deadline_s (a server that drips
+        a byte at a time resets no timer for ever); every byte received is counted. `until`: a loop time by which
+        the request must be complete, whatever the timers say (FetchError TIMEOUT, not transient)."""
         loop = asyncio.get_running_loop()
+        started = loop.time()
+        hard = started + self.request_deadline_s
+        if until is not None:
+            hard = min(hard, until)
         headers = False
-        cm = asyncio.timeout(self.request_timeout_s)
+        received = 0
+        cm = asyncio.timeout(min(started + self.request_timeout_s, hard) - started)
 
         def on_bytes(n: int) -> None:
-            nonlocal headers
+            nonlocal headers, received
             if not headers:
                 headers = True
                 self._link_up()
             if n:
+                received += n
                 with self._lock:
                     self._counts["bytes_downloaded"] += n
-            cm.reschedule(loop.time() + self.stall_timeout_s)
+            cm.reschedule(min(loop.time() + self.stall_timeout_s, hard))
 
         try:
             async with cm:
@@ -442,9 +490,25 @@ class Fetcher:
         except TimeoutError:
             if not cm.expired():
                 raise
+            now = loop.time()
+            got = "no answer" if not headers else f"{received} bytes received"
+            if until is not None and now >= until - 1e-3:
+                raise FetchError(where, TIMEOUT, f"not complete in time ({got} in the last attempt's "
+                                 f"{until - started:.3g} s)", transient=False) from None
+            if now >= hard - 1e-3:
+                raise FetchError(where, STALL, f"not complete within {self.request_deadline_s:g} s ({got}: too "
+                                 "slow)") from None
             if headers:
                 raise FetchError(where, STALL, f"no data for {self.stall_timeout_s:g} s (stalled)") from None
             raise FetchError(where, TIMEOUT, f"no answer within {self.request_timeout_s:g} s") from None
+
+    def _cache_put(self, entry: PayloadEntry, data: bytes) -> None:
+        """Store verified bytes, unless the payload was rejected as undecodable (also meanwhile: removed again)."""
+        if entry.sha256 in self._rejected:
+            return
+        self.cache.put(entry, data)
+        if entry.sha256 in self._rejected:
+            self.cache.discard(entry.sha256)
 
     def _link_up(self) -> None:
         with self._lock:
@@ -468,6 +532,7 @@ class Fetcher:
                     self._undrained.add(key)
                     self._retry_at.pop(key, None)
                     self._key_failures.pop(key, None)
+                    self._key_errors.pop(key, None)
                 self._counts["delivered"] += len(keys)
                 if from_cache:
                     self._counts["cache_hits"] += 1
@@ -483,6 +548,10 @@ class Fetcher:
                 return  # cancelled meanwhile
             del self._jobs[job.key]
             now = self._loop.time()
+            previous = self._key_errors.get(job.key)
+            self._key_errors[job.key] = (str(exc), (previous[1] if previous else 0) + 1)
+            if exc.kind == NOT_FOUND:
+                self._recheck_manifest_soon(now)
             if exc.kind in LINK_KINDS:
                 self._link_failures += 1
                 self._link_until = now + self.retry.delay(self._link_failures, self._rng)
@@ -495,6 +564,38 @@ class Fetcher:
         log.debug("retrying: %s", exc)
 
     # -- the manifest ---------------------------------------------------------------------------------------------
+    def _recheck_manifest_soon(self, now: float) -> None:
+        """(lock held) A payload answered 404: revalidate the manifest (If-None-Match), at most every
+        MANIFEST_RECHECK_S; a new version is offered through take_new_manifest (http.md 10)."""
+        revalidate = getattr(self.source, "revalidate_manifest", None)
+        if revalidate is None or self._manifest_data is None or now < self._recheck_at + MANIFEST_RECHECK_S or \
+                (self._recheck is not None and not self._recheck.done()):
+            return
+        self._recheck_at = now
+        self._recheck = self._loop.create_task(self._recheck_manifest(revalidate))
+
+    async def _recheck_manifest(self, revalidate) -> None:
+        try:
+            reply = await self._timed(lambda on_bytes: revalidate(self._manifest_etag, on_bytes),
+                                      self.source.location)
+            if reply.data is None or reply.data == self._manifest_data:
+                return  # the same version: the 404s are the server's problem (retried, and named at a timeout)
+            loop = asyncio.get_running_loop()
+            parsed = await loop.run_in_executor(None, lambda: parse_manifest(reply.data, self.source.location,
+                                                                             lazy_payloads=True))
+        except (FetchError, FormatError) as exc:
+            log.debug("manifest recheck failed: %s", exc)
+            return
+        key = getattr(self.source, "cache_key", None)
+        if self.cache is not None and key:
+            await asyncio.get_running_loop().run_in_executor(None, self.cache.put_manifest, key, reply.data,
+                                                             reply.etag)
+        with self._lock:
+            self._manifest_data, self._manifest_etag = reply.data, reply.etag
+            self._new_manifest = (reply.data, parsed)
+            self._counts["requests"] += 1
+        log.info("%s: the scene was re-encoded; continuing with its new manifest", self.source.location)
+
     async def _get_manifest(self, limit_s: float) -> bytes:
         loop = asyncio.get_running_loop()
         key = getattr(self.source, "cache_key", None)
@@ -503,6 +604,7 @@ class Fetcher:
             cached = await loop.run_in_executor(None, self.cache.get_manifest, key)
         revalidate = getattr(self.source, "revalidate_manifest", None)
         deadline = loop.time() + limit_s
+        until = deadline if limit_s > 0 else None  # 0: one attempt, as long as the request's own timers allow
         attempt = 0
         while True:
             with self._lock:
@@ -511,13 +613,15 @@ class Fetcher:
                 if revalidate is not None:
                     etag = cached.etag if cached is not None else None
                     reply = await self._timed(lambda on_bytes, etag=etag: revalidate(etag, on_bytes),
-                                              self.source.location)
+                                              self.source.location, until)
                 else:
-                    reply = ManifestReply(await self._timed(self.source.fetch_manifest, self.source.location), None)
+                    reply = ManifestReply(await self._timed(self.source.fetch_manifest, self.source.location,
+                                                            until), None)
                 if reply.data is None:
                     if cached is None:
                         raise FetchError(self.source.location, NOT_A_SCENE, "304 Not Modified for a manifest "
                                          "that was not asked for conditionally", transient=False)
+                    self._manifest_data, self._manifest_etag = cached.data, reply.etag or cached.etag
                     return self._manifest_done(cached.data, MANIFEST_REVALIDATED, from_cache=True)
                 try:
                     parsed = parse_manifest(reply.data, self.source.location, lazy_payloads=True)
@@ -528,6 +632,7 @@ class Fetcher:
                 if self.cache is not None and key:
                     await loop.run_in_executor(None, self.cache.put_manifest, key, reply.data, reply.etag)
                 self._parsed = (reply.data, parsed)
+                self._manifest_data, self._manifest_etag = reply.data, reply.etag
                 return self._manifest_done(reply.data, MANIFEST_LOCAL if key is None else MANIFEST_NETWORK)
             except FetchError as exc:
                 with self._lock:
@@ -536,6 +641,15 @@ class Fetcher:
                     if exc.kind in LINK_KINDS:
                         self._offline = True
                 if not exc.transient:
+                    if exc.kind == TIMEOUT and until is not None:
+                        if cached is not None:
+                            return self._manifest_done(cached.data, MANIFEST_OFFLINE, from_cache=True)
+                        raise FetchError(self.source.location, TIMEOUT, f"no complete manifest within {limit_s:g} s:"
+                                         f" {exc.problem}", transient=False) from None
+                    raise
+                if exc.unreachable and cached is None and attempt == 0:
+                    # Nothing cached and the server was never reached (refused, unknown host): say so at once
+                    # rather than polling a server that is probably not there (a user runs the command again).
                     raise
                 if cached is not None and exc.kind in LINK_KINDS:
                     return self._manifest_done(cached.data, MANIFEST_OFFLINE, from_cache=True)

@@ -46,12 +46,14 @@ LINK_KINDS = frozenset({CONNECTION, TIMEOUT})
 
 
 class FetchError(InputError):
-    """A request failed. `kind` is one of KINDS; `transient` says whether trying again may help."""
+    """A request failed. `kind` is one of KINDS; `transient` says whether trying again may help; `unreachable`:
+    the server was never reached (connection refused, unknown host), so a first request need not wait for it."""
 
-    def __init__(self, where: str, kind: str, problem: str, transient: bool = True):
+    def __init__(self, where: str, kind: str, problem: str, transient: bool = True, unreachable: bool = False):
         super().__init__(where, None, problem)
         self.kind = kind
         self.transient = transient
+        self.unreachable = unreachable
 
 
 @runtime_checkable
@@ -113,9 +115,11 @@ class HttpSource:
         if self._session is None or self._session_loop is not loop or self._session.closed:
             connector = aiohttp.TCPConnector(limit=self.connections, enable_cleanup_closed=True)
             # No aiohttp timeout: the fetcher times requests itself (time to headers, then stalls of the body).
+            # Accept-Encoding identity: payloads and manifests are never compressed again (http.md 7); a CDN that
+            # gzips them anyway is decoded (aiohttp's auto_decompress) and the decoded bytes are what is checked.
             self._session = aiohttp.ClientSession(
                 connector=connector, timeout=aiohttp.ClientTimeout(total=None),
-                headers={"User-Agent": "splatstream-client"})
+                headers={"User-Agent": "splatstream-client", "Accept-Encoding": "identity"})
             self._session_loop = loop
         return self._session
 
@@ -136,7 +140,8 @@ class HttpSource:
                     return 304, b"", etag
                 if resp.status != 200:
                     raise _status_error(url, resp.status, what)
-                if resp.content_length is not None and resp.content_length > limit:
+                encoded = resp.headers.get("Content-Encoding", "identity").strip().lower() not in ("", "identity")
+                if not encoded and resp.content_length is not None and resp.content_length > limit:
                     raise FetchError(url, TRUNCATED, f"the server sends {resp.content_length} bytes, expected at "
                                      f"most {limit} for {what}")
                 body = bytearray()
@@ -150,10 +155,18 @@ class HttpSource:
         except FetchError:
             raise
         except aiohttp.ClientPayloadError as exc:
-            raise FetchError(url, TRUNCATED, f"{what}: the body was cut short ({_reason(exc)})") from None
+            raise FetchError(url, TRUNCATED, f"{what}: the body was cut short ({_payload_reason(exc)})") from None
+        except aiohttp.ClientConnectorDNSError as exc:
+            raise FetchError(url, CONNECTION, f"unknown host {exc.host!r} (the name does not resolve: "
+                             f"{_dns_reason(exc)})", unreachable=True) from None
         except aiohttp.ClientConnectorError as exc:
+            refused = isinstance(exc.os_error, ConnectionRefusedError)
             raise FetchError(url, CONNECTION, f"cannot connect to {exc.host}:{exc.port} ({_reason(exc)}); is the "
-                             f"server running?") from None
+                             f"server running?", unreachable=refused) from None
+        except aiohttp.TooManyRedirects as exc:
+            hops = len(exc.history)
+            raise FetchError(url, HTTP_4XX, f"too many redirects ({hops} followed, last to "
+                             f"{exc.request_info.real_url}): a redirect loop?", transient=False) from None
         except (aiohttp.ClientConnectionError, ConnectionError) as exc:  # disconnected, reset
             raise FetchError(url, CONNECTION, f"connection lost ({_reason(exc)})") from None
         except aiohttp.ClientError as exc:  # too many redirects, invalid answer
@@ -181,6 +194,24 @@ def _reason(exc: BaseException) -> str:
     if isinstance(os_error, OSError) and os_error.errno:  # asyncio's strerror is "Connect call failed (...)"
         text = os.strerror(os_error.errno).lower()
     return text or type(exc).__name__
+
+
+def _payload_reason(exc: BaseException) -> str:
+    """aiohttp's payload errors nest reprs ("Response payload is not completed: <ContentLengthError: 400, ...>"):
+    the byte counts when it gives them, else its first line."""
+    import re
+
+    m = re.search(r"received (\d+) of (\d+) bytes", str(exc))
+    if m:
+        return f"{m.group(1)} of {m.group(2)} bytes received, then the connection closed"
+    return _reason(exc)
+
+
+def _dns_reason(exc: BaseException) -> str:
+    os_error = getattr(exc, "os_error", None)
+    text = getattr(os_error, "strerror", None) or (os_error.args[1] if os_error is not None and len(
+        getattr(os_error, "args", ())) > 1 else "")
+    return str(text).lower() if text else "name or service not known"
 
 
 def _status_error(url: str, status: int, what: str) -> FetchError:

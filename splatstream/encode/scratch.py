@@ -5,6 +5,7 @@ again after its worker died simply writes it again."""
 from __future__ import annotations
 
 import contextlib
+import fcntl
 import io
 import os
 import shutil
@@ -15,21 +16,43 @@ import numpy as np
 
 from ..store import _fsspec, is_url, local_path
 
+SCRATCH_PREFIX = ".splatstream-scratch-"
+# Inside a local scratch directory: a file its creating process holds an exclusive flock on for as long as it
+# lives. The kernel drops the lock when the process dies, even by SIGKILL, so a directory whose lock can be taken
+# belongs to nobody any more, and the next encode beside it removes it (remove_stale).
+OWNER_LOCK = "owner.lock"
+
 
 class Scratch:
     def __init__(self, location: str):
         self.location = location.rstrip("/")
         self._fs = None
+        self._owner_fd: int | None = None
 
     @staticmethod
     def create(base: str) -> Scratch:
-        """A new, empty scratch directory under `base` (a local directory or an fsspec URL)."""
-        name = f".splatstream-scratch-{uuid.uuid4().hex[:12]}"
+        """A new, empty scratch directory under `base` (a local directory or an fsspec URL). Local: scratch
+        directories beside it that a killed encode left are removed first (remove_stale), and the new one is
+        locked by this process."""
+        name = f"{SCRATCH_PREFIX}{uuid.uuid4().hex[:12]}"
         if is_url(base):
             return Scratch(f"{base.rstrip('/')}/{name}")
         base = local_path(base)
         os.makedirs(base, exist_ok=True)
-        return Scratch(tempfile.mkdtemp(prefix=name + "-", dir=base))
+        remove_stale(base)
+        scratch = Scratch(tempfile.mkdtemp(prefix=name + "-", dir=base))
+        # Locked under a temporary name, then renamed: a sweeper never sees an owner.lock that nobody holds yet.
+        fd, tmp = tempfile.mkstemp(prefix=".owner.", dir=scratch.location)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            os.write(fd, f"{os.getpid()}\n".encode())
+            os.rename(tmp, os.path.join(scratch.location, OWNER_LOCK))
+        except BaseException:
+            os.close(fd)
+            shutil.rmtree(scratch.location, ignore_errors=True)
+            raise
+        scratch._owner_fd = fd
+        return scratch
 
     def __getstate__(self) -> dict:
         return {"location": self.location}
@@ -102,3 +125,33 @@ class Scratch:
                 self._fs.rm(self._root, recursive=True)
         else:
             shutil.rmtree(self.location, ignore_errors=True)
+            if self._owner_fd is not None:
+                os.close(self._owner_fd)
+                self._owner_fd = None
+
+
+def remove_stale(base: str) -> list[str]:
+    """Remove the scratch directories in local directory `base` whose owner process is dead (its OWNER_LOCK can
+    be locked); those of running encodes, and directories without the lock file, are left alone. The paths
+    removed."""
+    removed = []
+    try:
+        names = [n for n in os.listdir(base) if n.startswith(SCRATCH_PREFIX)]
+    except OSError:
+        return removed
+    for name in names:
+        path = os.path.join(base, name)
+        try:
+            fd = os.open(os.path.join(path, OWNER_LOCK), os.O_RDONLY | os.O_NOFOLLOW)
+        except OSError:
+            continue  # not ours, or not locked yet (an encode from before owner locks)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            continue  # its encode is running
+        finally:
+            os.close(fd)
+        if os.path.isdir(path) and not os.path.islink(path):
+            shutil.rmtree(path, ignore_errors=True)
+            removed.append(path)
+    return removed

@@ -55,6 +55,7 @@ CHECKSUM_PLACEHOLDER = b"0" * 64
 MAX_MANIFEST_BYTES = 64 << 20
 # A payload may not claim to decompress to more than this (guards readers against decompression bombs).
 MAX_PAYLOAD_RAW_BYTES = 2 << 30
+MAX_WASTED_BLOCKS = 128  # max_blocks: a row of the widest texture (2048 texels)
 MAX_TILES = 1 << 20
 CHUNK_ORDER_NAMES = ("morton", "luminance", "input")
 FILTERS_DOC = "none, shuffleN or, for texels, fields1"
@@ -590,7 +591,7 @@ def _payload_fast(v, expect: list[tuple[str, dict]], chunks: int, strict: bool) 
             fmt, width, height, layers = item["format"], item["width"], item["height"], item["layers"]
             if not (fmt == want["format"] and _is_int(width) and _is_int(height) and _is_int(layers)
                     and BLOCK <= width <= 1 << 16 and BLOCK <= height <= 1 << 16 and width % BLOCK == 0
-                    and height % BLOCK == 0 and (width // BLOCK) * (height // BLOCK) >= chunks
+                    and height % BLOCK == 0 and chunks <= (width // BLOCK) * (height // BLOCK) <= max_blocks(chunks)
                     and layers == want["layers"] and _stored_size_problem(fmt, width, height, layers, filt, length)
                     is None):
                 return None
@@ -634,6 +635,13 @@ def _section(name: str, kind: str, offset: int, size: int, filt: str, fmt: str, 
 
 
 @functools.lru_cache(maxsize=1024)
+def max_blocks(chunks: int) -> int:
+    """The most 16x16 blocks a texture of `chunks` chunks may have (format.md 4.1): twice the chunks and one row of
+    the widest texture. The encoder's textures waste less than a row; a larger one declares texels nothing fills
+    (a 1-splat tile claiming 8192x8192, a gigabyte to decompress and upload)."""
+    return 2 * chunks + MAX_WASTED_BLOCKS
+
+
 def _texels_size(fmt: str, width: int, height: int, layers: int) -> int:
     return blob_size(FORMATS[fmt], width, height, layers)
 
@@ -701,6 +709,9 @@ def _payload(m: _Map, key: str, expect: list[tuple[str, dict]], chunks: int) -> 
             width, height = s.int("width", BLOCK, 1 << 16), s.int("height", BLOCK, 1 << 16)
             if width % BLOCK or height % BLOCK or (width // BLOCK) * (height // BLOCK) < chunks:
                 s.fail(None, f"texture {width}x{height} cannot hold {chunks} chunks of {BLOCK}x{BLOCK} texels")
+            if (width // BLOCK) * (height // BLOCK) > max_blocks(chunks):
+                s.fail(None, f"texture {width}x{height} has {(width // BLOCK) * (height // BLOCK)} blocks of "
+                       f"{BLOCK}x{BLOCK} texels for {chunks} chunks (at most {max_blocks(chunks)}: format.md 4.1)")
             layers = s.int("layers", 1, 64)
             if layers != want["layers"]:
                 s.fail("layers", f"expected {want['layers']}, got {layers}")
@@ -791,7 +802,44 @@ def _collector_paused():
             gc.enable()
 
 
+def _object_bytes_bound() -> np.ndarray:
+    """Per msgpack lead byte: about the bytes of Python objects the value it starts becomes (with its pointer in
+    its container). A map or array of one byte is a 64-byte object; a small int, nil or a bool only a pointer."""
+    cost = np.full(256, 8, np.int64)
+    cost[0x80:0xA0] = cost[0xDC:0xE0] = 80      # fixmap, fixarray, array16/32, map16/32
+    cost[0xA0:0xC0] = cost[0xD9:0xDC] = 64      # strings
+    cost[0xC4:0xC7] = 64                        # bin
+    cost[0xCA:0xCC] = 32                        # floats
+    cost[0xCC:0xD4] = 40                        # ints beyond the cached small ones
+    return cost
+
+
+_OBJECT_BYTES = _object_bytes_bound()
+# The Python objects a manifest may unpack into, estimated from its bytes before anything is built (real manifests
+# estimate 17 bytes per byte and make a third of that: one of 44 MB passes; a 64 MiB array of empty maps, 4.9 GB
+# unpacked, does not).
+MAX_MANIFEST_OBJECT_BYTES = 768 << 20
+
+
+def check_msgpack_bomb(raw: bytes, source: str) -> None:
+    """Refuse manifest bytes that would unpack into more objects than MAX_MANIFEST_OBJECT_BYTES (counting every
+    byte as the lead byte of a value bounds what any parse builds), or whose top level is not a map."""
+    if not raw or not (0x80 <= raw[0] <= 0x8F or raw[0] in (0xDE, 0xDF)):
+        raise FormatError(source, None, "not a msgpack manifest (expected a map at the top)")
+    counts = np.zeros(256, np.int64)
+    view = np.frombuffer(raw, np.uint8)
+    for start in range(0, len(view), 1 << 22):  # bincount widens to int64: 8 bytes per byte, so in 4 MiB pieces
+        counts += np.bincount(view[start:start + (1 << 22)], minlength=256)
+    estimate = int(counts @ _OBJECT_BYTES)
+    if estimate > MAX_MANIFEST_OBJECT_BYTES:
+        containers = int(counts[0x80:0xA0].sum() + counts[0xDC:0xE0].sum())
+        raise FormatError(source, None, f"{len(raw)} bytes that would unpack into about {estimate >> 20} MiB of "
+                          f"objects (up to {containers} maps and arrays; at most {MAX_MANIFEST_OBJECT_BYTES >> 20} "
+                          "MiB): not a manifest")
+
+
 def _parse_manifest(raw: bytes, source: str, lazy_payloads: bool) -> Manifest:
+    check_msgpack_bomb(raw, source)
     try:
         d = msgpack.unpackb(raw, raw=False, strict_map_key=False)
     except Exception as exc:  # msgpack raises several unrelated types for garbage

@@ -50,6 +50,11 @@ ALLOWED = {
 LUF_TO_RDF = (-1.0, -1.0, 1.0)
 
 
+def _is_int(value: object) -> bool:
+    """A JSON integer (true and false are not numbers here)."""
+    return isinstance(value, int) and not isinstance(value, bool)
+
+
 class _Document:
     def __init__(self, path: str, gltf: dict, binary: bytes | None):
         self.path = path
@@ -75,7 +80,7 @@ class _Document:
         if index in self.buffers:
             return self.buffers[index]
         length = buffer.get("byteLength")
-        if not isinstance(length, int) or length < 0:
+        if not _is_int(length) or length < 0:
             raise InputError(self.path, f"buffers[{index}].byteLength", f"{length!r} (expected a byte count)")
         uri = buffer.get("uri")
         if uri is None:
@@ -115,8 +120,8 @@ class _Document:
         view = self.item("bufferViews", index)
         buffer = self.buffer(view.get("buffer"))
         offset, length, stride = view.get("byteOffset", 0), view.get("byteLength"), view.get("byteStride")
-        if not isinstance(offset, int) or not isinstance(length, int) or offset < 0 or length < 0 or \
-                offset + length > len(buffer) or (stride is not None and (not isinstance(stride, int) or
+        if not _is_int(offset) or not _is_int(length) or offset < 0 or length < 0 or \
+                offset + length > len(buffer) or (stride is not None and (not _is_int(stride) or
                                                                           not 4 <= stride <= 252)):
             raise InputError(self.path, f"bufferViews[{index}]", f"byteOffset {offset!r}, byteLength {length!r}, "
                              f"byteStride {stride!r} do not fit its {len(buffer)}-byte buffer")
@@ -176,14 +181,18 @@ def _accessor(doc: _Document, index: object, semantic: str, kind: str, gl_type: 
     """Accessor `index` as float32 (count, width), dequantised as its componentType and `normalized` say."""
     accessor = doc.item("accessors", index)
     field = f"accessor {index} ({semantic})"
-    component, normalized = accessor.get("componentType"), bool(accessor.get("normalized", False))
+    component, normalized = accessor.get("componentType"), accessor.get("normalized", False)
+    if not _is_int(component):
+        raise InputError(doc.path, f"{field} componentType", f"{component!r} (expected an integer GL component type)")
+    if not isinstance(normalized, bool):
+        raise InputError(doc.path, f"{field} normalized", f"{normalized!r} (expected true or false)")
     if accessor.get("type") != gl_type:
         raise InputError(doc.path, field, f"type {accessor.get('type')!r} (expected {gl_type})")
     if (component, normalized) not in ALLOWED[kind]:
         raise InputError(doc.path, field, f"componentType {component!r}{' normalized' if normalized else ''} is not "
                          f"one the extension allows for {semantic}")
     n = accessor.get("count")
-    if not isinstance(n, int) or n < 1 or (count is not None and n != count):
+    if not _is_int(n) or n < 1 or (count is not None and n != count):
         raise InputError(doc.path, field, f"count {n!r} (expected {count if count is not None else 'at least 1'}, "
                          "the POSITION count)")
     if "sparse" in accessor:
@@ -197,7 +206,7 @@ def _accessor(doc: _Document, index: object, semantic: str, kind: str, gl_type: 
     offset = accessor.get("byteOffset", 0)
     element = itemsize * width
     stride = stride or element
-    if not isinstance(offset, int) or offset < 0 or offset % itemsize or stride < element or \
+    if not _is_int(offset) or offset < 0 or offset % itemsize or stride < element or \
             offset + stride * (n - 1) + element > view_length:
         raise InputError(doc.path, field, f"{n} elements of {element} bytes at byteOffset {offset} with stride "
                          f"{stride} do not fit the {view_length}-byte buffer view")

@@ -39,6 +39,7 @@ from ..gaussians import SH_REST_COEFFS, Gaussians, normalize_quaternions
 from . import memory_budget, opacity_logits_from_unit, read_regular_file
 
 MAX_JSON_BYTES = 64 << 20
+ZIP_PIECE = 1 << 20  # zip members are inflated this much at a time
 # Bytes of memory a decoded splat costs at peak (six RGBA textures plus the float32 model and temporaries).
 BYTES_PER_SPLAT = 6 * 4 + 4 * (3 + 4 + 3 + 1 + 3 + 45) * 3
 MAX_LOD_NODES = 1 << 20
@@ -51,16 +52,17 @@ QUAT_ORDER = ((1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2))  # the three stored co
 class _Source:
     """Named files of one SOG scene: a zip (bundled .sog) or a directory. Names may not leave the scene."""
 
-    def __init__(self, path: str, label: str, read: Callable[[str, str], bytes]):
+    def __init__(self, path: str, label: str, read: Callable[[str, str, int], bytes]):
         self.path = path
         self.label = label
         self._read = read
 
-    def read(self, name: object, field: str) -> bytes:
+    def read(self, name: object, field: str, max_bytes: int | None = None) -> bytes:
+        """A member's bytes; InputError beyond `max_bytes` (default: the memory budget), checked as it is read."""
         if not isinstance(name, str) or not name or name.startswith(("/", "\\")) or ".." in name.replace(
                 "\\", "/").split("/") or "\x00" in name:
             raise InputError(self.label, field, f"file name {name!r} is not a relative name inside the scene")
-        return self._read(name, field)
+        return self._read(name, field, memory_budget() if max_bytes is None else min(max_bytes, memory_budget()))
 
 
 def _zip_source(path: str) -> _Source:
@@ -70,22 +72,31 @@ def _zip_source(path: str) -> _Source:
         raise InputError(path, "zip archive", f"not a readable zip file ({exc})") from None
     total = os.path.getsize(path)
 
-    def read(name: str, field: str) -> bytes:
+    def read(name: str, field: str, max_bytes: int) -> bytes:
         try:
             info = archive.getinfo(name)
         except KeyError:
             raise InputError(path, field, f"the archive has no member {name!r}") from None
         # A stored member cannot be larger than the archive; a deflated one at most 1032 times its compressed
-        # size. Either way it must fit the memory budget (zip bomb guard, checked before reading).
-        limit = min(memory_budget(), max(total, 1032 * info.compress_size))
+        # size. Either way it must fit what the caller allows for it (a JSON document: MAX_JSON_BYTES) and the
+        # memory budget (zip bomb guard, checked before reading; the bytes are then read in bounded pieces, so a
+        # member that inflates beyond its declared size is cut off there too).
+        limit = min(max_bytes, max(total, 1032 * info.compress_size))
         if info.file_size > limit:
             raise InputError(path, field, f"member {name!r} declares {info.file_size} bytes (more than the "
-                             f"{limit} its compressed size and the memory budget allow)")
+                             f"{limit} its compressed size, its kind and the memory budget allow)")
+        pieces, got = [], 0
         try:
             with archive.open(info) as f:
-                data = f.read(info.file_size + 1)
+                while got <= info.file_size:
+                    piece = f.read(min(ZIP_PIECE, info.file_size + 1 - got))
+                    if not piece:
+                        break
+                    pieces.append(piece)
+                    got += len(piece)
         except (zipfile.BadZipFile, OSError, EOFError, zlib.error) as exc:
             raise InputError(path, field, f"member {name!r} is corrupt ({exc})") from None
+        data = b"".join(pieces)
         if len(data) != info.file_size:
             raise InputError(path, field, f"member {name!r} holds {len(data)} bytes, its header says "
                              f"{info.file_size}")
@@ -97,19 +108,19 @@ def _zip_source(path: str) -> _Source:
 def _dir_source(directory: str, label: str) -> _Source:
     root = os.path.realpath(directory)
 
-    def read(name: str, field: str) -> bytes:
+    def read(name: str, field: str, max_bytes: int) -> bytes:
         full = os.path.realpath(os.path.join(root, name))
         if os.path.commonpath([root, full]) != root:
             raise InputError(label, field, f"file name {name!r} leads outside the scene directory")
         if not os.path.lexists(full):
             raise InputError(label, field, f"names {name!r}, which does not exist in {directory}")
-        return read_regular_file(full, memory_budget(), label, field)
+        return read_regular_file(full, max_bytes, label, field)
 
     return _Source(directory, label, read)
 
 
 def _json(source: _Source, name: str, what: str) -> dict:
-    data = source.read(name, what)
+    data = source.read(name, what, MAX_JSON_BYTES)
     if len(data) > MAX_JSON_BYTES:
         raise InputError(source.label, name, f"{len(data)} bytes (a {what} is at most {MAX_JSON_BYTES})")
     try:
@@ -170,8 +181,8 @@ def _texture(source: _Source, name: str, field: str, count: int, max_texels: int
     """Decode a lossless WebP into (texels, 4) uint8 after checking its size against what `count` implies."""
     from PIL import Image
 
-    if data is None:
-        data = source.read(name, field)
+    if data is None:  # a lossless WebP is never much larger than its texels stored raw (4 bytes each)
+        data = source.read(name, field, 5 * max_texels + (1 << 16))
     size = webp_size(data)
     if size is None:
         raise InputError(source.label, f"{field} ({name})", "not a lossless WebP image (SOG textures must be "
