@@ -554,8 +554,12 @@ class Viewer:
         """Time converged frames through the window path (draw, copy, overlay, swap), two ways: one at a time
         (glFinish after each; apart, the share before the swap: on a virtual display the swap is the X server's
         copy, not our work), and back to back as a running viewer draws them (vsync off, glFinish after the last:
-        the frame time a user sees, where the GPU's work of one frame overlaps the CPU's of the next)."""
-        times, drawn = [], []
+        the frame time a user sees, where the GPU's work of one frame overlaps the CPU's of the next). Nothing is
+        timed (and the record carries no timing) when `--measure-frames` is 0, its default."""
+        if self.run.measure_frames <= 0:
+            return
+        times: list[float] = []
+        drawn: list[float] = []
         for _ in range(self.run.measure_frames):
             t = time.perf_counter()
             self.draw_frame(0.0)
@@ -578,7 +582,7 @@ class Viewer:
             split["swap_ms"].append((time.perf_counter() - t1) * 1e3)
             split["render_cpu_ms"].append(self.frame_ms)
         self.ctx.finish()
-        self.measured_back_to_back = (time.perf_counter() - t) * 1e3 / max(n, 1)
+        self.measured_back_to_back = (time.perf_counter() - t) * 1e3 / n
         self.measured_back_to_back_split = {k: sorted(v)[len(v) // 2] for k, v in split.items()}
 
     def write_record(self) -> None:
