@@ -458,9 +458,12 @@ class Viewer:
         imgui.text(f"splats  {u.drawn_splats if u else 0:,} drawn / {u.resident_splats if u else 0:,} resident")
         imgui.text(f"tiles   {u.resident_tiles if u else 0} resident / {u.in_flight if u else 0} in flight"
                    f"{'  (paused)' if s.paused else ''}{'  converged' if s.converged else ''}")
-        imgui.text(f"network {stats.bytes_downloaded / 1e6:.1f} MB, {self.rate * 8 / 1e6:.1f} Mbit/s"
-                   f"{'  OFFLINE' if stats.offline else ''}")
-        imgui.text(f"GPU     {s.pool.gpu_bytes / 2**20:.0f} of {s.budget / 2**20:.0f} MiB budget")
+        if stats.manifest_source == "local":  # a scene directory or a splat file: read, not downloaded
+            imgui.text(f"read    {stats.bytes_downloaded / 1e6:.1f} MB, {self.rate / 1e6:.1f} MB/s")
+        else:
+            imgui.text(f"network {stats.bytes_downloaded / 1e6:.1f} MB, {self.rate * 8 / 1e6:.1f} Mbit/s"
+                       f"{'  OFFLINE' if stats.offline else ''}")
+        imgui.text(f"GPU     {s.pool.resident_bytes / 2**20:.1f} MiB resident of {s.budget / 2**20:.0f} MiB budget")
         degree = min(s.options.sh_degree, s.manifest.sh_degree)
         imgui.text(f"SH      degree {degree} (scene {s.manifest.sh_degree})   {path}")
         imgui.text(f"camera  {self.controller.mode} (C switches)")

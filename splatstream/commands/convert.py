@@ -55,7 +55,8 @@ def run(args: argparse.Namespace) -> int:
     say(f"read {len(g)} splats, SH degree {g.sh_degree}")
     if out_format == "splat" and g.sh_degree > 0:
         say(f"note: .splat has no SH bands; bands 1..{g.sh_degree} are dropped")
-    detail = {"spz": f", version {args.spz_version}", "gltf": f", {args.glb_compression} compression"}
+    glb = "SPZ-compressed splats" if args.glb_compression == "spz" else "uncompressed splats"
+    detail = {"spz": f", version {args.spz_version}", "gltf": f", {glb}"}
     say(f"writing {args.output} ({FORMAT_NAMES[out_format]}{detail.get(out_format, '')})")
     write_gaussians(g, args.output, spz_version=args.spz_version, glb_compression=args.glb_compression)
     say("done")
