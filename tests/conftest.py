@@ -6,15 +6,32 @@ import sys
 import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
+# The project's shared test data (larger real scenes, tools): SPLATSTREAM_SHARED, else ../shared beside the clone.
 SHARED = pathlib.Path(os.environ.get("SPLATSTREAM_SHARED", ROOT.parent / "shared"))
 REAL = SHARED / "data" / "real"
+# Small real scenes bundled with the tests (provenance and licences: tests/data/real/README.md); the donut is the
+# bundled sample scene itself.
+BUNDLED = ROOT / "tests" / "data" / "real"
+BUNDLED_ALIASES = {"donut_sh0_no_normals.ply": ROOT / "samples" / "donut.ply"}
 REAL_PLYS = ["fruit_drops_sh3.ply", "lod_tile_sh3_zero_rest.ply", "donut_sh0_no_normals.ply"]
 
 
+def real_path(name: str) -> pathlib.Path | None:
+    """A real scene by its name in the shared data (data/real/NAME): the bundled copy when there is one, else the
+    shared one; None when neither is here."""
+    for path in (BUNDLED / name, BUNDLED_ALIASES.get(name), REAL / name):
+        if path is not None and path.exists():
+            return path
+    return None
+
+
 def real(name: str) -> pathlib.Path:
-    path = REAL / name
-    if not path.exists():
-        pytest.skip(f"real scene {path} not available")
+    """A real scene (see real_path), or skip the test saying what is missing and how to get it."""
+    path = real_path(name)
+    if path is None:
+        pytest.skip(f"real scene {name} is not bundled with the tests and not in {REAL}: it is in the project's "
+                    "shared test data (data/real/); set SPLATSTREAM_SHARED to the directory holding data/real/ "
+                    "(default: ../shared beside the clone)")
     return path
 
 
