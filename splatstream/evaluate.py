@@ -23,8 +23,8 @@ from .camera import Camera, scene_orbit_views
 from .errors import InputError, UsageError
 from .format.presets import PRESETS
 from .gaussians import Gaussians
+from .io import scene_up
 from .metrics import psnr_from_mse, ssim
-from .orientation import detect_up
 
 Renderer = Callable[[Gaussians | str, Camera], np.ndarray]
 
@@ -263,7 +263,7 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
         raise InputError(input_path, None, "the scene holds no splats")
     evr = renderer or reference_renderer()
     renderer, renderer_name, renderer_kind = evr.render, evr.name, evr.kind
-    up = opts.up if opts.up is not None else detect_up(g).up
+    up = opts.up if opts.up is not None else scene_up(input_path, g).up
     cameras = scene_orbit_views(g.positions, opts.views, opts.width, opts.height, up=up,
                                 elevation_deg=opts.elevation_deg)
     t = time.perf_counter()

@@ -103,3 +103,18 @@ def settle_totals(m: dict) -> None:
     every.update({p["file"]: p["bytes"] for p in (m.get("sh_codebook") or {}).get("groups", {}).values()})
     for _ in range(3):  # the number's own msgpack length can change the manifest's length once
         m["bytes_on_disk"] = sum(every.values()) + len(pack_manifest_dict(m))
+
+
+def sphere_framed_camera(positions, width: int, height: int, up=(0.0, 0.0, 1.0)):
+    """The default camera as it was before issue 34 (target the median, the central 95 % box's bounding sphere in
+    the narrower field of view): the view some tests' thresholds were measured on."""
+    import numpy as np
+
+    from splatstream.camera import DEFAULT_FOV_Y_DEG, REFERENCE_NEAR, Camera, _diagonal, fit_distance, robust_bounds
+
+    med, lo, hi = robust_bounds(positions, 95.0)
+    radius = float(np.linalg.norm(np.maximum(hi - med, med - lo))) or 1.0
+    dist = fit_distance(radius, DEFAULT_FOV_Y_DEG, width / height)
+    eye = med + _diagonal(np.asarray(up, dtype=np.float64)) * dist
+    return Camera(tuple(eye), tuple(med), tuple(up), DEFAULT_FOV_Y_DEG, width, height,
+                  min(REFERENCE_NEAR, 0.01 * dist), max(1000.0, 10.0 * (dist + radius)))
