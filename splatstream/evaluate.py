@@ -91,6 +91,9 @@ class EvalOptions:
     attribution: Sequence[str] = ()    # presets whose error is attributed to attributes
     variants: Sequence[str] = ()       # extra encodes: "NAME:PRESET[,ATTRIBUTE=FORMAT...][,sh_degree=D]"
     zstd_level: int | None = None
+    # SPZ compares: "rub" read as the format says (Niantic's reference; splat-transform 2.x), "rdf" as stored without
+    # the axis turn (splat-transform 3.x), "auto" as whichever matches the input; a turned one is warned about.
+    spz_axes: str = "rub"
     extra: dict = field(default_factory=dict)
 
 
@@ -219,6 +222,32 @@ def read_compare(path: str) -> tuple[Gaussians, int]:
     return g, clamped
 
 
+def _spz_axes(other: Gaussians, g: Gaussians, path: str, axes: str) -> tuple[Gaussians, bool]:
+    """An SPZ compare as `axes` says (EvalOptions.spz_axes); (Gaussians, whether they were turned back). A file
+    that reads turned 180 degrees about x against the input (written without SPZ's RUB axis turn) is warned
+    about unless it is turned back."""
+    import warnings
+
+    from .axes import RDF_TO_RUB, turn, turned_against
+    from .io import sniff_format
+
+    if sniff_format(path) != "spz":
+        return other, False
+    if axes == "rdf":
+        return turn(other, RDF_TO_RUB), True
+    if not turned_against(other, g, RDF_TO_RUB):
+        return other, False
+    if axes == "auto":
+        warnings.warn(f"{path}: this SPZ reads turned 180 degrees about x against the input (it was written without "
+                      "SPZ's RUB axis turn, as splat-transform 3.x writes SPZ); measured turned back (--spz-axes auto)",
+                      stacklevel=2)
+        return turn(other, RDF_TO_RUB), True
+    warnings.warn(f"{path}: this SPZ reads turned 180 degrees about x against the input (it was written without SPZ's "
+                  "RUB axis turn, as splat-transform 3.x writes SPZ), so its PSNR is that of a turned scene; "
+                  "--spz-axes auto (or rdf) measures it turned back", stacklevel=2)
+    return other, False
+
+
 def _quality(renderer: Renderer, g: Gaussians | str, cameras: list[Camera],
              references: list[np.ndarray]) -> tuple[list[float], list[float], list[np.ndarray]]:
     ps, ss, imgs = [], [], []
@@ -333,10 +362,12 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
             other, clamped = read_compare(path)
             if clamped:
                 log(f"{label}: {clamped} opacity logits of +-inf (8-bit opacity 0 or 1) read as +-13.8")
+            other, spz_turned = _spz_axes(other, g, path, opts.spz_axes)
             ps, ss, _ = _quality(renderer, other, cameras, references)
             size = path_size(size_path)
             row = Row(label, "compare", {}, len(other), None, size, size / max(1, len(other)), input_size / size,
-                      ps, ss, None, {"file": path, "size_of": size_path, "opacity_logits_clamped": clamped})
+                      ps, ss, None, {"file": path, "size_of": size_path, "opacity_logits_clamped": clamped,
+                                     "spz_turned_back": spz_turned})
             log(f"{label:>28}: {row.disk_bytes_per_splat:7.2f} B/splat disk, PSNR {row.psnr_mean:6.2f} dB "
                 f"(worst {row.psnr_worst:6.2f}), SSIM {row.ssim_mean:.5f}")
             rows.append(row)
