@@ -153,6 +153,11 @@ def test_a_ply_header_comment_naming_up_is_honoured(tmp_path):
     assert load_manifest(tmp_path / "s").up == Z_UP
     r = run_cli("encode", dst, tmp_path / "t", "--up", "0,-1,0", "-q")  # --up still overrides it
     assert r.returncode == 0 and load_manifest(tmp_path / "t").up == Y_DOWN_UP
+    # `view FILE` encodes the file in memory the same way
+    from client_gl.stream.sources import encode_splat_file
+    from splatstream.format.manifest import parse_manifest
+
+    assert parse_manifest(encode_splat_file(str(dst)).read_manifest()).up == Z_UP
 
 
 def make_scene(tmp_path, splats: int, *args: str):
