@@ -20,7 +20,7 @@ from splatstream.orientation import Y_DOWN_UP, Z_UP, view_side
 from splatstream.ply import write_gaussians_ply
 from splatstream.store import load_manifest
 
-# The up axis each scene has (looked at: BENCHMARKS.md "Upright on open", and the pictures of this test).
+# The up axis each scene has (looked at in the pictures `splatstream render FILE` makes of each).
 EXPECTED_UP = {
     "fruit_drops_sh3.ply": Y_DOWN_UP,
     "lod_tile_sh3_zero_rest.ply": Z_UP,
