@@ -80,6 +80,7 @@ class FrameRecord:
     uploaded_bytes: int
     converged: bool
     update_ms: float = 0.0  # of frame_ms: the engine (selection, wish list, uploads), the rest is the draw's submission
+    resident_gpu_bytes: int = 0  # of gpu_bytes (the whole pool): what the resident splats' slots and the codebook use
 
     def to_json(self) -> dict:
         return {k: (round(v, 4) if isinstance(v, float) else v) for k, v in self.__dict__.items()}
@@ -92,7 +93,8 @@ class StreamMetrics:
     first_frame_s: float | None = None
     bytes_first_frame: int | None = None
     converged_s: float | None = None
-    gpu_bytes_peak: int = 0
+    gpu_bytes_peak: int = 0  # the GPU pool allocated (it is made whole, for the budget)
+    resident_gpu_bytes_peak: int = 0  # of it, the most the resident splats used
     work_bytes_peak: int = 0  # the renderer's per-frame buffers (sort, draw), beside the budgeted pool
     evictions: int = 0
     process_decodes: int = 0  # payloads decoded in decode processes (ViewOptions.decode_processes)
@@ -109,6 +111,9 @@ class StreamMetrics:
             "first_frame_s": self.first_frame_s, "converged_s": self.converged_s,
             "bytes_downloaded": last.bytes if last else 0, "bytes_first_frame": self.bytes_first_frame,
             "gpu_bytes_peak": self.gpu_bytes_peak, "gpu_budget_bytes": self.gpu_budget_bytes,
+            "resident_gpu_bytes": last.resident_gpu_bytes if last else 0,
+            "resident_gpu_bytes_peak": self.resident_gpu_bytes_peak,
+            "resident_splats": last.resident_splats if last else 0,
             "work_bytes_peak": self.work_bytes_peak,
             "manifest_s": self.manifest_s, "pool_s": self.pool_s, "built_s": self.built_s,
             "frames": [f.to_json() for f in self.frames],
@@ -271,10 +276,11 @@ class StreamingSession:
         gpu = self.pool.gpu_bytes
         rec = FrameRecord(now, stats.bytes_downloaded, u.drawn_splats if u else 0, u.resident_splats if u else 0,
                           u.resident_tiles if u else 0, u.in_flight if u else 0, gpu, frame_ms,
-                          u.uploaded_bytes if u else 0, bool(u and u.converged), update_ms)
+                          u.uploaded_bytes if u else 0, bool(u and u.converged), update_ms, self.pool.resident_bytes)
         m = self.metrics
         m.frames.append(rec)
         m.gpu_bytes_peak = max(m.gpu_bytes_peak, gpu)
+        m.resident_gpu_bytes_peak = max(m.resident_gpu_bytes_peak, rec.resident_gpu_bytes)
         m.work_bytes_peak = max(m.work_bytes_peak, self.renderer.work_bytes)
         m.evictions = self.engine.evictions
         m.process_decodes = self.engine.process_decodes

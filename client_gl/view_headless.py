@@ -93,7 +93,8 @@ def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
                 last_line = time.perf_counter()
                 stats = session.fetcher.stats()
                 line = (f"view: {rec.t:6.2f}s  {stats.bytes_downloaded / 1e6:8.2f} MB  {rec.drawn_splats:>10,} drawn  "
-                        f"{rec.resident_tiles:>4} tiles  {rec.in_flight:>3} in flight  "
+                        f"{rec.resident_tiles:>4} tile{'' if rec.resident_tiles == 1 else 's'}  "
+                        f"{rec.in_flight:>3} in flight  "
                         f"{'converged' if rec.converged else 'streaming'}")
                 if tty:
                     sys.stderr.write("\r" + line + ("\n" if done else ""))

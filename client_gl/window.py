@@ -458,9 +458,12 @@ class Viewer:
         imgui.text(f"splats  {u.drawn_splats if u else 0:,} drawn / {u.resident_splats if u else 0:,} resident")
         imgui.text(f"tiles   {u.resident_tiles if u else 0} resident / {u.in_flight if u else 0} in flight"
                    f"{'  (paused)' if s.paused else ''}{'  converged' if s.converged else ''}")
-        imgui.text(f"network {stats.bytes_downloaded / 1e6:.1f} MB, {self.rate * 8 / 1e6:.1f} Mbit/s"
-                   f"{'  OFFLINE' if stats.offline else ''}")
-        imgui.text(f"GPU     {s.pool.gpu_bytes / 2**20:.0f} of {s.budget / 2**20:.0f} MiB budget")
+        if stats.manifest_source == "local":  # a scene directory or a splat file: read, not downloaded
+            imgui.text(f"read    {stats.bytes_downloaded / 1e6:.1f} MB, {self.rate / 1e6:.1f} MB/s")
+        else:
+            imgui.text(f"network {stats.bytes_downloaded / 1e6:.1f} MB, {self.rate * 8 / 1e6:.1f} Mbit/s"
+                       f"{'  OFFLINE' if stats.offline else ''}")
+        imgui.text(f"GPU     {s.pool.resident_bytes / 2**20:.1f} MiB resident of {s.budget / 2**20:.0f} MiB budget")
         degree = min(s.options.sh_degree, s.manifest.sh_degree)
         imgui.text(f"SH      degree {degree} (scene {s.manifest.sh_degree})   {path}")
         imgui.text(f"camera  {self.controller.mode} (C switches)")
@@ -556,8 +559,12 @@ class Viewer:
         """Time converged frames through the window path (draw, copy, overlay, swap), two ways: one at a time
         (glFinish after each; apart, the share before the swap: on a virtual display the swap is the X server's
         copy, not our work), and back to back as a running viewer draws them (vsync off, glFinish after the last:
-        the frame time a user sees, where the GPU's work of one frame overlaps the CPU's of the next)."""
-        times, drawn = [], []
+        the frame time a user sees, where the GPU's work of one frame overlaps the CPU's of the next). Nothing is
+        timed (and the record carries no timing) when `--measure-frames` is 0, its default."""
+        if self.run.measure_frames <= 0:
+            return
+        times: list[float] = []
+        drawn: list[float] = []
         for _ in range(self.run.measure_frames):
             t = time.perf_counter()
             self.draw_frame(0.0)
@@ -580,7 +587,7 @@ class Viewer:
             split["swap_ms"].append((time.perf_counter() - t1) * 1e3)
             split["render_cpu_ms"].append(self.frame_ms)
         self.ctx.finish()
-        self.measured_back_to_back = (time.perf_counter() - t) * 1e3 / max(n, 1)
+        self.measured_back_to_back = (time.perf_counter() - t) * 1e3 / n
         self.measured_back_to_back_split = {k: sorted(v)[len(v) // 2] for k, v in split.items()}
 
     def write_record(self) -> None:

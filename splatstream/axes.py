@@ -42,3 +42,25 @@ def turn(g: Gaussians, signs: tuple[float, float, float]) -> Gaussians:
     parity = sh_parity(signs, g.sh_degree)[:k] if k else np.zeros(0, np.float32)
     return Gaussians(g.positions * s, rotations, g.log_scales, g.opacity_logits, g.sh_dc,
                      g.sh_rest * parity[None, :, None])
+
+
+def turned_against(g: Gaussians, reference: Gaussians, signs: tuple[float, float, float]) -> bool:
+    """Whether `g` (another tool's output of the scene in `reference`) is that scene turned by diag(signs): its
+    positions' 5th, 50th and 95th percentiles per axis lie much closer to the turned reference's than to the
+    reference's. Used to catch an SPZ written without its RUB axis turn (splat-transform 3.x), which a reader that
+    follows the format returns turned 180 degrees about x."""
+    if len(g) < 16 or len(reference) < 16:
+        return False
+    q = [5.0, 50.0, 95.0]
+
+    def marks(p: np.ndarray) -> np.ndarray:
+        p = p[np.isfinite(p).all(axis=1)].astype(np.float64)
+        return np.percentile(p, q, axis=0) if len(p) else np.zeros((3, 3))
+
+    ref = marks(reference.positions)
+    extent = np.maximum(ref[2] - ref[0], 1e-12)
+    mine = marks(g.positions)
+    straight = float(np.abs((mine - ref) / extent).sum())
+    flipped = marks(reference.positions * np.asarray(signs, np.float32))
+    turned = float(np.abs((mine - flipped) / extent).sum())
+    return straight > 0.3 and turned < 0.25 * straight

@@ -263,30 +263,80 @@ def fit_distance(radius: float, camera_fov_y_deg: float, aspect: float) -> float
     return radius / math.sin(min(half, half_x))
 
 
+# The default view frames the central FRAME_PERCENTILE % box of the splats that are not nearly transparent (at
+# least FRAME_MIN_OPACITY): thin parts that hold few splats (a guitar's head, a statue's) are inside it, stray
+# floaters are not. The whole box is kept in view, with FRAME_MARGIN of the half-width spare, for any window from
+# 4:3 to wider (the manifest's camera is drawn at the window's aspect).
+FRAME_PERCENTILE = 99.0
+FRAME_MIN_OPACITY = 0.3
+FRAME_MARGIN = 0.08
+FRAME_NARROWEST_ASPECT = 4.0 / 3.0
+
+
+def framing_box(positions: np.ndarray, opacity_logits: np.ndarray | None = None,
+                percentile: float = FRAME_PERCENTILE) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi): the central `percentile` % box of the positions of splats at least FRAME_MIN_OPACITY opaque (all
+    of them where fewer than a tenth are)."""
+    p = np.asarray(positions, dtype=np.float64)
+    ok = np.isfinite(p).all(axis=1)
+    if opacity_logits is not None:
+        logits = np.asarray(opacity_logits, dtype=np.float64)
+        opaque = ok & (logits >= math.log(FRAME_MIN_OPACITY / (1.0 - FRAME_MIN_OPACITY)))
+        if opaque.sum() >= max(16, 0.1 * ok.sum()):
+            ok = opaque
+    p = _sample(_positions(p[ok]))
+    tail = (100.0 - percentile) / 2.0
+    lo, hi = np.percentile(p, [tail, 100.0 - tail], axis=0)
+    return lo, hi
+
+
+def fit_box_distance(lo: np.ndarray, hi: np.ndarray, target: np.ndarray, direction: np.ndarray, up: np.ndarray,
+                     fov_y_deg: float, aspect: float, margin: float = FRAME_MARGIN) -> float:
+    """The smallest distance from `target` along `direction` (towards the eye) at which every corner of the box
+    [lo, hi] is inside the view (`margin`: the share of each half-width kept free)."""
+    forward = -_normalize(direction)
+    right = np.cross(forward, _normalize(up))
+    if np.linalg.norm(right) < 1e-9:
+        right = np.cross(forward, np.array([1.0, 0.0, 0.0]) if abs(forward[0]) < 0.9 else np.array([0.0, 1.0, 0.0]))
+    right = _normalize(right)
+    true_up = np.cross(right, forward)
+    ty = math.tan(math.radians(fov_y_deg) / 2.0) * (1.0 - margin)
+    tx = math.tan(math.radians(fov_y_deg) / 2.0) * aspect * (1.0 - margin)
+    corners = np.array([[x, y, z] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    rel = corners - np.asarray(target, dtype=np.float64)
+    along = rel @ forward  # depth of the corner beyond the target
+    need = np.maximum(np.abs(rel @ right) / tx, np.abs(rel @ true_up) / ty) - along
+    size = float(np.linalg.norm(hi - lo))
+    return float(max(need.max(), (-along).max() + 0.05 * size, 1e-6))
+
+
 def suggested_camera(positions: np.ndarray | None = None, up: Sequence[float] = DEFAULT_UP, width: int = 1280,
                      height: int = 720, fov_y_deg: float = DEFAULT_FOV_Y_DEG,
                      bounds: tuple[Sequence[float], Sequence[float]] | None = None,
-                     center: Sequence[float] | None = None, percentile: float = 95.0, side: float = 0.0) -> Camera:
-    """Default camera for a scene: looks at the median along a diagonal, from outside the robust bounds.
+                     center: Sequence[float] | None = None, percentile: float = FRAME_PERCENTILE,
+                     side: float = 0.0, opacity_logits: np.ndarray | None = None) -> Camera:
+    """Default camera for a scene: looks at the centre of its box along a diagonal, the whole box in view.
 
-    Give `positions` (N, 3), or `bounds=(lo, hi)` (and optionally `center`). The central `percentile` % box of
-    the positions (outliers ignored) is framed so that its bounding sphere fits the view. `up` defaults to +z;
-    the view direction is _diagonal's (from the front for 3DGS-convention scenes, else a diagonal).
+    Give `positions` (N, 3) (with `opacity_logits`, nearly transparent splats are left out: framing_box), or
+    `bounds=(lo, hi)` (and optionally `center`, the point looked at). The box is kept in view (fit_box_distance)
+    for the given aspect or 4:3, whichever is narrower. `up` defaults to +z; the view direction is _diagonal's
+    (from the front for 3DGS-convention scenes, else a diagonal).
     """
     if positions is not None:
-        med, lo, hi = robust_bounds(positions, percentile)
+        lo, hi = framing_box(positions, opacity_logits, percentile)
     elif bounds is not None:
         lo, hi = (np.asarray(b, dtype=np.float64) for b in bounds)
-        med = (lo + hi) / 2.0
     else:
         raise ValueError("suggested_camera needs positions or bounds")
-    if center is not None:
-        med = np.asarray(center, dtype=np.float64)
+    med = (lo + hi) / 2.0 if center is None else np.asarray(center, dtype=np.float64)
     radius = float(np.linalg.norm(np.maximum(hi - med, med - lo)))
     if not radius > 0:
         radius = 1.0
-    dist = fit_distance(radius, fov_y_deg, width / height)
-    eye = med + _diagonal(np.asarray(up, dtype=np.float64), side) * dist
+        lo, hi = med - 0.5, med + 0.5
+    direction = _diagonal(np.asarray(up, dtype=np.float64), side)
+    aspect = min(width / height, FRAME_NARROWEST_ASPECT)
+    dist = fit_box_distance(lo, hi, med, direction, np.asarray(up, dtype=np.float64), fov_y_deg, aspect)
+    eye = med + direction * dist
     near = min(REFERENCE_NEAR, 0.01 * dist)
     far = max(1000.0, 10.0 * (dist + radius))
     return Camera(tuple(eye), tuple(med), tuple(up), fov_y_deg, width, height, near, far)

@@ -34,11 +34,60 @@ def _on_sigterm(signum, frame) -> None:
     raise Terminated()
 
 
+def _is_number_list(text: str) -> bool:
+    """'-2.9,-1.7,0', '-8.5', '-1e3': one or more comma-separated numbers."""
+    try:
+        for part in text.split(","):
+            float(part)
+    except ValueError:
+        return False
+    return True
+
+
+def _single_value_options(parser: argparse.ArgumentParser) -> set[str]:
+    """The option strings of `parser` and of all its subcommands that take exactly one value."""
+    found: set[str] = set()
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            for sub in action.choices.values():
+                found |= _single_value_options(sub)
+        elif action.option_strings and action.nargs is None:
+            found.update(action.option_strings)
+    return found
+
+
+def join_negative_values(argv: list[str], options: set[str]) -> list[str]:
+    """`--eye -2.9,-1.7,0` as typed: argparse takes a value that starts with '-' and is not a plain negative
+    number for an option, so a number list after an option that takes one value is joined to it
+    (`--eye=-2.9,-1.7,0`). Everything after `--` is left alone."""
+    out: list[str] = []
+    i = 0
+    while i < len(argv):
+        arg = argv[i]
+        if arg == "--":
+            out.extend(argv[i:])
+            break
+        nxt = argv[i + 1] if i + 1 < len(argv) else None
+        if arg in options and nxt is not None and nxt.startswith("-") and _is_number_list(nxt):
+            out.append(f"{arg}={nxt}")
+            i += 2
+            continue
+        out.append(arg)
+        i += 1
+    return out
+
+
 class _Parser(argparse.ArgumentParser):
-    """Usage errors as one line naming the command (exit 2), like every other error of the CLI."""
+    """Usage errors as one line naming the command (exit 2), like every other error of the CLI; negative numbers
+    and vectors (`--eye -2.9,-1.7,0`) are taken as typed."""
 
     def error(self, message: str):
         self.exit(EXIT_BAD_INPUT, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
+
+    def parse_known_args(self, args=None, namespace=None):
+        if args is None:
+            args = sys.argv[1:]
+        return super().parse_known_args(join_negative_values(list(args), _single_value_options(self)), namespace)
 
 
 def build_parser() -> argparse.ArgumentParser:

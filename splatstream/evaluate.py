@@ -23,8 +23,8 @@ from .camera import Camera, scene_orbit_views
 from .errors import InputError, UsageError
 from .format.presets import PRESETS
 from .gaussians import Gaussians
+from .io import scene_up
 from .metrics import psnr_from_mse, ssim
-from .orientation import detect_up
 
 Renderer = Callable[[Gaussians | str, Camera], np.ndarray]
 
@@ -91,6 +91,9 @@ class EvalOptions:
     attribution: Sequence[str] = ()    # presets whose error is attributed to attributes
     variants: Sequence[str] = ()       # extra encodes: "NAME:PRESET[,ATTRIBUTE=FORMAT...][,sh_degree=D]"
     zstd_level: int | None = None
+    # SPZ compares: "rub" read as the format says (Niantic's reference; splat-transform 2.x), "rdf" as stored without
+    # the axis turn (splat-transform 3.x), "auto" as whichever matches the input; a turned one is warned about.
+    spz_axes: str = "rub"
     extra: dict = field(default_factory=dict)
 
 
@@ -219,6 +222,32 @@ def read_compare(path: str) -> tuple[Gaussians, int]:
     return g, clamped
 
 
+def _spz_axes(other: Gaussians, g: Gaussians, path: str, axes: str) -> tuple[Gaussians, bool]:
+    """An SPZ compare as `axes` says (EvalOptions.spz_axes); (Gaussians, whether they were turned back). A file
+    that reads turned 180 degrees about x against the input (written without SPZ's RUB axis turn) is warned
+    about unless it is turned back."""
+    import warnings
+
+    from .axes import RDF_TO_RUB, turn, turned_against
+    from .io import sniff_format
+
+    if sniff_format(path) != "spz":
+        return other, False
+    if axes == "rdf":
+        return turn(other, RDF_TO_RUB), True
+    if not turned_against(other, g, RDF_TO_RUB):
+        return other, False
+    if axes == "auto":
+        warnings.warn(f"{path}: this SPZ reads turned 180 degrees about x against the input (it was written without "
+                      "SPZ's RUB axis turn, as splat-transform 3.x writes SPZ); measured turned back (--spz-axes auto)",
+                      stacklevel=2)
+        return turn(other, RDF_TO_RUB), True
+    warnings.warn(f"{path}: this SPZ reads turned 180 degrees about x against the input (it was written without SPZ's "
+                  "RUB axis turn, as splat-transform 3.x writes SPZ), so its PSNR is that of a turned scene; "
+                  "--spz-axes auto (or rdf) measures it turned back", stacklevel=2)
+    return other, False
+
+
 def _quality(renderer: Renderer, g: Gaussians | str, cameras: list[Camera],
              references: list[np.ndarray]) -> tuple[list[float], list[float], list[np.ndarray]]:
     ps, ss, imgs = [], [], []
@@ -263,7 +292,7 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
         raise InputError(input_path, None, "the scene holds no splats")
     evr = renderer or reference_renderer()
     renderer, renderer_name, renderer_kind = evr.render, evr.name, evr.kind
-    up = opts.up if opts.up is not None else detect_up(g).up
+    up = opts.up if opts.up is not None else scene_up(input_path, g).up
     cameras = scene_orbit_views(g.positions, opts.views, opts.width, opts.height, up=up,
                                 elevation_deg=opts.elevation_deg)
     t = time.perf_counter()
@@ -333,10 +362,12 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
             other, clamped = read_compare(path)
             if clamped:
                 log(f"{label}: {clamped} opacity logits of +-inf (8-bit opacity 0 or 1) read as +-13.8")
+            other, spz_turned = _spz_axes(other, g, path, opts.spz_axes)
             ps, ss, _ = _quality(renderer, other, cameras, references)
             size = path_size(size_path)
             row = Row(label, "compare", {}, len(other), None, size, size / max(1, len(other)), input_size / size,
-                      ps, ss, None, {"file": path, "size_of": size_path, "opacity_logits_clamped": clamped})
+                      ps, ss, None, {"file": path, "size_of": size_path, "opacity_logits_clamped": clamped,
+                                     "spz_turned_back": spz_turned})
             log(f"{label:>28}: {row.disk_bytes_per_splat:7.2f} B/splat disk, PSNR {row.psnr_mean:6.2f} dB "
                 f"(worst {row.psnr_worst:6.2f}), SSIM {row.ssim_mean:.5f}")
             rows.append(row)
@@ -497,8 +528,57 @@ def attribution_markdown(report: dict) -> list[str]:
     return out
 
 
-def plot_rate_distortion(report: dict, path: str, size: tuple[int, int] = (900, 600)) -> None:
-    """PSNR (mean over views) against disk bytes per splat (log axis), drawn with Pillow."""
+Box = tuple[float, float, float, float]  # x0, y0, x1, y1 in pixels
+
+
+def _overlap(a: Box, b: Box, pad: float = 2.0) -> float:
+    """Area by which two boxes overlap (each grown by `pad`); 0 when apart."""
+    w = min(a[2], b[2]) - max(a[0], b[0]) + 2 * pad
+    h = min(a[3], b[3]) - max(a[1], b[1]) + 2 * pad
+    return w * h if w > 0 and h > 0 else 0.0
+
+
+def place_labels(anchors: list[tuple[float, float]], sizes: list[tuple[float, float]], bounds: Box,
+                 obstacles: Sequence[Box] = (), apart: Sequence[bool] = ()) -> list[Box]:
+    """Boxes for text labels beside points, none overlapping another label, a point (`obstacles`: the markers) or
+    leaving `bounds`: greedy, each label in turn takes the nearest free place around its point (right and
+    slightly above first, as a label usually sits), trying places further away until one is free. Where none is
+    free within reach the least-overlapping place is taken. A label marked in `apart` (its point has close
+    neighbours) is set at least 24 px away, so that the leader line the caller draws to it is unmistakable."""
+    placed: list[Box] = []
+    offsets = sorted(((dx, dy) for dx in (8, -8, 24, -24, 48, -48, 80, -80) for dy in range(-160, 161, 4)),
+                     key=lambda o: (math.hypot(abs(o[0]) - 8, o[1] + 8), o[0] < 0))
+    apart = list(apart) + [False] * (len(anchors) - len(apart))
+    for (ax, ay), (w, h), away in zip(anchors, sizes, apart, strict=True):
+        best, best_cost = None, math.inf
+        for dx, dy in offsets:
+            if away and abs(dx) < 24 and abs(dy) < 24 + h:
+                continue
+            x0 = ax + dx if dx > 0 else ax + dx - w
+            y0 = ay + dy - h / 2
+            box = (x0, y0, x0 + w, y0 + h)
+            if box[0] < bounds[0] or box[1] < bounds[1] or box[2] > bounds[2] or box[3] > bounds[3]:
+                continue
+            cost = sum(_overlap(box, b) for b in placed) + sum(_overlap(box, o, 0.0) for o in obstacles)
+            if cost == 0:
+                best = box
+                break
+            if cost < best_cost:
+                best, best_cost = box, cost
+        if best is None:  # nothing inside the bounds at all: as a label usually sits
+            best = (ax + 8, ay - 8 - h / 2, ax + 8 + w, ay - 8 + h / 2)
+        placed.append(best)
+    return placed
+
+
+def _leader_end(anchor: tuple[float, float], box: Box) -> tuple[float, float]:
+    """The point of `box` nearest to `anchor`."""
+    return min(max(anchor[0], box[0]), box[2]), min(max(anchor[1], box[1]), box[3])
+
+
+def plot_rate_distortion(report: dict, path: str, size: tuple[int, int] = (900, 600)) -> list[Box]:
+    """PSNR (mean over views) against disk bytes per splat (log axis), drawn with Pillow. The labels of the points
+    never overlap (place_labels; a grey leader line joins a label set apart to its point); returns their boxes."""
     from PIL import Image, ImageDraw, ImageFont
 
     rows = [r for r in report["rows"] if r["kind"] != "attribution"]  # those are diagnostics, not rate points
@@ -568,6 +648,9 @@ def plot_rate_distortion(report: dict, path: str, size: tuple[int, int] = (900, 
     if variants:
         series.append(("splatstream variants", variants, (150, 150, 150), False))
     ly = top
+    markers: list[Box] = []
+    marker_colours: list[tuple[int, int, int]] = []
+    labels: list[tuple[tuple[float, float], str, tuple[int, int, int]]] = []
     for name, pts, colour, connect in series:
         coords = [(px(r["disk_bytes_per_splat"]), py(r["psnr_mean"] if r["psnr_mean"] is not None else lossless_y))
                   for r in pts]
@@ -575,13 +658,33 @@ def plot_rate_distortion(report: dict, path: str, size: tuple[int, int] = (900, 
             d.line(coords, fill=colour, width=2)
         for (cx, cy), r in zip(coords, pts, strict=True):
             d.ellipse([cx - 5, cy - 5, cx + 5, cy + 5], fill=colour, outline="black")
+            markers.append((cx - 5, cy - 5, cx + 5, cy + 5))
+            marker_colours.append(colour)
             if connect or r["kind"] == "variant":
-                d.text((cx + 8, cy - 16), r["label"], fill=(90, 90, 90) if r["kind"] == "variant" else colour,
-                       font=font)
+                labels.append(((cx, cy), r["label"], (90, 90, 90) if r["kind"] == "variant" else colour))
         d.ellipse([right + 15, ly + 3, right + 25, ly + 13], fill=colour, outline="black")
         d.text((right + 32, ly), name[:24], fill="black", font=font)
         ly += 22
+    # labels top to bottom, then left to right: the crowded corners are filled in a stable order
+    order = sorted(range(len(labels)), key=lambda i: (labels[i][0][1], labels[i][0][0]))
+    sizes = []
+    for i in order:
+        x0, y0, x1, y1 = d.textbbox((0, 0), labels[i][1], font=font)
+        sizes.append((x1 - x0 + 2, y1 - y0 + 4))
+    anchors = [labels[i][0] for i in order]
+    crowded = [sum(math.dist(a, (m[0] + 5, m[1] + 5)) < 24 for m in markers) > 1 for a in anchors]
+    boxes = place_labels(anchors, sizes, (left + 2, top + 2, right - 2, bottom - 2), markers, crowded)
+    for i, box, near in zip(order, boxes, crowded, strict=True):
+        anchor, text, colour = labels[i]
+        end = _leader_end(anchor, box)
+        if near or math.dist(anchor, end) > 10:
+            d.line([anchor, end], fill=(150, 150, 150), width=1)
+        x0, y0, _, _ = d.textbbox((0, 0), text, font=font)
+        d.text((box[0] + 1 - x0, box[1] + 2 - y0), text, fill=colour, font=font)
+    for box, colour in zip(markers, marker_colours, strict=True):  # the points again, over the leader lines
+        d.ellipse(list(box), fill=colour, outline="black")
     img.save(path)
+    return [boxes[order.index(i)] for i in range(len(labels))]
 
 
 def cameras_from_report(report: dict) -> list[Camera]:

@@ -8,10 +8,13 @@ Writable, chosen by the output's extension: .ply (standard 3DGS), .splat, .spz (
 """
 from __future__ import annotations
 
+import math
 import os
+import re
 
 from .errors import InputError
 from .gaussians import Gaussians
+from .orientation import UpChoice, detect_up
 
 FORMAT_NAMES = {
     "ply": "standard 3DGS PLY",
@@ -127,6 +130,51 @@ def screen_gaussians(g: Gaussians, path: str, drop_invalid: bool = False) -> Gau
         raise InputError(path, None, message + "; pass --drop-invalid to drop them")
     warnings.warn(f"{path}: {message}; dropped", stacklevel=3)
     return g.subset(~bad)
+
+
+_NUM = r"([-+]?(?:\d+\.?\d*|\.\d+)(?:e[-+]?\d+)?)"
+_UP_VECTOR = re.compile(r"\bup(?:[ _-]?(?:axis|vector))?\s*[:=]?\s*\(?\s*" + r"\s*[, ]\s*".join([_NUM] * 3), re.I)
+_UP_AFTER = re.compile(r"\bup(?:[ _-]?(?:axis|vector))?\s*(?:[:=]|is)?\s*([-+]?)([xyz])\b", re.I)
+_UP_BEFORE = re.compile(r"(?:^|[^\w+-])([-+]?)([xyz])[ _-]?up\b", re.I)
+
+
+def up_from_comments(comments: list[str]) -> tuple[float, float, float] | None:
+    """The up direction a PLY header comment names: 'up 0 0 1', 'up_axis: z', 'z-up', 'Z_UP', 'up = -y' ..."""
+    for text in comments:
+        m = _UP_VECTOR.search(text)
+        if m:
+            v = tuple(float(x) for x in m.groups())
+            if any(v) and all(math.isfinite(x) for x in v):
+                n = math.sqrt(sum(x * x for x in v))
+                return tuple(x / n + 0.0 for x in v)  # type: ignore[return-value]
+        m = _UP_AFTER.search(text) or _UP_BEFORE.search(text)
+        if m:
+            sign = -1.0 if m.group(1) == "-" else 1.0
+            axis = "xyz".index(m.group(2).lower())
+            return tuple(sign if a == axis else 0.0 for a in range(3))  # type: ignore[return-value]
+    return None
+
+
+def declared_up(path: str | os.PathLike) -> UpChoice | None:
+    """The up direction a splat file itself states: a comment in a PLY header naming it (up_from_comments); None
+    for other formats (their readers apply what the format specifies) and for PLY files that say nothing."""
+    from .ply import read_header
+
+    try:
+        if sniff_format(path) != "ply":
+            return None
+        up = up_from_comments(read_header(path).comments)
+    except (InputError, OSError):
+        return None
+    if up is None:
+        return None
+    return UpChoice(up, f"{','.join(f'{v:g}' for v in up)} as the PLY header's comment says")
+
+
+def scene_up(path: str | os.PathLike, g: Gaussians, positions=None) -> UpChoice:
+    """The up direction of the scene in a file: what the file states (declared_up), else detected from the
+    splats (orientation.detect_up)."""
+    return declared_up(path) or detect_up(g, positions)
 
 
 def _read_any(path: str, drop_invalid: bool) -> Gaussians:

@@ -69,7 +69,39 @@ def detect_up(g: Gaussians, positions: np.ndarray | None = None) -> UpChoice:
     z_thick = extent[2] >= MIN_Z_EXTENT * max(float(extent.max()), 1e-30)
     if shares[2] >= MIN_Z_SHARE and shares[2] >= Z_DOMINANCE * max(shares[0], shares[1]) and z_thick:
         return UpChoice(Z_UP, f"z up: {shares[2]:.0%} of flat splats face +-z (horizontal surfaces)")
-    return UpChoice(Y_DOWN_UP, "the 3DGS convention (y down)")
+    layer = ground_layer_axis(g, extent)
+    if layer == 2:
+        return UpChoice(Z_UP, "z up: the splats lie spread over a ground plane in x and y (z extent "
+                              f"{extent[2] / min(extent[0], extent[1]):.0%} of theirs)")
+    if layer == 1:
+        return UpChoice(Y_DOWN_UP, "y down: the splats lie spread over a ground plane in x and z (the 3DGS "
+                                   "convention)")
+    return UpChoice(Y_DOWN_UP, "the 3DGS convention (y down), assumed: neither the file nor the scene's shape "
+                               "says otherwise")
+
+
+# A scene spread over a ground plane (a city block, objects on a field): one axis' extent is at most LAYER_THIN of
+# both others', and yet at least LAYER_MIN_SIZES median splat sizes, so that it is not a single sheet of splats (a
+# card or a wall seen from the front: fruit_drops, 3 sizes thick). Measured (thin axis' share of the smaller other
+# extent; its thickness in median splat sizes): make_scene.py's 1M scene (z up) 0.08, 116; fruit_drops 0.09, 3;
+# every other real scene 0.4 or more.
+LAYER_THIN = 0.25
+LAYER_MIN_SIZES = 20.0
+
+
+def ground_layer_axis(g: Gaussians, extent: np.ndarray) -> int | None:
+    """The axis (0, 1, 2) normal to a ground plane the scene lies spread over, or None (see LAYER_THIN)."""
+    if len(g) < 16 or not np.all(np.isfinite(extent)) or extent.max() <= 0:
+        return None
+    thin = int(np.argmin(extent))
+    others = [extent[a] for a in range(3) if a != thin]
+    if extent[thin] > LAYER_THIN * min(others):
+        return None
+    sizes = np.exp(g.log_scales.astype(np.float64)).max(axis=1)
+    size = float(np.median(sizes[np.isfinite(sizes)])) if np.isfinite(sizes).any() else 0.0
+    if not size > 0 or extent[thin] < LAYER_MIN_SIZES * size:
+        return None
+    return thin
 
 
 # For a y-down scene the default view is along the capture's z axis (camera.py). Which end: captures put large,

@@ -7,6 +7,11 @@ import sys
 import time
 
 
+def count(n: int, noun: str, plural: str | None = None) -> str:
+    """'1 tile', '11 tiles', '1 leaf' / '2 leaves' (with `plural`): a number a user reads, with its noun."""
+    return f"{n:,} {noun if n == 1 else (plural or noun + 's')}"
+
+
 class ProgressPrinter:
     def __init__(self, label: str, stream=None, enabled: bool = True):
         self.label = label

@@ -6,15 +6,32 @@ import sys
 import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
+# The project's shared test data (larger real scenes, tools): SPLATSTREAM_SHARED, else ../shared beside the clone.
 SHARED = pathlib.Path(os.environ.get("SPLATSTREAM_SHARED", ROOT.parent / "shared"))
 REAL = SHARED / "data" / "real"
+# Small real scenes bundled with the tests (provenance and licences: tests/data/real/README.md); the donut is the
+# bundled sample scene itself.
+BUNDLED = ROOT / "tests" / "data" / "real"
+BUNDLED_ALIASES = {"donut_sh0_no_normals.ply": ROOT / "samples" / "donut.ply"}
 REAL_PLYS = ["fruit_drops_sh3.ply", "lod_tile_sh3_zero_rest.ply", "donut_sh0_no_normals.ply"]
 
 
+def real_path(name: str) -> pathlib.Path | None:
+    """A real scene by its name in the shared data (data/real/NAME): the bundled copy when there is one, else the
+    shared one; None when neither is here."""
+    for path in (BUNDLED / name, BUNDLED_ALIASES.get(name), REAL / name):
+        if path is not None and path.exists():
+            return path
+    return None
+
+
 def real(name: str) -> pathlib.Path:
-    path = REAL / name
-    if not path.exists():
-        pytest.skip(f"real scene {path} not available")
+    """A real scene (see real_path), or skip the test saying what is missing and how to get it."""
+    path = real_path(name)
+    if path is None:
+        pytest.skip(f"real scene {name} is not bundled with the tests and not in {REAL}: it is in the project's "
+                    "shared test data (data/real/); set SPLATSTREAM_SHARED to the directory holding data/real/ "
+                    "(default: ../shared beside the clone)")
     return path
 
 
@@ -86,3 +103,18 @@ def settle_totals(m: dict) -> None:
     every.update({p["file"]: p["bytes"] for p in (m.get("sh_codebook") or {}).get("groups", {}).values()})
     for _ in range(3):  # the number's own msgpack length can change the manifest's length once
         m["bytes_on_disk"] = sum(every.values()) + len(pack_manifest_dict(m))
+
+
+def sphere_framed_camera(positions, width: int, height: int, up=(0.0, 0.0, 1.0)):
+    """The default camera as it was before issue 34 (target the median, the central 95 % box's bounding sphere in
+    the narrower field of view): the view some tests' thresholds were measured on."""
+    import numpy as np
+
+    from splatstream.camera import DEFAULT_FOV_Y_DEG, REFERENCE_NEAR, Camera, _diagonal, fit_distance, robust_bounds
+
+    med, lo, hi = robust_bounds(positions, 95.0)
+    radius = float(np.linalg.norm(np.maximum(hi - med, med - lo))) or 1.0
+    dist = fit_distance(radius, DEFAULT_FOV_Y_DEG, width / height)
+    eye = med + _diagonal(np.asarray(up, dtype=np.float64)) * dist
+    return Camera(tuple(eye), tuple(med), tuple(up), DEFAULT_FOV_Y_DEG, width, height,
+                  min(REFERENCE_NEAR, 0.01 * dist), max(1000.0, 10.0 * (dist + radius)))

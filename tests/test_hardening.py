@@ -217,7 +217,7 @@ def test_declared_counts_beyond_the_memory_budget_are_refused(tmp_path):
 
     env = dict(os.environ, SPLATSTREAM_MEMORY_BUDGET="100000")
     for src in (FOREIGN / "fruit_drops_v4.spz", real("fruit_drops_sh3.ply"), FOREIGN / "fruit_drops.compressed.ply",
-                real("winter_fountain.splat")):
+                real("winter_fountain_first3000.splat")):
         r = subprocess.run([sys.executable, "-m", "splatstream.cli", "convert", "-q", str(src),
                             str(tmp_path / "o.ply")], capture_output=True, text=True, env=env, timeout=120)
         fails_cleanly(r, str(src), "memory budget of 0.1 MiB")

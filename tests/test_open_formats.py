@@ -403,7 +403,9 @@ def test_convert_notes_format_and_options(tmp_path, capsys):
     out = tmp_path / "x.glb"
     assert main(["convert", str(FIXTURES / "fruit_drops_lod"), str(out), "--glb-compression", "spz"]) == 0
     err = capsys.readouterr().err
-    assert "PlayCanvas streamed SOG (finest level)" in err and "spz compression" in err
+    assert "PlayCanvas streamed SOG (finest level)" in err and "SPZ-compressed splats" in err
+    assert main(["convert", str(FIXTURES / "fruit_drops_lod"), str(tmp_path / "plain.glb")]) == 0
+    assert "uncompressed splats" in capsys.readouterr().err  # not "none compression"
     assert main(["convert", str(FIXTURES / "fruit_drops_v4.spz"), str(tmp_path / "x.spz"), "--spz-version", "3"]) == 0
     assert zlib.decompress((tmp_path / "x.spz").read_bytes(), 31)[4] == 3
     assert main(["convert", str(FIXTURES), str(tmp_path / "y.ply")]) == 2

@@ -20,6 +20,7 @@ from pathlib import Path
 
 import aiohttp
 import pytest
+from conftest import real_path
 
 from server.app import SCENE_ROOT
 from server.scenes import SMALL_FILE_BYTES
@@ -28,7 +29,7 @@ from splatstream.format.manifest import pack_manifest, parse_manifest
 from splatstream.format.names import MANIFEST_NAME
 
 REPO = Path(__file__).resolve().parents[1]
-REAL_PLY = Path("/work/shared/data/real/fruit_drops_sh3.ply")
+REAL_PLY = real_path("fruit_drops_sh3.ply")
 SIZES = [0, 1, 1000, SMALL_FILE_BYTES, SMALL_FILE_BYTES + 1, 3 << 20]  # both the in-memory and sendfile paths
 sha = hashlib.sha256
 
@@ -519,7 +520,6 @@ def test_root_symlink_switched(tmp_path):
         s.stop()
 
 
-@pytest.mark.skipif(not REAL_PLY.exists(), reason="real scene not available")
 def test_real_encoded_scene(tmp_path):
     from splatstream.encode import encode_file
 

@@ -95,7 +95,8 @@ def read_response(s: socket.socket) -> tuple[int, dict[str, str], bytes]:
     return int(lines[0].split()[1]), headers, body
 
 
-def wait_for(condition, limit: float = 5.0) -> bool:
+def wait_for(condition, limit: float = 30.0) -> bool:
+    """True as soon as condition() holds; the bound is generous (a loaded machine only makes it later)."""
     end = time.monotonic() + limit
     while time.monotonic() < end:
         if condition():
@@ -145,7 +146,7 @@ def test_stalled_download_is_aborted(fast, root):
         s.sendall(f"GET /scenes/s/data/{name} HTTP/1.1\r\nHost: x\r\n\r\n".encode())
         assert wait_for(lambda: any(c.busy for c in fast.guard.normal))
         start = time.monotonic()
-        assert wait_for(lambda: fast.guard.open_connections == 0, FAST.send_timeout + 5)
+        assert wait_for(lambda: fast.guard.open_connections == 0, FAST.send_timeout + 30)
         assert time.monotonic() - start >= FAST.send_timeout - 0.2
         got = 0
         try:
@@ -173,7 +174,7 @@ def test_stalled_pipelined_responses_are_aborted(fast, root):
                 time.sleep(0.01)
         assert wait_for(lambda: any(c.paused_since for c in fast.guard.normal))
         start = time.monotonic()
-        assert wait_for(lambda: fast.guard.open_connections == 0, FAST.send_timeout + 5)
+        assert wait_for(lambda: fast.guard.open_connections == 0, FAST.send_timeout + 30)
         assert time.monotonic() - start >= FAST.send_timeout - 0.5
         s.setblocking(True)
         got = 0

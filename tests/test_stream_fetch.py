@@ -12,10 +12,12 @@ import socket
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import TypeVar
 
 import pytest
-from conftest import REAL
+from conftest import real_path
 from fault_server import FaultServer
 
 from client_gl.stream.cache import DiskCache
@@ -33,6 +35,7 @@ from splatstream.store import DirectoryStore, MemoryStore, load_manifest
 
 REPO = Path(__file__).resolve().parents[1]
 SCENE = "fruit"
+T = TypeVar("T")
 
 
 @pytest.fixture(scope="module")
@@ -40,8 +43,8 @@ def root(tmp_path_factory) -> Path:
     """A root with one real encoded scene: fruit_drops (4721 splats, SH degree 3) in tiles of at most 1000 splats
     (11 tiles, 44 payloads); the spec's test vector when the real data is not here."""
     root = tmp_path_factory.mktemp("stream-root")
-    ply = REAL / "fruit_drops_sh3.ply"
-    if ply.exists():
+    ply = real_path("fruit_drops_sh3.ply")
+    if ply is not None:
         from splatstream.encode import encode_file
 
         encode_file(ply, root / SCENE, max_leaf_splats=1000)
@@ -88,6 +91,17 @@ def collect(f: Fetcher, count: int, timeout_s: float = 20.0) -> list:
             out.append((key, entry, data))
         time.sleep(0.005)
     return out
+
+
+def wait_for(read: Callable[[], T], ok: Callable[[T], bool], timeout_s: float = 30.0) -> T:
+    """read() until ok(value) holds (a generous bound: a loaded machine only makes it later), the value that
+    held; a test asserts on it, never on a count read at one moment."""
+    deadline = time.monotonic() + timeout_s
+    while True:
+        value = read()
+        if ok(value) or time.monotonic() > deadline:
+            return value
+        time.sleep(0.01)
 
 
 def assert_exact(root: Path, results: list, reqs: list) -> None:
@@ -143,9 +157,8 @@ def test_a_payload_that_stays_corrupt_is_never_delivered(root, manifest, server)
         f.want(reqs)
         bad = [k for _, k, e in reqs if e.sha256 == shas[0]]
         results = collect(f, len(reqs) - len(bad), timeout_s=20)
-        time.sleep(0.5)  # several more corrupt answers
+        s = wait_for(f.stats, lambda s: s.failures.get("checksum", 0) >= 3)  # several more corrupt answers
         results += f.done()
-        s = f.stats()
     finally:
         f.close()
     assert {k for k, _, _ in results} == {k for _, k, _ in reqs} - set(bad)
@@ -179,13 +192,14 @@ def test_server_killed_and_restarted_mid_fetch(root, manifest):
     try:
         f.manifest()
         f.want(reqs)
-        results = collect(f, 3)
-        assert len(results) == 3 and f.stats().in_flight > 0
+        results = collect(f, 3)  # done() hands over what has arrived: 3 or a few more under load
+        assert 3 <= len(results) < len(reqs) and f.stats().in_flight > 0
         proc.send_signal(signal.SIGKILL)
         proc.wait(5)
-        time.sleep(0.6)
+        # The fetcher notices the dead server when its loop thread next runs: wait for that (however loaded the
+        # machine), not for a fixed time.
+        down = wait_for(f.stats, lambda s: s.offline and s.failures.get("connection", 0) >= 1)
         results += f.done()
-        down = f.stats()
         assert down.offline and down.failures.get("connection", 0) >= 1 and down.delivered < len(reqs)
         proc = _start_serve(root, port)
         results += collect(f, len(reqs) - len(results), timeout_s=30)
@@ -262,10 +276,7 @@ def test_a_damaged_cache_file_is_refetched(root, manifest, server, tmp_path):
         assert len(collect(f, len(reqs))) == len(reqs)
     victim = shas_by_size(manifest)[0]
     path = Path(cache.payload_path(victim))
-    for _ in range(100):  # the cache is written right after delivery, in a worker thread
-        if path.exists():
-            break
-        time.sleep(0.01)
+    wait_for(path.exists, bool)  # the cache is written right after delivery, in a worker thread
     data = bytearray(path.read_bytes())
     data[len(data) // 2] ^= 1
     path.write_bytes(bytes(data))
@@ -322,22 +333,21 @@ def test_a_new_list_reorders_the_queue(root, manifest, server):
 def test_cancelled_keys_are_never_delivered(root, manifest, server):
     shas = shas_by_size(manifest)[:3]
     entries = {e.sha256: e for _, _, e in manifest.payloads()}
-    server.slow_bytes_per_s = entries[shas[0]].bytes / 1.0  # the largest payload takes about a second
+    server.slow_bytes_per_s = entries[shas[0]].bytes / 4.0  # each payload takes about 4 s (they are alike in size)
     for sha in shas:
         server.add_fault(sha, "slow")
     reqs = [(3.0 - i, ("k", i), entries[sha]) for i, sha in enumerate(shas)]
     with fetcher(HttpSource(server.url(SCENE)), stall_timeout_s=2.0) as f:
         f.manifest()
         f.want(reqs)
-        deadline = time.monotonic() + 5
-        while len(server.requests("/data/")) < 3 and time.monotonic() < deadline:  # all three bodies started
-            time.sleep(0.005)
-        assert f.stats().in_flight == 3
+        # all three bodies started (the server logs each as its headers go out) and none has finished
+        started = wait_for(lambda: (len(server.requests("/data/")), f.stats().in_flight), lambda v: v[0] >= 3)
+        assert started == (3, 3)
         f.want(reqs[:1])
         s = f.stats()
         assert s.cancelled == 2 and s.in_flight == 1 and s.queued == 0
-        got = collect(f, 1, timeout_s=10)
-        time.sleep(1.5)  # long enough for the cancelled ones to have finished
+        got = collect(f, 1, timeout_s=30)
+        time.sleep(1.5)  # the cancelled bodies, started together with this one, would have finished by now
         got += f.done()
         assert [k for k, _, _ in got] == [("k", 0)]
         assert got[0][2] == (root / SCENE / entries[shas[0]].file).read_bytes()
@@ -354,13 +364,17 @@ def test_close_with_requests_in_flight_is_quick_and_quiet(root, manifest, server
     f = fetcher(HttpSource(server.url(SCENE)), request_timeout_s=30)
     f.manifest()
     f.want(reqs)
-    deadline = time.monotonic() + 5
-    while f.stats().in_flight < 6 and time.monotonic() < deadline:
-        time.sleep(0.005)
-    assert f.stats().in_flight == 6
+    # Six requests (max_in_flight) reach the server and hang there: the server's log only grows, so this is an
+    # event to wait for, not a count read at one moment.
+    hanging = wait_for(lambda: [r for r in server.requests("/data/") if r[1] == 0], lambda h: len(h) >= 6)
+    assert len(hanging) >= 6
+    s = f.stats()
+    assert s.delivered == 0 and 1 <= s.in_flight <= 6
     t0 = time.monotonic()
     f.close()
-    assert time.monotonic() - t0 < 1.0
+    # quick: close() gives up within about a second by design; the bound is loose for a loaded machine and still
+    # far below the 30 s the hanging requests would take
+    assert time.monotonic() - t0 < 5.0
     assert not f._thread.is_alive()
     assert f.done() == []
     err = capfd.readouterr().err
@@ -386,7 +400,7 @@ def test_close_while_manifest_waits_for_a_server_that_does_not_answer(server, ca
     t0 = time.monotonic()
     f.close()
     t.join(2)
-    assert time.monotonic() - t0 < 1.0 and not t.is_alive()
+    assert time.monotonic() - t0 < 5.0 and not t.is_alive()  # not the 30 s manifest timeout
     assert outcome and "closed" in outcome[0]
     assert "Traceback" not in capfd.readouterr().err
 
@@ -405,11 +419,11 @@ def test_manifest_errors_are_one_line_and_name_the_url(root, server, tmp_path):
     assert "refused" in msg and "\n" not in msg and exc.value.kind == "connection"
 
     with fetcher(HttpSource(server.url("nosuch"))) as f:
-        t0 = time.monotonic()
         with pytest.raises(FetchError, match=r"/scenes/nosuch/manifest.msgpack: no such scene \(the server answered "
                                              r"404"):
             f.manifest()
-        assert time.monotonic() - t0 < 0.5  # permanent: not retried
+        s = f.stats()
+    assert s.requests == 1 and s.retries == 0  # permanent: not retried
 
     (root / "broken").mkdir(exist_ok=True)
     (root / "broken" / "manifest.msgpack").write_bytes(b"<html>captive portal</html>")
@@ -491,7 +505,7 @@ def test_a_missing_local_payload_is_retried_not_delivered(root, manifest, tmp_pa
         f.want(reqs)
         bad = [k for _, k, e in reqs if e.sha256 == victim]
         results = collect(f, len(reqs) - len(bad))
-        time.sleep(0.2)
+        wait_for(f.stats, lambda s: s.failures.get("missing", 0) >= 2)
         assert f.done() == [] and f.stats().failures.get("missing", 0) >= 2
         assert "payload file named in the manifest is missing" in f.stats().last_error
         os.rename(moved, scene / "data" / f"{victim}.bin")  # back: the next retry gets it

@@ -110,6 +110,12 @@ def test_stream_from_splatstream_serve_converges_to_render_of_the_same_cut(ctx, 
         assert report["first_frame_s"] <= report["converged_s"]
         assert 0 < report["bytes_first_frame"] <= report["bytes_downloaded"]
         assert report["gpu_bytes_peak"] <= report["gpu_budget_bytes"]
+        # the GPU memory reported is what the resident splats use (about the scene's B/splat on the GPU, in
+        # 256-splat slots), not the pool allocated up front for the budget
+        per_splat = load_manifest(root / "fruit").gpu_bytes_per_splat
+        resident = report["resident_gpu_bytes"]
+        assert 0.5 * per_splat * report["resident_splats"] <= resident <= 3 * per_splat * report["resident_splats"]
+        assert resident <= report["resident_gpu_bytes_peak"] < report["gpu_bytes_peak"] / 10
         same_cut = psnr(image, as_image8(render_cut(ctx, root / "fruit", cam, 1.5)))
         assert same_cut >= 50, same_cut
         full = as_image8(render_cut(ctx, root / "fruit", cam, None))

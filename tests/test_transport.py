@@ -10,6 +10,7 @@ import zlib
 import numpy as np
 import pytest
 import zstandard
+from conftest import real_path
 
 from splatstream.decoder import decode_scene
 from splatstream.encode import EncodeOptions, encode_gaussians
@@ -36,8 +37,7 @@ from splatstream.format.transport import (
 from splatstream.io import read_gaussians
 from splatstream.store import load_manifest
 
-REAL = os.path.join(os.path.dirname(__file__), "..", "..", "shared", "data", "real")
-FRUIT = os.path.join(REAL, "fruit_drops_sh3.ply")
+FRUIT = real_path("fruit_drops_sh3.ply")  # bundled (tests/data/real), so always here
 VECTORS = os.path.join(os.path.dirname(__file__), "..", "format_spec", "vectors", "transport")
 GEOMETRIES = [(16, 16, 1), (48, 32, 3), (64, 16, 7)]
 
@@ -205,7 +205,8 @@ def test_encoding_is_deterministic():
 
 # --- whole scenes -------------------------------------------------------------------------------------------------
 
-needs_fruit = pytest.mark.skipif(not os.path.exists(FRUIT), reason="real scenes not present")
+needs_fruit = pytest.mark.skipif(FRUIT is None, reason="fruit_drops_sh3.ply: neither bundled in tests/data/real "
+                                 "nor in $SPLATSTREAM_SHARED/data/real")
 
 
 @needs_fruit

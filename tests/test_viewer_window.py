@@ -163,3 +163,19 @@ def test_window_input_screenshot_and_overlay(display, served, tmp_path):
     overlay = np.abs(win[10:60, 10:200] - shot[10:60, 10:200]).mean()
     assert overlay > 0.05, overlay
     assert psnr(win[:, 440:], shot[:, 440:]) >= 40  # right of the overlay panel
+
+
+def test_window_exit_when_converged_with_screenshot_alone(display, served, tmp_path):
+    """The README's `view URL --screenshot shot.png --exit-when-converged` in a window, with no other option
+    (`--measure-frames` at its default 0): the screenshot is written and the viewer exits 0 without an error."""
+    from PIL import Image
+
+    env = {**os.environ, "DISPLAY": display, "SPLATSTREAM_CACHE_DIR": str(tmp_path / "cache")}
+    r = subprocess.run([sys.executable, "-m", "splatstream.cli", "view", served, "--screenshot", "shot.png",
+                        "--exit-when-converged"], env=env, cwd=tmp_path, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr
+    assert "internal error" not in r.stderr and "Traceback" not in r.stderr, r.stderr
+    shot = np.asarray(Image.open(tmp_path / "shot.png"), np.float32) / 255.0
+    assert shot.ndim == 3 and shot.shape[2] == 3
+    assert shot.std() > 0.02  # the scene is in the picture, not an empty background

@@ -295,6 +295,13 @@ class ChunkPool:
         return self._gpu_bytes
 
     @property
+    def resident_bytes(self) -> int:
+        """The GPU bytes the resident splats use: their slots' share of the atlases, range table and slot states,
+        and the SH codebook (held once for the scene). gpu_bytes is the whole pool, allocated up front."""
+        per_slot = (self.texel_bytes + self.range_bytes + self.state_bytes) / max(1, self.capacity_slots)
+        return int(round(self.used_slots * per_slot)) + self.codebook_bytes
+
+    @property
     def bytes_per_splat(self) -> float:
         """GPU bytes per splat slot (atlases, range records, slot states, codebook), i.e. per splat of a full pool."""
         return self.gpu_bytes / self.splat_capacity

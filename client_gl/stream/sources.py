@@ -322,4 +322,10 @@ def encode_splat_file(path: str, encode_options=None, progress: Progress | None 
     g = read_gaussians(path)
     if progress:
         progress("read", 1.0)
+    if opts.up is None:
+        from splatstream.io import declared_up
+
+        stated = declared_up(path)
+        if stated is not None:
+            opts = replace(opts, up=stated.up)
     return encode_in_memory(g, opts, progress, name=path)

@@ -18,6 +18,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "only when complete. What each format keeps is documented in format_spec/foreign_formats.md.")
     p.add_argument("input", help="input splat file or SOG directory")
     p.add_argument("output", help="output file (.ply, .splat, .spz or .glb)")
+    p.add_argument("--spz-axes", choices=("rub", "rdf"), default="rub",
+                   help="axes of an SPZ input: rub, as the format specifies (Niantic's library, splat-transform 2.x; "
+                        "default), or rdf for files stored without the axis turn (splat-transform 3.x), which read "
+                        "turned 180 degrees about x otherwise")
     p.add_argument("--spz-version", type=int, choices=(3, 4), default=4,
                    help="SPZ version for .spz output: 4 (zstd streams, default) or 3 (gzip, for older readers)")
     p.add_argument("--glb-compression", choices=("none", "spz"), default="none",
@@ -52,10 +56,17 @@ def run(args: argparse.Namespace) -> int:
 
         raise InputError(args.input, None, "holds no splats (none, or none left after dropping invalid ones); "
                          "nothing to convert")
+    if args.spz_axes == "rdf":
+        if in_format != "spz":
+            raise UsageError(f"--spz-axes rdf: {args.input} is not an SPZ file")
+        from ..axes import RDF_TO_RUB, turn
+
+        g = turn(g, RDF_TO_RUB)  # undo the reader's RUB -> RDF turn: the file held RDF already
     say(f"read {len(g)} splats, SH degree {g.sh_degree}")
     if out_format == "splat" and g.sh_degree > 0:
         say(f"note: .splat has no SH bands; bands 1..{g.sh_degree} are dropped")
-    detail = {"spz": f", version {args.spz_version}", "gltf": f", {args.glb_compression} compression"}
+    glb = "SPZ-compressed splats" if args.glb_compression == "spz" else "uncompressed splats"
+    detail = {"spz": f", version {args.spz_version}", "gltf": f", {glb}"}
     say(f"writing {args.output} ({FORMAT_NAMES[out_format]}{detail.get(out_format, '')})")
     write_gaussians(g, args.output, spz_version=args.spz_version, glb_compression=args.glb_compression)
     say("done")

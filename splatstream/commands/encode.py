@@ -18,7 +18,7 @@ from ..format.presets import (
 )
 from ..format.texformats import VALUE_FORMATS
 from ..format.transport import TRANSPORTS
-from ..progress import ProgressPrinter
+from ..progress import ProgressPrinter, count
 from .args import parse_bytes, parse_vector
 
 # The views --target-psnr / --target-size measure presets on: `splatstream eval`'s defaults.
@@ -145,8 +145,9 @@ def run(args: argparse.Namespace) -> int:
                         name=args.name, up=up, chunk_order=args.chunk_order, sh_codebook=args.sh_codebook)
     if not args.quiet:
         print(f"wrote {args.output_dir}: {m.splats} splats, SH degree {m.sh_degree}, preset {m.preset}, "
-              f"{len(m.tiles)} tiles, {m.bytes_on_disk / 1e6:.2f} MB on disk "
-              f"({m.bytes_on_disk / m.splats:.2f} B/splat), {m.gpu_bytes_per_splat:.2f} B/splat on the GPU, "
+              f"{count(len(m.tiles), 'tile')}, {m.bytes_on_disk / 1e6:.2f} MB on disk "
+              f"({m.leaf_bytes_on_disk / m.splats:.2f} B/splat at full detail, {m.bytes_on_disk / m.splats:.2f} "
+              f"with all LOD levels), {m.gpu_bytes_per_splat:.2f} B/splat on the GPU, "
               f"{time.perf_counter() - t0:.2f}s", file=sys.stderr)
     return 0
 
@@ -173,6 +174,6 @@ def _preset_for_target(args: argparse.Namespace, up: tuple[float, float, float] 
     row = preset_for_target(report["rows"], target_psnr=args.target_psnr, target_bytes=args.target_size)
     psnr = "identical" if row["psnr_mean"] is None else f"{row['psnr_mean']:.2f} dB"
     what = f"PSNR >= {args.target_psnr:g} dB" if args.target_psnr is not None else f"<= {args.target_size:g} B/splat"
-    log(f"{what}: preset {row['label']} ({row['disk_bytes_per_splat']:.2f} B/splat full detail, {psnr} mean PSNR "
+    log(f"{what}: preset {row['label']} ({row['disk_bytes_per_splat']:.2f} B/splat at full detail, {psnr} mean PSNR "
         f"over {args.target_views} views)")
     return str(row["label"])

@@ -36,6 +36,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--plot", metavar="OUT.png", help="write a rate-versus-PSNR plot (PNG)")
     p.add_argument("--markdown", metavar="OUT.md", help="also write the table to this file")
     p.add_argument("--encoded", metavar="DIR", help="keep the encoded scenes under DIR/<preset> (default: discard)")
+    p.add_argument("--spz-axes", choices=("rub", "rdf", "auto"), default="rub",
+                   help="axes of SPZ files given to --compare: rub, as the format specifies (Niantic's library, "
+                        "splat-transform 2.x; default: a file that reads turned against the input is warned about), "
+                        "rdf, stored without the axis turn (splat-transform 3.x), or auto: whichever matches the input")
     p.add_argument("--compare", nargs="+", default=[], metavar="[LABEL=]FILE[@SIZED]",
                    help="other tools' outputs to put in the table: a file we can read (PLY, compressed PLY, SPZ, "
                         ".splat); @SIZED names the file or directory whose size counts (e.g. a .sog converted back "
@@ -72,7 +76,7 @@ def run(args: argparse.Namespace) -> int:
     up = parse_vector(args.up, "--up", nonzero=True) if args.up else None
     opts = EvalOptions(presets=presets, views=args.views, width=w, height=h, up=up,
                        elevation_deg=args.elevation, encoded_dir=args.encoded, compare=args.compare,
-                       lod=args.lod, attribution=parse_list(args.attribution),
+                       spz_axes=args.spz_axes, lod=args.lod, attribution=parse_list(args.attribution),
                        variants=args.variants)
     log = None if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
     report = evaluate(args.input, opts, log, pick_renderer(args.renderer))

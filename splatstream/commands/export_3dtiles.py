@@ -44,7 +44,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ..errors import UsageError
-    from ..progress import ProgressPrinter
+    from ..progress import ProgressPrinter, count
     from ..tiles3d import DEFAULT_SPZ_AXES, ExportOptions, Placement, export_tileset
 
     located = args.longitude is not None or args.latitude is not None or args.height is not None
@@ -63,7 +63,8 @@ def run(args: argparse.Namespace) -> int:
     if not args.quiet:
         where = (f"longitude {placement.longitude:g}, latitude {placement.latitude:g}, height {placement.height:g} m"
                  if located else "longitude 0, latitude 0 (not georeferenced)")
-        print(f"export-3dtiles: {report.tiles} tiles ({report.files} files, {report.content_bytes} bytes of "
+        print(f"export-3dtiles: {count(report.tiles, 'tile')} ({count(report.files, 'file')}, "
+              f"{report.content_bytes} bytes of "
               f"{args.content} content, tileset.json {report.tileset_bytes} bytes) at {where}, heading "
               f"{placement.heading:g}, anchor {placement.anchor} -> {args.output_dir} "
               f"({time.perf_counter() - start:.1f}s)", file=sys.stderr)

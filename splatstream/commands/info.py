@@ -7,6 +7,7 @@ from collections import Counter
 
 from ..format.manifest import Manifest, scene_summary
 from ..format.presets import PRESET_SH_CODEBOOK, PRESET_SUMMARY, PRESETS
+from ..progress import count
 from ..store import load_manifest
 
 
@@ -66,7 +67,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("info", help="describe an encoded scene directory",
                        description="Print the facts of an encoded scene: splats, SH degree, preset, sizes on disk and "
                                    "in GPU memory per attribute, tiles and levels.")
-    p.add_argument("scene_dir")
+    p.add_argument("scene_dir", help="an encoded scene directory (the one holding manifest.msgpack), as written "
+                                     "by `splatstream encode`")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run)
 
@@ -84,8 +86,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"preset     {info['preset']}: {info['preset_summary']}{changed}")
     else:
         print(f"preset     {info['preset']} is not a preset of this version; the formats below are what counts")
-    print(f"tiles      {info['tiles']} in {info['levels']} levels, {info['leaf_tiles']} leaves holding "
-          f"{info['leaf_splats']} splats")
+    print(f"tiles      {info['tiles']} in {count(info['levels'], 'level')}, "
+          f"{count(info['leaf_tiles'], 'leaf', 'leaves')} holding {count(info['leaf_splats'], 'splat')}")
     print(f"on disk    {info['bytes_on_disk']} bytes ({info['bytes_per_splat_on_disk']:.2f} B/splat, all levels)")
     print(f"GPU        {info['gpu_bytes']} bytes ({info['gpu_bytes_per_splat']:.2f} B/splat, full detail)")
     for name, a in (info["attributes"] or {}).items():
@@ -98,5 +100,6 @@ def run(args: argparse.Namespace) -> int:
         print(f"  SH codebook: {cb['entries']} entries in {cb['format']}, {cb['bytes_on_disk']} bytes on disk, "
               f"{cb['gpu_bytes']} on the GPU, shared by every tile ({cb['index_format']} index per splat)")
     for lv in info["bytes_per_level"]:
-        print(f"  level {lv['level']}: {lv['tiles']} tiles, {lv['splats']} splats, {lv['bytes_on_disk']} bytes on disk")
+        print(f"  level {lv['level']}: {count(lv['tiles'], 'tile')}, {count(lv['splats'], 'splat')}, "
+              f"{lv['bytes_on_disk']} bytes on disk")
     return 0

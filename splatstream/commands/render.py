@@ -52,14 +52,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _camera(args, scene_camera: dict | None, positions: np.ndarray | None, scene_up, size,
-            side: float = 0.0) -> Camera:
+            side: float = 0.0, opacity_logits: np.ndarray | None = None) -> Camera:
     width, height = size
     up = _optional_vector(args.up, "--up") or tuple(scene_up)
     if scene_camera is not None:
         default = Camera(scene_camera["eye"], scene_camera["target"], scene_camera.get("up", up),
                          scene_camera.get("fov_y", scene_camera.get("fov_y_deg", DEFAULT_FOV_Y_DEG)), width, height)
     else:
-        default = suggested_camera(positions, up=up, width=width, height=height, side=side)
+        default = suggested_camera(positions, up=up, width=width, height=height, side=side,
+                                   opacity_logits=opacity_logits)
     eye = _optional_vector(args.eye, "--eye") or default.eye
     target = _optional_vector(args.target, "--target") or default.target
     if args.up is None and scene_camera is not None:
@@ -104,10 +105,11 @@ def run(args: argparse.Namespace) -> int:
         g = read_gaussians(args.scene)
         if len(g) == 0:
             raise UsageError(f"{args.scene}: no splats to render")
-        from ..orientation import detect_up, view_side
+        from ..io import scene_up
+        from ..orientation import view_side
 
-        up = _optional_vector(args.up, "--up") or detect_up(g).up
-        cam = _camera(args, None, g.positions, up, size, view_side(g, up))
+        up = _optional_vector(args.up, "--up") or scene_up(args.scene, g).up
+        cam = _camera(args, None, g.positions, up, size, view_side(g, up), g.opacity_logits)
         source = ("gaussians", g)
         splats = len(g)
     renderer = headless.HeadlessRenderer(headless.RenderOptions(sort=args.sort, draw=args.draw))

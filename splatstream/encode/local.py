@@ -11,6 +11,7 @@ import os
 import tempfile
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
+from dataclasses import replace
 
 from ..format.manifest import Manifest, TileEntry
 from ..gaussians import Gaussians
@@ -179,6 +180,14 @@ def encode_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, prese
     else:
         out = local_path(out)
         check_output(out, directory=True)
+    if opts.up is None:  # a PLY header that names its up axis is believed before the scene's shape
+        from ..io import declared_up
+        from .plan import log
+
+        stated = declared_up(input_path)
+        if stated is not None:
+            log.info("up %s: %s (--up overrides it)", ",".join(f"{v:g}" for v in stated.up), stated.reason)
+            opts = replace(opts, up=stated.up)
     progress = progress or no_progress
     out_name = os.path.basename(os.path.abspath(out)) if not is_url(out) else out.rstrip("/").rsplit("/", 1)[-1]
     source_name = os.fspath(input_path)

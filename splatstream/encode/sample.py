@@ -89,7 +89,11 @@ class SceneSample:
 
     def camera(self, up: tuple[float, float, float]) -> CameraEntry:
         """The suggested initial camera (format_spec/camera.md)."""
-        cam = suggested_camera(self.positions, up=up, side=view_side(self.orient, up))
+        if len(self.orient) >= 16:  # framed by the splats that are not nearly transparent (camera.framing_box)
+            cam = suggested_camera(self.orient.positions, up=up, side=view_side(self.orient, up),
+                                   opacity_logits=self.orient.opacity_logits)
+        else:
+            cam = suggested_camera(self.positions, up=up, side=view_side(self.orient, up))
         return CameraEntry(tuple(float(v) for v in cam.eye), tuple(float(v) for v in cam.target),
                            tuple(float(v) for v in cam.up), float(cam.fov_y_deg))
 

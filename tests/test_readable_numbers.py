@@ -1,0 +1,78 @@
+"""Numbers a user can read: plurals, 'read' for a local scene, the GPU memory the resident splats use (not the
+pool), which B/splat is which, the help of every positional, and eval plot labels that never overlap."""
+from __future__ import annotations
+
+import copy
+import json
+
+from conftest import ROOT, run_cli
+
+from splatstream.commands.view import transfer_and_memory
+from splatstream.evaluate import _overlap, place_labels, plot_rate_distortion
+from splatstream.progress import count
+
+
+def test_counts_have_their_plurals():
+    assert count(1, "tile") == "1 tile" and count(11, "tile") == "11 tiles" and count(0, "tile") == "0 tiles"
+    assert count(1, "leaf", "leaves") == "1 leaf" and count(4, "leaf", "leaves") == "4 leaves"
+    assert count(45624, "splat") == "45,624 splats"
+
+
+def test_view_summary_says_read_for_local_and_reports_resident_memory():
+    report = {"bytes_downloaded": 1_800_000, "resident_gpu_bytes": 228_152, "resident_splats": 4721,
+              "gpu_budget_bytes": 1024 << 20, "gpu_bytes_peak": 1072480000, "fetch": {"manifest_source": "local"}}
+    line = transfer_and_memory(report)
+    assert line == "1.80 MB read, GPU 0.2 MiB for 4,721 resident splats (budget 1024 MiB)"
+    report["fetch"]["manifest_source"] = "network"
+    report["resident_splats"] = 1
+    assert transfer_and_memory(report).startswith("1.80 MB downloaded, GPU 0.2 MiB for 1 resident splat (")
+
+
+def test_info_help_describes_its_positional():
+    r = run_cli("info", "--help")
+    assert r.returncode == 0
+    after = r.stdout.split("positional arguments:")[1].split("options:")[0]
+    assert "scene_dir" in after and "manifest.msgpack" in after
+
+
+def test_encode_and_info_say_which_bytes_per_splat_is_which_in_plain_words(tmp_path):
+    r = run_cli("encode", ROOT / "samples" / "donut.ply", tmp_path / "d", "--max-leaf-splats", "100000")
+    assert r.returncode == 0, r.stderr
+    last = r.stderr.strip().splitlines()[-1]
+    assert ", 1 tile, " in last
+    assert "B/splat at full detail, " in last and " with all LOD levels)" in last
+    r = run_cli("info", tmp_path / "d")
+    assert "tiles      1 in 1 level, 1 leaf holding 45,624 splats" in r.stdout
+    assert "  level 0: 1 tile, 45,624 splats, " in r.stdout
+
+
+def test_labels_never_overlap_where_points_crowd():
+    # nine points within a few pixels of each other, and a marker in the way
+    anchors = [(300 + 3 * i, 200 + 2 * (i % 3)) for i in range(9)]
+    sizes = [(110, 18)] * 9
+    markers = [(ax - 5, ay - 5, ax + 5, ay + 5) for ax, ay in anchors]
+    boxes = place_labels(anchors, sizes, (0, 0, 800, 500), markers, [True] * 9)
+    for i, a in enumerate(boxes):
+        assert 0 <= a[0] and a[2] <= 800 and 0 <= a[1] and a[3] <= 500
+        assert all(_overlap(a, m, 0.0) == 0 for m in markers)
+        assert all(_overlap(a, b, 0.0) == 0 for b in boxes[i + 1:])
+
+
+def test_eval_plot_labels_of_close_presets_do_not_overlap(tmp_path):
+    """The README's presets as they sit on the donut: medium-low with its two variants, low-plus and
+    low-plus-9bit, within a few tenths of a byte and a dB."""
+    report = json.loads((ROOT / "bench" / "results" / "eval_donut.json").read_text())
+    rows = report["rows"]
+    by = {r["label"]: r for r in rows}
+    for label, src, b, p in [("medium-low-12bit", "medium-low", 12.95, 60.7),
+                             ("medium-low-9bit", "medium-low", 12.80, 60.5),
+                             ("low-plus-9bit", "low-plus", 11.70, 52.1)]:
+        row = copy.deepcopy(by[src])
+        row.update(label=label, disk_bytes_per_splat=b, psnr_mean=p)
+        rows.append(row)
+    boxes = plot_rate_distortion(report, str(tmp_path / "plot.png"))
+    labelled = [r for r in rows if r["kind"] == "preset"]
+    assert len(boxes) == len(labelled) == 10
+    for i, a in enumerate(boxes):
+        assert all(_overlap(a, b, 0.0) == 0 for b in boxes[i + 1:]), (a, boxes)
+    assert (tmp_path / "plot.png").stat().st_size > 10_000
