@@ -178,15 +178,15 @@ def test_coarse_to_fine_fills_each_level_before_the_next(store):
     assert levels_drawn == sorted(levels_drawn)
     engine.close()
 
-    # By default only every third level above the cut is filled in (levels are 2x apart in splats): fewer
+    # By default only every fourth level above the cut is filled in (levels are 2x apart in splats): fewer
     # bases, still level by level from the root.
     stepping = StepFetcher(store, per_frame=1)
     engine = StreamEngine(stepping, CountingPool(10_000), StreamOptions(opts, prefetch=False))
     run_until_converged(engine, cam)
     stepped = [int(a.level[m.index_of[t]]) for t, g in stepping.fetched if g == "base"]
     assert stepped == sorted(stepped) and set(stepped) < set(fetched_levels)
-    # three levels above the deepest cut tiles (fill_gap 3), then every third level above that, and the root
-    assert {deepest - 3 * k for k in range(1, deepest // 3 + 1)} | {0} <= set(stepped)
+    # four levels above the deepest cut tiles (fill_gap 4), then every fourth level above that, and the root
+    assert {deepest - 4 * k for k in range(1, deepest // 4 + 1)} | {0} <= set(stepped)
     engine.close()
 
     skipping = StepFetcher(store, per_frame=1)

@@ -77,9 +77,11 @@ class StreamOptions:
     # the ancestor's part of it is there). False skips straight to the cut (fewer bytes, long plateaus).
     fill_levels: bool = True
     # The finest ancestor filled in is this many levels above its cut tile, then every fill_step-th level up to the
-    # root: with levels 2x apart in splats, 3 and 3 add about 1/7 of the cut's bytes (1 and 1: about as many again).
-    fill_gap: int = 3
-    fill_step: int = 3  # (the `--fill-gap` default of commands/view.py is the same 3)
+    # root: with levels 2x apart in splats, 4 and 4 add about 1/15 of the cut's bytes (3 and 3: 1/7, measured 1.19-1.3x
+    # the drawn tiles' bytes with the root; 1 and 1: about as many again). The `--fill-gap` default of
+    # commands/view.py is the same 4.
+    fill_gap: int = 4
+    fill_step: int = 4
     decode_workers: int = 2
     # Decode in this many worker processes instead of threads (0: threads). Processes keep the decoders' Python off
     # the render thread's interpreter lock; until they have started, payloads are decoded on the threads.

@@ -47,9 +47,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--skip-levels", action="store_true",
                    help="fetch the wanted tiles without the LOD levels above them (fewer bytes; the picture stays "
                         "coarse longer and then changes in larger steps)")
-    s.add_argument("--fill-gap", type=int, default=3, metavar="N",
-                   help="fill in the LOD level N levels above each wanted tile, then every third level up to the "
-                        "root (default 3: coarse to fine in 8x steps of splats; 1: from the parents up)")
+    s.add_argument("--fill-gap", type=int, default=4, metavar="N",
+                   help="fill in the LOD level N levels above each wanted tile, then every fourth level up to the "
+                        "root (default 4: coarse to fine in 16x steps of splats; 1: from the parents up)")
     s.add_argument("--sort", default="auto", choices=["auto", "cpu", "gpu"], help="depth sort (as `render`)")
     s.add_argument("--draw", default="auto", choices=DRAWS, help="GPU-path rasterizer (as `render`)")
     h = p.add_argument_group("headless output")
