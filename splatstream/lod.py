@@ -331,9 +331,10 @@ class TreeShape:
         if splats <= max_leaf_splats:
             return TreeShape(splats, max_leaf_splats, float(reduction), 0, (0,), (0, 1))
         depth = math.ceil(math.log2(splats / max_leaf_splats))
-        # At least MIN_LEAF_TILES leaves where they keep MIN_LEAF_TILE_SPLATS: a small scene's budgets of a few
-        # percent need tiles of that size to be spent without waste.
-        depth = max(depth, min(int(math.log2(MIN_LEAF_TILES)), int(math.log2(max(1, splats // MIN_LEAF_TILE_SPLATS)))))
+        # At least MIN_LEAF_TILES leaves where each keeps MIN_LEAF_TILE_SPLATS: the budgets of a few percent of a
+        # scene of 32k to 500k splats need tiles that small to be spent without waste.
+        if splats >= MIN_LEAF_TILES * MIN_LEAF_TILE_SPLATS:
+            depth = max(depth, int(math.log2(MIN_LEAF_TILES)))
         root = min(ROOT_MAX_SPLATS, max(ROOT_MIN_SPLATS, ROOT_FRACTION * splats))
         above = max(1, math.ceil(math.log(splats / root) / math.log(reduction) - 1e-9))
         tile_min = min(max(splats / MIN_TILES_FOR_SMALLEST, MIN_TILE_SPLATS), max_leaf_splats / 4)

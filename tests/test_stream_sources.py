@@ -71,7 +71,8 @@ def test_a_splat_file_is_encoded_in_memory_with_progress():
                       progress=lambda stage, fraction: seen.append((stage, fraction)))
     assert isinstance(src, StoreSource) and isinstance(src.store, MemoryStore) and src.location == str(ply)
     m = parse_manifest(asyncio.run(src.fetch_manifest()))
-    assert m.splats == 4721 and m.lod.enabled and len(m.tiles) == 11
+    # 8 leaves of at most 1,000 splats, levels 2x apart up to a root of at most 128 (lod.TreeShape)
+    assert m.splats == 4721 and m.lod.enabled and len(m.tiles) == 39
     assert seen[0] == ("read", 0.0) and ("read", 1.0) in seen and seen[-1] == ("encode", 1.0)
     entry = m.tiles[0].groups["base"]
     assert sha256_hex(asyncio.run(src.fetch_payload(entry))) == entry.sha256

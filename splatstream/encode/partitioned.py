@@ -369,7 +369,8 @@ def build_partition(p: int, level: int, shape: TreeShape, chunk_counts: list[np.
         if stage == "lod-merge":
             report(0.6 * fraction)
 
-    sub = build_subtree(g, index, shape, level, p, progress=build_progress, reorder_input=True)
+    # `threads` as for the tiles' encode: the engine already runs partitions side by side
+    sub = build_subtree(g, index, shape, level, p, progress=build_progress, reorder_input=True, threads=threads)
     del g, index
     entries = _encode_tiles(list(sub.tiles.values()), ctx, writer, threads, lambda f: report(0.6 + 0.4 * f))
     if keep_originals:
