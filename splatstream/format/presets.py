@@ -123,8 +123,14 @@ def resolve_formats(preset: str, overrides: dict[str, str] | None = None) -> dic
 def preset_steps(preset: str, overrides: dict[str, str] | None = None) -> dict[str, TileStep]:
     """The preset's tile steps, for the attributes whose format `overrides` leaves as the preset's."""
     formats = PRESETS.get(preset, {})
-    return {attr: step for attr, step in PRESET_STEPS.get(preset, {}).items()
-            if (overrides or {}).get(attr, formats[attr]) == formats[attr]}
+    return {key: step for key, step in PRESET_STEPS.get(preset, {}).items()
+            if (overrides or {}).get(step_attribute(key), formats[step_attribute(key)]) == formats[step_attribute(key)]}
+
+
+def step_attribute(key: str) -> str:
+    """The attribute whose format a PRESET_STEPS key follows: the key itself, or `sh` for a band plane `sh1`..`sh3`
+    (SH bands may each have their own step)."""
+    return "sh" if key in ("sh1", "sh2", "sh3") else key
 
 
 def preset_zstd_level(preset: str, default: int) -> int:
