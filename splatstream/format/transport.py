@@ -399,9 +399,24 @@ def _band(layer: np.ndarray, fmt: str, width: int, height: int) -> tuple[np.ndar
     return layer[start * row_bytes:(start + rows * BLOCK) * row_bytes], rows * BLOCK
 
 
+_trial = threading.local()
+
+
+def _trial_compressor(level: int) -> zstandard.ZstdCompressor:
+    """One compressor per thread and level for the trial sizes: a fresh one per trial allocated zstd's tables each
+    time (at level 16, btultra, that was most of low-plus-9bit's encode time with the LOD tree: issue 32)."""
+    cache = getattr(_trial, "by_level", None)
+    if cache is None:
+        cache = _trial.by_level = {}
+    if level not in cache:
+        cache[level] = zstandard.ZstdCompressor(level=level)
+    return cache[level]
+
+
 def _zstd_size(parts: list, level: int) -> int:
-    """Compressed size of parts coded as the payload writer codes them (a zstd block ending with each part)."""
-    c = zstandard.ZstdCompressor(level=level).compressobj()
+    """Compressed size of parts coded as the payload writer codes them (a zstd block ending with each part). The
+    source size is pledged, so zstd sizes its tables to the trial, not to its largest window."""
+    c = _trial_compressor(level).compressobj(size=sum(p.nbytes if isinstance(p, np.ndarray) else len(p) for p in parts))
     size = 0
     for p in parts:
         size += len(c.compress(p)) + len(c.flush(zstandard.COMPRESSOBJ_FLUSH_BLOCK))
