@@ -399,6 +399,9 @@ def _band(layer: np.ndarray, fmt: str, width: int, height: int) -> tuple[np.ndar
     return layer[start * row_bytes:(start + rows * BLOCK) * row_bytes], rows * BLOCK
 
 
+# The fields1-or-shuffle trial compresses at this level at most: at the payload's level 16 (btultra) the trials cost
+# as much as the payloads themselves (issue 32).
+TRIAL_LEVEL_MAX = 9
 _trial = threading.local()
 
 
@@ -444,7 +447,8 @@ def filter_texels(layers: Iterable[np.ndarray], fmt: str, width: int, height: in
     band, band_height = _band(first, fmt, width, height)
     trial = code_layer(band, fmt, width, band_height)
     shuffled = shuffle_planes(band, element)
-    if _zstd_size(assemble([trial]), level) >= _zstd_size(shuffled, level):
+    trial_level = min(level, TRIAL_LEVEL_MAX)
+    if _zstd_size(assemble([trial]), trial_level) >= _zstd_size(shuffled, trial_level):
         if band_height != height:
             shuffled = shuffle_planes(first, element)
         return shuffle_filter(element), shuffled + [p for layer in it for p in shuffle_planes(layer, element)]
