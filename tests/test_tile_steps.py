@@ -207,3 +207,25 @@ def test_sh_bands_take_their_own_steps_and_the_decode_follows_the_ranges(tmp_pat
     np.testing.assert_array_equal(a.sh_rest[:, :3], b.sh_rest[:, :3])  # band 1: medium's grid
     np.testing.assert_array_equal(a.sh_rest[:, 8:], b.sh_rest[:, 8:])  # band 3 too
     assert np.abs(a.sh_rest[:, 3:8] - b.sh_rest[:, 3:8]).max() > 0.01  # band 2: the coarse step
+
+
+def test_sh_step_presets_keep_sh_per_splat_on_importance_scaled_band_steps(tmp_path):
+    """medium-high, medium-low-sh16, medium-low-sh8 (issue 32): no codebook, format 1.2, one importance-scaled step
+    per SH band; a coarser G gives fewer SH bytes and a larger (but bounded) SH error."""
+    from splatstream.encode.jobs import splat_order
+    from splatstream.format.presets import PRESET_SH_CODEBOOK, SH_IMPORTANCE
+
+    for preset, levels in (("medium-high", 63.0), ("medium-low-sh16", 16.0), ("medium-low-sh8", 8.0)):
+        assert preset not in PRESET_SH_CODEBOOK
+        assert preset_steps(preset) == {f"sh{b}": TileStep((levels,) * 3, importance=SH_IMPORTANCE) for b in (1, 2, 3)}
+    g = read_gaussians(real("fruit_drops_sh3.ply"))
+    sizes, errors = {}, {}
+    for preset in ("medium-low-sh16", "medium-low-sh8"):
+        m = encode_gaussians(g, tmp_path / preset, EncodeOptions(preset=preset, lod=False))
+        assert m.version == (1, 2) and m.sh_codebook is None
+        sizes[preset] = m.attributes["sh"].disk_bytes
+        d = decode_scene(tmp_path / preset)
+        stored = g.subset(splat_order(g, m.chunk_order))  # one tile: the order the encoder stored
+        errors[preset] = float(np.sqrt(np.mean((d.sh_rest - stored.sh_rest) ** 2)))
+    assert sizes["medium-low-sh8"] < sizes["medium-low-sh16"]
+    assert errors["medium-low-sh16"] < errors["medium-low-sh8"] < 0.05, errors  # measured 0.0075, 0.0149
