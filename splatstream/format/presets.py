@@ -29,6 +29,11 @@ PRESETS: dict[str, dict[str, str]] = {
                         "sh": "norm565"},
     "medium-low-sh8": {"position": "norm11", "rotation": "norm8x4", "scale": "norm8x4", "color": "norm8x4",
                        "sh": "norm565"},
+    # low-plus-9bit's positions, rotations, scales and colour (and their tile steps, zstd level 16) with per-splat
+    # SH bands on importance-scaled steps of 6 levels (issue 32): on flowers (SH2) 18.46 B/splat at 45.2 dB, 0.94 of
+    # SPZ's bytes at +0.9 dB, between medium-low (15.4 B, 42.5 dB) and medium-low-sh8 (21.5 B, 48.5 dB).
+    "low-plus-9bit-sh6": {"position": "norm9x3", "rotation": "norm8x4", "scale": "norm8x4", "color": "norm8x4",
+                          "sh": "norm565"},
     # medium's positions, 8-bit smallest-three rotations, 8-bit scales and the SH codebook at its finer size: on
     # the 1M scene within 1.2 dB of medium at 40 % of its bytes; on fruit_drops 46.6 dB at 15.3 B.
     "medium-low": {"position": "norm11", "rotation": "norm8x4", "scale": "norm8x4", "color": "norm8x4",
@@ -91,6 +96,8 @@ PRESET_STEPS: dict[str, dict[str, TileStep]] = {
                          "color": TileStep((255.0, 255.0, 255.0, 55.0), shared=3)},
     "low-plus-9bit": {"position": TileStep((400.0,) * 3, shared=3), "scale": TileStep((200.0,) * 3, shared=3),
                       "color": TileStep((255.0, 255.0, 255.0, 55.0), shared=3)},
+    "low-plus-9bit-sh6": {"position": TileStep((400.0,) * 3, shared=3), "scale": TileStep((200.0,) * 3, shared=3),
+                          "color": TileStep((255.0, 255.0, 255.0, 55.0), shared=3), **sh_steps(6.0)},
 }
 # zstd level per preset where it is not the encoder's default (DEFAULT_ZSTD_LEVEL, 1; `--zstd-level` overrides
 # both). medium-low at 9: 0.3-1.0 % smaller than at 1 on the real scenes (lod_tile 13.40 -> 13.26 B/splat, which
@@ -99,7 +106,7 @@ PRESET_STEPS: dict[str, dict[str, TileStep]] = {
 # than at 9 on biker, donut, fruit_drops and the 1M scene (biker 11.44 -> 11.39 B/splat, which puts it under 0.90 of
 # SOG's bytes there; lod_tile +0.3 %), for about 3.5 s more per million splats on 2 cores (bench/results/pos9_levels_*).
 PRESET_ZSTD_LEVEL: dict[str, int] = {"medium-low": 9, "medium-low-12bit": 16, "medium-low-9bit": 16,
-                                     "low-plus-9bit": 16}
+                                     "low-plus-9bit": 16, "low-plus-9bit-sh6": 16}
 DEFAULT_PRESET = "medium"
 # What each preset is for, in the words the CLI (`encode --help`, `info`) shows: disk bytes per splat with the
 # fields1 transport coding at SH3 / SH0 and the mean PSNR measured on the benchmark scenes (BENCHMARKS.md, "Size
@@ -124,6 +131,8 @@ PRESET_SUMMARY: dict[str, str] = {
                        "at SH0; 47-61 dB",
     "low-plus-9bit": "low-plus with 9-bit positions on one step per tile, coarser scales and opacity, zstd level "
                      "16; about 12.4-12.6 B/splat at SH3, 10.4-11.3 at SH0; 44-57 dB",
+    "low-plus-9bit-sh6": "low-plus-9bit with per-splat SH bands (no codebook) on importance-scaled steps of about "
+                         "2.5 bits; about 18.5 B/splat at SH2 (flowers), 10.4-11.3 at SH0",
     "low-plus": "8-bit positions, rotations, scales and colour, SH codebook (1 per 64); about 12-13.5 B/splat at "
                 "SH3, 11-12 at SH0; 44-57 dB",
     "low": "low-plus with 16-bit rotations; about 11-12 B/splat at SH3, 10-10.6 at SH0; 37-52 dB",
