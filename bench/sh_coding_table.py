@@ -20,7 +20,7 @@ from splatstream.format.presets import PRESETS  # noqa: E402
 GOAL = 0.90
 # probe labels of named presets (configs equal to the preset) -> preset name
 ALIASES = {"mh": "medium-high", "ml16": "medium-low-sh16", "ml-s16i": "medium-low-sh16", "ml8": "medium-low-sh8",
-           "ml-s8i": "medium-low-sh8"}
+           "ml-s8i": "medium-low-sh8", "lp9-s6i": "low-plus-9bit-sh6", "lp9sh6": "low-plus-9bit-sh6"}
 
 
 def load(d: str) -> tuple[dict, dict]:
