@@ -12,7 +12,7 @@ from splatstream.errors import UsageError
 from splatstream.format.codec import decode_plane, encode_plane
 from splatstream.format.layout import CHUNK_SIZE, chunk_texel_index
 from splatstream.format.planes import BASE_PLANES
-from splatstream.format.presets import PRESET_STEPS, PRESETS, preset_steps
+from splatstream.format.presets import PRESET_STEPS, PRESETS, preset_steps, step_attribute
 from splatstream.format.steps import TileStep, step_sizes, widened_max
 from splatstream.io import read_gaussians
 
@@ -86,7 +86,7 @@ def test_preset_steps_follow_the_preset_and_are_dropped_with_an_override():
     # every preset with tile steps puts them on integer formats of the planes they name
     for preset, steps in PRESET_STEPS.items():
         for attr, step in steps.items():
-            step.check(PRESETS[preset][attr], 4 if attr == "color" else 3)
+            step.check(PRESETS[preset][step_attribute(attr)], 4 if attr == "color" else 3)
     assert PRESETS["low-plus-9bit"]["position"] == "norm9x3" and PRESET_STEPS["low-plus-9bit"]["position"].shared == 3
 
 
