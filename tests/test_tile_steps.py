@@ -12,7 +12,7 @@ from splatstream.errors import UsageError
 from splatstream.format.codec import decode_plane, encode_plane
 from splatstream.format.layout import CHUNK_SIZE, chunk_texel_index
 from splatstream.format.planes import BASE_PLANES
-from splatstream.format.presets import PRESET_STEPS, PRESETS, preset_steps
+from splatstream.format.presets import PRESET_STEPS, PRESETS, preset_steps, step_attribute
 from splatstream.format.steps import TileStep, step_sizes, widened_max
 from splatstream.io import read_gaussians
 
@@ -86,7 +86,7 @@ def test_preset_steps_follow_the_preset_and_are_dropped_with_an_override():
     # every preset with tile steps puts them on integer formats of the planes they name
     for preset, steps in PRESET_STEPS.items():
         for attr, step in steps.items():
-            step.check(PRESETS[preset][attr], 4 if attr == "color" else 3)
+            step.check(PRESETS[preset][step_attribute(attr)], 4 if attr == "color" else 3)
     assert PRESETS["low-plus-9bit"]["position"] == "norm9x3" and PRESET_STEPS["low-plus-9bit"]["position"].shared == 3
 
 
@@ -158,3 +158,74 @@ def test_opacities_on_the_8_bit_grid_keep_it(fmt, exact):
     assert float(per_chunk.ranges[:, 0, 0, 3].astype(np.float32).min()) > 0
     lo, hi = np.zeros((2, 4), np.float16), np.ones((2, 4), np.float16)
     assert keep_opacity_grid(lo, hi, "norm565", 3) is False  # no opacity component
+
+
+def test_importance_scales_each_chunks_step_and_stays_within_half_a_step():
+    """Issue 32: SH bands on importance-scaled steps: a chunk of w times the median importance gets a step
+    (1 / w) ** exponent times the tile's (clamped to 64x either way); the decode error stays within half of it."""
+    from splatstream.format.planes import band_plane
+    from splatstream.format.steps import IMPORTANCE_RANGE, importance_factors
+
+    # median of the positive importances: 1
+    np.testing.assert_allclose(importance_factors(np.array([1.0, 4.0, 0.25, 1.0, 1e9, 0.0, 1.0]), 0.5),
+                               [1.0, 0.5, 2.0, 1.0, 1 / IMPORTANCE_RANGE, IMPORTANCE_RANGE, 1.0])
+    np.testing.assert_allclose(importance_factors(np.array([1.0, 4.0]), 0.0), [1.0, 1.0])
+    rng = np.random.default_rng(5)
+    chunks = 5
+    n = chunks * CHUNK_SIZE - 17  # a partial last chunk
+    values = rng.normal(0, 0.2, (n, 3, 3)).astype(np.float32)
+    importance = np.repeat([1.0, 1.0, 16.0, 1 / 16, 1.0], CHUNK_SIZE)[:n]
+    step = TileStep((8.0,) * 3, shared=1, importance=0.5)
+    plane = encode_plane(values, band_plane(1), "norm565", step=step, importance=importance)
+    plain = encode_plane(values, band_plane(1), "norm565", step=TileStep((8.0,) * 3, shared=1))
+    back, back_plain = decode_plane(plane, n), decode_plane(plain, n)
+    pad = np.concatenate([np.abs(back - values), np.zeros((chunks * CHUNK_SIZE - n, 3, 3))])
+    err = pad.reshape(chunks, CHUNK_SIZE, 3, 3).max(axis=(1, 3))  # (chunks, coefficients)
+    pad = np.concatenate([np.abs(back_plain - values), np.zeros((chunks * CHUNK_SIZE - n, 3, 3))])
+    err_plain = pad.reshape(chunks, CHUNK_SIZE, 3, 3).max(axis=(1, 3))
+    extent = np.ptp(np.concatenate([values, np.zeros((chunks * CHUNK_SIZE - n, 3, 3))]).reshape(
+        chunks, CHUNK_SIZE, 3, 3), axis=1).max(axis=2)
+    size = np.median(extent, axis=0) / 8  # the tile's step per coefficient (components share none here)
+    factor = np.array([1.0, 1.0, 0.25, 4.0, 1.0])[:, None]
+    levels = np.array([31.0, 63.0, 31.0]).min()
+    bound = np.maximum(size * factor, extent / levels) / 2 * 1.01 + 1e-3  # + f16 rounding of the range
+    assert np.all(err <= bound), (err, bound)
+    assert err[2].max() < err_plain[2].max() / 2  # the important chunk: a finer grid
+    assert err[3].max() > err_plain[3].max() * 2  # the unimportant one: a coarser grid
+
+
+def test_sh_bands_take_their_own_steps_and_the_decode_follows_the_ranges(tmp_path, monkeypatch):
+    """A preset step keyed by band plane (sh1, sh2, ...) applies to that band only; readers need nothing new."""
+    g = read_gaussians(real("fruit_drops_sh3.ply"))
+    monkeypatch.setitem(PRESETS, "t-sh", {**PRESETS["medium"]})
+    monkeypatch.setitem(PRESET_STEPS, "t-sh", {"sh2": TileStep((2.0,) * 3, importance=0.5)})
+    assert preset_steps("t-sh") == {"sh2": TileStep((2.0,) * 3, importance=0.5)}
+    assert preset_steps("t-sh", {"sh": "norm11"}) == {}  # an SH format override drops band steps
+    encode_gaussians(g, tmp_path / "a", EncodeOptions(preset="t-sh", lod=False))
+    encode_gaussians(g, tmp_path / "b", EncodeOptions(preset="medium", lod=False))
+    a, b = decode_scene(tmp_path / "a"), decode_scene(tmp_path / "b")
+    np.testing.assert_array_equal(a.sh_rest[:, :3], b.sh_rest[:, :3])  # band 1: medium's grid
+    np.testing.assert_array_equal(a.sh_rest[:, 8:], b.sh_rest[:, 8:])  # band 3 too
+    assert np.abs(a.sh_rest[:, 3:8] - b.sh_rest[:, 3:8]).max() > 0.01  # band 2: the coarse step
+
+
+def test_sh_step_presets_keep_sh_per_splat_on_importance_scaled_band_steps(tmp_path):
+    """medium-high, medium-low-sh16, medium-low-sh8 (issue 32): no codebook, format 1.2, one importance-scaled step
+    per SH band; a coarser G gives fewer SH bytes and a larger (but bounded) SH error."""
+    from splatstream.encode.jobs import splat_order
+    from splatstream.format.presets import PRESET_SH_CODEBOOK, SH_IMPORTANCE
+
+    for preset, levels in (("medium-high", 63.0), ("medium-low-sh16", 16.0), ("medium-low-sh8", 8.0)):
+        assert preset not in PRESET_SH_CODEBOOK
+        assert preset_steps(preset) == {f"sh{b}": TileStep((levels,) * 3, importance=SH_IMPORTANCE) for b in (1, 2, 3)}
+    g = read_gaussians(real("fruit_drops_sh3.ply"))
+    sizes, errors = {}, {}
+    for preset in ("medium-low-sh16", "medium-low-sh8"):
+        m = encode_gaussians(g, tmp_path / preset, EncodeOptions(preset=preset, lod=False))
+        assert m.version == (1, 2) and m.sh_codebook is None
+        sizes[preset] = m.attributes["sh"].disk_bytes
+        d = decode_scene(tmp_path / preset)
+        stored = g.subset(splat_order(g, m.chunk_order))  # one tile: the order the encoder stored
+        errors[preset] = float(np.sqrt(np.mean((d.sh_rest - stored.sh_rest) ** 2)))
+    assert sizes["medium-low-sh8"] < sizes["medium-low-sh16"]
+    assert errors["medium-low-sh16"] < errors["medium-low-sh8"] < 0.05, errors  # measured 0.0075, 0.0149

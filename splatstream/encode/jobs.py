@@ -16,7 +16,7 @@ from ..gaussians import Gaussians
 from ..lod import Tile, extent_bounds
 from ..store import SceneWriter
 from ..vq import Codebook
-from .codebook import assign_sh_codebook, codebook_planes
+from .codebook import assign_sh_codebook, codebook_planes, codebook_weights
 from .plan import TileContext
 
 LUMINANCE = np.array([0.299, 0.587, 0.114], np.float32)
@@ -50,8 +50,14 @@ def group_planes_of(g: Gaussians, order: np.ndarray, group: str, ctx: TileContex
     if ctx.codebook is not None and group == "sh1":
         return [encode_index_plane(assign_sh_codebook(ctx.codebook, g), order)]
     specs = BASE_PLANES if group == "base" else (band_plane(band_of(group)),)
-    return [encode_plane(plane_values(g, s), s, ctx.formats[s.attribute], order, lazy=True,
-                         step=ctx.steps.get(s.attribute)) for s in specs]
+    planes = []
+    for s in specs:
+        step = ctx.steps.get(s.name, ctx.steps.get(s.attribute))
+        # Importance-scaled steps (SH bands): each chunk's step by its splats' opacity x footprint (format.md 4.3.1).
+        importance = codebook_weights(g) if step is not None and step.importance else None
+        planes.append(encode_plane(plane_values(g, s), s, ctx.formats[s.attribute], order, lazy=True, step=step,
+                                   importance=importance))
+    return planes
 
 
 def encode_group(g: Gaussians, order: np.ndarray, group: str, ctx: TileContext, writer: SceneWriter) -> PayloadEntry:

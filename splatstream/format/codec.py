@@ -194,11 +194,15 @@ def _quantize_u8(t: np.ndarray) -> np.ndarray:
 
 
 def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.ndarray | None = None,
-                 lazy: bool = False, step: TileStep | None = None) -> EncodedPlane:
+                 lazy: bool = False, step: TileStep | None = None,
+                 importance: np.ndarray | None = None) -> EncodedPlane:
     """Quantise (N, L, C) plane values into one texture blob per layer (+ per-chunk ranges).
 
     `step`: quantise a ranged plane on one step per component over the tile instead of per-chunk grids, by widening
     each chunk's stored max (steps.py, format.md 4.3.1).
+
+    `importance` (N,): per-splat weights (in the input's order) for a step with an importance exponent: each chunk's
+    step scales with its mean importance (steps.py, TileStep.importance).
 
     `order` (a permutation, the tile's Morton order) is applied before quantising. With
     `lazy`, `layers` is an iterator that encodes each layer when asked for it and `ranges` is filled in once it
@@ -211,6 +215,13 @@ def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.n
     if n == 0:
         values, order = np.zeros((1, spec.layers, spec.components), np.float32), None
     plane = EncodedPlane(spec, fmt_name, width, height, [], None)
+    chunk_importance = None
+    if step is not None and step.importance and importance is not None and n > 0:
+        w = np.asarray(importance, np.float64) if order is None else np.take(importance, order)
+        w = np.concatenate([w, np.zeros(chunks * CHUNK_SIZE - n)])
+        chunk_importance = w.reshape(chunks, CHUNK_SIZE).sum(axis=1) / np.minimum(
+            CHUNK_SIZE, n - np.arange(chunks) * CHUNK_SIZE)
+
     # One gather of the whole plane is several times faster than one per layer (random access once), but
     # holds the plane twice; large planes are gathered layer by layer.
     if order is not None and values.nbytes <= WHOLE_PLANE_GATHER_BYTES:
@@ -223,7 +234,8 @@ def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.n
             if spec.range_dtype:
                 lo, hi = chunk_ranges(v, spec.range_dtype, plane_limits(spec.name))
                 if step is not None:
-                    hi = widened_max(lo, hi, fmt_name, step, spec.range_dtype, plane_limits(spec.name))
+                    hi = widened_max(lo, hi, fmt_name, step, spec.range_dtype, plane_limits(spec.name),
+                                     chunk_importance)
                 if spec.name == "color" and opacity_on_grid(v[:, OPACITY]):
                     keep_opacity_grid(lo, hi, fmt_name, OPACITY)
                 lo32, hi32 = lo.astype(np.float32), hi.astype(np.float32)

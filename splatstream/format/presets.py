@@ -18,7 +18,22 @@ ATTRIBUTES = ("position", "rotation", "scale", "color", "sh")
 PRESETS: dict[str, dict[str, str]] = {
     "very-high": {"position": "f32x4", "rotation": "f32x4", "scale": "f32x4", "color": "f32x4", "sh": "f32x4"},
     "high": {"position": "f16x4", "rotation": "norm10_2", "scale": "norm11", "color": "f16x4", "sh": "norm11"},
+    # high's positions, rotations, scales and colour with 11-bit SH on importance-scaled tile steps (issue 32): on
+    # the real SH2 scene flowers (542k splats) between medium and high, where compressed.ply sits.
+    "medium-high": {"position": "f16x4", "rotation": "norm10_2", "scale": "norm11", "color": "f16x4", "sh": "norm11"},
     "medium": {"position": "norm11", "rotation": "norm10_2", "scale": "norm11", "color": "norm8x4", "sh": "norm565"},
+    # medium-low's positions, rotations, scales and colour with per-splat SH bands (no codebook) on importance-scaled
+    # tile steps of 16 and 8 levels (issue 32): on real SH with many distinct rows (flowers: 262k of 542k) the
+    # codebook loses 15 dB against medium's bands; these fill the curve between medium-low and medium.
+    "medium-low-sh16": {"position": "norm11", "rotation": "norm8x4", "scale": "norm8x4", "color": "norm8x4",
+                        "sh": "norm565"},
+    "medium-low-sh8": {"position": "norm11", "rotation": "norm8x4", "scale": "norm8x4", "color": "norm8x4",
+                       "sh": "norm565"},
+    # low-plus-9bit's positions, rotations, scales and colour (and their tile steps, zstd level 16) with per-splat
+    # SH bands on importance-scaled steps of 6 levels (issue 32): on flowers (SH2) 18.46 B/splat at 45.2 dB, 0.94 of
+    # SPZ's bytes at +0.9 dB, between medium-low (15.4 B, 42.5 dB) and medium-low-sh8 (21.5 B, 48.5 dB).
+    "low-plus-9bit-sh6": {"position": "norm9x3", "rotation": "norm8x4", "scale": "norm8x4", "color": "norm8x4",
+                          "sh": "norm565"},
     # medium's positions, 8-bit smallest-three rotations, 8-bit scales and the SH codebook at its finer size: on
     # the 1M scene within 1.2 dB of medium at 40 % of its bytes; on fruit_drops 46.6 dB at 15.3 B.
     "medium-low": {"position": "norm11", "rotation": "norm8x4", "scale": "norm8x4", "color": "norm8x4",
@@ -60,11 +75,29 @@ PRESET_SH_CODEBOOK: dict[str, str] = {"medium-low": "fine", "medium-low-12bit": 
 # tight chunk a fine one; one step per tile spends the bits where values spread. On donut one step for positions
 # (over the three axes), log scales (over the three axes) and SH0 R, G, B each gained 0.2-0.3 dB against per-axis
 # steps, and the three together about 0.3 B/splat against per-chunk grids at the same PSNR.
+# SH bands on importance-scaled steps (issue 32; format.md 4.3.1): each band's step is its tile's median chunk extent /
+# G, scaled per chunk by (median importance / the chunk's) ** 0.5, importance = opacity x footprint (the codebook's
+# weight). On flowers (SH2) the SH-only PSNR against bytes of the SH planes: G = 8: 48.8 dB at 8.2 B/splat, 16: 54.8
+# at 10.0, norm565 without steps 61.9 at 12.6, norm11 at G = 63: 67.1 at 15.4, 127: 73.1 at 18.3 (bench/results/
+# sh_coding_probe.md); at equal bytes the importance scaling gains about 0.8 dB over a plain tile step.
+SH_IMPORTANCE = 0.5
+
+
+def sh_steps(levels: float) -> dict[str, TileStep]:
+    """The same importance-scaled step for SH bands 1..3."""
+    return {f"sh{b}": TileStep((levels,) * 3, shared=1, importance=SH_IMPORTANCE) for b in (1, 2, 3)}
+
+
 PRESET_STEPS: dict[str, dict[str, TileStep]] = {
+    "medium-high": sh_steps(63.0),
+    "medium-low-sh16": sh_steps(16.0),
+    "medium-low-sh8": sh_steps(8.0),
     "medium-low-12bit": {"position": TileStep((4095.0,) * 3, shared=3), "scale": TileStep((180.0,) * 3, shared=3),
                          "color": TileStep((255.0, 255.0, 255.0, 55.0), shared=3)},
     "low-plus-9bit": {"position": TileStep((400.0,) * 3, shared=3), "scale": TileStep((200.0,) * 3, shared=3),
                       "color": TileStep((255.0, 255.0, 255.0, 55.0), shared=3)},
+    "low-plus-9bit-sh6": {"position": TileStep((400.0,) * 3, shared=3), "scale": TileStep((200.0,) * 3, shared=3),
+                          "color": TileStep((255.0, 255.0, 255.0, 55.0), shared=3), **sh_steps(6.0)},
 }
 # zstd level per preset where it is not the encoder's default (DEFAULT_ZSTD_LEVEL, 1; `--zstd-level` overrides
 # both). medium-low at 9: 0.3-1.0 % smaller than at 1 on the real scenes (lod_tile 13.40 -> 13.26 B/splat, which
@@ -73,7 +106,7 @@ PRESET_STEPS: dict[str, dict[str, TileStep]] = {
 # than at 9 on biker, donut, fruit_drops and the 1M scene (biker 11.44 -> 11.39 B/splat, which puts it under 0.90 of
 # SOG's bytes there; lod_tile +0.3 %), for about 3.5 s more per million splats on 2 cores (bench/results/pos9_levels_*).
 PRESET_ZSTD_LEVEL: dict[str, int] = {"medium-low": 9, "medium-low-12bit": 16, "medium-low-9bit": 16,
-                                     "low-plus-9bit": 16}
+                                     "low-plus-9bit": 16, "low-plus-9bit-sh6": 16}
 DEFAULT_PRESET = "medium"
 # What each preset is for, in the words the CLI (`encode --help`, `info`) shows: disk bytes per splat with the
 # fields1 transport coding at SH3 / SH0 and the mean PSNR measured on the benchmark scenes (BENCHMARKS.md, "Size
@@ -81,8 +114,14 @@ DEFAULT_PRESET = "medium"
 PRESET_SUMMARY: dict[str, str] = {
     "very-high": "32-bit floats, lossless; about 180 B/splat at SH3, 43 at SH0",
     "high": "16-bit positions and colour; about 73 B/splat at SH3, 18 at SH0; 61-71 dB",
+    "medium-high": "high with 11-bit SH on importance-scaled steps (about 6 bits where it matters); about 31 "
+                   "B/splat at SH2 (flowers), 18 at SH0",
     "medium": "the default: 11-bit positions, 8-bit colour, 16-bit SH; about 37 B/splat at SH3, 14-15 at SH0; "
               "56-72 dB",
+    "medium-low-sh16": "medium-low with per-splat SH bands (no codebook) on importance-scaled steps of about 4 bits; "
+                       "about 23 B/splat at SH2 (flowers), 12-13 at SH0",
+    "medium-low-sh8": "medium-low with per-splat SH bands on importance-scaled steps of about 3 bits; about 21.5 "
+                      "B/splat at SH2 (flowers), 12-13 at SH0",
     "medium-low": "medium's positions, 8-bit rotations and scales, SH codebook (about 1 entry per 16 splats); "
                   "about 13-15.5 B/splat at SH3, 12-13 at SH0; 47-68 dB",
     "medium-low-12bit": "medium-low with about 12-bit positions (16-bit texels on one step per tile), coarser "
@@ -92,6 +131,8 @@ PRESET_SUMMARY: dict[str, str] = {
                        "at SH0; 47-61 dB",
     "low-plus-9bit": "low-plus with 9-bit positions on one step per tile, coarser scales and opacity, zstd level "
                      "16; about 12.4-12.6 B/splat at SH3, 10.4-11.3 at SH0; 44-57 dB",
+    "low-plus-9bit-sh6": "low-plus-9bit with per-splat SH bands (no codebook) on importance-scaled steps of about "
+                         "2.5 bits; about 18.5 B/splat at SH2 (flowers), 10.4-11.3 at SH0",
     "low-plus": "8-bit positions, rotations, scales and colour, SH codebook (1 per 64); about 12-13.5 B/splat at "
                 "SH3, 11-12 at SH0; 44-57 dB",
     "low": "low-plus with 16-bit rotations; about 11-12 B/splat at SH3, 10-10.6 at SH0; 37-52 dB",
@@ -123,8 +164,14 @@ def resolve_formats(preset: str, overrides: dict[str, str] | None = None) -> dic
 def preset_steps(preset: str, overrides: dict[str, str] | None = None) -> dict[str, TileStep]:
     """The preset's tile steps, for the attributes whose format `overrides` leaves as the preset's."""
     formats = PRESETS.get(preset, {})
-    return {attr: step for attr, step in PRESET_STEPS.get(preset, {}).items()
-            if (overrides or {}).get(attr, formats[attr]) == formats[attr]}
+    return {key: step for key, step in PRESET_STEPS.get(preset, {}).items()
+            if (overrides or {}).get(step_attribute(key), formats[step_attribute(key)]) == formats[step_attribute(key)]}
+
+
+def step_attribute(key: str) -> str:
+    """The attribute whose format a PRESET_STEPS key follows: the key itself, or `sh` for a band plane `sh1`..`sh3`
+    (SH bands may each have their own step)."""
+    return "sh" if key in ("sh1", "sh2", "sh3") else key
 
 
 def preset_zstd_level(preset: str, default: int) -> int:

@@ -27,6 +27,11 @@ class TileStep:
 
     levels: tuple[float, ...]
     shared: int = 1
+    # Importance scaling (SH bands, issue 32): with a per-chunk importance w_c (the encoder's: mean opacity x
+    # footprint of the chunk's splats), chunk c's step is s_k * (median w / w_c) ** importance, clamped to
+    # [1 / IMPORTANCE_RANGE, IMPORTANCE_RANGE] x s_k. 0.5 is the step that minimises importance-weighted squared
+    # error for the bits of a uniform quantiser (error ~ step^2, bits ~ -log2 step); 0 is off.
+    importance: float = 0.0
 
     def check(self, fmt_name: str, components: int) -> None:
         fmt = get_format(fmt_name)
@@ -43,16 +48,33 @@ def step_sizes(extent: np.ndarray, step: TileStep) -> np.ndarray:
     return size
 
 
+IMPORTANCE_RANGE = 64.0
+
+
+def importance_factors(chunk_importance: np.ndarray, exponent: float) -> np.ndarray:
+    """(chunks,) step multiplier per chunk: (median / w_c) ** exponent, clamped to [1/64, 64] (TileStep.importance);
+    chunks of zero importance get the coarsest."""
+    w = np.asarray(chunk_importance, np.float64)
+    positive = w[w > 0]
+    if exponent == 0 or len(positive) == 0:
+        return np.ones(len(w))
+    ratio = np.divide(np.median(positive), w, out=np.full(len(w), np.inf), where=w > 0)
+    return np.clip(ratio ** exponent, 1.0 / IMPORTANCE_RANGE, IMPORTANCE_RANGE)
+
+
 def widened_max(lo: np.ndarray, hi: np.ndarray, fmt_name: str, step: TileStep, range_dtype: str,
-                limits: tuple[float, float]) -> np.ndarray:
+                limits: tuple[float, float], chunk_importance: np.ndarray | None = None) -> np.ndarray:
     """The stored max of every chunk (chunks, C) under a tile step; `lo`, `hi` the chunk ranges as stored (in
-    `range_dtype`). Never below `hi` (every value stays inside its range) nor above the plane's limit."""
+    `range_dtype`). Never below `hi` (every value stays inside its range) nor above the plane's limit.
+    `chunk_importance` (chunks,): scales each chunk's step when the step has an `importance` exponent."""
     components = lo.shape[-1]
     step.check(fmt_name, components)
     fmt_levels = np.array(get_format(fmt_name).levels[:components], np.float64)
     lo64, hi64 = lo.astype(np.float64), hi.astype(np.float64)
     extent = hi64 - lo64
     size = step_sizes(extent, step)
+    if step.importance and chunk_importance is not None:
+        size = size[None, :] * importance_factors(chunk_importance, step.importance)[:, None]
     steps = np.clip(np.divide(extent, size, out=np.zeros_like(extent), where=size > 0), 1.0, fmt_levels)
     wide = lo64 + extent * (fmt_levels / steps)
     if range_dtype == "<f2":

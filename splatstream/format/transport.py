@@ -399,9 +399,27 @@ def _band(layer: np.ndarray, fmt: str, width: int, height: int) -> tuple[np.ndar
     return layer[start * row_bytes:(start + rows * BLOCK) * row_bytes], rows * BLOCK
 
 
+# The fields1-or-shuffle trial compresses at this level at most: at the payload's level 16 (btultra) the trials cost
+# as much as the payloads themselves (issue 32).
+TRIAL_LEVEL_MAX = 9
+_trial = threading.local()
+
+
+def _trial_compressor(level: int) -> zstandard.ZstdCompressor:
+    """One compressor per thread and level for the trial sizes: a fresh one per trial allocated zstd's tables each
+    time (at level 16, btultra, that was most of low-plus-9bit's encode time with the LOD tree: issue 32)."""
+    cache = getattr(_trial, "by_level", None)
+    if cache is None:
+        cache = _trial.by_level = {}
+    if level not in cache:
+        cache[level] = zstandard.ZstdCompressor(level=level)
+    return cache[level]
+
+
 def _zstd_size(parts: list, level: int) -> int:
-    """Compressed size of parts coded as the payload writer codes them (a zstd block ending with each part)."""
-    c = zstandard.ZstdCompressor(level=level).compressobj()
+    """Compressed size of parts coded as the payload writer codes them (a zstd block ending with each part). The
+    source size is pledged, so zstd sizes its tables to the trial, not to its largest window."""
+    c = _trial_compressor(level).compressobj(size=sum(p.nbytes if isinstance(p, np.ndarray) else len(p) for p in parts))
     size = 0
     for p in parts:
         size += len(c.compress(p)) + len(c.flush(zstandard.COMPRESSOBJ_FLUSH_BLOCK))
@@ -429,7 +447,8 @@ def filter_texels(layers: Iterable[np.ndarray], fmt: str, width: int, height: in
     band, band_height = _band(first, fmt, width, height)
     trial = code_layer(band, fmt, width, band_height)
     shuffled = shuffle_planes(band, element)
-    if _zstd_size(assemble([trial]), level) >= _zstd_size(shuffled, level):
+    trial_level = min(level, TRIAL_LEVEL_MAX)
+    if _zstd_size(assemble([trial]), trial_level) >= _zstd_size(shuffled, trial_level):
         if band_height != height:
             shuffled = shuffle_planes(first, element)
         return shuffle_filter(element), shuffled + [p for layer in it for p in shuffle_planes(layer, element)]
