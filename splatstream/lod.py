@@ -3,8 +3,10 @@ hold merged (moment-matched) Gaussians standing in for their whole subtree (norm
 
 Shape. A balanced kd-tree of median splits on the longest axis of the splat centres cuts the scene into 2**d
 leaves of at most `max_leaf_splats` splats each (median splits adapt to density: dense regions get small tiles).
-Tile levels take every log2(branching) kd depths, branching = 2**round(log2(reduction)): with reduction 4 a tile
-has 4 children, with 8 it has 8; the root may have fewer. Refinement is REPLACE.
+Tile levels are `reduction` apart in splats, from the leaves up to a root of about 0.25 % of the scene; each level
+sits at the deepest kd depth whose tiles still hold a minimum of splats, so the top levels are many small tiles
+and the levels just above the leaves are chains (one child covering the same region): TreeShape. A splat budget
+is then spent in small steps. Refinement is REPLACE.
 
 Merging. An interior tile merges the concatenation of its children's sets down to ceil(count / reduction)
 (never above max_leaf_splats). Groups are cells of a binary Morton-prefix grid over the tile: the longest prefix
@@ -12,8 +14,8 @@ with at most that many cells, the most populated cells split once more to hit th
 so sparse regions keep their splats and dense ones merge. Each group becomes one Gaussian by moment matching
 with weights w = opacity * (mean cross-section s1 s2 + s2 s3 + s1 s3); w is carried up the tree, so every level
 matches the moments of the ORIGINAL mixture. Opacity and base colour are then matched to the originals as the
-rasteriser shows them at the tile's viewing scale (see match_screen_appearance), higher SH bands are the
-w-weighted means.
+rasteriser shows them at the tile's viewing scale (finish_appearance), higher SH bands are the w-weighted means;
+the scales stay as moment matching made them.
 
 Geometric error (world units): per merged splat, a bound on the Hausdorff distance between its original members'
 1-sigma balls and its own; a tile's error is the 99th percentile of that over the originals it stands for (each
