@@ -722,7 +722,7 @@ def build_subtree(g: Gaussians, index: np.ndarray, shape: TreeShape, level: int 
     return Subtree(tiles, tiles[root_id], masses[root_id], ordered, leaf_starts, represented_by[root_id])
 
 
-def build_tiles(g: Gaussians, max_leaf_splats: int = 16384, reduction: float = 4.0,
+def build_tiles(g: Gaussians, max_leaf_splats: int = 16384, reduction: float = 2.0,
                 progress: Progress | None = None, reorder_input: bool = False) -> list[Tile]:
     """The LOD tile tree of `g`, as a list indexed by tile id (0 = root, breadth-first).
 
