@@ -185,14 +185,18 @@ def test_bands_by_projected_size(scene):
     assert far is not None and near is not None
 
 
-def _select_child_by_child(a, view, cost, root, opts, previous_refined, screen_px):
-    """The selection written plainly (every candidate's visible children summed one by one): what `select`, which
-    sums them over numpy first, must return exactly."""
+def _select_child_by_child(a, view, cost, root, opts, previous_refined, reduction):
+    """The selection written plainly (every candidate's visible children summed one by one, its key computed
+    alone): what `select`, which works over numpy first, must return exactly."""
     import heapq
 
-    def area(i):
-        r = view.radius_px[i]
-        return screen_px if not math.isfinite(r) else min(screen_px, (math.pi * r) * r)
+    def key(i):
+        # widest on-screen splat spacing first: level * log2(reduction) / 2 + log2(distance); inside: first
+        if not math.isfinite(view.sse[i]):
+            return -math.inf
+        d = float(view.distance[i])
+        log_d = math.log2(d) if d > 1e-30 else math.log2(1e-30)
+        return float(a.level[i]) * (0.5 * math.log2(reduction)) + log_d
 
     refined, cut, priority, heap = set(), {root}, {root: math.inf}, []
     splats, total = int(a.splats[root]), float(cost[root])
@@ -200,9 +204,7 @@ def _select_child_by_child(a, view, cost, root, opts, previous_refined, screen_p
     def consider(i):
         threshold = opts.max_sse * (opts.hysteresis if i in previous_refined else 1.0)
         if a.children[i] and view.visible[i] and view.sse[i] > threshold:
-            kids = [k for k in a.children[i] if view.visible[k]]
-            delta = sum(float(cost[k]) for k in kids) - float(cost[i])
-            heapq.heappush(heap, (-min(float(view.sse[i]), 1e9) * area(i) / max(delta, 1.0), i))
+            heapq.heappush(heap, (key(i), i))
 
     consider(root)
     while heap:
@@ -234,9 +236,10 @@ def test_select_equals_child_by_child_sums(scene, max_splats, budget, max_sse):
     for k, distance in enumerate((6.0, 3.0, 1.5, 0.9, 0.5, 0.3, 0.6, 2.0)):
         cam = camera_at(m, distance, size=(640, 360) if k % 2 else (320, 240))
         view = view_numbers(a, cam, opts)
-        sel = select(a, view, cost, m.index_of[m.root], opts, refined, float(cam.width * cam.height))
+        sel = select(a, view, cost, m.index_of[m.root], opts, refined, float(cam.width * cam.height),
+                     m.lod.reduction)
         cut, ref, priority, splats, total = _select_child_by_child(a, view, cost, m.index_of[m.root], opts, refined,
-                                                                    float(cam.width * cam.height))
+                                                                    m.lod.reduction)
         assert set(sel.cut) == cut and sel.refined == ref and sel.splats == splats and sel.cost == total
         assert sel.priority == {i: priority.get(i, 0.0) for i in sel.cut}
         refined = sel.refined  # hysteresis carried as the engine does
