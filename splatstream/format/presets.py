@@ -114,14 +114,14 @@ DEFAULT_PRESET = "medium"
 PRESET_SUMMARY: dict[str, str] = {
     "very-high": "32-bit floats, lossless; about 180 B/splat at SH3, 43 at SH0",
     "high": "16-bit positions and colour; about 73 B/splat at SH3, 18 at SH0; 61-71 dB",
-    "medium-high": "high with 11-bit SH on importance-scaled steps (about 6 bits where it matters); about 31 "
-                   "B/splat at SH2 (flowers), 18 at SH0",
+    "medium-high": "high with 11-bit SH on importance-scaled steps (about 6 bits where it matters); about 33 "
+                   "B/splat at SH2 (flowers, 61 dB), 45.6 at SH3 (fruit_drops, 64 dB), 18 at SH0",
     "medium": "the default: 11-bit positions, 8-bit colour, 16-bit SH; about 37 B/splat at SH3, 14-15 at SH0; "
               "56-72 dB",
     "medium-low-sh16": "medium-low with per-splat SH bands (no codebook) on importance-scaled steps of about 4 bits; "
-                       "about 23 B/splat at SH2 (flowers), 12-13 at SH0",
+                       "about 23.7 B/splat at SH2 (flowers, 53.6 dB), 30 at SH3, 12-13 at SH0",
     "medium-low-sh8": "medium-low with per-splat SH bands on importance-scaled steps of about 3 bits; about 21.5 "
-                      "B/splat at SH2 (flowers), 12-13 at SH0",
+                      "B/splat at SH2 (flowers, 48.5 dB), 27.5 at SH3, 12-13 at SH0",
     "medium-low": "medium's positions, 8-bit rotations and scales, SH codebook (about 1 entry per 16 splats); "
                   "about 13-15.5 B/splat at SH3, 12-13 at SH0; 47-68 dB",
     "medium-low-12bit": "medium-low with about 12-bit positions (16-bit texels on one step per tile), coarser "
@@ -132,7 +132,7 @@ PRESET_SUMMARY: dict[str, str] = {
     "low-plus-9bit": "low-plus with 9-bit positions on one step per tile, coarser scales and opacity, zstd level "
                      "16; about 12.4-12.6 B/splat at SH3, 10.4-11.3 at SH0; 44-57 dB",
     "low-plus-9bit-sh6": "low-plus-9bit with per-splat SH bands (no codebook) on importance-scaled steps of about "
-                         "2.5 bits; about 18.5 B/splat at SH2 (flowers), 10.4-11.3 at SH0",
+                         "2.5 bits; about 18.5 B/splat at SH2 (flowers, 45.2 dB), 22.6 at SH3, 10.4-11.3 at SH0",
     "low-plus": "8-bit positions, rotations, scales and colour, SH codebook (1 per 64); about 12-13.5 B/splat at "
                 "SH3, 11-12 at SH0; 44-57 dB",
     "low": "low-plus with 16-bit rotations; about 11-12 B/splat at SH3, 10-10.6 at SH0; 37-52 dB",
