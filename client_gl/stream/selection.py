@@ -174,8 +174,8 @@ def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: Sel
     # the splats of the one above over the same region, so on surfaces its splats are reduction^(1/2) closer
     # together; seen from distance d their spacing on screen goes as reduction^(-level/2) / d. Under a budget this
     # keeps the cut close to one level across the view, finer where the view is nearer (measured against error
-    # removed per byte, sse x area / added cost, which refined the nearest tiles to their leaves first: up to
-    # 2.5 dB better on the statue scans, equal on flowers; BENCHMARKS.md, "LOD against peers").
+    # removed per byte, sse x area / added cost, which refined the nearest tiles to their leaves first: a median
+    # 1.0 dB better on the real scenes it was not chosen on; BENCHMARKS.md, "LOD against peers").
     with np.errstate(divide="ignore"):
         key = a.level * (0.5 * math.log2(max(reduction, 1.0 + 1e-9))) + np.log2(np.maximum(view.distance, 1e-30))
     prio = np.where(np.isfinite(view.sse), key, -INF).tolist()  # the eye inside a tile's sphere: refine it first
