@@ -25,24 +25,22 @@ from aiohttp import web
 from splatstream.format.names import MANIFEST_NAME, PAYLOAD_NAME_RE
 
 
-class FaultServer:
-    def __init__(self, root: str | os.PathLike, port: int = 0, slow_bytes_per_s: float = 200_000):
+class LoopbackServer:
+    """Real aiohttp on a loopback socket in its own thread, serving GET /scenes/{scene}/{tail} through `_serve`
+    (subclasses: FaultServer here, HostileServer in hostile_server.py). Every request is recorded as (path,
+    status) by `_record`."""
+
+    def __init__(self, root: str | os.PathLike, port: int = 0):
         self.root = os.fspath(root)
-        self.faults: dict[str, deque[str]] = defaultdict(deque)
         self.log: list[tuple[str, int]] = []
-        self.slow_bytes_per_s = slow_bytes_per_s
-        self._lock = threading.Lock()
         self.port = port
+        self._lock = threading.Lock()
         self._loop: asyncio.AbstractEventLoop | None = None
         self._thread: threading.Thread | None = None
         self._runner: web.AppRunner | None = None
         self._handlers: set[asyncio.Task] = set()
 
     # -- control (test thread) ------------------------------------------------------------------------------------
-    def add_fault(self, sha_or_manifest: str, *faults: str) -> None:
-        with self._lock:
-            self.faults[sha_or_manifest].extend(faults)
-
     def requests(self, fragment: str = "") -> list[tuple[str, int]]:
         with self._lock:
             return [r for r in self.log if fragment in r[0]]
@@ -50,7 +48,7 @@ class FaultServer:
     def url(self, scene: str) -> str:
         return f"http://127.0.0.1:{self.port}/scenes/{scene}"
 
-    def start(self) -> FaultServer:
+    def start(self):
         sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
         sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         sock.bind(("127.0.0.1", self.port))
@@ -75,9 +73,10 @@ class FaultServer:
             self._loop.run_forever()
             self._loop.close()
 
-        self._thread = threading.Thread(target=main, daemon=True)
+        self._thread = threading.Thread(target=main, name=type(self).__name__, daemon=True)
         self._thread.start()
-        assert ready.wait(10)
+        if not ready.wait(30):
+            raise RuntimeError(f"{type(self).__name__} did not start")
         return self
 
     def stop(self) -> None:
@@ -90,17 +89,18 @@ class FaultServer:
                 t.cancel()
             await self._runner.cleanup()
 
-        asyncio.run_coroutine_threadsafe(down(), self._loop).result(10)
+        asyncio.run_coroutine_threadsafe(down(), self._loop).result(30)
         self._loop.call_soon_threadsafe(self._loop.stop)
-        self._thread.join(10)
+        self._thread.join(30)
         self._loop = None
 
-    # -- serving (server thread) ----------------------------------------------------------------------------------
-    def _next_fault(self, key: str) -> str | None:
-        with self._lock:
-            q = self.faults.get(key)
-            return q.popleft() if q else None
+    def __enter__(self):
+        return self.start()
 
+    def __exit__(self, *exc) -> None:
+        self.stop()
+
+    # -- serving (server thread) ----------------------------------------------------------------------------------
     def _record(self, path: str, status: int) -> None:
         with self._lock:
             self.log.append((path, status))
@@ -110,8 +110,31 @@ class FaultServer:
         self._handlers.add(task)
         try:
             return await self._serve(request)
+        except ConnectionError:  # the client gave up on a dripping or stalled answer: nothing to say
+            return web.Response(status=499)
         finally:
             self._handlers.discard(task)
+
+    async def _serve(self, request: web.Request) -> web.StreamResponse:
+        raise NotImplementedError
+
+
+class FaultServer(LoopbackServer):
+    def __init__(self, root: str | os.PathLike, port: int = 0, slow_bytes_per_s: float = 200_000):
+        super().__init__(root, port)
+        self.faults: dict[str, deque[str]] = defaultdict(deque)
+        self.slow_bytes_per_s = slow_bytes_per_s
+
+    # -- control (test thread) ------------------------------------------------------------------------------------
+    def add_fault(self, sha_or_manifest: str, *faults: str) -> None:
+        with self._lock:
+            self.faults[sha_or_manifest].extend(faults)
+
+    # -- serving (server thread) ----------------------------------------------------------------------------------
+    def _next_fault(self, key: str) -> str | None:
+        with self._lock:
+            q = self.faults.get(key)
+            return q.popleft() if q else None
 
     async def _serve(self, request: web.Request) -> web.StreamResponse:
         scene, tail = request.match_info["scene"], request.match_info["tail"]

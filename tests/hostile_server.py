@@ -34,12 +34,12 @@ import asyncio
 import gzip
 import hashlib
 import os
-import socket
-import threading
 from dataclasses import dataclass
 from pathlib import Path
 
 from aiohttp import web
+from conftest import settle_totals
+from fault_server import LoopbackServer
 
 from splatstream.format.names import MANIFEST_NAME, PAYLOAD_NAME_RE
 
@@ -60,21 +60,15 @@ class Mode:
             raise ValueError(f"unknown fault {self.fault!r} (expected one of {', '.join(FAULTS)})")
 
 
-class HostileServer:
+class HostileServer(LoopbackServer):
     def __init__(self, root: str | os.PathLike, port: int = 0):
+        super().__init__(root, port)
         self.root = Path(root)
         self.mode: Mode | None = None
-        self.log: list[tuple[str, int]] = []
-        self.port = port
-        self._lock = threading.Lock()
         self._count: dict[str, int] = {}
         self._first_payload: str | None = None
         self._payloads_served = 0
         self._swapped: dict[str, Path] = {}
-        self._loop: asyncio.AbstractEventLoop | None = None
-        self._thread: threading.Thread | None = None
-        self._runner: web.AppRunner | None = None
-        self._handlers: set[asyncio.Task] = set()
 
     # -- control (any thread) -------------------------------------------------------------------------------------
     def set_mode(self, mode: Mode | None) -> None:
@@ -86,69 +80,7 @@ class HostileServer:
             self._swapped.clear()
             self.log.clear()
 
-    def url(self, scene: str) -> str:
-        return f"http://127.0.0.1:{self.port}/scenes/{scene}"
-
-    def requests(self, fragment: str = "") -> list[tuple[str, int]]:
-        with self._lock:
-            return [r for r in self.log if fragment in r[0]]
-
-    def start(self) -> HostileServer:
-        sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-        sock.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        sock.bind(("127.0.0.1", self.port))
-        sock.listen(128)
-        sock.setblocking(False)
-        self.port = sock.getsockname()[1]
-        self._loop = asyncio.new_event_loop()
-        ready = threading.Event()
-
-        def main() -> None:
-            asyncio.set_event_loop(self._loop)
-
-            async def setup() -> None:
-                app = web.Application()
-                app.router.add_get("/scenes/{scene}/{tail:.+}", self._handle)
-                self._runner = web.AppRunner(app, access_log=None, shutdown_timeout=0.2)
-                await self._runner.setup()
-                await web.SockSite(self._runner, sock).start()
-
-            self._loop.run_until_complete(setup())
-            ready.set()
-            self._loop.run_forever()
-            self._loop.close()
-
-        self._thread = threading.Thread(target=main, name="hostile-server", daemon=True)
-        self._thread.start()
-        if not ready.wait(30):
-            raise RuntimeError("the hostile server did not start")
-        return self
-
-    def stop(self) -> None:
-        if self._loop is None:
-            return
-
-        async def down() -> None:
-            for t in list(self._handlers):
-                t.cancel()
-            await self._runner.cleanup()
-
-        asyncio.run_coroutine_threadsafe(down(), self._loop).result(30)
-        self._loop.call_soon_threadsafe(self._loop.stop)
-        self._thread.join(30)
-        self._loop = None
-
-    def __enter__(self) -> HostileServer:
-        return self.start()
-
-    def __exit__(self, *exc) -> None:
-        self.stop()
-
     # -- serving (server thread) ----------------------------------------------------------------------------------
-    def _record(self, path: str, status: int) -> None:
-        with self._lock:
-            self.log.append((path, status))
-
     def _fault_for(self, key: str) -> str | None:
         """The fault this request gets (None: answer correctly); counts attempts per file."""
         with self._lock:
@@ -177,16 +109,6 @@ class HostileServer:
             self._payloads_served += 1
             if self._payloads_served >= (mode.times or 1) and scene not in self._swapped and mode.alt:
                 self._swapped[scene] = Path(mode.alt)
-
-    async def _handle(self, request: web.Request) -> web.StreamResponse:
-        task = asyncio.current_task()
-        self._handlers.add(task)
-        try:
-            return await self._serve(request)
-        except ConnectionError:  # the client gave up on a dripping or stalled answer: nothing to say
-            return web.Response(status=499)
-        finally:
-            self._handlers.discard(task)
 
     async def _serve(self, request: web.Request) -> web.StreamResponse:
         scene, tail = request.match_info["scene"], request.match_info["tail"]
@@ -285,14 +207,7 @@ def _load_dict(scene: Path) -> dict:
 def _write_dict(scene: Path, m: dict) -> None:
     from splatstream.format.manifest import pack_manifest_dict
 
-    leaves = [p for t in m["tiles"] if not t["children"] for p in t["groups"].values()]
-    leaves += list((m.get("sh_codebook") or {}).get("groups", {}).values())
-    m["gpu_bytes"] = sum(p["gpu_bytes"] for p in leaves)
-    m["leaf_bytes_on_disk"] = sum(p["bytes"] for p in leaves)
-    every = {p["file"]: p["bytes"] for t in m["tiles"] for p in t["groups"].values()}
-    every.update({p["file"]: p["bytes"] for p in (m.get("sh_codebook") or {}).get("groups", {}).values()})
-    for _ in range(3):
-        m["bytes_on_disk"] = sum(every.values()) + len(pack_manifest_dict(m))
+    settle_totals(m)
     (scene / MANIFEST_NAME).write_bytes(pack_manifest_dict(m))
 
 
