@@ -1,5 +1,7 @@
+import contextlib
 import os
 import pathlib
+import signal
 import subprocess
 import sys
 
@@ -118,3 +120,24 @@ def sphere_framed_camera(positions, width: int, height: int, up=(0.0, 0.0, 1.0))
     eye = med + _diagonal(np.asarray(up, dtype=np.float64)) * dist
     return Camera(tuple(eye), tuple(med), tuple(up), DEFAULT_FOV_Y_DEG, width, height,
                   min(REFERENCE_NEAR, 0.01 * dist), max(1000.0, 10.0 * (dist + radius)))
+
+
+@contextlib.contextmanager
+def xvfb_display(screen: str = "1024x768x24"):
+    """A virtual X display for window tests: yields its name (":N"), stops the server afterwards."""
+    r, w = os.pipe()
+    proc = subprocess.Popen(["Xvfb", "-displayfd", str(w), "-screen", "0", screen, "-nolisten", "tcp"],
+                            pass_fds=(w,), stderr=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
+    os.close(w)
+    number = b""
+    while not number.endswith(b"\n"):
+        chunk = os.read(r, 16)
+        if not chunk:
+            break
+        number += chunk
+    os.close(r)
+    try:
+        yield f":{number.decode().strip()}"
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(10)

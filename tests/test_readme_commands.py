@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import ROOT, real
+from conftest import ROOT, real, xvfb_display
 
 README = ROOT / "README.md"
 VENV_BIN = Path(sys.executable).parent
@@ -67,20 +67,8 @@ def free_port() -> int:
 def display():
     if not shutil.which("Xvfb") or not shutil.which("xdotool"):
         pytest.skip("the README's window commands need Xvfb and xdotool (apt-get install xvfb xdotool)")
-    r, w = os.pipe()
-    proc = subprocess.Popen(["Xvfb", "-displayfd", str(w), "-screen", "0", "2048x1280x24", "-nolisten", "tcp"],
-                            pass_fds=(w,), stderr=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
-    os.close(w)
-    number = b""
-    while not number.endswith(b"\n"):
-        chunk = os.read(r, 16)
-        if not chunk:
-            break
-        number += chunk
-    os.close(r)
-    yield f":{number.decode().strip()}"
-    proc.send_signal(signal.SIGTERM)
-    proc.wait(10)
+    with xvfb_display("2048x1280x24") as name:
+        yield name
 
 
 @pytest.fixture(scope="module")

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import ROOT
+from conftest import ROOT, xvfb_display
 
 pytestmark = pytest.mark.skipif(not (shutil.which("Xvfb") and shutil.which("xdotool")),
                                 reason="needs Xvfb and xdotool (apt-get install xvfb xdotool)")
@@ -21,20 +21,8 @@ SIZE = (720, 420)
 
 @pytest.fixture(scope="module")
 def display():
-    r, w = os.pipe()
-    proc = subprocess.Popen(["Xvfb", "-displayfd", str(w), "-screen", "0", "1024x768x24", "-nolisten", "tcp"],
-                            pass_fds=(w,), stderr=subprocess.DEVNULL, stdout=subprocess.DEVNULL)
-    os.close(w)
-    number = b""
-    while not number.endswith(b"\n"):
-        chunk = os.read(r, 16)
-        if not chunk:
-            break
-        number += chunk
-    os.close(r)
-    yield f":{number.decode().strip()}"
-    proc.send_signal(signal.SIGTERM)
-    proc.wait(10)
+    with xvfb_display("1024x768x24") as name:
+        yield name
 
 
 @pytest.fixture(scope="module")
