@@ -45,7 +45,7 @@ def cost_of_view(m, cam: Camera, opts: SelectionOptions, link_mbps: float, laten
     view = view_numbers(a, cam, opts)
     cost = np.array([t.chunks for t in m.tiles], np.float64)
     root = m.index_of[m.root]
-    sel = select(a, view, cost, root, opts, screen_px=float(cam.width * cam.height))
+    sel = select(a, view, cost, root, opts, reduction=m.lod.reduction)
     bands = wanted_bands(a, view, sel.cut, opts, m.sh_degree)
     tiles = set()
     for i in sel.cut:  # the cut and every ancestor (drawn while refining)

@@ -118,8 +118,7 @@ def tiles_for_view(source: str | os.PathLike | SceneStore, camera: Camera, optio
     view = view_numbers(a, camera, opts)
     cost = np.array([t.chunks for t in manifest.tiles], np.float64)
     root = manifest.index_of[manifest.root]
-    sel = select(a, view, cost, root, opts, screen_px=float(camera.width * camera.height),
-                 reduction=manifest.lod.reduction)
+    sel = select(a, view, cost, root, opts, reduction=manifest.lod.reduction)
     bands = wanted_bands(a, view, sel.cut, opts, manifest.sh_degree)
     top = max(bands.values(), default=0)
     codebook = read_codebook(store, manifest, top) if top >= 1 else None

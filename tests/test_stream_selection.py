@@ -236,8 +236,7 @@ def test_select_equals_child_by_child_sums(scene, max_splats, budget, max_sse):
     for k, distance in enumerate((6.0, 3.0, 1.5, 0.9, 0.5, 0.3, 0.6, 2.0)):
         cam = camera_at(m, distance, size=(640, 360) if k % 2 else (320, 240))
         view = view_numbers(a, cam, opts)
-        sel = select(a, view, cost, m.index_of[m.root], opts, refined, float(cam.width * cam.height),
-                     m.lod.reduction)
+        sel = select(a, view, cost, m.index_of[m.root], opts, refined, m.lod.reduction)
         cut, ref, priority, splats, total = _select_child_by_child(a, view, cost, m.index_of[m.root], opts, refined,
                                                                     m.lod.reduction)
         assert set(sel.cut) == cut and sel.refined == ref and sel.splats == splats and sel.cost == total

@@ -263,8 +263,7 @@ class StreamEngine:
         view = view_numbers(a, cam, opts)
         budget = self.residency.capacity_slots * self.slot_bytes * self.options.target_fraction
         sel_opts = SelectionOptions(**{**opts.__dict__, "budget": min(budget, opts.budget or budget)})
-        sel = select(a, view, self.cost, self.root, sel_opts, self.refined, float(cam.width * cam.height),
-                     self.manifest.lod.reduction)
+        sel = select(a, view, self.cost, self.root, sel_opts, self.refined, self.manifest.lod.reduction)
         self.refined = sel.refined
         bands = wanted_bands(a, view, sel.cut, opts, self.manifest.sh_degree)
         self._bands_wanted = bands
