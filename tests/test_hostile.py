@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import REAL, run_cli
+from conftest import real, run_cli
 from hostile_server import HostileServer, Mode, texture_bomb_scene, undecodable_scene
 
 from client_gl.stream.cache import DiskCache
@@ -29,9 +29,7 @@ def root(tmp_path_factory) -> Path:
     from splatstream.encode import encode_file
 
     work = tmp_path_factory.mktemp("hostile")
-    src = REAL / "fruit_drops_sh3.ply"
-    if not src.exists():
-        src = REPO / "tests" / "fixtures" / "foreign" / "fruit_drops_sub64.ply"
+    src = real("fruit_drops_sh3.ply")  # bundled
     encode_file(src, work / "root" / "s", max_leaf_splats=1000)
     encode_file(src, work / "s2", max_leaf_splats=300)  # other tiles, other payloads
     undecodable_scene(work / "root" / "s", work / "root" / "s_bad")
