@@ -61,7 +61,7 @@ def real(name: str) -> pathlib.Path:
 
 def run_cli(*args: str, cwd=None) -> subprocess.CompletedProcess:
     """Run the installed CLI the way a user does (a separate process, no stdin)."""
-    return subprocess.run([sys.executable, "-m", "splatstream.cli", *map(str, args)], capture_output=True, text=True,
+    return subprocess.run([sys.executable, "-m", "cli", *map(str, args)], capture_output=True, text=True,
                           cwd=cwd, stdin=subprocess.DEVNULL, timeout=600)
 
 

@@ -130,7 +130,7 @@ def view(url: str, tmp_path: Path, *args: str):
     import subprocess
 
     env = dict(os.environ, SPLATSTREAM_CACHE_DIR=str(env_cache))
-    return subprocess.run([sys.executable, "-m", "splatstream.cli", "view", url, "--headless", "--size", "160x120",
+    return subprocess.run([sys.executable, "-m", "cli", "view", url, "--headless", "--size", "160x120",
                            "--gpu-mem-mb", "16", *args], capture_output=True, text=True, env=env,
                           stdin=subprocess.DEVNULL, timeout=300)
 
