@@ -9,7 +9,14 @@ mass-weighted scatter of its members' centres around their mean (Ward's sum of s
 mass-weighted scatter of their base colours scaled by the cell's mean member variance (so both are lengths
 squared times mass).
 
-    python bench/probe_lod_adaptive.py SCENE --cost grid --cost sse:4:0 --cost sse:4:1 [--crop 0.25]
+    python bench/probe_lod_adaptive.py SCENE --cost grid --cost gen:16@0 --cost ward:16:0@0 [--crop 0.25]
+        [--peer-level bench/peers_cache/statue-angel/st-adaptive_35680.ply]
+
+Costs: `grid` (the product), `sse:F:LAMBDA` (the grid's cells split by cost), `agg:K:MAX_GROUP:COLOUR`
+(splat-transform's one-pass selection), `gen:K:COLOUR:SHARE` (generations of greedy matchings, re-costed by
+field-L2), `ward|dist|bhatt:K:COLOUR:SHARE` (the same generations by Ward's criterion, centre distance or the
+Bhattacharyya distance); `@K` scales the viewing blur of the opacity and colour step (0: none). Results:
+BENCHMARKS.md, "LOD merges". Needs scipy (cKDTree).
 
 Every whole level is drawn by the GL renderer from 4 orbit views at 384 px and compared with the full-detail
 render, as bench/probe_lod_merge.py does.
@@ -23,10 +30,15 @@ import sys
 from pathlib import Path
 
 import numpy as np
+from client_gl.offscreen import render_image
 
 from splatstream import lod
-from splatstream.gaussians import Gaussians
+from splatstream.camera import scene_orbit_views
+from splatstream.gaussians import Gaussians, rotation_matrices
+from splatstream.io import read_gaussians
 from splatstream.lod import _group_starts, _morton
+from splatstream.metrics import psnr_from_mse
+from splatstream.orientation import detect_up
 
 sys.path.insert(0, str(Path(__file__).parent))
 SPLIT_FACTOR = 4.0
@@ -100,7 +112,6 @@ def agglomerate_group_starts(g: Gaussians, mass: np.ndarray, target: int) -> tup
     from probe_lod_merge import _SYM6, _field_l2_cost
     from scipy.spatial import cKDTree
 
-    from splatstream.gaussians import rotation_matrices
 
     n = len(g)
     if target >= n:
@@ -177,7 +188,6 @@ def generation_group_starts(g: Gaussians, mass: np.ndarray, target: int) -> tupl
     from probe_lod_merge import _SYM6, _area6, _det6, _field_l2_cost, _quad6
     from scipy.spatial import cKDTree
 
-    from splatstream.gaussians import rotation_matrices
 
     n = len(g)
     if target >= n:
@@ -301,17 +311,60 @@ def adaptive_merge(g: Gaussians, mass: np.ndarray, target: int):
     return lod.merge_groups(g, mass, *adaptive_group_starts(g, mass, max(1, target)))
 
 
+def _psnr(s: Gaussians, cams, refs) -> float:
+    mse = np.mean([np.mean((np.clip(render_image(s, c), 0, 1) - np.clip(r, 0, 1)) ** 2)
+                   for c, r in zip(cams, refs, strict=True)])
+    return psnr_from_mse(float(mse))
+
+
+def peer_groups(g: Gaussians, peer: Gaussians, cams, refs) -> None:
+    """Is a peer's level better for its choice of groups or for its merge? Its untouched originals (centres equal
+    to 1e-5) are kept, and the rest merged by lod.merge_groups: in our grid, and in the peer's groups, inferred
+    by giving each original to the merged splat of highest density among its 16 nearest merged centres."""
+    from scipy.spatial import cKDTree
+
+    def key(p: np.ndarray) -> list[tuple]:
+        return [tuple(x) for x in np.round(p, 5)]
+
+    index = {k: i for i, k in enumerate(key(g.positions))}
+    kept = np.array([index.get(k, -1) for k in key(peer.positions)])
+    originals = kept[kept >= 0]
+    rest = np.setdiff1d(np.arange(len(g)), originals)
+    merged_peer = peer.subset(np.flatnonzero(kept < 0))
+    mass = lod.splat_mass(g)
+    r = g.subset(rest)
+    grid_rest = lod.merge_gaussians(r, mass[rest], len(merged_peer))[0]
+    rot = rotation_matrices(merged_peer.rotations).astype(np.float64)
+    scales = np.exp(merged_peer.log_scales.astype(np.float64))
+    pr = r.positions.astype(np.float64)
+    _, nb = cKDTree(merged_peer.positions).query(pr, 16)
+    best, best_d = np.zeros(len(rest), np.int64), np.full(len(rest), np.inf)
+    for k in range(nb.shape[1]):
+        j = nb[:, k]
+        local = np.einsum("nij,ni->nj", rot[j], pr - merged_peer.positions[j]) / scales[j]
+        d = (local ** 2).sum(axis=1)
+        better = d < best_d
+        best_d[better], best[better] = d[better], j[better]
+    order = np.argsort(best, kind="stable")
+    starts = np.concatenate([[0], np.flatnonzero(np.diff(best[order])) + 1])
+    peer_rest = lod.merge_groups(r, mass[rest], order, starts)[0]
+    kept_g = g.subset(originals)
+    print(f"peer level {len(peer)}: {_psnr(peer, cams, refs):.2f} dB; {len(originals)} untouched originals; the rest "
+          f"in our grid {_psnr(Gaussians.concatenate([kept_g, grid_rest]), cams, refs):.2f} dB, in its groups "
+          f"({len(starts)}) {_psnr(Gaussians.concatenate([kept_g, peer_rest]), cams, refs):.2f} dB", flush=True)
+
+
 def main() -> None:
-    global SPLIT_FACTOR, GEN_SHARE, GEN_COST, BHATT_COLOUR, COLOUR_WEIGHT, AGG_NEIGHBOURS, AGG_MAX_GROUP, AGG_COLOUR_WEIGHT
-    from client_gl.offscreen import render_image
-    from splatstream.camera import scene_orbit_views
-    from splatstream.io import read_gaussians
-    from splatstream.metrics import psnr_from_mse
-    from splatstream.orientation import detect_up
+    global SPLIT_FACTOR, GEN_SHARE, GEN_COST, BHATT_COLOUR, COLOUR_WEIGHT
+    global AGG_NEIGHBOURS, AGG_MAX_GROUP, AGG_COLOUR_WEIGHT
 
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scene")
-    ap.add_argument("--cost", action="append", default=[], help="grid | sse:F:LAMBDA, optionally @K: the viewing blur times K")
+    ap.add_argument("--cost", action="append", default=[], help="grid | sse:F:LAMBDA | agg:K:MAX_GROUP:COLOUR | "
+                    "gen:K:COLOUR:SHARE | "
+                    "ward|dist|bhatt:K:COLOUR:SHARE, optionally @K: the viewing blur times K")
+    ap.add_argument("--peer-level", help="a peer's decimated level (PLY) of the same scene: score it, our merge of "
+                    "the rest around its untouched originals in our grid, and in its own groups (inferred)")
     ap.add_argument("--crop", type=float, default=0.0, help="keep splats within this quantile of per-axis distance")
     ap.add_argument("--max-leaf-splats", type=int, default=16384)
     ap.add_argument("--views", type=int, default=4)
@@ -324,6 +377,8 @@ def main() -> None:
         g = g.subset(np.flatnonzero(cheb <= np.quantile(cheb, args.crop)))
     cams = scene_orbit_views(g.positions, args.views, args.size, args.size, up=detect_up(g).up)
     refs = [render_image(g, c) for c in cams]
+    if args.peer_level:
+        peer_groups(g, read_gaussians(args.peer_level), cams, refs)
     grid = lod.merge_gaussians
     blur = lod.viewing_blur
     for spec in args.cost or ["grid"]:
@@ -362,9 +417,7 @@ def main() -> None:
         row = []
         for level in sorted(levels)[:-1][-5:]:
             s = Gaussians.concatenate(levels[level])
-            mse = np.mean([np.mean((np.clip(render_image(s, c), 0, 1) - np.clip(r, 0, 1)) ** 2)
-                           for c, r in zip(cams, refs, strict=True)])
-            row.append(f"{len(s)}: {psnr_from_mse(float(mse)):.2f}")
+            row.append(f"{len(s)}: {_psnr(s, cams, refs):.2f}")
         print(f"{spec:12s} " + ", ".join(row), flush=True)
 
 
