@@ -187,10 +187,10 @@ def main() -> None:
 
         gl_entry_points.FUNCTION_TYPE = ctypes.CFUNCTYPE
     from client_gl.gpu.gl import wait_for_gpu
-    from client_gl.headless import HeadlessRenderer, RenderOptions, create_context
+    from client_gl.offscreen import HeadlessRenderer, RenderOptions, create_context
     from client_gl.scene import SceneTiles, load_tile
     from client_gl.streaming import StreamingSession, ViewOptions, freeze_long_lived
-    from splatstream.decoder import read_codebook
+    from splatstream.scene_decode import read_codebook
     from splatstream.store import DirectoryStore
 
     w, h = (int(v) for v in args.size.split("x"))

@@ -140,7 +140,7 @@ def timed_frames(ctx, render, frames: int) -> tuple[list[float], list[float]]:
 
 def bench_gl(ctx, scene, cam: Camera, frames: int, sort: str, color_dtype: str, draw: str = "instanced",
              settle: Settle | None = None) -> dict:
-    from client_gl.headless import HeadlessRenderer
+    from client_gl.offscreen import HeadlessRenderer
 
     r = HeadlessRenderer(render_options(sort, draw, color_dtype), ctx=ctx)
     t = time.perf_counter()
@@ -276,7 +276,7 @@ def psnr(a, b) -> float:
 def check_correctness(ctx, real_dir: str) -> dict:
     """GPU path on this GL vs the numpy reference on a real scene (small image)."""
     from client_gl.gpu.renderer import RenderOptions
-    from client_gl.headless import HeadlessRenderer
+    from client_gl.offscreen import HeadlessRenderer
     from splatstream import render_ref
     from splatstream.camera import suggested_camera
 
@@ -397,7 +397,7 @@ def main() -> int:
             raise SystemExit(f"--draw/--variants {draw}: {exc}") from None
     settle = Settle(args.warmup_min, args.warmup_max, args.settle_window, args.settle_tol, args.warmup_s)
 
-    from client_gl.headless import create_context
+    from client_gl.offscreen import create_context
 
     ctx = create_context()
     info = {k: ctx.info.get(k) for k in ("GL_RENDERER", "GL_VERSION", "GL_VENDOR", "GL_POINT_SIZE_RANGE",
@@ -463,7 +463,7 @@ def main() -> int:
             del scene
         if args.gsplat:
             if gl_image is None:  # the comparison's preset was not measured: render it once
-                from client_gl.headless import HeadlessRenderer
+                from client_gl.offscreen import HeadlessRenderer
 
                 r = HeadlessRenderer(render_options("gpu", args.draw[0], args.color[0]), ctx=ctx)
                 r.load_gaussians(g, args.psnr_preset)

@@ -266,10 +266,10 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
     """Run the evaluation; returns the JSON-ready report (see `report_markdown`, `plot_rate_distortion`).
 
     `renderer`: what draws the views (default: the numpy reference renderer)."""
-    from .decoder import decode_scene
     from .encode import EncodeOptions, encode_gaussians
     from .format.presets import PRESETS, resolve_formats
     from .io import read_gaussians
+    from .scene_decode import decode_scene
 
     opts = opts or EvalOptions()
     log = log or (lambda msg: None)
@@ -384,7 +384,7 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
         "renderer_note": ("GL: originals and --compare inputs are uploaded as very-high (f32x4) textures, encoded "
                           "scenes are drawn from their own textures" if renderer_kind == "gl" else
                           "numpy reference of the 3DGS forward pass (format_spec/camera.md); encoded scenes decoded "
-                          "with splatstream.decoder"),
+                          "with splatstream.scene_decode"),
         "render_seconds_per_view": round(render_s, 4),
         "reference_coverage": round(coverage, 4),
         "size": [opts.width, opts.height],

@@ -27,7 +27,7 @@ def ctx(gl_compute_context):
 @pytest.fixture(scope="module")
 def renderer(ctx):
     from client_gl.gpu.renderer import RenderOptions
-    from client_gl.headless import HeadlessRenderer
+    from client_gl.offscreen import HeadlessRenderer
 
     r = HeadlessRenderer(RenderOptions(draw="compute"), ctx=ctx)  # sort "auto": the compute draw forces the GPU sort
     yield r
@@ -79,7 +79,7 @@ def test_binning_matches_numpy(ctx, fruit):
     """Entries = for each visible splat front to back, the tiles of its alpha >= 1/255 box (row_bins off: with it,
     test_tight_bins_keep_every_reached_tile); stable by tile."""
     from client_gl.gpu.renderer import RenderOptions
-    from client_gl.headless import HeadlessRenderer
+    from client_gl.offscreen import HeadlessRenderer
 
     cam = close_camera(fruit, 120, 90)
     renderer = HeadlessRenderer(RenderOptions(draw="compute", row_bins=False), ctx=ctx)
@@ -212,7 +212,7 @@ def test_entry_buffer_grows(renderer, fruit):
 
 def test_variants_and_modes(ctx, fruit):
     from client_gl.gpu.renderer import RenderOptions, is_software
-    from client_gl.headless import HeadlessRenderer
+    from client_gl.offscreen import HeadlessRenderer
 
     cam = close_camera(fruit, 120, 90)
     ref = render_ref.render(fruit, cam)
@@ -319,7 +319,7 @@ def test_dense_variants_match_default(ctx, fruit, variant):
     the same image as the default, bit for bit, and the reference's. With 32-bit depth keys: the default's 24 bits
     tie splats of nearly equal depth, which the cull's compaction (atomics) then orders differently from run to run."""
     from client_gl.gpu.renderer import RenderOptions
-    from client_gl.headless import HeadlessRenderer
+    from client_gl.offscreen import HeadlessRenderer
 
     cam = close_camera(fruit, 120, 90)
     images, bins = [], []
@@ -348,7 +348,7 @@ def test_depth_keys_of_fewer_bits(ctx, fruit, bits, min_db):
     32-bit float bits do but for depths closer than their resolution: 24 bits change no pixel by more than float
     rounding (136 dB against 32 bits on this close view), 16 bits by 75 dB; both keep the reference's 40 dB."""
     from client_gl.gpu.renderer import RenderOptions, depth_key_range
-    from client_gl.headless import HeadlessRenderer
+    from client_gl.offscreen import HeadlessRenderer
 
     cam = close_camera(fruit, 120, 90)
     lo, shift, top = depth_key_range(cam.near, cam.far, bits)
@@ -371,7 +371,7 @@ def test_tight_bins_keep_every_reached_tile(ctx, fruit, option):
     the pixel centres (the shaders bound the rectangle of pixel centres, not the centres one by one) are not
     entries, except, with row_bins, for splats whose box is more than two tiles high (their whole box)."""
     from client_gl.gpu.renderer import RenderOptions
-    from client_gl.headless import HeadlessRenderer
+    from client_gl.offscreen import HeadlessRenderer
 
     cam = close_camera(fruit, 120, 90)
     r = HeadlessRenderer(RenderOptions(draw="compute", **({"tight_bins": True} if option == "tight_bins" else {})),
@@ -446,7 +446,7 @@ def test_wide_flat_splat_keeps_its_tiles(ctx):
     """A splat two tiles high and 128 or more wide (a thin streak across a 4096-pixel image): row bins pack its rows'
     bounds in 7 bits each, so a wider one keeps its whole box; its entries and the image are the reference's."""
     from client_gl.gpu.renderer import RenderOptions
-    from client_gl.headless import HeadlessRenderer
+    from client_gl.offscreen import HeadlessRenderer
     from splatstream.gaussians import Gaussians
 
     g = Gaussians(positions=np.zeros((1, 3)), rotations=np.array([[1.0, 0.0, 0.0, 0.0]]),
@@ -469,7 +469,7 @@ def test_warp_cull_walks_and_loops_alike(ctx, fruit, view):
     """The per-block splat lists (warp_cull, the default) give the plain loop's image bit for bit, on a close view
     (large splats: most blocks walk their whole batch) and a far one (small splats: blocks walk their own bits)."""
     from client_gl.gpu.renderer import RenderOptions
-    from client_gl.headless import HeadlessRenderer
+    from client_gl.offscreen import HeadlessRenderer
 
     base = suggested_camera(fruit.positions, width=W, height=H)
     far = look_at(np.array(base.target) + 2.5 * (np.array(base.eye) - np.array(base.target)), base.target,

@@ -4,8 +4,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from splatstream.decoder import decode_scene
 from splatstream.io import write_gaussians
+from splatstream.scene_decode import decode_scene
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -78,7 +78,7 @@ def _camera(args, scene_camera: dict | None, positions: np.ndarray | None, scene
 def run(args: argparse.Namespace) -> int:
     from .renderers import gl_client
 
-    headless = gl_client()
+    offscreen = gl_client()
 
     from splatstream.format.presets import PRESETS
     from splatstream.store import is_scene_dir, load_manifest
@@ -113,7 +113,7 @@ def run(args: argparse.Namespace) -> int:
         cam = _camera(args, None, g.positions, up, size, view_side(g, up), g.opacity_logits)
         source = ("gaussians", g)
         splats = len(g)
-    renderer = headless.HeadlessRenderer(headless.RenderOptions(sort=args.sort, draw=args.draw))
+    renderer = offscreen.HeadlessRenderer(offscreen.RenderOptions(sort=args.sort, draw=args.draw))
     try:
         if source[0] == "scene" and args.max_sse is not None:
             from client_gl.scene import tiles_for_view

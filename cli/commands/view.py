@@ -152,7 +152,7 @@ def _check_outputs(args) -> None:
 def run(args: argparse.Namespace) -> int:
     from .renderers import gl_client
 
-    headless = gl_client()  # first: the options below import the client
+    offscreen = gl_client()  # first: the options below import the client
     size = parse_size(args.size)
     options = _options(args)
     camera = _fixed_camera(args, size)
@@ -172,7 +172,7 @@ def run(args: argparse.Namespace) -> int:
                                     overlay=not args.no_overlay))
     from client_gl.view_headless import HeadlessRun, run_headless
 
-    ctx = headless.create_context()
+    ctx = offscreen.create_context()
     try:
         code, report = run_headless(HeadlessRun(
             args.source, options, size, camera, path, until_converged=args.until_converged or path is None,
