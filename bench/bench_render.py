@@ -96,15 +96,12 @@ class Settle:
 
 # Measurement flags of a --draw value ("fetch+f2b", "compute+t8+u2", ...) -> RenderOptions fields.
 DRAW_FLAGS = {"f2b": {"front_to_back": True}, "nodepth": {"depth_test": False}, "noblend": {"blend": False},
-              "discard": {"discard_fragments": True}, "t8": {"tile_px": 8}, "u1": {"unroll": 1}, "u2": {"unroll": 2},
+              "t8": {"tile_px": 8}, "u1": {"unroll": 1}, "u2": {"unroll": 2},
               "wc": {"warp_cull": True}, "nowc": {"warp_cull": False}, "r8": {"radix_bits": 8},
               "classic": {"fused_sort": False}, "fb": {"full_barriers": True},
-              # dense-scene variants of the compute draw (RenderOptions; issue 20). Former defaults: nofl (no flush),
-              # tpe (a thread a splat in bin_emit, whole boxes), box (whole boxes, balanced emit), d32 (32-bit depth
-              # keys), tr4 (4-bit tile sort digits).
-              "fl": {"flush": "cull"}, "fls": {"flush": "stages"}, "nofl": {"flush": "none"},
-              "tb": {"tight_bins": True}, "er": {"emit_rects": True}, "tpe": {"balanced_emit": False},
-              "box": {"row_bins": False},
+              # dense-scene variants of the compute draw (RenderOptions; issue 20). Former defaults: d32 (32-bit depth
+              # keys), tr4 (4-bit tile sort digits). The binning and flush variants of that round (fl, fls, nofl, tb,
+              # er, tpe, box) and discard are measured (BENCHMARKS.md) and gone from the renderer.
               "tr4": {"tile_radix_bits": 4}, "tr5": {"tile_radix_bits": 5}, "tr8": {"tile_radix_bits": 8},
               "dr4": {"radix_bits": 4}, "dr5": {"radix_bits": 5}, "dr6": {"radix_bits": 6}, "dr8": {"radix_bits": 8},
               "lr": {"local_scatter": True}, "gs": {"local_scatter": False, "radix_bits": 4},

@@ -56,9 +56,7 @@ class ComputeRaster:
 
     def __init__(self, ctx, color_dtype: str, visible_capacity: int, entry_capacity: int | None = None,
                  tile_px: int = TILE_PX, unroll: int = UNROLL, warp_cull: bool = True, radix_bits: int = RADIX_BITS,
-                 fused_sort: bool = True, barrier_bits: int = CHAIN_BARRIER, tight_bins: bool = False,
-                 emit_rects: bool = False, balanced_emit: bool = True, row_bins: bool = True,
-                 local_scatter: bool = True):
+                 fused_sort: bool = True, barrier_bits: int = CHAIN_BARRIER, local_scatter: bool = True):
         self.ctx = ctx
         self.color_dtype = color_dtype
         self.tile_px = int(tile_px)
@@ -69,21 +67,11 @@ class ComputeRaster:
         self.local_scatter = bool(local_scatter)
         self.barrier_bits = barrier_bits
         tile = f"#define TILE_PX {self.tile_px}\n"
-        # tight_bins: tiles tested against the splat's ellipse (bin_common.glsl's tile_hit), the same code in the count
-        # and the emit so that both agree on every splat's entries.
-        self.tight_bins = bool(tight_bins)
-        self.emit_rects = bool(emit_rects)
-        # The balanced emit expands whole tile boxes or row_bins' rows: tight_bins and emit_rects keep a thread a splat.
-        self.balanced_emit = bool(balanced_emit) and not self.tight_bins and not self.emit_rects
-        # Row bins need the balanced emit (its rows in shared memory): off with tight_bins, emit_rects or without it.
-        self.row_bins = bool(row_bins) and self.balanced_emit
-        binning = tile + ("#define TIGHT_BINS\n" if self.tight_bins else "")
-        binning += "#define ROW_BINS\n" if self.row_bins else ""
-        self.count_shader = ctx.compute_shader(_source("bin_count.comp", binning))
+        # Binning (bin_count, bin_emit): row bins with the work group's balanced emit, whose count and emit share
+        # bin_common.glsl's code so that both agree on every splat's entries.
+        self.count_shader = ctx.compute_shader(_source("bin_count.comp", tile))
         self.scan_shader = ctx.compute_shader(_source("bin_scan.comp", tile, radix_bits))
-        emit = "#define EMIT_RECTS\n" if self.emit_rects else ""
-        emit += "#define BALANCED\n" if self.balanced_emit else ""
-        self.emit_shader = ctx.compute_shader(_source("bin_emit.comp", binning + emit))
+        self.emit_shader = ctx.compute_shader(_source("bin_emit.comp", tile))
         self.ranges_shader = ctx.compute_shader(_source("tile_ranges.comp", tile))
         fmt = IMAGE_FORMATS[color_dtype]
         if unroll not in (1, 2, 4):
@@ -182,12 +170,12 @@ class ComputeRaster:
         return total > old
 
     # --- frame -----------------------------------------------------------------------------------------------
-    def bin(self, params, order, records, dispatch, width: int, height: int, scratch=None) -> None:
+    def bin(self, params, order, records, dispatch, width: int, height: int, scratch) -> None:
         """Steps 1-3: entries of the `params.count` splats of `order` (depth-sorted record indices).
 
         `dispatch` is the depth sort's indirect buffer (offset 0: ceil(count / SCAN_TILE) groups). bin_scan.comp
-        also writes the tile sort's dispatch sizes. scratch: a buffer of a word per splat that row_bins needs (the
-        count pass leaves each splat's entry count there for the emit; the depth sort's keys, spent by now).
+        also writes the tile sort's dispatch sizes. scratch: a buffer of a word per splat (the count pass leaves each
+        splat's entry count there for the emit; the depth sort's keys, spent by now).
         """
         barrier = self.ctx.memory_barrier
         bits = self.barrier_bits
@@ -205,20 +193,15 @@ class ComputeRaster:
         self._u_scan.set("u_capacity", self.entry_capacity)
         self._u_scan.set("u_tiles", self.tiles)
         self._u_emit.set("u_capacity", self.entry_capacity)
-        if self.row_bins:
-            if scratch is None:
-                raise ValueError("row_bins: bin() needs a scratch buffer of a word per splat")
-            scratch.bind_to_storage_buffer(5)
+        scratch.bind_to_storage_buffer(5)
         self.count_shader.run_indirect(dispatch, 0)
         barrier(bits)
         self.tile_sorter.dispatch.bind_to_storage_buffer(1)
-        if self.row_bins:
-            self.ranges.bind_to_storage_buffer(5)
+        self.ranges.bind_to_storage_buffer(5)
         self.scan_shader.run(1)
         barrier(bits)
         order.bind_to_storage_buffer(1)
-        if self.row_bins:
-            scratch.bind_to_storage_buffer(5)
+        scratch.bind_to_storage_buffer(5)
         self.emit_shader.run_indirect(dispatch, 0)
         barrier(bits)
         if self._frames % COUNT_EVERY == 0:

@@ -53,8 +53,7 @@ DRAW_MODES = ("instanced", "triangles", "fetch", "points")
 # sprites are at least as wide as the image; otherwise fetch quads (tighter, fewer fragments: 9.6 vs 10.7 ms at 1M).
 # "compute": the compute-shader tile rasterizer (client_gl/gpu/compute_raster.py), no raster hardware.
 DRAW_CHOICES = ("auto",) + DRAW_MODES + ("compute",)
-COLOR_DTYPES = ("f1", "f2", "f4")
-FLUSH_CHOICES = ("none", "cull", "stages")  # RGBA8, RGBA16F, RGBA32F colour target
+COLOR_DTYPES = ("f1", "f2", "f4")  # RGBA8, RGBA16F, RGBA32F colour target
 AUTO_POINTS_MIN_SPLATS = 2_000_000
 RECORD_BYTES = 48  # per visible splat, written by cull.comp
 # "auto" on the GPU path of a hardware GL: the compute rasterizer (H200, 1080p: 2.5 ms at 1M splats, 7.9 ms at 6M,
@@ -101,7 +100,6 @@ class RenderOptions:
     front_to_back: bool = False  # experimental: batches front to back with saturation passes (fetch, points)
     depth_test: bool = True  # test splats against the framebuffer's depth (opaque geometry drawn first)
     blend: bool = True  # False: blending off (measurement)
-    discard_fragments: bool = False  # True: the fragment shader discards at once (measurement)
     # Compute draw (client_gl/gpu/compute_raster.py):
     tile_px: int = 16  # 16 or 8 pixel tiles
     unroll: int = 4  # raster loop unrolled 4, 2 or 1 times
@@ -120,22 +118,6 @@ class RenderOptions:
     # 2**bits runs a round. H100, 6M dense at 1080p: tile sort 0.81 -> 0.69 ms (BENCHMARKS.md).
     local_scatter: bool = True
     full_barriers: bool = False  # compute draw: glMemoryBarrier(ALL) between dispatches (default: the bits needed)
-    # glFlush: none | cull (after the cull) | stages (after each stage but the last), so that the GPU starts on the
-    # frame while the CPU still issues the rest of it (FLUSH_CHOICES). "stages" measured on an H100, dense scenes at
-    # 1080p: wall clock per frame 2.30 -> 2.10 ms at 1M, 5.93 -> 5.84 ms at 6M, GPU time unchanged (BENCHMARKS.md).
-    flush: str = "stages"
-    # Compute-draw variants on dense scenes, measured and left off: tight_bins made binning 5x slower at 1M (2.43
-    # against 0.48 ms) for 28 % fewer entries; 8-bit digits gained nothing at 6M (BENCHMARKS.md, issue 20).
-    tight_bins: bool = False  # binning: only tiles whose pixel centres the alpha >= 1/255 ellipse reaches (not its box)
-    emit_rects: bool = False  # binning: bin_emit keeps each splat's tile box from its first pass (no second read)
-    # binning: each work group writes its splats' entries together, a thread an entry (bin_emit.comp's BALANCED; not
-    # with tight_bins or emit_rects, which keep a thread a splat). H100, 6M dense at 1080p: binning 1.37 -> 0.68 ms.
-    balanced_emit: bool = True
-    # binning with the balanced emit: a splat whose box is at most two tiles high gets, row by row, the tiles where
-    # its alpha >= 1/255 ellipse reaches a pixel centre (bin_common.glsl's row_tiles, closed form per row; tight_bins'
-    # entries, cheaply), a taller one its whole box. H100, dense scenes at 1080p: 10 % fewer entries at 6M, GPU frame
-    # 4.87 -> 4.68 ms; 1M 1.68 -> 1.64 ms (BENCHMARKS.md).
-    row_bins: bool = True
     # Digit width of the tile sort (None: radix_bits). 7: two passes over 1080p's 13-bit tile ids where 4-bit digits
     # take four; H100, dense scenes: tile sort 0.93 -> 0.88 ms at 6M, 0.51 -> 0.47 at 1M (5 and 8 bits slower).
     tile_radix_bits: int | None = 7
@@ -144,11 +126,6 @@ class RenderOptions:
     # H100, 6M dense at 1080p: depth sort 0.98 -> 0.78 ms at 24 bits, with no pixel changed by more than float
     # rounding on llvmpipe (tests); 16 bits (0.43 ms) moves pixels by up to 0.5 there, so it stays an option.
     depth_bits: int = 24
-    # Work buffers (keys, values, records, sort scratch) made for this many drawn splats at once (capped at the pool's
-    # capacity) instead of grown as the drawn set grows (0). Measured and left off: made for the fly-through's 2M-splat
-    # budget, its p99 was 16.0 / 14.0 ms against 15.6 / 17.0 grown (H100, one machine); its slow GPU-side frames are
-    # the compute draw's entry buffers growing, which this does not size.
-    work_splats: int = 0
 
     def __post_init__(self) -> None:
         if self.sort not in SORT_MODES:
@@ -166,26 +143,21 @@ class RenderOptions:
             raise UsageError(f"tile sort digits of {self.tile_radix_bits} bits: choose one of {RADIX_CHOICES}")
         if self.depth_bits not in DEPTH_BITS_CHOICES:
             raise UsageError(f"depth keys of {self.depth_bits} bits: choose one of {DEPTH_BITS_CHOICES}")
-        if self.flush not in FLUSH_CHOICES:
-            raise UsageError(f"unknown flush mode {self.flush!r} (choose one of {', '.join(FLUSH_CHOICES)})")
         if self.draw != "compute" and not self.compute_defaults:
-            raise UsageError("tile_px, unroll, warp_cull, full_barriers, flush, tight_bins, emit_rects, balanced_emit, "
-                             "row_bins and tile_radix_bits are options of the compute draw mode")
+            raise UsageError("tile_px, unroll, warp_cull, full_barriers and tile_radix_bits are options of the compute "
+                             "draw mode")
         if self.draw == "compute" and not self.raster_defaults:
-            raise UsageError("the compute draw mode takes no raster-draw options (front_to_back, depth_test, blend, "
-                             "discard_fragments)")
+            raise UsageError("the compute draw mode takes no raster-draw options (front_to_back, depth_test, blend)")
         if self.front_to_back and (self.sort == "cpu" or self.draw not in ("auto", "fetch", "points")):
             raise UsageError("the front-to-back draw needs the GPU sort and the fetch or points draw mode")
 
     @property
     def raster_defaults(self) -> bool:
-        return self.depth_test and self.blend and not self.front_to_back and not self.discard_fragments
+        return self.depth_test and self.blend and not self.front_to_back
 
     @property
     def compute_defaults(self) -> bool:
         return (self.tile_px == 16 and self.unroll == 4 and self.warp_cull and not self.full_barriers
-                and self.flush == "stages" and not self.tight_bins and not self.emit_rects and self.balanced_emit
-                and self.row_bins
                 and self.tile_radix_bits == 7)
 
 
@@ -336,7 +308,7 @@ class SplatRenderer:
         if splats <= self._work_splats:
             return
         capacity = self.pool.splat_capacity
-        n = min(capacity, max(2 * splats, 2 * self._work_splats, MIN_WORK_SPLATS, self.options.work_splats))
+        n = min(capacity, max(2 * splats, 2 * self._work_splats, MIN_WORK_SPLATS))
         for b in (self.keys, self.values, self.records):
             if b is not None:
                 b.release()
@@ -382,8 +354,6 @@ class SplatRenderer:
                                              tile_px=opts.tile_px, unroll=opts.unroll, warp_cull=opts.warp_cull,
                                              radix_bits=opts.tile_radix_bits or opts.radix_bits,
                                              fused_sort=opts.fused_sort, barrier_bits=self._chain_barrier("compute"),
-                                             tight_bins=opts.tight_bins, emit_rects=opts.emit_rects,
-                                             balanced_emit=opts.balanced_emit, row_bins=opts.row_bins,
                                              local_scatter=opts.local_scatter)
                 self._bin_checks = BIN_CHECK_FRAMES
             self.draw_mode = mode
@@ -391,8 +361,6 @@ class SplatRenderer:
             return
         if mode not in self._programs:
             vert, frag = shadergen.projected_render_sources(mode, opts.front_to_back)
-            if opts.discard_fragments:
-                frag = frag.replace("void main() {", "void main() {\n    discard;", 1)
             prog = self.ctx.program(vertex_shader=vert, fragment_shader=frag)
             self._programs[mode] = (prog, self._vertex_array(mode, prog))
         self.draw_mode = mode
@@ -663,19 +631,16 @@ class SplatRenderer:
             stats.cull_ms, stats.sort_ms, stats.bin_ms, stats.tile_sort_ms, stats.draw_ms = (
                 q.elapsed / 1e6 for q in self._queries)
         else:
-            flush = self.options.flush
+            # A glFlush after every stage but the last: the GPU starts on the frame while the CPU still issues the
+            # rest of it (the wall clock a frame gains: BENCHMARKS.md, issue 20).
             self._cull(slots)
-            if flush != "none":
-                gl_flush()
+            gl_flush()
             self.sorter.sort(self.params, self.keys, self.values, self.options.depth_bits)
-            if flush == "stages":
-                gl_flush()
+            gl_flush()
             cr.bin(self.params, self.values, self.records, self.sorter.dispatch, w, h, self.keys)
-            if flush == "stages":
-                gl_flush()
+            gl_flush()
             cr.sort()
-            if flush == "stages":
-                gl_flush()
+            gl_flush()
             cr.raster(self.records, color, w, h, self._background)
         if self._bin_checks > 0:  # the first frames after an allocation check the entry buffer's capacity
             self._bin_checks -= 1
