@@ -111,7 +111,8 @@ def open_window(size: tuple[int, int], vsync: bool, title: str):
     settings.WINDOW.update({"class": "moderngl_window.context.glfw.Window", "size": size, "title": title,
                             "vsync": vsync, "resizable": True, "aspect_ratio": None, "samples": 0})
     # Ask for 4.3 first: a driver may hand out exactly the version asked for, and below 4.3 there are no compute
-    # shaders, so the frame would take the CPU sort (about 380 ms at 2M splats on the GPU machine's window).
+    # shaders, so the frame would take the CPU sort, far too slow for a window (BENCHMARKS.md, "Figures behind
+    # library defaults").
     # 4.1 is the floor (macOS).
     error: Exception | None = None
     for version in ((4, 3), (4, 1)):

@@ -31,7 +31,9 @@ from .sort import CHAIN_BARRIER, GpuRadixSort
 from .uniforms import ProgramUniforms
 
 TILE_PX = 16  # default tile size (pixels); 8 is a measurement option (RenderOptions.tile_px)
-UNROLL = 4  # splats per raster loop step (H200, 6M splats: raster 7.35 ms unrolled 1, 5.69 ms 2, 5.19 ms 4)
+# Splats per raster loop step: independent evaluations hide latency; 4 was the fastest (BENCHMARKS.md, "Figures
+# behind library defaults").
+UNROLL = 4
 MIN_ENTRIES = 1 << 16
 COUNT_EVERY = 4  # binnings between two copies of the entry count for the frame loop's overflow check
 ENTRIES_PER_SPLAT = 4  # initial entry capacity per splat of the pool's capacity
@@ -87,7 +89,8 @@ class ComputeRaster:
         self.bins = ctx.buffer(reserve=16)
         # (entries sorted, entries needed), copied from `bins` every COUNT_EVERY binnings: the frame loop's overflow
         # check reads it two binnings later, when the GPU is done with it, instead of stalling on this frame's
-        # (the copy cost 0.8 ms of CPU on the H100's driver, hence not every frame)
+        # (the copy costs the driver CPU time, hence not every frame; BENCHMARKS.md, "Figures behind library
+        # defaults")
         self._counts = ctx.buffer(reserve=8)
         self._frames = 0
         self.gsum = None

@@ -48,16 +48,17 @@ MAX_GROUPS_PER_DISPATCH = 65535
 SORT_MODES = ("auto", "cpu", "gpu")
 DRAW_MODES = ("instanced", "triangles", "fetch", "points")
 # "auto" among the raster draws (a software GL, render(clear=False); otherwise auto is "compute", see AUTO_COMPUTE):
-# point sprites (one primitive per splat; measured on an H200 at 6M splats the raster path's primitive rate is
-# the bottleneck: 29 ms against 35 ms for fetch quads) when at least AUTO_POINTS_MIN_SPLATS are drawn and point
-# sprites are at least as wide as the image; otherwise fetch quads (tighter, fewer fragments: 9.6 vs 10.7 ms at 1M).
+# point sprites (one primitive per splat: with many splats the raster path is bound by its primitive rate) when at
+# least AUTO_POINTS_MIN_SPLATS are drawn and point sprites are at least as wide as the image; otherwise fetch quads
+# (tighter, fewer fragments, which is what bounds fewer splats). Figures: BENCHMARKS.md, "GPU renderer".
 # "compute": the compute-shader tile rasterizer (client_gl/gpu/compute_raster.py), no raster hardware.
 DRAW_CHOICES = ("auto",) + DRAW_MODES + ("compute",)
 COLOR_DTYPES = ("f1", "f2", "f4")  # RGBA8, RGBA16F, RGBA32F colour target
 AUTO_POINTS_MIN_SPLATS = 2_000_000
 RECORD_BYTES = 48  # per visible splat, written by cull.comp
-# "auto" on the GPU path of a hardware GL: the compute rasterizer (H200, 1080p: 2.5 ms at 1M splats, 7.9 ms at 6M,
-# against 10.1 / 30.9 ms for the raster draws) unless render(clear=False) draws over opaque geometry (depth test).
+# "auto" on the GPU path of a hardware GL: the compute rasterizer (several times faster than the raster draws, which
+# are primitive-bound; BENCHMARKS.md, "GPU renderer") unless render(clear=False) draws over opaque geometry (depth
+# test).
 AUTO_COMPUTE = True
 MIN_WORK_SPLATS = 1 << 20  # work buffers are made for at least this many splats (about 130 MB with the draw's)
 BIN_CHECK_FRAMES = 2  # compute draw: frames after an allocation whose entry count is read back (overflow -> grow)
@@ -104,27 +105,28 @@ class RenderOptions:
     tile_px: int = 16  # 16 or 8 pixel tiles
     unroll: int = 4  # raster loop unrolled 4, 2 or 1 times
     # Per 8x4-pixel block splat lists (16-pixel tiles; 8-pixel tiles have none): each warp walks only the splats of
-    # the batch whose alpha >= 1/255 box reaches its block, or the whole batch when most do. H100, 6M dense at 1080p:
-    # raster 1.61 -> 1.19 ms (BENCHMARKS.md).
+    # the batch whose alpha >= 1/255 box reaches its block, or the whole batch when most do, so a warp skips splats
+    # that cannot reach its pixels (figures: BENCHMARKS.md, "Per-block splat lists in the raster"). False: the plain
+    # loop, the same image bit for bit (the tests' oracle).
     warp_cull: bool = True
     # GPU sort (client_gl/gpu/sort.py), all GPU-path draws:
     # Digit width of the depth sort (RADIX_CHOICES: 4 to 8). 6: four passes over the 24-bit depth keys; with the local
-    # scatter, H100, 6M dense at 1080p: depth sort 0.78 -> 0.50 ms against 4-bit digits and the global scatter (5 and
-    # 8 bits slower; BENCHMARKS.md).
+    # scatter it beat 4-bit digits with the global scatter, and 5 or 8 bits were slower (BENCHMARKS.md, "Dense
+    # scenes, warm, wall clock").
     radix_bits: int = 6
     fused_sort: bool = True  # 3 dispatches a sort pass (False: the 5 of count, reduce, scan, scan-add, scatter)
     # Both GPU sorts (depth and tiles): each scatter work group reorders its tile by digit in shared memory and writes
     # each digit's run in one piece (radix_scatter_local.comp), where the global scatter's threads write up to
-    # 2**bits runs a round. H100, 6M dense at 1080p: tile sort 0.81 -> 0.69 ms (BENCHMARKS.md).
+    # 2**bits runs a round: fewer, longer writes (figures: BENCHMARKS.md, "Dense scenes, warm, wall clock").
     local_scatter: bool = True
     full_barriers: bool = False  # compute draw: glMemoryBarrier(ALL) between dispatches (default: the bits needed)
     # Digit width of the tile sort (None: radix_bits). 7: two passes over 1080p's 13-bit tile ids where 4-bit digits
-    # take four; H100, dense scenes: tile sort 0.93 -> 0.88 ms at 6M, 0.51 -> 0.47 at 1M (5 and 8 bits slower).
+    # take four (5 and 8 bits slower; BENCHMARKS.md, "Dense scenes, warm, wall clock").
     tile_radix_bits: int | None = 7
     # Bits of the depth keys (all GPU-sort draws): the depth's float bits between the near and far planes mapped to
     # 2**depth_bits values (depth_key_range); fewer bits, fewer radix passes (32: 8 passes of 4 bits, 24: 6, 16: 4).
-    # H100, 6M dense at 1080p: depth sort 0.98 -> 0.78 ms at 24 bits, with no pixel changed by more than float
-    # rounding on llvmpipe (tests); 16 bits (0.43 ms) moves pixels by up to 0.5 there, so it stays an option.
+    # 24 bits change no pixel by more than float rounding on llvmpipe (tests); 16 bits move pixels visibly (splats
+    # close in depth swap), so they stay an option (figures: BENCHMARKS.md, "Dense scenes, warm, wall clock").
     depth_bits: int = 24
 
     def __post_init__(self) -> None:
@@ -304,7 +306,7 @@ class SplatRenderer:
         what is drawn (to twice that, never beyond the pool's capacity), not with the pool's capacity: a 1 GiB pool
         holds 23M splats, whose work buffers (2.9 GB) took most of the time to a streamed first frame, for a view
         that draws a few hundred thousand. Their contents live one frame, so growing copies nothing; each growth
-        costs an allocation (50-80 ms for hundreds of MB on the H100), hence the doubling."""
+        costs an allocation of tens of milliseconds (BENCHMARKS.md, "Streaming client"), hence the doubling."""
         if splats <= self._work_splats:
             return
         capacity = self.pool.splat_capacity
@@ -524,8 +526,9 @@ class SplatRenderer:
         slots = self.pool.scan_slots
         self._ensure_work(self.pool.drawn_splats)  # cull keeps drawn splats only, compacted
         # Zeroed by a GPU copy, in the command stream: a glBufferSubData from here, while frames still queued read and
-        # count into `params`, took the NVIDIA driver 60-70 ms a frame when frames were issued back to back (no wait
-        # between them) and drew some of them nearly empty (H100); with the copy, 3.3 ms and the right picture.
+        # count into `params`, stalled the NVIDIA driver for several frames' time when frames were issued back to back
+        # (no wait between them) and drew some of them nearly empty; the copy neither stalls nor races (BENCHMARKS.md,
+        # "Figures behind library defaults").
         self.ctx.copy_buffer(self.params, self._zero_params, len(ZERO_PARAMS))
         u = self._cull_uniforms
         for name, value in uniforms.items():
