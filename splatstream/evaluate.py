@@ -11,20 +11,28 @@ import math
 import os
 import platform
 import shutil
+import subprocess
 import tempfile
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from . import __version__
+from .axes import RDF_TO_RUB, turn, turned_against
 from .camera import Camera, scene_orbit_views
+from .encode import EncodeOptions, encode_gaussians
 from .errors import InputError, UsageError
-from .format.presets import PRESETS
+from .format.presets import ATTRIBUTES, PRESETS, resolve_formats
 from .gaussians import Gaussians
-from .io import scene_up
+from .io import read_gaussians, scene_up, sniff_format
 from .metrics import psnr_from_mse, ssim
+from .ply import InfiniteOpacityWarning
+from .render_ref import render
+from .scene_decode import decode_scene
+from .vq import parse_entries
 
 Renderer = Callable[[Gaussians | str, Camera], np.ndarray]
 
@@ -70,8 +78,6 @@ class EvalRenderer:
 
 
 def reference_renderer() -> EvalRenderer:
-    from .render_ref import render
-
     return EvalRenderer(lambda src, cam: render(src, cam), "numpy reference (splatstream.render_ref)", "ref")
 
 
@@ -149,9 +155,6 @@ class Row:
 def parse_variant(spec: str) -> tuple[str, str, dict[str, str], int | None, str | None]:
     """"NAME:PRESET[,ATTRIBUTE=FORMAT...][,sh_degree=D][,sh_codebook=off|auto|N]"
     -> (name, preset, overrides, sh_degree, sh_codebook)."""
-    from .format.presets import ATTRIBUTES, resolve_formats
-    from .vq import parse_entries
-
     name, sep, rest = spec.partition(":")
     parts = [p.strip() for p in rest.split(",") if p.strip()]
     if not sep or not name or not parts:
@@ -205,11 +208,6 @@ def read_compare(path: str) -> tuple[Gaussians, int]:
     Tools that store opacity in 8 bits decode 0 and 255 to logits of -inf and +inf; a renderer reads them as opacity
     0 and 1, and so does our PLY reader (it clamps them to the finite logit +-13.8 and warns with the count).
     """
-    import warnings
-
-    from .io import read_gaussians
-    from .ply import InfiniteOpacityWarning
-
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", InfiniteOpacityWarning)
         g = read_gaussians(path)
@@ -226,11 +224,6 @@ def _spz_axes(other: Gaussians, g: Gaussians, path: str, axes: str) -> tuple[Gau
     """An SPZ compare as `axes` says (EvalOptions.spz_axes); (Gaussians, whether they were turned back). A file
     that reads turned 180 degrees about x against the input (written without SPZ's RUB axis turn) is warned
     about unless it is turned back."""
-    import warnings
-
-    from .axes import RDF_TO_RUB, turn, turned_against
-    from .io import sniff_format
-
     if sniff_format(path) != "spz":
         return other, False
     if axes == "rdf":
@@ -266,11 +259,6 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
     """Run the evaluation; returns the JSON-ready report (see `report_markdown`, `plot_rate_distortion`).
 
     `renderer`: what draws the views (default: the numpy reference renderer)."""
-    from .encode import EncodeOptions, encode_gaussians
-    from .format.presets import PRESETS, resolve_formats
-    from .io import read_gaussians
-    from .scene_decode import decode_scene
-
     opts = opts or EvalOptions()
     log = log or (lambda msg: None)
     for p in list(opts.presets) + list(opts.attribution):
@@ -445,8 +433,6 @@ def preset_for_target(rows: Sequence[dict], target_psnr: float | None = None,
 
 def source_version() -> dict:
     """Commit of the splatstream checkout (and whether it has local changes), so numbers can be tied to code."""
-    import subprocess
-
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     try:
         commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=10,

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import UsageError
+from .f16 import f16_ceil
 from .texformats import get_format
 
 
@@ -79,7 +80,6 @@ def widened_max(lo: np.ndarray, hi: np.ndarray, fmt_name: str, step: TileStep, r
     steps = np.clip(np.divide(extent, size, out=np.zeros_like(extent), where=size > 0), 1.0, fmt_levels)
     wide = lo64 + extent * (fmt_levels / steps)
     if range_dtype == "<f2":
-        from .codec import f16_ceil  # codec imports this module
 
         stored = f16_ceil(wide.astype(np.float32)).astype(np.float64)
     else:

@@ -20,7 +20,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..gaussians import SH_REST_COEFFS, Gaussians, normalize_quaternions
-from . import check_memory, model_bytes_per_splat, opacity_logits_from_unit
+from ..reader_support import check_memory, model_bytes_per_splat, opacity_logits_from_unit
 
 MAGIC = b"NGSP"
 LEGACY_HEADER = struct.Struct("<4sIIBBBB")  # magic, version, numPoints, shDegree, fractionalBits, flags, reserved
