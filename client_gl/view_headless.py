@@ -12,6 +12,10 @@ import sys
 import time
 from dataclasses import dataclass, replace
 
+import numpy as np
+from PIL import Image
+
+from splatstream.atomic import atomic_file
 from splatstream.camera import Camera
 from splatstream.camera_path import CameraPath
 
@@ -47,11 +51,6 @@ def scene_camera(session: StreamingSession, size: tuple[int, int]) -> Camera:
 
 
 def write_png(path: str, image) -> None:
-    import numpy as np
-    from PIL import Image
-
-    from splatstream.atomic import atomic_file
-
     rgb8 = (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
     with atomic_file(path) as f:
         Image.fromarray(rgb8, "RGB").save(f, format="PNG")
@@ -139,8 +138,6 @@ def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
                        "camera_path": run.path is not None, "gl_renderer": ctx.info.get("GL_RENDERER", "?"),
                        "draw": session.renderer.draw_mode if session.renderer.sort_mode == "gpu" else "cpu"})
         if run.record:
-            from splatstream.atomic import atomic_file
-
             with atomic_file(run.record) as f:
                 f.write(json.dumps(report, indent=1).encode())
         return code, report

@@ -17,7 +17,7 @@ GL_EXTRA_HINT = "pip install 'splatstream[view]'"
 
 def gl_client():
     """client_gl.offscreen, or a UsageError saying how to install the GL client."""
-    try:
+    try:  # imported here: the GL client is an optional extra, and its absence is a message, not an ImportError
         from client_gl import offscreen
     except ImportError as exc:
         raise UsageError(f"the GL client is not installed ({exc.name or exc}): {GL_EXTRA_HINT}") from None
@@ -26,7 +26,7 @@ def gl_client():
 
 def gl_renderer() -> EvalRenderer | None:
     """The GL client's headless renderer, if moderngl is installed and a context opens here."""
-    try:
+    try:  # imported here, as in gl_client
         from client_gl import offscreen
     except ImportError:  # the GL extra is not installed: the reference renderer does the job
         return None
