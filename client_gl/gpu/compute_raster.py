@@ -30,10 +30,9 @@ from .shadergen import RADIX_BITS, SCAN_TILE, SORT_TILE
 from .sort import CHAIN_BARRIER, GpuRadixSort
 from .uniforms import ProgramUniforms
 
-TILE_PX = 16  # default tile size (pixels); 8 is a measurement option (RenderOptions.tile_px)
-# Splats per raster loop step: independent evaluations hide latency; 4 was the fastest (BENCHMARKS.md, "Figures
-# behind library defaults").
-UNROLL = 4
+# Tile size in pixels: 16x16 (a work group of 256 threads, eight warps of 8x4 pixels for the per-block lists);
+# 8x8 tiles doubled the entries and made the frame slower (BENCHMARKS.md, "Per-block splat lists in the raster").
+TILE_PX = 16
 MIN_ENTRIES = 1 << 16
 COUNT_EVERY = 4  # binnings between two copies of the entry count for the frame loop's overflow check
 ENTRIES_PER_SPLAT = 4  # initial entry capacity per splat of the pool's capacity
@@ -57,13 +56,11 @@ class ComputeRaster:
     """GPU buffers and programs of the tile rasterizer for one renderer."""
 
     def __init__(self, ctx, color_dtype: str, visible_capacity: int, entry_capacity: int | None = None,
-                 tile_px: int = TILE_PX, unroll: int = UNROLL, warp_cull: bool = True, radix_bits: int = RADIX_BITS,
+                 warp_cull: bool = True, radix_bits: int = RADIX_BITS,
                  fused_sort: bool = True, barrier_bits: int = CHAIN_BARRIER, local_scatter: bool = True):
         self.ctx = ctx
         self.color_dtype = color_dtype
-        self.tile_px = int(tile_px)
-        if self.tile_px not in (8, 16):
-            raise ValueError(f"tile size {tile_px}: 8 or 16 pixels")
+        self.tile_px = TILE_PX
         self.radix_bits = radix_bits
         self.fused_sort = fused_sort
         self.local_scatter = bool(local_scatter)
@@ -76,11 +73,8 @@ class ComputeRaster:
         self.emit_shader = ctx.compute_shader(_source("bin_emit.comp", tile))
         self.ranges_shader = ctx.compute_shader(_source("tile_ranges.comp", tile))
         fmt = IMAGE_FORMATS[color_dtype]
-        if unroll not in (1, 2, 4):
-            raise ValueError(f"unroll {unroll}: 1, 2 or 4")
-        self.unroll = unroll
-        self.warp_cull = bool(warp_cull) and self.tile_px == 16  # the blocks are 8x4 pixels of a 16x16 tile
-        defines = f"{tile}#define UNROLL {unroll}\n#define OUT_FORMAT {fmt}\n"
+        self.warp_cull = bool(warp_cull)
+        defines = f"{tile}#define OUT_FORMAT {fmt}\n"
         if self.warp_cull:
             defines += "#define WARP_CULL\n"
         self.raster_shader = ctx.compute_shader(_source("raster.comp", defines))

@@ -102,9 +102,7 @@ class RenderOptions:
     depth_test: bool = True  # test splats against the framebuffer's depth (opaque geometry drawn first)
     blend: bool = True  # False: blending off (measurement)
     # Compute draw (client_gl/gpu/compute_raster.py):
-    tile_px: int = 16  # 16 or 8 pixel tiles
-    unroll: int = 4  # raster loop unrolled 4, 2 or 1 times
-    # Per 8x4-pixel block splat lists (16-pixel tiles; 8-pixel tiles have none): each warp walks only the splats of
+    # Per 8x4-pixel block splat lists: each warp walks only the splats of
     # the batch whose alpha >= 1/255 box reaches its block, or the whole batch when most do, so a warp skips splats
     # that cannot reach its pixels (figures: BENCHMARKS.md, "Per-block splat lists in the raster"). False: the plain
     # loop, the same image bit for bit (the tests' oracle).
@@ -136,9 +134,6 @@ class RenderOptions:
             raise UsageError(f"unknown draw mode {self.draw!r} (choose one of {', '.join(DRAW_CHOICES)})")
         if self.color_dtype not in COLOR_DTYPES:
             raise UsageError(f"unknown colour type {self.color_dtype!r} (choose one of {', '.join(COLOR_DTYPES)})")
-        if self.tile_px not in (8, 16) or self.unroll not in (1, 2, 4):
-            raise UsageError(f"compute draw: tiles of 8 or 16 pixels, unrolled 1, 2 or 4 times; got {self.tile_px} "
-                             f"and {self.unroll}")
         if self.radix_bits not in RADIX_CHOICES:
             raise UsageError(f"radix sort digits of {self.radix_bits} bits: choose one of {RADIX_CHOICES}")
         if self.tile_radix_bits is not None and self.tile_radix_bits not in RADIX_CHOICES:
@@ -146,8 +141,7 @@ class RenderOptions:
         if self.depth_bits not in DEPTH_BITS_CHOICES:
             raise UsageError(f"depth keys of {self.depth_bits} bits: choose one of {DEPTH_BITS_CHOICES}")
         if self.draw != "compute" and not self.compute_defaults:
-            raise UsageError("tile_px, unroll, warp_cull, full_barriers and tile_radix_bits are options of the compute "
-                             "draw mode")
+            raise UsageError("warp_cull, full_barriers and tile_radix_bits are options of the compute draw mode")
         if self.draw == "compute" and not self.raster_defaults:
             raise UsageError("the compute draw mode takes no raster-draw options (front_to_back, depth_test, blend)")
         if self.front_to_back and (self.sort == "cpu" or self.draw not in ("auto", "fetch", "points")):
@@ -159,8 +153,7 @@ class RenderOptions:
 
     @property
     def compute_defaults(self) -> bool:
-        return (self.tile_px == 16 and self.unroll == 4 and self.warp_cull and not self.full_barriers
-                and self.tile_radix_bits == 7)
+        return self.warp_cull and not self.full_barriers and self.tile_radix_bits == 7
 
 
 def resolve_sort(ctx, options: RenderOptions) -> str:
@@ -353,7 +346,7 @@ class SplatRenderer:
         if mode == "compute":
             if self.craster is None:
                 self.craster = ComputeRaster(self.ctx, opts.color_dtype, self._work_splats,
-                                             tile_px=opts.tile_px, unroll=opts.unroll, warp_cull=opts.warp_cull,
+                                             warp_cull=opts.warp_cull,
                                              radix_bits=opts.tile_radix_bits or opts.radix_bits,
                                              fused_sort=opts.fused_sort, barrier_bits=self._chain_barrier("compute"),
                                              local_scatter=opts.local_scatter)

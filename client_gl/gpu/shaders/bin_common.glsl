@@ -1,4 +1,4 @@
-// Tile binning of the compute rasterizer: the TILE_PX x TILE_PX-pixel tiles (16 by default) a projected splat touches.
+// Tile binning of the compute rasterizer: the TILE_PX x TILE_PX-pixel tiles (16) a projected splat touches.
 // Records are cull.comp's 48-byte records: (center.xy, ndc z, opacity), (conic.xyz, minor), (rgb, axis).
 layout(std430, binding = 2) readonly buffer Records { uvec4 records[]; };
 
