@@ -104,7 +104,6 @@ DRAW_FLAGS = {"f2b": {"front_to_back": True}, "nodepth": {"depth_test": False}, 
               # (BENCHMARKS.md) and gone from the renderer.
               "tr4": {"tile_radix_bits": 4}, "tr5": {"tile_radix_bits": 5}, "tr8": {"tile_radix_bits": 8},
               "dr4": {"radix_bits": 4}, "dr5": {"radix_bits": 5}, "dr6": {"radix_bits": 6}, "dr8": {"radix_bits": 8},
-              "lr": {"local_scatter": True}, "gs": {"local_scatter": False, "radix_bits": 4},
               "d16": {"depth_bits": 16}, "d20": {"depth_bits": 20}, "d32": {"depth_bits": 32}}
 
 

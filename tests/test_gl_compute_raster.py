@@ -316,7 +316,6 @@ def test_work_buffers_fixed_while_tiles_come_and_go(ctx, fruit):
 
 
 DENSE_VARIANTS = [dict(tile_radix_bits=8), dict(tile_radix_bits=4), dict(radix_bits=6, tile_radix_bits=5),
-                  dict(local_scatter=False, radix_bits=4), dict(local_scatter=False),
                   dict(radix_bits=4), dict(radix_bits=8, tile_radix_bits=8), dict(warp_cull=False)]
 
 

@@ -57,13 +57,12 @@ class ComputeRaster:
 
     def __init__(self, ctx, color_dtype: str, visible_capacity: int, entry_capacity: int | None = None,
                  warp_cull: bool = True, radix_bits: int = RADIX_BITS,
-                 fused_sort: bool = True, barrier_bits: int = CHAIN_BARRIER, local_scatter: bool = True):
+                 fused_sort: bool = True, barrier_bits: int = CHAIN_BARRIER):
         self.ctx = ctx
         self.color_dtype = color_dtype
         self.tile_px = TILE_PX
         self.radix_bits = radix_bits
         self.fused_sort = fused_sort
-        self.local_scatter = bool(local_scatter)
         self.barrier_bits = barrier_bits
         tile = f"#define TILE_PX {self.tile_px}\n"
         # Binning (bin_count, bin_emit): row bins with the work group's balanced emit, whose count and emit share
@@ -115,7 +114,7 @@ class ComputeRaster:
                 self.tile_sorter.release()
             self.entry_capacity = int(entry_capacity)
             self.tile_sorter = GpuRadixSort(self.ctx, self.entry_capacity, self.radix_bits, self.fused_sort,
-                                            self.barrier_bits, local_scatter=self.local_scatter)
+                                            self.barrier_bits)
             self.tile_keys = work_buffer(self.ctx, 4 * self.entry_capacity)
             self.tile_values = work_buffer(self.ctx, 4 * self.entry_capacity)
 

@@ -91,8 +91,13 @@ def choose_sort(ctx, mode: str = "auto") -> str:
 
 @dataclass(frozen=True)
 class RenderOptions:
-    """How a SplatRenderer draws, fixed for its lifetime. The defaults are the product's; the rest are measurement
-    options (bench/bench_render.py spells them as draw-mode suffixes such as "fetch+f2b" or "compute+t8")."""
+    """How a SplatRenderer draws, fixed for its lifetime. Product options: sort, draw, color_dtype, depth_test. The
+    others' defaults are the product's, and their other values measurement options that bench/bench_render.py
+    spells as draw-mode suffixes ("fetch+f2b", "compute+nowc"). One measured and left off goes with its code; these
+    stay: the plain raster loop, the per-block lists' oracle in the tests (warp_cull=False), the sort and depth-key
+    widths kept as options after their measurement (radix_bits, tile_radix_bits, depth_bits: BENCHMARKS.md), and
+    switches whose result BENCHMARKS.md does not hold (front_to_back: format_spec/renderer.md 5; blend, fused_sort,
+    full_barriers)."""
 
     sort: str = "auto"  # auto | cpu | gpu (choose_sort)
     draw: str = "auto"  # auto | instanced | triangles | fetch | points | compute (GPU path)
@@ -102,10 +107,10 @@ class RenderOptions:
     depth_test: bool = True  # test splats against the framebuffer's depth (opaque geometry drawn first)
     blend: bool = True  # False: blending off (measurement)
     # Compute draw (client_gl/gpu/compute_raster.py):
-    # Per 8x4-pixel block splat lists: each warp walks only the splats of
-    # the batch whose alpha >= 1/255 box reaches its block, or the whole batch when most do, so a warp skips splats
-    # that cannot reach its pixels (figures: BENCHMARKS.md, "Per-block splat lists in the raster"). False: the plain
-    # loop, the same image bit for bit (the tests' oracle).
+    # Per 8x4-pixel block splat lists: each warp walks only the splats of the batch whose alpha >= 1/255 box reaches
+    # its block, or the whole batch when most do, so a warp skips splats that cannot reach its pixels (figures:
+    # BENCHMARKS.md, "Per-block splat lists in the raster"). False: the plain loop, the same image bit for bit (the
+    # tests' oracle).
     warp_cull: bool = True
     # GPU sort (client_gl/gpu/sort.py), all GPU-path draws:
     # Digit width of the depth sort (RADIX_CHOICES: 4 to 8). 6: four passes over the 24-bit depth keys; with the local
@@ -113,10 +118,6 @@ class RenderOptions:
     # scenes, warm, wall clock").
     radix_bits: int = 6
     fused_sort: bool = True  # 3 dispatches a sort pass (False: the 5 of count, reduce, scan, scan-add, scatter)
-    # Both GPU sorts (depth and tiles): each scatter work group reorders its tile by digit in shared memory and writes
-    # each digit's run in one piece (radix_scatter_local.comp), where the global scatter's threads write up to
-    # 2**bits runs a round: fewer, longer writes (figures: BENCHMARKS.md, "Dense scenes, warm, wall clock").
-    local_scatter: bool = True
     full_barriers: bool = False  # compute draw: glMemoryBarrier(ALL) between dispatches (default: the bits needed)
     # Digit width of the tile sort (None: radix_bits). 7: two passes over 1080p's 13-bit tile ids where 4-bit digits
     # take four (5 and 8 bits slower; BENCHMARKS.md, "Dense scenes, warm, wall clock").
@@ -310,8 +311,7 @@ class SplatRenderer:
         if self.sorter is not None:
             self.sorter.release()
         ctx = self.ctx
-        self.sorter = GpuRadixSort(ctx, n, self.options.radix_bits, self.options.fused_sort,
-                                   local_scatter=self.options.local_scatter)
+        self.sorter = GpuRadixSort(ctx, n, self.options.radix_bits, self.options.fused_sort)
         self.sorter.barrier_bits = self._chain_barrier(self.draw_mode)
         self.keys = work_buffer(ctx, n * 4)
         self.values = work_buffer(ctx, n * 4)
@@ -348,8 +348,7 @@ class SplatRenderer:
                 self.craster = ComputeRaster(self.ctx, opts.color_dtype, self._work_splats,
                                              warp_cull=opts.warp_cull,
                                              radix_bits=opts.tile_radix_bits or opts.radix_bits,
-                                             fused_sort=opts.fused_sort, barrier_bits=self._chain_barrier("compute"),
-                                             local_scatter=opts.local_scatter)
+                                             fused_sort=opts.fused_sort, barrier_bits=self._chain_barrier("compute"))
                 self._bin_checks = BIN_CHECK_FRAMES
             self.draw_mode = mode
             self.program_gpu = self.vao_gpu = None
