@@ -62,7 +62,7 @@ def main() -> None:
     import moderngl
 
     from client_gl.gpu import compute_raster, pool, renderer, sort
-    from client_gl.headless import create_context
+    from client_gl.offscreen import create_context
     from client_gl.stream import engine
     from client_gl.streaming import PreparedSource, StreamingSession, ViewOptions
     from splatstream.camera import Camera

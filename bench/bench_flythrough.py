@@ -176,8 +176,6 @@ def main() -> None:
                          "client_gl.gpu.gl.wait_for_gpu (releases it, as a display's swap does)")
     ap.add_argument("--no-gc-freeze", action="store_true",
                     help="leave the collector walking the session's long-lived objects (the A/B of freeze_long_lived)")
-    ap.add_argument("--work-splats", type=int, default=0,
-                    help="renderer work buffers made for this many drawn splats up front (RenderOptions.work_splats)")
     ap.add_argument("--profile", action="store_true", help="print where the streaming loop's time went (cProfile)")
     args = ap.parse_args()
     if args.gl_release_gil:
@@ -187,10 +185,10 @@ def main() -> None:
 
         gl_entry_points.FUNCTION_TYPE = ctypes.CFUNCTYPE
     from client_gl.gpu.gl import wait_for_gpu
-    from client_gl.headless import HeadlessRenderer, RenderOptions, create_context
+    from client_gl.offscreen import HeadlessRenderer, RenderOptions, create_context
     from client_gl.scene import SceneTiles, load_tile
     from client_gl.streaming import StreamingSession, ViewOptions, freeze_long_lived
-    from splatstream.decoder import read_codebook
+    from splatstream.scene_decode import read_codebook
     from splatstream.store import DirectoryStore
 
     w, h = (int(v) for v in args.size.split("x"))
@@ -203,12 +201,10 @@ def main() -> None:
     try:
         session = StreamingSession.open(url, ctx, ViewOptions(gpu_mem_mb=args.gpu_mem_mb, max_splats=args.max_splats,
                                                               cache=False, decode_workers=args.decode_workers,
-                                                              decode_processes=args.decode_processes,
-                                                              render=RenderOptions(work_splats=args.work_splats)))
+                                                              decode_processes=args.decode_processes))
         if not args.no_gc_freeze:
             freeze_long_lived()
         out["gc_freeze"] = not args.no_gc_freeze
-        out["work_splats"] = args.work_splats
         out["decode_workers"], out["decode_processes"] = args.decode_workers, args.decode_processes
         out["finish_keeps_gil"] = bool(args.finish_keeps_gil)
         if args.switch_interval:

@@ -94,20 +94,16 @@ class Settle:
         return {"frames": len(times), "ms": statistics.median(times[-w:]) * 1e3, "settled": settled}
 
 
-# Measurement flags of a --draw value ("fetch+f2b", "compute+t8+u2", ...) -> RenderOptions fields.
+# Measurement flags of a --draw value ("fetch+f2b", "compute+nowc+tr8", ...) -> RenderOptions fields.
 DRAW_FLAGS = {"f2b": {"front_to_back": True}, "nodepth": {"depth_test": False}, "noblend": {"blend": False},
-              "discard": {"discard_fragments": True}, "t8": {"tile_px": 8}, "u1": {"unroll": 1}, "u2": {"unroll": 2},
               "wc": {"warp_cull": True}, "nowc": {"warp_cull": False}, "r8": {"radix_bits": 8},
               "classic": {"fused_sort": False}, "fb": {"full_barriers": True},
-              # dense-scene variants of the compute draw (RenderOptions; issue 20). Former defaults: nofl (no flush),
-              # tpe (a thread a splat in bin_emit, whole boxes), box (whole boxes, balanced emit), d32 (32-bit depth
-              # keys), tr4 (4-bit tile sort digits).
-              "fl": {"flush": "cull"}, "fls": {"flush": "stages"}, "nofl": {"flush": "none"},
-              "tb": {"tight_bins": True}, "er": {"emit_rects": True}, "tpe": {"balanced_emit": False},
-              "box": {"row_bins": False},
+              # dense-scene variants of the compute draw (RenderOptions; issue 20). Former defaults: d32 (32-bit depth
+              # keys), tr4 (4-bit tile sort digits). The binning and flush variants of that round (fl, fls, nofl, tb,
+              # er, tpe, box), discard, and 8-pixel tiles and shorter unrolls (t8, u1, u2) are measured
+              # (BENCHMARKS.md) and gone from the renderer.
               "tr4": {"tile_radix_bits": 4}, "tr5": {"tile_radix_bits": 5}, "tr8": {"tile_radix_bits": 8},
               "dr4": {"radix_bits": 4}, "dr5": {"radix_bits": 5}, "dr6": {"radix_bits": 6}, "dr8": {"radix_bits": 8},
-              "lr": {"local_scatter": True}, "gs": {"local_scatter": False, "radix_bits": 4},
               "d16": {"depth_bits": 16}, "d20": {"depth_bits": 20}, "d32": {"depth_bits": 32}}
 
 
@@ -140,7 +136,7 @@ def timed_frames(ctx, render, frames: int) -> tuple[list[float], list[float]]:
 
 def bench_gl(ctx, scene, cam: Camera, frames: int, sort: str, color_dtype: str, draw: str = "instanced",
              settle: Settle | None = None) -> dict:
-    from client_gl.headless import HeadlessRenderer
+    from client_gl.offscreen import HeadlessRenderer
 
     r = HeadlessRenderer(render_options(sort, draw, color_dtype), ctx=ctx)
     t = time.perf_counter()
@@ -276,7 +272,7 @@ def psnr(a, b) -> float:
 def check_correctness(ctx, real_dir: str) -> dict:
     """GPU path on this GL vs the numpy reference on a real scene (small image)."""
     from client_gl.gpu.renderer import RenderOptions
-    from client_gl.headless import HeadlessRenderer
+    from client_gl.offscreen import HeadlessRenderer
     from splatstream import render_ref
     from splatstream.camera import suggested_camera
 
@@ -373,10 +369,10 @@ def main() -> int:
     ap.add_argument("--draw", nargs="+", default=["auto"],
                     help="GPU-path draw modes to time: auto, compute, instanced, triangles, fetch, points, optionally "
                          "with measurement flags " + ", ".join("+" + f for f in DRAW_FLAGS) +
-                         " (e.g. fetch+discard, compute+t8); the first is reported")
+                         " (e.g. fetch+f2b, compute+nowc); the first is reported")
     ap.add_argument("--variants", nargs="+", default=[],
                     help="flag sets measured after the first --draw, each as that mode with these flags: "
-                         "'fl tb tb+fls' adds compute+fl, compute+tb and compute+tb+fls when --draw is compute")
+                         "'tr8 d16 tr8+d16' adds compute+tr8, compute+d16 and compute+tr8+d16 when --draw is compute")
     ap.add_argument("--no-cpu-sort", action="store_true", help="skip the CPU-sort path")
     ap.add_argument("--no-sort-random", action="store_true", help="skip the standalone sort of random keys")
     ap.add_argument("--gsplat", action="store_true", help="also time gsplat (CUDA) on the same scene and camera")
@@ -397,7 +393,7 @@ def main() -> int:
             raise SystemExit(f"--draw/--variants {draw}: {exc}") from None
     settle = Settle(args.warmup_min, args.warmup_max, args.settle_window, args.settle_tol, args.warmup_s)
 
-    from client_gl.headless import create_context
+    from client_gl.offscreen import create_context
 
     ctx = create_context()
     info = {k: ctx.info.get(k) for k in ("GL_RENDERER", "GL_VERSION", "GL_VENDOR", "GL_POINT_SIZE_RANGE",
@@ -463,7 +459,7 @@ def main() -> int:
             del scene
         if args.gsplat:
             if gl_image is None:  # the comparison's preset was not measured: render it once
-                from client_gl.headless import HeadlessRenderer
+                from client_gl.offscreen import HeadlessRenderer
 
                 r = HeadlessRenderer(render_options("gpu", args.draw[0], args.color[0]), ctx=ctx)
                 r.load_gaussians(g, args.psnr_preset)

@@ -182,12 +182,12 @@ def fork_server_main() -> None:
     import zstandard  # noqa: F401
 
     import cli.main as cli
-    import splatstream.decoder  # noqa: F401
     import splatstream.encode  # noqa: F401
     import splatstream.io  # noqa: F401
     import splatstream.readers.gltf  # noqa: F401
     import splatstream.readers.sog  # noqa: F401
     import splatstream.readers.spz  # noqa: F401
+    import splatstream.scene_decode  # noqa: F401
 
     print("ready", flush=True)
     for line in sys.stdin:

@@ -117,7 +117,7 @@ def mean_psnr(psnrs: list[float]) -> float:
 
 
 def render_views(source, cameras) -> list[np.ndarray]:
-    from client_gl.headless import render_image
+    from client_gl.offscreen import render_image
 
     return [np.asarray(render_image(source, cam), dtype=np.float32) for cam in cameras]
 
@@ -351,7 +351,7 @@ def view_worker(scene_out: str, n: int, cams_path: str, workdir: str, size: int)
     from cli.commands.args import parse_size
     from cli.main import build_parser
     from client_gl.gpu.gl import wait_for_gpu
-    from client_gl.headless import create_context
+    from client_gl.offscreen import create_context
     from client_gl.streaming import StreamingSession
     from splatstream.camera import Camera
 

@@ -53,7 +53,7 @@ def main() -> None:
     ap.add_argument("--full-detail", action="store_true", help="also PSNR against `splatstream render` of every leaf")
     ap.add_argument("--json", dest="json_out")
     args = ap.parse_args()
-    from client_gl.headless import create_context
+    from client_gl.offscreen import create_context
     from client_gl.streaming import StreamingSession, ViewOptions
 
     w, h = (int(v) for v in args.size.split("x"))

@@ -143,7 +143,7 @@ def main() -> None:
     ap.add_argument("--pool-mb", type=int, default=1024, help="GPU budget of the pool whose first uploads are timed")
     args = ap.parse_args()
     from client_gl.gpu.gl import _address
-    from client_gl.headless import create_context
+    from client_gl.offscreen import create_context
 
     ctx = create_context()
     u, i, p = ctypes.c_uint, ctypes.c_int, ctypes.c_void_p

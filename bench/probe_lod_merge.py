@@ -276,7 +276,7 @@ def _pair_merge(g: Gaussians, mass: np.ndarray, target: int):
 
 def main() -> None:
     global MERGE_COST, MERGE_COLOUR_WEIGHT, MERGE_IN_CELLS, MERGE_CELL_FACTOR
-    from client_gl.headless import render_image
+    from client_gl.offscreen import render_image
     from splatstream.camera import scene_orbit_views
     from splatstream.io import read_gaussians
     from splatstream.metrics import psnr_from_mse

@@ -133,7 +133,7 @@ def install_counters() -> collections.Counter:
 
 
 def load(args):
-    from client_gl.headless import HeadlessRenderer, create_context
+    from client_gl.offscreen import HeadlessRenderer, create_context
     from splatstream.camera import suggested_camera
     from splatstream.io import read_gaussians
 

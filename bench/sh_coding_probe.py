@@ -118,8 +118,8 @@ def main() -> None:
     ap.add_argument("--compare", nargs="*", default=[])
     ap.add_argument("--keep", action="store_true", help="keep the encoded scenes under OUT/enc")
     args = ap.parse_intermixed_args()
-    from splatstream.decoder import decode_scene
     from splatstream.encode import EncodeOptions, encode_gaussians
+    from splatstream.scene_decode import decode_scene
 
     os.makedirs(args.out, exist_ok=True)
     g = read_gaussians(args.scene)

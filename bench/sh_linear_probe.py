@@ -94,8 +94,8 @@ def blend(pix, idx, w, colour, npix) -> np.ndarray:
 
 def decoded_sh_in_input_order(g, label: str, preset: str, extra: dict, up) -> tuple[np.ndarray, float, dict]:
     """SH rest of the decoded scene, matched back to the input's splat order by exact position; SH bytes/splat."""
-    from splatstream.decoder import decode_scene
     from splatstream.encode import EncodeOptions, encode_gaussians
+    from splatstream.scene_decode import decode_scene
 
     extra = {**extra, "overrides": {**extra["overrides"], **LOSSLESS}}
     name = register(label, preset, extra)

@@ -14,9 +14,9 @@ from splatstream import __version__
 from splatstream.errors import SplatstreamError
 
 # One BLAS thread per thread of ours, unless the environment says otherwise (numpy is not imported yet here). The
-# encoder runs its own worker threads, and OpenBLAS's threads on top of them oversubscribed the cores: with the LOD
-# tree on flowers (542k splats, 2 cores) medium-low took 33.8 s of CPU with OpenBLAS's default threads and 11.0 s
-# with one (low 23.7 -> 9.7 s, medium 6.0 -> 6.1 s; issue 32). Library callers can do the same (threadpoolctl).
+# encoder runs its own worker threads, and OpenBLAS's threads on top of them oversubscribed the cores, tripling the
+# CPU time of an LOD encode (issue 32; BENCHMARKS.md, "Encode time with the LOD tree"). Library callers can do the
+# same (threadpoolctl).
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 

@@ -3,9 +3,9 @@ and finished frames handed to the window with a fence.
 
 Why: a window's swap can take as long as a frame. On the GPU machine's virtual display (Xvfb with the NVIDIA GLX
 library) it copies every frame to the X server on the CPU and waits for all the work queued in its context, so in
-one context the frame and the swap add up (6.2-6.8 ms against 3.5 ms headless for the 6M scene). In two contexts on
-two threads, the window shows and swaps frame N while this thread draws frame N+1 (bench/probe_window_overlap.py:
-4.61 ms a frame against 6.59 in one context, for a 3.74 ms frame; BENCHMARKS.md).
+one context the frame and the swap add up. In two contexts on two threads, the window shows and swaps frame N while
+this thread draws frame N+1, so they overlap (bench/probe_window_overlap.py; figures in BENCHMARKS.md, "Streaming
+client").
 
 The window's thread (main) calls submit(camera) once per frame, take() for the frame drawn from the camera before,
 waits for it on the GPU (gpu.gl.gpu_wait: glWaitSync, the CPU does not wait), draws it, swaps, and hands a fence back

@@ -11,12 +11,12 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from splatstream.camera import Camera
-from splatstream.decoder import read_codebook
 from splatstream.encode import EncodeOptions, encode_in_memory
 from splatstream.format.codec import EncodedPlane
 from splatstream.format.decode import codebook_index, decode_payload, tile_groups_for
 from splatstream.format.manifest import Manifest, TileEntry
 from splatstream.gaussians import Gaussians
+from splatstream.scene_decode import read_codebook
 from splatstream.store import SceneStore, open_store, read_manifest
 
 from .gpu.residency_layout import CHUNK, CodebookLayout

@@ -12,6 +12,10 @@ import sys
 import time
 from dataclasses import dataclass, replace
 
+import numpy as np
+from PIL import Image
+
+from splatstream.atomic import atomic_file
 from splatstream.camera import Camera
 from splatstream.camera_path import CameraPath
 
@@ -47,14 +51,37 @@ def scene_camera(session: StreamingSession, size: tuple[int, int]) -> Camera:
 
 
 def write_png(path: str, image) -> None:
-    import numpy as np
-    from PIL import Image
-
-    from splatstream.atomic import atomic_file
-
     rgb8 = (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
     with atomic_file(path) as f:
         Image.fromarray(rgb8, "RGB").save(f, format="PNG")
+
+
+def _status_line(rec, downloaded: int) -> str:
+    """The progress line of one frame record (FrameRecord)."""
+    return (f"view: {rec.t:6.2f}s  {downloaded / 1e6:8.2f} MB  {rec.drawn_splats:>10,} drawn  "
+            f"{rec.resident_tiles:>4} tile{'' if rec.resident_tiles == 1 else 's'}  "
+            f"{rec.in_flight:>3} in flight  "
+            f"{'converged' if rec.converged else 'streaming'}")
+
+
+def _measure_frames(session: StreamingSession, ctx, cam: Camera, sh_degree: int | None,
+                    frames: int) -> tuple[list[float], float | None]:
+    """`frames` frames timed one by one (GPU work included: glFinish after each), then as many back to back, as a
+    running viewer draws them (the GPU's work of one frame overlaps the CPU's of the next): (ms per frame, mean ms
+    back to back, None when no frame was asked for)."""
+    measured = []
+    for _ in range(frames):
+        t = time.perf_counter()
+        session.frame(cam, sh_degree=sh_degree)
+        ctx.finish()
+        measured.append((time.perf_counter() - t) * 1e3)
+    if not measured:
+        return measured, None
+    t = time.perf_counter()
+    for _ in range(frames):
+        session.frame(cam, sh_degree=sh_degree)
+    ctx.finish()
+    return measured, (time.perf_counter() - t) * 1e3 / frames
 
 
 def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
@@ -91,11 +118,7 @@ def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
             done = path_done and (session.converged or not run.until_converged)
             if time.perf_counter() - last_line > 0.25 or done:
                 last_line = time.perf_counter()
-                stats = session.fetcher.stats()
-                line = (f"view: {rec.t:6.2f}s  {stats.bytes_downloaded / 1e6:8.2f} MB  {rec.drawn_splats:>10,} drawn  "
-                        f"{rec.resident_tiles:>4} tile{'' if rec.resident_tiles == 1 else 's'}  "
-                        f"{rec.in_flight:>3} in flight  "
-                        f"{'converged' if rec.converged else 'streaming'}")
+                line = _status_line(rec, session.fetcher.stats().bytes_downloaded)
                 if tty:
                     sys.stderr.write("\r" + line + ("\n" if done else ""))
                     sys.stderr.flush()
@@ -114,19 +137,8 @@ def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
                 break
             if not rec.uploaded_bytes:
                 session.wait(0.005)  # nothing arrived: wait for a decode instead of spinning
-        measured = []
-        for _ in range(run.measure_frames if code == EXIT_OK else 0):
-            t = time.perf_counter()
-            session.frame(cam, sh_degree=run.sh_degree)
-            ctx.finish()
-            measured.append((time.perf_counter() - t) * 1e3)
-        back_to_back = None
-        if measured:  # as a running viewer draws them: the GPU's work of one frame overlaps the CPU's of the next
-            t = time.perf_counter()
-            for _ in range(run.measure_frames):
-                session.frame(cam, sh_degree=run.sh_degree)
-            ctx.finish()
-            back_to_back = (time.perf_counter() - t) * 1e3 / run.measure_frames
+        measured, back_to_back = _measure_frames(session, ctx, cam, run.sh_degree,
+                                                 run.measure_frames if code == EXIT_OK else 0)
         if run.screenshot:
             write_png(run.screenshot, session.read_image())
             say(f"view: wrote {run.screenshot}")
@@ -139,8 +151,6 @@ def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
                        "camera_path": run.path is not None, "gl_renderer": ctx.info.get("GL_RENDERER", "?"),
                        "draw": session.renderer.draw_mode if session.renderer.sort_mode == "gpu" else "cpu"})
         if run.record:
-            from splatstream.atomic import atomic_file
-
             with atomic_file(run.record) as f:
                 f.write(json.dumps(report, indent=1).encode())
         return code, report

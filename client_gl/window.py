@@ -19,6 +19,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from splatstream.atomic import atomic_file
 from splatstream.camera import Camera
 from splatstream.camera_path import CameraPath
 from splatstream.errors import SplatstreamError, UsageError
@@ -27,6 +28,7 @@ from .camera_control import CameraController, state_from_camera
 from .gpu.gl import fence, gpu_wait
 from .render_thread import WAIT_S, Frame, RenderThread
 from .streaming import PreparedSource, StreamingSession, ViewOptions, freeze_long_lived
+from .view_headless import write_png
 
 EXIT_OK = 0
 EXIT_NOT_CONVERGED = 1
@@ -111,7 +113,8 @@ def open_window(size: tuple[int, int], vsync: bool, title: str):
     settings.WINDOW.update({"class": "moderngl_window.context.glfw.Window", "size": size, "title": title,
                             "vsync": vsync, "resizable": True, "aspect_ratio": None, "samples": 0})
     # Ask for 4.3 first: a driver may hand out exactly the version asked for, and below 4.3 there are no compute
-    # shaders, so the frame would take the CPU sort (about 380 ms at 2M splats on the GPU machine's window).
+    # shaders, so the frame would take the CPU sort, far too slow for a window (BENCHMARKS.md, "Figures behind
+    # library defaults").
     # 4.1 is the floor (macOS).
     error: Exception | None = None
     for version in ((4, 3), (4, 1)):
@@ -496,8 +499,6 @@ class Viewer:
     # --- output ---------------------------------------------------------------------------------------------------
     def screenshot(self, path: str | None = None) -> str | None:
         """P: the renderer's framebuffer (full resolution, no overlay) as a PNG; prints the path and the camera."""
-        from .view_headless import write_png
-
         if self.session is None:
             return None
         path = path or self.run.screenshot or os.path.abspath(time.strftime("splatstream-%Y%m%d-%H%M%S.png"))
@@ -593,8 +594,6 @@ class Viewer:
     def write_record(self) -> None:
         if not self.run.record or self.session is None:
             return
-        from splatstream.atomic import atomic_file
-
         report = self.session.metrics.to_json(self.session.fetcher.stats())
         report.update({"source": self.run.source, "window": True, "window_backend": self.wnd.name,
                        "size": list(self.wnd.buffer_size),

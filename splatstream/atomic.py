@@ -24,6 +24,8 @@ import tempfile
 from collections.abc import Iterator
 from typing import BinaryIO
 
+from .errors import UsageError
+
 _AT_FDCWD = -100
 _RENAME_EXCHANGE = 2
 
@@ -99,8 +101,6 @@ def remove_stale_temporaries(path: str | os.PathLike) -> list[str]:
 def check_output(path: str | os.PathLike, directory: bool = False) -> None:
     """Fail now, before a long computation, if `path` cannot be written the way atomic_file / atomic_directory will
     write it (a missing or unwritable parent, a file where a scene directory goes, or the reverse)."""
-    from .errors import UsageError
-
     given = os.fspath(path)
     path = os.path.abspath(given)
     parent = os.path.dirname(path)
@@ -124,19 +124,13 @@ def atomic_file(path: str | os.PathLike) -> Iterator[BinaryIO]:
     path = os.fspath(path)
     directory = os.path.dirname(os.path.abspath(path))
     if not os.path.isdir(directory):
-        from .errors import UsageError
-
         raise UsageError(f"{path}: the output directory {directory} does not exist")
     if os.path.isdir(path):
-        from .errors import UsageError
-
         raise UsageError(f"{path}: is a directory, expected a file name")
     remove_stale_temporaries(path)
     try:
         fd, tmp = tempfile.mkstemp(prefix=_temp_prefix(path), suffix=".tmp", dir=directory)
     except OSError as exc:
-        from .errors import UsageError
-
         raise UsageError(f"{path}: cannot write in {directory} ({exc.strerror})") from None
     try:
         _lock(fd)
@@ -167,8 +161,6 @@ def _exchange(a: str, b: str) -> bool:
 @contextlib.contextmanager
 def atomic_directory(path: str | os.PathLike) -> Iterator[str]:
     """Yield a temporary directory next to `path`; on success it replaces `path` in one step."""
-    from .errors import UsageError
-
     given = os.fspath(path)
     path = os.path.abspath(given)
     parent = os.path.dirname(path)

@@ -11,20 +11,28 @@ import math
 import os
 import platform
 import shutil
+import subprocess
 import tempfile
 import time
+import warnings
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
 
 from . import __version__
+from .axes import RDF_TO_RUB, turn, turned_against
 from .camera import Camera, scene_orbit_views
+from .encode import EncodeOptions, encode_gaussians
 from .errors import InputError, UsageError
-from .format.presets import PRESETS
+from .format.presets import ATTRIBUTES, PRESETS, resolve_formats
 from .gaussians import Gaussians
-from .io import scene_up
+from .io import read_gaussians, scene_up, sniff_format
 from .metrics import psnr_from_mse, ssim
+from .ply import InfiniteOpacityWarning
+from .render_ref import render
+from .scene_decode import decode_scene
+from .vq import parse_entries
 
 Renderer = Callable[[Gaussians | str, Camera], np.ndarray]
 
@@ -70,8 +78,6 @@ class EvalRenderer:
 
 
 def reference_renderer() -> EvalRenderer:
-    from .render_ref import render
-
     return EvalRenderer(lambda src, cam: render(src, cam), "numpy reference (splatstream.render_ref)", "ref")
 
 
@@ -149,9 +155,6 @@ class Row:
 def parse_variant(spec: str) -> tuple[str, str, dict[str, str], int | None, str | None]:
     """"NAME:PRESET[,ATTRIBUTE=FORMAT...][,sh_degree=D][,sh_codebook=off|auto|N]"
     -> (name, preset, overrides, sh_degree, sh_codebook)."""
-    from .format.presets import ATTRIBUTES, resolve_formats
-    from .vq import parse_entries
-
     name, sep, rest = spec.partition(":")
     parts = [p.strip() for p in rest.split(",") if p.strip()]
     if not sep or not name or not parts:
@@ -205,11 +208,6 @@ def read_compare(path: str) -> tuple[Gaussians, int]:
     Tools that store opacity in 8 bits decode 0 and 255 to logits of -inf and +inf; a renderer reads them as opacity
     0 and 1, and so does our PLY reader (it clamps them to the finite logit +-13.8 and warns with the count).
     """
-    import warnings
-
-    from .io import read_gaussians
-    from .ply import InfiniteOpacityWarning
-
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", InfiniteOpacityWarning)
         g = read_gaussians(path)
@@ -226,11 +224,6 @@ def _spz_axes(other: Gaussians, g: Gaussians, path: str, axes: str) -> tuple[Gau
     """An SPZ compare as `axes` says (EvalOptions.spz_axes); (Gaussians, whether they were turned back). A file
     that reads turned 180 degrees about x against the input (written without SPZ's RUB axis turn) is warned
     about unless it is turned back."""
-    import warnings
-
-    from .axes import RDF_TO_RUB, turn, turned_against
-    from .io import sniff_format
-
     if sniff_format(path) != "spz":
         return other, False
     if axes == "rdf":
@@ -266,23 +259,9 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
     """Run the evaluation; returns the JSON-ready report (see `report_markdown`, `plot_rate_distortion`).
 
     `renderer`: what draws the views (default: the numpy reference renderer)."""
-    from .decoder import decode_scene
-    from .encode import EncodeOptions, encode_gaussians
-    from .format.presets import PRESETS, resolve_formats
-    from .io import read_gaussians
-
     opts = opts or EvalOptions()
     log = log or (lambda msg: None)
-    for p in list(opts.presets) + list(opts.attribution):
-        resolve_formats(p, {})  # UsageError for unknown presets, before any work
-    if opts.views < 1:
-        raise UsageError("--views must be at least 1")
-    if opts.width < 11 or opts.height < 11:
-        raise UsageError("--size must be at least 11x11 (the SSIM window)")
-    compares = [parse_compare(c) for c in opts.compare]
-    variants = [parse_variant(v) for v in opts.variants]
-    for _, path, _ in compares:  # fail before the (long) preset runs, not after them
-        read_compare(path)
+    compares, variants = _checked_runs(opts)
     input_path = os.fspath(input_path)
     input_size = os.path.getsize(input_path)
     t = time.perf_counter()
@@ -343,39 +322,68 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
         for name, preset, overrides, sh_degree, sh_codebook in variants:
             rows.append(encode_and_measure(name, "variant", preset, overrides, sh_degree, sh_codebook))
         for preset in opts.attribution:
-            formats = PRESETS[preset]
-            for attr, fmt in formats.items():
-                if attr == "sh" and g.sh_degree == 0:
-                    continue
-                if fmt != LOSSLESS_FORMAT:
-                    # Lossless SH means no codebook either.
-                    rows.append(encode_and_measure(f"{preset} {attr}={LOSSLESS_FORMAT}", "attribution", preset,
-                                                   {attr: LOSSLESS_FORMAT},
-                                                   sh_codebook="off" if attr == "sh" else None))
-            for attr, fmt in formats.items():
-                if attr == "sh" and g.sh_degree == 0:
-                    continue
-                if fmt != LOSSLESS_FORMAT:
-                    lossless_rest = {a: LOSSLESS_FORMAT for a in formats if a != attr}
-                    rows.append(encode_and_measure(f"{preset} only {attr}", "attribution", preset, lossless_rest))
+            for label, overrides, sh_codebook in _attribution_runs(preset, g.sh_degree):
+                rows.append(encode_and_measure(label, "attribution", preset, overrides, sh_codebook=sh_codebook))
         for label, path, size_path in compares:
-            other, clamped = read_compare(path)
-            if clamped:
-                log(f"{label}: {clamped} opacity logits of +-inf (8-bit opacity 0 or 1) read as +-13.8")
-            other, spz_turned = _spz_axes(other, g, path, opts.spz_axes)
-            ps, ss, _ = _quality(renderer, other, cameras, references)
-            size = path_size(size_path)
-            row = Row(label, "compare", {}, len(other), None, size, size / max(1, len(other)), input_size / size,
-                      ps, ss, None, {"file": path, "size_of": size_path, "opacity_logits_clamped": clamped,
-                                     "spz_turned_back": spz_turned})
-            log(f"{label:>28}: {row.disk_bytes_per_splat:7.2f} B/splat disk, PSNR {row.psnr_mean:6.2f} dB "
-                f"(worst {row.psnr_worst:6.2f}), SSIM {row.ssim_mean:.5f}")
-            rows.append(row)
+            rows.append(_compare_row(label, path, size_path, g, input_size, opts.spz_axes, renderer, cameras,
+                                     references, log))
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
 
-    report = {
+    return _report(input_path, input_size, g, opts, up, cameras, renderer_name, renderer_kind, render_s, coverage,
+                   rows)
+
+
+def _checked_runs(opts: EvalOptions) -> tuple[list, list]:
+    """The --compare and --variant runs of `opts`, parsed; every option checked (presets, views, size, the compared
+    files readable) before any work, so a mistake fails at once, not after the long preset runs."""
+    for p in list(opts.presets) + list(opts.attribution):
+        resolve_formats(p, {})  # UsageError for unknown presets
+    if opts.views < 1:
+        raise UsageError("--views must be at least 1")
+    if opts.width < 11 or opts.height < 11:
+        raise UsageError("--size must be at least 11x11 (the SSIM window)")
+    compares = [parse_compare(c) for c in opts.compare]
+    variants = [parse_variant(v) for v in opts.variants]
+    for _, path, _ in compares:
+        read_compare(path)
+    return compares, variants
+
+
+def _attribution_runs(preset: str, sh_degree: int) -> list[tuple[str, dict[str, str], str | None]]:
+    """(label, overrides, sh_codebook) of a preset's attribution rows: each lossy attribute made lossless alone,
+    then each lossy attribute kept alone with the others lossless (SH skipped for SH0 scenes)."""
+    formats = PRESETS[preset]
+    lossy = [a for a, fmt in formats.items() if fmt != LOSSLESS_FORMAT and not (a == "sh" and sh_degree == 0)]
+    # Lossless SH means no codebook either.
+    runs = [(f"{preset} {a}={LOSSLESS_FORMAT}", {a: LOSSLESS_FORMAT}, "off" if a == "sh" else None) for a in lossy]
+    runs += [(f"{preset} only {a}", {b: LOSSLESS_FORMAT for b in formats if b != a}, None) for a in lossy]
+    return runs
+
+
+def _compare_row(label: str, path: str, size_path: str, g: Gaussians, input_size: int, spz_axes: str,
+                 renderer: Renderer, cameras: list[Camera], references: list[np.ndarray],
+                 log: Callable[[str], None]) -> Row:
+    """The row of another tool's output (--compare): read, turned back if its SPZ axes differ, measured."""
+    other, clamped = read_compare(path)
+    if clamped:
+        log(f"{label}: {clamped} opacity logits of +-inf (8-bit opacity 0 or 1) read as +-13.8")
+    other, spz_turned = _spz_axes(other, g, path, spz_axes)
+    ps, ss, _ = _quality(renderer, other, cameras, references)
+    size = path_size(size_path)
+    row = Row(label, "compare", {}, len(other), None, size, size / max(1, len(other)), input_size / size,
+              ps, ss, None, {"file": path, "size_of": size_path, "opacity_logits_clamped": clamped,
+                             "spz_turned_back": spz_turned})
+    log(f"{label:>28}: {row.disk_bytes_per_splat:7.2f} B/splat disk, PSNR {row.psnr_mean:6.2f} dB "
+        f"(worst {row.psnr_worst:6.2f}), SSIM {row.ssim_mean:.5f}")
+    return row
+
+
+def _report(input_path: str, input_size: int, g: Gaussians, opts: EvalOptions, up, cameras: list[Camera],
+            renderer_name: str, renderer_kind: str, render_s: float, coverage: float, rows: list[Row]) -> dict:
+    """The JSON-ready report of an evaluation."""
+    return {
         "tool": f"splatstream {__version__} eval",
         "source": source_version(),
         "input": {"path": input_path, "bytes": input_size, "splats": len(g), "sh_degree": g.sh_degree,
@@ -384,7 +392,7 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
         "renderer_note": ("GL: originals and --compare inputs are uploaded as very-high (f32x4) textures, encoded "
                           "scenes are drawn from their own textures" if renderer_kind == "gl" else
                           "numpy reference of the 3DGS forward pass (format_spec/camera.md); encoded scenes decoded "
-                          "with splatstream.decoder"),
+                          "with splatstream.scene_decode"),
         "render_seconds_per_view": round(render_s, 4),
         "reference_coverage": round(coverage, 4),
         "size": [opts.width, opts.height],
@@ -408,7 +416,6 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
             "presets": {p: {"bytes_per_splat": round(seed_bytes_per_splat(p, g.sh_degree), 2),
                             "psnr": SEED[p]["psnr"], "formats": SEED[p]["formats"]} for p in SEED}},
     }
-    return report
 
 
 def preset_for_target(rows: Sequence[dict], target_psnr: float | None = None,
@@ -445,8 +452,6 @@ def preset_for_target(rows: Sequence[dict], target_psnr: float | None = None,
 
 def source_version() -> dict:
     """Commit of the splatstream checkout (and whether it has local changes), so numbers can be tied to code."""
-    import subprocess
-
     root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
     try:
         commit = subprocess.run(["git", "rev-parse", "HEAD"], cwd=root, capture_output=True, text=True, timeout=10,
@@ -606,7 +611,48 @@ def plot_rate_distortion(report: dict, path: str, size: tuple[int, int] = (900, 
     def py(y: float) -> float:
         return bottom - (y - y0) / (y1 - y0) * (bottom - top)
 
-    # grid and ticks
+    _plot_frame(d, font, (left, right, top, bottom), (x0, x1, y0, y1), px, py)
+    if any(r["psnr_mean"] is None for r in rows):
+        d.line([(left, py(lossless_y)), (right, py(lossless_y))], fill=(200, 200, 255))
+        d.text((left + 4, py(lossless_y) - 18), "identical to the original (PSNR = inf)", fill=(120, 120, 200),
+               font=font)
+    d.rectangle([left, top, right, bottom], outline="black")
+    d.text(((left + right) / 2 - 110, h - 30), "bytes per splat on disk (log scale)", fill="black", font=font)
+    d.text((left - 70, top - 30), "PSNR (dB), mean over views", fill="black", font=font)
+    inp = report["input"]
+    title = f"{os.path.basename(inp['path'])}: {inp['splats']:,} splats, SH{inp['sh_degree']}"
+    d.text(((left + right) / 2 - d.textlength(title, font=font) / 2, 12), title, fill="black", font=font)
+
+    ly = top
+    markers: list[Box] = []
+    marker_colours: list[tuple[int, int, int]] = []
+    labels: list[tuple[tuple[float, float], str, tuple[int, int, int]]] = []
+    for name, pts, colour, connect in _plot_series(rows):
+        coords = [(px(r["disk_bytes_per_splat"]), py(r["psnr_mean"] if r["psnr_mean"] is not None else lossless_y))
+                  for r in pts]
+        if connect and len(coords) > 1:
+            d.line(coords, fill=colour, width=2)
+        for (cx, cy), r in zip(coords, pts, strict=True):
+            d.ellipse([cx - 5, cy - 5, cx + 5, cy + 5], fill=colour, outline="black")
+            markers.append((cx - 5, cy - 5, cx + 5, cy + 5))
+            marker_colours.append(colour)
+            if connect or r["kind"] == "variant":
+                labels.append(((cx, cy), r["label"], (90, 90, 90) if r["kind"] == "variant" else colour))
+        d.ellipse([right + 15, ly + 3, right + 25, ly + 13], fill=colour, outline="black")
+        d.text((right + 32, ly), name[:24], fill="black", font=font)
+        ly += 22
+    boxes = _draw_labels(d, font, labels, markers, (left + 2, top + 2, right - 2, bottom - 2))
+    for box, colour in zip(markers, marker_colours, strict=True):  # the points again, over the leader lines
+        d.ellipse(list(box), fill=colour, outline="black")
+    img.save(path)
+    return boxes
+
+
+def _plot_frame(d, font, area: tuple[float, float, float, float], limits: tuple[float, float, float, float],
+                px: Callable[[float], float], py: Callable[[float], float]) -> None:
+    """Grid, ticks and their labels (log x: 1, 2, 5 per decade; y every 5 or 10 dB)."""
+    left, right, top, bottom = area
+    x0, x1, y0, y1 = limits
     for dec in range(int(round(math.log10(x0))), int(round(math.log10(x1))) + 1):
         for m in (1, 2, 5):
             x = m * 10.0 ** dec
@@ -625,17 +671,10 @@ def plot_rate_distortion(report: dict, path: str, size: tuple[int, int] = (900, 
         label = f"{y:g}"
         d.text((left - 10 - d.textlength(label, font=font), yp - 8), label, fill="black", font=font)
         y += step
-    if any(r["psnr_mean"] is None for r in rows):
-        d.line([(left, py(lossless_y)), (right, py(lossless_y))], fill=(200, 200, 255))
-        d.text((left + 4, py(lossless_y) - 18), "identical to the original (PSNR = inf)", fill=(120, 120, 200),
-               font=font)
-    d.rectangle([left, top, right, bottom], outline="black")
-    d.text(((left + right) / 2 - 110, h - 30), "bytes per splat on disk (log scale)", fill="black", font=font)
-    d.text((left - 70, top - 30), "PSNR (dB), mean over views", fill="black", font=font)
-    inp = report["input"]
-    title = f"{os.path.basename(inp['path'])}: {inp['splats']:,} splats, SH{inp['sh_degree']}"
-    d.text(((left + right) / 2 - d.textlength(title, font=font) / 2, 12), title, fill="black", font=font)
 
+
+def _plot_series(rows: list[dict]) -> list[tuple[str, list[dict], tuple[int, int, int], bool]]:
+    """(legend name, rows, colour, joined by a line) of each series: the presets, each compared file, the variants."""
     palette = [(220, 50, 47), (38, 139, 210), (133, 153, 0), (211, 54, 130), (181, 137, 0), (42, 161, 152),
                (108, 113, 196), (203, 75, 22)]
     series: list[tuple[str, list[dict], tuple[int, int, int], bool]] = []
@@ -647,24 +686,13 @@ def plot_rate_distortion(report: dict, path: str, size: tuple[int, int] = (900, 
     variants = [r for r in rows if r["kind"] == "variant"]
     if variants:
         series.append(("splatstream variants", variants, (150, 150, 150), False))
-    ly = top
-    markers: list[Box] = []
-    marker_colours: list[tuple[int, int, int]] = []
-    labels: list[tuple[tuple[float, float], str, tuple[int, int, int]]] = []
-    for name, pts, colour, connect in series:
-        coords = [(px(r["disk_bytes_per_splat"]), py(r["psnr_mean"] if r["psnr_mean"] is not None else lossless_y))
-                  for r in pts]
-        if connect and len(coords) > 1:
-            d.line(coords, fill=colour, width=2)
-        for (cx, cy), r in zip(coords, pts, strict=True):
-            d.ellipse([cx - 5, cy - 5, cx + 5, cy + 5], fill=colour, outline="black")
-            markers.append((cx - 5, cy - 5, cx + 5, cy + 5))
-            marker_colours.append(colour)
-            if connect or r["kind"] == "variant":
-                labels.append(((cx, cy), r["label"], (90, 90, 90) if r["kind"] == "variant" else colour))
-        d.ellipse([right + 15, ly + 3, right + 25, ly + 13], fill=colour, outline="black")
-        d.text((right + 32, ly), name[:24], fill="black", font=font)
-        ly += 22
+    return series
+
+
+def _draw_labels(d, font, labels: list[tuple[tuple[float, float], str, tuple[int, int, int]]], markers: list[Box],
+                 area: Box) -> list[Box]:
+    """Draw the point labels where place_labels puts them (a grey leader line to a label set apart from its point,
+    or near other points); their boxes, in the order of `labels`."""
     # labels top to bottom, then left to right: the crowded corners are filled in a stable order
     order = sorted(range(len(labels)), key=lambda i: (labels[i][0][1], labels[i][0][0]))
     sizes = []
@@ -673,7 +701,7 @@ def plot_rate_distortion(report: dict, path: str, size: tuple[int, int] = (900, 
         sizes.append((x1 - x0 + 2, y1 - y0 + 4))
     anchors = [labels[i][0] for i in order]
     crowded = [sum(math.dist(a, (m[0] + 5, m[1] + 5)) < 24 for m in markers) > 1 for a in anchors]
-    boxes = place_labels(anchors, sizes, (left + 2, top + 2, right - 2, bottom - 2), markers, crowded)
+    boxes = place_labels(anchors, sizes, area, markers, crowded)
     for i, box, near in zip(order, boxes, crowded, strict=True):
         anchor, text, colour = labels[i]
         end = _leader_end(anchor, box)
@@ -681,9 +709,6 @@ def plot_rate_distortion(report: dict, path: str, size: tuple[int, int] = (900, 
             d.line([anchor, end], fill=(150, 150, 150), width=1)
         x0, y0, _, _ = d.textbbox((0, 0), text, font=font)
         d.text((box[0] + 1 - x0, box[1] + 2 - y0), text, fill=colour, font=font)
-    for box, colour in zip(markers, marker_colours, strict=True):  # the points again, over the leader lines
-        d.ellipse(list(box), fill=colour, outline="black")
-    img.save(path)
     return [boxes[order.index(i)] for i in range(len(labels))]
 
 

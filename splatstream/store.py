@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from typing import BinaryIO, Protocol
 
 from .atomic import atomic_directory
-from .errors import FormatError, InputError
+from .errors import FormatError, InputError, UsageError
 from .format.manifest import MAX_MANIFEST_BYTES, Manifest, PayloadEntry, pack_manifest, parse_manifest
 from .format.names import DATA_DIR, MANIFEST_NAME, is_payload_path
 
@@ -128,10 +128,8 @@ def local_path(location: str | os.PathLike) -> str:
 
 def _fsspec(url: str):
     """(filesystem, root path) of an fsspec URL; fsspec is optional (`pip install 'splatstream[cluster]'`)."""
-    from .errors import UsageError
-
     try:
-        import fsspec
+        import fsspec  # an optional extra, imported only for URLs
     except ImportError:
         raise UsageError(f"{url}: object-store and fsspec URLs need fsspec "
                          "(pip install 'splatstream[cluster]', plus s3fs or gcsfs for s3:// or gs://)") from None

@@ -28,7 +28,6 @@ import numpy as np
 
 from .atomic import atomic_directory, check_output
 from .axes import RDF_TO_LUF, turn
-from .decoder import decode_tile, read_codebook
 from .errors import FormatError, UsageError
 from .format.decode import decode_planes
 from .format.manifest import Manifest
@@ -36,6 +35,7 @@ from .format.names import TILESET_CONTENT_DIR, TILESET_NAME, tileset_content_nam
 from .gaussians import Gaussians, covariances, normalize_quaternions
 from .readers.gltf import sh_rotation
 from .readers.spz import decode_spz
+from .scene_decode import decode_tile, read_codebook
 from .store import SceneStore, open_store, read_manifest
 from .writers.glb import DEFAULT_SPZ_VERSION, glb_bytes
 

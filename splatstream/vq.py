@@ -31,9 +31,9 @@ DISTANCE_BLOCK_BYTES = 16 << 20
 FLAT_LIMIT = 1 << 27
 
 
-# "fine" sizes the codebook to about one entry per 16 splats, at least 256 (fruit_drops, 4.7k splats: 46.6 dB with
-# 256 entries against 43.0 with 64, for 1.2 B/splat more), but no more than 16,384 or auto's size, whichever is
-# larger: 65,536 entries take about 50 s to fit to a million distinct rows on two cores, 16,384 about 20 s.
+# "fine" sizes the codebook to about one entry per 16 splats, at least 256 (a small scene keeps its SH detail for
+# little more size), but no more than 16,384 or auto's size, whichever is larger: the fit's time grows with the
+# entries (BENCHMARKS.md, "Figures behind library defaults").
 FINE_SPLATS_PER_ENTRY = 16
 MIN_FINE_ENTRIES = 256
 FINE_CAP = 16384

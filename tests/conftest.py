@@ -67,10 +67,10 @@ def run_cli(*args: str, cwd=None) -> subprocess.CompletedProcess:
 
 @pytest.fixture(scope="session")
 def gl_context():
-    """The process's shared headless GL context (client_gl.headless.shared_context, also behind render_image), or
+    """The process's shared headless GL context (client_gl.offscreen.shared_context, also behind render_image), or
     skip the test where none opens. One context only: GL objects act on the current context."""
     pytest.importorskip("moderngl")
-    from client_gl.headless import GLUnavailableError, shared_context
+    from client_gl.offscreen import GLUnavailableError, shared_context
 
     try:
         return shared_context()

@@ -56,7 +56,7 @@ def requirements() -> None:
         pytest.skip("cesium / playwright-core not installed (.ci/run installs them into .ci/node)")
     if not os.access(CHROMIUM, os.X_OK):
         pytest.skip(f"{CHROMIUM} not installed (.ci/run: apt-get install chromium)")
-    from client_gl.headless import GLUnavailableError, shared_context
+    from client_gl.offscreen import GLUnavailableError, shared_context
 
     try:
         shared_context()  # our render needs headless GL (EGL)

@@ -6,9 +6,9 @@ import pytest
 from conftest import real, run_cli
 
 from cli.main import COMMANDS, build_parser
-from splatstream.decoder import decode_scene
 from splatstream.encode import EncodeOptions, encode_gaussians
 from splatstream.ply import read_gaussians_ply
+from splatstream.scene_decode import decode_scene
 
 
 def test_encode_info_decode(tmp_path):

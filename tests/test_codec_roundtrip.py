@@ -4,7 +4,6 @@ import numpy as np
 import pytest
 from conftest import REAL_PLYS, group_planes_of, real
 
-from splatstream.decoder import decode_scene
 from splatstream.encode import EncodeOptions, encode_gaussians
 from splatstream.encode.jobs import splat_order
 from splatstream.format.codec import decode_plane, plane_values, rotation_mode
@@ -14,6 +13,7 @@ from splatstream.format.planes import band_plane, group_planes, groups_for_degre
 from splatstream.format.presets import PRESETS, resolve_chunk_order
 from splatstream.format.texformats import get_format
 from splatstream.ply import read_gaussians_ply
+from splatstream.scene_decode import decode_scene
 from splatstream.store import load_manifest
 
 # RMS error bounds for block-compressed planes, in normalised units (t; quaternion components for rotations).

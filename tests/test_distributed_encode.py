@@ -11,7 +11,6 @@ import numpy as np
 import pytest
 from conftest import real
 
-from splatstream.decoder import decode_scene
 from splatstream.encode import EncodeOptions, encode_file, encode_in_memory
 from splatstream.encode.local import LocalEngine
 from splatstream.encode.partitioned import ArrayRows, encode_partitioned
@@ -20,6 +19,7 @@ from splatstream.errors import InputError
 from splatstream.gaussians import Gaussians
 from splatstream.io import read_gaussians
 from splatstream.ply import write_gaussians_ply
+from splatstream.scene_decode import decode_scene
 from splatstream.store import FsspecStore, MemoryWriter, load_manifest
 
 # Small leaves so a few thousand splats make a tree of 4 tile levels; a small memory per worker so it is split

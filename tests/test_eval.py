@@ -61,8 +61,8 @@ def test_eval_api_reproducible_cameras_and_encoded_dir(tmp_path):
     assert rep["input"]["sh_degree"] == 0
     # PSNR recomputed from the JSON camera matches the report
     g = read_gaussians(src)
-    from splatstream.decoder import decode_scene
     from splatstream.metrics import psnr
+    from splatstream.scene_decode import decode_scene
 
     cam = cameras_from_report(rep)[0]
     p = psnr(render(g, cam), render(decode_scene(tmp_path / "high"), cam))

@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 from conftest import read_manifest_dict, real, run_cli, write_manifest_dict
 
-from splatstream.decoder import decode_scene
 from splatstream.encode import EncodeOptions, encode_gaussians
 from splatstream.errors import FormatError
 from splatstream.format.manifest import writer_version
 from splatstream.format.texformats import encode_image, get_format, pack_texels, unpack_texels
 from splatstream.format.transport import FIELD_LAYOUTS, fields_content, filter_texels, unfilter_fields, unused_bits
 from splatstream.io import read_gaussians
+from splatstream.scene_decode import decode_scene
 
 FORMATS_1_3 = {"norm16x4": 65535, "norm9x3": 511}  # format -> levels (a step is 1 / levels of the chunk's range)
 

@@ -8,12 +8,12 @@ import numpy as np
 import pytest
 from conftest import read_manifest_dict, real, write_manifest_dict
 
-from splatstream.decoder import decode_scene
 from splatstream.encode import EncodeOptions, encode_gaussians
 from splatstream.encode.plan import input_is_chunk_quantised
 from splatstream.errors import FormatError
 from splatstream.format.manifest import writer_version
 from splatstream.io import read_gaussians
+from splatstream.scene_decode import decode_scene
 
 FIXTURES = pathlib.Path(__file__).parent / "fixtures" / "foreign"
 CHUNKED = FIXTURES / "fruit_drops.compressed.ply"  # 296 splats: one tile, a full chunk and a partial one

@@ -61,8 +61,8 @@ def _codebook_pool(ctx, scene, slots: int, bands: int | None = None, host_mirror
 
 def test_scene_loads_index_plane_and_codebook(encoded):
     from client_gl.scene import tiles_from_scene
-    from splatstream.decoder import decode_scene
     from splatstream.format.codec import decode_index_plane, decode_plane
+    from splatstream.scene_decode import decode_scene
 
     path = encoded()
     scene = tiles_from_scene(path)
@@ -96,7 +96,7 @@ def test_shader_decode_equals_numpy(gl_compute_context, encoded, sh_fmt):
         pytest.importorskip("texture2ddecoder")
     from client_gl.gpu.renderer import RenderOptions, SplatRenderer
     from client_gl.scene import tiles_from_scene
-    from splatstream.decoder import decode_scene
+    from splatstream.scene_decode import decode_scene
 
     path = encoded(sh=sh_fmt)
     scene = tiles_from_scene(path)
@@ -130,7 +130,7 @@ def test_shader_decode_equals_numpy(gl_compute_context, encoded, sh_fmt):
 def test_progressive_codebook_bands(gl_compute_context, encoded):
     from client_gl.gpu.renderer import RenderOptions, SplatRenderer
     from client_gl.scene import tiles_from_scene
-    from splatstream.decoder import decode_scene
+    from splatstream.scene_decode import decode_scene
 
     ctx = gl_compute_context
     path = encoded()
@@ -218,8 +218,8 @@ RENDER_MODES = ["cpu", "gpu-fetch", "gpu-instanced", "gpu-compute"]
 @pytest.mark.parametrize("preset", ["low", "very-high"])
 def test_render_matches_reference(gl_context, encoded, preset):
     from client_gl.gpu.renderer import RenderOptions
-    from client_gl.headless import HeadlessRenderer
-    from splatstream.decoder import decode_scene
+    from client_gl.offscreen import HeadlessRenderer
+    from splatstream.scene_decode import decode_scene
 
     ctx = gl_context
     path = encoded(preset=preset, entries=64 if preset == "very-high" else "auto")
@@ -245,24 +245,24 @@ def test_render_matches_reference(gl_context, encoded, preset):
 
 def test_render_image_of_a_codebook_scene(encoded):
     """What splatstream.evaluate does with the GL renderer: render_image(scene_dir, camera)."""
-    from client_gl import headless
-    from splatstream.decoder import decode_scene
+    from client_gl import offscreen
+    from splatstream.scene_decode import decode_scene
 
     try:
-        headless.get_renderer()
-    except headless.GLUnavailableError as exc:
+        offscreen.get_renderer()
+    except offscreen.GLUnavailableError as exc:
         pytest.skip(f"no OpenGL context: {exc}")
     path = encoded(preset="low", entries="auto")
     g = decode_scene(path)
     cam = suggested_camera(g.positions, width=W, height=H)
-    img = headless.render_image(path, cam)
+    img = offscreen.render_image(path, cam)
     assert psnr(img, render_ref.render(g, cam)) >= 40.0
 
 
 def test_in_memory_codebook_tiles(gl_context, gaussians):
     """tiles_from_gaussians builds the codebook as the encoder does; GL renders it like the numpy decode."""
     from client_gl.gpu.renderer import RenderOptions
-    from client_gl.headless import HeadlessRenderer
+    from client_gl.offscreen import HeadlessRenderer
     from client_gl.scene import tiles_from_gaussians
     from splatstream.format.codec import assemble_gaussians, decode_index_plane, decode_plane
     from splatstream.format.planes import BASE_PLANES
@@ -295,8 +295,8 @@ def test_lod_scene_tiles_share_the_codebook(gl_context, tmp_path, gaussians):
     from client_gl.scene import tiles_from_scene
 
     ctx = gl_context
-    from splatstream.decoder import decode_scene
     from splatstream.encode import EncodeOptions, encode_gaussians
+    from splatstream.scene_decode import decode_scene
     from splatstream.store import load_manifest
 
     encode_gaussians(gaussians, tmp_path, EncodeOptions(preset="medium", sh_codebook=128, lod=True,

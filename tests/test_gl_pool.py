@@ -390,7 +390,7 @@ def test_work_buffers_and_primed_atlases(gl_context):
 def test_two_output_targets(gl_context, scenes, fruit):
     """next_output_target: frames go to the other of two framebuffers (a window shows one while the next is drawn);
     each holds the frame drawn into it and read_image reads the last one drawn."""
-    from client_gl.headless import HeadlessRenderer, RenderOptions
+    from client_gl.offscreen import HeadlessRenderer, RenderOptions
 
     r = HeadlessRenderer(RenderOptions(), ctx=gl_context)
     r.load_gaussians(fruit)

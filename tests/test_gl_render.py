@@ -18,7 +18,7 @@ W, H = 128, 96
 @pytest.fixture(scope="module")
 def renderers(gl_context):
     from client_gl.gpu.renderer import RenderOptions
-    from client_gl.headless import HeadlessRenderer
+    from client_gl.offscreen import HeadlessRenderer
 
     ctx = gl_context
     out = {"cpu": HeadlessRenderer(RenderOptions(sort="cpu"), ctx=ctx)}
@@ -156,8 +156,8 @@ def test_full_pool_refuses_a_tile(renderers):
 def test_encoded_scene_directory(renderers, tmp_path, preset):
     """Planes stay in their texel formats on the GPU; the render matches the reference of the decoded scene."""
     pytest.importorskip("etcpak")
-    from splatstream.decoder import decode_scene
     from splatstream.encode import EncodeOptions, encode_gaussians
+    from splatstream.scene_decode import decode_scene
 
     g = read_gaussians(real("fruit_drops_sh3.ply"))
     scene = tmp_path / "scene"
@@ -173,7 +173,7 @@ def test_encoded_scene_directory(renderers, tmp_path, preset):
 
 
 def test_render_image_api(renderers):
-    from client_gl.headless import render_image
+    from client_gl.offscreen import render_image
 
     g = read_gaussians(real("fruit_drops_sh3.ply"))
     cam = suggested_camera(g.positions, width=64, height=48)

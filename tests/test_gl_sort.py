@@ -113,21 +113,3 @@ def test_low_bits_sort_is_stable(gl_compute_context, radix_bits):
     s = GpuRadixSort(gl_compute_context, 20000, radix_bits=radix_bits)
     _check_low_bits(gl_compute_context, s, 5)
     s.release()
-
-
-@pytest.mark.parametrize("radix_bits", [4, 5, 6, 7, 8])
-def test_global_scatter_sorts_like_numpy(gl_compute_context, radix_bits):
-    """The scatter that writes each key from its round straight to its place (local_scatter=False, the default
-    before the tile-local reorder) sorts as the default does: random keys, partial last tiles, few values, keys of
-    one digit, the low bits only; block sums left at zero."""
-    from client_gl.gpu.sort import GpuRadixSort
-
-    s = GpuRadixSort(gl_compute_context, 30000, radix_bits=radix_bits, local_scatter=False)
-    rng = np.random.default_rng(10 + radix_bits)
-    for n in (0, 1, 255, 2049, 30000, 777):
-        _check(s, rng.integers(0, 2**32, n, dtype=np.uint64))
-    for keys in (rng.integers(0, 3, 9001), rng.integers(0, 16, 9001) << 28, np.full(4097, 0xDEADBEEF)):
-        _check(s, keys.astype(np.uint64))
-    assert not np.frombuffer(s.reduced.read(), np.uint32).any()
-    _check_low_bits(gl_compute_context, s, 6)
-    s.release()

@@ -20,13 +20,13 @@ import pytest
 import zstandard
 from conftest import read_manifest_dict, real, run_cli, write_manifest_dict
 
-from splatstream.decoder import decode_scene
 from splatstream.encode import EncodeOptions, encode_gaussians
 from splatstream.errors import FormatError, InputError
 from splatstream.format.limits import MAX_ABS_POSITION, MAX_ABS_SH, MAX_LOG_SCALE, MIN_LOG_SCALE
 from splatstream.format.texformats import shuffle_bytes, unshuffle_bytes
 from splatstream.io import read_gaussians
 from splatstream.ply import read_elements, read_gaussians_ply, read_header
+from splatstream.scene_decode import decode_scene
 
 FOREIGN = pathlib.Path(__file__).parent / "fixtures" / "foreign"
 SUB64 = FOREIGN / "fruit_drops_sub64.ply"

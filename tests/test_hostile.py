@@ -137,7 +137,7 @@ def view(url: str, tmp_path: Path, *args: str):
 
 def _headless_available():
     pytest.importorskip("moderngl")
-    from client_gl.headless import GLUnavailableError, shared_context
+    from client_gl.offscreen import GLUnavailableError, shared_context
 
     try:
         shared_context()

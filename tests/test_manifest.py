@@ -177,7 +177,7 @@ def _payload_case(tmp_path, mutate):
 def test_payload_content_is_checked(tmp_path):
     import zstandard
 
-    from splatstream.decoder import decode_scene
+    from splatstream.scene_decode import decode_scene
 
     # not zstd at all
     scene = _payload_case(tmp_path / "a", lambda e, b: b"\x00" * 64)
@@ -198,7 +198,7 @@ def test_payload_content_is_checked(tmp_path):
 def test_non_regular_payload_is_refused_without_blocking(tmp_path):
     import os
 
-    from splatstream.decoder import decode_scene
+    from splatstream.scene_decode import decode_scene
 
     shutil.copytree(VECTORS / "medium", tmp_path / "s")
     d = read_manifest_dict(tmp_path / "s")
@@ -276,7 +276,7 @@ def test_checksum_must_be_present_last_and_well_formed(tmp_path, raw):
 
 def test_older_manifests_without_checksum_still_read(tmp_path, raw):
     """1.0 and 1.1 manifests have no checksum and still read; in them a `checksum` key is an unknown key."""
-    from splatstream.decoder import decode_scene
+    from splatstream.scene_decode import decode_scene
 
     shutil.copytree(VECTORS / "low", tmp_path / "s")
     d = copy.deepcopy(raw)

@@ -3,7 +3,6 @@ import numpy as np
 import pytest
 from conftest import group_planes_of, read_manifest_dict, real, run_cli, write_manifest_dict
 
-from splatstream.decoder import decode_scene, read_codebook
 from splatstream.encode import EncodeOptions, encode_gaussians
 from splatstream.encode.codebook import codebook_rows, codebook_weights, order_by_use
 from splatstream.encode.jobs import splat_order
@@ -13,6 +12,7 @@ from splatstream.format.layout import morton_order
 from splatstream.format.planes import SH_INDEX_PLANE
 from splatstream.format.texformats import get_format
 from splatstream.ply import read_gaussians_ply
+from splatstream.scene_decode import decode_scene, read_codebook
 from splatstream.store import DirectoryStore, load_manifest
 from splatstream.vq import MAX_ENTRIES, auto_entries, build_codebook, fine_entries, parse_entries
 

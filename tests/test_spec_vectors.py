@@ -5,7 +5,7 @@ import pathlib
 import numpy as np
 import pytest
 
-from splatstream.decoder import decode_scene
+from splatstream.scene_decode import decode_scene
 from splatstream.store import load_manifest
 
 VECTORS = pathlib.Path(__file__).resolve().parents[1] / "format_spec" / "vectors"

@@ -48,7 +48,7 @@ def psnr(a: np.ndarray, b: np.ndarray) -> float:
 
 def render_cut(ctx, scene: Path, cam: Camera, max_sse: float | None) -> np.ndarray:
     """`render --max-sse` (the same tiles and bands as the stream wants), or every full-detail tile."""
-    from client_gl.headless import HeadlessRenderer, RenderOptions
+    from client_gl.offscreen import HeadlessRenderer, RenderOptions
     from client_gl.scene import tiles_for_view
     from client_gl.stream.selection import SelectionOptions
 

@@ -6,7 +6,6 @@ import numpy as np
 import pytest
 from conftest import real, run_cli
 
-from splatstream.decoder import decode_scene
 from splatstream.encode import EncodeOptions, encode_gaussians
 from splatstream.errors import UsageError
 from splatstream.format.codec import decode_plane, encode_plane
@@ -15,6 +14,7 @@ from splatstream.format.planes import BASE_PLANES
 from splatstream.format.presets import PRESET_STEPS, PRESETS, preset_steps, step_attribute
 from splatstream.format.steps import TileStep, step_sizes, widened_max
 from splatstream.io import read_gaussians
+from splatstream.scene_decode import decode_scene
 
 POSITION, SCALE = BASE_PLANES[0], BASE_PLANES[2]
 

@@ -14,9 +14,9 @@ import numpy as np
 import pytest
 from conftest import ROOT, real, run_cli
 
-from splatstream.decoder import decode_scene
 from splatstream.gaussians import Gaussians, covariances
 from splatstream.readers.gltf import read_gltf
+from splatstream.scene_decode import decode_scene
 from splatstream.sh import eval_sh
 from splatstream.store import load_manifest
 from splatstream.tiles3d import (

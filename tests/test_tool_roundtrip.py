@@ -66,7 +66,7 @@ def tool_gaussians(path: pathlib.Path) -> Gaussians:
     else:
         ref = tool_output(path)
     alpha = 1.0 / (1.0 + np.exp(-ref["opacity_logits"]))
-    from splatstream.readers import opacity_logits_from_unit
+    from splatstream.reader_support import opacity_logits_from_unit
 
     return Gaussians(ref["positions"], same_sign(ref["rotations"]), ref["log_scales"],
                      opacity_logits_from_unit(alpha), ref["sh_dc"], ref["sh_rest"])

@@ -12,7 +12,6 @@ import pytest
 import zstandard
 from conftest import real_path
 
-from splatstream.decoder import decode_scene
 from splatstream.encode import EncodeOptions, encode_gaussians
 from splatstream.errors import FormatError
 from splatstream.format.manifest import manifest_from_dict
@@ -35,6 +34,7 @@ from splatstream.format.transport import (
     unused_bits,
 )
 from splatstream.io import read_gaussians
+from splatstream.scene_decode import decode_scene
 from splatstream.store import load_manifest
 
 FRUIT = real_path("fruit_drops_sh3.ply")  # bundled (tests/data/real), so always here

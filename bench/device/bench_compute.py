@@ -18,7 +18,7 @@ _orig_bench_gl = bench_render.bench_gl
 
 
 def bench_gl(ctx, scene, cam, frames, sort, color_dtype, draw="instanced", settle=None):
-    from client_gl.headless import HeadlessRenderer
+    from client_gl.offscreen import HeadlessRenderer
 
     collected: list = []
     orig = HeadlessRenderer.render_frame

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import math
+import re
 
 from splatstream.errors import UsageError
 
@@ -35,8 +36,6 @@ _UNITS = {"": 1, "b": 1, "k": 1e3, "kb": 1e3, "kib": 1024, "m": 1e6, "mb": 1e6, 
 
 def parse_bytes(text: str, what: str) -> int:
     """'4GB', '512MiB', '2e9' -> bytes (at least 1 MiB)."""
-    import re
-
     match = re.fullmatch(r"\s*([0-9.]+(?:e[0-9]+)?)\s*([a-zA-Z]*)\s*", text or "")
     unit = match.group(2).lower() if match else ""
     try:

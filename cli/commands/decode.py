@@ -4,8 +4,10 @@ from __future__ import annotations
 import argparse
 import sys
 
-from splatstream.decoder import decode_scene
-from splatstream.io import write_gaussians
+from splatstream.atomic import check_output
+from splatstream.errors import UsageError
+from splatstream.io import output_format, write_gaussians
+from splatstream.scene_decode import decode_scene
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -20,17 +22,12 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from splatstream.errors import UsageError
-
     tiles: str | list[int] = "leaves"
     if args.tiles:
         try:
             tiles = [int(t) for t in args.tiles.split(",")]
         except ValueError:
             raise UsageError(f"--tiles: expected comma-separated integers, got {args.tiles!r}") from None
-    from splatstream.atomic import check_output
-    from splatstream.io import output_format
-
     output_format(args.output)
     check_output(args.output)
     g = decode_scene(args.scene_dir, sh_degree=args.sh_degree, tiles=tiles)

@@ -2,11 +2,13 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 
 from splatstream.encode import encode_file
 from splatstream.errors import UsageError
+from splatstream.evaluate import EvalOptions, evaluate, preset_for_target
 from splatstream.format.container import DEFAULT_ZSTD_LEVEL
 from splatstream.format.presets import (
     ATTRIBUTES,
@@ -21,6 +23,7 @@ from splatstream.format.transport import TRANSPORTS
 from splatstream.progress import ProgressPrinter, count
 
 from .args import parse_bytes, parse_vector
+from .renderers import pick_renderer
 
 # The views --target-psnr / --target-size measure presets on: `splatstream eval`'s defaults.
 TARGET_VIEWS = 8
@@ -119,8 +122,6 @@ def run(args: argparse.Namespace) -> int:
     workers = None
     if args.workers is not None:
         if args.workers == "auto":
-            import os
-
             workers = os.cpu_count() or 1
         elif args.workers.isdigit() and int(args.workers) >= 1:
             workers = int(args.workers)
@@ -155,10 +156,6 @@ def run(args: argparse.Namespace) -> int:
 
 def _preset_for_target(args: argparse.Namespace, up: tuple[float, float, float] | None) -> str:
     """Measure every preset on the input (splatstream.evaluate) and pick the one the target asks for."""
-    from splatstream.evaluate import EvalOptions, evaluate, preset_for_target
-
-    from .renderers import pick_renderer
-
     if args.target_psnr is not None and not args.target_psnr > 0:
         raise UsageError(f"--target-psnr {args.target_psnr}: expected a PSNR above 0 dB")
     if args.target_size is not None and not args.target_size > 0:

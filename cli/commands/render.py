@@ -8,10 +8,16 @@ import time
 
 import numpy as np
 
+from splatstream.atomic import atomic_file
 from splatstream.camera import DEFAULT_FOV_Y_DEG, REFERENCE_NEAR, Camera, suggested_camera
 from splatstream.errors import UsageError
+from splatstream.format.presets import PRESETS
+from splatstream.io import read_gaussians, scene_up
+from splatstream.orientation import view_side
+from splatstream.store import is_scene_dir, load_manifest
 
 from .args import parse_size, parse_vector
+from .renderers import gl_client
 
 DEFAULT_SIZE = (1280, 720)
 
@@ -76,13 +82,7 @@ def _camera(args, scene_camera: dict | None, positions: np.ndarray | None, scene
 
 
 def run(args: argparse.Namespace) -> int:
-    from .renderers import gl_client
-
-    headless = gl_client()
-
-    from splatstream.format.presets import PRESETS
-    from splatstream.store import is_scene_dir, load_manifest
-
+    offscreen = gl_client()
     size = parse_size(args.size)
     background = _optional_vector(args.background, "--background")
     if args.preset not in PRESETS:
@@ -101,21 +101,18 @@ def run(args: argparse.Namespace) -> int:
         source = ("scene", args.scene)
         splats = manifest.splats
     else:
-        from splatstream.io import read_gaussians
-
         g = read_gaussians(args.scene)
         if len(g) == 0:
             raise UsageError(f"{args.scene}: no splats to render")
-        from splatstream.io import scene_up
-        from splatstream.orientation import view_side
-
         up = _optional_vector(args.up, "--up") or scene_up(args.scene, g).up
         cam = _camera(args, None, g.positions, up, size, view_side(g, up), g.opacity_logits)
         source = ("gaussians", g)
         splats = len(g)
-    renderer = headless.HeadlessRenderer(headless.RenderOptions(sort=args.sort, draw=args.draw))
+    renderer = offscreen.HeadlessRenderer(offscreen.RenderOptions(sort=args.sort, draw=args.draw))
     try:
         if source[0] == "scene" and args.max_sse is not None:
+            # The GL client (the optional [view] extra, moderngl) is imported only by a command that draws, after
+            # gl_client() has said how to install it where it is missing, and so that other commands start without it
             from client_gl.scene import tiles_for_view
             from client_gl.stream.selection import SelectionOptions
 
@@ -145,9 +142,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _write_png(path: str, img: np.ndarray) -> None:
-    from PIL import Image
-
-    from splatstream.atomic import atomic_file
+    from PIL import Image  # Pillow only when an image is written: it slowed every command's start-up
 
     rgb8 = (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
     with atomic_file(path) as f:

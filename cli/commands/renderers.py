@@ -16,26 +16,26 @@ GL_EXTRA_HINT = "pip install 'splatstream[view]'"
 
 
 def gl_client():
-    """client_gl.headless, or a UsageError saying how to install the GL client."""
-    try:
-        from client_gl import headless
+    """client_gl.offscreen, or a UsageError saying how to install the GL client."""
+    try:  # imported here: the GL client is an optional extra, and its absence is a message, not an ImportError
+        from client_gl import offscreen
     except ImportError as exc:
         raise UsageError(f"the GL client is not installed ({exc.name or exc}): {GL_EXTRA_HINT}") from None
-    return headless
+    return offscreen
 
 
 def gl_renderer() -> EvalRenderer | None:
     """The GL client's headless renderer, if moderngl is installed and a context opens here."""
-    try:
-        from client_gl import headless
+    try:  # imported here, as in gl_client
+        from client_gl import offscreen
     except ImportError:  # the GL extra is not installed: the reference renderer does the job
         return None
     try:
-        headless.get_renderer()  # opens the shared context now, so a machine without GL falls back cleanly
-    except headless.GLUnavailableError:
+        offscreen.get_renderer()  # opens the shared context now, so a machine without GL falls back cleanly
+    except offscreen.GLUnavailableError:
         return None
-    return EvalRenderer(lambda src, cam: np.asarray(headless.render_image(src, cam), dtype=np.float32),
-                        "gl (client_gl.headless.render_image)", "gl", draws_scenes=True)
+    return EvalRenderer(lambda src, cam: np.asarray(offscreen.render_image(src, cam), dtype=np.float32),
+                        "gl (client_gl.offscreen.render_image)", "gl", draws_scenes=True)
 
 
 def pick_renderer(kind: str = "auto") -> EvalRenderer:
@@ -46,5 +46,5 @@ def pick_renderer(kind: str = "auto") -> EvalRenderer:
         if found is not None:
             return found
         if kind == "gl":
-            raise UsageError("the GL renderer (client_gl.headless) cannot render here; use --renderer ref")
+            raise UsageError("the GL renderer (client_gl.offscreen) cannot render here; use --renderer ref")
     return reference_renderer()

@@ -43,7 +43,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from server.limits import MIN_CONNECTIONS, Limits  # aiohttp is imported only when serving
+    # The server (aiohttp) is imported only when serving, so that other commands start without it.
+    from server.limits import MIN_CONNECTIONS, Limits
     from server.run import serve
 
     def bad(option: str, value: object, expected: str) -> int:
@@ -68,7 +69,7 @@ def run(args: argparse.Namespace) -> int:
         print("splatstream serve: error: --throttle-mbps and --latency-ms need --workers 1 (the simulated link "
               "is shared within one process)", file=sys.stderr)
         return 2
-    from server.throttle import Link
+    from server.throttle import Link  # only when serving: see run
 
     limits = Limits(max_connections=args.max_connections, header_timeout=args.header_timeout,
                     keepalive_timeout=args.keepalive_timeout, send_timeout=args.send_timeout)

@@ -7,9 +7,13 @@ import math
 import os
 import sys
 
+from splatstream.atomic import check_output
+from splatstream.camera import DEFAULT_FOV_Y_DEG, Camera
+from splatstream.camera_path import load_camera_path
 from splatstream.errors import UsageError
 
 from .args import parse_size, parse_vector
+from .renderers import gl_client
 
 DRAWS = ["auto", "compute", "fetch", "points", "instanced", "triangles"]
 
@@ -77,6 +81,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _options(args):
+    # The GL client (the optional [view] extra, moderngl) is imported only by a command that draws, after gl_client()
+    # has said how to install it where it is missing, and so that other commands start without it
     from client_gl.gpu.renderer import RenderOptions
     from client_gl.streaming import ViewOptions
 
@@ -120,8 +126,6 @@ def _band_shares(text: str) -> dict:
 
 def _fixed_camera(args, size):
     """A camera from --eye/--target (both needed), or None for the scene's suggested camera."""
-    from splatstream.camera import DEFAULT_FOV_Y_DEG, Camera
-
     if args.eye is None and args.target is None:
         return None
     if args.eye is None or args.target is None:
@@ -137,8 +141,6 @@ def _fixed_camera(args, size):
 
 
 def _check_outputs(args) -> None:
-    from splatstream.atomic import check_output
-
     for out in (args.record, args.screenshot):
         if out:
             check_output(out)
@@ -150,29 +152,25 @@ def _check_outputs(args) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .renderers import gl_client
-
-    headless = gl_client()  # first: the options below import the client
+    offscreen = gl_client()  # first: the options below import the client
     size = parse_size(args.size)
     options = _options(args)
     camera = _fixed_camera(args, size)
     path = None
     if args.camera_path:
-        from splatstream.camera_path import load_camera_path
-
         path = load_camera_path(args.camera_path)
     _check_outputs(args)
     if not args.headless:
-        from client_gl.window import WindowRun, run_window
+        from client_gl.window import WindowRun, run_window  # the GL client: see _options
 
         return run_window(WindowRun(args.source, options, size, camera, path, screenshot=args.screenshot,
                                     exit_when_converged=args.exit_when_converged, vsync=not args.no_vsync,
                                     timeout_s=args.timeout, quiet=args.quiet, sh_degree=args.sh_degree,
                                     record=args.record, measure_frames=args.measure_frames,
                                     overlay=not args.no_overlay))
-    from client_gl.view_headless import HeadlessRun, run_headless
+    from client_gl.view_headless import HeadlessRun, run_headless  # the GL client: see _options
 
-    ctx = headless.create_context()
+    ctx = offscreen.create_context()
     try:
         code, report = run_headless(HeadlessRun(
             args.source, options, size, camera, path, until_converged=args.until_converged or path is None,

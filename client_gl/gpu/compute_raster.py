@@ -30,8 +30,9 @@ from .shadergen import RADIX_BITS, SCAN_TILE, SORT_TILE
 from .sort import CHAIN_BARRIER, GpuRadixSort
 from .uniforms import ProgramUniforms
 
-TILE_PX = 16  # default tile size (pixels); 8 is a measurement option (RenderOptions.tile_px)
-UNROLL = 4  # splats per raster loop step (H200, 6M splats: raster 7.35 ms unrolled 1, 5.69 ms 2, 5.19 ms 4)
+# Tile size in pixels: 16x16 (a work group of 256 threads, eight warps of 8x4 pixels for the per-block lists);
+# 8x8 tiles doubled the entries and made the frame slower (BENCHMARKS.md, "Per-block splat lists in the raster").
+TILE_PX = 16
 MIN_ENTRIES = 1 << 16
 COUNT_EVERY = 4  # binnings between two copies of the entry count for the frame loop's overflow check
 ENTRIES_PER_SPLAT = 4  # initial entry capacity per splat of the pool's capacity
@@ -55,42 +56,24 @@ class ComputeRaster:
     """GPU buffers and programs of the tile rasterizer for one renderer."""
 
     def __init__(self, ctx, color_dtype: str, visible_capacity: int, entry_capacity: int | None = None,
-                 tile_px: int = TILE_PX, unroll: int = UNROLL, warp_cull: bool = True, radix_bits: int = RADIX_BITS,
-                 fused_sort: bool = True, barrier_bits: int = CHAIN_BARRIER, tight_bins: bool = False,
-                 emit_rects: bool = False, balanced_emit: bool = True, row_bins: bool = True,
-                 local_scatter: bool = True):
+                 warp_cull: bool = True, radix_bits: int = RADIX_BITS,
+                 fused_sort: bool = True, barrier_bits: int = CHAIN_BARRIER):
         self.ctx = ctx
         self.color_dtype = color_dtype
-        self.tile_px = int(tile_px)
-        if self.tile_px not in (8, 16):
-            raise ValueError(f"tile size {tile_px}: 8 or 16 pixels")
+        self.tile_px = TILE_PX
         self.radix_bits = radix_bits
         self.fused_sort = fused_sort
-        self.local_scatter = bool(local_scatter)
         self.barrier_bits = barrier_bits
         tile = f"#define TILE_PX {self.tile_px}\n"
-        # tight_bins: tiles tested against the splat's ellipse (bin_common.glsl's tile_hit), the same code in the count
-        # and the emit so that both agree on every splat's entries.
-        self.tight_bins = bool(tight_bins)
-        self.emit_rects = bool(emit_rects)
-        # The balanced emit expands whole tile boxes or row_bins' rows: tight_bins and emit_rects keep a thread a splat.
-        self.balanced_emit = bool(balanced_emit) and not self.tight_bins and not self.emit_rects
-        # Row bins need the balanced emit (its rows in shared memory): off with tight_bins, emit_rects or without it.
-        self.row_bins = bool(row_bins) and self.balanced_emit
-        binning = tile + ("#define TIGHT_BINS\n" if self.tight_bins else "")
-        binning += "#define ROW_BINS\n" if self.row_bins else ""
-        self.count_shader = ctx.compute_shader(_source("bin_count.comp", binning))
+        # Binning (bin_count, bin_emit): row bins with the work group's balanced emit, whose count and emit share
+        # bin_common.glsl's code so that both agree on every splat's entries.
+        self.count_shader = ctx.compute_shader(_source("bin_count.comp", tile))
         self.scan_shader = ctx.compute_shader(_source("bin_scan.comp", tile, radix_bits))
-        emit = "#define EMIT_RECTS\n" if self.emit_rects else ""
-        emit += "#define BALANCED\n" if self.balanced_emit else ""
-        self.emit_shader = ctx.compute_shader(_source("bin_emit.comp", binning + emit))
+        self.emit_shader = ctx.compute_shader(_source("bin_emit.comp", tile))
         self.ranges_shader = ctx.compute_shader(_source("tile_ranges.comp", tile))
         fmt = IMAGE_FORMATS[color_dtype]
-        if unroll not in (1, 2, 4):
-            raise ValueError(f"unroll {unroll}: 1, 2 or 4")
-        self.unroll = unroll
-        self.warp_cull = bool(warp_cull) and self.tile_px == 16  # the blocks are 8x4 pixels of a 16x16 tile
-        defines = f"{tile}#define UNROLL {unroll}\n#define OUT_FORMAT {fmt}\n"
+        self.warp_cull = bool(warp_cull)
+        defines = f"{tile}#define OUT_FORMAT {fmt}\n"
         if self.warp_cull:
             defines += "#define WARP_CULL\n"
         self.raster_shader = ctx.compute_shader(_source("raster.comp", defines))
@@ -99,7 +82,8 @@ class ComputeRaster:
         self.bins = ctx.buffer(reserve=16)
         # (entries sorted, entries needed), copied from `bins` every COUNT_EVERY binnings: the frame loop's overflow
         # check reads it two binnings later, when the GPU is done with it, instead of stalling on this frame's
-        # (the copy cost 0.8 ms of CPU on the H100's driver, hence not every frame)
+        # (the copy costs the driver CPU time, hence not every frame; BENCHMARKS.md, "Figures behind library
+        # defaults")
         self._counts = ctx.buffer(reserve=8)
         self._frames = 0
         self.gsum = None
@@ -130,7 +114,7 @@ class ComputeRaster:
                 self.tile_sorter.release()
             self.entry_capacity = int(entry_capacity)
             self.tile_sorter = GpuRadixSort(self.ctx, self.entry_capacity, self.radix_bits, self.fused_sort,
-                                            self.barrier_bits, local_scatter=self.local_scatter)
+                                            self.barrier_bits)
             self.tile_keys = work_buffer(self.ctx, 4 * self.entry_capacity)
             self.tile_values = work_buffer(self.ctx, 4 * self.entry_capacity)
 
@@ -182,12 +166,12 @@ class ComputeRaster:
         return total > old
 
     # --- frame -----------------------------------------------------------------------------------------------
-    def bin(self, params, order, records, dispatch, width: int, height: int, scratch=None) -> None:
+    def bin(self, params, order, records, dispatch, width: int, height: int, scratch) -> None:
         """Steps 1-3: entries of the `params.count` splats of `order` (depth-sorted record indices).
 
         `dispatch` is the depth sort's indirect buffer (offset 0: ceil(count / SCAN_TILE) groups). bin_scan.comp
-        also writes the tile sort's dispatch sizes. scratch: a buffer of a word per splat that row_bins needs (the
-        count pass leaves each splat's entry count there for the emit; the depth sort's keys, spent by now).
+        also writes the tile sort's dispatch sizes. scratch: a buffer of a word per splat (the count pass leaves each
+        splat's entry count there for the emit; the depth sort's keys, spent by now).
         """
         barrier = self.ctx.memory_barrier
         bits = self.barrier_bits
@@ -205,20 +189,15 @@ class ComputeRaster:
         self._u_scan.set("u_capacity", self.entry_capacity)
         self._u_scan.set("u_tiles", self.tiles)
         self._u_emit.set("u_capacity", self.entry_capacity)
-        if self.row_bins:
-            if scratch is None:
-                raise ValueError("row_bins: bin() needs a scratch buffer of a word per splat")
-            scratch.bind_to_storage_buffer(5)
+        scratch.bind_to_storage_buffer(5)
         self.count_shader.run_indirect(dispatch, 0)
         barrier(bits)
         self.tile_sorter.dispatch.bind_to_storage_buffer(1)
-        if self.row_bins:
-            self.ranges.bind_to_storage_buffer(5)
+        self.ranges.bind_to_storage_buffer(5)
         self.scan_shader.run(1)
         barrier(bits)
         order.bind_to_storage_buffer(1)
-        if self.row_bins:
-            scratch.bind_to_storage_buffer(5)
+        scratch.bind_to_storage_buffer(5)
         self.emit_shader.run_indirect(dispatch, 0)
         barrier(bits)
         if self._frames % COUNT_EVERY == 0:

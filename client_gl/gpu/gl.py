@@ -125,9 +125,9 @@ class GLError(RuntimeError):
 
 
 # PYFUNCTYPE keeps the GIL through the call. CFUNCTYPE would release it, and the frame loop then waits for it again
-# behind the fetch and decode threads (up to a switch interval, 5 ms, per call): frames that uploaded tiles spent
-# 100-350 ms in these calls on a 16-core machine (BENCHMARKS.md). bench_flythrough --gl-release-gil sets CFUNCTYPE
-# for the A/B before any entry point is resolved.
+# behind the fetch and decode threads (up to a switch interval per call), which made frames that uploaded tiles
+# slow (BENCHMARKS.md, "Streaming client"). bench_flythrough --gl-release-gil sets CFUNCTYPE for the A/B before any
+# entry point is resolved.
 FUNCTION_TYPE = ctypes.PYFUNCTYPE
 
 
@@ -251,8 +251,9 @@ def gl_version() -> int:
 
 class WorkBuffer(moderngl.Buffer):
     """A moderngl Buffer over immutable storage (glBufferStorage) that it owns: moderngl's own buffers are mutable
-    (glBufferData), and the NVIDIA driver allocated those at their first use, 50 ms of the frame loop per GB (H100,
-    bench/probe_gpu_alloc.py); immutable storage is allocated when it is created, in microseconds."""
+    (glBufferData), and the NVIDIA driver allocated those at their first use, inside the frame loop
+    (bench/probe_gpu_alloc.py; BENCHMARKS.md, "Figures behind library defaults"); immutable storage is allocated
+    when it is created."""
 
     def release(self) -> None:
         glo = getattr(self, "_owned_glo", 0)
@@ -283,7 +284,7 @@ def work_buffer(ctx, size: int) -> moderngl.Buffer:
 
 class StagingBuffer:
     """A pixel-unpack buffer that texture uploads read from. From client memory the NVIDIA driver copied on the
-    calling thread in every glTexSubImage (13 ms of CPU for 0.76 MB of tiles in one frame, H100); from a buffer the
+    calling thread in every glTexSubImage (BENCHMARKS.md, "Figures behind library defaults"); from a buffer the
     GPU copies, and the CPU's part is one memcpy per image into the buffer. The buffer is orphaned before each
     image, so a write never waits for the copies of the one before."""
 
@@ -333,8 +334,8 @@ class RawTexture:
         if gl_version() >= 42:
             # Immutable storage, contents undefined (the pool writes every slot it draws). Compressed textures had
             # been created from a host array of zeros, which the NVIDIA driver read only at the first upload into the
-            # texture: 200-290 ms and one page fault per 4 KB of the whole pool in the first frame with splats
-            # (H100, 570 MB pool; bench/probe_gpu_alloc.py).
+            # texture, a page fault per 4 KB of the whole pool in the first frame with splats
+            # (bench/probe_gpu_alloc.py; BENCHMARKS.md, "Figures behind library defaults").
             if layers:
                 gl.glTexStorage3D(self.target, 1, internal, width, height, layers)
             else:

@@ -168,7 +168,8 @@ class ChunkPool:
 
     def _prime_atlases(self) -> None:
         """A shader writes one texel of every atlas that uploads go to through the staging buffer, before the first
-        upload (prime_texels.comp says why: 200-290 ms in the first frame with splats of a 1 GiB pool otherwise)."""
+        upload (prime_texels.comp says why: otherwise the first frame with splats moves whole atlases through host
+        memory)."""
         if self.ctx.version_code < 430:
             return
         for tex in self._atlases.values():

@@ -48,17 +48,17 @@ MAX_GROUPS_PER_DISPATCH = 65535
 SORT_MODES = ("auto", "cpu", "gpu")
 DRAW_MODES = ("instanced", "triangles", "fetch", "points")
 # "auto" among the raster draws (a software GL, render(clear=False); otherwise auto is "compute", see AUTO_COMPUTE):
-# point sprites (one primitive per splat; measured on an H200 at 6M splats the raster path's primitive rate is
-# the bottleneck: 29 ms against 35 ms for fetch quads) when at least AUTO_POINTS_MIN_SPLATS are drawn and point
-# sprites are at least as wide as the image; otherwise fetch quads (tighter, fewer fragments: 9.6 vs 10.7 ms at 1M).
+# point sprites (one primitive per splat: with many splats the raster path is bound by its primitive rate) when at
+# least AUTO_POINTS_MIN_SPLATS are drawn and point sprites are at least as wide as the image; otherwise fetch quads
+# (tighter, fewer fragments, which is what bounds fewer splats). Figures: BENCHMARKS.md, "GPU renderer".
 # "compute": the compute-shader tile rasterizer (client_gl/gpu/compute_raster.py), no raster hardware.
 DRAW_CHOICES = ("auto",) + DRAW_MODES + ("compute",)
-COLOR_DTYPES = ("f1", "f2", "f4")
-FLUSH_CHOICES = ("none", "cull", "stages")  # RGBA8, RGBA16F, RGBA32F colour target
+COLOR_DTYPES = ("f1", "f2", "f4")  # RGBA8, RGBA16F, RGBA32F colour target
 AUTO_POINTS_MIN_SPLATS = 2_000_000
 RECORD_BYTES = 48  # per visible splat, written by cull.comp
-# "auto" on the GPU path of a hardware GL: the compute rasterizer (H200, 1080p: 2.5 ms at 1M splats, 7.9 ms at 6M,
-# against 10.1 / 30.9 ms for the raster draws) unless render(clear=False) draws over opaque geometry (depth test).
+# "auto" on the GPU path of a hardware GL: the compute rasterizer (several times faster than the raster draws, which
+# are primitive-bound; BENCHMARKS.md, "GPU renderer") unless render(clear=False) draws over opaque geometry (depth
+# test).
 AUTO_COMPUTE = True
 MIN_WORK_SPLATS = 1 << 20  # work buffers are made for at least this many splats (about 130 MB with the draw's)
 BIN_CHECK_FRAMES = 2  # compute draw: frames after an allocation whose entry count is read back (overflow -> grow)
@@ -91,8 +91,13 @@ def choose_sort(ctx, mode: str = "auto") -> str:
 
 @dataclass(frozen=True)
 class RenderOptions:
-    """How a SplatRenderer draws, fixed for its lifetime. The defaults are the product's; the rest are measurement
-    options (bench/bench_render.py spells them as draw-mode suffixes such as "fetch+f2b" or "compute+t8")."""
+    """How a SplatRenderer draws, fixed for its lifetime. Product options: sort, draw, color_dtype, depth_test. The
+    others' defaults are the product's, and their other values measurement options that bench/bench_render.py
+    spells as draw-mode suffixes ("fetch+f2b", "compute+nowc"). One measured and left off goes with its code; these
+    stay: the plain raster loop, the per-block lists' oracle in the tests (warp_cull=False), the sort and depth-key
+    widths kept as options after their measurement (radix_bits, tile_radix_bits, depth_bits: BENCHMARKS.md), and
+    switches whose result BENCHMARKS.md does not hold (front_to_back: format_spec/renderer.md 5; blend, fused_sort,
+    full_barriers)."""
 
     sort: str = "auto"  # auto | cpu | gpu (choose_sort)
     draw: str = "auto"  # auto | instanced | triangles | fetch | points | compute (GPU path)
@@ -101,54 +106,27 @@ class RenderOptions:
     front_to_back: bool = False  # experimental: batches front to back with saturation passes (fetch, points)
     depth_test: bool = True  # test splats against the framebuffer's depth (opaque geometry drawn first)
     blend: bool = True  # False: blending off (measurement)
-    discard_fragments: bool = False  # True: the fragment shader discards at once (measurement)
     # Compute draw (client_gl/gpu/compute_raster.py):
-    tile_px: int = 16  # 16 or 8 pixel tiles
-    unroll: int = 4  # raster loop unrolled 4, 2 or 1 times
-    # Per 8x4-pixel block splat lists (16-pixel tiles; 8-pixel tiles have none): each warp walks only the splats of
-    # the batch whose alpha >= 1/255 box reaches its block, or the whole batch when most do. H100, 6M dense at 1080p:
-    # raster 1.61 -> 1.19 ms (BENCHMARKS.md).
+    # Per 8x4-pixel block splat lists: each warp walks only the splats of the batch whose alpha >= 1/255 box reaches
+    # its block, or the whole batch when most do, so a warp skips splats that cannot reach its pixels (figures:
+    # BENCHMARKS.md, "Per-block splat lists in the raster"). False: the plain loop, the same image bit for bit (the
+    # tests' oracle).
     warp_cull: bool = True
     # GPU sort (client_gl/gpu/sort.py), all GPU-path draws:
     # Digit width of the depth sort (RADIX_CHOICES: 4 to 8). 6: four passes over the 24-bit depth keys; with the local
-    # scatter, H100, 6M dense at 1080p: depth sort 0.78 -> 0.50 ms against 4-bit digits and the global scatter (5 and
-    # 8 bits slower; BENCHMARKS.md).
+    # scatter it beat 4-bit digits with the global scatter, and 5 or 8 bits were slower (BENCHMARKS.md, "Dense
+    # scenes, warm, wall clock").
     radix_bits: int = 6
     fused_sort: bool = True  # 3 dispatches a sort pass (False: the 5 of count, reduce, scan, scan-add, scatter)
-    # Both GPU sorts (depth and tiles): each scatter work group reorders its tile by digit in shared memory and writes
-    # each digit's run in one piece (radix_scatter_local.comp), where the global scatter's threads write up to
-    # 2**bits runs a round. H100, 6M dense at 1080p: tile sort 0.81 -> 0.69 ms (BENCHMARKS.md).
-    local_scatter: bool = True
     full_barriers: bool = False  # compute draw: glMemoryBarrier(ALL) between dispatches (default: the bits needed)
-    # glFlush: none | cull (after the cull) | stages (after each stage but the last), so that the GPU starts on the
-    # frame while the CPU still issues the rest of it (FLUSH_CHOICES). "stages" measured on an H100, dense scenes at
-    # 1080p: wall clock per frame 2.30 -> 2.10 ms at 1M, 5.93 -> 5.84 ms at 6M, GPU time unchanged (BENCHMARKS.md).
-    flush: str = "stages"
-    # Compute-draw variants on dense scenes, measured and left off: tight_bins made binning 5x slower at 1M (2.43
-    # against 0.48 ms) for 28 % fewer entries; 8-bit digits gained nothing at 6M (BENCHMARKS.md, issue 20).
-    tight_bins: bool = False  # binning: only tiles whose pixel centres the alpha >= 1/255 ellipse reaches (not its box)
-    emit_rects: bool = False  # binning: bin_emit keeps each splat's tile box from its first pass (no second read)
-    # binning: each work group writes its splats' entries together, a thread an entry (bin_emit.comp's BALANCED; not
-    # with tight_bins or emit_rects, which keep a thread a splat). H100, 6M dense at 1080p: binning 1.37 -> 0.68 ms.
-    balanced_emit: bool = True
-    # binning with the balanced emit: a splat whose box is at most two tiles high gets, row by row, the tiles where
-    # its alpha >= 1/255 ellipse reaches a pixel centre (bin_common.glsl's row_tiles, closed form per row; tight_bins'
-    # entries, cheaply), a taller one its whole box. H100, dense scenes at 1080p: 10 % fewer entries at 6M, GPU frame
-    # 4.87 -> 4.68 ms; 1M 1.68 -> 1.64 ms (BENCHMARKS.md).
-    row_bins: bool = True
     # Digit width of the tile sort (None: radix_bits). 7: two passes over 1080p's 13-bit tile ids where 4-bit digits
-    # take four; H100, dense scenes: tile sort 0.93 -> 0.88 ms at 6M, 0.51 -> 0.47 at 1M (5 and 8 bits slower).
+    # take four (5 and 8 bits slower; BENCHMARKS.md, "Dense scenes, warm, wall clock").
     tile_radix_bits: int | None = 7
     # Bits of the depth keys (all GPU-sort draws): the depth's float bits between the near and far planes mapped to
     # 2**depth_bits values (depth_key_range); fewer bits, fewer radix passes (32: 8 passes of 4 bits, 24: 6, 16: 4).
-    # H100, 6M dense at 1080p: depth sort 0.98 -> 0.78 ms at 24 bits, with no pixel changed by more than float
-    # rounding on llvmpipe (tests); 16 bits (0.43 ms) moves pixels by up to 0.5 there, so it stays an option.
+    # 24 bits change no pixel by more than float rounding on llvmpipe (tests); 16 bits move pixels visibly (splats
+    # close in depth swap), so they stay an option (figures: BENCHMARKS.md, "Dense scenes, warm, wall clock").
     depth_bits: int = 24
-    # Work buffers (keys, values, records, sort scratch) made for this many drawn splats at once (capped at the pool's
-    # capacity) instead of grown as the drawn set grows (0). Measured and left off: made for the fly-through's 2M-splat
-    # budget, its p99 was 16.0 / 14.0 ms against 15.6 / 17.0 grown (H100, one machine); its slow GPU-side frames are
-    # the compute draw's entry buffers growing, which this does not size.
-    work_splats: int = 0
 
     def __post_init__(self) -> None:
         if self.sort not in SORT_MODES:
@@ -157,36 +135,26 @@ class RenderOptions:
             raise UsageError(f"unknown draw mode {self.draw!r} (choose one of {', '.join(DRAW_CHOICES)})")
         if self.color_dtype not in COLOR_DTYPES:
             raise UsageError(f"unknown colour type {self.color_dtype!r} (choose one of {', '.join(COLOR_DTYPES)})")
-        if self.tile_px not in (8, 16) or self.unroll not in (1, 2, 4):
-            raise UsageError(f"compute draw: tiles of 8 or 16 pixels, unrolled 1, 2 or 4 times; got {self.tile_px} "
-                             f"and {self.unroll}")
         if self.radix_bits not in RADIX_CHOICES:
             raise UsageError(f"radix sort digits of {self.radix_bits} bits: choose one of {RADIX_CHOICES}")
         if self.tile_radix_bits is not None and self.tile_radix_bits not in RADIX_CHOICES:
             raise UsageError(f"tile sort digits of {self.tile_radix_bits} bits: choose one of {RADIX_CHOICES}")
         if self.depth_bits not in DEPTH_BITS_CHOICES:
             raise UsageError(f"depth keys of {self.depth_bits} bits: choose one of {DEPTH_BITS_CHOICES}")
-        if self.flush not in FLUSH_CHOICES:
-            raise UsageError(f"unknown flush mode {self.flush!r} (choose one of {', '.join(FLUSH_CHOICES)})")
         if self.draw != "compute" and not self.compute_defaults:
-            raise UsageError("tile_px, unroll, warp_cull, full_barriers, flush, tight_bins, emit_rects, balanced_emit, "
-                             "row_bins and tile_radix_bits are options of the compute draw mode")
+            raise UsageError("warp_cull, full_barriers and tile_radix_bits are options of the compute draw mode")
         if self.draw == "compute" and not self.raster_defaults:
-            raise UsageError("the compute draw mode takes no raster-draw options (front_to_back, depth_test, blend, "
-                             "discard_fragments)")
+            raise UsageError("the compute draw mode takes no raster-draw options (front_to_back, depth_test, blend)")
         if self.front_to_back and (self.sort == "cpu" or self.draw not in ("auto", "fetch", "points")):
             raise UsageError("the front-to-back draw needs the GPU sort and the fetch or points draw mode")
 
     @property
     def raster_defaults(self) -> bool:
-        return self.depth_test and self.blend and not self.front_to_back and not self.discard_fragments
+        return self.depth_test and self.blend and not self.front_to_back
 
     @property
     def compute_defaults(self) -> bool:
-        return (self.tile_px == 16 and self.unroll == 4 and self.warp_cull and not self.full_barriers
-                and self.flush == "stages" and not self.tight_bins and not self.emit_rects and self.balanced_emit
-                and self.row_bins
-                and self.tile_radix_bits == 7)
+        return self.warp_cull and not self.full_barriers and self.tile_radix_bits == 7
 
 
 def resolve_sort(ctx, options: RenderOptions) -> str:
@@ -332,19 +300,18 @@ class SplatRenderer:
         what is drawn (to twice that, never beyond the pool's capacity), not with the pool's capacity: a 1 GiB pool
         holds 23M splats, whose work buffers (2.9 GB) took most of the time to a streamed first frame, for a view
         that draws a few hundred thousand. Their contents live one frame, so growing copies nothing; each growth
-        costs an allocation (50-80 ms for hundreds of MB on the H100), hence the doubling."""
+        costs an allocation of tens of milliseconds (BENCHMARKS.md, "Streaming client"), hence the doubling."""
         if splats <= self._work_splats:
             return
         capacity = self.pool.splat_capacity
-        n = min(capacity, max(2 * splats, 2 * self._work_splats, MIN_WORK_SPLATS, self.options.work_splats))
+        n = min(capacity, max(2 * splats, 2 * self._work_splats, MIN_WORK_SPLATS))
         for b in (self.keys, self.values, self.records):
             if b is not None:
                 b.release()
         if self.sorter is not None:
             self.sorter.release()
         ctx = self.ctx
-        self.sorter = GpuRadixSort(ctx, n, self.options.radix_bits, self.options.fused_sort,
-                                   local_scatter=self.options.local_scatter)
+        self.sorter = GpuRadixSort(ctx, n, self.options.radix_bits, self.options.fused_sort)
         self.sorter.barrier_bits = self._chain_barrier(self.draw_mode)
         self.keys = work_buffer(ctx, n * 4)
         self.values = work_buffer(ctx, n * 4)
@@ -379,20 +346,15 @@ class SplatRenderer:
         if mode == "compute":
             if self.craster is None:
                 self.craster = ComputeRaster(self.ctx, opts.color_dtype, self._work_splats,
-                                             tile_px=opts.tile_px, unroll=opts.unroll, warp_cull=opts.warp_cull,
+                                             warp_cull=opts.warp_cull,
                                              radix_bits=opts.tile_radix_bits or opts.radix_bits,
-                                             fused_sort=opts.fused_sort, barrier_bits=self._chain_barrier("compute"),
-                                             tight_bins=opts.tight_bins, emit_rects=opts.emit_rects,
-                                             balanced_emit=opts.balanced_emit, row_bins=opts.row_bins,
-                                             local_scatter=opts.local_scatter)
+                                             fused_sort=opts.fused_sort, barrier_bits=self._chain_barrier("compute"))
                 self._bin_checks = BIN_CHECK_FRAMES
             self.draw_mode = mode
             self.program_gpu = self.vao_gpu = None
             return
         if mode not in self._programs:
             vert, frag = shadergen.projected_render_sources(mode, opts.front_to_back)
-            if opts.discard_fragments:
-                frag = frag.replace("void main() {", "void main() {\n    discard;", 1)
             prog = self.ctx.program(vertex_shader=vert, fragment_shader=frag)
             self._programs[mode] = (prog, self._vertex_array(mode, prog))
         self.draw_mode = mode
@@ -556,8 +518,9 @@ class SplatRenderer:
         slots = self.pool.scan_slots
         self._ensure_work(self.pool.drawn_splats)  # cull keeps drawn splats only, compacted
         # Zeroed by a GPU copy, in the command stream: a glBufferSubData from here, while frames still queued read and
-        # count into `params`, took the NVIDIA driver 60-70 ms a frame when frames were issued back to back (no wait
-        # between them) and drew some of them nearly empty (H100); with the copy, 3.3 ms and the right picture.
+        # count into `params`, stalled the NVIDIA driver for several frames' time when frames were issued back to back
+        # (no wait between them) and drew some of them nearly empty; the copy neither stalls nor races (BENCHMARKS.md,
+        # "Figures behind library defaults").
         self.ctx.copy_buffer(self.params, self._zero_params, len(ZERO_PARAMS))
         u = self._cull_uniforms
         for name, value in uniforms.items():
@@ -663,19 +626,16 @@ class SplatRenderer:
             stats.cull_ms, stats.sort_ms, stats.bin_ms, stats.tile_sort_ms, stats.draw_ms = (
                 q.elapsed / 1e6 for q in self._queries)
         else:
-            flush = self.options.flush
+            # A glFlush after every stage but the last: the GPU starts on the frame while the CPU still issues the
+            # rest of it (the wall clock a frame gains: BENCHMARKS.md, issue 20).
             self._cull(slots)
-            if flush != "none":
-                gl_flush()
+            gl_flush()
             self.sorter.sort(self.params, self.keys, self.values, self.options.depth_bits)
-            if flush == "stages":
-                gl_flush()
+            gl_flush()
             cr.bin(self.params, self.values, self.records, self.sorter.dispatch, w, h, self.keys)
-            if flush == "stages":
-                gl_flush()
+            gl_flush()
             cr.sort()
-            if flush == "stages":
-                gl_flush()
+            gl_flush()
             cr.raster(self.records, color, w, h, self._background)
         if self._bin_checks > 0:  # the first frames after an allocation check the entry buffer's capacity
             self._bin_checks -= 1

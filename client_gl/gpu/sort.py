@@ -51,20 +51,20 @@ class GpuRadixSort:
 
     radix_bits: digit width (4: 8 passes over 32-bit keys; 8: 4 passes). fused: three dispatches a pass (count with
     block sums by atomics, scan-add with its own block offset, scatter) instead of five (count, reduce, scan,
-    scan-add, scatter). local_scatter: the scatter reorders its tile by digit in shared memory first and writes each
-    digit's run in one piece (radix_scatter_local.comp; False: radix_scatter.comp's threads write each key where it
-    goes, up to 2**radix_bits runs a round). Each pass runs programs compiled for it (digit shift and buffer pair as
-    constants), so a pass binds nothing and sets no uniform. barrier_bits: glMemoryBarrier bits between dispatches."""
+    scan-add, scatter). The scatter reorders its tile by digit in shared memory first and writes each digit's run in
+    one piece (radix_scatter_local.comp), fewer and longer writes than each thread writing its key where it goes
+    (measured and removed: BENCHMARKS.md, "Dense scenes, warm, wall clock"). Each pass runs programs compiled for it
+    (digit shift and buffer pair as constants), so a pass binds nothing and sets no uniform. barrier_bits:
+    glMemoryBarrier bits between dispatches."""
 
     def __init__(self, ctx, capacity: int, radix_bits: int = RADIX_BITS, fused: bool = True,
-                 barrier_bits: int = CHAIN_BARRIER, local_scatter: bool = True):
+                 barrier_bits: int = CHAIN_BARRIER):
         if radix_bits not in RADIX_CHOICES:
             raise ValueError(f"radix sort digits of {radix_bits} bits: {RADIX_CHOICES}")
         self.ctx = ctx
         self.capacity = max(1, int(capacity))
         self.radix_bits = int(radix_bits)
         self.fused = bool(fused)
-        self.local_scatter = bool(local_scatter)
         self.barrier_bits = int(barrier_bits)
         radix = 1 << self.radix_bits
         self.setup_shader = compute_program(ctx, "indirect_setup.comp", radix_bits=self.radix_bits)
@@ -105,8 +105,7 @@ class GpuRadixSort:
                 defines += "#define FUSED\n"
             progs = self._pass_programs[p] = tuple(
                 compute_program(self.ctx, name, defines, self.radix_bits)
-                for name in ("radix_count.comp", "radix_scanadd.comp",
-                             "radix_scatter_local.comp" if self.local_scatter else "radix_scatter.comp"))
+                for name in ("radix_count.comp", "radix_scanadd.comp", "radix_scatter_local.comp"))
         return progs
 
     @property

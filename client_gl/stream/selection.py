@@ -158,7 +158,7 @@ def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: Sel
     and cost budgets; a refinement that does not fit is skipped. Children outside the frustum are dropped from the
     cut (they draw nothing)."""
     # Per-tile numbers over numpy first (visible children's cost and splats, priority): the greedy loop
-    # below then does only heap work and list lookups (0.70 -> 0.40 ms a frame on the 6M-splat scene). The sums
+    # below then does only heap work and list lookups (BENCHMARKS.md, "Figures behind library defaults"). The sums
     # are of whole numbers in float64, exact in any order, so the cut is the same as summing child by child.
     visible = view.visible
     child, has_kids, cost_l, splats_l = a.has_parent, a.has_children, cost.tolist(), a.splats_list

@@ -13,15 +13,17 @@ from __future__ import annotations
 import asyncio
 import os
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Protocol, runtime_checkable
 
 import aiohttp  # imported with the module, not at the first request: the first frame should not wait for it
 import yarl
 
+from splatstream.encode import EncodeOptions, encode_in_memory
 from splatstream.errors import InputError, UsageError
 from splatstream.format.manifest import MAX_MANIFEST_BYTES, PayloadEntry
 from splatstream.format.names import MANIFEST_NAME, manifest_url, payload_url
+from splatstream.io import declared_up, read_gaussians
 from splatstream.store import DirectoryStore, FsspecStore, MemoryStore, SceneStore
 
 # on_bytes(n): called with 0 when a response's headers arrive, then with the size of each body chunk received.
@@ -310,11 +312,6 @@ def open_source(spec: str | os.PathLike, *, encode_options=None, progress: Progr
 
 def encode_splat_file(path: str, encode_options=None, progress: Progress | None = None) -> MemoryStore:
     """Read a splat file of any supported format and encode it in memory (LOD on unless the options say so)."""
-    from dataclasses import replace
-
-    from splatstream.encode import EncodeOptions, encode_in_memory
-    from splatstream.io import read_gaussians
-
     opts = encode_options if encode_options is not None else EncodeOptions(lod=True)
     opts = replace(opts, reorder_input=True)  # the Gaussians are ours: the LOD builder may permute them in place
     if progress:
@@ -323,8 +320,6 @@ def encode_splat_file(path: str, encode_options=None, progress: Progress | None 
     if progress:
         progress("read", 1.0)
     if opts.up is None:
-        from splatstream.io import declared_up
-
         stated = declared_up(path)
         if stated is not None:
             opts = replace(opts, up=stated.up)

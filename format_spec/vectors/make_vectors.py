@@ -3,10 +3,10 @@ import json
 import pathlib
 import shutil
 
-from splatstream.decoder import decode_scene
 from splatstream.encode import EncodeOptions, encode_gaussians
 from splatstream.format.layout import morton_order
 from splatstream.ply import read_gaussians_ply
+from splatstream.scene_decode import decode_scene
 
 HERE = pathlib.Path(__file__).resolve().parent
 SOURCE = HERE.parents[1].parent / "shared" / "data" / "real" / "fruit_drops_sh3.ply"

@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..gaussians import SH_BAND_COEFFS, Gaussians, logit, normalize_quaternions, sigmoid
+from .f16 import f16_ceil, f16_floor
 from .layout import CHUNK_SIZE, chunk_texel_index, texture_size
 from .limits import plane_limits
 from .planes import SH_INDEX_FORMAT, SH_INDEX_PLANE, PlaneSpec
@@ -26,21 +27,6 @@ SQRT2 = math.sqrt(2.0)
 WHOLE_PLANE_GATHER_BYTES = 32 << 20
 # Opacity is stored after the sigmoid; decoding takes the logit of a value clamped to this interval.
 OPACITY_EPS = 1e-6
-
-
-def f16_floor(x: np.ndarray) -> np.ndarray:
-    """Largest float16 <= x (so a stored minimum never exceeds the true one)."""
-    h = x.astype(np.float16)
-    over = h.astype(np.float32) > x
-    h[over] = np.nextafter(h[over], np.float16(-np.inf))
-    return h
-
-
-def f16_ceil(x: np.ndarray) -> np.ndarray:
-    h = x.astype(np.float16)
-    under = h.astype(np.float32) < x
-    h[under] = np.nextafter(h[under], np.float16(np.inf))
-    return h
 
 
 # ---------------------------------------------------------------------------------------------------------------

@@ -31,10 +31,10 @@ from .texformats import TEXEL_DTYPES
 from .transport import filter_texels, shuffle, shuffle_filter, unfilter_texels, unshuffle
 
 WORKER_MODE_MAX_BYTES = 32 << 20
-# zstd level of the encoder's payloads. With a zstd block per byte plane, level 1 measured as small as level 3 or
-# smaller (1M scene medium: 36.5 against 37.6 B/splat without LOD, 49.5 against 51.4 with 16k-splat tiles; fields1
-# planes are near noise, where level 3's extra short matches cost more than they save) and compresses about twice
-# as fast; levels up to 19 gained 1-4 % at 20-50 times the time.
+# zstd level of the encoder's payloads. With a zstd block per byte plane, level 1 is as small as level 3 or smaller
+# (fields1 planes are near noise, where level 3's extra short matches cost more than they save) and compresses about
+# twice as fast; higher levels gain a few per cent at many times the time (BENCHMARKS.md, "Figures behind library
+# defaults").
 DEFAULT_ZSTD_LEVEL = 1
 
 
@@ -46,9 +46,9 @@ def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level:
     `encode_plane(..., lazy=True)`) and stored through the filter `transport` picks (format.md 5.2: `fields1` where
     it is smaller than the byte shuffle); their stored sizes lay out the section table, then the sections go through
     one zstd frame, a zstd block ending with each part of a section (a byte plane; a layer of BC blocks; a range):
-    every part gets its own literal table, which measured 2-12 % smaller sections than one table across planes of
-    different statistics (format.md 5.3). The payload's stored sections are held until then, never its texels as
-    a whole.
+    every part gets its own literal table, smaller than one table across planes of different statistics
+    (format.md 5.3; BENCHMARKS.md, "Figures behind library defaults"). The payload's stored sections are held until
+    then, never its texels as a whole.
     `chunks` is the tile's chunk count (range shapes).
     """
     sections: list[Section] = []
@@ -87,9 +87,9 @@ def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level:
             return out.write(data)
 
     position = 0
-    # zstd's worker mode measured 1.5 % smaller payloads on 62,500-splat tiles than the single-threaded mode at
-    # the same speed (its output does not depend on the worker count), but it buffers whole jobs: on a 112 MB
-    # payload it lifted the encoder's peak memory from 2.3x to 3.1x the input. Large payloads stream single-threaded.
+    # zstd's worker mode makes slightly smaller payloads than the single-threaded mode at the same speed (its output
+    # does not depend on the worker count), but it buffers whole jobs, which lifts the encoder's peak memory on large
+    # payloads (BENCHMARKS.md, "Figures behind library defaults"). Large payloads stream single-threaded.
     threads = -1 if offset <= WORKER_MODE_MAX_BYTES else 0
     cctx = zstandard.ZstdCompressor(level=level, threads=threads, write_content_size=True)
     with cctx.stream_writer(_Sink(), size=offset, closefd=False) as stream:
@@ -140,9 +140,9 @@ def _decompress(data: bytes | memoryview, size: int, source: str) -> tuple[np.nd
     """The payload's `size` decompressed bytes and whether they lie in this thread's reused buffer (else, above
     KEEP_RAW_BYTES, in a fresh array). FormatError unless `data` is one zstd frame of exactly `size` bytes.
 
-    Why a kept buffer: a tile's payload decompresses to a few hundred KB, above glibc's mmap threshold, and on
-    this VM a fresh buffer's page faults measured as much as a third of zstd's time in the decode of biker's
-    tiles (issue 15). The bytes are only valid until this thread's next call: unpack_payload copies what of them
+    Why a kept buffer: a tile's payload decompresses to a few hundred KB, above glibc's mmap threshold, and a
+    fresh buffer's page faults then cost a large share of zstd's time (issue 15; BENCHMARKS.md, "Figures behind
+    library defaults"). The bytes are only valid until this thread's next call: unpack_payload copies what of them
     it returns as views."""
     kept = size <= KEEP_RAW_BYTES
     if kept:

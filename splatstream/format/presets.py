@@ -61,9 +61,9 @@ PRESETS: dict[str, dict[str, str]] = {
     # scene 45.2 -> 50.0) and, coded with fields1, costs about 1 B/splat more (fruit_drops 11.2 -> 11.7 B).
     # Rotations stay norm565 (3 x 5/6/5 bits, w from the rest) to keep real SH3 scenes under 12 B/splat.
     "low": {"position": "norm8x4", "rotation": "norm565", "scale": "norm8x4", "color": "norm8x4", "sh": "norm565"},
-    # The seed's very-low (BC7 for position, rotation and scale) measured 18 dB on fruit_drops: BC7 scales are
-    # the worst of it. Packed 16-bit scales and rotations gave 31 dB at fewer bytes (SH1 in BC1); the codebook
-    # keeps all three bands for less.
+    # Not the seed's very-low (BC7 for position, rotation and scale): BC7 scales ruined the picture. Packed 16-bit
+    # scales and rotations do far better at fewer bytes, and the codebook keeps all three SH bands for less
+    # (BENCHMARKS.md, "Figures behind library defaults").
     "very-low": {"position": "norm8x4", "rotation": "norm565", "scale": "norm565", "color": "bc7", "sh": "norm565"},
 }
 # Presets whose SH bands go through a scene-wide codebook (vq.py: "auto" about one entry per 64 splats, "fine" one
@@ -100,11 +100,9 @@ PRESET_STEPS: dict[str, dict[str, TileStep]] = {
                           "color": TileStep((255.0, 255.0, 255.0, 55.0), shared=3), **sh_steps(6.0)},
 }
 # zstd level per preset where it is not the encoder's default (DEFAULT_ZSTD_LEVEL, 1; `--zstd-level` overrides
-# both). medium-low at 9: 0.3-1.0 % smaller than at 1 on the real scenes (lod_tile 13.40 -> 13.26 B/splat, which
-# puts it under 0.90 of SOG's bytes there), for about 1 s more per million splats; low-plus and low gained nothing
-# (+-0.5 %), and medium keeps level 1 for its encode speed. medium-low-9bit at 16 (zstd's btultra): 0.3-1.5 % smaller
-# than at 9 on biker, donut, fruit_drops and the 1M scene (biker 11.44 -> 11.39 B/splat, which puts it under 0.90 of
-# SOG's bytes there; lod_tile +0.3 %), for about 3.5 s more per million splats on 2 cores (bench/results/pos9_levels_*).
+# both): a higher level where its small gain puts a preset under 0.90 of SOG's bytes on a real scene, for a little
+# more encode time; low-plus and low gained nothing, and medium keeps level 1 for its encode speed
+# (bench/results/pos9_levels_*; BENCHMARKS.md, "Figures behind library defaults").
 PRESET_ZSTD_LEVEL: dict[str, int] = {"medium-low": 9, "medium-low-12bit": 16, "medium-low-9bit": 16,
                                      "low-plus-9bit": 16, "low-plus-9bit-sh6": 16}
 DEFAULT_PRESET = "medium"

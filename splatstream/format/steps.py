@@ -6,8 +6,9 @@ chunk the same number of levels, so a chunk whose values spread wide gets a coar
 one. With a tile step, every chunk of a tile takes the same step s_k = (median over the tile's chunks of their
 extent) / `levels[k]`: a chunk of extent e stores `max' = min + L (e / n)`, n = clamp(e / s_k, 1, L) its number of
 steps and L the format's levels, so its values quantise to q = 0..n (texel codes stay small and their Morton deltas
-cheap) at step e / n = s_k, or finer where a chunk spreads wider than L steps. On donut (issue 15) one absolute step
-for positions, scales and colour measured 0.3 B/splat smaller than per-chunk grids at the same PSNR.
+cheap) at step e / n = s_k, or finer where a chunk spreads wider than L steps. One absolute step for positions,
+scales and colour is smaller than per-chunk grids at the same PSNR (issue 15; BENCHMARKS.md, "Figures behind
+library defaults").
 """
 from __future__ import annotations
 
@@ -16,6 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import UsageError
+from .f16 import f16_ceil
 from .texformats import get_format
 
 
@@ -78,7 +80,6 @@ def widened_max(lo: np.ndarray, hi: np.ndarray, fmt_name: str, step: TileStep, r
     steps = np.clip(np.divide(extent, size, out=np.zeros_like(extent), where=size > 0), 1.0, fmt_levels)
     wide = lo64 + extent * (fmt_levels / steps)
     if range_dtype == "<f2":
-        from .codec import f16_ceil  # codec imports this module
 
         stored = f16_ceil(wide.astype(np.float32)).astype(np.float64)
     else:

@@ -185,8 +185,8 @@ def encode_bc_image(fmt_name: str, rgba: np.ndarray) -> np.ndarray:
 
 def _bc7_params(etcpak):
     # Texels are data, not pictures: linear (not perceptual) channel weights, and alpha (opacity, or the
-    # fourth value) weighted double because a wrong opacity shows more than a wrong colour. Uber level 2
-    # measured best for its cost on the real scenes (format_spec/format.md, "BC7").
+    # fourth value) weighted double because a wrong opacity shows more than a wrong colour. Uber level 2: the best
+    # quality for its encode time on the real scenes (format_spec/format.md, "BC7").
     params = etcpak.BC7CompressBlockParams()
     params.init_linear_weights()
     params.m_weights = [1, 1, 1, 2]

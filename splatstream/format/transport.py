@@ -464,7 +464,8 @@ def filter_texels(layers: Iterable[np.ndarray], fmt: str, width: int, height: in
 # Decoder
 
 
-# Up to this size, a shuffled unit is undone by numpy's transposing copy (measured faster below 2-4 KB).
+# Up to this size, a shuffled unit is undone by numpy's transposing copy, faster than the general path for small units
+# (BENCHMARKS.md, "Figures behind library defaults").
 SMALL_UNSHUFFLE_BYTES = 2048
 
 

@@ -16,7 +16,7 @@ import numpy as np
 from ..errors import InputError
 from ..gaussians import SH_C0, Gaussians, normalize_quaternions
 from ..ply import PlyHeader, check_element_sizes, read_elements, read_header
-from . import check_memory, model_bytes_per_splat, opacity_logits_from_unit
+from ..reader_support import check_memory, model_bytes_per_splat, opacity_logits_from_unit
 
 CHUNK_SIZE = 256
 CHUNK_BOUNDS = ["min_x", "min_y", "min_z", "max_x", "max_y", "max_z",

@@ -21,11 +21,14 @@ from urllib.parse import unquote
 
 import numpy as np
 
+from ..axes import RDF_TO_RUB, turn
 from ..errors import InputError
 from ..gaussians import SH_BAND_COEFFS, Gaussians, normalize_quaternions
+from ..gltf_splats import EXTENSION, PREFIX, SPZ_EXTENSION, sh_attribute_names
+from ..reader_support import memory_budget, opacity_logits_from_unit, read_regular_file
 from ..sh import sh_basis
-from . import memory_budget, opacity_logits_from_unit, read_regular_file
 from .splat import MIN_LOG_SCALE
+from .spz import decode_spz
 
 GLB_HEADER = struct.Struct("<4sII")
 CHUNK_HEADER = struct.Struct("<II")
@@ -33,9 +36,6 @@ CHUNK_JSON = 0x4E4F534A
 CHUNK_BIN = 0x004E4942
 MAX_JSON_BYTES = 64 << 20
 MAX_NODES = 1 << 16
-EXTENSION = "KHR_gaussian_splatting"
-SPZ_EXTENSION = "KHR_gaussian_splatting_compression_spz_2"
-PREFIX = "KHR_gaussian_splatting:"
 COMPONENTS = {5120: ("i1", 127.0), 5121: ("u1", 255.0), 5122: ("<i2", 32767.0), 5123: ("<u2", 65535.0),
               5125: ("<u4", None), 5126: ("<f4", None)}
 WIDTH = {"SCALAR": 1, "VEC2": 2, "VEC3": 3, "VEC4": 4}
@@ -236,7 +236,7 @@ def _node_matrices(doc: _Document) -> list[tuple[int, np.ndarray]]:
     while stack:
         index, parent = stack.pop()
         # glTF nodes form disjoint strict trees: a node reached twice is a cycle or a shared child (refused at
-        # once: a cycle used to be walked 65,536 times, 9 s).
+        # once: a cycle used to be walked 65,536 times; BENCHMARKS.md, "Fuzz and fault campaign").
         if isinstance(index, int) and index in visited:
             raise InputError(doc.path, f"nodes[{index}]", "reached twice: the node hierarchy is not a set of trees "
                              "(a cycle, or a node with two parents)")
@@ -370,8 +370,6 @@ def _primitive(doc: _Document, mesh: int, number: int, primitive: dict, drop_inv
     nested = splat.get("extensions", {}) if isinstance(splat.get("extensions", {}), dict) else {}
     position_count = doc.item("accessors", attributes["POSITION"]).get("count")
     if SPZ_EXTENSION in nested:
-        from .spz import decode_spz
-
         spz = nested[SPZ_EXTENSION]
         if not isinstance(spz, dict) or "bufferView" not in spz:
             raise InputError(doc.path, f"{field} {SPZ_EXTENSION}", "needs a bufferView")
@@ -383,8 +381,6 @@ def _primitive(doc: _Document, mesh: int, number: int, primitive: dict, drop_inv
         # SPZ content is packed from glTF's LUF into SPZ's RUB; our SPZ decoder returns RDF: turn to LUF so node
         # transforms apply in glTF space like for plain accessors. With spz_axes "luf" the SPZ holds the glTF values
         # unconverted (as CesiumJS reads it): undo the decoder's RUB -> RDF turn instead.
-        from ..axes import RDF_TO_RUB, turn
-
         return turn(g, LUF_TO_RDF if spz_axes == "rub" else RDF_TO_RUB)
     for name in ("ROTATION", "SCALE", "OPACITY", "SH_DEGREE_0_COEF_0"):
         if PREFIX + name not in attributes:
@@ -396,8 +392,6 @@ def _primitive(doc: _Document, mesh: int, number: int, primitive: dict, drop_inv
     opacity = _accessor(doc, attributes[PREFIX + "OPACITY"], "OPACITY", "OPACITY", "SCALAR", n)[:, 0]
     sh_dc = _accessor(doc, attributes[PREFIX + "SH_DEGREE_0_COEF_0"], "SH_DEGREE_0_COEF_0", "SH", "VEC3", n)
     degree = _sh_degree(doc.path, f"{field} attributes", attributes)
-    from ..writers.glb import sh_attribute_names
-
     rest = [_accessor(doc, attributes[name], name[len(PREFIX):], "SH", "VEC3", n) for name in
             sh_attribute_names(degree)]
     sh_rest = np.stack(rest, axis=1) if rest else np.zeros((n, 0, 3), np.float32)
@@ -433,8 +427,6 @@ def read_gltf(path: str | os.PathLike, drop_invalid: bool = False, spz_axes: str
 
     spz_axes: how SPZ content stores glTF's axes: "rub" (the extension's text) or "luf" (unconverted, as CesiumJS
     reads it; see splatstream/writers/glb.py)."""
-    from ..axes import turn
-
     path = os.fspath(path)
     doc = _load(path)
     used = doc.gltf.get("extensionsUsed", [])

@@ -36,7 +36,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..gaussians import SH_REST_COEFFS, Gaussians, normalize_quaternions
-from . import memory_budget, opacity_logits_from_unit, read_regular_file
+from ..reader_support import memory_budget, opacity_logits_from_unit, read_regular_file
 
 MAX_JSON_BYTES = 64 << 20
 ZIP_PIECE = 1 << 20  # zip members are inflated this much at a time

@@ -10,9 +10,10 @@ import warnings
 
 import numpy as np
 
+from ..atomic import atomic_file
 from ..errors import InputError
 from ..gaussians import SH_C0, Gaussians, normalize_quaternions, sigmoid
-from . import check_memory, model_bytes_per_splat, opacity_logits_from_unit
+from ..reader_support import check_memory, model_bytes_per_splat, opacity_logits_from_unit
 
 SPLAT_RECORD = np.dtype([("position", "<f4", (3,)), ("scale", "<f4", (3,)), ("rgba", "u1", (4,)),
                          ("rotation", "u1", (4,))])
@@ -88,8 +89,6 @@ def splat_records(g: Gaussians) -> np.ndarray:
 
 def write_splat(g: Gaussians, path: str | os.PathLike) -> None:
     """Write an antimatter15 .splat file (atomically). Lossy: no SH bands, 8-bit colour, opacity, rotation."""
-    from ..atomic import atomic_file
-
     records = splat_records(g)
     # The format has no header: readers (ours included) tell a .splat file from other bytes by plausible values,
     # so records beyond those bounds would make the file unreadable. Refuse rather than write it.

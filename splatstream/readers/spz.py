@@ -20,7 +20,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..gaussians import SH_REST_COEFFS, Gaussians, normalize_quaternions
-from . import check_memory, model_bytes_per_splat, opacity_logits_from_unit
+from ..reader_support import check_memory, model_bytes_per_splat, opacity_logits_from_unit
 
 MAGIC = b"NGSP"
 LEGACY_HEADER = struct.Struct("<4sIIBBBB")  # magic, version, numPoints, shDegree, fractionalBits, flags, reserved
@@ -72,7 +72,7 @@ def _check_count(path: str, n: int, needed: int, compressed: int, sh_degree: int
         raise InputError(path, "header numPoints", f"{n} points need {needed} bytes of attributes, but no real SPZ "
                          f"file compresses its attributes more than {MAX_EXPANSION}:1 and this one has {compressed} "
                          "compressed bytes (a decompression bomb, or a corrupt header)")
-    # The attribute bytes, the model, and the float temporaries of decoding (measured peak: about 3x the model).
+    # The attribute bytes, the model, and the float temporaries of decoding (the peak holds about three models).
     check_memory(path, "header numPoints", n, needed // max(n, 1) + 3 * model_bytes_per_splat(sh_degree))
 
 

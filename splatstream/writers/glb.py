@@ -32,9 +32,13 @@ import struct
 
 import numpy as np
 
+from ..atomic import atomic_file
 from ..axes import RDF_TO_LUF, RDF_TO_RUB, turn
 from ..errors import UsageError
-from ..gaussians import SH_BAND_COEFFS, Gaussians, sigmoid
+from ..gaussians import Gaussians, sigmoid
+from ..gltf_splats import EXTENSION, PREFIX, SPZ_EXTENSION, sh_attribute_names
+from ..readers.spz import decode_spz
+from .spz import spz_bytes
 
 GLB_MAGIC = b"glTF"
 GLB_VERSION = 2
@@ -43,9 +47,6 @@ CHUNK_BIN = 0x004E4942
 FLOAT = 5126
 UNSIGNED_BYTE = 5121
 ARRAY_BUFFER = 34962
-EXTENSION = "KHR_gaussian_splatting"
-SPZ_EXTENSION = "KHR_gaussian_splatting_compression_spz_2"
-PREFIX = "KHR_gaussian_splatting:"
 SPLAT_PROPERTIES = {"kernel": "ellipse", "colorSpace": "srgb_rec709_display", "projection": "perspective",
                     "sortingMethod": "cameraDistance"}
 # SPZ inside glTF: the extension references SPZ 2.0.0, whose files are version 3 (gzip); CesiumJS's loader
@@ -53,12 +54,6 @@ SPLAT_PROPERTIES = {"kernel": "ellipse", "colorSpace": "srgb_rec709_display", "p
 DEFAULT_SPZ_VERSION = 3
 COMPRESSIONS = ("none", "spz")
 SPZ_AXES = ("rub", "luf")
-
-
-def sh_attribute_names(degree: int) -> list[str]:
-    """KHR_gaussian_splatting SH attribute names of bands 1..degree, in the order of our sh_rest rows."""
-    return [f"{PREFIX}SH_DEGREE_{band}_COEF_{n}" for band in range(1, degree + 1)
-            for n in range(SH_BAND_COEFFS[band])]
 
 
 def _srgb_to_linear(c: np.ndarray) -> np.ndarray:
@@ -120,13 +115,9 @@ def glb_bytes(g: Gaussians, compression: str = "none", spz_version: int = DEFAUL
     extensions_required: list[str] = []
     buffer_views: list[dict] = []
     if compression == "spz":
-        from .spz import spz_bytes
-
         # Packed from glTF's LUF into SPZ's RUB: the same bytes as an SPZ file of the RDF scene.
         blob = spz_bytes(g, spz_version, axes=RDF_TO_RUB if spz_axes == "rub" else RDF_TO_LUF)
         # The bounds a viewer gets are those of the decoded (quantised) positions.
-        from ..readers.spz import decode_spz
-
         decoded = turn(decode_spz("<spz content>", blob), RDF_TO_LUF if spz_axes == "rub" else RDF_TO_RUB).positions
         accessors[0]["min"] = decoded.min(axis=0).astype(np.float64).tolist()
         accessors[0]["max"] = decoded.max(axis=0).astype(np.float64).tolist()
@@ -179,8 +170,6 @@ def glb_bytes(g: Gaussians, compression: str = "none", spz_version: int = DEFAUL
 def write_glb(g: Gaussians, path: str | os.PathLike, compression: str = "none",
               spz_version: int = DEFAULT_SPZ_VERSION) -> None:
     """Write a .glb atomically (temporary name, then rename)."""
-    from ..atomic import atomic_file
-
     try:
         data = glb_bytes(g, compression, spz_version)
     except UsageError as exc:  # name the file being written

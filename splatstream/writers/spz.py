@@ -18,6 +18,7 @@ import zlib
 
 import numpy as np
 
+from ..atomic import atomic_file
 from ..axes import RDF_TO_RUB, turn
 from ..errors import UsageError
 from ..gaussians import Gaussians
@@ -147,8 +148,6 @@ def spz_bytes(g: Gaussians, version: int = 4, axes: tuple[float, float, float] =
 
 def write_spz(g: Gaussians, path: str | os.PathLike, version: int = 4) -> None:
     """Write an SPZ file atomically (temporary name, then rename)."""
-    from ..atomic import atomic_file
-
     try:
         data = spz_bytes(g, version)
     except UsageError as exc:  # name the file being written

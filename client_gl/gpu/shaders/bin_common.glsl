@@ -1,4 +1,4 @@
-// Tile binning of the compute rasterizer: the TILE_PX x TILE_PX-pixel tiles (16 by default) a projected splat touches.
+// Tile binning of the compute rasterizer: the TILE_PX x TILE_PX-pixel tiles (16) a projected splat touches.
 // Records are cull.comp's 48-byte records: (center.xy, ndc z, opacity), (conic.xyz, minor), (rgb, axis).
 layout(std430, binding = 2) readonly buffer Records { uvec4 records[]; };
 
@@ -6,7 +6,7 @@ uniform uvec2 u_grid;  // tiles in x and y
 
 // Tiles [lo, hi) overlapped by the axis-aligned box of the ellipse where alpha reaches 1/255
 // (k = sqrt(2 ln(255 opacity)) sigmas; the covariance is the inverse of the conic). Empty when degenerate.
-// c, q, op: the splat's centre (pixels), conic (a, b, c) and opacity, for tile_hit.
+// c, q, op: the splat's centre (pixels), conic (a, b, c) and opacity, for row_spans.
 void tile_rect(uint r, out uvec2 lo, out uvec2 hi, out vec2 c, out vec3 q, out float op) {
     uvec4 a = records[3u * r];
     q = uintBitsToFloat(records[3u * r + 1u].xyz);
@@ -25,61 +25,11 @@ void tile_rect(uint r, out uvec2 lo, out uvec2 hi, out vec2 c, out vec3 q, out f
     hi = max(uvec2(clamp(floor(h) + 1.0, vec2(0.0), g)), lo);
 }
 
-void tile_rect(uint r, out uvec2 lo, out uvec2 hi) {
-    vec2 c;
-    vec3 q;
-    float op;
-    tile_rect(r, lo, hi, c, q, op);
-}
-
 uint rect_tiles(uvec2 lo, uvec2 hi) { return (hi.x - lo.x) * (hi.y - lo.y); }
 
-#ifdef TIGHT_BINS
-// Q(d) = a dx^2 + 2 b dx dy + c dy^2 (the raster's power is -Q / 2) and the sum of its terms' magnitudes.
-vec2 conic_q(vec3 q, float dx, float dy) {
-    precise float t0 = q.x * dx * dx, t1 = 2.0 * q.y * dx * dy, t2 = q.z * dy * dy;
-    precise vec2 qq = vec2(t0 + t1 + t2, abs(t0) + abs(t1) + abs(t2));
-    return qq;
-}
-
-// Whether the alpha >= 1/255 ellipse of a splat reaches a pixel centre of tile t (raster.comp evaluates the splat
-// at the tile's pixel centres only): the minimum of Q over the rectangle of the tile's pixel centres, at most
-// 2 ln(255 opacity) plus a margin far above float rounding (a splat this keeps and the raster rejects costs time,
-// never a pixel). `precise`: bin_count and bin_emit evaluate this in two programs and must agree. Q is convex: its
-// minimum is 0 at the centre when the rectangle holds it, else on an edge, where it is the clamped minimum along it.
-bool tile_hit(uvec2 t, vec2 c, vec3 q, float op) {
-    precise vec2 lo = vec2(t * uint(TILE_PX)) + 0.5 - c;  // first pixel centre - splat centre
-    precise vec2 hi = lo + float(TILE_PX - 1);            // last pixel centre - splat centre
-    if (all(lessThanEqual(lo, vec2(0.0))) && all(greaterThanEqual(hi, vec2(0.0)))) return true;
-    precise float lim = log(max(op, 1.0 / 255.0) * 255.0);  // Q / 2 at the alpha = 1/255 level
-    // Along x = const edges the minimum over dy is at dy = -b dx / c; along y = const edges at dx = -b dy / a.
-    precise float ya = clamp(-q.y * lo.x / q.z, lo.y, hi.y), yb = clamp(-q.y * hi.x / q.z, lo.y, hi.y);
-    precise float xa = clamp(-q.y * lo.y / q.x, lo.x, hi.x), xb = clamp(-q.y * hi.y / q.x, lo.x, hi.x);
-    precise vec2 m0 = conic_q(q, lo.x, ya), m1 = conic_q(q, hi.x, yb);
-    precise vec2 m2 = conic_q(q, xa, lo.y), m3 = conic_q(q, xb, hi.y);
-    precise vec2 m = m0;
-    if (m1.x < m.x) m = m1;
-    if (m2.x < m.x) m = m2;
-    if (m3.x < m.x) m = m3;
-    precise float bound = lim + 0.01 + 1e-5 * m.y;
-    return 0.5 * m.x <= bound;
-}
-
-// Entries of a splat: the tiles of its box that tile_hit keeps.
-uint splat_entries(uvec2 lo, uvec2 hi, vec2 c, vec3 q, float op) {
-    uint n = 0u;
-    for (uint y = lo.y; y < hi.y; ++y) {
-        for (uint x = lo.x; x < hi.x; ++x) {
-            if (tile_hit(uvec2(x, y), c, q, op)) ++n;
-        }
-    }
-    return n;
-}
-#endif
-
-#ifdef ROW_BINS
 // A splat's ellipse Q(d) <= L for row_tiles: Q(d) = a dx^2 + 2 b dx dy + c dy^2 (q = (a, b, c)), L = 2 (ln(255
-// opacity) + 0.01) (the alpha >= 1/255 level plus the margin tile_hit keeps); det = ac - b^2, ey its half height,
+// opacity) + 0.01) (the alpha >= 1/255 level plus a margin far above float rounding: a splat this keeps and the
+// raster rejects costs time, never a pixel); det = ac - b^2, ey its half height,
 // s = sqrt(L / (det c)).
 struct RowSplat { vec2 c; vec3 q; float L; float det; float ey; float s; };
 
@@ -141,4 +91,3 @@ uint row_entries(uvec2 lo, uvec2 hi, vec2 c, vec3 q, float op) {
     uvec4 s = row_spans(lo, hi, c, q, op);
     return (s.y - s.x) + (s.w - s.z);
 }
-#endif

@@ -1,15 +1,12 @@
 // Compute rasterizer, binning step 3: every depth-sorted visible splat writes one (tile id, record index) entry per
 // tile it touches at its exclusive-scan offset, so entries are ordered by (depth, tile); a stable sort by tile id
 // then leaves each tile's splats front to back. Entries past the capacity are dropped (bins.total tells).
-// TIGHT_BINS: only the tiles of the box that tile_hit keeps (bin_count.comp counts them with the same code).
-// EMIT_RECTS: the tile boxes of the first pass are kept (packed 16-bit corners) instead of read and computed again.
-// BALANCED: after the block's scan, the work group writes its entries together, thread t the entries t, t + 256, ...
-// of the group's run (each finds its splat by a binary search of the offsets in shared memory): every thread writes
-// as many entries, and neighbouring threads neighbouring words, where one thread a splat leaves a warp waiting on its
-// largest splat's tiles. The same entries in the same order as one thread a splat (not with TIGHT_BINS).
-// ROW_BINS (with BALANCED): a splat whose box is at most two tiles high (bin_common.glsl's row_binned) has, row by
-// row, the tiles row_tiles keeps (those whose pixel centres its alpha >= 1/255 ellipse reaches, as TIGHT_BINS, found
-// per row in closed form); a taller one its whole box.
+// After the block's scan the work group writes its entries together, thread t the entries t, t + 256, ... of the
+// group's run (each finds its splat by a binary search of the offsets in shared memory): every thread writes as
+// many entries, and neighbouring threads neighbouring words, where one thread a splat would leave a warp waiting on
+// its largest splat's tiles. A splat whose box is at most two tiles high (bin_common.glsl's row_binned) has, row by
+// row, the tiles row_tiles keeps (those whose pixel centres its alpha >= 1/255 ellipse reaches, found per row in
+// closed form); a taller one its whole box. Why these and not the alternatives measured: BENCHMARKS.md (issue 20).
 layout(local_size_x = 256) in;
 
 layout(std430, binding = 0) readonly buffer Params { uint count; uint pad[3]; };
@@ -18,43 +15,28 @@ layout(std430, binding = 1) readonly buffer Order { uint order[]; };
 layout(std430, binding = 3) readonly buffer GroupSums { uint gsum[]; };
 layout(std430, binding = 6) writeonly buffer TileKeys { uint tile_keys[]; };
 layout(std430, binding = 7) writeonly buffer TileValues { uint tile_values[]; };
-#ifdef ROW_BINS
 layout(std430, binding = 5) readonly buffer Counts { uint counts[]; };  // bin_count's entries of each sorted splat
-#endif
 
 uniform uint u_capacity;
 
 #include "scan_block.glsl"
 
-#ifdef BALANCED
 shared uint s_off[SCAN_TILE];  // exclusive entry offset of each splat of the group, in depth order
 shared uint s_lo[SCAN_TILE];   // its tile box's first tile, x | y << 16
-shared uint s_w[SCAN_TILE];    // its tile box's width in tiles (ROW_BINS: its packed row spans, or width | 1 << 31)
-#endif
+shared uint s_w[SCAN_TILE];    // its packed row spans, or (a taller box) its width | 1 << 31
 
 void main() {
     uint n = count;
     uint lid = gl_LocalInvocationID.x;
     uint g = gl_WorkGroupID.x;
     uint vals[SCAN_ITEMS];
-#ifdef BALANCED
-    uvec2 los[SCAN_ITEMS];  // (first tile x | y << 16, box width in tiles)
-#endif
-#ifdef EMIT_RECTS
-    uvec2 rects[SCAN_ITEMS];  // (lo.x | lo.y << 16, hi.x | hi.y << 16)
-#endif
+    uvec2 los[SCAN_ITEMS];  // (first tile x | y << 16, row spans or box width)
     for (uint i = 0u; i < SCAN_ITEMS; ++i) {
         uint idx = g * SCAN_TILE + lid * SCAN_ITEMS + i;
         vals[i] = 0u;
-#ifdef BALANCED
         los[i] = uvec2(0u);
-#endif
-#ifdef EMIT_RECTS
-        rects[i] = uvec2(0u);
-#endif
-#ifdef ROW_BINS
         // bin_count's counts (what its group sums add up); a row-binned splat's rows kept as (lo.x | lo.y << 16,
-        // first row's [x0, x1) | second row's << 16, 8 bits each from lo.x); a taller box as the box mode's
+        // first row's [x0, x1) | second row's << 16, 8 bits each from lo.x); a taller box as
         // (lo.x | lo.y << 16, width | 1 << 31).
         if (idx < n) {
             vals[i] = counts[idx];
@@ -69,33 +51,8 @@ void main() {
                 los[i].y = r.x | (r.y << 8) | (r.z << 16) | (r.w << 24);
             }
         }
-        continue;
-#endif
-        if (idx < n) {
-            uvec2 lo, hi;
-            vec2 c;
-            vec3 q;
-            float op;
-            tile_rect(order[idx], lo, hi, c, q, op);
-#if defined(TIGHT_BINS)
-            vals[i] = splat_entries(lo, hi, c, q, op);
-#else
-            vals[i] = rect_tiles(lo, hi);
-#endif
-#ifdef EMIT_RECTS
-            rects[i] = uvec2(lo.x | (lo.y << 16), hi.x | (hi.y << 16));
-#endif
-#ifdef BALANCED
-            los[i] = uvec2(lo.x | (lo.y << 16), hi.x - lo.x);
-#endif
-        }
     }
-#ifdef TIGHT_BINS
-    uint counts[SCAN_ITEMS];
-    for (uint i = 0u; i < SCAN_ITEMS; ++i) counts[i] = vals[i];
-#endif
     uint tot;
-#ifdef BALANCED
     block_exclusive_scan(vals, tot);
     for (uint i = 0u; i < SCAN_ITEMS; ++i) {
         uint k = lid * SCAN_ITEMS + i;
@@ -113,12 +70,11 @@ void main() {
         }
         uint k = a - 1u;
         uint t = o - s_off[k];
-#ifdef ROW_BINS
         uint r = order[g * SCAN_TILE + k];
         uint lo0 = s_lo[k];
         uint rows = s_w[k];
         uint x, y;
-        if ((rows & 0x80000000u) != 0u) {  // a taller box: all of it, as the box mode
+        if ((rows & 0x80000000u) != 0u) {  // a taller box: all of it
             uint w = rows & 0x7FFFFFFFu;
             x = (lo0 & 0xFFFFu) + t % w;
             y = (lo0 >> 16) + t / w;
@@ -136,53 +92,5 @@ void main() {
             tile_keys[base + o] = y * u_grid.x + x;
             tile_values[base + o] = r;
         }
-#else
-        uint w = s_w[k];
-        uint lo = s_lo[k];
-        uint x = (lo & 0xFFFFu) + t % w, y = (lo >> 16) + t / w;
-        if (base + o < u_capacity) {
-            tile_keys[base + o] = y * u_grid.x + x;
-            tile_values[base + o] = order[g * SCAN_TILE + k];
-        }
-#endif
     }
-    return;
-#else
-    block_exclusive_scan(vals, tot);
-    uint base = gsum[g];
-    for (uint i = 0u; i < SCAN_ITEMS; ++i) {
-        uint idx = g * SCAN_TILE + lid * SCAN_ITEMS + i;
-        if (idx >= n) break;
-        uint r = order[idx];
-        uvec2 lo, hi;
-        vec2 c;
-        vec3 q;
-        float op;
-#ifdef EMIT_RECTS
-        lo = uvec2(rects[i].x & 0xFFFFu, rects[i].x >> 16);
-        hi = uvec2(rects[i].y & 0xFFFFu, rects[i].y >> 16);
-#ifdef TIGHT_BINS
-        tile_rect(r, lo, hi, c, q, op);
-#endif
-#else
-        tile_rect(r, lo, hi, c, q, op);
-#endif
-        uint o = base + vals[i];
-#ifdef TIGHT_BINS
-        uint end = o + counts[i];  // never past this splat's own entries, whatever the second evaluation says
-#endif
-        for (uint y = lo.y; y < hi.y; ++y) {
-            for (uint x = lo.x; x < hi.x; ++x) {
-#ifdef TIGHT_BINS
-                if (!tile_hit(uvec2(x, y), c, q, op) || o >= end) continue;
-#endif
-                if (o < u_capacity) {
-                    tile_keys[o] = y * u_grid.x + x;
-                    tile_values[o] = r;
-                }
-                ++o;
-            }
-        }
-    }
-#endif
 }

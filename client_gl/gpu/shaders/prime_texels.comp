@@ -1,6 +1,6 @@
 // One texel written by the GPU into a fresh atlas before any upload: on the NVIDIA driver, the first upload from a
 // pixel-unpack buffer into a texture that no shader had written moved the whole texture through host memory
-// (40-90 ms per 128 MB, H100; bench/probe_gpu_alloc.py); after a shader's write, those uploads cost nothing extra.
+// (bench/probe_gpu_alloc.py; BENCHMARKS.md, "Figures behind library defaults"); after a shader's write, those uploads cost nothing extra.
 // TEXEL_FORMAT: an unsigned image format of the texture's texel size (image units match formats by size).
 layout(local_size_x = 1) in;
 

@@ -2,8 +2,8 @@
 // by the digit at SHIFT (stable: the tile's digit counts, read off the scanned table, give each digit's run, and
 // per-digit bit masks of each 256-key round give a key's rank among equal digits of its round), places them in that
 // order in shared memory, and then writes them out in it: consecutive threads write consecutive addresses of one
-// digit's run, where radix_scatter.comp's threads write up to RADIX runs per round (wide digits then scatter single
-// words).
+// digit's run, where threads writing each key straight to its place would write up to RADIX runs per round (wide
+// digits then scatter single words; measured slower, BENCHMARKS.md).
 // Keys first, then values through the same shared array (a tile's keys and values would not fit 32 KB together).
 // FUSED: work group 0 zeroes this pass's block sums again (reduced is all zero between sorts).
 layout(local_size_x = 256) in;

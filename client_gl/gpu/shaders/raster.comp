@@ -1,4 +1,4 @@
-// Compute rasterizer: one work group per tile (TILE_PX x TILE_PX pixels, 16 by default), one thread per pixel. The
+// Compute rasterizer: one work group per tile (TILE_PX x TILE_PX pixels, 16), one thread per pixel. The
 // tile's splats (front to back) are loaded in batches of BATCH (one per thread) into shared memory; per pixel, as the
 // reference rasterizer (render_ref / forward.cu):
 // power = -0.5 (a dx^2 + c dy^2) - b dx dy, skipped if > 0; alpha = min(0.99, opacity exp(power)), skipped if
@@ -7,9 +7,6 @@
 // Most (pixel, splat) pairs have alpha < 1/255: power < -ln(255 opacity) (less a margin far above float rounding)
 // rejects them before the exponential; the exact tests follow for the rest.
 #define BATCH uint(TILE_PX * TILE_PX)
-#ifndef UNROLL
-#define UNROLL 4  // splats evaluated per loop step (independent power evaluations hide latency)
-#endif
 layout(local_size_x = TILE_PX, local_size_y = TILE_PX) in;
 
 layout(std430, binding = 2) readonly buffer Records { uvec4 records[]; };
@@ -135,9 +132,10 @@ void main() {
             continue;
         }
 #endif
+        // Four, then two independent power evaluations per step hide latency (the fastest of 1, 2 and 4:
+        // BENCHMARKS.md, "Figures behind library defaults"); the last splats one by one.
         uint j = 0u;
-#if UNROLL >= 4
-        for (; j + 3u < m; j += 4u) {  // four independent power evaluations per step
+        for (; j + 3u < m; j += 4u) {
             vec4 g0 = s_geo[j];
             vec4 h0 = s_geo2[j];
             vec4 g1 = s_geo[j + 1u];
@@ -160,9 +158,7 @@ void main() {
             BLEND(power3, h3, j + 3u)
         }
         if (done) continue;
-#endif
-#if UNROLL >= 2
-        for (; j + 1u < m; j += 2u) {  // two independent power evaluations per step (latency hiding)
+        for (; j + 1u < m; j += 2u) {
             vec4 g0 = s_geo[j];
             vec4 h0 = s_geo2[j];
             vec4 g1 = s_geo[j + 1u];
@@ -175,7 +171,6 @@ void main() {
             BLEND(power1, h1, j + 1u)
         }
         if (done) continue;
-#endif
         for (; j < m; ++j) {
             vec4 g = s_geo[j];
             vec4 h = s_geo2[j];

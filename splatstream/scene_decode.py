@@ -1,6 +1,8 @@
-"""The numpy decoder: an encoded scene (a directory or any SceneStore) back to float Gaussians.
+"""A whole encoded scene (a directory or any SceneStore) back to float Gaussians: `splatstream decode`, `eval`,
+the 3D Tiles export.
 
-A thin shell: bytes come from the store, everything else from splatstream.format.decode.
+A thin shell over a store: bytes come from the store, and turning one payload's bytes into planes and values is
+splatstream.format.decode's job (the one place every reader goes through), not this module's.
 """
 from __future__ import annotations
 

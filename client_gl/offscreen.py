@@ -1,13 +1,14 @@
 """Offscreen rendering through EGL: a reusable HeadlessRenderer and the one-call `render_image`.
 
-    from client_gl.headless import render_image, HeadlessRenderer
+    from client_gl.offscreen import render_image, HeadlessRenderer
     img = render_image(gaussians_or_scene_dir, camera)          # (H, W, 3) float32, linear, not clamped above
     r = HeadlessRenderer(RenderOptions(sort="cpu"))                # client_gl.gpu.renderer.RenderOptions
     r.load_scene(scene_dir)
     img = r.render(camera)
 
 One GL context (shared_context) and one renderer per sort mode (with the last source it loaded) are kept and reused
-across calls.
+across calls. This is a renderer of still images (`render`, `eval`); streaming a scene without a window
+(`view --headless`) is client_gl.view_headless, which opens its context here.
 """
 from __future__ import annotations
 
