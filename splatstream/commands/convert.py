@@ -1,4 +1,4 @@
-"""`splatstream convert IN OUT`: any readable splat format to .ply, .splat, .spz or .glb."""
+"""`splatstream convert IN OUT`: any readable splat format to .ply, .splat, .spz, .glb or .sog."""
 from __future__ import annotations
 
 import argparse
@@ -13,11 +13,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Read a splat scene (standard 3DGS PLY, PlayCanvas compressed PLY, Niantic SPZ v2-v4, "
                     "antimatter15 .splat, PlayCanvas SOG as a .sog file, a meta.json or its directory, streamed SOG "
                     "as a lod-meta.json or its directory (finest level), glTF/GLB with KHR_gaussian_splatting; "
-                    "recognised by content) and write it as a standard 3DGS PLY (.ply), .splat, SPZ (.spz) or "
-                    "glTF binary with KHR_gaussian_splatting (.glb), chosen by OUT's extension. The output appears "
+                    "recognised by content) and write it as a standard 3DGS PLY (.ply), .splat, SPZ (.spz), "
+                    "glTF binary with KHR_gaussian_splatting (.glb) or PlayCanvas SOG (.sog, version 2, bundled), "
+                    "chosen by OUT's extension. The output appears "
                     "only when complete. What each format keeps is documented in format_spec/foreign_formats.md.")
     p.add_argument("input", help="input splat file or SOG directory")
-    p.add_argument("output", help="output file (.ply, .splat, .spz or .glb)")
+    p.add_argument("output", help="output file (.ply, .splat, .spz, .glb or .sog)")
     p.add_argument("--spz-axes", choices=("rub", "rdf"), default="rub",
                    help="axes of an SPZ input: rub, as the format specifies (Niantic's library, splat-transform 2.x; "
                         "default), or rdf for files stored without the axis turn (splat-transform 3.x), which read "
