@@ -36,7 +36,7 @@ def make_scene(splats: int, seed: int, out: pathlib.Path) -> list[str]:
 def run_encode(src: pathlib.Path, out: pathlib.Path, preset: str, extra: list[str]) -> dict:
     code = (
         "import resource, sys, time\n"
-        "from splatstream.cli import main\n"
+        "from cli.main import main\n"
         "t = time.perf_counter()\n"
         "rc = main(sys.argv[1:])\n"
         "wall = time.perf_counter() - t\n"
@@ -48,7 +48,7 @@ def run_encode(src: pathlib.Path, out: pathlib.Path, preset: str, extra: list[st
     if r.returncode != 0 or line is None:
         raise SystemExit(f"encode failed for {preset}:\n{r.stderr}")
     _, rc, wall, maxrss_kb = line.split()
-    info = json.loads(subprocess.run([sys.executable, "-m", "splatstream.cli", "info", str(out), "--json"],
+    info = json.loads(subprocess.run([sys.executable, "-m", "cli", "info", str(out), "--json"],
                                      capture_output=True, text=True, check=True).stdout)
     return {
         "preset": preset, "wall_s": float(wall), "encode_s": float(wall), "peak_rss_mb": int(maxrss_kb) / 1024,

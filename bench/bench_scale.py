@@ -202,7 +202,7 @@ def phases(stderr: str, wall: float) -> dict[str, float]:
 
 
 def run_encode(scene: pathlib.Path, out: pathlib.Path, extra: list[str]) -> dict:
-    cmd = [sys.executable, "-m", "splatstream.cli", "encode", str(scene), str(out), *extra]
+    cmd = [sys.executable, "-m", "cli", "encode", str(scene), str(out), *extra]
     t0 = time.perf_counter()
     proc = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True)
     mem = TreeMemory(proc.pid)

@@ -227,7 +227,7 @@ def main() -> int:
 
         p_ours, p_nginx = free_port(), free_port()
         log = open(work / "ours.log", "w")  # noqa: SIM115 - closed with the process
-        cmd = [sys.executable, "-m", "splatstream.cli", "serve", str(root), "--port", str(p_ours),
+        cmd = [sys.executable, "-m", "cli", "serve", str(root), "--port", str(p_ours),
                "--workers", str(args.workers), "--cors-origin", CORS_ORIGIN]
         cmd += ["--no-access-log"] if args.no_access_log else []
         ours = subprocess.Popen(cmd, cwd=REPO, stdout=log, stderr=log)

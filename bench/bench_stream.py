@@ -37,7 +37,7 @@ def run(cmd: list[str], **kw) -> subprocess.CompletedProcess:
 
 
 def cli(*args: str) -> list[str]:
-    return [sys.executable, "-m", "splatstream.cli", *args]
+    return [sys.executable, "-m", "cli", *args]
 
 
 def make_scene(splats: int, seed: int, workdir: str) -> str:

@@ -16,7 +16,7 @@ inverted ranges), missing files, FIFOs and symlinks.
 Each command (`encode`, `convert`, `decode`, `info`, `render`) runs in a child process with RLIMIT_AS, no core
 dumps, a wall-clock timeout and SPLATSTREAM_MEMORY_BUDGET set. By default the children are forked from a
 "fork server" (one per job) that has imported splatstream once: a case then costs a fork (milliseconds) instead
-of a Python start (0.3-0.5 s here); `--spawn` starts `python -m splatstream.cli` per command instead
+of a Python start (0.3-0.5 s here); `--spawn` starts `python -m cli` per command instead
 (subprocess with preexec_fn), which gives the same outcomes more slowly. Outcomes of a case (the worst of its
 commands):
 
@@ -122,11 +122,11 @@ def child_env(extra: dict | None = None) -> dict:
 
 
 class Spawner:
-    """One command = one `python -m splatstream.cli` (subprocess with preexec_fn limits)."""
+    """One command = one `python -m cli` (subprocess with preexec_fn limits)."""
 
     def run(self, argv: list[str], cwd: str, timeout: float = TIMEOUT_S, memory: int = MEMORY_LIMIT) -> Run:
         t0 = time.monotonic()
-        proc = subprocess.Popen([sys.executable, "-m", "splatstream.cli", *argv], cwd=cwd, env=child_env(),
+        proc = subprocess.Popen([sys.executable, "-m", "cli", *argv], cwd=cwd, env=child_env(),
                                 stdin=subprocess.DEVNULL, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                 preexec_fn=lambda: (os.setpgid(0, 0), _limits(memory)))
         try:
@@ -181,7 +181,7 @@ def fork_server_main() -> None:
     import PIL.Image  # noqa: F401
     import zstandard  # noqa: F401
 
-    import splatstream.cli as cli
+    import cli.main as cli
     import splatstream.decoder  # noqa: F401
     import splatstream.encode  # noqa: F401
     import splatstream.io  # noqa: F401
@@ -1609,7 +1609,7 @@ def _net_scenes(workdir: pathlib.Path) -> dict[str, pathlib.Path]:
 
 def _view(url: str, out: pathlib.Path, cache: pathlib.Path, timeout_s: float) -> tuple[int | None, float, float, str]:
     """`view --headless` in a child: (exit status or None when killed, seconds, peak RSS in MB, stderr)."""
-    cmd = [sys.executable, "-m", "splatstream.cli", "view", url, "--headless", "--timeout", f"{timeout_s:g}",
+    cmd = [sys.executable, "-m", "cli", "view", url, "--headless", "--timeout", f"{timeout_s:g}",
            "--size", "320x240", "--gpu-mem-mb", "64", "--screenshot", str(out)]
     env = child_env({"SPLATSTREAM_CACHE_DIR": str(cache)})
     t0 = time.monotonic()
@@ -1845,7 +1845,7 @@ def reader_bombs(workdir: pathlib.Path) -> list[tuple[str, str, float, float]]:
         t0 = time.monotonic()
         errfile = path.with_suffix(".err")
         with open(errfile, "wb") as errf:
-            proc = subprocess.Popen([sys.executable, "-m", "splatstream.cli", "convert", "-q", str(path),
+            proc = subprocess.Popen([sys.executable, "-m", "cli", "convert", "-q", str(path),
                                      str(path.with_suffix(".out.ply"))], env=child_env(), stdout=subprocess.DEVNULL,
                                     stderr=errf, stdin=subprocess.DEVNULL)
             peak_kb = 0

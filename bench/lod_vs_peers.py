@@ -79,7 +79,7 @@ def run(cmd: list[str], **kw) -> float:
 
 
 def cli(*argv: str) -> list[str]:
-    return [sys.executable, "-m", "splatstream.cli", *argv]
+    return [sys.executable, "-m", "cli", *argv]
 
 
 # --- cameras and metrics -----------------------------------------------------------------------------------------
@@ -347,13 +347,13 @@ def our_views(scene_out: str, n: int, cameras, size: int, workdir: str) -> list[
 def view_worker(scene_out: str, n: int, cams_path: str, workdir: str, size: int) -> None:
     """What `splatstream view SCENE --headless --max-splats N --no-prefetch --eye/--target/--up/--fov-y --size`
     does (its own argument parsing and options), keeping the float image and the drawn tile ids."""
+    from cli.commands import view as view_cmd
+    from cli.commands.args import parse_size
+    from cli.main import build_parser
     from client_gl.gpu.gl import wait_for_gpu
     from client_gl.headless import create_context
     from client_gl.streaming import StreamingSession
     from splatstream.camera import Camera
-    from splatstream.cli import build_parser
-    from splatstream.commands import view as view_cmd
-    from splatstream.commands.args import parse_size
 
     cams = [Camera.from_dict(c) for c in json.load(open(cams_path))]
     ctx = create_context()

@@ -22,7 +22,7 @@ def main() -> None:
     ap.add_argument("--memory-per-worker", default="3GB")
     ap.add_argument("--json")
     args = ap.parse_args()
-    from splatstream.commands.args import parse_bytes
+    from cli.commands.args import parse_bytes
     from splatstream.encode import distributed
     from splatstream.encode.local import encode_file
 

@@ -32,7 +32,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for name in SCENES:
             png = os.path.join(tmp, name + ".png")
-            r = subprocess.run([sys.executable, "-m", "splatstream.cli", "render", os.path.join(REAL, name), "--out",
+            r = subprocess.run([sys.executable, "-m", "cli", "render", os.path.join(REAL, name), "--out",
                                 png, "--size", args.size, "-q"], capture_output=True, text=True)
             if r.returncode != 0:
                 print(f"{name}: {r.stderr.strip()}", file=sys.stderr)

@@ -53,7 +53,7 @@ for scene in ${SCENES:-fruit donut s1m}; do
     mapfile -t compare < <("$here/bench/eval_peers.sh" "$input" "$out/peers/$scene")
   fi
   echo "== $scene: $input" >&2
-  (cd "$here" && "$py" -m splatstream.cli eval "$input" ${PRESETS:+--presets "$PRESETS"} --views "$views" --size "$size" --renderer "$renderer" \
+  (cd "$here" && "$py" -m cli eval "$input" ${PRESETS:+--presets "$PRESETS"} --views "$views" --size "$size" --renderer "$renderer" \
       --attribution "$attribution" ${VARIANTS:+--variants $VARIANTS} --json "$out/$scene.json" --plot "$out/$scene.png" --markdown "$out/$scene.md" \
       ${compare[@]:+--compare "${compare[@]}"})
 done

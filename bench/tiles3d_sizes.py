@@ -28,7 +28,7 @@ from splatstream.ply import write_gaussians_ply  # noqa: E402
 from splatstream.store import load_manifest  # noqa: E402
 
 REAL = ROOT.parent / "shared" / "data" / "real"
-CLI = [sys.executable, "-m", "splatstream.cli"]
+CLI = [sys.executable, "-m", "cli"]
 
 
 def tool(*args: object) -> None:

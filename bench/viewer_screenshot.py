@@ -79,7 +79,7 @@ def main() -> None:
         # --exit-when-converged with --screenshot writes the overlay-free picture when the stream converges; the
         # window is grabbed while that file appears (the overlay is drawn on every frame shown).
         shot = os.path.join(tmp, "clean.png")
-        viewer = subprocess.Popen([sys.executable, "-m", "splatstream.cli", "view", args.source, "--size",
+        viewer = subprocess.Popen([sys.executable, "-m", "cli", "view", args.source, "--size",
                                    args.size, "--no-cache", "--screenshot", shot, *args.view_args], env=env,
                                   stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:

@@ -110,7 +110,7 @@ def tiles_root(tmp_path_factory, page_server):
             r = run_cli("export-3dtiles", scene, work / "tilesets" / tag, "--quiet", *args)
             assert r.returncode == 0, r.stderr
             scenes[tag] = scene
-    proc = subprocess.Popen([sys.executable, "-m", "splatstream.cli", "serve", str(work / "tilesets"), "--port", "0",
+    proc = subprocess.Popen([sys.executable, "-m", "cli", "serve", str(work / "tilesets"), "--port", "0",
                              "--no-access-log", "--cors-origin", page_server], stderr=subprocess.PIPE,
                             stdout=subprocess.DEVNULL, stdin=subprocess.DEVNULL, text=True)
     line = proc.stderr.readline()

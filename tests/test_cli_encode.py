@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 from conftest import real, run_cli
 
-from splatstream.cli import COMMANDS, build_parser
+from cli.main import COMMANDS, build_parser
 from splatstream.decoder import decode_scene
 from splatstream.encode import EncodeOptions, encode_gaussians
 from splatstream.ply import read_gaussians_ply

@@ -76,7 +76,7 @@ def test_view_without_the_gl_client_says_how_to_install_it():
     import sys
 
     code = ("import sys; sys.modules['moderngl'] = None\n"
-            "from splatstream.cli import main\n"
+            "from cli.main import main\n"
             f"sys.argv = ['splatstream', 'view', {str(DONUT)!r}, '--headless']\n"
             "sys.exit(main())\n")
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from conftest import ROOT, run_cli
 
-from splatstream.cli import build_parser, join_negative_values
+from cli.main import build_parser, join_negative_values
 from splatstream.io import read_gaussians
 from splatstream.ply import write_gaussians_ply
 from splatstream.store import load_manifest

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from conftest import real, run_cli
 
-from splatstream.cli import main
+from cli.main import main
 from splatstream.io import read_gaussians
 
 FIXTURES = pathlib.Path(__file__).parent / "fixtures" / "foreign"

@@ -7,8 +7,8 @@ import pytest
 from conftest import real, run_cli
 from PIL import Image
 
+from cli.main import main
 from splatstream.camera import Camera
-from splatstream.cli import main
 from splatstream.evaluate import EvalOptions, cameras_from_report, evaluate, parse_compare, seed_bytes_per_splat
 from splatstream.io import read_gaussians
 from splatstream.render_ref import render
@@ -100,7 +100,7 @@ def test_parse_compare_and_seed_sizes(tmp_path):
 
 
 def test_eval_gl_agrees_with_reference():
-    from splatstream.commands.renderers import gl_renderer, pick_renderer
+    from cli.commands.renderers import gl_renderer, pick_renderer
 
     if gl_renderer() is None:
         pytest.skip("no GL context here")
@@ -187,7 +187,7 @@ def test_low_meets_its_bound_on_real_sh3(scene):
     """Issue 15: `low` at 35 dB or more with 12 B/splat or fewer on disk on the real SH3 scenes (measured at 8 views
     of 512x512: fruit_drops 37.6 dB at 11.67 B, lod_tile 37.3 dB at 10.77 B). Here 2 small views with the reference
     rasterizer, which measured 37.9 and 41.4 dB; the bound keeps the issue's 35 dB."""
-    from splatstream.commands.renderers import pick_renderer
+    from cli.commands.renderers import pick_renderer
 
     rep = evaluate(str(real(scene)), EvalOptions(presets=["low"], views=2, width=96, height=96),
                    renderer=pick_renderer("ref"))

@@ -218,7 +218,7 @@ def test_declared_counts_beyond_the_memory_budget_are_refused(tmp_path):
     env = dict(os.environ, SPLATSTREAM_MEMORY_BUDGET="100000")
     for src in (FOREIGN / "fruit_drops_v4.spz", real("fruit_drops_sh3.ply"), FOREIGN / "fruit_drops.compressed.ply",
                 real("winter_fountain_first3000.splat")):
-        r = subprocess.run([sys.executable, "-m", "splatstream.cli", "convert", "-q", str(src),
+        r = subprocess.run([sys.executable, "-m", "cli", "convert", "-q", str(src),
                             str(tmp_path / "o.ply")], capture_output=True, text=True, env=env, timeout=120)
         fails_cleanly(r, str(src), "memory budget of 0.1 MiB")
 
@@ -353,7 +353,7 @@ def start_slow_encode(src: pathlib.Path, out: pathlib.Path):
 
     # SIGINT as a terminal sends it: a suite started in the background (`cmd &` in a script) inherits SIGINT ignored,
     # and a Python started with SIGINT ignored keeps ignoring it.
-    proc = subprocess.Popen([sys.executable, "-m", "splatstream.cli", "encode", "-q", "--preset", "very-high",
+    proc = subprocess.Popen([sys.executable, "-m", "cli", "encode", "-q", "--preset", "very-high",
                              "--zstd-level", "19", "--max-leaf-splats", "2048", str(src), str(out)],
                             stderr=subprocess.PIPE, text=True, stdin=subprocess.DEVNULL,
                             preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))

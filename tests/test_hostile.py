@@ -11,7 +11,7 @@ import time
 from pathlib import Path
 
 import pytest
-from conftest import REAL, run_cli
+from conftest import real, run_cli
 from hostile_server import HostileServer, Mode, texture_bomb_scene, undecodable_scene
 
 from client_gl.stream.cache import DiskCache
@@ -29,9 +29,7 @@ def root(tmp_path_factory) -> Path:
     from splatstream.encode import encode_file
 
     work = tmp_path_factory.mktemp("hostile")
-    src = REAL / "fruit_drops_sh3.ply"
-    if not src.exists():
-        src = REPO / "tests" / "fixtures" / "foreign" / "fruit_drops_sub64.ply"
+    src = real("fruit_drops_sh3.ply")  # bundled
     encode_file(src, work / "root" / "s", max_leaf_splats=1000)
     encode_file(src, work / "s2", max_leaf_splats=300)  # other tiles, other payloads
     undecodable_scene(work / "root" / "s", work / "root" / "s_bad")
@@ -132,7 +130,7 @@ def view(url: str, tmp_path: Path, *args: str):
     import subprocess
 
     env = dict(os.environ, SPLATSTREAM_CACHE_DIR=str(env_cache))
-    return subprocess.run([sys.executable, "-m", "splatstream.cli", "view", url, "--headless", "--size", "160x120",
+    return subprocess.run([sys.executable, "-m", "cli", "view", url, "--headless", "--size", "160x120",
                            "--gpu-mem-mb", "16", *args], capture_output=True, text=True, env=env,
                           stdin=subprocess.DEVNULL, timeout=300)
 

@@ -18,8 +18,8 @@ import zlib
 import numpy as np
 import pytest
 
+from cli.main import main
 from splatstream.axes import RDF_TO_LUF, RDF_TO_RUB, turn
-from splatstream.cli import main
 from splatstream.errors import InputError, UsageError
 from splatstream.gaussians import Gaussians, covariances, normalize_quaternions
 from splatstream.io import read_gaussians, sniff_format, write_gaussians

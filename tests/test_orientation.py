@@ -1,7 +1,7 @@
 """Scenes open upright and framed: the up direction per input and the suggested camera (issue: first run)."""
 import numpy as np
 import pytest
-from conftest import real, run_cli
+from conftest import real, run_cli, with_shared
 
 from splatstream.camera import suggested_camera
 from splatstream.io import read_gaussians
@@ -19,7 +19,7 @@ EXPECTED_UP = {
 }
 
 
-@pytest.mark.parametrize("name", list(EXPECTED_UP))
+@pytest.mark.parametrize("name", with_shared(list(EXPECTED_UP)))
 def test_up_is_detected_and_the_suggested_view_frames_the_scene(name):
     g = read_gaussians(real(name))
     up = detect_up(g).up

@@ -7,7 +7,7 @@ import json
 
 from conftest import ROOT, run_cli
 
-from splatstream.commands.view import transfer_and_memory
+from cli.commands.view import transfer_and_memory
 from splatstream.evaluate import _overlap, place_labels, plot_rate_distortion
 from splatstream.progress import count
 

@@ -13,7 +13,7 @@ import warnings
 
 import numpy as np
 import pytest
-from conftest import real
+from conftest import real, with_shared
 
 from splatstream.errors import InputError
 from splatstream.gaussians import SH_C0, Gaussians, logit, sigmoid
@@ -121,8 +121,8 @@ def real_samples(name: str) -> tuple[int, np.ndarray, dict[str, np.ndarray]]:
     return int(data[f"{name}_count"]), data[f"{name}_rows"], ref
 
 
-@pytest.mark.parametrize("file,name,count", [("guitar.compressed.ply", "guitar", 90854),
-                                             ("biker.compressed.ply", "biker", 152746)])
+@pytest.mark.parametrize("file,name,count", with_shared([("guitar.compressed.ply", "guitar", 90854),
+                                                         ("biker.compressed.ply", "biker", 152746)]))
 def test_real_compressed_ply_matches_tool(file, name, count):
     path = real(file)
     assert sniff_format(path) == "compressed_ply"

@@ -194,7 +194,7 @@ def test_readme_block_runs_as_written(index, workdir, request):
     if any(c.startswith("splatstream eval") and "--compare" in c for c in block):
         # stand-ins for other tools' outputs of the same scene: our own SOG and SPZ conversions, back to PLY
         for src, dst in (("scene.sog", "scene.sog.ply"), ("scene.spz", "scene.spz.ply")):
-            r = subprocess.run([sys.executable, "-m", "splatstream.cli", "convert", "-q", src, dst], cwd=workdir,
+            r = subprocess.run([sys.executable, "-m", "cli", "convert", "-q", src, dst], cwd=workdir,
                                capture_output=True, text=True, timeout=300)
             assert r.returncode == 0, r.stderr
     runner = Block(workdir, display)

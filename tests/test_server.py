@@ -537,7 +537,7 @@ def test_real_encoded_scene(tmp_path):
 
 # -- the command ---------------------------------------------------------------------------------------------------
 def _cli(*args: str, **kw) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "splatstream.cli", "serve", *args], cwd=REPO,
+    return subprocess.Popen([sys.executable, "-m", "cli", "serve", *args], cwd=REPO,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, **kw)
 
 

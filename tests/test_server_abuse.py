@@ -197,7 +197,7 @@ def test_server_under_abuse(tmp_path):
     root = tmp_path / "root"
     shas = write_fake_scene(root / "s", [1000, 64 << 10, BIG], seed=1)
     big = shas[2]
-    server = Server(["-m", "splatstream.cli", "serve", str(root), "--port", "0", "--max-connections", str(CAP),
+    server = Server(["-m", "cli", "serve", str(root), "--port", "0", "--max-connections", str(CAP),
                      "--header-timeout", str(HEADER_TIMEOUT), "--keepalive-timeout", "2", "--send-timeout",
                      str(SEND_TIMEOUT)])
     port, pid = server.port, server.pid
@@ -248,7 +248,7 @@ def test_idle_connections_past_the_fd_limit_with_default_options(tmp_path):
     limit at start, idle connections make room for new ones, and the log says so in a line or two."""
     root = tmp_path / "root"
     write_fake_scene(root / "s", [1000], seed=3)
-    server = Server(["-m", "splatstream.cli", "serve", str(root), "--port", "0"])
+    server = Server(["-m", "cli", "serve", str(root), "--port", "0"])
     try:
         head = "".join(server.lines)
         assert "--max-connections lowered from 1024 to" in head and f"limit {FD_LIMIT}" in head

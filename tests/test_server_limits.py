@@ -254,7 +254,7 @@ def test_fd_limit_lowers_the_cap():
 
 
 def _cli(*args: str, fds: int | None = None) -> subprocess.Popen:
-    return subprocess.Popen([sys.executable, "-m", "splatstream.cli", "serve", *args], cwd=REPO,
+    return subprocess.Popen([sys.executable, "-m", "cli", "serve", *args], cwd=REPO,
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
                             preexec_fn=_limit_fds(fds) if fds else None)
 

@@ -49,7 +49,7 @@ def write_tileset(directory: Path, tiles: int = 2) -> list[str]:
 
 class Server:
     def __init__(self, root: Path, *extra: str):
-        self.proc = subprocess.Popen([sys.executable, "-m", "splatstream.cli", "serve", str(root), "--port", "0",
+        self.proc = subprocess.Popen([sys.executable, "-m", "cli", "serve", str(root), "--port", "0",
                                       "--no-access-log", *extra], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL,
                                      stdin=subprocess.DEVNULL, text=True)
         line = self.proc.stderr.readline()
@@ -176,11 +176,11 @@ def test_parse_tileset_path_leaves_scene_paths_alone():
 
 def test_serve_refuses_a_root_with_neither_scene_nor_tileset(tmp_path):
     (tmp_path / "empty").mkdir()
-    r = subprocess.run([sys.executable, "-m", "splatstream.cli", "serve", str(tmp_path / "empty"), "--port", "0"],
+    r = subprocess.run([sys.executable, "-m", "cli", "serve", str(tmp_path / "empty"), "--port", "0"],
                        capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
     assert r.returncode == 2 and "no tileset" in r.stderr
     write_tileset(tmp_path / "ts")
-    r = subprocess.run([sys.executable, "-m", "splatstream.cli", "serve", str(tmp_path / "ts"), "--port", "0"],
+    r = subprocess.run([sys.executable, "-m", "cli", "serve", str(tmp_path / "ts"), "--port", "0"],
                        capture_output=True, text=True, timeout=60, stdin=subprocess.DEVNULL)
     assert r.returncode == 2 and "is itself a tileset directory" in r.stderr
     server = Server(tmp_path)  # the parent: serves the tileset `ts`

@@ -104,7 +104,7 @@ def test_splat_transform_reads_every_level(exported):
 
 def test_cli_export_and_errors(exported, tmp_path):
     work, _ = exported
-    cli = [sys.executable, "-m", "splatstream.cli"]
+    cli = [sys.executable, "-m", "cli"]
     r = subprocess.run([*cli, "export-sog-lod", str(work / "scene"), str(tmp_path / "out"), "--sh-degree", "0"],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr

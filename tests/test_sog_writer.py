@@ -87,7 +87,7 @@ def test_unit_keeps_order_when_asked():
 
 def test_convert_writes_sog(tmp_path):
     out = tmp_path / "x.sog"
-    r = subprocess.run([sys.executable, "-m", "splatstream.cli", "convert", str(SOURCE), str(out), "-q"],
+    r = subprocess.run([sys.executable, "-m", "cli", "convert", str(SOURCE), str(out), "-q"],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
     assert len(read_gaussians(out)) == 4721

@@ -174,7 +174,7 @@ def _free_port() -> int:
 
 
 def _start_serve(root: Path, port: int) -> subprocess.Popen:
-    proc = subprocess.Popen([sys.executable, "-m", "splatstream.cli", "serve", str(root), "--port", str(port),
+    proc = subprocess.Popen([sys.executable, "-m", "cli", "serve", str(root), "--port", str(port),
                              "--throttle-mbps", "1.5", "--no-access-log"],
                             stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, stdin=subprocess.DEVNULL, text=True)
     line = proc.stderr.readline()

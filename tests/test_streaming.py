@@ -88,7 +88,7 @@ def free_port() -> int:
 
 
 def start_serve(root: Path, port: int, *extra: str) -> subprocess.Popen:
-    proc = subprocess.Popen([sys.executable, "-m", "splatstream.cli", "serve", str(root), "--port", str(port),
+    proc = subprocess.Popen([sys.executable, "-m", "cli", "serve", str(root), "--port", str(port),
                              "--no-access-log", *extra], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
     line = proc.stderr.readline()
     assert "http://" in line, line

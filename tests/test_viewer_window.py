@@ -28,10 +28,10 @@ def display():
 @pytest.fixture(scope="module")
 def served(tmp_path_factory):
     root = tmp_path_factory.mktemp("served")
-    r = subprocess.run([sys.executable, "-m", "splatstream.cli", "encode", str(ROOT / "samples" / "donut.ply"),
+    r = subprocess.run([sys.executable, "-m", "cli", "encode", str(ROOT / "samples" / "donut.ply"),
                         str(root / "donut"), "--max-leaf-splats", "8000", "-q"], capture_output=True, text=True)
     assert r.returncode == 0, r.stderr
-    proc = subprocess.Popen([sys.executable, "-m", "splatstream.cli", "serve", str(root), "--port", "0",
+    proc = subprocess.Popen([sys.executable, "-m", "cli", "serve", str(root), "--port", "0",
                              "--no-access-log"], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
     line = proc.stderr.readline()
     url = line.split("at ", 1)[1].split(" ", 1)[0].rstrip("/") + "/scenes/donut"
@@ -83,7 +83,7 @@ def test_window_input_screenshot_and_overlay(display, served, tmp_path):
     from PIL import Image
 
     env = {**os.environ, "DISPLAY": display, "SPLATSTREAM_CACHE_DIR": str(tmp_path / "cache")}
-    viewer = subprocess.Popen([sys.executable, "-m", "splatstream.cli", "view", served, "--size",
+    viewer = subprocess.Popen([sys.executable, "-m", "cli", "view", served, "--size",
                                f"{SIZE[0]}x{SIZE[1]}", "--gpu-mem-mb", "64", "--no-vsync",
                                "--record", str(tmp_path / "record.json")], env=env, cwd=tmp_path,
                               stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
@@ -137,7 +137,7 @@ def test_window_input_screenshot_and_overlay(display, served, tmp_path):
     assert np.linalg.norm(np.subtract(cam["eye"], cam["target"])) == pytest.approx(dist, rel=0.02)
     # the same camera headless: the screenshot holds the same picture
     ref = tmp_path / "headless.png"
-    r = subprocess.run([sys.executable, "-m", "splatstream.cli", "view", served, "--headless", "--size",
+    r = subprocess.run([sys.executable, "-m", "cli", "view", served, "--headless", "--size",
                         f"{SIZE[0]}x{SIZE[1]}", "--gpu-mem-mb", "64", "--eye=" + ",".join(map(str, cam["eye"])),
                         "--target=" + ",".join(map(str, cam["target"])), "--up=" + ",".join(map(str, cam["up"])),
                         "--fov-y", str(cam["fov_y_deg"]), "--screenshot", str(ref), "-q"],
@@ -159,7 +159,7 @@ def test_window_exit_when_converged_with_screenshot_alone(display, served, tmp_p
     from PIL import Image
 
     env = {**os.environ, "DISPLAY": display, "SPLATSTREAM_CACHE_DIR": str(tmp_path / "cache")}
-    r = subprocess.run([sys.executable, "-m", "splatstream.cli", "view", served, "--screenshot", "shot.png",
+    r = subprocess.run([sys.executable, "-m", "cli", "view", served, "--screenshot", "shot.png",
                         "--exit-when-converged"], env=env, cwd=tmp_path, capture_output=True, text=True,
                        timeout=300)
     assert r.returncode == 0, r.stderr

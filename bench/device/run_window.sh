@@ -32,8 +32,8 @@ python3 -c "$probe" || export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/s
 [ "${PROBE:-0}" = 1 ] && python3 bench/probe_gpu_alloc.py --mb 256 1024 --json "$OUT/probe_gpu_alloc.json"
 [ "${PROBE:-0}" = only ] && python3 bench/probe_gpu_alloc.py --mb 256 --json "$OUT/probe_gpu_alloc.json" && exit
 python3 bench/tile_scene.py samples/donut.ply --splats 6000000 --seed 0 --out $W/s6m.ply | tail -1  # no data to carry
-python3 -m splatstream.cli encode $W/s6m.ply $W/root/s6m --up 0,0,1 -q || exit 1
-python3 -m splatstream.cli serve $W/root --port 8765 --no-access-log > $W/serve.log 2>&1 &
+python3 -m cli encode $W/s6m.ply $W/root/s6m --up 0,0,1 -q || exit 1
+python3 -m cli serve $W/root --port 8765 --no-access-log > $W/serve.log 2>&1 &
 SERVE=$!
 sleep 2
 URL=http://127.0.0.1:8765/scenes/s6m
@@ -47,7 +47,7 @@ for run in cold warm sync; do  # sync: warm, each renderer and pool step waited 
 done
 fi
 if [ "${WINDOW:-1}" = 1 ]; then  # WINDOW=0: the fly-through alone
-python3 -m splatstream.cli view $URL --headless --size 1920x1080 --measure-frames 120 --record "$OUT/headless.json" \
+python3 -m cli view $URL --headless --size 1920x1080 --measure-frames 120 --record "$OUT/headless.json" \
   --screenshot "$OUT/headless.png" --no-cache 2>&1 | tail -2
 echo "== window"
 LD_LIBRARY_PATH=/tmp/xroot/usr/lib/x86_64-linux-gnu LIBGL_DRIVERS_PATH=/tmp/xroot/usr/lib/x86_64-linux-gnu/dri \
@@ -78,7 +78,7 @@ fi
 window() {  # window <name> <more view options>: one timed window run, its record as $OUT/<name>.json
   local name=$1
   shift
-  timeout 200 python3 -m splatstream.cli view $URL --size 1920x1080 --exit-when-converged --measure-frames 120 \
+  timeout 200 python3 -m cli view $URL --size 1920x1080 --exit-when-converged --measure-frames 120 \
     --no-vsync --no-cache --record "$OUT/$name.json" "$@" > $W/$name.log 2>&1 < /dev/null
   echo "$name rc=$?"; tail -5 $W/$name.log
 }

@@ -12,7 +12,7 @@ py=${PYTHON:-$here/.venv/bin/python}
 mkdir -p "$out"
 compare=()
 if [ -n "$peers" ] && [ -s "$peers" ]; then mapfile -t compare < "$peers"; fi
-(cd "$here" && "$py" -m splatstream.cli eval "$in" --views "${VIEWS:-8}" --size "${SIZE:-512x512}" \
+(cd "$here" && "$py" -m cli eval "$in" --views "${VIEWS:-8}" --size "${SIZE:-512x512}" \
     --presets "${PRESETS:-very-high,high,medium,medium-low,medium-low-9bit,low-plus,low,very-low}" --encoded "$out/$name.encoded" \
     ${VARIANTS:+--variants $VARIANTS} ${compare[@]:+--compare "${compare[@]}"} --json "$out/$name.json" \
     --markdown "$out/$name.md" -q)

@@ -6,9 +6,9 @@ import argparse
 import sys
 import time
 
-from ..progress import ProgressPrinter, count
-from ..sog_export import export_streamed_sog
-from ..writers.sog_lod import UNIT_SPLATS
+from splatstream.progress import ProgressPrinter, count
+from splatstream.sog_export import export_streamed_sog
+from splatstream.writers.sog_lod import UNIT_SPLATS
 
 
 def register(sub: argparse._SubParsersAction) -> None:

@@ -7,7 +7,8 @@ import math
 import os
 import sys
 
-from ..errors import UsageError
+from splatstream.errors import UsageError
+
 from .args import parse_size, parse_vector
 
 DRAWS = ["auto", "compute", "fetch", "points", "instanced", "triangles"]
@@ -119,7 +120,7 @@ def _band_shares(text: str) -> dict:
 
 def _fixed_camera(args, size):
     """A camera from --eye/--target (both needed), or None for the scene's suggested camera."""
-    from ..camera import DEFAULT_FOV_Y_DEG, Camera
+    from splatstream.camera import DEFAULT_FOV_Y_DEG, Camera
 
     if args.eye is None and args.target is None:
         return None
@@ -136,7 +137,7 @@ def _fixed_camera(args, size):
 
 
 def _check_outputs(args) -> None:
-    from ..atomic import check_output
+    from splatstream.atomic import check_output
 
     for out in (args.record, args.screenshot):
         if out:
@@ -157,7 +158,7 @@ def run(args: argparse.Namespace) -> int:
     camera = _fixed_camera(args, size)
     path = None
     if args.camera_path:
-        from ..camera_path import load_camera_path
+        from splatstream.camera_path import load_camera_path
 
         path = load_camera_path(args.camera_path)
     _check_outputs(args)

@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import math
 
-from ..errors import UsageError
+from splatstream.errors import UsageError
 
 
 def parse_vector(text: str, what: str, nonzero: bool = False) -> tuple[float, float, float]:

@@ -5,10 +5,10 @@ import argparse
 import json
 from collections import Counter
 
-from ..format.manifest import Manifest, scene_summary
-from ..format.presets import PRESET_SH_CODEBOOK, PRESET_SUMMARY, PRESETS
-from ..progress import count
-from ..store import load_manifest
+from splatstream.format.manifest import Manifest, scene_summary
+from splatstream.format.presets import PRESET_SH_CODEBOOK, PRESET_SUMMARY, PRESETS
+from splatstream.progress import count
+from splatstream.store import load_manifest
 
 
 def scene_info(m: Manifest) -> dict:

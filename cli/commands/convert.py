@@ -35,9 +35,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..atomic import check_output
-    from ..errors import UsageError
-    from ..io import FORMAT_NAMES, output_format, read_gaussians, sniff_format, write_gaussians
+    from splatstream.atomic import check_output
+    from splatstream.errors import UsageError
+    from splatstream.io import FORMAT_NAMES, output_format, read_gaussians, sniff_format, write_gaussians
 
     out_format = output_format(args.output)  # refuse an unwritable output before reading anything
     in_format = sniff_format(args.input)
@@ -53,14 +53,14 @@ def run(args: argparse.Namespace) -> int:
     say(f"reading {args.input} ({FORMAT_NAMES[in_format]})")
     g = read_gaussians(args.input, drop_invalid=args.drop_invalid)
     if len(g) == 0:  # an empty .splat (or any format without a count) could not be read back
-        from ..errors import InputError
+        from splatstream.errors import InputError
 
         raise InputError(args.input, None, "holds no splats (none, or none left after dropping invalid ones); "
                          "nothing to convert")
     if args.spz_axes == "rdf":
         if in_format != "spz":
             raise UsageError(f"--spz-axes rdf: {args.input} is not an SPZ file")
-        from ..axes import RDF_TO_RUB, turn
+        from splatstream.axes import RDF_TO_RUB, turn
 
         g = turn(g, RDF_TO_RUB)  # undo the reader's RUB -> RDF turn: the file held RDF already
     say(f"read {len(g)} splats, SH degree {g.sh_degree}")

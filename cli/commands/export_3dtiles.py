@@ -43,9 +43,9 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..errors import UsageError
-    from ..progress import ProgressPrinter, count
-    from ..tiles3d import DEFAULT_SPZ_AXES, ExportOptions, Placement, export_tileset
+    from splatstream.errors import UsageError
+    from splatstream.progress import ProgressPrinter, count
+    from splatstream.tiles3d import DEFAULT_SPZ_AXES, ExportOptions, Placement, export_tileset
 
     located = args.longitude is not None or args.latitude is not None or args.height is not None
     if located and (args.longitude is None or args.latitude is None):

@@ -7,8 +7,9 @@ import json
 import os
 import sys
 
-from ..errors import InputError, UsageError
-from ..evaluate import PRESET_ORDER, EvalOptions, evaluate, plot_rate_distortion, report_markdown
+from splatstream.errors import InputError, UsageError
+from splatstream.evaluate import PRESET_ORDER, EvalOptions, evaluate, plot_rate_distortion, report_markdown
+
 from .args import parse_size, parse_vector
 from .renderers import RENDERER_CHOICES, pick_renderer
 

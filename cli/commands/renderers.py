@@ -6,8 +6,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..errors import UsageError
-from ..evaluate import EvalRenderer, reference_renderer
+from splatstream.errors import UsageError
+from splatstream.evaluate import EvalRenderer, reference_renderer
 
 RENDERER_CHOICES = ("auto", "gl", "ref")
 

@@ -1,4 +1,4 @@
-"""The `splatstream` command. Each subcommand lives in splatstream/commands/<name>.py and exposes
+"""The `splatstream` command. Each subcommand lives in cli/commands/<name>.py and exposes
 `register(subparsers)`; this shell turns library errors into messages and exit codes."""
 from __future__ import annotations
 
@@ -10,8 +10,8 @@ import sys
 import threading
 import warnings
 
-from . import __version__
-from .errors import SplatstreamError
+from splatstream import __version__
+from splatstream.errors import SplatstreamError
 
 # One BLAS thread per thread of ours, unless the environment says otherwise (numpy is not imported yet here). The
 # encoder runs its own worker threads, and OpenBLAS's threads on top of them oversubscribed the cores: with the LOD

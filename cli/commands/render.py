@@ -8,8 +8,9 @@ import time
 
 import numpy as np
 
-from ..camera import DEFAULT_FOV_Y_DEG, REFERENCE_NEAR, Camera, suggested_camera
-from ..errors import UsageError
+from splatstream.camera import DEFAULT_FOV_Y_DEG, REFERENCE_NEAR, Camera, suggested_camera
+from splatstream.errors import UsageError
+
 from .args import parse_size, parse_vector
 
 DEFAULT_SIZE = (1280, 720)
@@ -79,8 +80,8 @@ def run(args: argparse.Namespace) -> int:
 
     headless = gl_client()
 
-    from ..format.presets import PRESETS
-    from ..store import is_scene_dir, load_manifest
+    from splatstream.format.presets import PRESETS
+    from splatstream.store import is_scene_dir, load_manifest
 
     size = parse_size(args.size)
     background = _optional_vector(args.background, "--background")
@@ -100,13 +101,13 @@ def run(args: argparse.Namespace) -> int:
         source = ("scene", args.scene)
         splats = manifest.splats
     else:
-        from ..io import read_gaussians
+        from splatstream.io import read_gaussians
 
         g = read_gaussians(args.scene)
         if len(g) == 0:
             raise UsageError(f"{args.scene}: no splats to render")
-        from ..io import scene_up
-        from ..orientation import view_side
+        from splatstream.io import scene_up
+        from splatstream.orientation import view_side
 
         up = _optional_vector(args.up, "--up") or scene_up(args.scene, g).up
         cam = _camera(args, None, g.positions, up, size, view_side(g, up), g.opacity_logits)
@@ -146,7 +147,7 @@ def run(args: argparse.Namespace) -> int:
 def _write_png(path: str, img: np.ndarray) -> None:
     from PIL import Image
 
-    from ..atomic import atomic_file
+    from splatstream.atomic import atomic_file
 
     rgb8 = (np.clip(img, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
     with atomic_file(path) as f:

@@ -4,8 +4,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from ..decoder import decode_scene
-from ..io import write_gaussians
+from splatstream.decoder import decode_scene
+from splatstream.io import write_gaussians
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -20,7 +20,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ..errors import UsageError
+    from splatstream.errors import UsageError
 
     tiles: str | list[int] = "leaves"
     if args.tiles:
@@ -28,8 +28,8 @@ def run(args: argparse.Namespace) -> int:
             tiles = [int(t) for t in args.tiles.split(",")]
         except ValueError:
             raise UsageError(f"--tiles: expected comma-separated integers, got {args.tiles!r}") from None
-    from ..atomic import check_output
-    from ..io import output_format
+    from splatstream.atomic import check_output
+    from splatstream.io import output_format
 
     output_format(args.output)
     check_output(args.output)

@@ -5,10 +5,10 @@ import argparse
 import sys
 import time
 
-from ..encode import encode_file
-from ..errors import UsageError
-from ..format.container import DEFAULT_ZSTD_LEVEL
-from ..format.presets import (
+from splatstream.encode import encode_file
+from splatstream.errors import UsageError
+from splatstream.format.container import DEFAULT_ZSTD_LEVEL
+from splatstream.format.presets import (
     ATTRIBUTES,
     DEFAULT_PRESET,
     PRESET_SH_CODEBOOK,
@@ -16,9 +16,10 @@ from ..format.presets import (
     PRESET_ZSTD_LEVEL,
     PRESETS,
 )
-from ..format.texformats import VALUE_FORMATS
-from ..format.transport import TRANSPORTS
-from ..progress import ProgressPrinter, count
+from splatstream.format.texformats import VALUE_FORMATS
+from splatstream.format.transport import TRANSPORTS
+from splatstream.progress import ProgressPrinter, count
+
 from .args import parse_bytes, parse_vector
 
 # The views --target-psnr / --target-size measure presets on: `splatstream eval`'s defaults.
@@ -154,7 +155,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _preset_for_target(args: argparse.Namespace, up: tuple[float, float, float] | None) -> str:
     """Measure every preset on the input (splatstream.evaluate) and pick the one the target asks for."""
-    from ..evaluate import EvalOptions, evaluate, preset_for_target
+    from splatstream.evaluate import EvalOptions, evaluate, preset_for_target
+
     from .renderers import pick_renderer
 
     if args.target_psnr is not None and not args.target_psnr > 0:
