@@ -8,7 +8,7 @@ import sys
 
 import numpy as np
 import pytest
-from conftest import ROOT
+from conftest import ROOT, run_cli
 from test_tool_roundtrip import run_tool, tool_gaussians
 
 from splatstream.decoder import decode_scene
@@ -125,3 +125,15 @@ def test_single_tile_scene(tmp_path):
     sog = read_streamed_sog(tmp_path / "sog")
     assert sog.levels == 1 and len(sog.tree.leaves()) == 1
     assert same_splats(sog.level(0), g.subset(morton_order(g.positions))) < 1e-3
+
+
+def test_convert_reads_any_level(exported, tmp_path):
+    work, _ = exported
+    sog = read_streamed_sog(work / "sog")
+    r = run_cli("convert", work / "sog", tmp_path / "l2.ply", "--lod-level", "2", "-q")
+    assert r.returncode == 0, r.stderr
+    assert same_splats(read_gaussians(tmp_path / "l2.ply"), sog.level(2)) < 1e-6
+    for args, message in (([work / "sog", tmp_path / "x.ply", "--lod-level", "7"], "level 7 asked for"),
+                          ([SOURCE, tmp_path / "y.ply", "--lod-level", "1"], "not a streamed SOG")):
+        r = run_cli("convert", *args)
+        assert r.returncode == 2 and message in r.stderr and "Traceback" not in r.stderr, r.stderr

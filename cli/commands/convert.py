@@ -28,6 +28,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--glb-compression", choices=("none", "spz"), default="none",
                    help="for .glb output: plain float accessors (default) or SPZ-compressed content "
                         "(KHR_gaussian_splatting_compression_spz_2)")
+    p.add_argument("--lod-level", type=int, default=None, metavar="L",
+                   help="for a streamed SOG input: the LOD level to convert (0, the finest, by default; every level "
+                        "of the tree is readable)")
     p.add_argument("--drop-invalid", action="store_true",
                    help="drop splats with non-finite or degenerate values instead of refusing the input")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages on stderr")
@@ -51,7 +54,15 @@ def run(args: argparse.Namespace) -> int:
             print(f"convert: {message} ({time.perf_counter() - start:.1f}s)", file=sys.stderr, flush=True)
 
     say(f"reading {args.input} ({FORMAT_NAMES[in_format]})")
-    g = read_gaussians(args.input, drop_invalid=args.drop_invalid)
+    if args.lod_level is not None:
+        from splatstream.io import screen_gaussians
+        from splatstream.readers.sog import read_sog_level
+
+        if in_format != "lod_sog":
+            raise UsageError(f"--lod-level: {args.input} is not a streamed SOG")
+        g = screen_gaussians(read_sog_level(args.input, args.lod_level), args.input, args.drop_invalid)
+    else:
+        g = read_gaussians(args.input, drop_invalid=args.drop_invalid)
     if len(g) == 0:  # an empty .splat (or any format without a count) could not be read back
         from splatstream.errors import InputError
 

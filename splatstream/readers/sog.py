@@ -463,14 +463,31 @@ def _read_streamed(directory: str, label: str, meta_name: str) -> Gaussians:
     return Gaussians.concatenate(parts)
 
 
-def read_streamed_sog(path: str | os.PathLike) -> StreamedSog:
-    """Every level of a streamed SOG (a lod-meta.json or its directory), with its tree."""
-    path = os.fspath(path)
+def _streamed_location(path: str) -> tuple[str, str]:
+    """(directory, name of the lod-meta.json) of a streamed SOG given as the file or its directory."""
     if sog_kind(path) != "lod":
         raise InputError(path, None, "not a streamed SOG (expected a lod-meta.json or a directory holding one)")
     if os.path.isdir(path):
-        return _load_streamed(path, path, "lod-meta.json", None)
-    return _load_streamed(os.path.dirname(path) or ".", path, os.path.basename(path), None)
+        return path, "lod-meta.json"
+    return os.path.dirname(path) or ".", os.path.basename(path)
+
+
+def read_sog_level(path: str | os.PathLike, level: int) -> Gaussians:
+    """One LOD level of a streamed SOG (0 the finest), leaves in depth-first order; only that level's units are
+    read."""
+    path = os.fspath(path)
+    directory, name = _streamed_location(path)
+    sog = _load_streamed(directory, path, name, {level})
+    if not 0 <= level < sog.levels:
+        raise InputError(path, "lodLevels", f"{sog.levels} levels (0..{sog.levels - 1}); level {level} asked for")
+    return sog.level(level)
+
+
+def read_streamed_sog(path: str | os.PathLike) -> StreamedSog:
+    """Every level of a streamed SOG (a lod-meta.json or its directory), with its tree."""
+    path = os.fspath(path)
+    directory, name = _streamed_location(path)
+    return _load_streamed(directory, path, name, None)
 
 
 def sog_kind(path: str) -> str | None:
