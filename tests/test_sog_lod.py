@@ -19,6 +19,7 @@ from splatstream.io import read_gaussians
 from splatstream.readers.sog import read_streamed_sog
 from splatstream.sog_export import export_streamed_sog
 from splatstream.store import load_manifest
+from splatstream.writers.sog_lod import TreeTile, streamed_sog
 
 SOURCE = ROOT / "tests" / "data" / "real" / "fruit_drops_sh3.ply"
 
@@ -137,3 +138,30 @@ def test_convert_reads_any_level(exported, tmp_path):
                           ([SOURCE, tmp_path / "y.ply", "--lod-level", "1"], "not a streamed SOG")):
         r = run_cli("convert", *args)
         assert r.returncode == 2 and message in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+def _splats(positions) -> Gaussians:
+    p = np.asarray(positions, np.float32)
+    n = len(p)
+    return Gaussians(p, np.tile([1.0, 0, 0, 0], (n, 1)), np.full((n, 3), -4.0), np.zeros(n), np.zeros((n, 3)),
+                     np.zeros((n, 0, 3)))
+
+
+def test_mapping_routes_interior_splats_and_repeats_shallow_leaves():
+    """Root (depth 0) over a leaf A at depth 1 (x < 0) and a chain B (depth 1) -> C (depth 2 leaf, x > 0)."""
+    tiles = {
+        0: TreeTile(0, 0, (1, 2), _splats([[-1.0, 0, 0], [1.0, 0, 0], [2.0, 0, 0]])),
+        1: TreeTile(1, 1, (), _splats([[-1.0, 0, 0], [-1.5, 0, 0]])),
+        2: TreeTile(2, 1, (3,), _splats([[1.0, 0, 0], [1.5, 0, 0]])),
+        3: TreeTile(3, 2, (), _splats([[1.0, 0, 0], [1.2, 0, 0], [1.4, 0, 0], [1.6, 0, 0]])),
+    }
+    out = streamed_sog(tiles, 0, unit_splats=100)
+    meta = out.meta
+    assert meta["lodLevels"] == 3 and meta["counts"] == [2 + 4, 2 + 2, 3]  # A repeated at level 0
+    a, c = meta["tree"]["children"]  # B adds no node (one child)
+    assert {k: v["count"] for k, v in a["lods"].items()} == {"0": 2, "1": 2, "2": 1}  # the root splat at x = -1
+    assert {k: v["count"] for k, v in c["lods"].items()} == {"0": 4, "1": 2, "2": 2}
+    assert meta["filenames"] == ["0_0/meta.json", "1_0/meta.json", "2_0/meta.json"]
+    assert c["lods"]["0"]["offset"] == 2 and a["lods"]["0"]["offset"] == 0
+    assert a["bound"]["max"][0] < 0 < c["bound"]["min"][0]
+    assert meta["tree"]["bound"]["min"] == a["bound"]["min"] and meta["tree"]["bound"]["max"] == c["bound"]["max"]

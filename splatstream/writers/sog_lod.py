@@ -52,7 +52,7 @@ class TreeTile:
 
 
 @dataclass(frozen=True)
-class StreamedSog:
+class SogLodFiles:
     meta: dict
     units: dict[str, SogUnit]  # by directory name ("L_i")
 
@@ -85,7 +85,8 @@ def _route(positions: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
 
 
 def extent_box(g: Gaussians) -> tuple[np.ndarray, np.ndarray]:
-    """Axis-aligned box of the splats' 3-sigma ellipsoids."""
+    """Axis-aligned box of the splats' 3-sigma ellipsoids (lod.extent_bounds is in a sibling layer, which writers
+    may not import; this is its box without the sphere)."""
     half = SIGMAS * np.sqrt(np.maximum(np.diagonal(covariances(g), axis1=1, axis2=2), 0))
     p = g.positions.astype(np.float64)
     return (p - half).min(axis=0), (p + half).max(axis=0)
@@ -104,7 +105,7 @@ def _pack(parts: list[tuple[int, Gaussians]], unit_splats: int) -> list[list[tup
     return [run for run in runs if run]
 
 
-def streamed_sog(tiles: dict[int, TreeTile], root: int, unit_splats: int = UNIT_SPLATS) -> StreamedSog:
+def streamed_sog(tiles: dict[int, TreeTile], root: int, unit_splats: int = UNIT_SPLATS) -> SogLodFiles:
     """The lod-meta.json object and the units of a tree of ours (see the module's docstring)."""
     below = _leaves_below(tiles, root)
     leaves = below[root]
@@ -176,10 +177,10 @@ def streamed_sog(tiles: dict[int, TreeTile], root: int, unit_splats: int = UNIT_
     meta = {"version": LOD_META_VERSION, "asset": {"generator": GENERATOR, "chunkGaussians": unit_splats},
             "count": sum(counts), "counts": counts, "lodLevels": levels, "filenames": filenames,
             "tree": node(root)}
-    return StreamedSog(meta, units)
+    return SogLodFiles(meta, units)
 
 
-def write_streamed_sog(sog: StreamedSog, directory: str) -> None:
+def write_streamed_sog(sog: SogLodFiles, directory: str) -> None:
     """Write the units, then lod-meta.json, into `directory` (which the caller writes atomically)."""
     for name, unit in sog.units.items():
         write_unit(unit, os.path.join(directory, name))
