@@ -1,5 +1,6 @@
 """A PlayCanvas streamed SOG's whole LOD tree as a tree of ours (format_spec/foreign_formats.md, "Streamed SOG
-into our tree"), so our client streams it coarse to fine and `encode` keeps its levels.
+into our tree"), so our client streams it coarse to fine (`view`). `encode` of a streamed SOG still reads its finest
+level and builds our own tree (encode_streamed_sog in memory is what `view` uses).
 
 The route: convert on the fly into our tile tree and encode that (in memory for `view`), rather than teaching the
 client a second tree format. Our client's selection, residency and hole-free refinement all work on one tree
