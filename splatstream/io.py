@@ -4,7 +4,8 @@ Readable: standard 3DGS PLY, PlayCanvas compressed PLY, Niantic SPZ (versions 2,
 PlayCanvas SOG (bundled .sog, unbundled meta.json directory, streamed lod-meta.json), glTF/GLB with
 KHR_gaussian_splatting (plain or SPZ-compressed).
 Writable, chosen by the output's extension: .ply (standard 3DGS), .splat, .spz (SPZ v4 or v3), .glb
-(KHR_gaussian_splatting, plain or SPZ-compressed). See format_spec/foreign_formats.md for what each format keeps.
+(KHR_gaussian_splatting, plain or SPZ-compressed), .sog (PlayCanvas SOG version 2, bundled). See
+format_spec/foreign_formats.md for what each format keeps.
 """
 from __future__ import annotations
 
@@ -25,7 +26,7 @@ FORMAT_NAMES = {
     "lod_sog": "PlayCanvas streamed SOG (finest level)",
     "gltf": "glTF with KHR_gaussian_splatting",
 }
-WRITABLE_EXTENSIONS = {".ply": "ply", ".splat": "splat", ".spz": "spz", ".glb": "gltf"}
+WRITABLE_EXTENSIONS = {".ply": "ply", ".splat": "splat", ".spz": "spz", ".glb": "gltf", ".sog": "sog"}
 SPLAT_RECORD_BYTES = 32
 
 
@@ -217,7 +218,7 @@ def output_format(path: str | os.PathLike) -> str:
 
 def write_gaussians(g: Gaussians, path: str | os.PathLike, spz_version: int = 4,
                     glb_compression: str = "none") -> None:
-    """Write Gaussians (atomically) to a file whose format follows the extension (.ply, .splat, .spz, .glb).
+    """Write Gaussians (atomically) to a file whose format follows the extension (.ply, .splat, .spz, .glb, .sog).
 
     spz_version: 3 or 4 for .spz outputs. glb_compression: "none" or "spz" for .glb outputs.
     """
@@ -234,6 +235,10 @@ def write_gaussians(g: Gaussians, path: str | os.PathLike, spz_version: int = 4,
         from .writers.glb import write_glb
 
         write_glb(g, path, glb_compression)
+    elif fmt == "sog":
+        from .writers.sog import write_sog
+
+        write_sog(g, path)
     else:
         from .readers.splat import write_splat
 

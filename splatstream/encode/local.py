@@ -15,6 +15,7 @@ from dataclasses import replace
 
 from ..format.manifest import Manifest, TileEntry
 from ..gaussians import Gaussians
+from ..lod import Tile
 from ..store import DirectoryWriter, MemoryStore, MemoryWriter, SceneWriter
 from .jobs import encode_codebook, encode_group, splat_order, tile_entry, tile_group_names
 from .options import EncodeOptions, Progress, no_progress
@@ -23,9 +24,11 @@ from .reduce import build_manifest
 
 
 def encode_to(g: Gaussians, writer: SceneWriter, opts: EncodeOptions, progress: Progress = no_progress,
-              source_name: str | None = None, out_name: str | None = None) -> Manifest:
-    """Encode Gaussians through a writer (payloads as they are made, the manifest last); returns the manifest."""
-    plan = plan_encode(g, opts, progress, source_name, out_name)
+              source_name: str | None = None, out_name: str | None = None, tiles: list[Tile] | None = None
+              ) -> Manifest:
+    """Encode Gaussians through a writer (payloads as they are made, the manifest last); returns the manifest.
+    `tiles`: an LOD tree built already (plan_encode)."""
+    plan = plan_encode(g, opts, progress, source_name, out_name, tiles)
     ctx = plan.context
     groups = tile_group_names(ctx)
     total = sum(len(t.gaussians) for t in plan.tiles) * len(groups)
@@ -76,11 +79,11 @@ def encode_gaussians(g: Gaussians, out_dir: str | os.PathLike, opts: EncodeOptio
 
 
 def encode_in_memory(g: Gaussians, opts: EncodeOptions | None = None, progress: Progress | None = None,
-                     name: str = "<memory>") -> MemoryStore:
+                     name: str = "<memory>", tiles: list[Tile] | None = None) -> MemoryStore:
     """Encode Gaussians into memory: a scene any reader (decoder, renderer, streaming client) opens like a
-    directory."""
+    directory. `tiles`: an LOD tree built already (plan_encode)."""
     writer = MemoryWriter(name)
-    encode_to(g, writer, opts or EncodeOptions(), progress or no_progress, name, name)
+    encode_to(g, writer, opts or EncodeOptions(), progress or no_progress, name, name, tiles)
     return writer.store()
 
 

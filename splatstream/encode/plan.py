@@ -107,7 +107,10 @@ def _on_chunk_grids(values: np.ndarray) -> bool:
 
 
 def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progress,
-                source_name: str | None = None, out_name: str | None = None) -> EncodePlan:
+                source_name: str | None = None, out_name: str | None = None,
+                tiles: list[Tile] | None = None) -> EncodePlan:
+    """The plan of an encode of `g`. `tiles`: a tree built already (a foreign LOD tree: sog_import.py), breadth-
+    first with bounds and errors, its leaves holding `g`; otherwise the LOD builder makes one."""
     formats = resolve_formats(opts.preset, opts.overrides)
     chunk_order = resolve_chunk_order(opts.chunk_order, formats)
     if len(g) == 0:
@@ -134,7 +137,10 @@ def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progr
     bounds = Box(tuple(float(v) for v in g.positions.min(axis=0)), tuple(float(v) for v in g.positions.max(axis=0)))
     up = plan_up(opts, sample)
     progress("tiles", 0.0)
-    tiles = plan_tiles(g, opts, progress)
+    if tiles is None:
+        tiles = plan_tiles(g, opts, progress)
+    elif sh_degree != g.sh_degree or any(t.gaussians.sh_degree != sh_degree for t in tiles):
+        tiles = [replace(t, gaussians=t.gaussians.with_sh_degree(sh_degree)) for t in tiles]
     progress("tiles", 1.0)
     if opts.chunk_order == "auto" and chunk_order == "morton" and len(tiles) == 1 and input_is_chunk_quantised(g):
         chunk_order = "input"
