@@ -11,7 +11,8 @@ import os
 import pytest
 from conftest import real
 
-from splatstream.encode import encode_file
+from splatstream import io, ply
+from splatstream.encode import encode_file, plan
 from splatstream.gaussians import Gaussians
 from splatstream.io import read_gaussians
 from splatstream.ply import gaussians_to_records, write_gaussians_ply
@@ -91,6 +92,26 @@ def test_output_bytes_are_615105a_s(inputs, tmp_path, case):
         pytest.importorskip("distributed")
     source, preset, _, extra = case
     assert encode_case(inputs, str(tmp_path / "out"), *case) == DIGESTS[source, preset, extra]
+
+
+@pytest.mark.parametrize("engine", ["memory", "partitioned"])
+def test_the_input_is_sniffed_and_its_header_read_once(inputs, tmp_path, monkeypatch, engine):
+    """Issue 33: one encode opens its input once (io.open_input) and screens the splats' domain once."""
+    calls: dict[str, int] = {}
+
+    def counted(module, name):
+        original = getattr(module, name)
+
+        def wrapper(*args, **kwargs):
+            calls[name] = calls.get(name, 0) + 1
+            return original(*args, **kwargs)
+        monkeypatch.setattr(module, name, wrapper)
+
+    for module, name in ((io, "_sniff"), (io, "read_header"), (ply, "read_header"), (io, "domain_violations"),
+                         (plan, "domain_violations")):
+        counted(module, name)
+    encode_file(inputs["zup"], str(tmp_path / "out"), preset="medium", **ENGINES[engine], **TREE)
+    assert calls == {"_sniff": 1, "read_header": 1, **({"domain_violations": 1} if engine == "memory" else {})}
 
 
 if __name__ == "__main__":  # prints every case's digest with whichever splatstream is imported

@@ -32,8 +32,8 @@ import numpy as np
 
 from ..errors import UsageError
 from ..format.manifest import Box, TileEntry
-from ..format.presets import preset_steps, resolve_chunk_order, resolve_formats
 from ..gaussians import SH_REST_COEFFS, Gaussians
+from ..io import SplatInput, read_gaussians
 from ..lod import (
     Tile,
     TreeShape,
@@ -54,12 +54,12 @@ from ..lod import (
     tile_error_first,
     viewing_blur,
 )
-from ..ply import RowStats, check_rows, read_ply_rows, vertex_layout
+from ..ply import RowStats, VertexLayout, check_rows, read_ply_rows
 from ..store import SceneWriter
 from .codebook import codebook_choice
 from .jobs import encode_codebook, encode_tile
 from .options import EncodeOptions, Progress, no_progress
-from .plan import EncodePlan, TileContext, plan_up, scene_name
+from .plan import TileContext, plan_formats, plan_scene, scene_name
 from .reduce import build_manifest
 from .sample import SceneSample
 from .scratch import Scratch
@@ -106,7 +106,7 @@ class Engine(Protocol):
 class PlyRows:
     """A binary 3DGS PLY: each chunk of rows is one byte range of the file."""
 
-    layout: object  # ply.VertexLayout
+    layout: VertexLayout
     path: str
 
     @property
@@ -155,22 +155,19 @@ class SpilledRows:
         return Gaussians(*(a[k] for k in ATTRIBUTES)), RowStats(rows=int(len(a["positions"])))
 
 
-def open_rows(path: str, scratch: Scratch, chunk_rows: int, drop_invalid: bool, progress: Progress):
-    """The input as rows to read in chunks: a binary PLY in byte ranges, anything else read once and spilled."""
-    from ..io import read_gaussians, sniff_format
-
-    if sniff_format(path) == "ply":
-        layout = vertex_layout(path)
-        if layout is not None:
-            return PlyRows(layout, path)
+def open_rows(source: SplatInput, layout: VertexLayout | None, scratch: Scratch, chunk_rows: int,
+              drop_invalid: bool, progress: Progress):
+    """The input as rows to read in chunks: a binary PLY in byte ranges (its `layout`, from
+    SplatInput.vertex_layout), anything else read once and spilled."""
+    if layout is not None:
+        return PlyRows(layout, source.path)
     progress("read", 0.0)
-    g = read_gaussians(path, drop_invalid=drop_invalid)
+    g = read_gaussians(source, drop_invalid=drop_invalid)
     for i, start in enumerate(range(0, len(g), chunk_rows)):
         part = g.subset(slice(start, start + chunk_rows))
         scratch.save(f"input/{i}", **{k: getattr(part, k) for k in ATTRIBUTES})
     progress("read", 1.0)
     return SpilledRows(scratch, chunk_rows, len(g), g.sh_degree)
-
 
 # ---------------------------------------------------------------------------------------------- tasks
 
@@ -585,8 +582,7 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
                        progress: Progress = no_progress, source_name: str | None = None,
                        out_name: str | None = None, drop_invalid: bool = False):
     """Encode the rows of an input (PlyRows, ArrayRows, SpilledRows) through a writer on an engine."""
-    formats = resolve_formats(opts.preset, opts.overrides)
-    chunk_order = resolve_chunk_order(opts.chunk_order, formats)
+    formats, chunk_order = plan_formats(opts)
     if not opts.lod:
         raise UsageError("a partitioned encode needs LOD (--no-lod keeps the whole scene in one tile)")
     sh_degree = opts.sh_degree if opts.sh_degree is not None else rows.sh_degree
@@ -635,17 +631,13 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
                                        for i in range(len(spans))], "cleanup")
     sample = SceneSample.join([r[1] for r in routed])
     del routed
-    codebook = None
-    if choice != "off":
-        progress("codebook", 0.0)
-        codebook = sample.codebook(choice)
-        progress("codebook", 1.0)
-    sample.codebook_rows = sample.codebook_weights = None
-    up = plan_up(opts, sample)
-    ctx = TileContext(formats, chunk_order, sh_degree, codebook, opts.resolved_zstd_level, opts.transport,
-                      preset_steps(opts.preset, opts.overrides))
+    # The chunk order stays morton where the in-memory engine may keep an input's order (plan_encode): that needs
+    # the whole scene in one tile, which a partitioned encode never has for more than one leaf of splats.
+    scene, sample = plan_scene(opts, formats, chunk_order, sh_degree, sample, splats, bounds,
+                               scene_name(opts, source_name, out_name), progress)
+    ctx = scene.context
     payloads = writer.payload_writer()
-    codebook_entry = encode_codebook(codebook, ctx, payloads) if codebook is not None else None
+    codebook_entry = encode_codebook(ctx.codebook, ctx, payloads) if ctx.codebook is not None else None
 
     results = engine.map(build_partition, [(p, level, shape, chunk_counts, scratch, ctx, payloads,
                                             engine.threads_per_task, level > 0) for p in range(partitions)],
@@ -656,8 +648,7 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
                             progress)
     if level > 0:
         engine.map_behind(delete_scratch, [(scratch, [f"originals/{p}"]) for p in range(partitions)], "cleanup")
-    plan = EncodePlan(ctx, [], opts, scene_name(opts, source_name, out_name), splats, bounds, up, sample)
-    m = build_manifest(plan, sample.camera(up), sorted(entries, key=lambda t: t.id), codebook_entry)
+    m = build_manifest(scene, sample.camera(scene.up), sorted(entries, key=lambda t: t.id), codebook_entry)
     engine.settle()
     writer.write_manifest(m)
     return m
