@@ -6,6 +6,8 @@ import os
 import sys
 import time
 
+from .args import add_edit_arguments, edit_report, edits_from
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -29,6 +31,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(KHR_gaussian_splatting_compression_spz_2)")
     p.add_argument("--drop-invalid", action="store_true",
                    help="drop splats with non-finite or degenerate values instead of refusing the input")
+    add_edit_arguments(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages on stderr")
     p.set_defaults(func=run)
 
@@ -63,6 +66,14 @@ def run(args: argparse.Namespace) -> int:
 
         g = turn(g, RDF_TO_RUB)  # undo the reader's RUB -> RDF turn: the file held RDF already
     say(f"read {len(g)} splats, SH degree {g.sh_degree}")
+    edits = edits_from(args)
+    read = len(g)
+    g, counts = edits.run(g)
+    if args.dry_run:
+        print(edit_report(args.input, read, counts))
+        return 0
+    if len(g) == 0:
+        raise UsageError(f"{args.input}: the edits keep no splats; nothing to convert")
     if out_format == "splat" and g.sh_degree > 0:
         say(f"note: .splat has no SH bands; bands 1..{g.sh_degree} are dropped")
     glb = "SPZ-compressed splats" if args.glb_compression == "spz" else "uncompressed splats"

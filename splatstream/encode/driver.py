@@ -12,10 +12,11 @@ import tempfile
 from dataclasses import replace
 
 from ..atomic import check_output
+from ..edit import Pipeline
 from ..format.manifest import Manifest
 from ..format.presets import DEFAULT_PRESET
 from ..io import open_input, read_gaussians
-from ..ply import VertexLayout
+from ..ply import RowStats, VertexLayout, check_rows, read_ply_rows
 from ..store import _fsspec, is_url, local_path, open_writer
 from ..vq import parse_entries
 from .distributed import DaskEngine
@@ -39,13 +40,14 @@ def fits_in_process(layout: VertexLayout | None, opts: EncodeOptions, memory: in
 def encode_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, preset: str | None = None,
                 drop_invalid: bool = False, progress: Progress | None = None, workers: int | None = None,
                 scheduler: str | None = None, memory_per_worker: int | None = None, scratch: str | None = None,
-                **options) -> Manifest:
+                edits: Pipeline | None = None, **options) -> Manifest:
     """Read any supported splat file and encode it into `out_dir` (a directory or an fsspec URL).
 
     By default in this process: in memory when the scene fits half the available memory (or `memory_per_worker`),
     else by partitions (encode/partitioned.py), reading the input by row ranges. `workers` (a local Dask cluster
     of that many processes) or `scheduler` (an existing Dask cluster) run the partitions on Dask
-    (encode/distributed.py). The output is the same in every case."""
+    (encode/distributed.py). `edits` (edit.Pipeline) run on the splats as read, whole or chunk by chunk. The output
+    is the same in every case."""
     opts = EncodeOptions(preset=preset or DEFAULT_PRESET, reorder_input=True, **options)
     plan_formats(opts)  # fail before the (possibly long) read
     if opts.sh_codebook is not None:
@@ -71,9 +73,13 @@ def encode_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, prese
     if not distributed and fits_in_process(layout, opts, memory_per_worker or default_memory_per_worker()):
         progress("read", 0.0)
         g = read_gaussians(source, drop_invalid=drop_invalid)
+        if edits:
+            g = edits.apply(g)
         progress("read", 1.0)
         with open_writer(out) as writer:
-            return encode_to(g, writer, opts, progress, source.path, out_name, screened=True)
+            # a transform may carry values out of the format's domain: screened again then
+            screened = not (edits and edits.transforms)
+            return encode_to(g, writer, opts, progress, source.path, out_name, screened=screened)
     if distributed:
         engine = DaskEngine(workers=workers, scheduler=scheduler, memory_per_worker=memory_per_worker)
     else:
@@ -88,9 +94,36 @@ def encode_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, prese
             try:
                 rows = open_rows(source, layout, space, 1 << 20, drop_invalid, progress)
                 return encode_partitioned(rows, writer, opts, engine, space, progress, source.path, out_name,
-                                          drop_invalid)
+                                          drop_invalid, edits)
             finally:
                 space.remove()
     finally:
         engine.close()
 
+
+
+# Rows a dry run reads at once from a binary PLY: its memory stays bounded whatever the scene's size.
+DRY_RUN_ROWS = 1 << 20
+
+
+def count_edits(input_path: str | os.PathLike, edits: Pipeline, drop_invalid: bool = False
+                ) -> tuple[str, int, list[tuple[str, int]]]:
+    """What `edits` would keep of an input, without writing anything: its format, the splats read, and per step
+    (edit.Pipeline.steps) its label and the splats it keeps. A binary PLY is read by row ranges."""
+    source = open_input(local_path(input_path))
+    layout = source.vertex_layout()
+    if layout is None:
+        g = read_gaussians(source, drop_invalid=drop_invalid)
+        _, counts = edits.run(g)
+        return source.format, len(g), counts
+    stats = RowStats()
+    read = 0
+    totals: list[tuple[str, int]] = [(step.label, 0) for step in edits.steps]
+    for start in range(0, layout.rows, DRY_RUN_ROWS):
+        g, st = read_ply_rows(layout, start, start + DRY_RUN_ROWS)
+        stats = stats + st
+        read += len(g)
+        _, counts = edits.run(g)
+        totals = [(label, total + kept) for (label, total), (_, kept) in zip(totals, counts, strict=True)]
+    check_rows(source.path, stats, drop_invalid)
+    return source.format, read, totals

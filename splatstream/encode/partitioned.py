@@ -30,6 +30,7 @@ from typing import Protocol
 
 import numpy as np
 
+from ..edit import Pipeline
 from ..errors import UsageError
 from ..format.manifest import Box, TileEntry
 from ..gaussians import SH_REST_COEFFS, Gaussians
@@ -153,6 +154,27 @@ class SpilledRows:
     def read(self, start: int, stop: int) -> tuple[Gaussians, RowStats]:
         a = self.scratch.load(f"input/{start // self.chunk_rows}")
         return Gaussians(*(a[k] for k in ATTRIBUTES)), RowStats(rows=int(len(a["positions"])))
+
+
+@dataclass
+class EditedRows:
+    """Rows with the edits of issue 36 (edit.Pipeline) applied to each chunk as it is read: every edit is a
+    function of one splat, so the kept rows and their values are those of the whole scene edited at once."""
+
+    inner: PlyRows | ArrayRows | SpilledRows
+    edits: Pipeline
+
+    @property
+    def rows(self) -> int:
+        return self.inner.rows
+
+    @property
+    def sh_degree(self) -> int:
+        return self.inner.sh_degree
+
+    def read(self, start: int, stop: int) -> tuple[Gaussians, RowStats]:
+        g, stats = self.inner.read(start, stop)
+        return self.edits.apply(g), stats
 
 
 def open_rows(source: SplatInput, layout: VertexLayout | None, scratch: Scratch, chunk_rows: int,
@@ -580,8 +602,12 @@ def _top_splits(engine: Engine, scratch: Scratch, chunks: list[tuple[int, int]],
 
 def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: Engine, scratch: Scratch,
                        progress: Progress = no_progress, source_name: str | None = None,
-                       out_name: str | None = None, drop_invalid: bool = False):
-    """Encode the rows of an input (PlyRows, ArrayRows, SpilledRows) through a writer on an engine."""
+                       out_name: str | None = None, drop_invalid: bool = False, edits: Pipeline | None = None):
+    """Encode the rows of an input (PlyRows, ArrayRows, SpilledRows) through a writer on an engine, edited by
+    `edits` (chunk by chunk, EditedRows)."""
+    source_rows = rows
+    if edits:
+        rows = EditedRows(rows, edits)
     formats, chunk_order = plan_formats(opts)
     if not opts.lod:
         raise UsageError("a partitioned encode needs LOD (--no-lod keeps the whole scene in one tile)")
@@ -599,8 +625,8 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
     stats = RowStats()
     for _, st, _, _, _ in scans:
         stats = stats + st
-    if isinstance(rows, PlyRows):
-        check_rows(rows.path, stats, drop_invalid)
+    if isinstance(source_rows, PlyRows):
+        check_rows(source_rows.path, stats, drop_invalid)
     kept = np.array([s[0] for s in scans], np.int64)
     splats = int(kept.sum())
     if splats == 0:
