@@ -12,8 +12,10 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .atomic import atomic_file
 from .errors import InputError
 from .gaussians import SH_REST_COEFFS, Gaussians, normalize_quaternions
+from .readers import check_memory, model_bytes_per_splat, opacity_logits_from_unit
 
 PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -134,8 +136,6 @@ def read_elements(path: str | os.PathLike, header: PlyHeader | None = None) -> t
         if declared > (data_bytes + 1) // 2:
             raise InputError(path, "header", f"the elements declare {declared} ASCII values, but {data_bytes} bytes "
                              f"of data hold at most {(data_bytes + 1) // 2} (truncated, or a wrong count)")
-        from .readers import check_memory
-
         check_memory(path, None, declared, ASCII_BYTES_PER_VALUE)
         with open(path, "rb") as f:
             f.seek(header.size)
@@ -357,8 +357,6 @@ def _gaussians_from_records(records: np.ndarray, n_rest: int) -> tuple[Gaussians
     opacity = values["opacity_logits"]
     infinite = np.isinf(opacity)
     if infinite.any():
-        from .readers import opacity_logits_from_unit
-
         limit = float(opacity_logits_from_unit(np.ones(1))[0])
         stats.infinite = int(infinite.sum())
         stats.infinite_positive = int((opacity > 0)[infinite].sum())
@@ -395,8 +393,6 @@ def check_rows(path: str, stats: RowStats, drop_invalid: bool) -> None:
     one message for the whole file, however many pieces it was read in."""
     n = stats.rows
     if stats.infinite:
-        from .readers import opacity_logits_from_unit
-
         limit = float(opacity_logits_from_unit(np.ones(1))[0])
         warnings.warn(InfiniteOpacityWarning(
             f"{path}: {stats.infinite} of {n} splats have an infinite opacity logit ({stats.infinite_positive} +inf "
@@ -430,8 +426,6 @@ def read_gaussians_ply(path: str | os.PathLike, drop_invalid: bool = False, head
     path = os.fspath(path)
     header = header or read_header(path)
     vertex, n_rest = _vertex_header(path, header)
-    from .readers import check_memory, model_bytes_per_splat
-
     check_element_sizes(path, header)
     check_memory(path, "element vertex", vertex.count,
                  vertex.dtype("<").itemsize + 3 * model_bytes_per_splat(SH_REST_DEGREES.get(n_rest, 3)))
@@ -467,8 +461,6 @@ def gaussians_to_records(g: Gaussians, normals: bool = True) -> np.ndarray:
 
 def write_gaussians_ply(g: Gaussians, path: str | os.PathLike, normals: bool = True) -> None:
     """Write a standard binary little-endian 3DGS PLY (atomically: temporary name, then rename)."""
-    from .atomic import atomic_file
-
     records = gaussians_to_records(g, normals)
     lines = ["ply", "format binary_little_endian 1.0", "comment written by splatstream",
              f"element vertex {len(g)}"]

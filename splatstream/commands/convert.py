@@ -69,6 +69,8 @@ def run(args: argparse.Namespace) -> int:
     edits = edits_from(args)
     read = len(g)
     g, counts = edits.run(g)
+    for label, kept in counts:
+        say(f"{label}: {kept} splats kept")
     if args.dry_run:
         print(edit_report(args.input, read, counts))
         return 0
