@@ -600,6 +600,36 @@ def _top_splits(engine: Engine, scratch: Scratch, chunks: list[tuple[int, int]],
     return splits
 
 
+def _scan(engine: Engine, rows, spans: list[tuple[int, int]], scratch: Scratch, progress: Progress,
+          ply_path: str | None, drop_invalid: bool
+          ) -> tuple[list[tuple[int, int]], np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """Stage 1, the scan: each chunk's kept rows as a range of input indices, the centres' box and the split sample
+    (centres and their input indices). `ply_path`: a PLY read by rows, whose invalid rows are reported here for
+    the whole file at once (ply.check_rows)."""
+    stride = max(1, rows.rows // SPLIT_SAMPLE)
+    scans = engine.map(scan_chunk, [(rows, i, s, e, scratch, stride) for i, (s, e) in enumerate(spans)], "read",
+                       progress)
+    stats = RowStats()
+    for _, st, _, _, _ in scans:
+        stats = stats + st
+    if ply_path is not None:
+        check_rows(ply_path, stats, drop_invalid)
+    kept = np.array([s[0] for s in scans], np.int64)
+    splats = int(kept.sum())
+    if splats == 0:
+        raise UsageError("the input holds no splats; nothing to encode")
+    if splats >= 1 << 32:
+        raise UsageError(f"{splats} splats: a partitioned encode handles at most 2^32 - 1")
+    offsets = np.concatenate([[0], np.cumsum(kept)])
+    chunks = [(int(offsets[i]), int(offsets[i + 1])) for i in range(len(spans))]
+    lo = np.min([s[2] for s in scans], axis=0)
+    hi = np.max([s[3] for s in scans], axis=0)
+    split_sample = (np.concatenate([s[4] for s in scans]),
+                    np.concatenate([offsets[i] + stride * np.arange(len(s[4]), dtype=np.int64)
+                                    for i, s in enumerate(scans)]))
+    return chunks, lo, hi, split_sample
+
+
 def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: Engine, scratch: Scratch,
                        progress: Progress = no_progress, source_name: str | None = None,
                        out_name: str | None = None, drop_invalid: bool = False, edits: Pipeline | None = None):
@@ -619,33 +649,16 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
     chunk_rows = int(min(1 << 22, max(1 << 16, chunk_rows)))
     spans = [(s, min(s + chunk_rows, rows.rows)) for s in range(0, rows.rows, chunk_rows)]
 
-    stride = max(1, rows.rows // SPLIT_SAMPLE)
-    scans = engine.map(scan_chunk, [(rows, i, s, e, scratch, stride) for i, (s, e) in enumerate(spans)], "read",
-                       progress)
-    stats = RowStats()
-    for _, st, _, _, _ in scans:
-        stats = stats + st
-    if isinstance(source_rows, PlyRows):
-        check_rows(source_rows.path, stats, drop_invalid)
-    kept = np.array([s[0] for s in scans], np.int64)
-    splats = int(kept.sum())
-    if splats == 0:
-        raise UsageError("the input holds no splats; nothing to encode")
-    if splats >= 1 << 32:
-        raise UsageError(f"{splats} splats: a partitioned encode handles at most 2^32 - 1")
-    offsets = np.concatenate([[0], np.cumsum(kept)])
-    chunks = [(int(offsets[i]), int(offsets[i + 1])) for i in range(len(spans))]
-    lo = np.min([s[2] for s in scans], axis=0)
-    hi = np.max([s[3] for s in scans], axis=0)
+    chunks, lo, hi, split_sample = _scan(engine, rows, spans, scratch, progress,
+                                         source_rows.path if isinstance(source_rows, PlyRows) else None,
+                                         drop_invalid)
+    splats = chunks[-1][1]
     bounds = Box(tuple(float(v) for v in lo), tuple(float(v) for v in hi))
 
     shape = TreeShape.of(splats, opts.max_leaf_splats, opts.reduction)
     level = partition_level(shape, row_bytes, engine)
     kd = shape.kd_depths[level]
     partitions = 2 ** kd
-    split_sample = (np.concatenate([s[4] for s in scans]),
-                    np.concatenate([offsets[i] + stride * np.arange(len(s[4]), dtype=np.int64)
-                                    for i, s in enumerate(scans)]))
     splits = _top_splits(engine, scratch, chunks, kd, splats, (lo, hi), split_sample, progress)
     del split_sample
 
