@@ -39,10 +39,11 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     from ..atomic import check_output
     from ..errors import UsageError
-    from ..io import FORMAT_NAMES, output_format, read_gaussians, sniff_format, write_gaussians
+    from ..io import FORMAT_NAMES, open_input, output_format, read_gaussians, write_gaussians
 
     out_format = output_format(args.output)  # refuse an unwritable output before reading anything
-    in_format = sniff_format(args.input)
+    source = open_input(args.input)  # sniffed once: the reader takes what sniffing parsed
+    in_format = source.format
     if os.path.exists(args.output) and os.path.samefile(args.input, args.output):
         raise UsageError(f"{args.output}: output is the input file")
     check_output(args.output)
@@ -53,7 +54,7 @@ def run(args: argparse.Namespace) -> int:
             print(f"convert: {message} ({time.perf_counter() - start:.1f}s)", file=sys.stderr, flush=True)
 
     say(f"reading {args.input} ({FORMAT_NAMES[in_format]})")
-    g = read_gaussians(args.input, drop_invalid=args.drop_invalid)
+    g = read_gaussians(source, drop_invalid=args.drop_invalid)
     if len(g) == 0:  # an empty .splat (or any format without a count) could not be read back
         from ..errors import InputError
 
