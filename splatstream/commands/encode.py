@@ -137,6 +137,8 @@ def run(args: argparse.Namespace) -> int:
     t0 = time.perf_counter()
     preset = args.preset or DEFAULT_PRESET
     if args.target_psnr is not None or args.target_size is not None:
+        if edits:
+            raise UsageError("--target-psnr / --target-size measure the input as read: give them without edits")
         if args.preset or overrides or args.sh_degree is not None or args.sh_codebook is not None:
             raise UsageError("--target-psnr / --target-size choose the preset: give them without --preset, texel "
                              "formats, --sh-degree or --sh-codebook")
