@@ -367,23 +367,16 @@ def _payload(v, expect: list[tuple[str, dict]], chunks: int, strict: bool, sourc
     if expected:
         _fail(source, path, "sections", f"missing section{'s' if len(expected) > 1 else ''} "
               f"{', '.join(map(repr, expected))}")
-    _check_layout(sections, raw_bytes, source, path)
-    if gpu_bytes != gpu:
-        _fail(source, path, "gpu_bytes", f"{gpu_bytes}, but the sections decode to {gpu} bytes")
-    return PayloadEntry(file, sha, size, raw_bytes, gpu_bytes, tuple(sections))
-
-
-def _check_layout(sections: list[Section], raw_bytes: int, source: str, path: str) -> None:
-    """Sections do not overlap, and the last one ends the decompressed payload."""
     ordered = sorted(sections, key=_offset)
-    end = 0
     for a, b in zip(ordered, ordered[1:], strict=False):
         if a.offset + a.size > b.offset:
             _fail(source, path, "sections", f"sections {a.name!r} and {b.name!r} overlap")
-    if ordered:
-        end = ordered[-1].offset + ordered[-1].size
+    end = ordered[-1].offset + ordered[-1].size if ordered else 0
     if raw_bytes != end:
         _fail(source, path, "raw_bytes", f"{raw_bytes}, but the sections end at byte {end}")
+    if gpu_bytes != gpu:
+        _fail(source, path, "gpu_bytes", f"{gpu_bytes}, but the sections decode to {gpu} bytes")
+    return PayloadEntry(file, sha, size, raw_bytes, gpu_bytes, tuple(sections))
 
 
 def expected_sections(group: str, codebook: bool, formats: dict[str, str], chunks: int,
@@ -421,20 +414,24 @@ def _expected_sections(group: str, codebook: bool, format_items: tuple, chunks: 
 class _Scene:
     """What every tile of one manifest is checked against."""
 
-    __slots__ = ("source", "strict", "formats", "format_items", "codebook", "group_names", "lazy")
+    __slots__ = ("source", "strict", "formats", "format_items", "codebook", "group_names", "lazy", "expect")
 
     def __init__(self, source: str, strict: bool, formats: dict[str, str], sh_degree: int, codebook: bool,
                  lazy: bool):
         self.source, self.strict, self.formats, self.codebook, self.lazy = source, strict, formats, codebook, lazy
         self.group_names = tuple(groups_for_degree(sh_degree, codebook))
-        self.format_items = tuple(sorted(formats.items()))  # the key of _expected_sections' cache
+        self.format_items = tuple(sorted(formats.items()))
+        self.expect: dict[tuple[str, int], list] = {}  # (group, chunks) -> expected_sections: a few per scene
 
 
 def _tile_group(scene: _Scene, raw_groups: dict, chunks: int, texture: tuple[int, int], path: str,
                name: str) -> PayloadEntry:
     """One tile group's payload entry, its texels the tile's texture size (an eager parse and LazyPayloads both
     check an entry with this function)."""
-    expect = _expected_sections(name, scene.codebook, scene.format_items, chunks, None)
+    expect = scene.expect.get((name, chunks))
+    if expect is None:
+        expect = scene.expect[name, chunks] = _expected_sections(name, scene.codebook, scene.format_items, chunks,
+                                                                 None)
     entry = _payload(raw_groups[name], expect, chunks, scene.strict, scene.source, f"{path}.{name}")
     for sec in entry.sections:
         if sec.kind == "texels" and (sec.width, sec.height) != texture:
@@ -475,7 +472,7 @@ def _tile(v, i: int, scene: _Scene, group_names: tuple[str, ...]) -> TileEntry:
         for name in group_names:
             if name not in raw_groups:
                 _fail(source, gpath, name, "missing")
-            groups[name] = check(name)
+            groups[name] = _tile_group(scene, raw_groups, chunks, texture, gpath, name)
         _keys(raw_groups, group_names, source, gpath, strict)
     if type(level) is not int or not 0 <= level <= 64:
         _bad_int(source, path, "level", level, 0, 64)
