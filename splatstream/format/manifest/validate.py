@@ -32,7 +32,7 @@ from ..planes import (
     group_planes,
     groups_for_degree,
 )
-from ..texformats import FORMATS, VALUE_FORMATS, blob_size
+from ..texformats import FORMATS, VALUE_FORMATS
 from ..transport import FIELD_LAYOUTS, FIELDS1, content_bounds
 from .model import (
     AttributeSize,
@@ -84,6 +84,8 @@ _PAYLOAD_SET = frozenset(_PAYLOAD_KEYS)
 _KIND_SETS = {kind: frozenset(keys) for kind, keys in _KIND_KEYS.items()}
 _FILTER_ELEMENTS = {"none": 1, **{f"shuffle{n}": n for n in range(2, 17)}}
 _INF = math.inf
+_NUMBER = (float, int)  # msgpack's numbers (a bool is neither type)
+_isfinite = math.isfinite
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -155,10 +157,12 @@ def _bool(d: dict, key: str, source: str, path: str) -> bool:
 
 def _vec(d: dict, key: str, source: str, path: str) -> tuple[float, float, float]:
     v = d[key]
-    if type(v) not in (list, tuple) or len(v) != 3 or not all(type(x) in (float, int) and math.isfinite(x)
-                                                               for x in v):
-        _fail(source, path, key, f"expected 3 finite numbers, got {v!r}")
-    return (float(v[0]), float(v[1]), float(v[2]))
+    if type(v) in (list, tuple) and len(v) == 3:
+        x, y, z = v
+        if type(x) in _NUMBER and type(y) in _NUMBER and type(z) in _NUMBER and _isfinite(x) and _isfinite(y) \
+                and _isfinite(z):
+            return (float(x), float(y), float(z))
+    _fail(source, path, key, f"expected 3 finite numbers, got {v!r}")
 
 
 def _ints(d: dict, key: str, source: str, path: str, n: int | None, lo: int, hi: int) -> tuple[int, ...]:
@@ -199,18 +203,17 @@ def max_blocks(chunks: int) -> int:
 
 
 @functools.lru_cache(maxsize=4096)  # a large scene's thousands of sections repeat a few shapes
-def _stored_size_problem(fmt: str, width: int, height: int, layers: int, filt: str, length: int) -> str | None:
-    """What is wrong with a texels section's stored size, or None: the texture's bytes for none/shuffleN, a size
-    within what the fields1 layout allows (format.md 5.2; the exact size depends on modes only the bytes hold)."""
+def _stored_size_rule(fmt: str, width: int, height: int, layers: int, filt: str) -> tuple[int, int, int, str | None]:
+    """(smallest and largest stored size, GPU bytes, what is wrong with the filter or None) of a texels section: the
+    texture's bytes for none/shuffleN, a size within what the fields1 layout allows (format.md 5.2; the exact size
+    depends on modes only the bytes hold)."""
+    gpu = texels_size(fmt, width, height, layers)
     if filt != FIELDS1:
-        need = blob_size(FORMATS[fmt], width, height, layers)
-        return None if length == need else f"{length} bytes for {layers} layers of {width}x{height} {fmt}, " \
-            f"expected {need}"
+        return gpu, gpu, gpu, None
     if fmt not in FIELD_LAYOUTS:
-        return f"fields1 does not apply to texel format {fmt}"
+        return 0, 0, gpu, f"fields1 does not apply to texel format {fmt}"
     lo, hi = content_bounds(fmt, width, height, layers)
-    return None if lo <= length <= hi else f"{length} bytes of fields1 content for {layers} layers of " \
-        f"{width}x{height} {fmt}, expected {lo}..{hi}"
+    return lo, hi, gpu, None
 
 
 def _odd_shuffle(filt: str) -> bool:
@@ -257,10 +260,14 @@ def _texels(s: dict, want: dict, chunks: int, filt: str, length: int, source: st
         _bad_int(source, _spath(at), "layers", layers, 1, 64)
     if layers != want["layers"]:
         _fail(source, _spath(at), "layers", f"expected {want['layers']}, got {layers}")
-    problem = _stored_size_problem(fmt, width, height, layers, filt, length)
+    lo, hi, gpu, problem = _stored_size_rule(fmt, width, height, layers, filt)
     if problem is not None:
-        _fail(source, _spath(at), "filter" if problem.startswith("fields1") else "size", problem)
-    return fmt, width, height, layers, texels_size(fmt, width, height, layers)
+        _fail(source, _spath(at), "filter", problem)
+    if not lo <= length <= hi:
+        _fail(source, _spath(at), "size", f"{length} bytes for {layers} layers of {width}x{height} {fmt}, expected "
+              f"{lo}" if filt != FIELDS1 else f"{length} bytes of fields1 content for {layers} layers of "
+              f"{width}x{height} {fmt}, expected {lo}..{hi}")
+    return fmt, width, height, layers, gpu
 
 
 def _range(s: dict, want: dict, length: int, source: str, at: tuple[str, int]) -> tuple:
