@@ -1,63 +1,91 @@
-"""Time parse_manifest on real manifests: eager, lazy (the streaming client's first frame) and lazy with every payload
-entry read afterwards, as in-process medians.
+"""Time parse_manifest on real manifests: eager, lazy (the streaming client's, before its first frame) and lazy with
+every payload entry read afterwards; medians of in-process runs.
 
-    PYTHONPATH=. python bench/bench_manifest_parse.py SCENE_DIR [SCENE_DIR ...] [--repeat 15] [--json out.json]
+    PYTHONPATH=. python bench/bench_manifest_parse.py SCENE_DIR [SCENE_DIR ...] [--repeat 31] [--json out.json]
+    git show 615105a:splatstream/format/manifest.py > /tmp/ref_manifest.py
+    PYTHONPATH=. python bench/bench_manifest_parse.py SCENE_DIR ... --ref /tmp/ref_manifest.py
 
-Run it once with the code under test on PYTHONPATH and once with another checkout's (the A/B of BENCHMARKS.md,
-"Manifest parse"): the script only imports `splatstream.format.manifest.parse_manifest`, which every version has.
+With --ref, a manifest module of another version (a single file that imports its siblings relatively, as
+splatstream/format/manifest.py did before issue 33) is loaded beside this tree's, and each run of this tree's
+parse is paired with one of the reference's, in alternating order: the figures are medians of CPU time of this
+process (a shared machine's other work moves wall time by more than the difference), and the ratio is the median
+of the pairs' ratios (BENCHMARKS.md, "Manifest parse").
 """
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import pathlib
 import statistics
+import sys
 import time
+from collections.abc import Callable
 
 from splatstream.format.manifest import parse_manifest
 
-
-def _read_all(m) -> None:
-    for t in m.tiles:
-        for name in t.groups:
-            t.groups[name]
+MODES = ("eager", "lazy", "lazy_then_all")
 
 
-def time_parse(data: bytes, repeat: int) -> dict[str, float]:
-    """Median milliseconds of each mode over `repeat` runs (after one untimed run)."""
-    modes = {
-        "eager": lambda: parse_manifest(data),
-        "lazy": lambda: parse_manifest(data, lazy_payloads=True),
-        "lazy_then_all": lambda: _read_all(parse_manifest(data, lazy_payloads=True)),
-    }
+def load_reference(path: pathlib.Path):
+    """A manifest module of another version, as splatstream.format._reference_manifest (its relative imports find
+    this tree's format modules)."""
+    spec = importlib.util.spec_from_file_location("splatstream.format._reference_manifest", path)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+def run_once(parse: Callable, data: bytes, mode: str) -> float:
+    """CPU milliseconds of one parse in `mode` (lazy_then_all: every payload entry read after a lazy parse)."""
+    t0 = time.process_time()
+    m = parse(data, lazy_payloads=mode != "eager")
+    if mode == "lazy_then_all":
+        for t in m.tiles:
+            for name in t.groups:
+                t.groups[name]
+    return (time.process_time() - t0) * 1e3
+
+
+def time_modes(data: bytes, repeat: int, ref=None) -> dict[str, dict[str, float]]:
     out = {}
-    for name, run in modes.items():
-        run()
-        times = []
-        for _ in range(repeat):
-            t0 = time.perf_counter()
-            run()
-            times.append((time.perf_counter() - t0) * 1e3)
-        out[name] = round(statistics.median(times), 2)
+    for mode in MODES:
+        run_once(parse_manifest, data, mode)
+        if ref is None:
+            out[mode] = {"ms": round(statistics.median(run_once(parse_manifest, data, mode)
+                                                       for _ in range(repeat)), 2)}
+            continue
+        run_once(ref.parse_manifest, data, mode)
+        new, old = [], []
+        for i in range(repeat):
+            pair = [(parse_manifest, new), (ref.parse_manifest, old)]
+            for parse, times in pair if i % 2 else pair[::-1]:
+                times.append(run_once(parse, data, mode))
+        out[mode] = {"ms": round(statistics.median(new), 2), "ref_ms": round(statistics.median(old), 2),
+                     "ratio": round(statistics.median(a / b for a, b in zip(new, old, strict=True)), 3)}
     return out
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("scenes", nargs="+", type=pathlib.Path)
-    ap.add_argument("--repeat", type=int, default=15)
+    ap.add_argument("--repeat", type=int, default=31)
+    ap.add_argument("--ref", type=pathlib.Path, help="a manifest.py of another version to pair each run with")
     ap.add_argument("--json", type=pathlib.Path)
     args = ap.parse_args()
+    ref = load_reference(args.ref) if args.ref else None
     rows = {}
     for scene in args.scenes:
         data = (scene / "manifest.msgpack").read_bytes()
         m = parse_manifest(data)
         sections = sum(len(p.sections) for _, _, p in m.payloads())
-        rows[scene.name] = {"bytes": len(data), "tiles": len(m.tiles), "sections": sections,
-                            **time_parse(data, args.repeat)}
-        r = rows[scene.name]
-        print(f"{scene.name:28s} {r['bytes']:>9,d} B {r['tiles']:>5d} tiles {sections:>6d} sections  eager "
-              f"{r['eager']:8.2f} ms  lazy {r['lazy']:8.2f} ms  lazy+all {r['lazy_then_all']:8.2f} ms", flush=True)
+        times = time_modes(data, args.repeat, ref)
+        rows[scene.name] = {"bytes": len(data), "tiles": len(m.tiles), "sections": sections, **times}
+        cells = "  ".join(f"{mode} {t['ms']:7.2f} ms" + (f" (ref {t['ref_ms']:7.2f}, x{t['ratio']:.3f})" if ref else "")
+                          for mode, t in times.items())
+        print(f"{scene.name:24s} {len(data):>9,d} B {len(m.tiles):>5d} tiles {sections:>6d} sections  {cells}",
+              flush=True)
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))
 

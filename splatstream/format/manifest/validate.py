@@ -528,7 +528,7 @@ def _check_tree(source: str, tiles: list[TileEntry], root: int) -> None:
 # The manifest
 
 
-def check_format_and_version(d, source: str) -> tuple[int, int]:
+def _check_format_and_version(d, source: str) -> tuple[int, int]:
     if not isinstance(d, dict) or d.get("format") != FORMAT_NAME:
         raise FormatError(source, "format", f"expected {FORMAT_NAME!r}; this is not a splatstream manifest")
     version = d.get("version")
@@ -634,7 +634,7 @@ def manifest_from_dict(d, source: str = MANIFEST_NAME, lazy_payloads: bool = Fal
     (The checksum, a property of the file's bytes, is verified by parse_manifest.)
 
     lazy_payloads: each tile's payload entries are checked when first read (by the same function), not here."""
-    version = check_format_and_version(d, source)
+    version = _check_format_and_version(d, source)
     # Keys are added only in new minor versions: in a version this reader knows, an unknown key is damage.
     strict = version[1] <= FORMAT_VERSION[1]
     optional = ("sh_codebook", CHECKSUM_KEY) if version >= CHECKSUM_VERSION else ("sh_codebook",)
@@ -689,7 +689,7 @@ def parse_manifest(raw: bytes, source: str = MANIFEST_NAME, lazy_payloads: bool 
     before its first frame and then reads a few at a time."""
     with _collector_paused():
         d = unpack_manifest(raw, source)
-        version = check_format_and_version(d, source)
+        version = _check_format_and_version(d, source)
         if version >= CHECKSUM_VERSION:
             verify_checksum(raw, d, source)
         manifest = manifest_from_dict(d, source, lazy_payloads)
