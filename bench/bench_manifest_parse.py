@@ -14,6 +14,7 @@ of the pairs' ratios (BENCHMARKS.md, "Manifest parse").
 from __future__ import annotations
 
 import argparse
+import gc
 import importlib.util
 import json
 import pathlib
@@ -38,7 +39,10 @@ def load_reference(path: pathlib.Path):
 
 
 def run_once(parse: Callable, data: bytes, mode: str) -> float:
-    """CPU milliseconds of one parse in `mode` (lazy_then_all: every payload entry read after a lazy parse)."""
+    """CPU milliseconds of one parse in `mode` (lazy_then_all: every payload entry read after a lazy parse). Each
+    run starts from a collected heap: otherwise whichever run crosses the collector's thresholds pays for a
+    collection of the runs before it (paired runs alternate, and the thresholds' period can favour one side)."""
+    gc.collect()
     t0 = time.process_time()
     m = parse(data, lazy_payloads=mode != "eager")
     if mode == "lazy_then_all":

@@ -688,18 +688,24 @@ def parse_manifest(raw: bytes, source: str = MANIFEST_NAME, lazy_payloads: bool 
     of a large scene's manifest (thousands of entries, tens of thousands of sections), which a client waits for
     before its first frame and then reads a few at a time."""
     with _collector_paused():
-        d = unpack_manifest(raw, source)
-        version = _check_format_and_version(d, source)
-        if version >= CHECKSUM_VERSION:
-            verify_checksum(raw, d, source)
-        manifest = manifest_from_dict(d, source, lazy_payloads)
-        if CHECKSUM_VERSION <= version <= FORMAT_VERSION:
-            files = manifest.payload_bytes()
-            if manifest.bytes_on_disk != files + len(raw):
-                check_all_entries(manifest.tiles)
-                raise FormatError(source, "bytes_on_disk", f"{manifest.bytes_on_disk}, but the payload files and "
-                                  f"the manifest are {files + len(raw)} bytes")
-        return manifest
+        # A function of its own, so that the unpacked map is freed before the collector runs again (the eager
+        # parse keeps nothing of it: the collector's first pass would walk its hundreds of thousands of objects).
+        return _parse(raw, source, lazy_payloads)
+
+
+def _parse(raw: bytes, source: str, lazy_payloads: bool) -> Manifest:
+    d = unpack_manifest(raw, source)
+    version = _check_format_and_version(d, source)
+    if version >= CHECKSUM_VERSION:
+        verify_checksum(raw, d, source)
+    manifest = manifest_from_dict(d, source, lazy_payloads)
+    if CHECKSUM_VERSION <= version <= FORMAT_VERSION:
+        files = manifest.payload_bytes()
+        if manifest.bytes_on_disk != files + len(raw):
+            check_all_entries(manifest.tiles)
+            raise FormatError(source, "bytes_on_disk", f"{manifest.bytes_on_disk}, but the payload files and the "
+                              f"manifest are {files + len(raw)} bytes")
+    return manifest
 
 
 @contextlib.contextmanager
