@@ -11,12 +11,20 @@ import os
 import stat
 import tempfile
 from collections.abc import Iterator
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import BinaryIO, Protocol
 
 from .atomic import atomic_directory
 from .errors import FormatError, InputError, UsageError
-from .format.manifest import MAX_MANIFEST_BYTES, Manifest, PayloadEntry, pack_manifest, parse_manifest
+from .format.manifest import (
+    MAX_MANIFEST_BYTES,
+    Manifest,
+    PayloadEntry,
+    pack_manifest,
+    parse_manifest,
+    resolve_pages,
+    split_pages,
+)
 from .format.names import DATA_DIR, MANIFEST_NAME, is_payload_path
 
 
@@ -185,12 +193,15 @@ def open_store(source: str | os.PathLike | SceneStore) -> SceneStore:
 
 
 def read_manifest(store: SceneStore) -> Manifest:
+    """The validated manifest of a scene, its whole tree: a paged scene's pages are read and checked too (format.md
+    6.1; a streaming client reads them when its cut reaches them instead)."""
     source = store.manifest_path if isinstance(store, DirectoryStore) else f"{store.location}/{MANIFEST_NAME}"
-    return parse_manifest(store.read_manifest(), source)
+    raw = store.read_manifest()
+    return resolve_pages(parse_manifest(raw, source), store.read_payload, source, len(raw))
 
 
 def load_manifest(scene: str | os.PathLike | SceneStore) -> Manifest:
-    """The validated manifest of a scene directory (or store)."""
+    """The validated manifest of a scene directory (or store), with every tile (a paged scene's pages read)."""
     return read_manifest(open_store(scene))
 
 
@@ -217,6 +228,25 @@ class SceneWriter(Protocol):
 
 class PayloadWriter(Protocol):
     def payload_file(self) -> contextlib.AbstractContextManager[tuple[BinaryIO, callable]]: ...
+
+
+def write_scene_manifest(writer: SceneWriter, m: Manifest, page_tiles: int, page_levels: int) -> Manifest:
+    """Publish a scene's manifest: as it is, or, for a tree of more than `page_tiles` tiles (0: never), as a root
+    manifest and its pages (format.md 6.1), the pages written like payloads before the root that names them.
+    Returns the whole manifest as a reader of the scene gets it (load_manifest: every tile; a paged scene's
+    version, `paged` and `bytes_on_disk` from its root)."""
+    if not page_tiles or len(m.tiles) <= page_tiles:
+        writer.write_manifest(m)
+        return m
+    paged = split_pages(m, page_levels)
+    for ref, raw in paged.pages:
+        with writer.payload_file() as (f, finish):
+            f.write(raw)
+            f.flush()
+            finish(ref)
+    writer.write_manifest(paged.root)
+    root = paged.root
+    return replace(m, version=root.version, paged=root.paged, bytes_on_disk=root.bytes_on_disk)
 
 
 @dataclass
@@ -374,7 +404,8 @@ class FsspecWriter:
         return {f"{DATA_DIR}/{p.rstrip('/').rsplit('/', 1)[-1]}" for p in found}
 
     def write_manifest(self, m: Manifest) -> None:
-        missing = {p.file for _, _, p in m.payloads()} - self.written_payloads()
+        named = {p.file for _, _, p in m.payloads()} | {t.page.file for t in m.tiles if t.page is not None}
+        missing = named - self.written_payloads()
         if missing:
             raise FormatError(self.url, None, f"{len(missing)} payloads named by the manifest are not in the store "
                               f"(e.g. {sorted(missing)[0]}); the manifest is not written")

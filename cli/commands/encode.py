@@ -8,6 +8,7 @@ import time
 
 from splatstream.encode import encode_file
 from splatstream.encode.driver import count_edits
+from splatstream.encode.options import EncodeOptions
 from splatstream.errors import UsageError
 from splatstream.evaluate import EvalOptions, evaluate, preset_for_target
 from splatstream.format.container import DEFAULT_ZSTD_LEVEL
@@ -75,6 +76,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="splats per leaf tile at most (default 16384: measured best for streaming)")
     p.add_argument("--reduction", type=float, default=2.0,
                    help="each LOD level keeps about 1/REDUCTION of the splats of the level below (default 2)")
+    p.add_argument("--page-tiles", type=int, default=EncodeOptions.page_tiles,
+                   help="write a tree of more than N tiles as a root manifest and manifest pages, so a client needs "
+                        f"only the tree's top before its first frame (format 1.5; 0: never; default "
+                        f"{EncodeOptions.page_tiles}: measured, BENCHMARKS.md)")
+    p.add_argument("--page-levels", type=int, default=EncodeOptions.page_levels,
+                   help=f"tree levels in the root manifest and in each page (default {EncodeOptions.page_levels})")
     p.add_argument("--zstd-level", type=int, default=None,
                    help=f"zstd level of the payloads (1..22; default {DEFAULT_ZSTD_LEVEL}, "
                         + ", ".join(f"{k} {v}" for k, v in PRESET_ZSTD_LEVEL.items())
@@ -118,6 +125,8 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError("--max-leaf-splats must be at least 256 (one chunk)")
     if args.reduction <= 1.0:
         raise UsageError("--reduction must be greater than 1")
+    if args.page_tiles < 0 or args.page_levels < 1:
+        raise UsageError("--page-tiles must be 0 or more and --page-levels at least 1")
     if args.zstd_level is not None and not 1 <= args.zstd_level <= 22:
         raise UsageError("--zstd-level must be between 1 and 22")
     up = parse_vector(args.up, "--up", nonzero=True) if args.up else None
@@ -152,7 +161,8 @@ def run(args: argparse.Namespace) -> int:
                         scratch=args.scratch, edits=edits, overrides=overrides, sh_degree=args.sh_degree,
                         zstd_level=args.zstd_level, transport=args.transport,
                         lod=not args.no_lod, max_leaf_splats=args.max_leaf_splats, reduction=args.reduction,
-                        name=args.name, up=up, chunk_order=args.chunk_order, sh_codebook=args.sh_codebook)
+                        name=args.name, up=up, chunk_order=args.chunk_order, sh_codebook=args.sh_codebook,
+                        page_tiles=args.page_tiles, page_levels=args.page_levels)
     if not args.quiet:
         print(f"wrote {args.output_dir}: {m.splats} splats, SH degree {m.sh_degree}, preset {m.preset}, "
               f"{count(len(m.tiles), 'tile')}, {m.bytes_on_disk / 1e6:.2f} MB on disk "

@@ -14,7 +14,7 @@ from concurrent.futures import ThreadPoolExecutor
 from ..format.manifest import Manifest, TileEntry
 from ..gaussians import Gaussians
 from ..lod import Tile
-from ..store import DirectoryWriter, MemoryStore, MemoryWriter, SceneWriter
+from ..store import DirectoryWriter, MemoryStore, MemoryWriter, SceneWriter, write_scene_manifest
 from .jobs import encode_codebook, encode_group, splat_order, tile_entry, tile_group_names
 from .options import EncodeOptions, Progress, no_progress
 from .plan import plan_camera, plan_encode
@@ -51,8 +51,7 @@ def encode_to(g: Gaussians, writer: SceneWriter, opts: EncodeOptions, progress: 
                 progress("encode", done / total)
             entries.append(tile_entry(tile, payloads))
         m = build_manifest(plan.scene, camera.result(), entries, codebook)
-    writer.write_manifest(m)
-    return m
+    return write_scene_manifest(writer, m, opts.page_tiles, opts.page_levels)
 
 
 @contextlib.contextmanager

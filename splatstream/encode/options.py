@@ -32,6 +32,12 @@ class EncodeOptions:
     # Splats between LOD levels: 2x steps spend a splat budget in small steps and measured sharper at equal splat
     # counts than 4x steps (BENCHMARKS.md, "LOD merges").
     reduction: float = 2.0
+    # Manifest pages (format.md 6.1): a tree of more than `page_tiles` tiles (0: never) is written as a root
+    # manifest of its top `page_levels` levels and pages of the next `page_levels` levels below each of its
+    # deepest tiles. Both measured against manifest bytes before the first frame and page fetches (BENCHMARKS.md,
+    # "Manifest pages"): scenes up to a few million splats keep one manifest, as before.
+    page_tiles: int = 2048
+    page_levels: int = 6
     name: str | None = None
     up: tuple[float, float, float] | None = None
     chunk_order: str = "auto"  # "morton", "luminance", or "auto" (luminance when only colour/SH are BC-compressed)

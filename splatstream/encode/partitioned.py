@@ -56,7 +56,7 @@ from ..lod import (
     viewing_blur,
 )
 from ..ply import RowStats, VertexLayout, check_rows, read_ply_rows
-from ..store import SceneWriter
+from ..store import SceneWriter, write_scene_manifest
 from .codebook import codebook_choice
 from .jobs import encode_codebook, encode_tile
 from .options import EncodeOptions, Progress, no_progress
@@ -689,8 +689,7 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
         engine.map_behind(delete_scratch, [(scratch, [f"originals/{p}"]) for p in range(partitions)], "cleanup")
     m = build_manifest(scene, sample.camera(scene.up), sorted(entries, key=lambda t: t.id), codebook_entry)
     engine.settle()
-    writer.write_manifest(m)
-    return m
+    return write_scene_manifest(writer, m, opts.page_tiles, opts.page_levels)
 
 
 def _upper_tiles(engine: Engine, scratch: Scratch, shape: TreeShape, level: int, root_splats: list[int],

@@ -8,6 +8,7 @@ what was expected. `Manifest.to_dict()` gives back the spec's map (the encoder w
     wire.py      the file's bytes: msgpack, the checksum, the msgpack-bomb guard
     validate.py  the one validator (eager, or each tile's payload entries when first read)
     versions.py  what this code reads and what a writer writes
+    paging.py    manifest pages (version 1.5): a large tree split into a root manifest and pages, and read back
 """
 from .model import (
     AttributeSize,
@@ -16,6 +17,8 @@ from .model import (
     LazyPayloads,
     LodInfo,
     Manifest,
+    PagedInfo,
+    PageRef,
     PayloadEntry,
     Section,
     SHCodebookEntry,
@@ -26,12 +29,15 @@ from .model import (
     filter_for,
     scene_summary,
 )
+from .paging import PagedScene, pack_page, read_page, resolve_pages, split_pages
 from .validate import (
     CHUNK_ORDER_NAMES,
     FILTERS_DOC,
+    MAX_PAGE_BYTES,
     MAX_PAYLOAD_RAW_BYTES,
     MAX_TILES,
     MAX_WASTED_BLOCKS,
+    PAGE_FORMAT,
     expected_sections,
     manifest_from_dict,
     max_blocks,
@@ -45,6 +51,7 @@ from .versions import (
     FORMATS_1_3,
     VERSION_1_3,
     VERSION_1_4,
+    VERSION_1_5,
     writer_version,
 )
 from .wire import (
@@ -59,6 +66,8 @@ from .wire import (
 )
 
 __all__ = [
+    "PagedInfo", "PageRef", "PagedScene", "pack_page", "read_page", "resolve_pages", "split_pages",
+    "MAX_PAGE_BYTES", "PAGE_FORMAT", "VERSION_1_5",
     "AttributeSize", "Box", "CameraEntry", "LazyPayloads", "LodInfo", "Manifest", "PayloadEntry", "Section",
     "SHCodebookEntry", "TileArrays", "TileEntry", "Vec3", "scene_summary",
     "CHUNK_ORDER_NAMES", "FILTERS_DOC", "MAX_PAYLOAD_RAW_BYTES", "MAX_TILES", "MAX_WASTED_BLOCKS",

@@ -91,6 +91,33 @@ class Box:
 
 
 @dataclass(frozen=True)
+class PageRef:
+    """A manifest page (format.md 6.1, version 1.5): a content-addressed file holding a subtree's next levels."""
+
+    file: str
+    sha256: str
+    bytes: int
+
+    def to_dict(self) -> dict:
+        return {"file": self.file, "sha256": self.sha256, "bytes": self.bytes}
+
+
+@dataclass(frozen=True)
+class PagedInfo:
+    """What a paged scene's root manifest says of the whole tree (format.md 6.1)."""
+
+    tiles: int
+    levels: int
+    page_levels: int
+    pages: int
+    page_bytes: int
+
+    def to_dict(self) -> dict:
+        return {"tiles": self.tiles, "levels": self.levels, "page_levels": self.page_levels, "pages": self.pages,
+                "page_bytes": self.page_bytes}
+
+
+@dataclass(frozen=True)
 class TileEntry:
     """One tile of the LOD tree (format_spec/lod.md 1)."""
 
@@ -105,17 +132,21 @@ class TileEntry:
     sphere_radius: float
     geometric_error: float
     groups: dict[str, PayloadEntry]  # read-only by convention (frozen dataclasses cannot freeze a dict)
+    page: PageRef | None = None  # the page holding this tile's children (a paged scene, format.md 6.1)
 
     @property
     def is_leaf(self) -> bool:
         return not self.children
 
     def to_dict(self) -> dict:
-        return {"id": self.id, "level": self.level, "children": list(self.children), "splats": self.splats,
-                "chunks": self.chunks, "texture": list(self.texture), "box": self.box.to_dict(),
-                "sphere": {"center": list(self.sphere_center), "radius": self.sphere_radius},
-                "geometric_error": self.geometric_error,
-                "groups": {name: p.to_dict() for name, p in self.groups.items()}}
+        d = {"id": self.id, "level": self.level, "children": list(self.children), "splats": self.splats,
+             "chunks": self.chunks, "texture": list(self.texture), "box": self.box.to_dict(),
+             "sphere": {"center": list(self.sphere_center), "radius": self.sphere_radius},
+             "geometric_error": self.geometric_error,
+             "groups": {name: p.to_dict() for name, p in self.groups.items()}}
+        if self.page is not None:
+            d["page"] = self.page.to_dict()
+        return d
 
 
 @dataclass(frozen=True)
@@ -241,6 +272,9 @@ class Manifest:
     encode_seconds: float
     bytes_on_disk: int = 0
     format: str = field(default=FORMAT_NAME)
+    # A paged scene's root manifest (format.md 6.1): `tiles` holds the top levels only. A manifest whose pages have
+    # all been read (paging.resolve_pages) keeps it, with every tile in `tiles`.
+    paged: PagedInfo | None = None
 
     # --- derived views (cached: a Manifest never changes) ------------------------------------------------------
     @functools.cached_property
@@ -346,6 +380,8 @@ class Manifest:
             "attributes": {a: s.to_dict() for a, s in self.attributes.items()},
             "encode_seconds": self.encode_seconds, "bytes_on_disk": self.bytes_on_disk,
         })
+        if self.paged is not None:
+            d["paged"] = self.paged.to_dict()
         return d
 
     def with_bytes_on_disk(self, payload_bytes: int) -> Manifest:
@@ -431,8 +467,9 @@ def scene_summary(m: Manifest) -> dict:
         "bytes_on_disk": m.bytes_on_disk,
         "gpu_bytes": m.gpu_bytes,
         "gpu_bytes_per_splat": m.gpu_bytes_per_splat,
-        "tiles": len(m.tiles),
-        "levels": m.levels,
+        "tiles": m.paged.tiles if m.paged is not None else len(m.tiles),
+        "levels": m.paged.levels if m.paged is not None else m.levels,
         "sh_codebook_entries": m.sh_codebook.entries if m.sh_codebook else None,
         "version": list(m.version),
+        **({"pages": m.paged.pages, "page_bytes": m.paged.page_bytes} if m.paged is not None else {}),
     }

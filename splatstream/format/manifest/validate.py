@@ -41,6 +41,8 @@ from .model import (
     LazyPayloads,
     LodInfo,
     Manifest,
+    PagedInfo,
+    PageRef,
     PayloadEntry,
     Section,
     SHCodebookEntry,
@@ -57,6 +59,7 @@ from .versions import (
     FORMATS_1_3,
     VERSION_1_3,
     VERSION_1_4,
+    VERSION_1_5,
 )
 from .wire import CHECKSUM_KEY, unpack_manifest, verify_checksum
 
@@ -64,6 +67,8 @@ from .wire import CHECKSUM_KEY, unpack_manifest, verify_checksum
 MAX_PAYLOAD_RAW_BYTES = 2 << 30
 MAX_WASTED_BLOCKS = 128  # max_blocks: a row of the widest texture (2048 texels)
 MAX_TILES = 1 << 20
+MAX_PAGE_BYTES = 64 << 20  # a page is a manifest's top levels' size (format.md 6.1): far below a manifest's limit
+PAGE_FORMAT = "splatstream-page"
 MAX_SECTIONS = 64
 CHUNK_ORDER_NAMES = ("morton", "luminance", "input")
 FILTERS_DOC = "none, shuffleN or, for texels, fields1"
@@ -421,11 +426,13 @@ def _expected_sections(group: str, codebook: bool, format_items: tuple, chunks: 
 class _Scene:
     """What every tile of one manifest is checked against."""
 
-    __slots__ = ("source", "strict", "formats", "format_items", "codebook", "group_names", "lazy", "expect")
+    __slots__ = ("source", "strict", "formats", "format_items", "codebook", "group_names", "lazy", "expect",
+                 "tile_optional")
 
     def __init__(self, source: str, strict: bool, formats: dict[str, str], sh_degree: int, codebook: bool,
-                 lazy: bool):
+                 lazy: bool, version: tuple[int, int] = FORMAT_VERSION):
         self.source, self.strict, self.formats, self.codebook, self.lazy = source, strict, formats, codebook, lazy
+        self.tile_optional = ("page",) if version >= VERSION_1_5 else ()
         self.group_names = tuple(groups_for_degree(sh_degree, codebook))
         self.format_items = tuple(sorted(formats.items()))
         self.expect: dict[tuple[str, int], list] = {}  # (group, chunks) -> expected_sections: a few per scene
@@ -450,7 +457,7 @@ def _tile_group(scene: _Scene, raw_groups: dict, chunks: int, texture: tuple[int
 def _tile(v, i: int, scene: _Scene, group_names: tuple[str, ...]) -> TileEntry:
     source, strict = scene.source, scene.strict
     path = f"tiles[{i}]"
-    t = _keys(v, _TILE_KEYS, source, path, strict)
+    t = _keys(v, _TILE_KEYS, source, path, strict, scene.tile_optional)
     tid, n, chunks, level = t["id"], t["splats"], t["chunks"], t["level"]
     if type(tid) is not int or not 0 <= tid <= 2**31 - 1:
         _bad_int(source, path, "id", tid, 0, 2**31 - 1)
@@ -483,9 +490,28 @@ def _tile(v, i: int, scene: _Scene, group_names: tuple[str, ...]) -> TileEntry:
         _keys(raw_groups, group_names, source, gpath, strict)
     if type(level) is not int or not 0 <= level <= 64:
         _bad_int(source, path, "level", level, 0, 64)
+    page = _page_ref(t["page"], source, f"{path}.page", strict) if scene.tile_optional and "page" in t else None
     return TileEntry(tid, level, _ints(t, "children", source, path, None, 0, 2**31 - 1),
                      n, chunks, texture, _box(t, "box", source, path, strict), center, radius,
-                     _float(t, "geometric_error", source, path, 0.0), groups)
+                     _float(t, "geometric_error", source, path, 0.0), groups, page)
+
+
+def _page_ref(v, source: str, path: str, strict: bool) -> PageRef:
+    """A tile's `page` (format.md 6.1): named like a payload, by its SHA-256."""
+    p = _keys(v, ("file", "sha256", "bytes"), source, path, strict)
+    sha = _str(p, "sha256", source, path)
+    if not SHA256_HEX_RE.match(sha):
+        _fail(source, path, "sha256", f"expected 64 lowercase hex digits, got {sha!r}")
+    if p["file"] != payload_name(sha):
+        _fail(source, path, "file", f"expected {payload_name(sha)!r} (the page's own sha256), got {p['file']!r}")
+    return PageRef(p["file"], sha, _int(p, "bytes", source, path, 1, MAX_PAGE_BYTES))
+
+
+def _paged(d: dict, source: str, strict: bool) -> PagedInfo:
+    g = _keys(d["paged"], ("tiles", "levels", "page_levels", "pages", "page_bytes"), source, "paged", strict)
+    return PagedInfo(_int(g, "tiles", source, "paged", 1, MAX_TILES), _int(g, "levels", source, "paged", 1, 65),
+                     _int(g, "page_levels", source, "paged", 1, 64), _int(g, "pages", source, "paged", 1, MAX_TILES),
+                     _int(g, "page_bytes", source, "paged", 1))
 
 
 def _tiles(items: list, scene: _Scene) -> list[TileEntry]:
@@ -501,13 +527,19 @@ def _tiles(items: list, scene: _Scene) -> list[TileEntry]:
     return tiles
 
 
-def _check_tree(source: str, tiles: list[TileEntry], root: int) -> None:
-    """One root at level 0; every other tile is the child of exactly one tile, one level below it."""
+def _check_tree(source: str, tiles: list[TileEntry], root: int, page_levels: int = 0) -> None:
+    """One root at level 0; every other tile is the child of exactly one tile, one level below it. page_levels k > 0
+    (a paged root manifest, format.md 6.1): tiles at levels below k, and the children of a tile with `page` are in
+    that page instead."""
     by_id = {t.id: t for t in tiles}
     if root not in by_id:
         raise FormatError(source, "root", f"no tile with id {root}")
     parent: dict[int, int] = {}
     for i, t in enumerate(tiles):
+        if page_levels:
+            _check_page_rule(source, f"tiles[{i}]", t, page_levels)
+            if t.page is not None:
+                continue
         for c in t.children:
             if c not in by_id:
                 raise FormatError(source, f"tiles[{i}].children", f"no tile with id {c}")
@@ -522,6 +554,17 @@ def _check_tree(source: str, tiles: list[TileEntry], root: int) -> None:
     orphans = [t.id for t in tiles if t.id != root and t.id not in parent]
     if orphans:
         raise FormatError(source, "tiles", f"tiles {orphans[:8]} are not reachable from the root {root}")
+
+
+def _check_page_rule(source: str, path: str, t: TileEntry, page_levels: int) -> None:
+    """format.md 6.1: a tile has `page` exactly when it has children and is at a file's deepest level."""
+    deepest = (t.level + 1) % page_levels == 0
+    if t.page is None and deepest and t.children:
+        _fail(source, path, "page", f"missing (a tile at level {t.level} with children names the page holding them, "
+              f"{page_levels} levels to a page)")
+    if t.page is not None and not (deepest and t.children):
+        _fail(source, path, "page", f"a tile at level {t.level} with {len(t.children)} children has no page "
+              f"({page_levels} levels to a page)")
 
 
 # --------------------------------------------------------------------------------------------------------------
@@ -638,6 +681,8 @@ def manifest_from_dict(d, source: str = MANIFEST_NAME, lazy_payloads: bool = Fal
     # Keys are added only in new minor versions: in a version this reader knows, an unknown key is damage.
     strict = version[1] <= FORMAT_VERSION[1]
     optional = ("sh_codebook", CHECKSUM_KEY) if version >= CHECKSUM_VERSION else ("sh_codebook",)
+    if version >= VERSION_1_5:
+        optional += ("paged",)
     _keys(d, _TOP_KEYS, source, "", strict, optional)
     splats = _int(d, "splats", source, "", 1)
     sh_degree = _int(d, "sh_degree", source, "", 0, MAX_SH_DEGREE)
@@ -647,13 +692,19 @@ def manifest_from_dict(d, source: str = MANIFEST_NAME, lazy_payloads: bool = Fal
     if chunk_order in CHUNK_ORDERS_1_4 and version < VERSION_1_4:
         _fail(source, "", "chunk_order", _newer_than(version, chunk_order, VERSION_1_4))
     codebook = _codebook(d, version, formats, sh_degree, source, strict)
-    scene = _Scene(source, strict, formats, sh_degree, codebook is not None, lazy_payloads)
+    scene = _Scene(source, strict, formats, sh_degree, codebook is not None, lazy_payloads, version)
     tiles = _tiles(_list(d, "tiles", source, "", MAX_TILES), scene)
     if not tiles:
         _fail(source, "", "tiles", "no tiles: a scene has at least its root tile")
     root = _int(d, "root", source, "", 0, 2**31 - 1)
-    _check_tree(source, tiles, root)
-    leaf_splats = _check_splats(d, tiles, splats, source)
+    paged = _paged(d, source, strict) if version >= VERSION_1_5 and "paged" in d else None
+    _check_tree(source, tiles, root, paged.page_levels if paged else 0)
+    if paged is None:
+        leaf_splats = _check_splats(d, tiles, splats, source)
+    else:  # the leaves are in the pages: checked when they are all read (paging.resolve_pages)
+        leaf_splats = _int(d, "leaf_splats", source, "", 1)
+        if any(t.level >= paged.page_levels for t in tiles):
+            _fail(source, "", "tiles", f"a paged root manifest holds levels 0 to {paged.page_levels - 1} only")
     camera = _camera(d, source, strict)
     up = _vec(d, "up", source, "")
     if not any(up):
@@ -667,10 +718,67 @@ def manifest_from_dict(d, source: str = MANIFEST_NAME, lazy_payloads: bool = Fal
         gpu_bytes=_int(d, "gpu_bytes", source, ""),
         gpu_bytes_per_splat=_float(d, "gpu_bytes_per_splat", source, "", 0.0),
         leaf_bytes_on_disk=_int(d, "leaf_bytes_on_disk", source, ""), attributes=_attributes(d, source, strict),
-        encode_seconds=_float(d, "encode_seconds", source, "", 0.0), bytes_on_disk=_int(d, "bytes_on_disk", source, ""))
-    if strict:  # a newer minor version may add payloads these totals count; only its own keys are checked
+        encode_seconds=_float(d, "encode_seconds", source, "", 0.0), bytes_on_disk=_int(d, "bytes_on_disk", source, ""),
+        paged=paged)
+    if strict and paged is None:  # a newer minor version may add payloads these totals count; only its own keys
         _check_totals(manifest, source)
     return manifest
+
+
+def check_whole_tree(manifest: Manifest, source: str, files_bytes: int) -> None:
+    """The checks of a manifest over a paged scene's whole tree, once every page is read (format.md 6.1): one tree,
+    the splat counts, the totals and `bytes_on_disk` (`files_bytes`: the root manifest's and the pages' bytes)."""
+    _check_tree(source, list(manifest.tiles), manifest.root)
+    _check_splats({"leaf_splats": manifest.leaf_splats}, list(manifest.tiles), manifest.splats, source)
+    _check_totals(manifest, source)
+    files = manifest.payload_bytes()
+    if manifest.bytes_on_disk != files + files_bytes:
+        check_all_entries(manifest.tiles)
+        raise FormatError(source, "bytes_on_disk", f"{manifest.bytes_on_disk}, but the payload files, the manifest "
+                          f"and its pages are {files + files_bytes} bytes")
+
+
+def page_tiles(d, source: str, root: Manifest, parent: TileEntry, lazy_payloads: bool = False) -> list[TileEntry]:
+    """A manifest page's map (format.md 6.1; its bytes already checked against `parent.page`) into its tiles:
+    each checked like a manifest's, and together exactly `parent`'s descendants of the page's levels."""
+    assert root.paged is not None and parent.page is not None
+    if type(d) is not dict or d.get("format") != PAGE_FORMAT:
+        raise FormatError(source, "format", f"expected {PAGE_FORMAT!r}; this is not a splatstream manifest page")
+    if d.get("version") != list(root.version):
+        raise FormatError(source, "version", f"expected {list(root.version)} (the manifest's), got "
+                          f"{d.get('version')!r}")
+    strict = root.version[1] <= FORMAT_VERSION[1]
+    _keys(d, ("format", "version", "parent", "tiles"), source, "", strict)
+    if _int(d, "parent", source, "", 0, 2**31 - 1) != parent.id:
+        _fail(source, "", "parent", f"expected {parent.id} (the tile naming this page), got {d['parent']}")
+    scene = _Scene(source, strict, root.formats, root.sh_degree, root.sh_codebook is not None, lazy_payloads,
+                   root.version)
+    tiles = _tiles(_list(d, "tiles", source, "", MAX_TILES), scene)
+    k = root.paged.page_levels
+    by_id = {t.id: t for t in tiles}
+    position = {t.id: i for i, t in enumerate(tiles)}
+    reached, todo = 0, [parent]
+    while todo:
+        t = todo.pop()
+        if t is not parent:
+            if not parent.level < t.level <= parent.level + k:
+                _fail(source, "tiles", f"tile {t.id} is at level {t.level}, outside the page's levels "
+                      f"{parent.level + 1}..{parent.level + k}")
+            _check_page_rule(source, f"tiles[{position[t.id]}]", t, k)
+            reached += 1
+            if t.page is not None:
+                continue
+        for c in t.children:
+            child = by_id.get(c)
+            if child is None:
+                _fail(source, "tiles", f"tile {c}, a child of tile {t.id}, is not in the page")
+            if child.level != t.level + 1:
+                _fail(source, "tiles", f"tile {c} is at level {child.level}, expected {t.level + 1} "
+                      "(one below its parent)")
+            todo.append(child)
+    if reached != len(tiles):
+        _fail(source, "tiles", f"{len(tiles) - reached} tiles are not descendants of tile {parent.id}")
+    return tiles
 
 
 def check_all_entries(tiles) -> None:
@@ -699,7 +807,7 @@ def _parse(raw: bytes, source: str, lazy_payloads: bool) -> Manifest:
     if version >= CHECKSUM_VERSION:
         verify_checksum(raw, d, source)
     manifest = manifest_from_dict(d, source, lazy_payloads)
-    if CHECKSUM_VERSION <= version <= FORMAT_VERSION:
+    if CHECKSUM_VERSION <= version <= FORMAT_VERSION and manifest.paged is None:
         files = manifest.payload_bytes()
         if manifest.bytes_on_disk != files + len(raw):
             check_all_entries(manifest.tiles)

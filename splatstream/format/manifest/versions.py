@@ -4,7 +4,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 FORMAT_NAME = "splatstream"
-FORMAT_VERSION = (1, 4)  # (major, minor) this code reads; what it writes: writer_version
+FORMAT_VERSION = (1, 5)  # (major, minor) this code reads; what it writes: writer_version
 # Version 1.2 added two things (format.md, version history): the manifest's last key `checksum`, the SHA-256 of the
 # file with that value's 64 bytes read as ASCII '0' (format.md 6, "Checksum"), so a flipped byte in the manifest is
 # caught like one in a payload; and the `fields1` transport coding of texels sections (format.md 5.2).
@@ -17,6 +17,9 @@ FORMATS_1_3 = ("norm16x4", "norm9x3")
 # that was already cut into quantised chunks of 256 (compressed.ply), so its chunks, and their grids, are the input's.
 VERSION_1_4 = (1, 4)
 CHUNK_ORDERS_1_4 = ("input",)
+# Version 1.5 added manifest pages (format.md 6.1): written only by a paged scene (a tree too large for one manifest
+# before the first frame), so every other scene keeps its version.
+VERSION_1_5 = (1, 5)
 
 
 def writer_version(formats: Mapping[str, str], codebook_format: str | None = None,
