@@ -392,7 +392,7 @@ class Viewer:
 
     def _draw_bounds(self, cam: Camera) -> None:
         s = self.session
-        m = s.manifest
+        m = s.engine.manifest  # the tiles held (a paged scene's grow as pages arrive)
         a = m.arrays
         drawn = s.last.draw if s.last is not None else []
         verts = []

@@ -11,8 +11,11 @@ from client_gl.stream.fetch import FetchStats
 from client_gl.stream.selection import SelectionOptions, view_numbers, wanted_bands
 from splatstream.camera import Camera
 from splatstream.encode import EncodeOptions, encode_in_memory
+from splatstream.errors import FormatError
+from splatstream.format.container import verify_payload
+from splatstream.format.manifest import parse_manifest
 from splatstream.ply import read_gaussians_ply
-from splatstream.store import read_manifest
+from splatstream.store import MemoryStore, read_manifest
 
 
 class StepFetcher:
@@ -283,4 +286,71 @@ def test_prefetched_payloads_wait_until_wanted_then_join_without_a_second_fetch(
     assert joined, "no prefetched tile joined once wanted"
     assert {k[0] for k in fetcher.fetched[fetched_before:]} & joined == set()  # from the ready list, not the link
     assert sorted(u.draw) == sorted(int(m.arrays.ids[i]) for i in u.selection.cut)
+    engine.close()
+
+
+# --- a paged scene (format.md 6.1): the tree grows as the cut reaches its pages --------------------------------
+
+class PagedFetcher(StepFetcher):
+    """A StepFetcher handing over the root manifest as the network fetcher does (pages not read) and pages and
+    payloads as they are asked for, verified as the fetcher verifies them."""
+
+    def manifest(self):
+        return parse_manifest(self.store.read_manifest(), "root", lazy_payloads=True)
+
+    def want(self, requests):
+        self.wants.append([k for _, k, _ in requests])
+        for _, key, entry in requests[: self.per_frame]:
+            data = verify_payload(self.store.read_payload(entry), entry, "test")
+            self.out.append((key, entry, data))
+            self.fetched.append(key)
+
+
+@pytest.fixture(scope="module")
+def paged_store():
+    g = read_gaussians_ply(real("fruit_drops_sh3.ply"))
+    return encode_in_memory(g, EncodeOptions(preset="medium", max_leaf_splats=300, page_tiles=4, page_levels=2))
+
+
+def test_paged_scene_converges_to_the_unpaged_cut_reading_only_the_pages_it_reaches(store, paged_store):
+    whole = read_manifest(paged_store)
+    root = parse_manifest(paged_store.read_manifest(), "root")
+    assert root.paged is not None and root.paged.pages > 3 and len(root.tiles) < len(whole.tiles)
+    opts = StreamOptions(SelectionOptions(max_sse=1.0, band_area_share=(0.95, 0.8, 0.6)), prefetch=False)
+    cam = orbit(whole, 2.5, 0.3)  # far enough that the cut stops above some pages
+    results = {}
+    for name, s, fetcher_type in (("unpaged", store, StepFetcher), ("paged", paged_store, PagedFetcher)):
+        fetcher = fetcher_type(s)
+        engine = StreamEngine(fetcher, CountingPool(10_000), opts)
+        if name == "paged":
+            first = engine.update(cam)
+            held = {t.id for t in root.tiles}
+            assert all(k[0] in held for k in fetcher.wants[0])  # the first frame needs the root manifest only
+            assert first.draw in ([], [root.root])
+        _, u = run_until_converged(engine, cam)
+        results[name] = (sorted(u.draw), fetcher, engine)
+    (draw, _, _), (paged_draw, fetcher, engine) = results["unpaged"], results["paged"]
+    assert paged_draw == draw  # the same tree, the same selection
+    pages = [k for k in fetcher.fetched if k[1] == "page"]
+    assert 0 < len(pages) == len(set(pages)) <= root.paged.pages
+    # selection runs over the tiles held: the root manifest's and those of the pages read, not the whole tree
+    assert len(engine.manifest.tiles) < len(whole.tiles)
+    for name in results:
+        results[name][2].close()
+
+
+def test_a_corrupt_page_is_refused_and_its_tile_drawn_as_a_leaf(paged_store):
+    raw = dict(paged_store.payloads)
+    root = parse_manifest(paged_store.read_manifest(), "root")
+    ref = next(t.page for t in root.tiles if t.page is not None)
+    raw[ref.file] = raw[ref.file][:-1] + bytes([raw[ref.file][-1] ^ 1])
+    broken = MemoryStore(paged_store.read_manifest(), raw, "broken")
+    with pytest.raises(FormatError, match="checksum mismatch"):
+        read_manifest(broken)
+    m = read_manifest(paged_store)
+    fetcher = StepFetcher(broken)  # hands the bytes over unverified: the page reader checks them
+    fetcher.manifest = lambda: parse_manifest(broken.read_manifest(), "root", lazy_payloads=True)
+    engine = StreamEngine(fetcher, CountingPool(10_000), StreamOptions(SelectionOptions(max_sse=0.5), prefetch=False))
+    run_until_converged(engine, orbit(m, 0.9, 0.3))
+    assert any("checksum mismatch" in e for e in engine.errors)
     engine.close()

@@ -30,6 +30,7 @@ from splatstream.format.manifest import Manifest, PayloadEntry
 from splatstream.format.planes import band_of
 
 from ..tiledata import TileData, host_mirror
+from .pages import PAGE_GROUP, PagedTree
 from .selection import Selection, SelectionOptions, TileView, draw_set, prefetch, select, view_numbers, wanted_bands
 
 Key = tuple[int | None, str]  # (tile id, group) or (None, "sh<b>") for a band of the SH codebook
@@ -165,29 +166,28 @@ class StreamEngine:
         self.residency = residency
         self.options = options
         self.location = location
-        self.manifest = manifest if manifest is not None else fetcher.manifest()
-        m = self.manifest
-        self.arrays = m.arrays
-        self.root = m.index_of[m.root]
+        m = manifest if manifest is not None else fetcher.manifest()
+        # A paged scene (format.md 6.1): the tree grows as the cut reaches its pages (pages.py); its tiles keep
+        # their positions, so the per-tile arrays below only grow. A manifest with every tile is not paged here.
+        self.pages = PagedTree(m, location) if m.paged is not None and len(m.tiles) < m.paged.tiles else None
+        if self.pages is not None:
+            m = self.pages.manifest
+        self.slot_bytes = slot_bytes
+        self.codebook = m.uses_codebook
+        self.with_mirror = with_mirror
+        self.resident = np.zeros(0, bool)
+        self.bands = np.zeros(0, np.int64)  # SH bands resident per tile
+        self.last_drawn = np.zeros(0, np.int64)
+        self._filling = np.zeros(0, bool)  # ancestors of the cut in that list (fill_levels)
+        self._adopt(m)
         max_splats = options.selection.max_splats
         root_splats = int(self.arrays.splats[self.root])
         if max_splats is not None and max_splats < root_splats:
             raise UsageError(f"{location}: --max-splats {max_splats} is below the scene's coarsest level (its root "
                              f"tile holds {root_splats} splats): expected at least {root_splats}")
-        self.ids = self.arrays.ids
-        self._parent: list[int] = self.arrays.parent.tolist()  # plain lists: the per-frame loops index them often
-        self._level: list[int] = self.arrays.level.tolist()
-        chunks = np.array([t.chunks for t in m.tiles], np.int64)
-        self.slots_needed = chunks
-        self.cost = chunks.astype(np.float64) * float(slot_bytes)
-        self.slot_bytes = slot_bytes
-        self.codebook = m.uses_codebook
-        self.with_mirror = with_mirror
-        t = len(m.tiles)
-        self.resident = np.zeros(t, bool)
-        self.bands = np.zeros(t, np.int64)  # SH bands resident per tile
         self.codebook_bands: set[int] = set()
-        self.last_drawn = np.zeros(t, np.int64)
+        self._pages_wanted: list[Key] = []
+        self._pages_arrived: list[tuple[int, VerifiedPayload | bytes]] = []
         self.frame = 0
         self.refined: frozenset[int] = frozenset()
         self._bands_wanted: dict[int, int] = {}
@@ -201,7 +201,6 @@ class StreamEngine:
         self._keys: list[Key] = []  # the wish list of the current state (with the ancestors being filled in)
         self._order_of: tuple[list[Key], dict[Key, int]] | None = None  # a wish list and its keys' ranks (_upload)
         self._upload_idle: tuple[int, list[Key]] | None = None  # (version, wish list) with nothing to upload
-        self._filling = np.zeros(t, bool)  # ancestors of the cut in that list (fill_levels)
         self._listed: tuple = ()
         self._draw_cache: tuple | None = None
         self._ready: dict[Key, _Ready] = {}
@@ -229,6 +228,37 @@ class StreamEngine:
         self.process_decodes = 0  # payloads decoded in the decode processes (decode_processes > 0)
         self.uploaded_bytes_total = 0
         self.evictions = 0
+
+    def _adopt(self, m: Manifest) -> None:
+        """Take a manifest whose tiles start with those held so far, in the same positions (a paged scene's tree,
+        grown by a page): the arrays over its tiles, the per-tile state grown with zeros."""
+        self.manifest = m
+        self.arrays = m.arrays
+        self.root = m.index_of[m.root]
+        self.ids = self.arrays.ids
+        self._parent: list[int] = self.arrays.parent.tolist()  # plain lists: the per-frame loops index them often
+        self._level: list[int] = self.arrays.level.tolist()
+        chunks = np.array([t.chunks for t in m.tiles], np.int64)
+        self.slots_needed = chunks
+        self.cost = chunks.astype(np.float64) * float(self.slot_bytes)
+        grow = len(m.tiles) - len(self.resident)
+        self.resident = np.concatenate([self.resident, np.zeros(grow, bool)])
+        self.bands = np.concatenate([self.bands, np.zeros(grow, np.int64)])
+        self.last_drawn = np.concatenate([self.last_drawn, np.zeros(grow, np.int64)])
+        self._filling = np.concatenate([self._filling, np.zeros(grow, bool)])
+
+    def _add_page(self, tile_id: int, data: VerifiedPayload | bytes) -> None:
+        """A page arrived: the tree grows below its tile; the next frame selects over the grown tree."""
+        try:
+            m = self.pages.add_page(tile_id, data)
+        except SplatstreamError as exc:  # verified bytes that do not parse: the scene is broken, not the link
+            self.errors.append(str(exc))
+            self.failed[(tile_id, PAGE_GROUP)] = str(exc)
+            return
+        self._adopt(m)
+        self._wanted_cache = None  # the same camera selects again, over the new tiles
+        self._draw_cache = None
+        self._version += 1
 
     # --- keys -------------------------------------------------------------------------------------------------
     def entry(self, key: Key) -> PayloadEntry:
@@ -266,6 +296,9 @@ class StreamEngine:
         sel_opts = SelectionOptions(**{**opts.__dict__, "budget": min(budget, opts.budget or budget)})
         sel = select(a, view, self.cost, self.root, sel_opts, self.refined, self.manifest.lod.reduction)
         self.refined = sel.refined
+        if self.pages is not None:  # pages below cut tiles the view would refine: fetched before their payloads
+            self._pages_wanted = [k for k in self.pages.wanted_pages(sel.cut, view.sse, view.visible, opts.max_sse)
+                                  if k not in self.failed]
         bands = wanted_bands(a, view, sel.cut, opts, self.manifest.sh_degree)
         self._bands_wanted = bands
         ids = self.ids
@@ -287,6 +320,8 @@ class StreamEngine:
 
     def update(self, cam: Camera) -> FrameUpdate:
         self.frame += 1
+        while self._pages_arrived:
+            self._add_page(*self._pages_arrived.pop(0))
         view, sel, bands, keys, extra = self.wanted(cam)
         state = (self._wanted_serial, self._version)
         if state != self._state_seen:  # the wish list or what we hold changed: tell the fetcher what is missing now
@@ -295,10 +330,12 @@ class StreamEngine:
             want = [k for k in self._missing if k not in self._ready and k not in self._decoding]
             pre = [] if want else [k for k in extra if not self._have(k) and k not in self._ready
                                    and k not in self._decoding]
-            listed = tuple(want + pre)
+            pages = self._pages_wanted
+            listed = tuple(pages + want + pre)
             if listed != self._listed:
                 n = len(listed)
-                self.fetcher.want([(float(n - r), k, self.entry(k)) for r, k in enumerate(listed)])
+                self.fetcher.want([(float(n - r), k, self.pages.entry(k[0]) if k[1] == PAGE_GROUP else self.entry(k))
+                                   for r, k in enumerate(listed)])
                 self._listed = listed
             self._state_seen = state
         self._collect()
@@ -317,7 +354,8 @@ class StreamEngine:
         stats = self.fetcher.stats()
         in_flight = stats.in_flight + stats.queued
         still_missing = any(not self._have(k) for k in self._missing) if self._missing else False
-        converged = not still_missing and not self._decoding and in_flight == 0
+        converged = not still_missing and not self._decoding and in_flight == 0 and not self._pages_wanted \
+            and not self._pages_arrived
         return FrameUpdate(
             draw=list(draw_ids), converged=converged, uploaded_bytes=uploaded, resident_tiles=resident_tiles,
             resident_splats=resident_splats, drawn_splats=drawn_splats, wanted_tiles=len(sel.cut),
@@ -357,6 +395,9 @@ class StreamEngine:
     # --- decode -----------------------------------------------------------------------------------------------
     def _collect(self) -> None:
         for key, entry, data in self.fetcher.done():
+            if key[1] == PAGE_GROUP:  # read at the next frame's start: this frame's view is of the tree it had
+                self._pages_arrived.append((key[0], data))
+                continue
             if self._have(key) or key in self._ready or key in self._decoding:
                 continue
             self._decoding.add(key)
@@ -387,7 +428,8 @@ class StreamEngine:
             return False
         tile_id, group = key
         band = _GROUP_BAND[group]
-        return any(k[0] == tile_id and _GROUP_BAND[k[1]] <= band for k in self.failed)
+        # a page that did not parse blocks no payload: its tile is drawn as a leaf
+        return any(k[0] == tile_id and _GROUP_BAND.get(k[1], 4) <= band for k in self.failed)
 
     @property
     def loop_idle(self) -> threading.Event:

@@ -78,12 +78,13 @@ def split_pages(m: Manifest, page_levels: int) -> PagedScene:
 
 
 def read_page(raw: bytes, ref: PageRef, root: Manifest, parent: TileEntry, source: str,
-              lazy_payloads: bool = False) -> list[TileEntry]:
+              lazy_payloads: bool = False, hashed: bool = False) -> list[TileEntry]:
     """A page's tiles from its bytes, checked against the entry naming it (length and SHA-256, as a payload's)
-    before anything in it is read."""
+    before anything in it is read. hashed: the caller holds the bytes as a VerifiedPayload of this entry
+    (format/container.py, the streaming client: checked once where they entered), so they are not hashed again."""
     if len(raw) != ref.bytes:
         raise FormatError(source, None, f"{len(raw)} bytes, but the manifest names a page of {ref.bytes} bytes")
-    actual = hashlib.sha256(raw).hexdigest()
+    actual = ref.sha256 if hashed else hashlib.sha256(raw).hexdigest()
     if actual != ref.sha256:
         raise FormatError(source, None, f"checksum mismatch: the page is corrupt (its bytes hash to {actual}, the "
                           f"manifest names {ref.sha256})")

@@ -1,0 +1,80 @@
+"""A paged scene's tree as the client holds it (format.md 6.1, client.md 1.11): the root manifest's tiles and those
+of the pages read so far, grown in place when a page arrives.
+
+Pure (no GL, no I/O): the engine asks which pages the cut reaches (`wanted_pages`), hands the fetcher their
+entries (verified there like payloads), and gives each page's verified bytes to `add_page`. Tiles keep their
+position once held, so everything the engine keeps per tile position (residency, bands, last drawn) stays valid:
+a page's tiles are appended. A tile whose page is not read yet has no children in the view `manifest`: the
+selection treats it as a leaf, which it may draw (REPLACE: it stands for its whole subtree, lod.md 5).
+"""
+from __future__ import annotations
+
+from dataclasses import replace
+
+import numpy as np
+
+from splatstream.format.container import VerifiedPayload, verified_bytes
+from splatstream.format.manifest import Manifest, PageRef, TileEntry, read_page
+
+Key = tuple[int, str]
+PAGE_GROUP = "page"  # the group of a page's fetch key (tile id, "page"): the page below that tile
+
+
+class PagedTree:
+    """The tiles of a paged scene held so far; `manifest` is their view (the root manifest with these tiles)."""
+
+    def __init__(self, root: Manifest, source: str = "scene"):
+        self.root = root
+        self.source = source
+        self.pending: dict[int, PageRef] = {t.id: t.page for t in root.tiles if t.page is not None}
+        self._full: dict[int, TileEntry] = {t.id: t for t in root.tiles}  # held tiles, children as stored
+        self._tiles: list[TileEntry] = [replace(t, children=()) if t.page is not None else t for t in root.tiles]
+        self._position = {t.id: i for i, t in enumerate(self._tiles)}
+        self.pages_read = 0
+        self.page_bytes = 0
+        self.manifest = self._view()
+
+    def _view(self) -> Manifest:
+        return replace(self.root, tiles=tuple(self._tiles))
+
+    def entry(self, tile_id: int) -> PageRef:
+        """The entry of the page below a tile whose page is not read yet (what the fetcher fetches and checks)."""
+        return self.pending[tile_id]
+
+    def wanted_pages(self, cut: tuple[int, ...] | list[int], sse: np.ndarray, visible: np.ndarray,
+                     max_sse: float) -> list[Key]:
+        """Fetch keys of the pages the cut reaches, in the cut's order: cut tiles (positions) whose page is not
+        read and that the selection would refine if their children were known (visible, sse above max_sse)."""
+        if not self.pending:
+            return []
+        ids = self.manifest.arrays.ids
+        out = []
+        for i in cut:
+            tile_id = int(ids[i])
+            if tile_id in self.pending and visible[i] and sse[i] > max_sse:
+                out.append((tile_id, PAGE_GROUP))
+        return out
+
+    def add_page(self, tile_id: int, data: VerifiedPayload | bytes) -> Manifest:
+        """Read a page and return the grown view. Its bytes are checked once, like a payload's: a VerifiedPayload
+        of its entry (the fetcher's) as it is, anything else hashed now. A page already read changes nothing."""
+        ref = self.pending.get(tile_id)
+        if ref is None:
+            return self.manifest
+        parent = self._full[tile_id]
+        source = f"{self.source} page {ref.file}"
+        raw = verified_bytes(data, ref, source)
+        tiles = read_page(raw, ref, self.root, parent, source, lazy_payloads=True, hashed=True)
+        del self.pending[tile_id]
+        self._tiles[self._position[tile_id]] = parent  # its children are known now
+        for t in tiles:
+            self._full[t.id] = t
+            self._position[t.id] = len(self._tiles)
+            if t.page is not None:
+                self.pending[t.id] = t.page
+                t = replace(t, children=())
+            self._tiles.append(t)
+        self.pages_read += 1
+        self.page_bytes += len(data)
+        self.manifest = self._view()
+        return self.manifest
