@@ -762,7 +762,7 @@ def page_tiles(d, source: str, root: Manifest, parent: TileEntry, lazy_payloads:
         t = todo.pop()
         if t is not parent:
             if not parent.level < t.level <= parent.level + k:
-                _fail(source, "tiles", f"tile {t.id} is at level {t.level}, outside the page's levels "
+                _fail(source, "", "tiles", f"tile {t.id} is at level {t.level}, outside the page's levels "
                       f"{parent.level + 1}..{parent.level + k}")
             _check_page_rule(source, f"tiles[{position[t.id]}]", t, k)
             reached += 1
@@ -771,13 +771,13 @@ def page_tiles(d, source: str, root: Manifest, parent: TileEntry, lazy_payloads:
         for c in t.children:
             child = by_id.get(c)
             if child is None:
-                _fail(source, "tiles", f"tile {c}, a child of tile {t.id}, is not in the page")
+                _fail(source, "", "tiles", f"tile {c}, a child of tile {t.id}, is not in the page")
             if child.level != t.level + 1:
-                _fail(source, "tiles", f"tile {c} is at level {child.level}, expected {t.level + 1} "
+                _fail(source, "", "tiles", f"tile {c} is at level {child.level}, expected {t.level + 1} "
                       "(one below its parent)")
             todo.append(child)
     if reached != len(tiles):
-        _fail(source, "tiles", f"{len(tiles) - reached} tiles are not descendants of tile {parent.id}")
+        _fail(source, "", "tiles", f"{len(tiles) - reached} tiles are not descendants of tile {parent.id}")
     return tiles
 
 
