@@ -1,0 +1,201 @@
+"""Manifest pages (format.md 6.1): root manifest bytes, page sizes and fetches, and the client's selection time, on
+trees of the encoder's exact shape (lod.TreeShape) for 1M to 250M splats, without encoding them.
+
+A tree of N splats is built as the encoder shapes it (levels `reduction` apart, kd depths of TreeShape.of) over a
+flat city-like region (kd cells split alternately along x and y); every tile's payload entries are those of a real
+encoded tile (an SH0 scene by default: the 250M run is SH0), renamed per tile, so a tile costs the manifest what an
+encoded one does. Then, for each page size (levels per page) k: the root manifest's bytes (what a client reads
+before its first frame), the pages and their bytes; and, for a ground-level view under a splat budget, the pages
+the client reads until its cut stops (pages.PagedTree, as the engine reads them), the tiles it then holds, and the
+median time of one frame's view numbers + selection over the tiles held against over the whole tree.
+
+    PYTHONPATH=. python bench/bench_pages.py [--splats 1e6,6e6,60e6,250e6] [--levels 4,5,6,8] [--sh-degree 0]
+    PYTHONPATH=. python bench/bench_pages.py --repage SCENE OUT   # OUT: SCENE paged (payloads hard-linked), to
+                                                                  # stream both (bench_first_frame.py, bench_stream.py)
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import random
+import statistics
+import time
+from dataclasses import replace
+
+import numpy as np
+
+from client_gl.stream.pages import PagedTree
+from client_gl.stream.selection import SelectionOptions, select, view_numbers
+from splatstream.camera import Camera
+from splatstream.encode import EncodeOptions, encode_in_memory
+from splatstream.format.manifest import (
+    Box,
+    LodInfo,
+    Manifest,
+    PayloadEntry,
+    TileEntry,
+    pack_manifest,
+    parse_manifest,
+    split_pages,
+)
+from splatstream.format.names import DATA_DIR, MANIFEST_NAME, payload_name
+from splatstream.gaussians import Gaussians
+from splatstream.lod import TreeShape
+from splatstream.store import load_manifest, read_manifest
+
+
+def template(sh_degree: int) -> Manifest:
+    """A real encoded scene (the medium preset) whose first leaf's payload entries every synthetic tile copies."""
+    rng = np.random.default_rng(0)
+    n = 20000
+    g = Gaussians(rng.normal(size=(n, 3)).astype(np.float32), np.tile([1, 0, 0, 0], (n, 1)).astype(np.float32),
+                  np.full((n, 3), -3.0, np.float32), np.zeros(n, np.float32), rng.random((n, 3)).astype(np.float32),
+                  rng.normal(0, 0.1, (n, (sh_degree + 1) ** 2 - 1, 3)).astype(np.float32))
+    return read_manifest(encode_in_memory(g, EncodeOptions(preset="medium", max_leaf_splats=16384)))
+
+
+def synthetic_tree(splats: int, base: Manifest, seed: int = 0) -> Manifest:
+    groups: dict[str, PayloadEntry] = dict(base.leaves[0].groups)
+    shape = TreeShape.of(splats, 16384, 2.0)
+    kd, levels = shape.kd_depths, len(shape.kd_depths)
+    side = 2000.0 * math.sqrt(splats / 250e6)  # a city of 250M splats about 2 km across
+    rnd = random.Random(seed)
+    tiles: list[TileEntry] = []
+    level_splats = [splats / 2.0 ** (levels - 1 - lv) for lv in range(levels)]
+    for lv in range(levels):
+        d = kd[lv]
+        nx, ny = 2 ** ((d + 1) // 2), 2 ** (d // 2)  # x split first
+        per_tile = max(1, round(level_splats[lv] / 2 ** d))
+        chunks = -(-per_tile // 256)
+        w = math.ceil(math.sqrt(chunks))
+        texture = (16 * w, 16 * -(-chunks // w))
+        err = 0.0 if lv == levels - 1 else side / nx * 0.02 * 2 ** ((levels - 2 - lv) / 2)
+        child_shift = kd[lv + 1] - d if lv + 1 < levels else None
+        for j in range(2 ** d):
+            # cell j of depth d: bits alternate x, y from the top
+            x = y = 0
+            for b in range(d):
+                bit = (j >> (d - 1 - b)) & 1
+                if b % 2 == 0:
+                    x = 2 * x + bit
+                else:
+                    y = 2 * y + bit
+            lo = (x * side / nx, y * side / ny, 0.0)
+            hi = ((x + 1) * side / nx, (y + 1) * side / ny, 30.0)
+            center = tuple((a + b) / 2 for a, b in zip(lo, hi, strict=True))
+            radius = math.dist(lo, hi) / 2
+            tid = shape.first_id[lv] + j
+            children = () if child_shift is None else tuple(
+                shape.first_id[lv + 1] + (j << child_shift) + c for c in range(2 ** child_shift))
+            own = {}
+            for name, p in groups.items():
+                sha = "%064x" % rnd.getrandbits(256)
+                own[name] = replace(p, file=payload_name(sha), sha256=sha)
+            tiles.append(TileEntry(tid, lv, children, per_tile, chunks, texture, Box(lo, hi), center, radius, err,
+                                   own))
+    leaf_sum = sum(t.splats for t in tiles if not t.children)
+    return replace(base, splats=leaf_sum, leaf_splats=leaf_sum, tiles=tuple(tiles), root=0,
+                   lod=LodInfo(True, 16384, 2.0, "replace"),
+                   bounds=Box((0.0, 0.0, 0.0), (side, side, 30.0)), extent_bounds=tiles[0].box)
+
+
+def ground_camera(m: Manifest) -> Camera:
+    side = m.bounds.max[0]
+    return Camera((side * 0.3, side * 0.25, 20.0), (side * 0.55, side * 0.6, 5.0), (0.0, 0.0, 1.0), 60.0, 1920,
+                  1080, near=0.1)
+
+
+def select_once(m: Manifest, cam: Camera, opts: SelectionOptions):
+    a = m.arrays
+    cost = np.array([t.chunks for t in m.tiles], np.float64)
+    view = view_numbers(a, cam, opts)
+    return view, select(a, view, cost, m.index_of[m.root], opts, frozenset(), 2.0)
+
+
+def timed(m: Manifest, cam: Camera, opts: SelectionOptions, reps: int = 15) -> float:
+    m.arrays  # built once per tree, as the engine does (a page arrival rebuilds it)
+    select_once(m, cam, opts)
+    times = []
+    for _ in range(reps):
+        t0 = time.perf_counter()
+        select_once(m, cam, opts)
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def repage(src: str, dst: str, k: int) -> None:
+    """A copy of scene `src` written paged (what `encode --page-tiles 1 --page-levels k` writes), its payload files
+    hard-linked: the same scene, so paged and unpaged stream the same bytes but for the manifest."""
+    whole = load_manifest(src)
+    paged = split_pages(whole, k)
+    os.makedirs(os.path.join(dst, DATA_DIR))
+    for name in os.listdir(os.path.join(src, DATA_DIR)):
+        os.link(os.path.join(src, DATA_DIR, name), os.path.join(dst, DATA_DIR, name))
+    for ref, raw in paged.pages:
+        with open(os.path.join(dst, ref.file), "wb") as f:
+            f.write(raw)
+    tmp = os.path.join(dst, ".manifest.tmp")
+    with open(tmp, "wb") as f:
+        f.write(pack_manifest(paged.root))
+    os.replace(tmp, os.path.join(dst, MANIFEST_NAME))
+    print(f"{dst}: {len(paged.pages)} pages ({paged.root.paged.page_bytes / 1e3:.1f} KB), root manifest "
+          f"{os.path.getsize(os.path.join(dst, MANIFEST_NAME)) / 1e3:.1f} KB (unpaged: "
+          f"{os.path.getsize(os.path.join(src, MANIFEST_NAME)) / 1e3:.1f} KB)")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--repage", nargs=2, metavar=("SCENE", "OUT"))
+    ap.add_argument("--splats", default="1e6,6e6,60e6,250e6")
+    ap.add_argument("--levels", default="4,5,6,8")
+    ap.add_argument("--default-levels", type=int, default=EncodeOptions.page_levels)
+    ap.add_argument("--sh-degree", type=int, default=0)
+    ap.add_argument("--max-splats", type=int, default=3_000_000)
+    args = ap.parse_args()
+    if args.repage:
+        repage(*args.repage, args.default_levels)
+        return
+    base = template(args.sh_degree)
+    opts = SelectionOptions(max_sse=1.5, max_splats=args.max_splats)
+    print("splats  tiles  levels  manifest_MB | k  root_KB  pages  page_KB_median  page_KB_max")
+    for n in [int(float(s)) for s in args.splats.split(",")]:
+        whole = synthetic_tree(n, base)
+        whole_bytes = len(pack_manifest(whole))
+        print(f"{n / 1e6:6.0f}M {len(whole.tiles):6d} {whole.levels:6d} {whole_bytes / 1e6:10.2f}")
+        for k in [int(v) for v in args.levels.split(",")]:
+            paged = split_pages(whole, k)
+            sizes = [ref.bytes for ref, _ in paged.pages]
+            print(f"{'':32s}| {k}  {len(pack_manifest(paged.root)) / 1e3:7.1f}  {len(sizes):5d}  "
+                  f"{statistics.median(sizes) / 1e3 if sizes else 0:14.1f}  {max(sizes, default=0) / 1e3:11.1f}")
+        paged = split_pages(whole, args.default_levels)
+        files = {ref.file: raw for ref, raw in paged.pages}
+        root_raw = pack_manifest(paged.root)
+        tree = PagedTree(parse_manifest(root_raw, "root", lazy_payloads=True))
+        cam = ground_camera(whole)
+        t0 = time.perf_counter()
+        rounds = 0
+        while True:  # the client's rounds: select over the tiles held, read the pages the cut reaches
+            view, sel = select_once(tree.manifest, cam, opts)
+            wanted = tree.wanted_pages(sel.cut, view.sse, view.visible, opts.max_sse)
+            if not wanted:
+                break
+            rounds += 1
+            for tile_id, _ in wanted:
+                tree.add_page(tile_id, files[tree.entry(tile_id).file])
+        stream_s = time.perf_counter() - t0
+        _, sel_whole = select_once(whole, cam, opts)
+        _, sel_paged = select_once(tree.manifest, cam, opts)
+        same = sorted(int(whole.arrays.ids[i]) for i in sel_whole.cut) == \
+            sorted(int(tree.manifest.arrays.ids[i]) for i in sel_paged.cut)
+        t_whole, t_held = timed(whole, cam, opts), timed(tree.manifest, cam, opts)
+        print(f"   ground view, k={args.default_levels}: first frame needs {len(root_raw) / 1e3:.1f} KB of "
+              f"manifest (whole: {whole_bytes / 1e3:.1f} KB); cut of {len(sel_paged.cut)} tiles, "
+              f"{sel_paged.splats / 1e6:.2f}M splats, same as the whole tree's: {same}; {tree.pages_read} pages "
+              f"({tree.page_bytes / 1e3:.1f} KB) in {rounds} rounds ({stream_s:.2f} s of page reading and selection); "
+              f"tiles held {len(tree.manifest.tiles)} of {len(whole.tiles)}; selection per frame "
+              f"{t_held * 1e3:.2f} ms over the tiles held, {t_whole * 1e3:.2f} ms over the whole tree")
+
+
+if __name__ == "__main__":
+    main()
