@@ -90,7 +90,7 @@ def synthetic_tree(splats: int, base: Manifest, seed: int = 0) -> Manifest:
                 shape.first_id[lv + 1] + (j << child_shift) + c for c in range(2 ** child_shift))
             own = {}
             for name, p in groups.items():
-                sha = "%064x" % rnd.getrandbits(256)
+                sha = f"{rnd.getrandbits(256):064x}"
                 own[name] = replace(p, file=payload_name(sha), sha256=sha)
             tiles.append(TileEntry(tid, lv, children, per_tile, chunks, texture, Box(lo, hi), center, radius, err,
                                    own))
@@ -114,7 +114,7 @@ def select_once(m: Manifest, cam: Camera, opts: SelectionOptions):
 
 
 def timed(m: Manifest, cam: Camera, opts: SelectionOptions, reps: int = 15) -> float:
-    m.arrays  # built once per tree, as the engine does (a page arrival rebuilds it)
+    _ = m.arrays  # built once per tree, as the engine does (a page arrival rebuilds it)
     select_once(m, cam, opts)
     times = []
     for _ in range(reps):
