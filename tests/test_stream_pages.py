@@ -4,11 +4,12 @@ only, and the stream converges to the cut of the same scene unpaged."""
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 
 import pytest
 from conftest import real
-from test_stream_engine import CountingPool, orbit, run_until_converged
+from test_stream_engine import CountingPool, orbit
 
 from client_gl.stream.engine import StreamEngine, StreamOptions
 from client_gl.stream.fetch import Fetcher, RetryPolicy
@@ -18,6 +19,19 @@ from server.testing import ServerThread, request
 from splatstream.encode import encode_file
 from splatstream.format.manifest import parse_manifest
 from splatstream.store import load_manifest
+
+
+def converge(engine, cam, timeout_s: float = 60.0):
+    """Frames until the stream converges: a generous bound on the wall clock (a loaded machine is only later), the
+    frames paced so that the fetcher's thread runs between them."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        u = engine.update(cam)
+        if u.converged:
+            return u
+        engine.wait(0.01)
+        time.sleep(0.005)
+    raise AssertionError(f"did not converge in {timeout_s} s")
 
 
 @pytest.fixture(scope="module")
@@ -63,7 +77,7 @@ def test_a_paged_scene_streams_over_http_to_the_unpaged_cut(root, server):
                 # the first frame's tree: the root manifest's tiles only
                 assert engine.pages is not None and len(engine.manifest.tiles) < len(whole.tiles)
                 manifest_bytes = len(f.manifest_bytes)
-            _, u = run_until_converged(engine, cam, limit=5000)
+            u = converge(engine, cam)
             draws[scene] = sorted(u.draw)
             fetched[scene] = engine
             engine.close()

@@ -247,15 +247,17 @@ class StreamEngine:
         self.last_drawn = np.concatenate([self.last_drawn, np.zeros(grow, np.int64)])
         self._filling = np.concatenate([self._filling, np.zeros(grow, bool)])
 
-    def _add_page(self, tile_id: int, data: VerifiedPayload | bytes) -> None:
-        """A page arrived: the tree grows below its tile; the next frame selects over the grown tree."""
-        try:
-            m = self.pages.add_page(tile_id, data)
-        except SplatstreamError as exc:  # verified bytes that do not parse: the scene is broken, not the link
-            self.errors.append(str(exc))
-            self.failed[(tile_id, PAGE_GROUP)] = str(exc)
-            return
-        self._adopt(m)
+    def _add_pages(self) -> None:
+        """Pages arrived: the tree grows below their tiles, and this frame selects over the grown tree (adopted
+        once for all of them: the arrays are rebuilt over every tile held)."""
+        for tile_id, data in self._pages_arrived:
+            try:
+                self.pages.add_page(tile_id, data)
+            except SplatstreamError as exc:  # verified bytes that do not parse: the scene is broken, not the link
+                self.errors.append(str(exc))
+                self.failed[(tile_id, PAGE_GROUP)] = str(exc)
+        self._pages_arrived = []
+        self._adopt(self.pages.manifest)
         self._wanted_cache = None  # the same camera selects again, over the new tiles
         self._draw_cache = None
         self._version += 1
@@ -320,8 +322,8 @@ class StreamEngine:
 
     def update(self, cam: Camera) -> FrameUpdate:
         self.frame += 1
-        while self._pages_arrived:
-            self._add_page(*self._pages_arrived.pop(0))
+        if self._pages_arrived:
+            self._add_pages()
         view, sel, bands, keys, extra = self.wanted(cam)
         state = (self._wanted_serial, self._version)
         if state != self._state_seen:  # the wish list or what we hold changed: tell the fetcher what is missing now
