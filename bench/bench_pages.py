@@ -12,6 +12,9 @@ median time of one frame's view numbers + selection over the tiles held against 
     PYTHONPATH=. python bench/bench_pages.py [--splats 1e6,6e6,60e6,250e6] [--levels 4,5,6,8] [--sh-degree 0]
     PYTHONPATH=. python bench/bench_pages.py --repage SCENE OUT   # OUT: SCENE paged (payloads hard-linked), to
                                                                   # stream both (bench_first_frame.py, bench_stream.py)
+    PYTHONPATH=. python bench/bench_pages.py --first-frame SCENE [SCENE ...]  # served on loopback (`serve`): the
+        manifest bytes and seconds from opening the stream to the first frame that draws the root (engine, fetcher
+        and HTTP as `view` runs them, no GL: a pool that counts slots), median of --runs
 """
 from __future__ import annotations
 
@@ -20,13 +23,17 @@ import math
 import os
 import random
 import statistics
+import sys
 import time
 from dataclasses import replace
 
 import numpy as np
 
+from client_gl.stream.engine import StreamEngine, StreamOptions
+from client_gl.stream.fetch import Fetcher
 from client_gl.stream.pages import PagedTree
 from client_gl.stream.selection import SelectionOptions, select, view_numbers
+from client_gl.stream.sources import HttpSource
 from splatstream.camera import Camera
 from splatstream.encode import EncodeOptions, encode_in_memory
 from splatstream.format.manifest import (
@@ -43,6 +50,9 @@ from splatstream.format.names import DATA_DIR, MANIFEST_NAME, payload_name
 from splatstream.gaussians import Gaussians
 from splatstream.lod import TreeShape
 from splatstream.store import load_manifest, read_manifest
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+from bench_stream import serve_scene  # noqa: E402 (bench/ is on the path: scripts run from it)
 
 
 def template(sh_degree: int) -> Manifest:
@@ -144,8 +154,63 @@ def repage(src: str, dst: str, k: int) -> None:
           f"{os.path.getsize(os.path.join(src, MANIFEST_NAME)) / 1e3:.1f} KB)")
 
 
+class _Slots:
+    """A GPU pool that only counts (the engine's Residency; the GL pool's time is the same paged or not)."""
+
+    capacity_slots = free_slots = 1 << 20
+
+    def join(self, tile_id, tile):
+        return None
+
+    def add_band(self, tile_id, band, planes):
+        return None
+
+    def leave(self, tile_id):
+        return None
+
+    def set_codebook_band(self, band, plane):
+        return None
+
+
+def first_frame(scenes: list[str], runs: int) -> None:
+    """Seconds from a new fetcher to the first frame that draws (the root), over loopback HTTP, and the manifest
+    bytes fetched before it."""
+    for scene in scenes:
+        proc, url = serve_scene(scene)
+        try:
+            times, manifest_bytes = [], 0
+            for _ in range(runs):
+                t0 = time.perf_counter()
+                f = Fetcher(HttpSource(url)).start()
+                try:
+                    engine = StreamEngine(f, _Slots(), StreamOptions(SelectionOptions(max_splats=3_000_000)))
+                    cam = ground_camera_of(engine.manifest)
+                    while not engine.update(cam).draw:
+                        engine.wait(0.002)
+                    times.append(time.perf_counter() - t0)
+                    manifest_bytes = len(f.manifest_bytes)
+                    engine.close()
+                finally:
+                    f.close()
+            print(f"{scene}: first frame {statistics.median(times) * 1e3:.0f} ms median of {runs} (min "
+                  f"{min(times) * 1e3:.0f}, max {max(times) * 1e3:.0f}), {manifest_bytes / 1e3:.1f} KB of manifest "
+                  "before it")
+        finally:
+            proc.terminate()
+            proc.wait()
+
+
+def ground_camera_of(m: Manifest) -> Camera:
+    root = m.tile(m.root)
+    c, r = np.array(root.sphere_center), root.sphere_radius
+    return Camera(tuple(c + r * np.array([1.2, 0.3, 0.5])), tuple(c), (0.0, 0.0, 1.0), 60.0, 1920, 1080,
+                  near=0.01 * r)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
+    ap.add_argument("--first-frame", nargs="+", metavar="SCENE")
+    ap.add_argument("--runs", type=int, default=7)
     ap.add_argument("--repage", nargs=2, metavar=("SCENE", "OUT"))
     ap.add_argument("--splats", default="1e6,6e6,60e6,250e6")
     ap.add_argument("--levels", default="4,5,6,8")
@@ -155,6 +220,9 @@ def main() -> None:
     args = ap.parse_args()
     if args.repage:
         repage(*args.repage, args.default_levels)
+        return
+    if args.first_frame:
+        first_frame(args.first_frame, args.runs)
         return
     base = template(args.sh_degree)
     opts = SelectionOptions(max_sse=1.5, max_splats=args.max_splats)

@@ -332,8 +332,10 @@ class StreamEngine:
             want = [k for k in self._missing if k not in self._ready and k not in self._decoding]
             pre = [] if want else [k for k in extra if not self._have(k) and k not in self._ready
                                    and k not in self._decoding]
-            pages = self._pages_wanted
-            listed = tuple(pages + want + pre)
+            # pages right after the root's base (the first frame draws the root; a page only lets the cut refine)
+            root_key = (int(self.ids[self.root]), "base")
+            head = want[:1] if want[:1] == [root_key] else []
+            listed = tuple(head + self._pages_wanted + want[len(head):] + pre)
             if listed != self._listed:
                 n = len(listed)
                 self.fetcher.want([(float(n - r), k, self.pages.entry(k[0]) if k[1] == PAGE_GROUP else self.entry(k))
