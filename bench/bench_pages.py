@@ -172,13 +172,13 @@ class _Slots:
         return None
 
 
-def first_frame(scenes: list[str], runs: int) -> None:
+def first_frame(scenes: list[str], runs: int, converge: bool = False) -> None:
     """Seconds from a new fetcher to the first frame that draws (the root), over loopback HTTP, and the manifest
     bytes fetched before it."""
     for scene in scenes:
         proc, url = serve_scene(scene)
         try:
-            times, manifest_bytes = [], 0
+            times, converged, manifest_bytes = [], [], 0
             for _ in range(runs):
                 t0 = time.perf_counter()
                 f = Fetcher(HttpSource(url)).start()
@@ -189,12 +189,18 @@ def first_frame(scenes: list[str], runs: int) -> None:
                         engine.wait(0.002)
                     times.append(time.perf_counter() - t0)
                     manifest_bytes = len(f.manifest_bytes)
+                    if converge:
+                        while not engine.update(cam).converged:
+                            engine.wait(0.002)
+                            time.sleep(0.002)
+                        converged.append(time.perf_counter() - t0)
                     engine.close()
                 finally:
                     f.close()
             print(f"{scene}: first frame {statistics.median(times) * 1e3:.0f} ms median of {runs} (min "
                   f"{min(times) * 1e3:.0f}, max {max(times) * 1e3:.0f}), {manifest_bytes / 1e3:.1f} KB of manifest "
-                  "before it")
+                  "before it" + (f"; converged {statistics.median(converged):.2f} s median (min {min(converged):.2f}, "
+                                 f"max {max(converged):.2f})" if converged else ""))
         finally:
             proc.terminate()
             proc.wait()
@@ -211,6 +217,7 @@ def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--first-frame", nargs="+", metavar="SCENE")
     ap.add_argument("--runs", type=int, default=7)
+    ap.add_argument("--converge", action="store_true", help="--first-frame: also the time until the view converged")
     ap.add_argument("--repage", nargs=2, metavar=("SCENE", "OUT"))
     ap.add_argument("--splats", default="1e6,6e6,60e6,250e6")
     ap.add_argument("--levels", default="4,5,6,8")
@@ -222,7 +229,7 @@ def main() -> None:
         repage(*args.repage, args.default_levels)
         return
     if args.first_frame:
-        first_frame(args.first_frame, args.runs)
+        first_frame(args.first_frame, args.runs, args.converge)
         return
     base = template(args.sh_degree)
     opts = SelectionOptions(max_sse=1.5, max_splats=args.max_splats)
