@@ -15,6 +15,7 @@ from test_tool_roundtrip import SOURCE_PLY, splat_transform
 from cli.main import main
 from splatstream.edit import (
     Box,
+    DensityFilter,
     Pipeline,
     Sphere,
     Transform,
@@ -315,3 +316,36 @@ def test_encode_takes_several_inputs_on_the_command_line(scene_ply, second_ply, 
     assert lines[1] == f"  filter-value opacity,gt,0.05: keeps {kept} of 7721 ({7721 - kept} dropped)"
     assert main(["encode", scene_ply, second_ply, str(tmp_path / "out"), "-q", "--target-psnr", "30"]) == 2
     assert "one input" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------------------------- floater removal
+
+
+def test_density_filter_counts_the_neighbours_of_each_cell_exactly():
+    """Against brute force: for every splat, the centres whose cell differs from its own by at most 1 on each
+    axis; the same kept splats in any order; and a far floater dropped while its far-apart cells stay apart."""
+    g = read_gaussians(real("fruit_drops_sh3.ply"))
+    f = DensityFilter(0.01, 4)
+    cells = np.floor(g.positions.astype(np.float64) / f.size).astype(np.int64)
+    want = np.array([np.count_nonzero(np.all(np.abs(cells - c) <= 1, axis=1)) for c in cells])
+    np.testing.assert_array_equal(f.neighbour_counts(g), want)
+    assert np.count_nonzero(f.keep(g)) == np.count_nonzero(want >= 4) == 4531
+    order = np.random.default_rng(1).permutation(len(g))
+    np.testing.assert_array_equal(f.keep(g.subset(order)), f.keep(g)[order])
+    far = g.subset(np.arange(8))
+    far.positions[:] = [[0, 0, 0]] * 4 + [[1000.005, 0, 0], [1000.015, 0, 0], [1000.035, 0, 0], [-1000, 300, 7]]
+    np.testing.assert_array_equal(f.neighbour_counts(far), [4, 4, 4, 4, 2, 2, 1, 1])
+
+
+def test_density_filter_runs_in_memory_and_is_refused_by_partitions(scene_ply, tmp_path, capsys):
+    edits = Pipeline([DensityFilter(0.01, 4)])
+    m = encode_file(scene_ply, tmp_path / "memory", edits=edits, max_leaf_splats=300, preset="low")
+    assert m.splats == 4531
+    with pytest.raises(UsageError, match="--filter-density counts each splat's neighbours over the whole scene"):
+        encode_file(scene_ply, tmp_path / "parts", edits=edits, memory_per_worker=1 << 20, max_leaf_splats=300)
+    assert not (tmp_path / "parts").exists()
+    assert main(["encode", scene_ply, str(tmp_path / "out"), "--filter-density", "0.01,4", "--dry-run",
+                 "--memory-per-worker", "1MiB"]) == 0
+    assert capsys.readouterr().out.splitlines()[1] == "  filter-density 0.01,4: keeps 4531 of 4721 (190 dropped)"
+    assert main(["convert", scene_ply, str(tmp_path / "c.ply"), "-q", "--filter-density", "0.01,2.5"]) == 2
+    assert "whole minimum count" in capsys.readouterr().err

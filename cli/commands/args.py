@@ -6,7 +6,7 @@ import argparse
 import math
 import re
 
-from splatstream.edit import Box, Pipeline, Sphere, parse_filter, rotation, scaling, translation
+from splatstream.edit import Box, DensityFilter, Pipeline, Sphere, parse_filter, rotation, scaling, translation
 from splatstream.errors import UsageError
 
 
@@ -67,6 +67,10 @@ EDIT_OPTIONS = [
      "keep the splats whose attribute compares true: ATTR<OP>VALUE (OP one of < <= > >= == !=) or splat-transform's "
      "NAME,CMP,VALUE (CMP one of lt lte gt gte eq neq); ATTR one of x y z, opacity (0..1, after the sigmoid), "
      "scale_0..2 (after exp), f_dc_0..2 (colour 0..1), or opacity_raw, scale_N_raw, f_dc_N_raw as stored"),
+    (("--filter-density",), "SIZE,MIN", "density",
+     "floater removal: keep the splats whose grid cell (cubes of side SIZE in scene units) and its 26 neighbours "
+     "hold at least MIN splat centres (not splat-transform's voxel --filter-floaters; a whole-scene step: encode "
+     "runs it in memory and refuses it by partitions)"),
 ]
 
 
@@ -131,6 +135,11 @@ def edits_from(args: argparse.Namespace) -> Pipeline:
             if v[3] <= 0:
                 raise UsageError(f"{flag}: expected a radius above 0, got {v[3]:g}")
             out.append(Sphere(v[:3], v[3], keep_inside=kind == "sphere"))
+        elif kind == "density":
+            size, count = _numbers(text, 2, flag)
+            if count != int(count):
+                raise UsageError(f"{flag}: expected a whole minimum count, got {count:g}")
+            out.append(DensityFilter(size, int(count)))
         else:
             out.append(parse_filter(text))
     return Pipeline(out)

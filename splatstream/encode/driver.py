@@ -61,6 +61,13 @@ def _declared_up(sources: list[SplatInput]):
     return stated[0]
 
 
+# Why a whole-scene edit (the density filter) and a partitioned encode do not go together, and what to do instead.
+_WHOLE_SCENE_EDITS = ("--filter-density counts each splat's neighbours over the whole scene, which the partitioned "
+                      "encoder (edits chunk by chunk; --workers, --scheduler, or a scene larger than "
+                      "--memory-per-worker) cannot do exactly: give a --memory-per-worker the scene fits in, or "
+                      "clean it first with `splatstream convert IN clean.ply --filter-density ...` and encode that")
+
+
 def encode_file(input_path: str | os.PathLike | Sequence[str | os.PathLike], out_dir: str | os.PathLike,
                 preset: str | None = None,
                 drop_invalid: bool = False, progress: Progress | None = None, workers: int | None = None,
@@ -97,7 +104,10 @@ def encode_file(input_path: str | os.PathLike | Sequence[str | os.PathLike], out
     distributed = workers is not None or scheduler is not None
     # The row layout (a stat of the file: its header is parsed already) where rows may be read by ranges.
     layouts = [s.vertex_layout() if opts.lod or distributed else None for s in sources]
-    if not distributed and fits_in_process(layouts, opts, memory_per_worker or default_memory_per_worker()):
+    in_memory = not distributed and fits_in_process(layouts, opts, memory_per_worker or default_memory_per_worker())
+    if edits and not edits.per_splat and not in_memory:
+        raise UsageError(_WHOLE_SCENE_EDITS)
+    if in_memory:
         progress("read", 0.0)
         g = read_merged(sources, drop_invalid)
         if edits:
@@ -150,6 +160,10 @@ def count_edits(input_path: str | os.PathLike | Sequence[str | os.PathLike], edi
         _, counts = edits.run(g)
         totals = [(label, total + kept) for (label, total), (_, kept) in zip(totals, counts, strict=True)]
 
+    if not edits.per_splat:  # a whole-scene edit: the merged scene read whole, as the encoder reads it
+        g = read_merged(sources, drop_invalid)
+        _, counts = edits.run(g)
+        return sources[0].format, len(g), counts
     for source in sources:
         layout = source.vertex_layout()
         if layout is None:

@@ -672,6 +672,9 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
     """Encode the rows of an input (PlyRows, ArrayRows, SpilledRows) through a writer on an engine, edited by
     `edits` (chunk by chunk, EditedRows)."""
     source_rows = rows
+    if edits and not edits.per_splat:
+        raise UsageError("an edit of the whole scene (--filter-density) cannot run chunk by chunk: a partitioned "
+                         "encode applies only edits of one splat at a time")
     if edits:
         rows = EditedRows(rows, edits)
     formats, chunk_order = plan_formats(opts)
