@@ -19,7 +19,7 @@ ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 REAL = os.path.join(os.environ.get("SPLATSTREAM_SHARED", os.path.join(ROOT, "..", "shared")), "data", "real")
 SCENES = ["fruit_drops_sh3.ply", "lod_tile_sh3_zero_rest.ply", "donut_sh0_no_normals.ply", "guitar.compressed.ply",
           "winter_fountain.splat", "biker.compressed.ply", "statues/st-peter.sog", "statues/massa.sog"]
-FRACTIONS = (1 / 100, 1 / 200)
+FRACTIONS = (1 / 50, 1 / 100)
 MINIMA = (2, 4, 8)
 
 
