@@ -136,6 +136,18 @@ def rotation(x: float, y: float, z: float) -> Transform:
     return Transform(rotation=ours, label=f"rotate {x:g},{y:g},{z:g}")
 
 
+def rotation_quaternion(x: float, y: float, z: float, w: float) -> Transform:
+    """--rotate x,y,z,w: a turn given as a quaternion in the order PlayCanvas's Quat and glTF write it (x, y, z, w;
+    not a PLY's rot_0..3, which is w first), in the engine frame like the Euler angles; normalised here."""
+    q = np.array([w, x, y, z], np.float64)
+    n = float(np.linalg.norm(q))
+    if not (math.isfinite(n) and n > 0):
+        raise UsageError(f"--rotate {x:g},{y:g},{z:g},{w:g}: a quaternion of length 0 is no rotation")
+    q = q / n
+    ours = (float(q[0]), float(-q[1]), float(-q[2]), float(q[3]))  # D q D, as rotation() turns Euler angles
+    return Transform(rotation=ours, label=f"rotate {x:g},{y:g},{z:g},{w:g}")
+
+
 def scaling(s: float) -> Transform:
     """splat-transform --scale s (uniform, about the origin)."""
     if not (math.isfinite(s) and s > 0):

@@ -23,6 +23,7 @@ from splatstream.edit import (
     quaternion_from_euler,
     quaternion_matrix,
     rotation,
+    rotation_quaternion,
     scaling,
     sh_rotation,
     translation,
@@ -349,3 +350,21 @@ def test_density_filter_runs_in_memory_and_is_refused_by_partitions(scene_ply, t
     assert capsys.readouterr().out.splitlines()[1] == "  filter-density 0.01,4: keeps 4531 of 4721 (190 dropped)"
     assert main(["convert", scene_ply, str(tmp_path / "c.ply"), "-q", "--filter-density", "0.01,2.5"]) == 2
     assert "whole minimum count" in capsys.readouterr().err
+
+
+def test_rotate_takes_a_quaternion_in_playcanvas_order(tmp_path):
+    """--rotate X,Y,Z,W is the turn of the Euler angles whose quaternion it is (PlayCanvas's x, y, z, w order),
+    normalised; a zero quaternion is refused."""
+    w, x, y, z = quaternion_from_euler(30, -40, 75)
+    g = small_scene()
+    want = rotation(30, -40, 75).apply(g)
+    got = rotation_quaternion(2 * x, 2 * y, 2 * z, 2 * w).apply(g)
+    np.testing.assert_allclose(got.positions, want.positions, atol=1e-12)
+    np.testing.assert_allclose(got.rotations, want.rotations, atol=1e-12)
+    np.testing.assert_allclose(got.sh_rest, want.sh_rest, atol=1e-9)
+    out, ref = tmp_path / "q.ply", tmp_path / "e.ply"
+    assert main(["convert", str(SOURCE_PLY), str(out), "-q", "--rotate", "0,0,0.70710678,0.70710678"]) == 0
+    assert main(["convert", str(SOURCE_PLY), str(ref), "-q", "--rotate", "0,0,90"]) == 0
+    np.testing.assert_allclose(read_gaussians(out).positions, read_gaussians(ref).positions, atol=1e-6)
+    with pytest.raises(UsageError, match="length 0"):
+        rotation_quaternion(0, 0, 0, 0)

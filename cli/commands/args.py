@@ -6,7 +6,17 @@ import argparse
 import math
 import re
 
-from splatstream.edit import Box, DensityFilter, Pipeline, Sphere, parse_filter, rotation, scaling, translation
+from splatstream.edit import (
+    Box,
+    DensityFilter,
+    Pipeline,
+    Sphere,
+    parse_filter,
+    rotation,
+    rotation_quaternion,
+    scaling,
+    translation,
+)
 from splatstream.errors import UsageError
 
 
@@ -54,8 +64,9 @@ def parse_bytes(text: str, what: str) -> int:
 # them: (flags, metavar, what the value is, help).
 EDIT_OPTIONS = [
     (("--translate",), "X,Y,Z", "translate", "move every splat by (X, Y, Z)"),
-    (("--rotate",), "X,Y,Z", "rotate", "turn the scene by Euler angles in degrees (x first, then y, then z, about "
-                                       "the origin), SH bands 1..3 turned with it"),
+    (("--rotate",), "X,Y,Z|X,Y,Z,W", "rotate",
+     "turn the scene about the origin by Euler angles in degrees (x first, then y, then z), or by a quaternion "
+     "X,Y,Z,W (PlayCanvas's and glTF's order, w last; normalised); SH bands 1..3 turned with it"),
     (("--scale", "--scale-by"), "S", "scale", "scale the scene by S about the origin"),
     (("--filter-box", "--crop-box"), "X,Y,Z,X,Y,Z", "box", "keep the splats whose centre lies in the box "
                                                             "(min corner, max corner; faces included)"),
@@ -119,7 +130,10 @@ def edits_from(args: argparse.Namespace) -> Pipeline:
         if kind == "translate":
             out.append(translation(*_numbers(text, 3, flag)))
         elif kind == "rotate":
-            out.append(rotation(*_numbers(text, 3, flag)))
+            if text.count(",") == 3:
+                out.append(rotation_quaternion(*_numbers(text, 4, flag)))
+            else:
+                out.append(rotation(*_numbers(text, 3, flag)))
         elif kind == "scale":
             s = _numbers(text, 1, flag)[0]
             if s <= 0:
