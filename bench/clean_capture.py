@@ -3,7 +3,7 @@ keep, and what they drop, each rendered by `splatstream render` from the origina
 by side.
 
     python bench/clean_capture.py tests/data/real/statues/st-peter.sog --out docs/images/clean_st_peter.png \\
-        -- --filter-box -0.9,-2.5,-0.8,0.9,2.3,0.9 --filter-density 0.035,4
+        -- --filter-box -1,-1.5,-1,1,2.5,1 --filter-density 0.07,2
 """
 from __future__ import annotations
 
@@ -17,6 +17,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from cli.commands.args import add_edit_arguments, edits_from
+from cli.commands.edit_flags import attach_negative_values
 from splatstream.camera import suggested_camera
 from splatstream.edit import Pipeline
 from splatstream.io import read_gaussians, scene_up
@@ -34,7 +35,7 @@ def main() -> int:
     edit_args = argv[split + 1:]  # after --: the edit options, as convert takes them (the CLI's own parser)
     parser = argparse.ArgumentParser()
     add_edit_arguments(parser)
-    edits: Pipeline = edits_from(parser.parse_args(edit_args))
+    edits: Pipeline = edits_from(parser.parse_args(attach_negative_values(edit_args)))
     g = read_gaussians(args.input)
     kept_g, counts = edits.run(g)
     # which splats were dropped: every step keeps rows in order, so mark them by an index carried in a copy

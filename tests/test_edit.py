@@ -368,3 +368,13 @@ def test_rotate_takes_a_quaternion_in_playcanvas_order(tmp_path):
     np.testing.assert_allclose(read_gaussians(out).positions, read_gaussians(ref).positions, atol=1e-6)
     with pytest.raises(UsageError, match="length 0"):
         rotation_quaternion(0, 0, 0, 0)
+
+
+def test_a_value_with_a_leading_minus_is_read_as_the_option_s_value(tmp_path, capsys):
+    """splat-transform's users write `-B -1,-1,-1,1,1,1`: the spaced value reads as with `=`."""
+    spaced = ["encode", str(SOURCE_PLY), str(tmp_path / "a"), "--filter-box", "-1.4,-0.5,-4.5,-0.8,0.5,-3.5",
+              "--translate", "-1,0,0", "--dry-run"]
+    assert main(spaced) == 0
+    assert main([*spaced[:3], "--filter-box=-1.4,-0.5,-4.5,-0.8,0.5,-3.5", "--translate=-1,0,0", "--dry-run"]) == 0
+    first, second = capsys.readouterr().out.split("read ")[1:]
+    assert first == second and "filter-box -1.4,-0.5,-4.5,-0.8,0.5,-3.5: keeps" in first

@@ -19,6 +19,8 @@ from splatstream.edit import (
 )
 from splatstream.errors import UsageError
 
+from .edit_flags import EDIT_OPTIONS
+
 
 def parse_vector(text: str, what: str, nonzero: bool = False) -> tuple[float, float, float]:
     """'X,Y,Z' -> three finite floats (not all zero when `nonzero`); `what` names the option in errors."""
@@ -58,31 +60,6 @@ def parse_bytes(text: str, what: str) -> int:
     if not math.isfinite(value) or value < (1 << 20):
         raise UsageError(f"{what}: expected a size of at least 1MiB like 4GB or 512MiB, got {text!r}")
     return int(value)
-
-
-# The edits of issue 36 (splatstream/edit.py), by splat-transform's long names, with the issue's spellings beside
-# them: (flags, metavar, what the value is, help).
-EDIT_OPTIONS = [
-    (("--translate",), "X,Y,Z", "translate", "move every splat by (X, Y, Z)"),
-    (("--rotate",), "X,Y,Z|X,Y,Z,W", "rotate",
-     "turn the scene about the origin by Euler angles in degrees (x first, then y, then z), or by a quaternion "
-     "X,Y,Z,W (PlayCanvas's and glTF's order, w last; normalised); SH bands 1..3 turned with it"),
-    (("--scale", "--scale-by"), "S", "scale", "scale the scene by S about the origin"),
-    (("--filter-box", "--crop-box"), "X,Y,Z,X,Y,Z", "box", "keep the splats whose centre lies in the box "
-                                                            "(min corner, max corner; faces included)"),
-    (("--drop-box",), "X,Y,Z,X,Y,Z", "drop-box", "drop the splats whose centre lies in the box"),
-    (("--filter-sphere", "--crop-sphere"), "X,Y,Z,R", "sphere", "keep the splats whose centre lies inside the "
-                                                                 "sphere (centre, radius)"),
-    (("--drop-sphere",), "X,Y,Z,R", "drop-sphere", "drop the splats whose centre lies inside the sphere"),
-    (("--filter-value", "--filter"), "ATTR<OP>VALUE", "filter",
-     "keep the splats whose attribute compares true: ATTR<OP>VALUE (OP one of < <= > >= == !=) or splat-transform's "
-     "NAME,CMP,VALUE (CMP one of lt lte gt gte eq neq); ATTR one of x y z, opacity (0..1, after the sigmoid), "
-     "scale_0..2 (after exp), f_dc_0..2 (colour 0..1), or opacity_raw, scale_N_raw, f_dc_N_raw as stored"),
-    (("--filter-density",), "SIZE,MIN", "density",
-     "floater removal: keep the splats whose grid cell (cubes of side SIZE in scene units) and its 26 neighbours "
-     "hold at least MIN splat centres (not splat-transform's voxel --filter-floaters; a whole-scene step: encode "
-     "runs it in memory and refuses it by partitions)"),
-]
 
 
 class _EditAction(argparse.Action):
