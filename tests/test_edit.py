@@ -378,3 +378,34 @@ def test_a_value_with_a_leading_minus_is_read_as_the_option_s_value(tmp_path, ca
     assert main([*spaced[:3], "--filter-box=-1.4,-0.5,-4.5,-0.8,0.5,-3.5", "--translate=-1,0,0", "--dry-run"]) == 0
     first, second = capsys.readouterr().out.split("read ")[1:]
     assert first == second and "filter-box -1.4,-0.5,-4.5,-0.8,0.5,-3.5: keeps" in first
+
+
+def test_merge_matches_splat_transform_except_its_sh_columns_by_name(tmp_path):
+    """splat-transform merges columns by name, zeros where an input lacks one: the same splats and values as ours
+    for degrees 3 + 0. For 3 + 1 its by-name f_rest_0..8 (a degree-1 PLY's r, g, b coefficients of band 1) land on
+    the first nine red coefficients of degree 3; ours keeps each coefficient where it belongs (zeros padded)."""
+    tool = splat_transform()
+    a = small_scene()
+    low = tmp_path / "deg1.ply"
+    write_gaussians_ply(a.with_sh_degree(1), low)
+    zero = tmp_path / "deg0.ply"
+    write_gaussians_ply(read_gaussians(real("winter_fountain_first3000.splat")), zero)
+    for second, same in ((zero, True), (low, False)):
+        out = tmp_path / "merged.ply"
+        r = subprocess.run([tool, "-q", "-w", "-g", "cpu", str(SOURCE_PLY), str(second), str(out)],
+                           capture_output=True, text=True, timeout=300, stdin=subprocess.DEVNULL)
+        assert r.returncode == 0, r.stdout + r.stderr
+        v = read_elements(out)[1]["vertex"]
+        ours = Gaussians.concatenate([a, read_gaussians(second)])
+        assert len(v) == len(ours)
+        np.testing.assert_array_equal(np.stack([v["x"], v["y"], v["z"]], axis=1), ours.positions)
+        flat = np.stack([v[f"f_rest_{i}"] for i in range(45)], axis=1)  # PLY order: channel-major
+        np.testing.assert_array_equal(flat[:len(a)], ours.sh_rest[:len(a)].transpose(0, 2, 1).reshape(-1, 45))
+        theirs = flat[len(a):]
+        if same:
+            assert not theirs.any() and not ours.sh_rest[len(a):].any()
+        else:
+            band1 = a.sh_rest[:, :3].transpose(0, 2, 1).reshape(-1, 9)  # r0 r1 r2 g0 g1 g2 b0 b1 b2
+            np.testing.assert_array_equal(theirs[:, :9], band1)  # all nine as red coefficients 0..8
+            np.testing.assert_array_equal(ours.sh_rest[len(a):, :3], a.sh_rest[:, :3])
+            assert not ours.sh_rest[len(a):, 3:].any()
