@@ -29,9 +29,12 @@ from splatstream.edit import (
     translation,
 )
 from splatstream.encode import encode_file
+from splatstream.encode.options import no_progress
+from splatstream.encode.partitioned import ArrayRows, ConcatRows, open_rows
+from splatstream.encode.scratch import Scratch
 from splatstream.errors import UsageError
 from splatstream.gaussians import SH_BAND_COEFFS, SH_BAND_START, Gaussians, covariances
-from splatstream.io import read_gaussians
+from splatstream.io import open_input, read_gaussians
 from splatstream.ply import read_elements, write_gaussians_ply
 from splatstream.sh import sh_basis
 
@@ -409,3 +412,27 @@ def test_merge_matches_splat_transform_except_its_sh_columns_by_name(tmp_path):
             np.testing.assert_array_equal(theirs[:, :9], band1)  # all nine as red coefficients 0..8
             np.testing.assert_array_equal(ours.sh_rest[len(a):, :3], a.sh_rest[:, :3])
             assert not ours.sh_rest[len(a):, 3:].any()
+
+
+def test_spilled_and_merged_rows_read_any_range(tmp_path):
+    """The rows an encoder chunk asks for, whatever the spill's chunk size and across the inputs of a merge (the
+    partitioned encoder's chunks are sized by the memory per worker, not by the spill)."""
+    splat = read_gaussians(real("winter_fountain_first3000.splat"))
+    ply = small_scene()
+    space = Scratch.create(str(tmp_path))
+    try:
+        spilled = open_rows(open_input(real("winter_fountain_first3000.splat")), None, space, 700, False,
+                            no_progress, "input1")
+        for start, stop in ((0, 700), (500, 2500), (2999, 5000), (1400, 1400)):
+            g, stats = spilled.read(start, stop)
+            np.testing.assert_array_equal(g.positions, splat.positions[start:stop])
+            assert stats.rows == len(g)
+        merged = ConcatRows([ArrayRows(ply), spilled])
+        whole = Gaussians.concatenate([ply, splat])
+        assert (merged.rows, merged.sh_degree) == (len(ply) + 3000, 3)
+        for start, stop in ((0, 100), (250, 1900), (len(ply) - 5, len(ply) + 10), (len(ply) + 2990, 10 ** 6)):
+            g, _ = merged.read(start, stop)
+            np.testing.assert_array_equal(g.positions, whole.positions[start:stop])
+            np.testing.assert_array_equal(g.sh_rest, whole.sh_rest[start:stop])
+    finally:
+        space.remove()

@@ -153,8 +153,18 @@ class SpilledRows:
     prefix: str = "input"  # one per input of a merge, so that their chunks do not collide in scratch
 
     def read(self, start: int, stop: int) -> tuple[Gaussians, RowStats]:
-        a = self.scratch.load(f"{self.prefix}/{start // self.chunk_rows}")
-        return Gaussians(*(a[k] for k in ATTRIBUTES)), RowStats(rows=int(len(a["positions"])))
+        # The rows asked for, whichever spilled chunks hold them: the encoder's chunks are not the spill's (its
+        # own size, from the memory per worker), nor are a merge's (ConcatRows reads each input from an offset).
+        stop = min(stop, self.rows)
+        pieces = []
+        for c in range(start // self.chunk_rows, -(-stop // self.chunk_rows)):
+            a = self.scratch.load(f"{self.prefix}/{c}")
+            lo, hi = max(start - c * self.chunk_rows, 0), min(stop - c * self.chunk_rows, self.chunk_rows)
+            pieces.append(Gaussians(*(a[k][lo:hi] for k in ATTRIBUTES)))
+        if not pieces:
+            return Gaussians.empty(self.sh_degree), RowStats()
+        g = pieces[0] if len(pieces) == 1 else Gaussians.concatenate(pieces)
+        return g, RowStats(rows=len(g))
 
 
 @dataclass
