@@ -36,7 +36,7 @@ class EncodeOptions:
     # manifest of its top `page_levels` levels and pages of the next `page_levels` levels below each of its
     # deepest tiles. Both measured against manifest bytes before the first frame and page fetches (BENCHMARKS.md,
     # "Manifest pages"): scenes up to a few million splats keep one manifest, as before.
-    page_tiles: int = 2048
+    page_tiles: int = 1024
     page_levels: int = 6
     name: str | None = None
     up: tuple[float, float, float] | None = None
