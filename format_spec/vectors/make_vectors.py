@@ -12,8 +12,8 @@ HERE = pathlib.Path(__file__).resolve().parent
 SOURCE = HERE.parents[1].parent / "shared" / "data" / "real" / "fruit_drops_sh3.ply"
 PRESETS = ["high", "medium", "low", "very-low"]
 SPLATS = 260
-# A paged scene (format.md 6.1, version 1.5): an LOD tree of 600 splats (SH degree 1) in leaves of at most 64, one level in
-# the root manifest and in each page, so it has a page below every interior tile.
+# A paged scene (format.md 6.1, version 1.5): an LOD tree of 600 splats (SH degree 1) in leaves of at most 64, one
+# level in the root manifest and in each page, so it has a page below every interior tile.
 PAGED_SPLATS = 600
 PAGED = {"max_leaf_splats": 64, "page_tiles": 1, "page_levels": 1, "sh_degree": 1}
 
