@@ -187,7 +187,7 @@ class StreamEngine:
                              f"tile holds {root_splats} splats): expected at least {root_splats}")
         self.codebook_bands: set[int] = set()
         self._pages_wanted: list[Key] = []
-        self._pages_arrived: list[tuple[int, VerifiedPayload | bytes]] = []
+        self._pages_arrived: dict[int, Future] = {}  # tile id -> its page's tiles, being parsed
         self.frame = 0
         self.refined: frozenset[int] = frozenset()
         self._bands_wanted: dict[int, int] = {}
@@ -248,15 +248,16 @@ class StreamEngine:
         self._filling = np.concatenate([self._filling, np.zeros(grow, bool)])
 
     def _add_pages(self) -> None:
-        """Pages arrived: the tree grows below their tiles, and this frame selects over the grown tree (adopted
-        once for all of them: the arrays are rebuilt over every tile held)."""
-        for tile_id, data in self._pages_arrived:
+        """Pages parsed (on the decode workers: a page of a large tree is milliseconds of Python the frame loop
+        would otherwise spend): the tree grows below their tiles, and this frame selects over the grown tree
+        (adopted once for all of them: the arrays are rebuilt over every tile held)."""
+        for tile_id, future in [(t, f) for t, f in self._pages_arrived.items() if f.done()]:
+            del self._pages_arrived[tile_id]
             try:
-                self.pages.add_page(tile_id, data)
+                self.pages.insert(tile_id, future.result())
             except SplatstreamError as exc:  # verified bytes that do not parse: the scene is broken, not the link
                 self.errors.append(str(exc))
                 self.failed[(tile_id, PAGE_GROUP)] = str(exc)
-        self._pages_arrived = []
         self._adopt(self.pages.manifest)
         self._wanted_cache = None  # the same camera selects again, over the new tiles
         self._draw_cache = None
@@ -322,7 +323,7 @@ class StreamEngine:
 
     def update(self, cam: Camera) -> FrameUpdate:
         self.frame += 1
-        if self._pages_arrived:
+        if self._pages_arrived and any(f.done() for f in self._pages_arrived.values()):
             self._add_pages()
         view, sel, bands, keys, extra = self.wanted(cam)
         state = (self._wanted_serial, self._version)
@@ -335,7 +336,8 @@ class StreamEngine:
             # pages right after the root's base (the first frame draws the root; a page only lets the cut refine)
             root_key = (int(self.ids[self.root]), "base")
             head = want[:1] if want[:1] == [root_key] else []
-            listed = tuple(head + self._pages_wanted + want[len(head):] + pre)
+            pages = [k for k in self._pages_wanted if k[0] not in self._pages_arrived]  # not those being parsed
+            listed = tuple(head + pages + want[len(head):] + pre)
             if listed != self._listed:
                 n = len(listed)
                 self.fetcher.want([(float(n - r), k, self.pages.entry(k[0]) if k[1] == PAGE_GROUP else self.entry(k))
@@ -399,8 +401,10 @@ class StreamEngine:
     # --- decode -----------------------------------------------------------------------------------------------
     def _collect(self) -> None:
         for key, entry, data in self.fetcher.done():
-            if key[1] == PAGE_GROUP:  # read at the next frame's start: this frame's view is of the tree it had
-                self._pages_arrived.append((key[0], data))
+            if key[1] == PAGE_GROUP:  # parsed on a decode worker, added at a frame's start (_add_pages)
+                if key[0] in self.pages.pending and key[0] not in self._pages_arrived:
+                    self._pages_arrived[key[0]] = self._pool.submit(self.pages.read, key[0], data)
+                    self._version += 1  # the wish list leaves it out now
                 continue
             if self._have(key) or key in self._ready or key in self._decoding:
                 continue
@@ -608,9 +612,14 @@ class StreamEngine:
             self._version += 1
 
     def wait(self, timeout_s: float = 0.05) -> None:
-        """Block briefly until a decode finishes (loops without a display use it instead of spinning)."""
+        """Block briefly until a decode or a page's parse finishes (loops without a display use it instead of
+        spinning)."""
         deadline = time.monotonic() + timeout_s
-        while self._decoding and self._decoded.empty() and time.monotonic() < deadline:
+        while time.monotonic() < deadline:
+            decoding = self._decoding and self._decoded.empty()
+            parsing = self._pages_arrived and not any(f.done() for f in self._pages_arrived.values())
+            if not (decoding or parsing):
+                return
             time.sleep(0.002)
 
     def close(self) -> None:

@@ -55,18 +55,20 @@ class PagedTree:
                 out.append((tile_id, PAGE_GROUP))
         return out
 
-    def add_page(self, tile_id: int, data: VerifiedPayload | bytes) -> Manifest:
-        """Read a page and return the grown view. Its bytes are checked once, like a payload's: a VerifiedPayload
-        of its entry (the fetcher's) as it is, anything else hashed now. A page already read changes nothing."""
-        ref = self.pending.get(tile_id)
-        if ref is None:
-            return self.manifest
-        parent = self._full[tile_id]
+    def read(self, tile_id: int, data: VerifiedPayload | bytes) -> list[TileEntry]:
+        """A page's tiles, parsed and checked (any thread: it changes nothing here). Its bytes are checked once,
+        like a payload's: a VerifiedPayload of its entry (the fetcher's) as it is, anything else hashed now."""
+        ref = self.pending[tile_id]
         source = f"{self.source} page {ref.file}"
         raw = verified_bytes(data, ref, source)
-        tiles = read_page(raw, ref, self.root, parent, source, lazy_payloads=True, hashed=True)
-        del self.pending[tile_id]
-        self._tiles[self._position[tile_id]] = parent  # its children are known now
+        return read_page(raw, ref, self.root, self._full[tile_id], source, lazy_payloads=True, hashed=True)
+
+    def insert(self, tile_id: int, tiles: list[TileEntry]) -> Manifest:
+        """Add a page's tiles (what `read` gave) and return the grown view. A page already added changes nothing."""
+        ref = self.pending.pop(tile_id, None)
+        if ref is None:
+            return self.manifest
+        self._tiles[self._position[tile_id]] = self._full[tile_id]  # its children are known now
         for t in tiles:
             self._full[t.id] = t
             self._position[t.id] = len(self._tiles)
@@ -75,6 +77,12 @@ class PagedTree:
                 t = replace(t, children=())
             self._tiles.append(t)
         self.pages_read += 1
-        self.page_bytes += len(data)
+        self.page_bytes += ref.bytes
         self.manifest = self._view()
         return self.manifest
+
+    def add_page(self, tile_id: int, data: VerifiedPayload | bytes) -> Manifest:
+        """read, then insert (in one thread)."""
+        if tile_id not in self.pending:
+            return self.manifest
+        return self.insert(tile_id, self.read(tile_id, data))
