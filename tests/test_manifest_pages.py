@@ -160,3 +160,16 @@ def test_encode_writes_pages_over_the_threshold_and_the_cli_reads_them(tmp_path)
     assert (tmp_path / "back.ply").read_bytes() == (tmp_path / "b2.ply").read_bytes()
     # the payloads are the same files: only the manifest is split
     assert {p.name for p in (unpaged / "data").iterdir()} < {p.name for p in (out / "data").iterdir()}
+
+
+def test_export_3dtiles_of_a_paged_scene_is_the_unpaged_scenes(tmp_path):
+    """The exporter reads every page (load_manifest): the same tileset as the scene's unpaged encode."""
+    ply = str(real("fruit_drops_sh3.ply"))
+    for name, extra in (("paged", ["--page-tiles", "4", "--page-levels", "2"]), ("whole", [])):
+        assert run_cli("encode", ply, str(tmp_path / name), "--max-leaf-splats", "300", "--quiet",
+                       *extra).returncode == 0
+        r = run_cli("export-3dtiles", str(tmp_path / name), str(tmp_path / f"{name}.tiles"))
+        assert r.returncode == 0, r.stderr
+    a, b = tmp_path / "paged.tiles", tmp_path / "whole.tiles"
+    assert (a / "tileset.json").read_bytes() == (b / "tileset.json").read_bytes()
+    assert sorted(p.name for p in (a / "tiles").iterdir()) == sorted(p.name for p in (b / "tiles").iterdir())
