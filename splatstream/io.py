@@ -1,7 +1,8 @@
 """Reading and writing splat scenes in any supported format, chosen by content, not only by extension.
 
 Readable: standard 3DGS PLY, PlayCanvas compressed PLY, Niantic SPZ (versions 2, 3, 4), antimatter15 .splat,
-PlayCanvas SOG (bundled .sog, unbundled meta.json directory, streamed lod-meta.json), glTF/GLB with
+PlayCanvas SOG (bundled .sog, unbundled meta.json directory, streamed lod-meta.json), Spark .rad (finest
+level), glTF/GLB with
 KHR_gaussian_splatting (plain or SPZ-compressed).
 Writable, chosen by the output's extension: .ply (standard 3DGS), .splat, .spz (SPZ v4 or v3), .glb
 (KHR_gaussian_splatting, plain or SPZ-compressed), .sog (PlayCanvas SOG version 2, bundled). See
@@ -24,6 +25,7 @@ FORMAT_NAMES = {
     "splat": "antimatter15 .splat",
     "sog": "PlayCanvas SOG",
     "lod_sog": "PlayCanvas streamed SOG (finest level)",
+    "rad": "Spark RAD (finest level)",
     "gltf": "glTF with KHR_gaussian_splatting",
 }
 WRITABLE_EXTENSIONS = {".ply": "ply", ".splat": "splat", ".spz": "spz", ".glb": "gltf", ".sog": "sog"}
@@ -73,6 +75,8 @@ def sniff_format(path: str | os.PathLike) -> str:
         raise InputError(path, None, "file is empty")
     if head.startswith(b"glTF"):
         return "gltf"
+    if head.startswith(b"RAD0"):
+        return "rad"
     kind = sog_kind(path) if head.startswith(b"PK\x03\x04") or head.lstrip().startswith(b"{") else None
     if kind is not None:
         return "lod_sog" if kind == "lod" else "sog"
@@ -96,8 +100,8 @@ def sniff_format(path: str | os.PathLike) -> str:
                              f"of 32-byte records; {size % 32} bytes left over: truncated?)")
         return "splat"
     raise InputError(path, None, "unrecognised file format (expected a 3DGS PLY, a PlayCanvas compressed PLY, an "
-                     "SPZ file, a .splat file, a SOG scene (.sog, meta.json, lod-meta.json) or a glTF/GLB file with "
-                     "KHR_gaussian_splatting)")
+                     "SPZ file, a .splat file, a SOG scene (.sog, meta.json, lod-meta.json), a Spark .rad or a "
+                     "glTF/GLB file with KHR_gaussian_splatting)")
 
 
 def _gzip_starts_with(head: bytes, prefix: bytes) -> bool:
@@ -200,6 +204,10 @@ def _read_any(path: str, drop_invalid: bool) -> Gaussians:
         from .readers.sog import read_sog
 
         return read_sog(path, drop_invalid=drop_invalid)
+    if fmt == "rad":
+        from .readers.rad import read_rad
+
+        return read_rad(path)
     if fmt == "gltf":
         from .readers.gltf import read_gltf
 
