@@ -77,6 +77,7 @@ class _Handler(http.server.SimpleHTTPRequestHandler):
         if start > end:
             self.send_error(416)
             return
+        self.server.ranges.append((os.path.basename(path), start, end))
         with open(path, "rb") as f:
             f.seek(start)
             body = f.read(end - start + 1)
@@ -101,20 +102,22 @@ def served(tmp_path_factory):
     r = run_cli("export-rad", work / "scene", work / "rad" / "donut.rad", "--quiet")
     assert r.returncode == 0, r.stderr
     httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(_Handler, scene_dir=work / "rad"))
+    httpd.ranges = []  # (file, first byte, last byte) of every range request, in order
     thread = threading.Thread(target=httpd.serve_forever, daemon=True)
     thread.start()
     try:
-        yield work, f"http://127.0.0.1:{httpd.server_address[1]}"
+        yield work, f"http://127.0.0.1:{httpd.server_address[1]}", httpd.ranges
     finally:
         httpd.shutdown()
         httpd.server_close()
 
 
 def test_spark_draws_our_rad_where_we_do(served, tmp_path):
-    work, base = served
+    work, base, ranges = served
     tree = read_rad_tree(work / "rad" / "donut.rad")
     leaves = int((tree.child_count == 0).sum())
     query, ours = camera(work / "scene")
+    ranges.clear()
     theirs_png, ours_png = tmp_path / "spark-donut.png", tmp_path / "ours-donut-spark.png"
     report = shoot(f"{base}/index.html?{urllib.parse.urlencode({'scene': '/scene/donut.rad', **query})}",
                    theirs_png)
@@ -130,15 +133,29 @@ def test_spark_draws_our_rad_where_we_do(served, tmp_path):
           f"({len(tree.splats)} in the tree), {result['fetches']} fetches, {result['waitedMs']} ms, {report['gl']}")
     print(json.dumps(report["logs"][-10:]))
     assert iou >= MIN_IOU and psnr >= MIN_PSNR_DB, (iou, psnr)
+    # Paged: the header, then both chunks (the donut's 91,263 splats fill two), each by a range request.
+    assert chunks_fetched(work, ranges) == [0, 1], ranges
 
 
 def test_spark_uses_the_lod_from_far(served, tmp_path):
-    work, base = served
+    work, base, ranges = served
     tree = read_rad_tree(work / "rad" / "donut.rad")
     leaves = int((tree.child_count == 0).sum())
     query, _ = camera(work / "scene", 40.0)
+    ranges.clear()
     report = shoot(f"{base}/index.html?{urllib.parse.urlencode({'scene': '/scene/donut.rad', **query})}",
                    tmp_path / "far.png")
     result = report["result"]
     print(f"donut far: {result['splats']} splats drawn of {leaves} leaves")
     assert 0 < result["splats"] < leaves
+    assert chunks_fetched(work, ranges) == [0], ranges  # the second chunk (finest splats only) never fetched
+
+
+def chunks_fetched(work: Path, ranges: list[tuple[str, int, int]]) -> list[int]:
+    """Indices of the chunks whose first byte a range request asked for."""
+    data = (work / "rad" / "donut.rad").read_bytes()
+    length = int.from_bytes(data[4:8], "little")
+    meta = json.loads(data[8:8 + length])
+    start = 8 + ((length + 7) & ~7)
+    firsts = {start + c["offset"]: i for i, c in enumerate(meta["chunks"])}
+    return sorted({firsts[a] for name, a, _ in ranges if name == "donut.rad" and a in firsts})
