@@ -21,21 +21,17 @@ root splat stands for our root tile) comes back with every level of the original
 from __future__ import annotations
 
 import os
-from dataclasses import replace
 
 import numpy as np
-from scipy.spatial import cKDTree
 
-from .encode.local import encode_in_memory
 from .encode.options import EncodeOptions, Progress, no_progress
 from .errors import InputError
-from .gaussians import Gaussians
 from .io import screen_gaussians
 from .readers.rad import read_rad_tree
 from .readers.sog import LodNode, StreamedSog
-from .sog_import import tree_tiles
+from .sog_import import encode_tree
 from .store import MemoryStore
-from .writers.rad import RadTree
+from .writers.rad import RadTree, nearest
 
 GROUP_MIN = 16
 GROUP_SPLATS = 4096
@@ -75,7 +71,8 @@ def rad_as_streamed_sog(tree: RadTree) -> StreamedSog:
     heads = np.flatnonzero(tree.depth == k)
     shallow = np.flatnonzero((tree.depth < k) & (tree.child_count == 0))
     if len(shallow):
-        head[shallow] = cKDTree(tree.splats.positions[heads]).query(tree.splats.positions[shallow])[1]
+        head[shallow] = nearest(tree.splats.positions[shallow].astype(np.float64),
+                                tree.splats.positions[heads].astype(np.float64))
     leaf_rows = np.flatnonzero(tree.child_count == 0)
     # Consecutive heads into groups of about GROUP_SPLATS finest splats.
     finest = np.bincount(head[leaf_rows], minlength=len(heads))
@@ -115,20 +112,12 @@ def encode_rad(path: str | os.PathLike, opts: EncodeOptions | None = None,
     progress = progress or no_progress
     label = os.fspath(path)
     progress("read", 0.0)
-    sog = rad_as_streamed_sog(read_rad_tree(path))
+    tree = read_rad_tree(path)
+    if not len(tree.splats):
+        raise InputError(label, "count", "0 splats (expected at least one)")
+    sog = rad_as_streamed_sog(tree)
     for leaf_splats in sog.splats.values():
         for level, g in leaf_splats.items():
             leaf_splats[level] = screen_gaussians(g, label)
     progress("read", 1.0)
-    tiles = tree_tiles(sog)
-    leaves = [t for t in tiles if not t.children]
-    if not leaves:
-        raise InputError(label, "tree", "holds no splats")
-    g = Gaussians.concatenate([t.gaussians for t in leaves])
-    levels = max(t.level for t in tiles) + 1
-    per_level = [sum(len(t.gaussians) for t in tiles if t.level == d) for d in range(levels)]
-    reduction = float(np.exp(np.mean(np.log(np.array(per_level[1:], float) / np.array(per_level[:-1], float))))) \
-        if levels > 1 else 2.0
-    base = opts if opts is not None else EncodeOptions(lod=True)
-    base = replace(base, max_leaf_splats=max(len(t.gaussians) for t in leaves), reduction=reduction)
-    return encode_in_memory(g, base, progress, name=label, tiles=tiles)
+    return encode_tree(sog, label, opts, progress)

@@ -13,7 +13,7 @@ import pytest
 from conftest import ROOT, run_cli
 from test_sog_lod import _splats, same_splats
 
-from splatstream.encode.local import encode_file
+from splatstream.encode import encode_file
 from splatstream.io import read_gaussians
 from splatstream.rad_export import export_rad
 from splatstream.rad_import import encode_rad

@@ -11,8 +11,7 @@ from conftest import REAL, ROOT, run_cli
 from PIL import Image
 from test_sog_lod import same_splats
 
-from splatstream.encode import EncodeOptions
-from splatstream.encode.local import encode_file
+from splatstream.encode import EncodeOptions, encode_file
 from splatstream.readers.sog import read_streamed_sog
 from splatstream.scene_decode import decode_scene
 from splatstream.sog_export import export_streamed_sog

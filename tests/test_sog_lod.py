@@ -11,7 +11,8 @@ import pytest
 from conftest import ROOT, run_cli
 from test_tool_roundtrip import run_tool, tool_gaussians
 
-from splatstream.encode.local import encode_file, encode_gaussians
+from splatstream.encode import encode_file
+from splatstream.encode.local import encode_gaussians
 from splatstream.format.layout import morton_order
 from splatstream.gaussians import Gaussians
 from splatstream.io import read_gaussians

@@ -9,7 +9,10 @@ import time
 from splatstream.atomic import check_output
 from splatstream.axes import RDF_TO_RUB, turn
 from splatstream.errors import InputError, UsageError
-from splatstream.io import FORMAT_NAMES, output_format, read_gaussians, sniff_format, write_gaussians
+from splatstream.io import FORMAT_NAMES, open_input, output_format, read_gaussians, screen_gaussians, write_gaussians
+from splatstream.readers.sog import read_sog_level
+
+from .args import add_edit_arguments, edit_report, edits_from
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -38,13 +41,15 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "of the tree is readable)")
     p.add_argument("--drop-invalid", action="store_true",
                    help="drop splats with non-finite or degenerate values instead of refusing the input")
+    add_edit_arguments(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages on stderr")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     out_format = output_format(args.output)  # refuse an unwritable output before reading anything
-    in_format = sniff_format(args.input)
+    source = open_input(args.input)  # sniffed once: the reader takes what sniffing parsed
+    in_format = source.format
     if os.path.exists(args.output) and os.path.samefile(args.input, args.output):
         raise UsageError(f"{args.output}: output is the input file")
     check_output(args.output)
@@ -56,14 +61,11 @@ def run(args: argparse.Namespace) -> int:
 
     say(f"reading {args.input} ({FORMAT_NAMES[in_format]})")
     if args.lod_level is not None:
-        from splatstream.io import screen_gaussians
-        from splatstream.readers.sog import read_sog_level
-
         if in_format != "lod_sog":
             raise UsageError(f"--lod-level: {args.input} is not a streamed SOG")
         g = screen_gaussians(read_sog_level(args.input, args.lod_level), args.input, args.drop_invalid)
     else:
-        g = read_gaussians(args.input, drop_invalid=args.drop_invalid)
+        g = read_gaussians(source, drop_invalid=args.drop_invalid)
     if len(g) == 0:  # an empty .splat (or any format without a count) could not be read back
         raise InputError(args.input, None, "holds no splats (none, or none left after dropping invalid ones); "
                          "nothing to convert")
@@ -72,6 +74,16 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"--spz-axes rdf: {args.input} is not an SPZ file")
         g = turn(g, RDF_TO_RUB)  # undo the reader's RUB -> RDF turn: the file held RDF already
     say(f"read {len(g)} splats, SH degree {g.sh_degree}")
+    edits = edits_from(args)
+    read = len(g)
+    g, counts = edits.run(g)
+    for label, kept in counts:
+        say(f"{label}: {kept} splats kept")
+    if args.dry_run:
+        print(edit_report(args.input, read, counts))
+        return 0
+    if len(g) == 0:
+        raise UsageError(f"{args.input}: the edits keep no splats; nothing to convert")
     if out_format == "splat" and g.sh_degree > 0:
         say(f"note: .splat has no SH bands; bands 1..{g.sh_degree} are dropped")
     glb = "SPZ-compressed splats" if args.glb_compression == "spz" else "uncompressed splats"

@@ -34,7 +34,6 @@ import zlib
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial import cKDTree
 
 from ..gaussians import SH_C0, Gaussians
 
@@ -44,6 +43,7 @@ CHUNK_SPLATS = 65536  # Spark's traversal addresses a child as (chunk << 16) | i
 MAX_CHILDREN = 0xFFFF  # child_count is u16
 GZ_LEVEL = 6
 STEAL_CANDIDATES = 16
+NEAREST_BLOCK_BYTES = 32 << 20
 GENERATOR = "splatstream"
 
 
@@ -120,15 +120,34 @@ def merge_splats(g: Gaussians) -> Gaussians:
         sh_rest=np.einsum("n,nkc->kc", w, g.sh_rest.astype(np.float64))[None].astype(np.float32))
 
 
+def nearest(points: np.ndarray, centres: np.ndarray, k: int = 1) -> np.ndarray:
+    """Indices of the k nearest centres of every point (squared Euclidean; (N,) for k = 1, else (N, k) nearest
+    first), in blocks of bounded memory."""
+    cc = (centres ** 2).sum(axis=1)
+    k = min(k, len(centres))
+    out = np.empty((len(points), k), np.int64)
+    step = max(1, NEAREST_BLOCK_BYTES // (8 * max(1, len(centres))))
+    for i in range(0, len(points), step):
+        d = points[i:i + step] @ centres.T
+        d *= -2.0
+        d += cc[None, :]
+        if k == 1:
+            out[i:i + step, 0] = np.argmin(d, axis=1)
+        else:
+            part = np.argpartition(d, k - 1, axis=1)[:, :k]
+            order = np.argsort(np.take_along_axis(d, part, axis=1), axis=1, kind="stable")
+            out[i:i + step] = np.take_along_axis(part, order, axis=1)
+    return out[:, 0] if k == 1 else out
+
+
 def _parents(children: np.ndarray, parents: np.ndarray) -> np.ndarray:
     """For each child centre, the index of its parent: the nearest parent centre, then every parent given at
     least one child where a neighbouring parent can spare one (see the module's docstring)."""
-    to = cKDTree(parents).query(children, k=1)[1].astype(np.int64)
+    to = nearest(children, parents)
     counts = np.bincount(to, minlength=len(parents))
     orphans = np.flatnonzero(counts == 0)
     if len(orphans) and len(children) > 1:
-        near = cKDTree(children).query(parents[orphans], k=min(STEAL_CANDIDATES, len(children)))[1]
-        near = near.reshape(len(orphans), -1)
+        near = nearest(parents[orphans], children, STEAL_CANDIDATES).reshape(len(orphans), -1)
         for parent, candidates in zip(orphans, near, strict=True):
             for child in candidates:
                 if counts[to[child]] > 1:
