@@ -4,7 +4,8 @@ streamed-SOG export of the same tree.
     .venv/bin/python bench/rad_sizes.py [SCENE ...]   (default: fruit_drops_sh3.ply donut_sh0_no_normals.ply
                                                       winter_fountain.splat from ../shared/data/real)
 
-For each scene: our encode (preset medium, --max-leaf-splats 2000), then `export-rad` and `export-sog-lod` of it,
+For each scene: our encode (preset medium, --max-leaf-splats 2000), then `export-rad` (both encodings: exact, and
+Spark's 8-bit `--encoding spark`) and `export-sog-lod` of it,
 each run as its own process three times (medians of wall and CPU time of the child, after one warm-up). Prints
 splats, tree depth, splats stored in the .rad (every level plus its root splat), bytes of the scene, the .rad and
 the streamed SOG, bytes per stored splat, and the times.
@@ -52,23 +53,26 @@ def tree_bytes(path: pathlib.Path) -> int:
 
 def main() -> None:
     names = sys.argv[1:] or ["fruit_drops_sh3.ply", "donut_sh0_no_normals.ply", "winter_fountain.splat"]
-    print("| scene | splats | levels | splats in the .rad | scene bytes | .rad bytes | B/stored splat | streamed SOG "
-          "bytes | export-rad wall, CPU | export-sog-lod wall, CPU |")
-    print("|---|---|---|---|---|---|---|---|---|---|")
+    print("| scene | splats | levels | splats in the .rad | scene bytes | .rad bytes | B/stored splat | .rad bytes, "
+          "spark encoding | B/stored splat | streamed SOG bytes | export-rad wall, CPU | with --encoding spark | "
+          "export-sog-lod wall, CPU |")
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|---|")
     for name in names:
         with tempfile.TemporaryDirectory() as tmp:
             out = pathlib.Path(tmp)
             source = pathlib.Path(name) if os.path.exists(name) else REAL / name
             run(*CLI, "encode", source, out / "scene", "--max-leaf-splats", "2000", "--quiet")
             rad_wall, rad_cpu = timed(*CLI, "export-rad", out / "scene", out / "scene.rad", "--quiet")
+            sp_wall, sp_cpu = timed(*CLI, "export-rad", out / "scene", out / "spark.rad", "--encoding", "spark",
+                                    "--quiet")
             sog_wall, sog_cpu = timed(*CLI, "export-sog-lod", out / "scene", out / "sog", "--quiet")
             tree = read_rad_tree(out / "scene.rad")
             m = load_manifest(out / "scene")
-            rad = tree_bytes(out / "scene.rad")
+            rad, spark = tree_bytes(out / "scene.rad"), tree_bytes(out / "spark.rad")
             print(f"| {source.name} | {m.splats:,} | {max(t.level for t in m.tiles) + 1} | {len(tree.splats):,} | "
-                  f"{tree_bytes(out / 'scene'):,} | {rad:,} | {rad / len(tree.splats):.2f} | "
-                  f"{tree_bytes(out / 'sog'):,} | {rad_wall:.2f} s, {rad_cpu:.2f} s | {sog_wall:.2f} s, "
-                  f"{sog_cpu:.2f} s |", flush=True)
+                  f"{tree_bytes(out / 'scene'):,} | {rad:,} | {rad / len(tree.splats):.2f} | {spark:,} | "
+                  f"{spark / len(tree.splats):.2f} | {tree_bytes(out / 'sog'):,} | {rad_wall:.2f} s, {rad_cpu:.2f} s | "
+                  f"{sp_wall:.2f} s, {sp_cpu:.2f} s | {sog_wall:.2f} s, {sog_cpu:.2f} s |", flush=True)
 
 
 if __name__ == "__main__":

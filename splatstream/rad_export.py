@@ -15,7 +15,7 @@ from .errors import UsageError
 from .format.decode import decode_planes
 from .scene_decode import decode_tile, read_codebook
 from .store import SceneStore, open_store, read_manifest
-from .writers.rad import CHUNK_SPLATS, TreeTile, rad_bytes, rad_tree
+from .writers.rad import CHUNK_SPLATS, ENCODINGS, TreeTile, rad_bytes, rad_tree
 
 
 @dataclass(frozen=True)
@@ -29,8 +29,11 @@ class RadExportReport:
 
 
 def export_rad(scene: str | os.PathLike | SceneStore, out: str | os.PathLike, sh_degree: int | None = None,
-               progress: Callable[[str, float], None] | None = None) -> RadExportReport:
-    """Write the .rad of `scene` to `out` (replaced atomically)."""
+               progress: Callable[[str, float], None] | None = None, encoding: str = "exact") -> RadExportReport:
+    """Write the .rad of `scene` to `out` (replaced atomically). `encoding`: "exact" (our decoded values, f32 and
+    f16) or "spark" (Spark's own 8-bit defaults: smaller, quantised again)."""
+    if encoding not in ENCODINGS:
+        raise UsageError(f"RAD encoding {encoding!r}: expected one of {', '.join(ENCODINGS)}")
     store = open_store(scene)
     manifest = read_manifest(store)
     out = os.fspath(out)
@@ -49,7 +52,7 @@ def export_rad(scene: str | os.PathLike | SceneStore, out: str | os.PathLike, sh
         tree = rad_tree(tiles, manifest.root)
     except ValueError as e:
         raise UsageError(f"{os.fspath(scene) if not isinstance(scene, SceneStore) else 'scene'}: {e}") from None
-    data = rad_bytes(tree, degree)
+    data = rad_bytes(tree, degree, encoding)
     report("encode", 1.0)
     with atomic_file(out) as f:
         f.write(data)

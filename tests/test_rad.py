@@ -147,3 +147,31 @@ def test_several_chunks(tmp_path):
     assert len(back.splats) == n + 3 and (back.depth == depth).all() and (back.child_start == start).all()
     assert np.array_equal(back.splats.positions, g.positions)
     assert len(json.loads(data[8:8 + struct.unpack_from("<I", data, 4)[0]])["chunks"]) == 2
+
+
+def test_spark_encoding_reads_back_within_its_steps(exported, tmp_path):
+    """`--encoding spark` (Spark's 8-bit defaults, drawn by Spark in tests/test_spark_browser.py) read back by our
+    decoders of the same encodings: within each encoding's step of the exact file."""
+    work, _ = exported
+    r = run_cli("export-rad", work / "scene", tmp_path / "s.rad", "--encoding", "spark", "-q")
+    assert r.returncode == 0, r.stderr
+    exact, spark = read_rad_tree(work / "scene.rad"), read_rad_tree(tmp_path / "s.rad")
+    assert (tmp_path / "s.rad").stat().st_size < 0.5 * (work / "scene.rad").stat().st_size
+    data = (tmp_path / "s.rad").read_bytes()
+    enc = json.loads(data[8:8 + struct.unpack_from("<I", data, 4)[0]])["splatEncoding"]
+    a, b = exact.splats, spark.splats
+    assert np.array_equal(a.positions, b.positions)  # f32_lebytes: lossless
+    assert (exact.child_start == spark.child_start).all() and (exact.child_count == spark.child_count).all()
+    assert np.abs(a.opacities - b.opacities).max() <= 1.0 / 255 + 1e-3  # r8 over [0, 2]: half a step
+    step = (enc["lnScaleMax"] - enc["lnScaleMin"]) / 254
+    assert np.abs(a.log_scales - b.log_scales).max() <= step / 2 + 1e-3
+    # oct88r8: an 8-bit axis and angle; every rotation within a few degrees.
+    dot = np.abs((a.rotations.astype(np.float64) * b.rotations).sum(axis=1))
+    assert np.degrees(2 * np.arccos(np.minimum(dot, 1))).max() < 3.0
+    # Colours are clamped to Spark's 1st-99th percentile range (its writer's choice), then r8: inside the range
+    # within half a step.
+    rgb_a, rgb_b = a.base_colors.astype(np.float64), b.base_colors.astype(np.float64)
+    inside = (rgb_a >= enc["rgbMin"]) & (rgb_a <= enc["rgbMax"])
+    assert np.abs(rgb_a - rgb_b)[inside].max() <= (enc["rgbMax"] - enc["rgbMin"]) / 255 / 2 + 2e-3
+    assert inside.mean() > 0.97
+    assert np.abs(a.sh_rest - b.sh_rest).max() <= max(enc["sh1Max"], enc["sh2Max"], enc["sh3Max"]) / 127 / 2 + 2e-3

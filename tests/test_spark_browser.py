@@ -99,8 +99,9 @@ def served(tmp_path_factory):
     r = run_cli("encode", SCENE, work / "scene", "--max-leaf-splats", "2000", "--quiet")
     assert r.returncode == 0, r.stderr
     (work / "rad").mkdir()
-    r = run_cli("export-rad", work / "scene", work / "rad" / "donut.rad", "--quiet")
-    assert r.returncode == 0, r.stderr
+    for name, encoding in (("donut.rad", "exact"), ("donut_spark.rad", "spark")):
+        r = run_cli("export-rad", work / "scene", work / "rad" / name, "--encoding", encoding, "--quiet")
+        assert r.returncode == 0, r.stderr
     httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(_Handler, scene_dir=work / "rad"))
     httpd.ranges = []  # (file, first byte, last byte) of every range request, in order
     thread = threading.Thread(target=httpd.serve_forever, daemon=True)
@@ -112,14 +113,16 @@ def served(tmp_path_factory):
         httpd.server_close()
 
 
-def test_spark_draws_our_rad_where_we_do(served, tmp_path):
+@pytest.mark.parametrize("name", ["donut.rad", "donut_spark.rad"])
+def test_spark_draws_our_rad_where_we_do(served, tmp_path, name):
+    """Both encodings: ours (f32 / f16) and Spark's own 8-bit ones (our port of its encoders, drawn by Spark)."""
     work, base, ranges = served
-    tree = read_rad_tree(work / "rad" / "donut.rad")
+    tree = read_rad_tree(work / "rad" / name)
     leaves = int((tree.child_count == 0).sum())
     query, ours = camera(work / "scene")
     ranges.clear()
-    theirs_png, ours_png = tmp_path / "spark-donut.png", tmp_path / "ours-donut-spark.png"
-    report = shoot(f"{base}/index.html?{urllib.parse.urlencode({'scene': '/scene/donut.rad', **query})}",
+    theirs_png, ours_png = tmp_path / f"spark-{name[:-4]}.png", tmp_path / "ours-donut-spark.png"
+    report = shoot(f"{base}/index.html?{urllib.parse.urlencode({'scene': f'/scene/{name}', **query})}",
                    theirs_png)
     r = run_cli("render", work / "scene", "--out", ours_png, "--size", f"{SIZE[0]}x{SIZE[1]}", "--quiet", *ours)
     assert r.returncode == 0, r.stderr
@@ -129,12 +132,11 @@ def test_spark_draws_our_rad_where_we_do(served, tmp_path):
             shutil.copy(p, os.path.join(ARTIFACTS, p.name))
     iou, psnr = compare(ours_png, theirs_png)
     result = report["result"]
-    print(f"donut near: IoU {iou:.3f}, PSNR {psnr:.1f} dB, {result['splats']} splats drawn of {leaves} leaves "
+    print(f"{name} near: IoU {iou:.3f}, PSNR {psnr:.1f} dB, {result['splats']} splats drawn of {leaves} leaves "
           f"({len(tree.splats)} in the tree), {result['fetches']} fetches, {result['waitedMs']} ms, {report['gl']}")
-    print(json.dumps(report["logs"][-10:]))
     assert iou >= MIN_IOU and psnr >= MIN_PSNR_DB, (iou, psnr)
     # Paged: the header, then both chunks (the donut's 91,263 splats fill two), each by a range request.
-    assert chunks_fetched(work, ranges) == [0, 1], ranges
+    assert chunks_fetched(work / "rad" / name, ranges) == [0, 1], ranges
 
 
 def test_spark_uses_the_lod_from_far(served, tmp_path):
@@ -148,14 +150,15 @@ def test_spark_uses_the_lod_from_far(served, tmp_path):
     result = report["result"]
     print(f"donut far: {result['splats']} splats drawn of {leaves} leaves")
     assert 0 < result["splats"] < leaves
-    assert chunks_fetched(work, ranges) == [0], ranges  # the second chunk (finest splats only) never fetched
+    # The second chunk (finest splats only) is never fetched.
+    assert chunks_fetched(work / "rad" / "donut.rad", ranges) == [0], ranges
 
 
-def chunks_fetched(work: Path, ranges: list[tuple[str, int, int]]) -> list[int]:
-    """Indices of the chunks whose first byte a range request asked for."""
-    data = (work / "rad" / "donut.rad").read_bytes()
+def chunks_fetched(rad: Path, ranges: list[tuple[str, int, int]]) -> list[int]:
+    """Indices of the chunks of `rad` whose first byte a range request asked for."""
+    data = rad.read_bytes()
     length = int.from_bytes(data[4:8], "little")
     meta = json.loads(data[8:8 + length])
     start = 8 + ((length + 7) & ~7)
     firsts = {start + c["offset"]: i for i, c in enumerate(meta["chunks"])}
-    return sorted({firsts[a] for name, a, _ in ranges if name == "donut.rad" and a in firsts})
+    return sorted({firsts[a] for name, a, _ in ranges if name == rad.name and a in firsts})

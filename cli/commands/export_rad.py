@@ -8,6 +8,7 @@ import time
 
 from splatstream.progress import ProgressPrinter, count
 from splatstream.rad_export import export_rad
+from splatstream.writers.rad import ENCODINGS
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -21,6 +22,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("scene", help="scene directory (manifest.msgpack)")
     p.add_argument("output", help=".rad file to write (replaced atomically if it exists)")
     p.add_argument("--sh-degree", type=int, choices=(0, 1, 2, 3), help="SH bands to export (default: all)")
+    p.add_argument("--encoding", choices=ENCODINGS, default="exact",
+                   help="exact (default): our decoded values, f32 centres and scales, f16 colour, opacity and SH; "
+                        "spark: Spark's own 8-bit defaults (about half the size, quantised again)")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages on stderr")
     p.set_defaults(func=run)
 
@@ -28,7 +32,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     progress = ProgressPrinter("export-rad", enabled=not args.quiet)
-    report = export_rad(args.scene, args.output, args.sh_degree, progress)
+    report = export_rad(args.scene, args.output, args.sh_degree, progress, args.encoding)
     if not args.quiet:
         print(f"export-rad: {count(report.tiles, 'tile')} -> {count(report.levels, 'tree level')}, "
               f"{count(report.chunks, 'chunk')}, {report.leaf_splats} splats of full detail ({report.splats} over "

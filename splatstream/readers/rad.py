@@ -2,9 +2,10 @@
 tree (`child_count`, `child_start`), following Spark's decoder (rust/spark-lib/src/rad.rs, RadDecoder).
 
 `read_rad` gives the finest level (the splats without children: the tree's full detail) for `convert`;
-`read_rad_tree` gives every splat with its tree for `view` (splatstream/rad_import.py). Encodings read: f32, f16,
-f32_lebytes, f16_lebytes, r8, r8_delta, s8, s8_delta, ln_f16 and the u16/u32 tree fields; Spark's 8-bit
-logarithmic scales (ln_0r8) and octahedral quaternions (oct88r8) are not read yet and are named in the error.
+`read_rad_tree` gives every splat with its tree for `view` (splatstream/rad_import.py). Encodings read: every one
+Spark's RadDecoder reads (f32, f16, f32_lebytes, f16_lebytes, r8, r8_delta, s8, s8_delta, ln_f16, ln_0r8, oct88r8,
+u16, u32). Not read: SH by cluster codes (sh*_code, sh_label: Spark's writer makes them only when given SH
+clusters) and chunks in separate .radc files, both refused by name.
 """
 from __future__ import annotations
 
@@ -20,7 +21,7 @@ from ..gaussians import SH_C0, SH_REST_COEFFS, Gaussians
 from ..writers.rad import RAD_CHUNK_MAGIC, RAD_MAGIC, RadTree
 
 _DIMS = {"center": 3, "alpha": 1, "rgb": 3, "scales": 3, "orientation": 3, "sh1": 9, "sh2": 15, "sh3": 21,
-         "child_count": 1, "child_start": 1}
+         "child_count": 1, "child_start": 1}  # sh*_code and sh_label (clustered SH) are refused by name
 
 
 def is_rad(head: bytes) -> bool:
@@ -68,6 +69,23 @@ def _decode(data: bytes, prop: dict, count: int, path: str, field: str) -> np.nd
         size = 4 if enc == "f32_lebytes" else 2
         raw = np.frombuffer(need(n * size), np.uint8).reshape(size, n).T.copy()
         return planes(raw.view("<f4" if size == 4 else "<f2").reshape(n))
+    if enc == "ln_0r8":
+        lo, hi = minmax()
+        raw = planes(np.frombuffer(need(n), np.uint8)).astype(np.float64)
+        # splat_encode::decode_scale8: 0 is a flat axis (scale 0), else ln scale min + (code - 1) steps of 1/254.
+        return np.where(raw == 0, 0.0, np.exp(lo + (raw - 1) * ((hi - lo) / 254.0)))
+    if enc == "oct88r8":
+        if prop["property"] != "orientation":
+            raise InputError(path, field, "oct88r8 is an orientation encoding")
+        raw = np.frombuffer(need(count * 3), np.uint8).reshape(count, 3).astype(np.float64)
+        # splat_encode::decode_quat_oct888: an octahedral axis (two bytes) and the angle 0..pi (third byte).
+        x, y = raw[:, 0] / 255.0 * 2 - 1, raw[:, 1] / 255.0 * 2 - 1
+        z = 1 - np.abs(x) - np.abs(y)
+        t = np.maximum(-z, 0.0)
+        x, y = np.where(x >= 0, x - t, x + t), np.where(y >= 0, y - t, y + t)
+        axis = np.column_stack([x, y, z])
+        axis /= np.linalg.norm(axis, axis=1, keepdims=True)
+        return axis * np.sin(raw[:, 2] / 255.0 * 0.5 * np.pi)[:, None]  # x, y, z; w = cos >= 0 is rebuilt
     if enc == "ln_f16":
         return np.exp(planes(np.frombuffer(need(n * 2), "<f2").astype(np.float64)))
     if enc in ("r8", "r8_delta", "s8", "s8_delta"):
@@ -81,7 +99,7 @@ def _decode(data: bytes, prop: dict, count: int, path: str, field: str) -> np.nd
             raise InputError(path, field, f"{enc} without max")
         return raw.view(np.int8).astype(np.float64) / 127.0 * float(prop["max"])
     raise InputError(path, field, f"encoding {enc!r} is not read (expected f32, f16, f32_lebytes, f16_lebytes, "
-                     "r8, r8_delta, s8, s8_delta, ln_f16, u16 or u32)")
+                     "r8, r8_delta, s8, s8_delta, ln_f16, ln_0r8, oct88r8, u16 or u32)")
 
 
 def _chunk(buf: bytes, at: int, path: str, index: int) -> tuple[int, int, dict[str, np.ndarray], int]:

@@ -45,6 +45,9 @@ GZ_LEVEL = 6
 STEAL_CANDIDATES = 16
 NEAREST_BLOCK_BYTES = 32 << 20
 GENERATOR = "splatstream"
+ENCODINGS = ("exact", "spark")
+LOD_ALPHA_MAX = 2.0  # alpha's r8 range in a LoD tree (lodOpacity), as Spark's writer sets it
+LN_SCALE_ZERO = -30.0  # ln scales at or below this are "flat" (code 0) in ln_0r8, as Spark's writer passes
 
 
 @dataclass(frozen=True)
@@ -234,57 +237,164 @@ def _planar(values: np.ndarray, dtype: str) -> bytes:
     return np.ascontiguousarray(v.T).astype(dtype).tobytes()
 
 
-def _properties(tree: RadTree, base: int, count: int, sh_degree: int) -> list[tuple[dict, bytes]]:
+def _lebytes(values: np.ndarray) -> bytes:
+    """f32_lebytes: the f32 components planar, then split into byte planes (every value's byte 0, then 1, ...)."""
+    raw = np.frombuffer(_planar(values, "<f4"), np.uint8).reshape(-1, 4)
+    return np.ascontiguousarray(raw.T).tobytes()
+
+
+def _r8(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Spark's r8 bytes, planar: (value - min) / (max - min) in 255 steps, rounded and clamped."""
+    v = values.reshape(len(values), -1).T.astype(np.float64)
+    return np.clip(np.round((v - lo) / (hi - lo) * 255.0), 0, 255).astype(np.uint8)
+
+
+def _delta(planes: np.ndarray) -> bytes:
+    """r8_delta / s8_delta: each plane's bytes as differences from the previous splat's, modulo 256."""
+    out = planes.astype(np.int16)
+    out[:, 1:] -= planes[:, :-1].astype(np.int16)
+    return (out % 256).astype(np.uint8).tobytes()
+
+
+def _s8(values: np.ndarray, top: float) -> bytes:
+    v = values.reshape(len(values), -1).T.astype(np.float64)
+    return np.clip(np.round(v / top * 127.0), -127, 127).astype(np.int8).tobytes()
+
+
+def _ln_0r8(scales: np.ndarray, lo: float, hi: float) -> bytes:
+    """Spark's 8-bit log scales: 0 for a flat axis (ln scale at most -30), else 1 + ln scale in 254 steps."""
+    ln = np.log(np.maximum(scales.T.astype(np.float64), 1e-38))
+    code = np.clip(np.round((ln - lo) / (hi - lo) * 254.0), 0, 254) + 1
+    return np.where(ln <= LN_SCALE_ZERO, 0, code).astype(np.uint8).tobytes()
+
+
+def _oct88r8(q_wxyz: np.ndarray) -> bytes:
+    """Spark's 3-byte quaternion (splat_encode::encode_quat_oct888): the rotation axis octahedrally mapped to two
+    bytes, the angle (0..pi) in the third; splats interleaved, not planar."""
+    w = np.clip(q_wxyz[:, 0], 0.0, 1.0)  # w >= 0 already
+    theta = 2.0 * np.arccos(w)
+    s = np.sin(theta * 0.5)
+    small = np.abs(s) < 1e-6
+    axis = np.where(small[:, None], [1.0, 0.0, 0.0], q_wxyz[:, 1:] / np.where(small, 1.0, s)[:, None])
+    p = axis[:, :2] / np.abs(axis).sum(axis=1, keepdims=True)
+    fold = axis[:, 2] < 0
+    sign = np.where(p >= 0, 1.0, -1.0)
+    folded = np.stack([(1 - np.abs(p[:, 1])) * sign[:, 0], (1 - np.abs(p[:, 0])) * sign[:, 1]], axis=1)
+    p = np.where(fold[:, None], folded, p)
+    uv = np.clip(np.round((p + 1.0) / 2.0 * 255.0), 0, 255)
+    r = np.clip(np.round(theta / np.pi * 255.0), 0, 255)
+    return np.column_stack([uv, r]).astype(np.uint8).tobytes()
+
+
+@dataclass(frozen=True)
+class SparkRanges:
+    """The scene-wide ranges of Spark's 8-bit encodings, resolved as its RadEncoder resolves them."""
+
+    rgb_min: float
+    rgb_max: float
+    ln_scale_min: float
+    ln_scale_max: float
+    sh_max: tuple[float, float, float]
+
+    def splat_encoding(self) -> dict:
+        return {"rgbMin": self.rgb_min, "rgbMax": self.rgb_max, "lnScaleMin": self.ln_scale_min,
+                "lnScaleMax": self.ln_scale_max, "sh1Max": self.sh_max[0], "sh2Max": self.sh_max[1],
+                "sh3Max": self.sh_max[2], "lodOpacity": True}
+
+
+def spark_ranges(g: Gaussians) -> SparkRanges:
+    """RadEncoder's resolve_*_encoding: colour between its 1st and 99th percentiles widened to [0, 1]; log scales
+    of the two larger axes between the 1st and 99th percentiles widened to [-12, 9]; each SH band to the larger
+    of |5th| and |95th| percentile, at least 1."""
+    rgb = (0.5 + SH_C0 * g.sh_dc.astype(np.float64)).ravel()
+    scales = np.sort(np.exp(g.log_scales.astype(np.float64)), axis=1)[:, 1:].ravel()
+    sh = []
+    for lo, hi in ((0, 3), (3, 8), (8, 15)):
+        band = g.sh_rest[:, lo:hi, :].astype(np.float64).ravel()
+        sh.append(max(abs(float(np.percentile(band, 5))), abs(float(np.percentile(band, 95))), 1.0)
+                  if band.size else 1.0)
+    return SparkRanges(
+        rgb_min=min(float(np.percentile(rgb, 1)), 0.0), rgb_max=max(float(np.percentile(rgb, 99)), 1.0),
+        ln_scale_min=min(float(np.log(max(np.percentile(scales, 1), 1e-30))), -12.0),
+        ln_scale_max=max(float(np.log(max(np.percentile(scales, 99), 1e-30))), 9.0), sh_max=tuple(sh))
+
+
+def _properties(tree: RadTree, base: int, count: int, sh_degree: int,
+                ranges: SparkRanges | None) -> list[tuple[dict, bytes]]:
     g = tree.splats.subset(np.arange(base, base + count))
     q = g.rotations.astype(np.float64)
     q = q / np.linalg.norm(q, axis=1, keepdims=True)
     q = np.where(q[:, :1] < 0, -q, q)  # Spark stores x, y, z and rebuilds w >= 0
-    props = [
-        ("center", "f32", _planar(g.positions, "<f4")),
-        ("alpha", "f16", _planar(g.opacities, "<f2")),
-        ("rgb", "f16", _planar(0.5 + SH_C0 * g.sh_dc.astype(np.float64), "<f2")),
-        ("scales", "f32", _planar(np.exp(g.log_scales.astype(np.float64)), "<f4")),
-        ("orientation", "f32", _planar(q[:, 1:], "<f4")),
-    ]
-    for band, (lo, hi) in zip((1, 2, 3), ((0, 3), (3, 8), (8, 15)), strict=True):
-        if band <= sh_degree:
-            props.append((f"sh{band}", "f16", _planar(g.sh_rest[:, lo:hi, :].reshape(count, -1), "<f2")))
-    props.append(("child_count", "u16", _planar(tree.child_count[base:base + count], "<u2")))
-    props.append(("child_start", "u32", _planar(tree.child_start[base:base + count], "<u4")))
-    return [({"property": name, "encoding": enc, "compression": "gz"}, _deflate(data)) for name, enc, data in props]
+    rgb = 0.5 + SH_C0 * g.sh_dc.astype(np.float64)
+    scales = np.exp(g.log_scales.astype(np.float64))
+    bands = [(band, g.sh_rest[:, lo:hi, :].reshape(count, -1))
+             for band, (lo, hi) in zip((1, 2, 3), ((0, 3), (3, 8), (8, 15)), strict=True) if band <= sh_degree]
+    if ranges is None:
+        props = [
+            ({"property": "center", "encoding": "f32"}, _planar(g.positions, "<f4")),
+            ({"property": "alpha", "encoding": "f16"}, _planar(g.opacities, "<f2")),
+            ({"property": "rgb", "encoding": "f16"}, _planar(rgb, "<f2")),
+            ({"property": "scales", "encoding": "f32"}, _planar(scales, "<f4")),
+            ({"property": "orientation", "encoding": "f32"}, _planar(q[:, 1:], "<f4")),
+            *(({"property": f"sh{band}", "encoding": "f16"}, _planar(v, "<f2")) for band, v in bands),
+        ]
+    else:
+        r = ranges
+        props = [
+            ({"property": "center", "encoding": "f32_lebytes"}, _lebytes(g.positions)),
+            ({"property": "alpha", "encoding": "r8", "min": 0.0, "max": LOD_ALPHA_MAX},
+             _r8(g.opacities, 0.0, LOD_ALPHA_MAX).tobytes()),
+            ({"property": "rgb", "encoding": "r8_delta", "min": r.rgb_min, "max": r.rgb_max},
+             _delta(_r8(rgb, r.rgb_min, r.rgb_max))),
+            ({"property": "scales", "encoding": "ln_0r8", "min": r.ln_scale_min, "max": r.ln_scale_max},
+             _ln_0r8(scales, r.ln_scale_min, r.ln_scale_max)),
+            ({"property": "orientation", "encoding": "oct88r8"}, _oct88r8(q)),
+            *(({"property": f"sh{band}", "encoding": "s8", "min": -r.sh_max[band - 1], "max": r.sh_max[band - 1]},
+               _s8(v, r.sh_max[band - 1])) for band, v in bands),
+        ]
+    props.append(({"property": "child_count", "encoding": "u16"},
+                  _planar(tree.child_count[base:base + count], "<u2")))
+    props.append(({"property": "child_start", "encoding": "u32"},
+                  _planar(tree.child_start[base:base + count], "<u4")))
+    return [({**meta, "compression": "gz"}, _deflate(data)) for meta, data in props]
 
 
-def _encoding() -> dict:
-    # Spark's writer sets lodOpacity on every LoD tree (alpha read in [0, 2]); our alphas stay in [0, 1].
-    return {"lodOpacity": True}
-
-
-def rad_chunk(tree: RadTree, base: int, count: int, sh_degree: int) -> bytes:
+def rad_chunk(tree: RadTree, base: int, count: int, sh_degree: int, ranges: SparkRanges | None = None) -> bytes:
     """One RADC chunk: magic, JSON length, JSON (padded to 8), payload length u64, properties each padded to 8."""
-    props = _properties(tree, base, count, sh_degree)
+    props = _properties(tree, base, count, sh_degree, ranges)
     offset = 0
     metas = []
     for meta, data in props:
         metas.append({"offset": offset, "bytes": len(data), **meta})
         offset += len(_pad8(data))
     meta = {"version": 1, "base": base, "count": count, "payloadBytes": offset, "maxSh": sh_degree,
-            "lodTree": True, "splatEncoding": _encoding(), "properties": metas}
+            "lodTree": True, "splatEncoding": _encoding(ranges), "properties": metas}
     text = json.dumps(meta, separators=(",", ":")).encode("utf-8")
     return b"".join([struct.pack("<II", RAD_CHUNK_MAGIC, len(text)), _pad8(text), struct.pack("<Q", offset),
                      *(_pad8(data) for _, data in props)])
 
 
-def rad_bytes(tree: RadTree, sh_degree: int) -> bytes:
+def _encoding(ranges: SparkRanges | None) -> dict:
+    # Spark's writer sets lodOpacity on every LoD tree (alpha read in [0, 2]); our alphas stay in [0, 1].
+    return {"lodOpacity": True} if ranges is None else ranges.splat_encoding()
+
+
+def rad_bytes(tree: RadTree, sh_degree: int, encoding: str = "exact") -> bytes:
     """The whole .rad file: magic, JSON length, JSON (padded to 8), then the chunks at their offsets (which the
-    header gives relative to the end of the padded JSON)."""
+    header gives relative to the end of the padded JSON). `encoding`: "exact" (f32/f16: our decoded values) or
+    "spark" (Spark's own 8-bit defaults, RadEncoder's, with its scene-wide ranges)."""
+    if encoding not in ENCODINGS:
+        raise ValueError(f"RAD encoding {encoding!r}: expected one of {', '.join(ENCODINGS)}")
+    ranges = spark_ranges(tree.splats) if encoding == "spark" else None
     n = len(tree.splats)
-    chunks = [rad_chunk(tree, base, min(CHUNK_SPLATS, n - base), sh_degree) for base in range(0, n, CHUNK_SPLATS)]
-    ranges, offset = [], 0
+    chunks = [rad_chunk(tree, base, min(CHUNK_SPLATS, n - base), sh_degree, ranges)
+              for base in range(0, n, CHUNK_SPLATS)]
+    table, offset = [], 0
     for c in chunks:
-        ranges.append({"offset": offset, "bytes": len(c)})
+        table.append({"offset": offset, "bytes": len(c)})
         offset += len(c)
     meta = {"version": 1, "type": "gsplat", "count": n, "maxSh": sh_degree, "lodTree": True,
-            "chunkSize": CHUNK_SPLATS, "allChunkBytes": offset, "chunks": ranges, "splatEncoding": _encoding(),
+            "chunkSize": CHUNK_SPLATS, "allChunkBytes": offset, "chunks": table, "splatEncoding": _encoding(ranges),
             "comment": GENERATOR}
     text = json.dumps(meta, indent=2).encode("utf-8") + b"\n"
     return b"".join([struct.pack("<II", RAD_MAGIC, len(text)), _pad8(text), *chunks])
