@@ -175,3 +175,29 @@ def test_spark_encoding_reads_back_within_its_steps(exported, tmp_path):
     assert np.abs(rgb_a - rgb_b)[inside].max() <= (enc["rgbMax"] - enc["rgbMin"]) / 255 / 2 + 2e-3
     assert inside.mean() > 0.97
     assert np.abs(a.sh_rest - b.sh_rest).max() <= max(enc["sh1Max"], enc["sh2Max"], enc["sh3Max"]) / 127 / 2 + 2e-3
+
+
+def _with_header(data: bytes, **changes) -> bytes:
+    """`data` (a .rad) with its header JSON changed, the chunks moved to stay 8-aligned after it."""
+    length = struct.unpack_from("<I", data, 4)[0]
+    meta = json.loads(data[8:8 + length])
+    meta.update(changes)
+    text = json.dumps(meta).encode()
+    return struct.pack("<II", RAD_MAGIC, len(text)) + text + bytes(-len(text) % 8) + data[8 + ((length + 7) & ~7):]
+
+
+def test_bad_headers_are_one_line_errors(exported, tmp_path, monkeypatch):
+    from splatstream.errors import InputError
+
+    work, _ = exported
+    data = (work / "scene.rad").read_bytes()
+    for changes, message in (({"count": 10 ** 12}, "memory budget"), ({"count": "many"}, "header count"),
+                             ({"version": 2}, "expected version 1"), ({"maxSh": 7}, "expected 0 to 3")):
+        (tmp_path / "bad.rad").write_bytes(_with_header(data, **changes))
+        with pytest.raises(InputError, match=message):
+            read_rad_tree(tmp_path / "bad.rad")
+    (tmp_path / "ok.rad").write_bytes(_with_header(data))
+    assert len(read_rad_tree(tmp_path / "ok.rad").splats) == 9377
+    monkeypatch.setenv("SPLATSTREAM_MEMORY_BUDGET", "1000")
+    with pytest.raises(InputError, match="memory budget"):
+        read_rad_tree(work / "scene.rad")

@@ -18,6 +18,13 @@ import numpy as np
 
 from ..errors import InputError
 from ..gaussians import SH_C0, SH_REST_COEFFS, Gaussians
+from ..reader_support import (
+    check_memory,
+    memory_budget,
+    model_bytes_per_splat,
+    opacity_logits_from_unit,
+    read_regular_file,
+)
 from ..writers.rad import RAD_CHUNK_MAGIC, RAD_MAGIC, RadTree
 
 _DIMS = {"center": 3, "alpha": 1, "rgb": 3, "scales": 3, "orientation": 3, "sh1": 9, "sh2": 15, "sh3": 21,
@@ -39,6 +46,13 @@ def _json(data: bytes, path: str, field: str) -> dict:
         raise InputError(path, field, f"expected JSON ({e})") from None
     if not isinstance(value, dict):
         raise InputError(path, field, "expected a JSON object")
+    return value
+
+
+def _int(d: dict, key: str, path: str, field: str) -> int:
+    value = d.get(key)
+    if not isinstance(value, int) or isinstance(value, bool) or value < 0:
+        raise InputError(path, f"{field} {key}", f"{value!r}, expected a non-negative integer")
     return value
 
 
@@ -114,15 +128,15 @@ def _chunk(buf: bytes, at: int, path: str, index: int) -> tuple[int, int, dict[s
     if meta.get("version") != 1:
         raise InputError(path, f"{field} version", f"{meta.get('version')!r}, expected 1")
     payload = meta_end + 8
-    base, count = int(meta["base"]), int(meta["count"])
+    base, count = _int(meta, "base", path, field), _int(meta, "count", path, field)
     out: dict[str, np.ndarray] = {}
     for prop in meta.get("properties", []):
         name = prop.get("property")
         pfield = f"{field} {name}"
         if name not in _DIMS:
             raise InputError(path, pfield, f"property {name!r} is not read (expected one of {sorted(_DIMS)})")
-        start = payload + int(prop["offset"])
-        data = buf[start:start + int(prop["bytes"])]
+        start = payload + _int(prop, "offset", path, pfield)
+        data = buf[start:start + _int(prop, "bytes", path, pfield)]
         if prop.get("compression") == "gz":
             try:
                 data = zlib.decompress(data, -15)
@@ -131,14 +145,13 @@ def _chunk(buf: bytes, at: int, path: str, index: int) -> tuple[int, int, dict[s
         elif prop.get("compression") is not None:
             raise InputError(path, pfield, f"compression {prop['compression']!r}, expected gz or none")
         out[name] = _decode(data, prop, count, path, pfield)
-    return base, count, out, payload + int(meta["payloadBytes"])
+    return base, count, out, payload + _int(meta, "payloadBytes", path, field)
 
 
 def read_rad_tree(path: str | os.PathLike) -> RadTree:
     """Every splat of a .rad file in file order, with its LoD tree (a flat file reads as a tree of leaves)."""
     path = os.fspath(path)
-    with open(path, "rb") as f:
-        buf = f.read()
+    buf = read_regular_file(path, memory_budget())
     if not is_rad(buf):
         raise InputError(path, "magic", "expected RAD0")
     length = struct.unpack_from("<I", buf, 4)[0]
@@ -147,13 +160,17 @@ def read_rad_tree(path: str | os.PathLike) -> RadTree:
         raise InputError(path, "header", f"version {meta.get('version')!r} type {meta.get('type')!r}, "
                          "expected version 1 type gsplat")
     chunks_start = 8 + _round8(length)
-    n = int(meta["count"])
-    sh_degree = int(meta.get("maxSh", 0) or 0)
+    n = _int(meta, "count", path, "header")
+    sh_degree = _int(meta, "maxSh", path, "header") if "maxSh" in meta else 0
+    if sh_degree > 3:
+        raise InputError(path, "header maxSh", f"{sh_degree}, expected 0 to 3")
+    # Columns are decoded in float64 before the model's float32: about twice the model's bytes per splat.
+    check_memory(path, "header count", n, 2 * model_bytes_per_splat(sh_degree) + 16)
     cols: dict[str, np.ndarray] = {}
     for index, rng in enumerate(meta.get("chunks", [])):
         if rng.get("filename"):
             raise InputError(path, f"chunk {index}", "is in a separate .radc file; expected a single .rad")
-        base, count, props, _ = _chunk(buf, chunks_start + int(rng["offset"]), path, index)
+        base, count, props, _ = _chunk(buf, chunks_start + _int(rng, "offset", path, f"chunk {index}"), path, index)
         if base + count > n:
             raise InputError(path, f"chunk {index}", f"splats {base}..{base + count} beyond count {n}")
         for name, values in props.items():
@@ -169,12 +186,11 @@ def read_rad_tree(path: str | os.PathLike) -> RadTree:
     for band, (lo, hi) in zip((1, 2, 3), ((0, 3), (3, 8), (8, 15)), strict=True):
         if band <= sh_degree and f"sh{band}" in cols:
             rest[:, lo:hi, :] = cols[f"sh{band}"].reshape(n, hi - lo, 3)
-    alpha = np.clip(cols["alpha"][:, 0], 1e-7, 1 - 1e-7)
     g = Gaussians(
         positions=cols["center"].astype(np.float32),
         rotations=np.column_stack([w, xyz]).astype(np.float32),
         log_scales=np.log(np.maximum(cols["scales"], 1e-30)).astype(np.float32),
-        opacity_logits=np.log(alpha / (1 - alpha)).astype(np.float32),
+        opacity_logits=opacity_logits_from_unit(cols["alpha"][:, 0]),
         sh_dc=((cols["rgb"] - 0.5) / SH_C0).astype(np.float32),
         sh_rest=rest)
     count = cols.get("child_count", np.zeros((n, 1)))[:, 0].astype(np.uint16)

@@ -20,11 +20,15 @@ The mapping (pure; `splatstream/rad_export.py` wires it to a scene):
 * Leaves of our tree shallower than the deepest are leaves of the splat tree at their depth: our REPLACE cut at
   depth d is exactly the splats at splat depth d + 1 plus the leaves above them.
 
-Encodings (per chunk, every property deflate-compressed as Spark's "gz"): center f32, alpha f16 (linear
-opacity; `lodOpacity` is set as Spark's writer sets it for LoD trees, which only widens the range to [0, 2]),
-rgb f16 (0.5 + SH_C0 * dc), scales f32 (linear), orientation f32 (x, y, z with w >= 0), SH bands f16,
-child_count u16, child_start u32. Spark's own defaults quantise to 8 bits; these keep our decoded values so a
-round trip returns them (sizes against that in BENCHMARKS.md).
+Encodings (per chunk, every property deflate-compressed as Spark's "gz"), chosen by `encoding`:
+
+* "exact" (the default): center f32, alpha f16 (linear opacity), rgb f16 (0.5 + SH_C0 * dc), scales f32
+  (linear), orientation f32 (x, y, z with w >= 0), SH bands f16: our decoded values come back from a round trip.
+* "spark": Spark's own defaults (RadEncoder's Auto choices, ported): center f32_lebytes, alpha r8 over [0, 2],
+  rgb r8_delta and scales ln_0r8 over scene-wide ranges from percentiles, orientation oct88r8, SH s8.
+
+Both: child_count u16, child_start u32, and `lodOpacity` set as Spark's writer sets it for every LoD tree (alpha
+read in [0, 2]; ours stay in [0, 1]).
 """
 from __future__ import annotations
 
