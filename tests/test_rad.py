@@ -201,3 +201,21 @@ def test_bad_headers_are_one_line_errors(exported, tmp_path, monkeypatch):
     monkeypatch.setenv("SPLATSTREAM_MEMORY_BUDGET", "1000")
     with pytest.raises(InputError, match="memory budget"):
         read_rad_tree(work / "scene.rad")
+
+
+def test_view_headless_streams_our_rad_coarse_to_fine(exported, tmp_path, gl_context):
+    """`view FILE.rad`: its tree converted into ours streams coarse to fine, ending at the full detail, drawn as
+    our render of the original scene draws it."""
+    from test_cesium_browser import compare
+
+    work, _ = exported
+    r = run_cli("view", work / "scene.rad", "--headless", "--size", "96x64", "--screenshot", tmp_path / "v.png",
+                "--record", tmp_path / "m.json", "--no-cache", "--max-sse", "0", "-q")
+    assert r.returncode == 0, r.stderr
+    drawn = [f["drawn_splats"] for f in json.loads((tmp_path / "m.json").read_text())["frames"]]
+    first = next(d for d in drawn if d > 0)
+    assert first < drawn[-1] == 4721 and drawn == sorted(drawn)
+    r = run_cli("render", work / "scene", "--size", "96x64", "--out", tmp_path / "r.png", "-q")
+    assert r.returncode == 0, r.stderr
+    iou, psnr = compare(tmp_path / "r.png", tmp_path / "v.png")
+    assert iou > 0.99 and psnr > 40, (iou, psnr)
