@@ -219,3 +219,25 @@ def test_view_headless_streams_our_rad_coarse_to_fine(exported, tmp_path, gl_con
     assert r.returncode == 0, r.stderr
     iou, psnr = compare(tmp_path / "r.png", tmp_path / "v.png")
     assert iou > 0.99 and psnr > 40, (iou, psnr)
+
+
+def test_merged_root_matches_the_moments():
+    """merge_splats: one splat's covariance is the opacity-weighted covariance of the parts plus their spread."""
+    from splatstream.gaussians import covariances
+    from splatstream.writers.rad import merge_splats
+
+    rng = np.random.default_rng(3)
+    n = 50
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    g = _splats(rng.normal(size=(n, 3)))
+    g = type(g)(g.positions, q.astype(np.float32), rng.uniform(-3, -1, (n, 3)).astype(np.float32),
+                rng.normal(size=n).astype(np.float32), rng.normal(size=(n, 3)).astype(np.float32), g.sh_rest)
+    m = merge_splats(g)
+    w = g.opacities.astype(np.float64) / g.opacities.sum()
+    mean = w @ g.positions
+    d = g.positions - mean
+    want = np.einsum("n,nij->ij", w, covariances(g) + d[:, :, None] * d[:, None, :])
+    assert np.allclose(m.positions[0], mean, atol=1e-5)
+    assert np.allclose(covariances(m)[0], want, rtol=1e-4, atol=1e-6)
+    assert np.allclose(m.sh_dc[0], w @ g.sh_dc, atol=1e-5) and m.opacities[0] == pytest.approx(g.opacities.max())

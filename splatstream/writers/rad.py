@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..gaussians import SH_C0, Gaussians
+from ..gaussians import SH_C0, Gaussians, covariances
 
 RAD_MAGIC = 0x30444152  # "RAD0"
 RAD_CHUNK_MAGIC = 0x43444152  # "RADC"
@@ -88,22 +88,15 @@ def merge_splats(g: Gaussians) -> Gaussians:
     w = alpha / alpha.sum() if alpha.sum() > 0 else np.full(len(g), 1.0 / len(g))
     p = g.positions.astype(np.float64)
     mean = w @ p
-    q = g.rotations.astype(np.float64)
-    qw, qx, qy, qz = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
-    rot = np.stack([
-        np.stack([1 - 2 * (qy * qy + qz * qz), 2 * (qx * qy - qw * qz), 2 * (qx * qz + qw * qy)], -1),
-        np.stack([2 * (qx * qy + qw * qz), 1 - 2 * (qx * qx + qz * qz), 2 * (qy * qz - qw * qx)], -1),
-        np.stack([2 * (qx * qz - qw * qy), 2 * (qy * qz + qw * qx), 1 - 2 * (qx * qx + qy * qy)], -1)], 1)
-    s2 = np.exp(2 * g.log_scales.astype(np.float64))
-    cov = np.einsum("nij,nj,nkj->nik", rot, s2, rot)
+    cov = covariances(g).astype(np.float64)
     d = p - mean
     total = np.einsum("n,nij->ij", w, cov + d[:, :, None] * d[:, None, :])
     values, vectors = np.linalg.eigh(total)
     if np.linalg.det(vectors) < 0:
         vectors[:, 0] = -vectors[:, 0]
     m = vectors
-    # Rotation matrix to a (w, x, y, z) quaternion (Shepperd's method, the w-largest branch is enough for the
-    # sign-fixed matrix, with a fallback on the largest diagonal).
+    # The eigenvectors (a rotation once the determinant is +1) as a (w, x, y, z) quaternion: Shepperd's method,
+    # from the trace when it is positive, else from the largest diagonal element (numerically stable both ways).
     tr = np.trace(m)
     if tr > 0:
         s = np.sqrt(tr + 1.0) * 2
