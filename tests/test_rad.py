@@ -11,16 +11,29 @@ import sys
 import numpy as np
 import pytest
 from conftest import ROOT, run_cli
+from test_cesium_browser import compare
 from test_sog_lod import _splats, same_splats
 
+from client_gl.stream.sources import StoreSource, open_source
 from splatstream.encode import encode_file
+from splatstream.errors import InputError
+from splatstream.gaussians import covariances
 from splatstream.io import read_gaussians
 from splatstream.rad_export import export_rad
 from splatstream.rad_import import encode_rad
 from splatstream.readers.rad import read_rad_tree
 from splatstream.scene_decode import decode_scene
 from splatstream.store import load_manifest
-from splatstream.writers.rad import CHUNK_SPLATS, RAD_CHUNK_MAGIC, RAD_MAGIC, RadTree, TreeTile, rad_bytes, rad_tree
+from splatstream.writers.rad import (
+    CHUNK_SPLATS,
+    RAD_CHUNK_MAGIC,
+    RAD_MAGIC,
+    RadTree,
+    TreeTile,
+    merge_splats,
+    rad_bytes,
+    rad_tree,
+)
 
 SOURCE = ROOT / "tests" / "data" / "real" / "fruit_drops_sh3.ply"
 
@@ -187,8 +200,6 @@ def _with_header(data: bytes, **changes) -> bytes:
 
 
 def test_bad_headers_are_one_line_errors(exported, tmp_path, monkeypatch):
-    from splatstream.errors import InputError
-
     work, _ = exported
     data = (work / "scene.rad").read_bytes()
     for changes, message in (({"count": 10 ** 12}, "memory budget"), ({"count": "many"}, "header count"),
@@ -206,8 +217,6 @@ def test_bad_headers_are_one_line_errors(exported, tmp_path, monkeypatch):
 def test_view_headless_streams_our_rad_coarse_to_fine(exported, tmp_path, gl_context):
     """`view FILE.rad`: its tree converted into ours streams coarse to fine, ending at the full detail, drawn as
     our render of the original scene draws it."""
-    from test_cesium_browser import compare
-
     work, _ = exported
     r = run_cli("view", work / "scene.rad", "--headless", "--size", "96x64", "--screenshot", tmp_path / "v.png",
                 "--record", tmp_path / "m.json", "--no-cache", "--max-sse", "0", "-q")
@@ -223,9 +232,6 @@ def test_view_headless_streams_our_rad_coarse_to_fine(exported, tmp_path, gl_con
 
 def test_merged_root_matches_the_moments():
     """merge_splats: one splat's covariance is the opacity-weighted covariance of the parts plus their spread."""
-    from splatstream.gaussians import covariances
-    from splatstream.writers.rad import merge_splats
-
     rng = np.random.default_rng(3)
     n = 50
     q = rng.normal(size=(n, 4))
@@ -241,3 +247,12 @@ def test_merged_root_matches_the_moments():
     assert np.allclose(m.positions[0], mean, atol=1e-5)
     assert np.allclose(covariances(m)[0], want, rtol=1e-4, atol=1e-6)
     assert np.allclose(m.sh_dc[0], w @ g.sh_dc, atol=1e-5) and m.opacities[0] == pytest.approx(g.opacities.max())
+
+
+def test_open_source_takes_a_rad_as_its_tree(exported):
+    """What `view` does with a .rad (GL-free): its tree converted into ours in memory, not its finest level."""
+    work, _ = exported
+    src = open_source(work / "scene.rad")
+    assert isinstance(src, StoreSource)
+    manifest = load_manifest(src.store)
+    assert manifest.splats == 4721 and max(t.level for t in manifest.tiles) == 6

@@ -28,6 +28,7 @@ import pytest
 from conftest import ROOT, run_cli
 from test_cesium_browser import compare
 from test_playcanvas_browser import ARTIFACTS, MIN_IOU, MIN_PSNR_DB, SCENE, SIZE, camera, shoot
+from test_playcanvas_browser import requirements as playcanvas_requirements
 
 from splatstream.readers.rad import read_rad_tree
 
@@ -39,11 +40,9 @@ PAGE_DIR = ROOT / "tests" / "spark_page"
 
 def requirements() -> None:
     # The PlayCanvas test's requirements (node, playwright-core, chromium, our GL), plus Spark and three.
-    from test_playcanvas_browser import requirements as base
-
     if not (SPARK / "dist" / "spark.module.js").is_file() or not (THREE / "build" / "three.module.js").is_file():
         pytest.skip("@sparkjsdev/spark / three not installed (.ci/run installs them into .ci/node)")
-    base()
+    playcanvas_requirements()
 
 
 class _Handler(http.server.SimpleHTTPRequestHandler):
