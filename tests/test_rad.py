@@ -256,3 +256,40 @@ def test_open_source_takes_a_rad_as_its_tree(exported):
     assert isinstance(src, StoreSource)
     manifest = load_manifest(src.store)
     assert manifest.splats == 4721 and max(t.level for t in manifest.tiles) == 6
+
+
+def test_a_binary_tree_with_shallow_leaves_becomes_ours(tmp_path):
+    """A tree shaped like Spark's own (a single root, two children per splat, some leaves high up), not ours:
+    our tree's cut at depth j is its cut at depth k + j, k the shallowest depth whose cut holds 16 splats."""
+    rng = np.random.default_rng(5)
+    count, depth = [], []
+    frontier = [0]
+    n = 1
+    level = 0
+    while frontier and level < 9:
+        nxt = []
+        for _ in frontier:
+            leaf = level >= 3 and rng.random() < 0.15
+            count.append(0 if leaf else 2)
+            depth.append(level)
+            if not leaf:
+                nxt += [n, n + 1]
+                n += 2
+        frontier, level = nxt, level + 1
+    count += [0] * len(frontier)
+    depth += [level] * len(frontier)
+    count = np.array(count, np.uint16)
+    start = np.where(count > 0, 1 + np.concatenate([[0], np.cumsum(count)[:-1]]), 0).astype(np.uint32)
+    total = len(count)
+    g = _splats(rng.normal(size=(total, 3)))
+    tree = RadTree(g, count, start, np.array(depth))
+    (tmp_path / "bin.rad").write_bytes(rad_bytes(tree, 0))
+    back = read_rad_tree(tmp_path / "bin.rad")
+    assert (back.depth == tree.depth).all()
+    store = encode_rad(tmp_path / "bin.rad")
+    manifest = load_manifest(store)
+    k = next(d for d in range(tree.levels()) if len(tree.cut(d)) >= 16)
+    assert 0 < k and max(t.level for t in manifest.tiles) == tree.levels() - 1 - k
+    for j in range(tree.levels() - k):
+        # Within the encode preset's position quantisation (the scene spans about 6 units).
+        assert same_splats(our_cut(store, manifest, j), tree.splats.subset(tree.cut(k + j))) < 5e-3, j
