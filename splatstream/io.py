@@ -1,7 +1,8 @@
 """Reading and writing splat scenes in any supported format, chosen by content, not only by extension.
 
 Readable: standard 3DGS PLY, PlayCanvas compressed PLY, Niantic SPZ (versions 2, 3, 4), antimatter15 .splat,
-PlayCanvas SOG (bundled .sog, unbundled meta.json directory, streamed lod-meta.json), glTF/GLB with
+PlayCanvas SOG (bundled .sog, unbundled meta.json directory, streamed lod-meta.json), Spark .rad (finest
+level), glTF/GLB with
 KHR_gaussian_splatting (plain or SPZ-compressed).
 Writable, chosen by the output's extension: .ply (standard 3DGS), .splat, .spz (SPZ v4 or v3), .glb
 (KHR_gaussian_splatting, plain or SPZ-compressed), .sog (PlayCanvas SOG version 2, bundled). See
@@ -24,6 +25,7 @@ from .orientation import UpChoice, detect_up
 from .ply import MAX_HEADER_BYTES, PlyHeader, VertexLayout, read_gaussians_ply, read_header, vertex_layout
 from .readers.compressed_ply import is_compressed_ply, read_compressed_ply
 from .readers.gltf import read_gltf
+from .readers.rad import read_rad
 from .readers.sog import read_sog, sog_kind
 from .readers.splat import read_splat
 from .readers.spz import read_spz
@@ -35,6 +37,7 @@ FORMAT_NAMES = {
     "splat": "antimatter15 .splat",
     "sog": "PlayCanvas SOG",
     "lod_sog": "PlayCanvas streamed SOG (finest level)",
+    "rad": "Spark RAD (finest level)",
     "gltf": "glTF with KHR_gaussian_splatting",
 }
 WRITABLE_EXTENSIONS = {".ply": "ply", ".splat": "splat", ".spz": "spz", ".glb": "gltf", ".sog": "sog"}
@@ -113,6 +116,8 @@ def _sniff(path: str) -> tuple[str, PlyHeader | None]:
         raise InputError(path, None, "file is empty")
     if head.startswith(b"glTF"):
         return "gltf", None
+    if head.startswith(b"RAD0"):
+        return "rad", None
     kind = sog_kind(path) if head.startswith(b"PK\x03\x04") or head.lstrip().startswith(b"{") else None
     if kind is not None:
         return ("lod_sog" if kind == "lod" else "sog"), None
@@ -137,8 +142,8 @@ def _sniff(path: str) -> tuple[str, PlyHeader | None]:
                              f"of 32-byte records; {size % 32} bytes left over: truncated?)")
         return "splat", None
     raise InputError(path, None, "unrecognised file format (expected a 3DGS PLY, a PlayCanvas compressed PLY, an "
-                     "SPZ file, a .splat file, a SOG scene (.sog, meta.json, lod-meta.json) or a glTF/GLB file with "
-                     "KHR_gaussian_splatting)")
+                     "SPZ file, a .splat file, a SOG scene (.sog, meta.json, lod-meta.json), a Spark .rad or a "
+                     "glTF/GLB file with KHR_gaussian_splatting)")
 
 
 def _gzip_starts_with(head: bytes, prefix: bytes) -> bool:
@@ -226,6 +231,8 @@ def _read_any(inp: SplatInput, drop_invalid: bool) -> Gaussians:
         return read_splat(path, drop_invalid=drop_invalid)
     if fmt in ("sog", "lod_sog"):
         return read_sog(path, drop_invalid=drop_invalid)
+    if fmt == "rad":
+        return read_rad(path)
     if fmt == "gltf":
         return read_gltf(path, drop_invalid=drop_invalid)
     raise InputError(path, None, f"no reader for format {fmt!r}")

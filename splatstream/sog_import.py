@@ -154,6 +154,14 @@ def encode_streamed_sog(path: str | os.PathLike, opts: EncodeOptions | None = No
         raise InputError(label, "environment", f"an environment unit ({len(sog.environment)} splats) cannot be "
                          "streamed as a tree; convert the scene to a single file first (convert reads it)")
     progress("read", 1.0)
+    return encode_tree(sog, label, opts, progress)
+
+
+def encode_tree(sog: StreamedSog, label: str, opts: EncodeOptions | None = None,
+                progress: Progress | None = None) -> MemoryStore:
+    """Encode a streamed SOG's tree (screened splats) in memory as our tree: what `view` streams (also RAD's,
+    laid out as a streamed SOG by rad_import)."""
+    progress = progress or no_progress
     tiles = tree_tiles(sog)
     leaves = [t for t in tiles if not t.children]
     g = Gaussians.concatenate([t.gaussians for t in leaves])

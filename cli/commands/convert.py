@@ -21,7 +21,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "convert", help="convert between splat file formats",
         description="Read a splat scene (standard 3DGS PLY, PlayCanvas compressed PLY, Niantic SPZ v2-v4, "
                     "antimatter15 .splat, PlayCanvas SOG as a .sog file, a meta.json or its directory, streamed SOG "
-                    "as a lod-meta.json or its directory (finest level), glTF/GLB with KHR_gaussian_splatting; "
+                    "as a lod-meta.json or its directory (finest level), a Spark .rad (finest level), glTF/GLB with "
+                    "KHR_gaussian_splatting; "
                     "recognised by content) and write it as a standard 3DGS PLY (.ply), .splat, SPZ (.spz), "
                     "glTF binary with KHR_gaussian_splatting (.glb) or PlayCanvas SOG (.sog, version 2, bundled), "
                     "chosen by OUT's extension. The output appears "

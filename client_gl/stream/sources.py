@@ -24,6 +24,8 @@ from splatstream.errors import InputError, UsageError
 from splatstream.format.manifest import MAX_MANIFEST_BYTES, PayloadEntry
 from splatstream.format.names import MANIFEST_NAME, manifest_url, payload_url
 from splatstream.io import declared_up, read_gaussians
+from splatstream.rad_import import encode_rad
+from splatstream.readers.rad import is_rad
 from splatstream.sog_import import encode_streamed_sog
 from splatstream.store import DirectoryStore, FsspecStore, MemoryStore, SceneStore
 
@@ -282,7 +284,8 @@ OBJECT_STORE_SCHEMES = ("s3", "gs", "gcs", "az", "abfs", "memory")
 def open_source(spec: str | os.PathLike, *, encode_options=None, progress: Progress | None = None,
                 connections: int = 8) -> SceneSource:
     """A source for an `http(s)://` scene URL, a scene directory (or its manifest.msgpack), a PlayCanvas streamed
-    SOG (lod-meta.json or its directory: its own LOD tree, encoded in memory), or a splat file
+    SOG (lod-meta.json or its directory: its own LOD tree, encoded in memory), a Spark .rad (its own LoD tree,
+    encoded in memory), or a splat file
     (3DGS PLY, compressed PLY, SPZ, .splat: read and encoded in memory with LOD on; `progress(stage, fraction)`
     follows the read and the encode; `encode_options` an EncodeOptions). Raises UsageError or InputError with
     one line naming `spec` and what was expected."""
@@ -305,6 +308,9 @@ def open_source(spec: str | os.PathLike, *, encode_options=None, progress: Progr
     if _is_streamed_sog(text):
         # Their LOD tree, converted into ours on the fly (splatstream/sog_import.py): streamed coarse to fine.
         return StoreSource(encode_streamed_sog(text, encode_options, progress))
+    if _is_rad(text):
+        # Spark's LoD tree of splats, converted into our tiles on the fly (splatstream/rad_import.py).
+        return StoreSource(encode_rad(text, encode_options, progress))
     if os.path.isdir(text):
         if not os.path.isfile(os.path.join(text, MANIFEST_NAME)):
             raise InputError(text, None, f"not a scene directory (no {MANIFEST_NAME}; encode a splat file with "
@@ -313,6 +319,14 @@ def open_source(spec: str | os.PathLike, *, encode_options=None, progress: Progr
     if os.path.basename(text) == MANIFEST_NAME:
         return StoreSource(DirectoryStore(os.path.dirname(os.path.abspath(text))))
     return StoreSource(encode_splat_file(text, encode_options, progress))
+
+
+def _is_rad(path: str) -> bool:
+    """A Spark RAD file, by its magic."""
+    if not os.path.isfile(path):
+        return False
+    with open(path, "rb") as f:
+        return is_rad(f.read(4))
 
 
 def _is_streamed_sog(path: str) -> bool:

@@ -1,0 +1,50 @@
+// See index.html. Spark fetches only the scene's file from this page's origin.
+import * as THREE from "three";
+import { SparkRenderer, SplatMesh } from "@sparkjsdev/spark";
+
+function vector(text) {
+  const v = text.split(",").map(Number);
+  if (v.length !== 3 || !v.every(Number.isFinite)) throw new Error(`bad vector ${text}`);
+  return new THREE.Vector3(v[0], v[1], v[2]);
+}
+
+async function main() {
+  const q = new URLSearchParams(location.search);
+  const canvas = document.getElementById("view");
+  const renderer = new THREE.WebGLRenderer({ canvas, antialias: false, preserveDrawingBuffer: true });
+  renderer.setPixelRatio(1);
+  renderer.setSize(canvas.clientWidth, canvas.clientHeight, false);
+  const scene = new THREE.Scene();
+  scene.background = new THREE.Color(0, 0, 0);
+  const camera = new THREE.PerspectiveCamera(Number(q.get("fovy") || 50), canvas.clientWidth / canvas.clientHeight,
+                                             Number(q.get("near") || 0.01), 1e5);
+  camera.position.copy(vector(q.get("eye")));
+  camera.up.copy(vector(q.get("up")));
+  camera.lookAt(vector(q.get("target")));
+  camera.updateMatrixWorld();
+  const spark = new SparkRenderer({ renderer });
+  scene.add(spark);
+  const mesh = new SplatMesh({ url: q.get("scene"), paged: true });
+  scene.add(mesh);
+  window.splatSpark = spark;
+
+  // Settled: no new fetch for 3 s and the drawn count unchanged for 30 frames (each chunk Spark's traversal asks
+  // for is one range request; the count changes as chunks arrive and the traversal refines).
+  const started = performance.now();
+  let stable = 0, last = -1, lastFetch = performance.now(), fetched = 0;
+  for (;;) {
+    renderer.render(scene, camera);
+    await new Promise((resolve) => requestAnimationFrame(resolve));
+    const resources = performance.getEntriesByType("resource").length;
+    if (resources !== fetched) { fetched = resources; lastFetch = performance.now(); }
+    const count = spark.activeSplats;
+    stable = count === last && count > 0 ? stable + 1 : 0;
+    last = count;
+    if ((stable >= 30 && performance.now() - lastFetch > 3000) || performance.now() - started > 180000) break;
+  }
+  renderer.render(scene, camera);
+  window.splatResult = { status: "ok", splats: spark.activeSplats, fetches: fetched,
+                         waitedMs: Math.round(performance.now() - started) };
+}
+
+main().catch((e) => { window.splatResult = { status: "error", error: String(e && e.stack || e) }; });
