@@ -354,3 +354,36 @@ def test_a_corrupt_page_is_refused_and_its_tile_drawn_as_a_leaf(paged_store):
     run_until_converged(engine, orbit(m, 0.9, 0.3))
     assert any("checksum mismatch" in e for e in engine.errors)
     engine.close()
+
+
+def test_the_tree_held_is_bounded_and_dropped_pages_are_read_again(paged_store):
+    """max_tree_tiles: pages whose tiles left the pool and the cut are dropped (least recently drawn first) and read
+    again when a cut reaches them. Against the same engine without the bound: the same cuts, a smaller tree."""
+    opts = StreamOptions(SelectionOptions(max_sse=1.0, band_area_share=(0.95, 0.8, 0.6)), prefetch=False)
+    whole = read_manifest(paged_store)
+    top = whole.tiles[0]
+    c, r = np.array(top.sphere_center), top.sphere_radius
+
+    def outward(angle):  # from inside the scene, looking out at one side of it
+        d = np.array([np.cos(angle), np.sin(angle), 0.0])
+        return Camera(tuple(c + 0.3 * r * d), tuple(c + 2 * r * d), (0, 0, 1), 40.0, 320, 240, near=0.001 * r)
+
+    views = [outward(0.3), outward(0.3 + np.pi), outward(0.3)]
+    root = parse_manifest(paged_store.read_manifest(), "root")
+    runs = {}
+    for cap in (None, len(root.tiles) + 4):
+        fetcher = PagedFetcher(paged_store)
+        # a pool too small for both sides at once: one side's tiles leave it while the other is viewed
+        engine = StreamEngine(fetcher, CountingPool(26), opts if cap is None else replace(opts, max_tree_tiles=cap))
+        draws, held = [], []
+        for cam in views:
+            _, u = run_until_converged(engine, cam)
+            draws.append(sorted(u.draw))
+            held.append(len(engine.manifest.tiles))
+        runs[cap] = (draws, held, engine.pages.evicted, [k for k in fetcher.fetched if k[1] == "page"])
+        engine.close()
+    (draws, held, evicted, _), (bounded_draws, bounded_held, bounded_evicted, pages) = runs.values()
+    assert evicted == 0 and bounded_evicted > 0
+    assert bounded_draws[:2] == draws[:2]  # the same cuts (the third may take another path to its cut)
+    assert max(bounded_held) < max(held) <= len(whole.tiles)
+    assert len(pages) > len(set(pages))  # dropped pages were read again when their side was viewed again

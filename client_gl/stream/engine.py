@@ -89,6 +89,10 @@ class StreamOptions:
     # the render thread's interpreter lock; until they have started, payloads are decoded on the threads.
     decode_processes: int = 0
     ready_bytes: int = 512 << 20  # decoded payloads waiting for upload (prefetched ones are dropped first)
+    # A paged scene's tree held at most this many tiles beyond what the view uses: pages whose tiles are neither
+    # resident, nor in the cut, nor being decoded are dropped, least recently drawn first, and read again when a cut
+    # reaches them (a ground view of 250M splats holds about 13,000 tiles: BENCHMARKS.md, "Manifest pages").
+    max_tree_tiles: int = 65536
 
 
 @dataclass
@@ -188,6 +192,9 @@ class StreamEngine:
         self.codebook_bands: set[int] = set()
         self._pages_wanted: list[Key] = []
         self._pages_arrived: dict[int, Future] = {}  # tile id -> its page's tiles, being parsed
+        self._page_frame: dict[int, int] = {}  # tile id -> the frame its page was added in
+        self._last_cut: set[int] = set()  # the last selection's cut (positions), kept from eviction
+        self._pages_checked: tuple[int, int] = (0, 0)  # (tiles held, payload evictions) at the last eviction pass
         self.frame = 0
         self.refined: frozenset[int] = frozenset()
         self._bands_wanted: dict[int, int] = {}
@@ -255,12 +262,49 @@ class StreamEngine:
             del self._pages_arrived[tile_id]
             try:
                 self.pages.insert(tile_id, future.result())
+                self._page_frame[tile_id] = self.frame
             except SplatstreamError as exc:  # verified bytes that do not parse: the scene is broken, not the link
                 self.errors.append(str(exc))
                 self.failed[(tile_id, PAGE_GROUP)] = str(exc)
         self._adopt(self.pages.manifest)
         self._wanted_cache = None  # the same camera selects again, over the new tiles
         self._draw_cache = None
+        self._version += 1
+
+    def _evict_pages(self) -> None:
+        """Drop pages until the tree held is within max_tree_tiles, where pages are unused: no tile below their
+        head resident, in the last cut, decoding or decoded, nor a page below it being fetched or parsed; the least
+        recently drawn first."""
+        cut = self._last_cut
+        busy = {k[0] for k in self._ready} | {k[0] for k in self._decoding} | set(self._pages_arrived) | \
+            {k[0] for k in self._listed if k[1] == PAGE_GROUP}  # pages in flight or being parsed stay
+        candidates = []
+        for head in self.pages.held_pages():
+            if self._page_frame.get(head, 0) >= self.frame - 1 or self.manifest.index_of[head] in cut:
+                continue  # added since the last selection, or its tile in the cut (the page would be wanted again)
+            below = self.pages.below(head)
+            if not below or self.resident[below].any() or not cut.isdisjoint(below) or \
+                    any(int(self.ids[i]) in busy for i in below):
+                continue
+            candidates.append((int(self.last_drawn[below].max()), -len(below), head))
+        excess = len(self.manifest.tiles) - self.options.max_tree_tiles
+        heads = []
+        for _, minus_n, head in sorted(candidates):
+            if excess <= 0:
+                break
+            heads.append(head)
+            excess += minus_n
+        if not heads:
+            return
+        keep = self.pages.evict(heads)
+        new_of = np.full(len(self.resident), -1, np.int64)
+        new_of[keep] = np.arange(len(keep))
+        self.resident, self.bands = self.resident[keep], self.bands[keep]
+        self.last_drawn, self._filling = self.last_drawn[keep], self._filling[keep]
+        self.refined = frozenset(int(new_of[i]) for i in self.refined if new_of[i] >= 0)
+        self._last_cut = {int(new_of[i]) for i in self._last_cut if new_of[i] >= 0}
+        self._adopt(self.pages.manifest)
+        self._wanted_cache = self._draw_cache = self._order_of = self._upload_idle = None
         self._version += 1
 
     # --- keys -------------------------------------------------------------------------------------------------
@@ -299,6 +343,7 @@ class StreamEngine:
         sel_opts = SelectionOptions(**{**opts.__dict__, "budget": min(budget, opts.budget or budget)})
         sel = select(a, view, self.cost, self.root, sel_opts, self.refined, self.manifest.lod.reduction)
         self.refined = sel.refined
+        self._last_cut = set(sel.cut) if self.pages is not None else set()
         if self.pages is not None:  # pages below cut tiles the view would refine: fetched before their payloads
             self._pages_wanted = [k for k in self.pages.wanted_pages(sel.cut, view.sse, view.visible, opts.max_sse)
                                   if k not in self.failed]
@@ -325,6 +370,12 @@ class StreamEngine:
         self.frame += 1
         if self._pages_arrived and any(f.done() for f in self._pages_arrived.values()):
             self._add_pages()
+        # pages are dropped only where the tree grew or tiles left the pool since the last look (a pass is
+        # O(tiles held))
+        if self.pages is not None and len(self.manifest.tiles) > self.options.max_tree_tiles and \
+                (len(self.manifest.tiles), self.evictions) != self._pages_checked:
+            self._evict_pages()
+            self._pages_checked = (len(self.manifest.tiles), self.evictions)
         view, sel, bands, keys, extra = self.wanted(cam)
         state = (self._wanted_serial, self._version)
         if state != self._state_seen:  # the wish list or what we hold changed: tell the fetcher what is missing now

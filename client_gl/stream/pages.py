@@ -5,7 +5,9 @@ Pure (no GL, no I/O): the engine asks which pages the cut reaches (`wanted_pages
 entries (verified there like payloads), and gives each page's verified bytes to `add_page`. Tiles keep their
 position once held, so everything the engine keeps per tile position (residency, bands, last drawn) stays valid:
 a page's tiles are appended. A tile whose page is not read yet has no children in the view `manifest`: the
-selection treats it as a leaf, which it may draw (REPLACE: it stands for its whole subtree, lod.md 5).
+selection treats it as a leaf, which it may draw (REPLACE: it stands for its whole subtree, lod.md 5). `evict`
+drops pages again (the engine decides which); the tiles kept are then renumbered in order, and the engine takes its
+per-tile state through the positions it returns.
 """
 from __future__ import annotations
 
@@ -32,6 +34,8 @@ class PagedTree:
         self._position = {t.id: i for i, t in enumerate(self._tiles)}
         self.pages_read = 0
         self.page_bytes = 0
+        self.evicted = 0  # pages dropped again (evict)
+        self._read: set[int] = set()  # tiles whose page is held
         self.manifest = self._view()
 
     def _view(self) -> Manifest:
@@ -76,10 +80,55 @@ class PagedTree:
                 self.pending[t.id] = t.page
                 t = replace(t, children=())
             self._tiles.append(t)
+        self._read.add(tile_id)
         self.pages_read += 1
         self.page_bytes += ref.bytes
         self.manifest = self._view()
         return self.manifest
+
+    def held_pages(self) -> list[int]:
+        """Tiles whose page is held (each the head of a subtree a page brought)."""
+        return sorted(self._read)
+
+    def below(self, tile_id: int) -> list[int]:
+        """Positions of the tiles held below a tile (its descendants, through every page held)."""
+        out, todo = [], [tile_id]
+        while todo:
+            t = self._full[todo.pop()]
+            if t.page is not None and t.id not in self._read:
+                continue
+            for c in t.children:
+                out.append(self._position[c])
+                todo.append(c)
+        return out
+
+    def evict(self, heads: list[int]) -> np.ndarray:
+        """Drop the pages below these tiles (and every page held below them): the tiles become leaves again, their
+        pages wanted again when a cut reaches them. Returns the old positions of the tiles kept, in order (the
+        engine's per-tile state is taken through it)."""
+        gone: set[int] = set()
+        for h in heads:
+            if h not in self._read or self._position[h] in gone:
+                continue
+            below = self.below(h)
+            gone.update(below)
+            for i in below:
+                t = self._tiles[i]
+                self._read.discard(t.id)
+                self.pending.pop(t.id, None)
+            self._read.discard(h)
+            self.pending[h] = self._full[h].page
+            self._tiles[self._position[h]] = replace(self._full[h], children=())
+            self.evicted += 1
+        keep = np.array([i for i in range(len(self._tiles)) if i not in gone], np.int64)
+        for i in gone:
+            t = self._tiles[i]
+            del self._full[t.id]
+            del self._position[t.id]
+        self._tiles = [self._tiles[i] for i in keep]
+        self._position = {t.id: i for i, t in enumerate(self._tiles)}
+        self.manifest = self._view()
+        return keep
 
     def add_page(self, tile_id: int, data: VerifiedPayload | bytes) -> Manifest:
         """read, then insert (in one thread)."""
