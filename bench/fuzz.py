@@ -1701,7 +1701,6 @@ def _fetch_case(server, case: NetCase, timeout_s: float, cache: pathlib.Path) ->
     from client_gl.stream.fetch import Fetcher
     from client_gl.stream.sources import HttpSource
     from splatstream.errors import SplatstreamError
-    from splatstream.format.manifest import parse_manifest
 
     url = server.url(case.scene)
     t0 = time.monotonic()
@@ -1710,8 +1709,7 @@ def _fetch_case(server, case: NetCase, timeout_s: float, cache: pathlib.Path) ->
                 request_deadline_s=max(1.0, timeout_s / 2)).start()
     try:
         try:
-            data = f.manifest()
-            m = f.parsed_manifest(data) or parse_manifest(data, url, lazy_payloads=True)
+            m = f.manifest()
             wanted = {(t.id if t is not None else None, g): p for t, g, p in m.payloads()}
         except SplatstreamError as exc:
             outcome, message = "named_error", str(exc)

@@ -23,8 +23,7 @@ def main() -> None:
     ap.add_argument("--json")
     args = ap.parse_args()
     from cli.commands.args import parse_bytes
-    from splatstream.encode import distributed
-    from splatstream.encode.local import encode_file
+    from splatstream.encode import distributed, encode_file
 
     rounds: list[tuple[str, int, float, float]] = []
     original = distributed.DaskEngine.map

@@ -20,7 +20,8 @@ from splatstream.errors import SplatstreamError
 for _var in ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
-COMMANDS = ["encode", "decode", "info", "convert", "render", "view", "eval", "serve", "export-3dtiles"]
+COMMANDS = ["encode", "decode", "info", "convert", "render", "view", "eval", "serve", "export-3dtiles",
+            "export-sog-lod"]
 
 # Exit codes (README "Exit codes"): 0 success, 2 bad input or usage (the user can fix it: a file, an argument, a
 # path, a port), 1 a failure inside splatstream or the machine (a bug, out of memory, a disk error), 130 Ctrl-C.

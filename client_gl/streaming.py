@@ -21,7 +21,7 @@ import numpy as np
 
 from splatstream.camera import Camera
 from splatstream.errors import UsageError
-from splatstream.format.manifest import Manifest, parse_manifest
+from splatstream.format.manifest import Manifest
 
 from .gpu.pool import ChunkPool
 from .gpu.renderer import FrameStats, RenderOptions, SplatRenderer, resolve_sort
@@ -150,8 +150,7 @@ class PreparedSource:
                           manifest_timeout_s=options.manifest_timeout_s)
         fetcher.start()
         try:
-            data = fetcher.manifest()
-            manifest = fetcher.parsed_manifest(data) or parse_manifest(data, f"{source.location}", lazy_payloads=True)
+            manifest = fetcher.manifest()  # parsed once, there; the engine is handed this one
         except BaseException:
             fetcher.close()
             raise

@@ -4,17 +4,29 @@ Readable: standard 3DGS PLY, PlayCanvas compressed PLY, Niantic SPZ (versions 2,
 PlayCanvas SOG (bundled .sog, unbundled meta.json directory, streamed lod-meta.json), glTF/GLB with
 KHR_gaussian_splatting (plain or SPZ-compressed).
 Writable, chosen by the output's extension: .ply (standard 3DGS), .splat, .spz (SPZ v4 or v3), .glb
-(KHR_gaussian_splatting, plain or SPZ-compressed). See format_spec/foreign_formats.md for what each format keeps.
+(KHR_gaussian_splatting, plain or SPZ-compressed), .sog (PlayCanvas SOG version 2, bundled). See
+format_spec/foreign_formats.md for what each format keeps.
 """
 from __future__ import annotations
 
 import math
 import os
 import re
+import stat
+import warnings
+import zlib
+from dataclasses import dataclass
 
 from .errors import InputError
+from .format.limits import describe_violations, domain_violations
 from .gaussians import Gaussians
 from .orientation import UpChoice, detect_up
+from .ply import MAX_HEADER_BYTES, PlyHeader, VertexLayout, read_gaussians_ply, read_header, vertex_layout
+from .readers.compressed_ply import is_compressed_ply, read_compressed_ply
+from .readers.gltf import read_gltf
+from .readers.sog import read_sog, sog_kind
+from .readers.splat import read_splat
+from .readers.spz import read_spz
 
 FORMAT_NAMES = {
     "ply": "standard 3DGS PLY",
@@ -25,14 +37,12 @@ FORMAT_NAMES = {
     "lod_sog": "PlayCanvas streamed SOG (finest level)",
     "gltf": "glTF with KHR_gaussian_splatting",
 }
-WRITABLE_EXTENSIONS = {".ply": "ply", ".splat": "splat", ".spz": "spz", ".glb": "gltf"}
+WRITABLE_EXTENSIONS = {".ply": "ply", ".splat": "splat", ".spz": "spz", ".glb": "gltf", ".sog": "sog"}
 SPLAT_RECORD_BYTES = 32
 
 
 def check_regular_file(path: str) -> None:
     """Refuse what is not a regular file before anything reads it (a FIFO or a device would block or never end)."""
-    import stat
-
     try:
         st = os.stat(path)
     except FileNotFoundError:
@@ -47,6 +57,38 @@ def check_regular_file(path: str) -> None:
         raise InputError(path, None, "cannot read (permission denied)")
 
 
+@dataclass(frozen=True)
+class SplatInput:
+    """A splat input opened once: its format, from its content, and a PLY's parsed header. Every later step of a
+    command (the reader, the up direction the header states, the rows a partitioned encode reads by byte ranges)
+    takes this instead of opening and parsing the file again."""
+
+    path: str
+    format: str  # a FORMAT_NAMES key
+    header: PlyHeader | None = None  # for 'ply' and 'compressed_ply'
+
+    def vertex_layout(self) -> VertexLayout | None:
+        """The row layout of a binary 3DGS PLY (ply.vertex_layout), None for any other input."""
+        return vertex_layout(self.path, self.header) if self.format == "ply" else None
+
+    def declared_up(self) -> UpChoice | None:
+        """The up direction the file itself states: a comment in a PLY header naming it (up_from_comments); None
+        for other formats (their readers apply what the format specifies) and for PLY files that say nothing."""
+        if self.format != "ply" or self.header is None:
+            return None
+        up = up_from_comments(self.header.comments)
+        if up is None:
+            return None
+        return UpChoice(up, f"{','.join(f'{v:g}' for v in up)} as the PLY header's comment says")
+
+
+def open_input(path: str | os.PathLike) -> SplatInput:
+    """Sniff a splat input (sniff_format) and keep what sniffing read (a PLY's header)."""
+    path = os.fspath(path)
+    fmt, header = _sniff(path)
+    return SplatInput(path, fmt, header)
+
+
 def sniff_format(path: str | os.PathLike) -> str:
     """Name of the format of a file, from its content: 'ply', 'compressed_ply', 'spz' or 'splat'.
 
@@ -54,74 +96,69 @@ def sniff_format(path: str | os.PathLike) -> str:
     at all, so it is recognised only as "none of the above, named .splat, length a multiple of 32"; its
     reader then checks that the records are plausible.
     """
-    from .ply import MAX_HEADER_BYTES, read_header
-    from .readers.compressed_ply import is_compressed_ply
-    from .readers.sog import sog_kind
+    return _sniff(os.fspath(path))[0]
 
-    path = os.fspath(path)
+
+def _sniff(path: str) -> tuple[str, PlyHeader | None]:
     if os.path.isdir(path):
         kind = sog_kind(path)
         if kind is None:
             raise InputError(path, None, "is a directory without meta.json or lod-meta.json (expected a splat file "
                              "or a SOG scene directory)")
-        return "lod_sog" if kind == "lod" else "sog"
+        return ("lod_sog" if kind == "lod" else "sog"), None
     check_regular_file(path)
     with open(path, "rb") as f:
         head = f.read(MAX_HEADER_BYTES)
     if not head:
         raise InputError(path, None, "file is empty")
     if head.startswith(b"glTF"):
-        return "gltf"
+        return "gltf", None
     kind = sog_kind(path) if head.startswith(b"PK\x03\x04") or head.lstrip().startswith(b"{") else None
     if kind is not None:
-        return "lod_sog" if kind == "lod" else "sog"
+        return ("lod_sog" if kind == "lod" else "sog"), None
     if head.lstrip().startswith(b"{") and os.path.splitext(path)[1].lower() == ".gltf":
-        return "gltf"
+        return "gltf", None
     if head.startswith(b"ply\n") or head.startswith(b"ply\r\n"):
-        return "compressed_ply" if is_compressed_ply(read_header(path, head)) else "ply"
+        header = read_header(path, head)
+        return ("compressed_ply" if is_compressed_ply(header) else "ply"), header
     is_splat_name = os.path.splitext(path)[1].lower() == ".splat"
     if head.startswith(b"NGSP"):
-        return "spz"
+        return "spz", None
     if head.startswith(b"\x1f\x8b"):
         # A .splat record can begin with these two bytes by chance (1 in 65536 for the first x coordinate), so
         # for a .splat-named file only a gzip stream that really holds an SPZ header counts as SPZ. Otherwise
         # the SPZ reader reports what is wrong with the gzip stream.
         if not is_splat_name or _gzip_starts_with(head, b"NGSP"):
-            return "spz"
+            return "spz", None
     if is_splat_name:
         size = os.path.getsize(path)
         if size % SPLAT_RECORD_BYTES:
             raise InputError(path, "file length", f"{size} bytes is not a multiple of 32 (a .splat file is a sequence "
                              f"of 32-byte records; {size % 32} bytes left over: truncated?)")
-        return "splat"
+        return "splat", None
     raise InputError(path, None, "unrecognised file format (expected a 3DGS PLY, a PlayCanvas compressed PLY, an "
                      "SPZ file, a .splat file, a SOG scene (.sog, meta.json, lod-meta.json) or a glTF/GLB file with "
                      "KHR_gaussian_splatting)")
 
 
 def _gzip_starts_with(head: bytes, prefix: bytes) -> bool:
-    import zlib
-
     try:
         return zlib.decompressobj(16 + zlib.MAX_WBITS).decompress(head, len(prefix)) == prefix
     except zlib.error:
         return False
 
 
-def read_gaussians(path: str | os.PathLike, drop_invalid: bool = False) -> Gaussians:
-    """Read any supported splat file into Gaussians, screened against the scene format's value domain (so
-    whatever is read can be encoded and written again: format_spec/format.md 4.8)."""
-    path = os.fspath(path)
-    return screen_gaussians(_read_any(path, drop_invalid), path, drop_invalid)
+def read_gaussians(source: str | os.PathLike | SplatInput, drop_invalid: bool = False) -> Gaussians:
+    """Read any supported splat file (a path, or an input open_input has sniffed) into Gaussians, screened
+    against the scene format's value domain (so whatever is read can be encoded and written again:
+    format_spec/format.md 4.8)."""
+    inp = source if isinstance(source, SplatInput) else open_input(source)
+    return screen_gaussians(_read_any(inp, drop_invalid), inp.path, drop_invalid)
 
 
 def screen_gaussians(g: Gaussians, path: str, drop_invalid: bool = False) -> Gaussians:
     """`g` if every splat lies in the value domain of format.md 4.8; otherwise an InputError naming the file,
     each offending field and its splat count, or with `drop_invalid` `g` without those splats (a warning)."""
-    import warnings
-
-    from .format.limits import describe_violations, domain_violations
-
     violations = domain_violations(g)
     if not violations:
         return g
@@ -156,19 +193,12 @@ def up_from_comments(comments: list[str]) -> tuple[float, float, float] | None:
 
 
 def declared_up(path: str | os.PathLike) -> UpChoice | None:
-    """The up direction a splat file itself states: a comment in a PLY header naming it (up_from_comments); None
-    for other formats (their readers apply what the format specifies) and for PLY files that say nothing."""
-    from .ply import read_header
-
+    """The up direction a splat file itself states (SplatInput.declared_up); None also for a file that cannot be
+    opened (its reader reports that)."""
     try:
-        if sniff_format(path) != "ply":
-            return None
-        up = up_from_comments(read_header(path).comments)
+        return open_input(path).declared_up()
     except (InputError, OSError):
         return None
-    if up is None:
-        return None
-    return UpChoice(up, f"{','.join(f'{v:g}' for v in up)} as the PLY header's comment says")
 
 
 def scene_up(path: str | os.PathLike, g: Gaussians, positions=None) -> UpChoice:
@@ -177,31 +207,19 @@ def scene_up(path: str | os.PathLike, g: Gaussians, positions=None) -> UpChoice:
     return declared_up(path) or detect_up(g, positions)
 
 
-def _read_any(path: str, drop_invalid: bool) -> Gaussians:
-    fmt = sniff_format(path)
+def _read_any(inp: SplatInput, drop_invalid: bool) -> Gaussians:
+    path, fmt = inp.path, inp.format
     if fmt == "ply":
-        from .ply import read_gaussians_ply
-
-        return read_gaussians_ply(path, drop_invalid=drop_invalid)
+        return read_gaussians_ply(path, drop_invalid=drop_invalid, header=inp.header)
     if fmt == "compressed_ply":
-        from .readers.compressed_ply import read_compressed_ply
-
-        return read_compressed_ply(path, drop_invalid=drop_invalid)
+        return read_compressed_ply(path, drop_invalid=drop_invalid, header=inp.header)
     if fmt == "spz":
-        from .readers.spz import read_spz
-
         return read_spz(path, drop_invalid=drop_invalid)
     if fmt == "splat":
-        from .readers.splat import read_splat
-
         return read_splat(path, drop_invalid=drop_invalid)
     if fmt in ("sog", "lod_sog"):
-        from .readers.sog import read_sog
-
         return read_sog(path, drop_invalid=drop_invalid)
     if fmt == "gltf":
-        from .readers.gltf import read_gltf
-
         return read_gltf(path, drop_invalid=drop_invalid)
     raise InputError(path, None, f"no reader for format {fmt!r}")
 
@@ -217,7 +235,7 @@ def output_format(path: str | os.PathLike) -> str:
 
 def write_gaussians(g: Gaussians, path: str | os.PathLike, spz_version: int = 4,
                     glb_compression: str = "none") -> None:
-    """Write Gaussians (atomically) to a file whose format follows the extension (.ply, .splat, .spz, .glb).
+    """Write Gaussians (atomically) to a file whose format follows the extension (.ply, .splat, .spz, .glb, .sog).
 
     spz_version: 3 or 4 for .spz outputs. glb_compression: "none" or "spz" for .glb outputs.
     """
@@ -234,6 +252,10 @@ def write_gaussians(g: Gaussians, path: str | os.PathLike, spz_version: int = 4,
         from .writers.glb import write_glb
 
         write_glb(g, path, glb_compression)
+    elif fmt == "sog":
+        from .writers.sog import write_sog
+
+        write_sog(g, path)
     else:
         from .readers.splat import write_splat
 

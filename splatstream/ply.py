@@ -305,11 +305,12 @@ def _vertex_header(path: str, header: PlyHeader) -> tuple[PlyElement, int]:
     return vertex, n_rest
 
 
-def vertex_layout(path: str | os.PathLike) -> VertexLayout | None:
+def vertex_layout(path: str | os.PathLike, header: PlyHeader | None = None) -> VertexLayout | None:
     """The row layout of a binary 3DGS PLY (after the same checks as read_gaussians_ply, the file's length
-    included), or None for an ASCII PLY (rows of varying length: read it whole)."""
+    included), or None for an ASCII PLY (rows of varying length: read it whole). `header`: the file's, when the
+    caller parsed it already (io.open_input)."""
     path = os.fspath(path)
-    header = read_header(path)
+    header = header or read_header(path)
     vertex, n_rest = _vertex_header(path, header)
     if header.format == "ascii":
         return None
@@ -418,10 +419,12 @@ def read_ply_rows(layout: VertexLayout, start: int, stop: int) -> tuple[Gaussian
                                                offset=layout.offset + start * layout.dtype.itemsize), layout.rest)
 
 
-def read_gaussians_ply(path: str | os.PathLike, drop_invalid: bool = False) -> Gaussians:
-    """Read a standard 3DGS PLY (any PLY format, float or double, any property order)."""
+def read_gaussians_ply(path: str | os.PathLike, drop_invalid: bool = False, header: PlyHeader | None = None
+                       ) -> Gaussians:
+    """Read a standard 3DGS PLY (any PLY format, float or double, any property order). `header`: the file's,
+    when the caller parsed it already (io.open_input)."""
     path = os.fspath(path)
-    header = read_header(path)
+    header = header or read_header(path)
     vertex, n_rest = _vertex_header(path, header)
     check_element_sizes(path, header)
     check_memory(path, "element vertex", vertex.count,

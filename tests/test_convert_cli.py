@@ -76,8 +76,8 @@ def test_corrupt_splat_and_bad_arguments(tmp_path, capsys):
     assert main(["convert", str(bad), str(out)]) == 2
     assert "not a multiple of 32" in capsys.readouterr().err
     assert not out.exists() and not list(out_dir.iterdir())
-    assert main(["convert", str(FIXTURES / "fruit_drops_v4.spz"), str(out_dir / "x.sog")]) == 2
-    assert "cannot write .sog files" in capsys.readouterr().err
+    assert main(["convert", str(FIXTURES / "fruit_drops_v4.spz"), str(out_dir / "x.rad")]) == 2
+    assert "cannot write .rad files" in capsys.readouterr().err
     assert main(["convert", str(tmp_path / "missing.ply"), str(out)]) == 2
     assert "no such file" in capsys.readouterr().err
     assert not list(out_dir.iterdir())

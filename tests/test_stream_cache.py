@@ -34,7 +34,7 @@ def test_put_get_round_trip_and_verification(tmp_path):
     e, data = payload(1)
     assert cache.get(e) is None and not cache.contains(e.sha256)
     assert cache.put(e, data)
-    assert cache.contains(e.sha256) and cache.get(e) == data
+    assert cache.contains(e.sha256) and cache.get(e).data == data
     path = Path(cache.payload_path(e.sha256))
     assert path == tmp_path / "payloads" / e.sha256[:2] / f"{e.sha256}.bin"
     assert [p.name for p in path.parent.iterdir()] == [path.name]  # no temporary file left
@@ -50,7 +50,7 @@ def test_put_get_round_trip_and_verification(tmp_path):
     assert cache.get(e) is None and not path.exists() and cache.stats.corrupt == 2
     # A new cache over the same directory finds what an earlier one wrote.
     cache.put(e, data)
-    assert DiskCache(tmp_path).get(e) == data
+    assert DiskCache(tmp_path).get(e).data == data
 
 
 def test_lru_eviction_by_last_use(tmp_path):
@@ -59,7 +59,7 @@ def test_lru_eviction_by_last_use(tmp_path):
     for e, data in items[:4]:
         assert cache.put(e, data)
         time.sleep(0.01)  # distinct mtimes
-    assert cache.get(items[0][0]) == items[0][1]  # used again: now the most recent
+    assert cache.get(items[0][0]).data == items[0][1]  # used again: now the most recent
     time.sleep(0.01)
     assert cache.put(*items[4])  # 500 kB > cap: the least recently used (item 1) goes
     present = [i for i, (e, _) in enumerate(items) if Path(cache.payload_path(e.sha256)).exists()]
@@ -133,7 +133,7 @@ for _ in range(300):
     if got is None:
         cache.put(entries[i], blobs[i])
     else:
-        assert got == blobs[i], "wrong bytes"
+        assert got.data == blobs[i], "wrong bytes"
         hits += 1
 print(hits, cache.stats.corrupt)
 """

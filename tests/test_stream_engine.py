@@ -23,7 +23,7 @@ class StepFetcher:
         self.out, self.wants, self.fetched = [], [], []
 
     def manifest(self):
-        return self.store.read_manifest()
+        return read_manifest(self.store)  # parsed, as a fetcher hands it over
 
     def want(self, requests):
         self.wants.append([k for _, k, _ in requests])

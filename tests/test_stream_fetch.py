@@ -30,6 +30,7 @@ from client_gl.stream.fetch import (
     RetryPolicy,
 )
 from client_gl.stream.sources import FetchError, HttpSource, StoreSource, open_source
+from splatstream.format.container import VerifiedPayload
 from splatstream.format.manifest import Manifest
 from splatstream.store import DirectoryStore, MemoryStore, load_manifest
 
@@ -108,7 +109,9 @@ def assert_exact(root: Path, results: list, reqs: list) -> None:
     by_key = {k: d for k, _, d in results}
     assert set(by_key) == {k for _, k, _ in reqs}
     for _, key, entry in reqs:
-        assert by_key[key] == (root / SCENE / entry.file).read_bytes(), key
+        # handed on as checked: a VerifiedPayload of its entry (decoding does not hash it again)
+        assert isinstance(by_key[key], VerifiedPayload) and by_key[key].matches(entry), key
+        assert by_key[key].data == (root / SCENE / entry.file).read_bytes(), key
 
 
 def shas_by_size(m: Manifest) -> list[str]:
@@ -131,7 +134,8 @@ def test_faults_are_retried_and_only_verified_bytes_are_delivered(root, manifest
     reqs = requests_of(manifest)
     f = fetcher(HttpSource(server.url(SCENE)))
     try:
-        assert f.manifest() == (root / SCENE / "manifest.msgpack").read_bytes()
+        f.manifest()
+        assert f.manifest_bytes == (root / SCENE / "manifest.msgpack").read_bytes()
         f.want(reqs)
         results = collect(f, len(reqs))
         assert_exact(root, results, reqs)
@@ -230,7 +234,8 @@ def test_a_warm_cache_only_revalidates_the_manifest(root, manifest, server, tmp_
 
     f = fetcher(HttpSource(server.url(SCENE)), cache=DiskCache(tmp_path / "cache"))
     try:
-        data = f.manifest()
+        f.manifest()
+        data = f.manifest_bytes
         f.want(reqs)
         results = collect(f, len(reqs))
         s = f.stats()
@@ -257,7 +262,8 @@ def test_offline_with_a_warm_cache(root, manifest, tmp_path):
     finally:
         srv.stop()
     with fetcher(HttpSource(url), cache=DiskCache(tmp_path / "c")) as f:
-        data = f.manifest()
+        f.manifest()
+        data = f.manifest_bytes
         f.want(reqs)
         results = collect(f, len(reqs))
         s = f.stats()
@@ -350,7 +356,7 @@ def test_cancelled_keys_are_never_delivered(root, manifest, server):
         time.sleep(1.5)  # the cancelled bodies, started together with this one, would have finished by now
         got += f.done()
         assert [k for k, _, _ in got] == [("k", 0)]
-        assert got[0][2] == (root / SCENE / entries[shas[0]].file).read_bytes()
+        assert got[0][2].data == (root / SCENE / entries[shas[0]].file).read_bytes()
         f.want(reqs[1:2])  # wanted again: a new request
         again = collect(f, 1)
     assert [k for k, _, _ in again] == [("k", 1)]
@@ -463,7 +469,8 @@ def test_a_dripping_manifest_ends_at_the_manifest_deadline(root, server):
 def test_manifest_is_retried_through_server_errors(root, server):
     server.add_fault("manifest", "500", "500", "500")
     with fetcher(HttpSource(server.url(SCENE))) as f:
-        assert f.manifest() == (root / SCENE / "manifest.msgpack").read_bytes()
+        f.manifest()
+        assert f.manifest_bytes == (root / SCENE / "manifest.msgpack").read_bytes()
         s = f.stats()
     assert s.failures == {"http_5xx": 3} and s.retries == 3 and s.requests == 4
 
@@ -483,7 +490,8 @@ def test_local_stores_stream_the_same_bytes(root, manifest, kind, tmp_path):
     reqs = requests_of(manifest)
     cache = DiskCache(tmp_path / "unused")
     with fetcher(source, cache=cache) as f:
-        assert f.manifest() == (root / SCENE / "manifest.msgpack").read_bytes()
+        f.manifest()
+        assert f.manifest_bytes == (root / SCENE / "manifest.msgpack").read_bytes()
         f.want(reqs)
         results = collect(f, len(reqs))
         s = f.stats()

@@ -1,4 +1,4 @@
-"""`splatstream convert IN OUT`: any readable splat format to .ply, .splat, .spz or .glb."""
+"""`splatstream convert IN OUT`: any readable splat format to .ply, .splat, .spz, .glb or .sog."""
 from __future__ import annotations
 
 import argparse
@@ -9,7 +9,10 @@ import time
 from splatstream.atomic import check_output
 from splatstream.axes import RDF_TO_RUB, turn
 from splatstream.errors import InputError, UsageError
-from splatstream.io import FORMAT_NAMES, output_format, read_gaussians, sniff_format, write_gaussians
+from splatstream.io import FORMAT_NAMES, open_input, output_format, read_gaussians, screen_gaussians, write_gaussians
+from splatstream.readers.sog import read_sog_level
+
+from .args import add_edit_arguments, edit_report, edits_from
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -18,11 +21,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         description="Read a splat scene (standard 3DGS PLY, PlayCanvas compressed PLY, Niantic SPZ v2-v4, "
                     "antimatter15 .splat, PlayCanvas SOG as a .sog file, a meta.json or its directory, streamed SOG "
                     "as a lod-meta.json or its directory (finest level), glTF/GLB with KHR_gaussian_splatting; "
-                    "recognised by content) and write it as a standard 3DGS PLY (.ply), .splat, SPZ (.spz) or "
-                    "glTF binary with KHR_gaussian_splatting (.glb), chosen by OUT's extension. The output appears "
+                    "recognised by content) and write it as a standard 3DGS PLY (.ply), .splat, SPZ (.spz), "
+                    "glTF binary with KHR_gaussian_splatting (.glb) or PlayCanvas SOG (.sog, version 2, bundled), "
+                    "chosen by OUT's extension. The output appears "
                     "only when complete. What each format keeps is documented in format_spec/foreign_formats.md.")
     p.add_argument("input", help="input splat file or SOG directory")
-    p.add_argument("output", help="output file (.ply, .splat, .spz or .glb)")
+    p.add_argument("output", help="output file (.ply, .splat, .spz, .glb or .sog)")
     p.add_argument("--spz-axes", choices=("rub", "rdf"), default="rub",
                    help="axes of an SPZ input: rub, as the format specifies (Niantic's library, splat-transform 2.x; "
                         "default), or rdf for files stored without the axis turn (splat-transform 3.x), which read "
@@ -32,15 +36,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--glb-compression", choices=("none", "spz"), default="none",
                    help="for .glb output: plain float accessors (default) or SPZ-compressed content "
                         "(KHR_gaussian_splatting_compression_spz_2)")
+    p.add_argument("--lod-level", type=int, default=None, metavar="L",
+                   help="for a streamed SOG input: the LOD level to convert (0, the finest, by default; every level "
+                        "of the tree is readable)")
     p.add_argument("--drop-invalid", action="store_true",
                    help="drop splats with non-finite or degenerate values instead of refusing the input")
+    add_edit_arguments(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages on stderr")
     p.set_defaults(func=run)
 
 
 def run(args: argparse.Namespace) -> int:
     out_format = output_format(args.output)  # refuse an unwritable output before reading anything
-    in_format = sniff_format(args.input)
+    source = open_input(args.input)  # sniffed once: the reader takes what sniffing parsed
+    in_format = source.format
     if os.path.exists(args.output) and os.path.samefile(args.input, args.output):
         raise UsageError(f"{args.output}: output is the input file")
     check_output(args.output)
@@ -51,7 +60,12 @@ def run(args: argparse.Namespace) -> int:
             print(f"convert: {message} ({time.perf_counter() - start:.1f}s)", file=sys.stderr, flush=True)
 
     say(f"reading {args.input} ({FORMAT_NAMES[in_format]})")
-    g = read_gaussians(args.input, drop_invalid=args.drop_invalid)
+    if args.lod_level is not None:
+        if in_format != "lod_sog":
+            raise UsageError(f"--lod-level: {args.input} is not a streamed SOG")
+        g = screen_gaussians(read_sog_level(args.input, args.lod_level), args.input, args.drop_invalid)
+    else:
+        g = read_gaussians(source, drop_invalid=args.drop_invalid)
     if len(g) == 0:  # an empty .splat (or any format without a count) could not be read back
         raise InputError(args.input, None, "holds no splats (none, or none left after dropping invalid ones); "
                          "nothing to convert")
@@ -60,6 +74,16 @@ def run(args: argparse.Namespace) -> int:
             raise UsageError(f"--spz-axes rdf: {args.input} is not an SPZ file")
         g = turn(g, RDF_TO_RUB)  # undo the reader's RUB -> RDF turn: the file held RDF already
     say(f"read {len(g)} splats, SH degree {g.sh_degree}")
+    edits = edits_from(args)
+    read = len(g)
+    g, counts = edits.run(g)
+    for label, kept in counts:
+        say(f"{label}: {kept} splats kept")
+    if args.dry_run:
+        print(edit_report(args.input, read, counts))
+        return 0
+    if len(g) == 0:
+        raise UsageError(f"{args.input}: the edits keep no splats; nothing to convert")
     if out_format == "splat" and g.sh_degree > 0:
         say(f"note: .splat has no SH bands; bands 1..{g.sh_degree} are dropped")
     glb = "SPZ-compressed splats" if args.glb_compression == "spz" else "uncompressed splats"

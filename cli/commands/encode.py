@@ -7,6 +7,7 @@ import sys
 import time
 
 from splatstream.encode import encode_file
+from splatstream.encode.driver import count_edits
 from splatstream.errors import UsageError
 from splatstream.evaluate import EvalOptions, evaluate, preset_for_target
 from splatstream.format.container import DEFAULT_ZSTD_LEVEL
@@ -22,7 +23,7 @@ from splatstream.format.texformats import VALUE_FORMATS
 from splatstream.format.transport import TRANSPORTS
 from splatstream.progress import ProgressPrinter, count
 
-from .args import parse_bytes, parse_vector
+from .args import add_edit_arguments, edit_report, edits_from, parse_bytes, parse_vector
 from .renderers import pick_renderer
 
 # The views --target-psnr / --target-size measure presets on: `splatstream eval`'s defaults.
@@ -106,6 +107,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     cluster.add_argument("--scratch", metavar="PATH|URL",
                          help="where partitions are spilled (default: next to the output, or the system's temporary "
                               "directory for a URL output)")
+    add_edit_arguments(p, taken=("--scale",))
     p.add_argument("--quiet", "-q", action="store_true", help="no progress display")
     p.set_defaults(func=run)
 
@@ -130,9 +132,15 @@ def run(args: argparse.Namespace) -> int:
     if workers is not None and args.scheduler:
         raise UsageError("--workers starts a local cluster, --scheduler uses an existing one: give one of them")
     memory = parse_bytes(args.memory_per_worker, "--memory-per-worker") if args.memory_per_worker else None
+    edits = edits_from(args)
+    if args.dry_run:
+        print(edit_report(args.input, *count_edits(args.input, edits, args.drop_invalid)[1:]))
+        return 0
     t0 = time.perf_counter()
     preset = args.preset or DEFAULT_PRESET
     if args.target_psnr is not None or args.target_size is not None:
+        if edits:
+            raise UsageError("--target-psnr / --target-size measure the input as read: give them without edits")
         if args.preset or overrides or args.sh_degree is not None or args.sh_codebook is not None:
             raise UsageError("--target-psnr / --target-size choose the preset: give them without --preset, texel "
                              "formats, --sh-degree or --sh-codebook")
@@ -141,8 +149,8 @@ def run(args: argparse.Namespace) -> int:
     with progress.library_notes():
         m = encode_file(args.input, args.output_dir, preset=preset, drop_invalid=args.drop_invalid,
                         progress=progress, workers=workers, scheduler=args.scheduler, memory_per_worker=memory,
-                        scratch=args.scratch, overrides=overrides, sh_degree=args.sh_degree, zstd_level=args.zstd_level,
-                        transport=args.transport,
+                        scratch=args.scratch, edits=edits, overrides=overrides, sh_degree=args.sh_degree,
+                        zstd_level=args.zstd_level, transport=args.transport,
                         lod=not args.no_lod, max_leaf_splats=args.max_leaf_splats, reduction=args.reduction,
                         name=args.name, up=up, chunk_order=args.chunk_order, sh_codebook=args.sh_codebook)
     if not args.quiet:

@@ -22,12 +22,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "view", help="stream a scene into a window (or headless): coarse tiles first, detail and SH bands as needed",
         description="Stream SOURCE, an http(s):// scene URL served by `splatstream serve` (or any static server), a "
-                    "local scene directory, or a splat file (encoded in memory first). Tiles are chosen by "
+                    "local scene directory, a PlayCanvas streamed SOG (lod-meta.json or its directory: its own LOD "
+                    "tree, converted into ours and encoded in memory first), or a splat file (encoded in memory "
+                    "first). Tiles are chosen by "
                     "screen-space error within a GPU memory budget, fetched by priority, decoded off the render "
                     "thread and drawn coarse to fine; SH bands follow where they change the picture "
                     "(format_spec/client.md). Without --headless a window opens with orbit and fly cameras and an "
                     "overlay (H shows the controls).")
-    p.add_argument("source", help="http(s)://HOST/scenes/ID, a scene directory, or a splat file (.ply, .spz, ...)")
+    p.add_argument("source", help="http(s)://HOST/scenes/ID, a scene directory, a streamed SOG (lod-meta.json or its "
+                                  "directory), or a splat file (.ply, .spz, ...)")
     p.add_argument("--headless", action="store_true", help="no window: stream, then write what is asked for")
     cam = p.add_argument_group("camera (default: the scene's suggested camera)")
     cam.add_argument("--eye", help="camera position X,Y,Z")

@@ -7,9 +7,10 @@ before use (format_spec/http.md section 4); it is used unrevalidated only when t
 
 Safe with several processes (and threads) sharing one directory: every file is written under a unique temporary
 name and renamed into place, so a reader sees a whole file or none; every read is verified (a payload's size and
-SHA-256, a manifest's URL and checksum) and a damaged file is deleted and reported as a miss. Payloads are kept
-under a size cap, least recently used evicted first; "use" is the file's mtime, bumped on every hit, so processes
-share one LRU order. Blocking: the fetcher calls it from worker threads.
+SHA-256, a manifest's URL and checksum) and a damaged file is deleted and reported as a miss; a payload is handed
+out as a VerifiedPayload, so nothing downstream hashes it again. Payloads are kept under a size cap, least
+recently used evicted first; "use" is the file's mtime, bumped on every hit, so processes share one LRU order.
+Blocking: the fetcher calls it from worker threads.
 """
 from __future__ import annotations
 
@@ -23,7 +24,8 @@ from dataclasses import dataclass
 
 import msgpack
 
-from splatstream.errors import UsageError
+from splatstream.errors import FormatError, UsageError
+from splatstream.format.container import VerifiedPayload, verify_payload
 from splatstream.format.manifest import MAX_MANIFEST_BYTES, PayloadEntry
 from splatstream.format.names import SHA256_HEX_RE
 
@@ -121,9 +123,9 @@ class DiskCache:
         with self._lock:
             return sha256 in self._ensure_index()
 
-    def get(self, entry: PayloadEntry) -> bytes | None:
-        """The payload's bytes, verified against the entry (size and SHA-256); None when absent or damaged (a
-        damaged file is deleted)."""
+    def get(self, entry: PayloadEntry) -> VerifiedPayload | None:
+        """The payload's bytes, verified against the entry (size and SHA-256: decoding does not hash them again);
+        None when absent or damaged (a damaged file is deleted)."""
         path = self.payload_path(entry.sha256)
         try:
             with open(path, "rb") as f:
@@ -133,7 +135,9 @@ class DiskCache:
                 self._forget(entry.sha256)
                 self.stats.misses += 1
             return None
-        if len(data) != entry.bytes or hashlib.sha256(data).hexdigest() != entry.sha256:
+        try:
+            payload = verify_payload(data, entry, path)
+        except FormatError:
             with contextlib.suppress(FileNotFoundError):
                 os.unlink(path)
             with self._lock:
@@ -147,7 +151,7 @@ class DiskCache:
         with self._lock:
             self._ensure_index()[entry.sha256] = (len(data), now)
             self.stats.hits += 1
-        return data
+        return payload
 
     def discard(self, sha256: str) -> None:
         """Remove a payload (it verified but does not decode: nothing bad stays in the cache)."""

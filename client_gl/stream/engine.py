@@ -5,7 +5,7 @@
     renderer.render(camera, draw_set=update.draw)                    # tile ids, a hole-free REPLACE cut
 
 Each frame: select the wanted cut and bands (selection.py), tell the fetcher the complete priority-ordered list
-of payloads wanted now (it cancels what fell off it), hand fetched bytes to decode workers (verify -> decode, off
+of payloads wanted now (it cancels what fell off it), hand fetched, verified payloads to decode workers (decode, off
 the render thread), upload decoded tiles into the pool under a per-frame byte budget (evicting the least recently
 drawn tiles nobody wants when slots run out; the root is never evicted), and compute the draw set. No GL here:
 `residency` is anything with the pool's residency API (client_gl.gpu.pool.ChunkPool; tests use a plain one).
@@ -24,8 +24,9 @@ import numpy as np
 
 from splatstream.camera import Camera
 from splatstream.errors import SplatstreamError, UsageError
+from splatstream.format.container import VerifiedPayload
 from splatstream.format.decode import codebook_index, decode_payload
-from splatstream.format.manifest import Manifest, PayloadEntry, parse_manifest
+from splatstream.format.manifest import Manifest, PayloadEntry
 from splatstream.format.planes import band_of
 
 from ..tiledata import TileData, host_mirror
@@ -54,11 +55,11 @@ class Residency(Protocol):
 
 
 class FetcherLike(Protocol):
-    def manifest(self) -> bytes: ...
+    def manifest(self) -> Manifest: ...  # parsed once, by the fetcher
 
     def want(self, requests: list[tuple[float, Key, PayloadEntry]]) -> None: ...
 
-    def done(self) -> list[tuple[Key, PayloadEntry, bytes]]: ...
+    def done(self) -> list[tuple[Key, PayloadEntry, VerifiedPayload | bytes]]: ...
 
     def stats(self) -> Any: ...  # with .in_flight and .queued (fetch.FetchStats)
 
@@ -111,10 +112,11 @@ class _Ready:
     nbytes: int
 
 
-def decode_job(data: bytes, entry: PayloadEntry, group: str, where: str, codebook_tile: bool, splats: int,
-               codebook_entries: int, with_mirror: bool, between=None) -> tuple[dict, Any] | str:
-    """A verified payload decoded into planes (and the CPU-sort path's host mirror of a base): on a decode thread or
-    in a decode process (plain arguments, so it pickles). A payload that does not decode gives the error's message:
+def decode_job(data: VerifiedPayload | bytes, entry: PayloadEntry, group: str, where: str, codebook_tile: bool,
+               splats: int, codebook_entries: int, with_mirror: bool, between=None) -> tuple[dict, Any] | str:
+    """A payload decoded into planes (and the CPU-sort path's host mirror of a base): on a decode thread or in a
+    decode process (plain arguments, so it pickles). A VerifiedPayload (the fetcher's) is not hashed again; bytes
+    from a fetcher that does not verify are verified here. A payload that does not decode gives the error's message:
     the bytes matched their checksum, so the scene is broken, not the link. between: a decode thread's wait for the
     frame loop, between the payload's steps (decode_payload)."""
     try:
@@ -163,8 +165,7 @@ class StreamEngine:
         self.residency = residency
         self.options = options
         self.location = location
-        self.manifest = manifest or parse_manifest(fetcher.manifest(), f"{location}/manifest.msgpack",
-                                                      lazy_payloads=True)
+        self.manifest = manifest if manifest is not None else fetcher.manifest()
         m = self.manifest
         self.arrays = m.arrays
         self.root = m.index_of[m.root]
@@ -402,7 +403,7 @@ class StreamEngine:
         """The frame loop waits for the GPU or the display now: decoding and fetching may run."""
         self._loop_idle.set()
 
-    def _decode(self, key: Key, entry: PayloadEntry, data: bytes) -> None:
+    def _decode(self, key: Key, entry: PayloadEntry, data: VerifiedPayload | bytes) -> None:
         # Between every step of the payload, not only before it: a decode running into the frame loop's CPU work
         # takes the interpreter lock from it at each of its numpy calls (a payload has hundreds), and every hand-over
         # cost the loop about 0.1 ms on the GPU machine: 10-20 ms in the frames that upload.
@@ -413,7 +414,7 @@ class StreamEngine:
     def _wait_for_loop(self) -> None:
         self._loop_idle.wait(DECODE_WAIT_S)
 
-    def _job_args(self, key: Key, entry: PayloadEntry, data: bytes) -> tuple:
+    def _job_args(self, key: Key, entry: PayloadEntry, data: VerifiedPayload | bytes) -> tuple:
         tile_id, group = key
         codebook_tile = self.codebook and tile_id is not None
         splats = self.manifest.tile(tile_id).splats if tile_id is not None else 0
@@ -428,7 +429,7 @@ class StreamEngine:
         planes, extra = result
         return _Ready(key, planes, extra, planes_nbytes(planes))
 
-    def _submit(self, key: Key, entry: PayloadEntry, data: bytes) -> None:
+    def _submit(self, key: Key, entry: PayloadEntry, data: VerifiedPayload | bytes) -> None:
         procs = self._processes
         if procs is not None and self._processes_ready.done() and not self._processes_ready.exception():
             future = procs.submit(decode_job, *self._job_args(key, entry, data))

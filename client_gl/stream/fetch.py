@@ -3,14 +3,15 @@
 A `Fetcher` runs its own asyncio event loop on a background thread; the render thread talks to it through three
 thread-safe calls:
 
-* `manifest()`: the scene's manifest bytes (blocking; retried; revalidated against the disk cache with its ETag;
-  the cached copy when the server cannot be reached: offline mode).
+* `manifest()`: the scene's manifest, parsed once, here (blocking; retried; revalidated against the disk cache with
+  its ETag; the cached copy when the server cannot be reached: offline mode).
 * `want(requests)`: the complete list of payloads the engine wants now, best first, as (priority, key, entry).
   The fetcher starts the first ones (up to `max_in_flight` network requests), keeps the rest queued in that
   order, and cancels in-flight requests whose key is no longer listed. Disk-cache hits are read beside the
   network requests, without a request.
-* `done()`: the payloads completed since the last call, as (key, entry, bytes). Every one was checked against its
-  manifest entry (size and SHA-256) first; nothing unverified is ever delivered.
+* `done()`: the payloads completed since the last call, as (key, entry, VerifiedPayload). Every one was checked
+  against its manifest entry (size and SHA-256) where it entered, here or in the disk cache, and is delivered as
+  checked: decoding takes it without hashing it again; nothing unverified is ever delivered.
 
 Failures are retried as long as the key stays wanted, with capped exponential backoff and full jitter: per
 payload for its own failures (5xx, 404, checksum mismatch, truncated body, stall), and for all network requests
@@ -32,7 +33,7 @@ from collections.abc import Awaitable, Callable, Hashable, Iterable
 from dataclasses import dataclass, field
 
 from splatstream.errors import FormatError, UsageError
-from splatstream.format.container import verify_payload
+from splatstream.format.container import VerifiedPayload, verify_payload
 from splatstream.format.manifest import Manifest, PayloadEntry, parse_manifest
 
 from .cache import DiskCache
@@ -53,7 +54,7 @@ log = logging.getLogger("splatstream.stream")
 
 Key = Hashable
 Request = tuple[float, Key, PayloadEntry]
-Result = tuple[Key, PayloadEntry, bytes]
+Result = tuple[Key, PayloadEntry, VerifiedPayload]
 
 # Where the manifest came from (FetchStats.manifest_source)
 MANIFEST_NETWORK = "network"          # downloaded (status 200)
@@ -175,7 +176,7 @@ class Fetcher:
         self._failures: dict[str, int] = {}
         self._offline = False
         self._manifest_source = ""
-        self._parsed: tuple[bytes, Manifest] | None = None
+        self._manifest_bytes: bytes | None = None  # what manifest() returned, as bytes
         self._last_error = ""
         self._key_errors: dict[Key, tuple[str, int]] = {}  # wanted keys failing now: (last message, attempts)
         self._rejected: set[str] = set()  # SHA-256 of payloads that verified but do not decode (reject())
@@ -274,10 +275,12 @@ class Fetcher:
         return self._loop
 
     # -- the render thread's API ----------------------------------------------------------------------------------
-    def manifest(self, timeout_s: float | None = None) -> bytes:
-        """The manifest's bytes (validated by parse_manifest), retried on transient failures for up to
-        `timeout_s` (default manifest_timeout_s). Raises FetchError: at once when the scene does not exist or is
-        not a scene, at the deadline when the server stays unreachable and nothing is cached."""
+    def manifest(self, timeout_s: float | None = None) -> Manifest:
+        """The scene's manifest, fetched (retried on transient failures for up to `timeout_s`, default
+        manifest_timeout_s) and parsed here, once (payload entries checked when first read): the session, its
+        engine and whoever else needs it share this Manifest. Its bytes: `manifest_bytes`. Raises FetchError: at
+        once when the scene does not exist or is not a scene, at the deadline when the server stays unreachable
+        and nothing is cached."""
         loop = self._require_running()
         limit = self.manifest_timeout_s if timeout_s is None else timeout_s
         fut = asyncio.run_coroutine_threadsafe(self._get_manifest(limit), loop)
@@ -286,11 +289,10 @@ class Fetcher:
         except concurrent.futures.CancelledError:
             raise FetchError(self.source.location, "closed", "the fetcher was closed", transient=False) from None
 
-    def parsed_manifest(self, data: bytes) -> Manifest | None:
-        """The Manifest this fetcher parsed (to validate it) from exactly these bytes, if it did: a client need not
-        parse a large manifest twice (0.15-0.3 s for a 6M-splat scene's)."""
-        parsed = self._parsed
-        return parsed[1] if parsed is not None and parsed[0] is data else None
+    @property
+    def manifest_bytes(self) -> bytes | None:
+        """The bytes of the manifest the last manifest() call returned (None before one did)."""
+        return self._manifest_bytes
 
     def want(self, requests: Iterable[Request]) -> None:
         """Replace the wanted list: (priority, key, entry), best first (the list's order is the service order;
@@ -324,7 +326,7 @@ class Fetcher:
                 loop.call_soon_threadsafe(job.task.cancel)
 
     def done(self) -> list[Result]:
-        """Verified payloads completed since the last call: (key, entry, bytes), in completion order."""
+        """Verified payloads completed since the last call: (key, entry, VerifiedPayload), in completion order."""
         with self._lock:
             out, self._ready = self._ready, []
             for key, _, _ in out:
@@ -444,11 +446,11 @@ class Fetcher:
             where = self.where(entry)
             data = await self._timed(lambda on_bytes: self.source.fetch_payload(entry, on_bytes), where)
             try:
-                await loop.run_in_executor(None, verify_payload, data, entry, where)
+                payload = await loop.run_in_executor(None, verify_payload, data, entry, where)
             except FormatError as exc:
                 raise FetchError(where, CHECKSUM, exc.problem) from None
-            if self._complete(job, data, from_cache=False) and self.cache is not None:
-                loop.run_in_executor(None, self._cache_put, entry, data)  # never raises; awaited at shutdown
+            if self._complete(job, payload, from_cache=False) and self.cache is not None:
+                loop.run_in_executor(None, self._cache_put, entry, payload.data)  # never raises; awaited at shutdown
         except asyncio.CancelledError:
             raise
         except FetchError as exc:
@@ -516,7 +518,7 @@ class Fetcher:
             self._link_until = 0.0
             self._offline = False
 
-    def _complete(self, job: _Job, data: bytes | None, from_cache: bool) -> bool:
+    def _complete(self, job: _Job, data: VerifiedPayload | None, from_cache: bool) -> bool:
         """Deliver verified bytes to the job's key and every other waiting key of the same payload; False when the
         job was cancelled meanwhile (nothing delivered)."""
         with self._lock:
@@ -596,7 +598,7 @@ class Fetcher:
             self._counts["requests"] += 1
         log.info("%s: the scene was re-encoded; continuing with its new manifest", self.source.location)
 
-    async def _get_manifest(self, limit_s: float) -> bytes:
+    async def _get_manifest(self, limit_s: float) -> Manifest:
         loop = asyncio.get_running_loop()
         key = getattr(self.source, "cache_key", None)
         cached = None
@@ -631,9 +633,9 @@ class Fetcher:
                                      transient=False) from None
                 if self.cache is not None and key:
                     await loop.run_in_executor(None, self.cache.put_manifest, key, reply.data, reply.etag)
-                self._parsed = (reply.data, parsed)
                 self._manifest_data, self._manifest_etag = reply.data, reply.etag
-                return self._manifest_done(reply.data, MANIFEST_LOCAL if key is None else MANIFEST_NETWORK)
+                return self._manifest_done(reply.data, MANIFEST_LOCAL if key is None else MANIFEST_NETWORK,
+                                           parsed=parsed)
             except FetchError as exc:
                 with self._lock:
                     self._failures[exc.kind] = self._failures.get(exc.kind, 0) + 1
@@ -663,14 +665,20 @@ class Fetcher:
                     self._counts["retries"] += 1
                 await asyncio.sleep(delay)
 
-    def _manifest_done(self, data: bytes, source: str, from_cache: bool = False) -> bytes:
+    def _manifest_done(self, data: bytes, source: str, from_cache: bool = False,
+                       parsed: Manifest | None = None) -> Manifest:
+        """The manifest parsed (a cached copy is parsed here: it was valid when stored, and is checked again by
+        this reader), its bytes and origin kept."""
+        if parsed is None:
+            parsed = parse_manifest(data, self.source.location, lazy_payloads=True)
         with self._lock:
             self._manifest_source = source
+            self._manifest_bytes = data
             if source == MANIFEST_OFFLINE:
                 self._offline = True
             if from_cache:
                 self._counts["bytes_from_cache"] += len(data)
-        return data
+        return parsed
 
 
 def _log_loop_exception(loop: asyncio.AbstractEventLoop, context: dict) -> None:

@@ -24,6 +24,7 @@ from splatstream.errors import InputError, UsageError
 from splatstream.format.manifest import MAX_MANIFEST_BYTES, PayloadEntry
 from splatstream.format.names import MANIFEST_NAME, manifest_url, payload_url
 from splatstream.io import declared_up, read_gaussians
+from splatstream.sog_import import encode_streamed_sog
 from splatstream.store import DirectoryStore, FsspecStore, MemoryStore, SceneStore
 
 # on_bytes(n): called with 0 when a response's headers arrive, then with the size of each body chunk received.
@@ -280,7 +281,8 @@ OBJECT_STORE_SCHEMES = ("s3", "gs", "gcs", "az", "abfs", "memory")
 
 def open_source(spec: str | os.PathLike, *, encode_options=None, progress: Progress | None = None,
                 connections: int = 8) -> SceneSource:
-    """A source for an `http(s)://` scene URL, a scene directory (or its manifest.msgpack), or a splat file
+    """A source for an `http(s)://` scene URL, a scene directory (or its manifest.msgpack), a PlayCanvas streamed
+    SOG (lod-meta.json or its directory: its own LOD tree, encoded in memory), or a splat file
     (3DGS PLY, compressed PLY, SPZ, .splat: read and encoded in memory with LOD on; `progress(stage, fraction)`
     follows the read and the encode; `encode_options` an EncodeOptions). Raises UsageError or InputError with
     one line naming `spec` and what was expected."""
@@ -300,6 +302,9 @@ def open_source(spec: str | os.PathLike, *, encode_options=None, progress: Progr
     if not os.path.exists(text):
         raise InputError(text, None, "no such file or directory (expected an http(s):// scene URL, a scene "
                          "directory or a splat file)")
+    if _is_streamed_sog(text):
+        # Their LOD tree, converted into ours on the fly (splatstream/sog_import.py): streamed coarse to fine.
+        return StoreSource(encode_streamed_sog(text, encode_options, progress))
     if os.path.isdir(text):
         if not os.path.isfile(os.path.join(text, MANIFEST_NAME)):
             raise InputError(text, None, f"not a scene directory (no {MANIFEST_NAME}; encode a splat file with "
@@ -308,6 +313,14 @@ def open_source(spec: str | os.PathLike, *, encode_options=None, progress: Progr
     if os.path.basename(text) == MANIFEST_NAME:
         return StoreSource(DirectoryStore(os.path.dirname(os.path.abspath(text))))
     return StoreSource(encode_splat_file(text, encode_options, progress))
+
+
+def _is_streamed_sog(path: str) -> bool:
+    """A PlayCanvas streamed SOG: a lod-meta.json, or a directory holding one (and no manifest of ours)."""
+    if os.path.isdir(path):
+        return os.path.isfile(os.path.join(path, "lod-meta.json")) and \
+            not os.path.isfile(os.path.join(path, MANIFEST_NAME))
+    return os.path.basename(path).lower() == "lod-meta.json"
 
 
 def encode_splat_file(path: str, encode_options=None, progress: Progress | None = None) -> MemoryStore:

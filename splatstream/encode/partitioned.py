@@ -30,10 +30,11 @@ from typing import Protocol
 
 import numpy as np
 
+from ..edit import Pipeline
 from ..errors import UsageError
 from ..format.manifest import Box, TileEntry
-from ..format.presets import preset_steps, resolve_chunk_order, resolve_formats
 from ..gaussians import SH_REST_COEFFS, Gaussians
+from ..io import SplatInput, read_gaussians
 from ..lod import (
     Tile,
     TreeShape,
@@ -54,12 +55,12 @@ from ..lod import (
     tile_error_first,
     viewing_blur,
 )
-from ..ply import RowStats, check_rows, read_ply_rows, vertex_layout
+from ..ply import RowStats, VertexLayout, check_rows, read_ply_rows
 from ..store import SceneWriter
 from .codebook import codebook_choice
 from .jobs import encode_codebook, encode_tile
 from .options import EncodeOptions, Progress, no_progress
-from .plan import EncodePlan, TileContext, plan_up, scene_name
+from .plan import TileContext, plan_formats, plan_scene, scene_name
 from .reduce import build_manifest
 from .sample import SceneSample
 from .scratch import Scratch
@@ -106,7 +107,7 @@ class Engine(Protocol):
 class PlyRows:
     """A binary 3DGS PLY: each chunk of rows is one byte range of the file."""
 
-    layout: object  # ply.VertexLayout
+    layout: VertexLayout
     path: str
 
     @property
@@ -155,22 +156,40 @@ class SpilledRows:
         return Gaussians(*(a[k] for k in ATTRIBUTES)), RowStats(rows=int(len(a["positions"])))
 
 
-def open_rows(path: str, scratch: Scratch, chunk_rows: int, drop_invalid: bool, progress: Progress):
-    """The input as rows to read in chunks: a binary PLY in byte ranges, anything else read once and spilled."""
-    from ..io import read_gaussians, sniff_format
+@dataclass
+class EditedRows:
+    """Rows with the edits of issue 36 (edit.Pipeline) applied to each chunk as it is read: every edit is a
+    function of one splat, so the kept rows and their values are those of the whole scene edited at once."""
 
-    if sniff_format(path) == "ply":
-        layout = vertex_layout(path)
-        if layout is not None:
-            return PlyRows(layout, path)
+    inner: PlyRows | ArrayRows | SpilledRows
+    edits: Pipeline
+
+    @property
+    def rows(self) -> int:
+        return self.inner.rows
+
+    @property
+    def sh_degree(self) -> int:
+        return self.inner.sh_degree
+
+    def read(self, start: int, stop: int) -> tuple[Gaussians, RowStats]:
+        g, stats = self.inner.read(start, stop)
+        return self.edits.apply(g), stats
+
+
+def open_rows(source: SplatInput, layout: VertexLayout | None, scratch: Scratch, chunk_rows: int,
+              drop_invalid: bool, progress: Progress):
+    """The input as rows to read in chunks: a binary PLY in byte ranges (its `layout`, from
+    SplatInput.vertex_layout), anything else read once and spilled."""
+    if layout is not None:
+        return PlyRows(layout, source.path)
     progress("read", 0.0)
-    g = read_gaussians(path, drop_invalid=drop_invalid)
+    g = read_gaussians(source, drop_invalid=drop_invalid)
     for i, start in enumerate(range(0, len(g), chunk_rows)):
         part = g.subset(slice(start, start + chunk_rows))
         scratch.save(f"input/{i}", **{k: getattr(part, k) for k in ATTRIBUTES})
     progress("read", 1.0)
     return SpilledRows(scratch, chunk_rows, len(g), g.sh_degree)
-
 
 # ---------------------------------------------------------------------------------------------- tasks
 
@@ -581,30 +600,20 @@ def _top_splits(engine: Engine, scratch: Scratch, chunks: list[tuple[int, int]],
     return splits
 
 
-def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: Engine, scratch: Scratch,
-                       progress: Progress = no_progress, source_name: str | None = None,
-                       out_name: str | None = None, drop_invalid: bool = False):
-    """Encode the rows of an input (PlyRows, ArrayRows, SpilledRows) through a writer on an engine."""
-    formats = resolve_formats(opts.preset, opts.overrides)
-    chunk_order = resolve_chunk_order(opts.chunk_order, formats)
-    if not opts.lod:
-        raise UsageError("a partitioned encode needs LOD (--no-lod keeps the whole scene in one tile)")
-    sh_degree = opts.sh_degree if opts.sh_degree is not None else rows.sh_degree
-    sh_degree = min(sh_degree, rows.sh_degree)
-    row_bytes = _row_bytes(sh_degree)
-    # Chunks small enough for a worker's memory and numerous enough to keep every worker busy in the passes.
-    chunk_rows = min(engine.memory_per_worker // (8 * row_bytes), -(-rows.rows // (4 * engine.workers)))
-    chunk_rows = int(min(1 << 22, max(1 << 16, chunk_rows)))
-    spans = [(s, min(s + chunk_rows, rows.rows)) for s in range(0, rows.rows, chunk_rows)]
-
+def _scan(engine: Engine, rows, spans: list[tuple[int, int]], scratch: Scratch, progress: Progress,
+          ply_path: str | None, drop_invalid: bool
+          ) -> tuple[list[tuple[int, int]], np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+    """Stage 1, the scan: each chunk's kept rows as a range of input indices, the centres' box and the split sample
+    (centres and their input indices). `ply_path`: a PLY read by rows, whose invalid rows are reported here for
+    the whole file at once (ply.check_rows)."""
     stride = max(1, rows.rows // SPLIT_SAMPLE)
     scans = engine.map(scan_chunk, [(rows, i, s, e, scratch, stride) for i, (s, e) in enumerate(spans)], "read",
                        progress)
     stats = RowStats()
     for _, st, _, _, _ in scans:
         stats = stats + st
-    if isinstance(rows, PlyRows):
-        check_rows(rows.path, stats, drop_invalid)
+    if ply_path is not None:
+        check_rows(ply_path, stats, drop_invalid)
     kept = np.array([s[0] for s in scans], np.int64)
     splats = int(kept.sum())
     if splats == 0:
@@ -615,15 +624,41 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
     chunks = [(int(offsets[i]), int(offsets[i + 1])) for i in range(len(spans))]
     lo = np.min([s[2] for s in scans], axis=0)
     hi = np.max([s[3] for s in scans], axis=0)
+    split_sample = (np.concatenate([s[4] for s in scans]),
+                    np.concatenate([offsets[i] + stride * np.arange(len(s[4]), dtype=np.int64)
+                                    for i, s in enumerate(scans)]))
+    return chunks, lo, hi, split_sample
+
+
+def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: Engine, scratch: Scratch,
+                       progress: Progress = no_progress, source_name: str | None = None,
+                       out_name: str | None = None, drop_invalid: bool = False, edits: Pipeline | None = None):
+    """Encode the rows of an input (PlyRows, ArrayRows, SpilledRows) through a writer on an engine, edited by
+    `edits` (chunk by chunk, EditedRows)."""
+    source_rows = rows
+    if edits:
+        rows = EditedRows(rows, edits)
+    formats, chunk_order = plan_formats(opts)
+    if not opts.lod:
+        raise UsageError("a partitioned encode needs LOD (--no-lod keeps the whole scene in one tile)")
+    sh_degree = opts.sh_degree if opts.sh_degree is not None else rows.sh_degree
+    sh_degree = min(sh_degree, rows.sh_degree)
+    row_bytes = _row_bytes(sh_degree)
+    # Chunks small enough for a worker's memory and numerous enough to keep every worker busy in the passes.
+    chunk_rows = min(engine.memory_per_worker // (8 * row_bytes), -(-rows.rows // (4 * engine.workers)))
+    chunk_rows = int(min(1 << 22, max(1 << 16, chunk_rows)))
+    spans = [(s, min(s + chunk_rows, rows.rows)) for s in range(0, rows.rows, chunk_rows)]
+
+    chunks, lo, hi, split_sample = _scan(engine, rows, spans, scratch, progress,
+                                         source_rows.path if isinstance(source_rows, PlyRows) else None,
+                                         drop_invalid)
+    splats = chunks[-1][1]
     bounds = Box(tuple(float(v) for v in lo), tuple(float(v) for v in hi))
 
     shape = TreeShape.of(splats, opts.max_leaf_splats, opts.reduction)
     level = partition_level(shape, row_bytes, engine)
     kd = shape.kd_depths[level]
     partitions = 2 ** kd
-    split_sample = (np.concatenate([s[4] for s in scans]),
-                    np.concatenate([offsets[i] + stride * np.arange(len(s[4]), dtype=np.int64)
-                                    for i, s in enumerate(scans)]))
     splits = _top_splits(engine, scratch, chunks, kd, splats, (lo, hi), split_sample, progress)
     del split_sample
 
@@ -635,17 +670,13 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
                                        for i in range(len(spans))], "cleanup")
     sample = SceneSample.join([r[1] for r in routed])
     del routed
-    codebook = None
-    if choice != "off":
-        progress("codebook", 0.0)
-        codebook = sample.codebook(choice)
-        progress("codebook", 1.0)
-    sample.codebook_rows = sample.codebook_weights = None
-    up = plan_up(opts, sample)
-    ctx = TileContext(formats, chunk_order, sh_degree, codebook, opts.resolved_zstd_level, opts.transport,
-                      preset_steps(opts.preset, opts.overrides))
+    # The chunk order stays morton where the in-memory engine may keep an input's order (plan_encode): that needs
+    # the whole scene in one tile, which a partitioned encode never has for more than one leaf of splats.
+    scene, sample = plan_scene(opts, formats, chunk_order, sh_degree, sample, splats, bounds,
+                               scene_name(opts, source_name, out_name), progress)
+    ctx = scene.context
     payloads = writer.payload_writer()
-    codebook_entry = encode_codebook(codebook, ctx, payloads) if codebook is not None else None
+    codebook_entry = encode_codebook(ctx.codebook, ctx, payloads) if ctx.codebook is not None else None
 
     results = engine.map(build_partition, [(p, level, shape, chunk_counts, scratch, ctx, payloads,
                                             engine.threads_per_task, level > 0) for p in range(partitions)],
@@ -656,8 +687,7 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
                             progress)
     if level > 0:
         engine.map_behind(delete_scratch, [(scratch, [f"originals/{p}"]) for p in range(partitions)], "cleanup")
-    plan = EncodePlan(ctx, [], opts, scene_name(opts, source_name, out_name), splats, bounds, up, sample)
-    m = build_manifest(plan, sample.camera(up), sorted(entries, key=lambda t: t.id), codebook_entry)
+    m = build_manifest(scene, sample.camera(scene.up), sorted(entries, key=lambda t: t.id), codebook_entry)
     engine.settle()
     writer.write_manifest(m)
     return m

@@ -1,9 +1,10 @@
-"""Plan: the scene-wide steps of an encode, done once before any tile is written.
+"""Plan: the scene-wide steps of an encode, done once before any tile is written, the same for every engine.
 
-Formats and SH degree from the options, the SH codebook, the up direction and the suggested camera (from the
-deterministic samples of sample.py, the same a partitioned encode takes), the LOD tile tree (lod.py) and the
-bounds. What comes out is everything a per-tile job needs
-(`TileContext`) plus the tiles themselves; jobs.py encodes tiles, reduce.py builds the manifest.
+`plan_formats` (texel formats and chunk order from the options) and `plan_scene` (the SH codebook, the up
+direction and the ScenePlan the manifest is built from, out of the deterministic scene sample of sample.py) are
+what the in-memory engine (`plan_encode`, below, with the LOD tile tree of lod.py) and the partitioned one
+(partitioned.py, from the samples its passes over the rows gather) share; a per-tile job needs only the
+`TileContext`; jobs.py encodes tiles, reduce.py builds the manifest from the ScenePlan and the tiles' entries.
 """
 from __future__ import annotations
 
@@ -45,16 +46,32 @@ class TileContext:
     steps: dict[str, TileStep] = field(default_factory=dict)
 
 
-@dataclass
-class EncodePlan:
+@dataclass(frozen=True)
+class ScenePlan:
+    """What the manifest says of the scene as a whole (reduce.build_manifest takes exactly this), decided before
+    any tile is written."""
+
     context: TileContext
-    tiles: list[Tile]  # breadth-first, root first; a single tile's bounds may still be None (jobs compute them)
-    options: EncodeOptions
+    preset: str
     name: str
     splats: int
     bounds: Box
     up: tuple[float, float, float]
-    sample: SceneSample | None = None
+    max_leaf_splats: int
+    reduction: float
+
+
+@dataclass
+class EncodePlan:
+    """The in-memory engine's plan: the scene's, and its tiles with their splats."""
+
+    scene: ScenePlan
+    tiles: list[Tile]  # breadth-first, root first; a single tile's bounds may still be None (jobs compute them)
+    sample: SceneSample
+
+    @property
+    def context(self) -> TileContext:
+        return self.scene.context
 
 
 def resolve_sh_degree(opts: EncodeOptions, g: Gaussians) -> int:
@@ -106,41 +123,67 @@ def _on_chunk_grids(values: np.ndarray) -> bool:
     return on_grid(steps, INPUT_GRID_TOLERANCE)
 
 
-def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progress,
-                source_name: str | None = None, out_name: str | None = None) -> EncodePlan:
+def plan_formats(opts: EncodeOptions) -> tuple[dict[str, str], str]:
+    """Texel formats per attribute and the chunk order from the options (format/presets.py); a UsageError for an
+    unknown preset or format, before anything is read."""
     formats = resolve_formats(opts.preset, opts.overrides)
-    chunk_order = resolve_chunk_order(opts.chunk_order, formats)
-    if len(g) == 0:
-        raise InputError(source_name or "<gaussians>", None, "holds no splats (none, or none left after dropping "
-                         "invalid ones); nothing to encode")
-    # The encoder never writes what its readers refuse: values beyond the format's domain (format.md 4.8) would
-    # make a range non-finite or decode to NaN. Files read through io.read_gaussians are screened already.
-    violations = domain_violations(g)
-    if violations:
-        raise InputError(source_name or "<gaussians>", None, describe_violations(violations, len(g))[1])
-    sh_degree = resolve_sh_degree(opts, g)
-    if sh_degree != g.sh_degree:
-        g = g.with_sh_degree(sh_degree)
+    return formats, resolve_chunk_order(opts.chunk_order, formats)
+
+
+def plan_scene(opts: EncodeOptions, formats: dict[str, str], chunk_order: str, sh_degree: int, sample: SceneSample,
+               splats: int, bounds: Box, name: str, progress: Progress = no_progress
+               ) -> tuple[ScenePlan, SceneSample]:
+    """The scene-wide decisions every engine takes from the scene sample: the SH codebook (fitted on the sample's
+    rows, which are then dropped: below the sample size they are every splat's SH, 180 MB at 1M splats of SH3,
+    which kept the codebook presets' LOD encode above 3x the input in peak memory) and the up direction. Returns
+    the plan and the sample without its codebook rows (it still gives the camera)."""
     choice = codebook_choice(opts, sh_degree)
-    sample = SceneSample.of(g, with_codebook=choice != "off")
     codebook = None
     if choice != "off":
         progress("codebook", 0.0)
         codebook = sample.codebook(choice)
         progress("codebook", 1.0)
-        # The fitting rows are not needed again: below the sample size they are every splat's SH (180 MB at 1M
-        # splats of SH3), which kept the codebook presets' LOD encode above 3x the input in peak memory.
-        sample = replace(sample, codebook_rows=None, codebook_weights=None)
-    bounds = Box(tuple(float(v) for v in g.positions.min(axis=0)), tuple(float(v) for v in g.positions.max(axis=0)))
+    sample = replace(sample, codebook_rows=None, codebook_weights=None)
     up = plan_up(opts, sample)
-    progress("tiles", 0.0)
-    tiles = plan_tiles(g, opts, progress)
-    progress("tiles", 1.0)
-    if opts.chunk_order == "auto" and chunk_order == "morton" and len(tiles) == 1 and input_is_chunk_quantised(g):
-        chunk_order = "input"
     context = TileContext(formats, chunk_order, sh_degree, codebook, opts.resolved_zstd_level, opts.transport,
                           preset_steps(opts.preset, opts.overrides))
-    return EncodePlan(context, tiles, opts, scene_name(opts, source_name, out_name), len(g), bounds, up, sample)
+    return ScenePlan(context, opts.preset, name, splats, bounds, up, opts.max_leaf_splats,
+                     float(opts.reduction)), sample
+
+
+def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progress,
+                source_name: str | None = None, out_name: str | None = None, screened: bool = False,
+                tiles: list[Tile] | None = None) -> EncodePlan:
+    """The in-memory engine's plan. `screened`: `g` was read through io.read_gaussians, which refused (or
+    dropped) values beyond the format's domain already, so the check is not repeated. `tiles`: a tree built
+    already (a foreign LOD tree: sog_import.py), breadth-first with bounds and errors, its leaves holding `g`;
+    otherwise the LOD builder makes one."""
+    formats, chunk_order = plan_formats(opts)
+    if len(g) == 0:
+        raise InputError(source_name or "<gaussians>", None, "holds no splats (none, or none left after dropping "
+                         "invalid ones); nothing to encode")
+    # The encoder never writes what its readers refuse: values beyond the format's domain (format.md 4.8) would
+    # make a range non-finite or decode to NaN.
+    violations = [] if screened else domain_violations(g)
+    if violations:
+        raise InputError(source_name or "<gaussians>", None, describe_violations(violations, len(g))[1])
+    sh_degree = resolve_sh_degree(opts, g)
+    if sh_degree != g.sh_degree:
+        g = g.with_sh_degree(sh_degree)
+    one_tile = not (opts.lod and len(g) > opts.max_leaf_splats)  # plan_tiles' choice, known before the tree
+    # An input already cut into quantised chunks keeps its order in a single tile (input_is_chunk_quantised).
+    if opts.chunk_order == "auto" and chunk_order == "morton" and one_tile and input_is_chunk_quantised(g):
+        chunk_order = "input"
+    sample = SceneSample.of(g, with_codebook=codebook_choice(opts, sh_degree) != "off")
+    scene, sample = plan_scene(opts, formats, chunk_order, sh_degree, sample, len(g), positions_box(g.positions),
+                               scene_name(opts, source_name, out_name), progress)
+    progress("tiles", 0.0)
+    if tiles is None:
+        tiles = plan_tiles(g, opts, progress)
+    elif sh_degree != g.sh_degree or any(t.gaussians.sh_degree != sh_degree for t in tiles):
+        tiles = [replace(t, gaussians=t.gaussians.with_sh_degree(sh_degree)) for t in tiles]
+    progress("tiles", 1.0)
+    return EncodePlan(scene, tiles, sample)
 
 
 def plan_up(opts: EncodeOptions, sample: SceneSample) -> tuple[float, float, float]:
@@ -153,7 +196,7 @@ def plan_up(opts: EncodeOptions, sample: SceneSample) -> tuple[float, float, flo
 
 def plan_camera(plan: EncodePlan) -> CameraEntry:
     """The suggested initial camera (format_spec/camera.md), from the scene sample."""
-    return plan.sample.camera(plan.up)
+    return plan.sample.camera(plan.scene.up)
 
 
 def positions_box(positions: np.ndarray) -> Box:

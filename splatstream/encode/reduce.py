@@ -15,7 +15,7 @@ from ..format.manifest import (
 )
 from ..format.planes import BASE_PLANE_NAMES
 from ..format.presets import ATTRIBUTES
-from .plan import EncodePlan
+from .plan import ScenePlan
 
 
 def section_attribute(section_name: str) -> str:
@@ -43,13 +43,13 @@ class _Sizes:
         self.leaf_disk += entry.bytes
 
 
-def build_manifest(plan: EncodePlan, camera: CameraEntry, tiles: list[TileEntry],
+def build_manifest(scene: ScenePlan, camera: CameraEntry, tiles: list[TileEntry],
                    codebook: SHCodebookEntry | None) -> Manifest:
     """`tiles` in the plan's tile order (the per-attribute sums add up in that order); bytes_on_disk settled.
 
     Deterministic: the same plan and entries give the same bytes (`encode_seconds` is written as 0, format.md 6),
     so encodes of the same input with the same options, on one machine or many, give identical manifests."""
-    ctx = plan.context
+    ctx = scene.context
     sizes = _Sizes()
     if codebook is not None:
         for entry in codebook.groups.values():
@@ -60,29 +60,28 @@ def build_manifest(plan: EncodePlan, camera: CameraEntry, tiles: list[TileEntry]
                 sizes.add(entry, BASE_PLANE_NAMES if group == "base" else ("sh",))
     ordered = tuple(sorted(tiles, key=lambda t: t.id))
     root = ordered[0]
-    opts = plan.options
     m = Manifest(
         # 1.2 (the manifest checksum), fields1 or not; 1.3 where a plane is norm16x4 or norm9x3 (format.md 9)
         version=writer_version(ctx.formats, codebook.format if codebook is not None else None, ctx.chunk_order),
         generator=f"splatstream {__version__}",
-        name=plan.name,
-        splats=plan.splats,
+        name=scene.name,
+        splats=scene.splats,
         leaf_splats=sum(t.splats for t in ordered if t.is_leaf),
         sh_degree=ctx.sh_degree,
-        preset=opts.preset,
+        preset=scene.preset,
         formats=dict(ctx.formats),
         chunk_size=CHUNK_SIZE,
         chunk_order=ctx.chunk_order,
-        bounds=plan.bounds,
+        bounds=scene.bounds,
         extent_bounds=root.box,
-        up=plan.up,
+        up=scene.up,
         camera=camera,
         sh_codebook=codebook,
-        lod=LodInfo(len(ordered) > 1, opts.max_leaf_splats, float(opts.reduction), "replace"),
+        lod=LodInfo(len(ordered) > 1, scene.max_leaf_splats, scene.reduction, "replace"),
         root=root.id,
         tiles=ordered,
         gpu_bytes=int(sizes.leaf_gpu),
-        gpu_bytes_per_splat=sizes.leaf_gpu / plan.splats,
+        gpu_bytes_per_splat=sizes.leaf_gpu / scene.splats,
         leaf_bytes_on_disk=int(sizes.leaf_disk),
         attributes={a: AttributeSize(ctx.formats[a], int(sizes.gpu[a]), int(sizes.disk[a]))
                     for a in ATTRIBUTES if a != "sh" or ctx.sh_degree > 0},

@@ -7,7 +7,8 @@ The manifest records, per section, where it starts and how to read it; per paylo
 file bytes (which is also the file name) so every fetch can be verified.
 
 Writing streams (`write_payload`); reading works on bytes (`verify_payload`, `unpack_payload`): whatever brought
-the bytes (a file, HTTP, memory) is the caller's business.
+the bytes (a file, HTTP, memory) is the caller's business. Bytes are verified once, where they enter: verify_payload
+gives back a `VerifiedPayload`, which readers hand on and decoding takes without hashing again.
 """
 from __future__ import annotations
 
@@ -113,12 +114,49 @@ def pack_payload(planes: list[EncodedPlane], level: int = DEFAULT_ZSTD_LEVEL,
     return buf.getvalue(), entry
 
 
-def verify_payload(data: bytes | memoryview, entry: PayloadEntry, source: str) -> None:
-    """Size and SHA-256 against the manifest: nothing unverified is ever decoded."""
+_MINT = object()  # only verify_payload holds it: a VerifiedPayload is never made from unchecked bytes
+
+
+class VerifiedPayload:
+    """Payload bytes whose size and SHA-256 matched a manifest entry, checked once where they entered (the network,
+    the disk cache, a scene directory). Only `verify_payload` makes one; `decode_payload` takes it without hashing
+    the bytes again (the bytes of `bytes`, immutable, cannot change after the check). Pickled to a decode process it
+    arrives as it left."""
+
+    __slots__ = ("data", "sha256")
+
+    def __init__(self, data: bytes, sha256: str, mint: object = None):
+        if mint is not _MINT:
+            raise TypeError("a VerifiedPayload is made by verify_payload (the bytes must be hashed)")
+        self.data, self.sha256 = data, sha256
+
+    def __len__(self) -> int:
+        return len(self.data)
+
+    def __repr__(self) -> str:
+        return f"VerifiedPayload({len(self.data)} bytes, sha256 {self.sha256[:12]}...)"
+
+    def matches(self, entry: PayloadEntry) -> bool:
+        """These bytes are the payload `entry` names (its size and SHA-256)."""
+        return self.sha256 == entry.sha256 and len(self.data) == entry.bytes
+
+
+def verify_payload(data: bytes | memoryview, entry: PayloadEntry, source: str) -> VerifiedPayload:
+    """Size and SHA-256 against the manifest: nothing unverified is ever decoded. The bytes, as `bytes`, come back
+    as a VerifiedPayload to hand on (a memoryview or bytearray is copied: a verified buffer must not change)."""
     if len(data) != entry.bytes:
         raise FormatError(source, "bytes", f"payload is {len(data)} bytes, the manifest says {entry.bytes}")
     if sha256_hex(data) != entry.sha256:
         raise FormatError(source, "sha256", "checksum mismatch: the payload is corrupt or was replaced")
+    return VerifiedPayload(data if type(data) is bytes else bytes(data), entry.sha256, _MINT)
+
+
+def verified_bytes(data: bytes | memoryview | VerifiedPayload, entry: PayloadEntry, source: str) -> bytes:
+    """The bytes of a payload for `entry`: a VerifiedPayload of that entry as it is, anything else verified now."""
+    if type(data) is VerifiedPayload and data.matches(entry):
+        return data.data
+    raw = data.data if type(data) is VerifiedPayload else data
+    return verify_payload(raw, entry, source).data
 
 
 _local = threading.local()

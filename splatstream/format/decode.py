@@ -3,7 +3,7 @@
 Every reader (the numpy decoder, the renderer's scene loader, the streaming client's decode workers) goes through
 these functions, so checksums, sizes and codebook indices are checked in one place:
 
-    planes = decode_payload(data, tile.groups["base"], "base", source)    # verified, texels still encoded
+    planes = decode_payload(data, tile.groups["base"], "base", source)    # verified once, texels still encoded
     values = decode_planes(planes, tile.splats)                           # {"position": (N, 1, 3), ...} float32
     g = tile_gaussians(values, sh_degree)                                 # a Gaussians for numpy work
 """
@@ -16,21 +16,22 @@ import numpy as np
 from ..errors import FormatError
 from ..gaussians import Gaussians
 from .codec import EncodedPlane, assemble_gaussians, decode_index_plane, decode_plane
-from .container import unpack_payload, verify_payload
+from .container import VerifiedPayload, unpack_payload, verified_bytes
 from .manifest import Manifest, PayloadEntry, TileEntry
 from .planes import band_of
 
 
-def decode_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, source: str,
+def decode_payload(data: bytes | memoryview | VerifiedPayload, entry: PayloadEntry, group: str, source: str,
                    codebook: bool = False, between: Callable[[], object] | None = None) -> dict[str, EncodedPlane]:
-    """Verify payload bytes against their manifest entry and unpack them into planes (texels as stored).
+    """Unpack a payload into planes (texels as stored): a VerifiedPayload of this entry as it is, other bytes
+    verified against the entry first (size and SHA-256).
 
     `codebook`: the scene has an SH codebook, so a tile's `sh1` group is its `sh_index` plane. `between`: called
     between steps (after the checksum, before each plane; see unpack_payload)."""
-    verify_payload(data, entry, source)
+    raw = verified_bytes(data, entry, source)
     if between is not None:
         between()
-    return unpack_payload(data, entry, group, source, codebook, between)
+    return unpack_payload(raw, entry, group, source, codebook, between)
 
 
 def decode_planes(planes: dict[str, EncodedPlane], splats: int) -> dict[str, np.ndarray]:
@@ -67,7 +68,7 @@ def tile_groups_for(manifest: Manifest, sh_degree: int) -> list[str]:
     return [g for g in manifest.tile_groups() if band_of(g) <= sh_degree]
 
 
-def decode_tile_bytes(tile: TileEntry, payloads: dict[str, bytes], sh_degree: int, source: str,
+def decode_tile_bytes(tile: TileEntry, payloads: dict[str, bytes | VerifiedPayload], sh_degree: int, source: str,
                       codebook_values: dict[str, np.ndarray] | None = None, entries: int = 0) -> Gaussians:
     """One tile's Gaussians from its payload bytes by group (`base`, then `sh1`.. as needed for sh_degree)."""
     values: dict[str, np.ndarray] = {}

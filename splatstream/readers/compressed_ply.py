@@ -104,11 +104,13 @@ def unpack_rotations(packed: np.ndarray) -> np.ndarray:
     return out
 
 
-def read_compressed_ply(path: str | os.PathLike, drop_invalid: bool = False) -> Gaussians:
+def read_compressed_ply(path: str | os.PathLike, drop_invalid: bool = False, header: PlyHeader | None = None
+                        ) -> Gaussians:
     """Decode a compressed PLY. Once the chunk bounds are checked finite every packed word decodes to finite
-    values, so there are no invalid splats to drop (`drop_invalid` is accepted for a uniform signature)."""
+    values, so there are no invalid splats to drop (`drop_invalid` is accepted for a uniform signature).
+    `header`: the file's, when the caller parsed it already (io.open_input)."""
     path = os.fspath(path)
-    header = read_header(path)
+    header = header or read_header(path)
     if header.format != "binary_little_endian":
         raise InputError(path, "header", f"format {header.format}: a compressed PLY is binary_little_endian")
     n, has_color, k = _check_schema(path, header)

@@ -31,6 +31,7 @@ import warnings
 import zipfile
 import zlib
 from collections.abc import Callable
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -43,6 +44,7 @@ ZIP_PIECE = 1 << 20  # zip members are inflated this much at a time
 # Bytes of memory a decoded splat costs at peak (six RGBA textures plus the float32 model and temporaries).
 BYTES_PER_SPLAT = 6 * 4 + 4 * (3 + 4 + 3 + 1 + 3 + 45) * 3
 MAX_LOD_NODES = 1 << 20
+MAX_LOD_DEPTH = 256  # the tree is read recursively; splat-transform's kd trees are about log2(leaves) deep
 # The low bytes of positions are close to noise: lossless WebP keeps about 3 bytes a splat of them (6 bytes a splat
 # for both position textures on the fixture). A count beyond 16 splats per byte of the two is not a real scene.
 MAX_SPLATS_PER_MEANS_BYTE = 16
@@ -313,8 +315,49 @@ def _read_unit(source: _Source, meta_name: str) -> Gaussians:
                      opacity_logits=opacity_logits, sh_dc=sh_dc, sh_rest=sh_rest)
 
 
-def _lod_references(label: str, meta: dict) -> tuple[list[str], list[tuple[int, int, int]], str | None]:
-    """Validate a lod-meta.json; the (file, offset, count) references of level 0, in tree order."""
+@dataclass(frozen=True)
+class LodNode:
+    """A node of a streamed SOG's tree: its bound and either children or, on a leaf, per LOD level (0 the finest)
+    the (file, offset, count) reference of its rows."""
+
+    bound_min: np.ndarray
+    bound_max: np.ndarray
+    children: tuple[LodNode, ...] = ()
+    lods: dict[int, tuple[int, int, int]] = field(default_factory=dict)
+
+    def leaves(self) -> list[LodNode]:
+        """The leaves in depth-first order (what PlayCanvas's engine reads; interior nodes only group them)."""
+        out: list[LodNode] = []
+        stack = [self]
+        while stack:
+            node = stack.pop()
+            if node.children:
+                stack.extend(reversed(node.children))
+            else:
+                out.append(node)
+        return out
+
+
+@dataclass(frozen=True)
+class LodMeta:
+    levels: int
+    filenames: list[str]
+    environment: str | None
+    counts: list[int] | None
+    tree: LodNode
+
+
+def _bound(label: str, node: dict) -> tuple[np.ndarray, np.ndarray]:
+    bound = node.get("bound")
+    if bound is None:  # optional for our purposes: the engine needs it, the splats do not
+        return np.zeros(3), np.zeros(3)
+    if not isinstance(bound, dict):
+        raise InputError(label, "tree bound", "expected {min: [3 numbers], max: [3 numbers]}")
+    return _floats(label, "tree bound.min", bound.get("min"), 3), _floats(label, "tree bound.max", bound.get("max"), 3)
+
+
+def _lod_meta(label: str, meta: dict) -> LodMeta:
+    """Validate a lod-meta.json into its tree with every level's references."""
     version = meta.get("version")
     if version not in (None, 1):
         raise InputError(label, "version", f"{version!r} (expected 1)")
@@ -331,56 +374,120 @@ def _lod_references(label: str, meta: dict) -> tuple[list[str], list[tuple[int, 
     tree = meta.get("tree")
     if not isinstance(tree, dict):
         raise InputError(label, "tree", "missing or not an object")
-    references: list[tuple[int, int, int]] = []
-    stack = [tree]
     visited = 0
-    while stack:
-        node = stack.pop()
+
+    def node(data: object, depth: int) -> LodNode:
+        nonlocal visited
         visited += 1
-        if visited > MAX_LOD_NODES or not isinstance(node, dict):
-            raise InputError(label, "tree", "not a tree of objects (or more than a million nodes)")
-        lods = node.get("lods", {})
-        children = node.get("children", [])
+        if visited > MAX_LOD_NODES or depth > MAX_LOD_DEPTH or not isinstance(data, dict):
+            raise InputError(label, "tree", f"not a tree of objects (or more than {MAX_LOD_NODES} nodes or "
+                             f"{MAX_LOD_DEPTH} levels)")
+        lods = data.get("lods", {})
+        children = data.get("children", [])
         if not isinstance(lods, dict) or not isinstance(children, list):
             raise InputError(label, "tree", "a node's 'lods' must be an object and 'children' a list")
+        refs: dict[int, tuple[int, int, int]] = {}
         for key, ref in lods.items():
             if not key.isdigit() or int(key) >= levels or not isinstance(ref, dict):
                 raise InputError(label, "tree", f"LOD reference {key!r}: expected a level 0..{levels - 1} "
                                  "mapping to {file, offset, count}")
-            if int(key) != 0:
-                continue
             file = _int(label, "tree lods.file", ref.get("file"), 0, len(filenames) - 1)
-            references.append((file, _int(label, "tree lods.offset", ref.get("offset")),
-                               _int(label, "tree lods.count", ref.get("count"))))
-        stack.extend(reversed(children))
-    if counts is not None and counts[0] != sum(c for _, _, c in references):
-        raise InputError(label, "counts[0]", f"{counts[0]}, but the tree's level-0 references add up to "
-                         f"{sum(c for _, _, c in references)}")
-    return filenames, references, environment
+            refs[int(key)] = (file, _int(label, "tree lods.offset", ref.get("offset", 0)),
+                              _int(label, "tree lods.count", ref.get("count", 0)))
+        lo, hi = _bound(label, data)
+        return LodNode(lo, hi, tuple(node(c, depth + 1) for c in children), refs)
+
+    root = node(tree, 0)
+    if counts is not None:
+        sums = [0] * levels
+        for leaf in root.leaves():
+            for level, (_, _, count) in leaf.lods.items():
+                sums[level] += count
+        for level in range(levels):
+            if counts[level] != sums[level]:
+                raise InputError(label, f"counts[{level}]", f"{counts[level]!r}, but the tree's level-{level} "
+                                 f"references add up to {sums[level]}")
+    return LodMeta(levels, filenames, environment, counts, root)
+
+
+@dataclass(frozen=True)
+class StreamedSog:
+    """A streamed SOG read whole: the tree with, per leaf and level, the splats of its reference."""
+
+    levels: int
+    tree: LodNode
+    splats: dict[int, dict[int, Gaussians]]  # id(leaf) -> level -> splats
+    environment: Gaussians | None
+
+    def level(self, level: int) -> Gaussians:
+        """Every splat of one level, leaves in depth-first order."""
+        parts = [self.splats[id(leaf)][level] for leaf in self.tree.leaves() if level in self.splats[id(leaf)]]
+        return Gaussians.concatenate(parts) if parts else Gaussians.empty()
+
+
+def _load_streamed(directory: str, label: str, meta_name: str, levels: set[int] | None) -> StreamedSog:
+    """Read the references of the given levels (None: all) of a streamed SOG; each unit is decoded once."""
+    source = _dir_source(directory, label)
+    lod = _lod_meta(label, _json(source, meta_name, "lod-meta.json"))
+    leaves = lod.tree.leaves()
+    wanted = [(leaf, level, ref) for leaf in leaves for level, ref in leaf.lods.items()
+              if (levels is None or level in levels) and ref[2] > 0]
+    if sum(ref[2] for _, _, ref in wanted) * BYTES_PER_SPLAT > memory_budget():
+        raise InputError(label, "tree", "the levels read hold more splats than the memory budget allows")
+    base = os.path.dirname(meta_name)
+
+    def inside(name: str) -> str:
+        return f"{base}/{name}" if base else name
+
+    units: dict[int, Gaussians] = {}
+    splats: dict[int, dict[int, Gaussians]] = {id(leaf): {} for leaf in leaves}
+    for leaf, level, (file, offset, count) in wanted:
+        if file not in units:
+            units[file] = _read_unit(source, inside(lod.filenames[file]))
+        unit = units[file]
+        if offset + count > len(unit):
+            raise InputError(label, "tree", f"reference to rows {offset}..{offset + count} of "
+                             f"{lod.filenames[file]}, which holds {len(unit)} splats")
+        splats[id(leaf)][level] = unit.subset(slice(offset, offset + count))
+    environment = _read_unit(source, inside(lod.environment)) if lod.environment else None
+    return StreamedSog(lod.levels, lod.tree, splats, environment)
 
 
 def _read_streamed(directory: str, label: str, meta_name: str) -> Gaussians:
-    source = _dir_source(directory, label)
-    meta = _json(source, meta_name, "lod-meta.json")
-    filenames, references, environment = _lod_references(label, meta)
-    budget = memory_budget()
-    if sum(c for _, _, c in references) * BYTES_PER_SPLAT > budget:
-        raise InputError(label, "tree", "level 0 holds more splats than the memory budget allows")
-    units: dict[int, Gaussians] = {}
-    parts: list[Gaussians] = []
-    for file, offset, count in references:
-        if file not in units:
-            units[file] = _read_unit(source, filenames[file])
-        unit = units[file]
-        if offset + count > len(unit):
-            raise InputError(label, "tree", f"reference to rows {offset}..{offset + count} of {filenames[file]}, "
-                             f"which holds {len(unit)} splats")
-        parts.append(unit.subset(slice(offset, offset + count)))
-    if environment:
-        parts.append(_read_unit(source, environment))
+    sog = _load_streamed(directory, label, meta_name, {0})
+    parts = [sog.level(0)] if any(0 in s for s in sog.splats.values()) else []
+    if sog.environment is not None:
+        parts.append(sog.environment)
     if not parts:
         return Gaussians.empty()
     return Gaussians.concatenate(parts)
+
+
+def _streamed_location(path: str) -> tuple[str, str]:
+    """(directory, name of the lod-meta.json) of a streamed SOG given as the file or its directory."""
+    if sog_kind(path) != "lod":
+        raise InputError(path, None, "not a streamed SOG (expected a lod-meta.json or a directory holding one)")
+    if os.path.isdir(path):
+        return path, "lod-meta.json"
+    return os.path.dirname(path) or ".", os.path.basename(path)
+
+
+def read_sog_level(path: str | os.PathLike, level: int) -> Gaussians:
+    """One LOD level of a streamed SOG (0 the finest), leaves in depth-first order; only that level's units are
+    read."""
+    path = os.fspath(path)
+    directory, name = _streamed_location(path)
+    sog = _load_streamed(directory, path, name, {level})
+    if not 0 <= level < sog.levels:
+        raise InputError(path, "lodLevels", f"{sog.levels} levels (0..{sog.levels - 1}); level {level} asked for")
+    return sog.level(level)
+
+
+def read_streamed_sog(path: str | os.PathLike) -> StreamedSog:
+    """Every level of a streamed SOG (a lod-meta.json or its directory), with its tree."""
+    path = os.fspath(path)
+    directory, name = _streamed_location(path)
+    return _load_streamed(directory, path, name, None)
 
 
 def sog_kind(path: str) -> str | None:

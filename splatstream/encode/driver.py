@@ -1,0 +1,129 @@
+"""The encode driver: a splat file into a scene, on the engine that fits it.
+
+The input is opened once (io.open_input: its format sniffed, a PLY's header parsed), the options checked before
+anything is read or written, then one engine runs: in memory (local.encode_to) when the scene fits, else by
+partitions (partitioned.encode_partitioned) in this process (local.LocalEngine) or on Dask
+(distributed.DaskEngine). The output is the same in every case (tests/test_encode_bytes.py).
+"""
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import replace
+
+from ..atomic import check_output
+from ..edit import Pipeline
+from ..format.manifest import Manifest
+from ..format.presets import DEFAULT_PRESET
+from ..io import open_input, read_gaussians
+from ..ply import RowStats, VertexLayout, check_rows, read_ply_rows
+from ..store import _fsspec, is_url, local_path, open_writer
+from ..vq import parse_entries
+from .distributed import DaskEngine
+from .local import LocalEngine, default_memory_per_worker, encode_to
+from .options import EncodeOptions, Progress, no_progress
+from .partitioned import PARTITION_MEMORY_FACTOR, _row_bytes, encode_partitioned, open_rows
+from .plan import log, plan_formats
+from .scratch import Scratch
+
+
+def fits_in_process(layout: VertexLayout | None, opts: EncodeOptions, memory: int) -> bool:
+    """Whether the whole scene is encoded in memory (as encode_gaussians does) rather than by partitions: no LOD,
+    an input that is read whole anyway (`layout` None: not a binary PLY), or one whose build fits the memory. The
+    output is the same."""
+    if not opts.lod or layout is None:
+        return True
+    degree = layout.sh_degree if opts.sh_degree is None else min(opts.sh_degree, layout.sh_degree)
+    return layout.rows * _row_bytes(degree) * PARTITION_MEMORY_FACTOR <= memory
+
+
+def encode_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, preset: str | None = None,
+                drop_invalid: bool = False, progress: Progress | None = None, workers: int | None = None,
+                scheduler: str | None = None, memory_per_worker: int | None = None, scratch: str | None = None,
+                edits: Pipeline | None = None, **options) -> Manifest:
+    """Read any supported splat file and encode it into `out_dir` (a directory or an fsspec URL).
+
+    By default in this process: in memory when the scene fits half the available memory (or `memory_per_worker`),
+    else by partitions (encode/partitioned.py), reading the input by row ranges. `workers` (a local Dask cluster
+    of that many processes) or `scheduler` (an existing Dask cluster) run the partitions on Dask
+    (encode/distributed.py). `edits` (edit.Pipeline) run on the splats as read, whole or chunk by chunk. The output
+    is the same in every case."""
+    opts = EncodeOptions(preset=preset or DEFAULT_PRESET, reorder_input=True, **options)
+    plan_formats(opts)  # fail before the (possibly long) read
+    if opts.sh_codebook is not None:
+        parse_entries(opts.sh_codebook, 1)
+    # a missing, unreadable or unknown input fails before any output or progress
+    source = open_input(local_path(input_path))
+    out = os.fspath(out_dir)
+    if is_url(out):
+        _fsspec(out)
+    else:
+        out = local_path(out)
+        check_output(out, directory=True)
+    if opts.up is None:  # a PLY header that names its up axis is believed before the scene's shape
+        stated = source.declared_up()
+        if stated is not None:
+            log.info("up %s: %s (--up overrides it)", ",".join(f"{v:g}" for v in stated.up), stated.reason)
+            opts = replace(opts, up=stated.up)
+    progress = progress or no_progress
+    out_name = os.path.basename(os.path.abspath(out)) if not is_url(out) else out.rstrip("/").rsplit("/", 1)[-1]
+    distributed = workers is not None or scheduler is not None
+    # The row layout (a stat of the file: its header is parsed already) where rows may be read by ranges.
+    layout = source.vertex_layout() if opts.lod or distributed else None
+    if not distributed and fits_in_process(layout, opts, memory_per_worker or default_memory_per_worker()):
+        progress("read", 0.0)
+        g = read_gaussians(source, drop_invalid=drop_invalid)
+        if edits:
+            g = edits.apply(g)
+        progress("read", 1.0)
+        with open_writer(out) as writer:
+            # a transform may carry values out of the format's domain: screened again then
+            screened = not (edits and edits.transforms)
+            return encode_to(g, writer, opts, progress, source.path, out_name, screened=screened)
+    if distributed:
+        engine = DaskEngine(workers=workers, scheduler=scheduler, memory_per_worker=memory_per_worker)
+    else:
+        engine = LocalEngine(memory_per_worker)
+    try:
+        with open_writer(out) as writer:
+            if scratch is None:
+                local_cluster = not distributed or scheduler is None
+                scratch = (out if is_url(out) and not local_cluster else
+                           tempfile.gettempdir() if is_url(out) else os.path.dirname(os.path.abspath(out)))
+            space = Scratch.create(scratch)
+            try:
+                rows = open_rows(source, layout, space, 1 << 20, drop_invalid, progress)
+                return encode_partitioned(rows, writer, opts, engine, space, progress, source.path, out_name,
+                                          drop_invalid, edits)
+            finally:
+                space.remove()
+    finally:
+        engine.close()
+
+
+
+# Rows a dry run reads at once from a binary PLY: its memory stays bounded whatever the scene's size.
+DRY_RUN_ROWS = 1 << 20
+
+
+def count_edits(input_path: str | os.PathLike, edits: Pipeline, drop_invalid: bool = False
+                ) -> tuple[str, int, list[tuple[str, int]]]:
+    """What `edits` would keep of an input, without writing anything: its format, the splats read, and per step
+    (edit.Pipeline.steps) its label and the splats it keeps. A binary PLY is read by row ranges."""
+    source = open_input(local_path(input_path))
+    layout = source.vertex_layout()
+    if layout is None:
+        g = read_gaussians(source, drop_invalid=drop_invalid)
+        _, counts = edits.run(g)
+        return source.format, len(g), counts
+    stats = RowStats()
+    read = 0
+    totals: list[tuple[str, int]] = [(step.label, 0) for step in edits.steps]
+    for start in range(0, layout.rows, DRY_RUN_ROWS):
+        g, st = read_ply_rows(layout, start, start + DRY_RUN_ROWS)
+        stats = stats + st
+        read += len(g)
+        _, counts = edits.run(g)
+        totals = [(label, total + kept) for (label, total), (_, kept) in zip(totals, counts, strict=True)]
+    check_rows(source.path, stats, drop_invalid)
+    return source.format, read, totals

@@ -1,0 +1,438 @@
+"""The manifest's records (format.md 6): frozen dataclasses a validated manifest is made of, and their derived views.
+
+Records are built by `validate.py` (from a map that passed every check) or by the encoder (from what it wrote);
+code that holds one trusts it. `Manifest.to_dict()` gives back the spec's map (`wire.py` packs it).
+"""
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from ..planes import MAX_SH_DEGREE, band_of, groups_for_degree
+from ..texformats import FORMATS, blob_size
+from .versions import FORMAT_NAME
+from .wire import pack_manifest
+
+Vec3 = tuple[float, float, float]
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Entries
+
+
+@dataclass(frozen=True)
+class Section:
+    """One section of a decompressed payload (format.md 5): a plane's texels or its per-chunk ranges."""
+
+    name: str
+    kind: str  # "texels" or "range"
+    offset: int
+    size: int
+    filter: str  # "none", "shuffleN" or (texels) "fields1"
+    format: str = ""  # texels: texel format
+    width: int = 0
+    height: int = 0
+    layers: int = 0
+    dtype: str = ""  # range: "f32" or "f16"
+    shape: tuple[int, ...] = ()
+
+    @property
+    def element(self) -> int:
+        """Byte-shuffle element size of the filter (1: none)."""
+        return filter_element(self.filter)
+
+    @property
+    def gpu_size(self) -> int:
+        """Bytes the section decodes to: its texels (whatever the filter stores), or its ranges."""
+        return texels_size(self.format, self.width, self.height, self.layers) if self.kind == "texels" \
+            else self.size
+
+    def to_dict(self) -> dict:
+        d = {"name": self.name, "offset": self.offset, "size": self.size, "filter": self.filter, "kind": self.kind}
+        if self.kind == "texels":
+            d.update(format=self.format, width=self.width, height=self.height, layers=self.layers)
+        else:
+            d.update(dtype=self.dtype, shape=list(self.shape))
+        return d
+
+
+@dataclass(frozen=True)
+class PayloadEntry:
+    """A payload file (a tile's group, or a band of the SH codebook): where it is and how to read it."""
+
+    file: str
+    sha256: str
+    bytes: int
+    raw_bytes: int
+    gpu_bytes: int
+    sections: tuple[Section, ...]
+
+    def section(self, name: str) -> Section:
+        for s in self.sections:
+            if s.name == name:
+                return s
+        raise KeyError(name)
+
+    def to_dict(self) -> dict:
+        return {"file": self.file, "sha256": self.sha256, "bytes": self.bytes, "raw_bytes": self.raw_bytes,
+                "gpu_bytes": self.gpu_bytes, "sections": [s.to_dict() for s in self.sections]}
+
+
+@dataclass(frozen=True)
+class Box:
+    min: Vec3
+    max: Vec3
+
+    def to_dict(self) -> dict:
+        return {"min": list(self.min), "max": list(self.max)}
+
+
+@dataclass(frozen=True)
+class TileEntry:
+    """One tile of the LOD tree (format_spec/lod.md 1)."""
+
+    id: int
+    level: int
+    children: tuple[int, ...]
+    splats: int
+    chunks: int
+    texture: tuple[int, int]
+    box: Box
+    sphere_center: Vec3
+    sphere_radius: float
+    geometric_error: float
+    groups: dict[str, PayloadEntry]  # read-only by convention (frozen dataclasses cannot freeze a dict)
+
+    @property
+    def is_leaf(self) -> bool:
+        return not self.children
+
+    def to_dict(self) -> dict:
+        return {"id": self.id, "level": self.level, "children": list(self.children), "splats": self.splats,
+                "chunks": self.chunks, "texture": list(self.texture), "box": self.box.to_dict(),
+                "sphere": {"center": list(self.sphere_center), "radius": self.sphere_radius},
+                "geometric_error": self.geometric_error,
+                "groups": {name: p.to_dict() for name, p in self.groups.items()}}
+
+
+@dataclass(frozen=True)
+class SHCodebookEntry:
+    """The scene-wide SH codebook (format.md 4.7)."""
+
+    entries: int
+    format: str
+    index_format: str
+    groups: dict[str, PayloadEntry]
+
+    def to_dict(self) -> dict:
+        return {"entries": self.entries, "format": self.format, "index_format": self.index_format,
+                "groups": {name: p.to_dict() for name, p in self.groups.items()}}
+
+
+@dataclass(frozen=True)
+class CameraEntry:
+    eye: Vec3
+    target: Vec3
+    up: Vec3
+    fov_y: float
+
+    def to_dict(self) -> dict:
+        return {"eye": list(self.eye), "target": list(self.target), "up": list(self.up), "fov_y": self.fov_y}
+
+
+@dataclass(frozen=True)
+class LodInfo:
+    enabled: bool
+    max_leaf_splats: int
+    reduction: float
+    refine: str = "replace"
+
+    def to_dict(self) -> dict:
+        return {"enabled": self.enabled, "max_leaf_splats": self.max_leaf_splats, "reduction": self.reduction,
+                "refine": self.refine}
+
+
+@dataclass(frozen=True)
+class AttributeSize:
+    format: str
+    gpu_bytes: int
+    disk_bytes: int
+
+    def to_dict(self) -> dict:
+        return {"format": self.format, "gpu_bytes": self.gpu_bytes, "disk_bytes": self.disk_bytes}
+
+
+@dataclass(frozen=True)
+class TileArrays:
+    """The tile tree as arrays (index = position in `Manifest.tiles`), for selection and culling over numpy."""
+
+    ids: np.ndarray             # (T,) int64
+    parent: np.ndarray          # (T,) int64 index of the parent, -1 for the root
+    level: np.ndarray           # (T,) int64
+    splats: np.ndarray          # (T,) int64
+    box_min: np.ndarray         # (T, 3) float64
+    box_max: np.ndarray         # (T, 3) float64
+    sphere_center: np.ndarray   # (T, 3) float64
+    sphere_radius: np.ndarray   # (T,) float64
+    geometric_error: np.ndarray  # (T,) float64
+    children: tuple[tuple[int, ...], ...]  # indices of each tile's children
+    base_bytes: np.ndarray      # (T,) int64 bytes of the base payload
+    band_bytes: np.ndarray      # (T, 3) int64 bytes of the tile's sh1..sh3 payloads (0: none)
+    gpu_bytes: np.ndarray       # (T,) int64 GPU bytes of every group of the tile
+
+    # Derived once, for the per-frame selection (client_gl/stream/selection.py): a frozen dataclass keeps a
+    # cached_property in its __dict__.
+    @functools.cached_property
+    def box_corners(self) -> np.ndarray:
+        """(T, 6) every box as [max, min]: the frustum test's positive vertex in one product."""
+        return np.ascontiguousarray(np.concatenate([self.box_max, self.box_min], axis=1))
+
+    @functools.cached_property
+    def has_parent(self) -> np.ndarray:
+        """(T,) bool: every tile but the root."""
+        return self.parent >= 0
+
+    @functools.cached_property
+    def parent_of_child(self) -> np.ndarray:
+        """The parent of every tile that has one (in tile order)."""
+        return self.parent[self.has_parent]
+
+    @functools.cached_property
+    def has_children(self) -> np.ndarray:
+        """(T,) bool."""
+        return np.bincount(self.parent_of_child, minlength=len(self.parent)) > 0
+
+    @functools.cached_property
+    def splats_list(self) -> list[int]:
+        return self.splats.tolist()
+
+    @functools.cached_property
+    def splats_f64(self) -> np.ndarray:
+        return self.splats.astype(np.float64)
+
+
+@dataclass(frozen=True)
+class Manifest:
+    version: tuple[int, int]
+    generator: str
+    name: str
+    splats: int
+    leaf_splats: int
+    sh_degree: int
+    preset: str
+    formats: dict[str, str]
+    chunk_size: int
+    chunk_order: str
+    bounds: Box
+    extent_bounds: Box
+    up: Vec3
+    camera: CameraEntry
+    sh_codebook: SHCodebookEntry | None
+    lod: LodInfo
+    root: int
+    tiles: tuple[TileEntry, ...]
+    gpu_bytes: int
+    gpu_bytes_per_splat: float
+    leaf_bytes_on_disk: int
+    attributes: dict[str, AttributeSize]
+    encode_seconds: float
+    bytes_on_disk: int = 0
+    format: str = field(default=FORMAT_NAME)
+
+    # --- derived views (cached: a Manifest never changes) ------------------------------------------------------
+    @functools.cached_property
+    def tile_by_id(self) -> dict[int, TileEntry]:
+        return {t.id: t for t in self.tiles}
+
+    @functools.cached_property
+    def index_of(self) -> dict[int, int]:
+        """Tile id -> position in `tiles`."""
+        return {t.id: i for i, t in enumerate(self.tiles)}
+
+    @property
+    def leaves(self) -> list[TileEntry]:
+        return [t for t in self.tiles if t.is_leaf]
+
+    @property
+    def uses_codebook(self) -> bool:
+        return self.sh_codebook is not None
+
+    @property
+    def levels(self) -> int:
+        return 1 + max((t.level for t in self.tiles), default=0)
+
+    def tile(self, tile_id: int) -> TileEntry:
+        return self.tile_by_id[tile_id]
+
+    def tile_groups(self) -> list[str]:
+        return groups_for_degree(self.sh_degree, self.uses_codebook)
+
+    def payloads(self) -> Iterator[tuple[TileEntry | None, str, PayloadEntry]]:
+        """(tile, group name, payload) for every payload the manifest names (tile None: the SH codebook's)."""
+        for tile in self.tiles:
+            for name, p in tile.groups.items():
+                yield tile, name, p
+        if self.sh_codebook is not None:
+            for name, p in self.sh_codebook.groups.items():
+                yield None, name, p
+
+    def payload_bytes(self) -> int:
+        """Bytes of every distinct payload file (content-addressed: equal payloads are one file). Lazily checked
+        entries are read as stored (they are checked when read for anything else)."""
+        sizes = {}
+        for t in self.tiles:
+            for name in t.groups:
+                file, size = entry_fields(t.groups, name, ("file", "bytes"))
+                sizes[file] = size
+        if self.sh_codebook is not None:
+            for p in self.sh_codebook.groups.values():
+                sizes[p.file] = p.bytes
+        return sum(sizes.values())
+
+    @functools.cached_property
+    def arrays(self) -> TileArrays:
+        tiles = self.tiles
+        n = len(tiles)
+        idx = self.index_of
+        parent = np.full(n, -1, np.int64)
+        children = []
+        for i, t in enumerate(tiles):
+            kids = tuple(idx[c] for c in t.children)
+            children.append(kids)
+            for k in kids:
+                parent[k] = i
+        band_bytes = np.zeros((n, MAX_SH_DEGREE), np.int64)
+        base_bytes = np.zeros(n, np.int64)
+        gpu_bytes = np.zeros(n, np.int64)
+        for i, t in enumerate(tiles):
+            for name in t.groups:
+                gpu, size = entry_fields(t.groups, name, ("gpu_bytes", "bytes"))
+                gpu_bytes[i] += gpu
+                band = band_of(name)
+                if band:
+                    band_bytes[i, band - 1] = size
+                else:
+                    base_bytes[i] = size
+        return TileArrays(
+            ids=np.array([t.id for t in tiles], np.int64), parent=parent,
+            level=np.array([t.level for t in tiles], np.int64),
+            splats=np.array([t.splats for t in tiles], np.int64),
+            box_min=np.array([t.box.min for t in tiles], np.float64).reshape(n, 3),
+            box_max=np.array([t.box.max for t in tiles], np.float64).reshape(n, 3),
+            sphere_center=np.array([t.sphere_center for t in tiles], np.float64).reshape(n, 3),
+            sphere_radius=np.array([t.sphere_radius for t in tiles], np.float64),
+            geometric_error=np.array([t.geometric_error for t in tiles], np.float64),
+            children=tuple(children),
+            base_bytes=base_bytes, band_bytes=band_bytes, gpu_bytes=gpu_bytes)
+
+    def to_dict(self) -> dict:
+        """The manifest map of format.md 6, keys in the order the encoder has always written them."""
+        d = {
+            "format": self.format, "version": list(self.version), "generator": self.generator, "name": self.name,
+            "splats": self.splats, "leaf_splats": self.leaf_splats, "sh_degree": self.sh_degree,
+            "preset": self.preset, "formats": dict(self.formats), "chunk_size": self.chunk_size,
+            "chunk_order": self.chunk_order, "bounds": self.bounds.to_dict(),
+            "extent_bounds": self.extent_bounds.to_dict(), "up": list(self.up), "camera": self.camera.to_dict(),
+        }
+        if self.sh_codebook is not None:
+            d["sh_codebook"] = self.sh_codebook.to_dict()
+        d.update({
+            "lod": self.lod.to_dict(), "root": self.root, "tiles": [t.to_dict() for t in self.tiles],
+            "gpu_bytes": self.gpu_bytes, "gpu_bytes_per_splat": self.gpu_bytes_per_splat,
+            "leaf_bytes_on_disk": self.leaf_bytes_on_disk,
+            "attributes": {a: s.to_dict() for a, s in self.attributes.items()},
+            "encode_seconds": self.encode_seconds, "bytes_on_disk": self.bytes_on_disk,
+        })
+        return d
+
+    def with_bytes_on_disk(self, payload_bytes: int) -> Manifest:
+        """This manifest with `bytes_on_disk` = payload bytes + its own packed size (which depends on the value)."""
+        m = self
+        for _ in range(3):  # the msgpack length of the number can change the length once; settled after two
+            m = replace(m, bytes_on_disk=payload_bytes + len(pack_manifest(m)))
+        return m
+
+
+
+def filter_element(name: str) -> int:
+    if name == "none":
+        return 1
+    if name.startswith("shuffle") and name[7:].isdigit() and 1 < int(name[7:]) <= 16:
+        return int(name[7:])
+    raise ValueError(name)
+
+
+def filter_for(element: int) -> str:
+    return f"shuffle{element}" if element > 1 else "none"
+
+
+
+@functools.lru_cache(maxsize=4096)  # a scene's thousands of sections repeat a few shapes
+def texels_size(fmt: str, width: int, height: int, layers: int) -> int:
+    """Bytes of `layers` layers of a width x height texture in texel format `fmt`, as the GPU holds them."""
+    return blob_size(FORMATS[fmt], width, height, layers)
+
+
+def entry_fields(groups: Mapping[str, PayloadEntry], name: str, fields: tuple[str, ...]) -> tuple:
+    """Fields of one payload entry: from the raw map where it is checked lazily and they have the right types."""
+    if isinstance(groups, LazyPayloads):
+        return groups.raw_fields(name, fields)
+    entry = groups[name]
+    return tuple(getattr(entry, f) for f in fields)
+
+
+class LazyPayloads(Mapping):
+    """A tile's payload entries (group name -> PayloadEntry), each checked by `check(name)` when first read (the
+    validator's own function for one entry, so a bad one raises the FormatError an eager parse raises)."""
+
+    def __init__(self, raw: dict, names: tuple[str, ...], check: Callable[[str], PayloadEntry]):
+        self._raw, self._names, self._check = raw, names, check
+        self._checked: dict[str, PayloadEntry] = {}
+
+    def __getitem__(self, name: str) -> PayloadEntry:
+        entry = self._checked.get(name)
+        if entry is None:
+            if name not in self._names:
+                raise KeyError(name)
+            entry = self._checked[name] = self._check(name)
+        return entry
+
+    def __iter__(self):
+        return iter(self._names)
+
+    def __len__(self) -> int:
+        return len(self._names)
+
+    def raw_fields(self, name: str, fields: tuple[str, ...]) -> tuple:
+        """Fields of an entry as stored, where they are a non-negative integer or a payload file name; otherwise the
+        entry is checked (and a bad one raises)."""
+        raw = self._raw.get(name)
+        if name in self._names and type(raw) is dict:
+            values = tuple(raw.get(f) for f in fields)
+            if all((type(v) is int and v >= 0) if f != "file" else type(v) is str
+                   for f, v in zip(fields, values, strict=True)):
+                return values
+        entry = self[name]
+        return tuple(getattr(entry, f) for f in fields)
+
+
+def scene_summary(m: Manifest) -> dict:
+    """JSON-ready facts about a scene, as `splatstream info` and the server's /api/scenes give them."""
+    return {
+        "name": m.name,
+        "splats": m.splats,
+        "sh_degree": m.sh_degree,
+        "preset": m.preset,
+        "bounds": m.bounds.to_dict(),
+        "up": list(m.up),
+        "bytes_on_disk": m.bytes_on_disk,
+        "gpu_bytes": m.gpu_bytes,
+        "gpu_bytes_per_splat": m.gpu_bytes_per_splat,
+        "tiles": len(m.tiles),
+        "levels": m.levels,
+        "sh_codebook_entries": m.sh_codebook.entries if m.sh_codebook else None,
+        "version": list(m.version),
+    }

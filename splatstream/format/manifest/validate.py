@@ -1,0 +1,721 @@
+"""The manifest's one validator: a map (format.md 6) into frozen records, or a FormatError naming the first field
+that is wrong (`tiles[3].groups.base.bytes`) and what was expected.
+
+Everything a reader later relies on is checked here: types, ranges, the tile tree (one root, every tile reachable
+once, levels), splat and chunk counts, texture sizes, and every payload's section table against the planes its
+group must hold. Each field is checked once, by plain dict operations, and a message is built only when a check
+fails: the same functions serve the eager parse and the lazily checked payload entries (`lazy_payloads`), so
+both name a damaged field with the same message.
+
+Messages (format_spec/format.md 6, "Validation"): `<file>: <field path>: <problem>`; a key that is absent is
+"missing", a key a known version does not define is "unknown key 'k'", a value of the wrong type or range is
+"expected <what>, got <value>".
+"""
+from __future__ import annotations
+
+import contextlib
+import functools
+import gc
+import math
+import operator
+from typing import NoReturn
+
+from ...errors import FormatError
+from ..layout import ALIGN, BLOCK, CHUNK_SIZE
+from ..names import MANIFEST_NAME, SHA256_HEX_RE, payload_name
+from ..planes import (
+    MAX_SH_DEGREE,
+    RANGE_DTYPE_NAMES,
+    SH_INDEX_FORMAT,
+    band_plane,
+    chunks_for,
+    group_planes,
+    groups_for_degree,
+)
+from ..texformats import FORMATS, VALUE_FORMATS
+from ..transport import FIELD_LAYOUTS, FIELDS1, content_bounds
+from .model import (
+    AttributeSize,
+    Box,
+    CameraEntry,
+    LazyPayloads,
+    LodInfo,
+    Manifest,
+    PayloadEntry,
+    Section,
+    SHCodebookEntry,
+    TileEntry,
+    entry_fields,
+    filter_element,
+    texels_size,
+)
+from .versions import (
+    CHECKSUM_VERSION,
+    CHUNK_ORDERS_1_4,
+    FORMAT_NAME,
+    FORMAT_VERSION,
+    FORMATS_1_3,
+    VERSION_1_3,
+    VERSION_1_4,
+)
+from .wire import CHECKSUM_KEY, unpack_manifest, verify_checksum
+
+# A payload may not claim to decompress to more than this (guards readers against decompression bombs).
+MAX_PAYLOAD_RAW_BYTES = 2 << 30
+MAX_WASTED_BLOCKS = 128  # max_blocks: a row of the widest texture (2048 texels)
+MAX_TILES = 1 << 20
+MAX_SECTIONS = 64
+CHUNK_ORDER_NAMES = ("morton", "luminance", "input")
+FILTERS_DOC = "none, shuffleN or, for texels, fields1"
+ATTRIBUTES = ("position", "rotation", "scale", "color", "sh")
+
+# Keys of each map, in the order they are read (a missing one is named in this order).
+_TOP_KEYS = ("format", "version", "splats", "sh_degree", "formats", "chunk_size", "chunk_order", "tiles", "root",
+             "leaf_splats", "camera", "up", "lod", "attributes", "generator", "name", "preset", "bounds",
+             "extent_bounds", "gpu_bytes", "gpu_bytes_per_splat", "leaf_bytes_on_disk", "encode_seconds",
+             "bytes_on_disk")
+_TILE_KEYS = ("id", "splats", "chunks", "texture", "sphere", "groups", "level", "children", "box", "geometric_error")
+_PAYLOAD_KEYS = ("sha256", "file", "raw_bytes", "bytes", "gpu_bytes", "sections")
+_SECTION_KEYS = ("name", "kind", "offset", "size", "filter")
+_KIND_KEYS = {"texels": _SECTION_KEYS + ("format", "width", "height", "layers"),
+              "range": _SECTION_KEYS + ("dtype", "shape")}
+_KEY_SETS: dict[tuple[str, ...], frozenset[str]] = {}  # each tuple of keys as a set (made once, when first used)
+_PAYLOAD_SET = frozenset(_PAYLOAD_KEYS)
+_KIND_SETS = {kind: frozenset(keys) for kind, keys in _KIND_KEYS.items()}
+_FILTER_ELEMENTS = {"none": 1, **{f"shuffle{n}": n for n in range(2, 17)}}
+_INF = math.inf
+_NUMBER = (float, int)  # msgpack's numbers (a bool is neither type)
+_isfinite = math.isfinite
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Field checks: each returns the value or raises FormatError(source, "path.key", problem)
+
+
+def _where(path: str, key: str | None) -> str | None:
+    if key is None:
+        return path or None
+    return f"{path}.{key}" if path else key
+
+
+def _fail(source: str, path: str, key: str | None, problem: str) -> NoReturn:
+    raise FormatError(source, _where(path, key), problem)
+
+
+def _key_set(keys: tuple[str, ...]) -> frozenset[str]:
+    key_set = _KEY_SETS.get(keys)
+    if key_set is None:
+        key_set = _KEY_SETS[keys] = frozenset(keys)
+    return key_set
+
+
+def _keys(d, keys: tuple[str, ...], source: str, path: str, strict: bool, optional: tuple[str, ...] = ()) -> dict:
+    """`d` is a map holding `keys` (and, in a version this reader knows, nothing but them and `optional`: format.md
+    6, Versioning). Returns `d`."""
+    if type(d) is not dict:
+        raise FormatError(source, path or None, f"expected a map, got {type(d).__name__}")
+    if d.keys() == _key_set(keys):
+        return d
+    for k in keys:
+        if k not in d:
+            _fail(source, path, k, "missing")
+    if strict:
+        extra = sorted(str(k) for k in d if k not in keys and k not in optional)
+        if extra:
+            _fail(source, path, None, f"unknown key{'s' if len(extra) > 1 else ''} {', '.join(map(repr, extra))}")
+    return d
+
+
+def _int(d: dict, key: str, source: str, path: str, lo: int = 0, hi: int = 2**62) -> int:
+    v = d[key]
+    if type(v) is not int or not lo <= v <= hi:
+        _fail(source, path, key, f"expected an integer {lo}..{hi}, got {v!r}")
+    return v
+
+
+def _float(d: dict, key: str, source: str, path: str, lo: float = -_INF, hi: float = _INF) -> float:
+    v = d[key]
+    if type(v) not in (float, int) or not math.isfinite(v) or not lo <= v <= hi:
+        _fail(source, path, key, f"expected a finite number in [{lo}, {hi}], got {v!r}")
+    return float(v)
+
+
+def _str(d: dict, key: str, source: str, path: str, choices: tuple[str, ...] | None = None) -> str:
+    v = d[key]
+    if type(v) is not str or (choices is not None and v not in choices):
+        want = f"one of {', '.join(choices)}" if choices else "a string"
+        _fail(source, path, key, f"expected {want}, got {v!r}")
+    return v
+
+
+def _bool(d: dict, key: str, source: str, path: str) -> bool:
+    v = d[key]
+    if type(v) is not bool:
+        _fail(source, path, key, f"expected true or false, got {v!r}")
+    return v
+
+
+def _vec(d: dict, key: str, source: str, path: str) -> tuple[float, float, float]:
+    v = d[key]
+    if type(v) in (list, tuple) and len(v) == 3:
+        x, y, z = v
+        if type(x) in _NUMBER and type(y) in _NUMBER and type(z) in _NUMBER and _isfinite(x) and _isfinite(y) \
+                and _isfinite(z):
+            return (float(x), float(y), float(z))
+    _fail(source, path, key, f"expected 3 finite numbers, got {v!r}")
+
+
+def _ints(d: dict, key: str, source: str, path: str, n: int | None, lo: int, hi: int) -> tuple[int, ...]:
+    v = d[key]
+    if type(v) not in (list, tuple) or (n is not None and len(v) != n) or not all(type(x) is int and lo <= x <= hi
+                                                                                  for x in v):
+        count = f"{n} " if n is not None else ""
+        _fail(source, path, key, f"expected a list of {count}integers {lo}..{hi}, got {v!r}")
+    return tuple(v)
+
+
+def _list(d: dict, key: str, source: str, path: str, limit: int) -> list:
+    v = d[key]
+    if type(v) not in (list, tuple) or len(v) > limit:
+        _fail(source, path, key, f"expected a list of at most {limit} items, got {type(v).__name__}")
+    return v
+
+
+def _box(d: dict, key: str, source: str, path: str, strict: bool) -> Box:
+    where = _where(path, key)
+    b = _keys(d[key], ("min", "max"), source, where, strict)
+    lo, hi = _vec(b, "min", source, where), _vec(b, "max", source, where)
+    if lo[0] > hi[0] or lo[1] > hi[1] or lo[2] > hi[2]:
+        _fail(source, where, None, f"min {lo} exceeds max {hi}")
+    return Box(lo, hi)
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Payload entries and their sections (format.md 5)
+
+
+@functools.lru_cache(maxsize=1024)
+def max_blocks(chunks: int) -> int:
+    """The most 16x16 blocks a texture of `chunks` chunks may have (format.md 4.1): twice the chunks and one row of
+    the widest texture. The encoder's textures waste less than a row; a larger one declares texels nothing fills
+    (a 1-splat tile claiming 8192x8192, a gigabyte to decompress and upload)."""
+    return 2 * chunks + MAX_WASTED_BLOCKS
+
+
+@functools.lru_cache(maxsize=4096)  # a large scene's thousands of sections repeat a few shapes
+def _stored_size_rule(fmt: str, width: int, height: int, layers: int, filt: str) -> tuple[int, int, int, str | None]:
+    """(smallest and largest stored size, GPU bytes, what is wrong with the filter or None) of a texels section: the
+    texture's bytes for none/shuffleN, a size within what the fields1 layout allows (format.md 5.2; the exact size
+    depends on modes only the bytes hold)."""
+    gpu = texels_size(fmt, width, height, layers)
+    if filt != FIELDS1:
+        return gpu, gpu, gpu, None
+    if fmt not in FIELD_LAYOUTS:
+        return 0, 0, gpu, f"fields1 does not apply to texel format {fmt}"
+    lo, hi = content_bounds(fmt, width, height, layers)
+    return lo, hi, gpu, None
+
+
+def _odd_shuffle(filt: str) -> bool:
+    """A shuffle filter spelled other than shuffle2..shuffle16 that filter_element still reads (`shuffle04`)."""
+    try:
+        filter_element(filt)
+    except ValueError:
+        return False
+    return True
+
+
+# Sections are made without the frozen dataclass's __init__ (its eleven object.__setattr__ calls were a third of the
+# time to parse a large scene's manifest): object.__new__, then the checked fields into its __dict__.
+_new = object.__new__
+
+
+def _bad_int(source: str, path: str, key: str, v, lo: int, hi: int) -> NoReturn:
+    _fail(source, path, key, f"expected an integer {lo}..{hi}, got {v!r}")
+
+
+def _spath(at: tuple[str, int]) -> str:
+    return f"{at[0]}.sections[{at[1]}]"
+
+
+def _texels(s: dict, want: dict, chunks: int, filt: str, length: int, source: str, at: tuple[str, int]) -> tuple:
+    """(format, width, height, layers, GPU bytes) of a texels section."""
+    fmt, width, height, layers = s["format"], s["width"], s["height"], s["layers"]
+    if fmt != want["format"]:
+        _str(s, "format", source, _spath(at), tuple(FORMATS))
+        _fail(source, _spath(at), "format", f"expected {want['format']!r} (the manifest's format for this plane), "
+              f"got {fmt!r}")
+    if type(width) is not int or not BLOCK <= width <= 1 << 16:
+        _bad_int(source, _spath(at), "width", width, BLOCK, 1 << 16)
+    if type(height) is not int or not BLOCK <= height <= 1 << 16:
+        _bad_int(source, _spath(at), "height", height, BLOCK, 1 << 16)
+    blocks = (width // BLOCK) * (height // BLOCK)
+    if width % BLOCK or height % BLOCK or blocks < chunks:
+        _fail(source, _spath(at), None, f"texture {width}x{height} cannot hold {chunks} chunks of {BLOCK}x{BLOCK} "
+              "texels")
+    if blocks > max_blocks(chunks):
+        _fail(source, _spath(at), None, f"texture {width}x{height} has {blocks} blocks of {BLOCK}x{BLOCK} texels "
+              f"for {chunks} chunks (at most {max_blocks(chunks)}: format.md 4.1)")
+    if type(layers) is not int or not 1 <= layers <= 64:
+        _bad_int(source, _spath(at), "layers", layers, 1, 64)
+    if layers != want["layers"]:
+        _fail(source, _spath(at), "layers", f"expected {want['layers']}, got {layers}")
+    lo, hi, gpu, problem = _stored_size_rule(fmt, width, height, layers, filt)
+    if problem is not None:
+        _fail(source, _spath(at), "filter", problem)
+    if not lo <= length <= hi:
+        _fail(source, _spath(at), "size", f"{length} bytes for {layers} layers of {width}x{height} {fmt}, expected "
+              f"{lo}" if filt != FIELDS1 else f"{length} bytes of fields1 content for {layers} layers of "
+              f"{width}x{height} {fmt}, expected {lo}..{hi}")
+    return fmt, width, height, layers, gpu
+
+
+def _range(s: dict, want: dict, length: int, source: str, at: tuple[str, int]) -> tuple:
+    """(dtype, shape) of a range section."""
+    dtype, shape = s["dtype"], s["shape"]
+    if dtype != want["dtype"]:
+        _str(s, "dtype", source, _spath(at), ("f32", "f16"))
+        _fail(source, _spath(at), "dtype", f"expected {want['dtype']!r}, got {dtype!r}")
+    # Equal to the expected shape (integers in range) and made of ints, not bools (True == 1): nothing else to check.
+    if type(shape) is not list or shape != want["shape"] or not (type(shape[0]) is type(shape[1]) is type(shape[2])
+                                                                 is type(shape[3]) is int):
+        shape = _ints(s, "shape", source, _spath(at), 4, 0, 1 << 24)
+        if list(shape) != want["shape"]:
+            _fail(source, _spath(at), "shape", f"expected {list(want['shape'])}, got {list(shape)}")
+    need = (4 if dtype == "f32" else 2) * shape[0] * shape[1] * shape[2] * shape[3]
+    if length != need:
+        _fail(source, _spath(at), "size", f"{length} bytes for a {dtype} range of shape {list(shape)}, expected {need}")
+    return dtype, tuple(shape)
+
+
+def _name_or_kind_problem(s: dict, want: dict | None, expect: list, source: str, at: tuple[str, int]) -> NoReturn:
+    """The section's name is not one its group holds, or its kind is not the one that name has."""
+    if want is None:
+        name = _str(_keys(s, ("name",), source, _spath(at), False), "name", source, _spath(at))
+        _fail(source, _spath(at), "name", f"unexpected section {name!r} (this payload holds "
+              f"{', '.join(n for n, _ in expect)})")
+    _keys(s, _SECTION_KEYS[:2], source, _spath(at), False)
+    _str(s, "kind", source, _spath(at), ("texels", "range"))
+    _fail(source, _spath(at), "kind", f"expected {want['kind']!r}, got {s['kind']!r}")
+
+
+def _section(s, i: int, expected: dict, expect: list, raw_bytes: int, chunks: int, strict: bool, source: str,
+             ppath: str) -> tuple[Section, int]:
+    """Section i of a payload entry at `ppath` and the bytes it decodes to; `expected` (name -> properties) loses
+    the section's name."""
+    at = (ppath, i)  # the section's path, made into a string only for a message
+    if type(s) is not dict:
+        raise FormatError(source, _spath(at), f"expected a map, got {type(s).__name__}")
+    name = s.get("name")
+    want = expected.pop(name, None) if type(name) is str else None
+    if want is None or s.get("kind") != want["kind"]:
+        _name_or_kind_problem(s, want, expect, source, at)
+    kind = want["kind"]
+    if s.keys() != _KIND_SETS[kind]:
+        _keys(s, _KIND_KEYS[kind], source, _spath(at), strict)
+    offset, length, filt = s["offset"], s["size"], s["filter"]
+    if type(offset) is not int or not 0 <= offset <= raw_bytes:
+        _bad_int(source, _spath(at), "offset", offset, 0, raw_bytes)
+    if type(length) is not int or not 0 <= length <= raw_bytes:
+        _bad_int(source, _spath(at), "size", length, 0, raw_bytes)
+    if offset % ALIGN:
+        _fail(source, _spath(at), "offset", f"{offset} is not a multiple of {ALIGN}")
+    if offset + length > raw_bytes:
+        _fail(source, _spath(at), "size", f"offset {offset} + size {length} lies outside the {raw_bytes}-byte "
+              "payload")
+    if type(filt) is not str:
+        _str(s, "filter", source, _spath(at))
+    if filt not in _FILTER_ELEMENTS and not (filt == FIELDS1 and kind == "texels") and not _odd_shuffle(filt):
+        _fail(source, _spath(at), "filter", f"unknown filter {filt!r} (expected {FILTERS_DOC})")
+    sec = _new(Section)
+    if kind == "texels":
+        fmt, width, height, layers, gpu = _texels(s, want, chunks, filt, length, source, at)
+        sec.__dict__.update(name=name, kind=kind, offset=offset, size=length, filter=filt, format=fmt, width=width,
+                            height=height, layers=layers, dtype="", shape=())
+        return sec, gpu
+    dtype, shape = _range(s, want, length, source, at)
+    sec.__dict__.update(name=name, kind=kind, offset=offset, size=length, filter=filt, format="", width=0, height=0,
+                        layers=0, dtype=dtype, shape=shape)
+    return sec, length
+
+
+_offset = operator.attrgetter("offset")
+
+
+def _payload(v, expect: list[tuple[str, dict]], chunks: int, strict: bool, source: str, path: str) -> PayloadEntry:
+    """A payload entry at `path`; `expect` is [(section name, {kind, format, layers, dtype, shape})]."""
+    if type(v) is not dict or v.keys() != _PAYLOAD_SET:
+        _keys(v, _PAYLOAD_KEYS, source, path, strict)
+    sha, file, raw_bytes, size, gpu_bytes, items = (v["sha256"], v["file"], v["raw_bytes"], v["bytes"],
+                                                    v["gpu_bytes"], v["sections"])
+    if type(sha) is not str or not SHA256_HEX_RE.match(sha):
+        _str(v, "sha256", source, path)
+        _fail(source, path, "sha256", f"expected 64 lowercase hex digits, got {sha!r}")
+    if file != payload_name(sha):
+        _str(v, "file", source, path)
+        _fail(source, path, "file", f"expected {payload_name(sha)!r} (the payload's name is its SHA-256), got "
+              f"{file!r}")
+    if type(raw_bytes) is not int or not 0 <= raw_bytes <= MAX_PAYLOAD_RAW_BYTES:
+        _bad_int(source, path, "raw_bytes", raw_bytes, 0, MAX_PAYLOAD_RAW_BYTES)
+    # zstd never expands data by more than a small bound; a larger claim is a lie a client must not allocate for.
+    if type(size) is not int or not 0 <= size <= raw_bytes + raw_bytes // 128 + 1024:
+        _bad_int(source, path, "bytes", size, 0, raw_bytes + raw_bytes // 128 + 1024)
+    if type(gpu_bytes) is not int or not 0 <= gpu_bytes <= MAX_PAYLOAD_RAW_BYTES:
+        _bad_int(source, path, "gpu_bytes", gpu_bytes, 0, MAX_PAYLOAD_RAW_BYTES)
+    if type(items) is not list or len(items) > MAX_SECTIONS:
+        _list(v, "sections", source, path, MAX_SECTIONS)
+    expected = dict(expect)
+    sections = []
+    gpu = 0
+    for i, s in enumerate(items):
+        sec, decoded = _section(s, i, expected, expect, raw_bytes, chunks, strict, source, path)
+        sections.append(sec)
+        gpu += decoded
+    if expected:
+        _fail(source, path, "sections", f"missing section{'s' if len(expected) > 1 else ''} "
+              f"{', '.join(map(repr, expected))}")
+    ordered = sorted(sections, key=_offset)
+    for a, b in zip(ordered, ordered[1:], strict=False):
+        if a.offset + a.size > b.offset:
+            _fail(source, path, "sections", f"sections {a.name!r} and {b.name!r} overlap")
+    end = ordered[-1].offset + ordered[-1].size if ordered else 0
+    if raw_bytes != end:
+        _fail(source, path, "raw_bytes", f"{raw_bytes}, but the sections end at byte {end}")
+    if gpu_bytes != gpu:
+        _fail(source, path, "gpu_bytes", f"{gpu_bytes}, but the sections decode to {gpu} bytes")
+    return PayloadEntry(file, sha, size, raw_bytes, gpu_bytes, tuple(sections))
+
+
+def expected_sections(group: str, codebook: bool, formats: dict[str, str], chunks: int,
+                      codebook_format: str | None = None) -> list[tuple[str, dict]]:
+    """The sections a payload group must hold: [(name, properties)] (format.md 4.4, 4.7, 5).
+
+    `group` is a tile group (`codebook`: the scene has an SH codebook), or `cb:sh<b>` for a codebook band."""
+    return _expected_sections(group, codebook, tuple(sorted(formats.items())), chunks, codebook_format)
+
+
+@functools.lru_cache(maxsize=1024)  # the same few groups and chunk counts for every tile of a scene
+def _expected_sections(group: str, codebook: bool, format_items: tuple, chunks: int,
+                       codebook_format: str | None) -> list[tuple[str, dict]]:
+    formats = dict(format_items)
+    specs = (band_plane(int(group[5:])),) if group.startswith("cb:") else group_planes(group, codebook)
+    out = []
+    for spec in specs:
+        if spec.name == "sh_index":
+            fmt = SH_INDEX_FORMAT
+        elif group.startswith("cb:"):
+            fmt = codebook_format
+        else:
+            fmt = formats[spec.attribute]
+        out.append((spec.name, {"kind": "texels", "format": fmt, "layers": spec.layers}))
+        if spec.range_dtype:
+            out.append((spec.range_name, {"kind": "range", "dtype": RANGE_DTYPE_NAMES[spec.range_dtype],
+                                          "shape": [chunks, 2, spec.layers, spec.components]}))
+    return out
+
+
+# --------------------------------------------------------------------------------------------------------------
+# Tiles
+
+
+class _Scene:
+    """What every tile of one manifest is checked against."""
+
+    __slots__ = ("source", "strict", "formats", "format_items", "codebook", "group_names", "lazy", "expect")
+
+    def __init__(self, source: str, strict: bool, formats: dict[str, str], sh_degree: int, codebook: bool,
+                 lazy: bool):
+        self.source, self.strict, self.formats, self.codebook, self.lazy = source, strict, formats, codebook, lazy
+        self.group_names = tuple(groups_for_degree(sh_degree, codebook))
+        self.format_items = tuple(sorted(formats.items()))
+        self.expect: dict[tuple[str, int], list] = {}  # (group, chunks) -> expected_sections: a few per scene
+
+
+def _tile_group(scene: _Scene, raw_groups: dict, chunks: int, texture: tuple[int, int], path: str,
+               name: str) -> PayloadEntry:
+    """One tile group's payload entry, its texels the tile's texture size (an eager parse and LazyPayloads both
+    check an entry with this function)."""
+    expect = scene.expect.get((name, chunks))
+    if expect is None:
+        expect = scene.expect[name, chunks] = _expected_sections(name, scene.codebook, scene.format_items, chunks,
+                                                                 None)
+    entry = _payload(raw_groups[name], expect, chunks, scene.strict, scene.source, f"{path}.{name}")
+    for sec in entry.sections:
+        if sec.kind == "texels" and (sec.width, sec.height) != texture:
+            _fail(scene.source, path, f"{name}.sections", f"{sec.name} is {sec.width}x{sec.height}, the tile's "
+                  f"texture {texture[0]}x{texture[1]}")
+    return entry
+
+
+def _tile(v, i: int, scene: _Scene, group_names: tuple[str, ...]) -> TileEntry:
+    source, strict = scene.source, scene.strict
+    path = f"tiles[{i}]"
+    t = _keys(v, _TILE_KEYS, source, path, strict)
+    tid, n, chunks, level = t["id"], t["splats"], t["chunks"], t["level"]
+    if type(tid) is not int or not 0 <= tid <= 2**31 - 1:
+        _bad_int(source, path, "id", tid, 0, 2**31 - 1)
+    if type(n) is not int or not 1 <= n <= 1 << 31:
+        _bad_int(source, path, "splats", n, 1, 1 << 31)
+    if type(chunks) is not int or not 1 <= chunks <= 1 << 24:
+        _bad_int(source, path, "chunks", chunks, 1, 1 << 24)
+    if chunks != chunks_for(n):
+        _fail(source, path, "chunks", f"{chunks}, but {n} splats make {chunks_for(n)} chunks")
+    texture = _ints(t, "texture", source, path, 2, BLOCK, 1 << 16)
+    if texture[0] % BLOCK or texture[1] % BLOCK or (texture[0] // BLOCK) * (texture[1] // BLOCK) < chunks:
+        _fail(source, path, "texture", f"{texture[0]}x{texture[1]} cannot hold {chunks} chunks")
+    sphere = _keys(t["sphere"], ("center", "radius"), source, f"{path}.sphere", strict)
+    center = _vec(sphere, "center", source, f"{path}.sphere")
+    radius = _float(sphere, "radius", source, f"{path}.sphere", 0.0)
+    gpath = f"{path}.groups"
+    raw_groups = t["groups"]
+    if type(raw_groups) is not dict:
+        raise FormatError(source, gpath, f"expected a map, got {type(raw_groups).__name__}")
+    check = functools.partial(_tile_group, scene, raw_groups, chunks, texture, gpath)
+    names = _key_set(group_names)
+    if scene.lazy and (raw_groups.keys() == names or not strict and raw_groups.keys() >= names):
+        groups = LazyPayloads(raw_groups, group_names, check)
+    else:  # in order, so that a missing group is named where its turn comes (as a scene of another degree has it)
+        groups = {}
+        for name in group_names:
+            if name not in raw_groups:
+                _fail(source, gpath, name, "missing")
+            groups[name] = _tile_group(scene, raw_groups, chunks, texture, gpath, name)
+        _keys(raw_groups, group_names, source, gpath, strict)
+    if type(level) is not int or not 0 <= level <= 64:
+        _bad_int(source, path, "level", level, 0, 64)
+    return TileEntry(tid, level, _ints(t, "children", source, path, None, 0, 2**31 - 1),
+                     n, chunks, texture, _box(t, "box", source, path, strict), center, radius,
+                     _float(t, "geometric_error", source, path, 0.0), groups)
+
+
+def _tiles(items: list, scene: _Scene) -> list[TileEntry]:
+    group_names = scene.group_names
+    tiles = []
+    ids: set[int] = set()
+    for i, item in enumerate(items):
+        tile = _tile(item, i, scene, group_names)
+        if tile.id in ids:
+            _fail(scene.source, f"tiles[{i}]", "id", f"tile id {tile.id} appears twice")
+        ids.add(tile.id)
+        tiles.append(tile)
+    return tiles
+
+
+def _check_tree(source: str, tiles: list[TileEntry], root: int) -> None:
+    """One root at level 0; every other tile is the child of exactly one tile, one level below it."""
+    by_id = {t.id: t for t in tiles}
+    if root not in by_id:
+        raise FormatError(source, "root", f"no tile with id {root}")
+    parent: dict[int, int] = {}
+    for i, t in enumerate(tiles):
+        for c in t.children:
+            if c not in by_id:
+                raise FormatError(source, f"tiles[{i}].children", f"no tile with id {c}")
+            if c in parent or c == root:
+                raise FormatError(source, f"tiles[{i}].children", f"tile {c} has more than one parent")
+            parent[c] = t.id
+            if by_id[c].level != t.level + 1:
+                raise FormatError(source, f"tiles[{i}].children", f"tile {c} is at level {by_id[c].level}, "
+                                  f"expected {t.level + 1} (one below its parent)")
+    if by_id[root].level != 0:
+        raise FormatError(source, "root", f"the root tile is at level {by_id[root].level}, expected 0")
+    orphans = [t.id for t in tiles if t.id != root and t.id not in parent]
+    if orphans:
+        raise FormatError(source, "tiles", f"tiles {orphans[:8]} are not reachable from the root {root}")
+
+
+# --------------------------------------------------------------------------------------------------------------
+# The manifest
+
+
+def _check_format_and_version(d, source: str) -> tuple[int, int]:
+    if not isinstance(d, dict) or d.get("format") != FORMAT_NAME:
+        raise FormatError(source, "format", f"expected {FORMAT_NAME!r}; this is not a splatstream manifest")
+    version = d.get("version")
+    if not (isinstance(version, (list, tuple)) and len(version) == 2
+            and all(isinstance(v, int) and not isinstance(v, bool) and v >= 0 for v in version)):
+        raise FormatError(source, "version", f"expected [major, minor], got {version!r}")
+    if version[0] != FORMAT_VERSION[0]:
+        raise FormatError(source, "version", f"format version {version[0]}.{version[1]} is not supported by this "
+                          f"reader (it reads major version {FORMAT_VERSION[0]}); upgrade splatstream")
+    return version[0], version[1]
+
+
+def _newer_than(version: tuple[int, int], what: str, since: tuple[int, int]) -> str:
+    return f"{what} is a version {since[0]}.{since[1]} {'chunk order' if since == VERSION_1_4 else 'texel format'}; " \
+        f"the manifest is version {version[0]}.{version[1]}"
+
+
+def _formats(d: dict, version: tuple[int, int], source: str, strict: bool) -> dict[str, str]:
+    fm = _keys(d["formats"], ATTRIBUTES, source, "formats", strict)
+    formats = {a: _str(fm, a, source, "formats", VALUE_FORMATS) for a in ATTRIBUTES}
+    for a, f in formats.items():
+        if f in FORMATS_1_3 and version < VERSION_1_3:
+            _fail(source, "formats", a, _newer_than(version, f, VERSION_1_3))
+    if FORMATS[formats["color"]].components < 4:
+        _fail(source, "formats", "color", f"{formats['color']} has 3 components; color needs 4")
+    return formats
+
+
+def _codebook(d: dict, version: tuple[int, int], formats: dict[str, str], sh_degree: int, source: str,
+              strict: bool) -> SHCodebookEntry | None:
+    if d.get("sh_codebook") is None:
+        return None
+    c = _keys(d["sh_codebook"], ("entries", "format", "index_format", "groups"), source, "sh_codebook", strict)
+    entries = _int(c, "entries", source, "sh_codebook", 1, 65536)
+    cb_format = _str(c, "format", source, "sh_codebook", VALUE_FORMATS)
+    if cb_format in FORMATS_1_3 and version < VERSION_1_3:
+        _fail(source, "sh_codebook", "format", _newer_than(version, cb_format, VERSION_1_3))
+    index_format = _str(c, "index_format", source, "sh_codebook", (SH_INDEX_FORMAT,))
+    bands = tuple(f"sh{b}" for b in range(1, sh_degree + 1))
+    g = _keys(c["groups"], bands, source, "sh_codebook.groups", strict)
+    chunks = chunks_for(entries)
+    groups = {b: _payload(g[b], expected_sections(f"cb:{b}", True, formats, chunks, cb_format), chunks, strict,
+                          source, f"sh_codebook.groups.{b}") for b in bands}
+    return SHCodebookEntry(entries, cb_format, index_format, groups)
+
+
+def _camera(d: dict, source: str, strict: bool) -> CameraEntry:
+    cam = _keys(d["camera"], ("eye", "target", "up", "fov_y"), source, "camera", strict)
+    camera = CameraEntry(_vec(cam, "eye", source, "camera"), _vec(cam, "target", source, "camera"),
+                         _vec(cam, "up", source, "camera"), _float(cam, "fov_y", source, "camera", 1e-3, 179.0))
+    if camera.eye == camera.target:
+        _fail(source, "camera", "eye", "the camera's eye and target coincide")
+    if not any(camera.up):
+        _fail(source, "camera", "up", "zero-length up vector")
+    return camera
+
+
+def _lod(d: dict, source: str, strict: bool) -> LodInfo:
+    lod = _keys(d["lod"], ("enabled", "max_leaf_splats", "reduction", "refine"), source, "lod", strict)
+    return LodInfo(_bool(lod, "enabled", source, "lod"), _int(lod, "max_leaf_splats", source, "lod", 1),
+                   _float(lod, "reduction", source, "lod", 1.0), _str(lod, "refine", source, "lod", ("replace",)))
+
+
+def _attributes(d: dict, source: str, strict: bool) -> dict[str, AttributeSize]:
+    am = _keys(d["attributes"], (), source, "attributes", strict, ATTRIBUTES)
+    attributes = {}
+    for a in [k for k in ATTRIBUTES if k in am]:
+        path = f"attributes.{a}"
+        s = _keys(am[a], ("format", "gpu_bytes", "disk_bytes"), source, path, strict)
+        attributes[a] = AttributeSize(_str(s, "format", source, path, VALUE_FORMATS),
+                                      _int(s, "gpu_bytes", source, path), _int(s, "disk_bytes", source, path))
+    return attributes
+
+
+def _check_splats(d: dict, tiles: list[TileEntry], splats: int, source: str) -> int:
+    leaf_splats = _int(d, "leaf_splats", source, "", 1)
+    leaf_sum = sum(t.splats for t in tiles if t.is_leaf)
+    if leaf_splats != leaf_sum or splats != leaf_sum:
+        _fail(source, "", "splats", f"splats {splats} and leaf_splats {leaf_splats} must both equal the leaf tiles' "
+              f"{leaf_sum} splats")
+    return leaf_splats
+
+
+def _check_totals(manifest: Manifest, source: str) -> None:
+    """Totals a reader can recompute must agree (a resealed but edited manifest, or a writer's bug)."""
+    leaf_sizes = [entry_fields(t.groups, name, ("gpu_bytes", "bytes")) for t in manifest.leaves for name in t.groups]
+    if manifest.sh_codebook is not None:
+        leaf_sizes += [(p.gpu_bytes, p.bytes) for p in manifest.sh_codebook.groups.values()]
+    gpu = sum(g for g, _ in leaf_sizes)
+    disk = sum(b for _, b in leaf_sizes)
+    if manifest.gpu_bytes != gpu or manifest.leaf_bytes_on_disk != disk:
+        check_all_entries(manifest.leaves)  # a lazily checked entry at fault is named, not only the total
+    if manifest.gpu_bytes != gpu:
+        _fail(source, "", "gpu_bytes", f"{manifest.gpu_bytes}, but the leaf tiles' and codebook's sections hold "
+              f"{gpu} bytes")
+    if manifest.leaf_bytes_on_disk != disk:
+        _fail(source, "", "leaf_bytes_on_disk", f"{manifest.leaf_bytes_on_disk}, but the leaf tiles' and codebook's "
+              f"payloads are {disk} bytes")
+
+
+def manifest_from_dict(d, source: str = MANIFEST_NAME, lazy_payloads: bool = False) -> Manifest:
+    """Validate a manifest map (format.md 6) into a Manifest; FormatError names the first field that is wrong.
+    (The checksum, a property of the file's bytes, is verified by parse_manifest.)
+
+    lazy_payloads: each tile's payload entries are checked when first read (by the same function), not here."""
+    version = _check_format_and_version(d, source)
+    # Keys are added only in new minor versions: in a version this reader knows, an unknown key is damage.
+    strict = version[1] <= FORMAT_VERSION[1]
+    optional = ("sh_codebook", CHECKSUM_KEY) if version >= CHECKSUM_VERSION else ("sh_codebook",)
+    _keys(d, _TOP_KEYS, source, "", strict, optional)
+    splats = _int(d, "splats", source, "", 1)
+    sh_degree = _int(d, "sh_degree", source, "", 0, MAX_SH_DEGREE)
+    formats = _formats(d, version, source, strict)
+    chunk_size = _int(d, "chunk_size", source, "", CHUNK_SIZE, CHUNK_SIZE)
+    chunk_order = _str(d, "chunk_order", source, "", CHUNK_ORDER_NAMES)
+    if chunk_order in CHUNK_ORDERS_1_4 and version < VERSION_1_4:
+        _fail(source, "", "chunk_order", _newer_than(version, chunk_order, VERSION_1_4))
+    codebook = _codebook(d, version, formats, sh_degree, source, strict)
+    scene = _Scene(source, strict, formats, sh_degree, codebook is not None, lazy_payloads)
+    tiles = _tiles(_list(d, "tiles", source, "", MAX_TILES), scene)
+    if not tiles:
+        _fail(source, "", "tiles", "no tiles: a scene has at least its root tile")
+    root = _int(d, "root", source, "", 0, 2**31 - 1)
+    _check_tree(source, tiles, root)
+    leaf_splats = _check_splats(d, tiles, splats, source)
+    camera = _camera(d, source, strict)
+    up = _vec(d, "up", source, "")
+    if not any(up):
+        _fail(source, "", "up", "zero-length up vector")
+    manifest = Manifest(
+        version=version, generator=_str(d, "generator", source, ""), name=_str(d, "name", source, ""),
+        splats=splats, leaf_splats=leaf_splats, sh_degree=sh_degree, preset=_str(d, "preset", source, ""),
+        formats=formats, chunk_size=chunk_size, chunk_order=chunk_order,
+        bounds=_box(d, "bounds", source, "", strict), extent_bounds=_box(d, "extent_bounds", source, "", strict),
+        up=up, camera=camera, sh_codebook=codebook, lod=_lod(d, source, strict), root=root, tiles=tuple(tiles),
+        gpu_bytes=_int(d, "gpu_bytes", source, ""),
+        gpu_bytes_per_splat=_float(d, "gpu_bytes_per_splat", source, "", 0.0),
+        leaf_bytes_on_disk=_int(d, "leaf_bytes_on_disk", source, ""), attributes=_attributes(d, source, strict),
+        encode_seconds=_float(d, "encode_seconds", source, "", 0.0), bytes_on_disk=_int(d, "bytes_on_disk", source, ""))
+    if strict:  # a newer minor version may add payloads these totals count; only its own keys are checked
+        _check_totals(manifest, source)
+    return manifest
+
+
+def check_all_entries(tiles) -> None:
+    """Read every payload entry of these tiles: a lazily checked one that is wrong raises its own FormatError."""
+    for t in tiles:
+        for name in t.groups:
+            t.groups[name]
+
+
+def parse_manifest(raw: bytes, source: str = MANIFEST_NAME, lazy_payloads: bool = False) -> Manifest:
+    """Parse and validate manifest file bytes; from version 1.2 on the checksum is verified first.
+
+    lazy_payloads (the streaming client): each tile's payload entries are checked when first read (a FormatError
+    naming the field then), not here; everything else, totals included, is checked now. They are most of the parse
+    of a large scene's manifest (thousands of entries, tens of thousands of sections), which a client waits for
+    before its first frame and then reads a few at a time."""
+    with _collector_paused():
+        # A function of its own, so that the unpacked map is freed before the collector runs again (the eager
+        # parse keeps nothing of it: the collector's first pass would walk its hundreds of thousands of objects).
+        return _parse(raw, source, lazy_payloads)
+
+
+def _parse(raw: bytes, source: str, lazy_payloads: bool) -> Manifest:
+    d = unpack_manifest(raw, source)
+    version = _check_format_and_version(d, source)
+    if version >= CHECKSUM_VERSION:
+        verify_checksum(raw, d, source)
+    manifest = manifest_from_dict(d, source, lazy_payloads)
+    if CHECKSUM_VERSION <= version <= FORMAT_VERSION:
+        files = manifest.payload_bytes()
+        if manifest.bytes_on_disk != files + len(raw):
+            check_all_entries(manifest.tiles)
+            raise FormatError(source, "bytes_on_disk", f"{manifest.bytes_on_disk}, but the payload files and the "
+                              f"manifest are {files + len(raw)} bytes")
+    return manifest
+
+
+@contextlib.contextmanager
+def _collector_paused():
+    """The garbage collector off while a manifest's tens of thousands of objects are made (they hold no cycles; its
+    passes over them were a tenth of the parse), back as it was after."""
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()

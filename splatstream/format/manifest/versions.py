@@ -1,0 +1,30 @@
+"""Format versions: what this code reads, and what a writer writes a scene as (format.md, version history)."""
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+FORMAT_NAME = "splatstream"
+FORMAT_VERSION = (1, 4)  # (major, minor) this code reads; what it writes: writer_version
+# Version 1.2 added two things (format.md, version history): the manifest's last key `checksum`, the SHA-256 of the
+# file with that value's 64 bytes read as ASCII '0' (format.md 6, "Checksum"), so a flipped byte in the manifest is
+# caught like one in a payload; and the `fields1` transport coding of texels sections (format.md 5.2).
+CHECKSUM_VERSION = (1, 2)
+# Version 1.3 added the texel formats norm16x4 and norm9x3 (format.md 4.2). Like the 1.1 codebook it is written only
+# by scenes that use them, so every other scene stays 1.2 and readers of 1.2 keep reading it.
+VERSION_1_3 = (1, 3)
+FORMATS_1_3 = ("norm16x4", "norm9x3")
+# Version 1.4 added the chunk order `input` (format.md 3): a one-tile scene whose splats keep the order of an input
+# that was already cut into quantised chunks of 256 (compressed.ply), so its chunks, and their grids, are the input's.
+VERSION_1_4 = (1, 4)
+CHUNK_ORDERS_1_4 = ("input",)
+
+
+def writer_version(formats: Mapping[str, str], codebook_format: str | None = None,
+                   chunk_order: str = "morton") -> tuple[int, int]:
+    """The version a writer writes a scene of these texel formats and chunk order as: 1.4 in the chunk order
+    `input`, 1.3 with a norm16x4 or norm9x3 plane (or SH codebook), 1.2 otherwise (every scene carries the 1.2
+    manifest checksum)."""
+    if chunk_order in CHUNK_ORDERS_1_4:
+        return VERSION_1_4
+    used = set(formats.values()) | ({codebook_format} if codebook_format else set())
+    return VERSION_1_3 if used & set(FORMATS_1_3) else CHECKSUM_VERSION

@@ -1,0 +1,69 @@
+"""Export a splatstream scene's LOD tree as a PlayCanvas streamed SOG (`lod-meta.json` + SOG units), for
+PlayCanvas's engine and SuperSplat (format_spec/foreign_formats.md, "Our streamed SOG export").
+
+The mapping from our tree is `splatstream.writers.sog_lod` (pure); this module decodes the scene's tiles and
+writes the output directory atomically (built under a hidden temporary name, swapped into place).
+"""
+from __future__ import annotations
+
+import os
+from collections.abc import Callable
+from dataclasses import dataclass
+
+from .atomic import atomic_directory, check_output
+from .errors import UsageError
+from .format.decode import decode_planes
+from .scene_decode import decode_tile, read_codebook
+from .store import SceneStore, open_store, read_manifest
+from .writers.sog_lod import LOD_META_NAME, UNIT_SPLATS, TreeTile, streamed_sog, write_streamed_sog
+
+
+@dataclass(frozen=True)
+class SogExportReport:
+    tiles: int
+    levels: int
+    units: int
+    splats: int  # splats written over every level
+    leaf_splats: int  # level 0 (the scene's full detail)
+    bytes: int  # everything written
+
+
+def export_streamed_sog(scene: str | os.PathLike | SceneStore, out_dir: str | os.PathLike,
+                        sh_degree: int | None = None, unit_splats: int = UNIT_SPLATS,
+                        progress: Callable[[str, float], None] | None = None) -> SogExportReport:
+    """Write the streamed SOG of `scene` into `out_dir` (replaced atomically)."""
+    store = open_store(scene)
+    manifest = read_manifest(store)
+    out = os.fspath(out_dir)
+    if isinstance(scene, (str, os.PathLike)) and os.path.exists(out) and \
+            os.path.realpath(out) == os.path.realpath(os.fspath(scene)):
+        raise UsageError(f"{out}: the output directory is the scene itself")
+    if unit_splats < 1:
+        raise UsageError(f"unit size {unit_splats}: expected at least 1 splat")
+    check_output(out, directory=True)
+    degree = manifest.sh_degree if sh_degree is None else max(0, min(sh_degree, manifest.sh_degree))
+    planes = read_codebook(store, manifest, degree) if degree >= 1 else None
+    codebook = decode_planes(planes, manifest.sh_codebook.entries) if planes is not None else None
+    report = progress or (lambda stage, fraction: None)
+    tiles: dict[int, TreeTile] = {}
+    for done, tile in enumerate(manifest.tiles):
+        tiles[tile.id] = TreeTile(tile.id, tile.level, tuple(tile.children),
+                                  decode_tile(store, manifest, tile, degree, codebook))
+        report("decode", (done + 1) / len(manifest.tiles))
+    report("encode", 0.0)
+    sog = streamed_sog(tiles, manifest.root, unit_splats)
+    report("encode", 1.0)
+    with atomic_directory(out) as tmp:
+        write_streamed_sog(sog, tmp)
+        for base, dirs, files in os.walk(tmp):
+            for d in dirs:
+                os.chmod(os.path.join(base, d), 0o755)
+            for f in files:
+                os.chmod(os.path.join(base, f), 0o644)
+        written = sum(os.path.getsize(os.path.join(base, f)) for base, _, files in os.walk(tmp) for f in files)
+    meta = sog.meta
+    return SogExportReport(tiles=len(manifest.tiles), levels=meta["lodLevels"], units=len(sog.units),
+                           splats=meta["count"], leaf_splats=meta["counts"][0], bytes=written)
+
+
+__all__ = ["LOD_META_NAME", "SogExportReport", "export_streamed_sog"]

@@ -1,0 +1,260 @@
+"""The edits of issue 36 (splatstream/edit.py): SH bands rotated exactly (per band, against a numpy reference),
+splat-transform's names, frame and results, the same output whether the encoder edits the scene whole or chunk by
+chunk (partitioned, Dask), and the CLI's --dry-run."""
+from __future__ import annotations
+
+import hashlib
+import os
+import subprocess
+
+import numpy as np
+import pytest
+from conftest import real
+from test_tool_roundtrip import SOURCE_PLY, splat_transform
+
+from cli.main import main
+from splatstream.edit import (
+    Box,
+    Pipeline,
+    Sphere,
+    Transform,
+    parse_filter,
+    quaternion_from_euler,
+    quaternion_matrix,
+    rotation,
+    scaling,
+    sh_rotation,
+    translation,
+)
+from splatstream.encode import encode_file
+from splatstream.errors import UsageError
+from splatstream.gaussians import SH_BAND_COEFFS, SH_BAND_START, Gaussians, covariances
+from splatstream.io import read_gaussians
+from splatstream.ply import read_elements, write_gaussians_ply
+from splatstream.sh import sh_basis
+
+BANDS = (1, 2, 3)
+
+
+def random_rotation(rng: np.random.Generator) -> np.ndarray:
+    q = rng.normal(size=4)
+    return quaternion_matrix(q / np.linalg.norm(q))
+
+
+def unit_directions(rng: np.random.Generator, n: int = 200) -> np.ndarray:
+    d = rng.normal(size=(n, 3))
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+@pytest.mark.parametrize("band", BANDS)
+def test_sh_rotation_of_each_band_against_the_numpy_reference(band):
+    """The reference is the definition: a band's function turned by R takes at R d the value it had at d,
+    evaluated with the 3DGS basis (sh.sh_basis) at directions the fit never saw."""
+    rng = np.random.default_rng(band)
+    lo, n = 1 + SH_BAND_START[band], SH_BAND_COEFFS[band]
+    for _ in range(5):
+        r = random_rotation(rng)
+        m = sh_rotation(r, band)
+        c = rng.normal(size=(n, 4))
+        d = unit_directions(rng)
+        before = sh_basis(d, 3)[:, lo:lo + n] @ c
+        after = sh_basis(d @ r.T, 3)[:, lo:lo + n] @ (m @ c)  # rows: R d
+        np.testing.assert_allclose(after, before, atol=1e-12)
+        np.testing.assert_allclose(m @ m.T, np.eye(n), atol=1e-12)  # an orthonormal basis: M is orthogonal
+        np.testing.assert_allclose(sh_rotation(r.T, band), m.T, atol=1e-12)  # the inverse turn
+
+
+def test_band_1_is_the_rotation_matrix_in_the_basis_order():
+    """Band 1 of the 3DGS basis is C1 (-y, z, -x): its coefficients turn by P R P^T with P that permutation."""
+    p = np.array([[0, -1, 0], [0, 0, 1], [-1, 0, 0]], float)
+    r = random_rotation(np.random.default_rng(7))
+    np.testing.assert_allclose(sh_rotation(r, 1), p @ r @ p.T, atol=1e-12)
+
+
+def small_scene() -> Gaussians:
+    return read_gaussians(SOURCE_PLY)
+
+
+def test_a_rotated_scene_shows_the_same_colours_and_shapes():
+    g = small_scene()
+    t = rotation(30, -40, 75)
+    r = quaternion_matrix(np.array(t.rotation))
+    out = t.apply(g)
+    np.testing.assert_allclose(out.positions, g.positions.astype(np.float64) @ r.T, atol=2e-6)
+    np.testing.assert_allclose(covariances(out), r @ covariances(g) @ r.T, rtol=1e-4, atol=1e-9)
+    d = unit_directions(np.random.default_rng(0), 50)
+    basis = sh_basis(d, 3)[:, 1:]
+    turned = sh_basis(d @ r.T, 3)[:, 1:]
+    for band in BANDS:  # band by band: each is rotated on its own
+        lo, n = SH_BAND_START[band], SH_BAND_COEFFS[band]
+        want = np.einsum("dk,nkc->ndc", basis[:, lo:lo + n], g.sh_rest[:, lo:lo + n].astype(np.float64))
+        got = np.einsum("dk,nkc->ndc", turned[:, lo:lo + n], out.sh_rest[:, lo:lo + n].astype(np.float64))
+        np.testing.assert_allclose(got, want, atol=1e-6)
+    np.testing.assert_array_equal(out.sh_dc, g.sh_dc)
+    np.testing.assert_array_equal(out.opacity_logits, g.opacity_logits)
+
+
+def test_coordinates_are_splat_transforms_engine_frame():
+    """A PLY's x and y negated (PlayCanvas's frame): --translate 1,2,3 moves a PLY's splats by (-1, -2, 3)."""
+    g = small_scene()
+    moved = translation(1, 2, 3).apply(g)
+    np.testing.assert_allclose(moved.positions - g.positions, np.tile([-1, -2, 3], (len(g), 1)), atol=1e-6)
+    # the quaternion of Euler angles is PlayCanvas's (x, then y, then z): 90 about y turns +x to -z
+    q = quaternion_from_euler(0, 90, 0)
+    np.testing.assert_allclose(quaternion_matrix(q) @ [1, 0, 0], [0, 0, -1], atol=1e-12)
+    assert scaling(2).apply(g).log_scales == pytest.approx(g.log_scales + np.log(2), abs=1e-6)
+
+
+def test_composed_transforms_equal_the_steps_one_by_one():
+    g = small_scene()
+    steps = [rotation(10, 20, 30), translation(0.5, -1, 2), scaling(1.5), rotation(-5, 0, 45)]
+    composed = Pipeline(steps).apply(g)
+    assert len(Pipeline(steps).steps) == 1
+    one_by_one = g
+    for s in steps:
+        one_by_one = s.apply(one_by_one)
+    for name in ("positions", "rotations", "log_scales", "sh_rest"):
+        np.testing.assert_allclose(getattr(composed, name), getattr(one_by_one, name), atol=1e-5)
+
+
+def test_filters_keep_what_they_say():
+    g = small_scene()
+    engine = g.positions.astype(np.float64) * [-1, -1, 1]
+    box = Box((-0.8, -0.2, -2.2), (-0.6, 0.1, -2.0))
+    inside = np.all((engine >= box.lo) & (engine <= box.hi), axis=1)
+    np.testing.assert_array_equal(box.keep(g), inside)
+    np.testing.assert_array_equal(Box(box.lo, box.hi, keep_inside=False).keep(g), ~inside)
+    sphere = Sphere((-0.7, -0.1, -2.1), 0.1)
+    np.testing.assert_array_equal(sphere.keep(g), np.linalg.norm(engine - sphere.center, axis=1) < 0.1)
+    np.testing.assert_array_equal(parse_filter("opacity>0.3").keep(g), g.opacities.astype(np.float64) > 0.3)
+    np.testing.assert_array_equal(parse_filter("scale_1<=0.01").keep(g),
+                                  g.log_scales[:, 1].astype(np.float64) <= np.log(0.01))
+    np.testing.assert_array_equal(parse_filter("f_dc_0_raw,lte,0.2").keep(g), g.sh_dc[:, 0] <= 0.2)
+    assert parse_filter("x != 0.5") == parse_filter("x,neq,0.5")
+    for bad, says in (("opacity>>1", "not a number"), ("rot_0>1", "unknown attribute"), ("opacity", "expected"),
+                      ("opacity>1.5", "between 0 and 1"), ("opacity,gte,nan", "finite")):
+        with pytest.raises(UsageError, match=says):
+            parse_filter(bad)
+
+
+# splat-transform 3.7.0 on tests/fixtures/foreign/fruit_drops_sub16.ply (296 splats): its arguments, our edits
+# and the splats it kept (recorded with `splat-transform -g cpu IN ARGS out.ply`).
+TOOL_CASES = [
+    (["-t", "1,2,3"], [translation(1, 2, 3)], 296),
+    (["-r", "30,-40,75", "-t", "1,2,3", "-s", "1.5"], [rotation(30, -40, 75), translation(1, 2, 3), scaling(1.5)],
+     296),
+    (["-B", "-0.8,-0.2,-2.2,-0.6,0.1,-2.0"], [Box((-0.8, -0.2, -2.2), (-0.6, 0.1, -2.0))], 106),
+    (["-S", "-0.7,-0.1,-2.1,0.1"], [Sphere((-0.7, -0.1, -2.1), 0.1)], 80),
+    (["-V", "opacity,gt,0.3"], [parse_filter("opacity>0.3")], 61),
+    (["-V", "scale_1,lt,0.01"], [parse_filter("scale_1<0.01")], 246),
+    (["-V", "f_dc_0,gte,0.5"], [parse_filter("f_dc_0>=0.5")], 41),
+    (["-V", "y,gt,-0.1"], [parse_filter("y>-0.1")], 140),
+    (["-t", "0.7,0,0", "-V", "x,lt,0"], [translation(0.7, 0, 0), parse_filter("x<0")], 184),
+    (["-r", "0,90,0", "-t", "2,0,0", "-B", "-0.11,-1,-1,3,1,1"], [rotation(0, 90, 0), translation(2, 0, 0),
+                                                                Box((-0.11, -1, -1), (3, 1, 1))], 246),
+]
+
+
+@pytest.mark.parametrize("case", range(len(TOOL_CASES)))
+def test_kept_splats_match_splat_transform(case):
+    _, edits, kept = TOOL_CASES[case]
+    assert len(Pipeline(edits).apply(small_scene())) == kept
+
+
+@pytest.mark.parametrize("case", range(len(TOOL_CASES)))
+def test_values_match_splat_transform(case, tmp_path):
+    tool = splat_transform()
+    args, edits, kept = TOOL_CASES[case]
+    out = tmp_path / "out.ply"
+    r = subprocess.run([tool, "-q", "-w", "-g", "cpu", str(SOURCE_PLY), *args, str(out)], capture_output=True,
+                       text=True, timeout=300, stdin=subprocess.DEVNULL)
+    assert r.returncode == 0, r.stdout + r.stderr
+    v = read_elements(out)[1]["vertex"]
+    ours = Pipeline(edits).apply(small_scene())
+    assert len(v) == kept == len(ours)
+
+    def cols(*names: str) -> np.ndarray:
+        return np.stack([v[n] for n in names], axis=1)
+
+    np.testing.assert_allclose(cols("x", "y", "z"), ours.positions, atol=1e-6)
+    np.testing.assert_allclose(cols(*(f"rot_{i}" for i in range(4))), ours.rotations, atol=1e-6)
+    np.testing.assert_allclose(cols(*(f"scale_{i}" for i in range(3))), ours.log_scales, atol=1e-6)
+    np.testing.assert_array_equal(cols("f_dc_0", "f_dc_1", "f_dc_2"), ours.sh_dc)
+    np.testing.assert_array_equal(v["opacity"], ours.opacity_logits)
+    k = ours.sh_rest.shape[1]
+    rest = cols(*(f"f_rest_{i}" for i in range(3 * k))).reshape(-1, 3, k).transpose(0, 2, 1)
+    np.testing.assert_allclose(rest, ours.sh_rest, atol=1e-6)
+
+
+def tree_digest(path: str) -> str:
+    lines = []
+    for root, _, files in os.walk(path):
+        for f in files:
+            with open(os.path.join(root, f), "rb") as fh:
+                lines.append(f"{os.path.relpath(os.path.join(root, f), path)} {hashlib.sha256(fh.read()).hexdigest()}")
+    return hashlib.sha256("\n".join(sorted(lines)).encode()).hexdigest()
+
+
+# The scene moved to the origin and turned, then cropped, filtered and holed: 4721 -> 3643 -> 1941 -> 1798 splats.
+EDITS = Pipeline([translation(0.75, 0.1, 2.15), rotation(0, 30, 0), Box((-0.1, -0.5, -0.5), (0.5, 0.5, 0.5)),
+                  parse_filter("opacity>0.05"), Sphere((0.1, 0, 0), 0.05, keep_inside=False)])
+
+
+@pytest.fixture(scope="module")
+def scene_ply(tmp_path_factory) -> str:
+    g = read_gaussians(real("fruit_drops_sh3.ply"))
+    path = tmp_path_factory.mktemp("input") / "scene.ply"
+    write_gaussians_ply(g, path)
+    return str(path)
+
+
+def test_partitioned_encode_with_edits_is_the_in_memory_one(scene_ply, tmp_path):
+    """Crop, filter and transform by chunks (a 1 MiB memory budget: several partitions) give the bytes of the
+    scene edited whole in memory, on Dask too."""
+    g = read_gaussians(scene_ply)
+    kept = len(EDITS.apply(g))
+    assert (len(g), kept) == (4721, 1798)
+    tree = {"max_leaf_splats": 300, "preset": "low"}
+    encode_file(scene_ply, tmp_path / "memory", edits=EDITS, **tree)
+    encode_file(scene_ply, tmp_path / "parts", edits=EDITS, memory_per_worker=1 << 20, **tree)
+    want = tree_digest(str(tmp_path / "memory"))
+    assert tree_digest(str(tmp_path / "parts")) == want
+    pytest.importorskip("distributed")
+    encode_file(scene_ply, tmp_path / "dask", edits=EDITS, workers=2, memory_per_worker=1 << 20, **tree)
+    assert tree_digest(str(tmp_path / "dask")) == want
+
+
+def test_dry_run_prints_each_step_and_writes_nothing(scene_ply, tmp_path, capsys):
+    out = tmp_path / "scene"
+    assert main(["encode", scene_ply, str(out), "--translate", "0.75,0.1,2.15", "--rotate", "0,30,0", "--crop-box",
+                 "-0.1,-0.5,-0.5,0.5,0.5,0.5", "--filter", "opacity>0.05", "--drop-sphere", "0.1,0,0,0.05",
+                 "--dry-run"]) == 0
+    g = read_gaussians(scene_ply)
+    _, counts = EDITS.run(g)
+    lines = capsys.readouterr().out.splitlines()
+    assert lines[0] == f"read {scene_ply}: {len(g)} splats"
+    assert [line.split(": keeps ")[1].split(" of ")[0] for line in lines[1:]] == [str(n) for _, n in counts]
+    assert [n for _, n in counts] == [4721, 3643, 1941, 1798]
+    assert lines[1] == "  translate 0.75,0.1,2.15 rotate 0,30,0: keeps 4721 of 4721 (0 dropped)"
+    assert not out.exists()
+
+
+def test_convert_applies_the_edits_in_order(tmp_path):
+    out = tmp_path / "out.ply"
+    assert main(["convert", str(SOURCE_PLY), str(out), "-q", "--filter-value", "opacity,gt,0.1", "--scale", "2",
+                 "--crop-sphere", "-1.4,-0.2,-4.2,0.3"]) == 0
+    want = Pipeline([parse_filter("opacity>0.1"), scaling(2), Sphere((-1.4, -0.2, -4.2), 0.3)]).apply(small_scene())
+    got = read_gaussians(out)
+    assert 0 < len(got) == len(want) < len(small_scene())
+    np.testing.assert_array_equal(got.positions, want.positions)
+    assert isinstance(Pipeline([scaling(2)]).steps[0], Transform)
+
+
+def test_edit_options_are_checked(tmp_path, capsys):
+    for args, says in ((["--filter-box", "1,1,1,0,0,0"], "min corner"), (["--scale-by", "0"], "above 0"),
+                       (["--filter-sphere", "0,0,0"], "4 comma-separated numbers"),
+                       (["--translate", "1,2,3", "--target-psnr", "30"], "without edits")):
+        assert main(["encode", str(SOURCE_PLY), str(tmp_path / "out"), "-q", *args]) == 2
+        err = capsys.readouterr().err
+        assert says in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()

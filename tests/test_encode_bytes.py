@@ -1,0 +1,125 @@
+"""The encoder's output bytes, pinned: every engine (in memory, partitioned in this process, Dask) and input kind
+(a binary PLY read by row ranges, an input read whole and spilled, a PLY whose header names its up axis) gives the
+scene directory the encoder wrote at commit 615105a, before its two planners became one (issue 33). The digests
+were computed with that commit's code on the same inputs; a change here is a change of the format's output and
+needs its own reason."""
+from __future__ import annotations
+
+import hashlib
+import os
+
+import pytest
+from conftest import real
+
+from splatstream import io, ply
+from splatstream.encode import encode_file, plan
+from splatstream.gaussians import Gaussians
+from splatstream.io import read_gaussians
+from splatstream.ply import gaussians_to_records, write_gaussians_ply
+from splatstream.readers.splat import write_splat
+
+# Small leaves and a small memory per worker: a tree of several levels split into partitions.
+TREE = {"max_leaf_splats": 300}
+SMALL_MEMORY = 1 << 20
+
+
+def directory_digest(path: str) -> str:
+    """One SHA-256 over every file's relative path and SHA-256, in path order."""
+    lines = []
+    for root, _, files in os.walk(path):
+        for f in files:
+            full = os.path.join(root, f)
+            with open(full, "rb") as fh:
+                lines.append(f"{os.path.relpath(full, path)} {hashlib.sha256(fh.read()).hexdigest()}\n")
+    return hashlib.sha256("".join(sorted(lines)).encode()).hexdigest()
+
+
+def write_inputs(base: str) -> dict[str, str]:
+    """The inputs, written from a real scene: a binary PLY, a .splat (no row ranges: read whole and spilled) and
+    a PLY whose header comment says z is up."""
+    g = read_gaussians(real("fruit_drops_sh3.ply"))
+    g = Gaussians.concatenate([g, g.subset(slice(0, 600))])  # equal centres: kd median ties
+    paths = {"ply": os.path.join(base, "scene.ply"), "splat": os.path.join(base, "scene.splat"),
+             "zup": os.path.join(base, "zup.ply")}
+    write_gaussians_ply(g, paths["ply"])
+    write_splat(g, paths["splat"])
+    records = gaussians_to_records(g)
+    header = (f"ply\nformat binary_little_endian 1.0\ncomment up_axis: z\nelement vertex {len(g)}\n"
+              + "".join(f"property float {n}\n" for n in records.dtype.names) + "end_header\n")
+    with open(paths["zup"], "wb") as f:
+        f.write(header.encode() + records.tobytes())
+    return paths
+
+
+# (input, preset, extra options) -> digest of the scene directory at 615105a, the same on every engine
+DIGESTS: dict[tuple[str, str, str], str] = {
+    ("ply", "medium", ""): "79d84d2e64325c7d16fc8ad200c1f34d956a152b2a63a97f82ddaee0d8e33f4b",
+    ("ply", "low", ""): "7981e2f8dec494d99eb1c94b32f02a5b7151bfca18314def005b053b976c3182",
+    ("ply", "medium-low-sh8", ""): "46500d00e0d47fcf82beed45ae703b15fe99c1808714bf58ca7dd4d0f2475e37",
+    ("ply", "very-high", ""): "905369ba4d001321627230b9420b0297b9b68a2bb8507cebd77fc82dd510f7c3",
+    ("splat", "medium", ""): "559f73b5e66dd4c8e8c5c1169d5510eee491d33f7cda2b9860d70a0da4fb642c",
+    ("splat", "low", ""): "f469d76ef741a017a26acb7bf74b1e58f7b9d98e2b2915a81f72e42876ce137f",
+    ("splat", "medium-low-sh8", ""): "6827761dd112ce5837086505b1a19e6ddcdc73b98362f3633ac6a331ac384cdd",
+    ("splat", "very-high", ""): "120b6d055316063fdf10a83d7e4d31b75e08c9e5247108b92aafd6fe51e7e18b",
+    ("ply", "medium", "no-lod"): "2f232e30c609ff685ecc58ec589d48096ba96594fd469c0a78f3655a808fc23f",
+    ("ply", "low", "sh1"): "b560223d151bfde7a61e2601fe24fe48f2e45a9fb67085b4839cdb13c1f7f180",
+    ("zup", "medium", ""): "15fdfe101b5b56636a1c6c159dde34fc9af9232d8f4f4f7f50a9d6245e148c02",
+}
+# The cases run (a .splat's partitioned encode runs in memory unless on Dask: it is read whole anyway)
+CASES = [("ply", "medium", "memory", ""), ("ply", "medium", "partitioned", ""), ("ply", "low", "memory", ""),
+         ("ply", "low", "partitioned", ""), ("ply", "low", "dask", ""), ("ply", "medium-low-sh8", "partitioned", ""),
+         ("ply", "very-high", "partitioned", ""), ("splat", "medium", "memory", ""), ("splat", "medium", "dask", ""),
+         ("splat", "low", "memory", ""), ("ply", "medium", "memory", "no-lod"), ("ply", "low", "partitioned", "sh1"),
+         ("zup", "medium", "memory", ""), ("zup", "medium", "partitioned", "")]
+ENGINES = {"memory": {}, "partitioned": {"memory_per_worker": SMALL_MEMORY}, "dask": {"workers": 2,
+                                                                                     "memory_per_worker": SMALL_MEMORY}}
+EXTRA = {"": TREE, "no-lod": {"lod": False}, "sh1": {**TREE, "sh_degree": 1}}
+
+
+def encode_case(inputs: dict[str, str], out: str, source: str, preset: str, engine: str, extra: str) -> str:
+    encode_file(inputs[source], out, preset=preset, **ENGINES[engine], **EXTRA[extra])
+    return directory_digest(out)
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory) -> dict[str, str]:
+    return write_inputs(str(tmp_path_factory.mktemp("inputs")))
+
+
+@pytest.mark.parametrize("case", CASES, ids=["-".join(c for c in case if c) for case in CASES])
+def test_output_bytes_are_615105a_s(inputs, tmp_path, case):
+    if case[2] == "dask":
+        pytest.importorskip("distributed")
+    source, preset, _, extra = case
+    assert encode_case(inputs, str(tmp_path / "out"), *case) == DIGESTS[source, preset, extra]
+
+
+@pytest.mark.parametrize("engine", ["memory", "partitioned"])
+def test_the_input_is_sniffed_and_its_header_read_once(inputs, tmp_path, monkeypatch, engine):
+    """Issue 33: one encode opens its input once (io.open_input) and screens the splats' domain once."""
+    calls: dict[str, int] = {}
+
+    def counted(module, name):
+        original = getattr(module, name)
+
+        def wrapper(*args, **kwargs):
+            calls[name] = calls.get(name, 0) + 1
+            return original(*args, **kwargs)
+        monkeypatch.setattr(module, name, wrapper)
+
+    for module, name in ((io, "_sniff"), (io, "read_header"), (ply, "read_header"), (io, "domain_violations"),
+                         (plan, "domain_violations")):
+        counted(module, name)
+    encode_file(inputs["zup"], str(tmp_path / "out"), preset="medium", **ENGINES[engine], **TREE)
+    assert calls == {"_sniff": 1, "read_header": 1, **({"domain_violations": 1} if engine == "memory" else {})}
+
+
+if __name__ == "__main__":  # prints every case's digest with whichever splatstream is imported
+    import sys
+    import tempfile
+
+    sys.path.insert(0, os.path.dirname(__file__))
+    with tempfile.TemporaryDirectory() as tmp:
+        paths = write_inputs(tmp)
+        for i, case in enumerate(CASES):
+            print(f"    {case!r}: \"{encode_case(paths, os.path.join(tmp, f'o{i}'), *case)}\",", flush=True)

@@ -1,0 +1,92 @@
+"""A streamed SOG's whole LOD tree as ours (splatstream/sog_import.py): ours -> streamed SOG -> ours keeps the
+splats of every level, and `view --headless` streams a streamed SOG (splat-transform's, from ../shared, and our
+own export) coarse to fine."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+from conftest import REAL, ROOT, run_cli
+from PIL import Image
+from test_sog_lod import same_splats
+
+from splatstream.encode import EncodeOptions, encode_file
+from splatstream.readers.sog import read_streamed_sog
+from splatstream.scene_decode import decode_scene
+from splatstream.sog_export import export_streamed_sog
+from splatstream.sog_import import encode_streamed_sog, tree_tiles
+from splatstream.store import load_manifest, read_manifest
+
+SOURCE = ROOT / "tests" / "data" / "real" / "fruit_drops_sh3.ply"
+FLOWERS_LOD = REAL / "flowers_lod"
+
+
+@pytest.fixture(scope="module")
+def exported(tmp_path_factory):
+    work = tmp_path_factory.mktemp("sog_import")
+    encode_file(SOURCE, work / "scene", max_leaf_splats=1024)
+    export_streamed_sog(work / "scene", work / "sog", unit_splats=2000)
+    return work
+
+
+def test_round_trip_keeps_every_level(exported):
+    """ours -> streamed SOG -> ours: at every depth the same splats (within SOG's quantisation: float32 formats
+    on the way back, so only SOG's rounding shows), the same depth, errors non-increasing, leaves exact."""
+    ours = load_manifest(exported / "scene")
+    store = encode_streamed_sog(exported / "sog", EncodeOptions(preset="very-high"))
+    back = read_manifest(store)
+    depth = max(t.level for t in ours.tiles)
+    assert max(t.level for t in back.tiles) == depth and back.splats == ours.splats == 4721
+    for d in range(depth + 1):
+        a = decode_scene(exported / "scene", tiles=[t.id for t in ours.tiles if t.level == d])
+        b = decode_scene(store, tiles=[t.id for t in back.tiles if t.level == d], manifest=back)
+        assert same_splats(a, b) < 1e-3, d
+    for t in back.tiles:
+        assert all(back.tile(c).geometric_error <= t.geometric_error for c in t.children)
+        assert (t.geometric_error == 0) == (not t.children)
+    assert back.lod.enabled and back.tile(back.root).geometric_error > 0
+
+
+def test_view_headless_streams_our_export_coarse_to_fine(exported, tmp_path, gl_context):
+    r = run_cli("view", exported / "sog", "--headless", "--size", "96x64", "--screenshot", tmp_path / "v.png",
+                "--record", tmp_path / "m.json", "--no-cache", "-q")
+    assert r.returncode == 0, r.stderr
+    drawn = [f["drawn_splats"] for f in json.loads((tmp_path / "m.json").read_text())["frames"]]
+    first = next(d for d in drawn if d > 0)
+    assert first < drawn[-1] and drawn == sorted(drawn)  # coarse first, then finer, never back
+
+
+@pytest.mark.skipif(not (FLOWERS_LOD / "lod-meta.json").is_file(), reason="../shared/data/real/flowers_lod missing")
+def test_splat_transform_streamed_sog_becomes_our_tree():
+    """flowers_lod (written by splat-transform: 4 levels, 16 leaves): our depth d holds their level 3 - d."""
+    sog = read_streamed_sog(FLOWERS_LOD)
+    meta = json.loads((FLOWERS_LOD / "lod-meta.json").read_text())
+    tiles = tree_tiles(sog)
+    per_depth = [sum(len(t.gaussians) for t in tiles if t.level == d) for d in range(sog.levels)]
+    counts = [sum(ref["count"] for leaf in _leaves(meta["tree"]) for k, ref in leaf["lods"].items() if int(k) == lv)
+              for lv in range(meta["lodLevels"])]
+    assert sog.levels == 4 and per_depth == counts[::-1] and per_depth[-1] == len(sog.level(0))
+    assert tiles[0].id == 0 and all(c > t.id for t in tiles for c in t.children)
+    for t in tiles:  # bounds hold the splats and the children's bounds
+        assert (t.gaussians.positions >= t.box_min - 1e-6).all() and (t.gaussians.positions <= t.box_max + 1e-6).all()
+        for c in t.children:
+            assert (tiles[c].box_min >= t.box_min - 1e-9).all() and (tiles[c].box_max <= t.box_max + 1e-9).all()
+            assert tiles[c].geometric_error <= t.geometric_error
+
+
+def _leaves(node: dict) -> list[dict]:
+    return [node] if "lods" in node else [leaf for c in node.get("children", []) for leaf in _leaves(c)]
+
+
+@pytest.mark.skipif(not (FLOWERS_LOD / "lod-meta.json").is_file(), reason="../shared/data/real/flowers_lod missing")
+def test_view_headless_streams_flowers_lod(tmp_path, gl_context):
+    r = run_cli("view", FLOWERS_LOD, "--headless", "--size", "96x64", "--screenshot", tmp_path / "v.png",
+                "--record", tmp_path / "m.json", "--no-cache", "-q")
+    assert r.returncode == 0, r.stderr
+    report = json.loads((tmp_path / "m.json").read_text())
+    drawn = [f["drawn_splats"] for f in report["frames"]]
+    first = next(d for d in drawn if d > 0)
+    assert report["converged_s"] is not None
+    assert first < drawn[-1] and drawn == sorted(drawn)
+    assert np.asarray(Image.open(tmp_path / "v.png")).std() > 1  # the scene is in the picture
