@@ -3,7 +3,10 @@
     python bench/sh_coding_probe.py SCENE.ply --out DIR [--views 4 --size 384] [--stats] CONFIG ...
 
 CONFIG is "LABEL:PRESET[,ATTR=FORMAT...][,sh_codebook=off|auto|fine|N][,sh_steps=G1/G2/G3][,zstd=L]" (sh_steps:
-tile-step levels of SH bands 1, 2, 3, format.md 4.3.1; one value applies to every band). Every config is encoded
+tile-step levels of SH bands 1, 2, 3, format.md 4.3.1; one value applies to every band), and with sh_steps
+`sh_importance=E` (the importance exponent), `sh_zero=1` (0 on each chunk's grid), `sh_pool=1` (one step per band
+plane), `sh_round=R` (rounding offset towards 0); `pos_g=`, `scale_g=`, `rgb_g=` replace the preset's tile-step
+levels of positions, log scales and SH0 R, G, B. Every config is encoded
 without the LOD tree (as `splatstream eval` does by default), decoded, and rendered with the numpy reference
 renderer from the same orbit views `eval` uses; the reference renders and every result are cached under DIR (a
 config is not run again while its result file exists). `--compare LABEL=DECODED@ENCODED` adds peers.
