@@ -13,6 +13,8 @@ import warnings
 from splatstream import __version__
 from splatstream.errors import SplatstreamError
 
+from .commands.edit_flags import attach_negative_values  # numpy-free: see the BLAS note below
+
 # One BLAS thread per thread of ours, unless the environment says otherwise (numpy is not imported yet here). The
 # encoder runs its own worker threads, and OpenBLAS's threads on top of them oversubscribed the cores, tripling the
 # CPU time of an LOD encode (issue 32; BENCHMARKS.md, "Encode time with the LOD tree"). Library callers can do the
@@ -124,7 +126,7 @@ def _show_warning(message, category, filename, lineno, file=None, line=None):
 def main(argv: list[str] | None = None) -> int:
     warnings.showwarning = _show_warning
     parser = build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(attach_negative_values(sys.argv[1:] if argv is None else list(argv)))
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _on_sigterm)  # `serve` installs its own (aiohttp's graceful shutdown)
     try:

@@ -136,6 +136,18 @@ def rotation(x: float, y: float, z: float) -> Transform:
     return Transform(rotation=ours, label=f"rotate {x:g},{y:g},{z:g}")
 
 
+def rotation_quaternion(x: float, y: float, z: float, w: float) -> Transform:
+    """--rotate x,y,z,w: a turn given as a quaternion in the order PlayCanvas's Quat and glTF write it (x, y, z, w;
+    not a PLY's rot_0..3, which is w first), in the engine frame like the Euler angles; normalised here."""
+    q = np.array([w, x, y, z], np.float64)
+    n = float(np.linalg.norm(q))
+    if not (math.isfinite(n) and n > 0):
+        raise UsageError(f"--rotate {x:g},{y:g},{z:g},{w:g}: a quaternion of length 0 is no rotation")
+    q = q / n
+    ours = (float(q[0]), float(-q[1]), float(-q[2]), float(q[3]))  # D q D, as rotation() turns Euler angles
+    return Transform(rotation=ours, label=f"rotate {x:g},{y:g},{z:g},{w:g}")
+
+
 def scaling(s: float) -> Transform:
     """splat-transform --scale s (uniform, about the origin)."""
     if not (math.isfinite(s) and s > 0):
@@ -244,7 +256,64 @@ class ValueFilter:
         return COMPARATORS[self.comparator](values, np.float64(threshold))
 
 
-Edit = Transform | Box | Sphere | ValueFilter
+# Cells along one axis the density filter numbers at most: its cell keys (three axes' ranks) then fit an int64.
+_MAX_AXIS_CELLS = 1 << 21
+
+
+@dataclass(frozen=True)
+class DensityFilter:
+    """Floater removal (--filter-density SIZE,MIN): keep the splats whose grid cell (cubes of side SIZE, in scene
+    units) and its 26 neighbours hold at least MIN splat centres together; a floater is a splat alone in empty
+    space. Unlike the other edits this is a function of the whole scene, not of one splat: it runs on the splats
+    in memory, and the partitioned encoder refuses it (Pipeline.per_splat). Exact integer counts: the result does
+    not depend on the splats' order."""
+
+    size: float
+    min_count: int
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.size) and self.size > 0):
+            raise UsageError(f"--filter-density: cell size {self.size:g} is not above 0")
+        if self.min_count < 1:
+            raise UsageError(f"--filter-density: minimum count {self.min_count} is not at least 1")
+
+    @property
+    def label(self) -> str:
+        return f"filter-density {self.size:g},{self.min_count}"
+
+    def neighbour_counts(self, g: Gaussians) -> np.ndarray:
+        """Per splat, the splat centres in its cell and the 26 around it (itself included)."""
+        if not len(g):
+            return np.zeros(0, np.int64)
+        cells = np.floor(g.positions.astype(np.float64) / self.size).astype(np.int64)
+        # Each axis's occupied cells ranked, with a gap kept wherever two are not adjacent, so that +-1 in rank is
+        # +-1 in space and a cell key is three small ranks whatever the scene's extent (floaters far out included).
+        ranks = np.empty_like(cells)
+        for a in range(3):
+            values, inverse = np.unique(cells[:, a], return_inverse=True)
+            steps = np.minimum(np.diff(values), 2)  # adjacent: 1; farther apart: 2 (never neighbours)
+            dense = np.concatenate([[1], 1 + np.cumsum(steps)])  # from 1: rank - 1 exists for every cell
+            if dense[-1] + 2 > _MAX_AXIS_CELLS:
+                raise UsageError(f"--filter-density: cell size {self.size:g} makes more than {_MAX_AXIS_CELLS} "
+                                 "cells along one axis of the scene; give a larger size")
+            ranks[:, a] = dense[inverse]
+        span = _MAX_AXIS_CELLS
+        keys = ranks[:, 0] + span * (ranks[:, 1] + span * ranks[:, 2])
+        unique, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+        total = np.zeros(len(unique), np.int64)
+        for dz in (-1, 0, 1):
+            for dy in (-1, 0, 1):
+                for dx in (-1, 0, 1):
+                    other = unique + dx + span * (dy + span * dz)
+                    at = np.minimum(np.searchsorted(unique, other), len(unique) - 1)
+                    total += np.where(unique[at] == other, counts[at], 0)
+        return total[inverse.ravel()]
+
+    def keep(self, g: Gaussians) -> np.ndarray:
+        return self.neighbour_counts(g) >= self.min_count
+
+
+Edit = Transform | Box | Sphere | ValueFilter | DensityFilter
 
 
 def parse_filter(text: str) -> ValueFilter:
@@ -287,6 +356,12 @@ class Pipeline:
             else:
                 out.append(e)
         return out
+
+    @property
+    def per_splat(self) -> bool:
+        """Whether every edit is a function of one splat (so chunks may be edited apart: the partitioned encoder,
+        a dry run by row ranges)."""
+        return not any(isinstance(e, DensityFilter) for e in self.edits)
 
     @property
     def transforms(self) -> bool:

@@ -156,6 +156,13 @@ def read_gaussians(source: str | os.PathLike | SplatInput, drop_invalid: bool = 
     return screen_gaussians(_read_any(inp, drop_invalid), inp.path, drop_invalid)
 
 
+def read_merged(sources: list[SplatInput], drop_invalid: bool = False) -> Gaussians:
+    """Merged inputs (splat-transform's combine): their splats one after the other, in the order given. SH bands an
+    input lacks are zeros up to the highest degree among them (Gaussians.concatenate), so every input looks as it
+    did; --sh-degree lowers them all."""
+    return Gaussians.concatenate([read_gaussians(s, drop_invalid=drop_invalid) for s in sources])
+
+
 def screen_gaussians(g: Gaussians, path: str, drop_invalid: bool = False) -> Gaussians:
     """`g` if every splat lies in the value domain of format.md 4.8; otherwise an InputError naming the file,
     each offending field and its splat count, or with `drop_invalid` `g` without those splats (a warning)."""

@@ -15,6 +15,7 @@ from test_tool_roundtrip import SOURCE_PLY, splat_transform
 from cli.main import main
 from splatstream.edit import (
     Box,
+    DensityFilter,
     Pipeline,
     Sphere,
     Transform,
@@ -22,14 +23,18 @@ from splatstream.edit import (
     quaternion_from_euler,
     quaternion_matrix,
     rotation,
+    rotation_quaternion,
     scaling,
     sh_rotation,
     translation,
 )
 from splatstream.encode import encode_file
+from splatstream.encode.options import no_progress
+from splatstream.encode.partitioned import ArrayRows, ConcatRows, open_rows
+from splatstream.encode.scratch import Scratch
 from splatstream.errors import UsageError
 from splatstream.gaussians import SH_BAND_COEFFS, SH_BAND_START, Gaussians, covariances
-from splatstream.io import read_gaussians
+from splatstream.io import open_input, read_gaussians
 from splatstream.ply import read_elements, write_gaussians_ply
 from splatstream.sh import sh_basis
 
@@ -258,3 +263,176 @@ def test_edit_options_are_checked(tmp_path, capsys):
         err = capsys.readouterr().err
         assert says in err and "Traceback" not in err
     assert not (tmp_path / "out").exists()
+
+
+# ---------------------------------------------------------------------------------------------- merging inputs
+
+
+@pytest.fixture(scope="module")
+def second_ply(tmp_path_factory) -> str:
+    """A second input of another SH degree (0), beside scene_ply (3): the first 3000 splats of the fountain."""
+    g = read_gaussians(real("winter_fountain_first3000.splat"))
+    assert g.sh_degree == 0
+    path = tmp_path_factory.mktemp("second") / "fountain.ply"
+    write_gaussians_ply(g, path)
+    return str(path)
+
+
+def test_merged_inputs_are_one_after_the_other_with_zero_bands(scene_ply, second_ply, tmp_path):
+    """`convert a b out`: the splats of a then b, b's missing SH bands zeros (its colours as they were)."""
+    out = tmp_path / "merged.ply"
+    assert main(["convert", scene_ply, second_ply, str(out), "-q"]) == 0
+    a, b, got = read_gaussians(scene_ply), read_gaussians(second_ply), read_gaussians(out)
+    assert (len(a), len(b), len(got), got.sh_degree) == (4721, 3000, 7721, 3)
+    np.testing.assert_array_equal(got.positions, np.concatenate([a.positions, b.positions]))
+    np.testing.assert_array_equal(got.sh_dc[4721:], b.sh_dc)
+    np.testing.assert_array_equal(got.sh_rest[:4721], a.sh_rest)
+    assert not got.sh_rest[4721:].any()
+
+
+def test_partitioned_encode_of_merged_inputs_is_the_in_memory_one(scene_ply, second_ply, tmp_path):
+    """Two inputs merged and edited by chunks (chunks of each input in turn, a 1 MiB memory budget) give the bytes
+    of the merged scene in memory; on Dask too, where the second input is a .splat spilled to scratch."""
+    both = Pipeline([Box((-3, -3, -3), (3, 3, 3)), parse_filter("opacity>0.05")])
+    merged = Gaussians.concatenate([read_gaussians(scene_ply), read_gaussians(second_ply)])
+    tree = {"max_leaf_splats": 300, "preset": "low", "name": "merged"}
+    m = encode_file([scene_ply, second_ply], tmp_path / "memory", edits=both, **tree)
+    assert (m.splats, m.sh_degree) == (len(both.apply(merged)), 3)
+    assert m.splats == 5471 < len(merged)
+    want = tree_digest(str(tmp_path / "memory"))
+    encode_file([scene_ply, second_ply], tmp_path / "parts", edits=both, memory_per_worker=1 << 20, **tree)
+    assert tree_digest(str(tmp_path / "parts")) == want
+    pytest.importorskip("distributed")
+    # the .splat itself, not its PLY copy: rotations normalised once, not twice, differ in the last bit
+    inputs = [scene_ply, real("winter_fountain_first3000.splat")]
+    encode_file(inputs, tmp_path / "memory2", edits=both, **tree)
+    encode_file(inputs, tmp_path / "dask", edits=both, workers=2, memory_per_worker=1 << 20, **tree)
+    assert tree_digest(str(tmp_path / "dask")) == tree_digest(str(tmp_path / "memory2"))
+
+
+def test_encode_takes_several_inputs_on_the_command_line(scene_ply, second_ply, tmp_path, capsys):
+    assert main(["encode", scene_ply, second_ply, str(tmp_path / "out"), "--filter", "opacity>0.05",
+                 "--dry-run"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    kept = len(parse_filter("opacity>0.05").keep(read_gaussians(scene_ply)).nonzero()[0]) + len(
+        parse_filter("opacity>0.05").keep(read_gaussians(second_ply)).nonzero()[0])
+    assert lines[0] == f"read {scene_ply} + {second_ply}: 7721 splats"
+    assert lines[1] == f"  filter-value opacity,gt,0.05: keeps {kept} of 7721 ({7721 - kept} dropped)"
+    assert main(["encode", scene_ply, second_ply, str(tmp_path / "out"), "-q", "--target-psnr", "30"]) == 2
+    assert "one input" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------------------------- floater removal
+
+
+def test_density_filter_counts_the_neighbours_of_each_cell_exactly():
+    """Against brute force: for every splat, the centres whose cell differs from its own by at most 1 on each
+    axis; the same kept splats in any order; and a far floater dropped while its far-apart cells stay apart."""
+    g = read_gaussians(real("fruit_drops_sh3.ply"))
+    f = DensityFilter(0.01, 4)
+    cells = np.floor(g.positions.astype(np.float64) / f.size).astype(np.int64)
+    want = np.array([np.count_nonzero(np.all(np.abs(cells - c) <= 1, axis=1)) for c in cells])
+    np.testing.assert_array_equal(f.neighbour_counts(g), want)
+    assert np.count_nonzero(f.keep(g)) == np.count_nonzero(want >= 4) == 4531
+    order = np.random.default_rng(1).permutation(len(g))
+    np.testing.assert_array_equal(f.keep(g.subset(order)), f.keep(g)[order])
+    far = g.subset(np.arange(8))
+    far.positions[:] = [[0, 0, 0]] * 4 + [[1000.005, 0, 0], [1000.015, 0, 0], [1000.035, 0, 0], [-1000, 300, 7]]
+    np.testing.assert_array_equal(f.neighbour_counts(far), [4, 4, 4, 4, 2, 2, 1, 1])
+
+
+def test_density_filter_runs_in_memory_and_is_refused_by_partitions(scene_ply, tmp_path, capsys):
+    edits = Pipeline([DensityFilter(0.01, 4)])
+    m = encode_file(scene_ply, tmp_path / "memory", edits=edits, max_leaf_splats=300, preset="low")
+    assert m.splats == 4531
+    with pytest.raises(UsageError, match="--filter-density counts each splat's neighbours over the whole scene"):
+        encode_file(scene_ply, tmp_path / "parts", edits=edits, memory_per_worker=1 << 20, max_leaf_splats=300)
+    assert not (tmp_path / "parts").exists()
+    assert main(["encode", scene_ply, str(tmp_path / "out"), "--filter-density", "0.01,4", "--dry-run",
+                 "--memory-per-worker", "1MiB"]) == 0
+    assert capsys.readouterr().out.splitlines()[1] == "  filter-density 0.01,4: keeps 4531 of 4721 (190 dropped)"
+    assert main(["convert", scene_ply, str(tmp_path / "c.ply"), "-q", "--filter-density", "0.01,2.5"]) == 2
+    assert "whole minimum count" in capsys.readouterr().err
+
+
+def test_rotate_takes_a_quaternion_in_playcanvas_order(tmp_path):
+    """--rotate X,Y,Z,W is the turn of the Euler angles whose quaternion it is (PlayCanvas's x, y, z, w order),
+    normalised; a zero quaternion is refused."""
+    w, x, y, z = quaternion_from_euler(30, -40, 75)
+    g = small_scene()
+    want = rotation(30, -40, 75).apply(g)
+    got = rotation_quaternion(2 * x, 2 * y, 2 * z, 2 * w).apply(g)
+    np.testing.assert_allclose(got.positions, want.positions, atol=1e-12)
+    np.testing.assert_allclose(got.rotations, want.rotations, atol=1e-12)
+    np.testing.assert_allclose(got.sh_rest, want.sh_rest, atol=1e-9)
+    out, ref = tmp_path / "q.ply", tmp_path / "e.ply"
+    assert main(["convert", str(SOURCE_PLY), str(out), "-q", "--rotate", "0,0,0.70710678,0.70710678"]) == 0
+    assert main(["convert", str(SOURCE_PLY), str(ref), "-q", "--rotate", "0,0,90"]) == 0
+    np.testing.assert_allclose(read_gaussians(out).positions, read_gaussians(ref).positions, atol=1e-6)
+    with pytest.raises(UsageError, match="length 0"):
+        rotation_quaternion(0, 0, 0, 0)
+
+
+def test_a_value_with_a_leading_minus_is_read_as_the_option_s_value(tmp_path, capsys):
+    """splat-transform's users write `-B -1,-1,-1,1,1,1`: the spaced value reads as with `=`."""
+    spaced = ["encode", str(SOURCE_PLY), str(tmp_path / "a"), "--filter-box", "-1.4,-0.5,-4.5,-0.8,0.5,-3.5",
+              "--translate", "-1,0,0", "--dry-run"]
+    assert main(spaced) == 0
+    assert main([*spaced[:3], "--filter-box=-1.4,-0.5,-4.5,-0.8,0.5,-3.5", "--translate=-1,0,0", "--dry-run"]) == 0
+    first, second = capsys.readouterr().out.split("read ")[1:]
+    assert first == second and "filter-box -1.4,-0.5,-4.5,-0.8,0.5,-3.5: keeps" in first
+
+
+def test_merge_matches_splat_transform_except_its_sh_columns_by_name(tmp_path):
+    """splat-transform merges columns by name, zeros where an input lacks one: the same splats and values as ours
+    for degrees 3 + 0. For 3 + 1 its by-name f_rest_0..8 (a degree-1 PLY's r, g, b coefficients of band 1) land on
+    the first nine red coefficients of degree 3; ours keeps each coefficient where it belongs (zeros padded)."""
+    tool = splat_transform()
+    a = small_scene()
+    low = tmp_path / "deg1.ply"
+    write_gaussians_ply(a.with_sh_degree(1), low)
+    zero = tmp_path / "deg0.ply"
+    write_gaussians_ply(read_gaussians(real("winter_fountain_first3000.splat")), zero)
+    for second, same in ((zero, True), (low, False)):
+        out = tmp_path / "merged.ply"
+        r = subprocess.run([tool, "-q", "-w", "-g", "cpu", str(SOURCE_PLY), str(second), str(out)],
+                           capture_output=True, text=True, timeout=300, stdin=subprocess.DEVNULL)
+        assert r.returncode == 0, r.stdout + r.stderr
+        v = read_elements(out)[1]["vertex"]
+        ours = Gaussians.concatenate([a, read_gaussians(second)])
+        assert len(v) == len(ours)
+        np.testing.assert_array_equal(np.stack([v["x"], v["y"], v["z"]], axis=1), ours.positions)
+        flat = np.stack([v[f"f_rest_{i}"] for i in range(45)], axis=1)  # PLY order: channel-major
+        np.testing.assert_array_equal(flat[:len(a)], ours.sh_rest[:len(a)].transpose(0, 2, 1).reshape(-1, 45))
+        theirs = flat[len(a):]
+        if same:
+            assert not theirs.any() and not ours.sh_rest[len(a):].any()
+        else:
+            band1 = a.sh_rest[:, :3].transpose(0, 2, 1).reshape(-1, 9)  # r0 r1 r2 g0 g1 g2 b0 b1 b2
+            np.testing.assert_array_equal(theirs[:, :9], band1)  # all nine as red coefficients 0..8
+            np.testing.assert_array_equal(ours.sh_rest[len(a):, :3], a.sh_rest[:, :3])
+            assert not ours.sh_rest[len(a):, 3:].any()
+
+
+def test_spilled_and_merged_rows_read_any_range(tmp_path):
+    """The rows an encoder chunk asks for, whatever the spill's chunk size and across the inputs of a merge (the
+    partitioned encoder's chunks are sized by the memory per worker, not by the spill)."""
+    splat = read_gaussians(real("winter_fountain_first3000.splat"))
+    ply = small_scene()
+    space = Scratch.create(str(tmp_path))
+    try:
+        spilled = open_rows(open_input(real("winter_fountain_first3000.splat")), None, space, 700, False,
+                            no_progress, "input1")
+        for start, stop in ((0, 700), (500, 2500), (2999, 5000), (1400, 1400)):
+            g, stats = spilled.read(start, stop)
+            np.testing.assert_array_equal(g.positions, splat.positions[start:stop])
+            assert stats.rows == len(g)
+        merged = ConcatRows([ArrayRows(ply), spilled])
+        whole = Gaussians.concatenate([ply, splat])
+        assert (merged.rows, merged.sh_degree) == (len(ply) + 3000, 3)
+        for start, stop in ((0, 100), (250, 1900), (len(ply) - 5, len(ply) + 10), (len(ply) + 2990, 10 ** 6)):
+            g, _ = merged.read(start, stop)
+            np.testing.assert_array_equal(g.positions, whole.positions[start:stop])
+            np.testing.assert_array_equal(g.sh_rest, whole.sh_rest[start:stop])
+    finally:
+        space.remove()

@@ -1,7 +1,8 @@
 """Every command shown in the README's sh blocks runs as written, in README order, in one working directory, as a
 new user would type them (issue 34). Inputs the README names but does not ship are made small here: `scene.ply`,
 `city.ply` and `capture.ply` are the bundled fruit_drops scene (4,721 splats), `broken.ply` is it with a NaN,
-`scene.sog` and `lod/` are the SOG fixtures, `../shared/data/real/fruit_drops_sh3.ply` the bundled copy, and the
+`scene.sog` and `lod/` are the SOG fixtures, `../shared/data/real/fruit_drops_sh3.ply` and
+`../shared/data/real/statues/st-peter.sog` the bundled copies, and the
 eval's `scene.sog.ply` / `scene.spz.ply` (other tools' outputs) are our own conversions. Port 8000 (written, or
 `serve`'s default) becomes a free port. `serve` runs in the background until its block ends; a `view` that opens
 a window runs under Xvfb and is closed with Esc once its window is up. Not run: the install steps (`pip install`,
@@ -86,6 +87,8 @@ def workdir(tmp_path_factory) -> Path:
     shared = top / "shared" / "data" / "real"
     shared.mkdir(parents=True)
     shutil.copy(fruit, shared / "fruit_drops_sh3.ply")
+    (shared / "statues").mkdir()
+    shutil.copy(real("statues/st-peter.sog"), shared / "statues" / "st-peter.sog")  # the cleaning example
     for name in ("scene.ply", "city.ply", "capture.ply"):
         shutil.copy(fruit, work / name)
     g = read_gaussians(fruit)

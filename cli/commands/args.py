@@ -6,8 +6,20 @@ import argparse
 import math
 import re
 
-from splatstream.edit import Box, Pipeline, Sphere, parse_filter, rotation, scaling, translation
+from splatstream.edit import (
+    Box,
+    DensityFilter,
+    Pipeline,
+    Sphere,
+    parse_filter,
+    rotation,
+    rotation_quaternion,
+    scaling,
+    translation,
+)
 from splatstream.errors import UsageError
+
+from .edit_flags import EDIT_OPTIONS
 
 
 def parse_vector(text: str, what: str, nonzero: bool = False) -> tuple[float, float, float]:
@@ -48,26 +60,6 @@ def parse_bytes(text: str, what: str) -> int:
     if not math.isfinite(value) or value < (1 << 20):
         raise UsageError(f"{what}: expected a size of at least 1MiB like 4GB or 512MiB, got {text!r}")
     return int(value)
-
-
-# The edits of issue 36 (splatstream/edit.py), by splat-transform's long names, with the issue's spellings beside
-# them: (flags, metavar, what the value is, help).
-EDIT_OPTIONS = [
-    (("--translate",), "X,Y,Z", "translate", "move every splat by (X, Y, Z)"),
-    (("--rotate",), "X,Y,Z", "rotate", "turn the scene by Euler angles in degrees (x first, then y, then z, about "
-                                       "the origin), SH bands 1..3 turned with it"),
-    (("--scale", "--scale-by"), "S", "scale", "scale the scene by S about the origin"),
-    (("--filter-box", "--crop-box"), "X,Y,Z,X,Y,Z", "box", "keep the splats whose centre lies in the box "
-                                                            "(min corner, max corner; faces included)"),
-    (("--drop-box",), "X,Y,Z,X,Y,Z", "drop-box", "drop the splats whose centre lies in the box"),
-    (("--filter-sphere", "--crop-sphere"), "X,Y,Z,R", "sphere", "keep the splats whose centre lies inside the "
-                                                                 "sphere (centre, radius)"),
-    (("--drop-sphere",), "X,Y,Z,R", "drop-sphere", "drop the splats whose centre lies inside the sphere"),
-    (("--filter-value", "--filter"), "ATTR<OP>VALUE", "filter",
-     "keep the splats whose attribute compares true: ATTR<OP>VALUE (OP one of < <= > >= == !=) or splat-transform's "
-     "NAME,CMP,VALUE (CMP one of lt lte gt gte eq neq); ATTR one of x y z, opacity (0..1, after the sigmoid), "
-     "scale_0..2 (after exp), f_dc_0..2 (colour 0..1), or opacity_raw, scale_N_raw, f_dc_N_raw as stored"),
-]
 
 
 class _EditAction(argparse.Action):
@@ -115,7 +107,10 @@ def edits_from(args: argparse.Namespace) -> Pipeline:
         if kind == "translate":
             out.append(translation(*_numbers(text, 3, flag)))
         elif kind == "rotate":
-            out.append(rotation(*_numbers(text, 3, flag)))
+            if text.count(",") == 3:
+                out.append(rotation_quaternion(*_numbers(text, 4, flag)))
+            else:
+                out.append(rotation(*_numbers(text, 3, flag)))
         elif kind == "scale":
             s = _numbers(text, 1, flag)[0]
             if s <= 0:
@@ -131,6 +126,11 @@ def edits_from(args: argparse.Namespace) -> Pipeline:
             if v[3] <= 0:
                 raise UsageError(f"{flag}: expected a radius above 0, got {v[3]:g}")
             out.append(Sphere(v[:3], v[3], keep_inside=kind == "sphere"))
+        elif kind == "density":
+            size, count = _numbers(text, 2, flag)
+            if count != int(count):
+                raise UsageError(f"{flag}: expected a whole minimum count, got {count:g}")
+            out.append(DensityFilter(size, int(count)))
         else:
             out.append(parse_filter(text))
     return Pipeline(out)

@@ -9,6 +9,7 @@ import time
 from splatstream.atomic import check_output
 from splatstream.axes import RDF_TO_RUB, turn
 from splatstream.errors import InputError, UsageError
+from splatstream.gaussians import Gaussians
 from splatstream.io import FORMAT_NAMES, open_input, output_format, read_gaussians, screen_gaussians, write_gaussians
 from splatstream.readers.sog import read_sog_level
 
@@ -25,7 +26,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "glTF binary with KHR_gaussian_splatting (.glb) or PlayCanvas SOG (.sog, version 2, bundled), "
                     "chosen by OUT's extension. The output appears "
                     "only when complete. What each format keeps is documented in format_spec/foreign_formats.md.")
-    p.add_argument("input", help="input splat file or SOG directory")
+    p.add_argument("input", nargs="+", help="input splat file or SOG directory; several are merged into one scene, in "
+                                            "the order given (SH bands an input lacks are zeros; the edits apply "
+                                            "to the merged splats)")
     p.add_argument("output", help="output file (.ply, .splat, .spz, .glb or .sog)")
     p.add_argument("--spz-axes", choices=("rub", "rdf"), default="rub",
                    help="axes of an SPZ input: rub, as the format specifies (Niantic's library, splat-transform 2.x; "
@@ -48,10 +51,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     out_format = output_format(args.output)  # refuse an unwritable output before reading anything
-    source = open_input(args.input)  # sniffed once: the reader takes what sniffing parsed
-    in_format = source.format
-    if os.path.exists(args.output) and os.path.samefile(args.input, args.output):
-        raise UsageError(f"{args.output}: output is the input file")
+    sources = [open_input(p) for p in args.input]  # sniffed once: the reader takes what sniffing parsed
+    for path in args.input:
+        if os.path.exists(args.output) and os.path.samefile(path, args.output):
+            raise UsageError(f"{args.output}: output is the input file")
+    for flag, wanted, given in (("--lod-level", "lod_sog", args.lod_level is not None),
+                                ("--spz-axes rdf", "spz", args.spz_axes == "rdf")):
+        wrong = [s.path for s in sources if s.format != wanted]
+        if given and wrong:
+            raise UsageError(f"{flag}: {wrong[0]} is not {'a streamed SOG' if wanted == 'lod_sog' else 'an SPZ file'}")
     check_output(args.output)
     start = time.perf_counter()
 
@@ -59,20 +67,21 @@ def run(args: argparse.Namespace) -> int:
         if not args.quiet:
             print(f"convert: {message} ({time.perf_counter() - start:.1f}s)", file=sys.stderr, flush=True)
 
-    say(f"reading {args.input} ({FORMAT_NAMES[in_format]})")
-    if args.lod_level is not None:
-        if in_format != "lod_sog":
-            raise UsageError(f"--lod-level: {args.input} is not a streamed SOG")
-        g = screen_gaussians(read_sog_level(args.input, args.lod_level), args.input, args.drop_invalid)
-    else:
-        g = read_gaussians(source, drop_invalid=args.drop_invalid)
-    if len(g) == 0:  # an empty .splat (or any format without a count) could not be read back
-        raise InputError(args.input, None, "holds no splats (none, or none left after dropping invalid ones); "
-                         "nothing to convert")
-    if args.spz_axes == "rdf":
-        if in_format != "spz":
-            raise UsageError(f"--spz-axes rdf: {args.input} is not an SPZ file")
-        g = turn(g, RDF_TO_RUB)  # undo the reader's RUB -> RDF turn: the file held RDF already
+    parts = []
+    for source in sources:
+        say(f"reading {source.path} ({FORMAT_NAMES[source.format]})")
+        if args.lod_level is not None:
+            g = screen_gaussians(read_sog_level(source.path, args.lod_level), source.path, args.drop_invalid)
+        else:
+            g = read_gaussians(source, drop_invalid=args.drop_invalid)
+        if len(g) == 0:  # an empty .splat (or any format without a count) could not be read back
+            raise InputError(source.path, None, "holds no splats (none, or none left after dropping invalid ones); "
+                             "nothing to convert")
+        if args.spz_axes == "rdf":
+            g = turn(g, RDF_TO_RUB)  # undo the reader's RUB -> RDF turn: the file held RDF already
+        parts.append(g)
+    # merged as io.read_merged merges them: missing SH bands are zeros, so every input looks as it did
+    g = Gaussians.concatenate(parts)
     say(f"read {len(g)} splats, SH degree {g.sh_degree}")
     edits = edits_from(args)
     read = len(g)
@@ -80,10 +89,10 @@ def run(args: argparse.Namespace) -> int:
     for label, kept in counts:
         say(f"{label}: {kept} splats kept")
     if args.dry_run:
-        print(edit_report(args.input, read, counts))
+        print(edit_report(" + ".join(args.input), read, counts))
         return 0
     if len(g) == 0:
-        raise UsageError(f"{args.input}: the edits keep no splats; nothing to convert")
+        raise UsageError(f"{' + '.join(args.input)}: the edits keep no splats; nothing to convert")
     if out_format == "splat" and g.sh_degree > 0:
         say(f"note: .splat has no SH bands; bands 1..{g.sh_degree} are dropped")
     glb = "SPZ-compressed splats" if args.glb_compression == "spz" else "uncompressed splats"

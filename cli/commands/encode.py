@@ -41,7 +41,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     + ". SH bands 1..3 in a scene-wide codebook: "
                     + ", ".join(f"{k} ({v})" for k, v in PRESET_SH_CODEBOOK.items()),
     )
-    p.add_argument("input", help="input splat file (.ply; other formats are detected by content)")
+    p.add_argument("input", nargs="+", help="input splat file (.ply; other formats are detected by content); several "
+                                            "are merged into one scene, in the order given (SH bands an input "
+                                            "lacks are zeros; the edits apply to the merged splats)")
     p.add_argument("output_dir", help="scene directory to write (replaced atomically if it exists), or an fsspec URL "
                                       "(s3://bucket/scene, gs://..., needs the cluster extra): payloads first, the "
                                       "manifest last")
@@ -134,13 +136,14 @@ def run(args: argparse.Namespace) -> int:
     memory = parse_bytes(args.memory_per_worker, "--memory-per-worker") if args.memory_per_worker else None
     edits = edits_from(args)
     if args.dry_run:
-        print(edit_report(args.input, *count_edits(args.input, edits, args.drop_invalid)[1:]))
+        print(edit_report(" + ".join(args.input), *count_edits(args.input, edits, args.drop_invalid)[1:]))
         return 0
     t0 = time.perf_counter()
     preset = args.preset or DEFAULT_PRESET
     if args.target_psnr is not None or args.target_size is not None:
-        if edits:
-            raise UsageError("--target-psnr / --target-size measure the input as read: give them without edits")
+        if edits or len(args.input) > 1:
+            raise UsageError("--target-psnr / --target-size measure one input as read: give them one input, without "
+                             "edits")
         if args.preset or overrides or args.sh_degree is not None or args.sh_codebook is not None:
             raise UsageError("--target-psnr / --target-size choose the preset: give them without --preset, texel "
                              "formats, --sh-degree or --sh-codebook")
@@ -177,7 +180,7 @@ def _preset_for_target(args: argparse.Namespace, up: tuple[float, float, float] 
 
     opts = EvalOptions(views=args.target_views, width=TARGET_SIZE, height=TARGET_SIZE, up=up,
                        zstd_level=args.zstd_level)
-    report = evaluate(args.input, opts, log=log, renderer=pick_renderer("auto"))
+    report = evaluate(args.input[0], opts, log=log, renderer=pick_renderer("auto"))
     row = preset_for_target(report["rows"], target_psnr=args.target_psnr, target_bytes=args.target_size)
     psnr = "identical" if row["psnr_mean"] is None else f"{row['psnr_mean']:.2f} dB"
     what = f"PSNR >= {args.target_psnr:g} dB" if args.target_psnr is not None else f"<= {args.target_size:g} B/splat"

@@ -9,39 +9,72 @@ from __future__ import annotations
 
 import os
 import tempfile
+from collections.abc import Sequence
 from dataclasses import replace
 
 from ..atomic import check_output
 from ..edit import Pipeline
+from ..errors import UsageError
 from ..format.manifest import Manifest
 from ..format.presets import DEFAULT_PRESET
-from ..io import open_input, read_gaussians
+from ..gaussians import Gaussians
+from ..io import SplatInput, open_input, read_gaussians, read_merged
 from ..ply import RowStats, VertexLayout, check_rows, read_ply_rows
 from ..store import _fsspec, is_url, local_path, open_writer
 from ..vq import parse_entries
 from .distributed import DaskEngine
 from .local import LocalEngine, default_memory_per_worker, encode_to
 from .options import EncodeOptions, Progress, no_progress
-from .partitioned import PARTITION_MEMORY_FACTOR, _row_bytes, encode_partitioned, open_rows
+from .partitioned import PARTITION_MEMORY_FACTOR, ConcatRows, _row_bytes, encode_partitioned, open_rows
 from .plan import log, plan_formats
 from .scratch import Scratch
 
 
-def fits_in_process(layout: VertexLayout | None, opts: EncodeOptions, memory: int) -> bool:
+def fits_in_process(layout: VertexLayout | None | list[VertexLayout | None], opts: EncodeOptions,
+                    memory: int) -> bool:
     """Whether the whole scene is encoded in memory (as encode_gaussians does) rather than by partitions: no LOD,
-    an input that is read whole anyway (`layout` None: not a binary PLY), or one whose build fits the memory. The
-    output is the same."""
-    if not opts.lod or layout is None:
+    an input that is read whole anyway (`layout` None: not a binary PLY; of merged inputs, any one), or one whose
+    build fits the memory. The output is the same."""
+    layouts = layout if isinstance(layout, list) else [layout]
+    if not opts.lod or any(x is None for x in layouts):
         return True
-    degree = layout.sh_degree if opts.sh_degree is None else min(opts.sh_degree, layout.sh_degree)
-    return layout.rows * _row_bytes(degree) * PARTITION_MEMORY_FACTOR <= memory
+    top = max(x.sh_degree for x in layouts)  # type: ignore[union-attr]
+    degree = top if opts.sh_degree is None else min(opts.sh_degree, top)
+    rows = sum(x.rows for x in layouts)  # type: ignore[union-attr]
+    return rows * _row_bytes(degree) * PARTITION_MEMORY_FACTOR <= memory
 
 
-def encode_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, preset: str | None = None,
+def _paths(input_path: str | os.PathLike | Sequence[str | os.PathLike]) -> list[str]:
+    if isinstance(input_path, (str, os.PathLike)):
+        return [local_path(input_path)]
+    paths = [local_path(p) for p in input_path]
+    if not paths:
+        raise UsageError("no input given")
+    return paths
+
+
+def _declared_up(sources: list[SplatInput]):
+    """The up direction the inputs state, when every one states the same (else detected from the merged splats)."""
+    stated = [s.declared_up() for s in sources]
+    if stated[0] is None or any(x is None or x.up != stated[0].up for x in stated):
+        return None
+    return stated[0]
+
+
+# Why a whole-scene edit (the density filter) and a partitioned encode do not go together, and what to do instead.
+_WHOLE_SCENE_EDITS = ("--filter-density counts each splat's neighbours over the whole scene, which the partitioned "
+                      "encoder (edits chunk by chunk; --workers, --scheduler, or a scene larger than "
+                      "--memory-per-worker) cannot do exactly: give a --memory-per-worker the scene fits in, or "
+                      "clean it first with `splatstream convert IN clean.ply --filter-density ...` and encode that")
+
+
+def encode_file(input_path: str | os.PathLike | Sequence[str | os.PathLike], out_dir: str | os.PathLike,
+                preset: str | None = None,
                 drop_invalid: bool = False, progress: Progress | None = None, workers: int | None = None,
                 scheduler: str | None = None, memory_per_worker: int | None = None, scratch: str | None = None,
                 edits: Pipeline | None = None, **options) -> Manifest:
-    """Read any supported splat file and encode it into `out_dir` (a directory or an fsspec URL).
+    """Read any supported splat file, or several merged (read_merged; a list of paths), and encode it into `out_dir`
+    (a directory or an fsspec URL).
 
     By default in this process: in memory when the scene fits half the available memory (or `memory_per_worker`),
     else by partitions (encode/partitioned.py), reading the input by row ranges. `workers` (a local Dask cluster
@@ -53,7 +86,8 @@ def encode_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, prese
     if opts.sh_codebook is not None:
         parse_entries(opts.sh_codebook, 1)
     # a missing, unreadable or unknown input fails before any output or progress
-    source = open_input(local_path(input_path))
+    sources = [open_input(p) for p in _paths(input_path)]
+    source = sources[0]
     out = os.fspath(out_dir)
     if is_url(out):
         _fsspec(out)
@@ -61,7 +95,7 @@ def encode_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, prese
         out = local_path(out)
         check_output(out, directory=True)
     if opts.up is None:  # a PLY header that names its up axis is believed before the scene's shape
-        stated = source.declared_up()
+        stated = _declared_up(sources)
         if stated is not None:
             log.info("up %s: %s (--up overrides it)", ",".join(f"{v:g}" for v in stated.up), stated.reason)
             opts = replace(opts, up=stated.up)
@@ -69,10 +103,13 @@ def encode_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, prese
     out_name = os.path.basename(os.path.abspath(out)) if not is_url(out) else out.rstrip("/").rsplit("/", 1)[-1]
     distributed = workers is not None or scheduler is not None
     # The row layout (a stat of the file: its header is parsed already) where rows may be read by ranges.
-    layout = source.vertex_layout() if opts.lod or distributed else None
-    if not distributed and fits_in_process(layout, opts, memory_per_worker or default_memory_per_worker()):
+    layouts = [s.vertex_layout() if opts.lod or distributed else None for s in sources]
+    in_memory = not distributed and fits_in_process(layouts, opts, memory_per_worker or default_memory_per_worker())
+    if edits and not edits.per_splat and not in_memory:
+        raise UsageError(_WHOLE_SCENE_EDITS)
+    if in_memory:
         progress("read", 0.0)
-        g = read_gaussians(source, drop_invalid=drop_invalid)
+        g = read_merged(sources, drop_invalid)
         if edits:
             g = edits.apply(g)
         progress("read", 1.0)
@@ -92,7 +129,9 @@ def encode_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, prese
                            tempfile.gettempdir() if is_url(out) else os.path.dirname(os.path.abspath(out)))
             space = Scratch.create(scratch)
             try:
-                rows = open_rows(source, layout, space, 1 << 20, drop_invalid, progress)
+                parts = [open_rows(s, layout, space, 1 << 20, drop_invalid, progress, f"input{k}")
+                         for k, (s, layout) in enumerate(zip(sources, layouts, strict=True))]
+                rows = parts[0] if len(parts) == 1 else ConcatRows(parts)
                 return encode_partitioned(rows, writer, opts, engine, space, progress, source.path, out_name,
                                           drop_invalid, edits)
             finally:
@@ -106,24 +145,34 @@ def encode_file(input_path: str | os.PathLike, out_dir: str | os.PathLike, prese
 DRY_RUN_ROWS = 1 << 20
 
 
-def count_edits(input_path: str | os.PathLike, edits: Pipeline, drop_invalid: bool = False
-                ) -> tuple[str, int, list[tuple[str, int]]]:
-    """What `edits` would keep of an input, without writing anything: its format, the splats read, and per step
-    (edit.Pipeline.steps) its label and the splats it keeps. A binary PLY is read by row ranges."""
-    source = open_input(local_path(input_path))
-    layout = source.vertex_layout()
-    if layout is None:
-        g = read_gaussians(source, drop_invalid=drop_invalid)
-        _, counts = edits.run(g)
-        return source.format, len(g), counts
-    stats = RowStats()
+def count_edits(input_path: str | os.PathLike | Sequence[str | os.PathLike], edits: Pipeline,
+                drop_invalid: bool = False) -> tuple[str, int, list[tuple[str, int]]]:
+    """What `edits` would keep of an input (or of several merged), without writing anything: the format (of the
+    first input), the splats read, and per step (edit.Pipeline.steps) its label and the splats it keeps. A binary
+    PLY is read by row ranges."""
+    sources = [open_input(p) for p in _paths(input_path)]
     read = 0
     totals: list[tuple[str, int]] = [(step.label, 0) for step in edits.steps]
-    for start in range(0, layout.rows, DRY_RUN_ROWS):
-        g, st = read_ply_rows(layout, start, start + DRY_RUN_ROWS)
-        stats = stats + st
+
+    def add(g: Gaussians) -> None:
+        nonlocal read, totals
         read += len(g)
         _, counts = edits.run(g)
         totals = [(label, total + kept) for (label, total), (_, kept) in zip(totals, counts, strict=True)]
-    check_rows(source.path, stats, drop_invalid)
-    return source.format, read, totals
+
+    if not edits.per_splat:  # a whole-scene edit: the merged scene read whole, as the encoder reads it
+        g = read_merged(sources, drop_invalid)
+        _, counts = edits.run(g)
+        return sources[0].format, len(g), counts
+    for source in sources:
+        layout = source.vertex_layout()
+        if layout is None:
+            add(read_gaussians(source, drop_invalid=drop_invalid))
+            continue
+        stats = RowStats()
+        for start in range(0, layout.rows, DRY_RUN_ROWS):
+            g, st = read_ply_rows(layout, start, start + DRY_RUN_ROWS)
+            stats = stats + st
+            add(g)
+        check_rows(source.path, stats, drop_invalid)
+    return sources[0].format, read, totals

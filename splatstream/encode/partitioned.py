@@ -150,10 +150,49 @@ class SpilledRows:
     chunk_rows: int
     rows: int
     sh_degree: int
+    prefix: str = "input"  # one per input of a merge, so that their chunks do not collide in scratch
 
     def read(self, start: int, stop: int) -> tuple[Gaussians, RowStats]:
-        a = self.scratch.load(f"input/{start // self.chunk_rows}")
-        return Gaussians(*(a[k] for k in ATTRIBUTES)), RowStats(rows=int(len(a["positions"])))
+        # The rows asked for, whichever spilled chunks hold them: the encoder's chunks are not the spill's (its
+        # own size, from the memory per worker), nor are a merge's (ConcatRows reads each input from an offset).
+        stop = min(stop, self.rows)
+        pieces = []
+        for c in range(start // self.chunk_rows, -(-stop // self.chunk_rows)):
+            a = self.scratch.load(f"{self.prefix}/{c}")
+            lo, hi = max(start - c * self.chunk_rows, 0), min(stop - c * self.chunk_rows, self.chunk_rows)
+            pieces.append(Gaussians(*(a[k][lo:hi] for k in ATTRIBUTES)))
+        if not pieces:
+            return Gaussians.empty(self.sh_degree), RowStats()
+        g = pieces[0] if len(pieces) == 1 else Gaussians.concatenate(pieces)
+        return g, RowStats(rows=len(g))
+
+
+@dataclass
+class ConcatRows:
+    """Several inputs merged (issue 36: `encode a.ply b.spz out`): their rows one after the other, in the order given,
+    every chunk padded with zero SH bands to the highest degree among them (as Gaussians.concatenate pads the whole
+    scenes in memory), so any chunking gives the rows of the merged scene."""
+
+    parts: list[PlyRows | ArrayRows | SpilledRows]
+
+    @property
+    def rows(self) -> int:
+        return sum(p.rows for p in self.parts)
+
+    @property
+    def sh_degree(self) -> int:
+        return max(p.sh_degree for p in self.parts)
+
+    def read(self, start: int, stop: int) -> tuple[Gaussians, RowStats]:
+        pieces, stats, offset = [], RowStats(), 0
+        for part in self.parts:
+            lo, hi = max(start - offset, 0), min(stop - offset, part.rows)
+            if lo < hi:
+                g, st = part.read(lo, hi)
+                pieces.append(g.with_sh_degree(self.sh_degree))
+                stats = stats + st
+            offset += part.rows
+        return (Gaussians.concatenate(pieces) if pieces else Gaussians.empty(self.sh_degree)), stats
 
 
 @dataclass
@@ -161,7 +200,7 @@ class EditedRows:
     """Rows with the edits of issue 36 (edit.Pipeline) applied to each chunk as it is read: every edit is a
     function of one splat, so the kept rows and their values are those of the whole scene edited at once."""
 
-    inner: PlyRows | ArrayRows | SpilledRows
+    inner: PlyRows | ArrayRows | SpilledRows | ConcatRows
     edits: Pipeline
 
     @property
@@ -178,18 +217,18 @@ class EditedRows:
 
 
 def open_rows(source: SplatInput, layout: VertexLayout | None, scratch: Scratch, chunk_rows: int,
-              drop_invalid: bool, progress: Progress):
+              drop_invalid: bool, progress: Progress, prefix: str = "input"):
     """The input as rows to read in chunks: a binary PLY in byte ranges (its `layout`, from
-    SplatInput.vertex_layout), anything else read once and spilled."""
+    SplatInput.vertex_layout), anything else read once and spilled (under `prefix` in scratch)."""
     if layout is not None:
         return PlyRows(layout, source.path)
     progress("read", 0.0)
     g = read_gaussians(source, drop_invalid=drop_invalid)
     for i, start in enumerate(range(0, len(g), chunk_rows)):
         part = g.subset(slice(start, start + chunk_rows))
-        scratch.save(f"input/{i}", **{k: getattr(part, k) for k in ATTRIBUTES})
+        scratch.save(f"{prefix}/{i}", **{k: getattr(part, k) for k in ATTRIBUTES})
     progress("read", 1.0)
-    return SpilledRows(scratch, chunk_rows, len(g), g.sh_degree)
+    return SpilledRows(scratch, chunk_rows, len(g), g.sh_degree, prefix)
 
 # ---------------------------------------------------------------------------------------------- tasks
 
@@ -630,12 +669,22 @@ def _scan(engine: Engine, rows, spans: list[tuple[int, int]], scratch: Scratch, 
     return chunks, lo, hi, split_sample
 
 
+def _ply_paths(rows) -> str | None:
+    """The PLY input(s) read by rows, whose invalid rows the scan reports (one message naming them all), or None."""
+    parts = rows.parts if isinstance(rows, ConcatRows) else [rows]
+    paths = [p.path for p in parts if isinstance(p, PlyRows)]
+    return " + ".join(paths) if paths else None
+
+
 def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: Engine, scratch: Scratch,
                        progress: Progress = no_progress, source_name: str | None = None,
                        out_name: str | None = None, drop_invalid: bool = False, edits: Pipeline | None = None):
     """Encode the rows of an input (PlyRows, ArrayRows, SpilledRows) through a writer on an engine, edited by
     `edits` (chunk by chunk, EditedRows)."""
     source_rows = rows
+    if edits and not edits.per_splat:
+        raise UsageError("an edit of the whole scene (--filter-density) cannot run chunk by chunk: a partitioned "
+                         "encode applies only edits of one splat at a time")
     if edits:
         rows = EditedRows(rows, edits)
     formats, chunk_order = plan_formats(opts)
@@ -650,7 +699,7 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
     spans = [(s, min(s + chunk_rows, rows.rows)) for s in range(0, rows.rows, chunk_rows)]
 
     chunks, lo, hi, split_sample = _scan(engine, rows, spans, scratch, progress,
-                                         source_rows.path if isinstance(source_rows, PlyRows) else None,
+                                         _ply_paths(source_rows),
                                          drop_invalid)
     splats = chunks[-1][1]
     bounds = Box(tuple(float(v) for v in lo), tuple(float(v) for v in hi))
