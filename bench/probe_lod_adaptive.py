@@ -30,8 +30,8 @@ import sys
 from pathlib import Path
 
 import numpy as np
-from client_gl.offscreen import render_image
 
+from client_gl.offscreen import render_image
 from splatstream import lod
 from splatstream.camera import scene_orbit_views
 from splatstream.gaussians import Gaussians, rotation_matrices
