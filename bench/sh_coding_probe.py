@@ -3,7 +3,10 @@
     python bench/sh_coding_probe.py SCENE.ply --out DIR [--views 4 --size 384] [--stats] CONFIG ...
 
 CONFIG is "LABEL:PRESET[,ATTR=FORMAT...][,sh_codebook=off|auto|fine|N][,sh_steps=G1/G2/G3][,zstd=L]" (sh_steps:
-tile-step levels of SH bands 1, 2, 3, format.md 4.3.1; one value applies to every band). Every config is encoded
+tile-step levels of SH bands 1, 2, 3, format.md 4.3.1; one value applies to every band), and with sh_steps
+`sh_importance=E` (the importance exponent), `sh_zero=1` (0 on each chunk's grid), `sh_pool=1` (one step per band
+plane), `sh_round=R` (rounding offset towards 0); `pos_g=`, `scale_g=`, `rgb_g=` replace the preset's tile-step
+levels of positions, log scales and SH0 R, G, B. Every config is encoded
 without the LOD tree (as `splatstream eval` does by default), decoded, and rendered with the numpy reference
 renderer from the same orbit views `eval` uses; the reference renders and every result are cached under DIR (a
 config is not run again while its result file exists). `--compare LABEL=DECODED@ENCODED` adds peers.
@@ -46,6 +49,14 @@ def parse_config(spec: str) -> tuple[str, str, dict]:
             extra["sh_steps"] = [float(x) for x in v.split("/")]
         elif k == "sh_importance":
             extra["sh_importance"] = float(v)
+        elif k == "sh_zero":
+            extra["sh_zero"] = bool(int(v))
+        elif k == "sh_round":
+            extra["sh_round"] = float(v)
+        elif k == "sh_pool":
+            extra["sh_pool"] = bool(int(v))
+        elif k in ("pos_g", "scale_g", "rgb_g"):
+            extra[k] = float(v)
         elif k == "zstd":
             extra["zstd"] = int(v)
         else:
@@ -64,7 +75,15 @@ def register(label: str, preset: str, extra: dict) -> str:
         g = extra["sh_steps"]
         for b in (1, 2, 3):
             lv = g[min(b - 1, len(g) - 1)]
-            steps[f"sh{b}"] = TileStep((lv,) * 3, shared=1, importance=extra.get("sh_importance", 0.0))
+            steps[f"sh{b}"] = TileStep((lv,) * 3, shared=1, importance=extra.get("sh_importance", 0.0),
+                                        zero=extra.get("sh_zero", False), rounding=extra.get("sh_round", 0.5),
+                                        pooled=extra.get("sh_pool", False))
+    if "pos_g" in extra:
+        steps["position"] = TileStep((extra["pos_g"],) * 3, shared=3)
+    if "scale_g" in extra:
+        steps["scale"] = TileStep((extra["scale_g"],) * 3, shared=3)
+    if "rgb_g" in extra:
+        steps["color"] = TileStep((extra["rgb_g"],) * 3 + (steps["color"].levels[3],), shared=3)
     P.PRESET_STEPS[name] = steps
     cb = extra.get("sh_codebook", P.PRESET_SH_CODEBOOK.get(preset, "off"))
     P.PRESET_SH_CODEBOOK[name] = cb

@@ -114,3 +114,25 @@ def test_shader_decode_equals_numpy_on_tile_steps(gl_compute_context, gaussians)
     for name, cols in (("position", slice(0, 3)), ("scale", slice(7, 10)), ("color", slice(10, 14))):
         cpu = decode_plane(planes[name], N)[:, 0]
         assert np.abs(out[:, cols] - cpu).max() <= 2e-6 * max(1.0, float(np.abs(cpu).max())), name
+
+
+def test_shader_decode_equals_numpy_on_zero_anchored_sh_steps(gl_compute_context, gaussians):
+    """low-plus-9bit-sh5 (issue 32, format.md 4.3.1): SH band ranges moved so that 0 is on each chunk's grid (and
+    one step per band) decode in the shader as numpy decodes them."""
+    from client_gl.gpu.pool import ChunkPool
+    from client_gl.gpu.renderer import RenderOptions, SplatRenderer
+    from client_gl.scene import tiles_from_gaussians
+
+    scene = tiles_from_gaussians(gaussians, "low-plus-9bit-sh5")
+    tile = scene.tiles[0]
+    planes = tile.planes
+    pool = ChunkPool(gl_compute_context, scene.formats, scene.sh_degree, 8)
+    pool.join(5, tile)
+    renderer = SplatRenderer(gl_compute_context, pool, RenderOptions(sort="cpu"))
+    out = renderer.decode_debug(pool.splat_ids(5))
+    renderer.release()
+    pool.release()
+    cpu = np.concatenate([decode_plane(planes[f"sh{b}"], N) for b in (1, 2, 3)], axis=1)
+    assert np.sum(np.abs(cpu) < 1e-4) > 0.1 * cpu.size  # many coefficients decode to about 0: the zero code
+    gpu = out[:, 14:59].reshape(N, 15, 3)
+    assert np.abs(gpu - cpu).max() <= 2e-6 * max(1.0, float(np.abs(cpu).max()))

@@ -7,12 +7,13 @@ import pytest
 from conftest import real, run_cli
 
 from splatstream.encode import EncodeOptions, encode_gaussians
+from splatstream.encode.jobs import splat_order
 from splatstream.errors import UsageError
 from splatstream.format.codec import decode_plane, encode_plane
 from splatstream.format.layout import CHUNK_SIZE, chunk_texel_index
-from splatstream.format.planes import BASE_PLANES
-from splatstream.format.presets import PRESET_STEPS, PRESETS, preset_steps, step_attribute
-from splatstream.format.steps import TileStep, step_sizes, widened_max
+from splatstream.format.planes import BASE_PLANES, band_plane
+from splatstream.format.presets import PRESET_SH_CODEBOOK, PRESET_STEPS, PRESETS, preset_steps, step_attribute
+from splatstream.format.steps import TileStep, round_towards_zero, step_sizes, widened_max, zero_on_grid
 from splatstream.io import read_gaussians
 from splatstream.scene_decode import decode_scene
 
@@ -229,3 +230,92 @@ def test_sh_step_presets_keep_sh_per_splat_on_importance_scaled_band_steps(tmp_p
         errors[preset] = float(np.sqrt(np.mean((d.sh_rest - stored.sh_rest) ** 2)))
     assert sizes["medium-low-sh8"] < sizes["medium-low-sh16"]
     assert errors["medium-low-sh16"] < errors["medium-low-sh8"] < 0.05, errors  # measured 0.0075, 0.0149
+
+
+def test_zero_on_the_grid_decodes_small_coefficients_to_zero_within_half_a_step():
+    """Issue 32: SH bands with TileStep.zero: each chunk's range moves down by less than one step so that 0 is a
+    grid point; the step is kept, every value stays inside its range and decodes within half a step, and values
+    near 0 decode to (almost) 0 where an anchored-at-min grid puts them up to half a step away."""
+    lo = np.array([[-0.25, 0.5, -1.0]], np.float32)
+    hi = np.array([[0.5, 1.0, -0.5]], np.float32)
+    wide = np.array([[1.0, 1.5, 30.0]], np.float32)  # steps (wide - lo) / (31, 63, 31)
+    new_lo, new_hi = zero_on_grid(lo, wide, hi, "norm565", "<f4", (-65504.0, 65504.0))
+    step = 1.25 / 31
+    # component 0 straddles 0: min = -ceil(0.25 / step) steps = -7 steps, max = min + 31 steps (>= 0.5)
+    np.testing.assert_allclose([new_lo[0, 0], new_hi[0, 0]], [-7 * step, 24 * step], rtol=1e-6)
+    # component 1 (all positive) and 2 (all negative) keep their ranges
+    assert new_lo[0, 1:].tolist() == lo[0, 1:].tolist() and new_hi[0, 1:].tolist() == wide[0, 1:].tolist()
+    # a chunk using every level (no room below its max) keeps its range
+    full_lo, full_hi = zero_on_grid(lo[:, :1], np.float32([[0.5]]), np.float32([[0.5]]), "norm565", "<f4",
+                                    (-65504.0, 65504.0))
+    assert full_lo[0, 0] == np.float32(-0.25) and full_hi[0, 0] == np.float32(0.5)
+
+    rng = np.random.default_rng(11)
+    n = 40 * CHUNK_SIZE
+    values = (rng.laplace(0, 0.03, (n, 3, 3)) * (rng.random((n, 1, 1)) < 0.7)).astype(np.float32)
+    anchored = encode_plane(values, band_plane(1), "norm565", step=TileStep((6.0,) * 3, shared=1))
+    zeroed = encode_plane(values, band_plane(1), "norm565", step=TileStep((6.0,) * 3, shared=1, zero=True))
+    back_a, back_z = decode_plane(anchored, n), decode_plane(zeroed, n)
+    ranges = zeroed.ranges.astype(np.float32)  # (chunks, 2, layers, components)
+    step_z = (ranges[:, 1] - ranges[:, 0]) / np.float32([31, 63, 31])
+    err_z = np.abs(back_z - values).reshape(40, CHUNK_SIZE, 3, 3).max(axis=1)
+    assert np.all(err_z <= step_z / 2 * 1.01 + 1e-6)
+    zero = values == 0
+    assert np.abs(back_z[zero]).max() < 1e-3 * np.abs(values).max()
+    assert np.abs(back_a[zero]).mean() > 0.003  # anchored at the minimum: zeros land between codes
+    rms_a, rms_z = np.sqrt(np.mean((back_a - values) ** 2)), np.sqrt(np.mean((back_z - values) ** 2))
+    assert rms_z < 0.85 * rms_a, (rms_z, rms_a)
+
+
+def test_rounding_towards_zero_bounds_the_error_and_shrinks_the_codes():
+    """TileStep.rounding below 0.5 (a dead zone): a value u steps from the zero code takes sign(u) floor(|u| + r)
+    steps, so the error stays within (1 - r) of a step, and codes move towards the zero code (fewer distinct)."""
+    t = np.array([[[0.5 + 0.6 / 31, 0.0, 1.0], [0.5 - 1.55 / 31, 0.5, 0.0]]])  # one chunk, two values
+    lo = np.array([[-1.0, 0.5, -2.0]])
+    hi = np.array([[1.0, 1.0, -1.0]])
+    out = round_towards_zero(t, lo, hi, "norm565", 0.3)
+    # component 0 straddles 0: the zero code is rint(0.5 * 31) = 16 (value 0.032, within half a step of 0):
+    # u = 15.5 + 0.6 - 16 = 0.1 -> 0 steps; u = 15.5 - 1.55 - 16 = -2.05 -> -2 steps
+    np.testing.assert_allclose(out[0, :, 0] * 31, [16, 14])
+    # components 1 and 2 do not straddle 0: plain rounding
+    np.testing.assert_allclose(out[0, :, 1] * 63, [0, np.rint(0.5 * 63)])
+    np.testing.assert_allclose(out[0, :, 2] * 31, [31, 0])
+
+    rng = np.random.default_rng(12)
+    n = 40 * CHUNK_SIZE
+    values = rng.laplace(0, 0.03, (n, 3, 3)).astype(np.float32)
+    plain = encode_plane(values, band_plane(1), "norm565", step=TileStep((6.0,) * 3, shared=1, zero=True))
+    dead = encode_plane(values, band_plane(1), "norm565",
+                        step=TileStep((6.0,) * 3, shared=1, zero=True, rounding=0.3))
+    assert plain.ranges.tobytes() == dead.ranges.tobytes()  # only the codes change
+    back_p, back_d = decode_plane(plain, n), decode_plane(dead, n)
+    ranges = dead.ranges.astype(np.float32)
+    step = (ranges[:, 1] - ranges[:, 0]) / np.float32([31, 63, 31])
+    err = np.abs(back_d - values).reshape(40, CHUNK_SIZE, 3, 3).max(axis=1)
+    assert np.all(err <= step * 0.7 * 1.01 + 1e-6)
+    near_zero = np.abs(back_p) < 1e-3 * np.abs(values).max()
+    assert (np.abs(back_d) < 1e-3 * np.abs(values).max()).sum() > 1.2 * near_zero.sum()
+
+
+def test_low_plus_9bit_sh5_codes_sh_on_one_zero_anchored_step_per_band(tmp_path):
+    """low-plus-9bit-sh5 (issue 32): low-plus-9bit's base with per-splat SH on one importance-scaled step per band
+    plane, 0 on every chunk's grid: fewer SH bytes than low-plus-9bit-sh6 on fruit_drops at a bounded error, and
+    small coefficients decode to about 0."""
+    steps = preset_steps("low-plus-9bit-sh5")
+    assert "low-plus-9bit-sh5" not in PRESET_SH_CODEBOOK
+    assert all(steps[f"sh{b}"] == TileStep((5.0,) * 3, importance=0.3, zero=True, pooled=True) for b in (1, 2, 3))
+    assert {k: steps[k] for k in ("position", "scale", "color")} == {
+        k: PRESET_STEPS["low-plus-9bit"][k] for k in ("position", "scale", "color")}
+    g = read_gaussians(real("fruit_drops_sh3.ply"))
+    sizes, errors = {}, {}
+    for preset in ("low-plus-9bit-sh6", "low-plus-9bit-sh5"):
+        m = encode_gaussians(g, tmp_path / preset, EncodeOptions(preset=preset, lod=False))
+        assert m.version == (1, 3) and m.sh_codebook is None
+        sizes[preset] = m.attributes["sh"].disk_bytes
+        d = decode_scene(tmp_path / preset)
+        stored = g.subset(splat_order(g, m.chunk_order))
+        errors[preset] = float(np.sqrt(np.mean((d.sh_rest - stored.sh_rest) ** 2)))
+        if preset == "low-plus-9bit-sh5":
+            assert np.abs(d.sh_rest[stored.sh_rest == 0]).max(initial=0.0) < 1e-3
+    assert sizes["low-plus-9bit-sh5"] < 0.9 * sizes["low-plus-9bit-sh6"], sizes  # measured 46,953 and 54,256 B
+    assert max(errors.values()) < 0.03, errors  # SH RMS error, measured 0.0198 (sh6) and 0.0203 (sh5)

@@ -20,7 +20,15 @@ from .f16 import f16_ceil, f16_floor
 from .layout import CHUNK_SIZE, chunk_texel_index, texture_size
 from .limits import plane_limits
 from .planes import SH_INDEX_FORMAT, SH_INDEX_PLANE, PlaneSpec
-from .steps import TileStep, keep_opacity_grid, opacity_on_grid, widened_max
+from .steps import (
+    TileStep,
+    keep_opacity_grid,
+    opacity_on_grid,
+    pooled_step_size,
+    round_towards_zero,
+    widened_max,
+    zero_on_grid,
+)
 from .texformats import TEXEL_DTYPES, decode_image, encode_bc_image, get_format, pack_texels, unpack_texels
 
 SQRT2 = math.sqrt(2.0)
@@ -213,6 +221,15 @@ def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.n
     if order is not None and values.nbytes <= WHOLE_PLANE_GATHER_BYTES:
         values, order = np.take(values, order, axis=0), None
 
+    pooled_size = None
+    if step is not None and step.pooled and spec.range_dtype and n > 0:
+        extents = []
+        for layer in range(spec.layers):
+            v = values[:, layer] if order is None else np.take(values[:, layer], order, axis=0)
+            lo, hi = chunk_ranges(v, spec.range_dtype, plane_limits(spec.name))
+            extents.append(hi.astype(np.float64) - lo.astype(np.float64))
+        pooled_size = pooled_step_size(np.stack(extents), step)
+
     def layers():
         lows, highs = [], []
         for layer in range(spec.layers):
@@ -220,8 +237,11 @@ def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.n
             if spec.range_dtype:
                 lo, hi = chunk_ranges(v, spec.range_dtype, plane_limits(spec.name))
                 if step is not None:
+                    tight_hi = hi
                     hi = widened_max(lo, hi, fmt_name, step, spec.range_dtype, plane_limits(spec.name),
-                                     chunk_importance)
+                                     chunk_importance, pooled_size)
+                    if step.zero:
+                        lo, hi = zero_on_grid(lo, hi, tight_hi, fmt_name, spec.range_dtype, plane_limits(spec.name))
                 if spec.name == "color" and opacity_on_grid(v[:, OPACITY]):
                     keep_opacity_grid(lo, hi, fmt_name, OPACITY)
                 lo32, hi32 = lo.astype(np.float32), hi.astype(np.float32)
@@ -230,6 +250,8 @@ def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.n
                 t = _pad_to_chunks(v).reshape(chunks, CHUNK_SIZE, spec.components) - lo32[:, None]
                 t *= inv[:, None]
                 np.clip(t, 0.0, 1.0, out=t)
+                if step is not None and step.rounding != 0.5 and get_format(fmt_name).block == 1:
+                    t = round_towards_zero(t, lo, hi, fmt_name, step.rounding)
                 t = t.reshape(-1, spec.components)
                 lows.append(lo)
                 highs.append(hi)

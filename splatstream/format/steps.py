@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import UsageError
-from .f16 import f16_ceil
+from .f16 import f16_ceil, f16_floor
 from .texformats import get_format
 
 
@@ -34,6 +34,21 @@ class TileStep:
     # [1 / IMPORTANCE_RANGE, IMPORTANCE_RANGE] x s_k. 0.5 is the step that minimises importance-weighted squared
     # error for the bits of a uniform quantiser (error ~ step^2, bits ~ -log2 step); 0 is off.
     importance: float = 0.0
+    # Zero on the grid (SH bands, issue 32): lower each chunk's min by less than one step so that 0 is a grid point.
+    # Most SH coefficients lie near 0; on a grid anchored at the chunk's minimum they round to the nearest of two
+    # codes about a step apart, on a zero-anchored grid to one code that decodes to (almost) 0: less error and fewer
+    # distinct codes for the same step. A chunk already using all of its format's levels keeps its range.
+    zero: bool = False
+    # Rounding offset towards 0 (with `zero`): a value u steps from the zero code is coded as sign(u) floor(|u| +
+    # rounding), 0.5 being plain rounding. Below 0.5 the zero code's bin widens and every code moves towards 0 (the
+    # dead zone of video coders): fewer distinct codes for a little more error. Decoders see ordinary codes.
+    rounding: float = 0.5
+    # One step over every layer and component of the plane (SH bands, issue 32): the median over chunks, layers and
+    # components of the extent / levels[0]. Mean over view directions, every real SH coefficient of every colour
+    # channel weighs the same in the colour error (an orthonormal basis), so equal squared error per coefficient,
+    # i.e. one step for all, is what spends the bits best; a step per coefficient from its own spread gives
+    # coefficients of small spread finer steps than they deserve.
+    pooled: bool = False
 
     def check(self, fmt_name: str, components: int) -> None:
         fmt = get_format(fmt_name)
@@ -48,6 +63,12 @@ def step_sizes(extent: np.ndarray, step: TileStep) -> np.ndarray:
     size = np.median(extent, axis=0) / np.array(step.levels, np.float64)
     size[:step.shared] = np.median(extent[:, :step.shared].max(axis=1)) / step.levels[0]
     return size
+
+
+def pooled_step_size(extents: np.ndarray, step: TileStep) -> float:
+    """TileStep.pooled's one step: the median of every chunk's, layer's and component's extent (any shape) /
+    levels[0]."""
+    return float(np.median(extents)) / step.levels[0]
 
 
 IMPORTANCE_RANGE = 64.0
@@ -65,16 +86,18 @@ def importance_factors(chunk_importance: np.ndarray, exponent: float) -> np.ndar
 
 
 def widened_max(lo: np.ndarray, hi: np.ndarray, fmt_name: str, step: TileStep, range_dtype: str,
-                limits: tuple[float, float], chunk_importance: np.ndarray | None = None) -> np.ndarray:
+                limits: tuple[float, float], chunk_importance: np.ndarray | None = None,
+                pooled_size: float | None = None) -> np.ndarray:
     """The stored max of every chunk (chunks, C) under a tile step; `lo`, `hi` the chunk ranges as stored (in
     `range_dtype`). Never below `hi` (every value stays inside its range) nor above the plane's limit.
-    `chunk_importance` (chunks,): scales each chunk's step when the step has an `importance` exponent."""
+    `chunk_importance` (chunks,): scales each chunk's step when the step has an `importance` exponent.
+    `pooled_size`: the step of every component (TileStep.pooled, pooled_step_size) instead of step_sizes'."""
     components = lo.shape[-1]
     step.check(fmt_name, components)
     fmt_levels = np.array(get_format(fmt_name).levels[:components], np.float64)
     lo64, hi64 = lo.astype(np.float64), hi.astype(np.float64)
     extent = hi64 - lo64
-    size = step_sizes(extent, step)
+    size = step_sizes(extent, step) if pooled_size is None else np.full(components, pooled_size)
     if step.importance and chunk_importance is not None:
         size = size[None, :] * importance_factors(chunk_importance, step.importance)[:, None]
     steps = np.clip(np.divide(extent, size, out=np.zeros_like(extent), where=size > 0), 1.0, fmt_levels)
@@ -87,6 +110,48 @@ def widened_max(lo: np.ndarray, hi: np.ndarray, fmt_name: str, step: TileStep, r
     # At the plane's limit (or f16's largest value) keep the tight range: a reader rejects ranges outside the limits.
     stored = np.where(np.isfinite(stored) & (stored <= limits[1]), np.maximum(stored, hi64), hi64)
     return stored.astype(range_dtype)
+
+
+def zero_on_grid(lo: np.ndarray, wide: np.ndarray, hi: np.ndarray, fmt_name: str, range_dtype: str,
+                 limits: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """The stored (min, max) of every chunk (chunks, C) with 0 moved onto the quantisation grid (TileStep.zero):
+    `lo`, `wide` the range after widened_max, `hi` the chunk's tight max. The step (max - min) / L is kept and the
+    range shifted down by less than one step, for chunks whose values straddle 0 and whose values still fit below
+    the shifted max; other chunks keep (lo, wide). The new ends are rounded outward to `range_dtype`, which moves
+    the zero point by a few f16 ulps of the range, far below a step."""
+    components = lo.shape[-1]
+    fmt_levels = np.array(get_format(fmt_name).levels[:components], np.float64)
+    lo64, wide64, hi64 = lo.astype(np.float64), wide.astype(np.float64), hi.astype(np.float64)
+    step = (wide64 - lo64) / fmt_levels
+    positive = step > 0
+    k = np.ceil(np.divide(-lo64, step, out=np.zeros_like(step), where=positive))
+    new_lo = -k * step
+    new_hi = new_lo + fmt_levels * step
+    if range_dtype == "<f2":
+        new_lo = f16_floor(new_lo.astype(np.float32)).astype(np.float64)
+        new_hi = f16_ceil(new_hi.astype(np.float32)).astype(np.float64)
+    else:
+        new_lo = new_lo.astype(np.float32).astype(np.float64)
+        new_hi = new_hi.astype(np.float32).astype(np.float64)
+    ok = (positive & (lo64 < 0) & (hi64 > 0) & (new_hi >= hi64) & np.isfinite(new_lo) & np.isfinite(new_hi)
+          & (new_lo >= limits[0]) & (new_hi <= limits[1]))
+    return np.where(ok, new_lo, lo64).astype(range_dtype), np.where(ok, new_hi, wide64).astype(range_dtype)
+
+
+def round_towards_zero(t: np.ndarray, lo: np.ndarray, hi: np.ndarray, fmt_name: str, rounding: float) -> np.ndarray:
+    """Normalised values t (chunks, 256, C) in [0, 1] of chunks with ranges lo, hi (chunks, C), requantised so that
+    the code nearest 0 takes a value u codes away as sign(u) floor(|u| + rounding) codes from it
+    (TileStep.rounding); chunks not straddling 0 keep plain rounding. Returns t on exact codes (code / L)."""
+    components = t.shape[-1]
+    levels = np.array(get_format(fmt_name).levels[:components], np.float64)
+    lo64, hi64 = lo.astype(np.float64), hi.astype(np.float64)
+    extent = hi64 - lo64
+    straddles = (lo64 < 0) & (hi64 > 0)
+    zero_code = np.rint(np.divide(-lo64, extent, out=np.zeros_like(extent), where=extent > 0) * levels)
+    u = t.astype(np.float64) * levels - zero_code[:, None]
+    towards = zero_code[:, None] + np.sign(u) * np.floor(np.abs(u) + rounding)
+    code = np.where(straddles[:, None], towards, np.rint(t * levels))
+    return (np.clip(code, 0, levels) / levels).astype(t.dtype)
 
 
 # Opacities of 8-bit inputs (compressed.ply, .splat, SPZ) are k / 255; their sigmoid of a float32 logit comes back
