@@ -21,7 +21,7 @@ from splatstream.format.manifest import parse_manifest
 from splatstream.store import load_manifest
 
 
-def converge(engine, cam, timeout_s: float = 60.0):
+def converge(engine, cam, timeout_s: float = 300.0):
     """Frames until the stream converges: a generous bound on the wall clock (a loaded machine is only later), the
     frames paced so that the fetcher's thread runs between them."""
     deadline = time.monotonic() + timeout_s

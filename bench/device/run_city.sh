@@ -1,0 +1,54 @@
+#!/bin/bash
+# GPU-machine driver for the city-scale run of issue 38 (device `run` tool, the two-GPU 32-core kind), from the repo
+# root, carrying .whl (bench/device_wheels.sh: Dask and its needs, plus the client's wheels) and .gl (GL loaders).
+# Usage: bash bench/device/run_city.sh make-encode SPLATS   then   bash bench/device/run_city.sh stream
+#   make-encode: the scene (bench/tile_scene.py: copies of the bundled donut, SH0, seed 0) and `encode --workers 32`
+#                with the encoder's defaults (medium, pages over 1,024 tiles), timed as bench_scale.py times it
+#                (wall, summed PSS of the process tree, the largest process, phases)
+#   stream:      the encoded scene served on loopback: the first frame (bench_first_frame.py, twice: cold and warm
+#                shader cache), the manifest bytes before it (bench_pages.py --first-frame), and the fly-through
+#                (bench_flythrough.py, 3M splat budget)
+# The scene stays under /tmp/city while the machine is warm, so the second call must follow the first at once.
+set -u
+[ -d /tmp/site/distributed ] || python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir \
+  --target /tmp/site .whl/*.whl || exit 1
+export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
+OUT=${OUT:-/tmp/out}
+W=/tmp/city
+mkdir -p "$OUT" $W
+what=${1:?make-encode or stream}
+if [ "$what" = make-encode ]; then
+  splats=${2:?splats}
+  nproc; free -g | head -2; df -h /tmp | tail -1
+  start=$(date +%s)
+  python3 bench/tile_scene.py samples/donut.ply --splats "$splats" --out $W/s.ply || exit 1
+  echo "scene written in $(( $(date +%s) - start )) s: $(du -h $W/s.ply | cut -f1)"
+  python3 - "$W/s.ply" "$W/scene" "$OUT/encode.json" <<'EOF'
+import json, os, pathlib, sys
+sys.path.insert(0, "bench")
+from bench_scale import run_encode
+r = run_encode(pathlib.Path(sys.argv[1]), pathlib.Path(sys.argv[2]),
+               ["--workers", os.environ.get("CITY_WORKERS", "32"), "--memory-per-worker", "6GB"])
+print(json.dumps(r, indent=1))
+pathlib.Path(sys.argv[3]).write_text(json.dumps(r, indent=1))
+EOF
+  python3 -m cli info $W/scene 2>&1 | head -30 | tee "$OUT/info.txt"
+  ls $W/scene/data | wc -l
+  ls -la $W/scene/manifest.msgpack
+fi
+if [ "$what" = stream ]; then
+  for f in .gl/*.deb; do dpkg -x "$f" /; done
+  ldconfig
+  probe='import moderngl; c = moderngl.create_context(standalone=True, backend="egl", require=430); print(c.info["GL_RENDERER"])'
+  python3 -c "$probe" 2>/dev/null || export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
+  python3 -c "$probe" || exit 1
+  python3 bench/bench_pages.py --first-frame $W/scene --runs 5 2>&1 | tail -6 | tee "$OUT/first_frame_nogl.txt"
+  for run in cold warm; do
+    python3 bench/bench_first_frame.py --scene $W/scene --json "$OUT/first_frame_$run.json" 2>&1 | tail -4
+  done
+  python3 bench/bench_flythrough.py --scene $W/scene --ply $W/s.ply --max-splats 3000000 \
+    --json "$OUT/flythrough.json" > $W/fly.log 2>&1 || tail -20 $W/fly.log
+  python3 -c "import json,sys; d=json.load(open(sys.argv[1]))['streaming']; print({k: d.get(k) for k in \
+    ('frames','median_ms','p99_ms','p99_ms_with_uploads','p99_ms_without_uploads','update_ms_p99','update_ms_median')})" \
+    "$OUT/flythrough.json"
+fi
