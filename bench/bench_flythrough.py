@@ -189,7 +189,7 @@ def main() -> None:
     from client_gl.scene import SceneTiles, load_tile
     from client_gl.streaming import StreamingSession, ViewOptions, freeze_long_lived
     from splatstream.scene_decode import read_codebook
-    from splatstream.store import DirectoryStore
+    from splatstream.store import DirectoryStore, load_manifest
 
     w, h = (int(v) for v in args.size.split("x"))
     server, url = (None, args.scene) if "://" in args.scene else serve_scene(args.scene)
@@ -293,11 +293,12 @@ def main() -> None:
             ctx.finish()
         tiles = list(session.last.draw)
         bands = {t: session.pool.tile_bands(t) for t in tiles}
-        manifest = session.manifest
+        store = DirectoryStore(args.scene) if "://" not in args.scene else None
+        # every tile, read from every page of a paged scene (the session's tree holds only the pages it reached)
+        manifest = load_manifest(store) if store is not None else session.manifest
         # the same tiles and bands, loaded whole, drawn by the plain renderer; timed frame by frame in turn with the
         # streamed frame while the session (its fetch loop and decode threads) is still open, so that both see the
         # same process and the same GPU clocks
-        store = DirectoryStore(args.scene) if "://" not in args.scene else None
         r = None
         if store is not None:
             top = max(bands.values(), default=0)

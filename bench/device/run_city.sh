@@ -42,8 +42,8 @@ if [ "$what" = stream ]; then
   probe='import moderngl; c = moderngl.create_context(standalone=True, backend="egl", require=430); print(c.info["GL_RENDERER"])'
   python3 -c "$probe" 2>/dev/null || export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
   python3 -c "$probe" || exit 1
-  python3 bench/bench_pages.py --first-frame $W/scene --runs 5 2>&1 | tail -6 | tee "$OUT/first_frame_nogl.txt"
-  for run in cold warm; do
+  [ -n "${FLY_ONLY:-}" ] || python3 bench/bench_pages.py --first-frame $W/scene --runs 5 2>&1 | tail -6 | tee "$OUT/first_frame_nogl.txt"
+  [ -n "${FLY_ONLY:-}" ] || for run in cold warm; do
     python3 bench/bench_first_frame.py --scene $W/scene --json "$OUT/first_frame_$run.json" 2>&1 | tail -4
   done
   python3 bench/bench_flythrough.py --scene $W/scene --ply $W/s.ply --max-splats 3000000 \
