@@ -22,13 +22,24 @@ from .errors import InputError
 from .format.limits import describe_violations, domain_violations
 from .gaussians import Gaussians
 from .orientation import UpChoice, detect_up
-from .ply import MAX_HEADER_BYTES, PlyHeader, VertexLayout, read_gaussians_ply, read_header, vertex_layout
+from .ply import (
+    MAX_HEADER_BYTES,
+    PlyHeader,
+    VertexLayout,
+    read_gaussians_ply,
+    read_header,
+    vertex_layout,
+    write_gaussians_ply,
+)
 from .readers.compressed_ply import is_compressed_ply, read_compressed_ply
 from .readers.gltf import read_gltf
 from .readers.rad import read_rad
 from .readers.sog import read_sog, sog_kind
-from .readers.splat import read_splat
+from .readers.splat import read_splat, write_splat
 from .readers.spz import read_spz
+from .writers.glb import write_glb
+from .writers.sog import write_sog
+from .writers.spz import write_spz
 
 FORMAT_NAMES = {
     "ply": "standard 3DGS PLY",
@@ -255,22 +266,12 @@ def write_gaussians(g: Gaussians, path: str | os.PathLike, spz_version: int = 4,
     """
     fmt = output_format(path)
     if fmt == "ply":
-        from .ply import write_gaussians_ply
-
         write_gaussians_ply(g, path)
     elif fmt == "spz":
-        from .writers.spz import write_spz
-
         write_spz(g, path, spz_version)
     elif fmt == "gltf":
-        from .writers.glb import write_glb
-
         write_glb(g, path, glb_compression)
     elif fmt == "sog":
-        from .writers.sog import write_sog
-
         write_sog(g, path)
     else:
-        from .readers.splat import write_splat
-
         write_splat(g, path)
