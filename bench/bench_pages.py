@@ -15,21 +15,29 @@ median time of one frame's view numbers + selection over the tiles held against 
     PYTHONPATH=. python bench/bench_pages.py --first-frame SCENE [SCENE ...]  # served on loopback (`serve`): the
         manifest bytes and seconds from opening the stream to the first frame that draws the root (engine, fetcher
         and HTTP as `view` runs them, no GL: a pool that counts slots), median of --runs
+    PYTHONPATH=. python bench/bench_pages.py --engine --splats 6e6,60e6,250e6 [--frames 300] [--profile]
+        # a StreamEngine over the paged tree along a street-level path (pages and payloads arrive --per-frame a
+        # frame, payloads not decoded, a pool that counts): per-frame update times, median, p99, max
 """
 from __future__ import annotations
 
 import argparse
+import cProfile
+import gc
 import math
 import os
+import pstats
 import random
 import statistics
 import sys
 import time
 from dataclasses import replace
+from types import SimpleNamespace
 
+import msgpack
 import numpy as np
 
-from client_gl.stream.engine import StreamEngine, StreamOptions
+from client_gl.stream.engine import StreamEngine, StreamOptions, _Ready
 from client_gl.stream.fetch import Fetcher
 from client_gl.stream.pages import PagedTree
 from client_gl.stream.selection import SelectionOptions, select, view_numbers
@@ -172,6 +180,105 @@ class _Slots:
         return None
 
 
+class _PathFetcher:
+    """A fetcher over a paged synthetic tree (bench `--engine`): pages are the real page bytes; payloads arrive as
+    empty bytes (`_NoDecodeEngine` does not decode them). At most `per_frame` items a frame, in the wish list's
+    order, as a link that delivers a few payloads per frame would."""
+
+    def __init__(self, root: Manifest, files: dict[str, bytes], per_frame: int):
+        self._root, self._files, self._per_frame = root, files, per_frame
+        self._wanted: list = []
+
+    def manifest(self) -> Manifest:
+        return self._root
+
+    def want(self, requests) -> None:
+        self._wanted = [(key, entry) for _, key, entry in requests]
+
+    def done(self):
+        out, self._wanted = self._wanted[:self._per_frame], self._wanted[self._per_frame:]
+        return [(key, entry, self._files.get(entry.file, b"")) for key, entry in out]
+
+    def stats(self):
+        return SimpleNamespace(in_flight=0, queued=len(self._wanted))
+
+
+class _NoDecodeEngine(StreamEngine):
+    """The engine with payloads 'decoded' at once into nothing: the bench times the frame loop's bookkeeping."""
+
+    def _submit(self, key, entry, data) -> None:
+        self._decoded.put((key, _Ready(key, {}, None, int(entry.bytes))))
+
+
+def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame: int, profile: bool) -> None:
+    """A StreamEngine over the paged tree along a camera flying across the city at street level: per-frame
+    update times (median, p99, max) and, with --profile, where they go."""
+    paged = split_pages(whole, k)
+    files = {ref.file: raw for ref, raw in paged.pages}
+    engine = _NoDecodeEngine(_PathFetcher(paged.root, files, per_frame), _Slots(),
+                             StreamOptions(SelectionOptions(max_splats=max_splats), upload_bytes_per_frame=1 << 40))
+    # A page's tiles straight from the whole tree: the synthetic tiles' payload entries (one real tile's, copied)
+    # do not pass the page reader's shape checks, and parsing is on the decode workers anyway, not in update().
+    ref_of = {msgpack.unpackb(raw, strict_map_key=False)["parent"]: ref for ref, raw in paged.pages}
+    by_id = {t.id: t for t in whole.tiles}
+
+    def read(tile_id: int, data) -> list[TileEntry]:
+        head, out, todo = by_id[tile_id], [], list(by_id[tile_id].children)
+        while todo:
+            t = by_id[todo.pop(0)]
+            ref = ref_of.get(t.id)
+            out.append(replace(t, page=ref))
+            if t.level < head.level + k:
+                todo += t.children
+        return out
+    engine.pages.read = read
+    side = whole.bounds.max[0]
+    prof = cProfile.Profile() if profile else None
+    times = []
+    # The bench's whole tree is no client's: out of the collector's passes, whose full passes over it took 120-150 ms
+    # (the spikes of a first version of this bench). The client's own objects are collected as usual, and the full
+    # passes over them are reported.
+    gc.collect()
+    gc.freeze()
+    started: dict[int, float] = {}
+    full_passes: list[float] = []
+
+    def on_gc(phase: str, info: dict) -> None:
+        if info["generation"] == 2:
+            if phase == "start":
+                started[2] = time.perf_counter()
+            else:
+                full_passes.append(time.perf_counter() - started.pop(2, time.perf_counter()))
+    gc.callbacks.append(on_gc)
+    try:
+        for f in range(frames):
+            s = f / max(1, frames - 1)
+            eye = np.array([0.2 + 0.6 * s, 0.25 + 0.5 * s, 0.01]) * [side, side, 2000.0]
+            target = eye + [side * 0.3, side * 0.3 * math.cos(3 * s), -15.0]
+            cam = Camera(tuple(eye), tuple(target), (0.0, 0.0, 1.0), 60.0, 1920, 1080, near=0.1)
+            # the page parses finish before the frame (a real client's finish between frames)
+            for fut in list(engine._pages_arrived.values()):
+                fut.result()
+            if prof is not None:
+                prof.enable()
+            t0 = time.perf_counter()
+            engine.update(cam)
+            times.append(time.perf_counter() - t0)
+            if prof is not None:
+                prof.disable()
+    finally:
+        gc.callbacks.remove(on_gc)
+        gc.unfreeze()
+        engine.close()
+    ts = np.array(times) * 1e3
+    print(f"{whole.splats / 1e6:.0f}M engine path ({frames} frames, {per_frame} payloads/pages a frame): update "
+          f"median {np.median(ts):.2f} ms, p99 {np.percentile(ts, 99):.2f} ms, max {ts.max():.1f} ms; tiles held "
+          f"{len(engine.manifest.tiles)}, pages read {engine.pages.pages_read}, evicted {engine.pages.evicted}; "
+          f"{len(full_passes)} full collections, longest {max(full_passes, default=0) * 1e3:.1f} ms")
+    if prof is not None:
+        pstats.Stats(prof).sort_stats("tottime").print_stats(30)
+
+
 def first_frame(scenes: list[str], runs: int, converge: bool = False) -> None:
     """Seconds from a new fetcher to the first frame that draws (the root), over loopback HTTP, and the manifest
     bytes fetched before it."""
@@ -224,7 +331,17 @@ def main() -> None:
     ap.add_argument("--default-levels", type=int, default=EncodeOptions.page_levels)
     ap.add_argument("--sh-degree", type=int, default=0)
     ap.add_argument("--max-splats", type=int, default=3_000_000)
+    ap.add_argument("--engine", action="store_true", help="a StreamEngine along a street-level path (per frame)")
+    ap.add_argument("--frames", type=int, default=300)
+    ap.add_argument("--per-frame", type=int, default=8, help="--engine: payloads or pages arriving a frame")
+    ap.add_argument("--profile", action="store_true", help="--engine: where the update's time goes")
     args = ap.parse_args()
+    if args.engine:
+        base = template(args.sh_degree)
+        for n in [int(float(s)) for s in args.splats.split(",")]:
+            engine_path(synthetic_tree(n, base), args.default_levels, args.frames, args.max_splats, args.per_frame,
+                        args.profile)
+        return
     if args.repage:
         repage(*args.repage, args.default_levels)
         return

@@ -8,12 +8,13 @@ from conftest import real
 
 from client_gl.stream.engine import StreamEngine, StreamOptions
 from client_gl.stream.fetch import FetchStats
+from client_gl.stream.pages import PagedTree
 from client_gl.stream.selection import SelectionOptions, view_numbers, wanted_bands
 from splatstream.camera import Camera
 from splatstream.encode import EncodeOptions, encode_in_memory
 from splatstream.errors import FormatError
 from splatstream.format.container import verify_payload
-from splatstream.format.manifest import parse_manifest
+from splatstream.format.manifest import parse_manifest, tile_arrays
 from splatstream.ply import read_gaussians_ply
 from splatstream.store import MemoryStore, read_manifest
 
@@ -387,3 +388,31 @@ def test_the_tree_held_is_bounded_and_dropped_pages_are_read_again(paged_store):
     assert bounded_draws[:2] == draws[:2]  # the same cuts (the third may take another path to its cut)
     assert max(bounded_held) < max(held) <= len(whole.tiles)
     assert len(pages) > len(set(pages))  # dropped pages were read again when their side was viewed again
+
+
+def _same_arrays(a, b) -> None:
+    assert a.children == b.children
+    for name in ("ids", "parent", "level", "splats", "box_min", "box_max", "sphere_center", "sphere_radius",
+                 "geometric_error", "base_bytes", "band_bytes", "gpu_bytes"):
+        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+
+
+def test_the_paged_trees_arrays_grow_and_shrink_as_a_rebuild_makes_them(paged_store):
+    """PagedTree carries its arrays over from view to view (grown by a page's tiles, the kept rows taken when pages
+    are dropped) instead of rebuilding them over every tile held: the same arrays, index and tiles as a rebuild."""
+    tree = PagedTree(parse_manifest(paged_store.read_manifest(), "root", lazy_payloads=True))
+    _ = tree.manifest.arrays  # the view's arrays exist, so the next views grow them
+    rounds = 0
+    while tree.pending:
+        for tile_id in list(tree.pending)[:3]:  # several pages between two views, and a view after each batch
+            tree.add_page(tile_id, paged_store.payloads[tree.entry(tile_id).file])
+        m = tree.manifest
+        _same_arrays(m.arrays, tile_arrays(m.tiles, {t.id: i for i, t in enumerate(m.tiles)}))
+        rounds += 1
+    assert rounds > 1 and len(tree.manifest.tiles) == len(read_manifest(paged_store).tiles)
+    heads = tree.held_pages()
+    keep = tree.evict(heads[1::2])
+    m = tree.manifest
+    assert len(keep) == len(m.tiles) < len(read_manifest(paged_store).tiles)
+    _same_arrays(m.arrays, tile_arrays(m.tiles, {t.id: i for i, t in enumerate(m.tiles)}))
+    assert m.index_of == {t.id: i for i, t in enumerate(m.tiles)} and m.tile_by_id == {t.id: t for t in m.tiles}

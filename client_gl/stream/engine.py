@@ -180,6 +180,7 @@ class StreamEngine:
         self.codebook = m.uses_codebook
         self.with_mirror = with_mirror
         self.resident = np.zeros(0, bool)
+        self.slots_needed = np.zeros(0, np.int64)  # 256-splat slots per tile
         self.bands = np.zeros(0, np.int64)  # SH bands resident per tile
         self.last_drawn = np.zeros(0, np.int64)
         self._filling = np.zeros(0, bool)  # ancestors of the cut in that list (fill_levels)
@@ -245,10 +246,11 @@ class StreamEngine:
         self.ids = self.arrays.ids
         self._parent: list[int] = self.arrays.parent.tolist()  # plain lists: the per-frame loops index them often
         self._level: list[int] = self.arrays.level.tolist()
-        chunks = np.array([t.chunks for t in m.tiles], np.int64)
-        self.slots_needed = chunks
-        self.cost = chunks.astype(np.float64) * float(self.slot_bytes)
         grow = len(m.tiles) - len(self.resident)
+        # the new tiles' only (a page's tiles are appended; eviction takes the kept rows before adopting)
+        chunks = np.array([t.chunks for t in m.tiles[len(self.resident):]], np.int64)
+        self.slots_needed = np.concatenate([self.slots_needed, chunks])
+        self.cost = self.slots_needed.astype(np.float64) * float(self.slot_bytes)
         self.resident = np.concatenate([self.resident, np.zeros(grow, bool)])
         self.bands = np.concatenate([self.bands, np.zeros(grow, np.int64)])
         self.last_drawn = np.concatenate([self.last_drawn, np.zeros(grow, np.int64)])
@@ -301,6 +303,7 @@ class StreamEngine:
         new_of[keep] = np.arange(len(keep))
         self.resident, self.bands = self.resident[keep], self.bands[keep]
         self.last_drawn, self._filling = self.last_drawn[keep], self._filling[keep]
+        self.slots_needed = self.slots_needed[keep]
         self.refined = frozenset(int(new_of[i]) for i in self.refined if new_of[i] >= 0)
         self._last_cut = {int(new_of[i]) for i in self._last_cut if new_of[i] >= 0}
         self._adopt(self.pages.manifest)

@@ -16,7 +16,7 @@ from dataclasses import replace
 import numpy as np
 
 from splatstream.format.container import VerifiedPayload, verified_bytes
-from splatstream.format.manifest import Manifest, PageRef, TileEntry, read_page
+from splatstream.format.manifest import Manifest, PageRef, TileEntry, grown_arrays, read_page, taken_arrays
 
 Key = tuple[int, str]
 PAGE_GROUP = "page"  # the group of a page's fetch key (tile id, "page"): the page below that tile
@@ -36,10 +36,27 @@ class PagedTree:
         self.page_bytes = 0
         self.evicted = 0  # pages dropped again (evict)
         self._read: set[int] = set()  # tiles whose page is held
-        self.manifest = self._view()
+        self._by_id = {t.id: t for t in self._tiles}  # held tiles as the view has them
+        self._view_of: Manifest | None = None  # the view, made again when asked for after a change
+        self._changed: set[int] = set()  # positions held in the last view whose children have changed since
+        self._manifest = self._view_of = replace(self.root, tiles=tuple(self._tiles))
 
-    def _view(self) -> Manifest:
-        return replace(self.root, tiles=tuple(self._tiles))
+    @property
+    def manifest(self) -> Manifest:
+        """The tiles held as a manifest. Its arrays, positions and tiles by id are carried over from the last view
+        and grown by the tiles added since (tiles keep their positions): a page costs the time of its own tiles,
+        not of every tile held (rebuilding them over 21,000 tiles held took 170 ms a page at 250M splats: issue
+        38, BENCHMARKS.md "Manifest pages")."""
+        if self._view_of is None:
+            last = self._manifest
+            m = replace(self.root, tiles=tuple(self._tiles))
+            m.__dict__["index_of"] = dict(self._position)  # cached_property values, as Manifest would compute them
+            m.__dict__["tile_by_id"] = dict(self._by_id)
+            if "arrays" in last.__dict__:
+                m.__dict__["arrays"] = grown_arrays(last.arrays, m.tiles, m.index_of, self._changed)
+            self._changed = set()
+            self._manifest = self._view_of = m
+        return self._view_of
 
     def entry(self, tile_id: int) -> PageRef:
         """The entry of the page below a tile whose page is not read yet (what the fetcher fetches and checks)."""
@@ -67,12 +84,16 @@ class PagedTree:
         raw = verified_bytes(data, ref, source)
         return read_page(raw, ref, self.root, self._full[tile_id], source, lazy_payloads=True, hashed=True)
 
-    def insert(self, tile_id: int, tiles: list[TileEntry]) -> Manifest:
-        """Add a page's tiles (what `read` gave) and return the grown view. A page already added changes nothing."""
+    def insert(self, tile_id: int, tiles: list[TileEntry]) -> None:
+        """Add a page's tiles (what `read` gave); the view grows when next asked for (`manifest`: once for the
+        pages a frame adds). A page already added changes nothing."""
         ref = self.pending.pop(tile_id, None)
         if ref is None:
-            return self.manifest
-        self._tiles[self._position[tile_id]] = self._full[tile_id]  # its children are known now
+            return
+        at = self._position[tile_id]
+        self._tiles[at] = self._by_id[tile_id] = self._full[tile_id]  # its children are known now
+        if at < len(self._manifest.tiles):
+            self._changed.add(at)
         for t in tiles:
             self._full[t.id] = t
             self._position[t.id] = len(self._tiles)
@@ -80,11 +101,11 @@ class PagedTree:
                 self.pending[t.id] = t.page
                 t = replace(t, children=())
             self._tiles.append(t)
+            self._by_id[t.id] = t
         self._read.add(tile_id)
         self.pages_read += 1
         self.page_bytes += ref.bytes
-        self.manifest = self._view()
-        return self.manifest
+        self._view_of = None
 
     def held_pages(self) -> list[int]:
         """Tiles whose page is held (each the head of a subtree a page brought)."""
@@ -106,6 +127,7 @@ class PagedTree:
         """Drop the pages below these tiles (and every page held below them): the tiles become leaves again, their
         pages wanted again when a cut reaches them. Returns the old positions of the tiles kept, in order (the
         engine's per-tile state is taken through it)."""
+        last = self.manifest  # the view before the eviction: its arrays' rows are taken
         gone: set[int] = set()
         for h in heads:
             if h not in self._read or self._position[h] in gone:
@@ -118,20 +140,28 @@ class PagedTree:
                 self.pending.pop(t.id, None)
             self._read.discard(h)
             self.pending[h] = self._full[h].page
-            self._tiles[self._position[h]] = replace(self._full[h], children=())
+            self._tiles[self._position[h]] = self._by_id[h] = replace(self._full[h], children=())
             self.evicted += 1
         keep = np.array([i for i in range(len(self._tiles)) if i not in gone], np.int64)
         for i in gone:
             t = self._tiles[i]
             del self._full[t.id]
             del self._position[t.id]
+            del self._by_id[t.id]
         self._tiles = [self._tiles[i] for i in keep]
         self._position = {t.id: i for i, t in enumerate(self._tiles)}
-        self.manifest = self._view()
+        m = replace(self.root, tiles=tuple(self._tiles))
+        m.__dict__["index_of"] = dict(self._position)
+        m.__dict__["tile_by_id"] = dict(self._by_id)
+        if "arrays" in last.__dict__:  # the kept rows taken, not rebuilt from the tiles
+            m.__dict__["arrays"] = taken_arrays(last.arrays, keep)
+        self._changed = set()
+        self._manifest = self._view_of = m
         return keep
 
     def add_page(self, tile_id: int, data: VerifiedPayload | bytes) -> Manifest:
         """read, then insert (in one thread)."""
         if tile_id not in self.pending:
             return self.manifest
-        return self.insert(tile_id, self.read(tile_id, data))
+        self.insert(tile_id, self.read(tile_id, data))
+        return self.manifest

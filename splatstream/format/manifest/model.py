@@ -6,7 +6,7 @@ code that holds one trusts it. `Manifest.to_dict()` gives back the spec's map (`
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -328,39 +328,7 @@ class Manifest:
 
     @functools.cached_property
     def arrays(self) -> TileArrays:
-        tiles = self.tiles
-        n = len(tiles)
-        idx = self.index_of
-        parent = np.full(n, -1, np.int64)
-        children = []
-        for i, t in enumerate(tiles):
-            kids = tuple(idx[c] for c in t.children)
-            children.append(kids)
-            for k in kids:
-                parent[k] = i
-        band_bytes = np.zeros((n, MAX_SH_DEGREE), np.int64)
-        base_bytes = np.zeros(n, np.int64)
-        gpu_bytes = np.zeros(n, np.int64)
-        for i, t in enumerate(tiles):
-            for name in t.groups:
-                gpu, size = entry_fields(t.groups, name, ("gpu_bytes", "bytes"))
-                gpu_bytes[i] += gpu
-                band = band_of(name)
-                if band:
-                    band_bytes[i, band - 1] = size
-                else:
-                    base_bytes[i] = size
-        return TileArrays(
-            ids=np.array([t.id for t in tiles], np.int64), parent=parent,
-            level=np.array([t.level for t in tiles], np.int64),
-            splats=np.array([t.splats for t in tiles], np.int64),
-            box_min=np.array([t.box.min for t in tiles], np.float64).reshape(n, 3),
-            box_max=np.array([t.box.max for t in tiles], np.float64).reshape(n, 3),
-            sphere_center=np.array([t.sphere_center for t in tiles], np.float64).reshape(n, 3),
-            sphere_radius=np.array([t.sphere_radius for t in tiles], np.float64),
-            geometric_error=np.array([t.geometric_error for t in tiles], np.float64),
-            children=tuple(children),
-            base_bytes=base_bytes, band_bytes=band_bytes, gpu_bytes=gpu_bytes)
+        return tile_arrays(self.tiles, self.index_of)
 
     def to_dict(self) -> dict:
         """The manifest map of format.md 6, keys in the order the encoder has always written them."""
@@ -391,6 +359,79 @@ class Manifest:
             m = replace(m, bytes_on_disk=payload_bytes + len(pack_manifest(m)))
         return m
 
+
+
+
+def _tile_rows(tiles: Sequence[TileEntry]) -> dict[str, np.ndarray]:
+    """The per-tile arrays of TileArrays but `parent` and `children`, over these tiles."""
+    n = len(tiles)
+    band_bytes = np.zeros((n, MAX_SH_DEGREE), np.int64)
+    base_bytes = np.zeros(n, np.int64)
+    gpu_bytes = np.zeros(n, np.int64)
+    for i, t in enumerate(tiles):
+        for name in t.groups:
+            gpu, size = entry_fields(t.groups, name, ("gpu_bytes", "bytes"))
+            gpu_bytes[i] += gpu
+            band = band_of(name)
+            if band:
+                band_bytes[i, band - 1] = size
+            else:
+                base_bytes[i] = size
+    return dict(
+        ids=np.array([t.id for t in tiles], np.int64),
+        level=np.array([t.level for t in tiles], np.int64),
+        splats=np.array([t.splats for t in tiles], np.int64),
+        box_min=np.array([t.box.min for t in tiles], np.float64).reshape(n, 3),
+        box_max=np.array([t.box.max for t in tiles], np.float64).reshape(n, 3),
+        sphere_center=np.array([t.sphere_center for t in tiles], np.float64).reshape(n, 3),
+        sphere_radius=np.array([t.sphere_radius for t in tiles], np.float64),
+        geometric_error=np.array([t.geometric_error for t in tiles], np.float64),
+        base_bytes=base_bytes, band_bytes=band_bytes, gpu_bytes=gpu_bytes)
+
+
+def tile_arrays(tiles: Sequence[TileEntry], idx: Mapping[int, int]) -> TileArrays:
+    """The tree of `tiles` as arrays (idx: tile id -> position in `tiles`)."""
+    parent = np.full(len(tiles), -1, np.int64)
+    children = []
+    for i, t in enumerate(tiles):
+        kids = tuple(idx[c] for c in t.children)
+        children.append(kids)
+        for k in kids:
+            parent[k] = i
+    return TileArrays(parent=parent, children=tuple(children), **_tile_rows(tiles))
+
+
+def grown_arrays(a: TileArrays, tiles: Sequence[TileEntry], idx: Mapping[int, int],
+                 changed: Iterable[int]) -> TileArrays:
+    """`a` (the arrays of tiles[:len(a.ids)]) grown by the tiles after them, the tiles at positions `changed`
+    (held before) with their children now as in `tiles`: the same arrays as tile_arrays(tiles, idx), in time of
+    the new tiles (a paged tree grown by a page, client_gl/stream/pages.py), not of every tile held."""
+    start = len(a.ids)
+    new = tiles[start:]
+    children = list(a.children)
+    for t in new:
+        children.append(tuple(idx[c] for c in t.children))
+    parent = np.concatenate([a.parent, np.full(len(new), -1, np.int64)])
+    for i in [*changed, *range(start, len(tiles))]:
+        kids = tuple(idx[c] for c in tiles[i].children)
+        children[i] = kids
+        parent[list(kids)] = i
+    rows = _tile_rows(new)
+    grown = {name: np.concatenate([getattr(a, name), rows[name]]) for name in rows}
+    return TileArrays(parent=parent, children=tuple(children), **grown)
+
+
+def taken_arrays(a: TileArrays, keep: np.ndarray) -> TileArrays:
+    """`a` over the tiles at positions `keep` (ascending; every kept tile's parent kept, children dropped with
+    their parent): the arrays of the tree left when a paged tree drops pages, renumbered in order."""
+    new_of = np.full(len(a.ids) + 1, -1, np.int64)  # index -1 (the root's parent) reads -1
+    new_of[keep] = np.arange(len(keep))
+    new_l = new_of.tolist()
+    children = tuple(tuple(new_l[c] for c in a.children[i] if new_l[c] >= 0) for i in keep.tolist())
+    names = ("ids", "level", "splats", "box_min", "box_max", "sphere_center", "sphere_radius", "geometric_error",
+             "base_bytes", "band_bytes", "gpu_bytes")
+    return TileArrays(parent=new_of[a.parent[keep]], children=children,
+                      **{name: getattr(a, name)[keep] for name in names})
 
 
 def filter_element(name: str) -> int:
