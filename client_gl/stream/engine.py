@@ -371,44 +371,17 @@ class StreamEngine:
 
     def update(self, cam: Camera) -> FrameUpdate:
         self.frame += 1
-        if self._pages_arrived and any(f.done() for f in self._pages_arrived.values()):
-            self._add_pages()
-        # pages are dropped only where the tree grew or tiles left the pool since the last look (a pass is
-        # O(tiles held))
-        if self.pages is not None and len(self.manifest.tiles) > self.options.max_tree_tiles and \
-                (len(self.manifest.tiles), self.evictions) != self._pages_checked:
-            self._evict_pages()
-            self._pages_checked = (len(self.manifest.tiles), self.evictions)
+        self._tend_pages()
         view, sel, bands, keys, extra = self.wanted(cam)
         state = (self._wanted_serial, self._version)
         if state != self._state_seen:  # the wish list or what we hold changed: tell the fetcher what is missing now
-            self._keys = self._coarse_to_fine(keys, sel) if self.options.fill_levels else keys
-            self._missing = [k for k in self._keys if not self._have(k) and not self._blocked(k)]
-            want = [k for k in self._missing if k not in self._ready and k not in self._decoding]
-            pre = [] if want else [k for k in extra if not self._have(k) and k not in self._ready
-                                   and k not in self._decoding]
-            # pages right after the root's base (the first frame draws the root; a page only lets the cut refine)
-            root_key = (int(self.ids[self.root]), "base")
-            head = want[:1] if want[:1] == [root_key] else []
-            pages = [k for k in self._pages_wanted if k[0] not in self._pages_arrived]  # not those being parsed
-            listed = tuple(head + pages + want[len(head):] + pre)
-            if listed != self._listed:
-                n = len(listed)
-                self.fetcher.want([(float(n - r), k, self.pages.entry(k[0]) if k[1] == PAGE_GROUP else self.entry(k))
-                                   for r, k in enumerate(listed)])
-                self._listed = listed
+            self._tell_fetcher(keys, extra, sel)
             self._state_seen = state
         self._collect()
         keys = self._keys
         uploaded, events = self._upload(self._missing, keys, sel) if self._ready else (0, [])
         if uploaded or events or self._draw_cache is None or self._draw_cache[0] != state:
-            drawn = draw_set(self.arrays, view, sel, self.resident, self.root)
-            # what a frame reports of the draw set and the residency, kept while neither changes (a still, converged
-            # view then costs no numpy work a frame)
-            counts = ([int(self.ids[i]) for i in drawn], int(self.resident.sum()),
-                      int(self.arrays.splats[self.resident].sum()),
-                      int(self.arrays.splats[drawn].sum()) if drawn else 0)
-            self._draw_cache = ((self._wanted_serial, self._version), np.asarray(drawn, np.intp), counts)
+            self._draw_cache = self._draw_counts(view, sel)
         _, drawn, (draw_ids, resident_tiles, resident_splats, drawn_splats) = self._draw_cache
         self.last_drawn[drawn] = self.frame
         stats = self.fetcher.stats()
@@ -420,6 +393,46 @@ class StreamEngine:
             draw=list(draw_ids), converged=converged, uploaded_bytes=uploaded, resident_tiles=resident_tiles,
             resident_splats=resident_splats, drawn_splats=drawn_splats, wanted_tiles=len(sel.cut),
             in_flight=in_flight + len(self._decoding), selection=sel, events=events)
+
+    def _tend_pages(self) -> None:
+        """A frame's start: the pages parsed since the last frame join the tree; pages are dropped beyond the
+        tree's bound."""
+        if self._pages_arrived and any(f.done() for f in self._pages_arrived.values()):
+            self._add_pages()
+        # pages are dropped only where the tree grew or tiles left the pool since the last look (a pass is
+        # O(tiles held))
+        if self.pages is not None and len(self.manifest.tiles) > self.options.max_tree_tiles and \
+                (len(self.manifest.tiles), self.evictions) != self._pages_checked:
+            self._evict_pages()
+            self._pages_checked = (len(self.manifest.tiles), self.evictions)
+
+    def _tell_fetcher(self, keys: list[Key], extra: list[Key], sel: Selection) -> None:
+        """The wish list from this frame's selection, handed to the fetcher when it changed: what is missing, coarse
+        to fine, pages right after the root's base, prefetch only when nothing is missing."""
+        self._keys = self._coarse_to_fine(keys, sel) if self.options.fill_levels else keys
+        self._missing = [k for k in self._keys if not self._have(k) and not self._blocked(k)]
+        want = [k for k in self._missing if k not in self._ready and k not in self._decoding]
+        pre = [] if want else [k for k in extra if not self._have(k) and k not in self._ready
+                               and k not in self._decoding]
+        # pages right after the root's base (the first frame draws the root; a page only lets the cut refine)
+        root_key = (int(self.ids[self.root]), "base")
+        head = want[:1] if want[:1] == [root_key] else []
+        pages = [k for k in self._pages_wanted if k[0] not in self._pages_arrived]  # not those being parsed
+        listed = tuple(head + pages + want[len(head):] + pre)
+        if listed != self._listed:
+            n = len(listed)
+            self.fetcher.want([(float(n - r), k, self.pages.entry(k[0]) if k[1] == PAGE_GROUP else self.entry(k))
+                               for r, k in enumerate(listed)])
+            self._listed = listed
+
+    def _draw_counts(self, view, sel: Selection) -> tuple:
+        """The draw set and what a frame reports of it and of the residency, kept while neither changes (a still,
+        converged view then costs no numpy work a frame)."""
+        drawn = draw_set(self.arrays, view, sel, self.resident, self.root)
+        counts = ([int(self.ids[i]) for i in drawn], int(self.resident.sum()),
+                  int(self.arrays.splats[self.resident].sum()),
+                  int(self.arrays.splats[drawn].sum()) if drawn else 0)
+        return (self._wanted_serial, self._version), np.asarray(drawn, np.intp), counts
 
     def _coarse_to_fine(self, keys: list[Key], sel: Selection) -> list[Key]:
         """The wish list with the ancestors of every cut tile not resident yet, bases ordered by level (then by
