@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 import pytest
-from conftest import REAL, ROOT, run_cli
+from conftest import ROOT, real, run_cli, with_shared
 from PIL import Image
 from test_sog_lod import same_splats
 
@@ -19,7 +19,7 @@ from splatstream.sog_import import encode_streamed_sog, tree_tiles
 from splatstream.store import load_manifest, read_manifest
 
 SOURCE = ROOT / "tests" / "data" / "real" / "fruit_drops_sh3.ply"
-FLOWERS_LOD = REAL / "flowers_lod"
+FLOWERS_CASES = with_shared(["flowers_lod/lod-meta.json"])  # not bundled (22 MB): shared-only cases
 
 
 @pytest.fixture(scope="module")
@@ -57,9 +57,10 @@ def test_view_headless_streams_our_export_coarse_to_fine(exported, tmp_path, gl_
     assert first < drawn[-1] and drawn == sorted(drawn)  # coarse first, then finer, never back
 
 
-@pytest.mark.skipif(not (FLOWERS_LOD / "lod-meta.json").is_file(), reason="../shared/data/real/flowers_lod missing")
-def test_splat_transform_streamed_sog_becomes_our_tree():
+@pytest.mark.parametrize("name", FLOWERS_CASES or ["flowers_lod/lod-meta.json"])
+def test_splat_transform_streamed_sog_becomes_our_tree(name):
     """flowers_lod (written by splat-transform: 4 levels, 16 leaves): our depth d holds their level 3 - d."""
+    FLOWERS_LOD = real(name).parent
     sog = read_streamed_sog(FLOWERS_LOD)
     meta = json.loads((FLOWERS_LOD / "lod-meta.json").read_text())
     tiles = tree_tiles(sog)
@@ -79,8 +80,9 @@ def _leaves(node: dict) -> list[dict]:
     return [node] if "lods" in node else [leaf for c in node.get("children", []) for leaf in _leaves(c)]
 
 
-@pytest.mark.skipif(not (FLOWERS_LOD / "lod-meta.json").is_file(), reason="../shared/data/real/flowers_lod missing")
-def test_view_headless_streams_flowers_lod(tmp_path, gl_context):
+@pytest.mark.parametrize("name", FLOWERS_CASES or ["flowers_lod/lod-meta.json"])
+def test_view_headless_streams_flowers_lod(name, tmp_path, gl_context):
+    FLOWERS_LOD = real(name).parent
     r = run_cli("view", FLOWERS_LOD, "--headless", "--size", "96x64", "--screenshot", tmp_path / "v.png",
                 "--record", tmp_path / "m.json", "--no-cache", "-q")
     assert r.returncode == 0, r.stderr
@@ -90,3 +92,7 @@ def test_view_headless_streams_flowers_lod(tmp_path, gl_context):
     assert report["converged_s"] is not None
     assert first < drawn[-1] and drawn == sorted(drawn)
     assert np.asarray(Image.open(tmp_path / "v.png")).std() > 1  # the scene is in the picture
+
+
+if not FLOWERS_CASES:  # without the shared data these cases are not collected (conftest.NOT_BUNDLED), not skipped
+    del test_splat_transform_streamed_sog_becomes_our_tree, test_view_headless_streams_flowers_lod
