@@ -12,10 +12,9 @@ from dataclasses import dataclass
 
 from .atomic import atomic_file, check_output
 from .errors import UsageError
-from .format.decode import decode_planes
-from .scene_decode import decode_tile, read_codebook
+from .scene_decode import decode_tree_tiles
 from .store import SceneStore, open_store, read_manifest
-from .writers.rad import CHUNK_SPLATS, ENCODINGS, TreeTile, rad_bytes, rad_tree
+from .writers.rad import CHUNK_SPLATS, ENCODINGS, rad_bytes, rad_tree
 
 
 @dataclass(frozen=True)
@@ -38,15 +37,8 @@ def export_rad(scene: str | os.PathLike | SceneStore, out: str | os.PathLike, sh
     manifest = read_manifest(store)
     out = os.fspath(out)
     check_output(out)
-    degree = manifest.sh_degree if sh_degree is None else max(0, min(sh_degree, manifest.sh_degree))
-    planes = read_codebook(store, manifest, degree) if degree >= 1 else None
-    codebook = decode_planes(planes, manifest.sh_codebook.entries) if planes is not None else None
     report = progress or (lambda stage, fraction: None)
-    tiles: dict[int, TreeTile] = {}
-    for done, tile in enumerate(manifest.tiles):
-        tiles[tile.id] = TreeTile(tile.id, tile.level, tuple(tile.children),
-                                  decode_tile(store, manifest, tile, degree, codebook))
-        report("decode", (done + 1) / len(manifest.tiles))
+    degree, tiles = decode_tree_tiles(store, manifest, sh_degree, report)
     report("encode", 0.0)
     try:
         tree = rad_tree(tiles, manifest.root)

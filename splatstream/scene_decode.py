@@ -7,6 +7,7 @@ splatstream.format.decode's job (the one place every reader goes through), not t
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 
 import numpy as np
 
@@ -16,6 +17,7 @@ from .format.decode import decode_payload, decode_planes, decode_tile_bytes, til
 from .format.manifest import Manifest, TileEntry
 from .gaussians import Gaussians
 from .store import SceneStore, open_store, read_manifest
+from .writers.sog_lod import TreeTile
 
 
 def read_codebook(store: SceneStore, manifest: Manifest, sh_degree: int) -> dict[str, EncodedPlane] | None:
@@ -55,3 +57,19 @@ def decode_scene(scene: str | os.PathLike | SceneStore, sh_degree: int | None = 
     codebook = decode_planes(planes, manifest.sh_codebook.entries) if planes is not None else None
     parts = [decode_tile(store, manifest, t, degree, codebook) for t in chosen]
     return Gaussians.concatenate(parts) if parts else Gaussians.empty(degree)
+
+
+def decode_tree_tiles(store: SceneStore, manifest: Manifest, sh_degree: int | None,
+                      progress: Callable[[str, float], None]) -> tuple[int, dict[int, TreeTile]]:
+    """Every tile of a scene decoded whole, with its depth and children, for the exports of our tree into foreign
+    LOD formats (sog_export, rad_export): the SH degree kept (at most the scene's; None: the scene's) and the tiles
+    by id. Reports ("decode", fraction done)."""
+    degree = manifest.sh_degree if sh_degree is None else max(0, min(sh_degree, manifest.sh_degree))
+    planes = read_codebook(store, manifest, degree) if degree >= 1 else None
+    codebook = decode_planes(planes, manifest.sh_codebook.entries) if planes is not None else None
+    tiles: dict[int, TreeTile] = {}
+    for done, tile in enumerate(manifest.tiles):
+        tiles[tile.id] = TreeTile(tile.id, tile.level, tuple(tile.children),
+                                  decode_tile(store, manifest, tile, degree, codebook))
+        progress("decode", (done + 1) / len(manifest.tiles))
+    return degree, tiles

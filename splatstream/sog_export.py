@@ -12,10 +12,9 @@ from dataclasses import dataclass
 
 from .atomic import atomic_directory, check_output
 from .errors import UsageError
-from .format.decode import decode_planes
-from .scene_decode import decode_tile, read_codebook
+from .scene_decode import decode_tree_tiles
 from .store import SceneStore, open_store, read_manifest
-from .writers.sog_lod import LOD_META_NAME, UNIT_SPLATS, TreeTile, streamed_sog, write_streamed_sog
+from .writers.sog_lod import LOD_META_NAME, UNIT_SPLATS, streamed_sog, write_streamed_sog
 
 
 @dataclass(frozen=True)
@@ -41,15 +40,8 @@ def export_streamed_sog(scene: str | os.PathLike | SceneStore, out_dir: str | os
     if unit_splats < 1:
         raise UsageError(f"unit size {unit_splats}: expected at least 1 splat")
     check_output(out, directory=True)
-    degree = manifest.sh_degree if sh_degree is None else max(0, min(sh_degree, manifest.sh_degree))
-    planes = read_codebook(store, manifest, degree) if degree >= 1 else None
-    codebook = decode_planes(planes, manifest.sh_codebook.entries) if planes is not None else None
     report = progress or (lambda stage, fraction: None)
-    tiles: dict[int, TreeTile] = {}
-    for done, tile in enumerate(manifest.tiles):
-        tiles[tile.id] = TreeTile(tile.id, tile.level, tuple(tile.children),
-                                  decode_tile(store, manifest, tile, degree, codebook))
-        report("decode", (done + 1) / len(manifest.tiles))
+    degree, tiles = decode_tree_tiles(store, manifest, sh_degree, report)
     report("encode", 0.0)
     sog = streamed_sog(tiles, manifest.root, unit_splats)
     report("encode", 1.0)

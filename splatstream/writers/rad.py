@@ -40,6 +40,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..gaussians import SH_C0, Gaussians, covariances
+from .sog_lod import TreeTile
 
 RAD_MAGIC = 0x30444152  # "RAD0"
 RAD_CHUNK_MAGIC = 0x43444152  # "RADC"
@@ -52,16 +53,6 @@ GENERATOR = "splatstream"
 ENCODINGS = ("exact", "spark")
 LOD_ALPHA_MAX = 2.0  # alpha's r8 range in a LoD tree (lodOpacity), as Spark's writer sets it
 LN_SCALE_ZERO = -30.0  # ln scales at or below this are "flat" (code 0) in ln_0r8, as Spark's writer passes
-
-
-@dataclass(frozen=True)
-class TreeTile:
-    """One tile of our tree as the export needs it: its depth, children and decoded splats."""
-
-    id: int
-    level: int
-    children: tuple[int, ...]
-    splats: Gaussians
 
 
 @dataclass(frozen=True)
