@@ -31,7 +31,15 @@ from splatstream.format.planes import band_of
 
 from ..tiledata import TileData, host_mirror
 from .pages import PAGE_GROUP, PagedTree
-from .selection import Selection, SelectionOptions, TileView, draw_set, prefetch, select, view_numbers, wanted_bands
+from .selection import (
+    PartialView,
+    Selection,
+    SelectionOptions,
+    draw_set,
+    prefetch,
+    select_near,
+    wanted_bands,
+)
 
 Key = tuple[int | None, str]  # (tile id, group) or (None, "sh<b>") for a band of the SH codebook
 _GROUP_BAND = {"base": 0, "sh1": 1, "sh2": 2, "sh3": 3}
@@ -194,7 +202,8 @@ class StreamEngine:
         self._pages_wanted: list[Key] = []
         self._pages_arrived: dict[int, Future] = {}  # tile id -> its page's tiles, being parsed
         self._page_frame: dict[int, int] = {}  # tile id -> the frame its page was added in
-        self._last_cut: set[int] = set()  # the last selection's cut (positions), kept from eviction
+        self._last_cut: set[int] = set()  # the last selection's cut (positions): kept from eviction, and where the
+        # next frame's selection starts looking
         self._pages_checked: tuple[int, int] = (0, 0)  # (tiles held, payload evictions) at the last eviction pass
         self.frame = 0
         self.refined: frozenset[int] = frozenset()
@@ -331,7 +340,7 @@ class StreamEngine:
         return bool(self.resident[i]) and (band == 0 or self.bands[i] >= band)
 
     # --- the frame --------------------------------------------------------------------------------------------
-    def wanted(self, cam: Camera) -> tuple[TileView, Selection, dict[int, int], list[Key], list[Key]]:
+    def wanted(self, cam: Camera) -> tuple[PartialView, Selection, dict[int, int], list[Key], list[Key]]:
         """(view, selection, bands per cut tile, keys wanted now in priority order, prefetch keys).
 
         The same camera and options give the same answer (the selection is idempotent under its own hysteresis),
@@ -341,12 +350,17 @@ class StreamEngine:
         if self._wanted_cache is not None and self._wanted_cache[0] == key:
             return self._wanted_cache[1]
         a, opts = self.arrays, self.options.selection
-        view = view_numbers(a, cam, opts)
+        # The numbers of the tiles the selection reaches only, from the last frame's cut (client.md 1.1): the
+        # children of its cut and refined tiles first, in one batch; the same cut as select over every tile held
+        # (tests/test_stream_selection.py checks it), at a cost that follows the cut, not the tree.
+        view = PartialView(a, cam, opts, self.manifest.lod.reduction)
+        children = a.children
+        near = [k for i in self.refined for k in children[i]] + [k for i in self._last_cut for k in children[i]]
         budget = self.residency.capacity_slots * self.slot_bytes * self.options.target_fraction
         sel_opts = SelectionOptions(**{**opts.__dict__, "budget": min(budget, opts.budget or budget)})
-        sel = select(a, view, self.cost, self.root, sel_opts, self.refined, self.manifest.lod.reduction)
+        sel = select_near(a, view, self.cost, self.root, sel_opts, self.refined, near)
         self.refined = sel.refined
-        self._last_cut = set(sel.cut) if self.pages is not None else set()
+        self._last_cut = set(sel.cut)
         if self.pages is not None:  # pages below cut tiles the view would refine: fetched before their payloads
             self._pages_wanted = [k for k in self.pages.wanted_pages(sel.cut, view.sse, view.visible, opts.max_sse)
                                   if k not in self.failed]

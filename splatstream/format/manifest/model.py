@@ -232,9 +232,14 @@ class TileArrays:
         return self.parent[self.has_parent]
 
     @functools.cached_property
+    def child_count(self) -> np.ndarray:
+        """(T,) int64: children of each tile (in these arrays)."""
+        return np.bincount(self.parent_of_child, minlength=len(self.parent))
+
+    @functools.cached_property
     def has_children(self) -> np.ndarray:
         """(T,) bool."""
-        return np.bincount(self.parent_of_child, minlength=len(self.parent)) > 0
+        return self.child_count > 0
 
     @functools.cached_property
     def splats_list(self) -> list[int]:

@@ -1,0 +1,130 @@
+"""The selection near the cut (select_near over a PartialView, what the engine runs each frame) against the
+whole-tree reference (select over view_numbers): the same cut, refined set, priorities, splats, cost and budget
+flag, the same draw set and prefetch, on many random views, budgets and trees, paged ones with pages arriving and
+being dropped, whatever tiles it is told to look at first."""
+import random
+
+import numpy as np
+import pytest
+from conftest import real
+
+from client_gl.stream.pages import PagedTree
+from client_gl.stream.selection import (
+    PartialView,
+    SelectionOptions,
+    draw_set,
+    prefetch,
+    select,
+    select_near,
+    view_numbers,
+)
+from splatstream.camera import Camera
+from splatstream.encode import EncodeOptions, encode_in_memory
+from splatstream.format.manifest import split_pages
+from splatstream.ply import read_gaussians_ply
+from splatstream.store import read_manifest
+
+
+@pytest.fixture(scope="module")
+def whole():
+    g = read_gaussians_ply(real("fruit_drops_sh3.ply"))
+    m = read_manifest(encode_in_memory(g, EncodeOptions(preset="medium", max_leaf_splats=200)))
+    assert m.levels >= 5
+    return m
+
+
+def random_camera(m, rnd: random.Random) -> Camera:
+    root = m.tiles[m.index_of[m.root]]
+    c, r = np.array(root.sphere_center), root.sphere_radius
+    d = np.array([rnd.gauss(0, 1) for _ in range(3)])
+    eye = c + d / np.linalg.norm(d) * r * rnd.choice([0.05, 0.3, 0.7, 1.0, 1.5, 3.0, 8.0])
+    target = c + np.array([rnd.gauss(0, 0.5 * r) for _ in range(3)])
+    size = rnd.choice([(320, 240), (640, 360), (1920, 1080)])
+    return Camera(tuple(eye), tuple(target), (0.0, 0.0, 1.0), rnd.choice([30.0, 60.0, 90.0]), *size,
+                  near=0.01 * r)
+
+
+def random_options(m, rnd: random.Random, cost) -> SelectionOptions:
+    splats = m.tiles[m.index_of[m.root]].splats
+    return SelectionOptions(max_sse=rnd.choice([0.0, 0.5, 1.5, 4.0, 20.0]),
+                            max_splats=rnd.choice([None, splats, 2 * splats, 5 * splats, 40 * splats]),
+                            budget=rnd.choice([None, float(cost.sum()) * rnd.choice([0.01, 0.1, 0.5])]),
+                            hysteresis=rnd.choice([0.8, 0.5, 1.0]))
+
+
+def check_same(m, cam, opts, previous, near, resident, rnd):
+    """select_near (told to look at `near` first) against select, and draw_set and prefetch with either view."""
+    a = m.arrays
+    root = m.index_of[m.root]
+    cost = np.array([t.chunks for t in m.tiles], np.float64) * 4096.0
+    full = view_numbers(a, cam, opts)
+    want = select(a, full, cost, root, opts, previous, m.lod.reduction)
+    part = PartialView(a, cam, opts, m.lod.reduction)
+    got = select_near(a, part, cost, root, opts, previous, near)
+    assert got.cut == want.cut  # the same tiles in the same order
+    assert got.refined == want.refined and got.priority == want.priority
+    assert (got.splats, got.cost, got.budget_limited) == (want.splats, want.cost, want.budget_limited)
+    known = np.frombuffer(bytes(part.known), np.uint8).astype(bool)
+    for name in ("sse", "visible", "radius_px", "area_px", "distance"):  # the same bits where computed
+        assert np.array_equal(getattr(part, name)[known], getattr(full, name)[known]), name
+    assert draw_set(a, part, got, resident, root) == draw_set(a, full, want, resident, root)
+    assert prefetch(a, part, got, opts, cost) == prefetch(a, full, want, opts, cost)
+    return got, int(known.sum())
+
+
+def test_select_near_is_the_whole_tree_selection(whole):
+    m = whole
+    rnd = random.Random(1)
+    cost = np.array([t.chunks for t in m.tiles], np.float64) * 4096.0
+    n = len(m.tiles)
+    previous, last = frozenset(), ()
+    looked = []
+    for step in range(150):
+        cam, opts = random_camera(m, rnd), random_options(m, rnd, cost)
+        near_kind = step % 3
+        near = ([k for i in set(previous) | set(last) for k in m.arrays.children[i]] if near_kind == 0 else
+                rnd.sample(range(n), rnd.randrange(n)) if near_kind == 1 else [])
+        resident = np.array([rnd.random() < rnd.choice([0.0, 0.3, 0.9]) for _ in range(n)], bool)
+        sel, k = check_same(m, cam, opts, previous if rnd.random() < 0.7 else frozenset(
+            rnd.sample(range(n), rnd.randrange(n // 4))), near, resident, rnd)
+        previous, last = sel.refined, sel.cut
+        looked.append(k)
+    assert min(looked) < n  # some views look at part of the tree only
+
+
+def test_select_near_on_a_paged_tree_with_pages_arriving_and_dropped(whole):
+    paged = split_pages(whole, 2)
+    assert len(paged.pages) >= 5
+    files = {ref.file: raw for ref, raw in paged.pages}
+    rnd = random.Random(7)
+    tree = PagedTree(paged.root)
+    previous: frozenset[int] = frozenset()
+    last: set[int] = set()
+    reads = evictions = 0
+    for _ in range(200):
+        m = tree.manifest
+        cost = np.array([t.chunks for t in m.tiles], np.float64) * 4096.0
+        cam, opts = random_camera(m, rnd), random_options(m, rnd, cost)
+        children = m.arrays.children
+        near = [k for i in previous | last for k in children[i]]
+        resident = np.array([rnd.random() < 0.5 for _ in m.tiles], bool)
+        sel, _ = check_same(m, cam, opts, previous, near, resident, rnd)
+        previous, last = sel.refined, set(sel.cut)
+        # pages arriving: some the cut reaches, some anywhere; some dropped again
+        full = view_numbers(m.arrays, cam, opts)
+        wanted = tree.wanted_pages(sel.cut, full.sse, full.visible, opts.max_sse)
+        pending = list(tree.pending)
+        for tile_id in [k[0] for k in wanted[:3]] + rnd.sample(pending, min(len(pending), rnd.randrange(3))):
+            if tile_id in tree.pending:
+                tree.add_page(tile_id, files[tree.entry(tile_id).file])
+                reads += 1
+        held = tree.held_pages()
+        if held and rnd.random() < 0.3:
+            before = len(tree.manifest.tiles)
+            keep = tree.evict(rnd.sample(held, rnd.randrange(1, min(3, len(held)) + 1)))
+            evictions += 1
+            new_of = np.full(before, -1, np.int64)  # the engine's remapping of its per-tile state
+            new_of[keep] = np.arange(len(keep))
+            previous = frozenset(int(new_of[i]) for i in previous if new_of[i] >= 0)
+            last = {int(new_of[i]) for i in last if new_of[i] >= 0}
+    assert reads > 10 and evictions > 10 and tree.evicted > 0
