@@ -56,6 +56,9 @@ class TileView:
     def ensure(self, idx) -> None:
         """Every tile's numbers are here already (PartialView computes them when asked)."""
 
+    def visible_at(self, i: int) -> bool:
+        return bool(self.visible[i])
+
 
 @dataclass(frozen=True)
 class Selection:
@@ -108,20 +111,25 @@ def boxes_in_frustum(box_min: np.ndarray | None, box_max: np.ndarray | None, pla
                      corners: np.ndarray | None = None) -> np.ndarray:
     """(T,) True where an axis-aligned box is not entirely outside any plane (conservative). `corners`: the boxes
     as (T, 6) [max, min] (TileArrays.box_corners), when the caller has them."""
-    n = planes[:, :3]
     if corners is None:
         corners = np.concatenate([box_max, box_min], axis=1)
     # The box corner farthest along each plane's normal ("positive vertex"), dotted with the normal: the max
     # corner's coordinates where the normal is positive, the min corner's where it is negative. Written out term by
     # term (not einsum or @): each row's result is then the same bits whether every tile is tested or a few
     # (PartialView tests the tiles near the cut only, and its cut must be the whole tree's).
-    split = np.concatenate([np.maximum(n, 0.0), np.minimum(n, 0.0)], axis=1)
+    split = _split(planes)
     terms = corners[:, None, :] * split[None, :, :]  # (T, planes, 6)
     s = planes[None, :, 3] + terms[:, :, 0]
     for k in range(1, 6):
         s = s + terms[:, :, k]
     inside = np.all(s >= 0, axis=1)
     return inside
+
+
+def _split(planes: np.ndarray) -> np.ndarray:
+    """(planes, 6): each plane's normal split for the [max, min] box corners (the positive vertex's weights)."""
+    n = planes[:, :3]
+    return np.concatenate([np.maximum(n, 0.0), np.minimum(n, 0.0)], axis=1)
 
 
 def _dot3(v: np.ndarray, w: np.ndarray) -> np.ndarray:
@@ -192,6 +200,10 @@ class PartialView:
         self.visible, self.area_px = np.zeros(n, bool), np.zeros(n)
         self.known = bytearray(n)
         self.looked_at = 0  # tiles whose numbers were computed
+        # the box test of one tile in Python floats (visible_at): the same operations in the same order as
+        # boxes_in_frustum's, so the same answer
+        self._one = list(zip(self._planes[:, 3].tolist(), _split(self._planes).tolist(), strict=True))
+        self._visible_of: dict[int, bool] = {}
 
     def ensure(self, idx) -> None:
         """Compute the numbers of the tiles at these positions that have none yet (in one batch)."""
@@ -207,6 +219,25 @@ class PartialView:
         for i in missing:
             known[i] = 1
         self.looked_at += len(missing)
+
+    def visible_at(self, i: int) -> bool:
+        """Whether tile i's box intersects the frustum (computed alone when its numbers are not: the draw set walks
+        below cut tiles not resident yet, one tile at a time)."""
+        if self.known[i]:
+            return bool(self.visible[i])
+        v = self._visible_of.get(i)
+        if v is None:
+            c = self.arrays.box_corners[i].tolist()
+            v = True
+            for d, w in self._one:
+                s = d + c[0] * w[0]
+                for k in range(1, 6):
+                    s = s + c[k] * w[k]
+                if not s >= 0:
+                    v = False
+                    break
+            self._visible_of[i] = v
+        return v
 
 
 def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: SelectionOptions,
@@ -433,9 +464,8 @@ def draw_set(a: TileArrays, view: TileView, sel: Selection, resident: np.ndarray
     before the camera moved back), else by an ancestor. Never a tile together with a descendant."""
 
     def shown(i: int) -> list[int]:
-        kids = a.children[i]
-        view.ensure(kids)  # a PartialView computes the numbers of the tiles the walk reaches only
-        return [k for k in kids if view.visible[k]]
+        visible_at = view.visible_at  # a PartialView tests the tiles the walk reaches only
+        return [k for k in a.children[i] if visible_at(k)]
 
     def cover(i: int) -> list[int] | None:
         if i in sel.refined:
