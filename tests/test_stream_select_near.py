@@ -2,7 +2,9 @@
 whole-tree reference (select over view_numbers): the same cut, refined set, priorities, splats, cost and budget
 flag, the same draw set and prefetch, on many random views, budgets and trees, paged ones with pages arriving and
 being dropped, whatever tiles it is told to look at first."""
+import gc
 import random
+import weakref
 
 import numpy as np
 import pytest
@@ -67,6 +69,9 @@ def check_same(m, cam, opts, previous, near, resident, rnd):
     known = np.frombuffer(bytes(part.known), np.uint8).astype(bool)
     for name in ("sse", "visible", "radius_px", "area_px", "distance"):  # the same bits where computed
         assert np.array_equal(getattr(part, name)[known], getattr(full, name)[known]), name
+    # one tile's box test alone (what the draw set's walk below the cut uses) is the batch's
+    some = rnd.sample(range(len(m.tiles)), min(40, len(m.tiles)))
+    assert all(part.visible_at(i) == bool(full.visible[i]) for i in some)
     assert draw_set(a, part, got, resident, root) == draw_set(a, full, want, resident, root)
     assert prefetch(a, part, got, opts, cost) == prefetch(a, full, want, opts, cost)
     return got, int(known.sum())
@@ -128,3 +133,25 @@ def test_select_near_on_a_paged_tree_with_pages_arriving_and_dropped(whole):
             previous = frozenset(int(new_of[i]) for i in previous if new_of[i] >= 0)
             last = {int(new_of[i]) for i in last if new_of[i] >= 0}
     assert reads > 10 and evictions > 10 and tree.evicted > 0
+
+
+def test_dropped_pages_are_freed_when_the_tree_was_frozen(whole):
+    """The engine freezes the collector's objects after adding pages (StreamOptions.freeze_pages): a dropped
+    page's tiles must still be freed, by reference counting alone (they hold no reference cycles)."""
+    paged = split_pages(whole, 2)
+    files = {ref.file: raw for ref, raw in paged.pages}
+    tree = PagedTree(paged.root)
+    head = next(iter(tree.pending))
+    tree.add_page(head, files[tree.entry(head).file])
+    _ = tree.manifest.arrays
+    below = tree.below(head)
+    assert below
+    refs = [weakref.ref(tree.manifest.tiles[i]) for i in below]
+    refs += [weakref.ref(tree.manifest.tiles[i].groups) for i in below]
+    gc.freeze()
+    try:
+        tree.evict([head])
+        _ = tree.manifest.arrays
+        assert all(r() is None for r in refs)
+    finally:
+        gc.unfreeze()

@@ -12,6 +12,7 @@ drawn tiles nobody wants when slots run out; the root is never evicted), and com
 """
 from __future__ import annotations
 
+import gc
 import queue
 import threading
 import time
@@ -101,6 +102,13 @@ class StreamOptions:
     # resident, nor in the cut, nor being decoded are dropped, least recently drawn first, and read again when a cut
     # reaches them (a ground view of 250M splats holds about 13,000 tiles: BENCHMARKS.md, "Manifest pages").
     max_tree_tiles: int = 65536
+    # After a frame adds pages, move every object that exists then out of the garbage collector's walks
+    # (gc.freeze(), process-wide, as the shells do once a session is open: streaming.freeze_long_lived). A held tree
+    # is tens of thousands of parsed tiles; a full collection walked all of them mid-frame (5 passes of up to 785 ms
+    # on a 250M-splat path: BENCHMARKS.md, "Manifest pages"). Frozen objects are still freed when no longer
+    # referenced (a dropped page's tiles hold no reference cycles); only cyclic garbage existing at that moment is
+    # kept. False: the collector as configured.
+    freeze_pages: bool = True
 
 
 @dataclass
@@ -278,6 +286,8 @@ class StreamEngine:
                 self.errors.append(str(exc))
                 self.failed[(tile_id, PAGE_GROUP)] = str(exc)
         self._adopt(self.pages.manifest)
+        if self.options.freeze_pages:
+            gc.freeze()
         self._wanted_cache = None  # the same camera selects again, over the new tiles
         self._draw_cache = None
         self._version += 1
