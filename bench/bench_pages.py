@@ -313,6 +313,7 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
           f"{max(full_passes, default=0) * 1e3:.1f} ms); tree held {tree_mb:.1f} MB")
     if prof is not None:
         pstats.Stats(prof).sort_stats("tottime").print_stats(30)
+        pstats.Stats(prof).sort_stats("cumulative").print_stats("selection.py|engine.py", 25)
 
 
 def first_frame(scenes: list[str], runs: int, converge: bool = False) -> None:

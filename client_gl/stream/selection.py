@@ -379,6 +379,7 @@ class _NearSet:
         self.splats: list[int] = []
         self.kid_cost, self.kid_splats = np.zeros(0), np.zeros(0)
         self.kids_in, self.kids_all = np.zeros(0, np.int64), np.zeros(0, np.int64)
+        self.orphans: dict[int, int] = {}  # tile -> its parent, not in the set
 
     def add(self, new: list[int]) -> None:
         """Add tiles (not in the set yet): their numbers, then every tile's sums over its visible children."""
@@ -410,14 +411,18 @@ class _NearSet:
         parent = a.parent[at]
         up = np.where(parent >= 0, self.local[parent], -1)
         has_up = up >= 0
+        for j in np.flatnonzero(~has_up & (parent >= 0)).tolist():
+            self.orphans[new[j]] = int(parent[j])  # a tile whose parent is not in the set (yet)
         up = up[has_up]
         np.add.at(self.kid_cost, up, np.where(vis, self.cost_a[at], 0.0)[has_up])
         np.add.at(self.kid_splats, up, np.where(vis, a.splats_f64[at], 0.0)[has_up])
         np.add.at(self.kids_in, up, 1)
-        if start:  # tiles of the set whose parent joins it now (a `near` that is not closed upwards)
-            index, children = self.index, a.children
-            old = [(index[k], j) for j, t in enumerate(new, start) for k in children[t] if index.get(k, start) < start]
+        if self.orphans:  # tiles of the set whose parent joins it now (a `near` that is not closed upwards)
+            index = self.index
+            old = [(index[o], index[p]) for o, p in self.orphans.items() if p in index]
             if old:
+                for o in [o for o, p in self.orphans.items() if p in index]:
+                    del self.orphans[o]
                 kid, up = (np.array(v, np.intp) for v in zip(*old, strict=True))
                 shown = self.view.visible[np.array(self.tiles, np.intp)[kid]]
                 np.add.at(self.kid_cost, up, np.where(shown, np.array(self.cost)[kid], 0.0))
