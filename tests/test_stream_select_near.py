@@ -5,11 +5,15 @@ being dropped, whatever tiles it is told to look at first."""
 import gc
 import random
 import weakref
+from concurrent.futures import Future
+from dataclasses import replace
 
 import numpy as np
 import pytest
 from conftest import real
+from test_stream_engine import CountingPool, PagedFetcher, orbit
 
+from client_gl.stream.engine import StreamEngine, StreamOptions
 from client_gl.stream.pages import PagedTree
 from client_gl.stream.selection import (
     PartialView,
@@ -22,7 +26,7 @@ from client_gl.stream.selection import (
 )
 from splatstream.camera import Camera
 from splatstream.encode import EncodeOptions, encode_in_memory
-from splatstream.format.manifest import split_pages
+from splatstream.format.manifest import parse_manifest, split_pages
 from splatstream.ply import read_gaussians_ply
 from splatstream.store import read_manifest
 
@@ -155,3 +159,57 @@ def test_dropped_pages_are_freed_when_the_tree_was_frozen(whole):
         assert all(r() is None for r in refs)
     finally:
         gc.unfreeze()
+
+
+class Inline:
+    """An executor that runs what it is given at once."""
+
+    def submit(self, fn, *args):
+        future = Future()
+        try:
+            future.set_result(fn(*args))
+        except Exception as exc:  # as an executor hands it over
+            future.set_exception(exc)
+        return future
+
+    def shutdown(self, **_) -> None:
+        return None
+
+
+@pytest.fixture(scope="module")
+def paged_store():
+    g = read_gaussians_ply(real("fruit_drops_sh3.ply"))
+    return encode_in_memory(g, EncodeOptions(preset="medium", max_leaf_splats=300, page_tiles=4, page_levels=2))
+
+
+def test_the_engine_selects_near_the_cut_as_over_every_tile(paged_store):
+    """The engine with the selection near the cut from the first tile (select_near_from 0) and over every tile held
+    (never near): the same selections, draw sets and fetches frame by frame, with pages read and dropped."""
+    whole = read_manifest(paged_store)
+    root_tiles = len(parse_manifest(paged_store.read_manifest(), "root").tiles)
+    opts = StreamOptions(SelectionOptions(max_sse=1.0, band_area_share=(0.95, 0.8, 0.6)),
+                         max_tree_tiles=root_tiles + 4)
+    top = whole.tiles[0]
+    c, r = np.array(top.sphere_center), top.sphere_radius
+
+    def outward(angle):  # from inside the scene, looking out at one side of it (test_stream_engine's views)
+        d = np.array([np.cos(angle), np.sin(angle), 0.0])
+        return Camera(tuple(c + 0.3 * r * d), tuple(c + 2 * r * d), (0, 0, 1), 40.0, 320, 240, near=0.001 * r)
+
+    cams = [orbit(whole, 2.5, 0.3), outward(0.3), outward(0.3 + np.pi), orbit(whole, 0.8, 1.5), outward(0.3),
+            orbit(whole, 0.6, 3.0), outward(2.0), orbit(whole, 3.0, 2.0)]
+    runs = []
+    for near_from in (0, 1 << 30):
+        fetcher = PagedFetcher(paged_store)
+        engine = StreamEngine(fetcher, CountingPool(26), replace(opts, select_near_from=near_from))
+        engine._pool.shutdown()
+        engine._pool = Inline()  # decodes and page parses done when asked for: the frames do not depend on timing
+        frames = []
+        for cam in cams:
+            for _ in range(25):
+                u = engine.update(cam)
+                frames.append((u.draw, u.selection.cut, u.selection.refined, u.converged))
+        runs.append((frames, fetcher.fetched, engine.pages.pages_read, engine.pages.evicted))
+        engine.close()
+    assert runs[0] == runs[1]
+    assert runs[0][2] > 3 and runs[0][3] > 0  # pages read and dropped on the way

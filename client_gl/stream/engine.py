@@ -36,9 +36,12 @@ from .selection import (
     PartialView,
     Selection,
     SelectionOptions,
+    TileView,
     draw_set,
     prefetch,
+    select,
     select_near,
+    view_numbers,
     wanted_bands,
 )
 
@@ -109,6 +112,11 @@ class StreamOptions:
     # referenced (a dropped page's tiles hold no reference cycles); only cyclic garbage existing at that moment is
     # kept. False: the collector as configured.
     freeze_pages: bool = True
+    # From this many tiles held the selection looks near the cut only (selection.select_near); below it, over every
+    # tile (view_numbers and select): the same cut, and numpy over a few thousand tiles costs less than finding the
+    # tiles near the cut (interleaved on the 2-core VM: 1,536 tiles held 1.5 against 2.0 ms, 6,548 5.1 against
+    # 5.1, 20,402 10.6 against 6.6; BENCHMARKS.md, "Manifest pages").
+    select_near_from: int = 4096
 
 
 @dataclass
@@ -350,7 +358,7 @@ class StreamEngine:
         return bool(self.resident[i]) and (band == 0 or self.bands[i] >= band)
 
     # --- the frame --------------------------------------------------------------------------------------------
-    def wanted(self, cam: Camera) -> tuple[PartialView, Selection, dict[int, int], list[Key], list[Key]]:
+    def wanted(self, cam: Camera) -> tuple[PartialView | TileView, Selection, dict[int, int], list[Key], list[Key]]:
         """(view, selection, bands per cut tile, keys wanted now in priority order, prefetch keys).
 
         The same camera and options give the same answer (the selection is idempotent under its own hysteresis),
@@ -360,15 +368,20 @@ class StreamEngine:
         if self._wanted_cache is not None and self._wanted_cache[0] == key:
             return self._wanted_cache[1]
         a, opts = self.arrays, self.options.selection
-        # The numbers of the tiles the selection reaches only, from the last frame's cut (client.md 1.1): the
-        # children of its cut and refined tiles first, in one batch; the same cut as select over every tile held
-        # (tests/test_stream_selection.py checks it), at a cost that follows the cut, not the tree.
-        view = PartialView(a, cam, opts, self.manifest.lod.reduction)
-        children = a.children
-        near = [k for i in self.refined for k in children[i]] + [k for i in self._last_cut for k in children[i]]
+        # A large tree held: the numbers of the tiles the selection reaches only, from the last frame's cut
+        # (client.md 1.2): the children of its cut and refined tiles first, in one batch; the same cut as select
+        # over every tile held (tests/test_stream_select_near.py checks it), at a cost that follows the cut.
         budget = self.residency.capacity_slots * self.slot_bytes * self.options.target_fraction
         sel_opts = SelectionOptions(**{**opts.__dict__, "budget": min(budget, opts.budget or budget)})
-        sel = select_near(a, view, self.cost, self.root, sel_opts, self.refined, near)
+        view: PartialView | TileView
+        if len(self.resident) >= self.options.select_near_from:
+            view = PartialView(a, cam, opts, self.manifest.lod.reduction)
+            children = a.children
+            near = [k for i in self.refined for k in children[i]] + [k for i in self._last_cut for k in children[i]]
+            sel = select_near(a, view, self.cost, self.root, sel_opts, self.refined, near)
+        else:
+            view = view_numbers(a, cam, opts)
+            sel = select(a, view, self.cost, self.root, sel_opts, self.refined, self.manifest.lod.reduction)
         self.refined = sel.refined
         self._last_cut = set(sel.cut)
         if self.pages is not None:  # pages below cut tiles the view would refine: fetched before their payloads
