@@ -103,8 +103,10 @@ class StreamOptions:
     ready_bytes: int = 512 << 20  # decoded payloads waiting for upload (prefetched ones are dropped first)
     # A paged scene's tree held at most this many tiles beyond what the view uses: pages whose tiles are neither
     # resident, nor in the cut, nor being decoded are dropped, least recently drawn first, and read again when a cut
-    # reaches them (a ground view of 250M splats holds about 13,000 tiles: BENCHMARKS.md, "Manifest pages").
-    max_tree_tiles: int = 65536
+    # reaches them. A tile held takes about 2.8 KB (SH0) to 4.0 KB (SH3) with its arrays, so 24,576 tiles are at
+    # most about 100 MB; a street-level path across 250M splats holds 21,138 tiles, 59 MB (BENCHMARKS.md,
+    # "Manifest pages").
+    max_tree_tiles: int = 24576
     # After a frame adds pages, move every object that exists then out of the garbage collector's walks
     # (gc.freeze(), process-wide, as the shells do once a session is open: streaming.freeze_long_lived). A held tree
     # is tens of thousands of parsed tiles; a full collection walked all of them mid-frame (5 passes of up to 785 ms
