@@ -227,8 +227,8 @@ def main() -> None:
             from client_gl.stream.engine import StreamEngine
 
             steps.wrap(StreamEngine, ["wanted", "_collect", "_upload", "_make_room", "_trim_ready", "_coarse_to_fine"])
-            steps.wrap(engine_module, ["view_numbers", "select", "PartialView", "select_near", "wanted_bands", "prefetch",
-                                       "draw_set"])
+            steps.wrap(engine_module, ["view_numbers", "select", "PartialView", "select_near", "wanted_bands",
+                                       "prefetch", "draw_set"])
             steps.wrap(ChunkPool, ["join", "add_band", "leave", "set_codebook_band", "_upload_plane", "_write_records",
                                    "set_draw_set", "bind"])
             steps.wrap(SplatRenderer, ["render"])
