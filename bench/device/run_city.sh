@@ -43,7 +43,7 @@ if [ "$what" = sizes ]; then
     for run in cold warm; do
       python3 bench/bench_first_frame.py --scene $s/scene --json "$d/first_frame_$run.json" 2>&1 | tail -2
     done
-    python3 bench/bench_flythrough.py --scene $s/scene --ply $s/s.ply --max-splats 3000000 \
+    python3 bench/bench_flythrough.py --scene $s/scene --ply $s/s.ply --max-splats 3000000 --breakdown \
       --json "$d/flythrough.json" > $s/fly.log 2>&1 || tail -20 $s/fly.log
     fly_summary "$d/flythrough.json"
     rm -rf "$s"
