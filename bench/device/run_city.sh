@@ -74,7 +74,7 @@ if [ "$what" = stream ]; then
   [ -n "${FLY_ONLY:-}" ] || for run in cold warm; do
     python3 bench/bench_first_frame.py --scene $W/scene --json "$OUT/first_frame_$run.json" 2>&1 | tail -4
   done
-  python3 bench/bench_flythrough.py --scene $W/scene --ply $W/s.ply --max-splats 3000000 \
+  python3 bench/bench_flythrough.py --scene $W/scene --ply $W/s.ply --max-splats 3000000 --breakdown \
     --json "$OUT/flythrough.json" > $W/fly.log 2>&1 || tail -20 $W/fly.log
   fly_summary "$OUT/flythrough.json"
 fi
