@@ -13,6 +13,7 @@ from __future__ import annotations
 import heapq
 import math
 from dataclasses import dataclass, field
+from itertools import chain
 
 import numpy as np
 
@@ -198,7 +199,7 @@ class PartialView:
         n = len(a.parent)
         self.sse, self.radius_px, self.distance = np.empty(n), np.empty(n), np.empty(n)
         self.visible, self.area_px = np.zeros(n, bool), np.zeros(n)
-        self.known = bytearray(n)
+        self.known = np.zeros(n, np.uint8)  # 1: computed
         self.looked_at = 0  # tiles whose numbers were computed
         # the box test of one tile in Python floats (visible_at): the same operations in the same order as
         # boxes_in_frustum's, so the same answer
@@ -206,19 +207,20 @@ class PartialView:
         self._visible_of: dict[int, bool] = {}
 
     def ensure(self, idx) -> None:
-        """Compute the numbers of the tiles at these positions that have none yet (in one batch)."""
-        known = self.known
-        missing = [i for i in idx if not known[i]]
-        if not missing:
+        """Compute the numbers of the tiles at these positions that have none yet (in one batch; in any order: a
+        tile's numbers do not depend on the others')."""
+        at = np.asarray(idx, np.intp)
+        if not at.size:
             return
-        missing = list(dict.fromkeys(missing))
-        at = np.array(missing, np.intp)
+        at = at[self.known[at] == 0]
+        if not at.size:
+            return
+        at = np.unique(at)
         sse, visible, radius_px, area, distance = _numbers(self.arrays, self.cam, self._basis, self._planes, at)
         self.sse[at], self.visible[at], self.radius_px[at], self.area_px[at], self.distance[at] = \
             sse, visible, radius_px, area, distance
-        for i in missing:
-            known[i] = 1
-        self.looked_at += len(missing)
+        self.known[at] = 1
+        self.looked_at += len(at)
 
     def visible_at(self, i: int) -> bool:
         """Whether tile i's box intersects the frustum (computed alone when its numbers are not: the draw set walks
@@ -327,7 +329,7 @@ def select_near(a: TileArrays, view: PartialView, cost: np.ndarray, root: int, o
     was (the tiles joining sort after it, or hang below tiles not refined). The cut and its priorities follow from
     the refined tiles, in numpy. select_near_heap is the same loop as select's (kept as a second reference)."""
     s = _NearSet(a, view, cost, opts, previous_refined)
-    s.add(list(dict.fromkeys([root, *near])))
+    s.add(_first(root, near))
     # the children of the candidates lacking them, before the first scan: the scan would stop at the first it
     # reaches and add them all (a camera moving on refines below the last cut), and go on with a second sort
     s.add_children_of_candidates()
@@ -414,6 +416,12 @@ def select_near(a: TileArrays, view: PartialView, cost: np.ndarray, root: int, o
                      dict(zip(cut_sorted, pri[rank].tolist(), strict=True)), splats, total, limited)
 
 
+def _first(root: int, near) -> np.ndarray:
+    """The root and `near`, each once."""
+    at = np.unique(np.asarray(near, np.intp)) if len(near) else np.zeros(0, np.intp)
+    return np.concatenate([[root], at[at != root]]).astype(np.intp)
+
+
 def _drain(low: list, at: tuple[float, int], lists: tuple, splats: int, total: float, limited: bool,
            opts: SelectionOptions) -> tuple[bool, int, float, bool]:
     """select_near's small heap popped empty, as select pops those tiles before the scan's next one: (stopped at a
@@ -455,7 +463,7 @@ def select_near_heap(a: TileArrays, view: PartialView, cost: np.ndarray, root: i
     again over the set) and the loop goes on: it makes exactly select's moves whatever `near` is, and only the work
     depends on it. The refinement key is the view's (PartialView takes the scene's lod.reduction)."""
     s = _NearSet(a, view, cost, opts, previous_refined)
-    s.add(list(dict.fromkeys([root, *near])))
+    s.add(_first(root, near))
     children, index = a.children, s.index
     refined: set[int] = set()
     cut: set[int] = {root}
@@ -515,15 +523,19 @@ class _NearSet:
         self.kid_cost, self.kid_splats = np.zeros(0), np.zeros(0)
         self.kids_in, self.kids_all = np.zeros(0, np.int64), np.zeros(0, np.int64)
         self.orphans: dict[int, int] = {}  # tile -> its parent, not in the set
+        if previous_refined:
+            self.was_refined = np.zeros(len(a.parent), bool)
+            self.was_refined[np.fromiter(previous_refined, np.intp, len(previous_refined))] = True
         # the same as arrays (select_near's scan sorts and tests them in numpy)
         self.tiles_a, self.prio_a = np.zeros(0, np.intp), np.zeros(0)
         self.cand_a, self.parent_a = np.zeros(0, bool), np.zeros(0, np.intp)
 
-    def add(self, new: list[int]) -> None:
-        """Add tiles (not in the set yet): their numbers, then every tile's sums over its visible children."""
+    def add(self, at: np.ndarray) -> None:
+        """Add tiles (positions, each once, none in the set yet): their numbers, then every tile's sums over its
+        visible children."""
         a, view = self.a, self.view
-        view.ensure(new)
-        at = np.array(new, np.intp)
+        view.ensure(at)
+        new = at.tolist()
         start = len(self.tiles)
         self.local[at] = np.arange(start, start + len(new))
         self.index.update(zip(new, range(start, start + len(new)), strict=True))
@@ -531,7 +543,7 @@ class _NearSet:
         vis, sse = view.visible[at], view.sse[at]
         threshold = np.full(len(new), self.high)
         if self.previous:
-            threshold[[j for j, t in enumerate(new) if t in self.previous]] = self.low
+            threshold[self.was_refined[at]] = self.low
         cand = a.has_children[at] & vis & (sse > threshold)
         self.candidate += cand.tolist()
         with np.errstate(divide="ignore"):
@@ -575,11 +587,11 @@ class _NearSet:
 
     def add_children_of_candidates(self) -> None:
         """Add the children of every candidate whose children are not all in the set (the loop may pop any)."""
-        children, index, tiles = self.a.children, self.index, self.tiles
-        lacking = np.flatnonzero(self.cand_a & (self.kids_in != self.kids_all)).tolist()
+        lacking = self.tiles_a[self.cand_a & (self.kids_in != self.kids_all)].tolist()
         if not lacking:
             return
-        self.add(list(dict.fromkeys(k for t in lacking for k in children[tiles[t]] if k not in index)))
+        kids = np.fromiter(chain.from_iterable(map(self.a.children.__getitem__, lacking)), np.intp)
+        self.add(kids[self.local[kids] < 0])  # each child once: its parent is one tile
 
 
 def wanted_bands(a: TileArrays, view: TileView, tiles: tuple[int, ...] | list[int], opts: SelectionOptions,
