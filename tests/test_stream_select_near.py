@@ -1,5 +1,6 @@
-"""The selection near the cut (select_near over a PartialView, what the engine runs each frame) against the
-whole-tree reference (select over view_numbers): the same cut, refined set, priorities, splats, cost and budget
+"""The selection near the cut (select_near over a PartialView, what the engine runs each frame: the greedy loop as
+one scan in key order) against the whole-tree reference (select over view_numbers) and the heap loop over the same
+tiles (select_near_heap): the same cut, refined set, priorities, splats, cost and budget
 flag, the same draw set and prefetch, on many random views, budgets and trees, paged ones with pages arriving and
 being dropped, whatever tiles it is told to look at first."""
 import gc
@@ -23,6 +24,7 @@ from client_gl.stream.selection import (
     prefetch,
     select,
     select_near,
+    select_near_heap,
     view_numbers,
 )
 from splatstream.camera import Camera
@@ -69,6 +71,8 @@ def check_same(m, cam, opts, previous, near, resident, rnd):
     part = PartialView(a, cam, opts, m.lod.reduction)
     got = select_near(a, part, cost, root, opts, previous, near)
     assert got.cut == want.cut  # the same tiles in the same order
+    # the heap loop over the same set (select_near_heap), the scan's second reference
+    assert select_near_heap(a, PartialView(a, cam, opts, m.lod.reduction), cost, root, opts, previous, near) == got
     assert got.refined == want.refined and got.priority == want.priority
     assert (got.splats, got.cost, got.budget_limited) == (want.splats, want.cost, want.budget_limited)
     known = np.frombuffer(bytes(part.known), np.uint8).astype(bool)

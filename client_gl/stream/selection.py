@@ -3,7 +3,8 @@
 Per frame: `view_numbers` projects every tile (screen-space error, frustum test, projected radius); `select`
 refines the tree from the root, widest on-screen splat spacing first, under a splat and a byte budget, with
 hysteresis. Those two are the reference; the engine runs `select_near` over a `PartialView`: the same cut from the
-numbers of the tiles the refinement reaches only (its cost follows the cut, not the tree held). `wanted_bands`
+numbers of the tiles the refinement reaches only (its cost follows the cut, not the tree held), select's heap loop
+replayed as one scan in key order (`select_near_heap` keeps the heap loop). `wanted_bands`
 gives SH bands to the tiles covering most of the view; `draw_set` turns what is resident into a hole-free REPLACE
 cut (a tile stays drawn until every child in view can replace it); `prefetch` names what the view will probably
 want next. No GL, no network, no clocks: the engine (engine.py) calls these and acts on the answers.
@@ -207,15 +208,13 @@ class PartialView:
         self._visible_of: dict[int, bool] = {}
 
     def ensure(self, idx) -> None:
-        """Compute the numbers of the tiles at these positions that have none yet (in one batch; in any order: a
-        tile's numbers do not depend on the others')."""
+        """Compute the numbers of the tiles at these positions (each named once) that have none yet, in one batch."""
         at = np.asarray(idx, np.intp)
         if not at.size:
             return
-        at = at[self.known[at] == 0]
+        at = at[self.known[at] == 0]  # the callers name each tile once
         if not at.size:
             return
-        at = np.unique(at)
         sse, visible, radius_px, area, distance = _numbers(self.arrays, self.cam, self._basis, self._planes, at)
         self.sse[at], self.visible[at], self.radius_px[at], self.area_px[at], self.distance[at] = \
             sse, visible, radius_px, area, distance
@@ -329,7 +328,7 @@ def select_near(a: TileArrays, view: PartialView, cost: np.ndarray, root: int, o
     was (the tiles joining sort after it, or hang below tiles not refined). The cut and its priorities follow from
     the refined tiles, in numpy. select_near_heap is the same loop as select's (kept as a second reference)."""
     s = _NearSet(a, view, cost, opts, previous_refined)
-    s.add(_first(root, near))
+    s.add(_first(root, near, s.local))
     # the children of the candidates lacking them, before the first scan: the scan would stop at the first it
     # reaches and add them all (a camera moving on refines below the last cut), and go on with a second sort
     s.add_children_of_candidates()
@@ -416,10 +415,14 @@ def select_near(a: TileArrays, view: PartialView, cost: np.ndarray, root: int, o
                      dict(zip(cut_sorted, pri[rank].tolist(), strict=True)), splats, total, limited)
 
 
-def _first(root: int, near) -> np.ndarray:
-    """The root and `near`, each once."""
-    at = np.unique(np.asarray(near, np.intp)) if len(near) else np.zeros(0, np.intp)
-    return np.concatenate([[root], at[at != root]]).astype(np.intp)
+def _first(root: int, near, scratch: np.ndarray) -> np.ndarray:
+    """The root and `near`, each once (`scratch`: a position array of -1, left so)."""
+    at = np.concatenate([[root], np.asarray(near, np.intp)]).astype(np.intp)
+    k = np.arange(len(at))
+    scratch[at] = k
+    at = at[scratch[at] == k]  # the last of each
+    scratch[at] = -1
+    return at
 
 
 def _drain(low: list, at: tuple[float, int], lists: tuple, splats: int, total: float, limited: bool,
@@ -463,7 +466,7 @@ def select_near_heap(a: TileArrays, view: PartialView, cost: np.ndarray, root: i
     again over the set) and the loop goes on: it makes exactly select's moves whatever `near` is, and only the work
     depends on it. The refinement key is the view's (PartialView takes the scene's lod.reduction)."""
     s = _NearSet(a, view, cost, opts, previous_refined)
-    s.add(_first(root, near))
+    s.add(_first(root, near, s.local))
     children, index = a.children, s.index
     refined: set[int] = set()
     cut: set[int] = {root}
