@@ -7,12 +7,14 @@ bench/lod_vs_peers.py) are drawn by the GL renderer from its 4 orbit views at 38
 full-detail render: PSNR of the mean MSE over the views. splat-transform's levels of the same counts (its
 --decimate-adaptive, chained the same way) are read from bench/lod_vs_peers.py's cache, never re-run here.
 
-    python bench/probe_lod_groups.py statue-angel fruit_drops flowers-crop --rule grid --rule cost \
-        --rule cost:relative=0.5,growth=1
+    python bench/probe_lod_groups.py statue-angel donut fruit_drops flowers-crop guitar --rule grid --rule hybrid \
+        --rule cost:proj=1,max_group=4 --rule cost:proj=1,first_cap=2,max_group=4 [--json results.jsonl]
 
 Rules: `grid` (lod._group_starts, the product's Morton grid), `cost[:k=v,...]` (splatstream.lod_groups.group_ids
-with the GroupRule fields given). Scenes: the names of bench/lod_vs_peers.py (its cache must hold full.ply), and
-`fruit_drops`, `flowers-crop` (the splats within the 25 % quantile of the per-axis distance from the median).
+with the GroupRule fields given), `hybrid[:SIZE]` (lod_groups.hybrid_group_ids, its proxy at SIZE px; `hybrid0` is
+the same), `mix:F:RULE` (RULE for levels of at least F, the grid below). Scenes: the names of bench/lod_vs_peers.py
+(its cache must hold full.ply), and `fruit_drops`, `flowers-crop` (the splats within the 25 % quantile of the
+per-axis distance from the median).
 """
 from __future__ import annotations
 
@@ -60,7 +62,8 @@ def group_with(rule: str, g: Gaussians, mass: np.ndarray, target: int) -> tuple[
     if rule == "grid":
         return lod._group_starts(g.positions, target)
     name, _, params = rule.partition(":")
-    if name == "hybrid":  # hybrid[:SIZE]: lod_groups.hybrid_group_ids, the proxy at SIZE px (0: its default)
+    if name in ("hybrid", "hybrid0"):  # hybrid[:SIZE]: lod_groups.hybrid_group_ids, the proxy at SIZE px (0: its
+        # default); hybrid0 is the same (the name of an earlier run's rule)
         with np.errstate(over="ignore"):
             alpha = 1.0 / (1.0 + np.exp(-g.opacity_logits.astype(np.float64)))
         ids, pick = lod_groups.hybrid_group_ids(g.positions, g.log_scales, g.rotations, alpha,

@@ -1,20 +1,26 @@
 """Merge groups chosen by cost (issue 31): which splats of a level become one splat of the next.
 
-The tree's merge (lod.merge_groups: mass weights, moment matching) is kept; this module only chooses the groups.
-`group_ids` takes plain arrays and returns, for every splat, the id of its group (exactly `target` groups).
+The tree's merge (lod.merge_groups: mass weights, moment matching) is kept; this module only chooses the groups,
+as plain functions over numpy arrays that return, for every splat, the id of its group (exactly `target` groups,
+deterministic). The Morton grid the tree uses today (grid_group_starts) lives here too.
 
-Algorithm: rounds of greedy matchings between clusters (at first every splat is a cluster). In each round every
-cluster is a moment-matched Gaussian of its members; the edges to its K nearest clusters (approximate k-NN over
-shifted Morton orders, numpy only) are costed, and pairs are matched cheapest first (every free cluster takes its
-cheapest free neighbour, mutual choices are matched, repeated) up to a share of what is left to remove, so cheap
-regions merge again in the next round while costly splats stay single. A last pass over Morton-adjacent clusters
-finishes the count where no edge is left (coincident or isolated clusters).
+group_ids: rounds of greedy matchings between clusters (at first every splat is a cluster). In each round every
+cluster is the moment-matched Gaussian of its members; the edges of the level's k-NN graph (approximate: the
+nearest among the neighbours in three shifted Morton orders, numpy only) are mapped onto clusters and costed, and
+pairs are matched cheapest first (every free cluster takes its cheapest free neighbour, mutual choices are matched,
+repeated) up to `share` of what is left to remove, so cheap regions merge again in the next round while costly
+splats stay single. Groups are capped per level (`max_group` members; optionally a first stage of pairs only). A
+last pass over Morton-adjacent clusters finishes the count where no edge is left (coincident or isolated
+clusters). Cost of merging a and b into m: the squared L2 norm of a_a c_a G_a + a_b c_b G_b - a_m c_m G_m (the
+colour-premultiplied footprints; opacity of m = mass / area, as merge_groups makes it), in 3D as splat-transform's
+decimator (`proj=0`) or summed over the footprints projected along x, y and z (`proj=1`: a flat or thin splat keeps
+its weight, where in 3D its sqrt(det) makes it free to merge), plus splat-transform's scale-free colour term.
 
-Cost of merging clusters a and b into m (the rules are compared in BENCHMARKS.md, "LOD groups by cost"):
-field-L2 of the colour-premultiplied field (a_a c_a G_a + a_b c_b G_b - a_m c_m G_m, splat-transform's cost)
-plus its scale-free colour term, optionally divided by the pair's own energy to the power `relative` (so faint
-splats are not merged for free wherever they are), plus `growth` times the pair's energy times the merged splat's
-area growth over its members' areas (a cost on halos).
+hybrid_group_ids: no single rule held on every scene (BENCHMARKS.md, "LOD groups by cost": the cap-4 rule keeps
+faint or isolated splats apart and wins on fruit_drops and the statues' finest levels, pairs first win on the donut
+and the statues' coarse levels, the grid on the flowers' finest level). So each level takes the candidate whose
+merged splats, drawn by proxy_views (6 orthographic views, footprints alpha-composited front to back in numpy),
+are closest to the level's own splats drawn the same way.
 """
 from __future__ import annotations
 
@@ -40,8 +46,6 @@ class GroupRule:
     neighbours: int = 8  # K nearest clusters costed per cluster and round
     share: float = 0.5  # each round removes at most this share of what is left to remove
     colour: float = 1.0  # times COLOUR_WEIGHT
-    relative: float = 0.0  # cost / (energy of the pair) ** relative
-    growth: float = 0.0  # + growth * energy * (merged area / members' areas - 1)
     proj: int = 0  # 1: field-L2 of the splats' footprints projected along x, y and z (2D), summed; 0: in 3D
     first_cap: int = 0  # first rounds with groups of at most this many members (0: none; at least n / target)
     first_share: float = 1.0  # share of the level's merges the first stage makes at most
@@ -273,27 +277,7 @@ def edge_costs(mu, cov, alpha, col, w, i, j, rule: GroupRule) -> np.ndarray:
              + 2 * ai * aj * bij * cross(sdi, sdj, ci + cj, d)
              - 2 * ai * am * bim * cross(sdi, sdm, ci + cm, di)
              - 2 * aj * am * bjm * cross(sdj, sdm, cj + cm, dj))
-    cost = np.maximum(e, 0.0) + rule.colour * COLOUR_WEIGHT * np.maximum(bni + bnj - 2 * bij, 0.0)
-    energy = self_i + self_j + 1e-300
-    if rule.growth:
-        members = np.maximum(_area6(ci) + _area6(cj), 1e-300)
-        cost = cost + rule.growth * energy * np.maximum(area_m / members - 1.0, 0.0)
-    if rule.relative:
-        cost = cost / energy ** rule.relative
-    return cost
-
-
-def area_growth(mu, cov, w, i, j) -> np.ndarray:
-    """Area (mean cross-section) of the moment-matched merge of i and j over the sum of theirs: about 1 for
-    overlapping or touching pairs, large for a pair whose merge would cover the empty space between them."""
-    wi, wj = w[i], w[j]
-    pi = wi / (wi + wj)
-    pj = 1 - pi
-    d = mu[i] - mu[j]
-    cm = np.empty((len(i), 6))
-    for k, (a, b) in enumerate(_SYM6):
-        cm[:, k] = pi * cov[i, k] + pj * cov[j, k] + pi * pj * d[:, a] * d[:, b]
-    return _area6(cm) / np.maximum(_area6(cov[i]) + _area6(cov[j]), 1e-300)
+    return np.maximum(e, 0.0) + rule.colour * COLOUR_WEIGHT * np.maximum(bni + bnj - 2 * bij, 0.0)
 
 
 # ---------------------------------------------------------------------------------------------- matching
