@@ -33,7 +33,10 @@ Measured (BENCHMARKS.md, "LOD merges", "Merge domain"): tile borders cost nothin
 the product tree within 0.06 dB but at the donut's coarsest level; `agg-borders5` is within -0.2 to +0.7 dB of
 `agg` with no borders); what the domain changes is how the reduction is allocated across the scene, worth -1.1 to
 +1.4 dB with the grid depending on the scene (the real cut: statue-angel -0.4 to +1.3, st-peter +0.7 to +1.0,
-flowers +0.2 to +1.3, donut -0.7 to +0.3, guitar -0.8 to -0.05). No rule held on every scene; not adopted.
+flowers +0.2 to +1.3, donut -0.7 to +0.3, guitar -0.8 to -0.05). Per level the candidate that renders better
+(`--choose-by-render --grouping 'grid|grid-tiles'`) came closest: on the real cut of all 12 scenes 12 of 48 points
++0.3 to +1.5 dB, median +0.02, three -0.2 to -0.4 dB; fruit_drops' coarse levels -0.8 to -1.2 dB; 16x the build
+time on flowers. No rule held on every scene; not adopted.
 """
 from __future__ import annotations
 
@@ -50,7 +53,7 @@ import numpy as np
 
 from client_gl.offscreen import render_image
 from splatstream import lod
-from splatstream.camera import scene_orbit_views
+from splatstream.camera import DEFAULT_FOV_Y_DEG, fit_distance, orbit_views, robust_bounds, scene_orbit_views
 from splatstream.gaussians import Gaussians
 from splatstream.io import read_gaussians
 from splatstream.metrics import psnr_from_mse
@@ -58,6 +61,8 @@ from splatstream.orientation import detect_up
 
 sys.path.insert(0, str(Path(__file__).parent))
 
+CHOOSE_VIEWS: tuple | None = None  # (cameras, full-detail renders): A|B chooses by PSNR from these views instead
+LEVEL_KD = [0]  # the TreeShape kd depth of the level being merged (`grid-tiles`: as many regions as its tiles)
 CHOICES: list[int] = []  # per level built, finest first: which candidate grouping was taken
 PROXIES: list[tuple] = []  # per level built: (splats, mean e, mass-rms e, mass-rms centre shift, colour mse)
 Grouping = Callable[[Gaussians, np.ndarray, int], tuple[np.ndarray, np.ndarray]]
@@ -150,6 +155,11 @@ def shifted_grid(pad_lo: float, pad_hi: float) -> Grouping:
 GROUPINGS: dict[str, Grouping] = {"grid": grid_groups, "agg": agg_groups,
                                   "grid-shift1": shifted_grid(0.1, 0.0), "grid-shift2": shifted_grid(0.0, 0.1),
                                   "grid-shift3": shifted_grid(0.05, 0.05)}
+def _tile_count_domains(g: Gaussians, mass: np.ndarray, target: int) -> tuple[np.ndarray, np.ndarray]:
+    return in_kd_domains(grid_groups, LEVEL_KD[0])(g, mass, target)
+
+
+GROUPINGS["grid-tiles"] = _tile_count_domains  # the grid in as many kd regions as the level has tiles
 for _k in range(1, 9):
     GROUPINGS[f"grid-kd{_k}"] = in_kd_domains(grid_groups, _k)
     GROUPINGS[f"agg-kd{_k}"] = in_kd_domains(agg_groups, _k)
@@ -166,7 +176,8 @@ class Hierarchy:
     parents: list[np.ndarray | None]
 
 
-def build_hierarchy(g: Gaussians, levels: int, reduction: float, grouping: Grouping | list[Grouping]) -> Hierarchy:
+def build_hierarchy(g: Gaussians, levels: int, reduction: float, grouping: Grouping | list[Grouping],
+                    kd_depths: tuple[int, ...] | None = None) -> Hierarchy:
     """`levels` merges, each over the whole previous level, chained finest to coarsest. With several groupings,
     each level takes the candidate whose mean error over the originals (lod.md 3's e_m of the merged splat each
     original went into) is lowest: a choice made from the splats alone, no renders, no constant."""
@@ -174,7 +185,8 @@ def build_hierarchy(g: Gaussians, levels: int, reduction: float, grouping: Group
     sets, masses, parents = [g], [lod.splat_mass(g)], []
     reach = lod.original_reach(g)
     rep = np.arange(len(g))
-    for _ in range(levels):
+    for step in range(levels):
+        LEVEL_KD[0] = kd_depths[levels - 1 - step] if kd_depths else 0
         cur, m = sets[-1], masses[-1]
         target = max(1, math.ceil(len(cur) / reduction))
         best = None
@@ -185,7 +197,11 @@ def build_hierarchy(g: Gaussians, levels: int, reduction: float, grouping: Group
             if len(candidates) > 1:
                 r = assign[rep]
                 far, near = lod.error_extremes(g.positions, reach, merged.positions, r, len(merged))
-                score = float(np.mean(lod.errors_from_extremes(far, near, merged)[r]))
+                errors = lod.errors_from_extremes(far, near, merged)
+                if CHOOSE_VIEWS:
+                    score = -_psnr(_level_look(g, merged, r, errors), *CHOOSE_VIEWS)
+                else:
+                    score = float(np.mean(errors[r]))
             if best is None or score < best[0]:
                 best = (score, merged, merged_mass, assign, k)
         _, merged, merged_mass, assign, k = best
@@ -195,6 +211,19 @@ def build_hierarchy(g: Gaussians, levels: int, reduction: float, grouping: Group
         masses.append(merged_mass)
         parents.append(assign)
     return Hierarchy(sets[::-1], masses[::-1], [None] + parents[::-1])
+
+
+def _level_look(g: Gaussians, merged: Gaussians, rep: np.ndarray, errors: np.ndarray) -> Gaussians:
+    """A candidate level as it would look: opacity and colour matched at the viewing blur of the whole level's error
+    (the tiles' errors are not known yet)."""
+    counts = np.bincount(rep, minlength=len(merged))
+    blur = lod.viewing_blur(lod.tile_error(errors, counts))
+    look = Gaussians(merged.positions, merged.rotations, merged.log_scales, merged.opacity_logits.copy(),
+                     merged.sh_dc.copy(), merged.sh_rest)
+    terms = lod.appearance_terms(g.opacity_logits, g.log_scales, g.sh_dc, blur)
+    sums = np.stack([np.bincount(rep, weights=t, minlength=len(merged)) for t in terms])
+    lod.finish_appearance(look, counts, sums, blur)
+    return look
 
 
 def _runs(labels: np.ndarray, count: int) -> list[np.ndarray]:
@@ -246,7 +275,7 @@ def build_tree(g: Gaussians, max_leaf_splats: int = 16384, reduction: float = 2.
     shape = lod.TreeShape.of(len(g), max_leaf_splats, reduction)
     if shape.leaf_level == 0:
         return lod.build_tiles(g, max_leaf_splats, reduction)
-    h = build_hierarchy(g, shape.leaf_level, reduction, grouping)
+    h = build_hierarchy(g, shape.leaf_level, reduction, grouping, shape.kd_depths)
     sets = cut_tiles(h, shape)
     leaf = shape.leaf_level
     orig = h.levels[leaf]
@@ -342,6 +371,9 @@ def main() -> None:
     ap.add_argument("--size", type=int, default=384)
     ap.add_argument("--blur-scale", type=float, default=1.0, help="the viewing blur of the opacity and colour step "
                     "times this (0: none), for every tree built")
+    ap.add_argument("--choose-by-render", action="store_true", help="A|B: per level the candidate rendering closer "
+                    "to full detail from 4 other views (elevation 50 degrees, azimuths between the measured ones, "
+                    "128 px) instead of the lower mean error")
     ap.add_argument("--no-render", action="store_true", help="build and check only (time, memory)")
     ap.add_argument("--encode-dir", help="encode the scene with the last grouping's tree into this directory")
     args = ap.parse_args()
@@ -357,6 +389,13 @@ def main() -> None:
     if not args.no_render:
         cams = scene_orbit_views(g.positions, args.views, args.size, args.size, up=detect_up(g).up)
         refs = [render_image(g, c) for c in cams]
+    if args.choose_by_render:
+        global CHOOSE_VIEWS
+        med, lo, hi = robust_bounds(g.positions, 95.0)
+        radius = float(np.linalg.norm(np.maximum(hi - med, med - lo))) or 1.0
+        sel = orbit_views(med, fit_distance(radius, DEFAULT_FOV_Y_DEG, 1.0), 4, detect_up(g).up, 50.0,
+                          width=128, height=128, start_deg=270.0)
+        CHOOSE_VIEWS = (sel, [render_image(g, c) for c in sel])
     tiles = None
     for name in args.grouping or ["tree", "grid"]:
         PROXIES.clear()
