@@ -23,9 +23,11 @@ reversed, and the format stays as it is (REPLACE, leaves an exact partition of t
 
 Groupings: `tree` (the product's lod.build_tiles, for comparison), `grid`, `agg`, `grid-kdK` / `agg-kdK` (held
 inside the 2**K kd regions of each level, every region reduced alike), `agg-bordersK` (the regions' borders
-without that allocation), `grid-shift1..3` (the grid's walls moved), `A|B` (per level the candidate of lower mean
-error over the originals). Prints the PSNR of every whole level (4 orbit views at 384 px, GL renderer, against
-the full-detail render) and per level the error proxies; with --encode-dir writes the scene encoded with the last
+without that allocation), `grid-shift1..3` (the grid's walls moved), `grid-tiles` (the grid in as many kd regions
+as the level has tiles), `A|B` (per level the candidate of lower mean error over the originals, or with
+--choose-by-render the one rendering closer to full detail), and with --fixed-tiles `grid-fixed`, `agg-fixed`,
+`agg-fixed-free`. Prints the PSNR of every whole level (4 orbit views at 384 px, GL renderer, against the
+full-detail render) and per level the error proxies; with --encode-dir writes the scene encoded with the last
 grouping's tree into DIR (default preset), for bench/lod_vs_peers.py --skip-peers --our-scene-dir. Needs scipy
 for `agg`.
 
@@ -36,7 +38,10 @@ the product tree within 0.06 dB but at the donut's coarsest level; `agg-borders5
 flowers +0.2 to +1.3, donut -0.7 to +0.3, guitar -0.8 to -0.05). Per level the candidate that renders better
 (`--choose-by-render --grouping 'grid|grid-tiles'`) came closest: on the real cut of all 12 scenes 12 of 48 points
 +0.3 to +1.5 dB, median +0.02, three -0.2 to -0.4 dB; fruit_drops' coarse levels -0.8 to -1.2 dB; 16x the build
-time on flowers. No rule held on every scene; not adopted.
+time on flowers. No rule held on every scene; not adopted. Inside the product's own tiles (`--fixed-tiles`;
+`grid-fixed` is the product tree to the last digit), `agg` with a scene-wide allocation (`agg-fixed-free`) gains
+what the whole-scene domain gave it (+0.1 to +2.4 dB against `agg-fixed`, guitar -0.04 to -0.5): the next step is
+that allocation with a cost that holds on every scene, not a new domain.
 """
 from __future__ import annotations
 
@@ -62,6 +67,9 @@ from splatstream.orientation import detect_up
 sys.path.insert(0, str(Path(__file__).parent))
 
 CHOOSE_VIEWS: tuple | None = None  # (cameras, full-detail renders): A|B chooses by PSNR from these views instead
+# `--fixed-tiles`: merges held inside the product's tiles (kd regions of the ORIGINALS at each level's TreeShape
+# depth, fixed from level to level), and the tree cut along them, so tiles, leaves and ids are the product's.
+FIXED: dict = {"on": False, "leaf_of": None, "region": None, "leaves": None, "depth": 0}
 LEVEL_KD = [0]  # the TreeShape kd depth of the level being merged (`grid-tiles`: as many regions as its tiles)
 CHOICES: list[int] = []  # per level built, finest first: which candidate grouping was taken
 PROXIES: list[tuple] = []  # per level built: (splats, mean e, mass-rms e, mass-rms centre shift, colour mse)
@@ -78,14 +86,34 @@ def agg_groups(g: Gaussians, mass: np.ndarray, target: int) -> tuple[np.ndarray,
     return agglomerate_group_starts(g, mass, target)
 
 
+def _agg_bordered(g: Gaussians, mass: np.ndarray, target: int, region: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """`agg` over the whole set with its nearest-neighbour candidates in another region dropped (not replaced)."""
+    import scipy.spatial
+
+    tree_class = scipy.spatial.cKDTree
+
+    class Bordered:  # nearest neighbours inside the splat's own region only (others reported missing: n)
+        def __init__(self, data):
+            self.tree = tree_class(data)
+
+        def query(self, x, k):
+            d, nb = self.tree.query(x, k=k)
+            n = len(region)
+            cross = region[np.minimum(nb, n - 1)] != region[:, None]
+            return d, np.where(cross, n, nb)
+
+    scipy.spatial.cKDTree = Bordered
+    try:
+        return agg_groups(g, mass, target)
+    finally:
+        scipy.spatial.cKDTree = tree_class
+
+
 def agg_with_borders(depth: int) -> Grouping:
     """`agg` over the whole level with its candidate pairs across the borders of the level's 2**depth kd regions
     dropped: the borders of in_kd_domains(agg_groups, depth) without its allocation (each region reduced alike);
-    the cheapest-first walk still spends the reduction where it is cheapest over the whole scene. (Candidates are
-    each splat's 16 nearest; those in another region are dropped, not replaced.)"""
+    the cheapest-first walk still spends the reduction where it is cheapest over the whole scene."""
     def groups(g: Gaussians, mass: np.ndarray, target: int) -> tuple[np.ndarray, np.ndarray]:
-        import scipy.spatial
-
         index = np.arange(len(g))
         regions = [index]
         for _ in range(depth):
@@ -94,23 +122,7 @@ def agg_with_borders(depth: int) -> Grouping:
         region = np.empty(len(g), np.int64)
         for k, rows in enumerate(regions):
             region[rows] = k
-        tree_class = scipy.spatial.cKDTree
-
-        class Bordered:  # nearest neighbours inside the splat's own region only (others reported missing: n)
-            def __init__(self, data):
-                self.tree = tree_class(data)
-
-            def query(self, x, k):
-                d, nb = self.tree.query(x, k=k)
-                n = len(region)
-                cross = region[np.minimum(nb, n - 1)] != region[:, None]
-                return d, np.where(cross, n, nb)
-
-        scipy.spatial.cKDTree = Bordered
-        try:
-            return agg_groups(g, mass, target)
-        finally:
-            scipy.spatial.cKDTree = tree_class
+        return _agg_bordered(g, mass, target, region)
     return groups
 
 
@@ -159,6 +171,29 @@ def _tile_count_domains(g: Gaussians, mass: np.ndarray, target: int) -> tuple[np
     return in_kd_domains(grid_groups, LEVEL_KD[0])(g, mass, target)
 
 
+def _fixed_domains(grouping: Grouping, allocate: bool) -> Grouping:
+    """`grouping` inside the fixed regions (FIXED): `allocate` False: each region reduced alike (the product);
+    True: the nearest-neighbour candidates of `agg` cut at the regions' borders, the reduction spent over the
+    whole scene (a scene-wide allocation inside the product's tiles)."""
+    def groups(g: Gaussians, mass: np.ndarray, target: int) -> tuple[np.ndarray, np.ndarray]:
+        region = FIXED["region"]
+        if allocate:
+            return _agg_bordered(g, mass, target, region)
+        labels = np.unique(region)
+        regions = [np.flatnonzero(region == r) for r in labels]
+        orders, starts, at = [], [], 0
+        for rows in regions:
+            o, st = grouping(g.subset(rows), mass[rows], max(1, math.ceil(len(rows) / 2.0)))
+            orders.append(rows[o])
+            starts.append(st + at)
+            at += len(rows)
+        return np.concatenate(orders), np.concatenate(starts)
+    return groups
+
+
+GROUPINGS["grid-fixed"] = _fixed_domains(grid_groups, False)
+GROUPINGS["agg-fixed"] = _fixed_domains(agg_groups, False)
+GROUPINGS["agg-fixed-free"] = _fixed_domains(agg_groups, True)
 GROUPINGS["grid-tiles"] = _tile_count_domains  # the grid in as many kd regions as the level has tiles
 for _k in range(1, 9):
     GROUPINGS[f"grid-kd{_k}"] = in_kd_domains(grid_groups, _k)
@@ -185,8 +220,12 @@ def build_hierarchy(g: Gaussians, levels: int, reduction: float, grouping: Group
     sets, masses, parents = [g], [lod.splat_mass(g)], []
     reach = lod.original_reach(g)
     rep = np.arange(len(g))
+    leaf = FIXED["leaf_of"]
+    leaves = [leaf] if leaf is not None else []
     for step in range(levels):
         LEVEL_KD[0] = kd_depths[levels - 1 - step] if kd_depths else 0
+        if leaf is not None:  # the fixed region (tile of the level being made) of every splat merged now
+            FIXED["region"] = leaf >> (FIXED["depth"] - LEVEL_KD[0])
         cur, m = sets[-1], masses[-1]
         target = max(1, math.ceil(len(cur) / reduction))
         best = None
@@ -206,10 +245,16 @@ def build_hierarchy(g: Gaussians, levels: int, reduction: float, grouping: Group
                 best = (score, merged, merged_mass, assign, k)
         _, merged, merged_mass, assign, k = best
         CHOICES.append(k)
+        if leaf is not None:
+            up = np.full(len(merged), np.iinfo(np.int64).max)
+            np.minimum.at(up, assign, leaf)
+            leaf = up
+            leaves.append(leaf)
         rep = assign[rep]
         sets.append(merged)
         masses.append(merged_mass)
         parents.append(assign)
+    FIXED["leaves"] = leaves[::-1]
     return Hierarchy(sets[::-1], masses[::-1], [None] + parents[::-1])
 
 
@@ -275,8 +320,19 @@ def build_tree(g: Gaussians, max_leaf_splats: int = 16384, reduction: float = 2.
     shape = lod.TreeShape.of(len(g), max_leaf_splats, reduction)
     if shape.leaf_level == 0:
         return lod.build_tiles(g, max_leaf_splats, reduction)
+    if FIXED["on"]:
+        rows = lod._kd_leaves(g.positions, np.arange(len(g)), shape.depth, lambda *a: None)
+        FIXED["leaf_of"] = np.empty(len(g), np.int64)
+        for k, r in enumerate(rows):
+            FIXED["leaf_of"][r] = k
+        FIXED["depth"] = shape.depth
     h = build_hierarchy(g, shape.leaf_level, reduction, grouping, shape.kd_depths)
-    sets = cut_tiles(h, shape)
+    if FIXED["on"]:  # the product's tiles: tile j of level L = the splats in the kd region j at depth d_L
+        sets = [_runs(FIXED["leaves"][lvl] >> (shape.depth - shape.kd_depths[lvl]), 2 ** shape.kd_depths[lvl])
+                for lvl in range(shape.leaf_level + 1)]
+        FIXED.update(leaf_of=None, region=None, leaves=None)
+    else:
+        sets = cut_tiles(h, shape)
     leaf = shape.leaf_level
     orig = h.levels[leaf]
     reach = lod.original_reach(orig)
@@ -374,6 +430,8 @@ def main() -> None:
     ap.add_argument("--choose-by-render", action="store_true", help="A|B: per level the candidate rendering closer "
                     "to full detail from 4 other views (elevation 50 degrees, azimuths between the measured ones, "
                     "128 px) instead of the lower mean error")
+    ap.add_argument("--fixed-tiles", action="store_true", help="grid-fixed | agg-fixed | agg-fixed-free: merges "
+                    "and tiles held in the product's kd tiles (fixed regions of the originals)")
     ap.add_argument("--no-render", action="store_true", help="build and check only (time, memory)")
     ap.add_argument("--encode-dir", help="encode the scene with the last grouping's tree into this directory")
     args = ap.parse_args()
@@ -396,6 +454,7 @@ def main() -> None:
         sel = orbit_views(med, fit_distance(radius, DEFAULT_FOV_Y_DEG, 1.0), 4, detect_up(g).up, 50.0,
                           width=128, height=128, start_deg=270.0)
         CHOOSE_VIEWS = (sel, [render_image(g, c) for c in sel])
+    FIXED["on"] = args.fixed_tiles
     tiles = None
     for name in args.grouping or ["tree", "grid"]:
         PROXIES.clear()
