@@ -189,8 +189,8 @@ def run(args: argparse.Namespace) -> int:
 
 def _foreign_tree(args: argparse.Namespace) -> str | None:
     """"lod_sog" or "rad" where the one input is an LOD tree of a peer's that `encode` keeps, else None."""
-    if len(args.input) != 1 or args.no_lod or args.rebuild_lod:
-        return None
+    if len(args.input) != 1 or args.no_lod or args.rebuild_lod or not os.path.exists(args.input[0]):
+        return None  # (a missing input fails in encode_file, with its usual message)
     kind = open_input(args.input[0]).format
     if kind not in ("lod_sog", "rad"):
         return None
