@@ -57,7 +57,9 @@ async function main() {
       // still: it grows as the tiles' splats join the primitive (donut: 713, 2,852, ... 45,624), and under the
       // full suite's load ten ready frames once came at 2,852 (IoU 0.89 against our render).
       const p = tileset.gaussianSplatPrimitive;
-      const ready = Boolean(p && p._snapshot && !p._pendingSnapshot && p._drawCommand);
+      // tilesLoaded too: with external tilesets allTilesLoaded can fire between a tileset JSON's arrival and the
+      // next traversal's requests for the tiles it names (a paged scene once stopped at 1,258 of 4,721 splats).
+      const ready = Boolean(p && p._snapshot && !p._pendingSnapshot && p._drawCommand && tileset.tilesLoaded);
       const count = p ? p._numSplats : -1;
       frames = ready && count === lastCount ? frames + 1 : 0;
       lastCount = count;
