@@ -467,13 +467,15 @@ def tiles_validator() -> list[str]:
     return ["node", tool] if tool.endswith(".js") else [tool]
 
 
-@pytest.mark.parametrize("content", ["spz", "plain"])
-def test_tileset_passes_the_official_3d_tiles_validator(scenes, tmp_path, content):
+@pytest.mark.parametrize("which, content", [("donut", "spz"), ("donut", "plain"), ("paged", "spz")])
+def test_tileset_passes_the_official_3d_tiles_validator(scenes, request, tmp_path, which, content):
     """No issue at all but the embedded glTF validator's reports of KHR_gaussian_splatting attributes (it does not
-    know the extension, as in real_gltf_errors). Checked with 3d-tiles-validator 0.6.1 built from its sources."""
+    know the extension, as in real_gltf_errors). Checked with 3d-tiles-validator 0.6.1 built from its sources (the
+    paged scene's external tilesets, which the validator follows, not yet: it is not installed here)."""
     tool = tiles_validator()
     out = tmp_path / "ts"
-    export_tileset(scenes["donut"], out, ExportOptions(content=content))
+    scene = request.getfixturevalue("paged_scene") if which == "paged" else scenes["donut"]
+    export_tileset(scene, out, ExportOptions(content=content))
     report = tmp_path / "report.json"
     r = subprocess.run([*tool, "--tilesetFile", str(out / "tileset.json"), "--reportFile", str(report)],
                        capture_output=True, text=True, timeout=600, stdin=subprocess.DEVNULL)
