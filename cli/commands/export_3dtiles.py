@@ -19,7 +19,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "default). The scene stands upright (its manifest's up becomes the local up) and is placed on "
                     "the WGS84 globe: at --longitude/--latitude/--height with --heading for a georeferenced "
                     "capture (its origin at that point), else with the bottom centre of its box at longitude 0, "
-                    "latitude 0, height 0. OUT_DIR is replaced atomically. Conventions: format_spec/tiles3d.md.")
+                    "latitude 0, height 0. A paged scene's tree is split as its manifest is: tileset.json holds the "
+                    "root manifest's levels and each manifest page becomes an external tileset "
+                    "(OUT_DIR/tiles/<sha256>.json, see --external-tilesets). OUT_DIR is replaced atomically. "
+                    "Conventions: format_spec/tiles3d.md.")
     p.add_argument("scene", help="scene directory (manifest.msgpack)")
     p.add_argument("output_dir", help="tileset directory to write (replaced atomically if it exists)")
     p.add_argument("--content", choices=("spz", "plain"), default="spz",
