@@ -157,8 +157,8 @@ def held_out_markdown(scenes: dict[str, dict]) -> str:
         there, held, fails = [], [], []
         for name, s in scenes.items():
             r, q = s["presets"].get(preset), s["peers"].get(peer)
-            if r is None or q is None:
-                continue
+            if r is None or q is None or (TUNED.get(preset) == SH_TUNED and not s["input"]["sh_degree"]):
+                continue  # a per-splat SH preset is its base on a scene without SH bands
             ratio = r["disk_bytes_per_splat"] / q["disk_bytes_per_splat"]
             gain = _psnr(r) - _psnr(q)
             ok = ratio <= GOAL and gain >= 0
@@ -223,11 +223,23 @@ def preset_table(scenes: dict[str, dict], columns: int = 0) -> str:
 
 
 def _merged_points(presets: dict[str, dict]) -> list[dict]:
-    """The preset rows by bytes, those with the same bytes and PSNR as one row labelled "a = b"."""
-    groups: dict[tuple, list[dict]] = {}
-    for r in presets.values():
-        groups.setdefault((round(r["disk_bytes_per_splat"], 3), r["psnr_mean"]), []).append(r)
-    rows = [{**g[0], "label": " = ".join(r["label"] for r in g)} for g in groups.values()]
+    """The preset rows by bytes; those at the same PSNR (0.01 dB) within 1 % of each other's bytes (the per-splat
+    SH presets and their bases on a scene without SH bands) as one row, labelled "base = -sh16 = -sh8"."""
+    groups: list[list[dict]] = []
+    for r in sorted(presets.values(), key=lambda r: (len(r["label"]), r["label"])):
+        for g in groups:
+            if g[0]["psnr_mean"] is not None and r["psnr_mean"] is not None \
+                    and abs(g[0]["psnr_mean"] - r["psnr_mean"]) < 0.01 \
+                    and abs(g[0]["disk_bytes_per_splat"] / r["disk_bytes_per_splat"] - 1) < 0.01:
+                g.append(r)
+                break
+        else:
+            groups.append([r])
+    rows = []
+    for g in groups:
+        base = g[0]["label"]
+        rest = ["-" + r["label"][len(base) + 1:] if r["label"].startswith(base + "-") else r["label"] for r in g[1:]]
+        rows.append({**g[0], "label": " = ".join([base, *rest])})
     return sorted(rows, key=lambda r: r["disk_bytes_per_splat"])
 
 
@@ -244,7 +256,7 @@ def plot(scenes: dict[str, dict], out: str) -> None:
         for i, s in enumerate(scenes.values()):
             report = {"input": s["input"], "rows": _merged_points(s["presets"]) + list(s["peers"].values())}
             path = os.path.join(tmp, f"{i}.png")
-            plot_rate_distortion(report, path, size=(720, 480))
+            plot_rate_distortion(report, path)
             with Image.open(path) as im:
                 panels.append(im.convert("RGB"))
     cols = min(3, len(panels))

@@ -68,7 +68,11 @@ def test_summary_and_held_out_table_count_points_per_scene_kind():
 
 
 def test_merged_points_join_identical_presets_and_sort_by_bytes():
-    presets = {r["label"]: r for r in [row("preset", "medium-low", 12.88, 70.7), row("preset", "low", 10.4, 49.5),
-                                       row("preset", "medium-low-sh16", 12.88, 70.7)]}
+    # guitar (SH0): medium-low and its per-splat SH variants differ only in zstd level (12.88 / 12.97 B)
+    presets = {r["label"]: r for r in [row("preset", "medium-low-sh16", 12.97, 70.71),
+                                       row("preset", "low", 10.41, 49.47), row("preset", "medium-low", 12.88, 70.71),
+                                       row("preset", "medium-high", 17.40, 77.27), row("preset", "high", 17.40, 77.27),
+                                       row("preset", "medium", 14.80, 88.26)]}
     merged = D._merged_points(presets)
-    assert [r["label"] for r in merged] == ["low", "medium-low = medium-low-sh16"]
+    assert [r["label"] for r in merged] == ["low", "medium-low = -sh16", "medium", "high = medium-high"]
+    assert [r["disk_bytes_per_splat"] for r in merged] == [10.41, 12.88, 14.80, 17.40]
