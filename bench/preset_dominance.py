@@ -39,6 +39,9 @@ TUNED: dict[str, tuple[str, ...]] = {
     **{p: SH_TUNED for p in ("medium-high", "medium-low-sh16", "medium-low-sh8", "low-plus-9bit-sh6",
                              "low-plus-9bit-sh5")},
 }
+# A per-splat SH preset on a scene without SH bands is its base (not measured again there)
+SH_BASE = {"medium-high": "high", "medium-low-sh16": "medium-low", "medium-low-sh8": "medium-low",
+           "low-plus-9bit-sh6": "low-plus-9bit", "low-plus-9bit-sh5": "low-plus-9bit"}
 # (preset, peer label, scenes the choice was made on, what was chosen there)
 CHOICES: list[tuple[str, str, tuple[str, ...], str]] = [
     ("medium", "st-compressed.ply", ("biker.compressed",), "opacity grid and input chunk order (biker)"),
@@ -206,7 +209,9 @@ def preset_table(scenes: dict[str, dict], columns: int = 0) -> str:
                             for i in range(0, len(names), columns))
     from splatstream.format.presets import PRESETS
 
-    def cell(r: dict | None) -> str:
+    def cell(r: dict | None, preset: str = "", s: dict | None = None) -> str:
+        if r is None and s is not None and not s["input"]["sh_degree"] and preset in SH_BASE:
+            return f"= {SH_BASE[preset]} (no SH bands)"
         if r is None:
             return "not run"
         return f"{r['disk_bytes_per_splat']:.2f} B, " + \
@@ -215,7 +220,7 @@ def preset_table(scenes: dict[str, dict], columns: int = 0) -> str:
     head = [_short(n, s) for n, s in scenes.items()]
     lines = ["| preset | " + " | ".join(head) + " |", "|---|" + "---|" * len(head)]
     for p in PRESETS:
-        lines.append(f"| {p} | " + " | ".join(cell(s["presets"].get(p)) for s in scenes.values()) + " |")
+        lines.append(f"| {p} | " + " | ".join(cell(s["presets"].get(p), p, s) for s in scenes.values()) + " |")
     for peer in sorted({k for s in scenes.values() for k in s["peers"]}):
         lines.append(f"| {peer.replace('st-', 'splat-transform ')} | "
                      + " | ".join(cell(s["peers"].get(peer)) for s in scenes.values()) + " |")
