@@ -150,6 +150,18 @@ def thread_cpu_seconds() -> dict[str, float]:
     return out
 
 
+SELECTION_STEPS = tuple(f"client_gl.stream.engine.{n}"
+                        for n in ("select", "select_near", "view_numbers", "PartialView"))
+
+
+def _selection_ms(splits: list[dict]) -> dict:
+    """Median and p99 of the selection's time a frame (the wrapped steps of --breakdown; nothing without it)."""
+    if not any(splits):
+        return {}
+    sel = np.array([sum(s.get(k, 0.0) for k in SELECTION_STEPS) for s in splits])
+    return {"select_ms_median": float(np.median(sel)), "select_ms_p99": float(np.percentile(sel, 99))}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scene", required=True, help="scene directory (served on loopback here) or URL")
@@ -227,7 +239,8 @@ def main() -> None:
             from client_gl.stream.engine import StreamEngine
 
             steps.wrap(StreamEngine, ["wanted", "_collect", "_upload", "_make_room", "_trim_ready", "_coarse_to_fine"])
-            steps.wrap(engine_module, ["view_numbers", "select", "wanted_bands", "prefetch", "draw_set"])
+            steps.wrap(engine_module, ["view_numbers", "select", "PartialView", "select_near", "wanted_bands",
+                                       "prefetch", "draw_set"])
             steps.wrap(ChunkPool, ["join", "add_band", "leave", "set_codebook_band", "_upload_plane", "_write_records",
                                    "set_draw_set", "bind"])
             steps.wrap(SplatRenderer, ["render"])
@@ -283,6 +296,7 @@ def main() -> None:
             "thread_minor_faults_total": sum(u["minor_faults"] for u in usage),
             "thread_involuntary_switches_total": sum(u["involuntary_switches"] for u in usage),
             "update_ms_median": float(np.median(upd_a)), "update_ms_p99": float(np.percentile(upd_a, 99)),
+            **_selection_ms(splits),
             "slowest": [{"ms": round(float(walls_a[i]), 1), "uploaded_bytes": int(up_a[i]),
                          "update_ms": round(float(upd_a[i]), 2), "steps_ms": splits[i],
                          "thread": usage[i]}

@@ -31,10 +31,10 @@ import random
 import statistics
 import sys
 import time
+import tracemalloc
 from dataclasses import replace
 from types import SimpleNamespace
 
-import msgpack
 import numpy as np
 
 from client_gl.stream.engine import StreamEngine, StreamOptions, _Ready
@@ -206,8 +206,38 @@ class _PathFetcher:
 class _NoDecodeEngine(StreamEngine):
     """The engine with payloads 'decoded' at once into nothing: the bench times the frame loop's bookkeeping."""
 
+    whole: Manifest | None = None  # the synthetic tree its payload entries are read from
+
     def _submit(self, key, entry, data) -> None:
         self._decoded.put((key, _Ready(key, {}, None, int(entry.bytes))))
+
+    def entry(self, key):
+        # The synthetic tiles' payload entries (one real tile's, copied to tiles of other sizes) do not pass the
+        # lazy check of a parsed page (section shapes follow a tile's splats): they are taken from the whole tree.
+        # The pages themselves are parsed for real (PagedTree.read), their entries held unchecked, as a client's.
+        tile_id, group = key
+        if tile_id is None or self.whole is None:
+            return super().entry(key)
+        return self.whole.tile(tile_id).groups[group]
+
+
+def tree_memory_mb(held: PagedTree, paged) -> float:
+    """MB of Python memory (tracemalloc) of a PagedTree holding the same pages as `held`: its tiles, as parsed from
+    the page bytes, and the arrays the selection runs over (what the client keeps for the tree)."""
+    files = {ref.file: raw for ref, raw in paged.pages}
+    heads = held.held_pages()
+    level = {t.id: t.level for t in held.manifest.tiles}
+    gc.collect()
+    tracemalloc.start()
+    t0 = tracemalloc.get_traced_memory()[0]
+    tree = PagedTree(paged.root)
+    for head in sorted(heads, key=lambda h: level[h]):
+        tree.add_page(head, files[tree.entry(head).file])
+    _ = tree.manifest.arrays.box_corners, tree.manifest.arrays.has_children, tree.manifest.arrays.splats_list
+    used = tracemalloc.get_traced_memory()[0] - t0
+    tracemalloc.stop()
+    assert len(tree.manifest.tiles) == len(held.manifest.tiles)
+    return used / 1e6
 
 
 def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame: int, profile: bool) -> None:
@@ -217,31 +247,29 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
     files = {ref.file: raw for ref, raw in paged.pages}
     engine = _NoDecodeEngine(_PathFetcher(paged.root, files, per_frame), _Slots(),
                              StreamOptions(SelectionOptions(max_splats=max_splats), upload_bytes_per_frame=1 << 40))
-    # A page's tiles straight from the whole tree: the synthetic tiles' payload entries (one real tile's, copied)
-    # do not pass the page reader's shape checks, and parsing is on the decode workers anyway, not in update().
-    ref_of = {msgpack.unpackb(raw, strict_map_key=False)["parent"]: ref for ref, raw in paged.pages}
-    by_id = {t.id: t for t in whole.tiles}
-
-    def read(tile_id: int, data) -> list[TileEntry]:
-        head, out, todo = by_id[tile_id], [], list(by_id[tile_id].children)
-        while todo:
-            t = by_id[todo.pop(0)]
-            ref = ref_of.get(t.id)
-            out.append(replace(t, page=ref))
-            if t.level < head.level + k:
-                todo += t.children
-        return out
-    engine.pages.read = read
+    engine.whole = whole
     side = whole.bounds.max[0]
-    prof = cProfile.Profile() if profile else None
-    times = []
+    prof = cProfile.Profile(time.thread_time) if profile else None  # CPU: the VM is shared
+    times, cpu = [], []
     # The bench's whole tree is no client's: out of the collector's passes, whose full passes over it took 120-150 ms
-    # (the spikes of a first version of this bench). The client's own objects are collected as usual, and the full
-    # passes over them are reported.
+    # (the spikes of a first version of this bench). The client's own objects (the root manifest, the pages it
+    # parses: real page bytes through PagedTree.read, as the engine's decode workers parse them) are collected as
+    # usual, and the full passes over them are reported.
     gc.collect()
     gc.freeze()
     started: dict[int, float] = {}
     full_passes: list[float] = []
+    looked: list[int] = []
+    wanted_s: list[float] = []
+    wanted = engine.wanted
+
+    def timed_wanted(cam):
+        t0 = time.thread_time()
+        out = wanted(cam)
+        wanted_s.append(time.thread_time() - t0)
+        looked.append(getattr(out[0], "looked_at", len(engine.manifest.tiles)))
+        return out
+    engine.wanted = timed_wanted
 
     def on_gc(phase: str, info: dict) -> None:
         if info["generation"] == 2:
@@ -261,22 +289,31 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
                 fut.result()
             if prof is not None:
                 prof.enable()
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.thread_time()
             engine.update(cam)
             times.append(time.perf_counter() - t0)
+            cpu.append(time.thread_time() - c0)
             if prof is not None:
                 prof.disable()
     finally:
         gc.callbacks.remove(on_gc)
         gc.unfreeze()
         engine.close()
-    ts = np.array(times) * 1e3
+    ts, cs = np.array(times) * 1e3, np.array(cpu) * 1e3
+    ws = np.array(wanted_s) * 1e3
+    tree_mb = tree_memory_mb(engine.pages, paged)
     print(f"{whole.splats / 1e6:.0f}M engine path ({frames} frames, {per_frame} payloads/pages a frame): update "
-          f"median {np.median(ts):.2f} ms, p99 {np.percentile(ts, 99):.2f} ms, max {ts.max():.1f} ms; tiles held "
+          f"median {np.median(ts):.2f} ms, p99 {np.percentile(ts, 99):.2f} ms, max {ts.max():.1f} ms (its thread's "
+          f"CPU: median {np.median(cs):.2f}, p99 {np.percentile(cs, 99):.2f}, max {cs.max():.1f} ms); selection's CPU "
+          f"(wanted: view numbers, select, bands, keys) median {np.median(ws):.2f} ms, p99 "
+          f"{np.percentile(ws, 99):.2f} ms over {len(ws)} selections; tiles looked at a selection median "
+          f"{int(np.median(looked)) if looked else 0}, max {max(looked, default=0)}; tiles held "
           f"{len(engine.manifest.tiles)}, pages read {engine.pages.pages_read}, evicted {engine.pages.evicted}; "
-          f"{len(full_passes)} full collections, longest {max(full_passes, default=0) * 1e3:.1f} ms")
+          f"{len(full_passes)} full collections ({sum(full_passes) * 1e3:.1f} ms in all, longest "
+          f"{max(full_passes, default=0) * 1e3:.1f} ms); tree held {tree_mb:.1f} MB")
     if prof is not None:
         pstats.Stats(prof).sort_stats("tottime").print_stats(30)
+        pstats.Stats(prof).sort_stats("cumulative").print_stats("selection.py|engine.py", 25)
 
 
 def first_frame(scenes: list[str], runs: int, converge: bool = False) -> None:

@@ -1,5 +1,7 @@
 """A Spark 2 RAD file's LoD tree as a tree of ours (format_spec/foreign_formats.md, "RAD into our tree"), so our
-client streams it coarse to fine (`view`). `convert` reads its finest level (readers/rad.read_rad).
+client streams it coarse to fine (`view`, in memory) and `encode` writes it as a scene with its levels kept
+(sog_import.encode_tree_to; `encode --rebuild-lod` reads its finest level and builds our own tree instead).
+`convert` reads its finest level (readers/rad.read_rad).
 
 The route is sog_import's: RAD's tree of splats is laid out as a streamed SOG in memory (a root over leaves, each
 leaf with one row set per level) and converted and encoded by sog_import, so both foreign trees reach our client
@@ -110,6 +112,13 @@ def encode_rad(path: str | os.PathLike, opts: EncodeOptions | None = None,
                progress: Progress | None = None) -> MemoryStore:
     """Read a .rad whole and encode it in memory with its own LoD tree."""
     progress = progress or no_progress
+    return encode_tree(read_tree(path, progress), os.fspath(path), opts, progress)
+
+
+def read_tree(path: str | os.PathLike, progress: Progress | None = None) -> StreamedSog:
+    """A .rad read whole, its tree laid out as a streamed SOG (rad_as_streamed_sog), every splat screened as any
+    input's are: what sog_import.encode_tree (for `view`) and encode_tree_to (for `encode`) take."""
+    progress = progress or no_progress
     label = os.fspath(path)
     progress("read", 0.0)
     tree = read_rad_tree(path)
@@ -120,4 +129,4 @@ def encode_rad(path: str | os.PathLike, opts: EncodeOptions | None = None,
         for level, g in leaf_splats.items():
             leaf_splats[level] = screen_gaussians(g, label)
     progress("read", 1.0)
-    return encode_tree(sog, label, opts, progress)
+    return sog

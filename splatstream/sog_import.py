@@ -1,6 +1,7 @@
 """A PlayCanvas streamed SOG's whole LOD tree as a tree of ours (format_spec/foreign_formats.md, "Streamed SOG
-into our tree"), so our client streams it coarse to fine (`view`). `encode` of a streamed SOG still reads its finest
-level and builds our own tree (encode_streamed_sog in memory is what `view` uses).
+into our tree"), so our client streams it coarse to fine (`view`: encode_streamed_sog, in memory) and `encode`
+writes it as a scene with their levels kept (encode_tree_to; `encode --rebuild-lod` reads their finest level and
+builds our own tree instead).
 
 The route: convert on the fly into our tile tree and encode that (in memory for `view`), rather than teaching the
 client a second tree format. Our client's selection, residency and hole-free refinement all work on one tree
@@ -23,9 +24,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from .encode.driver import encode_built_tree
 from .encode.local import encode_in_memory
 from .encode.options import EncodeOptions, Progress, no_progress
 from .errors import InputError
+from .format.manifest import Manifest
 from .gaussians import Gaussians
 from .io import screen_gaussians
 from .lod import Tile, extent_bounds, interior_bounds, merge_errors, original_reach, tile_error
@@ -142,6 +145,12 @@ def encode_streamed_sog(path: str | os.PathLike, opts: EncodeOptions | None = No
                         progress: Progress | None = None) -> MemoryStore:
     """Read a streamed SOG whole and encode it in memory with its own LOD tree."""
     progress = progress or no_progress
+    return encode_tree(read_tree(path, progress), os.fspath(path), opts, progress)
+
+
+def read_tree(path: str | os.PathLike, progress: Progress | None = None) -> StreamedSog:
+    """A streamed SOG read whole, every level's splats screened as any input's are."""
+    progress = progress or no_progress
     label = os.fspath(path)
     progress("read", 0.0)
     sog = read_streamed_sog(path)
@@ -154,14 +163,28 @@ def encode_streamed_sog(path: str | os.PathLike, opts: EncodeOptions | None = No
         raise InputError(label, "environment", f"an environment unit ({len(sog.environment)} splats) cannot be "
                          "streamed as a tree; convert the scene to a single file first (convert reads it)")
     progress("read", 1.0)
-    return encode_tree(sog, label, opts, progress)
+    return sog
 
 
 def encode_tree(sog: StreamedSog, label: str, opts: EncodeOptions | None = None,
                 progress: Progress | None = None) -> MemoryStore:
     """Encode a streamed SOG's tree (screened splats) in memory as our tree: what `view` streams (also RAD's,
     laid out as a streamed SOG by rad_import)."""
-    progress = progress or no_progress
+    g, opts, tiles = _tree_input(sog, opts)
+    return encode_in_memory(g, opts, progress or no_progress, name=label, tiles=tiles)
+
+
+def encode_tree_to(sog: StreamedSog, out_dir: str | os.PathLike, label: str, opts: EncodeOptions | None = None,
+                   progress: Progress | None = None) -> Manifest:
+    """Encode a streamed SOG's tree (screened splats) into a scene directory (or fsspec URL) as our tree, their
+    levels kept: what `encode` does with a streamed SOG or a .rad."""
+    g, opts, tiles = _tree_input(sog, opts)
+    return encode_built_tree(g, tiles, out_dir, opts, progress, label)
+
+
+def _tree_input(sog: StreamedSog, opts: EncodeOptions | None) -> tuple[Gaussians, EncodeOptions, list[Tile]]:
+    """The splats (the leaves' together), the options (leaf size and reduction those of their tree) and our tiles
+    of a streamed SOG's tree."""
     tiles = tree_tiles(sog)
     leaves = [t for t in tiles if not t.children]
     g = Gaussians.concatenate([t.gaussians for t in leaves])
@@ -170,5 +193,5 @@ def encode_tree(sog: StreamedSog, label: str, opts: EncodeOptions | None = None,
     reduction = float(np.exp(np.mean(np.log(np.array(per_level[1:], float) / np.array(per_level[:-1], float))))) \
         if levels > 1 else 2.0
     base = opts if opts is not None else EncodeOptions(lod=True)
-    base = replace(base, max_leaf_splats=max(len(t.gaussians) for t in leaves), reduction=reduction)
-    return encode_in_memory(g, base, progress, name=label, tiles=tiles)
+    return g, replace(base, lod=True, max_leaf_splats=max(len(t.gaussians) for t in leaves), reduction=reduction), \
+        tiles

@@ -18,84 +18,40 @@ up turn (before the turn went into the root transform) gave IoU 0.84, PSNR 20.7 
 """
 from __future__ import annotations
 
-import functools
-import http.server
 import json
-import os
 import re
-import shutil
 import signal
 import subprocess
 import sys
-import threading
 import urllib.parse
 from pathlib import Path
 
 import numpy as np
 import pytest
+from browser import NODE_MODULES, compare, coverage, keep, render_ours, requirements, serve, shoot, vector_text
 from conftest import ROOT, real, run_cli
 
 from splatstream.store import load_manifest
 from splatstream.tiles3d import model_to_fixed
 
-NODE_MODULES = ROOT / ".ci" / "node" / "node_modules"
 CESIUM_BUILD = NODE_MODULES / "cesium" / "Build" / "Cesium"
 PAGE_DIR = ROOT / "tests" / "cesium_page"
-CHROMIUM = os.environ.get("CHROMIUM", "/usr/bin/chromium")
 SIZE = (480, 360)
-MASK_LEVEL = 16  # of 255: a drawn pixel
 MIN_IOU = 0.9
 MIN_PSNR_DB = 25.0
-ARTIFACTS = os.environ.get("SPLATSTREAM_TEST_ARTIFACTS")  # keep the screenshots there (README's image)
-
-
-def requirements() -> None:
-    if shutil.which("node") is None:
-        pytest.skip("node not installed")
-    if not (CESIUM_BUILD / "Cesium.js").is_file() or not (NODE_MODULES / "playwright-core").is_dir():
-        pytest.skip("cesium / playwright-core not installed (.ci/run installs them into .ci/node)")
-    if not os.access(CHROMIUM, os.X_OK):
-        pytest.skip(f"{CHROMIUM} not installed (.ci/run: apt-get install chromium)")
-    from client_gl.offscreen import GLUnavailableError, shared_context
-
-    try:
-        shared_context()  # our render needs headless GL (EGL)
-    except GLUnavailableError as exc:
-        pytest.skip(f"no OpenGL context: {exc}")
-
-
-class _PageHandler(http.server.SimpleHTTPRequestHandler):
-    """The page's files, and CesiumJS's built files under /cesium/."""
-
-    extensions_map = {**http.server.SimpleHTTPRequestHandler.extensions_map, ".wasm": "application/wasm",
-                      ".js": "text/javascript", ".json": "application/json"}
-
-    def translate_path(self, path: str) -> str:
-        path = urllib.parse.unquote(urllib.parse.urlsplit(path).path)
-        base, rel = (CESIUM_BUILD, path[len("/cesium/"):]) if path.startswith("/cesium/") else (PAGE_DIR, path)
-        parts = [p for p in rel.split("/") if p not in ("", ".", "..")]
-        return os.path.join(base, *parts)
-
-    def log_message(self, *args) -> None:
-        pass
 
 
 @pytest.fixture(scope="module")
 def page_server():
-    httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(_PageHandler))
-    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
-    thread.start()
-    try:
-        yield f"http://127.0.0.1:{httpd.server_address[1]}"
-    finally:
-        httpd.shutdown()
-        httpd.server_close()
+    """The page's files, and CesiumJS's built files under /cesium/."""
+    with serve(PAGE_DIR, {"/cesium/": CESIUM_BUILD}) as (url, _):
+        yield url
 
 
 @pytest.fixture(scope="module")
 def tiles_root(tmp_path_factory, page_server):
     """Encoded real scenes and their tilesets; `splatstream serve` of the tilesets (CORS for the page)."""
-    requirements()
+    requirements(CESIUM_BUILD / "Cesium.js", what="cesium")
     work = tmp_path_factory.mktemp("cesium")
     scenes = {}
     for name, export_args in (("fruit_drops_sh3.ply", [[], ["--spz-axes", "rub"]]),
@@ -133,10 +89,7 @@ def camera_query(scene: Path, tileset: dict, tileset_url: str) -> tuple[str, lis
     true_up /= np.linalg.norm(true_up)
     m = model_to_fixed(tileset, manifest.up)
     rot = m[:3, :3]
-
-    def text(v) -> str:
-        return ",".join(repr(float(x)) for x in v)
-
+    text = vector_text
     query = urllib.parse.urlencode({
         "tileset": tileset_url, "eye": text(m[:3, :3] @ eye + m[:3, 3]), "dir": text(rot @ forward),
         "up": text(rot @ true_up), "fovy": cam.fov_y, "near": 0.01 * float(np.linalg.norm(target - eye)),
@@ -146,62 +99,34 @@ def camera_query(scene: Path, tileset: dict, tileset_url: str) -> tuple[str, lis
     return query, ours
 
 
-def browser_shot(url: str, out: Path) -> dict:
-    r = subprocess.run(["node", str(PAGE_DIR / "drive.cjs"), url, str(out), f"{SIZE[0]}x{SIZE[1]}", CHROMIUM],
-                       capture_output=True, text=True, timeout=400, stdin=subprocess.DEVNULL,
-                       env={**os.environ, "NODE_PATH": str(NODE_MODULES)})
-    lines = [line for line in r.stdout.splitlines() if line.startswith("{")]
-    assert lines, f"driver said nothing: {r.stdout[-2000:]} {r.stderr[-2000:]}"
-    report = json.loads(lines[-1])
-    assert r.returncode == 0 and report["result"]["status"] == "ok", json.dumps(report)[:4000]
-    return report
-
-
-def compare(ours_png: Path, theirs_png: Path) -> tuple[float, float]:
-    from PIL import Image
-
-    a = np.asarray(Image.open(ours_png).convert("RGB"), np.float64)
-    b = np.asarray(Image.open(theirs_png).convert("RGB"), np.float64)
-    assert a.shape == b.shape
-    ma, mb = a.max(axis=2) > MASK_LEVEL, b.max(axis=2) > MASK_LEVEL
-    iou = float((ma & mb).sum() / max((ma | mb).sum(), 1))
-    mse = float(((a - b) ** 2).mean())
-    return iou, 10 * np.log10(255.0 ** 2 / max(mse, 1e-12))
-
-
-def shoot(tiles_root, page_server, tag: str, tmp_path: Path) -> tuple[float, float, dict, float]:
+def shoot_tileset(tiles_root, page_server, tag: str, tmp_path: Path) -> tuple[float, float, dict, float]:
     work, scenes, tiles_url = tiles_root
     scene = scenes[tag]
     tileset = json.loads((work / "tilesets" / tag / "tileset.json").read_text())
     query, ours = camera_query(scene, tileset, f"{tiles_url}/scenes/{tag}/tileset.json")
     theirs_png, ours_png = tmp_path / f"cesium-{tag}.png", tmp_path / f"ours-{tag}.png"
-    report = browser_shot(f"{page_server}/index.html?{query}", theirs_png)
-    r = run_cli("render", scene, "--out", ours_png, "--size", f"{SIZE[0]}x{SIZE[1]}", "--quiet", *ours)
-    assert r.returncode == 0, r.stderr
-    if ARTIFACTS:
-        os.makedirs(ARTIFACTS, exist_ok=True)
-        for p in (theirs_png, ours_png):
-            shutil.copy(p, os.path.join(ARTIFACTS, p.name))
+    report = shoot(f"{page_server}/index.html?{query}", theirs_png, SIZE, timeout=400)
+    render_ours(scene, ours_png, SIZE, ours)
+    keep(theirs_png, ours_png)
     iou, psnr = compare(ours_png, theirs_png)
-    coverage = float((np.asarray(__import__("PIL.Image").Image.open(ours_png).convert("L")) > MASK_LEVEL).mean())
-    return iou, psnr, report, coverage
+    return iou, psnr, report, coverage(ours_png)
 
 
 @pytest.mark.parametrize("tag", ["fruit_drops_sh3", "donut_sh0_no_normals"])
 def test_cesium_draws_the_splats_where_we_do(tiles_root, page_server, tmp_path, tag):
-    iou, psnr, report, coverage = shoot(tiles_root, page_server, tag, tmp_path)
+    iou, psnr, report, drawn = shoot_tileset(tiles_root, page_server, tag, tmp_path)
     result = report["result"]
     print(f"{tag}: IoU {iou:.3f}, PSNR {psnr:.1f} dB, {result['splats']} splats in {result['selected']} tiles, "
           f"{report['gl']}")
     assert "refused" not in " ".join(report["logs"]), report["logs"]  # nothing asked for the internet
     assert result["loadedTiles"] >= result["selected"] > 0 and result["splats"] > 0
-    assert coverage > 0.05  # the camera sees the scene (our render is not empty)
+    assert drawn > 0.05  # the camera sees the scene (our render is not empty)
     assert iou >= MIN_IOU and psnr >= MIN_PSNR_DB, (iou, psnr)
 
 
 def test_spz_axes_settled_by_cesium(tiles_root, page_server, tmp_path):
     """SPZ content in the axes the extension's text describes ("rub") is drawn turned 180 degrees about the up
     axis by CesiumJS (its loader decodes SPZ without conversion), so our default stores glTF's axes ("luf")."""
-    iou, _, report, _ = shoot(tiles_root, page_server, "fruit_drops_sh3-rub", tmp_path)
+    iou, _, report, _ = shoot_tileset(tiles_root, page_server, "fruit_drops_sh3-rub", tmp_path)
     assert report["result"]["splats"] > 0  # loaded and drawn, only elsewhere
     assert iou < 0.5, iou

@@ -10,8 +10,8 @@ import sys
 
 import numpy as np
 import pytest
+from browser import compare
 from conftest import ROOT, run_cli
-from test_cesium_browser import compare
 from test_sog_lod import _splats, same_splats
 
 from client_gl.stream.sources import StoreSource, open_source

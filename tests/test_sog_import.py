@@ -12,6 +12,7 @@ from PIL import Image
 from test_sog_lod import same_splats
 
 from splatstream.encode import EncodeOptions, encode_file
+from splatstream.gaussians import Gaussians
 from splatstream.readers.sog import read_streamed_sog
 from splatstream.scene_decode import decode_scene
 from splatstream.sog_export import export_streamed_sog
@@ -68,12 +69,22 @@ def test_splat_transform_streamed_sog_becomes_our_tree(name):
     counts = [sum(ref["count"] for leaf in _leaves(meta["tree"]) for k, ref in leaf["lods"].items() if int(k) == lv)
               for lv in range(meta["lodLevels"])]
     assert sog.levels == 4 and per_depth == counts[::-1] and per_depth[-1] == len(sog.level(0))
+    for d in range(sog.levels):  # their splats, level for level (not only as many): the same rows in any order
+        ours = Gaussians.concatenate([t.gaussians for t in tiles if t.level == d])
+        assert np.array_equal(_rows(ours), _rows(sog.level(sog.levels - 1 - d))), d
     assert tiles[0].id == 0 and all(c > t.id for t in tiles for c in t.children)
     for t in tiles:  # bounds hold the splats and the children's bounds
         assert (t.gaussians.positions >= t.box_min - 1e-6).all() and (t.gaussians.positions <= t.box_max + 1e-6).all()
         for c in t.children:
             assert (tiles[c].box_min >= t.box_min - 1e-9).all() and (tiles[c].box_max <= t.box_max + 1e-9).all()
             assert tiles[c].geometric_error <= t.geometric_error
+
+
+def _rows(g: Gaussians) -> np.ndarray:
+    """Every splat's attributes as one row, rows sorted: equal for the same splats in any order."""
+    rows = np.column_stack([g.positions, g.rotations, g.log_scales, g.opacity_logits, g.sh_dc,
+                            g.sh_rest.reshape(len(g), -1)])
+    return rows[np.lexsort(rows.T[::-1])]
 
 
 def _leaves(node: dict) -> list[dict]:
@@ -94,5 +105,51 @@ def test_view_headless_streams_flowers_lod(name, tmp_path, gl_context):
     assert np.asarray(Image.open(tmp_path / "v.png")).std() > 1  # the scene is in the picture
 
 
+def test_encode_keeps_their_tree(exported, tmp_path):
+    """`encode lod-meta.json OUT` writes their tree level for level (what `view` streams, now on disk); with
+    --rebuild-lod, our own tree from their finest level."""
+    ours = load_manifest(exported / "scene")
+    r = run_cli("encode", exported / "sog" / "lod-meta.json", tmp_path / "kept", "--preset", "very-high", "-q")
+    assert r.returncode == 0, r.stderr
+    kept = load_manifest(tmp_path / "kept")
+    depth = max(t.level for t in ours.tiles)
+    assert max(t.level for t in kept.tiles) == depth and kept.splats == ours.splats
+    for d in range(depth + 1):
+        a = decode_scene(exported / "scene", tiles=[t.id for t in ours.tiles if t.level == d])
+        b = decode_scene(tmp_path / "kept", tiles=[t.id for t in kept.tiles if t.level == d])
+        assert same_splats(a, b) < 1e-3, d
+    r = run_cli("encode", exported / "sog", tmp_path / "rebuilt", "--rebuild-lod", "--max-leaf-splats", "4096",
+                "-q")
+    assert r.returncode == 0, r.stderr
+    rebuilt = load_manifest(tmp_path / "rebuilt")
+    assert rebuilt.splats == 4721 and rebuilt.lod.max_leaf_splats == 4096 != kept.lod.max_leaf_splats
+    assert sum(not t.children for t in rebuilt.tiles) < sum(not t.children for t in kept.tiles)
+    r = run_cli("encode", exported / "sog", tmp_path / "x", "--workers", "2", "-q")
+    assert r.returncode == 2 and "--rebuild-lod" in r.stderr and "Traceback" not in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize("name", FLOWERS_CASES or ["flowers_lod/lod-meta.json"])
+def test_encode_keeps_splat_transforms_tree_and_view_streams_it(name, tmp_path, gl_context):
+    """flowers_lod encoded: our depth d on disk holds their level 3 - d, and `view` of the scene directory
+    streams it coarse to fine."""
+    sog = read_streamed_sog(real(name).parent)
+    r = run_cli("encode", real(name), tmp_path / "scene", "-q")
+    assert r.returncode == 0, r.stderr
+    m = load_manifest(tmp_path / "scene")
+    assert max(t.level for t in m.tiles) == sog.levels - 1
+    for d in range(sog.levels):
+        tiles = [t.id for t in m.tiles if t.level == d]
+        assert sum(m.tile(t).splats for t in tiles) == len(sog.level(sog.levels - 1 - d)), d
+    top = decode_scene(tmp_path / "scene", tiles=[m.root])
+    assert same_splats(top, sog.level(sog.levels - 1)) < 0.05  # their coarsest level, at the preset's quantisation
+    r = run_cli("view", tmp_path / "scene", "--headless", "--size", "96x64", "--screenshot", tmp_path / "v.png",
+                "--record", tmp_path / "m.json", "--no-cache", "-q")
+    assert r.returncode == 0, r.stderr
+    drawn = [f["drawn_splats"] for f in json.loads((tmp_path / "m.json").read_text())["frames"]]
+    first = next(d for d in drawn if d > 0)
+    assert first < drawn[-1] and drawn == sorted(drawn)
+
+
 if not FLOWERS_CASES:  # without the shared data these cases are not collected (conftest.NOT_BUNDLED), not skipped
     del test_splat_transform_streamed_sog_becomes_our_tree, test_view_headless_streams_flowers_lod
+    del test_encode_keeps_splat_transforms_tree_and_view_streams_it

@@ -1,6 +1,6 @@
 """Our RAD export (`export-rad`) in Spark 2 (npm `@sparkjsdev/spark` with `three`, .ci/node) in headless Chromium
 (Debian's `chromium`, software WebGL through SwiftShader), driven by playwright-core like the CesiumJS and
-PlayCanvas tests (tests/cesium_page/drive.cjs).
+PlayCanvas tests (what the three share: tests/browser.py).
 
 The page (tests/spark_page/) loads the .rad with Spark's paged loader (`SplatMesh({paged: true})`): the header
 first, then each 64K-splat chunk by an HTTP range request once Spark's LoD traversal needs it; so the server here
@@ -14,86 +14,28 @@ Scene: the bundled donut (samples/donut.ply, so a fresh clone has it), 2,000-spl
 """
 from __future__ import annotations
 
-import functools
-import http.server
 import json
-import os
-import re
-import shutil
-import threading
 import urllib.parse
 from pathlib import Path
 
 import pytest
+from browser import NODE_MODULES, compare, keep, render_ours, requirements, scene_camera, serve, shoot
 from conftest import ROOT, run_cli
-from test_cesium_browser import compare
-from test_playcanvas_browser import ARTIFACTS, MIN_IOU, MIN_PSNR_DB, SCENE, SIZE, camera, shoot
-from test_playcanvas_browser import requirements as playcanvas_requirements
+from test_playcanvas_browser import MIN_IOU, MIN_PSNR_DB, SCENE, SIZE
 
 from splatstream.readers.rad import read_rad_tree
 
-NODE_MODULES = ROOT / ".ci" / "node" / "node_modules"
 SPARK = NODE_MODULES / "@sparkjsdev" / "spark"
 THREE = NODE_MODULES / "three"
 PAGE_DIR = ROOT / "tests" / "spark_page"
 
 
-def requirements() -> None:
-    # The PlayCanvas test's requirements (node, playwright-core, chromium, our GL), plus Spark and three.
-    if not (SPARK / "dist" / "spark.module.js").is_file() or not (THREE / "build" / "three.module.js").is_file():
-        pytest.skip("@sparkjsdev/spark / three not installed (.ci/run installs them into .ci/node)")
-    playcanvas_requirements()
-
-
-class _Handler(http.server.SimpleHTTPRequestHandler):
-    """The page's files, three under /three/, Spark under /spark/, the exported file under /scene/; answers
-    `Range: bytes=A-B` with 206 and those bytes (Spark's paged loader reads the .rad by ranges)."""
-
-    extensions_map = {**http.server.SimpleHTTPRequestHandler.extensions_map, ".mjs": "text/javascript",
-                      ".js": "text/javascript", ".json": "application/json", ".rad": "application/octet-stream"}
-
-    def __init__(self, *args, scene_dir: Path, **kwargs):
-        self.scene_dir = scene_dir
-        super().__init__(*args, **kwargs)
-
-    def translate_path(self, path: str) -> str:
-        path = urllib.parse.unquote(urllib.parse.urlsplit(path).path)
-        base, rel = PAGE_DIR, path
-        for prefix, root in (("/three/", THREE), ("/spark/", SPARK), ("/scene/", self.scene_dir)):
-            if path.startswith(prefix):
-                base, rel = root, path[len(prefix):]
-        parts = [p for p in rel.split("/") if p not in ("", ".", "..")]
-        return os.path.join(base, *parts)
-
-    def do_GET(self) -> None:
-        match = re.fullmatch(r"bytes=(\d+)-(\d*)", self.headers.get("Range", ""))
-        path = self.translate_path(self.path)
-        if not match or not os.path.isfile(path):
-            return super().do_GET()
-        size = os.path.getsize(path)
-        start = int(match[1])
-        end = min(int(match[2]) if match[2] else size - 1, size - 1)
-        if start > end:
-            self.send_error(416)
-            return
-        self.server.ranges.append((os.path.basename(path), start, end))
-        with open(path, "rb") as f:
-            f.seek(start)
-            body = f.read(end - start + 1)
-        self.send_response(206)
-        self.send_header("Content-Type", "application/octet-stream")
-        self.send_header("Content-Range", f"bytes {start}-{end}/{size}")
-        self.send_header("Content-Length", str(len(body)))
-        self.end_headers()
-        self.wfile.write(body)
-
-    def log_message(self, *args) -> None:
-        pass
-
-
 @pytest.fixture(scope="module")
 def served(tmp_path_factory):
-    requirements()
+    """The page's files, three under /three/, Spark under /spark/, the exported files under /scene/, answering
+    range requests (Spark's paged loader reads the .rad by ranges)."""
+    requirements(SPARK / "dist" / "spark.module.js", THREE / "build" / "three.module.js",
+                 what="@sparkjsdev/spark / three")
     work = tmp_path_factory.mktemp("spark")
     r = run_cli("encode", SCENE, work / "scene", "--max-leaf-splats", "2000", "--quiet")
     assert r.returncode == 0, r.stderr
@@ -101,15 +43,8 @@ def served(tmp_path_factory):
     for name, encoding in (("donut.rad", "exact"), ("donut_spark.rad", "spark")):
         r = run_cli("export-rad", work / "scene", work / "rad" / name, "--encoding", encoding, "--quiet")
         assert r.returncode == 0, r.stderr
-    httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), functools.partial(_Handler, scene_dir=work / "rad"))
-    httpd.ranges = []  # (file, first byte, last byte) of every range request, in order
-    thread = threading.Thread(target=httpd.serve_forever, daemon=True)
-    thread.start()
-    try:
-        yield work, f"http://127.0.0.1:{httpd.server_address[1]}", httpd.ranges
-    finally:
-        httpd.shutdown()
-        httpd.server_close()
+    with serve(PAGE_DIR, {"/three/": THREE, "/spark/": SPARK, "/scene/": work / "rad"}, ranges=True) as (url, ranges):
+        yield work, url, ranges
 
 
 @pytest.mark.parametrize("name", ["donut.rad", "donut_spark.rad"])
@@ -118,17 +53,13 @@ def test_spark_draws_our_rad_where_we_do(served, tmp_path, name):
     work, base, ranges = served
     tree = read_rad_tree(work / "rad" / name)
     leaves = int((tree.child_count == 0).sum())
-    query, ours = camera(work / "scene")
+    query, ours = scene_camera(work / "scene")
     ranges.clear()
     theirs_png, ours_png = tmp_path / f"spark-{name[:-4]}.png", tmp_path / "ours-donut-spark.png"
     report = shoot(f"{base}/index.html?{urllib.parse.urlencode({'scene': f'/scene/{name}', **query})}",
-                   theirs_png)
-    r = run_cli("render", work / "scene", "--out", ours_png, "--size", f"{SIZE[0]}x{SIZE[1]}", "--quiet", *ours)
-    assert r.returncode == 0, r.stderr
-    if ARTIFACTS:
-        os.makedirs(ARTIFACTS, exist_ok=True)
-        for p in (theirs_png, ours_png):
-            shutil.copy(p, os.path.join(ARTIFACTS, p.name))
+                   theirs_png, SIZE)
+    render_ours(work / "scene", ours_png, SIZE, ours)
+    keep(theirs_png, ours_png)
     iou, psnr = compare(ours_png, theirs_png)
     result = report["result"]
     print(f"{name} near: IoU {iou:.3f}, PSNR {psnr:.1f} dB, {result['splats']} splats drawn of {leaves} leaves "
@@ -142,10 +73,10 @@ def test_spark_uses_the_lod_from_far(served, tmp_path):
     work, base, ranges = served
     tree = read_rad_tree(work / "rad" / "donut.rad")
     leaves = int((tree.child_count == 0).sum())
-    query, _ = camera(work / "scene", 40.0)
+    query, _ = scene_camera(work / "scene", 40.0)
     ranges.clear()
     report = shoot(f"{base}/index.html?{urllib.parse.urlencode({'scene': '/scene/donut.rad', **query})}",
-                   tmp_path / "far.png")
+                   tmp_path / "far.png", SIZE)
     result = report["result"]
     print(f"donut far: {result['splats']} splats drawn of {leaves} leaves")
     assert 0 < result["splats"] < leaves

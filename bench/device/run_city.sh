@@ -2,6 +2,8 @@
 # GPU-machine driver for the city-scale run of issue 38 (device `run` tool, the two-GPU 32-core kind), from the repo
 # root, carrying .whl (bench/device_wheels.sh: Dask and its needs, plus the client's wheels) and .gl (GL loaders).
 # Usage: bash bench/device/run_city.sh make-encode SPLATS   then   bash bench/device/run_city.sh stream
+#        bash bench/device/run_city.sh sizes 1000000,6000000,60000000   (each size made, encoded, streamed: the
+#        series of first frame and selection time against scene size; results under $OUT/size_N/)
 #   make-encode: the scene (bench/tile_scene.py: copies of the bundled donut, SH0, seed 0) and `encode --workers 32`
 #                with the encoder's defaults (medium, pages over 1,024 tiles), timed as bench_scale.py times it
 #                (wall, summed PSS of the process tree, the largest process, phases)
@@ -16,7 +18,37 @@ export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
 OUT=${OUT:-/tmp/out}
 W=/tmp/city
 mkdir -p "$OUT" $W
-what=${1:?make-encode or stream}
+what=${1:?make-encode, stream or sizes}
+gl_setup() {
+  for f in .gl/*.deb; do dpkg -x "$f" /; done
+  ldconfig
+  probe='import moderngl; c = moderngl.create_context(standalone=True, backend="egl", require=430); print(c.info["GL_RENDERER"])'
+  python3 -c "$probe" 2>/dev/null || export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
+  python3 -c "$probe" || exit 1
+}
+fly_summary() {
+  python3 -c "import json,sys; d=json.load(open(sys.argv[1]))['streaming']; print({k: d.get(k) for k in \
+    ('frames','median_ms','p99_ms','update_ms_median','update_ms_p99','select_ms_median','select_ms_p99')})" "$1"
+}
+if [ "$what" = sizes ]; then
+  gl_setup
+  nproc; free -g | head -2
+  for splats in $(echo "${2:?sizes}" | tr , ' '); do
+    d=$OUT/size_$splats; s=/tmp/sizes/$splats; mkdir -p "$d" "$s"
+    start=$(date +%s)
+    python3 bench/tile_scene.py samples/donut.ply --splats "$splats" --out $s/s.ply > /dev/null || exit 1
+    python3 -m cli encode $s/s.ply $s/scene --workers "${CITY_WORKERS:-32}" -q || exit 1
+    echo "$splats: made and encoded in $(( $(date +%s) - start )) s"
+    python3 bench/bench_pages.py --first-frame $s/scene --runs 5 2>&1 | tail -3 > "$d/first_frame_nogl.txt"
+    for run in cold warm; do
+      python3 bench/bench_first_frame.py --scene $s/scene --json "$d/first_frame_$run.json" 2>&1 | tail -2
+    done
+    python3 bench/bench_flythrough.py --scene $s/scene --ply $s/s.ply --max-splats 3000000 --breakdown \
+      --json "$d/flythrough.json" > $s/fly.log 2>&1 || tail -20 $s/fly.log
+    fly_summary "$d/flythrough.json"
+    rm -rf "$s"
+  done
+fi
 if [ "$what" = make-encode ]; then
   splats=${2:?splats}
   nproc; free -g | head -2; df -h /tmp | tail -1
@@ -37,18 +69,12 @@ EOF
   ls -la $W/scene/manifest.msgpack
 fi
 if [ "$what" = stream ]; then
-  for f in .gl/*.deb; do dpkg -x "$f" /; done
-  ldconfig
-  probe='import moderngl; c = moderngl.create_context(standalone=True, backend="egl", require=430); print(c.info["GL_RENDERER"])'
-  python3 -c "$probe" 2>/dev/null || export __EGL_VENDOR_LIBRARY_FILENAMES=/usr/local/nvidia/share/glvnd/egl_vendor.d/10_nvidia.json
-  python3 -c "$probe" || exit 1
+  gl_setup
   [ -n "${FLY_ONLY:-}" ] || python3 bench/bench_pages.py --first-frame $W/scene --runs 5 2>&1 | tail -6 | tee "$OUT/first_frame_nogl.txt"
   [ -n "${FLY_ONLY:-}" ] || for run in cold warm; do
     python3 bench/bench_first_frame.py --scene $W/scene --json "$OUT/first_frame_$run.json" 2>&1 | tail -4
   done
-  python3 bench/bench_flythrough.py --scene $W/scene --ply $W/s.ply --max-splats 3000000 \
+  python3 bench/bench_flythrough.py --scene $W/scene --ply $W/s.ply --max-splats 3000000 --breakdown \
     --json "$OUT/flythrough.json" > $W/fly.log 2>&1 || tail -20 $W/fly.log
-  python3 -c "import json,sys; d=json.load(open(sys.argv[1]))['streaming']; print({k: d.get(k) for k in \
-    ('frames','median_ms','p99_ms','p99_ms_with_uploads','p99_ms_without_uploads','update_ms_p99','update_ms_median')})" \
-    "$OUT/flythrough.json"
+  fly_summary "$OUT/flythrough.json"
 fi

@@ -22,7 +22,11 @@ from splatstream.format.presets import (
 )
 from splatstream.format.texformats import VALUE_FORMATS
 from splatstream.format.transport import TRANSPORTS
+from splatstream.io import open_input
 from splatstream.progress import ProgressPrinter, count
+from splatstream.rad_import import read_tree as rad_read_tree
+from splatstream.sog_import import encode_tree_to
+from splatstream.sog_import import read_tree as sog_read_tree
 
 from .args import add_edit_arguments, edit_report, edits_from, parse_bytes, parse_vector
 from .renderers import pick_renderer
@@ -74,6 +78,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "splat; the sh format then applies to the codebook. Default: the preset's choice ("
                         + ", ".join(f"{k}: {v}" for k, v in PRESET_SH_CODEBOOK.items()) + "; the others: off)")
     p.add_argument("--no-lod", action="store_true", help="write one tile holding every splat (no LOD tree)")
+    p.add_argument("--rebuild-lod", action="store_true",
+                   help="a streamed SOG (lod-meta.json) or a Spark .rad: build our own LOD tree from its finest "
+                        "level (default: keep its own tree, level for level; --max-leaf-splats and --reduction then "
+                        "follow it)")
     p.add_argument("--max-leaf-splats", type=int, default=16384,
                    help="splats per leaf tile at most (default 16384: measured best for streaming)")
     p.add_argument("--reduction", type=float, default=2.0,
@@ -147,6 +155,7 @@ def run(args: argparse.Namespace) -> int:
     if args.dry_run:
         print(edit_report(" + ".join(args.input), *count_edits(args.input, edits, args.drop_invalid)[1:]))
         return 0
+    tree_kind = _foreign_tree(args)
     t0 = time.perf_counter()
     preset = args.preset or DEFAULT_PRESET
     if args.target_psnr is not None or args.target_size is not None:
@@ -159,13 +168,16 @@ def run(args: argparse.Namespace) -> int:
         preset = _preset_for_target(args, up)
     progress = ProgressPrinter("encode", enabled=not args.quiet)
     with progress.library_notes():
-        m = encode_file(args.input, args.output_dir, preset=preset, drop_invalid=args.drop_invalid,
-                        progress=progress, workers=workers, scheduler=args.scheduler, memory_per_worker=memory,
-                        scratch=args.scratch, edits=edits, overrides=overrides, sh_degree=args.sh_degree,
-                        zstd_level=args.zstd_level, transport=args.transport,
-                        lod=not args.no_lod, max_leaf_splats=args.max_leaf_splats, reduction=args.reduction,
-                        name=args.name, up=up, chunk_order=args.chunk_order, sh_codebook=args.sh_codebook,
-                        page_tiles=args.page_tiles, page_levels=args.page_levels)
+        if tree_kind is not None:
+            m = _encode_foreign_tree(args, tree_kind, preset, overrides, up, progress)
+        else:
+            m = encode_file(args.input, args.output_dir, preset=preset, drop_invalid=args.drop_invalid,
+                            progress=progress, workers=workers, scheduler=args.scheduler, memory_per_worker=memory,
+                            scratch=args.scratch, edits=edits, overrides=overrides, sh_degree=args.sh_degree,
+                            zstd_level=args.zstd_level, transport=args.transport,
+                            lod=not args.no_lod, max_leaf_splats=args.max_leaf_splats, reduction=args.reduction,
+                            name=args.name, up=up, chunk_order=args.chunk_order, sh_codebook=args.sh_codebook,
+                            page_tiles=args.page_tiles, page_levels=args.page_levels)
     if not args.quiet:
         print(f"wrote {args.output_dir}: {m.splats} splats, SH degree {m.sh_degree}, preset {m.preset}, "
               f"{count(len(m.tiles), 'tile')}, {m.bytes_on_disk / 1e6:.2f} MB on disk "
@@ -173,6 +185,34 @@ def run(args: argparse.Namespace) -> int:
               f"with all LOD levels), {m.gpu_bytes_per_splat:.2f} B/splat on the GPU, "
               f"{time.perf_counter() - t0:.2f}s", file=sys.stderr)
     return 0
+
+
+def _foreign_tree(args: argparse.Namespace) -> str | None:
+    """"lod_sog" or "rad" where the one input is an LOD tree of a peer's that `encode` keeps, else None."""
+    if len(args.input) != 1 or args.no_lod or args.rebuild_lod or not os.path.exists(args.input[0]):
+        return None  # (a missing input fails in encode_file, with its usual message)
+    kind = open_input(args.input[0]).format
+    if kind not in ("lod_sog", "rad"):
+        return None
+    given = [flag for flag, on in (("edits", bool(edits_from(args))), ("--workers", args.workers is not None),
+                                   ("--scheduler", bool(args.scheduler)),
+                                   ("--target-psnr/--target-size",
+                                    args.target_psnr is not None or args.target_size is not None)) if on]
+    if given:
+        raise UsageError(f"{args.input[0]} holds its own LOD tree, which encode keeps (in memory, as read): "
+                         f"{', '.join(given)} apply only to a tree we build; add --rebuild-lod to build ours from "
+                         "its finest level")
+    return kind
+
+
+def _encode_foreign_tree(args: argparse.Namespace, kind: str, preset: str, overrides: dict, up, progress):
+    """Their tree kept: read whole (sog_import / rad_import.read_tree) and encoded level for level."""
+    reader = sog_read_tree if kind == "lod_sog" else rad_read_tree
+    opts = EncodeOptions(preset=preset, overrides=overrides, sh_degree=args.sh_degree,
+                         zstd_level=args.zstd_level, transport=args.transport, name=args.name, up=up,
+                         chunk_order=args.chunk_order, sh_codebook=args.sh_codebook, page_tiles=args.page_tiles,
+                         page_levels=args.page_levels)
+    return encode_tree_to(reader(args.input[0], progress), args.output_dir, args.input[0], opts, progress)
 
 
 def _preset_for_target(args: argparse.Namespace, up: tuple[float, float, float] | None) -> str:

@@ -12,6 +12,7 @@ drawn tiles nobody wants when slots run out; the root is never evicted), and com
 """
 from __future__ import annotations
 
+import gc
 import queue
 import threading
 import time
@@ -31,7 +32,18 @@ from splatstream.format.planes import band_of
 
 from ..tiledata import TileData, host_mirror
 from .pages import PAGE_GROUP, PagedTree
-from .selection import Selection, SelectionOptions, TileView, draw_set, prefetch, select, view_numbers, wanted_bands
+from .selection import (
+    PartialView,
+    Selection,
+    SelectionOptions,
+    TileView,
+    draw_set,
+    prefetch,
+    select,
+    select_near,
+    view_numbers,
+    wanted_bands,
+)
 
 Key = tuple[int | None, str]  # (tile id, group) or (None, "sh<b>") for a band of the SH codebook
 _GROUP_BAND = {"base": 0, "sh1": 1, "sh2": 2, "sh3": 3}
@@ -91,8 +103,22 @@ class StreamOptions:
     ready_bytes: int = 512 << 20  # decoded payloads waiting for upload (prefetched ones are dropped first)
     # A paged scene's tree held at most this many tiles beyond what the view uses: pages whose tiles are neither
     # resident, nor in the cut, nor being decoded are dropped, least recently drawn first, and read again when a cut
-    # reaches them (a ground view of 250M splats holds about 13,000 tiles: BENCHMARKS.md, "Manifest pages").
-    max_tree_tiles: int = 65536
+    # reaches them. A tile held takes about 2.8 KB (SH0) to 4.0 KB (SH3) with its arrays, so 24,576 tiles are at
+    # most about 100 MB; a street-level path across 250M splats holds 21,138 tiles, 59 MB (BENCHMARKS.md,
+    # "Manifest pages").
+    max_tree_tiles: int = 24576
+    # After a frame adds pages, move every object that exists then out of the garbage collector's walks
+    # (gc.freeze(), process-wide, as the shells do once a session is open: streaming.freeze_long_lived). A held tree
+    # is tens of thousands of parsed tiles; a full collection walked all of them mid-frame (5 passes of up to 785 ms
+    # on a 250M-splat path: BENCHMARKS.md, "Manifest pages"). Frozen objects are still freed when no longer
+    # referenced (a dropped page's tiles hold no reference cycles); only cyclic garbage existing at that moment is
+    # kept. False: the collector as configured.
+    freeze_pages: bool = True
+    # From this many tiles held the selection looks near the cut only (selection.select_near); below it, over every
+    # tile (view_numbers and select): the same cut, and numpy over a few thousand tiles costs less than finding the
+    # tiles near the cut (interleaved on the 2-core VM: 1,536 tiles held 1.5 against 2.0 ms, 6,548 5.1 against
+    # 5.1, 20,402 10.6 against 6.6; BENCHMARKS.md, "Manifest pages").
+    select_near_from: int = 4096
 
 
 @dataclass
@@ -194,7 +220,8 @@ class StreamEngine:
         self._pages_wanted: list[Key] = []
         self._pages_arrived: dict[int, Future] = {}  # tile id -> its page's tiles, being parsed
         self._page_frame: dict[int, int] = {}  # tile id -> the frame its page was added in
-        self._last_cut: set[int] = set()  # the last selection's cut (positions), kept from eviction
+        self._last_cut: set[int] = set()  # the last selection's cut (positions): kept from eviction, and where the
+        # next frame's selection starts looking
         self._pages_checked: tuple[int, int] = (0, 0)  # (tiles held, payload evictions) at the last eviction pass
         self.frame = 0
         self.refined: frozenset[int] = frozenset()
@@ -269,6 +296,8 @@ class StreamEngine:
                 self.errors.append(str(exc))
                 self.failed[(tile_id, PAGE_GROUP)] = str(exc)
         self._adopt(self.pages.manifest)
+        if self.options.freeze_pages:
+            gc.freeze()
         self._wanted_cache = None  # the same camera selects again, over the new tiles
         self._draw_cache = None
         self._version += 1
@@ -331,7 +360,7 @@ class StreamEngine:
         return bool(self.resident[i]) and (band == 0 or self.bands[i] >= band)
 
     # --- the frame --------------------------------------------------------------------------------------------
-    def wanted(self, cam: Camera) -> tuple[TileView, Selection, dict[int, int], list[Key], list[Key]]:
+    def wanted(self, cam: Camera) -> tuple[PartialView | TileView, Selection, dict[int, int], list[Key], list[Key]]:
         """(view, selection, bands per cut tile, keys wanted now in priority order, prefetch keys).
 
         The same camera and options give the same answer (the selection is idempotent under its own hysteresis),
@@ -341,12 +370,22 @@ class StreamEngine:
         if self._wanted_cache is not None and self._wanted_cache[0] == key:
             return self._wanted_cache[1]
         a, opts = self.arrays, self.options.selection
-        view = view_numbers(a, cam, opts)
+        # A large tree held: the numbers of the tiles the selection reaches only, from the last frame's cut
+        # (client.md 1.2): the children of its cut and refined tiles first, in one batch; the same cut as select
+        # over every tile held (tests/test_stream_select_near.py checks it), at a cost that follows the cut.
         budget = self.residency.capacity_slots * self.slot_bytes * self.options.target_fraction
         sel_opts = SelectionOptions(**{**opts.__dict__, "budget": min(budget, opts.budget or budget)})
-        sel = select(a, view, self.cost, self.root, sel_opts, self.refined, self.manifest.lod.reduction)
+        view: PartialView | TileView
+        if len(self.resident) >= self.options.select_near_from:
+            view = PartialView(a, cam, opts, self.manifest.lod.reduction)
+            children = a.children
+            near = [k for i in self.refined for k in children[i]] + [k for i in self._last_cut for k in children[i]]
+            sel = select_near(a, view, self.cost, self.root, sel_opts, self.refined, near)
+        else:
+            view = view_numbers(a, cam, opts)
+            sel = select(a, view, self.cost, self.root, sel_opts, self.refined, self.manifest.lod.reduction)
         self.refined = sel.refined
-        self._last_cut = set(sel.cut) if self.pages is not None else set()
+        self._last_cut = set(sel.cut)
         if self.pages is not None:  # pages below cut tiles the view would refine: fetched before their payloads
             self._pages_wanted = [k for k in self.pages.wanted_pages(sel.cut, view.sse, view.visible, opts.max_sse)
                                   if k not in self.failed]

@@ -2,14 +2,14 @@
 
 Per frame: `view_numbers` projects every tile (screen-space error, frustum test, projected radius); `select`
 refines the tree from the root, widest on-screen splat spacing first, under a splat and a byte budget, with
-hysteresis; `wanted_bands` gives SH bands to the tiles covering most of the view; `draw_set` turns what is
-resident into a hole-free REPLACE cut (a tile stays drawn until every child in view can replace it); `prefetch`
-names what the view will probably want next. No GL, no network, no clocks: the engine (engine.py) calls these
-and acts on the answers.
+hysteresis. Those two are the reference; the engine runs `select_near` over a `PartialView`: the same cut from the
+numbers of the tiles the refinement reaches only (its cost follows the cut, not the tree held). `wanted_bands`
+gives SH bands to the tiles covering most of the view; `draw_set` turns what is resident into a hole-free REPLACE
+cut (a tile stays drawn until every child in view can replace it); `prefetch` names what the view will probably
+want next. No GL, no network, no clocks: the engine (engine.py) calls these and acts on the answers.
 """
 from __future__ import annotations
 
-import functools
 import heapq
 import math
 from dataclasses import dataclass, field
@@ -49,15 +49,15 @@ class TileView:
     radius_px: np.ndarray  # (T,) projected radius of the bounding sphere, px (inf inside it)
     area_px: np.ndarray  # (T,) pixels of the image inside the projected sphere's bounding square (0 when culled)
     distance: np.ndarray  # (T,) distance from the eye to the sphere, world units (<= 0 inside)
-    # (tile arrays, camera, its basis, widening) of the frustum widened by prefetch_margin: visible_wide tests it
-    # when asked (only prefetch needs it, and the engine asks for prefetch only when nothing is missing)
+    # (tile arrays, camera, its basis, widening) of the frustum widened by prefetch_margin: wide_visible tests it
+    # (only prefetch needs it, and the engine asks for prefetch only when nothing is missing)
     wide_frustum: tuple = field(repr=False, compare=False, default=())
 
-    @functools.cached_property
-    def visible_wide(self) -> np.ndarray:
-        """(T,) bool: the box intersects a frustum widened by prefetch_margin."""
-        a, cam, basis, widen = self.wide_frustum
-        return boxes_in_frustum(a.box_min, a.box_max, frustum_planes(cam, widen, basis), a.box_corners)
+    def ensure(self, idx) -> None:
+        """Every tile's numbers are here already (PartialView computes them when asked)."""
+
+    def visible_at(self, i: int) -> bool:
+        return bool(self.visible[i])
 
 
 @dataclass(frozen=True)
@@ -107,46 +107,137 @@ def frustum_planes(cam: Camera, widen: float = 1.0, basis=None) -> np.ndarray:
     return planes
 
 
-def boxes_in_frustum(box_min: np.ndarray, box_max: np.ndarray, planes: np.ndarray,
+def boxes_in_frustum(box_min: np.ndarray | None, box_max: np.ndarray | None, planes: np.ndarray,
                      corners: np.ndarray | None = None) -> np.ndarray:
     """(T,) True where an axis-aligned box is not entirely outside any plane (conservative). `corners`: the boxes
     as (T, 6) [max, min] (TileArrays.box_corners), when the caller has them."""
-    n = planes[:, :3]
     if corners is None:
         corners = np.concatenate([box_max, box_min], axis=1)
     # The box corner farthest along each plane's normal ("positive vertex"), dotted with the normal: the max
-    # corner's coordinates where the normal is positive, the min corner's where it is negative, in one product
-    # (einsum, not @: see view_numbers).
-    split = np.concatenate([np.maximum(n, 0.0), np.minimum(n, 0.0)], axis=1)
-    return np.all(np.einsum("tk,pk->tp", corners, split) + planes[None, :, 3] >= 0, axis=1)
+    # corner's coordinates where the normal is positive, the min corner's where it is negative. Written out term by
+    # term (not einsum or @): each row's result is then the same bits whether every tile is tested or a few
+    # (PartialView tests the tiles near the cut only, and its cut must be the whole tree's).
+    split = _split(planes)
+    terms = corners[:, None, :] * split[None, :, :]  # (T, planes, 6)
+    s = planes[None, :, 3] + terms[:, :, 0]
+    for k in range(1, 6):
+        s = s + terms[:, :, k]
+    inside = np.all(s >= 0, axis=1)
+    return inside
 
 
-def view_numbers(a: TileArrays, cam: Camera, opts: SelectionOptions = SelectionOptions()) -> TileView:
-    basis = _basis(cam)
+def _split(planes: np.ndarray) -> np.ndarray:
+    """(planes, 6): each plane's normal split for the [max, min] box corners (the positive vertex's weights)."""
+    n = planes[:, :3]
+    return np.concatenate([np.maximum(n, 0.0), np.minimum(n, 0.0)], axis=1)
+
+
+def _dot3(v: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """(T,) rows of v (T, 3) dotted with w (3,), term by term (the same bits over any subset of rows)."""
+    return v[:, 0] * w[0] + v[:, 1] * w[1] + v[:, 2] * w[2]
+
+
+def _numbers(a: TileArrays, cam: Camera, basis, planes: np.ndarray, idx) -> tuple[np.ndarray, ...]:
+    """(sse, visible, radius_px, area_px, distance) of the tiles at positions idx (None: every tile). Elementwise
+    only: a tile's numbers do not depend on which other tiles are computed with it."""
     eye, right, up, forward = basis
-    rel = a.sphere_center - eye
-    centre_dist = np.sqrt(np.einsum("ij,ij->i", rel, rel))
-    distance = centre_dist - a.sphere_radius
+    if idx is None:
+        center, radius, err, corners = a.sphere_center, a.sphere_radius, a.geometric_error, a.box_corners
+    else:
+        center, radius, err, corners = (a.sphere_center[idx], a.sphere_radius[idx], a.geometric_error[idx],
+                                        a.box_corners[idx])
+    rel = center - eye
+    centre_dist = np.sqrt(rel[:, 0] * rel[:, 0] + rel[:, 1] * rel[:, 1] + rel[:, 2] * rel[:, 2])
+    distance = centre_dist - radius
     ahead = distance > 0  # the eye outside the bounding sphere
     focal = cam.height / (2.0 * cam.tan_half_fov_y)
-    visible = boxes_in_frustum(a.box_min, a.box_max, frustum_planes(cam, 1.0, basis), a.box_corners)
-    # The centres in the camera's frame (image x right, y down: camera.md), in one product. einsum, not @: a matrix
-    # product goes to the BLAS library, whose worker threads (16 on the GPU machine) cost more than these few
-    # thousand products.
-    frame = np.einsum("ij,kj->ik", rel, np.stack([right, up, forward]))
-    depth = frame[:, 2]
+    visible = boxes_in_frustum(None, None, planes, corners)
+    depth = _dot3(rel, forward)  # the centres in the camera's frame (image x right, y down: camera.md)
     with np.errstate(divide="ignore", invalid="ignore"):
-        sse = np.where(ahead, a.geometric_error * focal / distance, INF)
-        radius_px = np.where(ahead, a.sphere_radius * focal / np.maximum(centre_dist, 1e-12), INF)
-        u = focal * frame[:, 0] / depth + cam.width / 2.0
-        v = -focal * frame[:, 1] / depth + cam.height / 2.0
+        sse = np.where(ahead, err * focal / distance, INF)
+        radius_px = np.where(ahead, radius * focal / np.maximum(centre_dist, 1e-12), INF)
+        u = focal * _dot3(rel, right) / depth + cam.width / 2.0
+        v = -focal * _dot3(rel, up) / depth + cam.height / 2.0
         r = np.where(ahead, radius_px, 0.0)
         w = np.clip(u + r, 0, cam.width) - np.clip(u - r, 0, cam.width)
         h = np.clip(v + r, 0, cam.height) - np.clip(v - r, 0, cam.height)
         area = np.where(depth > 0, np.nan_to_num(w * h), 0.0)
     area = np.where(ahead, area, float(cam.width * cam.height))  # the eye inside: everywhere
     area = np.where(visible, area, 0.0)
+    return sse, visible, radius_px, area, distance
+
+
+def wide_visible(view, idx: list[int]) -> list[bool]:
+    """Whether the boxes of the tiles at positions idx intersect the view's frustum widened by prefetch_margin."""
+    if not idx:
+        return []
+    a, cam, basis, widen = view.wide_frustum
+    return boxes_in_frustum(None, None, frustum_planes(cam, widen, basis), a.box_corners[idx]).tolist()
+
+
+def view_numbers(a: TileArrays, cam: Camera, opts: SelectionOptions = SelectionOptions()) -> TileView:
+    """Every tile's numbers (the reference: the engine computes those near the cut only, PartialView)."""
+    basis = _basis(cam)
+    sse, visible, radius_px, area, distance = _numbers(a, cam, basis, frustum_planes(cam, 1.0, basis), None)
     return TileView(sse, visible, radius_px, area, distance, (a, cam, basis, opts.prefetch_margin))
+
+
+class PartialView:
+    """A view's numbers for the tiles asked for only (`ensure`), where TileView has every tile's: the same arrays
+    over every position, valid where computed. `select_near` asks for the tiles it reaches, so a frame looks at
+    the cut, its children and the tiles refined above it, not the whole tree held (client.md 1.1). A tile's
+    numbers are the same bits as view_numbers' (elementwise arithmetic), so the cut is the same."""
+
+    def __init__(self, a: TileArrays, cam: Camera, opts: SelectionOptions = SelectionOptions(),
+                 reduction: float = 2.0):
+        self.arrays, self.cam = a, cam
+        self._basis = _basis(cam)
+        self._planes = frustum_planes(cam, 1.0, self._basis)
+        self.wide_frustum = (a, cam, self._basis, opts.prefetch_margin)
+        self.level_step = 0.5 * math.log2(max(reduction, 1.0 + 1e-9))  # select's refinement key per level
+        n = len(a.parent)
+        self.sse, self.radius_px, self.distance = np.empty(n), np.empty(n), np.empty(n)
+        self.visible, self.area_px = np.zeros(n, bool), np.zeros(n)
+        self.known = bytearray(n)
+        self.looked_at = 0  # tiles whose numbers were computed
+        # the box test of one tile in Python floats (visible_at): the same operations in the same order as
+        # boxes_in_frustum's, so the same answer
+        self._one = list(zip(self._planes[:, 3].tolist(), _split(self._planes).tolist(), strict=True))
+        self._visible_of: dict[int, bool] = {}
+
+    def ensure(self, idx) -> None:
+        """Compute the numbers of the tiles at these positions that have none yet (in one batch)."""
+        known = self.known
+        missing = [i for i in idx if not known[i]]
+        if not missing:
+            return
+        missing = list(dict.fromkeys(missing))
+        at = np.array(missing, np.intp)
+        sse, visible, radius_px, area, distance = _numbers(self.arrays, self.cam, self._basis, self._planes, at)
+        self.sse[at], self.visible[at], self.radius_px[at], self.area_px[at], self.distance[at] = \
+            sse, visible, radius_px, area, distance
+        for i in missing:
+            known[i] = 1
+        self.looked_at += len(missing)
+
+    def visible_at(self, i: int) -> bool:
+        """Whether tile i's box intersects the frustum (computed alone when its numbers are not: the draw set walks
+        below cut tiles not resident yet, one tile at a time)."""
+        if self.known[i]:
+            return bool(self.visible[i])
+        v = self._visible_of.get(i)
+        if v is None:
+            c = self.arrays.box_corners[i].tolist()
+            v = True
+            for d, w in self._one:
+                s = d + c[0] * w[0]
+                for k in range(1, 6):
+                    s = s + c[k] * w[k]
+                if not s >= 0:
+                    v = False
+                    break
+            self._visible_of[i] = v
+        return v
 
 
 def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: SelectionOptions,
@@ -216,6 +307,135 @@ def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: Sel
                      limited)
 
 
+def select_near(a: TileArrays, view: PartialView, cost: np.ndarray, root: int, opts: SelectionOptions,
+                previous_refined: frozenset[int] = frozenset(), near=()) -> Selection:
+    """select's cut (the same tiles, order, priorities, splats, cost and budget flag), looking only at the tiles it
+    reaches.
+
+    select's greedy loop needs the numbers of the root and of the children of every tile it pops (their sums decide
+    whether a refinement fits; the visible ones join the cut and the queue), nothing else. Here its per-tile numpy
+    runs over a set of tiles only: the root and `near` (the engine gives the children of the last frame's cut and
+    refined tiles: a moving camera's cut is mostly there). When the loop pops a tile whose children are not all in
+    the set, the children of every candidate lacking them join it (their numbers in one batch, the sums taken
+    again over the set) and the loop goes on: it makes exactly select's moves whatever `near` is, and only the work
+    depends on it. The refinement key is the view's (PartialView takes the scene's lod.reduction)."""
+    s = _NearSet(a, view, cost, opts, previous_refined)
+    s.add(list(dict.fromkeys([root, *near])))
+    children, index = a.children, s.index
+    refined: set[int] = set()
+    cut: set[int] = {root}
+    priority: dict[int, float] = {root: INF}
+    j = index[root]
+    splats = int(s.splats[j])
+    total = float(s.cost[j])
+    heap: list[tuple[float, int]] = [(s.prio[j], root)] if s.candidate[j] else []
+    limited = False
+    while heap:
+        neg_priority, i = heapq.heappop(heap)
+        j = index[i]
+        if s.kids_in[j] != s.kids_all[j]:
+            s.add_children_of_candidates()
+        new_splats = splats - int(s.splats[j]) + int(s.kid_splats[j])
+        new_total = total - s.cost[j] + float(s.kid_cost[j])
+        if opts.max_splats is not None and new_splats > opts.max_splats and new_splats > splats:
+            limited = True
+            continue
+        if opts.budget is not None and new_total > opts.budget and new_total > total:
+            limited = True
+            continue
+        cut.discard(i)
+        refined.add(i)
+        splats, total = new_splats, new_total
+        visible_l, candidate, prio = s.visible, s.candidate, s.prio
+        for k in children[i]:
+            jk = index[k]
+            if not visible_l[jk]:
+                continue
+            cut.add(k)
+            priority[k] = -neg_priority
+            if candidate[jk]:
+                heapq.heappush(heap, (prio[jk], k))
+    distance = view.distance
+    cut_sorted = tuple(sorted(cut, key=lambda i: (-priority[i], float(distance[i]))))
+    return Selection(cut_sorted, frozenset(refined), {i: priority.get(i, 0.0) for i in cut_sorted}, splats, total,
+                     limited)
+
+
+class _NearSet:
+    """The tiles select_near runs over, with select's per-tile values of each (lists, by index in `tiles`)."""
+
+    def __init__(self, a: TileArrays, view: PartialView, cost: np.ndarray, opts: SelectionOptions,
+                 previous_refined: frozenset[int]):
+        self.a, self.view, self.cost_a, self.previous = a, view, cost, previous_refined
+        self.high = float(opts.max_sse)
+        self.low = self.high * opts.hysteresis  # select's threshold of a tile refined last frame (float64, as numpy)
+        self.tiles: list[int] = []
+        self.index: dict[int, int] = {}
+        self.local = np.full(len(a.parent), -1, np.intp)  # position -> index in `tiles`
+        self.visible: list[bool] = []
+        self.candidate: list[bool] = []
+        self.prio: list[float] = []
+        self.cost: list[float] = []
+        self.splats: list[int] = []
+        self.kid_cost, self.kid_splats = np.zeros(0), np.zeros(0)
+        self.kids_in, self.kids_all = np.zeros(0, np.int64), np.zeros(0, np.int64)
+        self.orphans: dict[int, int] = {}  # tile -> its parent, not in the set
+
+    def add(self, new: list[int]) -> None:
+        """Add tiles (not in the set yet): their numbers, then every tile's sums over its visible children."""
+        a, view = self.a, self.view
+        view.ensure(new)
+        at = np.array(new, np.intp)
+        start = len(self.tiles)
+        self.local[at] = np.arange(start, start + len(new))
+        self.index.update(zip(new, range(start, start + len(new)), strict=True))
+        self.tiles += new
+        vis, sse = view.visible[at], view.sse[at]
+        threshold = np.full(len(new), self.high)
+        if self.previous:
+            threshold[[j for j, t in enumerate(new) if t in self.previous]] = self.low
+        self.candidate += (a.has_children[at] & vis & (sse > threshold)).tolist()
+        with np.errstate(divide="ignore"):
+            key = a.level[at] * view.level_step + np.log2(np.maximum(view.distance[at], 1e-30))
+        self.prio += np.where(np.isfinite(sse), key, -INF).tolist()
+        self.visible += vis.tolist()
+        self.cost += self.cost_a[at].tolist()
+        self.splats += a.splats[at].tolist()
+        # Sums over each tile's visible children in the set, and how many of its children are in it: the new tiles'
+        # shares added to their parents. Whole numbers in float64: exact in any order, so the sums are select's.
+        grow = np.zeros(len(new))
+        self.kid_cost = np.concatenate([self.kid_cost, grow])
+        self.kid_splats = np.concatenate([self.kid_splats, grow])
+        self.kids_in = np.concatenate([self.kids_in, np.zeros(len(new), np.int64)])
+        self.kids_all = np.concatenate([self.kids_all, a.child_count[at]])
+        parent = a.parent[at]
+        up = np.where(parent >= 0, self.local[parent], -1)
+        has_up = up >= 0
+        for j in np.flatnonzero(~has_up & (parent >= 0)).tolist():
+            self.orphans[new[j]] = int(parent[j])  # a tile whose parent is not in the set (yet)
+        up = up[has_up]
+        np.add.at(self.kid_cost, up, np.where(vis, self.cost_a[at], 0.0)[has_up])
+        np.add.at(self.kid_splats, up, np.where(vis, a.splats_f64[at], 0.0)[has_up])
+        np.add.at(self.kids_in, up, 1)
+        if self.orphans:  # tiles of the set whose parent joins it now (a `near` that is not closed upwards)
+            index = self.index
+            old = [(index[o], index[p]) for o, p in self.orphans.items() if p in index]
+            if old:
+                for o in [o for o, p in self.orphans.items() if p in index]:
+                    del self.orphans[o]
+                kid, up = (np.array(v, np.intp) for v in zip(*old, strict=True))
+                shown = self.view.visible[np.array(self.tiles, np.intp)[kid]]
+                np.add.at(self.kid_cost, up, np.where(shown, np.array(self.cost)[kid], 0.0))
+                np.add.at(self.kid_splats, up, np.where(shown, np.array(self.splats, np.float64)[kid], 0.0))
+                np.add.at(self.kids_in, up, 1)
+
+    def add_children_of_candidates(self) -> None:
+        """Add the children of every candidate whose children are not all in the set (the loop may pop any)."""
+        children, index, tiles = self.a.children, self.index, self.tiles
+        lacking = np.flatnonzero(np.array(self.candidate) & (self.kids_in != self.kids_all)).tolist()
+        self.add(list(dict.fromkeys(k for t in lacking for k in children[tiles[t]] if k not in index)))
+
+
 def wanted_bands(a: TileArrays, view: TileView, tiles: tuple[int, ...] | list[int], opts: SelectionOptions,
                  scene_degree: int) -> dict[int, int]:
     """SH bands each tile wants: band b for the tiles that cover the first band_area_share[b - 1] of the cut's
@@ -248,16 +468,21 @@ def draw_set(a: TileArrays, view: TileView, sel: Selection, resident: np.ndarray
     that is not resident yet is covered by its resident descendants if they cover its view (they were wanted
     before the camera moved back), else by an ancestor. Never a tile together with a descendant."""
 
+    def shown(i: int) -> list[int]:
+        visible_at = view.visible_at  # a PartialView tests the tiles the walk reaches only
+        return [k for k in a.children[i] if visible_at(k)]
+
     def cover(i: int) -> list[int] | None:
-        kids = [k for k in a.children[i] if view.visible[k]]
         if i in sel.refined:
-            parts = _cover_all(kids)
+            parts = _cover_all(shown(i))
             if parts is not None:
                 return parts
         if resident[i]:
             return [i]
-        if kids and i not in sel.refined:
-            return _cover_all(kids)  # finer tiles still resident stand in for a coarser tile not yet loaded
+        if i not in sel.refined:
+            kids = shown(i)
+            if kids:
+                return _cover_all(kids)  # finer tiles still resident stand in for a coarser tile not yet loaded
         return None
 
     def _cover_all(kids: list[int]) -> list[int] | None:
@@ -280,20 +505,21 @@ def prefetch(a: TileArrays, view: TileView, sel: Selection, opts: SelectionOptio
     Bounded by the budget: no children of cut tiles when the budget ended the cut (it would not let them in), and
     with `cost` (per tile, the units of sel.cost) the list stops at prefetch_share of the cut's cost."""
     out: list[tuple[float, int]] = []
-    wide = view.visible_wide
-    wide_l = wide.tolist()
-    sse = view.sse
+    sse, children = view.sse, a.children
+    near_cut = []
     if not sel.budget_limited and opts.max_sse > 0:
-        for i in sel.cut:
-            if a.children[i] and sse[i] > opts.max_sse / opts.prefetch_margin:
-                score = float(sse[i]) / opts.max_sse
-                out += [(score, k) for k in a.children[i] if wide_l[k]]
-    # just outside the frustum, children of refined tiles (a cut tile is visible, so never one of these)
-    parent = a.parent
-    refined = np.zeros(len(parent) + 1, bool)  # index -1 (the root's parent) reads the extra False
-    refined[list(sel.refined)] = True
-    edge = np.flatnonzero(wide & ~view.visible & refined[parent])
-    out += [(0.5, int(i)) for i in edge]
+        near_cut = [i for i in sel.cut if children[i] and sse[i] > opts.max_sse / opts.prefetch_margin]
+    # just outside the frustum, children of refined tiles (a cut tile is visible, so never one of these), in
+    # position order
+    edge = sorted(k for r in sel.refined for k in children[r])
+    view.ensure(edge)
+    look = edge + [k for i in near_cut for k in children[i]]
+    wide = dict(zip(look, wide_visible(view, look), strict=True))
+    for i in near_cut:
+        score = float(sse[i]) / opts.max_sse
+        out += [(score, k) for k in children[i] if wide[k]]
+    visible = view.visible
+    out += [(0.5, k) for k in edge if wide[k] and not visible[k]]
     out.sort(key=lambda x: -x[0])
     if cost is not None:
         allowance = opts.prefetch_share * sel.cost

@@ -19,6 +19,7 @@ from ..format.manifest import Manifest
 from ..format.presets import DEFAULT_PRESET
 from ..gaussians import Gaussians
 from ..io import SplatInput, open_input, read_gaussians, read_merged
+from ..lod import Tile
 from ..ply import RowStats, VertexLayout, check_rows, read_ply_rows
 from ..store import _fsspec, is_url, local_path, open_writer
 from ..vq import parse_entries
@@ -139,6 +140,21 @@ def encode_file(input_path: str | os.PathLike | Sequence[str | os.PathLike], out
     finally:
         engine.close()
 
+
+
+def encode_built_tree(g: Gaussians, tiles: list[Tile], out_dir: str | os.PathLike, opts: EncodeOptions,
+                      progress: Progress | None = None, source_name: str | None = None) -> Manifest:
+    """Splats whose LOD tree is built already (a foreign tree kept as it is: sog_import, rad_import) encoded in
+    memory into `out_dir` (a directory or an fsspec URL), as encode_file writes a scene."""
+    out = os.fspath(out_dir)
+    if is_url(out):
+        _fsspec(out)
+    else:
+        out = local_path(out)
+        check_output(out, directory=True)
+    out_name = os.path.basename(os.path.abspath(out)) if not is_url(out) else out.rstrip("/").rsplit("/", 1)[-1]
+    with open_writer(out) as writer:
+        return encode_to(g, writer, opts, progress or no_progress, source_name, out_name, tiles=tiles)
 
 
 # Rows a dry run reads at once from a binary PLY: its memory stays bounded whatever the scene's size.

@@ -4,8 +4,9 @@ tree (`child_count`, `child_start`), following Spark's decoder (rust/spark-lib/s
 `read_rad` gives the finest level (the splats without children: the tree's full detail) for `convert`;
 `read_rad_tree` gives every splat with its tree for `view` (splatstream/rad_import.py). Encodings read: every one
 Spark's RadDecoder reads (f32, f16, f32_lebytes, f16_lebytes, r8, r8_delta, s8, s8_delta, ln_f16, ln_0r8, oct88r8,
-u16, u32). Not read: SH by cluster codes (sh*_code, sh_label: Spark's writer makes them only when given SH
-clusters) and chunks in separate .radc files, both refused by name.
+u16, u32); SH by cluster codes (sh*_code in chunk 0, one row per cluster, and a per-splat sh_label: Spark's
+`build-lod --cluster-sh`); chunks in separate .radc files beside the header file (`build-lod --rad-chunked`), by a
+plain file name only.
 """
 from __future__ import annotations
 
@@ -28,7 +29,8 @@ from ..reader_support import (
 from ..writers.rad import RAD_CHUNK_MAGIC, RAD_MAGIC, RadTree
 
 _DIMS = {"center": 3, "alpha": 1, "rgb": 3, "scales": 3, "orientation": 3, "sh1": 9, "sh2": 15, "sh3": 21,
-         "child_count": 1, "child_start": 1}  # sh*_code and sh_label (clustered SH) are refused by name
+         "child_count": 1, "child_start": 1, "sh1_code": 9, "sh2_code": 15, "sh3_code": 21, "sh_label": 1}
+_CODES = ("sh1_code", "sh2_code", "sh3_code")  # one row per SH cluster (header shCodeCount), not per splat
 
 
 def is_rad(head: bytes) -> bool:
@@ -116,7 +118,7 @@ def _decode(data: bytes, prop: dict, count: int, path: str, field: str) -> np.nd
                      "r8, r8_delta, s8, s8_delta, ln_f16, ln_0r8, oct88r8, u16 or u32)")
 
 
-def _chunk(buf: bytes, at: int, path: str, index: int) -> tuple[int, int, dict[str, np.ndarray], int]:
+def _chunk(buf: bytes, at: int, path: str, index: int, codes: int) -> tuple[int, int, dict[str, np.ndarray], int]:
     field = f"chunk {index}"
     if len(buf) < at + 8 or struct.unpack_from("<I", buf, at)[0] != RAD_CHUNK_MAGIC:
         raise InputError(path, field, "expected the RADC magic")
@@ -144,7 +146,7 @@ def _chunk(buf: bytes, at: int, path: str, index: int) -> tuple[int, int, dict[s
                 raise InputError(path, pfield, f"expected raw DEFLATE data ({e})") from None
         elif prop.get("compression") is not None:
             raise InputError(path, pfield, f"compression {prop['compression']!r}, expected gz or none")
-        out[name] = _decode(data, prop, count, path, pfield)
+        out[name] = _decode(data, prop, codes if name in _CODES else count, path, pfield)
     return base, count, out, payload + _int(meta, "payloadBytes", path, field)
 
 
@@ -166,17 +168,32 @@ def read_rad_tree(path: str | os.PathLike) -> RadTree:
         raise InputError(path, "header maxSh", f"{sh_degree}, expected 0 to 3")
     # Columns are decoded in float64 before the model's float32: about twice the model's bytes per splat.
     check_memory(path, "header count", n, 2 * model_bytes_per_splat(sh_degree) + 16)
+    codes = _int(meta, "shCodeCount", path, "header") if "shCodeCount" in meta else 0
     cols: dict[str, np.ndarray] = {}
     for index, rng in enumerate(meta.get("chunks", [])):
+        offset = _int(rng, "offset", path, f"chunk {index}")
         if rng.get("filename"):
-            raise InputError(path, f"chunk {index}", "is in a separate .radc file; expected a single .rad")
-        base, count, props, _ = _chunk(buf, chunks_start + _int(rng, "offset", path, f"chunk {index}"), path, index)
+            base, count, props, _ = _chunk(_radc(path, rng["filename"], index), offset, path, index, codes)
+        else:
+            base, count, props, _ = _chunk(buf, chunks_start + offset, path, index, codes)
         if base + count > n:
             raise InputError(path, f"chunk {index}", f"splats {base}..{base + count} beyond count {n}")
         for name, values in props.items():
+            if name in _CODES:
+                cols[name] = values
+                continue
             if name not in cols:
                 cols[name] = np.zeros((n, values.shape[1]), np.float64)
             cols[name][base:base + count] = values
+    if "sh_label" in cols:
+        labels = cols.pop("sh_label")[:, 0].astype(np.int64)
+        for band, code in enumerate(_CODES, start=1):
+            if code in cols:
+                book = cols.pop(code)
+                if len(labels) and (labels.min() < 0 or labels.max() >= len(book)):
+                    raise InputError(path, "sh_label", f"labels up to {int(labels.max())}, expected below "
+                                     f"{len(book)} (shCodeCount)")
+                cols[f"sh{band}"] = book[labels]
     for name in ("center", "alpha", "rgb", "scales", "orientation"):
         if name not in cols:
             raise InputError(path, name, "missing (expected in every chunk)")
@@ -196,6 +213,14 @@ def read_rad_tree(path: str | os.PathLike) -> RadTree:
     count = cols.get("child_count", np.zeros((n, 1)))[:, 0].astype(np.uint16)
     start = cols.get("child_start", np.zeros((n, 1)))[:, 0].astype(np.uint32)
     return RadTree(g, count, start, _depths(count, start, path))
+
+
+def _radc(path: str, filename, index: int) -> bytes:
+    """A chunk held in a separate file beside the header file (Spark's `build-lod --rad-chunked`)."""
+    field = f"chunk {index} filename"
+    if not isinstance(filename, str) or os.path.basename(filename) != filename or filename in (".", ".."):
+        raise InputError(path, field, f"{filename!r}, expected a file name beside the .rad")
+    return read_regular_file(os.path.join(os.path.dirname(path), filename), memory_budget(), path, field)
 
 
 def _depths(count: np.ndarray, start: np.ndarray, path: str) -> np.ndarray:

@@ -42,7 +42,11 @@ HISTOGRAM_BINS = 4096
 QUANTISE_SAMPLE = 1 << 20
 # WebP's dimension limit: 16383 x 16383 texels.
 MAX_TEXTURE_SIDE = 16383
-WEBP_METHOD = 4  # libwebp's default effort; 6 saves about 2 % more for twice the time
+# Lossless WebP effort (libwebp's method 0-6 and, for lossless, quality 0-100 as effort): method 2 at quality 50
+# writes slightly fewer bytes than method 4 at quality 100 in up to a ninth of the CPU (BENCHMARKS.md, "WebP
+# effort of the SOG writers").
+WEBP_METHOD = 2
+WEBP_QUALITY = 50
 QUAT_ORDER = ((1, 2, 3), (0, 2, 3), (0, 1, 3), (0, 1, 2))  # the stored components per largest index
 PLANE_NAMES = ("means_l.webp", "means_u.webp", "quats.webp", "scales.webp", "sh0.webp")
 SHN_NAMES = ("shN_centroids.webp", "shN_labels.webp")
@@ -132,7 +136,7 @@ def _webp(texels: np.ndarray, width: int, height: int) -> bytes:
     plane[:len(texels)] = texels
     out = io.BytesIO()
     Image.fromarray(plane.reshape(height, width, 4), "RGBA").save(out, format="WEBP", lossless=True, exact=True,
-                                                                  quality=100, method=WEBP_METHOD)
+                                                                  quality=WEBP_QUALITY, method=WEBP_METHOD)
     return out.getvalue()
 
 

@@ -37,6 +37,9 @@ async function main() {
   // The splat budget as a limit: the engine then picks each leaf's level by its distance (lodBaseDistance x
   // lodMultiplier^level) instead of drawing everything at full detail whenever the scene fits the budget.
   app.scene.gsplat.splatBudgetMode = pc.GSPLAT_BUDGET_LIMIT;
+  // minpx: the engine culls splats whose quad is under this many pixels across (its default 2); 0 draws them all,
+  // as 3DGS does (the 1M test's small canvas, where most splats are that small).
+  if (q.get("minpx") !== null) app.scene.gsplat.minPixelSize = Number(q.get("minpx"));
   const asset = new pc.Asset("scene", "gsplat", { url: q.get("scene") });
   app.assets.add(asset);
   await new Promise((resolve, reject) => {

@@ -22,7 +22,11 @@ async function main() {
   camera.up.copy(vector(q.get("up")));
   camera.lookAt(vector(q.get("target")));
   camera.updateMatrixWorld();
-  const spark = new SparkRenderer({ renderer });
+  // preblur / blur: Spark's 2D low-pass, added before (preBlurAmount, default 0) or after (blurAmount, default 0.3,
+  // with opacity compensation: for antialiased training) the footprint; standard 3DGS content, ours, is
+  // preblur=0.3 blur=0 (the 1M test's small canvas, where the compensation dims every sub-pixel splat).
+  const spark = new SparkRenderer({ renderer, preBlurAmount: Number(q.get("preblur") || 0),
+                                    blurAmount: Number(q.get("blur") ?? 0.3) });
   scene.add(spark);
   const mesh = new SplatMesh({ url: q.get("scene"), paged: true });
   scene.add(mesh);

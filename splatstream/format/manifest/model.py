@@ -9,6 +9,7 @@ import functools
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
 
+import msgpack
 import numpy as np
 
 from ..planes import MAX_SH_DEGREE, band_of, groups_for_degree
@@ -232,9 +233,14 @@ class TileArrays:
         return self.parent[self.has_parent]
 
     @functools.cached_property
+    def child_count(self) -> np.ndarray:
+        """(T,) int64: children of each tile (in these arrays)."""
+        return np.bincount(self.parent_of_child, minlength=len(self.parent))
+
+    @functools.cached_property
     def has_children(self) -> np.ndarray:
         """(T,) bool."""
-        return np.bincount(self.parent_of_child, minlength=len(self.parent)) > 0
+        return self.child_count > 0
 
     @functools.cached_property
     def splats_list(self) -> list[int]:
@@ -462,19 +468,33 @@ def entry_fields(groups: Mapping[str, PayloadEntry], name: str, fields: tuple[st
 
 
 class LazyPayloads(Mapping):
-    """A tile's payload entries (group name -> PayloadEntry), each checked by `check(name)` when first read (the
-    validator's own function for one entry, so a bad one raises the FormatError an eager parse raises)."""
+    """A tile's payload entries (group name -> PayloadEntry), each checked by `check(raw_groups, name)` when first
+    read (the validator's own function for one entry, so a bad one raises the FormatError an eager parse raises).
 
-    def __init__(self, raw: dict, names: tuple[str, ...], check: Callable[[str], PayloadEntry]):
-        self._raw, self._names, self._check = raw, names, check
+    The entries as stored are kept packed (msgpack bytes, unpacked when read): as parsed maps they were about 27
+    objects and 7 KB a tile, which a paged scene's client holds for tens of thousands of tiles and the garbage
+    collector walked in every full pass (BENCHMARKS.md, "Manifest pages"); packed, one bytes object of about 1 KB."""
+
+    def __init__(self, raw: dict, names: tuple[str, ...], check: Callable[[dict, str], PayloadEntry]):
+        self._packed: bytes = msgpack.packb(raw, use_bin_type=True)
+        self._names, self._check = names, check
         self._checked: dict[str, PayloadEntry] = {}
+
+    def _raw(self) -> dict:
+        global _last_unpacked
+        last = _last_unpacked
+        if last[0] is self._packed:  # the fields of one tile's groups are read one group after another
+            return last[1]
+        raw = msgpack.unpackb(self._packed, raw=False, strict_map_key=False)
+        _last_unpacked = (self._packed, raw)
+        return raw
 
     def __getitem__(self, name: str) -> PayloadEntry:
         entry = self._checked.get(name)
         if entry is None:
             if name not in self._names:
                 raise KeyError(name)
-            entry = self._checked[name] = self._check(name)
+            entry = self._checked[name] = self._check(self._raw(), name)
         return entry
 
     def __iter__(self):
@@ -486,7 +506,7 @@ class LazyPayloads(Mapping):
     def raw_fields(self, name: str, fields: tuple[str, ...]) -> tuple:
         """Fields of an entry as stored, where they are a non-negative integer or a payload file name; otherwise the
         entry is checked (and a bad one raises)."""
-        raw = self._raw.get(name)
+        raw = self._raw().get(name)
         if name in self._names and type(raw) is dict:
             values = tuple(raw.get(f) for f in fields)
             if all((type(v) is int and v >= 0) if f != "file" else type(v) is str
@@ -494,6 +514,11 @@ class LazyPayloads(Mapping):
                 return values
         entry = self[name]
         return tuple(getattr(entry, f) for f in fields)
+
+
+# The last LazyPayloads unpacked (its packed bytes, the maps): reading several fields of one tile's groups unpacks
+# them once. Replaced as a whole (one assignment), so threads reading different tiles at once stay correct.
+_last_unpacked: tuple[bytes | None, dict] = (None, {})
 
 
 def scene_summary(m: Manifest) -> dict:

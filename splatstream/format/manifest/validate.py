@@ -454,6 +454,12 @@ def _tile_group(scene: _Scene, raw_groups: dict, chunks: int, texture: tuple[int
     return entry
 
 
+def _lazy_group(scene: _Scene, chunks: int, texture: tuple[int, int], path: str, raw_groups: dict,
+                name: str) -> PayloadEntry:
+    """_tile_group, as LazyPayloads calls it (with the tile's groups unpacked again)."""
+    return _tile_group(scene, raw_groups, chunks, texture, path, name)
+
+
 def _tile(v, i: int, scene: _Scene, group_names: tuple[str, ...]) -> TileEntry:
     source, strict = scene.source, scene.strict
     path = f"tiles[{i}]"
@@ -477,10 +483,9 @@ def _tile(v, i: int, scene: _Scene, group_names: tuple[str, ...]) -> TileEntry:
     raw_groups = t["groups"]
     if type(raw_groups) is not dict:
         raise FormatError(source, gpath, f"expected a map, got {type(raw_groups).__name__}")
-    check = functools.partial(_tile_group, scene, raw_groups, chunks, texture, gpath)
     names = _key_set(group_names)
     if scene.lazy and (raw_groups.keys() == names or not strict and raw_groups.keys() >= names):
-        groups = LazyPayloads(raw_groups, group_names, check)
+        groups = LazyPayloads(raw_groups, group_names, functools.partial(_lazy_group, scene, chunks, texture, gpath))
     else:  # in order, so that a missing group is named where its turn comes (as a scene of another degree has it)
         groups = {}
         for name in group_names:

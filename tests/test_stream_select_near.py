@@ -1,0 +1,215 @@
+"""The selection near the cut (select_near over a PartialView, what the engine runs each frame) against the
+whole-tree reference (select over view_numbers): the same cut, refined set, priorities, splats, cost and budget
+flag, the same draw set and prefetch, on many random views, budgets and trees, paged ones with pages arriving and
+being dropped, whatever tiles it is told to look at first."""
+import gc
+import random
+import weakref
+from concurrent.futures import Future
+from dataclasses import replace
+
+import numpy as np
+import pytest
+from conftest import real
+from test_stream_engine import CountingPool, PagedFetcher, orbit
+
+from client_gl.stream.engine import StreamEngine, StreamOptions
+from client_gl.stream.pages import PagedTree
+from client_gl.stream.selection import (
+    PartialView,
+    SelectionOptions,
+    draw_set,
+    prefetch,
+    select,
+    select_near,
+    view_numbers,
+)
+from splatstream.camera import Camera
+from splatstream.encode import EncodeOptions, encode_in_memory
+from splatstream.format.manifest import parse_manifest, split_pages
+from splatstream.ply import read_gaussians_ply
+from splatstream.store import read_manifest
+
+
+@pytest.fixture(scope="module")
+def whole():
+    g = read_gaussians_ply(real("fruit_drops_sh3.ply"))
+    m = read_manifest(encode_in_memory(g, EncodeOptions(preset="medium", max_leaf_splats=200)))
+    assert m.levels >= 5
+    return m
+
+
+def random_camera(m, rnd: random.Random) -> Camera:
+    root = m.tiles[m.index_of[m.root]]
+    c, r = np.array(root.sphere_center), root.sphere_radius
+    d = np.array([rnd.gauss(0, 1) for _ in range(3)])
+    eye = c + d / np.linalg.norm(d) * r * rnd.choice([0.05, 0.3, 0.7, 1.0, 1.5, 3.0, 8.0])
+    target = c + np.array([rnd.gauss(0, 0.5 * r) for _ in range(3)])
+    size = rnd.choice([(320, 240), (640, 360), (1920, 1080)])
+    return Camera(tuple(eye), tuple(target), (0.0, 0.0, 1.0), rnd.choice([30.0, 60.0, 90.0]), *size,
+                  near=0.01 * r)
+
+
+def random_options(m, rnd: random.Random, cost) -> SelectionOptions:
+    splats = m.tiles[m.index_of[m.root]].splats
+    return SelectionOptions(max_sse=rnd.choice([0.0, 0.5, 1.5, 4.0, 20.0]),
+                            max_splats=rnd.choice([None, splats, 2 * splats, 5 * splats, 40 * splats]),
+                            budget=rnd.choice([None, float(cost.sum()) * rnd.choice([0.01, 0.1, 0.5])]),
+                            hysteresis=rnd.choice([0.8, 0.5, 1.0]))
+
+
+def check_same(m, cam, opts, previous, near, resident, rnd):
+    """select_near (told to look at `near` first) against select, and draw_set and prefetch with either view."""
+    a = m.arrays
+    root = m.index_of[m.root]
+    cost = np.array([t.chunks for t in m.tiles], np.float64) * 4096.0
+    full = view_numbers(a, cam, opts)
+    want = select(a, full, cost, root, opts, previous, m.lod.reduction)
+    part = PartialView(a, cam, opts, m.lod.reduction)
+    got = select_near(a, part, cost, root, opts, previous, near)
+    assert got.cut == want.cut  # the same tiles in the same order
+    assert got.refined == want.refined and got.priority == want.priority
+    assert (got.splats, got.cost, got.budget_limited) == (want.splats, want.cost, want.budget_limited)
+    known = np.frombuffer(bytes(part.known), np.uint8).astype(bool)
+    for name in ("sse", "visible", "radius_px", "area_px", "distance"):  # the same bits where computed
+        assert np.array_equal(getattr(part, name)[known], getattr(full, name)[known]), name
+    # one tile's box test alone (what the draw set's walk below the cut uses) is the batch's
+    some = rnd.sample(range(len(m.tiles)), min(40, len(m.tiles)))
+    assert all(part.visible_at(i) == bool(full.visible[i]) for i in some)
+    assert draw_set(a, part, got, resident, root) == draw_set(a, full, want, resident, root)
+    assert prefetch(a, part, got, opts, cost) == prefetch(a, full, want, opts, cost)
+    return got, int(known.sum())
+
+
+def test_select_near_is_the_whole_tree_selection(whole):
+    m = whole
+    rnd = random.Random(1)
+    cost = np.array([t.chunks for t in m.tiles], np.float64) * 4096.0
+    n = len(m.tiles)
+    previous, last = frozenset(), ()
+    looked = []
+    for step in range(150):
+        cam, opts = random_camera(m, rnd), random_options(m, rnd, cost)
+        near_kind = step % 3
+        near = ([k for i in set(previous) | set(last) for k in m.arrays.children[i]] if near_kind == 0 else
+                rnd.sample(range(n), rnd.randrange(n)) if near_kind == 1 else [])
+        resident = np.array([rnd.random() < rnd.choice([0.0, 0.3, 0.9]) for _ in range(n)], bool)
+        sel, k = check_same(m, cam, opts, previous if rnd.random() < 0.7 else frozenset(
+            rnd.sample(range(n), rnd.randrange(n // 4))), near, resident, rnd)
+        previous, last = sel.refined, sel.cut
+        looked.append(k)
+    assert min(looked) < n  # some views look at part of the tree only
+
+
+def test_select_near_on_a_paged_tree_with_pages_arriving_and_dropped(whole):
+    paged = split_pages(whole, 2)
+    assert len(paged.pages) >= 5
+    files = {ref.file: raw for ref, raw in paged.pages}
+    rnd = random.Random(7)
+    tree = PagedTree(paged.root)
+    previous: frozenset[int] = frozenset()
+    last: set[int] = set()
+    reads = evictions = 0
+    for _ in range(200):
+        m = tree.manifest
+        cost = np.array([t.chunks for t in m.tiles], np.float64) * 4096.0
+        cam, opts = random_camera(m, rnd), random_options(m, rnd, cost)
+        children = m.arrays.children
+        near = [k for i in previous | last for k in children[i]]
+        resident = np.array([rnd.random() < 0.5 for _ in m.tiles], bool)
+        sel, _ = check_same(m, cam, opts, previous, near, resident, rnd)
+        previous, last = sel.refined, set(sel.cut)
+        # pages arriving: some the cut reaches, some anywhere; some dropped again
+        full = view_numbers(m.arrays, cam, opts)
+        wanted = tree.wanted_pages(sel.cut, full.sse, full.visible, opts.max_sse)
+        pending = list(tree.pending)
+        for tile_id in [k[0] for k in wanted[:3]] + rnd.sample(pending, min(len(pending), rnd.randrange(3))):
+            if tile_id in tree.pending:
+                tree.add_page(tile_id, files[tree.entry(tile_id).file])
+                reads += 1
+        held = tree.held_pages()
+        if held and rnd.random() < 0.3:
+            before = len(tree.manifest.tiles)
+            keep = tree.evict(rnd.sample(held, rnd.randrange(1, min(3, len(held)) + 1)))
+            evictions += 1
+            new_of = np.full(before, -1, np.int64)  # the engine's remapping of its per-tile state
+            new_of[keep] = np.arange(len(keep))
+            previous = frozenset(int(new_of[i]) for i in previous if new_of[i] >= 0)
+            last = {int(new_of[i]) for i in last if new_of[i] >= 0}
+    assert reads > 10 and evictions > 10 and tree.evicted > 0
+
+
+def test_dropped_pages_are_freed_when_the_tree_was_frozen(whole):
+    """The engine freezes the collector's objects after adding pages (StreamOptions.freeze_pages): a dropped
+    page's tiles must still be freed, by reference counting alone (they hold no reference cycles)."""
+    paged = split_pages(whole, 2)
+    files = {ref.file: raw for ref, raw in paged.pages}
+    tree = PagedTree(paged.root)
+    head = next(iter(tree.pending))
+    tree.add_page(head, files[tree.entry(head).file])
+    _ = tree.manifest.arrays
+    below = tree.below(head)
+    assert below
+    refs = [weakref.ref(tree.manifest.tiles[i]) for i in below]
+    refs += [weakref.ref(tree.manifest.tiles[i].groups) for i in below]
+    gc.freeze()
+    try:
+        tree.evict([head])
+        _ = tree.manifest.arrays
+        assert all(r() is None for r in refs)
+    finally:
+        gc.unfreeze()
+
+
+class Inline:
+    """An executor that runs what it is given at once."""
+
+    def submit(self, fn, *args):
+        future = Future()
+        try:
+            future.set_result(fn(*args))
+        except Exception as exc:  # as an executor hands it over
+            future.set_exception(exc)
+        return future
+
+    def shutdown(self, **_) -> None:
+        return None
+
+
+@pytest.fixture(scope="module")
+def paged_store():
+    g = read_gaussians_ply(real("fruit_drops_sh3.ply"))
+    return encode_in_memory(g, EncodeOptions(preset="medium", max_leaf_splats=300, page_tiles=4, page_levels=2))
+
+
+def test_the_engine_selects_near_the_cut_as_over_every_tile(paged_store):
+    """The engine with the selection near the cut from the first tile (select_near_from 0) and over every tile held
+    (never near): the same selections, draw sets and fetches frame by frame, with pages read and dropped."""
+    whole = read_manifest(paged_store)
+    root_tiles = len(parse_manifest(paged_store.read_manifest(), "root").tiles)
+    opts = StreamOptions(SelectionOptions(max_sse=1.0, band_area_share=(0.95, 0.8, 0.6)),
+                         max_tree_tiles=root_tiles + 4)
+    top = whole.tiles[0]
+    c, r = np.array(top.sphere_center), top.sphere_radius
+
+    def outward(angle):  # from inside the scene, looking out at one side of it (test_stream_engine's views)
+        d = np.array([np.cos(angle), np.sin(angle), 0.0])
+        return Camera(tuple(c + 0.3 * r * d), tuple(c + 2 * r * d), (0, 0, 1), 40.0, 320, 240, near=0.001 * r)
+
+    cams = [orbit(whole, 2.5, 0.3), outward(0.3), outward(0.3 + np.pi), orbit(whole, 0.8, 1.5), outward(0.3),
+            orbit(whole, 0.6, 3.0), outward(2.0), orbit(whole, 3.0, 2.0)]
+    runs = []
+    for near_from in (0, 1 << 30):
+        fetcher = PagedFetcher(paged_store)
+        engine = StreamEngine(fetcher, CountingPool(26), replace(opts, select_near_from=near_from))
+        engine._pool.shutdown()
+        engine._pool = Inline()  # decodes and page parses done when asked for: the frames do not depend on timing
+        frames = []
+        for cam in cams:
+            for _ in range(25):
+                u = engine.update(cam)
+                frames.append((u.draw, u.selection.cut, u.selection.refined, u.converged))
+        runs.append((frames, fetcher.fetched, engine.pages.pages_read, engine.pages.evicted))
+        engine.close()
+    assert runs[0] == runs[1]
+    assert runs[0][2] > 3 and runs[0][3] > 0  # pages read and dropped on the way
