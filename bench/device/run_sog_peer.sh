@@ -73,7 +73,11 @@ if [ "${1:-}" = pack ]; then
   # lib/webp.wasm), webgpu's Linux x86-64 Dawn (symbols stripped), debug, ms; not the library builds (index.mjs /
   # .cjs and their SPZ chunk), @adobe/spz, source maps, TypeScript types or other platforms' Dawn. Checked here: a
   # SOG encode of fruit_drops with -g cpu --max-workers 2 and --list-gpus run from this set.
-  for p in @playcanvas/splat-transform webgpu debug ms; do
+  # NO_DAWN=1: without webgpu's Dawn (about 4 MB of the carry): the k-means then runs on the CPU there (-g cpu,
+  # one worker per core), for a carry that would otherwise be over the limit. Tried with flowers on nvidia-h200-x2
+  # (32 cores, 2026-11-28): not finished within the call's 600 s (Dawn's absence aside, that machine listed no
+  # WebGPU adapter to this carry's earlier probes either), so flowers' SOG point is still missing.
+  for p in @playcanvas/splat-transform $([ -n "${NO_DAWN:-}" ] || echo webgpu) debug ms; do
     mkdir -p "$tmp/node_modules/$(dirname "$p")"
     cp -r "$nm/$p" "$tmp/node_modules/$p"
   done
@@ -82,8 +86,17 @@ if [ "${1:-}" = pack ]; then
   find "$d" -maxdepth 1 -name 'spz-*.js' ! -name "$spz_cli" -delete
   rm -f "$d/index.mjs" "$d/index.cjs"
   find "$tmp/node_modules" \( -name '*.map' -o -name '*.d.ts' -o -name '*.d.cts' \) -delete
-  find "$tmp/node_modules/webgpu/dist" -type f ! -name 'linux-x64.dawn.node' ! -name '*.js' -delete
-  strip --strip-unneeded "$tmp/node_modules/webgpu/dist/linux-x64.dawn.node"
+  if [ -z "${NO_DAWN:-}" ]; then
+    find "$tmp/node_modules/webgpu/dist" -type f ! -name 'linux-x64.dawn.node' ! -name '*.js' -delete
+    strip --strip-unneeded "$tmp/node_modules/webgpu/dist/linux-x64.dawn.node"
+  else  # the CLI imports webgpu at start; without Dawn it gets a module that has no adapter to offer
+    mkdir -p "$tmp/node_modules/webgpu"
+    printf '%s\n' '{"name": "webgpu", "version": "0.0.0-no-dawn", "type": "module", "main": "index.js"}' \
+      > "$tmp/node_modules/webgpu/package.json"
+    printf '%s\n' 'export const globals = {};' \
+      'export function create() { throw new Error("this carry has no Dawn (NO_DAWN=1): use -g cpu"); }' \
+      > "$tmp/node_modules/webgpu/index.js"
+  fi
   tar -cf - -C "$tmp" node_modules | xz -T1 -9e > "$c.part/st_nm.tar.xz"
   : > "$c.part/sha256.txt"
   for s in ${SOG_SCENES:-flowers}; do
