@@ -1,13 +1,21 @@
-"""Named presets against the peers' points (issue 15's "Done when"), from `splatstream eval` reports.
+"""Named presets against the peers' points (issues 15 and 32, "Done when"), from `splatstream eval` reports.
 
     python bench/preset_dominance.py REPORT.json ... [--markdown OUT.md] [--table OUT.md] [--plot OUT.png]
+                                                      [--held-out OUT.md] [--columns N]
 
 Each REPORT.json is one scene's eval (bench/run_eval.sh writes <scene>.json; reports of the same scene are merged,
 later files winning on equal labels). For every peer point (rows of kind `compare`: splat-transform's
 compressed.ply, SPZ, SOG) it names the smallest preset (rows of kind `preset`) whose mean PSNR is at least the
 peer's, and the ratio of their disk bytes; the goal is a ratio of at most 0.90. Where it is not met the shortfall
 is stated both ways: the smallest ratio at the peer's PSNR, and the best preset at 0.90 of its bytes or fewer with
-its PSNR deficit. The plot has one panel per scene (the eval's rate-distortion plot of the presets and peers).
+its PSNR deficit. The plot has one panel per scene (the eval's rate-distortion plot of the presets and peers;
+presets with identical points, e.g. the SH presets and their bases on an SH0 scene, share one label).
+
+Held-out evaluation (--held-out): every choice below was made on some scenes (TUNED: the scenes whose
+measurements chose a preset's settings, BENCHMARKS.md "Size against quality" and "SH coding on real captures";
+CHOICES: the peer point a preset was made to dominate and where). For each choice it says whether it holds on every
+other scene, and for every peer point the smallest dominating preset among those *not* tuned on that scene (leave
+one scene out).
 """
 from __future__ import annotations
 
@@ -17,6 +25,34 @@ import os
 from collections import defaultdict
 
 GOAL = 0.90
+
+# Scenes (report input file names without extension) whose measurements chose each preset's settings. The seven
+# presets of issue 15 and the tile-step presets were tuned on the four real bench scenes (and the synthetic s1m);
+# the per-splat SH presets on flowers (G) and fruit_drops (the importance exponent), on top of bases tuned on the
+# bench scenes. very-high is lossless: tuned on nothing.
+BENCH = ("fruit_drops_sh3", "donut_sh0_no_normals", "biker.compressed", "lod_tile_sh3_zero_rest", "s1m")
+SH_TUNED = BENCH + ("flowers",)
+TUNED: dict[str, tuple[str, ...]] = {
+    "very-high": (),
+    **{p: BENCH for p in ("high", "medium", "medium-low", "medium-low-9bit", "medium-low-12bit", "low-plus-9bit",
+                          "low-plus", "low", "very-low")},
+    **{p: SH_TUNED for p in ("medium-high", "medium-low-sh16", "medium-low-sh8", "low-plus-9bit-sh6",
+                             "low-plus-9bit-sh5")},
+}
+# A per-splat SH preset on a scene without SH bands is its base (not measured again there)
+SH_BASE = {"medium-high": "high", "medium-low-sh16": "medium-low", "medium-low-sh8": "medium-low",
+           "low-plus-9bit-sh6": "low-plus-9bit", "low-plus-9bit-sh5": "low-plus-9bit"}
+# (preset, peer label, scenes the choice was made on, what was chosen there)
+CHOICES: list[tuple[str, str, tuple[str, ...], str]] = [
+    ("medium", "st-compressed.ply", ("biker.compressed",), "opacity grid and input chunk order (biker)"),
+    ("medium-low", "st-sog", ("lod_tile_sh3_zero_rest",), "zstd level 9 (lod_tile at 0.904 before)"),
+    ("medium-low-9bit", "st-sog", ("biker.compressed",), "9-bit positions, zstd 16 (biker)"),
+    ("medium-low-12bit", "st-sog", ("donut_sh0_no_normals",), "tile steps G 4095/180/255/55 (donut)"),
+    ("low-plus-9bit", "st-sog", ("s1m",), "9-bit positions on tile steps (s1m)"),
+    ("low", "st-spz", BENCH, "issue 15's low (the bench scenes)"),
+    ("low-plus-9bit-sh5", "st-spz", ("flowers", "fruit_drops_sh3"),
+     "one zero-anchored SH step per band, G 5, exponent 0.3 (flowers; exponent on fruit_drops)"),
+]
 
 
 def _name(report: dict) -> str:
@@ -69,7 +105,7 @@ def markdown(scenes: dict[str, dict]) -> str:
     lines = ["| scene | peer | peer B/splat | peer PSNR dB | smallest preset at >= its PSNR | ratio | goal <= 0.90 |",
              "|---|---|---|---|---|---|---|"]
     for name, s in scenes.items():
-        short = f"{name} ({s['input']['splats']:,}, SH{s['input']['sh_degree']})"
+        short = _short(name, s)
         for v in verdicts(s):
             found = "none" if v["preset"] is None else \
                 f"{v['preset']} ({v['preset_bytes']:.2f} B, {v['preset_psnr']:.2f} dB)"
@@ -86,25 +122,130 @@ def markdown(scenes: dict[str, dict]) -> str:
     return "\n".join(lines)
 
 
-def preset_table(scenes: dict[str, dict]) -> str:
-    """Disk B/splat and mean PSNR of every preset and peer, one column per scene."""
+def _stem(name: str) -> str:
+    return os.path.splitext(name)[0]
+
+
+def _short(name: str, s: dict) -> str:
+    return f"{_stem(name)} ({s['input']['splats']:,}, SH{s['input']['sh_degree']})"
+
+
+def held_out_presets(name: str, presets: dict[str, dict]) -> dict[str, dict]:
+    """The presets whose settings were not chosen on scene `name` (a preset not in TUNED counts as tuned on all)."""
+    return {p: r for p, r in presets.items() if p in TUNED and _stem(name) not in TUNED[p]}
+
+
+def summary(scenes: dict[str, dict]) -> dict:
+    """Counts of peer points met: all, on scenes no preset was tuned on, and leave-one-scene-out."""
+    tuned_any = {t for ts in TUNED.values() for t in ts}
+    out = {"points": 0, "met": 0, "held_out_points": 0, "held_out_met": 0, "loo_met": 0}
+    for name, s in scenes.items():
+        held = _stem(name) not in tuned_any
+        loo = verdicts({**s, "presets": held_out_presets(name, s["presets"])})
+        for v, w in zip(verdicts(s), loo, strict=True):
+            out["points"] += 1
+            out["met"] += v["met"]
+            out["loo_met"] += w["met"]
+            out["held_out_points"] += held
+            out["held_out_met"] += held and v["met"]
+    return out
+
+
+def held_out_markdown(scenes: dict[str, dict]) -> str:
+    """The choices made on some scenes, checked on the others; then every peer point against the presets not tuned
+    on its scene (leave one scene out)."""
+    lines = ["| choice | chosen on | there | other scenes: holds on | where it does not (preset / peer bytes, dB) |",
+             "|---|---|---|---|---|"]
+    for preset, peer, chosen, what in CHOICES:
+        there, held, fails = [], [], []
+        for name, s in scenes.items():
+            r, q = s["presets"].get(preset), s["peers"].get(peer)
+            if r is None or q is None or (TUNED.get(preset) == SH_TUNED and not s["input"]["sh_degree"]):
+                continue  # a per-splat SH preset is its base on a scene without SH bands
+            ratio = r["disk_bytes_per_splat"] / q["disk_bytes_per_splat"]
+            gain = _psnr(r) - _psnr(q)
+            ok = ratio <= GOAL and gain >= 0
+            cell = f"{_stem(name)} {ratio:.2f}, {gain:+.2f} dB"
+            if _stem(name) in chosen:
+                there.append(cell + ("" if ok else " (not met)"))
+            else:
+                held.append(ok)
+                if not ok:
+                    fails.append(cell)
+        lines.append(f"| `{preset}` against {peer}: {what} | {', '.join(chosen)} | {'; '.join(there) or 'not run'} | "
+                     f"{sum(held)} of {len(held)} | {'; '.join(fails) or '-'} |")
+    lines += ["", "| scene | peer | peer B/splat | peer PSNR dB | smallest preset not tuned on this scene at >= its "
+              "PSNR | ratio | goal <= 0.90 |", "|---|---|---|---|---|---|---|"]
+    for name, s in scenes.items():
+        presets = held_out_presets(name, s["presets"])
+        for v in verdicts({**s, "presets": presets}):
+            found = "none" if v["preset"] is None else \
+                f"{v['preset']} ({v['preset_bytes']:.2f} B, {v['preset_psnr']:.2f} dB)"
+            ratio = "" if v["ratio"] is None else f"{v['ratio']:.2f}"
+            if not set(presets) - {"very-high"}:
+                found, ratio, verdict = "-", "", "every lossy preset was tuned on this scene"
+            elif v["met"]:
+                verdict = "met"
+            else:
+                best = v["best_within_goal"]
+                verdict = "**not met**: at <= 0.90 of its bytes the best is " + \
+                    ("none" if best is None else f"{best[0]} ({best[1]:.2f} B, {best[2]:.2f} dB, "
+                     f"{best[2] - v['peer_psnr']:+.2f} dB)")
+            lines.append(f"| {_short(name, s)} | {v['peer']} | {v['peer_bytes']:.2f} | {v['peer_psnr']:.2f} | "
+                         f"{found} | {ratio} | {verdict} |")
+    n = summary(scenes)
+    lines += ["", f"Peer points met: {n['met']} of {n['points']}; on the scenes no preset was tuned on "
+              f"{n['held_out_met']} of {n['held_out_points']}; leave one scene out (presets not tuned on the "
+              f"point's scene only) {n['loo_met']} of {n['points']}."]
+    return "\n".join(lines)
+
+
+def preset_table(scenes: dict[str, dict], columns: int = 0) -> str:
+    """Disk B/splat and mean PSNR of every preset and peer, one column per scene (in tables of at most `columns`
+    scenes each, when given)."""
+    if columns and len(scenes) > columns:
+        names = list(scenes)
+        return "\n\n".join(preset_table({n: scenes[n] for n in names[i:i + columns]})
+                            for i in range(0, len(names), columns))
     from splatstream.format.presets import PRESETS
 
-    def cell(r: dict | None) -> str:
+    def cell(r: dict | None, preset: str = "", s: dict | None = None) -> str:
+        if r is None and s is not None and not s["input"]["sh_degree"] and preset in SH_BASE:
+            return f"= {SH_BASE[preset]} (no SH bands)"
         if r is None:
             return "not run"
         return f"{r['disk_bytes_per_splat']:.2f} B, " + \
             ("lossless" if r["psnr_mean"] is None else f"{r['psnr_mean']:.1f} dB")
 
-    head = [f"{os.path.splitext(n)[0]} ({s['input']['splats']:,}, SH{s['input']['sh_degree']})"
-            for n, s in scenes.items()]
+    head = [_short(n, s) for n, s in scenes.items()]
     lines = ["| preset | " + " | ".join(head) + " |", "|---|" + "---|" * len(head)]
     for p in PRESETS:
-        lines.append(f"| {p} | " + " | ".join(cell(s["presets"].get(p)) for s in scenes.values()) + " |")
+        lines.append(f"| {p} | " + " | ".join(cell(s["presets"].get(p), p, s) for s in scenes.values()) + " |")
     for peer in sorted({k for s in scenes.values() for k in s["peers"]}):
         lines.append(f"| {peer.replace('st-', 'splat-transform ')} | "
                      + " | ".join(cell(s["peers"].get(peer)) for s in scenes.values()) + " |")
     return "\n".join(lines)
+
+
+def _merged_points(presets: dict[str, dict]) -> list[dict]:
+    """The preset rows by bytes; those at the same PSNR (0.01 dB) within 1 % of each other's bytes (the per-splat
+    SH presets and their bases on a scene without SH bands) as one row, labelled "base = -sh16 = -sh8"."""
+    groups: list[list[dict]] = []
+    for r in sorted(presets.values(), key=lambda r: (len(r["label"]), r["label"])):
+        for g in groups:
+            if g[0]["psnr_mean"] is not None and r["psnr_mean"] is not None \
+                    and abs(g[0]["psnr_mean"] - r["psnr_mean"]) < 0.01 \
+                    and abs(g[0]["disk_bytes_per_splat"] / r["disk_bytes_per_splat"] - 1) < 0.01:
+                g.append(r)
+                break
+        else:
+            groups.append([r])
+    rows = []
+    for g in groups:
+        base = g[0]["label"]
+        rest = ["-" + r["label"][len(base) + 1:] if r["label"].startswith(base + "-") else r["label"] for r in g[1:]]
+        rows.append({**g[0], "label": " = ".join([base, *rest])})
+    return sorted(rows, key=lambda r: r["disk_bytes_per_splat"])
 
 
 def plot(scenes: dict[str, dict], out: str) -> None:
@@ -118,12 +259,12 @@ def plot(scenes: dict[str, dict], out: str) -> None:
     panels = []
     with tempfile.TemporaryDirectory() as tmp:
         for i, s in enumerate(scenes.values()):
-            report = {"input": s["input"], "rows": list(s["presets"].values()) + list(s["peers"].values())}
+            report = {"input": s["input"], "rows": _merged_points(s["presets"]) + list(s["peers"].values())}
             path = os.path.join(tmp, f"{i}.png")
-            plot_rate_distortion(report, path, size=(720, 480))
+            plot_rate_distortion(report, path)
             with Image.open(path) as im:
                 panels.append(im.convert("RGB"))
-    cols = min(2, len(panels))
+    cols = min(3, len(panels))
     rows = (len(panels) + cols - 1) // cols
     w, h = panels[0].size
     grid = Image.new("RGB", (cols * w, rows * h), "white")
@@ -138,6 +279,9 @@ def main() -> None:
     ap.add_argument("--markdown")
     ap.add_argument("--plot")
     ap.add_argument("--table", help="also write the presets' and peers' bytes and PSNR per scene (Markdown) here")
+    ap.add_argument("--columns", type=int, default=0, help="--table: at most this many scenes a table")
+    ap.add_argument("--held-out", help="also write the held-out checks (choices on other scenes, leave one scene "
+                    "out; Markdown) here")
     args = ap.parse_args()
     scenes = load(args.reports)
     text = markdown(scenes)
@@ -145,7 +289,9 @@ def main() -> None:
     if args.markdown:
         open(args.markdown, "w").write(text + "\n")
     if args.table:
-        open(args.table, "w").write(preset_table(scenes) + "\n")
+        open(args.table, "w").write(preset_table(scenes, args.columns) + "\n")
+    if args.held_out:
+        open(args.held_out, "w").write(held_out_markdown(scenes) + "\n")
     if args.plot:
         plot(scenes, args.plot)
 

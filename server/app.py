@@ -209,6 +209,8 @@ def tileset_file(request: web.Request, tp: TilesetPath) -> web.StreamResponse:
     opened = open_tileset_file(request.app[SCENE_ROOT], tp)
     if tp.kind == "content":
         return file_response(request, opened, tilesets.CONTENT_TYPE, h.CACHE_IMMUTABLE)
+    if tp.kind == "external":  # an external tileset (one page of a paged scene's tree): immutable like content
+        return file_response(request, opened, tilesets.TILESET_TYPE, h.CACHE_IMMUTABLE)
     return file_response(request, opened, tilesets.TILESET_TYPE, h.CACHE_REVALIDATE)
 
 

@@ -1,11 +1,11 @@
 """Serving exported 3D Tiles tilesets beside scenes (format_spec/http.md 14).
 
 A **tileset** is a directory below the root that holds `tileset.json` and is not a scene (no `manifest.msgpack`).
-It serves exactly `tileset.json` (revalidated: `no-cache`, strong ETag from its bytes) and `tiles/<sha256>.glb`
-(named by the SHA-256 of its bytes: immutable), under the same URL, segment, containment, conditional, range and
-CORS rules as scenes. Self-contained: `parse_tileset_path` answers None for any path that is not a tileset file
-(the scene rules then apply), and `open_tileset_file` opens what it accepts with the checks of
-`SceneRoot.open`.
+It serves exactly `tileset.json` (revalidated: `no-cache`, strong ETag from its bytes), `tiles/<sha256>.glb` and
+the external tilesets `tiles/<sha256>.json` (named by the SHA-256 of their bytes: immutable), under the same URL,
+segment, containment, conditional, range and CORS rules as scenes. Self-contained: `parse_tileset_path` answers
+None for any path that is not a tileset file (the scene rules then apply), and `open_tileset_file` opens what it
+accepts with the checks of `SceneRoot.open`.
 """
 from __future__ import annotations
 
@@ -18,6 +18,8 @@ from splatstream.format.names import (
     MANIFEST_NAME,
     TILESET_CONTENT_DIR,
     TILESET_CONTENT_NAME_RE,
+    TILESET_EXTERNAL_NAME_RE,
+    TILESET_EXTERNAL_SUFFIX,
     TILESET_NAME,
 )
 
@@ -41,18 +43,18 @@ MAX_TILESET_BYTES = 64 << 20  # as a manifest: a tileset.json of a million tiles
 @dataclass(frozen=True)
 class TilesetPath:
     tileset_id: str  # "a/b": segments joined with "/"
-    rel: str  # "tileset.json" or "tiles/<sha256>.glb"
-    kind: str  # "tileset" or "content"
-    sha256: str | None = None  # content: the hash its name carries
+    rel: str  # "tileset.json", "tiles/<sha256>.glb" or "tiles/<sha256>.json"
+    kind: str  # "tileset", "content" or "external" (an external tileset)
+    sha256: str | None = None  # content and external: the hash its name carries
 
 
 def parse_tileset_path(raw_path: str) -> TilesetPath | None:
-    """A raw request path naming a tileset file ('/scenes/<id>/tileset.json', '/scenes/<id>/tiles/<sha>.glb'),
-    or None when it names no such file. Raises PathRejected for what no served path may contain (the rules of
-    server.paths: encoded separators, dot segments, hidden names, ...)."""
+    """A raw request path naming a tileset file ('/scenes/<id>/tileset.json', '/scenes/<id>/tiles/<sha>.glb',
+    '/scenes/<id>/tiles/<sha>.json'), or None when it names no such file. Raises PathRejected for what no served
+    path may contain (the rules of server.paths: encoded separators, dot segments, hidden names, ...)."""
     if len(raw_path) > MAX_PATH_CHARS or not raw_path.startswith(SCENES_PREFIX):
         return None
-    if not (raw_path.endswith("/" + TILESET_NAME) or raw_path.endswith(".glb")):
+    if not (raw_path.endswith(".glb") or raw_path.endswith(TILESET_EXTERNAL_SUFFIX)):
         return None  # the common case (scene files) costs one comparison
     if "\\" in raw_path:
         raise PathRejected(400, "backslashes are not allowed in the path")
@@ -63,6 +65,8 @@ def parse_tileset_path(raw_path: str) -> TilesetPath | None:
         ids, rel, kind, sha = decoded[:-1], TILESET_NAME, "tileset", None
     elif len(decoded) >= 2 and decoded[-2] == TILESET_CONTENT_DIR and TILESET_CONTENT_NAME_RE.match(decoded[-1]):
         ids, rel, kind, sha = decoded[:-2], f"{TILESET_CONTENT_DIR}/{decoded[-1]}", "content", decoded[-1][:64]
+    elif len(decoded) >= 2 and decoded[-2] == TILESET_CONTENT_DIR and TILESET_EXTERNAL_NAME_RE.match(decoded[-1]):
+        ids, rel, kind, sha = decoded[:-2], f"{TILESET_CONTENT_DIR}/{decoded[-1]}", "external", decoded[-1][:64]
     else:
         return None
     if not ids:
@@ -87,7 +91,7 @@ def open_tileset_file(root: SceneRoot, tp: TilesetPath) -> OpenedFile:
         f"no file {tp.rel!r} in tileset {tp.tileset_id!r}"
     if _is_regular(f"{directory}/{MANIFEST_NAME}"):  # a scene: serves only its own two kinds of file
         raise NotFound(f"{tp.tileset_id!r} is a scene, not a tileset")
-    if tp.kind == "content" and not _is_regular(f"{directory}/{TILESET_NAME}"):
+    if tp.kind != "tileset" and not _is_regular(f"{directory}/{TILESET_NAME}"):
         raise NotFound(f"no tileset {tp.tileset_id!r}")
     path = f"{directory}/{tp.rel}"
     try:
@@ -102,7 +106,7 @@ def open_tileset_file(root: SceneRoot, tp: TilesetPath) -> OpenedFile:
         if not is_inside(real, root._real_root) and not is_inside(real, root._resolve_root()):
             raise NotFound(missing)
         size, data = st.st_size, None
-        if tp.kind == "content":
+        if tp.kind != "tileset":  # content-addressed: the name is the ETag
             token = tp.sha256
             if size <= SMALL_FILE_BYTES:
                 data = _read_all(fd, size)

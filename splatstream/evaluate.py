@@ -618,10 +618,10 @@ def plot_rate_distortion(report: dict, path: str, size: tuple[int, int] = (900, 
                font=font)
     d.rectangle([left, top, right, bottom], outline="black")
     d.text(((left + right) / 2 - 110, h - 30), "bytes per splat on disk (log scale)", fill="black", font=font)
-    d.text((left - 70, top - 30), "PSNR (dB), mean over views", fill="black", font=font)
+    d.text((left - 70, top - 24), "PSNR (dB), mean over views", fill="black", font=font)  # under the title
     inp = report["input"]
     title = f"{os.path.basename(inp['path'])}: {inp['splats']:,} splats, SH{inp['sh_degree']}"
-    d.text(((left + right) / 2 - d.textlength(title, font=font) / 2, 12), title, fill="black", font=font)
+    d.text(((left + right) / 2 - d.textlength(title, font=font) / 2, 4), title, fill="black", font=font)
 
     ly = top
     markers: list[Box] = []

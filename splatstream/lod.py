@@ -34,6 +34,7 @@ import numpy as np
 from .format.layout import morton_codes
 from .format.limits import MAX_LOG_SCALE, MIN_LOG_SCALE
 from .gaussians import Gaussians, normalize_quaternions, rotation_matrices
+from .lod_groups import grid_group_starts
 
 # Bounds and errors use this many standard deviations (the 3DGS rasteriser's cut-off and KHR "ellipse" kernel).
 EXTENT_SIGMAS = 3.0
@@ -183,48 +184,8 @@ def splat_mass(g: Gaussians) -> np.ndarray:
 
 
 def _group_starts(positions: np.ndarray, target: int) -> tuple[np.ndarray, np.ndarray]:
-    """Morton order of the splats and the start index of each group in that order (about `target` groups).
-
-    Groups are cells of the binary Morton-prefix grid (prefix length b splits the box b times, cycling x, y, z).
-    We take the longest prefix with at most `target` cells, then split the most populated cells once more."""
-    n = len(positions)
-    codes = _morton(positions)
-    order = np.argsort(codes, kind="stable")
-    codes = codes[order]
-    if target >= n:
-        return order, np.arange(n)
-
-    def boundaries(bits: int) -> np.ndarray:
-        key = codes >> np.uint64(63 - bits)
-        return key[1:] != key[:-1]
-
-    lo_bits, hi_bits = 0, 63  # invariant: cells(lo_bits) <= target
-    if 1 + int(np.count_nonzero(boundaries(hi_bits))) <= target:
-        lo_bits = hi_bits
-    while hi_bits - lo_bits > 1:
-        mid = (lo_bits + hi_bits) // 2
-        if 1 + int(np.count_nonzero(boundaries(mid))) <= target:
-            lo_bits = mid
-        else:
-            hi_bits = mid
-    bnd = boundaries(lo_bits)
-    cells = 1 + int(np.count_nonzero(bnd))
-    if cells < target and lo_bits < 63:
-        finer = boundaries(lo_bits + 1)
-        cell_of = np.concatenate([[0], np.cumsum(bnd)])  # cell index per splat (sorted order)
-        cell_start = np.concatenate([[0], np.flatnonzero(bnd) + 1])
-        sizes = np.diff(np.append(cell_start, n))
-        splittable = np.zeros(cells, bool)
-        splittable[cell_of[1:][finer & ~bnd]] = True
-        # Split the biggest cells first: evens out group sizes, which keeps merged splats of similar size.
-        candidates = np.flatnonzero(splittable)
-        extra = min(target - cells, len(candidates))
-        chosen = candidates[np.argsort(-sizes[candidates], kind="stable")[:extra]]
-        split = np.zeros(cells, bool)
-        split[chosen] = True
-        bnd = bnd | (finer & split[cell_of[1:]])
-    starts = np.concatenate([[0], np.flatnonzero(bnd) + 1])
-    return order, starts
+    """The Morton grid's groups (lod_groups.grid_group_starts): Morton order and each group's start in it."""
+    return grid_group_starts(positions, target)
 
 
 def merge_gaussians(g: Gaussians, mass: np.ndarray, target: int) -> tuple[Gaussians, np.ndarray, np.ndarray]:

@@ -13,6 +13,10 @@ y-up: 3D Tiles runtimes turn glTF content into the tile's z-up frame F with the 
 splats themselves only get a sign turn (exact, and what CesiumJS draws correctly); the rotation from F to L, the
 anchor, the heading and the east-north-up frame at a longitude, latitude and height make the root tile's
 transform (F -> ECEF).
+
+A paged scene (format.md 6.1) is written by default as a root tileset of the root manifest's levels and one
+external tileset per manifest page (`tiles/<sha256>.json`, format_spec/tiles3d.md 3.1), so that a client reads
+the tree page by page as our streaming client does instead of one JSON of every tile.
 """
 from __future__ import annotations
 
@@ -21,7 +25,7 @@ import json
 import math
 import os
 import struct
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -30,8 +34,8 @@ from .atomic import atomic_directory, check_output
 from .axes import RDF_TO_LUF, turn
 from .errors import FormatError, UsageError
 from .format.decode import decode_planes
-from .format.manifest import Manifest
-from .format.names import TILESET_CONTENT_DIR, TILESET_NAME, tileset_content_name
+from .format.manifest import Manifest, page_heads
+from .format.names import TILESET_CONTENT_DIR, TILESET_NAME, tileset_content_name, tileset_external_name
 from .gaussians import Gaussians, covariances, normalize_quaternions
 from .readers.gltf import sh_rotation
 from .readers.spz import decode_spz
@@ -40,6 +44,11 @@ from .store import SceneStore, open_store, read_manifest
 from .writers.glb import DEFAULT_SPZ_VERSION, glb_bytes
 
 CONTENT_KINDS = ("spz", "plain")
+# auto: external tilesets for a paged scene (one per manifest page), one tileset.json for an unpaged one; always:
+# an unpaged scene split too, at the levels the encoder would page it (`ExportOptions.page_levels`); never: one
+# tileset.json listing every tile.
+EXTERNAL_MODES = ("auto", "always", "never")
+DEFAULT_PAGE_LEVELS = 6  # the encoder's default (EncodeOptions.page_levels)
 SPZ_AXES = ("luf", "rub")
 # How SPZ content stores glTF's axes. "luf": the glTF values unconverted, which is what CesiumJS (1.145) reads:
 # its loader decodes SPZ without any axis conversion. Settled by the browser test (tests/test_cesium_browser.py):
@@ -288,8 +297,15 @@ class ExportOptions:
     spz_version: int = DEFAULT_SPZ_VERSION
     placement: Placement = field(default_factory=Placement)
     sh_degree: int | None = None  # None: the scene's
+    external_tilesets: str = "auto"
+    page_levels: int = DEFAULT_PAGE_LEVELS  # levels to an external tileset where the scene has no pages (always)
 
     def __post_init__(self) -> None:
+        if self.external_tilesets not in EXTERNAL_MODES:
+            raise UsageError(f"--external-tilesets: expected one of {', '.join(EXTERNAL_MODES)}, "
+                             f"got {self.external_tilesets!r}")
+        if not (isinstance(self.page_levels, int) and self.page_levels >= 1):
+            raise UsageError(f"page_levels: expected an integer of at least 1, got {self.page_levels!r}")
         if self.content not in CONTENT_KINDS:
             raise UsageError(f"--content: expected one of {', '.join(CONTENT_KINDS)}, got {self.content!r}")
         if self.spz_axes not in SPZ_AXES:
@@ -338,10 +354,51 @@ def tile_boxes(manifest: Manifest, content_boxes: dict[int, tuple[np.ndarray, np
     return boxes
 
 
+def external_heads(manifest: Manifest, options: ExportOptions) -> dict[int, str | None]:
+    """The tiles whose descendants go into an external tileset, each with the SHA-256 of the manifest page holding
+    them (None where `always` splits an unpaged scene at `options.page_levels`)."""
+    mode = options.external_tilesets
+    if mode == "never":
+        return {}
+    if manifest.paged is not None:
+        return {t.id: t.page.sha256 for t in manifest.tiles if t.page is not None}
+    if mode == "always":
+        return {t.id: None for t in page_heads(manifest, options.page_levels)}
+    return {}
+
+
+@dataclass(frozen=True)
+class Tilesets:
+    """A tileset's JSON files: the root (tileset.json) and the external tilesets, by their path in the tileset
+    directory (`tiles/<sha256>.json`)."""
+
+    root: dict
+    external: dict[str, bytes]
+
+
+def _dumps(d: dict) -> bytes:
+    return json.dumps(d, separators=(",", ":")).encode("utf-8")
+
+
 def build_tileset(manifest: Manifest, uris: dict[int, str], boxes: dict[int, tuple[np.ndarray, np.ndarray]],
                   options: ExportOptions, generator: str = "splatstream") -> dict:
-    """The tileset.json map. `boxes` are in the content's splat axes (`content_rotation` applied); `uris` name
-    each tile's content file."""
+    """One tileset.json listing every tile (`build_tilesets` without external tilesets)."""
+    return build_tilesets(manifest, uris, boxes, options, generator, heads={}).root
+
+
+def build_tilesets(manifest: Manifest, uris: dict[int, str], boxes: dict[int, tuple[np.ndarray, np.ndarray]],
+                   options: ExportOptions, generator: str = "splatstream",
+                   heads: Mapping[int, str | None] | None = None) -> Tilesets:
+    """The tileset.json map and the external tilesets. `boxes` are in the content's splat axes (`content_rotation`
+    applied); `uris` name each tile's content file (relative to tileset.json); `heads` (default:
+    `external_heads`) the tiles whose children go into an external tileset.
+
+    A head tile H keeps its own content and gets one child E without content whose `content.uri` is the external
+    tileset; that tileset's root R has no content either and H's children as its children. E and R have H's box
+    and geometric error, so a runtime refines them exactly when it refines H (same volume, same error: the same
+    screen-space error) and never stops at a tile without content. No external tileset has a transform: its
+    tiles are in F below the referencing tile's (3D Tiles 1.1, external tilesets inherit the parent's frame)."""
+    heads = external_heads(manifest, options) if heads is None else heads
     to_frame = Y_UP_TO_Z_UP @ MODEL_TO_GLTF  # content splat axes -> F (content_rotation already applied)
     framed = {tid: rotated_box(lo, hi, to_frame) for tid, (lo, hi) in boxes.items()}  # a signed permutation: exact
     residual = residual_rotation(manifest.up)
@@ -353,22 +410,51 @@ def build_tileset(manifest: Manifest, uris: dict[int, str], boxes: dict[int, tup
         anchor = np.array([(root_lo[0] + root_hi[0]) / 2, (root_lo[1] + root_hi[1]) / 2, root_lo[2]])
     transform = root_transform(placement, anchor, residual)
 
-    def tile_json(tile_id: int) -> dict:
+    used = [EXTENSION] + ([SPZ_EXTENSION] if options.content == "spz" else [])
+    # glTF extensions the content needs, declared for runtimes (CesiumJS picks its splat renderer from this), in
+    # every tileset JSON: each declares what its own tiles use.
+    declared = {"extensionsUsed": [CONTENT_GLTF],
+                "extensions": {CONTENT_GLTF: {"extensionsUsed": used, "extensionsRequired": used}}}
+    external: dict[str, bytes] = {}
+    inner = TILESET_CONTENT_DIR + "/"
+
+    def relative(uri: str, nested: bool) -> str:
+        # External tilesets live in tiles/ beside the content: their URIs are relative to that folder.
+        return uri[len(inner):] if nested and uri.startswith(inner) else uri
+
+    def tile_json(tile_id: int, nested: bool) -> dict:
         t = manifest.tile(tile_id)
         d: dict = {"boundingVolume": {"box": box_volume(*framed[tile_id])},
                    "geometricError": float(t.geometric_error), "refine": "REPLACE",
-                   "content": {"uri": uris[tile_id]}}
+                   "content": {"uri": relative(uris[tile_id], nested)}}
         if t.children:
-            d["children"] = [tile_json(c) for c in t.children]
+            d["children"] = [external_tile(tile_id, nested)] if tile_id in heads else \
+                [tile_json(c, nested) for c in t.children]
         return d
 
-    root = tile_json(manifest.root)
+    def external_tile(tile_id: int, nested: bool) -> dict:
+        t = manifest.tile(tile_id)
+        volume, error = {"box": box_volume(*framed[tile_id])}, float(t.geometric_error)
+        page = heads[tile_id]
+        data = _dumps({
+            "asset": {"version": TILES_VERSION, "generator": generator, "extras": {"splatstream": {
+                "scene": manifest.name, "parent": tile_id, "page": page}}},
+            **declared,
+            "geometricError": error,
+            "root": {"boundingVolume": volume, "geometricError": error, "refine": "REPLACE",
+                     "children": [tile_json(c, True) for c in t.children]},
+        })
+        name = tileset_external_name(hashlib.sha256(data).hexdigest())
+        external[name] = data
+        return {"boundingVolume": volume, "geometricError": error, "refine": "REPLACE",
+                "content": {"uri": relative(name, nested)}}
+
+    root = tile_json(manifest.root, False)
     root["transform"] = column_major(transform)
     # The tileset's error is the error of drawing nothing: at least the scene's size (its box diagonal), so a
     # runtime draws the root as soon as the scene covers a pixel or so, never less than the root's own error.
     diagonal = float(np.linalg.norm(framed[manifest.root][1] - framed[manifest.root][0]))
-    used = [EXTENSION] + ([SPZ_EXTENSION] if options.content == "spz" else [])
-    return {
+    return Tilesets({
         "asset": {
             "version": TILES_VERSION, "generator": generator,
             "extras": {"splatstream": {
@@ -380,12 +466,10 @@ def build_tileset(manifest: Manifest, uris: dict[int, str], boxes: dict[int, tup
                 "longitude": placement.longitude, "latitude": placement.latitude, "height": placement.height,
                 "heading": placement.heading}},
         },
-        # glTF extensions the content needs, declared for runtimes (CesiumJS picks its splat renderer from this).
-        "extensionsUsed": [CONTENT_GLTF],
-        "extensions": {CONTENT_GLTF: {"extensionsUsed": used, "extensionsRequired": used}},
+        **declared,
         "geometricError": max(diagonal, float(manifest.tile(manifest.root).geometric_error)),
         "root": root,
-    }
+    }, external)
 
 
 @dataclass(frozen=True)
@@ -393,7 +477,9 @@ class ExportReport:
     tiles: int
     files: int  # distinct content files
     content_bytes: int
-    tileset_bytes: int
+    tileset_bytes: int  # tileset.json (the root tileset)
+    external_tilesets: int
+    external_bytes: int
     splats: int  # full-detail splats (leaves)
     transform: list[float]
 
@@ -433,8 +519,12 @@ def export_tileset(scene: str | os.PathLike | SceneStore, out_dir: str | os.Path
                 written[content.uri] = len(content.data)
             report("tiles", (done + 1) / len(manifest.tiles))
         boxes = tile_boxes(manifest, content_boxes, rotation)
-        tileset = build_tileset(manifest, uris, boxes, options)
-        data = json.dumps(tileset, separators=(",", ":")).encode("utf-8")
+        tilesets = build_tilesets(manifest, uris, boxes, options)
+        tileset = tilesets.root
+        for name, raw in tilesets.external.items():  # before tileset.json, which names them
+            with open(os.path.join(tmp, name), "wb") as f:
+                f.write(raw)
+        data = _dumps(tileset)
         with open(os.path.join(tmp, TILESET_NAME), "wb") as f:  # last: a tileset directory is complete with it
             f.write(data)
         for name in os.listdir(os.path.join(tmp, TILESET_CONTENT_DIR)):
@@ -442,4 +532,6 @@ def export_tileset(scene: str | os.PathLike | SceneStore, out_dir: str | os.Path
         os.chmod(os.path.join(tmp, TILESET_CONTENT_DIR), 0o755)
         os.chmod(os.path.join(tmp, TILESET_NAME), 0o644)
     return ExportReport(tiles=len(manifest.tiles), files=len(written), content_bytes=sum(written.values()),
-                        tileset_bytes=len(data), splats=manifest.splats, transform=tileset["root"]["transform"])
+                        tileset_bytes=len(data), external_tilesets=len(tilesets.external),
+                        external_bytes=sum(map(len, tilesets.external.values())), splats=manifest.splats,
+                        transform=tileset["root"]["transform"])

@@ -10,7 +10,9 @@ union, and the PSNR of the two images.
 
 Threshold: IoU >= 0.9 and PSNR >= 25 dB. Measured here (CesiumJS 1.145.0, Chromium 156, 480x360): fruit_drops
 (y-down, SH degree 3, default placement) IoU 0.991, PSNR 32.1 dB; donut (z-up, georeferenced at 8.54 E 47.37 N,
-height 400 m, heading 30) IoU 0.982, PSNR 29.8 dB. What differs is the soft rims of splats (CesiumJS's kernel and
+height 400 m, heading 30) IoU 0.982, PSNR 29.8 dB; fruit_drops as a paged scene (63 tiles, 2 levels to a page:
+a root tileset and 26 external tilesets) IoU 0.992, PSNR 30.3 dB, all 4,721 leaf splats drawn from tiles that only
+the external tilesets name. What differs is the soft rims of splats (CesiumJS's kernel and
 blending differ from ours). A wrong frame gives far less: the same fruit_drops tileset with SPZ content in the
 extension text's axes ("rub") draws nothing inside the view (IoU 0.0), which settles how CesiumJS reads SPZ
 content (test_spz_axes_settled_by_cesium); donut content whose splat rotations were composed with its 90-degree
@@ -54,12 +56,16 @@ def tiles_root(tmp_path_factory, page_server):
     requirements(CESIUM_BUILD / "Cesium.js", what="cesium")
     work = tmp_path_factory.mktemp("cesium")
     scenes = {}
-    for name, export_args in (("fruit_drops_sh3.ply", [[], ["--spz-axes", "rub"]]),
-                              ("donut_sh0_no_normals.ply", [["--longitude", "8.54", "--latitude", "47.37",
-                                                             "--height", "400", "--heading", "30"]])):
-        stem = name.split(".")[0]
+    for name, suffix, encode_args, export_args in (
+            ("fruit_drops_sh3.ply", "", ["--max-leaf-splats", "2000"], [[], ["--spz-axes", "rub"]]),
+            ("donut_sh0_no_normals.ply", "", ["--max-leaf-splats", "2000"],
+             [["--longitude", "8.54", "--latitude", "47.37", "--height", "400", "--heading", "30"]]),
+            # A paged scene (63 tiles in 7 levels, 2 to a page): a root tileset and 26 external tilesets.
+            ("fruit_drops_sh3.ply", "-paged", ["--max-leaf-splats", "300", "--page-tiles", "8", "--page-levels", "2"],
+             [[]])):
+        stem = name.split(".")[0] + suffix
         scene = work / "scenes" / stem
-        r = run_cli("encode", real(name), scene, "--max-leaf-splats", "2000", "--quiet")
+        r = run_cli("encode", real(name), scene, "--quiet", *encode_args)
         assert r.returncode == 0, r.stderr
         for args in export_args:
             tag = stem + ("-rub" if "rub" in args else "")
@@ -99,11 +105,15 @@ def camera_query(scene: Path, tileset: dict, tileset_url: str) -> tuple[str, lis
     return query, ours
 
 
-def shoot_tileset(tiles_root, page_server, tag: str, tmp_path: Path) -> tuple[float, float, dict, float]:
+def shoot_tileset(tiles_root, page_server, tag: str, tmp_path: Path,
+                  splats: int = 0) -> tuple[float, float, dict, float]:
+    """splats: the page waits until that many are drawn (besides its own wait for a still splat count)."""
     work, scenes, tiles_url = tiles_root
     scene = scenes[tag]
     tileset = json.loads((work / "tilesets" / tag / "tileset.json").read_text())
     query, ours = camera_query(scene, tileset, f"{tiles_url}/scenes/{tag}/tileset.json")
+    if splats:
+        query += f"&splats={splats}"
     theirs_png, ours_png = tmp_path / f"cesium-{tag}.png", tmp_path / f"ours-{tag}.png"
     report = shoot(f"{page_server}/index.html?{query}", theirs_png, SIZE, timeout=400)
     render_ours(scene, ours_png, SIZE, ours)
@@ -112,9 +122,12 @@ def shoot_tileset(tiles_root, page_server, tag: str, tmp_path: Path) -> tuple[fl
     return iou, psnr, report, coverage(ours_png)
 
 
-@pytest.mark.parametrize("tag", ["fruit_drops_sh3", "donut_sh0_no_normals"])
+@pytest.mark.parametrize("tag", ["fruit_drops_sh3", "donut_sh0_no_normals", "fruit_drops_sh3-paged"])
 def test_cesium_draws_the_splats_where_we_do(tiles_root, page_server, tmp_path, tag):
-    iou, psnr, report, drawn = shoot_tileset(tiles_root, page_server, tag, tmp_path)
+    work, scenes, _ = tiles_root
+    # The paged scene: every leaf (all below the root manifest's levels) must be drawn, so the page waits for them.
+    every = load_manifest(scenes[tag]).splats if tag.endswith("-paged") else 0
+    iou, psnr, report, drawn = shoot_tileset(tiles_root, page_server, tag, tmp_path, every)
     result = report["result"]
     print(f"{tag}: IoU {iou:.3f}, PSNR {psnr:.1f} dB, {result['splats']} splats in {result['selected']} tiles, "
           f"{report['gl']}")
@@ -122,6 +135,28 @@ def test_cesium_draws_the_splats_where_we_do(tiles_root, page_server, tmp_path, 
     assert result["loadedTiles"] >= result["selected"] > 0 and result["splats"] > 0
     assert drawn > 0.05  # the camera sees the scene (our render is not empty)
     assert iou >= MIN_IOU and psnr >= MIN_PSNR_DB, (iou, psnr)
+    externals = {p.name for p in (work / "tilesets" / tag / "tiles").glob("*.json")}
+    read = {path.rsplit("/", 1)[-1] for path in report["fetched"] if path.endswith(".json")}
+    if tag.endswith("-paged"):
+        # CesiumJS went down through the external tilesets (format_spec/tiles3d.md 3.1) and loaded content that
+        # only they name (the tiles below the root manifest's levels), and drew it where we draw the scene.
+        assert externals and read & externals, (sorted(externals)[:3], report["fetched"][:20])
+        below = set()
+        for name in read & externals:
+            below |= _content_names(json.loads((work / "tilesets" / tag / "tiles" / name).read_text())["root"])
+        root = json.loads((work / "tilesets" / tag / "tileset.json").read_text())["root"]
+        glbs = {path.rsplit("/", 1)[-1] for path in report["fetched"] if path.endswith(".glb")}
+        assert glbs & (below - _content_names(root)), sorted(glbs)[:5]
+        assert result["splats"] == every, (result, every)
+    else:
+        assert not externals
+
+
+def _content_names(tile: dict) -> set[str]:
+    names = {tile["content"]["uri"].rsplit("/", 1)[-1]} if "content" in tile else set()
+    for child in tile.get("children", []):
+        names |= _content_names(child)
+    return names
 
 
 def test_spz_axes_settled_by_cesium(tiles_root, page_server, tmp_path):

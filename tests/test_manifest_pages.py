@@ -163,13 +163,21 @@ def test_encode_writes_pages_over_the_threshold_and_the_cli_reads_them(tmp_path)
 
 
 def test_export_3dtiles_of_a_paged_scene_is_the_unpaged_scenes(tmp_path):
-    """The exporter reads every page (load_manifest): the same tileset as the scene's unpaged encode."""
+    """The exporter reads every page (load_manifest): with --external-tilesets never, the same tileset as the
+    scene's unpaged encode; by default the same content, the tree cut into external tilesets at the pages
+    (tests/test_tiles3d.py checks that tree tile for tile)."""
     ply = str(real("fruit_drops_sh3.ply"))
     for name, extra in (("paged", ["--page-tiles", "4", "--page-levels", "2"]), ("whole", [])):
         assert run_cli("encode", ply, str(tmp_path / name), "--max-leaf-splats", "300", "--quiet",
                        *extra).returncode == 0
         r = run_cli("export-3dtiles", str(tmp_path / name), str(tmp_path / f"{name}.tiles"))
         assert r.returncode == 0, r.stderr
-    a, b = tmp_path / "paged.tiles", tmp_path / "whole.tiles"
+    r = run_cli("export-3dtiles", str(tmp_path / "paged"), str(tmp_path / "paged.single"), "--external-tilesets",
+                "never")
+    assert r.returncode == 0, r.stderr
+    a, b, external = tmp_path / "paged.single", tmp_path / "whole.tiles", tmp_path / "paged.tiles"
     assert (a / "tileset.json").read_bytes() == (b / "tileset.json").read_bytes()
     assert sorted(p.name for p in (a / "tiles").iterdir()) == sorted(p.name for p in (b / "tiles").iterdir())
+    assert not list((b / "tiles").glob("*.json"))  # an unpaged scene: one tileset.json, as before
+    assert len(list((external / "tiles").glob("*.json"))) == load_manifest(tmp_path / "paged").paged.pages
+    assert sorted(p.name for p in (external / "tiles").glob("*.glb")) == sorted(p.name for p in (b / "tiles").iterdir())

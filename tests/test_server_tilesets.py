@@ -1,6 +1,6 @@
 """`splatstream serve` serving exported 3D Tiles tilesets (format_spec/http.md 14), as a real server process on
-loopback: the two kinds of file, their caching headers, conditional and range requests, CORS, and the path and
-containment rules shared with scenes."""
+loopback: the three kinds of file (tileset.json, content, external tilesets), their caching headers, conditional
+and range requests, CORS, and the path and containment rules shared with scenes."""
 from __future__ import annotations
 
 import hashlib
@@ -25,7 +25,8 @@ ORIGIN = "http://127.0.0.1:9"
 
 
 def write_tileset(directory: Path, tiles: int = 2) -> list[str]:
-    """A small tileset directory (tileset.json and content-addressed .glb files); the content names."""
+    """A small tileset directory (tileset.json, content-addressed .glb files and an external tileset holding the
+    second tile, as export-3dtiles writes for a paged scene); the content names, then the external tileset's."""
     (directory / "tiles").mkdir(parents=True)
     rng = np.random.default_rng(0)
     names = []
@@ -38,13 +39,20 @@ def write_tileset(directory: Path, tiles: int = 2) -> list[str]:
         name = f"tiles/{hashlib.sha256(data).hexdigest()}.glb"
         (directory / name).write_bytes(data)
         names.append(name)
+    box = {"box": [0, 0, 0, 5, 0, 0, 0, 5, 0, 0, 0, 5]}
+    external = json.dumps({"asset": {"version": "1.1"}, "geometricError": 1.0,
+                           "root": {"boundingVolume": box, "geometricError": 1.0, "refine": "REPLACE",
+                                    "children": [{"boundingVolume": box, "geometricError": 0.0,
+                                                  "content": {"uri": names[1][len("tiles/"):]}}]}}).encode()
+    external_name = f"tiles/{hashlib.sha256(external).hexdigest()}.json"
+    (directory / external_name).write_bytes(external)
     tileset = {"asset": {"version": "1.1"}, "geometricError": 10.0,
-               "root": {"boundingVolume": {"box": [0, 0, 0, 5, 0, 0, 0, 5, 0, 0, 0, 5]}, "geometricError": 1.0,
-                        "refine": "REPLACE", "content": {"uri": names[0]},
-                        "children": [{"boundingVolume": {"box": [0, 0, 0, 5, 0, 0, 0, 5, 0, 0, 0, 5]},
-                                      "geometricError": 0.0, "content": {"uri": names[1]}}]}}
+               "root": {"boundingVolume": box, "geometricError": 1.0, "refine": "REPLACE",
+                        "content": {"uri": names[0]},
+                        "children": [{"boundingVolume": box, "geometricError": 1.0,
+                                      "content": {"uri": external_name}}]}}
     (directory / "tileset.json").write_text(json.dumps(tileset))
-    return names
+    return [*names, external_name]
 
 
 class Server:
@@ -108,7 +116,7 @@ def test_tileset_files_with_caching_headers_conditionals_ranges_and_cors(served)
         data = (root / "city/block-7" / name).read_bytes()
         status, h, body = server.request(f"{base}/{name}", headers={"Origin": ORIGIN})
         assert status == 200 and body == data
-        assert h["content-type"] == "model/gltf-binary"
+        assert h["content-type"] == ("application/json" if name.endswith(".json") else "model/gltf-binary")
         assert h["cache-control"] == "public, max-age=31536000, immutable"
         assert h["etag"] == f'"{name[6:70]}"' and h["access-control-allow-origin"] == ORIGIN
         status, h, body = server.request(f"{base}/{name}", headers={"Range": "bytes=4-11"})
@@ -146,6 +154,10 @@ def test_tileset_path_and_containment_rules(served, tmp_path):
         f"{base}/tiles/{sha}.glb": 200,
         f"{base}/tiles/{sha.upper()}.glb": 404,  # names are lowercase hex
         f"{base}/tiles/{sha[:-1]}.glb": 404,
+        f"{base}/{names[2]}": 200,  # an external tileset
+        f"{base}/tiles/{sha}.json": 404,  # no such external tileset
+        f"{base}/tiles/{sha[:-1]}.json": 404,
+        f"{base}/tiles/tileset.json": 404,
         f"{base}/tiles/": 404,
         f"{base}/other.json": 404,
         f"{base}/tiles/../tileset.json": 400,
@@ -157,6 +169,7 @@ def test_tileset_path_and_containment_rules(served, tmp_path):
         "/scenes/scene-with-tileset/tileset.json": 404,
         f"/scenes/scene-with-tileset/tiles/{sha}.glb": 404,
         f"/scenes/stray/tiles/{sha}.glb": 404,
+        f"/scenes/scene-with-tileset/{names[2]}": 404,
         "/scenes/nope/tileset.json": 404,
         "/scenes/a/b/c/d/e/f/g/h/i/tileset.json": 404,
     }
@@ -170,6 +183,7 @@ def test_parse_tileset_path_leaves_scene_paths_alone():
     sha = "ab" * 32
     assert parse_tileset_path(f"/scenes/a/b/tiles/{sha}.glb").tileset_id == "a/b"
     assert parse_tileset_path("/scenes/a/tileset.json").kind == "tileset"
+    assert parse_tileset_path(f"/scenes/a/tiles/{sha}.json").kind == "external"
     for other in (f"/scenes/a/data/{sha}.bin", "/scenes/a/manifest.msgpack", "/api/scenes", f"/scenes/a/{sha}.glb"):
         assert parse_tileset_path(other) is None
 

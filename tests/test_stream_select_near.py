@@ -1,8 +1,10 @@
-"""The selection near the cut (select_near over a PartialView, what the engine runs each frame) against the
-whole-tree reference (select over view_numbers): the same cut, refined set, priorities, splats, cost and budget
+"""The selection near the cut (select_near over a PartialView, what the engine runs each frame: the greedy loop as
+one scan in key order) against the whole-tree reference (select over view_numbers) and the heap loop over the same
+tiles (select_near_heap): the same cut, refined set, priorities, splats, cost and budget
 flag, the same draw set and prefetch, on many random views, budgets and trees, paged ones with pages arriving and
 being dropped, whatever tiles it is told to look at first."""
 import gc
+import math
 import random
 import weakref
 from concurrent.futures import Future
@@ -22,6 +24,7 @@ from client_gl.stream.selection import (
     prefetch,
     select,
     select_near,
+    select_near_heap,
     view_numbers,
 )
 from splatstream.camera import Camera
@@ -68,6 +71,8 @@ def check_same(m, cam, opts, previous, near, resident, rnd):
     part = PartialView(a, cam, opts, m.lod.reduction)
     got = select_near(a, part, cost, root, opts, previous, near)
     assert got.cut == want.cut  # the same tiles in the same order
+    # the heap loop over the same set (select_near_heap), the scan's second reference
+    assert select_near_heap(a, PartialView(a, cam, opts, m.lod.reduction), cost, root, opts, previous, near) == got
     assert got.refined == want.refined and got.priority == want.priority
     assert (got.splats, got.cost, got.budget_limited) == (want.splats, want.cost, want.budget_limited)
     known = np.frombuffer(bytes(part.known), np.uint8).astype(bool)
@@ -99,6 +104,36 @@ def test_select_near_is_the_whole_tree_selection(whole):
         previous, last = sel.refined, sel.cut
         looked.append(k)
     assert min(looked) < n  # some views look at part of the tree only
+
+
+def test_select_near_when_keys_fall_below_the_parents(whole):
+    """Spheres that do not nest (a child's reaching nearer the eye than its parent's, as on flat city tiles): select's
+    heap then pops such a child right after its parent, out of key order; select_near's scan takes it through its
+    small heap at the same turn. Shrunk and shifted spheres make many such children; the cut is still select's."""
+    rnd = random.Random(3)
+    tiles = []
+    for t in whole.tiles:
+        shift = np.array([rnd.gauss(0, 0.1 * t.sphere_radius) for _ in range(3)])
+        tiles.append(replace(t, sphere_center=tuple(np.array(t.sphere_center) + shift),
+                             sphere_radius=t.sphere_radius * rnd.uniform(0.2, 1.0)))
+    m = replace(whole, tiles=tuple(tiles))
+    a = m.arrays
+    cost = np.array([t.chunks for t in m.tiles], np.float64) * 4096.0
+    previous, last = frozenset(), ()
+    out_of_order = 0
+    step_key = 0.5 * math.log2(max(m.lod.reduction, 1.0 + 1e-9))
+    for step in range(120):
+        cam, opts = random_camera(m, rnd), random_options(m, rnd, cost)
+        near = [k for i in set(previous) | set(last) for k in a.children[i]] if step % 2 else []
+        resident = np.array([rnd.random() < 0.5 for _ in m.tiles], bool)
+        sel, _ = check_same(m, cam, opts, previous, near, resident, rnd)
+        full = view_numbers(a, cam, opts)
+        with np.errstate(divide="ignore"):
+            key = a.level * step_key + np.log2(np.maximum(full.distance, 1e-30))
+        key = np.where(np.isfinite(full.sse), key, -np.inf)
+        out_of_order += sum(1 for i in sel.refined if i != m.index_of[m.root] and key[i] < key[a.parent[i]])
+        previous, last = sel.refined, sel.cut
+    assert out_of_order > 20  # refinements out of key order: the scan's small heap made them
 
 
 def test_select_near_on_a_paged_tree_with_pages_arriving_and_dropped(whole):

@@ -1,43 +1,153 @@
 #!/bin/bash
-# The SOG peer point of s1m_jitter (issue 15), encoded on the GPU machine: splat-transform's SOG encode of a 1M scene
-# whose SH rows are all distinct spends its time in the SH k-means (64k centroids of 45 values); on this project's
-# 2-core machine it ran over 73 minutes (-g cpu). There, splat-transform runs its k-means on the GPU through WebGPU
-# (Dawn on Vulkan), at the tool's defaults (10 SH iterations). From the repo root (device `run` tool), carrying:
-#   .gl        GL loader .debs (libvulkan1 among them, amd64)
-#   .stcarry   node.xz (this machine's /usr/bin/node, xz), st_nm.tar.xz (node_modules of
-#              @playcanvas/splat-transform 3.7.0 without source maps, debug builds and other platforms' Dawn),
-#              shared/tools/make_scene.py + shared/data/real/* (the scene's sources), whl/ (msgpack zstandard
-#              platformdirs, for bench/transport/make_jitter.py)
-# The scene is rebuilt there (make_scene.py --splats 1000000 --seed 0, then make_jitter.py) and its SHA-256 printed, to
-# check it against the local copy before its SOG is used. Usage: bash bench/device/run_sog_peer.sh
-# Writes $OUT/s1m_jitter.sog and $OUT/sog_peer.log; decode it with `splat-transform -w s1m_jitter.sog dec.ply` anywhere.
+# SOG peer points of the SH scenes (issues 15 and 32), encoded on the GPU machine. splat-transform's SOG encode of an
+# SH scene spends its time in the SH k-means (64k centroids over every SH row): on this project's 2-core machine
+# (-g cpu) flowers (542k splats, SH2) ran over 30 CPU minutes and s1m_jitter over 73 minutes without finishing. On
+# the GPU machine splat-transform runs its k-means through WebGPU (Dawn on Vulkan) when a hardware adapter is
+# listed, else on the CPU with one worker per core (-g cpu --max-workers $(nproc)); the tool's defaults otherwise
+# (10 SH iterations). That machine has no internet and no node: node, splat-transform and the scenes travel in
+# .stcarry, and no Python is needed there.
+#
+# Two steps:
+#  1. Here, once, in the repository root: `bash bench/device/run_sog_peer.sh pack` (SOG_SCENES="flowers" by
+#     default; also fruit, lodtile, which encode on the CPU here in under a minute each). It writes .stcarry/
+#     (ignored through .git/info/exclude), 39.6 MB with flowers:
+#       node.xz        this machine's node (v20, x86-64), stripped, xz with the x86 filter (21.09 MB; needs only
+#                      glibc and libstdc++)
+#       st_nm.tar.xz   what splat-transform 3.7.0's CLI loads (5.3 MB; from $ST_NODE_MODULES, default
+#                      .ci/node/node_modules; see below)
+#       debs/          libvulkan1 (amd64), the Vulkan loader Dawn needs on the GPU machine
+#       scenes/        flowers: the finest level of flowers_lod (0_0..0_3, 13.10 MB; the other levels stay here);
+#                      fruit, lodtile: their PLYs
+#       sha256.txt     SHA-256 of each scene's input PLY as splat-transform writes it here (flowers: its 4 level-0
+#                      SOG chunks merged; it equals bench/run_eval.sh's `splatstream convert` of lod-meta.json to
+#                      2.4e-7 in rotations and opacity logits, exactly elsewhere)
+#     A device call also sends the repository's working tree: 27.65 MB of tracked files after merging main on
+#     2026-11-28, so with .stcarry for flowers (39.54 MB) about 81 KB OVER the 64 MiB (67,108,864 bytes) a call may
+#     carry. pack prints the sum. Carry nothing else (.gl is not needed: the Vulkan loader is in .stcarry/debs).
+#     Not solved here: re-encoding flowers' WebP losslessly at effort 6 saves under 1 %; what would fit is a smaller
+#     tree (the sum is of every tracked file) or a node build without ICU data. fruit and lodtile alone fit.
+#  2. One device call (the `run` tool), carrying [".stcarry"]: `bash bench/device/run_sog_peer.sh`, timeout_s 600.
+#     It prints the SHA-256 of each input PLY beside the one made here, the adapters Dawn lists, and writes
+#     $OUT/<stem>.sog and $OUT/sog_peer.log.
+# Then here: copy each <stem>.sog to bench/out/real/peers/<scene>/<stem>.sog and rerun
+# `SCENES=<scene> bash bench/run_eval.sh bench/out/real` (bench/eval_peers.sh decodes a given .sog and compares it).
+#
+# Local test of step 2 (no GPU here: -g cpu on the cores here): `SOG_SCENES=fruit bash bench/device/run_sog_peer.sh
+# pack && OUT=/tmp/sogout bash bench/device/run_sog_peer.sh`.
 set -u
+here=$(cd "$(dirname "$0")/../.." && pwd)
+c=$here/.stcarry
+stem_of() {
+  case "$1" in
+    flowers) echo flowers ;; fruit) echo fruit_drops_sh3 ;; lodtile) echo lod_tile_sh3_zero_rest ;;
+    *) echo "unknown scene $1 (flowers, fruit, lodtile)" >&2; return 2 ;;
+  esac
+}
+input_ply() {  # SCENE DIR OUT.ply NODE_CMD...: the scene's input PLY from its files under DIR
+  local scene=$1 dir=$2 out=$3
+  shift 3
+  if [ "$scene" = flowers ]; then
+    "$@" -q -w "$dir"/flowers_lod/0_*/meta.json "$out"
+  else
+    cp "$dir/$(stem_of "$scene").ply" "$out"
+  fi
+}
+
+if [ "${1:-}" = pack ]; then
+  set -euo pipefail
+  real=${SPLATSTREAM_SHARED:-$here/../shared}/data/real
+  nm=${ST_NODE_MODULES:-$here/.ci/node/node_modules}
+  [ -d "$nm/@playcanvas/splat-transform" ] || { echo "no splat-transform under $nm (ST_NODE_MODULES)"; exit 1; }
+  exclude=$(git -C "$here" rev-parse --git-path info/exclude)
+  grep -qx '/.stcarry*/' "$exclude" 2>/dev/null || echo '/.stcarry*/' >> "$exclude"  # .stcarry and .stcarry.part
+  rm -rf "$c.part" && mkdir -p "$c.part/scenes"
+  tmp=$(mktemp -d)
+  cp "$(command -v node)" "$tmp/node" && strip "$tmp/node"
+  xz -T1 --x86 --lzma2=preset=9e,dict=128MiB -c "$tmp/node" > "$c.part/node.xz"  # BCJ: 21.09 MB, not 21.85
+  mkdir -p "$c.part/debs"  # the Vulkan loader Dawn needs there (the device README's apt-get download, amd64)
+  o=(-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/amd64)
+  mkdir -p /tmp/amd64/partial
+  (apt-get "${o[@]}" update -qq >/dev/null 2>&1; cd "$c.part/debs" && apt-get "${o[@]}" download -qq libvulkan1) \
+    || echo "apt-get download libvulkan1 failed: carry .gl with it, or the GPU encode falls back to the CPU"
+  # what the CLI loads: its bundle (dist/cli.mjs, worker.mjs, the SPZ chunk it imports, which bundles @adobe/spz,
+  # lib/webp.wasm), webgpu's Linux x86-64 Dawn (symbols stripped), debug, ms; not the library builds (index.mjs /
+  # .cjs and their SPZ chunk), @adobe/spz, source maps, TypeScript types or other platforms' Dawn. Checked here: a
+  # SOG encode of fruit_drops with -g cpu --max-workers 2 and --list-gpus run from this set.
+  for p in @playcanvas/splat-transform webgpu debug ms; do
+    mkdir -p "$tmp/node_modules/$(dirname "$p")"
+    cp -r "$nm/$p" "$tmp/node_modules/$p"
+  done
+  d=$tmp/node_modules/@playcanvas/splat-transform/dist
+  spz_cli=$(grep -o "import('./spz-[A-Za-z0-9_-]*\.js')" "$d/cli.mjs" | head -1 | sed "s/.*'\.\/\(.*\)')/\1/")
+  find "$d" -maxdepth 1 -name 'spz-*.js' ! -name "$spz_cli" -delete
+  rm -f "$d/index.mjs" "$d/index.cjs"
+  find "$tmp/node_modules" \( -name '*.map' -o -name '*.d.ts' -o -name '*.d.cts' \) -delete
+  find "$tmp/node_modules/webgpu/dist" -type f ! -name 'linux-x64.dawn.node' ! -name '*.js' -delete
+  strip --strip-unneeded "$tmp/node_modules/webgpu/dist/linux-x64.dawn.node"
+  tar -cf - -C "$tmp" node_modules | xz -T1 -9e > "$c.part/st_nm.tar.xz"
+  : > "$c.part/sha256.txt"
+  for s in ${SOG_SCENES:-flowers}; do
+    stem=$(stem_of "$s")
+    if [ "$s" = flowers ]; then
+      mkdir -p "$c.part/scenes/flowers_lod"
+      cp -r "$real"/flowers_lod/0_* "$c.part/scenes/flowers_lod/"
+    else
+      cp "$real/$stem.ply" "$c.part/scenes/"
+    fi
+    chmod -R u+w "$c.part/scenes"
+    input_ply "$s" "$c.part/scenes" "$tmp/$stem.ply" "$(command -v node)" "$tmp/node_modules/@playcanvas/splat-transform/bin/cli.mjs"
+    echo "$(sha256sum < "$tmp/$stem.ply" | cut -d' ' -f1)  $stem" >> "$c.part/sha256.txt"
+  done
+  echo "${SOG_SCENES:-flowers}" > "$c.part/scenes.txt"
+  rm -rf "$tmp" "$c" && mv "$c.part" "$c"
+  du -sh "$c" "$c"/*
+  # what a device call carrying only .stcarry sends: the tracked and untracked-not-ignored files, and .stcarry
+  tree=$(git -C "$here" ls-files -co --exclude-standard -z | (cd "$here" && xargs -0 du -cb 2>/dev/null) \
+    | awk '$2 == "total" {s += $1} END {print s}')
+  total=$((tree + $(du -sb "$c" | cut -f1)))
+  echo "a call carrying .stcarry sends about $total bytes (tree $tree); the limit is 67108864 (64 MiB)"
+  [ "$total" -le 67108864 ] || echo "OVER the limit: pack fewer scenes (SOG_SCENES) or leave untracked files out"
+  exit 0
+fi
+
 OUT=${OUT:-/tmp/out}
 mkdir -p "$OUT"
 exec > >(tee -a "$OUT/sog_peer.log") 2>&1
-for f in .gl/*.deb; do dpkg -x "$f" /; done
-ldconfig
-export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
-c=$PWD/.stcarry
-mkdir -p /tmp/node/bin /tmp/st
-python3 -c "import lzma, shutil, sys; shutil.copyfileobj(lzma.open(sys.argv[1]), open(sys.argv[2], 'wb'))" \
-  "$c/node.xz" /tmp/node/bin/node || exit 1
-chmod +x /tmp/node/bin/node
-tar -xJf "$c/st_nm.tar.xz" -C /tmp/st || exit 1
-st=(/tmp/node/bin/node /tmp/st/node_modules/@playcanvas/splat-transform/bin/cli.mjs)
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site "$c"/whl/*.whl || exit 1
-export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
-/tmp/node/bin/node --version
-"${st[@]}" --version
-nproc
-python3 "$c/shared/tools/make_scene.py" --splats 1000000 --seed 0 --out /tmp/s1m.ply || exit 1
-python3 bench/transport/make_jitter.py /tmp/s1m.ply /tmp/s1m_jitter.ply || exit 1
-sha256sum /tmp/s1m_jitter.ply
-"${st[@]}" --list-gpus
-SECONDS=0
-if ! "${st[@]}" -w /tmp/s1m_jitter.ply "$OUT/s1m_jitter.sog"; then
-  echo "GPU encode failed; CPU with one worker per core"
-  SECONDS=0
-  "${st[@]}" -w -g cpu --max-workers "$(nproc)" /tmp/s1m_jitter.ply "$OUT/s1m_jitter.sog" || exit 1
+if [ -d /usr/local/nvidia ]; then  # the GPU machine only: it unpacks into /
+  for f in "$c"/debs/*.deb "$here"/.gl/*.deb; do [ -f "$f" ] && dpkg -x "$f" /; done
+  ldconfig
 fi
-echo "encoded sog: $(stat -c %s "$OUT/s1m_jitter.sog") bytes in $SECONDS s"
+[ -d /usr/local/nvidia/share/vulkan ] && export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
+[ -f "$c/node.xz" ] || { echo "no .stcarry: run 'bash bench/device/run_sog_peer.sh pack' here and carry .stcarry"; exit 1; }
+w=$(mktemp -d)
+mkdir -p "$w/bin" "$w/st"
+python3 -c "import lzma, shutil, sys; shutil.copyfileobj(lzma.open(sys.argv[1]), open(sys.argv[2], 'wb'))" \
+  "$c/node.xz" "$w/bin/node" || exit 1
+chmod +x "$w/bin/node"
+tar -xJf "$c/st_nm.tar.xz" -C "$w/st" || exit 1
+st=("$w/bin/node" "$w/st/node_modules/@playcanvas/splat-transform/bin/cli.mjs")
+echo "node $("$w/bin/node" --version), splat-transform $("${st[@]}" --version 2>&1 | tail -1), $(nproc) cores"
+# A hardware adapter listed ("[N] NAME", Dawn's software ones left out) means the WebGPU k-means on it; none (or a
+# failed GPU encode) the CPU with one worker per core.
+"${st[@]}" --list-gpus > "$w/gpus.txt" 2>&1
+cat "$w/gpus.txt"
+idx=$(grep -E '^\[[0-9]+\] ' "$w/gpus.txt" | grep -v -i -E 'swiftshader|llvmpipe|software' | head -1 \
+  | sed 's/^\[\([0-9]*\)\].*/\1/')
+if [ -n "$idx" ]; then gpu=(-g "$idx"); else gpu=(-g cpu --max-workers "$(nproc)"); fi
+echo "SOG k-means on: ${gpu[*]}"
+status=0
+for s in ${SOG_SCENES:-$(cat "$c/scenes.txt")}; do
+  stem=$(stem_of "$s") || { status=2; continue; }
+  input_ply "$s" "$c/scenes" "$w/$stem.ply" "${st[@]}" || { status=1; continue; }
+  echo "== $s: input sha256 $(sha256sum < "$w/$stem.ply" | cut -d' ' -f1) (here: $(grep " $stem\$" "$c/sha256.txt" \
+    | cut -d' ' -f1))"
+  SECONDS=0
+  if ! "${st[@]}" -w "${gpu[@]}" "$w/$stem.ply" "$OUT/$stem.sog"; then
+    echo "$s: encode with ${gpu[*]} failed; CPU with one worker per core"
+    SECONDS=0
+    "${st[@]}" -w -g cpu --max-workers "$(nproc)" "$w/$stem.ply" "$OUT/$stem.sog" || { status=1; continue; }
+  fi
+  echo "$s: encoded $stem.sog, $(stat -c %s "$OUT/$stem.sog") bytes in $SECONDS s (${gpu[*]})"
+done
+rm -rf "$w"
+exit $status

@@ -19,7 +19,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "default). The scene stands upright (its manifest's up becomes the local up) and is placed on "
                     "the WGS84 globe: at --longitude/--latitude/--height with --heading for a georeferenced "
                     "capture (its origin at that point), else with the bottom centre of its box at longitude 0, "
-                    "latitude 0, height 0. OUT_DIR is replaced atomically. Conventions: format_spec/tiles3d.md.")
+                    "latitude 0, height 0. A paged scene's tree is split as its manifest is: tileset.json holds the "
+                    "root manifest's levels and each manifest page becomes an external tileset "
+                    "(OUT_DIR/tiles/<sha256>.json, see --external-tilesets). OUT_DIR is replaced atomically. "
+                    "Conventions: format_spec/tiles3d.md.")
     p.add_argument("scene", help="scene directory (manifest.msgpack)")
     p.add_argument("output_dir", help="tileset directory to write (replaced atomically if it exists)")
     p.add_argument("--content", choices=("spz", "plain"), default="spz",
@@ -41,6 +44,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "default) or rub (the extension text's SPZ axes)")
     p.add_argument("--spz-version", type=int, choices=(3, 4), default=3,
                    help="SPZ version of the content: 3 (gzip, default; what the extension references) or 4 (zstd)")
+    p.add_argument("--external-tilesets", choices=("auto", "always", "never"), default="auto",
+                   help="auto (default): a paged scene (encode --page-tiles) as a root tileset.json of the root "
+                        "manifest's levels and one external tileset per manifest page (tiles/<sha256>.json), read "
+                        "by a client as it refines; an unpaged scene as one tileset.json. always: an unpaged scene "
+                        "split the same way every 6 levels. never: one tileset.json listing every tile")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages on stderr")
     p.set_defaults(func=run)
 
@@ -59,16 +67,19 @@ def run(args: argparse.Namespace) -> int:
     if args.spz_axes is not None and args.content != "spz":
         raise UsageError("--spz-axes applies to --content spz only")
     options = ExportOptions(content=args.content, spz_axes=args.spz_axes or DEFAULT_SPZ_AXES,
-                            spz_version=args.spz_version, placement=placement, sh_degree=args.sh_degree)
+                            spz_version=args.spz_version, placement=placement, sh_degree=args.sh_degree,
+                            external_tilesets=args.external_tilesets)
     start = time.perf_counter()
     progress = ProgressPrinter("export-3dtiles", enabled=not args.quiet)
     report = export_tileset(args.scene, args.output_dir, options, progress)
     if not args.quiet:
         where = (f"longitude {placement.longitude:g}, latitude {placement.latitude:g}, height {placement.height:g} m"
                  if located else "longitude 0, latitude 0 (not georeferenced)")
+        external = (f", {count(report.external_tilesets, 'external tileset')} of {report.external_bytes} bytes"
+                    if report.external_tilesets else "")
         print(f"export-3dtiles: {count(report.tiles, 'tile')} ({count(report.files, 'file')}, "
               f"{report.content_bytes} bytes of "
-              f"{args.content} content, tileset.json {report.tileset_bytes} bytes) at {where}, heading "
+              f"{args.content} content, tileset.json {report.tileset_bytes} bytes{external}) at {where}, heading "
               f"{placement.heading:g}, anchor {placement.anchor} -> {args.output_dir} "
               f"({time.perf_counter() - start:.1f}s)", file=sys.stderr)
     return 0

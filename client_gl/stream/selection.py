@@ -3,7 +3,8 @@
 Per frame: `view_numbers` projects every tile (screen-space error, frustum test, projected radius); `select`
 refines the tree from the root, widest on-screen splat spacing first, under a splat and a byte budget, with
 hysteresis. Those two are the reference; the engine runs `select_near` over a `PartialView`: the same cut from the
-numbers of the tiles the refinement reaches only (its cost follows the cut, not the tree held). `wanted_bands`
+numbers of the tiles the refinement reaches only (its cost follows the cut, not the tree held), select's heap loop
+replayed as one scan in key order (`select_near_heap` keeps the heap loop). `wanted_bands`
 gives SH bands to the tiles covering most of the view; `draw_set` turns what is resident into a hole-free REPLACE
 cut (a tile stays drawn until every child in view can replace it); `prefetch` names what the view will probably
 want next. No GL, no network, no clocks: the engine (engine.py) calls these and acts on the answers.
@@ -13,6 +14,7 @@ from __future__ import annotations
 import heapq
 import math
 from dataclasses import dataclass, field
+from itertools import chain
 
 import numpy as np
 
@@ -198,7 +200,7 @@ class PartialView:
         n = len(a.parent)
         self.sse, self.radius_px, self.distance = np.empty(n), np.empty(n), np.empty(n)
         self.visible, self.area_px = np.zeros(n, bool), np.zeros(n)
-        self.known = bytearray(n)
+        self.known = np.zeros(n, np.uint8)  # 1: computed
         self.looked_at = 0  # tiles whose numbers were computed
         # the box test of one tile in Python floats (visible_at): the same operations in the same order as
         # boxes_in_frustum's, so the same answer
@@ -206,19 +208,18 @@ class PartialView:
         self._visible_of: dict[int, bool] = {}
 
     def ensure(self, idx) -> None:
-        """Compute the numbers of the tiles at these positions that have none yet (in one batch)."""
-        known = self.known
-        missing = [i for i in idx if not known[i]]
-        if not missing:
+        """Compute the numbers of the tiles at these positions (each named once) that have none yet, in one batch."""
+        at = np.asarray(idx, np.intp)
+        if not at.size:
             return
-        missing = list(dict.fromkeys(missing))
-        at = np.array(missing, np.intp)
+        at = at[self.known[at] == 0]  # the callers name each tile once
+        if not at.size:
+            return
         sse, visible, radius_px, area, distance = _numbers(self.arrays, self.cam, self._basis, self._planes, at)
         self.sse[at], self.visible[at], self.radius_px[at], self.area_px[at], self.distance[at] = \
             sse, visible, radius_px, area, distance
-        for i in missing:
-            known[i] = 1
-        self.looked_at += len(missing)
+        self.known[at] = 1
+        self.looked_at += len(at)
 
     def visible_at(self, i: int) -> bool:
         """Whether tile i's box intersects the frustum (computed alone when its numbers are not: the draw set walks
@@ -302,13 +303,158 @@ def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: Sel
             if candidate[k]:
                 heapq.heappush(heap, (prio[k], k))
     distance = view.distance.tolist()
-    cut_sorted = tuple(sorted(cut, key=lambda i: (-priority[i], distance[i])))
+    # ties (equal priority and distance) by position: the order then does not depend on the set's history
+    cut_sorted = tuple(sorted(cut, key=lambda i: (-priority[i], distance[i], i)))
     return Selection(cut_sorted, frozenset(refined), {i: priority.get(i, 0.0) for i in cut_sorted}, splats, total,
                      limited)
 
 
 def select_near(a: TileArrays, view: PartialView, cost: np.ndarray, root: int, opts: SelectionOptions,
                 previous_refined: frozenset[int] = frozenset(), near=()) -> Selection:
+    """select's cut (the same tiles, order, priorities, splats, cost and budget flag) from the tiles near the last
+    frame's cut, as one ordered scan instead of a heap of every reached tile (client.md 1.2).
+
+    select's heap hands out the tiles it reaches in the order of their refinement keys (key, then position, as the
+    heap compares them) wherever a candidate's key is above its parent's: a tile enters the heap when its parent is
+    refined, and the parent's key is smaller. So the loop here is a scan over the set's candidates sorted once by
+    key (numpy), deciding each whose parent was refined (reached) with select's budget test; no heap pushes, no walk
+    over children. The few candidates whose key is below their parent's (a child's sphere reaching nearer the eye
+    than its parent's; the tiles with the eye inside their spheres, ordered by position) enter a small heap when
+    their parent is refined, as they would enter select's, and that heap is emptied before the scan goes on (its
+    tiles are smaller than every tile the scan has left, so select pops them first); their candidate children below
+    the scan's position join that heap, the others wait for the scan. The set starts as the root and `near` (the
+    engine gives the children of the last frame's cut and refined tiles: the last frame's frontier); when a tile to
+    decide lacks children in it, the children of every candidate lacking them join it and the scan goes on where it
+    was (the tiles joining sort after it, or hang below tiles not refined). The cut and its priorities follow from
+    the refined tiles, in numpy. select_near_heap is the same loop as select's (kept as a second reference)."""
+    s = _NearSet(a, view, cost, opts, previous_refined)
+    s.add(_first(root, near, s.local))
+    # the children of the candidates lacking them, before the first scan: the scan would stop at the first it
+    # reaches and add them all (a camera moving on refines below the last cut), and go on with a second sort
+    s.add_children_of_candidates()
+    children, index = a.children, s.index
+    max_splats, budget = opts.max_splats, opts.budget
+    refd = bytearray()
+    j0 = index[root]
+    splats, total = int(s.splats[j0]), float(s.cost[j0])
+    limited = False
+    low: list[tuple[float, int, int]] = []  # (key, position, index in the set): tiles popped before the scan goes on
+    at = (-INF, -1)  # (key, position) of the last tile the scan decided
+    last = None  # its index in the set
+    while True:
+        n = len(s.tiles)
+        refd += bytes(n - len(refd))
+        tiles, prio, cand, parent = s.tiles_a, s.prio_a, s.cand_a, s.parent_a
+        pj = np.where(parent >= 0, s.local[np.maximum(parent, 0)], -1)
+        cj = np.flatnonzero(cand)
+        if np.isnan(prio[cj]).any():  # no order to scan in (select's heap compares NaN keys its own way)
+            return select_near_heap(a, view, cost, root, opts, previous_refined, near)
+        order = cj[np.lexsort((tiles[cj], prio[cj]))].tolist()
+        # candidates below their candidate parent in the heap's order: they skip the scan's turn
+        pc = pj[cj]
+        ok = pc >= 0
+        ok[ok] = cand[pc[ok]]
+        cw, pw = cj[ok], pc[ok]
+        below = (prio[cw] < prio[pw]) | ((prio[cw] == prio[pw]) & (tiles[cw] < tiles[pw]))
+        early: dict[int, list[int]] = {}
+        for c, p in zip(cw[below].tolist(), pw[below].tolist(), strict=True):
+            early.setdefault(p, []).append(c)
+        pj_l, need_l = pj.tolist(), (s.kids_in != s.kids_all).tolist()
+        sp, co, pr, tl = s.splats, s.cost, s.prio, s.tiles
+        ksp, kco = s.kid_splats.tolist(), s.kid_cost.tolist()
+        cand_l = s.candidate
+        start = order.index(last) + 1 if last is not None else 0
+
+        lists = (need_l, sp, ksp, co, kco, refd, tl, cand_l, pr, children, index)
+        stopped, splats, total, limited = _drain(low, at, lists, splats, total, limited, opts)
+        if not stopped:
+            for j in order[start:] if start else order:
+                if j != j0:
+                    p = pj_l[j]
+                    if p < 0 or not refd[p]:
+                        continue  # not reached: its parent was not refined
+                if need_l[j]:
+                    stopped = True
+                    break
+                new_splats = splats - sp[j] + int(ksp[j])
+                new_total = total - co[j] + kco[j]
+                at, last = (pr[j], tl[j]), j
+                if max_splats is not None and new_splats > max_splats and new_splats > splats:
+                    limited = True
+                    continue
+                if budget is not None and new_total > budget and new_total > total:
+                    limited = True
+                    continue
+                refd[j] = 1
+                splats, total = new_splats, new_total
+                if j in early:
+                    for c in early[j]:
+                        heapq.heappush(low, (pr[c], tl[c], c))
+                    stopped, splats, total, limited = _drain(low, at, lists, splats, total, limited, opts)
+                    if stopped:
+                        break
+        if not stopped:
+            break
+        s.add_children_of_candidates()
+    # the cut: the root unless refined, and the visible children of refined tiles that were not refined themselves;
+    # a cut tile's priority is minus its parent's key (the root's inf)
+    refined_m = np.frombuffer(bytes(refd), np.uint8).astype(bool)
+    vis = np.array(s.visible, bool)
+    parent_refined = np.zeros(n, bool)
+    has_p = pj >= 0
+    parent_refined[has_p] = refined_m[pj[has_p]]
+    cj = np.flatnonzero(parent_refined & vis & ~refined_m)
+    pri = -prio[pj[cj]]
+    if not refd[j0]:
+        cj = np.append(cj, j0)
+        pri = np.append(pri, INF)
+    ct = tiles[cj]
+    rank = np.lexsort((ct, view.distance[ct], -pri))
+    cut_sorted = tuple(ct[rank].tolist())
+    return Selection(cut_sorted, frozenset(tiles[refined_m].tolist()),
+                     dict(zip(cut_sorted, pri[rank].tolist(), strict=True)), splats, total, limited)
+
+
+def _first(root: int, near, scratch: np.ndarray) -> np.ndarray:
+    """The root and `near`, each once (`scratch`: a position array of -1, left so)."""
+    at = np.concatenate([[root], np.asarray(near, np.intp)]).astype(np.intp)
+    k = np.arange(len(at))
+    scratch[at] = k
+    at = at[scratch[at] == k]  # the last of each
+    scratch[at] = -1
+    return at
+
+
+def _drain(low: list, at: tuple[float, int], lists: tuple, splats: int, total: float, limited: bool,
+           opts: SelectionOptions) -> tuple[bool, int, float, bool]:
+    """select_near's small heap popped empty, as select pops those tiles before the scan's next one: (stopped at a
+    tile whose children are not all in the set, splats, total, budget flag)."""
+    need_l, sp, ksp, co, kco, refd, tl, cand_l, pr, children, index = lists
+    max_splats, budget = opts.max_splats, opts.budget
+    while low:
+        c = low[0][2]
+        if need_l[c]:
+            return True, splats, total, limited
+        heapq.heappop(low)
+        new_splats = splats - sp[c] + int(ksp[c])
+        new_total = total - co[c] + kco[c]
+        if max_splats is not None and new_splats > max_splats and new_splats > splats:
+            limited = True
+            continue
+        if budget is not None and new_total > budget and new_total > total:
+            limited = True
+            continue
+        refd[c] = 1
+        splats, total = new_splats, new_total
+        for k in children[tl[c]]:  # its candidate children below the scan's position join the heap
+            jk = index[k]
+            if cand_l[jk] and (pr[jk], k) < at:
+                heapq.heappush(low, (pr[jk], k, jk))
+    return False, splats, total, limited
+
+
+def select_near_heap(a: TileArrays, view: PartialView, cost: np.ndarray, root: int, opts: SelectionOptions,
+                     previous_refined: frozenset[int] = frozenset(), near=()) -> Selection:
     """select's cut (the same tiles, order, priorities, splats, cost and budget flag), looking only at the tiles it
     reaches.
 
@@ -320,7 +466,7 @@ def select_near(a: TileArrays, view: PartialView, cost: np.ndarray, root: int, o
     again over the set) and the loop goes on: it makes exactly select's moves whatever `near` is, and only the work
     depends on it. The refinement key is the view's (PartialView takes the scene's lod.reduction)."""
     s = _NearSet(a, view, cost, opts, previous_refined)
-    s.add(list(dict.fromkeys([root, *near])))
+    s.add(_first(root, near, s.local))
     children, index = a.children, s.index
     refined: set[int] = set()
     cut: set[int] = {root}
@@ -356,7 +502,7 @@ def select_near(a: TileArrays, view: PartialView, cost: np.ndarray, root: int, o
             if candidate[jk]:
                 heapq.heappush(heap, (prio[jk], k))
     distance = view.distance
-    cut_sorted = tuple(sorted(cut, key=lambda i: (-priority[i], float(distance[i]))))
+    cut_sorted = tuple(sorted(cut, key=lambda i: (-priority[i], float(distance[i]), i)))
     return Selection(cut_sorted, frozenset(refined), {i: priority.get(i, 0.0) for i in cut_sorted}, splats, total,
                      limited)
 
@@ -380,12 +526,19 @@ class _NearSet:
         self.kid_cost, self.kid_splats = np.zeros(0), np.zeros(0)
         self.kids_in, self.kids_all = np.zeros(0, np.int64), np.zeros(0, np.int64)
         self.orphans: dict[int, int] = {}  # tile -> its parent, not in the set
+        if previous_refined:
+            self.was_refined = np.zeros(len(a.parent), bool)
+            self.was_refined[np.fromiter(previous_refined, np.intp, len(previous_refined))] = True
+        # the same as arrays (select_near's scan sorts and tests them in numpy)
+        self.tiles_a, self.prio_a = np.zeros(0, np.intp), np.zeros(0)
+        self.cand_a, self.parent_a = np.zeros(0, bool), np.zeros(0, np.intp)
 
-    def add(self, new: list[int]) -> None:
-        """Add tiles (not in the set yet): their numbers, then every tile's sums over its visible children."""
+    def add(self, at: np.ndarray) -> None:
+        """Add tiles (positions, each once, none in the set yet): their numbers, then every tile's sums over its
+        visible children."""
         a, view = self.a, self.view
-        view.ensure(new)
-        at = np.array(new, np.intp)
+        view.ensure(at)
+        new = at.tolist()
         start = len(self.tiles)
         self.local[at] = np.arange(start, start + len(new))
         self.index.update(zip(new, range(start, start + len(new)), strict=True))
@@ -393,11 +546,17 @@ class _NearSet:
         vis, sse = view.visible[at], view.sse[at]
         threshold = np.full(len(new), self.high)
         if self.previous:
-            threshold[[j for j, t in enumerate(new) if t in self.previous]] = self.low
-        self.candidate += (a.has_children[at] & vis & (sse > threshold)).tolist()
+            threshold[self.was_refined[at]] = self.low
+        cand = a.has_children[at] & vis & (sse > threshold)
+        self.candidate += cand.tolist()
         with np.errstate(divide="ignore"):
             key = a.level[at] * view.level_step + np.log2(np.maximum(view.distance[at], 1e-30))
-        self.prio += np.where(np.isfinite(sse), key, -INF).tolist()
+        prio = np.where(np.isfinite(sse), key, -INF)
+        self.prio += prio.tolist()
+        self.tiles_a = np.concatenate([self.tiles_a, at])
+        self.prio_a = np.concatenate([self.prio_a, prio])
+        self.cand_a = np.concatenate([self.cand_a, cand])
+        self.parent_a = np.concatenate([self.parent_a, a.parent[at]])
         self.visible += vis.tolist()
         self.cost += self.cost_a[at].tolist()
         self.splats += a.splats[at].tolist()
@@ -431,9 +590,11 @@ class _NearSet:
 
     def add_children_of_candidates(self) -> None:
         """Add the children of every candidate whose children are not all in the set (the loop may pop any)."""
-        children, index, tiles = self.a.children, self.index, self.tiles
-        lacking = np.flatnonzero(np.array(self.candidate) & (self.kids_in != self.kids_all)).tolist()
-        self.add(list(dict.fromkeys(k for t in lacking for k in children[tiles[t]] if k not in index)))
+        lacking = self.tiles_a[self.cand_a & (self.kids_in != self.kids_all)].tolist()
+        if not lacking:
+            return
+        kids = np.fromiter(chain.from_iterable(map(self.a.children.__getitem__, lacking)), np.intp)
+        self.add(kids[self.local[kids] < 0])  # each child once: its parent is one tile
 
 
 def wanted_bands(a: TileArrays, view: TileView, tiles: tuple[int, ...] | list[int], opts: SelectionOptions,

@@ -51,8 +51,17 @@ TILESET_NAME = "tileset.json"
 TILESET_CONTENT_DIR = "tiles"
 TILESET_CONTENT_SUFFIX = ".glb"
 TILESET_CONTENT_NAME_RE = re.compile(r"^[0-9a-f]{64}\.glb$")
+# External tilesets (3D Tiles 1.1), one per manifest page of a paged scene: `tiles/<sha256>.json`, named by the
+# SHA-256 of their bytes like the content beside them (format_spec/tiles3d.md 3.1).
+TILESET_EXTERNAL_SUFFIX = ".json"
+TILESET_EXTERNAL_NAME_RE = re.compile(r"^[0-9a-f]{64}\.json$")
 
 
 def tileset_content_name(sha256_hex_: str) -> str:
     """Relative path of a tile's content file in a tileset directory."""
     return f"{TILESET_CONTENT_DIR}/{sha256_hex_}{TILESET_CONTENT_SUFFIX}"
+
+
+def tileset_external_name(sha256_hex_: str) -> str:
+    """Relative path of an external tileset (one page's tiles) in a tileset directory."""
+    return f"{TILESET_CONTENT_DIR}/{sha256_hex_}{TILESET_EXTERNAL_SUFFIX}"

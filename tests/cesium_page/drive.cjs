@@ -12,6 +12,7 @@ async function main() {
   const [width, height] = size.split("x").map(Number);
   const profile = fs.mkdtempSync(path.join(os.tmpdir(), "splat-chromium-"));
   const logs = [];
+  const fetched = [];  // the paths of every loopback request (which tileset JSONs and contents were read)
   let context;
   try {
     context = await chromium.launchPersistentContext(profile, {
@@ -23,7 +24,10 @@ async function main() {
     const page = context.pages()[0] || await context.newPage();
     await page.route("**/*", (route) => {
       const host = new URL(route.request().url()).hostname;
-      if (host === "127.0.0.1" || host === "localhost" || host === "[::1]") return route.continue();
+      if (host === "127.0.0.1" || host === "localhost" || host === "[::1]") {
+        fetched.push(new URL(route.request().url()).pathname);
+        return route.continue();
+      }
       logs.push(`refused ${route.request().url()}`);
       return route.abort();
     });
@@ -38,7 +42,7 @@ async function main() {
       const ext = c && c.getExtension("WEBGL_debug_renderer_info");
       return c ? String(ext ? c.getParameter(ext.UNMASKED_RENDERER_WEBGL) : c.getParameter(c.RENDERER)) : "none";
     });
-    console.log(JSON.stringify({ result, gl, logs }));
+    console.log(JSON.stringify({ result, gl, logs, fetched }));
   } catch (e) {
     console.log(JSON.stringify({ result: { status: "driver-error", error: String(e) }, logs }));
     process.exitCode = 1;

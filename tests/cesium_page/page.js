@@ -49,6 +49,9 @@ async function main() {
   // The splats are sorted asynchronously (a worker) after their tiles load: draw until the sort is ready and a
   // few more frames have been rendered.
   const started = performance.now();
+  // ?splats=N: also wait until N splats are drawn (under load the count once held still for 20 frames at 3,470 of
+  // a paged scene's 4,721 while its tiles were still joining the primitive).
+  const expected = Number(q.get("splats") || 0);
   let frames = 0, lastCount = -1;
   await new Promise((resolve) => {
     const remove = scene.postRender.addEventListener(() => {
@@ -57,9 +60,11 @@ async function main() {
       // still: it grows as the tiles' splats join the primitive (donut: 713, 2,852, ... 45,624), and under the
       // full suite's load ten ready frames once came at 2,852 (IoU 0.89 against our render).
       const p = tileset.gaussianSplatPrimitive;
-      const ready = Boolean(p && p._snapshot && !p._pendingSnapshot && p._drawCommand);
+      // tilesLoaded too: with external tilesets allTilesLoaded can fire between a tileset JSON's arrival and the
+      // next traversal's requests for the tiles it names (a paged scene once stopped at 1,258 of 4,721 splats).
+      const ready = Boolean(p && p._snapshot && !p._pendingSnapshot && p._drawCommand && tileset.tilesLoaded);
       const count = p ? p._numSplats : -1;
-      frames = ready && count === lastCount ? frames + 1 : 0;
+      frames = ready && count === lastCount && count >= expected ? frames + 1 : 0;
       lastCount = count;
       if (frames >= 20 || performance.now() - started > 60000) { remove(); resolve(); }
     });

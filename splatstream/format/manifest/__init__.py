@@ -32,7 +32,7 @@ from .model import (
     taken_arrays,
     tile_arrays,
 )
-from .paging import PagedScene, pack_page, read_page, resolve_pages, split_pages
+from .paging import PagedScene, pack_page, page_heads, read_page, resolve_pages, split_pages
 from .validate import (
     CHUNK_ORDER_NAMES,
     FILTERS_DOC,
@@ -69,7 +69,7 @@ from .wire import (
 )
 
 __all__ = [
-    "PagedInfo", "PageRef", "PagedScene", "pack_page", "read_page", "resolve_pages", "split_pages",
+    "PagedInfo", "PageRef", "PagedScene", "pack_page", "page_heads", "read_page", "resolve_pages", "split_pages",
     "MAX_PAGE_BYTES", "PAGE_FORMAT", "VERSION_1_5",
     "AttributeSize", "Box", "CameraEntry", "LazyPayloads", "LodInfo", "Manifest", "PayloadEntry", "Section",
     "SHCodebookEntry", "TileArrays", "TileEntry", "Vec3", "scene_summary", "grown_arrays", "taken_arrays",

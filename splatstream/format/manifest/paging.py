@@ -36,6 +36,13 @@ def pack_page(version: tuple[int, int], parent: int, tiles: list[TileEntry]) -> 
                           "tiles": [t.to_dict() for t in sorted(tiles, key=lambda t: t.id)]}, use_bin_type=True)
 
 
+def page_heads(m: Manifest, page_levels: int) -> list[TileEntry]:
+    """The tiles whose next `page_levels` levels of descendants make a page (format.md 6.1): those with children on
+    the last level of the root manifest or of a page, deepest first (a page's name depends on the pages below it)."""
+    k = page_levels
+    return sorted((t for t in m.tiles if (t.level + 1) % k == 0 and t.children), key=lambda t: (-t.level, t.id))
+
+
 def split_pages(m: Manifest, page_levels: int) -> PagedScene:
     """The root manifest (levels 0..k-1) and the pages of a whole, unpaged manifest. Deterministic: the same
     manifest gives the same bytes. A page's name depends on the pages below it, so the deepest are made first."""
@@ -58,8 +65,7 @@ def split_pages(m: Manifest, page_levels: int) -> PagedScene:
             out += frontier
         return out
 
-    heads = sorted((t for t in m.tiles if (t.level + 1) % k == 0 and t.children), key=lambda t: (-t.level, t.id))
-    for head in heads:
+    for head in page_heads(m, k):
         raw = pack_page(VERSION_1_5, head.id, [with_ref(t) for t in below(head)])
         sha = hashlib.sha256(raw).hexdigest()
         if len(raw) > MAX_PAGE_BYTES:

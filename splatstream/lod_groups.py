@@ -1,0 +1,648 @@
+"""Merge groups chosen by cost (issue 31): which splats of a level become one splat of the next.
+
+The tree's merge (lod.merge_groups: mass weights, moment matching) is kept; this module only chooses the groups,
+as plain functions over numpy arrays that return, for every splat, the id of its group (exactly `target` groups,
+deterministic). The Morton grid the tree uses today (grid_group_starts) lives here too.
+
+group_ids: rounds of greedy matchings between clusters (at first every splat is a cluster). In each round every
+cluster is the moment-matched Gaussian of its members; the edges of the level's k-NN graph (approximate: the
+nearest among the neighbours in three shifted Morton orders, numpy only) are mapped onto clusters and costed, and
+pairs are matched cheapest first (every free cluster takes its cheapest free neighbour, mutual choices are matched,
+repeated) up to `share` of what is left to remove, so cheap regions merge again in the next round while costly
+splats stay single. Groups are capped per level (`max_group` members; optionally a first stage of pairs only). A
+last pass over Morton-adjacent clusters finishes the count where no edge is left (coincident or isolated
+clusters). Cost of merging a and b into m: the squared L2 norm of a_a c_a G_a + a_b c_b G_b - a_m c_m G_m (the
+colour-premultiplied footprints; opacity of m = mass / area, as merge_groups makes it), in 3D as splat-transform's
+decimator (`proj=0`) or summed over the footprints projected along x, y and z (`proj=1`: a flat or thin splat keeps
+its weight, where in 3D its sqrt(det) makes it free to merge), plus splat-transform's scale-free colour term.
+
+hybrid_group_ids: no single rule held on every scene (BENCHMARKS.md, "LOD groups by cost": the cap-4 rule keeps
+faint or isolated splats apart and wins on fruit_drops and the statues' finest levels, pairs first win on the donut
+and the statues' coarse levels, the grid on the flowers' finest level). So each level takes the candidate whose
+merged splats, drawn by proxy_views (6 orthographic views, footprints alpha-composited front to back in numpy),
+are closest to the level's own splats drawn the same way.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .format.layout import morton_codes
+from .gaussians import rotation_matrices
+
+_SYM6 = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
+_TWO_PI_1_5 = (2 * math.pi) ** 1.5
+_PI_1_5 = math.pi ** 1.5
+# The three axis-aligned views: the two axes kept and the (uu, uv, vv) entries of the six.
+_PLANES = (((1, 2), (3, 4, 5)), ((0, 2), (0, 2, 5)), ((0, 1), (0, 1, 3)))
+# splat-transform's colour weight in base-colour space (4 pi 1e-6 over f_dc): keeps light and dark apart at any size.
+COLOUR_WEIGHT = 4 * math.pi * 1e-6
+
+
+@dataclass(frozen=True)
+class GroupRule:
+    neighbours: int = 8  # K nearest clusters costed per cluster and round
+    share: float = 0.5  # each round removes at most this share of what is left to remove
+    colour: float = 1.0  # times COLOUR_WEIGHT
+    proj: int = 0  # 1: field-L2 of the splats' footprints projected along x, y and z (2D), summed; 0: in 3D
+    first_cap: int = 0  # first rounds with groups of at most this many members (0: none; at least n / target)
+    first_share: float = 1.0  # share of the level's merges the first stage makes at most
+    max_group: int = 0  # then groups of at most this many members (splats of the level; 0: no cap; at least
+    # twice n / target)
+    max_rounds: int = 64
+
+
+DEFAULT_RULE = GroupRule()
+
+
+# ---------------------------------------------------------------------------------------------- 3x3 helpers
+
+
+def _det6(c: np.ndarray) -> np.ndarray:
+    xx, xy, xz, yy, yz, zz = (c[:, k] for k in range(6))
+    return xx * (yy * zz - yz * yz) - xy * (xy * zz - yz * xz) + xz * (xy * yz - yy * xz)
+
+
+def _quad6(c: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """d^T C^-1 d and det C for symmetric 3x3 C stored as (xx, xy, xz, yy, yz, zz)."""
+    xx, xy, xz, yy, yz, zz = (c[:, k] for k in range(6))
+    c00, c01, c02 = yy * zz - yz * yz, xz * yz - xy * zz, xy * yz - xz * yy
+    c11, c12, c22 = xx * zz - xz * xz, xy * xz - xx * yz, xx * yy - xy * xy
+    det = np.maximum(xx * c00 + xy * c01 + xz * c02, 1e-300)
+    dx, dy, dz = d[:, 0], d[:, 1], d[:, 2]
+    q = c00 * dx * dx + c11 * dy * dy + c22 * dz * dz + 2 * (c01 * dx * dy + c02 * dx * dz + c12 * dy * dz)
+    return q / det, det
+
+
+def _eig6(c: np.ndarray) -> np.ndarray:
+    """(N, 3) eigenvalues of symmetric 3x3 matrices (closed form, largest first)."""
+    xx, xy, xz, yy, yz, zz = (c[:, k] for k in range(6))
+    q = (xx + yy + zz) / 3
+    p1 = xy * xy + xz * xz + yz * yz
+    p2 = (xx - q) ** 2 + (yy - q) ** 2 + (zz - q) ** 2 + 2 * p1
+    p = np.sqrt(np.maximum(p2 / 6, 1e-300))
+    b00, b11, b22 = (xx - q) / p, (yy - q) / p, (zz - q) / p
+    b01, b02, b12 = xy / p, xz / p, yz / p
+    det_b = b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02)
+    phi = np.arccos(np.clip(det_b / 2, -1, 1)) / 3
+    e0 = q + 2 * p * np.cos(phi)
+    e2 = q + 2 * p * np.cos(phi + 2 * math.pi / 3)
+    e1 = 3 * q - e0 - e2
+    return np.maximum(np.stack([e0, e1, e2], 1), 1e-300)
+
+
+def _area6(c: np.ndarray) -> np.ndarray:
+    """Mean cross-section proxy s1 s2 + s2 s3 + s1 s3 (lod._coverage_area) of covariances stored as six."""
+    s = np.sqrt(_eig6(c))
+    return s[:, 0] * s[:, 1] + s[:, 1] * s[:, 2] + s[:, 0] * s[:, 2]
+
+
+def covariances6(rotations: np.ndarray, log_scales: np.ndarray) -> np.ndarray:
+    """(N, 6) covariances (xx, xy, xz, yy, yz, zz) of unit quaternions (w, x, y, z) and log scales."""
+    m = rotation_matrices(rotations) * np.exp(log_scales.astype(np.float64))[:, None, :]
+    cov = np.empty((len(m), 6))
+    for k, (a, b) in enumerate(_SYM6):
+        cov[:, k] = m[:, a, 0] * m[:, b, 0] + m[:, a, 1] * m[:, b, 1] + m[:, a, 2] * m[:, b, 2]
+    return cov
+
+
+# ---------------------------------------------------------------------------------------------- the Morton grid
+
+
+def morton(positions: np.ndarray) -> np.ndarray:
+    """Morton codes over the positions' own box (per-column reductions: numpy's axis=0 is slow on (N, 3))."""
+    lo = np.array([positions[:, k].min() for k in range(3)])
+    hi = np.array([positions[:, k].max() for k in range(3)])
+    return morton_codes(positions, lo, hi)
+
+
+def grid_group_starts(positions: np.ndarray, target: int) -> tuple[np.ndarray, np.ndarray]:
+    """Morton order of the splats and the start index of each group in that order (about `target` groups).
+
+    Groups are cells of the binary Morton-prefix grid (prefix length b splits the box b times, cycling x, y, z).
+    We take the longest prefix with at most `target` cells, then split the most populated cells once more."""
+    n = len(positions)
+    codes = morton(positions)
+    order = np.argsort(codes, kind="stable")
+    codes = codes[order]
+    if target >= n:
+        return order, np.arange(n)
+
+    def boundaries(bits: int) -> np.ndarray:
+        key = codes >> np.uint64(63 - bits)
+        return key[1:] != key[:-1]
+
+    lo_bits, hi_bits = 0, 63  # invariant: cells(lo_bits) <= target
+    if 1 + int(np.count_nonzero(boundaries(hi_bits))) <= target:
+        lo_bits = hi_bits
+    while hi_bits - lo_bits > 1:
+        mid = (lo_bits + hi_bits) // 2
+        if 1 + int(np.count_nonzero(boundaries(mid))) <= target:
+            lo_bits = mid
+        else:
+            hi_bits = mid
+    bnd = boundaries(lo_bits)
+    cells = 1 + int(np.count_nonzero(bnd))
+    if cells < target and lo_bits < 63:
+        finer = boundaries(lo_bits + 1)
+        cell_of = np.concatenate([[0], np.cumsum(bnd)])  # cell index per splat (sorted order)
+        cell_start = np.concatenate([[0], np.flatnonzero(bnd) + 1])
+        sizes = np.diff(np.append(cell_start, n))
+        splittable = np.zeros(cells, bool)
+        splittable[cell_of[1:][finer & ~bnd]] = True
+        # Split the biggest cells first: evens out group sizes, which keeps merged splats of similar size.
+        candidates = np.flatnonzero(splittable)
+        extra = min(target - cells, len(candidates))
+        chosen = candidates[np.argsort(-sizes[candidates], kind="stable")[:extra]]
+        split = np.zeros(cells, bool)
+        split[chosen] = True
+        bnd = bnd | (finer & split[cell_of[1:]])
+    starts = np.concatenate([[0], np.flatnonzero(bnd) + 1])
+    return order, starts
+
+
+# ---------------------------------------------------------------------------------------------- neighbours
+
+
+def neighbour_edges(p: np.ndarray, k: int, shifts: int = 3) -> tuple[np.ndarray, np.ndarray]:
+    """Undirected edges (i < j) from every point to about its k nearest: the k nearest among the 2k points around
+    it in each of `shifts` Morton orders of shifted boxes (numpy only; exact k-NN is not needed for grouping)."""
+    n = len(p)
+    if n < 2:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    k = min(k, n - 1)
+    w = min(k, (n - 1) // 2 + 1)
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    span = float((hi - lo).max()) or 1.0
+    cand = []
+    for s in range(shifts):
+        off = span * np.array([0.0, 0.0, 0.0]) if s == 0 else span * np.array([0.31, 0.17, 0.43]) * s / shifts
+        codes = morton_codes(p, lo - off, lo - off + 2.0 * span if s else hi)
+        order = np.argsort(codes, kind="stable")
+        rank = np.empty(n, np.int64)
+        rank[order] = np.arange(n)
+        for d in range(1, w + 1):
+            cand.append(order[np.minimum(rank + d, n - 1)])
+            cand.append(order[np.maximum(rank - d, 0)])
+    c = np.stack(cand, axis=1)  # (n, 2 w shifts) candidates, self and duplicates included
+    d2 = ((p[c] - p[:, None, :]) ** 2).sum(axis=2)
+    d2[c == np.arange(n)[:, None]] = np.inf
+    # Duplicates: keep the first of each candidate (sort by id, mark repeats).
+    srt = np.argsort(c, axis=1, kind="stable")
+    cs = np.take_along_axis(c, srt, axis=1)
+    dup = np.zeros_like(cs, bool)
+    dup[:, 1:] = cs[:, 1:] == cs[:, :-1]
+    d2s = np.take_along_axis(d2, srt, axis=1)
+    d2s[dup] = np.inf
+    pick = np.argsort(d2s, axis=1, kind="stable")[:, :k]
+    nb = np.take_along_axis(cs, pick, axis=1)
+    ok = np.isfinite(np.take_along_axis(d2s, pick, axis=1))
+    i = np.repeat(np.arange(n), k)[ok.reshape(-1)]
+    j = nb.reshape(-1)[ok.reshape(-1)]
+    return np.minimum(i, j), np.maximum(i, j)  # an edge both ends found comes twice: harmless for the matching
+
+
+# ---------------------------------------------------------------------------------------------- costs
+
+
+def _energy(alpha: np.ndarray, col2: np.ndarray, cov: np.ndarray) -> np.ndarray:
+    """<f, f> of one splat's colour-premultiplied field a c G: a^2 |c|^2 pi^1.5 sqrt(det)."""
+    return _PI_1_5 * alpha * alpha * col2 * np.sqrt(np.maximum(_det6(cov), 1e-300))
+
+
+def edge_costs(mu, cov, alpha, col, w, i, j, rule: GroupRule) -> np.ndarray:
+    """Cost of merging clusters i and j (arrays of edges) under `rule`."""
+    wi, wj = w[i], w[j]
+    W = wi + wj
+    pi = wi / W
+    pj = 1 - pi
+    d = mu[i] - mu[j]
+    di = d * pj[:, None]
+    dj = -d * pi[:, None]
+    ci, cj = cov[i], cov[j]
+    cm = np.empty_like(ci)
+    for k, (a, b) in enumerate(_SYM6):
+        cm[:, k] = pi * (di[:, a] * di[:, b] + ci[:, k]) + pj * (dj[:, a] * dj[:, b] + cj[:, k])
+    cm[:, [0, 3, 5]] += 1e-20
+    sdm = np.sqrt(np.maximum(_det6(cm), 1e-300))
+    area_m = np.maximum(_area6(cm), 1e-300)
+    am = np.minimum(1.0, W / area_m)
+    sdi = np.sqrt(np.maximum(_det6(ci), 1e-300))
+    sdj = np.sqrt(np.maximum(_det6(cj), 1e-300))
+    bi, bj = col[i], col[j]
+    bij = np.einsum("ij,ij->i", bi, bj)
+    bni, bnj = np.einsum("ij,ij->i", bi, bi), np.einsum("ij,ij->i", bj, bj)
+    bim, bjm = pi * bni + pj * bij, pi * bij + pj * bnj
+    bnm = pi * pi * bni + 2 * pi * pj * bij + pj * pj * bnj
+    ai, aj = alpha[i], alpha[j]
+
+    def cross(sda, sdb, csum, dd):
+        q, det = _quad6(csum, dd)
+        return _TWO_PI_1_5 * sda * sdb / np.sqrt(det) * np.exp(-0.5 * q)
+
+    if rule.proj:
+        e = np.zeros(len(i))
+        self_i = np.zeros(len(i))
+        self_j = np.zeros(len(i))
+        for (u, v), (kuu, kuv, kvv) in _PLANES:
+            def c2(c, kuu=kuu, kuv=kuv, kvv=kvv):
+                return c[:, kuu], c[:, kuv], c[:, kvv]
+
+            def det2(c):
+                a, b, cc = c
+                return np.maximum(a * cc - b * b, 1e-300)
+
+            def cross2(ca, cb, dd, u=u, v=v):
+                a, b, cc = ca[0] + cb[0], ca[1] + cb[1], ca[2] + cb[2]
+                det = np.maximum(a * cc - b * b, 1e-300)
+                du, dv = dd[:, u], dd[:, v]
+                q = (cc * du * du - 2 * b * du * dv + a * dv * dv) / det
+                return 2 * math.pi * np.sqrt(det2(ca) * det2(cb) / det) * np.exp(-0.5 * q)
+
+            pi_, pj_, pm_ = c2(ci), c2(cj), c2(cm)
+            si = math.pi * ai * ai * bni * np.sqrt(det2(pi_))
+            sj = math.pi * aj * aj * bnj * np.sqrt(det2(pj_))
+            self_i += si
+            self_j += sj
+            e += (si + sj + math.pi * am * am * bnm * np.sqrt(det2(pm_))
+                  + 2 * ai * aj * bij * cross2(pi_, pj_, d)
+                  - 2 * ai * am * bim * cross2(pi_, pm_, di)
+                  - 2 * aj * am * bjm * cross2(pj_, pm_, dj))
+    else:
+        self_i = _PI_1_5 * ai * ai * bni * sdi
+        self_j = _PI_1_5 * aj * aj * bnj * sdj
+        e = (self_i + self_j + _PI_1_5 * am * am * bnm * sdm
+             + 2 * ai * aj * bij * cross(sdi, sdj, ci + cj, d)
+             - 2 * ai * am * bim * cross(sdi, sdm, ci + cm, di)
+             - 2 * aj * am * bjm * cross(sdj, sdm, cj + cm, dj))
+    return np.maximum(e, 0.0) + rule.colour * COLOUR_WEIGHT * np.maximum(bni + bnj - 2 * bij, 0.0)
+
+
+# ---------------------------------------------------------------------------------------------- matching
+
+
+def _greedy_pairs(count: int, i: np.ndarray, j: np.ndarray, cost: np.ndarray, quota: int,
+                  passes: int = 12) -> tuple[np.ndarray, np.ndarray]:
+    """About the cheapest matching of at most `quota` pairs: in repeated passes every free node takes its cheapest
+    edge to a free node, and pairs whose two nodes took each other are matched (cheapest first if over quota)."""
+    ii = np.concatenate([i, j])
+    jj = np.concatenate([j, i])
+    cc = np.concatenate([cost, cost])
+    order = np.lexsort((jj, ii, cc))  # by cost, ties by ids: the same pairs on every machine
+    ii, jj, cc = ii[order], jj[order], cc[order]
+    free = np.ones(count, bool)
+    got_a, got_b = [], []
+    matched = 0
+    ids = np.arange(count)
+    for _ in range(passes):
+        live = free[ii] & free[jj]
+        if not live.any() or matched >= quota:
+            break
+        ii, jj, cc = ii[live], jj[live], cc[live]
+        best = np.full(count, -1)
+        best[ii[::-1]] = jj[::-1]  # the first (cheapest) live edge of each node
+        best_cost = np.full(count, np.inf)
+        best_cost[ii[::-1]] = cc[::-1]
+        ok = best >= 0
+        mutual = ok & (best[np.where(ok, best, 0)] == ids) & (ids < best)
+        pa = np.flatnonzero(mutual)
+        if not len(pa):
+            break
+        pb = best[pa]
+        if matched + len(pa) > quota:
+            keep = np.sort(np.argsort(best_cost[pa], kind="stable")[:quota - matched])
+            pa, pb = pa[keep], pb[keep]
+        free[pa] = free[pb] = False
+        got_a.append(pa)
+        got_b.append(pb)
+        matched += len(pa)
+    if not got_a:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return np.concatenate(got_a), np.concatenate(got_b)
+
+
+def _cheapest_share(i, j, cost, take: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The edges whose cost is among the cheapest: a matching of `take` pairs needs about 2 take edges offered
+    (each node's cheapest), so edges above the cost of the (4 take)-th cheapest are dropped."""
+    limit = min(len(cost), 4 * take)
+    if limit < len(cost):
+        thr = np.partition(cost, limit - 1)[limit - 1]
+        keep = cost <= thr
+        return i[keep], j[keep], cost[keep]
+    return i, j, cost
+
+
+# ---------------------------------------------------------------------------------------------- grouping
+
+
+def _merge_pairs(state: dict, pa: np.ndarray, pb: np.ndarray) -> None:
+    mu, cov, alpha, col, w = state["mu"], state["cov"], state["alpha"], state["col"], state["w"]
+    wa, wb = w[pa], w[pb]
+    ws = wa + wb
+    fa, fb = wa / ws, wb / ws
+    d = mu[pa] - mu[pb]
+    da, db = d * fb[:, None], -d * fa[:, None]
+    cm = np.empty((len(pa), 6))
+    for c, (a, b) in enumerate(_SYM6):
+        cm[:, c] = fa * (da[:, a] * da[:, b] + cov[pa, c]) + fb * (db[:, a] * db[:, b] + cov[pb, c])
+    mu[pa] = mu[pa] * fa[:, None] + mu[pb] * fb[:, None]
+    col[pa] = col[pa] * fa[:, None] + col[pb] * fb[:, None]
+    cov[pa] = cm
+    alpha[pa] = np.minimum(1.0, ws / np.maximum(_area6(cm), 1e-300))
+    w[pa] = ws
+
+
+def _drop(state: dict, label: np.ndarray, pa: np.ndarray, pb: np.ndarray) -> np.ndarray:
+    count = len(state["w"])
+    alive = np.ones(count, bool)
+    alive[pb] = False
+    into = np.arange(count)
+    into[pb] = pa
+    new_id = np.cumsum(alive) - 1
+    for key in ("mu", "cov", "alpha", "col", "w"):
+        state[key] = state[key][alive]
+    return new_id[into[label]]
+
+
+def _morton_finish(state: dict, label: np.ndarray, target: int) -> np.ndarray:
+    """Merge Morton-adjacent clusters, nearest pairs first, until `target` remain (always reaches it)."""
+    while len(state["w"]) > target:
+        count = len(state["w"])
+        order = np.argsort(morton_codes(state["mu"]), kind="stable")
+        a, b = order[:-1], order[1:]
+        d2 = ((state["mu"][a] - state["mu"][b]) ** 2).sum(axis=1)
+        pa, pb = _greedy_pairs(count, a, b, d2, count - target)
+        if not len(pa):  # cannot happen with count >= 2 (the cheapest adjacent pair is mutual)
+            pa, pb = a[:1], b[:1]
+        _merge_pairs(state, pa, pb)
+        label = _drop(state, label, pa, pb)
+    return label
+
+
+def group_ids(positions: np.ndarray, log_scales: np.ndarray, rotations: np.ndarray, opacities: np.ndarray,
+              colours: np.ndarray, masses: np.ndarray, target: int, rule: GroupRule = DEFAULT_RULE,
+              edges: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+    """Group id (0 .. target-1) of every splat: exactly min(target, n) groups, a partition of the splats.
+
+    positions (N, 3), log_scales (N, 3), rotations (N, 4) unit (w, x, y, z), opacities (N,) linear alpha,
+    colours (N, 3) base colour (0.5 + C0 * SH band 0), masses (N,) the merge weights carried up the tree
+    (lod.splat_mass of the originals). Deterministic: a function of the arrays only. Ids follow the Morton order
+    of the groups' mass-weighted centres. `edges`: neighbour_edges(positions, rule.neighbours), when known."""
+    n = len(positions)
+    target = max(1, int(target))
+    if target >= n:
+        return np.arange(n, dtype=np.int64)
+    p = positions.astype(np.float64)
+    origin = p.mean(axis=0)
+    state = {"mu": p - origin, "cov": covariances6(rotations, log_scales),
+             "alpha": np.clip(opacities.astype(np.float64), 0.0, 1.0), "col": colours.astype(np.float64).copy(),
+             "w": masses.astype(np.float64) + 1e-30}
+    label = np.arange(n)
+    size = np.ones(n, np.int64)
+    # The neighbour graph of the level's splats, found once: a cluster's candidates are its members' neighbours.
+    ei, ej = edges if edges is not None else neighbour_edges(state["mu"], rule.neighbours)
+    key = np.unique(ei * n + ej)
+    ei, ej = key // n, key % n
+    # Each edge's cost, kept while neither cluster at its ends changes (NaN: not known yet).
+    ecost = np.full(len(ei), np.nan)
+    # Caps grow with the reduction (a 4x level needs groups of 4 on average): pairs first means groups of about
+    # n / target, the cap twice that.
+    ratio = max(1, round(n / target))
+    first_cap = max(rule.first_cap, ratio) if rule.first_cap else 0
+    max_group = max(rule.max_group, 2 * ratio) if rule.max_group else 0
+    stages = [(first_cap, target + math.floor((n - target) * (1.0 - rule.first_share)))] if first_cap else []
+    for cap, stage_target in stages + [(max_group, target)]:
+        for _ in range(rule.max_rounds):
+            count = len(state["w"])
+            if count <= stage_target:
+                break
+            i, j = label[ei], label[ej]
+            live = i != j
+            ei, ej, i, j, ecost = ei[live], ej[live], i[live], j[live], ecost[live]
+            ok = size[i] + size[j] <= cap if cap else np.ones(len(i), bool)
+            todo = ok & np.isnan(ecost)
+            ecost[todo] = edge_costs(state["mu"], state["cov"], state["alpha"], state["col"], state["w"], i[todo],
+                                     j[todo], rule)
+            ecost[todo & ~np.isfinite(ecost)] = np.finfo(np.float64).max
+            ci, cj, cost = i[ok], j[ok], ecost[ok]
+            if not len(ci):
+                break
+            need = count - stage_target
+            take = need if rule.share >= 1 else max(1, math.ceil(need * rule.share))
+            ci, cj, cost = _cheapest_share(ci, cj, cost, take)
+            pa, pb = _greedy_pairs(count, ci, cj, cost, take)
+            if not len(pa):
+                break
+            _merge_pairs(state, pa, pb)
+            size[pa] += size[pb]
+            changed = np.zeros(count, bool)
+            changed[pa] = changed[pb] = True
+            ecost[changed[i] | changed[j]] = np.nan
+            alive = np.ones(count, bool)
+            alive[pb] = False
+            size = size[alive]
+            label = _drop(state, label, pa, pb)
+    label = _morton_finish(state, label, target)
+    groups = len(state["w"])
+    rank = np.empty(groups, np.int64)
+    rank[np.argsort(morton_codes(state["mu"]), kind="stable")] = np.arange(groups)
+    return rank[label]
+
+
+def group_runs(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(order, starts) of group ids, as lod.merge_groups takes them: members of group g are order[starts[g]:...]."""
+    order = np.argsort(ids, kind="stable")
+    starts = np.concatenate([[0], np.flatnonzero(np.diff(ids[order])) + 1])
+    return order, starts
+
+
+def _field_dot(ai, ci, covi, mui, aj, cj, covj, muj, proj: bool) -> np.ndarray:
+    """<a_i c_i G_i, a_j c_j G_j> per row (summed over the colour channels): in 3D, or summed over the three
+    axis-aligned projections."""
+    amp = ai * aj * np.einsum("ij,ij->i", ci, cj)
+    d = mui - muj
+    if not proj:
+        q, det = _quad6(covi + covj, d)
+        sdi = np.sqrt(np.maximum(_det6(covi), 1e-300))
+        sdj = np.sqrt(np.maximum(_det6(covj), 1e-300))
+        return amp * _TWO_PI_1_5 * sdi * sdj / np.sqrt(det) * np.exp(-0.5 * q)
+    out = np.zeros(len(ai))
+    for (u, v), (kuu, kuv, kvv) in _PLANES:
+        a1, b1, c1 = covi[:, kuu], covi[:, kuv], covi[:, kvv]
+        a2, b2, c2 = covj[:, kuu], covj[:, kuv], covj[:, kvv]
+        a, b, c = a1 + a2, b1 + b2, c1 + c2
+        det = np.maximum(a * c - b * b, 1e-300)
+        d1 = np.maximum(a1 * c1 - b1 * b1, 1e-300)
+        d2 = np.maximum(a2 * c2 - b2 * b2, 1e-300)
+        du, dv = d[:, u], d[:, v]
+        q = (c * du * du - 2 * b * du * dv + a * dv * dv) / det
+        out += 2 * math.pi * np.sqrt(d1 * d2 / det) * np.exp(-0.5 * q)
+    return amp * out
+
+
+def group_errors(positions, log_scales, rotations, opacities, colours, masses, ids, proj: bool = True,
+                 max_offset: int = 16) -> np.ndarray:
+    """Per group: the squared L2 norm of (sum of its members' colour-premultiplied fields - the merged splat's),
+    the merged splat moment-matched with weights `masses`, opacity mass / area (capped at 1). Member pairs further
+    than `max_offset` apart in the group's member list are left out (large groups)."""
+    n = len(positions)
+    order = np.argsort(ids, kind="stable")
+    sid = ids[order]
+    groups = int(ids.max()) + 1 if n else 0
+    p = positions.astype(np.float64)[order]
+    p -= p.mean(axis=0) if n else 0.0
+    cov = covariances6(rotations[order], log_scales[order])
+    a = np.clip(opacities.astype(np.float64)[order], 0.0, 1.0)
+    c = colours.astype(np.float64)[order]
+    w = masses.astype(np.float64)[order] + 1e-30
+    W = np.bincount(sid, weights=w, minlength=groups)
+    f = w / W[sid]
+    mu = np.stack([np.bincount(sid, weights=f * p[:, k], minlength=groups) for k in range(3)], 1)
+    dm = p - mu[sid]
+    cm = np.empty((groups, 6))
+    for k, (x, y) in enumerate(_SYM6):
+        cm[:, k] = np.bincount(sid, weights=f * (dm[:, x] * dm[:, y] + cov[:, k]), minlength=groups)
+    cm[:, [0, 3, 5]] += 1e-20
+    am = np.minimum(1.0, W / np.maximum(_area6(cm), 1e-300))
+    col_m = np.stack([np.bincount(sid, weights=f * c[:, k], minlength=groups) for k in range(3)], 1)
+    err = np.bincount(sid, weights=_field_dot(a, c, cov, p, a, c, cov, p, proj), minlength=groups)
+    err -= 2 * np.bincount(sid, weights=_field_dot(a, c, cov, p, am[sid], col_m[sid], cm[sid], mu[sid], proj),
+                           minlength=groups)
+    err += _field_dot(am, col_m, cm, mu, am, col_m, cm, mu, proj)
+    for off in range(1, max_offset + 1):
+        x = np.arange(n - off)
+        same = sid[x] == sid[x + off]
+        if not same.any():
+            break
+        x = x[same]
+        y = x + off
+        err += 2 * np.bincount(sid[x], weights=_field_dot(a[x], c[x], cov[x], p[x], a[y], c[y], cov[y], p[y], proj),
+                               minlength=groups)
+    return np.maximum(err, 0.0)
+
+
+# ---------------------------------------------------------------------------------------------- the rendered proxy
+
+PROXY_MAX_RADIUS = 12  # px: footprints of (2 r + 1)^2 pixels, r = 3 sigma of the projected splat, at most this
+PROXY_LOW_PASS = 0.3  # px^2, as the 3DGS rasteriser
+PROXY_ALPHA_MAX = 0.99
+PROXY_ALPHA_MIN = 1.0 / 255.0
+
+
+def proxy_views(positions: np.ndarray, cov: np.ndarray, alpha: np.ndarray, colours: np.ndarray, box: tuple,
+                size: int) -> np.ndarray:
+    """(6, size, size, 3) orthographic renders along -x, +x, -y, +y, -z, +z over `box` (lo, hi): each splat's
+    footprint (its covariance projected, plus the rasteriser's low-pass) on the (2r+1)^2 pixels around its centre
+    (r: 3 sigma, at most PROXY_MAX_RADIUS),
+    alpha-composited front to back per pixel, black background. A coarse numpy stand-in for the GL renderer, used
+    to choose between groupings."""
+    lo, hi = (np.asarray(b, np.float64) for b in box)
+    out = np.zeros((6, size, size, 3))
+    col = np.maximum(colours, 0.0)
+    for axis, ((u, v), (kuu, kuv, kvv)) in enumerate(_PLANES):
+        h = max(float(hi[u] - lo[u]), float(hi[v] - lo[v]), 1e-30) / size
+        cu = (positions[:, u] - lo[u]) / h
+        cv = (positions[:, v] - lo[v]) / h
+        a = cov[:, kuu] / (h * h) + PROXY_LOW_PASS
+        b = cov[:, kuv] / (h * h)
+        c = cov[:, kvv] / (h * h) + PROXY_LOW_PASS
+        det = np.maximum(a * c - b * b, 1e-30)
+        ia, ib, ic = c / det, -b / det, a / det
+        mid = 0.5 * (a + c)
+        lam = mid + np.sqrt(np.maximum(0.1, mid * mid - det))
+        radius = np.clip(np.ceil(3.0 * np.sqrt(lam)), 1, PROXY_MAX_RADIUS).astype(np.int64)
+        parts = []
+        for r in np.unique(radius):  # one stencil per radius: (2r+1)^2 pixels around the centre
+            sel = np.flatnonzero(radius == r)
+            off = np.arange(-r, r + 1)
+            ox, oy = (t.reshape(-1) for t in np.meshgrid(off, off, indexing="ij"))
+            px = np.floor(cu[sel]).astype(np.int64)[:, None] + ox[None, :]
+            py = np.floor(cv[sel]).astype(np.int64)[:, None] + oy[None, :]
+            du = px + 0.5 - cu[sel, None]
+            dv = py + 0.5 - cv[sel, None]
+            power = -0.5 * (ia[sel, None] * du * du + ic[sel, None] * dv * dv) - ib[sel, None] * du * dv
+            fa = np.minimum(PROXY_ALPHA_MAX, alpha[sel, None] * np.exp(power))
+            keep = (fa >= PROXY_ALPHA_MIN) & (px >= 0) & (px < size) & (py >= 0) & (py < size)
+            parts.append((np.broadcast_to(sel[:, None], keep.shape)[keep], (py * size + px)[keep], fa[keep]))
+        splat = np.concatenate([t[0] for t in parts])
+        pix = np.concatenate([t[1] for t in parts])
+        fa = np.concatenate([t[2] for t in parts])
+        n = len(positions)
+        for view, sign in enumerate((1.0, -1.0)):  # looking along -axis (nearest: largest coordinate) and +axis
+            rank = np.empty(n, np.int64)  # depth rank, ties by index: one int64 key sorts fragments front to back
+            rank[np.argsort(-sign * positions[:, axis], kind="stable")] = np.arange(n)
+            order = np.argsort(pix * n + rank[splat])
+            p_, a_ = pix[order], fa[order]
+            la = np.log1p(-a_)
+            cs = np.cumsum(la)
+            first = np.concatenate([[True], p_[1:] != p_[:-1]])
+            seg = np.cumsum(first) - 1
+            base = (cs - la)[first]  # exclusive cumulative sum at each pixel's first fragment
+            trans = np.exp(cs - la - base[seg])
+            wgt = a_ * trans
+            img = out[2 * axis + view].reshape(-1, 3)
+            for k in range(3):
+                img[:, k] = np.bincount(p_, weights=wgt * col[splat[order], k], minlength=size * size)
+    return out
+
+
+def _moments(p, cov, alpha, col, w, ids, groups):
+    """Moment-matched Gaussians of the groups (mean, six, opacity mass / area capped at 0.99, mean colour)."""
+    W = np.bincount(ids, weights=w, minlength=groups)
+    f = w / W[ids]
+    mu = np.stack([np.bincount(ids, weights=f * p[:, k], minlength=groups) for k in range(3)], 1)
+    dm = p - mu[ids]
+    cm = np.empty((groups, 6))
+    for k, (x, y) in enumerate(_SYM6):
+        cm[:, k] = np.bincount(ids, weights=f * (dm[:, x] * dm[:, y] + cov[:, k]), minlength=groups)
+    single = np.bincount(ids, minlength=groups) == 1
+    am = np.minimum(PROXY_ALPHA_MAX, W / np.maximum(_area6(cm), 1e-300))
+    am[single] = np.bincount(ids, weights=alpha, minlength=groups)[single]
+    cl = np.stack([np.bincount(ids, weights=f * col[:, k], minlength=groups) for k in range(3)], 1)
+    return mu, cm, am, cl
+
+
+HYBRID_RULES = (GroupRule(proj=1, max_group=4), GroupRule(proj=1, first_cap=2, max_group=4))
+
+
+def hybrid_group_ids(positions: np.ndarray, log_scales: np.ndarray, rotations: np.ndarray, opacities: np.ndarray,
+                     colours: np.ndarray, masses: np.ndarray, target: int, rules: tuple = HYBRID_RULES,
+                     grid: bool = True, size: int = 0) -> tuple[np.ndarray, int]:
+    """The best of several groupings (each rule of `rules` and, with `grid`, the Morton grid) by the rendered
+    proxy: the level's splats and each candidate's merged splats drawn by proxy_views (6 axis views, `size` px,
+    default 2 sqrt(target) within 64..128) and compared by squared error. Returns the ids and the index of the
+    chosen candidate (rules first, then the grid)."""
+    n = len(positions)
+    target = max(1, int(target))
+    if target >= n:
+        return np.arange(n, dtype=np.int64), 0
+    p = positions.astype(np.float64)
+    cov = covariances6(rotations, log_scales)
+    alpha = np.clip(opacities.astype(np.float64), 0.0, 1.0)
+    col = colours.astype(np.float64)
+    w = masses.astype(np.float64) + 1e-30
+    size = size or int(min(128, max(64, 2 * math.sqrt(target))))
+    box = (p.min(axis=0), p.max(axis=0))
+    ref = proxy_views(p, cov, alpha, col, box, size)
+    edges = {}
+    cands = []
+    for r in rules:  # rules of the same K share the neighbour graph
+        if r.neighbours not in edges:
+            edges[r.neighbours] = neighbour_edges(p - p.mean(axis=0), r.neighbours)
+        cands.append(group_ids(positions, log_scales, rotations, opacities, colours, masses, target, r,
+                               edges[r.neighbours]))
+    if grid:
+        order, starts = grid_group_starts(positions, target)
+        ids = np.empty(n, np.int64)
+        ids[order] = np.repeat(np.arange(len(starts)), np.diff(np.append(starts, n)))
+        if len(starts) == target:  # the grid can fall short of the count (too few cells to split)
+            cands.append(ids)
+    errs = []
+    for ids in cands:
+        groups = int(ids.max()) + 1
+        mu, cm, am, cl = _moments(p, cov, alpha, col, w, ids, groups)
+        errs.append(float(np.mean((proxy_views(mu, cm, am, cl, box, size) - ref) ** 2)))
+    best = int(np.argmin(errs))
+    return cands[best], best
