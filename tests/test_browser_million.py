@@ -1,24 +1,23 @@
 """A million-splat scene, exported to streamed SOG (`export-sog-lod`) and to RAD (`export-rad`), drawn by PlayCanvas's
-engine and by Spark in headless Chromium (software WebGL) with their own LOD and budgets: from the scene's camera
-and from 40x as far, where each must draw fewer splats (PlayCanvas: no level-0 unit fetched; Spark: fewer chunks
-fetched). The donut's tests (test_playcanvas_browser.py, test_spark_browser.py) check the same at full detail.
+engine and by Spark in headless Chromium (software WebGL) with their own LOD and budgets, each matching our render
+of the same camera (drawn-pixel IoU >= 0.95, PSNR >= 25 dB, as the donut's tests): from half the scene's suggested
+camera distance ("near"), and from 40x the suggested distance, where each must draw fewer splats (PlayCanvas: no
+level-0 unit fetched; Spark: fewer chunks fetched). The donut's tests (test_playcanvas_browser.py,
+test_spark_browser.py) check the same at full detail.
 
 The scene is made at test time, deterministically: tests/tools/make_scene.py (the shared data's generator, run over
 the bundled scenes) with `--splats 1000000 --seed 0 --sh-degree 0` (copies of the four real scenes over a ground,
 z up; SH degree 0 keeps the browsers' software WebGL and our llvmpipe render quick), encoded once per session
 (module fixture, in pytest's tmp) with 2,000-splat leaves, then exported once each (RAD with `--encoding spark`,
-Spark's own 8-bit encodings). Pages, server and comparison: tests/browser.py, at a 160x120 canvas.
+Spark's own 8-bit encodings). Pages, server and comparison: tests/browser.py.
 
-Not met yet (issue 35's "matching our render"): each engine's picture of this scene against our render of the
-same camera (drawn-pixel IoU >= 0.95, PSNR >= 25 dB, as the donut meets) is reported as an expected failure with
-its numbers. At this canvas most splats are sub-pixel, where the engines draw unlike 3DGS by default: PlayCanvas
-culls splats under 2 px across (minPixelSize) and Spark compensates opacity for its low-pass (for antialiased
-training); the pages set both to 3DGS's way here (PLAYCANVAS_QUERY, SPARK_QUERY), which lifts PlayCanvas from IoU
-0.65 / 18.7 dB to 0.71 / 20.2 dB and Spark from 0.74 / 19.2 dB to 0.85 / 21.7 dB. The rest is not the LOD
-(PlayCanvas at full detail, all 1M splats, matches no better: 0.72 / 20.4 dB) and not our render (it equals our
-numpy reference rasteriser on the same splats, 72.6 dB); a single copy of the donut as make_scene places it
-(45,624 splats) matches at IoU 0.95, 23.8 dB in PlayCanvas, its thin sprinkles drawn thinner. BENCHMARKS.md, "1M
-scene in PlayCanvas and Spark".
+The canvas is 640x480 and the near camera at half the suggested distance because the match depends on how many
+pixels a splat covers: both engines draw a Gaussian slightly unlike 3DGS (PlayCanvas's falloff is renormalised to
+reach zero at 2.83 sigma; both cull splats under 2 px or compensate opacity by default, which the pages set to
+3DGS's way: PLAYCANVAS_QUERY, SPARK_QUERY), which shows at objects' faint edges, and at a small canvas most splats
+are sub-pixel and most drawn pixels are edges. From the suggested camera at 160x120 PlayCanvas matched at IoU 0.71
+/ 20.2 dB and Spark 0.85 / 21.7 dB; here 0.96 / 27 dB and 0.99 / 30 dB. BENCHMARKS.md, "1M scene in PlayCanvas
+and Spark", has every setting measured.
 """
 from __future__ import annotations
 
@@ -38,12 +37,13 @@ PLAYCANVAS = NODE_MODULES / "playcanvas" / "build"
 SPARK = NODE_MODULES / "@sparkjsdev" / "spark"
 THREE = NODE_MODULES / "three"
 SPLATS = 1_000_000
-SIZE = (160, 120)
+SIZE = (640, 480)
+NEAR = 0.5  # times the suggested camera's distance: the near view's camera
 MIN_IOU = 0.95
 MIN_PSNR_DB = 25.0
 FAR = 40.0  # times the suggested camera's distance
 # Standard 3DGS drawing in each engine (see the pages): PlayCanvas culls splats under 2 px across by default, and
-# Spark's default low-pass compensates opacity (for antialiased training); at this canvas most splats are sub-pixel.
+# Spark's default low-pass compensates opacity (for antialiased training); both dim or drop the sub-pixel splats.
 PLAYCANVAS_QUERY = {"minpx": 0}
 SPARK_QUERY = {"preblur": 0.3, "blur": 0}
 # Leaves of 2,000 splats, as the donut's tests: export-rad's nearest-parent search costs a tile's splats times its
@@ -72,18 +72,11 @@ def million(tmp_path_factory):
         steps[name] = time.perf_counter() - t
     ply.unlink()
     t = time.perf_counter()
-    query, ours = scene_camera(work / "scene")
+    query, ours = scene_camera(work / "scene", NEAR)
     render_ours(work / "scene", work / "ours.png", SIZE, ours)
     steps["render (ours)"] = time.perf_counter() - t
     print("million: " + ", ".join(f"{k} {v:.1f} s" for k, v in steps.items()))
     return work, query
-
-
-def matches_or_known_gap(engine: str, iou: float, psnr: float) -> None:
-    """The donut's thresholds; below them, an expected failure with the numbers (see the module's docstring)."""
-    if iou < MIN_IOU or psnr < MIN_PSNR_DB:
-        pytest.xfail(f"{engine} draws the 1M scene unlike our render: IoU {iou:.3f}, PSNR {psnr:.1f} dB "
-                     f"(need {MIN_IOU}, {MIN_PSNR_DB} dB; BENCHMARKS.md, '1M scene in PlayCanvas and Spark')")
 
 
 def test_playcanvas_streams_the_million_with_its_lod(million, tmp_path):
@@ -108,10 +101,10 @@ def test_playcanvas_streams_the_million_with_its_lod(million, tmp_path):
     print(f"million in PlayCanvas: near IoU {iou:.3f}, PSNR {psnr:.1f} dB, {result['splats']} splats drawn of "
           f"{meta['counts']}, units {result['units']}, {near_s:.1f} s; far {far_result['splats']} splats, units "
           f"{far_result['units']}, {far_s:.1f} s; {report['gl']}")
-    assert 0 < result["splats"] <= SPLATS and iou > 0.5  # the scene is drawn where ours is
+    assert 0 < result["splats"] <= SPLATS
     assert 0 < far_result["splats"] < result["splats"]
     assert not any(u.startswith("0_") for u in far_result["units"])  # no level-0 unit was even fetched
-    matches_or_known_gap("PlayCanvas", iou, psnr)
+    assert iou >= MIN_IOU and psnr >= MIN_PSNR_DB, (iou, psnr)
 
 
 def test_spark_streams_the_million_with_its_lod(million, tmp_path):
@@ -144,7 +137,7 @@ def test_spark_streams_the_million_with_its_lod(million, tmp_path):
     print(f"million in Spark: near IoU {iou:.3f}, PSNR {psnr:.1f} dB, {result['splats']} splats drawn of {leaves} "
           f"leaves ({len(tree.splats)} in the tree), chunks {near_chunks} of {chunks}, {near_s:.1f} s; far "
           f"{far_result['splats']} splats, chunks {far_chunks}, {far_s:.1f} s")
-    assert 0 < result["splats"] < leaves and iou > 0.5  # the scene is drawn where ours is, by Spark's LoD cut
+    assert 0 < result["splats"] < leaves  # Spark's LoD cut
     assert 0 < far_result["splats"] < result["splats"]
     assert 0 in far_chunks and len(far_chunks) < len(near_chunks) <= chunks
-    matches_or_known_gap("Spark", iou, psnr)
+    assert iou >= MIN_IOU and psnr >= MIN_PSNR_DB, (iou, psnr)
