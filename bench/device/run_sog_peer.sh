@@ -75,8 +75,9 @@ if [ "${1:-}" = pack ]; then
   # SOG encode of fruit_drops with -g cpu --max-workers 2 and --list-gpus run from this set.
   # NO_DAWN=1: without webgpu's Dawn (about 4 MB of the carry): the k-means then runs on the CPU there (-g cpu,
   # one worker per core), for a carry that would otherwise be over the limit. Tried with flowers on nvidia-h200-x2
-  # (32 cores, 2026-11-28): not finished within the call's 600 s (Dawn's absence aside, that machine listed no
-  # WebGPU adapter to this carry's earlier probes either), so flowers' SOG point is still missing.
+  # (32 cores, 2026-11-28): the CPU k-means had not finished when the call's 600 s ran out, so flowers' SOG point
+  # is still missing; with Dawn the carry is about 0.6 MB over the limit (whether Dawn finds an adapter there is
+  # not known yet).
   for p in @playcanvas/splat-transform $([ -n "${NO_DAWN:-}" ] || echo webgpu) debug ms; do
     mkdir -p "$tmp/node_modules/$(dirname "$p")"
     cp -r "$nm/$p" "$tmp/node_modules/$p"
