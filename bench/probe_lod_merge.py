@@ -24,6 +24,7 @@ import numpy as np
 from splatstream import lod
 from splatstream.gaussians import Gaussians, rotation_matrices
 from splatstream.lod import _group_starts, _morton
+from splatstream.lod_groups import _area6, _quad6  # the closed forms the grouping module holds
 
 MERGE_NEIGHBOURS = 5
 MERGE_COST = "l2"
@@ -40,39 +41,6 @@ _PI_1_5 = math.pi ** 1.5
 def _det6(c: np.ndarray) -> np.ndarray:
     xx, xy, xz, yy, yz, zz = (c[:, k] for k in range(6))
     return xx * (yy * zz - yz * yz) - xy * (xy * zz - yz * xz) + xz * (xy * yz - yy * xz)
-
-
-def _quad6(c: np.ndarray, d: np.ndarray) -> np.ndarray:
-    """d^T C^-1 d for symmetric 3x3 C stored as (xx, xy, xz, yy, yz, zz)."""
-    xx, xy, xz, yy, yz, zz = (c[:, k] for k in range(6))
-    c00, c01, c02 = yy * zz - yz * yz, xz * yz - xy * zz, xy * yz - xz * yy
-    c11, c12, c22 = xx * zz - xz * xz, xy * xz - xx * yz, xx * yy - xy * xy
-    det = np.maximum(xx * c00 + xy * c01 + xz * c02, 1e-300)
-    dx, dy, dz = d[:, 0], d[:, 1], d[:, 2]
-    q = c00 * dx * dx + c11 * dy * dy + c22 * dz * dz + 2 * (c01 * dx * dy + c02 * dx * dz + c12 * dy * dz)
-    return q / det, det
-
-
-def _eig6(c: np.ndarray) -> np.ndarray:
-    """(N, 3) eigenvalues of symmetric 3x3 matrices (closed form)."""
-    xx, xy, xz, yy, yz, zz = (c[:, k] for k in range(6))
-    q = (xx + yy + zz) / 3
-    p1 = xy * xy + xz * xz + yz * yz
-    p2 = (xx - q) ** 2 + (yy - q) ** 2 + (zz - q) ** 2 + 2 * p1
-    p = np.sqrt(np.maximum(p2 / 6, 1e-300))
-    b00, b11, b22 = (xx - q) / p, (yy - q) / p, (zz - q) / p
-    b01, b02, b12 = xy / p, xz / p, yz / p
-    det_b = b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02)
-    phi = np.arccos(np.clip(det_b / 2, -1, 1)) / 3
-    e0 = q + 2 * p * np.cos(phi)
-    e2 = q + 2 * p * np.cos(phi + 2 * math.pi / 3)
-    e1 = 3 * q - e0 - e2
-    return np.maximum(np.stack([e0, e1, e2], 1), 1e-300)
-
-
-def _area6(c: np.ndarray) -> np.ndarray:
-    s = np.sqrt(_eig6(c))
-    return s[:, 0] * s[:, 1] + s[:, 1] * s[:, 2] + s[:, 0] * s[:, 2]
 
 
 def _field_l2_cost(mu, cov, alpha, w, col, i, j):

@@ -89,12 +89,7 @@ def encode_file(input_path: str | os.PathLike | Sequence[str | os.PathLike], out
     # a missing, unreadable or unknown input fails before any output or progress
     sources = [open_input(p) for p in _paths(input_path)]
     source = sources[0]
-    out = os.fspath(out_dir)
-    if is_url(out):
-        _fsspec(out)
-    else:
-        out = local_path(out)
-        check_output(out, directory=True)
+    out = _checked_output(out_dir)
     if opts.up is None:  # a PLY header that names its up axis is believed before the scene's shape
         stated = _declared_up(sources)
         if stated is not None:
@@ -142,16 +137,22 @@ def encode_file(input_path: str | os.PathLike | Sequence[str | os.PathLike], out
 
 
 
+def _checked_output(out_dir: str | os.PathLike) -> str:
+    """The output directory or fsspec URL, checked before anything is written (fsspec present, path writable)."""
+    out = os.fspath(out_dir)
+    if is_url(out):
+        _fsspec(out)
+        return out
+    out = local_path(out)
+    check_output(out, directory=True)
+    return out
+
+
 def encode_built_tree(g: Gaussians, tiles: list[Tile], out_dir: str | os.PathLike, opts: EncodeOptions,
                       progress: Progress | None = None, source_name: str | None = None) -> Manifest:
     """Splats whose LOD tree is built already (a foreign tree kept as it is: sog_import, rad_import) encoded in
     memory into `out_dir` (a directory or an fsspec URL), as encode_file writes a scene."""
-    out = os.fspath(out_dir)
-    if is_url(out):
-        _fsspec(out)
-    else:
-        out = local_path(out)
-        check_output(out, directory=True)
+    out = _checked_output(out_dir)
     out_name = os.path.basename(os.path.abspath(out)) if not is_url(out) else out.rstrip("/").rsplit("/", 1)[-1]
     with open_writer(out) as writer:
         return encode_to(g, writer, opts, progress or no_progress, source_name, out_name, tiles=tiles)
