@@ -33,8 +33,8 @@ import numpy as np
 
 from .format.layout import morton_codes
 from .format.limits import MAX_LOG_SCALE, MIN_LOG_SCALE
-from .gaussians import Gaussians, normalize_quaternions, rotation_matrices
-from .lod_groups import grid_group_starts
+from .gaussians import SH_C0, Gaussians, normalize_quaternions, rotation_matrices
+from .lod_groups import GroupRule, grid_group_starts, group_ids, group_runs
 
 # Bounds and errors use this many standard deviations (the 3DGS rasteriser's cut-off and KHR "ellipse" kernel).
 EXTENT_SIGMAS = 3.0
@@ -61,7 +61,13 @@ MIN_TILES_FOR_SMALLEST = 1024
 MIN_TILE_SPLATS = 64
 MIN_LEAF_TILES = 32
 MIN_LEAF_TILE_SPLATS = 1024
-
+# The tree's merges (format_spec/lod.md 6): "grid" groups each tile's members by a uniform Morton grid, every tile
+# reduced by the same ratio; "cost" groups a whole tree level at once by merge cost (lod_groups.group_ids: field-L2
+# of the footprints projected along x, y and z plus a colour term, greedy matchings, at most max_group of the
+# level's splats per group), groups held inside the level's tiles, so the count each tile keeps is decided by
+# cost across the scene (the level's total is the grid's).
+LOD_MERGES = ("grid", "cost")
+COST_RULE = GroupRule(proj=1, max_group=4)
 Progress = Callable[[str, float], None]
 
 
@@ -263,6 +269,37 @@ def merge_groups(g: Gaussians, mass: np.ndarray, order: np.ndarray, starts: np.n
     assign = np.empty(n, np.int64)
     assign[order] = group_of
     return merged, merged_mass, assign
+
+
+def level_cost_groups(members: list[Gaussians], masses: list[np.ndarray], targets: list[int], cap: int,
+                      rule: GroupRule = COST_RULE) -> list[tuple[np.ndarray, np.ndarray]]:
+    """The "cost" merge of one tree level (LOD_MERGES): the groups of every tile's members (`members[t]`, carried
+    `masses[t]`), as (order, starts) runs for merge_groups. The level keeps sum(targets) splats in all; where they
+    go is decided by cost over the whole level (lod_groups.group_ids with the tiles as regions), not by a ratio per
+    tile. A tile left with more than `cap` groups takes the grid at `cap` instead (the tile size limit)."""
+    counts = np.array([len(m) for m in members], np.int64)
+    live = [t for t in range(len(members)) if counts[t]]
+    out: list[tuple[np.ndarray, np.ndarray]] = [(np.zeros(0, np.int64), np.zeros(0, np.int64))] * len(members)
+    if not live:
+        return out
+    cat = [members[t] for t in live]
+    pos = np.concatenate([m.positions for m in cat])
+    with np.errstate(over="ignore"):  # a logit below -709: exp overflows to inf, alpha is exactly 0
+        alpha = 1.0 / (1.0 + np.exp(-np.concatenate([m.opacity_logits for m in cat]).astype(np.float64)))
+    colours = 0.5 + SH_C0 * np.concatenate([m.sh_dc for m in cat]).astype(np.float64)
+    region = np.repeat(np.arange(len(live)), counts[live])
+    target = sum(max(1, min(targets[t], int(counts[t]))) for t in live)
+    ids = group_ids(pos, np.concatenate([m.log_scales for m in cat]), np.concatenate([m.rotations for m in cat]),
+                    alpha, colours, np.concatenate([masses[t] for t in live]), target, rule, region=region)
+    at = 0
+    for t in live:
+        own = ids[at:at + counts[t]]
+        at += int(counts[t])
+        order, starts = group_runs(own)
+        if len(starts) > cap:
+            order, starts = _group_starts(members[t].positions, cap)
+        out[t] = (order, starts)
+    return out
 
 
 # ---------------------------------------------------------------------------------------------- tree shape
@@ -588,13 +625,15 @@ class Subtree:
 
 
 def build_subtree(g: Gaussians, index: np.ndarray, shape: TreeShape, level: int = 0, position: int = 0,
-                  progress: Progress | None = None, reorder_input: bool = False, threads: int | None = None
-                  ) -> Subtree:
+                  progress: Progress | None = None, reorder_input: bool = False, threads: int | None = None,
+                  merge: str = "grid") -> Subtree:
     """The tiles under tile `position` of tile level `level` (the whole tree for level 0), from exactly that
-    subtree's splats `g`, whose global indices `index` are ascending (the input's order).
+    subtree's splats `g`, whose global indices `index` are ascending (the input's order). `merge`: LOD_MERGES.
 
     Leaves are slices of one array per attribute holding the splats in leaf order: a copy of `g` by default, or,
     with `reorder_input`, `g`'s own arrays reordered in place, which saves a copy."""
+    if merge not in LOD_MERGES:
+        raise ValueError(f"unknown LOD merge {merge!r} (one of {', '.join(LOD_MERGES)})")
     progress = progress or (lambda stage, fraction: None)
     kd0 = shape.kd_depths[level]
     leaves = _kd_leaves(g.positions, index, shape.depth - kd0, progress)
@@ -628,14 +667,23 @@ def build_subtree(g: Gaussians, index: np.ndarray, shape: TreeShape, level: int 
     total_merges = sum(span(lvl) for lvl in range(level, leaf_level))
     merges_done = 0
 
-    def merge_tile(lvl: int, tid: int, child_ids: list[int], kids: list[Tile], member_mass: np.ndarray,
-                   kid_reps: list[np.ndarray], first: int, end: int) -> tuple[Tile, np.ndarray, np.ndarray]:
-        """One interior tile from its children (pure: reads `ordered`, writes nothing shared)."""
-        a, b = int(leaf_starts[first]), int(leaf_starts[end])
+    def tile_members(lvl: int, kids: list[Tile], first: int, end: int) -> Gaussians:
         # Leaf children are adjacent slices of `ordered`: merge them in place instead of copying.
-        members = (_slice(ordered, a, b) if lvl == leaf_level - 1
-                   else Gaussians.concatenate([k.gaussians for k in kids]))
-        merged, merged_mass, assign = merge_gaussians(members, member_mass, shape.target(len(members)))
+        if lvl == leaf_level - 1:
+            return _slice(ordered, int(leaf_starts[first]), int(leaf_starts[end]))
+        return Gaussians.concatenate([k.gaussians for k in kids])
+
+    def merge_tile(lvl: int, tid: int, child_ids: list[int], kids: list[Tile], member_mass: np.ndarray,
+                   kid_reps: list[np.ndarray], first: int, end: int,
+                   groups: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[Tile, np.ndarray, np.ndarray]:
+        """One interior tile from its children (pure: reads `ordered`, writes nothing shared); `groups`: the
+        level's cost merge for this tile (level_cost_groups), else the grid."""
+        a, b = int(leaf_starts[first]), int(leaf_starts[end])
+        members = tile_members(lvl, kids, first, end)
+        if groups is None:
+            merged, merged_mass, assign = merge_gaussians(members, member_mass, shape.target(len(members)))
+        else:
+            merged, merged_mass, assign = merge_groups(members, member_mass, *groups)
         del members
         offsets = np.cumsum([0] + [len(k.gaussians) for k in kids])
         rep = assign[np.concatenate([r + offsets[k] for k, r in enumerate(kid_reps)])]
@@ -662,14 +710,25 @@ def build_subtree(g: Gaussians, index: np.ndarray, shape: TreeShape, level: int 
     with ThreadPoolExecutor(max_workers=max(1, threads or os.cpu_count() or 1)) as pool:
         for lvl in range(leaf_level - 1, level - 1, -1):
             jobs = []
+            level_tiles = []
             for j in range(span(lvl)):
                 tid = shape.tile_id(lvl, position * span(lvl) + j)
                 child_ids = shape.children(lvl, position * span(lvl) + j)
                 first, end = spans[child_ids[0]][0], spans[child_ids[-1]][1]
                 spans[tid] = (first, end)
+                level_tiles.append((tid, child_ids, first, end))
+            groups: list = [None] * len(level_tiles)
+            if merge == "cost":  # one grouping over the whole level (the tiles as regions), then merged per tile
+                sets = [tile_members(lvl, [tiles[c] for c in kids], first, end)
+                        for _, kids, first, end in level_tiles]
+                groups = level_cost_groups(sets, [np.concatenate([masses[c] for c in kids])
+                                                  for _, kids, _, _ in level_tiles],
+                                           [shape.target(len(m)) for m in sets], shape.max_leaf_splats)
+                del sets
+            for (tid, child_ids, first, end), grp in zip(level_tiles, groups, strict=True):
                 jobs.append(pool.submit(merge_tile, lvl, tid, child_ids, [tiles[c] for c in child_ids],
                                         np.concatenate([masses.pop(c) for c in child_ids]),
-                                        [represented_by.pop(c) for c in child_ids], first, end))
+                                        [represented_by.pop(c) for c in child_ids], first, end, grp))
             for job in jobs:
                 tile, merged_mass, rep = job.result()
                 tiles[tile.id] = tile
@@ -684,8 +743,8 @@ def build_subtree(g: Gaussians, index: np.ndarray, shape: TreeShape, level: int 
 
 
 def build_tiles(g: Gaussians, max_leaf_splats: int = 16384, reduction: float = 2.0,
-                progress: Progress | None = None, reorder_input: bool = False) -> list[Tile]:
-    """The LOD tile tree of `g`, as a list indexed by tile id (0 = root, breadth-first).
+                progress: Progress | None = None, reorder_input: bool = False, merge: str = "grid") -> list[Tile]:
+    """The LOD tile tree of `g`, as a list indexed by tile id (0 = root, breadth-first); `merge`: LOD_MERGES.
 
     Leaves are slices of one array per attribute holding the splats in leaf order: a copy of `g` by default, or,
     with `reorder_input`, `g`'s own arrays reordered in place (the caller's `g` then holds the same splats in
@@ -694,5 +753,5 @@ def build_tiles(g: Gaussians, max_leaf_splats: int = 16384, reduction: float = 2
     if len(g) == 0:
         progress and progress("lod-merge", 1.0)
         return [Tile(0, 0, [], g, 0.0, *extent_bounds(g))]
-    sub = build_subtree(g, np.arange(len(g)), shape, 0, 0, progress, reorder_input)
+    sub = build_subtree(g, np.arange(len(g)), shape, 0, 0, progress, reorder_input, merge=merge)
     return [sub.tiles[i] for i in range(shape.tiles)]

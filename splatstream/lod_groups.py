@@ -361,17 +361,27 @@ def _drop(state: dict, label: np.ndarray, pa: np.ndarray, pb: np.ndarray) -> np.
     into = np.arange(count)
     into[pb] = pa
     new_id = np.cumsum(alive) - 1
-    for key in ("mu", "cov", "alpha", "col", "w"):
+    for key in state:  # mu, cov, alpha, col, w and, with regions, region
         state[key] = state[key][alive]
     return new_id[into[label]]
 
 
 def _morton_finish(state: dict, label: np.ndarray, target: int) -> np.ndarray:
-    """Merge Morton-adjacent clusters, nearest pairs first, until `target` remain (always reaches it)."""
+    """Merge Morton-adjacent clusters, nearest pairs first, until `target` remain (always reaches it). With
+    regions (state["region"]), clusters are ordered by region, then Morton code, and only neighbours of one region
+    merge: the target is reached while it is at least the number of regions."""
+    region = state.get("region")
     while len(state["w"]) > target:
         count = len(state["w"])
-        order = np.argsort(morton_codes(state["mu"]), kind="stable")
+        codes = morton_codes(state["mu"])
+        order = (np.argsort(codes, kind="stable") if region is None
+                 else np.lexsort((codes, state["region"])))
         a, b = order[:-1], order[1:]
+        if region is not None:
+            same = state["region"][a] == state["region"][b]
+            a, b = a[same], b[same]
+            if not len(a):
+                break
         d2 = ((state["mu"][a] - state["mu"][b]) ** 2).sum(axis=1)
         pa, pb = _greedy_pairs(count, a, b, d2, count - target)
         if not len(pa):  # cannot happen with count >= 2 (the cheapest adjacent pair is mutual)
@@ -383,13 +393,18 @@ def _morton_finish(state: dict, label: np.ndarray, target: int) -> np.ndarray:
 
 def group_ids(positions: np.ndarray, log_scales: np.ndarray, rotations: np.ndarray, opacities: np.ndarray,
               colours: np.ndarray, masses: np.ndarray, target: int, rule: GroupRule = DEFAULT_RULE,
-              edges: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
+              edges: tuple[np.ndarray, np.ndarray] | None = None, region: np.ndarray | None = None) -> np.ndarray:
     """Group id (0 .. target-1) of every splat: exactly min(target, n) groups, a partition of the splats.
 
     positions (N, 3), log_scales (N, 3), rotations (N, 4) unit (w, x, y, z), opacities (N,) linear alpha,
     colours (N, 3) base colour (0.5 + C0 * SH band 0), masses (N,) the merge weights carried up the tree
     (lod.splat_mass of the originals). Deterministic: a function of the arrays only. Ids follow the Morton order
-    of the groups' mass-weighted centres. `edges`: neighbour_edges(positions, rule.neighbours), when known."""
+    of the groups' mass-weighted centres. `edges`: neighbour_edges(positions, rule.neighbours), when known.
+
+    `region` (N,) integer labels: groups never span two regions (the tiles of a tree level, lod.build_subtree's
+    cost merge), while the count each region keeps follows from the costs over all regions (the cheapest merges
+    of the whole level are made first); every region keeps at least one group, so `target` must be at least the
+    number of regions present."""
     n = len(positions)
     target = max(1, int(target))
     if target >= n:
@@ -403,6 +418,13 @@ def group_ids(positions: np.ndarray, log_scales: np.ndarray, rotations: np.ndarr
     size = np.ones(n, np.int64)
     # The neighbour graph of the level's splats, found once: a cluster's candidates are its members' neighbours.
     ei, ej = edges if edges is not None else neighbour_edges(state["mu"], rule.neighbours)
+    if region is not None:
+        region = np.asarray(region, np.int64)
+        if target < len(np.unique(region)):
+            raise ValueError(f"target {target} is below the number of regions")
+        state["region"] = region.copy()
+        inside = region[ei] == region[ej]
+        ei, ej = ei[inside], ej[inside]
     key = np.unique(ei * n + ej)
     ei, ej = key // n, key % n
     # Each edge's cost, kept while neither cluster at its ends changes (NaN: not known yet).
@@ -446,6 +468,8 @@ def group_ids(positions: np.ndarray, log_scales: np.ndarray, rotations: np.ndarr
             label = _drop(state, label, pa, pb)
     label = _morton_finish(state, label, target)
     groups = len(state["w"])
+    if groups != target:  # only with regions: a region that cannot merge further (one cluster left) is a bug
+        raise ValueError(f"grouping reached {groups} groups, not {target}")
     rank = np.empty(groups, np.int64)
     rank[np.argsort(morton_codes(state["mu"]), kind="stable")] = np.arange(groups)
     return rank[label]

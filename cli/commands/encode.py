@@ -23,6 +23,7 @@ from splatstream.format.presets import (
 from splatstream.format.texformats import VALUE_FORMATS
 from splatstream.format.transport import TRANSPORTS
 from splatstream.io import open_input
+from splatstream.lod import LOD_MERGES
 from splatstream.progress import ProgressPrinter, count
 from splatstream.rad_import import read_tree as rad_read_tree
 from splatstream.sog_import import encode_tree_to
@@ -86,6 +87,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="splats per leaf tile at most (default 16384: measured best for streaming)")
     p.add_argument("--reduction", type=float, default=2.0,
                    help="each LOD level keeps about 1/REDUCTION of the splats of the level below (default 2)")
+    p.add_argument("--lod-merge", choices=LOD_MERGES, default=EncodeOptions.lod_merge,
+                   help="how LOD levels are merged: grid (a Morton grid per tile, every tile halved; default) or "
+                        "cost (groups by merge cost over each whole level, the splats each tile keeps decided "
+                        "across the scene; in-process encodes only; slower: BENCHMARKS.md, LOD against peers)")
     p.add_argument("--page-tiles", type=int, default=EncodeOptions.page_tiles,
                    help="write a tree of more than N tiles as a root manifest and manifest pages, so a client needs "
                         f"only the tree's top before its first frame (format 1.5; 0: never; default "
@@ -176,8 +181,8 @@ def run(args: argparse.Namespace) -> int:
                             scratch=args.scratch, edits=edits, overrides=overrides, sh_degree=args.sh_degree,
                             zstd_level=args.zstd_level, transport=args.transport,
                             lod=not args.no_lod, max_leaf_splats=args.max_leaf_splats, reduction=args.reduction,
-                            name=args.name, up=up, chunk_order=args.chunk_order, sh_codebook=args.sh_codebook,
-                            page_tiles=args.page_tiles, page_levels=args.page_levels)
+                            lod_merge=args.lod_merge, name=args.name, up=up, chunk_order=args.chunk_order,
+                            sh_codebook=args.sh_codebook, page_tiles=args.page_tiles, page_levels=args.page_levels)
     if not args.quiet:
         print(f"wrote {args.output_dir}: {m.splats} splats, SH degree {m.sh_degree}, preset {m.preset}, "
               f"{count(len(m.tiles), 'tile')}, {m.bytes_on_disk / 1e6:.2f} MB on disk "

@@ -90,7 +90,7 @@ def plan_tiles(g: Gaussians, opts: EncodeOptions, progress: Progress) -> list[Ti
     """The LOD tree, or one tile holding every splat (bounds left to the jobs) when LOD is off or not needed."""
     if opts.lod and len(g) > opts.max_leaf_splats:
         return build_tiles(g, max_leaf_splats=opts.max_leaf_splats, reduction=opts.reduction, progress=progress,
-                           reorder_input=opts.reorder_input)
+                           reorder_input=opts.reorder_input, merge=opts.lod_merge)
     limit = MAX_BLOCKS_PER_ROW * MAX_BLOCK_ROWS * CHUNK_SIZE
     if len(g) > limit:
         raise UsageError(f"{len(g)} splats do not fit one tile (at most {limit}); encode with LOD (drop --no-lod)")
