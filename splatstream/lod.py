@@ -63,11 +63,13 @@ MIN_LEAF_TILES = 32
 MIN_LEAF_TILE_SPLATS = 1024
 # The tree's merges (format_spec/lod.md 6): "grid" groups each tile's members by a uniform Morton grid, every tile
 # reduced by the same ratio; "cost" groups a whole tree level at once by merge cost (lod_groups.group_ids: field-L2
-# of the footprints projected along x, y and z plus a colour term, greedy matchings, at most max_group of the
-# level's splats per group), groups held inside the level's tiles, so the count each tile keeps is decided by
-# cost across the scene (the level's total is the grid's).
+# of the footprints projected along x, y and z plus a colour term, greedy matchings of pairs until they stall, then
+# groups of up to 4 of the level's splats), groups held inside the level's tiles, so the count each tile keeps is
+# decided by cost across the scene (the level's total is the grid's). Pairs first, not groups of up to 4 from the
+# start: chosen on statue-angel and donut, where capping at 4 at once lost 0.7-1.7 dB on the donut (BENCHMARKS.md,
+# "LOD against peers", cost merge).
 LOD_MERGES = ("grid", "cost")
-COST_RULE = GroupRule(proj=1, max_group=4)
+COST_RULE = GroupRule(proj=1, first_cap=2, max_group=4)
 Progress = Callable[[str, float], None]
 
 
