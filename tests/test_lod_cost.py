@@ -10,6 +10,8 @@ import pytest
 from conftest import real
 
 from splatstream import lod, lod_groups
+from splatstream.encode import encode_file
+from splatstream.errors import UsageError
 from splatstream.gaussians import Gaussians
 from splatstream.lod_groups import GroupRule
 from splatstream.ply import read_gaussians_ply
@@ -122,3 +124,17 @@ def test_cost_tree_is_deterministic_with_any_threads():
 def test_unknown_merge_raises():
     with pytest.raises(ValueError):
         lod.build_tiles(fruit(), max_leaf_splats=MAX_LEAF, merge="nope")
+
+
+def test_encode_with_the_cost_merge_in_memory_and_refused_by_partitions(tmp_path):
+    path = str(real("fruit_drops_sh3.ply"))
+    m = encode_file(path, tmp_path / "memory", lod_merge="cost", max_leaf_splats=1000, preset="low")
+    grid = encode_file(path, tmp_path / "grid", max_leaf_splats=1000, preset="low")
+    assert m.splats == grid.splats == 4721
+    assert [t.children for t in m.tiles] == [t.children for t in grid.tiles]  # the same tree, other merges
+    assert [t.splats for t in m.tiles] != [t.splats for t in grid.tiles]
+    with pytest.raises(UsageError, match="--lod-merge cost groups each LOD level over the whole scene"):
+        encode_file(path, tmp_path / "parts", lod_merge="cost", memory_per_worker=1 << 20, max_leaf_splats=1000)
+    assert not (tmp_path / "parts").exists()
+    with pytest.raises(UsageError, match="unknown LOD merge"):
+        encode_file(path, tmp_path / "bad", lod_merge="nope")

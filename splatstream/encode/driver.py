@@ -19,7 +19,7 @@ from ..format.manifest import Manifest
 from ..format.presets import DEFAULT_PRESET
 from ..gaussians import Gaussians
 from ..io import SplatInput, open_input, read_gaussians, read_merged
-from ..lod import Tile
+from ..lod import LOD_MERGES, Tile
 from ..ply import RowStats, VertexLayout, check_rows, read_ply_rows
 from ..store import _fsspec, is_url, local_path, open_writer
 from ..vq import parse_entries
@@ -67,6 +67,10 @@ _WHOLE_SCENE_EDITS = ("--filter-density counts each splat's neighbours over the 
                       "encoder (edits chunk by chunk; --workers, --scheduler, or a scene larger than "
                       "--memory-per-worker) cannot do exactly: give a --memory-per-worker the scene fits in, or "
                       "clean it first with `splatstream convert IN clean.ply --filter-density ...` and encode that")
+_COST_MERGE_IN_PROCESS = ("--lod-merge {} groups each LOD level over the whole scene, which the partitioned encoder "
+                          "(subtrees built apart; --workers, --scheduler, or a scene larger than "
+                          "--memory-per-worker) cannot do: give a --memory-per-worker the scene fits in, or use "
+                          "--lod-merge grid")
 
 
 def encode_file(input_path: str | os.PathLike | Sequence[str | os.PathLike], out_dir: str | os.PathLike,
@@ -84,6 +88,8 @@ def encode_file(input_path: str | os.PathLike | Sequence[str | os.PathLike], out
     is the same in every case."""
     opts = EncodeOptions(preset=preset or DEFAULT_PRESET, reorder_input=True, **options)
     plan_formats(opts)  # fail before the (possibly long) read
+    if opts.lod_merge not in LOD_MERGES:
+        raise UsageError(f"unknown LOD merge {opts.lod_merge!r} (one of {', '.join(LOD_MERGES)})")
     if opts.sh_codebook is not None:
         parse_entries(opts.sh_codebook, 1)
     # a missing, unreadable or unknown input fails before any output or progress
@@ -103,6 +109,8 @@ def encode_file(input_path: str | os.PathLike | Sequence[str | os.PathLike], out
     in_memory = not distributed and fits_in_process(layouts, opts, memory_per_worker or default_memory_per_worker())
     if edits and not edits.per_splat and not in_memory:
         raise UsageError(_WHOLE_SCENE_EDITS)
+    if opts.lod and opts.lod_merge != "grid" and not in_memory:
+        raise UsageError(_COST_MERGE_IN_PROCESS.format(opts.lod_merge))
     if in_memory:
         progress("read", 0.0)
         g = read_merged(sources, drop_invalid)

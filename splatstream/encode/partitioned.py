@@ -692,8 +692,8 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
         raise UsageError("a partitioned encode needs LOD (--no-lod keeps the whole scene in one tile)")
     if opts.lod_merge != "grid":
         # The cost merge groups a whole tree level at once; partitions build their subtrees apart (issue 31).
-        raise UsageError(f"--lod-merge {opts.lod_merge} runs only in-process: a partitioned encode merges with "
-                         "the grid")
+        raise UsageError(f"--lod-merge {opts.lod_merge} runs only in-process (one machine, the scene in memory): "
+                         "a partitioned encode merges with the grid")
     sh_degree = opts.sh_degree if opts.sh_degree is not None else rows.sh_degree
     sh_degree = min(sh_degree, rows.sh_degree)
     row_bytes = _row_bytes(sh_degree)
