@@ -222,6 +222,7 @@ class StreamEngine:
         self._page_frame: dict[int, int] = {}  # tile id -> the frame its page was added in
         self._last_cut: set[int] = set()  # the last selection's cut (positions): kept from eviction, and where the
         # next frame's selection starts looking
+        self._near: np.ndarray | None = None  # where the next select_near starts (_near_of; positions)
         self._pages_checked: tuple[int, int] = (0, 0)  # (tiles held, payload evictions) at the last eviction pass
         self.frame = 0
         self.refined: frozenset[int] = frozenset()
@@ -335,6 +336,7 @@ class StreamEngine:
         self.slots_needed = self.slots_needed[keep]
         self.refined = frozenset(int(new_of[i]) for i in self.refined if new_of[i] >= 0)
         self._last_cut = {int(new_of[i]) for i in self._last_cut if new_of[i] >= 0}
+        self._near = None  # positions moved: the next frame starts from the cut again
         self._adopt(self.pages.manifest)
         self._wanted_cache = self._draw_cache = self._order_of = self._upload_idle = None
         self._version += 1
@@ -378,12 +380,17 @@ class StreamEngine:
         view: PartialView | TileView
         if len(self.resident) >= self.options.select_near_from:
             view = PartialView(a, cam, opts, self.manifest.lod.reduction)
-            children = a.children
-            near = [k for i in self.refined for k in children[i]] + [k for i in self._last_cut for k in children[i]]
+            near = self._near
+            if near is None:
+                children = a.children
+                near = [k for i in self.refined for k in children[i]] + \
+                    [k for i in self._last_cut for k in children[i]]
             sel = select_near(a, view, self.cost, self.root, sel_opts, self.refined, near)
+            self._near = self._near_of(sel)
         else:
             view = view_numbers(a, cam, opts)
             sel = select(a, view, self.cost, self.root, sel_opts, self.refined, self.manifest.lod.reduction)
+            self._near = None
         self.refined = sel.refined
         self._last_cut = set(sel.cut)
         if self.pages is not None:  # pages below cut tiles the view would refine: fetched before their payloads
@@ -407,6 +414,28 @@ class StreamEngine:
         self._wanted_cache = (key, result)
         self._wanted_serial += 1
         return result
+
+    def _near_of(self, sel: Selection) -> np.ndarray | None:
+        """The tiles the next frame's select_near starts from (client.md 1.2): of this frame's set, the children of
+        the refined and cut tiles and the children of those (the candidates' among the cut's children: a camera
+        moving on refines there), with the children of every cut tile; so the next frame takes its numbers in one
+        batch over the tiles it will look at, mostly, instead of growing the set in rounds."""
+        held = sel.near
+        if held is None:
+            return None
+        a = self.arrays
+        mark = np.zeros(len(a.parent), np.uint8)
+        refined = np.fromiter(sel.refined, np.intp, len(sel.refined))
+        cut = np.fromiter(sel.cut, np.intp, len(sel.cut))
+        mark[refined] = 1
+        mark[cut] = 2
+        parent = a.parent[held]
+        up = np.maximum(parent, 0)
+        grand = np.where(parent >= 0, a.parent[up], -1)
+        keep = ((parent >= 0) & (mark[up] > 0)) | ((grand >= 0) & (mark[np.maximum(grand, 0)] == 2))
+        children = a.children
+        below_cut = np.fromiter((k for i in sel.cut for k in children[i]), np.intp)
+        return np.concatenate([held[keep], below_cut])
 
     def update(self, cam: Camera) -> FrameUpdate:
         self.frame += 1
@@ -476,33 +505,32 @@ class StreamEngine:
     def _coarse_to_fine(self, keys: list[Key], sel: Selection) -> list[Key]:
         """The wish list with the ancestors of every cut tile not resident yet, bases ordered by level (then by
         the cut's priority: an ancestor takes the rank of its first descendant), SH bands after every base."""
-        parent, level = self._parent, self._level
-        resident = self.resident
-        rank: dict[int, int] = {}
+        a = self.arrays
+        n = len(self.resident)
+        cut = np.fromiter(sel.cut, np.intp, len(sel.cut))
         gap, step = self.options.fill_gap, self.options.fill_step
-        walked: set[tuple[int, int]] = set()
-        for r, i in enumerate(sel.cut):
-            rank.setdefault(i, r)
-            if resident[i]:
-                continue
-            # Every fill_step-th ancestor, from fill_gap levels up: levels `reduction` apart in splats would
-            # otherwise add about as many bytes as the cut itself (1/2 + 1/4 + ... at reduction 2).
-            j, d = parent[i], 1
-            while j >= 0:
-                phase = (j, d % step if d >= gap else -d)
-                if phase in walked:
-                    break
-                walked.add(phase)
-                if d >= gap and (d - gap) % step == 0:
-                    rank.setdefault(j, r)
-                j, d = parent[j], d + 1
+        # Every fill_step-th ancestor, from fill_gap levels up, of each cut tile not resident: levels `reduction`
+        # apart in splats would otherwise add about as many bytes as the cut itself (1/2 + 1/4 + ... at reduction
+        # 2). All cut tiles climb together, a level a step (numpy over the cut: a Python walk per tile cost 1-2 ms
+        # a frame at 250M); a tile's rank is the least rank of the cut tiles that name it.
+        rank = np.full(n, n + len(cut), np.int64)
+        rank[cut] = np.arange(len(cut))
+        climb = ~self.resident[cut]
+        at, r = a.parent[cut[climb]], np.flatnonzero(climb)
+        d = 1
+        while at.size:
+            inside = at >= 0
+            at, r = at[inside], r[inside]
+            if d >= gap and (d - gap) % step == 0:
+                np.minimum.at(rank, at, r)
+            at, d = a.parent[at], d + 1
         rank[self.root] = -1
-        base = sorted(rank, key=lambda i: (level[i], rank[i]))
-        self._filling = np.zeros(len(self.resident), bool)
-        cut = set(sel.cut)
-        self._filling[[i for i in rank if i not in cut]] = True
-        ids = self.ids
-        return [(int(ids[i]), "base") for i in base] + [k for k in keys if k[1] != "base"]
+        named = np.flatnonzero(rank < n + len(cut))
+        base = named[np.lexsort((rank[named], a.level[named]))]  # (level, rank): no two alike
+        self._filling = np.zeros(n, bool)
+        self._filling[named] = True
+        self._filling[cut] = False
+        return [(i, "base") for i in self.ids[base].tolist()] + [k for k in keys if k[1] != "base"]
 
     # --- decode -----------------------------------------------------------------------------------------------
     def _collect(self) -> None:
