@@ -238,6 +238,8 @@ def test_the_wish_lists_climb_is_the_walk(store):
             want, filling = _coarse_to_fine_walk(engine, keys, sel)
             assert engine._coarse_to_fine(keys, sel) == want
             assert np.flatnonzero(engine._filling).tolist() == filling
+            engine._tell_fetcher(keys, (), sel)  # what is missing of it: the bases' residency taken in numpy
+            assert engine._missing == [k for k in want if not engine._have(k)]
         assert len(sel.cut) > 10
         engine.close()
 

@@ -91,19 +91,17 @@ def test_select_near_is_the_whole_tree_selection(whole):
     rnd = random.Random(1)
     cost = np.array([t.chunks for t in m.tiles], np.float64) * 4096.0
     n = len(m.tiles)
-    previous, last, carried = frozenset(), (), None
+    previous, last = frozenset(), ()
     looked = []
     for step in range(150):
         cam, opts = random_camera(m, rnd), random_options(m, rnd, cost)
-        near_kind = step % 4
+        near_kind = step % 3
         near = ([k for i in set(previous) | set(last) for k in m.arrays.children[i]] if near_kind == 0 else
-                rnd.sample(range(n), rnd.randrange(n)) if near_kind == 1 else
-                # the last frame's whole set, carried over (the engine carries the part of it near the cut)
-                (carried if carried is not None else []) if near_kind == 3 else [])
+                rnd.sample(range(n), rnd.randrange(n)) if near_kind == 1 else [])
         resident = np.array([rnd.random() < rnd.choice([0.0, 0.3, 0.9]) for _ in range(n)], bool)
         sel, k = check_same(m, cam, opts, previous if rnd.random() < 0.7 else frozenset(
             rnd.sample(range(n), rnd.randrange(n // 4))), near, resident, rnd)
-        previous, last, carried = sel.refined, sel.cut, sel.near
+        previous, last = sel.refined, sel.cut
         looked.append(k)
     assert min(looked) < n  # some views look at part of the tree only
 

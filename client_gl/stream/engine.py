@@ -222,7 +222,7 @@ class StreamEngine:
         self._page_frame: dict[int, int] = {}  # tile id -> the frame its page was added in
         self._last_cut: set[int] = set()  # the last selection's cut (positions): kept from eviction, and where the
         # next frame's selection starts looking
-        self._near: np.ndarray | None = None  # where the next select_near starts (_near_of; positions)
+        self._bases = np.zeros(0, np.intp)  # positions of the wish list's bases (_coarse_to_fine)
         self._pages_checked: tuple[int, int] = (0, 0)  # (tiles held, payload evictions) at the last eviction pass
         self.frame = 0
         self.refined: frozenset[int] = frozenset()
@@ -336,7 +336,6 @@ class StreamEngine:
         self.slots_needed = self.slots_needed[keep]
         self.refined = frozenset(int(new_of[i]) for i in self.refined if new_of[i] >= 0)
         self._last_cut = {int(new_of[i]) for i in self._last_cut if new_of[i] >= 0}
-        self._near = None  # positions moved: the next frame starts from the cut again
         self._adopt(self.pages.manifest)
         self._wanted_cache = self._draw_cache = self._order_of = self._upload_idle = None
         self._version += 1
@@ -380,17 +379,12 @@ class StreamEngine:
         view: PartialView | TileView
         if len(self.resident) >= self.options.select_near_from:
             view = PartialView(a, cam, opts, self.manifest.lod.reduction)
-            near = self._near
-            if near is None:
-                children = a.children
-                near = [k for i in self.refined for k in children[i]] + \
-                    [k for i in self._last_cut for k in children[i]]
+            children = a.children
+            near = [k for i in self.refined for k in children[i]] + [k for i in self._last_cut for k in children[i]]
             sel = select_near(a, view, self.cost, self.root, sel_opts, self.refined, near)
-            self._near = self._near_of(sel)
         else:
             view = view_numbers(a, cam, opts)
             sel = select(a, view, self.cost, self.root, sel_opts, self.refined, self.manifest.lod.reduction)
-            self._near = None
         self.refined = sel.refined
         self._last_cut = set(sel.cut)
         if self.pages is not None:  # pages below cut tiles the view would refine: fetched before their payloads
@@ -414,28 +408,6 @@ class StreamEngine:
         self._wanted_cache = (key, result)
         self._wanted_serial += 1
         return result
-
-    def _near_of(self, sel: Selection) -> np.ndarray | None:
-        """The tiles the next frame's select_near starts from (client.md 1.2): of this frame's set, the children of
-        the refined and cut tiles and the children of those (the candidates' among the cut's children: a camera
-        moving on refines there), with the children of every cut tile; so the next frame takes its numbers in one
-        batch over the tiles it will look at, mostly, instead of growing the set in rounds."""
-        held = sel.near
-        if held is None:
-            return None
-        a = self.arrays
-        mark = np.zeros(len(a.parent), np.uint8)
-        refined = np.fromiter(sel.refined, np.intp, len(sel.refined))
-        cut = np.fromiter(sel.cut, np.intp, len(sel.cut))
-        mark[refined] = 1
-        mark[cut] = 2
-        parent = a.parent[held]
-        up = np.maximum(parent, 0)
-        grand = np.where(parent >= 0, a.parent[up], -1)
-        keep = ((parent >= 0) & (mark[up] > 0)) | ((grand >= 0) & (mark[np.maximum(grand, 0)] == 2))
-        children = a.children
-        below_cut = np.fromiter((k for i in sel.cut for k in children[i]), np.intp)
-        return np.concatenate([held[keep], below_cut])
 
     def update(self, cam: Camera) -> FrameUpdate:
         self.frame += 1
@@ -478,7 +450,12 @@ class StreamEngine:
         """The wish list from this frame's selection, handed to the fetcher when it changed: what is missing, coarse
         to fine, pages right after the root's base, prefetch only when nothing is missing."""
         self._keys = self._coarse_to_fine(keys, sel) if self.options.fill_levels else keys
-        self._missing = [k for k in self._keys if not self._have(k) and not self._blocked(k)]
+        if self.options.fill_levels and not self.failed:  # the bases' residency in numpy (_coarse_to_fine's order)
+            base = self._bases
+            absent = self.ids[base[~self.resident[base]]].tolist()
+            self._missing = [(i, "base") for i in absent] + [k for k in self._keys[len(base):] if not self._have(k)]
+        else:
+            self._missing = [k for k in self._keys if not self._have(k) and not self._blocked(k)]
         want = [k for k in self._missing if k not in self._ready and k not in self._decoding]
         pre = [] if want else [k for k in extra if not self._have(k) and k not in self._ready
                                and k not in self._decoding]
@@ -497,7 +474,7 @@ class StreamEngine:
         """The draw set and what a frame reports of it and of the residency, kept while neither changes (a still,
         converged view then costs no numpy work a frame)."""
         drawn = draw_set(self.arrays, view, sel, self.resident, self.root)
-        counts = ([int(self.ids[i]) for i in drawn], int(self.resident.sum()),
+        counts = (self.ids[drawn].tolist(), int(self.resident.sum()),
                   int(self.arrays.splats[self.resident].sum()),
                   int(self.arrays.splats[drawn].sum()) if drawn else 0)
         return (self._wanted_serial, self._version), np.asarray(drawn, np.intp), counts
@@ -530,6 +507,7 @@ class StreamEngine:
         self._filling = np.zeros(n, bool)
         self._filling[named] = True
         self._filling[cut] = False
+        self._bases = base  # positions of the list's bases, in its order
         return [(i, "base") for i in self.ids[base].tolist()] + [k for k in keys if k[1] != "base"]
 
     # --- decode -----------------------------------------------------------------------------------------------

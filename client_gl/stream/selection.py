@@ -72,9 +72,6 @@ class Selection:
     # A refinement the view wanted did not fit the splat or byte budget: the budget, not the error, ends the cut
     # (prefetch then leaves out the children of cut tiles: the budget would not let them in).
     budget_limited: bool = False
-    # select_near's set at the end of its scan (positions: the tiles whose numbers it took); the engine keeps the part
-    # of it near the cut for the next frame (engine.StreamEngine._near_of), so that frame's numbers are one batch
-    near: object = field(default=None, compare=False, repr=False)
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -415,7 +412,7 @@ def select_near(a: TileArrays, view: PartialView, cost: np.ndarray, root: int, o
     rank = np.lexsort((ct, view.distance[ct], -pri))
     cut_sorted = tuple(ct[rank].tolist())
     return Selection(cut_sorted, frozenset(tiles[refined_m].tolist()),
-                     dict(zip(cut_sorted, pri[rank].tolist(), strict=True)), splats, total, limited, tiles)
+                     dict(zip(cut_sorted, pri[rank].tolist(), strict=True)), splats, total, limited)
 
 
 def _first(root: int, near, scratch: np.ndarray) -> np.ndarray:
@@ -592,15 +589,8 @@ class _NearSet:
                 np.add.at(self.kids_in, up, 1)
 
     def add_children_of_candidates(self) -> None:
-        """Add the children of every candidate whose children are not all in the set and that the loop can reach:
-        the root, or a candidate whose parent is a candidate (a tile is decided only once its parent is refined, and
-        only candidates are refined). The others wait: their children join if the scan stops at one of them."""
-        cand, parent = self.cand_a, self.parent_a
-        pj = np.where(parent >= 0, self.local[np.maximum(parent, 0)], -1)
-        reach = pj < 0
-        reach[~reach] = cand[pj[~reach]]
-        reach[(pj < 0) & (parent >= 0)] = False  # a parent not in the set: not reached yet
-        lacking = self.tiles_a[cand & reach & (self.kids_in != self.kids_all)].tolist()
+        """Add the children of every candidate whose children are not all in the set (the loop may pop any)."""
+        lacking = self.tiles_a[self.cand_a & (self.kids_in != self.kids_all)].tolist()
         if not lacking:
             return
         kids = np.fromiter(chain.from_iterable(map(self.a.children.__getitem__, lacking)), np.intp)
