@@ -24,8 +24,16 @@
 #     A device call also sends the repository's working tree: 27.65 MB of tracked files after merging main on
 #     2026-11-28, so with .stcarry for flowers (39.54 MB) about 81 KB OVER the 64 MiB (67,108,864 bytes) a call may
 #     carry. pack prints the sum. Carry nothing else (.gl is not needed: the Vulkan loader is in .stcarry/debs).
-#     Not solved here: re-encoding flowers' WebP losslessly at effort 6 saves under 1 %; what would fit is a smaller
-#     tree (the sum is of every tracked file) or a node build without ICU data. fruit and lodtile alone fit.
+#     Re-encoding flowers' WebP losslessly at effort 6 saves under 1 %; what fits is two calls (SPLIT=1, below).
+#     fruit and lodtile alone fit one.
+#     SPLIT=1 (with pack) moves the scenes into .stcarry_scenes/ so that each call fits (flowers: 54.6 and 41.3 MB
+#     with the tree): a first call carrying [".stcarry", ".gl"] runs `LIST_ONLY=1 bash bench/device/run_sog_peer.sh`
+#     (keeps a copy of .stcarry in /tmp/stcarry and lists the adapters), and a second one right after it, while the
+#     machine is still held (30 s idle), carries [".stcarry_scenes", ".gl"] and runs the script plainly: the device
+#     tool removes ignored paths a call does not name, so the tools come back from /tmp/stcarry. Done so on
+#     nvidia-h200 on 2026-11-28: Dawn listed "[0] NVIDIA H200" (with .gl: NVIDIA's Vulkan ICD, libGLX_nvidia,
+#     needs libglvnd's libraries, else "vkCreateInstance: Found no drivers") and flowers' SOG took 5 s (k-means
+#     1.8 s on the GPU).
 #  2. One device call (the `run` tool), carrying [".stcarry"]: `bash bench/device/run_sog_peer.sh`, timeout_s 600.
 #     It prints the SHA-256 of each input PLY beside the one made here, the adapters Dawn lists, and writes
 #     $OUT/<stem>.sog and $OUT/sog_peer.log.
@@ -59,7 +67,7 @@ if [ "${1:-}" = pack ]; then
   nm=${ST_NODE_MODULES:-$here/.ci/node/node_modules}
   [ -d "$nm/@playcanvas/splat-transform" ] || { echo "no splat-transform under $nm (ST_NODE_MODULES)"; exit 1; }
   exclude=$(git -C "$here" rev-parse --git-path info/exclude)
-  grep -qx '/.stcarry*/' "$exclude" 2>/dev/null || echo '/.stcarry*/' >> "$exclude"  # .stcarry and .stcarry.part
+  grep -qxF '/.stcarry*/' "$exclude" 2>/dev/null || echo '/.stcarry*/' >> "$exclude"  # .stcarry and .stcarry.part
   rm -rf "$c.part" && mkdir -p "$c.part/scenes"
   tmp=$(mktemp -d)
   cp "$(command -v node)" "$tmp/node" && strip "$tmp/node"
@@ -76,8 +84,7 @@ if [ "${1:-}" = pack ]; then
   # NO_DAWN=1: without webgpu's Dawn (about 4 MB of the carry): the k-means then runs on the CPU there (-g cpu,
   # one worker per core), for a carry that would otherwise be over the limit. Tried with flowers on nvidia-h200-x2
   # (32 cores, 2026-11-28): the CPU k-means had not finished when the call's 600 s ran out, so flowers' SOG point
-  # is still missing; with Dawn the carry is about 0.6 MB over the limit (whether Dawn finds an adapter there is
-  # not known yet).
+  # was then still missing; with Dawn it was made in 5 s on the GPU, in two calls (SPLIT=1, above).
   for p in @playcanvas/splat-transform $([ -n "${NO_DAWN:-}" ] || echo webgpu) debug ms; do
     mkdir -p "$tmp/node_modules/$(dirname "$p")"
     cp -r "$nm/$p" "$tmp/node_modules/$p"
@@ -113,12 +120,18 @@ if [ "${1:-}" = pack ]; then
     echo "$(sha256sum < "$tmp/$stem.ply" | cut -d' ' -f1)  $stem" >> "$c.part/sha256.txt"
   done
   echo "${SOG_SCENES:-flowers}" > "$c.part/scenes.txt"
-  rm -rf "$tmp" "$c" && mv "$c.part" "$c"
+  rm -rf "$tmp" "$c" "$c"_scenes
+  if [ -n "${SPLIT:-}" ]; then
+    mkdir -p "$c"_scenes && mv "$c.part/scenes" "$c.part/sha256.txt" "$c.part/scenes.txt" "$c"_scenes/
+    du -sh "$c"_scenes
+  fi
+  mv "$c.part" "$c"
   du -sh "$c" "$c"/*
   # what a device call carrying only .stcarry sends: the tracked and untracked-not-ignored files, and .stcarry
   tree=$(git -C "$here" ls-files -co --exclude-standard -z | (cd "$here" && xargs -0 du -cb 2>/dev/null) \
     | awk '$2 == "total" {s += $1} END {print s}')
   total=$((tree + $(du -sb "$c" | cut -f1)))
+  [ -z "${SPLIT:-}" ] || echo "the second call (.stcarry_scenes) sends about $((tree + $(du -sb "$c"_scenes | cut -f1))) bytes"
   echo "a call carrying .stcarry sends about $total bytes (tree $tree); the limit is 67108864 (64 MiB)"
   [ "$total" -le 67108864 ] || echo "OVER the limit: pack fewer scenes (SOG_SCENES) or leave untracked files out"
   exit 0
@@ -127,11 +140,14 @@ fi
 OUT=${OUT:-/tmp/out}
 mkdir -p "$OUT"
 exec > >(tee -a "$OUT/sog_peer.log") 2>&1
+if [ ! -f "$c/node.xz" ] && [ -f /tmp/stcarry/node.xz ]; then c=/tmp/stcarry; fi  # the second call of SPLIT=1
 if [ -d /usr/local/nvidia ]; then  # the GPU machine only: it unpacks into /
   for f in "$c"/debs/*.deb "$here"/.gl/*.deb; do [ -f "$f" ] && dpkg -x "$f" /; done
   ldconfig
 fi
 [ -d /usr/local/nvidia/share/vulkan ] && export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
+sc=$c  # where the scenes are: .stcarry, or .stcarry_scenes after pack with SPLIT=1
+[ -d "$here/.stcarry_scenes/scenes" ] && sc=$here/.stcarry_scenes
 [ -f "$c/node.xz" ] || { echo "no .stcarry: run 'bash bench/device/run_sog_peer.sh pack' here and carry .stcarry"; exit 1; }
 w=$(mktemp -d)
 mkdir -p "$w/bin" "$w/st"
@@ -149,11 +165,15 @@ idx=$(grep -E '^\[[0-9]+\] ' "$w/gpus.txt" | grep -v -i -E 'swiftshader|llvmpipe
   | sed 's/^\[\([0-9]*\)\].*/\1/')
 if [ -n "$idx" ]; then gpu=(-g "$idx"); else gpu=(-g cpu --max-workers "$(nproc)"); fi
 echo "SOG k-means on: ${gpu[*]}"
+if [ -n "${LIST_ONLY:-}" ]; then
+  [ "$c" = /tmp/stcarry ] || { rm -rf /tmp/stcarry && cp -r "$c" /tmp/stcarry; }
+  rm -rf "$w"; exit 0
+fi
 status=0
-for s in ${SOG_SCENES:-$(cat "$c/scenes.txt")}; do
+for s in ${SOG_SCENES:-$(cat "$sc/scenes.txt")}; do
   stem=$(stem_of "$s") || { status=2; continue; }
-  input_ply "$s" "$c/scenes" "$w/$stem.ply" "${st[@]}" || { status=1; continue; }
-  echo "== $s: input sha256 $(sha256sum < "$w/$stem.ply" | cut -d' ' -f1) (here: $(grep " $stem\$" "$c/sha256.txt" \
+  input_ply "$s" "$sc/scenes" "$w/$stem.ply" "${st[@]}" || { status=1; continue; }
+  echo "== $s: input sha256 $(sha256sum < "$w/$stem.ply" | cut -d' ' -f1) (here: $(grep " $stem\$" "$sc/sha256.txt" \
     | cut -d' ' -f1))"
   SECONDS=0
   if ! "${st[@]}" -w "${gpu[@]}" "$w/$stem.ply" "$OUT/$stem.sog"; then
