@@ -7,7 +7,9 @@ size and renderer) and merged here, instead of re-running every preset of every 
 both reports have the same input (path, bytes, splats), the same cameras, render size and renderer; a row of the
 same label in TARGET is replaced. `--rename` relabels a row (a setting measured under a probe name before it became
 a named preset; the settings must be the preset's). Every merged row keeps the source's commit under `merged_from`,
-so the table says where each row was measured. Only rows of kind `preset` are merged (peers stay as measured).
+so the table says where each row was measured. Only rows of kind `preset` are merged, unless `--peers`: then the
+peers' rows (kind `compare`, e.g. a SOG point encoded later on the GPU machine and compared alone with `eval --presets
+none --compare ...`) too, after the presets.
 """
 from __future__ import annotations
 
@@ -30,16 +32,22 @@ def same_measurement(a: dict, b: dict) -> str | None:
     return None
 
 
-def merge(target: dict, source: dict, rename: dict[str, str]) -> list[str]:
-    """Rows of kind `preset` of `source` into `target` (in place); the labels merged."""
+def merge(target: dict, source: dict, rename: dict[str, str], peers: bool = False) -> list[str]:
+    """Rows of kind `preset` (and with `peers`, `compare`) of `source` into `target` (in place); the labels merged."""
     problem = same_measurement(target, source)
     if problem:
         raise ValueError(problem)
     merged = []
     for row in source["rows"]:
-        if row["kind"] != "preset":
+        if row["kind"] != "preset" and not (peers and row["kind"] == "compare"):
             continue
         row = dict(row)
+        if row["kind"] == "compare":
+            row["merged_from"] = source["source"]
+            target["rows"] = [r for r in target["rows"] if not (r["kind"] == "compare" and r["label"] == row["label"])]
+            target["rows"].append(row)
+            merged.append(row["label"])
+            continue
         label = rename.get(row["label"], row["label"])
         if label != row["label"]:
             row["probe_label"] = row["label"]
@@ -59,6 +67,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("sources", nargs="+")
     ap.add_argument("--rename", nargs="*", default=[], metavar="OLD=NEW")
     ap.add_argument("--only", default="", help="comma-separated labels (after renaming) to merge; default: all")
+    ap.add_argument("--peers", action="store_true", help="also merge the peers' rows (kind compare)")
     args = ap.parse_args(argv)
     rename = dict(r.split("=", 1) for r in args.rename)
     only = {x for x in args.only.split(",") if x}
@@ -68,7 +77,7 @@ def main(argv: list[str] | None = None) -> int:
         if only:
             source["rows"] = [r for r in source["rows"] if rename.get(r["label"], r["label"]) in only]
         try:
-            labels = merge(target, source, rename)
+            labels = merge(target, source, rename, args.peers)
         except ValueError as e:
             print(f"{path}: not merged: {e}", file=sys.stderr)
             return 1
