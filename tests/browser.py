@@ -120,7 +120,7 @@ def serve(page_dir: Path, routes: dict[str, Path], ranges: bool = False) -> Iter
         httpd.server_close()
 
 
-def shoot(url: str, out: Path, size: tuple[int, int], timeout: float = 500) -> dict:
+def shoot(url: str, out: Path, size: tuple[int, int], timeout: float = 1800) -> dict:
     """The page at `url` in headless Chromium: its screenshot written to `out`, its report returned (`result`:
     the page's window.splatResult, `gl`: the WebGL renderer, `logs`: console lines and refused requests)."""
     r = subprocess.run(["node", str(DRIVER), url, str(out), f"{size[0]}x{size[1]}", CHROMIUM], capture_output=True,

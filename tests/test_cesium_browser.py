@@ -115,7 +115,7 @@ def shoot_tileset(tiles_root, page_server, tag: str, tmp_path: Path,
     if splats:
         query += f"&splats={splats}"
     theirs_png, ours_png = tmp_path / f"cesium-{tag}.png", tmp_path / f"ours-{tag}.png"
-    report = shoot(f"{page_server}/index.html?{query}", theirs_png, SIZE, timeout=400)
+    report = shoot(f"{page_server}/index.html?{query}", theirs_png, SIZE)
     render_ours(scene, ours_png, SIZE, ours)
     keep(theirs_png, ours_png)
     iou, psnr = compare(ours_png, theirs_png)

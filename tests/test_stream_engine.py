@@ -202,6 +202,48 @@ def test_coarse_to_fine_fills_each_level_before_the_next(store):
     engine.close()
 
 
+def _coarse_to_fine_walk(engine, keys, sel):
+    """The wish list's bases as a walk up from each cut tile (the engine's first version, kept as the reference of its
+    numpy climb): ranks by first naming cut tile, ancestors every fill_step-th level from fill_gap up."""
+    parent, level = engine.arrays.parent.tolist(), engine.arrays.level.tolist()
+    gap, step = engine.options.fill_gap, engine.options.fill_step
+    rank = {}
+    for r, i in enumerate(sel.cut):
+        rank.setdefault(i, r)
+        if engine.resident[i]:
+            continue
+        j, d = parent[i], 1
+        while j >= 0:
+            if d >= gap and (d - gap) % step == 0:
+                rank.setdefault(j, r)
+            j, d = parent[j], d + 1
+    rank[engine.root] = -1
+    base = sorted(rank, key=lambda i: (level[i], rank[i]))
+    filling = sorted(i for i in rank if i not in set(sel.cut))
+    return [(int(engine.ids[i]), "base") for i in base] + [k for k in keys if k[1] != "base"], filling
+
+
+def test_the_wish_lists_climb_is_the_walk(store):
+    """_coarse_to_fine (the cut's ancestors named in numpy, all cut tiles a level a step) against the walk up from
+    each cut tile: the same list and the same ancestors being filled in, for any cut, residency, gap and step."""
+    m = read_manifest(store)
+    rnd = np.random.default_rng(5)
+    for gap, step in ((4, 4), (1, 1), (2, 3), (3, 1)):
+        engine = StreamEngine(StepFetcher(store), CountingPool(10_000),
+                              StreamOptions(SelectionOptions(max_sse=float(rnd.choice([0.0, 0.5, 2.0]))),
+                                            fill_gap=gap, fill_step=step))
+        for k in range(12):
+            engine.resident[:] = rnd.random(len(engine.resident)) < (0.0, 0.3, 0.9)[k % 3]
+            _, sel, _, keys, _ = engine.wanted(orbit(m, float(rnd.uniform(0.3, 3.0)), float(rnd.uniform(0, 6))))
+            want, filling = _coarse_to_fine_walk(engine, keys, sel)
+            assert engine._coarse_to_fine(keys, sel) == want
+            assert np.flatnonzero(engine._filling).tolist() == filling
+            engine._tell_fetcher(keys, (), sel)  # what is missing of it: the bases' residency taken in numpy
+            assert engine._missing == [k for k in want if not engine._have(k)]
+        assert len(sel.cut) > 10
+        engine.close()
+
+
 def test_fill_gap_skips_the_levels_just_above_the_cut():
     g = read_gaussians_ply(real("fruit_drops_sh3.ply"))
     store = encode_in_memory(g, EncodeOptions(preset="medium", max_leaf_splats=80))  # four levels

@@ -222,6 +222,7 @@ class StreamEngine:
         self._page_frame: dict[int, int] = {}  # tile id -> the frame its page was added in
         self._last_cut: set[int] = set()  # the last selection's cut (positions): kept from eviction, and where the
         # next frame's selection starts looking
+        self._bases = np.zeros(0, np.intp)  # positions of the wish list's bases (_coarse_to_fine)
         self._pages_checked: tuple[int, int] = (0, 0)  # (tiles held, payload evictions) at the last eviction pass
         self.frame = 0
         self.refined: frozenset[int] = frozenset()
@@ -449,7 +450,12 @@ class StreamEngine:
         """The wish list from this frame's selection, handed to the fetcher when it changed: what is missing, coarse
         to fine, pages right after the root's base, prefetch only when nothing is missing."""
         self._keys = self._coarse_to_fine(keys, sel) if self.options.fill_levels else keys
-        self._missing = [k for k in self._keys if not self._have(k) and not self._blocked(k)]
+        if self.options.fill_levels and not self.failed:  # the bases' residency in numpy (_coarse_to_fine's order)
+            base = self._bases
+            absent = self.ids[base[~self.resident[base]]].tolist()
+            self._missing = [(i, "base") for i in absent] + [k for k in self._keys[len(base):] if not self._have(k)]
+        else:
+            self._missing = [k for k in self._keys if not self._have(k) and not self._blocked(k)]
         want = [k for k in self._missing if k not in self._ready and k not in self._decoding]
         pre = [] if want else [k for k in extra if not self._have(k) and k not in self._ready
                                and k not in self._decoding]
@@ -468,7 +474,7 @@ class StreamEngine:
         """The draw set and what a frame reports of it and of the residency, kept while neither changes (a still,
         converged view then costs no numpy work a frame)."""
         drawn = draw_set(self.arrays, view, sel, self.resident, self.root)
-        counts = ([int(self.ids[i]) for i in drawn], int(self.resident.sum()),
+        counts = (self.ids[drawn].tolist(), int(self.resident.sum()),
                   int(self.arrays.splats[self.resident].sum()),
                   int(self.arrays.splats[drawn].sum()) if drawn else 0)
         return (self._wanted_serial, self._version), np.asarray(drawn, np.intp), counts
@@ -476,33 +482,33 @@ class StreamEngine:
     def _coarse_to_fine(self, keys: list[Key], sel: Selection) -> list[Key]:
         """The wish list with the ancestors of every cut tile not resident yet, bases ordered by level (then by
         the cut's priority: an ancestor takes the rank of its first descendant), SH bands after every base."""
-        parent, level = self._parent, self._level
-        resident = self.resident
-        rank: dict[int, int] = {}
+        a = self.arrays
+        n = len(self.resident)
+        cut = np.fromiter(sel.cut, np.intp, len(sel.cut))
         gap, step = self.options.fill_gap, self.options.fill_step
-        walked: set[tuple[int, int]] = set()
-        for r, i in enumerate(sel.cut):
-            rank.setdefault(i, r)
-            if resident[i]:
-                continue
-            # Every fill_step-th ancestor, from fill_gap levels up: levels `reduction` apart in splats would
-            # otherwise add about as many bytes as the cut itself (1/2 + 1/4 + ... at reduction 2).
-            j, d = parent[i], 1
-            while j >= 0:
-                phase = (j, d % step if d >= gap else -d)
-                if phase in walked:
-                    break
-                walked.add(phase)
-                if d >= gap and (d - gap) % step == 0:
-                    rank.setdefault(j, r)
-                j, d = parent[j], d + 1
+        # Every fill_step-th ancestor, from fill_gap levels up, of each cut tile not resident: levels `reduction`
+        # apart in splats would otherwise add about as many bytes as the cut itself (1/2 + 1/4 + ... at reduction
+        # 2). All cut tiles climb together, a level a step (numpy over the cut: a Python walk per tile cost 1-2 ms
+        # a frame at 250M); a tile's rank is the least rank of the cut tiles that name it.
+        rank = np.full(n, n + len(cut), np.int64)
+        rank[cut] = np.arange(len(cut))
+        climb = ~self.resident[cut]
+        at, r = a.parent[cut[climb]], np.flatnonzero(climb)
+        d = 1
+        while at.size:
+            inside = at >= 0
+            at, r = at[inside], r[inside]
+            if d >= gap and (d - gap) % step == 0:
+                np.minimum.at(rank, at, r)
+            at, d = a.parent[at], d + 1
         rank[self.root] = -1
-        base = sorted(rank, key=lambda i: (level[i], rank[i]))
-        self._filling = np.zeros(len(self.resident), bool)
-        cut = set(sel.cut)
-        self._filling[[i for i in rank if i not in cut]] = True
-        ids = self.ids
-        return [(int(ids[i]), "base") for i in base] + [k for k in keys if k[1] != "base"]
+        named = np.flatnonzero(rank < n + len(cut))
+        base = named[np.lexsort((rank[named], a.level[named]))]  # (level, rank): no two alike
+        self._filling = np.zeros(n, bool)
+        self._filling[named] = True
+        self._filling[cut] = False
+        self._bases = base  # positions of the list's bases, in its order
+        return [(i, "base") for i in self.ids[base].tolist()] + [k for k in keys if k[1] != "base"]
 
     # --- decode -----------------------------------------------------------------------------------------------
     def _collect(self) -> None:

@@ -21,6 +21,13 @@ PRESETS: dict[str, dict[str, str]] = {
     # high's positions, rotations, scales and colour with 11-bit SH on importance-scaled tile steps (issue 32): on
     # the real SH2 scene flowers (542k splats) between medium and high, where compressed.ply sits.
     "medium-high": {"position": "f16x4", "rotation": "norm10_2", "scale": "norm11", "color": "f16x4", "sh": "norm11"},
+    # medium with about 12-bit positions: 16-bit texels on one step per tile (PRESET_STEPS), as medium-low-12bit's
+    # (issue 32). On the statue scans (SOG inputs) medium's norm11 positions carry most of its error (statue-massa:
+    # 63.0 dB, 72.4 with lossless positions) and land on compressed.ply's PSNR to a few hundredths of a dB; one
+    # 12-bit tile step gains 3.6-5.8 dB there for 0.07-0.27 B/splat more (BENCHMARKS.md, "medium-12bit"). Not for
+    # compressed.ply inputs: medium keeps their chunk grids and stays the better preset there.
+    "medium-12bit": {"position": "norm16x4", "rotation": "norm10_2", "scale": "norm11", "color": "norm8x4",
+                     "sh": "norm565"},
     "medium": {"position": "norm11", "rotation": "norm10_2", "scale": "norm11", "color": "norm8x4", "sh": "norm565"},
     # medium-low's positions, rotations, scales and colour with per-splat SH bands (no codebook) on importance-scaled
     # tile steps of 16 and 8 levels (issue 32): on real SH with many distinct rows (flowers: 262k of 542k) the
@@ -109,6 +116,7 @@ def sh_pooled_steps(levels: float, importance: float) -> dict[str, TileStep]:
 
 PRESET_STEPS: dict[str, dict[str, TileStep]] = {
     "medium-high": sh_steps(63.0),
+    "medium-12bit": {"position": TileStep((4095.0,) * 3, shared=3)},
     "medium-low-sh16": sh_steps(16.0),
     "medium-low-sh8": sh_steps(8.0),
     "medium-low-12bit": {"position": TileStep((4095.0,) * 3, shared=3), "scale": TileStep((180.0,) * 3, shared=3),
@@ -137,6 +145,8 @@ PRESET_SUMMARY: dict[str, str] = {
     "high": "16-bit positions and colour; about 73 B/splat at SH3, 18 at SH0; 61-71 dB",
     "medium-high": "high with 11-bit SH on importance-scaled steps (about 6 bits where it matters); about 33 "
                    "B/splat at SH2 (flowers, 61 dB), 45.6 at SH3 (fruit_drops, 64 dB), 18 at SH0",
+    "medium-12bit": "medium with about 12-bit positions (16-bit texels on one step per tile); about 13.8-15.3 "
+                    "B/splat at SH0 (statue scans 63.7-68.1 dB, 3.6-5.8 dB over medium), 27.8 at SH2, 37.2 at SH3",
     "medium": "the default: 11-bit positions, 8-bit colour, 16-bit SH; about 37 B/splat at SH3, 14-15 at SH0; "
               "56-72 dB",
     "medium-low-sh16": "medium-low with per-splat SH bands (no codebook) on importance-scaled steps of about 4 bits; "

@@ -1,0 +1,60 @@
+"""bench/eval_merge.py (issue 32): a preset or a peer point measured alone is merged into a scene's report only when
+both measured the same scene the same way (input, cameras, size, renderer), replacing a row of the same label."""
+from __future__ import annotations
+
+import importlib.util
+import json
+import pathlib
+import sys
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+
+def load():
+    spec = importlib.util.spec_from_file_location("splatstream_bench_eval_merge", ROOT / "bench" / "eval_merge.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+M = load()
+
+
+def report(commit: str, rows: list[dict], cameras=((0.0, 1.0, 2.0),)) -> dict:
+    return {"source": {"commit": commit}, "input": {"path": "/a/flowers.ply", "bytes": 10, "splats": 2},
+            "cameras": [list(c) for c in cameras], "size": [64, 64], "renderer": "gl", "rows": rows}
+
+
+def row(kind: str, label: str, psnr: float) -> dict:
+    return {"kind": kind, "label": label, "psnr_mean": psnr}
+
+
+def write(path: pathlib.Path, data: dict) -> str:
+    path.write_text(json.dumps(data))
+    return str(path)
+
+
+def test_peer_rows_merge_only_with_peers_and_replace_their_label(tmp_path):
+    target = write(tmp_path / "t.json", report("a", [row("preset", "medium", 50.0), row("compare", "st-spz", 40.0),
+                                                     row("compare", "st-sog", 1.0)]))
+    source = write(tmp_path / "s.json", report("b", [row("preset", "new", 45.0), row("compare", "st-sog", 44.9)]))
+    assert M.main([target, source]) == 0
+    rows = json.loads(pathlib.Path(target).read_text())["rows"]
+    # without --peers the peer row stays as measured; the preset goes before the peers
+    assert [(r["label"], r["psnr_mean"]) for r in rows] == [("medium", 50.0), ("new", 45.0), ("st-spz", 40.0),
+                                                            ("st-sog", 1.0)]
+    assert M.main([target, source, "--peers", "--only", "st-sog"]) == 0
+    rows = json.loads(pathlib.Path(target).read_text())["rows"]
+    assert [(r["label"], r["psnr_mean"]) for r in rows] == [("medium", 50.0), ("new", 45.0), ("st-spz", 40.0),
+                                                            ("st-sog", 44.9)]
+    assert rows[-1]["merged_from"] == {"commit": "b"}
+
+
+def test_other_cameras_are_refused_and_the_target_is_untouched(tmp_path, capsys):
+    before = report("a", [row("compare", "st-spz", 40.0)])
+    target = write(tmp_path / "t.json", before)
+    source = write(tmp_path / "s.json", report("b", [row("compare", "st-sog", 44.9)], cameras=((0.0, 1.0, 2.5),)))
+    assert M.main([target, source, "--peers"]) == 1
+    assert "cameras differ" in capsys.readouterr().err
+    assert json.loads(pathlib.Path(target).read_text()) == before
