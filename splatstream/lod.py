@@ -677,11 +677,13 @@ def build_subtree(g: Gaussians, index: np.ndarray, shape: TreeShape, level: int 
 
     def merge_tile(lvl: int, tid: int, child_ids: list[int], kids: list[Tile], member_mass: np.ndarray,
                    kid_reps: list[np.ndarray], first: int, end: int,
-                   groups: tuple[np.ndarray, np.ndarray] | None = None) -> tuple[Tile, np.ndarray, np.ndarray]:
+                   groups: tuple[np.ndarray, np.ndarray] | None = None, members: Gaussians | None = None
+                   ) -> tuple[Tile, np.ndarray, np.ndarray]:
         """One interior tile from its children (pure: reads `ordered`, writes nothing shared); `groups`: the
-        level's cost merge for this tile (level_cost_groups), else the grid."""
+        level's cost merge for this tile (level_cost_groups) with the `members` it grouped, else the grid."""
         a, b = int(leaf_starts[first]), int(leaf_starts[end])
-        members = tile_members(lvl, kids, first, end)
+        if members is None:
+            members = tile_members(lvl, kids, first, end)
         if groups is None:
             merged, merged_mass, assign = merge_gaussians(members, member_mass, shape.target(len(members)))
         else:
@@ -720,17 +722,19 @@ def build_subtree(g: Gaussians, index: np.ndarray, shape: TreeShape, level: int 
                 spans[tid] = (first, end)
                 level_tiles.append((tid, child_ids, first, end))
             groups: list = [None] * len(level_tiles)
+            sets: list = [None] * len(level_tiles)
             if merge == "cost":  # one grouping over the whole level (the tiles as regions), then merged per tile
+                # (the members and masses gathered once: merge_tile takes the same sets)
                 sets = [tile_members(lvl, [tiles[c] for c in kids], first, end)
                         for _, kids, first, end in level_tiles]
                 groups = level_cost_groups(sets, [np.concatenate([masses[c] for c in kids])
                                                   for _, kids, _, _ in level_tiles],
                                            [shape.target(len(m)) for m in sets], shape.max_leaf_splats)
-                del sets
-            for (tid, child_ids, first, end), grp in zip(level_tiles, groups, strict=True):
+            for i, ((tid, child_ids, first, end), grp) in enumerate(zip(level_tiles, groups, strict=True)):
                 jobs.append(pool.submit(merge_tile, lvl, tid, child_ids, [tiles[c] for c in child_ids],
                                         np.concatenate([masses.pop(c) for c in child_ids]),
-                                        [represented_by.pop(c) for c in child_ids], first, end, grp))
+                                        [represented_by.pop(c) for c in child_ids], first, end, grp, sets[i]))
+                sets[i] = None  # the job holds it now; merge_tile frees it after the merge
             for job in jobs:
                 tile, merged_mass, rep = job.result()
                 tiles[tile.id] = tile
