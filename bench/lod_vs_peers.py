@@ -561,6 +561,7 @@ def run_scene(scene: Scene, args, peers: Peers | None) -> dict | None:
                    "drawn_tile_bytes_mean": int(np.mean([r["drawn_tile_bytes"] for r in recs])),
                    "drawn_tile_base_bytes_mean": int(np.mean([r["drawn_tile_base_bytes"] for r in recs])),
                    "drawn_tiles_per_view": [r["drawn_tiles"] for r in recs],
+                   "drawn_tile_ids_per_view": [r["drawn_tile_ids"] for r in recs],
                    "converged_s_per_view": [r["converged_s"] for r in recs],
                    "command": " ".join(recs[0]["argv"][:6]) + " --no-prefetch --eye .. --target .. --up .. "
                               f"--fov-y .. --size {args.size}x{args.size}",
