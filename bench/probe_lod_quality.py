@@ -6,17 +6,20 @@ tree (`lod.build_tiles`, the encoder's defaults: 16,384-splat leaves, reduction 
 ONE WHOLE LEVEL (every tile of that level) of about 50 % and 25 % of the scene with the GL renderer, next to
 splat-transform's level of the same count:
 
-* `grid` / `cost`: the merge (`--lod-merge`), the product's step 5 (format_spec/lod.md 6: opacity and base colour
-  matched at the tile's 1-px viewing blur `b = 0.3 p^2`);
-* `@K`: step 5's blur scaled by K (`@0`: no blur: mass-conserving opacity and mass-weighted colour of the
-  originals, which is splat-transform's own rule up to its opacity cap of 1 and its ellipsoid-area weights);
+* `grid` / `cost`: the merge (`--lod-merge`), with the product's step 5 (format_spec/lod.md 6: opacity and base
+  colour matched at the viewing blur `b = 0.3 p^2`, p a pixel where the tile's error spans
+  lod.OPACITY_MATCH_SSE_PX);
+* `@PX`: step 5 matched at PX px instead (`@1`: the rule before 2026-11-28; `@0`: no blur: mass-conserving
+  opacity and mass-weighted colour of the originals, which is splat-transform's own rule up to its opacity cap of
+  1 and its ellipsoid-area weights);
 
 Also prints, per view, the screen-space error (px) at which the tiles of that level are seen from the orbit views
 (projected error = error / pixel size at the tile's sphere distance), which is the scale the blur is about.
 `--sizes 384 96`: the same views drawn at fewer pixels too (the same cameras, so the level is seen at a quarter of
 the screen-space error: near the 1 px it is drawn at without a budget), against full detail at that size.
 
-    PYTHONPATH=. python bench/probe_lod_quality.py --scenes statue-angel statue-massa --variants grid grid@0 cost
+    PYTHONPATH=. python bench/probe_lod_quality.py --scenes statue-angel statue-massa \
+        --variants grid@1 grid@2 grid@4 grid@0 cost@1 cost@4 --fractions 0.5 0.25 0.06 0.02 --sizes 384 96
 """
 from __future__ import annotations
 
@@ -54,10 +57,10 @@ def level_sse(tiles: list[lod.Tile], level: int, cameras) -> list[float]:
 
 
 def build(g: Gaussians, variant: str) -> list[lod.Tile]:
-    merge, _, scale = variant.partition("@")
+    merge, _, px = variant.partition("@")
     blur = lod.viewing_blur
-    if scale:
-        lod.viewing_blur = lambda e, k=float(scale): k * blur(e)
+    if px:  # matched at PX pixels of screen-space error; 0: no blur at all
+        lod.viewing_blur = (lambda e, p=float(px): lod.LOW_PASS_PX2 * (e / p) ** 2) if float(px) else (lambda e: 0.0)
     try:
         return lod.build_tiles(g, 16384, 2.0, merge=merge)
     finally:

@@ -41,9 +41,13 @@ EXTENT_SIGMAS = 3.0
 # Merged opacity ceiling (the rasteriser's own clamp); a splat standing for a single original keeps its opacity.
 MAX_MERGED_OPACITY = 0.99
 # Variance (px^2) the rasteriser adds to projected covariances (reference 3DGS), and the screen-space error (px)
-# at which coarse tiles are meant to be seen: their opacities are matched at that scale.
+# at which coarse tiles are meant to be seen: their opacities and colours are matched at that scale. Not the
+# 1 px of a view without a budget: under a splat budget a tile is drawn several times nearer than that, where
+# the 1-px blur made merged splats too opaque. 2 px: budgeted views gain, levels seen at 1 px lose little; 4 px
+# gains more under a budget but loses too much at 1 px (BENCHMARKS.md, "LOD against peers", the viewing scale;
+# format_spec/lod.md 6, step 5).
 LOW_PASS_PX2 = 0.3
-OPACITY_MATCH_SSE_PX = 1.0
+OPACITY_MATCH_SSE_PX = 2.0
 # Error statistic over a tile's ORIGINAL splats, each taking the error of the merged splat that stands for it
 # (so untouched singletons cannot hide a merged blob): "max" is a strict bound; a quantile ignores a few outliers.
 ERROR_STAT: str | float = 0.99
@@ -554,9 +558,10 @@ def finish_appearance(merged: Gaussians, counts: np.ndarray, sums: np.ndarray, b
     the renderer draws them at the tile's viewing scale (`sums`: fold_leaf_sums of appearance_terms).
 
     3DGS rasterisers add a 0.3 px^2 low-pass to every projected covariance without lowering the opacity, so a
-    sub-pixel splat covers about opacity * (dilated area), far more than its mass. Coarse tiles are drawn exactly
-    when their members are sub-pixel. Plain mass preservation then loses coverage (holes, dark silhouettes) and
-    lets big members outweigh the many small ones that dominate the picture (fine sprinkles on a donut's icing).
+    sub-pixel splat covers about opacity * (dilated area), far more than its mass. Coarse tiles are drawn when
+    their members are small on screen (b: a pixel where the tile's error spans OPACITY_MATCH_SSE_PX). Plain mass
+    preservation then loses coverage (holes, dark silhouettes) and lets big members outweigh the many small ones
+    that dominate the picture (fine sprinkles on a donut's icing).
     Both sides are therefore measured after the same blur b: alpha = sum alpha_i A(Sigma_i + b) / A(Sigma + b),
     colour = mean of the members' colours weighted by alpha_i A(Sigma_i + b). Higher SH bands keep the
     hierarchical mass-weighted mean (view-dependent residuals, cheap).
