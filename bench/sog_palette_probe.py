@@ -13,8 +13,10 @@ the scene's sorted distinct values (scale: one palette over the three axes; colo
 opacity), laid out as a norm8x4 texel plane in the same texels, coded as the encoder codes a plane
 (`transport.filter_texels`, fields1 or byte shuffle, whichever is smaller) and compressed alone with zstd at the
 preset's level; plus the palettes (256 float32 each). An encode whose scale and colour are norm8x4 gives the same
-estimator on its planes as stored, to compare with its report's per-attribute disk bytes (the calibration: the
-estimator reads 8-24 % high on the statues, compressing each plane alone).
+estimator on its planes as stored, and its rotations (f32x4 rotations: as SOG's 8-bit smallest-three texels). Use
+the figures differentially (BENCHMARKS.md, "Guitar's near misses ..."): the norm8x4 encode's measured bytes, minus
+the estimator on its planes, plus the estimator on the palettes. (A manifest's per-attribute disk bytes are shares
+of the payload's one zstd frame by section size, so they do not calibrate a per-plane estimate.)
 """
 from __future__ import annotations
 
@@ -30,6 +32,7 @@ sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 from splatstream.format.decode import decode_payload, decode_planes  # noqa: E402
 from splatstream.format.transport import filter_texels, slot_to_texel  # noqa: E402
 from splatstream.io import read_gaussians  # noqa: E402
+from splatstream.readers.sog import QUAT_ORDER  # noqa: E402
 from splatstream.store import open_store, read_manifest  # noqa: E402
 
 
@@ -57,6 +60,26 @@ def snap(values: np.ndarray, candidates: list[np.ndarray]) -> tuple[np.ndarray, 
     return best
 
 
+def smallest_three(q: np.ndarray) -> tuple[np.ndarray, float]:
+    """SOG's rotation texel of each (w, x, y, z) quaternion (readers/sog.py: the three smaller components times
+    sqrt(2) on 255 steps, alpha 252 + the index of the largest), and the largest error of a component it decodes
+    to, in steps of that grid (at most 0.5 when q lies on it up to float rounding; 0 error means SOG's own grid)."""
+    q = q / np.linalg.norm(q, axis=1, keepdims=True)
+    largest = np.abs(q).argmax(axis=1)
+    q = q * np.where(q[np.arange(len(q)), largest] < 0, -1.0, 1.0)[:, None]
+    codes = np.zeros((len(q), 4), np.uint8)
+    err = 0.0
+    for i, others in enumerate(QUAT_ORDER):
+        rows = largest == i
+        t = (q[np.ix_(rows, others)] * np.sqrt(2) + 1) / 2 * 255
+        b = np.clip(np.rint(t), 0, 255)
+        codes[rows, :3] = b
+        codes[rows, 3] = 252 + i
+        if rows.any():
+            err = max(err, float(np.abs(t - b).max()))
+    return codes, err
+
+
 def probe(scene: str, source: str, level: int) -> dict:
     g = read_gaussians(source)
     store = open_store(scene)
@@ -67,6 +90,16 @@ def probe(scene: str, source: str, level: int) -> dict:
     n = tile.splats
     values = decode_planes(planes, n)
     out = {"scene": scene, "splats": n}
+    rot = planes["rotation"]
+    if rot.format == "f32x4":  # lossless rotations: SOG's 8-bit smallest-three texels in the same slots
+        codes = np.zeros((rot.width * rot.height, 4), np.uint8)
+        c, err = smallest_three(values["rotation"][:, 0].astype(np.float64))
+        codes[slot_to_texel(rot.width, rot.height)[:n]] = c
+        out["rotation_s3_bytes"] = coded_bytes(codes.ravel(), rot.width, rot.height, level)
+        out["rotation_s3_off_grid"] = err
+    elif rot.format == "norm8x4":
+        out["rotation_as_stored_bytes"] = coded_bytes(np.frombuffer(bytes(rot.layers[0]), np.uint8), rot.width,
+                                                      rot.height, level)
     for name in ("scale", "color"):
         p = planes[name]
         if p.format == "norm8x4":  # calibration: the estimator on the plane as the encoder stored it
@@ -104,6 +137,11 @@ def main() -> None:
     for s in args.scenes:
         r = probe(s, args.source, args.level)
         n = r["splats"]
+        if "rotation_s3_bytes" in r:
+            print(f"{s}: rotations as SOG's 8-bit smallest three: {r['rotation_s3_bytes'] / n:.3f} B/splat "
+                  f"(estimate; largest distance to that grid {r['rotation_s3_off_grid']:.3f} steps)")
+        if "rotation_as_stored_bytes" in r:
+            print(f"{s}: norm8x4 rotations as stored, estimated: {r['rotation_as_stored_bytes'] / n:.3f} B/splat")
         if "scale_as_stored_bytes" in r:
             print(f"{s}: {n} splats; norm8x4 planes as stored, estimated: scale {r['scale_as_stored_bytes'] / n:.3f} "
                   f"B/splat, colour {r['color_as_stored_bytes'] / n:.3f} B/splat")
