@@ -82,7 +82,8 @@ def test_preset_steps_follow_the_preset_and_are_dropped_with_an_override():
     assert set(preset_steps("medium-low-12bit")) == {"position", "scale", "color"}
     assert preset_steps("medium-low-12bit", {"position": "norm11"}).keys() == {"scale", "color"}
     assert preset_steps("medium-low-12bit", {"position": "norm16x4"}).keys() == {"position", "scale", "color"}
-    assert preset_steps("medium") == {}
+    assert preset_steps("medium") == {"scale": TileStep((1023.0,) * 3, shared=3)}
+    assert preset_steps("medium", {"scale": "norm565"}) == {}
     assert PRESET_STEPS["medium-low-12bit"]["color"].levels == (255.0, 255.0, 255.0, 55.0)
     # every preset with tile steps puts them on integer formats of the planes they name
     for preset, steps in PRESET_STEPS.items():
@@ -370,3 +371,27 @@ def test_medium_low_9bit_has_low_plus_9bits_scale_and_opacity_steps_and_per_chun
     assert 0 < err_scale <= float(g.log_scales.max() - g.log_scales.min()) / 200
     err_opacity = np.abs(dec.opacities - g.opacities[nearest]).max()
     assert 0 < err_opacity <= float(g.opacities.max() - g.opacities.min()) / 55
+
+
+def test_medium_scales_lie_on_one_1023_level_tile_step(tmp_path, monkeypatch):
+    """medium (issue 32, chosen on guitar): log scales on one step per tile over the three axes (the median
+    chunk's extent / 1023), everything else per chunk: scale error within that step, more on average than on the
+    per-chunk grids of before (11/10/11 bits), for fewer bytes; the scene stays 1.2. Scales are compared on encodes
+    with exact positions (the override drops only the position format), so that each decoded splat is matched to
+    its own input splat."""
+    g = read_gaussians(real("fruit_drops_sh3.ply")).subset(np.arange(1800))
+    m = encode_gaussians(g, tmp_path / "s", EncodeOptions(preset="medium", lod=False))
+    assert m.version == (1, 2) and m.formats == PRESETS["medium"]
+
+    def scale_error(out, **kw):
+        encode_gaussians(g, out, EncodeOptions(preset="medium", lod=False, overrides={"position": "f32x4"}, **kw))
+        dec = decode_scene(out)
+        nearest = np.abs(dec.positions[:, None, :] - g.positions[None, :, :]).max(axis=2).argmin(axis=1)
+        return np.abs(dec.log_scales - g.log_scales[nearest])
+
+    err = scale_error(tmp_path / "p")
+    assert 0 < err.max() <= float(g.log_scales.max() - g.log_scales.min()) / 1023
+    monkeypatch.setitem(PRESET_STEPS, "medium", {})  # medium before issue 32: scales on per-chunk grids
+    per_chunk = encode_gaussians(g, tmp_path / "c", EncodeOptions(preset="medium", lod=False))
+    assert per_chunk.formats == m.formats and m.bytes_on_disk < per_chunk.bytes_on_disk
+    assert scale_error(tmp_path / "pc").mean() < err.mean()  # x and z had 2047 levels of their own chunk
