@@ -513,7 +513,8 @@ class StreamEngine:
         for key, entry, data in self.fetcher.done():
             if key[1] == PAGE_GROUP:  # parsed on a decode worker, added at a frame's start (_add_pages)
                 if key[0] in self.pages.pending and key[0] not in self._pages_arrived:
-                    self._pages_arrived[key[0]] = self._pool.submit(self.pages.read, key[0], data)
+                    self._pages_arrived[key[0]] = self._pool.submit(self.pages.read, key[0], data,
+                                                                         self._wait_for_loop)
                     self._version += 1  # the wish list leaves it out now
                 continue
             if self._have(key) or key in self._ready or key in self._decoding:

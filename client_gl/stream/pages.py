@@ -11,6 +11,7 @@ per-tile state through the positions it returns.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -95,14 +96,21 @@ class PagedTree:
                 out.append((tile_id, PAGE_GROUP))
         return out
 
-    def read(self, tile_id: int, data: VerifiedPayload | bytes) -> ParsedPage:
+    def read(self, tile_id: int, data: VerifiedPayload | bytes,
+             between: Callable[[], object] | None = None) -> ParsedPage:
         """A page's tiles, parsed and checked, and their rows (any thread: it changes nothing here). Its bytes are
         checked once, like a payload's: a VerifiedPayload of its entry (the fetcher's) as it is, anything else
-        hashed now."""
+        hashed now. `between`: called before the parse and before the rows (the engine's decode workers wait there
+        for the frame loop's idle time, as between a payload's decode steps: both are Python that would take the
+        interpreter lock from the frame loop)."""
         ref = self.pending[tile_id]
         source = f"{self.source} page {ref.file}"
         raw = verified_bytes(data, ref, source)
+        if between is not None:
+            between()
         tiles = read_page(raw, ref, self.root, self._full[tile_id], source, lazy_payloads=True, hashed=True)
+        if between is not None:
+            between()
         return ParsedPage(tiles, tile_rows(tiles))
 
     def insert(self, tile_id: int, page: ParsedPage | list[TileEntry]) -> None:
