@@ -251,6 +251,7 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
     side = whole.bounds.max[0]
     prof = cProfile.Profile(time.thread_time) if profile else None  # CPU: the VM is shared
     times, cpu = [], []
+    adopted: list[bool] = []  # frames that adopted (or dropped) pages
     # The bench's whole tree is no client's: out of the collector's passes, whose full passes over it took 120-150 ms
     # (the spikes of a first version of this bench). The client's own objects (the root manifest, the pages it
     # parses: real page bytes through PagedTree.read, as the engine's decode workers parse them) are collected as
@@ -289,10 +290,12 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
                 fut.result()
             if prof is not None:
                 prof.enable()
+            held = (engine.pages.pages_read, engine.pages.evicted)
             t0, c0 = time.perf_counter(), time.thread_time()
             engine.update(cam)
             times.append(time.perf_counter() - t0)
             cpu.append(time.thread_time() - c0)
+            adopted.append(held != (engine.pages.pages_read, engine.pages.evicted))
             if prof is not None:
                 prof.disable()
     finally:
@@ -311,6 +314,11 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
           f"{len(engine.manifest.tiles)}, pages read {engine.pages.pages_read}, evicted {engine.pages.evicted}; "
           f"{len(full_passes)} full collections ({sum(full_passes) * 1e3:.1f} ms in all, longest "
           f"{max(full_passes, default=0) * 1e3:.1f} ms); tree held {tree_mb:.1f} MB")
+    ad = np.array(adopted, bool)
+    for name, part in (("frames adopting or dropping pages", cs[ad]), ("other frames", cs[~ad])):
+        if part.size:
+            print(f"  {name}: {part.size}, update CPU median {np.median(part):.2f}, p99 "
+                  f"{np.percentile(part, 99):.2f}, max {part.max():.1f} ms")
     if prof is not None:
         pstats.Stats(prof).sort_stats("tottime").print_stats(30)
         pstats.Stats(prof).sort_stats("cumulative").print_stats("selection.py|engine.py", 25)

@@ -30,14 +30,16 @@ GOAL = 0.90
 # presets of issue 15 and the tile-step presets were tuned on the four real bench scenes (and the synthetic s1m);
 # the per-splat SH presets on flowers (G) and fruit_drops (the importance exponent), on top of bases tuned on the
 # bench scenes. medium-12bit (medium with medium-low-12bit's position step) was chosen on two statue scans, between
-# steps of 2047, 4095 and 8191 levels. very-high is lossless: tuned on nothing.
+# steps of 2047, 4095 and 8191 levels. medium-low-9bit's scale and opacity steps (low-plus-9bit's) were chosen on
+# guitar against its SOG point, and medium's scale step on guitar against its compressed.ply point. very-high is
+# lossless: tuned on nothing.
 BENCH = ("fruit_drops_sh3", "donut_sh0_no_normals", "biker.compressed", "lod_tile_sh3_zero_rest", "s1m")
 SH_TUNED = BENCH + ("flowers",)
 STATUE_TUNED = ("statue-massa", "statue-angel")
 TUNED: dict[str, tuple[str, ...]] = {
     "very-high": (),
-    **{p: BENCH for p in ("high", "medium", "medium-low", "medium-low-9bit", "medium-low-12bit", "low-plus-9bit",
-                          "low-plus", "low", "very-low")},
+    **{p: BENCH for p in ("high", "medium-low", "medium-low-12bit", "low-plus-9bit", "low-plus", "low", "very-low")},
+    **{p: BENCH + ("guitar.compressed",) for p in ("medium", "medium-low-9bit")},
     **{p: SH_TUNED for p in ("medium-high", "medium-low-sh16", "medium-low-sh8", "low-plus-9bit-sh6",
                              "low-plus-9bit-sh5")},
     "medium-12bit": BENCH + STATUE_TUNED,
@@ -47,10 +49,12 @@ SH_BASE = {"medium-high": "high", "medium-low-sh16": "medium-low", "medium-low-s
            "low-plus-9bit-sh6": "low-plus-9bit", "low-plus-9bit-sh5": "low-plus-9bit"}
 # (preset, peer label, scenes the choice was made on, what was chosen there)
 CHOICES: list[tuple[str, str, tuple[str, ...], str]] = [
-    ("medium", "st-compressed.ply", ("biker.compressed",), "opacity grid and input chunk order (biker)"),
+    ("medium", "st-compressed.ply", ("biker.compressed", "guitar.compressed"),
+     "opacity grid and input chunk order (biker); scale tile step G 1023 (guitar)"),
     ("medium-12bit", "st-compressed.ply", STATUE_TUNED, "12-bit tile-step positions on medium (two statues)"),
     ("medium-low", "st-sog", ("lod_tile_sh3_zero_rest",), "zstd level 9 (lod_tile at 0.904 before)"),
-    ("medium-low-9bit", "st-sog", ("biker.compressed",), "9-bit positions, zstd 16 (biker)"),
+    ("medium-low-9bit", "st-sog", ("biker.compressed", "guitar.compressed"),
+     "9-bit positions, zstd 16 (biker); scale and opacity steps of low-plus-9bit (guitar)"),
     ("medium-low-12bit", "st-sog", ("donut_sh0_no_normals",), "tile steps G 4095/180/255/55 (donut)"),
     ("low-plus-9bit", "st-sog", ("s1m",), "9-bit positions on tile steps (s1m)"),
     ("low", "st-spz", BENCH, "issue 15's low (the bench scenes)"),

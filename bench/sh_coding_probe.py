@@ -5,8 +5,9 @@
 CONFIG is "LABEL:PRESET[,ATTR=FORMAT...][,sh_codebook=off|auto|fine|N][,sh_steps=G1/G2/G3][,zstd=L]" (sh_steps:
 tile-step levels of SH bands 1, 2, 3, format.md 4.3.1; one value applies to every band), and with sh_steps
 `sh_importance=E` (the importance exponent), `sh_zero=1` (0 on each chunk's grid), `sh_pool=1` (one step per band
-plane), `sh_round=R` (rounding offset towards 0); `pos_g=`, `scale_g=`, `rgb_g=` replace the preset's tile-step
-levels of positions, log scales and SH0 R, G, B. Every config is encoded
+plane), `sh_round=R` (rounding offset towards 0); `pos_g=`, `scale_g=`, `rgb_g=`, `opa_g=` replace (or add)
+the preset's tile-step levels of positions, log scales, SH0 R, G, B and opacity (a colour step added by `rgb_g` or
+`opa_g` alone has the other's levels from low-plus-9bit's: 255 and 55). Every config is encoded
 without the LOD tree (as `splatstream eval` does by default), decoded, and rendered with the numpy reference
 renderer from the same orbit views `eval` uses; the reference renders and every result are cached under DIR (a
 config is not run again while its result file exists). `--compare LABEL=DECODED@ENCODED` adds peers.
@@ -55,7 +56,7 @@ def parse_config(spec: str) -> tuple[str, str, dict]:
             extra["sh_round"] = float(v)
         elif k == "sh_pool":
             extra["sh_pool"] = bool(int(v))
-        elif k in ("pos_g", "scale_g", "rgb_g"):
+        elif k in ("pos_g", "scale_g", "rgb_g", "opa_g"):
             extra[k] = float(v)
         elif k == "zstd":
             extra["zstd"] = int(v)
@@ -82,8 +83,9 @@ def register(label: str, preset: str, extra: dict) -> str:
         steps["position"] = TileStep((extra["pos_g"],) * 3, shared=3)
     if "scale_g" in extra:
         steps["scale"] = TileStep((extra["scale_g"],) * 3, shared=3)
-    if "rgb_g" in extra:
-        steps["color"] = TileStep((extra["rgb_g"],) * 3 + (steps["color"].levels[3],), shared=3)
+    if "rgb_g" in extra or "opa_g" in extra:
+        old = steps.get("color", TileStep((255.0, 255.0, 255.0, 55.0), shared=3)).levels
+        steps["color"] = TileStep((extra.get("rgb_g", old[0]),) * 3 + (extra.get("opa_g", old[3]),), shared=3)
     P.PRESET_STEPS[name] = steps
     cb = extra.get("sh_codebook", P.PRESET_SH_CODEBOOK.get(preset, "off"))
     P.PRESET_SH_CODEBOOK[name] = cb

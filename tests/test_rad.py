@@ -31,6 +31,8 @@ from splatstream.writers.rad import (
     RadTree,
     TreeTile,
     merge_splats,
+    nearest,
+    nearest_brute,
     rad_bytes,
     rad_tree,
 )
@@ -293,3 +295,23 @@ def test_a_binary_tree_with_shallow_leaves_becomes_ours(tmp_path):
     for j in range(tree.levels() - k):
         # Within the encode preset's position quantisation (the scene spans about 6 units).
         assert same_splats(our_cut(store, manifest, j), tree.splats.subset(tree.cut(k + j))) < 5e-3, j
+
+
+@pytest.mark.parametrize("n, m, k", [(6000, 3000, 1), (2500, 4000, 16), (9000, 800, 1), (4000, 4000, 3)])
+def test_nearest_spatial_blocks_equal_every_pair(n, m, k):
+    """export-rad's parent search over spatial blocks finds the same nearest centres as the search over every pair,
+    on clustered points of three scales with exact coincidences (ties break by index)."""
+    rng = np.random.default_rng(n + m + k)
+    centres = rng.normal(size=(m, 3)) * rng.choice([0.01, 1.0, 30.0], size=(m, 1)) + rng.normal(size=(m, 1)) * 5
+    points = rng.normal(size=(n, 3)) * rng.choice([0.01, 1.0, 30.0], size=(n, 1)) + rng.normal(size=(n, 1)) * 5
+    points[:50] = centres[:50]
+    centres[60:70] = centres[50:60]  # duplicate centres: the lower index wins
+    fast, brute = nearest(points, centres, k), nearest_brute(points, centres, k)
+    assert fast.shape == brute.shape == ((n,) if k == 1 else (n, k))
+    if k == 1:
+        assert np.array_equal(fast, brute)
+    else:
+        def dist(idx):
+            return ((points[:, None, :] - centres[idx]) ** 2).sum(axis=2)
+        assert np.allclose(dist(fast), dist(brute), rtol=1e-12, atol=1e-12)
+        assert (np.diff(dist(fast), axis=1) >= -1e-12).all()

@@ -1,5 +1,6 @@
 """The streaming engine's decisions (client_gl/stream/engine.py) without GL or network: a real encoded scene in
 memory, a fetcher that hands over a few payloads per frame, and a pool that only counts slots."""
+import random
 from dataclasses import replace
 
 import numpy as np
@@ -14,7 +15,7 @@ from splatstream.camera import Camera
 from splatstream.encode import EncodeOptions, encode_in_memory
 from splatstream.errors import FormatError
 from splatstream.format.container import verify_payload
-from splatstream.format.manifest import parse_manifest, tile_arrays
+from splatstream.format.manifest import grown_arrays, model, parse_manifest, tile_arrays
 from splatstream.ply import read_gaussians_ply
 from splatstream.store import MemoryStore, read_manifest
 
@@ -432,11 +433,87 @@ def test_the_tree_held_is_bounded_and_dropped_pages_are_read_again(paged_store):
     assert len(pages) > len(set(pages))  # dropped pages were read again when their side was viewed again
 
 
+_ARRAY_NAMES = ("ids", "parent", "level", "splats", "box_min", "box_max", "sphere_center", "sphere_radius",
+                "geometric_error", "base_bytes", "band_bytes", "gpu_bytes", "box_corners", "splats_f64", "has_children",
+                "child_count", "parent_of_child")
+
+
 def _same_arrays(a, b) -> None:
-    assert a.children == b.children
-    for name in ("ids", "parent", "level", "splats", "box_min", "box_max", "sphere_center", "sphere_radius",
-                 "geometric_error", "base_bytes", "band_bytes", "gpu_bytes"):
-        np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    assert a.children == b.children and a.splats_list == b.splats_list
+    for name in _ARRAY_NAMES:  # the derived arrays too: grown ones are kept, not derived again
+        x, y = getattr(a, name), getattr(b, name)
+        assert x.dtype == y.dtype and x.flags.c_contiguous, name
+        np.testing.assert_array_equal(x, y, err_msg=name)
+
+
+def _snapshot(a) -> dict:
+    return {name: getattr(a, name).copy() for name in _ARRAY_NAMES}
+
+
+def test_pages_adopted_in_place_leave_earlier_views_as_they_were(paged_store, monkeypatch):
+    """grown_arrays writes a page's rows into spare rows of the last view's storage (doubled when full): every
+    view, earlier ones included, must stay what a rebuild makes, with pages arriving in random order and batches,
+    as parsed pages (rows taken by read, on a worker in the engine) or plain tile lists (rows taken when adopted),
+    pages dropped and arriving again, and a tree grown twice from one view (the second must copy)."""
+    monkeypatch.setattr(model, "_FIRST_ROWS", 1)  # storage of twice the tiles held: this small tree fills it
+    rnd = random.Random(3)
+    tree = PagedTree(parse_manifest(paged_store.read_manifest(), "root", lazy_payloads=True))
+    _ = tree.manifest.arrays
+    views = []  # (view, a copy of its arrays when made)
+    capacity = []  # (its storage, the storage's rows then)
+    grown = dropped = 0
+    for _ in range(60):
+        pending, held = list(tree.pending), tree.held_pages()
+        if held and (not pending or rnd.random() < 0.25):
+            tree.evict(rnd.sample(held, rnd.randrange(1, min(3, len(held)) + 1)))
+            dropped += 1
+        else:
+            for tile_id in rnd.sample(pending, min(len(pending), rnd.randrange(1, 5))):
+                data = paged_store.payloads[tree.entry(tile_id).file]
+                page = tree.read(tile_id, data)
+                tree.insert(tile_id, page if rnd.random() < 0.7 else page.tiles)
+            grown += 1
+        m = tree.manifest
+        _same_arrays(m.arrays, tile_arrays(m.tiles, {t.id: i for i, t in enumerate(m.tiles)}))
+        views.append((m, _snapshot(m.arrays)))
+        store = m.arrays.__dict__.get("_growing")
+        if store is not None:
+            capacity.append((id(store), len(store.buf["ids"])))
+    assert grown > 10 and dropped > 3
+    assert len({s for s, _ in capacity}) > 1  # storage made again after drops
+    assert len(set(capacity)) > len({s for s, _ in capacity})  # and doubled when full
+    for m, snap in views:  # no later growth wrote into an earlier view's rows
+        for name, arr in snap.items():
+            np.testing.assert_array_equal(getattr(m.arrays, name), arr, err_msg=name)
+    # a view grown again after a later view grew from it: into a copy, the later view keeps its rows
+    tree = PagedTree(parse_manifest(paged_store.read_manifest(), "root", lazy_payloads=True))
+    _ = tree.manifest.arrays
+    head = next(iter(tree.pending))
+    tree.add_page(head, paged_store.payloads[tree.entry(head).file])
+    v1 = tree.manifest
+    for head in list(tree.pending)[:3]:
+        tree.add_page(head, paged_store.payloads[tree.entry(head).file])
+    v2 = tree.manifest
+    assert v2.arrays.__dict__["_growing"] is v1.arrays.__dict__["_growing"]  # grown in place
+    later = _snapshot(v2.arrays)
+    changed = [i for i, t in enumerate(v1.tiles) if t.children != v2.tiles[i].children]
+    again = grown_arrays(v1.arrays, v2.tiles, v2.index_of, changed)
+    _same_arrays(again, v2.arrays)
+    for name, arr in later.items():
+        np.testing.assert_array_equal(getattr(v2.arrays, name), arr, err_msg=name)
+    # two trees grown from one view: the second grows into a copy, the first keeps its rows
+    full = read_manifest(paged_store)
+    assert full.tiles[0].id == full.root
+    root_only = [replace(full.tiles[0], children=())]
+    base = tile_arrays(root_only, {full.root: 0})
+    idx = {t.id: i for i, t in enumerate(full.tiles)}
+    one = grown_arrays(base, full.tiles, idx, [0])
+    first = _snapshot(one)
+    two = grown_arrays(base, full.tiles, idx, [0])
+    _same_arrays(one, tile_arrays(full.tiles, idx))
+    _same_arrays(two, one)
+    for name, arr in first.items():
+        np.testing.assert_array_equal(getattr(one, name), arr, err_msg=name)
 
 
 def test_the_paged_trees_arrays_grow_and_shrink_as_a_rebuild_makes_them(paged_store):

@@ -82,7 +82,8 @@ def test_preset_steps_follow_the_preset_and_are_dropped_with_an_override():
     assert set(preset_steps("medium-low-12bit")) == {"position", "scale", "color"}
     assert preset_steps("medium-low-12bit", {"position": "norm11"}).keys() == {"scale", "color"}
     assert preset_steps("medium-low-12bit", {"position": "norm16x4"}).keys() == {"position", "scale", "color"}
-    assert preset_steps("medium") == {}
+    assert preset_steps("medium") == {"scale": TileStep((1023.0,) * 3, shared=3)}
+    assert preset_steps("medium", {"scale": "norm565"}) == {}
     assert PRESET_STEPS["medium-low-12bit"]["color"].levels == (255.0, 255.0, 255.0, 55.0)
     # every preset with tile steps puts them on integer formats of the planes they name
     for preset, steps in PRESET_STEPS.items():
@@ -342,3 +343,55 @@ def test_low_plus_9bit_sh5_codes_sh_on_one_zero_anchored_step_per_band(tmp_path)
             assert np.abs(d.sh_rest[stored.sh_rest == 0]).max(initial=0.0) < 1e-3
     assert sizes["low-plus-9bit-sh5"] < 0.9 * sizes["low-plus-9bit-sh6"], sizes  # measured 46,953 and 54,256 B
     assert max(errors.values()) < 0.03, errors  # SH RMS error, measured 0.0198 (sh6) and 0.0203 (sh5)
+
+
+def test_medium_low_9bit_has_low_plus_9bits_scale_and_opacity_steps_and_per_chunk_positions(tmp_path):
+    """medium-low-9bit (issue 32, chosen on guitar): low-plus-9bit's scale and colour steps, its own per-chunk norm9x3
+    positions and fine codebook; the decoded log scales within the 200-level step of the median chunk, opacities
+    within the 55-level one, positions on each chunk's 511-level grid."""
+    steps = preset_steps("medium-low-9bit")
+    assert steps == {k: PRESET_STEPS["low-plus-9bit"][k] for k in ("scale", "color")}
+    assert PRESETS["medium-low-9bit"]["position"] == "norm9x3" and PRESET_SH_CODEBOOK["medium-low-9bit"] == "fine"
+    g = read_gaussians(real("fruit_drops_sh3.ply")).subset(np.arange(1800))
+    m = encode_gaussians(g, tmp_path / "s", EncodeOptions(preset="medium-low-9bit", lod=False))
+    assert m.version == (1, 3) and m.formats["position"] == "norm9x3" and m.uses_codebook
+    dec = decode_scene(tmp_path / "s")
+    dist = np.abs(dec.positions[:, None, :] - g.positions[None, :, :]).max(axis=2)
+    nearest = dist.argmin(axis=1)
+    extent = float((g.positions.max(axis=0) - g.positions.min(axis=0)).max())
+    assert 0 < np.abs(dec.positions - g.positions[nearest]).max() <= extent / 511
+    # scales and opacity: on 9-bit positions a decoded splat's nearest input may be another one, so they are checked
+    # on the same preset with exact positions (the override drops only the position format; the steps stay)
+    encode_gaussians(g, tmp_path / "p", EncodeOptions(preset="medium-low-9bit", lod=False,
+                                                      overrides={"position": "f32x4"}))
+    dec = decode_scene(tmp_path / "p")
+    nearest = np.abs(dec.positions[:, None, :] - g.positions[None, :, :]).max(axis=2).argmin(axis=1)
+    assert np.abs(dec.positions - g.positions[nearest]).max() <= extent * 1e-6  # f32x4: t in the chunk's range
+    err_scale = np.abs(dec.log_scales - g.log_scales[nearest]).max()
+    assert 0 < err_scale <= float(g.log_scales.max() - g.log_scales.min()) / 200
+    err_opacity = np.abs(dec.opacities - g.opacities[nearest]).max()
+    assert 0 < err_opacity <= float(g.opacities.max() - g.opacities.min()) / 55
+
+
+def test_medium_scales_lie_on_one_1023_level_tile_step(tmp_path, monkeypatch):
+    """medium (issue 32, chosen on guitar): log scales on one step per tile over the three axes (the median
+    chunk's extent / 1023), everything else per chunk: scale error within that step, more on average than on the
+    per-chunk grids of before (11/10/11 bits), for fewer bytes; the scene stays 1.2. Scales are compared on encodes
+    with exact positions (the override drops only the position format), so that each decoded splat is matched to
+    its own input splat."""
+    g = read_gaussians(real("fruit_drops_sh3.ply")).subset(np.arange(1800))
+    m = encode_gaussians(g, tmp_path / "s", EncodeOptions(preset="medium", lod=False))
+    assert m.version == (1, 2) and m.formats == PRESETS["medium"]
+
+    def scale_error(out, **kw):
+        encode_gaussians(g, out, EncodeOptions(preset="medium", lod=False, overrides={"position": "f32x4"}, **kw))
+        dec = decode_scene(out)
+        nearest = np.abs(dec.positions[:, None, :] - g.positions[None, :, :]).max(axis=2).argmin(axis=1)
+        return np.abs(dec.log_scales - g.log_scales[nearest])
+
+    err = scale_error(tmp_path / "p")
+    assert 0 < err.max() <= float(g.log_scales.max() - g.log_scales.min()) / 1023
+    monkeypatch.setitem(PRESET_STEPS, "medium", {})  # medium before issue 32: scales on per-chunk grids
+    per_chunk = encode_gaussians(g, tmp_path / "c", EncodeOptions(preset="medium", lod=False))
+    assert per_chunk.formats == m.formats and m.bytes_on_disk < per_chunk.bytes_on_disk
+    assert scale_error(tmp_path / "pc").mean() < err.mean()  # x and z had 2047 levels of their own chunk

@@ -272,8 +272,6 @@ class StreamEngine:
         self.arrays = m.arrays
         self.root = m.index_of[m.root]
         self.ids = self.arrays.ids
-        self._parent: list[int] = self.arrays.parent.tolist()  # plain lists: the per-frame loops index them often
-        self._level: list[int] = self.arrays.level.tolist()
         grow = len(m.tiles) - len(self.resident)
         # the new tiles' only (a page's tiles are appended; eviction takes the kept rows before adopting)
         chunks = np.array([t.chunks for t in m.tiles[len(self.resident):]], np.int64)
@@ -287,7 +285,7 @@ class StreamEngine:
     def _add_pages(self) -> None:
         """Pages parsed (on the decode workers: a page of a large tree is milliseconds of Python the frame loop
         would otherwise spend): the tree grows below their tiles, and this frame selects over the grown tree
-        (adopted once for all of them: the arrays are rebuilt over every tile held)."""
+        (adopted once for all of them: the arrays grown by their tiles, whose rows the workers took)."""
         for tile_id, future in [(t, f) for t, f in self._pages_arrived.items() if f.done()]:
             del self._pages_arrived[tile_id]
             try:
@@ -515,7 +513,8 @@ class StreamEngine:
         for key, entry, data in self.fetcher.done():
             if key[1] == PAGE_GROUP:  # parsed on a decode worker, added at a frame's start (_add_pages)
                 if key[0] in self.pages.pending and key[0] not in self._pages_arrived:
-                    self._pages_arrived[key[0]] = self._pool.submit(self.pages.read, key[0], data)
+                    self._pages_arrived[key[0]] = self._pool.submit(self.pages.read, key[0], data,
+                                                                         self._wait_for_loop)
                     self._version += 1  # the wish list leaves it out now
                 continue
             if self._have(key) or key in self._ready or key in self._decoding:

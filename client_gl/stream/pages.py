@@ -11,15 +11,34 @@ per-tile state through the positions it returns.
 """
 from __future__ import annotations
 
-from dataclasses import replace
+from collections.abc import Callable
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from splatstream.format.container import VerifiedPayload, verified_bytes
-from splatstream.format.manifest import Manifest, PageRef, TileEntry, grown_arrays, read_page, taken_arrays
+from splatstream.format.manifest import (
+    Manifest,
+    PageRef,
+    TileEntry,
+    grown_arrays,
+    read_page,
+    taken_arrays,
+    tile_rows,
+)
 
 Key = tuple[int, str]
 PAGE_GROUP = "page"  # the group of a page's fetch key (tile id, "page"): the page below that tile
+
+
+@dataclass(frozen=True)
+class ParsedPage:
+    """A page's tiles as `PagedTree.read` parsed them, and their rows of the tree's arrays (tile_rows), taken there
+    too: reading a tile's payload sizes unpacks its entries, which on the frame loop was most of a page's adoption
+    (BENCHMARKS.md, "Manifest pages")."""
+
+    tiles: list[TileEntry]
+    rows: dict[str, np.ndarray]
 
 
 class PagedTree:
@@ -39,6 +58,7 @@ class PagedTree:
         self._by_id = {t.id: t for t in self._tiles}  # held tiles as the view has them
         self._view_of: Manifest | None = None  # the view, made again when asked for after a change
         self._changed: set[int] = set()  # positions held in the last view whose children have changed since
+        self._rows: list[dict] | None = []  # the rows of the tiles added since the last view (None: take them)
         self._manifest = self._view_of = replace(self.root, tiles=tuple(self._tiles))
 
     @property
@@ -53,8 +73,8 @@ class PagedTree:
             m.__dict__["index_of"] = dict(self._position)  # cached_property values, as Manifest would compute them
             m.__dict__["tile_by_id"] = dict(self._by_id)
             if "arrays" in last.__dict__:
-                m.__dict__["arrays"] = grown_arrays(last.arrays, m.tiles, m.index_of, self._changed)
-            self._changed = set()
+                m.__dict__["arrays"] = grown_arrays(last.arrays, m.tiles, m.index_of, self._changed, self._rows)
+            self._changed, self._rows = set(), []
             self._manifest = self._view_of = m
         return self._view_of
 
@@ -76,20 +96,36 @@ class PagedTree:
                 out.append((tile_id, PAGE_GROUP))
         return out
 
-    def read(self, tile_id: int, data: VerifiedPayload | bytes) -> list[TileEntry]:
-        """A page's tiles, parsed and checked (any thread: it changes nothing here). Its bytes are checked once,
-        like a payload's: a VerifiedPayload of its entry (the fetcher's) as it is, anything else hashed now."""
+    def read(self, tile_id: int, data: VerifiedPayload | bytes,
+             between: Callable[[], object] | None = None) -> ParsedPage:
+        """A page's tiles, parsed and checked, and their rows (any thread: it changes nothing here). Its bytes are
+        checked once, like a payload's: a VerifiedPayload of its entry (the fetcher's) as it is, anything else
+        hashed now. `between`: called before the parse and before the rows (the engine's decode workers wait there
+        for the frame loop's idle time, as between a payload's decode steps: both are Python that would take the
+        interpreter lock from the frame loop)."""
         ref = self.pending[tile_id]
         source = f"{self.source} page {ref.file}"
         raw = verified_bytes(data, ref, source)
-        return read_page(raw, ref, self.root, self._full[tile_id], source, lazy_payloads=True, hashed=True)
+        if between is not None:
+            between()
+        tiles = read_page(raw, ref, self.root, self._full[tile_id], source, lazy_payloads=True, hashed=True)
+        if between is not None:
+            between()
+        return ParsedPage(tiles, tile_rows(tiles))
 
-    def insert(self, tile_id: int, tiles: list[TileEntry]) -> None:
-        """Add a page's tiles (what `read` gave); the view grows when next asked for (`manifest`: once for the
-        pages a frame adds). A page already added changes nothing."""
+    def insert(self, tile_id: int, page: ParsedPage | list[TileEntry]) -> None:
+        """Add a page's tiles (what `read` gave; a plain list of tiles has its rows taken with the view); the view
+        grows when next asked for (`manifest`: once for the pages a frame adds). A page already added changes
+        nothing."""
         ref = self.pending.pop(tile_id, None)
         if ref is None:
             return
+        if isinstance(page, ParsedPage):
+            tiles = page.tiles
+            if self._rows is not None:
+                self._rows.append(page.rows)
+        else:
+            tiles, self._rows = page, None
         at = self._position[tile_id]
         self._tiles[at] = self._by_id[tile_id] = self._full[tile_id]  # its children are known now
         if at < len(self._manifest.tiles):
@@ -155,7 +191,7 @@ class PagedTree:
         m.__dict__["tile_by_id"] = dict(self._by_id)
         if "arrays" in last.__dict__:  # the kept rows taken, not rebuilt from the tiles
             m.__dict__["arrays"] = taken_arrays(last.arrays, keep)
-        self._changed = set()
+        self._changed, self._rows = set(), []
         self._manifest = self._view_of = m
         return keep
 

@@ -31,6 +31,7 @@ from .model import (
     scene_summary,
     taken_arrays,
     tile_arrays,
+    tile_rows,
 )
 from .paging import PagedScene, pack_page, page_heads, read_page, resolve_pages, split_pages
 from .validate import (
@@ -73,7 +74,7 @@ __all__ = [
     "MAX_PAGE_BYTES", "PAGE_FORMAT", "VERSION_1_5",
     "AttributeSize", "Box", "CameraEntry", "LazyPayloads", "LodInfo", "Manifest", "PayloadEntry", "Section",
     "SHCodebookEntry", "TileArrays", "TileEntry", "Vec3", "scene_summary", "grown_arrays", "taken_arrays",
-    "tile_arrays",
+    "tile_arrays", "tile_rows",
     "CHUNK_ORDER_NAMES", "FILTERS_DOC", "MAX_PAYLOAD_RAW_BYTES", "MAX_TILES", "MAX_WASTED_BLOCKS",
     "expected_sections", "filter_element", "filter_for", "manifest_from_dict", "max_blocks", "parse_manifest",
     "CHECKSUM_VERSION", "CHUNK_ORDERS_1_4", "FORMAT_NAME", "FORMAT_VERSION", "FORMATS_1_3", "VERSION_1_3",

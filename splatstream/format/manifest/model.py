@@ -368,8 +368,10 @@ class Manifest:
 
 
 
-def _tile_rows(tiles: Sequence[TileEntry]) -> dict[str, np.ndarray]:
-    """The per-tile arrays of TileArrays but `parent` and `children`, over these tiles."""
+def tile_rows(tiles: Sequence[TileEntry]) -> dict[str, np.ndarray]:
+    """The per-tile arrays of TileArrays but `parent` and `children`, over these tiles. A lazily checked tile's
+    payload entries are unpacked to read their sizes: the streaming client takes a page's rows where it parses the
+    page (a decode worker), so that adopting the page on the frame loop does not unpack them (grown_arrays' `rows`)."""
     n = len(tiles)
     band_bytes = np.zeros((n, MAX_SH_DEGREE), np.int64)
     base_bytes = np.zeros(n, np.int64)
@@ -404,27 +406,95 @@ def tile_arrays(tiles: Sequence[TileEntry], idx: Mapping[int, int]) -> TileArray
         children.append(kids)
         for k in kids:
             parent[k] = i
-    return TileArrays(parent=parent, children=tuple(children), **_tile_rows(tiles))
+    return TileArrays(parent=parent, children=tuple(children), **tile_rows(tiles))
 
 
 def grown_arrays(a: TileArrays, tiles: Sequence[TileEntry], idx: Mapping[int, int],
-                 changed: Iterable[int]) -> TileArrays:
+                 changed: Iterable[int], rows: Sequence[Mapping[str, np.ndarray]] | None = None) -> TileArrays:
     """`a` (the arrays of tiles[:len(a.ids)]) grown by the tiles after them, the tiles at positions `changed`
     (held before) with their children now as in `tiles`: the same arrays as tile_arrays(tiles, idx), in time of
-    the new tiles (a paged tree grown by a page, client_gl/stream/pages.py), not of every tile held."""
+    the new tiles (a paged tree grown by a page, client_gl/stream/pages.py), not of every tile held. `rows`: the
+    new tiles' tile_rows, in parts in their order (each page's, taken where it was parsed), else taken here.
+
+    The numeric arrays are views of storage with spare rows (_GrowingRows), written in place when the tree grows
+    from its last grown arrays (copied into twice the rows when full: amortised), so a page costs its own rows,
+    not a copy of every row held (BENCHMARKS.md, "Manifest pages"). Arrays `a` stay as they were. Only the tuple
+    of children is copied whole (references, not rows)."""
     start = len(a.ids)
     new = tiles[start:]
     children = list(a.children)
-    for t in new:
-        children.append(tuple(idx[c] for c in t.children))
-    parent = np.concatenate([a.parent, np.full(len(new), -1, np.int64)])
+    children += [tuple(idx[c] for c in t.children) for t in new]
+    new_parent = np.full(len(new), -1, np.int64)
+    old_parent: dict[int, int] = {}  # held tiles given a parent (a tree grown other than by pages: not in place)
     for i in [*changed, *range(start, len(tiles))]:
         kids = tuple(idx[c] for c in tiles[i].children)
         children[i] = kids
-        parent[list(kids)] = i
-    rows = _tile_rows(new)
-    grown = {name: np.concatenate([getattr(a, name), rows[name]]) for name in rows}
-    return TileArrays(parent=parent, children=tuple(children), **grown)
+        for k in kids:
+            if k >= start:
+                new_parent[k - start] = i
+            else:
+                old_parent[k] = i
+    parts = [tile_rows(new)] if rows is None else list(rows)
+    added = sum(len(p["ids"]) for p in parts)
+    if added != len(new):
+        raise ValueError(f"rows of {added} tiles for {len(new)} new tiles")
+    store = a.__dict__.get("_growing")
+    if store is None or store.n != start or old_parent:  # not the last grown arrays of their storage: a copy
+        store = _GrowingRows(a, max(_FIRST_ROWS, 2 * len(tiles)))
+        if old_parent:
+            store.buf["parent"][list(old_parent)] = list(old_parent.values())
+    with_parent, at = [], 0
+    for p in parts:
+        with_parent.append({**p, "parent": new_parent[at:at + len(p["ids"])]})
+        at += len(p["ids"])
+    store.append(with_parent)
+    n = store.n
+    out = TileArrays(children=tuple(children), **{name: store.buf[name][:n] for name in ("parent", *_ROW_NAMES)})
+    for name in _DERIVED_ROWS:  # the derived arrays that only grow, kept as views too
+        out.__dict__[name] = store.buf[name][:n]
+    out.__dict__["_growing"] = store
+    return out
+
+
+class _GrowingRows:
+    """The numeric arrays of a TileArrays with spare rows after its `n` rows (grown_arrays). Rows below `n` are
+    never written again, so every TileArrays viewing them stays as it was; the tree grows in place only from the
+    arrays whose length is `n` (the last grown: the streaming client's frame loop grows one chain of views)."""
+
+    def __init__(self, a: TileArrays, capacity: int):
+        self.n = n = len(a.ids)
+        self.buf: dict[str, np.ndarray] = {}
+        for name in ("parent", *_ROW_NAMES, *_DERIVED_ROWS):
+            arr = getattr(a, name)
+            self.buf[name] = np.empty((max(capacity, n), *arr.shape[1:]), arr.dtype)
+            self.buf[name][:n] = arr
+
+    def append(self, parts: list[Mapping[str, np.ndarray]]) -> None:
+        """Rows after the n held (each part: tile_rows' arrays and `parent`), the storage doubled when full."""
+        n, add = self.n, sum(len(p["ids"]) for p in parts)
+        capacity = len(self.buf["ids"])
+        if n + add > capacity:
+            grown = max(2 * capacity, n + add)
+            for name, arr in self.buf.items():
+                bigger = np.empty((grown, *arr.shape[1:]), arr.dtype)
+                bigger[:n] = arr[:n]
+                self.buf[name] = bigger
+        buf = self.buf
+        for p in parts:
+            k = len(p["ids"])
+            for name in ("parent", *_ROW_NAMES):
+                buf[name][n:n + k] = p[name]
+            buf["box_corners"][n:n + k, :3] = p["box_max"]  # TileArrays.box_corners: [max, min]
+            buf["box_corners"][n:n + k, 3:] = p["box_min"]
+            buf["splats_f64"][n:n + k] = p["splats"]
+            n += k
+        self.n = n
+
+
+_ROW_NAMES = ("ids", "level", "splats", "box_min", "box_max", "sphere_center", "sphere_radius", "geometric_error",
+              "base_bytes", "band_bytes", "gpu_bytes")
+_FIRST_ROWS = 64  # rows of a new storage at least (twice the tiles held when it is made)
+_DERIVED_ROWS = ("box_corners", "splats_f64")  # TileArrays' cached arrays that grow row by row with the tree
 
 
 def taken_arrays(a: TileArrays, keep: np.ndarray) -> TileArrays:
@@ -434,10 +504,8 @@ def taken_arrays(a: TileArrays, keep: np.ndarray) -> TileArrays:
     new_of[keep] = np.arange(len(keep))
     new_l = new_of.tolist()
     children = tuple(tuple(new_l[c] for c in a.children[i] if new_l[c] >= 0) for i in keep.tolist())
-    names = ("ids", "level", "splats", "box_min", "box_max", "sphere_center", "sphere_radius", "geometric_error",
-             "base_bytes", "band_bytes", "gpu_bytes")
     return TileArrays(parent=new_of[a.parent[keep]], children=children,
-                      **{name: getattr(a, name)[keep] for name in names})
+                      **{name: getattr(a, name)[keep] for name in _ROW_NAMES})
 
 
 def filter_element(name: str) -> int:
