@@ -16,8 +16,10 @@ median time of one frame's view numbers + selection over the tiles held against 
         manifest bytes and seconds from opening the stream to the first frame that draws the root (engine, fetcher
         and HTTP as `view` runs them, no GL: a pool that counts slots), median of --runs
     PYTHONPATH=. python bench/bench_pages.py --engine --splats 6e6,60e6,250e6 [--frames 300] [--profile]
+            [--numpy-selection]
         # a StreamEngine over the paged tree along a street-level path (pages and payloads arrive --per-frame a
-        # frame, payloads not decoded, a pool that counts): per-frame update times, median, p99, max
+        # frame, payloads not decoded, a pool that counts): per-frame update times, median, p99, max; the compiled
+        # selection (numba, the `fast` extra) unless --numpy-selection
 """
 from __future__ import annotations
 
@@ -37,7 +39,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from client_gl.stream.engine import StreamEngine, StreamOptions, _Ready
+from client_gl.stream.engine import COMPILED_SELECTION, StreamEngine, StreamOptions, _Ready
 from client_gl.stream.fetch import Fetcher
 from client_gl.stream.pages import PagedTree
 from client_gl.stream.selection import SelectionOptions, select, view_numbers
@@ -240,13 +242,21 @@ def tree_memory_mb(held: PagedTree, paged) -> float:
     return used / 1e6
 
 
-def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame: int, profile: bool) -> None:
+def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame: int, profile: bool,
+                compiled: bool = True) -> None:
     """A StreamEngine over the paged tree along a camera flying across the city at street level: per-frame
-    update times (median, p99, max) and, with --profile, where they go."""
+    update times (median, p99, max) and, with --profile, where they go. `compiled`: the compiled selection
+    (selection_jit, waited for before the path, so every frame near the cut uses it), else the numpy path."""
     paged = split_pages(whole, k)
     files = {ref.file: raw for ref, raw in paged.pages}
     engine = _NoDecodeEngine(_PathFetcher(paged.root, files, per_frame), _Slots(),
-                             StreamOptions(SelectionOptions(max_splats=max_splats), upload_bytes_per_frame=1 << 40))
+                             StreamOptions(SelectionOptions(max_splats=max_splats), upload_bytes_per_frame=1 << 40,
+                                           compiled_selection=compiled))
+    if compiled:
+        t0 = time.perf_counter()
+        if COMPILED_SELECTION.wait() is None:
+            raise SystemExit(f"the compiled selection is not available: {COMPILED_SELECTION.error!r}")
+        print(f"compiled selection ready after {time.perf_counter() - t0:.2f} s (numba import, compilation or cache)")
     engine.whole = whole
     side = whole.bounds.max[0]
     prof = cProfile.Profile(time.thread_time) if profile else None  # CPU: the VM is shared
@@ -305,7 +315,8 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
     ts, cs = np.array(times) * 1e3, np.array(cpu) * 1e3
     ws = np.array(wanted_s) * 1e3
     tree_mb = tree_memory_mb(engine.pages, paged)
-    print(f"{whole.splats / 1e6:.0f}M engine path ({frames} frames, {per_frame} payloads/pages a frame): update "
+    print(f"{whole.splats / 1e6:.0f}M engine path ({frames} frames, {per_frame} payloads/pages a frame, "
+          f"{'compiled' if compiled else 'numpy'} selection): update "
           f"median {np.median(ts):.2f} ms, p99 {np.percentile(ts, 99):.2f} ms, max {ts.max():.1f} ms (its thread's "
           f"CPU: median {np.median(cs):.2f}, p99 {np.percentile(cs, 99):.2f}, max {cs.max():.1f} ms); selection's CPU "
           f"(wanted: view numbers, select, bands, keys) median {np.median(ws):.2f} ms, p99 "
@@ -380,12 +391,14 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--per-frame", type=int, default=8, help="--engine: payloads or pages arriving a frame")
     ap.add_argument("--profile", action="store_true", help="--engine: where the update's time goes")
+    ap.add_argument("--numpy-selection", action="store_true",
+                    help="--engine: the numpy selection, not the compiled one (selection_jit, numba)")
     args = ap.parse_args()
     if args.engine:
         base = template(args.sh_degree)
         for n in [int(float(s)) for s in args.splats.split(",")]:
             engine_path(synthetic_tree(n, base), args.default_levels, args.frames, args.max_splats, args.per_frame,
-                        args.profile)
+                        args.profile, not args.numpy_selection)
         return
     if args.repage:
         repage(*args.repage, args.default_levels)

@@ -2,7 +2,9 @@
 one scan in key order) against the whole-tree reference (select over view_numbers) and the heap loop over the same
 tiles (select_near_heap): the same cut, refined set, priorities, splats, cost and budget
 flag, the same draw set and prefetch, on many random views, budgets and trees, paged ones with pages arriving and
-being dropped, whatever tiles it is told to look at first."""
+being dropped, whatever tiles it is told to look at first. Each test runs twice: the numpy path, and the compiled one
+(selection_jit.select_near_compiled, the optional `fast` extra: skipped where numba is not installed), which must
+give the same Selection and the same bits of every number it computed."""
 import gc
 import math
 import random
@@ -15,7 +17,7 @@ import pytest
 from conftest import real
 from test_stream_engine import CountingPool, PagedFetcher, orbit
 
-from client_gl.stream.engine import StreamEngine, StreamOptions
+from client_gl.stream.engine import COMPILED_SELECTION, StreamEngine, StreamOptions
 from client_gl.stream.pages import PagedTree
 from client_gl.stream.selection import (
     PartialView,
@@ -32,6 +34,14 @@ from splatstream.encode import EncodeOptions, encode_in_memory
 from splatstream.format.manifest import parse_manifest, split_pages
 from splatstream.ply import read_gaussians_ply
 from splatstream.store import read_manifest
+
+try:
+    from client_gl.stream.selection_jit import select_near_compiled
+except ImportError:  # numba is an optional extra (`fast`): the compiled half of each test is skipped without it
+    select_near_compiled = None
+
+PATHS = ["numpy", pytest.param("compiled", marks=pytest.mark.skipif(
+    select_near_compiled is None, reason="the compiled selection needs the package numba (extra `fast`)"))]
 
 
 @pytest.fixture(scope="module")
@@ -61,18 +71,24 @@ def random_options(m, rnd: random.Random, cost) -> SelectionOptions:
                             hysteresis=rnd.choice([0.8, 0.5, 1.0]))
 
 
-def check_same(m, cam, opts, previous, near, resident, rnd):
-    """select_near (told to look at `near` first) against select, and draw_set and prefetch with either view."""
+def check_same(m, cam, opts, previous, near, resident, rnd, path="numpy", near_parents=()):
+    """select_near (told to look at `near` first) against select, and draw_set and prefetch with either view; with
+    path "compiled", select_near_compiled (also told to look at the children of `near_parents` first)."""
     a = m.arrays
     root = m.index_of[m.root]
     cost = np.array([t.chunks for t in m.tiles], np.float64) * 4096.0
     full = view_numbers(a, cam, opts)
     want = select(a, full, cost, root, opts, previous, m.lod.reduction)
     part = PartialView(a, cam, opts, m.lod.reduction)
-    got = select_near(a, part, cost, root, opts, previous, near)
+    if path == "compiled":
+        got = select_near_compiled(a, part, cost, root, opts, previous, near, near_parents)
+        assert got == select_near(a, PartialView(a, cam, opts, m.lod.reduction), cost, root, opts, previous, near)
+    else:
+        got = select_near(a, part, cost, root, opts, previous, near)
+        # the heap loop over the same set (select_near_heap), the scan's second reference
+        assert select_near_heap(a, PartialView(a, cam, opts, m.lod.reduction), cost, root, opts, previous,
+                                near) == got
     assert got.cut == want.cut  # the same tiles in the same order
-    # the heap loop over the same set (select_near_heap), the scan's second reference
-    assert select_near_heap(a, PartialView(a, cam, opts, m.lod.reduction), cost, root, opts, previous, near) == got
     assert got.refined == want.refined and got.priority == want.priority
     assert (got.splats, got.cost, got.budget_limited) == (want.splats, want.cost, want.budget_limited)
     known = np.frombuffer(bytes(part.known), np.uint8).astype(bool)
@@ -86,9 +102,10 @@ def check_same(m, cam, opts, previous, near, resident, rnd):
     return got, int(known.sum())
 
 
-def test_select_near_is_the_whole_tree_selection(whole):
+@pytest.mark.parametrize("path", PATHS)
+def test_select_near_is_the_whole_tree_selection(whole, path):
     m = whole
-    rnd = random.Random(1)
+    rnd, other = random.Random(1), random.Random(2)
     cost = np.array([t.chunks for t in m.tiles], np.float64) * 4096.0
     n = len(m.tiles)
     previous, last = frozenset(), ()
@@ -99,14 +116,18 @@ def test_select_near_is_the_whole_tree_selection(whole):
         near = ([k for i in set(previous) | set(last) for k in m.arrays.children[i]] if near_kind == 0 else
                 rnd.sample(range(n), rnd.randrange(n)) if near_kind == 1 else [])
         resident = np.array([rnd.random() < rnd.choice([0.0, 0.3, 0.9]) for _ in range(n)], bool)
+        # the compiled path is also told to look below some tiles first (its own random stream: the same views)
+        parents = (sorted(set(previous) | set(last)) if step % 4 == 0 else
+                   other.sample(range(n), other.randrange(n)) if step % 4 == 1 else [])
         sel, k = check_same(m, cam, opts, previous if rnd.random() < 0.7 else frozenset(
-            rnd.sample(range(n), rnd.randrange(n // 4))), near, resident, rnd)
+            rnd.sample(range(n), rnd.randrange(n // 4))), near, resident, rnd, path, parents)
         previous, last = sel.refined, sel.cut
         looked.append(k)
     assert min(looked) < n  # some views look at part of the tree only
 
 
-def test_select_near_when_keys_fall_below_the_parents(whole):
+@pytest.mark.parametrize("path", PATHS)
+def test_select_near_when_keys_fall_below_the_parents(whole, path):
     """Spheres that do not nest (a child's reaching nearer the eye than its parent's, as on flat city tiles): select's
     heap then pops such a child right after its parent, out of key order; select_near's scan takes it through its
     small heap at the same turn. Shrunk and shifted spheres make many such children; the cut is still select's."""
@@ -126,7 +147,8 @@ def test_select_near_when_keys_fall_below_the_parents(whole):
         cam, opts = random_camera(m, rnd), random_options(m, rnd, cost)
         near = [k for i in set(previous) | set(last) for k in a.children[i]] if step % 2 else []
         resident = np.array([rnd.random() < 0.5 for _ in m.tiles], bool)
-        sel, _ = check_same(m, cam, opts, previous, near, resident, rnd)
+        sel, _ = check_same(m, cam, opts, previous, near, resident, rnd, path,
+                            sorted(previous | set(last)) if step % 4 == 1 else [])
         full = view_numbers(a, cam, opts)
         with np.errstate(divide="ignore"):
             key = a.level * step_key + np.log2(np.maximum(full.distance, 1e-30))
@@ -136,7 +158,8 @@ def test_select_near_when_keys_fall_below_the_parents(whole):
     assert out_of_order > 20  # refinements out of key order: the scan's small heap made them
 
 
-def test_select_near_on_a_paged_tree_with_pages_arriving_and_dropped(whole):
+@pytest.mark.parametrize("path", PATHS)
+def test_select_near_on_a_paged_tree_with_pages_arriving_and_dropped(whole, path):
     paged = split_pages(whole, 2)
     assert len(paged.pages) >= 5
     files = {ref.file: raw for ref, raw in paged.pages}
@@ -152,7 +175,7 @@ def test_select_near_on_a_paged_tree_with_pages_arriving_and_dropped(whole):
         children = m.arrays.children
         near = [k for i in previous | last for k in children[i]]
         resident = np.array([rnd.random() < 0.5 for _ in m.tiles], bool)
-        sel, _ = check_same(m, cam, opts, previous, near, resident, rnd)
+        sel, _ = check_same(m, cam, opts, previous, near, resident, rnd, path, sorted(previous | last))
         previous, last = sel.refined, set(sel.cut)
         # pages arriving: some the cut reaches, some anywhere; some dropped again
         full = view_numbers(m.arrays, cam, opts)
@@ -219,7 +242,8 @@ def paged_store():
 
 def test_the_engine_selects_near_the_cut_as_over_every_tile(paged_store):
     """The engine with the selection near the cut from the first tile (select_near_from 0) and over every tile held
-    (never near): the same selections, draw sets and fetches frame by frame, with pages read and dropped."""
+    (never near), and near the cut compiled where numba is installed: the same selections, draw sets and fetches
+    frame by frame, with pages read and dropped."""
     whole = read_manifest(paged_store)
     root_tiles = len(parse_manifest(paged_store.read_manifest(), "root").tiles)
     opts = StreamOptions(SelectionOptions(max_sse=1.0, band_area_share=(0.95, 0.8, 0.6)),
@@ -234,9 +258,14 @@ def test_the_engine_selects_near_the_cut_as_over_every_tile(paged_store):
     cams = [orbit(whole, 2.5, 0.3), outward(0.3), outward(0.3 + np.pi), orbit(whole, 0.8, 1.5), outward(0.3),
             orbit(whole, 0.6, 3.0), outward(2.0), orbit(whole, 3.0, 2.0)]
     runs = []
-    for near_from in (0, 1 << 30):
+    ways = [(0, False), (1 << 30, False)]
+    if select_near_compiled is not None:  # and compiled, ready from the first frame (else the numpy path's frames)
+        assert COMPILED_SELECTION.wait() is not None, COMPILED_SELECTION.error
+        ways.append((0, True))
+    for near_from, compiled in ways:
         fetcher = PagedFetcher(paged_store)
-        engine = StreamEngine(fetcher, CountingPool(26), replace(opts, select_near_from=near_from))
+        engine = StreamEngine(fetcher, CountingPool(26), replace(opts, select_near_from=near_from,
+                                                                 compiled_selection=compiled))
         engine._pool.shutdown()
         engine._pool = Inline()  # decodes and page parses done when asked for: the frames do not depend on timing
         frames = []
@@ -246,5 +275,5 @@ def test_the_engine_selects_near_the_cut_as_over_every_tile(paged_store):
                 frames.append((u.draw, u.selection.cut, u.selection.refined, u.converged))
         runs.append((frames, fetcher.fetched, engine.pages.pages_read, engine.pages.evicted))
         engine.close()
-    assert runs[0] == runs[1]
+    assert all(run == runs[0] for run in runs[1:])
     assert runs[0][2] > 3 and runs[0][3] > 0  # pages read and dropped on the way

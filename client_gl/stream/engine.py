@@ -119,6 +119,53 @@ class StreamOptions:
     # tiles near the cut (interleaved on the 2-core VM: 1,536 tiles held 1.5 against 2.0 ms, 6,548 5.1 against
     # 5.1, 20,402 10.6 against 6.6; BENCHMARKS.md, "Manifest pages").
     select_near_from: int = 4096
+    # The selection near the cut compiled (selection_jit, numba: the optional extra `fast`), the same cut as the
+    # numpy path in a fraction of its time (BENCHMARKS.md, "Manifest pages"). Its kernels are compiled or loaded
+    # from numba's cache on a worker thread from the first frame that selects near the cut; the numpy path runs
+    # until they are ready, and always where numba is not installed. False: the numpy path always.
+    compiled_selection: bool = True
+
+
+class CompiledSelection:
+    """selection_jit.select_near_compiled once its kernels are ready: `get` starts their compilation (or their
+    loading from numba's cache) on a worker thread the first time it is asked and answers None until it is done, so
+    that no frame waits for numba (importing it takes 0.3-0.6 s, compiling the kernels seconds: BENCHMARKS.md,
+    "Manifest pages"). None for good where numba is not installed. One per process: every engine shares it."""
+
+    def __init__(self) -> None:
+        self._fn = None
+        self._thread: threading.Thread | None = None
+        self._lock = threading.Lock()
+        self.error: BaseException | None = None  # why it is not available (numba missing, a failed compilation)
+
+    def get(self):
+        fn = self._fn
+        if fn is None and self._thread is None:
+            with self._lock:
+                if self._thread is None:
+                    self._thread = threading.Thread(target=self._load, name="splatstream-selection-jit", daemon=True)
+                    self._thread.start()
+        return fn
+
+    def wait(self, timeout: float | None = None):
+        """Start it if not started, wait until it is ready or has failed: the function or None (benchmarks, tests)."""
+        self.get()
+        assert self._thread is not None
+        self._thread.join(timeout)
+        return self._fn
+
+    def _load(self) -> None:
+        try:
+            # imported here: numba is an optional extra, and its import is what this thread keeps off the frames
+            from . import selection_jit
+            selection_jit.warm_up()
+        except Exception as exc:  # ImportError without numba; anything else leaves the numpy path, which is exact
+            self.error = exc
+            return
+        self._fn = selection_jit.select_near_compiled
+
+
+COMPILED_SELECTION = CompiledSelection()
 
 
 @dataclass
@@ -377,9 +424,15 @@ class StreamEngine:
         view: PartialView | TileView
         if len(self.resident) >= self.options.select_near_from:
             view = PartialView(a, cam, opts, self.manifest.lod.reduction)
-            children = a.children
-            near = [k for i in self.refined for k in children[i]] + [k for i in self._last_cut for k in children[i]]
-            sel = select_near(a, view, self.cost, self.root, sel_opts, self.refined, near)
+            compiled = COMPILED_SELECTION.get() if self.options.compiled_selection else None
+            if compiled is not None:  # it takes the tiles whose children to look at first, and finds them itself
+                sel = compiled(a, view, self.cost, self.root, sel_opts, self.refined,
+                               near_parents=[*self.refined, *self._last_cut])
+            else:
+                children = a.children
+                near = [k for i in self.refined for k in children[i]] + [k for i in self._last_cut
+                                                                         for k in children[i]]
+                sel = select_near(a, view, self.cost, self.root, sel_opts, self.refined, near)
         else:
             view = view_numbers(a, cam, opts)
             sel = select(a, view, self.cost, self.root, sel_opts, self.refined, self.manifest.lod.reduction)

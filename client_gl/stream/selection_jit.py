@@ -1,0 +1,372 @@
+"""select_near compiled with numba (the optional extra `splatstream[fast]`): the same cut as selection.select_near
+and selection.select, bit for bit, in a fraction of the time (format_spec/client.md 1.2; BENCHMARKS.md, "Manifest
+pages").
+
+selection.select's greedy loop, run as it is written (a queue of candidates by refinement key, then position),
+needs the numbers of the root and of the children of every tile it takes from the queue, nothing else. Here that
+loop and the per-tile numbers (frustum test, sse, projected radius and area, distance: the same operations in the
+same order as selection._numbers, so the same bits) are compiled kernels over the tree's arrays, and a tile's
+numbers are computed when the loop first needs them: before it takes a tile whose children have none, the children
+of every tile in its queue that lack them are computed in one pass. The one thing left to numpy is the refinement
+key's log2: numpy's vectorised log2 and the C library's differ in the last bit for about 1 value in 2,000 (438 of
+10^6 here), and the keys order the loop and are the cut's priorities, so a key is numpy's, computed for the new
+candidates of each pass. The loop pops (key, position) pairs, all distinct, so any correct queue pops them in the
+order of select's heapq.
+
+The kernels compile on first use or load from numba's cache (cache=True); `warm_up` calls each once on a tiny tree
+with the argument types of a real call (the wrapper passes contiguous arrays of fixed dtypes), so that a frame never
+compiles. The engine runs it on a worker thread and uses the numpy path until it is done (engine.CompiledSelection).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import njit
+
+from client_gl.stream.selection import (
+    INF,
+    PartialView,
+    Selection,
+    SelectionOptions,
+    _split,
+    select_near_heap,
+)
+from splatstream.camera import Camera
+from splatstream.format.manifest import TileArrays
+
+_JIT = dict(cache=True, nogil=True, error_model="numpy")  # x/0 gives inf or nan as numpy's does, never an exception
+
+
+@njit(**_JIT)
+def _child_csr(parent, out):
+    """Each tile's children as a slice of one array: out[:n + 1] the starts, out[n + 1:] the children (each tile's
+    in position order)."""
+    n = parent.shape[0]
+    first = out[:n + 1]
+    first[:] = 0
+    for i in range(n):
+        p = parent[i]
+        if p >= 0:
+            first[p + 1] += 1
+    for i in range(n):
+        first[i + 1] += first[i]
+    kids = out[n + 1:]
+    fill = first[:n].copy()
+    for i in range(n):
+        p = parent[i]
+        if p >= 0:
+            kids[fill[p]] = i
+            fill[p] += 1
+
+
+@njit(inline="always")
+def _clip(x, hi):
+    """np.clip(x, 0, hi) of one float (NaN stays NaN, as numpy's)."""
+    if x != x:
+        return x
+    if x < 0.0:
+        return 0.0
+    if x > hi:
+        return hi
+    return x
+
+
+@njit(inline="always")
+def _tile_numbers(i, g, known, sse, visible, radius_px, area_px, distance, cand):
+    """selection._numbers of tile i, operation for operation (elementwise there, so the same bits), and whether it
+    is a candidate (select's test: it has children, is visible, and its sse is above its threshold)."""
+    cam, center, radius, err, corners, plane_d, split, first, was_refined, high, low = g
+    rx = center[i, 0] - cam[0]
+    ry = center[i, 1] - cam[1]
+    rz = center[i, 2] - cam[2]
+    focal = cam[12]
+    centre_dist = math.sqrt(rx * rx + ry * ry + rz * rz)
+    dist = centre_dist - radius[i]
+    ahead = dist > 0
+    vis = True
+    for p in range(plane_d.shape[0]):
+        s = plane_d[p] + corners[i, 0] * split[p, 0]
+        for k in range(1, 6):
+            s = s + corners[i, k] * split[p, k]
+        if not s >= 0:
+            vis = False
+    depth = rx * cam[9] + ry * cam[10] + rz * cam[11]
+    if ahead:
+        e = err[i] * focal / dist
+        rp = radius[i] * focal / (centre_dist if (centre_dist >= 1e-12 or centre_dist != centre_dist) else 1e-12)
+        r = rp
+    else:
+        e = INF
+        rp = INF
+        r = 0.0
+    u = focal * (rx * cam[3] + ry * cam[4] + rz * cam[5]) / depth + cam[15]
+    v = -focal * (rx * cam[6] + ry * cam[7] + rz * cam[8]) / depth + cam[16]
+    w = _clip(u + r, cam[13]) - _clip(u - r, cam[13])
+    h = _clip(v + r, cam[14]) - _clip(v - r, cam[14])
+    area = 0.0
+    if depth > 0:
+        area = w * h
+        if area != area:  # np.nan_to_num
+            area = 0.0
+        elif area == INF:
+            area = 1.7976931348623157e308
+        elif area == -INF:
+            area = -1.7976931348623157e308
+    if not ahead:
+        area = cam[17]  # the eye inside the sphere: the whole image
+    if not vis:
+        area = 0.0
+    sse[i] = e
+    visible[i] = vis
+    radius_px[i] = rp
+    area_px[i] = area
+    distance[i] = dist
+    known[i] = 1
+    threshold = low if was_refined[i] else high
+    cand[i] = 1 if (first[i + 1] > first[i] and vis and e > threshold) else 0
+
+
+@njit(**_JIT)
+def _seed(tiles, parents_from, g, kids, known, sse, visible, radius_px, area_px, distance, cand, pending):
+    """The numbers of tiles[:parents_from] and of the children of tiles[parents_from:], each tile once: the new
+    candidates into `pending` (their keys are numpy's), their count returned."""
+    first = g[7]
+    m = 0
+    for t in range(tiles.shape[0]):
+        if t < parents_from:
+            lo, hi = t, t + 1
+        else:
+            lo, hi = first[tiles[t]], first[tiles[t] + 1]
+        for q in range(lo, hi):
+            i = tiles[q] if t < parents_from else kids[q]
+            if known[i]:
+                continue
+            _tile_numbers(i, g, known, sse, visible, radius_px, area_px, distance, cand)
+            if cand[i]:
+                pending[m] = i
+                m += 1
+    return m
+
+
+@njit(inline="always")
+def _less(ka, ta, kb, tb):
+    return ka < kb or (ka == kb and ta < tb)
+
+
+@njit(**_JIT)
+def _refine(g, kids, splats_of, cost, prio, known, sse, visible, radius_px, area_px, distance, cand, heap_k, heap_t,
+            st, total_a, refd, reflist, max_splats, budget, pending):
+    """select's greedy loop from where it stopped (st: queue size, splats, budget flag, refined count; total_a: the
+    cost). Returns 0 when the queue is empty, m > 0 when it stopped to have the keys of m new candidates computed
+    (pending[:m]; the queue's top is taken again then), -1 at a NaN key (select's heapq orders those its own way:
+    the caller falls back to the numpy path). max_splats < 0, budget NaN: no limit."""
+    first = g[7]
+    size, splats, limited, nref = st[0], st[1], st[2], st[3]
+    total = total_a[0]
+    status = 0
+    while size > 0:
+        i = heap_t[0]
+        lacking = False
+        for q in range(first[i], first[i + 1]):
+            if not known[kids[q]]:
+                lacking = True
+                break
+        if lacking:  # the children of every queued tile lacking numbers, in one pass
+            m = 0
+            for h in range(size):
+                t = heap_t[h]
+                for q in range(first[t], first[t + 1]):
+                    c = kids[q]
+                    if not known[c]:
+                        _tile_numbers(c, g, known, sse, visible, radius_px, area_px, distance, cand)
+                        if cand[c]:
+                            pending[m] = c
+                            m += 1
+            if m:
+                status = m
+                break
+        size -= 1  # pop: the last entry sifted down from the top
+        if size > 0:
+            lk, lt = heap_k[size], heap_t[size]
+            h = 0
+            while True:
+                c = 2 * h + 1
+                if c >= size:
+                    break
+                if c + 1 < size and _less(heap_k[c + 1], heap_t[c + 1], heap_k[c], heap_t[c]):
+                    c += 1
+                if _less(heap_k[c], heap_t[c], lk, lt):
+                    heap_k[h], heap_t[h] = heap_k[c], heap_t[c]
+                    h = c
+                else:
+                    break
+            heap_k[h], heap_t[h] = lk, lt
+        kid_splats = 0
+        kid_cost = 0.0  # whole numbers in float64: exact in any order, so select's bincount sums
+        for q in range(first[i], first[i + 1]):
+            c = kids[q]
+            if visible[c]:
+                kid_splats += splats_of[c]
+                kid_cost += cost[c]
+        new_splats = splats - splats_of[i] + kid_splats
+        new_total = total - cost[i] + kid_cost
+        if max_splats >= 0 and new_splats > max_splats and new_splats > splats:
+            limited = 1
+            continue
+        if budget == budget and new_total > budget and new_total > total:
+            limited = 1
+            continue
+        refd[i] = 1
+        reflist[nref] = i
+        nref += 1
+        splats, total = new_splats, new_total
+        for q in range(first[i], first[i + 1]):
+            c = kids[q]
+            if cand[c]:  # candidates are visible
+                k = prio[c]
+                if k != k:
+                    status = -1
+                    break
+                h = size  # push: sifted up
+                size += 1
+                while h > 0:
+                    p = (h - 1) // 2
+                    if _less(k, c, heap_k[p], heap_t[p]):
+                        heap_k[h], heap_t[h] = heap_k[p], heap_t[p]
+                        h = p
+                    else:
+                        break
+                heap_k[h], heap_t[h] = k, c
+        if status < 0:
+            break
+    st[0], st[1], st[2], st[3] = size, splats, limited, nref
+    total_a[0] = total
+    return status
+
+
+@njit(**_JIT)
+def _cut(first, kids, visible, refd, reflist, nref, prio, root, out_t, out_p):
+    """The cut: the visible children of refined tiles that were not refined themselves (priority: minus the
+    parent's key), and the root unless refined (inf). Returns its size."""
+    m = 0
+    for r in range(nref):
+        i = reflist[r]
+        for q in range(first[i], first[i + 1]):
+            c = kids[q]
+            if visible[c] and not refd[c]:
+                out_t[m] = c
+                out_p[m] = -prio[i]
+                m += 1
+    if not refd[root]:
+        out_t[m] = root
+        out_p[m] = INF
+        m += 1
+    return m
+
+
+_csr_of: tuple = (None, None)  # (the TileArrays, its children as (starts, children)): recomputed when the tree grows
+
+
+def _children(a: TileArrays) -> tuple[np.ndarray, np.ndarray]:
+    held, csr = _csr_of
+    if held is not a:
+        n = len(a.parent)
+        out = np.empty(2 * n + 1, np.int64)
+        _child_csr(np.ascontiguousarray(a.parent, np.int64), out)
+        csr = (out[:n + 1], out[n + 1:])
+        globals()["_csr_of"] = (a, csr)
+    return csr
+
+
+def _f64(x) -> np.ndarray:
+    return np.ascontiguousarray(x, np.float64)
+
+
+def select_near_compiled(a: TileArrays, view: PartialView, cost: np.ndarray, root: int, opts: SelectionOptions,
+                         previous_refined: frozenset[int] = frozenset(), near=(), near_parents=()) -> Selection:
+    """selection.select_near's answer (the same Selection), compiled. `near`: tiles to compute the numbers of first,
+    as select_near's; `near_parents`: tiles whose children to compute first (the engine gives the last frame's
+    refined and cut tiles). Neither changes the answer, only how many passes it takes."""
+    first, kids = _children(a)
+    n = len(a.parent)
+    was = np.zeros(n, np.bool_)
+    if previous_refined:
+        was[np.fromiter(previous_refined, np.intp, len(previous_refined))] = True
+    cam, basis, planes = view.cam, view._basis, view._planes
+    eye, right, up, forward = basis
+    focal = cam.height / (2.0 * cam.tan_half_fov_y)
+    camv = np.array([*eye, *right, *up, *forward, focal, cam.width, cam.height, cam.width / 2.0, cam.height / 2.0,
+                     float(cam.width * cam.height)], np.float64)
+    high = float(opts.max_sse)
+    g = (camv, _f64(a.sphere_center), _f64(a.sphere_radius), _f64(a.geometric_error), _f64(a.box_corners),
+         _f64(planes[:, 3]), _f64(_split(planes)), first, was, high, high * opts.hysteresis)
+    known, sse, visible, radius_px, area_px, distance = (view.known, view.sse, view.visible, view.radius_px,
+                                                         view.area_px, view.distance)
+    cand = np.zeros(n, np.uint8)
+    prio = np.empty(n)
+    pending = np.empty(n, np.int64)
+    direct = np.asarray(near, np.int64)
+    tiles = np.concatenate([[root], direct, np.asarray(near_parents, np.int64)]).astype(np.int64)
+    before = int(np.count_nonzero(known))
+    level, step = a.level, view.level_step
+
+    def keys(m: int) -> None:  # the new candidates' keys, as _NearSet.add computes them (numpy's log2)
+        at = pending[:m]
+        with np.errstate(divide="ignore"):
+            key = level[at] * step + np.log2(np.maximum(distance[at], 1e-30))
+        prio[at] = np.where(np.isfinite(sse[at]), key, -INF)
+
+    m = _seed(tiles, 1 + len(direct), g, kids, known, sse, visible, radius_px, area_px, distance, cand, pending)
+    keys(m)
+    heap_k, heap_t = np.empty(n), np.empty(n, np.int64)
+    splats_of = np.ascontiguousarray(a.splats, np.int64)
+    cost = _f64(cost)
+    st = np.array([0, splats_of[root], 0, 0], np.int64)
+    total = np.array([cost[root]], np.float64)
+    if cand[root]:
+        if prio[root] != prio[root]:
+            return select_near_heap(a, view, cost, root, opts, previous_refined, near)
+        heap_k[0], heap_t[0], st[0] = prio[root], root, 1
+    refd, reflist = np.zeros(n, np.uint8), np.empty(n, np.int64)
+    max_splats = -1 if opts.max_splats is None else int(opts.max_splats)
+    budget = math.nan if opts.budget is None else float(opts.budget)
+    while True:
+        m = _refine(g, kids, splats_of, cost, prio, known, sse, visible, radius_px, area_px, distance, cand, heap_k,
+                    heap_t, st, total, refd, reflist, max_splats, budget, pending)
+        if m <= 0:
+            break
+        keys(m)
+    view.looked_at += int(np.count_nonzero(known)) - before
+    if m < 0:
+        return select_near_heap(a, view, cost, root, opts, previous_refined, near)
+    out_t, out_p = np.empty(n, np.int64), np.empty(n)
+    c = _cut(first, kids, visible, refd, reflist, int(st[3]), prio, root, out_t, out_p)
+    ct, pri = out_t[:c], out_p[:c]
+    rank = np.lexsort((ct, distance[ct], -pri))
+    cut_sorted = tuple(ct[rank].tolist())
+    return Selection(cut_sorted, frozenset(reflist[:st[3]].tolist()),
+                     dict(zip(cut_sorted, pri[rank].tolist(), strict=True)), int(st[1]), float(total[0]),
+                     bool(st[2]))
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) every kernel with a real call's argument types, on a tree of three tiles."""
+    parent = np.array([-1, 0, 0], np.int64)
+    centre = np.array([[0.0, 0.0, 0.0], [-0.5, 0.0, 0.0], [0.5, 0.0, 0.0]])
+    box_min, box_max = centre - 0.5, centre + 0.5
+    a = _Tiny(parent, np.array([0, 1, 1], np.int64), np.array([100, 100, 100], np.int64), centre,
+              np.array([0.9, 0.5, 0.5]), np.array([1.0, 0.0, 0.0]), np.concatenate([box_max, box_min], axis=1))
+    cam = Camera((0.0, -5.0, 0.0), (0.0, 0.0, 0.0), (0.0, 0.0, 1.0), 60.0, 64, 48, near=0.01)
+    view = PartialView(a, cam, SelectionOptions())
+    sel = select_near_compiled(a, view, np.array([1.0, 1.0, 1.0]), 0, SelectionOptions(max_splats=1000, budget=9.0),
+                               frozenset({0}), [1], [0])
+    assert sel.refined == frozenset({0}), sel
+
+
+class _Tiny:
+    """The few TileArrays fields the compiled selection and PartialView read (warm_up's tree)."""
+
+    def __init__(self, parent, level, splats, centre, radius, err, corners):
+        self.parent, self.level, self.splats, self.sphere_center = parent, level, splats, centre
+        self.sphere_radius, self.geometric_error, self.box_corners = radius, err, corners
