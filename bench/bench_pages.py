@@ -17,6 +17,8 @@ median time of one frame's view numbers + selection over the tiles held against 
         and HTTP as `view` runs them, no GL: a pool that counts slots), median of --runs
     PYTHONPATH=. python bench/bench_pages.py --engine --splats 6e6,60e6,250e6 [--frames 300] [--profile]
             [--numpy-selection]
+    PYTHONPATH=. python bench/bench_pages.py --jit-cost [--runs 7]   # the compiled selection's cost before its first
+        # use: numba's import, then its kernels compiled (the first run, an empty cache) or loaded (the others)
         # a StreamEngine over the paged tree along a street-level path (pages and payloads arrive --per-frame a
         # frame, payloads not decoded, a pool that counts): per-frame update times, median, p99, max; the compiled
         # selection (numba, the `fast` extra) unless --numpy-selection
@@ -26,12 +28,15 @@ from __future__ import annotations
 import argparse
 import cProfile
 import gc
+import json
 import math
 import os
 import pstats
 import random
 import statistics
+import subprocess
 import sys
+import tempfile
 import time
 import tracemalloc
 from dataclasses import replace
@@ -39,6 +44,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from client_gl.stream import engine as engine_module
 from client_gl.stream.engine import COMPILED_SELECTION, StreamEngine, StreamOptions, _Ready
 from client_gl.stream.fetch import Fetcher
 from client_gl.stream.pages import PagedTree
@@ -281,6 +287,21 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
         looked.append(getattr(out[0], "looked_at", len(engine.manifest.tiles)))
         return out
     engine.wanted = timed_wanted
+    select_s: list[float] = []  # the selection's function alone (select_near, compiled or numpy; select)
+
+    def timing(fn):
+        def timed_select(*args, **kw):
+            t0 = time.thread_time()
+            out = fn(*args, **kw)
+            select_s.append(time.thread_time() - t0)
+            return out
+        return timed_select
+    patched = {name: getattr(engine_module, name) for name in ("select", "select_near")}
+    for name, fn in patched.items():
+        setattr(engine_module, name, timing(fn))
+    compiled_fn = COMPILED_SELECTION._fn
+    if compiled_fn is not None:
+        COMPILED_SELECTION._fn = timing(compiled_fn)
 
     def on_gc(phase: str, info: dict) -> None:
         if info["generation"] == 2:
@@ -312,6 +333,10 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
         gc.callbacks.remove(on_gc)
         gc.unfreeze()
         engine.close()
+        for name, fn in patched.items():
+            setattr(engine_module, name, fn)
+        if compiled_fn is not None:
+            COMPILED_SELECTION._fn = compiled_fn
     ts, cs = np.array(times) * 1e3, np.array(cpu) * 1e3
     ws = np.array(wanted_s) * 1e3
     tree_mb = tree_memory_mb(engine.pages, paged)
@@ -320,7 +345,9 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
           f"median {np.median(ts):.2f} ms, p99 {np.percentile(ts, 99):.2f} ms, max {ts.max():.1f} ms (its thread's "
           f"CPU: median {np.median(cs):.2f}, p99 {np.percentile(cs, 99):.2f}, max {cs.max():.1f} ms); selection's CPU "
           f"(wanted: view numbers, select, bands, keys) median {np.median(ws):.2f} ms, p99 "
-          f"{np.percentile(ws, 99):.2f} ms over {len(ws)} selections; tiles looked at a selection median "
+          f"{np.percentile(ws, 99):.2f} ms over {len(ws)} selections, of which the cut's function (select_near or "
+          f"select) median {np.median(select_s) * 1e3:.2f} ms, p99 {np.percentile(select_s, 99) * 1e3:.2f} ms; "
+          f"tiles looked at a selection median "
           f"{int(np.median(looked)) if looked else 0}, max {max(looked, default=0)}; tiles held "
           f"{len(engine.manifest.tiles)}, pages read {engine.pages.pages_read}, evicted {engine.pages.evicted}; "
           f"{len(full_passes)} full collections ({sum(full_passes) * 1e3:.1f} ms in all, longest "
@@ -333,6 +360,33 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
     if prof is not None:
         pstats.Stats(prof).sort_stats("tottime").print_stats(30)
         pstats.Stats(prof).sort_stats("cumulative").print_stats("selection.py|engine.py", 25)
+
+
+_JIT_COST = """
+import json, time
+w, c = time.perf_counter(), time.process_time()
+import numba
+w1, c1 = time.perf_counter(), time.process_time()
+from client_gl.stream import selection_jit
+w2, c2 = time.perf_counter(), time.process_time()
+selection_jit.warm_up()
+w3, c3 = time.perf_counter(), time.process_time()
+print(json.dumps([w1 - w, c1 - c, w2 - w1, c2 - c1, w3 - w2, c3 - c2]))
+"""
+
+
+def jit_cost(runs: int) -> None:
+    """What the compiled selection costs before its first use, in a fresh process: importing numba, the module, and
+    compiling its kernels (an empty numba cache) or loading them (the cache the first run wrote), wall and CPU."""
+    with tempfile.TemporaryDirectory() as cache:
+        env = {**os.environ, "NUMBA_CACHE_DIR": cache}
+        for run in range(runs):
+            out = subprocess.run([sys.executable, "-c", _JIT_COST], env=env, check=True, capture_output=True,
+                                 text=True).stdout
+            v = json.loads(out)
+            print(f"{'cold cache' if run == 0 else 'warm cache'}: import numba {v[0]:.2f} s (CPU {v[1]:.2f}), "
+                  f"import selection_jit {v[2]:.2f} s (CPU {v[3]:.2f}), warm_up (compile or load) {v[4]:.2f} s "
+                  f"(CPU {v[5]:.2f}); in all {v[0] + v[2] + v[4]:.2f} s (CPU {v[1] + v[3] + v[5]:.2f})")
 
 
 def first_frame(scenes: list[str], runs: int, converge: bool = False) -> None:
@@ -393,7 +447,12 @@ def main() -> None:
     ap.add_argument("--profile", action="store_true", help="--engine: where the update's time goes")
     ap.add_argument("--numpy-selection", action="store_true",
                     help="--engine: the numpy selection, not the compiled one (selection_jit, numba)")
+    ap.add_argument("--jit-cost", action="store_true",
+                    help="the compiled selection's import and compilation (cold numba cache) or loading (warm)")
     args = ap.parse_args()
+    if args.jit_cost:
+        jit_cost(args.runs)
+        return
     if args.engine:
         base = template(args.sh_degree)
         for n in [int(float(s)) for s in args.splats.split(",")]:
