@@ -16,7 +16,7 @@ median time of one frame's view numbers + selection over the tiles held against 
         manifest bytes and seconds from opening the stream to the first frame that draws the root (engine, fetcher
         and HTTP as `view` runs them, no GL: a pool that counts slots), median of --runs
     PYTHONPATH=. python bench/bench_pages.py --engine --splats 6e6,60e6,250e6 [--frames 300] [--profile]
-            [--numpy-selection]
+            [--numpy-selection | --no-wait]
     PYTHONPATH=. python bench/bench_pages.py --jit-cost [--runs 7]   # the compiled selection's cost before its first
         # use: numba's import, then its kernels compiled (the first run, an empty cache) or loaded (the others)
         # a StreamEngine over the paged tree along a street-level path (pages and payloads arrive --per-frame a
@@ -249,7 +249,7 @@ def tree_memory_mb(held: PagedTree, paged) -> float:
 
 
 def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame: int, profile: bool,
-                compiled: bool = True) -> None:
+                compiled: bool = True, wait: bool = True) -> None:
     """A StreamEngine over the paged tree along a camera flying across the city at street level: per-frame
     update times (median, p99, max) and, with --profile, where they go. `compiled`: the compiled selection
     (selection_jit, waited for before the path, so every frame near the cut uses it), else the numpy path."""
@@ -258,7 +258,7 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
     engine = _NoDecodeEngine(_PathFetcher(paged.root, files, per_frame), _Slots(),
                              StreamOptions(SelectionOptions(max_splats=max_splats), upload_bytes_per_frame=1 << 40,
                                            compiled_selection=compiled))
-    if compiled:
+    if compiled and wait:
         t0 = time.perf_counter()
         if COMPILED_SELECTION.wait() is None:
             raise SystemExit(f"the compiled selection is not available: {COMPILED_SELECTION.error!r}")
@@ -268,6 +268,7 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
     prof = cProfile.Profile(time.thread_time) if profile else None  # CPU: the VM is shared
     times, cpu = [], []
     adopted: list[bool] = []  # frames that adopted (or dropped) pages
+    ready: list[bool] = []  # frames after which the compiled selection was ready
     # The bench's whole tree is no client's: out of the collector's passes, whose full passes over it took 120-150 ms
     # (the spikes of a first version of this bench). The client's own objects (the root manifest, the pages it
     # parses: real page bytes through PagedTree.read, as the engine's decode workers parse them) are collected as
@@ -327,6 +328,7 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
             times.append(time.perf_counter() - t0)
             cpu.append(time.thread_time() - c0)
             adopted.append(held != (engine.pages.pages_read, engine.pages.evicted))
+            ready.append(COMPILED_SELECTION._fn is not None)
             if prof is not None:
                 prof.disable()
     finally:
@@ -357,6 +359,13 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
         if part.size:
             print(f"  {name}: {part.size}, update CPU median {np.median(part):.2f}, p99 "
                   f"{np.percentile(part, 99):.2f}, max {part.max():.1f} ms")
+    rd = np.array(ready, bool)
+    if compiled and not wait:  # the frames while the kernels were loaded on the worker thread, and after
+        for name, part in (("frames before the compiled selection was ready", ~rd), ("frames after", rd)):
+            if part.any():
+                print(f"  {name}: {part.sum()}, update wall median {np.median(ts[part]):.2f}, max "
+                      f"{ts[part].max():.1f} ms; CPU median {np.median(cs[part]):.2f}, max {cs[part].max():.1f} ms; "
+                      f"{sum(times[i] for i in np.flatnonzero(part)):.2f} s in all")
     if prof is not None:
         pstats.Stats(prof).sort_stats("tottime").print_stats(30)
         pstats.Stats(prof).sort_stats("cumulative").print_stats("selection.py|engine.py", 25)
@@ -447,6 +456,9 @@ def main() -> None:
     ap.add_argument("--profile", action="store_true", help="--engine: where the update's time goes")
     ap.add_argument("--numpy-selection", action="store_true",
                     help="--engine: the numpy selection, not the compiled one (selection_jit, numba)")
+    ap.add_argument("--no-wait", action="store_true",
+                    help="--engine: do not wait for the compiled selection before the path (the engine loads it on "
+                         "a worker thread from its first frame near the cut): the frames before it was ready")
     ap.add_argument("--jit-cost", action="store_true",
                     help="the compiled selection's import and compilation (cold numba cache) or loading (warm)")
     args = ap.parse_args()
@@ -457,7 +469,7 @@ def main() -> None:
         base = template(args.sh_degree)
         for n in [int(float(s)) for s in args.splats.split(",")]:
             engine_path(synthetic_tree(n, base), args.default_levels, args.frames, args.max_splats, args.per_frame,
-                        args.profile, not args.numpy_selection)
+                        args.profile, not args.numpy_selection, not args.no_wait)
         return
     if args.repage:
         repage(*args.repage, args.default_levels)
