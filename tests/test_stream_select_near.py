@@ -40,8 +40,9 @@ try:
 except ImportError:  # numba is an optional extra (`fast`): the compiled half of each test is skipped without it
     select_near_compiled = None
 
-PATHS = ["numpy", pytest.param("compiled", marks=pytest.mark.skipif(
-    select_near_compiled is None, reason="the compiled selection needs the package numba (extra `fast`)"))]
+NEEDS_NUMBA = pytest.mark.skipif(select_near_compiled is None,
+                                 reason="the compiled selection needs the package numba (extra `fast`)")
+PATHS = ["numpy", pytest.param("compiled", marks=NEEDS_NUMBA)]
 
 
 @pytest.fixture(scope="module")
@@ -195,6 +196,26 @@ def test_select_near_on_a_paged_tree_with_pages_arriving_and_dropped(whole, path
             previous = frozenset(int(new_of[i]) for i in previous if new_of[i] >= 0)
             last = {int(new_of[i]) for i in last if new_of[i] >= 0}
     assert reads > 10 and evictions > 10 and tree.evicted > 0
+
+
+@NEEDS_NUMBA
+def test_compiled_selection_falls_back_on_nan_keys(whole):
+    """Keys that are NaN (here: a NaN reduction makes every key NaN) have no order in the compiled queue: it hands
+    the frame to the numpy path, whose heapq compares them its own way, and the answer is select_near's."""
+    m, rnd = whole, random.Random(5)
+    a, root = m.arrays, m.index_of[m.root]
+    cost = np.array([t.chunks for t in m.tiles], np.float64) * 4096.0
+    refined = 0
+    for _ in range(10):
+        cam, opts = random_camera(m, rnd), random_options(m, rnd, cost)
+        got = select_near_compiled(a, PartialView(a, cam, opts, math.nan), cost, root, opts)
+        want = select_near(a, PartialView(a, cam, opts, math.nan), cost, root, opts)
+        assert (got.cut, got.refined, got.splats, got.cost, got.budget_limited) == \
+            (want.cut, want.refined, want.splats, want.cost, want.budget_limited)
+        assert list(got.priority) == list(want.priority)  # NaN priorities: equal as arrays, not as floats
+        assert np.array_equal(list(got.priority.values()), list(want.priority.values()), equal_nan=True)
+        refined += len(got.refined)
+    assert refined  # the queue ran (with NaN keys)
 
 
 def test_dropped_pages_are_freed_when_the_tree_was_frozen(whole):

@@ -20,6 +20,7 @@ compiles. The engine runs it on a worker thread and uses the numpy path until it
 from __future__ import annotations
 
 import math
+import weakref
 
 import numpy as np
 from numba import njit
@@ -268,17 +269,19 @@ def _cut(first, kids, visible, refd, reflist, nref, prio, root, out_t, out_p):
     return m
 
 
-_csr_of: tuple = (None, None)  # (the TileArrays, its children as (starts, children)): recomputed when the tree grows
+# (a weak reference to the last TileArrays, its children as (starts, children)): a tree held changes only when
+# pages are added or dropped (a new TileArrays), so most frames reuse it
+_csr_of: tuple = (lambda: None, None)
 
 
 def _children(a: TileArrays) -> tuple[np.ndarray, np.ndarray]:
     held, csr = _csr_of
-    if held is not a:
+    if held() is not a:
         n = len(a.parent)
         out = np.empty(2 * n + 1, np.int64)
         _child_csr(np.ascontiguousarray(a.parent, np.int64), out)
         csr = (out[:n + 1], out[n + 1:])
-        globals()["_csr_of"] = (a, csr)
+        globals()["_csr_of"] = (weakref.ref(a), csr)
     return csr
 
 
