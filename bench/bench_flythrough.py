@@ -56,6 +56,16 @@ class StepTimer:
         for name in names:
             setattr(cls, name, self._timed(getattr(cls, name), f"{cls.__name__}.{name}"))
 
+    def wrap_compiled_selection(self, cls) -> None:
+        """The compiled selection (engine.CompiledSelection.get hands it out once its kernels are ready) timed as
+        client_gl.stream.engine.select_near_compiled."""
+        get = cls.get
+
+        def timed_get(selection):
+            fn = get(selection)
+            return None if fn is None else self._timed(fn, "client_gl.stream.engine.select_near_compiled")
+        cls.get = timed_get
+
     def _timed(self, fn, label):
         def timed(*args, **kwargs):
             t, c = time.perf_counter(), time.thread_time()
@@ -151,7 +161,7 @@ def thread_cpu_seconds() -> dict[str, float]:
 
 
 SELECTION_STEPS = tuple(f"client_gl.stream.engine.{n}"
-                        for n in ("select", "select_near", "view_numbers", "PartialView"))
+                        for n in ("select", "select_near", "view_numbers", "PartialView", "select_near_compiled"))
 
 
 def _selection_ms(splits: list[dict]) -> dict:
@@ -241,6 +251,7 @@ def main() -> None:
             steps.wrap(StreamEngine, ["wanted", "_collect", "_upload", "_make_room", "_trim_ready", "_coarse_to_fine"])
             steps.wrap(engine_module, ["view_numbers", "select", "PartialView", "select_near", "wanted_bands",
                                        "prefetch", "draw_set"])
+            steps.wrap_compiled_selection(engine_module.CompiledSelection)
             steps.wrap(ChunkPool, ["join", "add_band", "leave", "set_codebook_band", "_upload_plane", "_write_records",
                                    "set_draw_set", "bind"])
             steps.wrap(SplatRenderer, ["render"])
