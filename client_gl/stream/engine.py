@@ -160,16 +160,15 @@ class CompiledSelection:
         # First in a child process, which compiles the kernels into numba's cache where they are not there yet
         # (4-5 s of CPU) without this process's interpreter lock: compiled on this thread, it slowed the frame loop
         # fourfold for 10 s on the 2-core VM (BENCHMARKS.md, "Manifest pages"). Then here, from the cache.
-        child = subprocess.run([sys.executable, "-c", _WARM_UP], capture_output=True, text=True, check=False)
-        if child.returncode != 0:  # numba missing (ImportError) or a failed compilation: the numpy path stays
-            self.error = RuntimeError(child.stderr.strip().splitlines()[-1] if child.stderr.strip() else
-                                      f"exit status {child.returncode}")
-            return
+        # A child that fails (numba missing) leaves it to this thread; a frozen application has no interpreter to
+        # start (sys.executable is the application).
+        if not getattr(sys, "frozen", False):
+            subprocess.run([sys.executable, "-c", _WARM_UP], capture_output=True, check=False)
         try:
             # imported here: numba is an optional extra, and its import is what this thread keeps off the frames
             from . import selection_jit
             selection_jit.warm_up()
-        except Exception as exc:  # anything here leaves the numpy path, which gives the same cut
+        except Exception as exc:  # ImportError without numba; anything else also leaves the numpy path (same cut)
             self.error = exc
             return
         self._fn = selection_jit.select_near_compiled
