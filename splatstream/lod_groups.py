@@ -187,20 +187,20 @@ def neighbour_edges(p: np.ndarray, k: int, shifts: int = 3, block: int = 8192) -
         rank[order] = np.arange(n)
         orders.append(order.astype(np.int32) if n < 2**31 else order)
         ranks.append(rank)
+    steps = np.stack([np.arange(1, w + 1), -np.arange(1, w + 1)], axis=1).reshape(-1)  # +1, -1, +2, -2, ...
+    px, py, pz = (np.ascontiguousarray(p[:, a]) for a in range(3))
     out_i, out_j = [], []
     for r0 in range(0, n, block):
         rows = np.arange(r0, min(n, r0 + block))
-        cand = []
-        for order, rank in zip(orders, ranks, strict=True):
-            r = rank[rows]
-            for d in range(1, w + 1):
-                cand.append(order[np.minimum(r + d, n - 1)])
-                cand.append(order[np.maximum(r - d, 0)])
-        c = np.stack(cand, axis=1)  # (rows, 2 w shifts) candidates, self and duplicates included
-        # Duplicates: keep the first of each candidate (sort by id, mark repeats); distances of the sorted ids.
+        c = np.concatenate([order[np.clip(rank[rows, None] + steps, 0, n - 1)]
+                            for order, rank in zip(orders, ranks, strict=True)], axis=1)
+        # (rows, 2 w shifts) candidates, self and duplicates included. Duplicates: keep the first of each
+        # candidate (sort by id, mark repeats); then the squared distances of the sorted ids.
         cs = np.sort(c, axis=1, kind="stable")
-        del c, cand
-        d2s = ((p[cs] - p[rows, None, :]) ** 2).sum(axis=2)
+        del c
+        dx, dy, dz = px[cs] - px[rows, None], py[cs] - py[rows, None], pz[cs] - pz[rows, None]
+        d2s = dx * dx + dy * dy + dz * dz
+        del dx, dy, dz
         d2s[cs == rows[:, None]] = np.inf
         d2s[:, 1:][cs[:, 1:] == cs[:, :-1]] = np.inf
         pick = np.argsort(d2s, axis=1, kind="stable")[:, :k]
