@@ -224,8 +224,13 @@ def edge_costs(mu, cov, alpha, col, w, i, j, rule: GroupRule, block: int = 32768
     """Cost of merging clusters i and j (arrays of edges) under `rule`, `block` edges at a time (the costs are
     per edge, so blocks only bound the work arrays: about 40 float64 per edge and block, not per edge of a level)."""
     out = np.empty(len(i))
+    if not len(i):
+        return out
+    # Positions and covariances as rows of one coordinate (3, N) and (6, N): every term below is then computed on
+    # contiguous arrays (the same operations, in the same order, as on the columns of (N, 3) and (N, 6)).
+    mu_t, cov_t = np.ascontiguousarray(mu.T), np.ascontiguousarray(cov.T)
     for s in range(0, len(i), block):
-        out[s:s + block] = _edge_costs(mu, cov, alpha, col, w, i[s:s + block], j[s:s + block], rule)
+        out[s:s + block] = _edge_costs(mu_t, cov_t, alpha, col, w, i[s:s + block], j[s:s + block], rule)
     return out
 
 
@@ -238,7 +243,7 @@ def _cross2(ca, cb, da, db, dd, u, v):
     """<G_a, G_b> of 2D Gaussians (uu, uv, vv) ca and cb with determinants da and db, centres dd apart."""
     a, b, cc = ca[0] + cb[0], ca[1] + cb[1], ca[2] + cb[2]
     det = np.maximum(a * cc - b * b, 1e-300)
-    du, dv = dd[:, u], dd[:, v]
+    du, dv = dd[u], dd[v]
     q = (cc * du * du - 2 * b * du * dv + a * dv * dv) / det
     return 2 * math.pi * np.sqrt(da * db / det) * np.exp(-0.5 * q)
 
@@ -248,20 +253,21 @@ def _det2(c):
     return np.maximum(a * cc - b * b, 1e-300)
 
 
-def _edge_costs(mu, cov, alpha, col, w, i, j, rule: GroupRule) -> np.ndarray:
+def _edge_costs(mu_t, cov_t, alpha, col, w, i, j, rule: GroupRule) -> np.ndarray:
+    """edge_costs of one block; mu_t (3, clusters) and cov_t (6, clusters): positions and covariances by row."""
     wi, wj = w[i], w[j]
     W = wi + wj
     pi = wi / W
     pj = 1 - pi
-    d = mu[i] - mu[j]
-    di = d * pj[:, None]
-    dj = -d * pi[:, None]
-    ci, cj = cov[i], cov[j]
+    d = np.take(mu_t, i, axis=1) - np.take(mu_t, j, axis=1)  # (3, N)
+    di = d * pj
+    dj = -d * pi
+    ci, cj = np.take(cov_t, i, axis=1), np.take(cov_t, j, axis=1)  # (6, N)
     cm = np.empty_like(ci)
     for k, (a, b) in enumerate(_SYM6):
-        cm[:, k] = pi * (di[:, a] * di[:, b] + ci[:, k]) + pj * (dj[:, a] * dj[:, b] + cj[:, k])
-    cm[:, [0, 3, 5]] += 1e-20
-    area_m = np.maximum(_area6(cm), 1e-300)
+        cm[k] = pi * (di[a] * di[b] + ci[k]) + pj * (dj[a] * dj[b] + cj[k])
+    cm[[0, 3, 5]] += 1e-20
+    area_m = np.maximum(_area6(cm.T), 1e-300)
     am = np.minimum(1.0, W / area_m)
     bi, bj = col[i], col[j]
     bij = np.einsum("ij,ij->i", bi, bj)
@@ -276,22 +282,22 @@ def _edge_costs(mu, cov, alpha, col, w, i, j, rule: GroupRule) -> np.ndarray:
         gij, gim, gjm = 2 * ai * aj * bij, 2 * ai * am * bim, 2 * aj * am * bjm
         e = np.zeros(len(i))
         for (u, v), (kuu, kuv, kvv) in _PLANES:
-            pi_ = ci[:, kuu], ci[:, kuv], ci[:, kvv]
-            pj_ = cj[:, kuu], cj[:, kuv], cj[:, kvv]
-            pm_ = cm[:, kuu], cm[:, kuv], cm[:, kvv]
+            pi_ = ci[kuu], ci[kuv], ci[kvv]
+            pj_ = cj[kuu], cj[kuv], cj[kvv]
+            pm_ = cm[kuu], cm[kuv], cm[kvv]
             hi, hj, hm = _det2(pi_), _det2(pj_), _det2(pm_)
             e += (fi * np.sqrt(hi) + fj * np.sqrt(hj) + fm * np.sqrt(hm)
                   + gij * _cross2(pi_, pj_, hi, hj, d, u, v)
                   - gim * _cross2(pi_, pm_, hi, hm, di, u, v)
                   - gjm * _cross2(pj_, pm_, hj, hm, dj, u, v))
     else:
-        sdm = np.sqrt(np.maximum(_det6(cm), 1e-300))
-        sdi = np.sqrt(np.maximum(_det6(ci), 1e-300))
-        sdj = np.sqrt(np.maximum(_det6(cj), 1e-300))
+        sdm = np.sqrt(np.maximum(_det6(cm.T), 1e-300))
+        sdi = np.sqrt(np.maximum(_det6(ci.T), 1e-300))
+        sdj = np.sqrt(np.maximum(_det6(cj.T), 1e-300))
         e = (_PI_1_5 * ai * ai * bni * sdi + _PI_1_5 * aj * aj * bnj * sdj + _PI_1_5 * am * am * bnm * sdm
-             + 2 * ai * aj * bij * _cross3(sdi, sdj, ci + cj, d)
-             - 2 * ai * am * bim * _cross3(sdi, sdm, ci + cm, di)
-             - 2 * aj * am * bjm * _cross3(sdj, sdm, cj + cm, dj))
+             + 2 * ai * aj * bij * _cross3(sdi, sdj, (ci + cj).T, d.T)
+             - 2 * ai * am * bim * _cross3(sdi, sdm, (ci + cm).T, di.T)
+             - 2 * aj * am * bjm * _cross3(sdj, sdm, (cj + cm).T, dj.T))
     return np.maximum(e, 0.0) + rule.colour * COLOUR_WEIGHT * np.maximum(bni + bnj - 2 * bij, 0.0)
 
 
