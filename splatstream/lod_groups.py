@@ -166,14 +166,33 @@ def grid_group_starts(positions: np.ndarray, target: int) -> tuple[np.ndarray, n
 # ---------------------------------------------------------------------------------------------- neighbours
 
 
-def neighbour_edges(p: np.ndarray, k: int, shifts: int = 3, block: int = 8192) -> tuple[np.ndarray, np.ndarray]:
+def neighbour_edges(p: np.ndarray, k: int, shifts: int = 3, block: int = 4096) -> tuple[np.ndarray, np.ndarray]:
     """Undirected edges (i < j) from every point to about its k nearest: the k nearest among the 2k points around
     it in each of `shifts` Morton orders of shifted boxes (numpy only; exact k-NN is not needed for grouping).
     Ties in distance go to the lower id. The candidates are gathered `block` points at a time (each point's
     neighbours depend on the orders only), so the (points, 2k shifts) work arrays stay a few MB at any size."""
+    parts = list(_neighbour_blocks(p, k, shifts, block))
+    if not parts:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    i, j = np.concatenate([a for a, _ in parts]), np.concatenate([b for _, b in parts])
+    return np.minimum(i, j), np.maximum(i, j)  # an edge both ends found comes twice: harmless for the matching
+
+
+def neighbour_keys(p: np.ndarray, k: int, shifts: int = 3, block: int = 4096) -> np.ndarray:
+    """The distinct edges of neighbour_edges as sorted keys i * n + j (i < j), for group_ids: made block by block
+    (each block's repeats dropped at once), so the level's edges are never held as four (2 k n) index arrays."""
+    n = len(p)
+    keys = []
+    for i, j in _neighbour_blocks(p, k, shifts, block):
+        keys.append(_distinct(np.minimum(i, j) * n + np.maximum(i, j)))
+    return _distinct(np.concatenate(keys)) if keys else np.zeros(0, np.int64)
+
+
+def _neighbour_blocks(p: np.ndarray, k: int, shifts: int, block: int):
+    """neighbour_edges' (points, neighbours) index arrays, `block` points at a time."""
     n = len(p)
     if n < 2:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        return
     k = min(k, n - 1)
     w = min(k, (n - 1) // 2 + 1)
     lo, hi = p.min(axis=0), p.max(axis=0)
@@ -189,7 +208,6 @@ def neighbour_edges(p: np.ndarray, k: int, shifts: int = 3, block: int = 8192) -
         ranks.append(rank)
     steps = np.stack([np.arange(1, w + 1), -np.arange(1, w + 1)], axis=1).reshape(-1)  # +1, -1, +2, -2, ...
     px, py, pz = (np.ascontiguousarray(p[:, a]) for a in range(3))
-    out_i, out_j = [], []
     for r0 in range(0, n, block):
         rows = np.arange(r0, min(n, r0 + block))
         c = np.concatenate([order[np.clip(rank[rows, None] + steps, 0, n - 1)]
@@ -206,10 +224,7 @@ def neighbour_edges(p: np.ndarray, k: int, shifts: int = 3, block: int = 8192) -
         pick = np.argsort(d2s, axis=1, kind="stable")[:, :k]
         nb = np.take_along_axis(cs, pick, axis=1).reshape(-1)
         ok = np.isfinite(np.take_along_axis(d2s, pick, axis=1)).reshape(-1)
-        out_i.append(np.repeat(rows, k)[ok])
-        out_j.append(nb[ok].astype(np.int64))
-    i, j = np.concatenate(out_i), np.concatenate(out_j)
-    return np.minimum(i, j), np.maximum(i, j)  # an edge both ends found comes twice: harmless for the matching
+        yield np.repeat(rows, k)[ok], nb[ok].astype(np.int64)
 
 
 # ---------------------------------------------------------------------------------------------- costs
@@ -220,7 +235,7 @@ def _energy(alpha: np.ndarray, col2: np.ndarray, cov: np.ndarray) -> np.ndarray:
     return _PI_1_5 * alpha * alpha * col2 * np.sqrt(np.maximum(_det6(cov), 1e-300))
 
 
-def edge_costs(mu, cov, alpha, col, w, i, j, rule: GroupRule, block: int = 32768) -> np.ndarray:
+def edge_costs(mu, cov, alpha, col, w, i, j, rule: GroupRule, block: int = 16384) -> np.ndarray:
     """Cost of merging clusters i and j (arrays of edges) under `rule`, `block` edges at a time (the costs are
     per edge, so blocks only bound the work arrays: about 40 float64 per edge and block, not per edge of a level)."""
     out = np.empty(len(i))
@@ -415,6 +430,12 @@ def _morton_finish(state: dict, label: np.ndarray, target: int) -> np.ndarray:
     return label
 
 
+def _distinct(keys: np.ndarray) -> np.ndarray:
+    """np.unique of int64 keys (sorted, distinct) by a sort, in place of a copy of the keys."""
+    keys = np.sort(keys)
+    return keys[np.concatenate([[True], keys[1:] != keys[:-1]])] if len(keys) else keys
+
+
 def _sorted_unique(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """np.unique of int64 keys (sorted, distinct), with the sorting order and where each distinct key starts in it
     (np.unique hashes integer keys: 0.33 s for the 570k edge keys of a 71k-splat level, np.sort 0.006 s)."""
@@ -450,16 +471,17 @@ def group_ids(positions: np.ndarray, log_scales: np.ndarray, rotations: np.ndarr
     label = np.arange(n)
     size = np.ones(n, np.int64)
     # The neighbour graph of the level's splats, found once: a cluster's candidates are its members' neighbours.
-    ei, ej = edges if edges is not None else neighbour_edges(state["mu"], rule.neighbours)
+    # As sorted distinct keys i * n + j (i < j).
+    key = (neighbour_keys(state["mu"], rule.neighbours) if edges is None
+           else _distinct(edges[0] * n + edges[1]))
     if region is not None:
         region = np.asarray(region, np.int64)
-        if target < len(_sorted_unique(region)[0]):
+        if target < len(_distinct(region)):
             raise ValueError(f"target {target} is below the number of regions")
         state["region"] = region.copy()
-        inside = region[ei] == region[ej]
-        ei, ej = ei[inside], ej[inside]
-    key = _sorted_unique(ei * n + ej)[0]
+        key = key[region[key // n] == region[key % n]]
     ei, ej = key // n, key % n
+    del key
     # The edges between clusters: each splat edge mapped onto the clusters at its ends, as (label[ei], label[ej])
     # (ordered: a pair's cost is not exactly symmetric in floating point), one row per ordered pair with `mult`, the
     # number of splat edges it stands for (the cheapest share counts them), and its cost, kept while neither

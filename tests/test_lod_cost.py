@@ -190,6 +190,10 @@ def test_blocks_change_no_neighbour_and_no_cost():
         assert np.array_equal(a, b)
     i, j = whole
     assert len(i) > 8 * len(p) // 2 and np.all(i < j)
+    # group_ids' keys: the same edges, distinct and sorted, at any block size
+    keys = np.unique(i * len(p) + j)
+    for block in (len(p), 999):
+        assert np.array_equal(lod_groups.neighbour_keys(p, 8, block=block), keys)
     cov = lod_groups.covariances6(g.rotations, g.log_scales)
     for rule in (lod.COST_RULE, GroupRule()):
         one = lod_groups.edge_costs(p, cov, alpha, colours, mass, i, j, rule, block=len(i))
