@@ -183,13 +183,14 @@ def neighbour_keys(p: np.ndarray, k: int, shifts: int = 3, block: int = 4096) ->
     (each block's repeats dropped at once), so the level's edges are never held as four (2 k n) index arrays."""
     n = len(p)
     keys = []
-    for i, j in _neighbour_blocks(p, k, shifts, block):
+    for i, j in _neighbour_blocks(p, k, shifts, block, ordered=False):
         keys.append(_distinct(np.minimum(i, j) * n + np.maximum(i, j)))
     return _distinct(np.concatenate(keys)) if keys else np.zeros(0, np.int64)
 
 
-def _neighbour_blocks(p: np.ndarray, k: int, shifts: int, block: int):
-    """neighbour_edges' (points, neighbours) index arrays, `block` points at a time."""
+def _neighbour_blocks(p: np.ndarray, k: int, shifts: int, block: int, ordered: bool = True):
+    """neighbour_edges' (points, neighbours) index arrays, `block` points at a time; each point's neighbours
+    nearest first, or (`ordered` False) the same neighbours in id order, chosen by a partition, not a sort."""
     n = len(p)
     if n < 2:
         return
@@ -221,6 +222,14 @@ def _neighbour_blocks(p: np.ndarray, k: int, shifts: int, block: int):
         del dx, dy, dz
         d2s[cs == rows[:, None]] = np.inf
         d2s[:, 1:][cs[:, 1:] == cs[:, :-1]] = np.inf
+        if not ordered:  # the k smallest, ties to the lower id (the earlier column), as the stable sort picks
+            thr = np.partition(d2s, k - 1, axis=1)[:, k - 1:k]
+            thr[np.isnan(thr)] = np.inf  # fewer than k numbers: all the finite ones, as below
+            less, tie = d2s < thr, d2s == thr
+            sel = less | (tie & (np.cumsum(tie, axis=1) <= (k - less.sum(axis=1))[:, None]))
+            r, col = np.nonzero(sel & np.isfinite(d2s))
+            yield rows[r], cs[r, col].astype(np.int64)
+            continue
         pick = np.argsort(d2s, axis=1, kind="stable")[:, :k]
         nb = np.take_along_axis(cs, pick, axis=1).reshape(-1)
         ok = np.isfinite(np.take_along_axis(d2s, pick, axis=1)).reshape(-1)

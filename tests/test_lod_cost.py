@@ -214,3 +214,13 @@ def test_cheapest_share_counts_folded_rows_as_their_edges():
         thr = ec.max()
         assert np.array_equal(folded[2], cost[cost <= thr]) and len(ec) == int(mult[cost <= thr].sum())
         assert np.array_equal(folded[0], i[cost <= thr]) and np.array_equal(folded[1], j[cost <= thr])
+
+
+@pytest.mark.parametrize("n", [2, 3, 17, 1000])
+def test_neighbour_keys_break_distance_ties_as_neighbour_edges(n):
+    """On an integer lattice with repeated points nearly every distance ties: neighbour_keys (a partition) keeps
+    the same neighbours as neighbour_edges (a stable sort: ties to the lower id)."""
+    rng = np.random.default_rng(n)
+    p = rng.integers(0, 4, (n, 3)).astype(np.float64)
+    i, j = lod_groups.neighbour_edges(p, 8, block=64)
+    assert np.array_equal(lod_groups.neighbour_keys(p, 8, block=64), np.unique(i * n + j))
