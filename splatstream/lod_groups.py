@@ -166,42 +166,74 @@ def grid_group_starts(positions: np.ndarray, target: int) -> tuple[np.ndarray, n
 # ---------------------------------------------------------------------------------------------- neighbours
 
 
-def neighbour_edges(p: np.ndarray, k: int, shifts: int = 3) -> tuple[np.ndarray, np.ndarray]:
+def neighbour_edges(p: np.ndarray, k: int, shifts: int = 3, block: int = 4096) -> tuple[np.ndarray, np.ndarray]:
     """Undirected edges (i < j) from every point to about its k nearest: the k nearest among the 2k points around
-    it in each of `shifts` Morton orders of shifted boxes (numpy only; exact k-NN is not needed for grouping)."""
+    it in each of `shifts` Morton orders of shifted boxes (numpy only; exact k-NN is not needed for grouping).
+    Ties in distance go to the lower id. The candidates are gathered `block` points at a time (each point's
+    neighbours depend on the orders only), so the (points, 2k shifts) work arrays stay a few MB at any size."""
+    parts = list(_neighbour_blocks(p, k, shifts, block))
+    if not parts:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    i, j = np.concatenate([a for a, _ in parts]), np.concatenate([b for _, b in parts])
+    return np.minimum(i, j), np.maximum(i, j)  # an edge both ends found comes twice: harmless for the matching
+
+
+def neighbour_keys(p: np.ndarray, k: int, shifts: int = 3, block: int = 4096) -> np.ndarray:
+    """The distinct edges of neighbour_edges as sorted keys i * n + j (i < j), for group_ids: made block by block
+    (each block's repeats dropped at once), so the level's edges are never held as four (2 k n) index arrays."""
+    n = len(p)
+    keys = []
+    for i, j in _neighbour_blocks(p, k, shifts, block, ordered=False):
+        keys.append(_distinct(np.minimum(i, j) * n + np.maximum(i, j)))
+    return _distinct(np.concatenate(keys)) if keys else np.zeros(0, np.int64)
+
+
+def _neighbour_blocks(p: np.ndarray, k: int, shifts: int, block: int, ordered: bool = True):
+    """neighbour_edges' (points, neighbours) index arrays, `block` points at a time; each point's neighbours
+    nearest first, or (`ordered` False) the same neighbours in id order, chosen by a partition, not a sort."""
     n = len(p)
     if n < 2:
-        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        return
     k = min(k, n - 1)
     w = min(k, (n - 1) // 2 + 1)
     lo, hi = p.min(axis=0), p.max(axis=0)
     span = float((hi - lo).max()) or 1.0
-    cand = []
+    orders, ranks = [], []
     for s in range(shifts):
         off = span * np.array([0.0, 0.0, 0.0]) if s == 0 else span * np.array([0.31, 0.17, 0.43]) * s / shifts
         codes = morton_codes(p, lo - off, lo - off + 2.0 * span if s else hi)
         order = np.argsort(codes, kind="stable")
         rank = np.empty(n, np.int64)
         rank[order] = np.arange(n)
-        for d in range(1, w + 1):
-            cand.append(order[np.minimum(rank + d, n - 1)])
-            cand.append(order[np.maximum(rank - d, 0)])
-    c = np.stack(cand, axis=1)  # (n, 2 w shifts) candidates, self and duplicates included
-    d2 = ((p[c] - p[:, None, :]) ** 2).sum(axis=2)
-    d2[c == np.arange(n)[:, None]] = np.inf
-    # Duplicates: keep the first of each candidate (sort by id, mark repeats).
-    srt = np.argsort(c, axis=1, kind="stable")
-    cs = np.take_along_axis(c, srt, axis=1)
-    dup = np.zeros_like(cs, bool)
-    dup[:, 1:] = cs[:, 1:] == cs[:, :-1]
-    d2s = np.take_along_axis(d2, srt, axis=1)
-    d2s[dup] = np.inf
-    pick = np.argsort(d2s, axis=1, kind="stable")[:, :k]
-    nb = np.take_along_axis(cs, pick, axis=1)
-    ok = np.isfinite(np.take_along_axis(d2s, pick, axis=1))
-    i = np.repeat(np.arange(n), k)[ok.reshape(-1)]
-    j = nb.reshape(-1)[ok.reshape(-1)]
-    return np.minimum(i, j), np.maximum(i, j)  # an edge both ends found comes twice: harmless for the matching
+        orders.append(order.astype(np.int32) if n < 2**31 else order)
+        ranks.append(rank)
+    steps = np.stack([np.arange(1, w + 1), -np.arange(1, w + 1)], axis=1).reshape(-1)  # +1, -1, +2, -2, ...
+    px, py, pz = (np.ascontiguousarray(p[:, a]) for a in range(3))
+    for r0 in range(0, n, block):
+        rows = np.arange(r0, min(n, r0 + block))
+        c = np.concatenate([order[np.clip(rank[rows, None] + steps, 0, n - 1)]
+                            for order, rank in zip(orders, ranks, strict=True)], axis=1)
+        # (rows, 2 w shifts) candidates, self and duplicates included. Duplicates: keep the first of each
+        # candidate (sort by id, mark repeats); then the squared distances of the sorted ids.
+        cs = np.sort(c, axis=1, kind="stable")
+        del c
+        dx, dy, dz = px[cs] - px[rows, None], py[cs] - py[rows, None], pz[cs] - pz[rows, None]
+        d2s = dx * dx + dy * dy + dz * dz
+        del dx, dy, dz
+        d2s[cs == rows[:, None]] = np.inf
+        d2s[:, 1:][cs[:, 1:] == cs[:, :-1]] = np.inf
+        if not ordered:  # the k smallest, ties to the lower id (the earlier column), as the stable sort picks
+            thr = np.partition(d2s, k - 1, axis=1)[:, k - 1:k]
+            thr[np.isnan(thr)] = np.inf  # fewer than k numbers: all the finite ones, as below
+            less, tie = d2s < thr, d2s == thr
+            sel = less | (tie & (np.cumsum(tie, axis=1) <= (k - less.sum(axis=1))[:, None]))
+            r, col = np.nonzero(sel & np.isfinite(d2s))
+            yield rows[r], cs[r, col].astype(np.int64)
+            continue
+        pick = np.argsort(d2s, axis=1, kind="stable")[:, :k]
+        nb = np.take_along_axis(cs, pick, axis=1).reshape(-1)
+        ok = np.isfinite(np.take_along_axis(d2s, pick, axis=1)).reshape(-1)
+        yield np.repeat(rows, k)[ok], nb[ok].astype(np.int64)
 
 
 # ---------------------------------------------------------------------------------------------- costs
@@ -212,71 +244,84 @@ def _energy(alpha: np.ndarray, col2: np.ndarray, cov: np.ndarray) -> np.ndarray:
     return _PI_1_5 * alpha * alpha * col2 * np.sqrt(np.maximum(_det6(cov), 1e-300))
 
 
-def edge_costs(mu, cov, alpha, col, w, i, j, rule: GroupRule) -> np.ndarray:
-    """Cost of merging clusters i and j (arrays of edges) under `rule`."""
+def edge_costs(mu, cov, alpha, col, w, i, j, rule: GroupRule, block: int = 16384) -> np.ndarray:
+    """Cost of merging clusters i and j (arrays of edges) under `rule`, `block` edges at a time (the costs are
+    per edge, so blocks only bound the work arrays: about 40 float64 per edge and block, not per edge of a level)."""
+    out = np.empty(len(i))
+    if not len(i):
+        return out
+    # Positions and covariances as rows of one coordinate (3, N) and (6, N): every term below is then computed on
+    # contiguous arrays (the same operations, in the same order, as on the columns of (N, 3) and (N, 6)).
+    mu_t, cov_t = np.ascontiguousarray(mu.T), np.ascontiguousarray(cov.T)
+    for s in range(0, len(i), block):
+        out[s:s + block] = _edge_costs(mu_t, cov_t, alpha, col, w, i[s:s + block], j[s:s + block], rule)
+    return out
+
+
+def _cross3(sda, sdb, csum, dd):
+    q, det = _quad6(csum, dd)
+    return _TWO_PI_1_5 * sda * sdb / np.sqrt(det) * np.exp(-0.5 * q)
+
+
+def _cross2(ca, cb, da, db, dd, u, v):
+    """<G_a, G_b> of 2D Gaussians (uu, uv, vv) ca and cb with determinants da and db, centres dd apart."""
+    a, b, cc = ca[0] + cb[0], ca[1] + cb[1], ca[2] + cb[2]
+    det = np.maximum(a * cc - b * b, 1e-300)
+    du, dv = dd[u], dd[v]
+    q = (cc * du * du - 2 * b * du * dv + a * dv * dv) / det
+    return 2 * math.pi * np.sqrt(da * db / det) * np.exp(-0.5 * q)
+
+
+def _det2(c):
+    a, b, cc = c
+    return np.maximum(a * cc - b * b, 1e-300)
+
+
+def _edge_costs(mu_t, cov_t, alpha, col, w, i, j, rule: GroupRule) -> np.ndarray:
+    """edge_costs of one block; mu_t (3, clusters) and cov_t (6, clusters): positions and covariances by row."""
     wi, wj = w[i], w[j]
     W = wi + wj
     pi = wi / W
     pj = 1 - pi
-    d = mu[i] - mu[j]
-    di = d * pj[:, None]
-    dj = -d * pi[:, None]
-    ci, cj = cov[i], cov[j]
+    d = np.take(mu_t, i, axis=1) - np.take(mu_t, j, axis=1)  # (3, N)
+    di = d * pj
+    dj = -d * pi
+    ci, cj = np.take(cov_t, i, axis=1), np.take(cov_t, j, axis=1)  # (6, N)
     cm = np.empty_like(ci)
     for k, (a, b) in enumerate(_SYM6):
-        cm[:, k] = pi * (di[:, a] * di[:, b] + ci[:, k]) + pj * (dj[:, a] * dj[:, b] + cj[:, k])
-    cm[:, [0, 3, 5]] += 1e-20
-    sdm = np.sqrt(np.maximum(_det6(cm), 1e-300))
-    area_m = np.maximum(_area6(cm), 1e-300)
+        cm[k] = pi * (di[a] * di[b] + ci[k]) + pj * (dj[a] * dj[b] + cj[k])
+    cm[[0, 3, 5]] += 1e-20
+    area_m = np.maximum(_area6(cm.T), 1e-300)
     am = np.minimum(1.0, W / area_m)
-    sdi = np.sqrt(np.maximum(_det6(ci), 1e-300))
-    sdj = np.sqrt(np.maximum(_det6(cj), 1e-300))
     bi, bj = col[i], col[j]
     bij = np.einsum("ij,ij->i", bi, bj)
     bni, bnj = np.einsum("ij,ij->i", bi, bi), np.einsum("ij,ij->i", bj, bj)
     bim, bjm = pi * bni + pj * bij, pi * bij + pj * bnj
     bnm = pi * pi * bni + 2 * pi * pj * bij + pj * pj * bnj
     ai, aj = alpha[i], alpha[j]
-
-    def cross(sda, sdb, csum, dd):
-        q, det = _quad6(csum, dd)
-        return _TWO_PI_1_5 * sda * sdb / np.sqrt(det) * np.exp(-0.5 * q)
-
     if rule.proj:
+        # Per plane the same products as one expression per term (left to right): the planes share their
+        # prefixes (pi a_i^2 |b_i|^2, 2 a_i a_j b_ij, ...) and each 2D determinant is taken once.
+        fi, fj, fm = math.pi * ai * ai * bni, math.pi * aj * aj * bnj, math.pi * am * am * bnm
+        gij, gim, gjm = 2 * ai * aj * bij, 2 * ai * am * bim, 2 * aj * am * bjm
         e = np.zeros(len(i))
-        self_i = np.zeros(len(i))
-        self_j = np.zeros(len(i))
         for (u, v), (kuu, kuv, kvv) in _PLANES:
-            def c2(c, kuu=kuu, kuv=kuv, kvv=kvv):
-                return c[:, kuu], c[:, kuv], c[:, kvv]
-
-            def det2(c):
-                a, b, cc = c
-                return np.maximum(a * cc - b * b, 1e-300)
-
-            def cross2(ca, cb, dd, u=u, v=v):
-                a, b, cc = ca[0] + cb[0], ca[1] + cb[1], ca[2] + cb[2]
-                det = np.maximum(a * cc - b * b, 1e-300)
-                du, dv = dd[:, u], dd[:, v]
-                q = (cc * du * du - 2 * b * du * dv + a * dv * dv) / det
-                return 2 * math.pi * np.sqrt(det2(ca) * det2(cb) / det) * np.exp(-0.5 * q)
-
-            pi_, pj_, pm_ = c2(ci), c2(cj), c2(cm)
-            si = math.pi * ai * ai * bni * np.sqrt(det2(pi_))
-            sj = math.pi * aj * aj * bnj * np.sqrt(det2(pj_))
-            self_i += si
-            self_j += sj
-            e += (si + sj + math.pi * am * am * bnm * np.sqrt(det2(pm_))
-                  + 2 * ai * aj * bij * cross2(pi_, pj_, d)
-                  - 2 * ai * am * bim * cross2(pi_, pm_, di)
-                  - 2 * aj * am * bjm * cross2(pj_, pm_, dj))
+            pi_ = ci[kuu], ci[kuv], ci[kvv]
+            pj_ = cj[kuu], cj[kuv], cj[kvv]
+            pm_ = cm[kuu], cm[kuv], cm[kvv]
+            hi, hj, hm = _det2(pi_), _det2(pj_), _det2(pm_)
+            e += (fi * np.sqrt(hi) + fj * np.sqrt(hj) + fm * np.sqrt(hm)
+                  + gij * _cross2(pi_, pj_, hi, hj, d, u, v)
+                  - gim * _cross2(pi_, pm_, hi, hm, di, u, v)
+                  - gjm * _cross2(pj_, pm_, hj, hm, dj, u, v))
     else:
-        self_i = _PI_1_5 * ai * ai * bni * sdi
-        self_j = _PI_1_5 * aj * aj * bnj * sdj
-        e = (self_i + self_j + _PI_1_5 * am * am * bnm * sdm
-             + 2 * ai * aj * bij * cross(sdi, sdj, ci + cj, d)
-             - 2 * ai * am * bim * cross(sdi, sdm, ci + cm, di)
-             - 2 * aj * am * bjm * cross(sdj, sdm, cj + cm, dj))
+        sdm = np.sqrt(np.maximum(_det6(cm.T), 1e-300))
+        sdi = np.sqrt(np.maximum(_det6(ci.T), 1e-300))
+        sdj = np.sqrt(np.maximum(_det6(cj.T), 1e-300))
+        e = (_PI_1_5 * ai * ai * bni * sdi + _PI_1_5 * aj * aj * bnj * sdj + _PI_1_5 * am * am * bnm * sdm
+             + 2 * ai * aj * bij * _cross3(sdi, sdj, (ci + cj).T, d.T)
+             - 2 * ai * am * bim * _cross3(sdi, sdm, (ci + cm).T, di.T)
+             - 2 * aj * am * bjm * _cross3(sdj, sdm, (cj + cm).T, dj.T))
     return np.maximum(e, 0.0) + rule.colour * COLOUR_WEIGHT * np.maximum(bni + bnj - 2 * bij, 0.0)
 
 
@@ -323,12 +368,15 @@ def _greedy_pairs(count: int, i: np.ndarray, j: np.ndarray, cost: np.ndarray, qu
     return np.concatenate(got_a), np.concatenate(got_b)
 
 
-def _cheapest_share(i, j, cost, take: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _cheapest_share(i, j, cost, take: int, mult: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The edges whose cost is among the cheapest: a matching of `take` pairs needs about 2 take edges offered
-    (each node's cheapest), so edges above the cost of the (4 take)-th cheapest are dropped."""
-    limit = min(len(cost), 4 * take)
-    if limit < len(cost):
-        thr = np.partition(cost, limit - 1)[limit - 1]
+    (each node's cheapest), so edges above the cost of the (4 take)-th cheapest are dropped. `mult`: how many
+    edges each row stands for (group_ids folds the splat edges between two clusters into one row)."""
+    total = len(cost) if mult is None else int(mult.sum())
+    limit = min(total, 4 * take)
+    if limit < total:
+        every = cost if mult is None or total == len(cost) else np.repeat(cost, mult)
+        thr = np.partition(every, limit - 1)[limit - 1]
         keep = cost <= thr
         return i[keep], j[keep], cost[keep]
     return i, j, cost
@@ -391,6 +439,21 @@ def _morton_finish(state: dict, label: np.ndarray, target: int) -> np.ndarray:
     return label
 
 
+def _distinct(keys: np.ndarray) -> np.ndarray:
+    """np.unique of int64 keys (sorted, distinct) by a sort, in place of a copy of the keys."""
+    keys = np.sort(keys)
+    return keys[np.concatenate([[True], keys[1:] != keys[:-1]])] if len(keys) else keys
+
+
+def _sorted_unique(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """np.unique of int64 keys (sorted, distinct), with the sorting order and where each distinct key starts in it
+    (np.unique hashes integer keys: 0.33 s for the 570k edge keys of a 71k-splat level, np.sort 0.006 s)."""
+    order = np.argsort(keys, kind="stable")
+    s = keys[order]
+    first = np.flatnonzero(np.concatenate([[True], s[1:] != s[:-1]])) if len(s) else np.zeros(0, np.int64)
+    return s[first], order, first
+
+
 def group_ids(positions: np.ndarray, log_scales: np.ndarray, rotations: np.ndarray, opacities: np.ndarray,
               colours: np.ndarray, masses: np.ndarray, target: int, rule: GroupRule = DEFAULT_RULE,
               edges: tuple[np.ndarray, np.ndarray] | None = None, region: np.ndarray | None = None) -> np.ndarray:
@@ -417,17 +480,22 @@ def group_ids(positions: np.ndarray, log_scales: np.ndarray, rotations: np.ndarr
     label = np.arange(n)
     size = np.ones(n, np.int64)
     # The neighbour graph of the level's splats, found once: a cluster's candidates are its members' neighbours.
-    ei, ej = edges if edges is not None else neighbour_edges(state["mu"], rule.neighbours)
+    # As sorted distinct keys i * n + j (i < j).
+    key = (neighbour_keys(state["mu"], rule.neighbours) if edges is None
+           else _distinct(edges[0] * n + edges[1]))
     if region is not None:
         region = np.asarray(region, np.int64)
-        if target < len(np.unique(region)):
+        if target < len(_distinct(region)):
             raise ValueError(f"target {target} is below the number of regions")
         state["region"] = region.copy()
-        inside = region[ei] == region[ej]
-        ei, ej = ei[inside], ej[inside]
-    key = np.unique(ei * n + ej)
+        key = key[region[key // n] == region[key % n]]
     ei, ej = key // n, key % n
-    # Each edge's cost, kept while neither cluster at its ends changes (NaN: not known yet).
+    del key
+    # The edges between clusters: each splat edge mapped onto the clusters at its ends, as (label[ei], label[ej])
+    # (ordered: a pair's cost is not exactly symmetric in floating point), one row per ordered pair with `mult`, the
+    # number of splat edges it stands for (the cheapest share counts them), and its cost, kept while neither
+    # cluster at its ends changes (NaN: not known yet). Each pair is costed once, not once per splat edge.
+    mult = np.ones(len(ei), np.int64)
     ecost = np.full(len(ei), np.nan)
     # Caps grow with the reduction (a 4x level needs groups of 4 on average): pairs first means groups of about
     # n / target, the cap twice that.
@@ -440,20 +508,17 @@ def group_ids(positions: np.ndarray, log_scales: np.ndarray, rotations: np.ndarr
             count = len(state["w"])
             if count <= stage_target:
                 break
-            i, j = label[ei], label[ej]
-            live = i != j
-            ei, ej, i, j, ecost = ei[live], ej[live], i[live], j[live], ecost[live]
-            ok = size[i] + size[j] <= cap if cap else np.ones(len(i), bool)
+            ok = size[ei] + size[ej] <= cap if cap else np.ones(len(ei), bool)
             todo = ok & np.isnan(ecost)
-            ecost[todo] = edge_costs(state["mu"], state["cov"], state["alpha"], state["col"], state["w"], i[todo],
-                                     j[todo], rule)
+            ecost[todo] = edge_costs(state["mu"], state["cov"], state["alpha"], state["col"], state["w"], ei[todo],
+                                     ej[todo], rule)
             ecost[todo & ~np.isfinite(ecost)] = np.finfo(np.float64).max
-            ci, cj, cost = i[ok], j[ok], ecost[ok]
+            ci, cj, cost = ei[ok], ej[ok], ecost[ok]
             if not len(ci):
                 break
             need = count - stage_target
             take = need if rule.share >= 1 else max(1, math.ceil(need * rule.share))
-            ci, cj, cost = _cheapest_share(ci, cj, cost, take)
+            ci, cj, cost = _cheapest_share(ci, cj, cost, take, mult[ok])
             pa, pb = _greedy_pairs(count, ci, cj, cost, take)
             if not len(pa):
                 break
@@ -461,11 +526,25 @@ def group_ids(positions: np.ndarray, log_scales: np.ndarray, rotations: np.ndarr
             size[pa] += size[pb]
             changed = np.zeros(count, bool)
             changed[pa] = changed[pb] = True
-            ecost[changed[i] | changed[j]] = np.nan
             alive = np.ones(count, bool)
             alive[pb] = False
             size = size[alive]
-            label = _drop(state, label, pa, pb)
+            remap = _drop(state, np.arange(count), pa, pb)
+            label = remap[label]
+            # Edges between unchanged clusters keep their rows and costs; the others are mapped onto the merged
+            # clusters, those inside one cluster dropped, and the pairs that now coincide folded into one row.
+            touched = changed[ei] | changed[ej]
+            ti, tj, tm = remap[ei[touched]], remap[ej[touched]], mult[touched]
+            apart = ti != tj
+            ti, tj, tm = ti[apart], tj[apart], tm[apart]
+            count = len(size)
+            key, order, first = _sorted_unique(ti * count + tj)
+            folded = np.add.reduceat(tm[order], first) if len(key) else tm[:0]
+            kept = ~touched
+            ei = np.concatenate([remap[ei[kept]], key // count])
+            ej = np.concatenate([remap[ej[kept]], key % count])
+            mult = np.concatenate([mult[kept], folded])
+            ecost = np.concatenate([ecost[kept], np.full(len(key), np.nan)])
     label = _morton_finish(state, label, target)
     groups = len(state["w"])
     if groups != target:  # only with regions: a region that cannot merge further (one cluster left) is a bug

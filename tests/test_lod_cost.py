@@ -4,6 +4,7 @@ total, the tree's shape, "no holes" and REPLACE stay as with the grid."""
 from __future__ import annotations
 
 import functools
+import hashlib
 
 import numpy as np
 import pytest
@@ -138,3 +139,88 @@ def test_encode_with_the_cost_merge_in_memory_and_refused_by_partitions(tmp_path
     assert not (tmp_path / "parts").exists()
     with pytest.raises(UsageError, match="unknown LOD merge"):
         encode_file(path, tmp_path / "bad", lod_merge="nope")
+
+
+# The cost merge made cheaper (issue 31: edge costs in blocks with the planes' shared terms taken once, the k-NN in
+# blocks of points, one row per pair of clusters, sort-based unique) must not change a single group: digests of the
+# outputs of the code before it (commit 44e23cd), on fruit_drops split into 4 regions, a third of the splats kept.
+BEFORE = {"edges": "f8f0388318e1242f", "cost": "eb6384da0cc0c97a", "3d": "c709855664435fe3",
+          "cap4": "25a71e7579aadb53", "tree": "a4b62789c5555beb"}
+
+
+def digest(*arrays) -> str:
+    h = hashlib.sha256()
+    for a in arrays:
+        h.update(np.ascontiguousarray(a).tobytes())
+    return h.hexdigest()[:16]
+
+
+def fruit_level() -> tuple[Gaussians, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    g = fruit()
+    alpha = 1 / (1 + np.exp(-g.opacity_logits.astype(np.float64)))
+    colours = 0.5 + lod.SH_C0 * g.sh_dc.astype(np.float64)
+    x, y = g.positions[:, 0], g.positions[:, 1]
+    region = (x > np.median(x)).astype(np.int64) + 2 * (y > np.median(y))
+    return g, alpha, colours, lod.splat_mass(g), region
+
+
+@pytest.mark.parametrize(("name", "rule"), [("cost", lod.COST_RULE), ("3d", GroupRule()),
+                                            ("cap4", GroupRule(proj=1, max_group=4))])
+def test_groups_are_bit_identical_to_the_code_before(name, rule):
+    g, alpha, colours, mass, region = fruit_level()
+    ids = lod_groups.group_ids(g.positions, g.log_scales, g.rotations, alpha, colours, mass, len(g) // 3, rule,
+                               region=region)
+    assert digest(ids) == BEFORE[name]
+
+
+def test_neighbours_and_cost_tree_are_bit_identical_to_the_code_before():
+    g = fruit()
+    p = g.positions.astype(np.float64)
+    assert digest(*lod_groups.neighbour_edges(p - p.mean(axis=0), 8)) == BEFORE["edges"]
+    tiles = lod.build_tiles(g, max_leaf_splats=1000, reduction=2.0, merge="cost")
+    assert digest(*[a for t in tiles for a in (t.gaussians.positions, t.gaussians.opacity_logits,
+                                               t.gaussians.log_scales)]) == BEFORE["tree"]
+
+
+def test_blocks_change_no_neighbour_and_no_cost():
+    g, alpha, colours, mass, _ = fruit_level()
+    p = g.positions.astype(np.float64)
+    whole = lod_groups.neighbour_edges(p, 8, block=len(p))
+    for a, b in zip(whole, lod_groups.neighbour_edges(p, 8, block=999), strict=True):
+        assert np.array_equal(a, b)
+    i, j = whole
+    assert len(i) > 8 * len(p) // 2 and np.all(i < j)
+    # group_ids' keys: the same edges, distinct and sorted, at any block size
+    keys = np.unique(i * len(p) + j)
+    for block in (len(p), 999):
+        assert np.array_equal(lod_groups.neighbour_keys(p, 8, block=block), keys)
+    cov = lod_groups.covariances6(g.rotations, g.log_scales)
+    for rule in (lod.COST_RULE, GroupRule()):
+        one = lod_groups.edge_costs(p, cov, alpha, colours, mass, i, j, rule, block=len(i))
+        assert np.all(np.isfinite(one)) and np.all(one >= 0) and one.max() > 0
+        assert np.array_equal(one, lod_groups.edge_costs(p, cov, alpha, colours, mass, i, j, rule, block=1000))
+
+
+def test_cheapest_share_counts_folded_rows_as_their_edges():
+    rng = np.random.default_rng(3)
+    i, j = rng.integers(0, 50, 300), rng.integers(50, 100, 300)
+    cost = rng.integers(0, 40, 300).astype(np.float64)  # ties included
+    mult = rng.integers(1, 4, 300)
+    for take in (1, 20, 100, 1000):
+        folded = lod_groups._cheapest_share(i, j, cost, take, mult)
+        # The same rows as the expanded edges (every row repeated mult times) keep, de-duplicated.
+        ri, rj, rc = (np.repeat(a, mult) for a in (i, j, cost))
+        ei, ej, ec = lod_groups._cheapest_share(ri, rj, rc, take)
+        thr = ec.max()
+        assert np.array_equal(folded[2], cost[cost <= thr]) and len(ec) == int(mult[cost <= thr].sum())
+        assert np.array_equal(folded[0], i[cost <= thr]) and np.array_equal(folded[1], j[cost <= thr])
+
+
+@pytest.mark.parametrize("n", [2, 3, 17, 1000])
+def test_neighbour_keys_break_distance_ties_as_neighbour_edges(n):
+    """On an integer lattice with repeated points nearly every distance ties: neighbour_keys (a partition) keeps
+    the same neighbours as neighbour_edges (a stable sort: ties to the lower id)."""
+    rng = np.random.default_rng(n)
+    p = rng.integers(0, 4, (n, 3)).astype(np.float64)
+    i, j = lod_groups.neighbour_edges(p, 8, block=64)
+    assert np.array_equal(lod_groups.neighbour_keys(p, 8, block=64), np.unique(i * n + j))
