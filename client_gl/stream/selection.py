@@ -134,6 +134,20 @@ def _split(planes: np.ndarray) -> np.ndarray:
     return np.concatenate([np.maximum(n, 0.0), np.minimum(n, 0.0)], axis=1)
 
 
+def refinement_level_step(reduction: float) -> float:
+    """The refinement key's step per tree level (see refinement_keys): log2 of reduction^(1/2)."""
+    return 0.5 * math.log2(max(reduction, 1.0 + 1e-9))
+
+
+def refinement_keys(level: np.ndarray, distance: np.ndarray, sse: np.ndarray, level_step: float) -> np.ndarray:
+    """select's refinement key of these tiles (smallest refined first): level * level_step + log2(distance), and
+    -inf where the sse is not finite (the eye inside a tile's sphere: refine it first). One formula for select,
+    select_near and the compiled selection, which must order the loop and give the priorities bit for bit alike."""
+    with np.errstate(divide="ignore"):
+        key = level * level_step + np.log2(np.maximum(distance, 1e-30))
+    return np.where(np.isfinite(sse), key, -INF)
+
+
 def _dot3(v: np.ndarray, w: np.ndarray) -> np.ndarray:
     """(T,) rows of v (T, 3) dotted with w (3,), term by term (the same bits over any subset of rows)."""
     return v[:, 0] * w[0] + v[:, 1] * w[1] + v[:, 2] * w[2]
@@ -196,7 +210,7 @@ class PartialView:
         self._basis = _basis(cam)
         self._planes = frustum_planes(cam, 1.0, self._basis)
         self.wide_frustum = (a, cam, self._basis, opts.prefetch_margin)
-        self.level_step = 0.5 * math.log2(max(reduction, 1.0 + 1e-9))  # select's refinement key per level
+        self.level_step = refinement_level_step(reduction)
         n = len(a.parent)
         self.sse, self.radius_px, self.distance = np.empty(n), np.empty(n), np.empty(n)
         self.visible, self.area_px = np.zeros(n, bool), np.zeros(n)
@@ -267,9 +281,7 @@ def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: Sel
     # keeps the cut close to one level across the view, finer where the view is nearer (measured against error
     # removed per byte, sse x area / added cost, which refined the nearest tiles to their leaves first: a median
     # 1.0 dB better on the real scenes it was not chosen on; BENCHMARKS.md, "LOD against peers").
-    with np.errstate(divide="ignore"):
-        key = a.level * (0.5 * math.log2(max(reduction, 1.0 + 1e-9))) + np.log2(np.maximum(view.distance, 1e-30))
-    prio = np.where(np.isfinite(view.sse), key, -INF).tolist()  # the eye inside a tile's sphere: refine it first
+    prio = refinement_keys(a.level, view.distance, view.sse, refinement_level_step(reduction)).tolist()
     kid_cost_l, kid_splats_l = kid_cost.tolist(), kid_splats.tolist()
     visible_l = visible.tolist()
 
@@ -549,9 +561,7 @@ class _NearSet:
             threshold[self.was_refined[at]] = self.low
         cand = a.has_children[at] & vis & (sse > threshold)
         self.candidate += cand.tolist()
-        with np.errstate(divide="ignore"):
-            key = a.level[at] * view.level_step + np.log2(np.maximum(view.distance[at], 1e-30))
-        prio = np.where(np.isfinite(sse), key, -INF)
+        prio = refinement_keys(a.level[at], view.distance[at], sse, view.level_step)
         self.prio += prio.tolist()
         self.tiles_a = np.concatenate([self.tiles_a, at])
         self.prio_a = np.concatenate([self.prio_a, prio])

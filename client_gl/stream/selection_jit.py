@@ -31,6 +31,7 @@ from client_gl.stream.selection import (
     Selection,
     SelectionOptions,
     _split,
+    refinement_keys,
     select_near_heap,
 )
 from splatstream.camera import Camera
@@ -317,11 +318,9 @@ def select_near_compiled(a: TileArrays, view: PartialView, cost: np.ndarray, roo
     before = int(np.count_nonzero(known))
     level, step = a.level, view.level_step
 
-    def keys(m: int) -> None:  # the new candidates' keys, as _NearSet.add computes them (numpy's log2)
+    def keys(m: int) -> None:  # the new candidates' keys (numpy's log2)
         at = pending[:m]
-        with np.errstate(divide="ignore"):
-            key = level[at] * step + np.log2(np.maximum(distance[at], 1e-30))
-        prio[at] = np.where(np.isfinite(sse[at]), key, -INF)
+        prio[at] = refinement_keys(level[at], distance[at], sse[at], step)
 
     m = _seed(tiles, 1 + len(direct), g, kids, known, sse, visible, radius_px, area_px, distance, cand, pending)
     keys(m)
