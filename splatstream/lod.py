@@ -728,18 +728,18 @@ def build_subtree(g: Gaussians, index: np.ndarray, shape: TreeShape, level: int 
                 level_tiles.append((tid, child_ids, first, end))
             groups: list = [None] * len(level_tiles)
             sets: list = [None] * len(level_tiles)
+            member_masses = [np.concatenate([masses.pop(c) for c in kids]) for _, kids, _, _ in level_tiles]
             if merge == "cost":  # one grouping over the whole level (the tiles as regions), then merged per tile
                 # (the members and masses gathered once: merge_tile takes the same sets)
                 sets = [tile_members(lvl, [tiles[c] for c in kids], first, end)
                         for _, kids, first, end in level_tiles]
-                groups = level_cost_groups(sets, [np.concatenate([masses[c] for c in kids])
-                                                  for _, kids, _, _ in level_tiles],
-                                           [shape.target(len(m)) for m in sets], shape.max_leaf_splats)
+                groups = level_cost_groups(sets, member_masses, [shape.target(len(m)) for m in sets],
+                                           shape.max_leaf_splats)
             for i, ((tid, child_ids, first, end), grp) in enumerate(zip(level_tiles, groups, strict=True)):
                 jobs.append(pool.submit(merge_tile, lvl, tid, child_ids, [tiles[c] for c in child_ids],
-                                        np.concatenate([masses.pop(c) for c in child_ids]),
-                                        [represented_by.pop(c) for c in child_ids], first, end, grp, sets[i]))
-                sets[i] = None  # the job holds it now; merge_tile frees it after the merge
+                                        member_masses[i], [represented_by.pop(c) for c in child_ids], first, end,
+                                        grp, sets[i]))
+                sets[i] = member_masses[i] = None  # the job holds them now; merge_tile frees them after the merge
             for job in jobs:
                 tile, merged_mass, rep = job.result()
                 tiles[tile.id] = tile

@@ -220,7 +220,7 @@ class TileArrays:
     @functools.cached_property
     def box_corners(self) -> np.ndarray:
         """(T, 6) every box as [max, min]: the frustum test's positive vertex in one product."""
-        return np.ascontiguousarray(np.concatenate([self.box_max, self.box_min], axis=1))
+        return _box_corners(self.box_max, self.box_min)
 
     @functools.cached_property
     def has_parent(self) -> np.ndarray:
@@ -248,7 +248,7 @@ class TileArrays:
 
     @functools.cached_property
     def splats_f64(self) -> np.ndarray:
-        return self.splats.astype(np.float64)
+        return _splats_f64(self.splats)
 
 
 @dataclass(frozen=True)
@@ -484,11 +484,19 @@ class _GrowingRows:
             k = len(p["ids"])
             for name in ("parent", *_ROW_NAMES):
                 buf[name][n:n + k] = p[name]
-            buf["box_corners"][n:n + k, :3] = p["box_max"]  # TileArrays.box_corners: [max, min]
-            buf["box_corners"][n:n + k, 3:] = p["box_min"]
-            buf["splats_f64"][n:n + k] = p["splats"]
+            buf["box_corners"][n:n + k] = _box_corners(p["box_max"], p["box_min"])
+            buf["splats_f64"][n:n + k] = _splats_f64(p["splats"])
             n += k
         self.n = n
+
+
+def _box_corners(box_max: np.ndarray, box_min: np.ndarray) -> np.ndarray:
+    """TileArrays.box_corners of these rows (one formula for the cached array and the rows it grows by)."""
+    return np.ascontiguousarray(np.concatenate([box_max, box_min], axis=1))
+
+
+def _splats_f64(splats: np.ndarray) -> np.ndarray:
+    return splats.astype(np.float64)
 
 
 _ROW_NAMES = ("ids", "level", "splats", "box_min", "box_max", "sphere_center", "sphere_radius", "geometric_error",
