@@ -34,7 +34,7 @@ import numpy as np
 from .format.layout import morton_codes
 from .format.limits import MAX_LOG_SCALE, MIN_LOG_SCALE
 from .gaussians import SH_C0, Gaussians, normalize_quaternions, rotation_matrices
-from .lod_groups import GroupRule, grid_group_starts, group_ids, group_runs
+from .lod_groups import GroupRule, grid_group_starts, group_errors, group_ids, group_runs
 
 # Bounds and errors use this many standard deviations (the 3DGS rasteriser's cut-off and KHR "ellipse" kernel).
 EXTENT_SIGMAS = 3.0
@@ -72,7 +72,12 @@ MIN_LEAF_TILE_SPLATS = 1024
 # decided by cost across the scene (the level's total is the grid's). Pairs first, not groups of up to 4 from the
 # start: chosen on statue-angel and donut, where capping at 4 at once lost 0.7-1.7 dB on the donut (BENCHMARKS.md,
 # "LOD against peers", cost merge).
-LOD_MERGES = ("grid", "cost")
+# "auto" builds both groupings of every tile of a level, the grid at the count the cost merge gave the tile (so
+# the level's allocation is the cost merge's), and keeps the one whose merged splats are closer to their members
+# by choice_error (level_auto_groups). Neither grouping held on every scene: the cost merge gains on the donut,
+# guitar and winter_fountain and loses on flowers, biker's coarse levels and statue-st-peter at 50 % (BENCHMARKS.md,
+# "LOD against peers", per-tile choice).
+LOD_MERGES = ("grid", "cost", "auto")
 COST_RULE = GroupRule(proj=1, first_cap=2, max_group=4)
 Progress = Callable[[str, float], None]
 
@@ -306,6 +311,51 @@ def level_cost_groups(members: list[Gaussians], masses: list[np.ndarray], target
             order, starts = _group_starts(members[t].positions, cap)
         out[t] = (order, starts)
     return out
+
+
+def choice_error(members: Gaussians, ids: np.ndarray, blur: float) -> float:
+    """How far one tile's merged splats are from their members, to choose between groupings (level_auto_groups):
+    the squared L2 norm of the colour-premultiplied footprints projected along x, y and z (lod_groups.group_errors)
+    of the members against the splats the groups `ids` merge into, both drawn at the viewing blur `blur` (a
+    variance added to every axis, as the rasteriser's low-pass) and the merged opacity matched to the members'
+    shown coverage at that blur (finish_appearance's rule; the shown coverage also weighs the moments here)."""
+    with np.errstate(over="ignore"):  # a logit below -709: exp overflows to inf, alpha is exactly 0
+        alpha = 1.0 / (1.0 + np.exp(-members.opacity_logits.astype(np.float64)))
+    variances = np.exp(2.0 * members.log_scales.astype(np.float64)) + blur
+    shown = alpha * _coverage_area(members.log_scales, blur)
+    colours = 0.5 + SH_C0 * members.sh_dc.astype(np.float64)
+    return float(group_errors(members.positions, 0.5 * np.log(variances), members.rotations, alpha, colours,
+                              shown, ids, proj=True).sum())
+
+
+def _run_ids(order: np.ndarray, starts: np.ndarray, n: int) -> np.ndarray:
+    ids = np.empty(n, np.int64)
+    ids[order] = np.repeat(np.arange(len(starts)), np.diff(np.append(starts, n)))
+    return ids
+
+
+def level_auto_groups(members: list[Gaussians], masses: list[np.ndarray], targets: list[int], cap: int,
+                      blurs: list[float], rule: GroupRule = COST_RULE
+                      ) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[bool]]:
+    """The "auto" merge of one tree level (LOD_MERGES): the cost merge's groups (level_cost_groups), then per tile
+    the Morton grid at the same count, and the tile keeps whichever has the smaller choice_error at `blurs[t]`
+    (ties: the cost merge). The level's total and every tile's count are the cost merge's. Returns the groups
+    and, per tile, whether the grid was chosen."""
+    groups = level_cost_groups(members, masses, targets, cap, rule)
+    grid_chosen = [False] * len(members)
+    for t, (order, starts) in enumerate(groups):
+        n, k = len(members[t]), len(starts)
+        if n == 0 or k >= n:
+            continue
+        g_order, g_starts = _group_starts(members[t].positions, k)
+        if len(g_starts) != k:  # the grid can fall short of a count (too few cells to split): the cost merge
+            continue
+        cost_err = choice_error(members[t], _run_ids(order, starts, n), blurs[t])
+        grid_err = choice_error(members[t], _run_ids(g_order, g_starts, n), blurs[t])
+        if grid_err < cost_err:
+            groups[t] = (g_order, g_starts)
+            grid_chosen[t] = True
+    return groups, grid_chosen
 
 
 # ---------------------------------------------------------------------------------------------- tree shape
@@ -729,12 +779,17 @@ def build_subtree(g: Gaussians, index: np.ndarray, shape: TreeShape, level: int 
             groups: list = [None] * len(level_tiles)
             sets: list = [None] * len(level_tiles)
             member_masses = [np.concatenate([masses.pop(c) for c in kids]) for _, kids, _, _ in level_tiles]
-            if merge == "cost":  # one grouping over the whole level (the tiles as regions), then merged per tile
+            if merge != "grid":  # one grouping over the whole level (the tiles as regions), then merged per tile
                 # (the members and masses gathered once: merge_tile takes the same sets)
                 sets = [tile_members(lvl, [tiles[c] for c in kids], first, end)
                         for _, kids, first, end in level_tiles]
-                groups = level_cost_groups(sets, member_masses, [shape.target(len(m)) for m in sets],
-                                           shape.max_leaf_splats)
+                targets = [shape.target(len(m)) for m in sets]
+                if merge == "cost":
+                    groups = level_cost_groups(sets, member_masses, targets, shape.max_leaf_splats)
+                else:  # "auto": judged at the viewing scale of the children's error (0 above the leaves)
+                    blurs = [viewing_blur(max(tiles[c].geometric_error for c in kids))
+                             for _, kids, _, _ in level_tiles]
+                    groups, _ = level_auto_groups(sets, member_masses, targets, shape.max_leaf_splats, blurs)
             for i, ((tid, child_ids, first, end), grp) in enumerate(zip(level_tiles, groups, strict=True)):
                 jobs.append(pool.submit(merge_tile, lvl, tid, child_ids, [tiles[c] for c in child_ids],
                                         member_masses[i], [represented_by.pop(c) for c in child_ids], first, end,

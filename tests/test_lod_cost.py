@@ -224,3 +224,88 @@ def test_neighbour_keys_break_distance_ties_as_neighbour_edges(n):
     p = rng.integers(0, 4, (n, 3)).astype(np.float64)
     i, j = lod_groups.neighbour_edges(p, 8, block=64)
     assert np.array_equal(lod_groups.neighbour_keys(p, 8, block=64), np.unique(i * n + j))
+
+
+# The "auto" merge (lod.level_auto_groups): the cost merge's allocation, then per tile the cost merge's groups or
+# the Morton grid's at the same count, whichever choice_error judges closer to the tile's members.
+def test_choice_error_prefers_the_grouping_that_keeps_the_picture():
+    """Two far-apart pairs of coincident splats: merging each pair loses nothing, merging across the pairs blurs."""
+    members = cluster(4, (0, 0, 0), 0.0, 5, 0.0)
+    members.positions[2:] += np.float32(1.0)
+    members.sh_dc[:] = np.float32(0.5)
+    good, bad = np.array([0, 0, 1, 1]), np.array([0, 1, 0, 1])
+    for blur in (0.0, 0.01):
+        assert lod.choice_error(members, good, blur) < 1e-9 * lod.choice_error(members, bad, blur)
+
+
+def test_auto_merge_keeps_counts_and_chooses_per_tile_deterministically():
+    members, masses = two_tiles()
+    # A tile whose members lie on a regular lattice of equal splats: the grid's cells are exact there.
+    lattice = cluster(512, (9, 0, 0), 0.0, 4, 0.0)
+    axis = np.arange(8, dtype=np.float32) * 0.05
+    lattice.positions[:] = np.stack(np.meshgrid(axis, axis, axis, indexing="ij"), -1).reshape(-1, 3) + 9
+    members.append(lattice)
+    masses.append(lod.splat_mass(lattice))
+    targets, blurs = [200, 200, 256], [0.0, 0.0, 0.0]
+    cost = lod.level_cost_groups(members, masses, targets, cap=10_000)
+    auto, grid_chosen = lod.level_auto_groups(members, masses, targets, 10_000, blurs)
+    assert [len(s) for _, s in auto] == [len(s) for _, s in cost]  # the cost merge's allocation, exactly
+    for (order, starts), m, (co, cs), chose in zip(auto, members, cost, grid_chosen, strict=True):
+        assert np.array_equal(np.sort(order), np.arange(len(m)))  # still a partition of the tile's members
+        if chose:
+            go, gs = lod._group_starts(m.positions, len(cs))
+            assert np.array_equal(order, go) and np.array_equal(starts, gs)
+        else:
+            assert np.array_equal(order, co) and np.array_equal(starts, cs)
+    again, chosen_again = lod.level_auto_groups(members, masses, targets, 10_000, blurs)
+    assert chosen_again == grid_chosen
+    for (o1, s1), (o2, s2) in zip(auto, again, strict=True):
+        assert np.array_equal(o1, o2) and np.array_equal(s1, s2)
+
+
+@pytest.mark.parametrize("scene", ["fruit_drops_sh3.ply", "lod_tile_sh3_zero_rest.ply"])
+def test_auto_tree_on_real_scenes_is_whole_and_deterministic(scene):
+    g = read_gaussians_ply(real(scene))
+    chosen: list[list[bool]] = []
+    original = lod.level_auto_groups
+
+    def record(*args, **kwargs):
+        groups, grid_chosen = original(*args, **kwargs)
+        chosen.append(grid_chosen)
+        return groups, grid_chosen
+
+    lod.level_auto_groups = record
+    try:
+        auto = lod.build_tiles(g, max_leaf_splats=MAX_LEAF // 2, reduction=2.0, merge="auto")
+        first = [list(c) for c in chosen]
+        chosen.clear()
+        again = lod.build_tiles(g, max_leaf_splats=MAX_LEAF // 2, reduction=2.0, merge="auto")
+    finally:
+        lod.level_auto_groups = original
+    assert chosen == first  # the same choice for every tile
+    flat = [c for level in first for c in level]
+    assert any(flat) and not all(flat)  # real scenes: some tiles take the grid, others the cost merge
+    cost = lod.build_tiles(g, max_leaf_splats=MAX_LEAF // 2, reduction=2.0, merge="cost")
+    assert [t.children for t in auto] == [t.children for t in cost]  # the same tree shape
+    assert sum(len(t.gaussians) for t in auto if not t.children) == len(g)  # leaves: the originals, no holes
+    for t, u in zip(auto, again, strict=True):
+        assert np.array_equal(t.gaussians.positions, u.gaussians.positions)
+        assert np.array_equal(t.gaussians.opacity_logits, u.gaussians.opacity_logits)
+        assert t.geometric_error == u.geometric_error
+        for c in t.children:  # monotone errors and covering boxes: REPLACE never leaves holes
+            assert auto[c].geometric_error <= t.geometric_error
+            assert np.all(t.box_min <= auto[c].box_min) and np.all(t.box_max >= auto[c].box_max)
+    # The first merged level chooses on the same members as the cost merge, with the cost merge's counts.
+    leaf_parents = [t for t in auto if t.children and not auto[t.children[0]].children]
+    assert [len(t.gaussians) for t in leaf_parents] == [len(cost[t.id].gaussians) for t in leaf_parents]
+
+
+def test_encode_with_the_auto_merge_in_memory_and_refused_by_partitions(tmp_path):
+    path = str(real("fruit_drops_sh3.ply"))
+    auto = encode_file(path, tmp_path / "memory", lod_merge="auto", max_leaf_splats=1000, preset="low")
+    cost = encode_file(path, tmp_path / "cost", lod_merge="cost", max_leaf_splats=1000, preset="low")
+    assert auto.splats == 4721
+    assert [t.children for t in auto.tiles] == [t.children for t in cost.tiles]
+    assert sum(t.splats for t in auto.tiles) == sum(t.splats for t in cost.tiles)  # the cost merge's counts
+    with pytest.raises(UsageError, match="--lod-merge auto groups each LOD level over the whole scene"):
+        encode_file(path, tmp_path / "parts", lod_merge="auto", memory_per_worker=1 << 20, max_leaf_splats=1000)

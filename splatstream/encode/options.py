@@ -33,8 +33,10 @@ class EncodeOptions:
     # counts than 4x steps (BENCHMARKS.md, "LOD merges").
     reduction: float = 2.0
     # How each level's splats are grouped for merging (lod.LOD_MERGES, format_spec/lod.md 6): "grid" (a Morton grid
-    # per tile, every tile halved) or "cost" (groups by merge cost over the whole level, the count each tile keeps
-    # decided across the scene; in-process encodes only). Figures: BENCHMARKS.md, "LOD against peers".
+    # per tile, every tile halved), "cost" (groups by merge cost over the whole level, the count each tile keeps
+    # decided across the scene) or "auto" (the cost merge's counts, and per tile the cost merge's groups or the
+    # grid's, whichever is closer to the tile's members); cost and auto in-process encodes only. Figures:
+    # BENCHMARKS.md, "LOD against peers".
     lod_merge: str = "grid"
     # Manifest pages (format.md 6.1): a tree of more than `page_tiles` tiles (0: never) is written as a root
     # manifest of its top `page_levels` levels and pages of the next `page_levels` levels below each of its
