@@ -15,10 +15,15 @@ set -u
 [ -d /tmp/site/distributed ] || python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir \
   --target /tmp/site .whl/*.whl || exit 1
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
-# numba and llvmlite for the compiled selection (the `fast` extra): their wheels unpacked and packed as one
-# zstd tar in .nb/ (63 MB as wheels, over the carry's 64 MiB with .whl; 43 MB so)
-if [ -f .nb/numba_site.tar.zst ] && [ ! -d /tmp/site/numba ]; then
-  python3 -c "import sys, tarfile, zstandard; tarfile.open(fileobj=zstandard.ZstdDecompressor().stream_reader(open(sys.argv[1], 'rb')), mode='r|').extractall('/tmp/site')" .nb/numba_site.tar.zst || exit 1
+# numba and llvmlite for the compiled selection (the `fast` extra): their wheels unpacked, packed as one zstd tar
+# (43 MB; 63 MB as wheels) and split in two (.nb1/, .nb2/: `split -b 20000000 -d`), carried by two calls in a row
+# (the working tree and the carry make at most 64 MiB a call); the parts wait in /tmp/nbparts while the machine is warm
+mkdir -p /tmp/nbparts
+for d in .nb1 .nb2; do [ -d $d ] && cp $d/* /tmp/nbparts/; done
+if [ ! -d /tmp/site/numba ] && ls /tmp/nbparts/nbpart.00 /tmp/nbparts/nbpart.01 /tmp/nbparts/nbpart.02 >/dev/null 2>&1; then
+  cat /tmp/nbparts/nbpart.* > /tmp/nb.tar.zst
+  [ "$(sha256sum /tmp/nb.tar.zst | cut -c1-64)" = "$(cat /tmp/nbparts/sha256)" ] || { echo "numba parts: checksum differs"; exit 1; }
+  python3 -c "import sys, tarfile, zstandard; tarfile.open(fileobj=zstandard.ZstdDecompressor().stream_reader(open(sys.argv[1], 'rb')), mode='r|').extractall('/tmp/site')" /tmp/nb.tar.zst || exit 1
 fi
 export NUMBA_CACHE_DIR=/tmp/numba_cache
 python3 -c "import numpy, numba; print('numpy', numpy.__version__, 'numba', numba.__version__)" 2>&1 | tail -1
