@@ -8,6 +8,10 @@ distance of the members to the merged centre over their mean variance), the colo
 merged opacity (mass / area, before the viewing-scale step). Numbers in BENCHMARKS.md ("per-tile choice").
 
     PYTHONPATH=. python bench/probe_lod_group_stats.py bench/peers_cache/flowers/full.ply cost
+
+With `choice` instead of a merge: the first merged level only, grouped as `auto` does (lod.level_auto_groups: the
+cost merge's groups, the grid at the same count per tile), and per tile log10 of the cost merge's choice_error over
+the grid's (no blur: the children are leaves), with the level's sum.
 """
 import sys
 import time
@@ -76,5 +80,30 @@ def main(path: str, merge: str) -> None:
               + f" | {np.median(cat['alpha']):.2f}")
 
 
+def first_level_choice(path: str) -> None:
+    g = sio.read_gaussians(path)
+    shape = lod.TreeShape.of(len(g), 16384, 2.0)
+    leaves = lod._kd_leaves(g.positions, np.arange(len(g)), shape.depth - shape.kd_depths[0], lambda *a: None)
+    span = 2 ** shape.kd_depths[shape.leaf_level - 1]
+    per = len(leaves) // span
+    sets = [lod._permute(g, np.concatenate(leaves[j * per:(j + 1) * per])) for j in range(span)]
+    masses = [lod.splat_mass(m) for m in sets]
+    groups = lod.level_cost_groups(sets, masses, [shape.target(len(m)) for m in sets], shape.max_leaf_splats)
+    cost, grid = [], []
+    for m, (order, starts) in zip(sets, groups, strict=True):
+        g_order, g_starts = lod._group_starts(m.positions, len(starts))
+        if len(g_starts) != len(starts):
+            continue
+        cost.append(lod.choice_error(m, lod._run_ids(order, starts, len(m)), 0.0))
+        grid.append(lod.choice_error(m, lod._run_ids(g_order, g_starts, len(m)), 0.0))
+    r = np.log10(np.array(cost) / np.array(grid))
+    print(f"{path}: log10(cost / grid) per tile p10/p50/p90 "
+          + "/".join(f"{np.percentile(r, x):+.2f}" for x in (10, 50, 90))
+          + f", level sum {np.log10(sum(cost) / sum(grid)):+.3f}, grid chosen on {np.mean(r > 0):.2f} of the tiles")
+
+
 if __name__ == "__main__":
-    main(sys.argv[1], sys.argv[2])
+    if sys.argv[2] == "choice":
+        first_level_choice(sys.argv[1])
+    else:
+        main(sys.argv[1], sys.argv[2])
