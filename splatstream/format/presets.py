@@ -6,8 +6,9 @@ path resolve a preset name here, so they agree on what a preset means.
 from __future__ import annotations
 
 from ..errors import UsageError
+from .planes import PALETTE_ATTRIBUTES
 from .steps import TileStep
-from .texformats import FORMATS, VALUE_FORMATS, get_format
+from .texformats import FORMATS, PALETTE_FORMATS, VALUE_FORMATS, get_format
 
 ATTRIBUTES = ("position", "rotation", "scale", "color", "sh")
 
@@ -202,6 +203,9 @@ def resolve_formats(preset: str, overrides: dict[str, str] | None = None) -> dic
         if attr == "color" and FORMATS[fmt].components < 4:
             raise UsageError(f"color holds SH0 and opacity and needs a 4-component format; {fmt} has 3 "
                              f"(use one of {', '.join(n for n, f in FORMATS.items() if f.components == 4)})")
+        if fmt in PALETTE_FORMATS and attr not in PALETTE_ATTRIBUTES:
+            raise UsageError(f"{fmt} (palette indices, format.md 4.3.2) holds only {' and '.join(PALETTE_ATTRIBUTES)}, "
+                             f"not {attr}")
         formats[attr] = fmt
     return formats
 

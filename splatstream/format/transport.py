@@ -60,6 +60,7 @@ FIELD_LAYOUTS: dict[str, tuple[str, int, tuple[tuple[int, int], ...]]] = {
     "norm16x4": ("<u2", 4, ((0, 16),)),
     "norm565": ("<u2", 1, ((0, 5), (5, 6), (11, 5))),
     "index16": ("<u2", 1, ((0, 16),)),
+    "pal8x4": ("<u1", 4, ((0, 8),)),
 }
 # Unsigned type that holds one whole texel, for moving texels as single elements.
 _TEXEL_UINT = {4: np.dtype("<u4"), 8: np.dtype("<u8"), 2: np.dtype("<u2")}

@@ -25,14 +25,16 @@ from ..layout import ALIGN, BLOCK, CHUNK_SIZE
 from ..names import MANIFEST_NAME, SHA256_HEX_RE, payload_name
 from ..planes import (
     MAX_SH_DEGREE,
+    PALETTE_ATTRIBUTES,
     RANGE_DTYPE_NAMES,
     SH_INDEX_FORMAT,
     band_plane,
     chunks_for,
     group_planes,
     groups_for_degree,
+    palette_shape,
 )
-from ..texformats import FORMATS, VALUE_FORMATS
+from ..texformats import FORMATS, PALETTE_FORMATS, VALUE_FORMATS
 from ..transport import FIELD_LAYOUTS, FIELDS1, content_bounds
 from .model import (
     AttributeSize,
@@ -57,9 +59,11 @@ from .versions import (
     FORMAT_NAME,
     FORMAT_VERSION,
     FORMATS_1_3,
+    FORMATS_1_6,
     VERSION_1_3,
     VERSION_1_4,
     VERSION_1_5,
+    VERSION_1_6,
 )
 from .wire import CHECKSUM_KEY, unpack_manifest, verify_checksum
 
@@ -413,7 +417,9 @@ def _expected_sections(group: str, codebook: bool, format_items: tuple, chunks: 
         else:
             fmt = formats[spec.attribute]
         out.append((spec.name, {"kind": "texels", "format": fmt, "layers": spec.layers}))
-        if spec.range_dtype:
+        if fmt in PALETTE_FORMATS:  # format.md 4.3.2: the palettes stand where the ranges would
+            out.append((spec.palette_name, {"kind": "range", "dtype": "f32", "shape": list(palette_shape(spec))}))
+        elif spec.range_dtype:
             out.append((spec.range_name, {"kind": "range", "dtype": RANGE_DTYPE_NAMES[spec.range_dtype],
                                           "shape": [chunks, 2, spec.layers, spec.components]}))
     return out
@@ -600,6 +606,10 @@ def _formats(d: dict, version: tuple[int, int], source: str, strict: bool) -> di
     for a, f in formats.items():
         if f in FORMATS_1_3 and version < VERSION_1_3:
             _fail(source, "formats", a, _newer_than(version, f, VERSION_1_3))
+        if f in FORMATS_1_6 and version < VERSION_1_6:
+            _fail(source, "formats", a, _newer_than(version, f, VERSION_1_6))
+        if f in PALETTE_FORMATS and a not in PALETTE_ATTRIBUTES:
+            _fail(source, "formats", a, f"{f} holds palette indices of {' or '.join(PALETTE_ATTRIBUTES)} only")
     if FORMATS[formats["color"]].components < 4:
         _fail(source, "formats", "color", f"{formats['color']} has 3 components; color needs 4")
     return formats
@@ -611,7 +621,7 @@ def _codebook(d: dict, version: tuple[int, int], formats: dict[str, str], sh_deg
         return None
     c = _keys(d["sh_codebook"], ("entries", "format", "index_format", "groups"), source, "sh_codebook", strict)
     entries = _int(c, "entries", source, "sh_codebook", 1, 65536)
-    cb_format = _str(c, "format", source, "sh_codebook", VALUE_FORMATS)
+    cb_format = _str(c, "format", source, "sh_codebook", tuple(f for f in VALUE_FORMATS if f not in PALETTE_FORMATS))
     if cb_format in FORMATS_1_3 and version < VERSION_1_3:
         _fail(source, "sh_codebook", "format", _newer_than(version, cb_format, VERSION_1_3))
     index_format = _str(c, "index_format", source, "sh_codebook", (SH_INDEX_FORMAT,))
