@@ -23,13 +23,14 @@ import zstandard
 
 from ..errors import FormatError
 from .codec import EncodedPlane
+from .keyed import MORTON1, MORTON_FORMATS, morton_content, unfilter_morton
 from .layout import ALIGN
 from .limits import MAX_ABS_POSITION, MAX_ABS_SH, MAX_LOG_SCALE, MIN_LOG_SCALE
 from .manifest import PayloadEntry, Section
 from .names import payload_name, sha256_hex
 from .planes import RANGE_DTYPE_NAMES, group_planes, palette_shape
 from .texformats import PALETTE_FORMATS, TEXEL_DTYPES
-from .transport import filter_texels, shuffle, shuffle_filter, unfilter_texels, unshuffle
+from .transport import filter_texels, shuffle, shuffle_filter, trial_size, unfilter_texels, unshuffle
 
 WORKER_MODE_MAX_BYTES = 32 << 20
 # zstd level of the encoder's payloads. With a zstd block per byte plane, level 1 is as small as level 3 or smaller
@@ -66,7 +67,10 @@ def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level:
 
     for p in planes:
         layers = p.spec.layers
-        filt, parts = filter_texels(p.layers, p.format, p.width, p.height, layers, level, transport)
+        if transport == "fields" and p.format in MORTON_FORMATS and layers == 1:
+            filt, parts = _keyed_or_fields(p, level)
+        else:
+            filt, parts = filter_texels(p.layers, p.format, p.width, p.height, layers, level, transport)
         add(p.spec.name, "texels", filt, parts, format=p.format, width=p.width, height=p.height, layers=layers)
         if p.palette is not None:  # a palette plane (format.md 4.3.2): its palettes stand where its ranges would
             palette = np.ascontiguousarray(p.palette, "<f4")
@@ -111,6 +115,17 @@ def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level:
     sha = digest.hexdigest()
     return PayloadEntry(payload_name(sha), sha, written, int(position), sum(s.gpu_size for s in sections),
                         tuple(sections))
+
+
+def _keyed_or_fields(p: EncodedPlane, level: int) -> tuple[str, list]:
+    """A one-layer section of a MORTON_FORMATS format stored as `morton1` (format.md 5.4) or as filter_texels
+    chooses, whichever compresses smaller (tried at the trial level of transport.py, on the whole layer)."""
+    layer = np.ravel(next(iter(p.layers)) if not isinstance(p.layers, list) else p.layers[0]).view(np.uint8)
+    filt, parts = filter_texels([layer], p.format, p.width, p.height, 1, level, "fields")
+    keyed = morton_content(layer, p.width, p.height)
+    if trial_size(keyed, level) < trial_size(parts, level):
+        return MORTON1, keyed
+    return filt, parts
 
 
 def pack_payload(planes: list[EncodedPlane], level: int = DEFAULT_ZSTD_LEVEL,
@@ -231,8 +246,11 @@ def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, so
         if between is not None:
             between()
         s = entry.section(spec.name)
-        layers = unfilter_texels(buf[s.offset:s.offset + s.size], s.filter, s.format, s.width, s.height,
-                                 spec.layers, f"{source} section {s.name}")
+        if s.filter == MORTON1:  # format.md 5.4 (the manifest checked its format, layers and size)
+            layers = [unfilter_morton(buf[s.offset:s.offset + s.size], s.width, s.height)]
+        else:
+            layers = unfilter_texels(buf[s.offset:s.offset + s.size], s.filter, s.format, s.width, s.height,
+                                     spec.layers, f"{source} section {s.name}")
         if s.format in FLOAT_TEXEL_FORMATS:
             _check_float_texels(layers, s, source)
         ranges = palette = None

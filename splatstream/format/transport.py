@@ -427,6 +427,12 @@ def _zstd_size(parts: list, level: int) -> int:
     return size + len(c.flush())
 
 
+def trial_size(parts: list, level: int) -> int:
+    """Compressed size of `parts` as the encoder's transport trials measure it (zstd at `level`, at most
+    TRIAL_LEVEL_MAX, a block per part)."""
+    return _zstd_size(parts, min(level, TRIAL_LEVEL_MAX))
+
+
 def filter_texels(layers: Iterable[np.ndarray], fmt: str, width: int, height: int, count: int, level: int = 1,
                   transport: str = "fields") -> tuple[str, list[bytes | np.ndarray]]:
     """A texels section's stored form: (filter name, parts to write in order), layers taken one at a time as the

@@ -21,6 +21,7 @@ import operator
 from typing import NoReturn
 
 from ...errors import FormatError
+from ..keyed import MORTON1, MORTON_FORMATS
 from ..layout import ALIGN, BLOCK, CHUNK_SIZE
 from ..names import MANIFEST_NAME, SHA256_HEX_RE, payload_name
 from ..planes import (
@@ -75,7 +76,7 @@ MAX_PAGE_BYTES = 64 << 20  # a page is a manifest's top levels' size (format.md 
 PAGE_FORMAT = "splatstream-page"
 MAX_SECTIONS = 64
 CHUNK_ORDER_NAMES = ("morton", "luminance", "input")
-FILTERS_DOC = "none, shuffleN or, for texels, fields1"
+FILTERS_DOC = "none, shuffleN or, for texels, fields1 or morton1"
 ATTRIBUTES = ("position", "rotation", "scale", "color", "sh")
 
 # Keys of each map, in the order they are read (a missing one is named in this order).
@@ -217,6 +218,11 @@ def _stored_size_rule(fmt: str, width: int, height: int, layers: int, filt: str)
     texture's bytes for none/shuffleN, a size within what the fields1 layout allows (format.md 5.2; the exact size
     depends on modes only the bytes hold)."""
     gpu = texels_size(fmt, width, height, layers)
+    if filt == MORTON1:  # format.md 5.4: exactly the texels' size
+        if fmt not in MORTON_FORMATS or layers != 1:
+            return gpu, gpu, gpu, f"morton1 applies to one layer of {', '.join(MORTON_FORMATS)} only, not {layers} " \
+                f"of {fmt}"
+        return gpu, gpu, gpu, None
     if filt != FIELDS1:
         return gpu, gpu, gpu, None
     if fmt not in FIELD_LAYOUTS:
@@ -334,7 +340,8 @@ def _section(s, i: int, expected: dict, expect: list, raw_bytes: int, chunks: in
               "payload")
     if type(filt) is not str:
         _str(s, "filter", source, _spath(at))
-    if filt not in _FILTER_ELEMENTS and not (filt == FIELDS1 and kind == "texels") and not _odd_shuffle(filt):
+    texel_filter = filt in (FIELDS1, MORTON1) and kind == "texels"
+    if filt not in _FILTER_ELEMENTS and not texel_filter and not _odd_shuffle(filt):
         _fail(source, _spath(at), "filter", f"unknown filter {filt!r} (expected {FILTERS_DOC})")
     sec = _new(Section)
     if kind == "texels":
