@@ -44,10 +44,8 @@ def test_every_attribute_round_trips_within_one_step(scene, preset, overrides, t
         pytest.importorskip("etcpak")
     opts = EncodeOptions(preset=preset, overrides=overrides, lod=False)
     m = encode_gaussians(g, tmp_path / "s", opts)
-    # 1.3 where a texel format of 1.3 is used (norm16x4, or norm9x3: the override or medium-low-9bit's positions);
-    # 1.6 where the encoder stored norm16x4 positions as morton1 (format.md 5.4)
-    keyed = any(s.filter == "morton1" for s in m.tiles[0].groups["base"].sections)
-    assert m.version == ((1, 6) if keyed else (1, 3) if {"norm16x4", "norm9x3"} & set(m.formats.values()) else (1, 2))
+    # 1.3 where a texel format of 1.3 is used (norm16x4, or norm9x3: the override or medium-low-9bit's positions)
+    assert m.version == ((1, 3) if {"norm16x4", "norm9x3"} & set(m.formats.values()) else (1, 2))
     assert all(m.formats[a] == f for a, f in overrides.items())
     g = g.subset(tile_order(g, plan_encode(g, opts).context))  # the order the encoder stored
     tile = m.tiles[0]

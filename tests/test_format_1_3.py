@@ -82,13 +82,11 @@ def scene_1_3(request, tmp_path_factory):
 
 def test_scene_with_1_3_positions_is_1_3_and_decodes_within_one_step(scene_1_3):
     fmt, g, out, m = scene_1_3
-    # norm16x4 positions are stored as morton1 (format.md 5.4, version 1.6: tests/test_keyed.py), norm9x3 as fields1
-    version, filt = ((1, 6), "morton1") if fmt == "norm16x4" else ((1, 3), "fields1")
-    assert m.version == version and m.formats["position"] == fmt
+    assert m.version == (1, 3) and m.formats["position"] == fmt
     d = read_manifest_dict(out)
-    assert d["version"] == list(version)
+    assert d["version"] == [1, 3]
     section = next(s for s in d["tiles"][0]["groups"]["base"]["sections"] if s["name"] == "position")
-    assert section["format"] == fmt and section["filter"] == filt
+    assert section["format"] == fmt and section["filter"] == "fields1"
     dec = decode_scene(out)
     # every decoded position within one step of the scene's extent (a chunk's range is inside it), plus f32 rounding,
     # of the input position it came from (nearest input point: the encoder reorders splats)

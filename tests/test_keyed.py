@@ -42,13 +42,13 @@ def test_any_texels_round_trip_exactly(high):
 def keyed_scene(tmp_path_factory):
     g = read_gaussians(real("statues/massa.sog")).subset(np.arange(6000))
     out = tmp_path_factory.mktemp("keyed") / "s"
-    m = encode_gaussians(g, out, EncodeOptions(preset="medium-low-12bit", lod=False))
+    m = encode_gaussians(g, out, EncodeOptions(preset="medium-low-12bit", lod=False, transport="keyed"))
     plain = tmp_path_factory.mktemp("plain") / "s"
-    encode_gaussians(g, plain, EncodeOptions(preset="medium-low-12bit", lod=False, transport="shuffle"))
+    encode_gaussians(g, plain, EncodeOptions(preset="medium-low-12bit", lod=False))
     return g, out, m, plain
 
 
-def test_the_encoder_stores_sorted_keys_as_morton1_and_writes_1_6(keyed_scene):
+def test_the_keyed_transport_stores_sorted_keys_as_morton1_and_writes_1_6(keyed_scene):
     g, out, m, plain = keyed_scene
     sections = {s.name: s for s in m.tiles[0].groups["base"].sections}
     assert sections["position"].filter == "morton1" and m.version == (1, 6)
@@ -66,8 +66,10 @@ def test_the_encoder_stores_sorted_keys_as_morton1_and_writes_1_6(keyed_scene):
     keys = morton_keys(codes).astype(np.int64)
     full = n // CHUNK_SIZE * CHUNK_SIZE
     assert np.all(np.diff(keys[:full].reshape(-1, CHUNK_SIZE), axis=1) >= 0)
-    assert m.attributes["position"].disk_bytes < 0.97 * read_manifest_dict(plain)["attributes"]["position"][
-        "disk_bytes"]
+    plain_m = read_manifest_dict(plain)
+    assert plain_m["version"] == [1, 3]  # the default transport (fields) keeps norm16x4 scenes as they were
+    assert all(s["filter"] != "morton1" for s in plain_m["tiles"][0]["groups"]["base"]["sections"])
+    assert m.attributes["position"].disk_bytes < 0.97 * plain_m["attributes"]["position"]["disk_bytes"]
 
 
 def test_morton1_applies_to_one_norm16x4_layer_only(keyed_scene, tmp_path):

@@ -110,10 +110,9 @@ def scene_12bit(tmp_path_factory):
     return g, out, m
 
 
-def test_preset_scene_is_1_6_and_decodes_on_its_steps(scene_12bit):
+def test_preset_scene_is_1_3_and_decodes_on_its_steps(scene_12bit):
     g, out, m = scene_12bit
-    # 1.3 for norm16x4, 1.6 for its positions stored as morton1 (format.md 5.4)
-    assert m.version == (1, 6) and m.formats["position"] == "norm16x4" and m.preset == "medium-low-12bit"
+    assert m.version == (1, 3) and m.formats["position"] == "norm16x4" and m.preset == "medium-low-12bit"
     dec = decode_scene(out)
     dist = np.abs(dec.positions[:, None, :] - g.positions[None, :, :]).max(axis=2)
     nearest = dist.argmin(axis=1)
@@ -145,7 +144,7 @@ def test_medium_12bit_is_medium_with_positions_on_one_12_bit_tile_step(tmp_path)
         errs[preset] = np.abs(dec.positions - g.positions[dist.argmin(axis=1)]).max()
         formats[preset] = {a: f for a, f in m.formats.items() if a != "position"}
         if preset == "medium-12bit":
-            assert m.version == (1, 6) and m.formats["position"] == "norm16x4" and m.preset == "medium-12bit"
+            assert m.version == (1, 3) and m.formats["position"] == "norm16x4" and m.preset == "medium-12bit"
     assert formats["medium-12bit"] == formats["medium"]
     lo, hi = g.positions.min(axis=0), g.positions.max(axis=0)
     assert 0 < errs["medium-12bit"] <= float((hi - lo).max()) / 4095

@@ -37,10 +37,10 @@ def splat_order(g: Gaussians, chunk_order: str) -> np.ndarray:
 def keyed_order(g: Gaussians, order: np.ndarray, ctx: TileContext) -> np.ndarray:
     """`order` with each chunk's splats re-sorted by the Morton key of their quantised position codes (the codes the
     position plane stores: same chunks, same ranges, same codes, in another order), so that the `morton1` coding
-    (format.md 5.4) stores a chunk as sorted keys. Only where the position format has one (MORTON_FORMATS), the
-    chunk order is `morton` and the transport `fields`; otherwise `order` as it is."""
+    (format.md 5.4) stores a chunk as sorted keys. Only with the transport `keyed`, where the position format has
+    one (MORTON_FORMATS) and the chunk order is `morton`; otherwise `order` as it is."""
     fmt = ctx.formats["position"]
-    if fmt not in MORTON_FORMATS or ctx.chunk_order != "morton" or ctx.transport != "fields" or len(order) < 2:
+    if fmt not in MORTON_FORMATS or ctx.chunk_order != "morton" or ctx.transport != "keyed" or len(order) < 2:
         return order
     spec = BASE_PLANES[0]
     plane = encode_plane(plane_values(g, spec), spec, fmt, order, step=ctx.steps.get("position"))

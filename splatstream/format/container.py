@@ -67,7 +67,7 @@ def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level:
 
     for p in planes:
         layers = p.spec.layers
-        if transport == "fields" and p.format in MORTON_FORMATS and layers == 1:
+        if transport == "keyed" and p.format in MORTON_FORMATS and layers == 1:
             filt, parts = _keyed_or_fields(p, level)
         else:
             filt, parts = filter_texels(p.layers, p.format, p.width, p.height, layers, level, transport)

@@ -1,7 +1,8 @@
 """The `morton1` coding of position texels sections (format_spec/format.md 5.4, version 1.6).
 
 A splat's order inside a chunk is free (format.md 3), so a set of 256 points costs less than a sequence of them:
-the encoder sorts each chunk by the 3D Morton key of its quantised position codes (jobs.keyed_order), and this
+the encoder (transport `keyed`) sorts each chunk by the 3D Morton key of its quantised position codes
+(jobs.keyed_order), and this
 coding stores, in slot order, the difference of consecutive keys (modulo 2^48) as six byte planes, low byte first,
 then the texels' fourth 16-bit component as two byte planes. Sorted keys inside a chunk differ by about the volume
 per point, where fields1's per-axis differences each carry the spacing between neighbours: on the statue scans at
@@ -87,9 +88,10 @@ def unfilter_morton(stored: np.ndarray, width: int, height: int) -> np.ndarray:
     """A morton1 content (exactly 8 bytes a texel, checked by the manifest) -> the layer's GPU bytes."""
     slots = width * height
     planes = np.frombuffer(stored, np.uint8).reshape(KEY_BYTES + 2, slots)
-    delta = np.zeros((slots, 8), np.uint8)
-    delta[:, :KEY_BYTES] = planes[:KEY_BYTES].T
-    key = np.cumsum(delta.view("<u8").reshape(-1), dtype=np.uint64)  # modulo 2^64; only bits 0-47 are read
+    delta = planes[0].astype(np.uint64)
+    for b in range(1, KEY_BYTES):
+        delta |= planes[b].astype(np.uint64) << np.uint64(8 * b)
+    key = np.cumsum(delta, dtype=np.uint64, out=delta)  # modulo 2^64; only bits 0-47 are read
     pieces = key.view("<u2").reshape(-1, 4)
     lanes = _PIECES[0][pieces[:, 0]]
     lanes |= _PIECES[1][pieces[:, 1]]

@@ -223,6 +223,17 @@ def step_attribute(key: str) -> str:
     return "sh" if key in ("sh1", "sh2", "sh3") else key
 
 
+# The transport a preset's payloads are written with when none is given (format/transport.py TRANSPORTS); "fields"
+# for every preset not named here. `keyed` (morton1 positions, format.md 5.4) measured 0.3 B/splat smaller on the
+# statue scans and about 10 % slower to decode (BENCHMARKS.md, issue 32): no preset uses it yet.
+PRESET_TRANSPORT: dict[str, str] = {}
+
+
+def preset_transport(preset: str, default: str) -> str:
+    """The transport an encode of `preset` uses when none is given (`default`: the encoder's)."""
+    return PRESET_TRANSPORT.get(preset, default)
+
+
 def preset_zstd_level(preset: str, default: int) -> int:
     """The zstd level an encode of `preset` uses when none is given (`default`: the encoder's)."""
     return PRESET_ZSTD_LEVEL.get(preset, default)

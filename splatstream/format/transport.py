@@ -44,9 +44,10 @@ MODE_RESERVED = 0x0E
 # shuffle on a band of the first layer (BAND_SLOTS, whole block rows).
 SAMPLE_SLOTS = 1 << 14
 BAND_SLOTS = 1 << 17
-# Transport choices of the encoder: "fields" (fields1 where it is smaller, format 1.2), "shuffle" (format 1.0/1.1
-# filters only, for old readers), "none" (stored as the GPU holds them).
-TRANSPORTS = ("fields", "shuffle", "none")
+# Transport choices of the encoder: "fields" (fields1 where it is smaller, format 1.2), "keyed" (as "fields", and
+# norm16x4 positions re-sorted inside chunks and stored as morton1 where smaller: format 1.6, format/keyed.py),
+# "shuffle" (format 1.0/1.1 filters only, for old readers), "none" (stored as the GPU holds them).
+TRANSPORTS = ("fields", "keyed", "shuffle", "none")
 
 # Field layout of each texel format fields1 applies to: (word dtype, words per texel, [(shift, bits)] low bits first).
 FIELD_LAYOUTS: dict[str, tuple[str, int, tuple[tuple[int, int], ...]]] = {
@@ -448,7 +449,7 @@ def filter_texels(layers: Iterable[np.ndarray], fmt: str, width: int, height: in
         return "none", [np.ravel(layer).view(np.uint8) for layer in it]
     if transport == "shuffle" or fmt not in FIELD_LAYOUTS:
         return shuffle_filter(element), [p for layer in it for p in shuffle_planes(layer, element)]
-    if transport != "fields":
+    if transport not in ("fields", "keyed"):
         raise ValueError(f"unknown transport {transport!r} (expected one of {', '.join(TRANSPORTS)})")
     first = np.ravel(next(it)).view(np.uint8)
     band, band_height = _band(first, fmt, width, height)
