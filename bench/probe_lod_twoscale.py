@@ -59,7 +59,11 @@ def tile_sse(t: lod.Tile, cam: Camera) -> float:
 
 
 def parse(variant: str) -> tuple[float, float, str]:
-    """'2' -> (2, 2, '2'); 'i1-4c2' -> (1, 4, '2'); 'i1-4ci' -> (1, 4, 'i'); 'i1-4c1' -> colour at 1 px."""
+    """'2' -> (2, 2, '2'); 'i1-4c2' -> (1, 4, '2'); 'i1-4ci' -> (1, 4, 'i'); 'i1-4c1' -> colour at 1 px;
+    't1-8' -> (1, 8, 't'): the far match modelled per tile (tile_model), nothing per splat."""
+    if variant.startswith("t"):
+        lo, hi = (float(x) for x in variant[1:].split("-"))
+        return lo, hi, "t"
     if not variant.startswith("i"):
         return float(variant), float(variant), variant
     pair, _, colour = variant[1:].partition("c")
@@ -79,7 +83,11 @@ def blend(trees: dict[float, list[lod.Tile]], ids: list[int], cam: Camera, varia
         f = 1.0 if not math.isfinite(s) else min(max(math.log(s / lo) / math.log(hi / lo), 0.0), 1.0)
         alpha = (1 - f) * a.opacities.astype(np.float64) + f * b.opacities.astype(np.float64)
         alpha = np.clip(alpha, 1e-7, 1 - 1e-7)
-        if colour == "i":
+        if colour == "t":  # the far end from the near one by two per-tile numbers (a manifest's worth of bytes)
+            ratio, shift = tile_model(a, b)
+            alpha = np.clip(a.opacities.astype(np.float64) * (1 + f * (ratio - 1)), 1e-7, 1 - 1e-7)
+            dc = a.sh_dc + f * shift
+        elif colour == "i":
             dc = (1 - f) * a.sh_dc + f * b.sh_dc
         else:
             dc = trees[float(colour)][tid].gaussians.sh_dc
@@ -87,6 +95,15 @@ def blend(trees: dict[float, list[lod.Tile]], ids: list[int], cam: Camera, varia
                       dc.astype(np.float32), a.sh_rest)
         parts.append(m)
     return Gaussians.concatenate(parts)
+
+
+def tile_model(near: Gaussians, far: Gaussians) -> tuple[float, np.ndarray]:
+    """A tile's far match from its near one without per-splat data: one opacity ratio (sum of the far opacities
+    over the near ones) and one base-colour shift (the opacity-weighted mean of far - near)."""
+    an, af = near.opacities.astype(np.float64), far.opacities.astype(np.float64)
+    ratio = float(af.sum() / max(an.sum(), 1e-12))
+    shift = ((far.sh_dc - near.sh_dc).astype(np.float64) * af[:, None]).sum(0) / max(af.sum(), 1e-12)
+    return ratio, shift
 
 
 def one_px(scenes: list[str], variants: list[str], reduction: float, out: str | None, at_px: float = 1.0) -> None:
@@ -102,7 +119,7 @@ def one_px(scenes: list[str], variants: list[str], reduction: float, out: str | 
     for name in scenes:
         g = read_gaussians_ply(real_path(name))
         pxs = sorted({p for v in variants for p in parse(v)[:2]}
-                     | {float(parse(v)[2]) for v in variants if parse(v)[2] != "i"})
+                     | {float(parse(v)[2]) for v in variants if parse(v)[2] not in "it"})
         trees = {p: build_at(g, p, 2000, reduction) for p in pxs}
         tiles = trees[pxs[0]]
         root = tiles[0]
@@ -219,7 +236,7 @@ def main() -> None:
         refs = list(np.load(os.path.join(args.cache_dir, name, f"ref_{lvp.camera_key(cams)}.npy")))
         g = read_gaussians(os.path.join(args.cache_dir, name, "full.ply"))
         pxs = sorted({p for v in args.variants for p in parse(v)[:2]}
-                     | {float(parse(v)[2]) for v in args.variants if parse(v)[2] != "i"})
+                     | {float(parse(v)[2]) for v in args.variants if parse(v)[2] not in "it"})
         t0 = time.process_time()
         trees = {p: build_at(g, p) for p in pxs}
         secs = time.process_time() - t0

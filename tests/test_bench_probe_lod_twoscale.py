@@ -49,6 +49,17 @@ def test_variants():
     assert P.parse("2") == (2.0, 2.0, "2")
     assert P.parse("i1-8ci") == (1.0, 8.0, "i")
     assert P.parse("i1-4c2") == (1.0, 4.0, "2")
+    assert P.parse("t1-8") == (1.0, 8.0, "t")
+
+
+def test_the_per_tile_model_is_exact_for_a_uniform_change():
+    near = scene(300)
+    far = Gaussians(near.positions, near.rotations, near.log_scales,
+                    np.log(0.5 * near.opacities / (1 - 0.5 * near.opacities)).astype(np.float32),
+                    near.sh_dc + np.float32(0.25), near.sh_rest)
+    ratio, shift = P.tile_model(near, far)
+    assert ratio == pytest.approx(0.5, rel=1e-5)
+    np.testing.assert_allclose(shift, [0.25, 0.25, 0.25], rtol=1e-5)
 
 
 def test_tile_sse_is_the_3d_tiles_formula():
