@@ -266,9 +266,6 @@ def main() -> None:
     ap.add_argument("--no-gc-freeze", action="store_true",
                     help="leave the collector walking the session's long-lived objects (the A/B of freeze_long_lived)")
     ap.add_argument("--profile", action="store_true", help="print where the streaming loop's time went (cProfile)")
-    ap.add_argument("--drain-ms", type=float,
-                    help="the A/B of engine.DRAIN_S: how long frame_started waits for the decode and fetch steps under "
-                         "way to end (client_gl/stream/loopgate.py; 0: no wait, as before the gate counted steps)")
     ap.add_argument("--no-wait-compiled-selection", action="store_true",
                     help="fly at once, as a viewer starts: the numpy selection until the compiled one is ready "
                          "(default: wait for it first, so that the path measures the steady state)")
@@ -287,10 +284,6 @@ def main() -> None:
     from splatstream.store import DirectoryStore, load_manifest
 
     w, h = (int(v) for v in args.size.split("x"))
-    if args.drain_ms is not None:
-        from client_gl.stream import engine as engine_drain
-
-        engine_drain.DRAIN_S = args.drain_ms / 1e3
     server, url = (None, args.scene) if "://" in args.scene else serve_scene(args.scene)
     path = parse_camera_path(fly_path(args.ply, args.seconds))
     ctx = create_context()
@@ -319,9 +312,6 @@ def main() -> None:
         if args.switch_interval:
             sys.setswitchinterval(args.switch_interval)
         out["switch_interval_s"] = sys.getswitchinterval()
-        from client_gl.stream import engine as engine_now
-
-        out["drain_s"] = engine_now.DRAIN_S
         out["gl_calls_release_gil"] = bool(args.gl_release_gil)
         import cProfile
         import pstats
@@ -352,8 +342,7 @@ def main() -> None:
                                    "set_draw_set", "bind"])
             steps.wrap(SplatRenderer, ["render"])
         walls, drawn, updates, uploads, splits, usage = [], [], [], [], [], []
-        others, frame_calls, grown, drains = [], [], [], []
-        drain0 = session.engine.drain_s
+        others, frame_calls, grown = [], [], []
         other_cpu = OtherThreadsCpu()
         growth = GrowthLog()
         steal0 = machine_steal_s()
@@ -368,8 +357,6 @@ def main() -> None:
             frame_calls.append((time.perf_counter() - tc) * 1e3)
             u1 = thread_usage()
             others.append(other_cpu.since(o0))
-            drains.append((session.engine.drain_s - drain0) * 1e3)
-            drain0 = session.engine.drain_s
             grown.append(growth.take())
             finish()
             t = time.perf_counter()
@@ -424,9 +411,6 @@ def main() -> None:
             "thread_involuntary_switches_total": sum(u["involuntary_switches"] for u in usage),
             "update_ms_median": float(np.median(upd_a)), "update_ms_p99": float(np.percentile(upd_a, 99)),
             **_selection_ms(splits),
-            # frame_started's wait for the background steps under way (part of waited_ms)
-            "drain_ms_median": float(np.median(drains)), "drain_ms_p99": float(np.percentile(drains, 99)),
-            "drain_ms_max": float(np.max(drains)), "drain_ms_total": round(float(np.sum(drains)), 1),
             "frame_call_waited_ms_median": float(np.median(waited)),
             "frame_call_waited_ms_p99": float(np.percentile(waited, 99)),
             "others_cpu_in_frame_ms_median": float(np.median(others_ms)),
@@ -444,7 +428,7 @@ def main() -> None:
                          "update_ms": round(float(upd_a[i]), 2), "steps_ms": splits[i],
                          "thread": usage[i], "call_ms": round(float(frame_calls[i]), 2),
                          "waited_ms": round(float(waited[i]), 2), "others_cpu_ms": others[i],
-                         "grew": grown[i], "drain_ms": round(drains[i], 2), "frame": int(i)}
+                         "grew": grown[i], "frame": int(i)}
                         for i in np.argsort(-walls_a, kind="stable")[:12]]})
         cam = path.camera(path.end, w, h)
         for _ in range(5):
