@@ -60,6 +60,8 @@ CHOICES: list[tuple[str, str, tuple[str, ...], str]] = [
     ("low", "st-spz", BENCH, "issue 15's low (the bench scenes)"),
     ("low-plus-9bit-sh5", "st-spz", ("flowers", "fruit_drops_sh3"),
      "one zero-anchored SH step per band, G 5, exponent 0.3 (flowers; exponent on fruit_drops)"),
+    ("low-plus-10bit-cb8", "st-sog", ("flowers",),
+     "SH codebook of one entry per 8 splats (65,536), two-cell search, 760-level positions (flowers)"),
 ]
 
 

@@ -189,7 +189,8 @@ PRESET_SUMMARY: dict[str, str] = {
                          "scaling, about 2.3 bits; about 17.6 B/splat at SH2 (flowers, 44.7 dB), 21.1 at SH3, "
                          "10.4-11.3 at SH0",
     "low-plus-10bit-cb8": "low-plus-9bit with about 10-bit positions and a larger SH codebook (about 1 entry per "
-                          "8 splats, up to 65,536); about 15.8 B/splat at SH2 (flowers, 44.8 dB)",
+                          "8 splats, up to 65,536); about 15.8 B/splat at SH2 (flowers, 45.0 dB), 12-15.2 at SH3 "
+                          "(48-49 dB)",
     "low-plus": "8-bit positions, rotations, scales and colour, SH codebook (1 per 64); about 12-13.5 B/splat at "
                 "SH3, 11-12 at SH0; 44-57 dB",
     "low": "low-plus with 16-bit rotations; about 11-12 B/splat at SH3, 10-10.6 at SH0; 37-52 dB",
