@@ -73,9 +73,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         p.add_argument(f"--{attr}", dest=f"fmt_{attr}", choices=list(VALUE_FORMATS), metavar="FORMAT",
                        help=f"texel format of {attr}, overriding the preset ({', '.join(VALUE_FORMATS)})")
     p.add_argument("--sh-degree", type=int, choices=[0, 1, 2, 3], help="drop SH bands above this degree")
-    p.add_argument("--sh-codebook", metavar="off|auto|fine|N",
+    p.add_argument("--sh-codebook", metavar="off|auto|fine|large|N",
                    help="vector-quantise SH bands 1..3 into a scene-wide codebook of N entries (at most 65536; "
-                        "auto: about one per 64 splats; fine: about one per 16, 256..16384) with a 16-bit index per "
+                        "auto: about one per 64 splats; fine: about one per 16, 256..16384; large: about one per 8, "
+                        "256..65536) with a 16-bit index per "
                         "splat; the sh format then applies to the codebook. Default: the preset's choice ("
                         + ", ".join(f"{k}: {v}" for k, v in PRESET_SH_CODEBOOK.items()) + "; the others: off)")
     p.add_argument("--no-lod", action="store_true", help="write one tile holding every splat (no LOD tree)")
