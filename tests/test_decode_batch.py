@@ -97,7 +97,9 @@ def test_fields_many_matches_one_at_a_time_on_arbitrary_contents(fmt):
         raws = [np.frombuffer(random_content(rng, fmt, w, h, layers, modes), np.uint8) for w, h in dims]
         got = unfilter_fields_many(raws, fmt, dims, layers, ["s"] * len(raws))
         for raw, (w, h), texels in zip(raws, dims, got, strict=True):
-            assert texels.tobytes() == unfilter_fields(raw, fmt, w, h, layers).tobytes(), (fmt, modes)
+            assert len(texels) == layers
+            assert b"".join(t.tobytes() for t in texels) == unfilter_fields(raw, fmt, w, h, layers).tobytes(), \
+                (fmt, modes)
 
 
 def test_fields_many_names_the_section_that_does_not_decode():

@@ -321,9 +321,8 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
             got = unfilter_fields_many([bufs[k][secs[k].offset:secs[k].offset + secs[k].size] for k in ks], fmt,
                                        [(secs[k].width, secs[k].height) for k in ks], spec.layers,
                                        [where[k] for k in ks])
-            for k, texels in zip(ks, got, strict=True):
-                unit = texels.size // spec.layers
-                layers[k] = [texels[i * unit:(i + 1) * unit] for i in range(spec.layers)]
+            for k, section_layers in zip(ks, got, strict=True):
+                layers[k] = section_layers
         for element, ks in shuffled.items():
             units, index = [], []
             for k in ks:

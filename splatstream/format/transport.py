@@ -793,18 +793,22 @@ def unfilter_texels(stored: np.ndarray, filter_name: str, fmt: str, width: int, 
 
 
 def unfilter_fields_many(raws: list[np.ndarray], fmt: str, dims: list[tuple[int, int]], layers: int,
-                         sources: list[str]) -> list[np.ndarray]:
+                         sources: list[str]) -> list[list[np.ndarray]]:
     """unfilter_fields of several sections of one texel format, layer count and fields1 header (the same modes),
-    of several payloads: the same bytes, but their fields decoded together in one (fields, slots of them all) work
-    array, so that the dozen numpy calls of a layer are made once for them all, not once a section.
+    of several payloads, as each section's layers: the same bytes, but their fields decoded together in one
+    (fields, slots of them all) work array, so that the dozen numpy calls of a layer are made once for them all,
+    not once a section.
 
     Why: on the LOD tree's small tiles (a few hundred splats) a section's decode is mostly the per-call overhead
-    of those numpy calls (issue 32). What is left per section: copying its byte planes into the work array, its
-    per-block parameters, and the gather into texture order. Each section is checked as unfilter_fields checks it
+    of those numpy calls (issue 32). What is left per section is building views of its byte planes and
+    parameters: they are copied into the work array by one concatenation, and one gather over the slots of all
+    sections puts every texel in its section's texture order. Each section is checked as unfilter_fields checks it
     (FormatError naming its source); the running sums restart at each section (the sum carried over from the
     sections before is subtracted, modulo 2^32 like the sums)."""
     if len(raws) == 1:
-        return [unfilter_fields(raws[0], fmt, dims[0][0], dims[0][1], layers, sources[0])]
+        texels = unfilter_fields(raws[0], fmt, dims[0][0], dims[0][1], layers, sources[0])
+        unit = texels.size // layers
+        return [[texels[k * unit:(k + 1) * unit] for k in range(layers)]]
     lay0 = None
     members = []  # (raw, n, layout, first byte plane position)
     plan0 = None
@@ -843,23 +847,26 @@ def unfilter_fields_many(raws: list[np.ndarray], fmt: str, dims: list[tuple[int,
     blocks = total // BLOCK_TEXELS
     pos = [h for _, _, _, h in members]
     if crossed:
-        slopes = np.empty((crossed, blocks), np.int8)
-        biases = np.empty((crossed, blocks), "<i2")
-        b0 = 0
+        slope_parts, bias_parts = [], []
         for k, (raw, n, _, h) in enumerate(members):
             b = n // BLOCK_TEXELS
             params = raw[h:h + 3 * b * crossed].reshape(crossed, 3 * b)
-            slopes[:, b0:b0 + b] = params[:, :b].view(np.int8)
-            biases[:, b0:b0 + b] = params[:, b:].view("<i2")
-            b0 += b
+            slope_parts.append(params[:, :b].view(np.int8))
+            bias_parts.append(params[:, b:].view("<i2"))
             pos[k] += 3 * b * crossed
+        slopes = np.concatenate(slope_parts, axis=1)
+        biases = np.concatenate(bias_parts, axis=1)
         slopes = slopes.astype(np.int32)[:, :, None]
         biases = biases.astype(np.int32)
         biases <<= SLOPE_SHIFT
         biases += 1 << (SLOPE_SHIFT - 1)
         biases = biases[:, :, None]
     texel_bytes = lay.texel_bytes
-    outs = [np.empty(n * texel_bytes * layers, np.uint8) for n in counts]
+    # every section's texels in texture order: a gather over the slots of them all, each section's texel-to-slot
+    # map moved to where its slots start
+    inverse = np.concatenate([m[2].inverse for m in members])
+    inverse += np.repeat(starts[:-1], counts)
+    out = np.empty((layers, total * texel_bytes), np.uint8)
     ends = starts[1:-1] - 1  # last slot of every section but the last
     slots = spare.reshape(-1)[:total * texel_bytes // 4]
     columns = slots.view(lay.word).reshape(total, lay.words) if lay.words > 1 else None
@@ -868,9 +875,11 @@ def unfilter_fields_many(raws: list[np.ndarray], fmt: str, dims: list[tuple[int,
         for run, (first, end, _, nb) in enumerate(lay.runs):
             fields = end - first
             stage = staging[nb][:fields]
+            parts = []
             for k, (raw, n, member_lay, _) in enumerate(members):
                 at = pos[k] + member_lay.runs[run][2]
-                stage[:, :, starts[k]:starts[k + 1]] = raw[at:at + fields * nb * n].reshape(fields, nb, n)
+                parts.append(raw[at:at + fields * nb * n].reshape(fields, nb, n))
+            np.concatenate(parts, axis=2, out=stage)
             z_rows, spare_rows = z[first:end], spare[first:end]
             if nb == 1:
                 np.copyto(z_rows, stage[:, 0])
@@ -909,12 +918,9 @@ def unfilter_fields_many(raws: list[np.ndarray], fmt: str, dims: list[tuple[int,
             else:
                 spare[0] = z[0]
             texels = spare[0] if lay.word.itemsize == 4 else spare[0].astype(lay.word)
-        for k, (_, n, member_lay, _) in enumerate(members):
-            layer_bytes = n * texel_bytes
-            texels[starts[k]:starts[k + 1]].take(member_lay.inverse, mode="clip",
-                                                out=outs[k][layer * layer_bytes:(layer + 1) * layer_bytes]
-                                                .view(lay.texel))
-    return outs
+        texels.take(inverse, out=out[layer].view(lay.texel), mode="clip")
+    return [[out[layer, starts[k] * texel_bytes:starts[k + 1] * texel_bytes] for layer in range(layers)]
+            for k in range(len(members))]
 
 
 _scratch_local = threading.local()
