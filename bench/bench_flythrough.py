@@ -199,6 +199,9 @@ def main() -> None:
     ap.add_argument("--no-gc-freeze", action="store_true",
                     help="leave the collector walking the session's long-lived objects (the A/B of freeze_long_lived)")
     ap.add_argument("--profile", action="store_true", help="print where the streaming loop's time went (cProfile)")
+    ap.add_argument("--no-wait-compiled-selection", action="store_true",
+                    help="fly at once, as a viewer starts: the numpy selection until the compiled one is ready "
+                         "(default: wait for it first, so that the path measures the steady state)")
     args = ap.parse_args()
     if args.gl_release_gil:
         import ctypes
@@ -229,6 +232,16 @@ def main() -> None:
         out["gc_freeze"] = not args.no_gc_freeze
         out["decode_workers"], out["decode_processes"] = args.decode_workers, args.decode_processes
         out["finish_keeps_gil"] = bool(args.finish_keeps_gil)
+        if not args.no_wait_compiled_selection:
+            from client_gl.stream.engine import COMPILED_SELECTION
+
+            t_wait = time.perf_counter()
+            out["compiled_selection"] = COMPILED_SELECTION.wait(600) is not None
+            out["compiled_selection_wait_s"] = round(time.perf_counter() - t_wait, 2)
+            error = COMPILED_SELECTION.error
+            out["compiled_selection_error"] = None if error is None else repr(error)
+            print(f"compiled selection: {out['compiled_selection']} after {out['compiled_selection_wait_s']} s "
+                  f"({out['compiled_selection_error'] or 'ready'})", flush=True)
         if args.switch_interval:
             sys.setswitchinterval(args.switch_interval)
         out["switch_interval_s"] = sys.getswitchinterval()
