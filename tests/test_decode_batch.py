@@ -172,3 +172,14 @@ def test_one_pass_range_check_agrees_with_the_checks(dtype):
             else:
                 with pytest.raises(FormatError):
                     container._check_ranges(ranges, plane, "r", "s")
+
+
+def test_keyed_positions_decode_together_as_one_at_a_time(fruit):
+    """Payloads with sections decode_payloads does not batch (keyed positions, format.md 5.4) are decoded one at a
+    time by it: the same planes."""
+    store = encode_in_memory(fruit, EncodeOptions(preset="medium-12bit", max_leaf_splats=512, transport="keyed"))
+    m = read_manifest(store)
+    items = [(store.read_payload(t.groups["base"]), t.groups["base"]) for t in m.tiles]
+    assert any(s.filter == "morton1" for _, e in items for s in e.sections)
+    alone = [planes_bytes(decode_payload(d, e, "base", "t")) for d, e in items]
+    assert [planes_bytes(p) for p in decode_payloads(items, "base", ["t"] * len(items))] == alone

@@ -546,3 +546,44 @@ def test_io_waits_for_the_frame_loop_when_asked(root, manifest, server):
         assert_exact(root, collect(f, len(more), timeout_s=10.0), more)
     finally:
         f.close()
+
+
+def test_callbacks_without_io_wait_for_the_frame_loop(root, manifest, server):
+    """Fetcher.yield_to gates every iteration of the event loop, not only those whose wait found I/O: a chain of
+    callbacks (the tasks a response wakes, each an iteration whose poll finds no I/O) stops while the frame loop is in
+    its CPU work and goes on once it waits for the GPU."""
+    import asyncio
+    import threading
+
+    idle = threading.Event()
+    idle.set()
+    f = fetcher(HttpSource(server.url(SCENE)))
+    steps, stop = [0], threading.Event()
+
+    async def chain() -> None:  # no I/O: each step is one iteration of the loop
+        while not stop.is_set():
+            steps[0] += 1
+            await asyncio.sleep(0)
+    try:
+        f.manifest()
+        f.yield_to(idle, timeout_s=5.0)
+        done = asyncio.run_coroutine_threadsafe(chain(), f._loop)
+        deadline = time.monotonic() + 10
+        while steps[0] < 10 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        idle.clear()
+        time.sleep(0.1)  # the iteration under way when the gate closed ends
+        closed_at = steps[0]
+        time.sleep(0.3)
+        assert steps[0] - closed_at <= 1  # waiting at the gate, not stepping
+        idle.set()
+        deadline = time.monotonic() + 10
+        while steps[0] < closed_at + 10 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert steps[0] >= closed_at + 10
+        stop.set()
+        done.result(10)
+    finally:
+        stop.set()
+        idle.set()
+        f.close()

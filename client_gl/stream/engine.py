@@ -27,12 +27,14 @@ import numpy as np
 
 from splatstream.camera import Camera
 from splatstream.errors import SplatstreamError, UsageError
+from splatstream.format.codec import palette_as_ranged
 from splatstream.format.container import VerifiedPayload
 from splatstream.format.decode import codebook_index, decode_payload
 from splatstream.format.manifest import Manifest, PayloadEntry
 from splatstream.format.planes import band_of
 
 from ..tiledata import TileData, host_mirror
+from .loopgate import LoopGate
 from .pages import PAGE_GROUP, PagedTree
 from .selection import (
     PartialView,
@@ -80,6 +82,9 @@ class FetcherLike(Protocol):
 
 
 DECODE_WAIT_S = 0.05  # a decode thread waits at most this long for the frame loop to finish its CPU work
+# The frame loop, starting its CPU work, waits at most this long for decode and fetch steps under way to end (one
+# switch interval: what each of its numpy calls could otherwise wait for the interpreter lock while they run).
+DRAIN_S = 0.005
 
 
 @dataclass(frozen=True)
@@ -211,6 +216,9 @@ def decode_job(data: VerifiedPayload | bytes, entry: PayloadEntry, group: str, w
     frame loop, between the payload's steps (decode_payload)."""
     try:
         planes = decode_payload(data, entry, group, where, codebook_tile, between)
+        # Palette planes (format.md 4.3.2) as the pool holds them, here on the decode side: about 2 ms a plane of a
+        # 16,384-splat tile, which the pool's join would otherwise spend on the render thread.
+        planes = {k: palette_as_ranged(p, splats) for k, p in planes.items()}
         if codebook_tile and group == "sh1":
             codebook_index(planes, splats, codebook_entries, where)
         return planes, (host_mirror(planes, splats) if with_mirror else None)
@@ -308,8 +316,8 @@ class StreamEngine:
         # step of a payload only then, and the fetcher handles its I/O only then (Fetcher.yield_to). Their Python
         # took the interpreter lock from the frame loop at each of its numpy calls: frames spent most of their time
         # waiting for it (BENCHMARKS.md). A frame loop that never says when it works (tests, tools) leaves it set.
-        self._loop_idle = threading.Event()
-        self._loop_idle.set()
+        self._loop_idle = LoopGate()
+        self.drain_s = 0.0  # seconds frame_started waited for background steps to end, in all
         self._processes: ProcessPoolExecutor | None = None
         self._processes_ready: Future = Future()
         if options.decode_processes > 0:
@@ -578,8 +586,7 @@ class StreamEngine:
         for key, entry, data in self.fetcher.done():
             if key[1] == PAGE_GROUP:  # parsed on a decode worker, added at a frame's start (_add_pages)
                 if key[0] in self.pages.pending and key[0] not in self._pages_arrived:
-                    self._pages_arrived[key[0]] = self._pool.submit(self.pages.read, key[0], data,
-                                                                         self._wait_for_loop)
+                    self._pages_arrived[key[0]] = self._pool.submit(self._read_page, key[0], data)
                     self._version += 1  # the wish list leaves it out now
                 continue
             if self._have(key) or key in self._ready or key in self._decoding:
@@ -616,14 +623,15 @@ class StreamEngine:
         return any(k[0] == tile_id and _GROUP_BAND.get(k[1], 4) <= band for k in self.failed)
 
     @property
-    def loop_idle(self) -> threading.Event:
+    def loop_idle(self) -> LoopGate:
         """Set while the frame loop is not in its CPU work (frame_started / frame_submitted): what background
         threads that run Python wait for (the decode threads here; the fetcher through Fetcher.yield_to)."""
         return self._loop_idle
 
     def frame_started(self) -> None:
-        """The frame loop begins its CPU work (update, uploads, draw submission): decoding and fetching wait."""
-        self._loop_idle.clear()
+        """The frame loop begins its CPU work (update, uploads, draw submission): decoding and fetching start no
+        new step, and the steps under way end first (at most DRAIN_S; loopgate.py says why)."""
+        self.drain_s += self._loop_idle.close(DRAIN_S)
 
     def frame_submitted(self) -> None:
         """The frame loop waits for the GPU or the display now: decoding and fetching may run."""
@@ -633,12 +641,25 @@ class StreamEngine:
         # Between every step of the payload, not only before it: a decode running into the frame loop's CPU work
         # takes the interpreter lock from it at each of its numpy calls (a payload has hundreds), and every hand-over
         # cost the loop about 0.1 ms on the GPU machine: 10-20 ms in the frames that upload.
-        self._wait_for_loop()
-        self._decoded.put((key, self._finish(key, decode_job(*self._job_args(key, entry, data),
-                                                             between=self._wait_for_loop))))
+        gate = self._loop_idle
+        gate.enter(DECODE_WAIT_S)
+        try:
+            self._decoded.put((key, self._finish(key, decode_job(*self._job_args(key, entry, data),
+                                                                 between=self._wait_for_loop))))
+        finally:
+            gate.leave()
+
+    def _read_page(self, tile_id: int, data: VerifiedPayload | bytes):
+        """A page parsed on a decode thread (PagedTree.read), its steps gated like a payload's decode."""
+        gate = self._loop_idle
+        gate.enter(DECODE_WAIT_S)
+        try:
+            return self.pages.read(tile_id, data, self._wait_for_loop)
+        finally:
+            gate.leave()
 
     def _wait_for_loop(self) -> None:
-        self._loop_idle.wait(DECODE_WAIT_S)
+        self._loop_idle.between(DECODE_WAIT_S)
 
     def _job_args(self, key: Key, entry: PayloadEntry, data: VerifiedPayload | bytes) -> tuple:
         tile_id, group = key

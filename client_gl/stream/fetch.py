@@ -37,6 +37,7 @@ from splatstream.format.container import VerifiedPayload, verify_payload
 from splatstream.format.manifest import Manifest, PayloadEntry, parse_manifest
 
 from .cache import DiskCache
+from .loopgate import LoopGate
 from .sources import (
     CHECKSUM,
     LINK_KINDS,
@@ -122,14 +123,23 @@ class _Job:
 
 
 class _GatedSelector(selectors.DefaultSelector):
-    """The event loop's selector: after a wait that found I/O, waits for the gate's event (Fetcher.yield_to)."""
+    """The event loop's selector: after every wait, waits for the gate's event (Fetcher.yield_to) before the loop
+    runs what is ready. Not only after a wait that found I/O: a response is handled over several iterations of the
+    loop (the data callback, then the tasks it wakes and the callbacks they schedule, each an iteration whose wait
+    is a poll that finds no I/O). With a LoopGate (the engine's) an iteration is a step the frame loop lets end
+    before its work (loopgate.py): the step ends when the loop waits again."""
 
     gate: tuple[threading.Event, float] | None = None
 
     def select(self, timeout=None):
-        ready = super().select(timeout)
         gate = self.gate
-        if ready and gate is not None:
+        steps = gate is not None and isinstance(gate[0], LoopGate)
+        if steps:
+            gate[0].leave()
+        ready = super().select(timeout)
+        if steps:
+            gate[0].enter(gate[1])
+        elif gate is not None:
             gate[0].wait(gate[1])
         return ready
 
@@ -225,9 +235,11 @@ class Fetcher:
         return self
 
     def yield_to(self, idle: threading.Event | None, timeout_s: float = 0.05) -> None:
-        """When I/O is ready, handle it only while `idle` is set (at most timeout_s later): a frame loop clears it
-        during its CPU work. The loop's Python (responses, callbacks) then runs while the frame loop waits for the
-        GPU, instead of taking the interpreter lock from it at each of its numpy calls. None: no waiting."""
+        """Run the loop's callbacks (I/O, the tasks they wake, timers) only while `idle` is set (each iteration at
+        most timeout_s later): a frame loop clears it during its CPU work. The loop's Python (responses,
+        callbacks) then runs while the frame loop waits for the GPU, instead of taking the interpreter lock from it
+        at each of its numpy calls. A LoopGate (StreamEngine.loop_idle) also learns when an iteration ends, so the
+        frame loop lets the one under way end before its work. None: no waiting."""
         self._selector.gate = None if idle is None else (idle, float(timeout_s))
 
     def close(self, timeout_s: float = 1.0) -> None:

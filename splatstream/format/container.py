@@ -24,12 +24,13 @@ import zstandard
 
 from ..errors import FormatError
 from .codec import EncodedPlane
+from .keyed import MORTON1, MORTON_FORMATS, morton_content, unfilter_morton
 from .layout import ALIGN
-from .limits import MAX_ABS_POSITION, MAX_LOG_SCALE, MIN_LOG_SCALE
+from .limits import MAX_ABS_POSITION, MAX_ABS_SH, MAX_LOG_SCALE, MIN_LOG_SCALE
 from .manifest import PayloadEntry, Section, filter_element
 from .names import payload_name, sha256_hex
-from .planes import RANGE_DTYPE_NAMES, group_planes
-from .texformats import TEXEL_DTYPES
+from .planes import RANGE_DTYPE_NAMES, group_planes, palette_shape
+from .texformats import PALETTE_FORMATS, TEXEL_DTYPES
 from .transport import (
     FIELD_LAYOUTS,
     FIELDS1,
@@ -37,6 +38,7 @@ from .transport import (
     filter_texels,
     shuffle,
     shuffle_filter,
+    trial_size,
     unfilter_fields_many,
     unfilter_texels,
     unshuffle,
@@ -78,9 +80,20 @@ def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level:
 
     for p in planes:
         layers = p.spec.layers
-        filt, parts = filter_texels(p.layers, p.format, p.width, p.height, layers, level, transport)
+        if transport == "keyed" and p.format in MORTON_FORMATS and layers == 1:
+            filt, parts = _keyed_or_fields(p, level)
+        else:
+            filt, parts = filter_texels(p.layers, p.format, p.width, p.height, layers, level, transport)
         add(p.spec.name, "texels", filt, parts, format=p.format, width=p.width, height=p.height, layers=layers)
-        if p.spec.range_dtype:
+        if p.palette is not None:  # a palette plane (format.md 4.3.2): its palettes stand where its ranges would
+            palette = np.ascontiguousarray(p.palette, "<f4")
+            expected = palette_shape(p.spec)
+            if palette.size != int(np.prod(expected)):
+                raise AssertionError(f"{p.spec.palette_name}: palette of shape {palette.shape}, expected {expected}")
+            element = 4 if transport != "none" else 1
+            add(p.spec.palette_name, "range", shuffle_filter(element), [shuffle(palette.reshape(-1), element)],
+                dtype="f32", shape=expected)
+        elif p.spec.range_dtype:
             item = np.dtype(p.spec.range_dtype).itemsize
             ranges = np.ascontiguousarray(p.ranges, p.spec.range_dtype)
             expected = (chunks, 2, layers, p.spec.components)
@@ -115,6 +128,17 @@ def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level:
     sha = digest.hexdigest()
     return PayloadEntry(payload_name(sha), sha, written, int(position), sum(s.gpu_size for s in sections),
                         tuple(sections))
+
+
+def _keyed_or_fields(p: EncodedPlane, level: int) -> tuple[str, list]:
+    """A one-layer section of a MORTON_FORMATS format stored as `morton1` (format.md 5.4) or as filter_texels
+    chooses, whichever compresses smaller (tried at the trial level of transport.py, on the whole layer)."""
+    layer = np.ravel(next(iter(p.layers)) if not isinstance(p.layers, list) else p.layers[0]).view(np.uint8)
+    filt, parts = filter_texels([layer], p.format, p.width, p.height, 1, level, "fields")
+    keyed = morton_content(layer, p.width, p.height)
+    if trial_size(keyed, level) < trial_size(parts, level):
+        return MORTON1, keyed
+    return filt, parts
 
 
 def pack_payload(planes: list[EncodedPlane], level: int = DEFAULT_ZSTD_LEVEL,
@@ -246,12 +270,19 @@ def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, so
         if between is not None:
             between()
         s = sections[spec.name]
-        layers = unfilter_texels(buf[s.offset:s.offset + s.size], s.filter, s.format, s.width, s.height,
-                                 spec.layers, f"{source} section {s.name}")
+        if s.filter == MORTON1:  # format.md 5.4 (the manifest checked its format, layers and size)
+            layers = [unfilter_morton(buf[s.offset:s.offset + s.size], s.width, s.height)]
+        else:
+            layers = unfilter_texels(buf[s.offset:s.offset + s.size], s.filter, s.format, s.width, s.height,
+                                     spec.layers, f"{source} section {s.name}")
         if s.format in FLOAT_TEXEL_FORMATS:
             _check_float_texels(layers, s, source)
-        ranges = None
-        if spec.range_dtype:
+        ranges = palette = None
+        if s.format in PALETTE_FORMATS:
+            r = sections[spec.palette_name]
+            palette = unshuffle(buf[r.offset:r.offset + r.size], r.element).view("<f4").reshape(r.shape[0], -1)
+            _check_palette(palette, spec.name, r.name, source)
+        elif spec.range_dtype:
             r = sections[spec.range_name]
             ranges = unshuffle(buf[r.offset:r.offset + r.size], r.element).view(spec.range_dtype).reshape(r.shape)
             _check_ranges(ranges, spec.name, r.name, source)
@@ -259,7 +290,9 @@ def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, so
             layers = [p.copy() if p.base is owner else p for p in layers]
             if ranges is not None and ranges.base is owner:
                 ranges = ranges.copy()
-        planes[spec.name] = EncodedPlane(spec, s.format, s.width, s.height, layers, ranges)
+            if palette is not None and np.may_share_memory(palette, buf):
+                palette = palette.copy()
+        planes[spec.name] = EncodedPlane(spec, s.format, s.width, s.height, layers, ranges, palette)
     return planes
 
 
@@ -280,6 +313,10 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
     others is returned then."""
     if not items:
         return []
+    if any(sec.filter == MORTON1 or sec.format in PALETTE_FORMATS for _, entry in items for sec in entry.sections):
+        # keyed positions and palette planes (format.md 5.4, 4.3.2) are decoded one payload at a time
+        return [unpack_payload(data, entry, group, source, codebook, between)
+                for (data, entry), source in zip(items, sources, strict=True)]
     sizes = [entry.raw_bytes for _, entry in items]
     total = sum(sizes)
     kept = total <= KEEP_RAW_BYTES
@@ -417,6 +454,17 @@ def _ranges_ok(ranges: np.ndarray, plane: str) -> bool:
     low, high = lo.min(), hi.max()
     # max - min only once no minimum is -inf and no maximum +inf (nor NaN): it then makes no inf - inf
     return bool(limit[0] <= low and high <= limit[1] and -np.inf < low and high < np.inf and (hi - lo).min() >= 0)
+
+
+def _check_palette(palette: np.ndarray, plane: str, name: str, source: str) -> None:
+    """format.md 4.3.2 and 4.8: every palette entry finite and inside the plane's value domain (any index 0..255
+    then decodes to a value a scene may hold)."""
+    if not np.isfinite(palette).all():
+        raise FormatError(source, f"section {name}", "non-finite palette values")
+    lo, hi = RANGE_LIMITS.get(plane, (-MAX_ABS_SH, MAX_ABS_SH))
+    if float(palette.min()) < lo or float(palette.max()) > hi:
+        raise FormatError(source, f"section {name}", f"palette [{palette.min():g}, {palette.max():g}] leaves the "
+                          f"{plane} domain [{lo:g}, {hi:g}] (format.md 4.8)")
 
 
 def _check_ranges(ranges: np.ndarray, plane: str, name: str, source: str) -> None:

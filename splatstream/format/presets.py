@@ -6,8 +6,9 @@ path resolve a preset name here, so they agree on what a preset means.
 from __future__ import annotations
 
 from ..errors import UsageError
+from .planes import PALETTE_ATTRIBUTES
 from .steps import TileStep
-from .texformats import FORMATS, VALUE_FORMATS, get_format
+from .texformats import FORMATS, PALETTE_FORMATS, VALUE_FORMATS, get_format
 
 ATTRIBUTES = ("position", "rotation", "scale", "color", "sh")
 
@@ -202,6 +203,9 @@ def resolve_formats(preset: str, overrides: dict[str, str] | None = None) -> dic
         if attr == "color" and FORMATS[fmt].components < 4:
             raise UsageError(f"color holds SH0 and opacity and needs a 4-component format; {fmt} has 3 "
                              f"(use one of {', '.join(n for n, f in FORMATS.items() if f.components == 4)})")
+        if fmt in PALETTE_FORMATS and attr not in PALETTE_ATTRIBUTES:
+            raise UsageError(f"{fmt} (palette indices, format.md 4.3.2) holds only {' and '.join(PALETTE_ATTRIBUTES)}, "
+                             f"not {attr}")
         formats[attr] = fmt
     return formats
 
@@ -217,6 +221,17 @@ def step_attribute(key: str) -> str:
     """The attribute whose format a PRESET_STEPS key follows: the key itself, or `sh` for a band plane `sh1`..`sh3`
     (SH bands may each have their own step)."""
     return "sh" if key in ("sh1", "sh2", "sh3") else key
+
+
+# The transport a preset's payloads are written with when none is given (format/transport.py TRANSPORTS); "fields"
+# for every preset not named here. `keyed` (morton1 positions, format.md 5.4) measured 0.3 B/splat smaller on the
+# statue scans and about 10 % slower to decode (BENCHMARKS.md, issue 32): no preset uses it yet.
+PRESET_TRANSPORT: dict[str, str] = {}
+
+
+def preset_transport(preset: str, default: str) -> str:
+    """The transport an encode of `preset` uses when none is given (`default`: the encoder's)."""
+    return PRESET_TRANSPORT.get(preset, default)
 
 
 def preset_zstd_level(preset: str, default: int) -> int:

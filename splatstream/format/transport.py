@@ -44,9 +44,10 @@ MODE_RESERVED = 0x0E
 # shuffle on a band of the first layer (BAND_SLOTS, whole block rows).
 SAMPLE_SLOTS = 1 << 14
 BAND_SLOTS = 1 << 17
-# Transport choices of the encoder: "fields" (fields1 where it is smaller, format 1.2), "shuffle" (format 1.0/1.1
-# filters only, for old readers), "none" (stored as the GPU holds them).
-TRANSPORTS = ("fields", "shuffle", "none")
+# Transport choices of the encoder: "fields" (fields1 where it is smaller, format 1.2), "keyed" (as "fields", and
+# norm16x4 positions re-sorted inside chunks and stored as morton1 where smaller: format 1.6, format/keyed.py),
+# "shuffle" (format 1.0/1.1 filters only, for old readers), "none" (stored as the GPU holds them).
+TRANSPORTS = ("fields", "keyed", "shuffle", "none")
 
 # Field layout of each texel format fields1 applies to: (word dtype, words per texel, [(shift, bits)] low bits first).
 FIELD_LAYOUTS: dict[str, tuple[str, int, tuple[tuple[int, int], ...]]] = {
@@ -60,6 +61,7 @@ FIELD_LAYOUTS: dict[str, tuple[str, int, tuple[tuple[int, int], ...]]] = {
     "norm16x4": ("<u2", 4, ((0, 16),)),
     "norm565": ("<u2", 1, ((0, 5), (5, 6), (11, 5))),
     "index16": ("<u2", 1, ((0, 16),)),
+    "pal8x4": ("<u1", 4, ((0, 8),)),
 }
 # Unsigned type that holds one whole texel, for moving texels as single elements.
 _TEXEL_UINT = {4: np.dtype("<u4"), 8: np.dtype("<u8"), 2: np.dtype("<u2")}
@@ -426,6 +428,12 @@ def _zstd_size(parts: list, level: int) -> int:
     return size + len(c.flush())
 
 
+def trial_size(parts: list, level: int) -> int:
+    """Compressed size of `parts` as the encoder's transport trials measure it (zstd at `level`, at most
+    TRIAL_LEVEL_MAX, a block per part)."""
+    return _zstd_size(parts, min(level, TRIAL_LEVEL_MAX))
+
+
 def filter_texels(layers: Iterable[np.ndarray], fmt: str, width: int, height: int, count: int, level: int = 1,
                   transport: str = "fields") -> tuple[str, list[bytes | np.ndarray]]:
     """A texels section's stored form: (filter name, parts to write in order), layers taken one at a time as the
@@ -441,7 +449,7 @@ def filter_texels(layers: Iterable[np.ndarray], fmt: str, width: int, height: in
         return "none", [np.ravel(layer).view(np.uint8) for layer in it]
     if transport == "shuffle" or fmt not in FIELD_LAYOUTS:
         return shuffle_filter(element), [p for layer in it for p in shuffle_planes(layer, element)]
-    if transport != "fields":
+    if transport not in ("fields", "keyed"):
         raise ValueError(f"unknown transport {transport!r} (expected one of {', '.join(TRANSPORTS)})")
     first = np.ravel(next(it)).view(np.uint8)
     band, band_height = _band(first, fmt, width, height)
