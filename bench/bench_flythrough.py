@@ -160,6 +160,73 @@ def thread_cpu_seconds() -> dict[str, float]:
     return out
 
 
+class OtherThreadsCpu:
+    """CPU milliseconds each other thread of this process used during a call (its clock: pthread_getcpuclockid +
+    clock_gettime), by thread name: who ran while the frame thread waited (the decode threads, the fetch loop, the
+    executor's verify threads, a decode process pool's feeder). Threads started meanwhile count from zero."""
+
+    def __init__(self) -> None:
+        import threading
+
+        self.threading = threading
+        self.me = threading.get_ident()
+
+    def _clocks(self) -> dict[int, tuple[str, float]]:
+        out = {}
+        for t in self.threading.enumerate():
+            if t.ident is None or t.ident == self.me:
+                continue
+            try:
+                out[t.ident] = (t.name, time.clock_gettime(time.pthread_getcpuclockid(t.ident)))
+            except (OSError, ValueError):  # the thread ended between enumerate() and the clock's read
+                continue
+        return out
+
+    def start(self) -> dict[int, tuple[str, float]]:
+        return self._clocks()
+
+    def since(self, before: dict[int, tuple[str, float]]) -> dict[str, float]:
+        out: dict[str, float] = {}
+        for ident, (name, now) in self._clocks().items():
+            used = now - before.get(ident, (name, 0.0))[1]
+            if used > 0:
+                key = "asyncio (verify)" if name.startswith("asyncio_") else name
+                out[key] = out.get(key, 0.0) + used * 1e3
+        return {k: round(v, 2) for k, v in out.items() if v >= 0.01}
+
+
+class GrowthLog:
+    """GPU buffer allocations during the current frame (bench only): the renderer's work buffers (_ensure_work
+    grows them to twice the drawn splats) and the compute draw's entry buffers (ComputeRaster.resize), each as
+    'what old->new'; a frame whose render step spends system time in the driver is then seen to have allocated."""
+
+    def __init__(self) -> None:
+        from client_gl.gpu.compute_raster import ComputeRaster
+        from client_gl.gpu.renderer import SplatRenderer
+
+        self.now: list[str] = []
+        ensure, resize = SplatRenderer._ensure_work, ComputeRaster.resize
+        log = self.now
+
+        def ensure_work(renderer, splats):
+            old = renderer._work_splats
+            ensure(renderer, splats)
+            if renderer._work_splats != old:
+                log.append(f"work {old}->{renderer._work_splats}")
+
+        def craster_resize(cr, visible_capacity, entry_capacity=None):
+            old = cr.entry_capacity
+            resize(cr, visible_capacity, entry_capacity)
+            if cr.entry_capacity != old:
+                log.append(f"entries {old}->{cr.entry_capacity}")
+        SplatRenderer._ensure_work, ComputeRaster.resize = ensure_work, craster_resize
+
+    def take(self) -> list[str]:
+        out = list(self.now)
+        self.now.clear()
+        return out
+
+
 SELECTION_STEPS = tuple(f"client_gl.stream.engine.{n}"
                         for n in ("select", "select_near", "view_numbers", "PartialView", "select_near_compiled"))
 
@@ -260,8 +327,14 @@ def main() -> None:
             from client_gl.gpu.renderer import SplatRenderer
             from client_gl.stream import engine as engine_module
             from client_gl.stream.engine import StreamEngine
+            from client_gl.stream.fetch import Fetcher
+            from client_gl.stream.pages import PagedTree
 
-            steps.wrap(StreamEngine, ["wanted", "_collect", "_upload", "_make_room", "_trim_ready", "_coarse_to_fine"])
+            steps.wrap(StreamEngine, ["wanted", "_collect", "_upload", "_make_room", "_trim_ready", "_coarse_to_fine",
+                                      "_tend_pages", "_add_pages", "_evict_pages", "_tell_fetcher", "_draw_counts"])
+            # the frame thread's calls into the fetcher take its lock, which the fetch loop holds in _pump/_complete
+            steps.wrap(Fetcher, ["want", "done", "stats"])
+            steps.wrap(PagedTree, ["insert"])
             steps.wrap(engine_module, ["view_numbers", "select", "PartialView", "select_near", "wanted_bands",
                                        "prefetch", "draw_set"])
             steps.wrap_compiled_selection(engine_module.CompiledSelection)
@@ -269,14 +342,22 @@ def main() -> None:
                                    "set_draw_set", "bind"])
             steps.wrap(SplatRenderer, ["render"])
         walls, drawn, updates, uploads, splits, usage = [], [], [], [], [], []
+        others, frame_calls, grown = [], [], []
+        other_cpu = OtherThreadsCpu()
+        growth = GrowthLog()
         steal0 = machine_steal_s()
         last = time.perf_counter()
         while True:
             now = time.perf_counter() - start
             cam = path.camera(now, w, h)
+            o0 = other_cpu.start()
             u0 = thread_usage()
+            tc = time.perf_counter()
             rec = session.frame(cam)
+            frame_calls.append((time.perf_counter() - tc) * 1e3)
             u1 = thread_usage()
+            others.append(other_cpu.since(o0))
+            grown.append(growth.take())
             finish()
             t = time.perf_counter()
             walls.append((t - last) * 1e3)
@@ -309,6 +390,15 @@ def main() -> None:
                             "bytes": session.fetcher.stats().bytes_downloaded,
                             "converged_after_path_s": time.perf_counter() - start - path.end}
         walls_a, up_a, upd_a = np.array(walls), np.array(uploads), np.array(updates)
+        # the frame call's wall less its own thread's CPU: what it waited (the interpreter lock, the fetcher's lock,
+        # the driver), against the CPU the other threads used during the call
+        waited = np.array([c - u["user_ms"] - u["system_ms"] for c, u in zip(frame_calls, usage, strict=True)])
+        others_ms = np.array([sum(o.values()) for o in others])
+        by_thread: dict[str, float] = {}
+        for o in others:
+            for k, v in o.items():
+                by_thread[k] = by_thread.get(k, 0.0) + v
+        slow = walls_a >= np.percentile(walls_a, 99)
         with_up = up_a > 0
         out["streaming"].update({
             "frames_with_uploads": int(with_up.sum()),
@@ -321,9 +411,24 @@ def main() -> None:
             "thread_involuntary_switches_total": sum(u["involuntary_switches"] for u in usage),
             "update_ms_median": float(np.median(upd_a)), "update_ms_p99": float(np.percentile(upd_a, 99)),
             **_selection_ms(splits),
+            "frame_call_waited_ms_median": float(np.median(waited)),
+            "frame_call_waited_ms_p99": float(np.percentile(waited, 99)),
+            "others_cpu_in_frame_ms_median": float(np.median(others_ms)),
+            "others_cpu_in_frame_ms_p99": float(np.percentile(others_ms, 99)),
+            # CPU other threads used while a frame call ran, by thread, summed over the path (seconds), and over the
+            # frames of the top 1 % (ms): the GIL's competitors where it matters
+            "others_cpu_in_frames_s": {k: round(v / 1e3, 3) for k, v in sorted(by_thread.items())},
+            "others_cpu_in_p99_frames_ms": {k: round(sum(o.get(k, 0.0) for o, s in zip(others, slow, strict=True)
+                                                         if s), 1) for k in sorted(by_thread)},
+            "p99_frames": int(slow.sum()),
+            "p99_frames_waited_ms": round(float(waited[slow].sum()), 1),
+            "growth_frames": [{"frame": i, "ms": round(float(walls_a[i]), 1), "grew": g}
+                              for i, g in enumerate(grown) if g],
             "slowest": [{"ms": round(float(walls_a[i]), 1), "uploaded_bytes": int(up_a[i]),
                          "update_ms": round(float(upd_a[i]), 2), "steps_ms": splits[i],
-                         "thread": usage[i]}
+                         "thread": usage[i], "call_ms": round(float(frame_calls[i]), 2),
+                         "waited_ms": round(float(waited[i]), 2), "others_cpu_ms": others[i],
+                         "grew": grown[i], "frame": int(i)}
                         for i in np.argsort(-walls_a, kind="stable")[:12]]})
         cam = path.camera(path.end, w, h)
         for _ in range(5):

@@ -41,7 +41,7 @@ TUNED: dict[str, tuple[str, ...]] = {
     **{p: BENCH for p in ("high", "medium-low", "medium-low-12bit", "low-plus-9bit", "low-plus", "low", "very-low")},
     **{p: BENCH + ("guitar.compressed",) for p in ("medium", "medium-low-9bit")},
     **{p: SH_TUNED for p in ("medium-high", "medium-low-sh16", "medium-low-sh8", "low-plus-9bit-sh6",
-                             "low-plus-9bit-sh5")},
+                             "low-plus-9bit-sh5", "low-plus-10bit-cb8")},
     "medium-12bit": BENCH + STATUE_TUNED,
 }
 # A per-splat SH preset on a scene without SH bands is its base (not measured again there)
@@ -60,6 +60,8 @@ CHOICES: list[tuple[str, str, tuple[str, ...], str]] = [
     ("low", "st-spz", BENCH, "issue 15's low (the bench scenes)"),
     ("low-plus-9bit-sh5", "st-spz", ("flowers", "fruit_drops_sh3"),
      "one zero-anchored SH step per band, G 5, exponent 0.3 (flowers; exponent on fruit_drops)"),
+    ("low-plus-10bit-cb8", "st-sog", ("flowers",),
+     "SH codebook of one entry per 8 splats (65,536), two-cell search, 760-level positions (flowers)"),
 ]
 
 

@@ -60,6 +60,8 @@ def parse_config(spec: str) -> tuple[str, str, dict]:
             extra[k] = float(v)
         elif k == "zstd":
             extra["zstd"] = int(v)
+        elif k == "transport":
+            extra["transport"] = v
         else:
             extra["overrides"][k] = v
     return label, preset, extra
@@ -90,6 +92,7 @@ def register(label: str, preset: str, extra: dict) -> str:
     cb = extra.get("sh_codebook", P.PRESET_SH_CODEBOOK.get(preset, "off"))
     P.PRESET_SH_CODEBOOK[name] = cb
     P.PRESET_ZSTD_LEVEL[name] = extra.get("zstd", P.PRESET_ZSTD_LEVEL.get(preset, 1))
+    P.PRESET_TRANSPORT[name] = extra.get("transport", P.PRESET_TRANSPORT.get(preset, "fields"))
     return name
 
 

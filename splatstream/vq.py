@@ -37,6 +37,15 @@ FLAT_LIMIT = 1 << 27
 FINE_SPLATS_PER_ENTRY = 16
 MIN_FINE_ENTRIES = 256
 FINE_CAP = 16384
+# "large" sizes the codebook to about one entry per 8 splats, at least 256, up to the 16-bit index's 65,536: on
+# flowers (SH2, 542k splats, 262k distinct SH rows) 65,536 entries where "fine" stops at 16,384; at a 64k codebook
+# the SH bands cost 3.5 B/splat there (SOG's palette: 4.4) and the preset gains 3.3 dB over its 8k one
+# (BENCHMARKS.md, "A 64k SH codebook on flowers").
+LARGE_SPLATS_PER_ENTRY = 8
+# Above FINE_CAP entries a row searches the entries of its two nearest top cells, in the fit (one Lloyd round after
+# the tree's) and in every assignment: on flowers at 65,536 entries the weighted RMS SH error of the fit went 0.01799
+# -> 0.01760 (one cell -> two, and the round), for about twice the assignment time.
+LARGE_PROBES = 2
 
 
 def _power_of_two_near(x: float) -> int:
@@ -58,19 +67,27 @@ def fine_entries(splats: int) -> int:
     return int(min(k, max(FINE_CAP, auto_entries(splats)), MAX_ENTRIES))
 
 
+def large_entries(splats: int) -> int:
+    """The codebook of `--sh-codebook large`: a power of two near splats / 8, at least 256, at most 65,536."""
+    k = _power_of_two_near(max(1, splats) / LARGE_SPLATS_PER_ENTRY)
+    return int(min(max(MIN_FINE_ENTRIES, k), MAX_ENTRIES))
+
+
 def parse_entries(value: str | int, splats: int) -> int:
-    """'auto', 'fine' or an entry count -> the entry count (0 = no codebook, 'off')."""
+    """'auto', 'fine', 'large' or an entry count -> the entry count (0 = no codebook, 'off')."""
     if value in ("off", 0, "0", None):
         return 0
     if value == "auto":
         return auto_entries(splats)
     if value == "fine":
         return fine_entries(splats)
+    if value == "large":
+        return large_entries(splats)
     try:
         k = int(value)
     except (TypeError, ValueError):
-        raise UsageError(f"SH codebook size {value!r}: expected off, auto, fine or an entry count 1..{MAX_ENTRIES}") \
-            from None
+        raise UsageError(f"SH codebook size {value!r}: expected off, auto, fine, large or an entry count "
+                         f"1..{MAX_ENTRIES}") from None
     if not 1 <= k <= MAX_ENTRIES:
         raise UsageError(f"SH codebook size {k}: expected 1..{MAX_ENTRIES} entries (the index is 16 bits)")
     return k
@@ -82,6 +99,7 @@ class Codebook:
     top: np.ndarray          # (T, D) float32 coarse centroids
     starts: np.ndarray       # (T + 1,) tree positions starts[t]..starts[t + 1] are the entries of top centroid t
     tree: np.ndarray | None = None  # (K,) stored index of each tree position (None: the same order)
+    probes: int = 1          # rows search the entries of their `probes` nearest top centroids
 
     def ordered_by_use(self, counts: np.ndarray) -> Codebook:
         """The same codebook with entries renumbered by falling use count (ties keep their order): frequent entries
@@ -91,7 +109,7 @@ class Codebook:
         rank = np.empty(len(order), np.int64)
         rank[order] = np.arange(len(order))
         tree = rank if self.tree is None else rank[self.tree]
-        return Codebook(self.entries[order], self.top, self.starts, tree)
+        return Codebook(self.entries[order], self.top, self.starts, tree, self.probes)
 
     def assign(self, rows: np.ndarray) -> np.ndarray:
         """Index of the (tree-)nearest entry of every row, (N,) int64. Rows equal to an entry get that entry
@@ -114,6 +132,8 @@ class Codebook:
         return self._search(rows)
 
     def _search(self, rows: np.ndarray) -> np.ndarray:
+        if self.probes > 1 and len(self.top) > 1:
+            return self._search_probes(rows)
         parent = _nearest(rows, self.top)
         labels = np.empty(len(rows), np.int64)
         for t, members in enumerate(_members(parent, len(self.top))):
@@ -125,6 +145,39 @@ class Codebook:
             else:
                 ids = self.tree[s:e]
                 labels[members] = ids[_nearest(rows[members], self.entries[ids])]
+        return labels
+
+    def _search_probes(self, rows: np.ndarray) -> np.ndarray:
+        """The nearest entry among the children of each row's `probes` nearest top centroids (ties: the nearer
+        top centroid's entry)."""
+        probes = min(self.probes, len(self.top))
+        near = np.empty((len(rows), probes), np.int64)
+        tt = np.einsum("ij,ij->i", self.top, self.top)
+        for i in range(0, len(rows), ASSIGN_BLOCK):
+            d = rows[i:i + ASSIGN_BLOCK] @ self.top.T
+            d *= -2.0
+            d += tt[None, :]
+            part = np.argpartition(d, probes - 1, axis=1)[:, :probes]
+            order = np.argsort(np.take_along_axis(d, part, axis=1), axis=1, kind="stable")
+            near[i:i + ASSIGN_BLOCK] = np.take_along_axis(part, order, axis=1)
+        labels = np.zeros(len(rows), np.int64)
+        best = np.full(len(rows), np.inf, np.float32)
+        rr = np.einsum("ij,ij->i", rows, rows)
+        for p in range(probes):
+            for t, members in enumerate(_members(near[:, p], len(self.top))):
+                if len(members) == 0:
+                    continue
+                s, e = int(self.starts[t]), int(self.starts[t + 1])
+                ids = np.arange(s, e) if self.tree is None else self.tree[s:e]
+                ent = self.entries[ids]
+                d = rows[members] @ ent.T
+                d *= -2.0
+                d += np.einsum("ij,ij->i", ent, ent)[None, :]
+                j = np.argmin(d, axis=1)
+                dist = d[np.arange(len(members)), j] + rr[members]
+                better = dist < best[members]
+                best[members[better]] = dist[better]
+                labels[members[better]] = ids[j[better]]
         return labels
 
 
@@ -224,8 +277,16 @@ def kmeans(rows: np.ndarray, k: int, rng: np.random.Generator, weights: np.ndarr
     return centroids
 
 
-def build_codebook(rows: np.ndarray, entries: int, weights: np.ndarray | None = None, seed: int = 0) -> Codebook:
-    """Fit a codebook of at most `entries` rows to (N, D) rows (weights: importance of each row, e.g. opacity)."""
+def probes_for(entries: int) -> int:
+    """Top cells a row searches in the encoder's codebooks: 2 above FINE_CAP entries (the "large" codebook), else 1."""
+    return LARGE_PROBES if entries > FINE_CAP else 1
+
+
+def build_codebook(rows: np.ndarray, entries: int, weights: np.ndarray | None = None, seed: int = 0,
+                   probes: int = 1) -> Codebook:
+    """Fit a codebook of at most `entries` rows to (N, D) rows (weights: importance of each row, e.g. opacity).
+    probes > 1 (a tree codebook only): after the tree's fit, one Lloyd round over every distinct row assigned among
+    the entries of its `probes` nearest top cells, and later assignments search those cells too."""
     rows = np.ascontiguousarray(rows, np.float32)
     if rows.ndim != 2 or len(rows) == 0:
         raise ValueError("build_codebook needs a non-empty (N, D) array")
@@ -263,7 +324,17 @@ def build_codebook(rows: np.ndarray, entries: int, weights: np.ndarray | None = 
             block = kmeans(uniq[members], k, rng, uw[members])
         blocks.append(block.astype(np.float32))
         starts.append(starts[-1] + len(block))
-    return Codebook(np.concatenate(blocks), top.astype(np.float32), np.array(starts, np.int64))
+    codebook = Codebook(np.concatenate(blocks), top.astype(np.float32), np.array(starts, np.int64), probes=probes)
+    if probes > 1:
+        # Rows near a top cell's border are fitted to the entries of one cell: one Lloyd round with the search
+        # over the nearest cells moves the entries to the rows that will take them (an entry no row takes stays).
+        labels = codebook._search_probes(uniq)
+        sums = np.zeros(codebook.entries.shape, np.float64)
+        np.add.at(sums, labels, uniq * uw[:, None])
+        mass = np.bincount(labels, weights=uw, minlength=len(codebook.entries))
+        live = mass > 0
+        codebook.entries[live] = (sums[live] / mass[live, None]).astype(np.float32)
+    return codebook
 
 
 def _apportion(score: np.ndarray, cap: np.ndarray, total: int) -> np.ndarray:

@@ -7,7 +7,14 @@ from conftest import real
 
 from splatstream.format.codec import decode_plane
 from splatstream.format.layout import chunk_texel_index
-from splatstream.format.texformats import FORMATS, TEXEL_DTYPES, VALUE_FORMATS, decode_image, unpack_texels
+from splatstream.format.texformats import (
+    FORMATS,
+    PALETTE_FORMATS,
+    TEXEL_DTYPES,
+    VALUE_FORMATS,
+    decode_image,
+    unpack_texels,
+)
 from splatstream.io import read_gaussians
 
 pytest.importorskip("moderngl")
@@ -32,7 +39,7 @@ def _numpy_t(plane, n: int) -> np.ndarray:
     return decode_image(plane.format, blob, plane.width, plane.height).reshape(-1, 4)[src]
 
 
-@pytest.mark.parametrize("fmt", list(VALUE_FORMATS))
+@pytest.mark.parametrize("fmt", [f for f in VALUE_FORMATS if f not in PALETTE_FORMATS])
 def test_shader_decode_equals_numpy(gl_compute_context, gaussians, fmt):
     from client_gl.gpu.pool import ChunkPool
     from client_gl.gpu.renderer import RenderOptions, SplatRenderer
@@ -87,6 +94,30 @@ def test_shader_decode_equals_numpy(gl_compute_context, gaussians, fmt):
     rest = out[:, 14:59].reshape(N, 15, 3)
     np_rest = np.concatenate([ref[f"sh{b}"] for b in (1, 2, 3)], axis=1)
     close(rest, np_rest, "sh", max(extent(f"sh{b}") for b in (1, 2, 3)))
+
+
+def test_palette_planes_decode_on_the_gpu_as_numpy_does(gl_compute_context, gaussians):
+    """pal8x4 scale and colour (format.md 4.3.2): the pool holds them as 16-bit ranged values (palette_as_ranged);
+    the shaders' values are the numpy palette decode within half a 16-bit step of each chunk's range."""
+    from client_gl.gpu.pool import ChunkPool
+    from client_gl.gpu.renderer import RenderOptions, SplatRenderer
+    from client_gl.scene import tiles_from_gaussians
+
+    ctx = gl_compute_context
+    scene = tiles_from_gaussians(gaussians, "medium", overrides={"scale": "pal8x4", "color": "pal8x4"})
+    tile = scene.tiles[0]
+    assert tile.planes["scale"].format == "pal8x4"
+    pool = ChunkPool(ctx, scene.formats, scene.sh_degree, 8)
+    pool.join(3, tile)
+    renderer = SplatRenderer(ctx, pool, RenderOptions(sort="cpu"))
+    out = renderer.decode_debug(pool.splat_ids(3))
+    renderer.release()
+    pool.release()
+    for name, cols in (("scale", slice(7, 10)), ("color", slice(10, 14))):
+        ref = decode_plane(tile.planes[name], N)[:, 0]
+        extent = float(np.ptp(ref, axis=0).max())
+        err = np.abs(out[:, cols] - ref).max()
+        assert err <= extent / 65535 + 2e-6 * max(1.0, float(np.abs(ref).max())), (name, err)
 
 
 def test_shader_decode_equals_numpy_on_tile_steps(gl_compute_context, gaussians):

@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 from conftest import group_planes_of, read_manifest_dict, real, run_cli, write_manifest_dict
 
+from splatstream import vq
 from splatstream.encode import EncodeOptions, encode_gaussians
 from splatstream.encode.codebook import codebook_rows, codebook_weights, order_by_use
 from splatstream.encode.jobs import splat_order
@@ -14,7 +15,15 @@ from splatstream.format.texformats import get_format
 from splatstream.ply import read_gaussians_ply
 from splatstream.scene_decode import decode_scene, read_codebook
 from splatstream.store import DirectoryStore, load_manifest
-from splatstream.vq import MAX_ENTRIES, auto_entries, build_codebook, fine_entries, parse_entries
+from splatstream.vq import (
+    MAX_ENTRIES,
+    Codebook,
+    auto_entries,
+    build_codebook,
+    fine_entries,
+    large_entries,
+    parse_entries,
+)
 
 
 @pytest.fixture(scope="module")
@@ -31,6 +40,10 @@ def test_auto_size_and_parsing():
     assert fine_entries(4721) == 256 and fine_entries(10) == 256 and fine_entries(14_051) == 1024
     assert fine_entries(1_000_000) == 16384 and fine_entries(6_000_000) == 65536
     assert parse_entries("fine", 152_746) == 8192
+    # large: a power of two near N / 8, 256..65,536 (flowers, 542,104 splats: the 16-bit index's whole range).
+    assert large_entries(542_104) == 65536 and large_entries(4721) == 512 and large_entries(14_051) == 2048
+    assert large_entries(10) == 256 and large_entries(6_000_000) == 65536
+    assert parse_entries("large", 152_746) == 16384
     for bad in ("0x10", "-1", str(MAX_ENTRIES + 1), "many"):
         with pytest.raises(UsageError):
             parse_entries(bad, 1000)
@@ -199,3 +212,54 @@ def test_renumbering_by_use_keeps_every_assignment(monkeypatch):
         uses = np.bincount(new, minlength=len(cb.entries))
         assert (np.diff(uses) <= 0).all()
         np.testing.assert_array_equal(sorted_cb.assign(cb.entries), np.argsort(-counts, kind="stable").argsort())
+
+
+def test_low_plus_10bit_cb8_has_the_large_codebook(fruit, tmp_path):
+    """low-plus-10bit-cb8 (issue 32): low-plus-9bit's rotations, scales, colour, their steps and zstd level, 16-bit
+    positions on one 760-level tile step, and the codebook sized "large" (one entry per 8 splats: 512 on
+    fruit_drops' 4,721 splats, against low-plus-9bit's 64): a lower weighted SH error than low-plus-9bit's."""
+    from splatstream.format.presets import PRESET_STEPS, PRESET_ZSTD_LEVEL, PRESETS, TileStep
+
+    assert PRESETS["low-plus-10bit-cb8"] == {**PRESETS["low-plus-9bit"], "position": "norm16x4"}
+    assert PRESET_STEPS["low-plus-10bit-cb8"] == {**PRESET_STEPS["low-plus-9bit"],
+                                                  "position": TileStep((760.0,) * 3, shared=3)}
+    assert PRESET_ZSTD_LEVEL["low-plus-10bit-cb8"] == PRESET_ZSTD_LEVEL["low-plus-9bit"] == 16
+    errors = {}
+    for preset in ("low-plus-9bit", "low-plus-10bit-cb8"):
+        m = encode_gaussians(fruit, tmp_path / preset, EncodeOptions(preset=preset, lod=False))
+        assert m.sh_codebook.entries == {"low-plus-9bit": 64, "low-plus-10bit-cb8": 512}[preset]
+        dec = decode_scene(tmp_path / preset)
+        g = fruit.subset(splat_order(fruit, m.chunk_order))
+        w = codebook_weights(g)
+        err = ((dec.sh_rest - g.sh_rest) ** 2).sum(axis=(1, 2))
+        errors[preset] = float(np.sqrt((w * err).sum() / w.sum() / 45))
+    # measured 0.0189 (64 entries) and 0.0076 (512 entries)
+    assert errors["low-plus-10bit-cb8"] < 0.5 * errors["low-plus-9bit"] and errors["low-plus-10bit-cb8"] < 0.012, \
+        errors
+
+
+def test_two_probe_search_finds_entries_the_tree_misses(monkeypatch):
+    """A tree codebook with probes=2 (the "large" codebooks, vq.probes_for): every row gets the nearest entry among
+    the children of its two nearest top cells, never farther than the one-cell search's; the fit's extra Lloyd
+    round lowers the error on the rows it was fitted to."""
+    monkeypatch.setattr(vq, "FLAT_LIMIT", 0)  # the tree at a test's size
+    rng = np.random.default_rng(5)
+    centres = rng.normal(0, 1, (60, 9)).astype(np.float32)
+    rows = (centres[rng.integers(0, 60, 6000)] + rng.normal(0, 0.35, (6000, 9))).astype(np.float32)
+    one = build_codebook(rows, 256, seed=3)
+    two = build_codebook(rows, 256, seed=3, probes=2)
+    assert len(one.top) > 1 and two.probes == 2 and vq.probes_for(65536) == 2 and vq.probes_for(16384) == 1
+    np.testing.assert_array_equal(one.top, two.top)  # the same tree; only the entries moved
+    lab = two.assign(rows)
+    d_all = ((rows[:, None, :] - two.entries[None]) ** 2).sum(-1)
+    near_top = np.argsort(((rows[:, None, :] - two.top[None]) ** 2).sum(-1), axis=1)[:, :2]
+    cell_of = np.repeat(np.arange(len(two.top)), np.diff(two.starts))
+    allowed = (cell_of[None, :] == near_top[:, :1]) | (cell_of[None, :] == near_top[:, 1:2])
+    want = np.where(allowed, d_all, np.inf).min(axis=1)
+    got = d_all[np.arange(len(rows)), lab]
+    np.testing.assert_allclose(got, want, rtol=1e-4, atol=1e-5)
+    tree_only = Codebook(two.entries, two.top, two.starts)
+    assert np.all(got <= d_all[np.arange(len(rows)), tree_only.assign(rows)] + 1e-5)
+    err = {k: float(np.mean(((rows - c.entries[c.assign(rows)]) ** 2).sum(-1)))
+           for k, c in (("one", one), ("two", two))}
+    assert err["two"] < 0.99 * err["one"], err

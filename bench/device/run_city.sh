@@ -9,7 +9,8 @@
 #                (wall, summed PSS of the process tree, the largest process, phases)
 #   stream:      the encoded scene served on loopback: the first frame (bench_first_frame.py, twice: cold and warm
 #                shader cache), the manifest bytes before it (bench_pages.py --first-frame), and the fly-through
-#                (bench_flythrough.py, 3M splat budget)
+#                (bench_flythrough.py, 3M splat budget); FLY_ONLY=1: the fly-through only; FLY_ARGS: more of its
+#                options, FLY_NAME: its JSON's name under $OUT (default flythrough)
 # The scene stays under /tmp/city while the machine is warm, so the second call must follow the first at once.
 set -u
 [ -d /tmp/site/distributed ] || python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir \
@@ -40,7 +41,8 @@ gl_setup() {
 }
 fly_summary() {
   python3 -c "import json,sys; d=json.load(open(sys.argv[1]))['streaming']; print({k: d.get(k) for k in \
-    ('frames','median_ms','p99_ms','update_ms_median','update_ms_p99','select_ms_median','select_ms_p99')}, \
+    ('frames','median_ms','p99_ms','update_ms_median','update_ms_p99','select_ms_median','select_ms_p99', \
+     'frame_call_waited_ms_p99','drain_ms_p99','others_cpu_in_p99_frames_ms','growth_frames')}, \
     'compiled selection', json.load(open(sys.argv[1])).get('compiled_selection'))" "$1"
 }
 if [ "$what" = sizes ]; then
@@ -87,7 +89,9 @@ if [ "$what" = stream ]; then
   [ -n "${FLY_ONLY:-}" ] || for run in cold warm; do
     python3 bench/bench_first_frame.py --scene $W/scene --json "$OUT/first_frame_$run.json" 2>&1 | tail -4
   done
-  python3 bench/bench_flythrough.py --scene $W/scene --ply $W/s.ply --max-splats 3000000 --breakdown \
-    --json "$OUT/flythrough.json" > $W/fly.log 2>&1 || tail -20 $W/fly.log
-  fly_summary "$OUT/flythrough.json"
+  # FLY_ARGS: more bench_flythrough.py options (an A/B: FLY_ARGS="--drain-ms 0" FLY_NAME=fly_drain0)
+  fly=${FLY_NAME:-flythrough}
+  python3 bench/bench_flythrough.py --scene $W/scene --ply $W/s.ply --max-splats 3000000 --breakdown ${FLY_ARGS:-} \
+    --json "$OUT/$fly.json" > $W/fly.log 2>&1 || tail -20 $W/fly.log
+  fly_summary "$OUT/$fly.json"
 fi

@@ -73,9 +73,10 @@ def register(sub: argparse._SubParsersAction) -> None:
         p.add_argument(f"--{attr}", dest=f"fmt_{attr}", choices=list(VALUE_FORMATS), metavar="FORMAT",
                        help=f"texel format of {attr}, overriding the preset ({', '.join(VALUE_FORMATS)})")
     p.add_argument("--sh-degree", type=int, choices=[0, 1, 2, 3], help="drop SH bands above this degree")
-    p.add_argument("--sh-codebook", metavar="off|auto|fine|N",
+    p.add_argument("--sh-codebook", metavar="off|auto|fine|large|N",
                    help="vector-quantise SH bands 1..3 into a scene-wide codebook of N entries (at most 65536; "
-                        "auto: about one per 64 splats; fine: about one per 16, 256..16384) with a 16-bit index per "
+                        "auto: about one per 64 splats; fine: about one per 16, 256..16384; large: about one per 8, "
+                        "256..65536) with a 16-bit index per "
                         "splat; the sh format then applies to the codebook. Default: the preset's choice ("
                         + ", ".join(f"{k}: {v}" for k, v in PRESET_SH_CODEBOOK.items()) + "; the others: off)")
     p.add_argument("--no-lod", action="store_true", help="write one tile holding every splat (no LOD tree)")
@@ -104,9 +105,12 @@ def register(sub: argparse._SubParsersAction) -> None:
                         + ", ".join(f"{k} {v}" for k, v in PRESET_ZSTD_LEVEL.items())
                         + ": level 1 is as small as level 3 on the transport-coded planes and twice as fast; "
                         "higher levels gain 0-4%% at 5-50x the time)")
-    p.add_argument("--transport", default="fields", choices=list(TRANSPORTS),
+    p.add_argument("--transport", default=None, choices=list(TRANSPORTS),
                    help="how payload sections are stored: fields (default; the fields1 coding where it is smaller "
-                        "than the byte shuffle, format 1.2), shuffle (format 1.0/1.1, for readers before 1.2), none")
+                        "than the byte shuffle, format 1.2), keyed (fields, and norm16x4 positions sorted inside "
+                        "chunks and stored as Morton key differences where smaller, format 1.6: about 0.3 B/splat "
+                        "smaller at 12-bit positions, slower to decode), shuffle (format 1.0/1.1, for readers before "
+                        "1.2), none")
     p.add_argument("--chunk-order", default="auto", choices=["auto", "morton", "luminance"],
                    help="order of splats inside each chunk: luminance groups similar colours into the same BC block; "
                         "auto (default) uses it when colour or SH, but not position/rotation/scale, are BC-compressed")

@@ -26,13 +26,13 @@ format_spec/renderer.md 1 describes all of it.
 from __future__ import annotations
 
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from splatstream.errors import UsageError
-from splatstream.format.codec import EncodedPlane
-from splatstream.format.texformats import get_format
+from splatstream.format.codec import EncodedPlane, palette_as_ranged
+from splatstream.format.texformats import PALETTE_FORMATS, get_format
 
 from ..tiledata import HostMirror, TileData
 from .gl import BLOCK_BYTES, GL_RG8UI, GL_RGBA32UI, IMAGE_WORD_FORMATS, INTERNAL_FORMATS, RawTexture, StagingBuffer
@@ -316,6 +316,8 @@ class ChunkPool:
             raise UsageError(f"tile {tile_id} is already resident")
         n = int(tile.splats)
         chunks = -(-n // CHUNK)
+        if any(p.format in PALETTE_FORMATS for p in tile.planes.values()):  # held as ranged values (format.md 4.3.2)
+            tile = replace(tile, planes={k: palette_as_ranged(p, n) for k, p in tile.planes.items()})
         bands = self._bands_carried(tile_id, tile)
         self._check_planes(tile_id, tile.planes, BASE_PLANE_NAMES, chunks)
         for band in range(1, bands + 1):

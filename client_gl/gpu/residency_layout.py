@@ -11,6 +11,7 @@ from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 from splatstream.errors import UsageError
+from splatstream.format.codec import gpu_format
 from splatstream.format.layout import BLOCK, CHUNK_SIZE, MAX_BLOCK_ROWS, MAX_BLOCKS_PER_ROW, texture_size
 from splatstream.format.planes import BASE_PLANES, MAX_SH_DEGREE, SH_INDEX_FORMAT, SH_INDEX_PLANE, band_plane
 from splatstream.format.texformats import blob_size, get_format
@@ -83,7 +84,8 @@ class PoolLayout:
             raise UsageError(f"pool formats lack {', '.join(sorted(missing))}")
         for attribute in attributes:
             get_format(self.formats[attribute])
-        object.__setattr__(self, "formats", dict(self.formats))
+        # Palette planes are held as ranged 16-bit values (codec.palette_as_ranged, done by the pool on join).
+        object.__setattr__(self, "formats", {a: gpu_format(f) for a, f in self.formats.items()})
         if self.codebook is not None:
             planes = BASE_PLANE_NAMES + ("sh_index",)
         else:

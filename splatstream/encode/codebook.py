@@ -8,7 +8,7 @@ from ..format.codec import EncodedPlane, codebook_band_values, encode_plane
 from ..format.planes import band_plane
 from ..format.presets import PRESET_SH_CODEBOOK
 from ..gaussians import Gaussians, sigmoid
-from ..vq import Codebook, build_codebook, parse_entries
+from ..vq import Codebook, build_codebook, parse_entries, probes_for
 
 
 def codebook_rows(g: Gaussians) -> np.ndarray:
@@ -55,7 +55,7 @@ def fit_sh_codebook(g: Gaussians, preset: str, choice: str | int | None, sh_degr
     if sh_degree < g.sh_degree:
         g = g.with_sh_degree(sh_degree)
     rows = codebook_rows(g)
-    return order_by_use(build_codebook(rows, entries, weights=codebook_weights(g)), rows)
+    return order_by_use(build_codebook(rows, entries, weights=codebook_weights(g), probes=probes_for(entries)), rows)
 
 
 def assign_sh_codebook(codebook: Codebook, g: Gaussians, block: int = 1 << 16) -> np.ndarray:

@@ -9,7 +9,8 @@ import numpy as np
 
 from ..format.codec import EncodedPlane, encode_index_plane, encode_plane, plane_values
 from ..format.container import write_payload
-from ..format.layout import morton_order, order_within_chunks, texture_size
+from ..format.keyed import MORTON_FORMATS, morton_keys
+from ..format.layout import CHUNK_SIZE, chunk_texel_index, morton_order, order_within_chunks, texture_size
 from ..format.manifest import Box, PayloadEntry, SHCodebookEntry, TileEntry
 from ..format.planes import BASE_PLANES, SH_INDEX_FORMAT, band_of, band_plane, chunks_for, groups_for_degree
 from ..gaussians import Gaussians
@@ -31,6 +32,30 @@ def splat_order(g: Gaussians, chunk_order: str) -> np.ndarray:
     if chunk_order == "luminance":
         order = order_within_chunks(order, g.base_colors @ LUMINANCE)
     return order
+
+
+def keyed_order(g: Gaussians, order: np.ndarray, ctx: TileContext) -> np.ndarray:
+    """`order` with each chunk's splats re-sorted by the Morton key of their quantised position codes (the codes the
+    position plane stores: same chunks, same ranges, same codes, in another order), so that the `morton1` coding
+    (format.md 5.4) stores a chunk as sorted keys. Only with the transport `keyed`, where the position format has
+    one (MORTON_FORMATS) and the chunk order is `morton`; otherwise `order` as it is."""
+    fmt = ctx.formats["position"]
+    if fmt not in MORTON_FORMATS or ctx.chunk_order != "morton" or ctx.transport != "keyed" or len(order) < 2:
+        return order
+    spec = BASE_PLANES[0]
+    plane = encode_plane(plane_values(g, spec), spec, fmt, order, step=ctx.steps.get("position"))
+    n = len(order)
+    chunks = chunks_for(n)
+    texels = np.frombuffer(plane.layers[0], "<u2").reshape(-1, 4)[chunk_texel_index(chunks, plane.width)[:n]]
+    key = morton_keys(texels).astype(np.int64)  # 48 bits
+    chunk = np.arange(n) // CHUNK_SIZE
+    within = np.lexsort((np.arange(n), key, chunk))  # by chunk, then key, ties in the given order
+    return order[within]
+
+
+def tile_order(g: Gaussians, ctx: TileContext) -> np.ndarray:
+    """The order a tile's splats are stored in: splat_order, then keyed_order."""
+    return keyed_order(g, splat_order(g, ctx.chunk_order), ctx)
 
 
 def tile_group_names(ctx: TileContext) -> list[str]:
@@ -80,7 +105,7 @@ def tile_entry(tile: Tile, groups: dict[str, PayloadEntry]) -> TileEntry:
 
 def encode_tile(tile: Tile, ctx: TileContext, writer: SceneWriter) -> TileEntry:
     """Every payload of one tile, then its entry: the unit of work a distributed encoder hands a worker."""
-    order = splat_order(tile.gaussians, ctx.chunk_order)
+    order = tile_order(tile.gaussians, ctx)
     groups = {group: encode_group(tile.gaussians, order, group, ctx, writer) for group in tile_group_names(ctx)}
     return tile_entry(tile, groups)
 

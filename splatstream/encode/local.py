@@ -15,7 +15,7 @@ from ..format.manifest import Manifest, TileEntry
 from ..gaussians import Gaussians
 from ..lod import Tile
 from ..store import DirectoryWriter, MemoryStore, MemoryWriter, SceneWriter, write_scene_manifest
-from .jobs import encode_codebook, encode_group, splat_order, tile_entry, tile_group_names
+from .jobs import encode_codebook, encode_group, tile_entry, tile_group_names, tile_order
 from .options import EncodeOptions, Progress, no_progress
 from .plan import plan_camera, plan_encode
 from .reduce import build_manifest
@@ -34,7 +34,7 @@ def encode_to(g: Gaussians, writer: SceneWriter, opts: EncodeOptions, progress: 
     codebook = encode_codebook(ctx.codebook, ctx, writer) if ctx.codebook is not None else None
     entries: list[TileEntry] = []
     with _pool(min(2, os.cpu_count() or 1)) as pool:
-        orders = list(pool.map(lambda t: splat_order(t.gaussians, ctx.chunk_order), plan.tiles))
+        orders = list(pool.map(lambda t: tile_order(t.gaussians, ctx), plan.tiles))
         camera = pool.submit(plan_camera, plan)
         # A single tile's bounds (the LOD tree computes its own) beside the payload jobs.
         bounds = {id(t): pool.submit(tile_entry, t, {}) for t in plan.tiles if t.box_min is None}

@@ -5,7 +5,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from ..format.container import DEFAULT_ZSTD_LEVEL
-from ..format.presets import DEFAULT_PRESET, preset_zstd_level
+from ..format.presets import DEFAULT_PRESET, preset_transport, preset_zstd_level
 
 # progress(stage, fraction in [0, 1]); stages: codebook, tiles, encode
 Progress = Callable[[str, float], None]
@@ -22,8 +22,9 @@ class EncodeOptions:
     sh_degree: int | None = None  # drop bands above this
     zstd_level: int | None = None  # None: the preset's (format/presets.py PRESET_ZSTD_LEVEL), else DEFAULT_ZSTD_LEVEL
     # How payload sections are stored (format/transport.py): "fields" (the fields1 filter where it is smaller than
-    # the byte shuffle; format 1.2), "shuffle" (what 1.0/1.1 readers read), "none".
-    transport: str = "fields"
+    # the byte shuffle; format 1.2), "keyed" (and morton1 positions, format 1.6), "shuffle" (what 1.0/1.1 readers
+    # read), "none". None: the preset's (format/presets.py PRESET_TRANSPORT), else "fields".
+    transport: str | None = None
     lod: bool = True
     # Leaf tile size: measured against bytes to converge and requests on a 20 Mbit/s + 40 ms link (BENCHMARKS.md,
     # "Tile size"): 16,384 converged an overview 12 % and a close-up 26 % sooner than 65,536, with a 192 KB manifest
@@ -52,6 +53,11 @@ class EncodeOptions:
     # Let the LOD builder permute the input's arrays in place instead of copying the scene (saves one copy of
     # the whole scene). Only for callers that own the Gaussians and do not need their order afterwards.
     reorder_input: bool = False
+
+    @property
+    def resolved_transport(self) -> str:
+        """The transport the payloads are written with: the option, else the preset's, else "fields"."""
+        return self.transport if self.transport is not None else preset_transport(self.preset, "fields")
 
     @property
     def resolved_zstd_level(self) -> int:

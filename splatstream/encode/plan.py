@@ -145,7 +145,7 @@ def plan_scene(opts: EncodeOptions, formats: dict[str, str], chunk_order: str, s
         progress("codebook", 1.0)
     sample = replace(sample, codebook_rows=None, codebook_weights=None)
     up = plan_up(opts, sample)
-    context = TileContext(formats, chunk_order, sh_degree, codebook, opts.resolved_zstd_level, opts.transport,
+    context = TileContext(formats, chunk_order, sh_degree, codebook, opts.resolved_zstd_level, opts.resolved_transport,
                           preset_steps(opts.preset, opts.overrides))
     return ScenePlan(context, opts.preset, name, splats, bounds, up, opts.max_leaf_splats,
                      float(opts.reduction)), sample

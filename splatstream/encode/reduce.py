@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from .. import __version__
+from ..format.keyed import MORTON1
 from ..format.layout import CHUNK_SIZE
 from ..format.manifest import (
     AttributeSize,
@@ -13,6 +14,7 @@ from ..format.manifest import (
     TileEntry,
     writer_version,
 )
+from ..format.manifest.versions import VERSION_1_6
 from ..format.planes import BASE_PLANE_NAMES
 from ..format.presets import ATTRIBUTES
 from .plan import ScenePlan
@@ -43,6 +45,14 @@ class _Sizes:
         self.leaf_disk += entry.bytes
 
 
+def _version(ctx, codebook: SHCodebookEntry | None, tiles: list[TileEntry]) -> tuple[int, int]:
+    """The formats' and chunk order's version (writer_version), 1.6 where a section is stored as morton1 (format.md
+    5.4: the encoder chooses it per section, so only the entries tell)."""
+    version = writer_version(ctx.formats, codebook.format if codebook is not None else None, ctx.chunk_order)
+    keyed = any(s.filter == MORTON1 for t in tiles for e in t.groups.values() for s in e.sections)
+    return max(version, VERSION_1_6) if keyed else version
+
+
 def build_manifest(scene: ScenePlan, camera: CameraEntry, tiles: list[TileEntry],
                    codebook: SHCodebookEntry | None) -> Manifest:
     """`tiles` in the plan's tile order (the per-attribute sums add up in that order); bytes_on_disk settled.
@@ -62,7 +72,7 @@ def build_manifest(scene: ScenePlan, camera: CameraEntry, tiles: list[TileEntry]
     root = ordered[0]
     m = Manifest(
         # 1.2 (the manifest checksum), fields1 or not; 1.3 where a plane is norm16x4 or norm9x3 (format.md 9)
-        version=writer_version(ctx.formats, codebook.format if codebook is not None else None, ctx.chunk_order),
+        version=_version(ctx, codebook, tiles),
         generator=f"splatstream {__version__}",
         name=scene.name,
         splats=scene.splats,

@@ -22,7 +22,7 @@ from ..format.manifest import CameraEntry
 from ..gaussians import Gaussians
 from ..orientation import SAMPLE as ORIENT_SAMPLE
 from ..orientation import UpChoice, detect_up, view_side
-from ..vq import Codebook, build_codebook, parse_entries
+from ..vq import Codebook, build_codebook, parse_entries, probes_for
 from .codebook import codebook_rows, codebook_weights, order_by_use
 
 POSITION_SAMPLE = 2_000_000
@@ -102,5 +102,6 @@ class SceneSample:
         entries = parse_entries(choice, self.splats) if self.codebook_rows is not None else 0
         if not entries:
             return None
-        return order_by_use(build_codebook(self.codebook_rows, entries, weights=self.codebook_weights),
+        return order_by_use(build_codebook(self.codebook_rows, entries, weights=self.codebook_weights,
+                                           probes=probes_for(entries)),
                             self.codebook_rows)

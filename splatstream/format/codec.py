@@ -19,7 +19,7 @@ from ..gaussians import SH_BAND_COEFFS, Gaussians, logit, normalize_quaternions,
 from .f16 import f16_ceil, f16_floor
 from .layout import CHUNK_SIZE, chunk_texel_index, texture_size
 from .limits import plane_limits
-from .planes import SH_INDEX_FORMAT, SH_INDEX_PLANE, PlaneSpec
+from .planes import PALETTE_ENTRIES, PALETTE_GROUPS, SH_INDEX_FORMAT, SH_INDEX_PLANE, PlaneSpec, palette_count
 from .steps import (
     TileStep,
     keep_opacity_grid,
@@ -29,7 +29,15 @@ from .steps import (
     widened_max,
     zero_on_grid,
 )
-from .texformats import TEXEL_DTYPES, decode_image, encode_bc_image, get_format, pack_texels, unpack_texels
+from .texformats import (
+    PALETTE_FORMATS,
+    TEXEL_DTYPES,
+    decode_image,
+    encode_bc_image,
+    get_format,
+    pack_texels,
+    unpack_texels,
+)
 
 SQRT2 = math.sqrt(2.0)
 WHOLE_PLANE_GATHER_BYTES = 32 << 20
@@ -127,6 +135,8 @@ class EncodedPlane:
     height: int
     layers: list[np.ndarray] | Iterator[np.ndarray]  # one uint8 texture blob per layer (see encode_plane's lazy)
     ranges: np.ndarray | None  # (chunks, 2, L, C) in range_dtype, [:, 0] = min, [:, 1] = max
+    # A palette plane's palettes (format.md 4.3.2): (palette_count, 256) float32; its `ranges` are None.
+    palette: np.ndarray | None = None
 
     @property
     def chunks(self) -> int:
@@ -203,6 +213,8 @@ def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.n
     is exhausted, so a payload writer holds one layer at a time.
     """
     get_format(fmt_name)
+    if fmt_name in PALETTE_FORMATS:
+        return encode_palette_plane(values, spec, fmt_name, order)
     n = len(values)
     chunks = max(1, -(-n // CHUNK_SIZE))
     width, height = texture_size(chunks)
@@ -269,6 +281,98 @@ def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.n
     return plane
 
 
+def fit_palette(values: np.ndarray) -> np.ndarray:
+    """(PALETTE_ENTRIES,) float32 palette, ascending, for an array of values: the distinct values themselves when
+    there are at most PALETTE_ENTRIES (every value is then an entry, exactly; entries past them repeat the last),
+    else PALETTE_ENTRIES evenly spaced values from the least to the largest (a tile-wide 8-bit grid: the error is at
+    most half its step, as a norm8x4 plane over one range; an LOD tile's merged values, which leave the input's
+    palette, land here). Deterministic: a function of the values' set."""
+    distinct = np.unique(np.asarray(values, np.float32))
+    if distinct.size == 0:
+        return np.zeros(PALETTE_ENTRIES, np.float32)
+    if distinct.size <= PALETTE_ENTRIES:
+        return np.concatenate([distinct, np.repeat(distinct[-1:], PALETTE_ENTRIES - distinct.size)])
+    lo, hi = float(distinct[0]), float(distinct[-1])
+    grid = (lo + (hi - lo) * (np.arange(PALETTE_ENTRIES) / (PALETTE_ENTRIES - 1))).astype(np.float32)
+    grid[0], grid[-1] = distinct[0], distinct[-1]
+    return np.maximum.accumulate(grid)
+
+
+def palette_indices(values: np.ndarray, palette: np.ndarray) -> np.ndarray:
+    """Index of the nearest palette entry of every value (the first of equal entries; exact where a value is one)."""
+    p = palette.astype(np.float64)
+    distinct = np.concatenate([[True], p[1:] != p[:-1]])
+    first = np.flatnonzero(distinct)
+    entries = p[first]
+    v = np.asarray(values, np.float64)
+    i = np.clip(np.searchsorted(entries, v), 1, max(1, len(entries) - 1)) if len(entries) > 1 else \
+        np.zeros(v.shape, np.int64)
+    if len(entries) > 1:
+        i = np.where(np.abs(v - entries[i - 1]) <= np.abs(v - entries[i]), i - 1, i)
+    return first[i]
+
+
+def encode_palette_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str,
+                         order: np.ndarray | None = None) -> EncodedPlane:
+    """A palette plane (format.md 4.3.2): per palette of the plane (PALETTE_GROUPS: the components sharing it), the
+    tile's values' palette (fit_palette: exact when they take at most 256 values), and every component's index into
+    its palette as an 8-bit texel component in the chunk-block layout."""
+    if spec.name not in PALETTE_GROUPS or spec.layers != 1:
+        raise ValueError(f"{fmt_name} holds palette indices of a scale or colour plane, not of {spec.name}")
+    n = len(values)
+    chunks = max(1, -(-n // CHUNK_SIZE))
+    width, height = texture_size(chunks)
+    v = values[:, 0] if order is None else np.take(values[:, 0], order, axis=0)
+    if n == 0:
+        v = np.zeros((1, spec.components), np.float32)
+    groups = PALETTE_GROUPS[spec.name]
+    palette = np.zeros((palette_count(spec), PALETTE_ENTRIES), np.float32)
+    index = np.zeros((len(v), 4), np.float32)
+    for p in range(len(palette)):
+        comps = [k for k, g in enumerate(groups) if g == p]
+        palette[p] = fit_palette(v[:, comps])
+        index[:, comps] = palette_indices(v[:, comps], palette[p]).astype(np.float32) / np.float32(255.0)
+    blob = _texture_blob(_pad_to_chunks(index), fmt_name, chunks, width, height)
+    return EncodedPlane(spec, fmt_name, width, height, [blob], None, palette)
+
+
+def decode_palette_indices(plane: EncodedPlane, n: int) -> np.ndarray:
+    """(N, 4) int64 palette indices of a palette plane's first n splats (slot order)."""
+    chunks = max(1, -(-n // CHUNK_SIZE))
+    src = chunk_texel_index(chunks, plane.width)[:n]
+    blob = plane.layers[0] if isinstance(plane.layers, list) else next(iter(plane.layers))
+    return np.frombuffer(blob, np.uint8).reshape(-1, 4)[src].astype(np.int64)
+
+
+def decode_palette_plane(plane: EncodedPlane, n: int) -> np.ndarray:
+    """(N, 1, C) float32 values of a palette plane: each component's palette entry (every index 0..255 is valid)."""
+    index = decode_palette_indices(plane, n)
+    groups = PALETTE_GROUPS[plane.spec.name]
+    out = np.empty((n, 1, len(groups)), np.float32)
+    for k, p in enumerate(groups):
+        out[:, 0, k] = plane.palette[p][index[:, k]]
+    return out
+
+
+# The texel format a GPU client holds a palette plane's values in (format.md 4.3.2, informative): 16-bit components
+# over per-chunk f16 ranges, within 1/131070 of a chunk's extent of the palette's values. The GL client does not
+# look palettes up in its shaders (yet): its pool transcodes on join (palette_as_ranged).
+PALETTE_GPU_FORMAT = "norm16x4"
+
+
+def gpu_format(fmt_name: str) -> str:
+    """The texel format a GPU atlas holds a plane of `fmt_name` in (a palette plane's values: PALETTE_GPU_FORMAT)."""
+    return PALETTE_GPU_FORMAT if fmt_name in PALETTE_FORMATS else fmt_name
+
+
+def palette_as_ranged(plane: EncodedPlane, n: int) -> EncodedPlane:
+    """A palette plane's first n values as a PALETTE_GPU_FORMAT plane with per-chunk ranges (the same chunks and
+    texture); any other plane as it is."""
+    if plane.format not in PALETTE_FORMATS:
+        return plane
+    return encode_plane(decode_palette_plane(plane, n), plane.spec, PALETTE_GPU_FORMAT)
+
+
 def encode_index_plane(indices: np.ndarray, order: np.ndarray | None = None) -> EncodedPlane:
     """Per-splat codebook indices (N,) -> an index16 plane in the chunk-block layout (padding repeats the last)."""
     idx = np.asarray(indices, np.int64)
@@ -304,6 +408,8 @@ def codebook_band_values(entries: np.ndarray, band: int) -> np.ndarray:
 def decode_plane(plane: EncodedPlane, n: int) -> np.ndarray:
     """Texture blob (+ ranges) back to (N, L, C) float32 plane values."""
     spec = plane.spec
+    if plane.format in PALETTE_FORMATS:
+        return decode_palette_plane(plane, n)
     fmt = get_format(plane.format)
     chunks = max(1, -(-n // CHUNK_SIZE))
     src = chunk_texel_index(chunks, plane.width)[:n]

@@ -12,6 +12,7 @@ gives back a `VerifiedPayload`, which readers hand on and decoding takes without
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import io
 import threading
@@ -23,13 +24,26 @@ import zstandard
 
 from ..errors import FormatError
 from .codec import EncodedPlane
+from .keyed import MORTON1, MORTON_FORMATS, morton_content, unfilter_morton
 from .layout import ALIGN
-from .limits import MAX_ABS_POSITION, MAX_LOG_SCALE, MIN_LOG_SCALE
-from .manifest import PayloadEntry, Section
+from .limits import MAX_ABS_POSITION, MAX_ABS_SH, MAX_LOG_SCALE, MIN_LOG_SCALE
+from .manifest import PayloadEntry, Section, filter_element
 from .names import payload_name, sha256_hex
-from .planes import RANGE_DTYPE_NAMES, group_planes
-from .texformats import TEXEL_DTYPES
-from .transport import filter_texels, shuffle, shuffle_filter, unfilter_texels, unshuffle
+from .planes import RANGE_DTYPE_NAMES, group_planes, palette_shape
+from .texformats import PALETTE_FORMATS, TEXEL_DTYPES
+from .transport import (
+    FIELD_LAYOUTS,
+    FIELDS1,
+    field_bits,
+    filter_texels,
+    shuffle,
+    shuffle_filter,
+    trial_size,
+    unfilter_fields_many,
+    unfilter_texels,
+    unshuffle,
+    unshuffle_many,
+)
 
 WORKER_MODE_MAX_BYTES = 32 << 20
 # zstd level of the encoder's payloads. With a zstd block per byte plane, level 1 is as small as level 3 or smaller
@@ -66,9 +80,20 @@ def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level:
 
     for p in planes:
         layers = p.spec.layers
-        filt, parts = filter_texels(p.layers, p.format, p.width, p.height, layers, level, transport)
+        if transport == "keyed" and p.format in MORTON_FORMATS and layers == 1:
+            filt, parts = _keyed_or_fields(p, level)
+        else:
+            filt, parts = filter_texels(p.layers, p.format, p.width, p.height, layers, level, transport)
         add(p.spec.name, "texels", filt, parts, format=p.format, width=p.width, height=p.height, layers=layers)
-        if p.spec.range_dtype:
+        if p.palette is not None:  # a palette plane (format.md 4.3.2): its palettes stand where its ranges would
+            palette = np.ascontiguousarray(p.palette, "<f4")
+            expected = palette_shape(p.spec)
+            if palette.size != int(np.prod(expected)):
+                raise AssertionError(f"{p.spec.palette_name}: palette of shape {palette.shape}, expected {expected}")
+            element = 4 if transport != "none" else 1
+            add(p.spec.palette_name, "range", shuffle_filter(element), [shuffle(palette.reshape(-1), element)],
+                dtype="f32", shape=expected)
+        elif p.spec.range_dtype:
             item = np.dtype(p.spec.range_dtype).itemsize
             ranges = np.ascontiguousarray(p.ranges, p.spec.range_dtype)
             expected = (chunks, 2, layers, p.spec.components)
@@ -103,6 +128,17 @@ def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level:
     sha = digest.hexdigest()
     return PayloadEntry(payload_name(sha), sha, written, int(position), sum(s.gpu_size for s in sections),
                         tuple(sections))
+
+
+def _keyed_or_fields(p: EncodedPlane, level: int) -> tuple[str, list]:
+    """A one-layer section of a MORTON_FORMATS format stored as `morton1` (format.md 5.4) or as filter_texels
+    chooses, whichever compresses smaller (tried at the trial level of transport.py, on the whole layer)."""
+    layer = np.ravel(next(iter(p.layers)) if not isinstance(p.layers, list) else p.layers[0]).view(np.uint8)
+    filt, parts = filter_texels([layer], p.format, p.width, p.height, 1, level, "fields")
+    keyed = morton_content(layer, p.width, p.height)
+    if trial_size(keyed, level) < trial_size(parts, level):
+        return MORTON1, keyed
+    return filt, parts
 
 
 def pack_payload(planes: list[EncodedPlane], level: int = DEFAULT_ZSTD_LEVEL,
@@ -190,6 +226,13 @@ def _decompress(data: bytes | memoryview, size: int, source: str) -> tuple[np.nd
         buf = buf[:size]
     else:
         buf = np.empty(size, np.uint8)
+    _decompress_into(data, buf, source)
+    return buf, kept
+
+
+def _decompress_into(data: bytes | memoryview, buf: np.ndarray, source: str) -> None:
+    """Decompress `data` into `buf` (uint8): FormatError unless it is one zstd frame of exactly buf.size bytes."""
+    size = buf.size
     got, extra = 0, b""
     try:
         with _decompressor().stream_reader(data) as reader:
@@ -206,7 +249,6 @@ def _decompress(data: bytes | memoryview, size: int, source: str) -> tuple[np.nd
     if got != size:
         raise FormatError(source, "raw_bytes", f"payload decompresses to {got} bytes, expected {size} (a short "
                           "or truncated zstd frame)")
-    return buf, kept
 
 
 def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, source: str,
@@ -218,27 +260,152 @@ def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, so
     plane (format_spec/format.md 4.7). `between` is called before each plane: a decode thread's point to wait
     while another thread needs the interpreter (the streaming client's frame loop)."""
     buf, kept = _decompress(data, entry.raw_bytes, source)
+    # What a small payload's decode spends beyond its splats is per-call Python and numpy work (issue 32: on the LOD
+    # tree's tiles of a few hundred splats it was half the time), so this loop does only what each plane needs: the
+    # section table read once into a dict, not searched per section; a view of the kept buffer found by its base.
+    owner = buf if buf.base is None else buf.base
+    sections = {s.name: s for s in entry.sections}
     planes: dict[str, EncodedPlane] = {}
     for spec in group_planes(group, codebook):
         if between is not None:
             between()
-        s = entry.section(spec.name)
-        layers = unfilter_texels(buf[s.offset:s.offset + s.size], s.filter, s.format, s.width, s.height,
-                                 spec.layers, f"{source} section {s.name}")
+        s = sections[spec.name]
+        if s.filter == MORTON1:  # format.md 5.4 (the manifest checked its format, layers and size)
+            layers = [unfilter_morton(buf[s.offset:s.offset + s.size], s.width, s.height)]
+        else:
+            layers = unfilter_texels(buf[s.offset:s.offset + s.size], s.filter, s.format, s.width, s.height,
+                                     spec.layers, f"{source} section {s.name}")
         if s.format in FLOAT_TEXEL_FORMATS:
             _check_float_texels(layers, s, source)
-        ranges = None
-        if spec.range_dtype:
-            r = entry.section(spec.range_name)
-            data_r = unshuffle(buf[r.offset:r.offset + r.size], r.element)
-            ranges = data_r.view(np.dtype(spec.range_dtype)).reshape(r.shape)
+        ranges = palette = None
+        if s.format in PALETTE_FORMATS:
+            r = sections[spec.palette_name]
+            palette = unshuffle(buf[r.offset:r.offset + r.size], r.element).view("<f4").reshape(r.shape[0], -1)
+            _check_palette(palette, spec.name, r.name, source)
+        elif spec.range_dtype:
+            r = sections[spec.range_name]
+            ranges = unshuffle(buf[r.offset:r.offset + r.size], r.element).view(spec.range_dtype).reshape(r.shape)
             _check_ranges(ranges, spec.name, r.name, source)
         if kept:  # what is still a view of this thread's buffer is copied: the next payload overwrites it
-            layers = [p.copy() if np.may_share_memory(p, buf) else p for p in layers]
-            if ranges is not None and np.may_share_memory(ranges, buf):
+            layers = [p.copy() if p.base is owner else p for p in layers]
+            if ranges is not None and ranges.base is owner:
                 ranges = ranges.copy()
-        planes[spec.name] = EncodedPlane(spec, s.format, s.width, s.height, layers, ranges)
+            if palette is not None and np.may_share_memory(palette, buf):
+                palette = palette.copy()
+        planes[spec.name] = EncodedPlane(spec, s.format, s.width, s.height, layers, ranges, palette)
     return planes
+
+
+_element = functools.lru_cache(maxsize=32)(filter_element)  # a filter name's parse, once (not once a section)
+
+
+def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group: str, sources: list[str],
+                    codebook: bool = False,
+                    between: Callable[[], object] | None = None) -> list[dict[str, EncodedPlane]]:
+    """unpack_payload of several verified payloads of one group (the tiles of one request, a scene's tiles): the
+    same planes, bit for bit, but each step taken for all of them in one go where it can be: fields1 sections of
+    the same format and modes through one work array (transport.unfilter_fields_many), shuffled sections and
+    ranges through one unshuffle, the ranges of a plane checked together.
+
+    Why: a payload of the LOD tree's median tile (600 splats) spent more than half its decode in per-call
+    overhead, a fixed cost per payload, section and numpy call (issue 32; BENCHMARKS.md, decode speed). A
+    payload that does not decode raises FormatError naming its source, as unpack_payload does; nothing of the
+    others is returned then."""
+    if not items:
+        return []
+    if any(sec.filter == MORTON1 or sec.format in PALETTE_FORMATS for _, entry in items for sec in entry.sections):
+        # keyed positions and palette planes (format.md 5.4, 4.3.2) are decoded one payload at a time
+        return [unpack_payload(data, entry, group, source, codebook, between)
+                for (data, entry), source in zip(items, sources, strict=True)]
+    sizes = [entry.raw_bytes for _, entry in items]
+    total = sum(sizes)
+    kept = total <= KEEP_RAW_BYTES
+    if kept:
+        whole = getattr(_local, "raw", None)
+        if whole is None or whole.size < total:
+            whole = _local.raw = np.empty(min(KEEP_RAW_BYTES, 1 << max(16, (total - 1).bit_length())), np.uint8)
+        whole = whole[:total]
+    else:
+        whole = np.empty(total, np.uint8)
+    owner = whole if whole.base is None else whole.base
+    bufs, at = [], 0
+    for (data, _), size, source in zip(items, sizes, sources, strict=True):
+        buf = whole[at:at + size]
+        _decompress_into(data, buf, source)
+        bufs.append(buf)
+        at += size
+    tables = [{s.name: s for s in entry.sections} for _, entry in items]
+    out: list[dict[str, EncodedPlane]] = [{} for _ in items]
+    for spec in group_planes(group, codebook):
+        if between is not None:
+            between()
+        secs = [t[spec.name] for t in tables]
+        where = [f"{source} section {spec.name}" for source in sources]
+        layers: list = [None] * len(items)
+        # fields1 sections in batches of one (format, layer count, header); shuffled ones of one element
+        fields_batches: dict[tuple, list[int]] = {}
+        shuffled: dict[int, list[int]] = {}
+        for k, (s, buf) in enumerate(zip(secs, bufs, strict=True)):
+            if s.filter == FIELDS1 and s.format in FIELD_LAYOUTS:
+                head = bytes(buf[s.offset:s.offset + min(s.size, 1 + len(field_bits(s.format)) * spec.layers)])
+                fields_batches.setdefault((s.format, head), []).append(k)
+            elif s.filter != "none" and s.format not in FLOAT_TEXEL_FORMATS:
+                shuffled.setdefault(_element(s.filter), []).append(k)
+            else:
+                layers[k] = unfilter_texels(buf[s.offset:s.offset + s.size], s.filter, s.format, s.width, s.height,
+                                            spec.layers, where[k])
+        for (fmt, _), ks in fields_batches.items():
+            got = unfilter_fields_many([bufs[k][secs[k].offset:secs[k].offset + secs[k].size] for k in ks], fmt,
+                                       [(secs[k].width, secs[k].height) for k in ks], spec.layers,
+                                       [where[k] for k in ks])
+            for k, section_layers in zip(ks, got, strict=True):
+                layers[k] = section_layers
+        for element, ks in shuffled.items():
+            units, index = [], []
+            for k in ks:
+                s = secs[k]
+                stored = bufs[k][s.offset:s.offset + s.size]
+                unit = stored.size // spec.layers
+                units += [stored[i * unit:(i + 1) * unit] for i in range(spec.layers)]
+                index.append(k)
+            got = unshuffle_many(units, element)
+            for j, k in enumerate(index):
+                layers[k] = got[j * spec.layers:(j + 1) * spec.layers]
+        for k, s in enumerate(secs):
+            if s.format in FLOAT_TEXEL_FORMATS:
+                _check_float_texels(layers[k], s, sources[k])
+        ranges: list = [None] * len(items)
+        if spec.range_dtype:
+            rs = [t[spec.range_name] for t in tables]
+            element = _element(rs[0].filter)
+            if all(r.filter == rs[0].filter for r in rs):
+                got = unshuffle_many([buf[r.offset:r.offset + r.size] for buf, r in zip(bufs, rs, strict=True)],
+                                     element)
+            else:
+                got = [unshuffle(buf[r.offset:r.offset + r.size], r.element) for buf, r in zip(bufs, rs, strict=True)]
+            ranges = [g.view(spec.range_dtype).reshape(r.shape) for g, r in zip(got, rs, strict=True)]
+            shapes = {r.shape[1:] for r in ranges}
+            base = got[0].base
+            if len(shapes) == 1 and len(ranges) > 1 and base is not None and all(g.base is base for g in got) \
+                    and base.nbytes == sum(g.nbytes for g in got):
+                # one check of the ranges of them all (they lie one after the other in one array); a payload's own
+                # check only to say which one failed
+                whole_r = base.reshape(-1).view(np.uint8).view(spec.range_dtype).reshape(-1, *shapes.pop())
+                if not _ranges_ok(whole_r, spec.name):
+                    for k, r in enumerate(ranges):
+                        _check_ranges(r, spec.name, rs[k].name, sources[k])
+            else:
+                for k, r in enumerate(ranges):
+                    _check_ranges(r, spec.name, rs[k].name, sources[k])
+        for k in range(len(items)):
+            lay, rng = layers[k], ranges[k]
+            if kept:  # what is still a view of this thread's buffer is copied: the next payload overwrites it
+                lay = [p.copy() if p.base is owner else p for p in lay]
+                if rng is not None and rng.base is owner:
+                    rng = rng.copy()
+            s = secs[k]
+            out[k][spec.name] = EncodedPlane(spec, s.format, s.width, s.height, lay, rng)
+    return out
 
 
 # Float texel formats store t as a float, which could hold anything; integer and BC formats cannot leave [0, 1].
@@ -258,6 +425,7 @@ def _float_bits(fmt: str) -> tuple[np.dtype, np.dtype, int, int]:
 FLOAT_TEXEL_BITS = {fmt: _float_bits(fmt) for fmt in FLOAT_TEXEL_FORMATS}
 # Where a plane's values may lie (format.md 4.8); the other ranged planes are bounded by their f16 storage.
 RANGE_LIMITS = {"position": (-MAX_ABS_POSITION, MAX_ABS_POSITION), "scale": (MIN_LOG_SCALE, MAX_LOG_SCALE)}
+_NO_LIMIT = (-np.inf, np.inf)
 
 
 def _check_float_texels(layers: list[np.ndarray], s: Section, source: str) -> None:
@@ -274,18 +442,45 @@ def _check_float_texels(layers: list[np.ndarray], s: Section, source: str) -> No
                               f"(first {float(bad[0])!r})")
 
 
+def _ranges_ok(ranges: np.ndarray, plane: str) -> bool:
+    """_check_ranges' every check at once, in three reductions (those checks took 12 us a range section, a tenth of
+    a small tile's decode: issue 32): a NaN fails every comparison, an infinite least minimum or greatest maximum
+    fails the domain test, and +inf in a minimum or -inf in a maximum makes some max - min -inf."""
+    if not ranges.size:
+        return False
+    r = ranges.astype(np.float32, copy=False)  # exact for f16, whose arithmetic numpy runs several times slower
+    lo, hi = r[:, 0], r[:, 1]
+    limit = RANGE_LIMITS.get(plane, _NO_LIMIT)
+    low, high = lo.min(), hi.max()
+    # max - min only once no minimum is -inf and no maximum +inf (nor NaN): it then makes no inf - inf
+    return bool(limit[0] <= low and high <= limit[1] and -np.inf < low and high < np.inf and (hi - lo).min() >= 0)
+
+
+def _check_palette(palette: np.ndarray, plane: str, name: str, source: str) -> None:
+    """format.md 4.3.2 and 4.8: every palette entry finite and inside the plane's value domain (any index 0..255
+    then decodes to a value a scene may hold)."""
+    if not np.isfinite(palette).all():
+        raise FormatError(source, f"section {name}", "non-finite palette values")
+    lo, hi = RANGE_LIMITS.get(plane, (-MAX_ABS_SH, MAX_ABS_SH))
+    if float(palette.min()) < lo or float(palette.max()) > hi:
+        raise FormatError(source, f"section {name}", f"palette [{palette.min():g}, {palette.max():g}] leaves the "
+                          f"{plane} domain [{lo:g}, {hi:g}] (format.md 4.8)")
+
+
 def _check_ranges(ranges: np.ndarray, plane: str, name: str, source: str) -> None:
     """format.md 4.3 and 4.8: finite, min <= max, inside the plane's value domain. Then min + t (max - min) is
     finite for every t in [0, 1], in every decoder (numpy here, the GL client's shaders)."""
-    r = ranges.astype(np.float32, copy=False)  # exact for f16, whose arithmetic numpy runs several times slower
+    if _ranges_ok(ranges, plane):
+        return
+    r = ranges.astype(np.float32, copy=False)
     lo, hi = r[:, 0], r[:, 1]
+    limit = RANGE_LIMITS.get(plane, _NO_LIMIT)
     if not np.isfinite(r).all():
         raise FormatError(source, f"section {name}", "non-finite range values")
     if (lo > hi).any():
         chunk = int(np.argmax((lo > hi).reshape(len(lo), -1).any(axis=1)))
         raise FormatError(source, f"section {name}", f"chunk {chunk}: a range minimum exceeds its maximum")
-    limit = RANGE_LIMITS.get(plane)
-    if limit is not None and (float(lo.min()) < limit[0] or float(hi.max()) > limit[1]):
+    if limit is not _NO_LIMIT and (float(lo.min()) < limit[0] or float(hi.max()) > limit[1]):
         raise FormatError(source, f"section {name}", f"range [{lo.min():g}, {hi.max():g}] leaves the {plane} "
                           f"domain [{limit[0]:g}, {limit[1]:g}] (format.md 4.8)")
 

@@ -26,6 +26,10 @@ class PlaneSpec:
     def range_name(self) -> str:
         return self.name + ".range"
 
+    @property
+    def palette_name(self) -> str:
+        return self.name + ".palette"
+
 
 BASE_PLANES = (
     PlaneSpec("position", "position", 3, 1, "<f4"),
@@ -38,6 +42,18 @@ BASE_PLANE_NAMES = tuple(p.name for p in BASE_PLANES)
 # With an SH codebook, a tile's sh1 payload holds this plane: each splat's codebook entry (texel format index16).
 SH_INDEX_PLANE = PlaneSpec("sh_index", "sh", 1, 1, "")
 SH_INDEX_FORMAT = "index16"
+
+# Palette planes (format.md 4.3.2, format 1.6): the attributes a palette texel format (pal8x4) may hold, and per
+# plane which palette each component indexes. The three log scales share one palette, as SH0's R, G and B do (a
+# SOG file's scale and colour codebooks are shared so); opacity has its own. A palette has PALETTE_ENTRIES values.
+PALETTE_ATTRIBUTES = ("scale", "color")
+PALETTE_GROUPS = {"scale": (0, 0, 0), "color": (0, 0, 0, 1)}
+PALETTE_ENTRIES = 256
+
+
+def palette_count(spec: PlaneSpec) -> int:
+    """Palettes of a palette plane (its `<name>.palette` section holds this many rows of PALETTE_ENTRIES)."""
+    return max(PALETTE_GROUPS[spec.name]) + 1
 RANGE_DTYPE_NAMES = {"<f4": "f32", "<f2": "f16"}
 
 
@@ -74,3 +90,8 @@ def groups_for_degree(sh_degree: int, codebook: bool = False) -> list[str]:
 def chunks_for(splats: int) -> int:
     """Chunks of CHUNK_SIZE holding `splats` splats (a tile of 0 splats still has one block)."""
     return max(1, -(-int(splats) // CHUNK_SIZE))
+
+
+def palette_shape(spec: PlaneSpec) -> tuple[int, int, int, int]:
+    """Shape of a palette plane's `<name>.palette` section (format.md 4.3.2): (palettes, 1, 1, 256) float32."""
+    return (palette_count(spec), 1, 1, PALETTE_ENTRIES)

@@ -6,8 +6,9 @@ path resolve a preset name here, so they agree on what a preset means.
 from __future__ import annotations
 
 from ..errors import UsageError
+from .planes import PALETTE_ATTRIBUTES
 from .steps import TileStep
-from .texformats import FORMATS, VALUE_FORMATS, get_format
+from .texformats import FORMATS, PALETTE_FORMATS, VALUE_FORMATS, get_format
 
 ATTRIBUTES = ("position", "rotation", "scale", "color", "sh")
 
@@ -46,6 +47,13 @@ PRESETS: dict[str, dict[str, str]] = {
     # flowers 17.55 B/splat at 44.7 dB, 0.89 of SPZ's bytes at +0.5 dB (sh6: 18.46 B at 45.2, 0.94).
     "low-plus-9bit-sh5": {"position": "norm9x3", "rotation": "norm8x4", "scale": "norm8x4", "color": "norm8x4",
                           "sh": "norm565"},
+    # low-plus-9bit's rotations, scales and colour (and their tile steps, zstd level 16) with about 10-bit positions
+    # (16-bit texels on one tile step of 760 levels) and the SH codebook at about one entry per 8 splats, up to
+    # 65,536 (vq.py "large"; issue 32). Made for flowers (SH2, 542k splats, 262k distinct SH rows), where SOG's
+    # 64k palette (4.4 B/splat of SH) beats every codebook of 16k entries or fewer (BENCHMARKS.md, "A 64k SH codebook
+    # on flowers").
+    "low-plus-10bit-cb8": {"position": "norm16x4", "rotation": "norm8x4", "scale": "norm8x4", "color": "norm8x4",
+                           "sh": "norm565"},
     # medium's positions, 8-bit smallest-three rotations, 8-bit scales and the SH codebook at its finer size: on
     # the 1M scene within 1.2 dB of medium at 40 % of its bytes; on fruit_drops 46.6 dB at 15.3 B.
     "medium-low": {"position": "norm11", "rotation": "norm8x4", "scale": "norm8x4", "color": "norm8x4",
@@ -82,8 +90,9 @@ PRESETS: dict[str, dict[str, str]] = {
     "very-low": {"position": "norm8x4", "rotation": "norm565", "scale": "norm565", "color": "bc7", "sh": "norm565"},
 }
 # Presets whose SH bands go through a scene-wide codebook (vq.py: "auto" about one entry per 64 splats, "fine" one
-# per 16, at least 256, at most 16,384 below 1M splats).
-PRESET_SH_CODEBOOK: dict[str, str] = {"medium-low": "fine", "medium-low-12bit": "fine", "medium-low-9bit": "fine",
+# per 16, at least 256, at most 16,384 below 1M splats, "large" one per 8, 256..65,536).
+PRESET_SH_CODEBOOK: dict[str, str] = {"low-plus-10bit-cb8": "large",
+                                      "medium-low": "fine", "medium-low-12bit": "fine", "medium-low-9bit": "fine",
                                       "low-plus-9bit": "auto", "low-plus": "auto", "low": "auto", "very-low": "auto"}
 # Tile-wide quantisation steps (format/steps.py, format.md 4.3.1): levels of the tile's median chunk per component,
 # the first `shared` components on one step. Per-chunk grids give a chunk of widely spread values a coarse step and a
@@ -139,6 +148,8 @@ PRESET_STEPS: dict[str, dict[str, TileStep]] = {
     "low-plus-9bit-sh5": {"position": TileStep((400.0,) * 3, shared=3), "scale": TileStep((200.0,) * 3, shared=3),
                           "color": TileStep((255.0, 255.0, 255.0, 55.0), shared=3),
                           **sh_pooled_steps(5.0, SH5_IMPORTANCE)},
+    "low-plus-10bit-cb8": {"position": TileStep((760.0,) * 3, shared=3), "scale": TileStep((200.0,) * 3, shared=3),
+                           "color": TileStep((255.0, 255.0, 255.0, 55.0), shared=3)},
 }
 # zstd level per preset where it is not the encoder's default (DEFAULT_ZSTD_LEVEL, 1; `--zstd-level` overrides
 # both): a higher level where its small gain puts a preset under 0.90 of SOG's bytes on a real scene, for a little
@@ -146,7 +157,7 @@ PRESET_STEPS: dict[str, dict[str, TileStep]] = {
 # (bench/results/pos9_levels_*; BENCHMARKS.md, "Figures behind library defaults").
 PRESET_ZSTD_LEVEL: dict[str, int] = {"medium-low": 9, "medium-low-12bit": 16, "medium-low-9bit": 16,
                                      "low-plus-9bit": 16, "low-plus-9bit-sh6": 16,
-                                     "low-plus-9bit-sh5": 16}
+                                     "low-plus-9bit-sh5": 16, "low-plus-10bit-cb8": 16}
 DEFAULT_PRESET = "medium"
 # What each preset is for, in the words the CLI (`encode --help`, `info`) shows: disk bytes per splat with the
 # fields1 transport coding at SH3 / SH0 and the mean PSNR measured on the benchmark scenes (BENCHMARKS.md, "Size
@@ -178,6 +189,9 @@ PRESET_SUMMARY: dict[str, str] = {
     "low-plus-9bit-sh5": "low-plus-9bit-sh6 with one SH step per band, 0 on its grid and a flatter importance "
                          "scaling, about 2.3 bits; about 17.6 B/splat at SH2 (flowers, 44.7 dB), 21.1 at SH3, "
                          "10.4-11.3 at SH0",
+    "low-plus-10bit-cb8": "low-plus-9bit with about 10-bit positions and a larger SH codebook (about 1 entry per "
+                          "8 splats, up to 65,536); about 15.8 B/splat at SH2 (flowers, 45.0 dB), 12-15.2 at SH3 "
+                          "(48-49 dB)",
     "low-plus": "8-bit positions, rotations, scales and colour, SH codebook (1 per 64); about 12-13.5 B/splat at "
                 "SH3, 11-12 at SH0; 44-57 dB",
     "low": "low-plus with 16-bit rotations; about 11-12 B/splat at SH3, 10-10.6 at SH0; 37-52 dB",
@@ -202,6 +216,9 @@ def resolve_formats(preset: str, overrides: dict[str, str] | None = None) -> dic
         if attr == "color" and FORMATS[fmt].components < 4:
             raise UsageError(f"color holds SH0 and opacity and needs a 4-component format; {fmt} has 3 "
                              f"(use one of {', '.join(n for n, f in FORMATS.items() if f.components == 4)})")
+        if fmt in PALETTE_FORMATS and attr not in PALETTE_ATTRIBUTES:
+            raise UsageError(f"{fmt} (palette indices, format.md 4.3.2) holds only {' and '.join(PALETTE_ATTRIBUTES)}, "
+                             f"not {attr}")
         formats[attr] = fmt
     return formats
 
@@ -217,6 +234,17 @@ def step_attribute(key: str) -> str:
     """The attribute whose format a PRESET_STEPS key follows: the key itself, or `sh` for a band plane `sh1`..`sh3`
     (SH bands may each have their own step)."""
     return "sh" if key in ("sh1", "sh2", "sh3") else key
+
+
+# The transport a preset's payloads are written with when none is given (format/transport.py TRANSPORTS); "fields"
+# for every preset not named here. `keyed` (morton1 positions, format.md 5.4) measured 0.3 B/splat smaller on the
+# statue scans and about 10 % slower to decode (BENCHMARKS.md, issue 32): no preset uses it yet.
+PRESET_TRANSPORT: dict[str, str] = {}
+
+
+def preset_transport(preset: str, default: str) -> str:
+    """The transport an encode of `preset` uses when none is given (`default`: the encoder's)."""
+    return PRESET_TRANSPORT.get(preset, default)
 
 
 def preset_zstd_level(preset: str, default: int) -> int:

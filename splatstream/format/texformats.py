@@ -57,7 +57,12 @@ FORMATS: dict[str, TexelFormat] = {f.name: f for f in (
     TexelFormat("bc1", 4, 3, (31, 63, 31), "COMPRESSED_RGB_S3TC_DXT1", block=4),
     # Not a value format: a codebook entry index (0..65535) per texel, for the SH codebook's per-splat index.
     TexelFormat("index16", 16, 1, (65535,), "R16UI", shuffle=2),
+    # Format 1.6: a palette plane (format.md 4.3.2): four 8-bit indices into the tile's 256-entry palettes of the
+    # plane's values, for the log scales and the colour plane (issue 32: SOG inputs hold 256 distinct values).
+    TexelFormat("pal8x4", 32, 4, (255, 255, 255, 255), "RGBA8", shuffle=4),
 )}
+# Texel formats whose texels are palette indices, not normalised values (format.md 4.3.2).
+PALETTE_FORMATS = ("pal8x4",)
 # Formats an attribute can be quantised to (index16 only holds codebook indices).
 VALUE_FORMATS = tuple(name for name in FORMATS if name != "index16")
 
@@ -95,6 +100,7 @@ TEXEL_DTYPES = {
     "f32x4": np.dtype(("<f4", 4)), "f16x4": np.dtype(("<f2", 4)), "norm10_2": np.dtype("<u4"),
     "norm11": np.dtype("<u4"), "norm9x3": np.dtype("<u4"), "norm8x4": np.dtype((np.uint8, 4)),
     "norm565": np.dtype("<u2"), "norm16x4": np.dtype(("<u2", 4)), "index16": np.dtype("<u2"),
+    "pal8x4": np.dtype((np.uint8, 4)),
 }
 
 
@@ -114,7 +120,7 @@ def pack_texels(fmt_name: str, t: np.ndarray) -> np.ndarray:
         return (_q(t[:, 0], 2047) | (_q(t[:, 1], 1023) << 11) | (_q(t[:, 2], 2047) << 21)).astype("<u4")
     if fmt.name == "norm9x3":
         return (_q(t[:, 0], 511) | (_q(t[:, 1], 511) << 9) | (_q(t[:, 2], 511) << 18)).astype("<u4")
-    if fmt.name == "norm8x4":
+    if fmt.name in ("norm8x4", "pal8x4"):
         return _q(t, 255).astype(np.uint8)
     if fmt.name == "norm16x4":
         return _q(t, 65535).astype("<u2")
@@ -128,9 +134,9 @@ def pack_texels(fmt_name: str, t: np.ndarray) -> np.ndarray:
 def unpack_texels(fmt_name: str, texels: np.ndarray) -> np.ndarray:
     """(M,) texels (as pack_texels returns them, or raw bytes) -> (M, 4) float32 normalised values."""
     fmt = get_format(fmt_name)
-    if fmt.name in ("f32x4", "f16x4", "norm8x4", "norm16x4"):
+    if fmt.name in ("f32x4", "f16x4", "norm8x4", "norm16x4", "pal8x4"):
         raw = np.frombuffer(np.ascontiguousarray(texels), TEXEL_DTYPES[fmt.name].base).reshape(-1, 4)
-        if fmt.name == "norm8x4":
+        if fmt.name in ("norm8x4", "pal8x4"):
             return raw / np.float32(255.0)
         if fmt.name == "norm16x4":
             return raw / np.float32(65535.0)

@@ -44,9 +44,10 @@ MODE_RESERVED = 0x0E
 # shuffle on a band of the first layer (BAND_SLOTS, whole block rows).
 SAMPLE_SLOTS = 1 << 14
 BAND_SLOTS = 1 << 17
-# Transport choices of the encoder: "fields" (fields1 where it is smaller, format 1.2), "shuffle" (format 1.0/1.1
-# filters only, for old readers), "none" (stored as the GPU holds them).
-TRANSPORTS = ("fields", "shuffle", "none")
+# Transport choices of the encoder: "fields" (fields1 where it is smaller, format 1.2), "keyed" (as "fields", and
+# norm16x4 positions re-sorted inside chunks and stored as morton1 where smaller: format 1.6, format/keyed.py),
+# "shuffle" (format 1.0/1.1 filters only, for old readers), "none" (stored as the GPU holds them).
+TRANSPORTS = ("fields", "keyed", "shuffle", "none")
 
 # Field layout of each texel format fields1 applies to: (word dtype, words per texel, [(shift, bits)] low bits first).
 FIELD_LAYOUTS: dict[str, tuple[str, int, tuple[tuple[int, int], ...]]] = {
@@ -60,6 +61,7 @@ FIELD_LAYOUTS: dict[str, tuple[str, int, tuple[tuple[int, int], ...]]] = {
     "norm16x4": ("<u2", 4, ((0, 16),)),
     "norm565": ("<u2", 1, ((0, 5), (5, 6), (11, 5))),
     "index16": ("<u2", 1, ((0, 16),)),
+    "pal8x4": ("<u1", 4, ((0, 8),)),
 }
 # Unsigned type that holds one whole texel, for moving texels as single elements.
 _TEXEL_UINT = {4: np.dtype("<u4"), 8: np.dtype("<u8"), 2: np.dtype("<u2")}
@@ -426,6 +428,12 @@ def _zstd_size(parts: list, level: int) -> int:
     return size + len(c.flush())
 
 
+def trial_size(parts: list, level: int) -> int:
+    """Compressed size of `parts` as the encoder's transport trials measure it (zstd at `level`, at most
+    TRIAL_LEVEL_MAX, a block per part)."""
+    return _zstd_size(parts, min(level, TRIAL_LEVEL_MAX))
+
+
 def filter_texels(layers: Iterable[np.ndarray], fmt: str, width: int, height: int, count: int, level: int = 1,
                   transport: str = "fields") -> tuple[str, list[bytes | np.ndarray]]:
     """A texels section's stored form: (filter name, parts to write in order), layers taken one at a time as the
@@ -441,7 +449,7 @@ def filter_texels(layers: Iterable[np.ndarray], fmt: str, width: int, height: in
         return "none", [np.ravel(layer).view(np.uint8) for layer in it]
     if transport == "shuffle" or fmt not in FIELD_LAYOUTS:
         return shuffle_filter(element), [p for layer in it for p in shuffle_planes(layer, element)]
-    if transport != "fields":
+    if transport not in ("fields", "keyed"):
         raise ValueError(f"unknown transport {transport!r} (expected one of {', '.join(TRANSPORTS)})")
     first = np.ravel(next(it)).view(np.uint8)
     band, band_height = _band(first, fmt, width, height)
@@ -786,3 +794,188 @@ def unfilter_texels(stored: np.ndarray, filter_name: str, fmt: str, width: int, 
         return parts
     element = int(filter_name[7:])
     return [unshuffle(p, element) for p in parts]
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Several sections at once
+
+
+def unfilter_fields_many(raws: list[np.ndarray], fmt: str, dims: list[tuple[int, int]], layers: int,
+                         sources: list[str]) -> list[list[np.ndarray]]:
+    """unfilter_fields of several sections of one texel format, layer count and fields1 header (the same modes),
+    of several payloads, as each section's layers: the same bytes, but their fields decoded together in one
+    (fields, slots of them all) work array, so that the dozen numpy calls of a layer are made once for them all,
+    not once a section.
+
+    Why: on the LOD tree's small tiles (a few hundred splats) a section's decode is mostly the per-call overhead
+    of those numpy calls (issue 32). What is left per section is building views of its byte planes and
+    parameters: they are copied into the work array by one concatenation, and one gather over the slots of all
+    sections puts every texel in its section's texture order. Each section is checked as unfilter_fields checks it
+    (FormatError naming its source); the running sums restart at each section (the sum carried over from the
+    sections before is subtracted, modulo 2^32 like the sums)."""
+    if len(raws) == 1:
+        texels = unfilter_fields(raws[0], fmt, dims[0][0], dims[0][1], layers, sources[0])
+        unit = texels.size // layers
+        return [[texels[k * unit:(k + 1) * unit] for k in range(layers)]]
+    lay0 = None
+    members = []  # (raw, n, layout, first byte plane position)
+    plan0 = None
+    for raw, (width, height), source in zip(raws, dims, sources, strict=True):
+        _check_geometry(fmt, width, height, layers, source)
+        lay = _layout(fmt, width, height)
+        nf = len(lay.bits)
+        header_bytes = 1 + nf * layers
+        if raw.size < header_bytes:
+            raise FormatError(source, "fields1", f"{raw.size}-byte content is shorter than its header")
+        plan = _decode_plan(fmt, width, height, layers, raw[:header_bytes].tobytes())
+        if isinstance(plan, str):
+            raise FormatError(source, "fields1", plan)
+        if raw.size != plan[0]:
+            raise FormatError(source, "fields1", f"content of {raw.size} bytes, expected {plan[0]} for its modes")
+        head = raw[:header_bytes].tobytes()
+        if plan0 is None:
+            plan0, lay0, head0 = plan, lay, head
+        elif head != head0:
+            raise ValueError("unfilter_fields_many takes sections of the same modes")
+        members.append((raw, width * height, lay, header_bytes))
+    _, crossed, layer_plans = plan0
+    lay = lay0
+    nf = len(lay.bits)
+    counts = [n for _, n, _, _ in members]
+    total = sum(counts)
+    starts = np.cumsum([0] + counts)
+    buf = _scratch("work", 10 * nf * total)
+    z = buf[:4 * nf * total].view(np.uint32).reshape(nf, total)
+    spare = buf[4 * nf * total:8 * nf * total].view(np.uint32).reshape(nf, total)
+    signed = z.view(np.int32)
+    t_all = buf[8 * nf * total:9 * nf * total].reshape(nf, total)
+    u_all = buf[9 * nf * total:].reshape(nf, total)
+    staging = _scratch("staging", nf * 4 * total)
+    staging = {nb: staging[:nf * nb * total].reshape(nf, nb, total) for _, _, _, nb in lay.runs}
+    blocks = total // BLOCK_TEXELS
+    pos = [h for _, _, _, h in members]
+    if crossed:
+        slope_parts, bias_parts = [], []
+        for k, (raw, n, _, h) in enumerate(members):
+            b = n // BLOCK_TEXELS
+            params = raw[h:h + 3 * b * crossed].reshape(crossed, 3 * b)
+            slope_parts.append(params[:, :b].view(np.int8))
+            bias_parts.append(params[:, b:].view("<i2"))
+            pos[k] += 3 * b * crossed
+        slopes = np.concatenate(slope_parts, axis=1)
+        biases = np.concatenate(bias_parts, axis=1)
+        slopes = slopes.astype(np.int32)[:, :, None]
+        biases = biases.astype(np.int32)
+        biases <<= SLOPE_SHIFT
+        biases += 1 << (SLOPE_SHIFT - 1)
+        biases = biases[:, :, None]
+    texel_bytes = lay.texel_bytes
+    # every section's texels in texture order: a gather over the slots of them all, each section's texel-to-slot
+    # map moved to where its slots start
+    inverse = np.concatenate([m[2].inverse for m in members])
+    inverse += np.repeat(starts[:-1], counts)
+    out = np.empty((layers, total * texel_bytes), np.uint8)
+    ends = starts[1:-1] - 1  # last slot of every section but the last
+    slots = spare.reshape(-1)[:total * texel_bytes // 4]
+    columns = slots.view(lay.word).reshape(total, lay.words) if lay.words > 1 else None
+    texels_all = slots.view(lay.texel)
+    for layer, (delta_rows, pre_mask, cross_groups, post_mask) in enumerate(layer_plans):
+        for run, (first, end, _, nb) in enumerate(lay.runs):
+            fields = end - first
+            stage = staging[nb][:fields]
+            parts = []
+            for k, (raw, n, member_lay, _) in enumerate(members):
+                at = pos[k] + member_lay.runs[run][2]
+                parts.append(raw[at:at + fields * nb * n].reshape(fields, nb, n))
+            np.concatenate(parts, axis=2, out=stage)
+            z_rows, spare_rows = z[first:end], spare[first:end]
+            if nb == 1:
+                np.copyto(z_rows, stage[:, 0])
+            elif nb == 2:
+                _join_zigzag16(stage, z_rows, spare_rows, t_all[first:end], u_all[first:end])
+            else:
+                _join_zigzag(stage, z_rows, spare_rows)
+        for k, (_, n, _, _) in enumerate(members):
+            pos[k] += n * lay.plane_bytes
+        for rows in delta_rows:
+            s = signed[rows]
+            np.add.accumulate(s, axis=1, out=s)
+            if len(ends):
+                carried = s[:, ends]  # each section's running sum, carried into the next ones
+                carried = np.repeat(carried, np.diff(starts[1:]), axis=1)
+                s[:, starts[1]:] -= carried
+        for rows in pre_mask:
+            z[rows] &= lay.masks[rows, None]
+        for ref, rows, first_param, count in cross_groups:
+            prediction = spare[:count].view(np.int32).reshape(count, blocks, BLOCK_TEXELS)
+            np.multiply(signed[ref].reshape(blocks, BLOCK_TEXELS), slopes[first_param:first_param + count],
+                        out=prediction)
+            prediction += biases[first_param:first_param + count]
+            prediction >>= SLOPE_SHIFT
+            z[rows] += spare[:count]
+        for rows in post_mask:
+            z[rows] &= lay.masks[rows, None]
+        if lay.words > 1:
+            for w in range(lay.words):
+                columns[:, w] = z[w]
+            texels = texels_all
+        else:
+            if nf > 1:
+                z <<= lay.shifts
+                np.bitwise_or.reduce(z, axis=0, out=spare[0])
+            else:
+                spare[0] = z[0]
+            texels = spare[0] if lay.word.itemsize == 4 else spare[0].astype(lay.word)
+        texels.take(inverse, out=out[layer].view(lay.texel), mode="clip")
+    return [[out[layer, starts[k] * texel_bytes:starts[k + 1] * texel_bytes] for layer in range(layers)]
+            for k in range(len(members))]
+
+
+_scratch_local = threading.local()
+
+
+def _scratch(name: str, size: int) -> np.ndarray:
+    """`size` bytes of this thread's scratch buffer `name` (contents undefined), kept between calls up to
+    KEEP_WORK_BYTES for the reason _work_for gives (fresh arrays of this size fault their pages in)."""
+    kept = getattr(_scratch_local, "buffers", None)
+    if kept is None:
+        kept = _scratch_local.buffers = {}
+    buf = kept.get(name)
+    if buf is None or buf.size < size:
+        if size > KEEP_WORK_BYTES:
+            return np.empty(size, np.uint8)
+        buf = kept[name] = np.empty(min(KEEP_WORK_BYTES, 1 << max(16, (size - 1).bit_length())), np.uint8)
+    return buf[:size]
+
+
+def unshuffle_many(units: list[np.ndarray], element: int) -> list[np.ndarray]:
+    """unshuffle of several units of one element size, the same bytes in fresh arrays (views of one array), in a
+    few numpy calls for them all plus one copy a unit (small units' per-call overhead: issue 32)."""
+    if element <= 1 or any(u.size % element for u in units):
+        return [unshuffle(u, element) for u in units]
+    sizes = [u.size // element for u in units]
+    total = sum(sizes)
+    out = []
+    if element in (2, 4) and total * element > SMALL_UNSHUFFLE_BYTES:
+        stage = _scratch("unshuffle", total * element).reshape(element, total)
+        at = 0
+        for u, m in zip(units, sizes, strict=True):
+            stage[:, at:at + m] = u.reshape(element, m)
+            at += m
+        word = np.uint16 if element == 2 else np.uint32
+        z = stage[element - 1].astype(word)
+        for k in range(element - 2, -1, -1):
+            z <<= word(8)
+            z |= stage[k]
+        at = 0
+        for m in sizes:
+            out.append(z[at:at + m].view(np.uint8))
+            at += m
+        return out
+    dst = np.empty((total, element), np.uint8)
+    at = 0
+    for u, m in zip(units, sizes, strict=True):
+        dst[at:at + m] = u.reshape(element, m).T
+        out.append(dst[at:at + m].reshape(-1))
+        at += m
+    return out

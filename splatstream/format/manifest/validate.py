@@ -21,18 +21,21 @@ import operator
 from typing import NoReturn
 
 from ...errors import FormatError
+from ..keyed import MORTON1, MORTON_FORMATS
 from ..layout import ALIGN, BLOCK, CHUNK_SIZE
 from ..names import MANIFEST_NAME, SHA256_HEX_RE, payload_name
 from ..planes import (
     MAX_SH_DEGREE,
+    PALETTE_ATTRIBUTES,
     RANGE_DTYPE_NAMES,
     SH_INDEX_FORMAT,
     band_plane,
     chunks_for,
     group_planes,
     groups_for_degree,
+    palette_shape,
 )
-from ..texformats import FORMATS, VALUE_FORMATS
+from ..texformats import FORMATS, PALETTE_FORMATS, VALUE_FORMATS
 from ..transport import FIELD_LAYOUTS, FIELDS1, content_bounds
 from .model import (
     AttributeSize,
@@ -57,9 +60,11 @@ from .versions import (
     FORMAT_NAME,
     FORMAT_VERSION,
     FORMATS_1_3,
+    FORMATS_1_6,
     VERSION_1_3,
     VERSION_1_4,
     VERSION_1_5,
+    VERSION_1_6,
 )
 from .wire import CHECKSUM_KEY, unpack_manifest, verify_checksum
 
@@ -71,7 +76,7 @@ MAX_PAGE_BYTES = 64 << 20  # a page is a manifest's top levels' size (format.md 
 PAGE_FORMAT = "splatstream-page"
 MAX_SECTIONS = 64
 CHUNK_ORDER_NAMES = ("morton", "luminance", "input")
-FILTERS_DOC = "none, shuffleN or, for texels, fields1"
+FILTERS_DOC = "none, shuffleN or, for texels, fields1 or morton1"
 ATTRIBUTES = ("position", "rotation", "scale", "color", "sh")
 
 # Keys of each map, in the order they are read (a missing one is named in this order).
@@ -213,6 +218,11 @@ def _stored_size_rule(fmt: str, width: int, height: int, layers: int, filt: str)
     texture's bytes for none/shuffleN, a size within what the fields1 layout allows (format.md 5.2; the exact size
     depends on modes only the bytes hold)."""
     gpu = texels_size(fmt, width, height, layers)
+    if filt == MORTON1:  # format.md 5.4: exactly the texels' size
+        if fmt not in MORTON_FORMATS or layers != 1:
+            return gpu, gpu, gpu, f"morton1 applies to one layer of {', '.join(MORTON_FORMATS)} only, not {layers} " \
+                f"of {fmt}"
+        return gpu, gpu, gpu, None
     if filt != FIELDS1:
         return gpu, gpu, gpu, None
     if fmt not in FIELD_LAYOUTS:
@@ -330,7 +340,8 @@ def _section(s, i: int, expected: dict, expect: list, raw_bytes: int, chunks: in
               "payload")
     if type(filt) is not str:
         _str(s, "filter", source, _spath(at))
-    if filt not in _FILTER_ELEMENTS and not (filt == FIELDS1 and kind == "texels") and not _odd_shuffle(filt):
+    texel_filter = filt in (FIELDS1, MORTON1) and kind == "texels"
+    if filt not in _FILTER_ELEMENTS and not texel_filter and not _odd_shuffle(filt):
         _fail(source, _spath(at), "filter", f"unknown filter {filt!r} (expected {FILTERS_DOC})")
     sec = _new(Section)
     if kind == "texels":
@@ -413,7 +424,9 @@ def _expected_sections(group: str, codebook: bool, format_items: tuple, chunks: 
         else:
             fmt = formats[spec.attribute]
         out.append((spec.name, {"kind": "texels", "format": fmt, "layers": spec.layers}))
-        if spec.range_dtype:
+        if fmt in PALETTE_FORMATS:  # format.md 4.3.2: the palettes stand where the ranges would
+            out.append((spec.palette_name, {"kind": "range", "dtype": "f32", "shape": list(palette_shape(spec))}))
+        elif spec.range_dtype:
             out.append((spec.range_name, {"kind": "range", "dtype": RANGE_DTYPE_NAMES[spec.range_dtype],
                                           "shape": [chunks, 2, spec.layers, spec.components]}))
     return out
@@ -600,6 +613,10 @@ def _formats(d: dict, version: tuple[int, int], source: str, strict: bool) -> di
     for a, f in formats.items():
         if f in FORMATS_1_3 and version < VERSION_1_3:
             _fail(source, "formats", a, _newer_than(version, f, VERSION_1_3))
+        if f in FORMATS_1_6 and version < VERSION_1_6:
+            _fail(source, "formats", a, _newer_than(version, f, VERSION_1_6))
+        if f in PALETTE_FORMATS and a not in PALETTE_ATTRIBUTES:
+            _fail(source, "formats", a, f"{f} holds palette indices of {' or '.join(PALETTE_ATTRIBUTES)} only")
     if FORMATS[formats["color"]].components < 4:
         _fail(source, "formats", "color", f"{formats['color']} has 3 components; color needs 4")
     return formats
@@ -611,7 +628,7 @@ def _codebook(d: dict, version: tuple[int, int], formats: dict[str, str], sh_deg
         return None
     c = _keys(d["sh_codebook"], ("entries", "format", "index_format", "groups"), source, "sh_codebook", strict)
     entries = _int(c, "entries", source, "sh_codebook", 1, 65536)
-    cb_format = _str(c, "format", source, "sh_codebook", VALUE_FORMATS)
+    cb_format = _str(c, "format", source, "sh_codebook", tuple(f for f in VALUE_FORMATS if f not in PALETTE_FORMATS))
     if cb_format in FORMATS_1_3 and version < VERSION_1_3:
         _fail(source, "sh_codebook", "format", _newer_than(version, cb_format, VERSION_1_3))
     index_format = _str(c, "index_format", source, "sh_codebook", (SH_INDEX_FORMAT,))

@@ -4,7 +4,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 FORMAT_NAME = "splatstream"
-FORMAT_VERSION = (1, 5)  # (major, minor) this code reads; what it writes: writer_version
+FORMAT_VERSION = (1, 6)  # (major, minor) this code reads; what it writes: writer_version
 # Version 1.2 added two things (format.md, version history): the manifest's last key `checksum`, the SHA-256 of the
 # file with that value's 64 bytes read as ASCII '0' (format.md 6, "Checksum"), so a flipped byte in the manifest is
 # caught like one in a payload; and the `fields1` transport coding of texels sections (format.md 5.2).
@@ -20,13 +20,19 @@ CHUNK_ORDERS_1_4 = ("input",)
 # Version 1.5 added manifest pages (format.md 6.1): written only by a paged scene (a tree too large for one manifest
 # before the first frame), so every other scene keeps its version.
 VERSION_1_5 = (1, 5)
+# Version 1.6 added palette planes (format.md 4.3.2: the texel format pal8x4, 8-bit indices into the tile's 256-entry
+# palettes of log scales, SH0 and opacity), written only by scenes that use them.
+VERSION_1_6 = (1, 6)
+FORMATS_1_6 = ("pal8x4",)
 
 
 def writer_version(formats: Mapping[str, str], codebook_format: str | None = None,
                    chunk_order: str = "morton") -> tuple[int, int]:
-    """The version a writer writes a scene of these texel formats and chunk order as: 1.4 in the chunk order
-    `input`, 1.3 with a norm16x4 or norm9x3 plane (or SH codebook), 1.2 otherwise (every scene carries the 1.2
-    manifest checksum)."""
+    """The version a writer writes a scene of these texel formats and chunk order as: 1.6 with a palette plane,
+    1.4 in the chunk order `input`, 1.3 with a norm16x4 or norm9x3 plane (or SH codebook), 1.2 otherwise (every
+    scene carries the 1.2 manifest checksum)."""
+    if set(formats.values()) & set(FORMATS_1_6):
+        return VERSION_1_6
     if chunk_order in CHUNK_ORDERS_1_4:
         return VERSION_1_4
     used = set(formats.values()) | ({codebook_format} if codebook_format else set())

@@ -1,0 +1,185 @@
+"""Several payloads decoded together (format.decode.decode_payloads, container.unpack_payloads,
+transport.unfilter_fields_many, transport.unshuffle_many) give what decoding them one at a time gives, bit for bit:
+on a real scene encoded with every preset (the LOD tree's tiles of every size, fields1 sections of many modes,
+shuffled and BC sections, SH groups, the codebook's index planes), on arbitrary fields1 contents, and a payload
+that does not decode is named. Also the ranges' one-pass check (container._ranges_ok) against the checks it
+stands for."""
+from __future__ import annotations
+
+import zlib
+
+import numpy as np
+import pytest
+import zstandard
+from conftest import real
+from test_transport_decode import random_content, random_modes
+
+from splatstream.encode import EncodeOptions
+from splatstream.encode.local import encode_in_memory
+from splatstream.errors import FormatError
+from splatstream.format import container
+from splatstream.format.decode import decode_payload, decode_payloads
+from splatstream.format.presets import PRESETS
+from splatstream.format.transport import (
+    FIELD_LAYOUTS,
+    field_bits,
+    unfilter_fields,
+    unfilter_fields_many,
+    unshuffle,
+    unshuffle_many,
+)
+from splatstream.io import read_gaussians
+from splatstream.store import read_manifest
+
+
+def planes_bytes(planes: dict) -> list:
+    out = []
+    for name, p in planes.items():
+        out.append((name, p.spec.name, p.format, p.width, p.height))
+        out += [(np.asarray(a).dtype.str, np.asarray(a).shape, np.asarray(a).tobytes()) for a in p.layers]
+        if p.ranges is not None:
+            out.append((p.ranges.dtype.str, p.ranges.shape, p.ranges.tobytes()))
+    return out
+
+
+@pytest.fixture(scope="module")
+def fruit():
+    return read_gaussians(real("fruit_drops_sh3.ply"))
+
+
+@pytest.mark.parametrize("preset", PRESETS)
+def test_every_preset_decodes_together_as_one_at_a_time(fruit, preset):
+    store = encode_in_memory(fruit, EncodeOptions(preset=preset, max_leaf_splats=512))
+    m = read_manifest(store)
+    by_group: dict[str, list] = {}
+    for t in m.tiles:
+        for group, entry in t.groups.items():
+            by_group.setdefault(group, []).append((store.read_payload(entry), entry))
+    assert len(by_group["base"]) >= 8
+    for group, items in by_group.items():
+        alone = [planes_bytes(decode_payload(d, e, group, "t", m.uses_codebook)) for d, e in items]
+        sources = [f"t{k}" for k in range(len(items))]
+        for size in (len(items), 3):
+            together = []
+            for i in range(0, len(items), size):
+                together += [planes_bytes(p) for p in decode_payloads(items[i:i + size], group, sources[i:i + size],
+                                                                      m.uses_codebook)]
+            assert together == alone, (preset, group, size)
+
+
+def test_decoded_together_survive_the_next_batch():
+    """The batch's payloads are decompressed into this thread's kept buffer: nothing returned may be a view of it."""
+    rng = np.random.default_rng(5)
+    from splatstream.gaussians import Gaussians
+    n = 3000
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    g = Gaussians(rng.normal(size=(n, 3)), q, rng.normal(-3, 0.5, size=(n, 3)), rng.normal(0, 2, size=n),
+                  rng.normal(size=(n, 3)), rng.normal(0, 0.1, size=(n, 3, 3)))
+    for transport_name in ("none", "fields"):
+        store = encode_in_memory(g, EncodeOptions(preset="very-low", max_leaf_splats=512, transport=transport_name,
+                                                  sh_codebook="off"))
+        m = read_manifest(store)
+        items = [(store.read_payload(t.groups["base"]), t.groups["base"]) for t in m.tiles]
+        first = decode_payloads(items, "base", ["t"] * len(items))
+        kept = [planes_bytes(p) for p in first]
+        decode_payloads(items[::-1], "base", ["t"] * len(items))
+        assert [planes_bytes(p) for p in first] == kept
+
+
+@pytest.mark.parametrize("fmt", sorted(FIELD_LAYOUTS))
+def test_fields_many_matches_one_at_a_time_on_arbitrary_contents(fmt):
+    rng = np.random.default_rng(zlib.crc32(f"many {fmt}".encode()))
+    bits = field_bits(fmt)
+    for layers in (1, 2):
+        modes = [random_modes(rng, bits) for _ in range(layers)]
+        dims = [(16, 16), (48, 32), (16, 48), (32, 16)]
+        raws = [np.frombuffer(random_content(rng, fmt, w, h, layers, modes), np.uint8) for w, h in dims]
+        got = unfilter_fields_many(raws, fmt, dims, layers, ["s"] * len(raws))
+        for raw, (w, h), texels in zip(raws, dims, got, strict=True):
+            assert len(texels) == layers
+            assert b"".join(t.tobytes() for t in texels) == unfilter_fields(raw, fmt, w, h, layers).tobytes(), \
+                (fmt, modes)
+
+
+def test_fields_many_names_the_section_that_does_not_decode():
+    rng = np.random.default_rng(11)
+    modes = [random_modes(rng, field_bits("norm11"))]
+    raws = [np.frombuffer(random_content(rng, "norm11", 16, 16, 1, modes), np.uint8) for _ in range(3)]
+    raws[1] = raws[1][:-1]
+    with pytest.raises(FormatError, match="second"):
+        unfilter_fields_many(raws, "norm11", [(16, 16)] * 3, 1, ["first", "second", "third"])
+
+
+@pytest.mark.parametrize("element", [2, 4, 8])
+def test_unshuffle_many_matches_unshuffle(element):
+    rng = np.random.default_rng(element)
+    for sizes in ([8, 64, 4096], [16, 24]):
+        units = [rng.integers(0, 256, s * element, dtype=np.uint8) for s in sizes]
+        got = unshuffle_many(units, element)
+        assert [g.tobytes() for g in got] == [unshuffle(u, element).tobytes() for u in units]
+
+
+def _damaged(data: bytes, entry, name: str, value: float):
+    """The payload with the first minimum of range section `name` replaced (zstd again; the entry's checksum no
+    longer matches, so it goes to unpack_payloads, which takes verified bytes)."""
+    raw = bytearray(zstandard.ZstdDecompressor().decompress(data))
+    s = entry.section(name)
+    stored = np.frombuffer(bytes(raw[s.offset:s.offset + s.size]), np.uint8)
+    ranges = unshuffle(stored, s.element).view({"f32": "<f4", "f16": "<f2"}[s.dtype]).copy()
+    ranges[0] = value
+    from splatstream.format.transport import shuffle
+    raw[s.offset:s.offset + s.size] = shuffle(ranges.view(np.uint8), s.element).tobytes()
+    return zstandard.ZstdCompressor().compress(bytes(raw))
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, 1e30])
+def test_a_bad_range_in_a_batch_names_its_payload(fruit, value):
+    store = encode_in_memory(fruit, EncodeOptions(preset="medium", max_leaf_splats=512))
+    m = read_manifest(store)
+    items = [(store.read_payload(t.groups["base"]), t.groups["base"]) for t in m.tiles][:4]
+    data, entry = items[2]
+    items[2] = (_damaged(data, entry, "position.range", value), entry)
+    with pytest.raises(FormatError, match="payload2"):
+        container.unpack_payloads(items, "base", [f"payload{k}" for k in range(4)])
+
+
+def _reference_ok(ranges: np.ndarray, plane: str) -> bool:
+    r = ranges.astype(np.float32)
+    lo, hi = r[:, 0], r[:, 1]
+    if not np.isfinite(r).all() or (lo > hi).any():
+        return False
+    limit = container.RANGE_LIMITS.get(plane)
+    return limit is None or (float(lo.min()) >= limit[0] and float(hi.max()) <= limit[1])
+
+
+@pytest.mark.parametrize("dtype", ["<f4", "<f2"])
+def test_one_pass_range_check_agrees_with_the_checks(dtype):
+    rng = np.random.default_rng(1)
+    specials = [np.nan, np.inf, -np.inf, 0.0, -0.0, 1e6, -1e6, 65504.0, 3e38, -3e38]
+    for plane in ("position", "scale", "color"):
+        for _ in range(400):
+            r = rng.normal(0, 3, size=(3, 2, 1, 3))
+            r[:, 1] = r[:, 0] + np.abs(rng.normal(0, 1, size=(3, 1, 3)))
+            for _ in range(rng.integers(0, 3)):
+                r[tuple(rng.integers(0, s) for s in r.shape)] = specials[rng.integers(len(specials))]
+            with np.errstate(over="ignore", invalid="ignore"):
+                ranges = r.astype(dtype)
+            expected = _reference_ok(ranges, plane)
+            assert container._ranges_ok(ranges, plane) == expected, (plane, ranges)
+            if expected:
+                container._check_ranges(ranges, plane, "r", "s")
+            else:
+                with pytest.raises(FormatError):
+                    container._check_ranges(ranges, plane, "r", "s")
+
+
+def test_keyed_positions_decode_together_as_one_at_a_time(fruit):
+    """Payloads with sections decode_payloads does not batch (keyed positions, format.md 5.4) are decoded one at a
+    time by it: the same planes."""
+    store = encode_in_memory(fruit, EncodeOptions(preset="medium-12bit", max_leaf_splats=512, transport="keyed"))
+    m = read_manifest(store)
+    items = [(store.read_payload(t.groups["base"]), t.groups["base"]) for t in m.tiles]
+    assert any(s.filter == "morton1" for _, e in items for s in e.sections)
+    alone = [planes_bytes(decode_payload(d, e, "base", "t")) for d, e in items]
+    assert [planes_bytes(p) for p in decode_payloads(items, "base", ["t"] * len(items))] == alone
