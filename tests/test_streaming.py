@@ -87,9 +87,10 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_serve(root: Path, port: int, *extra: str) -> subprocess.Popen:
-    proc = subprocess.Popen([sys.executable, "-m", "cli", "serve", str(root), "--port", str(port),
-                             "--no-access-log", *extra], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+def start_serve(root: Path, port: int, *extra: str, access_log: bool = False) -> subprocess.Popen:
+    log = [] if access_log else ["--no-access-log"]
+    proc = subprocess.Popen([sys.executable, "-m", "cli", "serve", str(root), "--port", str(port), *log, *extra],
+                            stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
     line = proc.stderr.readline()
     assert "http://" in line, line
     return proc
@@ -163,11 +164,16 @@ def test_server_killed_and_restarted_mid_stream(ctx, root, tmp_path):
     cam = camera(root, 0.6)
     clean = as_image8(render_cut(ctx, root / "fruit", cam, 1.5))
     port = free_port()
-    proc = start_serve(root, port, "--throttle-mbps", "0.4")
+    proc = start_serve(root, port, "--throttle-mbps", "0.4", access_log=True)
     import threading
 
     def restart():
-        time.sleep(1.0)
+        # Killed once the access log shows a payload served: the client has its manifest by then (a kill at a fixed
+        # time could fall before the manifest's fetch, which fails at once on a refused connection, by design), and
+        # at 0.4 Mbit/s most of the scene is still to come, so requests are cut or refused while it is down.
+        for line in proc.stderr:
+            if "/data/" in line:
+                break
         proc.send_signal(signal.SIGKILL)
         proc.wait(10)
         time.sleep(0.5)
