@@ -218,16 +218,20 @@ def _decompress(data: bytes | memoryview, size: int, source: str) -> tuple[np.nd
     fresh buffer's page faults then cost a large share of zstd's time (issue 15; BENCHMARKS.md, "Figures behind
     library defaults"). The bytes are only valid until this thread's next call: unpack_payload copies what of them
     it returns as views."""
-    kept = size <= KEEP_RAW_BYTES
-    if kept:
-        buf = getattr(_local, "raw", None)
-        if buf is None or buf.size < size:
-            buf = _local.raw = np.empty(min(KEEP_RAW_BYTES, 1 << max(16, (size - 1).bit_length())), np.uint8)
-        buf = buf[:size]
-    else:
-        buf = np.empty(size, np.uint8)
+    buf, kept = _raw_buffer(size)
     _decompress_into(data, buf, source)
     return buf, kept
+
+
+def _raw_buffer(size: int) -> tuple[np.ndarray, bool]:
+    """`size` bytes to decompress into: this thread's kept buffer (grown in powers of two) where they fit in
+    KEEP_RAW_BYTES, else a fresh array; and whether it is the kept one."""
+    if size > KEEP_RAW_BYTES:
+        return np.empty(size, np.uint8), False
+    buf = getattr(_local, "raw", None)
+    if buf is None or buf.size < size:
+        buf = _local.raw = np.empty(min(KEEP_RAW_BYTES, 1 << max(16, (size - 1).bit_length())), np.uint8)
+    return buf[:size], True
 
 
 def _decompress_into(data: bytes | memoryview, buf: np.ndarray, source: str) -> None:
@@ -319,14 +323,7 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
                 for (data, entry), source in zip(items, sources, strict=True)]
     sizes = [entry.raw_bytes for _, entry in items]
     total = sum(sizes)
-    kept = total <= KEEP_RAW_BYTES
-    if kept:
-        whole = getattr(_local, "raw", None)
-        if whole is None or whole.size < total:
-            whole = _local.raw = np.empty(min(KEEP_RAW_BYTES, 1 << max(16, (total - 1).bit_length())), np.uint8)
-        whole = whole[:total]
-    else:
-        whole = np.empty(total, np.uint8)
+    whole, kept = _raw_buffer(total)
     owner = whole if whole.base is None else whole.base
     bufs, at = [], 0
     for (data, _), size, source in zip(items, sizes, sources, strict=True):

@@ -704,6 +704,19 @@ def _join_zigzag(planes: np.ndarray, z: np.ndarray, spare: np.ndarray) -> None:
     z ^= spare
 
 
+
+def _fields1_header(raw: np.ndarray, fmt: str, width: int, height: int, layers: int, source: str):
+    """A fields1 content's field layout, decode plan and header size from its header (FormatError naming `source`
+    if short or invalid)."""
+    lay = _layout(fmt, width, height)
+    header_bytes = 1 + len(lay.bits) * layers
+    if raw.size < header_bytes:
+        raise FormatError(source, "fields1", f"{raw.size}-byte content is shorter than its header")
+    plan = _decode_plan(fmt, width, height, layers, raw[:header_bytes].tobytes())
+    if isinstance(plan, str):
+        raise FormatError(source, "fields1", plan)
+    return lay, plan, header_bytes
+
 def unfilter_fields(raw: np.ndarray | bytes, fmt: str, width: int, height: int, layers: int,
                     source: str = "section") -> np.ndarray:
     """Inverse of fields_content: a section's stored bytes -> its GPU bytes (uint8, layer after layer), bit-exact;
@@ -716,14 +729,7 @@ def unfilter_fields(raw: np.ndarray | bytes, fmt: str, width: int, height: int, 
     an int32 view, which numpy accumulates about 3x faster than uint32 (the same bits: both wrap modulo 2^32)."""
     _check_geometry(fmt, width, height, layers, source)
     raw = np.frombuffer(raw, np.uint8) if isinstance(raw, bytes | bytearray | memoryview) else raw
-    lay = _layout(fmt, width, height)
-    nf = len(lay.bits)
-    header_bytes = 1 + nf * layers
-    if raw.size < header_bytes:
-        raise FormatError(source, "fields1", f"{raw.size}-byte content is shorter than its header")
-    plan = _decode_plan(fmt, width, height, layers, raw[:header_bytes].tobytes())
-    if isinstance(plan, str):
-        raise FormatError(source, "fields1", plan)
+    lay, plan, header_bytes = _fields1_header(raw, fmt, width, height, layers, source)
     n = width * height
     blocks = n // BLOCK_TEXELS
     expected, crossed, layer_plans = plan
@@ -822,14 +828,7 @@ def unfilter_fields_many(raws: list[np.ndarray], fmt: str, dims: list[tuple[int,
     plan0 = None
     for raw, (width, height), source in zip(raws, dims, sources, strict=True):
         _check_geometry(fmt, width, height, layers, source)
-        lay = _layout(fmt, width, height)
-        nf = len(lay.bits)
-        header_bytes = 1 + nf * layers
-        if raw.size < header_bytes:
-            raise FormatError(source, "fields1", f"{raw.size}-byte content is shorter than its header")
-        plan = _decode_plan(fmt, width, height, layers, raw[:header_bytes].tobytes())
-        if isinstance(plan, str):
-            raise FormatError(source, "fields1", plan)
+        lay, plan, header_bytes = _fields1_header(raw, fmt, width, height, layers, source)
         if raw.size != plan[0]:
             raise FormatError(source, "fields1", f"content of {raw.size} bytes, expected {plan[0]} for its modes")
         head = raw[:header_bytes].tobytes()
