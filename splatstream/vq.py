@@ -46,6 +46,10 @@ LARGE_SPLATS_PER_ENTRY = 8
 # the tree's) and in every assignment: on flowers at 65,536 entries the weighted RMS SH error of the fit went 0.01799
 # -> 0.01760 (one cell -> two, and the round), for about twice the assignment time.
 LARGE_PROBES = 2
+# The large codebooks' cells are fitted in this many Lloyd rounds (8 elsewhere), seeded from dot products: on flowers
+# the fit's CPU time went 9.35 -> 4.31 s for a weighted RMS error of 0.017618 against 0.017604 (-0.02 dB on its
+# renders; BENCHMARKS.md, "The large codebook's encode time").
+LARGE_ITERATIONS = 5
 
 
 def _power_of_two_near(x: float) -> int:
@@ -289,8 +293,10 @@ def _nearest(rows: np.ndarray, centroids: np.ndarray, cc: np.ndarray | None = No
 
 
 def kmeans(rows: np.ndarray, k: int, rng: np.random.Generator, weights: np.ndarray | None = None,
-           iterations: int = ITERATIONS) -> np.ndarray:
-    """k centroids of (weighted) rows by Lloyd's algorithm from a k-means++-style seeding on a sample."""
+           iterations: int = ITERATIONS, product_seeding: bool = False) -> np.ndarray:
+    """k centroids of (weighted) rows by Lloyd's algorithm from a k-means++-style seeding on a sample.
+    product_seeding: the seeding's distances from dot products in one matrix product per batch of new centroids,
+    as the Lloyd rounds take them (cheaper; slightly other values, so another seeding)."""
     n = len(rows)
     if n <= k:
         return rows.copy()
@@ -312,6 +318,7 @@ def kmeans(rows: np.ndarray, k: int, rng: np.random.Generator, weights: np.ndarr
     first = rng.choice(n, p=w / w.sum())
     centroids[0] = rows[first]
     d2 = ((rows - centroids[0]) ** 2).sum(axis=1)
+    rr = None
     filled = 1
     while filled < k:
         p = w * d2
@@ -320,8 +327,20 @@ def kmeans(rows: np.ndarray, k: int, rng: np.random.Generator, weights: np.ndarr
         idx = rng.choice(n, take, replace=False, p=p / total) if total > 0 and np.count_nonzero(p) >= take \
             else rng.choice(n, take, replace=False)
         centroids[filled:filled + take] = rows[idx]
-        for c in centroids[filled:filled + take]:
-            np.minimum(d2, ((rows - c) ** 2).sum(axis=1), out=d2)
+        if product_seeding:
+            new = centroids[filled:filled + take]
+            nn = np.einsum("ij,ij->i", new, new)
+            if rr is None:
+                rr = np.einsum("ij,ij->i", rows, rows)
+            for i in range(0, n, ASSIGN_BLOCK):
+                d = rows[i:i + ASSIGN_BLOCK] @ new.T
+                d *= -2.0
+                d += nn[None, :]
+                d += rr[i:i + ASSIGN_BLOCK, None]
+                np.minimum(d2[i:i + ASSIGN_BLOCK], np.maximum(d.min(axis=1), 0.0), out=d2[i:i + ASSIGN_BLOCK])
+        else:
+            for c in centroids[filled:filled + take]:
+                np.minimum(d2, ((rows - c) ** 2).sum(axis=1), out=d2)
         filled += take
     for _ in range(iterations):
         labels = _nearest(rows, centroids)
@@ -366,6 +385,9 @@ def build_codebook(rows: np.ndarray, entries: int, weights: np.ndarray | None = 
         flat = kmeans(uniq, min(entries, len(uniq)), rng, uw, iterations=2 * ITERATIONS).astype(np.float32)
         return Codebook(flat, flat, np.arange(len(flat) + 1, dtype=np.int64))
     top_k = int(min(len(uniq), max(1, round(np.sqrt(entries)))))
+    # The large codebooks' cells (probes > 1) are fitted cheaper (LARGE_ITERATIONS): their extra round below stands
+    # in for the Lloyd rounds left out.
+    child_fit = {"iterations": LARGE_ITERATIONS, "product_seeding": True} if probes > 1 else {}
     top = kmeans(uniq, top_k, rng, uw)
     parent = _nearest(uniq, top)
     # Entries per top cell in proportion to its weighted spread (mass x mean squared distance), at least one,
@@ -380,7 +402,7 @@ def build_codebook(rows: np.ndarray, entries: int, weights: np.ndarray | None = 
         if k == 0 or len(members) == 0:
             block = top[t:t + 1] if len(members) == 0 else uniq[members[:1]]
         else:
-            block = kmeans(uniq[members], k, rng, uw[members])
+            block = kmeans(uniq[members], k, rng, uw[members], **child_fit)
         blocks.append(block.astype(np.float32))
         starts.append(starts[-1] + len(block))
     codebook = Codebook(np.concatenate(blocks), top.astype(np.float32), np.array(starts, np.int64), probes=probes)

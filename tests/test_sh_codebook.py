@@ -306,3 +306,26 @@ def test_assignment_reuses_its_prepared_entries_without_changing_a_label(monkeyp
         assert colliding._prepared().exact_keys
         monkeypatch.undo()
         monkeypatch.setattr(vq, "FLAT_LIMIT", 0)
+
+
+def test_large_codebook_fit_is_deterministic_and_as_close_as_the_full_fit(monkeypatch):
+    """The cells of a large codebook (probes > 1) are fitted in vq.LARGE_ITERATIONS Lloyd rounds from a seeding by
+    dot products: the same codebook on every run, and an error within 2 % of the full fit's (8 rounds, seeding by
+    differences; on flowers 0.017618 against 0.017604)."""
+    monkeypatch.setattr(vq, "FLAT_LIMIT", 0)
+    rng = np.random.default_rng(21)
+    centres = rng.normal(0, 1, (80, 12)).astype(np.float32)
+    rows = (centres[rng.integers(0, 80, 8000)] + rng.normal(0, 0.3, (8000, 12))).astype(np.float32)
+    w = rng.random(8000) + 0.1
+    a = build_codebook(rows, 1024, weights=w, seed=2, probes=2)
+    b = build_codebook(rows, 1024, weights=w, seed=2, probes=2)
+    np.testing.assert_array_equal(a.entries, b.entries)
+    np.testing.assert_array_equal(a.assign(rows), b.assign(rows))
+    monkeypatch.setattr(vq, "LARGE_ITERATIONS", vq.ITERATIONS)
+    real_kmeans = vq.kmeans
+    monkeypatch.setattr(vq, "kmeans", lambda *args, product_seeding=False, **kw: real_kmeans(*args, **kw))
+    full = build_codebook(rows, 1024, weights=w, seed=2, probes=2)
+    err = {k: float(np.sqrt((w * ((rows - c.entries[c.assign(rows)]) ** 2).sum(-1)).sum() / w.sum()))
+           for k, c in (("fast", a), ("full", full))}
+    assert not np.array_equal(a.entries, full.entries)
+    assert err["fast"] < 1.02 * err["full"], err
