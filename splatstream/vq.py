@@ -106,6 +106,10 @@ class Codebook:
     probes: int = 1          # rows search the entries of their `probes` nearest top centroids
     _prep: _Prepared | None = field(default=None, init=False, repr=False, compare=False)
 
+    def __getstate__(self) -> dict:
+        # Without what assignments prepared (about twice the entries' bytes): a process it is sent to makes its own.
+        return {**self.__dict__, "_prep": None}
+
     def ordered_by_use(self, counts: np.ndarray) -> Codebook:
         """The same codebook with entries renumbered by falling use count (ties keep their order): frequent entries
         get small indices, so the per-splat index plane has mostly-zero high bytes (-7 % on the index plane of a

@@ -329,3 +329,19 @@ def test_large_codebook_fit_is_deterministic_and_as_close_as_the_full_fit(monkey
            for k, c in (("fast", a), ("full", full))}
     assert not np.array_equal(a.entries, full.entries)
     assert err["fast"] < 1.02 * err["full"], err
+
+
+def test_a_pickled_codebook_leaves_its_prepared_arrays_behind():
+    """A codebook sent to another process (the partitioned encoder's workers) is pickled without the arrays its
+    assignments prepared; the copy prepares its own and assigns the same."""
+    import pickle
+
+    rng = np.random.default_rng(4)
+    rows = rng.normal(size=(3000, 9)).astype(np.float32)
+    cb = build_codebook(rows, 64)
+    labels = cb.assign(rows)
+    assert cb._prep is not None
+    copy = pickle.loads(pickle.dumps(cb))
+    assert copy._prep is None
+    np.testing.assert_array_equal(copy.assign(rows), labels)
+    assert len(pickle.dumps(cb)) < 1.2 * len(pickle.dumps(Codebook(cb.entries, cb.top, cb.starts, cb.tree)))
