@@ -1,11 +1,12 @@
 #!/bin/bash
-# GPU-machine driver for the city-scale run of issue 38 (device `run` tool, the two-GPU 32-core kind), from the repo
+# GPU-machine driver for the city-scale run of issue 38 (device `run` tool: the single-GPU 16-core kind or the two-GPU 32-core one), from the repo
 # root, carrying .whl (bench/device_wheels.sh: Dask and its needs, plus the client's wheels) and .gl (GL loaders).
 # Usage: bash bench/device/run_city.sh make-encode SPLATS   then   bash bench/device/run_city.sh stream
 #        bash bench/device/run_city.sh sizes 1000000,6000000,60000000   (each size made, encoded, streamed: the
 #        series of first frame and selection time against scene size; results under $OUT/size_N/)
-#   make-encode: the scene (bench/tile_scene.py: copies of the bundled donut, SH0, seed 0) and `encode --workers 32`
-#                with the encoder's defaults (medium, pages over 1,024 tiles), timed as bench_scale.py times it
+#   make-encode: the scene (bench/tile_scene.py: copies of the bundled donut, SH0, seed 0) and `encode --workers N`
+#                (N: CITY_WORKERS, else the machine's cores, nproc) with the encoder's
+#                defaults (medium, pages over 1,024 tiles), timed as bench_scale.py times it
 #                (wall, summed PSS of the process tree, the largest process, phases)
 #   stream:      the encoded scene served on loopback: the first frame (bench_first_frame.py, twice: cold and warm
 #                shader cache), the manifest bytes before it (bench_pages.py --first-frame), and the fly-through
@@ -31,6 +32,9 @@ python3 -c "import numpy, numba; print('numpy', numpy.__version__, 'numba', numb
 OUT=${OUT:-/tmp/out}
 W=/tmp/city
 mkdir -p "$OUT" $W
+# encode workers: the machine's cores unless CITY_WORKERS says (250M: 198 s on 32, 316 s on 16 with the scene's 70 s
+# before it, so make-encode fits one 600 s call on the single-GPU 16-core kind too)
+WORKERS=${CITY_WORKERS:-$(nproc)}
 what=${1:?make-encode, stream or sizes}
 gl_setup() {
   for f in .gl/*.deb; do dpkg -x "$f" /; done
@@ -52,7 +56,7 @@ if [ "$what" = sizes ]; then
     d=$OUT/size_$splats; s=/tmp/sizes/$splats; mkdir -p "$d" "$s"
     start=$(date +%s)
     python3 bench/tile_scene.py samples/donut.ply --splats "$splats" --out $s/s.ply > /dev/null || exit 1
-    python3 -m cli encode $s/s.ply $s/scene --workers "${CITY_WORKERS:-32}" -q || exit 1
+    python3 -m cli encode $s/s.ply $s/scene --workers "$WORKERS" -q || exit 1
     echo "$splats: made and encoded in $(( $(date +%s) - start )) s"
     python3 bench/bench_pages.py --first-frame $s/scene --runs 5 2>&1 | tail -3 > "$d/first_frame_nogl.txt"
     for run in cold warm; do
@@ -68,14 +72,21 @@ if [ "$what" = make-encode ]; then
   splats=${2:?splats}
   nproc; free -g | head -2; df -h /tmp | tail -1
   start=$(date +%s)
-  python3 bench/tile_scene.py samples/donut.ply --splats "$splats" --out $W/s.ply || exit 1
+  # A scene already made (a first call that ran out of time in the encode) is kept: the same command again encodes
+  # it, so make-encode splits into two calls where one 600 s call is not enough.
+  if [ ! -f $W/s.ply ]; then
+    python3 bench/tile_scene.py samples/donut.ply --splats "$splats" --out $W/s.part.ply || exit 1
+    mv $W/s.part.ply $W/s.ply
+  fi
   echo "scene written in $(( $(date +%s) - start )) s: $(du -h $W/s.ply | cut -f1)"
-  python3 - "$W/s.ply" "$W/scene" "$OUT/encode.json" <<'EOF'
-import json, os, pathlib, sys
+  rm -rf $W/scene
+  echo "encode workers: $WORKERS"
+  python3 - "$W/s.ply" "$W/scene" "$OUT/encode.json" "$WORKERS" <<'EOF'
+import json, pathlib, sys
 sys.path.insert(0, "bench")
 from bench_scale import run_encode
 r = run_encode(pathlib.Path(sys.argv[1]), pathlib.Path(sys.argv[2]),
-               ["--workers", os.environ.get("CITY_WORKERS", "32"), "--memory-per-worker", "6GB"])
+               ["--workers", sys.argv[4], "--memory-per-worker", "6GB"])
 print(json.dumps(r, indent=1))
 pathlib.Path(sys.argv[3]).write_text(json.dumps(r, indent=1))
 EOF
