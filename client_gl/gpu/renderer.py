@@ -304,7 +304,20 @@ class SplatRenderer:
         if splats <= self._work_splats:
             return
         capacity = self.pool.splat_capacity
-        n = min(capacity, max(2 * splats, 2 * self._work_splats, MIN_WORK_SPLATS))
+        self._allocate_work(min(capacity, max(2 * splats, 2 * self._work_splats, MIN_WORK_SPLATS)))
+
+    def reserve_work(self, splats: int) -> None:
+        """Work buffers for `splats` drawn splats now (a streaming session's splat budget, before its first frame),
+        so that no frame of a flight pays a growth: on the GPU machine the two growths of a 3M-splat budget's
+        flight were its 35-42 ms render frames (BENCHMARKS.md, "Manifest pages"). Their allocation is immutable
+        storage (gl.WorkBuffer), made when created, not at first use. Drawing more later still doubles them."""
+        if self.sort_mode != "gpu":
+            return
+        n = min(self.pool.splat_capacity, max(int(splats), MIN_WORK_SPLATS))
+        if n > self._work_splats:
+            self._allocate_work(n)
+
+    def _allocate_work(self, n: int) -> None:
         for b in (self.keys, self.values, self.records):
             if b is not None:
                 b.release()
