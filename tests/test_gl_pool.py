@@ -381,7 +381,8 @@ def test_work_buffers_reserved_for_a_budget_do_not_grow(gl_context, scenes, sort
         entries = reserved.craster.entry_capacity if reserved.craster is not None else None
         allocations = []
         allocate = reserved._allocate_work
-        monkeypatch.setattr(reserved, "_allocate_work", lambda n: (allocations.append(n), allocate(n)))
+        monkeypatch.setattr(reserved, "_allocate_work",
+                            lambda n, log=allocations, allocate=allocate: (log.append(n), allocate(n)))
         for tile_id, tile in ((1, a), (2, b)):
             pool.join(tile_id, tile)
             reserved.render(cam)
