@@ -263,6 +263,8 @@ def main() -> None:
                     help="decode in this many processes instead of threads (StreamOptions.decode_processes)")
     ap.add_argument("--decode-workers-moving", type=int, default=1,
                     help="decode threads while the camera moves (StreamOptions.decode_workers_moving; 0: all)")
+    ap.add_argument("--sort-pass-programs", action="store_true",
+                    help="each GPU sort pass its own programs (RenderOptions.sort_pass_programs, the A/B)")
     ap.add_argument("--no-decode-batch", action="store_true",
                     help="one decode job a payload (the A/B of StreamOptions.decode_batch)")
     ap.add_argument("--finish-keeps-gil", action="store_true",
@@ -300,12 +302,15 @@ def main() -> None:
                                                               cache=False, decode_workers=args.decode_workers,
                                                               decode_processes=args.decode_processes,
                                                               decode_workers_moving=args.decode_workers_moving,
-                                                              decode_batch=not args.no_decode_batch))
+                                                              decode_batch=not args.no_decode_batch,
+                                                              render=RenderOptions(
+                                                                  sort_pass_programs=args.sort_pass_programs)))
         if not args.no_gc_freeze:
             freeze_long_lived()
         out["gc_freeze"] = not args.no_gc_freeze
         out["decode_workers"], out["decode_processes"] = args.decode_workers, args.decode_processes
         out["decode_workers_moving"], out["decode_batch"] = args.decode_workers_moving, not args.no_decode_batch
+        out["sort_pass_programs"] = bool(args.sort_pass_programs)
         out["finish_keeps_gil"] = bool(args.finish_keeps_gil)
         if not args.no_wait_compiled_selection:
             from client_gl.stream.engine import COMPILED_SELECTION
@@ -392,6 +397,9 @@ def main() -> None:
             stats = pstats.Stats(profiler)
             stats.sort_stats("tottime").print_stats(25)
             stats.sort_stats("cumulative").print_callees("wanted")
+        eng = session.engine
+        out["decode_jobs"] = {"jobs": eng.decode_jobs, "payloads": eng.decode_job_payloads,
+                              "moving_frames": eng.moving_frames}
         out["streaming"] = {"frames": len(walls), "median_ms": float(np.median(walls)),
                             "p99_ms": float(np.percentile(walls, 99)), "max_ms": float(np.max(walls)),
                             "max_drawn_splats": int(max(drawn)), "first_frame_s": session.metrics.first_frame_s,

@@ -10,7 +10,8 @@
 #                (wall, summed PSS of the process tree, the largest process, phases)
 #   stream:      the encoded scene served on loopback: the first frame (bench_first_frame.py, twice: cold and warm
 #                shader cache), the manifest bytes before it (bench_pages.py --first-frame), and the fly-through
-#                (bench_flythrough.py, 3M splat budget); FLY_ONLY=1: the fly-through only; FLY_ARGS: more of its
+#                (bench_flythrough.py, 3M splat budget), and the first frame with the shader caches off, the sort
+#                passes' programs shared and per pass; FLY_ONLY=1: the fly-through only; FLY_ARGS: more of its
 #                options, FLY_NAME: its JSON's name under $OUT (default flythrough)
 # The scene stays under /tmp/city while the machine is warm, so the second call must follow the first at once.
 set -u
@@ -46,8 +47,9 @@ gl_setup() {
 fly_summary() {
   python3 -c "import json,sys; d=json.load(open(sys.argv[1]))['streaming']; print({k: d.get(k) for k in \
     ('frames','median_ms','p99_ms','update_ms_median','update_ms_p99','select_ms_median','select_ms_p99', \
-     'frame_call_waited_ms_p99','drain_ms_p99','others_cpu_in_p99_frames_ms','growth_frames')}, \
-    'compiled selection', json.load(open(sys.argv[1])).get('compiled_selection'))" "$1"
+     'frame_call_waited_ms_p99','others_cpu_in_p99_frames_ms','growth_frames','converged_after_path_s')}, \
+    {k: json.load(open(sys.argv[1])).get(k) for k in ('compiled_selection','decode_jobs','decode_batch', \
+     'decode_workers_moving','sort_pass_programs')})" "$1"
 }
 if [ "$what" = sizes ]; then
   gl_setup
@@ -99,6 +101,13 @@ if [ "$what" = stream ]; then
   [ -n "${FLY_ONLY:-}" ] || python3 bench/bench_pages.py --first-frame $W/scene --runs 5 2>&1 | tail -6 | tee "$OUT/first_frame_nogl.txt"
   [ -n "${FLY_ONLY:-}" ] || for run in cold warm; do
     python3 bench/bench_first_frame.py --scene $W/scene --json "$OUT/first_frame_$run.json" 2>&1 | tail -4
+  done
+  # the first frame with the drivers' shader caches off (every compile cold), the sorts' passes sharing their
+  # programs (the default) and each pass its own (--sort-pass-programs): programs_compiled, compile_ms, first_frame_s
+  [ -n "${FLY_ONLY:-}" ] || for v in shared perpass; do
+    a=""; [ $v = perpass ] && a=--sort-pass-programs
+    __GL_SHADER_DISK_CACHE=0 MESA_SHADER_CACHE_DISABLE=true python3 bench/bench_first_frame.py --scene $W/scene $a \
+      --json "$OUT/first_frame_nocache_$v.json" 2>&1 | tail -1
   done
   # FLY_ARGS: more bench_flythrough.py options (an A/B: FLY_ARGS="--drain-ms 0" FLY_NAME=fly_drain0)
   fly=${FLY_NAME:-flythrough}

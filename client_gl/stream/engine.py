@@ -352,7 +352,9 @@ class StreamEngine:
         self._decode_limit = options.decode_workers
         self._decode_running = 0
         self._last_camera: tuple | None = None
-        self.moving_frames = 0
+        self.moving_frames = 0  # frames whose camera moved since the last (decode_workers_moving applied)
+        self.decode_jobs = 0  # jobs handed to the decode threads, and the payloads in them (decode_batch's effect)
+        self.decode_job_payloads = 0
         self._processes: ProcessPoolExecutor | None = None
         self._processes_ready: Future = Future()
         if options.decode_processes > 0:
@@ -756,6 +758,8 @@ class StreamEngine:
         jobs = min(len(items), max(1, self._decode_limit))
         for j in range(jobs):
             share = items[j::jobs]
+            self.decode_jobs += 1
+            self.decode_job_payloads += len(share)
             if len(share) == 1:
                 self._pool.submit(self._decode, *share[0])
             else:
@@ -777,6 +781,8 @@ class StreamEngine:
                 self._decoded.put((key, item))
             future.add_done_callback(done)
         else:
+            self.decode_jobs += 1
+            self.decode_job_payloads += 1
             self._pool.submit(self._decode, key, entry, data)
 
     # --- residency --------------------------------------------------------------------------------------------
