@@ -140,3 +140,27 @@ def test_batches_and_one_thread_while_moving_reach_the_same_residency(store, mon
         results.append((sorted(u.draw), {t: pool.bands[t] for t in u.draw}))
         engine.close()
     assert results[0] == results[1]
+
+
+def test_a_batch_holds_at_most_decode_batch_splats(store, monkeypatch):
+    """A collect's payloads go in consecutive jobs of at most decode_batch_splats splats (a larger payload alone),
+    so that a decode step stays short; the residency is the one of a payload a job."""
+    m = read_manifest(store)
+    shares = []
+    results = []
+    for batch in (False, True):
+        pool = CountingPool(10_000)
+        engine = StreamEngine(StepFetcher(store, per_frame=12), pool,
+                              StreamOptions(SelectionOptions(max_sse=1.0), decode_batch=batch,
+                                            decode_batch_splats=1000))
+        many = engine._decode_many
+        monkeypatch.setattr(engine, "_decode_many", lambda items, many=many: (shares.append(items), many(items)))
+        _, u = run_until_converged(engine, orbit(m, 1.6, 0.3))
+        results.append((sorted(u.draw), {t: pool.bands[t] for t in u.draw}))
+        assert engine.decode_jobs <= engine.decode_job_payloads
+        engine.close()
+    assert shares
+    for items in shares:
+        assert len(items) >= 2 and sum(m.tile(key[0]).splats for key, _, _ in items) <= 1000
+        assert len({key[1] for key, _, _ in items}) == 1  # one group a job
+    assert results[0] == results[1]

@@ -104,10 +104,15 @@ class StreamOptions:
     # Python takes the interpreter lock from the frame loop in the frames of a flight (the slow frames of the 250M
     # fly-through held about 2.5 ms of each decode thread's CPU: BENCHMARKS.md, "Manifest pages"). 0: no limit.
     decode_workers_moving: int = 1
-    # The payloads of one group that arrive in one collect decoded as one job (format.decode.decode_payloads: the
+    # The payloads of one group that arrive in one collect decoded together (format.decode.decode_payloads: the
     # same planes, bit for bit, in fewer and longer numpy calls, so fewer hand-overs of the interpreter lock per
-    # splat), split into as many jobs as threads may decode now. False: one job a payload.
+    # splat), in jobs of at most decode_batch_splats splats (a payload above it alone). A decode thread waits for
+    # the frame loop only between steps, and a batch's step is a plane of all its payloads: on the 2-core VM a
+    # step of 12 batched 4k-splat payloads took 1.5 ms at p99 against 0.2 ms for one, for a few percent less CPU;
+    # small tiles are where a payload's fixed cost is most of its decode (BENCHMARKS.md, "Manifest pages").
+    # False: one job a payload.
     decode_batch: bool = True
+    decode_batch_splats: int = 4096
     # Decode in this many worker processes instead of threads (0: threads). Processes keep the decoders' Python off
     # the render thread's interpreter lock; until they have started, payloads are decoded on the threads.
     decode_processes: int = 0
@@ -753,11 +758,20 @@ class StreamEngine:
         return procs is not None and self._processes_ready.done() and not self._processes_ready.exception()
 
     def _submit_batch(self, items: list[tuple[Key, PayloadEntry, VerifiedPayload | bytes]]) -> None:
-        """One group's payloads of a collect: as many jobs as threads may decode now (fewer while the camera
-        moves), each a decode_payloads call over its share, in the collect's order (the wish list's)."""
-        jobs = min(len(items), max(1, self._decode_limit))
-        for j in range(jobs):
-            share = items[j::jobs]
+        """One group's payloads of a collect, in the collect's order (the wish list's): consecutive payloads
+        together up to decode_batch_splats splats a job, each job a decode_payloads call."""
+        cap = self.options.decode_batch_splats
+        shares: list[list] = []
+        held = 0
+        for item in items:
+            tile_id = item[0][0]
+            splats = self.manifest.tile(tile_id).splats if tile_id is not None else cap
+            if not shares or held + splats > cap:
+                shares.append([])
+                held = 0
+            shares[-1].append(item)
+            held += splats
+        for share in shares:
             self.decode_jobs += 1
             self.decode_job_payloads += len(share)
             if len(share) == 1:
