@@ -34,7 +34,7 @@ import numpy as np
 from .format.layout import morton_codes
 from .format.limits import MAX_LOG_SCALE, MIN_LOG_SCALE
 from .gaussians import SH_C0, Gaussians, normalize_quaternions, rotation_matrices
-from .lod_groups import GroupRule, grid_group_starts, group_errors, group_ids, group_runs
+from .lod_groups import GroupRule, grid_group_starts, group_errors, group_ids, group_runs, member_terms
 
 # Bounds and errors use this many standard deviations (the 3DGS rasteriser's cut-off and KHR "ellipse" kernel).
 EXTENT_SIGMAS = 3.0
@@ -313,19 +313,27 @@ def level_cost_groups(members: list[Gaussians], masses: list[np.ndarray], target
     return out
 
 
-def choice_error(members: Gaussians, ids: np.ndarray, blur: float) -> float:
+def choice_error(members: Gaussians, ids: np.ndarray, blur: float, prepared: tuple | None = None) -> float:
     """How far one tile's merged splats are from their members, to choose between groupings (level_auto_groups):
     the squared L2 norm of the colour-premultiplied footprints projected along x, y and z (lod_groups.group_errors)
     of the members against the splats the groups `ids` merge into, both drawn at the viewing blur `blur` (a
     variance added to every axis, as the rasteriser's low-pass) and the merged opacity matched to the members'
-    shown coverage at that blur (finish_appearance's rule; the shown coverage also weighs the moments here)."""
+    shown coverage at that blur (finish_appearance's rule; the shown coverage also weighs the moments here).
+    `prepared`: choice_members(members, blur), when several groupings of the same members are judged."""
+    args, terms = prepared or choice_members(members, blur)
+    return float(group_errors(members.positions, *args, ids, proj=True, terms=terms).sum())
+
+
+def choice_members(members: Gaussians, blur: float) -> tuple[tuple, tuple[np.ndarray, np.ndarray]]:
+    """choice_error's per-member inputs at `blur`, whatever the grouping: (log scales, rotations, alpha, colours,
+    shown coverage) and lod_groups.member_terms of them."""
     with np.errstate(over="ignore"):  # a logit below -709: exp overflows to inf, alpha is exactly 0
         alpha = 1.0 / (1.0 + np.exp(-members.opacity_logits.astype(np.float64)))
     variances = np.exp(2.0 * members.log_scales.astype(np.float64)) + blur
     shown = alpha * _coverage_area(members.log_scales, blur)
     colours = 0.5 + SH_C0 * members.sh_dc.astype(np.float64)
-    return float(group_errors(members.positions, 0.5 * np.log(variances), members.rotations, alpha, colours,
-                              shown, ids, proj=True).sum())
+    args = (0.5 * np.log(variances), members.rotations, alpha, colours, shown)
+    return args, member_terms(*args[:4], proj=True)
 
 
 def _run_ids(order: np.ndarray, starts: np.ndarray, n: int) -> np.ndarray:
@@ -350,8 +358,9 @@ def level_auto_groups(members: list[Gaussians], masses: list[np.ndarray], target
         g_order, g_starts = _group_starts(members[t].positions, k)
         if len(g_starts) != k:  # the grid can fall short of a count (too few cells to split): the cost merge
             continue
-        cost_err = choice_error(members[t], _run_ids(order, starts, n), blurs[t])
-        grid_err = choice_error(members[t], _run_ids(g_order, g_starts, n), blurs[t])
+        prepared = choice_members(members[t], blurs[t])  # the same members judged twice
+        cost_err = choice_error(members[t], _run_ids(order, starts, n), blurs[t], prepared)
+        grid_err = choice_error(members[t], _run_ids(g_order, g_starts, n), blurs[t], prepared)
         if grid_err < cost_err:
             groups[t] = (g_order, g_starts)
             grid_chosen[t] = True

@@ -309,3 +309,41 @@ def test_encode_with_the_auto_merge_in_memory_and_refused_by_partitions(tmp_path
     assert sum(t.splats for t in auto.tiles) == sum(t.splats for t in cost.tiles)  # the cost merge's counts
     with pytest.raises(UsageError, match="--lod-merge auto groups each LOD level over the whole scene"):
         encode_file(path, tmp_path / "parts", lod_merge="auto", memory_per_worker=1 << 20, max_leaf_splats=1000)
+
+
+# The auto merge made cheaper (issue 31, branch autodef: the per-member terms of choice_error taken once per tile,
+# integer sorts by numpy's default sort): the same trees to the bit as the code before it (commit 330ef16).
+AUTO_BEFORE = {"fruit_drops_sh3.ply": "37dd5b7132586f5a", "lod_tile_sh3_zero_rest.ply": "09d919018246642c"}
+
+
+@pytest.mark.parametrize("scene", sorted(AUTO_BEFORE))
+def test_auto_tree_is_bit_identical_to_the_code_before(scene):
+    g = read_gaussians_ply(real(scene))
+    tiles = lod.build_tiles(g, max_leaf_splats=1000, reduction=2.0, merge="auto")
+    assert digest(*[a for t in tiles for a in (t.gaussians.positions, t.gaussians.opacity_logits,
+                                               t.gaussians.log_scales, t.gaussians.sh_dc)]) == AUTO_BEFORE[scene]
+
+
+def test_stable_int_argsort_is_the_stable_argsort():
+    rng = np.random.default_rng(7)
+    for n, top in ((0, 1), (1, 1), (1000, 3), (1000, 1000), (5000, 10**6)):  # ids may exceed n (a level's ids)
+        ids = rng.integers(0, top, n)
+        assert np.array_equal(lod_groups.stable_int_argsort(ids), np.argsort(ids, kind="stable"))
+
+
+def test_greedy_pairs_order_ties_by_ids_as_lexsort():
+    """Many equal costs (and rows repeated in all three): the same pairs as ordering by np.lexsort."""
+    rng = np.random.default_rng(11)
+    count = 60
+    i, j = rng.integers(0, count, 400), rng.integers(0, count, 400)
+    keep = i != j
+    i, j = i[keep], j[keep]
+    cost = rng.integers(0, 5, len(i)).astype(np.float64)
+    pa, pb = lod_groups._greedy_pairs(count, i, j, cost, 25)
+    # reference: the matching by the lexsorted rows (the code before)
+    ii, jj, cc = np.concatenate([i, j]), np.concatenate([j, i]), np.concatenate([cost, cost])
+    o = np.lexsort((jj, ii, cc))
+    by = np.argsort(ii * count + jj)
+    o2 = by[np.argsort(cc[by], kind="stable")]
+    assert np.array_equal(ii[o], ii[o2]) and np.array_equal(jj[o], jj[o2]) and np.array_equal(cc[o], cc[o2])
+    assert len(pa) == len(pb) > 0 and len(np.unique(np.concatenate([pa, pb]))) == 2 * len(pa)
