@@ -498,9 +498,11 @@ def group_ids(positions: np.ndarray, log_scales: np.ndarray, rotations: np.ndarr
         if target < len(_distinct(region)):
             raise ValueError(f"target {target} is below the number of regions")
         state["region"] = region.copy()
-        key = key[region[key // n] == region[key % n]]
-    ei, ej = key // n, key % n
+    ei, ej = np.divmod(key, n)  # one pass (int64 division has no SIMD loop: it was 4 passes)
     del key
+    if region is not None:
+        inside = region[ei] == region[ej]
+        ei, ej = ei[inside], ej[inside]
     # The edges between clusters: each splat edge mapped onto the clusters at its ends, as (label[ei], label[ej])
     # (ordered: a pair's cost is not exactly symmetric in floating point), one row per ordered pair with `mult`, the
     # number of splat edges it stands for (the cheapest share counts them), and its cost, kept while neither
@@ -551,8 +553,9 @@ def group_ids(positions: np.ndarray, log_scales: np.ndarray, rotations: np.ndarr
             key, order, first = _sorted_unique(ti * count + tj)
             folded = np.add.reduceat(tm[order], first) if len(key) else tm[:0]
             kept = ~touched
-            ei = np.concatenate([remap[ei[kept]], key // count])
-            ej = np.concatenate([remap[ej[kept]], key % count])
+            row = order[first]  # a row of each distinct pair: its ends, as key // count and key % count gave them
+            ei = np.concatenate([remap[ei[kept]], ti[row]])
+            ej = np.concatenate([remap[ej[kept]], tj[row]])
             mult = np.concatenate([mult[kept], folded])
             ecost = np.concatenate([ecost[kept], np.full(len(key), np.nan)])
     label = _morton_finish(state, label, target)
