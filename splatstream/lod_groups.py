@@ -185,7 +185,12 @@ def neighbour_keys(p: np.ndarray, k: int, shifts: int = 3, block: int = 4096) ->
     keys = []
     for i, j in _neighbour_blocks(p, k, shifts, block, ordered=False):
         keys.append(_distinct(np.minimum(i, j) * n + np.maximum(i, j)))
-    return _distinct(np.concatenate(keys)) if keys else np.zeros(0, np.int64)
+    if not keys:
+        return np.zeros(0, np.int64)
+    every = np.concatenate(keys)
+    del keys  # the blocks' keys freed before the sort, which is in place: two copies of the keys at most, not four
+    every.sort()
+    return every[np.concatenate([[True], every[1:] != every[:-1]])]
 
 
 def _neighbour_blocks(p: np.ndarray, k: int, shifts: int, block: int, ordered: bool = True):
@@ -337,7 +342,7 @@ def _greedy_pairs(count: int, i: np.ndarray, j: np.ndarray, cost: np.ndarray, qu
     cc = np.concatenate([cost, cost])
     # By cost, ties by ids: the same pairs on every machine. As np.lexsort((jj, ii, cc)) orders them (rows equal in
     # all three are interchangeable), in two passes: the ids as one key (any sort), then the costs, stably.
-    by_ids = np.argsort(ii * count + jj)
+    by_ids = np.argsort(ii.astype(np.int64) * count + jj)
     order = by_ids[np.argsort(cc[by_ids], kind="stable")]
     ii, jj, cc = ii[order], jj[order], cc[order]
     free = np.ones(count, bool)
@@ -487,6 +492,7 @@ def group_ids(positions: np.ndarray, log_scales: np.ndarray, rotations: np.ndarr
     state = {"mu": p - origin, "cov": covariances6(rotations, log_scales),
              "alpha": np.clip(opacities.astype(np.float64), 0.0, 1.0), "col": colours.astype(np.float64).copy(),
              "w": masses.astype(np.float64) + 1e-30}
+    del p  # the state holds the centred copy
     label = np.arange(n)
     size = np.ones(n, np.int64)
     # The neighbour graph of the level's splats, found once: a cluster's candidates are its members' neighbours.
@@ -498,7 +504,10 @@ def group_ids(positions: np.ndarray, log_scales: np.ndarray, rotations: np.ndarr
         if target < len(_distinct(region)):
             raise ValueError(f"target {target} is below the number of regions")
         state["region"] = region.copy()
-    ei, ej = np.divmod(key, n)  # one pass (int64 division has no SIMD loop: it was 4 passes)
+    # The edges' ends and multiplicities as 32-bit integers where the level allows (ids below 2^31): the edge rows
+    # are the grouping's peak memory (a few per splat: 8-NN), and keys are formed from them in int64 (below).
+    index = np.int32 if n < 2**31 else np.int64
+    ei, ej = (a.astype(index) for a in np.divmod(key, n))  # one pass (int64 division has no SIMD loop)
     del key
     if region is not None:
         inside = region[ei] == region[ej]
@@ -507,7 +516,7 @@ def group_ids(positions: np.ndarray, log_scales: np.ndarray, rotations: np.ndarr
     # (ordered: a pair's cost is not exactly symmetric in floating point), one row per ordered pair with `mult`, the
     # number of splat edges it stands for (the cheapest share counts them), and its cost, kept while neither
     # cluster at its ends changes (NaN: not known yet). Each pair is costed once, not once per splat edge.
-    mult = np.ones(len(ei), np.int64)
+    mult = np.ones(len(ei), index)
     ecost = np.full(len(ei), np.nan)
     # Caps grow with the reduction (a 4x level needs groups of 4 on average): pairs first means groups of about
     # n / target, the cap twice that.
@@ -554,9 +563,9 @@ def group_ids(positions: np.ndarray, log_scales: np.ndarray, rotations: np.ndarr
             folded = np.add.reduceat(tm[order], first) if len(key) else tm[:0]
             kept = ~touched
             row = order[first]  # a row of each distinct pair: its ends, as key // count and key % count gave them
-            ei = np.concatenate([remap[ei[kept]], ti[row]])
-            ej = np.concatenate([remap[ej[kept]], tj[row]])
-            mult = np.concatenate([mult[kept], folded])
+            ei = np.concatenate([remap[ei[kept]], ti[row]]).astype(index, copy=False)
+            ej = np.concatenate([remap[ej[kept]], tj[row]]).astype(index, copy=False)
+            mult = np.concatenate([mult[kept], folded]).astype(index, copy=False)
             ecost = np.concatenate([ecost[kept], np.full(len(key), np.nan)])
     label = _morton_finish(state, label, target)
     groups = len(state["w"])
