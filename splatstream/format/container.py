@@ -35,6 +35,7 @@ from .transport import (
     FIELD_LAYOUTS,
     FIELDS1,
     field_bits,
+    fields_kernel,
     filter_texels,
     shuffle,
     shuffle_filter,
@@ -342,11 +343,12 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
         # fields1 sections in batches of one (format, layer count, header); shuffled ones of one element
         fields_batches: dict[tuple, list[int]] = {}
         shuffled: dict[int, list[int]] = {}
+        batch_fields = fields_kernel() is None  # a compiled kernel takes a section a call at little cost
         for k, (s, buf) in enumerate(zip(secs, bufs, strict=True)):
-            if s.filter == FIELDS1 and s.format in FIELD_LAYOUTS:
+            if batch_fields and s.filter == FIELDS1 and s.format in FIELD_LAYOUTS:
                 head = bytes(buf[s.offset:s.offset + min(s.size, 1 + len(field_bits(s.format)) * spec.layers)])
                 fields_batches.setdefault((s.format, head), []).append(k)
-            elif s.filter != "none" and s.format not in FLOAT_TEXEL_FORMATS:
+            elif s.filter not in ("none", FIELDS1) and s.format not in FLOAT_TEXEL_FORMATS:
                 shuffled.setdefault(_element(s.filter), []).append(k)
             else:
                 layers[k] = unfilter_texels(buf[s.offset:s.offset + s.size], s.filter, s.format, s.width, s.height,

@@ -717,6 +717,74 @@ def _fields1_header(raw: np.ndarray, fmt: str, width: int, height: int, layers: 
         raise FormatError(source, "fields1", plan)
     return lay, plan, header_bytes
 
+# ---------------------------------------------------------------------------------------------------------------
+# A compiled fields1 decoder, handed in by a shell
+
+
+_fields_kernel = None  # see use_fields_kernel
+
+
+def use_fields_kernel(kernel) -> object:
+    """Decode fields1 contents with `kernel` from now on (None: the numpy path again); returns the one it replaces.
+
+    The core never imports numba (ARCHITECTURE.md): the streaming client's `client_gl.stream.decode_jit` compiles
+    the kernel (the optional extra `fast`) and hands it in here. It must give the numpy path's bytes, bit for bit
+    (tests/test_decode_jit.py holds both to the literal reading of format.md 5.2): the numpy path takes a dozen to
+    two dozen numpy calls a layer, each a pass over the work array, and on the LOD tree's small tiles it was most
+    of a payload's decode (issue 32). The header, the geometry and the content's size are checked here first,
+    whichever decodes, so the kernel only ever sees a well-formed content; it is called as
+    kernel(raw, planes_at, params_at, n, layers, words, fields, modes, slot_to_texel, work, out) with the tables of
+    _kernel_args, `work` (fields, slots) int64 scratch and `out` the texels' words (native byte order)."""
+    global _fields_kernel
+    previous, _fields_kernel = _fields_kernel, kernel
+    return previous
+
+
+def fields_kernel() -> object:
+    """The kernel use_fields_kernel handed in, or None (the numpy path)."""
+    return _fields_kernel
+
+
+@functools.lru_cache(maxsize=4096)
+def _kernel_args(fmt: str, layers: int, head: bytes) -> tuple:
+    """The per-format and per-header tables the kernel takes (int64, read-only): words a texel; per field (rows)
+    its byte planes, its first plane's index in a layer, its mask, its word and its shift in the word; per field of
+    every layer (rows) its delta flag, its reference field (-1: none) and its parameter set's index."""
+    bits = field_bits(fmt)
+    nf = len(bits)
+    dtype, words, layout = FIELD_LAYOUTS[fmt]
+    nbytes = [(b + 7) // 8 for b in bits]
+    plane_index = [sum(nbytes[:f]) for f in range(nf)]
+    masks = [(1 << b) - 1 for b in bits]
+    word_of = [f // len(layout) for f in range(nf)]
+    shifts = [layout[f % len(layout)][0] for f in range(nf)]
+    modes = head[1:1 + nf * layers]
+    refs = [(m >> 4) - 1 for m in modes]
+    deltas = [m & MODE_DELTA for m in modes]
+    param_index, k = [], 0
+    for r in refs:
+        param_index.append(k if r >= 0 else -1)
+        k += r >= 0
+    fields = np.array([nbytes, plane_index, masks, word_of, shifts], np.int64)
+    table = np.array([deltas, refs, param_index], np.int64)
+    for a in (fields, table):
+        a.setflags(write=False)
+    return words, fields, table, np.dtype(dtype).newbyteorder("=")
+
+
+def _kernel_decode(raw: np.ndarray, fmt: str, width: int, height: int, layers: int, header_bytes: int,
+                   crossed: int, lay: _Layout) -> np.ndarray:
+    """unfilter_fields' bytes by the handed-in kernel (the content already checked)."""
+    n = width * height
+    words, fields, modes, word = _kernel_args(fmt, layers, raw[:header_bytes].tobytes())
+    out = np.empty(n * lay.texel_bytes * layers, np.uint8)
+    planes_at = header_bytes + 3 * (n // BLOCK_TEXELS) * crossed
+    work = _scratch("kernel", 8 * len(lay.bits) * n).view(np.int64).reshape(len(lay.bits), n)
+    _fields_kernel(raw, planes_at, header_bytes, n, layers, words, fields, modes, slot_to_texel(width, height), work,
+                   out.view(word))
+    return out
+
+
 def unfilter_fields(raw: np.ndarray | bytes, fmt: str, width: int, height: int, layers: int,
                     source: str = "section") -> np.ndarray:
     """Inverse of fields_content: a section's stored bytes -> its GPU bytes (uint8, layer after layer), bit-exact;
@@ -735,6 +803,8 @@ def unfilter_fields(raw: np.ndarray | bytes, fmt: str, width: int, height: int, 
     expected, crossed, layer_plans = plan
     if raw.size != expected:
         raise FormatError(source, "fields1", f"content of {raw.size} bytes, expected {expected} for its modes")
+    if _fields_kernel is not None:
+        return _kernel_decode(raw, fmt, width, height, layers, header_bytes, crossed, lay)
     pos = header_bytes + 3 * blocks * crossed
     if crossed:
         # per predicted field and block: slope, and 64 * intercept + 32 (the prediction's rounding), as int32
@@ -819,10 +889,9 @@ def unfilter_fields_many(raws: list[np.ndarray], fmt: str, dims: list[tuple[int,
     sections puts every texel in its section's texture order. Each section is checked as unfilter_fields checks it
     (FormatError naming its source); the running sums restart at each section (the sum carried over from the
     sections before is subtracted, modulo 2^32 like the sums)."""
-    if len(raws) == 1:
-        texels = unfilter_fields(raws[0], fmt, dims[0][0], dims[0][1], layers, sources[0])
-        unit = texels.size // layers
-        return [[texels[k * unit:(k + 1) * unit] for k in range(layers)]]
+    if len(raws) == 1 or _fields_kernel is not None:  # the kernel's per-call cost is small: one call a section
+        return [_layers_of(unfilter_fields(raw, fmt, w, h, layers, source), layers)
+                for raw, (w, h), source in zip(raws, dims, sources, strict=True)]
     lay0 = None
     members = []  # (raw, n, layout, first byte plane position)
     plan0 = None
@@ -928,6 +997,11 @@ def unfilter_fields_many(raws: list[np.ndarray], fmt: str, dims: list[tuple[int,
         texels.take(inverse, out=out[layer].view(lay.texel), mode="clip")
     return [[out[layer, starts[k] * texel_bytes:starts[k + 1] * texel_bytes] for layer in range(layers)]
             for k in range(len(members))]
+
+
+def _layers_of(texels: np.ndarray, layers: int) -> list[np.ndarray]:
+    unit = texels.size // layers
+    return [texels[k * unit:(k + 1) * unit] for k in range(layers)]
 
 
 _scratch_local = threading.local()
