@@ -7,22 +7,26 @@ quiet machine, no shared data needed.
 Each bundled scene of tests/data/real (guitar.compressed.ply, fruit_drops_sh3.ply, lod_tile_sh3_zero_rest.ply,
 winter_fountain.splat, flowers_lod/3_0: flowers' coarsest SOG unit) is encoded in memory with each preset and the
 encoder's defaults (LOD tree); the encodes run in --jobs processes (default: every core, they are not what is
-timed). Then, in this process on one thread, CPU time of the thread (time.thread_time), rounds of passes with the
-variants interleaved so that any load falls on them alike; a pass covers every payload of every tile:
+timed), while this process compiles the numba fields1 kernel (client_gl.stream.decode_jit; numba's cache makes
+later runs start at once). Then, in this process on one thread, CPU time of the thread (time.thread_time), rounds
+of passes with the variants interleaved so that any load falls on them alike; a pass covers every payload of every
+tile, and each decoding variant runs with each --kernels (numpy: transport's numpy path; numba: the kernel):
 
-* `group`: `format.decode.decode_payloads` of each payload group (base, sh1, ...) as a whole: size and SHA-256
-  check, zstd, unfiltering into the texel bytes the GPU takes, the ranges (the batch path, issue 32);
-* `one`: `format.decode.decode_payload` one payload at a time (the same work);
-* `unpack`: `container.unpack_payloads` of each whole group: `group` without the checksum;
+* `group`: `format.decode.decode_payloads` of each payload group (base, sh1, ...) as a whole, from bytes: size and
+  SHA-256 check, zstd, unfiltering into the texel bytes the GPU takes, the ranges (the batch path, issue 32);
+* `verified`: the same from the fetcher's VerifiedPayloads (the streaming client's path: the fetcher and the disk
+  cache check size and SHA-256 once, where the bytes enter, and decoding does not hash them again);
+* `one`: `format.decode.decode_payload` one payload at a time, from bytes;
 * `sha256`: hashlib's SHA-256 of every payload file alone; `zstd`: decompressing every payload into the decoder's
   kept buffer alone (its own call, `container._decompress_into`).
 
 M splats/s counts each tile's splats once per group (a tile of SH3 with a codebook-free preset is 4 payloads),
-median and best of --runs passes. The split of a `group` pass: sha256, zstd, unfilter (= unpack - zstd: unfiltering,
-range checks, copies and the Python around them) and the rest (group - unpack - sha256: verifying's own Python).
-Per payload, one at a time (`one`, each payload alone, least of 3 calls) fitted as fixed + per splat (least
-squares): the fixed cost is a payload's Python and numpy-call overhead. The texels of `group` are checked equal to
-`one`'s. Prints one JSON object (and writes it to $OUT/decode_quiet.json when OUT is set, or to --json).
+median and best of --runs passes. The split of a `group` pass: sha256, zstd, unfilter (= verified - zstd:
+unfiltering, range checks, copies and the Python around them) and check (= group - verified: the SHA-256 and its
+Python). Per payload, one at a time (`one` with the last kernel, each payload alone, least of 3 calls), fitted as
+fixed + per splat (least squares), beside SHA-256's and zstd's fits: the fixed cost less theirs is a payload's
+Python and numpy-call overhead. Texels are checked equal across variants and kernels. Prints one JSON object
+(and writes it to $OUT/decode_quiet.json when OUT is set, or to --json).
 """
 from __future__ import annotations
 
@@ -45,7 +49,8 @@ import numpy as np  # noqa: E402
 from splatstream.encode import EncodeOptions  # noqa: E402
 from splatstream.encode.local import encode_in_memory  # noqa: E402
 from splatstream.errors import UsageError  # noqa: E402
-from splatstream.format import container  # noqa: E402
+from splatstream.format import container, transport  # noqa: E402
+from splatstream.format.container import verify_payload  # noqa: E402
 from splatstream.format.decode import decode_payload, decode_payloads  # noqa: E402
 from splatstream.format.presets import PRESETS  # noqa: E402
 from splatstream.io import read_gaussians  # noqa: E402
@@ -59,7 +64,7 @@ SCENES = {
     "winter_fountain": "tests/data/real/winter_fountain.splat",
     "flowers_3_0": "tests/data/real/flowers_lod/3_0/meta.json",
 }
-VARIANTS = ("group", "one", "unpack", "sha256", "zstd")
+DECODES = ("group", "verified", "one")
 
 
 def encode(scene: str, preset: str):
@@ -80,10 +85,13 @@ class Case:
         m = read_manifest(store)
         self.codebook = m.uses_codebook
         self.groups: dict[str, list] = {}
+        self.verified: dict[str, list] = {}
         self.splats_of: dict[str, list[int]] = {}
         for t in m.tiles:
             for group, entry in t.groups.items():
-                self.groups.setdefault(group, []).append((store.read_payload(entry), entry))
+                data = store.read_payload(entry)
+                self.groups.setdefault(group, []).append((data, entry))
+                self.verified.setdefault(group, []).append((verify_payload(data, entry, "bench"), entry))
                 self.splats_of.setdefault(group, []).append(t.splats)
         self.splats = sum(sum(v) for v in self.splats_of.values())
         self.payloads = sum(len(v) for v in self.groups.values())
@@ -102,9 +110,9 @@ class Case:
             for group, items in self.groups.items():
                 for data, entry in items:
                     decode_payload(data, entry, group, "bench", cb)
-        elif variant == "unpack":
-            for group, items in self.groups.items():
-                container.unpack_payloads(items, group, ["bench"] * len(items), cb)
+        elif variant == "verified":
+            for group, items in self.verified.items():
+                decode_payloads(items, group, ["bench"] * len(items), cb)
         elif variant == "sha256":
             for items in self.groups.values():
                 for data, _ in items:
@@ -116,14 +124,24 @@ class Case:
                     container._decompress_into(data, buf, "bench")
         return time.thread_time() - start
 
-    def check(self) -> None:
-        """The batch path's texels and ranges are one-at-a-time's, bit for bit."""
+    def texels(self) -> list[bytes]:
+        """Every texel and range byte, decoded by each variant (which must agree)."""
+        out = None
+        for group_items in (self.groups, self.verified):
+            got = []
+            for group, items in group_items.items():
+                for planes in decode_payloads(items, group, ["bench"] * len(items), self.codebook):
+                    got += _bytes(planes)
+            if out is not None and got != out:
+                raise SystemExit("decode_payloads of VerifiedPayloads differs from that of bytes")
+            out = got
+        alone = []
         for group, items in self.groups.items():
-            together = decode_payloads(items, group, ["bench"] * len(items), self.codebook)
-            for (data, entry), planes in zip(items, together, strict=True):
-                alone = decode_payload(data, entry, group, "bench", self.codebook)
-                if _bytes(alone) != _bytes(planes):
-                    raise SystemExit(f"{group} {entry.file}: decode_payloads differs from decode_payload")
+            for data, entry in items:
+                alone += _bytes(decode_payload(data, entry, group, "bench", self.codebook))
+        if alone != out:
+            raise SystemExit("decode_payloads differs from decode_payload")
+        return out
 
     def fit(self) -> dict:
         """Each payload alone (least of 3 calls): decode_payload, SHA-256 and zstd as fixed + per splat."""
@@ -168,10 +186,21 @@ def _bytes(planes: dict) -> list[bytes]:
     return out
 
 
+def _numba_kernel():
+    """The compiled fields1 kernel, or the reason there is none."""
+    try:
+        from client_gl.stream import decode_jit  # numba: the optional extra `fast`
+    except ImportError as exc:
+        return None, str(exc)
+    decode_jit.warm_up()
+    return decode_jit.fields1_kernel, None
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", default=",".join(SCENES))
     ap.add_argument("--presets", default=",".join(PRESETS))
+    ap.add_argument("--kernels", default="numpy,numba", help="fields1 decoders: numpy, numba (if installed)")
     ap.add_argument("--runs", type=int, default=5, help="rounds of timed passes (each round: every variant once)")
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="encoding processes (not timed)")
     ap.add_argument("--no-fit", action="store_true", help="skip the per-payload fit")
@@ -181,61 +210,93 @@ def main() -> None:
     scenes, presets = args.scenes.split(","), args.presets.split(",")
     stores, skipped, encode_s = {}, {}, {}
     work = [(s, p) for s in scenes for p in presets]
+    kernels = {"numpy": None}
+    compile_s = None
     if args.jobs > 1:
         with concurrent.futures.ProcessPoolExecutor(args.jobs, mp_context=multiprocessing.get_context("spawn")) as ex:
-            done = list(ex.map(encode, *zip(*work, strict=True)))
+            pending = ex.map(encode, *zip(*work, strict=True))
+            if "numba" in args.kernels.split(","):  # compiled here while the workers encode
+                t = time.time()
+                kernel, why = _numba_kernel()
+                compile_s = round(time.time() - t, 1)
+            done = list(pending)
     else:
         done = [encode(s, p) for s, p in work]
+        if "numba" in args.kernels.split(","):
+            t = time.time()
+            kernel, why = _numba_kernel()
+            compile_s = round(time.time() - t, 1)
+    if "numba" in args.kernels.split(","):
+        if kernel is None:
+            skipped["numba"] = why
+        else:
+            kernels["numba"] = kernel
+    if "numpy" not in args.kernels.split(","):
+        del kernels["numpy"]
     for scene, preset, store, cpu in done:
         if isinstance(store, str):
             skipped[f"{scene}/{preset}"] = store
         else:
             stores[scene, preset] = store
             encode_s[f"{scene}/{preset}"] = round(cpu, 2)
-    print(f"encoded {len(stores)} cases in {time.time() - wall:.1f} s wall ({args.jobs} processes)", file=sys.stderr,
-          flush=True)
+    print(f"encoded {len(stores)} cases in {time.time() - wall:.1f} s wall ({args.jobs} processes); kernels "
+          f"{list(kernels)} (numba compile {compile_s} s)", file=sys.stderr, flush=True)
     results = []
+    variants = [(v, k) for v in DECODES for k in kernels] + [("sha256", None), ("zstd", None)]
     for (scene, preset), store in stores.items():
         case = Case(store)
-        case.check()
-        for variant in VARIANTS:  # a warm-up pass of each (allocations, caches)
-            case.run(variant)
-        times: dict[str, list[float]] = {v: [] for v in VARIANTS}
-        for _ in range(args.runs):
-            for variant in VARIANTS:
-                times[variant].append(case.run(variant))
+        reference = None
+        for name, kernel in kernels.items():
+            transport.use_fields_kernel(kernel)
+            got = case.texels()
+            if reference is not None and got != reference:
+                raise SystemExit(f"{scene} {preset}: the {name} kernel decodes to other texels")
+            reference = got
+        times: dict[tuple, list[float]] = {v: [] for v in variants}
+        for r in range(args.runs + 1):  # the first round warms up (allocations, caches) and is not kept
+            for v in variants:
+                transport.use_fields_kernel(kernels.get(v[1]))
+                t = case.run(v[0])
+                if r:
+                    times[v].append(t)
         med = {v: statistics.median(ts) for v, ts in times.items()}
         row = {
             "scene": scene, "preset": preset, "tiles": case.tiles, "payloads": case.payloads,
             "groups": list(case.groups), "splats": case.splats, "bytes_per_splat": round(case.bytes / case.splats, 2),
             "raw_mb": round(case.raw_bytes / 1e6, 3), "encode_cpu_s": encode_s[f"{scene}/{preset}"],
+            "zstd_mb_s": round(case.raw_bytes / med["zstd", None] / 1e6, 1),
         }
-        for v in ("group", "one", "unpack"):
-            row[f"msplats_s_{v}"] = round(case.splats / med[v] / 1e6, 2)
-            row[f"msplats_s_{v}_best"] = round(case.splats / min(times[v]) / 1e6, 2)
-        row["split_ms"] = {  # of a `group` pass, medians
-            "sha256": round(med["sha256"] * 1e3, 3), "zstd": round(med["zstd"] * 1e3, 3),
-            "unfilter": round((med["unpack"] - med["zstd"]) * 1e3, 3),
-            "rest": round((med["group"] - med["unpack"] - med["sha256"]) * 1e3, 3),
-            "group": round(med["group"] * 1e3, 3),
-        }
-        row["zstd_mb_s"] = round(case.raw_bytes / med["zstd"] / 1e6, 1)
+        for name in kernels:
+            k = {}
+            for v in DECODES:
+                k[v] = round(case.splats / med[v, name] / 1e6, 2)
+                k[f"{v}_best"] = round(case.splats / min(times[v, name]) / 1e6, 2)
+            k["split_ms"] = {  # of a `group` pass, medians
+                "sha256": round(med["sha256", None] * 1e3, 3), "zstd": round(med["zstd", None] * 1e3, 3),
+                "unfilter": round((med["verified", name] - med["zstd", None]) * 1e3, 3),
+                "check": round((med["group", name] - med["verified", name]) * 1e3, 3),
+                "group": round(med["group", name] * 1e3, 3),
+            }
+            row[name] = k
         if not args.no_fit:
+            transport.use_fields_kernel(kernels[list(kernels)[-1]])
             row["per_payload"] = case.fit()
+            row["per_payload"]["kernel"] = list(kernels)[-1]
         results.append(row)
-        print(f"{scene:>24} {preset:>20}: group {row['msplats_s_group']:6.2f} (best {row['msplats_s_group_best']:6.2f})"
-              f" one {row['msplats_s_one']:6.2f} M splats/s; {case.payloads} payloads, split ms {row['split_ms']}",
-              file=sys.stderr, flush=True)
+        print(f"{scene:>24} {preset:>20}: " + "; ".join(
+            f"{name} group {row[name]['group']:6.2f} (best {row[name]['group_best']:6.2f}) verified "
+            f"{row[name]['verified']:6.2f} one {row[name]['one']:6.2f}" for name in kernels)
+            + f" M splats/s; {case.payloads} payloads", file=sys.stderr, flush=True)
+    transport.use_fields_kernel(None)
     by_preset = {}
     for preset in presets:
         rows = [r for r in results if r["preset"] == preset]
         if rows:  # every scene's splats over every scene's median pass
             total = sum(r["splats"] for r in rows)
-            by_preset[preset] = {
-                "msplats_s_group": round(total / sum(r["splats"] / r["msplats_s_group"] for r in rows), 2),
-                "msplats_s_one": round(total / sum(r["splats"] / r["msplats_s_one"] for r in rows), 2),
-                "slowest_scene_group": min(r["msplats_s_group"] for r in rows),
-            }
+            by_preset[preset] = {name: {
+                v: round(total / sum(r["splats"] / r[name][v] for r in rows), 2) for v in DECODES} | {
+                "slowest_scene_group": min(r[name]["group"] for r in rows),
+                "slowest_scene_verified": min(r[name]["verified"] for r in rows)} for name in kernels}
     report = {
         "bench": "bench/decode_quiet.py", "argv": sys.argv[1:], "date_utc": time.strftime("%Y-%m-%d %H:%M:%S",
                                                                                          time.gmtime()),
@@ -243,6 +304,7 @@ def main() -> None:
                     "python": platform.python_version(), "numpy": np.__version__,
                     "zstandard": __import__("zstandard").__version__},
         "load_average_end": os.getloadavg(), "wall_s": round(time.time() - wall, 1), "runs": args.runs,
+        "kernels": list(kernels), "numba_compile_s": compile_s,
         "by_preset": by_preset, "skipped": skipped, "cases": results,
     }
     text = json.dumps(report, indent=1)

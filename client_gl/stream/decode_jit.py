@@ -115,19 +115,18 @@ def fields1_kernel(raw, planes_at, params_at, n, layers, words, fields, modes, s
 
 
 def warm_up() -> None:
-    """Compile (or load from the cache) the kernel for the argument types of a real call: a content as a writable
-    buffer's view and as read-only bytes."""
-    for fmt in ("norm11", "norm8x4"):
-        bits = transport.field_bits(fmt)
-        n = 256
-        content = bytes([transport.FIELDS_VERSION]) + bytes([transport.MODE_DELTA] * len(bits)) \
-            + bytes(n * sum((b + 7) // 8 for b in bits))
-        previous = transport.use_fields_kernel(fields1_kernel)
-        try:
+    """Compile (or load from the cache) the kernel for the argument types of real calls: a content as a writable
+    buffer's view (a payload's kept buffer) and as read-only bytes, into texels of 1, 2 and 4-byte words."""
+    previous = transport.use_fields_kernel(fields1_kernel)
+    try:
+        for fmt in ("norm8x4", "norm565", "norm11"):
+            bits = transport.field_bits(fmt)
+            content = bytes([transport.FIELDS_VERSION]) + bytes([transport.MODE_DELTA] * len(bits)) \
+                + bytes(256 * sum((b + 7) // 8 for b in bits))
             transport.unfilter_fields(content, fmt, 16, 16, 1)
             transport.unfilter_fields(np.frombuffer(content, np.uint8).copy(), fmt, 16, 16, 1)
-        finally:
-            transport.use_fields_kernel(previous)
+    finally:
+        transport.use_fields_kernel(previous)
 
 
 def install() -> None:

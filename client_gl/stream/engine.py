@@ -140,6 +140,7 @@ class CompiledSelection:
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
         self.error: BaseException | None = None  # why it is not available (numba missing, a failed compilation)
+        self.decode_error: BaseException | None = None  # why the compiled fields1 decoder is not installed
 
     def get(self):
         fn = self._fn
@@ -172,10 +173,19 @@ class CompiledSelection:
         except Exception as exc:  # ImportError without numba; anything else also leaves the numpy path (same cut)
             self.error = exc
             return
+        try:
+            # the compiled fields1 decoder too (decode_jit): the decode threads of this process take it from the
+            # next payload on (the same bytes as the numpy path; issue 32's decode speed). Decode processes keep
+            # numpy.
+            from . import decode_jit
+            decode_jit.install()
+        except Exception as exc:  # a failed compilation leaves the numpy path (the same bytes)
+            self.decode_error = exc
         self._fn = selection_jit.select_near_compiled
 
 
-_WARM_UP = "from client_gl.stream import selection_jit; selection_jit.warm_up()"
+_WARM_UP = ("from client_gl.stream import selection_jit, decode_jit; selection_jit.warm_up(); "
+            "decode_jit.warm_up()")
 
 
 COMPILED_SELECTION = CompiledSelection()
