@@ -772,16 +772,43 @@ def _kernel_args(fmt: str, layers: int, head: bytes) -> tuple:
     return words, fields, table, np.dtype(dtype).newbyteorder("=")
 
 
-def _kernel_decode(raw: np.ndarray, fmt: str, width: int, height: int, layers: int, header_bytes: int,
-                   crossed: int, lay: _Layout) -> np.ndarray:
-    """unfilter_fields' bytes by the handed-in kernel (the content already checked)."""
+@functools.lru_cache(maxsize=4096, typed=True)
+def _kernel_plan(fmt: str, width: int, height: int, layers: int, head: bytes) -> tuple | None:
+    """What a kernel call needs for contents of this geometry and header, checked once (None: not a well-formed
+    geometry or header, which the numpy path then refuses with its message): (content size, where the parameters
+    and the byte planes start, slots, words, the two tables, the word dtype, slot_to_texel, fields, texel bytes)."""
+    try:
+        _check_geometry(fmt, width, height, layers, "")
+    except FormatError:
+        return None
+    lay = _layout(fmt, width, height)
+    header_bytes = 1 + len(lay.bits) * layers
+    if len(head) != header_bytes:
+        return None
+    plan = _decode_plan(fmt, width, height, layers, head)
+    if isinstance(plan, str):
+        return None
+    expected, crossed, _ = plan
     n = width * height
-    words, fields, modes, word = _kernel_args(fmt, layers, raw[:header_bytes].tobytes())
-    out = np.empty(n * lay.texel_bytes * layers, np.uint8)
-    planes_at = header_bytes + 3 * (n // BLOCK_TEXELS) * crossed
-    work = _scratch("kernel", 8 * len(lay.bits) * n).view(np.int64).reshape(len(lay.bits), n)
-    _fields_kernel(raw, planes_at, header_bytes, n, layers, words, fields, modes, slot_to_texel(width, height), work,
-                   out.view(word))
+    words, fields, modes, word = _kernel_args(fmt, layers, head)
+    return (expected, header_bytes, header_bytes + 3 * (n // BLOCK_TEXELS) * crossed, n, words, fields, modes, word,
+            slot_to_texel(width, height), len(lay.bits), n * lay.texel_bytes * layers)
+
+
+def _kernel_unfilter(raw: np.ndarray, fmt: str, width: int, height: int, layers: int) -> np.ndarray | None:
+    """unfilter_fields' bytes by the handed-in kernel; None where the content is not well-formed (the numpy path
+    then raises its FormatError). The checks and the kernel's arguments come from one cached lookup per geometry
+    and header: a section's Python around the kernel was as long as the kernel on small tiles."""
+    nf = len(FIELD_LAYOUTS[fmt][2]) * FIELD_LAYOUTS[fmt][1] if fmt in FIELD_LAYOUTS else 0
+    if not nf or type(layers) is not int or layers < 1:
+        return None
+    plan = _kernel_plan(fmt, width, height, layers, raw[:1 + nf * layers].tobytes())
+    if plan is None or raw.size != plan[0]:
+        return None
+    _, params_at, planes_at, n, words, fields, modes, word, order, nf, out_bytes = plan
+    out = np.empty(out_bytes, np.uint8)
+    work = _scratch("kernel", 8 * nf * n).view(np.int64).reshape(nf, n)
+    _fields_kernel(raw, planes_at, params_at, n, layers, words, fields, modes, order, work, out.view(word))
     return out
 
 
@@ -795,16 +822,18 @@ def unfilter_fields(raw: np.ndarray | bytes, fmt: str, width: int, height: int, 
     the time), every step in place in this thread's work arrays (no page faults of fresh arrays). Arithmetic
     modulo 2^32, then cut to each field's bits, equals the spec's arithmetic modulo 2^|T|; the running sums run on
     an int32 view, which numpy accumulates about 3x faster than uint32 (the same bits: both wrap modulo 2^32)."""
-    _check_geometry(fmt, width, height, layers, source)
     raw = np.frombuffer(raw, np.uint8) if isinstance(raw, bytes | bytearray | memoryview) else raw
+    if _fields_kernel is not None:
+        out = _kernel_unfilter(raw, fmt, width, height, layers)
+        if out is not None:
+            return out
+    _check_geometry(fmt, width, height, layers, source)
     lay, plan, header_bytes = _fields1_header(raw, fmt, width, height, layers, source)
     n = width * height
     blocks = n // BLOCK_TEXELS
     expected, crossed, layer_plans = plan
     if raw.size != expected:
         raise FormatError(source, "fields1", f"content of {raw.size} bytes, expected {expected} for its modes")
-    if _fields_kernel is not None:
-        return _kernel_decode(raw, fmt, width, height, layers, header_bytes, crossed, lay)
     pos = header_bytes + 3 * blocks * crossed
     if crossed:
         # per predicted field and block: slope, and 64 * intercept + 32 (the prediction's rounding), as int32
