@@ -10,7 +10,8 @@ encoder's defaults (LOD tree); the encodes run in --jobs processes (default: eve
 timed), while this process compiles the numba fields1 kernel (client_gl.stream.decode_jit; numba's cache makes
 later runs start at once). Then, in this process on one thread, CPU time of the thread (time.thread_time), rounds
 of passes with the variants interleaved so that any load falls on them alike; a pass covers every payload of every
-tile, and each decoding variant runs with each --kernels (numpy: transport's numpy path; numba: the kernel):
+tile, and each decoding variant runs with each --kernels (numpy: transport's numpy path; numba: the compiled
+fields1 and unshuffle kernels):
 
 * `group`: `format.decode.decode_payloads` of each payload group (base, sh1, ...) as a whole, from bytes: size and
   SHA-256 check, zstd, unfiltering into the texel bytes the GPU takes, the ranges (the batch path, issue 32);
@@ -187,13 +188,19 @@ def _bytes(planes: dict) -> list[bytes]:
 
 
 def _numba_kernel():
-    """The compiled fields1 kernel, or the reason there is none."""
+    """The compiled kernels (fields1, unshuffle), or None and the reason there are none."""
     try:
         from client_gl.stream import decode_jit  # numba: the optional extra `fast`
     except ImportError as exc:
         return None, str(exc)
     decode_jit.warm_up()
-    return decode_jit.fields1_kernel, None
+    return (decode_jit.fields1_kernel, decode_jit.unshuffle_kernel), None
+
+
+def _use(kernels) -> None:
+    """Decode with these kernels (fields1, unshuffle); None: numpy's path."""
+    transport.use_fields_kernel(kernels[0] if kernels else None)
+    transport.use_unshuffle_kernel(kernels[1] if kernels else None)
 
 
 def main() -> None:
@@ -247,7 +254,7 @@ def main() -> None:
         case = Case(store)
         reference = None
         for name, kernel in kernels.items():
-            transport.use_fields_kernel(kernel)
+            _use(kernel)
             got = case.texels()
             if reference is not None and got != reference:
                 raise SystemExit(f"{scene} {preset}: the {name} kernel decodes to other texels")
@@ -255,7 +262,7 @@ def main() -> None:
         times: dict[tuple, list[float]] = {v: [] for v in variants}
         for r in range(args.runs + 1):  # the first round warms up (allocations, caches) and is not kept
             for v in variants:
-                transport.use_fields_kernel(kernels.get(v[1]))
+                _use(kernels.get(v[1]))
                 t = case.run(v[0])
                 if r:
                     times[v].append(t)
@@ -279,7 +286,7 @@ def main() -> None:
             }
             row[name] = k
         if not args.no_fit:
-            transport.use_fields_kernel(kernels[list(kernels)[-1]])
+            _use(kernels[list(kernels)[-1]])
             row["per_payload"] = case.fit()
             row["per_payload"]["kernel"] = list(kernels)[-1]
         results.append(row)
@@ -287,7 +294,7 @@ def main() -> None:
             f"{name} group {row[name]['group']:6.2f} (best {row[name]['group_best']:6.2f}) verified "
             f"{row[name]['verified']:6.2f} one {row[name]['one']:6.2f}" for name in kernels)
             + f" M splats/s; {case.payloads} payloads", file=sys.stderr, flush=True)
-    transport.use_fields_kernel(None)
+    _use(None)
     by_preset = {}
     for preset in presets:
         rows = [r for r in results if r["preset"] == preset]

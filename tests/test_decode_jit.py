@@ -1,8 +1,9 @@
-"""The compiled fields1 kernel (client_gl.stream.decode_jit, numba: the optional extra `fast`) gives the numpy
-path's bytes, bit for bit: on arbitrary well-formed contents of every format (random modes, slopes, intercepts and
-plane bytes) against the literal reading of format.md 5.2 and against transport's numpy path, and on a real scene
-encoded with every preset through every decoder entry point (one payload, a whole group at once). A malformed
-content is refused before the kernel sees it, with the numpy path's message."""
+"""The compiled fields1 and unshuffle kernels (client_gl.stream.decode_jit, numba: the optional extra `fast`) give
+the numpy path's bytes, bit for bit: on arbitrary well-formed contents of every format (random modes, slopes,
+intercepts and plane bytes) against the literal reading of format.md 5.2 and against transport's numpy path, on
+shuffled units of every element size, and on a real scene encoded with every preset through every decoder entry
+point (one payload, a whole group at once). A malformed content is refused before the kernel sees it, with the
+numpy path's message."""
 from __future__ import annotations
 
 import zlib
@@ -29,9 +30,10 @@ decode_jit = pytest.importorskip("client_gl.stream.decode_jit", reason="numba (t
 @pytest.fixture
 def numpy_path():
     """The numpy path during the test (whatever was installed before), restored after it."""
-    previous = transport.use_fields_kernel(None)
+    previous = transport.use_fields_kernel(None), transport.use_unshuffle_kernel(None)
     yield
-    transport.use_fields_kernel(previous)
+    transport.use_fields_kernel(previous[0])
+    transport.use_unshuffle_kernel(previous[1])
 
 
 def decode_both(content, fmt, width, height, layers):
@@ -99,12 +101,32 @@ def test_every_preset_decodes_with_the_kernel_as_with_numpy(numpy_path, fruit, p
         return out
 
     by_numpy = decode_all()
-    transport.use_fields_kernel(decode_jit.fields1_kernel)
+    decode_jit.install()
+    assert transport.fields_kernel() is not None
     assert decode_all() == by_numpy
+
+
+@pytest.mark.parametrize("element", [2, 3, 4, 8])
+def test_unshuffle_kernel_matches_numpy(numpy_path, element):
+    rng = np.random.default_rng(element)
+    units = [rng.integers(0, 256, element * count).astype(np.uint8) for count in (1, 5, 300, 512, 700, 4096)]
+    by_numpy = [transport.unshuffle(u, element).tobytes() for u in units]
+    many_numpy = [a.tobytes() for a in transport.unshuffle_many(units, element)]
+    transport.use_unshuffle_kernel(decode_jit.unshuffle_kernel)
+    try:
+        assert [transport.unshuffle(u, element).tobytes() for u in units] == by_numpy
+        assert [a.tobytes() for a in transport.unshuffle_many(units, element)] == many_numpy == by_numpy
+        read_only = units[-1].copy()
+        read_only.setflags(write=False)
+        assert transport.unshuffle(read_only, element).tobytes() == by_numpy[-1]
+    finally:
+        transport.use_unshuffle_kernel(None)
 
 
 def test_install_and_uninstall(numpy_path):
     decode_jit.install()
     assert transport.fields_kernel() is decode_jit.fields1_kernel
+    assert transport.use_unshuffle_kernel(decode_jit.unshuffle_kernel) is decode_jit.unshuffle_kernel
     decode_jit.uninstall()
     assert transport.fields_kernel() is None
+    assert transport.use_unshuffle_kernel(None) is None

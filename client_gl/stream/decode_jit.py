@@ -13,8 +13,12 @@ at most 2^25 slots, and the cut below takes them modulo 2^bits); every value cut
 where the cut reaches the texel: the same bytes); a predicted field plus floor((slope x reference + 64 x intercept
 + 32) / 64), cut again. transport.py checks a content's header, geometry and size before it hands one to the kernel.
 
-`install()` compiles the kernel (or loads it from numba's cache: cache=True) with the argument types of a real call
-and hands it to format.transport (`use_fields_kernel`); `uninstall()` goes back to numpy. The core never imports
+`unshuffle_kernel` undoes format.md 5.1's byte shuffle of a unit (rotations, scales and ranges stored shuffled)
+in one call where numpy takes four to eight.
+
+`install()` compiles the kernels (or loads them from numba's cache: cache=True) with the argument types of a real
+call and hands them to format.transport (`use_fields_kernel`, `use_unshuffle_kernel`); `uninstall()` goes back to
+numpy. The core never imports
 numba (ARCHITECTURE.md): this module is the streaming client's, and benchmarks import it to compare both.
 """
 from __future__ import annotations
@@ -114,6 +118,16 @@ def fields1_kernel(raw, planes_at, params_at, n, layers, words, fields, modes, s
         pos += n * plane_bytes
 
 
+@njit(**_JIT)
+def unshuffle_kernel(unit, element, out):
+    """format.md 5.1's inverse byte shuffle of one unit: byte k of element i is unit[k * count + i]."""
+    count = unit.shape[0] // element
+    for k in range(element):
+        base = k * count
+        for i in range(count):
+            out[i * element + k] = unit[base + i]
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) the kernel for the argument types of real calls: a content as a writable
     buffer's view (a payload's kept buffer) and as read-only bytes, into texels of 1, 2 and 4-byte words."""
@@ -127,14 +141,21 @@ def warm_up() -> None:
             transport.unfilter_fields(np.frombuffer(content, np.uint8).copy(), fmt, 16, 16, 1)
     finally:
         transport.use_fields_kernel(previous)
+    unit = np.zeros(16, np.uint8)
+    read_only = unit.copy()
+    read_only.setflags(write=False)
+    for u in (unit, read_only):
+        unshuffle_kernel(u, 4, np.empty(16, np.uint8))
 
 
 def install() -> None:
     """format.transport decodes fields1 with the compiled kernel from now on (in every thread of this process)."""
     warm_up()
     transport.use_fields_kernel(fields1_kernel)
+    transport.use_unshuffle_kernel(unshuffle_kernel)
 
 
 def uninstall() -> None:
     """Back to the numpy path."""
     transport.use_fields_kernel(None)
+    transport.use_unshuffle_kernel(None)

@@ -481,6 +481,10 @@ def unshuffle(buf: np.ndarray, element: int) -> np.ndarray:
     """Inverse byte shuffle (format.md 5.1) of one unit, as bytes (a view of `buf` when there is nothing to do)."""
     if element <= 1 or buf.size % element:
         return buf
+    if _unshuffle_kernel is not None and buf.size > SMALL_UNSHUFFLE_BYTES:
+        out = np.empty(buf.size, np.uint8)
+        _unshuffle_kernel(buf, element, out)
+        return out
     if buf.size <= SMALL_UNSHUFFLE_BYTES:  # ranges: one transposing copy beats the shifts' several numpy calls
         return np.ascontiguousarray(buf.reshape(element, -1).T).reshape(-1)
     if element in (2, 4):
@@ -737,6 +741,18 @@ def use_fields_kernel(kernel) -> object:
     _kernel_args, `work` (fields, slots) int64 scratch and `out` the texels' words (native byte order)."""
     global _fields_kernel
     previous, _fields_kernel = _fields_kernel, kernel
+    return previous
+
+
+_unshuffle_kernel = None  # see use_unshuffle_kernel
+
+
+def use_unshuffle_kernel(kernel) -> object:
+    """Undo the byte shuffle of units above SMALL_UNSHUFFLE_BYTES with `kernel(unit, element, out)` (None: numpy
+    again); returns the one it replaces. Handed in like use_fields_kernel's, for the same reason: numpy's shifts
+    and casts are four to eight calls a unit, most of a small shuffled section's time."""
+    global _unshuffle_kernel
+    previous, _unshuffle_kernel = _unshuffle_kernel, kernel
     return previous
 
 
@@ -1058,6 +1074,15 @@ def unshuffle_many(units: list[np.ndarray], element: int) -> list[np.ndarray]:
     sizes = [u.size // element for u in units]
     total = sum(sizes)
     out = []
+    if _unshuffle_kernel is not None:  # one call a unit into one array
+        dst = np.empty(total * element, np.uint8)
+        at = 0
+        for u, m in zip(units, sizes, strict=True):
+            part = dst[at:at + m * element]
+            _unshuffle_kernel(u, element, part)
+            out.append(part)
+            at += m * element
+        return out
     if element in (2, 4) and total * element > SMALL_UNSHUFFLE_BYTES:
         stage = _scratch("unshuffle", total * element).reshape(element, total)
         at = 0
