@@ -24,7 +24,7 @@ fields1 and unshuffle kernels):
 M splats/s counts each tile's splats once per group (a tile of SH3 with a codebook-free preset is 4 payloads),
 median and best of --runs passes. The split of a `group` pass: sha256, zstd, unfilter (= verified - zstd:
 unfiltering, range checks, copies and the Python around them) and check (= group - verified: the SHA-256 and its
-Python). Per payload, one at a time (`one` with the last kernel, each payload alone, least of 3 calls), fitted as
+Python). Per payload, one at a time (`one` with the last kernel, each payload alone, least of 2 calls), fitted as
 fixed + per splat (least squares), beside SHA-256's and zstd's fits: the fixed cost less theirs is a payload's
 Python and numpy-call overhead. Texels are checked equal across variants and kernels. Prints one JSON object
 (and writes it to $OUT/decode_quiet.json when OUT is set, or to --json).
@@ -145,14 +145,14 @@ class Case:
         return out
 
     def fit(self) -> dict:
-        """Each payload alone (least of 3 calls): decode_payload, SHA-256 and zstd as fixed + per splat."""
+        """Each payload alone (least of 2 calls): decode_payload, SHA-256 and zstd as fixed + per splat."""
         rows = {"one": [], "sha256": [], "zstd": []}
         splats = []
         for group, items in self.groups.items():
             for (data, entry), n in zip(items, self.splats_of[group], strict=True):
                 splats.append(n)
                 best = {k: float("inf") for k in rows}
-                for _ in range(3):
+                for _ in range(2):
                     t = time.thread_time()
                     decode_payload(data, entry, group, "bench", self.codebook)
                     t1 = time.thread_time()
@@ -208,7 +208,8 @@ def main() -> None:
     ap.add_argument("--scenes", default=",".join(SCENES))
     ap.add_argument("--presets", default=",".join(PRESETS))
     ap.add_argument("--kernels", default="numpy,numba", help="fields1 decoders: numpy, numba (if installed)")
-    ap.add_argument("--runs", type=int, default=5, help="rounds of timed passes (each round: every variant once)")
+    ap.add_argument("--runs", type=int, default=3, help="rounds of timed passes (each round: every variant once; "
+                    "3 keeps the default run under 150 s of one quiet core, 5 or more for steadier medians)")
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="encoding processes (not timed)")
     ap.add_argument("--no-fit", action="store_true", help="skip the per-payload fit")
     ap.add_argument("--json", help="also write the JSON here (default $OUT/decode_quiet.json when OUT is set)")
@@ -260,12 +261,10 @@ def main() -> None:
                 raise SystemExit(f"{scene} {preset}: the {name} kernel decodes to other texels")
             reference = got
         times: dict[tuple, list[float]] = {v: [] for v in variants}
-        for r in range(args.runs + 1):  # the first round warms up (allocations, caches) and is not kept
+        for _ in range(args.runs):  # the texel check above was the warm-up (allocations, caches, kernels)
             for v in variants:
                 _use(kernels.get(v[1]))
-                t = case.run(v[0])
-                if r:
-                    times[v].append(t)
+                times[v].append(case.run(v[0]))
         med = {v: statistics.median(ts) for v, ts in times.items()}
         row = {
             "scene": scene, "preset": preset, "tiles": case.tiles, "payloads": case.payloads,

@@ -71,6 +71,18 @@ def fields1_kernel(raw, planes_at, params_at, n, layers, words, fields, modes, s
                     for i in range(n):
                         c = np.int64(raw[base + i]) | (np.int64(raw[base + n + i]) << 8)
                         row[i] = ((c >> 1) ^ -(c & 1)) & m
+            elif nb == 4:  # 32-bit fields (f32x4): |residual| < 2^31, so int64 sums of 2^25 slots cannot overflow
+                if delta:
+                    for i in range(n):
+                        c = (np.int64(raw[base + i]) | (np.int64(raw[base + n + i]) << 8)
+                             | (np.int64(raw[base + 2 * n + i]) << 16) | (np.int64(raw[base + 3 * n + i]) << 24))
+                        s += (c >> 1) ^ -(c & 1)
+                        row[i] = s & m
+                else:
+                    for i in range(n):
+                        c = (np.int64(raw[base + i]) | (np.int64(raw[base + n + i]) << 8)
+                             | (np.int64(raw[base + 2 * n + i]) << 16) | (np.int64(raw[base + 3 * n + i]) << 24))
+                        row[i] = ((c >> 1) ^ -(c & 1)) & m
             else:
                 for i in range(n):
                     c = np.int64(0)
