@@ -17,7 +17,7 @@ fields1 and unshuffle kernels):
   SHA-256 check, zstd, unfiltering into the texel bytes the GPU takes, the ranges (the batch path, issue 32);
 * `verified`: the same from the fetcher's VerifiedPayloads (the streaming client's path: the fetcher and the disk
   cache check size and SHA-256 once, where the bytes enter, and decoding does not hash them again);
-* `one`: `format.decode.decode_payload` one payload at a time, from bytes;
+* `one` (with --one): `format.decode.decode_payload` one payload at a time, from bytes;
 * `sha256`: hashlib's SHA-256 of every payload file alone; `zstd`: decompressing every payload into the decoder's
   kept buffer alone (its own call, `container._decompress_into`).
 
@@ -212,6 +212,8 @@ def main() -> None:
                     "3 keeps the default run under 150 s of one quiet core, 5 or more for steadier medians)")
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="encoding processes (not timed)")
     ap.add_argument("--no-fit", action="store_true", help="skip the per-payload fit")
+    ap.add_argument("--one", action="store_true", help="time `one` (decode_payload a payload at a time) in the rounds "
+                    "too (the per-payload fit times it anyway)")
     ap.add_argument("--json", help="also write the JSON here (default $OUT/decode_quiet.json when OUT is set)")
     args = ap.parse_args()
     wall = time.time()
@@ -250,7 +252,8 @@ def main() -> None:
     print(f"encoded {len(stores)} cases in {time.time() - wall:.1f} s wall ({args.jobs} processes); kernels "
           f"{list(kernels)} (numba compile {compile_s} s)", file=sys.stderr, flush=True)
     results = []
-    variants = [(v, k) for v in DECODES for k in kernels] + [("sha256", None), ("zstd", None)]
+    decodes = DECODES if args.one else DECODES[:2]
+    variants = [(v, k) for v in decodes for k in kernels] + [("sha256", None), ("zstd", None)]
     for (scene, preset), store in stores.items():
         case = Case(store)
         reference = None
@@ -274,7 +277,7 @@ def main() -> None:
         }
         for name in kernels:
             k = {}
-            for v in DECODES:
+            for v in decodes:
                 k[v] = round(case.splats / med[v, name] / 1e6, 2)
                 k[f"{v}_best"] = round(case.splats / min(times[v, name]) / 1e6, 2)
             k["split_ms"] = {  # of a `group` pass, medians
@@ -291,7 +294,8 @@ def main() -> None:
         results.append(row)
         print(f"{scene:>24} {preset:>20}: " + "; ".join(
             f"{name} group {row[name]['group']:6.2f} (best {row[name]['group_best']:6.2f}) verified "
-            f"{row[name]['verified']:6.2f} one {row[name]['one']:6.2f}" for name in kernels)
+            f"{row[name]['verified']:6.2f}" + (f" one {row[name]['one']:6.2f}" if args.one else "")
+            for name in kernels)
             + f" M splats/s; {case.payloads} payloads", file=sys.stderr, flush=True)
     _use(None)
     by_preset = {}
@@ -300,7 +304,7 @@ def main() -> None:
         if rows:  # every scene's splats over every scene's median pass
             total = sum(r["splats"] for r in rows)
             by_preset[preset] = {name: {
-                v: round(total / sum(r["splats"] / r[name][v] for r in rows), 2) for v in DECODES} | {
+                v: round(total / sum(r["splats"] / r[name][v] for r in rows), 2) for v in decodes} | {
                 "slowest_scene_group": min(r[name]["group"] for r in rows),
                 "slowest_scene_verified": min(r[name]["verified"] for r in rows)} for name in kernels}
     report = {
