@@ -71,7 +71,10 @@ DECODES = ("group", "verified", "one")
 def encode(scene: str, preset: str):
     """(scene, preset, MemoryStore or the reason it was skipped, encode CPU s) in a worker process."""
     t = time.process_time()
-    g = read_gaussians(os.path.join(ROOT, SCENES[scene]))
+    try:  # a scene this machine cannot read (the SOG unit's WebP planes need Pillow) is skipped, and said so
+        g = read_gaussians(os.path.join(ROOT, SCENES[scene]))
+    except Exception as e:  # any reason, reported in the JSON's "skipped"
+        return scene, preset, f"reading {SCENES[scene]}: {type(e).__name__}: {e}", 0.0
     try:
         store = encode_in_memory(g, EncodeOptions(preset=preset))
     except UsageError as e:  # very-low's BC7 colour without the `bc` extra

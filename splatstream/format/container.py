@@ -16,6 +16,7 @@ import functools
 import hashlib
 import io
 import math
+import operator
 import threading
 from collections.abc import Callable
 from typing import BinaryIO
@@ -257,6 +258,9 @@ def _decompress_into(data: bytes | memoryview, buf: np.ndarray, source: str) -> 
                           "or truncated zstd frame)")
 
 
+_element = functools.lru_cache(maxsize=32)(filter_element)  # a filter name's parse, once (not once a section)
+
+
 def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, source: str,
                    codebook: bool = False, between: Callable[[], object] | None = None) -> dict[str, EncodedPlane]:
     """Decompress verified payload bytes into planes (texels still encoded; ranges as stored).
@@ -290,7 +294,8 @@ def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, so
             _check_palette(palette, spec.name, r.name, source)
         elif spec.range_dtype:
             r = sections[spec.range_name]
-            ranges = unshuffle(buf[r.offset:r.offset + r.size], r.element).view(spec.range_dtype).reshape(r.shape)
+            ranges = unshuffle(buf[r.offset:r.offset + r.size], _element(r.filter)).view(spec.range_dtype) \
+                .reshape(r.shape)
             _check_ranges(ranges, spec.name, r.name, source)
         if kept:  # what is still a view of this thread's buffer is copied: the next payload overwrites it
             layers = [p.copy() if p.base is owner else p for p in layers]
@@ -300,9 +305,6 @@ def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, so
                 palette = palette.copy()
         planes[spec.name] = EncodedPlane(spec, s.format, s.width, s.height, layers, ranges, palette)
     return planes
-
-
-_element = functools.lru_cache(maxsize=32)(filter_element)  # a filter name's parse, once (not once a section)
 
 
 def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group: str, sources: list[str],
@@ -453,14 +455,15 @@ def _ranges_ok(ranges: np.ndarray, plane: str) -> bool:
     r = ranges.astype(np.float32, copy=False)  # exact for f16, whose arithmetic numpy runs several times slower
     limit = RANGE_LIMITS.get(plane, _NO_LIMIT)
     if r.size <= SMALL_RANGES:
-        # a tile's few chunks: Python's comparisons of the floats beat the reductions' numpy calls (12 us a range
-        # section, a tenth of a small payload's decode one at a time); the limits as float32, as numpy compares
+        # a tile's few chunks: Python's builtins over the floats beat the reductions' numpy calls (12 us a range
+        # section, a tenth of a small payload's decode one at a time); the limits as float32, as numpy compares.
+        # The sum of them all is finite only if every one is (a NaN or an infinity makes it NaN or infinite, and
+        # float32 values cannot overflow a double's sum); then min, max and min <= max decide as above.
+        pairs = r.reshape(len(r), 2, -1)
+        lo, hi = pairs[:, 0].ravel().tolist(), pairs[:, 1].ravel().tolist()
         low, high = _LIMITS32.get(plane, _NO_LIMIT)
-        for lo_row, hi_row in r.reshape(len(r), 2, -1).tolist():
-            for lo, hi in zip(lo_row, hi_row, strict=True):
-                if not (low <= lo <= hi <= high and -math.inf < lo and hi < math.inf):
-                    return False
-        return True
+        return bool(math.isfinite(sum(lo) + sum(hi)) and low <= min(lo) and max(hi) <= high
+                    and all(map(operator.le, lo, hi)))
     lo, hi = r[:, 0], r[:, 1]
     low, high = lo.min(), hi.max()
     # max - min only once no minimum is -inf and no maximum +inf (nor NaN): it then makes no inf - inf
