@@ -172,6 +172,8 @@ class Viewer:
         self.messages: list[str] = []
         self.screenshots: list[str] = []
         self.exit_code = EXIT_OK
+        self._settled = False  # the view was at rest at the last frame (settled())
+        self._say = (lambda msg: None) if run.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
         self.start = time.perf_counter()
         self.ui_sse = run.options.max_sse
         self.ui_budget = run.options.gpu_mem_mb
@@ -498,9 +500,12 @@ class Viewer:
 
     # --- output ---------------------------------------------------------------------------------------------------
     def screenshot(self, path: str | None = None) -> str | None:
-        """P: the renderer's framebuffer (full resolution, no overlay) as a PNG; prints the path and the camera."""
+        """P: the renderer's framebuffer (full resolution, no overlay) as a PNG; prints the path, whether the view
+        was at rest (settled(): "converged"; else "streaming" or "camera moving") and the camera."""
         if self.session is None:
             return None
+        moving = self.controller is not None and self.controller.update(0.0)
+        state = "converged" if self.settled() else "camera moving" if moving else "streaming"
         path = path or self.run.screenshot or os.path.abspath(time.strftime("splatstream-%Y%m%d-%H%M%S.png"))
         if os.path.exists(path) and not self.run.screenshot:
             path = path[:-4] + f"-{len(self.screenshots)}.png"
@@ -515,8 +520,8 @@ class Viewer:
             return ",".join(f"{x:.6g}" for x in v)
 
         # --opt=value: a vector starting with a minus sign would read as an option
-        message = (f"saved {path} ({cam.width}x{cam.height}; camera: --eye={vec(cam.eye)} --target={vec(cam.target)} "
-                   f"--up={vec(cam.up)} --fov-y={cam.fov_y_deg:.6g})")
+        message = (f"saved {path} ({cam.width}x{cam.height}; {state}; camera: --eye={vec(cam.eye)} "
+                   f"--target={vec(cam.target)} --up={vec(cam.up)} --fov-y={cam.fov_y_deg:.6g})")
         print(message, flush=True)
         self.messages.append(f"saved {os.path.basename(path)}")
         self.screenshots.append(path)
@@ -535,13 +540,16 @@ class Viewer:
                 self.fps, fps_frames, fps_start = fps_frames / (now - fps_start), 0, now
             if self.load_error is not None and self.run.exit_when_converged:
                 break
+            settled = self.settled()
+            if settled and not self._settled:
+                # One line each time the view comes to rest: scripts and the window test wait for it, not a clock.
+                self._say(f"view: converged ({self.session.last.resident_tiles} tiles resident; camera still)")
+            self._settled = settled
             if (self.run.screenshot and not self.run.exit_when_converged and not self.screenshots
                     and self.session is not None and self.session.converged):
                 self.screenshot(self.run.screenshot)  # a window that stays open: written when the view converges
             if self.run.exit_when_converged and self.session is not None:
-                path_done = self.run.path is None or now - self.path_start >= self.run.path.end
-                still = not self.controller.update(0.0) if self.controller else True
-                if self.session.converged and path_done and still:
+                if settled:
                     if self.run.screenshot:
                         self.screenshot(self.run.screenshot)
                     self._measure()
@@ -555,6 +563,15 @@ class Viewer:
             if self.session is None and self.load_error is None:
                 time.sleep(0.005)
         return self.exit_code
+
+    def settled(self) -> bool:
+        """The view at rest: every tile it wants resident, nothing in flight (the last frame's `converged`), the
+        camera still (no smoothing left) and the camera path, if any, at its end."""
+        if self.session is None or not self.session.converged:
+            return False
+        if self.run.path is not None and time.perf_counter() - self.path_start < self.run.path.end:
+            return False
+        return not self.controller.update(0.0) if self.controller else True
 
     def _measure(self) -> None:
         """Time converged frames through the window path (draw, copy, overlay, swap), two ways: one at a time

@@ -10,7 +10,7 @@ Pure numpy; deterministic for a given seed.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -46,6 +46,10 @@ LARGE_SPLATS_PER_ENTRY = 8
 # the tree's) and in every assignment: on flowers at 65,536 entries the weighted RMS SH error of the fit went 0.01799
 # -> 0.01760 (one cell -> two, and the round), for about twice the assignment time.
 LARGE_PROBES = 2
+# The large codebooks' cells are fitted in this many Lloyd rounds (8 elsewhere), seeded from dot products: on flowers
+# the fit's CPU time went 9.35 -> 4.31 s for a weighted RMS error of 0.017618 against 0.017604 (-0.02 dB on its
+# renders; BENCHMARKS.md, "The large codebook's encode time").
+LARGE_ITERATIONS = 5
 
 
 def _power_of_two_near(x: float) -> int:
@@ -100,6 +104,11 @@ class Codebook:
     starts: np.ndarray       # (T + 1,) tree positions starts[t]..starts[t + 1] are the entries of top centroid t
     tree: np.ndarray | None = None  # (K,) stored index of each tree position (None: the same order)
     probes: int = 1          # rows search the entries of their `probes` nearest top centroids
+    _prep: _Prepared | None = field(default=None, init=False, repr=False, compare=False)
+
+    def __getstate__(self) -> dict:
+        # Without what assignments prepared (about twice the entries' bytes): a process it is sent to makes its own.
+        return {**self.__dict__, "_prep": None}
 
     def ordered_by_use(self, counts: np.ndarray) -> Codebook:
         """The same codebook with entries renumbered by falling use count (ties keep their order): frequent entries
@@ -117,13 +126,7 @@ class Codebook:
         rows = np.ascontiguousarray(rows, np.float32)
         labels = np.full(len(rows), -1, np.int64)
         if len(self.entries) > 1:
-            keys = _row_keys(np.ascontiguousarray(self.entries, np.float32))
-            by_key = np.argsort(keys, kind="stable")
-            sorted_keys = keys[by_key]
-            row_keys = _row_keys(rows)
-            pos = np.minimum(np.searchsorted(sorted_keys, row_keys), len(sorted_keys) - 1)
-            hit = sorted_keys[pos] == row_keys
-            labels[hit] = by_key[pos[hit]]
+            hit = self._lookup(rows, labels)
             if hit.all():
                 return labels
             missing = np.flatnonzero(~hit)
@@ -131,35 +134,71 @@ class Codebook:
             return labels
         return self._search(rows)
 
+    def _prepared(self) -> _Prepared:
+        """What every assignment reuses, made on the first one: the entries' row hashes in sorted order and each
+        top cell's entries with their squared norms. Made again per call, the sort of the 65,536 entries' keys and
+        the per-cell gathers took most of the `large` codebook's assignment time over the LOD tiles (BENCHMARKS.md,
+        "The large codebook's encode time")."""
+        if self._prep is None:
+            entries = np.ascontiguousarray(self.entries, np.float32)
+            hashes = _row_hashes(entries)
+            by_hash = np.argsort(hashes, kind="stable")
+            sorted_hashes = hashes[by_hash]
+            # Distinct entries with one hash (never seen): the exact keys instead, as before the hashes.
+            same = np.flatnonzero(sorted_hashes[1:] == sorted_hashes[:-1])
+            exact = bool(len(same)) and not np.array_equal(entries[by_hash[same]].view(np.uint32),
+                                                           entries[by_hash[same + 1]].view(np.uint32))
+            cells = []
+            for t in range(len(self.top)):
+                s, e = int(self.starts[t]), int(self.starts[t + 1])
+                ids = np.arange(s, e) if self.tree is None else self.tree[s:e]
+                ent = np.ascontiguousarray(entries[ids])
+                cells.append((ids, ent, np.einsum("ij,ij->i", ent, ent)))
+            self._prep = _Prepared(by_hash, sorted_hashes, exact, cells,
+                                   np.einsum("ij,ij->i", self.top, self.top))
+        return self._prep
+
+    def _lookup(self, rows: np.ndarray, labels: np.ndarray) -> np.ndarray:
+        """Set labels of the rows bit-for-bit equal to an entry (the first such entry); returns which rows were."""
+        prep = self._prepared()
+        if prep.exact_keys:
+            keys = _row_keys(np.ascontiguousarray(self.entries, np.float32))
+            by_key = np.argsort(keys, kind="stable")
+            sorted_keys = keys[by_key]
+            row_keys = _row_keys(rows)
+            pos = np.minimum(np.searchsorted(sorted_keys, row_keys), len(sorted_keys) - 1)
+            hit = sorted_keys[pos] == row_keys
+            labels[hit] = by_key[pos[hit]]
+            return hit
+        row_hashes = _row_hashes(rows)
+        pos = np.minimum(np.searchsorted(prep.sorted_hashes, row_hashes), len(prep.sorted_hashes) - 1)
+        hit = prep.sorted_hashes[pos] == row_hashes
+        cand = np.flatnonzero(hit)
+        ids = prep.by_hash[pos[cand]]
+        equal = (rows[cand].view(np.uint32) == self.entries[ids].view(np.uint32)).all(axis=1)
+        hit[cand[~equal]] = False
+        labels[cand[equal]] = ids[equal]
+        return hit
+
     def _search(self, rows: np.ndarray) -> np.ndarray:
         if self.probes > 1 and len(self.top) > 1:
             return self._search_probes(rows)
+        prep = self._prepared()
         parent = _nearest(rows, self.top)
         labels = np.empty(len(rows), np.int64)
         for t, members in enumerate(_members(parent, len(self.top))):
             if len(members) == 0:
                 continue
-            s, e = int(self.starts[t]), int(self.starts[t + 1])
-            if self.tree is None:
-                labels[members] = s + _nearest(rows[members], self.entries[s:e])
-            else:
-                ids = self.tree[s:e]
-                labels[members] = ids[_nearest(rows[members], self.entries[ids])]
+            ids, ent, ee = prep.cells[t]
+            labels[members] = ids[_nearest(rows[members], ent, ee)]
         return labels
 
     def _search_probes(self, rows: np.ndarray) -> np.ndarray:
         """The nearest entry among the children of each row's `probes` nearest top centroids (ties: the nearer
         top centroid's entry)."""
+        prep = self._prepared()
         probes = min(self.probes, len(self.top))
-        near = np.empty((len(rows), probes), np.int64)
-        tt = np.einsum("ij,ij->i", self.top, self.top)
-        for i in range(0, len(rows), ASSIGN_BLOCK):
-            d = rows[i:i + ASSIGN_BLOCK] @ self.top.T
-            d *= -2.0
-            d += tt[None, :]
-            part = np.argpartition(d, probes - 1, axis=1)[:, :probes]
-            order = np.argsort(np.take_along_axis(d, part, axis=1), axis=1, kind="stable")
-            near[i:i + ASSIGN_BLOCK] = np.take_along_axis(part, order, axis=1)
+        near = _nearest_cells(rows, self.top, prep.top_norms, probes)
         labels = np.zeros(len(rows), np.int64)
         best = np.full(len(rows), np.inf, np.float32)
         rr = np.einsum("ij,ij->i", rows, rows)
@@ -167,18 +206,39 @@ class Codebook:
             for t, members in enumerate(_members(near[:, p], len(self.top))):
                 if len(members) == 0:
                     continue
-                s, e = int(self.starts[t]), int(self.starts[t + 1])
-                ids = np.arange(s, e) if self.tree is None else self.tree[s:e]
-                ent = self.entries[ids]
+                ids, ent, ee = prep.cells[t]
                 d = rows[members] @ ent.T
                 d *= -2.0
-                d += np.einsum("ij,ij->i", ent, ent)[None, :]
+                d += ee[None, :]
                 j = np.argmin(d, axis=1)
                 dist = d[np.arange(len(members)), j] + rr[members]
                 better = dist < best[members]
                 best[members[better]] = dist[better]
                 labels[members[better]] = ids[j[better]]
         return labels
+
+
+@dataclass
+class _Prepared:
+    by_hash: np.ndarray        # entry indices in order of their row hash
+    sorted_hashes: np.ndarray  # those hashes
+    exact_keys: bool           # two distinct entries share a hash: look rows up by their exact keys
+    cells: list[tuple[np.ndarray, np.ndarray, np.ndarray]]  # per top cell: entry ids, entry rows, squared norms
+    top_norms: np.ndarray
+
+
+def _nearest_cells(rows: np.ndarray, top: np.ndarray, tt: np.ndarray, probes: int) -> np.ndarray:
+    """(N, probes) the `probes` nearest top centroids of every row, nearest first (ties: the lower index)."""
+    near = np.empty((len(rows), probes), np.int64)
+    for i in range(0, len(rows), ASSIGN_BLOCK):
+        d = rows[i:i + ASSIGN_BLOCK] @ top.T
+        d *= -2.0
+        d += tt[None, :]
+        at = np.arange(len(d))
+        for p in range(probes):  # argmin, then masked: cheaper than argpartition over 256 cells
+            near[i:i + len(d), p] = j = np.argmin(d, axis=1)
+            d[at, j] = np.inf
+    return near
 
 
 def _members(labels: np.ndarray, k: int) -> list[np.ndarray]:
@@ -192,13 +252,7 @@ def _unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(index of the first occurrence of each distinct row, index into those of every row), through a 64-bit hash
     of each row: a sort of N hashes instead of N rows (np.unique on whole rows held another copy of them, which
     put the encoder's peak above 3x the input). Hash collisions are checked for and fall back to exact rows."""
-    words = rows.view(np.uint32)
-    h = np.full(len(rows), 0xCBF29CE484222325, np.uint64)
-    prime = np.uint64(0x100000001B3)
-    for j in range(words.shape[1]):  # FNV-1a over 32-bit words
-        h ^= words[:, j]
-        h *= prime
-    _, first, inverse = np.unique(h, return_index=True, return_inverse=True)
+    _, first, inverse = np.unique(_row_hashes(rows), return_index=True, return_inverse=True)
     inverse = inverse.reshape(-1)
     for i in range(0, len(rows), ASSIGN_BLOCK):
         if not np.array_equal(rows[first[inverse[i:i + ASSIGN_BLOCK]]], rows[i:i + ASSIGN_BLOCK]):
@@ -207,16 +261,29 @@ def _unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return first, inverse
 
 
+def _row_hashes(rows: np.ndarray) -> np.ndarray:
+    """A 64-bit FNV-1a hash of each float32 row's bits."""
+    words = rows.view(np.uint32)
+    h = np.full(len(rows), 0xCBF29CE484222325, np.uint64)
+    prime = np.uint64(0x100000001B3)
+    for j in range(words.shape[1]):
+        h ^= words[:, j]
+        h *= prime
+    return h
+
+
 def _row_keys(rows: np.ndarray) -> np.ndarray:
     """Each float32 row as one opaque (void) value, for exact lookups."""
     return rows.view(np.dtype((np.void, rows.dtype.itemsize * rows.shape[1]))).reshape(-1)
 
 
-def _nearest(rows: np.ndarray, centroids: np.ndarray) -> np.ndarray:
-    """Index of the nearest centroid (squared Euclidean) of every row, computed in blocks."""
+def _nearest(rows: np.ndarray, centroids: np.ndarray, cc: np.ndarray | None = None) -> np.ndarray:
+    """Index of the nearest centroid (squared Euclidean) of every row, computed in blocks (cc: the centroids'
+    squared norms, where known)."""
     if len(centroids) == 1:
         return np.zeros(len(rows), np.int64)
-    cc = np.einsum("ij,ij->i", centroids, centroids)
+    if cc is None:
+        cc = np.einsum("ij,ij->i", centroids, centroids)
     out = np.empty(len(rows), np.int64)
     # Blocks of rows sized so the (rows x centroids) distance block stays small: a fixed 32,768 rows against
     # 4,517 entries took 1.8 GB of temporaries per thread (the encoder's peak at 1M splats, preset low).
@@ -230,8 +297,10 @@ def _nearest(rows: np.ndarray, centroids: np.ndarray) -> np.ndarray:
 
 
 def kmeans(rows: np.ndarray, k: int, rng: np.random.Generator, weights: np.ndarray | None = None,
-           iterations: int = ITERATIONS) -> np.ndarray:
-    """k centroids of (weighted) rows by Lloyd's algorithm from a k-means++-style seeding on a sample."""
+           iterations: int = ITERATIONS, product_seeding: bool = False) -> np.ndarray:
+    """k centroids of (weighted) rows by Lloyd's algorithm from a k-means++-style seeding on a sample.
+    product_seeding: the seeding's distances from dot products in one matrix product per batch of new centroids,
+    as the Lloyd rounds take them (cheaper; slightly other values, so another seeding)."""
     n = len(rows)
     if n <= k:
         return rows.copy()
@@ -253,6 +322,7 @@ def kmeans(rows: np.ndarray, k: int, rng: np.random.Generator, weights: np.ndarr
     first = rng.choice(n, p=w / w.sum())
     centroids[0] = rows[first]
     d2 = ((rows - centroids[0]) ** 2).sum(axis=1)
+    rr = None
     filled = 1
     while filled < k:
         p = w * d2
@@ -261,8 +331,20 @@ def kmeans(rows: np.ndarray, k: int, rng: np.random.Generator, weights: np.ndarr
         idx = rng.choice(n, take, replace=False, p=p / total) if total > 0 and np.count_nonzero(p) >= take \
             else rng.choice(n, take, replace=False)
         centroids[filled:filled + take] = rows[idx]
-        for c in centroids[filled:filled + take]:
-            np.minimum(d2, ((rows - c) ** 2).sum(axis=1), out=d2)
+        if product_seeding:
+            new = centroids[filled:filled + take]
+            nn = np.einsum("ij,ij->i", new, new)
+            if rr is None:
+                rr = np.einsum("ij,ij->i", rows, rows)
+            for i in range(0, n, ASSIGN_BLOCK):
+                d = rows[i:i + ASSIGN_BLOCK] @ new.T
+                d *= -2.0
+                d += nn[None, :]
+                d += rr[i:i + ASSIGN_BLOCK, None]
+                np.minimum(d2[i:i + ASSIGN_BLOCK], np.maximum(d.min(axis=1), 0.0), out=d2[i:i + ASSIGN_BLOCK])
+        else:
+            for c in centroids[filled:filled + take]:
+                np.minimum(d2, ((rows - c) ** 2).sum(axis=1), out=d2)
         filled += take
     for _ in range(iterations):
         labels = _nearest(rows, centroids)
@@ -307,6 +389,9 @@ def build_codebook(rows: np.ndarray, entries: int, weights: np.ndarray | None = 
         flat = kmeans(uniq, min(entries, len(uniq)), rng, uw, iterations=2 * ITERATIONS).astype(np.float32)
         return Codebook(flat, flat, np.arange(len(flat) + 1, dtype=np.int64))
     top_k = int(min(len(uniq), max(1, round(np.sqrt(entries)))))
+    # The large codebooks' cells (probes > 1) are fitted cheaper (LARGE_ITERATIONS): their extra round below stands
+    # in for the Lloyd rounds left out.
+    child_fit = {"iterations": LARGE_ITERATIONS, "product_seeding": True} if probes > 1 else {}
     top = kmeans(uniq, top_k, rng, uw)
     parent = _nearest(uniq, top)
     # Entries per top cell in proportion to its weighted spread (mass x mean squared distance), at least one,
@@ -321,7 +406,7 @@ def build_codebook(rows: np.ndarray, entries: int, weights: np.ndarray | None = 
         if k == 0 or len(members) == 0:
             block = top[t:t + 1] if len(members) == 0 else uniq[members[:1]]
         else:
-            block = kmeans(uniq[members], k, rng, uw[members])
+            block = kmeans(uniq[members], k, rng, uw[members], **child_fit)
         blocks.append(block.astype(np.float32))
         starts.append(starts[-1] + len(block))
     codebook = Codebook(np.concatenate(blocks), top.astype(np.float32), np.array(starts, np.int64), probes=probes)
@@ -334,6 +419,7 @@ def build_codebook(rows: np.ndarray, entries: int, weights: np.ndarray | None = 
         mass = np.bincount(labels, weights=uw, minlength=len(codebook.entries))
         live = mass > 0
         codebook.entries[live] = (sums[live] / mass[live, None]).astype(np.float32)
+        codebook._prep = None  # its entries moved
     return codebook
 
 

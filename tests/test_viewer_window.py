@@ -7,6 +7,7 @@ import shutil
 import signal
 import subprocess
 import sys
+import threading
 import time
 from pathlib import Path
 
@@ -17,6 +18,9 @@ from conftest import ROOT, xvfb_display
 pytestmark = pytest.mark.skipif(not (shutil.which("Xvfb") and shutil.which("xdotool")),
                                 reason="needs Xvfb and xdotool (apt-get install xvfb xdotool)")
 SIZE = (720, 420)
+# Each wait below is for something the viewer does (a window, a line it prints); this bound only stops a hang (the
+# steps take seconds, tens of seconds on a loaded machine), with a message saying what never came.
+HANG_S = 300.0
 
 
 @pytest.fixture(scope="module")
@@ -45,14 +49,69 @@ def xdo(display: str, *args: str) -> str:
                           text=True, timeout=20).stdout
 
 
-def wait_for_window(display: str, timeout: float = 60.0) -> str:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        ids = xdo(display, "search", "--onlyvisible", "--name", "splatstream").split()
-        if ids:
-            return ids[0]
-        time.sleep(0.2)
-    raise AssertionError("the viewer's window did not appear")
+class ViewerOutput:
+    """The viewer's stdout and stderr (one pipe, so in the order printed), read line by line on a thread: the test
+    waits for the lines the viewer prints when something happens ("view: converged", "saved ..."), not for a time."""
+
+    def __init__(self, stream):
+        self.lines: list[str] = []
+        self.closed = False
+        self._cond = threading.Condition()
+        self._thread = threading.Thread(target=self._read, args=(stream,), daemon=True)
+        self._thread.start()
+
+    def _read(self, stream) -> None:
+        for line in stream:
+            with self._cond:
+                self.lines.append(line.rstrip("\n"))
+                self._cond.notify_all()
+        with self._cond:
+            self.closed = True
+            self._cond.notify_all()
+
+    def text(self) -> str:
+        with self._cond:
+            return "\n".join(self.lines)
+
+    def wait_for(self, prefix: str, after: int, what: str) -> int:
+        """The index of the first line after line `after` (-1: from the start) that starts with `prefix`."""
+        deadline = time.monotonic() + HANG_S
+        with self._cond:
+            start = after + 1
+            while True:
+                for i in range(start, len(self.lines)):
+                    if self.lines[i].startswith(prefix):
+                        return i
+                start = len(self.lines)
+                if self.closed:
+                    raise AssertionError(f"the viewer exited before {what}; its output:\n" + "\n".join(self.lines))
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    raise AssertionError(f"no {what} after {HANG_S:g} s (a hang?); the viewer's output:\n"
+                                         + "\n".join(self.lines))
+                self._cond.wait(left)
+
+    def join(self) -> None:
+        self._thread.join(HANG_S)
+
+
+def wait_for_window(display: str, viewer: subprocess.Popen, output: ViewerOutput) -> str:
+    """The viewer's window once it is mapped (xdotool's --sync search returns when it is)."""
+    search = subprocess.Popen(["xdotool", "search", "--sync", "--onlyvisible", "--name", "splatstream"],
+                              env={**os.environ, "DISPLAY": display}, stdout=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + HANG_S
+    try:
+        while True:
+            try:
+                return search.communicate(timeout=1.0)[0].split()[0]
+            except subprocess.TimeoutExpired:
+                if viewer.poll() is not None or time.monotonic() > deadline:  # the search alone would wait forever
+                    raise AssertionError(f"the viewer's window did not appear (viewer exit code {viewer.poll()}); "
+                                         f"its output:\n{output.text()}") from None
+    finally:
+        if search.poll() is None:
+            search.kill()
+            search.communicate()
 
 
 def grab(display: str, window: str) -> np.ndarray:
@@ -86,44 +145,52 @@ def test_window_input_screenshot_and_overlay(display, served, tmp_path):
     viewer = subprocess.Popen([sys.executable, "-m", "cli", "view", served, "--size",
                                f"{SIZE[0]}x{SIZE[1]}", "--gpu-mem-mb", "64", "--no-vsync",
                                "--record", str(tmp_path / "record.json")], env=env, cwd=tmp_path,
-                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    output = ViewerOutput(viewer.stdout)
     try:
-        window = wait_for_window(display)
+        window = wait_for_window(display, viewer, output)
         xdo(display, "windowfocus", "--sync", window)
-        time.sleep(3.0)  # the scene streams in
+        # The viewer prints "view: converged" each time the view comes to rest (every wanted tile resident, nothing
+        # in flight, the camera still): here, the scene has streamed in.
+        seen = output.wait_for("view: converged", -1, "converged view of the scene")
         # A user's orbit: drag with the left button across the image (outside the overlay), then the screenshot key.
         xdo(display, "mousemove", "--window", window, "560", "300", "mousedown", "1")
         for x in range(560, 620, 6):
             xdo(display, "mousemove", "--window", window, str(x), "305")
         xdo(display, "mouseup", "1")
-        time.sleep(3.0)  # the camera settles (smoothing) and the new view converges
-        xdo(display, "windowfocus", "--sync", window)
-        xdo(display, "key", "p")
-        deadline = time.monotonic() + 20
-        shots = []
-        while time.monotonic() < deadline and not shots:
-            shots = sorted(tmp_path.glob("splatstream-*.png"))
-            time.sleep(0.2)
-        assert shots, "no screenshot was written"
-        time.sleep(0.5)
-        window_pixels = grab(display, window)
+        # X delivers the key after the drag, so the screenshot's line comes after the orbit was applied; it says
+        # whether the view was at rest ("converged") or not. Until it was: the next "view: converged", and P again.
+        shot_line = ""
+        for _ in range(5):
+            xdo(display, "windowfocus", "--sync", window)
+            xdo(display, "key", "p")
+            seen = output.wait_for("saved ", seen, "line for the screenshot (P)")
+            shot_line = output.lines[seen]
+            if "; converged; " in shot_line:
+                break
+            seen = output.wait_for("view: converged", seen, "converged view after the orbit")
+        assert "; converged; " in shot_line, f"no screenshot of the view at rest:\n{output.text()}"
+        shot = Path(shot_line[len("saved "):].split(" (", 1)[0])
+        assert shot.parent == tmp_path and shot.name.startswith("splatstream-"), shot_line
+        window_pixels = grab(display, window)  # the window shows the same view at rest (and the overlay)
         assert window_pixels.shape[0] >= SIZE[1] and window_pixels.shape[1] >= SIZE[0], window_pixels.shape
         xdo(display, "key", "Escape")
-        out, err = viewer.communicate(timeout=30)
+        viewer.wait(HANG_S)
+        output.join()
     finally:
         if viewer.poll() is None:
             viewer.kill()
-            viewer.communicate()
-    assert viewer.returncode == 0, err
-    assert "Traceback" not in err
-    assert f"saved {shots[0]}" in out
+            viewer.wait()
+    out = output.text()
+    assert viewer.returncode == 0, out
+    assert "Traceback" not in out
     record = json.loads((tmp_path / "record.json").read_text())
     assert record["window_backend"] == "glfw"  # not pyglet's fallback
     assert record["gl_version"] >= 430  # compute shaders in the window
     assert record["sort"] == "cpu"  # as choose_sort picks on a software GL (llvmpipe); the GPU sort on a real GPU
-    shot = np.asarray(Image.open(shots[0]), np.float32) / 255.0
+    cam = json.loads(Path(str(shot) + ".camera.json").read_text())
+    shot = np.asarray(Image.open(shot), np.float32) / 255.0
     assert shot.shape == (SIZE[1], SIZE[0], 3)
-    cam = json.loads(Path(str(shots[0]) + ".camera.json").read_text())
     # the drag moved the camera away from the scene's suggested one (an orbit: same target, same distance)
     import urllib.request
 

@@ -104,7 +104,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help=f"zstd level of the payloads (1..22; default {DEFAULT_ZSTD_LEVEL}, "
                         + ", ".join(f"{k} {v}" for k, v in PRESET_ZSTD_LEVEL.items())
                         + ": level 1 is as small as level 3 on the transport-coded planes and twice as fast; "
-                        "higher levels gain 0-4%% at 5-50x the time)")
+                        "higher levels gain 0-4%% at 5-50x the time, and on SH planes with the LOD tree they can "
+                        "write more: BENCHMARKS.md)")
     p.add_argument("--transport", default=None, choices=list(TRANSPORTS),
                    help="how payload sections are stored: fields (default; the fields1 coding where it is smaller "
                         "than the byte shuffle, format 1.2), keyed (fields, and norm16x4 positions sorted inside "

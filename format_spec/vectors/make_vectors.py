@@ -1,7 +1,13 @@
-"""Regenerate the test vectors: python format_spec/vectors/make_vectors.py (from the repository root)."""
+"""Regenerate the test vectors, from the repository root:
+
+    PYTHONPATH=. python format_spec/vectors/make_vectors.py [NAME ...]
+
+NAME: high, medium, low, very-low, paged (default: all). tests/test_spec_vectors.py encodes the presets' scenes again
+with `encode_vector` and fails when what a preset writes today no longer matches its vector."""
 import json
 import pathlib
 import shutil
+import sys
 
 from splatstream.encode import EncodeOptions, encode_gaussians
 from splatstream.format.layout import morton_order
@@ -9,7 +15,9 @@ from splatstream.ply import read_gaussians_ply
 from splatstream.scene_decode import decode_scene
 
 HERE = pathlib.Path(__file__).resolve().parent
-SOURCE = HERE.parents[1].parent / "shared" / "data" / "real" / "fruit_drops_sh3.ply"
+# The bundled copy of the shared data's scene (the same bytes: tests/data/real/README.md), so a fresh clone can
+# regenerate the vectors.
+SOURCE = HERE.parents[1] / "tests" / "data" / "real" / "fruit_drops_sh3.ply"
 PRESETS = ["high", "medium", "low", "very-low"]
 SPLATS = 260
 # A paged scene (format.md 6.1, version 1.5): an LOD tree of 600 splats (SH degree 1) in leaves of at most 64, one
@@ -30,6 +38,13 @@ def expected_values(g) -> dict:
     }
 
 
+def encode_vector(preset: str, out: pathlib.Path, source=None) -> None:
+    """A preset's vector scene (without expected.json): the first SPLATS Morton-ordered splats of SOURCE, zstd 3."""
+    source = read_gaussians_ply(SOURCE) if source is None else source
+    g = source.subset(morton_order(source.positions)[:SPLATS])
+    encode_gaussians(g, out, EncodeOptions(preset=preset, name=f"vector-{preset}", zstd_level=3))
+
+
 def paged_vector(source) -> None:
     g = source.subset(morton_order(source.positions)[:PAGED_SPLATS])
     out = HERE / "paged"
@@ -39,17 +54,22 @@ def paged_vector(source) -> None:
     print("wrote", out)
 
 
-def main() -> None:
+def main(names: list[str]) -> None:
+    unknown = set(names) - {*PRESETS, "paged"}
+    if unknown:
+        raise SystemExit(f"unknown vector {sorted(unknown)[0]!r} (choose from {', '.join(PRESETS)}, paged)")
     source = read_gaussians_ply(SOURCE)
-    paged_vector(source)
-    g = source.subset(morton_order(source.positions)[:SPLATS])
+    if not names or "paged" in names:
+        paged_vector(source)
     for preset in PRESETS:
+        if names and preset not in names:
+            continue
         out = HERE / preset
         shutil.rmtree(out, ignore_errors=True)
-        encode_gaussians(g, out, EncodeOptions(preset=preset, name=f"vector-{preset}", zstd_level=3))
+        encode_vector(preset, out, source)
         (out / "expected.json").write_text(json.dumps(expected_values(decode_scene(out))) + "\n")
         print("wrote", out)
 
 
 if __name__ == "__main__":
-    main()
+    main(sys.argv[1:])

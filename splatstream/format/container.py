@@ -51,8 +51,9 @@ from .transport import (
 WORKER_MODE_MAX_BYTES = 32 << 20
 # zstd level of the encoder's payloads. With a zstd block per byte plane, level 1 is as small as level 3 or smaller
 # (fields1 planes are near noise, where level 3's extra short matches cost more than they save) and compresses about
-# twice as fast; higher levels gain a few per cent at many times the time (BENCHMARKS.md, "Figures behind library
-# defaults").
+# twice as fast; higher levels gain a few per cent at many times the time, and on the SH planes they write more
+# (their shorter matches cost more than the literals: BENCHMARKS.md, Encoder, "zstd level with the LOD tree";
+# "Figures behind library defaults").
 DEFAULT_ZSTD_LEVEL = 1
 
 
