@@ -204,14 +204,16 @@ class _Ready:
 
 
 def decode_job(data: VerifiedPayload | bytes, entry: PayloadEntry, group: str, where: str, codebook_tile: bool,
-               splats: int, codebook_entries: int, with_mirror: bool, between=None) -> tuple[dict, Any] | str:
+               splats: int, codebook_entries: int, with_mirror: bool, palettes=None,
+               between=None) -> tuple[dict, Any] | str:
     """A payload decoded into planes (and the CPU-sort path's host mirror of a base): on a decode thread or in a
     decode process (plain arguments, so it pickles). A VerifiedPayload (the fetcher's) is not hashed again; bytes
     from a fetcher that does not verify are verified here. A payload that does not decode gives the error's message:
     the bytes matched their checksum, so the scene is broken, not the link. between: a decode thread's wait for the
-    frame loop, between the payload's steps (decode_payload)."""
+    frame loop, between the payload's steps (decode_payload). palettes: the scene's palettes (format.md 4.3.2), for
+    a base payload whose palette planes index them."""
     try:
-        planes = decode_payload(data, entry, group, where, codebook_tile, between)
+        planes = decode_payload(data, entry, group, where, codebook_tile, between, palettes)
         # Palette planes (format.md 4.3.2) as the pool holds them, here on the decode side: about 2 ms a plane of a
         # 16,384-splat tile, which the pool's join would otherwise spend on the render thread.
         planes = {k: palette_as_ranged(p, splats) for k, p in planes.items()}
@@ -651,7 +653,8 @@ class StreamEngine:
         entries = self.manifest.sh_codebook.entries if codebook_tile else 0
         where = self.fetcher.where(entry) if hasattr(self.fetcher, "where") else f"{self.location}/{entry.file}"
         return (data, entry, group, where, codebook_tile, splats, entries,
-                self.with_mirror and group == "base" and tile_id is not None)
+                self.with_mirror and group == "base" and tile_id is not None,
+                self.manifest.scene_palettes if group == "base" else None)
 
     def _finish(self, key: Key, result: tuple | str) -> _Ready | str:
         if isinstance(result, str):
