@@ -58,10 +58,15 @@ def main() -> None:
     ap.add_argument("--sync", action="store_true",
                     help="wait for the GPU (glFinish) after each renderer and pool step, so that each step's time "
                          "includes its GPU work: which step the first frame with splats waits for")
+    ap.add_argument("--sort-pass-programs", action="store_true",
+                    help="each sort pass its own programs (RenderOptions.sort_pass_programs: the A/B of their count)")
+    ap.add_argument("--sort", default="auto", help="RenderOptions.sort (gpu: the GPU path on software GL too)")
+    ap.add_argument("--gpu-mem-mb", type=float, help="ViewOptions.gpu_mem_mb (default: the viewer's)")
     args = ap.parse_args()
     import moderngl
 
     from client_gl.gpu import compute_raster, pool, renderer, sort
+    from client_gl.gpu.renderer import RenderOptions
     from client_gl.offscreen import create_context
     from client_gl.stream import engine
     from client_gl.streaming import PreparedSource, StreamingSession, ViewOptions
@@ -95,8 +100,10 @@ def main() -> None:
     out: dict = {"url": url, "size": [w, h], "gl_renderer": ctx.info.get("GL_RENDERER"), "context_ms": context_ms,
                  "sync_steps": bool(args.sync)}
     try:
-        prepared = PreparedSource.open(url, ViewOptions(cache=False))
-        session = StreamingSession(prepared, ctx, ViewOptions(cache=False))
+        render = RenderOptions(sort=args.sort, sort_pass_programs=args.sort_pass_programs)
+        view = ViewOptions(cache=False, render=render, **({"gpu_mem_mb": args.gpu_mem_mb} if args.gpu_mem_mb else {}))
+        prepared = PreparedSource.open(url, view)
+        session = StreamingSession(prepared, ctx, view)
         cam_info = session.manifest.camera
         cam = Camera(cam_info.eye, cam_info.target, cam_info.up, cam_info.fov_y, w, h)
         frames = 0
@@ -110,8 +117,10 @@ def main() -> None:
                 break
             session.wait(0.002)
         m = session.metrics
+        compiles = [ms for _, label, ms in tl.events if label.startswith("compile")]
         out.update(first_frame_s=m.first_frame_s, manifest_s=m.manifest_s, pool_s=m.pool_s, built_s=m.built_s,
-                   frames=frames, timeline=tl.events)
+                   frames=frames, sort_pass_programs=args.sort_pass_programs, programs_compiled=len(compiles),
+                   compile_ms=round(sum(compiles), 1), timeline=tl.events)
         session.close()
     finally:
         if server is not None:
@@ -119,7 +128,8 @@ def main() -> None:
             server.wait(10)
     for t_ms, label, ms in tl.events:
         print(f"{t_ms:9.1f} ms  {label:34s} {ms:8.1f} ms")
-    print({k: out[k] for k in ("first_frame_s", "manifest_s", "pool_s", "built_s", "context_ms")})
+    print({k: out[k] for k in ("first_frame_s", "manifest_s", "pool_s", "built_s", "context_ms", "programs_compiled",
+                               "compile_ms")})
     if args.json_out:
         with open(args.json_out, "w") as f:
             json.dump(out, f, indent=1)

@@ -197,20 +197,21 @@ class OtherThreadsCpu:
 
 class GrowthLog:
     """GPU buffer allocations during the current frame (bench only): the renderer's work buffers (_ensure_work
-    grows them to twice the drawn splats) and the compute draw's entry buffers (ComputeRaster.resize), each as
-    'what old->new'; a frame whose render step spends system time in the driver is then seen to have allocated."""
+    grows them to twice the drawn splats; a session with a splat budget reserves them before its first frame) and
+    the compute draw's entry buffers (ComputeRaster.resize), each as 'what old->new'; a frame whose render step
+    spends system time in the driver is then seen to have allocated."""
 
     def __init__(self) -> None:
         from client_gl.gpu.compute_raster import ComputeRaster
         from client_gl.gpu.renderer import SplatRenderer
 
         self.now: list[str] = []
-        ensure, resize = SplatRenderer._ensure_work, ComputeRaster.resize
+        allocate, resize = SplatRenderer._allocate_work, ComputeRaster.resize
         log = self.now
 
-        def ensure_work(renderer, splats):
+        def allocate_work(renderer, splats):
             old = renderer._work_splats
-            ensure(renderer, splats)
+            allocate(renderer, splats)
             if renderer._work_splats != old:
                 log.append(f"work {old}->{renderer._work_splats}")
 
@@ -219,7 +220,7 @@ class GrowthLog:
             resize(cr, visible_capacity, entry_capacity)
             if cr.entry_capacity != old:
                 log.append(f"entries {old}->{cr.entry_capacity}")
-        SplatRenderer._ensure_work, ComputeRaster.resize = ensure_work, craster_resize
+        SplatRenderer._allocate_work, ComputeRaster.resize = allocate_work, craster_resize
 
     def take(self) -> list[str]:
         out = list(self.now)
@@ -260,6 +261,12 @@ def main() -> None:
     ap.add_argument("--decode-workers", type=int, default=2, help="decode threads (StreamOptions.decode_workers)")
     ap.add_argument("--decode-processes", type=int, default=0,
                     help="decode in this many processes instead of threads (StreamOptions.decode_processes)")
+    ap.add_argument("--decode-workers-moving", type=int, default=1,
+                    help="decode threads while the camera moves (StreamOptions.decode_workers_moving; 0: all)")
+    ap.add_argument("--sort-pass-programs", action="store_true",
+                    help="each GPU sort pass its own programs (RenderOptions.sort_pass_programs, the A/B)")
+    ap.add_argument("--no-decode-batch", action="store_true",
+                    help="one decode job a payload (the A/B of StreamOptions.decode_batch)")
     ap.add_argument("--finish-keeps-gil", action="store_true",
                     help="wait for the GPU after each frame with moderngl's finish() (keeps the GIL) instead of "
                          "client_gl.gpu.gl.wait_for_gpu (releases it, as a display's swap does)")
@@ -293,11 +300,17 @@ def main() -> None:
     try:
         session = StreamingSession.open(url, ctx, ViewOptions(gpu_mem_mb=args.gpu_mem_mb, max_splats=args.max_splats,
                                                               cache=False, decode_workers=args.decode_workers,
-                                                              decode_processes=args.decode_processes))
+                                                              decode_processes=args.decode_processes,
+                                                              decode_workers_moving=args.decode_workers_moving,
+                                                              decode_batch=not args.no_decode_batch,
+                                                              render=RenderOptions(
+                                                                  sort_pass_programs=args.sort_pass_programs)))
         if not args.no_gc_freeze:
             freeze_long_lived()
         out["gc_freeze"] = not args.no_gc_freeze
         out["decode_workers"], out["decode_processes"] = args.decode_workers, args.decode_processes
+        out["decode_workers_moving"], out["decode_batch"] = args.decode_workers_moving, not args.no_decode_batch
+        out["sort_pass_programs"] = bool(args.sort_pass_programs)
         out["finish_keeps_gil"] = bool(args.finish_keeps_gil)
         if not args.no_wait_compiled_selection:
             from client_gl.stream.engine import COMPILED_SELECTION
@@ -384,6 +397,9 @@ def main() -> None:
             stats = pstats.Stats(profiler)
             stats.sort_stats("tottime").print_stats(25)
             stats.sort_stats("cumulative").print_callees("wanted")
+        eng = session.engine
+        out["decode_jobs"] = {"jobs": eng.decode_jobs, "payloads": eng.decode_job_payloads,
+                              "moving_frames": eng.moving_frames}
         out["streaming"] = {"frames": len(walls), "median_ms": float(np.median(walls)),
                             "p99_ms": float(np.percentile(walls, 99)), "max_ms": float(np.max(walls)),
                             "max_drawn_splats": int(max(drawn)), "first_frame_s": session.metrics.first_frame_s,

@@ -219,6 +219,10 @@ class _NoDecodeEngine(StreamEngine):
     def _submit(self, key, entry, data) -> None:
         self._decoded.put((key, _Ready(key, {}, None, int(entry.bytes))))
 
+    def _submit_batch(self, items) -> None:  # a collect's batch (StreamOptions.decode_batch): the same, a payload each
+        for item in items:
+            self._submit(*item)
+
     def entry(self, key):
         # The synthetic tiles' payload entries (one real tile's, copied to tiles of other sizes) do not pass the
         # lazy check of a parsed page (section shapes follow a tile's splats): they are taken from the whole tree.

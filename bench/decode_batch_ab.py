@@ -6,7 +6,9 @@ Encodes SCENE in memory with the encoder's defaults (the LOD tree), then times, 
 over every tile's base payload with `format.decode.decode_payload` one at a time, and with `decode_payloads` 16 at a
 time and all at once (the whole group); with --reference, first a pass of CHECKOUT's `decode_payload` (its
 splatstream package copied to a temporary directory under another name: another commit's decoder on the same
-bytes). CPU time of this thread (time.thread_time); M splats/s of the median and of the best pass. Interleaving
+bytes). CPU time of this thread (time.thread_time); M splats/s of the median and of the best pass; and the calls into
+C a pass makes (sys.setprofile's c_call events, per payload): each is a point where a decode thread may hand the
+interpreter lock to the frame loop or wait for it (the engine's batch decode, issue 38). Interleaving
 puts a shared machine's load on every variant alike (timing one after the other moved figures by 30 % there).
 Every variant's planes are checked equal to decode_payload's first.
 """
@@ -49,6 +51,21 @@ def together(items: list, codebook: bool, n: int) -> list:
     return out
 
 
+def c_calls(run) -> int:
+    """Calls into C (numpy, zstd, builtins) of one run."""
+    count = [0]
+
+    def profile(frame, event, arg):
+        if event == "c_call":
+            count[0] += 1
+    sys.setprofile(profile)
+    try:
+        run()
+    finally:
+        sys.setprofile(None)
+    return count[0]
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("scene")
@@ -82,6 +99,7 @@ def main() -> None:
         for name, run in variants.items():
             if [planes_bytes(p) for p in run()] != expected:
                 raise SystemExit(f"{preset}: {name} decodes to other planes than decode_payload")
+        calls = {name: c_calls(run) for name, run in variants.items()}
         times: dict[str, list[float]] = {name: [] for name in variants}
         loads = []
         for _ in range(args.rounds):
@@ -93,9 +111,11 @@ def main() -> None:
         row = {"scene": os.path.basename(args.scene), "preset": preset, "payloads": len(items), "splats": splats,
                "load_average": [min(loads), max(loads)]}
         for name, ts in times.items():
-            row[name] = {"msplats_s": splats / statistics.median(ts) / 1e6, "best_pass": splats / min(ts) / 1e6}
+            row[name] = {"msplats_s": splats / statistics.median(ts) / 1e6, "best_pass": splats / min(ts) / 1e6,
+                         "c_calls_per_payload": calls[name] / len(items)}
         rows.append(row)
-        print(f"{preset:>18}: " + "  ".join(f"{name} {row[name]['msplats_s']:.1f} ({row[name]['best_pass']:.1f})"
+        print(f"{preset:>18}: " + "  ".join(f"{name} {row[name]['msplats_s']:.1f} ({row[name]['best_pass']:.1f}), "
+                                          f"{row[name]['c_calls_per_payload']:.0f} C calls a payload"
                                           for name in variants) + f"; load {min(loads):.1f}-{max(loads):.1f}",
               flush=True)
     if args.json:

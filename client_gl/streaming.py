@@ -53,6 +53,8 @@ class ViewOptions:
     upload_bytes_per_frame: int = StreamOptions.upload_bytes_per_frame
     decode_workers: int = StreamOptions.decode_workers
     decode_processes: int = StreamOptions.decode_processes
+    decode_workers_moving: int = StreamOptions.decode_workers_moving
+    decode_batch: bool = StreamOptions.decode_batch
     render: RenderOptions = field(default_factory=RenderOptions)
     background: tuple[float, float, float] = (0.0, 0.0, 0.0)
     request_timeout_s: float = 15.0
@@ -194,12 +196,16 @@ class StreamingSession:
                                          host_mirror=self.with_mirror)
         self._pool_done = time.perf_counter()
         self.renderer = SplatRenderer(ctx, self.pool, options.render)
+        if options.max_splats is not None:  # the budget's work buffers now, not in the frames that reach it
+            self.renderer.reserve_work(options.max_splats)
         layout: PoolLayout = self.pool.layout
         stream_opts = StreamOptions(selection=replace(options.selection(), sh_degree=degree),
                                     upload_bytes_per_frame=options.upload_bytes_per_frame, prefetch=options.prefetch,
                                     fill_levels=options.fill_levels, fill_gap=options.fill_gap,
                                     decode_workers=options.decode_workers,
-                                    decode_processes=options.decode_processes)
+                                    decode_processes=options.decode_processes,
+                                    decode_workers_moving=options.decode_workers_moving,
+                                    decode_batch=options.decode_batch)
         self.engine = StreamEngine(self.fetcher, self.pool, stream_opts, slot_bytes=layout.slot_bytes(),
                                    manifest=m, with_mirror=self.with_mirror, location=self.source.location)
         self.fetcher.yield_to(self.engine.loop_idle, DECODE_WAIT_S)

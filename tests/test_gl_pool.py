@@ -363,6 +363,41 @@ def test_work_buffers_grow_with_what_is_drawn(gl_context, scenes, sorts, fruit, 
         pool.release()
 
 
+def test_work_buffers_reserved_for_a_budget_do_not_grow(gl_context, scenes, sorts, fruit, monkeypatch):
+    """reserve_work (a streaming session's splat budget, before its first frame): the work buffers are made for the
+    budget at once, no frame up to it grows them, and the pictures are those of buffers grown frame by frame."""
+    from client_gl.gpu import renderer as renderer_module
+    from client_gl.gpu.renderer import SplatRenderer
+
+    monkeypatch.setattr(renderer_module, "MIN_WORK_SPLATS", 256)
+    scene, a, b = scenes["bands"]
+    cam = suggested_camera(fruit.positions, width=W, height=H)
+    for sort in [s for s in sorts if s != "cpu"]:
+        pool = _pool(gl_context, scene, 4096)
+        reserved = SplatRenderer(gl_context, pool, _options(sort))
+        grown = SplatRenderer(gl_context, pool, _options(sort))
+        reserved.reserve_work(a.splats + b.splats)
+        assert reserved._work_splats == a.splats + b.splats
+        entries = reserved.craster.entry_capacity if reserved.craster is not None else None
+        allocations = []
+        allocate = reserved._allocate_work
+        monkeypatch.setattr(reserved, "_allocate_work",
+                            lambda n, log=allocations, allocate=allocate: (log.append(n), allocate(n)))
+        for tile_id, tile in ((1, a), (2, b)):
+            pool.join(tile_id, tile)
+            reserved.render(cam)
+            grown.render(cam)
+            _same(reserved.read_image(), grown.read_image(), sort, f"reserved work buffers, {tile_id} tiles")
+        assert allocations == [] and reserved._work_splats == a.splats + b.splats
+        assert (reserved.craster.entry_capacity if reserved.craster is not None else None) == entries
+        assert grown._work_splats > reserved._work_splats  # doubled ahead of what it drew
+        reserved.reserve_work(10)  # never shrinks
+        assert reserved._work_splats == a.splats + b.splats
+        for r in (reserved, grown):
+            r.release()
+        pool.release()
+
+
 def test_work_buffers_and_primed_atlases(gl_context):
     """Work buffers on immutable storage (gl.work_buffer) write, read back and bind like moderngl's, and release
     once; a new pool's uncompressed atlases get one texel from a shader (prime_texels.comp) and still upload and

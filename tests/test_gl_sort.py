@@ -66,13 +66,15 @@ def test_auto_sort_choice(gl_compute_context):
     assert choose_sort(ctx, "gpu") == "gpu"
 
 
+@pytest.mark.parametrize("per_pass", [False, True])
 @pytest.mark.parametrize("radix_bits,fused", [(4, False), (5, True), (6, True), (7, True), (8, True), (8, False)])
-def test_variants_sort_like_numpy(gl_compute_context, radix_bits, fused):
-    """The measurement variants (8-bit digits, the five-dispatch pass) sort as the default does, and the fused
-    pass leaves its block sums at zero for the next sort (several sorts of different sizes in a row)."""
+def test_variants_sort_like_numpy(gl_compute_context, radix_bits, fused, per_pass):
+    """The measurement variants (8-bit digits, the five-dispatch pass, each pass its own programs) sort as the
+    default does, and the fused pass leaves its block sums at zero for the next sort (several sorts of different
+    sizes in a row)."""
     from client_gl.gpu.sort import GpuRadixSort
 
-    s = GpuRadixSort(gl_compute_context, 30000, radix_bits=radix_bits, fused=fused)
+    s = GpuRadixSort(gl_compute_context, 30000, radix_bits=radix_bits, fused=fused, per_pass=per_pass)
     assert s.passes() == {4: 8, 5: 8, 6: 6, 7: 6, 8: 4}[radix_bits]
     assert s.passes(24) == {4: 6, 5: 6, 6: 4, 7: 4, 8: 4}[radix_bits]
     rng = np.random.default_rng(radix_bits)
@@ -105,11 +107,32 @@ def _check_low_bits(ctx, s, seed: int) -> None:
         b.release()
 
 
+@pytest.mark.parametrize("per_pass", [False, True])
 @pytest.mark.parametrize("radix_bits", [4, 6, 7, 8])
-def test_low_bits_sort_is_stable(gl_compute_context, radix_bits):
+def test_low_bits_sort_is_stable(gl_compute_context, radix_bits, per_pass):
     """A sort by the low bits only (the tile sort: 13 bits at 1080p) is a stable sort by those bits."""
     from client_gl.gpu.sort import GpuRadixSort
 
-    s = GpuRadixSort(gl_compute_context, 20000, radix_bits=radix_bits)
+    s = GpuRadixSort(gl_compute_context, 20000, radix_bits=radix_bits, per_pass=per_pass)
     _check_low_bits(gl_compute_context, s, 5)
     s.release()
+
+
+def test_one_program_set_serves_every_pass_and_sorter(gl_compute_context):
+    """Without per_pass a sort compiles three programs whatever its passes (a first frame's compiles: the depth and
+    tile sorts 6 programs, not 18), sorters of one digit width share them (each pass sets its uniforms right before
+    its dispatches), and the storage bindings after a sort are those the per-pass programs leave."""
+    from client_gl.gpu.sort import GpuRadixSort
+
+    ctx = gl_compute_context
+    shared = [GpuRadixSort(ctx, 20000, radix_bits=6) for _ in range(2)]
+    for k, s in enumerate(shared):
+        _check(s, np.random.default_rng(k).integers(0, 2**32, 12345, dtype=np.uint64))
+        _check_low_bits(ctx, s, 9 + k)
+    assert shared[0]._programs(0) == shared[1]._programs(3)  # the same three programs, whatever the pass
+    assert len({id(p) for s in shared for p in s._programs(0)}) == 3
+    per_pass = GpuRadixSort(ctx, 20000, radix_bits=6, per_pass=True)
+    _check(per_pass, np.random.default_rng(5).integers(0, 2**32, 12345, dtype=np.uint64))
+    assert len({id(p) for k in range(per_pass.passes()) for p in per_pass._programs(k)}) == 3 * per_pass.passes()
+    for s in (*shared, per_pass):
+        s.release()

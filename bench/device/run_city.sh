@@ -1,15 +1,17 @@
 #!/bin/bash
-# GPU-machine driver for the city-scale run of issue 38 (device `run` tool, the two-GPU 32-core kind), from the repo
+# GPU-machine driver for the city-scale run of issue 38 (device `run` tool: the single-GPU 16-core kind or the two-GPU 32-core one), from the repo
 # root, carrying .whl (bench/device_wheels.sh: Dask and its needs, plus the client's wheels) and .gl (GL loaders).
 # Usage: bash bench/device/run_city.sh make-encode SPLATS   then   bash bench/device/run_city.sh stream
 #        bash bench/device/run_city.sh sizes 1000000,6000000,60000000   (each size made, encoded, streamed: the
 #        series of first frame and selection time against scene size; results under $OUT/size_N/)
-#   make-encode: the scene (bench/tile_scene.py: copies of the bundled donut, SH0, seed 0) and `encode --workers 32`
-#                with the encoder's defaults (medium, pages over 1,024 tiles), timed as bench_scale.py times it
+#   make-encode: the scene (bench/tile_scene.py: copies of the bundled donut, SH0, seed 0) and `encode --workers N`
+#                (N: CITY_WORKERS, else the machine's cores, nproc) with the encoder's
+#                defaults (medium, pages over 1,024 tiles), timed as bench_scale.py times it
 #                (wall, summed PSS of the process tree, the largest process, phases)
 #   stream:      the encoded scene served on loopback: the first frame (bench_first_frame.py, twice: cold and warm
 #                shader cache), the manifest bytes before it (bench_pages.py --first-frame), and the fly-through
-#                (bench_flythrough.py, 3M splat budget); FLY_ONLY=1: the fly-through only; FLY_ARGS: more of its
+#                (bench_flythrough.py, 3M splat budget), and the first frame with the shader caches off, the sort
+#                passes' programs shared and per pass; FLY_ONLY=1: the fly-through only; FLY_ARGS: more of its
 #                options, FLY_NAME: its JSON's name under $OUT (default flythrough)
 # The scene stays under /tmp/city while the machine is warm, so the second call must follow the first at once.
 set -u
@@ -31,6 +33,9 @@ python3 -c "import numpy, numba; print('numpy', numpy.__version__, 'numba', numb
 OUT=${OUT:-/tmp/out}
 W=/tmp/city
 mkdir -p "$OUT" $W
+# encode workers: the machine's cores unless CITY_WORKERS says (250M: 198 s on 32, 316 s on 16 with the scene's 70 s
+# before it, so make-encode fits one 600 s call on the single-GPU 16-core kind too)
+WORKERS=${CITY_WORKERS:-$(nproc)}
 what=${1:?make-encode, stream or sizes}
 gl_setup() {
   for f in .gl/*.deb; do dpkg -x "$f" /; done
@@ -42,8 +47,9 @@ gl_setup() {
 fly_summary() {
   python3 -c "import json,sys; d=json.load(open(sys.argv[1]))['streaming']; print({k: d.get(k) for k in \
     ('frames','median_ms','p99_ms','update_ms_median','update_ms_p99','select_ms_median','select_ms_p99', \
-     'frame_call_waited_ms_p99','drain_ms_p99','others_cpu_in_p99_frames_ms','growth_frames')}, \
-    'compiled selection', json.load(open(sys.argv[1])).get('compiled_selection'))" "$1"
+     'frame_call_waited_ms_p99','others_cpu_in_p99_frames_ms','growth_frames','converged_after_path_s')}, \
+    {k: json.load(open(sys.argv[1])).get(k) for k in ('compiled_selection','decode_jobs','decode_batch', \
+     'decode_workers_moving','sort_pass_programs')})" "$1"
 }
 if [ "$what" = sizes ]; then
   gl_setup
@@ -52,7 +58,7 @@ if [ "$what" = sizes ]; then
     d=$OUT/size_$splats; s=/tmp/sizes/$splats; mkdir -p "$d" "$s"
     start=$(date +%s)
     python3 bench/tile_scene.py samples/donut.ply --splats "$splats" --out $s/s.ply > /dev/null || exit 1
-    python3 -m cli encode $s/s.ply $s/scene --workers "${CITY_WORKERS:-32}" -q || exit 1
+    python3 -m cli encode $s/s.ply $s/scene --workers "$WORKERS" -q || exit 1
     echo "$splats: made and encoded in $(( $(date +%s) - start )) s"
     python3 bench/bench_pages.py --first-frame $s/scene --runs 5 2>&1 | tail -3 > "$d/first_frame_nogl.txt"
     for run in cold warm; do
@@ -68,14 +74,21 @@ if [ "$what" = make-encode ]; then
   splats=${2:?splats}
   nproc; free -g | head -2; df -h /tmp | tail -1
   start=$(date +%s)
-  python3 bench/tile_scene.py samples/donut.ply --splats "$splats" --out $W/s.ply || exit 1
+  # A scene already made (a first call that ran out of time in the encode) is kept: the same command again encodes
+  # it, so make-encode splits into two calls where one 600 s call is not enough.
+  if [ ! -f $W/s.ply ]; then
+    python3 bench/tile_scene.py samples/donut.ply --splats "$splats" --out $W/s.part.ply || exit 1
+    mv $W/s.part.ply $W/s.ply
+  fi
   echo "scene written in $(( $(date +%s) - start )) s: $(du -h $W/s.ply | cut -f1)"
-  python3 - "$W/s.ply" "$W/scene" "$OUT/encode.json" <<'EOF'
-import json, os, pathlib, sys
+  rm -rf $W/scene
+  echo "encode workers: $WORKERS"
+  python3 - "$W/s.ply" "$W/scene" "$OUT/encode.json" "$WORKERS" <<'EOF'
+import json, pathlib, sys
 sys.path.insert(0, "bench")
 from bench_scale import run_encode
 r = run_encode(pathlib.Path(sys.argv[1]), pathlib.Path(sys.argv[2]),
-               ["--workers", os.environ.get("CITY_WORKERS", "32"), "--memory-per-worker", "6GB"])
+               ["--workers", sys.argv[4], "--memory-per-worker", "6GB"])
 print(json.dumps(r, indent=1))
 pathlib.Path(sys.argv[3]).write_text(json.dumps(r, indent=1))
 EOF
@@ -88,6 +101,13 @@ if [ "$what" = stream ]; then
   [ -n "${FLY_ONLY:-}" ] || python3 bench/bench_pages.py --first-frame $W/scene --runs 5 2>&1 | tail -6 | tee "$OUT/first_frame_nogl.txt"
   [ -n "${FLY_ONLY:-}" ] || for run in cold warm; do
     python3 bench/bench_first_frame.py --scene $W/scene --json "$OUT/first_frame_$run.json" 2>&1 | tail -4
+  done
+  # the first frame with the drivers' shader caches off (every compile cold), the sorts' passes sharing their
+  # programs (the default) and each pass its own (--sort-pass-programs): programs_compiled, compile_ms, first_frame_s
+  [ -n "${FLY_ONLY:-}" ] || for v in shared perpass; do
+    a=""; [ $v = perpass ] && a=--sort-pass-programs
+    __GL_SHADER_DISK_CACHE=0 MESA_SHADER_CACHE_DISABLE=true python3 bench/bench_first_frame.py --scene $W/scene $a \
+      --json "$OUT/first_frame_nocache_$v.json" 2>&1 | tail -1
   done
   # FLY_ARGS: more bench_flythrough.py options (an A/B: FLY_ARGS="--drain-ms 0" FLY_NAME=fly_drain0)
   fly=${FLY_NAME:-flythrough}

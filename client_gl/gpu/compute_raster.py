@@ -57,13 +57,14 @@ class ComputeRaster:
 
     def __init__(self, ctx, color_dtype: str, visible_capacity: int, entry_capacity: int | None = None,
                  warp_cull: bool = True, radix_bits: int = RADIX_BITS,
-                 fused_sort: bool = True, barrier_bits: int = CHAIN_BARRIER):
+                 fused_sort: bool = True, barrier_bits: int = CHAIN_BARRIER, sort_pass_programs: bool = False):
         self.ctx = ctx
         self.color_dtype = color_dtype
         self.tile_px = TILE_PX
         self.radix_bits = radix_bits
         self.fused_sort = fused_sort
         self.barrier_bits = barrier_bits
+        self.sort_pass_programs = sort_pass_programs
         tile = f"#define TILE_PX {self.tile_px}\n"
         # Binning (bin_count, bin_emit): row bins with the work group's balanced emit, whose count and emit share
         # bin_common.glsl's code so that both agree on every splat's entries.
@@ -114,7 +115,7 @@ class ComputeRaster:
                 self.tile_sorter.release()
             self.entry_capacity = int(entry_capacity)
             self.tile_sorter = GpuRadixSort(self.ctx, self.entry_capacity, self.radix_bits, self.fused_sort,
-                                            self.barrier_bits)
+                                            self.barrier_bits, per_pass=self.sort_pass_programs)
             self.tile_keys = work_buffer(self.ctx, 4 * self.entry_capacity)
             self.tile_values = work_buffer(self.ctx, 4 * self.entry_capacity)
 

@@ -97,7 +97,7 @@ class RenderOptions:
     stay: the plain raster loop, the per-block lists' oracle in the tests (warp_cull=False), the sort and depth-key
     widths kept as options after their measurement (radix_bits, tile_radix_bits, depth_bits: BENCHMARKS.md), and
     switches whose result BENCHMARKS.md does not hold (front_to_back: format_spec/renderer.md 5; blend, fused_sort,
-    full_barriers)."""
+    full_barriers, sort_pass_programs)."""
 
     sort: str = "auto"  # auto | cpu | gpu (choose_sort)
     draw: str = "auto"  # auto | instanced | triangles | fetch | points | compute (GPU path)
@@ -118,6 +118,10 @@ class RenderOptions:
     # scenes, warm, wall clock").
     radix_bits: int = 6
     fused_sort: bool = True  # 3 dispatches a sort pass (False: the 5 of count, reduce, scan, scan-add, scatter)
+    # Each sort pass its own programs (shift and buffers as constants) instead of one set for every pass (shift as a
+    # uniform): 18 programs to compile before a first frame instead of 6 (GpuRadixSort). Kept until the GPU
+    # machine's frame times of both are in BENCHMARKS.md ("Manifest pages").
+    sort_pass_programs: bool = False
     full_barriers: bool = False  # compute draw: glMemoryBarrier(ALL) between dispatches (default: the bits needed)
     # Digit width of the tile sort (None: radix_bits). 7: two passes over 1080p's 13-bit tile ids where 4-bit digits
     # take four (5 and 8 bits slower; BENCHMARKS.md, "Dense scenes, warm, wall clock").
@@ -304,14 +308,28 @@ class SplatRenderer:
         if splats <= self._work_splats:
             return
         capacity = self.pool.splat_capacity
-        n = min(capacity, max(2 * splats, 2 * self._work_splats, MIN_WORK_SPLATS))
+        self._allocate_work(min(capacity, max(2 * splats, 2 * self._work_splats, MIN_WORK_SPLATS)))
+
+    def reserve_work(self, splats: int) -> None:
+        """Work buffers for `splats` drawn splats now (a streaming session's splat budget, before its first frame),
+        so that no frame of a flight pays a growth: on the GPU machine the two growths of a 3M-splat budget's
+        flight were its 35-42 ms render frames (BENCHMARKS.md, "Manifest pages"). Their allocation is immutable
+        storage (gl.WorkBuffer), made when created, not at first use. Drawing more later still doubles them."""
+        if self.sort_mode != "gpu":
+            return
+        n = min(self.pool.splat_capacity, max(int(splats), MIN_WORK_SPLATS))
+        if n > self._work_splats:
+            self._allocate_work(n)
+
+    def _allocate_work(self, n: int) -> None:
         for b in (self.keys, self.values, self.records):
             if b is not None:
                 b.release()
         if self.sorter is not None:
             self.sorter.release()
         ctx = self.ctx
-        self.sorter = GpuRadixSort(ctx, n, self.options.radix_bits, self.options.fused_sort)
+        self.sorter = GpuRadixSort(ctx, n, self.options.radix_bits, self.options.fused_sort,
+                                   per_pass=self.options.sort_pass_programs)
         self.sorter.barrier_bits = self._chain_barrier(self.draw_mode)
         self.keys = work_buffer(ctx, n * 4)
         self.values = work_buffer(ctx, n * 4)
@@ -348,7 +366,8 @@ class SplatRenderer:
                 self.craster = ComputeRaster(self.ctx, opts.color_dtype, self._work_splats,
                                              warp_cull=opts.warp_cull,
                                              radix_bits=opts.tile_radix_bits or opts.radix_bits,
-                                             fused_sort=opts.fused_sort, barrier_bits=self._chain_barrier("compute"))
+                                             fused_sort=opts.fused_sort, barrier_bits=self._chain_barrier("compute"),
+                                             sort_pass_programs=opts.sort_pass_programs)
                 self._bin_checks = BIN_CHECK_FRAMES
             self.draw_mode = mode
             self.program_gpu = self.vao_gpu = None

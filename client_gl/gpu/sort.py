@@ -34,7 +34,8 @@ CHAIN_BARRIER = GL_SHADER_STORAGE_BARRIER_BIT | GL_COMMAND_BARRIER_BIT
 def compute_program(ctx, name: str, defines: str = "", radix_bits: int = RADIX_BITS):
     """A compute shader of client_gl/gpu/shaders without a decode header, compiled once per context and source.
 
-    Only programs without uniforms are shared this way (several sorters use the same ones)."""
+    Several sorters use the same ones, so a program with uniforms shared this way has them set right before each
+    dispatch (the sort passes' pass_index and pass_shift)."""
     cache = ctx.extra if isinstance(ctx.extra, dict) else {}
     ctx.extra = cache
     key = ("compute_program", name, defines, radix_bits)
@@ -53,12 +54,15 @@ class GpuRadixSort:
     block sums by atomics, scan-add with its own block offset, scatter) instead of five (count, reduce, scan,
     scan-add, scatter). The scatter reorders its tile by digit in shared memory first and writes each digit's run in
     one piece (radix_scatter_local.comp), fewer and longer writes than each thread writing its key where it goes
-    (measured and removed: BENCHMARKS.md, "Dense scenes, warm, wall clock"). Each pass runs programs compiled for it
-    (digit shift and buffer pair as constants), so a pass binds nothing and sets no uniform. barrier_bits:
-    glMemoryBarrier bits between dispatches."""
+    (measured and removed: BENCHMARKS.md, "Dense scenes, warm, wall clock"). Every pass runs the same three programs,
+    the pass and its digit shift as uniforms and the buffer pairs bound in turn, so a session's first frame compiles
+    three programs a sort instead of three a pass (the driver's compiles were 1.4 s of a cold first frame on the GPU
+    machine, 18 of them the sorts' passes: BENCHMARKS.md, "Manifest pages"). per_pass: each pass its own programs
+    (shift and buffer pair as constants: a pass binds nothing and sets no uniform). barrier_bits: glMemoryBarrier bits
+    between dispatches."""
 
     def __init__(self, ctx, capacity: int, radix_bits: int = RADIX_BITS, fused: bool = True,
-                 barrier_bits: int = CHAIN_BARRIER):
+                 barrier_bits: int = CHAIN_BARRIER, per_pass: bool = False):
         if radix_bits not in RADIX_CHOICES:
             raise ValueError(f"radix sort digits of {radix_bits} bits: {RADIX_CHOICES}")
         self.ctx = ctx
@@ -66,6 +70,7 @@ class GpuRadixSort:
         self.radix_bits = int(radix_bits)
         self.fused = bool(fused)
         self.barrier_bits = int(barrier_bits)
+        self.per_pass = bool(per_pass)
         radix = 1 << self.radix_bits
         self.setup_shader = compute_program(ctx, "indirect_setup.comp", radix_bits=self.radix_bits)
         if not self.fused:
@@ -91,14 +96,35 @@ class GpuRadixSort:
         self.batches = ctx.buffer(reserve=32 * shadergen.F2B_BATCHES)  # front-to-back batch commands
         self._params: object | None = None
 
+    def _shift(self, p: int) -> int:
+        # A pass past the key's 32 bits (the even count's padding with 5 or 7-bit digits) sorts by the top digit:
+        # a stable sort by a digit that grows with the key leaves sorted keys as they are.
+        return min(p * self.radix_bits, 32 - self.radix_bits)
+
     def _programs(self, p: int) -> tuple:
-        """(count, scan-add, scatter) of pass p: digit shift p * radix_bits, buffer pair p % 2 -> the other."""
+        """(count, scan-add, scatter) of pass p: digit shift p * radix_bits, buffer pair p % 2 -> the other (per
+        pass: as constants; else as uniforms, set here, and the pairs bound by sort)."""
+        if not self.per_pass:
+            progs = self._pass_programs.get(-1)
+            if progs is None:
+                defines = ("uniform uint pass_index;\nuniform uint pass_shift;\n#define PASS pass_index\n"
+                           "#define SHIFT pass_shift\n#define KEYS_IN 1\n#define VALUES_IN 2\n#define KEYS_OUT 3\n"
+                           "#define VALUES_OUT 4\n")
+                if self.fused:
+                    defines += "#define FUSED\n"
+                progs = self._pass_programs[-1] = tuple(
+                    compute_program(self.ctx, name, defines, self.radix_bits)
+                    for name in ("radix_count.comp", "radix_scanadd.comp", "radix_scatter_local.comp"))
+            for prog in progs:  # a uniform a program does not use is not there (scan-add: no shift; unfused: no pass)
+                if "pass_index" in prog:
+                    prog["pass_index"].value = p
+                if "pass_shift" in prog:
+                    prog["pass_shift"].value = self._shift(p)
+            return progs
         progs = self._pass_programs.get(p)
         if progs is None:
             src, dst = ((1, 2), (3, 4)) if p % 2 == 0 else ((3, 4), (1, 2))
-            # A pass past the key's 32 bits (the even count's padding with 5 or 7-bit digits) sorts by the top digit:
-            # a stable sort by a digit that grows with the key leaves sorted keys as they are.
-            shift = min(p * self.radix_bits, 32 - self.radix_bits)
+            shift = self._shift(p)
             defines = (f"#define PASS {p}u\n#define SHIFT {shift}u\n#define KEYS_IN {src[0]}\n"
                        f"#define VALUES_IN {src[1]}\n#define KEYS_OUT {dst[0]}\n#define VALUES_OUT {dst[1]}\n")
             if self.fused:
@@ -153,7 +179,14 @@ class GpuRadixSort:
         self.values_tmp.bind_to_storage_buffer(4)
         self.table.bind_to_storage_buffer(5)
         self.reduced.bind_to_storage_buffer(6)
+        pairs = ((keys, values), (self.keys_tmp, self.values_tmp))
         for p in range(self.passes(bits)):
+            if not self.per_pass:  # this pass's pair in at 1-2, the other out at 3-4
+                (k_in, v_in), (k_out, v_out) = pairs if p % 2 == 0 else pairs[::-1]
+                k_in.bind_to_storage_buffer(1)
+                v_in.bind_to_storage_buffer(2)
+                k_out.bind_to_storage_buffer(3)
+                v_out.bind_to_storage_buffer(4)
             count, scanadd, scatter = self._programs(p)
             count.run_indirect(dispatch, 0)
             barrier(bits_)
@@ -166,6 +199,9 @@ class GpuRadixSort:
             barrier(bits_)
             scatter.run_indirect(dispatch, 0)
             barrier(bits_)
+        if not self.per_pass:  # the bindings as the per-pass programs leave them (what follows may read them)
+            for unit, buf in enumerate((keys, values, self.keys_tmp, self.values_tmp), 1):
+                buf.bind_to_storage_buffer(unit)
 
     def sort_arrays(self, keys: np.ndarray, values: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Convenience for tests and benchmarks: upload, sort, read back. Returns (sorted keys, values)."""

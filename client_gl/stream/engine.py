@@ -29,7 +29,7 @@ from splatstream.camera import Camera
 from splatstream.errors import SplatstreamError, UsageError
 from splatstream.format.codec import palette_as_ranged
 from splatstream.format.container import VerifiedPayload
-from splatstream.format.decode import codebook_index, decode_payload
+from splatstream.format.decode import codebook_index, decode_payload, decode_payloads
 from splatstream.format.manifest import Manifest, PayloadEntry
 from splatstream.format.planes import band_of
 
@@ -100,6 +100,19 @@ class StreamOptions:
     fill_gap: int = 4
     fill_step: int = 4
     decode_workers: int = 2
+    # Decode threads that run while the camera moves (all decode_workers while it rests): each thread decoding
+    # Python takes the interpreter lock from the frame loop in the frames of a flight (the slow frames of the 250M
+    # fly-through held about 2.5 ms of each decode thread's CPU: BENCHMARKS.md, "Manifest pages"). 0: no limit.
+    decode_workers_moving: int = 1
+    # The payloads of one group that arrive in one collect decoded together (format.decode.decode_payloads: the
+    # same planes, bit for bit, in fewer and longer numpy calls, so fewer hand-overs of the interpreter lock per
+    # splat), in jobs of at most decode_batch_splats splats (a payload above it alone). A decode thread waits for
+    # the frame loop only between steps, and a batch's step is a plane of all its payloads: on the 2-core VM a
+    # step of 12 batched 4k-splat payloads took 1.5 ms at p99 against 0.2 ms for one, for a few percent less CPU;
+    # small tiles are where a payload's fixed cost is most of its decode (BENCHMARKS.md, "Manifest pages").
+    # False: one job a payload.
+    decode_batch: bool = True
+    decode_batch_splats: int = 4096
     # Decode in this many worker processes instead of threads (0: threads). Processes keep the decoders' Python off
     # the render thread's interpreter lock; until they have started, payloads are decoded on the threads.
     decode_processes: int = 0
@@ -214,14 +227,41 @@ def decode_job(data: VerifiedPayload | bytes, entry: PayloadEntry, group: str, w
     a base payload whose palette planes index them."""
     try:
         planes = decode_payload(data, entry, group, where, codebook_tile, between, palettes)
-        # Palette planes (format.md 4.3.2) as the pool holds them, here on the decode side: about 2 ms a plane of a
-        # 16,384-splat tile, which the pool's join would otherwise spend on the render thread.
-        planes = {k: palette_as_ranged(p, splats) for k, p in planes.items()}
-        if codebook_tile and group == "sh1":
-            codebook_index(planes, splats, codebook_entries, where)
-        return planes, (host_mirror(planes, splats) if with_mirror else None)
+        return _as_held(planes, group, where, codebook_tile, splats, codebook_entries, with_mirror)
     except SplatstreamError as exc:
         return str(exc)
+
+
+def _as_held(planes: dict, group: str, where: str, codebook_tile: bool, splats: int, codebook_entries: int,
+             with_mirror: bool) -> tuple[dict, Any]:
+    """A payload's decoded planes as the pool takes them, and the host mirror of a base where asked."""
+    # Palette planes (format.md 4.3.2) as the pool holds them, here on the decode side: about 2 ms a plane of a
+    # 16,384-splat tile, which the pool's join would otherwise spend on the render thread.
+    planes = {k: palette_as_ranged(p, splats) for k, p in planes.items()}
+    if codebook_tile and group == "sh1":
+        codebook_index(planes, splats, codebook_entries, where)
+    return planes, (host_mirror(planes, splats) if with_mirror else None)
+
+
+def decode_batch_job(jobs: list[tuple], between=None) -> list[tuple[dict, Any] | str]:
+    """decode_job of several payloads of one group (each item decode_job's arguments) in one decode_payloads call:
+    the same results, bit for bit. A batch that does not decode is decoded again one payload at a time, so that the
+    payload at fault is the one named, and the others are kept."""
+    try:
+        palettes = jobs[0][8] if len(jobs[0]) > 8 else None  # the scene's (format.md 4.3.2), the same in every job
+        planes = decode_payloads([(j[0], j[1]) for j in jobs], jobs[0][2], [j[3] for j in jobs], jobs[0][4], between,
+                                 palettes=palettes)
+    except SplatstreamError:
+        return [decode_job(*j, between=between) for j in jobs]
+    out: list[tuple[dict, Any] | str] = []
+    for p, (_, _, group, where, codebook_tile, splats, entries, with_mirror, *_) in zip(planes, jobs, strict=True):
+        try:
+            out.append(_as_held(p, group, where, codebook_tile, splats, entries, with_mirror))
+        except SplatstreamError as exc:
+            out.append(str(exc))
+        if between is not None:
+            between()
+    return out
 
 
 def _warm_up() -> bool:
@@ -316,6 +356,14 @@ class StreamEngine:
         # waiting for it (BENCHMARKS.md). A frame loop that never says when it works (tests, tools) leaves it set.
         self._loop_idle = threading.Event()
         self._loop_idle.set()
+        # How many decode jobs may run at once (decode_workers_moving while the camera moves), and how many do.
+        self._decode_turns = threading.Condition()
+        self._decode_limit = options.decode_workers
+        self._decode_running = 0
+        self._last_camera: tuple | None = None
+        self.moving_frames = 0  # frames whose camera moved since the last (decode_workers_moving applied)
+        self.decode_jobs = 0  # jobs handed to the decode threads, and the payloads in them (decode_batch's effect)
+        self.decode_job_payloads = 0
         self._processes: ProcessPoolExecutor | None = None
         self._processes_ready: Future = Future()
         if options.decode_processes > 0:
@@ -480,6 +528,9 @@ class StreamEngine:
 
     def update(self, cam: Camera) -> FrameUpdate:
         self.frame += 1
+        camera = (cam.eye, cam.target, cam.up, cam.fov_y_deg, cam.width, cam.height)
+        self._set_moving(self._last_camera is not None and camera != self._last_camera)
+        self._last_camera = camera
         self._tend_pages()
         view, sel, bands, keys, extra = self.wanted(cam)
         state = (self._wanted_serial, self._version)
@@ -581,6 +632,8 @@ class StreamEngine:
 
     # --- decode -----------------------------------------------------------------------------------------------
     def _collect(self) -> None:
+        # payloads by group (decode_batch on threads; decode processes take one payload a job)
+        batch: dict[str, list] | None = {} if self.options.decode_batch and not self._use_processes() else None
         for key, entry, data in self.fetcher.done():
             if key[1] == PAGE_GROUP:  # parsed on a decode worker, added at a frame's start (_add_pages)
                 if key[0] in self.pages.pending and key[0] not in self._pages_arrived:
@@ -592,7 +645,12 @@ class StreamEngine:
                 continue
             self._decoding.add(key)
             self._version += 1
-            self._submit(key, entry, data)
+            if batch is None:
+                self._submit(key, entry, data)
+            else:
+                batch.setdefault(key[1], []).append((key, entry, data))
+        for items in (batch or {}).values():
+            self._submit_batch(items)
         while True:
             try:
                 item = self._decoded.get_nowait()
@@ -639,9 +697,47 @@ class StreamEngine:
         # Between every step of the payload, not only before it: a decode running into the frame loop's CPU work
         # takes the interpreter lock from it at each of its numpy calls (a payload has hundreds), and every hand-over
         # cost the loop about 0.1 ms on the GPU machine: 10-20 ms in the frames that upload.
-        self._wait_for_loop()
-        self._decoded.put((key, self._finish(key, decode_job(*self._job_args(key, entry, data),
-                                                             between=self._wait_for_loop))))
+        self._take_turn()
+        try:
+            self._wait_for_loop()
+            result = decode_job(*self._job_args(key, entry, data), between=self._wait_for_loop)
+        finally:
+            self._end_turn()
+        self._decoded.put((key, self._finish(key, result)))
+
+    def _decode_many(self, items: list[tuple[Key, PayloadEntry, VerifiedPayload | bytes]]) -> None:
+        """Payloads of one group decoded as one job (decode_batch_job), results handed over as _decode's."""
+        self._take_turn()
+        try:
+            self._wait_for_loop()
+            results = decode_batch_job([self._job_args(*item) for item in items], between=self._wait_for_loop)
+        finally:
+            self._end_turn()
+        for (key, _, _), result in zip(items, results, strict=True):
+            self._decoded.put((key, self._finish(key, result)))
+
+    def _take_turn(self) -> None:
+        """Wait until fewer decode jobs run than the frame allows now (decode_workers_moving while the camera
+        moves)."""
+        with self._decode_turns:
+            while self._decode_running >= self._decode_limit and not self._closing:
+                self._decode_turns.wait(DECODE_WAIT_S)
+            self._decode_running += 1
+
+    def _end_turn(self) -> None:
+        with self._decode_turns:
+            self._decode_running -= 1
+            self._decode_turns.notify()
+
+    def _set_moving(self, moving: bool) -> None:
+        """Fewer decode threads while the camera moves, all of them while it rests."""
+        few = self.options.decode_workers_moving
+        limit = few if moving and 0 < few < self.options.decode_workers else self.options.decode_workers
+        self.moving_frames += moving
+        if limit != self._decode_limit:
+            with self._decode_turns:
+                self._decode_limit = limit
+                self._decode_turns.notify_all()
 
     def _wait_for_loop(self) -> None:
         self._loop_idle.wait(DECODE_WAIT_S)
@@ -662,9 +758,35 @@ class StreamEngine:
         planes, extra = result
         return _Ready(key, planes, extra, planes_nbytes(planes))
 
+    def _use_processes(self) -> bool:
+        procs = self._processes
+        return procs is not None and self._processes_ready.done() and not self._processes_ready.exception()
+
+    def _submit_batch(self, items: list[tuple[Key, PayloadEntry, VerifiedPayload | bytes]]) -> None:
+        """One group's payloads of a collect, in the collect's order (the wish list's): consecutive payloads
+        together up to decode_batch_splats splats a job, each job a decode_payloads call."""
+        cap = self.options.decode_batch_splats
+        shares: list[list] = []
+        held = 0
+        for item in items:
+            tile_id = item[0][0]
+            splats = self.manifest.tile(tile_id).splats if tile_id is not None else cap
+            if not shares or held + splats > cap:
+                shares.append([])
+                held = 0
+            shares[-1].append(item)
+            held += splats
+        for share in shares:
+            self.decode_jobs += 1
+            self.decode_job_payloads += len(share)
+            if len(share) == 1:
+                self._pool.submit(self._decode, *share[0])
+            else:
+                self._pool.submit(self._decode_many, share)
+
     def _submit(self, key: Key, entry: PayloadEntry, data: VerifiedPayload | bytes) -> None:
         procs = self._processes
-        if procs is not None and self._processes_ready.done() and not self._processes_ready.exception():
+        if self._use_processes():
             future = procs.submit(decode_job, *self._job_args(key, entry, data))
 
             def done(f, key=key):
@@ -678,6 +800,8 @@ class StreamEngine:
                 self._decoded.put((key, item))
             future.add_done_callback(done)
         else:
+            self.decode_jobs += 1
+            self.decode_job_payloads += 1
             self._pool.submit(self._decode, key, entry, data)
 
     # --- residency --------------------------------------------------------------------------------------------
