@@ -227,14 +227,16 @@ class _Ready:
 
 
 def decode_job(data: VerifiedPayload | bytes, entry: PayloadEntry, group: str, where: str, codebook_tile: bool,
-               splats: int, codebook_entries: int, with_mirror: bool, between=None) -> tuple[dict, Any] | str:
+               splats: int, codebook_entries: int, with_mirror: bool, palettes=None,
+               between=None) -> tuple[dict, Any] | str:
     """A payload decoded into planes (and the CPU-sort path's host mirror of a base): on a decode thread or in a
     decode process (plain arguments, so it pickles). A VerifiedPayload (the fetcher's) is not hashed again; bytes
     from a fetcher that does not verify are verified here. A payload that does not decode gives the error's message:
     the bytes matched their checksum, so the scene is broken, not the link. between: a decode thread's wait for the
-    frame loop, between the payload's steps (decode_payload)."""
+    frame loop, between the payload's steps (decode_payload). palettes: the scene's palettes (format.md 4.3.2), for
+    a base payload whose palette planes index them."""
     try:
-        planes = decode_payload(data, entry, group, where, codebook_tile, between)
+        planes = decode_payload(data, entry, group, where, codebook_tile, between, palettes)
         return _as_held(planes, group, where, codebook_tile, splats, codebook_entries, with_mirror)
     except SplatstreamError as exc:
         return str(exc)
@@ -256,11 +258,13 @@ def decode_batch_job(jobs: list[tuple], between=None) -> list[tuple[dict, Any] |
     the same results, bit for bit. A batch that does not decode is decoded again one payload at a time, so that the
     payload at fault is the one named, and the others are kept."""
     try:
-        planes = decode_payloads([(j[0], j[1]) for j in jobs], jobs[0][2], [j[3] for j in jobs], jobs[0][4], between)
+        palettes = jobs[0][8] if len(jobs[0]) > 8 else None  # the scene's (format.md 4.3.2), the same in every job
+        planes = decode_payloads([(j[0], j[1]) for j in jobs], jobs[0][2], [j[3] for j in jobs], jobs[0][4], between,
+                                 palettes=palettes)
     except SplatstreamError:
         return [decode_job(*j, between=between) for j in jobs]
     out: list[tuple[dict, Any] | str] = []
-    for p, (_, _, group, where, codebook_tile, splats, entries, with_mirror) in zip(planes, jobs, strict=True):
+    for p, (_, _, group, where, codebook_tile, splats, entries, with_mirror, *_) in zip(planes, jobs, strict=True):
         try:
             out.append(_as_held(p, group, where, codebook_tile, splats, entries, with_mirror))
         except SplatstreamError as exc:
@@ -755,7 +759,8 @@ class StreamEngine:
         entries = self.manifest.sh_codebook.entries if codebook_tile else 0
         where = self.fetcher.where(entry) if hasattr(self.fetcher, "where") else f"{self.location}/{entry.file}"
         return (data, entry, group, where, codebook_tile, splats, entries,
-                self.with_mirror and group == "base" and tile_id is not None)
+                self.with_mirror and group == "base" and tile_id is not None,
+                self.manifest.scene_palettes if group == "base" else None)
 
     def _finish(self, key: Key, result: tuple | str) -> _Ready | str:
         if isinstance(result, str):

@@ -18,7 +18,7 @@ import io
 import math
 import operator
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import BinaryIO
 
 import numpy as np
@@ -89,7 +89,9 @@ def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level:
         else:
             filt, parts = filter_texels(p.layers, p.format, p.width, p.height, layers, level, transport)
         add(p.spec.name, "texels", filt, parts, format=p.format, width=p.width, height=p.height, layers=layers)
-        if p.palette is not None:  # a palette plane (format.md 4.3.2): its palettes stand where its ranges would
+        if p.palette is not None and p.scene_palette:  # the scene's palettes (format.md 4.3.2, 1.7): no section
+            pass
+        elif p.palette is not None:  # a palette plane (format.md 4.3.2): its palettes stand where its ranges would
             palette = np.ascontiguousarray(p.palette, "<f4")
             expected = palette_shape(p.spec)
             if palette.size != int(np.prod(expected)):
@@ -263,13 +265,15 @@ _element = functools.lru_cache(maxsize=32)(filter_element)  # a filter name's pa
 
 
 def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, source: str,
-                   codebook: bool = False, between: Callable[[], object] | None = None) -> dict[str, EncodedPlane]:
+                   codebook: bool = False, between: Callable[[], object] | None = None,
+                   palettes: Mapping[str, np.ndarray] | None = None) -> dict[str, EncodedPlane]:
     """Decompress verified payload bytes into planes (texels still encoded; ranges as stored).
 
     The entry comes from a validated manifest, so the section table is consistent with the planes of `group`;
     what is checked here is what only the bytes can tell. With `codebook`, a tile's sh1 group holds the SH index
     plane (format_spec/format.md 4.7). `between` is called before each plane: a decode thread's point to wait
-    while another thread needs the interpreter (the streaming client's frame loop)."""
+    while another thread needs the interpreter (the streaming client's frame loop). `palettes`: the scene's
+    palettes (Manifest.scene_palettes, format.md 4.3.2), for a palette plane whose payload has no palette section."""
     buf, kept = _decompress(data, entry.raw_bytes, source)
     # What a small payload's decode spends beyond its splats is per-call Python and numpy work (issue 32: on the LOD
     # tree's tiles of a few hundred splats it was half the time), so this loop does only what each plane needs: the
@@ -290,9 +294,7 @@ def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, so
             _check_float_texels(layers, s, source)
         ranges = palette = None
         if s.format in PALETTE_FORMATS:
-            r = sections[spec.palette_name]
-            palette = unshuffle(buf[r.offset:r.offset + r.size], r.element).view("<f4").reshape(r.shape[0], -1)
-            _check_palette(palette, spec.name, r.name, source)
+            palette = _palette_of(buf, sections, spec, palettes, source)
         elif spec.range_dtype:
             r = sections[spec.range_name]
             ranges = unshuffle(buf[r.offset:r.offset + r.size], _element(r.filter)).view(spec.range_dtype) \
@@ -304,13 +306,14 @@ def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, so
                 ranges = ranges.copy()
             if palette is not None and np.may_share_memory(palette, buf):
                 palette = palette.copy()
-        planes[spec.name] = EncodedPlane(spec, s.format, s.width, s.height, layers, ranges, palette)
+        planes[spec.name] = EncodedPlane(spec, s.format, s.width, s.height, layers, ranges, palette,
+                                         palette is not None and spec.palette_name not in sections)
     return planes
 
 
 def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group: str, sources: list[str],
-                    codebook: bool = False,
-                    between: Callable[[], object] | None = None) -> list[dict[str, EncodedPlane]]:
+                    codebook: bool = False, between: Callable[[], object] | None = None,
+                    palettes: Mapping[str, np.ndarray] | None = None) -> list[dict[str, EncodedPlane]]:
     """unpack_payload of several verified payloads of one group (the tiles of one request, a scene's tiles): the
     same planes, bit for bit, but each step taken for all of them in one go where it can be: fields1 sections of
     the same format and modes through one work array (transport.unfilter_fields_many), shuffled sections and
@@ -324,7 +327,7 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
         return []
     if any(sec.filter == MORTON1 or sec.format in PALETTE_FORMATS for _, entry in items for sec in entry.sections):
         # keyed positions and palette planes (format.md 5.4, 4.3.2) are decoded one payload at a time
-        return [unpack_payload(data, entry, group, source, codebook, between)
+        return [unpack_payload(data, entry, group, source, codebook, between, palettes)
                 for (data, entry), source in zip(items, sources, strict=True)]
     sizes = [entry.raw_bytes for _, entry in items]
     total = sum(sizes)
@@ -469,6 +472,21 @@ def _ranges_ok(ranges: np.ndarray, plane: str) -> bool:
     low, high = lo.min(), hi.max()
     # max - min only once no minimum is -inf and no maximum +inf (nor NaN): it then makes no inf - inf
     return bool(limit[0] <= low and high <= limit[1] and -np.inf < low and high < np.inf and (hi - lo).min() >= 0)
+
+
+def _palette_of(buf: np.ndarray, sections: dict, spec, palettes: Mapping[str, np.ndarray] | None,
+                source: str) -> np.ndarray:
+    """A palette plane's palettes (format.md 4.3.2): its payload's `<plane>.palette` section when it has one, else
+    the scene's (1.7: the manifest's `palettes`, checked when the manifest was)."""
+    r = sections.get(spec.palette_name)
+    if r is None:
+        if palettes is None or spec.name not in palettes:
+            raise FormatError(source, f"section {spec.palette_name}", "missing, and the scene has no palettes of "
+                              f"{spec.name} (format.md 4.3.2)")
+        return palettes[spec.name]
+    palette = unshuffle(buf[r.offset:r.offset + r.size], r.element).view("<f4").reshape(r.shape[0], -1)
+    _check_palette(palette, spec.name, r.name, source)
+    return palette
 
 
 def _check_palette(palette: np.ndarray, plane: str, name: str, source: str) -> None:
