@@ -88,6 +88,7 @@ class Case:
     def __init__(self, store):
         m = read_manifest(store)
         self.codebook = m.uses_codebook
+        self.palettes = m.scene_palettes  # format.md 4.3.2 (1.7): a palette plane's palettes may be the scene's
         self.groups: dict[str, list] = {}
         self.verified: dict[str, list] = {}
         self.splats_of: dict[str, list[int]] = {}
@@ -109,14 +110,14 @@ class Case:
         start = time.thread_time()
         if variant == "group":
             for group, items in self.groups.items():
-                decode_payloads(items, group, ["bench"] * len(items), cb)
+                decode_payloads(items, group, ["bench"] * len(items), cb, palettes=self.palettes)
         elif variant == "one":
             for group, items in self.groups.items():
                 for data, entry in items:
-                    decode_payload(data, entry, group, "bench", cb)
+                    decode_payload(data, entry, group, "bench", cb, palettes=self.palettes)
         elif variant == "verified":
             for group, items in self.verified.items():
-                decode_payloads(items, group, ["bench"] * len(items), cb)
+                decode_payloads(items, group, ["bench"] * len(items), cb, palettes=self.palettes)
         elif variant == "sha256":
             for items in self.groups.values():
                 for data, _ in items:
@@ -134,7 +135,8 @@ class Case:
         for group_items in (self.groups, self.verified):
             got = []
             for group, items in group_items.items():
-                for planes in decode_payloads(items, group, ["bench"] * len(items), self.codebook):
+                for planes in decode_payloads(items, group, ["bench"] * len(items), self.codebook,
+                                              palettes=self.palettes):
                     got += _bytes(planes)
             if out is not None and got != out:
                 raise SystemExit("decode_payloads of VerifiedPayloads differs from that of bytes")
@@ -142,7 +144,7 @@ class Case:
         alone = []
         for group, items in self.groups.items():
             for data, entry in items:
-                alone += _bytes(decode_payload(data, entry, group, "bench", self.codebook))
+                alone += _bytes(decode_payload(data, entry, group, "bench", self.codebook, palettes=self.palettes))
         if alone != out:
             raise SystemExit("decode_payloads differs from decode_payload")
         return out
@@ -157,7 +159,7 @@ class Case:
                 best = {k: float("inf") for k in rows}
                 for _ in range(2):
                     t = time.thread_time()
-                    decode_payload(data, entry, group, "bench", self.codebook)
+                    decode_payload(data, entry, group, "bench", self.codebook, palettes=self.palettes)
                     t1 = time.thread_time()
                     hashlib.sha256(data).digest()
                     t2 = time.thread_time()
