@@ -1,7 +1,7 @@
 """Decode speed of payloads to GPU texels, one thread: what the streaming client's decode workers do per payload.
 
     python bench/bench_decode.py SCENE.ply [--presets medium,low,high] [--leaf 16384] [--no-lod] [--runs 5]
-        [--groups base] [--transport fields,shuffle] [--batch N] [--json OUT]
+        [--groups base] [--transport fields,shuffle] [--batch N] [--overrides scale=pal8x4,...] [--json OUT]
 
 Encodes the scene in memory (LOD tiles of at most --leaf splats, the encoder's default, or one tile with --no-lod),
 then times `format.decode.decode_payload` (size and SHA-256 check, zstd, unfiltering every section into the texel
@@ -35,7 +35,8 @@ from splatstream.io import read_gaussians  # noqa: E402
 from splatstream.store import read_manifest  # noqa: E402
 
 
-def time_decode(jobs: list, runs: int, verify: bool, codebook: bool, batch: int = 0) -> tuple[float, float]:
+def time_decode(jobs: list, runs: int, verify: bool, codebook: bool, batch: int = 0,
+                palettes: dict | None = None) -> tuple[float, float]:
     """Median and least CPU seconds of one pass over every (bytes, entry, group) job (the least is what the code
     does when no other job on a shared machine slows this core: the steadier figure of the two there); with
     `batch`, the jobs of a group N at a time."""
@@ -46,15 +47,15 @@ def time_decode(jobs: list, runs: int, verify: bool, codebook: bool, batch: int 
         if batches is None:
             for data, entry, group in jobs:
                 if verify:
-                    decode_payload(data, entry, group, "bench", codebook)
+                    decode_payload(data, entry, group, "bench", codebook, palettes=palettes)
                 else:
-                    unpack_payload(data, entry, group, "bench", codebook)
+                    unpack_payload(data, entry, group, "bench", codebook, palettes=palettes)
         else:
             for group, items, sources in batches:
                 if verify:
-                    decode_payloads(items, group, sources, codebook)
+                    decode_payloads(items, group, sources, codebook, palettes=palettes)
                 else:
-                    unpack_payloads(items, group, sources, codebook)
+                    unpack_payloads(items, group, sources, codebook, palettes=palettes)
         times.append(time.thread_time() - start)
     return statistics.median(times), min(times)
 
@@ -70,15 +71,17 @@ def _batches(jobs: list, batch: int) -> list | None:
             for group, items in by_group.items() for i in range(0, len(items), batch)]
 
 
-def texels(jobs: list, codebook: bool, batch: int = 0) -> list[bytes]:
+def texels(jobs: list, codebook: bool, batch: int = 0, palettes: dict | None = None) -> list[bytes]:
     out = []
     batches = _batches(jobs, batch)
     if batches is None:
-        decoded = [unpack_payload(data, entry, group, "bench", codebook) for data, entry, group in jobs]
+        decoded = [unpack_payload(data, entry, group, "bench", codebook, palettes=palettes)
+                   for data, entry, group in jobs]
     else:
         by_key = {}
         for group, items, sources in batches:
-            for (_, entry), planes in zip(items, unpack_payloads(items, group, sources, codebook), strict=True):
+            for (_, entry), planes in zip(items, unpack_payloads(items, group, sources, codebook, palettes=palettes),
+                                          strict=True):
                 by_key[id(entry), group] = planes
         decoded = [by_key[id(entry), group] for _, entry, group in jobs]
     for planes in decoded:
@@ -99,31 +102,35 @@ def main() -> None:
     ap.add_argument("--groups", default="base", help="payload groups timed (base, sh1, ...; comma-separated)")
     ap.add_argument("--transport", default="fields,shuffle")
     ap.add_argument("--batch", type=int, default=0, help="payloads of a group decoded together (0: one at a time)")
+    ap.add_argument("--overrides", default="", help="texel formats per attribute, e.g. scale=pal8x4,color=pal8x4")
     ap.add_argument("--json")
     args = ap.parse_args()
+    overrides = dict(kv.split("=", 1) for kv in args.overrides.split(",") if kv)
     g = read_gaussians(args.scene)
     groups = args.groups.split(",")
     results = []
     for preset in args.presets.split(","):
         reference = None
         for transport in args.transport.split(","):
-            store = encode_in_memory(g, EncodeOptions(preset=preset, lod=not args.no_lod,
+            store = encode_in_memory(g, EncodeOptions(preset=preset, overrides=overrides, lod=not args.no_lod,
                                                       max_leaf_splats=args.leaf, transport=transport))
             m = read_manifest(store)
             jobs = [(store.read_payload(t.groups[gr]), t.groups[gr], gr) for t in m.tiles for gr in groups
                     if gr in t.groups]
             splats = sum(t.splats for t in m.tiles for gr in groups if gr in t.groups)
-            got = texels(jobs, m.uses_codebook)
+            pal = m.scene_palettes  # format.md 4.3.2: the scene's palettes, for palette planes
+            got = texels(jobs, m.uses_codebook, palettes=pal)
             if reference is None:
                 reference = got
             elif got != reference:
                 raise SystemExit(f"{preset}: {transport} decodes to other texels than {args.transport.split(',')[0]}")
-            if args.batch and texels(jobs, m.uses_codebook, args.batch) != got:
+            if args.batch and texels(jobs, m.uses_codebook, args.batch, pal) != got:
                 raise SystemExit(f"{preset}: decoded {args.batch} at a time, other texels than one at a time")
-            with_check, best = time_decode(jobs, args.runs, True, m.uses_codebook, args.batch)
-            without, _ = time_decode(jobs, args.runs, False, m.uses_codebook, args.batch)
+            with_check, best = time_decode(jobs, args.runs, True, m.uses_codebook, args.batch, pal)
+            without, _ = time_decode(jobs, args.runs, False, m.uses_codebook, args.batch, pal)
             row = {
-                "scene": os.path.basename(args.scene), "preset": preset, "transport": transport,
+                "scene": os.path.basename(args.scene), "preset": preset, "overrides": overrides,
+                "transport": transport,
                 "groups": groups, "batch": args.batch, "tiles": len(m.tiles), "payloads": len(jobs), "splats": splats,
                 "median_tile_splats": int(statistics.median(t.splats for t in m.tiles)),
                 "payload_bytes": sum(len(d) for d, _, _ in jobs),

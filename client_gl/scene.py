@@ -57,7 +57,8 @@ class SceneTiles:
 def _group_planes(store: SceneStore, manifest: Manifest, tile: TileEntry, group: str) -> dict[str, EncodedPlane]:
     entry = tile.groups[group]
     source = store.payload_source(entry)
-    planes = decode_payload(store.read_payload(entry), entry, group, source, manifest.uses_codebook)
+    planes = decode_payload(store.read_payload(entry), entry, group, source, manifest.uses_codebook,
+                            palettes=manifest.scene_palettes)
     if group == "sh1" and manifest.uses_codebook:  # an index >= K is an error for every reader (format.md 4.7)
         codebook_index(planes, tile.splats, manifest.sh_codebook.entries, source)
     return planes

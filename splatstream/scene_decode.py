@@ -37,7 +37,8 @@ def decode_tile(store: SceneStore, manifest: Manifest, tile: TileEntry, sh_degre
     """One tile's Gaussians; `codebook_values` (decoded codebook bands) is required for codebook scenes."""
     payloads = {g: store.read_payload(tile.groups[g]) for g in tile_groups_for(manifest, sh_degree)}
     entries = manifest.sh_codebook.entries if manifest.sh_codebook else 0
-    return decode_tile_bytes(tile, payloads, sh_degree, store.location, codebook_values, entries)
+    return decode_tile_bytes(tile, payloads, sh_degree, store.location, codebook_values, entries,
+                             manifest.scene_palettes)
 
 
 def decode_scene(scene: str | os.PathLike | SceneStore, sh_degree: int | None = None,

@@ -153,10 +153,13 @@ def _reference_ok(ranges: np.ndarray, plane: str) -> bool:
     return limit is None or (float(lo.min()) >= limit[0] and float(hi.max()) <= limit[1])
 
 
+@pytest.mark.parametrize("small", [container.SMALL_RANGES, 0])  # small sections in Python, and numpy's reductions
 @pytest.mark.parametrize("dtype", ["<f4", "<f2"])
-def test_one_pass_range_check_agrees_with_the_checks(dtype):
+def test_one_pass_range_check_agrees_with_the_checks(dtype, small, monkeypatch):
+    monkeypatch.setattr(container, "SMALL_RANGES", small)
     rng = np.random.default_rng(1)
-    specials = [np.nan, np.inf, -np.inf, 0.0, -0.0, 1e6, -1e6, 65504.0, 3e38, -3e38]
+    specials = [np.nan, np.inf, -np.inf, 0.0, -0.0, 1e6, -1e6, 65504.0, 3e38, -3e38, 1e18, -1e18, 2e18, -80.0, 40.0,
+                -80.5, 40.5]
     for plane in ("position", "scale", "color"):
         for _ in range(400):
             r = rng.normal(0, 3, size=(3, 2, 1, 3))

@@ -97,8 +97,9 @@ def test_shader_decode_equals_numpy(gl_compute_context, gaussians, fmt):
 
 
 def test_palette_planes_decode_on_the_gpu_as_numpy_does(gl_compute_context, gaussians):
-    """pal8x4 scale and colour (format.md 4.3.2): the pool holds them as 16-bit ranged values (palette_as_ranged);
-    the shaders' values are the numpy palette decode within half a 16-bit step of each chunk's range."""
+    """pal8x4 scale and colour (format.md 4.3.2), their palettes the scene's (in the manifest): the pool holds them
+    as 16-bit ranged values (palette_as_ranged); the shaders' values are the numpy palette decode within half a
+    16-bit step of each chunk's range."""
     from client_gl.gpu.pool import ChunkPool
     from client_gl.gpu.renderer import RenderOptions, SplatRenderer
     from client_gl.scene import tiles_from_gaussians
@@ -107,6 +108,8 @@ def test_palette_planes_decode_on_the_gpu_as_numpy_does(gl_compute_context, gaus
     scene = tiles_from_gaussians(gaussians, "medium", overrides={"scale": "pal8x4", "color": "pal8x4"})
     tile = scene.tiles[0]
     assert tile.planes["scale"].format == "pal8x4"
+    # the encoder stores the palettes once, in the manifest (format.md 4.3.2, 1.7): the decode took them from there
+    assert tile.planes["scale"].scene_palette and tile.planes["color"].scene_palette
     pool = ChunkPool(ctx, scene.formats, scene.sh_degree, 8)
     pool.join(3, tile)
     renderer = SplatRenderer(ctx, pool, RenderOptions(sort="cpu"))

@@ -82,3 +82,14 @@ def test_morton1_applies_to_one_norm16x4_layer_only(keyed_scene, tmp_path):
     write_manifest_dict(tmp_path / "s", d)
     with pytest.raises(FormatError, match="morton1 applies to one layer of norm16x4 only"):
         decode_scene(tmp_path / "s")
+
+
+def test_a_paged_keyed_scene_writes_its_pages_at_its_own_version(tmp_path):
+    """format.md 6.1: a page's version is its root manifest's; a 1.6 scene's pages were written as 1.5 (and every
+    reader refused them) before the pages took the scene's version."""
+    g = read_gaussians(real("statues/massa.sog")).subset(np.arange(3000))
+    m = encode_gaussians(g, tmp_path / "s", EncodeOptions(preset="medium-low-12bit", transport="keyed",
+                                                          max_leaf_splats=400, page_tiles=4, page_levels=1))
+    assert m.paged is not None and m.version == (1, 6)
+    d = decode_scene(tmp_path / "s")
+    assert len(d) == len(g)

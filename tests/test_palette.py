@@ -1,6 +1,7 @@
 """Palette planes (format 1.6, format.md 4.3.2): the pal8x4 texel format's palettes (exact on at most 256 distinct
-values, else a tile-wide 8-bit grid within half its step), scenes written as 1.6 that decode exactly on a SOG input,
-the palette section's checks, and the GL client's 16-bit transcode against the numpy decode (test_gl_decode.py:
+values, else a tile-wide 8-bit grid within half its step), scene palettes in the manifest (1.7) and per-tile
+palettes (1.6) that decode exactly on a SOG input, LOD tiles indexed into the scene's palettes within half their
+largest gap, the palette checks, and the GL client's 16-bit transcode against the numpy decode (test_gl_decode.py:
 the shaders on it)."""
 from __future__ import annotations
 
@@ -11,14 +12,17 @@ import pytest
 from conftest import read_manifest_dict, real, write_manifest_dict
 
 from splatstream.encode import EncodeOptions, encode_gaussians
+from splatstream.encode import plan as encode_plan
 from splatstream.errors import FormatError, UsageError
 from splatstream.format.codec import (
     PALETTE_GPU_FORMAT,
+    PaletteValues,
     decode_palette_indices,
     decode_plane,
     encode_plane,
     fit_palette,
     palette_as_ranged,
+    plane_values,
 )
 from splatstream.format.container import pack_payload, unpack_payload
 from splatstream.format.manifest import writer_version
@@ -87,32 +91,183 @@ def test_palettes_hold_scale_and_colour_only():
     assert writer_version(base) == (1, 3) and writer_version({**base, "scale": "pal8x4"}) == (1, 6)
 
 
+PAL = {"scale": "pal8x4", "color": "pal8x4"}
+
+
+def _sog_input():
+    """The first 3000 splats of a statue scan (a SOG file: 256 log scales, 256 SH0 values, 201 opacities)."""
+    return read_gaussians(real("statues/massa.sog")).subset(np.arange(3000))
+
+
 @pytest.fixture(scope="module")
 def sog_scene(tmp_path_factory):
-    """A statue scan (a SOG file: 256 log scales, 256 SH0 values, 201 opacities) at medium-low-12bit with palettes."""
-    g = read_gaussians(real("statues/massa.sog"))
-    g = g.subset(np.arange(3000))
+    """The SOG input at medium-low-12bit with palettes, one tile (the encoder's scene palettes: 1.7)."""
+    g = _sog_input()
     out = tmp_path_factory.mktemp("pal") / "s"
-    m = encode_gaussians(g, out, EncodeOptions(preset="medium-low-12bit",
-                                               overrides={"scale": "pal8x4", "color": "pal8x4"}, lod=False))
+    m = encode_gaussians(g, out, EncodeOptions(preset="medium-low-12bit", overrides=PAL, lod=False))
     return g, out, m
 
 
-def test_a_sog_input_decodes_exactly_from_a_1_6_scene(sog_scene):
-    g, out, m = sog_scene
-    assert m.version == (1, 6) and m.formats["scale"] == m.formats["color"] == "pal8x4"
-    assert len(np.unique(g.log_scales)) <= 256 and len(np.unique(g.sh_dc)) <= 256
-    d = decode_scene(out)
+@pytest.fixture(scope="module")
+def sog_lod_scene(tmp_path_factory):
+    """The SOG input with palettes in an LOD tree (leaves of at most 400 splats): scene palettes (1.7)."""
+    g = _sog_input()
+    out = tmp_path_factory.mktemp("pal") / "lod"
+    m = encode_gaussians(g, out, EncodeOptions(preset="medium-low-12bit", overrides=PAL, max_leaf_splats=400,
+                                               transport="keyed"))
+    return g, out, m
+
+
+@pytest.fixture(scope="module")
+def tile_palette_scene(tmp_path_factory):
+    """The same LOD encode with per-tile palettes (format 1.6, as the encoder wrote it before scene palettes)."""
+    g = _sog_input()
+    out = tmp_path_factory.mktemp("pal") / "tiles"
+    fit = encode_plan.scene_palettes
+    encode_plan.scene_palettes = lambda parts: None
+    try:
+        m = encode_gaussians(g, out, EncodeOptions(preset="medium-low-12bit", overrides=PAL, max_leaf_splats=400,
+                                                   transport="keyed"))
+    finally:
+        encode_plan.scene_palettes = fit
+    return g, out, m
+
+
+def _assert_exact(g, d):
     # the encoder reorders splats: compare the values as multisets (exact; opacity through sigmoid and logit)
     np.testing.assert_array_equal(np.sort(d.log_scales.ravel()), np.sort(g.log_scales.ravel()))
     np.testing.assert_array_equal(np.sort(d.sh_dc.ravel()), np.sort(g.sh_dc.ravel()))
     np.testing.assert_allclose(np.sort(d.opacities), np.sort(g.opacities), atol=2e-7)
 
 
+def _palette_sections(m, leaves_only=False) -> int:
+    return sum(s.name.endswith(".palette") for t in m.tiles if t.is_leaf or not leaves_only
+               for e in t.groups.values() for s in e.sections)
+
+
+def test_a_sog_input_decodes_exactly_from_a_scene_with_scene_palettes(sog_scene):
+    g, out, m = sog_scene
+    assert m.version == (1, 7) and m.formats["scale"] == m.formats["color"] == "pal8x4"
+    assert len(np.unique(g.log_scales)) <= 256 and len(np.unique(g.sh_dc)) <= 256
+    assert sorted(m.palettes) == ["color", "scale"] and len(m.palettes["scale"]) == 1024
+    assert len(m.palettes["color"]) == 2048
+    assert _palette_sections(m) == 0  # stored once, in the manifest
+    # the scene's palettes are the input's distinct values (entries past them repeat the last)
+    pal = m.scene_palettes
+    distinct = np.unique(g.log_scales)
+    np.testing.assert_array_equal(pal["scale"][0, :len(distinct)], distinct)
+    assert np.all(pal["scale"][0, len(distinct):] == distinct[-1])
+    _assert_exact(g, decode_scene(out))
+
+
+def test_lod_leaves_decode_exactly_and_payloads_carry_no_palettes(sog_lod_scene):
+    g, out, m = sog_lod_scene
+    assert m.version == (1, 7) and len(m.tiles) > 3 and m.palettes
+    assert _palette_sections(m, leaves_only=True) == 0
+    _assert_exact(g, decode_scene(out))
+
+
+def test_lod_tiles_inside_the_scene_palettes_are_within_half_their_largest_gap(sog_lod_scene):
+    """An interior tile's merged values leave the input's palette: indexed into the scene's (no section of its own)
+    when they lie within it, within half the largest gap between neighbouring entries; outside, the tile keeps its
+    own palette section (1.6's rule for that payload)."""
+    g, out, m = sog_lod_scene
+    tiles = encode_plan.plan_encode(g, EncodeOptions(preset="medium-low-12bit", overrides=PAL, max_leaf_splats=400,
+                                                     transport="keyed")).tiles
+    pal = m.scene_palettes["scale"][0].astype(np.float64)
+    half_gap = np.diff(pal).max() / 2
+    checked = 0
+    for tile, entry in zip(sorted(tiles, key=lambda t: t.id), m.tiles, strict=True):
+        values = plane_values(tile.gaussians, SCALE)
+        inside = values.min() >= pal.min() and values.max() <= pal.max()
+        own = any(s.name == "scale.palette" for s in entry.groups["base"].sections)
+        assert own == (not inside)
+        if inside and not entry.is_leaf:
+            d = decode_scene(out, tiles=[entry.id])
+            # the decoded values as a multiset, each within half the largest gap of one of the tile's values
+            got, want = np.sort(d.log_scales.ravel()), np.sort(values.ravel())
+            assert np.abs(got - want).max() <= half_gap + 1e-6
+            checked += 1
+    assert checked >= 1
+
+
+def test_a_paged_scene_keeps_its_palettes_in_the_root_manifest(tmp_path):
+    """format.md 6.1: the pages' tiles index the root manifest's palettes."""
+    g = _sog_input()
+    out = tmp_path / "paged"
+    m = encode_gaussians(g, out, EncodeOptions(preset="medium-low-12bit", overrides=PAL, max_leaf_splats=400,
+                                               page_tiles=4, page_levels=1))
+    assert m.paged is not None and m.version == (1, 7) and m.palettes
+    _assert_exact(g, decode_scene(out))
+
+
+def test_a_1_6_scene_with_per_tile_palettes_still_reads_exactly(tile_palette_scene, sog_lod_scene):
+    g, out, m = tile_palette_scene
+    assert m.version == (1, 6) and m.palettes is None
+    assert _palette_sections(m) == 2 * len(m.tiles)
+    _assert_exact(g, decode_scene(out))
+    # scene palettes make the tree smaller: the same splats, the palettes stored once
+    assert sog_lod_scene[2].bytes_on_disk < m.bytes_on_disk
+
+
+def test_palette_values_joined_part_by_part_fit_the_palette_of_the_whole():
+    """encode/sample.py: the partitioned encoder gathers the values chunk by chunk."""
+    rng = np.random.default_rng(5)
+    few = rng.normal(size=200).astype(np.float32)[rng.integers(0, 200, 3000)]
+    many = rng.normal(size=3000).astype(np.float32)
+    for values in (few, many):
+        parts = [PaletteValues.of(p) for p in np.array_split(values, 7)]
+        np.testing.assert_array_equal(PaletteValues.join(parts).palette(), fit_palette(values))
+    # parts of at most 256 each that together hold more
+    a, b = np.arange(200, dtype=np.float32), np.arange(200, 400, dtype=np.float32)
+    np.testing.assert_array_equal(PaletteValues.join([PaletteValues.of(a), PaletteValues.of(b)]).palette(),
+                                  fit_palette(np.concatenate([a, b])))
+
+
+def test_a_partitioned_encode_fits_the_same_scene_palettes(tmp_path):
+    """The partitioned encoder (chunks of the input, encode/sample.py's palette values) writes the bytes of the
+    single-process encode, scene palettes included."""
+    from splatstream.encode import encode_in_memory
+    from splatstream.encode.local import LocalEngine
+    from splatstream.encode.partitioned import ArrayRows, encode_partitioned
+    from splatstream.encode.scratch import Scratch
+    from splatstream.store import MemoryWriter
+
+    g = _sog_input()
+    opts = EncodeOptions(preset="medium-low-12bit", overrides=PAL, max_leaf_splats=400)
+    ref = encode_in_memory(g, opts, name="s")
+    writer = MemoryWriter("s")
+    space = Scratch.create(str(tmp_path))
+    m = encode_partitioned(ArrayRows(g), writer, opts, LocalEngine(200_000), space, source_name="s")
+    space.remove()
+    got = writer.store()
+    assert m.palettes and got.manifest_bytes == ref.manifest_bytes and got.payloads == ref.payloads
+
+
+def test_scene_palettes_are_checked_with_the_manifest(sog_scene, tmp_path):
+    _, out, _ = sog_scene
+    cases = [
+        (lambda d: d["palettes"].__setitem__("scale", d["palettes"]["scale"][:-4]), r"palettes\.scale.*bin of 1024"),
+        (lambda d: d["palettes"].__setitem__("scale", np.full(256, np.nan, "<f4").tobytes()), "non-finite"),
+        (lambda d: d["palettes"].__setitem__("scale", np.full(256, 50.0, "<f4").tobytes()), "leaves the scale"),
+        (lambda d: d["palettes"].__setitem__("position", bytes(1024)), r"palettes\.position.*names no"),
+        (lambda d: d["palettes"].pop("scale"), r"missing section 'scale\.palette'"),
+        (lambda d: d.__setitem__("version", [1, 6]), "unknown key 'palettes'"),
+    ]
+    for i, (damage, message) in enumerate(cases):
+        d = read_manifest_dict(out)
+        damage(d)
+        shutil.copytree(out, tmp_path / f"s{i}")
+        write_manifest_dict(tmp_path / f"s{i}", d)
+        with pytest.raises(FormatError, match=message):
+            decode_scene(tmp_path / f"s{i}")
+
+
 def test_a_1_5_manifest_naming_pal8x4_is_rejected(sog_scene, tmp_path):
     _, out, _ = sog_scene
     d = read_manifest_dict(out)
     d["version"] = [1, 5]
+    d.pop("palettes")  # a 1.7 key: a 1.5 manifest fails on it first
     shutil.copytree(out, tmp_path / "s")
     write_manifest_dict(tmp_path / "s", d)
     with pytest.raises(FormatError, match=r"formats\.scale.*pal8x4 is a version 1\.6 texel format"):

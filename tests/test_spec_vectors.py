@@ -94,7 +94,7 @@ def test_newer_major_version_is_rejected(tmp_path):
     with pytest.raises(FormatError, match="version 2.0 is not supported"):
         load_manifest(tmp_path / "s")
     # A newer minor version may add keys: this reader ignores them. In a version it knows, they are damage.
-    m["version"] = [1, 7]
+    m["version"] = [1, 8]
     m["a_future_key"] = {"x": 1}
     write_manifest_dict(tmp_path / "s", m)
     assert len(decode_scene(tmp_path / "s")) == 260

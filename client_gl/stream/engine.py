@@ -153,6 +153,7 @@ class CompiledSelection:
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
         self.error: BaseException | None = None  # why it is not available (numba missing, a failed compilation)
+        self.decode_error: BaseException | None = None  # why the compiled fields1 decoder is not installed
 
     def get(self):
         fn = self._fn
@@ -185,10 +186,19 @@ class CompiledSelection:
         except Exception as exc:  # ImportError without numba; anything else also leaves the numpy path (same cut)
             self.error = exc
             return
+        try:
+            # the compiled fields1 decoder too (decode_jit): the decode threads of this process take it from the
+            # next payload on (the same bytes as the numpy path; issue 32's decode speed). Decode processes keep
+            # numpy.
+            from . import decode_jit
+            decode_jit.install()
+        except Exception as exc:  # a failed compilation leaves the numpy path (the same bytes)
+            self.decode_error = exc
         self._fn = selection_jit.select_near_compiled
 
 
-_WARM_UP = "from client_gl.stream import selection_jit; selection_jit.warm_up()"
+_WARM_UP = ("from client_gl.stream import selection_jit, decode_jit; selection_jit.warm_up(); "
+            "decode_jit.warm_up()")
 
 
 COMPILED_SELECTION = CompiledSelection()
@@ -217,14 +227,16 @@ class _Ready:
 
 
 def decode_job(data: VerifiedPayload | bytes, entry: PayloadEntry, group: str, where: str, codebook_tile: bool,
-               splats: int, codebook_entries: int, with_mirror: bool, between=None) -> tuple[dict, Any] | str:
+               splats: int, codebook_entries: int, with_mirror: bool, palettes=None,
+               between=None) -> tuple[dict, Any] | str:
     """A payload decoded into planes (and the CPU-sort path's host mirror of a base): on a decode thread or in a
     decode process (plain arguments, so it pickles). A VerifiedPayload (the fetcher's) is not hashed again; bytes
     from a fetcher that does not verify are verified here. A payload that does not decode gives the error's message:
     the bytes matched their checksum, so the scene is broken, not the link. between: a decode thread's wait for the
-    frame loop, between the payload's steps (decode_payload)."""
+    frame loop, between the payload's steps (decode_payload). palettes: the scene's palettes (format.md 4.3.2), for
+    a base payload whose palette planes index them."""
     try:
-        planes = decode_payload(data, entry, group, where, codebook_tile, between)
+        planes = decode_payload(data, entry, group, where, codebook_tile, between, palettes)
         return _as_held(planes, group, where, codebook_tile, splats, codebook_entries, with_mirror)
     except SplatstreamError as exc:
         return str(exc)
@@ -246,11 +258,13 @@ def decode_batch_job(jobs: list[tuple], between=None) -> list[tuple[dict, Any] |
     the same results, bit for bit. A batch that does not decode is decoded again one payload at a time, so that the
     payload at fault is the one named, and the others are kept."""
     try:
-        planes = decode_payloads([(j[0], j[1]) for j in jobs], jobs[0][2], [j[3] for j in jobs], jobs[0][4], between)
+        palettes = jobs[0][8] if len(jobs[0]) > 8 else None  # the scene's (format.md 4.3.2), the same in every job
+        planes = decode_payloads([(j[0], j[1]) for j in jobs], jobs[0][2], [j[3] for j in jobs], jobs[0][4], between,
+                                 palettes=palettes)
     except SplatstreamError:
         return [decode_job(*j, between=between) for j in jobs]
     out: list[tuple[dict, Any] | str] = []
-    for p, (_, _, group, where, codebook_tile, splats, entries, with_mirror) in zip(planes, jobs, strict=True):
+    for p, (_, _, group, where, codebook_tile, splats, entries, with_mirror, *_) in zip(planes, jobs, strict=True):
         try:
             out.append(_as_held(p, group, where, codebook_tile, splats, entries, with_mirror))
         except SplatstreamError as exc:
@@ -745,7 +759,8 @@ class StreamEngine:
         entries = self.manifest.sh_codebook.entries if codebook_tile else 0
         where = self.fetcher.where(entry) if hasattr(self.fetcher, "where") else f"{self.location}/{entry.file}"
         return (data, entry, group, where, codebook_tile, splats, entries,
-                self.with_mirror and group == "base" and tile_id is not None)
+                self.with_mirror and group == "base" and tile_id is not None,
+                self.manifest.scene_palettes if group == "base" else None)
 
     def _finish(self, key: Key, result: tuple | str) -> _Ready | str:
         if isinstance(result, str):

@@ -80,8 +80,9 @@ def group_planes_of(g: Gaussians, order: np.ndarray, group: str, ctx: TileContex
         step = ctx.steps.get(s.name, ctx.steps.get(s.attribute))
         # Importance-scaled steps (SH bands): each chunk's step by its splats' opacity x footprint (format.md 4.3.1).
         importance = codebook_weights(g) if step is not None and step.importance else None
+        scene_palette = ctx.palettes.get(s.name) if ctx.palettes else None  # format.md 4.3.2, 1.7
         planes.append(encode_plane(plane_values(g, s), s, ctx.formats[s.attribute], order, lazy=True, step=step,
-                                   importance=importance))
+                                   importance=importance, scene_palette=scene_palette))
     return planes
 
 

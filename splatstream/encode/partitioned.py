@@ -60,7 +60,7 @@ from ..store import SceneWriter, write_scene_manifest
 from .codebook import codebook_choice
 from .jobs import encode_codebook, encode_tile
 from .options import EncodeOptions, Progress, no_progress
-from .plan import TileContext, plan_formats, plan_scene, scene_name
+from .plan import TileContext, palette_planes, plan_formats, plan_scene, scene_name
 from .reduce import build_manifest
 from .sample import SceneSample
 from .scratch import Scratch
@@ -330,7 +330,8 @@ def _row_bytes(sh_degree: int) -> int:
 
 
 def route_chunk(rows, i: int, start: int, stop: int, offset: int, splits: list, partitions: int, scratch: Scratch,
-                sh_degree: int, splats: int, with_codebook: bool) -> tuple[np.ndarray, SceneSample]:
+                sh_degree: int, splats: int, with_codebook: bool,
+                palette_planes: tuple[str, ...] = ()) -> tuple[np.ndarray, SceneSample]:
     """Send every row of a chunk to its partition: one scratch file, a section per partition (each attribute's
     rows, then their input indices), rows in input order. Returns the rows per partition and the chunk's part of
     the scene samples."""
@@ -349,7 +350,7 @@ def route_chunk(rows, i: int, start: int, stop: int, offset: int, splits: list, 
             blocks.append(getattr(g, name)[rows_q].tobytes())
         blocks.append(index[rows_q].tobytes())
     scratch.write(f"route/{i}", blocks)
-    return counts, SceneSample.part(g, offset, splats, with_codebook)
+    return counts, SceneSample.part(g, offset, splats, with_codebook, palette_planes)
 
 
 def _read_partition(scratch: Scratch, p: int, chunk_counts: list[np.ndarray], sh_degree: int
@@ -717,7 +718,8 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
 
     choice = codebook_choice(opts, sh_degree)
     routed = engine.map(route_chunk, [(rows, i, s, e, chunks[i][0], splits, partitions, scratch, sh_degree, splats,
-                                       choice != "off") for i, (s, e) in enumerate(spans)], "route", progress)
+                                       choice != "off", palette_planes(formats))
+                                      for i, (s, e) in enumerate(spans)], "route", progress)
     chunk_counts = [r[0] for r in routed]
     engine.map_behind(delete_scratch, [(scratch, [f"pos/{i}", *(f"node/{d}/{i}" for d in range(kd))])
                                        for i in range(len(spans))], "cleanup")

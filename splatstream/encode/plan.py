@@ -15,13 +15,15 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..errors import InputError, UsageError
-from ..format.codec import chunk_ranges
+from ..format.codec import chunk_ranges, scene_palettes
 from ..format.container import DEFAULT_ZSTD_LEVEL
 from ..format.layout import CHUNK_SIZE, MAX_BLOCK_ROWS, MAX_BLOCKS_PER_ROW
 from ..format.limits import describe_violations, domain_violations
 from ..format.manifest import Box, CameraEntry
+from ..format.planes import BASE_PLANES
 from ..format.presets import preset_steps, resolve_chunk_order, resolve_formats
 from ..format.steps import TileStep, on_grid
+from ..format.texformats import PALETTE_FORMATS
 from ..gaussians import Gaussians
 from ..lod import Tile, build_tiles
 from ..vq import Codebook
@@ -44,6 +46,8 @@ class TileContext:
     transport: str = "fields"  # format/transport.py TRANSPORTS
     # Tile-wide quantisation steps per attribute (format/steps.py): the preset's, for attributes it keeps the format of
     steps: dict[str, TileStep] = field(default_factory=dict)
+    # The scene's palettes per pal8x4 plane, (P, 256) float32 (format.md 4.3.2, 1.7: written once, in the manifest)
+    palettes: dict[str, np.ndarray] | None = None
 
 
 @dataclass(frozen=True)
@@ -145,8 +149,9 @@ def plan_scene(opts: EncodeOptions, formats: dict[str, str], chunk_order: str, s
         progress("codebook", 1.0)
     sample = replace(sample, codebook_rows=None, codebook_weights=None)
     up = plan_up(opts, sample)
+    palettes = scene_palettes(sample.palettes) if sample.palettes else None
     context = TileContext(formats, chunk_order, sh_degree, codebook, opts.resolved_zstd_level, opts.resolved_transport,
-                          preset_steps(opts.preset, opts.overrides))
+                          preset_steps(opts.preset, opts.overrides), palettes)
     return ScenePlan(context, opts.preset, name, splats, bounds, up, opts.max_leaf_splats,
                      float(opts.reduction)), sample
 
@@ -174,7 +179,8 @@ def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progr
     # An input already cut into quantised chunks keeps its order in a single tile (input_is_chunk_quantised).
     if opts.chunk_order == "auto" and chunk_order == "morton" and one_tile and input_is_chunk_quantised(g):
         chunk_order = "input"
-    sample = SceneSample.of(g, with_codebook=codebook_choice(opts, sh_degree) != "off")
+    sample = SceneSample.of(g, with_codebook=codebook_choice(opts, sh_degree) != "off",
+                            palette_planes=palette_planes(formats))
     scene, sample = plan_scene(opts, formats, chunk_order, sh_degree, sample, len(g), positions_box(g.positions),
                                scene_name(opts, source_name, out_name), progress)
     progress("tiles", 0.0)
@@ -184,6 +190,11 @@ def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progr
         tiles = [replace(t, gaussians=t.gaussians.with_sh_degree(sh_degree)) for t in tiles]
     progress("tiles", 1.0)
     return EncodePlan(scene, tiles, sample)
+
+
+def palette_planes(formats: dict[str, str]) -> tuple[str, ...]:
+    """The base planes stored as palette indices (format.md 4.3.2): their scene palettes are fitted in the plan."""
+    return tuple(s.name for s in BASE_PLANES if formats.get(s.attribute) in PALETTE_FORMATS)
 
 
 def plan_up(opts: EncodeOptions, sample: SceneSample) -> tuple[float, float, float]:

@@ -1,6 +1,8 @@
 """Reduce: the manifest from the plan and every tile's entry (what the jobs returned, in any order)."""
 from __future__ import annotations
 
+import numpy as np
+
 from .. import __version__
 from ..format.keyed import MORTON1
 from ..format.layout import CHUNK_SIZE
@@ -14,7 +16,7 @@ from ..format.manifest import (
     TileEntry,
     writer_version,
 )
-from ..format.manifest.versions import VERSION_1_6
+from ..format.manifest.versions import VERSION_1_6, VERSION_1_7
 from ..format.planes import BASE_PLANE_NAMES
 from ..format.presets import ATTRIBUTES
 from .plan import ScenePlan
@@ -50,6 +52,8 @@ def _version(ctx, codebook: SHCodebookEntry | None, tiles: list[TileEntry]) -> t
     5.4: the encoder chooses it per section, so only the entries tell)."""
     version = writer_version(ctx.formats, codebook.format if codebook is not None else None, ctx.chunk_order)
     keyed = any(s.filter == MORTON1 for t in tiles for e in t.groups.values() for s in e.sections)
+    if ctx.palettes:  # scene palettes in the manifest (format.md 4.3.2)
+        return max(version, VERSION_1_7)
     return max(version, VERSION_1_6) if keyed else version
 
 
@@ -96,5 +100,7 @@ def build_manifest(scene: ScenePlan, camera: CameraEntry, tiles: list[TileEntry]
         attributes={a: AttributeSize(ctx.formats[a], int(sizes.gpu[a]), int(sizes.disk[a]))
                     for a in ATTRIBUTES if a != "sh" or ctx.sh_degree > 0},
         encode_seconds=0.0,
+        palettes={name: np.ascontiguousarray(p, "<f4").tobytes() for name, p in ctx.palettes.items()}
+        if ctx.palettes else None,
     )
     return m.with_bytes_on_disk(m.payload_bytes())

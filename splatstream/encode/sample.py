@@ -8,7 +8,10 @@ Samples are rows chosen by their index in the input (after dropped invalid rows)
 * the position sample: every ceil(N / POSITION_SAMPLE)-th centre (all of them up to 2M splats), for the
   robust bounds of the suggested camera and the extent test of the up detection;
 * the codebook sample: CODEBOOK_SAMPLE rows evenly spaced (all of them up to that many), the rows the SH
-  codebook is fitted on (format_spec/format.md 4.7).
+  codebook is fitted on (format_spec/format.md 4.7);
+* the palette values (only for a scene with pal8x4 planes): not a sample but every row, reduced part by part to
+  what the scene's palettes are fitted from (codec.PaletteValues: the distinct values up to 256, else the least and
+  largest; format.md 4.3.2), so a partitioned encode fits the palettes the single-process one does.
 """
 from __future__ import annotations
 
@@ -18,7 +21,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..camera import suggested_camera
+from ..format.codec import PaletteValues, palette_values, plane_values
 from ..format.manifest import CameraEntry
+from ..format.planes import BASE_PLANES
 from ..gaussians import Gaussians
 from ..orientation import SAMPLE as ORIENT_SAMPLE
 from ..orientation import UpChoice, detect_up, view_side
@@ -52,9 +57,12 @@ class SceneSample:
     positions: np.ndarray  # (M, 3) float32
     codebook_rows: np.ndarray | None  # (K, 3 x coefficients) float32, None without SH bands
     codebook_weights: np.ndarray | None
+    # Per palette plane (format.md 4.3.2) the PaletteValues of each of its palettes; None without palette planes.
+    palettes: dict[str, list[PaletteValues]] | None = None
 
     @staticmethod
-    def part(g: Gaussians, offset: int, splats: int, with_codebook: bool) -> SceneSample:
+    def part(g: Gaussians, offset: int, splats: int, with_codebook: bool,
+             palette_planes: tuple[str, ...] = ()) -> SceneSample:
         """The sample rows among `g`, the rows offset..offset+len(g) of a scene of `splats` splats."""
 
         def local(idx: np.ndarray) -> np.ndarray:
@@ -70,19 +78,25 @@ class SceneSample:
             # Every row of this part (a scene below the sample size): its own arrays, not a copy of them.
             sub = g if len(picked) == len(g) else g.subset(picked)
             rows, weights = codebook_rows(sub), codebook_weights(sub)
-        return SceneSample(splats, orient, g.positions[local(position_indices(splats))], rows, weights)
+        palettes = {s.name: palette_values(plane_values(g, s), s) for s in BASE_PLANES if s.name in palette_planes}
+        return SceneSample(splats, orient, g.positions[local(position_indices(splats))], rows, weights,
+                           palettes or None)
 
     @staticmethod
     def join(parts: list[SceneSample]) -> SceneSample:
         """The parts of consecutive chunks, in input order."""
         rows = None if parts[0].codebook_rows is None else np.concatenate([p.codebook_rows for p in parts])
         weights = None if parts[0].codebook_weights is None else np.concatenate([p.codebook_weights for p in parts])
+        palettes = None
+        if parts[0].palettes is not None:
+            palettes = {name: [PaletteValues.join([p.palettes[name][i] for p in parts]) for i in range(len(groups))]
+                        for name, groups in parts[0].palettes.items()}
         return SceneSample(parts[0].splats, Gaussians.concatenate([p.orient for p in parts]),
-                           np.concatenate([p.positions for p in parts]), rows, weights)
+                           np.concatenate([p.positions for p in parts]), rows, weights, palettes)
 
     @staticmethod
-    def of(g: Gaussians, with_codebook: bool) -> SceneSample:
-        return SceneSample.part(g, 0, len(g), with_codebook)
+    def of(g: Gaussians, with_codebook: bool, palette_planes: tuple[str, ...] = ()) -> SceneSample:
+        return SceneSample.part(g, 0, len(g), with_codebook, palette_planes)
 
     def up(self) -> UpChoice:
         return detect_up(self.orient, self.positions)

@@ -137,6 +137,8 @@ class EncodedPlane:
     ranges: np.ndarray | None  # (chunks, 2, L, C) in range_dtype, [:, 0] = min, [:, 1] = max
     # A palette plane's palettes (format.md 4.3.2): (palette_count, 256) float32; its `ranges` are None.
     palette: np.ndarray | None = None
+    # The palettes are the scene's (format.md 4.3.2, 1.7: in the manifest): its payload holds no palette section.
+    scene_palette: bool = False
 
     @property
     def chunks(self) -> int:
@@ -199,7 +201,7 @@ def _quantize_u8(t: np.ndarray) -> np.ndarray:
 
 def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.ndarray | None = None,
                  lazy: bool = False, step: TileStep | None = None,
-                 importance: np.ndarray | None = None) -> EncodedPlane:
+                 importance: np.ndarray | None = None, scene_palette: np.ndarray | None = None) -> EncodedPlane:
     """Quantise (N, L, C) plane values into one texture blob per layer (+ per-chunk ranges).
 
     `step`: quantise a ranged plane on one step per component over the tile instead of per-chunk grids, by widening
@@ -211,10 +213,12 @@ def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.n
     `order` (a permutation, the tile's Morton order) is applied before quantising. With
     `lazy`, `layers` is an iterator that encodes each layer when asked for it and `ranges` is filled in once it
     is exhausted, so a payload writer holds one layer at a time.
+
+    `scene_palette`: a palette plane's scene palettes (encode_palette_plane's `scene`).
     """
     get_format(fmt_name)
     if fmt_name in PALETTE_FORMATS:
-        return encode_palette_plane(values, spec, fmt_name, order)
+        return encode_palette_plane(values, spec, fmt_name, order, scene_palette)
     n = len(values)
     chunks = max(1, -(-n // CHUNK_SIZE))
     width, height = texture_size(chunks)
@@ -287,14 +291,57 @@ def fit_palette(values: np.ndarray) -> np.ndarray:
     else PALETTE_ENTRIES evenly spaced values from the least to the largest (a tile-wide 8-bit grid: the error is at
     most half its step, as a norm8x4 plane over one range; an LOD tile's merged values, which leave the input's
     palette, land here). Deterministic: a function of the values' set."""
-    distinct = np.unique(np.asarray(values, np.float32))
-    if distinct.size == 0:
-        return np.zeros(PALETTE_ENTRIES, np.float32)
-    if distinct.size <= PALETTE_ENTRIES:
-        return np.concatenate([distinct, np.repeat(distinct[-1:], PALETTE_ENTRIES - distinct.size)])
-    lo, hi = float(distinct[0]), float(distinct[-1])
+    return PaletteValues.of(values).palette()
+
+
+@dataclass(frozen=True)
+class PaletteValues:
+    """What a palette is fitted from (fit_palette), gathered part by part (the partitioned encoder's chunks of the
+    input: encode/sample.py): the sorted distinct values while there are at most PALETTE_ENTRIES, else only the least
+    and the largest (`many`), which is all the 256-step grid needs. Joining parts gives what the whole would."""
+
+    values: np.ndarray  # float32, ascending
+    many: bool = False
+
+    @staticmethod
+    def of(values: np.ndarray) -> PaletteValues:
+        distinct = np.unique(np.asarray(values, np.float32))
+        if distinct.size > PALETTE_ENTRIES:
+            return PaletteValues(distinct[[0, -1]], True)
+        return PaletteValues(distinct)
+
+    @staticmethod
+    def join(parts: list[PaletteValues]) -> PaletteValues:
+        joined = PaletteValues.of(np.concatenate([p.values for p in parts]) if parts else np.zeros(0, np.float32))
+        if any(p.many for p in parts) and not joined.many:
+            return PaletteValues(joined.values[[0, -1]], True)
+        return joined
+
+    def palette(self) -> np.ndarray:
+        """(PALETTE_ENTRIES,) float32, ascending: fit_palette's rule."""
+        distinct = self.values
+        if distinct.size == 0:
+            return np.zeros(PALETTE_ENTRIES, np.float32)
+        if not self.many:
+            return np.concatenate([distinct, np.repeat(distinct[-1:], PALETTE_ENTRIES - distinct.size)])
+        return _grid_palette(float(distinct[0]), float(distinct[-1]))
+
+
+def palette_values(values: np.ndarray, spec: PlaneSpec) -> list[PaletteValues]:
+    """The PaletteValues of each palette of a palette plane (PALETTE_GROUPS) from its (N, 1, C) values."""
+    groups = PALETTE_GROUPS[spec.name]
+    return [PaletteValues.of(values[:, 0, [k for k, g in enumerate(groups) if g == p]])
+            for p in range(palette_count(spec))]
+
+
+def scene_palettes(parts: dict[str, list[PaletteValues]]) -> dict[str, np.ndarray]:
+    """The scene's palettes per plane, (palette_count, 256) float32 (format.md 4.3.2, 1.7), from its PaletteValues."""
+    return {name: np.stack([p.palette() for p in groups]).astype(np.float32) for name, groups in parts.items()}
+
+
+def _grid_palette(lo: float, hi: float) -> np.ndarray:
     grid = (lo + (hi - lo) * (np.arange(PALETTE_ENTRIES) / (PALETTE_ENTRIES - 1))).astype(np.float32)
-    grid[0], grid[-1] = distinct[0], distinct[-1]
+    grid[0], grid[-1] = lo, hi
     return np.maximum.accumulate(grid)
 
 
@@ -312,11 +359,16 @@ def palette_indices(values: np.ndarray, palette: np.ndarray) -> np.ndarray:
     return first[i]
 
 
-def encode_palette_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str,
-                         order: np.ndarray | None = None) -> EncodedPlane:
+def encode_palette_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.ndarray | None = None,
+                         scene: np.ndarray | None = None) -> EncodedPlane:
     """A palette plane (format.md 4.3.2): per palette of the plane (PALETTE_GROUPS: the components sharing it), the
     tile's values' palette (fit_palette: exact when they take at most 256 values), and every component's index into
-    its palette as an 8-bit texel component in the chunk-block layout."""
+    its palette as an 8-bit texel component in the chunk-block layout.
+
+    `scene`: the scene's palettes of the plane ((palette_count, 256), format.md 4.3.2, 1.7). A palette group whose
+    tile values all lie within its scene palette's least and largest entry is indexed into it (nearest entry); if
+    every group is, the plane is marked `scene_palette` (its payload then holds no palette section), else the plane
+    carries its own palettes: the scene's rows for the groups inside them, the tile's fit for the others."""
     if spec.name not in PALETTE_GROUPS or spec.layers != 1:
         raise ValueError(f"{fmt_name} holds palette indices of a scale or colour plane, not of {spec.name}")
     n = len(values)
@@ -328,12 +380,26 @@ def encode_palette_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str,
     groups = PALETTE_GROUPS[spec.name]
     palette = np.zeros((palette_count(spec), PALETTE_ENTRIES), np.float32)
     index = np.zeros((len(v), 4), np.float32)
+    inside = True
     for p in range(len(palette)):
         comps = [k for k, g in enumerate(groups) if g == p]
-        palette[p] = fit_palette(v[:, comps])
+        if scene is not None and within_palette(v[:, comps], scene[p]):
+            palette[p] = scene[p]
+        else:
+            palette[p] = fit_palette(v[:, comps])
+            inside = False
         index[:, comps] = palette_indices(v[:, comps], palette[p]).astype(np.float32) / np.float32(255.0)
     blob = _texture_blob(_pad_to_chunks(index), fmt_name, chunks, width, height)
+    if scene is not None and inside:
+        return EncodedPlane(spec, fmt_name, width, height, [blob], None, np.asarray(scene, np.float32), True)
     return EncodedPlane(spec, fmt_name, width, height, [blob], None, palette)
+
+
+def within_palette(values: np.ndarray, palette: np.ndarray) -> bool:
+    """Whether every value lies within the palette's least and largest entry (its nearest entry is then at most
+    half the largest gap between neighbouring entries away)."""
+    return not values.size or (float(values.min()) >= float(palette.min()) and
+                               float(values.max()) <= float(palette.max()))
 
 
 def decode_palette_indices(plane: EncodedPlane, n: int) -> np.ndarray:

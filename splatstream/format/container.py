@@ -15,8 +15,10 @@ from __future__ import annotations
 import functools
 import hashlib
 import io
+import math
+import operator
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from typing import BinaryIO
 
 import numpy as np
@@ -35,6 +37,7 @@ from .transport import (
     FIELD_LAYOUTS,
     FIELDS1,
     field_bits,
+    fields_kernel,
     filter_texels,
     shuffle,
     shuffle_filter,
@@ -86,7 +89,9 @@ def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level:
         else:
             filt, parts = filter_texels(p.layers, p.format, p.width, p.height, layers, level, transport)
         add(p.spec.name, "texels", filt, parts, format=p.format, width=p.width, height=p.height, layers=layers)
-        if p.palette is not None:  # a palette plane (format.md 4.3.2): its palettes stand where its ranges would
+        if p.palette is not None and p.scene_palette:  # the scene's palettes (format.md 4.3.2, 1.7): no section
+            pass
+        elif p.palette is not None:  # a palette plane (format.md 4.3.2): its palettes stand where its ranges would
             palette = np.ascontiguousarray(p.palette, "<f4")
             expected = palette_shape(p.spec)
             if palette.size != int(np.prod(expected)):
@@ -256,14 +261,19 @@ def _decompress_into(data: bytes | memoryview, buf: np.ndarray, source: str) -> 
                           "or truncated zstd frame)")
 
 
+_element = functools.lru_cache(maxsize=32)(filter_element)  # a filter name's parse, once (not once a section)
+
+
 def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, source: str,
-                   codebook: bool = False, between: Callable[[], object] | None = None) -> dict[str, EncodedPlane]:
+                   codebook: bool = False, between: Callable[[], object] | None = None,
+                   palettes: Mapping[str, np.ndarray] | None = None) -> dict[str, EncodedPlane]:
     """Decompress verified payload bytes into planes (texels still encoded; ranges as stored).
 
     The entry comes from a validated manifest, so the section table is consistent with the planes of `group`;
     what is checked here is what only the bytes can tell. With `codebook`, a tile's sh1 group holds the SH index
     plane (format_spec/format.md 4.7). `between` is called before each plane: a decode thread's point to wait
-    while another thread needs the interpreter (the streaming client's frame loop)."""
+    while another thread needs the interpreter (the streaming client's frame loop). `palettes`: the scene's
+    palettes (Manifest.scene_palettes, format.md 4.3.2), for a palette plane whose payload has no palette section."""
     buf, kept = _decompress(data, entry.raw_bytes, source)
     # What a small payload's decode spends beyond its splats is per-call Python and numpy work (issue 32: on the LOD
     # tree's tiles of a few hundred splats it was half the time), so this loop does only what each plane needs: the
@@ -284,12 +294,11 @@ def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, so
             _check_float_texels(layers, s, source)
         ranges = palette = None
         if s.format in PALETTE_FORMATS:
-            r = sections[spec.palette_name]
-            palette = unshuffle(buf[r.offset:r.offset + r.size], r.element).view("<f4").reshape(r.shape[0], -1)
-            _check_palette(palette, spec.name, r.name, source)
+            palette = _palette_of(buf, sections, spec, palettes, source)
         elif spec.range_dtype:
             r = sections[spec.range_name]
-            ranges = unshuffle(buf[r.offset:r.offset + r.size], r.element).view(spec.range_dtype).reshape(r.shape)
+            ranges = unshuffle(buf[r.offset:r.offset + r.size], _element(r.filter)).view(spec.range_dtype) \
+                .reshape(r.shape)
             _check_ranges(ranges, spec.name, r.name, source)
         if kept:  # what is still a view of this thread's buffer is copied: the next payload overwrites it
             layers = [p.copy() if p.base is owner else p for p in layers]
@@ -297,16 +306,14 @@ def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, so
                 ranges = ranges.copy()
             if palette is not None and np.may_share_memory(palette, buf):
                 palette = palette.copy()
-        planes[spec.name] = EncodedPlane(spec, s.format, s.width, s.height, layers, ranges, palette)
+        planes[spec.name] = EncodedPlane(spec, s.format, s.width, s.height, layers, ranges, palette,
+                                         palette is not None and spec.palette_name not in sections)
     return planes
 
 
-_element = functools.lru_cache(maxsize=32)(filter_element)  # a filter name's parse, once (not once a section)
-
-
 def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group: str, sources: list[str],
-                    codebook: bool = False,
-                    between: Callable[[], object] | None = None) -> list[dict[str, EncodedPlane]]:
+                    codebook: bool = False, between: Callable[[], object] | None = None,
+                    palettes: Mapping[str, np.ndarray] | None = None) -> list[dict[str, EncodedPlane]]:
     """unpack_payload of several verified payloads of one group (the tiles of one request, a scene's tiles): the
     same planes, bit for bit, but each step taken for all of them in one go where it can be: fields1 sections of
     the same format and modes through one work array (transport.unfilter_fields_many), shuffled sections and
@@ -320,7 +327,7 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
         return []
     if any(sec.filter == MORTON1 or sec.format in PALETTE_FORMATS for _, entry in items for sec in entry.sections):
         # keyed positions and palette planes (format.md 5.4, 4.3.2) are decoded one payload at a time
-        return [unpack_payload(data, entry, group, source, codebook, between)
+        return [unpack_payload(data, entry, group, source, codebook, between, palettes)
                 for (data, entry), source in zip(items, sources, strict=True)]
     sizes = [entry.raw_bytes for _, entry in items]
     total = sum(sizes)
@@ -343,11 +350,12 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
         # fields1 sections in batches of one (format, layer count, header); shuffled ones of one element
         fields_batches: dict[tuple, list[int]] = {}
         shuffled: dict[int, list[int]] = {}
+        batch_fields = fields_kernel() is None  # a compiled kernel takes a section a call at little cost
         for k, (s, buf) in enumerate(zip(secs, bufs, strict=True)):
-            if s.filter == FIELDS1 and s.format in FIELD_LAYOUTS:
+            if batch_fields and s.filter == FIELDS1 and s.format in FIELD_LAYOUTS:
                 head = bytes(buf[s.offset:s.offset + min(s.size, 1 + len(field_bits(s.format)) * spec.layers)])
                 fields_batches.setdefault((s.format, head), []).append(k)
-            elif s.filter != "none" and s.format not in FLOAT_TEXEL_FORMATS:
+            elif s.filter not in ("none", FIELDS1) and s.format not in FLOAT_TEXEL_FORMATS:
                 shuffled.setdefault(_element(s.filter), []).append(k)
             else:
                 layers[k] = unfilter_texels(buf[s.offset:s.offset + s.size], s.filter, s.format, s.width, s.height,
@@ -424,6 +432,8 @@ FLOAT_TEXEL_BITS = {fmt: _float_bits(fmt) for fmt in FLOAT_TEXEL_FORMATS}
 # Where a plane's values may lie (format.md 4.8); the other ranged planes are bounded by their f16 storage.
 RANGE_LIMITS = {"position": (-MAX_ABS_POSITION, MAX_ABS_POSITION), "scale": (MIN_LOG_SCALE, MAX_LOG_SCALE)}
 _NO_LIMIT = (-np.inf, np.inf)
+_LIMITS32 = {plane: (float(np.float32(lo)), float(np.float32(hi))) for plane, (lo, hi) in RANGE_LIMITS.items()}
+SMALL_RANGES = 256  # values of a range section checked in Python (_ranges_ok)
 
 
 def _check_float_texels(layers: list[np.ndarray], s: Section, source: str) -> None:
@@ -447,11 +457,36 @@ def _ranges_ok(ranges: np.ndarray, plane: str) -> bool:
     if not ranges.size:
         return False
     r = ranges.astype(np.float32, copy=False)  # exact for f16, whose arithmetic numpy runs several times slower
-    lo, hi = r[:, 0], r[:, 1]
     limit = RANGE_LIMITS.get(plane, _NO_LIMIT)
+    if r.size <= SMALL_RANGES:
+        # a tile's few chunks: Python's builtins over the floats beat the reductions' numpy calls (12 us a range
+        # section, a tenth of a small payload's decode one at a time); the limits as float32, as numpy compares.
+        # The sum of them all is finite only if every one is (a NaN or an infinity makes it NaN or infinite, and
+        # float32 values cannot overflow a double's sum); then min, max and min <= max decide as above.
+        pairs = r.reshape(len(r), 2, -1)
+        lo, hi = pairs[:, 0].ravel().tolist(), pairs[:, 1].ravel().tolist()
+        low, high = _LIMITS32.get(plane, _NO_LIMIT)
+        return bool(math.isfinite(sum(lo) + sum(hi)) and low <= min(lo) and max(hi) <= high
+                    and all(map(operator.le, lo, hi)))
+    lo, hi = r[:, 0], r[:, 1]
     low, high = lo.min(), hi.max()
     # max - min only once no minimum is -inf and no maximum +inf (nor NaN): it then makes no inf - inf
     return bool(limit[0] <= low and high <= limit[1] and -np.inf < low and high < np.inf and (hi - lo).min() >= 0)
+
+
+def _palette_of(buf: np.ndarray, sections: dict, spec, palettes: Mapping[str, np.ndarray] | None,
+                source: str) -> np.ndarray:
+    """A palette plane's palettes (format.md 4.3.2): its payload's `<plane>.palette` section when it has one, else
+    the scene's (1.7: the manifest's `palettes`, checked when the manifest was)."""
+    r = sections.get(spec.palette_name)
+    if r is None:
+        if palettes is None or spec.name not in palettes:
+            raise FormatError(source, f"section {spec.palette_name}", "missing, and the scene has no palettes of "
+                              f"{spec.name} (format.md 4.3.2)")
+        return palettes[spec.name]
+    palette = unshuffle(buf[r.offset:r.offset + r.size], r.element).view("<f4").reshape(r.shape[0], -1)
+    _check_palette(palette, spec.name, r.name, source)
+    return palette
 
 
 def _check_palette(palette: np.ndarray, plane: str, name: str, source: str) -> None:

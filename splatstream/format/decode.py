@@ -9,7 +9,7 @@ these functions, so checksums, sizes and codebook indices are checked in one pla
 """
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 
 import numpy as np
 
@@ -22,16 +22,18 @@ from .planes import band_of
 
 
 def decode_payload(data: bytes | memoryview | VerifiedPayload, entry: PayloadEntry, group: str, source: str,
-                   codebook: bool = False, between: Callable[[], object] | None = None) -> dict[str, EncodedPlane]:
+                   codebook: bool = False, between: Callable[[], object] | None = None,
+                   palettes: Mapping[str, np.ndarray] | None = None) -> dict[str, EncodedPlane]:
     """Unpack a payload into planes (texels as stored): a VerifiedPayload of this entry as it is, other bytes
     verified against the entry first (size and SHA-256).
 
     `codebook`: the scene has an SH codebook, so a tile's `sh1` group is its `sh_index` plane. `between`: called
-    between steps (after the checksum, before each plane; see unpack_payload)."""
+    between steps (after the checksum, before each plane; see unpack_payload). `palettes`: the scene's palettes
+    (Manifest.scene_palettes, format.md 4.3.2), needed by a palette plane whose payload has no palette section."""
     raw = verified_bytes(data, entry, source)
     if between is not None:
         between()
-    return unpack_payload(raw, entry, group, source, codebook, between)
+    return unpack_payload(raw, entry, group, source, codebook, between, palettes)
 
 
 def decode_planes(planes: dict[str, EncodedPlane], splats: int) -> dict[str, np.ndarray]:
@@ -69,13 +71,15 @@ def tile_groups_for(manifest: Manifest, sh_degree: int) -> list[str]:
 
 
 def decode_tile_bytes(tile: TileEntry, payloads: dict[str, bytes | VerifiedPayload], sh_degree: int, source: str,
-                      codebook_values: dict[str, np.ndarray] | None = None, entries: int = 0) -> Gaussians:
-    """One tile's Gaussians from its payload bytes by group (`base`, then `sh1`.. as needed for sh_degree)."""
+                      codebook_values: dict[str, np.ndarray] | None = None, entries: int = 0,
+                      palettes: Mapping[str, np.ndarray] | None = None) -> Gaussians:
+    """One tile's Gaussians from its payload bytes by group (`base`, then `sh1`.. as needed for sh_degree);
+    `palettes`: the scene's (decode_payload)."""
     values: dict[str, np.ndarray] = {}
     for group, data in payloads.items():
         entry = tile.groups[group]
         where = f"{source}/{entry.file}"
-        planes = decode_payload(data, entry, group, where, codebook=codebook_values is not None)
+        planes = decode_payload(data, entry, group, where, codebook=codebook_values is not None, palettes=palettes)
         if codebook_values is not None and group == "sh1":
             values.update(expand_codebook(codebook_index(planes, tile.splats, entries, where), codebook_values,
                                           sh_degree))
@@ -85,12 +89,12 @@ def decode_tile_bytes(tile: TileEntry, payloads: dict[str, bytes | VerifiedPaylo
 
 
 def decode_payloads(items: list[tuple[bytes | memoryview | VerifiedPayload, PayloadEntry]], group: str,
-                    sources: list[str], codebook: bool = False,
-                    between: Callable[[], object] | None = None) -> list[dict[str, EncodedPlane]]:
+                    sources: list[str], codebook: bool = False, between: Callable[[], object] | None = None,
+                    palettes: Mapping[str, np.ndarray] | None = None) -> list[dict[str, EncodedPlane]]:
     """decode_payload of several payloads of one group (the tiles of one request, a scene's tiles), each verified as
     decode_payload verifies it: the same planes, bit for bit, decoded together (container.unpack_payloads), so the
     fixed cost of a payload's numpy calls is paid once for them all (issue 32)."""
     raws = [(verified_bytes(data, entry, source), entry) for (data, entry), source in zip(items, sources, strict=True)]
     if between is not None:
         between()
-    return unpack_payloads(raws, group, sources, codebook, between)
+    return unpack_payloads(raws, group, sources, codebook, between, palettes)

@@ -481,6 +481,10 @@ def unshuffle(buf: np.ndarray, element: int) -> np.ndarray:
     """Inverse byte shuffle (format.md 5.1) of one unit, as bytes (a view of `buf` when there is nothing to do)."""
     if element <= 1 or buf.size % element:
         return buf
+    if _unshuffle_kernel is not None and buf.size > SMALL_UNSHUFFLE_BYTES:
+        out = np.empty(buf.size, np.uint8)
+        _unshuffle_kernel(buf, element, out)
+        return out
     if buf.size <= SMALL_UNSHUFFLE_BYTES:  # ranges: one transposing copy beats the shifts' several numpy calls
         return np.ascontiguousarray(buf.reshape(element, -1).T).reshape(-1)
     if element in (2, 4):
@@ -717,6 +721,113 @@ def _fields1_header(raw: np.ndarray, fmt: str, width: int, height: int, layers: 
         raise FormatError(source, "fields1", plan)
     return lay, plan, header_bytes
 
+# ---------------------------------------------------------------------------------------------------------------
+# A compiled fields1 decoder, handed in by a shell
+
+
+_fields_kernel = None  # see use_fields_kernel
+
+
+def use_fields_kernel(kernel) -> object:
+    """Decode fields1 contents with `kernel` from now on (None: the numpy path again); returns the one it replaces.
+
+    The core never imports numba (ARCHITECTURE.md): the streaming client's `client_gl.stream.decode_jit` compiles
+    the kernel (the optional extra `fast`) and hands it in here. It must give the numpy path's bytes, bit for bit
+    (tests/test_decode_jit.py holds both to the literal reading of format.md 5.2): the numpy path takes a dozen to
+    two dozen numpy calls a layer, each a pass over the work array, and on the LOD tree's small tiles it was most
+    of a payload's decode (issue 32). The header, the geometry and the content's size are checked here first,
+    whichever decodes, so the kernel only ever sees a well-formed content; it is called as
+    kernel(raw, planes_at, params_at, n, layers, words, fields, modes, slot_to_texel, work, out) with the tables of
+    _kernel_args, `work` (fields, slots) int64 scratch and `out` the texels' words (native byte order)."""
+    global _fields_kernel
+    previous, _fields_kernel = _fields_kernel, kernel
+    return previous
+
+
+_unshuffle_kernel = None  # see use_unshuffle_kernel
+
+
+def use_unshuffle_kernel(kernel) -> object:
+    """Undo the byte shuffle of units above SMALL_UNSHUFFLE_BYTES with `kernel(unit, element, out)` (None: numpy
+    again); returns the one it replaces. Handed in like use_fields_kernel's, for the same reason: numpy's shifts
+    and casts are four to eight calls a unit, most of a small shuffled section's time."""
+    global _unshuffle_kernel
+    previous, _unshuffle_kernel = _unshuffle_kernel, kernel
+    return previous
+
+
+def fields_kernel() -> object:
+    """The kernel use_fields_kernel handed in, or None (the numpy path)."""
+    return _fields_kernel
+
+
+@functools.lru_cache(maxsize=4096)
+def _kernel_args(fmt: str, layers: int, head: bytes) -> tuple:
+    """The per-format and per-header tables the kernel takes (int64, read-only): words a texel; per field (rows)
+    its byte planes, its first plane's index in a layer, its mask, its word and its shift in the word; per field of
+    every layer (rows) its delta flag, its reference field (-1: none) and its parameter set's index."""
+    bits = field_bits(fmt)
+    nf = len(bits)
+    dtype, words, layout = FIELD_LAYOUTS[fmt]
+    nbytes = [(b + 7) // 8 for b in bits]
+    plane_index = [sum(nbytes[:f]) for f in range(nf)]
+    masks = [(1 << b) - 1 for b in bits]
+    word_of = [f // len(layout) for f in range(nf)]
+    shifts = [layout[f % len(layout)][0] for f in range(nf)]
+    modes = head[1:1 + nf * layers]
+    refs = [(m >> 4) - 1 for m in modes]
+    deltas = [m & MODE_DELTA for m in modes]
+    param_index, k = [], 0
+    for r in refs:
+        param_index.append(k if r >= 0 else -1)
+        k += r >= 0
+    fields = np.array([nbytes, plane_index, masks, word_of, shifts], np.int64)
+    table = np.array([deltas, refs, param_index], np.int64)
+    for a in (fields, table):
+        a.setflags(write=False)
+    return words, fields, table, np.dtype(dtype).newbyteorder("=")
+
+
+@functools.lru_cache(maxsize=4096, typed=True)
+def _kernel_plan(fmt: str, width: int, height: int, layers: int, head: bytes) -> tuple | None:
+    """What a kernel call needs for contents of this geometry and header, checked once (None: not a well-formed
+    geometry or header, which the numpy path then refuses with its message): (content size, where the parameters
+    and the byte planes start, slots, words, the two tables, the word dtype, slot_to_texel, fields, texel bytes)."""
+    try:
+        _check_geometry(fmt, width, height, layers, "")
+    except FormatError:
+        return None
+    lay = _layout(fmt, width, height)
+    header_bytes = 1 + len(lay.bits) * layers
+    if len(head) != header_bytes:
+        return None
+    plan = _decode_plan(fmt, width, height, layers, head)
+    if isinstance(plan, str):
+        return None
+    expected, crossed, _ = plan
+    n = width * height
+    words, fields, modes, word = _kernel_args(fmt, layers, head)
+    return (expected, header_bytes, header_bytes + 3 * (n // BLOCK_TEXELS) * crossed, n, words, fields, modes, word,
+            slot_to_texel(width, height), len(lay.bits), n * lay.texel_bytes * layers)
+
+
+def _kernel_unfilter(raw: np.ndarray, fmt: str, width: int, height: int, layers: int) -> np.ndarray | None:
+    """unfilter_fields' bytes by the handed-in kernel; None where the content is not well-formed (the numpy path
+    then raises its FormatError). The checks and the kernel's arguments come from one cached lookup per geometry
+    and header: a section's Python around the kernel was as long as the kernel on small tiles."""
+    nf = len(FIELD_LAYOUTS[fmt][2]) * FIELD_LAYOUTS[fmt][1] if fmt in FIELD_LAYOUTS else 0
+    if not nf or type(layers) is not int or layers < 1:
+        return None
+    plan = _kernel_plan(fmt, width, height, layers, raw[:1 + nf * layers].tobytes())
+    if plan is None or raw.size != plan[0]:
+        return None
+    _, params_at, planes_at, n, words, fields, modes, word, order, nf, out_bytes = plan
+    out = np.empty(out_bytes, np.uint8)
+    work = _scratch("kernel", 8 * nf * n).view(np.int64).reshape(nf, n)
+    _fields_kernel(raw, planes_at, params_at, n, layers, words, fields, modes, order, work, out.view(word))
+    return out
+
+
 def unfilter_fields(raw: np.ndarray | bytes, fmt: str, width: int, height: int, layers: int,
                     source: str = "section") -> np.ndarray:
     """Inverse of fields_content: a section's stored bytes -> its GPU bytes (uint8, layer after layer), bit-exact;
@@ -727,8 +838,12 @@ def unfilter_fields(raw: np.ndarray | bytes, fmt: str, width: int, height: int, 
     the time), every step in place in this thread's work arrays (no page faults of fresh arrays). Arithmetic
     modulo 2^32, then cut to each field's bits, equals the spec's arithmetic modulo 2^|T|; the running sums run on
     an int32 view, which numpy accumulates about 3x faster than uint32 (the same bits: both wrap modulo 2^32)."""
-    _check_geometry(fmt, width, height, layers, source)
     raw = np.frombuffer(raw, np.uint8) if isinstance(raw, bytes | bytearray | memoryview) else raw
+    if _fields_kernel is not None:
+        out = _kernel_unfilter(raw, fmt, width, height, layers)
+        if out is not None:
+            return out
+    _check_geometry(fmt, width, height, layers, source)
     lay, plan, header_bytes = _fields1_header(raw, fmt, width, height, layers, source)
     n = width * height
     blocks = n // BLOCK_TEXELS
@@ -819,10 +934,9 @@ def unfilter_fields_many(raws: list[np.ndarray], fmt: str, dims: list[tuple[int,
     sections puts every texel in its section's texture order. Each section is checked as unfilter_fields checks it
     (FormatError naming its source); the running sums restart at each section (the sum carried over from the
     sections before is subtracted, modulo 2^32 like the sums)."""
-    if len(raws) == 1:
-        texels = unfilter_fields(raws[0], fmt, dims[0][0], dims[0][1], layers, sources[0])
-        unit = texels.size // layers
-        return [[texels[k * unit:(k + 1) * unit] for k in range(layers)]]
+    if len(raws) == 1 or _fields_kernel is not None:  # the kernel's per-call cost is small: one call a section
+        return [_layers_of(unfilter_fields(raw, fmt, w, h, layers, source), layers)
+                for raw, (w, h), source in zip(raws, dims, sources, strict=True)]
     lay0 = None
     members = []  # (raw, n, layout, first byte plane position)
     plan0 = None
@@ -930,6 +1044,11 @@ def unfilter_fields_many(raws: list[np.ndarray], fmt: str, dims: list[tuple[int,
             for k in range(len(members))]
 
 
+def _layers_of(texels: np.ndarray, layers: int) -> list[np.ndarray]:
+    unit = texels.size // layers
+    return [texels[k * unit:(k + 1) * unit] for k in range(layers)]
+
+
 _scratch_local = threading.local()
 
 
@@ -955,6 +1074,15 @@ def unshuffle_many(units: list[np.ndarray], element: int) -> list[np.ndarray]:
     sizes = [u.size // element for u in units]
     total = sum(sizes)
     out = []
+    if _unshuffle_kernel is not None:  # one call a unit into one array
+        dst = np.empty(total * element, np.uint8)
+        at = 0
+        for u, m in zip(units, sizes, strict=True):
+            part = dst[at:at + m * element]
+            _unshuffle_kernel(u, element, part)
+            out.append(part)
+            at += m * element
+        return out
     if element in (2, 4) and total * element > SMALL_UNSHUFFLE_BYTES:
         stage = _scratch("unshuffle", total * element).reshape(element, total)
         at = 0

@@ -281,6 +281,9 @@ class Manifest:
     # A paged scene's root manifest (format.md 6.1): `tiles` holds the top levels only. A manifest whose pages have
     # all been read (paging.resolve_pages) keeps it, with every tile in `tiles`.
     paged: PagedInfo | None = None
+    # Scene palettes (format.md 4.3.2, version 1.7): per pal8x4 plane, its palettes as the manifest's bin holds them
+    # (P x 256 little-endian f32); payloads without their own palette section index these.
+    palettes: dict[str, bytes] | None = None
 
     # --- derived views (cached: a Manifest never changes) ------------------------------------------------------
     @functools.cached_property
@@ -295,6 +298,18 @@ class Manifest:
     @property
     def leaves(self) -> list[TileEntry]:
         return [t for t in self.tiles if t.is_leaf]
+
+    @functools.cached_property
+    def scene_palettes(self) -> dict[str, np.ndarray] | None:
+        """The scene's palettes per plane as (P, 256) float32 arrays (read-only), or None (format.md 4.3.2): what
+        a reader hands the payload decoder (format.decode.decode_payload's `palettes`)."""
+        if not self.palettes:
+            return None
+        out = {}
+        for name, raw in self.palettes.items():
+            a = np.frombuffer(raw, "<f4").reshape(-1, 256)
+            out[name] = a
+        return out
 
     @property
     def uses_codebook(self) -> bool:
@@ -347,6 +362,8 @@ class Manifest:
         }
         if self.sh_codebook is not None:
             d["sh_codebook"] = self.sh_codebook.to_dict()
+        if self.palettes:
+            d["palettes"] = {name: bytes(raw) for name, raw in self.palettes.items()}
         d.update({
             "lod": self.lod.to_dict(), "root": self.root, "tiles": [t.to_dict() for t in self.tiles],
             "gpu_bytes": self.gpu_bytes, "gpu_bytes_per_splat": self.gpu_bytes_per_splat,

@@ -65,8 +65,11 @@ def split_pages(m: Manifest, page_levels: int) -> PagedScene:
             out += frontier
         return out
 
+    # A page's version is its root manifest's (format.md 6.1): 1.5, or the scene's own where that is later (a
+    # 1.6 or 1.7 scene's pages were written as 1.5 before, which every reader then refused).
+    version = max(m.version, VERSION_1_5)
     for head in page_heads(m, k):
-        raw = pack_page(VERSION_1_5, head.id, [with_ref(t) for t in below(head)])
+        raw = pack_page(version, head.id, [with_ref(t) for t in below(head)])
         sha = hashlib.sha256(raw).hexdigest()
         if len(raw) > MAX_PAGE_BYTES:
             raise FormatError(m.name, "paged", f"a page of {len(raw)} bytes: more than {MAX_PAGE_BYTES}; fewer "
@@ -75,7 +78,7 @@ def split_pages(m: Manifest, page_levels: int) -> PagedScene:
         pages.append((ref, raw))
     top = tuple(with_ref(t) for t in m.tiles if t.level < k)
     page_bytes = sum(ref.bytes for ref, _ in pages)
-    root = replace(m, version=max(m.version, VERSION_1_5), tiles=top,
+    root = replace(m, version=version, tiles=top,
                    paged=PagedInfo(len(m.tiles), m.levels, k, len(pages), page_bytes))
     payloads = m.payload_bytes()
     for _ in range(3):  # as Manifest.with_bytes_on_disk: the number's own length settles after two rounds

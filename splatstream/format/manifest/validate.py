@@ -20,9 +20,12 @@ import math
 import operator
 from typing import NoReturn
 
+import numpy as np
+
 from ...errors import FormatError
 from ..keyed import MORTON1, MORTON_FORMATS
 from ..layout import ALIGN, BLOCK, CHUNK_SIZE
+from ..limits import MAX_ABS_SH, MAX_LOG_SCALE, MIN_LOG_SCALE
 from ..names import MANIFEST_NAME, SHA256_HEX_RE, payload_name
 from ..planes import (
     MAX_SH_DEGREE,
@@ -65,6 +68,7 @@ from .versions import (
     VERSION_1_4,
     VERSION_1_5,
     VERSION_1_6,
+    VERSION_1_7,
 )
 from .wire import CHECKSUM_KEY, unpack_manifest, verify_checksum
 
@@ -387,7 +391,9 @@ def _payload(v, expect: list[tuple[str, dict]], chunks: int, strict: bool, sourc
         sec, decoded = _section(s, i, expected, expect, raw_bytes, chunks, strict, source, path)
         sections.append(sec)
         gpu += decoded
-    if expected:
+    if expected and any(not w.get("optional") for w in expected.values()):
+        # a palette section where the scene's palettes hold may be left out (format.md 4.3.2, 1.7)
+        expected = [n for n, w in expected.items() if not w.get("optional")]
         _fail(source, path, "sections", f"missing section{'s' if len(expected) > 1 else ''} "
               f"{', '.join(map(repr, expected))}")
     ordered = sorted(sections, key=_offset)
@@ -403,16 +409,19 @@ def _payload(v, expect: list[tuple[str, dict]], chunks: int, strict: bool, sourc
 
 
 def expected_sections(group: str, codebook: bool, formats: dict[str, str], chunks: int,
-                      codebook_format: str | None = None) -> list[tuple[str, dict]]:
-    """The sections a payload group must hold: [(name, properties)] (format.md 4.4, 4.7, 5).
+                      codebook_format: str | None = None,
+                      scene_palettes: tuple[str, ...] = ()) -> list[tuple[str, dict]]:
+    """The sections a payload group must hold: [(name, properties)] (format.md 4.4, 4.7, 5); a section a payload
+    may leave out has `optional` (the palette section of a plane whose palettes the manifest holds: 4.3.2).
 
     `group` is a tile group (`codebook`: the scene has an SH codebook), or `cb:sh<b>` for a codebook band."""
-    return _expected_sections(group, codebook, tuple(sorted(formats.items())), chunks, codebook_format)
+    return _expected_sections(group, codebook, tuple(sorted(formats.items())), chunks, codebook_format,
+                              tuple(sorted(scene_palettes)))
 
 
 @functools.lru_cache(maxsize=1024)  # the same few groups and chunk counts for every tile of a scene
 def _expected_sections(group: str, codebook: bool, format_items: tuple, chunks: int,
-                       codebook_format: str | None) -> list[tuple[str, dict]]:
+                       codebook_format: str | None, scene_palettes: tuple[str, ...] = ()) -> list[tuple[str, dict]]:
     formats = dict(format_items)
     specs = (band_plane(int(group[5:])),) if group.startswith("cb:") else group_planes(group, codebook)
     out = []
@@ -425,7 +434,10 @@ def _expected_sections(group: str, codebook: bool, format_items: tuple, chunks: 
             fmt = formats[spec.attribute]
         out.append((spec.name, {"kind": "texels", "format": fmt, "layers": spec.layers}))
         if fmt in PALETTE_FORMATS:  # format.md 4.3.2: the palettes stand where the ranges would
-            out.append((spec.palette_name, {"kind": "range", "dtype": "f32", "shape": list(palette_shape(spec))}))
+            want = {"kind": "range", "dtype": "f32", "shape": list(palette_shape(spec))}
+            if spec.name in scene_palettes:  # 1.7: the scene's palettes stand for a section left out
+                want["optional"] = True
+            out.append((spec.palette_name, want))
         elif spec.range_dtype:
             out.append((spec.range_name, {"kind": "range", "dtype": RANGE_DTYPE_NAMES[spec.range_dtype],
                                           "shape": [chunks, 2, spec.layers, spec.components]}))
@@ -440,11 +452,12 @@ class _Scene:
     """What every tile of one manifest is checked against."""
 
     __slots__ = ("source", "strict", "formats", "format_items", "codebook", "group_names", "lazy", "expect",
-                 "tile_optional")
+                 "tile_optional", "scene_palettes")
 
     def __init__(self, source: str, strict: bool, formats: dict[str, str], sh_degree: int, codebook: bool,
-                 lazy: bool, version: tuple[int, int] = FORMAT_VERSION):
+                 lazy: bool, version: tuple[int, int] = FORMAT_VERSION, scene_palettes: tuple[str, ...] = ()):
         self.source, self.strict, self.formats, self.codebook, self.lazy = source, strict, formats, codebook, lazy
+        self.scene_palettes = tuple(sorted(scene_palettes))
         self.tile_optional = ("page",) if version >= VERSION_1_5 else ()
         self.group_names = tuple(groups_for_degree(sh_degree, codebook))
         self.format_items = tuple(sorted(formats.items()))
@@ -458,7 +471,7 @@ def _tile_group(scene: _Scene, raw_groups: dict, chunks: int, texture: tuple[int
     expect = scene.expect.get((name, chunks))
     if expect is None:
         expect = scene.expect[name, chunks] = _expected_sections(name, scene.codebook, scene.format_items, chunks,
-                                                                 None)
+                                                                 None, scene.scene_palettes)
     entry = _payload(raw_groups[name], expect, chunks, scene.strict, scene.source, f"{path}.{name}")
     for sec in entry.sections:
         if sec.kind == "texels" and (sec.width, sec.height) != texture:
@@ -640,6 +653,32 @@ def _codebook(d: dict, version: tuple[int, int], formats: dict[str, str], sh_deg
     return SHCodebookEntry(entries, cb_format, index_format, groups)
 
 
+def _palettes(d: dict, formats: dict[str, str], source: str) -> dict[str, bytes]:
+    """The scene palettes (format.md 4.3.2, 1.7): per pal8x4 plane a bin of P x 256 little-endian f32, every entry
+    finite and inside the plane's value domain (4.8), so any index decodes to a value a scene may hold."""
+    p = d["palettes"]
+    if type(p) is not dict or not p:
+        raise FormatError(source, "palettes", f"expected a map of plane names to palettes, got {p!r:.60}")
+    out = {}
+    for name, raw in p.items():
+        spec = next((s for s in group_planes("base", False) if s.name == name), None)
+        if spec is None or formats.get(spec.attribute) not in PALETTE_FORMATS:
+            _fail(source, "palettes", str(name), f"names no {'/'.join(PALETTE_FORMATS)} plane of this scene")
+        need = 4 * int(np.prod(palette_shape(spec)))
+        if type(raw) is not bytes or len(raw) != need:
+            _fail(source, "palettes", name, f"expected a bin of {need} bytes ({palette_shape(spec)[0]} x 256 f32), "
+                  f"got {type(raw).__name__} of {len(raw) if isinstance(raw, (bytes, str)) else '?'}")
+        values = np.frombuffer(raw, "<f4")
+        if not np.isfinite(values).all():
+            _fail(source, "palettes", name, "non-finite palette values")
+        lo, hi = (MIN_LOG_SCALE, MAX_LOG_SCALE) if name == "scale" else (-MAX_ABS_SH, MAX_ABS_SH)
+        if float(values.min()) < lo or float(values.max()) > hi:
+            _fail(source, "palettes", name, f"palette [{values.min():g}, {values.max():g}] leaves the {name} domain "
+                  f"[{lo:g}, {hi:g}] (format.md 4.8)")
+        out[name] = raw
+    return out
+
+
 def _camera(d: dict, source: str, strict: bool) -> CameraEntry:
     cam = _keys(d["camera"], ("eye", "target", "up", "fov_y"), source, "camera", strict)
     camera = CameraEntry(_vec(cam, "eye", source, "camera"), _vec(cam, "target", source, "camera"),
@@ -705,6 +744,8 @@ def manifest_from_dict(d, source: str = MANIFEST_NAME, lazy_payloads: bool = Fal
     optional = ("sh_codebook", CHECKSUM_KEY) if version >= CHECKSUM_VERSION else ("sh_codebook",)
     if version >= VERSION_1_5:
         optional += ("paged",)
+    if version >= VERSION_1_7:
+        optional += ("palettes",)
     _keys(d, _TOP_KEYS, source, "", strict, optional)
     splats = _int(d, "splats", source, "", 1)
     sh_degree = _int(d, "sh_degree", source, "", 0, MAX_SH_DEGREE)
@@ -714,7 +755,9 @@ def manifest_from_dict(d, source: str = MANIFEST_NAME, lazy_payloads: bool = Fal
     if chunk_order in CHUNK_ORDERS_1_4 and version < VERSION_1_4:
         _fail(source, "", "chunk_order", _newer_than(version, chunk_order, VERSION_1_4))
     codebook = _codebook(d, version, formats, sh_degree, source, strict)
-    scene = _Scene(source, strict, formats, sh_degree, codebook is not None, lazy_payloads, version)
+    palettes = _palettes(d, formats, source) if version >= VERSION_1_7 and "palettes" in d else None
+    scene = _Scene(source, strict, formats, sh_degree, codebook is not None, lazy_payloads, version,
+                   tuple(palettes or ()))
     tiles = _tiles(_list(d, "tiles", source, "", MAX_TILES), scene)
     if not tiles:
         _fail(source, "", "tiles", "no tiles: a scene has at least its root tile")
@@ -741,7 +784,7 @@ def manifest_from_dict(d, source: str = MANIFEST_NAME, lazy_payloads: bool = Fal
         gpu_bytes_per_splat=_float(d, "gpu_bytes_per_splat", source, "", 0.0),
         leaf_bytes_on_disk=_int(d, "leaf_bytes_on_disk", source, ""), attributes=_attributes(d, source, strict),
         encode_seconds=_float(d, "encode_seconds", source, "", 0.0), bytes_on_disk=_int(d, "bytes_on_disk", source, ""),
-        paged=paged)
+        paged=paged, palettes=palettes)
     if strict and paged is None:  # a newer minor version may add payloads these totals count; only its own keys
         _check_totals(manifest, source)
     return manifest
@@ -774,7 +817,7 @@ def page_tiles(d, source: str, root: Manifest, parent: TileEntry, lazy_payloads:
     if _int(d, "parent", source, "", 0, 2**31 - 1) != parent.id:
         _fail(source, "", "parent", f"expected {parent.id} (the tile naming this page), got {d['parent']}")
     scene = _Scene(source, strict, root.formats, root.sh_degree, root.sh_codebook is not None, lazy_payloads,
-                   root.version)
+                   root.version, tuple(root.palettes or ()))
     tiles = _tiles(_list(d, "tiles", source, "", MAX_TILES), scene)
     k = root.paged.page_levels
     by_id = {t.id: t for t in tiles}

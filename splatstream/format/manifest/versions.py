@@ -4,7 +4,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 FORMAT_NAME = "splatstream"
-FORMAT_VERSION = (1, 6)  # (major, minor) this code reads; what it writes: writer_version
+FORMAT_VERSION = (1, 7)  # (major, minor) this code reads; what it writes: writer_version
 # Version 1.2 added two things (format.md, version history): the manifest's last key `checksum`, the SHA-256 of the
 # file with that value's 64 bytes read as ASCII '0' (format.md 6, "Checksum"), so a flipped byte in the manifest is
 # caught like one in a payload; and the `fields1` transport coding of texels sections (format.md 5.2).
@@ -24,6 +24,9 @@ VERSION_1_5 = (1, 5)
 # palettes of log scales, SH0 and opacity), written only by scenes that use them.
 VERSION_1_6 = (1, 6)
 FORMATS_1_6 = ("pal8x4",)
+# Version 1.7 added scene palettes (format.md 4.3.2: the manifest key `palettes`, one set of palettes per pal8x4 plane
+# for the whole scene, and pal8x4 payloads without their own palette section), written only by scenes that hold them.
+VERSION_1_7 = (1, 7)
 
 
 def writer_version(formats: Mapping[str, str], codebook_format: str | None = None,

@@ -1,0 +1,173 @@
+"""The fields1 decoder (format_spec/format.md 5.2) compiled with numba (the optional extra `splatstream[fast]`):
+the bytes of transport.unfilter_fields' numpy path, bit for bit, in one pass over a section's slots.
+
+The numpy path decodes a layer in a dozen to two dozen whole-array steps (zigzag, running sums, masks, cross
+predictions, packing, the gather into texture order), each a numpy call and a pass over a work array; on the LOD
+tree's tiles of a few hundred splats that was most of a payload's decode (issue 32; BENCHMARKS.md, "Decode speed").
+Here each slot's fields are read from their byte planes, summed, predicted, masked and packed into its texel,
+written straight to its place in texture order.
+
+The arithmetic is the spec's read literally, in int64: a field of up to 8 bits is its byte, a wider one its zigzag
+code's residual; a delta field's running sum (int64 sums of residuals under 2^32 cannot overflow in a section of
+at most 2^25 slots, and the cut below takes them modulo 2^bits); every value cut to its bits (the numpy path cuts only
+where the cut reaches the texel: the same bytes); a predicted field plus floor((slope x reference + 64 x intercept
++ 32) / 64), cut again. transport.py checks a content's header, geometry and size before it hands one to the kernel.
+
+`unshuffle_kernel` undoes format.md 5.1's byte shuffle of a unit (rotations, scales and ranges stored shuffled)
+in one call where numpy takes four to eight.
+
+`install()` compiles the kernels (or loads them from numba's cache: cache=True) with the argument types of a real
+call and hands them to format.transport (`use_fields_kernel`, `use_unshuffle_kernel`); `uninstall()` goes back to
+numpy. The core never imports
+numba (ARCHITECTURE.md): this module is the streaming client's, and benchmarks import it to compare both.
+"""
+from __future__ import annotations
+
+import numpy as np
+from numba import njit
+
+from splatstream.format import transport
+
+_JIT = dict(cache=True, nogil=True, boundscheck=False)
+
+
+@njit(**_JIT)
+def fields1_kernel(raw, planes_at, params_at, n, layers, words, fields, modes, slot_to_texel, work, out):
+    """Decode a fields1 content's layers into `out` (its texel words, native order, texture order); `work` is
+    (fields, n) int64 scratch; `fields` and `modes` are transport._kernel_args' tables (few arguments: each one
+    costs the call a few hundred nanoseconds). A field at a time over the slots (loops without branches inside,
+    which the compiler keeps tight: a slot at a time over tables of fields ran no faster than numpy), then the
+    predictions a block at a time, then each texel's words packed and written to its texel."""
+    nbytes, plane_index, masks, shifts = fields[0], fields[1], fields[2], fields[4]
+    deltas, refs, param_index = modes[0], modes[1], modes[2]
+    nf = nbytes.shape[0]
+    blocks = n // 256
+    plane_bytes = plane_index[nf - 1] + nbytes[nf - 1]
+    pos = planes_at
+    for layer in range(layers):
+        mode = layer * nf
+        for f in range(nf):
+            base = pos + plane_index[f] * n
+            nb = nbytes[f]
+            m = masks[f]
+            row = work[f]
+            delta = deltas[mode + f] != 0
+            s = np.int64(0)
+            if nb == 1:  # fields of up to 8 bits: the byte itself, no zigzag
+                if delta:
+                    for i in range(n):
+                        s += np.int64(raw[base + i])
+                        row[i] = s & m
+                else:
+                    for i in range(n):
+                        row[i] = np.int64(raw[base + i]) & m
+            elif nb == 2:
+                if delta:
+                    for i in range(n):
+                        c = np.int64(raw[base + i]) | (np.int64(raw[base + n + i]) << 8)
+                        s += (c >> 1) ^ -(c & 1)
+                        row[i] = s & m
+                else:
+                    for i in range(n):
+                        c = np.int64(raw[base + i]) | (np.int64(raw[base + n + i]) << 8)
+                        row[i] = ((c >> 1) ^ -(c & 1)) & m
+            elif nb == 4:  # 32-bit fields (f32x4): |residual| < 2^31, so int64 sums of 2^25 slots cannot overflow
+                if delta:
+                    for i in range(n):
+                        c = (np.int64(raw[base + i]) | (np.int64(raw[base + n + i]) << 8)
+                             | (np.int64(raw[base + 2 * n + i]) << 16) | (np.int64(raw[base + 3 * n + i]) << 24))
+                        s += (c >> 1) ^ -(c & 1)
+                        row[i] = s & m
+                else:
+                    for i in range(n):
+                        c = (np.int64(raw[base + i]) | (np.int64(raw[base + n + i]) << 8)
+                             | (np.int64(raw[base + 2 * n + i]) << 16) | (np.int64(raw[base + 3 * n + i]) << 24))
+                        row[i] = ((c >> 1) ^ -(c & 1)) & m
+            else:
+                for i in range(n):
+                    c = np.int64(0)
+                    for k in range(nb):
+                        c |= np.int64(raw[base + k * n + i]) << (8 * k)
+                    r = (c >> 1) ^ -(c & 1)
+                    if delta:
+                        s = (s + r) & 0xFFFFFFFF
+                        r = s
+                    row[i] = r & m
+        for f in range(nf):
+            ref = refs[mode + f]
+            if ref >= 0:
+                p = params_at + param_index[mode + f] * 3 * blocks
+                m = masks[f]
+                row = work[f]
+                anchor = work[ref]
+                for b in range(blocks):
+                    slope = np.int64(raw[p + b])
+                    if slope >= 128:
+                        slope -= 256
+                    intercept = np.int64(raw[p + blocks + 2 * b]) | (np.int64(raw[p + blocks + 2 * b + 1]) << 8)
+                    if intercept >= 32768:
+                        intercept -= 65536
+                    bias = 64 * intercept + 32
+                    for i in range(b * 256, (b + 1) * 256):
+                        row[i] = (row[i] + ((slope * anchor[i] + bias) >> 6)) & m
+        first = layer * n
+        if words == 1 and nf == 3:  # fields packed in one word (norm11, norm9x3, norm565)
+            s1, s2 = shifts[1], shifts[2]
+            r0, r1, r2 = work[0], work[1], work[2]
+            for i in range(n):
+                out[first + slot_to_texel[i]] = r0[i] | (r1[i] << s1) | (r2[i] << s2)
+        elif words == 1:
+            for i in range(n):
+                v = np.int64(0)
+                for f in range(nf):
+                    v |= work[f, i] << shifts[f]
+                out[first + slot_to_texel[i]] = v
+        else:  # one field a word
+            for f in range(nf):
+                row = work[f]
+                for i in range(n):
+                    out[(first + slot_to_texel[i]) * words + f] = row[i]
+        pos += n * plane_bytes
+
+
+@njit(**_JIT)
+def unshuffle_kernel(unit, element, out):
+    """format.md 5.1's inverse byte shuffle of one unit: byte k of element i is unit[k * count + i]."""
+    count = unit.shape[0] // element
+    for k in range(element):
+        base = k * count
+        for i in range(count):
+            out[i * element + k] = unit[base + i]
+
+
+def warm_up() -> None:
+    """Compile (or load from the cache) the kernel for the argument types of real calls: a content as a writable
+    buffer's view (a payload's kept buffer) and as read-only bytes, into texels of 1, 2 and 4-byte words."""
+    previous = transport.use_fields_kernel(fields1_kernel)
+    try:
+        for fmt in ("norm8x4", "norm565", "norm11"):
+            bits = transport.field_bits(fmt)
+            content = bytes([transport.FIELDS_VERSION]) + bytes([transport.MODE_DELTA] * len(bits)) \
+                + bytes(256 * sum((b + 7) // 8 for b in bits))
+            transport.unfilter_fields(content, fmt, 16, 16, 1)
+            transport.unfilter_fields(np.frombuffer(content, np.uint8).copy(), fmt, 16, 16, 1)
+    finally:
+        transport.use_fields_kernel(previous)
+    unit = np.zeros(16, np.uint8)
+    read_only = unit.copy()
+    read_only.setflags(write=False)
+    for u in (unit, read_only):
+        unshuffle_kernel(u, 4, np.empty(16, np.uint8))
+
+
+def install() -> None:
+    """format.transport decodes fields1 with the compiled kernel from now on (in every thread of this process)."""
+    warm_up()
+    transport.use_fields_kernel(fields1_kernel)
+    transport.use_unshuffle_kernel(unshuffle_kernel)
+
+
+def uninstall() -> None:
+    """Back to the numpy path."""
+    transport.use_fields_kernel(None)
+    transport.use_unshuffle_kernel(None)
