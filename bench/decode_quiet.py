@@ -193,26 +193,29 @@ def _bytes(planes: dict) -> list[bytes]:
 
 
 def _numba_kernel():
-    """The compiled kernels (fields1, unshuffle), or None and the reason there are none."""
+    """The compiled kernels (fields1, unshuffle, fields1 and unshuffle over a group), or None and the reason."""
     try:
         from client_gl.stream import decode_jit  # numba: the optional extra `fast`
     except ImportError as exc:
         return None, str(exc)
     decode_jit.warm_up()
-    return (decode_jit.fields1_kernel, decode_jit.unshuffle_kernel), None
+    return (decode_jit.fields1_kernel, decode_jit.unshuffle_kernel, decode_jit.fields1_many_kernel,
+            decode_jit.unshuffle_many_kernel), None
 
 
 def _use(kernels) -> None:
-    """Decode with these kernels (fields1, unshuffle); None: numpy's path."""
+    """Decode with these kernels (fields1, unshuffle, and their batch forms for a group); None: numpy's path."""
     transport.use_fields_kernel(kernels[0] if kernels else None)
     transport.use_unshuffle_kernel(kernels[1] if kernels else None)
+    transport.use_batch_kernels(*(kernels[2:4] if kernels else (None, None)))
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", default=",".join(SCENES))
     ap.add_argument("--presets", default=",".join(PRESETS))
-    ap.add_argument("--kernels", default="numpy,numba", help="fields1 decoders: numpy, numba (if installed)")
+    ap.add_argument("--kernels", default="numpy,numba", help="fields1 decoders: numpy, numba (if installed), numba1 "
+                    "(numba's kernels a section a call, without the batch kernels over a group: the path before them)")
     ap.add_argument("--runs", type=int, default=3, help="rounds of timed passes (each round: every variant once; "
                     "3 keeps the default run under 150 s of one quiet core, 5 or more for steadier medians)")
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="encoding processes (not timed)")
@@ -230,21 +233,26 @@ def main() -> None:
     if args.jobs > 1:
         with concurrent.futures.ProcessPoolExecutor(args.jobs, mp_context=multiprocessing.get_context("spawn")) as ex:
             pending = ex.map(encode, *zip(*work, strict=True))
-            if "numba" in args.kernels.split(","):  # compiled here while the workers encode
+            if {"numba", "numba1"} & set(args.kernels.split(",")):  # compiled here while the workers encode
                 t = time.time()
                 kernel, why = _numba_kernel()
                 compile_s = round(time.time() - t, 1)
             done = list(pending)
     else:
         done = [encode(s, p) for s, p in work]
-        if "numba" in args.kernels.split(","):
+        if {"numba", "numba1"} & set(args.kernels.split(",")):
             t = time.time()
             kernel, why = _numba_kernel()
             compile_s = round(time.time() - t, 1)
-    if "numba" in args.kernels.split(","):
+    names = args.kernels.split(",")
+    if "numba1" in names and "numba" not in names:
+        names.append("numba")
+    if "numba" in names:
         if kernel is None:
             skipped["numba"] = why
         else:
+            if "numba1" in names:
+                kernels["numba1"] = kernel[:2] + (None, None)
             kernels["numba"] = kernel
     if "numpy" not in args.kernels.split(","):
         del kernels["numpy"]

@@ -11,13 +11,13 @@ import zlib
 import numpy as np
 import pytest
 from conftest import real
-from test_decode_batch import planes_bytes
+from test_decode_batch import _damaged, planes_bytes
 from test_transport_decode import GEOMETRIES, random_content, random_modes, reference_unfilter
 
 from splatstream.encode import EncodeOptions
 from splatstream.encode.local import encode_in_memory
 from splatstream.errors import FormatError
-from splatstream.format import transport
+from splatstream.format import container, transport
 from splatstream.format.decode import decode_payload, decode_payloads
 from splatstream.format.presets import PRESETS
 from splatstream.format.transport import FIELD_LAYOUTS, field_bits, unfilter_fields
@@ -31,9 +31,11 @@ decode_jit = pytest.importorskip("client_gl.stream.decode_jit", reason="numba (t
 def numpy_path():
     """The numpy path during the test (whatever was installed before), restored after it."""
     previous = transport.use_fields_kernel(None), transport.use_unshuffle_kernel(None)
+    batch = transport.use_batch_kernels(None, None)
     yield
     transport.use_fields_kernel(previous[0])
     transport.use_unshuffle_kernel(previous[1])
+    transport.use_batch_kernels(*batch)
 
 
 def decode_both(content, fmt, width, height, layers):
@@ -127,6 +129,65 @@ def test_install_and_uninstall(numpy_path):
     decode_jit.install()
     assert transport.fields_kernel() is decode_jit.fields1_kernel
     assert transport.use_unshuffle_kernel(decode_jit.unshuffle_kernel) is decode_jit.unshuffle_kernel
+    assert transport.batch_kernels() == (decode_jit.fields1_many_kernel, decode_jit.unshuffle_many_kernel)
     decode_jit.uninstall()
     assert transport.fields_kernel() is None
     assert transport.use_unshuffle_kernel(None) is None
+    assert transport.batch_kernels() == (None, None)
+
+
+@pytest.mark.parametrize("fmt", sorted(FIELD_LAYOUTS))
+def test_batch_kernel_matches_the_numpy_path_section_by_section(numpy_path, fmt):
+    """Sections of several geometries and modes in one buffer, one call: each section's texels are the numpy
+    path's; a malformed one among them comes back None (its caller decodes it alone, which raises) and the
+    others are still right."""
+    rng = np.random.default_rng(zlib.crc32(f"batch {fmt}".encode()))
+    bits = field_bits(fmt)
+    for layers in (1, 2):
+        dims = [(16, 16), (48, 32), (16, 16), (16, 48), (32, 16)]
+        contents = [random_content(rng, fmt, w, h, layers, [random_modes(rng, bits) for _ in range(layers)])
+                    for w, h in dims]
+        contents[2] = contents[2][:-1]  # short by a byte
+        raw, sections, at = bytearray(b"\x55" * 7), [], 7  # an odd start: offsets are absolute in the buffer
+        for content, (w, h) in zip(contents, dims, strict=True):
+            sections.append((at, len(content), w, h))
+            raw += content + b"\xaa" * 5
+            at += len(content) + 5
+        buf = np.frombuffer(bytes(raw), np.uint8).copy()
+        assert transport.unfilter_fields_at(buf, fmt, layers, sections) is None  # no batch kernel: not batched
+        expected = [None if k == 2 else unfilter_fields(c, fmt, w, h, layers).tobytes()
+                    for k, (c, (w, h)) in enumerate(zip(contents, dims, strict=True))]
+        transport.use_batch_kernels(decode_jit.fields1_many_kernel, decode_jit.unshuffle_many_kernel)
+        got = transport.unfilter_fields_at(buf, fmt, layers, sections)
+        transport.use_batch_kernels(None, None)
+        assert [None if g is None else g.tobytes() for g in got] == expected, fmt
+
+
+@pytest.mark.parametrize("element", [2, 3, 4, 8])
+def test_batch_unshuffle_matches_numpy(numpy_path, element):
+    rng = np.random.default_rng(element + 100)
+    counts = (1, 5, 300, 512, 700)
+    buf = rng.integers(0, 256, 3 + element * sum(counts) + 9).astype(np.uint8)
+    units, at = [], 3
+    for count in counts:
+        units.append((at, element * count))
+        at += element * count
+    expected = [transport.unshuffle(buf[a:a + size], element).tobytes() for a, size in units]
+    transport.use_batch_kernels(decode_jit.fields1_many_kernel, decode_jit.unshuffle_many_kernel)
+    got = transport.unshuffle_at(buf, units, element)
+    ragged = transport.unshuffle_at(buf, [(0, element + 1)], element)  # not whole elements: not batched
+    transport.use_batch_kernels(None, None)
+    assert [g.tobytes() for g in got] == expected
+    assert ragged is None or element == 1
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, 1e30])
+def test_a_bad_range_in_a_batch_names_its_payload_with_the_kernels(numpy_path, fruit, value):
+    store = encode_in_memory(fruit, EncodeOptions(preset="medium", max_leaf_splats=512))
+    m = read_manifest(store)
+    items = [(store.read_payload(t.groups["base"]), t.groups["base"]) for t in m.tiles][:4]
+    data, entry = items[2]
+    items[2] = (_damaged(data, entry, "position.range", value), entry)
+    decode_jit.install()
+    with pytest.raises(FormatError, match="payload2"):
+        container.unpack_payloads(items, "base", [f"payload{k}" for k in range(4)])

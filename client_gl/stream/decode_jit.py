@@ -140,6 +140,35 @@ def unshuffle_kernel(unit, element, out):
             out[i * element + k] = unit[base + i]
 
 
+@njit(**_JIT)
+def fields1_many_kernel(raw, table, words, fields, modes, orders, work, out):
+    """fields1_kernel over many sections of one format and layer count lying in `raw` (a group's decompressed
+    payloads), one row of `table` a section: (where its byte planes start, where its parameters start, slots, where
+    its slot_to_texel starts in `orders`, where its texels start in `out`, how many words they are, its row of
+    `modes`). One call for a plane of a whole group: the dispatch of a call (a few microseconds with these many
+    arguments) and the Python around it were most of a small payload's decode (issue 32)."""
+    for s in range(table.shape[0]):
+        n = table[s, 2]
+        first = table[s, 4]
+        fields1_kernel(raw, table[s, 0], table[s, 1], n, table[s, 5] // (n * words),
+                       words, fields, modes[table[s, 6]], orders[table[s, 3]:table[s, 3] + n], work,
+                       out[first:first + table[s, 5]])
+
+
+@njit(**_JIT)
+def unshuffle_many_kernel(raw, table, element, out):
+    """unshuffle_kernel over many units lying in `raw`, one row of `table` a unit (where it starts, its element
+    count), their bytes one unit after the other in `out`."""
+    first = 0
+    for u in range(table.shape[0]):
+        at, count = table[u, 0], table[u, 1]
+        for k in range(element):
+            base = at + k * count
+            for i in range(count):
+                out[first + i * element + k] = raw[base + i]
+        first += count * element
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) the kernel for the argument types of real calls: a content as a writable
     buffer's view (a payload's kept buffer) and as read-only bytes, into texels of 1, 2 and 4-byte words."""
@@ -153,6 +182,17 @@ def warm_up() -> None:
             transport.unfilter_fields(np.frombuffer(content, np.uint8).copy(), fmt, 16, 16, 1)
     finally:
         transport.use_fields_kernel(previous)
+    previous = transport.use_batch_kernels(fields1_many_kernel, unshuffle_many_kernel)
+    try:
+        for fmt in ("norm8x4", "norm565", "norm11"):
+            bits = transport.field_bits(fmt)
+            content = bytes([transport.FIELDS_VERSION]) + bytes([transport.MODE_DELTA] * len(bits)) \
+                + bytes(256 * sum((b + 7) // 8 for b in bits))
+            raw = np.frombuffer(content * 2, np.uint8).copy()
+            transport.unfilter_fields_at(raw, fmt, 1, [(0, len(content), 16, 16), (len(content), len(content), 16, 16)])
+        transport.unshuffle_at(np.zeros(32, np.uint8), [(0, 16), (16, 16)], 4)
+    finally:
+        transport.use_batch_kernels(*previous)
     unit = np.zeros(16, np.uint8)
     read_only = unit.copy()
     read_only.setflags(write=False)
@@ -165,9 +205,11 @@ def install() -> None:
     warm_up()
     transport.use_fields_kernel(fields1_kernel)
     transport.use_unshuffle_kernel(unshuffle_kernel)
+    transport.use_batch_kernels(fields1_many_kernel, unshuffle_many_kernel)
 
 
 def uninstall() -> None:
     """Back to the numpy path."""
     transport.use_fields_kernel(None)
     transport.use_unshuffle_kernel(None)
+    transport.use_batch_kernels(None, None)

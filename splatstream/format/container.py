@@ -36,15 +36,18 @@ from .texformats import PALETTE_FORMATS, TEXEL_DTYPES
 from .transport import (
     FIELD_LAYOUTS,
     FIELDS1,
+    batch_kernels,
     field_bits,
     fields_kernel,
     filter_texels,
     shuffle,
     shuffle_filter,
     trial_size,
+    unfilter_fields_at,
     unfilter_fields_many,
     unfilter_texels,
     unshuffle,
+    unshuffle_at,
     unshuffle_many,
 )
 
@@ -333,18 +336,26 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
     total = sum(sizes)
     whole, kept = _raw_buffer(total)
     owner = whole if whole.base is None else whole.base
-    bufs, at = [], 0
+    bufs, firsts, at = [], [], 0
     for (data, _), size, source in zip(items, sizes, sources, strict=True):
         buf = whole[at:at + size]
         _decompress_into(data, buf, source)
         bufs.append(buf)
+        firsts.append(at)
         at += size
     tables = [{s.name: s for s in entry.sections} for _, entry in items]
     out: list[dict[str, EncodedPlane]] = [{} for _ in items]
+    batched = None not in batch_kernels()
     for spec in group_planes(group, codebook):
         if between is not None:
             between()
         secs = [t[spec.name] for t in tables]
+        if batched:
+            # compiled batch kernels: a plane's sections of all payloads in one call per format (issue 32)
+            layers = _texels_at(whole, firsts, bufs, secs, spec, sources)
+            ranges = _ranges_at(whole, firsts, bufs, tables, spec, sources)
+            _finish(out, spec, secs, layers, ranges, kept, owner)
+            continue
         where = [f"{source} section {spec.name}" for source in sources]
         layers: list = [None] * len(items)
         # fields1 sections in batches of one (format, layer count, header); shuffled ones of one element
@@ -403,15 +414,88 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
             else:
                 for k, r in enumerate(ranges):
                     _check_ranges(r, spec.name, rs[k].name, sources[k])
-        for k in range(len(items)):
-            lay, rng = layers[k], ranges[k]
-            if kept:  # what is still a view of this thread's buffer is copied: the next payload overwrites it
-                lay = [p.copy() if p.base is owner else p for p in lay]
-                if rng is not None and rng.base is owner:
-                    rng = rng.copy()
-            s = secs[k]
-            out[k][spec.name] = EncodedPlane(spec, s.format, s.width, s.height, lay, rng)
+        _finish(out, spec, secs, layers, ranges, kept, owner)
     return out
+
+
+def _finish(out: list[dict], spec, secs: list[Section], layers: list, ranges: list, kept: bool,
+            owner: np.ndarray) -> None:
+    """Each payload's plane `spec` into `out`, copying what is still a view of this thread's kept buffer (the next
+    payload overwrites it)."""
+    for k, s in enumerate(secs):
+        lay, rng = layers[k], ranges[k]
+        if kept:
+            lay = [p.copy() if p.base is owner else p for p in lay]
+            if rng is not None and rng.base is owner:
+                rng = rng.copy()
+        out[k][spec.name] = EncodedPlane(spec, s.format, s.width, s.height, lay, rng)
+
+
+def _texels_at(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], secs: list[Section], spec,
+               sources: list[str]) -> list:
+    """Each payload's texel layers of one plane by the batch kernels (transport.use_batch_kernels): its fields1
+    sections in one call per format, its shuffled ones in one call per element size, the sections lying in `whole`
+    (the group's decompressed payloads, payload k from firsts[k]). A section the batch refuses (not well-formed), and
+    any other filter, goes through unfilter_texels, which decodes it alone or raises FormatError naming it."""
+    layers: list = [None] * len(secs)
+    fields: dict[str, list[int]] = {}
+    shuffled: dict[int, list[int]] = {}
+    for k, s in enumerate(secs):
+        if s.filter == FIELDS1 and s.format in FIELD_LAYOUTS:
+            fields.setdefault(s.format, []).append(k)
+        elif s.filter not in ("none", FIELDS1) and s.format not in FLOAT_TEXEL_FORMATS:
+            shuffled.setdefault(_element(s.filter), []).append(k)
+    count = spec.layers
+    for fmt, ks in fields.items():
+        got = unfilter_fields_at(whole, fmt, count, [(firsts[k] + secs[k].offset, secs[k].size, secs[k].width,
+                                                      secs[k].height) for k in ks])
+        for k, texels in zip(ks, got, strict=True):
+            if texels is not None:
+                unit = texels.size // count
+                layers[k] = [texels[i * unit:(i + 1) * unit] for i in range(count)]
+    for element, ks in shuffled.items():
+        units = []
+        for k in ks:
+            s = secs[k]
+            unit = s.size // count
+            units += [(firsts[k] + s.offset + i * unit, unit) for i in range(count)]
+        got = unshuffle_at(whole, units, element)
+        if got is not None:
+            for j, k in enumerate(ks):
+                layers[k] = got[j * count:(j + 1) * count]
+    for k, s in enumerate(secs):
+        if layers[k] is None:
+            layers[k] = unfilter_texels(bufs[k][s.offset:s.offset + s.size], s.filter, s.format, s.width, s.height,
+                                        count, f"{sources[k]} section {s.name}")
+        if s.format in FLOAT_TEXEL_FORMATS:
+            _check_float_texels(layers[k], s, sources[k])
+    return layers
+
+
+def _ranges_at(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], tables: list[dict], spec,
+               sources: list[str]) -> list:
+    """Each payload's ranges of one plane (None where it has none), unshuffled by one batch kernel call where the
+    range sections share a filter, and checked all at once (a payload's own check only to name a bad one)."""
+    if not spec.range_dtype:
+        return [None] * len(tables)
+    rs = [t[spec.range_name] for t in tables]
+    got = None
+    if all(r.filter == rs[0].filter for r in rs):
+        got = unshuffle_at(whole, [(first + r.offset, r.size) for first, r in zip(firsts, rs, strict=True)],
+                           _element(rs[0].filter))
+    if got is None:
+        got = [unshuffle(buf[r.offset:r.offset + r.size], _element(r.filter)) for buf, r in zip(bufs, rs, strict=True)]
+    ranges = [g.view(spec.range_dtype).reshape(r.shape) for g, r in zip(got, rs, strict=True)]
+    shapes = {r.shape[1:] for r in ranges}
+    base = got[0].base
+    if len(shapes) == 1 and len(ranges) > 1 and base is not None and all(g.base is base for g in got) \
+            and base.nbytes == sum(g.nbytes for g in got):
+        whole_r = base.reshape(-1).view(np.uint8).view(spec.range_dtype).reshape(-1, *shapes.pop())
+        if _ranges_ok(whole_r, spec.name):
+            return ranges
+    for k, r in enumerate(ranges):
+        _check_ranges(r, spec.name, rs[k].name, sources[k])
+    return ranges
 
 
 # Float texel formats store t as a float, which could hold anything; integer and BC formats cannot leave [0, 1].

@@ -1106,3 +1106,100 @@ def unshuffle_many(units: list[np.ndarray], element: int) -> list[np.ndarray]:
         out.append(dst[at:at + m].reshape(-1))
         at += m
     return out
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# Compiled batch kernels: one call for many sections (handed in by a shell, like the kernels above)
+
+
+_batch_kernels: tuple = (None, None)  # see use_batch_kernels
+
+
+def use_batch_kernels(fields_many, unshuffle_many) -> tuple:
+    """Decode many fields1 sections, and undo the byte shuffle of many units, of one decompressed buffer in one call
+    each (None, None: not batched); returns the pair it replaces. Called as fields_many(raw, table, words, fields,
+    modes, orders, work, out): per section (a row of `table`: where its byte planes and its parameters start in
+    `raw`, its slots, where its slot_to_texel starts in `orders`, where its texels start in `out` and how many words
+    they are, its row of `modes`) what use_fields_kernel's kernel is called with; and unshuffle_many(raw, table,
+    element, out): per unit (a row: where it starts in `raw`, its element count) its bytes unshuffled one unit after
+    the other into `out`.
+
+    Why: with the kernels a small tile's section decodes in a few microseconds, and what was left of a payload's
+    decode in a whole group was the Python and the dispatch around each kernel call (about 60 us a payload on a
+    quiet core: issue 32, BENCHMARKS.md "Decode speed"). A batch pays them once a plane."""
+    global _batch_kernels
+    previous, _batch_kernels = _batch_kernels, (fields_many, unshuffle_many)
+    return previous
+
+
+def batch_kernels() -> tuple:
+    """The pair use_batch_kernels handed in, or (None, None)."""
+    return _batch_kernels
+
+
+def unfilter_fields_at(raw: np.ndarray, fmt: str, layers: int,
+                       sections: list[tuple[int, int, int, int]]) -> list[np.ndarray | None] | None:
+    """unfilter_fields of several fields1 sections of one texel format and layer count lying in `raw` (one
+    decompressed buffer), given as (offset, size, width, height), by one call of the batch kernel: each section's
+    texels (views of one array), None for a section that is not well-formed (its caller decodes it with
+    unfilter_fields, which raises FormatError naming it). None when there is no batch kernel. Each section is checked
+    as _kernel_unfilter checks it, from the same cached lookup per (geometry, header)."""
+    kernel = _batch_kernels[0]
+    if kernel is None or fmt not in FIELD_LAYOUTS or type(layers) is not int or layers < 1:
+        return None
+    header = 1 + len(FIELD_LAYOUTS[fmt][2]) * FIELD_LAYOUTS[fmt][1] * layers
+    got: list = [None] * len(sections)
+    rows, take = [], []
+    orders: dict[tuple[int, int], int] = {}
+    order_parts: list[np.ndarray] = []
+    modes: dict[bytes, int] = {}
+    mode_parts: list[np.ndarray] = []
+    out_words = most = order_words = 0
+    plan = None
+    for k, (at, size, width, height) in enumerate(sections):
+        head = raw[at:at + header].tobytes()
+        plan = _kernel_plan(fmt, width, height, layers, head)
+        if plan is None or size != plan[0]:
+            continue
+        _, params_at, planes_at, n, words, fields, table, word, order, _, out_bytes = plan
+        o = orders.get((width, height))
+        if o is None:
+            o = orders[width, height] = order_words
+            order_parts.append(order)
+            order_words += n
+        m = modes.get(head)
+        if m is None:
+            m = modes[head] = len(mode_parts)
+            mode_parts.append(table)
+        length = out_bytes // word.itemsize
+        rows.append((at + planes_at, at + params_at, n, o, out_words, length, m))
+        take.append(k)
+        out_words += length
+        most = max(most, n)
+    if not rows:
+        return got
+    _, _, _, _, words, fields, _, word, _, nf, _ = plan
+    out = np.empty(out_words * word.itemsize, np.uint8)
+    work = _scratch("kernel", 8 * nf * most).view(np.int64).reshape(nf, most)
+    kernel(raw, np.array(rows, np.int64), words, fields, np.stack(mode_parts),
+           order_parts[0] if len(order_parts) == 1 else np.concatenate(order_parts), work, out.view(word))
+    size = word.itemsize
+    for k, (_, _, _, _, first, length, _) in zip(take, rows, strict=True):
+        got[k] = out[first * size:(first + length) * size]
+    return got
+
+
+def unshuffle_at(raw: np.ndarray, units: list[tuple[int, int]], element: int) -> list[np.ndarray] | None:
+    """unshuffle of several units lying in `raw`, given as (offset, size), by one call of the batch kernel: their
+    bytes as views of one array, one unit after the other (None when there is no batch kernel, or a unit's size is
+    not a multiple of `element`: unshuffle then handles each)."""
+    kernel = _batch_kernels[1]
+    if kernel is None or element <= 1 or any(size % element for _, size in units):
+        return None
+    out = np.empty(sum(size for _, size in units), np.uint8)
+    kernel(raw, np.array([(at, size // element) for at, size in units], np.int64).reshape(-1, 2), element, out)
+    views, first = [], 0
+    for _, size in units:
+        views.append(out[first:first + size])
+        first += size
+    return views
