@@ -11,7 +11,7 @@ timed), while this process compiles the numba fields1 kernel (client_gl.stream.d
 later runs start at once). Then, in this process on one thread, CPU time of the thread (time.thread_time), rounds
 of passes with the variants interleaved so that any load falls on them alike; a pass covers every payload of every
 tile, and each decoding variant runs with each --kernels (numpy: transport's numpy path; numba: the compiled
-fields1 and unshuffle kernels):
+fields1 and unshuffle kernels, a group's plane in one call each; numba1: the same kernels a section a call):
 
 * `group`: `format.decode.decode_payloads` of each payload group (base, sh1, ...) as a whole, from bytes: size and
   SHA-256 check, zstd, unfiltering into the texel bytes the GPU takes, the ranges (the batch path, issue 32);
