@@ -1181,8 +1181,10 @@ def unfilter_fields_at(raw: np.ndarray, fmt: str, layers: int,
     _, _, _, _, words, fields, _, word, _, nf, _ = plan
     out = np.empty(out_words * word.itemsize, np.uint8)
     work = _scratch("kernel", 8 * nf * most).view(np.int64).reshape(nf, most)
-    kernel(raw, np.array(rows, np.int64), words, fields, np.stack(mode_parts),
-           order_parts[0] if len(order_parts) == 1 else np.concatenate(order_parts), work, out.view(word))
+    # `orders` always a fresh (writable) array, like `modes`: one argument type per word type, so the compiled
+    # specialisations warm_up loads are the ones every call takes
+    kernel(raw, np.array(rows, np.int64), words, fields, np.stack(mode_parts), np.concatenate(order_parts), work,
+           out.view(word))
     size = word.itemsize
     for k, (_, _, _, _, first, length, _) in zip(take, rows, strict=True):
         got[k] = out[first * size:(first + length) * size]
