@@ -400,20 +400,7 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
                                      element)
             else:
                 got = [unshuffle(buf[r.offset:r.offset + r.size], r.element) for buf, r in zip(bufs, rs, strict=True)]
-            ranges = [g.view(spec.range_dtype).reshape(r.shape) for g, r in zip(got, rs, strict=True)]
-            shapes = {r.shape[1:] for r in ranges}
-            base = got[0].base
-            if len(shapes) == 1 and len(ranges) > 1 and base is not None and all(g.base is base for g in got) \
-                    and base.nbytes == sum(g.nbytes for g in got):
-                # one check of the ranges of them all (they lie one after the other in one array); a payload's own
-                # check only to say which one failed
-                whole_r = base.reshape(-1).view(np.uint8).view(spec.range_dtype).reshape(-1, *shapes.pop())
-                if not _ranges_ok(whole_r, spec.name):
-                    for k, r in enumerate(ranges):
-                        _check_ranges(r, spec.name, rs[k].name, sources[k])
-            else:
-                for k, r in enumerate(ranges):
-                    _check_ranges(r, spec.name, rs[k].name, sources[k])
+            ranges = _checked_ranges(got, rs, spec, sources)
         _finish(out, spec, secs, layers, ranges, kept, owner)
     return out
 
@@ -485,6 +472,12 @@ def _ranges_at(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], tab
                            _element(rs[0].filter))
     if got is None:
         got = [unshuffle(buf[r.offset:r.offset + r.size], _element(r.filter)) for buf, r in zip(bufs, rs, strict=True)]
+    return _checked_ranges(got, rs, spec, sources)
+
+
+def _checked_ranges(got: list[np.ndarray], rs: list[Section], spec, sources: list[str]) -> list[np.ndarray]:
+    """Each payload's ranges of one plane from its unshuffled range bytes `got`, checked in one go where they lie one
+    after the other in one array; a payload's own check only to say which one failed."""
     ranges = [g.view(spec.range_dtype).reshape(r.shape) for g, r in zip(got, rs, strict=True)]
     shapes = {r.shape[1:] for r in ranges}
     base = got[0].base
