@@ -169,6 +169,49 @@ def unshuffle_many_kernel(raw, table, element, out):
         first += count * element
 
 
+@njit(**_JIT)
+def whole_kernel(raw, rows, fields, modes, orders, work, out8, out16, out32, units):
+    """A whole payload's, or a whole group's, fields1 sections of every format and shuffled units in one call
+    (transport.use_whole_kernel): per row of `rows` fields1_kernel into the out view of its word size (out8, out16,
+    out32: views of one buffer), with its columns of `fields` and `modes`; then per row of `units` unshuffle_kernel's
+    bytes into out8. One call that releases the interpreter lock for all of it, where a plane at a time took one or
+    two calls a plane, each taking the lock back after it (issue 38's fly-through; issue 32's small payloads)."""
+    for s in range(rows.shape[0]):
+        n, first, length = rows[s, 2], rows[s, 4], rows[s, 5]
+        f0, nf, m0, nm, words = rows[s, 6], rows[s, 7], rows[s, 8], rows[s, 9], rows[s, 10]
+        layers = length // (n * words)
+        order = orders[rows[s, 3]:rows[s, 3] + n]
+        if rows[s, 11] == 1:
+            fields1_kernel(raw, rows[s, 0], rows[s, 1], n, layers, words, fields[:, f0:f0 + nf],
+                           modes[:, m0:m0 + nm], order, work, out8[first:first + length])
+        elif rows[s, 11] == 2:
+            fields1_kernel(raw, rows[s, 0], rows[s, 1], n, layers, words, fields[:, f0:f0 + nf],
+                           modes[:, m0:m0 + nm], order, work, out16[first:first + length])
+        else:
+            fields1_kernel(raw, rows[s, 0], rows[s, 1], n, layers, words, fields[:, f0:f0 + nf],
+                           modes[:, m0:m0 + nm], order, work, out32[first:first + length])
+    for u in range(units.shape[0]):
+        count, element = units[u, 1], units[u, 2]
+        unit = raw[units[u, 0]:units[u, 0] + count * element]
+        dst = out8[units[u, 3]:units[u, 3] + count * element]
+        # as unshuffle_kernel: written in order, read from `element` streams; the common element sizes spelt out
+        # (a loop over a run-time element size ran at half the speed here)
+        if element == 4:
+            for i in range(count):
+                dst[4 * i] = unit[i]
+                dst[4 * i + 1] = unit[count + i]
+                dst[4 * i + 2] = unit[2 * count + i]
+                dst[4 * i + 3] = unit[3 * count + i]
+        elif element == 2:
+            for i in range(count):
+                dst[2 * i] = unit[i]
+                dst[2 * i + 1] = unit[count + i]
+        else:
+            for i in range(count):
+                for k in range(element):
+                    dst[i * element + k] = unit[k * count + i]
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) the kernel for the argument types of real calls: a content as a writable
     buffer's view (a payload's kept buffer) and as read-only bytes, into texels of 1, 2 and 4-byte words."""
@@ -193,6 +236,21 @@ def warm_up() -> None:
         transport.unshuffle_at(np.zeros(32, np.uint8), [(0, 16), (16, 16)], 4)
     finally:
         transport.use_batch_kernels(*previous)
+    previous = transport.use_whole_kernel(whole_kernel)
+    try:  # sections of every word size and a unit in one call: the one argument type of every call
+        parts, sections, at = [], [], 0
+        for fmt in ("norm8x4", "norm565", "norm11"):
+            bits = transport.field_bits(fmt)
+            content = bytes([transport.FIELDS_VERSION]) + bytes([transport.MODE_DELTA] * len(bits)) \
+                + bytes(256 * sum((b + 7) // 8 for b in bits))
+            at += -at % 16
+            parts.append(bytes(at - sum(len(p) for p in parts)) + content)
+            sections.append((fmt, 1, at, len(content), 16, 16))
+            at += len(content)
+        raw = np.frombuffer(b"".join(parts) + bytes(32), np.uint8).copy()
+        transport.unfilter_whole(raw, sections, [(at, 16, 4), (at + 16, 16, 2)])
+    finally:
+        transport.use_whole_kernel(previous)
     unit = np.zeros(16, np.uint8)
     read_only = unit.copy()
     read_only.setflags(write=False)
@@ -206,6 +264,7 @@ def install() -> None:
     transport.use_fields_kernel(fields1_kernel)
     transport.use_unshuffle_kernel(unshuffle_kernel)
     transport.use_batch_kernels(fields1_many_kernel, unshuffle_many_kernel)
+    transport.use_whole_kernel(whole_kernel)
 
 
 def uninstall() -> None:
@@ -213,3 +272,4 @@ def uninstall() -> None:
     transport.use_fields_kernel(None)
     transport.use_unshuffle_kernel(None)
     transport.use_batch_kernels(None, None)
+    transport.use_whole_kernel(None)
