@@ -35,6 +35,8 @@ import tempfile
 import threading
 import time
 
+import numpy as np
+
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 from client_gl.stream.engine import decode_job  # noqa: E402
@@ -175,6 +177,11 @@ def measure(payloads: list[tuple], variants: list[str], runs: int, probe_too: bo
                   "held_of_cpu": round(sum(held) / sum(cpu[v]), 3), "lock_releases": int(statistics.median(calls[v])),
                   "cpu_total_ms": round(1e3 * sum(cpu[v]), 2), "held_total_ms": round(1e3 * sum(held), 2),
                   "M_splats_per_s": round(sum(splats) / sum(cpu[v]) / 1e6, 2)}
+        if len(set(splats)) > 1:  # a payload's CPU and held lock fitted as fixed + per splat (least squares)
+            for name, ys in (("cpu", cpu[v]), ("held", held)):
+                slope, fixed = np.polyfit(np.array(splats, float), np.array(ys), 1)
+                out[v][f"{name}_fixed_us"] = round(1e6 * fixed, 1)
+                out[v][f"{name}_per_splat_ns"] = round(1e9 * slope, 2)
         if probe_too:
             use(v)
             out[v].update(beside_probe(payloads, runs))

@@ -16,9 +16,14 @@ where the cut reaches the texel: the same bytes); a predicted field plus floor((
 `unshuffle_kernel` undoes format.md 5.1's byte shuffle of a unit (rotations, scales and ranges stored shuffled)
 in one call where numpy takes four to eight.
 
+`whole_kernel` decodes a whole payload's, or a whole group's, fields1 sections of every format and shuffled units
+(texels and ranges) in one call: a decode thread then gives the interpreter lock up twice a payload (zstd, this
+kernel) and runs its Python in one stretch before and one after (issue 38's fly-through p99: the frame thread waits
+for that lock; issue 32: that Python is most of a small payload's decode).
+
 `install()` compiles the kernels (or loads them from numba's cache: cache=True) with the argument types of a real
-call and hands them to format.transport (`use_fields_kernel`, `use_unshuffle_kernel`); `uninstall()` goes back to
-numpy. The core never imports
+call and hands them to format.transport (`use_fields_kernel`, `use_unshuffle_kernel`, `use_batch_kernels`,
+`use_whole_kernel`); `uninstall()` goes back to numpy. The core never imports
 numba (ARCHITECTURE.md): this module is the streaming client's, and benchmarks import it to compare both.
 """
 from __future__ import annotations
@@ -131,12 +136,31 @@ def fields1_kernel(raw, planes_at, params_at, n, layers, words, fields, modes, s
 
 
 @njit(**_JIT)
+def unshuffle_into(unit, count, element, out):
+    """format.md 5.1's inverse byte shuffle of `count` elements of `element` bytes: byte k of element i is
+    unit[k * count + i]. Written in order, read from `element` streams (about twice as fast as the other way); the
+    common element sizes spelt out, which the compiler vectorises: 0.08 ns a byte where the loop over a run-time
+    element size took 1.4-2.8 (a city payload's 76 KB of units, 2-core VM at load 6)."""
+    if element == 4:
+        for i in range(count):
+            out[4 * i] = unit[i]
+            out[4 * i + 1] = unit[count + i]
+            out[4 * i + 2] = unit[2 * count + i]
+            out[4 * i + 3] = unit[3 * count + i]
+    elif element == 2:
+        for i in range(count):
+            out[2 * i] = unit[i]
+            out[2 * i + 1] = unit[count + i]
+    else:
+        for i in range(count):
+            for k in range(element):
+                out[i * element + k] = unit[k * count + i]
+
+
+@njit(**_JIT)
 def unshuffle_kernel(unit, element, out):
-    """format.md 5.1's inverse byte shuffle of one unit: byte k of element i is unit[k * count + i]."""
-    count = unit.shape[0] // element
-    for i in range(count):  # written in order, read from `element` streams: about twice as fast as the other way
-        for k in range(element):
-            out[i * element + k] = unit[k * count + i]
+    """format.md 5.1's inverse byte shuffle of one unit (unshuffle_into)."""
+    unshuffle_into(unit, unit.shape[0] // element, element, out)
 
 
 @njit(**_JIT)
@@ -161,11 +185,7 @@ def unshuffle_many_kernel(raw, table, element, out):
     first = 0
     for u in range(table.shape[0]):
         at, count = table[u, 0], table[u, 1]
-        unit = raw[at:at + count * element]
-        dst = out[first:first + count * element]
-        for i in range(count):  # as unshuffle_kernel: written in order (0.4-0.9 ns a byte against 1.6-1.8)
-            for k in range(element):
-                dst[i * element + k] = unit[k * count + i]
+        unshuffle_into(raw[at:at + count * element], count, element, out[first:first + count * element])
         first += count * element
 
 
@@ -192,24 +212,8 @@ def whole_kernel(raw, rows, fields, modes, orders, work, out8, out16, out32, uni
                            modes[:, m0:m0 + nm], order, work, out32[first:first + length])
     for u in range(units.shape[0]):
         count, element = units[u, 1], units[u, 2]
-        unit = raw[units[u, 0]:units[u, 0] + count * element]
-        dst = out8[units[u, 3]:units[u, 3] + count * element]
-        # as unshuffle_kernel: written in order, read from `element` streams; the common element sizes spelt out
-        # (a loop over a run-time element size ran at half the speed here)
-        if element == 4:
-            for i in range(count):
-                dst[4 * i] = unit[i]
-                dst[4 * i + 1] = unit[count + i]
-                dst[4 * i + 2] = unit[2 * count + i]
-                dst[4 * i + 3] = unit[3 * count + i]
-        elif element == 2:
-            for i in range(count):
-                dst[2 * i] = unit[i]
-                dst[2 * i + 1] = unit[count + i]
-        else:
-            for i in range(count):
-                for k in range(element):
-                    dst[i * element + k] = unit[k * count + i]
+        unshuffle_into(raw[units[u, 0]:units[u, 0] + count * element], count, element,
+                       out8[units[u, 3]:units[u, 3] + count * element])
 
 
 def warm_up() -> None:
