@@ -28,12 +28,15 @@ numba (ARCHITECTURE.md): this module is the streaming client's, and benchmarks i
 """
 from __future__ import annotations
 
+import os
+
 import numpy as np
 from numba import njit
 
 from splatstream.format import transport
 
 _JIT = dict(cache=True, nogil=True, boundscheck=False)
+WHOLE_ENV = "SPLATSTREAM_DECODE_WHOLE"  # "0": install() leaves the whole kernel out
 
 
 @njit(**_JIT)
@@ -268,7 +271,10 @@ def install() -> None:
     transport.use_fields_kernel(fields1_kernel)
     transport.use_unshuffle_kernel(unshuffle_kernel)
     transport.use_batch_kernels(fields1_many_kernel, unshuffle_many_kernel)
-    transport.use_whole_kernel(whole_kernel)
+    # SPLATSTREAM_DECODE_WHOLE=0: a plane at a time as before the whole kernel (for A/B runs of the fly-through:
+    # the whole kernel gives the lock up twice a payload instead of about five times, for 10-20 us more of Python
+    # holding it; BENCHMARKS.md, "Decode speed")
+    transport.use_whole_kernel(whole_kernel if os.environ.get(WHOLE_ENV, "1") != "0" else None)
 
 
 def uninstall() -> None:

@@ -482,7 +482,11 @@ def _unpack_whole(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
                 _check_float_texels(layers, s, sources[k])
             layers_of.append(layers)
         checked: list = [None] * len(tables)
-        if ranges >= 0:
+        if ranges >= 0 and len(tables) == 1:  # one payload: its own check
+            r = tables[0][spec.range_name]
+            checked = [out[unit_at[ranges]:unit_at[ranges] + r.size].view(spec.range_dtype).reshape(r.shape)]
+            _check_ranges(checked[0], spec.name, r.name, sources[0])
+        elif ranges >= 0:
             rs = [t[spec.range_name] for t in tables]
             got_r = [out[unit_at[ranges + k]:unit_at[ranges + k] + r.size] for k, r in enumerate(rs)]
             first, last = unit_at[ranges], unit_at[ranges + len(rs) - 1] + rs[-1].size

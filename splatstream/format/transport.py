@@ -1238,6 +1238,41 @@ def whole_kernel() -> object:
     return _whole_kernel
 
 
+@functools.lru_cache(maxsize=1024)
+def _whole_tables(keys: tuple) -> tuple:
+    """The whole kernel's `fields`, `modes` and `orders` for sections of these (format, layers, header, width,
+    height), each table once, and per section (its first column of fields, of modes, how many of modes, where its
+    slot_to_texel starts in orders). Cached: a scene's payloads repeat a few combinations of formats, modes and
+    geometries, and concatenating the tables was a fifth of a small payload's Python around the kernel. The arrays
+    are writable and C-ordered (the one argument type decode_jit.warm_up compiles) and never written."""
+    field_parts, mode_parts, order_parts, columns = [], [], [], []
+    fields_at: dict[str, int] = {}
+    modes_at: dict[tuple, int] = {}
+    orders_at: dict[tuple[int, int], int] = {}
+    field_cols = mode_cols = order_words = 0
+    for fmt, layers, head, width, height in keys:
+        _, fields, table, _ = _kernel_args(fmt, layers, head)
+        f = fields_at.get(fmt)
+        if f is None:
+            f = fields_at[fmt] = field_cols
+            field_parts.append(fields)
+            field_cols += fields.shape[1]
+        m = modes_at.get((fmt, layers, head))
+        if m is None:
+            m = modes_at[fmt, layers, head] = mode_cols
+            mode_parts.append(table)
+            mode_cols += table.shape[1]
+        o = orders_at.get((width, height))
+        if o is None:
+            o = orders_at[width, height] = order_words
+            order_parts.append(slot_to_texel(width, height))
+            order_words += width * height
+        columns.append((f, m, table.shape[1], o))
+    return (np.concatenate(field_parts, axis=1) if field_parts else np.zeros((5, 0), np.int64),
+            np.concatenate(mode_parts, axis=1) if mode_parts else np.zeros((3, 0), np.int64),
+            np.concatenate(order_parts) if order_parts else np.zeros(0, np.int64), tuple(columns))
+
+
 def unfilter_whole(raw: np.ndarray, sections: list[tuple[str, int, int, int, int, int]],
                    units: list[tuple[int, int, int]]) -> tuple[np.ndarray, list, list[int]] | None:
     """unfilter_fields of every fields1 section in `sections` ((format, layers, offset, size, width, height), lying in
@@ -1255,13 +1290,7 @@ def unfilter_whole(raw: np.ndarray, sections: list[tuple[str, int, int, int, int
         return None
     got: list = []
     rows = []
-    fields_at: dict[str, int] = {}
-    field_parts: list[np.ndarray] = []
-    modes_at: dict[tuple, int] = {}
-    mode_parts: list[np.ndarray] = []
-    orders: dict[tuple[int, int], int] = {}
-    order_parts: list[np.ndarray] = []
-    field_cols = mode_cols = order_words = 0
+    keys = []  # per section decoded: (format, layers, header, width, height), the key of its tables below
     out_bytes = most_n = most_f = 0
     for fmt, layers, at, size, width, height in sections:
         layout = FIELD_LAYOUTS.get(fmt)
@@ -1273,30 +1302,19 @@ def unfilter_whole(raw: np.ndarray, sections: list[tuple[str, int, int, int, int
         if plan is None or size != plan[0]:
             got.append(None)
             continue
-        _, params_at, planes_at, n, words, fields, table, word, order, nf, nbytes = plan
-        f = fields_at.get(fmt)
-        if f is None:
-            f = fields_at[fmt] = field_cols
-            field_parts.append(fields)
-            field_cols += nf
-        m = modes_at.get((fmt, layers, head))
-        if m is None:
-            m = modes_at[fmt, layers, head] = mode_cols
-            mode_parts.append(table)
-            mode_cols += table.shape[1]
-        o = orders.get((width, height))
-        if o is None:
-            o = orders[width, height] = order_words
-            order_parts.append(order)
-            order_words += n
+        _, params_at, planes_at, n, words, _, _, word, _, nf, nbytes = plan
         out_bytes += -out_bytes % 16
         size_of = word.itemsize
-        rows.append((at + planes_at, at + params_at, n, o, out_bytes // size_of, nbytes // size_of, f, nf, m,
-                     table.shape[1], words, size_of))
+        rows.append([at + planes_at, at + params_at, n, 0, out_bytes // size_of, nbytes // size_of, 0, nf, 0, 0,
+                     words, size_of])
+        keys.append((fmt, layers, head, width, height))
         got.append((out_bytes, nbytes))
         out_bytes += nbytes
         most_n = max(most_n, n)
         most_f = max(most_f, nf)
+    fields, modes, orders, columns = _whole_tables(tuple(keys))
+    for row, (f, m, nm, o) in zip(rows, columns, strict=True):
+        row[3], row[6], row[8], row[9] = o, f, m, nm
     out_bytes += -out_bytes % 16
     unit_rows, unit_at = [], []
     for at, size, element in units:
@@ -1309,11 +1327,6 @@ def unfilter_whole(raw: np.ndarray, sections: list[tuple[str, int, int, int, int
         out_bytes += size
     out = np.empty(out_bytes + -out_bytes % 16, np.uint8)
     work = _scratch("kernel", 8 * most_f * most_n).view(np.int64).reshape(most_f, most_n)
-    empty = np.zeros((1, 0), np.int64)
-    # every table a fresh, writable, C-ordered array: one argument type each, the one decode_jit.warm_up compiles
-    kernel(raw, np.array(rows, np.int64).reshape(-1, 12),
-           np.concatenate(field_parts, axis=1) if field_parts else np.zeros((5, 0), np.int64),
-           np.concatenate(mode_parts, axis=1) if mode_parts else np.zeros((3, 0), np.int64),
-           np.concatenate(order_parts) if order_parts else empty[0], work, out, out.view(np.uint16),
+    kernel(raw, np.array(rows, np.int64).reshape(-1, 12), fields, modes, orders, work, out, out.view(np.uint16),
            out.view(np.uint32), np.array(unit_rows, np.int64).reshape(-1, 4))
     return out, got, unit_at
