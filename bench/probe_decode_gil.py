@@ -19,7 +19,7 @@ is counted as released (numpy releases the lock inside its larger loops too, for
 With --probe, by a probe too: a thread spins on a tiny Python loop counting iterations (its rate alone measured
 first); while a decode runs in the main thread, held = wall - iterations / rate alone. That needs two free cores:
 on a loaded machine the probe waits for a core, not for the lock, and the figure means nothing. Texels are checked
-equal across --kernels (numpy: transport's numpy path; numba_plane: the compiled kernels a plane at a time, the path
+equal across --kernels (numpy: transport's numpy path; numbap: the compiled kernels a plane at a time, the path
 before the whole kernel; numba: decode_jit.install(), a payload in one call). Prints one JSON object.
 """
 from __future__ import annotations
@@ -131,7 +131,7 @@ class NogilClock:
 
 
 def use(variant: str) -> None:
-    """Hand transport the kernels of `variant` (numpy, numba_plane, numba)."""
+    """Hand transport the kernels of `variant` (numpy, numbap, numba)."""
     if variant == "numpy":
         transport.use_fields_kernel(None)
         transport.use_unshuffle_kernel(None)
@@ -230,7 +230,7 @@ def main() -> None:
     ap.add_argument("--splats", type=int, default=120000)
     ap.add_argument("--preset", default="medium")
     ap.add_argument("--min-splats", type=int, default=4096)
-    ap.add_argument("--kernels", default="numpy,numba_plane,numba")
+    ap.add_argument("--kernels", default="numpy,numbap,numba")
     ap.add_argument("--probe", action="store_true", help="also beside the spinning probe (needs two free cores)")
     ap.add_argument("--runs", type=int, default=3)
     ap.add_argument("--json")
@@ -242,7 +242,7 @@ def main() -> None:
               "switch_interval_s": sys.getswitchinterval(), "preset": args.preset, "kernels": {}}
     reference = None
     variants = args.kernels.split(",")
-    if {"numba", "numba_plane"} & set(variants):
+    if {"numba", "numbap"} & set(variants):
         from client_gl.stream import decode_jit
         decode_jit.warm_up()
     for variant in variants:
