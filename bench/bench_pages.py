@@ -28,6 +28,7 @@ from __future__ import annotations
 import argparse
 import cProfile
 import gc
+import hashlib
 import json
 import math
 import os
@@ -37,6 +38,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import tracemalloc
 from dataclasses import replace
@@ -253,7 +255,8 @@ def tree_memory_mb(held: PagedTree, paged) -> float:
 
 
 def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame: int, profile: bool,
-                compiled: bool = True, wait: bool = True, parts_json: str | None = None) -> None:
+                compiled: bool = True, wait: bool = True, parts_json: str | None = None,
+                busy_threads: int = 0) -> None:
     """A StreamEngine over the paged tree along a camera flying across the city at street level: per-frame
     update times (median, p99, max) and, with --profile, where they go. `compiled`: the compiled selection
     (selection_jit, waited for before the path, so every frame near the cut uses it), else the numpy path."""
@@ -314,6 +317,9 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
     parts_now: dict[str, list[float]] = {}
     parts: list[dict[str, list[float]]] = []
     held_tiles: list[int] = []
+    # every frame's cut (tile ids, in the cut's order) and draw set, hashed: the same digests before and after a
+    # change of the selection's code mean the same frames
+    cuts, draws = hashlib.sha256(), hashlib.sha256()
 
     def part(label, fn):
         def timed_part(*args, **kw):
@@ -347,6 +353,14 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
             else:
                 full_passes.append(time.perf_counter() - started.pop(2, time.perf_counter()))
     gc.callbacks.append(on_gc)
+    stop = threading.Event()
+
+    def busy() -> None:  # Python that holds the interpreter lock until the switch interval takes it (a page parse)
+        while not stop.is_set():
+            sum(i * i for i in range(2000))
+    others = [threading.Thread(target=busy, daemon=True) for _ in range(busy_threads)]
+    for th in others:
+        th.start()
     try:
         for f in range(frames):
             s = f / max(1, frames - 1)
@@ -360,10 +374,13 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
                 prof.enable()
             held = (engine.pages.pages_read, engine.pages.evicted)
             t0, c0 = time.perf_counter(), time.thread_time()
-            engine.update(cam)
+            u = engine.update(cam)
             times.append(time.perf_counter() - t0)
             cpu.append(time.thread_time() - c0)
             parts.append(parts_now)
+            ids = engine.ids
+            cuts.update(np.array([int(ids[i]) for i in u.selection.cut], np.int64).tobytes() + b"|")
+            draws.update(np.array(u.draw, np.int64).tobytes() + b"|")
             held_tiles.append(len(engine.manifest.tiles))
             parts_now = {}
             adopted.append(held != (engine.pages.pages_read, engine.pages.evicted))
@@ -371,6 +388,9 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
             if prof is not None:
                 prof.disable()
     finally:
+        stop.set()
+        for th in others:
+            th.join()
         gc.callbacks.remove(on_gc)
         gc.unfreeze()
         engine.close()
@@ -406,6 +426,8 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
                       f"{ts[part].max():.1f} ms; CPU median {np.median(cs[part]):.2f}, max {cs[part].max():.1f} ms; "
                       f"{sum(times[i] for i in np.flatnonzero(part)):.2f} s in all")
     print_parts(parts, cs, ts)
+    print(f"  every frame's cut: sha256 {cuts.hexdigest()[:16]}, draw set: {draws.hexdigest()[:16]}; the last cut "
+          f"{len(u.selection.cut)} tiles, {u.selection.splats} splats")
     if parts_json:
         with open(parts_json, "w") as f:
             json.dump([{"frame": i, "update_cpu": round(float(cs[i]), 3), "update_wall": round(float(ts[i]), 3),
@@ -532,6 +554,9 @@ def main() -> None:
                          "a worker thread from its first frame near the cut): the frames before it was ready")
     ap.add_argument("--parts-json", metavar="FILE",
                     help="--engine: each frame's parts (CPU and wall ms) to FILE (N in it: the scene's size)")
+    ap.add_argument("--busy-threads", type=int, default=0,
+                    help="--engine: threads of pure Python beside the frame loop (as a page parse or a decode step "
+                         "that runs into a frame): the frame's wall then shows each hand-over of the interpreter lock")
     ap.add_argument("--jit-cost", action="store_true",
                     help="the compiled selection's import and compilation (cold numba cache) or loading (warm)")
     args = ap.parse_args()
@@ -543,7 +568,8 @@ def main() -> None:
         for n in [int(float(s)) for s in args.splats.split(",")]:
             engine_path(synthetic_tree(n, base), args.default_levels, args.frames, args.max_splats, args.per_frame,
                         args.profile, not args.numpy_selection, not args.no_wait,
-                        args.parts_json.replace("N", f"{n / 1e6:.0f}M") if args.parts_json else None)
+                        args.parts_json.replace("N", f"{n / 1e6:.0f}M") if args.parts_json else None,
+                        args.busy_threads)
         return
     if args.repage:
         repage(*args.repage, args.default_levels)

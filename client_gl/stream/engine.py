@@ -131,15 +131,17 @@ class StreamOptions:
     # referenced (a dropped page's tiles hold no reference cycles); only cyclic garbage existing at that moment is
     # kept. False: the collector as configured.
     freeze_pages: bool = True
-    # From this many tiles held the selection looks near the cut only (selection.select_near); below it, over every
+    # The numpy path's rule (the compiled selection, once ready, selects near the cut whatever the tiles held):
+    # from this many tiles held the selection looks near the cut only (selection.select_near); below it, over every
     # tile (view_numbers and select): the same cut, and numpy over a few thousand tiles costs less than finding the
     # tiles near the cut (interleaved on the 2-core VM: 1,536 tiles held 1.5 against 2.0 ms, 6,548 5.1 against
     # 5.1, 20,402 10.6 against 6.6; BENCHMARKS.md, "Manifest pages").
     select_near_from: int = 4096
     # The selection near the cut compiled (selection_jit, numba: the optional extra `fast`), the same cut as the
     # numpy path in a fraction of its time (BENCHMARKS.md, "Manifest pages"). Its kernels are compiled or loaded
-    # from numba's cache on a worker thread from the first frame that selects near the cut; the numpy path runs
-    # until they are ready, and always where numba is not installed. False: the numpy path always.
+    # from numba's cache on a worker thread from the first frame that selects near the cut or follows a page's
+    # arrival, and used once ready whatever the tiles held; the numpy path runs until they are ready, and always
+    # where numba is not installed. False: the numpy path always.
     compiled_selection: bool = True
 
 
