@@ -143,8 +143,8 @@ def refinement_keys(level: np.ndarray, distance: np.ndarray, sse: np.ndarray, le
     """select's refinement key of these tiles (smallest refined first): level * level_step + log2(distance), and
     -inf where the sse is not finite (the eye inside a tile's sphere: refine it first). One formula for select,
     select_near and the compiled selection, which must order the loop and give the priorities bit for bit alike."""
-    with np.errstate(divide="ignore"):
-        key = level * level_step + np.log2(np.maximum(distance, 1e-30))
+    # no errstate: log2 of a value at least 1e-30 (or NaN) warns of nothing, and the context costs as much as the rest
+    key = level * level_step + np.log2(np.maximum(distance, 1e-30))
     return np.where(np.isfinite(sse), key, -INF)
 
 
@@ -250,9 +250,9 @@ class PartialView:
             self.area_px = buffers.get("area_px", n, f64, True)
             self.known = buffers.get("known", n, np.dtype(np.uint8), True)
         self.looked_at = 0  # tiles whose numbers were computed
-        # the box test of one tile in Python floats (visible_at): the same operations in the same order as
-        # boxes_in_frustum's, so the same answer
-        self._one = list(zip(self._planes[:, 3].tolist(), _split(self._planes).tolist(), strict=True))
+        # the planes' normals split for the box corners (boxes_in_frustum's; the compiled selection takes them too)
+        self.split = _split(self._planes)
+        self._one: list | None = None  # the box test of one tile in Python floats (visible_at), made when needed
         self._visible_of: dict[int, bool] = {}
 
     def ensure(self, idx) -> None:
@@ -276,6 +276,8 @@ class PartialView:
             return bool(self.visible[i])
         v = self._visible_of.get(i)
         if v is None:
+            if self._one is None:  # the same operations in the same order as boxes_in_frustum's: the same answer
+                self._one = list(zip(self._planes[:, 3].tolist(), self.split.tolist(), strict=True))
             c = self.arrays.box_corners[i].tolist()
             v = True
             for d, w in self._one:

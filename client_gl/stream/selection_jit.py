@@ -311,7 +311,8 @@ def select_near_compiled(a: TileArrays, view: PartialView, cost: np.ndarray, roo
                      float(cam.width * cam.height)], np.float64)
     high = float(opts.max_sse)
     g = (camv, _f64(a.sphere_center), _f64(a.sphere_radius), _f64(a.geometric_error), _f64(a.box_corners),
-         _f64(planes[:, 3]), _f64(_split(planes)), first, was, high, high * opts.hysteresis)
+         _f64(planes[:, 3]), _f64(view.split if hasattr(view, "split") else _split(planes)), first, was, high,
+         high * opts.hysteresis)
     known, sse, visible, radius_px, area_px, distance = (view.known, view.sse, view.visible, view.radius_px,
                                                          view.area_px, view.distance)
     cand = buf.get("cand", n, u8)  # written for every tile whose numbers are computed, read only for those
