@@ -16,12 +16,14 @@ median time of one frame's view numbers + selection over the tiles held against 
         manifest bytes and seconds from opening the stream to the first frame that draws the root (engine, fetcher
         and HTTP as `view` runs them, no GL: a pool that counts slots), median of --runs
     PYTHONPATH=. python bench/bench_pages.py --engine --splats 6e6,60e6,250e6 [--frames 300] [--profile]
-            [--numpy-selection | --no-wait]
+            [--numpy-selection | --no-wait] [--parts-json F_N.json] [--busy-threads 1]
     PYTHONPATH=. python bench/bench_pages.py --jit-cost [--runs 7]   # the compiled selection's cost before its first
         # use: numba's import, then its kernels compiled (the first run, an empty cache) or loaded (the others)
         # a StreamEngine over the paged tree along a street-level path (pages and payloads arrive --per-frame a
         # frame, payloads not decoded, a pool that counts): per-frame update times, median, p99, max; the compiled
-        # selection (numba, the `fast` extra) unless --numpy-selection
+        # selection (numba, the `fast` extra) unless --numpy-selection; each part of the update per frame (thread
+        # CPU and wall: the view, the cut, the pages wanted, bands, keys, wish list, page adoption, draw set), and
+        # a digest of every frame's cut and draw set (equal digests: the same frames)
 """
 from __future__ import annotations
 
@@ -439,10 +441,10 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
 
 
 def print_parts(parts: list[dict[str, list[float]]], cpu: np.ndarray, wall: np.ndarray) -> None:
-    """Each part's thread CPU and wall per frame (0 in frames without it): median, p99, max, and in how many frames
-    it ran. `selection` is the view's numbers and the cut (what bench_flythrough.py's --breakdown counts as the
-    selection); `wanted` the whole selection (with the pages wanted, the bands and the keys); `keys etc.` is
-    `wanted` less its timed parts."""
+    """Each part's thread CPU and wall per frame (0 in frames without it; the page adoption, eviction and upload
+    over the frames they ran in): median, p99, max, and in how many frames it ran. `selection` is the view's
+    numbers and the cut (what bench_flythrough.py's --breakdown counts as the selection); `wanted` the whole
+    selection (with the pages wanted, the bands and the keys); `keys etc.` is `wanted` less its timed parts."""
     names = ["view", "cut", "pages wanted", "bands", "wanted", "wish list", "page adoption", "page eviction",
              "draw set", "collect", "upload"]
 
@@ -457,6 +459,8 @@ def print_parts(parts: list[dict[str, list[float]]], cpu: np.ndarray, wall: np.n
     print(f"  {'part (ms a frame)':36s} {'CPU median':>10s} {'p99':>7s} {'max':>7s} | {'wall median':>11s} "
           f"{'p99':>7s} {'max':>7s} | frames")
     for n, (c, w) in rows.items():
+        if n in ("page adoption", "page eviction", "upload"):  # over the frames it ran in
+            c, w = c[w > 0], w[w > 0]
         ran = int(np.count_nonzero(w)) if n != "update" else len(w)
         if not ran:
             continue
