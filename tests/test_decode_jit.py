@@ -199,12 +199,14 @@ def test_a_bad_range_in_a_batch_names_its_payload_with_the_kernels(numpy_path, f
         container.unpack_payloads(items, "base", [f"payload{k}" for k in range(4)])
 
 
-def test_whole_kernel_matches_the_numpy_path(numpy_path):
+@pytest.mark.parametrize("few_rows", [0, 1000])
+def test_whole_kernel_matches_the_numpy_path(numpy_path, monkeypatch, few_rows):
     """Sections of every format, geometry, layer count and modes and units of every element size (some not whole
     elements) in one buffer, one call: each section's texels and each unit's bytes are the numpy path's, at the
     offsets unfilter_whole says (texels at 16-byte offsets, each unit aligned to its element, units of one element
     size given in a row lying in a row); malformed sections among them come back None and the others are still
-    right."""
+    right. The kernel's rows built either way (by numpy for a group's many sections, in Python for a few)."""
+    monkeypatch.setattr(transport, "_FEW_ROWS", few_rows)
     rng = np.random.default_rng(zlib.crc32(b"whole"))
     raw, sections, expected, at = bytearray(b"\x55" * 7), [], [], 7  # an odd start: offsets are absolute
     for k, fmt in enumerate(sorted(FIELD_LAYOUTS) * 2):

@@ -435,24 +435,27 @@ def _unpack_whole(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
     sections, units = [], []
     plan = []  # per plane: per payload (texel section, index in sections or -1, first unit or -1), then its ranges
     for spec in specs:
-        count = spec.layers
+        count, name = spec.layers, spec.name
         texels = []
-        for k, t in enumerate(tables):
-            s = t[spec.name]
-            if s.filter == FIELDS1 and s.format in FIELD_LAYOUTS:
+        for t, first in zip(tables, firsts, strict=True):
+            s = t[name]
+            fmt, filt = s.format, s.filter
+            if filt == FIELDS1 and fmt in FIELD_LAYOUTS:
                 texels.append((s, len(sections), -1))
-                sections.append((s.format, count, firsts[k] + s.offset, s.size, s.width, s.height))
-            elif s.filter not in ("none", FIELDS1) and s.format not in FLOAT_TEXEL_FORMATS:
+                sections.append((fmt, count, first + s.offset, s.size, s.width, s.height))
+            elif filt != "none" and filt != FIELDS1 and fmt not in FLOAT_TEXEL_FORMATS:
                 texels.append((s, -1, len(units)))
-                unit, element = s.size // count, _element(s.filter)
-                units += [(firsts[k] + s.offset + i * unit, unit, element) for i in range(count)]
+                unit, element = s.size // count, _element(filt)
+                units += [(first + s.offset + i * unit, unit, element) for i in range(count)]
             else:
                 texels.append((s, -1, -1))
         ranges = -1
         if spec.range_dtype:  # a plane's range units in a row: they lie in a row in out, checked at once
             ranges = len(units)
-            units += [(firsts[k] + r.offset, r.size, _element(r.filter))
-                      for k, r in enumerate(t[spec.range_name] for t in tables)]
+            range_name = spec.range_name
+            for t, first in zip(tables, firsts, strict=True):
+                r = t[range_name]
+                units.append((first + r.offset, r.size, _element(r.filter)))
         plan.append((spec, texels, ranges))
     if between is not None:
         between()
@@ -462,14 +465,18 @@ def _unpack_whole(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
     for spec, texels, ranges in plan:
         if between is not None:
             between()
-        count = spec.layers
-        layers_of = []
+        count, name = spec.layers, spec.name
+        checked = _whole_ranges(out, unit_at, ranges, tables, spec, sources) if ranges >= 0 else None
+        # per payload only slices and the plane (issue 32: this loop's Python was 22 us a small payload)
         for k, (s, section, unit) in enumerate(texels):
             at = got[section] if section >= 0 else None
             if at is not None:
                 first, size = at
-                step = size // count
-                layers = [out[first + i * step:first + (i + 1) * step] for i in range(count)]
+                if count == 1:
+                    layers = [out[first:first + size]]
+                else:
+                    step = size // count
+                    layers = [out[first + i * step:first + (i + 1) * step] for i in range(count)]
             elif unit >= 0:
                 step = s.size // count
                 layers = [out[unit_at[unit + i]:unit_at[unit + i] + step] for i in range(count)]
@@ -480,21 +487,39 @@ def _unpack_whole(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
                     layers = [p.copy() if p.base is owner else p for p in layers]
             if s.format in FLOAT_TEXEL_FORMATS:
                 _check_float_texels(layers, s, sources[k])
-            layers_of.append(layers)
-        checked: list = [None] * len(tables)
-        if ranges >= 0 and len(tables) == 1:  # one payload: its own check
-            r = tables[0][spec.range_name]
-            checked = [out[unit_at[ranges]:unit_at[ranges] + r.size].view(spec.range_dtype).reshape(r.shape)]
-            _check_ranges(checked[0], spec.name, r.name, sources[0])
-        elif ranges >= 0:
-            rs = [t[spec.range_name] for t in tables]
-            got_r = [out[unit_at[ranges + k]:unit_at[ranges + k] + r.size] for k, r in enumerate(rs)]
-            first, last = unit_at[ranges], unit_at[ranges + len(rs) - 1] + rs[-1].size
-            together = out[first:last] if last - first == sum(r.size for r in rs) else None
-            checked = _checked_ranges(got_r, rs, spec, sources, together)
-        for k, (s, _, _) in enumerate(texels):
-            result[k][spec.name] = EncodedPlane(spec, s.format, s.width, s.height, layers_of[k], checked[k])
+            result[k][name] = EncodedPlane(spec, s.format, s.width, s.height, layers,
+                                           None if checked is None else checked[k])
     return result
+
+
+def _whole_ranges(out: np.ndarray, unit_at: list[int], ranges: int, tables: list[dict], spec,
+                  sources: list[str]) -> list[np.ndarray]:
+    """Each payload's ranges of one plane from the whole kernel's `out` (its range units from unit_at[ranges], one
+    a payload, in a row), checked: all at once where they lie in one run of one shape, as slices of one view, a
+    payload's own check only to name a bad one (_checked_ranges)."""
+    rs = [t[spec.range_name] for t in tables]
+    first = unit_at[ranges]
+    if len(rs) == 1:  # one payload: its own check
+        r = rs[0]
+        one = out[first:first + r.size].view(spec.range_dtype).reshape(r.shape)
+        _check_ranges(one, spec.name, r.name, sources[0])
+        return [one]
+    total = 0
+    shape = rs[0].shape[1:]
+    for r in rs:
+        total += r.size
+        if r.shape[1:] != shape:
+            shape = None
+    if shape is not None and unit_at[ranges + len(rs) - 1] + rs[-1].size - first == total:
+        together = out[first:first + total].view(spec.range_dtype).reshape(-1, *shape)
+        if _ranges_ok(together, spec.name):
+            views, chunk = [], 0
+            for r in rs:
+                views.append(together[chunk:chunk + r.shape[0]])
+                chunk += r.shape[0]
+            return views
+    got = [out[unit_at[ranges + k]:unit_at[ranges + k] + r.size] for k, r in enumerate(rs)]
+    return _checked_ranges(got, rs, spec, sources)
 
 
 def _finish(out: list[dict], spec, secs: list[Section], layers: list, ranges: list, kept: bool,

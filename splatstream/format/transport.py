@@ -1288,16 +1288,20 @@ def unfilter_whole(raw: np.ndarray, sections: list[tuple[str, int, int, int, int
     kernel = _whole_kernel
     if kernel is None:
         return None
+    # A group of small payloads has hundreds of sections, so the Python per section is kept to a cached lookup and
+    # one flat row (issue 32: it was 11 us a payload): the row's table columns are filled in by numpy afterwards,
+    # from each distinct combination's (a scene repeats a few), not per section.
     got: list = []
-    rows = []
-    keys = []  # per section decoded: (format, layers, header, width, height), the key of its tables below
+    flat: list[int] = []  # per section: 9 ints (_WHOLE_COLUMNS' first nine), the combination's index last but five
+    index: dict[tuple, int] = {}  # (format, layers, header, width, height) -> its index in the tables' key
     out_bytes = most_n = most_f = 0
+    header_of = _HEADER_BYTES
     for fmt, layers, at, size, width, height in sections:
-        layout = FIELD_LAYOUTS.get(fmt)
-        if layout is None or type(layers) is not int or layers < 1:
+        per_layer = header_of.get(fmt)
+        if per_layer is None or type(layers) is not int or layers < 1:
             got.append(None)
             continue
-        head = raw[at:at + 1 + len(layout[2]) * layout[1] * layers].tobytes()
+        head = raw[at:at + 1 + per_layer * layers].tobytes()
         plan = _kernel_plan(fmt, width, height, layers, head)
         if plan is None or size != plan[0]:
             got.append(None)
@@ -1305,28 +1309,51 @@ def unfilter_whole(raw: np.ndarray, sections: list[tuple[str, int, int, int, int
         _, params_at, planes_at, n, words, _, _, word, _, nf, nbytes = plan
         out_bytes += -out_bytes % 16
         size_of = word.itemsize
-        rows.append([at + planes_at, at + params_at, n, 0, out_bytes // size_of, nbytes // size_of, 0, nf, 0, 0,
-                     words, size_of])
-        keys.append((fmt, layers, head, width, height))
+        key = (fmt, layers, head, width, height)
+        u = index.get(key)
+        if u is None:
+            u = index[key] = len(index)
+        flat += (at + planes_at, at + params_at, n, out_bytes // size_of, nbytes // size_of, nf, words, size_of, u)
         got.append((out_bytes, nbytes))
         out_bytes += nbytes
-        most_n = max(most_n, n)
-        most_f = max(most_f, nf)
-    fields, modes, orders, columns = _whole_tables(tuple(keys))
-    for row, (f, m, nm, o) in zip(rows, columns, strict=True):
-        row[3], row[6], row[8], row[9] = o, f, m, nm
+        if n > most_n:
+            most_n = n
+        if nf > most_f:
+            most_f = nf
+    fields, modes, orders, columns = _whole_tables(tuple(index))
+    # columns per combination: (first column of fields, of modes, how many of modes, where its orders start)
+    if len(flat) > 9 * _FEW_ROWS:  # a group's hundreds of sections: by numpy, a fixed cost of a few calls
+        part = np.array(flat, np.int64).reshape(-1, 9)
+        part = np.concatenate([part, np.array(columns, np.int64).reshape(-1, 4)[part[:, 8]]], axis=1)
+        rows = part[:, _WHOLE_COLUMNS]
+    else:  # a payload's few: a loop costs less than those calls
+        row_list: list[int] = []
+        for i in range(0, len(flat), 9):
+            planes_at, params_at, n, first, length, nf, words, size_of, u = flat[i:i + 9]
+            f, m, nm, o = columns[u]
+            row_list += (planes_at, params_at, n, o, first, length, f, nf, m, nm, words, size_of)
+        rows = np.array(row_list, np.int64).reshape(-1, 12)
     out_bytes += -out_bytes % 16
-    unit_rows, unit_at = [], []
+    unit_rows: list[int] = []
+    unit_at = []
     for at, size, element in units:
         if element <= 1 or size % element:
             element = 1
         if element in (2, 4, 8):  # aligned for views of its elements (a plane's ranges still lie in a row)
             out_bytes += -out_bytes % element
-        unit_rows.append((at, size // element, element, out_bytes))
+        unit_rows += (at, size // element, element, out_bytes)
         unit_at.append(out_bytes)
         out_bytes += size
     out = np.empty(out_bytes + -out_bytes % 16, np.uint8)
     work = _scratch("kernel", 8 * most_f * most_n).view(np.int64).reshape(most_f, most_n)
-    kernel(raw, np.array(rows, np.int64).reshape(-1, 12), fields, modes, orders, work, out, out.view(np.uint16),
-           out.view(np.uint32), np.array(unit_rows, np.int64).reshape(-1, 4))
+    kernel(raw, rows, fields, modes, orders, work, out, out.view(np.uint16), out.view(np.uint32),
+           np.array(unit_rows, np.int64).reshape(-1, 4))
     return out, got, unit_at
+
+
+# The whole kernel's row of a section from unfilter_whole's 9 flat ints and its combination's 4 columns: (planes at,
+# parameters at, slots, orders at, out at, out words, fields at, fields, modes at, modes, words a texel, word bytes)
+_WHOLE_COLUMNS = np.array([0, 1, 2, 12, 3, 4, 9, 5, 10, 11, 6, 7])
+_FEW_ROWS = 24  # sections up to which unfilter_whole builds the rows in Python
+# A fields1 format's header bytes per layer (its modes), without the first byte
+_HEADER_BYTES = {fmt: len(layout[2]) * layout[1] for fmt, layout in FIELD_LAYOUTS.items()}
