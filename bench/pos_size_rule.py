@@ -1,5 +1,8 @@
 """Issue 32: a position step from the splats' size (TileStep.per_size), chosen leave-one-statue-out against SOG.
 
+TileStep.per_size and eval_probe's `pos_k=` were taken out after the measurement (BENCHMARKS.md, "A position step
+from the splats' size"); they are in commit 7a03e24 (`git show 7a03e24`), which the reports were made with.
+
     python bench/pos_size_rule.py REPORT_DIR [REPORT_DIR ...] [--peers bench/results/eval_real] [--stats SCENE ...]
 
 Each REPORT_DIR holds `k_statue-<name>.json`, `bench/eval_probe.py` reports (one tile, the eval's cameras) with variants
@@ -37,7 +40,6 @@ def load(path: str) -> dict:
 def size_ratio(path: str) -> tuple[int, float, float]:
     """(splats, median chunk extent E, median splat size) of a scene as one tile."""
     from splatstream.format.layout import CHUNK_SIZE, morton_order
-    from splatstream.format.steps import splat_sizes
     from splatstream.io import read_gaussians
 
     g = read_gaussians(path)
@@ -45,7 +47,8 @@ def size_ratio(path: str) -> tuple[int, float, float]:
     full = len(p) // CHUNK_SIZE * CHUNK_SIZE
     c = p[:full].reshape(-1, CHUNK_SIZE, 3)
     extent = float(np.median((c.max(axis=1) - c.min(axis=1)).max(axis=1)))
-    return len(p), extent, float(np.median(splat_sizes(g.log_scales)))
+    sizes = np.exp(np.asarray(g.log_scales, np.float64).max(axis=1))  # the largest axis, as TileStep.per_size
+    return len(p), extent, float(np.median(sizes))
 
 
 def results(report_dirs: list[str], peers: str) -> dict[str, dict[int, dict]]:
