@@ -96,6 +96,8 @@ def main() -> None:
     ap.add_argument("report_dirs", nargs="*")
     ap.add_argument("--peers", default="bench/results/eval_real")
     ap.add_argument("--stats", nargs="+", metavar="SCENE")
+    ap.add_argument("--what-if-smaller", type=float, nargs="+", metavar="FRACTION",
+                    help="the held-out count were every variant this fraction smaller (0.01: 1 %% fewer bytes)")
     args = ap.parse_args()
     if args.stats:
         print("| scene | splats | median chunk extent E | median splat size | E / size | G at K = 68 / 72 / 80 |")
@@ -131,6 +133,15 @@ def main() -> None:
     k, count, margin = choose(res, names)
     print(f"\nHeld out: met on {held} of {len(names)}. Chosen on all {len(names)}: K = {k}, {count} met "
           f"(least margin {margin:+.2f} dB).")
+    for x in args.what_if_smaller or ():
+        scaled = {n: {k: {**v, "ratio": v["ratio"] * (1 - x)} for k, v in res[n].items()} for n in names}
+        rows = []
+        for h in names:
+            k, _, _ = choose(scaled, [n for n in names if n != h])
+            v = scaled[h][k]
+            rows.append(f"{h} K = {k}: {v['ratio']:.3f}, {v['db']:+.2f} {'met' if met(v) else 'missed'}")
+        print(f"What if {x:.1%} smaller: held out met on {sum(r.endswith(' met') for r in rows)} of {len(names)}: "
+              + "; ".join(rows))
 
 
 if __name__ == "__main__":
