@@ -12,8 +12,9 @@ statue is the `st-sog` row of `<peers>/statue-<name>.json` (its size, renderer a
 report's). Met: at most 0.90 of SOG's bytes at its PSNR or more.
 
 For each statue held out, K is chosen on the other six: the K of the grid that meets the most of them, ties by the
-largest least PSNR margin among them (a K missing one by bytes counts as -99 dB there); the held-out statue's
-result at that K is its row. `--stats SCENE ...` prints, per scene file, the median chunk extent E (the largest
+largest least PSNR margin among them (`margin`; a K missing one by bytes counts as -99 dB there) or by the fewest
+bytes (`fewest`: the smallest K, as the round before chose G); the held-out statue's result at that K is its row.
+`--what-if-smaller` uses `margin`. `--stats SCENE ...` prints, per scene file, the median chunk extent E (the largest
 axis of each 256-splat chunk in Morton order, one tile), the median splat size and the levels E / size x K that a
 K gives the median chunk (the equivalent fixed G).
 """
@@ -80,14 +81,20 @@ def met(v: dict) -> bool:
     return v["ratio"] <= 0.90 and v["db"] >= 0
 
 
-def choose(res: dict[str, dict[int, dict]], names: list[str]) -> tuple[int, int, float]:
-    """(K, statues met, least margin) over `names`: the most met, then the largest least margin."""
+def choose(res: dict[str, dict[int, dict]], names: list[str], rule: str = "margin") -> tuple[int, int, float]:
+    """(K, statues met, least margin) over `names`: the K meeting the most, then with rule `margin` the largest
+    least margin (a K missing one by bytes counts -99 dB there), with `fewest` the smallest K (the fewest bytes:
+    the round before's choice of G)."""
     ks = sorted(set.intersection(*(set(res[n]) for n in names)))
 
     def score(k: int) -> tuple[int, float]:
         return (sum(met(res[n][k]) for n in names),
                 min(res[n][k]["db"] if res[n][k]["ratio"] <= 0.90 else -99.0 for n in names))
-    k = max(ks, key=score)
+    if rule == "fewest":
+        most = max(score(k)[0] for k in ks)
+        k = min(k for k in ks if score(k)[0] == most)
+    else:
+        k = max(ks, key=score)
     return (k, *score(k))
 
 
@@ -120,19 +127,20 @@ def main() -> None:
         print(f"| {n} ({sog[0]:.2f}, {sog[1]:.2f}) | " + " | ".join(cells) + " |")
     print("| met | " + " | ".join(f"{sum(met(res[n][k]) for n in names)} of {len(names)}" for k in ks) + " |")
     print()
-    print("| held out | K chosen on the other six | the six at that K | held out: B/splat, dB | ratio to SOG, dB |"
-          " result |")
-    print("|---|---|---|---|---|---|")
-    held = 0
-    for h in names:
-        k, count, margin = choose(res, [n for n in names if n != h])
-        v = res[h][k]
-        held += met(v)
-        print(f"| {h} | {k} | {count} of {len(names) - 1} met (least margin {margin:+.2f} dB) | {v['bps']:.2f} B, "
-              f"{v['psnr']:.2f} dB | {v['ratio']:.3f}, {v['db']:+.2f} | {'met' if met(v) else 'missed'} |")
+    for rule in ("margin", "fewest"):
+        print(f"\nK chosen on the other six by `{rule}` (choose()):\n")
+        print("| held out | K | the six at that K | held out: B/splat, dB | ratio to SOG, dB | result |")
+        print("|---|---|---|---|---|---|")
+        held = 0
+        for h in names:
+            k, count, margin = choose(res, [n for n in names if n != h], rule)
+            v = res[h][k]
+            held += met(v)
+            print(f"| {h} | {k} | {count} of {len(names) - 1} met (least margin {margin:+.2f} dB) | {v['bps']:.2f} B, "
+                  f"{v['psnr']:.2f} dB | {v['ratio']:.3f}, {v['db']:+.2f} | {'met' if met(v) else 'missed'} |")
+        print(f"\nHeld out (`{rule}`): met on {held} of {len(names)}.")
     k, count, margin = choose(res, names)
-    print(f"\nHeld out: met on {held} of {len(names)}. Chosen on all {len(names)}: K = {k}, {count} met "
-          f"(least margin {margin:+.2f} dB).")
+    print(f"Chosen on all {len(names)}: K = {k}, {count} met (least margin {margin:+.2f} dB).")
     for x in args.what_if_smaller or ():
         scaled = {n: {k: {**v, "ratio": v["ratio"] * (1 - x)} for k, v in res[n].items()} for n in names}
         rows = []
