@@ -1,5 +1,7 @@
 """Issue 32: a position step from the splats' size (TileStep.per_size), chosen leave-one-statue-out against SOG.
 
+`probes_possize/merge_rgb` holds the same probes with SH0's colour palette merged pairwise
+(bench/palette_merge_probe.py, MERGE=color:0), where the rule holds held out on all seven.
 TileStep.per_size and eval_probe's `pos_k=` were taken out after the measurement (BENCHMARKS.md, "A position step
 from the splats' size"); they are in commit 7a03e24 (`git show 7a03e24`), which the reports were made with.
 
