@@ -146,9 +146,9 @@ def _array(d: dict, key: str, dtype: str, width: int, rows: int, source: str, fi
     return a.reshape(rows, width) if width > 1 else a
 
 
-def read_columns(d, source: str, strict: bool, max_tiles: int, paged: bool) -> Columns:
+def read_columns(d, source: str, strict: bool, max_tiles: int, paged: bool, group_names: tuple[str, ...]) -> Columns:
     """The columns of a `tile_table` map (format.md 6.2), each a bin of the length its rows make, or FormatError
-    naming the column (`tile_table.sizes: expected 96 bytes (24 x 1 <u4), got 95`)."""
+    naming the column (`tile_table.sizes: expected 96 bytes (24 x 1 <u4), got 95`); `groups` the scene's."""
     if type(d) is not dict:
         raise FormatError(source, TABLE_KEY, f"expected a map, got {type(d).__name__}")
     for k in _KEYS:
@@ -166,6 +166,8 @@ def read_columns(d, source: str, strict: bool, max_tiles: int, paged: bool) -> C
     if type(groups) is not list or not 1 <= len(groups) <= 1 + MAX_SH_DEGREE or not all(type(x) is str
                                                                                       for x in groups):
         _fail(source, "groups", f"expected a list of 1..{1 + MAX_SH_DEGREE} group names, got {groups!r:.80}")
+    if tuple(groups) != tuple(group_names):
+        _fail(source, "groups", f"expected {list(group_names)} (the scene's groups, in order), got {groups}")
     layouts = d["layouts"]
     if type(layouts) is not list or not 1 <= len(layouts) <= MAX_LAYOUTS:
         _fail(source, "layouts", f"expected a list of 1..{MAX_LAYOUTS} section layouts, got {type(layouts).__name__}")

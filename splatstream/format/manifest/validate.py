@@ -649,10 +649,7 @@ def _table_tiles(v, scene: _Scene) -> list[TileEntry]:
     """A tile table (format.md 6.2, version 1.8) into its tiles, every field checked over the columns; a payload
     entry at fault is named by the same line as a tile map's (`tile_table[3].groups.base.sections[2].size`)."""
     source, strict = scene.source, scene.strict
-    c = read_columns(v, source, strict, MAX_TILES, bool(scene.tile_optional))
-    if c.groups != scene.group_names:
-        raise FormatError(source, f"{TABLE_KEY}.groups", f"expected {list(scene.group_names)} (the scene's groups, "
-                          f"in order), got {list(c.groups)}")
+    c = read_columns(v, source, strict, MAX_TILES, bool(scene.tile_optional), scene.group_names)
     n, g = c.count, len(c.groups)
     chunks = _table_tile_checks(c, source)
     texture = c.texture.astype(np.int64) * BLOCK
