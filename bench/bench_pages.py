@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import functools
 import gc
 import json
 import math
@@ -65,6 +66,8 @@ from splatstream.format.manifest import (
     tile_rows,
 )
 from splatstream.format.names import DATA_DIR, MANIFEST_NAME, payload_name
+from splatstream.format.texformats import FORMATS, blob_size
+from splatstream.format.transport import FIELDS1, content_bounds
 from splatstream.gaussians import Gaussians
 from splatstream.lod import TreeShape
 from splatstream.store import load_manifest, read_manifest
@@ -81,6 +84,32 @@ def template(sh_degree: int) -> Manifest:
                   np.full((n, 3), -3.0, np.float32), np.zeros(n, np.float32), rng.random((n, 3)).astype(np.float32),
                   rng.normal(0, 0.1, (n, (sh_degree + 1) ** 2 - 1, 3)).astype(np.float32))
     return read_manifest(encode_in_memory(g, EncodeOptions(preset="medium", max_leaf_splats=16384)))
+
+
+@functools.lru_cache(maxsize=256)
+def fitted(p: PayloadEntry, chunks: int, texture: tuple[int, int]) -> PayloadEntry:
+    """The template's payload entry made valid for a tile of `chunks` and `texture` (format.md 5, Validation; 1.8
+    checks a tile table whole when it is parsed): texels of the tile's texture, stored sizes scaled by its texels
+    (fields1 within its bounds), ranges of its chunks; offsets at 16-byte alignment, file bytes scaled too."""
+    sections, end = [], 0
+    for s in p.sections:
+        if s.kind == "texels":
+            w, h = texture
+            gpu = blob_size(FORMATS[s.format], w, h, s.layers)
+            if s.filter == FIELDS1:
+                lo, hi = content_bounds(s.format, w, h, s.layers)
+                size = min(hi, max(lo, round(s.size * w * h / (s.width * s.height))))
+            else:
+                size = gpu
+            s = replace(s, width=w, height=h, size=size)
+        elif s.shape and not s.name.endswith(".palette"):
+            shape = (chunks, *s.shape[1:])
+            s = replace(s, shape=shape, size=(4 if s.dtype == "f32" else 2) * math.prod(shape))
+        end += (-end) % 16
+        sections.append(replace(s, offset=end))
+        end += s.size
+    return replace(p, sections=tuple(sections), raw_bytes=end, bytes=max(1, round(p.bytes * end / p.raw_bytes)),
+                   gpu_bytes=sum(s.gpu_size for s in sections))
 
 
 def synthetic_tree(splats: int, base: Manifest, seed: int = 0) -> Manifest:
@@ -119,7 +148,7 @@ def synthetic_tree(splats: int, base: Manifest, seed: int = 0) -> Manifest:
             own = {}
             for name, p in groups.items():
                 sha = f"{rnd.getrandbits(256):064x}"
-                own[name] = replace(p, file=payload_name(sha), sha256=sha)
+                own[name] = replace(fitted(p, chunks, texture), file=payload_name(sha), sha256=sha)
             tiles.append(TileEntry(tid, lv, children, per_tile, chunks, texture, Box(lo, hi), center, radius, err,
                                    own))
     leaf_sum = sum(t.splats for t in tiles if not t.children)

@@ -18,7 +18,6 @@ import functools
 import gc
 import math
 import operator
-from dataclasses import replace
 from typing import NoReturn
 
 import numpy as np
@@ -645,6 +644,30 @@ def _table_payload_map(c, p: int, raw_bytes: int, first: int, scene: _Scene, chu
             "gpu_bytes": 0, "sections": sections}, expect
 
 
+# A payload kind of a tile table (the scene's formats, group, layout, chunks, texture) once checked whole: its
+# sections at offset 0 and size 0, each section's smallest and largest size, its GPU bytes. Kept across parses (a
+# streaming client parses hundreds of pages of one scene, whose tiles repeat a few kinds), bounded.
+_KINDS: dict[tuple, tuple[tuple[Section, ...], np.ndarray, np.ndarray, int]] = {}
+_MAX_KINDS = 4096
+
+
+def _kind(entry: PayloadEntry) -> tuple[tuple[Section, ...], np.ndarray, np.ndarray, int]:
+    """A checked entry as its kind's template, size bounds and GPU bytes."""
+    lo, hi, template = [], [], []
+    for s in entry.sections:
+        if s.kind == "texels":
+            a, b, _, _ = _stored_size_rule(s.format, s.width, s.height, s.layers, s.filter)
+        else:
+            a = b = s.size
+        lo.append(a)
+        hi.append(b)
+        sec = _new(Section)
+        sec.__dict__.update(s.__dict__)
+        sec.__dict__.update(offset=0, size=0)
+        template.append(sec)
+    return tuple(template), np.array(lo, np.int64), np.array(hi, np.int64), entry.gpu_bytes
+
+
 def _table_tiles(v, scene: _Scene) -> list[TileEntry]:
     """A tile table (format.md 6.2, version 1.8) into its tiles, every field checked over the columns; a payload
     entry at fault is named by the same line as a tile map's (`tile_table[3].groups.base.sections[2].size`)."""
@@ -684,24 +707,23 @@ def _table_tiles(v, scene: _Scene) -> list[TileEntry]:
     _, rep, kind = np.unique(kinds, axis=0, return_index=True, return_inverse=True)
     kind = kind.reshape(-1)
     templates, gpu_of_kind = [], np.zeros(len(rep), np.int64)
-    for k, p in enumerate(rep.tolist()):
-        entry = check(p)
-        lo, hi = [], []
-        for s in entry.sections:
-            if s.kind == "texels":
-                a, b, _, _ = _stored_size_rule(s.format, s.width, s.height, s.layers, s.filter)
-            else:
-                a = b = s.size
-            lo.append(a)
-            hi.append(b)
+    scene_key = (scene.format_items, scene.codebook, scene.scene_palettes, strict)
+    for k, (p, row) in enumerate(zip(rep.tolist(), kinds[rep].tolist(), strict=True)):
+        key = (scene_key, c.groups[row[0]], tuple(map(tuple, c.layouts[row[1]])), *row[2:])
+        known = _KINDS.get(key)
+        if known is None:
+            known = _kind(check(p))
+            if len(_KINDS) >= _MAX_KINDS:
+                _KINDS.clear()
+            _KINDS[key] = known
+        template, lo, hi, gpu = known
         members = np.flatnonzero(kind == k)
-        at = first[members][:, None] + np.arange(len(entry.sections))
-        got = sizes[at]
-        i = _first((got < np.array(lo, np.int64)) | (got > np.array(hi, np.int64)))
+        got = sizes[first[members][:, None] + np.arange(len(template))]
+        i = _first((got < lo) | (got > hi))
         if i is not None:
             check(int(members[i]))
-        templates.append(tuple(replace(s, offset=0, size=0) for s in entry.sections))
-        gpu_of_kind[k] = entry.gpu_bytes
+        templates.append(template)
+        gpu_of_kind[k] = gpu
     table = Table(c.groups, c.sha256.reshape(-1, 32), nbytes, raw_bytes, gpu_of_kind[kind], sizes, offsets, first,
                   templates, kind)
     pages = {}
