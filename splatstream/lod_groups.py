@@ -193,25 +193,32 @@ def neighbour_keys(p: np.ndarray, k: int, shifts: int = 3, block: int = 4096) ->
     return every[np.concatenate([[True], every[1:] != every[:-1]])]
 
 
+def _shifted_orders(p: np.ndarray, k: int, shifts: int) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """The (shifts, n) Morton orders of the shifted boxes and each point's rank in them (int64), and the k and
+    the window w (candidates at ranks +-1 .. +-w) that n points allow; n at least 2."""
+    n = len(p)
+    k = min(k, n - 1)
+    w = min(k, (n - 1) // 2 + 1)
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    span = float((hi - lo).max()) or 1.0
+    orders = np.empty((shifts, n), np.int32 if n < 2**31 else np.int64)
+    ranks = np.empty((shifts, n), np.int64)
+    for s in range(shifts):
+        off = span * np.array([0.0, 0.0, 0.0]) if s == 0 else span * np.array([0.31, 0.17, 0.43]) * s / shifts
+        codes = morton_codes(p, lo - off, lo - off + 2.0 * span if s else hi)
+        order = np.argsort(codes, kind="stable")
+        ranks[s, order] = np.arange(n)
+        orders[s] = order
+    return orders, ranks, k, w
+
+
 def _neighbour_blocks(p: np.ndarray, k: int, shifts: int, block: int, ordered: bool = True):
     """neighbour_edges' (points, neighbours) index arrays, `block` points at a time; each point's neighbours
     nearest first, or (`ordered` False) the same neighbours in id order, chosen by a partition, not a sort."""
     n = len(p)
     if n < 2:
         return
-    k = min(k, n - 1)
-    w = min(k, (n - 1) // 2 + 1)
-    lo, hi = p.min(axis=0), p.max(axis=0)
-    span = float((hi - lo).max()) or 1.0
-    orders, ranks = [], []
-    for s in range(shifts):
-        off = span * np.array([0.0, 0.0, 0.0]) if s == 0 else span * np.array([0.31, 0.17, 0.43]) * s / shifts
-        codes = morton_codes(p, lo - off, lo - off + 2.0 * span if s else hi)
-        order = np.argsort(codes, kind="stable")
-        rank = np.empty(n, np.int64)
-        rank[order] = np.arange(n)
-        orders.append(order.astype(np.int32) if n < 2**31 else order)
-        ranks.append(rank)
+    orders, ranks, k, w = _shifted_orders(p, k, shifts)
     steps = np.stack([np.arange(1, w + 1), -np.arange(1, w + 1)], axis=1).reshape(-1)  # +1, -1, +2, -2, ...
     px, py, pz = (np.ascontiguousarray(p[:, a]) for a in range(3))
     for r0 in range(0, n, block):
