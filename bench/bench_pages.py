@@ -16,12 +16,14 @@ median time of one frame's view numbers + selection over the tiles held against 
         manifest bytes and seconds from opening the stream to the first frame that draws the root (engine, fetcher
         and HTTP as `view` runs them, no GL: a pool that counts slots), median of --runs
     PYTHONPATH=. python bench/bench_pages.py --engine --splats 6e6,60e6,250e6 [--frames 300] [--profile]
-            [--numpy-selection | --no-wait]
+            [--numpy-selection | --no-wait] [--parts-json F_N.json] [--busy-threads 1]
     PYTHONPATH=. python bench/bench_pages.py --jit-cost [--runs 7]   # the compiled selection's cost before its first
         # use: numba's import, then its kernels compiled (the first run, an empty cache) or loaded (the others)
         # a StreamEngine over the paged tree along a street-level path (pages and payloads arrive --per-frame a
         # frame, payloads not decoded, a pool that counts): per-frame update times, median, p99, max; the compiled
-        # selection (numba, the `fast` extra) unless --numpy-selection
+        # selection (numba, the `fast` extra) unless --numpy-selection; each part of the update per frame (thread
+        # CPU and wall: the view, the cut, the pages wanted, bands, keys, wish list, page adoption, draw set), and
+        # a digest of every frame's cut and draw set (equal digests: the same frames)
 """
 from __future__ import annotations
 
@@ -29,6 +31,7 @@ import argparse
 import cProfile
 import functools
 import gc
+import hashlib
 import json
 import math
 import os
@@ -38,6 +41,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import tracemalloc
 from dataclasses import replace
@@ -284,7 +288,8 @@ def tree_memory_mb(held: PagedTree, paged) -> float:
 
 
 def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame: int, profile: bool,
-                compiled: bool = True, wait: bool = True) -> None:
+                compiled: bool = True, wait: bool = True, parts_json: str | None = None,
+                busy_threads: int = 0) -> None:
     """A StreamEngine over the paged tree along a camera flying across the city at street level: per-frame
     update times (median, p99, max) and, with --profile, where they go. `compiled`: the compiled selection
     (selection_jit, waited for before the path, so every frame near the cut uses it), else the numpy path."""
@@ -339,6 +344,41 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
     if compiled_fn is not None:
         COMPILED_SELECTION._fn = timing(compiled_fn)
 
+    # Per frame, each part's thread CPU and wall (ms, summed over its calls in the frame): the selection's parts
+    # (the view's numbers, the cut, the pages wanted, the SH bands, the keys: the rest of `wanted`), the wish list,
+    # the page adoption and the draw set. Module functions are wrapped where the engine looks them up.
+    parts_now: dict[str, list[float]] = {}
+    parts: list[dict[str, list[float]]] = []
+    held_tiles: list[int] = []
+    # every frame's cut (tile ids, in the cut's order) and draw set, hashed: the same digests before and after a
+    # change of the selection's code mean the same frames
+    cuts, draws = hashlib.sha256(), hashlib.sha256()
+
+    def part(label, fn):
+        def timed_part(*args, **kw):
+            t0, c0 = time.perf_counter(), time.thread_time()
+            try:
+                return fn(*args, **kw)
+            finally:
+                acc = parts_now.setdefault(label, [0.0, 0.0])
+                acc[0] += (time.thread_time() - c0) * 1e3
+                acc[1] += (time.perf_counter() - t0) * 1e3
+        return timed_part
+    for label, name in (("view", "view_numbers"), ("view", "PartialView"), ("bands", "wanted_bands"),
+                        ("draw set", "draw_set")):
+        fn = getattr(engine_module, name)
+        patched.setdefault(name, fn)
+        setattr(engine_module, name, part(label, getattr(engine_module, name)))
+    for name in ("select", "select_near"):  # already timed into select_s
+        setattr(engine_module, name, part("cut", getattr(engine_module, name)))
+    if COMPILED_SELECTION._fn is not None:
+        COMPILED_SELECTION._fn = part("cut", COMPILED_SELECTION._fn)
+    if engine.pages is not None:
+        engine.pages.wanted_pages = part("pages wanted", engine.pages.wanted_pages)
+    for label, name in (("wanted", "wanted"), ("wish list", "_tell_fetcher"), ("page adoption", "_add_pages"),
+                        ("page eviction", "_evict_pages"), ("collect", "_collect"), ("upload", "_upload")):
+        setattr(engine, name, part(label, getattr(engine, name)))
+
     def on_gc(phase: str, info: dict) -> None:
         if info["generation"] == 2:
             if phase == "start":
@@ -346,6 +386,14 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
             else:
                 full_passes.append(time.perf_counter() - started.pop(2, time.perf_counter()))
     gc.callbacks.append(on_gc)
+    stop = threading.Event()
+
+    def busy() -> None:  # Python that holds the interpreter lock until the switch interval takes it (a page parse)
+        while not stop.is_set():
+            sum(i * i for i in range(2000))
+    others = [threading.Thread(target=busy, daemon=True) for _ in range(busy_threads)]
+    for th in others:
+        th.start()
     try:
         for f in range(frames):
             s = f / max(1, frames - 1)
@@ -359,14 +407,23 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
                 prof.enable()
             held = (engine.pages.pages_read, engine.pages.evicted)
             t0, c0 = time.perf_counter(), time.thread_time()
-            engine.update(cam)
+            u = engine.update(cam)
             times.append(time.perf_counter() - t0)
             cpu.append(time.thread_time() - c0)
+            parts.append(parts_now)
+            ids = engine.ids
+            cuts.update(np.array([int(ids[i]) for i in u.selection.cut], np.int64).tobytes() + b"|")
+            draws.update(np.array(u.draw, np.int64).tobytes() + b"|")
+            held_tiles.append(len(engine.manifest.tiles))
+            parts_now = {}
             adopted.append(held != (engine.pages.pages_read, engine.pages.evicted))
             ready.append(COMPILED_SELECTION._fn is not None)
             if prof is not None:
                 prof.disable()
     finally:
+        stop.set()
+        for th in others:
+            th.join()
         gc.callbacks.remove(on_gc)
         gc.unfreeze()
         engine.close()
@@ -401,9 +458,45 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
                 print(f"  {name}: {part.sum()}, update wall median {np.median(ts[part]):.2f}, max "
                       f"{ts[part].max():.1f} ms; CPU median {np.median(cs[part]):.2f}, max {cs[part].max():.1f} ms; "
                       f"{sum(times[i] for i in np.flatnonzero(part)):.2f} s in all")
+    print_parts(parts, cs, ts)
+    print(f"  every frame's cut: sha256 {cuts.hexdigest()[:16]}, draw set: {draws.hexdigest()[:16]}; the last cut "
+          f"{len(u.selection.cut)} tiles, {u.selection.splats} splats")
+    if parts_json:
+        with open(parts_json, "w") as f:
+            json.dump([{"frame": i, "update_cpu": round(float(cs[i]), 3), "update_wall": round(float(ts[i]), 3),
+                        "tiles": n, "adopted": bool(ad[i]), **{k: [round(x, 3) for x in v] for k, v in p.items()}}
+                       for i, (p, n) in enumerate(zip(parts, held_tiles, strict=True))], f)
     if prof is not None:
         pstats.Stats(prof).sort_stats("tottime").print_stats(30)
         pstats.Stats(prof).sort_stats("cumulative").print_stats("selection.py|engine.py", 25)
+
+
+def print_parts(parts: list[dict[str, list[float]]], cpu: np.ndarray, wall: np.ndarray) -> None:
+    """Each part's thread CPU and wall per frame (0 in frames without it; the page adoption, eviction and upload
+    over the frames they ran in): median, p99, max, and in how many frames it ran. `selection` is the view's
+    numbers and the cut (what bench_flythrough.py's --breakdown counts as the selection); `wanted` the whole
+    selection (with the pages wanted, the bands and the keys); `keys etc.` is `wanted` less its timed parts."""
+    names = ["view", "cut", "pages wanted", "bands", "wanted", "wish list", "page adoption", "page eviction",
+             "draw set", "collect", "upload"]
+
+    def col(name: str, k: int) -> np.ndarray:
+        return np.array([p.get(name, [0.0, 0.0])[k] for p in parts])
+    rows = {n: (col(n, 0), col(n, 1)) for n in names}
+    rows["selection (view + cut)"] = (rows["view"][0] + rows["cut"][0], rows["view"][1] + rows["cut"][1])
+    rest = [rows[n] for n in ("view", "cut", "pages wanted", "bands")]
+    rows["keys etc. (wanted less the above)"] = (rows["wanted"][0] - sum(r[0] for r in rest),
+                                                 rows["wanted"][1] - sum(r[1] for r in rest))
+    rows["update"] = (cpu, wall)
+    print(f"  {'part (ms a frame)':36s} {'CPU median':>10s} {'p99':>7s} {'max':>7s} | {'wall median':>11s} "
+          f"{'p99':>7s} {'max':>7s} | frames")
+    for n, (c, w) in rows.items():
+        if n in ("page adoption", "page eviction", "upload"):  # over the frames it ran in
+            c, w = c[w > 0], w[w > 0]
+        ran = int(np.count_nonzero(w)) if n != "update" else len(w)
+        if not ran:
+            continue
+        print(f"  {n:36s} {np.median(c):10.3f} {np.percentile(c, 99):7.3f} {c.max():7.3f} | {np.median(w):11.3f} "
+              f"{np.percentile(w, 99):7.3f} {w.max():7.3f} | {ran}")
 
 
 _JIT_COST = """
@@ -496,6 +589,11 @@ def main() -> None:
     ap.add_argument("--no-wait", action="store_true",
                     help="--engine: do not wait for the compiled selection before the path (the engine loads it on "
                          "a worker thread from its first frame near the cut): the frames before it was ready")
+    ap.add_argument("--parts-json", metavar="FILE",
+                    help="--engine: each frame's parts (CPU and wall ms) to FILE (N in it: the scene's size)")
+    ap.add_argument("--busy-threads", type=int, default=0,
+                    help="--engine: threads of pure Python beside the frame loop (as a page parse or a decode step "
+                         "that runs into a frame): the frame's wall then shows each hand-over of the interpreter lock")
     ap.add_argument("--jit-cost", action="store_true",
                     help="the compiled selection's import and compilation (cold numba cache) or loading (warm)")
     args = ap.parse_args()
@@ -506,7 +604,9 @@ def main() -> None:
         base = template(args.sh_degree)
         for n in [int(float(s)) for s in args.splats.split(",")]:
             engine_path(synthetic_tree(n, base), args.default_levels, args.frames, args.max_splats, args.per_frame,
-                        args.profile, not args.numpy_selection, not args.no_wait)
+                        args.profile, not args.numpy_selection, not args.no_wait,
+                        args.parts_json.replace("N", f"{n / 1e6:.0f}M") if args.parts_json else None,
+                        args.busy_threads)
         return
     if args.repage:
         repage(*args.repage, args.default_levels)
