@@ -8,6 +8,7 @@ give the same Selection and the same bits of every number it computed."""
 import gc
 import math
 import random
+import sys
 import weakref
 from concurrent.futures import Future
 from dataclasses import replace
@@ -269,12 +270,17 @@ def test_dropped_pages_are_freed_when_the_tree_was_frozen(whole):
     below = tree.below(head)
     assert below
     refs = [weakref.ref(tree.manifest.tiles[i]) for i in below]
-    refs += [weakref.ref(tree.manifest.tiles[i].groups) for i in below]
+    # their payload entries: a 1.8 tile's are a row of its page's tile table (TablePayloads and Table take no weak
+    # references): held here only, checked below to be held by nothing else
+    held = list({id(x): x for i in below for g in (tree.manifest.tiles[i].groups,)
+                 for x in (g, getattr(g, "table", None)) if x is not None}.values())
     gc.freeze()
     try:
         tree.evict([head])
         _ = tree.manifest.arrays
         assert all(r() is None for r in refs)
+        for h in held:  # the list, the loop's name, the call's argument and the held payload maps of the table
+            assert sys.getrefcount(h) == 3 + sum(getattr(x, "table", None) is h for x in held)
     finally:
         gc.unfreeze()
 
