@@ -201,7 +201,8 @@ def _quantize_u8(t: np.ndarray) -> np.ndarray:
 
 def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.ndarray | None = None,
                  lazy: bool = False, step: TileStep | None = None,
-                 importance: np.ndarray | None = None, scene_palette: np.ndarray | None = None) -> EncodedPlane:
+                 importance: np.ndarray | None = None, scene_palette: np.ndarray | None = None,
+                 sizes: np.ndarray | None = None) -> EncodedPlane:
     """Quantise (N, L, C) plane values into one texture blob per layer (+ per-chunk ranges).
 
     `step`: quantise a ranged plane on one step per component over the tile instead of per-chunk grids, by widening
@@ -215,6 +216,9 @@ def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.n
     is exhausted, so a payload writer holds one layer at a time.
 
     `scene_palette`: a palette plane's scene palettes (encode_palette_plane's `scene`).
+
+    `sizes` (N,): per-splat sizes (steps.splat_sizes) for a size-relative step (TileStep.per_size): its median over
+    the tile sets the step.
     """
     get_format(fmt_name)
     if fmt_name in PALETTE_FORMATS:
@@ -237,6 +241,9 @@ def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.n
     if order is not None and values.nbytes <= WHOLE_PLANE_GATHER_BYTES:
         values, order = np.take(values, order, axis=0), None
 
+    median_size = None
+    if step is not None and step.per_size and sizes is not None and n > 0:
+        median_size = float(np.median(sizes))
     pooled_size = None
     if step is not None and step.pooled and spec.range_dtype and n > 0:
         extents = []
@@ -255,7 +262,7 @@ def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.n
                 if step is not None:
                     tight_hi = hi
                     hi = widened_max(lo, hi, fmt_name, step, spec.range_dtype, plane_limits(spec.name),
-                                     chunk_importance, pooled_size)
+                                     chunk_importance, pooled_size, median_size)
                     if step.zero:
                         lo, hi = zero_on_grid(lo, hi, tight_hi, fmt_name, spec.range_dtype, plane_limits(spec.name))
                 if spec.name == "color" and opacity_on_grid(v[:, OPACITY]):
