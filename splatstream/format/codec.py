@@ -346,6 +346,23 @@ def scene_palettes(parts: dict[str, list[PaletteValues]]) -> dict[str, np.ndarra
     return {name: np.stack([p.palette() for p in groups]).astype(np.float32) for name, groups in parts.items()}
 
 
+def merged_pairs(palette: np.ndarray) -> np.ndarray:
+    """(256,) ascending palette with its distinct values merged pairwise (an encoder choice, presets.py
+    PRESET_PALETTE_MERGE): the least and the largest distinct values stay, so every value stays inside the palette's
+    span, and the ones between are merged two by two into their midpoint (256 distinct values -> 129; an odd count
+    pairs the last with itself). Each value then takes its nearest entry: an error of at most half the gap of the
+    pair it was merged in. Padded with the largest entry, as PaletteValues.palette pads."""
+    d = np.unique(np.asarray(palette, np.float64))
+    if len(d) <= 2:
+        kept = d
+    else:
+        inner = d[1:-1]
+        if len(inner) % 2:
+            inner = np.append(inner, inner[-1])
+        kept = np.concatenate([d[:1], (inner[0::2] + inner[1::2]) / 2, d[-1:]])
+    return np.concatenate([kept, np.repeat(kept[-1:], PALETTE_ENTRIES - len(kept))]).astype(np.float32)
+
+
 def _grid_palette(lo: float, hi: float) -> np.ndarray:
     grid = (lo + (hi - lo) * (np.arange(PALETTE_ENTRIES) / (PALETTE_ENTRIES - 1))).astype(np.float32)
     grid[0], grid[-1] = lo, hi
