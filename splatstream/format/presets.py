@@ -197,7 +197,8 @@ PRESET_SUMMARY: dict[str, str] = {
                         "47-64 dB",
     "medium-low-palette": "medium-low-12bit for SOG inputs: scale and colour palettes (SH0's merged pairwise), "
                           "positions on a step of the splat size / 120, keyed transport; medium-low-12bit's planes "
-                          "where the values do not fit a palette; statue scans (SOG, SH0) about 10.5-11.5 B/splat",
+                          "where the values do not fit a palette; statue scans (SOG, SH0) 11.1-11.4 B/splat, "
+                          "60-66 dB; other inputs as medium-low-12bit (0-0.35 B/splat fewer: keyed)",
     "medium-low-9bit": "medium-low with 9-bit positions, scales and opacity on tile steps, zstd level 16; about "
                        "12.2-14.1 B/splat at SH3, 11.2-11.8 at SH0; 47-62 dB",
     "low-plus-9bit": "low-plus with 9-bit positions on one step per tile, coarser scales and opacity, zstd level "
