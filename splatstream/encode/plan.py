@@ -149,7 +149,7 @@ def plan_scene(opts: EncodeOptions, formats: dict[str, str], chunk_order: str, s
         progress("codebook", 1.0)
     sample = replace(sample, codebook_rows=None, codebook_weights=None)
     up = plan_up(opts, sample)
-    formats, steps, palettes = plan_palettes(opts, sample.palettes)
+    formats, steps, palettes = plan_palettes(opts, formats, sample.palettes)
     context = TileContext(formats, chunk_order, sh_degree, codebook, opts.resolved_zstd_level, opts.resolved_transport,
                           steps, palettes)
     return ScenePlan(context, opts.preset, name, splats, bounds, up, opts.max_leaf_splats,
@@ -192,7 +192,7 @@ def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progr
     return EncodePlan(scene, tiles, sample)
 
 
-def plan_palettes(opts: EncodeOptions, fitted: dict[str, list[PaletteValues]] | None
+def plan_palettes(opts: EncodeOptions, formats: dict[str, str], fitted: dict[str, list[PaletteValues]] | None
                   ) -> tuple[dict[str, str], dict[str, TileStep], dict[str, np.ndarray] | None]:
     """The formats, tile steps and scene palettes (format.md 4.3.2) of the encode: a palette attribute whose values
     do not fit its palettes (more than 256 distinct values in one: PaletteValues.many) falls back to its preset's
@@ -202,7 +202,7 @@ def plan_palettes(opts: EncodeOptions, fitted: dict[str, list[PaletteValues]] | 
     fitted = fitted or {}
     attribute = {s.name: s.attribute for s in BASE_PLANES}
     unfit = {attribute[name] for name, groups in fitted.items() if any(p.many for p in groups)}
-    formats, steps, fell = palette_fallback(opts.preset, opts.overrides, unfit)
+    formats, steps, fell = palette_fallback(opts.preset, opts.overrides, unfit, formats)
     if fell:
         log.info("%s: %s fell back to %s (values do not fit 256-entry palettes)", opts.preset, ", ".join(fell),
                  ", ".join(f"{a} {formats[a]}" for a in fell))

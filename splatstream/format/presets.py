@@ -275,12 +275,12 @@ PRESET_PALETTE_FALLBACK: dict[str, str] = {"medium-low-palette": "medium-low-12b
 PRESET_PALETTE_MERGE: dict[str, dict[str, tuple[int, ...]]] = {"medium-low-palette": {"color": (0,)}}
 
 
-def palette_fallback(preset: str, overrides: dict[str, str] | None, unfit: set[str]
-                     ) -> tuple[dict[str, str], dict[str, TileStep], list[str]]:
-    """The formats and tile steps of `preset` (with `overrides`) once the palette attributes in `unfit` (their
-    values exceed a palette) fall back (PRESET_PALETTE_FALLBACK); also the attributes that fell back. A preset
-    without a fallback, or nothing unfit, keeps its own."""
-    formats = resolve_formats(preset, overrides)
+def palette_fallback(preset: str, overrides: dict[str, str] | None, unfit: set[str],
+                     formats: dict[str, str] | None = None) -> tuple[dict[str, str], dict[str, TileStep], list[str]]:
+    """The formats and tile steps of `preset` (with `overrides`; `formats`: resolve_formats' already) once the
+    palette attributes in `unfit` (their values exceed a palette) fall back (PRESET_PALETTE_FALLBACK); also the
+    attributes that fell back. A preset without a fallback, or nothing unfit, keeps its own."""
+    formats = dict(formats) if formats is not None else resolve_formats(preset, overrides)
     steps = preset_steps(preset, overrides)
     fallback = PRESET_PALETTE_FALLBACK.get(preset)
     fell = [a for a in ATTRIBUTES if a in unfit and a not in (overrides or {}) and formats[a] in PALETTE_FORMATS]
