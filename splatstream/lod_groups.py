@@ -304,6 +304,12 @@ def edge_costs(mu, cov, alpha, col, w, i, j, rule: GroupRule, block: int = 16384
     return out
 
 
+def _rows_where(mask: np.ndarray, dtype, chunk: int = 1 << 20) -> np.ndarray:
+    """np.flatnonzero(mask) as `dtype` (int32 where the rows allow), a chunk at a time: no int64 copy of them."""
+    return np.concatenate([np.flatnonzero(mask[s:s + chunk]).astype(dtype) + dtype(s)
+                           for s in range(0, len(mask), chunk)] or [np.zeros(0, dtype)])
+
+
 def edge_costs_at(out: np.ndarray, rows: np.ndarray, mu, cov, alpha, col, w, i, j, rule: GroupRule,
                   block: int = 16384, pool: Executor | None = None) -> None:
     """out[rows] = edge_costs of the edges (i[rows], j[rows]), a cost that is not finite written as the largest
@@ -578,7 +584,7 @@ def group_ids_of(inputs: dict, target: int, rule: GroupRule = DEFAULT_RULE,
     region = inputs.pop("region", None)
     inputs.clear()
     label = np.arange(n)
-    size = np.ones(n, np.int64)
+    size = np.ones(n, np.int32 if n < 2**31 else np.int64)  # cluster sizes: gathered per edge for the cap mask
     # The neighbour graph of the level's splats, found once: a cluster's candidates are its members' neighbours.
     # As sorted distinct keys i * n + j (i < j).
     key = (neighbour_keys(state["mu"], rule.neighbours, pool=pool) if edges is None
@@ -616,7 +622,7 @@ def group_ids_of(inputs: dict, target: int, rule: GroupRule = DEFAULT_RULE,
             if count <= stage_target:
                 break
             ok = size[ei] + size[ej] <= cap if cap else np.ones(len(ei), bool)
-            todo = np.flatnonzero(ok & np.isnan(ecost))
+            todo = _rows_where(ok & np.isnan(ecost), index)
             edge_costs_at(ecost, todo, state["mu"], state["cov"], state["alpha"], state["col"], state["w"], ei, ej,
                           rule, pool=pool)
             del todo
