@@ -61,8 +61,8 @@ class StepTimer:
         client_gl.stream.engine.select_near_compiled."""
         get = cls.get
 
-        def timed_get(selection):
-            fn = get(selection)
+        def timed_get(selection, *args, **kwargs):
+            fn = get(selection, *args, **kwargs)
             return None if fn is None else self._timed(fn, "client_gl.stream.engine.select_near_compiled")
         cls.get = timed_get
 
@@ -276,6 +276,9 @@ def main() -> None:
     ap.add_argument("--no-wait-compiled-selection", action="store_true",
                     help="fly at once, as a viewer starts: the numpy selection until the compiled one is ready "
                          "(default: wait for it first, so that the path measures the steady state)")
+    ap.add_argument("--compiled-selection-from", type=int, default=0, metavar="TILES",
+                    help="the compiled selection only from this many tiles held (4096: as before it was used from the "
+                         "first frames; the A/B of the selection's first seconds)")
     args = ap.parse_args()
     if args.gl_release_gil:
         import ctypes
@@ -322,6 +325,24 @@ def main() -> None:
             out["compiled_selection_error"] = None if error is None else repr(error)
             print(f"compiled selection: {out['compiled_selection']} after {out['compiled_selection_wait_s']} s "
                   f"({out['compiled_selection_error'] or 'ready'})", flush=True)
+        out["compiled_selection_from"] = args.compiled_selection_from
+        if args.compiled_selection_from:
+            # the A/B of the compiled selection from the first frames: as before it, the numpy path (view_numbers
+            # and select over every tile held) while fewer tiles than this are held
+            from client_gl.stream import engine as sel_engine
+
+            wanted_of, shared = sel_engine.StreamEngine.wanted, sel_engine.COMPILED_SELECTION
+
+            def wanted_held_back(engine, cam, _wanted=wanted_of, _from=args.compiled_selection_from):
+                fn = shared._fn
+                if fn is None or len(engine.resident) >= _from:
+                    return _wanted(engine, cam)
+                shared._fn = None  # get() answers None: the numpy path
+                try:
+                    return _wanted(engine, cam)
+                finally:
+                    shared._fn = fn
+            sel_engine.StreamEngine.wanted = wanted_held_back
         if args.switch_interval:
             sys.setswitchinterval(args.switch_interval)
         out["switch_interval_s"] = sys.getswitchinterval()

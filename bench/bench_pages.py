@@ -16,18 +16,22 @@ median time of one frame's view numbers + selection over the tiles held against 
         manifest bytes and seconds from opening the stream to the first frame that draws the root (engine, fetcher
         and HTTP as `view` runs them, no GL: a pool that counts slots), median of --runs
     PYTHONPATH=. python bench/bench_pages.py --engine --splats 6e6,60e6,250e6 [--frames 300] [--profile]
-            [--numpy-selection | --no-wait]
+            [--numpy-selection | --no-wait] [--parts-json F_N.json] [--busy-threads 1]
     PYTHONPATH=. python bench/bench_pages.py --jit-cost [--runs 7]   # the compiled selection's cost before its first
         # use: numba's import, then its kernels compiled (the first run, an empty cache) or loaded (the others)
         # a StreamEngine over the paged tree along a street-level path (pages and payloads arrive --per-frame a
         # frame, payloads not decoded, a pool that counts): per-frame update times, median, p99, max; the compiled
-        # selection (numba, the `fast` extra) unless --numpy-selection
+        # selection (numba, the `fast` extra) unless --numpy-selection; each part of the update per frame (thread
+        # CPU and wall: the view, the cut, the pages wanted, bands, keys, wish list, page adoption, draw set), and
+        # a digest of every frame's cut and draw set (equal digests: the same frames)
 """
 from __future__ import annotations
 
 import argparse
 import cProfile
+import functools
 import gc
+import hashlib
 import json
 import math
 import os
@@ -37,6 +41,7 @@ import statistics
 import subprocess
 import sys
 import tempfile
+import threading
 import time
 import tracemalloc
 from dataclasses import replace
@@ -60,9 +65,13 @@ from splatstream.format.manifest import (
     TileEntry,
     pack_manifest,
     parse_manifest,
+    read_page,
     split_pages,
+    tile_rows,
 )
 from splatstream.format.names import DATA_DIR, MANIFEST_NAME, payload_name
+from splatstream.format.texformats import FORMATS, blob_size
+from splatstream.format.transport import FIELDS1, content_bounds
 from splatstream.gaussians import Gaussians
 from splatstream.lod import TreeShape
 from splatstream.store import load_manifest, read_manifest
@@ -79,6 +88,32 @@ def template(sh_degree: int) -> Manifest:
                   np.full((n, 3), -3.0, np.float32), np.zeros(n, np.float32), rng.random((n, 3)).astype(np.float32),
                   rng.normal(0, 0.1, (n, (sh_degree + 1) ** 2 - 1, 3)).astype(np.float32))
     return read_manifest(encode_in_memory(g, EncodeOptions(preset="medium", max_leaf_splats=16384)))
+
+
+@functools.lru_cache(maxsize=256)
+def fitted(p: PayloadEntry, chunks: int, texture: tuple[int, int]) -> PayloadEntry:
+    """The template's payload entry made valid for a tile of `chunks` and `texture` (format.md 5, Validation; 1.8
+    checks a tile table whole when it is parsed): texels of the tile's texture, stored sizes scaled by its texels
+    (fields1 within its bounds), ranges of its chunks; offsets at 16-byte alignment, file bytes scaled too."""
+    sections, end = [], 0
+    for s in p.sections:
+        if s.kind == "texels":
+            w, h = texture
+            gpu = blob_size(FORMATS[s.format], w, h, s.layers)
+            if s.filter == FIELDS1:
+                lo, hi = content_bounds(s.format, w, h, s.layers)
+                size = min(hi, max(lo, round(s.size * w * h / (s.width * s.height))))
+            else:
+                size = gpu
+            s = replace(s, width=w, height=h, size=size)
+        elif s.shape and not s.name.endswith(".palette"):
+            shape = (chunks, *s.shape[1:])
+            s = replace(s, shape=shape, size=(4 if s.dtype == "f32" else 2) * math.prod(shape))
+        end += (-end) % 16
+        sections.append(replace(s, offset=end))
+        end += s.size
+    return replace(p, sections=tuple(sections), raw_bytes=end, bytes=max(1, round(p.bytes * end / p.raw_bytes)),
+                   gpu_bytes=sum(s.gpu_size for s in sections))
 
 
 def synthetic_tree(splats: int, base: Manifest, seed: int = 0) -> Manifest:
@@ -117,7 +152,7 @@ def synthetic_tree(splats: int, base: Manifest, seed: int = 0) -> Manifest:
             own = {}
             for name, p in groups.items():
                 sha = f"{rnd.getrandbits(256):064x}"
-                own[name] = replace(p, file=payload_name(sha), sha256=sha)
+                own[name] = replace(fitted(p, chunks, texture), file=payload_name(sha), sha256=sha)
             tiles.append(TileEntry(tid, lv, children, per_tile, chunks, texture, Box(lo, hi), center, radius, err,
                                    own))
     leaf_sum = sum(t.splats for t in tiles if not t.children)
@@ -253,7 +288,8 @@ def tree_memory_mb(held: PagedTree, paged) -> float:
 
 
 def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame: int, profile: bool,
-                compiled: bool = True, wait: bool = True) -> None:
+                compiled: bool = True, wait: bool = True, parts_json: str | None = None,
+                busy_threads: int = 0) -> None:
     """A StreamEngine over the paged tree along a camera flying across the city at street level: per-frame
     update times (median, p99, max) and, with --profile, where they go. `compiled`: the compiled selection
     (selection_jit, waited for before the path, so every frame near the cut uses it), else the numpy path."""
@@ -308,6 +344,41 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
     if compiled_fn is not None:
         COMPILED_SELECTION._fn = timing(compiled_fn)
 
+    # Per frame, each part's thread CPU and wall (ms, summed over its calls in the frame): the selection's parts
+    # (the view's numbers, the cut, the pages wanted, the SH bands, the keys: the rest of `wanted`), the wish list,
+    # the page adoption and the draw set. Module functions are wrapped where the engine looks them up.
+    parts_now: dict[str, list[float]] = {}
+    parts: list[dict[str, list[float]]] = []
+    held_tiles: list[int] = []
+    # every frame's cut (tile ids, in the cut's order) and draw set, hashed: the same digests before and after a
+    # change of the selection's code mean the same frames
+    cuts, draws = hashlib.sha256(), hashlib.sha256()
+
+    def part(label, fn):
+        def timed_part(*args, **kw):
+            t0, c0 = time.perf_counter(), time.thread_time()
+            try:
+                return fn(*args, **kw)
+            finally:
+                acc = parts_now.setdefault(label, [0.0, 0.0])
+                acc[0] += (time.thread_time() - c0) * 1e3
+                acc[1] += (time.perf_counter() - t0) * 1e3
+        return timed_part
+    for label, name in (("view", "view_numbers"), ("view", "PartialView"), ("bands", "wanted_bands"),
+                        ("draw set", "draw_set")):
+        fn = getattr(engine_module, name)
+        patched.setdefault(name, fn)
+        setattr(engine_module, name, part(label, getattr(engine_module, name)))
+    for name in ("select", "select_near"):  # already timed into select_s
+        setattr(engine_module, name, part("cut", getattr(engine_module, name)))
+    if COMPILED_SELECTION._fn is not None:
+        COMPILED_SELECTION._fn = part("cut", COMPILED_SELECTION._fn)
+    if engine.pages is not None:
+        engine.pages.wanted_pages = part("pages wanted", engine.pages.wanted_pages)
+    for label, name in (("wanted", "wanted"), ("wish list", "_tell_fetcher"), ("page adoption", "_add_pages"),
+                        ("page eviction", "_evict_pages"), ("collect", "_collect"), ("upload", "_upload")):
+        setattr(engine, name, part(label, getattr(engine, name)))
+
     def on_gc(phase: str, info: dict) -> None:
         if info["generation"] == 2:
             if phase == "start":
@@ -315,6 +386,14 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
             else:
                 full_passes.append(time.perf_counter() - started.pop(2, time.perf_counter()))
     gc.callbacks.append(on_gc)
+    stop = threading.Event()
+
+    def busy() -> None:  # Python that holds the interpreter lock until the switch interval takes it (a page parse)
+        while not stop.is_set():
+            sum(i * i for i in range(2000))
+    others = [threading.Thread(target=busy, daemon=True) for _ in range(busy_threads)]
+    for th in others:
+        th.start()
     try:
         for f in range(frames):
             s = f / max(1, frames - 1)
@@ -328,14 +407,23 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
                 prof.enable()
             held = (engine.pages.pages_read, engine.pages.evicted)
             t0, c0 = time.perf_counter(), time.thread_time()
-            engine.update(cam)
+            u = engine.update(cam)
             times.append(time.perf_counter() - t0)
             cpu.append(time.thread_time() - c0)
+            parts.append(parts_now)
+            ids = engine.ids
+            cuts.update(np.array([int(ids[i]) for i in u.selection.cut], np.int64).tobytes() + b"|")
+            draws.update(np.array(u.draw, np.int64).tobytes() + b"|")
+            held_tiles.append(len(engine.manifest.tiles))
+            parts_now = {}
             adopted.append(held != (engine.pages.pages_read, engine.pages.evicted))
             ready.append(COMPILED_SELECTION._fn is not None)
             if prof is not None:
                 prof.disable()
     finally:
+        stop.set()
+        for th in others:
+            th.join()
         gc.callbacks.remove(on_gc)
         gc.unfreeze()
         engine.close()
@@ -370,9 +458,45 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
                 print(f"  {name}: {part.sum()}, update wall median {np.median(ts[part]):.2f}, max "
                       f"{ts[part].max():.1f} ms; CPU median {np.median(cs[part]):.2f}, max {cs[part].max():.1f} ms; "
                       f"{sum(times[i] for i in np.flatnonzero(part)):.2f} s in all")
+    print_parts(parts, cs, ts)
+    print(f"  every frame's cut: sha256 {cuts.hexdigest()[:16]}, draw set: {draws.hexdigest()[:16]}; the last cut "
+          f"{len(u.selection.cut)} tiles, {u.selection.splats} splats")
+    if parts_json:
+        with open(parts_json, "w") as f:
+            json.dump([{"frame": i, "update_cpu": round(float(cs[i]), 3), "update_wall": round(float(ts[i]), 3),
+                        "tiles": n, "adopted": bool(ad[i]), **{k: [round(x, 3) for x in v] for k, v in p.items()}}
+                       for i, (p, n) in enumerate(zip(parts, held_tiles, strict=True))], f)
     if prof is not None:
         pstats.Stats(prof).sort_stats("tottime").print_stats(30)
         pstats.Stats(prof).sort_stats("cumulative").print_stats("selection.py|engine.py", 25)
+
+
+def print_parts(parts: list[dict[str, list[float]]], cpu: np.ndarray, wall: np.ndarray) -> None:
+    """Each part's thread CPU and wall per frame (0 in frames without it; the page adoption, eviction and upload
+    over the frames they ran in): median, p99, max, and in how many frames it ran. `selection` is the view's
+    numbers and the cut (what bench_flythrough.py's --breakdown counts as the selection); `wanted` the whole
+    selection (with the pages wanted, the bands and the keys); `keys etc.` is `wanted` less its timed parts."""
+    names = ["view", "cut", "pages wanted", "bands", "wanted", "wish list", "page adoption", "page eviction",
+             "draw set", "collect", "upload"]
+
+    def col(name: str, k: int) -> np.ndarray:
+        return np.array([p.get(name, [0.0, 0.0])[k] for p in parts])
+    rows = {n: (col(n, 0), col(n, 1)) for n in names}
+    rows["selection (view + cut)"] = (rows["view"][0] + rows["cut"][0], rows["view"][1] + rows["cut"][1])
+    rest = [rows[n] for n in ("view", "cut", "pages wanted", "bands")]
+    rows["keys etc. (wanted less the above)"] = (rows["wanted"][0] - sum(r[0] for r in rest),
+                                                 rows["wanted"][1] - sum(r[1] for r in rest))
+    rows["update"] = (cpu, wall)
+    print(f"  {'part (ms a frame)':36s} {'CPU median':>10s} {'p99':>7s} {'max':>7s} | {'wall median':>11s} "
+          f"{'p99':>7s} {'max':>7s} | frames")
+    for n, (c, w) in rows.items():
+        if n in ("page adoption", "page eviction", "upload"):  # over the frames it ran in
+            c, w = c[w > 0], w[w > 0]
+        ran = int(np.count_nonzero(w)) if n != "update" else len(w)
+        if not ran:
+            continue
+        print(f"  {n:36s} {np.median(c):10.3f} {np.percentile(c, 99):7.3f} {c.max():7.3f} | {np.median(w):11.3f} "
+              f"{np.percentile(w, 99):7.3f} {w.max():7.3f} | {ran}")
 
 
 _JIT_COST = """
@@ -453,6 +577,8 @@ def main() -> None:
     ap.add_argument("--levels", default="4,5,6,8")
     ap.add_argument("--default-levels", type=int, default=EncodeOptions.page_levels)
     ap.add_argument("--sh-degree", type=int, default=0)
+    ap.add_argument("--version", default=None, help="write the trees as this format version (1.7: tile maps; 1.8, "
+                    "what the encoder writes an LOD tree as: tile tables, format.md 6.2)")
     ap.add_argument("--max-splats", type=int, default=3_000_000)
     ap.add_argument("--engine", action="store_true", help="a StreamEngine along a street-level path (per frame)")
     ap.add_argument("--frames", type=int, default=300)
@@ -463,6 +589,11 @@ def main() -> None:
     ap.add_argument("--no-wait", action="store_true",
                     help="--engine: do not wait for the compiled selection before the path (the engine loads it on "
                          "a worker thread from its first frame near the cut): the frames before it was ready")
+    ap.add_argument("--parts-json", metavar="FILE",
+                    help="--engine: each frame's parts (CPU and wall ms) to FILE (N in it: the scene's size)")
+    ap.add_argument("--busy-threads", type=int, default=0,
+                    help="--engine: threads of pure Python beside the frame loop (as a page parse or a decode step "
+                         "that runs into a frame): the frame's wall then shows each hand-over of the interpreter lock")
     ap.add_argument("--jit-cost", action="store_true",
                     help="the compiled selection's import and compilation (cold numba cache) or loading (warm)")
     args = ap.parse_args()
@@ -473,7 +604,9 @@ def main() -> None:
         base = template(args.sh_degree)
         for n in [int(float(s)) for s in args.splats.split(",")]:
             engine_path(synthetic_tree(n, base), args.default_levels, args.frames, args.max_splats, args.per_frame,
-                        args.profile, not args.numpy_selection, not args.no_wait)
+                        args.profile, not args.numpy_selection, not args.no_wait,
+                        args.parts_json.replace("N", f"{n / 1e6:.0f}M") if args.parts_json else None,
+                        args.busy_threads)
         return
     if args.repage:
         repage(*args.repage, args.default_levels)
@@ -482,6 +615,8 @@ def main() -> None:
         first_frame(args.first_frame, args.runs, args.converge)
         return
     base = template(args.sh_degree)
+    if args.version:
+        base = replace(base, version=tuple(int(v) for v in args.version.split(".")))
     opts = SelectionOptions(max_sse=1.5, max_splats=args.max_splats)
     print("splats  tiles  levels  manifest_MB | k  root_KB  pages  page_KB_median  page_KB_max")
     for n in [int(float(s)) for s in args.splats.split(",")]:
@@ -514,12 +649,46 @@ def main() -> None:
         same = sorted(int(whole.arrays.ids[i]) for i in sel_whole.cut) == \
             sorted(int(tree.manifest.arrays.ids[i]) for i in sel_paged.cut)
         t_whole, t_held = timed(whole, cam, opts), timed(tree.manifest, cam, opts)
+        parse_ms, parse_tiles = page_parse_times(paged, files)
         print(f"   ground view, k={args.default_levels}: first frame needs {len(root_raw) / 1e3:.1f} KB of "
               f"manifest (whole: {whole_bytes / 1e3:.1f} KB); cut of {len(sel_paged.cut)} tiles, "
               f"{sel_paged.splats / 1e6:.2f}M splats, same as the whole tree's: {same}; {tree.pages_read} pages "
               f"({tree.page_bytes / 1e3:.1f} KB) in {rounds} rounds ({stream_s:.2f} s of page reading and selection); "
               f"tiles held {len(tree.manifest.tiles)} of {len(whole.tiles)}; selection per frame "
-              f"{t_held * 1e3:.2f} ms over the tiles held, {t_whole * 1e3:.2f} ms over the whole tree")
+              f"{t_held * 1e3:.2f} ms over the tiles held, {t_whole * 1e3:.2f} ms over the whole tree; a page's parse "
+              f"(read_page + tile_rows, as PagedTree.read on a decode thread) {statistics.median(parse_ms):.2f} ms "
+              f"of CPU median, {max(parse_ms):.2f} max, pages of {statistics.median(parse_tiles):.0f} tiles median "
+              f"(version {whole.version[0]}.{whole.version[1]})")
+
+
+def page_parse_times(paged, files: dict[str, bytes], limit: int = 200) -> tuple[list[float], list[int]]:
+    """CPU ms of read_page (the bytes' SHA-256 taken as checked, as the client's) and tile_rows on each of the
+    first `limit` pages (the deepest first: the tree's most common page), and the tiles of each page."""
+    parents = {t.page.sha256: t for t in _all_tiles(paged) if t.page is not None}
+    ms, tiles = [], []
+    for ref, raw in paged.pages[:limit]:
+        parent = parents[ref.sha256]
+        gc.collect()
+        t0 = time.process_time()
+        got = read_page(raw, ref, paged.root, parent, "page", lazy_payloads=True, hashed=True)
+        tile_rows(got)
+        ms.append((time.process_time() - t0) * 1e3)
+        tiles.append(len(got))
+    return ms, tiles
+
+
+def _all_tiles(paged):
+    """Every tile of a PagedScene: the root manifest's and each page's (read back unchecked)."""
+    out = list(paged.root.tiles)
+    by_sha = {ref.sha256: (ref, raw) for ref, raw in paged.pages}
+    todo = [t for t in out if t.page is not None]
+    while todo:
+        t = todo.pop()
+        ref, raw = by_sha[t.page.sha256]
+        got = read_page(raw, ref, paged.root, t, "page", lazy_payloads=True, hashed=True)
+        out += got
+        todo += [c for c in got if c.page is not None]
+    return out
 
 
 if __name__ == "__main__":

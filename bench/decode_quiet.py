@@ -11,7 +11,8 @@ timed), while this process compiles the numba fields1 kernel (client_gl.stream.d
 later runs start at once). Then, in this process on one thread, CPU time of the thread (time.thread_time), rounds
 of passes with the variants interleaved so that any load falls on them alike; a pass covers every payload of every
 tile, and each decoding variant runs with each --kernels (numpy: transport's numpy path; numba: the compiled
-fields1 and unshuffle kernels, a group's plane in one call each; numba1: the same kernels a section a call):
+fields1 and unshuffle kernels, a payload or a group in one call, the whole kernel; numbap: a group's plane in one
+call each; numba1: a section a call):
 
 * `group`: `format.decode.decode_payloads` of each payload group (base, sh1, ...) as a whole, from bytes: size and
   SHA-256 check, zstd, unfiltering into the texel bytes the GPU takes, the ranges (the batch path, issue 32);
@@ -200,22 +201,25 @@ def _numba_kernel():
         return None, str(exc)
     decode_jit.warm_up()
     return (decode_jit.fields1_kernel, decode_jit.unshuffle_kernel, decode_jit.fields1_many_kernel,
-            decode_jit.unshuffle_many_kernel), None
+            decode_jit.unshuffle_many_kernel, decode_jit.whole_kernel), None
 
 
 def _use(kernels) -> None:
-    """Decode with these kernels (fields1, unshuffle, and their batch forms for a group); None: numpy's path."""
+    """Decode with these kernels (fields1, unshuffle, their batch forms for a group's plane, the whole kernel for
+    a payload or a group); None: numpy's path."""
     transport.use_fields_kernel(kernels[0] if kernels else None)
     transport.use_unshuffle_kernel(kernels[1] if kernels else None)
     transport.use_batch_kernels(*(kernels[2:4] if kernels else (None, None)))
+    transport.use_whole_kernel(kernels[4] if kernels else None)
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", default=",".join(SCENES))
     ap.add_argument("--presets", default=",".join(PRESETS))
-    ap.add_argument("--kernels", default="numpy,numba", help="fields1 decoders: numpy, numba (if installed), numba1 "
-                    "(numba's kernels a section a call, without the batch kernels over a group: the path before them)")
+    ap.add_argument("--kernels", default="numpy,numba", help="fields1 decoders: numpy, numba (if installed: a "
+                    "payload or a group in one call, the whole kernel), numbap (a plane of a group a call: the path "
+                    "before the whole kernel), numba1 (a section a call: the path before the batch kernels)")
     ap.add_argument("--runs", type=int, default=3, help="rounds of timed passes (each round: every variant once; "
                     "3 keeps the default run under 150 s of one quiet core, 5 or more for steadier medians)")
     ap.add_argument("--jobs", type=int, default=os.cpu_count() or 1, help="encoding processes (not timed)")
@@ -233,26 +237,28 @@ def main() -> None:
     if args.jobs > 1:
         with concurrent.futures.ProcessPoolExecutor(args.jobs, mp_context=multiprocessing.get_context("spawn")) as ex:
             pending = ex.map(encode, *zip(*work, strict=True))
-            if {"numba", "numba1"} & set(args.kernels.split(",")):  # compiled here while the workers encode
+            if {"numba", "numba1", "numbap"} & set(args.kernels.split(",")):  # compiled while the workers encode
                 t = time.time()
                 kernel, why = _numba_kernel()
                 compile_s = round(time.time() - t, 1)
             done = list(pending)
     else:
         done = [encode(s, p) for s, p in work]
-        if {"numba", "numba1"} & set(args.kernels.split(",")):
+        if {"numba", "numba1", "numbap"} & set(args.kernels.split(",")):
             t = time.time()
             kernel, why = _numba_kernel()
             compile_s = round(time.time() - t, 1)
     names = args.kernels.split(",")
-    if "numba1" in names and "numba" not in names:
+    if {"numba1", "numbap"} & set(names) and "numba" not in names:
         names.append("numba")
     if "numba" in names:
         if kernel is None:
             skipped["numba"] = why
         else:
             if "numba1" in names:
-                kernels["numba1"] = kernel[:2] + (None, None)
+                kernels["numba1"] = kernel[:2] + (None, None, None)
+            if "numbap" in names:
+                kernels["numbap"] = kernel[:4] + (None,)
             kernels["numba"] = kernel
     if "numpy" not in args.kernels.split(","):
         del kernels["numpy"]

@@ -32,10 +32,12 @@ def numpy_path():
     """The numpy path during the test (whatever was installed before), restored after it."""
     previous = transport.use_fields_kernel(None), transport.use_unshuffle_kernel(None)
     batch = transport.use_batch_kernels(None, None)
+    whole = transport.use_whole_kernel(None)
     yield
     transport.use_fields_kernel(previous[0])
     transport.use_unshuffle_kernel(previous[1])
     transport.use_batch_kernels(*batch)
+    transport.use_whole_kernel(whole)
 
 
 def decode_both(content, fmt, width, height, layers):
@@ -104,8 +106,10 @@ def test_every_preset_decodes_with_the_kernel_as_with_numpy(numpy_path, fruit, p
 
     by_numpy = decode_all()
     decode_jit.install()
-    assert transport.fields_kernel() is not None
-    assert decode_all() == by_numpy
+    assert transport.fields_kernel() is not None and transport.whole_kernel() is not None
+    assert decode_all() == by_numpy  # a payload, a group, in one call each (the whole kernel)
+    transport.use_whole_kernel(None)
+    assert decode_all() == by_numpy  # a plane at a time (the batch kernels), a section at a time
 
 
 @pytest.mark.parametrize("element", [2, 3, 4, 8])
@@ -130,10 +134,12 @@ def test_install_and_uninstall(numpy_path):
     assert transport.fields_kernel() is decode_jit.fields1_kernel
     assert transport.use_unshuffle_kernel(decode_jit.unshuffle_kernel) is decode_jit.unshuffle_kernel
     assert transport.batch_kernels() == (decode_jit.fields1_many_kernel, decode_jit.unshuffle_many_kernel)
+    assert transport.whole_kernel() is decode_jit.whole_kernel
     decode_jit.uninstall()
     assert transport.fields_kernel() is None
     assert transport.use_unshuffle_kernel(None) is None
     assert transport.batch_kernels() == (None, None)
+    assert transport.whole_kernel() is None
 
 
 @pytest.mark.parametrize("fmt", sorted(FIELD_LAYOUTS))
@@ -191,3 +197,63 @@ def test_a_bad_range_in_a_batch_names_its_payload_with_the_kernels(numpy_path, f
     decode_jit.install()
     with pytest.raises(FormatError, match="payload2"):
         container.unpack_payloads(items, "base", [f"payload{k}" for k in range(4)])
+
+
+def test_whole_kernel_matches_the_numpy_path(numpy_path):
+    """Sections of every format, geometry, layer count and modes and units of every element size (some not whole
+    elements) in one buffer, one call: each section's texels and each unit's bytes are the numpy path's, at the
+    offsets unfilter_whole says (texels at 16-byte offsets, each unit aligned to its element, units of one element
+    size given in a row lying in a row); malformed sections among them come back None and the others are still
+    right."""
+    rng = np.random.default_rng(zlib.crc32(b"whole"))
+    raw, sections, expected, at = bytearray(b"\x55" * 7), [], [], 7  # an odd start: offsets are absolute
+    for k, fmt in enumerate(sorted(FIELD_LAYOUTS) * 2):
+        bits = field_bits(fmt)
+        layers = 1 + k % 2
+        w, h = [(16, 16), (48, 32), (16, 48), (32, 16)][k % 4]
+        content = random_content(rng, fmt, w, h, layers, [random_modes(rng, bits) for _ in range(layers)])
+        if k in (3, 12):
+            content = content[:-1]  # short by a byte
+            expected.append(None)
+        elif k == 7:
+            content = bytes([99]) + content[1:]  # not fields1's version
+            expected.append(None)
+        else:
+            expected.append(unfilter_fields(content, fmt, w, h, layers).tobytes())
+        sections.append((fmt, layers, at, len(content), w, h))
+        raw += content + b"\xaa" * (k % 5)
+        at += len(content) + k % 5
+    units, unit_bytes = [], []
+    for element, count in [(4, 37), (4, 2), (2, 300), (2, 5), (3, 7), (8, 33), (1, 9), (4, 0), (2, 0)] + [(4, 1)]:
+        size = element * count + (1 if element == 8 else 0)  # 8-byte units not whole elements: copied as they are
+        unit = rng.integers(0, 256, size).astype(np.uint8)
+        units.append((at, size, element))
+        unit_bytes.append(transport.unshuffle(unit, element).tobytes())
+        raw += unit.tobytes()
+        at += size
+    buf = np.frombuffer(bytes(raw), np.uint8).copy()
+    assert transport.unfilter_whole(buf, sections, units) is None  # no whole kernel: not so
+    transport.use_whole_kernel(decode_jit.whole_kernel)
+    try:
+        out, got, unit_at = transport.unfilter_whole(buf, sections, units)
+    finally:
+        transport.use_whole_kernel(None)
+    assert [None if g is None else out[g[0]:g[0] + g[1]].tobytes() for g in got] == expected
+    assert all(g is None or g[0] % 16 == 0 for g in got)
+    assert [out[a:a + u[1]].tobytes() for a, u in zip(unit_at, units, strict=True)] == unit_bytes
+    assert unit_at[1] == unit_at[0] + units[0][1] and unit_at[3] == unit_at[2] + units[2][1]
+    assert all(a % u[2] == 0 for a, u in zip(unit_at, units, strict=True) if u[2] in (2, 4) and u[1] % u[2] == 0)
+
+
+@pytest.mark.parametrize("value", [np.nan, np.inf, 1e30])
+def test_a_bad_range_in_one_payload_is_refused_by_the_whole_kernel(numpy_path, fruit, value):
+    store = encode_in_memory(fruit, EncodeOptions(preset="medium", max_leaf_splats=512))
+    m = read_manifest(store)
+    entry = m.tiles[0].groups["base"]
+    data = _damaged(store.read_payload(entry), entry, "scale.range", value)
+    with pytest.raises(FormatError, match="scale.range") as by_numpy:
+        container.unpack_payload(data, entry, "base", "payload0")
+    decode_jit.install()
+    with pytest.raises(FormatError, match="scale.range") as by_kernel:
+        container.unpack_payload(data, entry, "base", "payload0")
+    assert str(by_kernel.value) == str(by_numpy.value)

@@ -22,6 +22,7 @@ from client_gl.stream.pages import PagedTree
 from client_gl.stream.selection import (
     PartialView,
     SelectionOptions,
+    ViewBuffers,
     draw_set,
     prefetch,
     select,
@@ -53,6 +54,26 @@ def whole():
     return m
 
 
+# one set of view arrays for every check, as the engine keeps one from frame to frame: each view finds what the last
+# left there (other trees, other sizes)
+BUFFERS = ViewBuffers()
+
+
+def test_view_buffers_are_kept_grown_and_zeroed_where_asked():
+    b = ViewBuffers()
+    x = b.get("x", 5, np.dtype(np.float64), True)
+    assert x.tolist() == [0.0] * 5
+    x[:] = 7.0
+    again = b.get("x", 3, np.dtype(np.float64))
+    assert again.tolist() == [7.0] * 3 and np.shares_memory(again, x)  # the same array, not zeroed
+    assert b.get("x", 4, np.dtype(np.float64), True).tolist() == [0.0] * 4
+    grown = b.get("x", 6, np.dtype(np.float64))  # more than held: a new array, grown ahead, zeros
+    assert grown.tolist() == [0.0] * 6 and not np.shares_memory(grown, x)
+    assert len(b.get("x", 10, np.dtype(np.float64))) == 10 and np.shares_memory(b.get("x", 10, np.dtype(np.float64)),
+                                                                                 grown)
+    assert b.get("x", 2, np.dtype(np.uint8)).dtype == np.uint8  # another dtype: another array
+
+
 def random_camera(m, rnd: random.Random) -> Camera:
     root = m.tiles[m.index_of[m.root]]
     c, r = np.array(root.sphere_center), root.sphere_radius
@@ -80,7 +101,7 @@ def check_same(m, cam, opts, previous, near, resident, rnd, path="numpy", near_p
     cost = np.array([t.chunks for t in m.tiles], np.float64) * 4096.0
     full = view_numbers(a, cam, opts)
     want = select(a, full, cost, root, opts, previous, m.lod.reduction)
-    part = PartialView(a, cam, opts, m.lod.reduction)
+    part = PartialView(a, cam, opts, m.lod.reduction, BUFFERS)  # arrays the last check's view left (the engine's)
     if path == "compiled":
         got = select_near_compiled(a, part, cost, root, opts, previous, near, near_parents)
         assert got == select_near(a, PartialView(a, cam, opts, m.lod.reduction), cost, root, opts, previous, near)

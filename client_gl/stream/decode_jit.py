@@ -16,12 +16,19 @@ where the cut reaches the texel: the same bytes); a predicted field plus floor((
 `unshuffle_kernel` undoes format.md 5.1's byte shuffle of a unit (rotations, scales and ranges stored shuffled)
 in one call where numpy takes four to eight.
 
+`whole_kernel` decodes a whole payload's, or a whole group's, fields1 sections of every format and shuffled units
+(texels and ranges) in one call: a decode thread then gives the interpreter lock up twice a payload (zstd, this
+kernel) and runs its Python in one stretch before and one after (issue 38's fly-through p99: the frame thread waits
+for that lock; issue 32: that Python is most of a small payload's decode).
+
 `install()` compiles the kernels (or loads them from numba's cache: cache=True) with the argument types of a real
-call and hands them to format.transport (`use_fields_kernel`, `use_unshuffle_kernel`); `uninstall()` goes back to
-numpy. The core never imports
+call and hands them to format.transport (`use_fields_kernel`, `use_unshuffle_kernel`, `use_batch_kernels`,
+`use_whole_kernel`); `uninstall()` goes back to numpy. The core never imports
 numba (ARCHITECTURE.md): this module is the streaming client's, and benchmarks import it to compare both.
 """
 from __future__ import annotations
+
+import os
 
 import numpy as np
 from numba import njit
@@ -29,6 +36,7 @@ from numba import njit
 from splatstream.format import transport
 
 _JIT = dict(cache=True, nogil=True, boundscheck=False)
+WHOLE_ENV = "SPLATSTREAM_DECODE_WHOLE"  # "0": install() leaves the whole kernel out
 
 
 @njit(**_JIT)
@@ -131,12 +139,31 @@ def fields1_kernel(raw, planes_at, params_at, n, layers, words, fields, modes, s
 
 
 @njit(**_JIT)
+def unshuffle_into(unit, count, element, out):
+    """format.md 5.1's inverse byte shuffle of `count` elements of `element` bytes: byte k of element i is
+    unit[k * count + i]. Written in order, read from `element` streams (about twice as fast as the other way); the
+    common element sizes spelt out, which the compiler vectorises: 0.08 ns a byte where the loop over a run-time
+    element size took 1.4-2.8 (a city payload's 76 KB of units, 2-core VM at load 6)."""
+    if element == 4:
+        for i in range(count):
+            out[4 * i] = unit[i]
+            out[4 * i + 1] = unit[count + i]
+            out[4 * i + 2] = unit[2 * count + i]
+            out[4 * i + 3] = unit[3 * count + i]
+    elif element == 2:
+        for i in range(count):
+            out[2 * i] = unit[i]
+            out[2 * i + 1] = unit[count + i]
+    else:
+        for i in range(count):
+            for k in range(element):
+                out[i * element + k] = unit[k * count + i]
+
+
+@njit(**_JIT)
 def unshuffle_kernel(unit, element, out):
-    """format.md 5.1's inverse byte shuffle of one unit: byte k of element i is unit[k * count + i]."""
-    count = unit.shape[0] // element
-    for i in range(count):  # written in order, read from `element` streams: about twice as fast as the other way
-        for k in range(element):
-            out[i * element + k] = unit[k * count + i]
+    """format.md 5.1's inverse byte shuffle of one unit (unshuffle_into)."""
+    unshuffle_into(unit, unit.shape[0] // element, element, out)
 
 
 @njit(**_JIT)
@@ -161,12 +188,35 @@ def unshuffle_many_kernel(raw, table, element, out):
     first = 0
     for u in range(table.shape[0]):
         at, count = table[u, 0], table[u, 1]
-        unit = raw[at:at + count * element]
-        dst = out[first:first + count * element]
-        for i in range(count):  # as unshuffle_kernel: written in order (0.4-0.9 ns a byte against 1.6-1.8)
-            for k in range(element):
-                dst[i * element + k] = unit[k * count + i]
+        unshuffle_into(raw[at:at + count * element], count, element, out[first:first + count * element])
         first += count * element
+
+
+@njit(**_JIT)
+def whole_kernel(raw, rows, fields, modes, orders, work, out8, out16, out32, units):
+    """A whole payload's, or a whole group's, fields1 sections of every format and shuffled units in one call
+    (transport.use_whole_kernel): per row of `rows` fields1_kernel into the out view of its word size (out8, out16,
+    out32: views of one buffer), with its columns of `fields` and `modes`; then per row of `units` unshuffle_kernel's
+    bytes into out8. One call that releases the interpreter lock for all of it, where a plane at a time took one or
+    two calls a plane, each taking the lock back after it (issue 38's fly-through; issue 32's small payloads)."""
+    for s in range(rows.shape[0]):
+        n, first, length = rows[s, 2], rows[s, 4], rows[s, 5]
+        f0, nf, m0, nm, words = rows[s, 6], rows[s, 7], rows[s, 8], rows[s, 9], rows[s, 10]
+        layers = length // (n * words)
+        order = orders[rows[s, 3]:rows[s, 3] + n]
+        if rows[s, 11] == 1:
+            fields1_kernel(raw, rows[s, 0], rows[s, 1], n, layers, words, fields[:, f0:f0 + nf],
+                           modes[:, m0:m0 + nm], order, work, out8[first:first + length])
+        elif rows[s, 11] == 2:
+            fields1_kernel(raw, rows[s, 0], rows[s, 1], n, layers, words, fields[:, f0:f0 + nf],
+                           modes[:, m0:m0 + nm], order, work, out16[first:first + length])
+        else:
+            fields1_kernel(raw, rows[s, 0], rows[s, 1], n, layers, words, fields[:, f0:f0 + nf],
+                           modes[:, m0:m0 + nm], order, work, out32[first:first + length])
+    for u in range(units.shape[0]):
+        count, element = units[u, 1], units[u, 2]
+        unshuffle_into(raw[units[u, 0]:units[u, 0] + count * element], count, element,
+                       out8[units[u, 3]:units[u, 3] + count * element])
 
 
 def warm_up() -> None:
@@ -193,6 +243,21 @@ def warm_up() -> None:
         transport.unshuffle_at(np.zeros(32, np.uint8), [(0, 16), (16, 16)], 4)
     finally:
         transport.use_batch_kernels(*previous)
+    previous = transport.use_whole_kernel(whole_kernel)
+    try:  # sections of every word size and a unit in one call: the one argument type of every call
+        parts, sections, at = [], [], 0
+        for fmt in ("norm8x4", "norm565", "norm11"):
+            bits = transport.field_bits(fmt)
+            content = bytes([transport.FIELDS_VERSION]) + bytes([transport.MODE_DELTA] * len(bits)) \
+                + bytes(256 * sum((b + 7) // 8 for b in bits))
+            at += -at % 16
+            parts.append(bytes(at - sum(len(p) for p in parts)) + content)
+            sections.append((fmt, 1, at, len(content), 16, 16))
+            at += len(content)
+        raw = np.frombuffer(b"".join(parts) + bytes(32), np.uint8).copy()
+        transport.unfilter_whole(raw, sections, [(at, 16, 4), (at + 16, 16, 2)])
+    finally:
+        transport.use_whole_kernel(previous)
     unit = np.zeros(16, np.uint8)
     read_only = unit.copy()
     read_only.setflags(write=False)
@@ -206,6 +271,10 @@ def install() -> None:
     transport.use_fields_kernel(fields1_kernel)
     transport.use_unshuffle_kernel(unshuffle_kernel)
     transport.use_batch_kernels(fields1_many_kernel, unshuffle_many_kernel)
+    # SPLATSTREAM_DECODE_WHOLE=0: a plane at a time as before the whole kernel (for A/B runs of the fly-through:
+    # the whole kernel gives the lock up twice a payload instead of about five times, for 10-20 us more of Python
+    # holding it; BENCHMARKS.md, "Decode speed")
+    transport.use_whole_kernel(whole_kernel if os.environ.get(WHOLE_ENV, "1") != "0" else None)
 
 
 def uninstall() -> None:
@@ -213,3 +282,4 @@ def uninstall() -> None:
     transport.use_fields_kernel(None)
     transport.use_unshuffle_kernel(None)
     transport.use_batch_kernels(None, None)
+    transport.use_whole_kernel(None)

@@ -40,6 +40,7 @@ from .selection import (
     Selection,
     SelectionOptions,
     TileView,
+    ViewBuffers,
     draw_set,
     prefetch,
     select,
@@ -130,15 +131,17 @@ class StreamOptions:
     # referenced (a dropped page's tiles hold no reference cycles); only cyclic garbage existing at that moment is
     # kept. False: the collector as configured.
     freeze_pages: bool = True
-    # From this many tiles held the selection looks near the cut only (selection.select_near); below it, over every
+    # The numpy path's rule (the compiled selection, once ready, selects near the cut whatever the tiles held):
+    # from this many tiles held the selection looks near the cut only (selection.select_near); below it, over every
     # tile (view_numbers and select): the same cut, and numpy over a few thousand tiles costs less than finding the
     # tiles near the cut (interleaved on the 2-core VM: 1,536 tiles held 1.5 against 2.0 ms, 6,548 5.1 against
     # 5.1, 20,402 10.6 against 6.6; BENCHMARKS.md, "Manifest pages").
     select_near_from: int = 4096
     # The selection near the cut compiled (selection_jit, numba: the optional extra `fast`), the same cut as the
     # numpy path in a fraction of its time (BENCHMARKS.md, "Manifest pages"). Its kernels are compiled or loaded
-    # from numba's cache on a worker thread from the first frame that selects near the cut; the numpy path runs
-    # until they are ready, and always where numba is not installed. False: the numpy path always.
+    # from numba's cache on a worker thread from the first frame that selects near the cut or follows a page's
+    # arrival, and used once ready whatever the tiles held; the numpy path runs until they are ready, and always
+    # where numba is not installed. False: the numpy path always.
     compiled_selection: bool = True
 
 
@@ -155,9 +158,11 @@ class CompiledSelection:
         self.error: BaseException | None = None  # why it is not available (numba missing, a failed compilation)
         self.decode_error: BaseException | None = None  # why the compiled fields1 decoder is not installed
 
-    def get(self):
+    def get(self, start: bool = True):
+        """The compiled function, or None while it is not ready; `start` False: never starts loading it (a caller
+        that uses it only if another has loaded it)."""
         fn = self._fn
-        if fn is None and self._thread is None:
+        if fn is None and start and self._thread is None:
             with self._lock:
                 if self._thread is None:
                     self._thread = threading.Thread(target=self._load, name="splatstream-selection-jit", daemon=True)
@@ -338,6 +343,9 @@ class StreamEngine:
         self._last_cut: set[int] = set()  # the last selection's cut (positions): kept from eviction, and where the
         # next frame's selection starts looking
         self._bases = np.zeros(0, np.intp)  # positions of the wish list's bases (_coarse_to_fine)
+        # The compiled selection's per-tile arrays, kept from frame to frame (ViewBuffers): a frame's view owns them
+        # until the next selection (the engine uses a view only in the frame that made it, or while it is cached)
+        self._view_buffers = ViewBuffers()
         self._pages_checked: tuple[int, int] = (0, 0)  # (tiles held, payload evictions) at the last eviction pass
         self.frame = 0
         self.refined: frozenset[int] = frozenset()
@@ -498,17 +506,26 @@ class StreamEngine:
         budget = self.residency.capacity_slots * self.slot_bytes * self.options.target_fraction
         sel_opts = SelectionOptions(**{**opts.__dict__, "budget": min(budget, opts.budget or budget)})
         view: PartialView | TileView
-        if len(self.resident) >= self.options.select_near_from:
+        near_cut = len(self.resident) >= self.options.select_near_from
+        compiled = None
+        if self.options.compiled_selection:
+            # Loaded from the first frame that selects near the cut or after a page arrives (a paged scene's
+            # first frame needs the root manifest only, and its first frames hold a few thousand tiles at most); once
+            # ready, used whatever the tiles held: below select_near_from the numpy path selects over every tile
+            # (view_numbers and select), which was the first seconds' slowest selections at 250M splats, 1-4 ms of CPU
+            # a frame against 0.3-0.6 ms compiled (BENCHMARKS.md, "Manifest pages").
+            paged = self.pages is not None and self.pages.pages_read > 0
+            compiled = COMPILED_SELECTION.get(start=near_cut or paged)
+        if compiled is not None:  # it takes the tiles whose children to look at first, and finds them itself
+            view = PartialView(a, cam, opts, self.manifest.lod.reduction, self._view_buffers)
+            sel = compiled(a, view, self.cost, self.root, sel_opts, self.refined,
+                           near_parents=[*self.refined, *self._last_cut])
+        elif near_cut:
             view = PartialView(a, cam, opts, self.manifest.lod.reduction)
-            compiled = COMPILED_SELECTION.get() if self.options.compiled_selection else None
-            if compiled is not None:  # it takes the tiles whose children to look at first, and finds them itself
-                sel = compiled(a, view, self.cost, self.root, sel_opts, self.refined,
-                               near_parents=[*self.refined, *self._last_cut])
-            else:
-                children = a.children
-                near = [k for i in self.refined for k in children[i]] + [k for i in self._last_cut
-                                                                         for k in children[i]]
-                sel = select_near(a, view, self.cost, self.root, sel_opts, self.refined, near)
+            children = a.children
+            near = [k for i in self.refined for k in children[i]] + [k for i in self._last_cut
+                                                                     for k in children[i]]
+            sel = select_near(a, view, self.cost, self.root, sel_opts, self.refined, near)
         else:
             view = view_numbers(a, cam, opts)
             sel = select(a, view, self.cost, self.root, sel_opts, self.refined, self.manifest.lod.reduction)
@@ -520,15 +537,17 @@ class StreamEngine:
         bands = wanted_bands(a, view, sel.cut, opts, self.manifest.sh_degree)
         self._bands_wanted = bands
         ids = self.ids
-        keys: list[Key] = [(int(ids[self.root]), "base")]
-        keys += [(int(ids[i]), "base") for i in sel.cut if i != self.root]
+        root_id = int(ids[self.root])
+        cut_ids = ids[np.fromiter(sel.cut, np.intp, len(sel.cut))].tolist()  # one numpy call, not one a tile
+        keys: list[Key] = [(root_id, "base")]
+        keys += [(t, "base") for t in cut_ids if t != root_id]
         top = max(bands.values(), default=0)
         if self.codebook:
             keys += [(None, f"sh{b}") for b in range(1, top + 1)]
-            keys += [(int(ids[i]), "sh1") for i in sel.cut if bands[i] >= 1]
+            keys += [(t, "sh1") for t, i in zip(cut_ids, sel.cut, strict=True) if bands[i] >= 1]
         else:
             for b in range(1, top + 1):
-                keys += [(int(ids[i]), f"sh{b}") for i in sel.cut if bands[i] >= b]
+                keys += [(t, f"sh{b}") for t, i in zip(cut_ids, sel.cut, strict=True) if bands[i] >= b]
         # prefetch only when asked for (update asks only when nothing the view wants is missing): 0.2-0.3 ms a frame
         extra = _Prefetch(a, view, sel, opts, ids, self.cost) if self.options.prefetch else ()
         result = (view, sel, bands, keys, extra)

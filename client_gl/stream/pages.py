@@ -88,13 +88,11 @@ class PagedTree:
         read and that the selection would refine if their children were known (visible, sse above max_sse)."""
         if not self.pending:
             return []
-        ids = self.manifest.arrays.ids
-        out = []
-        for i in cut:
-            tile_id = int(ids[i])
-            if tile_id in self.pending and visible[i] and sse[i] > max_sse:
-                out.append((tile_id, PAGE_GROUP))
-        return out
+        at = np.asarray(cut, np.intp)
+        pending = self.pending
+        # the tests in numpy over the cut (a Python test a tile read three numpy scalars: 0.1 ms a frame at 250M)
+        refine = at[visible[at] & (sse[at] > max_sse)]
+        return [(t, PAGE_GROUP) for t in self.manifest.arrays.ids[refine].tolist() if t in pending]
 
     def read(self, tile_id: int, data: VerifiedPayload | bytes,
              between: Callable[[], object] | None = None) -> ParsedPage:

@@ -143,8 +143,8 @@ def refinement_keys(level: np.ndarray, distance: np.ndarray, sse: np.ndarray, le
     """select's refinement key of these tiles (smallest refined first): level * level_step + log2(distance), and
     -inf where the sse is not finite (the eye inside a tile's sphere: refine it first). One formula for select,
     select_near and the compiled selection, which must order the loop and give the priorities bit for bit alike."""
-    with np.errstate(divide="ignore"):
-        key = level * level_step + np.log2(np.maximum(distance, 1e-30))
+    # no errstate: log2 of a value at least 1e-30 (or NaN) warns of nothing, and the context costs as much as the rest
+    key = level * level_step + np.log2(np.maximum(distance, 1e-30))
     return np.where(np.isfinite(sse), key, -INF)
 
 
@@ -198,6 +198,29 @@ def view_numbers(a: TileArrays, cam: Camera, opts: SelectionOptions = SelectionO
     return TileView(sse, visible, radius_px, area, distance, (a, cam, basis, opts.prefetch_margin))
 
 
+class ViewBuffers:
+    """Per-tile arrays kept from one view to the next: a PartialView (and the compiled selection, selection_jit)
+    takes its arrays here instead of allocating a dozen arrays over the tree held every frame (about 0.17 ms a frame
+    at 21,000 tiles on the 2-core VM, a fifth of the compiled selection's CPU: BENCHMARKS.md, "Manifest pages").
+    The arrays of the last view taken are overwritten by the next: the holder (the engine) uses a view only until it
+    selects again."""
+
+    def __init__(self) -> None:
+        self._arrays: dict[str, np.ndarray] = {}
+
+    def get(self, name: str, n: int, dtype, zero: bool = False) -> np.ndarray:
+        """An array of n elements of this dtype named `name`: zeros with `zero`, else what the last view left."""
+        a = self._arrays.get(name)
+        if a is None or len(a) < n or a.dtype != dtype:
+            a = np.zeros(max(n, 2 * len(a)) if a is not None else n, dtype)  # grown ahead: trees grow by pages
+            self._arrays[name] = a
+            return a[:n]
+        out = a[:n]
+        if zero:
+            out.fill(0)
+        return out
+
+
 class PartialView:
     """A view's numbers for the tiles asked for only (`ensure`), where TileView has every tile's: the same arrays
     over every position, valid where computed. `select_near` asks for the tiles it reaches, so a frame looks at
@@ -205,20 +228,31 @@ class PartialView:
     numbers are the same bits as view_numbers' (elementwise arithmetic), so the cut is the same."""
 
     def __init__(self, a: TileArrays, cam: Camera, opts: SelectionOptions = SelectionOptions(),
-                 reduction: float = 2.0):
+                 reduction: float = 2.0, buffers: ViewBuffers | None = None):
+        """`buffers`: where to take the per-tile arrays from (ViewBuffers: the last view taken from them is
+        overwritten); None: new arrays."""
         self.arrays, self.cam = a, cam
         self._basis = _basis(cam)
         self._planes = frustum_planes(cam, 1.0, self._basis)
         self.wide_frustum = (a, cam, self._basis, opts.prefetch_margin)
         self.level_step = refinement_level_step(reduction)
         n = len(a.parent)
-        self.sse, self.radius_px, self.distance = np.empty(n), np.empty(n), np.empty(n)
-        self.visible, self.area_px = np.zeros(n, bool), np.zeros(n)
-        self.known = np.zeros(n, np.uint8)  # 1: computed
+        self.buffers = buffers
+        if buffers is None:
+            self.sse, self.radius_px, self.distance = np.empty(n), np.empty(n), np.empty(n)
+            self.visible, self.area_px = np.zeros(n, bool), np.zeros(n)
+            self.known = np.zeros(n, np.uint8)  # 1: computed
+        else:
+            f64 = np.dtype(np.float64)
+            self.sse, self.radius_px = buffers.get("sse", n, f64), buffers.get("radius_px", n, f64)
+            self.distance = buffers.get("distance", n, f64)
+            self.visible = buffers.get("visible", n, np.dtype(bool), True)
+            self.area_px = buffers.get("area_px", n, f64, True)
+            self.known = buffers.get("known", n, np.dtype(np.uint8), True)
         self.looked_at = 0  # tiles whose numbers were computed
-        # the box test of one tile in Python floats (visible_at): the same operations in the same order as
-        # boxes_in_frustum's, so the same answer
-        self._one = list(zip(self._planes[:, 3].tolist(), _split(self._planes).tolist(), strict=True))
+        # the planes' normals split for the box corners (boxes_in_frustum's; the compiled selection takes them too)
+        self.split = _split(self._planes)
+        self._one: list | None = None  # the box test of one tile in Python floats (visible_at), made when needed
         self._visible_of: dict[int, bool] = {}
 
     def ensure(self, idx) -> None:
@@ -242,6 +276,8 @@ class PartialView:
             return bool(self.visible[i])
         v = self._visible_of.get(i)
         if v is None:
+            if self._one is None:  # the same operations in the same order as boxes_in_frustum's: the same answer
+                self._one = list(zip(self._planes[:, 3].tolist(), self.split.tolist(), strict=True))
             c = self.arrays.box_corners[i].tolist()
             v = True
             for d, w in self._one:
@@ -615,7 +651,9 @@ def wanted_bands(a: TileArrays, view: TileView, tiles: tuple[int, ...] | list[in
     out = dict.fromkeys(tiles, 0)
     if opts.max_sse <= 0:  # full detail: every band of every tile
         return dict.fromkeys(tiles, top)
-    area = {i: float(view.area_px[i]) for i in tiles}
+    if top <= 0:
+        return out
+    area = dict(zip(tiles, view.area_px[np.asarray(tiles, np.intp)].tolist(), strict=True))
     total = sum(area.values())
     for b in range(1, top + 1):
         share = opts.band_area_share[b - 1]

@@ -30,6 +30,7 @@ from client_gl.stream.selection import (
     PartialView,
     Selection,
     SelectionOptions,
+    ViewBuffers,
     _split,
     refinement_keys,
     select_near_heap,
@@ -297,7 +298,10 @@ def select_near_compiled(a: TileArrays, view: PartialView, cost: np.ndarray, roo
     refined and cut tiles). Neither changes the answer, only how many passes it takes."""
     first, kids = _children(a)
     n = len(a.parent)
-    was = np.zeros(n, np.bool_)
+    # the per-tile scratch arrays: the view's buffers (kept from frame to frame by the engine), else new ones
+    buf = view.buffers if getattr(view, "buffers", None) is not None else ViewBuffers()
+    i64, f64, u8 = np.dtype(np.int64), np.dtype(np.float64), np.dtype(np.uint8)
+    was = buf.get("was_refined", n, np.dtype(np.bool_), True)
     if previous_refined:
         was[np.fromiter(previous_refined, np.intp, len(previous_refined))] = True
     cam, basis, planes = view.cam, view._basis, view._planes
@@ -307,12 +311,13 @@ def select_near_compiled(a: TileArrays, view: PartialView, cost: np.ndarray, roo
                      float(cam.width * cam.height)], np.float64)
     high = float(opts.max_sse)
     g = (camv, _f64(a.sphere_center), _f64(a.sphere_radius), _f64(a.geometric_error), _f64(a.box_corners),
-         _f64(planes[:, 3]), _f64(_split(planes)), first, was, high, high * opts.hysteresis)
+         _f64(planes[:, 3]), _f64(view.split if hasattr(view, "split") else _split(planes)), first, was, high,
+         high * opts.hysteresis)
     known, sse, visible, radius_px, area_px, distance = (view.known, view.sse, view.visible, view.radius_px,
                                                          view.area_px, view.distance)
-    cand = np.zeros(n, np.uint8)
-    prio = np.empty(n)
-    pending = np.empty(n, np.int64)
+    cand = buf.get("cand", n, u8)  # written for every tile whose numbers are computed, read only for those
+    prio = buf.get("prio", n, f64)
+    pending = buf.get("pending", n, i64)
     direct = np.asarray(near, np.int64)
     tiles = np.concatenate([[root], direct, np.asarray(near_parents, np.int64)]).astype(np.int64)
     before = int(np.count_nonzero(known))
@@ -324,7 +329,7 @@ def select_near_compiled(a: TileArrays, view: PartialView, cost: np.ndarray, roo
 
     m = _seed(tiles, 1 + len(direct), g, kids, known, sse, visible, radius_px, area_px, distance, cand, pending)
     keys(m)
-    heap_k, heap_t = np.empty(n), np.empty(n, np.int64)
+    heap_k, heap_t = buf.get("heap_k", n, f64), buf.get("heap_t", n, i64)
     splats_of = np.ascontiguousarray(a.splats, np.int64)
     cost = _f64(cost)
     st = np.array([0, splats_of[root], 0, 0], np.int64)
@@ -333,7 +338,7 @@ def select_near_compiled(a: TileArrays, view: PartialView, cost: np.ndarray, roo
         if prio[root] != prio[root]:
             return select_near_heap(a, view, cost, root, opts, previous_refined, near)
         heap_k[0], heap_t[0], st[0] = prio[root], root, 1
-    refd, reflist = np.zeros(n, np.uint8), np.empty(n, np.int64)
+    refd, reflist = buf.get("refd", n, u8, True), buf.get("reflist", n, i64)
     max_splats = -1 if opts.max_splats is None else int(opts.max_splats)
     budget = math.nan if opts.budget is None else float(opts.budget)
     while True:
@@ -345,7 +350,7 @@ def select_near_compiled(a: TileArrays, view: PartialView, cost: np.ndarray, roo
     view.looked_at += int(np.count_nonzero(known)) - before
     if m < 0:
         return select_near_heap(a, view, cost, root, opts, previous_refined, near)
-    out_t, out_p = np.empty(n, np.int64), np.empty(n)
+    out_t, out_p = buf.get("out_t", n, i64), buf.get("out_p", n, f64)
     c = _cut(first, kids, visible, refd, reflist, int(st[3]), prio, root, out_t, out_p)
     ct, pri = out_t[:c], out_p[:c]
     rank = np.lexsort((ct, distance[ct], -pri))

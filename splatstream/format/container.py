@@ -46,9 +46,11 @@ from .transport import (
     unfilter_fields_at,
     unfilter_fields_many,
     unfilter_texels,
+    unfilter_whole,
     unshuffle,
     unshuffle_at,
     unshuffle_many,
+    whole_kernel,
 )
 
 WORKER_MODE_MAX_BYTES = 32 << 20
@@ -278,6 +280,9 @@ def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, so
     while another thread needs the interpreter (the streaming client's frame loop). `palettes`: the scene's
     palettes (Manifest.scene_palettes, format.md 4.3.2), for a palette plane whose payload has no palette section."""
     buf, kept = _decompress(data, entry.raw_bytes, source)
+    if whole_kernel() is not None and _wholly(entry):
+        return _unpack_whole(buf, [0], [buf], [{s.name: s for s in entry.sections}], group, codebook, [source],
+                             between, kept)[0]
     # What a small payload's decode spends beyond its splats is per-call Python and numpy work (issue 32: on the LOD
     # tree's tiles of a few hundred splats it was half the time), so this loop does only what each plane needs: the
     # section table read once into a dict, not searched per section; a view of the kept buffer found by its base.
@@ -344,6 +349,8 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
         firsts.append(at)
         at += size
     tables = [{s.name: s for s in entry.sections} for _, entry in items]
+    if whole_kernel() is not None:  # the whole group in one compiled call (_unpack_whole)
+        return _unpack_whole(whole, firsts, bufs, tables, group, codebook, sources, between, kept)
     out: list[dict[str, EncodedPlane]] = [{} for _ in items]
     batched = None not in batch_kernels()
     for spec in group_planes(group, codebook):
@@ -403,6 +410,91 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
             ranges = _checked_ranges(got, rs, spec, sources)
         _finish(out, spec, secs, layers, ranges, kept, owner)
     return out
+
+
+def _wholly(entry: PayloadEntry) -> bool:
+    """The payload's planes can go through _unpack_whole (no keyed positions, no palette planes: format.md 5.4,
+    4.3.2, which are decoded a plane at a time)."""
+    return not any(sec.filter == MORTON1 or sec.format in PALETTE_FORMATS for sec in entry.sections)
+
+
+def _unpack_whole(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], tables: list[dict], group: str,
+                  codebook: bool, sources: list[str], between: Callable[[], object] | None,
+                  kept: bool) -> list[dict[str, EncodedPlane]]:
+    """Every plane of the payloads lying in `whole` (payload k from firsts[k], bufs[k] its bytes; tables[k] its
+    sections by name) by one call of the whole kernel (transport.unfilter_whole): every fields1 section, every
+    shuffled texel section and every range section of them all, into one fresh array. What the kernel refuses (a
+    section that is not well-formed) and any other filter goes through unfilter_texels alone, which decodes it or
+    raises FormatError naming it; then float texels and ranges are checked (a plane's ranges of all payloads at once,
+    a payload's own check only to name a bad one).
+
+    Why one call: a decode thread holds the interpreter lock for the Python around each compiled call and takes it
+    back after each one; the streaming client's frame thread waits for it (issue 38's fly-through p99), and on small
+    payloads that Python is most of the decode (issue 32). Same bytes as the other paths, bit for bit."""
+    specs = group_planes(group, codebook)
+    sections, units = [], []
+    plan = []  # per plane: per payload (texel section, index in sections or -1, first unit or -1), then its ranges
+    for spec in specs:
+        count = spec.layers
+        texels = []
+        for k, t in enumerate(tables):
+            s = t[spec.name]
+            if s.filter == FIELDS1 and s.format in FIELD_LAYOUTS:
+                texels.append((s, len(sections), -1))
+                sections.append((s.format, count, firsts[k] + s.offset, s.size, s.width, s.height))
+            elif s.filter not in ("none", FIELDS1) and s.format not in FLOAT_TEXEL_FORMATS:
+                texels.append((s, -1, len(units)))
+                unit, element = s.size // count, _element(s.filter)
+                units += [(firsts[k] + s.offset + i * unit, unit, element) for i in range(count)]
+            else:
+                texels.append((s, -1, -1))
+        ranges = -1
+        if spec.range_dtype:  # a plane's range units in a row: they lie in a row in out, checked at once
+            ranges = len(units)
+            units += [(firsts[k] + r.offset, r.size, _element(r.filter))
+                      for k, r in enumerate(t[spec.range_name] for t in tables)]
+        plan.append((spec, texels, ranges))
+    if between is not None:
+        between()
+    out, got, unit_at = unfilter_whole(whole, sections, units)
+    owner = whole if whole.base is None else whole.base
+    result: list[dict[str, EncodedPlane]] = [{} for _ in tables]
+    for spec, texels, ranges in plan:
+        if between is not None:
+            between()
+        count = spec.layers
+        layers_of = []
+        for k, (s, section, unit) in enumerate(texels):
+            at = got[section] if section >= 0 else None
+            if at is not None:
+                first, size = at
+                step = size // count
+                layers = [out[first + i * step:first + (i + 1) * step] for i in range(count)]
+            elif unit >= 0:
+                step = s.size // count
+                layers = [out[unit_at[unit + i]:unit_at[unit + i] + step] for i in range(count)]
+            else:
+                layers = unfilter_texels(bufs[k][s.offset:s.offset + s.size], s.filter, s.format, s.width, s.height,
+                                         count, f"{sources[k]} section {s.name}")
+                if kept:  # what is still a view of this thread's buffer is copied: the next payload overwrites it
+                    layers = [p.copy() if p.base is owner else p for p in layers]
+            if s.format in FLOAT_TEXEL_FORMATS:
+                _check_float_texels(layers, s, sources[k])
+            layers_of.append(layers)
+        checked: list = [None] * len(tables)
+        if ranges >= 0 and len(tables) == 1:  # one payload: its own check
+            r = tables[0][spec.range_name]
+            checked = [out[unit_at[ranges]:unit_at[ranges] + r.size].view(spec.range_dtype).reshape(r.shape)]
+            _check_ranges(checked[0], spec.name, r.name, sources[0])
+        elif ranges >= 0:
+            rs = [t[spec.range_name] for t in tables]
+            got_r = [out[unit_at[ranges + k]:unit_at[ranges + k] + r.size] for k, r in enumerate(rs)]
+            first, last = unit_at[ranges], unit_at[ranges + len(rs) - 1] + rs[-1].size
+            together = out[first:last] if last - first == sum(r.size for r in rs) else None
+            checked = _checked_ranges(got_r, rs, spec, sources, together)
+        for k, (s, _, _) in enumerate(texels):
+            result[k][spec.name] = EncodedPlane(spec, s.format, s.width, s.height, layers_of[k], checked[k])
+    return result
 
 
 def _finish(out: list[dict], spec, secs: list[Section], layers: list, ranges: list, kept: bool,
@@ -475,15 +567,20 @@ def _ranges_at(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], tab
     return _checked_ranges(got, rs, spec, sources)
 
 
-def _checked_ranges(got: list[np.ndarray], rs: list[Section], spec, sources: list[str]) -> list[np.ndarray]:
+def _checked_ranges(got: list[np.ndarray], rs: list[Section], spec, sources: list[str],
+                    together: np.ndarray | None = None) -> list[np.ndarray]:
     """Each payload's ranges of one plane from its unshuffled range bytes `got`, checked in one go where they lie one
-    after the other in one array; a payload's own check only to say which one failed."""
+    after the other in one array (`together`: that array's bytes, else found from their base); a payload's own check
+    only to say which one failed."""
     ranges = [g.view(spec.range_dtype).reshape(r.shape) for g, r in zip(got, rs, strict=True)]
     shapes = {r.shape[1:] for r in ranges}
-    base = got[0].base
-    if len(shapes) == 1 and len(ranges) > 1 and base is not None and all(g.base is base for g in got) \
-            and base.nbytes == sum(g.nbytes for g in got):
-        whole_r = base.reshape(-1).view(np.uint8).view(spec.range_dtype).reshape(-1, *shapes.pop())
+    if together is None:
+        base = got[0].base
+        if len(ranges) > 1 and base is not None and all(g.base is base for g in got) \
+                and base.nbytes == sum(g.nbytes for g in got):
+            together = base.reshape(-1).view(np.uint8)
+    if len(shapes) == 1 and together is not None:
+        whole_r = together.view(spec.range_dtype).reshape(-1, *shapes.pop())
         if _ranges_ok(whole_r, spec.name):
             return ranges
     for k, r in enumerate(ranges):

@@ -1205,3 +1205,128 @@ def unshuffle_at(raw: np.ndarray, units: list[tuple[int, int]], element: int) ->
         views.append(out[first:first + size])
         first += size
     return views
+
+
+# ---------------------------------------------------------------------------------------------------------------
+# A whole payload (or a whole group's payloads) in one compiled call (handed in by a shell, like the kernels above)
+
+
+_whole_kernel = None  # see use_whole_kernel
+
+
+def use_whole_kernel(kernel) -> object:
+    """Decode every fields1 section, of any format, and undo the byte shuffle of every unit of one decompressed
+    buffer in one call (None: not so); returns the one it replaces. Called as kernel(raw, rows, fields, modes, orders,
+    work, out8, out16, out32, units): per fields1 section a row of `rows` (where its byte planes and its parameters
+    start in `raw`, its slots, where its slot_to_texel starts in `orders`, where its texels start and how many words
+    they are in the out view of its word size, where its columns of `fields` start and how many, where its columns
+    of `modes` start and how many, words a texel, bytes a word), which is use_fields_kernel's call for it; per unit a
+    row of `units` (where it starts in `raw`, its element count, its element size, where its bytes go in out8).
+    out8, out16 and out32 are views of one buffer.
+
+    Why: a decode thread holds the interpreter lock for the Python between its compiled calls and must take it back
+    after each one (issue 38: the frame thread waits for it; issue 32: that Python is most of a small payload's
+    decode). With this kernel a payload's, or a group's, decode is two calls that release the lock (zstd, then this),
+    with one stretch of Python before and one after (unfilter_whole)."""
+    global _whole_kernel
+    previous, _whole_kernel = _whole_kernel, kernel
+    return previous
+
+
+def whole_kernel() -> object:
+    """The kernel use_whole_kernel handed in, or None."""
+    return _whole_kernel
+
+
+@functools.lru_cache(maxsize=1024)
+def _whole_tables(keys: tuple) -> tuple:
+    """The whole kernel's `fields`, `modes` and `orders` for sections of these (format, layers, header, width,
+    height), each table once, and per section (its first column of fields, of modes, how many of modes, where its
+    slot_to_texel starts in orders). Cached: a scene's payloads repeat a few combinations of formats, modes and
+    geometries, and concatenating the tables was a fifth of a small payload's Python around the kernel. The arrays
+    are writable and C-ordered (the one argument type decode_jit.warm_up compiles) and never written."""
+    field_parts, mode_parts, order_parts, columns = [], [], [], []
+    fields_at: dict[str, int] = {}
+    modes_at: dict[tuple, int] = {}
+    orders_at: dict[tuple[int, int], int] = {}
+    field_cols = mode_cols = order_words = 0
+    for fmt, layers, head, width, height in keys:
+        _, fields, table, _ = _kernel_args(fmt, layers, head)
+        f = fields_at.get(fmt)
+        if f is None:
+            f = fields_at[fmt] = field_cols
+            field_parts.append(fields)
+            field_cols += fields.shape[1]
+        m = modes_at.get((fmt, layers, head))
+        if m is None:
+            m = modes_at[fmt, layers, head] = mode_cols
+            mode_parts.append(table)
+            mode_cols += table.shape[1]
+        o = orders_at.get((width, height))
+        if o is None:
+            o = orders_at[width, height] = order_words
+            order_parts.append(slot_to_texel(width, height))
+            order_words += width * height
+        columns.append((f, m, table.shape[1], o))
+    return (np.concatenate(field_parts, axis=1) if field_parts else np.zeros((5, 0), np.int64),
+            np.concatenate(mode_parts, axis=1) if mode_parts else np.zeros((3, 0), np.int64),
+            np.concatenate(order_parts) if order_parts else np.zeros(0, np.int64), tuple(columns))
+
+
+def unfilter_whole(raw: np.ndarray, sections: list[tuple[str, int, int, int, int, int]],
+                   units: list[tuple[int, int, int]]) -> tuple[np.ndarray, list, list[int]] | None:
+    """unfilter_fields of every fields1 section in `sections` ((format, layers, offset, size, width, height), lying in
+    `raw`, one decompressed buffer) and unshuffle of every unit in `units` ((offset, size, element)) by one call of
+    the whole kernel (use_whole_kernel): (out, where each section's texels lie in out as (offset, size), or None for a
+    section that is not well-formed, which its caller decodes with unfilter_fields to raise FormatError naming it;
+    where each unit's bytes lie in out). Sections' texels start at 16-byte offsets; the units follow in the order given,
+    each at an offset aligned to its element (2, 4 or 8 bytes), so that units of one element size given in a row (a
+    plane's ranges) lie in a row.
+    None when there is no whole kernel. Each section is checked as _kernel_unfilter checks it, from the same cached
+    lookup per (geometry, header); a unit whose size is not a multiple of its element is copied as it is, as unshuffle
+    returns it."""
+    kernel = _whole_kernel
+    if kernel is None:
+        return None
+    got: list = []
+    rows = []
+    keys = []  # per section decoded: (format, layers, header, width, height), the key of its tables below
+    out_bytes = most_n = most_f = 0
+    for fmt, layers, at, size, width, height in sections:
+        layout = FIELD_LAYOUTS.get(fmt)
+        if layout is None or type(layers) is not int or layers < 1:
+            got.append(None)
+            continue
+        head = raw[at:at + 1 + len(layout[2]) * layout[1] * layers].tobytes()
+        plan = _kernel_plan(fmt, width, height, layers, head)
+        if plan is None or size != plan[0]:
+            got.append(None)
+            continue
+        _, params_at, planes_at, n, words, _, _, word, _, nf, nbytes = plan
+        out_bytes += -out_bytes % 16
+        size_of = word.itemsize
+        rows.append([at + planes_at, at + params_at, n, 0, out_bytes // size_of, nbytes // size_of, 0, nf, 0, 0,
+                     words, size_of])
+        keys.append((fmt, layers, head, width, height))
+        got.append((out_bytes, nbytes))
+        out_bytes += nbytes
+        most_n = max(most_n, n)
+        most_f = max(most_f, nf)
+    fields, modes, orders, columns = _whole_tables(tuple(keys))
+    for row, (f, m, nm, o) in zip(rows, columns, strict=True):
+        row[3], row[6], row[8], row[9] = o, f, m, nm
+    out_bytes += -out_bytes % 16
+    unit_rows, unit_at = [], []
+    for at, size, element in units:
+        if element <= 1 or size % element:
+            element = 1
+        if element in (2, 4, 8):  # aligned for views of its elements (a plane's ranges still lie in a row)
+            out_bytes += -out_bytes % element
+        unit_rows.append((at, size // element, element, out_bytes))
+        unit_at.append(out_bytes)
+        out_bytes += size
+    out = np.empty(out_bytes + -out_bytes % 16, np.uint8)
+    work = _scratch("kernel", 8 * most_f * most_n).view(np.int64).reshape(most_f, most_n)
+    kernel(raw, np.array(rows, np.int64).reshape(-1, 12), fields, modes, orders, work, out, out.view(np.uint16),
+           out.view(np.uint32), np.array(unit_rows, np.int64).reshape(-1, 4))
+    return out, got, unit_at
