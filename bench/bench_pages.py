@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import cProfile
+import functools
 import gc
 import hashlib
 import json
@@ -64,9 +65,13 @@ from splatstream.format.manifest import (
     TileEntry,
     pack_manifest,
     parse_manifest,
+    read_page,
     split_pages,
+    tile_rows,
 )
 from splatstream.format.names import DATA_DIR, MANIFEST_NAME, payload_name
+from splatstream.format.texformats import FORMATS, blob_size
+from splatstream.format.transport import FIELDS1, content_bounds
 from splatstream.gaussians import Gaussians
 from splatstream.lod import TreeShape
 from splatstream.store import load_manifest, read_manifest
@@ -83,6 +88,32 @@ def template(sh_degree: int) -> Manifest:
                   np.full((n, 3), -3.0, np.float32), np.zeros(n, np.float32), rng.random((n, 3)).astype(np.float32),
                   rng.normal(0, 0.1, (n, (sh_degree + 1) ** 2 - 1, 3)).astype(np.float32))
     return read_manifest(encode_in_memory(g, EncodeOptions(preset="medium", max_leaf_splats=16384)))
+
+
+@functools.lru_cache(maxsize=256)
+def fitted(p: PayloadEntry, chunks: int, texture: tuple[int, int]) -> PayloadEntry:
+    """The template's payload entry made valid for a tile of `chunks` and `texture` (format.md 5, Validation; 1.8
+    checks a tile table whole when it is parsed): texels of the tile's texture, stored sizes scaled by its texels
+    (fields1 within its bounds), ranges of its chunks; offsets at 16-byte alignment, file bytes scaled too."""
+    sections, end = [], 0
+    for s in p.sections:
+        if s.kind == "texels":
+            w, h = texture
+            gpu = blob_size(FORMATS[s.format], w, h, s.layers)
+            if s.filter == FIELDS1:
+                lo, hi = content_bounds(s.format, w, h, s.layers)
+                size = min(hi, max(lo, round(s.size * w * h / (s.width * s.height))))
+            else:
+                size = gpu
+            s = replace(s, width=w, height=h, size=size)
+        elif s.shape and not s.name.endswith(".palette"):
+            shape = (chunks, *s.shape[1:])
+            s = replace(s, shape=shape, size=(4 if s.dtype == "f32" else 2) * math.prod(shape))
+        end += (-end) % 16
+        sections.append(replace(s, offset=end))
+        end += s.size
+    return replace(p, sections=tuple(sections), raw_bytes=end, bytes=max(1, round(p.bytes * end / p.raw_bytes)),
+                   gpu_bytes=sum(s.gpu_size for s in sections))
 
 
 def synthetic_tree(splats: int, base: Manifest, seed: int = 0) -> Manifest:
@@ -121,7 +152,7 @@ def synthetic_tree(splats: int, base: Manifest, seed: int = 0) -> Manifest:
             own = {}
             for name, p in groups.items():
                 sha = f"{rnd.getrandbits(256):064x}"
-                own[name] = replace(p, file=payload_name(sha), sha256=sha)
+                own[name] = replace(fitted(p, chunks, texture), file=payload_name(sha), sha256=sha)
             tiles.append(TileEntry(tid, lv, children, per_tile, chunks, texture, Box(lo, hi), center, radius, err,
                                    own))
     leaf_sum = sum(t.splats for t in tiles if not t.children)
@@ -546,6 +577,8 @@ def main() -> None:
     ap.add_argument("--levels", default="4,5,6,8")
     ap.add_argument("--default-levels", type=int, default=EncodeOptions.page_levels)
     ap.add_argument("--sh-degree", type=int, default=0)
+    ap.add_argument("--version", default=None, help="write the trees as this format version (1.7: tile maps; 1.8, "
+                    "what the encoder writes an LOD tree as: tile tables, format.md 6.2)")
     ap.add_argument("--max-splats", type=int, default=3_000_000)
     ap.add_argument("--engine", action="store_true", help="a StreamEngine along a street-level path (per frame)")
     ap.add_argument("--frames", type=int, default=300)
@@ -582,6 +615,8 @@ def main() -> None:
         first_frame(args.first_frame, args.runs, args.converge)
         return
     base = template(args.sh_degree)
+    if args.version:
+        base = replace(base, version=tuple(int(v) for v in args.version.split(".")))
     opts = SelectionOptions(max_sse=1.5, max_splats=args.max_splats)
     print("splats  tiles  levels  manifest_MB | k  root_KB  pages  page_KB_median  page_KB_max")
     for n in [int(float(s)) for s in args.splats.split(",")]:
@@ -614,12 +649,46 @@ def main() -> None:
         same = sorted(int(whole.arrays.ids[i]) for i in sel_whole.cut) == \
             sorted(int(tree.manifest.arrays.ids[i]) for i in sel_paged.cut)
         t_whole, t_held = timed(whole, cam, opts), timed(tree.manifest, cam, opts)
+        parse_ms, parse_tiles = page_parse_times(paged, files)
         print(f"   ground view, k={args.default_levels}: first frame needs {len(root_raw) / 1e3:.1f} KB of "
               f"manifest (whole: {whole_bytes / 1e3:.1f} KB); cut of {len(sel_paged.cut)} tiles, "
               f"{sel_paged.splats / 1e6:.2f}M splats, same as the whole tree's: {same}; {tree.pages_read} pages "
               f"({tree.page_bytes / 1e3:.1f} KB) in {rounds} rounds ({stream_s:.2f} s of page reading and selection); "
               f"tiles held {len(tree.manifest.tiles)} of {len(whole.tiles)}; selection per frame "
-              f"{t_held * 1e3:.2f} ms over the tiles held, {t_whole * 1e3:.2f} ms over the whole tree")
+              f"{t_held * 1e3:.2f} ms over the tiles held, {t_whole * 1e3:.2f} ms over the whole tree; a page's parse "
+              f"(read_page + tile_rows, as PagedTree.read on a decode thread) {statistics.median(parse_ms):.2f} ms "
+              f"of CPU median, {max(parse_ms):.2f} max, pages of {statistics.median(parse_tiles):.0f} tiles median "
+              f"(version {whole.version[0]}.{whole.version[1]})")
+
+
+def page_parse_times(paged, files: dict[str, bytes], limit: int = 200) -> tuple[list[float], list[int]]:
+    """CPU ms of read_page (the bytes' SHA-256 taken as checked, as the client's) and tile_rows on each of the
+    first `limit` pages (the deepest first: the tree's most common page), and the tiles of each page."""
+    parents = {t.page.sha256: t for t in _all_tiles(paged) if t.page is not None}
+    ms, tiles = [], []
+    for ref, raw in paged.pages[:limit]:
+        parent = parents[ref.sha256]
+        gc.collect()
+        t0 = time.process_time()
+        got = read_page(raw, ref, paged.root, parent, "page", lazy_payloads=True, hashed=True)
+        tile_rows(got)
+        ms.append((time.process_time() - t0) * 1e3)
+        tiles.append(len(got))
+    return ms, tiles
+
+
+def _all_tiles(paged):
+    """Every tile of a PagedScene: the root manifest's and each page's (read back unchecked)."""
+    out = list(paged.root.tiles)
+    by_sha = {ref.sha256: (ref, raw) for ref, raw in paged.pages}
+    todo = [t for t in out if t.page is not None]
+    while todo:
+        t = todo.pop()
+        ref, raw = by_sha[t.page.sha256]
+        got = read_page(raw, ref, paged.root, t, "page", lazy_payloads=True, hashed=True)
+        out += got
+        todo += [c for c in got if c.page is not None]
+    return out
 
 
 if __name__ == "__main__":

@@ -58,6 +58,13 @@ def main() -> None:
         psnr_one = next(r["psnr_mean"] for r in one["rows"] if r["label"] == "probe-pal2047")
         rows = by["rows"]
         r = rows["pal2047k"]
+        if "pal2047k-tilepal" not in rows:  # only the LOD tree measured (a manifest change: bench/manifest_bytes.py)
+            name = f"{s} ({'tuned' if s in tuned else 'held out'}) ({sog[0]:.2f}, {sog[1]:.2f})"
+            print(f"| {name} | {cell(r['full_detail_b_per_splat'], psnr, sog)} | "
+                  f"{cell(r['leaf_payload_b_per_splat'], psnr, sog)} | manifest {r['manifest_bytes']} B "
+                  f"({r['manifest_bytes'] / by['splats']:.2f} B/splat, {r['manifest_bytes'] / r['tiles']:.0f} B a "
+                  f"tile, version {r['version'][0]}.{r['version'][1]}) | |")
+            continue
         tree = f"{r['tree_b_per_splat']:.2f} / {rows['pal2047k-tilepal']['tree_b_per_splat']:.2f} / " \
                f"{rows['ml12k']['tree_b_per_splat']:.2f} B"
         name = f"{s} ({'tuned' if s in tuned else 'held out'}) ({sog[0]:.2f}, {sog[1]:.2f})"

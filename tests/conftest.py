@@ -99,10 +99,26 @@ def group_planes_of(scene_dir, manifest, tile, group: str) -> dict:
 
 
 def read_manifest_dict(scene_dir) -> dict:
-    """The raw manifest map, for tests that damage it on purpose."""
+    """The raw manifest map, for tests that damage it on purpose; an unpaged 1.8 tile table (format.md 6.2) as the
+    same scene's 1.7 tile maps (tile_maps), so that a test damages one tile's map as before. (The tile table's own
+    damage: tests/test_manifest_table.py.)"""
     import msgpack
 
-    return msgpack.unpackb((pathlib.Path(scene_dir) / "manifest.msgpack").read_bytes(), raw=False)
+    return tile_maps(msgpack.unpackb((pathlib.Path(scene_dir) / "manifest.msgpack").read_bytes(), raw=False))
+
+
+def tile_maps(d: dict) -> dict:
+    """A manifest map holding a tile table (1.8, unpaged) as the map the same scene has as version 1.7 (tile maps,
+    bytes_on_disk settled); any other map as it is."""
+    from dataclasses import replace
+
+    from splatstream.format.manifest import manifest_from_dict
+    from splatstream.format.manifest.versions import VERSION_1_7
+
+    if "tile_table" not in d or "paged" in d:
+        return d
+    m = replace(manifest_from_dict(d), version=VERSION_1_7)
+    return m.with_bytes_on_disk(m.payload_bytes()).to_dict()
 
 
 def write_manifest_dict(scene_dir, m: dict, settle: bool = False) -> None:

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from aiohttp import web
-from conftest import settle_totals
+from conftest import read_manifest_dict, settle_totals
 from fault_server import LoopbackServer
 
 from splatstream.format.names import MANIFEST_NAME, PAYLOAD_NAME_RE
@@ -199,9 +199,7 @@ class HostileServer(LoopbackServer):
 
 
 def _load_dict(scene: Path) -> dict:
-    import msgpack
-
-    return msgpack.unpackb((scene / MANIFEST_NAME).read_bytes(), raw=False)
+    return read_manifest_dict(scene)  # a 1.8 tile table as tile maps (conftest.tile_maps)
 
 
 def _write_dict(scene: Path, m: dict) -> None:

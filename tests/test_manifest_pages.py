@@ -3,6 +3,7 @@ content-addressed pages, read back whole by the stores (info, decode, export) an
 import copy
 import hashlib
 import os
+from dataclasses import replace
 
 import msgpack
 import pytest
@@ -19,6 +20,7 @@ from splatstream.format.manifest import (
     resolve_pages,
     split_pages,
 )
+from splatstream.format.manifest.versions import VERSION_1_7
 from splatstream.format.names import payload_name
 from splatstream.ply import read_gaussians_ply
 from splatstream.store import MemoryStore, load_manifest, read_manifest
@@ -26,8 +28,12 @@ from splatstream.store import MemoryStore, load_manifest, read_manifest
 
 @pytest.fixture(scope="module")
 def whole():
+    """The tree as a 1.5-1.7 writer wrote it (tile maps: the pages here edit them), which readers still read; the
+    encoder's own 1.8 tile table (format.md 6.2) is tests/test_manifest_table.py's."""
     g = read_gaussians_ply(real("fruit_drops_sh3.ply"))
-    return read_manifest(encode_in_memory(g, EncodeOptions(preset="medium", max_leaf_splats=300)))
+    m = read_manifest(encode_in_memory(g, EncodeOptions(preset="medium", max_leaf_splats=300)))
+    m = replace(m, version=VERSION_1_7)
+    return m.with_bytes_on_disk(m.payload_bytes())
 
 
 def _store(paged) -> MemoryStore:
@@ -39,7 +45,7 @@ def _store(paged) -> MemoryStore:
 def test_split_then_resolve_gives_the_whole_tree(whole, k):
     paged = split_pages(whole, k)
     root = paged.root
-    assert root.version == VERSION_1_5 and root.paged.page_levels == k
+    assert root.version == max(whole.version, VERSION_1_5) and root.paged.page_levels == k
     assert {t.level for t in root.tiles} == set(range(min(k, whole.levels)))
     assert [t.id for t in root.tiles] == list(range(len(root.tiles)))  # lod.md 1: tiles[i].id == i
     assert root.paged.tiles == len(whole.tiles) and root.paged.pages == len(paged.pages)

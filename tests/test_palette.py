@@ -6,6 +6,7 @@ the shaders on it)."""
 from __future__ import annotations
 
 import shutil
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -25,11 +26,13 @@ from splatstream.format.codec import (
     plane_values,
 )
 from splatstream.format.container import pack_payload, unpack_payload
-from splatstream.format.manifest import writer_version
+from splatstream.format.manifest import pack_manifest, writer_version
+from splatstream.format.names import MANIFEST_NAME
 from splatstream.format.planes import BASE_PLANES, PALETTE_ENTRIES
 from splatstream.format.presets import resolve_formats
 from splatstream.io import read_gaussians
 from splatstream.scene_decode import decode_scene
+from splatstream.store import load_manifest
 
 SCALE, COLOR = BASE_PLANES[2], BASE_PLANES[3]
 
@@ -130,7 +133,11 @@ def tile_palette_scene(tmp_path_factory):
                                                    transport="keyed"))
     finally:
         encode_plan.scene_palettes = fit
-    return g, out, m
+    # its manifest as a 1.6 writer wrote it (tile maps; today's encoder writes an LOD tree's as 1.8 tile tables)
+    m = replace(m, version=(1, 6))
+    m = m.with_bytes_on_disk(m.payload_bytes())
+    (out / MANIFEST_NAME).write_bytes(pack_manifest(m))
+    return g, out, load_manifest(out)
 
 
 def _assert_exact(g, d):
@@ -162,7 +169,7 @@ def test_a_sog_input_decodes_exactly_from_a_scene_with_scene_palettes(sog_scene)
 
 def test_lod_leaves_decode_exactly_and_payloads_carry_no_palettes(sog_lod_scene):
     g, out, m = sog_lod_scene
-    assert m.version == (1, 7) and len(m.tiles) > 3 and m.palettes
+    assert m.version == (1, 8) and len(m.tiles) > 3 and m.palettes  # 1.7's palettes, 1.8's tile table (6.2)
     assert _palette_sections(m, leaves_only=True) == 0
     _assert_exact(g, decode_scene(out))
 
@@ -197,7 +204,7 @@ def test_a_paged_scene_keeps_its_palettes_in_the_root_manifest(tmp_path):
     out = tmp_path / "paged"
     m = encode_gaussians(g, out, EncodeOptions(preset="medium-low-12bit", overrides=PAL, max_leaf_splats=400,
                                                page_tiles=4, page_levels=1))
-    assert m.paged is not None and m.version == (1, 7) and m.palettes
+    assert m.paged is not None and m.version == (1, 8) and m.palettes
     _assert_exact(g, decode_scene(out))
 
 

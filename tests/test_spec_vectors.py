@@ -4,6 +4,7 @@ import importlib.util
 import json
 import pathlib
 
+import msgpack
 import numpy as np
 import pytest
 import zstandard
@@ -94,7 +95,7 @@ def test_newer_major_version_is_rejected(tmp_path):
     with pytest.raises(FormatError, match="version 2.0 is not supported"):
         load_manifest(tmp_path / "s")
     # A newer minor version may add keys: this reader ignores them. In a version it knows, they are damage.
-    m["version"] = [1, 8]
+    m["version"] = [1, 9]
     m["a_future_key"] = {"x": 1}
     write_manifest_dict(tmp_path / "s", m)
     assert len(decode_scene(tmp_path / "s")) == 260
@@ -116,6 +117,23 @@ def test_paged_vector_reads_its_pages_and_decodes_to_expected_values():
     assert len(pages) == root.paged.pages == 25
     for name in pages:
         assert hashlib.sha256((scene / "data" / name).read_bytes()).hexdigest() + ".bin" == name
+    expected = json.loads((scene / "expected.json").read_text())
+    g = decode_scene(scene)
+    assert len(g) == expected["splats"] == m.splats == 600
+    for field in ("positions", "rotations", "log_scales", "opacities", "sh_dc", "sh_rest"):
+        assert np.array_equal(getattr(g, field), np.array(expected[field], np.float32)), field
+
+
+def test_table_vector_reads_its_tile_tables_and_decodes_to_expected_values():
+    """format.md 6.2 and 8: the `table` vector is `paged`'s input and options written by today's encoder (1.8): its
+    root manifest and pages hold tile tables, and with every page read it decodes exactly."""
+    scene = VECTORS / "table"
+    raw = (scene / "manifest.msgpack").read_bytes()
+    assert "tile_table" in msgpack.unpackb(raw, strict_map_key=False)
+    root = parse_manifest(raw)
+    assert root.version == (1, 8) and root.paged.page_levels == 1 and [t.id for t in root.tiles] == [root.root]
+    m = load_manifest(scene)
+    assert len(m.tiles) == root.paged.tiles and m.levels == root.paged.levels
     expected = json.loads((scene / "expected.json").read_text())
     g = decode_scene(scene)
     assert len(g) == expected["splats"] == m.splats == 600

@@ -2,8 +2,8 @@
 
     PYTHONPATH=. python format_spec/vectors/make_vectors.py [NAME ...]
 
-NAME: high, medium, low, very-low, paged (default: all). tests/test_spec_vectors.py encodes the presets' scenes again
-with `encode_vector` and fails when what a preset writes today no longer matches its vector."""
+NAME: high, medium, low, very-low, paged, table (default: all). tests/test_spec_vectors.py encodes the presets' scenes
+again with `encode_vector` and fails when what a preset writes today no longer matches its vector."""
 import json
 import pathlib
 import shutil
@@ -54,13 +54,26 @@ def paged_vector(source) -> None:
     print("wrote", out)
 
 
+def table_vector(source) -> None:
+    """The same input and options as `paged`, written by today's encoder: its root manifest and pages hold their
+    tiles as tile tables (format.md 6.2, version 1.8)."""
+    g = source.subset(morton_order(source.positions)[:PAGED_SPLATS])
+    out = HERE / "table"
+    shutil.rmtree(out, ignore_errors=True)
+    encode_gaussians(g, out, EncodeOptions(preset="medium", name="vector-table", zstd_level=3, **PAGED))
+    (out / "expected.json").write_text(json.dumps(expected_values(decode_scene(out))) + "\n")
+    print("wrote", out)
+
+
 def main(names: list[str]) -> None:
-    unknown = set(names) - {*PRESETS, "paged"}
+    unknown = set(names) - {*PRESETS, "paged", "table"}
     if unknown:
-        raise SystemExit(f"unknown vector {sorted(unknown)[0]!r} (choose from {', '.join(PRESETS)}, paged)")
+        raise SystemExit(f"unknown vector {sorted(unknown)[0]!r} (choose from {', '.join(PRESETS)}, paged, table)")
     source = read_gaussians_ply(SOURCE)
     if not names or "paged" in names:
         paged_vector(source)
+    if not names or "table" in names:
+        table_vector(source)
     for preset in PRESETS:
         if names and preset not in names:
             continue

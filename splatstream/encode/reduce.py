@@ -16,7 +16,7 @@ from ..format.manifest import (
     TileEntry,
     writer_version,
 )
-from ..format.manifest.versions import VERSION_1_6, VERSION_1_7
+from ..format.manifest.versions import VERSION_1_6, VERSION_1_7, VERSION_1_8
 from ..format.planes import BASE_PLANE_NAMES
 from ..format.presets import ATTRIBUTES
 from .plan import ScenePlan
@@ -53,8 +53,12 @@ def _version(ctx, codebook: SHCodebookEntry | None, tiles: list[TileEntry]) -> t
     version = writer_version(ctx.formats, codebook.format if codebook is not None else None, ctx.chunk_order)
     keyed = any(s.filter == MORTON1 for t in tiles for e in t.groups.values() for s in e.sections)
     if ctx.palettes:  # scene palettes in the manifest (format.md 4.3.2)
-        return max(version, VERSION_1_7)
-    return max(version, VERSION_1_6) if keyed else version
+        version = max(version, VERSION_1_7)
+    elif keyed:
+        version = max(version, VERSION_1_6)
+    # An LOD tree's tiles as the tile table (format.md 6.2, 1.8): a fifth of the tile maps' bytes. A one-tile scene's
+    # map is under a kilobyte, and its version stays the one its formats need.
+    return max(version, VERSION_1_8) if len(tiles) > 1 else version
 
 
 def build_manifest(scene: ScenePlan, camera: CameraEntry, tiles: list[TileEntry],

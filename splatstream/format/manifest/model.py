@@ -12,9 +12,11 @@ from dataclasses import dataclass, field, replace
 import msgpack
 import numpy as np
 
+from ..names import payload_name
 from ..planes import MAX_SH_DEGREE, band_of, groups_for_degree
 from ..texformats import FORMATS, blob_size
-from .versions import FORMAT_NAME
+from .table import TABLE_KEY, pack_tile_table
+from .versions import FORMAT_NAME, VERSION_1_8
 from .wire import pack_manifest
 
 Vec3 = tuple[float, float, float]
@@ -365,7 +367,7 @@ class Manifest:
         if self.palettes:
             d["palettes"] = {name: bytes(raw) for name, raw in self.palettes.items()}
         d.update({
-            "lod": self.lod.to_dict(), "root": self.root, "tiles": [t.to_dict() for t in self.tiles],
+            "lod": self.lod.to_dict(), "root": self.root, **self.tiles_dict(),
             "gpu_bytes": self.gpu_bytes, "gpu_bytes_per_splat": self.gpu_bytes_per_splat,
             "leaf_bytes_on_disk": self.leaf_bytes_on_disk,
             "attributes": {a: s.to_dict() for a, s in self.attributes.items()},
@@ -374,6 +376,13 @@ class Manifest:
         if self.paged is not None:
             d["paged"] = self.paged.to_dict()
         return d
+
+    def tiles_dict(self) -> dict:
+        """The manifest's tiles as its version writes them: the tile table from 1.8 on (format.md 6.2), else the
+        array of tile maps."""
+        if self.version >= VERSION_1_8:
+            return {TABLE_KEY: pack_tile_table(self.tiles, self.tile_groups())}
+        return {"tiles": [t.to_dict() for t in self.tiles]}
 
     def with_bytes_on_disk(self, payload_bytes: int) -> Manifest:
         """This manifest with `bytes_on_disk` = payload bytes + its own packed size (which depends on the value)."""
@@ -390,6 +399,35 @@ def tile_rows(tiles: Sequence[TileEntry]) -> dict[str, np.ndarray]:
     payload entries are unpacked to read their sizes: the streaming client takes a page's rows where it parses the
     page (a decode worker), so that adopting the page on the frame loop does not unpack them (grown_arrays' `rows`)."""
     n = len(tiles)
+    table = _one_table(tiles)
+    if table is not None:  # a tile table's tiles (1.8): their sizes as columns, no entry read
+        base_bytes, band_bytes, gpu_bytes = table.tile_sizes(np.array([t.groups.row for t in tiles], np.int64))
+    else:
+        base_bytes, band_bytes, gpu_bytes = _group_sizes(tiles)
+    return dict(
+        ids=np.array([t.id for t in tiles], np.int64),
+        level=np.array([t.level for t in tiles], np.int64),
+        splats=np.array([t.splats for t in tiles], np.int64),
+        box_min=np.array([t.box.min for t in tiles], np.float64).reshape(n, 3),
+        box_max=np.array([t.box.max for t in tiles], np.float64).reshape(n, 3),
+        sphere_center=np.array([t.sphere_center for t in tiles], np.float64).reshape(n, 3),
+        sphere_radius=np.array([t.sphere_radius for t in tiles], np.float64),
+        geometric_error=np.array([t.geometric_error for t in tiles], np.float64),
+        base_bytes=base_bytes, band_bytes=band_bytes, gpu_bytes=gpu_bytes)
+
+
+def _one_table(tiles: Sequence[TileEntry]) -> Table | None:
+    """The tile table every one of these tiles' payload entries come from, or None."""
+    first = tiles[0].groups if tiles else None
+    if not isinstance(first, TablePayloads):
+        return None
+    table = first.table
+    return table if all(type(t.groups) is TablePayloads and t.groups.table is table for t in tiles) else None
+
+
+def _group_sizes(tiles: Sequence[TileEntry]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(base bytes, SH band bytes, GPU bytes) of each tile, from its payload entries."""
+    n = len(tiles)
     band_bytes = np.zeros((n, MAX_SH_DEGREE), np.int64)
     base_bytes = np.zeros(n, np.int64)
     gpu_bytes = np.zeros(n, np.int64)
@@ -402,16 +440,7 @@ def tile_rows(tiles: Sequence[TileEntry]) -> dict[str, np.ndarray]:
                 band_bytes[i, band - 1] = size
             else:
                 base_bytes[i] = size
-    return dict(
-        ids=np.array([t.id for t in tiles], np.int64),
-        level=np.array([t.level for t in tiles], np.int64),
-        splats=np.array([t.splats for t in tiles], np.int64),
-        box_min=np.array([t.box.min for t in tiles], np.float64).reshape(n, 3),
-        box_max=np.array([t.box.max for t in tiles], np.float64).reshape(n, 3),
-        sphere_center=np.array([t.sphere_center for t in tiles], np.float64).reshape(n, 3),
-        sphere_radius=np.array([t.sphere_radius for t in tiles], np.float64),
-        geometric_error=np.array([t.geometric_error for t in tiles], np.float64),
-        base_bytes=base_bytes, band_bytes=band_bytes, gpu_bytes=gpu_bytes)
+    return base_bytes, band_bytes, gpu_bytes
 
 
 def tile_arrays(tiles: Sequence[TileEntry], idx: Mapping[int, int]) -> TileArrays:
@@ -554,7 +583,7 @@ def texels_size(fmt: str, width: int, height: int, layers: int) -> int:
 
 def entry_fields(groups: Mapping[str, PayloadEntry], name: str, fields: tuple[str, ...]) -> tuple:
     """Fields of one payload entry: from the raw map where it is checked lazily and they have the right types."""
-    if isinstance(groups, LazyPayloads):
+    if isinstance(groups, (LazyPayloads, TablePayloads)):
         return groups.raw_fields(name, fields)
     entry = groups[name]
     return tuple(getattr(entry, f) for f in fields)
@@ -612,6 +641,98 @@ class LazyPayloads(Mapping):
 # The last LazyPayloads unpacked (its packed bytes, the maps): reading several fields of one tile's groups unpacks
 # them once. Replaced as a whole (one assignment), so threads reading different tiles at once stay correct.
 _last_unpacked: tuple[bytes | None, dict] = (None, {})
+
+
+class Table:
+    """A validated tile table held by its tiles' payload entries: the sizes, the derived offsets and raw bytes, and
+    per (group, layout, texture, chunks) the sections' fixed fields (their `Section`s at offset 0, from
+    validate.py), so that an entry is built only when read."""
+
+    __slots__ = ("groups", "sha", "bytes", "raw_bytes", "gpu_bytes", "sizes", "offsets", "first", "templates",
+                 "kind", "_hex")
+
+    def __init__(self, groups: tuple[str, ...], sha: np.ndarray, nbytes: np.ndarray, raw_bytes: np.ndarray,
+                 gpu_bytes: np.ndarray, sizes: np.ndarray, offsets: np.ndarray, first: np.ndarray,
+                 templates: list[tuple[Section, ...]], kind: np.ndarray):
+        self.groups, self.sha, self.bytes, self.raw_bytes, self.gpu_bytes = groups, sha, nbytes, raw_bytes, gpu_bytes
+        self.sizes, self.offsets, self.first, self.templates, self.kind = sizes, offsets, first, templates, kind
+        self._hex: dict[int, str] = {}
+
+    def sha_hex(self, p: int) -> str:
+        h = self._hex.get(p)
+        if h is None:
+            h = self._hex[p] = bytes(self.sha[p]).hex()
+        return h
+
+    def entry(self, p: int) -> PayloadEntry:
+        """Payload p (tile row x groups + group) as its record."""
+        secs = []
+        at = int(self.first[p])
+        new = object.__new__
+        for k, tpl in enumerate(self.templates[int(self.kind[p])]):
+            s = new(Section)
+            s.__dict__.update(tpl.__dict__)
+            s.__dict__["offset"] = int(self.offsets[at + k])
+            s.__dict__["size"] = int(self.sizes[at + k])
+            secs.append(s)
+        sha = self.sha_hex(p)
+        return PayloadEntry(payload_name(sha), sha, int(self.bytes[p]), int(self.raw_bytes[p]),
+                            int(self.gpu_bytes[p]), tuple(secs))
+
+    def tile_sizes(self, rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(base bytes, SH band bytes (n, 3), GPU bytes) of these tile rows: tile_rows' payload columns."""
+        g = len(self.groups)
+        nb = self.bytes.reshape(-1, g)[rows].astype(np.int64)
+        gpu = self.gpu_bytes.reshape(-1, g)[rows].sum(axis=1)
+        band = np.zeros((len(rows), MAX_SH_DEGREE), np.int64)
+        base = np.zeros(len(rows), np.int64)
+        for j, name in enumerate(self.groups):
+            b = band_of(name)
+            if b:
+                band[:, b - 1] = nb[:, j]
+            else:
+                base = nb[:, j]
+        return base, band, gpu
+
+
+class TablePayloads(Mapping):
+    """A tile's payload entries (group name -> PayloadEntry) from a checked tile table: each built when first read
+    (the table's columns were checked whole when it was parsed)."""
+
+    __slots__ = ("table", "row", "_built")
+
+    def __init__(self, table: Table, row: int):
+        self.table, self.row = table, row
+        self._built: dict[str, PayloadEntry] = {}
+
+    def __getitem__(self, name: str) -> PayloadEntry:
+        entry = self._built.get(name)
+        if entry is None:
+            try:
+                j = self.table.groups.index(name)
+            except ValueError:
+                raise KeyError(name) from None
+            entry = self._built[name] = self.table.entry(self.row * len(self.table.groups) + j)
+        return entry
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self.table.groups)
+
+    def __len__(self) -> int:
+        return len(self.table.groups)
+
+    def raw_fields(self, name: str, fields: tuple[str, ...]) -> tuple:
+        """Fields of an entry without building it (model.entry_fields)."""
+        p = self.row * len(self.table.groups) + self.table.groups.index(name)
+        t = self.table
+        values = {"bytes": lambda: int(t.bytes[p]), "gpu_bytes": lambda: int(t.gpu_bytes[p]),
+                  "raw_bytes": lambda: int(t.raw_bytes[p]), "sha256": lambda: t.sha_hex(p),
+                  "file": lambda: payload_name(t.sha_hex(p))}
+        return tuple(values[f]() for f in fields)
+
+    def __reduce__(self):  # pickled as the plain entries (a tile sent to another process needs no table)
+        return dict, ({name: self[name] for name in self},)
+
 
 
 def scene_summary(m: Manifest) -> dict:

@@ -17,8 +17,9 @@ import msgpack
 from ...errors import FormatError
 from ..names import payload_name
 from .model import Manifest, PagedInfo, PageRef, TileEntry
+from .table import TABLE_KEY, pack_tile_table
 from .validate import MAX_PAGE_BYTES, PAGE_FORMAT, check_whole_tree, page_tiles
-from .versions import VERSION_1_5
+from .versions import VERSION_1_5, VERSION_1_8
 from .wire import check_msgpack_bomb, pack_manifest
 
 
@@ -31,9 +32,14 @@ class PagedScene:
 
 
 def pack_page(version: tuple[int, int], parent: int, tiles: list[TileEntry]) -> bytes:
-    """A page's bytes (format.md 6.1): its tiles in id order."""
-    return msgpack.packb({"format": PAGE_FORMAT, "version": list(version), "parent": parent,
-                          "tiles": [t.to_dict() for t in sorted(tiles, key=lambda t: t.id)]}, use_bin_type=True)
+    """A page's bytes (format.md 6.1): its tiles in id order, as a tile table from 1.8 on (6.2)."""
+    ordered = sorted(tiles, key=lambda t: t.id)
+    if version >= VERSION_1_8:
+        body = {TABLE_KEY: pack_tile_table(ordered, list(ordered[0].groups))}
+    else:
+        body = {"tiles": [t.to_dict() for t in ordered]}
+    return msgpack.packb({"format": PAGE_FORMAT, "version": list(version), "parent": parent, **body},
+                         use_bin_type=True)
 
 
 def page_heads(m: Manifest, page_levels: int) -> list[TileEntry]:

@@ -52,11 +52,14 @@ from .model import (
     PayloadEntry,
     Section,
     SHCodebookEntry,
+    Table,
+    TablePayloads,
     TileEntry,
     entry_fields,
     filter_element,
     texels_size,
 )
+from .table import TABLE_KEY, read_columns
 from .versions import (
     CHECKSUM_VERSION,
     CHUNK_ORDERS_1_4,
@@ -69,6 +72,7 @@ from .versions import (
     VERSION_1_5,
     VERSION_1_6,
     VERSION_1_7,
+    VERSION_1_8,
 )
 from .wire import CHECKSUM_KEY, unpack_manifest, verify_checksum
 
@@ -88,6 +92,7 @@ _TOP_KEYS = ("format", "version", "splats", "sh_degree", "formats", "chunk_size"
              "leaf_splats", "camera", "up", "lod", "attributes", "generator", "name", "preset", "bounds",
              "extent_bounds", "gpu_bytes", "gpu_bytes_per_splat", "leaf_bytes_on_disk", "encode_seconds",
              "bytes_on_disk")
+_TOP_KEYS_TABLE = tuple(TABLE_KEY if k == "tiles" else k for k in _TOP_KEYS)  # 1.8: the tile table (6.2)
 _TILE_KEYS = ("id", "splats", "chunks", "texture", "sphere", "groups", "level", "children", "box", "geometric_error")
 _PAYLOAD_KEYS = ("sha256", "file", "raw_bytes", "bytes", "gpu_bytes", "sections")
 _SECTION_KEYS = ("name", "kind", "offset", "size", "filter")
@@ -362,8 +367,10 @@ def _section(s, i: int, expected: dict, expect: list, raw_bytes: int, chunks: in
 _offset = operator.attrgetter("offset")
 
 
-def _payload(v, expect: list[tuple[str, dict]], chunks: int, strict: bool, source: str, path: str) -> PayloadEntry:
-    """A payload entry at `path`; `expect` is [(section name, {kind, format, layers, dtype, shape})]."""
+def _payload(v, expect: list[tuple[str, dict]], chunks: int, strict: bool, source: str, path: str,
+             derived_gpu: bool = False) -> PayloadEntry:
+    """A payload entry at `path`; `expect` is [(section name, {kind, format, layers, dtype, shape})]. derived_gpu:
+    the entry's `gpu_bytes` is what its sections decode to (a tile table's, format.md 6.2), not a stated value."""
     if type(v) is not dict or v.keys() != _PAYLOAD_SET:
         _keys(v, _PAYLOAD_KEYS, source, path, strict)
     sha, file, raw_bytes, size, gpu_bytes, items = (v["sha256"], v["file"], v["raw_bytes"], v["bytes"],
@@ -403,6 +410,8 @@ def _payload(v, expect: list[tuple[str, dict]], chunks: int, strict: bool, sourc
     end = ordered[-1].offset + ordered[-1].size if ordered else 0
     if raw_bytes != end:
         _fail(source, path, "raw_bytes", f"{raw_bytes}, but the sections end at byte {end}")
+    if derived_gpu:
+        gpu_bytes = gpu
     if gpu_bytes != gpu:
         _fail(source, path, "gpu_bytes", f"{gpu_bytes}, but the sections decode to {gpu} bytes")
     return PayloadEntry(file, sha, size, raw_bytes, gpu_bytes, tuple(sections))
@@ -554,6 +563,193 @@ def _tiles(items: list, scene: _Scene) -> list[TileEntry]:
         if tile.id in ids:
             _fail(scene.source, f"tiles[{i}]", "id", f"tile id {tile.id} appears twice")
         ids.add(tile.id)
+        tiles.append(tile)
+    return tiles
+
+
+def _table_fail(source: str, column: str, row: int, problem: str) -> NoReturn:
+    raise FormatError(source, f"{TABLE_KEY}.{column}[{row}]", problem)
+
+
+def _first(mask: np.ndarray) -> int | None:
+    """The first row where `mask` holds (any axis beyond the first folded), or None."""
+    if mask.ndim > 1:
+        mask = mask.reshape(len(mask), -1).any(axis=1)
+    return int(np.argmax(mask)) if mask.any() else None
+
+
+def _table_tile_checks(c, source: str) -> np.ndarray:
+    """format.md 6, Validation, per tile, over the columns (a message naming the first row at fault); the chunks."""
+    for column, bad, problem in (
+            ("id", c.id > 2**31 - 1, "expected an integer 0..2147483647"),
+            ("level", c.level > 64, "expected an integer 0..64"),
+            ("splats", (c.splats < 1) | (c.splats > 1 << 31), f"expected an integer 1..{1 << 31}")):
+        i = _first(bad)
+        if i is not None:
+            _table_fail(source, column, i, f"{problem}, got {int(getattr(c, column)[i])}")
+    ids = c.id.astype(np.int64)
+    order = np.argsort(ids, kind="stable")
+    dup = np.flatnonzero(ids[order][1:] == ids[order][:-1])
+    if len(dup):
+        i = int(order[dup[0] + 1])
+        _table_fail(source, "id", i, f"tile id {ids[i]} appears twice")
+    chunks = np.maximum(1, (c.splats.astype(np.int64) + CHUNK_SIZE - 1) // CHUNK_SIZE)
+    blocks = c.texture.astype(np.int64)
+    i = _first((blocks == 0).any(axis=1) | (blocks[:, 0] * blocks[:, 1] < chunks))
+    if i is not None:
+        _table_fail(source, "texture", i, f"{blocks[i, 0]}x{blocks[i, 1]} blocks of {BLOCK}x{BLOCK} texels cannot "
+                    f"hold {chunks[i]} chunks")
+    i = _first(blocks[:, 0] * blocks[:, 1] > 2 * chunks + MAX_WASTED_BLOCKS)
+    if i is not None:
+        _table_fail(source, "texture", i, f"{blocks[i, 0] * blocks[i, 1]} blocks for {chunks[i]} chunks (at most "
+                    f"{max_blocks(int(chunks[i]))}: format.md 4.1)")
+    for column in ("box", "sphere", "geometric_error"):
+        i = _first(~np.isfinite(getattr(c, column)))
+        if i is not None:
+            _table_fail(source, column, i, f"expected finite numbers, got {getattr(c, column)[i].tolist()}")
+    i = _first(c.box[:, :3] > c.box[:, 3:])
+    if i is not None:
+        _table_fail(source, "box", i, f"min {tuple(c.box[i, :3])} exceeds max {tuple(c.box[i, 3:])}")
+    for column, values in (("sphere", c.sphere[:, 3]), ("geometric_error", c.geometric_error)):
+        i = _first(values < 0)
+        if i is not None:
+            _table_fail(source, column, i, f"expected a radius or error >= 0, got {float(values[i])}")
+    return chunks
+
+
+def _table_payload_map(c, p: int, raw_bytes: int, first: int, scene: _Scene, chunks: int,
+                       texture: tuple[int, int]) -> tuple[dict, list]:
+    """Payload p of a tile table as the payload map of format.md 5 (each section's fixed fields as its plane must
+    have them, offsets derived), to be checked by _payload: one function names a damaged entry in both forms."""
+    g = len(c.groups)
+    name = c.groups[p % g]
+    expect = _expected_sections(name, scene.codebook, scene.format_items, chunks, None, scene.scene_palettes)
+    want = dict(expect)
+    sha = bytes(c.sha256.reshape(-1, 32)[p]).hex()
+    sections, end = [], 0
+    for k, (sname, filt) in enumerate(c.layouts[int(c.layout.reshape(-1)[p])]):
+        size = int(c.sizes[first + k])
+        end += (-end) % ALIGN
+        s = {"name": sname, "offset": end, "size": size, "filter": filt}
+        end += size
+        w = want.get(sname)
+        if w is None:
+            s["kind"] = "texels"
+        elif w["kind"] == "texels":
+            s.update(kind="texels", format=w["format"], width=texture[0], height=texture[1], layers=w["layers"])
+        else:
+            s.update(kind="range", dtype=w["dtype"], shape=list(w["shape"]))
+        sections.append(s)
+    return {"sha256": sha, "file": payload_name(sha), "raw_bytes": raw_bytes, "bytes": int(c.bytes.reshape(-1)[p]),
+            "gpu_bytes": 0, "sections": sections}, expect
+
+
+# A payload kind of a tile table (the scene's formats, group, layout, chunks, texture) once checked whole: its
+# sections at offset 0 and size 0, each section's smallest and largest size, its GPU bytes. Kept across parses (a
+# streaming client parses hundreds of pages of one scene, whose tiles repeat a few kinds), bounded.
+_KINDS: dict[tuple, tuple[tuple[Section, ...], np.ndarray, np.ndarray, int]] = {}
+_MAX_KINDS = 4096
+
+
+def _kind(entry: PayloadEntry) -> tuple[tuple[Section, ...], np.ndarray, np.ndarray, int]:
+    """A checked entry as its kind's template, size bounds and GPU bytes."""
+    lo, hi, template = [], [], []
+    for s in entry.sections:
+        if s.kind == "texels":
+            a, b, _, _ = _stored_size_rule(s.format, s.width, s.height, s.layers, s.filter)
+        else:
+            a = b = s.size
+        lo.append(a)
+        hi.append(b)
+        sec = _new(Section)
+        sec.__dict__.update(s.__dict__)
+        sec.__dict__.update(offset=0, size=0)
+        template.append(sec)
+    return tuple(template), np.array(lo, np.int64), np.array(hi, np.int64), entry.gpu_bytes
+
+
+def _table_tiles(v, scene: _Scene) -> list[TileEntry]:
+    """A tile table (format.md 6.2, version 1.8) into its tiles, every field checked over the columns; a payload
+    entry at fault is named by the same line as a tile map's (`tile_table[3].groups.base.sections[2].size`)."""
+    source, strict = scene.source, scene.strict
+    c = read_columns(v, source, strict, MAX_TILES, bool(scene.tile_optional), scene.group_names)
+    n, g = c.count, len(c.groups)
+    chunks = _table_tile_checks(c, source)
+    texture = c.texture.astype(np.int64) * BLOCK
+    # Sections: each payload's run of `sizes`, offsets at the next multiple of 16 (format.md 6.2).
+    layout = c.layout.reshape(-1).astype(np.int64)
+    per_layout = np.array([len(lay) for lay in c.layouts], np.int64)
+    counts = per_layout[layout]
+    first = np.zeros(n * g, np.int64)
+    np.cumsum(counts[:-1], out=first[1:])
+    sizes = c.sizes.astype(np.int64)
+    aligned = np.concatenate([[0], np.cumsum((sizes + (ALIGN - 1)) // ALIGN * ALIGN)])
+    payload_of = np.repeat(np.arange(n * g), counts)
+    offsets = aligned[:-1] - aligned[first[payload_of]]
+    last = first + counts - 1
+    raw_bytes = np.where(counts > 0, offsets[np.maximum(last, 0)] + sizes[np.maximum(last, 0)] if len(sizes)
+                         else 0, 0)
+    nbytes = c.bytes.reshape(-1).astype(np.int64)
+    tile_of = np.arange(n * g) // g
+
+    def check(p: int) -> PayloadEntry:
+        i = int(tile_of[p])
+        tex = (int(texture[i, 0]), int(texture[i, 1]))
+        d, expect = _table_payload_map(c, p, int(raw_bytes[p]), int(first[p]), scene, int(chunks[i]), tex)
+        return _payload(d, expect, int(chunks[i]), strict, source, f"{TABLE_KEY}[{i}].groups.{c.groups[p % g]}",
+                        derived_gpu=True)
+
+    bad = _first((raw_bytes > MAX_PAYLOAD_RAW_BYTES) | (nbytes > raw_bytes + raw_bytes // 128 + 1024))
+    if bad is not None:
+        check(bad)
+    # Per kind of payload (group, layout, chunks, texture): one entry checked whole, the others' sizes against it.
+    kinds = np.stack([np.arange(n * g) % g, layout, chunks[tile_of], texture[tile_of, 0], texture[tile_of, 1]], 1)
+    _, rep, kind = np.unique(kinds, axis=0, return_index=True, return_inverse=True)
+    kind = kind.reshape(-1)
+    templates, gpu_of_kind = [], np.zeros(len(rep), np.int64)
+    scene_key = (scene.format_items, scene.codebook, scene.scene_palettes, strict)
+    for k, (p, row) in enumerate(zip(rep.tolist(), kinds[rep].tolist(), strict=True)):
+        key = (scene_key, c.groups[row[0]], tuple(map(tuple, c.layouts[row[1]])), *row[2:])
+        known = _KINDS.get(key)
+        if known is None:
+            known = _kind(check(p))
+            if len(_KINDS) >= _MAX_KINDS:
+                _KINDS.clear()
+            _KINDS[key] = known
+        template, lo, hi, gpu = known
+        members = np.flatnonzero(kind == k)
+        got = sizes[first[members][:, None] + np.arange(len(template))]
+        i = _first((got < lo) | (got > hi))
+        if i is not None:
+            check(int(members[i]))
+        templates.append(template)
+        gpu_of_kind[k] = gpu
+    table = Table(c.groups, c.sha256.reshape(-1, 32), nbytes, raw_bytes, gpu_of_kind[kind], sizes, offsets, first,
+                  templates, kind)
+    pages = {}
+    if c.page_tile is not None:
+        for row, sha, size in zip(c.page_tile.tolist(), c.page_sha256, c.page_bytes.tolist(), strict=True):
+            h = bytes(sha).hex()
+            if not 1 <= size <= MAX_PAGE_BYTES:
+                _table_fail(source, "page.bytes", row, f"expected an integer 1..{MAX_PAGE_BYTES}, got {size}")
+            pages[row] = PageRef(payload_name(h), h, size)
+    ends = np.cumsum(c.children.astype(np.int64)).tolist()
+    child_ids = c.child_ids.tolist()
+    ids, levels, splats = c.id.tolist(), c.level.tolist(), c.splats.tolist()
+    tex, box, sphere, gerr, chunk_l = texture.tolist(), c.box.tolist(), c.sphere.tolist(), \
+        c.geometric_error.tolist(), chunks.tolist()
+    tiles = []
+    start = 0
+    for i in range(n):
+        b, s = box[i], sphere[i]
+        bx = _new(Box)
+        bx.__dict__.update(min=(b[0], b[1], b[2]), max=(b[3], b[4], b[5]))
+        tile = _new(TileEntry)
+        tile.__dict__.update(id=ids[i], level=levels[i], children=tuple(child_ids[start:ends[i]]), splats=splats[i],
+                             chunks=chunk_l[i], texture=(tex[i][0], tex[i][1]), box=bx,
+                             sphere_center=(s[0], s[1], s[2]), sphere_radius=s[3], geometric_error=gerr[i],
+                             groups=TablePayloads(table, i), page=pages.get(i))
+        start = ends[i]
         tiles.append(tile)
     return tiles
 
@@ -746,7 +942,8 @@ def manifest_from_dict(d, source: str = MANIFEST_NAME, lazy_payloads: bool = Fal
         optional += ("paged",)
     if version >= VERSION_1_7:
         optional += ("palettes",)
-    _keys(d, _TOP_KEYS, source, "", strict, optional)
+    table = version >= VERSION_1_8 and TABLE_KEY in d
+    _keys(d, _TOP_KEYS_TABLE if table else _TOP_KEYS, source, "", strict, optional)
     splats = _int(d, "splats", source, "", 1)
     sh_degree = _int(d, "sh_degree", source, "", 0, MAX_SH_DEGREE)
     formats = _formats(d, version, source, strict)
@@ -758,7 +955,7 @@ def manifest_from_dict(d, source: str = MANIFEST_NAME, lazy_payloads: bool = Fal
     palettes = _palettes(d, formats, source) if version >= VERSION_1_7 and "palettes" in d else None
     scene = _Scene(source, strict, formats, sh_degree, codebook is not None, lazy_payloads, version,
                    tuple(palettes or ()))
-    tiles = _tiles(_list(d, "tiles", source, "", MAX_TILES), scene)
+    tiles = _table_tiles(d[TABLE_KEY], scene) if table else _tiles(_list(d, "tiles", source, "", MAX_TILES), scene)
     if not tiles:
         _fail(source, "", "tiles", "no tiles: a scene has at least its root tile")
     root = _int(d, "root", source, "", 0, 2**31 - 1)
@@ -813,12 +1010,13 @@ def page_tiles(d, source: str, root: Manifest, parent: TileEntry, lazy_payloads:
         raise FormatError(source, "version", f"expected {list(root.version)} (the manifest's), got "
                           f"{d.get('version')!r}")
     strict = root.version[1] <= FORMAT_VERSION[1]
-    _keys(d, ("format", "version", "parent", "tiles"), source, "", strict)
+    table = root.version >= VERSION_1_8 and TABLE_KEY in d
+    _keys(d, ("format", "version", "parent", TABLE_KEY if table else "tiles"), source, "", strict)
     if _int(d, "parent", source, "", 0, 2**31 - 1) != parent.id:
         _fail(source, "", "parent", f"expected {parent.id} (the tile naming this page), got {d['parent']}")
     scene = _Scene(source, strict, root.formats, root.sh_degree, root.sh_codebook is not None, lazy_payloads,
                    root.version, tuple(root.palettes or ()))
-    tiles = _tiles(_list(d, "tiles", source, "", MAX_TILES), scene)
+    tiles = _table_tiles(d[TABLE_KEY], scene) if table else _tiles(_list(d, "tiles", source, "", MAX_TILES), scene)
     k = root.paged.page_levels
     by_id = {t.id: t for t in tiles}
     position = {t.id: i for i, t in enumerate(tiles)}

@@ -4,7 +4,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 FORMAT_NAME = "splatstream"
-FORMAT_VERSION = (1, 7)  # (major, minor) this code reads; what it writes: writer_version
+FORMAT_VERSION = (1, 8)  # (major, minor) this code reads; what it writes: writer_version
 # Version 1.2 added two things (format.md, version history): the manifest's last key `checksum`, the SHA-256 of the
 # file with that value's 64 bytes read as ASCII '0' (format.md 6, "Checksum"), so a flipped byte in the manifest is
 # caught like one in a payload; and the `fields1` transport coding of texels sections (format.md 5.2).
@@ -40,3 +40,7 @@ def writer_version(formats: Mapping[str, str], codebook_format: str | None = Non
         return VERSION_1_4
     used = set(formats.values()) | ({codebook_format} if codebook_format else set())
     return VERSION_1_3 if used & set(FORMATS_1_3) else CHECKSUM_VERSION
+# Version 1.8 added the tile table (format.md 6.2): a manifest's or a page's tiles column-wise, payload entries as a
+# scene-level list of section layouts plus each section's size and the raw SHA-256, about a fifth of the tile maps'
+# bytes; written by every scene of more than one tile (an LOD tree), so one-tile scenes keep their version.
+VERSION_1_8 = (1, 8)

@@ -1,0 +1,206 @@
+"""The tile table of format 1.8 (format.md 6.2): a manifest's (or a page's) tiles column-wise, as little-endian numpy
+arrays in msgpack bins, with every payload's section table reduced to a scene-level list of section layouts and
+each section's size.
+
+Up to 1.7 a tile was a msgpack map whose payload entries repeated each section's name, kind, filter, format,
+texture size, layers, dtype and shape, and the hex SHA-256 twice (`file` and `sha256`): about 0.9 KB a tile,
+more than most coarse tiles' payloads a splat (BENCHMARKS.md, "Manifest pages"). Everything but the layout's names
+and filters, the sizes, the SHA-256 and the file bytes follows from the manifest's `formats`, the tile's splats and
+texture and the 16-byte alignment of sections (format.md 5), so the table holds only those; a reader derives the
+rest and checks the columns with array operations, not a Python loop over tiles' maps.
+
+`pack_tile_table` is the writer's side (from the frozen records); `read_columns` the reader's first step (types and
+lengths of the columns, one message naming the column); validate.py checks the values and makes the records, whose
+payload entries are model.TablePayloads: built from the columns when first read. (Nothing here imports the
+records: model.py packs its tiles with this module.)
+"""
+from __future__ import annotations
+
+from collections.abc import Sequence
+from typing import NoReturn
+
+import numpy as np
+
+from ...errors import FormatError
+from ..layout import ALIGN, BLOCK
+from ..names import payload_name
+from ..planes import MAX_SH_DEGREE
+
+TABLE_KEY = "tile_table"
+
+# Column name -> (dtype, values per row); rows: "tile" (T), "payload" (T x groups), or a count of their own.
+_TILE_COLUMNS = {"id": ("<u4", 1), "level": ("u1", 1), "children": ("<u4", 1), "splats": ("<u4", 1),
+                 "texture": ("<u2", 2), "box": ("<f8", 6), "sphere": ("<f8", 4), "geometric_error": ("<f8", 1)}
+_PAYLOAD_COLUMNS = {"layout": ("<u2", 1), "sha256": ("u1", 32), "bytes": ("<u4", 1)}
+_KEYS = ("count", *_TILE_COLUMNS, "child_ids", "groups", "layouts", *_PAYLOAD_COLUMNS, "sizes")
+_PAGE_KEYS = ("tile", "sha256", "bytes")
+MAX_LAYOUTS = 1 << 16
+
+
+def _fail(source: str, field: str, problem: str) -> NoReturn:
+    raise FormatError(source, f"{TABLE_KEY}.{field}", problem)
+
+
+def _bin(a: np.ndarray, dtype: str) -> bytes:
+    return np.ascontiguousarray(a, dtype).tobytes()
+
+
+def canonical_offsets(sizes: Sequence[int]) -> tuple[list[int], int]:
+    """Each section's offset when sections follow each other in order, each at the next multiple of 16 (format.md
+    5), and the payload's raw bytes (the end of its last section)."""
+    offsets, end = [], 0
+    for size in sizes:
+        end += (-end) % ALIGN
+        offsets.append(end)
+        end += size
+    return offsets, end
+
+
+def packable(tiles: Sequence) -> bool:
+    """Whether every payload's sections lie as the table derives them: in order, each at the next multiple of 16
+    (what the encoder writes, container.write_payload), the file named by its SHA-256, sizes within the columns."""
+    for t in tiles:
+        if t.splats >= 1 << 32 or t.texture[0] % BLOCK or t.texture[1] % BLOCK:
+            return False
+        for e in t.groups.values():
+            offsets, end = canonical_offsets([s.size for s in e.sections])
+            if offsets != [s.offset for s in e.sections] or end != e.raw_bytes or e.bytes >= 1 << 32 \
+                    or e.file != payload_name(e.sha256):
+                return False
+    return True
+
+
+def pack_tile_table(tiles: Sequence, group_names: Sequence[str]) -> dict:
+    """The `tile_table` map of these tiles (in their order): format.md 6.2. Raises ValueError where a payload is
+    not laid out as the table derives it (packable)."""
+    if not packable(tiles):
+        raise ValueError("a payload's sections are not in order at 16-byte alignment: not a 1.8 tile table")
+    n, g = len(tiles), len(group_names)
+    layouts: dict[tuple, int] = {}
+    layout = np.zeros((n, g), np.uint16)
+    sha = bytearray()
+    nbytes = np.zeros((n, g), np.uint32)
+    sizes: list[int] = []
+    child_ids: list[int] = []
+    pages: list[tuple[int, object]] = []
+    for i, t in enumerate(tiles):
+        child_ids += t.children
+        if t.page is not None:
+            pages.append((i, t.page))
+        for j, name in enumerate(group_names):
+            e = t.groups[name]
+            key = tuple((s.name, s.filter) for s in e.sections)
+            layout[i, j] = layouts.setdefault(key, len(layouts))
+            sha += bytes.fromhex(e.sha256)
+            nbytes[i, j] = e.bytes
+            sizes += [s.size for s in e.sections]
+    if len(layouts) > MAX_LAYOUTS:
+        raise ValueError(f"{len(layouts)} section layouts: more than {MAX_LAYOUTS}")
+    d = {
+        "count": n,
+        "id": _bin([t.id for t in tiles], "<u4"),
+        "level": _bin([t.level for t in tiles], "u1"),
+        "children": _bin([len(t.children) for t in tiles], "<u4"),
+        "splats": _bin([t.splats for t in tiles], "<u4"),
+        "texture": _bin([(t.texture[0] // BLOCK, t.texture[1] // BLOCK) for t in tiles], "<u2"),
+        "box": _bin([(*t.box.min, *t.box.max) for t in tiles], "<f8"),
+        "sphere": _bin([(*t.sphere_center, t.sphere_radius) for t in tiles], "<f8"),
+        "geometric_error": _bin([t.geometric_error for t in tiles], "<f8"),
+        "child_ids": _bin(child_ids, "<u4"),
+        "groups": list(group_names),
+        "layouts": [[list(s) for s in key] for key in layouts],
+        "layout": layout.tobytes(),
+        "sha256": bytes(sha),
+        "bytes": nbytes.tobytes(),
+        "sizes": _bin(sizes, "<u4"),
+    }
+    if pages:
+        d["page"] = {"tile": _bin([i for i, _ in pages], "<u4"),
+                     "sha256": b"".join(bytes.fromhex(r.sha256) for _, r in pages),
+                     "bytes": _bin([r.bytes for _, r in pages], "<u4")}
+    return d
+
+
+class Columns:
+    """A tile table's columns as arrays (types and lengths checked; values are validate.py's business)."""
+
+    __slots__ = ("count", "id", "level", "children", "splats", "texture", "box", "sphere", "geometric_error",
+                 "child_ids", "groups", "layouts", "layout", "sha256", "bytes", "sizes", "page_tile",
+                 "page_sha256", "page_bytes")
+
+    def __init__(self, **kw) -> None:
+        for k, v in kw.items():
+            setattr(self, k, v)
+
+
+def _array(d: dict, key: str, dtype: str, width: int, rows: int, source: str, field: str | None = None) -> np.ndarray:
+    raw = d[key]
+    field = field or key
+    if type(raw) is not bytes:
+        _fail(source, field, f"expected a bin of {dtype} values, got {type(raw).__name__}")
+    item = np.dtype(dtype).itemsize
+    need = rows * width * item
+    if len(raw) != need:
+        _fail(source, field, f"expected {need} bytes ({rows} x {width} {dtype}), got {len(raw)}")
+    a = np.frombuffer(raw, dtype)
+    return a.reshape(rows, width) if width > 1 else a
+
+
+def read_columns(d, source: str, strict: bool, max_tiles: int, paged: bool, group_names: tuple[str, ...]) -> Columns:
+    """The columns of a `tile_table` map (format.md 6.2), each a bin of the length its rows make, or FormatError
+    naming the column (`tile_table.sizes: expected 96 bytes (24 x 1 <u4), got 95`); `groups` the scene's."""
+    if type(d) is not dict:
+        raise FormatError(source, TABLE_KEY, f"expected a map, got {type(d).__name__}")
+    for k in _KEYS:
+        if k not in d:
+            _fail(source, k, "missing")
+    if strict:
+        extra = sorted(str(k) for k in d if k not in _KEYS and not (paged and k == "page"))
+        if extra:
+            raise FormatError(source, TABLE_KEY, f"unknown key{'s' if len(extra) > 1 else ''} "
+                              f"{', '.join(map(repr, extra))}")
+    n = d["count"]
+    if type(n) is not int or not 1 <= n <= max_tiles:
+        _fail(source, "count", f"expected an integer 1..{max_tiles}, got {n!r}")
+    groups = d["groups"]
+    if type(groups) is not list or not 1 <= len(groups) <= 1 + MAX_SH_DEGREE or not all(type(x) is str
+                                                                                      for x in groups):
+        _fail(source, "groups", f"expected a list of 1..{1 + MAX_SH_DEGREE} group names, got {groups!r:.80}")
+    if tuple(groups) != tuple(group_names):
+        _fail(source, "groups", f"expected {list(group_names)} (the scene's groups, in order), got {groups}")
+    layouts = d["layouts"]
+    if type(layouts) is not list or not 1 <= len(layouts) <= MAX_LAYOUTS:
+        _fail(source, "layouts", f"expected a list of 1..{MAX_LAYOUTS} section layouts, got {type(layouts).__name__}")
+    for i, lay in enumerate(layouts):
+        if type(lay) is not list or not all(type(s) is list and len(s) == 2 and type(s[0]) is str and type(s[1])
+                                            is str for s in lay):
+            _fail(source, f"layouts[{i}]", f"expected a list of [section name, filter] pairs, got {lay!r:.80}")
+    cols = {k: _array(d, k, dt, w, n, source) for k, (dt, w) in _TILE_COLUMNS.items()}
+    g = len(groups)
+    cols.update({k: _array(d, k, dt, w * g, n, source) for k, (dt, w) in _PAYLOAD_COLUMNS.items()})
+    cols["sha256"] = cols["sha256"].reshape(n, g, 32)
+    cols["layout"] = cols["layout"].reshape(n, g)
+    cols["bytes"] = cols["bytes"].reshape(n, g)
+    n_children = int(cols["children"].sum(dtype=np.int64))
+    cols["child_ids"] = _array(d, "child_ids", "<u4", 1, n_children, source)
+    if int(cols["layout"].max()) >= len(layouts):
+        i = int(np.argmax(cols["layout"].max(axis=1) >= len(layouts)))
+        _fail(source, f"layout[{i}]", f"expected section layouts 0..{len(layouts) - 1}, got "
+              f"{cols['layout'][i].tolist()}")
+    per_layout = np.array([len(lay) for lay in layouts], np.int64)
+    n_sections = int(per_layout[cols["layout"]].sum())
+    cols["sizes"] = _array(d, "sizes", "<u4", 1, n_sections, source)
+    page_tile = page_sha = page_bytes = None
+    if paged and "page" in d:
+        p = d["page"]
+        if type(p) is not dict or set(p) != set(_PAGE_KEYS):
+            _fail(source, "page", f"expected a map of {', '.join(_PAGE_KEYS)}, got {p!r:.80}")
+        pt = p["tile"]
+        count = len(pt) // 4 if type(pt) is bytes else 0
+        page_tile = _array(p, "tile", "<u4", 1, count, source, "page.tile")
+        page_sha = _array(p, "sha256", "u1", 32, count, source, "page.sha256")
+        page_bytes = _array(p, "bytes", "<u4", 1, count, source, "page.bytes")
+        if count and (int(page_tile.max()) >= n or np.any(np.diff(page_tile.astype(np.int64)) <= 0)):
+            _fail(source, "page.tile", f"expected increasing tile positions below {n}")
+    return Columns(count=n, groups=tuple(groups), layouts=layouts, page_tile=page_tile, page_sha256=page_sha,
+                   page_bytes=page_bytes, **cols)
