@@ -369,7 +369,7 @@ def main() -> None:
             # the frame thread's calls into the fetcher take its lock, which the fetch loop holds in _pump/_complete
             steps.wrap(Fetcher, ["want", "done", "stats"])
             steps.wrap(PagedTree, ["insert"])
-            steps.wrap(engine_module, ["view_numbers", "select", "PartialView", "select_near", "wanted_bands",
+            steps.wrap(engine_module, ["view_numbers", "select", "PartialView", "select_near", "wanted_bands_at",
                                        "prefetch", "draw_set"])
             steps.wrap_compiled_selection(engine_module.CompiledSelection)
             steps.wrap(ChunkPool, ["join", "add_band", "leave", "set_codebook_band", "_upload_plane", "_write_records",

@@ -364,7 +364,7 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
                 acc[0] += (time.thread_time() - c0) * 1e3
                 acc[1] += (time.perf_counter() - t0) * 1e3
         return timed_part
-    for label, name in (("view", "view_numbers"), ("view", "PartialView"), ("bands", "wanted_bands"),
+    for label, name in (("view", "view_numbers"), ("view", "PartialView"), ("bands", "wanted_bands_at"),
                         ("draw set", "draw_set")):
         fn = getattr(engine_module, name)
         patched.setdefault(name, fn)

@@ -8,15 +8,14 @@ As bench/eval_probe.py, except that the encoder's scene palettes (format.md 4.3.
 stay (so every value stays within the palette's span and indexes into it), and the distinct values between them
 are merged two by two into their midpoint (256 distinct values -> 129). Every value then takes the nearest entry:
 the payload's indices use about one bit less of entropy, at an error of at most half the gap of a merged pair.
-Encoder policy only, nothing new to read. Used for the statue scans against SOG (BENCHMARKS.md, "A position step
-from the splats' size"), with the size-relative position step (`pos_k=`) of commit 7a03e24.
+Encoder policy only, nothing new to read; the rule is codec.merged_pairs, which the preset medium-low-palette
+applies to SH0's palette (presets.py PRESET_PALETTE_MERGE). Used for the statue scans against SOG (BENCHMARKS.md,
+"A position step from the splats' size"), with the size-relative position step (`pos_k=`, TileStep.per_size).
 """
 from __future__ import annotations
 
 import os
 import sys
-
-import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 sys.path.insert(0, os.path.dirname(__file__))
@@ -24,18 +23,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 import eval_probe  # noqa: E402
 
 from splatstream.encode import plan  # noqa: E402
-from splatstream.format.codec import scene_palettes  # noqa: E402
-from splatstream.format.planes import PALETTE_ENTRIES  # noqa: E402
-
-
-def merged_pairs(palette: np.ndarray) -> np.ndarray:
-    """(256,) ascending palette with its inner distinct values merged two by two (the ends kept)."""
-    d = np.unique(palette.astype(np.float64))
-    inner = d[1:-1]
-    if len(inner) % 2:
-        inner = np.append(inner, inner[-1])
-    kept = np.concatenate([d[:1], (inner[0::2] + inner[1::2]) / 2, d[-1:]]) if len(d) > 2 else d
-    return np.concatenate([kept, np.repeat(kept[-1:], PALETTE_ENTRIES - len(kept))]).astype(np.float32)
+from splatstream.format.codec import merged_pairs, scene_palettes  # noqa: E402
 
 
 def coarser(which: list[tuple[str, int]]):

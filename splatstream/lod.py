@@ -26,7 +26,7 @@ from __future__ import annotations
 import math
 import os
 from collections.abc import Callable
-from concurrent.futures import ThreadPoolExecutor
+from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -34,7 +34,7 @@ import numpy as np
 from .format.layout import morton_codes
 from .format.limits import MAX_LOG_SCALE, MIN_LOG_SCALE
 from .gaussians import SH_C0, Gaussians, normalize_quaternions, rotation_matrices
-from .lod_groups import GroupRule, grid_group_starts, group_errors, group_ids, group_runs, member_terms
+from .lod_groups import GroupRule, grid_group_starts, group_errors, group_ids_of, group_runs, member_terms
 
 # Bounds and errors use this many standard deviations (the 3DGS rasteriser's cut-off and KHR "ellipse" kernel).
 EXTENT_SIGMAS = 3.0
@@ -282,26 +282,35 @@ def merge_groups(g: Gaussians, mass: np.ndarray, order: np.ndarray, starts: np.n
     return merged, merged_mass, assign
 
 
+def _alpha(logits: np.ndarray) -> np.ndarray:
+    with np.errstate(over="ignore"):  # a logit below -709: exp overflows to inf, alpha is exactly 0
+        return 1.0 / (1.0 + np.exp(-logits.astype(np.float64)))
+
+
 def level_cost_groups(members: list[Gaussians], masses: list[np.ndarray], targets: list[int], cap: int,
-                      rule: GroupRule = COST_RULE) -> list[tuple[np.ndarray, np.ndarray]]:
+                      rule: GroupRule = COST_RULE, pool: Executor | None = None
+                      ) -> list[tuple[np.ndarray, np.ndarray]]:
     """The "cost" merge of one tree level (LOD_MERGES): the groups of every tile's members (`members[t]`, carried
     `masses[t]`), as (order, starts) runs for merge_groups. The level keeps sum(targets) splats in all; where they
     go is decided by cost over the whole level (lod_groups.group_ids with the tiles as regions), not by a ratio per
-    tile. A tile left with more than `cap` groups takes the grid at `cap` instead (the tile size limit)."""
+    tile. A tile left with more than `cap` groups takes the grid at `cap` instead (the tile size limit).
+    `pool`: threads for the grouping's k-NN and edge cost blocks (group_ids; the same groups with or without)."""
     counts = np.array([len(m) for m in members], np.int64)
     live = [t for t in range(len(members)) if counts[t]]
     out: list[tuple[np.ndarray, np.ndarray]] = [(np.zeros(0, np.int64), np.zeros(0, np.int64))] * len(members)
     if not live:
         return out
     cat = [members[t] for t in live]
-    pos = np.concatenate([m.positions for m in cat])
-    with np.errstate(over="ignore"):  # a logit below -709: exp overflows to inf, alpha is exactly 0
-        alpha = 1.0 / (1.0 + np.exp(-np.concatenate([m.opacity_logits for m in cat]).astype(np.float64)))
-    colours = 0.5 + SH_C0 * np.concatenate([m.sh_dc for m in cat]).astype(np.float64)
-    region = np.repeat(np.arange(len(live)), counts[live])
     target = sum(max(1, min(targets[t], int(counts[t]))) for t in live)
-    ids = group_ids(pos, np.concatenate([m.log_scales for m in cat]), np.concatenate([m.rotations for m in cat]),
-                    alpha, colours, np.concatenate([masses[t] for t in live]), target, rule, region=region)
+    # The level's arrays held by the dict only: group_ids_of frees them once it has its own copies.
+    ids = group_ids_of({"positions": np.concatenate([m.positions for m in cat]),
+                        "log_scales": np.concatenate([m.log_scales for m in cat]),
+                        "rotations": np.concatenate([m.rotations for m in cat]),
+                        "opacities": _alpha(np.concatenate([m.opacity_logits for m in cat])),
+                        "colours": 0.5 + SH_C0 * np.concatenate([m.sh_dc for m in cat]).astype(np.float64),
+                        "masses": np.concatenate([masses[t] for t in live]),
+                        "region": np.repeat(np.arange(len(live)), counts[live])}, target, rule, pool=pool)
+    del cat
     at = 0
     for t in live:
         own = ids[at:at + counts[t]]
@@ -343,28 +352,40 @@ def _run_ids(order: np.ndarray, starts: np.ndarray, n: int) -> np.ndarray:
 
 
 def level_auto_groups(members: list[Gaussians], masses: list[np.ndarray], targets: list[int], cap: int,
-                      blurs: list[float], rule: GroupRule = COST_RULE
+                      blurs: list[float], rule: GroupRule = COST_RULE, pool: Executor | None = None
                       ) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[bool]]:
     """The "auto" merge of one tree level (LOD_MERGES): the cost merge's groups (level_cost_groups), then per tile
     the Morton grid at the same count, and the tile keeps whichever has the smaller choice_error at `blurs[t]`
-    (ties: the cost merge). The level's total and every tile's count are the cost merge's. Returns the groups
-    and, per tile, whether the grid was chosen."""
-    groups = level_cost_groups(members, masses, targets, cap, rule)
-    grid_chosen = [False] * len(members)
-    for t, (order, starts) in enumerate(groups):
-        n, k = len(members[t]), len(starts)
-        if n == 0 or k >= n:
-            continue
-        g_order, g_starts = _group_starts(members[t].positions, k)
-        if len(g_starts) != k:  # the grid can fall short of a count (too few cells to split): the cost merge
-            continue
-        prepared = choice_members(members[t], blurs[t])  # the same members judged twice
-        cost_err = choice_error(members[t], _run_ids(order, starts, n), blurs[t], prepared)
-        grid_err = choice_error(members[t], _run_ids(g_order, g_starts, n), blurs[t], prepared)
-        if grid_err < cost_err:
-            groups[t] = (g_order, g_starts)
-            grid_chosen[t] = True
-    return groups, grid_chosen
+    (ties: the cost merge; auto_tile_choice). The level's total and every tile's count are the cost merge's.
+    Returns the groups and, per tile, whether the grid was chosen. `pool`: threads for the grouping's blocks and
+    the tiles' choices (each a pure function of its tile: the same result with or without)."""
+    groups = level_cost_groups(members, masses, targets, cap, rule, pool)
+    jobs = range(len(members))
+    if pool is None:
+        chosen = [auto_tile_choice(members[t], groups[t], blurs[t]) for t in jobs]
+    else:
+        chosen = list(pool.map(lambda t: auto_tile_choice(members[t], groups[t], blurs[t]), jobs))
+    return [grp for grp, _ in chosen], [grid for _, grid in chosen]
+
+
+def auto_tile_choice(members: Gaussians, groups: tuple[np.ndarray, np.ndarray], blur: float
+                     ) -> tuple[tuple[np.ndarray, np.ndarray], bool]:
+    """level_auto_groups' choice for one tile: its cost merge `groups` (order, starts) or the Morton grid at the
+    same count, whichever has the smaller choice_error at `blur` (ties: the cost merge); and whether the grid
+    was chosen. Pure: the tiles of a level are judged on any threads in any order."""
+    order, starts = groups
+    n, k = len(members), len(starts)
+    if n == 0 or k >= n:
+        return groups, False
+    g_order, g_starts = _group_starts(members.positions, k)
+    if len(g_starts) != k:  # the grid can fall short of a count (too few cells to split): the cost merge
+        return groups, False
+    prepared = choice_members(members, blur)  # the same members judged twice
+    cost_err = choice_error(members, _run_ids(order, starts, n), blur, prepared)
+    grid_err = choice_error(members, _run_ids(g_order, g_starts, n), blur, prepared)
+    if grid_err < cost_err:
+        return (g_order, g_starts), True
+    return groups, False
 
 
 # ---------------------------------------------------------------------------------------------- tree shape
@@ -789,21 +810,24 @@ def build_subtree(g: Gaussians, index: np.ndarray, shape: TreeShape, level: int 
             sets: list = [None] * len(level_tiles)
             member_masses = [np.concatenate([masses.pop(c) for c in kids]) for _, kids, _, _ in level_tiles]
             if merge != "grid":  # one grouping over the whole level (the tiles as regions), then merged per tile
-                # (the members and masses gathered once: merge_tile takes the same sets)
+                # (the members and masses gathered once: merge_tile takes the same sets). The grouping's k-NN
+                # and edge cost blocks, and auto's per-tile choices, run on the pool (the same groups as on one
+                # thread: each block and tile is a pure function of its inputs).
                 sets = [tile_members(lvl, [tiles[c] for c in kids], first, end)
                         for _, kids, first, end in level_tiles]
                 targets = [shape.target(len(m)) for m in sets]
                 if merge == "cost":
-                    groups = level_cost_groups(sets, member_masses, targets, shape.max_leaf_splats)
+                    groups = level_cost_groups(sets, member_masses, targets, shape.max_leaf_splats, pool=pool)
                 else:  # "auto": judged at the viewing scale of the children's error (0 above the leaves)
                     blurs = [viewing_blur(max(tiles[c].geometric_error for c in kids))
                              for _, kids, _, _ in level_tiles]
-                    groups, _ = level_auto_groups(sets, member_masses, targets, shape.max_leaf_splats, blurs)
+                    groups, _ = level_auto_groups(sets, member_masses, targets, shape.max_leaf_splats, blurs,
+                                                  pool=pool)
             for i, ((tid, child_ids, first, end), grp) in enumerate(zip(level_tiles, groups, strict=True)):
                 jobs.append(pool.submit(merge_tile, lvl, tid, child_ids, [tiles[c] for c in child_ids],
                                         member_masses[i], [represented_by.pop(c) for c in child_ids], first, end,
                                         grp, sets[i]))
-                sets[i] = member_masses[i] = None  # the job holds them now; merge_tile frees them after the merge
+                sets[i] = member_masses[i] = groups[i] = None  # the job holds them now; merge_tile frees them
             for job in jobs:
                 tile, merged_mass, rep = job.result()
                 tiles[tile.id] = tile

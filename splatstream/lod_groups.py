@@ -25,6 +25,7 @@ are closest to the level's own splats drawn the same way.
 from __future__ import annotations
 
 import math
+from concurrent.futures import Executor
 from dataclasses import dataclass
 
 import numpy as np
@@ -178,13 +179,23 @@ def neighbour_edges(p: np.ndarray, k: int, shifts: int = 3, block: int = 4096) -
     return np.minimum(i, j), np.maximum(i, j)  # an edge both ends found comes twice: harmless for the matching
 
 
-def neighbour_keys(p: np.ndarray, k: int, shifts: int = 3, block: int = 4096) -> np.ndarray:
+def neighbour_keys(p: np.ndarray, k: int, shifts: int = 3, block: int = 4096, pool: Executor | None = None
+                   ) -> np.ndarray:
     """The distinct edges of neighbour_edges as sorted keys i * n + j (i < j), for group_ids: made block by block
-    (each block's repeats dropped at once), so the level's edges are never held as four (2 k n) index arrays."""
+    (each block's repeats dropped at once), so the level's edges are never held as four (2 k n) index arrays.
+    `pool`: threads to make the blocks on (each block is a pure function of the orders, and numpy's sorts and
+    gathers release the interpreter), in any order; the keys are the same."""
     n = len(p)
-    keys = []
-    for i, j in _neighbour_blocks(p, k, shifts, block, ordered=False):
-        keys.append(_distinct(np.minimum(i, j) * n + np.maximum(i, j)))
+
+    def block_keys(i: np.ndarray, j: np.ndarray) -> np.ndarray:
+        return _distinct(np.minimum(i, j) * n + np.maximum(i, j))
+
+    if pool is None or n <= block:
+        keys = [block_keys(i, j) for i, j in _neighbour_blocks(p, k, shifts, block, ordered=False)]
+    else:
+        ctx = _neighbour_context(p, k, shifts)
+        keys = list(pool.map(lambda r0: block_keys(*_neighbour_block(ctx, r0, block, False)), range(0, n, block)))
+        del ctx
     if not keys:
         return np.zeros(0, np.int64)
     every = np.concatenate(keys)
@@ -212,40 +223,52 @@ def _shifted_orders(p: np.ndarray, k: int, shifts: int) -> tuple[np.ndarray, np.
     return orders, ranks, k, w
 
 
+def _neighbour_context(p: np.ndarray, k: int, shifts: int) -> tuple:
+    """What every block of _neighbour_blocks reads: the shifted orders and ranks, k, the rank steps and the
+    coordinates as contiguous columns; n at least 2."""
+    orders, ranks, k, w = _shifted_orders(p, k, shifts)
+    steps = np.stack([np.arange(1, w + 1), -np.arange(1, w + 1)], axis=1).reshape(-1)  # +1, -1, +2, -2, ...
+    px, py, pz = (np.ascontiguousarray(p[:, a]) for a in range(3))
+    return len(p), orders, ranks, k, steps, px, py, pz
+
+
+def _neighbour_block(ctx: tuple, r0: int, block: int, ordered: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The (points, neighbours) index arrays of points r0 .. r0 + block (_neighbour_blocks); pure."""
+    n, orders, ranks, k, steps, px, py, pz = ctx
+    rows = np.arange(r0, min(n, r0 + block))
+    c = np.concatenate([order[np.clip(rank[rows, None] + steps, 0, n - 1)]
+                        for order, rank in zip(orders, ranks, strict=True)], axis=1)
+    # (rows, 2 w shifts) candidates, self and duplicates included. Duplicates: keep the first of each
+    # candidate (sort by id, mark repeats); then the squared distances of the sorted ids.
+    cs = np.sort(c, axis=1)  # integers: any sort gives the same rows (the SIMD quicksort is ~13x the stable)
+    del c
+    dx, dy, dz = px[cs] - px[rows, None], py[cs] - py[rows, None], pz[cs] - pz[rows, None]
+    d2s = dx * dx + dy * dy + dz * dz
+    del dx, dy, dz
+    d2s[cs == rows[:, None]] = np.inf
+    d2s[:, 1:][cs[:, 1:] == cs[:, :-1]] = np.inf
+    if not ordered:  # the k smallest, ties to the lower id (the earlier column), as the stable sort picks
+        thr = np.partition(d2s, k - 1, axis=1)[:, k - 1:k]
+        thr[np.isnan(thr)] = np.inf  # fewer than k numbers: all the finite ones, as below
+        less, tie = d2s < thr, d2s == thr
+        sel = less | (tie & (np.cumsum(tie, axis=1) <= (k - less.sum(axis=1))[:, None]))
+        r, col = np.nonzero(sel & np.isfinite(d2s))
+        return rows[r], cs[r, col].astype(np.int64)
+    pick = np.argsort(d2s, axis=1, kind="stable")[:, :k]
+    nb = np.take_along_axis(cs, pick, axis=1).reshape(-1)
+    ok = np.isfinite(np.take_along_axis(d2s, pick, axis=1)).reshape(-1)
+    return np.repeat(rows, k)[ok], nb[ok].astype(np.int64)
+
+
 def _neighbour_blocks(p: np.ndarray, k: int, shifts: int, block: int, ordered: bool = True):
     """neighbour_edges' (points, neighbours) index arrays, `block` points at a time; each point's neighbours
     nearest first, or (`ordered` False) the same neighbours in id order, chosen by a partition, not a sort."""
     n = len(p)
     if n < 2:
         return
-    orders, ranks, k, w = _shifted_orders(p, k, shifts)
-    steps = np.stack([np.arange(1, w + 1), -np.arange(1, w + 1)], axis=1).reshape(-1)  # +1, -1, +2, -2, ...
-    px, py, pz = (np.ascontiguousarray(p[:, a]) for a in range(3))
+    ctx = _neighbour_context(p, k, shifts)
     for r0 in range(0, n, block):
-        rows = np.arange(r0, min(n, r0 + block))
-        c = np.concatenate([order[np.clip(rank[rows, None] + steps, 0, n - 1)]
-                            for order, rank in zip(orders, ranks, strict=True)], axis=1)
-        # (rows, 2 w shifts) candidates, self and duplicates included. Duplicates: keep the first of each
-        # candidate (sort by id, mark repeats); then the squared distances of the sorted ids.
-        cs = np.sort(c, axis=1)  # integers: any sort gives the same rows (the SIMD quicksort is ~13x the stable)
-        del c
-        dx, dy, dz = px[cs] - px[rows, None], py[cs] - py[rows, None], pz[cs] - pz[rows, None]
-        d2s = dx * dx + dy * dy + dz * dz
-        del dx, dy, dz
-        d2s[cs == rows[:, None]] = np.inf
-        d2s[:, 1:][cs[:, 1:] == cs[:, :-1]] = np.inf
-        if not ordered:  # the k smallest, ties to the lower id (the earlier column), as the stable sort picks
-            thr = np.partition(d2s, k - 1, axis=1)[:, k - 1:k]
-            thr[np.isnan(thr)] = np.inf  # fewer than k numbers: all the finite ones, as below
-            less, tie = d2s < thr, d2s == thr
-            sel = less | (tie & (np.cumsum(tie, axis=1) <= (k - less.sum(axis=1))[:, None]))
-            r, col = np.nonzero(sel & np.isfinite(d2s))
-            yield rows[r], cs[r, col].astype(np.int64)
-            continue
-        pick = np.argsort(d2s, axis=1, kind="stable")[:, :k]
-        nb = np.take_along_axis(cs, pick, axis=1).reshape(-1)
-        ok = np.isfinite(np.take_along_axis(d2s, pick, axis=1)).reshape(-1)
-        yield np.repeat(rows, k)[ok], nb[ok].astype(np.int64)
+        yield _neighbour_block(ctx, r0, block, ordered)
 
 
 # ---------------------------------------------------------------------------------------------- costs
@@ -256,18 +279,58 @@ def _energy(alpha: np.ndarray, col2: np.ndarray, cov: np.ndarray) -> np.ndarray:
     return _PI_1_5 * alpha * alpha * col2 * np.sqrt(np.maximum(_det6(cov), 1e-300))
 
 
-def edge_costs(mu, cov, alpha, col, w, i, j, rule: GroupRule, block: int = 16384) -> np.ndarray:
+def edge_costs(mu, cov, alpha, col, w, i, j, rule: GroupRule, block: int = 16384,
+               pool: Executor | None = None) -> np.ndarray:
     """Cost of merging clusters i and j (arrays of edges) under `rule`, `block` edges at a time (the costs are
-    per edge, so blocks only bound the work arrays: about 40 float64 per edge and block, not per edge of a level)."""
+    per edge, so blocks only bound the work arrays: about 40 float64 per edge and block, not per edge of a level).
+    `pool`: threads to cost the blocks on (numpy's ufuncs release the interpreter); each block's numbers are the
+    same whoever computes them."""
     out = np.empty(len(i))
     if not len(i):
         return out
     # Positions and covariances as rows of one coordinate (3, N) and (6, N): every term below is then computed on
     # contiguous arrays (the same operations, in the same order, as on the columns of (N, 3) and (N, 6)).
     mu_t, cov_t = np.ascontiguousarray(mu.T), np.ascontiguousarray(cov.T)
-    for s in range(0, len(i), block):
+
+    def one(s: int) -> None:
         out[s:s + block] = _edge_costs(mu_t, cov_t, alpha, col, w, i[s:s + block], j[s:s + block], rule)
+
+    if pool is None or len(i) <= block:
+        for s in range(0, len(i), block):
+            one(s)
+    else:
+        for _ in pool.map(one, range(0, len(i), block)):
+            pass
     return out
+
+
+def _rows_where(mask: np.ndarray, dtype, chunk: int = 1 << 20) -> np.ndarray:
+    """np.flatnonzero(mask) as `dtype` (int32 where the rows allow), a chunk at a time: no int64 copy of them."""
+    return np.concatenate([np.flatnonzero(mask[s:s + chunk]).astype(dtype) + dtype(s)
+                           for s in range(0, len(mask), chunk)] or [np.zeros(0, dtype)])
+
+
+def edge_costs_at(out: np.ndarray, rows: np.ndarray, mu, cov, alpha, col, w, i, j, rule: GroupRule,
+                  block: int = 16384, pool: Executor | None = None) -> None:
+    """out[rows] = edge_costs of the edges (i[rows], j[rows]), a cost that is not finite written as the largest
+    float64: the same blocks of `block` edges as edge_costs(..., i[rows], j[rows]) (so the same numbers to the
+    bit), without the (rows) copies of the ends and of the costs."""
+    if not len(rows):
+        return
+    mu_t, cov_t = np.ascontiguousarray(mu.T), np.ascontiguousarray(cov.T)
+
+    def one(s: int) -> None:
+        r = rows[s:s + block]
+        c = _edge_costs(mu_t, cov_t, alpha, col, w, i[r], j[r], rule)
+        c[~np.isfinite(c)] = np.finfo(np.float64).max
+        out[r] = c
+
+    if pool is None or len(rows) <= block:
+        for s in range(0, len(rows), block):
+            one(s)
+    else:
+        for _ in pool.map(one, range(0, len(rows), block)):
+            pass
 
 
 def _cross3(sda, sdb, csum, dd):
@@ -478,7 +541,8 @@ def _sorted_unique(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
 
 def group_ids(positions: np.ndarray, log_scales: np.ndarray, rotations: np.ndarray, opacities: np.ndarray,
               colours: np.ndarray, masses: np.ndarray, target: int, rule: GroupRule = DEFAULT_RULE,
-              edges: tuple[np.ndarray, np.ndarray] | None = None, region: np.ndarray | None = None) -> np.ndarray:
+              edges: tuple[np.ndarray, np.ndarray] | None = None, region: np.ndarray | None = None,
+              pool: Executor | None = None) -> np.ndarray:
     """Group id (0 .. target-1) of every splat: exactly min(target, n) groups, a partition of the splats.
 
     positions (N, 3), log_scales (N, 3), rotations (N, 4) unit (w, x, y, z), opacities (N,) linear alpha,
@@ -489,28 +553,47 @@ def group_ids(positions: np.ndarray, log_scales: np.ndarray, rotations: np.ndarr
     `region` (N,) integer labels: groups never span two regions (the tiles of a tree level, lod.build_subtree's
     cost merge), while the count each region keeps follows from the costs over all regions (the cheapest merges
     of the whole level are made first); every region keeps at least one group, so `target` must be at least the
-    number of regions present."""
+    number of regions present. `pool`: threads for the k-NN blocks and the edge costs' blocks (the groups are
+    the same with any pool or none)."""
+    return group_ids_of({"positions": positions, "log_scales": log_scales, "rotations": rotations,
+                         "opacities": opacities, "colours": colours, "masses": masses, "region": region},
+                        target, rule, edges, pool)
+
+
+def group_ids_of(inputs: dict, target: int, rule: GroupRule = DEFAULT_RULE,
+                 edges: tuple[np.ndarray, np.ndarray] | None = None, pool: Executor | None = None) -> np.ndarray:
+    """group_ids of the arrays in `inputs` (its arguments by name: positions, log_scales, rotations, opacities,
+    colours, masses and region, None for none), which it empties once its own float64 copies are made: a caller
+    that holds the arrays nowhere else (lod.level_cost_groups' concatenations of a whole level) has them freed
+    before the neighbour graph and its edge rows, the grouping's peak."""
+    positions = inputs.pop("positions")
     n = len(positions)
     target = max(1, int(target))
     if target >= n:
+        inputs.clear()
         return np.arange(n, dtype=np.int64)
     p = positions.astype(np.float64)
+    del positions
     origin = p.mean(axis=0)
-    state = {"mu": p - origin, "cov": covariances6(rotations, log_scales),
-             "alpha": np.clip(opacities.astype(np.float64), 0.0, 1.0), "col": colours.astype(np.float64).copy(),
-             "w": masses.astype(np.float64) + 1e-30}
-    del p  # the state holds the centred copy
+    p -= origin  # in place: the same numbers as p - origin
+    state = {"mu": p, "cov": covariances6(inputs.pop("rotations"), inputs.pop("log_scales")),
+             "alpha": np.clip(inputs.pop("opacities").astype(np.float64), 0.0, 1.0),
+             "col": inputs.pop("colours").astype(np.float64, copy=True),
+             "w": inputs.pop("masses").astype(np.float64) + 1e-30}
+    del p  # the state holds it
+    region = inputs.pop("region", None)
+    inputs.clear()
     label = np.arange(n)
-    size = np.ones(n, np.int64)
+    size = np.ones(n, np.int32 if n < 2**31 else np.int64)  # cluster sizes: gathered per edge for the cap mask
     # The neighbour graph of the level's splats, found once: a cluster's candidates are its members' neighbours.
     # As sorted distinct keys i * n + j (i < j).
-    key = (neighbour_keys(state["mu"], rule.neighbours) if edges is None
+    key = (neighbour_keys(state["mu"], rule.neighbours, pool=pool) if edges is None
            else _distinct(edges[0] * n + edges[1]))
     if region is not None:
         region = np.asarray(region, np.int64)
         if target < len(_distinct(region)):
             raise ValueError(f"target {target} is below the number of regions")
-        state["region"] = region.copy()
+        state["region"] = region  # _drop replaces the state's arrays, never writes into them
     # The edges' ends and multiplicities as 32-bit integers where the level allows (ids below 2^31): the edge rows
     # are the grouping's peak memory (a few per splat: 8-NN), and keys are formed from them in int64 (below).
     index = np.int32 if n < 2**31 else np.int64
@@ -519,6 +602,8 @@ def group_ids(positions: np.ndarray, log_scales: np.ndarray, rotations: np.ndarr
     if region is not None:
         inside = region[ei] == region[ej]
         ei, ej = ei[inside], ej[inside]
+        del inside
+    del region
     # The edges between clusters: each splat edge mapped onto the clusters at its ends, as (label[ei], label[ej])
     # (ordered: a pair's cost is not exactly symmetric in floating point), one row per ordered pair with `mult`, the
     # number of splat edges it stands for (the cheapest share counts them), and its cost, kept while neither
@@ -537,10 +622,10 @@ def group_ids(positions: np.ndarray, log_scales: np.ndarray, rotations: np.ndarr
             if count <= stage_target:
                 break
             ok = size[ei] + size[ej] <= cap if cap else np.ones(len(ei), bool)
-            todo = ok & np.isnan(ecost)
-            ecost[todo] = edge_costs(state["mu"], state["cov"], state["alpha"], state["col"], state["w"], ei[todo],
-                                     ej[todo], rule)
-            ecost[todo & ~np.isfinite(ecost)] = np.finfo(np.float64).max
+            todo = _rows_where(ok & np.isnan(ecost), index)
+            edge_costs_at(ecost, todo, state["mu"], state["cov"], state["alpha"], state["col"], state["w"], ei, ej,
+                          rule, pool=pool)
+            del todo
             ci, cj, cost = ei[ok], ej[ok], ecost[ok]
             if not len(ci):
                 break

@@ -8,6 +8,7 @@ give the same Selection and the same bits of every number it computed."""
 import gc
 import math
 import random
+import sys
 import weakref
 from concurrent.futures import Future
 from dataclasses import replace
@@ -29,6 +30,8 @@ from client_gl.stream.selection import (
     select_near,
     select_near_heap,
     view_numbers,
+    wanted_bands,
+    wanted_bands_at,
 )
 from splatstream.camera import Camera
 from splatstream.encode import EncodeOptions, encode_in_memory
@@ -37,9 +40,10 @@ from splatstream.ply import read_gaussians_ply
 from splatstream.store import read_manifest
 
 try:
-    from client_gl.stream.selection_jit import select_near_compiled
+    from client_gl.stream import selection_jit
+    from client_gl.stream.selection_jit import _children, select_near_compiled
 except ImportError:  # numba is an optional extra (`fast`): the compiled half of each test is skipped without it
-    select_near_compiled = None
+    select_near_compiled = _children = selection_jit = None
 
 NEEDS_NUMBA = pytest.mark.skipif(select_near_compiled is None,
                                  reason="the compiled selection needs the package numba (extra `fast`)")
@@ -102,16 +106,29 @@ def check_same(m, cam, opts, previous, near, resident, rnd, path="numpy", near_p
     full = view_numbers(a, cam, opts)
     want = select(a, full, cost, root, opts, previous, m.lod.reduction)
     part = PartialView(a, cam, opts, m.lod.reduction, BUFFERS)  # arrays the last check's view left (the engine's)
+    # the engine hands the last refined tiles over as an array (Selection.refined_at), the references a frozenset
+    previous_at = np.array(sorted(previous), np.intp)
     if path == "compiled":
-        got = select_near_compiled(a, part, cost, root, opts, previous, near, near_parents)
+        got = select_near_compiled(a, part, cost, root, opts, previous_at, near, near_parents)
         assert got == select_near(a, PartialView(a, cam, opts, m.lod.reduction), cost, root, opts, previous, near)
+        # the children's index (grown with a paged tree, else made anew) is the tree's
+        lo, hi, kids = _children(a)
+        assert [tuple(kids[lo[i]:hi[i]].tolist()) for i in range(len(m.tiles))] == list(a.children)
     else:
-        got = select_near(a, part, cost, root, opts, previous, near)
+        got = select_near(a, part, cost, root, opts, previous_at, near)
         # the heap loop over the same set (select_near_heap), the scan's second reference
         assert select_near_heap(a, PartialView(a, cam, opts, m.lod.reduction), cost, root, opts, previous,
                                 near) == got
     assert got.cut == want.cut  # the same tiles in the same order
     assert got.refined == want.refined and got.priority == want.priority
+    # the arrays the engine takes are the same selection
+    assert got.cut_at.tolist() == list(want.cut) and sorted(got.refined_at.tolist()) == sorted(want.refined)
+    assert got.priority_at.tolist() == [want.priority[i] for i in want.cut]
+    assert want.cut_at.tolist() == list(want.cut) and sorted(want.refined_at.tolist()) == sorted(want.refined)
+    # the SH bands from arrays (the engine's) are wanted_bands' (share 1.0 and below, full detail)
+    for o in (opts, SelectionOptions(band_area_share=(1.0, 0.5, 0.0)), SelectionOptions(max_sse=0.0)):
+        bands = wanted_bands(a, full, want.cut, o, m.sh_degree)
+        assert wanted_bands_at(a, part, got.cut_at, o, m.sh_degree).tolist() == [bands[i] for i in want.cut]
     assert (got.splats, got.cost, got.budget_limited) == (want.splats, want.cost, want.budget_limited)
     known = np.frombuffer(bytes(part.known), np.uint8).astype(bool)
     for name in ("sse", "visible", "radius_px", "area_px", "distance"):  # the same bits where computed
@@ -217,6 +234,8 @@ def test_select_near_on_a_paged_tree_with_pages_arriving_and_dropped(whole, path
             previous = frozenset(int(new_of[i]) for i in previous if new_of[i] >= 0)
             last = {int(new_of[i]) for i in last if new_of[i] >= 0}
     assert reads > 10 and evictions > 10 and tree.evicted > 0
+    if path == "compiled":  # the children's index was grown with the tree (and checked against it), not only made anew
+        assert selection_jit._index.grown > 10
 
 
 @NEEDS_NUMBA
@@ -251,12 +270,17 @@ def test_dropped_pages_are_freed_when_the_tree_was_frozen(whole):
     below = tree.below(head)
     assert below
     refs = [weakref.ref(tree.manifest.tiles[i]) for i in below]
-    refs += [weakref.ref(tree.manifest.tiles[i].groups) for i in below]
+    # their payload entries: a 1.8 tile's are a row of its page's tile table (TablePayloads and Table take no weak
+    # references): held here only, checked below to be held by nothing else
+    held = list({id(x): x for i in below for g in (tree.manifest.tiles[i].groups,)
+                 for x in (g, getattr(g, "table", None)) if x is not None}.values())
     gc.freeze()
     try:
         tree.evict([head])
         _ = tree.manifest.arrays
         assert all(r() is None for r in refs)
+        for h in held:  # the list, the loop's name, the call's argument and the held payload maps of the table
+            assert sys.getrefcount(h) == 3 + sum(getattr(x, "table", None) is h for x in held)
     finally:
         gc.unfreeze()
 

@@ -13,7 +13,15 @@ from splatstream.format.codec import decode_plane, encode_plane
 from splatstream.format.layout import CHUNK_SIZE, chunk_texel_index
 from splatstream.format.planes import BASE_PLANES, band_plane
 from splatstream.format.presets import PRESET_SH_CODEBOOK, PRESET_STEPS, PRESETS, preset_steps, step_attribute
-from splatstream.format.steps import TileStep, round_towards_zero, step_sizes, widened_max, zero_on_grid
+from splatstream.format.steps import (
+    TileStep,
+    round_towards_zero,
+    shared_levels,
+    splat_sizes,
+    step_sizes,
+    widened_max,
+    zero_on_grid,
+)
 from splatstream.io import read_gaussians
 from splatstream.scene_decode import decode_scene
 
@@ -75,6 +83,34 @@ def test_plane_on_a_tile_step_decodes_within_half_a_step_and_stores_small_codes(
     tight = encode_plane(values, POSITION, fmt)
     assert np.frombuffer(tight.layers[0], words.dtype).max() == L  # per-chunk grids use every level
     assert words[: 4 * CHUNK_SIZE, :3].max() <= np.ceil(4 / size) + 1  # the tile step's codes: about e / size
+
+
+def test_a_size_relative_step_is_the_median_splat_size_over_k_and_decodes_within_half_of_it():
+    """TileStep.per_size (issue 32): the shared step is the tile's median splat size (largest axis) / K, so the
+    median chunk gets K x its extent / that size levels, clamped to [size_levels_min, levels[0]]; splats twice as
+    large give a step twice as coarse; without sizes the step is levels[0]'s."""
+    log_scales = np.log(np.array([[0.01, 0.02, 0.04], [0.05, 0.01, 0.01], [0.03, 0.03, 0.03]]))
+    np.testing.assert_allclose(splat_sizes(log_scales), [0.04, 0.05, 0.03])
+    step = TileStep((4095.0,) * 3, shared=3, per_size=80.0, size_levels_min=100.0)
+    assert shared_levels(2.0, step, 0.04) == 80.0 * 2.0 / 0.04  # 4000
+    assert shared_levels(2.0, step, 0.01) == 4095.0 and shared_levels(2.0, step, 10.0) == 100.0  # clamped
+    assert shared_levels(2.0, step, None) == 4095.0 and shared_levels(2.0, TileStep((9.0,) * 3, shared=3), 1.0) == 9.0
+    extent = np.array([[1.0, 0.5, 0.2], [2.0, 1.0, 1.0], [3.0, 0.1, 0.1]])
+    np.testing.assert_allclose(step_sizes(extent, step, 0.04), [0.04 / 80] * 3)  # median largest extent 2
+    rng = np.random.default_rng(5)
+    values = (rng.random((4 * CHUNK_SIZE, 1, 3)) * [[[1.0, 1.5, 2.0]]]).astype(np.float32)
+    sizes = np.exp(rng.normal(np.log(0.05), 0.5, len(values)))  # about 3,200 and 1,600 levels
+    errs = {}
+    for scale in (1.0, 2.0):
+        s = float(np.median(sizes * scale)) / 80.0
+        plane = encode_plane(values, POSITION, "norm16x4", step=step, sizes=sizes * scale)
+        err = np.abs(decode_plane(plane, len(values)) - values).max()
+        assert err <= s / 2 * (1 + 1e-3) + 1e-6 and err > s / 4, (scale, err, s)
+        errs[scale] = err
+    assert 1.6 < errs[2.0] / errs[1.0] < 2.4
+    # no sizes given: the step of levels[0] (4095 levels of the median chunk), finer here
+    plane = encode_plane(values, POSITION, "norm16x4", step=step)
+    assert np.abs(decode_plane(plane, len(values)) - values).max() < errs[1.0]
 
 
 def test_preset_steps_follow_the_preset_and_are_dropped_with_an_override():

@@ -46,7 +46,7 @@ from .selection import (
     select,
     select_near,
     view_numbers,
-    wanted_bands,
+    wanted_bands_at,
 )
 
 Key = tuple[int | None, str]  # (tile id, group) or (None, "sh<b>") for a band of the SH codebook
@@ -340,16 +340,16 @@ class StreamEngine:
         self._pages_wanted: list[Key] = []
         self._pages_arrived: dict[int, Future] = {}  # tile id -> its page's tiles, being parsed
         self._page_frame: dict[int, int] = {}  # tile id -> the frame its page was added in
-        self._last_cut: set[int] = set()  # the last selection's cut (positions): kept from eviction, and where the
-        # next frame's selection starts looking
+        self._last_cut = np.zeros(0, np.intp)  # the last selection's cut (positions): kept from eviction, and where
+        # the next frame's selection starts looking
         self._bases = np.zeros(0, np.intp)  # positions of the wish list's bases (_coarse_to_fine)
         # The compiled selection's per-tile arrays, kept from frame to frame (ViewBuffers): a frame's view owns them
         # until the next selection (the engine uses a view only in the frame that made it, or while it is cached)
         self._view_buffers = ViewBuffers()
         self._pages_checked: tuple[int, int] = (0, 0)  # (tiles held, payload evictions) at the last eviction pass
         self.frame = 0
-        self.refined: frozenset[int] = frozenset()
-        self._bands_wanted: dict[int, int] = {}
+        self.refined = np.zeros(0, np.intp)  # the last selection's refined tiles (positions: its hysteresis)
+        self._bands_wanted: tuple[list[int], list[int]] = ([], [])  # the cut's positions and their bands wanted
         # Caches that let a still camera with nothing arriving skip the per-frame work (selection, wish list,
         # draw set): _version counts changes of what is held (resident, decoding, ready).
         self._wanted_cache: tuple | None = None
@@ -436,15 +436,16 @@ class StreamEngine:
         """Drop pages until the tree held is within max_tree_tiles, where pages are unused: no tile below their
         head resident, in the last cut, decoding or decoded, nor a page below it being fetched or parsed; the least
         recently drawn first."""
-        cut = self._last_cut
+        in_cut = np.zeros(len(self.resident), bool)
+        in_cut[self._last_cut] = True
         busy = {k[0] for k in self._ready} | {k[0] for k in self._decoding} | set(self._pages_arrived) | \
             {k[0] for k in self._listed if k[1] == PAGE_GROUP}  # pages in flight or being parsed stay
         candidates = []
         for head in self.pages.held_pages():
-            if self._page_frame.get(head, 0) >= self.frame - 1 or self.manifest.index_of[head] in cut:
+            if self._page_frame.get(head, 0) >= self.frame - 1 or in_cut[self.manifest.index_of[head]]:
                 continue  # added since the last selection, or its tile in the cut (the page would be wanted again)
             below = self.pages.below(head)
-            if not below or self.resident[below].any() or not cut.isdisjoint(below) or \
+            if not below or self.resident[below].any() or in_cut[below].any() or \
                     any(int(self.ids[i]) in busy for i in below):
                 continue
             candidates.append((int(self.last_drawn[below].max()), -len(below), head))
@@ -463,8 +464,8 @@ class StreamEngine:
         self.resident, self.bands = self.resident[keep], self.bands[keep]
         self.last_drawn, self._filling = self.last_drawn[keep], self._filling[keep]
         self.slots_needed = self.slots_needed[keep]
-        self.refined = frozenset(int(new_of[i]) for i in self.refined if new_of[i] >= 0)
-        self._last_cut = {int(new_of[i]) for i in self._last_cut if new_of[i] >= 0}
+        refined, last_cut = new_of[self.refined], new_of[self._last_cut]
+        self.refined, self._last_cut = refined[refined >= 0], last_cut[last_cut >= 0]
         self._adopt(self.pages.manifest)
         self._wanted_cache = self._draw_cache = self._order_of = self._upload_idle = None
         self._version += 1
@@ -490,8 +491,8 @@ class StreamEngine:
         return bool(self.resident[i]) and (band == 0 or self.bands[i] >= band)
 
     # --- the frame --------------------------------------------------------------------------------------------
-    def wanted(self, cam: Camera) -> tuple[PartialView | TileView, Selection, dict[int, int], list[Key], list[Key]]:
-        """(view, selection, bands per cut tile, keys wanted now in priority order, prefetch keys).
+    def wanted(self, cam: Camera) -> tuple[PartialView | TileView, Selection, np.ndarray, list[Key], list[Key]]:
+        """(view, selection, bands per cut tile (in the cut's order), keys wanted now in priority order, prefetch keys).
 
         The same camera and options give the same answer (the selection is idempotent under its own hysteresis),
         so a still camera costs nothing here after its first frame."""
@@ -519,35 +520,37 @@ class StreamEngine:
         if compiled is not None:  # it takes the tiles whose children to look at first, and finds them itself
             view = PartialView(a, cam, opts, self.manifest.lod.reduction, self._view_buffers)
             sel = compiled(a, view, self.cost, self.root, sel_opts, self.refined,
-                           near_parents=[*self.refined, *self._last_cut])
+                           near_parents=np.concatenate([self.refined, self._last_cut]))
         elif near_cut:
             view = PartialView(a, cam, opts, self.manifest.lod.reduction)
             children = a.children
-            near = [k for i in self.refined for k in children[i]] + [k for i in self._last_cut
-                                                                     for k in children[i]]
+            near = [k for i in self.refined.tolist() for k in children[i]] + \
+                [k for i in self._last_cut.tolist() for k in children[i]]
             sel = select_near(a, view, self.cost, self.root, sel_opts, self.refined, near)
         else:
             view = view_numbers(a, cam, opts)
             sel = select(a, view, self.cost, self.root, sel_opts, self.refined, self.manifest.lod.reduction)
-        self.refined = sel.refined
-        self._last_cut = set(sel.cut)
+        # the selection's arrays as they are (no per-frame tuple, set or dict of the cut: BENCHMARKS.md, "Manifest
+        # pages")
+        cut = sel.cut_at
+        self.refined, self._last_cut = sel.refined_at, cut
         if self.pages is not None:  # pages below cut tiles the view would refine: fetched before their payloads
-            self._pages_wanted = [k for k in self.pages.wanted_pages(sel.cut, view.sse, view.visible, opts.max_sse)
+            self._pages_wanted = [k for k in self.pages.wanted_pages(cut, view.sse, view.visible, opts.max_sse)
                                   if k not in self.failed]
-        bands = wanted_bands(a, view, sel.cut, opts, self.manifest.sh_degree)
-        self._bands_wanted = bands
+        bands = wanted_bands_at(a, view, cut, opts, self.manifest.sh_degree)  # the cut's, in its order
         ids = self.ids
         root_id = int(ids[self.root])
-        cut_ids = ids[np.fromiter(sel.cut, np.intp, len(sel.cut))].tolist()  # one numpy call, not one a tile
+        cut_ids = ids[cut].tolist()  # one numpy call, not one a tile
+        self._bands_wanted = (cut.tolist(), bands.tolist())
         keys: list[Key] = [(root_id, "base")]
         keys += [(t, "base") for t in cut_ids if t != root_id]
-        top = max(bands.values(), default=0)
+        top = int(bands.max()) if len(bands) else 0
         if self.codebook:
             keys += [(None, f"sh{b}") for b in range(1, top + 1)]
-            keys += [(t, "sh1") for t, i in zip(cut_ids, sel.cut, strict=True) if bands[i] >= 1]
+            keys += [(t, "sh1") for t in ids[cut[bands >= 1]].tolist()]
         else:
             for b in range(1, top + 1):
-                keys += [(t, f"sh{b}") for t, i in zip(cut_ids, sel.cut, strict=True) if bands[i] >= b]
+                keys += [(t, f"sh{b}") for t in ids[cut[bands >= b]].tolist()]
         # prefetch only when asked for (update asks only when nothing the view wants is missing): 0.2-0.3 ms a frame
         extra = _Prefetch(a, view, sel, opts, ids, self.cost) if self.options.prefetch else ()
         result = (view, sel, bands, keys, extra)
@@ -580,7 +583,7 @@ class StreamEngine:
             and not self._pages_arrived
         return FrameUpdate(
             draw=list(draw_ids), converged=converged, uploaded_bytes=uploaded, resident_tiles=resident_tiles,
-            resident_splats=resident_splats, drawn_splats=drawn_splats, wanted_tiles=len(sel.cut),
+            resident_splats=resident_splats, drawn_splats=drawn_splats, wanted_tiles=len(sel.cut_at),
             in_flight=in_flight + len(self._decoding), selection=sel, events=events)
 
     def _tend_pages(self) -> None:
@@ -633,7 +636,7 @@ class StreamEngine:
         the cut's priority: an ancestor takes the rank of its first descendant), SH bands after every base."""
         a = self.arrays
         n = len(self.resident)
-        cut = np.fromiter(sel.cut, np.intp, len(sel.cut))
+        cut = sel.cut_at
         gap, step = self.options.fill_gap, self.options.fill_step
         # Every fill_step-th ancestor, from fill_gap levels up, of each cut tile not resident: levels `reduction`
         # apart in splats would otherwise add about as many bytes as the cut itself (1/2 + 1/4 + ... at reduction
@@ -838,7 +841,7 @@ class StreamEngine:
         """Tiles that must not be evicted now: the root, the wanted cut and everything drawn this frame."""
         keep = np.zeros(len(self.resident), bool)
         keep[self.root] = True
-        keep[list(sel.cut)] = True
+        keep[sel.cut_at] = True
         keep[self.last_drawn >= self.frame - 1] = True
         return keep
 
@@ -930,8 +933,7 @@ class StreamEngine:
     def _codebook_tile_bands(self, sel: Selection) -> None:
         """With an SH codebook a tile's bands 2 and 3 need no payload of its own: once its index (band 1) and the
         codebook's band are resident, the tile gains the band."""
-        for i in sel.cut:
-            want = self._bands_wanted.get(i, 0)
+        for i, want in zip(*self._bands_wanted, strict=True):
             tile_id = int(self.ids[i])
             while self.resident[i] and 1 <= self.bands[i] < want and self.bands[i] + 1 in self.codebook_bands:
                 self.residency.add_band(tile_id, int(self.bands[i]) + 1, {})

@@ -62,16 +62,98 @@ class TileView:
         return bool(self.visible[i])
 
 
-@dataclass(frozen=True)
 class Selection:
-    cut: tuple[int, ...]  # tiles the view wants drawn: a REPLACE cut of the visible tree
-    refined: frozenset[int]  # tiles whose (visible) children replace them
-    priority: dict[int, float]  # cut tile -> fetch priority: minus the refinement key of its parent (root: inf)
-    splats: int
-    cost: float
-    # A refinement the view wanted did not fit the splat or byte budget: the budget, not the error, ends the cut
-    # (prefetch then leaves out the children of cut tiles: the budget would not let them in).
-    budget_limited: bool = False
+    """A view's cut: the tiles to draw (a REPLACE cut of the visible tree, in fetch order), the tiles refined above
+    it, each cut tile's fetch priority (minus the refinement key of its parent; the root's inf), its splats and cost,
+    and whether a budget ended it (a refinement the view wanted did not fit the splat or byte budget: prefetch then
+    leaves out the children of cut tiles, the budget would not let them in).
+
+    Held as numpy arrays (`cut_at`, `priority_at`, `refined_at`: positions) where the selection made arrays (the
+    compiled selection and select_near), as Python collections where it made those (select, select_near_heap); each
+    form is made from the other when first asked for. The engine takes the arrays: building the tuple, frozenset
+    and dict of a 250M-splat cut every frame cost 0.15 ms that it turned back into arrays (BENCHMARKS.md, "Manifest
+    pages")."""
+
+    def __init__(self, cut, refined, priority: dict[int, float], splats: int, cost: float,
+                 budget_limited: bool = False):
+        self._cut: tuple[int, ...] | None = tuple(cut)
+        self._refined: frozenset[int] | None = frozenset(refined)
+        self._priority: dict[int, float] | None = priority
+        self._cut_at = self._priority_at = self._refined_at = None
+        self.splats, self.cost, self.budget_limited = splats, cost, budget_limited
+
+    @classmethod
+    def of_arrays(cls, cut_at: np.ndarray, priority_at: np.ndarray, refined_at: np.ndarray, splats: int,
+                  cost: float, budget_limited: bool = False) -> Selection:
+        """A selection from arrays it owns (not views of scratch arrays a later selection writes): the cut's
+        positions in order, their priorities, the refined positions (any order)."""
+        sel = cls.__new__(cls)
+        sel._cut = sel._refined = sel._priority = None
+        sel._cut_at, sel._priority_at = np.asarray(cut_at, np.intp), np.asarray(priority_at, np.float64)
+        sel._refined_at = np.asarray(refined_at, np.intp)
+        sel.splats, sel.cost, sel.budget_limited = splats, cost, budget_limited
+        return sel
+
+    @property
+    def cut(self) -> tuple[int, ...]:
+        """The cut's positions, in fetch order."""
+        if self._cut is None:
+            self._cut = tuple(self._cut_at.tolist())
+        return self._cut
+
+    @property
+    def refined(self) -> frozenset[int]:
+        """Positions of the tiles whose (visible) children replace them."""
+        if self._refined is None:
+            self._refined = frozenset(self._refined_at.tolist())
+        return self._refined
+
+    @property
+    def priority(self) -> dict[int, float]:
+        """Cut position -> fetch priority."""
+        if self._priority is None:
+            self._priority = dict(zip(self.cut, self.priority_at.tolist(), strict=True))
+        return self._priority
+
+    @property
+    def cut_at(self) -> np.ndarray:
+        """The cut's positions in order, as an array (read only: shared)."""
+        if self._cut_at is None:
+            self._cut_at = np.array(self._cut, np.intp)
+        return self._cut_at
+
+    @property
+    def priority_at(self) -> np.ndarray:
+        """The cut's priorities, in the cut's order."""
+        if self._priority_at is None:
+            self._priority_at = np.array([self._priority.get(i, 0.0) for i in self._cut], np.float64)
+        return self._priority_at
+
+    @property
+    def refined_at(self) -> np.ndarray:
+        """The refined positions, as an array (in no particular order)."""
+        if self._refined_at is None:
+            self._refined_at = np.fromiter(self._refined, np.intp, len(self._refined))
+        return self._refined_at
+
+    def _fields(self) -> tuple:
+        return self.cut, self.refined, self.priority, self.splats, self.cost, self.budget_limited
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Selection) and self._fields() == other._fields()
+
+    __hash__ = None  # type: ignore[assignment]  # mutable caches, dict inside: not hashable (as before)
+
+    def __repr__(self) -> str:
+        return (f"Selection(cut={self.cut!r}, refined={self.refined!r}, priority={self.priority!r}, "
+                f"splats={self.splats!r}, cost={self.cost!r}, budget_limited={self.budget_limited!r})")
+
+
+def positions(tiles) -> np.ndarray:
+    """Tile positions as an intp array: an array as it is, any other collection (a frozenset, a list) converted."""
+    if isinstance(tiles, np.ndarray):
+        return tiles.astype(np.intp, copy=False)
+    return np.fromiter(tiles, np.intp, len(tiles))
 
 
 def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -292,7 +374,7 @@ class PartialView:
 
 
 def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: SelectionOptions,
-           previous_refined: frozenset[int] = frozenset(), reduction: float = 2.0) -> Selection:
+           previous_refined: frozenset[int] | np.ndarray = frozenset(), reduction: float = 2.0) -> Selection:
     """The cut the view wants: REPLACE refinement from the root, widest on-screen splat spacing first.
 
     A visible tile whose sse exceeds the threshold is a candidate; candidates are refined in order of the spacing
@@ -308,8 +390,8 @@ def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: Sel
     kid_cost = np.bincount(a.parent_of_child, weights=np.where(visible, cost, 0.0)[child], minlength=n)
     kid_splats = np.bincount(a.parent_of_child, weights=np.where(visible, a.splats_f64, 0.0)[child], minlength=n)
     threshold = np.full(n, float(opts.max_sse))
-    if previous_refined:
-        threshold[list(previous_refined)] *= opts.hysteresis
+    if len(previous_refined):
+        threshold[positions(previous_refined)] *= opts.hysteresis
     candidate = (has_kids & visible & (view.sse > threshold)).tolist()
     # Order of refinement: the tile whose splats lie widest apart on screen first. A level holds `reduction` times
     # the splats of the one above over the same region, so on surfaces its splats are reduction^(1/2) closer
@@ -358,7 +440,7 @@ def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: Sel
 
 
 def select_near(a: TileArrays, view: PartialView, cost: np.ndarray, root: int, opts: SelectionOptions,
-                previous_refined: frozenset[int] = frozenset(), near=()) -> Selection:
+                previous_refined: frozenset[int] | np.ndarray = frozenset(), near=()) -> Selection:
     """select's cut (the same tiles, order, priorities, splats, cost and budget flag) from the tiles near the last
     frame's cut, as one ordered scan instead of a heap of every reached tile (client.md 1.2).
 
@@ -458,9 +540,7 @@ def select_near(a: TileArrays, view: PartialView, cost: np.ndarray, root: int, o
         pri = np.append(pri, INF)
     ct = tiles[cj]
     rank = np.lexsort((ct, view.distance[ct], -pri))
-    cut_sorted = tuple(ct[rank].tolist())
-    return Selection(cut_sorted, frozenset(tiles[refined_m].tolist()),
-                     dict(zip(cut_sorted, pri[rank].tolist(), strict=True)), splats, total, limited)
+    return Selection.of_arrays(ct[rank], pri[rank], tiles[refined_m], splats, total, limited)
 
 
 def _first(root: int, near, scratch: np.ndarray) -> np.ndarray:
@@ -502,7 +582,7 @@ def _drain(low: list, at: tuple[float, int], lists: tuple, splats: int, total: f
 
 
 def select_near_heap(a: TileArrays, view: PartialView, cost: np.ndarray, root: int, opts: SelectionOptions,
-                     previous_refined: frozenset[int] = frozenset(), near=()) -> Selection:
+                     previous_refined: frozenset[int] | np.ndarray = frozenset(), near=()) -> Selection:
     """select's cut (the same tiles, order, priorities, splats, cost and budget flag), looking only at the tiles it
     reaches.
 
@@ -574,9 +654,9 @@ class _NearSet:
         self.kid_cost, self.kid_splats = np.zeros(0), np.zeros(0)
         self.kids_in, self.kids_all = np.zeros(0, np.int64), np.zeros(0, np.int64)
         self.orphans: dict[int, int] = {}  # tile -> its parent, not in the set
-        if previous_refined:
+        if len(previous_refined):
             self.was_refined = np.zeros(len(a.parent), bool)
-            self.was_refined[np.fromiter(previous_refined, np.intp, len(previous_refined))] = True
+            self.was_refined[positions(previous_refined)] = True
         # the same as arrays (select_near's scan sorts and tests them in numpy)
         self.tiles_a, self.prio_a = np.zeros(0, np.intp), np.zeros(0)
         self.cand_a, self.parent_a = np.zeros(0, bool), np.zeros(0, np.intp)
@@ -593,7 +673,7 @@ class _NearSet:
         self.tiles += new
         vis, sse = view.visible[at], view.sse[at]
         threshold = np.full(len(new), self.high)
-        if self.previous:
+        if len(self.previous):
             threshold[self.was_refined[at]] = self.low
         cand = a.has_children[at] & vis & (sse > threshold)
         self.candidate += cand.tolist()
@@ -669,6 +749,37 @@ def wanted_bands(a: TileArrays, view: TileView, tiles: tuple[int, ...] | list[in
     return out
 
 
+
+def wanted_bands_at(a: TileArrays, view: TileView, cut_at: np.ndarray, opts: SelectionOptions,
+                    scene_degree: int) -> np.ndarray:
+    """wanted_bands' answer as an array over the cut's positions `cut_at` (each once), in their order: the same
+    bands, from numpy sorts and sums (the same operations on the same values: the order's keys divided as Python
+    divides, the areas summed in the cut's order and covered in the band's order, one addition at a time)."""
+    top = min(opts.sh_degree, scene_degree)
+    at = np.asarray(cut_at, np.intp)
+    if opts.max_sse <= 0:  # full detail: every band of every tile
+        return np.full(len(at), top, np.int64)
+    out = np.zeros(len(at), np.int64)
+    if top <= 0 or not len(at):
+        return out
+    area = view.area_px[at]
+    total = sum(area.tolist())  # Python's sum, in the cut's order, as wanted_bands
+    for b in range(1, top + 1):
+        share = opts.band_area_share[b - 1]
+        idx = np.flatnonzero(out == b - 1)
+        if not idx.size:
+            break
+        key = -area[idx] / np.maximum(1.0, a.band_bytes[at[idx], b - 1].astype(np.float64))
+        order = idx[np.lexsort((at[idx], key))]
+        if share < 1.0:  # the first tile reached with the covered area at or above the share stops the band
+            covered = np.cumsum(area[order])  # one addition at a time, in order: the loop's running sum
+            before = np.concatenate([[0.0], covered[:-1]])
+            stop = np.flatnonzero(before >= share * total)
+            order = order[:stop[0]] if stop.size else order
+        out[order] = b
+    return out
+
+
 def draw_set(a: TileArrays, view: TileView, sel: Selection, resident: np.ndarray, root: int) -> list[int]:
     """The tiles to draw now: the wanted cut where resident, else what covers the same region without holes.
 
@@ -677,18 +788,20 @@ def draw_set(a: TileArrays, view: TileView, sel: Selection, resident: np.ndarray
     that is not resident yet is covered by its resident descendants if they cover its view (they were wanted
     before the camera moved back), else by an ancestor. Never a tile together with a descendant."""
 
+    visible_at, children = view.visible_at, a.children  # a PartialView tests the tiles the walk reaches only
+    refined = sel.refined  # once: the walk asks for each tile it reaches
+
     def shown(i: int) -> list[int]:
-        visible_at = view.visible_at  # a PartialView tests the tiles the walk reaches only
-        return [k for k in a.children[i] if visible_at(k)]
+        return [k for k in children[i] if visible_at(k)]
 
     def cover(i: int) -> list[int] | None:
-        if i in sel.refined:
+        if i in refined:
             parts = _cover_all(shown(i))
             if parts is not None:
                 return parts
         if resident[i]:
             return [i]
-        if i not in sel.refined:
+        if i not in refined:
             kids = shown(i)
             if kids:
                 return _cover_all(kids)  # finer tiles still resident stand in for a coarser tile not yet loaded

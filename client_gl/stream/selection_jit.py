@@ -32,6 +32,7 @@ from client_gl.stream.selection import (
     SelectionOptions,
     ViewBuffers,
     _split,
+    positions,
     refinement_keys,
     select_near_heap,
 )
@@ -40,7 +41,7 @@ from splatstream.format.manifest import TileArrays
 
 _JIT = dict(cache=True, nogil=True, error_model="numpy")  # x/0 gives inf or nan as numpy's does, never an exception
 # The kernels' `g`, the tree and camera (select_near_compiled builds it): positions in the tuple
-_CAM, _CENTRE, _RADIUS, _ERR, _CORNERS, _PLANE_D, _SPLIT, _FIRST, _WAS_REFINED, _HIGH, _LOW = range(11)
+_CAM, _CENTRE, _RADIUS, _ERR, _CORNERS, _PLANE_D, _SPLIT, _LO, _HI, _WAS_REFINED, _HIGH, _LOW = range(12)
 
 
 @njit(**_JIT)
@@ -130,20 +131,20 @@ def _tile_numbers(i, g, known, sse, visible, radius_px, area_px, distance, cand)
     distance[i] = dist
     known[i] = 1
     threshold = g[_LOW] if g[_WAS_REFINED][i] else g[_HIGH]
-    cand[i] = 1 if (g[_FIRST][i + 1] > g[_FIRST][i] and vis and e > threshold) else 0
+    cand[i] = 1 if (g[_HI][i] > g[_LO][i] and vis and e > threshold) else 0
 
 
 @njit(**_JIT)
 def _seed(tiles, parents_from, g, kids, known, sse, visible, radius_px, area_px, distance, cand, pending):
     """The numbers of tiles[:parents_from] and of the children of tiles[parents_from:], each tile once: the new
     candidates into `pending` (their keys are numpy's), their count returned."""
-    first = g[_FIRST]
+    first, last = g[_LO], g[_HI]
     m = 0
     for t in range(tiles.shape[0]):
         if t < parents_from:
             lo, hi = t, t + 1
         else:
-            lo, hi = first[tiles[t]], first[tiles[t] + 1]
+            lo, hi = first[tiles[t]], last[tiles[t]]
         for q in range(lo, hi):
             i = tiles[q] if t < parents_from else kids[q]
             if known[i]:
@@ -167,14 +168,14 @@ def _refine(g, kids, splats_of, cost, prio, known, sse, visible, radius_px, area
     cost). Returns 0 when the queue is empty, m > 0 when it stopped to have the keys of m new candidates computed
     (pending[:m]; the queue's top is taken again then), -1 at a NaN key (select's heapq orders those its own way:
     the caller falls back to the numpy path). max_splats < 0, budget NaN: no limit."""
-    first = g[_FIRST]
+    first, last = g[_LO], g[_HI]
     size, splats, limited, nref = st[0], st[1], st[2], st[3]
     total = total_a[0]
     status = 0
     while size > 0:
         i = heap_t[0]
         lacking = False
-        for q in range(first[i], first[i + 1]):
+        for q in range(first[i], last[i]):
             if not known[kids[q]]:
                 lacking = True
                 break
@@ -182,7 +183,7 @@ def _refine(g, kids, splats_of, cost, prio, known, sse, visible, radius_px, area
             m = 0
             for h in range(size):
                 t = heap_t[h]
-                for q in range(first[t], first[t + 1]):
+                for q in range(first[t], last[t]):
                     c = kids[q]
                     if not known[c]:
                         _tile_numbers(c, g, known, sse, visible, radius_px, area_px, distance, cand)
@@ -210,7 +211,7 @@ def _refine(g, kids, splats_of, cost, prio, known, sse, visible, radius_px, area
             heap_k[h], heap_t[h] = lk, lt
         kid_splats = 0
         kid_cost = 0.0  # whole numbers in float64: exact in any order, so select's bincount sums
-        for q in range(first[i], first[i + 1]):
+        for q in range(first[i], last[i]):
             c = kids[q]
             if visible[c]:
                 kid_splats += splats_of[c]
@@ -227,7 +228,7 @@ def _refine(g, kids, splats_of, cost, prio, known, sse, visible, radius_px, area
         reflist[nref] = i
         nref += 1
         splats, total = new_splats, new_total
-        for q in range(first[i], first[i + 1]):
+        for q in range(first[i], last[i]):
             c = kids[q]
             if cand[c]:  # candidates are visible
                 k = prio[c]
@@ -252,13 +253,13 @@ def _refine(g, kids, splats_of, cost, prio, known, sse, visible, radius_px, area
 
 
 @njit(**_JIT)
-def _cut(first, kids, visible, refd, reflist, nref, prio, root, out_t, out_p):
+def _cut(first, last, kids, visible, refd, reflist, nref, prio, root, out_t, out_p):
     """The cut: the visible children of refined tiles that were not refined themselves (priority: minus the
     parent's key), and the root unless refined (inf). Returns its size."""
     m = 0
     for r in range(nref):
         i = reflist[r]
-        for q in range(first[i], first[i + 1]):
+        for q in range(first[i], last[i]):
             c = kids[q]
             if visible[c] and not refd[c]:
                 out_t[m] = c
@@ -271,20 +272,87 @@ def _cut(first, kids, visible, refd, reflist, nref, prio, root, out_t, out_p):
     return m
 
 
-# (a weak reference to the last TileArrays, its children as (starts, children)): a tree held changes only when
-# pages are added or dropped (a new TileArrays), so most frames reuse it
-_csr_of: tuple = (lambda: None, None)
+class _ChildIndex:
+    """Each tile's children as a block of one array, kids[lo[i]:hi[i]] (in position order), grown with the tree.
 
+    A paged tree grows by appending a page's tiles to storage whose rows below the last length are never written
+    again (manifest.grown_arrays): the children of the tiles held before are those they had, plus the new tiles
+    whose parent they are. So an adoption appends the blocks of the parents of its new tiles (a tile gaining its
+    page's children, and the new tiles' own) and leaves every other block in place: the time of the page's tiles,
+    not of the tree held (made again from the parents after every adoption, 0.05 ms a frame on average at 250M
+    splats: BENCHMARKS.md, "Manifest pages"). Any other tree (an eviction's kept rows, another scene) is indexed
+    anew. Depends on the parent array only, as the whole rebuild does."""
 
-def _children(a: TileArrays) -> tuple[np.ndarray, np.ndarray]:
-    held, csr = _csr_of
-    if held() is not a:
+    def __init__(self) -> None:
+        self.held = lambda: None  # the TileArrays last indexed (weak)
+        self.store = lambda: None  # their growing storage (weak), and how many of its rows are indexed
+        self.n = 0
+        self.lo, self.hi, self.kids = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
+        self.used = 0  # entries of kids in use
+        self.rebuilds = self.grown = 0
+
+    def of(self, a: TileArrays) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         n = len(a.parent)
+        if self.held() is not a:
+            store = a.__dict__.get("_growing")
+            if store is not None and store is self.store() and n >= self.n:
+                self._grow(a, n)
+            else:
+                self._rebuild(a, n)
+            self.held = weakref.ref(a)
+            self.store = weakref.ref(store) if store is not None else (lambda: None)
+            self.n = n
+        return self.lo[:n], self.hi[:n], self.kids[:self.used]
+
+    def _rebuild(self, a: TileArrays, n: int) -> None:
         out = np.empty(2 * n + 1, np.int64)
         _child_csr(np.ascontiguousarray(a.parent, np.int64), out)
-        csr = (out[:n + 1], out[n + 1:])
-        globals()["_csr_of"] = (weakref.ref(a), csr)
-    return csr
+        cap = 2 * n + 16  # room to grow by pages
+        self.lo, self.hi, self.kids = (np.zeros(cap, np.int64) for _ in range(3))
+        self.lo[:n], self.hi[:n] = out[:n], out[1:n + 1]
+        self.used = int(out[n])  # the children held (every tile with a parent)
+        self.kids[:self.used] = out[n + 1:n + 1 + self.used]
+        self.rebuilds += 1
+
+    def _grow(self, a: TileArrays, n: int) -> None:
+        old = self.n
+        if n > len(self.lo):
+            cap = max(2 * n, 16)
+            for name in ("lo", "hi"):
+                grown = np.zeros(cap, np.int64)
+                grown[:old] = getattr(self, name)[:old]
+                setattr(self, name, grown)
+        self.lo[old:n] = 0
+        self.hi[old:n] = 0
+        par = a.parent[old:n]
+        at = np.flatnonzero(par >= 0)
+        if not at.size:
+            return
+        p = par[at]
+        order = np.argsort(p, kind="stable")  # each parent's new children in position order
+        p, kids = p[order], at[order] + old
+        heads, starts, counts = np.unique(p, return_index=True, return_counts=True)
+        had = self.hi[heads] - self.lo[heads]
+        if had.any():  # a tile held before with children before and now more (not a page's growth): anew
+            self._rebuild(a, n)
+            return
+        if self.used + len(kids) > len(self.kids):
+            grown = np.zeros(max(2 * (self.used + len(kids)), 16), np.int64)
+            grown[:self.used] = self.kids[:self.used]
+            self.kids = grown
+        self.kids[self.used:self.used + len(kids)] = kids
+        self.lo[heads] = self.used + starts
+        self.hi[heads] = self.used + starts + counts
+        self.used += len(kids)
+        self.grown += 1
+
+
+_index = _ChildIndex()
+
+
+def _children(a: TileArrays) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(lo, hi, kids): tile i's children are kids[lo[i]:hi[i]] (_ChildIndex, kept from call to call)."""
+    return _index.of(a)
 
 
 def _f64(x) -> np.ndarray:
@@ -292,18 +360,19 @@ def _f64(x) -> np.ndarray:
 
 
 def select_near_compiled(a: TileArrays, view: PartialView, cost: np.ndarray, root: int, opts: SelectionOptions,
-                         previous_refined: frozenset[int] = frozenset(), near=(), near_parents=()) -> Selection:
+                         previous_refined: frozenset[int] | np.ndarray = frozenset(), near=(),
+                         near_parents=()) -> Selection:
     """selection.select_near's answer (the same Selection), compiled. `near`: tiles to compute the numbers of first,
     as select_near's; `near_parents`: tiles whose children to compute first (the engine gives the last frame's
     refined and cut tiles). Neither changes the answer, only how many passes it takes."""
-    first, kids = _children(a)
+    lo, hi, kids = _children(a)
     n = len(a.parent)
     # the per-tile scratch arrays: the view's buffers (kept from frame to frame by the engine), else new ones
     buf = view.buffers if getattr(view, "buffers", None) is not None else ViewBuffers()
     i64, f64, u8 = np.dtype(np.int64), np.dtype(np.float64), np.dtype(np.uint8)
     was = buf.get("was_refined", n, np.dtype(np.bool_), True)
-    if previous_refined:
-        was[np.fromiter(previous_refined, np.intp, len(previous_refined))] = True
+    if len(previous_refined):
+        was[positions(previous_refined)] = True
     cam, basis, planes = view.cam, view._basis, view._planes
     eye, right, up, forward = basis
     focal = cam.height / (2.0 * cam.tan_half_fov_y)
@@ -311,7 +380,7 @@ def select_near_compiled(a: TileArrays, view: PartialView, cost: np.ndarray, roo
                      float(cam.width * cam.height)], np.float64)
     high = float(opts.max_sse)
     g = (camv, _f64(a.sphere_center), _f64(a.sphere_radius), _f64(a.geometric_error), _f64(a.box_corners),
-         _f64(planes[:, 3]), _f64(view.split if hasattr(view, "split") else _split(planes)), first, was, high,
+         _f64(planes[:, 3]), _f64(view.split if hasattr(view, "split") else _split(planes)), lo, hi, was, high,
          high * opts.hysteresis)
     known, sse, visible, radius_px, area_px, distance = (view.known, view.sse, view.visible, view.radius_px,
                                                          view.area_px, view.distance)
@@ -351,13 +420,12 @@ def select_near_compiled(a: TileArrays, view: PartialView, cost: np.ndarray, roo
     if m < 0:
         return select_near_heap(a, view, cost, root, opts, previous_refined, near)
     out_t, out_p = buf.get("out_t", n, i64), buf.get("out_p", n, f64)
-    c = _cut(first, kids, visible, refd, reflist, int(st[3]), prio, root, out_t, out_p)
+    c = _cut(lo, hi, kids, visible, refd, reflist, int(st[3]), prio, root, out_t, out_p)
     ct, pri = out_t[:c], out_p[:c]
     rank = np.lexsort((ct, distance[ct], -pri))
-    cut_sorted = tuple(ct[rank].tolist())
-    return Selection(cut_sorted, frozenset(reflist[:st[3]].tolist()),
-                     dict(zip(cut_sorted, pri[rank].tolist(), strict=True)), int(st[1]), float(total[0]),
-                     bool(st[2]))
+    # arrays of its own (the scratch arrays are the next selection's): the engine takes them as they are
+    return Selection.of_arrays(ct[rank], pri[rank], reflist[:st[3]].copy(), int(st[1]), float(total[0]),
+                               bool(st[2]))
 
 
 def warm_up() -> None:

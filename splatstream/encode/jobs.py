@@ -13,6 +13,7 @@ from ..format.keyed import MORTON_FORMATS, morton_keys
 from ..format.layout import CHUNK_SIZE, chunk_texel_index, morton_order, order_within_chunks, texture_size
 from ..format.manifest import Box, PayloadEntry, SHCodebookEntry, TileEntry
 from ..format.planes import BASE_PLANES, SH_INDEX_FORMAT, band_of, band_plane, chunks_for, groups_for_degree
+from ..format.steps import TileStep, splat_sizes
 from ..gaussians import Gaussians
 from ..lod import Tile, extent_bounds
 from ..store import SceneWriter
@@ -43,7 +44,8 @@ def keyed_order(g: Gaussians, order: np.ndarray, ctx: TileContext) -> np.ndarray
     if fmt not in MORTON_FORMATS or ctx.chunk_order != "morton" or ctx.transport != "keyed" or len(order) < 2:
         return order
     spec = BASE_PLANES[0]
-    plane = encode_plane(plane_values(g, spec), spec, fmt, order, step=ctx.steps.get("position"))
+    step = ctx.steps.get("position")
+    plane = encode_plane(plane_values(g, spec), spec, fmt, order, step=step, sizes=step_splat_sizes(g, step))
     n = len(order)
     chunks = chunks_for(n)
     texels = np.frombuffer(plane.layers[0], "<u2").reshape(-1, 4)[chunk_texel_index(chunks, plane.width)[:n]]
@@ -51,6 +53,11 @@ def keyed_order(g: Gaussians, order: np.ndarray, ctx: TileContext) -> np.ndarray
     chunk = np.arange(n) // CHUNK_SIZE
     within = np.lexsort((np.arange(n), key, chunk))  # by chunk, then key, ties in the given order
     return order[within]
+
+
+def step_splat_sizes(g: Gaussians, step: TileStep | None) -> np.ndarray | None:
+    """The splats' sizes a size-relative step needs (TileStep.per_size), else None."""
+    return splat_sizes(g.log_scales) if step is not None and step.per_size else None
 
 
 def tile_order(g: Gaussians, ctx: TileContext) -> np.ndarray:
@@ -82,7 +89,8 @@ def group_planes_of(g: Gaussians, order: np.ndarray, group: str, ctx: TileContex
         importance = codebook_weights(g) if step is not None and step.importance else None
         scene_palette = ctx.palettes.get(s.name) if ctx.palettes else None  # format.md 4.3.2, 1.7
         planes.append(encode_plane(plane_values(g, s), s, ctx.formats[s.attribute], order, lazy=True, step=step,
-                                   importance=importance, scene_palette=scene_palette))
+                                   importance=importance, scene_palette=scene_palette,
+                                   sizes=step_splat_sizes(g, step)))
     return planes
 
 

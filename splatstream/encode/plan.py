@@ -15,13 +15,13 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..errors import InputError, UsageError
-from ..format.codec import chunk_ranges, scene_palettes
+from ..format.codec import PaletteValues, chunk_ranges, merged_pairs, scene_palettes
 from ..format.container import DEFAULT_ZSTD_LEVEL
 from ..format.layout import CHUNK_SIZE, MAX_BLOCK_ROWS, MAX_BLOCKS_PER_ROW
 from ..format.limits import describe_violations, domain_violations
 from ..format.manifest import Box, CameraEntry
 from ..format.planes import BASE_PLANES
-from ..format.presets import preset_steps, resolve_chunk_order, resolve_formats
+from ..format.presets import PRESET_PALETTE_MERGE, palette_fallback, resolve_chunk_order, resolve_formats
 from ..format.steps import TileStep, on_grid
 from ..format.texformats import PALETTE_FORMATS
 from ..gaussians import Gaussians
@@ -149,9 +149,9 @@ def plan_scene(opts: EncodeOptions, formats: dict[str, str], chunk_order: str, s
         progress("codebook", 1.0)
     sample = replace(sample, codebook_rows=None, codebook_weights=None)
     up = plan_up(opts, sample)
-    palettes = scene_palettes(sample.palettes) if sample.palettes else None
+    formats, steps, palettes = plan_palettes(opts, formats, sample.palettes)
     context = TileContext(formats, chunk_order, sh_degree, codebook, opts.resolved_zstd_level, opts.resolved_transport,
-                          preset_steps(opts.preset, opts.overrides), palettes)
+                          steps, palettes)
     return ScenePlan(context, opts.preset, name, splats, bounds, up, opts.max_leaf_splats,
                      float(opts.reduction)), sample
 
@@ -190,6 +190,31 @@ def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progr
         tiles = [replace(t, gaussians=t.gaussians.with_sh_degree(sh_degree)) for t in tiles]
     progress("tiles", 1.0)
     return EncodePlan(scene, tiles, sample)
+
+
+def plan_palettes(opts: EncodeOptions, formats: dict[str, str], fitted: dict[str, list[PaletteValues]] | None
+                  ) -> tuple[dict[str, str], dict[str, TileStep], dict[str, np.ndarray] | None]:
+    """The formats, tile steps and scene palettes (format.md 4.3.2) of the encode: a palette attribute whose values
+    do not fit its palettes (more than 256 distinct values in one: PaletteValues.many) falls back to its preset's
+    fallback (presets.py PRESET_PALETTE_FALLBACK), logged in one line; the palettes the preset merges are merged
+    pairwise (PRESET_PALETTE_MERGE, codec.merged_pairs). Decided from every splat's values (sample.py), so every
+    engine decides alike."""
+    fitted = fitted or {}
+    attribute = {s.name: s.attribute for s in BASE_PLANES}
+    unfit = {attribute[name] for name, groups in fitted.items() if any(p.many for p in groups)}
+    formats, steps, fell = palette_fallback(opts.preset, opts.overrides, unfit, formats)
+    if fell:
+        log.info("%s: %s fell back to %s (values do not fit 256-entry palettes)", opts.preset, ", ".join(fell),
+                 ", ".join(f"{a} {formats[a]}" for a in fell))
+    kept = {name: groups for name, groups in fitted.items() if formats[attribute[name]] in PALETTE_FORMATS}
+    if not kept:
+        return formats, steps, None
+    palettes = scene_palettes(kept)
+    for name, indices in PRESET_PALETTE_MERGE.get(opts.preset, {}).items():
+        if name in palettes and name not in (opts.overrides or {}):
+            for i in indices:
+                palettes[name][i] = merged_pairs(palettes[name][i])
+    return formats, steps, palettes
 
 
 def palette_planes(formats: dict[str, str]) -> tuple[str, ...]:

@@ -201,7 +201,8 @@ def _quantize_u8(t: np.ndarray) -> np.ndarray:
 
 def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.ndarray | None = None,
                  lazy: bool = False, step: TileStep | None = None,
-                 importance: np.ndarray | None = None, scene_palette: np.ndarray | None = None) -> EncodedPlane:
+                 importance: np.ndarray | None = None, scene_palette: np.ndarray | None = None,
+                 sizes: np.ndarray | None = None) -> EncodedPlane:
     """Quantise (N, L, C) plane values into one texture blob per layer (+ per-chunk ranges).
 
     `step`: quantise a ranged plane on one step per component over the tile instead of per-chunk grids, by widening
@@ -215,6 +216,9 @@ def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.n
     is exhausted, so a payload writer holds one layer at a time.
 
     `scene_palette`: a palette plane's scene palettes (encode_palette_plane's `scene`).
+
+    `sizes` (N,): per-splat sizes (steps.splat_sizes) for a size-relative step (TileStep.per_size): its median over
+    the tile sets the step.
     """
     get_format(fmt_name)
     if fmt_name in PALETTE_FORMATS:
@@ -237,6 +241,9 @@ def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.n
     if order is not None and values.nbytes <= WHOLE_PLANE_GATHER_BYTES:
         values, order = np.take(values, order, axis=0), None
 
+    median_size = None
+    if step is not None and step.per_size and sizes is not None and n > 0:
+        median_size = float(np.median(sizes))
     pooled_size = None
     if step is not None and step.pooled and spec.range_dtype and n > 0:
         extents = []
@@ -255,7 +262,7 @@ def encode_plane(values: np.ndarray, spec: PlaneSpec, fmt_name: str, order: np.n
                 if step is not None:
                     tight_hi = hi
                     hi = widened_max(lo, hi, fmt_name, step, spec.range_dtype, plane_limits(spec.name),
-                                     chunk_importance, pooled_size)
+                                     chunk_importance, pooled_size, median_size)
                     if step.zero:
                         lo, hi = zero_on_grid(lo, hi, tight_hi, fmt_name, spec.range_dtype, plane_limits(spec.name))
                 if spec.name == "color" and opacity_on_grid(v[:, OPACITY]):
@@ -337,6 +344,23 @@ def palette_values(values: np.ndarray, spec: PlaneSpec) -> list[PaletteValues]:
 def scene_palettes(parts: dict[str, list[PaletteValues]]) -> dict[str, np.ndarray]:
     """The scene's palettes per plane, (palette_count, 256) float32 (format.md 4.3.2, 1.7), from its PaletteValues."""
     return {name: np.stack([p.palette() for p in groups]).astype(np.float32) for name, groups in parts.items()}
+
+
+def merged_pairs(palette: np.ndarray) -> np.ndarray:
+    """(256,) ascending palette with its distinct values merged pairwise (an encoder choice, presets.py
+    PRESET_PALETTE_MERGE): the least and the largest distinct values stay, so every value stays inside the palette's
+    span, and the ones between are merged two by two into their midpoint (256 distinct values -> 129; an odd count
+    pairs the last with itself). Each value then takes its nearest entry: an error of at most half the gap of the
+    pair it was merged in. Padded with the largest entry, as PaletteValues.palette pads."""
+    d = np.unique(np.asarray(palette, np.float64))
+    if len(d) <= 2:
+        kept = d
+    else:
+        inner = d[1:-1]
+        if len(inner) % 2:
+            inner = np.append(inner, inner[-1])
+        kept = np.concatenate([d[:1], (inner[0::2] + inner[1::2]) / 2, d[-1:]])
+    return np.concatenate([kept, np.repeat(kept[-1:], PALETTE_ENTRIES - len(kept))]).astype(np.float32)
 
 
 def _grid_palette(lo: float, hi: float) -> np.ndarray:

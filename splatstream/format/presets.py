@@ -71,6 +71,15 @@ PRESETS: dict[str, dict[str, str]] = {
     # for the donut scene, where SOG's 16-bit positions sat above every preset (bench/results/donut_summary.md).
     "medium-low-12bit": {"position": "norm16x4", "rotation": "norm8x4", "scale": "norm8x4", "color": "norm8x4",
                          "sh": "norm565"},
+    # medium-low-12bit for inputs whose scales and colour are palettes already (SOG files, issue 32): scales and
+    # colour as indices into the scene's palettes (pal8x4, format.md 4.3.2), the SH0 R, G, B palette merged pairwise
+    # (PRESET_PALETTE_MERGE: 256 -> 129 values), positions on a step from the splats' size (the tile's median splat
+    # size / 120, PRESET_STEPS) and the keyed transport. On the seven statue scans (SOG inputs) it met SOG's point on
+    # every one held out (BENCHMARKS.md, "A position step from the splats' size"). Where a plane's values do not fit
+    # its palettes (more than 256 distinct values: not a SOG input) that plane is medium-low-12bit's, and positions
+    # take medium-low-12bit's step too (PRESET_PALETTE_FALLBACK).
+    "medium-low-palette": {"position": "norm16x4", "rotation": "norm8x4", "scale": "pal8x4", "color": "pal8x4",
+                           "sh": "norm565"},
     # low-plus with 9-bit positions on one step per tile (PRESET_STEPS), and scales and opacity on coarser steps:
     # on fruit_drops, lod_tile, donut and the 1M scene fewer bytes and more PSNR than low-plus (1M: 12.55 B at 57.1 dB
     # against 13.42 B at 54.2; 0.88 of SOG's bytes at +3.8 dB there); on biker 0.6 B less for 0.6 dB less.
@@ -92,7 +101,8 @@ PRESETS: dict[str, dict[str, str]] = {
 # Presets whose SH bands go through a scene-wide codebook (vq.py: "auto" about one entry per 64 splats, "fine" one
 # per 16, at least 256, at most 16,384 below 1M splats, "large" one per 8, 256..65,536).
 PRESET_SH_CODEBOOK: dict[str, str] = {"low-plus-10bit-cb8": "large",
-                                      "medium-low": "fine", "medium-low-12bit": "fine", "medium-low-9bit": "fine",
+                                      "medium-low": "fine", "medium-low-12bit": "fine", "medium-low-palette": "fine",
+                                      "medium-low-9bit": "fine",
                                       "low-plus-9bit": "auto", "low-plus": "auto", "low": "auto", "very-low": "auto"}
 # Tile-wide quantisation steps (format/steps.py, format.md 4.3.1): levels of the tile's median chunk per component,
 # the first `shared` components on one step. Per-chunk grids give a chunk of widely spread values a coarse step and a
@@ -139,6 +149,10 @@ PRESET_STEPS: dict[str, dict[str, TileStep]] = {
     "medium-low-sh8": sh_steps(8.0),
     "medium-low-12bit": {"position": TileStep((4095.0,) * 3, shared=3), "scale": TileStep((180.0,) * 3, shared=3),
                          "color": TileStep((255.0, 255.0, 255.0, 55.0), shared=3)},
+    # the median chunk gets 120 x its extent / the tile's median splat size levels, at most 4095 (TileStep.per_size):
+    # every K from 96 to 144 met SOG's point on all seven statues held out, K = 120 worst +1.01 dB at 0.892 of its
+    # bytes (BENCHMARKS.md, "A position step from the splats' size").
+    "medium-low-palette": {"position": TileStep((4095.0,) * 3, shared=3, per_size=120.0)},
     "medium-low-9bit": {"scale": TileStep((200.0,) * 3, shared=3),
                         "color": TileStep((255.0, 255.0, 255.0, 55.0), shared=3)},
     "low-plus-9bit": {"position": TileStep((400.0,) * 3, shared=3), "scale": TileStep((200.0,) * 3, shared=3),
@@ -155,7 +169,8 @@ PRESET_STEPS: dict[str, dict[str, TileStep]] = {
 # both): a higher level where its small gain puts a preset under 0.90 of SOG's bytes on a real scene, for a little
 # more encode time; low-plus and low gained nothing, and medium keeps level 1 for its encode speed
 # (bench/results/pos9_levels_*; BENCHMARKS.md, "Figures behind library defaults").
-PRESET_ZSTD_LEVEL: dict[str, int] = {"medium-low": 9, "medium-low-12bit": 16, "medium-low-9bit": 16,
+PRESET_ZSTD_LEVEL: dict[str, int] = {"medium-low": 9, "medium-low-12bit": 16, "medium-low-palette": 16,
+                                     "medium-low-9bit": 16,
                                      "low-plus-9bit": 16, "low-plus-9bit-sh6": 16,
                                      "low-plus-9bit-sh5": 16, "low-plus-10bit-cb8": 16}
 DEFAULT_PRESET = "medium"
@@ -180,6 +195,10 @@ PRESET_SUMMARY: dict[str, str] = {
     "medium-low-12bit": "medium-low with about 12-bit positions (16-bit texels on one step per tile), coarser "
                         "scales and opacity, zstd level 16; about 12.9-14.7 B/splat at SH3, 11.7-12.5 at SH0; "
                         "47-64 dB",
+    "medium-low-palette": "medium-low-12bit for SOG inputs: scale and colour palettes (SH0's merged pairwise), "
+                          "positions on a step of the splat size / 120, keyed transport; medium-low-12bit's planes "
+                          "where the values do not fit a palette; statue scans (SOG, SH0) 11.1-11.4 B/splat, "
+                          "60-66 dB; other inputs as medium-low-12bit (0-0.35 B/splat fewer: keyed)",
     "medium-low-9bit": "medium-low with 9-bit positions, scales and opacity on tile steps, zstd level 16; about "
                        "12.2-14.1 B/splat at SH3, 11.2-11.8 at SH0; 47-62 dB",
     "low-plus-9bit": "low-plus with 9-bit positions on one step per tile, coarser scales and opacity, zstd level "
@@ -238,8 +257,46 @@ def step_attribute(key: str) -> str:
 
 # The transport a preset's payloads are written with when none is given (format/transport.py TRANSPORTS); "fields"
 # for every preset not named here. `keyed` (morton1 positions, format.md 5.4) measured 0.3 B/splat smaller on the
-# statue scans and about 10 % slower to decode (BENCHMARKS.md, issue 32): no preset uses it yet.
-PRESET_TRANSPORT: dict[str, str] = {}
+# statue scans and about 10 % slower to decode (BENCHMARKS.md, issue 32); medium-low-palette uses it.
+PRESET_TRANSPORT: dict[str, str] = {"medium-low-palette": "keyed"}
+
+
+# Presets that store attributes as palette indices (pal8x4, format.md 4.3.2) only where the scene's values fit the
+# palettes (at most 256 distinct values in each: exact), with the preset they fall back to: an attribute whose
+# values do not fit takes the fallback preset's format and tile step, and positions then take its position step too
+# (the size-relative step was chosen on palette inputs; on donut, not one, it loses SOG's point). encode/plan.py
+# plan_palettes.
+PRESET_PALETTE_FALLBACK: dict[str, str] = {"medium-low-palette": "medium-low-12bit"}
+# Scene palettes a preset merges pairwise before any tile is encoded (codec.merged_pairs: the least and largest
+# distinct values kept, the ones between merged two by two into their midpoint, 256 -> 129): plane -> palette
+# indices (color 0: SH0 R, G, B; 1: opacity; scale 0). An encoder choice: the file stores the merged palette as any.
+# On the statue scans SH0's merged palette cost about 0.3 dB for about 0.35 B/splat (BENCHMARKS.md, "A position step
+# from the splats' size").
+PRESET_PALETTE_MERGE: dict[str, dict[str, tuple[int, ...]]] = {"medium-low-palette": {"color": (0,)}}
+
+
+def palette_fallback(preset: str, overrides: dict[str, str] | None, unfit: set[str],
+                     formats: dict[str, str] | None = None) -> tuple[dict[str, str], dict[str, TileStep], list[str]]:
+    """The formats and tile steps of `preset` (with `overrides`; `formats`: resolve_formats' already) once the
+    palette attributes in `unfit` (their values exceed a palette) fall back (PRESET_PALETTE_FALLBACK); also the
+    attributes that fell back. A preset without a fallback, or nothing unfit, keeps its own."""
+    formats = dict(formats) if formats is not None else resolve_formats(preset, overrides)
+    steps = preset_steps(preset, overrides)
+    fallback = PRESET_PALETTE_FALLBACK.get(preset)
+    fell = [a for a in ATTRIBUTES if a in unfit and a not in (overrides or {}) and formats[a] in PALETTE_FORMATS]
+    if fallback is None or not fell:
+        return formats, steps, []
+    other = preset_steps(fallback)
+    for attr in fell:
+        formats[attr] = PRESETS[fallback][attr]
+        steps.pop(attr, None)
+        if attr in other:
+            steps[attr] = other[attr]
+    if "position" in steps and "position" not in (overrides or {}):
+        steps.pop("position")
+        if "position" in other and formats["position"] == PRESETS[fallback]["position"]:
+            steps["position"] = other["position"]
+    return formats, steps, fell
 
 
 def preset_transport(preset: str, default: str) -> str:

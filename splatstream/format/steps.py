@@ -49,6 +49,14 @@ class TileStep:
     # i.e. one step for all, is what spends the bits best; a step per coefficient from its own spread gives
     # coefficients of small spread finer steps than they deserve.
     pooled: bool = False
+    # Size-relative step (positions, issue 32): with per_size = K > 0 the step of the shared components is the
+    # tile's median splat size (the largest axis of exp(log scale), splat_sizes) / K, in place of the median chunk's
+    # extent / levels[0]; the median chunk then gets K x (its extent / the median size) levels, clamped to
+    # [size_levels_min, levels[0]]. A position error hurts a splat in proportion to its size, so a scene of small
+    # splats in wide chunks gets a fine step and one of large splats a coarse one (statue scans: BENCHMARKS.md,
+    # "A position step from the splats' size").
+    per_size: float = 0.0
+    size_levels_min: float = 1.0
 
     def check(self, fmt_name: str, components: int) -> None:
         fmt = get_format(fmt_name)
@@ -58,11 +66,26 @@ class TileStep:
             raise UsageError(f"tile step levels {self.levels} (shared {self.shared}) for {components} components")
 
 
-def step_sizes(extent: np.ndarray, step: TileStep) -> np.ndarray:
-    """(C,) step per component from the chunks' extents (chunks, C)."""
+def step_sizes(extent: np.ndarray, step: TileStep, median_size: float | None = None) -> np.ndarray:
+    """(C,) step per component from the chunks' extents (chunks, C); `median_size`: the tile's median splat size
+    for a size-relative step (TileStep.per_size, shared_levels)."""
     size = np.median(extent, axis=0) / np.array(step.levels, np.float64)
-    size[:step.shared] = np.median(extent[:, :step.shared].max(axis=1)) / step.levels[0]
+    shared_extent = float(np.median(extent[:, :step.shared].max(axis=1)))
+    size[:step.shared] = shared_extent / shared_levels(shared_extent, step, median_size)
     return size
+
+
+def shared_levels(median_extent: float, step: TileStep, median_size: float | None) -> float:
+    """Levels of the median chunk for the shared components: levels[0], or with a size-relative step
+    (TileStep.per_size) per_size x median_extent / median_size clamped to [size_levels_min, levels[0]]."""
+    if not step.per_size or median_size is None or not median_size > 0 or not median_extent > 0:
+        return step.levels[0]
+    return float(np.clip(step.per_size * median_extent / median_size, step.size_levels_min, step.levels[0]))
+
+
+def splat_sizes(log_scales: np.ndarray) -> np.ndarray:
+    """(N,) a splat's size for a size-relative step: the largest axis of exp(log scale)."""
+    return np.exp(np.asarray(log_scales, np.float64).max(axis=1))
 
 
 def pooled_step_size(extents: np.ndarray, step: TileStep) -> float:
@@ -87,17 +110,18 @@ def importance_factors(chunk_importance: np.ndarray, exponent: float) -> np.ndar
 
 def widened_max(lo: np.ndarray, hi: np.ndarray, fmt_name: str, step: TileStep, range_dtype: str,
                 limits: tuple[float, float], chunk_importance: np.ndarray | None = None,
-                pooled_size: float | None = None) -> np.ndarray:
+                pooled_size: float | None = None, median_size: float | None = None) -> np.ndarray:
     """The stored max of every chunk (chunks, C) under a tile step; `lo`, `hi` the chunk ranges as stored (in
     `range_dtype`). Never below `hi` (every value stays inside its range) nor above the plane's limit.
     `chunk_importance` (chunks,): scales each chunk's step when the step has an `importance` exponent.
-    `pooled_size`: the step of every component (TileStep.pooled, pooled_step_size) instead of step_sizes'."""
+    `pooled_size`: the step of every component (TileStep.pooled, pooled_step_size) instead of step_sizes'.
+    `median_size`: the tile's median splat size (splat_sizes) for a size-relative step (TileStep.per_size)."""
     components = lo.shape[-1]
     step.check(fmt_name, components)
     fmt_levels = np.array(get_format(fmt_name).levels[:components], np.float64)
     lo64, hi64 = lo.astype(np.float64), hi.astype(np.float64)
     extent = hi64 - lo64
-    size = step_sizes(extent, step) if pooled_size is None else np.full(components, pooled_size)
+    size = step_sizes(extent, step, median_size) if pooled_size is None else np.full(components, pooled_size)
     if step.importance and chunk_importance is not None:
         size = size[None, :] * importance_factors(chunk_importance, step.importance)[:, None]
     steps = np.clip(np.divide(extent, size, out=np.zeros_like(extent), where=size > 0), 1.0, fmt_levels)
