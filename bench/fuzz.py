@@ -954,9 +954,20 @@ def mutate_gltf_dir(rng: random.Random, gltf: pathlib.Path) -> str:
 
 
 def _manifest_dict(scene: pathlib.Path) -> dict:
+    """The manifest map; an unpaged 1.8 tile table (format.md 6.2) as the same scene's 1.7 tile maps, so that a
+    campaign damages one tile's map as before (the table's own damage: tests/test_manifest_table.py)."""
+    from dataclasses import replace
+
     import msgpack
 
-    return msgpack.unpackb((scene / "manifest.msgpack").read_bytes(), raw=False, strict_map_key=False)
+    from splatstream.format.manifest import manifest_from_dict
+    from splatstream.format.manifest.versions import VERSION_1_7
+
+    d = msgpack.unpackb((scene / "manifest.msgpack").read_bytes(), raw=False, strict_map_key=False)
+    if "tile_table" not in d or "paged" in d:
+        return d
+    m = replace(manifest_from_dict(d), version=VERSION_1_7)
+    return m.with_bytes_on_disk(m.payload_bytes()).to_dict()
 
 
 def _write_manifest(scene: pathlib.Path, d: dict, reseal: bool = True, settle: bool = False) -> None:
