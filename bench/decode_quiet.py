@@ -65,6 +65,7 @@ SCENES = {
     "lod_tile_sh3_zero_rest": "tests/data/real/lod_tile_sh3_zero_rest.ply",
     "winter_fountain": "tests/data/real/winter_fountain.splat",
     "flowers_3_0": "tests/data/real/flowers_lod/3_0/meta.json",
+    "statue_massa": "tests/data/real/statues/massa.sog",  # a SOG input: medium-low-palette keeps its palettes
 }
 DECODES = ("group", "verified", "one")
 
