@@ -295,13 +295,18 @@ def edge_costs(mu, cov, alpha, col, w, i, j, rule: GroupRule, block: int = 16384
     def one(s: int) -> None:
         out[s:s + block] = _edge_costs(mu_t, cov_t, alpha, col, w, i[s:s + block], j[s:s + block], rule)
 
-    if pool is None or len(i) <= block:
-        for s in range(0, len(i), block):
+    _run_blocks(one, len(i), block, pool)
+    return out
+
+
+def _run_blocks(one, n: int, block: int, pool: Executor | None) -> None:
+    """one(s) for the start s of every block of `block` of n items: on `pool` where there is more than one block."""
+    if pool is None or n <= block:
+        for s in range(0, n, block):
             one(s)
     else:
-        for _ in pool.map(one, range(0, len(i), block)):
+        for _ in pool.map(one, range(0, n, block)):
             pass
-    return out
 
 
 def _rows_where(mask: np.ndarray, dtype, chunk: int = 1 << 20) -> np.ndarray:
@@ -325,12 +330,7 @@ def edge_costs_at(out: np.ndarray, rows: np.ndarray, mu, cov, alpha, col, w, i, 
         c[~np.isfinite(c)] = np.finfo(np.float64).max
         out[r] = c
 
-    if pool is None or len(rows) <= block:
-        for s in range(0, len(rows), block):
-            one(s)
-    else:
-        for _ in pool.map(one, range(0, len(rows), block)):
-            pass
+    _run_blocks(one, len(rows), block, pool)
 
 
 def _cross3(sda, sdb, csum, dd):

@@ -45,22 +45,13 @@ def encode_vector(preset: str, out: pathlib.Path, source=None) -> None:
     encode_gaussians(g, out, EncodeOptions(preset=preset, name=f"vector-{preset}", zstd_level=3))
 
 
-def paged_vector(source) -> None:
+def paged_vector(source, name: str) -> None:
+    """The paged vector `name` (`paged`, or `table`: the same input and options, written by today's encoder, its root
+    manifest and pages holding their tiles as tile tables, format.md 6.2, version 1.8)."""
     g = source.subset(morton_order(source.positions)[:PAGED_SPLATS])
-    out = HERE / "paged"
+    out = HERE / name
     shutil.rmtree(out, ignore_errors=True)
-    encode_gaussians(g, out, EncodeOptions(preset="medium", name="vector-paged", zstd_level=3, **PAGED))
-    (out / "expected.json").write_text(json.dumps(expected_values(decode_scene(out))) + "\n")
-    print("wrote", out)
-
-
-def table_vector(source) -> None:
-    """The same input and options as `paged`, written by today's encoder: its root manifest and pages hold their
-    tiles as tile tables (format.md 6.2, version 1.8)."""
-    g = source.subset(morton_order(source.positions)[:PAGED_SPLATS])
-    out = HERE / "table"
-    shutil.rmtree(out, ignore_errors=True)
-    encode_gaussians(g, out, EncodeOptions(preset="medium", name="vector-table", zstd_level=3, **PAGED))
+    encode_gaussians(g, out, EncodeOptions(preset="medium", name=f"vector-{name}", zstd_level=3, **PAGED))
     (out / "expected.json").write_text(json.dumps(expected_values(decode_scene(out))) + "\n")
     print("wrote", out)
 
@@ -70,10 +61,9 @@ def main(names: list[str]) -> None:
     if unknown:
         raise SystemExit(f"unknown vector {sorted(unknown)[0]!r} (choose from {', '.join(PRESETS)}, paged, table)")
     source = read_gaussians_ply(SOURCE)
-    if not names or "paged" in names:
-        paged_vector(source)
-    if not names or "table" in names:
-        table_vector(source)
+    for name in ("paged", "table"):
+        if not names or name in names:
+            paged_vector(source, name)
     for preset in PRESETS:
         if names and preset not in names:
             continue

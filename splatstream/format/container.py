@@ -333,7 +333,7 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
     others is returned then."""
     if not items:
         return []
-    if any(sec.filter == MORTON1 or sec.format in PALETTE_FORMATS for _, entry in items for sec in entry.sections):
+    if not all(_wholly(entry) for _, entry in items):
         # keyed positions and palette planes (format.md 5.4, 4.3.2) are decoded one payload at a time
         return [unpack_payload(data, entry, group, source, codebook, between, palettes)
                 for (data, entry), source in zip(items, sources, strict=True)]
@@ -413,8 +413,8 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
 
 
 def _wholly(entry: PayloadEntry) -> bool:
-    """The payload's planes can go through _unpack_whole (no keyed positions, no palette planes: format.md 5.4,
-    4.3.2, which are decoded a plane at a time)."""
+    """The payload's planes can go through _unpack_whole and unpack_payloads' batches (no keyed positions, no
+    palette planes: format.md 5.4, 4.3.2, which are decoded a plane at a time, one payload at a time)."""
     return not any(sec.filter == MORTON1 or sec.format in PALETTE_FORMATS for sec in entry.sections)
 
 
@@ -592,18 +592,16 @@ def _ranges_at(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], tab
     return _checked_ranges(got, rs, spec, sources)
 
 
-def _checked_ranges(got: list[np.ndarray], rs: list[Section], spec, sources: list[str],
-                    together: np.ndarray | None = None) -> list[np.ndarray]:
+def _checked_ranges(got: list[np.ndarray], rs: list[Section], spec, sources: list[str]) -> list[np.ndarray]:
     """Each payload's ranges of one plane from its unshuffled range bytes `got`, checked in one go where they lie one
-    after the other in one array (`together`: that array's bytes, else found from their base); a payload's own check
-    only to say which one failed."""
+    after the other in one array (found from their base); a payload's own check only to say which one failed."""
     ranges = [g.view(spec.range_dtype).reshape(r.shape) for g, r in zip(got, rs, strict=True)]
     shapes = {r.shape[1:] for r in ranges}
-    if together is None:
-        base = got[0].base
-        if len(ranges) > 1 and base is not None and all(g.base is base for g in got) \
-                and base.nbytes == sum(g.nbytes for g in got):
-            together = base.reshape(-1).view(np.uint8)
+    together = None
+    base = got[0].base
+    if len(ranges) > 1 and base is not None and all(g.base is base for g in got) \
+            and base.nbytes == sum(g.nbytes for g in got):
+        together = base.reshape(-1).view(np.uint8)
     if len(shapes) == 1 and together is not None:
         whole_r = together.view(spec.range_dtype).reshape(-1, *shapes.pop())
         if _ranges_ok(whole_r, spec.name):

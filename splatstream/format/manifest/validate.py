@@ -59,7 +59,7 @@ from .model import (
     filter_element,
     texels_size,
 )
-from .table import TABLE_KEY, read_columns
+from .table import TABLE_KEY, canonical_offsets, read_columns
 from .versions import (
     CHECKSUM_VERSION,
     CHUNK_ORDERS_1_4,
@@ -626,12 +626,11 @@ def _table_payload_map(c, p: int, raw_bytes: int, first: int, scene: _Scene, chu
     expect = _expected_sections(name, scene.codebook, scene.format_items, chunks, None, scene.scene_palettes)
     want = dict(expect)
     sha = bytes(c.sha256.reshape(-1, 32)[p]).hex()
-    sections, end = [], 0
-    for k, (sname, filt) in enumerate(c.layouts[int(c.layout.reshape(-1)[p])]):
-        size = int(c.sizes[first + k])
-        end += (-end) % ALIGN
-        s = {"name": sname, "offset": end, "size": size, "filter": filt}
-        end += size
+    layout = c.layouts[int(c.layout.reshape(-1)[p])]
+    sizes = [int(size) for size in c.sizes[first:first + len(layout)]]
+    sections = []
+    for (sname, filt), size, offset in zip(layout, sizes, canonical_offsets(sizes)[0], strict=True):
+        s = {"name": sname, "offset": offset, "size": size, "filter": filt}
         w = want.get(sname)
         if w is None:
             s["kind"] = "texels"
