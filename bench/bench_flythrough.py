@@ -58,13 +58,20 @@ class StepTimer:
 
     def wrap_compiled_selection(self, cls) -> None:
         """The compiled selection (engine.CompiledSelection.get hands it out once its kernels are ready) timed as
-        client_gl.stream.engine.select_near_compiled."""
+        client_gl.stream.engine.select_near_compiled, its draw set (CompiledSelection.draw) as the numpy draw set,
+        client_gl.stream.engine.draw_set."""
         get = cls.get
 
         def timed_get(selection, *args, **kwargs):
             fn = get(selection, *args, **kwargs)
             return None if fn is None else self._timed(fn, "client_gl.stream.engine.select_near_compiled")
         cls.get = timed_get
+        draw = cls.draw
+
+        def timed_draw(selection):  # the compiled draw set, timed as the numpy one (draw_set)
+            fn = draw(selection)
+            return None if fn is None else self._timed(fn, "client_gl.stream.engine.draw_set")
+        cls.draw = timed_draw
 
     def _timed(self, fn, label):
         def timed(*args, **kwargs):

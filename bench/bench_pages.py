@@ -373,6 +373,9 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
         setattr(engine_module, name, part("cut", getattr(engine_module, name)))
     if COMPILED_SELECTION._fn is not None:
         COMPILED_SELECTION._fn = part("cut", COMPILED_SELECTION._fn)
+    compiled_draw = COMPILED_SELECTION._draw  # the compiled draw set (ready with the compiled selection)
+    if compiled_draw is not None:
+        COMPILED_SELECTION._draw = part("draw set", compiled_draw)
     if engine.pages is not None:
         engine.pages.wanted_pages = part("pages wanted", engine.pages.wanted_pages)
     for label, name in (("wanted", "wanted"), ("wish list", "_tell_fetcher"), ("page adoption", "_add_pages"),
@@ -431,6 +434,8 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
             setattr(engine_module, name, fn)
         if compiled_fn is not None:
             COMPILED_SELECTION._fn = compiled_fn
+        if compiled_draw is not None:
+            COMPILED_SELECTION._draw = compiled_draw
     ts, cs = np.array(times) * 1e3, np.array(cpu) * 1e3
     ws = np.array(wanted_s) * 1e3
     tree_mb = tree_memory_mb(engine.pages, paged)

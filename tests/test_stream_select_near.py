@@ -22,6 +22,7 @@ from client_gl.stream.engine import COMPILED_SELECTION, StreamEngine, StreamOpti
 from client_gl.stream.pages import PagedTree
 from client_gl.stream.selection import (
     PartialView,
+    Selection,
     SelectionOptions,
     ViewBuffers,
     draw_set,
@@ -41,9 +42,9 @@ from splatstream.store import read_manifest
 
 try:
     from client_gl.stream import selection_jit
-    from client_gl.stream.selection_jit import _children, select_near_compiled
+    from client_gl.stream.selection_jit import _children, draw_set_compiled, select_near_compiled
 except ImportError:  # numba is an optional extra (`fast`): the compiled half of each test is skipped without it
-    select_near_compiled = _children = selection_jit = None
+    select_near_compiled = _children = selection_jit = draw_set_compiled = None
 
 NEEDS_NUMBA = pytest.mark.skipif(select_near_compiled is None,
                                  reason="the compiled selection needs the package numba (extra `fast`)")
@@ -136,7 +137,11 @@ def check_same(m, cam, opts, previous, near, resident, rnd, path="numpy", near_p
     # one tile's box test alone (what the draw set's walk below the cut uses) is the batch's
     some = rnd.sample(range(len(m.tiles)), min(40, len(m.tiles)))
     assert all(part.visible_at(i) == bool(full.visible[i]) for i in some)
-    assert draw_set(a, part, got, resident, root) == draw_set(a, full, want, resident, root)
+    drawn = draw_set(a, part, got, resident, root)
+    assert drawn == draw_set(a, full, want, resident, root)
+    if draw_set_compiled is not None:  # the compiled draw set: the same tiles in the same order, either view
+        assert draw_set_compiled(a, part, got, resident, root).tolist() == drawn
+        assert draw_set_compiled(a, full, want, resident, root).tolist() == drawn
     assert prefetch(a, part, got, opts, cost) == prefetch(a, full, want, opts, cost)
     return got, int(known.sum())
 
@@ -236,6 +241,54 @@ def test_select_near_on_a_paged_tree_with_pages_arriving_and_dropped(whole, path
     assert reads > 10 and evictions > 10 and tree.evicted > 0
     if path == "compiled":  # the children's index was grown with the tree (and checked against it), not only made anew
         assert selection_jit._index.grown > 10
+
+
+@NEEDS_NUMBA
+def test_compiled_draw_set_is_draw_sets(whole):
+    """selection_jit.draw_set_compiled against draw_set (the numpy reference) on trees whose children are listed in
+    shuffled order (the walk's order is the tree's, not the positions'), with refined sets from selections and at
+    random (refined tiles that are not candidates, whose children are not visible, below tiles not refined), every
+    kind of residency, and both views: a PartialView whose numbers are known for some tiles only (the others
+    box-tested alone) and the whole TileView. The same tiles in the same order, every time."""
+    rnd = random.Random(11)
+    a0 = whole.arrays
+    kinds = {"refined and replaced": 0, "refined, drawn itself": 0, "stood in for": 0, "empty": 0}
+    for trial in range(6):
+        tiles = list(whole.tiles)
+        if trial:  # the children of every tile in another order
+            tiles = [replace(t, children=tuple(rnd.sample(t.children, len(t.children)))) for t in tiles]
+        m = replace(whole, tiles=tuple(tiles))
+        a = m.arrays
+        root = m.index_of[m.root]
+        n = len(m.tiles)
+        assert trial == 0 or any(a.children[i] != a0.children[i] for i in range(n))
+        lo, hi, kids = _children(a)
+        assert [tuple(kids[lo[i]:hi[i]].tolist()) for i in range(n)] == list(a.children)
+        cost = np.array([t.chunks for t in m.tiles], np.float64) * 4096.0
+        for _ in range(40):
+            cam, opts = random_camera(m, rnd), random_options(m, rnd, cost)
+            full = view_numbers(a, cam, opts)
+            part = PartialView(a, cam, opts, m.lod.reduction, BUFFERS)
+            part.ensure(rnd.sample(range(n), rnd.randrange(n + 1)))
+            if rnd.random() < 0.5:
+                sel = select(a, full, cost, root, opts, frozenset(), m.lod.reduction)
+            else:  # any refined set: the walk must follow draw_set's rules wherever they lead
+                refined = np.array(rnd.sample(range(n), rnd.randrange(n // 2 + 1)), np.intp)
+                sel = Selection.of_arrays(np.zeros(0, np.intp), np.zeros(0), refined, 0, 0.0)
+            share = rnd.choice([0.0, 0.1, 0.5, 0.9, 1.0])
+            resident = np.array([rnd.random() < share for _ in range(n)], bool)
+            for view in (part, full):
+                want = draw_set(a, view, sel, resident, root)
+                got = draw_set_compiled(a, view, sel, resident, root)
+                assert got.dtype == np.int64 and got.tolist() == want
+                top_refined = root in sel.refined
+                if not want:
+                    kinds["empty"] += 1
+                elif top_refined:
+                    kinds["refined, drawn itself" if want == [root] else "refined and replaced"] += 1
+                elif not resident[root]:
+                    kinds["stood in for"] += 1  # the root not loaded: its descendants drawn in its place
+    assert all(kinds.values()), kinds
 
 
 @NEEDS_NUMBA

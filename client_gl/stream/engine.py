@@ -153,6 +153,7 @@ class CompiledSelection:
 
     def __init__(self) -> None:
         self._fn = None
+        self._draw = None  # selection_jit.draw_set_compiled, ready with _fn
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
         self.error: BaseException | None = None  # why it is not available (numba missing, a failed compilation)
@@ -168,6 +169,11 @@ class CompiledSelection:
                     self._thread = threading.Thread(target=self._load, name="splatstream-selection-jit", daemon=True)
                     self._thread.start()
         return fn
+
+    def draw(self):
+        """The compiled draw set (selection_jit.draw_set_compiled), or None while the kernels are not ready (never
+        starts loading them: the selection does)."""
+        return self._draw
 
     def wait(self, timeout: float | None = None):
         """Start it if not started, wait until it is ready or has failed: the function or None (benchmarks, tests)."""
@@ -199,6 +205,7 @@ class CompiledSelection:
             decode_jit.install()
         except Exception as exc:  # a failed compilation leaves the numpy path (the same bytes)
             self.decode_error = exc
+        self._draw = selection_jit.draw_set_compiled
         self._fn = selection_jit.select_near_compiled
 
 
@@ -625,11 +632,17 @@ class StreamEngine:
     def _draw_counts(self, view, sel: Selection) -> tuple:
         """The draw set and what a frame reports of it and of the residency, kept while neither changes (a still,
         converged view then costs no numpy work a frame)."""
-        drawn = draw_set(self.arrays, view, sel, self.resident, self.root)
+        # compiled with the selection (the same tiles in the same order; the Python walk was about 1 ms a frame at
+        # 250M splats: BENCHMARKS.md, "Manifest pages"), else the numpy reference
+        compiled = COMPILED_SELECTION.draw() if self.options.compiled_selection else None
+        if compiled is not None:
+            drawn = compiled(self.arrays, view, sel, self.resident, self.root)
+        else:
+            drawn = np.asarray(draw_set(self.arrays, view, sel, self.resident, self.root), np.intp)
         counts = (self.ids[drawn].tolist(), int(self.resident.sum()),
                   int(self.arrays.splats[self.resident].sum()),
-                  int(self.arrays.splats[drawn].sum()) if drawn else 0)
-        return (self._wanted_serial, self._version), np.asarray(drawn, np.intp), counts
+                  int(self.arrays.splats[drawn].sum()) if len(drawn) else 0)
+        return (self._wanted_serial, self._version), drawn, counts
 
     def _coarse_to_fine(self, keys: list[Key], sel: Selection) -> list[Key]:
         """The wish list with the ancestors of every cut tile not resident yet, bases ordered by level (then by

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import math
 import weakref
+from itertools import chain
 
 import numpy as np
 from numba import njit
@@ -30,11 +31,13 @@ from client_gl.stream.selection import (
     PartialView,
     Selection,
     SelectionOptions,
+    TileView,
     ViewBuffers,
     _split,
     positions,
     refinement_keys,
     select_near_heap,
+    view_numbers,
 )
 from splatstream.camera import Camera
 from splatstream.format.manifest import TileArrays
@@ -42,28 +45,6 @@ from splatstream.format.manifest import TileArrays
 _JIT = dict(cache=True, nogil=True, error_model="numpy")  # x/0 gives inf or nan as numpy's does, never an exception
 # The kernels' `g`, the tree and camera (select_near_compiled builds it): positions in the tuple
 _CAM, _CENTRE, _RADIUS, _ERR, _CORNERS, _PLANE_D, _SPLIT, _LO, _HI, _WAS_REFINED, _HIGH, _LOW = range(12)
-
-
-@njit(**_JIT)
-def _child_csr(parent, out):
-    """Each tile's children as a slice of one array: out[:n + 1] the starts, out[n + 1:] the children (each tile's
-    in position order)."""
-    n = parent.shape[0]
-    first = out[:n + 1]
-    first[:] = 0
-    for i in range(n):
-        p = parent[i]
-        if p >= 0:
-            first[p + 1] += 1
-    for i in range(n):
-        first[i + 1] += first[i]
-    kids = out[n + 1:]
-    fill = first[:n].copy()
-    for i in range(n):
-        p = parent[i]
-        if p >= 0:
-            kids[fill[p]] = i
-            fill[p] += 1
 
 
 @njit(inline="always")
@@ -272,8 +253,94 @@ def _cut(first, last, kids, visible, refd, reflist, nref, prio, root, out_t, out
     return m
 
 
+@njit(inline="always")
+def _shown(c, all_known, known, visible, corners, plane_d, split):
+    """PartialView.visible_at of tile c: its batch answer where its numbers are computed, else its box alone
+    against the planes (the same operations in the same order as boxes_in_frustum's: the same answer)."""
+    if all_known or known[c]:
+        return visible[c]
+    for p in range(plane_d.shape[0]):
+        s = plane_d[p] + corners[c, 0] * split[p, 0]
+        for k in range(1, 6):
+            s = s + corners[c, k] * split[p, k]
+        if not s >= 0:
+            return False
+    return True
+
+
+# the draw set walk's frame states (selection.draw_set's cover(i), one stack frame a tile being covered)
+_ENTER, _REFINED, _STAND_IN = 0, 1, 2
+
+
+@njit(**_JIT)
+def _draw_walk(root, lo, hi, kids, refd, resident, all_known, known, visible, corners, plane_d, split, out, stack):
+    """selection.draw_set's recursive cover(root), as a loop over an explicit stack (a frame a tile: its state, the
+    next child to look at, where its tiles start in `out`, whether a child was covered, whether one is being
+    covered). A tile refined is replaced by its visible children when all of them are covered (none visible: by
+    nothing), else drawn itself if resident; a tile not refined is drawn if resident, else stood in for by its
+    visible children if it has some and all of them are covered. A failed cover takes its tiles back out of `out`.
+    Returns how many tiles `out` holds (0 when the root is not covered: draw_set's [])."""
+    st_i, st_state, st_q, st_mark, st_any = stack[0], stack[1], stack[2], stack[3], stack[4]
+    m = 0
+    top = 1
+    st_i[0], st_state[0] = root, _ENTER
+    ok = False  # the answer of the last cover that returned
+    waiting = False  # the top frame pushed a child, whose answer is `ok`
+    while top > 0:
+        f = top - 1
+        i = st_i[f]
+        state = st_state[f]
+        if state == _ENTER:
+            st_mark[f] = m
+            st_q[f] = lo[i]
+            st_any[f] = 0
+            if refd[i]:
+                st_state[f] = _REFINED
+            elif resident[i]:
+                out[m] = i
+                m += 1
+                ok = True
+                top -= 1
+                waiting = True
+                continue
+            else:
+                st_state[f] = _STAND_IN
+            waiting = False
+            continue
+        if waiting and not ok:  # a visible child not covered: this try fails
+            m = st_mark[f]
+            if state == _REFINED and resident[i]:
+                out[m] = i
+                m += 1
+                ok = True
+            else:
+                ok = False
+            top -= 1
+            continue  # `waiting` stays: the frame below takes this answer
+        # the next visible child, covered in turn
+        q = st_q[f]
+        end = hi[i]
+        while q < end and not _shown(kids[q], all_known, known, visible, corners, plane_d, split):
+            q += 1
+        if q < end:
+            st_q[f] = q + 1
+            st_any[f] = 1
+            st_i[top], st_state[top] = kids[q], _ENTER
+            top += 1
+            waiting = False
+            continue
+        # every visible child covered: refined, the children replace it (even none); standing in, only if any
+        ok = state == _REFINED or st_any[f] == 1
+        if not ok:
+            m = st_mark[f]
+        top -= 1
+        waiting = True
+    return m if ok else 0
+
+
 class _ChildIndex:
-    """Each tile's children as a block of one array, kids[lo[i]:hi[i]] (in position order), grown with the tree.
+    """Each tile's children as a block of one array, kids[lo[i]:hi[i]] (in the order of a.children), grown with the
+    tree.
 
     A paged tree grows by appending a page's tiles to storage whose rows below the last length are never written
     again (manifest.grown_arrays): the children of the tiles held before are those they had, plus the new tiles
@@ -281,7 +348,8 @@ class _ChildIndex:
     page's children, and the new tiles' own) and leaves every other block in place: the time of the page's tiles,
     not of the tree held (made again from the parents after every adoption, 0.05 ms a frame on average at 250M
     splats: BENCHMARKS.md, "Manifest pages"). Any other tree (an eviction's kept rows, another scene) is indexed
-    anew. Depends on the parent array only, as the whole rebuild does."""
+    anew. The selection takes a tile's children in any order (its queue pops distinct (key, position) pairs); the
+    draw set's walk takes them in draw_set's, the tree's."""
 
     def __init__(self) -> None:
         self.held = lambda: None  # the TileArrays last indexed (weak)
@@ -305,13 +373,15 @@ class _ChildIndex:
         return self.lo[:n], self.hi[:n], self.kids[:self.used]
 
     def _rebuild(self, a: TileArrays, n: int) -> None:
-        out = np.empty(2 * n + 1, np.int64)
-        _child_csr(np.ascontiguousarray(a.parent, np.int64), out)
+        # the blocks from the tuple of children (their order: the draw set's walk visits them so), about 1.2 ms at
+        # 21,600 tiles on the 2-core VM, once per tree that is not grown from the last (an eviction's kept rows)
+        counts = np.fromiter(map(len, a.children), np.int64, n)
         cap = 2 * n + 16  # room to grow by pages
         self.lo, self.hi, self.kids = (np.zeros(cap, np.int64) for _ in range(3))
-        self.lo[:n], self.hi[:n] = out[:n], out[1:n + 1]
-        self.used = int(out[n])  # the children held (every tile with a parent)
-        self.kids[:self.used] = out[n + 1:n + 1 + self.used]
+        np.cumsum(counts, out=self.hi[:n])
+        self.lo[:n] = self.hi[:n] - counts
+        self.used = int(self.hi[n - 1]) if n else 0  # the children held (every tile with a parent)
+        self.kids[:self.used] = np.fromiter(chain.from_iterable(a.children), np.int64, self.used)
         self.rebuilds += 1
 
     def _grow(self, a: TileArrays, n: int) -> None:
@@ -328,14 +398,14 @@ class _ChildIndex:
         at = np.flatnonzero(par >= 0)
         if not at.size:
             return
-        p = par[at]
-        order = np.argsort(p, kind="stable")  # each parent's new children in position order
-        p, kids = p[order], at[order] + old
-        heads, starts, counts = np.unique(p, return_index=True, return_counts=True)
+        heads, counts = np.unique(par[at], return_counts=True)
+        starts = np.cumsum(counts) - counts
         had = self.hi[heads] - self.lo[heads]
         if had.any():  # a tile held before with children before and now more (not a page's growth): anew
             self._rebuild(a, n)
             return
+        # each new parent's children in the tree's order (a.children: a page's tiles are new parents' children only)
+        kids = np.fromiter(chain.from_iterable(map(a.children.__getitem__, heads.tolist())), np.int64, len(at))
         if self.used + len(kids) > len(self.kids):
             grown = np.zeros(max(2 * (self.used + len(kids)), 16), np.int64)
             grown[:self.used] = self.kids[:self.used]
@@ -428,6 +498,32 @@ def select_near_compiled(a: TileArrays, view: PartialView, cost: np.ndarray, roo
                                bool(st[2]))
 
 
+_NO_PLANES = (np.zeros(1, np.uint8), np.zeros(0, np.float64), np.zeros((0, 6), np.float64), np.zeros((1, 6)))
+
+
+def draw_set_compiled(a: TileArrays, view: PartialView | TileView, sel: Selection, resident: np.ndarray,
+                      root: int) -> np.ndarray:
+    """selection.draw_set's tiles (the same, in the same order) as an array of positions, compiled: the Python walk
+    was about 1 ms a frame at 250M splats (500 tiles, 700 one-tile box tests; BENCHMARKS.md, "Manifest pages").
+    A PartialView's tiles without numbers are box-tested alone, as its visible_at does."""
+    lo, hi, kids = _children(a)
+    n = len(a.parent)
+    refd = np.zeros(n, np.uint8)
+    refd[sel.refined_at] = 1
+    known = getattr(view, "known", None)
+    if known is None:  # a TileView: every tile's numbers are there
+        all_known = True
+        known, plane_d, split, corners = _NO_PLANES
+    else:
+        all_known = False
+        plane_d, split, corners = _f64(view._planes[:, 3]), _f64(view.split), _f64(a.box_corners)
+    out = np.empty(n, np.int64)
+    m = _draw_walk(root, lo, hi, kids, refd, np.ascontiguousarray(resident, np.bool_), all_known, known,
+                   np.ascontiguousarray(view.visible, np.bool_), corners, plane_d, split, out,
+                   np.empty((5, n + 1), np.int64))
+    return out[:m]
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) every kernel with a real call's argument types, on a tree of three tiles."""
     parent = np.array([-1, 0, 0], np.int64)
@@ -440,11 +536,16 @@ def warm_up() -> None:
     sel = select_near_compiled(a, view, np.array([1.0, 1.0, 1.0]), 0, SelectionOptions(max_splats=1000, budget=9.0),
                                frozenset({0}), [1], [0])
     assert sel.refined == frozenset({0}), sel
+    resident = np.array([True, True, False])
+    assert draw_set_compiled(a, view, sel, resident, 0).tolist() == [0]  # child 2 not resident: the root drawn
+    assert draw_set_compiled(a, view_numbers(a, cam), sel, resident, 0).tolist() == [0]
 
 
 class _Tiny:
-    """The few TileArrays fields the compiled selection and PartialView read (warm_up's tree)."""
+    """The few TileArrays fields the compiled selection, its draw set, PartialView and view_numbers read (warm_up's
+    tree)."""
 
     def __init__(self, parent, level, splats, centre, radius, err, corners):
         self.parent, self.level, self.splats, self.sphere_center = parent, level, splats, centre
+        self.children = tuple(tuple(np.flatnonzero(parent == i).tolist()) for i in range(len(parent)))
         self.sphere_radius, self.geometric_error, self.box_corners = radius, err, corners
