@@ -116,24 +116,35 @@ def _tile_numbers(i, g, known, sse, visible, radius_px, area_px, distance, cand)
 
 
 @njit(**_JIT)
-def _seed(tiles, parents_from, g, kids, known, sse, visible, radius_px, area_px, distance, cand, pending):
-    """The numbers of tiles[:parents_from] and of the children of tiles[parents_from:], each tile once: the new
-    candidates into `pending` (their keys are numpy's), their count returned."""
+def _seed(tiles, parents_from, g, kids, known, sse, visible, radius_px, area_px, distance, cand, pending, st):
+    """The numbers of tiles[:parents_from], and of tiles[parents_from:] and their children where they are
+    candidates, each tile once: the new candidates into `pending` (their keys are numpy's), their count returned.
+    Only a candidate's children are ever needed (the loop pops candidates; the cut is the visible children of tiles
+    it refined): the last frame's cut tiles that are not candidates now (about one in ten at 250M splats) have
+    their children left out. st[4] counts the tiles whose numbers are computed."""
     first, last = g[_LO], g[_HI]
     m = 0
+    looked = 0
     for t in range(tiles.shape[0]):
-        if t < parents_from:
-            lo, hi = t, t + 1
-        else:
-            lo, hi = first[tiles[t]], last[tiles[t]]
-        for q in range(lo, hi):
-            i = tiles[q] if t < parents_from else kids[q]
-            if known[i]:
-                continue
+        i = tiles[t]
+        if not known[i]:
             _tile_numbers(i, g, known, sse, visible, radius_px, area_px, distance, cand)
+            looked += 1
             if cand[i]:
                 pending[m] = i
                 m += 1
+        if t < parents_from or not cand[i]:
+            continue
+        for q in range(first[i], last[i]):
+            c = kids[q]
+            if known[c]:
+                continue
+            _tile_numbers(c, g, known, sse, visible, radius_px, area_px, distance, cand)
+            looked += 1
+            if cand[c]:
+                pending[m] = c
+                m += 1
+    st[4] += looked
     return m
 
 
@@ -168,6 +179,7 @@ def _refine(g, kids, splats_of, cost, prio, known, sse, visible, radius_px, area
                     c = kids[q]
                     if not known[c]:
                         _tile_numbers(c, g, known, sse, visible, radius_px, area_px, distance, cand)
+                        st[4] += 1
                         if cand[c]:
                             pending[m] = c
                             m += 1
@@ -233,10 +245,30 @@ def _refine(g, kids, splats_of, cost, prio, known, sse, visible, radius_px, area
     return status
 
 
+@njit(inline="always")
+def _before(pa, da, ta, pb, db, tb):
+    """Whether cut tile a comes before b: np.lexsort((tiles, distance, -priority))'s order (priority descending,
+    then distance, then position; NaN after every number, as numpy sorts it)."""
+    if pa != pb:
+        if pa != pa:
+            return False
+        if pb != pb:
+            return True
+        return pa > pb
+    if da != db:
+        if da != da:
+            return False
+        if db != db:
+            return True
+        return da < db
+    return ta < tb
+
+
 @njit(**_JIT)
-def _cut(first, last, kids, visible, refd, reflist, nref, prio, root, out_t, out_p):
+def _cut(first, last, kids, visible, distance, refd, reflist, nref, prio, root, out_t, out_p, tmp_t, tmp_p):
     """The cut: the visible children of refined tiles that were not refined themselves (priority: minus the
-    parent's key), and the root unless refined (inf). Returns its size."""
+    parent's key), and the root unless refined (inf), sorted in the fetch order (_before: priority descending,
+    distance, position; all distinct, so any correct sort gives the lexsort's order). Returns its size."""
     m = 0
     for r in range(nref):
         i = reflist[r]
@@ -250,6 +282,40 @@ def _cut(first, last, kids, visible, refd, reflist, nref, prio, root, out_t, out
         out_t[m] = root
         out_p[m] = INF
         m += 1
+    # a bottom-up merge sort, runs of `width` merged from (src) into (dst), then the roles swapped
+    src_t, src_p, dst_t, dst_p = out_t, out_p, tmp_t, tmp_p
+    swapped = False  # the sorted runs are in tmp_t, tmp_p
+    width = 1
+    while width < m:
+        lo = 0
+        while lo < m:
+            mid = min(lo + width, m)
+            hi = min(lo + 2 * width, m)
+            a, b, k = lo, mid, lo
+            while a < mid and b < hi:
+                ta, tb = src_t[a], src_t[b]
+                if _before(src_p[b], distance[tb], tb, src_p[a], distance[ta], ta):
+                    dst_t[k], dst_p[k] = tb, src_p[b]
+                    b += 1
+                else:
+                    dst_t[k], dst_p[k] = ta, src_p[a]
+                    a += 1
+                k += 1
+            while a < mid:
+                dst_t[k], dst_p[k] = src_t[a], src_p[a]
+                a += 1
+                k += 1
+            while b < hi:
+                dst_t[k], dst_p[k] = src_t[b], src_p[b]
+                b += 1
+                k += 1
+            lo = hi
+        src_t, src_p, dst_t, dst_p = dst_t, dst_p, src_t, src_p
+        swapped = not swapped
+        width *= 2
+    if swapped:
+        out_t[:m] = src_t[:m]
+        out_p[:m] = src_p[:m]
     return m
 
 
@@ -459,19 +525,18 @@ def select_near_compiled(a: TileArrays, view: PartialView, cost: np.ndarray, roo
     pending = buf.get("pending", n, i64)
     direct = np.asarray(near, np.int64)
     tiles = np.concatenate([[root], direct, np.asarray(near_parents, np.int64)]).astype(np.int64)
-    before = int(np.count_nonzero(known))
     level, step = a.level, view.level_step
 
     def keys(m: int) -> None:  # the new candidates' keys (numpy's log2)
         at = pending[:m]
         prio[at] = refinement_keys(level[at], distance[at], sse[at], step)
 
-    m = _seed(tiles, 1 + len(direct), g, kids, known, sse, visible, radius_px, area_px, distance, cand, pending)
+    splats_of = np.ascontiguousarray(a.splats, np.int64)
+    st = np.array([0, splats_of[root], 0, 0, 0], np.int64)  # the loop's state; st[4]: tiles whose numbers it took
+    m = _seed(tiles, 1 + len(direct), g, kids, known, sse, visible, radius_px, area_px, distance, cand, pending, st)
     keys(m)
     heap_k, heap_t = buf.get("heap_k", n, f64), buf.get("heap_t", n, i64)
-    splats_of = np.ascontiguousarray(a.splats, np.int64)
     cost = _f64(cost)
-    st = np.array([0, splats_of[root], 0, 0], np.int64)
     total = np.array([cost[root]], np.float64)
     if cand[root]:
         if prio[root] != prio[root]:
@@ -486,16 +551,16 @@ def select_near_compiled(a: TileArrays, view: PartialView, cost: np.ndarray, roo
         if m <= 0:
             break
         keys(m)
-    view.looked_at += int(np.count_nonzero(known)) - before
+    view.looked_at += int(st[4])
     if m < 0:
         return select_near_heap(a, view, cost, root, opts, previous_refined, near)
-    out_t, out_p = buf.get("out_t", n, i64), buf.get("out_p", n, f64)
-    c = _cut(lo, hi, kids, visible, refd, reflist, int(st[3]), prio, root, out_t, out_p)
-    ct, pri = out_t[:c], out_p[:c]
-    rank = np.lexsort((ct, distance[ct], -pri))
     # arrays of its own (the scratch arrays are the next selection's): the engine takes them as they are
-    return Selection.of_arrays(ct[rank], pri[rank], reflist[:st[3]].copy(), int(st[1]), float(total[0]),
-                               bool(st[2]))
+    nref = int(st[3])
+    out_t, out_p = buf.get("out_t", n, i64), buf.get("out_p", n, f64)
+    c = _cut(lo, hi, kids, visible, distance, refd, reflist, nref, prio, root, out_t, out_p,
+             buf.get("sort_t", n, i64), buf.get("sort_p", n, f64))
+    return Selection.of_arrays(out_t[:c].copy(), out_p[:c].copy(), reflist[:nref].copy(), int(st[1]),
+                               float(total[0]), bool(st[2]))
 
 
 _NO_PLANES = (np.zeros(1, np.uint8), np.zeros(0, np.float64), np.zeros((0, 6), np.float64), np.zeros((1, 6)))
