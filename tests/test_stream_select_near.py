@@ -279,8 +279,11 @@ def test_compiled_draw_set_is_draw_sets(whole):
             resident = np.array([rnd.random() < share for _ in range(n)], bool)
             for view in (part, full):
                 want = draw_set(a, view, sel, resident, root)
-                got = draw_set_compiled(a, view, sel, resident, root)
+                sums = np.full(3, -1, np.int64)
+                got = draw_set_compiled(a, view, sel, resident, root, sums)
                 assert got.dtype == np.int64 and got.tolist() == want
+                # the engine's residency sums, from the same call
+                assert sums.tolist() == [int(resident.sum()), int(a.splats[resident].sum()), int(a.splats[want].sum())]
                 top_refined = root in sel.refined
                 if not want:
                     kinds["empty"] += 1

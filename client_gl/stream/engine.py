@@ -635,13 +635,15 @@ class StreamEngine:
         # compiled with the selection (the same tiles in the same order; the Python walk was about 1 ms a frame at
         # 250M splats: BENCHMARKS.md, "Manifest pages"), else the numpy reference
         compiled = COMPILED_SELECTION.draw() if self.options.compiled_selection else None
-        if compiled is not None:
-            drawn = compiled(self.arrays, view, sel, self.resident, self.root)
+        if compiled is not None:  # with the residency's sums (whole numbers: numpy's)
+            sums = np.zeros(3, np.int64)
+            drawn = compiled(self.arrays, view, sel, self.resident, self.root, sums)
+            resident_tiles, resident_splats, drawn_splats = sums.tolist()
         else:
             drawn = np.asarray(draw_set(self.arrays, view, sel, self.resident, self.root), np.intp)
-        counts = (self.ids[drawn].tolist(), int(self.resident.sum()),
-                  int(self.arrays.splats[self.resident].sum()),
-                  int(self.arrays.splats[drawn].sum()) if len(drawn) else 0)
+            resident_tiles, resident_splats = int(self.resident.sum()), int(self.arrays.splats[self.resident].sum())
+            drawn_splats = int(self.arrays.splats[drawn].sum()) if len(drawn) else 0
+        counts = (self.ids[drawn].tolist(), resident_tiles, resident_splats, drawn_splats)
         return (self._wanted_serial, self._version), drawn, counts
 
     def _coarse_to_fine(self, keys: list[Key], sel: Selection) -> list[Key]:
