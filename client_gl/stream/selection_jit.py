@@ -9,8 +9,9 @@ same order as selection._numbers, so the same bits) are compiled kernels over th
 numbers are computed when the loop first needs them: before it takes a tile whose children have none, the children
 of every tile in its queue that lack them are computed in one pass. The one thing left to numpy is the refinement
 key's log2: numpy's vectorised log2 and the C library's differ in the last bit for about 1 value in 2,000 (438 of
-10^6 here), and the keys order the loop and are the cut's priorities, so a key is numpy's, computed for the new
-candidates of each pass. The loop pops (key, position) pairs, all distinct, so any correct queue pops them in the
+10^6 here), and the keys order the loop and are the cut's priorities, so a key's log2 is numpy's: one np.log2
+over the new candidates of each pass (the kernels gather its argument and finish the keys, the same operations as
+selection.refinement_keys). The loop pops (key, position) pairs, all distinct, so any correct queue pops them in the
 order of select's heapq.
 
 The kernels compile on first use or load from numba's cache (cache=True); `warm_up` calls each once on a tiny tree
@@ -35,7 +36,6 @@ from client_gl.stream.selection import (
     ViewBuffers,
     _split,
     positions,
-    refinement_keys,
     select_near_heap,
     view_numbers,
 )
@@ -115,8 +115,28 @@ def _tile_numbers(i, g, known, sse, visible, radius_px, area_px, distance, cand)
     cand[i] = 1 if (g[_HI][i] > g[_LO][i] and vis and e > threshold) else 0
 
 
+@njit(inline="always")
+def _log_arg(d):
+    """np.maximum(d, 1e-30) of one float (NaN stays NaN): what refinement_keys takes the log2 of."""
+    if d != d or d > 1e-30:
+        return d
+    return 1e-30
+
+
+@njit(inline="always")
+def _finish_keys(m, pending, lg, level, step, sse, prio):
+    """refinement_keys of pending[:m], lg[:m] holding numpy's log2 of their _log_arg: level * step + log2, -inf
+    where the sse is not finite (the same two operations on the same values as numpy's: the same bits)."""
+    for j in range(m):
+        c = pending[j]
+        if math.isfinite(sse[c]):
+            prio[c] = level[c] * step + lg[j]
+        else:
+            prio[c] = -INF
+
+
 @njit(**_JIT)
-def _seed(tiles, parents_from, g, kids, known, sse, visible, radius_px, area_px, distance, cand, pending, st):
+def _seed(tiles, parents_from, g, kids, known, sse, visible, radius_px, area_px, distance, cand, pending, lg, st):
     """The numbers of tiles[:parents_from], and of tiles[parents_from:] and their children where they are
     candidates, each tile once: the new candidates into `pending` (their keys are numpy's), their count returned.
     Only a candidate's children are ever needed (the loop pops candidates; the cut is the visible children of tiles
@@ -132,6 +152,7 @@ def _seed(tiles, parents_from, g, kids, known, sse, visible, radius_px, area_px,
             looked += 1
             if cand[i]:
                 pending[m] = i
+                lg[m] = _log_arg(distance[i])
                 m += 1
         if t < parents_from or not cand[i]:
             continue
@@ -143,6 +164,7 @@ def _seed(tiles, parents_from, g, kids, known, sse, visible, radius_px, area_px,
             looked += 1
             if cand[c]:
                 pending[m] = c
+                lg[m] = _log_arg(distance[c])
                 m += 1
     st[4] += looked
     return m
@@ -155,11 +177,20 @@ def _less(ka, ta, kb, tb):
 
 @njit(**_JIT)
 def _refine(g, kids, splats_of, cost, prio, known, sse, visible, radius_px, area_px, distance, cand, heap_k, heap_t,
-            st, total_a, refd, reflist, max_splats, budget, pending):
-    """select's greedy loop from where it stopped (st: queue size, splats, budget flag, refined count; total_a: the
-    cost). Returns 0 when the queue is empty, m > 0 when it stopped to have the keys of m new candidates computed
-    (pending[:m]; the queue's top is taken again then), -1 at a NaN key (select's heapq orders those its own way:
-    the caller falls back to the numpy path). max_splats < 0, budget NaN: no limit."""
+            st, total_a, refd, reflist, max_splats, budget, pending, lg, m_keys, level, step, root):
+    """select's greedy loop from where it stopped (st: queue size, splats, budget flag, refined count, tiles looked
+    at, whether the root is still to be queued; total_a: the cost), once the keys of the m_keys candidates
+    pending[:m_keys] are finished (lg: numpy's log2 of their _log_arg). Returns 0 when the queue is empty, m > 0
+    when it stopped to have the log2 of m new candidates taken (pending[:m], their _log_arg in lg[:m]; the queue's
+    top is taken again then), -1 at a NaN key (select's heapq orders those its own way: the caller falls back to
+    the numpy path). max_splats < 0, budget NaN: no limit."""
+    _finish_keys(m_keys, pending, lg, level, step, sse, prio)
+    if st[5]:  # the root, queued first when it is a candidate
+        st[5] = 0
+        if cand[root]:
+            if prio[root] != prio[root]:
+                return -1
+            heap_k[0], heap_t[0], st[0] = prio[root], root, 1
     first, last = g[_LO], g[_HI]
     size, splats, limited, nref = st[0], st[1], st[2], st[3]
     total = total_a[0]
@@ -182,6 +213,7 @@ def _refine(g, kids, splats_of, cost, prio, known, sse, visible, radius_px, area
                         st[4] += 1
                         if cand[c]:
                             pending[m] = c
+                            lg[m] = _log_arg(distance[c])
                             m += 1
             if m:
                 status = m
@@ -540,32 +572,26 @@ def select_near_compiled(a: TileArrays, view: PartialView, cost: np.ndarray, roo
     pending = buf.get("pending", n, i64)
     direct = np.asarray(near, np.int64)
     tiles = np.concatenate([[root], direct, np.asarray(near_parents, np.int64)]).astype(np.int64)
-    level, step = a.level, view.level_step
-
-    def keys(m: int) -> None:  # the new candidates' keys (numpy's log2)
-        at = pending[:m]
-        prio[at] = refinement_keys(level[at], distance[at], sse[at], step)
-
+    level, step = np.ascontiguousarray(a.level, np.int64), float(view.level_step)
+    lg = buf.get("log2", n, f64)  # the new candidates' _log_arg, then numpy's log2 of it (their keys' one term
+    # numba's log2 would not give bit for bit)
     splats_of = np.ascontiguousarray(a.splats, np.int64)
-    st = np.array([0, splats_of[root], 0, 0, 0], np.int64)  # the loop's state; st[4]: tiles whose numbers it took
-    m = _seed(tiles, 1 + len(direct), g, kids, known, sse, visible, radius_px, area_px, distance, cand, pending, st)
-    keys(m)
+    # the loop's state: queue size, splats, budget flag, refined tiles, tiles looked at, the root still to be queued
+    st = np.array([0, splats_of[root], 0, 0, 0, 1], np.int64)
+    m = _seed(tiles, 1 + len(direct), g, kids, known, sse, visible, radius_px, area_px, distance, cand, pending, lg,
+              st)
     heap_k, heap_t = buf.get("heap_k", n, f64), buf.get("heap_t", n, i64)
     cost = _f64(cost)
     total = np.array([cost[root]], np.float64)
-    if cand[root]:
-        if prio[root] != prio[root]:
-            return select_near_heap(a, view, cost, root, opts, previous_refined, near)
-        heap_k[0], heap_t[0], st[0] = prio[root], root, 1
     refd, reflist = buf.get("refd", n, u8, True), buf.get("reflist", n, i64)
     max_splats = -1 if opts.max_splats is None else int(opts.max_splats)
     budget = math.nan if opts.budget is None else float(opts.budget)
     while True:
+        np.log2(lg[:m], out=lg[:m])
         m = _refine(g, kids, splats_of, cost, prio, known, sse, visible, radius_px, area_px, distance, cand, heap_k,
-                    heap_t, st, total, refd, reflist, max_splats, budget, pending)
+                    heap_t, st, total, refd, reflist, max_splats, budget, pending, lg, m, level, step, root)
         if m <= 0:
             break
-        keys(m)
     view.looked_at += int(st[4])
     if m < 0:
         return select_near_heap(a, view, cost, root, opts, previous_refined, near)
