@@ -160,15 +160,21 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.array([a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0]])
 
 
+def _norm(v: np.ndarray) -> float:
+    """np.linalg.norm of a float64 vector, as it computes it (the square root of v.dot(v)) without its checks and
+    dispatch: the same bits, 0.5 against 3 us a call (six a frame: _basis and frustum_planes)."""
+    return math.sqrt(v.dot(v))
+
+
 def _basis(cam: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """(eye, right, up, forward) of a camera, as Camera.basis computes them (without numpy's general cross)."""
     eye = np.asarray(cam.eye, np.float64)
     forward = np.asarray(cam.target, np.float64) - eye
-    forward /= np.linalg.norm(forward)
+    forward /= _norm(forward)
     up = np.asarray(cam.up, np.float64)
     right = _cross(forward, up)
-    n = np.linalg.norm(right)
-    if n < 1e-9 * np.linalg.norm(up):
+    n = _norm(right)
+    if n < 1e-9 * _norm(up):
         right, true_up, forward = (np.asarray(v, np.float64) for v in cam.basis())
         return eye, right, true_up, forward
     right /= n
@@ -183,7 +189,7 @@ def frustum_planes(cam: Camera, widen: float = 1.0, basis=None) -> np.ndarray:
     normals[0] = forward
     for k, (axis, t) in enumerate(((right, tx), (-right, tx), (up, ty), (-up, ty)), start=1):
         n = forward * t - axis  # the plane through the eye containing the edge direction forward + t*axis
-        normals[k] = n / np.linalg.norm(n)
+        normals[k] = n / _norm(n)
     planes = np.empty((5, 4))
     planes[:, :3] = normals
     planes[:, 3] = -np.einsum("pk,k->p", normals, eye)
