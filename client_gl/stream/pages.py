@@ -41,6 +41,31 @@ class ParsedPage:
     rows: dict[str, np.ndarray]
 
 
+@dataclass(frozen=True)
+class HeldPages:
+    """The pages held as arrays over the tiles' positions (`PagedTree.held`): what is below each page's head (its
+    descendants through every page held: `PagedTree.below`) found by grouping, not by walking the tree. A page's
+    head comes before every tile below it (tiles are appended after their head; eviction keeps the order), so the
+    page holding a head has a smaller index here than the head's own page."""
+
+    heads: np.ndarray  # positions of the tiles whose page is held, ascending
+    ids: np.ndarray  # their tile ids
+    owner: np.ndarray  # per position held: the index (in heads) of the page the tile came in; -1: the root manifest's
+    up: np.ndarray  # per head: the index of the page its head came in; -1: a tile of the root manifest
+    depth: np.ndarray  # per head: pages above it (0: its head is a tile of the root manifest)
+
+    def below(self, values: np.ndarray, ufunc: np.ufunc, initial) -> np.ndarray:
+        """Per head, `ufunc` (np.add, np.maximum, ...) reduced over `values` (one per position held) of the tiles
+        below it, from `initial` (what a page with no tile below it reads)."""
+        out = np.full(len(self.heads), initial, values.dtype)
+        own = self.owner >= 0
+        ufunc.at(out, self.owner[own], values[own])
+        for d in range(int(self.depth.max(initial=0)), 0, -1):  # the deepest pages first, into the page above them
+            at = np.flatnonzero(self.depth == d)
+            ufunc.at(out, self.up[at], out[at])
+        return out
+
+
 class PagedTree:
     """The tiles of a paged scene held so far; `manifest` is their view (the root manifest with these tiles)."""
 
@@ -51,6 +76,11 @@ class PagedTree:
         self._full: dict[int, TileEntry] = {t.id: t for t in root.tiles}  # held tiles, children as stored
         self._tiles: list[TileEntry] = [replace(t, children=()) if t.page is not None else t for t in root.tiles]
         self._position = {t.id: i for i, t in enumerate(self._tiles)}
+        # per position held: the position of the head of the page the tile came in (-1: the root manifest's), and
+        # its id; rows with spare room after the n held (appended to as pages arrive), what `held` groups by
+        self._head_at = np.full(max(64, 2 * len(self._tiles)), -1, np.int64)
+        self._ids = np.zeros(len(self._head_at), np.int64)
+        self._ids[:len(self._tiles)] = [t.id for t in self._tiles]
         self.pages_read = 0
         self.page_bytes = 0
         self.evicted = 0  # pages dropped again (evict)
@@ -128,6 +158,13 @@ class PagedTree:
         self._tiles[at] = self._by_id[tile_id] = self._full[tile_id]  # its children are known now
         if at < len(self._manifest.tiles):
             self._changed.add(at)
+        n, add = len(self._tiles), len(tiles)
+        if n + add > len(self._head_at):  # doubled when full: a page costs its own rows (amortised)
+            grown = max(2 * len(self._head_at), n + add)
+            self._head_at = np.concatenate([self._head_at[:n], np.full(grown - n, -1, np.int64)])
+            self._ids = np.concatenate([self._ids[:n], np.zeros(grown - n, np.int64)])
+        self._head_at[n:n + add] = at
+        self._ids[n:n + add] = [t.id for t in tiles]
         for t in tiles:
             self._full[t.id] = t
             self._position[t.id] = len(self._tiles)
@@ -157,33 +194,74 @@ class PagedTree:
                 todo.append(c)
         return out
 
+    def held(self) -> HeldPages:
+        """The pages held as arrays (HeldPages): their heads, and which page each tile held came in."""
+        n = len(self._tiles)
+        position = self._position
+        heads = np.sort(np.fromiter((position[t] for t in self._read), np.int64, len(self._read)))
+        head_at = self._head_at[:n]
+        owner = np.full(n, -1, np.int64)
+        own = head_at >= 0
+        owner[own] = np.searchsorted(heads, head_at[own])
+        up = owner[heads]
+        depth = np.zeros(len(heads), np.int64)
+        above = up.copy()
+        while (above >= 0).any():  # a few rounds: pages nest as deep as the tree's levels over a page's levels
+            depth += above >= 0
+            above = np.where(above >= 0, up[above], -1)
+        return HeldPages(heads, self._ids[heads], owner, up, depth)
+
     def evict(self, heads: list[int]) -> np.ndarray:
         """Drop the pages below these tiles (and every page held below them): the tiles become leaves again, their
         pages wanted again when a cut reaches them. Returns the old positions of the tiles kept, in order (the
-        engine's per-tile state is taken through it)."""
+        engine's per-tile state is taken through it). A head not held, or below a head dropped before it in
+        `heads`, changes nothing. In array operations over the tiles held and Python over the tiles dropped (a walk
+        of the tree for each head, and Python over every tile held, took 73-107 ms of a frame at 250M splats:
+        issue 38, BENCHMARKS.md "Manifest pages")."""
         last = self.manifest  # the view before the eviction: its arrays' rows are taken
-        gone: set[int] = set()
+        held = self.held()
+        n = len(self._tiles)
+        dropped = np.zeros(len(held.heads), bool)  # pages dropped, the heads given first
         for h in heads:
-            if h not in self._read or self._position[h] in gone:
+            if h not in self._read:
                 continue
-            below = self.below(h)
-            gone.update(below)
-            for i in below:
-                t = self._tiles[i]
-                self._read.discard(t.id)
-                self.pending.pop(t.id, None)
+            j = int(np.searchsorted(held.heads, self._position[h]))
+            above = j
+            while above >= 0 and not dropped[above]:  # below a page dropped before it: gone already
+                above = int(held.up[above])
+            if above >= 0:
+                continue
+            dropped[j] = True
             self._read.discard(h)
             self.pending[h] = self._full[h].page
-            self._tiles[self._position[h]] = self._by_id[h] = replace(self._full[h], children=())
             self.evicted += 1
-        keep = np.array([i for i in range(len(self._tiles)) if i not in gone], np.int64)
-        for i in gone:
-            t = self._tiles[i]
+        if not dropped.any():
+            return np.arange(n, dtype=np.int64)
+        cut = dropped.copy()  # the pages dropped and every page below them
+        for d in range(1, int(held.depth.max(initial=0)) + 1):
+            at = np.flatnonzero(held.depth == d)
+            cut[at] |= cut[held.up[at]]
+        gone = np.zeros(n, bool)
+        own = held.owner >= 0
+        gone[own] = cut[held.owner[own]]
+        keep = np.flatnonzero(~gone)
+        for i in np.flatnonzero(gone).tolist():
+            t = self._tiles[i]  # tiles of the pages dropped, each page's head left (a leaf again) unless below one
+            self._read.discard(t.id)
+            self.pending.pop(t.id, None)
             del self._full[t.id]
-            del self._position[t.id]
             del self._by_id[t.id]
-        self._tiles = [self._tiles[i] for i in keep]
-        self._position = {t.id: i for i, t in enumerate(self._tiles)}
+        tiles = self._tiles
+        for j in np.flatnonzero(dropped & ~gone[held.heads]).tolist():  # a head below a page dropped after it is gone
+            h = int(held.ids[j])
+            tiles[held.heads[j]] = self._by_id[h] = replace(self._full[h], children=())
+        self._tiles = list(map(tiles.__getitem__, keep.tolist()))
+        new_of = np.full(n + 1, -1, np.int64)  # index -1 (the root manifest's tiles' head) reads -1
+        new_of[keep] = np.arange(len(keep))
+        kept_ids = self._ids[keep]
+        self._head_at = np.concatenate([new_of[self._head_at[keep]], np.full(len(keep), -1, np.int64)])
+        self._ids = np.concatenate([kept_ids, np.zeros(len(keep), np.int64)])
+        self._position = dict(zip(kept_ids.tolist(), range(len(keep)), strict=True))
         m = replace(self.root, tiles=tuple(self._tiles))
         m.__dict__["index_of"] = dict(self._position)
         m.__dict__["tile_by_id"] = dict(self._by_id)

@@ -6,8 +6,10 @@ code that holds one trusts it. `Manifest.to_dict()` gives back the spec's map (`
 from __future__ import annotations
 
 import functools
+from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from itertools import chain
 
 import msgpack
 import numpy as np
@@ -553,12 +555,26 @@ _DERIVED_ROWS = ("box_corners", "splats_f64")  # TileArrays' cached arrays that 
 
 def taken_arrays(a: TileArrays, keep: np.ndarray) -> TileArrays:
     """`a` over the tiles at positions `keep` (ascending; every kept tile's parent kept, children dropped with
-    their parent): the arrays of the tree left when a paged tree drops pages, renumbered in order."""
+    their parent): the arrays of the tree left when a paged tree drops pages, renumbered in order. The children
+    renumbered in array operations, tuples made again for the tiles that have children only (a generator over every
+    child took 4.4 ms of a frame's page eviction at 12,000 tiles held: BENCHMARKS.md, "Manifest pages")."""
     new_of = np.full(len(a.ids) + 1, -1, np.int64)  # index -1 (the root's parent) reads -1
     new_of[keep] = np.arange(len(keep))
-    new_l = new_of.tolist()
-    children = tuple(tuple(new_l[c] for c in a.children[i] if new_l[c] >= 0) for i in keep.tolist())
-    return TileArrays(parent=new_of[a.parent[keep]], children=children,
+    children = list(map(a.children.__getitem__, keep.tolist()))  # a leaf's () as it is
+    lengths = np.fromiter(map(len, children), np.int64, len(children))
+    inner = np.flatnonzero(lengths)
+    if len(inner):
+        n_kids = lengths[inner]
+        flat = new_of[np.fromiter(chain.from_iterable(map(children.__getitem__, inner.tolist())), np.int64,
+                                  int(n_kids.sum()))]
+        kept = flat >= 0
+        counts = np.add.reduceat(kept.astype(np.int64), np.cumsum(n_kids) - n_kids)
+        kids, first = flat[kept], np.cumsum(counts) - counts
+        for k in np.unique(counts).tolist():  # the tuples of k children made by zip over k columns (in C)
+            at = np.flatnonzero(counts == k)
+            made = zip(*[kids[first[at] + j].tolist() for j in range(k)], strict=True) if k else [()] * len(at)
+            deque(map(children.__setitem__, inner[at].tolist(), made), maxlen=0)
+    return TileArrays(parent=new_of[a.parent[keep]], children=tuple(children),
                       **{name: getattr(a, name)[keep] for name in _ROW_NAMES})
 
 
