@@ -631,8 +631,9 @@ def _snapshot(a) -> dict:
 
 
 def test_pages_adopted_in_place_leave_earlier_views_as_they_were(paged_store, monkeypatch):
-    """grown_arrays writes a page's rows into spare rows of the last view's storage (doubled when full): every
-    view, earlier ones included, must stay what a rebuild makes, with pages arriving in random order and batches,
+    """grown_arrays writes a page's rows into spare rows of the last view's storage (doubled when full), and the
+    views share the tree's maps of positions and tiles by id (PagedTree._detach): every view, earlier ones
+    included, must stay what a rebuild makes, with pages arriving in random order and batches,
     as parsed pages (rows taken by read, on a worker in the engine) or plain tile lists (rows taken when adopted),
     pages dropped and arriving again, and a tree grown twice from one view (the second must copy)."""
     monkeypatch.setattr(model, "_FIRST_ROWS", 1)  # storage of twice the tiles held: this small tree fills it
@@ -655,16 +656,23 @@ def test_pages_adopted_in_place_leave_earlier_views_as_they_were(paged_store, mo
             grown += 1
         m = tree.manifest
         _same_arrays(m.arrays, tile_arrays(m.tiles, {t.id: i for i, t in enumerate(m.tiles)}))
-        views.append((m, _snapshot(m.arrays)))
+        assert m.index_of == {t.id: i for i, t in enumerate(m.tiles)} and m.tile_by_id == {t.id: t for t in m.tiles}
+        views.append((m, _snapshot(m.arrays), tuple(m.tiles)))
         store = m.arrays.__dict__.get("_growing")
         if store is not None:
             capacity.append((id(store), len(store.buf["ids"])))
     assert grown > 10 and dropped > 3
     assert len({s for s, _ in capacity}) > 1  # storage made again after drops
     assert len(set(capacity)) > len({s for s, _ in capacity})  # and doubled when full
-    for m, snap in views:  # no later growth wrote into an earlier view's rows
+    later = {t.id for m, _, _ in views for t in m.tiles}
+    for m, snap, tiles in views:  # no later growth wrote into an earlier view's rows, positions or tiles by id
         for name, arr in snap.items():
             np.testing.assert_array_equal(getattr(m.arrays, name), arr, err_msg=name)
+        assert m.tiles == tiles and len(m.index_of) == len(m.tile_by_id) == len(tiles)
+        assert dict(m.index_of) == {t.id: i for i, t in enumerate(tiles)} and all(
+            m.tile_by_id[t.id] is t and m.tile(t.id) is t for t in tiles)
+        for t in later - {t.id for t in tiles}:  # tiles of other views: not in this one
+            assert t not in m.index_of and t not in m.tile_by_id and m.index_of.get(t) is None
     # a view grown again after a later view grew from it: into a copy, the later view keeps its rows
     tree = PagedTree(parse_manifest(paged_store.read_manifest(), "root", lazy_payloads=True))
     _ = tree.manifest.arrays

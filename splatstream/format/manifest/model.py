@@ -471,17 +471,21 @@ def grown_arrays(a: TileArrays, tiles: Sequence[TileEntry], idx: Mapping[int, in
     start = len(a.ids)
     new = tiles[start:]
     children = list(a.children)
-    children += [tuple(idx[c] for c in t.children) for t in new]
-    new_parent = np.full(len(new), -1, np.int64)
-    old_parent: dict[int, int] = {}  # held tiles given a parent (a tree grown other than by pages: not in place)
-    for i in [*changed, *range(start, len(tiles))]:
-        kids = tuple(idx[c] for c in tiles[i].children)
+    changed = list(changed)
+    made = [tuple(map(idx.__getitem__, tiles[i].children)) for i in changed]  # their positions, once each
+    for i, kids in zip(changed, made, strict=True):
         children[i] = kids
-        for k in kids:
-            if k >= start:
-                new_parent[k - start] = i
-            else:
-                old_parent[k] = i
+    made += [tuple(map(idx.__getitem__, t.children)) for t in new]
+    children += made[len(changed):]
+    # each child's parent in array operations (a Python loop over the children took most of an adoption)
+    lengths = np.fromiter(map(len, made), np.int64, len(made))
+    kid = np.fromiter(chain.from_iterable(made), np.int64, int(lengths.sum()))
+    of = np.repeat(np.array([*changed, *range(start, len(tiles))], np.int64), lengths)
+    new_parent = np.full(len(new), -1, np.int64)
+    in_new = kid >= start
+    new_parent[kid[in_new] - start] = of[in_new]
+    # held tiles given a parent (a tree grown other than by pages: not in place)
+    old_parent = dict(zip(kid[~in_new].tolist(), of[~in_new].tolist(), strict=True))
     parts = [tile_rows(new)] if rows is None else list(rows)
     added = sum(len(p["ids"]) for p in parts)
     if added != len(new):
