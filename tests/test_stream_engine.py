@@ -704,6 +704,29 @@ def test_pages_adopted_in_place_leave_earlier_views_as_they_were(paged_store, mo
         np.testing.assert_array_equal(getattr(one, name), arr, err_msg=name)
 
 
+def test_taken_arrays_are_those_a_rebuild_of_the_tiles_kept_makes(paged_store):
+    """taken_arrays (tuples made again only for tiles with a child at or after the first position dropped) against
+    tile_arrays over the tiles kept: random subtrees dropped, below a tile (the tile kept, a leaf: as a page is
+    dropped) or with it (its siblings kept), the first drop early or late."""
+    whole = read_manifest(paged_store)
+    idx = {t.id: i for i, t in enumerate(whole.tiles)}
+    a = tile_arrays(whole.tiles, idx)
+    rnd = random.Random(2)
+    for _ in range(30):
+        gone: set[int] = set()
+        lo = rnd.choice((0, len(whole.tiles) // 2))
+        for t in rnd.sample(whole.tiles[max(1, lo):], rnd.randrange(1, 4)):
+            todo = [t.id] if rnd.random() < 0.5 else list(t.children)
+            while todo:
+                i = todo.pop()
+                gone.add(i)
+                todo += whole.tile(i).children
+        kept = [replace(t, children=tuple(c for c in t.children if c not in gone)) for t in whole.tiles
+                if t.id not in gone]
+        keep = np.array([idx[t.id] for t in kept], np.int64)
+        _same_arrays(model.taken_arrays(a, keep), tile_arrays(kept, {t.id: i for i, t in enumerate(kept)}))
+
+
 def test_the_paged_trees_arrays_grow_and_shrink_as_a_rebuild_makes_them(paged_store):
     """PagedTree carries its arrays over from view to view (grown by a page's tiles, the kept rows taken when pages
     are dropped) instead of rebuilding them over every tile held: the same arrays, index and tiles as a rebuild."""
