@@ -16,7 +16,7 @@ median time of one frame's view numbers + selection over the tiles held against 
         manifest bytes and seconds from opening the stream to the first frame that draws the root (engine, fetcher
         and HTTP as `view` runs them, no GL: a pool that counts slots), median of --runs
     PYTHONPATH=. python bench/bench_pages.py --engine --splats 6e6,60e6,250e6 [--frames 300] [--profile]
-            [--numpy-selection | --no-wait] [--parts-json F_N.json] [--busy-threads 1]
+            [--numpy-selection | --no-wait] [--parts-json F_N.json] [--busy-threads 1] [--max-tree-tiles 8192]
     PYTHONPATH=. python bench/bench_pages.py --jit-cost [--runs 7]   # the compiled selection's cost before its first
         # use: numba's import, then its kernels compiled (the first run, an empty cache) or loaded (the others)
         # a StreamEngine over the paged tree along a street-level path (pages and payloads arrive --per-frame a
@@ -289,15 +289,18 @@ def tree_memory_mb(held: PagedTree, paged) -> float:
 
 def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame: int, profile: bool,
                 compiled: bool = True, wait: bool = True, parts_json: str | None = None,
-                busy_threads: int = 0) -> None:
+                busy_threads: int = 0, max_tree_tiles: int | None = None) -> None:
     """A StreamEngine over the paged tree along a camera flying across the city at street level: per-frame
     update times (median, p99, max) and, with --profile, where they go. `compiled`: the compiled selection
-    (selection_jit, waited for before the path, so every frame near the cut uses it), else the numpy path."""
+    (selection_jit, waited for before the path, so every frame near the cut uses it), else the numpy path.
+    `max_tree_tiles`: the engine's bound on the tree held (StreamOptions' default if None); a bound below the tiles
+    the path holds makes it drop pages (its eviction timed as "page eviction")."""
     paged = split_pages(whole, k)
     files = {ref.file: raw for ref, raw in paged.pages}
+    bound = {} if max_tree_tiles is None else {"max_tree_tiles": max_tree_tiles}
     engine = _NoDecodeEngine(_PathFetcher(paged.root, files, per_frame), _Slots(),
                              StreamOptions(SelectionOptions(max_splats=max_splats), upload_bytes_per_frame=1 << 40,
-                                           compiled_selection=compiled))
+                                           compiled_selection=compiled, **bound))
     if compiled and wait:
         t0 = time.perf_counter()
         if COMPILED_SELECTION.wait() is None:
@@ -599,6 +602,9 @@ def main() -> None:
     ap.add_argument("--busy-threads", type=int, default=0,
                     help="--engine: threads of pure Python beside the frame loop (as a page parse or a decode step "
                          "that runs into a frame): the frame's wall then shows each hand-over of the interpreter lock")
+    ap.add_argument("--max-tree-tiles", type=int, default=None,
+                    help="--engine: the engine's bound on the tiles held (StreamOptions.max_tree_tiles; default its "
+                         "default): below the tiles the path holds, pages are dropped and their eviction timed")
     ap.add_argument("--jit-cost", action="store_true",
                     help="the compiled selection's import and compilation (cold numba cache) or loading (warm)")
     args = ap.parse_args()
@@ -611,7 +617,7 @@ def main() -> None:
             engine_path(synthetic_tree(n, base), args.default_levels, args.frames, args.max_splats, args.per_frame,
                         args.profile, not args.numpy_selection, not args.no_wait,
                         args.parts_json.replace("N", f"{n / 1e6:.0f}M") if args.parts_json else None,
-                        args.busy_threads)
+                        args.busy_threads, args.max_tree_tiles)
         return
     if args.repage:
         repage(*args.repage, args.default_levels)

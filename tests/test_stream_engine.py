@@ -457,6 +457,162 @@ def test_the_tree_held_is_bounded_and_dropped_pages_are_read_again(paged_store):
     assert len(pages) > len(set(pages))  # dropped pages were read again when their side was viewed again
 
 
+def _random_tree(paged_store, rnd, steps):
+    """A PagedTree after `steps` random page arrivals (in batches) and evictions of random held pages (nested ones
+    among them, in any order)."""
+    tree = PagedTree(parse_manifest(paged_store.read_manifest(), "root", lazy_payloads=True))
+    _ = tree.manifest.arrays
+    for _ in range(steps):
+        pending, held = list(tree.pending), tree.held_pages()
+        if held and (not pending or rnd.random() < 0.2):
+            tree.evict(rnd.sample(held, rnd.randrange(1, min(4, len(held)) + 1)))
+        else:
+            for tile_id in rnd.sample(pending, min(len(pending), rnd.randrange(1, 6))):
+                tree.add_page(tile_id, paged_store.payloads[tree.entry(tile_id).file])
+    return tree
+
+
+def test_held_pages_group_the_tiles_below_each_page_as_the_walk_finds_them(paged_store):
+    """PagedTree.held (the tiles held grouped by page, HeldPages.below) against the walk below each page held
+    (PagedTree.below, the reference): the same tiles below every head, counted, summed and maxed, on random trees."""
+    rnd = random.Random(5)
+    nested = 0
+    for _ in range(12):
+        tree = _random_tree(paged_store, rnd, rnd.randrange(3, 40))
+        m, held = tree.manifest, tree.held()
+        n = len(m.tiles)
+        assert held.ids.tolist() == [m.tiles[i].id for i in held.heads] and sorted(held.ids.tolist()) == \
+            tree.held_pages()
+        assert (np.diff(held.heads) > 0).all() and (held.up < np.arange(len(held.heads))).all()
+        values = np.array([rnd.randrange(-50, 50) for _ in range(n)], np.int64)
+        count = held.below(np.ones(n, np.int64), np.add, 0)
+        total = held.below(values, np.add, 0)
+        most = held.below(values, np.maximum, np.iinfo(np.int64).min)
+        for j, head in enumerate(held.ids.tolist()):
+            below = tree.below(head)
+            assert count[j] == len(below) and total[j] == values[below].sum()
+            assert most[j] == (values[below].max() if below else np.iinfo(np.int64).min)
+        nested += int((held.depth > 0).sum())
+    assert nested > 10  # pages held below pages held
+
+
+def _evict_by_walk(tree, heads):
+    """What evict(heads) leaves, by the walk (the reference): the ids kept in order and the pages dropped."""
+    position = tree.manifest.index_of
+    read, gone, dropped = set(tree.held_pages()), set(), 0
+    for h in heads:
+        if h not in read or position[h] in gone:
+            continue
+        below = tree.below(h)
+        gone.update(below)
+        read -= {tree.manifest.tiles[i].id for i in below} | {h}
+        dropped += 1
+    return [t.id for i, t in enumerate(tree.manifest.tiles) if i not in gone], dropped, read
+
+
+def test_evict_in_arrays_drops_what_the_walk_drops(paged_store):
+    """PagedTree.evict against the walk below each head (heads nested, repeated, not held, in any order): the same
+    tiles kept in order, pages counted as dropped, pages still held, and a view the same as a rebuild (arrays,
+    positions, tiles by id, heads dropped as leaves, their pages pending again)."""
+    rnd = random.Random(11)
+    whole = {t.id: t for t in read_manifest(paged_store).tiles}
+    skipped = 0
+    for _ in range(40):
+        tree = _random_tree(paged_store, rnd, rnd.randrange(4, 30))
+        held = tree.held_pages()
+        if not held:
+            continue
+        heads = rnd.sample(held, rnd.randrange(1, min(6, len(held)) + 1)) + rnd.sample(held, 1)
+        heads.insert(rnd.randrange(len(heads) + 1), next(iter(tree.pending), tree.root.root))  # not held: ignored
+        ids, dropped, read = _evict_by_walk(tree, heads)
+        before = tree.evicted
+        keep = tree.evict(heads)
+        m = tree.manifest
+        assert [t.id for t in m.tiles] == ids and len(keep) == len(ids) and keep.tolist() == sorted(keep.tolist())
+        assert tree.evicted - before == dropped and set(tree.held_pages()) == read
+        skipped += dropped < len(set(heads) & set(held))
+        _same_arrays(m.arrays, tile_arrays(m.tiles, {t.id: i for i, t in enumerate(m.tiles)}))
+        assert m.index_of == {t.id: i for i, t in enumerate(m.tiles)} and m.tile_by_id == {t.id: t for t in m.tiles}
+        for t in m.tiles:  # a held page's head with its children, every other tile with a page a pending leaf
+            if t.id in read:
+                assert t.children == whole[t.id].children
+            elif whole[t.id].page is not None:
+                assert t.children == () and tree.pending[t.id] == whole[t.id].page
+        assert set(tree.pending) == {t.id for t in m.tiles if whole[t.id].page is not None and t.id not in read}
+    assert skipped > 3  # heads below a head dropped before them
+
+
+def _drop_by_walk(engine):
+    """The pages the engine drops, chosen by a walk below every page held (its rule before HeldPages: the
+    reference)."""
+    pages = engine.pages
+    in_cut = np.zeros(len(engine.resident), bool)
+    in_cut[engine._last_cut] = True
+    busy = {k[0] for k in engine._ready} | {k[0] for k in engine._decoding} | set(engine._pages_arrived) | \
+        {k[0] for k in engine._listed if k[1] == "page"}
+    candidates = []
+    for head in pages.held_pages():
+        if engine._page_frame.get(head, 0) >= engine.frame - 1 or in_cut[engine.manifest.index_of[head]]:
+            continue
+        below = pages.below(head)
+        if not below or engine.resident[below].any() or in_cut[below].any() or \
+                any(int(engine.ids[i]) in busy for i in below):
+            continue
+        candidates.append((int(engine.last_drawn[below].max()), -len(below), head))
+    excess = len(engine.manifest.tiles) - engine.options.max_tree_tiles
+    heads = []
+    for _, minus_n, head in sorted(candidates):
+        if excess <= 0:
+            break
+        heads.append(head)
+        excess += minus_n
+    return heads
+
+
+def test_the_pages_dropped_are_those_the_walk_chooses(paged_store, monkeypatch):
+    """The engine's choice of pages to drop (in arrays over HeldPages) against the walk's, on every eviction pass
+    of a bounded engine viewing one side then the other, and on the same trees with random residency, cut, last
+    drawn frames, busy tiles and bounds (ties of last drawn and size broken by the head id)."""
+    rnd = random.Random(7)
+    calls = []
+    chosen = StreamEngine._pages_to_drop
+
+    def checked(engine):
+        heads = chosen(engine)
+        assert heads == _drop_by_walk(engine)
+        calls.append(len(heads))
+        state = (engine.resident, engine._last_cut, engine.last_drawn, engine._ready, engine._listed,
+                 engine.options, engine.frame)
+        for _ in range(4):  # the same tree, other states
+            n = len(engine.resident)
+            engine.resident = np.array([rnd.random() < 0.05 for _ in range(n)], bool)
+            engine._last_cut = np.array(rnd.sample(range(n), rnd.randrange(0, 4)), np.intp)
+            engine.last_drawn = np.array([rnd.randrange(0, 4) for _ in range(n)], np.int64)
+            engine._ready = {(int(engine.ids[i]), "base"): None for i in rnd.sample(range(n), rnd.randrange(0, 3))}
+            engine._listed = tuple((h, "page") for h in rnd.sample(list(engine.pages.pending),
+                                                                     min(2, len(engine.pages.pending))))
+            engine.options = replace(engine.options, max_tree_tiles=rnd.randrange(0, n + 2))
+            engine.frame += rnd.randrange(0, 3)
+            assert chosen(engine) == _drop_by_walk(engine)
+        (engine.resident, engine._last_cut, engine.last_drawn, engine._ready, engine._listed, engine.options,
+         engine.frame) = state
+        return heads
+    monkeypatch.setattr(StreamEngine, "_pages_to_drop", checked)
+    opts = StreamOptions(SelectionOptions(max_sse=1.0, band_area_share=(0.95, 0.8, 0.6)), prefetch=False)
+    root = parse_manifest(paged_store.read_manifest(), "root")
+    whole = read_manifest(paged_store)
+    top = whole.tiles[0]
+    c, r = np.array(top.sphere_center), top.sphere_radius
+    engine = StreamEngine(PagedFetcher(paged_store), CountingPool(26),
+                          replace(opts, max_tree_tiles=len(root.tiles) + 4))
+    for angle in (0.3, 0.3 + np.pi, 0.3):
+        d = np.array([np.cos(angle), np.sin(angle), 0.0])
+        run_until_converged(engine, Camera(tuple(c + 0.3 * r * d), tuple(c + 2 * r * d), (0, 0, 1), 40.0, 320, 240,
+                                           near=0.001 * r))
+    engine.close()
+    assert engine.pages.evicted > 0 and sum(1 for k in calls if k) > 2
+
+
 _ARRAY_NAMES = ("ids", "parent", "level", "splats", "box_min", "box_max", "sphere_center", "sphere_radius",
                 "geometric_error", "base_bytes", "band_bytes", "gpu_bytes", "box_corners", "splats_f64", "has_children",
                 "child_count", "parent_of_child")
@@ -475,8 +631,9 @@ def _snapshot(a) -> dict:
 
 
 def test_pages_adopted_in_place_leave_earlier_views_as_they_were(paged_store, monkeypatch):
-    """grown_arrays writes a page's rows into spare rows of the last view's storage (doubled when full): every
-    view, earlier ones included, must stay what a rebuild makes, with pages arriving in random order and batches,
+    """grown_arrays writes a page's rows into spare rows of the last view's storage (doubled when full), and the
+    views share the tree's maps of positions and tiles by id (PagedTree._detach): every view, earlier ones
+    included, must stay what a rebuild makes, with pages arriving in random order and batches,
     as parsed pages (rows taken by read, on a worker in the engine) or plain tile lists (rows taken when adopted),
     pages dropped and arriving again, and a tree grown twice from one view (the second must copy)."""
     monkeypatch.setattr(model, "_FIRST_ROWS", 1)  # storage of twice the tiles held: this small tree fills it
@@ -499,16 +656,23 @@ def test_pages_adopted_in_place_leave_earlier_views_as_they_were(paged_store, mo
             grown += 1
         m = tree.manifest
         _same_arrays(m.arrays, tile_arrays(m.tiles, {t.id: i for i, t in enumerate(m.tiles)}))
-        views.append((m, _snapshot(m.arrays)))
+        assert m.index_of == {t.id: i for i, t in enumerate(m.tiles)} and m.tile_by_id == {t.id: t for t in m.tiles}
+        views.append((m, _snapshot(m.arrays), tuple(m.tiles)))
         store = m.arrays.__dict__.get("_growing")
         if store is not None:
             capacity.append((id(store), len(store.buf["ids"])))
     assert grown > 10 and dropped > 3
     assert len({s for s, _ in capacity}) > 1  # storage made again after drops
     assert len(set(capacity)) > len({s for s, _ in capacity})  # and doubled when full
-    for m, snap in views:  # no later growth wrote into an earlier view's rows
+    later = {t.id for m, _, _ in views for t in m.tiles}
+    for m, snap, tiles in views:  # no later growth wrote into an earlier view's rows, positions or tiles by id
         for name, arr in snap.items():
             np.testing.assert_array_equal(getattr(m.arrays, name), arr, err_msg=name)
+        assert m.tiles == tiles and len(m.index_of) == len(m.tile_by_id) == len(tiles)
+        assert dict(m.index_of) == {t.id: i for i, t in enumerate(tiles)} and all(
+            m.tile_by_id[t.id] is t and m.tile(t.id) is t for t in tiles)
+        for t in later - {t.id for t in tiles}:  # tiles of other views: not in this one
+            assert t not in m.index_of and t not in m.tile_by_id and m.index_of.get(t) is None
     # a view grown again after a later view grew from it: into a copy, the later view keeps its rows
     tree = PagedTree(parse_manifest(paged_store.read_manifest(), "root", lazy_payloads=True))
     _ = tree.manifest.arrays
@@ -538,6 +702,29 @@ def test_pages_adopted_in_place_leave_earlier_views_as_they_were(paged_store, mo
     _same_arrays(two, one)
     for name, arr in first.items():
         np.testing.assert_array_equal(getattr(one, name), arr, err_msg=name)
+
+
+def test_taken_arrays_are_those_a_rebuild_of_the_tiles_kept_makes(paged_store):
+    """taken_arrays (tuples made again only for tiles with a child at or after the first position dropped) against
+    tile_arrays over the tiles kept: random subtrees dropped, below a tile (the tile kept, a leaf: as a page is
+    dropped) or with it (its siblings kept), the first drop early or late."""
+    whole = read_manifest(paged_store)
+    idx = {t.id: i for i, t in enumerate(whole.tiles)}
+    a = tile_arrays(whole.tiles, idx)
+    rnd = random.Random(2)
+    for _ in range(30):
+        gone: set[int] = set()
+        lo = rnd.choice((0, len(whole.tiles) // 2))
+        for t in rnd.sample(whole.tiles[max(1, lo):], rnd.randrange(1, 4)):
+            todo = [t.id] if rnd.random() < 0.5 else list(t.children)
+            while todo:
+                i = todo.pop()
+                gone.add(i)
+                todo += whole.tile(i).children
+        kept = [replace(t, children=tuple(c for c in t.children if c not in gone)) for t in whole.tiles
+                if t.id not in gone]
+        keep = np.array([idx[t.id] for t in kept], np.int64)
+        _same_arrays(model.taken_arrays(a, keep), tile_arrays(kept, {t.id: i for i, t in enumerate(kept)}))
 
 
 def test_the_paged_trees_arrays_grow_and_shrink_as_a_rebuild_makes_them(paged_store):

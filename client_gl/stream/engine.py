@@ -440,29 +440,9 @@ class StreamEngine:
         self._version += 1
 
     def _evict_pages(self) -> None:
-        """Drop pages until the tree held is within max_tree_tiles, where pages are unused: no tile below their
-        head resident, in the last cut, decoding or decoded, nor a page below it being fetched or parsed; the least
-        recently drawn first."""
-        in_cut = np.zeros(len(self.resident), bool)
-        in_cut[self._last_cut] = True
-        busy = {k[0] for k in self._ready} | {k[0] for k in self._decoding} | set(self._pages_arrived) | \
-            {k[0] for k in self._listed if k[1] == PAGE_GROUP}  # pages in flight or being parsed stay
-        candidates = []
-        for head in self.pages.held_pages():
-            if self._page_frame.get(head, 0) >= self.frame - 1 or in_cut[self.manifest.index_of[head]]:
-                continue  # added since the last selection, or its tile in the cut (the page would be wanted again)
-            below = self.pages.below(head)
-            if not below or self.resident[below].any() or in_cut[below].any() or \
-                    any(int(self.ids[i]) in busy for i in below):
-                continue
-            candidates.append((int(self.last_drawn[below].max()), -len(below), head))
-        excess = len(self.manifest.tiles) - self.options.max_tree_tiles
-        heads = []
-        for _, minus_n, head in sorted(candidates):
-            if excess <= 0:
-                break
-            heads.append(head)
-            excess += minus_n
+        """Drop pages until the tree held is within max_tree_tiles (_pages_to_drop), the per-tile state taken
+        through the positions kept."""
+        heads = self._pages_to_drop()
         if not heads:
             return
         keep = self.pages.evict(heads)
@@ -476,6 +456,35 @@ class StreamEngine:
         self._adopt(self.pages.manifest)
         self._wanted_cache = self._draw_cache = self._order_of = self._upload_idle = None
         self._version += 1
+
+    def _pages_to_drop(self) -> list[int]:
+        """The heads of the pages to drop, in order, for the tree held to be within max_tree_tiles: pages unused (no
+        tile below their head resident, in the last cut, decoding or decoded, nor a page below it being fetched or
+        parsed), the least recently drawn first, then the larger, then the lower head id. The tiles below each head
+        are found by grouping the tiles held by page (PagedTree.held), in array operations: a walk of the tree below
+        every page held took 73-107 ms of a frame at 250M splats (issue 38, BENCHMARKS.md "Manifest pages")."""
+        held = self.pages.held()
+        n = len(self.resident)
+        in_cut = np.zeros(n, bool)
+        in_cut[self._last_cut] = True
+        busy_ids = {k[0] for k in self._ready} | {k[0] for k in self._decoding} | set(self._pages_arrived) | \
+            {k[0] for k in self._listed if k[1] == PAGE_GROUP}  # pages in flight or being parsed stay
+        index_of = self.manifest.index_of
+        used = self.resident | in_cut
+        used[[index_of[t] for t in busy_ids if t in index_of]] = True
+        count = held.below(np.ones(n, np.int64), np.add, 0)  # tiles below each head
+        used_below = held.below(used.astype(np.int64), np.add, 0)
+        last = held.below(self.last_drawn, np.maximum, np.iinfo(np.int64).min)
+        since = self.frame - 1
+        recent = np.fromiter((self._page_frame.get(h, 0) >= since for h in held.ids.tolist()), bool, len(held.ids))
+        # not added since the last selection, nor its tile in the cut (the page would be wanted again)
+        candidates = np.flatnonzero(~recent & ~in_cut[held.heads] & (count > 0) & (used_below == 0))
+        order = candidates[np.lexsort((held.ids[candidates], -count[candidates], last[candidates]))]
+        excess = len(self.manifest.tiles) - self.options.max_tree_tiles
+        # the fewest in that order whose tiles make up the excess (counted as they stand: a page below another
+        # taken counts twice, as it always has)
+        taken = min(len(order), int(np.searchsorted(np.cumsum(count[order]), excess)) + 1) if excess > 0 else 0
+        return held.ids[order[:taken]].tolist()
 
     # --- keys -------------------------------------------------------------------------------------------------
     def entry(self, key: Key) -> PayloadEntry:

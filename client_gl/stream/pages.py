@@ -11,7 +11,8 @@ per-tile state through the positions it returns.
 """
 from __future__ import annotations
 
-from collections.abc import Callable
+import operator
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -41,6 +42,31 @@ class ParsedPage:
     rows: dict[str, np.ndarray]
 
 
+@dataclass(frozen=True)
+class HeldPages:
+    """The pages held as arrays over the tiles' positions (`PagedTree.held`): what is below each page's head (its
+    descendants through every page held: `PagedTree.below`) found by grouping, not by walking the tree. A page's
+    head comes before every tile below it (tiles are appended after their head; eviction keeps the order), so the
+    page holding a head has a smaller index here than the head's own page."""
+
+    heads: np.ndarray  # positions of the tiles whose page is held, ascending
+    ids: np.ndarray  # their tile ids
+    owner: np.ndarray  # per position held: the index (in heads) of the page the tile came in; -1: the root manifest's
+    up: np.ndarray  # per head: the index of the page its head came in; -1: a tile of the root manifest
+    depth: np.ndarray  # per head: pages above it (0: its head is a tile of the root manifest)
+
+    def below(self, values: np.ndarray, ufunc: np.ufunc, initial) -> np.ndarray:
+        """Per head, `ufunc` (np.add, np.maximum, ...) reduced over `values` (one per position held) of the tiles
+        below it, from `initial` (what a page with no tile below it reads)."""
+        out = np.full(len(self.heads), initial, values.dtype)
+        own = self.owner >= 0
+        ufunc.at(out, self.owner[own], values[own])
+        for d in range(int(self.depth.max(initial=0)), 0, -1):  # the deepest pages first, into the page above them
+            at = np.flatnonzero(self.depth == d)
+            ufunc.at(out, self.up[at], out[at])
+        return out
+
+
 class PagedTree:
     """The tiles of a paged scene held so far; `manifest` is their view (the root manifest with these tiles)."""
 
@@ -51,6 +77,11 @@ class PagedTree:
         self._full: dict[int, TileEntry] = {t.id: t for t in root.tiles}  # held tiles, children as stored
         self._tiles: list[TileEntry] = [replace(t, children=()) if t.page is not None else t for t in root.tiles]
         self._position = {t.id: i for i, t in enumerate(self._tiles)}
+        # per position held: the position of the head of the page the tile came in (-1: the root manifest's), and
+        # its id; rows with spare room after the n held (appended to as pages arrive), what `held` groups by
+        self._head_at = np.full(max(64, 2 * len(self._tiles)), -1, np.int64)
+        self._ids = np.zeros(len(self._head_at), np.int64)
+        self._ids[:len(self._tiles)] = [t.id for t in self._tiles]
         self.pages_read = 0
         self.page_bytes = 0
         self.evicted = 0  # pages dropped again (evict)
@@ -70,13 +101,24 @@ class PagedTree:
         if self._view_of is None:
             last = self._manifest
             m = replace(self.root, tiles=tuple(self._tiles))
-            m.__dict__["index_of"] = dict(self._position)  # cached_property values, as Manifest would compute them
-            m.__dict__["tile_by_id"] = dict(self._by_id)
+            # cached_property values, as Manifest would compute them: the tree's own maps, not copies (the newest
+            # view looks tiles up at a dict's speed; _detach gives it its own lookups before the maps change)
+            m.__dict__["index_of"] = self._position
+            m.__dict__["tile_by_id"] = self._by_id
             if "arrays" in last.__dict__:
                 m.__dict__["arrays"] = grown_arrays(last.arrays, m.tiles, m.index_of, self._changed, self._rows)
             self._changed, self._rows = set(), []
             self._manifest = self._view_of = m
         return self._view_of
+
+    def _detach(self) -> None:
+        """Before the tree's maps grow: the last view, which shares them, keeps lookups of its own tiles only
+        (positions never change between evictions, so its positions are the maps' below its length; its tiles by
+        id are its own tuple's). O(1), where copying both maps took 0.1-0.35 ms a page at 21,000 tiles held."""
+        v = self._manifest
+        if v.__dict__.get("index_of") is self._position:
+            index = _HeldIndex(self._position, len(v.tiles))
+            v.__dict__["index_of"], v.__dict__["tile_by_id"] = index, _HeldById(v.tiles, index)
 
     def entry(self, tile_id: int) -> PageRef:
         """The entry of the page below a tile whose page is not read yet (what the fetcher fetches and checks)."""
@@ -124,18 +166,30 @@ class PagedTree:
                 self._rows.append(page.rows)
         else:
             tiles, self._rows = page, None
+        self._detach()
         at = self._position[tile_id]
         self._tiles[at] = self._by_id[tile_id] = self._full[tile_id]  # its children are known now
         if at < len(self._manifest.tiles):
             self._changed.add(at)
-        for t in tiles:
-            self._full[t.id] = t
-            self._position[t.id] = len(self._tiles)
+        n, add = len(self._tiles), len(tiles)
+        if n + add > len(self._head_at):  # doubled when full: a page costs its own rows (amortised)
+            grown = max(2 * len(self._head_at), n + add)
+            self._head_at = np.concatenate([self._head_at[:n], np.full(grown - n, -1, np.int64)])
+            self._ids = np.concatenate([self._ids[:n], np.zeros(grown - n, np.int64)])
+        ids = [t.id for t in tiles]
+        self._head_at[n:n + add] = at
+        self._ids[n:n + add] = ids
+        self._full.update(zip(ids, tiles, strict=True))
+        self._position.update(zip(ids, range(n, n + add), strict=True))
+        held = tiles
+        for k, t in enumerate(tiles):  # a tile with a page below it: a leaf until that page is read
             if t.page is not None:
+                if held is tiles:
+                    held = list(tiles)
                 self.pending[t.id] = t.page
-                t = replace(t, children=())
-            self._tiles.append(t)
-            self._by_id[t.id] = t
+                held[k] = replace(t, children=())
+        self._tiles += held
+        self._by_id.update(zip(ids, held, strict=True))
         self._read.add(tile_id)
         self.pages_read += 1
         self.page_bytes += ref.bytes
@@ -157,36 +211,76 @@ class PagedTree:
                 todo.append(c)
         return out
 
+    def held(self) -> HeldPages:
+        """The pages held as arrays (HeldPages): their heads, and which page each tile held came in."""
+        n = len(self._tiles)
+        position = self._position
+        heads = np.sort(np.fromiter((position[t] for t in self._read), np.int64, len(self._read)))
+        head_at = self._head_at[:n]
+        owner = np.full(n, -1, np.int64)
+        own = head_at >= 0
+        owner[own] = np.searchsorted(heads, head_at[own])
+        up = owner[heads]
+        depth = np.zeros(len(heads), np.int64)
+        above = up.copy()
+        while (above >= 0).any():  # a few rounds: pages nest as deep as the tree's levels over a page's levels
+            depth += above >= 0
+            above = np.where(above >= 0, up[above], -1)
+        return HeldPages(heads, self._ids[heads], owner, up, depth)
+
     def evict(self, heads: list[int]) -> np.ndarray:
         """Drop the pages below these tiles (and every page held below them): the tiles become leaves again, their
         pages wanted again when a cut reaches them. Returns the old positions of the tiles kept, in order (the
-        engine's per-tile state is taken through it)."""
+        engine's per-tile state is taken through it). A head not held, or below a head dropped before it in
+        `heads`, changes nothing. In array operations over the tiles held and Python over the tiles dropped (a walk
+        of the tree for each head, and Python over every tile held, took 73-107 ms of a frame at 250M splats:
+        issue 38, BENCHMARKS.md "Manifest pages")."""
         last = self.manifest  # the view before the eviction: its arrays' rows are taken
-        gone: set[int] = set()
+        self._detach()  # its lookups its own: the positions are made again below, tiles by id changed in place
+        held = self.held()
+        n = len(self._tiles)
+        dropped = np.zeros(len(held.heads), bool)  # pages dropped, the heads given first
         for h in heads:
-            if h not in self._read or self._position[h] in gone:
+            if h not in self._read:
                 continue
-            below = self.below(h)
-            gone.update(below)
-            for i in below:
-                t = self._tiles[i]
-                self._read.discard(t.id)
-                self.pending.pop(t.id, None)
+            j = int(np.searchsorted(held.heads, self._position[h]))
+            above = j
+            while above >= 0 and not dropped[above]:  # below a page dropped before it: gone already
+                above = int(held.up[above])
+            if above >= 0:
+                continue
+            dropped[j] = True
             self._read.discard(h)
             self.pending[h] = self._full[h].page
-            self._tiles[self._position[h]] = self._by_id[h] = replace(self._full[h], children=())
             self.evicted += 1
-        keep = np.array([i for i in range(len(self._tiles)) if i not in gone], np.int64)
-        for i in gone:
-            t = self._tiles[i]
-            del self._full[t.id]
-            del self._position[t.id]
-            del self._by_id[t.id]
-        self._tiles = [self._tiles[i] for i in keep]
-        self._position = {t.id: i for i, t in enumerate(self._tiles)}
+        if not dropped.any():
+            return np.arange(n, dtype=np.int64)
+        cut = dropped.copy()  # the pages dropped and every page below them
+        for d in range(1, int(held.depth.max(initial=0)) + 1):
+            at = np.flatnonzero(held.depth == d)
+            cut[at] |= cut[held.up[at]]
+        gone = np.zeros(n, bool)
+        own = held.owner >= 0
+        gone[own] = cut[held.owner[own]]
+        keep = np.flatnonzero(~gone)
+        for t in self._ids[np.flatnonzero(gone)].tolist():  # the tiles of the pages dropped
+            self._read.discard(t)
+            self.pending.pop(t, None)
+            del self._full[t], self._by_id[t]
+        tiles = self._tiles  # (views hold tuples of their own)
+        for j in np.flatnonzero(dropped & ~gone[held.heads]).tolist():  # a head dropped (a leaf again), unless
+            h = int(held.ids[j])  # below a page dropped after it
+            tiles[held.heads[j]] = self._by_id[h] = replace(self._full[h], children=())
+        self._tiles = _taken(tiles, keep.tolist())
+        new_of = np.full(n + 1, -1, np.int64)  # index -1 (the root manifest's tiles' head) reads -1
+        new_of[keep] = np.arange(len(keep))
+        kept_ids = self._ids[keep]
+        self._head_at = np.concatenate([new_of[self._head_at[keep]], np.full(len(keep), -1, np.int64)])
+        self._ids = np.concatenate([kept_ids, np.zeros(len(keep), np.int64)])
+        kept_ids = kept_ids.tolist()
+        self._position = dict(zip(kept_ids, range(len(keep)), strict=True))
         m = replace(self.root, tiles=tuple(self._tiles))
-        m.__dict__["index_of"] = dict(self._position)
-        m.__dict__["tile_by_id"] = dict(self._by_id)
+        m.__dict__["index_of"], m.__dict__["tile_by_id"] = self._position, self._by_id
         if "arrays" in last.__dict__:  # the kept rows taken, not rebuilt from the tiles
             m.__dict__["arrays"] = taken_arrays(last.arrays, keep)
         self._changed, self._rows = set(), []
@@ -199,3 +293,44 @@ class PagedTree:
             return self.manifest
         self.insert(tile_id, self.read(tile_id, data))
         return self.manifest
+
+
+def _taken(items: list, at: list[int]) -> list:
+    """[items[i] for i in at], in C (operator.itemgetter: a third of a list comprehension's time)."""
+    return list(operator.itemgetter(*at)(items)) if len(at) > 1 else [items[i] for i in at]
+
+
+class _HeldIndex(Mapping):
+    """Tile id -> position of a view that is no longer the newest (PagedTree._detach): the tree's map, which only
+    grows until the next eviction (which makes new maps), read below the view's length."""
+
+    def __init__(self, position: dict[int, int], n: int):
+        self._position, self._n = position, n
+
+    def __getitem__(self, tile_id: int) -> int:
+        i = self._position[tile_id]
+        if i >= self._n:
+            raise KeyError(tile_id)
+        return i
+
+    def __iter__(self):
+        return (t for t, i in self._position.items() if i < self._n)
+
+    def __len__(self) -> int:
+        return self._n
+
+
+class _HeldById(Mapping):
+    """Tile id -> tile of a view that is no longer the newest: its own tiles, through its positions."""
+
+    def __init__(self, tiles: tuple[TileEntry, ...], index: _HeldIndex):
+        self._tiles, self._index = tiles, index
+
+    def __getitem__(self, tile_id: int) -> TileEntry:
+        return self._tiles[self._index[tile_id]]
+
+    def __iter__(self):
+        return iter(self._index)
+
+    def __len__(self) -> int:
+        return len(self._tiles)

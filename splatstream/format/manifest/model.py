@@ -6,8 +6,11 @@ code that holds one trusts it. `Manifest.to_dict()` gives back the spec's map (`
 from __future__ import annotations
 
 import functools
+import operator
+from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
+from itertools import chain
 
 import msgpack
 import numpy as np
@@ -469,17 +472,21 @@ def grown_arrays(a: TileArrays, tiles: Sequence[TileEntry], idx: Mapping[int, in
     start = len(a.ids)
     new = tiles[start:]
     children = list(a.children)
-    children += [tuple(idx[c] for c in t.children) for t in new]
-    new_parent = np.full(len(new), -1, np.int64)
-    old_parent: dict[int, int] = {}  # held tiles given a parent (a tree grown other than by pages: not in place)
-    for i in [*changed, *range(start, len(tiles))]:
-        kids = tuple(idx[c] for c in tiles[i].children)
+    changed = list(changed)
+    made = [tuple(map(idx.__getitem__, tiles[i].children)) for i in changed]  # their positions, once each
+    for i, kids in zip(changed, made, strict=True):
         children[i] = kids
-        for k in kids:
-            if k >= start:
-                new_parent[k - start] = i
-            else:
-                old_parent[k] = i
+    made += [tuple(map(idx.__getitem__, t.children)) for t in new]
+    children += made[len(changed):]
+    # each child's parent in array operations (a Python loop over the children took most of an adoption)
+    lengths = np.fromiter(map(len, made), np.int64, len(made))
+    kid = np.fromiter(chain.from_iterable(made), np.int64, int(lengths.sum()))
+    of = np.repeat(np.array([*changed, *range(start, len(tiles))], np.int64), lengths)
+    new_parent = np.full(len(new), -1, np.int64)
+    in_new = kid >= start
+    new_parent[kid[in_new] - start] = of[in_new]
+    # held tiles given a parent (a tree grown other than by pages: not in place)
+    old_parent = dict(zip(kid[~in_new].tolist(), of[~in_new].tolist(), strict=True))
     parts = [tile_rows(new)] if rows is None else list(rows)
     added = sum(len(p["ids"]) for p in parts)
     if added != len(new):
@@ -553,13 +560,39 @@ _DERIVED_ROWS = ("box_corners", "splats_f64")  # TileArrays' cached arrays that 
 
 def taken_arrays(a: TileArrays, keep: np.ndarray) -> TileArrays:
     """`a` over the tiles at positions `keep` (ascending; every kept tile's parent kept, children dropped with
-    their parent): the arrays of the tree left when a paged tree drops pages, renumbered in order."""
+    their parent): the arrays of the tree left when a paged tree drops pages, renumbered in order. The children
+    renumbered in array operations, tuples made again for the tiles that have children only (a generator over every
+    child took 4.4 ms of a frame's page eviction at 12,000 tiles held: BENCHMARKS.md, "Manifest pages")."""
     new_of = np.full(len(a.ids) + 1, -1, np.int64)  # index -1 (the root's parent) reads -1
     new_of[keep] = np.arange(len(keep))
-    new_l = new_of.tolist()
-    children = tuple(tuple(new_l[c] for c in a.children[i] if new_l[c] >= 0) for i in keep.tolist())
-    return TileArrays(parent=new_of[a.parent[keep]], children=children,
+    children = _taken(a.children, keep.tolist())
+    # only the tiles with a child at or after the first position dropped change (their children renumbered or
+    # dropped): the others keep their tuples (the tiles before the first page dropped, half of them or more)
+    moved = np.flatnonzero(keep != np.arange(len(keep)))
+    first = int(moved[0]) if len(moved) else len(keep)  # the first position dropped
+    redo = np.zeros(len(a.ids) + 1, bool)  # index -1 (the root's parent) ignored
+    redo[a.parent[first:]] = True
+    inner = np.flatnonzero(redo[keep])
+    if len(inner):
+        old = _taken(children, inner.tolist())
+        n_kids = np.fromiter(map(len, old), np.int64, len(inner))
+        flat = new_of[np.fromiter(chain.from_iterable(old), np.int64, int(n_kids.sum()))]
+        kept = flat >= 0
+        counts = np.add.reduceat(kept.astype(np.int64), np.cumsum(n_kids) - n_kids)
+        kids, first_kid = flat[kept], np.cumsum(counts) - counts
+        for k in np.unique(counts).tolist():  # the tuples of k children made by zip over k columns (in C)
+            at = np.flatnonzero(counts == k)
+            made = zip(*[kids[first_kid[at] + j].tolist() for j in range(k)], strict=True) if k else [()] * len(at)
+            deque(map(children.__setitem__, inner[at].tolist(), made), maxlen=0)
+    return TileArrays(parent=new_of[a.parent[keep]], children=tuple(children),
                       **{name: getattr(a, name)[keep] for name in _ROW_NAMES})
+
+
+def _taken(items: Sequence, at: list[int]) -> list:
+    """[items[i] for i in at], in C (operator.itemgetter: a third of a list comprehension's time)."""
+    if len(at) > 1:
+        return list(operator.itemgetter(*at)(items))
+    return [items[i] for i in at]
 
 
 def filter_element(name: str) -> int:
