@@ -54,6 +54,12 @@ from .transport import (
 )
 
 WORKER_MODE_MAX_BYTES = 32 << 20
+# Payloads of at most this many decompressed bytes choose where their zstd blocks end by trial (_block_ends); larger
+# ones end a block after every part. Blocks grow to at most MERGED_BLOCK_MAX bytes (a trial compresses the block so
+# far again with each part added: this bounds that work).
+MERGE_MAX_RAW = 1 << 18
+MERGED_BLOCK_MAX = 1 << 16
+MERGE_TRIAL_LEVEL = 1  # the trials' level whatever the payload's: the same choices at a tenth of level 9's time
 # zstd level of the encoder's payloads. With a zstd block per byte plane, level 1 is as small as level 3 or smaller
 # (fields1 planes are near noise, where level 3's extra short matches cost more than they save) and compresses about
 # twice as fast; higher levels gain a few per cent at many times the time, and on the SH planes they write more
@@ -69,10 +75,11 @@ def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level:
     Each plane's texels are taken one layer at a time as the plane produces them (planes from
     `encode_plane(..., lazy=True)`) and stored through the filter `transport` picks (format.md 5.2: `fields1` where
     it is smaller than the byte shuffle); their stored sizes lay out the section table, then the sections go through
-    one zstd frame, a zstd block ending with each part of a section (a byte plane; a layer of BC blocks; a range):
-    every part gets its own literal table, smaller than one table across planes of different statistics
-    (format.md 5.3; BENCHMARKS.md, "Figures behind library defaults"). The payload's stored sections are held until
-    then, never its texels as a whole.
+    one zstd frame, a zstd block ending with a part of a section (a byte plane; a layer of BC blocks; a range) unless
+    it and the next code smaller in one block (_block_ends): parts of different statistics get their own literal
+    tables, smaller than one table across them (format.md 5.2; BENCHMARKS.md, "Figures behind library defaults"),
+    and like parts of a small payload share one, which its decoder reads faster (issue 32). The payload's stored
+    sections are held until then, never its texels as a whole.
     `chunks` is the tile's chunk count (range shapes).
     """
     sections: list[Section] = []
@@ -123,22 +130,76 @@ def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level:
             written += len(data)
             return out.write(data)
 
+    # the stored bytes as zstd gets them: each section's padding before its first part; a block ends after the parts
+    # _block_ends names (every part where the payload is large)
+    segments: list = []
     position = 0
+    for section, parts in zip(sections, contents, strict=True):
+        pad = section.offset - position
+        for j, part in enumerate(parts or [b""]):
+            segments.append((bytes(pad) if j == 0 and pad else None, part))
+        position = section.offset + section.size
+    ends = _block_ends(segments, offset)
     # zstd's worker mode makes slightly smaller payloads than the single-threaded mode at the same speed (its output
     # does not depend on the worker count), but it buffers whole jobs, which lifts the encoder's peak memory on large
     # payloads (BENCHMARKS.md, "Figures behind library defaults"). Large payloads stream single-threaded.
     threads = -1 if offset <= WORKER_MODE_MAX_BYTES else 0
     cctx = zstandard.ZstdCompressor(level=level, threads=threads, write_content_size=True)
     with cctx.stream_writer(_Sink(), size=offset, closefd=False) as stream:
-        for section, parts in zip(sections, contents, strict=True):
-            stream.write(bytes(section.offset - position))
-            for part in parts:
-                stream.write(part)
+        for i, (pad, part) in enumerate(segments):
+            if pad is not None:
+                stream.write(pad)
+            stream.write(part)
+            if ends[i]:
                 stream.flush(zstandard.FLUSH_BLOCK)
-            position = section.offset + section.size
     sha = digest.hexdigest()
     return PayloadEntry(payload_name(sha), sha, written, int(position), sum(s.gpu_size for s in sections),
                         tuple(sections))
+
+
+def _trial_bytes(data: bytes) -> int:
+    """zstd's size of `data` alone at MERGE_TRIAL_LEVEL (a compressor kept per thread: not thread-safe)."""
+    c = getattr(_local, "merge_trial", None)
+    if c is None:
+        c = _local.merge_trial = zstandard.ZstdCompressor(level=MERGE_TRIAL_LEVEL, write_content_size=False)
+    return len(c.compress(data))
+
+
+def _block_ends(segments: list[tuple[bytes | None, object]], raw_bytes: int) -> list[bool]:
+    """Whether a zstd block ends after each segment ((padding or None, part): a byte plane, a layer, a range) of a
+    payload of `raw_bytes` decompressed bytes. Above MERGE_MAX_RAW after every part. Else a part joins the block
+    before it where the two coded as one block take no more bytes than each alone (zstd at MERGE_TRIAL_LEVEL), and
+    the block stays under MERGED_BLOCK_MAX bytes: planes of like statistics (the high bytes of a plane's fields, the
+    noise of low bytes) then share one literal table, and those of unlike statistics keep their own (format.md 5.2).
+
+    Why: a block's fixed cost, its tables written and read, is most of what a small payload's many 1 KB byte planes
+    pay zstd beyond their literals. On guitar's and winter_fountain's 221 LOD tiles (about 820 splats a payload)
+    this makes 5-11 blocks of the 22-58 a payload had, 0.5-1.8 % fewer bytes and 1.5-3.6 us less zstd time a
+    payload decoded, for 0.3-1 ms more encoding a payload (BENCHMARKS.md, "Decode speed"; issue 32)."""
+    count = len(segments)
+    if raw_bytes > MERGE_MAX_RAW or count < 2:
+        return [True] * count
+    ends = [False] * count
+    ends[-1] = True
+
+    def data(k: int) -> bytes:
+        pad, part = segments[k]
+        return (pad or b"") + bytes(memoryview(part).cast("B"))
+
+    block = data(0)
+    block_size = _trial_bytes(block)
+    for k in range(1, count):
+        part = data(k)
+        alone = _trial_bytes(part)
+        if len(block) + len(part) <= MERGED_BLOCK_MAX:
+            joined = block + part
+            joined_size = _trial_bytes(joined)
+            if joined_size <= block_size + alone:
+                block, block_size = joined, joined_size
+                continue
+        ends[k - 1] = True
+        block, block_size = part, alone
+    return ends
 
 
 def _keyed_or_fields(p: EncodedPlane, level: int) -> tuple[str, list]:
