@@ -59,7 +59,8 @@ WORKER_MODE_MAX_BYTES = 32 << 20
 # far again with each part added: this bounds that work).
 MERGE_MAX_RAW = 1 << 18
 MERGED_BLOCK_MAX = 1 << 16
-MERGE_TRIAL_LEVEL = 1  # the trials' level whatever the payload's: the same choices at a tenth of level 9's time
+# The trials' level whatever the payload's: about the same choices as at level 9, in a fifth of the time.
+MERGE_TRIAL_LEVEL = 1
 # zstd level of the encoder's payloads. With a zstd block per byte plane, level 1 is as small as level 3 or smaller
 # (fields1 planes are near noise, where level 3's extra short matches cost more than they save) and compresses about
 # twice as fast; higher levels gain a few per cent at many times the time, and on the SH planes they write more
@@ -174,8 +175,8 @@ def _block_ends(segments: list[tuple[bytes | None, object]], raw_bytes: int) -> 
 
     Why: a block's fixed cost, its tables written and read, is most of what a small payload's many 1 KB byte planes
     pay zstd beyond their literals. On guitar's and winter_fountain's 221 LOD tiles (about 820 splats a payload)
-    this makes 5-11 blocks of the 22-58 a payload had, 0.5-1.8 % fewer bytes and 1.5-3.6 us less zstd time a
-    payload decoded, for 0.3-1 ms more encoding a payload (BENCHMARKS.md, "Decode speed"; issue 32)."""
+    this makes 5-15 blocks of the 22-58 a payload had (medians), 0.5-2.2 % fewer bytes and up to 4.5 us less zstd
+    time a payload decoded (median 2.8), for 3-10 % more encoding CPU (BENCHMARKS.md, "Decode speed"; issue 32)."""
     count = len(segments)
     if raw_bytes > MERGE_MAX_RAW or count < 2:
         return [True] * count
