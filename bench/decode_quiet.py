@@ -11,7 +11,8 @@ timed), while this process compiles the numba fields1 kernel (client_gl.stream.d
 later runs start at once). Then, in this process on one thread, CPU time of the thread (time.thread_time), rounds
 of passes with the variants interleaved so that any load falls on them alike; a pass covers every payload of every
 tile, and each decoding variant runs with each --kernels (numpy: transport's numpy path; numba: the compiled
-fields1 and unshuffle kernels, a payload or a group in one call, the whole kernel; numbap: a group's plane in one
+fields1 and unshuffle kernels, a payload or a group in one call, the whole kernel, and the morton1 kernel, as
+decode_jit.install() installs them; numbap: a group's plane in one
 call each; numba1: a section a call):
 
 * `group`: `format.decode.decode_payloads` of each payload group (base, sh1, ...) as a whole, from bytes: size and
@@ -51,7 +52,7 @@ import numpy as np  # noqa: E402
 from splatstream.encode import EncodeOptions  # noqa: E402
 from splatstream.encode.local import encode_in_memory  # noqa: E402
 from splatstream.errors import UsageError  # noqa: E402
-from splatstream.format import container, transport  # noqa: E402
+from splatstream.format import container, keyed, transport  # noqa: E402
 from splatstream.format.container import verify_payload  # noqa: E402
 from splatstream.format.decode import decode_payload, decode_payloads  # noqa: E402
 from splatstream.format.presets import PRESETS  # noqa: E402
@@ -202,16 +203,17 @@ def _numba_kernel():
         return None, str(exc)
     decode_jit.warm_up()
     return (decode_jit.fields1_kernel, decode_jit.unshuffle_kernel, decode_jit.fields1_many_kernel,
-            decode_jit.unshuffle_many_kernel, decode_jit.whole_kernel), None
+            decode_jit.unshuffle_many_kernel, decode_jit.whole_kernel, decode_jit.morton_kernel), None
 
 
 def _use(kernels) -> None:
     """Decode with these kernels (fields1, unshuffle, their batch forms for a group's plane, the whole kernel for
-    a payload or a group); None: numpy's path."""
+    a payload or a group, morton1's); None: numpy's path."""
     transport.use_fields_kernel(kernels[0] if kernels else None)
     transport.use_unshuffle_kernel(kernels[1] if kernels else None)
     transport.use_batch_kernels(*(kernels[2:4] if kernels else (None, None)))
     transport.use_whole_kernel(kernels[4] if kernels else None)
+    keyed.use_morton_kernel(kernels[5] if kernels else None)
 
 
 def main() -> None:
@@ -257,9 +259,9 @@ def main() -> None:
             skipped["numba"] = why
         else:
             if "numba1" in names:
-                kernels["numba1"] = kernel[:2] + (None, None, None)
+                kernels["numba1"] = kernel[:2] + (None, None, None, None)
             if "numbap" in names:
-                kernels["numbap"] = kernel[:4] + (None,)
+                kernels["numbap"] = kernel[:4] + (None, None)
             kernels["numba"] = kernel
     if "numpy" not in args.kernels.split(","):
         del kernels["numpy"]

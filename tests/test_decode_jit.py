@@ -17,7 +17,7 @@ from test_transport_decode import GEOMETRIES, random_content, random_modes, refe
 from splatstream.encode import EncodeOptions
 from splatstream.encode.local import encode_in_memory
 from splatstream.errors import FormatError
-from splatstream.format import container, transport
+from splatstream.format import container, keyed, transport
 from splatstream.format.decode import decode_payload, decode_payloads
 from splatstream.format.presets import PRESETS
 from splatstream.format.transport import FIELD_LAYOUTS, field_bits, unfilter_fields
@@ -33,11 +33,13 @@ def numpy_path():
     previous = transport.use_fields_kernel(None), transport.use_unshuffle_kernel(None)
     batch = transport.use_batch_kernels(None, None)
     whole = transport.use_whole_kernel(None)
+    morton = keyed.use_morton_kernel(None)
     yield
     transport.use_fields_kernel(previous[0])
     transport.use_unshuffle_kernel(previous[1])
     transport.use_batch_kernels(*batch)
     transport.use_whole_kernel(whole)
+    keyed.use_morton_kernel(morton)
 
 
 def decode_both(content, fmt, width, height, layers):
@@ -129,13 +131,32 @@ def test_unshuffle_kernel_matches_numpy(numpy_path, element):
         transport.use_unshuffle_kernel(None)
 
 
+@pytest.mark.parametrize("geometry", [(16, 16), (32, 16), (48, 32), (64, 64)])
+def test_morton_kernel_matches_the_numpy_path(numpy_path, geometry):
+    # arbitrary contents (any key differences, sums past 2^48 and 2^64, any fourth component) and real ones
+    width, height = geometry
+    rng = np.random.default_rng(width * height)
+    texels = rng.integers(0, 1 << 16, (width * height, 4), dtype=np.uint16).view(np.uint8).ravel()
+    contents = [rng.integers(0, 256, 8 * width * height, dtype=np.uint8),
+                np.full(8 * width * height, 255, np.uint8),
+                np.concatenate(keyed.morton_content(texels, width, height))]
+    by_numpy = [keyed.unfilter_morton(c, width, height).tobytes() for c in contents]
+    assert by_numpy[2] == texels.tobytes()
+    keyed.use_morton_kernel(decode_jit.morton_kernel)
+    for content, expected in zip(contents, by_numpy, strict=True):
+        assert keyed.unfilter_morton(content, width, height).tobytes() == expected  # a writable buffer's view
+        assert keyed.unfilter_morton(content.tobytes(), width, height).tobytes() == expected  # read-only bytes
+
+
 def test_install_and_uninstall(numpy_path):
     decode_jit.install()
+    assert keyed.use_morton_kernel(decode_jit.morton_kernel) is decode_jit.morton_kernel
     assert transport.fields_kernel() is decode_jit.fields1_kernel
     assert transport.use_unshuffle_kernel(decode_jit.unshuffle_kernel) is decode_jit.unshuffle_kernel
     assert transport.batch_kernels() == (decode_jit.fields1_many_kernel, decode_jit.unshuffle_many_kernel)
     assert transport.whole_kernel() is decode_jit.whole_kernel
     decode_jit.uninstall()
+    assert keyed.use_morton_kernel(None) is None
     assert transport.fields_kernel() is None
     assert transport.use_unshuffle_kernel(None) is None
     assert transport.batch_kernels() == (None, None)
@@ -259,3 +280,37 @@ def test_a_bad_range_in_one_payload_is_refused_by_the_whole_kernel(numpy_path, f
     with pytest.raises(FormatError, match="scale.range") as by_kernel:
         container.unpack_payload(data, entry, "base", "payload0")
     assert str(by_kernel.value) == str(by_numpy.value)
+
+
+def _float_damaged(data: bytes, entry, name: str, value: float) -> bytes:
+    """The payload with its section `name` (an f32x4 section stored shuffled) holding `value` in its first texel."""
+    import zstandard
+    raw = bytearray(zstandard.ZstdDecompressor().decompress(data))
+    s = entry.section(name)
+    texels = transport.unshuffle(np.frombuffer(bytes(raw[s.offset:s.offset + s.size]), np.uint8), 4).view("<f4").copy()
+    texels[0] = value
+    raw[s.offset:s.offset + s.size] = transport.shuffle(texels.view(np.uint8), 4).tobytes()
+    return zstandard.ZstdCompressor().compress(bytes(raw))
+
+
+@pytest.mark.parametrize("value", [np.nan, 1.5, -0.5, -0.0])
+@pytest.mark.parametrize("transport_name", ["shuffle", "fields"])
+def test_float_texels_of_a_group_are_checked_at_once_and_a_bad_one_named(numpy_path, fruit, value, transport_name):
+    # _unpack_whole checks a float plane's texels of the whole group in one go (container._whole_floats_ok) and
+    # each payload alone only where that fails: a bad texel is still refused naming its payload, -0.0 accepted
+    store = encode_in_memory(fruit, EncodeOptions(preset="very-high", max_leaf_splats=512, transport=transport_name))
+    m = read_manifest(store)
+    items = [(store.read_payload(t.groups["base"]), t.groups["base"]) for t in m.tiles][:4]
+    sources = [f"payload{k}" for k in range(4)]
+    by_numpy = [planes_bytes(p) for p in container.unpack_payloads(items, "base", sources)]
+    decode_jit.install()
+    assert [planes_bytes(p) for p in container.unpack_payloads(items, "base", sources)] == by_numpy
+    shuffled = [s.name for s in items[2][1].sections if s.kind == "texels" and s.filter == "shuffle4"]
+    assert shuffled  # very-high's rotation keeps the shuffle with either transport
+    data, entry = items[2]
+    items[2] = (_float_damaged(data, entry, shuffled[0], value), entry)
+    if value == 0.0:
+        container.unpack_payloads(items, "base", sources)
+    else:
+        with pytest.raises(FormatError, match=f"payload2.*section {shuffled[0]}.*outside"):
+            container.unpack_payloads(items, "base", sources)

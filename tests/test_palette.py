@@ -15,6 +15,7 @@ from conftest import read_manifest_dict, real, write_manifest_dict
 from splatstream.encode import EncodeOptions, encode_gaussians
 from splatstream.encode import plan as encode_plan
 from splatstream.errors import FormatError, UsageError
+from splatstream.format import keyed, transport
 from splatstream.format.codec import (
     PALETTE_GPU_FORMAT,
     PaletteValues,
@@ -26,13 +27,14 @@ from splatstream.format.codec import (
     plane_values,
 )
 from splatstream.format.container import pack_payload, unpack_payload
+from splatstream.format.decode import decode_payload, decode_payloads
 from splatstream.format.manifest import pack_manifest, writer_version
 from splatstream.format.names import MANIFEST_NAME
 from splatstream.format.planes import BASE_PLANES, PALETTE_ENTRIES
 from splatstream.format.presets import resolve_formats
 from splatstream.io import read_gaussians
 from splatstream.scene_decode import decode_scene
-from splatstream.store import load_manifest
+from splatstream.store import DirectoryStore, load_manifest
 
 SCALE, COLOR = BASE_PLANES[2], BASE_PLANES[3]
 
@@ -304,3 +306,47 @@ def test_the_gpu_transcode_is_within_half_a_16_bit_step_of_the_palette_values():
     extent = (r[:, 1] - r[:, 0]).max()
     assert np.abs(decode_plane(ranged, n) - decode_plane(plane, n)).max() <= extent / 65535 / 2 + 1e-6
     assert palette_as_ranged(ranged, n) is ranged  # any other plane as it is
+
+
+@pytest.mark.parametrize("scene", ["sog_lod_scene", "tile_palette_scene"])
+def test_palette_and_keyed_payloads_decode_alike_with_the_compiled_kernels(scene, request):
+    # with the whole kernel a group of palette planes and morton1 positions goes through one call
+    # (container._unpack_whole), as every other group does: the same planes, bit for bit, as the numpy path's
+    decode_jit = pytest.importorskip("client_gl.stream.decode_jit", reason="numba (the `fast` extra)")
+    _, out, m = request.getfixturevalue(scene)
+    store = DirectoryStore(out)
+    groups: dict[str, list] = {}
+    for t in m.tiles:
+        for group, entry in t.groups.items():
+            groups.setdefault(group, []).append((store.read_payload(entry), entry))
+    filters = {s.filter for items in groups.values() for _, e in items for s in e.sections}
+    formats = {s.format for items in groups.values() for _, e in items for s in e.sections}
+    assert keyed.MORTON1 in filters and "pal8x4" in formats
+
+    def planes(decoded):
+        got = []
+        for name, p in decoded.items():
+            got.append((name, p.format, p.width, p.height, p.scene_palette))
+            got += [np.asarray(a).tobytes() for a in p.layers]
+            got += [None if a is None else (a.dtype.str, a.shape, a.tobytes()) for a in (p.ranges, p.palette)]
+        return got
+
+    def decode_all():
+        got = []
+        for group, items in groups.items():
+            got += [planes(decode_payload(d, e, group, "t", palettes=m.scene_palettes)) for d, e in items]
+            got += [planes(p) for p in decode_payloads(items, group, ["t"] * len(items), palettes=m.scene_palettes)]
+        return got
+
+    saved = (transport.use_fields_kernel(None), transport.use_unshuffle_kernel(None),
+             transport.use_batch_kernels(None, None), transport.use_whole_kernel(None), keyed.use_morton_kernel(None))
+    try:
+        by_numpy = decode_all()
+        decode_jit.install()
+        assert decode_all() == by_numpy
+    finally:
+        transport.use_fields_kernel(saved[0])
+        transport.use_unshuffle_kernel(saved[1])
+        transport.use_batch_kernels(*saved[2])
+        transport.use_whole_kernel(saved[3])
+        keyed.use_morton_kernel(saved[4])

@@ -21,9 +21,12 @@ in one call where numpy takes four to eight.
 kernel) and runs its Python in one stretch before and one after (issue 38's fly-through p99: the frame thread waits
 for that lock; issue 32: that Python is most of a small payload's decode).
 
+`morton_kernel` decodes a `morton1` position section (format.md 5.4: keyed positions, the preset
+medium-low-palette) in one pass where numpy takes about fifteen calls (keyed.use_morton_kernel).
+
 `install()` compiles the kernels (or loads them from numba's cache: cache=True) with the argument types of a real
 call and hands them to format.transport (`use_fields_kernel`, `use_unshuffle_kernel`, `use_batch_kernels`,
-`use_whole_kernel`); `uninstall()` goes back to numpy. The core never imports
+`use_whole_kernel`, keyed's `use_morton_kernel`); `uninstall()` goes back to numpy. The core never imports
 numba (ARCHITECTURE.md): this module is the streaming client's, and benchmarks import it to compare both.
 """
 from __future__ import annotations
@@ -33,7 +36,7 @@ import os
 import numpy as np
 from numba import njit
 
-from splatstream.format import transport
+from splatstream.format import keyed, transport
 
 _JIT = dict(cache=True, nogil=True, boundscheck=False)
 WHOLE_ENV = "SPLATSTREAM_DECODE_WHOLE"  # "0": install() leaves the whole kernel out
@@ -219,6 +222,33 @@ def whole_kernel(raw, rows, fields, modes, orders, work, out8, out16, out32, uni
                        out8[units[u, 3]:units[u, 3] + count * element])
 
 
+@njit(**_JIT)
+def _compact(v):
+    """keyed.compact_bits of one uint64: its bits 0, 3, 6, ... (of the low 48) as a 16-bit number."""
+    v = v & np.uint64(0x249249249249)
+    v = (v | (v >> np.uint64(2))) & np.uint64(0x0C30C30C30C3)
+    v = (v | (v >> np.uint64(4))) & np.uint64(0x00F00F00F00F)
+    v = (v | (v >> np.uint64(8))) & np.uint64(0x0000FF0000FF)
+    return (v | (v >> np.uint64(16))) & np.uint64(0x00000000FFFF)
+
+
+@njit(**_JIT)
+def morton_kernel(stored, slots, slot_to_texel, out):
+    """keyed.unfilter_morton's bytes (format.md 5.4) in one pass (keyed.use_morton_kernel): each slot's key
+    difference from its six byte planes, the running sum modulo 2^64 (only its low 48 bits are read), the key split
+    back into x, y and z, the fourth component from its two planes, the texel written at its place in texture
+    order. All arithmetic in uint64 (numba would take a mix with signed integers to floats)."""
+    key = np.uint64(0)
+    for s in range(slots):
+        d = np.uint64(0)
+        for b in range(6):
+            d |= np.uint64(stored[b * slots + s]) << np.uint64(8 * b)
+        key += d
+        w = np.uint64(stored[6 * slots + s]) | (np.uint64(stored[7 * slots + s]) << np.uint64(8))
+        out[slot_to_texel[s]] = _compact(key) | (_compact(key >> np.uint64(1)) << np.uint64(16)) \
+            | (_compact(key >> np.uint64(2)) << np.uint64(32)) | (w << np.uint64(48))
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) the kernel for the argument types of real calls: a content as a writable
     buffer's view (a payload's kept buffer) and as read-only bytes, into texels of 1, 2 and 4-byte words."""
@@ -258,6 +288,13 @@ def warm_up() -> None:
         transport.unfilter_whole(raw, sections, [(at, 16, 4), (at + 16, 16, 2)])
     finally:
         transport.use_whole_kernel(previous)
+    previous = keyed.use_morton_kernel(morton_kernel)
+    try:  # a content in a payload's kept buffer (a writable view) and as read-only bytes
+        content = np.zeros(8 * 256, np.uint8)
+        keyed.unfilter_morton(content, 16, 16)
+        keyed.unfilter_morton(content.tobytes(), 16, 16)
+    finally:
+        keyed.use_morton_kernel(previous)
     unit = np.zeros(16, np.uint8)
     read_only = unit.copy()
     read_only.setflags(write=False)
@@ -271,6 +308,7 @@ def install() -> None:
     transport.use_fields_kernel(fields1_kernel)
     transport.use_unshuffle_kernel(unshuffle_kernel)
     transport.use_batch_kernels(fields1_many_kernel, unshuffle_many_kernel)
+    keyed.use_morton_kernel(morton_kernel)
     # SPLATSTREAM_DECODE_WHOLE=0: a plane at a time as before the whole kernel (for A/B runs of the fly-through:
     # the whole kernel gives the lock up twice a payload instead of about five times, for 10-20 us more of Python
     # holding it; BENCHMARKS.md, "Decode speed")
@@ -283,3 +321,4 @@ def uninstall() -> None:
     transport.use_unshuffle_kernel(None)
     transport.use_batch_kernels(None, None)
     transport.use_whole_kernel(None)
+    keyed.use_morton_kernel(None)

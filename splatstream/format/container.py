@@ -54,6 +54,13 @@ from .transport import (
 )
 
 WORKER_MODE_MAX_BYTES = 32 << 20
+# Payloads of at most this many decompressed bytes choose where their zstd blocks end by trial (_block_ends); larger
+# ones end a block after every part. Blocks grow to at most MERGED_BLOCK_MAX bytes (a trial compresses the block so
+# far again with each part added: this bounds that work).
+MERGE_MAX_RAW = 1 << 18
+MERGED_BLOCK_MAX = 1 << 16
+# The trials' level whatever the payload's: about the same choices as at level 9, in a fifth of the time.
+MERGE_TRIAL_LEVEL = 1
 # zstd level of the encoder's payloads. With a zstd block per byte plane, level 1 is as small as level 3 or smaller
 # (fields1 planes are near noise, where level 3's extra short matches cost more than they save) and compresses about
 # twice as fast; higher levels gain a few per cent at many times the time, and on the SH planes they write more
@@ -69,10 +76,11 @@ def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level:
     Each plane's texels are taken one layer at a time as the plane produces them (planes from
     `encode_plane(..., lazy=True)`) and stored through the filter `transport` picks (format.md 5.2: `fields1` where
     it is smaller than the byte shuffle); their stored sizes lay out the section table, then the sections go through
-    one zstd frame, a zstd block ending with each part of a section (a byte plane; a layer of BC blocks; a range):
-    every part gets its own literal table, smaller than one table across planes of different statistics
-    (format.md 5.3; BENCHMARKS.md, "Figures behind library defaults"). The payload's stored sections are held until
-    then, never its texels as a whole.
+    one zstd frame, a zstd block ending with a part of a section (a byte plane; a layer of BC blocks; a range) unless
+    it and the next code smaller in one block (_block_ends): parts of different statistics get their own literal
+    tables, smaller than one table across them (format.md 5.2; BENCHMARKS.md, "Figures behind library defaults"),
+    and like parts of a small payload share one, which its decoder reads faster (issue 32). The payload's stored
+    sections are held until then, never its texels as a whole.
     `chunks` is the tile's chunk count (range shapes).
     """
     sections: list[Section] = []
@@ -123,22 +131,76 @@ def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level:
             written += len(data)
             return out.write(data)
 
+    # the stored bytes as zstd gets them: each section's padding before its first part; a block ends after the parts
+    # _block_ends names (every part where the payload is large)
+    segments: list = []
     position = 0
+    for section, parts in zip(sections, contents, strict=True):
+        pad = section.offset - position
+        for j, part in enumerate(parts or [b""]):
+            segments.append((bytes(pad) if j == 0 and pad else None, part))
+        position = section.offset + section.size
+    ends = _block_ends(segments, offset)
     # zstd's worker mode makes slightly smaller payloads than the single-threaded mode at the same speed (its output
     # does not depend on the worker count), but it buffers whole jobs, which lifts the encoder's peak memory on large
     # payloads (BENCHMARKS.md, "Figures behind library defaults"). Large payloads stream single-threaded.
     threads = -1 if offset <= WORKER_MODE_MAX_BYTES else 0
     cctx = zstandard.ZstdCompressor(level=level, threads=threads, write_content_size=True)
     with cctx.stream_writer(_Sink(), size=offset, closefd=False) as stream:
-        for section, parts in zip(sections, contents, strict=True):
-            stream.write(bytes(section.offset - position))
-            for part in parts:
-                stream.write(part)
+        for i, (pad, part) in enumerate(segments):
+            if pad is not None:
+                stream.write(pad)
+            stream.write(part)
+            if ends[i]:
                 stream.flush(zstandard.FLUSH_BLOCK)
-            position = section.offset + section.size
     sha = digest.hexdigest()
     return PayloadEntry(payload_name(sha), sha, written, int(position), sum(s.gpu_size for s in sections),
                         tuple(sections))
+
+
+def _trial_bytes(data: bytes) -> int:
+    """zstd's size of `data` alone at MERGE_TRIAL_LEVEL (a compressor kept per thread: not thread-safe)."""
+    c = getattr(_local, "merge_trial", None)
+    if c is None:
+        c = _local.merge_trial = zstandard.ZstdCompressor(level=MERGE_TRIAL_LEVEL, write_content_size=False)
+    return len(c.compress(data))
+
+
+def _block_ends(segments: list[tuple[bytes | None, object]], raw_bytes: int) -> list[bool]:
+    """Whether a zstd block ends after each segment ((padding or None, part): a byte plane, a layer, a range) of a
+    payload of `raw_bytes` decompressed bytes. Above MERGE_MAX_RAW after every part. Else a part joins the block
+    before it where the two coded as one block take no more bytes than each alone (zstd at MERGE_TRIAL_LEVEL), and
+    the block stays under MERGED_BLOCK_MAX bytes: planes of like statistics (the high bytes of a plane's fields, the
+    noise of low bytes) then share one literal table, and those of unlike statistics keep their own (format.md 5.2).
+
+    Why: a block's fixed cost, its tables written and read, is most of what a small payload's many 1 KB byte planes
+    pay zstd beyond their literals. On guitar's and winter_fountain's 221 LOD tiles (about 820 splats a payload)
+    this makes 5-15 blocks of the 22-58 a payload had (medians), 0.5-2.2 % fewer bytes and up to 4.5 us less zstd
+    time a payload decoded (median 2.8), for 3-10 % more encoding CPU (BENCHMARKS.md, "Decode speed"; issue 32)."""
+    count = len(segments)
+    if raw_bytes > MERGE_MAX_RAW or count < 2:
+        return [True] * count
+    ends = [False] * count
+    ends[-1] = True
+
+    def data(k: int) -> bytes:
+        pad, part = segments[k]
+        return (pad or b"") + bytes(memoryview(part).cast("B"))
+
+    block = data(0)
+    block_size = _trial_bytes(block)
+    for k in range(1, count):
+        part = data(k)
+        alone = _trial_bytes(part)
+        if len(block) + len(part) <= MERGED_BLOCK_MAX:
+            joined = block + part
+            joined_size = _trial_bytes(joined)
+            if joined_size <= block_size + alone:
+                block, block_size = joined, joined_size
+                continue
+        ends[k - 1] = True
+        block, block_size = part, alone
+    return ends
 
 
 def _keyed_or_fields(p: EncodedPlane, level: int) -> tuple[str, list]:
@@ -280,9 +342,9 @@ def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, so
     while another thread needs the interpreter (the streaming client's frame loop). `palettes`: the scene's
     palettes (Manifest.scene_palettes, format.md 4.3.2), for a palette plane whose payload has no palette section."""
     buf, kept = _decompress(data, entry.raw_bytes, source)
-    if whole_kernel() is not None and _wholly(entry):
+    if whole_kernel() is not None and _wholly(entry, True):
         return _unpack_whole(buf, [0], [buf], [{s.name: s for s in entry.sections}], group, codebook, [source],
-                             between, kept)[0]
+                             between, kept, palettes)[0]
     # What a small payload's decode spends beyond its splats is per-call Python and numpy work (issue 32: on the LOD
     # tree's tiles of a few hundred splats it was half the time), so this loop does only what each plane needs: the
     # section table read once into a dict, not searched per section; a view of the kept buffer found by its base.
@@ -333,8 +395,10 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
     others is returned then."""
     if not items:
         return []
-    if not all(_wholly(entry) for _, entry in items):
-        # keyed positions and palette planes (format.md 5.4, 4.3.2) are decoded one payload at a time
+    in_one_call = whole_kernel() is not None
+    if not all(_wholly(entry, in_one_call) for _, entry in items):
+        # palette planes (format.md 4.3.2), and keyed positions (5.4) without the whole kernel, are decoded one
+        # payload at a time
         return [unpack_payload(data, entry, group, source, codebook, between, palettes)
                 for (data, entry), source in zip(items, sources, strict=True)]
     sizes = [entry.raw_bytes for _, entry in items]
@@ -349,8 +413,8 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
         firsts.append(at)
         at += size
     tables = [{s.name: s for s in entry.sections} for _, entry in items]
-    if whole_kernel() is not None:  # the whole group in one compiled call (_unpack_whole)
-        return _unpack_whole(whole, firsts, bufs, tables, group, codebook, sources, between, kept)
+    if in_one_call:  # the whole group in one compiled call (_unpack_whole)
+        return _unpack_whole(whole, firsts, bufs, tables, group, codebook, sources, between, kept, palettes)
     out: list[dict[str, EncodedPlane]] = [{} for _ in items]
     batched = None not in batch_kernels()
     for spec in group_planes(group, codebook):
@@ -412,21 +476,28 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
     return out
 
 
-def _wholly(entry: PayloadEntry) -> bool:
-    """The payload's planes can go through _unpack_whole and unpack_payloads' batches (no keyed positions, no
-    palette planes: format.md 5.4, 4.3.2, which are decoded a plane at a time, one payload at a time)."""
-    return not any(sec.filter == MORTON1 or sec.format in PALETTE_FORMATS for sec in entry.sections)
+def _wholly(entry: PayloadEntry, whole: bool) -> bool:
+    """The payload's planes can go through unpack_payloads' batches: no keyed positions, no palette planes (format.md
+    5.4, 4.3.2), which those decode a plane at a time, one payload at a time; with `whole` (the whole kernel) every
+    payload goes through _unpack_whole, which decodes each morton1 section alone beside the kernel's call and reads
+    each palette plane's palettes as unpack_payload does.
+
+    Why those go whole too: a group of them decoded a payload at a time cost 1.5-2x as much a payload as one of the
+    same size without them (medium-low-palette on guitar and winter_fountain, 221 payloads: 159 and 153 us against
+    72-92 us; issue 32)."""
+    return whole or not any(sec.filter == MORTON1 or sec.format in PALETTE_FORMATS for sec in entry.sections)
 
 
 def _unpack_whole(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], tables: list[dict], group: str,
                   codebook: bool, sources: list[str], between: Callable[[], object] | None,
-                  kept: bool) -> list[dict[str, EncodedPlane]]:
+                  kept: bool, palettes: Mapping[str, np.ndarray] | None = None) -> list[dict[str, EncodedPlane]]:
     """Every plane of the payloads lying in `whole` (payload k from firsts[k], bufs[k] its bytes; tables[k] its
     sections by name) by one call of the whole kernel (transport.unfilter_whole): every fields1 section, every
     shuffled texel section and every range section of them all, into one fresh array. What the kernel refuses (a
     section that is not well-formed) and any other filter goes through unfilter_texels alone, which decodes it or
-    raises FormatError naming it; then float texels and ranges are checked (a plane's ranges of all payloads at once,
-    a payload's own check only to name a bad one).
+    raises FormatError naming it, and a morton1 section is decoded alone (unfilter_morton); then float texels and
+    ranges are checked (a plane's ranges of all payloads at once, a payload's own check only to name a bad one), and a
+    palette plane's palettes read and checked a payload at a time (_palette_of; `palettes`: the scene's).
 
     Why one call: a decode thread holds the interpreter lock for the Python around each compiled call and takes it
     back after each one; the streaming client's frame thread waits for it (issue 38's fly-through p99), and on small
@@ -443,14 +514,18 @@ def _unpack_whole(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
             if filt == FIELDS1 and fmt in FIELD_LAYOUTS:
                 texels.append((s, len(sections), -1))
                 sections.append((fmt, count, first + s.offset, s.size, s.width, s.height))
-            elif filt != "none" and filt != FIELDS1 and fmt not in FLOAT_TEXEL_FORMATS:
+            elif filt == MORTON1:  # decoded alone below (format.md 5.4; the manifest checked format, layers, size)
+                texels.append((s, -1, -1))
+            elif filt != "none" and filt != FIELDS1:  # shuffled (float formats too: checked after the call)
                 texels.append((s, -1, len(units)))
                 unit, element = s.size // count, _element(filt)
                 units += [(first + s.offset + i * unit, unit, element) for i in range(count)]
             else:
                 texels.append((s, -1, -1))
         ranges = -1
-        if spec.range_dtype:  # a plane's range units in a row: they lie in a row in out, checked at once
+        if texels and texels[0][0].format in PALETTE_FORMATS:  # a scene's plane has one format (the manifest's)
+            ranges = -2  # palettes in place of ranges (format.md 4.3.2)
+        elif spec.range_dtype:  # a plane's range units in a row: they lie in a row in out, checked at once
             ranges = len(units)
             range_name = spec.range_name
             for t, first in zip(tables, firsts, strict=True):
@@ -467,6 +542,16 @@ def _unpack_whole(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
             between()
         count, name = spec.layers, spec.name
         checked = _whole_ranges(out, unit_at, ranges, tables, spec, sources) if ranges >= 0 else None
+        if ranges == -2:
+            result_palettes = _whole_palettes(bufs, tables, spec, palettes, sources, kept)
+            for k, (s, section, unit) in enumerate(texels):
+                layers = _whole_layers(out, got, unit_at, s, section, unit, count, bufs[k], sources[k], kept, owner)
+                palette, scene = result_palettes[k]
+                result[k][name] = EncodedPlane(spec, s.format, s.width, s.height, layers, None, palette, scene)
+            continue
+        floats = bool(texels) and texels[0][0].format in FLOAT_TEXEL_FORMATS
+        if floats and _whole_floats_ok(out, got, unit_at, texels, count):
+            floats = False  # every payload's texels of this plane are in [0, 1]: no check a payload
         # per payload only slices and the plane (issue 32: this loop's Python was 22 us a small payload)
         for k, (s, section, unit) in enumerate(texels):
             at = got[section] if section >= 0 else None
@@ -480,16 +565,88 @@ def _unpack_whole(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
             elif unit >= 0:
                 step = s.size // count
                 layers = [out[unit_at[unit + i]:unit_at[unit + i] + step] for i in range(count)]
+            elif s.filter == MORTON1:  # a fresh array, not a view of the kept buffer
+                layers = [unfilter_morton(bufs[k][s.offset:s.offset + s.size], s.width, s.height)]
             else:
                 layers = unfilter_texels(bufs[k][s.offset:s.offset + s.size], s.filter, s.format, s.width, s.height,
                                          count, f"{sources[k]} section {s.name}")
                 if kept:  # what is still a view of this thread's buffer is copied: the next payload overwrites it
                     layers = [p.copy() if p.base is owner else p for p in layers]
-            if s.format in FLOAT_TEXEL_FORMATS:
+            if floats and s.format in FLOAT_TEXEL_FORMATS:
                 _check_float_texels(layers, s, sources[k])
             result[k][name] = EncodedPlane(spec, s.format, s.width, s.height, layers,
                                            None if checked is None else checked[k])
     return result
+
+
+def _whole_floats_ok(out: np.ndarray, got: list, unit_at: list[int], texels: list[tuple], count: int) -> bool:
+    """Every payload's texels of a float plane (format.md 4.2: t in [0, 1]) checked at once, where the whole kernel
+    wrote them all: one check of the stretch of `out` from the first to the last of the fields1 sections' texels and
+    one of the shuffled sections' (the kernel writes each kind in a row), in the bits of the format's floats
+    (_check_float_texels' test). True only if they pass; False (also where a payload's texels are not in `out`)
+    sends every payload to its own check, which names a bad one: what lies between two payloads' texels (alignment)
+    is checked too, so a pass is a pass of each, and a failure there only costs the checks a payload.
+
+    Why: the check a payload and plane was 3-4 us of numpy calls, 7-15 us of a small f16x4 or f32x4 payload's decode
+    (high, medium-high, very-high on guitar; issue 32)."""
+    spans = [[len(out), 0], [len(out), 0]]  # fields1 sections' texels, shuffled sections' units
+    fmt = texels[0][0].format
+    for s, section, unit in texels:
+        if s.format != fmt:
+            return False
+        if section >= 0 and got[section] is not None:
+            first, size = got[section]
+            span = spans[0]
+        elif unit >= 0:
+            first, size = unit_at[unit], unit_at[unit + count - 1] + s.size // count - unit_at[unit]
+            span = spans[1]
+        else:
+            return False
+        if first < span[0]:
+            span[0] = first
+        if first + size > span[1]:
+            span[1] = first + size
+    _, bits, one, negative_zero = FLOAT_TEXEL_BITS[fmt]
+    for lo, hi in spans:
+        if hi <= lo:
+            continue
+        if (hi - lo) % bits.itemsize:
+            return False
+        u = np.frombuffer(out[lo:hi], bits)
+        if u.max() > one and not ((u <= one) | (u == negative_zero)).all():
+            return False
+    return True
+
+
+def _whole_layers(out: np.ndarray, got: list, unit_at: list[int], s: Section, section: int, unit: int, count: int,
+                  buf: np.ndarray, source: str, kept: bool, owner: np.ndarray) -> list[np.ndarray]:
+    """One payload's texel layers of a palette plane after the whole kernel's call (as _unpack_whole's loop takes
+    them for the other planes)."""
+    at = got[section] if section >= 0 else None
+    if at is not None:
+        first, size = at
+        step = size // count
+        return [out[first + i * step:first + (i + 1) * step] for i in range(count)]
+    if unit >= 0:
+        step = s.size // count
+        return [out[unit_at[unit + i]:unit_at[unit + i] + step] for i in range(count)]
+    layers = unfilter_texels(buf[s.offset:s.offset + s.size], s.filter, s.format, s.width, s.height, count,
+                             f"{source} section {s.name}")
+    return [p.copy() if p.base is owner else p for p in layers] if kept else layers
+
+
+def _whole_palettes(bufs: list[np.ndarray], tables: list[dict], spec, palettes: Mapping[str, np.ndarray] | None,
+                    sources: list[str], kept: bool) -> list[tuple[np.ndarray, bool]]:
+    """Each payload's palettes of a palette plane and whether they are the scene's (format.md 4.3.2), read and
+    checked as unpack_payload reads them (a palette section copied out of this thread's kept buffer)."""
+    out = []
+    name = spec.palette_name
+    for buf, t, source in zip(bufs, tables, sources, strict=True):
+        palette = _palette_of(buf, t, spec, palettes, source)
+        if kept and np.may_share_memory(palette, buf):
+            palette = palette.copy()
+        out.append((palette, name not in t))
+    return out
 
 
 def _whole_ranges(out: np.ndarray, unit_at: list[int], ranges: int, tables: list[dict], spec,

@@ -9,7 +9,8 @@ per point, where fields1's per-axis differences each carry the spacing between n
 about 11-bit positions, 2.8 against 3.1 B/splat (BENCHMARKS.md, issue 32). The stored content is exactly as large
 as the texels (8 bytes a texel); zstd does the entropy coding.
 
-Only `norm16x4` sections of one layer use it. Pure numpy.
+Only `norm16x4` sections of one layer use it. Pure numpy; a compiled decoder of the same bytes may be handed in
+(`use_morton_kernel`: the streaming client's, client_gl/stream/decode_jit.py).
 """
 from __future__ import annotations
 
@@ -84,9 +85,29 @@ def morton_content(layer: np.ndarray, width: int, height: int) -> list[np.ndarra
                                                                          for i in range(2)]
 
 
+_morton_kernel = None  # see use_morton_kernel
+
+
+def use_morton_kernel(kernel) -> object:
+    """Decode morton1 contents with `kernel` (None: numpy's path); returns the one it replaces. Called as
+    kernel(stored, slots, slot_to_texel, out): `stored` the content's 8 x slots bytes (uint8), `out` the layer as
+    `slots` uint64 texels, each slot's texel written at out[slot_to_texel[slot]].
+
+    Why: numpy's path is about fifteen whole-array calls a section, about 35 us of a 512-slot tile's position plane,
+    half a small payload's decode besides zstd (issue 32: medium-low-palette on guitar); one pass does it in a few."""
+    global _morton_kernel
+    previous, _morton_kernel = _morton_kernel, kernel
+    return previous
+
+
 def unfilter_morton(stored: np.ndarray, width: int, height: int) -> np.ndarray:
     """A morton1 content (exactly 8 bytes a texel, checked by the manifest) -> the layer's GPU bytes."""
     slots = width * height
+    kernel = _morton_kernel
+    if kernel is not None:
+        out = np.empty(slots, "<u8")
+        kernel(np.frombuffer(stored, np.uint8), slots, slot_to_texel(width, height), out)
+        return out.view(np.uint8)
     planes = np.frombuffer(stored, np.uint8).reshape(KEY_BYTES + 2, slots)
     delta = planes[0].astype(np.uint64)
     for b in range(1, KEY_BYTES):

@@ -346,7 +346,8 @@ def code_layer(layer: np.ndarray, fmt: str, width: int, height: int, modes: Mode
 
 def assemble(layers: list[CodedLayer]) -> list[bytes | np.ndarray]:
     """The fields1 content of a section as parts to write in order: the version, modes and parameters as one part,
-    then every byte plane (the payload writer ends a zstd block after each part)."""
+    then every byte plane (the payload writer ends a zstd block after each part, or after a run of like parts of a
+    small payload: container._block_ends)."""
     head = bytes([FIELDS_VERSION]) + b"".join(c.mode_bytes() for c in layers) + \
         b"".join(p.tobytes() for c in layers for p in c.params)
     return [head] + [p for c in layers for p in c.planes]
@@ -419,8 +420,10 @@ def _trial_compressor(level: int) -> zstandard.ZstdCompressor:
 
 
 def _zstd_size(parts: list, level: int) -> int:
-    """Compressed size of parts coded as the payload writer codes them (a zstd block ending with each part). The
-    source size is pledged, so zstd sizes its tables to the trial, not to its largest window."""
+    """Compressed size of parts coded as the payload writer codes a large payload (a zstd block ending with each
+    part; a small payload's writer may join like parts' blocks, container._block_ends, which the trial leaves out:
+    it compares two codings of one section, not how blocks end). The source size is pledged, so zstd sizes its
+    tables to the trial, not to its largest window."""
     c = _trial_compressor(level).compressobj(size=sum(p.nbytes if isinstance(p, np.ndarray) else len(p) for p in parts))
     size = 0
     for p in parts:
