@@ -347,3 +347,18 @@ def test_greedy_pairs_order_ties_by_ids_as_lexsort():
     o2 = by[np.argsort(cc[by], kind="stable")]
     assert np.array_equal(ii[o], ii[o2]) and np.array_equal(jj[o], jj[o2]) and np.array_equal(cc[o], cc[o2])
     assert len(pa) == len(pb) > 0 and len(np.unique(np.concatenate([pa, pb]))) == 2 * len(pa)
+
+
+def test_cost_order_is_the_lexsort_of_both_rows_of_every_edge():
+    """_greedy_pairs' order of the rows (i, j) and (j, i) by cost, ties by ids, from one default sort of the
+    edges' costs: the same rows as np.lexsort((jj, ii, cc)), with distinct costs, many equal ones, self loops."""
+    rng = np.random.default_rng(5)
+    for trial in range(60):
+        count, m = int(rng.integers(2, 60)), int(rng.integers(0, 400))
+        i, j = rng.integers(0, count, m), rng.integers(0, count, m)
+        cost = rng.random(m) if trial % 3 == 0 else rng.integers(0, 1 + trial, m).astype(np.float64)
+        ii, jj, cc = np.concatenate([i, j]), np.concatenate([j, i]), np.concatenate([cost, cost])
+        want, got = np.lexsort((jj, ii, cc)), lod_groups._cost_order(i, j, cost, count)
+        assert np.array_equal(np.sort(got), np.arange(2 * m))
+        assert np.array_equal(ii[want], ii[got]) and np.array_equal(jj[want], jj[got])
+        assert np.array_equal(cc[want], cc[got])
