@@ -39,7 +39,7 @@ def check_partition(ids: np.ndarray, n: int, target: int) -> None:
     assert len(np.unique(ids)) == target  # every id used: exactly `target` groups, every splat in one
 
 
-@pytest.mark.parametrize("rule", [lod_groups.DEFAULT_RULE, *lod_groups.HYBRID_RULES])
+@pytest.mark.parametrize("rule", [lod_groups.DEFAULT_RULE, *lod_groups.HYBRID_RULES, lod.AUTO_RULE])
 @pytest.mark.parametrize("target", [1, 7, 500, 1999])
 def test_cost_groups_are_an_exact_deterministic_partition(rule, target):
     a = random_arrays(2000)
