@@ -79,6 +79,13 @@ MIN_LEAF_TILE_SPLATS = 1024
 # "LOD against peers", per-tile choice).
 LOD_MERGES = ("grid", "cost", "auto")
 COST_RULE = GroupRule(proj=1, first_cap=2, max_group=4)
+# "auto"'s own grouping: the cost merge's rule, but once a stage's merges still needed are at most 5 % of the
+# clusters one round takes them all (share 0.5 left 10+ rounds of a few hundred merges, each a pass over every edge
+# row); its choice judges every AUTO_CHOICE_SAMPLE-th group of each grouping, at the first merged level only (the
+# grid was taken on 0-3 % of the tiles above it). About 0.7x the CPU of the grouping before, the streaming cut
+# within 0.1 dB (BENCHMARKS.md, "LOD groups by cost", the auto merge cheaper).
+AUTO_RULE = GroupRule(proj=1, first_cap=2, max_group=4, tail=0.05)
+AUTO_CHOICE_SAMPLE = 2
 Progress = Callable[[str, float], None]
 
 
@@ -345,6 +352,22 @@ def choice_members(members: Gaussians, blur: float) -> tuple[tuple, tuple[np.nda
     return args, member_terms(*args[:4], proj=True)
 
 
+def _take(members: Gaussians, rows: np.ndarray) -> Gaussians:
+    """The attributes choice_members reads, of `rows` of `members` (no SH rest: the choice never reads it)."""
+    return Gaussians(members.positions[rows], members.rotations[rows], members.log_scales[rows],
+                     members.opacity_logits[rows], members.sh_dc[rows], np.zeros((len(rows), 0, 3), np.float32))
+
+
+def _sampled_choice_error(members: Gaussians, ids: np.ndarray, inside: np.ndarray, sample: int, blur: float,
+                          prepared: tuple) -> float:
+    """choice_error of the groups whose ids are multiples of `sample` (`inside`: their members), from the
+    per-member inputs `prepared` of `members` (rows sliced: the same numbers as taken for those rows alone)."""
+    args, terms = prepared
+    rows = np.flatnonzero(inside)
+    return float(group_errors(members.positions[rows], *(a[rows] for a in args), ids[rows] // sample, proj=True,
+                              terms=tuple(t[rows] for t in terms)).sum())
+
+
 def _run_ids(order: np.ndarray, starts: np.ndarray, n: int) -> np.ndarray:
     ids = np.empty(n, np.int64)
     ids[order] = np.repeat(np.arange(len(starts)), np.diff(np.append(starts, n)))
@@ -352,27 +375,38 @@ def _run_ids(order: np.ndarray, starts: np.ndarray, n: int) -> np.ndarray:
 
 
 def level_auto_groups(members: list[Gaussians], masses: list[np.ndarray], targets: list[int], cap: int,
-                      blurs: list[float], rule: GroupRule = COST_RULE, pool: Executor | None = None
+                      blurs: list[float], rule: GroupRule = AUTO_RULE, pool: Executor | None = None,
+                      sample: int = AUTO_CHOICE_SAMPLE, judge_every_level: bool = False
                       ) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[bool]]:
     """The "auto" merge of one tree level (LOD_MERGES): the cost merge's groups (level_cost_groups), then per tile
     the Morton grid at the same count, and the tile keeps whichever has the smaller choice_error at `blurs[t]`
-    (ties: the cost merge; auto_tile_choice). The level's total and every tile's count are the cost merge's.
-    Returns the groups and, per tile, whether the grid was chosen. `pool`: threads for the grouping's blocks and
-    the tiles' choices (each a pure function of its tile: the same result with or without)."""
+    (ties: the cost merge; auto_tile_choice, judging every `sample`-th group of each grouping), on the tiles of
+    blur 0 (the first merged level) only, or on every tile with `judge_every_level`. The level's total and every
+    tile's count are the cost merge's. Returns the groups and, per tile, whether the grid was chosen. `pool`:
+    threads for the grouping's blocks and the tiles' choices (each a pure function of its tile: the same result
+    with or without)."""
     groups = level_cost_groups(members, masses, targets, cap, rule, pool)
-    jobs = range(len(members))
+    # Judged only where the members are the originals (blur 0: the first merged level), unless judge_every_level.
+    # Above it the choice took the grid on 0-3 % of the tiles (format_spec/lod.md 6) for as much CPU as the first
+    # level's choice; there the cost merge's groups are kept.
+    jobs = [t for t in range(len(members)) if judge_every_level or blurs[t] == 0.0]
     if pool is None:
-        chosen = [auto_tile_choice(members[t], groups[t], blurs[t]) for t in jobs]
+        judged = [auto_tile_choice(members[t], groups[t], blurs[t], sample) for t in jobs]
     else:
-        chosen = list(pool.map(lambda t: auto_tile_choice(members[t], groups[t], blurs[t]), jobs))
+        judged = list(pool.map(lambda t: auto_tile_choice(members[t], groups[t], blurs[t], sample), jobs))
+    chosen = [(grp, False) for grp in groups]
+    for t, pick in zip(jobs, judged, strict=True):
+        chosen[t] = pick
     return [grp for grp, _ in chosen], [grid for _, grid in chosen]
 
 
-def auto_tile_choice(members: Gaussians, groups: tuple[np.ndarray, np.ndarray], blur: float
-                     ) -> tuple[tuple[np.ndarray, np.ndarray], bool]:
+def auto_tile_choice(members: Gaussians, groups: tuple[np.ndarray, np.ndarray], blur: float,
+                     sample: int = 1) -> tuple[tuple[np.ndarray, np.ndarray], bool]:
     """level_auto_groups' choice for one tile: its cost merge `groups` (order, starts) or the Morton grid at the
     same count, whichever has the smaller choice_error at `blur` (ties: the cost merge); and whether the grid
-    was chosen. Pure: the tiles of a level are judged on any threads in any order."""
+    was chosen. `sample` > 1: each grouping judged by its groups whose ids (Morton ranks, so spread over the tile)
+    are multiples of `sample`, on their members only. Pure: the tiles of a level are judged on any threads in any
+    order."""
     order, starts = groups
     n, k = len(members), len(starts)
     if n == 0 or k >= n:
@@ -380,9 +414,19 @@ def auto_tile_choice(members: Gaussians, groups: tuple[np.ndarray, np.ndarray], 
     g_order, g_starts = _group_starts(members.positions, k)
     if len(g_starts) != k:  # the grid can fall short of a count (too few cells to split): the cost merge
         return groups, False
+    cost_ids, grid_ids = _run_ids(order, starts, n), _run_ids(g_order, g_starts, n)
+    if sample > 1:  # every sample-th group of each grouping (ids follow the Morton order: spread over the tile)
+        cost_in, grid_in = cost_ids % sample == 0, grid_ids % sample == 0
+        judged = np.flatnonzero(cost_in | grid_in)
+        members, cost_ids, grid_ids = _take(members, judged), cost_ids[judged], grid_ids[judged]
+        cost_in, grid_in = cost_in[judged], grid_in[judged]
     prepared = choice_members(members, blur)  # the same members judged twice
-    cost_err = choice_error(members, _run_ids(order, starts, n), blur, prepared)
-    grid_err = choice_error(members, _run_ids(g_order, g_starts, n), blur, prepared)
+    if sample > 1:
+        cost_err = _sampled_choice_error(members, cost_ids, cost_in, sample, blur, prepared)
+        grid_err = _sampled_choice_error(members, grid_ids, grid_in, sample, blur, prepared)
+    else:
+        cost_err = choice_error(members, cost_ids, blur, prepared)
+        grid_err = choice_error(members, grid_ids, blur, prepared)
     if grid_err < cost_err:
         return (g_order, g_starts), True
     return groups, False

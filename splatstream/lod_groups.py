@@ -53,6 +53,7 @@ class GroupRule:
     max_group: int = 0  # then groups of at most this many members (splats of the level; 0: no cap; at least
     # twice n / target)
     max_rounds: int = 64
+    tail: float = 0.0  # a round whose merges still needed are at most this share of the clusters takes them all
 
 
 DEFAULT_RULE = GroupRule()
@@ -410,10 +411,7 @@ def _greedy_pairs(count: int, i: np.ndarray, j: np.ndarray, cost: np.ndarray, qu
     ii = np.concatenate([i, j])
     jj = np.concatenate([j, i])
     cc = np.concatenate([cost, cost])
-    # By cost, ties by ids: the same pairs on every machine. As np.lexsort((jj, ii, cc)) orders them (rows equal in
-    # all three are interchangeable), in two passes: the ids as one key (any sort), then the costs, stably.
-    by_ids = np.argsort(ii.astype(np.int64) * count + jj)
-    order = by_ids[np.argsort(cc[by_ids], kind="stable")]
+    order = _cost_order(i, j, cost, count)
     ii, jj, cc = ii[order], jj[order], cc[order]
     free = np.ones(count, bool)
     got_a, got_b = [], []
@@ -444,6 +442,32 @@ def _greedy_pairs(count: int, i: np.ndarray, j: np.ndarray, cost: np.ndarray, qu
     if not got_a:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
     return np.concatenate(got_a), np.concatenate(got_b)
+
+
+def _cost_order(i: np.ndarray, j: np.ndarray, cost: np.ndarray, count: int) -> np.ndarray:
+    """The order of the rows (i, j) then (j, i) of every edge (_greedy_pairs' ii, jj) by cost, ties by ids: the same
+    pairs on every machine. As np.lexsort((jj, ii, cc)) orders them (rows equal in all three are interchangeable),
+    found from the edges' costs alone: their default (SIMD) sort gives the one sorted order where costs are
+    distinct, and an edge's two rows come lower id first (2.5x less than the stable sort of the rows put in id
+    order first). Runs of edges of equal cost are then put in that order among themselves."""
+    m = len(cost)
+    by_cost = np.argsort(cost)
+    low_first = i[by_cost] < j[by_cost]
+    order = np.empty(2 * m, np.int64)
+    order[0::2] = np.where(low_first, by_cost, by_cost + m)
+    order[1::2] = np.where(low_first, by_cost + m, by_cost)
+    s = cost[by_cost]
+    same = s[1:] == s[:-1]
+    if same.any():
+        tied = np.zeros(m, bool)
+        tied[1:] = same
+        tied[:-1] |= same
+        rows = np.flatnonzero(np.repeat(tied, 2))  # both rows of every edge in a tie, in cost order
+        sub = order[rows]
+        ii, jj = np.concatenate([i, j])[sub], np.concatenate([j, i])[sub]
+        by_ids = np.argsort(ii.astype(np.int64) * count + jj)
+        order[rows] = sub[by_ids[np.argsort(np.concatenate([cost, cost])[sub][by_ids], kind="stable")]]
+    return order
 
 
 def _cheapest_share(i, j, cost, take: int, mult: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -630,7 +654,8 @@ def group_ids_of(inputs: dict, target: int, rule: GroupRule = DEFAULT_RULE,
             if not len(ci):
                 break
             need = count - stage_target
-            take = need if rule.share >= 1 else max(1, math.ceil(need * rule.share))
+            take = (need if rule.share >= 1 or need <= rule.tail * count
+                    else max(1, math.ceil(need * rule.share)))
             ci, cj, cost = _cheapest_share(ci, cj, cost, take, mult[ok])
             pa, pb = _greedy_pairs(count, ci, cj, cost, take)
             if not len(pa):

@@ -39,7 +39,7 @@ def check_partition(ids: np.ndarray, n: int, target: int) -> None:
     assert len(np.unique(ids)) == target  # every id used: exactly `target` groups, every splat in one
 
 
-@pytest.mark.parametrize("rule", [lod_groups.DEFAULT_RULE, *lod_groups.HYBRID_RULES])
+@pytest.mark.parametrize("rule", [lod_groups.DEFAULT_RULE, *lod_groups.HYBRID_RULES, lod.AUTO_RULE])
 @pytest.mark.parametrize("target", [1, 7, 500, 1999])
 def test_cost_groups_are_an_exact_deterministic_partition(rule, target):
     a = random_arrays(2000)
@@ -133,3 +133,29 @@ def test_proxy_draws_one_opaque_splat_where_it_is():
     # looking along -x the splat at x = 0.5 is in front: its blue over the red behind, seen through 1 - its alpha
     assert np.allclose(front, [(1 - peak) * peak, 0.0, peak], atol=1e-6)
     assert np.allclose(back, [peak, 0.0, (1 - peak) * peak], atol=1e-6)
+
+
+def test_a_tail_round_takes_every_merge_left():
+    """GroupRule.tail (the auto merge's rule): once the merges still needed are at most that share of the clusters,
+    one round takes them all instead of halving them round after round; the early rounds are unchanged."""
+    a = random_arrays(4000, seed=3)
+    rounds = {}
+    original = lod_groups._greedy_pairs
+    for tail in (0.0, 0.05):
+        quotas = []
+
+        def counted(count, i, j, cost, quota, passes=12, _q=quotas):
+            _q.append(quota)
+            return original(count, i, j, cost, quota, passes)
+
+        lod_groups._greedy_pairs = counted
+        try:
+            ids = lod_groups.group_ids(*a, 2000, lod_groups.GroupRule(proj=1, first_cap=2, max_group=4, tail=tail))
+        finally:
+            lod_groups._greedy_pairs = original
+        check_partition(ids, 4000, 2000)
+        rounds[tail] = quotas
+    assert rounds[0.05][0] == rounds[0.0][0] == 1000  # the first round: half of the 2000 merges, as before
+    assert len(rounds[0.05]) < len(rounds[0.0])
+    # a tail round's quota is every merge left, at most 5 % of the clusters then
+    assert any(q <= 0.05 * 4000 and q not in rounds[0.0] for q in rounds[0.05])
