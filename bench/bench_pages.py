@@ -16,14 +16,14 @@ median time of one frame's view numbers + selection over the tiles held against 
         manifest bytes and seconds from opening the stream to the first frame that draws the root (engine, fetcher
         and HTTP as `view` runs them, no GL: a pool that counts slots), median of --runs
     PYTHONPATH=. python bench/bench_pages.py --engine --splats 6e6,60e6,250e6 [--frames 300] [--profile]
-            [--numpy-selection | --no-wait] [--parts-json F_N.json] [--busy-threads 1]
+            [--numpy-selection | --no-wait] [--parts-json F_N.json] [--busy-threads 1] [--max-tree-tiles N]
     PYTHONPATH=. python bench/bench_pages.py --jit-cost [--runs 7]   # the compiled selection's cost before its first
         # use: numba's import, then its kernels compiled (the first run, an empty cache) or loaded (the others)
         # a StreamEngine over the paged tree along a street-level path (pages and payloads arrive --per-frame a
         # frame, payloads not decoded, a pool that counts): per-frame update times, median, p99, max; the compiled
         # selection (numba, the `fast` extra) unless --numpy-selection; each part of the update per frame (thread
         # CPU and wall: the view, the cut, the pages wanted, bands, keys, wish list, page adoption, draw set), and
-        # a digest of every frame's cut and draw set (equal digests: the same frames)
+        # a digest of every frame's cut and draw set and of the fetcher's requests (equal digests: the same frames)
 """
 from __future__ import annotations
 
@@ -231,12 +231,18 @@ class _PathFetcher:
     def __init__(self, root: Manifest, files: dict[str, bytes], per_frame: int):
         self._root, self._files, self._per_frame = root, files, per_frame
         self._wanted: list = []
+        # every wish list handed over (priorities, keys, entries' files, in order), hashed: the same digest before
+        # and after a change of the engine's bookkeeping means the same requests
+        self.requests = hashlib.sha256()
+        self.lists = 0
 
     def manifest(self) -> Manifest:
         return self._root
 
     def want(self, requests) -> None:
         self._wanted = [(key, entry) for _, key, entry in requests]
+        self.requests.update(repr([(p, key, entry.file) for p, key, entry in requests]).encode() + b"|")
+        self.lists += 1
 
     def done(self):
         out, self._wanted = self._wanted[:self._per_frame], self._wanted[self._per_frame:]
@@ -289,15 +295,16 @@ def tree_memory_mb(held: PagedTree, paged) -> float:
 
 def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame: int, profile: bool,
                 compiled: bool = True, wait: bool = True, parts_json: str | None = None,
-                busy_threads: int = 0) -> None:
+                busy_threads: int = 0, max_tree_tiles: int = StreamOptions.max_tree_tiles) -> None:
     """A StreamEngine over the paged tree along a camera flying across the city at street level: per-frame
     update times (median, p99, max) and, with --profile, where they go. `compiled`: the compiled selection
     (selection_jit, waited for before the path, so every frame near the cut uses it), else the numpy path."""
     paged = split_pages(whole, k)
     files = {ref.file: raw for ref, raw in paged.pages}
-    engine = _NoDecodeEngine(_PathFetcher(paged.root, files, per_frame), _Slots(),
+    fetcher = _PathFetcher(paged.root, files, per_frame)
+    engine = _NoDecodeEngine(fetcher, _Slots(),
                              StreamOptions(SelectionOptions(max_splats=max_splats), upload_bytes_per_frame=1 << 40,
-                                           compiled_selection=compiled))
+                                           compiled_selection=compiled, max_tree_tiles=max_tree_tiles))
     if compiled and wait:
         t0 = time.perf_counter()
         if COMPILED_SELECTION.wait() is None:
@@ -465,7 +472,8 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
                       f"{sum(times[i] for i in np.flatnonzero(part)):.2f} s in all")
     print_parts(parts, cs, ts)
     print(f"  every frame's cut: sha256 {cuts.hexdigest()[:16]}, draw set: {draws.hexdigest()[:16]}; the last cut "
-          f"{len(u.selection.cut)} tiles, {u.selection.splats} splats")
+          f"{len(u.selection.cut)} tiles, {u.selection.splats} splats; the fetcher's requests: sha256 "
+          f"{fetcher.requests.hexdigest()[:16]} over {fetcher.lists} wish lists")
     if parts_json:
         with open(parts_json, "w") as f:
             json.dump([{"frame": i, "update_cpu": round(float(cs[i]), 3), "update_wall": round(float(ts[i]), 3),
@@ -589,6 +597,8 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=300)
     ap.add_argument("--per-frame", type=int, default=8, help="--engine: payloads or pages arriving a frame")
     ap.add_argument("--profile", action="store_true", help="--engine: where the update's time goes")
+    ap.add_argument("--max-tree-tiles", type=int, default=StreamOptions.max_tree_tiles,
+                    help="--engine: StreamOptions.max_tree_tiles (lower: pages dropped and read again on the path)")
     ap.add_argument("--numpy-selection", action="store_true",
                     help="--engine: the numpy selection, not the compiled one (selection_jit, numba)")
     ap.add_argument("--no-wait", action="store_true",
@@ -611,7 +621,7 @@ def main() -> None:
             engine_path(synthetic_tree(n, base), args.default_levels, args.frames, args.max_splats, args.per_frame,
                         args.profile, not args.numpy_selection, not args.no_wait,
                         args.parts_json.replace("N", f"{n / 1e6:.0f}M") if args.parts_json else None,
-                        args.busy_threads)
+                        args.busy_threads, args.max_tree_tiles)
         return
     if args.repage:
         repage(*args.repage, args.default_levels)
