@@ -231,18 +231,22 @@ class _PathFetcher:
     def __init__(self, root: Manifest, files: dict[str, bytes], per_frame: int):
         self._root, self._files, self._per_frame = root, files, per_frame
         self._wanted: list = []
-        # every wish list handed over (priorities, keys, entries' files, in order), hashed: the same digest before
-        # and after a change of the engine's bookkeeping means the same requests
-        self.requests = hashlib.sha256()
-        self.lists = 0
+        # every wish list handed over (priorities, keys, entries, in order), hashed after the path (out of the
+        # frames' time): the same digest before and after a change of the engine's bookkeeping, the same requests
+        self.lists: list = []
 
     def manifest(self) -> Manifest:
         return self._root
 
     def want(self, requests) -> None:
         self._wanted = [(key, entry) for _, key, entry in requests]
-        self.requests.update(repr([(p, key, entry.file) for p, key, entry in requests]).encode() + b"|")
-        self.lists += 1
+        self.lists.append(requests)
+
+    def requests_digest(self) -> str:
+        h = hashlib.sha256()
+        for requests in self.lists:
+            h.update(repr([(p, key, entry.file, entry.bytes) for p, key, entry in requests]).encode() + b"|")
+        return h.hexdigest()[:16]
 
     def done(self):
         out, self._wanted = self._wanted[:self._per_frame], self._wanted[self._per_frame:]
@@ -268,10 +272,14 @@ class _NoDecodeEngine(StreamEngine):
         # The synthetic tiles' payload entries (one real tile's, copied to tiles of other sizes) do not pass the
         # lazy check of a parsed page (section shapes follow a tile's splats): they are taken from the whole tree.
         # The pages themselves are parsed for real (PagedTree.read), their entries held unchecked, as a client's.
+        # Kept once looked up, as StreamEngine.entry keeps them (the product's cost a key is a dict look-up).
         tile_id, group = key
         if tile_id is None or self.whole is None:
             return super().entry(key)
-        return self.whole.tile(tile_id).groups[group]
+        entry = self._entries.get(key)
+        if entry is None:
+            entry = self._entries[key] = self.whole.tile(tile_id).groups[group]
+        return entry
 
 
 def tree_memory_mb(held: PagedTree, paged) -> float:
@@ -473,7 +481,7 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
     print_parts(parts, cs, ts)
     print(f"  every frame's cut: sha256 {cuts.hexdigest()[:16]}, draw set: {draws.hexdigest()[:16]}; the last cut "
           f"{len(u.selection.cut)} tiles, {u.selection.splats} splats; the fetcher's requests: sha256 "
-          f"{fetcher.requests.hexdigest()[:16]} over {fetcher.lists} wish lists")
+          f"{fetcher.requests_digest()} over {len(fetcher.lists)} wish lists")
     if parts_json:
         with open(parts_json, "w") as f:
             json.dump([{"frame": i, "update_cpu": round(float(cs[i]), 3), "update_wall": round(float(ts[i]), 3),
