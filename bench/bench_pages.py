@@ -394,8 +394,10 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
     if engine.pages is not None:
         engine.pages.wanted_pages = part("pages wanted", engine.pages.wanted_pages)
     for label, name in (("wanted", "wanted"), ("wish list", "_tell_fetcher"), ("page adoption", "_add_pages"),
-                        ("page eviction", "_evict_pages"), ("collect", "_collect"), ("upload", "_upload")):
-        setattr(engine, name, part(label, getattr(engine, name)))
+                        ("page eviction", "_evict_pages"), ("collect", "_collect"), ("upload", "_upload"),
+                        ("wish list: coarse to fine", "_coarse_to_fine"), ("wish list: requests", "_requests")):
+        if hasattr(engine, name):  # _requests: the wish list's requests built apart (branch wishlist)
+            setattr(engine, name, part(label, getattr(engine, name)))
 
     def on_gc(phase: str, info: dict) -> None:
         if info["generation"] == 2:
@@ -497,8 +499,8 @@ def print_parts(parts: list[dict[str, list[float]]], cpu: np.ndarray, wall: np.n
     over the frames they ran in): median, p99, max, and in how many frames it ran. `selection` is the view's
     numbers and the cut (what bench_flythrough.py's --breakdown counts as the selection); `wanted` the whole
     selection (with the pages wanted, the bands and the keys); `keys etc.` is `wanted` less its timed parts."""
-    names = ["view", "cut", "pages wanted", "bands", "wanted", "wish list", "page adoption", "page eviction",
-             "draw set", "collect", "upload"]
+    names = ["view", "cut", "pages wanted", "bands", "wanted", "wish list", "wish list: coarse to fine",
+             "wish list: requests", "page adoption", "page eviction", "draw set", "collect", "upload"]
 
     def col(name: str, k: int) -> np.ndarray:
         return np.array([p.get(name, [0.0, 0.0])[k] for p in parts])
