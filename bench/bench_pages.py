@@ -319,6 +319,7 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
             raise SystemExit(f"the compiled selection is not available: {COMPILED_SELECTION.error!r}")
         print(f"compiled selection ready after {time.perf_counter() - t0:.2f} s (numba import, compilation or cache)")
     engine.whole = whole
+    _ = whole.tile_by_id  # the whole tree's index, built once here, not in the first frame that looks an entry up
     side = whole.bounds.max[0]
     prof = cProfile.Profile(time.thread_time) if profile else None  # CPU: the VM is shared
     times, cpu = [], []
