@@ -20,9 +20,9 @@ import threading
 import time
 from concurrent.futures import CancelledError, Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from itertools import filterfalse, repeat
+from itertools import compress, filterfalse, repeat
 from multiprocessing import get_context
-from operator import is_not
+from operator import is_
 from typing import Any, Protocol
 
 import numpy as np
@@ -646,7 +646,7 @@ class StreamEngine:
         head = want[:1] if want[:1] == [root_key] else []
         pages = [k for k in self._pages_wanted if k[0] not in self._pages_arrived]  # not those being parsed
         listed = tuple(head + pages + want[len(head):] + pre)
-        if listed != self._listed:
+        if len(listed) != len(self._listed) or listed != self._listed:  # (a tuple's != compares items first)
             self.fetcher.want(self._requests(listed, len(head), len(pages)))
             self._listed = listed
 
@@ -677,8 +677,8 @@ class StreamEngine:
         page_entry = self.pages.entry if pages else None
         for r in range(head, head + pages):
             entries[r] = page_entry(listed[r][0])
-        if not all(map(is_not, entries, repeat(None))):  # keys asked for the first time
-            entries = [e if e is not None else self.entry(k) for e, k in zip(entries, listed, strict=True)]
+        for r in compress(range(n), map(is_, entries, repeat(None))):  # keys asked for the first time
+            entries[r] = self.entry(listed[r])
         return list(zip(np.arange(n, 0, -1, dtype=np.float64).tolist(), listed, entries, strict=True))
 
     def _draw_counts(self, view, sel: Selection) -> tuple:
