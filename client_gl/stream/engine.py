@@ -565,8 +565,8 @@ class StreamEngine:
     def _make_keys(self, cut: np.ndarray, bands: np.ndarray) -> list[Key]:
         """The keys a cut wants, in priority order: the root's base, the cut's bases (in its order), then its SH
         bands (the codebook's bands and each tile's index, or each band's payloads band by band). The tile ids come
-        from one numpy call a block and the tuples from zip (C loops: a comprehension a key cost 0.1-0.2 ms a
-        frame at 250M splats, BENCHMARKS.md, "Manifest pages")."""
+        from one numpy call a block and the tuples from zip (C loops, not a comprehension a key: 20-25 % less CPU
+        for the keys at 250M splats with SH3, BENCHMARKS.md, "Manifest pages")."""
         ids = self.ids
         keys: list[Key] = [(int(ids[self.root]), "base")]
         keys += zip(ids[cut[cut != self.root]].tolist(), repeat("base"))
@@ -670,8 +670,9 @@ class StreamEngine:
     def _requests(self, listed: tuple[Key, ...], head: int, pages: int) -> list[tuple[float, Key, PayloadEntry]]:
         """The fetcher's requests for a wish list: (priority, key, entry), the first key's priority the list's
         length, down to 1; listed[head:head + pages] are pages (their entries the tree's). Entries kept from earlier
-        frames are taken by one map over the cache (C loops: a look-up a key in Python was most of the wish list's
-        0.4-0.5 ms a frame at 250M splats, BENCHMARKS.md, "Manifest pages"); those not kept yet are looked up."""
+        frames are taken by one map over the cache (C loops, not a call of `entry` a key: with the rest of this
+        branch about 20 % less CPU for the wish list, BENCHMARKS.md, "Manifest pages"); those not kept yet are
+        looked up."""
         n = len(listed)
         entries: list[PayloadEntry | None] = list(map(self._entries.get, listed))
         page_entry = self.pages.entry if pages else None
