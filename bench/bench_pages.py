@@ -23,7 +23,7 @@ median time of one frame's view numbers + selection over the tiles held against 
         # frame, payloads not decoded, a pool that counts): per-frame update times, median, p99, max; the compiled
         # selection (numba, the `fast` extra) unless --numpy-selection; each part of the update per frame (thread
         # CPU and wall: the view, the cut, the pages wanted, bands, keys, wish list, page adoption, draw set), and
-        # a digest of every frame's cut and draw set (equal digests: the same frames)
+        # a digest of every frame's cut and draw set and of the fetcher's requests (equal digests: the same frames)
 """
 from __future__ import annotations
 
@@ -231,12 +231,22 @@ class _PathFetcher:
     def __init__(self, root: Manifest, files: dict[str, bytes], per_frame: int):
         self._root, self._files, self._per_frame = root, files, per_frame
         self._wanted: list = []
+        # every wish list handed over (priorities, keys, entries, in order), hashed after the path (out of the
+        # frames' time): the same digest before and after a change of the engine's bookkeeping, the same requests
+        self.lists: list = []
 
     def manifest(self) -> Manifest:
         return self._root
 
     def want(self, requests) -> None:
         self._wanted = [(key, entry) for _, key, entry in requests]
+        self.lists.append(requests)
+
+    def requests_digest(self) -> str:
+        h = hashlib.sha256()
+        for requests in self.lists:
+            h.update(repr([(p, key, entry.file, entry.bytes) for p, key, entry in requests]).encode() + b"|")
+        return h.hexdigest()[:16]
 
     def done(self):
         out, self._wanted = self._wanted[:self._per_frame], self._wanted[self._per_frame:]
@@ -262,10 +272,14 @@ class _NoDecodeEngine(StreamEngine):
         # The synthetic tiles' payload entries (one real tile's, copied to tiles of other sizes) do not pass the
         # lazy check of a parsed page (section shapes follow a tile's splats): they are taken from the whole tree.
         # The pages themselves are parsed for real (PagedTree.read), their entries held unchecked, as a client's.
+        # Kept once looked up, as StreamEngine.entry keeps them (the product's cost a key is a dict look-up).
         tile_id, group = key
         if tile_id is None or self.whole is None:
             return super().entry(key)
-        return self.whole.tile(tile_id).groups[group]
+        entry = self._entries.get(key)
+        if entry is None:
+            entry = self._entries[key] = self.whole.tile(tile_id).groups[group]
+        return entry
 
 
 def tree_memory_mb(held: PagedTree, paged) -> float:
@@ -298,7 +312,8 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
     paged = split_pages(whole, k)
     files = {ref.file: raw for ref, raw in paged.pages}
     bound = {} if max_tree_tiles is None else {"max_tree_tiles": max_tree_tiles}
-    engine = _NoDecodeEngine(_PathFetcher(paged.root, files, per_frame), _Slots(),
+    fetcher = _PathFetcher(paged.root, files, per_frame)
+    engine = _NoDecodeEngine(fetcher, _Slots(),
                              StreamOptions(SelectionOptions(max_splats=max_splats), upload_bytes_per_frame=1 << 40,
                                            compiled_selection=compiled, **bound))
     if compiled and wait:
@@ -307,6 +322,7 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
             raise SystemExit(f"the compiled selection is not available: {COMPILED_SELECTION.error!r}")
         print(f"compiled selection ready after {time.perf_counter() - t0:.2f} s (numba import, compilation or cache)")
     engine.whole = whole
+    _ = whole.tile_by_id  # the whole tree's index, built once here, not in the first frame that looks an entry up
     side = whole.bounds.max[0]
     prof = cProfile.Profile(time.thread_time) if profile else None  # CPU: the VM is shared
     times, cpu = [], []
@@ -382,8 +398,10 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
     if engine.pages is not None:
         engine.pages.wanted_pages = part("pages wanted", engine.pages.wanted_pages)
     for label, name in (("wanted", "wanted"), ("wish list", "_tell_fetcher"), ("page adoption", "_add_pages"),
-                        ("page eviction", "_evict_pages"), ("collect", "_collect"), ("upload", "_upload")):
-        setattr(engine, name, part(label, getattr(engine, name)))
+                        ("page eviction", "_evict_pages"), ("collect", "_collect"), ("upload", "_upload"),
+                        ("wish list: coarse to fine", "_coarse_to_fine"), ("wish list: requests", "_requests")):
+        if hasattr(engine, name):  # _requests: the wish list's requests built apart (branch wishlist)
+            setattr(engine, name, part(label, getattr(engine, name)))
 
     def on_gc(phase: str, info: dict) -> None:
         if info["generation"] == 2:
@@ -468,7 +486,8 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
                       f"{sum(times[i] for i in np.flatnonzero(part)):.2f} s in all")
     print_parts(parts, cs, ts)
     print(f"  every frame's cut: sha256 {cuts.hexdigest()[:16]}, draw set: {draws.hexdigest()[:16]}; the last cut "
-          f"{len(u.selection.cut)} tiles, {u.selection.splats} splats")
+          f"{len(u.selection.cut)} tiles, {u.selection.splats} splats; the fetcher's requests: sha256 "
+          f"{fetcher.requests_digest()} over {len(fetcher.lists)} wish lists")
     if parts_json:
         with open(parts_json, "w") as f:
             json.dump([{"frame": i, "update_cpu": round(float(cs[i]), 3), "update_wall": round(float(ts[i]), 3),
@@ -484,8 +503,8 @@ def print_parts(parts: list[dict[str, list[float]]], cpu: np.ndarray, wall: np.n
     over the frames they ran in): median, p99, max, and in how many frames it ran. `selection` is the view's
     numbers and the cut (what bench_flythrough.py's --breakdown counts as the selection); `wanted` the whole
     selection (with the pages wanted, the bands and the keys); `keys etc.` is `wanted` less its timed parts."""
-    names = ["view", "cut", "pages wanted", "bands", "wanted", "wish list", "page adoption", "page eviction",
-             "draw set", "collect", "upload"]
+    names = ["view", "cut", "pages wanted", "bands", "wanted", "wish list", "wish list: coarse to fine",
+             "wish list: requests", "page adoption", "page eviction", "draw set", "collect", "upload"]
 
     def col(name: str, k: int) -> np.ndarray:
         return np.array([p.get(name, [0.0, 0.0])[k] for p in parts])

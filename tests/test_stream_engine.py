@@ -746,3 +746,119 @@ def test_the_paged_trees_arrays_grow_and_shrink_as_a_rebuild_makes_them(paged_st
     assert len(keep) == len(m.tiles) < len(read_manifest(paged_store).tiles)
     _same_arrays(m.arrays, tile_arrays(m.tiles, {t.id: i for i, t in enumerate(m.tiles)}))
     assert m.index_of == {t.id: i for i, t in enumerate(m.tiles)} and m.tile_by_id == {t.id: t for t in m.tiles}
+
+
+# --- the wish list's bookkeeping in numpy and C loops, against the per-key paths it replaced ------------------------
+
+def _keys_per_key(engine, cut, bands):
+    """The keys a cut wants as `wanted` built them before _make_keys (a comprehension a key): the reference."""
+    ids = engine.ids
+    root_id = int(ids[engine.root])
+    keys = [(root_id, "base")] + [(t, "base") for t in ids[cut].tolist() if t != root_id]
+    top = int(bands.max()) if len(bands) else 0
+    if engine.codebook:
+        keys += [(None, f"sh{b}") for b in range(1, top + 1)]
+        keys += [(t, "sh1") for t in ids[cut[bands >= 1]].tolist()]
+    else:
+        for b in range(1, top + 1):
+            keys += [(t, f"sh{b}") for t in ids[cut[bands >= b]].tolist()]
+    return keys
+
+
+class CheckingFetcher(StepFetcher):
+    """A fetcher that checks every wish list it is handed against the per-key path: priorities len(list) down to
+    1, each payload's entry the manifest's (the codebook's for its bands), each page's the tree's."""
+
+    engine = None
+    checked = 0
+
+    def manifest(self):
+        return parse_manifest(self.store.read_manifest(), "root", lazy_payloads=True)
+
+    def want(self, requests):
+        n, e = len(requests), self.engine
+        assert [p for p, _, _ in requests] == [float(n - r) for r in range(n)]
+        for _, (tile_id, group), entry in requests:
+            if group == "page":
+                assert entry is e.pages.entry(tile_id)
+            else:
+                m = e.manifest
+                assert entry == (m.sh_codebook.groups[group] if tile_id is None else m.tile(tile_id).groups[group])
+        self.checked += 1
+        self.wants.append([k for _, k, _ in requests])
+
+
+@pytest.fixture(scope="module")
+def codebook_store():
+    g = read_gaussians_ply(real("fruit_drops_sh3.ply"))
+    return encode_in_memory(g, EncodeOptions(preset="low", max_leaf_splats=300))
+
+
+@pytest.mark.parametrize("scene", ["store", "codebook_store"])
+def test_the_wish_lists_keys_missing_and_requests_are_the_per_key_paths(scene, request):
+    """_make_keys (ids by numpy, tuples by zip), the SH keys' residency in numpy (_sh_missing), what is being
+    decoded or waits left out by one set, and the requests' entries by one map over the cache (_requests): the same
+    keys, the same missing list, the same wish list handed over as the per-key paths, for any cut, residency, bands
+    resident, codebook bands, and payloads decoding or ready."""
+    s = request.getfixturevalue(scene)
+    m = read_manifest(s)
+    assert m.uses_codebook == (scene == "codebook_store")
+    rnd = np.random.default_rng(11)
+    fetcher = CheckingFetcher(s)
+    engine = StreamEngine(fetcher, CountingPool(10_000), StreamOptions(SelectionOptions(max_sse=0.5)))
+    fetcher.engine = engine
+    sh_missing = 0
+    for k in range(16):
+        n = len(engine.resident)
+        engine.resident[:] = rnd.random(n) < (0.0, 0.4, 0.9, 1.0)[k % 4]
+        engine.bands[:] = np.where(engine.resident, rnd.integers(0, 4, n), 0)
+        engine.codebook_bands = {b for b in (1, 2, 3) if rnd.random() < 0.5}
+        max_sse = float(rnd.choice([0.0, 0.3, 1.0]))
+        engine.options = replace(engine.options, selection=replace(engine.options.selection, max_sse=max_sse))
+        _, sel, bands, keys, _ = engine.wanted(orbit(m, float(rnd.uniform(0.3, 3.0)), float(rnd.uniform(0, 6))))
+        assert keys == _keys_per_key(engine, sel.cut_at, bands)
+        listed = [k for k in keys if rnd.random() < 0.3]
+        engine._decoding = set(listed[::2])
+        engine._ready = {key: None for key in listed[1::2]}
+        engine._listed = ()  # hand the list over again
+        wants = len(fetcher.wants)
+        engine._tell_fetcher(keys, (), sel)
+        missing = [key for key in engine._keys if not engine._have(key)]
+        assert engine._missing == missing
+        sh_missing += sum(key[1] != "base" for key in missing)
+        want = [key for key in missing if key not in engine._decoding and key not in engine._ready]
+        assert len(fetcher.wants) == wants + (1 if want else 0)
+        if want:
+            assert fetcher.wants[-1] == want
+        engine._decoding, engine._ready = set(), {}
+    assert fetcher.checked >= 10 and sh_missing > 50
+    engine.close()
+
+
+def test_the_requests_of_a_paged_scene_are_the_per_key_paths(paged_store):
+    """A paged scene's path to convergence: every wish list handed over (pages among the payloads) has the per-key
+    path's priorities and entries (CheckingFetcher), and the bases' parents climbed past the root the walk's."""
+    whole = read_manifest(paged_store)
+    fetcher = CheckingFetcher(paged_store, per_frame=3)
+    engine = StreamEngine(fetcher, CountingPool(10_000),
+                          StreamOptions(SelectionOptions(max_sse=1.0), prefetch=False, fill_gap=1, fill_step=1))
+    fetcher.engine = engine
+    original = fetcher.want
+
+    def want_and_fetch(requests):
+        original(requests)
+        for _, key, entry in requests[: fetcher.per_frame]:
+            fetcher.out.append((key, entry, verify_payload(paged_store.read_payload(entry), entry, "test")))
+            fetcher.fetched.append(key)
+    fetcher.want = want_and_fetch
+    coarse_to_fine = engine._coarse_to_fine
+
+    def checked(keys, sel):
+        out = coarse_to_fine(keys, sel)
+        assert out == _coarse_to_fine_walk(engine, keys, sel)[0]
+        return out
+    engine._coarse_to_fine = checked
+    run_until_converged(engine, orbit(whole, 1.2, 0.3))
+    assert engine.pages.pages_read > 0 and fetcher.checked > 5
+    assert any(k[1] == "page" for w in fetcher.wants for k in w)
+    engine.close()

@@ -546,3 +546,18 @@ def test_io_waits_for_the_frame_loop_when_asked(root, manifest, server):
         assert_exact(root, collect(f, len(more), timeout_s=10.0), more)
     finally:
         f.close()
+
+
+def test_the_queued_count_is_the_wanted_keys_not_in_flight():
+    """stats().queued counted over the keys in flight (a few) is the count over the wanted keys (hundreds) it replaced,
+    whatever the two hold: keys in flight that are wanted, and some that no longer are."""
+    fetcher = Fetcher(StoreSource(MemoryStore(b"")))  # never started: only its bookkeeping
+    rnd = random.Random(3)
+    for _ in range(50):
+        keys = [(rnd.randrange(1000), rnd.choice(["base", "sh1", "page"])) for _ in range(rnd.randrange(0, 300))]
+        fetcher._wanted = {k: (1.0, None) for k in keys}
+        fetcher._jobs = {k: None for k in rnd.sample(keys, min(len(keys), rnd.randrange(0, 9)))}
+        fetcher._jobs.update({(2000 + i, "base"): None for i in range(rnd.randrange(0, 3))})  # no longer wanted
+        assert fetcher.stats().queued == sum(1 for k in fetcher._wanted if k not in fetcher._jobs)
+        assert fetcher.stats().in_flight == len(fetcher._jobs)
+    fetcher._wanted, fetcher._jobs = {}, {}

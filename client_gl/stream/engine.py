@@ -20,7 +20,9 @@ import threading
 import time
 from concurrent.futures import CancelledError, Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field
+from itertools import compress, filterfalse, repeat
 from multiprocessing import get_context
+from operator import is_
 from typing import Any, Protocol
 
 import numpy as np
@@ -350,13 +352,19 @@ class StreamEngine:
         self._last_cut = np.zeros(0, np.intp)  # the last selection's cut (positions): kept from eviction, and where
         # the next frame's selection starts looking
         self._bases = np.zeros(0, np.intp)  # positions of the wish list's bases (_coarse_to_fine)
+        self._up: tuple[np.ndarray, np.ndarray] | None = None  # (the tree's parents, with a spare row: _coarse_to_fine)
         # The compiled selection's per-tile arrays, kept from frame to frame (ViewBuffers): a frame's view owns them
         # until the next selection (the engine uses a view only in the frame that made it, or while it is cached)
         self._view_buffers = ViewBuffers()
         self._pages_checked: tuple[int, int] = (0, 0)  # (tiles held, payload evictions) at the last eviction pass
         self.frame = 0
         self.refined = np.zeros(0, np.intp)  # the last selection's refined tiles (positions: its hysteresis)
-        self._bands_wanted: tuple[list[int], list[int]] = ([], [])  # the cut's positions and their bands wanted
+        # the cut's positions and their bands wanted (arrays, in the cut's order)
+        self._bands_wanted: tuple[np.ndarray, np.ndarray] = (np.zeros(0, np.intp), np.zeros(0, np.int64))
+        # The SH part of the last keys `wanted` made, as blocks of the same keys in the same order: (keys, bases in
+        # them, [(group, band, positions)]), positions None for a band of the codebook (one key). _tell_fetcher
+        # takes what is missing of them in numpy, a block at a time, instead of a _have per key.
+        self._sh_blocks: tuple[list, int, list[tuple[str, int, np.ndarray | None]]] | None = None
         # Caches that let a still camera with nothing arriving skip the per-frame work (selection, wish list,
         # draw set): _version counts changes of what is held (resident, decoding, ready).
         self._wanted_cache: tuple | None = None
@@ -554,25 +562,39 @@ class StreamEngine:
             self._pages_wanted = [k for k in self.pages.wanted_pages(cut, view.sse, view.visible, opts.max_sse)
                                   if k not in self.failed]
         bands = wanted_bands_at(a, view, cut, opts, self.manifest.sh_degree)  # the cut's, in its order
-        ids = self.ids
-        root_id = int(ids[self.root])
-        cut_ids = ids[cut].tolist()  # one numpy call, not one a tile
-        self._bands_wanted = (cut.tolist(), bands.tolist())
-        keys: list[Key] = [(root_id, "base")]
-        keys += [(t, "base") for t in cut_ids if t != root_id]
-        top = int(bands.max()) if len(bands) else 0
-        if self.codebook:
-            keys += [(None, f"sh{b}") for b in range(1, top + 1)]
-            keys += [(t, "sh1") for t in ids[cut[bands >= 1]].tolist()]
-        else:
-            for b in range(1, top + 1):
-                keys += [(t, f"sh{b}") for t in ids[cut[bands >= b]].tolist()]
+        self._bands_wanted = (cut, bands)
+        keys = self._make_keys(cut, bands)
         # prefetch only when asked for (update asks only when nothing the view wants is missing): 0.2-0.3 ms a frame
-        extra = _Prefetch(a, view, sel, opts, ids, self.cost) if self.options.prefetch else ()
+        extra = _Prefetch(a, view, sel, opts, self.ids, self.cost) if self.options.prefetch else ()
         result = (view, sel, bands, keys, extra)
         self._wanted_cache = (key, result)
         self._wanted_serial += 1
         return result
+
+    def _make_keys(self, cut: np.ndarray, bands: np.ndarray) -> list[Key]:
+        """The keys a cut wants, in priority order: the root's base, the cut's bases (in its order), then its SH
+        bands (the codebook's bands and each tile's index, or each band's payloads band by band). The tile ids come
+        from one numpy call a block and the tuples from zip (C loops, not a comprehension a key: 20-25 % less CPU
+        for the keys at 250M splats with SH3, BENCHMARKS.md, "Manifest pages")."""
+        ids = self.ids
+        keys: list[Key] = [(int(ids[self.root]), "base")]
+        keys += zip(ids[cut[cut != self.root]].tolist(), repeat("base"))
+        bases = len(keys)
+        blocks: list[tuple[str, int, np.ndarray | None]] = []
+        top = int(bands.max()) if len(bands) else 0
+        if self.codebook:
+            blocks += [(f"sh{b}", b, None) for b in range(1, top + 1)]
+            if top >= 1:
+                blocks.append(("sh1", 1, cut[bands >= 1]))
+        else:
+            blocks += [(f"sh{b}", b, cut[bands >= b]) for b in range(1, top + 1)]
+        for group, _, at in blocks:
+            if at is None:
+                keys.append((None, group))
+            else:
+                keys += zip(ids[at].tolist(), repeat(group))
+        self._sh_blocks = (keys, bases, blocks)
+        return keys
 
     def update(self, cam: Camera) -> FrameUpdate:
         self.frame += 1
@@ -620,11 +642,12 @@ class StreamEngine:
         self._keys = self._coarse_to_fine(keys, sel) if self.options.fill_levels else keys
         if self.options.fill_levels and not self.failed:  # the bases' residency in numpy (_coarse_to_fine's order)
             base = self._bases
-            absent = self.ids[base[~self.resident[base]]].tolist()
-            self._missing = [(i, "base") for i in absent] + [k for k in self._keys[len(base):] if not self._have(k)]
+            self._missing = list(zip(self.ids[base[~self.resident[base]]].tolist(), repeat("base")))
+            self._missing += self._sh_missing(keys, self._keys[len(base):])
         else:
             self._missing = [k for k in self._keys if not self._have(k) and not self._blocked(k)]
-        want = [k for k in self._missing if k not in self._ready and k not in self._decoding]
+        busy = self._ready.keys() | self._decoding if self._ready or self._decoding else None
+        want = self._missing if busy is None else list(filterfalse(busy.__contains__, self._missing))
         pre = [] if want else [k for k in extra if not self._have(k) and k not in self._ready
                                and k not in self._decoding]
         # pages right after the root's base (the first frame draws the root; a page only lets the cut refine)
@@ -632,11 +655,41 @@ class StreamEngine:
         head = want[:1] if want[:1] == [root_key] else []
         pages = [k for k in self._pages_wanted if k[0] not in self._pages_arrived]  # not those being parsed
         listed = tuple(head + pages + want[len(head):] + pre)
-        if listed != self._listed:
-            n = len(listed)
-            self.fetcher.want([(float(n - r), k, self.pages.entry(k[0]) if k[1] == PAGE_GROUP else self.entry(k))
-                               for r, k in enumerate(listed)])
+        if len(listed) != len(self._listed) or listed != self._listed:  # (a tuple's != compares items first)
+            self.fetcher.want(self._requests(listed, len(head), len(pages)))
             self._listed = listed
+
+    def _sh_missing(self, keys: list[Key], sh_keys: list[Key]) -> list[Key]:
+        """What is not held of the wish list's SH keys `sh_keys` (those of `keys`, in their order): from the blocks
+        _make_keys made them from, in numpy (a tile's band is held once it is resident with that band), else a
+        _have per key (keys made elsewhere)."""
+        made = self._sh_blocks
+        if made is None or made[0] is not keys:
+            return [k for k in sh_keys if not self._have(k)]
+        out: list[Key] = []
+        resident, bands, ids = self.resident, self.bands, self.ids
+        for group, band, at in made[2]:
+            if at is None:
+                if band not in self.codebook_bands:
+                    out.append((None, group))
+            elif len(at):
+                out += zip(ids[at[~(resident[at] & (bands[at] >= band))]].tolist(), repeat(group))
+        return out
+
+    def _requests(self, listed: tuple[Key, ...], head: int, pages: int) -> list[tuple[float, Key, PayloadEntry]]:
+        """The fetcher's requests for a wish list: (priority, key, entry), the first key's priority the list's
+        length, down to 1; listed[head:head + pages] are pages (their entries the tree's). Entries kept from earlier
+        frames are taken by one map over the cache (C loops, not a call of `entry` a key: with the rest of this
+        branch about 20 % less CPU for the wish list, BENCHMARKS.md, "Manifest pages"); those not kept yet are
+        looked up."""
+        n = len(listed)
+        entries: list[PayloadEntry | None] = list(map(self._entries.get, listed))
+        page_entry = self.pages.entry if pages else None
+        for r in range(head, head + pages):
+            entries[r] = page_entry(listed[r][0])
+        for r in compress(range(n), map(is_, entries, repeat(None))):  # keys asked for the first time
+            entries[r] = self.entry(listed[r])
+        return list(zip(np.arange(n, 0, -1, dtype=np.float64).tolist(), listed, entries, strict=True))
 
     def _draw_counts(self, view, sel: Selection) -> tuple:
         """The draw set and what a frame reports of it and of the residency, kept while neither changes (a still,
@@ -666,25 +719,38 @@ class StreamEngine:
         # apart in splats would otherwise add about as many bytes as the cut itself (1/2 + 1/4 + ... at reduction
         # 2). All cut tiles climb together, a level a step (numpy over the cut: a Python walk per tile cost 1-2 ms
         # a frame at 250M); a tile's rank is the least rank of the cut tiles that name it.
-        rank = np.full(n, n + len(cut), np.int64)
+        # The climb goes past the root into a last, spare row (parent -1 is numpy's last row, whose parent is -1):
+        # one numpy call a level, no array shrunk as tiles reach the root, and as many levels as the deepest
+        # climbing tile's (a tile's level is its depth: validate.py).
+        up = self._parents_or_spare(a.parent)
+        none = n + len(cut)
+        rank = np.full(n + 1, none, np.int64)
         rank[cut] = np.arange(len(cut))
         climb = ~self.resident[cut]
-        at, r = a.parent[cut[climb]], np.flatnonzero(climb)
-        d = 1
-        while at.size:
-            inside = at >= 0
-            at, r = at[inside], r[inside]
+        at, r = cut[climb], np.flatnonzero(climb)
+        for d in range(1, int(a.level[at].max()) + 1 if at.size else 0):
+            at = up[at]
             if d >= gap and (d - gap) % step == 0:
                 np.minimum.at(rank, at, r)
-            at, d = a.parent[at], d + 1
+        rank = rank[:n]
         rank[self.root] = -1
-        named = np.flatnonzero(rank < n + len(cut))
+        named = np.flatnonzero(rank < none)
         base = named[np.lexsort((rank[named], a.level[named]))]  # (level, rank): no two alike
         self._filling = np.zeros(n, bool)
         self._filling[named] = True
         self._filling[cut] = False
         self._bases = base  # positions of the list's bases, in its order
-        return [(i, "base") for i in self.ids[base].tolist()] + [k for k in keys if k[1] != "base"]
+        made = self._sh_blocks  # the keys' SH part (after their bases) as _make_keys made it
+        sh = keys[made[1]:] if made is not None and made[0] is keys else [k for k in keys if k[1] != "base"]
+        return list(zip(self.ids[base].tolist(), repeat("base"))) + sh
+
+    def _parents_or_spare(self, parent: np.ndarray) -> np.ndarray:
+        """The tree's parents with a spare last row whose parent is itself (-1): kept while the tree's arrays
+        are the same (made again after a page is adopted or dropped)."""
+        kept = self._up
+        if kept is None or kept[0] is not parent:
+            kept = self._up = (parent, np.append(parent, -1))
+        return kept[1]
 
     # --- decode -----------------------------------------------------------------------------------------------
     def _collect(self) -> None:
@@ -905,7 +971,7 @@ class StreamEngine:
         # `_ready` comes here every frame, and the ranks of a 6M-splat cut (hundreds of keys) cost more than the rest
         # of its frame's bookkeeping together.
         if self._order_of is None or self._order_of[0] is not keys:
-            self._order_of = (keys, {k: r for r, k in enumerate(keys)})
+            self._order_of = (keys, dict(zip(keys, range(len(keys)), strict=True)))
         order = self._order_of[1]
         wanted_ready = False
         for key in sorted(self._ready, key=lambda k: order.get(k, len(order))):
@@ -957,7 +1023,8 @@ class StreamEngine:
     def _codebook_tile_bands(self, sel: Selection) -> None:
         """With an SH codebook a tile's bands 2 and 3 need no payload of its own: once its index (band 1) and the
         codebook's band are resident, the tile gains the band."""
-        for i, want in zip(*self._bands_wanted, strict=True):
+        cut, bands = self._bands_wanted
+        for i, want in zip(cut.tolist(), bands.tolist(), strict=True):
             tile_id = int(self.ids[i])
             while self.resident[i] and 1 <= self.bands[i] < want and self.bands[i] + 1 in self.codebook_bands:
                 self.residency.add_band(tile_id, int(self.bands[i]) + 1, {})

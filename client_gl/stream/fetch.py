@@ -335,7 +335,10 @@ class Fetcher:
 
     def stats(self) -> FetchStats:
         with self._lock:
-            queued = sum(1 for k in self._wanted if k not in self._jobs)
+            # the wanted keys not in flight, counted over those in flight (a few) rather than over the wanted
+            # (hundreds: the stats are asked for every frame, on the frame thread)
+            wanted = self._wanted
+            queued = len(wanted) - sum(1 for k in self._jobs if k in wanted)
             return FetchStats(failures=dict(self._failures), in_flight=len(self._jobs), queued=queued,
                               offline=self._offline, manifest_source=self._manifest_source,
                               last_error=self._last_error, **self._counts)
