@@ -139,7 +139,8 @@ class RenderOptions:
     # tile ranges, raster, the tile sort's 4) compile, spread over the frames after the first one with splats
     # (DEFERRED_COMPILE_BUDGET_S a frame); once all are compiled every frame draws "compute", as without deferral.
     # A cold driver cache compiled all 15 inside a streamed first frame (issue 38; BENCHMARKS.md, "Deferred compute
-    # draw programs"). False: all compiled before the first compute frame.
+    # draw programs"). False: all compiled before the first compute frame (HeadlessRenderer: every image it reads back
+    # is a finished one).
     defer_compute: bool = True
 
     def __post_init__(self) -> None:
