@@ -61,6 +61,14 @@ def main() -> None:
     ap.add_argument("--sort-pass-programs", action="store_true",
                     help="each sort pass its own programs (RenderOptions.sort_pass_programs: the A/B of their count)")
     ap.add_argument("--sort", default="auto", help="RenderOptions.sort (gpu: the GPU path on software GL too)")
+    ap.add_argument("--frames-after", type=int, default=0,
+                    help="frames drawn after the first one with splats (the deferred compiles, the draw's switch)")
+    ap.add_argument("--draw", default="auto", help="RenderOptions.draw")
+    ap.add_argument("--no-defer", action="store_true",
+                    help="RenderOptions.defer_compute=False: every compute draw program before the first compute frame")
+    ap.add_argument("--as-hardware", action="store_true",
+                    help="treat a software GL (llvmpipe) as hardware in the renderer's auto choices (GPU sort, "
+                         "compute draw): the GPU machine's programs, their count and order, here")
     ap.add_argument("--gpu-mem-mb", type=float, help="ViewOptions.gpu_mem_mb (default: the viewer's)")
     args = ap.parse_args()
     import moderngl
@@ -100,7 +108,10 @@ def main() -> None:
     out: dict = {"url": url, "size": [w, h], "gl_renderer": ctx.info.get("GL_RENDERER"), "context_ms": context_ms,
                  "sync_steps": bool(args.sync)}
     try:
-        render = RenderOptions(sort=args.sort, sort_pass_programs=args.sort_pass_programs)
+        if args.as_hardware:
+            renderer.SOFTWARE_RENDERERS = ()
+        render = RenderOptions(sort=args.sort, draw=args.draw, sort_pass_programs=args.sort_pass_programs,
+                               defer_compute=not args.no_defer)
         view = ViewOptions(cache=False, render=render, **({"gpu_mem_mb": args.gpu_mem_mb} if args.gpu_mem_mb else {}))
         prepared = PreparedSource.open(url, view)
         session = StreamingSession(prepared, ctx, view)
@@ -118,8 +129,16 @@ def main() -> None:
             session.wait(0.002)
         m = session.metrics
         compiles = [ms for _, label, ms in tl.events if label.startswith("compile")]
+        # The frames after the first one with splats: when the deferred programs compile (and the draw switches).
+        for _ in range(args.frames_after):
+            session.frame(cam)
+            ctx.finish()
+            tl.events.append((round((time.perf_counter() - tl.t0) * 1e3, 2),
+                              f"frame after: {session.renderer.draw_mode}", 0.0))
+        compiles_after = sum(1 for _, label, _ms in tl.events if label.startswith("compile")) - len(compiles)
         out.update(first_frame_s=m.first_frame_s, manifest_s=m.manifest_s, pool_s=m.pool_s, built_s=m.built_s,
                    frames=frames, sort_pass_programs=args.sort_pass_programs, programs_compiled=len(compiles),
+                   programs_compiled_after=compiles_after, draw=args.draw, defer_compute=not args.no_defer,
                    compile_ms=round(sum(compiles), 1), timeline=tl.events)
         session.close()
     finally:
@@ -129,7 +148,7 @@ def main() -> None:
     for t_ms, label, ms in tl.events:
         print(f"{t_ms:9.1f} ms  {label:34s} {ms:8.1f} ms")
     print({k: out[k] for k in ("first_frame_s", "manifest_s", "pool_s", "built_s", "context_ms", "programs_compiled",
-                               "compile_ms")})
+                               "compile_ms", "programs_compiled_after")})
     if args.json_out:
         with open(args.json_out, "w") as f:
             json.dump(out, f, indent=1)

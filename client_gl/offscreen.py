@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import os
 import threading
+from dataclasses import replace
 
 import numpy as np
 
@@ -76,7 +77,9 @@ class HeadlessRenderer:
             self.pool.set_codebook_band(int(name[2:]), plane)
         for tile_id, tile in scene.tiles.items():
             self.pool.join(tile_id, tile)
-        self.renderer = SplatRenderer(self.ctx, self.pool, self.options)
+        # Every image read back is a finished one (one-shot renders, the render benchmarks): the compute draw's
+        # programs before the first frame, not after it (RenderOptions.defer_compute is the streaming client's).
+        self.renderer = SplatRenderer(self.ctx, self.pool, replace(self.options, defer_compute=False))
         self.scene = scene
 
     def load_gaussians(self, g: Gaussians, preset: str = DEFAULT_PRESET, sh_degree: int | None = None) -> None:

@@ -480,3 +480,62 @@ def test_warp_cull_walks_and_loops_alike(ctx, fruit, view):
         r.unload()
     assert np.array_equal(images[0], images[1])
     assert images[0].std() > 0.02  # the view holds the scene, not only background
+
+
+def test_auto_draw_defers_compute_programs(ctx, fruit, monkeypatch):
+    """draw="auto" on a hardware GL (issue 38): the first frame draws "fetch" with 7 programs compiled (the pool's,
+    cull, the depth sort's 4, the fetch draw's) instead of 16 (and the compute draw's 9); those 9 compile one a
+    frame (a zero budget) after the first frame with splats, then the draw switches to "compute" and its picture
+    equals that of a renderer that compiled them all up front."""
+    from client_gl.gpu import renderer as renderer_mod
+    from client_gl.gpu.pool import ChunkPool
+    from client_gl.gpu.renderer import RenderOptions, SplatRenderer
+    from client_gl.scene import tiles_from_gaussians
+
+    compiled = []
+    for name in ("compute_shader", "program"):
+        original = getattr(type(ctx), name)
+
+        def counting(self, *args, _original=original, **kwargs):
+            compiled.append(1)
+            return _original(self, *args, **kwargs)
+        monkeypatch.setattr(type(ctx), name, counting)
+    monkeypatch.setattr(renderer_mod, "DEFERRED_COMPILE_BUDGET_S", 0.0)
+    monkeypatch.setattr(ctx, "extra", dict(ctx.extra or {}))
+    scene = tiles_from_gaussians(fruit)
+    cam = close_camera(fruit, W, H)
+
+    def fresh_renderer(options):
+        for key in [k for k in ctx.extra if k[0] == "compute_program"]:  # the shared sort programs compile again
+            del ctx.extra[key]
+        compiled.clear()
+        pool = ChunkPool(ctx, scene.formats, scene.sh_degree, scene.slots)
+        for tile_id, tile in scene.tiles.items():
+            pool.join(tile_id, tile)
+        r = SplatRenderer(ctx, pool, options)
+        r._software = False  # the auto choices of a hardware GL on llvmpipe too
+        return r, pool
+
+    up_front, pool_a = fresh_renderer(RenderOptions(sort="gpu", defer_compute=False))
+    up_front.render(cam)
+    assert up_front.draw_mode == "compute" and len(compiled) == 16
+    want = up_front.read_image()
+    deferred, pool_b = fresh_renderer(RenderOptions(sort="gpu"))
+    deferred.render(cam)
+    assert deferred.draw_mode == "fetch" and deferred.craster is None and len(compiled) == 7
+    first = deferred.read_image()
+    assert psnr(first[..., :3], want[..., :3]) >= 40.0  # the same splats blended back to front, raster draw
+    modes = []
+    for _ in range(9):
+        deferred.render(cam)
+        modes.append(deferred.draw_mode)
+    assert modes == ["fetch"] * 8 + ["compute"] and len(compiled) == 16
+    # Equal up to the compute draw's own frame-to-frame noise: cull's atomic compaction orders depth-key ties by
+    # thread timing (an up-front renderer's frames differed from its first by up to 1.1e-5 here).
+    assert np.abs(deferred.read_image() - want).max() <= 1e-4
+    deferred.render(cam)  # warm: nothing compiles, the picture stays
+    assert deferred.draw_mode == "compute" and len(compiled) == 16
+    assert np.abs(deferred.read_image() - want).max() <= 1e-4
+    for r, pool in ((up_front, pool_a), (deferred, pool_b)):
+        r.release()
+        pool.release()

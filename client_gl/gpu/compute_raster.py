@@ -52,12 +52,23 @@ def _source(name: str, defines: str = "", radix_bits: int = RADIX_BITS) -> str:
     return f"{first}\n{defines}{rest}"
 
 
+def raster_sources(color_dtype: str, warp_cull: bool = True, radix_bits: int = RADIX_BITS) -> dict[str, str]:
+    """Compute shader sources of a ComputeRaster's own programs, by attribute, in the order it compiles them."""
+    tile = f"#define TILE_PX {TILE_PX}\n"
+    defines = f"{tile}#define OUT_FORMAT {IMAGE_FORMATS[color_dtype]}\n" + ("#define WARP_CULL\n" if warp_cull else "")
+    return {"count_shader": _source("bin_count.comp", tile), "scan_shader": _source("bin_scan.comp", tile, radix_bits),
+            "emit_shader": _source("bin_emit.comp", tile), "ranges_shader": _source("tile_ranges.comp", tile),
+            "raster_shader": _source("raster.comp", defines)}
+
+
 class ComputeRaster:
     """GPU buffers and programs of the tile rasterizer for one renderer."""
 
     def __init__(self, ctx, color_dtype: str, visible_capacity: int, entry_capacity: int | None = None,
                  warp_cull: bool = True, radix_bits: int = RADIX_BITS,
-                 fused_sort: bool = True, barrier_bits: int = CHAIN_BARRIER, sort_pass_programs: bool = False):
+                 fused_sort: bool = True, barrier_bits: int = CHAIN_BARRIER, sort_pass_programs: bool = False,
+                 programs: dict | None = None):
+        """programs: some of raster_sources' programs, compiled already (the renderer's deferred compiles)."""
         self.ctx = ctx
         self.color_dtype = color_dtype
         self.tile_px = TILE_PX
@@ -65,19 +76,18 @@ class ComputeRaster:
         self.fused_sort = fused_sort
         self.barrier_bits = barrier_bits
         self.sort_pass_programs = sort_pass_programs
-        tile = f"#define TILE_PX {self.tile_px}\n"
+        self.warp_cull = bool(warp_cull)
         # Binning (bin_count, bin_emit): row bins with the work group's balanced emit, whose count and emit share
         # bin_common.glsl's code so that both agree on every splat's entries.
-        self.count_shader = ctx.compute_shader(_source("bin_count.comp", tile))
-        self.scan_shader = ctx.compute_shader(_source("bin_scan.comp", tile, radix_bits))
-        self.emit_shader = ctx.compute_shader(_source("bin_emit.comp", tile))
-        self.ranges_shader = ctx.compute_shader(_source("tile_ranges.comp", tile))
-        fmt = IMAGE_FORMATS[color_dtype]
-        self.warp_cull = bool(warp_cull)
-        defines = f"{tile}#define OUT_FORMAT {fmt}\n"
-        if self.warp_cull:
-            defines += "#define WARP_CULL\n"
-        self.raster_shader = ctx.compute_shader(_source("raster.comp", defines))
+        sources = raster_sources(color_dtype, self.warp_cull, radix_bits)
+        programs = programs or {}
+        compiled = {attr: programs[attr] if attr in programs else ctx.compute_shader(src)
+                    for attr, src in sources.items()}
+        self.count_shader = compiled["count_shader"]
+        self.scan_shader = compiled["scan_shader"]
+        self.emit_shader = compiled["emit_shader"]
+        self.ranges_shader = compiled["ranges_shader"]
+        self.raster_shader = compiled["raster_shader"]
         self._u_count, self._u_scan, self._u_emit, self._u_raster = (
             ProgramUniforms(p) for p in (self.count_shader, self.scan_shader, self.emit_shader, self.raster_shader))
         self.bins = ctx.buffer(reserve=16)

@@ -35,12 +35,12 @@ from splatstream.camera import Camera
 from splatstream.errors import UsageError
 
 from . import shadergen
-from .compute_raster import ComputeRaster, default_entries
+from .compute_raster import ComputeRaster, default_entries, raster_sources
 from .gl import flush as gl_flush
 from .gl import texture_barrier, work_buffer
 from .pool import ChunkPool
 from .residency_layout import TEXTURE_UNITS
-from .sort import CHAIN_BARRIER, RADIX_CHOICES, CpuSorter, GpuRadixSort, depth_order
+from .sort import CHAIN_BARRIER, RADIX_CHOICES, CpuSorter, GpuRadixSort, compute_program, depth_order, sort_programs
 from .uniforms import ProgramUniforms
 
 SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swiftshader", "software rasterizer")
@@ -65,6 +65,9 @@ BIN_CHECK_FRAMES = 2  # compute draw: frames after an allocation whose entry cou
 TIMER_QUERIES = 5  # GL_TIME_ELAPSED queries a frame uses at most (the compute draw's five stages)
 ALL_BARRIER_BITS = 0xFFFFFFFF
 ZERO_PARAMS = bytes(16)  # params: visible count, oversized count, padding
+# "auto" draws choosing "compute" with RenderOptions.defer_compute: after the first frame that drew splats, each frame
+# compiles the compute draw's programs until this much time went to them (at least one a frame), before it is drawn.
+DEFERRED_COMPILE_BUDGET_S = 0.008
 
 
 def has_compute(ctx) -> bool:
@@ -131,6 +134,14 @@ class RenderOptions:
     # 24 bits change no pixel by more than float rounding on llvmpipe (tests); 16 bits move pixels visibly (splats
     # close in depth swap), so they stay an option (figures: BENCHMARKS.md, "Dense scenes, warm, wall clock").
     depth_bits: int = 24
+    # draw="auto" where it chooses the compute draw: the first frames draw with "fetch" (6 programs: cull, the depth
+    # sort's 4, the draw's; the same splats blended back to front) while the compute draw's 9 other programs (binning,
+    # tile ranges, raster, the tile sort's 4) compile, spread over the frames after the first one with splats
+    # (DEFERRED_COMPILE_BUDGET_S a frame); once all are compiled every frame draws "compute", as without deferral.
+    # A cold driver cache compiled all 15 inside a streamed first frame (issue 38; BENCHMARKS.md, "Deferred compute
+    # draw programs"). False: all compiled before the first compute frame (HeadlessRenderer: every image it reads back
+    # is a finished one).
+    defer_compute: bool = True
 
     def __post_init__(self) -> None:
         if self.sort not in SORT_MODES:
@@ -273,6 +284,9 @@ class SplatRenderer:
         self.sorter: GpuRadixSort | None = None
         self.craster: ComputeRaster | None = None
         self._bin_checks = 0
+        self._deferred: list[tuple[str, object]] | None = None  # compute draw programs still to compile (defer_compute)
+        self._deferred_programs: dict[str, object] = {}  # ComputeRaster's own, compiled ahead
+        self._drew_splats = False  # a frame drew splats (deferred compiles wait for it)
         self._programs: dict[str, tuple] = {}
         self._saturate = self._saturate_vao = self._batch_cmd = None
         self.draw_mode = "fetch" if self.options.draw == "auto" else self.options.draw
@@ -367,7 +381,9 @@ class SplatRenderer:
                                              warp_cull=opts.warp_cull,
                                              radix_bits=opts.tile_radix_bits or opts.radix_bits,
                                              fused_sort=opts.fused_sort, barrier_bits=self._chain_barrier("compute"),
-                                             sort_pass_programs=opts.sort_pass_programs)
+                                             sort_pass_programs=opts.sort_pass_programs,
+                                             programs=self._deferred_programs)
+                self._deferred_programs = {}
                 self._bin_checks = BIN_CHECK_FRAMES
             self.draw_mode = mode
             self.program_gpu = self.vao_gpu = None
@@ -491,6 +507,7 @@ class SplatRenderer:
         self._background = (float(background[0]), float(background[1]), float(background[2]))
         if self.sort_mode == "gpu":
             self._choose_draw(cam, clear)
+            self._drew_splats = self._drew_splats or self.pool.drawn_splats > 0
         if self.draw_mode == "compute" and self.sort_mode == "gpu":
             # The tile rasterizer writes every pixel (colour over the background, alpha) and ignores depth: no clear.
             return self._render_compute(cam, uniforms, degree, timing)
@@ -579,8 +596,33 @@ class SplatRenderer:
             wide = self.max_point >= max(cam.width, cam.height)
             points = wide and self.pool.drawn_splats >= AUTO_POINTS_MIN_SPLATS
             mode = "points" if points else "fetch"
+        if mode == "compute" and self.craster is None and self.options.defer_compute:
+            mode = self._compile_deferred()
         if mode != self.draw_mode or (mode == "compute" and self.craster is None):
             self._select_program(mode)
+
+    def _compile_deferred(self) -> str:
+        """The draw mode of a frame that chose "compute" before its programs are compiled: "fetch" while some are
+        not (compiling them, after the first frame with splats, for DEFERRED_COMPILE_BUDGET_S at most, at least
+        one), then "compute"."""
+        if self._deferred is None:
+            opts = self.options
+            bits = opts.tile_radix_bits or opts.radix_bits
+            sources = raster_sources(opts.color_dtype, opts.warp_cull, bits)
+            self._deferred = [(attr, src) for attr, src in sources.items()]
+            # The tile sort's programs, cached in the context (compute_program) where its GpuRadixSort finds them.
+            self._deferred += [(None, spec) for spec in sort_programs(bits, opts.fused_sort, opts.sort_pass_programs)]
+        if self._drew_splats:
+            t0 = time.perf_counter()
+            while self._deferred:
+                attr, what = self._deferred.pop(0)
+                if attr is None:
+                    compute_program(self.ctx, *what)
+                else:
+                    self._deferred_programs[attr] = self.ctx.compute_shader(what)
+                if time.perf_counter() - t0 >= DEFERRED_COMPILE_BUDGET_S:
+                    break
+        return "fetch" if self._deferred else "compute"
 
     def _render_gpu(self, cam: Camera, uniforms: dict, degree: int, timing: bool) -> FrameStats:
         """The raster draws of the GPU path (cull, sort, one indirect draw)."""

@@ -47,6 +47,30 @@ def compute_program(ctx, name: str, defines: str = "", radix_bits: int = RADIX_B
     return prog
 
 
+SHARED_PASS_DEFINES = ("uniform uint pass_index;\nuniform uint pass_shift;\n#define PASS pass_index\n"
+                       "#define SHIFT pass_shift\n#define KEYS_IN 1\n#define VALUES_IN 2\n#define KEYS_OUT 3\n"
+                       "#define VALUES_OUT 4\n")
+
+
+def shared_pass_programs(radix_bits: int, fused: bool = True) -> list[tuple[str, str, int]]:
+    """(name, defines, radix_bits) of compute_program for the pass programs every pass shares (per_pass=False)."""
+    defines = SHARED_PASS_DEFINES + ("#define FUSED\n" if fused else "")
+    return [(name, defines, radix_bits)
+            for name in ("radix_count.comp", "radix_scanadd.comp", "radix_scatter_local.comp")]
+
+
+def sort_programs(radix_bits: int, fused: bool = True, per_pass: bool = False) -> list[tuple[str, str, int]]:
+    """(name, defines, radix_bits) of the compute_program calls a GpuRadixSort of these options makes (compiled
+    ahead of its first sort by the renderer's deferred compiles; per_pass: its setup and scans only, the passes'
+    programs depend on the key width and compile at first use)."""
+    specs = [("indirect_setup.comp", "", radix_bits)]
+    if not fused:
+        specs += [("radix_reduce.comp", "", radix_bits), ("radix_scan.comp", "", radix_bits)]
+    if not per_pass:
+        specs += shared_pass_programs(radix_bits, fused)
+    return specs
+
+
 class GpuRadixSort:
     """Sorts (keys, values) uint32 buffer pairs of up to `capacity` elements in place (stable, ascending).
 
@@ -107,14 +131,9 @@ class GpuRadixSort:
         if not self.per_pass:
             progs = self._pass_programs.get(-1)
             if progs is None:
-                defines = ("uniform uint pass_index;\nuniform uint pass_shift;\n#define PASS pass_index\n"
-                           "#define SHIFT pass_shift\n#define KEYS_IN 1\n#define VALUES_IN 2\n#define KEYS_OUT 3\n"
-                           "#define VALUES_OUT 4\n")
-                if self.fused:
-                    defines += "#define FUSED\n"
                 progs = self._pass_programs[-1] = tuple(
-                    compute_program(self.ctx, name, defines, self.radix_bits)
-                    for name in ("radix_count.comp", "radix_scanadd.comp", "radix_scatter_local.comp"))
+                    compute_program(self.ctx, name, defines, radix_bits)
+                    for name, defines, radix_bits in shared_pass_programs(self.radix_bits, self.fused))
             for prog in progs:  # a uniform a program does not use is not there (scan-add: no shift; unfused: no pass)
                 if "pass_index" in prog:
                     prog["pass_index"].value = p
