@@ -561,3 +561,14 @@ def test_the_queued_count_is_the_wanted_keys_not_in_flight():
         assert fetcher.stats().queued == sum(1 for k in fetcher._wanted if k not in fetcher._jobs)
         assert fetcher.stats().in_flight == len(fetcher._jobs)
     fetcher._wanted, fetcher._jobs = {}, {}
+
+
+def test_retry_delay_stays_capped_after_thousands_of_failures():
+    """A manifest or payload retried for minutes counts thousands of failures: the backoff stays within its cap (2.0
+    to the power of a failure count past 1024 overflowed, and the fetcher's thread raised OverflowError)."""
+    import random
+
+    policy, rng = RetryPolicy(base_s=0.02, cap_s=0.2), random.Random(0)
+    delays = [policy.delay(n, rng) for n in (1, 2, 10, 1025, 5000, 10**6)]
+    assert all(0.0 <= d <= 0.2 for d in delays)
+    assert policy.delay(1, random.Random(1)) <= 0.02

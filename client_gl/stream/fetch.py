@@ -76,7 +76,8 @@ class RetryPolicy:
     cap_s: float = 10.0
 
     def delay(self, failures: int, rng: random.Random) -> float:
-        return rng.uniform(0.0, min(self.cap_s, self.base_s * 2.0 ** max(failures - 1, 0)))
+        # the exponent bounded: 2.0 ** 1024 overflows, and a fetcher retrying a manifest for minutes gets there
+        return rng.uniform(0.0, min(self.cap_s, self.base_s * 2.0 ** min(max(failures - 1, 0), 64)))
 
 
 @dataclass(frozen=True)
