@@ -52,8 +52,8 @@ def fetch_all(url: str, cache: Path, budget_s: float = 30.0, until_failing: bool
     (until_failing) once one has failed, or at the budget (a generous bound, not a measurement); FetchError from
     the manifest."""
     f = Fetcher(HttpSource(url), cache=DiskCache(cache), request_timeout_s=2.0, stall_timeout_s=0.5,
-                request_deadline_s=2.0, manifest_timeout_s=manifest_timeout_s, retry=RetryPolicy(base_s=0.02, cap_s=0.2),
-                seed=0).start()
+                request_deadline_s=2.0, manifest_timeout_s=manifest_timeout_s,
+                retry=RetryPolicy(base_s=0.02, cap_s=0.2), seed=0).start()
     try:
         m = f.manifest()
         wanted = {(t.id if t is not None else None, g): p for t, g, p in m.payloads()}
