@@ -485,6 +485,10 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
                       f"{ts[part].max():.1f} ms; CPU median {np.median(cs[part]):.2f}, max {cs[part].max():.1f} ms; "
                       f"{sum(times[i] for i in np.flatnonzero(part)):.2f} s in all")
     print_parts(parts, cs, ts)
+    # the engine's per-key maps after the path: bounded by the tiles held when pages are dropped (issue 38)
+    print(f"  per-key maps after the path: entries {len(engine._entries)}, page frames {len(engine._page_frame)}, "
+          f"failed {len(engine.failed)}, ready {len(engine._ready)}, decoding {len(engine._decoding)} "
+          f"({len(engine.manifest.tiles)} tiles held, {len(engine.pages.held_pages())} pages held)")
     print(f"  every frame's cut: sha256 {cuts.hexdigest()[:16]}, draw set: {draws.hexdigest()[:16]}; the last cut "
           f"{len(u.selection.cut)} tiles, {u.selection.splats} splats; the fetcher's requests: sha256 "
           f"{fetcher.requests_digest()} over {len(fetcher.lists)} wish lists")
