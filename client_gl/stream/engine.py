@@ -18,6 +18,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections import deque
 from concurrent.futures import CancelledError, Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from itertools import compress, filterfalse, repeat
@@ -456,6 +457,7 @@ class StreamEngine:
         keep = self.pages.evict(heads)
         new_of = np.full(len(self.resident), -1, np.int64)
         new_of[keep] = np.arange(len(keep))
+        self._forget(self.ids[new_of < 0].tolist(), heads)
         self.resident, self.bands = self.resident[keep], self.bands[keep]
         self.last_drawn, self._filling = self.last_drawn[keep], self._filling[keep]
         self.slots_needed = self.slots_needed[keep]
@@ -464,6 +466,21 @@ class StreamEngine:
         self._adopt(self.pages.manifest)
         self._wanted_cache = self._draw_cache = self._order_of = self._upload_idle = None
         self._version += 1
+
+    def _forget(self, gone: list[int], heads: list[int]) -> None:
+        """The per-key state of tiles dropped with their pages (ids `gone`), and the page frames of the pages
+        dropped (`heads`, and the pages held below them among `gone`): kept, the entry cache and page frames grew
+        with every tile ever seen on a long flight (issue 38). A dropped tile's entries are looked up again from
+        its page when a cut reads it again. What stays: a tile dropped is never decoding, decoded or resident
+        (_pages_to_drop), the fetcher keeps per-key state of listed keys only, and `failed` (payloads that verified
+        but did not decode, and pages that did not parse) is kept on purpose: it is bounded by the broken
+        payloads, not the tiles seen, and keeps a broken payload from being fetched again when its page is."""
+        pop = self._entries.pop
+        for group in _GROUP_BAND:
+            deque(map(pop, zip(gone, repeat(group)), repeat(None)), 0)
+        frame_pop = self._page_frame.pop
+        deque(map(frame_pop, gone, repeat(None)), 0)
+        deque(map(frame_pop, heads, repeat(None)), 0)
 
     def _pages_to_drop(self) -> list[int]:
         """The heads of the pages to drop, in order, for the tree held to be within max_tree_tiles: pages unused (no
