@@ -398,7 +398,8 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
     if engine.pages is not None:
         engine.pages.wanted_pages = part("pages wanted", engine.pages.wanted_pages)
     for label, name in (("wanted", "wanted"), ("wish list", "_tell_fetcher"), ("page adoption", "_add_pages"),
-                        ("page eviction", "_evict_pages"), ("collect", "_collect"), ("upload", "_upload"),
+                        ("page eviction", "_evict_pages"), ("page eviction: forget", "_forget"),
+                        ("collect", "_collect"), ("upload", "_upload"),
                         ("wish list: coarse to fine", "_coarse_to_fine"), ("wish list: requests", "_requests")):
         if hasattr(engine, name):  # _requests: the wish list's requests built apart (branch wishlist)
             setattr(engine, name, part(label, getattr(engine, name)))
@@ -508,7 +509,8 @@ def print_parts(parts: list[dict[str, list[float]]], cpu: np.ndarray, wall: np.n
     numbers and the cut (what bench_flythrough.py's --breakdown counts as the selection); `wanted` the whole
     selection (with the pages wanted, the bands and the keys); `keys etc.` is `wanted` less its timed parts."""
     names = ["view", "cut", "pages wanted", "bands", "wanted", "wish list", "wish list: coarse to fine",
-             "wish list: requests", "page adoption", "page eviction", "draw set", "collect", "upload"]
+             "wish list: requests", "page adoption", "page eviction",
+             "page eviction: forget", "draw set", "collect", "upload"]
 
     def col(name: str, k: int) -> np.ndarray:
         return np.array([p.get(name, [0.0, 0.0])[k] for p in parts])
@@ -521,7 +523,7 @@ def print_parts(parts: list[dict[str, list[float]]], cpu: np.ndarray, wall: np.n
     print(f"  {'part (ms a frame)':36s} {'CPU median':>10s} {'p99':>7s} {'max':>7s} | {'wall median':>11s} "
           f"{'p99':>7s} {'max':>7s} | frames")
     for n, (c, w) in rows.items():
-        if n in ("page adoption", "page eviction", "upload"):  # over the frames it ran in
+        if n in ("page adoption", "page eviction", "page eviction: forget", "upload"):  # over the frames it ran in
             c, w = c[w > 0], w[w > 0]
         ran = int(np.count_nonzero(w)) if n != "update" else len(w)
         if not ran:
