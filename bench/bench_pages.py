@@ -397,8 +397,10 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
         COMPILED_SELECTION._draw = part("draw set", compiled_draw)
     if engine.pages is not None:
         engine.pages.wanted_pages = part("pages wanted", engine.pages.wanted_pages)
+        engine.pages.evict = part("page eviction: evict", engine.pages.evict)  # the tree's renumbering
     for label, name in (("wanted", "wanted"), ("wish list", "_tell_fetcher"), ("page adoption", "_add_pages"),
-                        ("page eviction", "_evict_pages"), ("page eviction: forget", "_forget"),
+                        ("page eviction", "_evict_pages"), ("page eviction: choice", "_pages_to_drop"),
+                        ("page eviction: forget", "_forget"),
                         ("collect", "_collect"), ("upload", "_upload"),
                         ("wish list: coarse to fine", "_coarse_to_fine"), ("wish list: requests", "_requests")):
         if hasattr(engine, name):  # _requests: the wish list's requests built apart (branch wishlist)
@@ -510,7 +512,7 @@ def print_parts(parts: list[dict[str, list[float]]], cpu: np.ndarray, wall: np.n
     selection (with the pages wanted, the bands and the keys); `keys etc.` is `wanted` less its timed parts."""
     names = ["view", "cut", "pages wanted", "bands", "wanted", "wish list", "wish list: coarse to fine",
              "wish list: requests", "page adoption", "page eviction",
-             "page eviction: forget", "draw set", "collect", "upload"]
+             "page eviction: choice", "page eviction: evict", "page eviction: forget", "draw set", "collect", "upload"]
 
     def col(name: str, k: int) -> np.ndarray:
         return np.array([p.get(name, [0.0, 0.0])[k] for p in parts])
@@ -523,7 +525,7 @@ def print_parts(parts: list[dict[str, list[float]]], cpu: np.ndarray, wall: np.n
     print(f"  {'part (ms a frame)':36s} {'CPU median':>10s} {'p99':>7s} {'max':>7s} | {'wall median':>11s} "
           f"{'p99':>7s} {'max':>7s} | frames")
     for n, (c, w) in rows.items():
-        if n in ("page adoption", "page eviction", "page eviction: forget", "upload"):  # over the frames it ran in
+        if n.startswith("page ") or n == "upload":  # over the frames it ran in
             c, w = c[w > 0], w[w > 0]
         ran = int(np.count_nonzero(w)) if n != "update" else len(w)
         if not ran:
