@@ -503,6 +503,29 @@ def test_the_per_key_maps_are_bounded_by_the_tree_held_and_come_back_with_a_page
     engine.close()
 
 
+def test_a_pass_drops_pages_down_to_the_low_water_mark(paged_store):
+    """StreamOptions.tree_low_water: a pass that drops pages drops them down to that share below max_tree_tiles
+    (where enough pages are unused), so passes are rarer: the same order of pages as a pass down to the bound."""
+    opts = StreamOptions(SelectionOptions(max_sse=1.0, band_area_share=(0.95, 0.8, 0.6)), prefetch=False)
+    whole = read_manifest(paged_store)
+    engine = StreamEngine(PagedFetcher(paged_store), CountingPool(10_000), opts)
+    run_until_converged(engine, orbit(whole, 0.9, 0.3))
+    n = len(engine.manifest.tiles)
+    # every page unused: nothing resident, in the cut, decoding, decoded or listed, every page added long ago
+    engine.resident[:] = False
+    engine._last_cut, engine._ready, engine._listed = np.zeros(0, np.intp), {}, ()
+    engine.frame += 10
+    bound = n - 2
+    heads = {}
+    for low in (0.0, 0.25):
+        engine.options = replace(opts, max_tree_tiles=bound, tree_low_water=low)
+        heads[low] = engine._pages_to_drop()
+    assert heads[0.0] and heads[0.25][:len(heads[0.0])] == heads[0.0]  # the same order, as many or more taken
+    engine._evict_pages()
+    assert len(engine.manifest.tiles) <= bound - int(bound * 0.25)  # down to the low-water mark
+    engine.close()
+
+
 def _random_tree(paged_store, rnd, steps):
     """A PagedTree after `steps` random page arrivals (in batches) and evictions of random held pages (nested ones
     among them, in any order)."""
@@ -605,7 +628,9 @@ def _drop_by_walk(engine):
                 any(int(engine.ids[i]) in busy for i in below):
             continue
         candidates.append((int(engine.last_drawn[below].max()), -len(below), head))
-    excess = len(engine.manifest.tiles) - engine.options.max_tree_tiles
+    bound = engine.options.max_tree_tiles
+    excess = len(engine.manifest.tiles) - bound + int(bound * engine.options.tree_low_water) \
+        if len(engine.manifest.tiles) > bound else 0
     heads = []
     for _, minus_n, head in sorted(candidates):
         if excess <= 0:

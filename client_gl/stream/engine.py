@@ -127,6 +127,10 @@ class StreamOptions:
     # most about 100 MB; a street-level path across 250M splats holds 21,138 tiles, 59 MB (BENCHMARKS.md,
     # "Manifest pages").
     max_tree_tiles: int = 24576
+    # A pass that drops pages drops them down to this share of max_tree_tiles below it (a low-water mark), so that
+    # passes are rarer: a pass renumbers the whole tree held (7-12 ms of CPU at 16,384 tiles on the shared VM, most of
+    # the pass), dropping 2 pages or 20 (BENCHMARKS.md, "Manifest pages"). 0: down to max_tree_tiles.
+    tree_low_water: float = 1 / 16
     # After a frame adds pages, move every object that exists then out of the garbage collector's walks
     # (gc.freeze(), process-wide, as the shells do once a session is open: streaming.freeze_long_lived). A held tree
     # is tens of thousands of parsed tiles; a full collection walked all of them mid-frame (5 passes of up to 785 ms
@@ -505,7 +509,10 @@ class StreamEngine:
         # not added since the last selection, nor its tile in the cut (the page would be wanted again)
         candidates = np.flatnonzero(~recent & ~in_cut[held.heads] & (count > 0) & (used_below == 0))
         order = candidates[np.lexsort((held.ids[candidates], -count[candidates], last[candidates]))]
-        excess = len(self.manifest.tiles) - self.options.max_tree_tiles
+        bound = self.options.max_tree_tiles
+        # beyond the bound, down to the low-water mark below it (passes rarer: StreamOptions.tree_low_water)
+        excess = len(self.manifest.tiles) - bound + int(bound * self.options.tree_low_water) \
+            if len(self.manifest.tiles) > bound else 0
         # the fewest in that order whose tiles make up the excess (counted as they stand: a page below another
         # taken counts twice, as it always has)
         taken = min(len(order), int(np.searchsorted(np.cumsum(count[order]), excess)) + 1) if excess > 0 else 0
