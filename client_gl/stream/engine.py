@@ -453,8 +453,8 @@ class StreamEngine:
         self._version += 1
 
     def _evict_pages(self) -> None:
-        """Drop pages until the tree held is within max_tree_tiles (_pages_to_drop), the per-tile state taken
-        through the positions kept."""
+        """Drop pages until the tree held is within max_tree_tiles, down to its low-water mark (_pages_to_drop), the
+        per-tile state taken through the positions kept and the per-key state of the tiles dropped forgotten."""
         heads = self._pages_to_drop()
         if not heads:
             return
@@ -487,7 +487,8 @@ class StreamEngine:
         deque(map(frame_pop, heads, repeat(None)), 0)
 
     def _pages_to_drop(self) -> list[int]:
-        """The heads of the pages to drop, in order, for the tree held to be within max_tree_tiles: pages unused (no
+        """The heads of the pages to drop, in order, for the tree held beyond max_tree_tiles to be within its
+        low-water mark (StreamOptions.tree_low_water): pages unused (no
         tile below their head resident, in the last cut, decoding or decoded, nor a page below it being fetched or
         parsed), the least recently drawn first, then the larger, then the lower head id. The tiles below each head
         are found by grouping the tiles held by page (PagedTree.held), in array operations: a walk of the tree below
