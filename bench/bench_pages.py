@@ -397,8 +397,11 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
         COMPILED_SELECTION._draw = part("draw set", compiled_draw)
     if engine.pages is not None:
         engine.pages.wanted_pages = part("pages wanted", engine.pages.wanted_pages)
+        engine.pages.evict = part("page eviction: evict", engine.pages.evict)  # the tree's renumbering
     for label, name in (("wanted", "wanted"), ("wish list", "_tell_fetcher"), ("page adoption", "_add_pages"),
-                        ("page eviction", "_evict_pages"), ("collect", "_collect"), ("upload", "_upload"),
+                        ("page eviction", "_evict_pages"), ("page eviction: choice", "_pages_to_drop"),
+                        ("page eviction: forget", "_forget"),
+                        ("collect", "_collect"), ("upload", "_upload"),
                         ("wish list: coarse to fine", "_coarse_to_fine"), ("wish list: requests", "_requests")):
         if hasattr(engine, name):  # _requests: the wish list's requests built apart (branch wishlist)
             setattr(engine, name, part(label, getattr(engine, name)))
@@ -485,6 +488,10 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
                       f"{ts[part].max():.1f} ms; CPU median {np.median(cs[part]):.2f}, max {cs[part].max():.1f} ms; "
                       f"{sum(times[i] for i in np.flatnonzero(part)):.2f} s in all")
     print_parts(parts, cs, ts)
+    # the engine's per-key maps after the path: bounded by the tiles held when pages are dropped (issue 38)
+    print(f"  per-key maps after the path: entries {len(engine._entries)}, page frames {len(engine._page_frame)}, "
+          f"failed {len(engine.failed)}, ready {len(engine._ready)}, decoding {len(engine._decoding)} "
+          f"({len(engine.manifest.tiles)} tiles held, {len(engine.pages.held_pages())} pages held)")
     print(f"  every frame's cut: sha256 {cuts.hexdigest()[:16]}, draw set: {draws.hexdigest()[:16]}; the last cut "
           f"{len(u.selection.cut)} tiles, {u.selection.splats} splats; the fetcher's requests: sha256 "
           f"{fetcher.requests_digest()} over {len(fetcher.lists)} wish lists")
@@ -504,7 +511,8 @@ def print_parts(parts: list[dict[str, list[float]]], cpu: np.ndarray, wall: np.n
     numbers and the cut (what bench_flythrough.py's --breakdown counts as the selection); `wanted` the whole
     selection (with the pages wanted, the bands and the keys); `keys etc.` is `wanted` less its timed parts."""
     names = ["view", "cut", "pages wanted", "bands", "wanted", "wish list", "wish list: coarse to fine",
-             "wish list: requests", "page adoption", "page eviction", "draw set", "collect", "upload"]
+             "wish list: requests", "page adoption", "page eviction",
+             "page eviction: choice", "page eviction: evict", "page eviction: forget", "draw set", "collect", "upload"]
 
     def col(name: str, k: int) -> np.ndarray:
         return np.array([p.get(name, [0.0, 0.0])[k] for p in parts])
@@ -517,7 +525,7 @@ def print_parts(parts: list[dict[str, list[float]]], cpu: np.ndarray, wall: np.n
     print(f"  {'part (ms a frame)':36s} {'CPU median':>10s} {'p99':>7s} {'max':>7s} | {'wall median':>11s} "
           f"{'p99':>7s} {'max':>7s} | frames")
     for n, (c, w) in rows.items():
-        if n in ("page adoption", "page eviction", "upload"):  # over the frames it ran in
+        if n.startswith("page ") or n == "upload":  # over the frames it ran in
             c, w = c[w > 0], w[w > 0]
         ran = int(np.count_nonzero(w)) if n != "update" else len(w)
         if not ran:

@@ -457,6 +457,75 @@ def test_the_tree_held_is_bounded_and_dropped_pages_are_read_again(paged_store):
     assert len(pages) > len(set(pages))  # dropped pages were read again when their side was viewed again
 
 
+def test_the_per_key_maps_are_bounded_by_the_tree_held_and_come_back_with_a_page(paged_store):
+    """Issue 38: on a long path with pages dropped, the engine's entry cache and page frames hold the tiles and
+    pages held only (kept, they grew with every tile ever seen), and a dropped tile's entries, looked up again
+    when its page is read again, are its payloads' (the same as the whole tree's)."""
+    opts = StreamOptions(SelectionOptions(max_sse=1.0, band_area_share=(0.95, 0.8, 0.6)), prefetch=False)
+    whole = read_manifest(paged_store)
+    top = whole.tiles[0]
+    c, r = np.array(top.sphere_center), top.sphere_radius
+    root = parse_manifest(paged_store.read_manifest(), "root")
+    fetcher = PagedFetcher(paged_store)
+    engine = StreamEngine(fetcher, CountingPool(26), replace(opts, max_tree_tiles=len(root.tiles) + 4))
+    dropped: set[int] = set()  # tiles whose entries were dropped with their page
+    returned: set[int] = set()  # of those, tiles whose entries were looked up again (their page read again)
+    last: set[int] = set()
+
+    def same(tile_id, group, entry):  # the entry the whole tree has for that payload
+        expected = whole.sh_codebook.groups[group] if tile_id is None else whole.tile(tile_id).groups[group]
+        return (entry.file, entry.sha256, entry.bytes, entry.sections) == \
+            (expected.file, expected.sha256, expected.bytes, expected.sections)
+    for angle in [0.3, 0.3 + np.pi] * 3:  # one side, then the other, three times: pages dropped and read again
+        d = np.array([np.cos(angle), np.sin(angle), 0.0])
+        cam = Camera(tuple(c + 0.3 * r * d), tuple(c + 2 * r * d), (0, 0, 1), 40.0, 320, 240, near=0.001 * r)
+        for _ in range(500):
+            u = engine.update(cam)
+            engine.wait(0.05)
+            held = set(engine.manifest.index_of)
+            ids = {k[0] for k in engine._entries if k[0] is not None}
+            assert ids <= held  # no entry of a tile dropped
+            assert set(engine._page_frame) <= set(engine.pages.held_pages())
+            assert len(engine._entries) <= 4 * len(held) + 3  # a tile's four groups, the codebook's bands
+            dropped |= last - ids
+            back = ids & dropped - returned
+            assert all(same(*k, e) for k, e in engine._entries.items() if k[0] in back)
+            returned |= back
+            last = ids
+            if u.converged:
+                break
+        else:
+            raise AssertionError("did not converge")
+    pages = [k for k in fetcher.fetched if k[1] == "page"]
+    assert engine.pages.evicted > 0 and len(pages) > len(set(pages))  # pages dropped, and read again
+    assert dropped and returned  # entries dropped with their pages, and looked up again when read again
+    assert all(same(*k, e) for k, e in engine._entries.items())
+    engine.close()
+
+
+def test_a_pass_drops_pages_down_to_the_low_water_mark(paged_store):
+    """StreamOptions.tree_low_water: a pass that drops pages drops them down to that share below max_tree_tiles
+    (where enough pages are unused), so passes are rarer: the same order of pages as a pass down to the bound."""
+    opts = StreamOptions(SelectionOptions(max_sse=1.0, band_area_share=(0.95, 0.8, 0.6)), prefetch=False)
+    whole = read_manifest(paged_store)
+    engine = StreamEngine(PagedFetcher(paged_store), CountingPool(10_000), opts)
+    run_until_converged(engine, orbit(whole, 0.9, 0.3))
+    n = len(engine.manifest.tiles)
+    # every page unused: nothing resident, in the cut, decoding, decoded or listed, every page added long ago
+    engine.resident[:] = False
+    engine._last_cut, engine._ready, engine._listed = np.zeros(0, np.intp), {}, ()
+    engine.frame += 10
+    bound = n - 2
+    heads = {}
+    for low in (0.0, 0.25):
+        engine.options = replace(opts, max_tree_tiles=bound, tree_low_water=low)
+        heads[low] = engine._pages_to_drop()
+    assert heads[0.0] and heads[0.25][:len(heads[0.0])] == heads[0.0]  # the same order, as many or more taken
+    engine._evict_pages()
+    assert len(engine.manifest.tiles) <= bound - int(bound * 0.25)  # down to the low-water mark
+    engine.close()
+
+
 def _random_tree(paged_store, rnd, steps):
     """A PagedTree after `steps` random page arrivals (in batches) and evictions of random held pages (nested ones
     among them, in any order)."""
@@ -559,7 +628,9 @@ def _drop_by_walk(engine):
                 any(int(engine.ids[i]) in busy for i in below):
             continue
         candidates.append((int(engine.last_drawn[below].max()), -len(below), head))
-    excess = len(engine.manifest.tiles) - engine.options.max_tree_tiles
+    bound = engine.options.max_tree_tiles
+    excess = len(engine.manifest.tiles) - bound + int(bound * engine.options.tree_low_water) \
+        if len(engine.manifest.tiles) > bound else 0
     heads = []
     for _, minus_n, head in sorted(candidates):
         if excess <= 0:

@@ -18,6 +18,7 @@ import subprocess
 import sys
 import threading
 import time
+from collections import deque
 from concurrent.futures import CancelledError, Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field
 from itertools import compress, filterfalse, repeat
@@ -126,6 +127,10 @@ class StreamOptions:
     # most about 100 MB; a street-level path across 250M splats holds 21,138 tiles, 59 MB (BENCHMARKS.md,
     # "Manifest pages").
     max_tree_tiles: int = 24576
+    # A pass that drops pages drops them down to this share of max_tree_tiles below it (a low-water mark), so that
+    # passes are rarer: a pass renumbers the whole tree held (7-12 ms of CPU at 16,384 tiles on the shared VM, most of
+    # the pass), dropping 2 pages or 20 (BENCHMARKS.md, "Manifest pages"). 0: down to max_tree_tiles.
+    tree_low_water: float = 1 / 16
     # After a frame adds pages, move every object that exists then out of the garbage collector's walks
     # (gc.freeze(), process-wide, as the shells do once a session is open: streaming.freeze_long_lived). A held tree
     # is tens of thousands of parsed tiles; a full collection walked all of them mid-frame (5 passes of up to 785 ms
@@ -448,14 +453,15 @@ class StreamEngine:
         self._version += 1
 
     def _evict_pages(self) -> None:
-        """Drop pages until the tree held is within max_tree_tiles (_pages_to_drop), the per-tile state taken
-        through the positions kept."""
+        """Drop pages until the tree held is within max_tree_tiles, down to its low-water mark (_pages_to_drop), the
+        per-tile state taken through the positions kept and the per-key state of the tiles dropped forgotten."""
         heads = self._pages_to_drop()
         if not heads:
             return
         keep = self.pages.evict(heads)
         new_of = np.full(len(self.resident), -1, np.int64)
         new_of[keep] = np.arange(len(keep))
+        self._forget(self.ids[new_of < 0].tolist(), heads)
         self.resident, self.bands = self.resident[keep], self.bands[keep]
         self.last_drawn, self._filling = self.last_drawn[keep], self._filling[keep]
         self.slots_needed = self.slots_needed[keep]
@@ -465,8 +471,24 @@ class StreamEngine:
         self._wanted_cache = self._draw_cache = self._order_of = self._upload_idle = None
         self._version += 1
 
+    def _forget(self, gone: list[int], heads: list[int]) -> None:
+        """The per-key state of tiles dropped with their pages (ids `gone`), and the page frames of the pages
+        dropped (`heads`, and the pages held below them among `gone`): kept, the entry cache and page frames grew
+        with every tile ever seen on a long flight (issue 38). A dropped tile's entries are looked up again from
+        its page when a cut reads it again. What stays: a tile dropped is never decoding, decoded or resident
+        (_pages_to_drop), the fetcher keeps per-key state of listed keys only, and `failed` (payloads that verified
+        but did not decode, and pages that did not parse) is kept on purpose: it is bounded by the broken
+        payloads, not the tiles seen, and keeps a broken payload from being fetched again when its page is."""
+        pop = self._entries.pop
+        for group in _GROUP_BAND:
+            deque(map(pop, zip(gone, repeat(group)), repeat(None)), 0)
+        frame_pop = self._page_frame.pop
+        deque(map(frame_pop, gone, repeat(None)), 0)
+        deque(map(frame_pop, heads, repeat(None)), 0)
+
     def _pages_to_drop(self) -> list[int]:
-        """The heads of the pages to drop, in order, for the tree held to be within max_tree_tiles: pages unused (no
+        """The heads of the pages to drop, in order, for the tree held beyond max_tree_tiles to be within its
+        low-water mark (StreamOptions.tree_low_water): pages unused (no
         tile below their head resident, in the last cut, decoding or decoded, nor a page below it being fetched or
         parsed), the least recently drawn first, then the larger, then the lower head id. The tiles below each head
         are found by grouping the tiles held by page (PagedTree.held), in array operations: a walk of the tree below
@@ -488,7 +510,10 @@ class StreamEngine:
         # not added since the last selection, nor its tile in the cut (the page would be wanted again)
         candidates = np.flatnonzero(~recent & ~in_cut[held.heads] & (count > 0) & (used_below == 0))
         order = candidates[np.lexsort((held.ids[candidates], -count[candidates], last[candidates]))]
-        excess = len(self.manifest.tiles) - self.options.max_tree_tiles
+        bound = self.options.max_tree_tiles
+        # beyond the bound, down to the low-water mark below it (passes rarer: StreamOptions.tree_low_water)
+        excess = len(self.manifest.tiles) - bound + int(bound * self.options.tree_low_water) \
+            if len(self.manifest.tiles) > bound else 0
         # the fewest in that order whose tiles make up the excess (counted as they stand: a page below another
         # taken counts twice, as it always has)
         taken = min(len(order), int(np.searchsorted(np.cumsum(count[order]), excess)) + 1) if excess > 0 else 0
