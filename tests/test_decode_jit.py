@@ -256,12 +256,19 @@ def test_whole_kernel_matches_the_numpy_path(numpy_path, monkeypatch, few_rows):
         at += size
     buf = np.frombuffer(bytes(raw), np.uint8).copy()
     assert transport.unfilter_whole(buf, sections, units) is None  # no whole kernel: not so
+    transport._whole_rows.clear()
     transport.use_whole_kernel(decode_jit.whole_kernel)
     try:
         out, got, unit_at = transport.unfilter_whole(buf, sections, units)
+        # the same call again takes every section's row from _whole_rows (the malformed ones' None too): same bytes
+        again, got_again, unit_at_again = transport.unfilter_whole(buf, sections, units)
     finally:
         transport.use_whole_kernel(None)
     assert [None if g is None else out[g[0]:g[0] + g[1]].tobytes() for g in got] == expected
+    assert got_again == got and unit_at_again == unit_at
+    assert [None if g is None else again[g[0]:g[0] + g[1]].tobytes() for g in got] == expected
+    # k 7's None (not fields1's version); 3 and 12, short by a byte, have rows their sizes do not match
+    assert sum(row is None for row in transport._whole_rows.values()) == 1
     assert all(g is None or g[0] % 16 == 0 for g in got)
     assert [out[a:a + u[1]].tobytes() for a, u in zip(unit_at, units, strict=True)] == unit_bytes
     assert unit_at[1] == unit_at[0] + units[0][1] and unit_at[3] == unit_at[2] + units[2][1]

@@ -396,7 +396,7 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
     if not items:
         return []
     in_one_call = whole_kernel() is not None
-    if not all(_wholly(entry, in_one_call) for _, entry in items):
+    if not in_one_call and not all(_wholly(entry, False) for _, entry in items):
         # palette planes (format.md 4.3.2), and keyed positions (5.4) without the whole kernel, are decoded one
         # payload at a time
         return [unpack_payload(data, entry, group, source, codebook, between, palettes)
@@ -405,14 +405,14 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
     total = sum(sizes)
     whole, kept = _raw_buffer(total)
     owner = whole if whole.base is None else whole.base
-    bufs, firsts, at = [], [], 0
-    for (data, _), size, source in zip(items, sizes, sources, strict=True):
+    bufs, firsts, tables, at = [], [], [], 0
+    for (data, entry), size, source in zip(items, sizes, sources, strict=True):
         buf = whole[at:at + size]
         _decompress_into(data, buf, source)
         bufs.append(buf)
         firsts.append(at)
+        tables.append({s.name: s for s in entry.sections})
         at += size
-    tables = [{s.name: s for s in entry.sections} for _, entry in items]
     if in_one_call:  # the whole group in one compiled call (_unpack_whole)
         return _unpack_whole(whole, firsts, bufs, tables, group, codebook, sources, between, kept, palettes)
     out: list[dict[str, EncodedPlane]] = [{} for _ in items]

@@ -1276,6 +1276,30 @@ def _whole_tables(keys: tuple) -> tuple:
             np.concatenate(order_parts) if order_parts else np.zeros(0, np.int64), tuple(columns))
 
 
+_MISSING = object()
+# (format, layers, header, width, height) -> _whole_row's tuple: what unfilter_whole needs of a section, one dict
+# lookup (issue 32: a small payload's sections repeat a few combinations; an lru_cache call with five arguments and a
+# second lookup for the tables' index cost about a microsecond a section more)
+_whole_rows: dict[tuple, tuple | None] = {}
+_WHOLE_ROWS_MAX = 4096
+
+
+def _whole_row(key: tuple) -> tuple | None:
+    """(content size, where its byte planes start, where its parameters start, slots, texel bytes, fields, words a
+    texel, bytes a word) of a fields1 section of this (format, layers, header, width, height), from _kernel_plan
+    (None: not well-formed), kept in _whole_rows."""
+    fmt, layers, head, width, height = key
+    plan = _kernel_plan(fmt, width, height, layers, head)
+    row = None
+    if plan is not None:
+        expected, params_at, planes_at, n, words, _, _, word, _, nf, nbytes = plan
+        row = (expected, planes_at, params_at, n, nbytes, nf, words, word.itemsize)
+    if len(_whole_rows) >= _WHOLE_ROWS_MAX:
+        _whole_rows.clear()
+    _whole_rows[key] = row
+    return row
+
+
 def unfilter_whole(raw: np.ndarray, sections: list[tuple[str, int, int, int, int, int]],
                    units: list[tuple[int, int, int]]) -> tuple[np.ndarray, list, list[int]] | None:
     """unfilter_fields of every fields1 section in `sections` ((format, layers, offset, size, width, height), lying in
@@ -1299,20 +1323,22 @@ def unfilter_whole(raw: np.ndarray, sections: list[tuple[str, int, int, int, int
     index: dict[tuple, int] = {}  # (format, layers, header, width, height) -> its index in the tables' key
     out_bytes = most_n = most_f = 0
     header_of = _HEADER_BYTES
+    rows_of = _whole_rows
+    view = raw.data  # the header bytes through a memoryview: a third of a numpy slice's cost
     for fmt, layers, at, size, width, height in sections:
         per_layer = header_of.get(fmt)
         if per_layer is None or type(layers) is not int or layers < 1:
             got.append(None)
             continue
-        head = raw[at:at + 1 + per_layer * layers].tobytes()
-        plan = _kernel_plan(fmt, width, height, layers, head)
-        if plan is None or size != plan[0]:
+        key = (fmt, layers, view[at:at + 1 + per_layer * layers].tobytes(), width, height)
+        row = rows_of.get(key, _MISSING)
+        if row is _MISSING:
+            row = _whole_row(key)
+        if row is None or size != row[0]:
             got.append(None)
             continue
-        _, params_at, planes_at, n, words, _, _, word, _, nf, nbytes = plan
+        _, planes_at, params_at, n, nbytes, nf, words, size_of = row
         out_bytes += -out_bytes % 16
-        size_of = word.itemsize
-        key = (fmt, layers, head, width, height)
         u = index.get(key)
         if u is None:
             u = index[key] = len(index)
