@@ -301,6 +301,14 @@ def tree_memory_mb(held: PagedTree, paged) -> float:
     return used / 1e6
 
 
+def street_camera(frame: int, frames: int, side: float) -> Camera:
+    """The --engine path's camera at `frame` of `frames`: across the city at street level, turning as it goes."""
+    s = frame / max(1, frames - 1)
+    eye = np.array([0.2 + 0.6 * s, 0.25 + 0.5 * s, 0.01]) * [side, side, 2000.0]
+    target = eye + [side * 0.3, side * 0.3 * math.cos(3 * s), -15.0]
+    return Camera(tuple(eye), tuple(target), (0.0, 0.0, 1.0), 60.0, 1920, 1080, near=0.1)
+
+
 def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame: int, profile: bool,
                 compiled: bool = True, wait: bool = True, parts_json: str | None = None,
                 busy_threads: int = 0, max_tree_tiles: int | None = None) -> None:
@@ -423,10 +431,7 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
         th.start()
     try:
         for f in range(frames):
-            s = f / max(1, frames - 1)
-            eye = np.array([0.2 + 0.6 * s, 0.25 + 0.5 * s, 0.01]) * [side, side, 2000.0]
-            target = eye + [side * 0.3, side * 0.3 * math.cos(3 * s), -15.0]
-            cam = Camera(tuple(eye), tuple(target), (0.0, 0.0, 1.0), 60.0, 1920, 1080, near=0.1)
+            cam = street_camera(f, frames, side)
             # the page parses finish before the frame (a real client's finish between frames)
             for fut in list(engine._pages_arrived.values()):
                 fut.result()

@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import argparse
 import hashlib
-import math
 import os
 import sys
 import time
@@ -28,7 +27,6 @@ from client_gl.stream import engine as engine_module  # noqa: E402
 from client_gl.stream import selection_jit  # noqa: E402
 from client_gl.stream.engine import COMPILED_SELECTION, StreamOptions  # noqa: E402
 from client_gl.stream.selection import PartialView, SelectionOptions, ViewBuffers  # noqa: E402
-from splatstream.camera import Camera  # noqa: E402
 
 
 def captured_selections(splats: int, frames: int, per_frame: int, max_splats: int, k: int) -> list[dict]:
@@ -56,10 +54,7 @@ def captured_selections(splats: int, frames: int, per_frame: int, max_splats: in
     engine_module.PartialView, COMPILED_SELECTION._fn = view_kept, select_kept
     try:
         for f in range(frames):  # bench_pages.engine_path's camera path
-            s = f / max(1, frames - 1)
-            eye = np.array([0.2 + 0.6 * s, 0.25 + 0.5 * s, 0.01]) * [side, side, 2000.0]
-            target = eye + [side * 0.3, side * 0.3 * math.cos(3 * s), -15.0]
-            cam = Camera(tuple(eye), tuple(target), (0.0, 0.0, 1.0), 60.0, 1920, 1080, near=0.1)
+            cam = bp.street_camera(f, frames, side)
             for fut in list(engine._pages_arrived.values()):
                 fut.result()
             engine.update(cam)
