@@ -148,11 +148,12 @@ class RenderOptions:
     defer_compute: bool = True
     # sort="auto" and draw="auto" resolving to the GPU path, on a pool that keeps a host mirror (the streaming
     # session's): the first frames draw with the CPU sort (1 program: splat.vert's; the numpy depth sort of the few
-    # thousand splats a first view draws takes well under a millisecond) while the GPU path's 5 (cull, the depth
-    # sort's 3 with its setup, the fetch draw) compile after the first frame with splats, DEFERRED_COMPILE_BUDGET_S
-    # a frame (at least one); the frame after the last one switches to the GPU path for good (then defer_compute
-    # goes on with the compute draw's). A cold driver cache compiled 7 programs, 277 of a 360 ms first frame (issue
-    # 38; BENCHMARKS.md, "CPU-sorted first frames"). False: the GPU path's programs before the first frame.
+    # thousand splats a first view draws takes well under a millisecond) while the GPU path's 6 (cull, the depth
+    # sort's setup and 3 pass programs, the fetch draw's) compile after the first frame with splats,
+    # DEFERRED_COMPILE_BUDGET_S a frame (at least one); the frame after the last one switches to the GPU path for
+    # good (then defer_compute goes on with the compute draw's), a frame of more than CPU_FIRST_MAX_SPLATS at once.
+    # A cold driver cache compiled 7 programs, 277 of a 360 ms first frame (issue 38; BENCHMARKS.md, "CPU-sorted
+    # first frames"). False: the GPU path's programs before the first frame.
     cpu_first: bool = True
 
     def __post_init__(self) -> None:
@@ -916,3 +917,6 @@ class SplatRenderer:
             self.sorter.release()
         if self.craster is not None:
             self.craster.release()
+        for prog in self._gpu_compiled.values():  # compiled ahead by CPU-first frames, not taken yet
+            prog.release()
+        self._gpu_compiled.clear()
