@@ -206,3 +206,25 @@ def test_streaming_session_drops_the_host_mirror_at_the_switch(ctx, fruit, as_ha
         finally:
             s.close()
     assert np.abs(images[0] - images[1]).max() <= 1e-4
+
+
+def test_a_pool_without_its_host_mirror_takes_tiles_with_or_without_one(ctx, fruit):
+    """ChunkPool.drop_host_mirror: a tile without a mirror is refused before it and taken after it, and one that
+    still brings a mirror (decoded before the switch) is taken too."""
+    from client_gl.gpu.pool import ChunkPool
+    from client_gl.scene import tiles_from_gaussians
+    from splatstream.errors import UsageError
+
+    with_mirror = tiles_from_gaussians(fruit.subset(np.arange(600)))
+    without = tiles_from_gaussians(fruit.subset(np.arange(600, 1200)), with_mirror=False)
+    pool = ChunkPool(ctx, with_mirror.formats, with_mirror.sh_degree, with_mirror.slots + without.slots)
+    (_, a), = with_mirror.tiles.items()
+    (_, b), = without.tiles.items()
+    with pytest.raises(UsageError, match="host mirror"):
+        pool.join(1, b)
+    pool.drop_host_mirror()
+    assert pool.host_mirror is None
+    pool.join(1, b)
+    pool.join(2, a)
+    assert pool.resident_splats == 1200
+    pool.release()
