@@ -14,9 +14,10 @@ GPU path (GL >= 4.3 with compute shaders, a hardware GL):
      and the compute-shader tile rasterizer of client_gl/gpu/compute_raster.py (binning, tile sort, per-tile
      blending with the reference's early stop, imageStore into the colour target; no depth test, the target is
      overwritten).
-CPU path (GL < 4.3, software GL, or sort="cpu"): cull and depth sort in numpy on a worker thread over the pool's
-drawn splats and host mirror, index buffer upload, one instanced draw whose vertex shader decodes, projects and
-evaluates SH (splat.vert, GL 4.1).
+CPU path (GL < 4.3, software GL, or sort="cpu"; and the GPU path's first frames while its programs compile,
+RenderOptions.cpu_first): cull and depth sort in numpy on a worker thread over the pool's drawn splats and host
+mirror, index buffer upload, one instanced draw whose vertex shader decodes, projects and evaluates SH (splat.vert,
+GL 4.1).
 The renderer reads only the pool's public API; format_spec/renderer.md describes both paths and what they measured.
 """
 from __future__ import annotations
