@@ -66,6 +66,9 @@ def main() -> None:
     ap.add_argument("--draw", default="auto", help="RenderOptions.draw")
     ap.add_argument("--no-defer", action="store_true",
                     help="RenderOptions.defer_compute=False: every compute draw program before the first compute frame")
+    ap.add_argument("--no-cpu-first", action="store_true",
+                    help="RenderOptions.cpu_first=False: the GPU path's programs before the first frame (the A/B of "
+                         "the CPU-sorted first frames)")
     ap.add_argument("--as-hardware", action="store_true",
                     help="treat a software GL (llvmpipe) as hardware in the renderer's auto choices (GPU sort, "
                          "compute draw): the GPU machine's programs, their count and order, here")
@@ -111,7 +114,7 @@ def main() -> None:
         if args.as_hardware:
             renderer.SOFTWARE_RENDERERS = ()
         render = RenderOptions(sort=args.sort, draw=args.draw, sort_pass_programs=args.sort_pass_programs,
-                               defer_compute=not args.no_defer)
+                               defer_compute=not args.no_defer, cpu_first=not args.no_cpu_first)
         view = ViewOptions(cache=False, render=render, **({"gpu_mem_mb": args.gpu_mem_mb} if args.gpu_mem_mb else {}))
         prepared = PreparedSource.open(url, view)
         session = StreamingSession(prepared, ctx, view)
@@ -128,6 +131,7 @@ def main() -> None:
                 break
             session.wait(0.002)
         m = session.metrics
+        first_sort = session.renderer.sort_mode  # the path that drew the first frame with splats
         compiles = [ms for _, label, ms in tl.events if label.startswith("compile")]
         # The frames after the first one with splats: when the deferred programs compile (and the draw switches).
         for _ in range(args.frames_after):
@@ -139,6 +143,7 @@ def main() -> None:
         out.update(first_frame_s=m.first_frame_s, manifest_s=m.manifest_s, pool_s=m.pool_s, built_s=m.built_s,
                    frames=frames, sort_pass_programs=args.sort_pass_programs, programs_compiled=len(compiles),
                    programs_compiled_after=compiles_after, draw=args.draw, defer_compute=not args.no_defer,
+                   cpu_first=not args.no_cpu_first, first_sort=first_sort,
                    compile_ms=round(sum(compiles), 1), timeline=tl.events)
         session.close()
     finally:
@@ -148,7 +153,7 @@ def main() -> None:
     for t_ms, label, ms in tl.events:
         print(f"{t_ms:9.1f} ms  {label:34s} {ms:8.1f} ms")
     print({k: out[k] for k in ("first_frame_s", "manifest_s", "pool_s", "built_s", "context_ms", "programs_compiled",
-                               "compile_ms", "programs_compiled_after")})
+                               "compile_ms", "programs_compiled_after", "first_sort")})
     if args.json_out:
         with open(args.json_out, "w") as f:
             json.dump(out, f, indent=1)

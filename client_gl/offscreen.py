@@ -78,8 +78,9 @@ class HeadlessRenderer:
         for tile_id, tile in scene.tiles.items():
             self.pool.join(tile_id, tile)
         # Every image read back is a finished one (one-shot renders, the render benchmarks): the compute draw's
-        # programs before the first frame, not after it (RenderOptions.defer_compute is the streaming client's).
-        self.renderer = SplatRenderer(self.ctx, self.pool, replace(self.options, defer_compute=False))
+        # programs before the first frame, not after it (RenderOptions.defer_compute and cpu_first are the
+        # streaming client's).
+        self.renderer = SplatRenderer(self.ctx, self.pool, replace(self.options, defer_compute=False, cpu_first=False))
         self.scene = scene
 
     def load_gaussians(self, g: Gaussians, preset: str = DEFAULT_PRESET, sh_degree: int | None = None) -> None:

@@ -24,7 +24,7 @@ from splatstream.errors import UsageError
 from splatstream.format.manifest import Manifest
 
 from .gpu.pool import ChunkPool
-from .gpu.renderer import FrameStats, RenderOptions, SplatRenderer, resolve_sort
+from .gpu.renderer import FrameStats, RenderOptions, SplatRenderer, draws_cpu_first, resolve_sort
 from .gpu.residency_layout import CodebookLayout, PoolLayout
 from .stream.cache import DiskCache
 from .stream.engine import DECODE_WAIT_S, FrameUpdate, StreamEngine, StreamOptions
@@ -191,7 +191,10 @@ class StreamingSession:
         codebook = CodebookLayout(m.sh_codebook.format, m.sh_codebook.entries) if m.sh_codebook else None
         self.budget = int(options.gpu_mem_mb * (1 << 20))
         check_root_fits(m, self.budget, degree, codebook, options.gpu_mem_mb)
-        self.with_mirror = resolve_sort(ctx, options.render) == "cpu"
+        # The CPU sort culls on the host: its pool keeps a host mirror that the tiles bring, also for the first
+        # frames of a GPU-path renderer that draws them with the CPU sort (RenderOptions.cpu_first; dropped at its
+        # switch to the GPU path, frame()).
+        self.with_mirror = resolve_sort(ctx, options.render) == "cpu" or draws_cpu_first(ctx, options.render)
         self.pool = ChunkPool.for_budget(ctx, self.budget, m.formats, degree, codebook=codebook,
                                          host_mirror=self.with_mirror)
         self._pool_done = time.perf_counter()
@@ -271,8 +274,17 @@ class StreamingSession:
                                                        timing=timing, draw_set=draw)
         finally:
             self.engine.frame_submitted()
+        if self.with_mirror and self.renderer.sort_mode == "gpu":
+            self._drop_host_mirror()
         t2 = time.perf_counter()
         return self._record((t2 - t0) * 1e3, (t1 - t0) * 1e3)
+
+    def _drop_host_mirror(self) -> None:
+        """The renderer switched from its CPU-first frames to the GPU path: the pool keeps no host mirror any more
+        and the decode workers compute none (tiles decoded with one before join as well: the pool ignores it)."""
+        self.pool.drop_host_mirror()
+        self.engine.with_mirror = False
+        self.with_mirror = False
 
     def _record(self, frame_ms: float, update_ms: float) -> FrameRecord:
         u = self.last

@@ -230,6 +230,11 @@ class ChunkPool:
         """The CPU-sort path's values by global splat id (capacity * 256 rows), None when the pool keeps none."""
         return self._mirror
 
+    def drop_host_mirror(self) -> None:
+        """Keep no host mirror from now on (a renderer that drew its first frames with the CPU sort runs the GPU
+        path: RenderOptions.cpu_first); tiles joining later need none, and what they bring is ignored."""
+        self._mirror = None
+
     @property
     def resident_splats(self) -> int:
         return sum(t.splats for t in self._tiles.values())

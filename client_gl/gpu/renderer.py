@@ -14,9 +14,10 @@ GPU path (GL >= 4.3 with compute shaders, a hardware GL):
      and the compute-shader tile rasterizer of client_gl/gpu/compute_raster.py (binning, tile sort, per-tile
      blending with the reference's early stop, imageStore into the colour target; no depth test, the target is
      overwritten).
-CPU path (GL < 4.3, software GL, or sort="cpu"): cull and depth sort in numpy on a worker thread over the pool's
-drawn splats and host mirror, index buffer upload, one instanced draw whose vertex shader decodes, projects and
-evaluates SH (splat.vert, GL 4.1).
+CPU path (GL < 4.3, software GL, or sort="cpu"; and the GPU path's first frames while its programs compile,
+RenderOptions.cpu_first): cull and depth sort in numpy on a worker thread over the pool's drawn splats and host
+mirror, index buffer upload, one instanced draw whose vertex shader decodes, projects and evaluates SH (splat.vert,
+GL 4.1).
 The renderer reads only the pool's public API; format_spec/renderer.md describes both paths and what they measured.
 """
 from __future__ import annotations
@@ -68,6 +69,10 @@ ZERO_PARAMS = bytes(16)  # params: visible count, oversized count, padding
 # "auto" draws choosing "compute" with RenderOptions.defer_compute: after the first frame that drew splats, each frame
 # compiles the compute draw's programs until this much time went to them (at least one a frame), before it is drawn.
 DEFERRED_COMPILE_BUDGET_S = 0.008
+# RenderOptions.cpu_first: a frame that draws more splats than this while GPU path programs are still to compile
+# compiles the rest at once and switches (the numpy cull and sort of 65536 splats took 14-17 ms of CPU time on the
+# shared 2-core VM, 3815 splats, a 250M scene's root, 0.4-0.5 ms: BENCHMARKS.md, "CPU-sorted first frames").
+CPU_FIRST_MAX_SPLATS = 65536
 
 
 def has_compute(ctx) -> bool:
@@ -142,6 +147,15 @@ class RenderOptions:
     # draw programs"). False: all compiled before the first compute frame (HeadlessRenderer: every image it reads back
     # is a finished one).
     defer_compute: bool = True
+    # sort="auto" and draw="auto" resolving to the GPU path, on a pool that keeps a host mirror (the streaming
+    # session's): the first frames draw with the CPU sort (1 program: splat.vert's; the numpy depth sort of the few
+    # thousand splats a first view draws takes well under a millisecond) while the GPU path's 6 (cull, the depth
+    # sort's setup and 3 pass programs, the fetch draw's) compile after the first frame with splats,
+    # DEFERRED_COMPILE_BUDGET_S a frame (at least one); the frame after the last one switches to the GPU path for
+    # good (then defer_compute goes on with the compute draw's), a frame of more than CPU_FIRST_MAX_SPLATS at once.
+    # A cold driver cache compiled 7 programs, 277 of a 360 ms first frame (issue 38; BENCHMARKS.md, "CPU-sorted
+    # first frames"). False: the GPU path's programs before the first frame.
+    cpu_first: bool = True
 
     def __post_init__(self) -> None:
         if self.sort not in SORT_MODES:
@@ -183,6 +197,13 @@ def resolve_sort(ctx, options: RenderOptions) -> str:
     if options.front_to_back and sort != "gpu":
         raise UsageError("the front-to-back draw needs the GPU sort")
     return sort
+
+
+def draws_cpu_first(ctx, options: RenderOptions) -> bool:
+    """Whether a renderer with these options on this context draws its first frames with the CPU sort (given a pool
+    with a host mirror: RenderOptions.cpu_first)."""
+    return (options.cpu_first and options.sort == "auto" and options.draw == "auto" and options.raster_defaults
+            and resolve_sort(ctx, options) == "gpu")
 
 
 @dataclass
@@ -291,19 +312,16 @@ class SplatRenderer:
         self._saturate = self._saturate_vao = self._batch_cmd = None
         self.draw_mode = "fetch" if self.options.draw == "auto" else self.options.draw
         self.program_gpu = self.vao_gpu = None
+        # CPU-first (RenderOptions.cpu_first): the GPU path's programs still to compile, (what, source) in order;
+        # None once the GPU path runs (or when the renderer never draws with the CPU sort first).
+        self._gpu_pending: list[tuple[str | None, object]] | None = None
+        self._gpu_compiled: dict[str, object] = {}  # of those, the cull's and the fetch draw's, compiled ahead
+        self._reserved_splats = 0  # reserve_work's splats while the CPU sort draws (applied at the switch)
+        if self.sort_mode == "gpu" and pool.host_mirror is not None and draws_cpu_first(ctx, self.options):
+            self.sort_mode = "cpu"
+            self._gpu_pending = self._gpu_path_sources()
         if self.sort_mode == "gpu":
-            self.cull = ctx.compute_shader(shadergen.compute_source("cull.comp", self.header))
-            self._bind_samplers(self.cull)
-            self._cull_uniforms = ProgramUniforms(self.cull)
-            self.params = ctx.buffer(reserve=16)
-            self._zero_params = ctx.buffer(ZERO_PARAMS)
-            self._ensure_work(max(1, pool.drawn_splats))
-            if self.options.front_to_back:
-                vert, frag = shadergen.saturate_sources()
-                self._saturate = ctx.program(vertex_shader=vert, fragment_shader=frag)
-                self._saturate_vao = ctx.vertex_array(self._saturate, [])
-                self._batch_cmd = ctx.buffer(reserve=16)
-            self._select_program(self.draw_mode)
+            self._start_gpu_path()
         else:
             if pool.host_mirror is None:
                 raise UsageError("the CPU sort path needs a pool with a host mirror of the splat centres")
@@ -311,6 +329,83 @@ class SplatRenderer:
             self._cpu_program = ctx.program(vertex_shader=vert, fragment_shader=frag)
             self._bind_samplers(self._cpu_program)
             self._cpu_sorter = CpuSorter()
+
+    def _start_gpu_path(self) -> None:
+        """The GPU path's programs (those compiled ahead by the CPU-first frames taken from there) and buffers."""
+        ctx = self.ctx
+        self.cull = self._gpu_compiled.pop("cull", None)
+        if self.cull is None:
+            self.cull = ctx.compute_shader(shadergen.compute_source("cull.comp", self.header))
+        self._bind_samplers(self.cull)
+        self._cull_uniforms = ProgramUniforms(self.cull)
+        self.params = ctx.buffer(reserve=16)
+        self._zero_params = ctx.buffer(ZERO_PARAMS)
+        if self._reserved_splats:  # reserved while the CPU-first frames drew
+            self.reserve_work(self._reserved_splats)
+        self._ensure_work(max(1, self.pool.drawn_splats))
+        if self.options.front_to_back:
+            vert, frag = shadergen.saturate_sources()
+            self._saturate = ctx.program(vertex_shader=vert, fragment_shader=frag)
+            self._saturate_vao = ctx.vertex_array(self._saturate, [])
+            self._batch_cmd = ctx.buffer(reserve=16)
+        self._select_program(self.draw_mode)
+
+    def _gpu_path_sources(self) -> list[tuple[str | None, object]]:
+        """What the GPU path compiles before its first frame: the cull, the depth sort's programs (compute_program
+        specs, cached in the context where its GpuRadixSort finds them) and the draw's (fetch, as "auto" starts)."""
+        opts = self.options
+        sources: list[tuple[str | None, object]] = [("cull", shadergen.compute_source("cull.comp", self.header))]
+        sources += [(None, spec) for spec in sort_programs(opts.radix_bits, opts.fused_sort, opts.sort_pass_programs)]
+        sources.append((self.draw_mode, shadergen.projected_render_sources(self.draw_mode, opts.front_to_back)))
+        return sources
+
+    def _advance_cpu_first(self) -> bool:
+        """A CPU-first frame: after the first frame with splats, compile GPU path programs for
+        DEFERRED_COMPILE_BUDGET_S at most (at least one); the frame after the last one switches to the GPU path
+        (so no frame both compiles for the budget and makes the switch), or this one, having compiled them all,
+        when it draws more than CPU_FIRST_MAX_SPLATS. True: this frame switched."""
+        pending = self._gpu_pending
+        if not pending:
+            self._switch_to_gpu()
+            return True
+        budget = DEFERRED_COMPILE_BUDGET_S
+        if self.pool.drawn_splats > CPU_FIRST_MAX_SPLATS:  # too many for the CPU sort: the GPU path now
+            budget = math.inf
+        elif not self._drew_splats:
+            return False
+        t0 = time.perf_counter()
+        while pending:
+            what, src = pending.pop(0)
+            if what is None:
+                compute_program(self.ctx, *src)
+            elif what == "cull":
+                self._gpu_compiled[what] = self.ctx.compute_shader(src)
+            else:
+                vert, frag = src
+                self._gpu_compiled[what] = self.ctx.program(vertex_shader=vert, fragment_shader=frag)
+            if time.perf_counter() - t0 >= budget:
+                break
+        if budget == math.inf:
+            self._switch_to_gpu()
+            return True
+        return False
+
+    def _switch_to_gpu(self) -> None:
+        """From the CPU sort to the GPU path for good: the CPU path's program, buffers and worker go (the pool's
+        host mirror is the caller's: nothing here reads it any more)."""
+        self._gpu_pending = None
+        self._cpu_sorter.close()
+        for obj in (self._vao_cpu, self._index_buffer, self._cpu_program):
+            if obj is not None:
+                obj.release()
+        self._cpu_sorter = self._vao_cpu = self._index_buffer = self._cpu_program = None
+        self.sort_mode = "gpu"
+        self._start_gpu_path()
+
+    @property
+    def cpu_first_pending(self) -> bool:
+        """True while the CPU-first frames draw (RenderOptions.cpu_first): the pool's host mirror is still read."""
+        return self._gpu_pending is not None
 
     def _ensure_work(self, splats: int) -> None:
         """Per-frame work buffers (keys, values, records, the depth sort's scratch, the compute draw's entries) for
@@ -330,6 +425,8 @@ class SplatRenderer:
         flight were its 35-42 ms render frames (BENCHMARKS.md, "Manifest pages"). Their allocation is immutable
         storage (gl.WorkBuffer), made when created, not at first use. Drawing more later still doubles them."""
         if self.sort_mode != "gpu":
+            if self._gpu_pending is not None:  # made at the switch to the GPU path
+                self._reserved_splats = max(self._reserved_splats, int(splats))
             return
         n = min(self.pool.splat_capacity, max(int(splats), MIN_WORK_SPLATS))
         if n > self._work_splats:
@@ -389,8 +486,10 @@ class SplatRenderer:
             self.program_gpu = self.vao_gpu = None
             return
         if mode not in self._programs:
-            vert, frag = shadergen.projected_render_sources(mode, opts.front_to_back)
-            prog = self.ctx.program(vertex_shader=vert, fragment_shader=frag)
+            prog = self._gpu_compiled.pop(mode, None)
+            if prog is None:
+                vert, frag = shadergen.projected_render_sources(mode, opts.front_to_back)
+                prog = self.ctx.program(vertex_shader=vert, fragment_shader=frag)
             self._programs[mode] = (prog, self._vertex_array(mode, prog))
         self.draw_mode = mode
         self.program_gpu, self.vao_gpu = self._programs[mode]
@@ -505,9 +604,12 @@ class SplatRenderer:
         fbo = self.framebuffer(cam.width, cam.height)
         uniforms = self.camera_values(cam)
         self._background = (float(background[0]), float(background[1]), float(background[2]))
+        switched = False
+        if self._gpu_pending is not None:
+            switched = self._advance_cpu_first()
         if self.sort_mode == "gpu":
-            self._choose_draw(cam, clear)
-            self._drew_splats = self._drew_splats or self.pool.drawn_splats > 0
+            self._choose_draw(cam, clear, compile_deferred=not switched)
+        self._drew_splats = self._drew_splats or self.pool.drawn_splats > 0
         if self.draw_mode == "compute" and self.sort_mode == "gpu":
             # The tile rasterizer writes every pixel (colour over the background, alpha) and ignores depth: no clear.
             return self._render_compute(cam, uniforms, degree, timing)
@@ -585,8 +687,9 @@ class SplatRenderer:
         self.ctx.memory_barrier(self.sorter.barrier_bits)
         self.sorter.setup(self.params)
 
-    def _choose_draw(self, cam: Camera, clear: bool) -> None:
-        """The draw mode of this frame ("auto": see DRAW_CHOICES)."""
+    def _choose_draw(self, cam: Camera, clear: bool, compile_deferred: bool = True) -> None:
+        """The draw mode of this frame ("auto": see DRAW_CHOICES). compile_deferred=False: no deferred compile in
+        this frame (the one that switched from the CPU-first frames)."""
         if self.options.draw != "auto":
             return
         # The compute rasterizer overwrites the target and ignores its depth: raster draws over opaque geometry.
@@ -597,11 +700,11 @@ class SplatRenderer:
             points = wide and self.pool.drawn_splats >= AUTO_POINTS_MIN_SPLATS
             mode = "points" if points else "fetch"
         if mode == "compute" and self.craster is None and self.options.defer_compute:
-            mode = self._compile_deferred()
+            mode = self._compile_deferred(compile_deferred)
         if mode != self.draw_mode or (mode == "compute" and self.craster is None):
             self._select_program(mode)
 
-    def _compile_deferred(self) -> str:
+    def _compile_deferred(self, compile_now: bool = True) -> str:
         """The draw mode of a frame that chose "compute" before its programs are compiled: "fetch" while some are
         not (compiling them, after the first frame with splats, for DEFERRED_COMPILE_BUDGET_S at most, at least
         one), then "compute"."""
@@ -612,7 +715,7 @@ class SplatRenderer:
             self._deferred = [(attr, src) for attr, src in sources.items()]
             # The tile sort's programs, cached in the context (compute_program) where its GpuRadixSort finds them.
             self._deferred += [(None, spec) for spec in sort_programs(bits, opts.fused_sort, opts.sort_pass_programs)]
-        if self._drew_splats:
+        if self._drew_splats and compile_now:
             t0 = time.perf_counter()
             while self._deferred:
                 attr, what = self._deferred.pop(0)
@@ -815,3 +918,6 @@ class SplatRenderer:
             self.sorter.release()
         if self.craster is not None:
             self.craster.release()
+        for prog in self._gpu_compiled.values():  # compiled ahead by CPU-first frames, not taken yet
+            prog.release()
+        self._gpu_compiled.clear()

@@ -1,0 +1,230 @@
+"""CPU-sorted first frames (RenderOptions.cpu_first, issue 38): a GPU-path renderer on a pool with a host mirror
+draws its first frames with the CPU sort (two programs compiled before the first frame: the pool's and splat.vert's),
+compiles the GPU path's programs after the first frame with splats and switches to it for good; the pictures on
+both sides of the switch are those of renderers that took one path from the start. llvmpipe stands in for a
+hardware GL (SOFTWARE_RENDERERS emptied: the auto choices of the GPU machine)."""
+from __future__ import annotations
+
+import time
+
+import numpy as np
+import pytest
+from conftest import real
+
+from splatstream.camera import Camera, look_at
+from splatstream.encode import EncodeOptions, encode_gaussians
+from splatstream.io import read_gaussians
+from splatstream.metrics import psnr
+from splatstream.store import load_manifest
+
+pytest.importorskip("moderngl")
+
+W, H = 128, 96
+
+
+@pytest.fixture(scope="module")
+def ctx(gl_compute_context):
+    return gl_compute_context
+
+
+@pytest.fixture(scope="module")
+def fruit():
+    return read_gaussians(real("fruit_drops_sh3.ply"))
+
+
+@pytest.fixture
+def as_hardware(ctx, monkeypatch):
+    """The auto choices of a hardware GL, programs counted as compiled, deferred compiles one a frame."""
+    from client_gl.gpu import renderer as renderer_mod
+
+    monkeypatch.setattr(renderer_mod, "SOFTWARE_RENDERERS", ())
+    monkeypatch.setattr(renderer_mod, "DEFERRED_COMPILE_BUDGET_S", 0.0)
+    monkeypatch.setattr(ctx, "extra", dict(ctx.extra or {}))
+    compiled: list[str] = []
+    for name in ("compute_shader", "program"):
+        original = getattr(type(ctx), name)
+
+        def counting(self, *args, _original=original, _name=name, **kwargs):
+            compiled.append(_name)
+            return _original(self, *args, **kwargs)
+        monkeypatch.setattr(type(ctx), name, counting)
+    return compiled
+
+
+def close_camera(g) -> Camera:
+    from conftest import sphere_framed_camera
+
+    base = sphere_framed_camera(g.positions, W, H)
+    eye = np.array(base.target) + 0.35 * (np.array(base.eye) - np.array(base.target))
+    return look_at(eye, base.target, fov_y_deg=60, width=W, height=H)
+
+
+def test_first_frames_cpu_sorted_then_the_gpu_path(ctx, fruit, as_hardware, monkeypatch):
+    """2 programs before the first frame instead of 7; the GPU path's 6 compile one a frame (a zero budget) after
+    the first frame with splats, the frame after the last switches to the GPU path (fetch, nothing compiled in it),
+    then the compute draw's 9 as before; the CPU-sorted picture is the GPU path's up to the raster's rounding and
+    the final one equals that of a renderer that compiled everything up front."""
+    from client_gl.gpu import renderer as renderer_mod
+    from client_gl.gpu.pool import ChunkPool
+    from client_gl.gpu.renderer import RenderOptions, SplatRenderer
+    from client_gl.scene import tiles_from_gaussians
+
+    compiled = as_hardware
+    monkeypatch.setattr(renderer_mod, "MIN_WORK_SPLATS", 1)  # work buffers for what is drawn (a reservation shows)
+    scene = tiles_from_gaussians(fruit)  # with the host mirror, as a streaming session's tiles while it is kept
+    cam = close_camera(fruit)
+
+    def fresh(options):
+        for key in [k for k in ctx.extra if k[0] == "compute_program"]:  # the shared sort programs compile again
+            del ctx.extra[key]
+        compiled.clear()
+        pool = ChunkPool(ctx, scene.formats, scene.sh_degree, 4 * scene.slots)  # room for reserve_work below
+        for tile_id, tile in scene.tiles.items():
+            pool.join(tile_id, tile)
+        return SplatRenderer(ctx, pool, options), pool
+
+    up_front, pool_a = fresh(RenderOptions(cpu_first=False, defer_compute=False))
+    up_front.render(cam)
+    assert up_front.sort_mode == "gpu" and up_front.draw_mode == "compute" and len(compiled) == 16
+    want = up_front.read_image()
+    fetch, pool_f = fresh(RenderOptions(sort="gpu", draw="fetch"))
+    fetch.render(cam)
+    want_fetch = fetch.read_image()
+
+    r, pool = fresh(RenderOptions())
+    assert r.sort_mode == "cpu" and r.cpu_first_pending and compiled == ["compute_shader", "program"]
+    reserved = 3 * len(fruit)  # a session's splat budget (more than twice the drawn splats): made at the switch
+    assert reserved < pool.splat_capacity
+    r.reserve_work(reserved)
+    stats = r.render(cam)
+    assert stats.sort == "cpu" and stats.visible > 1000 and len(compiled) == 2
+    first = r.read_image()
+    # The CPU sort's frame against the GPU path's of the same splats (fetch: the same back-to-front blending; on
+    # llvmpipe bit for bit, splat.vert and cull.comp projecting alike; the bound leaves a hardware GL its rounding)
+    # and against the compute draw's (80 dB here).
+    assert np.abs(first - want_fetch).max() <= 1e-3
+    assert psnr(first[..., :3], want[..., :3]) >= 60.0
+    paths = []
+    for _ in range(16):
+        r.render(cam)
+        paths.append((r.sort_mode, r.draw_mode, len(compiled)))
+    # 6 frames compile the cull, the sort's setup and 3 pass programs, the fetch draw's; the 7th switches.
+    assert paths[:6] == [("cpu", "fetch", 2 + i) for i in range(1, 7)]
+    assert paths[6] == ("gpu", "fetch", 8) and not r.cpu_first_pending and r._cpu_program is None
+    assert r._work_splats == reserved and r.work_bytes > 0
+    assert paths[7:] == [("gpu", "fetch", 8 + i) for i in range(1, 9)] + [("gpu", "compute", 17)]
+    assert np.abs(r.read_image() - want).max() <= 1e-4  # the compute draw's own frame-to-frame noise
+    r.render(cam)  # warm: nothing compiles, the picture stays
+    assert len(compiled) == 17 and np.abs(r.read_image() - want).max() <= 1e-4
+    for rr, p in ((up_front, pool_a), (fetch, pool_f), (r, pool)):
+        rr.release()
+        p.release()
+
+
+def test_a_frame_of_many_splats_switches_at_once(ctx, fruit, as_hardware, monkeypatch):
+    """More drawn splats than CPU_FIRST_MAX_SPLATS: that frame compiles the GPU path's programs and draws with it,
+    the first frame too."""
+    from client_gl.gpu import renderer as renderer_mod
+    from client_gl.gpu.pool import ChunkPool
+    from client_gl.gpu.renderer import RenderOptions, SplatRenderer
+    from client_gl.scene import tiles_from_gaussians
+
+    compiled = as_hardware
+    scene = tiles_from_gaussians(fruit)
+    pool = ChunkPool(ctx, scene.formats, scene.sh_degree, scene.slots)
+    for tile_id, tile in scene.tiles.items():
+        pool.join(tile_id, tile)
+    r = SplatRenderer(ctx, pool, RenderOptions())
+    cam = close_camera(fruit)
+    monkeypatch.setattr(renderer_mod, "CPU_FIRST_MAX_SPLATS", 100)
+    compiled.clear()
+    assert r.render(cam, draw_set=[]).sort == "cpu" and r.cpu_first_pending and not compiled  # nothing drawn
+    assert pool.drawn_splats == 0
+    stats = r.render(cam)
+    assert stats.sort == "gpu" and r.draw_mode == "fetch" and not r.cpu_first_pending and len(compiled) == 6
+    assert r.read_visible_count() > 1000
+    r.release()
+    pool.release()
+
+
+def test_cpu_first_needs_the_auto_choices_and_a_host_mirror(ctx, fruit, as_hardware):
+    """An explicit sort or draw, a pool without a host mirror (HeadlessRenderer on the GPU path) or cpu_first=False:
+    the GPU path from the first frame."""
+    from client_gl.gpu.pool import ChunkPool
+    from client_gl.gpu.renderer import RenderOptions, SplatRenderer, draws_cpu_first
+    from client_gl.offscreen import HeadlessRenderer
+    from client_gl.scene import tiles_from_gaussians
+
+    assert draws_cpu_first(ctx, RenderOptions())
+    for options in (RenderOptions(sort="gpu"), RenderOptions(draw="fetch"), RenderOptions(cpu_first=False),
+                    RenderOptions(depth_test=False)):
+        assert not draws_cpu_first(ctx, options)
+    scene = tiles_from_gaussians(fruit, with_mirror=False)
+    pool = ChunkPool(ctx, scene.formats, scene.sh_degree, scene.slots, host_mirror=False)
+    r = SplatRenderer(ctx, pool, RenderOptions())
+    assert r.sort_mode == "gpu" and not r.cpu_first_pending
+    r.release()
+    pool.release()
+    h = HeadlessRenderer(ctx=ctx)
+    h.load_gaussians(fruit)
+    assert h.sort_mode == "gpu" and h.pool.host_mirror is None
+    h.render(close_camera(fruit))
+    assert h.renderer.sort_mode == "gpu" and h.renderer.draw_mode == "compute"
+    h.unload()
+
+
+def test_streaming_session_drops_the_host_mirror_at_the_switch(ctx, fruit, as_hardware, tmp_path):
+    """A streamed scene: the first frame with splats is CPU-sorted with a host mirror in the pool and the decode
+    workers; from the switch on neither keeps one, and the converged picture equals a session's on the GPU path
+    from its first frame."""
+    from client_gl.gpu.renderer import RenderOptions
+    from client_gl.streaming import StreamingSession, ViewOptions
+
+    encode_gaussians(fruit, tmp_path / "fruit", EncodeOptions(preset="medium", max_leaf_splats=256))
+    c = load_manifest(tmp_path / "fruit").camera
+    cam = Camera(c.eye, c.target, c.up, c.fov_y, W, H)
+    images = []
+    for cpu_first in (True, False):
+        view = ViewOptions(gpu_mem_mb=32.0, cache=False, render=RenderOptions(cpu_first=cpu_first))
+        s = StreamingSession.open(str(tmp_path / "fruit"), ctx, view)
+        try:
+            assert s.with_mirror == cpu_first and (s.pool.host_mirror is not None) == cpu_first
+            first_sort = None
+            deadline = time.monotonic() + 120
+            while time.monotonic() < deadline:
+                rec = s.frame(cam)
+                if first_sort is None and rec.drawn_splats:
+                    first_sort = s.last_stats.sort
+                if s.converged and s.renderer.draw_mode == "compute":
+                    break
+                s.wait(0.005)
+            assert s.converged and s.renderer.draw_mode == "compute"
+            assert first_sort == ("cpu" if cpu_first else "gpu")
+            assert s.pool.host_mirror is None and not s.engine.with_mirror and not s.with_mirror
+            s.frame(cam)
+            images.append(s.read_image())
+        finally:
+            s.close()
+    assert np.abs(images[0] - images[1]).max() <= 1e-4
+
+
+def test_a_pool_without_its_host_mirror_takes_tiles_with_or_without_one(ctx, fruit):
+    """ChunkPool.drop_host_mirror: a tile without a mirror is refused before it and taken after it, and one that
+    still brings a mirror (decoded before the switch) is taken too."""
+    from client_gl.gpu.pool import ChunkPool
+    from client_gl.scene import tiles_from_gaussians
+    from splatstream.errors import UsageError
+
+    with_mirror = tiles_from_gaussians(fruit.subset(np.arange(600)))
+    without = tiles_from_gaussians(fruit.subset(np.arange(600, 1200)), with_mirror=False)
+    pool = ChunkPool(ctx, with_mirror.formats, with_mirror.sh_degree, with_mirror.slots + without.slots)
+    (_, a), = with_mirror.tiles.items()
+    (_, b), = without.tiles.items()
+    with pytest.raises(UsageError, match="host mirror"):
+        pool.join(1, b)
+    pool.drop_host_mirror()
+    assert pool.host_mirror is None
+    pool.join(1, b)
+    pool.join(2, a)
+    assert pool.resident_splats == 1200
+    pool.release()
