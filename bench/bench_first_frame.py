@@ -47,7 +47,7 @@ class Timeline:
                 return out
             finally:
                 local.depth -= 1
-                if local.depth == 0 or label.startswith(("compile", "alloc", "step")):
+                if local.depth == 0 or label.startswith(("compile", "alloc", "step", "gl ")):
                     self.events.append((round((t - self.t0) * 1e3, 2), label,
                                         round((time.perf_counter() - t) * 1e3, 2)))
         setattr(owner, name, timed)
@@ -95,6 +95,12 @@ def main() -> None:
     tl.wrap(moderngl.Context, "compute_shader", "compile compute")
     tl.wrap(moderngl.Context, "program", "compile program")
     tl.wrap(moderngl.Context, "buffer", "alloc buffer")
+    # the pool's atlases and the renderer's framebuffer (made by the first render: what a frame that draws nothing
+    # costs) and its clears
+    tl.wrap(moderngl.Context, "texture", "gl texture")
+    tl.wrap(moderngl.Context, "depth_renderbuffer", "gl depth renderbuffer")
+    tl.wrap(moderngl.Context, "framebuffer", "gl framebuffer")
+    tl.wrap(moderngl.Framebuffer, "clear", "gl clear", finish=ctx.finish if args.sync else None)
     tl.wrap(PreparedSource, "open", "manifest (PreparedSource.open)")
     tl.wrap(pool.ChunkPool, "__init__", "pool")
     tl.wrap(renderer.SplatRenderer, "__init__", "renderer")
