@@ -14,6 +14,7 @@ import json
 import os
 import signal
 import sys
+import threading
 import time
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -23,12 +24,13 @@ from bench_stream import serve_scene  # noqa: E402 (bench/ is on the path: scrip
 
 
 class Timeline:
-    """Wall-clock milliseconds spent in wrapped callables, in order, with their start time since t0."""
+    """Wall-clock milliseconds spent in wrapped callables, in order, with their start time since t0 (nesting
+    counted per thread: the decode threads' steps are timed beside the frame loop's)."""
 
     def __init__(self) -> None:
         self.t0 = time.perf_counter()
         self.events: list[tuple[float, str, float]] = []
-        self.depth = 0
+        self._local = threading.local()
 
     def wrap(self, owner, name: str, label: str, finish=None) -> None:
         """Time owner.name under `label`; finish: called (the GPU waited for) before the step's time is taken."""
@@ -36,15 +38,16 @@ class Timeline:
 
         def timed(*args, **kwargs):
             t = time.perf_counter()
-            self.depth += 1
+            local = self._local
+            local.depth = getattr(local, "depth", 0) + 1
             try:
                 out = fn(*args, **kwargs)
                 if finish is not None:
                     finish()
                 return out
             finally:
-                self.depth -= 1
-                if self.depth == 0 or label.startswith(("compile", "alloc", "step")):
+                local.depth -= 1
+                if local.depth == 0 or label.startswith(("compile", "alloc", "step", "gl ")):
                     self.events.append((round((t - self.t0) * 1e3, 2), label,
                                         round((time.perf_counter() - t) * 1e3, 2)))
         setattr(owner, name, timed)
@@ -92,12 +95,22 @@ def main() -> None:
     tl.wrap(moderngl.Context, "compute_shader", "compile compute")
     tl.wrap(moderngl.Context, "program", "compile program")
     tl.wrap(moderngl.Context, "buffer", "alloc buffer")
+    # the pool's atlases and the renderer's framebuffer (made by the first render: what a frame that draws nothing
+    # costs) and its clears
+    tl.wrap(moderngl.Context, "texture", "gl texture")
+    tl.wrap(moderngl.Context, "depth_renderbuffer", "gl depth renderbuffer")
+    tl.wrap(moderngl.Context, "framebuffer", "gl framebuffer")
+    tl.wrap(moderngl.Framebuffer, "clear", "gl clear", finish=ctx.finish if args.sync else None)
     tl.wrap(PreparedSource, "open", "manifest (PreparedSource.open)")
     tl.wrap(pool.ChunkPool, "__init__", "pool")
     tl.wrap(renderer.SplatRenderer, "__init__", "renderer")
     tl.wrap(compute_raster.ComputeRaster, "__init__", "compute raster")
     tl.wrap(sort.GpuRadixSort, "__init__", "radix sort")
     tl.wrap(engine.StreamEngine, "update", "engine.update")
+    if hasattr(engine.StreamEngine, "take_arrived"):  # the root's decode started while the renderer is built
+        tl.wrap(engine.StreamEngine, "take_arrived", "engine.take_arrived")
+    tl.wrap(engine, "decode_job", "decode (thread)")  # a payload decoded on a decode thread (the root's first)
+    tl.wrap(engine, "decode_batch_job", "decode batch (thread)")
     tl.wrap(renderer.SplatRenderer, "render", "render")
     tl.wrap(pool.ChunkPool, "join", "pool.join")
     if args.sync:

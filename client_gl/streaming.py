@@ -33,6 +33,9 @@ from .stream.selection import SelectionOptions
 from .stream.sources import Progress, SceneSource, open_source
 
 DEFAULT_GPU_MEM_MB = 1024.0
+# The first frame waits at most this long for a decode under way (the root's base, taken while the renderer was
+# built): it then uploads and draws the root instead of drawing nothing while the decode waits for the frame loop.
+FIRST_FRAME_DECODE_WAIT_S = 0.1
 
 
 @dataclass(frozen=True)
@@ -198,9 +201,6 @@ class StreamingSession:
         self.pool = ChunkPool.for_budget(ctx, self.budget, m.formats, degree, codebook=codebook,
                                          host_mirror=self.with_mirror)
         self._pool_done = time.perf_counter()
-        self.renderer = SplatRenderer(ctx, self.pool, options.render)
-        if options.max_splats is not None:  # the budget's work buffers now, not in the frames that reach it
-            self.renderer.reserve_work(options.max_splats)
         layout: PoolLayout = self.pool.layout
         stream_opts = StreamOptions(selection=replace(options.selection(), sh_degree=degree),
                                     upload_bytes_per_frame=options.upload_bytes_per_frame, prefetch=options.prefetch,
@@ -212,6 +212,19 @@ class StreamingSession:
         self.engine = StreamEngine(self.fetcher, self.pool, stream_opts, slot_bytes=layout.slot_bytes(),
                                    manifest=m, with_mirror=self.with_mirror, location=self.source.location)
         self.fetcher.yield_to(self.engine.loop_idle, DECODE_WAIT_S)
+        # The engine before the renderer, so that the root's base (asked for with the manifest, PreparedSource.open)
+        # is decoding before the first frame: its update then uploads it, and no frame draws nothing while it
+        # decodes. Asked before and after the renderer's programs: moderngl holds the interpreter lock while it
+        # compiles, so the fetcher and the decode threads run between the compiles, not during them.
+        try:
+            self.engine.take_arrived()
+            self.renderer = SplatRenderer(ctx, self.pool, options.render)
+            if options.max_splats is not None:  # the budget's work buffers now, not in the frames that reach it
+                self.renderer.reserve_work(options.max_splats)
+            self.engine.take_arrived()
+        except BaseException:
+            self.engine.close()
+            raise
 
     @classmethod
     def open(cls, spec: str | os.PathLike, ctx, options: ViewOptions = ViewOptions(),
@@ -256,6 +269,11 @@ class StreamingSession:
     def frame(self, cam: Camera, sh_degree: int | None = None, clear: bool = True,
               timing: bool = False) -> FrameRecord:
         """Stream (unless paused) and draw one frame into the renderer's framebuffer."""
+        if self.last is None and not self.paused:
+            # Nothing drawn yet: the decode under way is the root's base, work that the frames until it is uploaded
+            # would wait for anyway; done first, it is drawn in this frame (one empty frame fewer: its draw is the
+            # framebuffer's first allocation and clear, which the drawn frame then does instead).
+            self.engine.wait(FIRST_FRAME_DECODE_WAIT_S)
         t0 = time.perf_counter()
         if not self.paused:
             self._follow_new_manifest()

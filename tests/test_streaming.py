@@ -257,3 +257,55 @@ def test_budget_holds_while_a_camera_path_flies_across(ctx, root, tmp_path):
     first = next(i for i, f in enumerate(report["frames"]) if f["drawn_splats"] > 0)
     assert all(f["drawn_splats"] > 0 for f in report["frames"][first:])  # never an empty frame once drawing
     assert mid is not None and json.dumps(report)
+
+
+def test_the_root_decodes_while_the_renderer_is_built_and_the_first_frame_draws_it(ctx, root, monkeypatch):
+    """Issue 38: the engine is built before the renderer and takes what the fetcher finished then, so the root's
+    base (asked for with the manifest, PreparedSource.open) goes to the decode threads before the renderer's
+    program compiles; the first frame waits for that decode, uploads and draws the root (before: its update handed
+    the root to the decode threads, and one or more frames drew nothing while it decoded)."""
+    from client_gl import streaming
+    from client_gl.streaming import PreparedSource, StreamingSession, ViewOptions
+
+    events: list[tuple] = []
+    for name in ("program", "compute_shader"):
+        original = getattr(type(ctx), name)
+
+        def recording(self, *args, _original=original, _name=name, **kwargs):
+            events.append(("compile", _name))
+            return _original(self, *args, **kwargs)
+        monkeypatch.setattr(type(ctx), name, recording)
+    port = free_port()
+    proc = start_serve(root, port)
+    try:
+        view = ViewOptions(gpu_mem_mb=32.0, cache=False)
+        prepared = PreparedSource.open(f"http://127.0.0.1:{port}/scenes/fruit", view)
+        root_tile = prepared.manifest.tile(prepared.manifest.root)
+        root_key = (root_tile.id, "base")
+        # the root's base over the socket before the session is built (on the GPU machine it arrives while the
+        # pool is made; here the wait makes the order below independent of the machine's load)
+        deadline = time.monotonic() + 30
+        while prepared.fetcher.stats().delivered < 1 and time.monotonic() < deadline:
+            time.sleep(0.005)
+        assert prepared.fetcher.stats().delivered == 1
+        fetcher_done = prepared.fetcher.done
+
+        def done():
+            out = fetcher_done()
+            events.extend(("taken", key) for key, _, _ in out)
+            return out
+        monkeypatch.setattr(prepared.fetcher, "done", done)
+        s = StreamingSession(prepared, ctx, view)
+        try:
+            assert ("taken", root_key) in events and ("compile", "program") in events
+            assert events.index(("taken", root_key)) < events.index(("compile", "program"))
+            assert s.engine._decoding == {root_key} or root_key in s.engine._ready
+            monkeypatch.setattr(streaming, "FIRST_FRAME_DECODE_WAIT_S", 30.0)  # however loaded the machine
+            rec = s.frame(camera(root))  # waits for the root's decode, uploads and draws it
+            assert rec.drawn_splats == root_tile.splats > 0
+            assert s.metrics.first_frame_s is not None and len(s.metrics.frames) == 1
+        finally:
+            s.close()
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.wait(10)

@@ -1065,6 +1065,14 @@ class StreamEngine:
             self._ready_bytes -= self._ready.pop(key).nbytes
             self._version += 1
 
+    def take_arrived(self) -> int:
+        """Hand the payloads the fetcher finished to the decode threads now, outside a frame (what each update's
+        collect does first); returns how many decodes run. A session calls it while it builds the renderer: the
+        root's base, asked for with the manifest, then decodes before the first frame instead of after its update
+        (client.md 6)."""
+        self._collect()
+        return len(self._decoding)
+
     def wait(self, timeout_s: float = 0.05) -> None:
         """Block briefly until a decode or a page's parse finishes (loops without a display use it instead of
         spinning)."""
