@@ -42,7 +42,12 @@ from client_gl.stream.selection import (
 from splatstream.camera import Camera
 from splatstream.format.manifest import TileArrays
 
-_JIT = dict(cache=True, nogil=True, error_model="numpy")  # x/0 gives inf or nan as numpy's does, never an exception
+# error_model: x/0 gives inf or nan as numpy's does, never an exception. nogil=False: the kernels keep the interpreter
+# lock. They run on the frame loop, which waits for their answer, so releasing it bought no parallelism; it handed the
+# lock to the decode and fetch threads at every call (5-7 a frame), and the frame loop then waited for their Python to
+# give it back (the draw set's wall median 0.43-0.79 ms on 0.13-0.15 of CPU beside busy threads, 0.08-0.12 holding it:
+# BENCHMARKS.md, "Manifest pages").
+_JIT = dict(cache=True, nogil=False, error_model="numpy")
 # The kernels' `g`, the tree and camera (select_near_compiled builds it): positions in the tuple
 _CAM, _CENTRE, _RADIUS, _ERR, _CORNERS, _PLANE_D, _SPLIT, _LO, _HI, _WAS_REFINED, _HIGH, _LOW = range(12)
 
