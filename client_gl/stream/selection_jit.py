@@ -465,8 +465,10 @@ class _ChildIndex:
     whose parent they are. So an adoption appends the blocks of the parents of its new tiles (a tile gaining its
     page's children, and the new tiles' own) and leaves every other block in place: the time of the page's tiles,
     not of the tree held (made again from the parents after every adoption, 0.05 ms a frame on average at 250M
-    splats: BENCHMARKS.md, "Manifest pages"). Any other tree (an eviction's kept rows, another scene) is indexed
-    anew. The selection takes a tile's children in any order (its queue pops distinct (key, position) pairs); the
+    splats: BENCHMARKS.md, "Manifest pages"). An eviction's kept rows (PagedTree.evict marks them with the arrays
+    they were taken from and the positions kept) take the blocks through those positions, and the tree grown from
+    them into new storage grows the index as above (_reach); any other tree (another scene) is indexed anew. The
+    selection takes a tile's children in any order (its queue pops distinct (key, position) pairs); the
     draw set's walk takes them in draw_set's, the tree's."""
 
     def __init__(self) -> None:
@@ -545,7 +547,7 @@ class _ChildIndex:
 
     def _rebuild(self, a: TileArrays, n: int) -> None:
         # the blocks from the tuple of children (their order: the draw set's walk visits them so), about 1.2 ms at
-        # 21,600 tiles on the 2-core VM, once per tree that is not grown from the last (an eviction's kept rows)
+        # 21,600 tiles on the 2-core VM, once per tree neither grown nor taken from the last (another scene)
         counts = np.fromiter(map(len, a.children), np.int64, n)
         cap = 2 * n + 16  # room to grow by pages
         self.lo, self.hi, self.kids = (np.zeros(cap, np.int64) for _ in range(3))
