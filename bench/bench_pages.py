@@ -311,12 +311,15 @@ def street_camera(frame: int, frames: int, side: float) -> Camera:
 
 def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame: int, profile: bool,
                 compiled: bool = True, wait: bool = True, parts_json: str | None = None,
-                busy_threads: int = 0, max_tree_tiles: int | None = None) -> None:
+                busy_threads: int = 0, max_tree_tiles: int | None = None,
+                busy_pattern: tuple[float, float] | None = None) -> None:
     """A StreamEngine over the paged tree along a camera flying across the city at street level: per-frame
     update times (median, p99, max) and, with --profile, where they go. `compiled`: the compiled selection
     (selection_jit, waited for before the path, so every frame near the cut uses it), else the numpy path.
     `max_tree_tiles`: the engine's bound on the tree held (StreamOptions' default if None); a bound below the tiles
-    the path holds makes it drop pages (its eviction timed as "page eviction")."""
+    the path holds makes it drop pages (its eviction timed as "page eviction"). `busy_pattern` (hold, rest ms): the
+    busy threads hold the interpreter lock for `hold` ms of Python, then rest `rest` ms without it (a decode
+    thread's Python around its nogil kernels), instead of holding it always."""
     paged = split_pages(whole, k)
     files = {ref.file: raw for ref, raw in paged.pages}
     bound = {} if max_tree_tiles is None else {"max_tree_tiles": max_tree_tiles}
@@ -424,6 +427,15 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
     stop = threading.Event()
 
     def busy() -> None:  # Python that holds the interpreter lock until the switch interval takes it (a page parse)
+        if busy_pattern is not None:
+            hold, rest = busy_pattern[0] / 1e3, busy_pattern[1] / 1e3
+            clock = time.perf_counter
+            while not stop.is_set():
+                until = clock() + hold
+                while clock() < until:
+                    pass
+                time.sleep(rest)  # the lock released, as a nogil kernel or zstd releases it
+            return
         while not stop.is_set():
             sum(i * i for i in range(2000))
     others = [threading.Thread(target=busy, daemon=True) for _ in range(busy_threads)]
@@ -634,6 +646,9 @@ def main() -> None:
     ap.add_argument("--busy-threads", type=int, default=0,
                     help="--engine: threads of pure Python beside the frame loop (as a page parse or a decode step "
                          "that runs into a frame): the frame's wall then shows each hand-over of the interpreter lock")
+    ap.add_argument("--busy-pattern", default=None, metavar="HOLD,REST",
+                    help="--engine: the busy threads hold the interpreter lock HOLD ms, then rest REST ms without it "
+                         "(as a decode thread's Python between its nogil kernels: 0.15,0.3), instead of always")
     ap.add_argument("--max-tree-tiles", type=int, default=None,
                     help="--engine: the engine's bound on the tiles held (StreamOptions.max_tree_tiles; default its "
                          "default): below the tiles the path holds, pages are dropped and their eviction timed")
@@ -649,7 +664,8 @@ def main() -> None:
             engine_path(synthetic_tree(n, base), args.default_levels, args.frames, args.max_splats, args.per_frame,
                         args.profile, not args.numpy_selection, not args.no_wait,
                         args.parts_json.replace("N", f"{n / 1e6:.0f}M") if args.parts_json else None,
-                        args.busy_threads, args.max_tree_tiles)
+                        args.busy_threads, args.max_tree_tiles,
+                        tuple(float(x) for x in args.busy_pattern.split(",")) if args.busy_pattern else None)
         return
     if args.repage:
         repage(*args.repage, args.default_levels)

@@ -209,6 +209,8 @@ def test_select_near_on_a_paged_tree_with_pages_arriving_and_dropped(whole, path
     files = {ref.file: raw for ref, raw in paged.pages}
     rnd = random.Random(7)
     tree = PagedTree(paged.root)
+    if path == "compiled":
+        made, taken = selection_jit._index.rebuilds, selection_jit._index.taken
     previous: frozenset[int] = frozenset()
     last: set[int] = set()
     reads = evictions = 0
@@ -241,6 +243,11 @@ def test_select_near_on_a_paged_tree_with_pages_arriving_and_dropped(whole, path
     assert reads > 10 and evictions > 10 and tree.evicted > 0
     if path == "compiled":  # the children's index was grown with the tree (and checked against it), not only made anew
         assert selection_jit._index.grown > 10
+        # and taken through the kept rows at evictions, then grown from them in new storage: made anew only for the
+        # first tree (the root manifest, then the first page's storage)
+        taken, made = selection_jit._index.taken - taken, selection_jit._index.rebuilds - made
+        print(f"children's index: {taken} taken, {made} made anew, {evictions} evictions")
+        assert taken > 5 and made <= 2, (taken, made, evictions)
 
 
 @NEEDS_NUMBA

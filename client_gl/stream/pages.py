@@ -282,7 +282,11 @@ class PagedTree:
         m = replace(self.root, tiles=tuple(self._tiles))
         m.__dict__["index_of"], m.__dict__["tile_by_id"] = self._position, self._by_id
         if "arrays" in last.__dict__:  # the kept rows taken, not rebuilt from the tiles
-            m.__dict__["arrays"] = taken_arrays(last.arrays, keep)
+            m.__dict__["arrays"] = arrays = taken_arrays(last.arrays, keep)
+            # where they came from, for the compiled selection's children's index (selection_jit._ChildIndex: taken
+            # through `keep` instead of made again from the tuples); one link only, the last arrays' own dropped
+            arrays.__dict__["_taken_from"] = (last.arrays, keep)
+            last.arrays.__dict__.pop("_taken_from", None)
         self._changed, self._rows = set(), []
         self._manifest = self._view_of = m
         return keep

@@ -42,7 +42,12 @@ from client_gl.stream.selection import (
 from splatstream.camera import Camera
 from splatstream.format.manifest import TileArrays
 
-_JIT = dict(cache=True, nogil=True, error_model="numpy")  # x/0 gives inf or nan as numpy's does, never an exception
+# error_model: x/0 gives inf or nan as numpy's does, never an exception. nogil=False: the kernels keep the interpreter
+# lock. They run on the frame loop, which waits for their answer, so releasing it bought no parallelism; it handed the
+# lock to the decode and fetch threads at every call (5-7 a frame), and the frame loop then waited for their Python to
+# give it back (the draw set's wall median 0.43-0.79 ms on 0.13-0.15 of CPU beside busy threads, 0.08-0.12 holding it:
+# BENCHMARKS.md, "Manifest pages").
+_JIT = dict(cache=True, nogil=False, error_model="numpy")
 # The kernels' `g`, the tree and camera (select_near_compiled builds it): positions in the tuple
 _CAM, _CENTRE, _RADIUS, _ERR, _CORNERS, _PLANE_D, _SPLIT, _LO, _HI, _WAS_REFINED, _HIGH, _LOW = range(12)
 
@@ -460,34 +465,89 @@ class _ChildIndex:
     whose parent they are. So an adoption appends the blocks of the parents of its new tiles (a tile gaining its
     page's children, and the new tiles' own) and leaves every other block in place: the time of the page's tiles,
     not of the tree held (made again from the parents after every adoption, 0.05 ms a frame on average at 250M
-    splats: BENCHMARKS.md, "Manifest pages"). Any other tree (an eviction's kept rows, another scene) is indexed
-    anew. The selection takes a tile's children in any order (its queue pops distinct (key, position) pairs); the
+    splats: BENCHMARKS.md, "Manifest pages"). An eviction's kept rows (PagedTree.evict marks them with the arrays
+    they were taken from and the positions kept) take the blocks through those positions, and the tree grown from
+    them into new storage grows the index as above (_reach); any other tree (another scene) is indexed anew. The
+    selection takes a tile's children in any order (its queue pops distinct (key, position) pairs); the
     draw set's walk takes them in draw_set's, the tree's."""
 
     def __init__(self) -> None:
         self.held = lambda: None  # the TileArrays last indexed (weak)
         self.store = lambda: None  # their growing storage (weak), and how many of its rows are indexed
         self.n = 0
+        # the ids and parents of the tiles indexed (the arrays', not copies: rows below a length never change)
+        self.ids, self.parent = np.zeros(0, np.int64), np.zeros(0, np.int64)
         self.lo, self.hi, self.kids = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
         self.used = 0  # entries of kids in use
-        self.rebuilds = self.grown = 0
+        self.rebuilds = self.grown = self.taken = 0
 
     def of(self, a: TileArrays) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         n = len(a.parent)
         if self.held() is not a:
-            store = a.__dict__.get("_growing")
-            if store is not None and store is self.store() and n >= self.n:
-                self._grow(a, n)
-            else:
+            taken = a.__dict__.get("_taken_from")  # an eviction's kept rows (client_gl/stream/pages.py)
+            if taken is not None and self._reach(taken[0]):
+                self._take(a, taken[1])
+            elif not self._reach(a):
                 self._rebuild(a, n)
             self.held = weakref.ref(a)
+            store = a.__dict__.get("_growing")
             self.store = weakref.ref(store) if store is not None else (lambda: None)
             self.n = n
+            self.ids, self.parent = getattr(a, "ids", None), a.parent
         return self.lo[:n], self.hi[:n], self.kids[:self.used]
+
+    def _reach(self, a: TileArrays) -> bool:
+        """Bring the index to `a` without making it anew where `a` is the arrays indexed or grown from them: the same
+        storage grown (its rows below the length indexed never change), or new storage whose first rows are the
+        tiles indexed, the same ids under the same parents (the tree grown from an eviction's kept rows, copied into
+        storage by the first page after it: made anew, that adoption's cut took 1.2-1.5 ms more; BENCHMARKS.md,
+        "Manifest pages"). A tile's children are listed by its entry, so the same ids with the same parents are the
+        same children in the same order. False: not reached (the index unchanged)."""
+        if self.held() is a:
+            return True
+        n = len(a.parent)
+        if n < self.n:
+            return False
+        store = a.__dict__.get("_growing")
+        if store is None:
+            return False
+        if store is not self.store() and not (self.ids is not None and np.array_equal(a.ids[:self.n], self.ids) and
+                                              np.array_equal(a.parent[:self.n], self.parent)):
+            return False
+        self._grow(a, n)
+        self.held, self.store, self.n = weakref.ref(a), weakref.ref(store), n
+        self.ids, self.parent = getattr(a, "ids", None), a.parent
+        return True
+
+    def _take(self, a: TileArrays, keep: np.ndarray) -> None:
+        """The index of the arrays indexed taken at positions `keep` (an eviction's kept rows, in order; a kept
+        tile's parent kept): each kept tile's block, its children kept, renumbered, in the same order (taken_arrays'
+        children). Array operations over the tiles kept, where making it anew from the children's tuples took
+        1.2-1.5 ms of the eviction frame's cut at 16,000-19,000 tiles (BENCHMARKS.md, "Manifest pages")."""
+        k = len(keep)
+        new_of = np.full(self.n, -1, np.int64)
+        new_of[keep] = np.arange(k)
+        starts, counts = self.lo[keep], self.hi[keep] - self.lo[keep]
+        total = int(counts.sum())
+        first = np.cumsum(counts) - counts  # each kept tile's children in the flat list of their old blocks
+        at = np.repeat(starts - first, counts) + np.arange(total)
+        flat = new_of[self.kids[at]]
+        kept = flat >= 0
+        owner = np.repeat(np.arange(k), counts)[kept]
+        left = np.bincount(owner, minlength=k)
+        cap = max(2 * k + 16, len(self.lo))
+        lo, hi = np.zeros(cap, np.int64), np.zeros(cap, np.int64)
+        np.cumsum(left, out=hi[:k])
+        lo[:k] = hi[:k] - left
+        self.used = int(hi[k - 1]) if k else 0
+        kids = np.zeros(max(len(self.kids), self.used), np.int64)
+        kids[:self.used] = flat[kept]
+        self.lo, self.hi, self.kids = lo, hi, kids
+        self.taken += 1
 
     def _rebuild(self, a: TileArrays, n: int) -> None:
         # the blocks from the tuple of children (their order: the draw set's walk visits them so), about 1.2 ms at
-        # 21,600 tiles on the 2-core VM, once per tree that is not grown from the last (an eviction's kept rows)
+        # 21,600 tiles on the 2-core VM, once per tree neither grown nor taken from the last (another scene)
         counts = np.fromiter(map(len, a.children), np.int64, n)
         cap = 2 * n + 16  # room to grow by pages
         self.lo, self.hi, self.kids = (np.zeros(cap, np.int64) for _ in range(3))
