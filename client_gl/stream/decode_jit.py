@@ -64,35 +64,45 @@ def fields1_kernel(raw, planes_at, params_at, n, layers, words, fields, modes, s
             row = work[f]
             delta = deltas[mode + f] != 0
             s = np.int64(0)
+            # each byte plane as its own slice, read by the loop's index alone: with raw[base + i] the compiled loop
+            # checked every read for a negative index (numba's wraparound), which took 1.5-2x the time of the whole
+            # kernel on small payloads (BENCHMARKS.md, "Decode speed"; issue 32)
             if nb == 1:  # fields of up to 8 bits: the byte itself, no zigzag
+                b0 = raw[base:base + n]
                 if delta:
                     for i in range(n):
-                        s += np.int64(raw[base + i])
+                        s += np.int64(b0[i])
                         row[i] = s & m
                 else:
                     for i in range(n):
-                        row[i] = np.int64(raw[base + i]) & m
+                        row[i] = np.int64(b0[i]) & m
             elif nb == 2:
+                b0 = raw[base:base + n]
+                b1 = raw[base + n:base + 2 * n]
                 if delta:
                     for i in range(n):
-                        c = np.int64(raw[base + i]) | (np.int64(raw[base + n + i]) << 8)
+                        c = np.int64(b0[i]) | (np.int64(b1[i]) << 8)
                         s += (c >> 1) ^ -(c & 1)
                         row[i] = s & m
                 else:
                     for i in range(n):
-                        c = np.int64(raw[base + i]) | (np.int64(raw[base + n + i]) << 8)
+                        c = np.int64(b0[i]) | (np.int64(b1[i]) << 8)
                         row[i] = ((c >> 1) ^ -(c & 1)) & m
             elif nb == 4:  # 32-bit fields (f32x4): |residual| < 2^31, so int64 sums of 2^25 slots cannot overflow
+                b0 = raw[base:base + n]
+                b1 = raw[base + n:base + 2 * n]
+                b2 = raw[base + 2 * n:base + 3 * n]
+                b3 = raw[base + 3 * n:base + 4 * n]
                 if delta:
                     for i in range(n):
-                        c = (np.int64(raw[base + i]) | (np.int64(raw[base + n + i]) << 8)
-                             | (np.int64(raw[base + 2 * n + i]) << 16) | (np.int64(raw[base + 3 * n + i]) << 24))
+                        c = (np.int64(b0[i]) | (np.int64(b1[i]) << 8) | (np.int64(b2[i]) << 16)
+                             | (np.int64(b3[i]) << 24))
                         s += (c >> 1) ^ -(c & 1)
                         row[i] = s & m
                 else:
                     for i in range(n):
-                        c = (np.int64(raw[base + i]) | (np.int64(raw[base + n + i]) << 8)
-                             | (np.int64(raw[base + 2 * n + i]) << 16) | (np.int64(raw[base + 3 * n + i]) << 24))
+                        c = (np.int64(b0[i]) | (np.int64(b1[i]) << 8) | (np.int64(b2[i]) << 16)
+                             | (np.int64(b3[i]) << 24))
                         row[i] = ((c >> 1) ^ -(c & 1)) & m
             else:
                 for i in range(n):
