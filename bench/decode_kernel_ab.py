@@ -1,7 +1,7 @@
 """Paired, interleaved A/B of two versions of the compiled decode kernels (client_gl/stream/decode_jit.py), end to
 end on the streaming client's path (issue 32: "Decode speed stays at 10 M splats/s or more on one core").
 
-    git show REV:client_gl/stream/decode_jit.py > /tmp/decode_jit_ref.py
+    git show REV:client_gl/stream/decode_jit.py > /tmp/decode_jit_ref.py  # any file name but decode_jit.py
     python bench/decode_kernel_ab.py --reference /tmp/decode_jit_ref.py [--scenes guitar,winter_fountain]
         [--presets high,medium,...] [--rounds 7] [--cap 4096] [--json PATH]
 
@@ -17,7 +17,7 @@ M splats/s (each tile's splats once per group), best and median round, and write
 from __future__ import annotations
 
 import argparse
-import importlib.util
+import importlib
 import json
 import os
 import statistics
@@ -78,16 +78,19 @@ def _jobs(store, cap: int) -> tuple[list, bool, object, int, int]:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--reference", required=True, help="a decode_jit.py of another version (git show REV:path)")
+    ap.add_argument("--reference", required=True,
+                    help="a decode_jit.py of another version (git show REV:path), under another file name")
     ap.add_argument("--scenes", default="guitar,winter_fountain")
     ap.add_argument("--presets", default=PRESETS)
     ap.add_argument("--rounds", type=int, default=7)
     ap.add_argument("--cap", type=int, default=4096, help="splats a decode job (the engine's decode_batch_splats)")
     ap.add_argument("--json")
     args = ap.parse_args()
-    spec = importlib.util.spec_from_file_location("decode_jit_reference", args.reference)
-    reference = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(reference)
+    # imported by its file's name from its folder: numba's cache (cache=True) loads a kernel's environment by
+    # importing its module by name, which a module made from a spec alone does not have
+    folder, name = os.path.split(os.path.abspath(args.reference))
+    sys.path.insert(0, folder)
+    reference = importlib.import_module(os.path.splitext(name)[0])
     reference.warm_up()
     decode_jit.warm_up()
     variants = (("reference", reference), ("this", decode_jit))
