@@ -31,7 +31,7 @@ import numpy as np  # noqa: E402
 from client_gl.stream import decode_jit  # noqa: E402
 from splatstream.encode import EncodeOptions  # noqa: E402
 from splatstream.encode.local import encode_in_memory  # noqa: E402
-from splatstream.format import keyed, transport  # noqa: E402
+from splatstream.format import container, keyed, transport  # noqa: E402
 from splatstream.format.container import verify_payload  # noqa: E402
 from splatstream.format.decode import decode_payloads  # noqa: E402
 from splatstream.io import read_gaussians  # noqa: E402
@@ -50,6 +50,7 @@ def _use(kernels) -> None:
     transport.use_batch_kernels(kernels.fields1_many_kernel, kernels.unshuffle_many_kernel)
     transport.use_whole_kernel(kernels.whole_kernel)
     keyed.use_morton_kernel(kernels.morton_kernel)
+    container.use_ranges_kernel(getattr(kernels, "ranges_kernel", None))  # a reference may have none
 
 
 def _jobs(store, cap: int) -> tuple[list, bool, object, int, int]:

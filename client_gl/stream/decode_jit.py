@@ -24,19 +24,24 @@ for that lock; issue 32: that Python is most of a small payload's decode).
 `morton_kernel` decodes a `morton1` position section (format.md 5.4: keyed positions, the preset
 medium-low-palette) in one pass where numpy takes about fifteen calls (keyed.use_morton_kernel).
 
+`ranges_kernel` checks a plane's range values (finite, each minimum at most its maximum, inside the plane's domain:
+format.md 4.3, 4.8) in one pass where Python's floats took 5-6 us a call (container.use_ranges_kernel).
+
 `install()` compiles the kernels (or loads them from numba's cache: cache=True) with the argument types of a real
 call and hands them to format.transport (`use_fields_kernel`, `use_unshuffle_kernel`, `use_batch_kernels`,
-`use_whole_kernel`, keyed's `use_morton_kernel`); `uninstall()` goes back to numpy. The core never imports
-numba (ARCHITECTURE.md): this module is the streaming client's, and benchmarks import it to compare both.
+`use_whole_kernel`, keyed's `use_morton_kernel`, container's `use_ranges_kernel`); `uninstall()` goes back to
+numpy. The core never imports numba (ARCHITECTURE.md): this module is the streaming client's, and benchmarks import
+it to compare both.
 """
 from __future__ import annotations
 
+import math
 import os
 
 import numpy as np
 from numba import njit
 
-from splatstream.format import keyed, transport
+from splatstream.format import container, keyed, transport
 
 _JIT = dict(cache=True, nogil=True, boundscheck=False)
 WHOLE_ENV = "SPLATSTREAM_DECODE_WHOLE"  # "0": install() leaves the whole kernel out
@@ -279,6 +284,22 @@ def morton_kernel(stored, slots, slot_to_texel, out):
             | (_compact(key >> np.uint64(2)) << np.uint64(32)) | (w << np.uint64(48))
 
 
+@njit(**_JIT)
+def ranges_kernel(pairs, low, high):
+    """container._ranges_ok's answer in one pass (container.use_ranges_kernel): every minimum and maximum of
+    `pairs` ((chunks, 2, k) float32) finite, each minimum at most its maximum, all inside [low, high]. A NaN fails
+    every comparison; the float32 values compared as float64, as Python's floats compare them."""
+    for c in range(pairs.shape[0]):
+        lows = pairs[c, 0]
+        highs = pairs[c, 1]
+        for k in range(lows.shape[0]):
+            lo = np.float64(lows[k])
+            hi = np.float64(highs[k])
+            if not (math.isfinite(lo) and math.isfinite(hi) and low <= lo and lo <= hi and hi <= high):
+                return False
+    return True
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) the kernel for the argument types of real calls: a content as a writable
     buffer's view (a payload's kept buffer) and as read-only bytes, into texels of 1, 2 and 4-byte words."""
@@ -325,6 +346,11 @@ def warm_up() -> None:
         keyed.unfilter_morton(content.tobytes(), 16, 16)
     finally:
         keyed.use_morton_kernel(previous)
+    pairs = np.zeros((1, 2, 3), np.float32)  # ranges in a kept buffer or a fresh array, and read-only ones
+    read_only_pairs = pairs.copy()
+    read_only_pairs.setflags(write=False)
+    for p in (pairs, read_only_pairs):
+        ranges_kernel(p, -1.0, 1.0)
     unit = np.zeros(16, np.uint8)
     read_only = unit.copy()
     read_only.setflags(write=False)
@@ -339,6 +365,7 @@ def install() -> None:
     transport.use_unshuffle_kernel(unshuffle_kernel)
     transport.use_batch_kernels(fields1_many_kernel, unshuffle_many_kernel)
     keyed.use_morton_kernel(morton_kernel)
+    container.use_ranges_kernel(ranges_kernel)
     # SPLATSTREAM_DECODE_WHOLE=0: a plane at a time as before the whole kernel (for A/B runs of the fly-through:
     # the whole kernel gives the lock up twice a payload instead of about five times, for 10-20 us more of Python
     # holding it; BENCHMARKS.md, "Decode speed")
@@ -352,3 +379,4 @@ def uninstall() -> None:
     transport.use_batch_kernels(None, None)
     transport.use_whole_kernel(None)
     keyed.use_morton_kernel(None)
+    container.use_ranges_kernel(None)
