@@ -203,17 +203,19 @@ def _numba_kernel():
         return None, str(exc)
     decode_jit.warm_up()
     return (decode_jit.fields1_kernel, decode_jit.unshuffle_kernel, decode_jit.fields1_many_kernel,
-            decode_jit.unshuffle_many_kernel, decode_jit.whole_kernel, decode_jit.morton_kernel), None
+            decode_jit.unshuffle_many_kernel, decode_jit.whole_kernel, decode_jit.morton_kernel,
+            decode_jit.ranges_kernel), None
 
 
 def _use(kernels) -> None:
     """Decode with these kernels (fields1, unshuffle, their batch forms for a group's plane, the whole kernel for
-    a payload or a group, morton1's); None: numpy's path."""
+    a payload or a group, morton1's, the range checks'); None: numpy's path."""
     transport.use_fields_kernel(kernels[0] if kernels else None)
     transport.use_unshuffle_kernel(kernels[1] if kernels else None)
     transport.use_batch_kernels(*(kernels[2:4] if kernels else (None, None)))
     transport.use_whole_kernel(kernels[4] if kernels else None)
     keyed.use_morton_kernel(kernels[5] if kernels else None)
+    container.use_ranges_kernel(kernels[6] if kernels and len(kernels) > 6 else None)
 
 
 def main() -> None:

@@ -34,12 +34,14 @@ def numpy_path():
     batch = transport.use_batch_kernels(None, None)
     whole = transport.use_whole_kernel(None)
     morton = keyed.use_morton_kernel(None)
+    ranges = container.use_ranges_kernel(None)
     yield
     transport.use_fields_kernel(previous[0])
     transport.use_unshuffle_kernel(previous[1])
     transport.use_batch_kernels(*batch)
     transport.use_whole_kernel(whole)
     keyed.use_morton_kernel(morton)
+    container.use_ranges_kernel(ranges)
 
 
 def decode_both(content, fmt, width, height, layers):
@@ -321,3 +323,41 @@ def test_float_texels_of_a_group_are_checked_at_once_and_a_bad_one_named(numpy_p
     else:
         with pytest.raises(FormatError, match=f"payload2.*section {shuffled[0]}.*outside"):
             container.unpack_payloads(items, "base", sources)
+
+
+@pytest.mark.parametrize("dtype", ["<f4", "<f2"])
+def test_the_ranges_kernel_answers_as_the_python_and_numpy_checks(numpy_path, dtype, monkeypatch):
+    """decode_jit.ranges_kernel (container.use_ranges_kernel) against _ranges_ok's Python-float and numpy paths, its
+    reference, on hostile ranges: NaN, infinities, values at and beyond each plane's domain, minimum above maximum;
+    C-ordered, read-only and strided arrays (the last go to the reference paths)."""
+    decode_jit.warm_up()
+    rng = np.random.default_rng(7)
+    specials = [np.nan, np.inf, -np.inf, 0.0, -0.0, 1e6, -1e6, 65504.0, 3e38, -3e38, 1e18, -1e18, 2e18, -80.0, 40.0,
+                -80.5, 40.5]
+    answers = {True: 0, False: 0}
+    for plane in ("position", "scale", "color", "opacity", "sh1"):
+        for _ in range(300):
+            chunks = int(rng.integers(1, 6))
+            r = rng.normal(0, 3, size=(chunks, 2, 1, 3))
+            r[:, 1] = r[:, 0] + np.abs(rng.normal(0, 1, size=(chunks, 1, 3)))
+            for _ in range(rng.integers(0, 3)):
+                r[tuple(rng.integers(0, k) for k in r.shape)] = specials[rng.integers(len(specials))]
+            with np.errstate(over="ignore", invalid="ignore"):
+                ranges = r.astype(dtype)
+            read_only = ranges.copy()
+            read_only.setflags(write=False)
+            strided = np.repeat(ranges, 2, axis=0)[::2]
+            for small in (container.SMALL_RANGES, 0):  # Python's floats, numpy's reductions
+                monkeypatch.setattr(container, "SMALL_RANGES", small)
+                container.use_ranges_kernel(None)
+                expected = container._ranges_ok(ranges, plane)
+                container.use_ranges_kernel(decode_jit.ranges_kernel)
+                for x in (ranges, read_only, strided):
+                    assert container._ranges_ok(x, plane) == expected, (plane, x)
+            answers[expected] += 1
+            if expected:
+                container._check_ranges(ranges, plane, "r", "s")
+            else:
+                with pytest.raises(FormatError):
+                    container._check_ranges(ranges, plane, "r", "s")
+    assert answers[True] > 100 and answers[False] > 100  # both answers well covered

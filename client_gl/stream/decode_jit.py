@@ -24,19 +24,24 @@ for that lock; issue 32: that Python is most of a small payload's decode).
 `morton_kernel` decodes a `morton1` position section (format.md 5.4: keyed positions, the preset
 medium-low-palette) in one pass where numpy takes about fifteen calls (keyed.use_morton_kernel).
 
+`ranges_kernel` checks a plane's range values (finite, each minimum at most its maximum, inside the plane's domain:
+format.md 4.3, 4.8) in one pass where Python's floats took 5-6 us a call (container.use_ranges_kernel).
+
 `install()` compiles the kernels (or loads them from numba's cache: cache=True) with the argument types of a real
 call and hands them to format.transport (`use_fields_kernel`, `use_unshuffle_kernel`, `use_batch_kernels`,
-`use_whole_kernel`, keyed's `use_morton_kernel`); `uninstall()` goes back to numpy. The core never imports
-numba (ARCHITECTURE.md): this module is the streaming client's, and benchmarks import it to compare both.
+`use_whole_kernel`, keyed's `use_morton_kernel`, container's `use_ranges_kernel`); `uninstall()` goes back to
+numpy. The core never imports numba (ARCHITECTURE.md): this module is the streaming client's, and benchmarks import
+it to compare both.
 """
 from __future__ import annotations
 
+import math
 import os
 
 import numpy as np
 from numba import njit
 
-from splatstream.format import keyed, transport
+from splatstream.format import container, keyed, transport
 
 _JIT = dict(cache=True, nogil=True, boundscheck=False)
 WHOLE_ENV = "SPLATSTREAM_DECODE_WHOLE"  # "0": install() leaves the whole kernel out
@@ -64,35 +69,45 @@ def fields1_kernel(raw, planes_at, params_at, n, layers, words, fields, modes, s
             row = work[f]
             delta = deltas[mode + f] != 0
             s = np.int64(0)
+            # each byte plane as its own slice, read by the loop's index alone: with raw[base + i] the compiled loop
+            # checked every read for a negative index (numba's wraparound), which took 1.5-2x the time of the whole
+            # kernel on small payloads (BENCHMARKS.md, "Decode speed"; issue 32)
             if nb == 1:  # fields of up to 8 bits: the byte itself, no zigzag
+                b0 = raw[base:base + n]
                 if delta:
                     for i in range(n):
-                        s += np.int64(raw[base + i])
+                        s += np.int64(b0[i])
                         row[i] = s & m
                 else:
                     for i in range(n):
-                        row[i] = np.int64(raw[base + i]) & m
+                        row[i] = np.int64(b0[i]) & m
             elif nb == 2:
+                b0 = raw[base:base + n]
+                b1 = raw[base + n:base + 2 * n]
                 if delta:
                     for i in range(n):
-                        c = np.int64(raw[base + i]) | (np.int64(raw[base + n + i]) << 8)
+                        c = np.int64(b0[i]) | (np.int64(b1[i]) << 8)
                         s += (c >> 1) ^ -(c & 1)
                         row[i] = s & m
                 else:
                     for i in range(n):
-                        c = np.int64(raw[base + i]) | (np.int64(raw[base + n + i]) << 8)
+                        c = np.int64(b0[i]) | (np.int64(b1[i]) << 8)
                         row[i] = ((c >> 1) ^ -(c & 1)) & m
             elif nb == 4:  # 32-bit fields (f32x4): |residual| < 2^31, so int64 sums of 2^25 slots cannot overflow
+                b0 = raw[base:base + n]
+                b1 = raw[base + n:base + 2 * n]
+                b2 = raw[base + 2 * n:base + 3 * n]
+                b3 = raw[base + 3 * n:base + 4 * n]
                 if delta:
                     for i in range(n):
-                        c = (np.int64(raw[base + i]) | (np.int64(raw[base + n + i]) << 8)
-                             | (np.int64(raw[base + 2 * n + i]) << 16) | (np.int64(raw[base + 3 * n + i]) << 24))
+                        c = (np.int64(b0[i]) | (np.int64(b1[i]) << 8) | (np.int64(b2[i]) << 16)
+                             | (np.int64(b3[i]) << 24))
                         s += (c >> 1) ^ -(c & 1)
                         row[i] = s & m
                 else:
                     for i in range(n):
-                        c = (np.int64(raw[base + i]) | (np.int64(raw[base + n + i]) << 8)
-                             | (np.int64(raw[base + 2 * n + i]) << 16) | (np.int64(raw[base + 3 * n + i]) << 24))
+                        c = (np.int64(b0[i]) | (np.int64(b1[i]) << 8) | (np.int64(b2[i]) << 16)
+                             | (np.int64(b3[i]) << 24))
                         row[i] = ((c >> 1) ^ -(c & 1)) & m
             else:
                 for i in range(n):
@@ -122,17 +137,37 @@ def fields1_kernel(raw, planes_at, params_at, n, layers, words, fields, modes, s
                     for i in range(b * 256, (b + 1) * 256):
                         row[i] = (row[i] + ((slope * anchor[i] + bias) >> 6)) & m
         first = layer * n
+        # the texels' packing spelt out for each layout of FIELD_LAYOUTS (about a fifth of the kernel's time on
+        # 16-bit and four-field formats against the general loops below them; issue 32)
         if words == 1 and nf == 3:  # fields packed in one word (norm11, norm9x3, norm565)
             s1, s2 = shifts[1], shifts[2]
             r0, r1, r2 = work[0], work[1], work[2]
             for i in range(n):
                 out[first + slot_to_texel[i]] = r0[i] | (r1[i] << s1) | (r2[i] << s2)
+        elif words == 1 and nf == 4:  # norm10_2
+            s1, s2, s3 = shifts[1], shifts[2], shifts[3]
+            r0, r1, r2, r3 = work[0, :n], work[1, :n], work[2, :n], work[3, :n]
+            for i in range(n):
+                out[first + slot_to_texel[i]] = r0[i] | (r1[i] << s1) | (r2[i] << s2) | (r3[i] << s3)
+        elif words == 1 and nf == 1:  # index16
+            r0 = work[0, :n]
+            for i in range(n):
+                out[first + slot_to_texel[i]] = r0[i]
         elif words == 1:
             for i in range(n):
                 v = np.int64(0)
                 for f in range(nf):
                     v |= work[f, i] << shifts[f]
                 out[first + slot_to_texel[i]] = v
+        elif words == 4 and nf == 4:  # one field a word (norm8x4, norm16x4, f16x4, f32x4): a texel's four at once
+            r0, r1, r2, r3 = work[0, :n], work[1, :n], work[2, :n], work[3, :n]
+            for i in range(n):
+                t = (first + slot_to_texel[i]) * 4
+                o = out[t:t + 4]
+                o[0] = r0[i]
+                o[1] = r1[i]
+                o[2] = r2[i]
+                o[3] = r3[i]
         else:  # one field a word
             for f in range(nf):
                 row = work[f]
@@ -249,6 +284,22 @@ def morton_kernel(stored, slots, slot_to_texel, out):
             | (_compact(key >> np.uint64(2)) << np.uint64(32)) | (w << np.uint64(48))
 
 
+@njit(**_JIT)
+def ranges_kernel(pairs, low, high):
+    """container._ranges_ok's answer in one pass (container.use_ranges_kernel): every minimum and maximum of
+    `pairs` ((chunks, 2, k) float32) finite, each minimum at most its maximum, all inside [low, high]. A NaN fails
+    every comparison; the float32 values compared as float64, as Python's floats compare them."""
+    for c in range(pairs.shape[0]):
+        lows = pairs[c, 0]
+        highs = pairs[c, 1]
+        for k in range(lows.shape[0]):
+            lo = np.float64(lows[k])
+            hi = np.float64(highs[k])
+            if not (math.isfinite(lo) and math.isfinite(hi) and low <= lo and lo <= hi and hi <= high):
+                return False
+    return True
+
+
 def warm_up() -> None:
     """Compile (or load from the cache) the kernel for the argument types of real calls: a content as a writable
     buffer's view (a payload's kept buffer) and as read-only bytes, into texels of 1, 2 and 4-byte words."""
@@ -295,6 +346,11 @@ def warm_up() -> None:
         keyed.unfilter_morton(content.tobytes(), 16, 16)
     finally:
         keyed.use_morton_kernel(previous)
+    pairs = np.zeros((1, 2, 3), np.float32)  # ranges in a kept buffer or a fresh array, and read-only ones
+    read_only_pairs = pairs.copy()
+    read_only_pairs.setflags(write=False)
+    for p in (pairs, read_only_pairs):
+        ranges_kernel(p, -1.0, 1.0)
     unit = np.zeros(16, np.uint8)
     read_only = unit.copy()
     read_only.setflags(write=False)
@@ -309,6 +365,7 @@ def install() -> None:
     transport.use_unshuffle_kernel(unshuffle_kernel)
     transport.use_batch_kernels(fields1_many_kernel, unshuffle_many_kernel)
     keyed.use_morton_kernel(morton_kernel)
+    container.use_ranges_kernel(ranges_kernel)
     # SPLATSTREAM_DECODE_WHOLE=0: a plane at a time as before the whole kernel (for A/B runs of the fly-through:
     # the whole kernel gives the lock up twice a payload instead of about five times, for 10-20 us more of Python
     # holding it; BENCHMARKS.md, "Decode speed")
@@ -322,3 +379,4 @@ def uninstall() -> None:
     transport.use_batch_kernels(None, None)
     transport.use_whole_kernel(None)
     keyed.use_morton_kernel(None)
+    container.use_ranges_kernel(None)

@@ -804,6 +804,25 @@ def _check_float_texels(layers: list[np.ndarray], s: Section, source: str) -> No
                               f"(first {float(bad[0])!r})")
 
 
+_ranges_kernel = None  # see use_ranges_kernel
+
+
+def use_ranges_kernel(kernel) -> object:
+    """Check ranges (_ranges_ok) with a compiled kernel (None: Python's floats and numpy's reductions, its
+    reference); returns the one it replaces. Called as kernel(pairs, low, high) -> bool with `pairs` the ranges as
+    float32 of shape (chunks, 2, values a chunk's minimum or maximum), C-ordered, and the plane's limits as float32
+    values in Python floats (_LIMITS32): True only if every value is finite, every minimum at most its maximum, and
+    all of them inside [low, high].
+
+    Why: those checks, three range planes a payload, were 5-6 us a call in Python (a job of the engine's few small
+    payloads checks each plane once; a payload alone once a plane), the largest single piece of a small payload's
+    Python around the whole kernel (issue 32; BENCHMARKS.md, "Decode speed"). The core never imports numba: the
+    streaming client hands the kernel in (client_gl/stream/decode_jit.py)."""
+    global _ranges_kernel
+    previous, _ranges_kernel = _ranges_kernel, kernel
+    return previous
+
+
 def _ranges_ok(ranges: np.ndarray, plane: str) -> bool:
     """_check_ranges' every check at once, in three reductions (those checks took 12 us a range section, a tenth of
     a small tile's decode: issue 32): a NaN fails every comparison, an infinite least minimum or greatest maximum
@@ -811,6 +830,10 @@ def _ranges_ok(ranges: np.ndarray, plane: str) -> bool:
     if not ranges.size:
         return False
     r = ranges.astype(np.float32, copy=False)  # exact for f16, whose arithmetic numpy runs several times slower
+    kernel = _ranges_kernel
+    if kernel is not None and r.flags.c_contiguous:  # the compiled check (use_ranges_kernel); else the paths below
+        low, high = _LIMITS32.get(plane, _NO_LIMIT)
+        return bool(kernel(r.reshape(len(r), 2, -1), low, high))
     limit = RANGE_LIMITS.get(plane, _NO_LIMIT)
     if r.size <= SMALL_RANGES:
         # a tile's few chunks: Python's builtins over the floats beat the reductions' numpy calls (12 us a range
