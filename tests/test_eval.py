@@ -226,6 +226,38 @@ def test_preset_for_target_picks_smallest_meeting_psnr_and_best_under_size():
         preset_for_target(rows[1:], target_psnr=70)
 
 
+def test_encode_target_size_is_the_size_of_the_scene_written_with_its_lod_tree(tmp_path):
+    """`encode --target-size B` with the LOD tree on (the default) writes a scene of at most B bytes per splat on disk,
+    every level counted, and reports that size: the presets are measured as the encode writes them (its LOD options
+    too), not at full detail only, which picked presets whose scene on disk was larger than B (issue 32)."""
+    from cli.commands.renderers import pick_renderer
+    from splatstream.evaluate import path_size, preset_for_target
+
+    src = real("fruit_drops_sh3.ply")
+    leaf = {"max_leaf_splats": 1024}  # 4,803 splats: leaves of at most 1,024 make a tree with coarse levels
+
+    def rows(lod: bool) -> list[dict]:
+        opts = EvalOptions(views=1, width=512, height=512, lod=lod, encode_options=leaf)
+        return evaluate(str(src), opts, renderer=pick_renderer("auto"))["rows"]
+
+    full, tree = rows(False), rows(True)
+    size_of = {r["label"]: r["disk_bytes_per_splat"] for r in tree}
+    assert all(size_of[r["label"]] > 1.1 * r["disk_bytes_per_splat"] for r in full)  # the coarse levels' bytes
+    # a target the full-detail measure answers with a preset whose scene on disk is larger than the target
+    target = next(t for t in sorted(r["disk_bytes_per_splat"] + 0.01 for r in tree)
+                  if size_of[preset_for_target(full, target_bytes=t)["label"]] > t)
+    want = preset_for_target(tree, target_bytes=target)
+    res = run_cli("encode", src, tmp_path / "s", "--target-size", target, "--target-views", "1", "--max-leaf-splats",
+                  1024)
+    assert res.returncode == 0, res.stderr
+    info = json.loads(run_cli("info", tmp_path / "s", "--json").stdout)
+    assert info["preset"] == want["label"] and len(info["bytes_per_level"]) > 1
+    written = path_size(str(tmp_path / "s")) / info["splats"]
+    assert written == pytest.approx(want["disk_bytes_per_splat"], abs=1e-6) and written <= target
+    assert f"<= {target:g} B/splat: preset {want['label']} ({written:.2f} B/splat on disk with all LOD levels, " \
+        in res.stderr
+
+
 def test_encode_target_psnr_and_size_pick_what_eval_measures(tmp_path):
     """`encode --target-psnr` / `--target-size` encode with the preset eval's numbers pick (same views, same
     renderer), and refuse what cannot work together or cannot be met, in one line."""
@@ -248,7 +280,7 @@ def test_encode_target_psnr_and_size_pick_what_eval_measures(tmp_path):
     assert res.returncode == 0, res.stderr
     assert res.stderr == ""
     assert json.loads(run_cli("info", tmp_path / "b", "--json").stdout)["preset"] == want_small
-    for args, message in ((["--target-size", "1", "--target-views", "1"], "no preset is that small"),
+    for args, message in ((["--target-size", "1", "--target-views", "1"], "B/splat), all LOD levels counted (--no-lod"),
                           (["--target-psnr", "40", "--preset", "low"], "choose the preset"),
                           (["--target-psnr", "40", "--target-size", "9"], "not allowed with argument"),
                           (["--target-psnr", "-3"], "expected a PSNR above 0"),

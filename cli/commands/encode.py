@@ -64,8 +64,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                              "original, the GL renderer where it opens, else the numpy reference) and encode with "
                              "the one of the smallest files whose mean PSNR is at least DB")
     target.add_argument("--target-size", type=float, metavar="B",
-                        help="instead of --preset: as --target-psnr, the preset of the highest PSNR whose "
-                             "full-detail files take at most B bytes per splat")
+                        help="instead of --preset: as --target-psnr, the preset of the highest PSNR whose scene "
+                             "as written takes at most B bytes per splat on disk (every file: with the LOD tree's "
+                             "coarse levels unless --no-lod; the presets are measured with this encode's LOD, "
+                             "page, transport and chunk-order options)")
     p.add_argument("--target-views", type=int, default=TARGET_VIEWS, metavar="N",
                    help=f"orbit views --target-psnr / --target-size measure on (default {TARGET_VIEWS}: fewer, "
                         "faster and noisier)")
@@ -240,12 +242,27 @@ def _preset_for_target(args: argparse.Namespace, up: tuple[float, float, float] 
         if not args.quiet:
             print(f"target: {msg.strip()}", file=sys.stderr)
 
+    # Every preset encoded as this encode will write it (the LOD tree and its options, pages, transport, chunk
+    # order), so the bytes compared with --target-size are those of the scene on disk, not of its full detail only.
     opts = EvalOptions(views=args.target_views, width=TARGET_SIZE, height=TARGET_SIZE, up=up,
-                       zstd_level=args.zstd_level)
+                       zstd_level=args.zstd_level, lod=not args.no_lod,
+                       encode_options={"max_leaf_splats": args.max_leaf_splats, "reduction": args.reduction,
+                                       "lod_merge": args.lod_merge, "page_tiles": args.page_tiles,
+                                       "page_levels": args.page_levels, "transport": args.transport,
+                                       "chunk_order": args.chunk_order})
     report = evaluate(args.input[0], opts, log=log, renderer=pick_renderer("auto"))
-    row = preset_for_target(report["rows"], target_psnr=args.target_psnr, target_bytes=args.target_size)
+    try:
+        row = preset_for_target(report["rows"], target_psnr=args.target_psnr, target_bytes=args.target_size)
+    except UsageError as exc:
+        if args.target_size is None or not opts.lod:
+            raise
+        # the coarse levels about double a scene's bytes (reduction 2): a size met at full detail may not be met here
+        raise UsageError(f"{exc}, all LOD levels counted (--no-lod: the full detail "
+                         "alone)") from None
     psnr = "identical" if row["psnr_mean"] is None else f"{row['psnr_mean']:.2f} dB"
     what = f"PSNR >= {args.target_psnr:g} dB" if args.target_psnr is not None else f"<= {args.target_size:g} B/splat"
-    log(f"{what}: preset {row['label']} ({row['disk_bytes_per_splat']:.2f} B/splat at full detail, {psnr} mean PSNR "
-        f"over {args.target_views} views)")
+    sized = "with all LOD levels" if opts.lod else "without an LOD tree (--no-lod)"
+    log(f"{what}: preset {row['label']} ({row['disk_bytes_per_splat']:.2f} B/splat on disk {sized}, "
+        f"{row['leaf_bytes_on_disk'] / row['splats']:.2f} at full detail; {psnr} mean PSNR of the full detail over "
+        f"{args.target_views} views)")
     return str(row["label"])
