@@ -46,7 +46,13 @@ def run_encode(argv: list[str], cwd: str, sample: bool) -> dict:
     last_cpu: dict[int, float] = {}
     tree_rss_peak = 0
     root = psutil.Process(proc.pid)
-    while sample and proc.poll() is None:
+    done = None
+    while sample:
+        # wait4 with WNOHANG, not Popen.poll: poll would reap the child and lose its rusage
+        pid, status, usage = os.wait4(proc.pid, os.WNOHANG)
+        if pid:
+            done = (status, usage)
+            break
         try:
             procs = [root] + root.children(recursive=True)
         except psutil.Error:
@@ -61,7 +67,8 @@ def run_encode(argv: list[str], cwd: str, sample: bool) -> dict:
                 pass
         tree_rss_peak = max(tree_rss_peak, rss)
         time.sleep(0.1)
-    _, status, usage = os.wait4(proc.pid, 0)
+    status, usage = done if done else os.wait4(proc.pid, 0)[1:]
+    proc.returncode = os.waitstatus_to_exitcode(status)  # reaped here: Popen must not wait for it again
     wall = time.perf_counter() - t0
     err = proc.stderr.read().decode(errors="replace") if proc.stderr else ""
     rc = os.waitstatus_to_exitcode(status)
