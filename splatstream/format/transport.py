@@ -284,10 +284,11 @@ def _plane_cost(z: np.ndarray, bits: int) -> float:
     total = 0.0
     nbytes = (bits + 7) // 8
     b = z.view(np.uint8).reshape(-1, z.dtype.itemsize)
+    n = len(b)  # every plane's count sum (not summed per plane: choose_modes calls this ~30 times per layer)
     for k in range(nbytes):
         counts = np.bincount(b[:, k], minlength=256)
         counts = counts[counts > 0]
-        total += float((counts * np.log2(counts.sum() / counts)).sum()) / 8
+        total += float((counts * np.log2(n / counts)).sum()) / 8
     return total
 
 
