@@ -21,6 +21,14 @@ from splatstream.format.transport import (
     FIELD_LAYOUTS,
     FIELDS1,
     FIELDS_VERSION,
+    _block_stats,
+    _cross_prediction,
+    _fit_cross,
+    _fit_from_stats,
+    _fit_type,
+    _residual,
+    _residual_pair,
+    choose_modes,
     content_bounds,
     fields_content,
     filter_texels,
@@ -201,6 +209,37 @@ def test_slopes_and_intercepts_that_clip_still_round_trip():
 def test_encoding_is_deterministic():
     data = _correlated_rgb565(64, 32, 2, seed=3)
     assert fields_content(data, "norm565", 64, 32, 2) == fields_content(data.copy(), "norm565", 64, 32, 2)
+
+
+
+# choose_modes of the test below, computed by the code before its pairs shared their work (the same modes since).
+CHOOSE_MODES_PINNED = {5: [(False, 2), (False, None), (False, None)], 8: [(True, None), (False, None), (False, 0)],
+                       10: [(False, None), (False, None), (False, 0)], 16: [(True, None), (False, None), (False, 0)]}
+
+
+@pytest.mark.parametrize("bits", [5, 8, 10, 16])
+def test_choose_modes_shared_work_gives_the_one_pair_results(bits):
+    """choose_modes computes a field's block sums once for all its pairs and a residual without and with delta in
+    one pass (issue 31's encode time): the same arrays as _residual and _fit_cross give one pair at a time."""
+    rng = np.random.default_rng(bits)
+    n = 6 * BLOCK_TEXELS
+    dt = np.uint8 if bits <= 8 else np.uint16
+    base = rng.integers(0, 1 << bits, n)
+    values = ((base + rng.integers(0, 9, n)) % (1 << bits)).astype(dt)
+    ref = ((3 * base // 2 + rng.integers(0, 5, n)) % (1 << bits)).astype(dt)
+    t = _fit_type(bits)
+    v = values.reshape(-1, BLOCK_TEXELS).astype(t)
+    slope, intercept = _fit_from_stats(v, v.sum(axis=1, dtype=np.float64), _block_stats(ref, t))
+    one_slope, one_intercept = _fit_cross(values, ref, bits)
+    assert np.array_equal(slope, one_slope) and np.array_equal(intercept, one_intercept)
+    assert np.any(slope != 0)
+    for pred in (None, _cross_prediction(ref, slope, intercept), _cross_prediction(ref.astype(np.int32), slope,
+                                                                                     intercept)):
+        plain, delta = _residual_pair(values, bits, pred)
+        assert np.array_equal(plain, _residual(values, bits, False, pred))
+        assert np.array_equal(delta, _residual(values, bits, True, pred))
+    fields = [values, ref, (values // 2).astype(dt)]
+    assert choose_modes(fields, (bits,) * 3) == CHOOSE_MODES_PINNED[bits]
 
 
 # --- whole scenes -------------------------------------------------------------------------------------------------

@@ -1,8 +1,9 @@
 """The in-memory engine: plan, then the per-tile jobs on a thread pool, then reduce; written atomically. Also
 the in-process engine of the partitioned encoder (LocalEngine); driver.py picks between them.
 
-numpy, zstd and etcpak release the GIL, so two worker threads keep both cores of a small machine busy. Results
-come back in submission order, so the output does not depend on scheduling.
+The payload jobs run on one worker thread (the main thread only collects): two cost 1.5x the CPU and more wall time
+(BENCHMARKS.md, "Where the grid encode's CPU goes"). Results come back in submission order, so the output does not
+depend on scheduling.
 """
 from __future__ import annotations
 
@@ -33,7 +34,9 @@ def encode_to(g: Gaussians, writer: SceneWriter, opts: EncodeOptions, progress: 
     total = sum(len(t.gaussians) for t in plan.tiles) * len(groups)
     codebook = encode_codebook(ctx.codebook, ctx, writer) if ctx.codebook is not None else None
     entries: list[TileEntry] = []
-    with _pool(min(2, os.cpu_count() or 1)) as pool:
+    # One worker: most payload jobs are many small numpy calls (a layer's mode trials on ~6 blocks), so two threads
+    # spend their time handing the interpreter lock back and forth rather than overlapping.
+    with _pool(1) as pool:
         orders = list(pool.map(lambda t: tile_order(t.gaussians, ctx), plan.tiles))
         camera = pool.submit(plan_camera, plan)
         # A single tile's bounds (the LOD tree computes its own) beside the payload jobs.

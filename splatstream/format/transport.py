@@ -201,23 +201,40 @@ def _zigzag(u: np.ndarray, bits: int) -> np.ndarray:
 def _cross_prediction(ref: np.ndarray, slope: np.ndarray, intercept: np.ndarray) -> np.ndarray:
     """Per-block linear prediction floor((slope * ref + 64 * intercept + 32) / 64), as int32 (slot order); `ref`
     holds values below 2^16 (any integer type)."""
-    ref = ref.view(np.int32) if ref.dtype == np.uint32 else ref.astype(np.int32)
+    if ref.dtype != np.int32:
+        ref = ref.view(np.int32) if ref.dtype == np.uint32 else ref.astype(np.int32)
     r = np.multiply(ref.reshape(len(slope), BLOCK_TEXELS), slope.astype(np.int32)[:, None])
     r += ((intercept.astype(np.int32) << SLOPE_SHIFT) + (1 << (SLOPE_SHIFT - 1)))[:, None]
     r >>= SLOPE_SHIFT
     return r.reshape(-1)
 
 
+def _block_stats(x: np.ndarray, t: type) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """A field's blocks in the fit's float type, their sums and their sums of squares (float64)."""
+    b = x.reshape(-1, BLOCK_TEXELS).astype(t)
+    return b, b.sum(axis=1, dtype=np.float64), np.einsum("ij,ij->i", b, b).astype(np.float64)
+
+
+def _fit_type(bits: int) -> type:
+    return np.float32 if bits <= 8 else np.float64
+
+
 def _fit_cross(values: np.ndarray, ref: np.ndarray, bits: int = 16) -> tuple[np.ndarray, np.ndarray]:
     """Per-block least-squares slope (1/64 units) and intercept of values against ref. The block sums are exact
     (so the fit is the same on every machine): in float32 for fields of up to 8 bits (256 products below 2^16 sum
     below 2^24), else in float64."""
-    t = np.float32 if bits <= 8 else np.float64
+    t = _fit_type(bits)
     v = values.reshape(-1, BLOCK_TEXELS).astype(t)
-    r = ref.reshape(-1, BLOCK_TEXELS).astype(t)
-    sv, sr = v.sum(axis=1, dtype=np.float64), r.sum(axis=1, dtype=np.float64)
+    return _fit_from_stats(v, v.sum(axis=1, dtype=np.float64), _block_stats(ref, t))
+
+
+def _fit_from_stats(v: np.ndarray, sv: np.ndarray, ref_stats: tuple[np.ndarray, np.ndarray, np.ndarray]
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """_fit_cross from the values' blocks and sums and the reference's _block_stats (choose_modes computes each
+    field's once for all its pairs: the same operations on the same arrays, so the same fit)."""
+    r, sr, rr = ref_stats
     cov = np.einsum("ij,ij->i", r, v).astype(np.float64) * BLOCK_TEXELS - sr * sv
-    var = np.einsum("ij,ij->i", r, r).astype(np.float64) * BLOCK_TEXELS - sr * sr
+    var = rr * BLOCK_TEXELS - sr * sr
     slope = np.divide(cov, var, out=np.zeros(len(var)), where=var > 0)
     slope = np.clip(np.rint(slope * (1 << SLOPE_SHIFT)), SLOPE_MIN, SLOPE_MAX)
     intercept = np.rint((sv - slope / (1 << SLOPE_SHIFT) * sr) / BLOCK_TEXELS)
@@ -238,6 +255,21 @@ def _residual(values: np.ndarray, bits: int, delta: bool, pred: np.ndarray | Non
     return x if bits <= 8 else _zigzag(x, bits)
 
 
+def _residual_pair(values: np.ndarray, bits: int, pred: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """_residual without and with delta, the subtraction of the prediction done once for both."""
+    t = _field_dtype(bits)
+    x = values.astype(t)  # a copy
+    if pred is not None:
+        x -= pred.astype(t)
+    d = x.copy()
+    d[1:] -= x[:-1]
+    if bits not in (8, 16, 32):
+        mask = t((1 << bits) - 1)
+        x &= mask
+        d &= mask
+    return (x, d) if bits <= 8 else (_zigzag(x, bits), _zigzag(d, bits))
+
+
 def _planes(z: np.ndarray, bits: int) -> list[np.ndarray]:
     """Codes -> contiguous byte planes, low byte first."""
     nbytes = (bits + 7) // 8
@@ -252,10 +284,11 @@ def _plane_cost(z: np.ndarray, bits: int) -> float:
     total = 0.0
     nbytes = (bits + 7) // 8
     b = z.view(np.uint8).reshape(-1, z.dtype.itemsize)
+    n = len(b)  # every plane's count sum (not summed per plane: choose_modes calls this ~30 times per layer)
     for k in range(nbytes):
         counts = np.bincount(b[:, k], minlength=256)
         counts = counts[counts > 0]
-        total += float((counts * np.log2(counts.sum() / counts)).sum()) / 8
+        total += float((counts * np.log2(n / counts)).sum()) / 8
     return total
 
 
@@ -282,19 +315,29 @@ def choose_modes(fields: list[np.ndarray], bits: tuple[int, ...]) -> Modes:
     sample = fields if pick is None else [f.reshape(blocks, BLOCK_TEXELS)[pick].reshape(-1) for f in fields]
     alone = []
     for f, b in zip(sample, bits, strict=True):
-        costs = {d: _plane_cost(_residual(f, b, d, None), b) for d in (False, True)}
+        costs = {d: _plane_cost(z, b) for d, z in zip((False, True), _residual_pair(f, b, None), strict=True)}
         d = min(costs, key=costs.get)
         alone.append((costs[d], d))
     cross: dict[tuple[int, int], tuple[float, bool]] = {}
     param_cost = 3.0 * len(sample[0]) // BLOCK_TEXELS  # i8 slope + i16 intercept per block, before zstd
+    # Each field's blocks, sums and int32 copy once for all the pairs it is in (up to 12 pairs of 4 fields).
+    stats: dict[tuple[int, type], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+    refs: dict[int, np.ndarray] = {}
     for i in range(nf):
         for r in range(nf):
             if i == r or bits[i] > 16 or bits[r] > 16:
                 continue
-            slope, intercept = _fit_cross(sample[i], sample[r], max(bits[i], bits[r]))
-            pred = _cross_prediction(sample[r], slope, intercept)
-            costs = {d: _plane_cost(_residual(sample[i], bits[i], d, pred), bits[i]) + param_cost
-                     for d in (False, True)}
+            t = _fit_type(max(bits[i], bits[r]))
+            for k in (i, r):
+                if (k, t) not in stats:
+                    stats[(k, t)] = _block_stats(sample[k], t)
+            if r not in refs:
+                refs[r] = sample[r].astype(np.int32)
+            v = stats[(i, t)]
+            slope, intercept = _fit_from_stats(v[0], v[1], stats[(r, t)])
+            pred = _cross_prediction(refs[r], slope, intercept)
+            costs = {d: _plane_cost(z, bits[i]) + param_cost
+                     for d, z in zip((False, True), _residual_pair(sample[i], bits[i], pred), strict=True)}
             d = min(costs, key=costs.get)
             cross[(i, r)] = (costs[d], d)
     best_total, best = float("inf"), None
