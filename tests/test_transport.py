@@ -26,6 +26,8 @@ from splatstream.format.transport import (
     _fit_cross,
     _fit_from_stats,
     _fit_type,
+    _plane_cost,
+    _plane_costs,
     _residual,
     _residual_pair,
     choose_modes,
@@ -240,6 +242,21 @@ def test_choose_modes_shared_work_gives_the_one_pair_results(bits):
         assert np.array_equal(delta, _residual(values, bits, True, pred))
     fields = [values, ref, (values // 2).astype(dt)]
     assert choose_modes(fields, (bits,) * 3) == CHOOSE_MODES_PINNED[bits]
+
+
+
+def test_plane_costs_batch_equals_one_at_a_time():
+    """_plane_costs (choose_modes' one batch of entropies per layer) gives _plane_cost's floats exactly, for 8, 16
+    and 32-bit codes, planes with one value, all 256 values and the skewed counts of real residuals."""
+    rng = np.random.default_rng(31)
+    n = 6 * BLOCK_TEXELS
+    codes = [rng.integers(0, 256, n).astype(np.uint8), np.zeros(n, np.uint8),
+             rng.geometric(0.3, n).astype(np.uint16), (rng.integers(0, 1 << 20, n) * 3).astype(np.uint32),
+             rng.integers(0, 1 << 10, n).astype(np.uint16)]
+    bits = [8, 5, 16, 32, 11]
+    batch = _plane_costs(codes, bits)
+    assert batch == [_plane_cost(z, b) for z, b in zip(codes, bits, strict=True)]
+    assert batch[1] == 0.0 and abs(batch[0] - n) < 0.05 * n  # one value: 0 bits; uniform bytes: ~8 bits a slot
 
 
 # --- whole scenes -------------------------------------------------------------------------------------------------
