@@ -25,6 +25,7 @@ from splatstream.format.transport import (
     _cross_prediction,
     _fit_cross,
     _fit_from_stats,
+    _fit_pairs,
     _fit_type,
     _plane_cost,
     _plane_costs,
@@ -243,6 +244,24 @@ def test_choose_modes_shared_work_gives_the_one_pair_results(bits):
     fields = [values, ref, (values // 2).astype(dt)]
     assert choose_modes(fields, (bits,) * 3) == CHOOSE_MODES_PINNED[bits]
 
+
+
+@pytest.mark.parametrize("bits", [(5, 6, 5), (8, 8, 8, 8), (11, 10, 11), (10, 10, 10, 2), (16, 16, 16, 16)])
+def test_fit_pairs_equals_fit_cross_pair_by_pair(bits):
+    """_fit_pairs (choose_modes' fits of every pair at once) gives _fit_cross's slopes and intercepts exactly."""
+    rng = np.random.default_rng(sum(bits))
+    n = 7 * BLOCK_TEXELS
+    base = rng.integers(0, 1 << min(bits), n)
+    fields = [((base * (k + 1) + rng.integers(0, 1 << (b // 2), n)) % (1 << b)).astype(np.uint8 if b <= 8 else
+                                                                                      np.uint16)
+              for k, b in enumerate(bits)]
+    pairs = [(i, r) for i in range(len(bits)) for r in range(len(bits)) if i != r]
+    slopes, intercepts = _fit_pairs(fields, bits, pairs)
+    assert slopes.shape == (len(pairs), 7) and np.any(slopes != 0)
+    for p, (i, r) in enumerate(pairs):
+        slope, intercept = _fit_cross(fields[i], fields[r], max(bits[i], bits[r]))
+        assert np.array_equal(slopes[p], slope) and np.array_equal(intercepts[p], intercept)
+        assert slopes[p].dtype == slope.dtype and intercepts[p].dtype == intercept.dtype
 
 
 def test_plane_costs_batch_equals_one_at_a_time():

@@ -241,6 +241,31 @@ def _fit_from_stats(v: np.ndarray, sv: np.ndarray, ref_stats: tuple[np.ndarray, 
     return slope.astype(np.int8), np.clip(intercept, INTERCEPT_MIN, INTERCEPT_MAX).astype("<i2")
 
 
+def _fit_pairs(fields: list[np.ndarray], bits: tuple[int, ...], pairs: list[tuple[int, int]]
+               ) -> tuple[np.ndarray, np.ndarray]:
+    """_fit_cross(fields[i], fields[r], max(bits[i], bits[r])) of every pair (i, r) at once, as (pairs, blocks)
+    slopes and intercepts (choose_modes' up to 12 pairs per layer on ~6 blocks: numpy's per-call overhead). The
+    same results: every block sum is an exact integer in its float type (_fit_cross), so summing several fields'
+    blocks in one call gives the same sums, and the rest is the same elementwise arithmetic."""
+    sv, sr, rr, dot = (np.empty((len(pairs), len(fields[0]) // BLOCK_TEXELS)) for _ in range(4))
+    for t in {_fit_type(max(bits[i], bits[r])) for i, r in pairs}:
+        rows = [p for p, (i, r) in enumerate(pairs) if _fit_type(max(bits[i], bits[r])) is t]
+        used = sorted({k for p in rows for k in pairs[p]})
+        at = {k: n for n, k in enumerate(used)}
+        blk = np.stack([fields[k] for k in used]).reshape(len(used), -1, BLOCK_TEXELS).astype(t)
+        sums = blk.sum(axis=2, dtype=np.float64)
+        dots = np.einsum("mbk,nbk->mnb", blk, blk).astype(np.float64)
+        ii = [at[pairs[p][0]] for p in rows]
+        ri = [at[pairs[p][1]] for p in rows]
+        sv[rows], sr[rows], rr[rows], dot[rows] = sums[ii], sums[ri], dots[ri, ri], dots[ri, ii]
+    cov = dot * BLOCK_TEXELS - sr * sv
+    var = rr * BLOCK_TEXELS - sr * sr
+    slope = np.divide(cov, var, out=np.zeros_like(var), where=var > 0)
+    slope = np.clip(np.rint(slope * (1 << SLOPE_SHIFT)), SLOPE_MIN, SLOPE_MAX)
+    intercept = np.rint((sv - slope / (1 << SLOPE_SHIFT) * sr) / BLOCK_TEXELS)
+    return slope.astype(np.int8), np.clip(intercept, INTERCEPT_MIN, INTERCEPT_MAX).astype("<i2")
+
+
 def _residual(values: np.ndarray, bits: int, delta: bool, pred: np.ndarray | None) -> np.ndarray:
     """Stored code of every slot: (values - pred) modulo 2^bits, delta to the previous slot if asked; fields of more
     than 8 bits as zigzag codes (so small residuals of either sign have a zero high byte)."""
@@ -346,26 +371,16 @@ def choose_modes(fields: list[np.ndarray], bits: tuple[int, ...]) -> Modes:
     for f, b in zip(sample, bits, strict=True):
         codes += _residual_pair(f, b, None)
         code_bits += [b, b]
-    pairs: list[tuple[int, int]] = []
-    # Each field's blocks, sums and int32 copy once for all the pairs it is in (up to 12 pairs of 4 fields).
-    stats: dict[tuple[int, type], tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
-    refs: dict[int, np.ndarray] = {}
-    for i in range(nf):
-        for r in range(nf):
-            if i == r or bits[i] > 16 or bits[r] > 16:
-                continue
-            t = _fit_type(max(bits[i], bits[r]))
-            for k in (i, r):
-                if (k, t) not in stats:
-                    stats[(k, t)] = _block_stats(sample[k], t)
-            if r not in refs:
-                refs[r] = sample[r].astype(np.int32)
-            v = stats[(i, t)]
-            slope, intercept = _fit_from_stats(v[0], v[1], stats[(r, t)])
-            pred = _cross_prediction(refs[r], slope, intercept)
-            codes += _residual_pair(sample[i], bits[i], pred)
+    pairs = [(i, r) for i in range(nf) for r in range(nf) if i != r and bits[i] <= 16 and bits[r] <= 16]
+    if pairs:
+        slopes, intercepts = _fit_pairs(sample, bits, pairs)
+        refs = np.stack([sample[r] for _, r in pairs]).astype(np.int32).reshape(len(pairs), -1, BLOCK_TEXELS)
+        preds = refs * slopes.astype(np.int32)[:, :, None]  # _cross_prediction of every pair at once
+        preds += ((intercepts.astype(np.int32) << SLOPE_SHIFT) + (1 << (SLOPE_SHIFT - 1)))[:, :, None]
+        preds >>= SLOPE_SHIFT
+        for (i, _), pred in zip(pairs, preds, strict=True):
+            codes += _residual_pair(sample[i], bits[i], pred.reshape(-1))
             code_bits += [bits[i], bits[i]]
-            pairs.append((i, r))
     entropy = _plane_costs(codes, code_bits)
     alone = []
     for i in range(nf):
