@@ -39,7 +39,8 @@ def as_hardware(ctx, monkeypatch):
 
     monkeypatch.setattr(renderer_mod, "SOFTWARE_RENDERERS", ())
     monkeypatch.setattr(renderer_mod, "DEFERRED_COMPILE_BUDGET_S", 0.0)
-    monkeypatch.setattr(ctx, "extra", dict(ctx.extra or {}))
+    # an empty program cache: an earlier test module on the session's context may have compiled the sort's programs
+    monkeypatch.setattr(ctx, "extra", {})
     compiled: list[str] = []
     for name in ("compute_shader", "program"):
         original = getattr(type(ctx), name)
