@@ -373,18 +373,7 @@ class SplatRenderer:
             budget = math.inf
         elif not self._drew_splats:
             return False
-        t0 = time.perf_counter()
-        while pending:
-            what, src = pending.pop(0)
-            if what is None:
-                compute_program(self.ctx, *src)
-            elif what == "cull":
-                self._gpu_compiled[what] = self.ctx.compute_shader(src)
-            else:
-                vert, frag = src
-                self._gpu_compiled[what] = self.ctx.program(vertex_shader=vert, fragment_shader=frag)
-            if time.perf_counter() - t0 >= budget:
-                break
+        self._compile_some(pending, self._gpu_compiled, budget)
         if budget == math.inf:
             self._switch_to_gpu()
             return True
@@ -716,16 +705,26 @@ class SplatRenderer:
             # The tile sort's programs, cached in the context (compute_program) where its GpuRadixSort finds them.
             self._deferred += [(None, spec) for spec in sort_programs(bits, opts.fused_sort, opts.sort_pass_programs)]
         if self._drew_splats and compile_now:
-            t0 = time.perf_counter()
-            while self._deferred:
-                attr, what = self._deferred.pop(0)
-                if attr is None:
-                    compute_program(self.ctx, *what)
-                else:
-                    self._deferred_programs[attr] = self.ctx.compute_shader(what)
-                if time.perf_counter() - t0 >= DEFERRED_COMPILE_BUDGET_S:
-                    break
+            self._compile_some(self._deferred, self._deferred_programs, DEFERRED_COMPILE_BUDGET_S)
         return "fetch" if self._deferred else "compute"
+
+    def _compile_some(self, pending: list[tuple[str | None, object]], into: dict[str, object],
+                      budget_s: float) -> None:
+        """Compile pending (key, source) programs in order until budget_s went to them (at least one): key None, a
+        compute_program spec (cached in the context); a str source, a compute shader; a (vertex, fragment) pair, a
+        program; each kept in `into` under its key."""
+        t0 = time.perf_counter()
+        while pending:
+            key, src = pending.pop(0)
+            if key is None:
+                compute_program(self.ctx, *src)
+            elif isinstance(src, str):
+                into[key] = self.ctx.compute_shader(src)
+            else:
+                vert, frag = src
+                into[key] = self.ctx.program(vertex_shader=vert, fragment_shader=frag)
+            if time.perf_counter() - t0 >= budget_s:
+                break
 
     def _render_gpu(self, cam: Camera, uniforms: dict, degree: int, timing: bool) -> FrameStats:
         """The raster draws of the GPU path (cull, sort, one indirect draw)."""
