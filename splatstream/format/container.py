@@ -342,7 +342,7 @@ def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, so
     while another thread needs the interpreter (the streaming client's frame loop). `palettes`: the scene's
     palettes (Manifest.scene_palettes, format.md 4.3.2), for a palette plane whose payload has no palette section."""
     buf, kept = _decompress(data, entry.raw_bytes, source)
-    if whole_kernel() is not None and _wholly(entry, True):
+    if whole_kernel() is not None:  # every payload goes through the whole kernel where there is one
         return _unpack_whole(buf, [0], [buf], [{s.name: s for s in entry.sections}], group, codebook, [source],
                              between, kept, palettes)[0]
     # What a small payload's decode spends beyond its splats is per-call Python and numpy work (issue 32: on the LOD
@@ -396,7 +396,7 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
     if not items:
         return []
     in_one_call = whole_kernel() is not None
-    if not in_one_call and not all(_wholly(entry, False) for _, entry in items):
+    if not in_one_call and not all(_batchable(entry) for _, entry in items):
         # palette planes (format.md 4.3.2), and keyed positions (5.4) without the whole kernel, are decoded one
         # payload at a time
         return [unpack_payload(data, entry, group, source, codebook, between, palettes)
@@ -476,16 +476,16 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
     return out
 
 
-def _wholly(entry: PayloadEntry, whole: bool) -> bool:
-    """The payload's planes can go through unpack_payloads' batches: no keyed positions, no palette planes (format.md
-    5.4, 4.3.2), which those decode a plane at a time, one payload at a time; with `whole` (the whole kernel) every
-    payload goes through _unpack_whole, which decodes each morton1 section alone beside the kernel's call and reads
-    each palette plane's palettes as unpack_payload does.
+def _batchable(entry: PayloadEntry) -> bool:
+    """Without the whole kernel, the payload's planes can go through unpack_payloads' batches: no keyed positions, no
+    palette planes (format.md 5.4, 4.3.2), which are decoded a plane at a time, one payload at a time. With the whole
+    kernel every payload goes through _unpack_whole, which decodes each morton1 section alone beside the kernel's call
+    and reads each palette plane's palettes as unpack_payload does.
 
     Why those go whole too: a group of them decoded a payload at a time cost 1.5-2x as much a payload as one of the
     same size without them (medium-low-palette on guitar and winter_fountain, 221 payloads: 159 and 153 us against
     72-92 us; issue 32)."""
-    return whole or not any(sec.filter == MORTON1 or sec.format in PALETTE_FORMATS for sec in entry.sections)
+    return not any(sec.filter == MORTON1 or sec.format in PALETTE_FORMATS for sec in entry.sections)
 
 
 def _unpack_whole(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], tables: list[dict], group: str,

@@ -94,14 +94,7 @@ def decode_payloads(items: list[tuple[bytes | memoryview | VerifiedPayload, Payl
     """decode_payload of several payloads of one group (the tiles of one request, a scene's tiles), each verified as
     decode_payload verifies it: the same planes, bit for bit, decoded together (container.unpack_payloads), so the
     fixed cost of a payload's numpy calls is paid once for them all (issue 32)."""
-    raws = []
-    for (data, entry), source in zip(items, sources, strict=True):
-        # a VerifiedPayload of this entry as it is (verified_bytes' first case, inline: a call a payload less on the
-        # client's path, whose payloads all arrive verified; issue 32), anything else through verified_bytes
-        if type(data) is VerifiedPayload and data.sha256 == entry.sha256 and len(data.data) == entry.bytes:
-            raws.append((data.data, entry))
-        else:
-            raws.append((verified_bytes(data, entry, source), entry))
+    raws = [(verified_bytes(data, entry, source), entry) for (data, entry), source in zip(items, sources, strict=True)]
     if between is not None:
         between()
     return unpack_payloads(raws, group, sources, codebook, between, palettes)
