@@ -200,13 +200,14 @@ def _zigzag(u: np.ndarray, bits: int) -> np.ndarray:
 
 def _cross_prediction(ref: np.ndarray, slope: np.ndarray, intercept: np.ndarray) -> np.ndarray:
     """Per-block linear prediction floor((slope * ref + 64 * intercept + 32) / 64), as int32 (slot order); `ref`
-    holds values below 2^16 (any integer type)."""
+    holds values below 2^16 (any integer type). Slopes and intercepts of shape (..., blocks) predict as many
+    references at once (choose_modes' pairs), each row of the result one of them."""
     if ref.dtype != np.int32:
         ref = ref.view(np.int32) if ref.dtype == np.uint32 else ref.astype(np.int32)
-    r = np.multiply(ref.reshape(len(slope), BLOCK_TEXELS), slope.astype(np.int32)[:, None])
-    r += ((intercept.astype(np.int32) << SLOPE_SHIFT) + (1 << (SLOPE_SHIFT - 1)))[:, None]
+    r = np.multiply(ref.reshape(*slope.shape, BLOCK_TEXELS), slope.astype(np.int32)[..., None])
+    r += ((intercept.astype(np.int32) << SLOPE_SHIFT) + (1 << (SLOPE_SHIFT - 1)))[..., None]
     r >>= SLOPE_SHIFT
-    return r.reshape(-1)
+    return r.reshape(*slope.shape[:-1], -1)
 
 
 def _block_stats(x: np.ndarray, t: type) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -233,9 +234,15 @@ def _fit_from_stats(v: np.ndarray, sv: np.ndarray, ref_stats: tuple[np.ndarray, 
     """_fit_cross from the values' blocks and sums and the reference's _block_stats (choose_modes computes each
     field's once for all its pairs: the same operations on the same arrays, so the same fit)."""
     r, sr, rr = ref_stats
-    cov = np.einsum("ij,ij->i", r, v).astype(np.float64) * BLOCK_TEXELS - sr * sv
+    return _fit_from_sums(np.einsum("ij,ij->i", r, v).astype(np.float64), sv, sr, rr)
+
+
+def _fit_from_sums(dot: np.ndarray, sv: np.ndarray, sr: np.ndarray, rr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The slope and intercept of each block (any leading shape) from its sums: of reference times values, of the
+    values, of the reference and of the reference's squares."""
+    cov = dot * BLOCK_TEXELS - sr * sv
     var = rr * BLOCK_TEXELS - sr * sr
-    slope = np.divide(cov, var, out=np.zeros(len(var)), where=var > 0)
+    slope = np.divide(cov, var, out=np.zeros_like(var), where=var > 0)
     slope = np.clip(np.rint(slope * (1 << SLOPE_SHIFT)), SLOPE_MIN, SLOPE_MAX)
     intercept = np.rint((sv - slope / (1 << SLOPE_SHIFT) * sr) / BLOCK_TEXELS)
     return slope.astype(np.int8), np.clip(intercept, INTERCEPT_MIN, INTERCEPT_MAX).astype("<i2")
@@ -258,12 +265,7 @@ def _fit_pairs(fields: list[np.ndarray], bits: tuple[int, ...], pairs: list[tupl
         ii = [at[pairs[p][0]] for p in rows]
         ri = [at[pairs[p][1]] for p in rows]
         sv[rows], sr[rows], rr[rows], dot[rows] = sums[ii], sums[ri], dots[ri, ri], dots[ri, ii]
-    cov = dot * BLOCK_TEXELS - sr * sv
-    var = rr * BLOCK_TEXELS - sr * sr
-    slope = np.divide(cov, var, out=np.zeros_like(var), where=var > 0)
-    slope = np.clip(np.rint(slope * (1 << SLOPE_SHIFT)), SLOPE_MIN, SLOPE_MAX)
-    intercept = np.rint((sv - slope / (1 << SLOPE_SHIFT) * sr) / BLOCK_TEXELS)
-    return slope.astype(np.int8), np.clip(intercept, INTERCEPT_MIN, INTERCEPT_MAX).astype("<i2")
+    return _fit_from_sums(dot, sv, sr, rr)
 
 
 def _residual(values: np.ndarray, bits: int, delta: bool, pred: np.ndarray | None) -> np.ndarray:
@@ -374,12 +376,9 @@ def choose_modes(fields: list[np.ndarray], bits: tuple[int, ...]) -> Modes:
     pairs = [(i, r) for i in range(nf) for r in range(nf) if i != r and bits[i] <= 16 and bits[r] <= 16]
     if pairs:
         slopes, intercepts = _fit_pairs(sample, bits, pairs)
-        refs = np.stack([sample[r] for _, r in pairs]).astype(np.int32).reshape(len(pairs), -1, BLOCK_TEXELS)
-        preds = refs * slopes.astype(np.int32)[:, :, None]  # _cross_prediction of every pair at once
-        preds += ((intercepts.astype(np.int32) << SLOPE_SHIFT) + (1 << (SLOPE_SHIFT - 1)))[:, :, None]
-        preds >>= SLOPE_SHIFT
+        preds = _cross_prediction(np.stack([sample[r] for _, r in pairs]).astype(np.int32), slopes, intercepts)
         for (i, _), pred in zip(pairs, preds, strict=True):
-            codes += _residual_pair(sample[i], bits[i], pred.reshape(-1))
+            codes += _residual_pair(sample[i], bits[i], pred)
             code_bits += [bits[i], bits[i]]
     entropy = _plane_costs(codes, code_bits)
     alone = []
