@@ -161,6 +161,18 @@ def sphere_framed_camera(positions, width: int, height: int, up=(0.0, 0.0, 1.0))
                   min(REFERENCE_NEAR, 0.01 * dist), max(1000.0, 10.0 * (dist + radius)))
 
 
+
+def close_camera(g, width: int, height: int):
+    """A close view of `g`: splats straddle the image border and tile borders, some lie behind the camera (the view
+    the compute draw's thresholds were measured on: 0.35 of sphere_framed_camera's distance at 128x96)."""
+    import numpy as np
+
+    from splatstream.camera import look_at
+
+    base = sphere_framed_camera(g.positions, 128, 96)
+    eye = np.array(base.target) + 0.35 * (np.array(base.eye) - np.array(base.target))
+    return look_at(eye, base.target, fov_y_deg=60, width=width, height=height)
+
 @contextlib.contextmanager
 def xvfb_display(screen: str = "1024x768x24"):
     """A virtual X display for window tests: yields its name (":N"), stops the server afterwards."""

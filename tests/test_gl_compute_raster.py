@@ -6,7 +6,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from conftest import REAL_PLYS, real, run_cli, sphere_framed_camera
+from conftest import REAL_PLYS, close_camera, real, run_cli
 
 from splatstream import render_ref
 from splatstream.camera import look_at, suggested_camera
@@ -37,14 +37,6 @@ def renderer(ctx):
 @pytest.fixture(scope="module")
 def fruit():
     return read_gaussians(real("fruit_drops_sh3.ply"))
-
-
-def close_camera(g, width: int, height: int):
-    """A close view: splats straddle the image border and tile borders, some lie behind the camera (the view the
-    thresholds below were measured on)."""
-    base = sphere_framed_camera(g.positions, W, H)
-    eye = np.array(base.target) + 0.35 * (np.array(base.eye) - np.array(base.target))
-    return look_at(eye, base.target, fov_y_deg=60, width=width, height=height)
 
 
 @pytest.mark.parametrize("name", REAL_PLYS)

@@ -9,9 +9,9 @@ import time
 
 import numpy as np
 import pytest
-from conftest import real
+from conftest import close_camera, real
 
-from splatstream.camera import Camera, look_at
+from splatstream.camera import Camera
 from splatstream.encode import EncodeOptions, encode_gaussians
 from splatstream.io import read_gaussians
 from splatstream.metrics import psnr
@@ -52,14 +52,6 @@ def as_hardware(ctx, monkeypatch):
     return compiled
 
 
-def close_camera(g) -> Camera:
-    from conftest import sphere_framed_camera
-
-    base = sphere_framed_camera(g.positions, W, H)
-    eye = np.array(base.target) + 0.35 * (np.array(base.eye) - np.array(base.target))
-    return look_at(eye, base.target, fov_y_deg=60, width=W, height=H)
-
-
 def test_first_frames_cpu_sorted_then_the_gpu_path(ctx, fruit, as_hardware, monkeypatch):
     """2 programs before the first frame instead of 7; the GPU path's 6 compile one a frame (a zero budget) after
     the first frame with splats, the frame after the last switches to the GPU path (fetch, nothing compiled in it),
@@ -73,7 +65,7 @@ def test_first_frames_cpu_sorted_then_the_gpu_path(ctx, fruit, as_hardware, monk
     compiled = as_hardware
     monkeypatch.setattr(renderer_mod, "MIN_WORK_SPLATS", 1)  # work buffers for what is drawn (a reservation shows)
     scene = tiles_from_gaussians(fruit)  # with the host mirror, as a streaming session's tiles while it is kept
-    cam = close_camera(fruit)
+    cam = close_camera(fruit, W, H)
 
     def fresh(options):
         for key in [k for k in ctx.extra if k[0] == "compute_program"]:  # the shared sort programs compile again
@@ -136,7 +128,7 @@ def test_a_frame_of_many_splats_switches_at_once(ctx, fruit, as_hardware, monkey
     for tile_id, tile in scene.tiles.items():
         pool.join(tile_id, tile)
     r = SplatRenderer(ctx, pool, RenderOptions())
-    cam = close_camera(fruit)
+    cam = close_camera(fruit, W, H)
     monkeypatch.setattr(renderer_mod, "CPU_FIRST_MAX_SPLATS", 100)
     compiled.clear()
     assert r.render(cam, draw_set=[]).sort == "cpu" and r.cpu_first_pending and not compiled  # nothing drawn
@@ -169,7 +161,7 @@ def test_cpu_first_needs_the_auto_choices_and_a_host_mirror(ctx, fruit, as_hardw
     h = HeadlessRenderer(ctx=ctx)
     h.load_gaussians(fruit)
     assert h.sort_mode == "gpu" and h.pool.host_mirror is None
-    h.render(close_camera(fruit))
+    h.render(close_camera(fruit, W, H))
     assert h.renderer.sort_mode == "gpu" and h.renderer.draw_mode == "compute"
     h.unload()
 
