@@ -173,6 +173,22 @@ def close_camera(g, width: int, height: int):
     eye = np.array(base.target) + 0.35 * (np.array(base.eye) - np.array(base.target))
     return look_at(eye, base.target, fov_y_deg=60, width=width, height=height)
 
+
+def zstd_block_count(data: bytes) -> int:
+    """The number of blocks in a zstd frame (RFC 8878 3.1.1: the frame header, then blocks of a 3-byte header)."""
+    descriptor = data[4]
+    single, has_checksum = descriptor >> 5 & 1, descriptor >> 2 & 1
+    at = 5 + (0 if single else 1) + (0, 1, 2, 4)[descriptor & 3] + ((1, 2, 4, 8)[descriptor >> 6] if single or
+                                                                     descriptor >> 6 else 0)
+    blocks = 0
+    while True:
+        header = int.from_bytes(data[at:at + 3], "little")
+        last, kind, size = header & 1, header >> 1 & 3, header >> 3
+        at += 3 + (1 if kind == 1 else size)
+        blocks += 1
+        if last:
+            return blocks if at + 4 * has_checksum == len(data) else -1
+
 @contextlib.contextmanager
 def xvfb_display(screen: str = "1024x768x24"):
     """A virtual X display for window tests: yields its name (":N"), stops the server afterwards."""

@@ -11,7 +11,7 @@ import zlib
 import numpy as np
 import pytest
 import zstandard
-from conftest import real
+from conftest import real, zstd_block_count
 from test_transport_decode import random_content, random_modes
 
 from splatstream.encode import EncodeOptions
@@ -190,22 +190,6 @@ def test_keyed_positions_decode_together_as_one_at_a_time(fruit):
     assert [planes_bytes(p) for p in decode_payloads(items, "base", ["t"] * len(items))] == alone
 
 
-def _zstd_blocks(data: bytes) -> int:
-    """The number of blocks in a zstd frame (RFC 8878 3.1.1: the frame header, then blocks of a 3-byte header)."""
-    descriptor = data[4]
-    single, has_checksum = descriptor >> 5 & 1, descriptor >> 2 & 1
-    at = 5 + (0 if single else 1) + (0, 1, 2, 4)[descriptor & 3] + ((1, 2, 4, 8)[descriptor >> 6] if single or
-                                                                     descriptor >> 6 else 0)
-    blocks = 0
-    while True:
-        header = int.from_bytes(data[at:at + 3], "little")
-        last, kind, size = header & 1, header >> 1 & 3, header >> 3
-        at += 3 + (1 if kind == 1 else size)
-        blocks += 1
-        if last:
-            return blocks if at + 4 * has_checksum == len(data) else -1
-
-
 def test_block_ends_join_like_parts_of_small_payloads_only():
     rng = np.random.default_rng(5)
     noise = [rng.integers(0, 256, 1024, dtype=np.uint8) for _ in range(3)]  # like parts: one table serves them
@@ -233,8 +217,8 @@ def test_small_payloads_have_fewer_blocks_and_bytes_and_the_same_raw_bytes(fruit
     d = zstandard.ZstdDecompressor()
     for (a, ea), (b, eb) in zip(joined, apart, strict=True):
         assert d.decompress(a) == d.decompress(b) and ea.sections == eb.sections and ea.raw_bytes == eb.raw_bytes
-        assert _zstd_blocks(a) > 0 and _zstd_blocks(b) > 0  # each one well-formed frame, as parsed
-    blocks_joined = sum(_zstd_blocks(a) for a, _ in joined)
-    blocks_apart = sum(_zstd_blocks(b) for b, _ in apart)
+        assert zstd_block_count(a) > 0 and zstd_block_count(b) > 0  # each one well-formed frame, as parsed
+    blocks_joined = sum(zstd_block_count(a) for a, _ in joined)
+    blocks_apart = sum(zstd_block_count(b) for b, _ in apart)
     assert 0 < blocks_joined < 0.7 * blocks_apart
     assert sum(len(a) for a, _ in joined) < 0.995 * sum(len(b) for b, _ in apart)

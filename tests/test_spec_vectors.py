@@ -153,11 +153,11 @@ ACROSS_SECTIONS = {"low", "very-low", "table"}
 def test_vector_payloads_share_zstd_blocks_as_the_encoder_writes_them(name):
     """Readers are tested on what writers emit: the vectors' payloads hold zstd blocks that span several parts (byte
     planes, layers, ranges), in some vectors parts of two sections, and decode exactly (the tests above)."""
-    from test_decode_batch import _zstd_blocks  # the frame's block count, as the encoder's block test reads it
+    from conftest import zstd_block_count  # the frame's block count, as the encoder's block test reads it
 
     scene = VECTORS / name
     payloads = [p for _, _, p in load_manifest(scene).payloads()]
-    blocks = [_zstd_blocks((scene / p.file).read_bytes()) for p in payloads]
+    blocks = [zstd_block_count((scene / p.file).read_bytes()) for p in payloads]
     assert all(b > 0 for b in blocks)  # each payload one well-formed frame
     assert sum(blocks) == VECTOR_BLOCKS[name]
     assert any(b < len(p.sections) for b, p in zip(blocks, payloads, strict=True)) == (name in ACROSS_SECTIONS)
