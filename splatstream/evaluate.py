@@ -23,7 +23,8 @@ import numpy as np
 from . import __version__
 from .axes import RDF_TO_RUB, turn, turned_against
 from .camera import Camera, scene_orbit_views
-from .encode import EncodeOptions, encode_to
+from .encode import EncodeOptions, encode_gaussians
+from .encode.options import no_progress
 from .encode.plan import plan_tiles
 from .errors import InputError, UsageError
 from .format.presets import ATTRIBUTES, PRESETS, resolve_formats
@@ -33,7 +34,6 @@ from .metrics import psnr_from_mse, ssim
 from .ply import InfiniteOpacityWarning
 from .render_ref import render
 from .scene_decode import decode_scene
-from .store import DirectoryWriter
 from .vq import parse_entries
 
 Renderer = Callable[[Gaussians | str, Camera], np.ndarray]
@@ -298,7 +298,7 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
     tree, tree_s = None, None
     if opts.lod:
         t = time.perf_counter()
-        tree = plan_tiles(g, EncodeOptions(lod=True, **opts.encode_options), lambda stage, fraction: None)
+        tree = plan_tiles(g, EncodeOptions(lod=True, **opts.encode_options), no_progress)
         tree_s = time.perf_counter() - t
         log(f"built the LOD tree every encode takes: {len(tree)} tiles ({tree_s:.2f} s)")
     try:
@@ -310,8 +310,7 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
             if opts.zstd_level is not None:
                 eo.zstd_level = opts.zstd_level
             t0 = time.perf_counter()
-            with DirectoryWriter(out) as writer:
-                m = encode_to(g, writer, eo, source_name=input_path, out_name=os.path.basename(out), tiles=tree)
+            m = encode_gaussians(g, out, eo, source_name=input_path, tiles=tree)
             enc_s = time.perf_counter() - t0
             # GL draws the encoded textures themselves (what the client shows); the reference renders the decode
             source = out if evr.draws_scenes else decode_scene(out)

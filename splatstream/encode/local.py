@@ -71,12 +71,14 @@ def _pool(workers: int) -> Iterator[ThreadPoolExecutor]:
 
 
 def encode_gaussians(g: Gaussians, out_dir: str | os.PathLike, opts: EncodeOptions | None = None,
-                     progress: Progress | None = None, source_name: str | None = None) -> Manifest:
-    """Encode Gaussians into a scene directory (replaced in one step when everything is written)."""
+                     progress: Progress | None = None, source_name: str | None = None,
+                     tiles: list[Tile] | None = None) -> Manifest:
+    """Encode Gaussians into a scene directory (replaced in one step when everything is written). `tiles`: an LOD
+    tree built already (plan_tiles: several encodes of one scene share it)."""
     out_dir = os.fspath(out_dir)
     with DirectoryWriter(out_dir) as writer:
         return encode_to(g, writer, opts or EncodeOptions(), progress or no_progress, source_name,
-                         os.path.basename(os.path.abspath(out_dir)))
+                         os.path.basename(os.path.abspath(out_dir)), tiles=tiles)
 
 
 def encode_in_memory(g: Gaussians, opts: EncodeOptions | None = None, progress: Progress | None = None,
