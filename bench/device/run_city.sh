@@ -3,7 +3,8 @@
 # root, carrying .whl (bench/device_wheels.sh: Dask and its needs, plus the client's wheels) and .gl (GL loaders).
 # Usage: bash bench/device/run_city.sh make-encode SPLATS   then   bash bench/device/run_city.sh stream
 #        bash bench/device/run_city.sh sizes 1000000,6000000,60000000   (each size made, encoded, streamed: the
-#        series of first frame and selection time against scene size; results under $OUT/size_N/)
+#        series of first frame and selection time against scene size; results under $OUT/size_N/; SIZE_PASSES=3:
+#        three fly-throughs a size)
 #   make-encode: the scene (bench/tile_scene.py: copies of the bundled donut, SH0, seed 0) and `encode --workers N`
 #                (N: CITY_WORKERS, else the machine's cores, nproc) with the encoder's
 #                defaults (medium, pages over 1,024 tiles), timed as bench_scale.py times it
@@ -64,9 +65,14 @@ if [ "$what" = sizes ]; then
     for run in cold warm; do
       python3 bench/bench_first_frame.py --scene $s/scene --json "$d/first_frame_$run.json" 2>&1 | tail -2
     done
-    python3 bench/bench_flythrough.py --scene $s/scene --ply $s/s.ply --max-splats 3000000 --breakdown \
-      --json "$d/flythrough.json" > $s/fly.log 2>&1 || tail -20 $s/fly.log
-    fly_summary "$d/flythrough.json"
+    # SIZE_PASSES=N: N fly-throughs of each size (flythrough.json, then fly_2.json ...), to tell a change from the
+    # spread between passes
+    for pass in $(seq 1 "${SIZE_PASSES:-1}"); do
+      f=flythrough; [ "$pass" -gt 1 ] && f=fly_$pass
+      python3 bench/bench_flythrough.py --scene $s/scene --ply $s/s.ply --max-splats 3000000 --breakdown \
+        --json "$d/$f.json" > $s/fly.log 2>&1 || tail -20 $s/fly.log
+      fly_summary "$d/$f.json"
+    done
     rm -rf "$s"
   done
 fi
