@@ -291,6 +291,10 @@ def test_compiled_draw_set_is_draw_sets(whole):
                 assert got.dtype == np.int64 and got.tolist() == want
                 # the engine's residency sums, from the same call
                 assert sums.tolist() == [int(resident.sum()), int(a.splats[resident].sum()), int(a.splats[want].sum())]
+                # without stand-ins (the engine's set over a splat budget): ancestors only, the same way
+                held = draw_set(a, view, sel, resident, root, stand_ins=False)
+                assert draw_set_compiled(a, view, sel, resident, root, None, False).tolist() == held
+                assert int(a.splats[held].sum()) <= int(a.splats[want].sum()) or not held
                 top_refined = root in sel.refined
                 if not want:
                     kinds["empty"] += 1

@@ -159,6 +159,12 @@ def test_draw_set_has_no_holes_while_loading(scene):
     assert far.cut == (root,)
     drawn = draw_set(a, view, far, resident, root)
     assert sorted(drawn) == sorted(sel.cut)
+    # without stand-ins (the engine's set over a splat budget) only an ancestor covers a wanted tile: none here
+    assert draw_set(a, view, far, resident, root, stand_ins=False) == []
+    resident[root] = True
+    assert draw_set(a, view, far, resident, root, stand_ins=False) == [root]
+    # the refined cut as before: tiles refined are replaced through their children, no stand-ins there
+    assert sorted(draw_set(a, view, sel, resident, root, stand_ins=False)) == sorted(sel.cut)
 
 
 def test_bands_by_projected_size(scene):

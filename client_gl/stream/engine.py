@@ -722,16 +722,27 @@ class StreamEngine:
         # compiled with the selection (the same tiles in the same order; the Python walk was about 1 ms a frame at
         # 250M splats: BENCHMARKS.md, "Manifest pages"), else the numpy reference
         compiled = COMPILED_SELECTION.draw() if self.options.compiled_selection else None
-        if compiled is not None:  # with the residency's sums (whole numbers: numpy's)
-            sums = np.zeros(3, np.int64)
-            drawn = compiled(self.arrays, view, sel, self.resident, self.root, sums)
-            resident_tiles, resident_splats, drawn_splats = sums.tolist()
-        else:
-            drawn = np.asarray(draw_set(self.arrays, view, sel, self.resident, self.root), np.intp)
-            resident_tiles, resident_splats = int(self.resident.sum()), int(self.arrays.splats[self.resident].sum())
-            drawn_splats = int(self.arrays.splats[drawn].sum()) if len(drawn) else 0
+        max_splats = self.options.selection.max_splats
+        drawn, resident_tiles, resident_splats, drawn_splats = self._draw_set_of(view, sel, compiled, True)
+        # Descendants standing in for a wanted tile not loaded yet (the cut coarsened) hold more splats than it:
+        # over the splat budget, ancestors cover it instead (client.md 2: the budget holds in every frame)
+        if max_splats is not None and drawn_splats > max_splats:
+            held = self._draw_set_of(view, sel, compiled, False)
+            if len(held[0]):
+                drawn, resident_tiles, resident_splats, drawn_splats = held
         counts = (self.ids[drawn].tolist(), resident_tiles, resident_splats, drawn_splats)
         return (self._wanted_serial, self._version), drawn, counts
+
+    def _draw_set_of(self, view, sel: Selection, compiled, stand_ins: bool) -> tuple[np.ndarray, int, int, int]:
+        """The draw set (positions), the tiles resident, their splats and the drawn splats."""
+        if compiled is not None:  # with the residency's sums (whole numbers: numpy's)
+            sums = np.zeros(3, np.int64)
+            drawn = compiled(self.arrays, view, sel, self.resident, self.root, sums, stand_ins)
+            resident_tiles, resident_splats, drawn_splats = sums.tolist()
+            return drawn, resident_tiles, resident_splats, drawn_splats
+        drawn = np.asarray(draw_set(self.arrays, view, sel, self.resident, self.root, stand_ins), np.intp)
+        drawn_splats = int(self.arrays.splats[drawn].sum()) if len(drawn) else 0
+        return drawn, int(self.resident.sum()), int(self.arrays.splats[self.resident].sum()), drawn_splats
 
     def _coarse_to_fine(self, keys: list[Key], sel: Selection) -> list[Key]:
         """The wish list with the ancestors of every cut tile not resident yet, bases ordered by level (then by

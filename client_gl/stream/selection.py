@@ -786,13 +786,17 @@ def wanted_bands_at(a: TileArrays, view: TileView, cut_at: np.ndarray, opts: Sel
     return out
 
 
-def draw_set(a: TileArrays, view: TileView, sel: Selection, resident: np.ndarray, root: int) -> list[int]:
+def draw_set(a: TileArrays, view: TileView, sel: Selection, resident: np.ndarray, root: int,
+             stand_ins: bool = True) -> list[int]:
     """The tiles to draw now: the wanted cut where resident, else what covers the same region without holes.
 
     A tile the selection refines is replaced by its visible children only when every one of them can be drawn
     (resident, or covered by its own resident descendants); otherwise the tile itself is drawn. A wanted tile
     that is not resident yet is covered by its resident descendants if they cover its view (they were wanted
-    before the camera moved back), else by an ancestor. Never a tile together with a descendant."""
+    before the camera moved back), else by an ancestor. Never a tile together with a descendant.
+
+    `stand_ins=False`: a wanted tile not resident is covered by an ancestor only (descendants standing in hold
+    more splats than the cut: the engine asks for this set when the other one is over the splat budget)."""
 
     visible_at, children = view.visible_at, a.children  # a PartialView tests the tiles the walk reaches only
     refined = sel.refined  # once: the walk asks for each tile it reaches
@@ -807,7 +811,7 @@ def draw_set(a: TileArrays, view: TileView, sel: Selection, resident: np.ndarray
                 return parts
         if resident[i]:
             return [i]
-        if i not in refined:
+        if stand_ins and i not in refined:
             kids = shown(i)
             if kids:
                 return _cover_all(kids)  # finer tiles still resident stand in for a coarser tile not yet loaded

@@ -376,12 +376,14 @@ _ENTER, _REFINED, _STAND_IN = 0, 1, 2
 
 
 @njit(**_JIT)
-def _draw_walk(root, lo, hi, kids, refd, resident, all_known, known, visible, corners, plane_d, split, out, stack):
+def _draw_walk(root, lo, hi, kids, refd, resident, all_known, known, visible, corners, plane_d, split, out, stack,
+               stand_ins):
     """selection.draw_set's recursive cover(root), as a loop over an explicit stack (a frame a tile: its state, the
     next child to look at, where its tiles start in `out`, whether a child was covered, whether one is being
     covered). A tile refined is replaced by its visible children when all of them are covered (none visible: by
     nothing), else drawn itself if resident; a tile not refined is drawn if resident, else stood in for by its
-    visible children if it has some and all of them are covered. A failed cover takes its tiles back out of `out`.
+    visible children if it has some and all of them are covered (with `stand_ins`; without, not covered). A failed
+    cover takes its tiles back out of `out`.
     Returns how many tiles `out` holds (0 when the root is not covered: draw_set's [])."""
     st_i, st_state, st_q, st_mark, st_any = stack[0], stack[1], stack[2], stack[3], stack[4]
     m = 0
@@ -406,8 +408,13 @@ def _draw_walk(root, lo, hi, kids, refd, resident, all_known, known, visible, co
                 top -= 1
                 waiting = True
                 continue
-            else:
+            elif stand_ins:
                 st_state[f] = _STAND_IN
+            else:  # not covered: the frame below takes the answer
+                ok = False
+                top -= 1
+                waiting = True
+                continue
             waiting = False
             continue
         if waiting and not ok:  # a visible child not covered: this try fails
@@ -668,7 +675,7 @@ _NO_PLANES = (np.zeros(1, np.uint8), np.zeros(0, np.float64), np.zeros((0, 6), n
 
 
 def draw_set_compiled(a: TileArrays, view: PartialView | TileView, sel: Selection, resident: np.ndarray,
-                      root: int, sums: np.ndarray | None = None) -> np.ndarray:
+                      root: int, sums: np.ndarray | None = None, stand_ins: bool = True) -> np.ndarray:
     """selection.draw_set's tiles (the same, in the same order) as an array of positions, compiled: the Python walk
     was about 1 ms a frame at 250M splats (500 tiles, 700 one-tile box tests; BENCHMARKS.md, "Manifest pages").
     A PartialView's tiles without numbers are box-tested alone, as its visible_at does. `sums` (3 int64): set to
@@ -688,7 +695,7 @@ def draw_set_compiled(a: TileArrays, view: PartialView | TileView, sel: Selectio
     out = np.empty(n, np.int64)
     m = _draw_walk(root, lo, hi, kids, refd, np.ascontiguousarray(resident, np.bool_), all_known, known,
                    np.ascontiguousarray(view.visible, np.bool_), corners, plane_d, split, out,
-                   np.empty((5, n + 1), np.int64))
+                   np.empty((5, n + 1), np.int64), stand_ins)
     drawn = out[:m]
     if sums is not None:
         _draw_sums(np.ascontiguousarray(resident, np.bool_), np.ascontiguousarray(a.splats, np.int64), drawn, sums)
@@ -712,6 +719,7 @@ def warm_up() -> None:
     assert draw_set_compiled(a, view, sel, resident, 0, sums).tolist() == [0]  # child 2 not resident: the root drawn
     assert sums.tolist() == [2, 200, 100], sums
     assert draw_set_compiled(a, view_numbers(a, cam), sel, resident, 0).tolist() == [0]
+    assert draw_set_compiled(a, view, sel, resident, 0, sums, False).tolist() == [0]
 
 
 class _Tiny:
