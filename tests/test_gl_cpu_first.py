@@ -32,6 +32,18 @@ def fruit():
     return read_gaussians(real("fruit_drops_sh3.ply"))
 
 
+class SynchronousWarmer:
+    """warm_compile.ShaderWarmer, waited for when made."""
+
+    def __new__(cls, programs):
+        from client_gl.gpu.warm_compile import ShaderWarmer
+
+        warmer = ShaderWarmer(programs)
+        if warmer.thread is not None:
+            warmer.thread.join()
+        return warmer
+
+
 @pytest.fixture
 def as_hardware(ctx, monkeypatch):
     """The auto choices of a hardware GL, programs counted as compiled, deferred compiles one a frame."""
@@ -39,6 +51,9 @@ def as_hardware(ctx, monkeypatch):
 
     monkeypatch.setattr(renderer_mod, "SOFTWARE_RENDERERS", ())
     monkeypatch.setattr(renderer_mod, "DEFERRED_COMPILE_BUDGET_S", 0.0)
+    # the warmer's programs all linked before the first frame (RenderOptions.warm_compile): the frames' compiles in
+    # the order and number they have without it, whatever the thread's timing
+    monkeypatch.setattr(renderer_mod, "ShaderWarmer", SynchronousWarmer)
     # an empty program cache: an earlier test module on the session's context may have compiled the sort's programs
     monkeypatch.setattr(ctx, "extra", {})
     compiled: list[str] = []
@@ -221,3 +236,100 @@ def test_a_pool_without_its_host_mirror_takes_tiles_with_or_without_one(ctx, fru
     pool.join(2, a)
     assert pool.resident_splats == 1200
     pool.release()
+
+
+def test_warm_compile_waits_for_the_warmer_and_draws_the_same_frames(ctx, fruit, as_hardware, monkeypatch):
+    """RenderOptions.warm_compile: the 15 programs the frames compile after the first one (the GPU path's 6, the
+    compute draw's 9) are linked first on the warmer's thread and context; a frame compiles none that the warmer has
+    not linked (until WARM_COMPILE_WAIT_S), and the frames, path by path, equal those of a renderer without the
+    warmer (the same sources compiled by the frame loop): the CPU-sorted ones bit for bit, the GPU path's within its
+    own frame-to-frame noise."""
+    from client_gl.gpu import renderer as renderer_mod
+    from client_gl.gpu.pool import ChunkPool
+    from client_gl.gpu.renderer import RenderOptions, SplatRenderer, program_stages
+    from client_gl.gpu.warm_compile import ShaderWarmer
+    from client_gl.scene import tiles_from_gaussians
+
+    compiled = as_hardware
+    scene = tiles_from_gaussians(fruit)
+    cam = close_camera(fruit, W, H)
+
+    def frames(options, n, gate=None):
+        for key in [k for k in ctx.extra if k[0] == "compute_program"]:
+            del ctx.extra[key]
+        compiled.clear()
+        pool = ChunkPool(ctx, scene.formats, scene.sh_degree, scene.slots)
+        for tile_id, tile in scene.tiles.items():
+            pool.join(tile_id, tile)
+        r = SplatRenderer(ctx, pool, options)
+        out = []
+        for i in range(n):
+            if gate is not None and i == gate[0]:
+                gate[1](r)
+            r.render(cam)
+            out.append(((r.sort_mode, r.draw_mode, len(compiled)), r.read_image()))
+        return r, pool, out
+
+    cold, pool_c, want = frames(RenderOptions(warm_compile=False), 18)
+    assert cold._warmer is None
+    warm, pool_w, got = frames(RenderOptions(), 18)
+    assert warm._warmer is not None and warm._warmer.failed is None
+    assert set(warm.warm_compile_seconds) == {"cull", "fetch", "indirect_setup.comp", "radix_count.comp",
+                                              "radix_scanadd.comp", "radix_scatter_local.comp", "count_shader",
+                                              "scan_shader", "emit_shader", "ranges_shader", "raster_shader"}
+    assert len(warm._warmer.programs) == 15  # the depth and tile sorts' programs differ in their digit width
+    assert [p for p, _ in got] == [p for p, _ in want] and want[-1][0] == ("gpu", "compute", 17)
+    for (path, a), (_, b) in zip(want, got, strict=True):
+        if path[0] == "cpu":
+            assert np.array_equal(a, b), path
+        else:  # the GPU path's own noise: cull's atomic compaction orders depth-key ties by thread timing (two
+            # renderers without the warmer differed by 1.2e-5 in 31 values of their switch frame here)
+            assert np.abs(a - b).max() <= 1e-4, path
+    for r, p in ((cold, pool_c), (warm, pool_w)):
+        r.release()
+        p.release()
+
+    # A warmer that has linked nothing yet: the frames after the first compile nothing and draw with the CPU sort,
+    # until it has (or WARM_COMPILE_WAIT_S passed).
+    class Waiting(ShaderWarmer):
+        def __init__(self, programs):
+            self.programs, self.seconds, self.failed, self.thread = list(programs), {}, None, None
+            self.ready: set = set()
+
+        def done(self, stages):
+            return stages in self.ready
+
+        finished = False
+
+        def stop(self, wait=True):
+            pass
+
+    monkeypatch.setattr(renderer_mod, "ShaderWarmer", Waiting)
+    r, pool, seen = frames(RenderOptions(), 5, gate=(3, lambda r: r._warmer.ready.add(
+        program_stages("cull", r._gpu_pending[0][1]))))
+    assert [p for p, _ in seen] == [("cpu", "fetch", 2)] * 3 + [("cpu", "fetch", 3), ("cpu", "fetch", 3)]
+    monkeypatch.setattr(renderer_mod, "WARM_COMPILE_WAIT_S", 0.0)
+    r.render(cam)  # waited long enough: compiled by the frame loop
+    assert len(compiled) == 4
+    r.release()
+    pool.release()
+
+
+def test_the_warmer_compiles_on_its_own_context(ctx):
+    """ShaderWarmer on the test's EGL context: every program linked on its thread (one that does not compile too:
+    the frame loop reports it), the interpreter lock free meanwhile, its context gone after."""
+    from client_gl.gpu.compute_raster import raster_sources
+    from client_gl.gpu.warm_compile import GL_COMPUTE_SHADER, ShaderWarmer
+
+    programs = [((GL_COMPUTE_SHADER, src),) for src in raster_sources("f4").values()]
+    programs.append(((GL_COMPUTE_SHADER, "#version 430\nnot glsl"),))
+    warmer = ShaderWarmer(programs)
+    if warmer.failed == "no current EGL context":
+        pytest.skip("the test context is not EGL")
+    steps = 0
+    while not warmer.finished:
+        steps += 1
+    assert warmer.failed is None and all(warmer.done(p) for p in programs) and len(warmer.seconds) == 6
+    assert steps > 100  # the main thread ran beside the compiles
+    program = ctx.compute_shader(programs[0][0][1])  # this thread's context is still current and works
+    program.release()
