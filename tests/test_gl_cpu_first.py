@@ -247,7 +247,6 @@ def test_warm_compile_waits_for_the_warmer_and_draws_the_same_frames(ctx, fruit,
     from client_gl.gpu import renderer as renderer_mod
     from client_gl.gpu.pool import ChunkPool
     from client_gl.gpu.renderer import RenderOptions, SplatRenderer, program_stages
-    from client_gl.gpu.warm_compile import ShaderWarmer
     from client_gl.scene import tiles_from_gaussians
 
     compiled = as_hardware
@@ -291,28 +290,48 @@ def test_warm_compile_waits_for_the_warmer_and_draws_the_same_frames(ctx, fruit,
 
     # A warmer that has linked nothing yet: the frames after the first compile nothing and draw with the CPU sort,
     # until it has (or WARM_COMPILE_WAIT_S passed).
-    class Waiting(ShaderWarmer):
-        def __init__(self, programs):
-            self.programs, self.seconds, self.failed, self.thread = list(programs), {}, None, None
-            self.ready: set = set()
-
-        def done(self, stages):
-            return stages in self.ready
-
-        finished = False
-
-        def stop(self, wait=True):
-            pass
-
-    monkeypatch.setattr(renderer_mod, "ShaderWarmer", Waiting)
+    monkeypatch.setattr(renderer_mod, "ShaderWarmer", WaitingWarmer)
     r, pool, seen = frames(RenderOptions(), 5, gate=(3, lambda r: r._warmer.ready.add(
         program_stages("cull", r._gpu_pending[0][1]))))
     assert [p for p, _ in seen] == [("cpu", "fetch", 2)] * 3 + [("cpu", "fetch", 3), ("cpu", "fetch", 3)]
+    assert set(r.compile_seconds) == {"cull"}
     monkeypatch.setattr(renderer_mod, "WARM_COMPILE_WAIT_S", 0.0)
     r.render(cam)  # waited long enough: compiled by the frame loop
-    assert len(compiled) == 4
+    assert len(compiled) == 4 and not r.warm_compile_missed
     r.release()
     pool.release()
+
+    # The frame loop's compiles as slow as the warmer's (no cache hit): after two, no more waiting for it.
+    monkeypatch.setattr(renderer_mod, "WARM_COMPILE_WAIT_S", 3600.0)
+    monkeypatch.setattr(renderer_mod, "WARM_MISS_MIN_S", 0.0)
+
+    def all_ready(r):
+        r._warmer.ready.update(r._warmer.programs)
+        r._warmer.seconds.update(dict.fromkeys(r._warmer.programs[:2], 1e-9))
+    r, pool, seen = frames(RenderOptions(), 4, gate=(1, all_ready))
+    assert r.warm_compile_missed and r._warmer.stopped
+    r._warmer.ready.clear()  # the warmer has linked nothing more: compiled regardless, one a frame
+    r.render(cam)
+    assert [p for p, _ in seen][1:] == [("cpu", "fetch", 3), ("cpu", "fetch", 4), ("cpu", "fetch", 5)]
+    assert len(compiled) == 6
+    r.release()
+    pool.release()
+
+
+class WaitingWarmer:
+    """A stand-in for warm_compile.ShaderWarmer whose programs are linked when a test says so (`ready`)."""
+
+    def __init__(self, programs):
+        self.programs, self.seconds, self.failed, self.thread = list(programs), {}, None, None
+        self.ready: set = set()
+        self.stopped = False
+        self.finished = False
+
+    def done(self, stages):
+        return stages in self.ready
+
+    def stop(self, wait=True):
+        self.stopped = True
 
 
 def test_the_warmer_compiles_on_its_own_context(ctx):

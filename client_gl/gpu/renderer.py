@@ -86,6 +86,11 @@ CPU_FIRST_MAX_SPLATS = 65536
 # RenderOptions.warm_compile: a deferred program the warmer thread has not linked yet is compiled by the frame loop
 # once the frames have waited this long for it (a warmer slowed down by other work cannot hold the GPU path back).
 WARM_COMPILE_WAIT_S = 1.0
+# The frames stop waiting for the warmer after two programs whose frame-loop compile took WARM_MISS_RATIO or more of
+# the warmer's time for it (at least WARM_MISS_MIN_S there): the driver's cache did not carry them over (Mesa's with
+# its disk cache off: BENCHMARKS.md, "Deferred compiles warmed off the frame loop").
+WARM_MISS_RATIO = 0.5
+WARM_MISS_MIN_S = 0.010
 
 
 def has_compute(ctx) -> bool:
@@ -289,6 +294,7 @@ def camera_uniforms(cam: Camera) -> dict:
     }
 
 
+@functools.lru_cache(maxsize=128)  # asked every frame while a program waits for the warmer
 def program_stages(key: str | None, src) -> Stages:
     """The (GL shader type, source) stages of a program as SplatRenderer._compile_some compiles it (key None: a
     compute_program spec; a str: a compute shader; a pair: vertex and fragment), for the warmer."""
@@ -298,6 +304,11 @@ def program_stages(key: str | None, src) -> Stages:
         return ((GL_COMPUTE_SHADER, src),)
     vert, frag = src
     return ((GL_VERTEX_SHADER, vert), (GL_FRAGMENT_SHADER, frag))
+
+
+def _cached_compute_program(ctx, spec) -> bool:
+    """Whether compute_program(ctx, *spec) finds its program in the context's cache (compiles nothing)."""
+    return isinstance(ctx.extra, dict) and ("compute_program", *spec) in ctx.extra
 
 
 def program_name(key: str | None, src) -> str:
@@ -354,6 +365,9 @@ class SplatRenderer:
         self._reserved_splats = 0  # reserve_work's splats while the CPU sort draws (applied at the switch)
         self._warmer: ShaderWarmer | None = None  # RenderOptions.warm_compile
         self._warm_wait_since: float | None = None  # when frames began waiting for the warmer's next program
+        self._warm_misses = 0
+        self.warm_compile_missed = False  # the frames' compiles were not the warmer's cache hits: no more waiting
+        self.compile_seconds: dict[str, float] = {}  # the frame loop's compile of each deferred program (program_name)
         if self.sort_mode == "gpu" and pool.host_mirror is not None and draws_cpu_first(ctx, self.options):
             self.sort_mode = "cpu"
             self._gpu_pending = self._gpu_path_sources()
@@ -370,6 +384,7 @@ class SplatRenderer:
             later = list(self._gpu_pending or [])
             if self._defers_compute():
                 later += self._deferred_sources()
+            later = [(key, src) for key, src in later if key is not None or not _cached_compute_program(ctx, src)]
             if later:
                 self._warm_names = {program_stages(key, src): program_name(key, src) for key, src in later}
                 self._warmer = ShaderWarmer(self._warm_names)
@@ -773,9 +788,11 @@ class SplatRenderer:
         t0 = time.perf_counter()
         while pending:
             key, src = pending[0]
-            if not self._warmed(program_stages(key, src), budget_s):
+            stages = program_stages(key, src)
+            if not self._warmed(key, src, stages, budget_s):
                 break
             pending.pop(0)
+            t = time.perf_counter()
             if key is None:
                 compute_program(self.ctx, *src)
             elif isinstance(src, str):
@@ -783,14 +800,32 @@ class SplatRenderer:
             else:
                 vert, frag = src
                 into[key] = self.ctx.program(vertex_shader=vert, fragment_shader=frag)
-            if time.perf_counter() - t0 >= budget_s:
+            now = time.perf_counter()
+            self.compile_seconds[program_name(key, src)] = now - t
+            self._check_warm_hit(stages, now - t)
+            if now - t0 >= budget_s:
                 break
 
-    def _warmed(self, stages: Stages, budget_s: float) -> bool:
-        """Whether the frame loop compiles this program now: no warmer, the warmer linked it, is over (done, failed)
-        or was waited for WARM_COMPILE_WAIT_S, or the frame compiles everything at once (an infinite budget)."""
+    def _check_warm_hit(self, stages: Stages, loop_s: float) -> None:
+        """After the frame loop compiled a program the warmer had linked: when that compile took about as long as the
+        warmer's (WARM_MISS_RATIO of it, a program that took the warmer WARM_MISS_MIN_S or more), twice, the driver's
+        cache is not shared between the contexts (or is off), and the frames stop waiting for the warmer."""
         warmer = self._warmer
-        if warmer is None or budget_s == math.inf or warmer.done(stages) or warmer.finished:
+        warm_s = warmer.seconds.get(stages) if warmer is not None and not self.warm_compile_missed else None
+        if warm_s is None or warm_s < WARM_MISS_MIN_S or loop_s < WARM_MISS_RATIO * warm_s:
+            return
+        self._warm_misses += 1
+        if self._warm_misses >= 2:
+            self.warm_compile_missed = True
+            warmer.stop(wait=False)
+
+    def _warmed(self, key: str | None, src, stages: Stages, budget_s: float) -> bool:
+        """Whether the frame loop compiles this program now: no warmer, the warmer linked it, is over (done, failed,
+        stopped after misses) or was waited for WARM_COMPILE_WAIT_S, the frame compiles everything at once (an
+        infinite budget), or it is a compute_program the context holds already (nothing to compile)."""
+        warmer = self._warmer
+        if (warmer is None or budget_s == math.inf or self.warm_compile_missed or warmer.done(stages)
+                or warmer.finished or (key is None and _cached_compute_program(self.ctx, src))):
             self._warm_wait_since = None
             return True
         now = time.perf_counter()
