@@ -170,7 +170,9 @@ def main() -> None:
         out.update(compile_after_ms=round(sum(after), 1), compile_after_max_ms=max(after, default=0.0),
                    compile_after_each_ms=after, frames_after=frames_after, frames_to_compute=to_compute,
                    warm_compile=not args.no_warm_compile,
-                   warmer_ms={k: round(v * 1e3, 1) for k, v in session.renderer.warm_compile_seconds.items()})
+                   warmer_ms={k: round(v * 1e3, 1) for k, v in session.renderer.warm_compile_seconds.items()},
+                   loop_compile_ms={k: round(v * 1e3, 2) for k, v in session.renderer.compile_seconds.items()},
+                   warm_compile_missed=session.renderer.warm_compile_missed)
         out.update(first_frame_s=m.first_frame_s, manifest_s=m.manifest_s, pool_s=m.pool_s, built_s=m.built_s,
                    frames=frames, sort_pass_programs=args.sort_pass_programs, programs_compiled=len(compiles),
                    programs_compiled_after=compiles_after, draw=args.draw, defer_compute=not args.no_defer,
@@ -186,7 +188,8 @@ def main() -> None:
     print({k: out[k] for k in ("first_frame_s", "manifest_s", "pool_s", "built_s", "context_ms", "programs_compiled",
                                "compile_ms", "programs_compiled_after", "first_sort")})
     if args.frames_after:
-        print({k: out[k] for k in ("compile_after_ms", "compile_after_max_ms", "frames_to_compute", "warmer_ms")})
+        print({k: out[k] for k in ("compile_after_ms", "compile_after_max_ms", "frames_to_compute", "warmer_ms",
+                                   "loop_compile_ms", "warm_compile_missed")})
     if args.json_out:
         with open(args.json_out, "w") as f:
             json.dump(out, f, indent=1)

@@ -60,10 +60,11 @@ def main() -> None:
                     d = run(args.scene, args.extra, env, warm, args.frames_after, os.path.join(tmp, "ff.json"))
                     row = {"round": r, "warmer": warm, "cache": p, "load": d["load"],
                            "each_after_ms": d["compile_after_each_ms"], "warmer_ms": d["warmer_ms"],
+                           "loop_compile_ms": d["loop_compile_ms"], "missed": d["warm_compile_missed"],
                            **{k: d[k] for k in KEYS}}
                     rows.append(row)
                     print(json.dumps({k: (round(v, 3) if isinstance(v, float) else v) for k, v in row.items()
-                                      if k not in ("each_after_ms", "warmer_ms")}), flush=True)
+                                      if k not in ("each_after_ms", "warmer_ms", "loop_compile_ms")}), flush=True)
     summary = {}
     for warm in (True, False):
         for p in ("cold", "warm"):
