@@ -430,6 +430,10 @@ def main() -> None:
             stats = pstats.Stats(profiler)
             stats.sort_stats("tottime").print_stats(25)
             stats.sort_stats("cumulative").print_callees("wanted")
+        rend = session.renderer  # the deferred programs: the frame loop's compile of each and the warmer's (ms)
+        out["loop_compile_ms"] = {k: round(v * 1e3, 2) for k, v in rend.compile_seconds.items()}
+        out["warmer_ms"] = {k: round(v * 1e3, 1) for k, v in rend.warm_compile_seconds.items()}
+        out["warm_compile_missed"] = rend.warm_compile_missed
         eng = session.engine
         out["decode_jobs"] = {"jobs": eng.decode_jobs, "payloads": eng.decode_job_payloads,
                               "moving_frames": eng.moving_frames}
