@@ -5,6 +5,7 @@ both sides of the switch are those of renderers that took one path from the star
 hardware GL (SOFTWARE_RENDERERS emptied: the auto choices of the GPU machine)."""
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
@@ -352,3 +353,9 @@ def test_the_warmer_compiles_on_its_own_context(ctx):
     assert steps > 100  # the main thread ran beside the compiles
     program = ctx.compute_shader(programs[0][0][1])  # this thread's context is still current and works
     program.release()
+    elsewhere = []  # on a thread without a current context: nothing started, the frames compile as before
+    thread = threading.Thread(target=lambda: elsewhere.append(ShaderWarmer(programs)))
+    thread.start()
+    thread.join()
+    assert elsewhere[0].failed == "no current EGL context" and elsewhere[0].finished and not elsewhere[0].done(
+        programs[0])

@@ -19,6 +19,7 @@ import ctypes
 import threading
 import time
 from collections.abc import Iterable
+from functools import lru_cache
 
 from .gl import _address, _loaders
 
@@ -61,6 +62,7 @@ GL_MAJOR_VERSION = 0x821B
 GL_MINOR_VERSION = 0x821C
 
 
+@lru_cache(maxsize=1)
 def _egl():
     """libEGL with the prototypes used here, or None (the GL functions come from gl.py's loaders)."""
     for name in ("libEGL.so.1", "libEGL.so"):
@@ -80,6 +82,7 @@ def _egl():
     return None
 
 
+@lru_cache(maxsize=1)
 def _gl_functions():
     _loaders()  # resolved once, shared with gl.py
     return {name: ctypes.CFUNCTYPE(res, *args)(_address(name)) for name, (res, args) in _GL_SIGNATURES.items()}
@@ -101,17 +104,21 @@ class ShaderWarmer:
         self.failed: str | None = None
         self._lock = threading.Lock()
         self._stop = False
+        self.thread: threading.Thread | None = None
         egl = _egl()
         display = egl.eglGetCurrentDisplay() if egl is not None else None
         if not display or not egl.eglGetCurrentContext():
             self.failed = "no current EGL context"
-            self.thread = None
             return
         # The context's version as the renderer's has it (the driver's cache keys may include it).
         major, minor = ctypes.c_int(4), ctypes.c_int(3)
-        gl = _gl_functions()
-        gl["glGetIntegerv"](GL_MAJOR_VERSION, ctypes.byref(major))
-        gl["glGetIntegerv"](GL_MINOR_VERSION, ctypes.byref(minor))
+        try:
+            gl = _gl_functions()
+            gl["glGetIntegerv"](GL_MAJOR_VERSION, ctypes.byref(major))
+            gl["glGetIntegerv"](GL_MINOR_VERSION, ctypes.byref(minor))
+        except Exception as exc:  # noqa: BLE001 - an entry point missing: the frame loop compiles as before
+            self.failed = f"{type(exc).__name__}: {exc}"
+            return
         self.thread = threading.Thread(target=self._run, args=(egl, display, major.value, minor.value, gl),
                                        name="splatstream-shader-warmer", daemon=True)
         self.thread.start()
