@@ -4,14 +4,15 @@ shader-cache hit (RenderOptions.warm_compile; issue 38, BENCHMARKS.md "Deferred 
 The renderer compiles the GPU path's programs after its first frame (CPU-first frames, deferred compute draw
 programs), one or a few a frame. moderngl keeps the interpreter lock through a compile, so on a cold driver each of
 those frames stalls for the compile (55-258 ms each on the GPU machine). Here a daemon thread makes an EGL context
-of its own on the display of the caller's (current) EGL context, not sharing its objects, and compiles and links the
+of its own on the display of the caller's (current) EGL context (on EGL's default display where the caller's context
+is another API's, a GLFW window's GLX one), not sharing its objects, and compiles and links the
 same GLSL sources through raw GL calls made with ctypes.CFUNCTYPE, which release the interpreter lock: the frame loop
 runs beside it. The driver keeps what it compiled in its shader cache (Mesa: its disk cache; NVIDIA: its in-process
 and disk caches), and the renderer compiles a program through moderngl only once this thread has linked it, so its
 own compile finds it there. Nothing compiled here is used: the programs are deleted, the thread's context destroyed.
 
-Nothing here is needed for correctness: when EGL is not the caller's API, or anything fails, `failed` is set and
-the renderer compiles as without it.
+Nothing here is needed for correctness: without libEGL or a current GL context, or when anything fails, `failed` is
+set and the renderer compiles as without it.
 """
 from __future__ import annotations
 
@@ -75,7 +76,8 @@ def _egl():
                 ("eglChooseConfig", _u, (_p, ctypes.POINTER(_i), ctypes.POINTER(_p), _i, ctypes.POINTER(_i))),
                 ("eglBindAPI", _u, (_u,)), ("eglCreateContext", _p, (_p, _p, _p, ctypes.POINTER(_i))),
                 ("eglMakeCurrent", _u, (_p, _p, _p, _p)), ("eglDestroyContext", _u, (_p, _p)),
-                ("eglReleaseThread", _u, ()), ("eglGetError", _i, ())):
+                ("eglReleaseThread", _u, ()), ("eglGetError", _i, ()), ("eglGetDisplay", _p, (_p,)),
+                ("eglInitialize", _u, (_p, _p, _p))):
             f = getattr(egl, fn)
             f.restype, f.argtypes = res, args
         return egl
@@ -94,7 +96,7 @@ def _attribs(*values: int):
 
 class ShaderWarmer:
     """Compiles and links `programs` (Stages, in order) on a thread with an EGL context of its own. Made on the thread
-    whose EGL context is current (the renderer's); `done(stages)` says whether that program was linked there (or
+    whose GL context is current (the renderer's); `done(stages)` says whether that program was linked there (or
     failed to: the frame loop then compiles it and raises moderngl's error), `failed` whether the thread gave up."""
 
     def __init__(self, programs: Iterable[Stages]):
@@ -106,12 +108,11 @@ class ShaderWarmer:
         self._stop = False
         self.thread: threading.Thread | None = None
         egl = _egl()
-        display = egl.eglGetCurrentDisplay() if egl is not None else None
-        if not display or not egl.eglGetCurrentContext():
-            self.failed = "no current EGL context"
+        if egl is None:
+            self.failed = "no libEGL"
             return
         # The context's version as the renderer's has it (the driver's cache keys may include it).
-        major, minor = ctypes.c_int(4), ctypes.c_int(3)
+        major, minor = ctypes.c_int(0), ctypes.c_int(0)
         try:
             gl = _gl_functions()
             gl["glGetIntegerv"](GL_MAJOR_VERSION, ctypes.byref(major))
@@ -119,6 +120,13 @@ class ShaderWarmer:
         except Exception as exc:  # noqa: BLE001 - an entry point missing: the frame loop compiles as before
             self.failed = f"{type(exc).__name__}: {exc}"
             return
+        if major.value < 4:  # no GL context current here (glvnd's calls without one do nothing)
+            self.failed = "no current GL context"
+            return
+        # The caller's EGL display, or where its context is another API's (a GLFW window's GLX context) EGL's
+        # default display, initialised on the thread: the driver and its cache are the same (a miss shows in the
+        # renderer, which then stops waiting).
+        display = egl.eglGetCurrentDisplay() if egl.eglGetCurrentContext() else None
         self.thread = threading.Thread(target=self._run, args=(egl, display, major.value, minor.value, gl),
                                        name="splatstream-shader-warmer", daemon=True)
         self.thread.start()
@@ -141,6 +149,12 @@ class ShaderWarmer:
     def _run(self, egl, display, major: int, minor: int, gl) -> None:
         context = None
         try:
+            if display is None:
+                display = egl.eglGetDisplay(None)
+                if not display or not egl.eglInitialize(display, None, None):
+                    display = None
+                    raise RuntimeError(f"no current EGL context, and EGL's default display failed "
+                                       f"(0x{egl.eglGetError():x})")
             config, count = _p(), _i(0)
             if not egl.eglChooseConfig(display, _attribs(EGL_SURFACE_TYPE, EGL_PBUFFER_BIT, EGL_RENDERABLE_TYPE,
                                                          EGL_OPENGL_BIT), ctypes.byref(config), 1,
@@ -166,7 +180,7 @@ class ShaderWarmer:
         except Exception as exc:  # noqa: BLE001 - an optimisation only: the frame loop compiles as before
             self.failed = f"{type(exc).__name__}: {exc}"
         finally:
-            if context:
+            if context and display:
                 egl.eglMakeCurrent(display, None, None, None)
                 egl.eglDestroyContext(display, context)
             if egl is not None:
