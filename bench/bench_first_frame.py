@@ -72,6 +72,10 @@ def main() -> None:
     ap.add_argument("--no-cpu-first", action="store_true",
                     help="RenderOptions.cpu_first=False: the GPU path's programs before the first frame (the A/B of "
                          "the CPU-sorted first frames)")
+    ap.add_argument("--no-warm-compile", action="store_true",
+                    help="RenderOptions.warm_compile=False: the programs deferred from the first frame compiled cold "
+                         "by the frame loop (the A/B of the warmer thread; see the compiles after the first frame with "
+                         "--frames-after 30)")
     ap.add_argument("--as-hardware", action="store_true",
                     help="treat a software GL (llvmpipe) as hardware in the renderer's auto choices (GPU sort, "
                          "compute draw): the GPU machine's programs, their count and order, here")
@@ -127,7 +131,8 @@ def main() -> None:
         if args.as_hardware:
             renderer.SOFTWARE_RENDERERS = ()
         render = RenderOptions(sort=args.sort, draw=args.draw, sort_pass_programs=args.sort_pass_programs,
-                               defer_compute=not args.no_defer, cpu_first=not args.no_cpu_first)
+                               defer_compute=not args.no_defer, cpu_first=not args.no_cpu_first,
+                               warm_compile=not args.no_warm_compile)
         view = ViewOptions(cache=False, render=render, **({"gpu_mem_mb": args.gpu_mem_mb} if args.gpu_mem_mb else {}))
         prepared = PreparedSource.open(url, view)
         session = StreamingSession(prepared, ctx, view)
@@ -147,12 +152,27 @@ def main() -> None:
         first_sort = session.renderer.sort_mode  # the path that drew the first frame with splats
         compiles = [ms for _, label, ms in tl.events if label.startswith("compile")]
         # The frames after the first one with splats: when the deferred programs compile (and the draw switches).
+        first_events = len(tl.events)
+        frames_after = []  # (wall ms, compile calls ms, sort, draw) of each
         for _ in range(args.frames_after):
+            t = time.perf_counter()
+            n = len(tl.events)
             session.frame(cam)
             ctx.finish()
+            frame_compiles = sum(ms for _, label, ms in tl.events[n:] if label.startswith("compile"))
+            frames_after.append((round((time.perf_counter() - t) * 1e3, 2), round(frame_compiles, 2),
+                                 session.renderer.sort_mode, session.renderer.draw_mode))
             tl.events.append((round((time.perf_counter() - tl.t0) * 1e3, 2),
-                              f"frame after: {session.renderer.draw_mode}", 0.0))
-        compiles_after = sum(1 for _, label, _ms in tl.events if label.startswith("compile")) - len(compiles)
+                              f"frame after: {session.renderer.sort_mode} {session.renderer.draw_mode}", 0.0))
+        after = [ms for _, label, ms in tl.events[first_events:] if label.startswith("compile")]
+        compiles_after = len(after)
+        to_compute = next((i + 1 for i, f in enumerate(frames_after) if f[3] == "compute"), None)
+        out.update(compile_after_ms=round(sum(after), 1), compile_after_max_ms=max(after, default=0.0),
+                   compile_after_each_ms=after, frames_after=frames_after, frames_to_compute=to_compute,
+                   warm_compile=not args.no_warm_compile,
+                   warmer_ms={k: round(v * 1e3, 1) for k, v in session.renderer.warm_compile_seconds.items()},
+                   loop_compile_ms={k: round(v * 1e3, 2) for k, v in session.renderer.compile_seconds.items()},
+                   warm_compile_missed=session.renderer.warm_compile_missed)
         out.update(first_frame_s=m.first_frame_s, manifest_s=m.manifest_s, pool_s=m.pool_s, built_s=m.built_s,
                    frames=frames, sort_pass_programs=args.sort_pass_programs, programs_compiled=len(compiles),
                    programs_compiled_after=compiles_after, draw=args.draw, defer_compute=not args.no_defer,
@@ -167,6 +187,9 @@ def main() -> None:
         print(f"{t_ms:9.1f} ms  {label:34s} {ms:8.1f} ms")
     print({k: out[k] for k in ("first_frame_s", "manifest_s", "pool_s", "built_s", "context_ms", "programs_compiled",
                                "compile_ms", "programs_compiled_after", "first_sort")})
+    if args.frames_after:
+        print({k: out[k] for k in ("compile_after_ms", "compile_after_max_ms", "frames_to_compute", "warmer_ms",
+                                   "loop_compile_ms", "warm_compile_missed")})
     if args.json_out:
         with open(args.json_out, "w") as f:
             json.dump(out, f, indent=1)

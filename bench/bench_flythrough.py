@@ -286,6 +286,9 @@ def main() -> None:
     ap.add_argument("--compiled-selection-from", type=int, default=0, metavar="TILES",
                     help="the compiled selection only from this many tiles held (4096: as before it was used from the "
                          "first frames; the A/B of the selection's first seconds)")
+    ap.add_argument("--no-warm-compile", action="store_true",
+                    help="RenderOptions.warm_compile=False: the programs deferred from the first frame compiled cold "
+                         "by the frame loop (the A/B of the warmer thread; a cold driver cache shows it)")
     args = ap.parse_args()
     if args.gl_release_gil:
         import ctypes
@@ -314,7 +317,8 @@ def main() -> None:
                                                               decode_workers_moving=args.decode_workers_moving,
                                                               decode_batch=not args.no_decode_batch,
                                                               render=RenderOptions(
-                                                                  sort_pass_programs=args.sort_pass_programs)))
+                                                                  sort_pass_programs=args.sort_pass_programs,
+                                                                  warm_compile=not args.no_warm_compile)))
         if not args.no_gc_freeze:
             freeze_long_lived()
         out["gc_freeze"] = not args.no_gc_freeze
@@ -322,6 +326,7 @@ def main() -> None:
         out["decode_workers_moving"], out["decode_batch"] = args.decode_workers_moving, not args.no_decode_batch
         out["sort_pass_programs"] = bool(args.sort_pass_programs)
         out["finish_keeps_gil"] = bool(args.finish_keeps_gil)
+        out["warm_compile"] = not args.no_warm_compile
         if not args.no_wait_compiled_selection:
             from client_gl.stream.engine import COMPILED_SELECTION
 
@@ -425,6 +430,10 @@ def main() -> None:
             stats = pstats.Stats(profiler)
             stats.sort_stats("tottime").print_stats(25)
             stats.sort_stats("cumulative").print_callees("wanted")
+        rend = session.renderer  # the deferred programs: the frame loop's compile of each and the warmer's (ms)
+        out["loop_compile_ms"] = {k: round(v * 1e3, 2) for k, v in rend.compile_seconds.items()}
+        out["warmer_ms"] = {k: round(v * 1e3, 1) for k, v in rend.warm_compile_seconds.items()}
+        out["warm_compile_missed"] = rend.warm_compile_missed
         eng = session.engine
         out["decode_jobs"] = {"jobs": eng.decode_jobs, "payloads": eng.decode_job_payloads,
                               "moving_frames": eng.moving_frames}

@@ -5,6 +5,7 @@ both sides of the switch are those of renderers that took one path from the star
 hardware GL (SOFTWARE_RENDERERS emptied: the auto choices of the GPU machine)."""
 from __future__ import annotations
 
+import threading
 import time
 
 import numpy as np
@@ -32,6 +33,18 @@ def fruit():
     return read_gaussians(real("fruit_drops_sh3.ply"))
 
 
+class SynchronousWarmer:
+    """warm_compile.ShaderWarmer, waited for when made."""
+
+    def __new__(cls, programs):
+        from client_gl.gpu.warm_compile import ShaderWarmer
+
+        warmer = ShaderWarmer(programs)
+        if warmer.thread is not None:
+            warmer.thread.join()
+        return warmer
+
+
 @pytest.fixture
 def as_hardware(ctx, monkeypatch):
     """The auto choices of a hardware GL, programs counted as compiled, deferred compiles one a frame."""
@@ -39,6 +52,9 @@ def as_hardware(ctx, monkeypatch):
 
     monkeypatch.setattr(renderer_mod, "SOFTWARE_RENDERERS", ())
     monkeypatch.setattr(renderer_mod, "DEFERRED_COMPILE_BUDGET_S", 0.0)
+    # the warmer's programs all linked before the first frame (RenderOptions.warm_compile): the frames' compiles in
+    # the order and number they have without it, whatever the thread's timing
+    monkeypatch.setattr(renderer_mod, "ShaderWarmer", SynchronousWarmer)
     # an empty program cache: an earlier test module on the session's context may have compiled the sort's programs
     monkeypatch.setattr(ctx, "extra", {})
     compiled: list[str] = []
@@ -221,3 +237,123 @@ def test_a_pool_without_its_host_mirror_takes_tiles_with_or_without_one(ctx, fru
     pool.join(2, a)
     assert pool.resident_splats == 1200
     pool.release()
+
+
+def test_warm_compile_waits_for_the_warmer_and_draws_the_same_frames(ctx, fruit, as_hardware, monkeypatch):
+    """RenderOptions.warm_compile: the 15 programs the frames compile after the first one (the GPU path's 6, the
+    compute draw's 9) are linked first on the warmer's thread and context; a frame compiles none that the warmer has
+    not linked (until WARM_COMPILE_WAIT_S), and the frames, path by path, equal those of a renderer without the
+    warmer (the same sources compiled by the frame loop): the CPU-sorted ones bit for bit, the GPU path's within its
+    own frame-to-frame noise."""
+    from client_gl.gpu import renderer as renderer_mod
+    from client_gl.gpu.pool import ChunkPool
+    from client_gl.gpu.renderer import RenderOptions, SplatRenderer, program_stages
+    from client_gl.scene import tiles_from_gaussians
+
+    compiled = as_hardware
+    scene = tiles_from_gaussians(fruit)
+    cam = close_camera(fruit, W, H)
+
+    def frames(options, n, gate=None):
+        for key in [k for k in ctx.extra if k[0] == "compute_program"]:
+            del ctx.extra[key]
+        compiled.clear()
+        pool = ChunkPool(ctx, scene.formats, scene.sh_degree, scene.slots)
+        for tile_id, tile in scene.tiles.items():
+            pool.join(tile_id, tile)
+        r = SplatRenderer(ctx, pool, options)
+        out = []
+        for i in range(n):
+            if gate is not None and i == gate[0]:
+                gate[1](r)
+            r.render(cam)
+            out.append(((r.sort_mode, r.draw_mode, len(compiled)), r.read_image()))
+        return r, pool, out
+
+    cold, pool_c, want = frames(RenderOptions(warm_compile=False), 18)
+    assert cold._warmer is None
+    warm, pool_w, got = frames(RenderOptions(), 18)
+    assert warm._warmer is not None and warm._warmer.failed is None
+    assert set(warm.warm_compile_seconds) == {"cull", "fetch", "indirect_setup.comp", "radix_count.comp",
+                                              "radix_scanadd.comp", "radix_scatter_local.comp", "count_shader",
+                                              "scan_shader", "emit_shader", "ranges_shader", "raster_shader"}
+    assert len(warm._warmer.programs) == 15  # the depth and tile sorts' programs differ in their digit width
+    assert [p for p, _ in got] == [p for p, _ in want] and want[-1][0] == ("gpu", "compute", 17)
+    for (path, a), (_, b) in zip(want, got, strict=True):
+        if path[0] == "cpu":
+            assert np.array_equal(a, b), path
+        else:  # the GPU path's own noise: cull's atomic compaction orders depth-key ties by thread timing (two
+            # renderers without the warmer differed by 1.2e-5 in 31 values of their switch frame here)
+            assert np.abs(a - b).max() <= 1e-4, path
+    for r, p in ((cold, pool_c), (warm, pool_w)):
+        r.release()
+        p.release()
+
+    # A warmer that has linked nothing yet: the frames after the first compile nothing and draw with the CPU sort,
+    # until it has (or WARM_COMPILE_WAIT_S passed).
+    monkeypatch.setattr(renderer_mod, "ShaderWarmer", WaitingWarmer)
+    r, pool, seen = frames(RenderOptions(), 5, gate=(3, lambda r: r._warmer.ready.add(
+        program_stages("cull", r._gpu_pending[0][1]))))
+    assert [p for p, _ in seen] == [("cpu", "fetch", 2)] * 3 + [("cpu", "fetch", 3), ("cpu", "fetch", 3)]
+    assert set(r.compile_seconds) == {"cull"}
+    monkeypatch.setattr(renderer_mod, "WARM_COMPILE_WAIT_S", 0.0)
+    r.render(cam)  # waited long enough: compiled by the frame loop
+    assert len(compiled) == 4 and not r.warm_compile_missed
+    r.release()
+    pool.release()
+
+    # The frame loop's compiles as slow as the warmer's (no cache hit): after two, no more waiting for it.
+    monkeypatch.setattr(renderer_mod, "WARM_COMPILE_WAIT_S", 3600.0)
+    monkeypatch.setattr(renderer_mod, "WARM_MISS_MIN_S", 0.0)
+
+    def all_ready(r):
+        r._warmer.ready.update(r._warmer.programs)
+        r._warmer.seconds.update(dict.fromkeys(r._warmer.programs[:2], 1e-9))
+    r, pool, seen = frames(RenderOptions(), 4, gate=(1, all_ready))
+    assert r.warm_compile_missed and r._warmer.stopped
+    r._warmer.ready.clear()  # the warmer has linked nothing more: compiled regardless, one a frame
+    r.render(cam)
+    assert [p for p, _ in seen][1:] == [("cpu", "fetch", 3), ("cpu", "fetch", 4), ("cpu", "fetch", 5)]
+    assert len(compiled) == 6
+    r.release()
+    pool.release()
+
+
+class WaitingWarmer:
+    """A stand-in for warm_compile.ShaderWarmer whose programs are linked when a test says so (`ready`)."""
+
+    def __init__(self, programs):
+        self.programs, self.seconds, self.failed, self.thread = list(programs), {}, None, None
+        self.ready: set = set()
+        self.stopped = False
+        self.finished = False
+
+    def done(self, stages):
+        return stages in self.ready
+
+    def stop(self, wait=True):
+        self.stopped = True
+
+
+def test_the_warmer_compiles_on_its_own_context(ctx):
+    """ShaderWarmer on the test's EGL context: every program linked on its thread (one that does not compile too:
+    the frame loop reports it), the interpreter lock free meanwhile, its context gone after."""
+    from client_gl.gpu.compute_raster import raster_sources
+    from client_gl.gpu.warm_compile import GL_COMPUTE_SHADER, ShaderWarmer
+
+    programs = [((GL_COMPUTE_SHADER, src),) for src in raster_sources("f4").values()]
+    programs.append(((GL_COMPUTE_SHADER, "#version 430\nnot glsl"),))
+    warmer = ShaderWarmer(programs)
+    steps = 0
+    while not warmer.finished:
+        steps += 1
+    assert warmer.failed is None and all(warmer.done(p) for p in programs) and len(warmer.seconds) == 6
+    assert steps > 100  # the main thread ran beside the compiles
+    program = ctx.compute_shader(programs[0][0][1])  # this thread's context is still current and works
+    program.release()
+    elsewhere = []  # on a thread without a current GL context: nothing started, the frames compile as before
+    thread = threading.Thread(target=lambda: elsewhere.append(ShaderWarmer(programs)))
+    thread.start()
+    thread.join()
+    assert elsewhere[0].failed == "no current GL context" and elsewhere[0].finished and not elsewhere[0].done(
+        programs[0])

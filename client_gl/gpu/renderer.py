@@ -41,8 +41,18 @@ from .gl import flush as gl_flush
 from .gl import texture_barrier, work_buffer
 from .pool import ChunkPool
 from .residency_layout import TEXTURE_UNITS
-from .sort import CHAIN_BARRIER, RADIX_CHOICES, CpuSorter, GpuRadixSort, compute_program, depth_order, sort_programs
+from .sort import (
+    CHAIN_BARRIER,
+    RADIX_CHOICES,
+    CpuSorter,
+    GpuRadixSort,
+    compute_program,
+    compute_program_source,
+    depth_order,
+    sort_programs,
+)
 from .uniforms import ProgramUniforms
+from .warm_compile import GL_COMPUTE_SHADER, GL_FRAGMENT_SHADER, GL_VERTEX_SHADER, ShaderWarmer, Stages
 
 SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swiftshader", "software rasterizer")
 MAX_GROUPS_PER_DISPATCH = 65535
@@ -73,6 +83,14 @@ DEFERRED_COMPILE_BUDGET_S = 0.008
 # compiles the rest at once and switches (the numpy cull and sort of 65536 splats took 14-17 ms of CPU time on the
 # shared 2-core VM, 3815 splats, a 250M scene's root, 0.4-0.5 ms: BENCHMARKS.md, "CPU-sorted first frames").
 CPU_FIRST_MAX_SPLATS = 65536
+# RenderOptions.warm_compile: a deferred program the warmer thread has not linked yet is compiled by the frame loop
+# once the frames have waited this long for it (a warmer slowed down by other work cannot hold the GPU path back).
+WARM_COMPILE_WAIT_S = 1.0
+# The frames stop waiting for the warmer after two programs whose frame-loop compile took WARM_MISS_RATIO or more of
+# the warmer's time for it (at least WARM_MISS_MIN_S there): the driver's cache did not carry them over (Mesa's with
+# its disk cache off: BENCHMARKS.md, "Deferred compiles warmed off the frame loop").
+WARM_MISS_RATIO = 0.5
+WARM_MISS_MIN_S = 0.010
 
 
 def has_compute(ctx) -> bool:
@@ -156,6 +174,12 @@ class RenderOptions:
     # A cold driver cache compiled 7 programs, 277 of a 360 ms first frame (issue 38; BENCHMARKS.md, "CPU-sorted
     # first frames"). False: the GPU path's programs before the first frame.
     cpu_first: bool = True
+    # The programs that cpu_first and defer_compute compile after the first frame are compiled ahead on a thread with
+    # an EGL context of its own (client_gl/gpu/warm_compile.py; its GL calls release the interpreter lock, moderngl's
+    # do not), and a frame compiles one only once that thread has linked it (or after WARM_COMPILE_WAIT_S of waiting
+    # for it): the frame's compile is then the driver shader cache's hit instead of a cold compile on the frame loop
+    # (issue 38; BENCHMARKS.md, "Deferred compiles warmed off the frame loop"). False: the frames compile them cold.
+    warm_compile: bool = True
 
     def __post_init__(self) -> None:
         if self.sort not in SORT_MODES:
@@ -270,6 +294,28 @@ def camera_uniforms(cam: Camera) -> dict:
     }
 
 
+@functools.lru_cache(maxsize=128)  # asked every frame while a program waits for the warmer
+def program_stages(key: str | None, src) -> Stages:
+    """The (GL shader type, source) stages of a program as SplatRenderer._compile_some compiles it (key None: a
+    compute_program spec; a str: a compute shader; a pair: vertex and fragment), for the warmer."""
+    if key is None:
+        return ((GL_COMPUTE_SHADER, compute_program_source(*src)),)
+    if isinstance(src, str):
+        return ((GL_COMPUTE_SHADER, src),)
+    vert, frag = src
+    return ((GL_VERTEX_SHADER, vert), (GL_FRAGMENT_SHADER, frag))
+
+
+def _cached_compute_program(ctx, spec) -> bool:
+    """Whether compute_program(ctx, *spec) finds its program in the context's cache (compiles nothing)."""
+    return isinstance(ctx.extra, dict) and ("compute_program", *spec) in ctx.extra
+
+
+def program_name(key: str | None, src) -> str:
+    """A deferred program's name for benchmark timelines: its key, or a compute_program spec's shader file."""
+    return key if key is not None else src[0]
+
+
 class SplatRenderer:
     """Draws the splats of a ChunkPool (those of the frame's draw set) from a camera into an offscreen framebuffer.
 
@@ -317,6 +363,11 @@ class SplatRenderer:
         self._gpu_pending: list[tuple[str | None, object]] | None = None
         self._gpu_compiled: dict[str, object] = {}  # of those, the cull's and the fetch draw's, compiled ahead
         self._reserved_splats = 0  # reserve_work's splats while the CPU sort draws (applied at the switch)
+        self._warmer: ShaderWarmer | None = None  # RenderOptions.warm_compile
+        self._warm_wait_since: float | None = None  # when frames began waiting for the warmer's next program
+        self._warm_misses = 0
+        self.warm_compile_missed = False  # the frames' compiles were not the warmer's cache hits: no more waiting
+        self.compile_seconds: dict[str, float] = {}  # the frame loop's compile of each deferred program (program_name)
         if self.sort_mode == "gpu" and pool.host_mirror is not None and draws_cpu_first(ctx, self.options):
             self.sort_mode = "cpu"
             self._gpu_pending = self._gpu_path_sources()
@@ -329,6 +380,14 @@ class SplatRenderer:
             self._cpu_program = ctx.program(vertex_shader=vert, fragment_shader=frag)
             self._bind_samplers(self._cpu_program)
             self._cpu_sorter = CpuSorter()
+        if self.options.warm_compile:
+            later = list(self._gpu_pending or [])
+            if self._defers_compute():
+                later += self._deferred_sources()
+            later = [(key, src) for key, src in later if key is not None or not _cached_compute_program(ctx, src)]
+            if later:
+                self._warm_names = {program_stages(key, src): program_name(key, src) for key, src in later}
+                self._warmer = ShaderWarmer(self._warm_names)
 
     def _start_gpu_path(self) -> None:
         """The GPU path's programs (those compiled ahead by the CPU-first frames taken from there) and buffers."""
@@ -698,24 +757,42 @@ class SplatRenderer:
         not (compiling them, after the first frame with splats, for DEFERRED_COMPILE_BUDGET_S at most, at least
         one), then "compute"."""
         if self._deferred is None:
-            opts = self.options
-            bits = opts.tile_radix_bits or opts.radix_bits
-            sources = raster_sources(opts.color_dtype, opts.warp_cull, bits)
-            self._deferred = [(attr, src) for attr, src in sources.items()]
-            # The tile sort's programs, cached in the context (compute_program) where its GpuRadixSort finds them.
-            self._deferred += [(None, spec) for spec in sort_programs(bits, opts.fused_sort, opts.sort_pass_programs)]
+            self._deferred = self._deferred_sources()
         if self._drew_splats and compile_now:
             self._compile_some(self._deferred, self._deferred_programs, DEFERRED_COMPILE_BUDGET_S)
         return "fetch" if self._deferred else "compute"
+
+    def _deferred_sources(self) -> list[tuple[str | None, object]]:
+        """The compute draw's programs that defer_compute compiles after the first frame, (key, source) in order."""
+        opts = self.options
+        bits = opts.tile_radix_bits or opts.radix_bits
+        deferred: list[tuple[str | None, object]] = list(raster_sources(opts.color_dtype, opts.warp_cull, bits).items())
+        # The tile sort's programs, cached in the context (compute_program) where its GpuRadixSort finds them.
+        deferred += [(None, spec) for spec in sort_programs(bits, opts.fused_sort, opts.sort_pass_programs)]
+        return deferred
+
+    def _defers_compute(self) -> bool:
+        """Whether this renderer's frames will compile the compute draw's programs after its first frame (the
+        GPU path's "auto" choosing "compute" with defer_compute; a frame with clear=False would not)."""
+        opts = self.options
+        return (opts.draw == "auto" and opts.defer_compute and AUTO_COMPUTE and opts.raster_defaults
+                and not self._software and (self.sort_mode == "gpu" or self._gpu_pending is not None))
 
     def _compile_some(self, pending: list[tuple[str | None, object]], into: dict[str, object],
                       budget_s: float) -> None:
         """Compile pending (key, source) programs in order until budget_s went to them (at least one): key None, a
         compute_program spec (cached in the context); a str source, a compute shader; a (vertex, fragment) pair, a
-        program; each kept in `into` under its key."""
+        program; each kept in `into` under its key. With a warmer (RenderOptions.warm_compile) and a finite budget,
+        a program waits until the warmer linked it (then this compile is the driver cache's hit) or the frames waited
+        WARM_COMPILE_WAIT_S for it: this frame may compile none."""
         t0 = time.perf_counter()
         while pending:
-            key, src = pending.pop(0)
+            key, src = pending[0]
+            stages = program_stages(key, src)
+            if not self._warmed(key, src, stages, budget_s):
+                break
+            pending.pop(0)
+            t = time.perf_counter()
             if key is None:
                 compute_program(self.ctx, *src)
             elif isinstance(src, str):
@@ -723,8 +800,53 @@ class SplatRenderer:
             else:
                 vert, frag = src
                 into[key] = self.ctx.program(vertex_shader=vert, fragment_shader=frag)
-            if time.perf_counter() - t0 >= budget_s:
+            now = time.perf_counter()
+            self.compile_seconds[program_name(key, src)] = now - t
+            self._check_warm_hit(stages, now - t)
+            if now - t0 >= budget_s:
                 break
+
+    def _check_warm_hit(self, stages: Stages, loop_s: float) -> None:
+        """After the frame loop compiled a program the warmer had linked: when that compile took about as long as the
+        warmer's (WARM_MISS_RATIO of it, a program that took the warmer WARM_MISS_MIN_S or more), twice, the driver's
+        cache is not shared between the contexts (or is off), and the frames stop waiting for the warmer."""
+        warmer = self._warmer
+        warm_s = warmer.seconds.get(stages) if warmer is not None and not self.warm_compile_missed else None
+        if warm_s is None or warm_s < WARM_MISS_MIN_S or loop_s < WARM_MISS_RATIO * warm_s:
+            return
+        self._warm_misses += 1
+        if self._warm_misses >= 2:
+            self.warm_compile_missed = True
+            warmer.stop(wait=False)
+
+    def _warmed(self, key: str | None, src, stages: Stages, budget_s: float) -> bool:
+        """Whether the frame loop compiles this program now: no warmer, the warmer linked it, is over (done, failed,
+        stopped after misses) or was waited for WARM_COMPILE_WAIT_S, the frame compiles everything at once (an
+        infinite budget), or it is a compute_program the context holds already (nothing to compile)."""
+        warmer = self._warmer
+        if (warmer is None or budget_s == math.inf or self.warm_compile_missed or warmer.done(stages)
+                or warmer.finished or (key is None and _cached_compute_program(self.ctx, src))):
+            self._warm_wait_since = None
+            return True
+        now = time.perf_counter()
+        if self._warm_wait_since is None:
+            self._warm_wait_since = now
+        if now - self._warm_wait_since >= WARM_COMPILE_WAIT_S:
+            self._warm_wait_since = None
+            return True
+        return False
+
+    @property
+    def warm_compile_seconds(self) -> dict[str, float]:
+        """The warmer's compile + link time of each program it did (seconds on its thread, by program_name: for
+        benchmarks), and "failed" 1.0 if it gave up."""
+        warmer = self._warmer
+        if warmer is None:
+            return {}
+        out = {self._warm_names[stages]: t for stages, t in warmer.seconds.items()}
+        if warmer.failed:
+            out["failed"] = 1.0
+        return out
 
     def _render_gpu(self, cam: Camera, uniforms: dict, degree: int, timing: bool) -> FrameStats:
         """The raster draws of the GPU path (cull, sort, one indirect draw)."""
@@ -907,6 +1029,9 @@ class SplatRenderer:
         return res.copy()
 
     def release(self) -> None:
+        if self._warmer is not None:  # its context is on this one's display: done with it before this one goes
+            self._warmer.stop()
+            self._warmer = None
         if self._cpu_sorter is not None:
             self._cpu_sorter.close()
         for b in (self._index_buffer, self.params, self._zero_params, self.keys, self.values, self.records,

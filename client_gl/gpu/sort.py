@@ -41,10 +41,15 @@ def compute_program(ctx, name: str, defines: str = "", radix_bits: int = RADIX_B
     key = ("compute_program", name, defines, radix_bits)
     prog = cache.get(key)
     if prog is None:
-        src = shadergen.compute_source(name, radix_bits=radix_bits)
-        first, rest = src.split("\n", 1)
-        prog = cache[key] = ctx.compute_shader(f"{first}\n{defines}{rest}")
+        prog = cache[key] = ctx.compute_shader(compute_program_source(name, defines, radix_bits))
     return prog
+
+
+def compute_program_source(name: str, defines: str = "", radix_bits: int = RADIX_BITS) -> str:
+    """The source compute_program compiles: the shader's, `defines` after its version line."""
+    src = shadergen.compute_source(name, radix_bits=radix_bits)
+    first, rest = src.split("\n", 1)
+    return f"{first}\n{defines}{rest}"
 
 
 SHARED_PASS_DEFINES = ("uniform uint pass_index;\nuniform uint pass_shift;\n#define PASS pass_index\n"
