@@ -284,6 +284,40 @@ def test_quaternions_from_matrices_round_trip():
     np.testing.assert_allclose(q, g.rotations, atol=1e-5)
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("columns", [None, 3, 45])
+def test_group_sums_are_reduceats_bits(dtype, columns):
+    # group_sums replaces np.add.reduceat in merge_groups: the same bits, or the tree's bytes would change. Values
+    # over 16 decades (every rounding order shows), signed zeros, a NaN; groups of 1-20 rows (past GROUP_SUM_ROWS,
+    # where reduceat itself takes over), and all-(-0.0) groups (reduceat keeps -0.0).
+    rng = np.random.default_rng(11)
+    n = 3000
+    shape = (n,) if columns is None else (n, columns)
+    a = (rng.standard_normal(shape) * 10.0 ** rng.integers(-8, 8, shape)).astype(dtype)
+    zeros = rng.random(shape) < 0.2
+    a[zeros] = np.where(rng.random(int(zeros.sum())) < 0.5, -0.0, 0.0)
+    a[:3] = -0.0
+    a[7] = np.nan
+    sizes = np.concatenate([[3], rng.integers(1, 21, n)])
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    starts = starts[starts < n]
+    got, want = lod.group_sums(a, starts), np.add.reduceat(a, starts, axis=0)
+    assert got.dtype == want.dtype and got.shape == want.shape
+    assert got.tobytes() == want.tobytes()
+    assert np.signbit(got[0]).all()
+
+
+def test_orientation_is_the_determinants_sign():
+    rng = np.random.default_rng(12)
+    m = rng.standard_normal((4000, 3, 3))
+    _, evecs = np.linalg.eigh(m + np.transpose(m, (0, 2, 1)))
+    evecs[:5] = np.eye(3)
+    evecs[5:10] = -np.eye(3)
+    want = np.sign(np.linalg.det(evecs))
+    assert (want == 1).any() and (want == -1).any()
+    np.testing.assert_array_equal(lod._orientation(evecs), want)
+
+
 # ---------------------------------------------------------------------------------------------- looks
 
 
