@@ -136,7 +136,8 @@ def normalize_quaternions(q: np.ndarray) -> np.ndarray:
         norm = np.linalg.norm(q, axis=1, keepdims=True)
         # Finite components beyond 1.8e19 overflow the squares: those rows (only) are divided by their largest
         # component first (still a valid direction). Non-finite rows stay non-finite for the readers to report.
-        overflow = np.flatnonzero(np.isinf(norm[:, 0]) & np.isfinite(q).all(axis=1))
+        infinite = np.flatnonzero(np.isinf(norm[:, 0]))  # few or none: the finite test on those rows only
+        overflow = infinite[np.isfinite(q[infinite]).all(axis=1)]
         if len(overflow):
             q[overflow] /= np.abs(q[overflow]).max(axis=1, keepdims=True)
             norm[overflow] = np.linalg.norm(q[overflow], axis=1, keepdims=True)

@@ -627,7 +627,7 @@ def _permute_in_place(g: Gaussians, perm: np.ndarray, block_floats: int = 12) ->
         arr = getattr(g, name)
         flat = arr.reshape(len(arr), -1)  # a view: the arrays are C-contiguous
         for c in range(0, flat.shape[1], block_floats):
-            flat[:, c:c + block_floats] = flat[perm, c:c + block_floats]
+            flat[:, c:c + block_floats] = _rows(flat[:, c:c + block_floats], perm)
     return g
 
 
