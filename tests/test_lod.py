@@ -307,6 +307,32 @@ def test_group_sums_are_reduceats_bits(dtype, columns):
     assert np.signbit(got[0]).all()
 
 
+def test_quaternions_are_the_stacked_candidates_bits():
+    # _matrices_to_quaternions computes each row's picked candidate only: the same bits as all four stacked and
+    # the pick taken (the form before, 4a1caf1), on eigh's bases as merge_groups makes them.
+    from splatstream.gaussians import normalize_quaternions
+
+    rng = np.random.default_rng(13)
+    m = rng.standard_normal((5000, 3, 3))
+    _, r = np.linalg.eigh(m + np.transpose(m, (0, 2, 1)))
+    r[:, :, 0] *= lod._orientation(r)[:, None]
+    r[:4] = np.eye(3)
+    m00, m01, m02 = r[:, 0, 0], r[:, 0, 1], r[:, 0, 2]
+    m10, m11, m12 = r[:, 1, 0], r[:, 1, 1], r[:, 1, 2]
+    m20, m21, m22 = r[:, 2, 0], r[:, 2, 1], r[:, 2, 2]
+    cands = np.stack([
+        np.stack([1 + m00 + m11 + m22, m21 - m12, m02 - m20, m10 - m01], 1),
+        np.stack([m21 - m12, 1 + m00 - m11 - m22, m01 + m10, m02 + m20], 1),
+        np.stack([m02 - m20, m01 + m10, 1 - m00 + m11 - m22, m12 + m21], 1),
+        np.stack([m10 - m01, m02 + m20, m12 + m21, 1 - m00 - m11 + m22], 1),
+    ], 1)
+    pick = np.argmax(np.stack([m00 + m11 + m22, m00, m11, m22], 1), axis=1)
+    assert len(np.unique(pick)) == 4
+    q = cands[np.arange(len(r)), pick]
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    assert lod._matrices_to_quaternions(r).tobytes() == normalize_quaternions(q).tobytes()
+
+
 def test_orientation_is_the_determinants_sign():
     rng = np.random.default_rng(12)
     m = rng.standard_normal((4000, 3, 3))
