@@ -284,6 +284,66 @@ def test_quaternions_from_matrices_round_trip():
     np.testing.assert_allclose(q, g.rotations, atol=1e-5)
 
 
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+@pytest.mark.parametrize("columns", [None, 3, 45])
+def test_group_sums_are_reduceats_bits(dtype, columns):
+    # group_sums replaces np.add.reduceat in merge_groups: the same bits, or the tree's bytes would change. Values
+    # over 16 decades (every rounding order shows), signed zeros, a NaN; groups of 1-20 rows (past GROUP_SUM_ROWS,
+    # where reduceat itself takes over), and all-(-0.0) groups (reduceat keeps -0.0).
+    rng = np.random.default_rng(11)
+    n = 3000
+    shape = (n,) if columns is None else (n, columns)
+    a = (rng.standard_normal(shape) * 10.0 ** rng.integers(-8, 8, shape)).astype(dtype)
+    zeros = rng.random(shape) < 0.2
+    a[zeros] = np.where(rng.random(int(zeros.sum())) < 0.5, -0.0, 0.0)
+    a[:3] = -0.0
+    a[7] = np.nan
+    sizes = np.concatenate([[3], rng.integers(1, 21, n)])
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    starts = starts[starts < n]
+    got, want = lod.group_sums(a, starts), np.add.reduceat(a, starts, axis=0)
+    assert got.dtype == want.dtype and got.shape == want.shape
+    assert got.tobytes() == want.tobytes()
+    assert np.signbit(got[0]).all()
+
+
+def test_quaternions_are_the_stacked_candidates_bits():
+    # _matrices_to_quaternions computes each row's picked candidate only: the same bits as all four stacked and
+    # the pick taken (the form before, 4a1caf1), on eigh's bases as merge_groups makes them.
+    from splatstream.gaussians import normalize_quaternions
+
+    rng = np.random.default_rng(13)
+    m = rng.standard_normal((5000, 3, 3))
+    _, r = np.linalg.eigh(m + np.transpose(m, (0, 2, 1)))
+    r[:, :, 0] *= lod._orientation(r)[:, None]
+    r[:4] = np.eye(3)
+    m00, m01, m02 = r[:, 0, 0], r[:, 0, 1], r[:, 0, 2]
+    m10, m11, m12 = r[:, 1, 0], r[:, 1, 1], r[:, 1, 2]
+    m20, m21, m22 = r[:, 2, 0], r[:, 2, 1], r[:, 2, 2]
+    cands = np.stack([
+        np.stack([1 + m00 + m11 + m22, m21 - m12, m02 - m20, m10 - m01], 1),
+        np.stack([m21 - m12, 1 + m00 - m11 - m22, m01 + m10, m02 + m20], 1),
+        np.stack([m02 - m20, m01 + m10, 1 - m00 + m11 - m22, m12 + m21], 1),
+        np.stack([m10 - m01, m02 + m20, m12 + m21, 1 - m00 - m11 + m22], 1),
+    ], 1)
+    pick = np.argmax(np.stack([m00 + m11 + m22, m00, m11, m22], 1), axis=1)
+    assert len(np.unique(pick)) == 4
+    q = cands[np.arange(len(r)), pick]
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    assert lod._matrices_to_quaternions(r).tobytes() == normalize_quaternions(q).tobytes()
+
+
+def test_orientation_is_the_determinants_sign():
+    rng = np.random.default_rng(12)
+    m = rng.standard_normal((4000, 3, 3))
+    _, evecs = np.linalg.eigh(m + np.transpose(m, (0, 2, 1)))
+    evecs[:5] = np.eye(3)
+    evecs[5:10] = -np.eye(3)
+    want = np.sign(np.linalg.det(evecs))
+    assert (want == 1).any() and (want == -1).any()
+    np.testing.assert_array_equal(lod._orientation(evecs), want)
+
+
 # ---------------------------------------------------------------------------------------------- looks
 
 
