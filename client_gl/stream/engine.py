@@ -54,6 +54,7 @@ from .selection import (
 
 Key = tuple[int | None, str]  # (tile id, group) or (None, "sh<b>") for a band of the SH codebook
 _GROUP_BAND = {"base": 0, "sh1": 1, "sh2": 2, "sh3": 3}
+_RETIRED_MAX = 4  # views replaced by pages and kept to be freed in a quiet frame (StreamEngine._retired)
 
 
 class Residency(Protocol):
@@ -128,8 +129,9 @@ class StreamOptions:
     # "Manifest pages").
     max_tree_tiles: int = 24576
     # A pass that drops pages drops them down to this share of max_tree_tiles below it (a low-water mark), so that
-    # passes are rarer: a pass renumbers the whole tree held (7-12 ms of CPU at 16,384 tiles on the shared VM, most of
-    # the pass), dropping 2 pages or 20 (BENCHMARKS.md, "Manifest pages"). 0: down to max_tree_tiles.
+    # passes are rarer: a pass still groups the whole tree held by page (PagedTree.held, 0.2-0.3 ms at 16,384 tiles
+    # on the shared VM; renumbering it in order was 7-12 ms before tiles moved into the holes), dropping 2 pages or
+    # 20 (BENCHMARKS.md, "Manifest pages"). 0: down to max_tree_tiles.
     tree_low_water: float = 1 / 16
     # After a frame adds pages, move every object that exists then out of the garbage collector's walks
     # (gc.freeze(), process-wide, as the shells do once a session is open: streaming.freeze_long_lived). A held tree
@@ -344,6 +346,11 @@ class StreamEngine:
         self.bands = np.zeros(0, np.int64)  # SH bands resident per tile
         self.last_drawn = np.zeros(0, np.int64)
         self._filling = np.zeros(0, bool)  # ancestors of the cut in that list (fill_levels)
+        # The views a page adoption or eviction replaced, with what was made from them (the selection's and draw
+        # set's caches), let go one a frame in frames without page work (_tend_pages): freeing a view of 17,000
+        # tiles (its tuples, lookups and arrays) was 0.4-0.9 ms of the eviction's frame (BENCHMARKS.md, "Manifest
+        # pages"). At most _RETIRED_MAX held.
+        self._retired: list[tuple] = []
         self._adopt(m)
         max_splats = options.selection.max_splats
         root_splats = int(self.arrays.splats[self.root])
@@ -424,6 +431,9 @@ class StreamEngine:
         self.root = m.index_of[m.root]
         self.ids = self.arrays.ids
         grow = len(m.tiles) - len(self.resident)
+        if not grow:  # an eviction's tree (its per-tile state taken in _evict_pages)
+            self.cost = self.slots_needed.astype(np.float64) * float(self.slot_bytes)
+            return
         # the new tiles' only (a page's tiles are appended; eviction takes the kept rows before adopting)
         chunks = np.array([t.chunks for t in m.tiles[len(self.resident):]], np.int64)
         self.slots_needed = np.concatenate([self.slots_needed, chunks])
@@ -445,6 +455,7 @@ class StreamEngine:
             except SplatstreamError as exc:  # verified bytes that do not parse: the scene is broken, not the link
                 self.errors.append(str(exc))
                 self.failed[(tile_id, PAGE_GROUP)] = str(exc)
+        self._retire()
         self._adopt(self.pages.manifest)
         if self.options.freeze_pages:
             gc.freeze()
@@ -458,18 +469,30 @@ class StreamEngine:
         heads = self._pages_to_drop()
         if not heads:
             return
-        keep = self.pages.evict(heads)
+        keep = self.pages.evict(heads)  # (its arrays' storage rewritten: self.ids, the last view's, not read again)
+        k = len(keep)
         new_of = np.full(len(self.resident), -1, np.int64)
-        new_of[keep] = np.arange(len(keep))
-        self._forget(self.ids[new_of < 0].tolist(), heads)
-        self.resident, self.bands = self.resident[keep], self.bands[keep]
-        self.last_drawn, self._filling = self.last_drawn[keep], self._filling[keep]
-        self.slots_needed = self.slots_needed[keep]
+        new_of[keep] = np.arange(k)
+        self._forget(self.pages.dropped_ids, heads)
+        # the tiles kept keep their positions but for the last ones, moved into the holes (PagedTree.evict): their
+        # state moved in place and the arrays cut to the tiles kept (taking every row through `keep` wrote new
+        # memory, page faults over the tiles held)
+        moved = np.flatnonzero(keep != np.arange(k))
+        src = keep[moved]
+        for name in ("resident", "bands", "last_drawn", "_filling", "slots_needed"):
+            state = getattr(self, name)
+            state[moved] = state[src]
+            setattr(self, name, state[:k])
         refined, last_cut = new_of[self.refined], new_of[self._last_cut]
         self.refined, self._last_cut = refined[refined >= 0], last_cut[last_cut >= 0]
+        self._retire()
         self._adopt(self.pages.manifest)
         self._wanted_cache = self._draw_cache = self._order_of = self._upload_idle = None
         self._version += 1
+
+    def _retire(self) -> None:
+        """The view about to be replaced, and the caches made from it, kept to be freed in a later frame."""
+        self._retired.append((self.manifest, self.arrays, self._wanted_cache, self._draw_cache))
 
     def _forget(self, gone: list[int], heads: list[int]) -> None:
         """The per-key state of tiles dropped with their pages (ids `gone`), and the page frames of the pages
@@ -651,15 +674,20 @@ class StreamEngine:
 
     def _tend_pages(self) -> None:
         """A frame's start: the pages parsed since the last frame join the tree; pages are dropped beyond the
-        tree's bound."""
+        tree's bound; in a frame that does neither, the oldest view they replaced is freed (_retired)."""
+        worked = False
         if self._pages_arrived and any(f.done() for f in self._pages_arrived.values()):
             self._add_pages()
+            worked = True
         # pages are dropped only where the tree grew or tiles left the pool since the last look (a pass is
         # O(tiles held))
         if self.pages is not None and len(self.manifest.tiles) > self.options.max_tree_tiles and \
                 (len(self.manifest.tiles), self.evictions) != self._pages_checked:
             self._evict_pages()
             self._pages_checked = (len(self.manifest.tiles), self.evictions)
+            worked = True
+        if self._retired and (not worked or len(self._retired) > _RETIRED_MAX):
+            del self._retired[0]
 
     def _tell_fetcher(self, keys: list[Key], extra: list[Key], sel: Selection) -> None:
         """The wish list from this frame's selection, handed to the fetcher when it changed: what is missing, coarse

@@ -475,6 +475,7 @@ class _ChildIndex:
         self.held = lambda: None  # the TileArrays last indexed (weak)
         self.store = lambda: None  # their growing storage (weak), and how many of its rows are indexed
         self.n = 0
+        self.epoch = 0  # the storage's epoch when indexed (its rows moved in place since: not reached from them)
         # the ids and parents of the tiles indexed (the arrays', not copies: rows below a length never change)
         self.ids, self.parent = np.zeros(0, np.int64), np.zeros(0, np.int64)
         self.lo, self.hi, self.kids = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
@@ -492,6 +493,7 @@ class _ChildIndex:
             self.held = weakref.ref(a)
             store = a.__dict__.get("_growing")
             self.store = weakref.ref(store) if store is not None else (lambda: None)
+            self.epoch = a.__dict__.get("_epoch", 0)
             self.n = n
             self.ids, self.parent = getattr(a, "ids", None), a.parent
         return self.lo[:n], self.hi[:n], self.kids[:self.used]
@@ -506,24 +508,34 @@ class _ChildIndex:
         if self.held() is a:
             return True
         n = len(a.parent)
-        if n < self.n:
-            return False
         store = a.__dict__.get("_growing")
-        if store is None:
+        if n < self.n or store is None:
             return False
-        if store is not self.store() and not (self.ids is not None and np.array_equal(a.ids[:self.n], self.ids) and
-                                              np.array_equal(a.parent[:self.n], self.parent)):
-            return False
+        # An eviction moves rows within their storage (take_in_place, counted by its epoch) but leaves the
+        # arrays before it their parents and children, all that growing reads: the same storage grows the index
+        # from arrays of the epoch indexed. Other storage is compared by its ids and parents, which neither the
+        # arrays indexed nor `a` may have had moved since they were made.
+        epoch = a.__dict__.get("_epoch")
+        if store is self.store():
+            if epoch != self.epoch:
+                return False
+        else:
+            indexed = self.store()
+            if epoch != store.epoch or (indexed is not None and indexed.epoch != self.epoch) or \
+                    self.ids is None or not (np.array_equal(a.ids[:self.n], self.ids) and
+                                             np.array_equal(a.parent[:self.n], self.parent)):
+                return False
         self._grow(a, n)
-        self.held, self.store, self.n = weakref.ref(a), weakref.ref(store), n
+        self.held, self.store, self.n, self.epoch = weakref.ref(a), weakref.ref(store), n, epoch
         self.ids, self.parent = getattr(a, "ids", None), a.parent
         return True
 
     def _take(self, a: TileArrays, keep: np.ndarray) -> None:
-        """The index of the arrays indexed taken at positions `keep` (an eviction's kept rows, in order; a kept
-        tile's parent kept): each kept tile's block, its children kept, renumbered, in the same order (taken_arrays'
-        children). Array operations over the tiles kept, where making it anew from the children's tuples took
-        1.2-1.5 ms of the eviction frame's cut at 16,000-19,000 tiles (BENCHMARKS.md, "Manifest pages")."""
+        """The index of the arrays indexed taken at positions `keep` (an eviction's kept rows, new position -> old,
+        in any order; a kept tile's parent kept): each kept tile's block, its children kept, renumbered, in the
+        same order (taken_arrays' children). Array operations over the tiles kept, where making it anew from the
+        children's tuples took 1.2-1.5 ms of the eviction frame's cut at 16,000-19,000 tiles (BENCHMARKS.md,
+        "Manifest pages")."""
         k = len(keep)
         new_of = np.full(self.n, -1, np.int64)
         new_of[keep] = np.arange(k)
