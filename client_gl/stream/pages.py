@@ -89,6 +89,7 @@ class PagedTree:
         self.evicted = 0  # pages dropped again (evict)
         self.dropped_ids: list[int] = []  # the ids of the tiles the last eviction dropped
         self._read: set[int] = set()  # tiles whose page is held
+        self._held: HeldPages | None = None  # held(), until the tree changes
         self._by_id = {t.id: t for t in self._tiles}  # held tiles as the view has them
         self._view_of: Manifest | None = None  # the view, made again when asked for after a change
         self._changed: set[int] = set()  # positions held in the last view whose children have changed since
@@ -170,6 +171,7 @@ class PagedTree:
         else:
             tiles, self._rows = page, None
         self._detach()
+        self._held = None
         at = self._position[tile_id]
         self._tiles[at] = self._by_id[tile_id] = self._full[tile_id]  # its children are known now
         if at < len(self._manifest.tiles):
@@ -215,7 +217,11 @@ class PagedTree:
         return out
 
     def held(self) -> HeldPages:
-        """The pages held as arrays (HeldPages): their heads, and which page each tile held came in."""
+        """The pages held as arrays (HeldPages): their heads, and which page each tile held came in. Kept until the
+        tree changes (the engine's choice of pages to drop, then `evict`, ask for it in one frame: 0.2-0.3 ms each
+        at 16,000 tiles)."""
+        if self._held is not None:
+            return self._held
         n = len(self._tiles)
         position = self._position
         heads = np.sort(np.fromiter((position[t] for t in self._read), np.int64, len(self._read)))
@@ -229,7 +235,8 @@ class PagedTree:
         while (above >= 0).any():  # a few rounds: pages nest as deep as the tree's levels over a page's levels
             depth += above >= 0
             above = np.where(above >= 0, up[above], -1)
-        return HeldPages(heads, self._ids[heads], owner, up, depth)
+        self._held = HeldPages(heads, self._ids[heads], owner, up, depth)
+        return self._held
 
     def evict(self, heads: list[int]) -> np.ndarray:
         """Drop the pages below these tiles (and every page held below them): the tiles become leaves again, their
@@ -261,6 +268,7 @@ class PagedTree:
         if not dropped.any():
             self.dropped_ids = []
             return np.arange(n, dtype=np.int64)
+        self._held = None
         cut = dropped.copy()  # the pages dropped and every page below them
         for d in range(1, int(held.depth.max(initial=0)) + 1):
             at = np.flatnonzero(held.depth == d)
