@@ -16,6 +16,7 @@ import operator
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
+from itertools import repeat
 
 import numpy as np
 
@@ -277,10 +278,12 @@ class PagedTree:
         own = held.owner >= 0
         gone[own] = cut[held.owner[own]]
         self.dropped_ids = gone_ids = self._ids[np.flatnonzero(gone)].tolist()
-        for t in gone_ids:  # the tiles of the pages dropped
-            self._read.discard(t)
-            self.pending.pop(t, None)
-            del self._full[t], self._by_id[t]
+        # the tiles of the pages dropped, forgotten in C loops (map over the ids: a Python loop a tile was 0.1-0.2
+        # ms of a pass dropping 1,000 tiles)
+        self._read.difference_update(gone_ids)
+        deque(map(self.pending.pop, gone_ids, repeat(None)), maxlen=0)
+        deque(map(self._full.__delitem__, gone_ids), maxlen=0)
+        deque(map(self._by_id.__delitem__, gone_ids), maxlen=0)
         tiles = self._tiles  # (views hold tuples of their own)
         for j in np.flatnonzero(dropped & ~gone[held.heads]).tolist():  # a head dropped (a leaf again), unless
             h = int(held.ids[j])  # below a page dropped after it
