@@ -54,7 +54,6 @@ from .selection import (
 
 Key = tuple[int | None, str]  # (tile id, group) or (None, "sh<b>") for a band of the SH codebook
 _GROUP_BAND = {"base": 0, "sh1": 1, "sh2": 2, "sh3": 3}
-_RETIRED_MAX = 4  # views replaced by pages and kept to be freed in a quiet frame (StreamEngine._retired)
 
 
 class Residency(Protocol):
@@ -346,11 +345,6 @@ class StreamEngine:
         self.bands = np.zeros(0, np.int64)  # SH bands resident per tile
         self.last_drawn = np.zeros(0, np.int64)
         self._filling = np.zeros(0, bool)  # ancestors of the cut in that list (fill_levels)
-        # The views a page adoption or eviction replaced, with what was made from them (the selection's and draw
-        # set's caches), let go one a frame in frames without page work (_tend_pages): freeing a view of 17,000
-        # tiles (its tuples, lookups and arrays) was 0.4-0.9 ms of the eviction's frame (BENCHMARKS.md, "Manifest
-        # pages"). At most _RETIRED_MAX held.
-        self._retired: list[tuple] = []
         self._adopt(m)
         max_splats = options.selection.max_splats
         root_splats = int(self.arrays.splats[self.root])
@@ -455,7 +449,6 @@ class StreamEngine:
             except SplatstreamError as exc:  # verified bytes that do not parse: the scene is broken, not the link
                 self.errors.append(str(exc))
                 self.failed[(tile_id, PAGE_GROUP)] = str(exc)
-        self._retire()
         self._adopt(self.pages.manifest)
         if self.options.freeze_pages:
             gc.freeze()
@@ -485,14 +478,9 @@ class StreamEngine:
             setattr(self, name, state[:k])
         refined, last_cut = new_of[self.refined], new_of[self._last_cut]
         self.refined, self._last_cut = refined[refined >= 0], last_cut[last_cut >= 0]
-        self._retire()
         self._adopt(self.pages.manifest)
         self._wanted_cache = self._draw_cache = self._order_of = self._upload_idle = None
         self._version += 1
-
-    def _retire(self) -> None:
-        """The view about to be replaced, and the caches made from it, kept to be freed in a later frame."""
-        self._retired.append((self.manifest, self.arrays, self._wanted_cache, self._draw_cache))
 
     def _forget(self, gone: list[int], heads: list[int]) -> None:
         """The per-key state of tiles dropped with their pages (ids `gone`), and the page frames of the pages
@@ -674,20 +662,15 @@ class StreamEngine:
 
     def _tend_pages(self) -> None:
         """A frame's start: the pages parsed since the last frame join the tree; pages are dropped beyond the
-        tree's bound; in a frame that does neither, the oldest view they replaced is freed (_retired)."""
-        worked = False
+        tree's bound."""
         if self._pages_arrived and any(f.done() for f in self._pages_arrived.values()):
             self._add_pages()
-            worked = True
         # pages are dropped only where the tree grew or tiles left the pool since the last look (a pass is
         # O(tiles held))
         if self.pages is not None and len(self.manifest.tiles) > self.options.max_tree_tiles and \
                 (len(self.manifest.tiles), self.evictions) != self._pages_checked:
             self._evict_pages()
             self._pages_checked = (len(self.manifest.tiles), self.evictions)
-            worked = True
-        if self._retired and (not worked or len(self._retired) > _RETIRED_MAX):
-            del self._retired[0]
 
     def _tell_fetcher(self, keys: list[Key], extra: list[Key], sel: Selection) -> None:
         """The wish list from this frame's selection, handed to the fetcher when it changed: what is missing, coarse
