@@ -513,7 +513,7 @@ class StreamEngine:
         index_of = self.manifest.index_of
         used = self.resident | in_cut
         used[[index_of[t] for t in busy_ids if t in index_of]] = True
-        count = held.below(np.ones(n, np.int64), np.add, 0)  # tiles below each head
+        count = held.tiles_below  # tiles below each head
         used_below = held.below(used.astype(np.int64), np.add, 0)
         last = held.below(self.last_drawn, np.maximum, np.iinfo(np.int64).min)
         since = self.frame - 1

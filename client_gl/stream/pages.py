@@ -12,6 +12,7 @@ per-tile state through the positions it returns.
 """
 from __future__ import annotations
 
+import functools
 import operator
 from collections import deque
 from collections.abc import Callable, Mapping
@@ -57,6 +58,12 @@ class HeldPages:
     owner: np.ndarray  # per position held: the index (in heads) of the page the tile came in; -1: the root manifest's
     up: np.ndarray  # per head: the index of the page its head came in; -1: a tile of the root manifest
     depth: np.ndarray  # per head: pages above it (0: its head is a tile of the root manifest)
+
+    @functools.cached_property
+    def tiles_below(self) -> np.ndarray:
+        """Per head, how many tiles are held below it (kept with the HeldPages, which the tree keeps until it
+        changes)."""
+        return self.below(np.ones(len(self.owner), np.int64), np.add, 0)
 
     def below(self, values: np.ndarray, ufunc: np.ufunc, initial) -> np.ndarray:
         """Per head, `ufunc` (np.add, np.maximum, ...) reduced over `values` (one per position held) of the tiles
@@ -227,9 +234,10 @@ class PagedTree:
         position = self._position
         heads = np.sort(np.fromiter((position[t] for t in self._read), np.int64, len(self._read)))
         head_at = self._head_at[:n]
-        owner = np.full(n, -1, np.int64)
-        own = head_at >= 0
-        owner[own] = np.searchsorted(heads, head_at[own])
+        slot = np.full(n, -1, np.int64)  # each head's index in heads, by its position (a gather, not a search)
+        slot[heads] = np.arange(len(heads))
+        owner = slot[head_at]  # (head_at -1, the root manifest's tiles, reads the last row: set below)
+        owner[head_at < 0] = -1
         up = owner[heads]
         depth = np.zeros(len(heads), np.int64)
         above = up.copy()
