@@ -543,16 +543,18 @@ def _random_tree(paged_store, rnd, steps):
 
 def test_held_pages_group_the_tiles_below_each_page_as_the_walk_finds_them(paged_store):
     """PagedTree.held (the tiles held grouped by page, HeldPages.below) against the walk below each page held
-    (PagedTree.below, the reference): the same tiles below every head, counted, summed and maxed, on random trees."""
+    (PagedTree.below, the reference): the same tiles below every head, counted, summed and maxed, on random trees
+    (evictions among their steps move tiles into holes, so a page's head can come before the page holding it)."""
     rnd = random.Random(5)
-    nested = 0
+    nested = before_up = 0
     for _ in range(12):
         tree = _random_tree(paged_store, rnd, rnd.randrange(3, 40))
         m, held = tree.manifest, tree.held()
         n = len(m.tiles)
         assert held.ids.tolist() == [m.tiles[i].id for i in held.heads] and sorted(held.ids.tolist()) == \
             tree.held_pages()
-        assert (np.diff(held.heads) > 0).all() and (held.up < np.arange(len(held.heads))).all()
+        assert (np.diff(held.heads) > 0).all()
+        before_up += int((held.up > np.arange(len(held.heads))).sum())
         values = np.array([rnd.randrange(-50, 50) for _ in range(n)], np.int64)
         count = held.below(np.ones(n, np.int64), np.add, 0)
         total = held.below(values, np.add, 0)
@@ -563,10 +565,13 @@ def test_held_pages_group_the_tiles_below_each_page_as_the_walk_finds_them(paged
             assert most[j] == (values[below].max() if below else np.iinfo(np.int64).min)
         nested += int((held.depth > 0).sum())
     assert nested > 10  # pages held below pages held
+    assert before_up > 0  # heads moved before the page holding them
 
 
 def _evict_by_walk(tree, heads):
-    """What evict(heads) leaves, by the walk (the reference): the ids kept in order and the pages dropped."""
+    """What evict(heads) leaves, by the walk (the reference): the old positions of the tiles kept by their new
+    positions (kept where they were, the last ones moved into the holes, the lowest hole first), the pages dropped
+    and the pages still held."""
     position = tree.manifest.index_of
     read, gone, dropped = set(tree.held_pages()), set(), 0
     for h in heads:
@@ -576,16 +581,22 @@ def _evict_by_walk(tree, heads):
         gone.update(below)
         read -= {tree.manifest.tiles[i].id for i in below} | {h}
         dropped += 1
-    return [t.id for i, t in enumerate(tree.manifest.tiles) if i not in gone], dropped, read
+    n = len(tree.manifest.tiles)
+    k = n - len(gone)
+    order = list(range(k))
+    for hole, last in zip([i for i in range(k) if i in gone], [i for i in range(k, n) if i not in gone], strict=True):
+        order[hole] = last
+    return order, dropped, read
 
 
 def test_evict_in_arrays_drops_what_the_walk_drops(paged_store):
     """PagedTree.evict against the walk below each head (heads nested, repeated, not held, in any order): the same
-    tiles kept in order, pages counted as dropped, pages still held, and a view the same as a rebuild (arrays,
-    positions, tiles by id, heads dropped as leaves, their pages pending again)."""
+    tiles kept at the same positions (the last ones moved into the holes), pages counted as dropped, pages still
+    held, and a view the same as a rebuild (arrays, positions, tiles by id, heads dropped as leaves, their pages
+    pending again)."""
     rnd = random.Random(11)
     whole = {t.id: t for t in read_manifest(paged_store).tiles}
-    skipped = 0
+    skipped = moved = 0
     for _ in range(40):
         tree = _random_tree(paged_store, rnd, rnd.randrange(4, 30))
         held = tree.held_pages()
@@ -593,11 +604,13 @@ def test_evict_in_arrays_drops_what_the_walk_drops(paged_store):
             continue
         heads = rnd.sample(held, rnd.randrange(1, min(6, len(held)) + 1)) + rnd.sample(held, 1)
         heads.insert(rnd.randrange(len(heads) + 1), next(iter(tree.pending), tree.root.root))  # not held: ignored
-        ids, dropped, read = _evict_by_walk(tree, heads)
+        order, dropped, read = _evict_by_walk(tree, heads)
+        ids = [tree.manifest.tiles[i].id for i in order]
         before = tree.evicted
         keep = tree.evict(heads)
         m = tree.manifest
-        assert [t.id for t in m.tiles] == ids and len(keep) == len(ids) and keep.tolist() == sorted(keep.tolist())
+        assert [t.id for t in m.tiles] == ids and keep.tolist() == order
+        moved += sum(i != j for i, j in enumerate(order))
         assert tree.evicted - before == dropped and set(tree.held_pages()) == read
         skipped += dropped < len(set(heads) & set(held))
         _same_arrays(m.arrays, tile_arrays(m.tiles, {t.id: i for i, t in enumerate(m.tiles)}))
@@ -609,6 +622,7 @@ def test_evict_in_arrays_drops_what_the_walk_drops(paged_store):
                 assert t.children == () and tree.pending[t.id] == whole[t.id].page
         assert set(tree.pending) == {t.id for t in m.tiles if whole[t.id].page is not None and t.id not in read}
     assert skipped > 3  # heads below a head dropped before them
+    assert moved > 40  # tiles moved into holes
 
 
 def _drop_by_walk(engine):
@@ -701,24 +715,46 @@ def _snapshot(a) -> dict:
     return {name: getattr(a, name).copy() for name in _ARRAY_NAMES}
 
 
+def _views_as_they_were(views) -> None:
+    """No later growth wrote into an earlier view's rows, positions or tiles by id (views: (view, a copy of its
+    arrays when made, its tiles))."""
+    later = {t.id for m, _, _ in views for t in m.tiles}
+    for m, snap, tiles in views:
+        for name, arr in snap.items():
+            np.testing.assert_array_equal(getattr(m.arrays, name), arr, err_msg=name)
+        assert m.tiles == tiles and len(m.index_of) == len(m.tile_by_id) == len(tiles)
+        assert dict(m.index_of) == {t.id: i for i, t in enumerate(tiles)} and all(
+            m.tile_by_id[t.id] is t and m.tile(t.id) is t for t in tiles)
+        for t in later - {t.id for t in tiles}:  # tiles of other views: not in this one
+            assert t not in m.index_of and t not in m.tile_by_id and m.index_of.get(t) is None
+
+
 def test_pages_adopted_in_place_leave_earlier_views_as_they_were(paged_store, monkeypatch):
     """grown_arrays writes a page's rows into spare rows of the last view's storage (doubled when full), and the
     views share the tree's maps of positions and tiles by id (PagedTree._detach): every view, earlier ones
     included, must stay what a rebuild makes, with pages arriving in random order and batches,
     as parsed pages (rows taken by read, on a worker in the engine) or plain tile lists (rows taken when adopted),
-    pages dropped and arriving again, and a tree grown twice from one view (the second must copy)."""
+    pages dropped and arriving again, and a tree grown twice from one view (the second must copy). An eviction
+    moves the last rows into the holes of the same storage (PagedTree.evict): the views before it are not kept
+    (the engine reads none after it), the views after it are."""
     monkeypatch.setattr(model, "_FIRST_ROWS", 1)  # storage of twice the tiles held: this small tree fills it
     rnd = random.Random(3)
     tree = PagedTree(parse_manifest(paged_store.read_manifest(), "root", lazy_payloads=True))
     _ = tree.manifest.arrays
     views = []  # (view, a copy of its arrays when made)
     capacity = []  # (its storage, the storage's rows then)
-    grown = dropped = 0
+    grown = dropped = in_place = 0
+    checked = [0]  # views checked
     for _ in range(60):
         pending, held = list(tree.pending), tree.held_pages()
         if held and (not pending or rnd.random() < 0.25):
+            _views_as_they_were(views)
+            checked[0] += len(views)
+            views.clear()  # read no more after the eviction
+            before = tree.manifest.arrays.__dict__.get("_growing")
             tree.evict(rnd.sample(held, rnd.randrange(1, min(3, len(held)) + 1)))
             dropped += 1
+            in_place += tree.manifest.arrays.__dict__.get("_growing") is before
         else:
             for tile_id in rnd.sample(pending, min(len(pending), rnd.randrange(1, 5))):
                 data = paged_store.payloads[tree.entry(tile_id).file]
@@ -732,18 +768,11 @@ def test_pages_adopted_in_place_leave_earlier_views_as_they_were(paged_store, mo
         store = m.arrays.__dict__.get("_growing")
         if store is not None:
             capacity.append((id(store), len(store.buf["ids"])))
-    assert grown > 10 and dropped > 3
-    assert len({s for s, _ in capacity}) > 1  # storage made again after drops
-    assert len(set(capacity)) > len({s for s, _ in capacity})  # and doubled when full
-    later = {t.id for m, _, _ in views for t in m.tiles}
-    for m, snap, tiles in views:  # no later growth wrote into an earlier view's rows, positions or tiles by id
-        for name, arr in snap.items():
-            np.testing.assert_array_equal(getattr(m.arrays, name), arr, err_msg=name)
-        assert m.tiles == tiles and len(m.index_of) == len(m.tile_by_id) == len(tiles)
-        assert dict(m.index_of) == {t.id: i for i, t in enumerate(tiles)} and all(
-            m.tile_by_id[t.id] is t and m.tile(t.id) is t for t in tiles)
-        for t in later - {t.id for t in tiles}:  # tiles of other views: not in this one
-            assert t not in m.index_of and t not in m.tile_by_id and m.index_of.get(t) is None
+    assert grown > 10 and dropped > 3 and in_place > 3  # rows moved within their storage
+    assert len(set(capacity)) > len({s for s, _ in capacity})  # storage doubled when full
+    checked[0] += len(views)
+    _views_as_they_were(views)
+    assert checked[0] > 20
     # a view grown again after a later view grew from it: into a copy, the later view keeps its rows
     tree = PagedTree(parse_manifest(paged_store.read_manifest(), "root", lazy_payloads=True))
     _ = tree.manifest.arrays
@@ -776,13 +805,15 @@ def test_pages_adopted_in_place_leave_earlier_views_as_they_were(paged_store, mo
 
 
 def test_taken_arrays_are_those_a_rebuild_of_the_tiles_kept_makes(paged_store):
-    """taken_arrays (tuples made again only for tiles with a child at or after the first position dropped) against
-    tile_arrays over the tiles kept: random subtrees dropped, below a tile (the tile kept, a leaf: as a page is
-    dropped) or with it (its siblings kept), the first drop early or late."""
+    """taken_arrays (tuples made again only for the parents of the tiles moved or dropped) against tile_arrays over
+    the tiles kept: random subtrees dropped, below a tile (the tile kept, a leaf: as a page is dropped) or with it
+    (its siblings kept), the first drop early or late, the tiles kept in order or where they were with the last
+    ones moved into the holes (as PagedTree.evict keeps them)."""
     whole = read_manifest(paged_store)
     idx = {t.id: i for i, t in enumerate(whole.tiles)}
     a = tile_arrays(whole.tiles, idx)
     rnd = random.Random(2)
+    moved = 0
     for _ in range(30):
         gone: set[int] = set()
         lo = rnd.choice((0, len(whole.tiles) // 2))
@@ -792,10 +823,19 @@ def test_taken_arrays_are_those_a_rebuild_of_the_tiles_kept_makes(paged_store):
                 i = todo.pop()
                 gone.add(i)
                 todo += whole.tile(i).children
-        kept = [replace(t, children=tuple(c for c in t.children if c not in gone)) for t in whole.tiles
-                if t.id not in gone]
-        keep = np.array([idx[t.id] for t in kept], np.int64)
-        _same_arrays(model.taken_arrays(a, keep), tile_arrays(kept, {t.id: i for i, t in enumerate(kept)}))
+        in_order = [i for i, t in enumerate(whole.tiles) if t.id not in gone]
+        k = len(in_order)
+        into_holes = list(range(k))
+        for hole, last in zip([i for i in range(k) if whole.tiles[i].id in gone],
+                              [i for i in range(k, len(whole.tiles)) if whole.tiles[i].id not in gone], strict=True):
+            into_holes[hole] = last
+        moved += into_holes != in_order
+        for order in (in_order, into_holes):
+            kept = [replace(whole.tiles[i], children=tuple(c for c in whole.tiles[i].children if c not in gone))
+                    for i in order]
+            keep = np.array(order, np.int64)
+            _same_arrays(model.taken_arrays(a, keep), tile_arrays(kept, {t.id: i for i, t in enumerate(kept)}))
+    assert moved > 10
 
 
 def test_the_paged_trees_arrays_grow_and_shrink_as_a_rebuild_makes_them(paged_store):

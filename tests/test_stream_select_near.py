@@ -203,7 +203,10 @@ def test_select_near_when_keys_fall_below_the_parents(whole, path):
 
 
 @pytest.mark.parametrize("path", PATHS)
-def test_select_near_on_a_paged_tree_with_pages_arriving_and_dropped(whole, path):
+def test_select_near_on_a_paged_tree_with_pages_arriving_and_dropped(whole, path, monkeypatch):
+    if path == "compiled":  # the children's index compacted at some evictions too (_take_compact)
+        monkeypatch.setattr(selection_jit._ChildIndex, "compact_slack", 0)
+        compacted = selection_jit._index.compacted
     paged = split_pages(whole, 2)
     assert len(paged.pages) >= 5
     files = {ref.file: raw for ref, raw in paged.pages}
@@ -248,6 +251,8 @@ def test_select_near_on_a_paged_tree_with_pages_arriving_and_dropped(whole, path
         taken, made = selection_jit._index.taken - taken, selection_jit._index.rebuilds - made
         print(f"children's index: {taken} taken, {made} made anew, {evictions} evictions")
         assert taken > 5 and made <= 2, (taken, made, evictions)
+        compacted = selection_jit._index.compacted - compacted
+        assert 0 < compacted < taken, (compacted, taken)  # blocks taken in place, and compacted
 
 
 @NEEDS_NUMBA

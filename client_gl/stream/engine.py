@@ -128,8 +128,9 @@ class StreamOptions:
     # "Manifest pages").
     max_tree_tiles: int = 24576
     # A pass that drops pages drops them down to this share of max_tree_tiles below it (a low-water mark), so that
-    # passes are rarer: a pass renumbers the whole tree held (7-12 ms of CPU at 16,384 tiles on the shared VM, most of
-    # the pass), dropping 2 pages or 20 (BENCHMARKS.md, "Manifest pages"). 0: down to max_tree_tiles.
+    # passes are rarer: a pass still groups the whole tree held by page (PagedTree.held, 0.2-0.3 ms at 16,384 tiles
+    # on the shared VM; renumbering it in order was 7-12 ms before tiles moved into the holes), dropping 2 pages or
+    # 20 (BENCHMARKS.md, "Manifest pages"). 0: down to max_tree_tiles.
     tree_low_water: float = 1 / 16
     # After a frame adds pages, move every object that exists then out of the garbage collector's walks
     # (gc.freeze(), process-wide, as the shells do once a session is open: streaming.freeze_long_lived). A held tree
@@ -424,6 +425,9 @@ class StreamEngine:
         self.root = m.index_of[m.root]
         self.ids = self.arrays.ids
         grow = len(m.tiles) - len(self.resident)
+        if not grow:  # an eviction's tree (its per-tile state taken in _evict_pages)
+            self.cost = self.slots_needed.astype(np.float64) * float(self.slot_bytes)
+            return
         # the new tiles' only (a page's tiles are appended; eviction takes the kept rows before adopting)
         chunks = np.array([t.chunks for t in m.tiles[len(self.resident):]], np.int64)
         self.slots_needed = np.concatenate([self.slots_needed, chunks])
@@ -458,13 +462,20 @@ class StreamEngine:
         heads = self._pages_to_drop()
         if not heads:
             return
-        keep = self.pages.evict(heads)
+        keep = self.pages.evict(heads)  # (its arrays' storage rewritten: self.ids, the last view's, not read again)
+        k = len(keep)
         new_of = np.full(len(self.resident), -1, np.int64)
-        new_of[keep] = np.arange(len(keep))
-        self._forget(self.ids[new_of < 0].tolist(), heads)
-        self.resident, self.bands = self.resident[keep], self.bands[keep]
-        self.last_drawn, self._filling = self.last_drawn[keep], self._filling[keep]
-        self.slots_needed = self.slots_needed[keep]
+        new_of[keep] = np.arange(k)
+        self._forget(self.pages.dropped_ids, heads)
+        # the tiles kept keep their positions but for the last ones, moved into the holes (PagedTree.evict): their
+        # state moved in place and the arrays cut to the tiles kept (taking every row through `keep` wrote new
+        # memory, page faults over the tiles held)
+        moved = np.flatnonzero(keep != np.arange(k))
+        src = keep[moved]
+        for name in ("resident", "bands", "last_drawn", "_filling", "slots_needed"):
+            state = getattr(self, name)
+            state[moved] = state[src]
+            setattr(self, name, state[:k])
         refined, last_cut = new_of[self.refined], new_of[self._last_cut]
         self.refined, self._last_cut = refined[refined >= 0], last_cut[last_cut >= 0]
         self._adopt(self.pages.manifest)
@@ -502,7 +513,7 @@ class StreamEngine:
         index_of = self.manifest.index_of
         used = self.resident | in_cut
         used[[index_of[t] for t in busy_ids if t in index_of]] = True
-        count = held.below(np.ones(n, np.int64), np.add, 0)  # tiles below each head
+        count = held.tiles_below  # tiles below each head
         used_below = held.below(used.astype(np.int64), np.add, 0)
         last = held.below(self.last_drawn, np.maximum, np.iinfo(np.int64).min)
         since = self.frame - 1

@@ -6,14 +6,18 @@ entries (verified there like payloads), and gives each page's verified bytes to 
 position once held, so everything the engine keeps per tile position (residency, bands, last drawn) stays valid:
 a page's tiles are appended. A tile whose page is not read yet has no children in the view `manifest`: the
 selection treats it as a leaf, which it may draw (REPLACE: it stands for its whole subtree, lod.md 5). `evict`
-drops pages again (the engine decides which); the tiles kept are then renumbered in order, and the engine takes its
+drops pages again (the engine decides which); the tiles kept stay where they are but for the last ones, moved into
+the holes (the tiles left dense, the pass's Python over the tiles dropped and moved), and the engine takes its
 per-tile state through the positions it returns.
 """
 from __future__ import annotations
 
+import functools
 import operator
+from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
+from itertools import repeat
 
 import numpy as np
 
@@ -45,15 +49,21 @@ class ParsedPage:
 @dataclass(frozen=True)
 class HeldPages:
     """The pages held as arrays over the tiles' positions (`PagedTree.held`): what is below each page's head (its
-    descendants through every page held: `PagedTree.below`) found by grouping, not by walking the tree. A page's
-    head comes before every tile below it (tiles are appended after their head; eviction keeps the order), so the
-    page holding a head has a smaller index here than the head's own page."""
+    descendants through every page held: `PagedTree.below`) found by grouping, not by walking the tree. The pages
+    are in the order of their heads' positions, in no order of the tree (an eviction moves tiles into the holes
+    left, so a tile can come before its page's head): pages nest by `up` and `depth` only."""
 
     heads: np.ndarray  # positions of the tiles whose page is held, ascending
     ids: np.ndarray  # their tile ids
     owner: np.ndarray  # per position held: the index (in heads) of the page the tile came in; -1: the root manifest's
     up: np.ndarray  # per head: the index of the page its head came in; -1: a tile of the root manifest
     depth: np.ndarray  # per head: pages above it (0: its head is a tile of the root manifest)
+
+    @functools.cached_property
+    def tiles_below(self) -> np.ndarray:
+        """Per head, how many tiles are held below it (kept with the HeldPages, which the tree keeps until it
+        changes)."""
+        return self.below(np.ones(len(self.owner), np.int64), np.add, 0)
 
     def below(self, values: np.ndarray, ufunc: np.ufunc, initial) -> np.ndarray:
         """Per head, `ufunc` (np.add, np.maximum, ...) reduced over `values` (one per position held) of the tiles
@@ -85,7 +95,9 @@ class PagedTree:
         self.pages_read = 0
         self.page_bytes = 0
         self.evicted = 0  # pages dropped again (evict)
+        self.dropped_ids: list[int] = []  # the ids of the tiles the last eviction dropped
         self._read: set[int] = set()  # tiles whose page is held
+        self._held: HeldPages | None = None  # held(), until the tree changes
         self._by_id = {t.id: t for t in self._tiles}  # held tiles as the view has them
         self._view_of: Manifest | None = None  # the view, made again when asked for after a change
         self._changed: set[int] = set()  # positions held in the last view whose children have changed since
@@ -167,6 +179,7 @@ class PagedTree:
         else:
             tiles, self._rows = page, None
         self._detach()
+        self._held = None
         at = self._position[tile_id]
         self._tiles[at] = self._by_id[tile_id] = self._full[tile_id]  # its children are known now
         if at < len(self._manifest.tiles):
@@ -212,31 +225,39 @@ class PagedTree:
         return out
 
     def held(self) -> HeldPages:
-        """The pages held as arrays (HeldPages): their heads, and which page each tile held came in."""
+        """The pages held as arrays (HeldPages): their heads, and which page each tile held came in. Kept until the
+        tree changes (the engine's choice of pages to drop, then `evict`, ask for it in one frame: 0.2-0.3 ms each
+        at 16,000 tiles)."""
+        if self._held is not None:
+            return self._held
         n = len(self._tiles)
         position = self._position
         heads = np.sort(np.fromiter((position[t] for t in self._read), np.int64, len(self._read)))
         head_at = self._head_at[:n]
-        owner = np.full(n, -1, np.int64)
-        own = head_at >= 0
-        owner[own] = np.searchsorted(heads, head_at[own])
+        slot = np.full(n, -1, np.int64)  # each head's index in heads, by its position (a gather, not a search)
+        slot[heads] = np.arange(len(heads))
+        owner = slot[head_at]  # (head_at -1, the root manifest's tiles, reads the last row: set below)
+        owner[head_at < 0] = -1
         up = owner[heads]
         depth = np.zeros(len(heads), np.int64)
         above = up.copy()
         while (above >= 0).any():  # a few rounds: pages nest as deep as the tree's levels over a page's levels
             depth += above >= 0
             above = np.where(above >= 0, up[above], -1)
-        return HeldPages(heads, self._ids[heads], owner, up, depth)
+        self._held = HeldPages(heads, self._ids[heads], owner, up, depth)
+        return self._held
 
     def evict(self, heads: list[int]) -> np.ndarray:
         """Drop the pages below these tiles (and every page held below them): the tiles become leaves again, their
-        pages wanted again when a cut reaches them. Returns the old positions of the tiles kept, in order (the
-        engine's per-tile state is taken through it). A head not held, or below a head dropped before it in
-        `heads`, changes nothing. In array operations over the tiles held and Python over the tiles dropped (a walk
-        of the tree for each head, and Python over every tile held, took 73-107 ms of a frame at 250M splats:
-        issue 38, BENCHMARKS.md "Manifest pages")."""
-        last = self.manifest  # the view before the eviction: its arrays' rows are taken
-        self._detach()  # its lookups its own: the positions are made again below, tiles by id changed in place
+        pages wanted again when a cut reaches them. Returns the old position of each tile kept, by its new position
+        (the engine's per-tile state is taken through it): the tiles kept keep their positions, but for those after
+        the new end, moved into the holes (the lowest hole first, in order). A head not held, or below a head
+        dropped before it in `heads`, changes nothing. In array operations over the tiles held and Python over the
+        tiles dropped and moved (a walk of the tree for each head, and Python over every tile held, took 73-107 ms
+        of a frame at 250M splats: issue 38, BENCHMARKS.md "Manifest pages")."""
+        # the view before the eviction: its arrays' rows are taken, moved within their storage; it and the views
+        # before it share the maps edited below, and are not read after the eviction (the engine drops them)
+        last = self.manifest
         held = self.held()
         n = len(self._tiles)
         dropped = np.zeros(len(held.heads), bool)  # pages dropped, the heads given first
@@ -254,7 +275,9 @@ class PagedTree:
             self.pending[h] = self._full[h].page
             self.evicted += 1
         if not dropped.any():
+            self.dropped_ids = []
             return np.arange(n, dtype=np.int64)
+        self._held = None
         cut = dropped.copy()  # the pages dropped and every page below them
         for d in range(1, int(held.depth.max(initial=0)) + 1):
             at = np.flatnonzero(held.depth == d)
@@ -262,27 +285,43 @@ class PagedTree:
         gone = np.zeros(n, bool)
         own = held.owner >= 0
         gone[own] = cut[held.owner[own]]
-        keep = np.flatnonzero(~gone)
-        for t in self._ids[np.flatnonzero(gone)].tolist():  # the tiles of the pages dropped
-            self._read.discard(t)
-            self.pending.pop(t, None)
-            del self._full[t], self._by_id[t]
+        self.dropped_ids = gone_ids = self._ids[np.flatnonzero(gone)].tolist()
+        # the tiles of the pages dropped, forgotten in C loops (map over the ids: a Python loop a tile was 0.1-0.2
+        # ms of a pass dropping 1,000 tiles)
+        self._read.difference_update(gone_ids)
+        deque(map(self.pending.pop, gone_ids, repeat(None)), maxlen=0)
+        deque(map(self._full.__delitem__, gone_ids), maxlen=0)
+        deque(map(self._by_id.__delitem__, gone_ids), maxlen=0)
         tiles = self._tiles  # (views hold tuples of their own)
         for j in np.flatnonzero(dropped & ~gone[held.heads]).tolist():  # a head dropped (a leaf again), unless
             h = int(held.ids[j])  # below a page dropped after it
             tiles[held.heads[j]] = self._by_id[h] = replace(self._full[h], children=())
-        self._tiles = _taken(tiles, keep.tolist())
+        # The kept tiles stay where they are and the last ones fill the holes (each moved tile into the lowest
+        # hole, in order): the positions, tiles and tuples of children change for the tiles moved and dropped
+        # only, where renumbering every tile after the first hole in order took 7-12 ms of the frame at 16,000
+        # tiles (BENCHMARKS.md, "Manifest pages").
+        k = n - int(gone.sum())
+        holes = np.flatnonzero(gone[:k])
+        moved = np.flatnonzero(~gone[k:]) + k
+        keep = np.arange(k)
+        keep[holes] = moved
+        deque(map(tiles.__setitem__, holes.tolist(), _taken(tiles, moved.tolist())), maxlen=0)
+        del tiles[k:]
         new_of = np.full(n + 1, -1, np.int64)  # index -1 (the root manifest's tiles' head) reads -1
-        new_of[keep] = np.arange(len(keep))
-        kept_ids = self._ids[keep]
-        self._head_at = np.concatenate([new_of[self._head_at[keep]], np.full(len(keep), -1, np.int64)])
-        self._ids = np.concatenate([kept_ids, np.zeros(len(keep), np.int64)])
-        kept_ids = kept_ids.tolist()
-        self._position = dict(zip(kept_ids, range(len(keep)), strict=True))
+        new_of[keep] = np.arange(k)
+        self._head_at = np.concatenate([new_of[self._head_at[keep]], np.full(k, -1, np.int64)])
+        self._ids = np.concatenate([self._ids[keep], np.zeros(k, np.int64)])
+        # edited in place (made anew, 1.0-1.3 ms at 19,000 tiles; a copy of a dict with holes 0.3-1.0 ms): the
+        # views before the eviction, which share it, are not read after it (their arrays' rows are moved too)
+        position = self._position
+        deque(map(position.__delitem__, gone_ids), maxlen=0)
+        position.update(zip(self._ids[holes].tolist(), holes.tolist(), strict=True))
         m = replace(self.root, tiles=tuple(self._tiles))
         m.__dict__["index_of"], m.__dict__["tile_by_id"] = self._position, self._by_id
         if "arrays" in last.__dict__:  # the kept rows taken, not rebuilt from the tiles
-            m.__dict__["arrays"] = arrays = taken_arrays(last.arrays, keep)
+            # the moved rows written into the holes of the last view's storage (the last view is not read after
+            # the eviction: the engine drops everything made from it)
+            m.__dict__["arrays"] = arrays = taken_arrays(last.arrays, keep, in_place=True)
             # where they came from, for the compiled selection's children's index (selection_jit._ChildIndex: taken
             # through `keep` instead of made again from the tuples); one link only, the last arrays' own dropped
             arrays.__dict__["_taken_from"] = (last.arrays, keep)

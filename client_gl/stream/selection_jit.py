@@ -478,15 +478,18 @@ class _ChildIndex:
     selection takes a tile's children in any order (its queue pops distinct (key, position) pairs); the
     draw set's walk takes them in draw_set's, the tree's."""
 
+    compact_slack = 1024  # _take compacts where the entries in use exceed twice the tiles by more than this
+
     def __init__(self) -> None:
         self.held = lambda: None  # the TileArrays last indexed (weak)
         self.store = lambda: None  # their growing storage (weak), and how many of its rows are indexed
         self.n = 0
+        self.epoch = 0  # the storage's epoch when indexed (its rows moved in place since: not reached from them)
         # the ids and parents of the tiles indexed (the arrays', not copies: rows below a length never change)
         self.ids, self.parent = np.zeros(0, np.int64), np.zeros(0, np.int64)
         self.lo, self.hi, self.kids = np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0, np.int64)
         self.used = 0  # entries of kids in use
-        self.rebuilds = self.grown = self.taken = 0
+        self.rebuilds = self.grown = self.taken = self.compacted = 0
 
     def of(self, a: TileArrays) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         n = len(a.parent)
@@ -499,6 +502,7 @@ class _ChildIndex:
             self.held = weakref.ref(a)
             store = a.__dict__.get("_growing")
             self.store = weakref.ref(store) if store is not None else (lambda: None)
+            self.epoch = a.__dict__.get("_epoch", 0)
             self.n = n
             self.ids, self.parent = getattr(a, "ids", None), a.parent
         return self.lo[:n], self.hi[:n], self.kids[:self.used]
@@ -513,27 +517,66 @@ class _ChildIndex:
         if self.held() is a:
             return True
         n = len(a.parent)
-        if n < self.n:
-            return False
         store = a.__dict__.get("_growing")
-        if store is None:
+        if n < self.n or store is None:
             return False
-        if store is not self.store() and not (self.ids is not None and np.array_equal(a.ids[:self.n], self.ids) and
-                                              np.array_equal(a.parent[:self.n], self.parent)):
-            return False
+        # An eviction moves rows within their storage (take_in_place, counted by its epoch) but leaves the
+        # arrays before it their parents and children, all that growing reads: the same storage grows the index
+        # from arrays of the epoch indexed. Other storage is compared by its ids and parents, which neither the
+        # arrays indexed nor `a` may have had moved since they were made.
+        epoch = a.__dict__.get("_epoch")
+        if store is self.store():
+            if epoch != self.epoch:
+                return False
+        else:
+            indexed = self.store()
+            if epoch != store.epoch or (indexed is not None and indexed.epoch != self.epoch) or \
+                    self.ids is None or not (np.array_equal(a.ids[:self.n], self.ids) and
+                                             np.array_equal(a.parent[:self.n], self.parent)):
+                return False
         self._grow(a, n)
-        self.held, self.store, self.n = weakref.ref(a), weakref.ref(store), n
+        self.held, self.store, self.n, self.epoch = weakref.ref(a), weakref.ref(store), n, epoch
         self.ids, self.parent = getattr(a, "ids", None), a.parent
         return True
 
     def _take(self, a: TileArrays, keep: np.ndarray) -> None:
-        """The index of the arrays indexed taken at positions `keep` (an eviction's kept rows, in order; a kept
-        tile's parent kept): each kept tile's block, its children kept, renumbered, in the same order (taken_arrays'
-        children). Array operations over the tiles kept, where making it anew from the children's tuples took
-        1.2-1.5 ms of the eviction frame's cut at 16,000-19,000 tiles (BENCHMARKS.md, "Manifest pages")."""
-        k = len(keep)
-        new_of = np.full(self.n, -1, np.int64)
+        """The index of the arrays indexed taken at positions `keep` (an eviction's kept rows, new position -> old:
+        the identity but for the tiles moved into holes; a kept tile's parent kept): each kept tile's block, its
+        children kept, renumbered, in the same order (taken_arrays' children). In place, over the blocks that
+        change only: the moved tiles' blocks carried to their new positions, and the blocks of the parents of a
+        tile moved or dropped renumbered and cut within their room (the blocks of the tiles dropped left unused
+        until the index is compacted, _take_compact, when they outnumber the tree). Taking every kept tile's
+        block into new arrays took 0.33-0.55 ms of the eviction frame's cut at 15,000-19,000 tiles; made anew from
+        the children's tuples, 1.2-1.5 ms (BENCHMARKS.md, "Manifest pages")."""
+        k, n = len(keep), self.n
+        new_of = np.full(n, -1, np.int64)
         new_of[keep] = np.arange(k)
+        if self.parent is None or len(self.parent) != n or self.used > 2 * n + self.compact_slack:
+            self._take_compact(keep, new_of)
+            return
+        moved = np.flatnonzero(keep != np.arange(k))
+        lo, hi = self.lo, self.hi
+        lo[moved], hi[moved] = lo[keep[moved]], hi[keep[moved]]
+        # the parents (the arrays indexed, whose parents an eviction does not move) of the tiles not where they were
+        par = self.parent[np.flatnonzero(new_of != np.arange(n))]
+        owners = new_of[np.unique(par[par >= 0])]
+        owners = owners[owners >= 0]
+        if len(owners):
+            start = lo[owners]
+            lens = hi[owners] - start
+            first = np.cumsum(lens) - lens
+            values = new_of[self.kids[np.repeat(start - first, lens) + np.arange(int(lens.sum()))]]
+            kept = values >= 0
+            owner = np.repeat(np.arange(len(owners)), lens)[kept]
+            left = np.bincount(owner, minlength=len(owners))
+            before = np.cumsum(left) - left
+            self.kids[start[owner] + np.arange(len(owner)) - before[owner]] = values[kept]
+            hi[owners] = start + left
+        self.taken += 1
+
+    def _take_compact(self, keep: np.ndarray, new_of: np.ndarray) -> None:
+        """_take into new arrays, every kept tile's block in order (the unused room of dropped tiles given up)."""
+        k = len(keep)
         starts, counts = self.lo[keep], self.hi[keep] - self.lo[keep]
         total = int(counts.sum())
         first = np.cumsum(counts) - counts  # each kept tile's children in the flat list of their old blocks
@@ -551,6 +594,7 @@ class _ChildIndex:
         kids[:self.used] = flat[kept]
         self.lo, self.hi, self.kids = lo, hi, kids
         self.taken += 1
+        self.compacted += 1
 
     def _rebuild(self, a: TileArrays, n: int) -> None:
         # the blocks from the tuple of children (their order: the draw set's walk visits them so), about 1.2 ms at

@@ -506,21 +506,58 @@ def grown_arrays(a: TileArrays, tiles: Sequence[TileEntry], idx: Mapping[int, in
     for name in _DERIVED_ROWS:  # the derived arrays that only grow, kept as views too
         out.__dict__[name] = store.buf[name][:n]
     out.__dict__["_growing"] = store
+    out.__dict__["_epoch"] = store.epoch  # its rows as they are until the storage's next take_in_place
     return out
 
 
 class _GrowingRows:
     """The numeric arrays of a TileArrays with spare rows after its `n` rows (grown_arrays). Rows below `n` are
     never written again, so every TileArrays viewing them stays as it was; the tree grows in place only from the
-    arrays whose length is `n` (the last grown: the streaming client's frame loop grows one chain of views)."""
+    arrays whose length is `n` (the last grown: the streaming client's frame loop grows one chain of views). The
+    one exception, an eviction's take_in_place, counts itself in `epoch`."""
 
     def __init__(self, a: TileArrays, capacity: int):
         self.n = n = len(a.ids)
+        self.epoch = 0  # rows moved in place (take_in_place) this many times: rows below n changed then
         self.buf: dict[str, np.ndarray] = {}
         for name in ("parent", *_ROW_NAMES, *_DERIVED_ROWS):
             arr = getattr(a, name)
             self.buf[name] = np.empty((max(capacity, n), *arr.shape[1:]), arr.dtype)
             self.buf[name][:n] = arr
+
+    @classmethod
+    def taken(cls, a: TileArrays, keep: np.ndarray, moved: np.ndarray, capacity: int) -> _GrowingRows:
+        """The rows of `a` at positions `keep` (new -> old) in new storage, where `moved` lists the new positions
+        whose row is not the one already there (keep[i] == i elsewhere): a copy of the first rows and the moved
+        rows written over them."""
+        self = cls.__new__(cls)
+        self.n = k = len(keep)
+        self.epoch = 0
+        self.buf = {}
+        src = keep[moved]
+        for name in ("parent", *_ROW_NAMES, *_DERIVED_ROWS):
+            arr = getattr(a, name)
+            buf = self.buf[name] = np.empty((max(capacity, k), *arr.shape[1:]), arr.dtype)
+            buf[:k] = arr[:k]
+            buf[moved] = arr[src]
+        return self
+
+    def take_in_place(self, keep: np.ndarray, moved: np.ndarray, new_of: np.ndarray) -> None:
+        """The rows at positions `keep` (new -> old, the identity but at `moved`) in this storage: the moved rows
+        written into their new positions and the rows after them given up (the arrays viewing the rows held
+        before see the moved rows at those positions: PagedTree.evict's last view, not read after it). The
+        parents, renumbered through `new_of`, in a new array: the arrays before keep theirs, which with their
+        children is what the compiled selection's children's index grows by (selection_jit._ChildIndex)."""
+        src = keep[moved]
+        k = len(keep)
+        for name, buf in self.buf.items():
+            if name == "parent":
+                parent = self.buf[name] = np.empty_like(buf)
+                parent[:k] = new_of[buf[keep]]
+            else:
+                buf[moved] = buf[src]
+        self.n = k
+        self.epoch += 1
 
     def append(self, parts: list[Mapping[str, np.ndarray]]) -> None:
         """Rows after the n held (each part: tile_rows' arrays and `parent`), the storage doubled when full."""
@@ -558,20 +595,29 @@ _FIRST_ROWS = 64  # rows of a new storage at least (twice the tiles held when it
 _DERIVED_ROWS = ("box_corners", "splats_f64")  # TileArrays' cached arrays that grow row by row with the tree
 
 
-def taken_arrays(a: TileArrays, keep: np.ndarray) -> TileArrays:
-    """`a` over the tiles at positions `keep` (ascending; every kept tile's parent kept, children dropped with
-    their parent): the arrays of the tree left when a paged tree drops pages, renumbered in order. The children
-    renumbered in array operations, tuples made again for the tiles that have children only (a generator over every
-    child took 4.4 ms of a frame's page eviction at 12,000 tiles held: BENCHMARKS.md, "Manifest pages")."""
-    new_of = np.full(len(a.ids) + 1, -1, np.int64)  # index -1 (the root's parent) reads -1
-    new_of[keep] = np.arange(len(keep))
-    children = _taken(a.children, keep.tolist())
-    # only the tiles with a child at or after the first position dropped change (their children renumbered or
-    # dropped): the others keep their tuples (the tiles before the first page dropped, half of them or more)
-    moved = np.flatnonzero(keep != np.arange(len(keep)))
-    first = int(moved[0]) if len(moved) else len(keep)  # the first position dropped
-    redo = np.zeros(len(a.ids) + 1, bool)  # index -1 (the root's parent) ignored
-    redo[a.parent[first:]] = True
+def taken_arrays(a: TileArrays, keep: np.ndarray, in_place: bool = False) -> TileArrays:
+    """`a` over the tiles at positions `keep` (new position -> old; every kept tile's parent kept, children dropped
+    with their parent): the arrays of the tree left when a paged tree drops pages. `keep` in any order: a paged tree
+    keeps its tiles where they are and moves the last ones into the holes (client_gl/stream/pages.py), so that
+    only the tuples of the tiles moved and of the parents of a tile moved or dropped change; the others are
+    carried over by one copy of the tuple of tuples, and the numeric rows by a copy of the first rows (renumbering
+    every tile after the first position dropped took 4.8-8.8 ms of a frame's page eviction at 15,000-19,000 tiles
+    held: BENCHMARKS.md, "Manifest pages"). Like grown_arrays' arrays, they are views of storage with spare rows
+    (_GrowingRows), which the next page's tiles grow in place. `in_place`: where `a` is the last grown arrays of
+    their storage, the moved rows are written into that storage's holes (a new storage's first write of every row
+    was 1.1-1.4 ms of page faults at 17,000 tiles, the moved rows 0.1 ms), and `a` is not to be read after it
+    (its rows at the holes are others'); else new storage, `a` as it was."""
+    n, k = len(a.ids), len(keep)
+    new_of = np.full(n + 1, -1, np.int64)  # index -1 (the root's parent) reads -1
+    new_of[keep] = np.arange(k)
+    moved = np.flatnonzero(keep != np.arange(k))  # new positions whose tile was elsewhere
+    children = list(a.children[:k])
+    if len(moved):
+        deque(map(children.__setitem__, moved.tolist(), _taken(a.children, keep[moved].tolist())), maxlen=0)
+    # the tiles whose children were renumbered or dropped: the parents of the tiles not where they were
+    changed = np.flatnonzero(new_of[:n] != np.arange(n))
+    redo = np.zeros(n + 1, bool)  # index -1 (the root's parent) ignored
+    redo[a.parent[changed]] = True
     inner = np.flatnonzero(redo[keep])
     if len(inner):
         old = _taken(children, inner.tolist())
@@ -580,12 +626,26 @@ def taken_arrays(a: TileArrays, keep: np.ndarray) -> TileArrays:
         kept = flat >= 0
         counts = np.add.reduceat(kept.astype(np.int64), np.cumsum(n_kids) - n_kids)
         kids, first_kid = flat[kept], np.cumsum(counts) - counts
-        for k in np.unique(counts).tolist():  # the tuples of k children made by zip over k columns (in C)
-            at = np.flatnonzero(counts == k)
-            made = zip(*[kids[first_kid[at] + j].tolist() for j in range(k)], strict=True) if k else [()] * len(at)
+        for c in np.unique(counts).tolist():  # the tuples of c children made by zip over c columns (in C)
+            at = np.flatnonzero(counts == c)
+            made = zip(*[kids[first_kid[at] + j].tolist() for j in range(c)], strict=True) if c else [()] * len(at)
             deque(map(children.__setitem__, inner[at].tolist(), made), maxlen=0)
-    return TileArrays(parent=new_of[a.parent[keep]], children=tuple(children),
-                      **{name: getattr(a, name)[keep] for name in _ROW_NAMES})
+    # the numeric rows into new storage with spare rows (the next page grows it in place): the rows up to k
+    # copied as they are and the moved ones written over them (taking every row through `keep` took 1.1-2.0 ms
+    # at 17,000 tiles held, a copy a tenth of it)
+    store = a.__dict__.get("_growing")
+    if in_place and store is not None and store.n == n:
+        store.take_in_place(keep, moved, new_of)
+    else:
+        store = _GrowingRows.taken(a, keep, moved, max(_FIRST_ROWS, 2 * k))
+        parent = store.buf["parent"]
+        parent[:k] = new_of[parent[:k]]
+    out = TileArrays(children=tuple(children), **{name: store.buf[name][:k] for name in ("parent", *_ROW_NAMES)})
+    for name in _DERIVED_ROWS:  # the derived arrays that only grow, kept as views too
+        out.__dict__[name] = store.buf[name][:k]
+    out.__dict__["_growing"] = store
+    out.__dict__["_epoch"] = store.epoch
+    return out
 
 
 def _taken(items: Sequence, at: list[int]) -> list:
