@@ -349,8 +349,11 @@ def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, so
     palettes (Manifest.scene_palettes, format.md 4.3.2), for a palette plane whose payload has no palette section."""
     buf, kept = _decompress(data, entry.raw_bytes, source)
     if whole_kernel() is not None:  # every payload goes through the whole kernel where there is one
-        return _unpack_whole(buf, [0], [buf], [{s.name: s for s in entry.sections}], group, codebook, [source],
-                             between, kept, palettes)[0]
+        tables = [{s.name: s for s in entry.sections}]
+        planned = _unpack_planned(buf, [0], [buf], tables, group, codebook, [source], between, kept, palettes)
+        if planned is not None:
+            return planned[0]
+        return _unpack_whole(buf, [0], [buf], tables, group, codebook, [source], between, kept, palettes)[0]
     # What a small payload's decode spends beyond its splats is per-call Python and numpy work (issue 32: on the LOD
     # tree's tiles of a few hundred splats it was half the time), so this loop does only what each plane needs: the
     # section table read once into a dict, not searched per section; a view of the kept buffer found by its base.
@@ -420,7 +423,7 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
         tables.append({s.name: s for s in entry.sections})
         at += size
     if in_one_call:  # the whole group in one compiled call (_unpack_planned; else _unpack_whole)
-        planned = _unpack_planned(whole, firsts, tables, group, codebook, sources, between)
+        planned = _unpack_planned(whole, firsts, bufs, tables, group, codebook, sources, between, kept, palettes)
         if planned is not None:
             return planned
         return _unpack_whole(whole, firsts, bufs, tables, group, codebook, sources, between, kept, palettes)
@@ -497,14 +500,15 @@ def _batchable(entry: PayloadEntry) -> bool:
     return not any(sec.filter == MORTON1 or sec.format in PALETTE_FORMATS for sec in entry.sections)
 
 
-def _unpack_planned(whole: np.ndarray, firsts: list[int], tables: list[dict], group: str, codebook: bool,
-                    sources: list[str], between: Callable[[], object] | None) -> list[dict[str, EncodedPlane]] | None:
+def _unpack_planned(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], tables: list[dict], group: str,
+                    codebook: bool, sources: list[str], between: Callable[[], object] | None, kept: bool,
+                    palettes: Mapping[str, np.ndarray] | None) -> list[dict[str, EncodedPlane]] | None:
     """_unpack_whole's planes, bit for bit, in one pass of Python over the planes of the payloads before the whole
     kernel's call and one after it, for groups of the usual kind: every texel section fields1 (well-formed, of a
-    format with a fields1 layout), shuffled or stored as they are, no palette plane and no morton1 section, every float
-    plane's texels in [0, 1]. None for any
-    other group (nothing returned, nothing raised): _unpack_whole then decodes it, and refuses what it must, naming
-    the payload and section, as before.
+    format with a fields1 layout), shuffled, stored as it is or morton1 (decoded alone after the call, as
+    _unpack_whole does), a plane's payloads all with palettes (format.md 4.3.2, read as _unpack_whole reads them) or
+    none, every float plane's texels in [0, 1]. None for any other group (nothing returned, nothing raised):
+    _unpack_whole then decodes it, and refuses what it must, naming the payload and section, as before.
 
     Why: on the LOD tree's small payloads (a few hundred splats) the Python around the kernel was the largest part of
     a payload's decode beside zstd (issue 32: 35-50 us a payload at a loaded VM's figures). _unpack_whole walks every
@@ -526,12 +530,16 @@ def _unpack_planned(whole: np.ndarray, firsts: list[int], tables: list[dict], gr
         add = texels.append
         float_format = None
         plane_first = -1
+        palette_plane = None  # whether the plane's payloads have palettes in place of ranges (all or none)
         pads: list[tuple[int, int]] = []  # alignment gaps between the plane's texels (where, bytes)
         for t, first in zip(tables, firsts, strict=True):
             s = t[name]
             fmt, filt = s.format, s.filter
-            if fmt in PALETTE_FORMATS:
-                return None  # palettes in place of ranges (format.md 4.3.2): _unpack_whole's
+            is_palette = fmt in PALETTE_FORMATS
+            if palette_plane is None:
+                palette_plane = is_palette
+            elif is_palette is not palette_plane:
+                return None
             if fmt in FLOAT_TEXEL_FORMATS:
                 if float_format is None:
                     float_format = fmt
@@ -566,8 +574,8 @@ def _unpack_planned(whole: np.ndarray, firsts: list[int], tables: list[dict], gr
                     most_n = n
                 if nf > most_f:
                     most_f = nf
-            elif filt == MORTON1:
-                return None  # decoded alone (unfilter_morton): _unpack_whole's
+            elif filt == MORTON1:  # decoded alone after the call (format.md 5.4; the manifest checked its geometry)
+                add((s, -1, 0, None))
             else:  # shuffled (float formats too: checked after the call), a unit a layer, as unfilter_whole's units;
                 # "none" a unit of 1-byte elements: the kernel copies it (where _unpack_whole copies unfilter_texels')
                 element = elements.get(filt) or _element(filt)
@@ -594,7 +602,9 @@ def _unpack_planned(whole: np.ndarray, firsts: list[int], tables: list[dict], gr
                     add((s, starts[0], unit, starts))
         float_span = None if float_format is None else (float_format, plane_first, out_bytes, pads)
         range_at = None
-        if spec.range_dtype:  # a plane's ranges in a row, each aligned to its element: checked at once
+        if palette_plane:
+            range_at = _PALETTES
+        elif spec.range_dtype:  # a plane's ranges in a row, each aligned to its element: checked at once
             range_at = []
             range_name = spec.range_name
             for t, first in zip(tables, firsts, strict=True):
@@ -620,17 +630,34 @@ def _unpack_planned(whole: np.ndarray, firsts: list[int], tables: list[dict], gr
         if between is not None:
             between()
         count, name = spec.layers, spec.name
-        checked = [None] * len(texels) if range_at is None else _whole_ranges(out, range_at, 0, tables, spec, sources)
-        for planes, (s, first, size, starts), plane_ranges in zip(result, texels, checked, strict=True):
-            if starts is not None:
+        plane_palettes = None
+        if range_at is _PALETTES:
+            plane_palettes = _whole_palettes(bufs, tables, spec, palettes, sources, kept)
+            checked = [None] * len(texels)
+        elif range_at is None:
+            checked = [None] * len(texels)
+        else:
+            checked = _whole_ranges(out, range_at, 0, tables, spec, sources)
+        for k, (planes, (s, first, size, starts), plane_ranges) in enumerate(zip(result, texels, checked,
+                                                                                  strict=True)):
+            if first < 0:  # morton1: a fresh array, not a view of the kept buffer
+                layers = [unfilter_morton(bufs[k][s.offset:s.offset + s.size], s.width, s.height)]
+            elif starts is not None:
                 layers = [out[a:a + size] for a in starts]
             elif count == 1:
                 layers = [out[first:first + size]]
             else:
                 step = size // count
                 layers = [out[first + i * step:first + (i + 1) * step] for i in range(count)]
-            planes[name] = EncodedPlane(spec, s.format, s.width, s.height, layers, plane_ranges)
+            if plane_palettes is None:
+                planes[name] = EncodedPlane(spec, s.format, s.width, s.height, layers, plane_ranges)
+            else:
+                palette, scene = plane_palettes[k]
+                planes[name] = EncodedPlane(spec, s.format, s.width, s.height, layers, None, palette, scene)
     return result
+
+
+_PALETTES: list[int] = []  # _unpack_planned's mark of a palette plane in place of its ranges' offsets
 
 
 def _floats_ok(out: np.ndarray, fmt: str, lo: int, hi: int, pads: list[tuple[int, int]]) -> bool:
