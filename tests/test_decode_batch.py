@@ -222,3 +222,65 @@ def test_small_payloads_have_fewer_blocks_and_bytes_and_the_same_raw_bytes(fruit
     blocks_apart = sum(zstd_block_count(b) for b, _ in apart)
     assert 0 < blocks_joined < 0.7 * blocks_apart
     assert sum(len(a) for a, _ in joined) < 0.995 * sum(len(b) for b, _ in apart)
+
+
+def _group_reads(monkeypatch) -> list[bool]:
+    """Whether each container._decompress_group call decompressed its group (True) or left it to a payload at a
+    time (False)."""
+    calls: list[bool] = []
+    group_read = container._decompress_group
+
+    def spy(*args):
+        got = group_read(*args)
+        calls.append(got)
+        return got
+    monkeypatch.setattr(container, "_decompress_group", spy)
+    return calls
+
+
+@pytest.mark.parametrize("odd", ["none", "frame after", "bytes after", "no size", "size differs", "short"])
+def test_a_group_decompressed_by_one_reader_as_a_payload_at_a_time(fruit, monkeypatch, odd):
+    # container._decompress_group reads a group's frames end to end with one zstd reader; a payload that would not
+    # read the same that way (a frame or bytes after its frame, a frame without its size, another size than the
+    # manifest's, a cut frame) sends the group to a payload at a time: the same planes, or the error a payload alone
+    # gets, naming the payload
+    store = encode_in_memory(fruit, EncodeOptions(preset="medium", max_leaf_splats=512))
+    m = read_manifest(store)
+    items = [(store.read_payload(t.groups["base"]), t.groups["base"]) for t in m.tiles][:4]
+    sources = [f"payload{k}" for k in range(4)]
+    expected = [planes_bytes(container.unpack_payload(d, e, "base", s)) for (d, e), s in zip(items, sources,
+                                                                                               strict=True)]
+    data, entry = items[2]
+    raw = zstandard.ZstdDecompressor().decompress(data)
+    damaged = {
+        "none": data,
+        "frame after": data + zstandard.ZstdCompressor().compress(b"more bytes"),
+        "bytes after": data + b"\0\1\2",
+        "no size": zstandard.ZstdCompressor(write_content_size=False).compress(raw),
+        "size differs": zstandard.ZstdCompressor().compress(raw + b"\0" * 16),
+        "short": data[:-7],
+    }[odd]
+    items[2] = (damaged, entry)
+    reads = _group_reads(monkeypatch)
+    if odd in ("none", "no size"):
+        assert [planes_bytes(p) for p in container.unpack_payloads(items, "base", sources)] == expected
+    else:
+        with pytest.raises(FormatError, match="payload2") as alone:
+            container.unpack_payload(damaged, entry, "base", "payload2")
+        with pytest.raises(FormatError, match="payload2") as together:
+            container.unpack_payloads(items, "base", sources)
+        assert str(together.value) == str(alone.value)
+    assert reads == [odd == "none"]
+
+
+def test_a_large_group_is_decompressed_a_payload_at_a_time(fruit, monkeypatch):
+    # above GROUP_READ_MAX_BYTES compressed a group's frames are not copied end to end for one reader
+    store = encode_in_memory(fruit, EncodeOptions(preset="medium", max_leaf_splats=512))
+    m = read_manifest(store)
+    items = [(store.read_payload(t.groups["base"]), t.groups["base"]) for t in m.tiles][:4]
+    sources = [f"payload{k}" for k in range(4)]
+    together = [planes_bytes(p) for p in container.unpack_payloads(items, "base", sources)]
+    monkeypatch.setattr(container, "GROUP_READ_MAX_BYTES", sum(len(d) for d, _ in items) - 1)
+    reads = _group_reads(monkeypatch)
+    assert [planes_bytes(p) for p in container.unpack_payloads(items, "base", sources)] == together
+    assert reads == [False]

@@ -361,3 +361,74 @@ def test_the_ranges_kernel_answers_as_the_python_and_numpy_checks(numpy_path, dt
                 with pytest.raises(FormatError):
                     container._check_ranges(ranges, plane, "r", "s")
     assert answers[True] > 100 and answers[False] > 100  # both answers well covered
+
+
+def _planned_calls(monkeypatch) -> list[bool]:
+    """Whether each _unpack_planned call decoded its group (True) or left it to _unpack_whole (False)."""
+    calls: list[bool] = []
+    planned = container._unpack_planned
+
+    def spy(*args):
+        got = planned(*args)
+        calls.append(got is not None)
+        return got
+    monkeypatch.setattr(container, "_unpack_planned", spy)
+    return calls
+
+
+@pytest.mark.parametrize("preset", ["medium", "high", "very-low", "medium-low-palette", "low-plus-10bit-cb8"])
+def test_a_group_planned_in_one_pass_decodes_as_the_numpy_path(numpy_path, monkeypatch, fruit, preset):
+    # container._unpack_planned takes a group of the usual kind itself (fields1, shuffled, stored as is (very-low's
+    # bc7 colour), morton1 positions and palette planes (medium-low-palette), f16x4 planes (high), SH groups and
+    # codebook indices (cb8)): the same planes, palettes included, as the numpy path's, a group and a payload alone
+    store = encode_in_memory(fruit, EncodeOptions(preset=preset, max_leaf_splats=512))
+    m = read_manifest(store)
+    by_group: dict[str, list] = {}
+    for t in m.tiles:
+        for group, entry in t.groups.items():
+            by_group.setdefault(group, []).append((store.read_payload(entry), entry))
+
+    def decode_all() -> list:
+        out = []
+        for group, items in by_group.items():
+            sources = [f"payload{k}" for k in range(len(items))]
+            planes = container.unpack_payloads(items, group, sources, m.uses_codebook, palettes=m.scene_palettes)
+            planes += [container.unpack_payload(d, e, group, "one", m.uses_codebook, palettes=m.scene_palettes)
+                       for d, e in items[:2]]
+            out += [(planes_bytes(p), [None if q.palette is None else (q.palette.tobytes(), q.scene_palette)
+                                       for q in p.values()]) for p in planes]
+        return out
+
+    by_numpy = decode_all()
+    decode_jit.install()
+    calls = _planned_calls(monkeypatch)
+    assert decode_all() == by_numpy
+    assert calls and all(calls)  # no group, no payload, left to _unpack_whole
+
+
+@pytest.mark.parametrize("damage", ["version", "short"])
+def test_a_malformed_section_in_a_planned_group_is_refused_naming_its_payload(numpy_path, monkeypatch, fruit, damage):
+    # a fields1 section that is not well-formed sends the group to _unpack_whole, which refuses it as the numpy path
+    # does: the same message, naming the payload and the section
+    import zstandard
+    store = encode_in_memory(fruit, EncodeOptions(preset="medium", max_leaf_splats=512))
+    m = read_manifest(store)
+    items = [(store.read_payload(t.groups["base"]), t.groups["base"]) for t in m.tiles][:4]
+    data, entry = items[2]
+    s = next(s for s in entry.sections if s.filter == "fields1")
+    raw = bytearray(zstandard.ZstdDecompressor().decompress(data))
+    if damage == "version":
+        raw[s.offset] = 2  # a fields1 version this reader does not know
+    else:
+        raw[s.offset + 1:s.offset + 1 + len(field_bits(s.format))] = bytes([0x0E] * len(field_bits(s.format)))
+    items[2] = (zstandard.ZstdCompressor().compress(bytes(raw)), entry)
+    sources = [f"payload{k}" for k in range(4)]
+    with pytest.raises(FormatError) as by_numpy:
+        container.unpack_payloads(items, "base", sources)
+    decode_jit.install()
+    calls = _planned_calls(monkeypatch)
+    with pytest.raises(FormatError) as by_kernel:
+        container.unpack_payloads(items, "base", sources)
+    assert calls == [False]
+    assert str(by_kernel.value) == str(by_numpy.value)
+    assert "payload2" in str(by_kernel.value) and s.name in str(by_kernel.value)

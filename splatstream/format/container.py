@@ -33,13 +33,18 @@ from .manifest import PayloadEntry, Section, filter_element
 from .names import payload_name, sha256_hex
 from .planes import RANGE_DTYPE_NAMES, group_planes, palette_shape
 from .texformats import PALETTE_FORMATS, TEXEL_DTYPES
-from .transport import (
+from .transport import (  # the private names: the whole kernel's section rows, which _unpack_planned plans
+    _HEADER_BYTES,
+    _MISSING,
     FIELD_LAYOUTS,
     FIELDS1,
+    _whole_row,
+    _whole_rows,
     batch_kernels,
     field_bits,
     fields_kernel,
     filter_texels,
+    run_whole,
     shuffle,
     shuffle_filter,
     trial_size,
@@ -310,9 +315,10 @@ def _raw_buffer(size: int) -> tuple[np.ndarray, bool]:
 def _decompress_into(data: bytes | memoryview, buf: np.ndarray, source: str) -> None:
     """Decompress `data` into `buf` (uint8): FormatError unless it is one zstd frame of exactly buf.size bytes."""
     size = buf.size
-    got, extra = 0, b""
+    extra = b""
     try:
         with _decompressor().stream_reader(data) as reader:
+            got = reader.readinto(buf)  # a payload's frame in one read as a rule: a slice only when it comes short
             while got < size:
                 k = reader.readinto(buf[got:])
                 if not k:
@@ -343,8 +349,11 @@ def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, so
     palettes (Manifest.scene_palettes, format.md 4.3.2), for a palette plane whose payload has no palette section."""
     buf, kept = _decompress(data, entry.raw_bytes, source)
     if whole_kernel() is not None:  # every payload goes through the whole kernel where there is one
-        return _unpack_whole(buf, [0], [buf], [{s.name: s for s in entry.sections}], group, codebook, [source],
-                             between, kept, palettes)[0]
+        tables = [{s.name: s for s in entry.sections}]
+        planned = _unpack_planned(buf, [0], [buf], tables, group, codebook, [source], between, kept, palettes)
+        if planned is not None:
+            return planned[0]
+        return _unpack_whole(buf, [0], [buf], tables, group, codebook, [source], between, kept, palettes)[0]
     # What a small payload's decode spends beyond its splats is per-call Python and numpy work (issue 32: on the LOD
     # tree's tiles of a few hundred splats it was half the time), so this loop does only what each plane needs: the
     # section table read once into a dict, not searched per section; a view of the kept buffer found by its base.
@@ -406,14 +415,19 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
     whole, kept = _raw_buffer(total)
     owner = whole if whole.base is None else whole.base
     bufs, firsts, tables, at = [], [], [], 0
+    each = not _decompress_group(items, sizes, whole)  # else a payload at a time, which names a bad one
     for (data, entry), size, source in zip(items, sizes, sources, strict=True):
         buf = whole[at:at + size]
-        _decompress_into(data, buf, source)
+        if each:
+            _decompress_into(data, buf, source)
         bufs.append(buf)
         firsts.append(at)
         tables.append({s.name: s for s in entry.sections})
         at += size
-    if in_one_call:  # the whole group in one compiled call (_unpack_whole)
+    if in_one_call:  # the whole group in one compiled call (_unpack_planned; else _unpack_whole)
+        planned = _unpack_planned(whole, firsts, bufs, tables, group, codebook, sources, between, kept, palettes)
+        if planned is not None:
+            return planned
         return _unpack_whole(whole, firsts, bufs, tables, group, codebook, sources, between, kept, palettes)
     out: list[dict[str, EncodedPlane]] = [{} for _ in items]
     batched = None not in batch_kernels()
@@ -476,6 +490,43 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
     return out
 
 
+# Groups of at most this many compressed bytes are read by one zstd reader (_decompress_group): their frames are
+# copied end to end for it, and a payload large enough to matter gains nothing (the reader's setup is 1.5-2.5 us)
+GROUP_READ_MAX_BYTES = 1 << 22
+
+
+def _decompress_group(items: list[tuple[bytes | memoryview, PayloadEntry]], sizes: list[int],
+                      whole: np.ndarray) -> bool:
+    """Decompress several payloads into `whole`, one after the other, by one zstd reader over their frames end to end;
+    True only if that gave exactly what a payload at a time (_decompress_into) would: every payload's frame declares
+    its manifest size (zstd refuses a frame that then decodes to another size), and the frames decode to exactly
+    whole.size bytes with nothing after them. False (nothing raised; `whole` may hold anything): decompress them a
+    payload at a time, which refuses a bad one naming it. So a payload with a frame or bytes after its frame, a frame
+    without its size, a bomb, or any zstd error goes the way it went before (refused, naming it, or read alone).
+
+    Why: python-zstandard's setup of a reader, its first read and the check for more is 1.5-2.5 us a payload, a tenth
+    of a small payload's zstd (issue 32: the LOD tree's payloads of a few hundred splats); one reader for a group
+    of them pays it once (measured 1.3-2 us a payload less, the frames' copy end to end included). Groups above
+    GROUP_READ_MAX_BYTES compressed go a payload at a time: no copy of their frames."""
+    if len(items) < 2 or sum(len(data) for data, _ in items) > GROUP_READ_MAX_BYTES:
+        return False
+    try:
+        for (data, _), size in zip(items, sizes, strict=True):
+            if zstandard.frame_content_size(data) != size:
+                return False
+        total = whole.size
+        with _decompressor().stream_reader(b"".join([data for data, _ in items]), read_across_frames=True) as reader:
+            got = reader.readinto(whole)
+            while got < total:
+                k = reader.readinto(whole[got:])
+                if not k:
+                    break
+                got += k
+            return got == total and not reader.read(1)
+    except zstandard.ZstdError:
+        return False
+
+
 def _batchable(entry: PayloadEntry) -> bool:
     """Without the whole kernel, the payload's planes can go through unpack_payloads' batches: no keyed positions, no
     palette planes (format.md 5.4, 4.3.2), which are decoded a plane at a time, one payload at a time. With the whole
@@ -486,6 +537,181 @@ def _batchable(entry: PayloadEntry) -> bool:
     same size without them (medium-low-palette on guitar and winter_fountain, 221 payloads: 159 and 153 us against
     72-92 us; issue 32)."""
     return not any(sec.filter == MORTON1 or sec.format in PALETTE_FORMATS for sec in entry.sections)
+
+
+def _unpack_planned(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], tables: list[dict], group: str,
+                    codebook: bool, sources: list[str], between: Callable[[], object] | None, kept: bool,
+                    palettes: Mapping[str, np.ndarray] | None) -> list[dict[str, EncodedPlane]] | None:
+    """_unpack_whole's planes, bit for bit, in one pass of Python over the planes of the payloads before the whole
+    kernel's call and one after it, for groups of the usual kind: every texel section fields1 (well-formed, of a
+    format with a fields1 layout), shuffled, stored as it is or morton1 (decoded alone after the call, as
+    _unpack_whole does), a plane's payloads all with palettes (format.md 4.3.2, read as _unpack_whole reads them) or
+    none, every float plane's texels in [0, 1]. None for any other group (nothing returned, nothing raised):
+    _unpack_whole then decodes it, and refuses what it must, naming the payload and section, as before.
+
+    Why: on the LOD tree's small payloads (a few hundred splats) the Python around the kernel was the largest part of
+    a payload's decode beside zstd (issue 32: 35-50 us a payload at a loaded VM's figures). _unpack_whole walks every
+    plane of every payload three times (its plan, unfilter_whole's rows, the views after the call) with a tuple a
+    step; here each section's row, and where its texels will lie in the kernel's output, are worked out in the one
+    walk that finds it, and the views taken after the call from those offsets."""
+    specs = group_planes(group, codebook)
+    view = whole.data  # the headers' bytes through a memoryview (a third of a numpy slice's cost)
+    header_of, rows_of, elements = _HEADER_BYTES, _whole_rows, _ELEMENTS
+    flat: list[int] = []  # run_whole's 9 ints a fields1 section
+    unit_rows: list[int] = []  # and its 4 a shuffled unit
+    index: dict[tuple, int] = {}  # (format, layers, header, width, height) -> its index in the tables' key
+    out_bytes = most_n = most_f = 0
+    plan = []  # per plane: (spec, per payload (section, where its texels start in out, bytes, the layers' starts or
+    #            None: the layers one after the other), where each payload's ranges start or None, float span or None)
+    for spec in specs:
+        count, name = spec.layers, spec.name
+        texels: list[tuple] = []
+        add = texels.append
+        float_format = None
+        plane_first = -1
+        palette_plane = None  # whether the plane's payloads have palettes in place of ranges (all or none)
+        pads: list[tuple[int, int]] = []  # alignment gaps between the plane's texels (where, bytes)
+        for t, first in zip(tables, firsts, strict=True):
+            s = t[name]
+            fmt, filt = s.format, s.filter
+            is_palette = fmt in PALETTE_FORMATS
+            if palette_plane is None:
+                palette_plane = is_palette
+            elif is_palette is not palette_plane:
+                return None
+            if fmt in FLOAT_TEXEL_FORMATS:
+                if float_format is None:
+                    float_format = fmt
+                elif fmt != float_format:
+                    return None
+            if filt == FIELDS1:
+                per_layer = header_of.get(fmt)
+                if per_layer is None:
+                    return None
+                at = first + s.offset
+                key = (fmt, count, view[at:at + 1 + per_layer * count].tobytes(), s.width, s.height)
+                row = rows_of.get(key, _MISSING)
+                if row is _MISSING:
+                    row = _whole_row(key)
+                if row is None or s.size != row[0]:
+                    return None  # not well-formed: unfilter_texels names it
+                _, planes_at, params_at, n, nbytes, nf, words, size_of = row
+                pad = -out_bytes % 16
+                if pad and plane_first >= 0:
+                    pads.append((out_bytes, pad))
+                out_bytes += pad
+                u = index.get(key)
+                if u is None:
+                    u = index[key] = len(index)
+                flat += (at + planes_at, at + params_at, n, out_bytes // size_of, nbytes // size_of, nf, words,
+                         size_of, u)
+                add((s, out_bytes, nbytes, None))
+                if plane_first < 0:
+                    plane_first = out_bytes
+                out_bytes += nbytes
+                if n > most_n:
+                    most_n = n
+                if nf > most_f:
+                    most_f = nf
+            elif filt == MORTON1:  # decoded alone after the call (format.md 5.4; the manifest checked its geometry)
+                add((s, -1, 0, None))
+            else:  # shuffled (float formats too: checked after the call), a unit a layer, as unfilter_whole's units;
+                # "none" a unit of 1-byte elements: the kernel copies it (where _unpack_whole copies unfilter_texels')
+                element = elements.get(filt) or _element(filt)
+                unit = s.size // count
+                if element <= 1 or unit % element:
+                    element = 1
+                at = first + s.offset
+                starts = None if count == 1 else []
+                for i in range(count):
+                    if element in (2, 4, 8):  # aligned for views of its elements
+                        pad = -out_bytes % element
+                        if pad and plane_first >= 0:
+                            pads.append((out_bytes, pad))
+                        out_bytes += pad
+                    if plane_first < 0:
+                        plane_first = out_bytes
+                    unit_rows += (at + i * unit, unit // element, element, out_bytes)
+                    if starts is not None:
+                        starts.append(out_bytes)
+                    else:
+                        add((s, out_bytes, unit, None))
+                    out_bytes += unit
+                if starts is not None:
+                    add((s, starts[0], unit, starts))
+        float_span = None if float_format is None else (float_format, plane_first, out_bytes, pads)
+        range_at = None
+        if palette_plane:
+            range_at = _PALETTES
+        elif spec.range_dtype:  # a plane's ranges in a row, each aligned to its element: checked at once
+            range_at = []
+            range_name = spec.range_name
+            for t, first in zip(tables, firsts, strict=True):
+                r = t[range_name]
+                size, filt = r.size, r.filter
+                element = elements.get(filt) or _element(filt)
+                if element <= 1 or size % element:
+                    element = 1
+                if element in (2, 4, 8):
+                    out_bytes += -out_bytes % element
+                unit_rows += (first + r.offset, size // element, element, out_bytes)
+                range_at.append(out_bytes)
+                out_bytes += size
+        plan.append((spec, texels, range_at, float_span))
+    if between is not None:
+        between()
+    out = run_whole(whole, flat, tuple(index), unit_rows, out_bytes, most_n, most_f)
+    for _, _, _, float_span in plan:
+        if float_span is not None and not _floats_ok(out, *float_span):
+            return None  # _unpack_whole checks each payload's and names a bad one
+    result: list[dict[str, EncodedPlane]] = [{} for _ in tables]
+    for spec, texels, range_at, _ in plan:
+        if between is not None:
+            between()
+        count, name = spec.layers, spec.name
+        plane_palettes = None
+        if range_at is _PALETTES:
+            plane_palettes = _whole_palettes(bufs, tables, spec, palettes, sources, kept)
+            checked = [None] * len(texels)
+        elif range_at is None:
+            checked = [None] * len(texels)
+        else:
+            checked = _whole_ranges(out, range_at, 0, tables, spec, sources)
+        for k, (planes, (s, first, size, starts), plane_ranges) in enumerate(zip(result, texels, checked,
+                                                                                  strict=True)):
+            if first < 0:  # morton1: a fresh array, not a view of the kept buffer
+                layers = [unfilter_morton(bufs[k][s.offset:s.offset + s.size], s.width, s.height)]
+            elif starts is not None:
+                layers = [out[a:a + size] for a in starts]
+            elif count == 1:
+                layers = [out[first:first + size]]
+            else:
+                step = size // count
+                layers = [out[first + i * step:first + (i + 1) * step] for i in range(count)]
+            if plane_palettes is None:
+                planes[name] = EncodedPlane(spec, s.format, s.width, s.height, layers, plane_ranges)
+            else:
+                palette, scene = plane_palettes[k]
+                planes[name] = EncodedPlane(spec, s.format, s.width, s.height, layers, None, palette, scene)
+    return result
+
+
+_PALETTES: list[int] = []  # _unpack_planned's mark of a palette plane in place of its ranges' offsets
+
+
+def _floats_ok(out: np.ndarray, fmt: str, lo: int, hi: int, pads: list[tuple[int, int]]) -> bool:
+    """Every texel of a float plane (format.md 4.2: t in [0, 1]) in out[lo:hi] (the plane's texels of every payload,
+    one after the other, the alignment gaps `pads` between them zeroed first: 0 passes) in the bits of `fmt`'s floats,
+    as _check_float_texels tests them; False also where the stretch is not whole floats."""
+    _, bits, one, negative_zero = FLOAT_TEXEL_BITS[fmt]
+    if hi <= lo:
+        return True
+    for at, size in pads:
+        out[at:at + size] = 0
+    if (hi - lo) % bits.itemsize:
+        return False
+    u = np.frombuffer(out[lo:hi], bits)
+    return not (u.max() > one and not ((u <= one) | (u == negative_zero)).all())
 
 
 def _unpack_whole(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], tables: list[dict], group: str,
@@ -503,25 +729,35 @@ def _unpack_whole(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
     back after each one; the streaming client's frame thread waits for it (issue 38's fly-through p99), and on small
     payloads that Python is most of the decode (issue 32). Same bytes as the other paths, bit for bit."""
     specs = group_planes(group, codebook)
-    sections, units = [], []
+    sections: list[tuple] = []
+    units: list[tuple[int, int, int]] = []
+    add_section, add_unit = sections.append, units.append
+    elements = _ELEMENTS
     plan = []  # per plane: per payload (texel section, index in sections or -1, first unit or -1), then its ranges
+    # (issue 32: this Python runs for every plane of every payload, so each step saved here is a few hundred ns a
+    # plane: bound methods and the filters' elements looked up once, a one-layer plane's unit without a list)
     for spec in specs:
         count, name = spec.layers, spec.name
-        texels = []
+        texels: list[tuple] = []
+        add_texel = texels.append
         for t, first in zip(tables, firsts, strict=True):
             s = t[name]
             fmt, filt = s.format, s.filter
             if filt == FIELDS1 and fmt in FIELD_LAYOUTS:
-                texels.append((s, len(sections), -1))
-                sections.append((fmt, count, first + s.offset, s.size, s.width, s.height))
+                add_texel((s, len(sections), -1))
+                add_section((fmt, count, first + s.offset, s.size, s.width, s.height))
             elif filt == MORTON1:  # decoded alone below (format.md 5.4; the manifest checked format, layers, size)
-                texels.append((s, -1, -1))
+                add_texel((s, -1, -1))
             elif filt != "none" and filt != FIELDS1:  # shuffled (float formats too: checked after the call)
-                texels.append((s, -1, len(units)))
-                unit, element = s.size // count, _element(filt)
-                units += [(first + s.offset + i * unit, unit, element) for i in range(count)]
+                add_texel((s, -1, len(units)))
+                element = elements.get(filt) or _element(filt)
+                if count == 1:
+                    add_unit((first + s.offset, s.size, element))
+                else:
+                    unit = s.size // count
+                    units += [(first + s.offset + i * unit, unit, element) for i in range(count)]
             else:
-                texels.append((s, -1, -1))
+                add_texel((s, -1, -1))
         ranges = -1
         if texels and texels[0][0].format in PALETTE_FORMATS:  # a scene's plane has one format (the manifest's)
             ranges = -2  # palettes in place of ranges (format.md 4.3.2)
@@ -530,7 +766,8 @@ def _unpack_whole(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
             range_name = spec.range_name
             for t, first in zip(tables, firsts, strict=True):
                 r = t[range_name]
-                units.append((first + r.offset, r.size, _element(r.filter)))
+                filt = r.filter
+                add_unit((first + r.offset, r.size, elements.get(filt) or _element(filt)))
         plan.append((spec, texels, ranges))
     if between is not None:
         between()
@@ -541,7 +778,6 @@ def _unpack_whole(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
         if between is not None:
             between()
         count, name = spec.layers, spec.name
-        checked = _whole_ranges(out, unit_at, ranges, tables, spec, sources) if ranges >= 0 else None
         if ranges == -2:
             result_palettes = _whole_palettes(bufs, tables, spec, palettes, sources, kept)
             for k, (s, section, unit) in enumerate(texels):
@@ -549,11 +785,13 @@ def _unpack_whole(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
                 palette, scene = result_palettes[k]
                 result[k][name] = EncodedPlane(spec, s.format, s.width, s.height, layers, None, palette, scene)
             continue
+        checked = _whole_ranges(out, unit_at, ranges, tables, spec, sources) if ranges >= 0 \
+            else [None] * len(texels)
         floats = bool(texels) and texels[0][0].format in FLOAT_TEXEL_FORMATS
         if floats and _whole_floats_ok(out, got, unit_at, texels, count):
             floats = False  # every payload's texels of this plane are in [0, 1]: no check a payload
         # per payload only slices and the plane (issue 32: this loop's Python was 22 us a small payload)
-        for k, (s, section, unit) in enumerate(texels):
+        for k, (planes, (s, section, unit), plane_ranges) in enumerate(zip(result, texels, checked, strict=True)):
             at = got[section] if section >= 0 else None
             if at is not None:
                 first, size = at
@@ -563,8 +801,12 @@ def _unpack_whole(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
                     step = size // count
                     layers = [out[first + i * step:first + (i + 1) * step] for i in range(count)]
             elif unit >= 0:
-                step = s.size // count
-                layers = [out[unit_at[unit + i]:unit_at[unit + i] + step] for i in range(count)]
+                if count == 1:
+                    first = unit_at[unit]
+                    layers = [out[first:first + s.size]]
+                else:
+                    step = s.size // count
+                    layers = [out[unit_at[unit + i]:unit_at[unit + i] + step] for i in range(count)]
             elif s.filter == MORTON1:  # a fresh array, not a view of the kept buffer
                 layers = [unfilter_morton(bufs[k][s.offset:s.offset + s.size], s.width, s.height)]
             else:
@@ -574,9 +816,12 @@ def _unpack_whole(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
                     layers = [p.copy() if p.base is owner else p for p in layers]
             if floats and s.format in FLOAT_TEXEL_FORMATS:
                 _check_float_texels(layers, s, sources[k])
-            result[k][name] = EncodedPlane(spec, s.format, s.width, s.height, layers,
-                                           None if checked is None else checked[k])
+            planes[name] = EncodedPlane(spec, s.format, s.width, s.height, layers, plane_ranges)
     return result
+
+
+# The elements of the shuffle filters a writer uses (format.md 5.1), without _element's cached call
+_ELEMENTS = {f"shuffle{element}": element for element in range(2, 17)} | {"none": 1}
 
 
 def _whole_floats_ok(out: np.ndarray, got: list, unit_at: list[int], texels: list[tuple], count: int) -> bool:
@@ -654,7 +899,8 @@ def _whole_ranges(out: np.ndarray, unit_at: list[int], ranges: int, tables: list
     """Each payload's ranges of one plane from the whole kernel's `out` (its range units from unit_at[ranges], one
     a payload, in a row), checked: all at once where they lie in one run of one shape, as slices of one view, a
     payload's own check only to name a bad one (_checked_ranges)."""
-    rs = [t[spec.range_name] for t in tables]
+    range_name = spec.range_name
+    rs = [t[range_name] for t in tables]
     first = unit_at[ranges]
     if len(rs) == 1:  # one payload: its own check
         r = rs[0]

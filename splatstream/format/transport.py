@@ -1445,7 +1445,31 @@ def unfilter_whole(raw: np.ndarray, sections: list[tuple[str, int, int, int, int
             most_n = n
         if nf > most_f:
             most_f = nf
-    fields, modes, orders, columns = _whole_tables(tuple(index))
+    out_bytes += -out_bytes % 16
+    unit_rows: list[int] = []
+    unit_at = []
+    for at, size, element in units:
+        if element <= 1 or size % element:
+            element = 1
+        if element in (2, 4, 8):  # aligned for views of its elements (a plane's ranges still lie in a row)
+            out_bytes += -out_bytes % element
+        unit_rows += (at, size // element, element, out_bytes)
+        unit_at.append(out_bytes)
+        out_bytes += size
+    out = run_whole(raw, flat, tuple(index), unit_rows, out_bytes, most_n, most_f)
+    return out, got, unit_at
+
+
+def run_whole(raw: np.ndarray, flat: list[int], keys: tuple, unit_rows: list[int], out_bytes: int, most_n: int,
+              most_f: int) -> np.ndarray:
+    """The whole kernel's call (use_whole_kernel) over `raw` for sections and units already planned: `flat` 9 ints a
+    fields1 section (where its byte planes start, where its parameters start, slots, where its texels start in the
+    out view of its word size, how many words, fields, words a texel, bytes a word, the index of its key in `keys`),
+    `keys` the distinct (format, layers, header, width, height) of them, `unit_rows` 4 ints a unit (where it starts,
+    its element count, its element size, where its bytes go in out); returns `out`, out_bytes rounded up to 16, which
+    the kernel wrote. `most_n` and `most_f`: the most slots and fields of a section (the work array's shape).
+    Its callers: unfilter_whole, and container._unpack_planned, which plans a group's call with its planes'."""
+    fields, modes, orders, columns = _whole_tables(keys)
     # columns per combination: (first column of fields, of modes, how many of modes, where its orders start)
     if len(flat) > 9 * _FEW_ROWS:  # a group's hundreds of sections: by numpy, a fixed cost of a few calls
         part = np.array(flat, np.int64).reshape(-1, 9)
@@ -1458,22 +1482,11 @@ def unfilter_whole(raw: np.ndarray, sections: list[tuple[str, int, int, int, int
             f, m, nm, o = columns[u]
             row_list += (planes_at, params_at, n, o, first, length, f, nf, m, nm, words, size_of)
         rows = np.array(row_list, np.int64).reshape(-1, 12)
-    out_bytes += -out_bytes % 16
-    unit_rows: list[int] = []
-    unit_at = []
-    for at, size, element in units:
-        if element <= 1 or size % element:
-            element = 1
-        if element in (2, 4, 8):  # aligned for views of its elements (a plane's ranges still lie in a row)
-            out_bytes += -out_bytes % element
-        unit_rows += (at, size // element, element, out_bytes)
-        unit_at.append(out_bytes)
-        out_bytes += size
     out = np.empty(out_bytes + -out_bytes % 16, np.uint8)
     work = _scratch("kernel", 8 * most_f * most_n).view(np.int64).reshape(most_f, most_n)
-    kernel(raw, rows, fields, modes, orders, work, out, out.view(np.uint16), out.view(np.uint32),
-           np.array(unit_rows, np.int64).reshape(-1, 4))
-    return out, got, unit_at
+    _whole_kernel(raw, rows, fields, modes, orders, work, out, out.view(np.uint16), out.view(np.uint32),
+                  np.array(unit_rows, np.int64).reshape(-1, 4))
+    return out
 
 
 # The whole kernel's row of a section from unfilter_whole's 9 flat ints and its combination's 4 columns: (planes at,
