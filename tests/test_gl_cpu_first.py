@@ -292,6 +292,13 @@ def test_warm_compile_waits_for_the_warmer_and_draws_the_same_frames(ctx, fruit,
     # A warmer that has linked nothing yet: the frames after the first compile nothing and draw with the CPU sort,
     # until it has (or WARM_COMPILE_WAIT_S passed).
     monkeypatch.setattr(renderer_mod, "ShaderWarmer", WaitingWarmer)
+    # not started beside the first frame (its context's making delayed the first frame's GL calls): at the second
+    r, pool, _ = frames(RenderOptions(), 1)
+    assert r._warmer is None and r._warm_later
+    r.render(cam)
+    assert isinstance(r._warmer, WaitingWarmer) and not r._warm_later
+    r.release()
+    pool.release()
     r, pool, seen = frames(RenderOptions(), 5, gate=(3, lambda r: r._warmer.ready.add(
         program_stages("cull", r._gpu_pending[0][1]))))
     assert [p for p, _ in seen] == [("cpu", "fetch", 2)] * 3 + [("cpu", "fetch", 3), ("cpu", "fetch", 3)]
@@ -306,10 +313,11 @@ def test_warm_compile_waits_for_the_warmer_and_draws_the_same_frames(ctx, fruit,
     monkeypatch.setattr(renderer_mod, "WARM_COMPILE_WAIT_S", 3600.0)
     monkeypatch.setattr(renderer_mod, "WARM_MISS_MIN_S", 0.0)
 
-    def all_ready(r):
-        r._warmer.ready.update(r._warmer.programs)
-        r._warmer.seconds.update(dict.fromkeys(r._warmer.programs[:2], 1e-9))
-    r, pool, seen = frames(RenderOptions(), 4, gate=(1, all_ready))
+    def all_ready(warmer):  # as the warmer starts (the second frame)
+        warmer.ready.update(warmer.programs)
+        warmer.seconds.update(dict.fromkeys(warmer.programs[:2], 1e-9))
+    monkeypatch.setattr(WaitingWarmer, "on_start", staticmethod(all_ready))
+    r, pool, seen = frames(RenderOptions(), 4)
     assert r.warm_compile_missed and r._warmer.stopped
     r._warmer.ready.clear()  # the warmer has linked nothing more: compiled regardless, one a frame
     r.render(cam)
@@ -322,11 +330,15 @@ def test_warm_compile_waits_for_the_warmer_and_draws_the_same_frames(ctx, fruit,
 class WaitingWarmer:
     """A stand-in for warm_compile.ShaderWarmer whose programs are linked when a test says so (`ready`)."""
 
+    on_start = None  # a test's hook, called with the warmer as the renderer makes it
+
     def __init__(self, programs):
         self.programs, self.seconds, self.failed, self.thread = list(programs), {}, None, None
         self.ready: set = set()
         self.stopped = False
         self.finished = False
+        if self.on_start is not None:
+            self.on_start(self)
 
     def done(self, stages):
         return stages in self.ready

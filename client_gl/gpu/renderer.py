@@ -364,6 +364,7 @@ class SplatRenderer:
         self._gpu_compiled: dict[str, object] = {}  # of those, the cull's and the fetch draw's, compiled ahead
         self._reserved_splats = 0  # reserve_work's splats while the CPU sort draws (applied at the switch)
         self._warmer: ShaderWarmer | None = None  # RenderOptions.warm_compile
+        self._warm_later = False  # a warmer to start at the next frame after one with splats
         self._warm_wait_since: float | None = None  # when frames began waiting for the warmer's next program
         self._warm_misses = 0
         self.warm_compile_missed = False  # the frames' compiles were not the warmer's cache hits: no more waiting
@@ -387,7 +388,10 @@ class SplatRenderer:
             later = [(key, src) for key, src in later if key is not None or not _cached_compute_program(ctx, src)]
             if later:
                 self._warm_names = {program_stages(key, src): program_name(key, src) for key, src in later}
-                self._warmer = ShaderWarmer(self._warm_names)
+                # Started after the first frame, not beside it: on the H200 its EGL context's making while the first
+                # frame drew took a GL buffer allocation from 0.04 to 24 ms and that frame from 0.070 to 0.135 s
+                # warm (BENCHMARKS.md, "Deferred compiles warmed off the frame loop"); no compile waits for it sooner.
+                self._warm_later = True
 
     def _start_gpu_path(self) -> None:
         """The GPU path's programs (those compiled ahead by the CPU-first frames taken from there) and buffers."""
@@ -653,6 +657,9 @@ class SplatRenderer:
         uniforms = self.camera_values(cam)
         self._background = (float(background[0]), float(background[1]), float(background[2]))
         switched = False
+        if self._warm_later and self._drew_splats:  # the frames from here on compile what it will have linked
+            self._warm_later = False
+            self._warmer = ShaderWarmer(self._warm_names)
         if self._gpu_pending is not None:
             switched = self._advance_cpu_first()
         if self.sort_mode == "gpu":
