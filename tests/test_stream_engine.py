@@ -568,6 +568,40 @@ def test_held_pages_group_the_tiles_below_each_page_as_the_walk_finds_them(paged
     assert before_up > 0  # heads moved before the page holding them
 
 
+def test_heads_unused_are_the_pages_whose_own_tiles_are_unused_as_the_walk_finds_them(paged_store):
+    """PagedTree.heads_unused (the eviction pass's first, cheap look) against the walk: the heads of the pages held
+    none of whose own tiles (below the head, not below another page held below it) is used, on random trees with
+    random tiles used; and every page with no tile used below it at all is among them (so an empty answer means
+    no page can be dropped)."""
+    rnd = random.Random(9)
+    found = none = 0
+    for _ in range(12):
+        tree = _random_tree(paged_store, rnd, rnd.randrange(3, 40))
+        m = tree.manifest
+        n = len(m.tiles)
+        position = m.index_of
+        for share in (0.0, 0.02, 0.2, 1.0):
+            used = np.array([rnd.random() < share for _ in range(n)], bool)
+            expected, unused_below = [], []
+            for head in tree.held_pages():
+                below = tree.below(head)
+                deeper = set()
+                for i in below:
+                    if m.tiles[i].id in tree._read:
+                        deeper.update(tree.below(m.tiles[i].id))
+                own = [i for i in below if i not in deeper]
+                if own and not used[own].any():
+                    expected.append(position[head])
+                if below and not used[below].any():
+                    unused_below.append(position[head])
+            got = tree.heads_unused(used)
+            assert got.tolist() == sorted(expected)
+            assert set(unused_below) <= set(got.tolist())
+            found += len(got) > 0
+            none += len(got) == 0
+    assert found > 5 and none > 5
+
+
 def _evict_by_walk(tree, heads):
     """What evict(heads) leaves, by the walk (the reference): the old positions of the tiles kept by their new
     positions (kept where they were, the last ones moved into the holes, the lowest hole first), the pages dropped
