@@ -838,6 +838,29 @@ def test_pages_adopted_in_place_leave_earlier_views_as_they_were(paged_store, mo
         np.testing.assert_array_equal(getattr(one, name), arr, err_msg=name)
 
 
+def test_a_tree_made_with_rows_ahead_grows_in_one_storage(paged_store, monkeypatch):
+    """PagedTree(rows_ahead=...): the arrays' storage made for that many tiles at first, so a tree growing up to it
+    writes every page into the same storage, never doubled (a doubling copied every row held in one frame), with
+    the arrays a rebuild makes; beyond it, doubled as before."""
+    monkeypatch.setattr(model, "_FIRST_ROWS", 1)
+    root = parse_manifest(paged_store.read_manifest(), "root", lazy_payloads=True)
+    total = len(read_manifest(paged_store).tiles)
+    for ahead, doubled in ((total, False), (len(root.tiles) + 2, True)):
+        tree = PagedTree(root, rows_ahead=ahead)
+        _ = tree.manifest.arrays
+        stores = set()
+        while tree.pending:
+            for tile_id in list(tree.pending)[:3]:
+                tree.add_page(tile_id, paged_store.payloads[tree.entry(tile_id).file])
+            m = tree.manifest
+            store = m.arrays.__dict__["_growing"]
+            stores.add((id(store), len(store.buf["ids"])))
+            assert len(store.buf["ids"]) >= ahead
+            _same_arrays(m.arrays, tile_arrays(m.tiles, {t.id: i for i, t in enumerate(m.tiles)}))
+        assert len(m.tiles) == total
+        assert (len(stores) > 1) == doubled
+
+
 def test_taken_arrays_are_those_a_rebuild_of_the_tiles_kept_makes(paged_store):
     """taken_arrays (tuples made again only for the parents of the tiles moved or dropped) against tile_arrays over
     the tiles kept: random subtrees dropped, below a tile (the tile kept, a leaf: as a page is dropped) or with it

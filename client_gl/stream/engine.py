@@ -334,7 +334,10 @@ class StreamEngine:
         m = manifest if manifest is not None else fetcher.manifest()
         # A paged scene (format.md 6.1): the tree grows as the cut reaches its pages (pages.py); its tiles keep
         # their positions, so the per-tile arrays below only grow. A manifest with every tile is not paged here.
-        self.pages = PagedTree(m, location) if m.paged is not None and len(m.tiles) < m.paged.tiles else None
+        # (its arrays' storage made for the bound and a quarter more, or the whole tree where smaller: not doubled
+        # in the frames of the path, PagedTree's rows_ahead)
+        self.pages = PagedTree(m, location, min(m.paged.tiles, options.max_tree_tiles * 5 // 4)) \
+            if m.paged is not None and len(m.tiles) < m.paged.tiles else None
         if self.pages is not None:
             m = self.pages.manifest
         self.slot_bytes = slot_bytes

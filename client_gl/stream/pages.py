@@ -80,16 +80,21 @@ class HeldPages:
 class PagedTree:
     """The tiles of a paged scene held so far; `manifest` is their view (the root manifest with these tiles)."""
 
-    def __init__(self, root: Manifest, source: str = "scene"):
+    def __init__(self, root: Manifest, source: str = "scene", rows_ahead: int = 0):
+        """`rows_ahead`: the tiles the tree is expected to hold at most (the engine's bound and its margin): its
+        arrays' storage is made that large at first (np.empty: memory touched as rows are written), where doubling
+        it as the tree grew copied every row held into new memory in one adoption (0.95 ms at 7,384 tiles, 1.83 ms
+        at 14,652, at 250M splats: BENCHMARKS.md, "Manifest pages"); beyond it, doubled as before."""
         self.root = root
         self.source = source
+        self.rows_ahead = rows_ahead
         self.pending: dict[int, PageRef] = {t.id: t.page for t in root.tiles if t.page is not None}
         self._full: dict[int, TileEntry] = {t.id: t for t in root.tiles}  # held tiles, children as stored
         self._tiles: list[TileEntry] = [replace(t, children=()) if t.page is not None else t for t in root.tiles]
         self._position = {t.id: i for i, t in enumerate(self._tiles)}
         # per position held: the position of the head of the page the tile came in (-1: the root manifest's), and
         # its id; rows with spare room after the n held (appended to as pages arrive), what `held` groups by
-        self._head_at = np.full(max(64, 2 * len(self._tiles)), -1, np.int64)
+        self._head_at = np.full(max(64, 2 * len(self._tiles), rows_ahead), -1, np.int64)
         self._ids = np.zeros(len(self._head_at), np.int64)
         self._ids[:len(self._tiles)] = [t.id for t in self._tiles]
         self.pages_read = 0
@@ -118,7 +123,8 @@ class PagedTree:
             m.__dict__["index_of"] = self._position
             m.__dict__["tile_by_id"] = self._by_id
             if "arrays" in last.__dict__:
-                m.__dict__["arrays"] = grown_arrays(last.arrays, m.tiles, m.index_of, self._changed, self._rows)
+                m.__dict__["arrays"] = grown_arrays(last.arrays, m.tiles, m.index_of, self._changed, self._rows,
+                                                    self.rows_ahead)
             self._changed, self._rows = set(), []
             self._manifest = self._view_of = m
         return self._view_of

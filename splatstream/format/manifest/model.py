@@ -459,11 +459,13 @@ def tile_arrays(tiles: Sequence[TileEntry], idx: Mapping[int, int]) -> TileArray
 
 
 def grown_arrays(a: TileArrays, tiles: Sequence[TileEntry], idx: Mapping[int, int],
-                 changed: Iterable[int], rows: Sequence[Mapping[str, np.ndarray]] | None = None) -> TileArrays:
+                 changed: Iterable[int], rows: Sequence[Mapping[str, np.ndarray]] | None = None,
+                 capacity: int = 0) -> TileArrays:
     """`a` (the arrays of tiles[:len(a.ids)]) grown by the tiles after them, the tiles at positions `changed`
     (held before) with their children now as in `tiles`: the same arrays as tile_arrays(tiles, idx), in time of
     the new tiles (a paged tree grown by a page, client_gl/stream/pages.py), not of every tile held. `rows`: the
     new tiles' tile_rows, in parts in their order (each page's, taken where it was parsed), else taken here.
+    `capacity`: rows of new storage at least (the tree's expected size: not doubled below it).
 
     The numeric arrays are views of storage with spare rows (_GrowingRows), written in place when the tree grows
     from its last grown arrays (copied into twice the rows when full: amortised), so a page costs its own rows,
@@ -493,7 +495,7 @@ def grown_arrays(a: TileArrays, tiles: Sequence[TileEntry], idx: Mapping[int, in
         raise ValueError(f"rows of {added} tiles for {len(new)} new tiles")
     store = a.__dict__.get("_growing")
     if store is None or store.n != start or old_parent:  # not the last grown arrays of their storage: a copy
-        store = _GrowingRows(a, max(_FIRST_ROWS, 2 * len(tiles)))
+        store = _GrowingRows(a, max(_FIRST_ROWS, 2 * len(tiles), capacity))
         if old_parent:
             store.buf["parent"][list(old_parent)] = list(old_parent.values())
     with_parent, at = [], 0
