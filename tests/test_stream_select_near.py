@@ -77,6 +77,17 @@ def test_view_buffers_are_kept_grown_and_zeroed_where_asked():
     assert len(b.get("x", 10, np.dtype(np.float64))) == 10 and np.shares_memory(b.get("x", 10, np.dtype(np.float64)),
                                                                                  grown)
     assert b.get("x", 2, np.dtype(np.uint8)).dtype == np.uint8  # another dtype: another array
+    # made for `ahead` elements at first (a paged tree's expected size): the same array up to it, then doubled
+    b = ViewBuffers(ahead=100)
+    first = b.get("y", 5, np.dtype(np.int64), True)
+    assert first.tolist() == [0] * 5
+    first[:] = 3
+    kept = b.get("y", 100, np.dtype(np.int64))
+    assert np.shares_memory(kept, first) and kept[:5].tolist() == [3] * 5
+    assert b.get("y", 50, np.dtype(np.int64), True).tolist() == [0] * 50
+    more = b.get("y", 101, np.dtype(np.int64))
+    assert not np.shares_memory(more, first) and more.tolist() == [0] * 101
+    assert len(b._arrays["y"]) == 200
 
 
 def random_camera(m, rnd: random.Random) -> Camera:

@@ -293,14 +293,19 @@ class ViewBuffers:
     The arrays of the last view taken are overwritten by the next: the holder (the engine) uses a view only until it
     selects again."""
 
-    def __init__(self) -> None:
+    def __init__(self, ahead: int = 0) -> None:
+        """`ahead`: elements to make each array with at least (a paged tree's expected size, PagedTree.rows_ahead:
+        np.zeros, memory touched as the tree grows into it; doubled at 7,384 and 14,652 tiles, the new arrays' page
+        faults were 0.4-0.5 ms of that frame's view and cut at 250M splats: BENCHMARKS.md, "Manifest pages")."""
         self._arrays: dict[str, np.ndarray] = {}
+        self.ahead = ahead
 
     def get(self, name: str, n: int, dtype, zero: bool = False) -> np.ndarray:
         """An array of n elements of this dtype named `name`: zeros with `zero`, else what the last view left."""
         a = self._arrays.get(name)
         if a is None or len(a) < n or a.dtype != dtype:
-            a = np.zeros(max(n, 2 * len(a)) if a is not None else n, dtype)  # grown ahead: trees grow by pages
+            # grown ahead: trees grow by pages
+            a = np.zeros(max(n, 2 * len(a) if a is not None else n, self.ahead), dtype)
             self._arrays[name] = a
             return a[:n]
         out = a[:n]

@@ -610,8 +610,12 @@ class _ChildIndex:
 
     def _grow(self, a: TileArrays, n: int) -> None:
         old = self.n
+        # room for the rows of the arrays' storage (made for the tree's expected size, PagedTree.rows_ahead: doubled
+        # with the tree, the new arrays' page faults fell in one frame's cut)
+        store = a.__dict__.get("_growing")
+        room = len(store.buf["ids"]) if store is not None else 0
         if n > len(self.lo):
-            cap = max(2 * n, 16)
+            cap = max(2 * n, 16, room)
             for name in ("lo", "hi"):
                 grown = np.zeros(cap, np.int64)
                 grown[:old] = getattr(self, name)[:old]
@@ -631,7 +635,7 @@ class _ChildIndex:
         # each new parent's children in the tree's order (a.children: a page's tiles are new parents' children only)
         kids = np.fromiter(chain.from_iterable(map(a.children.__getitem__, heads.tolist())), np.int64, len(at))
         if self.used + len(kids) > len(self.kids):
-            grown = np.zeros(max(2 * (self.used + len(kids)), 16), np.int64)
+            grown = np.zeros(max(2 * (self.used + len(kids)), 16, room), np.int64)
             grown[:self.used] = self.kids[:self.used]
             self.kids = grown
         self.kids[self.used:self.used + len(kids)] = kids
