@@ -174,6 +174,15 @@ def close_camera(g, width: int, height: int):
     return look_at(eye, base.target, fov_y_deg=60, width=width, height=height)
 
 
+def payloads_by_group(store, manifest) -> dict[str, list]:
+    """Every tile's payload bytes with its entry, by group, in the manifest's tile order (a group's decode input)."""
+    by_group: dict[str, list] = {}
+    for t in manifest.tiles:
+        for group, entry in t.groups.items():
+            by_group.setdefault(group, []).append((store.read_payload(entry), entry))
+    return by_group
+
+
 def zstd_block_count(data: bytes) -> int:
     """The number of blocks in a zstd frame (RFC 8878 3.1.1: the frame header, then blocks of a 3-byte header)."""
     descriptor = data[4]

@@ -11,7 +11,7 @@ import zlib
 import numpy as np
 import pytest
 import zstandard
-from conftest import real, zstd_block_count
+from conftest import payloads_by_group, real, zstd_block_count
 from test_transport_decode import random_content, random_modes
 
 from splatstream.encode import EncodeOptions
@@ -51,10 +51,7 @@ def fruit():
 def test_every_preset_decodes_together_as_one_at_a_time(fruit, preset):
     store = encode_in_memory(fruit, EncodeOptions(preset=preset, max_leaf_splats=512))
     m = read_manifest(store)
-    by_group: dict[str, list] = {}
-    for t in m.tiles:
-        for group, entry in t.groups.items():
-            by_group.setdefault(group, []).append((store.read_payload(entry), entry))
+    by_group = payloads_by_group(store, m)
     assert len(by_group["base"]) >= 8
     for group, items in by_group.items():
         alone = [planes_bytes(decode_payload(d, e, group, "t", m.uses_codebook)) for d, e in items]

@@ -10,7 +10,7 @@ import zlib
 
 import numpy as np
 import pytest
-from conftest import real
+from conftest import payloads_by_group, real
 from test_decode_batch import _damaged, planes_bytes
 from test_transport_decode import GEOMETRIES, random_content, random_modes, reference_unfilter
 
@@ -96,10 +96,7 @@ def fruit():
 def test_every_preset_decodes_with_the_kernel_as_with_numpy(numpy_path, fruit, preset):
     store = encode_in_memory(fruit, EncodeOptions(preset=preset, max_leaf_splats=512))
     m = read_manifest(store)
-    by_group: dict[str, list] = {}
-    for t in m.tiles:
-        for group, entry in t.groups.items():
-            by_group.setdefault(group, []).append((store.read_payload(entry), entry))
+    by_group = payloads_by_group(store, m)
 
     def decode_all():
         out = []
@@ -383,10 +380,7 @@ def test_a_group_planned_in_one_pass_decodes_as_the_numpy_path(numpy_path, monke
     # codebook indices (cb8)): the same planes, palettes included, as the numpy path's, a group and a payload alone
     store = encode_in_memory(fruit, EncodeOptions(preset=preset, max_leaf_splats=512))
     m = read_manifest(store)
-    by_group: dict[str, list] = {}
-    for t in m.tiles:
-        for group, entry in t.groups.items():
-            by_group.setdefault(group, []).append((store.read_payload(entry), entry))
+    by_group = payloads_by_group(store, m)
 
     def decode_all() -> list:
         out = []
