@@ -4,7 +4,8 @@
 # Usage: bash bench/device/run_city.sh make-encode SPLATS   then   bash bench/device/run_city.sh stream
 #        bash bench/device/run_city.sh sizes 1000000,6000000,60000000   (each size made, encoded, streamed: the
 #        series of first frame and selection time against scene size; results under $OUT/size_N/; SIZE_PASSES=3:
-#        three fly-throughs a size)
+#        three fly-throughs a size;
+#        WARM_AB_ROUNDS=N: the shader warmer's first-frame A/B a size)
 #   make-encode: the scene (bench/tile_scene.py: copies of the bundled donut, SH0, seed 0) and `encode --workers N`
 #                (N: CITY_WORKERS, else the machine's cores, nproc) with the encoder's
 #                defaults (medium, pages over 1,024 tiles), timed as bench_scale.py times it
@@ -65,6 +66,10 @@ if [ "$what" = sizes ]; then
     for run in cold warm; do
       python3 bench/bench_first_frame.py --scene $s/scene --json "$d/first_frame_$run.json" 2>&1 | tail -2
     done
+    # WARM_AB_ROUNDS=N: the shader warmer's A/B on this scene (bench/warm_compile_ab.py: N rounds of the first frame
+    # with and without it, each cold on a fresh NVIDIA shader cache and then warm)
+    [ -n "${WARM_AB_ROUNDS:-}" ] && python3 bench/warm_compile_ab.py --scene $s/scene --rounds "$WARM_AB_ROUNDS" \
+      --cache nvidia --json "$d/warm_ab.json" 2>&1 | tail -12
     # SIZE_PASSES=N: N fly-throughs of each size (flythrough.json, then fly_2.json ...), to tell a change from the
     # spread between passes
     for pass in $(seq 1 "${SIZE_PASSES:-1}"); do
