@@ -217,6 +217,20 @@ def test_cheapest_share_counts_folded_rows_as_their_edges():
         assert np.array_equal(folded[0], i[cost <= thr]) and np.array_equal(folded[1], j[cost <= thr])
 
 
+def test_sorted_unique_is_np_unique_and_folds_the_same_counts():
+    """_sorted_unique (a stable argsort) against np.unique, on keys in sorted runs with repeats, as group_ids
+    folds them (integer counts per distinct key)."""
+    rng = np.random.default_rng(7)
+    keys = np.concatenate([np.sort(rng.integers(0, 500, 300)), rng.integers(0, 500, 200), np.arange(100, 150)])
+    key, order, first = lod_groups._sorted_unique(keys)
+    distinct, counts = np.unique(keys, return_counts=True)
+    assert np.array_equal(key, distinct) and np.array_equal(keys[order], np.sort(keys))
+    assert np.array_equal(np.add.reduceat(np.ones(len(keys), np.int64)[order], first), counts)
+    assert np.array_equal(keys[order[first]], distinct)  # each distinct key's row: its ends, whichever row
+    empty = lod_groups._sorted_unique(np.zeros(0, np.int64))
+    assert all(len(a) == 0 for a in empty)
+
+
 @pytest.mark.parametrize("n", [2, 3, 17, 1000])
 def test_neighbour_keys_break_distance_ties_as_neighbour_edges(n):
     """On an integer lattice with repeated points nearly every distance ties: neighbour_keys (a partition) keeps
@@ -356,6 +370,8 @@ def test_encode_with_the_auto_merge_in_memory_and_refused_by_partitions(tmp_path
 # Branch autofast3 changed the groups on purpose: auto's own rule (AUTO_RULE: a round takes every merge left once
 # they are at most 5 % of the clusters), the choice on every other group and at the first merged level only; the
 # streaming cut within 0.1 dB of the earlier trees (BENCHMARKS.md, "LOD groups by cost", the auto merge cheaper).
+# Branch autofast4 (stable sorts of keys in sorted runs, the k-NN block's selection with the tie rule only on the
+# rows that need it) kept them to the bit.
 AUTO_BEFORE = {"fruit_drops_sh3.ply": "4860a209355359b8", "lod_tile_sh3_zero_rest.ply": "a626e0241e1d873b"}
 
 
