@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import functools
 import operator
+import weakref
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
@@ -23,11 +24,13 @@ import numpy as np
 
 from splatstream.format.container import VerifiedPayload, verified_bytes
 from splatstream.format.manifest import (
+    ListPrefix,
     Manifest,
     PageRef,
     TileEntry,
     grown_arrays,
     read_page,
+    replace_kept,
     taken_arrays,
     tile_rows,
 )
@@ -107,7 +110,8 @@ class PagedTree:
         self._view_of: Manifest | None = None  # the view, made again when asked for after a change
         self._changed: set[int] = set()  # positions held in the last view whose children have changed since
         self._rows: list[dict] | None = []  # the rows of the tiles added since the last view (None: take them)
-        self._manifest = self._view_of = replace(self.root, tiles=tuple(self._tiles))
+        self._views: list[weakref.ref] = []  # the views' tiles reading self._tiles (ListPrefix: older tiles kept there)
+        self._manifest = self._view_of = replace(self.root, tiles=self._tiles_view())
 
     @property
     def manifest(self) -> Manifest:
@@ -117,7 +121,7 @@ class PagedTree:
         38, BENCHMARKS.md "Manifest pages")."""
         if self._view_of is None:
             last = self._manifest
-            m = replace(self.root, tiles=tuple(self._tiles))
+            m = replace(self.root, tiles=self._tiles_view())
             # cached_property values, as Manifest would compute them: the tree's own maps, not copies (the newest
             # view looks tiles up at a dict's speed; _detach gives it its own lookups before the maps change)
             m.__dict__["index_of"] = self._position
@@ -128,6 +132,19 @@ class PagedTree:
             self._changed, self._rows = set(), []
             self._manifest = self._view_of = m
         return self._view_of
+
+    def _tiles_view(self) -> ListPrefix:
+        """The tiles held now as a view's `tiles` (ListPrefix): the tree's list up to its length, not a tuple of
+        every tile (a tuple a page, and the last one's freed, touched every tile held: 0.14 ms median of a page's
+        adoption, 0.4 p99, at 21,000 tiles; BENCHMARKS.md, "Manifest pages")."""
+        view = ListPrefix(self._tiles, len(self._tiles))
+        self._views = [r for r in self._views if r() is not None]
+        self._views.append(weakref.ref(view))
+        return view
+
+    def _replace_tile(self, at: int, tile: TileEntry) -> None:
+        """self._tiles[at] = tile, the tile there before kept by the views that hold that position."""
+        replace_kept(self._tiles, self._views, at, tile)
 
     def _detach(self) -> None:
         """Before the tree's maps grow: the last view, which shares them, keeps lookups of its own tiles only
@@ -187,7 +204,8 @@ class PagedTree:
         self._detach()
         self._held = None
         at = self._position[tile_id]
-        self._tiles[at] = self._by_id[tile_id] = self._full[tile_id]  # its children are known now
+        self._replace_tile(at, self._full[tile_id])  # its children are known now
+        self._by_id[tile_id] = self._full[tile_id]
         if at < len(self._manifest.tiles):
             self._changed.add(at)
         n, add = len(self._tiles), len(tiles)
@@ -314,7 +332,9 @@ class PagedTree:
         deque(map(self.pending.pop, gone_ids, repeat(None)), maxlen=0)
         deque(map(self._full.__delitem__, gone_ids), maxlen=0)
         deque(map(self._by_id.__delitem__, gone_ids), maxlen=0)
-        tiles = self._tiles  # (views hold tuples of their own)
+        # a list of its own from here (one copy at C speed): the views before the eviction keep theirs
+        tiles = self._tiles = list(self._tiles)
+        self._views = []
         for j in np.flatnonzero(dropped & ~gone[held.heads]).tolist():  # a head dropped (a leaf again), unless
             h = int(held.ids[j])  # below a page dropped after it
             tiles[held.heads[j]] = self._by_id[h] = replace(self._full[h], children=())
@@ -338,7 +358,7 @@ class PagedTree:
         position = self._position
         deque(map(position.__delitem__, gone_ids), maxlen=0)
         position.update(zip(self._ids[holes].tolist(), holes.tolist(), strict=True))
-        m = replace(self.root, tiles=tuple(self._tiles))
+        m = replace(self.root, tiles=self._tiles_view())
         m.__dict__["index_of"], m.__dict__["tile_by_id"] = self._position, self._by_id
         if "arrays" in last.__dict__:  # the kept rows taken, not rebuilt from the tiles
             # the moved rows written into the holes of the last view's storage (the last view is not read after

@@ -40,7 +40,7 @@ from client_gl.stream.selection import (
     view_numbers,
 )
 from splatstream.camera import Camera
-from splatstream.format.manifest import TileArrays
+from splatstream.format.manifest import TileArrays, indexable
 
 # error_model: x/0 gives inf or nan as numpy's does, never an exception. nogil=False: the kernels keep the interpreter
 # lock. They run on the frame loop, which waits for their answer, so releasing it bought no parallelism; it handed the
@@ -633,7 +633,8 @@ class _ChildIndex:
             self._rebuild(a, n)
             return
         # each new parent's children in the tree's order (a.children: a page's tiles are new parents' children only)
-        kids = np.fromiter(chain.from_iterable(map(a.children.__getitem__, heads.tolist())), np.int64, len(at))
+        of_tile = indexable(a.children).__getitem__
+        kids = np.fromiter(chain.from_iterable(map(of_tile, heads.tolist())), np.int64, len(at))
         if self.used + len(kids) > len(self.kids):
             grown = np.zeros(max(2 * (self.used + len(kids)), 16, room), np.int64)
             grown[:self.used] = self.kids[:self.used]
