@@ -846,6 +846,12 @@ def test_views_share_the_trees_lists_and_read_as_they_were(paged_store):
     import pickle
     tree = PagedTree(parse_manifest(paged_store.read_manifest(), "root", lazy_payloads=True), rows_ahead=10_000)
     _ = tree.manifest.arrays
+    # a page's tiles as held are made where it is parsed (read: a decode worker), not where it is adopted
+    head = next(iter(tree.pending))
+    page = tree.read(head, paged_store.payloads[tree.entry(head).file])
+    assert any(t.page is not None for t in page.tiles)
+    assert [t.children if t.page is None else () for t in page.tiles] == [t.children for t in page.held]
+    assert all(h is t for h, t in zip(page.held, page.tiles, strict=True) if t.page is None)
     seen = []  # (view, its tiles and children as tuples when made)
     while tree.pending:
         for tile_id in list(tree.pending)[:2]:
