@@ -481,7 +481,8 @@ def grown_arrays(a: TileArrays, tiles: Sequence[TileEntry], idx: Mapping[int, in
     # each child's parent in array operations (a Python loop over the children took most of an adoption)
     lengths = np.fromiter(map(len, made), np.int64, len(made))
     kid = np.fromiter(chain.from_iterable(made), np.int64, int(lengths.sum()))
-    of = np.repeat(np.array([*changed, *range(start, len(tiles))], np.int64), lengths)
+    parents = np.array([*changed, *range(start, len(tiles))], np.int64)
+    of = np.repeat(parents, lengths)
     new_parent = np.full(len(new), -1, np.int64)
     in_new = kid >= start
     new_parent[kid[in_new] - start] = of[in_new]
@@ -522,6 +523,11 @@ def grown_arrays(a: TileArrays, tiles: Sequence[TileEntry], idx: Mapping[int, in
         out.__dict__[name] = store.buf[name][:n]
     out.__dict__["_growing"] = store
     out.__dict__["_epoch"] = store.epoch  # its rows as they are until the storage's next take_in_place
+    if not old_parent:  # the tiles given children by this growth, from `a`'s length: (start, parents, counts, kids),
+        # each parent's children in the tree's order (the compiled selection's children's index grows by these:
+        # client_gl/stream/selection_jit.py, _ChildIndex, instead of finding them again from the parents)
+        some = lengths > 0
+        out.__dict__["_children_grown"] = (start, parents[some], lengths[some], kid)
     return out
 
 
