@@ -15,7 +15,7 @@ from splatstream.camera import Camera
 from splatstream.encode import EncodeOptions, encode_in_memory
 from splatstream.errors import FormatError
 from splatstream.format.container import verify_payload
-from splatstream.format.manifest import grown_arrays, model, parse_manifest, tile_arrays
+from splatstream.format.manifest import ListPrefix, grown_arrays, indexable, model, parse_manifest, tile_arrays
 from splatstream.ply import read_gaussians_ply
 from splatstream.store import MemoryStore, read_manifest
 
@@ -836,6 +836,51 @@ def test_pages_adopted_in_place_leave_earlier_views_as_they_were(paged_store, mo
     _same_arrays(two, one)
     for name, arr in first.items():
         np.testing.assert_array_equal(getattr(one, name), arr, err_msg=name)
+
+
+def test_views_share_the_trees_lists_and_read_as_they_were(paged_store):
+    """A paged tree's views read the tree's list of tiles, and their arrays the storage's list of children tuples,
+    up to their length (ListPrefix: no tuple of every tile held made or freed a page); the tile or children's
+    tuple a later page put in place of another (its head given the page's children) is kept by the views made
+    before, which read what they read when made: equal to tuples of their items, sliced and pickled as tuples."""
+    import pickle
+    tree = PagedTree(parse_manifest(paged_store.read_manifest(), "root", lazy_payloads=True), rows_ahead=10_000)
+    _ = tree.manifest.arrays
+    # a page's tiles as held are made where it is parsed (read: a decode worker), not where it is adopted
+    head = next(iter(tree.pending))
+    page = tree.read(head, paged_store.payloads[tree.entry(head).file])
+    assert any(t.page is not None for t in page.tiles)
+    assert [t.children if t.page is None else () for t in page.tiles] == [t.children for t in page.held]
+    assert all(h is t for h, t in zip(page.held, page.tiles, strict=True) if t.page is None)
+    seen = []  # (view, its tiles and children as tuples when made)
+    while tree.pending:
+        for tile_id in list(tree.pending)[:2]:
+            tree.add_page(tile_id, paged_store.payloads[tree.entry(tile_id).file])
+        m = tree.manifest
+        assert type(m.tiles) is ListPrefix and type(m.arrays.children) is ListPrefix
+        seen.append((m, tuple(m.tiles), tuple(m.arrays.children)))
+    assert len(seen) > 3
+    lists = {id(m.tiles.items) for m, _, _ in seen}, {id(m.arrays.children.items) for m, _, _ in seen}
+    assert lists == ({id(tree._tiles)}, {id(seen[-1][0].arrays.children.items)})  # one list each, shared
+    replaced = 0
+    for m, tiles, children in seen:
+        replaced += len(m.tiles._older)
+        assert m.tiles == tiles and tiles == tuple(m.tiles) and m.arrays.children == children
+        assert list(m.tiles) == [m.tiles[i] for i in range(len(tiles))] == list(tiles)
+        assert m.tiles[-1] is tiles[-1] and m.tiles[1:5] == tiles[1:5] and m.tiles[::-3] == tiles[::-3]
+        assert m.arrays.children[len(children) // 2:] == children[len(children) // 2:]
+        assert pickle.loads(pickle.dumps(m.tiles)) == tiles and type(pickle.loads(pickle.dumps(m.tiles))) is tuple
+        with pytest.raises(IndexError):
+            m.tiles[len(tiles)]
+        got = indexable(m.arrays.children)  # the list itself only where nothing was replaced since
+        assert got is (m.arrays.children.items if not m.arrays.children._older else m.arrays.children)
+        assert [got[i] for i in range(len(children))] == list(children)
+    assert replaced > 0  # heads given their page's children after an earlier view was made
+    assert seen[-1][0].tiles._older == {}  # the newest view reads the list as it is
+    # an eviction edits a list of its own: the views before it still read as they were
+    last = seen[-1]
+    tree.evict(tree.held_pages()[:1])
+    assert tree.manifest.tiles.items is not last[0].tiles.items and last[0].tiles == last[1]
 
 
 def test_a_tree_made_with_rows_ahead_grows_in_one_storage(paged_store, monkeypatch):

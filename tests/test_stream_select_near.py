@@ -257,6 +257,7 @@ def test_select_near_on_a_paged_tree_with_pages_arriving_and_dropped(whole, path
     assert reads > 10 and evictions > 10 and tree.evicted > 0
     if path == "compiled":  # the children's index was grown with the tree (and checked against it), not only made anew
         assert selection_jit._index.grown > 10
+        assert selection_jit._index.given > 5  # from grown_arrays' parents given children (checked the same)
         # and taken through the kept rows at evictions, then grown from them in new storage: made anew only for the
         # first tree (the root manifest, then the first page's storage)
         taken, made = selection_jit._index.taken - taken, selection_jit._index.rebuilds - made

@@ -33,7 +33,7 @@ from splatstream.errors import SplatstreamError, UsageError
 from splatstream.format.codec import palette_as_ranged
 from splatstream.format.container import VerifiedPayload
 from splatstream.format.decode import codebook_index, decode_payload, decode_payloads
-from splatstream.format.manifest import Manifest, PayloadEntry
+from splatstream.format.manifest import Manifest, PayloadEntry, indexable
 from splatstream.format.planes import band_of
 
 from ..tiledata import TileData, host_mirror
@@ -594,7 +594,7 @@ class StreamEngine:
                            near_parents=np.concatenate([self.refined, self._last_cut]))
         elif near_cut:
             view = PartialView(a, cam, opts, self.manifest.lod.reduction)
-            children = a.children
+            children = indexable(a.children)
             near = [k for i in self.refined.tolist() for k in children[i]] + \
                 [k for i in self._last_cut.tolist() for k in children[i]]
             sel = select_near(a, view, self.cost, self.root, sel_opts, self.refined, near)

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import functools
 import operator
+import weakref
 from collections import deque
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, replace
@@ -23,11 +24,13 @@ import numpy as np
 
 from splatstream.format.container import VerifiedPayload, verified_bytes
 from splatstream.format.manifest import (
+    ListPrefix,
     Manifest,
     PageRef,
     TileEntry,
     grown_arrays,
     read_page,
+    replace_kept,
     taken_arrays,
     tile_rows,
 )
@@ -44,6 +47,9 @@ class ParsedPage:
 
     tiles: list[TileEntry]
     rows: dict[str, np.ndarray]
+    # the tiles as the tree holds them (_as_held: those with a page below as leaves), made there too: a copy of
+    # each such tile (half a page's tiles, 3 us each) was 0.2 ms of a page's adoption on the frame loop
+    held: list[TileEntry] | None = None
 
 
 @dataclass(frozen=True)
@@ -107,7 +113,8 @@ class PagedTree:
         self._view_of: Manifest | None = None  # the view, made again when asked for after a change
         self._changed: set[int] = set()  # positions held in the last view whose children have changed since
         self._rows: list[dict] | None = []  # the rows of the tiles added since the last view (None: take them)
-        self._manifest = self._view_of = replace(self.root, tiles=tuple(self._tiles))
+        self._views: list[weakref.ref] = []  # the views' tiles reading self._tiles (ListPrefix: older tiles kept there)
+        self._manifest = self._view_of = replace(self.root, tiles=self._tiles_view())
 
     @property
     def manifest(self) -> Manifest:
@@ -117,7 +124,7 @@ class PagedTree:
         38, BENCHMARKS.md "Manifest pages")."""
         if self._view_of is None:
             last = self._manifest
-            m = replace(self.root, tiles=tuple(self._tiles))
+            m = replace(self.root, tiles=self._tiles_view())
             # cached_property values, as Manifest would compute them: the tree's own maps, not copies (the newest
             # view looks tiles up at a dict's speed; _detach gives it its own lookups before the maps change)
             m.__dict__["index_of"] = self._position
@@ -128,6 +135,19 @@ class PagedTree:
             self._changed, self._rows = set(), []
             self._manifest = self._view_of = m
         return self._view_of
+
+    def _tiles_view(self) -> ListPrefix:
+        """The tiles held now as a view's `tiles` (ListPrefix): the tree's list up to its length, not a tuple of
+        every tile (a tuple a page, and the last one's freed, touched every tile held: 0.14 ms median of a page's
+        adoption, 0.4 p99, at 21,000 tiles; BENCHMARKS.md, "Manifest pages")."""
+        view = ListPrefix(self._tiles, len(self._tiles))
+        self._views = [r for r in self._views if r() is not None]
+        self._views.append(weakref.ref(view))
+        return view
+
+    def _replace_tile(self, at: int, tile: TileEntry) -> None:
+        """self._tiles[at] = tile, the tile there before kept by the views that hold that position."""
+        replace_kept(self._tiles, self._views, at, tile)
 
     def _detach(self) -> None:
         """Before the tree's maps grow: the last view, which shares them, keeps lookups of its own tiles only
@@ -169,7 +189,7 @@ class PagedTree:
         tiles = read_page(raw, ref, self.root, self._full[tile_id], source, lazy_payloads=True, hashed=True)
         if between is not None:
             between()
-        return ParsedPage(tiles, tile_rows(tiles))
+        return ParsedPage(tiles, tile_rows(tiles), _as_held(tiles))
 
     def insert(self, tile_id: int, page: ParsedPage | list[TileEntry]) -> None:
         """Add a page's tiles (what `read` gave; a plain list of tiles has its rows taken with the view); the view
@@ -179,15 +199,18 @@ class PagedTree:
         if ref is None:
             return
         if isinstance(page, ParsedPage):
-            tiles = page.tiles
+            tiles, held = page.tiles, page.held
             if self._rows is not None:
                 self._rows.append(page.rows)
         else:
-            tiles, self._rows = page, None
+            tiles, held, self._rows = page, None, None
+        if held is None:
+            held = _as_held(tiles)
         self._detach()
         self._held = None
         at = self._position[tile_id]
-        self._tiles[at] = self._by_id[tile_id] = self._full[tile_id]  # its children are known now
+        self._replace_tile(at, self._full[tile_id])  # its children are known now
+        self._by_id[tile_id] = self._full[tile_id]
         if at < len(self._manifest.tiles):
             self._changed.add(at)
         n, add = len(self._tiles), len(tiles)
@@ -200,13 +223,7 @@ class PagedTree:
         self._ids[n:n + add] = ids
         self._full.update(zip(ids, tiles, strict=True))
         self._position.update(zip(ids, range(n, n + add), strict=True))
-        held = tiles
-        for k, t in enumerate(tiles):  # a tile with a page below it: a leaf until that page is read
-            if t.page is not None:
-                if held is tiles:
-                    held = list(tiles)
-                self.pending[t.id] = t.page
-                held[k] = replace(t, children=())
+        self.pending.update((t.id, t.page) for t in tiles if t.page is not None)
         self._tiles += held
         self._by_id.update(zip(ids, held, strict=True))
         self._read.add(tile_id)
@@ -314,7 +331,9 @@ class PagedTree:
         deque(map(self.pending.pop, gone_ids, repeat(None)), maxlen=0)
         deque(map(self._full.__delitem__, gone_ids), maxlen=0)
         deque(map(self._by_id.__delitem__, gone_ids), maxlen=0)
-        tiles = self._tiles  # (views hold tuples of their own)
+        # a list of its own from here (one copy at C speed): the views before the eviction keep theirs
+        tiles = self._tiles = list(self._tiles)
+        self._views = []
         for j in np.flatnonzero(dropped & ~gone[held.heads]).tolist():  # a head dropped (a leaf again), unless
             h = int(held.ids[j])  # below a page dropped after it
             tiles[held.heads[j]] = self._by_id[h] = replace(self._full[h], children=())
@@ -338,7 +357,7 @@ class PagedTree:
         position = self._position
         deque(map(position.__delitem__, gone_ids), maxlen=0)
         position.update(zip(self._ids[holes].tolist(), holes.tolist(), strict=True))
-        m = replace(self.root, tiles=tuple(self._tiles))
+        m = replace(self.root, tiles=self._tiles_view())
         m.__dict__["index_of"], m.__dict__["tile_by_id"] = self._position, self._by_id
         if "arrays" in last.__dict__:  # the kept rows taken, not rebuilt from the tiles
             # the moved rows written into the holes of the last view's storage (the last view is not read after
@@ -358,6 +377,13 @@ class PagedTree:
             return self.manifest
         self.insert(tile_id, self.read(tile_id, data))
         return self.manifest
+
+
+def _as_held(tiles: list[TileEntry]) -> list[TileEntry]:
+    """A page's tiles as the tree holds them: a tile with a page below it is a leaf until that page is read."""
+    if all(t.page is None for t in tiles):
+        return tiles
+    return [replace(t, children=()) if t.page is not None else t for t in tiles]
 
 
 def _taken(items: list, at: list[int]) -> list:

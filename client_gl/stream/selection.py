@@ -19,7 +19,7 @@ from itertools import chain
 import numpy as np
 
 from splatstream.camera import Camera
-from splatstream.format.manifest import TileArrays
+from splatstream.format.manifest import TileArrays, indexable
 
 INF = float("inf")
 
@@ -395,7 +395,7 @@ def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: Sel
     # Per-tile numbers over numpy first (visible children's cost and splats, priority): the greedy loop
     # below then does only heap work and list lookups (BENCHMARKS.md, "Figures behind library defaults"). The sums
     # are of whole numbers in float64, exact in any order, so the cut is the same as summing child by child.
-    visible = view.visible
+    visible, children = view.visible, indexable(a.children)
     child, has_kids, cost_l, splats_l = a.has_parent, a.has_children, cost.tolist(), a.splats_list
     n = len(a.parent)
     kid_cost = np.bincount(a.parent_of_child, weights=np.where(visible, cost, 0.0)[child], minlength=n)
@@ -436,7 +436,7 @@ def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: Sel
         cut.discard(i)
         refined.add(i)
         splats, total = new_splats, new_total
-        for k in a.children[i]:
+        for k in children[i]:
             if not visible_l[k]:
                 continue
             cut.add(k)
@@ -473,7 +473,7 @@ def select_near(a: TileArrays, view: PartialView, cost: np.ndarray, root: int, o
     # the children of the candidates lacking them, before the first scan: the scan would stop at the first it
     # reaches and add them all (a camera moving on refines below the last cut), and go on with a second sort
     s.add_children_of_candidates()
-    children, index = a.children, s.index
+    children, index = indexable(a.children), s.index
     max_splats, budget = opts.max_splats, opts.budget
     refd = bytearray()
     j0 = index[root]
@@ -606,7 +606,7 @@ def select_near_heap(a: TileArrays, view: PartialView, cost: np.ndarray, root: i
     depends on it. The refinement key is the view's (PartialView takes the scene's lod.reduction)."""
     s = _NearSet(a, view, cost, opts, previous_refined)
     s.add(_first(root, near, s.local))
-    children, index = a.children, s.index
+    children, index = indexable(a.children), s.index
     refined: set[int] = set()
     cut: set[int] = {root}
     priority: dict[int, float] = {root: INF}
@@ -730,7 +730,7 @@ class _NearSet:
         lacking = self.tiles_a[self.cand_a & (self.kids_in != self.kids_all)].tolist()
         if not lacking:
             return
-        kids = np.fromiter(chain.from_iterable(map(self.a.children.__getitem__, lacking)), np.intp)
+        kids = np.fromiter(chain.from_iterable(map(indexable(self.a.children).__getitem__, lacking)), np.intp)
         self.add(kids[self.local[kids] < 0])  # each child once: its parent is one tile
 
 
@@ -803,7 +803,7 @@ def draw_set(a: TileArrays, view: TileView, sel: Selection, resident: np.ndarray
     `stand_ins=False`: a wanted tile not resident is covered by an ancestor only (descendants standing in hold
     more splats than the cut: the engine asks for this set when the other one is over the splat budget)."""
 
-    visible_at, children = view.visible_at, a.children  # a PartialView tests the tiles the walk reaches only
+    visible_at, children = view.visible_at, indexable(a.children)  # a PartialView tests the tiles the walk reaches only
     refined = sel.refined  # once: the walk asks for each tile it reaches
 
     def shown(i: int) -> list[int]:
@@ -842,7 +842,7 @@ def prefetch(a: TileArrays, view: TileView, sel: Selection, opts: SelectionOptio
     Bounded by the budget: no children of cut tiles when the budget ended the cut (it would not let them in), and
     with `cost` (per tile, the units of sel.cost) the list stops at prefetch_share of the cut's cost."""
     out: list[tuple[float, int]] = []
-    sse, children = view.sse, a.children
+    sse, children = view.sse, indexable(a.children)
     near_cut = []
     if not sel.budget_limited and opts.max_sse > 0:
         near_cut = [i for i in sel.cut if children[i] and sse[i] > opts.max_sse / opts.prefetch_margin]

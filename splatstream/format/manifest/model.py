@@ -7,10 +7,11 @@ from __future__ import annotations
 
 import functools
 import operator
+import weakref
 from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from itertools import chain
+from itertools import chain, islice
 
 import msgpack
 import numpy as np
@@ -469,21 +470,19 @@ def grown_arrays(a: TileArrays, tiles: Sequence[TileEntry], idx: Mapping[int, in
 
     The numeric arrays are views of storage with spare rows (_GrowingRows), written in place when the tree grows
     from its last grown arrays (copied into twice the rows when full: amortised), so a page costs its own rows,
-    not a copy of every row held (BENCHMARKS.md, "Manifest pages"). Arrays `a` stay as they were. Only the tuple
-    of children is copied whole (references, not rows)."""
+    not a copy of every row held (BENCHMARKS.md, "Manifest pages"). Arrays `a` stay as they were. The children's
+    tuples are a list the storage keeps, grown the same way and read through a ListPrefix (`a`'s keeps the tuples
+    it read), copied only where the rows are."""
     start = len(a.ids)
     new = tiles[start:]
-    children = list(a.children)
     changed = list(changed)
     made = [tuple(map(idx.__getitem__, tiles[i].children)) for i in changed]  # their positions, once each
-    for i, kids in zip(changed, made, strict=True):
-        children[i] = kids
     made += [tuple(map(idx.__getitem__, t.children)) for t in new]
-    children += made[len(changed):]
     # each child's parent in array operations (a Python loop over the children took most of an adoption)
     lengths = np.fromiter(map(len, made), np.int64, len(made))
     kid = np.fromiter(chain.from_iterable(made), np.int64, int(lengths.sum()))
-    of = np.repeat(np.array([*changed, *range(start, len(tiles))], np.int64), lengths)
+    parents = np.array([*changed, *range(start, len(tiles))], np.int64)
+    of = np.repeat(parents, lengths)
     new_parent = np.full(len(new), -1, np.int64)
     in_new = kid >= start
     new_parent[kid[in_new] - start] = of[in_new]
@@ -504,12 +503,99 @@ def grown_arrays(a: TileArrays, tiles: Sequence[TileEntry], idx: Mapping[int, in
         at += len(p["ids"])
     store.append(with_parent)
     n = store.n
-    out = TileArrays(children=tuple(children), **{name: store.buf[name][:n] for name in ("parent", *_ROW_NAMES)})
+    # the children: the storage's list, edited at the changed tiles (the tuples there before kept by the views
+    # that hold them) and grown, read by the new arrays up to their length (ListPrefix): not a copy of every
+    # tile's tuple an adoption (the list and the tuple made and the last freed were 0.08 ms median, 0.2 p99, at
+    # 21,000 tiles: BENCHMARKS.md, "Manifest pages")
+    shared = store.children
+    if shared is None or len(shared) != start or not (isinstance(a.children, ListPrefix)
+                                                      and a.children.items is shared):
+        shared, store.child_views = list(a.children), []
+        store.children = shared
+    for i, kids in zip(changed, made[:len(changed)], strict=True):
+        replace_kept(shared, store.child_views, i, kids)
+    shared += made[len(changed):]
+    children = ListPrefix(shared, n)
+    store.child_views = [r for r in store.child_views if r() is not None]
+    store.child_views.append(weakref.ref(children))
+    out = TileArrays(children=children, **{name: store.buf[name][:n] for name in ("parent", *_ROW_NAMES)})
     for name in _DERIVED_ROWS:  # the derived arrays that only grow, kept as views too
         out.__dict__[name] = store.buf[name][:n]
     out.__dict__["_growing"] = store
     out.__dict__["_epoch"] = store.epoch  # its rows as they are until the storage's next take_in_place
+    if not old_parent:  # the tiles given children by this growth, from `a`'s length: (start, parents, counts, kids),
+        # each parent's children in the tree's order (the compiled selection's children's index grows by these:
+        # client_gl/stream/selection_jit.py, _ChildIndex, instead of finding them again from the parents)
+        some = lengths > 0
+        out.__dict__["_children_grown"] = (start, parents[some], lengths[some], kid)
     return out
+
+
+def replace_kept(items: list, views: list[weakref.ref], at: int, value) -> None:
+    """items[at] = value, the item there before kept by the live views (ListPrefix, weakly referenced) of `items`
+    that hold that position, so that each still reads what it read when made."""
+    old = items[at]
+    for ref in views:
+        view = ref()
+        if view is not None and at < view._n:
+            view._older.setdefault(at, old)
+    items[at] = value
+
+
+def indexable(items: Sequence) -> Sequence:
+    """`items` to read by position at C speed: a ListPrefix's list where none of its items was replaced since it
+    was made (read below its length only: the list may have grown past it), else `items` itself. A ListPrefix's
+    own __getitem__ is Python's (0.2 us a read: the numpy selection's walks read a tile's children at each step)."""
+    return items.items if type(items) is ListPrefix and not items._older else items
+
+
+class ListPrefix(Sequence):
+    """A tuple's worth of a list that grows at its end: `items` read up to `n` where they stand, and the items
+    replaced there since the view was made (replace_kept) kept apart, so the view reads as it did when made. A
+    paged tree's views (client_gl/stream/pages.py: `Manifest.tiles`, and their arrays' `children` here) are
+    these, not tuples: a tuple of every tile held made a page, and the last one freed, touched every tile held
+    (at 21,000 tiles, 0.14 ms median of an adoption and 0.4 p99 for the tiles, 0.07 and 0.2 for the children's
+    tuples: BENCHMARKS.md, "Manifest pages"). Equal to the tuple of its items, pickled as one; slices are tuples."""
+
+    __slots__ = ("items", "_n", "_older", "__weakref__")
+
+    def __init__(self, items: list, n: int):
+        self.items, self._n = items, n
+        self._older: dict[int, object] = {}  # position -> the item there when the view was made
+
+    def __len__(self) -> int:
+        return self._n
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            start, stop, step = i.indices(self._n)
+            if step == 1 and not self._older:
+                return tuple(self.items[start:stop])
+            return tuple(map(self.__getitem__, range(start, stop, step)))
+        if i < 0:
+            i += self._n
+        if not 0 <= i < self._n:
+            raise IndexError("position out of range")
+        older = self._older
+        return older[i] if i in older else self.items[i]
+
+    def __iter__(self) -> Iterator:
+        if not self._older:
+            return islice(self.items, self._n)
+        return map(self.__getitem__, range(self._n))
+
+    def __eq__(self, other) -> bool:
+        if isinstance(other, ListPrefix | tuple):
+            return len(self) == len(other) and all(map(operator.eq, self, other))
+        return NotImplemented
+
+    __hash__ = None  # type: ignore[assignment]  (its list changes, as a list's)
+
+    def __reduce__(self):
+        return tuple, (tuple(self),)
+
+    def __repr__(self) -> str:
+        return f"ListPrefix({self._n} items)"
 
 
 class _GrowingRows:
@@ -522,6 +608,9 @@ class _GrowingRows:
         self.n = n = len(a.ids)
         self.epoch = 0  # rows moved in place (take_in_place) this many times: rows below n changed then
         self.buf: dict[str, np.ndarray] = {}
+        # the children's tuples of the arrays grown in place (grown_arrays: their ListPrefix views), made there
+        self.children: list | None = None
+        self.child_views: list[weakref.ref] = []
         for name in ("parent", *_ROW_NAMES, *_DERIVED_ROWS):
             arr = getattr(a, name)
             self.buf[name] = np.empty((max(capacity, n), *arr.shape[1:]), arr.dtype)
@@ -536,6 +625,7 @@ class _GrowingRows:
         self.n = k = len(keep)
         self.epoch = 0
         self.buf = {}
+        self.children, self.child_views = None, []
         src = keep[moved]
         for name in ("parent", *_ROW_NAMES, *_DERIVED_ROWS):
             arr = getattr(a, name)
@@ -552,6 +642,7 @@ class _GrowingRows:
         children is what the compiled selection's children's index grows by (selection_jit._ChildIndex)."""
         src = keep[moved]
         k = len(keep)
+        self.children, self.child_views = None, []  # the taken arrays' children are a tuple of their own
         for name, buf in self.buf.items():
             if name == "parent":
                 parent = self.buf[name] = np.empty_like(buf)
