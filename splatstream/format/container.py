@@ -545,7 +545,9 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
       that fails, or the plane's payloads differ in format, each payload's by _check_float_texels, which names a bad
       one;
     * a plane's ranges of every payload at once (_whole_ranges: a payload's own check only to name a bad one), a
-      palette plane's palettes a payload at a time (_whole_palettes; `palettes`: the scene's, format.md 4.3.2).
+      palette plane's palettes a payload at a time (_whole_palettes; `palettes`: the scene's, format.md 4.3.2); a
+      plane with palettes in some payloads only (two scenes' payloads in one group) each payload's palettes or ranges
+      alone (_mixed_plane), as unpack_payload reads them.
 
     Same bytes, bit for bit, as unpack_payload's numpy path. Why one call: a decode thread holds the interpreter lock
     for the Python around each compiled call and takes it back after each one; the streaming client's frame thread
