@@ -577,7 +577,7 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
         palette_plane = None  # whether the plane's payloads have palettes in place of ranges
         mixed = False  # palettes in some payloads only (payloads of two scenes): each read alone, as unpack_payload
         pads: list[tuple[int, int]] = []  # alignment gaps between the plane's texels (where, bytes)
-        for k, (t, first) in enumerate(zip(tables, firsts, strict=True)):
+        for t, first in zip(tables, firsts, strict=True):  # each payload adds one entry to texels
             s = t[name]
             fmt, filt = s.format, s.filter
             is_palette = fmt in PALETTE_FORMATS
@@ -598,6 +598,7 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
                     key = (fmt, count, view[at:at + 1 + per_layer * count].tobytes(), s.width, s.height)
                     row = rows_of[key]
                 if row is None or s.size != row[0]:  # not well-formed: decoded alone, which refuses it naming it
+                    k = len(texels)  # this payload's index
                     add((s, -1, 0, _texels_alone(bufs[k], s, count, sources[k], kept, owner)))
                     floats_each = floats_each or fmt in FLOAT_TEXEL_FORMATS
                     continue
