@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 from conftest import payloads_by_group, real
 from test_decode_batch import _damaged, planes_bytes
+from test_palette import PAL
 from test_transport_decode import GEOMETRIES, random_content, random_modes, reference_unfilter
 
 from splatstream.encode import EncodeOptions
@@ -255,11 +256,11 @@ def test_whole_kernel_matches_the_numpy_path(numpy_path, monkeypatch, few_rows):
         at += size
     buf = np.frombuffer(bytes(raw), np.uint8).copy()
     assert transport.unfilter_whole(buf, sections, units) is None  # no whole kernel: not so
-    transport._whole_rows.clear()
+    transport.FIELDS1_ROWS.clear()
     transport.use_whole_kernel(decode_jit.whole_kernel)
     try:
         out, got, unit_at = transport.unfilter_whole(buf, sections, units)
-        # the same call again takes every section's row from _whole_rows (the malformed ones' None too): same bytes
+        # the same call again takes every section's row from FIELDS1_ROWS (the malformed ones' None too): same bytes
         again, got_again, unit_at_again = transport.unfilter_whole(buf, sections, units)
     finally:
         transport.use_whole_kernel(None)
@@ -267,7 +268,7 @@ def test_whole_kernel_matches_the_numpy_path(numpy_path, monkeypatch, few_rows):
     assert got_again == got and unit_at_again == unit_at
     assert [None if g is None else again[g[0]:g[0] + g[1]].tobytes() for g in got] == expected
     # k 7's None (not fields1's version); 3 and 12, short by a byte, have rows their sizes do not match
-    assert sum(row is None for row in transport._whole_rows.values()) == 1
+    assert sum(row is None for row in transport.FIELDS1_ROWS.values()) == 1
     assert all(g is None or g[0] % 16 == 0 for g in got)
     assert [out[a:a + u[1]].tobytes() for a, u in zip(unit_at, units, strict=True)] == unit_bytes
     assert unit_at[1] == unit_at[0] + units[0][1] and unit_at[3] == unit_at[2] + units[2][1]
@@ -302,7 +303,7 @@ def _float_damaged(data: bytes, entry, name: str, value: float) -> bytes:
 @pytest.mark.parametrize("value", [np.nan, 1.5, -0.5, -0.0])
 @pytest.mark.parametrize("transport_name", ["shuffle", "fields"])
 def test_float_texels_of_a_group_are_checked_at_once_and_a_bad_one_named(numpy_path, fruit, value, transport_name):
-    # _unpack_whole checks a float plane's texels of the whole group in one go (container._whole_floats_ok) and
+    # _unpack_group checks a float plane's texels of the whole group in one go (container._floats_ok) and
     # each payload alone only where that fails: a bad texel is still refused naming its payload, -0.0 accepted
     store = encode_in_memory(fruit, EncodeOptions(preset="very-high", max_leaf_splats=512, transport=transport_name))
     m = read_manifest(store)
@@ -360,24 +361,25 @@ def test_the_ranges_kernel_answers_as_the_python_and_numpy_checks(numpy_path, dt
     assert answers[True] > 100 and answers[False] > 100  # both answers well covered
 
 
-def _planned_calls(monkeypatch) -> list[bool]:
-    """Whether each _unpack_planned call decoded its group (True) or left it to _unpack_whole (False)."""
-    calls: list[bool] = []
-    planned = container._unpack_planned
+def _alone_calls(monkeypatch) -> list[str]:
+    """The texel sections _unpack_group left out of the whole kernel's call and decoded alone (_texels_alone: not
+    well-formed fields1), by name."""
+    calls: list[str] = []
+    alone = container._texels_alone
 
-    def spy(*args):
-        got = planned(*args)
-        calls.append(got is not None)
-        return got
-    monkeypatch.setattr(container, "_unpack_planned", spy)
+    def spy(buf, s, *args):
+        calls.append(s.name)
+        return alone(buf, s, *args)
+    monkeypatch.setattr(container, "_texels_alone", spy)
     return calls
 
 
 @pytest.mark.parametrize("preset", ["medium", "high", "very-low", "medium-low-palette", "low-plus-10bit-cb8"])
 def test_a_group_planned_in_one_pass_decodes_as_the_numpy_path(numpy_path, monkeypatch, fruit, preset):
-    # container._unpack_planned takes a group of the usual kind itself (fields1, shuffled, stored as is (very-low's
-    # bc7 colour), morton1 positions and palette planes (medium-low-palette), f16x4 planes (high), SH groups and
-    # codebook indices (cb8)): the same planes, palettes included, as the numpy path's, a group and a payload alone
+    # container._unpack_group takes a group of the usual kind in its one call (fields1, shuffled, stored as is
+    # (very-low's bc7 colour), morton1 positions and palette planes (medium-low-palette), f16x4 planes (high), SH
+    # groups and codebook indices (cb8)): the same planes, palettes included, as the numpy path's, a group and a
+    # payload alone
     store = encode_in_memory(fruit, EncodeOptions(preset=preset, max_leaf_splats=512))
     m = read_manifest(store)
     by_group = payloads_by_group(store, m)
@@ -395,15 +397,15 @@ def test_a_group_planned_in_one_pass_decodes_as_the_numpy_path(numpy_path, monke
 
     by_numpy = decode_all()
     decode_jit.install()
-    calls = _planned_calls(monkeypatch)
+    calls = _alone_calls(monkeypatch)
     assert decode_all() == by_numpy
-    assert calls and all(calls)  # no group, no payload, left to _unpack_whole
+    assert calls == []  # no section of any payload left out of the kernel's call
 
 
 @pytest.mark.parametrize("damage", ["version", "short"])
 def test_a_malformed_section_in_a_planned_group_is_refused_naming_its_payload(numpy_path, monkeypatch, fruit, damage):
-    # a fields1 section that is not well-formed sends the group to _unpack_whole, which refuses it as the numpy path
-    # does: the same message, naming the payload and the section
+    # a fields1 section that is not well-formed is decoded alone in _unpack_group's planning pass, which refuses it
+    # as the numpy path does: the same message, naming the payload and the section
     import zstandard
     store = encode_in_memory(fruit, EncodeOptions(preset="medium", max_leaf_splats=512))
     m = read_manifest(store)
@@ -420,9 +422,46 @@ def test_a_malformed_section_in_a_planned_group_is_refused_naming_its_payload(nu
     with pytest.raises(FormatError) as by_numpy:
         container.unpack_payloads(items, "base", sources)
     decode_jit.install()
-    calls = _planned_calls(monkeypatch)
+    calls = _alone_calls(monkeypatch)
     with pytest.raises(FormatError) as by_kernel:
         container.unpack_payloads(items, "base", sources)
-    assert calls == [False]
+    assert calls == [s.name]
     assert str(by_kernel.value) == str(by_numpy.value)
     assert "payload2" in str(by_kernel.value) and s.name in str(by_kernel.value)
+
+
+@pytest.mark.parametrize("presets", [("medium", "medium+pal"), ("medium+pal", "high"), ("high", "very-high")])
+def test_a_group_of_two_scenes_payloads_decodes_as_the_numpy_path(numpy_path, monkeypatch, fruit, presets):
+    # a group whose payloads store a plane in two formats (payloads of two scenes: palettes in some payloads only,
+    # f16x4 beside f32x4) goes through _unpack_group's one call too: each payload's palettes or ranges read alone
+    # (_mixed_plane), the float texels of two formats checked a payload at a time; the same planes as the numpy path
+    stores = [encode_in_memory(fruit, EncodeOptions(preset=p.removesuffix("+pal"), max_leaf_splats=512,
+                                                    overrides=PAL if p.endswith("+pal") else {}))
+              for p in presets]
+    manifests = [read_manifest(store) for store in stores]
+    per_store = [[(store.read_payload(t.groups["base"]), t.groups["base"]) for t in m.tiles][:3]
+                 for store, m in zip(stores, manifests, strict=True)]
+    items = [item for pair in zip(*per_store, strict=True) for item in pair]  # the two scenes' payloads alternate
+    palettes = {}
+    for m in manifests:
+        palettes.update(m.scene_palettes or {})
+    sources = [f"payload{k}" for k in range(len(items))]
+
+    def decode_all() -> list:
+        planes = container.unpack_payloads(items, "base", sources, palettes=palettes or None)
+        return [(planes_bytes(p), [None if q.palette is None else (q.palette.tobytes(), q.scene_palette)
+                                   for q in p.values()], [None if q.ranges is None else q.ranges.tobytes()
+                                                          for q in p.values()]) for p in planes]
+
+    by_numpy = decode_all()
+    decode_jit.install()
+    calls = _alone_calls(monkeypatch)
+    assert decode_all() == by_numpy
+    assert calls == []
+    if presets[1] == "very-high":  # a bad f32x4 texel in a payload of the second scene: refused naming it
+        data, entry = items[3]
+        shuffled = [s.name for s in entry.sections if s.format == "f32x4" and s.filter == "shuffle4"]
+        assert shuffled  # very-high's rotation keeps the shuffle
+        items[3] = (_float_damaged(data, entry, shuffled[0], 1.5), entry)
+        with pytest.raises(FormatError, match=f"payload3.*section {shuffled[0]}.*outside"):
+            container.unpack_payloads(items, "base", sources)

@@ -311,7 +311,7 @@ def test_the_gpu_transcode_is_within_half_a_16_bit_step_of_the_palette_values():
 @pytest.mark.parametrize("scene", ["sog_lod_scene", "tile_palette_scene"])
 def test_palette_and_keyed_payloads_decode_alike_with_the_compiled_kernels(scene, request):
     # with the whole kernel a group of palette planes and morton1 positions goes through one call
-    # (container._unpack_whole), as every other group does: the same planes, bit for bit, as the numpy path's
+    # (container._unpack_group), as every other group does: the same planes, bit for bit, as the numpy path's
     decode_jit = pytest.importorskip("client_gl.stream.decode_jit", reason="numba (the `fast` extra)")
     _, out, m = request.getfixturevalue(scene)
     store = DirectoryStore(out)

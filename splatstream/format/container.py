@@ -33,13 +33,11 @@ from .manifest import PayloadEntry, Section, filter_element
 from .names import payload_name, sha256_hex
 from .planes import RANGE_DTYPE_NAMES, group_planes, palette_shape
 from .texformats import PALETTE_FORMATS, TEXEL_DTYPES
-from .transport import (  # the private names: the whole kernel's section rows, which _unpack_planned plans
-    _HEADER_BYTES,
-    _MISSING,
+from .transport import (
     FIELD_LAYOUTS,
     FIELDS1,
-    _whole_row,
-    _whole_rows,
+    FIELDS1_HEADER_BYTES,
+    FIELDS1_ROWS,
     batch_kernels,
     field_bits,
     fields_kernel,
@@ -51,7 +49,6 @@ from .transport import (  # the private names: the whole kernel's section rows, 
     unfilter_fields_at,
     unfilter_fields_many,
     unfilter_texels,
-    unfilter_whole,
     unshuffle,
     unshuffle_at,
     unshuffle_many,
@@ -350,10 +347,7 @@ def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, so
     buf, kept = _decompress(data, entry.raw_bytes, source)
     if whole_kernel() is not None:  # every payload goes through the whole kernel where there is one
         tables = [{s.name: s for s in entry.sections}]
-        planned = _unpack_planned(buf, [0], [buf], tables, group, codebook, [source], between, kept, palettes)
-        if planned is not None:
-            return planned[0]
-        return _unpack_whole(buf, [0], [buf], tables, group, codebook, [source], between, kept, palettes)[0]
+        return _unpack_group(buf, [0], [buf], tables, group, codebook, [source], between, kept, palettes)[0]
     # What a small payload's decode spends beyond its splats is per-call Python and numpy work (issue 32: on the LOD
     # tree's tiles of a few hundred splats it was half the time), so this loop does only what each plane needs: the
     # section table read once into a dict, not searched per section; a view of the kept buffer found by its base.
@@ -424,11 +418,8 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
         firsts.append(at)
         tables.append({s.name: s for s in entry.sections})
         at += size
-    if in_one_call:  # the whole group in one compiled call (_unpack_planned; else _unpack_whole)
-        planned = _unpack_planned(whole, firsts, bufs, tables, group, codebook, sources, between, kept, palettes)
-        if planned is not None:
-            return planned
-        return _unpack_whole(whole, firsts, bufs, tables, group, codebook, sources, between, kept, palettes)
+    if in_one_call:  # the whole group in one compiled call
+        return _unpack_group(whole, firsts, bufs, tables, group, codebook, sources, between, kept, palettes)
     out: list[dict[str, EncodedPlane]] = [{} for _ in items]
     batched = None not in batch_kernels()
     for spec in group_planes(group, codebook):
@@ -530,7 +521,7 @@ def _decompress_group(items: list[tuple[bytes | memoryview, PayloadEntry]], size
 def _batchable(entry: PayloadEntry) -> bool:
     """Without the whole kernel, the payload's planes can go through unpack_payloads' batches: no keyed positions, no
     palette planes (format.md 5.4, 4.3.2), which are decoded a plane at a time, one payload at a time. With the whole
-    kernel every payload goes through _unpack_whole, which decodes each morton1 section alone beside the kernel's call
+    kernel every payload goes through _unpack_group, which decodes each morton1 section alone beside the kernel's call
     and reads each palette plane's palettes as unpack_payload does.
 
     Why those go whole too: a group of them decoded a payload at a time cost 1.5-2x as much a payload as one of the
@@ -539,62 +530,78 @@ def _batchable(entry: PayloadEntry) -> bool:
     return not any(sec.filter == MORTON1 or sec.format in PALETTE_FORMATS for sec in entry.sections)
 
 
-def _unpack_planned(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], tables: list[dict], group: str,
-                    codebook: bool, sources: list[str], between: Callable[[], object] | None, kept: bool,
-                    palettes: Mapping[str, np.ndarray] | None) -> list[dict[str, EncodedPlane]] | None:
-    """_unpack_whole's planes, bit for bit, in one pass of Python over the planes of the payloads before the whole
-    kernel's call and one after it, for groups of the usual kind: every texel section fields1 (well-formed, of a
-    format with a fields1 layout), shuffled, stored as it is or morton1 (decoded alone after the call, as
-    _unpack_whole does), a plane's payloads all with palettes (format.md 4.3.2, read as _unpack_whole reads them) or
-    none, every float plane's texels in [0, 1]. None for any other group (nothing returned, nothing raised):
-    _unpack_whole then decodes it, and refuses what it must, naming the payload and section, as before.
+def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], tables: list[dict], group: str,
+                  codebook: bool, sources: list[str], between: Callable[[], object] | None, kept: bool,
+                  palettes: Mapping[str, np.ndarray] | None) -> list[dict[str, EncodedPlane]]:
+    """Every plane of the payloads lying in `whole` (payload k from firsts[k], bufs[k] its bytes; tables[k] its
+    sections by name) by one call of the whole kernel (transport.run_whole): every well-formed fields1 section,
+    every shuffled or stored texel section and every range section of them all, into one fresh array. One pass of
+    Python over the planes of the payloads plans the call, and one after it takes the views and checks them:
 
-    Why: on the LOD tree's small payloads (a few hundred splats) the Python around the kernel was the largest part of
-    a payload's decode beside zstd (issue 32: 35-50 us a payload at a loaded VM's figures). _unpack_whole walks every
-    plane of every payload three times (its plan, unfilter_whole's rows, the views after the call) with a tuple a
-    step; here each section's row, and where its texels will lie in the kernel's output, are worked out in the one
-    walk that finds it, and the views taken after the call from those offsets."""
+    * a fields1 section that is not well-formed (or of a format without a fields1 layout) is decoded alone in the
+      planning pass by unfilter_texels, which raises FormatError naming its payload and section; a morton1 section
+      is decoded alone after the call (unfilter_morton: format.md 5.4, the manifest checked its geometry);
+    * a float plane's texels (format.md 4.2: t in [0, 1]) are checked at once for the whole group (_floats_ok); where
+      that fails, or the plane's payloads differ in format, each payload's by _check_float_texels, which names a bad
+      one;
+    * a plane's ranges of every payload at once (_whole_ranges: a payload's own check only to name a bad one), a
+      palette plane's palettes a payload at a time (_whole_palettes; `palettes`: the scene's, format.md 4.3.2); a
+      plane with palettes in some payloads only (two scenes' payloads in one group) each payload's palettes or ranges
+      alone (_mixed_plane), as unpack_payload reads them.
+
+    Same bytes, bit for bit, as unpack_payload's numpy path. Why one call: a decode thread holds the interpreter lock
+    for the Python around each compiled call and takes it back after each one; the streaming client's frame thread
+    waits for it (issue 38's fly-through p99), and on the LOD tree's small payloads (a few hundred splats) that Python
+    is the largest part of a payload's decode beside zstd (issue 32). So each section's row, and where its texels will
+    lie in the kernel's output, are worked out in the one walk that finds it, and the views taken after the call from
+    those offsets. (This folds decpy2's two planners, the fast one and the one that kept the refusals: issue 32.)"""
     specs = group_planes(group, codebook)
     view = whole.data  # the headers' bytes through a memoryview (a third of a numpy slice's cost)
-    header_of, rows_of, elements = _HEADER_BYTES, _whole_rows, _ELEMENTS
+    header_of, rows_of, elements = FIELDS1_HEADER_BYTES, FIELDS1_ROWS, _ELEMENTS
+    owner = whole if whole.base is None else whole.base
     flat: list[int] = []  # run_whole's 9 ints a fields1 section
     unit_rows: list[int] = []  # and its 4 a shuffled unit
     index: dict[tuple, int] = {}  # (format, layers, header, width, height) -> its index in the tables' key
     out_bytes = most_n = most_f = 0
-    plan = []  # per plane: (spec, per payload (section, where its texels start in out, bytes, the layers' starts or
-    #            None: the layers one after the other), where each payload's ranges start or None, float span or None)
+    plan = []  # per plane: (spec, per payload (section, where its texels start in out or -1: decoded alone, bytes,
+    #            the layers' starts or None: the layers one after the other; or its layers decoded alone), where each
+    #            payload's ranges start or _PALETTES or None, (float format, span, gaps) or None, floats a payload,
+    #            palettes in some payloads only)
     for spec in specs:
         count, name = spec.layers, spec.name
         texels: list[tuple] = []
         add = texels.append
         float_format = None
+        floats_each = False  # the plane's float texels checked a payload at a time (two formats, or decoded alone)
         plane_first = -1
-        palette_plane = None  # whether the plane's payloads have palettes in place of ranges (all or none)
+        palette_plane = None  # whether the plane's payloads have palettes in place of ranges
+        mixed = False  # palettes in some payloads only (payloads of two scenes): each read alone, as unpack_payload
         pads: list[tuple[int, int]] = []  # alignment gaps between the plane's texels (where, bytes)
-        for t, first in zip(tables, firsts, strict=True):
+        for t, first in zip(tables, firsts, strict=True):  # each payload adds one entry to texels
             s = t[name]
             fmt, filt = s.format, s.filter
             is_palette = fmt in PALETTE_FORMATS
             if palette_plane is None:
                 palette_plane = is_palette
             elif is_palette is not palette_plane:
-                return None
+                mixed = True
             if fmt in FLOAT_TEXEL_FORMATS:
                 if float_format is None:
                     float_format = fmt
                 elif fmt != float_format:
-                    return None
+                    floats_each = True
             if filt == FIELDS1:
                 per_layer = header_of.get(fmt)
-                if per_layer is None:
-                    return None
-                at = first + s.offset
-                key = (fmt, count, view[at:at + 1 + per_layer * count].tobytes(), s.width, s.height)
-                row = rows_of.get(key, _MISSING)
-                if row is _MISSING:
-                    row = _whole_row(key)
-                if row is None or s.size != row[0]:
-                    return None  # not well-formed: unfilter_texels names it
+                row = None
+                if per_layer is not None:
+                    at = first + s.offset
+                    key = (fmt, count, view[at:at + 1 + per_layer * count].tobytes(), s.width, s.height)
+                    row = rows_of[key]
+                if row is None or s.size != row[0]:  # not well-formed: decoded alone, which refuses it naming it
+                    k = len(texels)  # this payload's index
+                    add((s, -1, 0, _texels_alone(bufs[k], s, count, sources[k], kept, owner)))
+                    floats_each = floats_each or fmt in FLOAT_TEXEL_FORMATS
+                    continue
                 _, planes_at, params_at, n, nbytes, nf, words, size_of = row
                 pad = -out_bytes % 16
                 if pad and plane_first >= 0:
@@ -615,8 +622,8 @@ def _unpack_planned(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray]
                     most_f = nf
             elif filt == MORTON1:  # decoded alone after the call (format.md 5.4; the manifest checked its geometry)
                 add((s, -1, 0, None))
-            else:  # shuffled (float formats too: checked after the call), a unit a layer, as unfilter_whole's units;
-                # "none" a unit of 1-byte elements: the kernel copies it (where _unpack_whole copies unfilter_texels')
+            else:  # shuffled (float formats too: checked after the call), a unit a layer; "none" a unit of 1-byte
+                # elements, which the kernel copies
                 element = elements.get(filt) or _element(filt)
                 unit = s.size // count
                 if element <= 1 or unit % element:
@@ -639,14 +646,21 @@ def _unpack_planned(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray]
                     out_bytes += unit
                 if starts is not None:
                     add((s, starts[0], unit, starts))
-        float_span = None if float_format is None else (float_format, plane_first, out_bytes, pads)
+        float_span = None
+        if float_format is not None and not floats_each and plane_first >= 0:
+            float_span = (float_format, plane_first, out_bytes, pads)
+        else:
+            floats_each = float_format is not None
         range_at = None
-        if palette_plane:
+        if palette_plane and not mixed:
             range_at = _PALETTES
-        elif spec.range_dtype:  # a plane's ranges in a row, each aligned to its element: checked at once
+        elif spec.range_dtype or mixed:  # a plane's ranges in a row, each aligned to its element: checked at once
             range_at = []
             range_name = spec.range_name
             for t, first in zip(tables, firsts, strict=True):
+                if mixed and (t[name].format in PALETTE_FORMATS or not spec.range_dtype):
+                    range_at.append(-1)  # its palettes (or no ranges): _mixed_plane
+                    continue
                 r = t[range_name]
                 size, filt = r.size, r.filter
                 element = elements.get(filt) or _element(filt)
@@ -657,30 +671,34 @@ def _unpack_planned(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray]
                 unit_rows += (first + r.offset, size // element, element, out_bytes)
                 range_at.append(out_bytes)
                 out_bytes += size
-        plan.append((spec, texels, range_at, float_span))
+        plan.append((spec, texels, range_at, float_span, floats_each, mixed))
     if between is not None:
         between()
     out = run_whole(whole, flat, tuple(index), unit_rows, out_bytes, most_n, most_f)
-    for _, _, _, float_span in plan:
-        if float_span is not None and not _floats_ok(out, *float_span):
-            return None  # _unpack_whole checks each payload's and names a bad one
     result: list[dict[str, EncodedPlane]] = [{} for _ in tables]
-    for spec, texels, range_at, _ in plan:
+    for spec, texels, range_at, float_span, floats_each, mixed in plan:
         if between is not None:
             between()
         count, name = spec.layers, spec.name
         plane_palettes = None
-        if range_at is _PALETTES:
+        if mixed:
+            checked, plane_palettes = _mixed_plane(out, range_at, bufs, tables, spec, palettes, sources, kept)
+        elif range_at is _PALETTES:
             plane_palettes = _whole_palettes(bufs, tables, spec, palettes, sources, kept)
             checked = [None] * len(texels)
         elif range_at is None:
             checked = [None] * len(texels)
         else:
             checked = _whole_ranges(out, range_at, 0, tables, spec, sources)
+        if float_span is not None and not _floats_ok(out, *float_span):
+            floats_each = True  # some payload's texels leave [0, 1] (or the stretch is not whole floats): named below
         for k, (planes, (s, first, size, starts), plane_ranges) in enumerate(zip(result, texels, checked,
                                                                                   strict=True)):
-            if first < 0:  # morton1: a fresh array, not a view of the kept buffer
-                layers = [unfilter_morton(bufs[k][s.offset:s.offset + s.size], s.width, s.height)]
+            if first < 0:
+                if starts is not None:  # decoded alone in the planning pass
+                    layers = starts
+                else:  # morton1: a fresh array, not a view of the kept buffer
+                    layers = [unfilter_morton(bufs[k][s.offset:s.offset + s.size], s.width, s.height)]
             elif starts is not None:
                 layers = [out[a:a + size] for a in starts]
             elif count == 1:
@@ -688,7 +706,9 @@ def _unpack_planned(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray]
             else:
                 step = size // count
                 layers = [out[first + i * step:first + (i + 1) * step] for i in range(count)]
-            if plane_palettes is None:
+            if floats_each and s.format in FLOAT_TEXEL_FORMATS:
+                _check_float_texels(layers, s, sources[k])
+            if plane_palettes is None or plane_palettes[k] is None:
                 planes[name] = EncodedPlane(spec, s.format, s.width, s.height, layers, plane_ranges)
             else:
                 palette, scene = plane_palettes[k]
@@ -696,7 +716,33 @@ def _unpack_planned(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray]
     return result
 
 
-_PALETTES: list[int] = []  # _unpack_planned's mark of a palette plane in place of its ranges' offsets
+_PALETTES: list[int] = []  # _unpack_group's mark of a palette plane in place of its ranges' offsets
+
+
+def _mixed_plane(out: np.ndarray, range_at: list[int], bufs: list[np.ndarray], tables: list[dict], spec,
+                 palettes: Mapping[str, np.ndarray] | None, sources: list[str],
+                 kept: bool) -> tuple[list, list]:
+    """A plane with palettes (format.md 4.3.2) in some of the group's payloads only (a group of payloads of two
+    scenes): each payload's ranges (from range_at[k] in the whole kernel's `out`; -1: none) or its palettes and
+    whether they are the scene's, read and checked as unpack_payload reads them, a payload at a time."""
+    checked: list = []
+    got: list = []
+    for buf, t, at, source in zip(bufs, tables, range_at, sources, strict=True):
+        if t[spec.name].format in PALETTE_FORMATS:
+            palette = _palette_of(buf, t, spec, palettes, source)
+            if kept and np.may_share_memory(palette, buf):
+                palette = palette.copy()
+            got.append((palette, spec.palette_name not in t))
+            checked.append(None)
+            continue
+        got.append(None)
+        ranges = None
+        if at >= 0:
+            r = t[spec.range_name]
+            ranges = out[at:at + r.size].view(spec.range_dtype).reshape(r.shape)
+            _check_ranges(ranges, spec.name, r.name, source)
+        checked.append(ranges)
+    return checked, got
 
 
 def _floats_ok(out: np.ndarray, fmt: str, lo: int, hi: int, pads: list[tuple[int, int]]) -> bool:
@@ -714,167 +760,16 @@ def _floats_ok(out: np.ndarray, fmt: str, lo: int, hi: int, pads: list[tuple[int
     return not (u.max() > one and not ((u <= one) | (u == negative_zero)).all())
 
 
-def _unpack_whole(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], tables: list[dict], group: str,
-                  codebook: bool, sources: list[str], between: Callable[[], object] | None,
-                  kept: bool, palettes: Mapping[str, np.ndarray] | None = None) -> list[dict[str, EncodedPlane]]:
-    """Every plane of the payloads lying in `whole` (payload k from firsts[k], bufs[k] its bytes; tables[k] its
-    sections by name) by one call of the whole kernel (transport.unfilter_whole): every fields1 section, every
-    shuffled texel section and every range section of them all, into one fresh array. What the kernel refuses (a
-    section that is not well-formed) and any other filter goes through unfilter_texels alone, which decodes it or
-    raises FormatError naming it, and a morton1 section is decoded alone (unfilter_morton); then float texels and
-    ranges are checked (a plane's ranges of all payloads at once, a payload's own check only to name a bad one), and a
-    palette plane's palettes read and checked a payload at a time (_palette_of; `palettes`: the scene's).
-
-    Why one call: a decode thread holds the interpreter lock for the Python around each compiled call and takes it
-    back after each one; the streaming client's frame thread waits for it (issue 38's fly-through p99), and on small
-    payloads that Python is most of the decode (issue 32). Same bytes as the other paths, bit for bit."""
-    specs = group_planes(group, codebook)
-    sections: list[tuple] = []
-    units: list[tuple[int, int, int]] = []
-    add_section, add_unit = sections.append, units.append
-    elements = _ELEMENTS
-    plan = []  # per plane: per payload (texel section, index in sections or -1, first unit or -1), then its ranges
-    # (issue 32: this Python runs for every plane of every payload, so each step saved here is a few hundred ns a
-    # plane: bound methods and the filters' elements looked up once, a one-layer plane's unit without a list)
-    for spec in specs:
-        count, name = spec.layers, spec.name
-        texels: list[tuple] = []
-        add_texel = texels.append
-        for t, first in zip(tables, firsts, strict=True):
-            s = t[name]
-            fmt, filt = s.format, s.filter
-            if filt == FIELDS1 and fmt in FIELD_LAYOUTS:
-                add_texel((s, len(sections), -1))
-                add_section((fmt, count, first + s.offset, s.size, s.width, s.height))
-            elif filt == MORTON1:  # decoded alone below (format.md 5.4; the manifest checked format, layers, size)
-                add_texel((s, -1, -1))
-            elif filt != "none" and filt != FIELDS1:  # shuffled (float formats too: checked after the call)
-                add_texel((s, -1, len(units)))
-                element = elements.get(filt) or _element(filt)
-                if count == 1:
-                    add_unit((first + s.offset, s.size, element))
-                else:
-                    unit = s.size // count
-                    units += [(first + s.offset + i * unit, unit, element) for i in range(count)]
-            else:
-                add_texel((s, -1, -1))
-        ranges = -1
-        if texels and texels[0][0].format in PALETTE_FORMATS:  # a scene's plane has one format (the manifest's)
-            ranges = -2  # palettes in place of ranges (format.md 4.3.2)
-        elif spec.range_dtype:  # a plane's range units in a row: they lie in a row in out, checked at once
-            ranges = len(units)
-            range_name = spec.range_name
-            for t, first in zip(tables, firsts, strict=True):
-                r = t[range_name]
-                filt = r.filter
-                add_unit((first + r.offset, r.size, elements.get(filt) or _element(filt)))
-        plan.append((spec, texels, ranges))
-    if between is not None:
-        between()
-    out, got, unit_at = unfilter_whole(whole, sections, units)
-    owner = whole if whole.base is None else whole.base
-    result: list[dict[str, EncodedPlane]] = [{} for _ in tables]
-    for spec, texels, ranges in plan:
-        if between is not None:
-            between()
-        count, name = spec.layers, spec.name
-        if ranges == -2:
-            result_palettes = _whole_palettes(bufs, tables, spec, palettes, sources, kept)
-            for k, (s, section, unit) in enumerate(texels):
-                layers = _whole_layers(out, got, unit_at, s, section, unit, count, bufs[k], sources[k], kept, owner)
-                palette, scene = result_palettes[k]
-                result[k][name] = EncodedPlane(spec, s.format, s.width, s.height, layers, None, palette, scene)
-            continue
-        checked = _whole_ranges(out, unit_at, ranges, tables, spec, sources) if ranges >= 0 \
-            else [None] * len(texels)
-        floats = bool(texels) and texels[0][0].format in FLOAT_TEXEL_FORMATS
-        if floats and _whole_floats_ok(out, got, unit_at, texels, count):
-            floats = False  # every payload's texels of this plane are in [0, 1]: no check a payload
-        # per payload only slices and the plane (issue 32: this loop's Python was 22 us a small payload)
-        for k, (planes, (s, section, unit), plane_ranges) in enumerate(zip(result, texels, checked, strict=True)):
-            at = got[section] if section >= 0 else None
-            if at is not None:
-                first, size = at
-                if count == 1:
-                    layers = [out[first:first + size]]
-                else:
-                    step = size // count
-                    layers = [out[first + i * step:first + (i + 1) * step] for i in range(count)]
-            elif unit >= 0:
-                if count == 1:
-                    first = unit_at[unit]
-                    layers = [out[first:first + s.size]]
-                else:
-                    step = s.size // count
-                    layers = [out[unit_at[unit + i]:unit_at[unit + i] + step] for i in range(count)]
-            elif s.filter == MORTON1:  # a fresh array, not a view of the kept buffer
-                layers = [unfilter_morton(bufs[k][s.offset:s.offset + s.size], s.width, s.height)]
-            else:
-                layers = unfilter_texels(bufs[k][s.offset:s.offset + s.size], s.filter, s.format, s.width, s.height,
-                                         count, f"{sources[k]} section {s.name}")
-                if kept:  # what is still a view of this thread's buffer is copied: the next payload overwrites it
-                    layers = [p.copy() if p.base is owner else p for p in layers]
-            if floats and s.format in FLOAT_TEXEL_FORMATS:
-                _check_float_texels(layers, s, sources[k])
-            planes[name] = EncodedPlane(spec, s.format, s.width, s.height, layers, plane_ranges)
-    return result
-
-
 # The elements of the shuffle filters a writer uses (format.md 5.1), without _element's cached call
 _ELEMENTS = {f"shuffle{element}": element for element in range(2, 17)} | {"none": 1}
 
 
-def _whole_floats_ok(out: np.ndarray, got: list, unit_at: list[int], texels: list[tuple], count: int) -> bool:
-    """Every payload's texels of a float plane (format.md 4.2: t in [0, 1]) checked at once, where the whole kernel
-    wrote them all: one check of the stretch of `out` from the first to the last of the fields1 sections' texels and
-    one of the shuffled sections' (the kernel writes each kind in a row), in the bits of the format's floats
-    (_check_float_texels' test). True only if they pass; False (also where a payload's texels are not in `out`)
-    sends every payload to its own check, which names a bad one: what lies between two payloads' texels (alignment)
-    is checked too, so a pass is a pass of each, and a failure there only costs the checks a payload.
-
-    Why: the check a payload and plane was 3-4 us of numpy calls, 7-15 us of a small f16x4 or f32x4 payload's decode
-    (high, medium-high, very-high on guitar; issue 32)."""
-    spans = [[len(out), 0], [len(out), 0]]  # fields1 sections' texels, shuffled sections' units
-    fmt = texels[0][0].format
-    for s, section, unit in texels:
-        if s.format != fmt:
-            return False
-        if section >= 0 and got[section] is not None:
-            first, size = got[section]
-            span = spans[0]
-        elif unit >= 0:
-            first, size = unit_at[unit], unit_at[unit + count - 1] + s.size // count - unit_at[unit]
-            span = spans[1]
-        else:
-            return False
-        if first < span[0]:
-            span[0] = first
-        if first + size > span[1]:
-            span[1] = first + size
-    _, bits, one, negative_zero = FLOAT_TEXEL_BITS[fmt]
-    for lo, hi in spans:
-        if hi <= lo:
-            continue
-        if (hi - lo) % bits.itemsize:
-            return False
-        u = np.frombuffer(out[lo:hi], bits)
-        if u.max() > one and not ((u <= one) | (u == negative_zero)).all():
-            return False
-    return True
-
-
-def _whole_layers(out: np.ndarray, got: list, unit_at: list[int], s: Section, section: int, unit: int, count: int,
-                  buf: np.ndarray, source: str, kept: bool, owner: np.ndarray) -> list[np.ndarray]:
-    """One payload's texel layers of a palette plane after the whole kernel's call (as _unpack_whole's loop takes
-    them for the other planes)."""
-    at = got[section] if section >= 0 else None
-    if at is not None:
-        first, size = at
-        step = size // count
-        return [out[first + i * step:first + (i + 1) * step] for i in range(count)]
-    if unit >= 0:
-        step = s.size // count
-        return [out[unit_at[unit + i]:unit_at[unit + i] + step] for i in range(count)]
+def _texels_alone(buf: np.ndarray, s: Section, count: int, source: str, kept: bool,
+                  owner: np.ndarray) -> list[np.ndarray]:
+    """A texel section the whole kernel does not take (a fields1 section that is not well-formed, or of a format
+    without a fields1 layout) decoded alone by unfilter_texels, which raises FormatError naming `source` and the
+    section where it cannot be decoded; what is still a view of this thread's kept buffer copied (the next payload
+    overwrites it)."""
     layers = unfilter_texels(buf[s.offset:s.offset + s.size], s.filter, s.format, s.width, s.height, count,
                              f"{source} section {s.name}")
     return [p.copy() if p.base is owner else p for p in layers] if kept else layers

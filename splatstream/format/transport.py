@@ -1372,28 +1372,32 @@ def _whole_tables(keys: tuple) -> tuple:
             np.concatenate(order_parts) if order_parts else np.zeros(0, np.int64), tuple(columns))
 
 
-_MISSING = object()
-# (format, layers, header, width, height) -> _whole_row's tuple: what unfilter_whole needs of a section, one dict
-# lookup (issue 32: a small payload's sections repeat a few combinations; an lru_cache call with five arguments and a
-# second lookup for the tables' index cost about a microsecond a section more)
-_whole_rows: dict[tuple, tuple | None] = {}
+class _Fields1Rows(dict):
+    """FIELDS1_ROWS' kind: a dict that fills in a missing key's row (__missing__) and empties itself at
+    _WHOLE_ROWS_MAX keys (a scene repeats a few combinations; a hostile stream of headers cannot grow it)."""
+
+    def __missing__(self, key: tuple) -> tuple | None:
+        fmt, layers, head, width, height = key
+        plan = _kernel_plan(fmt, width, height, layers, head)
+        row = None
+        if plan is not None:
+            expected, params_at, planes_at, n, words, _, _, word, _, nf, nbytes = plan
+            row = (expected, planes_at, params_at, n, nbytes, nf, words, word.itemsize)
+        if len(self) >= _WHOLE_ROWS_MAX:
+            self.clear()
+        self[key] = row
+        return row
+
+
+# A fields1 section's row for the whole kernel by its (format, layers, header, width, height): (content size, where
+# its byte planes start, where its parameters start, slots, texel bytes, fields, words a texel, bytes a word) from
+# _kernel_plan, None where it is not well-formed (its decoder, unfilter_fields, then refuses it naming it). Looked up
+# as FIELDS1_ROWS[key], which plans a key not seen before. Its readers: unfilter_whole, and container's planner of a
+# group's planes, which plans the whole kernel's call itself. Why one subscript: a small payload's sections repeat a
+# few combinations, and an lru_cache call with five arguments and a second lookup for the tables' index cost about a
+# microsecond a section more (issue 32).
+FIELDS1_ROWS: dict[tuple, tuple | None] = _Fields1Rows()
 _WHOLE_ROWS_MAX = 4096
-
-
-def _whole_row(key: tuple) -> tuple | None:
-    """(content size, where its byte planes start, where its parameters start, slots, texel bytes, fields, words a
-    texel, bytes a word) of a fields1 section of this (format, layers, header, width, height), from _kernel_plan
-    (None: not well-formed), kept in _whole_rows."""
-    fmt, layers, head, width, height = key
-    plan = _kernel_plan(fmt, width, height, layers, head)
-    row = None
-    if plan is not None:
-        expected, params_at, planes_at, n, words, _, _, word, _, nf, nbytes = plan
-        row = (expected, planes_at, params_at, n, nbytes, nf, words, word.itemsize)
-    if len(_whole_rows) >= _WHOLE_ROWS_MAX:
-        _whole_rows.clear()
-    _whole_rows[key] = row
-    return row
 
 
 def unfilter_whole(raw: np.ndarray, sections: list[tuple[str, int, int, int, int, int]],
@@ -1418,8 +1422,8 @@ def unfilter_whole(raw: np.ndarray, sections: list[tuple[str, int, int, int, int
     flat: list[int] = []  # per section: 9 ints (_WHOLE_COLUMNS' first nine), the combination's index last but five
     index: dict[tuple, int] = {}  # (format, layers, header, width, height) -> its index in the tables' key
     out_bytes = most_n = most_f = 0
-    header_of = _HEADER_BYTES
-    rows_of = _whole_rows
+    header_of = FIELDS1_HEADER_BYTES
+    rows_of = FIELDS1_ROWS
     view = raw.data  # the header bytes through a memoryview: a third of a numpy slice's cost
     for fmt, layers, at, size, width, height in sections:
         per_layer = header_of.get(fmt)
@@ -1427,9 +1431,7 @@ def unfilter_whole(raw: np.ndarray, sections: list[tuple[str, int, int, int, int
             got.append(None)
             continue
         key = (fmt, layers, view[at:at + 1 + per_layer * layers].tobytes(), width, height)
-        row = rows_of.get(key, _MISSING)
-        if row is _MISSING:
-            row = _whole_row(key)
+        row = rows_of[key]
         if row is None or size != row[0]:
             got.append(None)
             continue
@@ -1468,7 +1470,7 @@ def run_whole(raw: np.ndarray, flat: list[int], keys: tuple, unit_rows: list[int
     `keys` the distinct (format, layers, header, width, height) of them, `unit_rows` 4 ints a unit (where it starts,
     its element count, its element size, where its bytes go in out); returns `out`, out_bytes rounded up to 16, which
     the kernel wrote. `most_n` and `most_f`: the most slots and fields of a section (the work array's shape).
-    Its callers: unfilter_whole, and container._unpack_planned, which plans a group's call with its planes'."""
+    Its callers: unfilter_whole, and container._unpack_group, which plans a group's call with its planes'."""
     fields, modes, orders, columns = _whole_tables(keys)
     # columns per combination: (first column of fields, of modes, how many of modes, where its orders start)
     if len(flat) > 9 * _FEW_ROWS:  # a group's hundreds of sections: by numpy, a fixed cost of a few calls
@@ -1494,4 +1496,4 @@ def run_whole(raw: np.ndarray, flat: list[int], keys: tuple, unit_rows: list[int
 _WHOLE_COLUMNS = np.array([0, 1, 2, 12, 3, 4, 9, 5, 10, 11, 6, 7])
 _FEW_ROWS = 24  # sections up to which unfilter_whole builds the rows in Python
 # A fields1 format's header bytes per layer (its modes), without the first byte
-_HEADER_BYTES = {fmt: len(layout[2]) * layout[1] for fmt, layout in FIELD_LAYOUTS.items()}
+FIELDS1_HEADER_BYTES = {fmt: len(layout[2]) * layout[1] for fmt, layout in FIELD_LAYOUTS.items()}
