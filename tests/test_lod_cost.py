@@ -131,7 +131,7 @@ def test_unknown_merge_raises():
 def test_encode_with_the_cost_merge_in_memory_and_refused_by_partitions(tmp_path):
     path = str(real("fruit_drops_sh3.ply"))
     m = encode_file(path, tmp_path / "memory", lod_merge="cost", max_leaf_splats=1000, preset="low")
-    grid = encode_file(path, tmp_path / "grid", max_leaf_splats=1000, preset="low")
+    grid = encode_file(path, tmp_path / "grid", lod_merge="grid", max_leaf_splats=1000, preset="low")
     assert m.splats == grid.splats == 4721
     assert [t.children for t in m.tiles] == [t.children for t in grid.tiles]  # the same tree, other merges
     assert [t.splats for t in m.tiles] != [t.splats for t in grid.tiles]
