@@ -95,7 +95,7 @@ def plan_tiles(g: Gaussians, opts: EncodeOptions, progress: Progress) -> list[Ti
     if opts.lod and len(g) > opts.max_leaf_splats:
         merge = opts.resolved_lod_merge(in_memory=True)
         log.info("LOD merge %s%s", merge, "" if opts.lod_merge is not None else " (the default in memory; "
-                 "--lod-merge grid: a faster encode, 0.5-0.7x the CPU, and a blurrier picture at a splat budget)")
+                 "--lod-merge grid: a faster encode, 0.5-0.7x the CPU, and a blurrier picture at most splat budgets)")
         return build_tiles(g, max_leaf_splats=opts.max_leaf_splats, reduction=opts.reduction, progress=progress,
                            reorder_input=opts.reorder_input, merge=merge)
     limit = MAX_BLOCKS_PER_ROW * MAX_BLOCK_ROWS * CHUNK_SIZE
