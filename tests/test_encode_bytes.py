@@ -13,13 +13,16 @@ from conftest import real
 
 from splatstream import io, ply
 from splatstream.encode import encode_file, plan
+from splatstream.errors import UsageError
 from splatstream.gaussians import Gaussians
 from splatstream.io import read_gaussians
 from splatstream.ply import gaussians_to_records, write_gaussians_ply
 from splatstream.readers.splat import write_splat
 
-# Small leaves and a small memory per worker: a tree of several levels split into partitions.
-TREE = {"max_leaf_splats": 300}
+# Small leaves and a small memory per worker: a tree of several levels split into partitions. The grid merge named:
+# the default merge is auto in memory and the grid by partitions (options.default_lod_merge), and these digests are
+# the grid's on every engine.
+TREE = {"max_leaf_splats": 300, "lod_merge": "grid"}
 SMALL_MEMORY = 1 << 20
 
 
@@ -98,6 +101,23 @@ def test_output_bytes_are_615105a_s(inputs, tmp_path, case):
         pytest.importorskip("distributed")
     source, preset, _, extra = case
     assert encode_case(inputs, str(tmp_path / "out"), *case) == DIGESTS[source, preset, extra]
+
+
+def test_the_default_merge_is_auto_in_memory_and_the_grid_by_partitions(inputs, tmp_path):
+    """Issue 31: an encode that names no merge takes auto where the scene is in memory (sharper at a splat budget)
+    and the grid where it is partitioned (its subtrees built apart), which still refuses a named auto."""
+    default = {"max_leaf_splats": 300}
+    encode_file(inputs["ply"], str(tmp_path / "memory"), preset="low", **default)
+    encode_file(inputs["ply"], str(tmp_path / "auto"), preset="low", lod_merge="auto", **default)
+    encode_file(inputs["ply"], str(tmp_path / "parts"), preset="low", **ENGINES["partitioned"], **default)
+    in_memory = directory_digest(str(tmp_path / "memory"))
+    assert in_memory == directory_digest(str(tmp_path / "auto")) != DIGESTS["ply", "low", ""]
+    assert directory_digest(str(tmp_path / "parts")) == DIGESTS["ply", "low", ""]
+    for engine in ("partitioned", "dask"):  # refused before a worker starts
+        with pytest.raises(UsageError, match="--lod-merge auto groups each LOD level over the whole scene"):
+            encode_file(inputs["ply"], str(tmp_path / engine), preset="low", lod_merge="auto", **ENGINES[engine],
+                        **default)
+        assert not (tmp_path / engine).exists()
 
 
 @pytest.mark.parametrize("engine", ["memory", "partitioned"])

@@ -9,7 +9,7 @@ import hashlib
 
 import numpy as np
 import pytest
-from conftest import real
+from conftest import real, run_cli
 
 from splatstream import lod, lod_groups
 from splatstream.encode import encode_file
@@ -131,7 +131,7 @@ def test_unknown_merge_raises():
 def test_encode_with_the_cost_merge_in_memory_and_refused_by_partitions(tmp_path):
     path = str(real("fruit_drops_sh3.ply"))
     m = encode_file(path, tmp_path / "memory", lod_merge="cost", max_leaf_splats=1000, preset="low")
-    grid = encode_file(path, tmp_path / "grid", max_leaf_splats=1000, preset="low")
+    grid = encode_file(path, tmp_path / "grid", lod_merge="grid", max_leaf_splats=1000, preset="low")
     assert m.splats == grid.splats == 4721
     assert [t.children for t in m.tiles] == [t.children for t in grid.tiles]  # the same tree, other merges
     assert [t.splats for t in m.tiles] != [t.splats for t in grid.tiles]
@@ -140,6 +140,20 @@ def test_encode_with_the_cost_merge_in_memory_and_refused_by_partitions(tmp_path
     assert not (tmp_path / "parts").exists()
     with pytest.raises(UsageError, match="unknown LOD merge"):
         encode_file(path, tmp_path / "bad", lod_merge="nope")
+
+
+def test_the_cli_says_which_merge_the_default_took(tmp_path):
+    """Issue 31: no --lod-merge is auto in memory and the grid by partitions, and the encode says which; a named
+    auto with --workers is refused before anything is written."""
+    src = real("fruit_drops_sh3.ply")
+    r = run_cli("encode", src, tmp_path / "memory", "--max-leaf-splats", "1000", "--preset", "low")
+    assert r.returncode == 0 and "LOD merge auto (the default in memory" in r.stderr, r.stderr
+    r = run_cli("encode", src, tmp_path / "parts", "--max-leaf-splats", "1000", "--preset", "low",
+                "--memory-per-worker", "1MiB")
+    assert r.returncode == 0 and "LOD merge grid (the default of a partitioned encode" in r.stderr, r.stderr
+    r = run_cli("encode", src, tmp_path / "workers", "--lod-merge", "auto", "--workers", "2")
+    assert r.returncode == 2 and "--lod-merge auto groups each LOD level over the whole scene" in r.stderr, r.stderr
+    assert not (tmp_path / "workers").exists()
 
 
 # The cost merge made cheaper (issue 31: edge costs in blocks with the planes' shared terms taken once, the k-NN in

@@ -243,7 +243,8 @@ def test_a_partitioned_encode_fits_the_same_scene_palettes(tmp_path):
     from splatstream.store import MemoryWriter
 
     g = _sog_input()
-    opts = EncodeOptions(preset="medium-low-12bit", overrides=PAL, max_leaf_splats=400)
+    # the grid named: partitions merge with it, the scene in memory by default with auto
+    opts = EncodeOptions(preset="medium-low-12bit", overrides=PAL, max_leaf_splats=400, lod_merge="grid")
     ref = encode_in_memory(g, opts, name="s")
     writer = MemoryWriter("s")
     space = Scratch.create(str(tmp_path))

@@ -42,9 +42,11 @@ SOURCE = ROOT / "tests" / "data" / "real" / "fruit_drops_sh3.ply"
 
 @pytest.fixture(scope="module")
 def exported(tmp_path_factory):
-    """fruit_drops (4721 splats) encoded with 1024-splat leaves (7 levels), exported as .rad."""
+    """fruit_drops (4721 splats) encoded with 1024-splat leaves (7 levels), exported as .rad. The grid merge named:
+    the counts below are its tree's (the default, auto, shares each level's splats out by cost, and its grouping may
+    still change)."""
     work = tmp_path_factory.mktemp("rad")
-    encode_file(SOURCE, work / "scene", max_leaf_splats=1024)
+    encode_file(SOURCE, work / "scene", max_leaf_splats=1024, lod_merge="grid")
     report = export_rad(work / "scene", work / "scene.rad")
     return work, report
 

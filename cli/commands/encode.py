@@ -91,11 +91,13 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--reduction", type=float, default=2.0,
                    help="each LOD level keeps about 1/REDUCTION of the splats of the level below (default 2)")
     p.add_argument("--lod-merge", choices=LOD_MERGES, default=EncodeOptions.lod_merge,
-                   help="how LOD levels are merged: grid (a Morton grid per tile, every tile halved; default) or "
+                   help="how LOD levels are merged: grid (a Morton grid per tile, every tile halved) or "
                         "cost (groups by merge cost over each whole level, the splats each tile keeps decided "
                         "across the scene) or auto (the cost merge's counts, and per tile the cost merge's groups or "
                         "the grid's, whichever is closer to the tile's splats); cost and auto in-process encodes "
-                        "only, slower: BENCHMARKS.md, LOD against peers")
+                        "only. Default: auto where the scene is encoded in memory (sharper at most splat budgets, "
+                        "1.5-1.9x the grid's encode CPU), grid where it is partitioned (--workers, --scheduler, a "
+                        "scene over --memory-per-worker): BENCHMARKS.md, LOD against peers")
     p.add_argument("--page-tiles", type=int, default=EncodeOptions.page_tiles,
                    help="write a tree of more than N tiles as a root manifest and manifest pages, so a client needs "
                         f"only the tree's top before its first frame (format 1.5; 0: never; default "

@@ -88,7 +88,7 @@ def encode_file(input_path: str | os.PathLike | Sequence[str | os.PathLike], out
     is the same in every case."""
     opts = EncodeOptions(preset=preset or DEFAULT_PRESET, reorder_input=True, **options)
     plan_formats(opts)  # fail before the (possibly long) read
-    if opts.lod_merge not in LOD_MERGES:
+    if opts.lod_merge is not None and opts.lod_merge not in LOD_MERGES:
         raise UsageError(f"unknown LOD merge {opts.lod_merge!r} (one of {', '.join(LOD_MERGES)})")
     if opts.sh_codebook is not None:
         parse_entries(opts.sh_codebook, 1)
@@ -109,8 +109,9 @@ def encode_file(input_path: str | os.PathLike | Sequence[str | os.PathLike], out
     in_memory = not distributed and fits_in_process(layouts, opts, memory_per_worker or default_memory_per_worker())
     if edits and not edits.per_splat and not in_memory:
         raise UsageError(_WHOLE_SCENE_EDITS)
-    if opts.lod and opts.lod_merge != "grid" and not in_memory:
+    if opts.lod and opts.lod_merge not in (None, "grid") and not in_memory:
         raise UsageError(_COST_MERGE_IN_PROCESS.format(opts.lod_merge))
+    # No merge named (None): plan.plan_tiles takes auto in memory, encode_partitioned the grid (default_lod_merge).
     if in_memory:
         progress("read", 0.0)
         g = read_merged(sources, drop_invalid)

@@ -15,6 +15,18 @@ def no_progress(stage: str, fraction: float) -> None:
     return None
 
 
+# The LOD merge of an encode that names none: the scene in memory takes "auto" (BENCHMARKS.md, "LOD against peers",
+# the per-tile choice: a median 0.36 dB above the best peer at 2-50 % budgets, the grid 0.43 dB below); a
+# partitioned encode builds its subtrees apart, and the cost merges group a whole level at once, so it takes "grid".
+IN_MEMORY_LOD_MERGE = "auto"
+PARTITIONED_LOD_MERGE = "grid"
+
+
+def default_lod_merge(in_memory: bool) -> str:
+    """The LOD merge used when the options name none: IN_MEMORY_LOD_MERGE or PARTITIONED_LOD_MERGE."""
+    return IN_MEMORY_LOD_MERGE if in_memory else PARTITIONED_LOD_MERGE
+
+
 @dataclass
 class EncodeOptions:
     preset: str = DEFAULT_PRESET
@@ -36,9 +48,11 @@ class EncodeOptions:
     # How each level's splats are grouped for merging (lod.LOD_MERGES, format_spec/lod.md 6): "grid" (a Morton grid
     # per tile, every tile halved), "cost" (groups by merge cost over the whole level, the count each tile keeps
     # decided across the scene) or "auto" (the cost merge's counts, and per tile the cost merge's groups or the
-    # grid's, whichever is closer to the tile's members); cost and auto in-process encodes only. Figures:
-    # BENCHMARKS.md, "LOD against peers".
-    lod_merge: str = "grid"
+    # grid's, whichever is closer to the tile's members); cost and auto in-process encodes only. None (the
+    # default): "auto" where the scene is encoded in memory, "grid" where it is partitioned (default_lod_merge).
+    # auto is sharper than every peer at a splat budget where the grid is not (medians), for 1.5-1.9x the grid's
+    # encode CPU (BENCHMARKS.md, "LOD against peers", the default merge).
+    lod_merge: str | None = None
     # Manifest pages (format.md 6.1): a tree of more than `page_tiles` tiles (0: never) is written as a root
     # manifest of its top `page_levels` levels and pages of the next `page_levels` levels below each of its
     # deepest tiles. Both measured against manifest bytes before the first frame and page fetches (BENCHMARKS.md,
@@ -53,6 +67,10 @@ class EncodeOptions:
     # Let the LOD builder permute the input's arrays in place instead of copying the scene (saves one copy of
     # the whole scene). Only for callers that own the Gaussians and do not need their order afterwards.
     reorder_input: bool = False
+
+    def resolved_lod_merge(self, in_memory: bool = True) -> str:
+        """The LOD merge an encode uses: the option, else the default of its engine (default_lod_merge)."""
+        return self.lod_merge if self.lod_merge is not None else default_lod_merge(in_memory)
 
     @property
     def resolved_transport(self) -> str:

@@ -60,7 +60,7 @@ from ..store import SceneWriter, write_scene_manifest
 from .codebook import codebook_choice
 from .jobs import encode_codebook, encode_tile
 from .options import EncodeOptions, Progress, no_progress
-from .plan import TileContext, palette_planes, plan_formats, plan_scene, scene_name
+from .plan import TileContext, log, palette_planes, plan_formats, plan_scene, scene_name
 from .reduce import build_manifest
 from .sample import SceneSample
 from .scratch import Scratch
@@ -691,10 +691,14 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
     formats, chunk_order = plan_formats(opts)
     if not opts.lod:
         raise UsageError("a partitioned encode needs LOD (--no-lod keeps the whole scene in one tile)")
-    if opts.lod_merge != "grid":
-        # The cost merge groups a whole tree level at once; partitions build their subtrees apart (issue 31).
+    if opts.resolved_lod_merge(in_memory=False) != "grid":
+        # The cost merge groups a whole tree level at once; partitions build their subtrees apart (issue 31). Named
+        # by the caller only: left to the default, a partitioned encode takes the grid (options.default_lod_merge).
         raise UsageError(f"--lod-merge {opts.lod_merge} runs only in-process (one machine, the scene in memory): "
                          "a partitioned encode merges with the grid")
+    if opts.lod_merge is None:
+        log.info("LOD merge grid (the default of a partitioned encode: its subtrees are built apart, and auto groups "
+                 "a whole level at once; the scene in memory takes auto)")
     sh_degree = opts.sh_degree if opts.sh_degree is not None else rows.sh_degree
     sh_degree = min(sh_degree, rows.sh_degree)
     row_bytes = _row_bytes(sh_degree)
