@@ -21,6 +21,10 @@ peer levels and the full-detail scene uploaded as very-high (f32x4) textures. PS
 
     .venv/bin/python bench/lod_vs_peers.py                       # everything (peers cached after the first run)
     .venv/bin/python bench/lod_vs_peers.py --scenes donut,guitar --skip-peers --our-scene-dir /tmp/new_lod
+    # our side only into a new directory, the peer rows from an earlier run, our encodes with extra options:
+    .venv/bin/python bench/lod_vs_peers.py --scenes donut --skip-peers \
+        --peers-from bench/results/lod_vs_peers_viewscale \
+        --encode-args='--lod-merge auto' --our-scene-dir /tmp/ours --out-dir bench/results/NEW
 
 Writes --out-dir/SCENE.json per scene, --out-dir/table.md and --out-dir/plot.png (PSNR against splats drawn).
 Scenes marked no_images (biker: its licence forbids derived images) never have a render written to disk.
