@@ -21,6 +21,10 @@ peer levels and the full-detail scene uploaded as very-high (f32x4) textures. PS
 
     .venv/bin/python bench/lod_vs_peers.py                       # everything (peers cached after the first run)
     .venv/bin/python bench/lod_vs_peers.py --scenes donut,guitar --skip-peers --our-scene-dir /tmp/new_lod
+    # our side only into a new directory, the peer rows from an earlier run, our encodes with extra options:
+    .venv/bin/python bench/lod_vs_peers.py --scenes donut --skip-peers \
+        --peers-from bench/results/lod_vs_peers_viewscale \
+        --encode-args='--lod-merge auto' --our-scene-dir /tmp/ours --out-dir bench/results/NEW
 
 Writes --out-dir/SCENE.json per scene, --out-dir/table.md and --out-dir/plot.png (PSNR against splats drawn).
 Scenes marked no_images (biker: its licence forbids derived images) never have a render written to disk.
@@ -33,6 +37,7 @@ import json
 import math
 import os
 import platform
+import shlex
 import shutil
 import subprocess
 import sys
@@ -313,8 +318,8 @@ def spark_gaussians(tree: dict, idx: np.ndarray, mode: str = "inflate"):
 
 # --- ours -----------------------------------------------------------------------------------------------------------
 
-def ensure_encoded(full: str, out: str) -> dict:
-    """`splatstream encode FULL OUT` (default preset) unless OUT already holds a manifest."""
+def ensure_encoded(full: str, out: str, extra: list[str] | None = None) -> dict:
+    """`splatstream encode FULL OUT [EXTRA]` (default preset) unless OUT already holds a manifest."""
     from splatstream.format.names import MANIFEST_NAME
 
     info_path = os.path.join(out, "lod_vs_peers_encode.json")
@@ -323,8 +328,10 @@ def ensure_encoded(full: str, out: str) -> dict:
     if os.path.exists(out):
         shutil.rmtree(out)
     say(f"  splatstream encode {full} {out}")
-    secs = run(cli("encode", full, out))
-    info = {"command": f"splatstream encode {os.path.basename(full)} OUT", "seconds": round(secs, 2)}
+    extra = list(extra or [])
+    secs = run(cli("encode", full, out, *extra))
+    info = {"command": " ".join(["splatstream encode", os.path.basename(full), "OUT", *extra]),
+            "seconds": round(secs, 2)}
     json.dump(info, open(info_path, "w"), indent=1)
     return info
 
@@ -541,7 +548,7 @@ def run_scene(scene: Scene, args, peers: Peers | None) -> dict | None:
 
     if not args.skip_ours:
         out = os.path.join(args.our_scene_dir, scene.name)
-        enc = ensure_encoded(full, out)
+        enc = ensure_encoded(full, out, shlex.split(args.encode_args))
         from splatstream.evaluate import path_size
 
         result["ours_encode"] = enc | {"dir": out, "bytes_on_disk": path_size(out)}
@@ -726,6 +733,12 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--peers-node-dir", default=os.path.join(HERE, "peers"))
     ap.add_argument("--min-splats", type=int, default=45000)
     ap.add_argument("--skip-peers", action="store_true", help="only our side (peer rows from earlier JSON kept)")
+    ap.add_argument("--peers-from", default=None,
+                    help="with --skip-peers: the peer rows (splat-transform, Spark, shipped levels) of DIR/SCENE.json "
+                         "where --out-dir has no JSON of the scene yet (the same cameras required)")
+    ap.add_argument("--encode-args", default="",
+                    help="extra arguments of our `splatstream encode` (e.g. '--lod-merge auto'; a scene directory "
+                         "that already holds a manifest is reused as it is)")
     ap.add_argument("--skip-ours", action="store_true")
     ap.add_argument("--no-spark", dest="spark", action="store_false",
                     help="without Spark's LoD (its tree build and per-view cuts)")
@@ -751,9 +764,14 @@ def main(argv: list[str] | None = None) -> int:
         if res is None:
             continue
         jpath = os.path.join(args.out_dir, f"{name}.json")
-        if os.path.exists(jpath) and (peers is None or not args.spark):  # keep the peer rows measured before
-            old = json.load(open(jpath))
-            if old.get("cameras") == res["cameras"]:
+        old_path = jpath
+        if not os.path.exists(jpath) and peers is None and args.peers_from:
+            old_path = os.path.join(args.peers_from, f"{name}.json")
+        if os.path.exists(old_path) and (peers is None or not args.spark):  # keep the peer rows measured before
+            old = json.load(open(old_path))
+            if old.get("cameras") != res["cameras"]:
+                say(f"   {old_path}: other cameras, its peer rows not kept")
+            else:
                 if peers is None:
                     res["peers"] = old.get("peers", [])
                     res["peer_versions"] = old.get("peer_versions")
