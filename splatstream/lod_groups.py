@@ -361,8 +361,13 @@ def _cross2(ca, cb, da, db, dd, u, v):
     a, b, cc = ca[0] + cb[0], ca[1] + cb[1], ca[2] + cb[2]
     det = np.maximum(a * cc - b * b, 1e-300)
     du, dv = dd[u], dd[v]
-    q = (cc * du * du - 2 * b * du * dv + a * dv * dv) / det
-    return 2 * math.pi * np.sqrt(da * db / det) * np.exp(-0.5 * q)
+    with np.errstate(over="ignore", invalid="ignore"):
+        # At the domain's edges (centres 1e18 apart, footprints nearly flat) q and the factor overflow to inf: the
+        # overlap's limit there is 0, not the NaN that inf * 0 gives.
+        q = (cc * du * du - 2 * b * du * dv + a * dv * dv) / det
+        g = 2 * math.pi * np.sqrt(da * db / det) * np.exp(-0.5 * q)
+    np.copyto(g, 0.0, where=np.isnan(g))
+    return g
 
 
 def _det2(c):
@@ -399,15 +404,19 @@ def _edge_costs(mu_t, cov_t, alpha, col, w, i, j, rule: GroupRule) -> np.ndarray
         fi, fj, fm = math.pi * ai * ai * bni, math.pi * aj * aj * bnj, math.pi * am * am * bnm
         gij, gim, gjm = 2 * ai * aj * bij, 2 * ai * am * bim, 2 * aj * am * bjm
         e = np.zeros(len(i))
-        for (u, v), (kuu, kuv, kvv) in _PLANES:
-            pi_ = ci[kuu], ci[kuv], ci[kvv]
-            pj_ = cj[kuu], cj[kuv], cj[kvv]
-            pm_ = cm[kuu], cm[kuv], cm[kvv]
-            hi, hj, hm = _det2(pi_), _det2(pj_), _det2(pm_)
-            e += (fi * np.sqrt(hi) + fj * np.sqrt(hj) + fm * np.sqrt(hm)
-                  + gij * _cross2(pi_, pj_, hi, hj, d, u, v)
-                  - gim * _cross2(pi_, pm_, hi, hm, di, u, v)
-                  - gjm * _cross2(pj_, pm_, hj, hm, dj, u, v))
+        with np.errstate(over="ignore", invalid="ignore"):
+            for (u, v), (kuu, kuv, kvv) in _PLANES:
+                pi_ = ci[kuu], ci[kuv], ci[kvv]
+                pj_ = cj[kuu], cj[kuv], cj[kvv]
+                pm_ = cm[kuu], cm[kuv], cm[kvv]
+                hi, hj, hm = _det2(pi_), _det2(pj_), _det2(pm_)
+                e += (fi * np.sqrt(hi) + fj * np.sqrt(hj) + fm * np.sqrt(hm)
+                      + gij * _cross2(pi_, pj_, hi, hj, d, u, v)
+                      - gim * _cross2(pi_, pm_, hi, hm, di, u, v)
+                      - gjm * _cross2(pj_, pm_, hj, hm, dj, u, v))
+        # Overlaps that overflow (flat footprints on one centre, the domain's edges) leave inf - inf: a cost not
+        # known, taken as the largest, as the NaN it was sorted last before.
+        np.copyto(e, np.inf, where=np.isnan(e))
     else:
         sdm = np.sqrt(np.maximum(_det6(cm.T), 1e-300))
         sdi = np.sqrt(np.maximum(_det6(ci.T), 1e-300))
