@@ -31,11 +31,13 @@ def main() -> None:
     ap.add_argument("--city-splats", type=int, default=250_000_000)
     ap.add_argument("--city-fly", default="flythrough.json",
                     help="the 250M run's fly-through JSON (a second, warm pass: fly_2.json)")
+    ap.add_argument("--sizes-fly", default="flythrough.json",
+                    help="each size's fly-through JSON (fly_2.json: the second pass, SIZE_PASSES=2)")
     ap.add_argument("--cold", action="store_true", help="plot the cold first frame too (driver caches empty)")
     ap.add_argument("--caption", default="one H200 of nvidia-h200-x2 (32 cores), 2026-11-28: "
                                           "bench/device/run_city.sh sizes + stream")
     args = ap.parse_args()
-    rows = {int(d.name.split("_")[1]): _load(d) for d in sorted(args.sizes.glob("size_*"))}
+    rows = {int(d.name.split("_")[1]): _load(d, args.sizes_fly) for d in sorted(args.sizes.glob("size_*"))}
     rows[args.city_splats] = _load(args.city, args.city_fly)
     sizes = sorted(rows)
     keys = ("warm", "cold", "median_ms", "p99_ms", "update_ms_median", "update_ms_p99", "select_ms_median",
