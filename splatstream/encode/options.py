@@ -50,8 +50,8 @@ class EncodeOptions:
     # decided across the scene) or "auto" (the cost merge's counts, and per tile the cost merge's groups or the
     # grid's, whichever is closer to the tile's members); cost and auto in-process encodes only. None (the
     # default): "auto" where the scene is encoded in memory, "grid" where it is partitioned (default_lod_merge).
-    # auto is sharper than every peer at a splat budget where the grid is not (medians), for 1.5-1.9x the grid's
-    # encode CPU (BENCHMARKS.md, "LOD against peers", the default merge).
+    # auto's budgeted picture is a median 0.3 dB above the best peer's where the grid's is 0.4 dB below, for
+    # 1.4-1.9x the grid's encode CPU (BENCHMARKS.md, "LOD against peers", the default merge; autofast4).
     lod_merge: str | None = None
     # Manifest pages (format.md 6.1): a tree of more than `page_tiles` tiles (0: never) is written as a root
     # manifest of its top `page_levels` levels and pages of the next `page_levels` levels below each of its
