@@ -96,7 +96,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "across the scene) or auto (the cost merge's counts, and per tile the cost merge's groups or "
                         "the grid's, whichever is closer to the tile's splats); cost and auto in-process encodes "
                         "only. Default: auto where the scene is encoded in memory (sharper at most splat budgets, "
-                        "1.5-1.9x the grid's encode CPU), grid where it is partitioned (--workers, --scheduler, a "
+                        "1.4-1.9x the grid's encode CPU), grid where it is partitioned (--workers, --scheduler, a "
                         "scene over --memory-per-worker): BENCHMARKS.md, LOD against peers")
     p.add_argument("--page-tiles", type=int, default=EncodeOptions.page_tiles,
                    help="write a tree of more than N tiles as a root manifest and manifest pages, so a client needs "
