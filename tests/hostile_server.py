@@ -233,12 +233,13 @@ def undecodable_scene(src: Path, dst: Path) -> str:
 
 
 def texture_bomb_scene(src: Path, dst: Path, size: int = 8192) -> None:
-    """A copy of scene `src` whose smallest tile declares `size` x `size` textures (format.md 4.1 refuses it)."""
+    """A copy of scene `src` whose root tile (the first any client fetches) declares `size` x `size` textures
+    (format.md 4.1 refuses it)."""
     import shutil
 
     shutil.copytree(src, dst)
     m = _load_dict(dst)
-    tile = min(m["tiles"], key=lambda t: t["splats"])
+    tile = min(m["tiles"], key=lambda t: (t["level"], t["splats"]))
     for section in tile["groups"]["base"]["sections"]:
         if section["kind"] == "texels":
             section["width"] = section["height"] = size
