@@ -153,7 +153,7 @@ def shifted_grid(pad_lo: float, pad_hi: float) -> Grouping:
     """The Morton grid over a box grown by these fractions of its size below and above: the same rule with its
     cell walls elsewhere (how much of a difference is where the walls fall)."""
     def groups(g: Gaussians, mass: np.ndarray, target: int) -> tuple[np.ndarray, np.ndarray]:
-        lo, hi = lod._col_min(g.positions), lod._col_max(g.positions)
+        lo, hi = lod.column_min(g.positions), lod.column_max(g.positions)
         size = hi - lo
         morton = lod._morton
         lod._morton = lambda p: lod.morton_codes(p, lo - pad_lo * size, hi + pad_hi * size)

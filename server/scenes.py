@@ -68,7 +68,8 @@ class _LRU(OrderedDict):
             self.popitem(last=False)
 
 
-def _real_path_of_fd(fd: int, fallback: str) -> str:
+def real_path_of_fd(fd: int, fallback: str) -> str:
+    """The real path of the file opened as `fd` (/proc/self/fd's link), else `fallback`'s real path."""
     try:
         path = os.readlink(f"{_PROC_FD}/{fd}")
     except OSError:
@@ -92,6 +93,11 @@ class SceneRoot:
         self._real_root = os.path.realpath(self.root)
         return self._real_root
 
+    def contains_real_path(self, real: str) -> bool:
+        """Whether the real path `real` (of an opened file) lies inside the root: the cached real root first, then
+        the root resolved again (a root link switched since) before refusing."""
+        return is_inside(real, self._real_root) or is_inside(real, self._resolve_root())
+
     def _open_inside(self, path: str, missing: str, what: str) -> tuple[int, os.stat_result]:
         """Open the regular file `path` for reading if its real path lies inside the root: (fd, stat).
 
@@ -114,8 +120,8 @@ class SceneRoot:
             st = os.fstat(fd)
             if not stat.S_ISREG(st.st_mode):
                 raise NotFound(missing)
-            real = _real_path_of_fd(fd, path) if self._have_proc_fd else os.path.realpath(path)
-            if not is_inside(real, self._real_root) and not is_inside(real, self._resolve_root()):
+            real = real_path_of_fd(fd, path) if self._have_proc_fd else os.path.realpath(path)
+            if not self.contains_real_path(real):
                 # A client can ask again and again: INFO (not shown by default), once per interval.
                 rate_limited("outside", logging.INFO, "refused %s: resolves outside the root (%s)", path, real)
                 raise NotFound(missing)
@@ -143,7 +149,7 @@ class SceneRoot:
             if sp.kind == "payload":
                 token = sp.sha256
                 if size <= SMALL_FILE_BYTES:
-                    data = _read_all(fd, size)
+                    data = read_first_bytes(fd, size)
                     size = len(data)
             else:
                 if size > MAX_MANIFEST_BYTES:
@@ -151,7 +157,7 @@ class SceneRoot:
                 key = (st.st_dev, st.st_ino, st.st_mtime_ns, size)
                 token = self._manifest_hashes.get_fresh(key)
                 if token is None or size <= SMALL_FILE_BYTES:
-                    data = _read_all(fd, size)
+                    data = read_first_bytes(fd, size)
                     size = len(data)
                     if token is None:
                         token = hashlib.sha256(data).hexdigest()
@@ -218,7 +224,7 @@ class SceneRoot:
             cached = self._summaries.get_fresh(key)
             if cached is not None:
                 return cached or None
-            raw = _read_all(fd, st.st_size)
+            raw = read_first_bytes(fd, st.st_size)
         finally:
             os.close(fd)
         try:
@@ -256,7 +262,7 @@ def _report_unreadable(path: str) -> None:
                  "answered 403", path, why, os.geteuid())
 
 
-def _read_all(fd: int, size: int) -> bytes:
+def read_first_bytes(fd: int, size: int) -> bytes:
     """The first `size` bytes (fewer if the file is shorter)."""
     data = os.pread(fd, size, 0)
     if len(data) == size or not data:

@@ -33,7 +33,7 @@ from .paths import (
     is_inside,
     percent_decode,
 )
-from .scenes import SMALL_FILE_BYTES, NotFound, OpenedFile, SceneRoot, _read_all, _real_path_of_fd
+from .scenes import SMALL_FILE_BYTES, NotFound, OpenedFile, SceneRoot, read_first_bytes, real_path_of_fd
 
 TILESET_TYPE = "application/json"
 CONTENT_TYPE = "model/gltf-binary"
@@ -102,19 +102,19 @@ def open_tileset_file(root: SceneRoot, tp: TilesetPath) -> OpenedFile:
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode):
             raise NotFound(missing)
-        real = _real_path_of_fd(fd, path)
-        if not is_inside(real, root._real_root) and not is_inside(real, root._resolve_root()):
+        real = real_path_of_fd(fd, path)
+        if not root.contains_real_path(real):
             raise NotFound(missing)
         size, data = st.st_size, None
         if tp.kind != "tileset":  # content-addressed: the name is the ETag
             token = tp.sha256
             if size <= SMALL_FILE_BYTES:
-                data = _read_all(fd, size)
+                data = read_first_bytes(fd, size)
                 size = len(data)
         else:
             if size > MAX_TILESET_BYTES:
                 raise NotFound(f"tileset.json of {tp.tileset_id!r} is larger than {MAX_TILESET_BYTES} bytes")
-            data = _read_all(fd, size)  # hashed for its ETag (small, and fetched once per view)
+            data = read_first_bytes(fd, size)  # hashed for its ETag (small, and fetched once per view)
             size = len(data)
             token = hashlib.sha256(data).hexdigest()
         assert token is not None

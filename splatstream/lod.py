@@ -130,8 +130,8 @@ def extent_bounds(g: Gaussians, sigmas: float = EXTENT_SIGMAS) -> tuple[np.ndarr
         rows = slice(a, a + EXTENT_BLOCK_ROWS)
         p = g.positions[rows].astype(np.float64)
         half = sigmas * _sigma_axes(g.rotations[rows], g.log_scales[rows])
-        lows.append(_col_min(p - half))
-        highs.append(_col_max(p + half))
+        lows.append(column_min(p - half))
+        highs.append(column_max(p + half))
     lo, hi = np.min(lows, axis=0), np.max(highs, axis=0)
     center = (lo + hi) / 2
     radius = 0.0
@@ -158,12 +158,13 @@ def _row_norm(a: np.ndarray) -> np.ndarray:
     return np.sqrt(a[:, 0] * a[:, 0] + a[:, 1] * a[:, 1] + a[:, 2] * a[:, 2])
 
 
-def _col_min(a: np.ndarray) -> np.ndarray:
-    # Per-column reductions of an (N, 3) array; numpy's axis=0 reduction is ~30x slower on this shape.
+def column_min(a: np.ndarray) -> np.ndarray:
+    """a.min(axis=0) of an (N, k) array, column by column: numpy's axis=0 reduction is ~30x slower on this shape."""
     return np.array([a[:, k].min() for k in range(a.shape[1])])
 
 
-def _col_max(a: np.ndarray) -> np.ndarray:
+def column_max(a: np.ndarray) -> np.ndarray:
+    """a.max(axis=0) of an (N, k) array, column by column (as column_min)."""
     return np.array([a[:, k].max() for k in range(a.shape[1])])
 
 
@@ -175,7 +176,7 @@ def _rows(a: np.ndarray, index: np.ndarray) -> np.ndarray:
 
 def _morton(positions: np.ndarray) -> np.ndarray:
     """Morton codes over the positions' own box (layout.morton_codes, box computed column-wise)."""
-    return morton_codes(positions, _col_min(positions), _col_max(positions))
+    return morton_codes(positions, column_min(positions), column_max(positions))
 
 
 def _orientation(r: np.ndarray) -> np.ndarray:
@@ -582,7 +583,7 @@ def kd_split(positions: np.ndarray, index: np.ndarray, rows: np.ndarray) -> tupl
     """Median split of the splats `rows` (ascending): (lower rows, upper rows, axis, pivot key). The lower half
     holds the len(rows) // 2 splats of smallest key on the longest axis; both halves stay ascending."""
     p = _rows(positions, rows)
-    axis = split_axis(_col_min(p), _col_max(p))
+    axis = split_axis(column_min(p), column_max(p))
     keys = sort_keys(p[:, axis], index[rows])
     pivot = np.partition(keys, len(rows) // 2)[len(rows) // 2]
     below = keys < pivot

@@ -134,7 +134,7 @@ def local_path(location: str | os.PathLike) -> str:
     return location[len("file://"):] if location.startswith("file://") else location
 
 
-def _fsspec(url: str):
+def fsspec_filesystem(url: str):
     """(filesystem, root path) of an fsspec URL; fsspec is optional (`pip install 'splatstream[cluster]'`)."""
     try:
         import fsspec  # an optional extra, imported only for URLs
@@ -154,7 +154,7 @@ class FsspecStore:
 
     def __init__(self, url: str):
         self.url = url.rstrip("/")
-        self.fs, self.root = _fsspec(url)
+        self.fs, self.root = fsspec_filesystem(url)
 
     @property
     def location(self) -> str:
@@ -368,7 +368,7 @@ class FsspecWriter:
 
     def __init__(self, url: str):
         self.url = url.rstrip("/")
-        self.fs, self.root = _fsspec(url)
+        self.fs, self.root = fsspec_filesystem(url)
 
     def __enter__(self) -> FsspecWriter:
         return self

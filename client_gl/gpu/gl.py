@@ -167,12 +167,14 @@ class _GL:
 
     def __getattr__(self, name: str):
         restype, argtypes = _SIGNATURES[name]
-        fn = FUNCTION_TYPE(restype, *argtypes)(_address(name))
+        fn = FUNCTION_TYPE(restype, *argtypes)(gl_function_address(name))
         setattr(self, name, fn)
         return fn
 
 
-def _address(name: str) -> int:
+def gl_function_address(name: str) -> int:
+    """The address of GL entry point `name` (EGL's eglGetProcAddress, else libOpenGL/libGL's symbol); GLError when
+    no loader has it. warm_compile.py calls through it with CFUNCTYPE, for its own context's calls."""
     for load in _loaders():
         addr = load(name)
         if addr:
@@ -207,7 +209,7 @@ def flush() -> None:
 
 @lru_cache(maxsize=1)
 def _finish_releasing_gil():
-    return ctypes.CFUNCTYPE(None)(_address("glFinish"))
+    return ctypes.CFUNCTYPE(None)(gl_function_address("glFinish"))
 
 
 def wait_for_gpu() -> None:

@@ -22,7 +22,7 @@ import time
 from collections.abc import Iterable
 from functools import lru_cache
 
-from .gl import _address, _loaders
+from .gl import gl_function_address
 
 GL_COMPUTE_SHADER = 0x91B9
 GL_VERTEX_SHADER = 0x8B31
@@ -86,8 +86,9 @@ def _egl():
 
 @lru_cache(maxsize=1)
 def _gl_functions():
-    _loaders()  # resolved once, shared with gl.py
-    return {name: ctypes.CFUNCTYPE(res, *args)(_address(name)) for name, (res, args) in _GL_SIGNATURES.items()}
+    # gl.py's loaders (libEGL, libGL), resolved once and shared with it.
+    return {name: ctypes.CFUNCTYPE(res, *args)(gl_function_address(name))
+            for name, (res, args) in _GL_SIGNATURES.items()}
 
 
 def _attribs(*values: int):

@@ -21,12 +21,12 @@ from ..gaussians import Gaussians
 from ..io import SplatInput, open_input, read_gaussians, read_merged
 from ..lod import LOD_MERGES, Tile
 from ..ply import RowStats, VertexLayout, check_rows, read_ply_rows
-from ..store import _fsspec, is_url, local_path, open_writer
+from ..store import fsspec_filesystem, is_url, local_path, open_writer
 from ..vq import parse_entries
 from .distributed import DaskEngine
 from .local import LocalEngine, default_memory_per_worker, encode_to
 from .options import EncodeOptions, Progress, no_progress
-from .partitioned import PARTITION_MEMORY_FACTOR, ConcatRows, _row_bytes, encode_partitioned, open_rows
+from .partitioned import PARTITION_MEMORY_FACTOR, ConcatRows, encode_partitioned, open_rows, routed_row_bytes
 from .plan import log, plan_formats
 from .scratch import Scratch
 
@@ -42,7 +42,7 @@ def fits_in_process(layout: VertexLayout | None | list[VertexLayout | None], opt
     top = max(x.sh_degree for x in layouts)  # type: ignore[union-attr]
     degree = top if opts.sh_degree is None else min(opts.sh_degree, top)
     rows = sum(x.rows for x in layouts)  # type: ignore[union-attr]
-    return rows * _row_bytes(degree) * PARTITION_MEMORY_FACTOR <= memory
+    return rows * routed_row_bytes(degree) * PARTITION_MEMORY_FACTOR <= memory
 
 
 def _paths(input_path: str | os.PathLike | Sequence[str | os.PathLike]) -> list[str]:
@@ -150,7 +150,7 @@ def _checked_output(out_dir: str | os.PathLike) -> str:
     """The output directory or fsspec URL, checked before anything is written (fsspec present, path writable)."""
     out = os.fspath(out_dir)
     if is_url(out):
-        _fsspec(out)
+        fsspec_filesystem(out)
         return out
     out = local_path(out)
     check_output(out, directory=True)

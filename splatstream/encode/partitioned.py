@@ -38,10 +38,10 @@ from ..io import SplatInput, read_gaussians
 from ..lod import (
     Tile,
     TreeShape,
-    _col_max,
-    _col_min,
     appearance_terms,
     build_subtree,
+    column_max,
+    column_min,
     error_extremes,
     finish_tile_appearance,
     fold_leaf_sums,
@@ -242,7 +242,7 @@ def scan_chunk(rows, i: int, start: int, stop: int, scratch: Scratch, stride: in
     sample = np.ascontiguousarray(g.positions[::stride])
     if not len(g):
         return 0, stats, np.full(3, np.inf, np.float32), np.full(3, -np.inf, np.float32), sample
-    return len(g), stats, _col_min(g.positions), _col_max(g.positions), sample
+    return len(g), stats, column_min(g.positions), column_max(g.positions), sample
 
 
 def _chunk_keys(scratch: Scratch, i: int, offset: int, splits: list, routed: bool = False
@@ -325,7 +325,9 @@ def _section_widths(sh_degree: int) -> list[tuple[str, int]]:
             ("sh_rest", 3 * SH_REST_COEFFS[sh_degree])]
 
 
-def _row_bytes(sh_degree: int) -> int:
+def routed_row_bytes(sh_degree: int) -> int:
+    """Bytes of one splat in a routed scratch section (route_chunk): its float32 attributes and its int64 input
+    index; also the driver's measure of a scene's build memory (fits_in_process)."""
     return 4 * sum(w for _, w in _section_widths(sh_degree)) + 8
 
 
@@ -356,7 +358,7 @@ def route_chunk(rows, i: int, start: int, stop: int, offset: int, splits: list, 
 def _read_partition(scratch: Scratch, p: int, chunk_counts: list[np.ndarray], sh_degree: int
                     ) -> tuple[Gaussians, np.ndarray]:
     widths = _section_widths(sh_degree)
-    row_bytes = _row_bytes(sh_degree)
+    row_bytes = routed_row_bytes(sh_degree)
     n = int(sum(int(c[p]) for c in chunk_counts))
     arrays = {name: np.empty((n, w), np.float32) for name, w in widths}
     index = np.empty(n, np.int64)
@@ -701,7 +703,7 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
                  "a whole level at once; the scene in memory takes auto)")
     sh_degree = opts.sh_degree if opts.sh_degree is not None else rows.sh_degree
     sh_degree = min(sh_degree, rows.sh_degree)
-    row_bytes = _row_bytes(sh_degree)
+    row_bytes = routed_row_bytes(sh_degree)
     # Chunks small enough for a worker's memory and numerous enough to keep every worker busy in the passes.
     chunk_rows = min(engine.memory_per_worker // (8 * row_bytes), -(-rows.rows // (4 * engine.workers)))
     chunk_rows = int(min(1 << 22, max(1 << 16, chunk_rows)))

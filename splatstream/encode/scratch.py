@@ -14,7 +14,7 @@ import uuid
 
 import numpy as np
 
-from ..store import _fsspec, is_url, local_path
+from ..store import fsspec_filesystem, is_url, local_path
 
 SCRATCH_PREFIX = ".splatstream-scratch-"
 # Inside a local scratch directory: a file its creating process holds an exclusive flock on for as long as it
@@ -67,7 +67,7 @@ class Scratch:
     def _path(self, name: str) -> str:
         if self.remote:
             if self._fs is None:
-                self._fs, self._root = _fsspec(self.location)
+                self._fs, self._root = fsspec_filesystem(self.location)
             return f"{self._root}/{name}"
         return os.path.join(self.location, name)
 
