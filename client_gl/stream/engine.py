@@ -152,10 +152,11 @@ class StreamOptions:
     # where numba is not installed. False: the numpy path always.
     compiled_selection: bool = True
     # The interpreter's switch interval (seconds, sys.setswitchinterval) while the frame loop computes the view's
-    # numbers and the cut, the process's own restored after: the frame loop, when it has let the lock go (numpy's
-    # longer loops release it) and a decode thread's Python holds it, asks for it back after this long instead of
-    # CPython's 5 ms. Process-wide while it is set (the decode threads waiting ask the frame loop for it back as soon).
-    # None: the interval untouched (BENCHMARKS.md, "Manifest pages": the measured trade).
+    # numbers and the cut (the compiled selection's; the numpy path's untouched), the process's own restored after:
+    # the frame loop, when it has let the lock go (numpy's fills and BLAS dot release it) and a decode thread's
+    # Python holds it, asks for it back after this long instead of CPython's 5 ms. Process-wide while it is set (the
+    # decode threads waiting ask the frame loop for it back as soon). None: the interval untouched (the A/B on this
+    # VM did not resolve it: BENCHMARKS.md, "Manifest pages", branch selwall).
     select_switch_interval: float | None = None
 
 
