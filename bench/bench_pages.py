@@ -47,6 +47,11 @@ import tracemalloc
 from dataclasses import replace
 from types import SimpleNamespace
 
+try:
+    import resource  # the frame loop's voluntary context switches (Unix only)
+except ImportError:  # pragma: no cover (Windows)
+    resource = None
+
 import numpy as np
 
 from client_gl.stream import engine as engine_module
@@ -312,7 +317,8 @@ def street_camera(frame: int, frames: int, side: float) -> Camera:
 def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame: int, profile: bool,
                 compiled: bool = True, wait: bool = True, parts_json: str | None = None,
                 busy_threads: int = 0, max_tree_tiles: int | None = None,
-                busy_pattern: tuple[float, float] | None = None) -> None:
+                busy_pattern: tuple[float, float] | None = None,
+                select_switch_interval: float | None = None) -> None:
     """A StreamEngine over the paged tree along a camera flying across the city at street level: per-frame
     update times (median, p99, max) and, with --profile, where they go. `compiled`: the compiled selection
     (selection_jit, waited for before the path, so every frame near the cut uses it), else the numpy path.
@@ -326,7 +332,8 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
     fetcher = _PathFetcher(paged.root, files, per_frame)
     engine = _NoDecodeEngine(fetcher, _Slots(),
                              StreamOptions(SelectionOptions(max_splats=max_splats), upload_bytes_per_frame=1 << 40,
-                                           compiled_selection=compiled, **bound))
+                                           compiled_selection=compiled,
+                                           select_switch_interval=select_switch_interval, **bound))
     if compiled and wait:
         t0 = time.perf_counter()
         if COMPILED_SELECTION.wait() is None:
@@ -386,13 +393,16 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
 
     def part(label, fn):
         def timed_part(*args, **kw):
-            t0, c0 = time.perf_counter(), time.thread_time()
+            t0, c0, (v0, i0) = time.perf_counter(), time.thread_time(), _context_switches()
             try:
                 return fn(*args, **kw)
             finally:
-                acc = parts_now.setdefault(label, [0.0, 0.0])
+                acc = parts_now.setdefault(label, [0.0, 0.0, 0.0, 0.0])
+                v1, i1 = _context_switches()
                 acc[0] += (time.thread_time() - c0) * 1e3
                 acc[1] += (time.perf_counter() - t0) * 1e3
+                acc[2] += v1 - v0
+                acc[3] += i1 - i0
         return timed_part
     for label, name in (("view", "view_numbers"), ("view", "PartialView"), ("bands", "wanted_bands_at"),
                         ("draw set", "draw_set")):
@@ -426,21 +436,27 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
     gc.callbacks.append(on_gc)
     stop = threading.Event()
 
+    holds: list[tuple[int, float]] = []  # each busy thread's holds done and its CPU: what an interval costs them
+
     def busy() -> None:  # Python that holds the interpreter lock until the switch interval takes it (a page parse)
         if busy_pattern is not None:
             hold, rest = busy_pattern[0] / 1e3, busy_pattern[1] / 1e3
             clock = time.perf_counter
+            done, c0 = 0, time.thread_time()
             while not stop.is_set():
                 until = clock() + hold
                 while clock() < until:
                     pass
                 time.sleep(rest)  # the lock released, as a nogil kernel or zstd releases it
+                done += 1
+            holds.append((done, time.thread_time() - c0))
             return
         while not stop.is_set():
             sum(i * i for i in range(2000))
     others = [threading.Thread(target=busy, daemon=True) for _ in range(busy_threads)]
     for th in others:
         th.start()
+    path_start = time.perf_counter()
     try:
         for f in range(frames):
             cam = street_camera(f, frames, side)
@@ -465,6 +481,7 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
             if prof is not None:
                 prof.disable()
     finally:
+        path_s = time.perf_counter() - path_start
         stop.set()
         for th in others:
             th.join()
@@ -505,6 +522,10 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
                       f"{ts[part].max():.1f} ms; CPU median {np.median(cs[part]):.2f}, max {cs[part].max():.1f} ms; "
                       f"{sum(times[i] for i in np.flatnonzero(part)):.2f} s in all")
     print_parts(parts, cs, ts)
+    if holds:
+        done, busy_cpu = sum(h[0] for h in holds), sum(h[1] for h in holds)
+        print(f"  busy threads: {done} holds done in {path_s:.2f} s ({done / path_s:.0f} a second), their CPU "
+              f"{busy_cpu:.2f} s; switch interval during the selection: {select_switch_interval}")
     # the engine's per-key maps after the path: bounded by the tiles held when pages are dropped (issue 38)
     print(f"  per-key maps after the path: entries {len(engine._entries)}, page frames {len(engine._page_frame)}, "
           f"failed {len(engine.failed)}, ready {len(engine._ready)}, decoding {len(engine._decoding)} "
@@ -522,6 +543,17 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
         pstats.Stats(prof).sort_stats("cumulative").print_stats("selection.py|engine.py", 25)
 
 
+def _context_switches() -> tuple[int, int]:
+    """The calling thread's (voluntary, involuntary) context switches so far (Linux: RUSAGE_THREAD; 0 elsewhere).
+    A voluntary one in the frame loop is a wait: for the interpreter lock after it gave the lock up, or any other
+    block; an involuntary one is the OS preempting it (this shared 2-core VM: other processes, the busy threads)."""
+    who = getattr(resource, "RUSAGE_THREAD", None) if resource is not None else None
+    if who is None:
+        return 0, 0
+    r = resource.getrusage(who)
+    return r.ru_nvcsw, r.ru_nivcsw
+
+
 def print_parts(parts: list[dict[str, list[float]]], cpu: np.ndarray, wall: np.ndarray) -> None:
     """Each part's thread CPU and wall per frame (0 in frames without it; the page adoption, eviction and upload
     over the frames they ran in): median, p99, max, and in how many frames it ran. `selection` is the view's
@@ -532,23 +564,29 @@ def print_parts(parts: list[dict[str, list[float]]], cpu: np.ndarray, wall: np.n
              "page eviction: choice", "page eviction: evict", "page eviction: forget", "draw set", "collect", "upload"]
 
     def col(name: str, k: int) -> np.ndarray:
-        return np.array([p.get(name, [0.0, 0.0])[k] for p in parts])
-    rows = {n: (col(n, 0), col(n, 1)) for n in names}
-    rows["selection (view + cut)"] = (rows["view"][0] + rows["cut"][0], rows["view"][1] + rows["cut"][1])
+        return np.array([p.get(name, [0.0, 0.0, 0.0, 0.0])[k] for p in parts])
+    rows = {n: (col(n, 0), col(n, 1), col(n, 2), col(n, 3)) for n in names}
+    rows["selection (view + cut)"] = tuple(rows["view"][k] + rows["cut"][k] for k in range(4))
     rest = [rows[n] for n in ("view", "cut", "pages wanted", "bands")]
-    rows["keys etc. (wanted less the above)"] = (rows["wanted"][0] - sum(r[0] for r in rest),
-                                                 rows["wanted"][1] - sum(r[1] for r in rest))
-    rows["update"] = (cpu, wall)
+    rows["keys etc. (wanted less the above)"] = tuple(rows["wanted"][k] - sum(r[k] for r in rest) for k in range(4))
+    rows["update"] = (cpu, wall, None, None)
+    # waits: the frame loop's voluntary context switches inside the part (getrusage of its thread), a frame: each
+    # is a time it gave up the interpreter lock (or blocked otherwise) and slept until it had it back; "pre": its
+    # involuntary ones (the OS preempted it); "gaps": frames whose wall exceeds their CPU by more than 0.5 ms
     print(f"  {'part (ms a frame)':36s} {'CPU median':>10s} {'p99':>7s} {'max':>7s} | {'wall median':>11s} "
-          f"{'p99':>7s} {'max':>7s} | frames")
-    for n, (c, w) in rows.items():
+          f"{'p99':>7s} {'max':>7s} | frames | waits mean, p99, pre mean, gaps")
+    for n, (c, w, v, pre) in rows.items():
+        ran_in = w > 0
         if n.startswith("page ") or n == "upload":  # over the frames it ran in
-            c, w = c[w > 0], w[w > 0]
+            c, w = c[ran_in], w[ran_in]
+            v, pre = (v[ran_in], pre[ran_in]) if v is not None else (None, None)
         ran = int(np.count_nonzero(w)) if n != "update" else len(w)
         if not ran:
             continue
+        waits = "" if v is None else (f" | {v.mean():.2f}, {np.percentile(v, 99):.0f}, {pre.mean():.2f}, "
+                                      f"{int(np.count_nonzero(w - c > 0.5))}")
         print(f"  {n:36s} {np.median(c):10.3f} {np.percentile(c, 99):7.3f} {c.max():7.3f} | {np.median(w):11.3f} "
-              f"{np.percentile(w, 99):7.3f} {w.max():7.3f} | {ran}")
+              f"{np.percentile(w, 99):7.3f} {w.max():7.3f} | {ran}{waits}")
 
 
 _JIT_COST = """
@@ -649,6 +687,9 @@ def main() -> None:
     ap.add_argument("--busy-pattern", default=None, metavar="HOLD,REST",
                     help="--engine: the busy threads hold the interpreter lock HOLD ms, then rest REST ms without it "
                          "(as a decode thread's Python between its nogil kernels: 0.15,0.3), instead of always")
+    ap.add_argument("--select-switch-interval", type=float, default=None, metavar="S",
+                    help="--engine: StreamOptions.select_switch_interval (the switch interval while the frame loop "
+                         "selects, seconds)")
     ap.add_argument("--max-tree-tiles", type=int, default=None,
                     help="--engine: the engine's bound on the tiles held (StreamOptions.max_tree_tiles; default its "
                          "default): below the tiles the path holds, pages are dropped and their eviction timed")
@@ -665,7 +706,8 @@ def main() -> None:
                         args.profile, not args.numpy_selection, not args.no_wait,
                         args.parts_json.replace("N", f"{n / 1e6:.0f}M") if args.parts_json else None,
                         args.busy_threads, args.max_tree_tiles,
-                        tuple(float(x) for x in args.busy_pattern.split(",")) if args.busy_pattern else None)
+                        tuple(float(x) for x in args.busy_pattern.split(",")) if args.busy_pattern else None,
+                        args.select_switch_interval)
         return
     if args.repage:
         repage(*args.repage, args.default_levels)

@@ -408,14 +408,24 @@ def test_the_engine_selects_near_the_cut_as_over_every_tile(paged_store):
     cams = [orbit(whole, 2.5, 0.3), outward(0.3), outward(0.3 + np.pi), orbit(whole, 0.8, 1.5), outward(0.3),
             orbit(whole, 0.6, 3.0), outward(2.0), orbit(whole, 3.0, 2.0)]
     runs = []
-    ways = [(0, False), (1 << 30, False)]
+    ways = [(0, False, None), (1 << 30, False, None)]
     if select_near_compiled is not None:  # and compiled, ready from the first frame (else the numpy path's frames)
         assert COMPILED_SELECTION.wait() is not None, COMPILED_SELECTION.error
-        ways.append((0, True))
-    for near_from, compiled in ways:
+        ways += [(0, True, None), (0, True, 1e-4)]  # and with a short switch interval while it selects
+    process_interval = sys.getswitchinterval()
+    intervals_seen: list[float] = []
+    for near_from, compiled, interval in ways:
+        if compiled:  # the interval the compiled selection runs under
+            fn = COMPILED_SELECTION._fn
+
+            def seen(*args, _fn=fn, **kw):
+                intervals_seen.append(sys.getswitchinterval())
+                return _fn(*args, **kw)
+            COMPILED_SELECTION._fn = seen
         fetcher = PagedFetcher(paged_store)
         engine = StreamEngine(fetcher, CountingPool(26), replace(opts, select_near_from=near_from,
-                                                                 compiled_selection=compiled))
+                                                                 compiled_selection=compiled,
+                                                                 select_switch_interval=interval))
         engine._pool.shutdown()
         engine._pool = Inline()  # decodes and page parses done when asked for: the frames do not depend on timing
         frames = []
@@ -425,5 +435,11 @@ def test_the_engine_selects_near_the_cut_as_over_every_tile(paged_store):
                 frames.append((u.draw, u.selection.cut, u.selection.refined, u.converged))
         runs.append((frames, fetcher.fetched, engine.pages.pages_read, engine.pages.evicted))
         engine.close()
+        if compiled:
+            COMPILED_SELECTION._fn = fn
+            expected = process_interval if interval is None else interval
+            assert intervals_seen and all(abs(x - expected) < 1e-9 for x in intervals_seen), intervals_seen
+            intervals_seen.clear()
+        assert sys.getswitchinterval() == process_interval  # restored after every selection
     assert all(run == runs[0] for run in runs[1:])
     assert runs[0][2] > 3 and runs[0][3] > 0  # pages read and dropped on the way

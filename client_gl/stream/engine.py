@@ -151,6 +151,13 @@ class StreamOptions:
     # arrival, and used once ready whatever the tiles held; the numpy path runs until they are ready, and always
     # where numba is not installed. False: the numpy path always.
     compiled_selection: bool = True
+    # The interpreter's switch interval (seconds, sys.setswitchinterval) while the frame loop computes the view's
+    # numbers and the cut (the compiled selection's; the numpy path's untouched), the process's own restored after:
+    # the frame loop, when it has let the lock go (numpy's fills and BLAS dot release it) and a decode thread's
+    # Python holds it, asks for it back after this long instead of CPython's 5 ms. Process-wide while it is set (the
+    # decode threads waiting ask the frame loop for it back as soon). None: the interval untouched (the A/B on this
+    # VM did not resolve it: BENCHMARKS.md, "Manifest pages", branch selwall).
+    select_switch_interval: float | None = None
 
 
 class CompiledSelection:
@@ -589,9 +596,17 @@ class StreamEngine:
             paged = self.pages is not None and self.pages.pages_read > 0
             compiled = COMPILED_SELECTION.get(start=near_cut or paged)
         if compiled is not None:  # it takes the tiles whose children to look at first, and finds them itself
-            view = PartialView(a, cam, opts, self.manifest.lod.reduction, self._view_buffers)
-            sel = compiled(a, view, self.cost, self.root, sel_opts, self.refined,
-                           near_parents=np.concatenate([self.refined, self._last_cut]))
+            interval = self.options.select_switch_interval
+            if interval is not None:
+                process_interval = sys.getswitchinterval()
+                sys.setswitchinterval(interval)
+            try:
+                view = PartialView(a, cam, opts, self.manifest.lod.reduction, self._view_buffers)
+                sel = compiled(a, view, self.cost, self.root, sel_opts, self.refined,
+                               near_parents=np.concatenate([self.refined, self._last_cut]))
+            finally:
+                if interval is not None:
+                    sys.setswitchinterval(process_interval)
         elif near_cut:
             view = PartialView(a, cam, opts, self.manifest.lod.reduction)
             children = indexable(a.children)
