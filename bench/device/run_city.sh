@@ -71,10 +71,12 @@ if [ "$what" = sizes ]; then
     [ -n "${WARM_AB_ROUNDS:-}" ] && python3 bench/warm_compile_ab.py --scene $s/scene --rounds "$WARM_AB_ROUNDS" \
       --cache nvidia --json "$d/warm_ab.json" 2>&1 | tail -12
     # SIZE_PASSES=N: N fly-throughs of each size (flythrough.json, then fly_2.json ...), to tell a change from the
-    # spread between passes
+    # spread between passes; FLY_AB_ARGS: every even pass with those bench_flythrough.py options (fly_2_ab.json ...),
+    # an A/B alternated within one scene
     for pass in $(seq 1 "${SIZE_PASSES:-1}"); do
       f=flythrough; [ "$pass" -gt 1 ] && f=fly_$pass
-      python3 bench/bench_flythrough.py --scene $s/scene --ply $s/s.ply --max-splats 3000000 --breakdown \
+      extra=""; if [ -n "${FLY_AB_ARGS:-}" ] && [ $((pass % 2)) = 0 ]; then extra=$FLY_AB_ARGS; f=${f}_ab; fi
+      python3 bench/bench_flythrough.py --scene $s/scene --ply $s/s.ply --max-splats 3000000 --breakdown $extra \
         --json "$d/$f.json" > $s/fly.log 2>&1 || tail -20 $s/fly.log
       fly_summary "$d/$f.json"
     done
