@@ -142,17 +142,20 @@ def fields1_kernel(raw, planes_at, params_at, n, layers, words, fields, modes, s
         if words == 1 and nf == 3:  # fields packed in one word (norm11, norm9x3, norm565)
             s1, s2 = shifts[1], shifts[2]
             r0, r1, r2 = work[0], work[1], work[2]
-            for i in range(n):
-                out[first + slot_to_texel[i]] = r0[i] | (r1[i] << s1) | (r2[i] << s2)
+            o = out[first:first + n]
+            for i in range(n):  # an unsigned index: no check for a negative one on every write (numba's wraparound)
+                o[np.uint64(slot_to_texel[i])] = r0[i] | (r1[i] << s1) | (r2[i] << s2)
         elif words == 1 and nf == 4:  # norm10_2
             s1, s2, s3 = shifts[1], shifts[2], shifts[3]
             r0, r1, r2, r3 = work[0, :n], work[1, :n], work[2, :n], work[3, :n]
+            o = out[first:first + n]
             for i in range(n):
-                out[first + slot_to_texel[i]] = r0[i] | (r1[i] << s1) | (r2[i] << s2) | (r3[i] << s3)
+                o[np.uint64(slot_to_texel[i])] = r0[i] | (r1[i] << s1) | (r2[i] << s2) | (r3[i] << s3)
         elif words == 1 and nf == 1:  # index16
             r0 = work[0, :n]
+            o = out[first:first + n]
             for i in range(n):
-                out[first + slot_to_texel[i]] = r0[i]
+                o[np.uint64(slot_to_texel[i])] = r0[i]
         elif words == 1:
             for i in range(n):
                 v = np.int64(0)
@@ -161,13 +164,14 @@ def fields1_kernel(raw, planes_at, params_at, n, layers, words, fields, modes, s
                 out[first + slot_to_texel[i]] = v
         elif words == 4 and nf == 4:  # one field a word (norm8x4, norm16x4, f16x4, f32x4): a texel's four at once
             r0, r1, r2, r3 = work[0, :n], work[1, :n], work[2, :n], work[3, :n]
+            o = out[first * 4:(first + n) * 4]
             for i in range(n):
-                t = (first + slot_to_texel[i]) * 4
-                o = out[t:t + 4]
-                o[0] = r0[i]
-                o[1] = r1[i]
-                o[2] = r2[i]
-                o[3] = r3[i]
+                # an unsigned index: numba checks a signed one for a negative value (wraparound) on every write
+                t = np.uint64(slot_to_texel[i]) * np.uint64(4)
+                o[t] = r0[i]
+                o[t + np.uint64(1)] = r1[i]
+                o[t + np.uint64(2)] = r2[i]
+                o[t + np.uint64(3)] = r3[i]
         else:  # one field a word
             for f in range(nf):
                 row = work[f]
