@@ -148,6 +148,18 @@ def test_morton_kernel_matches_the_numpy_path(numpy_path, geometry):
         assert keyed.unfilter_morton(content.tobytes(), width, height).tobytes() == expected  # read-only bytes
 
 
+def test_morton_kernel_byte_table_splits_every_key_byte():
+    # each of a key's six bytes, every value, through the kernel's table: x, y and z as keyed.compact_bits reads them
+    table = decode_jit._SPREAD
+    v = np.arange(256, dtype=np.uint64)
+    for b in range(6):
+        r, q = divmod(8 * b, 3)[::-1]
+        key = v << np.uint64(8 * b)
+        expected = (keyed.compact_bits(key) | (keyed.compact_bits(key >> np.uint64(1)) << np.uint64(16))
+                    | (keyed.compact_bits(key >> np.uint64(2)) << np.uint64(32)))
+        assert np.array_equal(table[r] << np.uint64(q), expected), b
+
+
 def test_install_and_uninstall(numpy_path):
     decode_jit.install()
     assert keyed.use_morton_kernel(decode_jit.morton_kernel) is decode_jit.morton_kernel

@@ -142,17 +142,20 @@ def fields1_kernel(raw, planes_at, params_at, n, layers, words, fields, modes, s
         if words == 1 and nf == 3:  # fields packed in one word (norm11, norm9x3, norm565)
             s1, s2 = shifts[1], shifts[2]
             r0, r1, r2 = work[0], work[1], work[2]
-            for i in range(n):
-                out[first + slot_to_texel[i]] = r0[i] | (r1[i] << s1) | (r2[i] << s2)
+            o = out[first:first + n]
+            for i in range(n):  # an unsigned index: no check for a negative one on every write (numba's wraparound)
+                o[np.uint64(slot_to_texel[i])] = r0[i] | (r1[i] << s1) | (r2[i] << s2)
         elif words == 1 and nf == 4:  # norm10_2
             s1, s2, s3 = shifts[1], shifts[2], shifts[3]
             r0, r1, r2, r3 = work[0, :n], work[1, :n], work[2, :n], work[3, :n]
+            o = out[first:first + n]
             for i in range(n):
-                out[first + slot_to_texel[i]] = r0[i] | (r1[i] << s1) | (r2[i] << s2) | (r3[i] << s3)
+                o[np.uint64(slot_to_texel[i])] = r0[i] | (r1[i] << s1) | (r2[i] << s2) | (r3[i] << s3)
         elif words == 1 and nf == 1:  # index16
             r0 = work[0, :n]
+            o = out[first:first + n]
             for i in range(n):
-                out[first + slot_to_texel[i]] = r0[i]
+                o[np.uint64(slot_to_texel[i])] = r0[i]
         elif words == 1:
             for i in range(n):
                 v = np.int64(0)
@@ -161,13 +164,14 @@ def fields1_kernel(raw, planes_at, params_at, n, layers, words, fields, modes, s
                 out[first + slot_to_texel[i]] = v
         elif words == 4 and nf == 4:  # one field a word (norm8x4, norm16x4, f16x4, f32x4): a texel's four at once
             r0, r1, r2, r3 = work[0, :n], work[1, :n], work[2, :n], work[3, :n]
+            o = out[first * 4:(first + n) * 4]
             for i in range(n):
-                t = (first + slot_to_texel[i]) * 4
-                o = out[t:t + 4]
-                o[0] = r0[i]
-                o[1] = r1[i]
-                o[2] = r2[i]
-                o[3] = r3[i]
+                # an unsigned index: numba checks a signed one for a negative value (wraparound) on every write
+                t = np.uint64(slot_to_texel[i]) * np.uint64(4)
+                o[t] = r0[i]
+                o[t + np.uint64(1)] = r1[i]
+                o[t + np.uint64(2)] = r2[i]
+                o[t + np.uint64(3)] = r3[i]
         else:  # one field a word
             for f in range(nf):
                 row = work[f]
@@ -257,14 +261,24 @@ def whole_kernel(raw, rows, fields, modes, orders, work, out8, out16, out32, uni
                        out8[units[u, 3]:units[u, 3] + count * element])
 
 
-@njit(**_JIT)
-def _compact(v):
-    """keyed.compact_bits of one uint64: its bits 0, 3, 6, ... (of the low 48) as a 16-bit number."""
-    v = v & np.uint64(0x249249249249)
-    v = (v | (v >> np.uint64(2))) & np.uint64(0x0C30C30C30C3)
-    v = (v | (v >> np.uint64(4))) & np.uint64(0x00F00F00F00F)
-    v = (v | (v >> np.uint64(8))) & np.uint64(0x0000FF0000FF)
-    return (v | (v >> np.uint64(16))) & np.uint64(0x00000000FFFF)
+def _spread_table() -> np.ndarray:
+    """morton_kernel's byte table: _SPREAD[r, v] is byte value v of a morton key whose bit 0 lies at key bit p with
+    p % 3 == r, split into x, y and z (bit j of v is key bit p + j: component (r + j) % 3, its bit (r + j) // 3) as
+    a texel's three 16-bit lanes. Key byte b (b = 0..5) starts at key bit 8b = 3q + r: its lanes are
+    _SPREAD[r, byte] << q (q at most 13 and (r + 7) // 3 at most 3: nothing crosses into the next lane). Six lookups
+    in a 6 KB table a slot where keyed.compact_bits' shifts and masks took three times five steps (issue 32)."""
+    table = np.zeros((3, 256), np.uint64)
+    for r in range(3):
+        for v in range(256):
+            t = 0
+            for j in range(8):
+                if v >> j & 1:
+                    t |= 1 << (16 * ((r + j) % 3) + (r + j) // 3)
+            table[r, v] = t
+    return table
+
+
+_SPREAD = _spread_table()
 
 
 @njit(**_JIT)
@@ -274,14 +288,23 @@ def morton_kernel(stored, slots, slot_to_texel, out):
     back into x, y and z, the fourth component from its two planes, the texel written at its place in texture
     order. All arithmetic in uint64 (numba would take a mix with signed integers to floats)."""
     key = np.uint64(0)
+    # each byte plane as its own slice, read by the loop's index alone: stored[b * slots + s] made every compiled
+    # read check for a negative index (numba's wraparound), as fields1_kernel's reads did (issue 32)
+    b0, b1, b2 = stored[0:slots], stored[slots:2 * slots], stored[2 * slots:3 * slots]
+    b3, b4, b5 = stored[3 * slots:4 * slots], stored[4 * slots:5 * slots], stored[5 * slots:6 * slots]
+    w0, w1 = stored[6 * slots:7 * slots], stored[7 * slots:8 * slots]
     for s in range(slots):
-        d = np.uint64(0)
-        for b in range(6):
-            d |= np.uint64(stored[b * slots + s]) << np.uint64(8 * b)
-        key += d
-        w = np.uint64(stored[6 * slots + s]) | (np.uint64(stored[7 * slots + s]) << np.uint64(8))
-        out[slot_to_texel[s]] = _compact(key) | (_compact(key >> np.uint64(1)) << np.uint64(16)) \
-            | (_compact(key >> np.uint64(2)) << np.uint64(32)) | (w << np.uint64(48))
+        key += (np.uint64(b0[s]) | (np.uint64(b1[s]) << np.uint64(8)) | (np.uint64(b2[s]) << np.uint64(16))
+                | (np.uint64(b3[s]) << np.uint64(24)) | (np.uint64(b4[s]) << np.uint64(32))
+                | (np.uint64(b5[s]) << np.uint64(40)))
+        w = np.uint64(w0[s]) | (np.uint64(w1[s]) << np.uint64(8))
+        t = _SPREAD[0, key & np.uint64(0xFF)]
+        t |= _SPREAD[2, (key >> np.uint64(8)) & np.uint64(0xFF)] << np.uint64(2)
+        t |= _SPREAD[1, (key >> np.uint64(16)) & np.uint64(0xFF)] << np.uint64(5)
+        t |= _SPREAD[0, (key >> np.uint64(24)) & np.uint64(0xFF)] << np.uint64(8)
+        t |= _SPREAD[2, (key >> np.uint64(32)) & np.uint64(0xFF)] << np.uint64(10)
+        t |= _SPREAD[1, (key >> np.uint64(40)) & np.uint64(0xFF)] << np.uint64(13)
+        out[slot_to_texel[s]] = t | (w << np.uint64(48))
 
 
 @njit(**_JIT)
