@@ -263,7 +263,8 @@ def main() -> None:
                          "0.005; 0.0005 made upload frames slower on the GPU machine, BENCHMARKS.md)")
     ap.add_argument("--select-switch-interval", type=float, metavar="S",
                     help="the switch interval while the frame loop computes the view and the cut, the process's "
-                         "restored after (StreamOptions.select_switch_interval, seconds; default: untouched)")
+                         "restored after (StreamOptions.select_switch_interval, seconds; 0: untouched; default: "
+                         "the option's default)")
     ap.add_argument("--gl-release-gil", action="store_true",
                     help="the A/B of client_gl.gpu.gl.FUNCTION_TYPE: our GL entry points as CFUNCTYPE (released "
                          "the GIL in every call) instead of PYFUNCTYPE")
@@ -328,8 +329,8 @@ def main() -> None:
         out["gc_freeze"] = not args.no_gc_freeze
         if args.select_switch_interval is not None:  # the A/B of StreamOptions.select_switch_interval
             session.engine.options = replace(session.engine.options,
-                                             select_switch_interval=args.select_switch_interval)
-        out["select_switch_interval_s"] = args.select_switch_interval
+                                             select_switch_interval=args.select_switch_interval or None)
+        out["select_switch_interval_s"] = session.engine.options.select_switch_interval
         out["decode_workers"], out["decode_processes"] = args.decode_workers, args.decode_processes
         out["decode_workers_moving"], out["decode_batch"] = args.decode_workers_moving, not args.no_decode_batch
         out["sort_pass_programs"] = bool(args.sort_pass_programs)

@@ -329,11 +329,12 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
     paged = split_pages(whole, k)
     files = {ref.file: raw for ref, raw in paged.pages}
     bound = {} if max_tree_tiles is None else {"max_tree_tiles": max_tree_tiles}
+    if select_switch_interval is not None:  # 0: untouched; None: the option's default
+        bound["select_switch_interval"] = select_switch_interval or None
     fetcher = _PathFetcher(paged.root, files, per_frame)
     engine = _NoDecodeEngine(fetcher, _Slots(),
                              StreamOptions(SelectionOptions(max_splats=max_splats), upload_bytes_per_frame=1 << 40,
-                                           compiled_selection=compiled,
-                                           select_switch_interval=select_switch_interval, **bound))
+                                           compiled_selection=compiled, **bound))
     if compiled and wait:
         t0 = time.perf_counter()
         if COMPILED_SELECTION.wait() is None:
@@ -525,7 +526,8 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
     if holds:
         done, busy_cpu = sum(h[0] for h in holds), sum(h[1] for h in holds)
         print(f"  busy threads: {done} holds done in {path_s:.2f} s ({done / path_s:.0f} a second), their CPU "
-              f"{busy_cpu:.2f} s; switch interval during the selection: {select_switch_interval}")
+              f"{busy_cpu:.2f} s; switch interval during the selection: "
+              f"{engine.options.select_switch_interval}")
     # the engine's per-key maps after the path: bounded by the tiles held when pages are dropped (issue 38)
     print(f"  per-key maps after the path: entries {len(engine._entries)}, page frames {len(engine._page_frame)}, "
           f"failed {len(engine.failed)}, ready {len(engine._ready)}, decoding {len(engine._decoding)} "
@@ -689,7 +691,7 @@ def main() -> None:
                          "(as a decode thread's Python between its nogil kernels: 0.15,0.3), instead of always")
     ap.add_argument("--select-switch-interval", type=float, default=None, metavar="S",
                     help="--engine: StreamOptions.select_switch_interval (the switch interval while the frame loop "
-                         "selects, seconds)")
+                         "selects, seconds; 0: untouched; default: the option's default)")
     ap.add_argument("--max-tree-tiles", type=int, default=None,
                     help="--engine: the engine's bound on the tiles held (StreamOptions.max_tree_tiles; default its "
                          "default): below the tiles the path holds, pages are dropped and their eviction timed")

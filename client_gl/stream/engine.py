@@ -155,9 +155,11 @@ class StreamOptions:
     # numbers and the cut (the compiled selection's; the numpy path's untouched), the process's own restored after:
     # the frame loop, when it has let the lock go (numpy's fills and BLAS dot release it) and a decode thread's
     # Python holds it, asks for it back after this long instead of CPython's 5 ms. Process-wide while it is set (the
-    # decode threads waiting ask the frame loop for it back as soon). None: the interval untouched (the A/B on this
-    # VM did not resolve it: BENCHMARKS.md, "Manifest pages", branch selwall).
-    select_switch_interval: float | None = None
+    # decode threads waiting ask the frame loop for it back as soon). 0.2 ms: on the GPU machine at 60M, two
+    # alternated pairs, the selection's p99 1.66-1.69 -> 1.23-1.37 ms and the frame's 12.5-12.6 -> 9.0-9.4 ms, the
+    # decode threads' CPU the same (BENCHMARKS.md, "Manifest pages", r14's A/B; the VM's A/B did not resolve it,
+    # branch selwall). None: the interval untouched.
+    select_switch_interval: float | None = 0.0002
 
 
 class CompiledSelection:
