@@ -207,7 +207,7 @@ def boxes_in_frustum(box_min: np.ndarray | None, box_max: np.ndarray | None, pla
     # corner's coordinates where the normal is positive, the min corner's where it is negative. Written out term by
     # term (not einsum or @): each row's result is then the same bits whether every tile is tested or a few
     # (PartialView tests the tiles near the cut only, and its cut must be the whole tree's).
-    split = _split(planes)
+    split = corner_weights(planes)
     terms = corners[:, None, :] * split[None, :, :]  # (T, planes, 6)
     s = planes[None, :, 3] + terms[:, :, 0]
     for k in range(1, 6):
@@ -216,7 +216,7 @@ def boxes_in_frustum(box_min: np.ndarray | None, box_max: np.ndarray | None, pla
     return inside
 
 
-def _split(planes: np.ndarray) -> np.ndarray:
+def corner_weights(planes: np.ndarray) -> np.ndarray:
     """(planes, 6): each plane's normal split for the [max, min] box corners (the positive vertex's weights)."""
     n = planes[:, :3]
     return np.concatenate([np.maximum(n, 0.0), np.minimum(n, 0.0)], axis=1)
@@ -325,9 +325,10 @@ class PartialView:
         """`buffers`: where to take the per-tile arrays from (ViewBuffers: the last view taken from them is
         overwritten); None: new arrays."""
         self.arrays, self.cam = a, cam
-        self._basis = _basis(cam)
-        self._planes = frustum_planes(cam, 1.0, self._basis)
-        self.wide_frustum = (a, cam, self._basis, opts.prefetch_margin)
+        # the camera's basis and frustum planes, public: the compiled selection reads them (selection_jit)
+        self.basis = _basis(cam)
+        self.planes = frustum_planes(cam, 1.0, self.basis)
+        self.wide_frustum = (a, cam, self.basis, opts.prefetch_margin)
         self.level_step = refinement_level_step(reduction)
         n = len(a.parent)
         self.buffers = buffers
@@ -344,7 +345,7 @@ class PartialView:
             self.known = buffers.get("known", n, np.dtype(np.uint8), True)
         self.looked_at = 0  # tiles whose numbers were computed
         # the planes' normals split for the box corners (boxes_in_frustum's; the compiled selection takes them too)
-        self.split = _split(self._planes)
+        self.split = corner_weights(self.planes)
         self._one: list | None = None  # the box test of one tile in Python floats (visible_at), made when needed
         self._visible_of: dict[int, bool] = {}
 
@@ -356,7 +357,7 @@ class PartialView:
         at = at[self.known[at] == 0]  # the callers name each tile once
         if not at.size:
             return
-        sse, visible, radius_px, area, distance = _numbers(self.arrays, self.cam, self._basis, self._planes, at)
+        sse, visible, radius_px, area, distance = _numbers(self.arrays, self.cam, self.basis, self.planes, at)
         self.sse[at], self.visible[at], self.radius_px[at], self.area_px[at], self.distance[at] = \
             sse, visible, radius_px, area, distance
         self.known[at] = 1
@@ -370,7 +371,7 @@ class PartialView:
         v = self._visible_of.get(i)
         if v is None:
             if self._one is None:  # the same operations in the same order as boxes_in_frustum's: the same answer
-                self._one = list(zip(self._planes[:, 3].tolist(), self.split.tolist(), strict=True))
+                self._one = list(zip(self.planes[:, 3].tolist(), self.split.tolist(), strict=True))
             c = self.arrays.box_corners[i].tolist()
             v = True
             for d, w in self._one:

@@ -34,7 +34,7 @@ from client_gl.stream.selection import (
     SelectionOptions,
     TileView,
     ViewBuffers,
-    _split,
+    corner_weights,
     positions,
     select_near_heap,
     view_numbers,
@@ -681,14 +681,14 @@ def select_near_compiled(a: TileArrays, view: PartialView, cost: np.ndarray, roo
     was = buf.get("was_refined", n, np.dtype(np.bool_), True)
     if len(previous_refined):
         was[positions(previous_refined)] = True
-    cam, basis, planes = view.cam, view._basis, view._planes
+    cam, basis, planes = view.cam, view.basis, view.planes
     eye, right, up, forward = basis
     focal = cam.height / (2.0 * cam.tan_half_fov_y)
     camv = np.array([*eye, *right, *up, *forward, focal, cam.width, cam.height, cam.width / 2.0, cam.height / 2.0,
                      float(cam.width * cam.height)], np.float64)
     high = float(opts.max_sse)
     g = (camv, _f64(a.sphere_center), _f64(a.sphere_radius), _f64(a.geometric_error), _f64(a.box_corners),
-         _f64(planes[:, 3]), _f64(view.split if hasattr(view, "split") else _split(planes)), lo, hi, was, high,
+         _f64(planes[:, 3]), _f64(view.split if hasattr(view, "split") else corner_weights(planes)), lo, hi, was, high,
          high * opts.hysteresis)
     known, sse, visible, radius_px, area_px, distance = (view.known, view.sse, view.visible, view.radius_px,
                                                          view.area_px, view.distance)
@@ -749,7 +749,7 @@ def draw_set_compiled(a: TileArrays, view: PartialView | TileView, sel: Selectio
         known, plane_d, split, corners = _NO_PLANES
     else:
         all_known = False
-        plane_d, split, corners = _f64(view._planes[:, 3]), _f64(view.split), _f64(a.box_corners)
+        plane_d, split, corners = _f64(view.planes[:, 3]), _f64(view.split), _f64(a.box_corners)
     out = np.empty(n, np.int64)
     m = _draw_walk(root, lo, hi, kids, refd, np.ascontiguousarray(resident, np.bool_), all_known, known,
                    np.ascontiguousarray(view.visible, np.bool_), corners, plane_d, split, out,
