@@ -16,9 +16,7 @@ import json
 import os
 import statistics
 
-SCENE_ORDER = ("donut", "winter_fountain", "guitar", "biker", "flowers", "statue-angel-kneeling",
-               "statue-angel-with-candlestick", "statue-angel", "statue-massa", "statue-narcissus", "statue-st-peter",
-               "statue-trumpet")
+from lod_vs_peers import SCENES  # bench/ is the script's directory: the scenes and their order, one list
 
 
 def best_peer(res: dict, budget: int) -> tuple[float | None, str]:
@@ -36,7 +34,7 @@ def main() -> int:
     rows = ["| scene | budget | best peer | stored auto | today | today - stored | today - best peer | fill | bytes |",
             "|---|---:|---:|---:|---:|---:|---:|---|---:|"]
     d_peer, d_old_peer, d_stored = [], [], []
-    for name in SCENE_ORDER:
+    for name in SCENES:
         npath = os.path.join(args.new_dir, f"{name}.json")
         if not os.path.exists(npath):
             continue

@@ -29,6 +29,7 @@ from splatstream.format.manifest import (
     PageRef,
     TileEntry,
     grown_arrays,
+    kept_prefix,
     read_page,
     replace_kept,
     taken_arrays,
@@ -140,10 +141,7 @@ class PagedTree:
         """The tiles held now as a view's `tiles` (ListPrefix): the tree's list up to its length, not a tuple of
         every tile (a tuple a page, and the last one's freed, touched every tile held: 0.14 ms median of a page's
         adoption, 0.4 p99, at 21,000 tiles; BENCHMARKS.md, "Manifest pages")."""
-        view = ListPrefix(self._tiles, len(self._tiles))
-        self._views = [r for r in self._views if r() is not None]
-        self._views.append(weakref.ref(view))
-        return view
+        return kept_prefix(self._tiles, self._views, len(self._tiles))
 
     def _replace_tile(self, at: int, tile: TileEntry) -> None:
         """self._tiles[at] = tile, the tile there before kept by the views that hold that position."""

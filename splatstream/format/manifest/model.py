@@ -515,9 +515,7 @@ def grown_arrays(a: TileArrays, tiles: Sequence[TileEntry], idx: Mapping[int, in
     for i, kids in zip(changed, made[:len(changed)], strict=True):
         replace_kept(shared, store.child_views, i, kids)
     shared += made[len(changed):]
-    children = ListPrefix(shared, n)
-    store.child_views = [r for r in store.child_views if r() is not None]
-    store.child_views.append(weakref.ref(children))
+    children = kept_prefix(shared, store.child_views, n)
     out = TileArrays(children=children, **{name: store.buf[name][:n] for name in ("parent", *_ROW_NAMES)})
     for name in _DERIVED_ROWS:  # the derived arrays that only grow, kept as views too
         out.__dict__[name] = store.buf[name][:n]
@@ -529,6 +527,15 @@ def grown_arrays(a: TileArrays, tiles: Sequence[TileEntry], idx: Mapping[int, in
         some = lengths > 0
         out.__dict__["_children_grown"] = (start, parents[some], lengths[some], kid)
     return out
+
+
+def kept_prefix(items: list, views: list[weakref.ref], n: int) -> ListPrefix:
+    """A ListPrefix of items[:n], registered in `views` (the dead ones dropped) so that replace_kept keeps for it
+    the items it read."""
+    view = ListPrefix(items, n)
+    views[:] = [r for r in views if r() is not None]
+    views.append(weakref.ref(view))
+    return view
 
 
 def replace_kept(items: list, views: list[weakref.ref], at: int, value) -> None:
