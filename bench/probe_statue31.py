@@ -114,6 +114,20 @@ def variant_patches(variant: str) -> dict:
     raise SystemExit(f"unknown variant {variant}")
 
 
+def build_variant(g: Gaussians, variant: str, max_leaf_splats: int = 16384, reduction: float = 2.0
+                  ) -> list[lod.Tile]:
+    """lod.build_tiles(g, ..., merge="auto") with `variant`'s patches of the lod module, restored afterwards."""
+    patches = variant_patches(variant)
+    saved = {k: getattr(lod, k) for k in patches}
+    try:
+        for k, v in patches.items():
+            setattr(lod, k, v)
+        return lod.build_tiles(g, max_leaf_splats, reduction, merge="auto")
+    finally:
+        for k, v in saved.items():
+            setattr(lod, k, v)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("scene")
@@ -147,14 +161,7 @@ def main(argv: list[str] | None = None) -> int:
             print(f"{args.scene} splat-transform {c} ({c / n:.3f}): {psnr(imgs)} dB, error background / "
                   f"silhouette / interior {error_split(imgs, refs)}", flush=True)
     for variant in args.variants:
-        saved = {k: getattr(lod, k) for k in variant_patches(variant)}
-        try:
-            for k, v in variant_patches(variant).items():
-                setattr(lod, k, v)
-            tiles = lod.build_tiles(g, 16384, 2.0, merge="auto")
-        finally:
-            for k, v in saved.items():
-                setattr(lod, k, v)
+        tiles = build_variant(g, variant)
         row = []
         for level in sorted({t.level for t in tiles}):
             parts = [t.gaussians for t in tiles if t.level == level]
