@@ -1,5 +1,6 @@
 #!/usr/bin/env python3
-"""Probe: why the statue scans lose to splat-transform at 2-25 % (issue 31; BENCHMARKS.md, "Why the statues lose").
+"""Probe: why the statue scans lose to splat-transform at 2-25 % (issue 31; BENCHMARKS.md, "Why the statue scans
+lose to splat-transform").
 
 Builds our tree in memory (`lod.build_tiles`, the encoder's defaults: 16,384-splat leaves, reduction 2, `auto`) and
 draws ONE WHOLE LEVEL of it (every tile of the level) from lod_vs_peers' 4 orbit views at 384 px (GL renderer,
