@@ -12,7 +12,8 @@ Variants change one thing of the merge (applied to the module, one build each):
 
 * `base`: the encoder as it is.
 * `px=A/B`: opacity and base colour (lod.md 6 step 5) matched at A px on the first merged level (the children
-  are leaves) and B px above it (0: no blur); the encoder's rule is 2/2.
+  are leaves) and B px above it (0: no blur); the encoder's rule is 2/2. `px=A/B/C`: above it opacity at B px and
+  colour at C px.
 * `rule:KEY=VALUE`: the cost grouping's GroupRule field (lod_groups.GroupRule) on every level;
   `above:KEY=VALUE`: the same above the first merged level only.
 * `optical`: the merged opacity from the members' summed optical depth, -log(1 - alpha_i) x dilated area,
@@ -23,6 +24,12 @@ Variants change one thing of the merge (applied to the module, one build each):
 
 Prints per variant each level of 1-60 % of the scene: PSNR dB (mean of the 4 views' MSE) and the share of the
 merged splats at the opacity ceiling. Needs splat-transform for --peer-levels (bench/peers, `npm ci`).
+
+    PYTHONPATH=. .venv/bin/python bench/probe_statue31.py --one-px 2 --variants base px=2/8 px=2/8/2
+
+instead runs tests/test_lod.py's 1-px check (each level of the 2,000-splat-leaf `auto` tree of fruit_drops, lod_tile
+and the donut, at this reduction, drawn from where its largest error is 1 px, 96x96, reference rasteriser) per
+variant: PSNR dB against the full scene per level, root first.
 """
 from __future__ import annotations
 
@@ -60,13 +67,27 @@ def error_split(imgs: list[np.ndarray], refs: list[np.ndarray]) -> list[float]:
     return [round(float(x), 3) for x in np.mean(out, 0)]
 
 
-def _finish_tile_at(first_px: float, above_px: float):
-    """lod.finish_tile with the viewing scale `first_px` on the first merged level, `above_px` above (0: none)."""
+def _blur(error: float, px: float) -> float:
+    return 0.0 if px <= 0 else lod.LOW_PASS_PX2 * (error / px) ** 2
+
+
+def _finish_tile_at(first_px: float, opacity_px: float, colour_px: float):
+    """lod.finish_tile with the viewing scale `first_px` on the first merged level; above it opacity matched at
+    `opacity_px` and base colour at `colour_px` (0: no blur)."""
     def finish_tile(merged, counts, far, near, child_error, appearance):
-        px = first_px if child_error == 0.0 else above_px
         errors, error = lod.tile_error_first(merged, counts, far, near, child_error)
-        blur = 0.0 if px <= 0 else lod.LOW_PASS_PX2 * (error / px) ** 2
+        if child_error == 0.0 or opacity_px == colour_px:
+            blur = _blur(error, first_px if child_error == 0.0 else opacity_px)
+            lod.finish_appearance(merged, counts, appearance(blur), blur)
+            return error
+        logits, sh_dc = merged.opacity_logits, merged.sh_dc
+        blur = _blur(error, colour_px)
         lod.finish_appearance(merged, counts, appearance(blur), blur)
+        colour = merged.sh_dc
+        merged.opacity_logits, merged.sh_dc = logits, sh_dc
+        blur = _blur(error, opacity_px)
+        lod.finish_appearance(merged, counts, appearance(blur), blur)
+        merged.sh_dc = colour
         return error
     return finish_tile
 
@@ -105,8 +126,8 @@ def variant_patches(variant: str) -> dict:
     if variant == "base":
         return {}
     if variant.startswith("px="):
-        a, b = (float(x) for x in variant[3:].split("/"))
-        return {"finish_tile": _finish_tile_at(a, b)}
+        px = [float(x) for x in variant[3:].split("/")]
+        return {"finish_tile": _finish_tile_at(px[0], px[1], px[-1])}
     if variant.startswith(("rule:", "above:")):
         kind, spec = variant.split(":", 1)
         return {"level_auto_groups": _rule_groups(spec, kind == "above")}
@@ -129,16 +150,41 @@ def build_variant(g: Gaussians, variant: str, max_leaf_splats: int = 16384, redu
             setattr(lod, k, v)
 
 
+def one_px(variants: list[str], reduction: float) -> None:
+    """tests/test_lod.py's 1-px check (level_views) of its scenes, the trees built with each variant."""
+    sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
+    import test_lod  # the test's own scenes, cameras and renderer
+
+    for name in test_lod.REAL_PLYS:
+        for variant in variants:
+            tiles = build_variant(test_lod.scene(name), variant, test_lod.MAX_LEAF, reduction)
+            saved = test_lod.tree
+            test_lod.tree = lambda _name, reduction=4.0, _tiles=tiles: _tiles
+            try:
+                levels = [f"L{level} {test_lod.psnr(full, coarse):.2f}"
+                          for level, _n, (full, _), (coarse, _) in test_lod.level_views(name)]
+            finally:
+                test_lod.tree = saved
+            print(f"{name} reduction {reduction:g} {variant}: " + ", ".join(levels), flush=True)
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("scene")
-    ap.add_argument("--cache-dir", required=True, help="lod_vs_peers' --cache-dir (full.ply, ref_KEY.npy)")
+    ap.add_argument("scene", nargs="?")
+    ap.add_argument("--one-px", type=float, default=None, metavar="REDUCTION",
+                    help="instead: tests/test_lod.py's 1-px check of its scenes, trees at this reduction")
+    ap.add_argument("--cache-dir", help="lod_vs_peers' --cache-dir (full.ply, ref_KEY.npy)")
     ap.add_argument("--work-dir", default="/tmp/probe_statue31")
     ap.add_argument("--peer-levels", action="store_true")
     ap.add_argument("--splat-transform", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "peers",
                                                               "node_modules", ".bin", "splat-transform"))
     ap.add_argument("--variants", nargs="+", default=["base"])
     args = ap.parse_args(argv)
+    if args.one_px:
+        one_px(args.variants, args.one_px)
+        return 0
+    if not (args.scene and args.cache_dir):
+        ap.error("SCENE and --cache-dir, or --one-px")
 
     sdir = os.path.join(args.cache_dir, args.scene)
     g = read_gaussians(os.path.join(sdir, "full.ply"))

@@ -98,3 +98,15 @@ def test_optical_depth_opacity_of_two_members():
                        np.zeros((1, 0, 3), np.float32))
     P._optical_finish(merged, np.array([2]), terms.sum(axis=1, keepdims=True), 0.0)
     assert abs(float(merged.opacities[0]) - 0.75) < 1e-6
+
+
+def test_opacity_and_colour_scales_apart():
+    # px=A/B is px=A/B/B; px=A/B/C with B != C matches opacity and colour apart, and the first merged level keeps A.
+    base, far, same_two = build("base"), build("px=2/8"), build("px=2/8/8")
+    assert all(same(a, b) for a, b in zip(far, same_two, strict=True))
+    split = build("px=2/8/2")
+    first = first_merged(base)
+    assert all(same(a, b) for a, b in zip(base, split, strict=True) if a.level >= first)
+    above = [(a, b, c) for a, b, c in zip(base, far, split, strict=True) if a.children and a.level < first]
+    assert any(not same(b, c, ("sh_dc",)) for _, b, c in above)
+    assert any(not same(a, c, ("opacity_logits",)) for a, _, c in above)
