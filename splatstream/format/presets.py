@@ -168,8 +168,10 @@ PRESET_STEPS: dict[str, dict[str, TileStep]] = {
 # zstd level per preset where it is not the encoder's default (DEFAULT_ZSTD_LEVEL, 1; `--zstd-level` overrides
 # both): a higher level where its small gain puts a preset under 0.90 of SOG's bytes on a real scene, for a little
 # more encode time; low-plus and low gained nothing, and medium keeps level 1 for its encode speed
-# (bench/results/pos9_levels_*; BENCHMARKS.md, "Figures behind library defaults").
-PRESET_ZSTD_LEVEL: dict[str, int] = {"medium-low": 9, "medium-low-12bit": 16, "medium-low-palette": 16,
+# (bench/results/pos9_levels_*; BENCHMARKS.md, "Figures behind library defaults"). very-high takes level 12 for its
+# decode: its float byte planes at level 12 are 1.2-1.6 % smaller and zstd reads them 8-15 % faster than at level 1,
+# where levels 16 and 19 read as slowly as level 1 (issue 32; BENCHMARKS.md, "Decode speed", vhdec).
+PRESET_ZSTD_LEVEL: dict[str, int] = {"very-high": 12, "medium-low": 9, "medium-low-12bit": 16, "medium-low-palette": 16,
                                      "medium-low-9bit": 16,
                                      "low-plus-9bit": 16, "low-plus-9bit-sh6": 16,
                                      "low-plus-9bit-sh5": 16, "low-plus-10bit-cb8": 16}
