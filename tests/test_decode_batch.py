@@ -19,7 +19,7 @@ from splatstream.encode.local import encode_in_memory
 from splatstream.errors import FormatError
 from splatstream.format import container
 from splatstream.format.decode import decode_payload, decode_payloads
-from splatstream.format.presets import PRESETS
+from splatstream.format.presets import PRESET_BLOCK_SLACK, PRESETS
 from splatstream.format.transport import (
     FIELD_LAYOUTS,
     field_bits,
@@ -220,6 +220,44 @@ def test_small_payloads_have_fewer_blocks_and_bytes_and_the_same_raw_bytes(fruit
     assert 0 < blocks_joined < 0.7 * blocks_apart
     assert sum(len(a) for a, _ in joined) < 0.995 * sum(len(b) for b, _ in apart)
 
+
+
+def test_block_ends_with_slack_join_more_parts():
+    # a slack (presets.PRESET_BLOCK_SLACK) joins a part where the joined block codes up to 1 + slack times the parts'
+    # bytes: fewer blocks, never more, and none joined across MERGE_MAX_RAW
+    rng = np.random.default_rng(5)
+    parts = [rng.integers(0, 256, 1024, dtype=np.uint8) for _ in range(3)]
+    parts += [np.minimum(rng.geometric(p, 1024), 255).astype(np.uint8) for p in (0.3, 0.05, 0.5, 0.02)]
+    segments = [(None, p) for p in parts]
+    raw = 7 * 1024
+    ends = {slack: container._block_ends(segments, raw, slack) for slack in (0.0, 0.03, 0.5)}
+    assert sum(ends[0.5]) < sum(ends[0.03]) <= sum(ends[0.0]) and sum(ends[0.5]) == 1
+    assert all(e[-1] for e in ends.values())
+    assert container._block_ends(segments, container.MERGE_MAX_RAW + 1, 0.5) == [True] * len(segments)
+
+
+def test_very_high_joins_blocks_with_its_slack_the_same_bytes_decompressed(fruit, monkeypatch):
+    # very-high's slack (presets.PRESET_BLOCK_SLACK; issue 32: each zstd block's tables cost its reader more than
+    # their bytes) changes where blocks end and nothing decompressed (format.md 5.2): fewer blocks, within 2 % of
+    # the bytes
+    def encode():
+        store = encode_in_memory(fruit, EncodeOptions(preset="very-high", max_leaf_splats=512))
+        m = read_manifest(store)
+        return [(store.read_payload(e), e) for t in m.tiles for e in t.groups.values()]
+
+    assert PRESET_BLOCK_SLACK["very-high"] > 0
+    joined = encode()
+    monkeypatch.setitem(PRESET_BLOCK_SLACK, "very-high", 0.0)
+    apart = encode()
+    assert len(joined) == len(apart) > 10
+    d = zstandard.ZstdDecompressor()
+    for (a, ea), (b, eb) in zip(joined, apart, strict=True):
+        assert d.decompress(a) == d.decompress(b) and ea.sections == eb.sections
+    blocks_joined = sum(zstd_block_count(a) for a, _ in joined)
+    blocks_apart = sum(zstd_block_count(b) for b, _ in apart)
+    assert 0 < blocks_joined < 0.8 * blocks_apart
+    assert sum(len(a) for a, _ in joined) < 1.02 * sum(len(b) for b, _ in apart)  # (the trials' level is 1, the
+    # payload's 12: joined blocks may even code smaller)
 
 def _group_reads(monkeypatch) -> list[bool]:
     """Whether each container._decompress_group call decompressed its group (True) or left it to a payload at a

@@ -8,16 +8,20 @@ from __future__ import annotations
 import hashlib
 import os
 
+import numpy as np
 import pytest
 from conftest import real
 
 from splatstream import io, ply
-from splatstream.encode import encode_file, plan
+from splatstream.encode import EncodeOptions, encode_file, plan
+from splatstream.encode.local import encode_in_memory
 from splatstream.errors import UsageError
+from splatstream.format.decode import decode_payload
 from splatstream.gaussians import Gaussians
 from splatstream.io import read_gaussians
 from splatstream.ply import gaussians_to_records, write_gaussians_ply
 from splatstream.readers.splat import write_splat
+from splatstream.store import read_manifest
 
 # Small leaves and a small memory per worker: a tree of several levels split into partitions. The grid merge named:
 # the default merge is auto in memory and the grid by partitions (options.default_lod_merge), and these digests are
@@ -60,16 +64,18 @@ def write_inputs(base: str) -> dict[str, str]:
 # are matched at the 2-px viewing scale (format_spec/lod.md 6 step 5, branch lodq; "no-lod" unchanged by that); the
 # LOD cases again since their manifests are 1.8 tile tables (format.md 6.2, branch manifest18: payloads unchanged,
 # "no-lod" a one-tile scene, unchanged); every case again since a small payload's like byte planes share a zstd block
-# (container._block_ends, issue 32: the same decompressed bytes, 0.5-2 % fewer stored)
+# (container._block_ends, issue 32: the same decompressed bytes, 0.5-2 % fewer stored); very-high's again since it
+# takes zstd level 12 and joins more of its parts into a zstd block (presets.PRESET_ZSTD_LEVEL, PRESET_BLOCK_SLACK;
+# issue 32: the same texels, faster to read)
 DIGESTS: dict[tuple[str, str, str], str] = {
     ("ply", "medium", ""): "3539057900bf8ad26c21a57e4219a0df664af3332ce7bbaeff8147f5292633cc",
     ("ply", "low", ""): "0db72d8c8bace3cbf332f2caa59caa4803cc19349cf4c68b0e9e96c170b8cf99",
     ("ply", "medium-low-sh8", ""): "45280c500980bec9fc136e32f7bba723a5132435ecf07f90e362c2c13a18f358",
-    ("ply", "very-high", ""): "b36108dfdd11d399d0229652777e3fe6c0cd82b55b18ca00d7b8e108ef2146bf",
+    ("ply", "very-high", ""): "26a9d7f9cc2394e3b9a9d2254a2c7cf1aa66c5ecb2abcff20065c0449021f6f5",
     ("splat", "medium", ""): "4c00935b906dea8d5cf5e6e44b14c9de33e15048ac721b41d9633a2179554225",
     ("splat", "low", ""): "1dff006b6f768acb06631fbead6ad83acd7b2d7786825bb94448e1e75eed793f",
     ("splat", "medium-low-sh8", ""): "6827761dd112ce5837086505b1a19e6ddcdc73b98362f3633ac6a331ac384cdd",
-    ("splat", "very-high", ""): "120b6d055316063fdf10a83d7e4d31b75e08c9e5247108b92aafd6fe51e7e18b",
+    ("splat", "very-high", ""): "6a289cce38de9ed3e184e0fb8ef3ffd46fffe93aedaceac0b98e8ba48e970baf",
     ("ply", "medium", "no-lod"): "326bbd6d6bfc1c919eb362f224d879dc520fa24b119f0deefb344bf07ab81e9d",
     ("ply", "low", "sh1"): "c15ad83a20c7c4a495aabe7ddaea57ead06c7fa34d21f0f92e16979c888e31ae",
     ("zup", "medium", ""): "518e45c38edc57064ac117199af79c87fd3d745b6408f9ad92f2e5f9350a3d4a",
@@ -139,6 +145,31 @@ def test_the_input_is_sniffed_and_its_header_read_once(inputs, tmp_path, monkeyp
     encode_file(inputs["zup"], str(tmp_path / "out"), preset="medium", **ENGINES[engine], **TREE)
     assert calls == {"_sniff": 1, "read_header": 1, **({"domain_violations": 1} if engine == "memory" else {})}
 
+
+
+def test_very_high_at_its_zstd_level_decodes_to_level_1s_texels_from_fewer_bytes():
+    """very-high takes zstd level 12 (presets.PRESET_ZSTD_LEVEL; issue 32: zstd reads its frames 8-15 % faster than
+    level 1's, BENCHMARKS.md "Decode speed", vhdec): every payload decodes to exactly the texels and ranges it held
+    at level 1 (the lossless preset stays lossless; readers need not know the level: format.md 5.1), and the scene is
+    stored in fewer bytes. (The fields1-or-shuffle trials run at the level too, up to transport.TRIAL_LEVEL_MAX, so
+    a section's filter may differ: its texels may not.)"""
+    assert EncodeOptions(preset="very-high").resolved_zstd_level == 12
+    g = read_gaussians(real("fruit_drops_sh3.ply"))
+    texels: dict[int | None, list[bytes]] = {}
+    stored: dict[int | None, int] = {}
+    for level in (None, 1):
+        store = encode_in_memory(g, EncodeOptions(preset="very-high", zstd_level=level, **TREE))
+        m = read_manifest(store)
+        texels[level], stored[level] = [], 0
+        for t in m.tiles:
+            for group, entry in sorted(t.groups.items()):
+                data = store.read_payload(entry)
+                stored[level] += len(data)
+                for name, plane in sorted(decode_payload(data, entry, group, "test", m.uses_codebook).items()):
+                    texels[level] += [name.encode()] + [np.ascontiguousarray(x).tobytes() for x in plane.layers]
+                    texels[level].append(b"" if plane.ranges is None else np.ascontiguousarray(plane.ranges).tobytes())
+    assert len(texels[None]) > 100 and texels[None] == texels[1]
+    assert stored[None] < 0.995 * stored[1]
 
 if __name__ == "__main__":  # prints every case's digest with whichever splatstream is imported
     import sys

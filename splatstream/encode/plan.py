@@ -21,7 +21,13 @@ from ..format.layout import CHUNK_SIZE, MAX_BLOCK_ROWS, MAX_BLOCKS_PER_ROW
 from ..format.limits import describe_violations, domain_violations
 from ..format.manifest import Box, CameraEntry
 from ..format.planes import BASE_PLANES
-from ..format.presets import PRESET_PALETTE_MERGE, palette_fallback, resolve_chunk_order, resolve_formats
+from ..format.presets import (
+    PRESET_PALETTE_MERGE,
+    palette_fallback,
+    preset_block_slack,
+    resolve_chunk_order,
+    resolve_formats,
+)
 from ..format.steps import TileStep, on_grid
 from ..format.texformats import PALETTE_FORMATS
 from ..gaussians import Gaussians
@@ -48,6 +54,8 @@ class TileContext:
     steps: dict[str, TileStep] = field(default_factory=dict)
     # The scene's palettes per pal8x4 plane, (P, 256) float32 (format.md 4.3.2, 1.7: written once, in the manifest)
     palettes: dict[str, np.ndarray] | None = None
+    # How much larger a joined zstd block may code than its parts (container._block_ends; the preset's)
+    block_slack: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -154,7 +162,7 @@ def plan_scene(opts: EncodeOptions, formats: dict[str, str], chunk_order: str, s
     up = plan_up(opts, sample)
     formats, steps, palettes = plan_palettes(opts, formats, sample.palettes)
     context = TileContext(formats, chunk_order, sh_degree, codebook, opts.resolved_zstd_level, opts.resolved_transport,
-                          steps, palettes)
+                          steps, palettes, preset_block_slack(opts.preset))
     return ScenePlan(context, opts.preset, name, splats, bounds, up, opts.max_leaf_splats,
                      float(opts.reduction)), sample
 

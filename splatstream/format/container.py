@@ -72,7 +72,7 @@ DEFAULT_ZSTD_LEVEL = 1
 
 
 def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level: int = DEFAULT_ZSTD_LEVEL,
-                  transport: str = "fields") -> PayloadEntry:
+                  transport: str = "fields", block_slack: float = 0.0) -> PayloadEntry:
     """Write a payload into `out` (zstd, hashing as it goes) and return its manifest entry.
 
     Each plane's texels are taken one layer at a time as the plane produces them (planes from
@@ -83,7 +83,7 @@ def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level:
     tables, smaller than one table across them (format.md 5.2; BENCHMARKS.md, "Figures behind library defaults"),
     and like parts of a small payload share one, which its decoder reads faster (issue 32). The payload's stored
     sections are held until then, never its texels as a whole.
-    `chunks` is the tile's chunk count (range shapes).
+    `chunks` is the tile's chunk count (range shapes); `block_slack`: _block_ends' (the preset's).
     """
     sections: list[Section] = []
     contents: list[list] = []
@@ -142,7 +142,7 @@ def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level:
         for j, part in enumerate(parts or [b""]):
             segments.append((bytes(pad) if j == 0 and pad else None, part))
         position = section.offset + section.size
-    ends = _block_ends(segments, offset)
+    ends = _block_ends(segments, offset, block_slack)
     # zstd's worker mode makes slightly smaller payloads than the single-threaded mode at the same speed (its output
     # does not depend on the worker count), but it buffers whole jobs, which lifts the encoder's peak memory on large
     # payloads (BENCHMARKS.md, "Figures behind library defaults"). Large payloads stream single-threaded.
@@ -168,17 +168,20 @@ def _trial_bytes(data: bytes) -> int:
     return len(c.compress(data))
 
 
-def _block_ends(segments: list[tuple[bytes | None, object]], raw_bytes: int) -> list[bool]:
+def _block_ends(segments: list[tuple[bytes | None, object]], raw_bytes: int, slack: float = 0.0) -> list[bool]:
     """Whether a zstd block ends after each segment ((padding or None, part): a byte plane, a layer, a range) of a
     payload of `raw_bytes` decompressed bytes. Above MERGE_MAX_RAW after every part. Else a part joins the block
-    before it where the two coded as one block take no more bytes than each alone (zstd at MERGE_TRIAL_LEVEL), and
-    the block stays under MERGED_BLOCK_MAX bytes: planes of like statistics (the high bytes of a plane's fields, the
-    noise of low bytes) then share one literal table, and those of unlike statistics keep their own (format.md 5.2).
+    before it where the two coded as one block take no more bytes than each alone (zstd at MERGE_TRIAL_LEVEL; with
+    `slack`, no more than 1 + slack times as many), and the block stays under MERGED_BLOCK_MAX bytes: planes of like
+    statistics (the high bytes of a plane's fields, the noise of low bytes) then share one literal table, and those
+    of unlike statistics keep their own (format.md 5.2).
 
     Why: a block's fixed cost, its tables written and read, is most of what a small payload's many 1 KB byte planes
     pay zstd beyond their literals. On guitar's and winter_fountain's 221 LOD tiles (about 820 splats a payload)
     this makes 5-15 blocks of the 22-58 a payload had (medians), 0.5-2.2 % fewer bytes and up to 4.5 us less zstd
-    time a payload decoded (median 2.8), for 3-10 % more encoding CPU (BENCHMARKS.md, "Decode speed"; issue 32)."""
+    time a payload decoded (median 2.8), for 3-10 % more encoding CPU (BENCHMARKS.md, "Decode speed"; issue 32). A
+    slack trades bytes for zstd's read time: each block's literal table costs the reader more than its bytes
+    (very-high's: presets.PRESET_BLOCK_SLACK)."""
     count = len(segments)
     if raw_bytes > MERGE_MAX_RAW or count < 2:
         return [True] * count
@@ -197,7 +200,7 @@ def _block_ends(segments: list[tuple[bytes | None, object]], raw_bytes: int) -> 
         if len(block) + len(part) <= MERGED_BLOCK_MAX:
             joined = block + part
             joined_size = _trial_bytes(joined)
-            if joined_size <= block_size + alone:
+            if joined_size <= (block_size + alone) * (1.0 + slack):
                 block, block_size = joined, joined_size
                 continue
         ends[k - 1] = True

@@ -168,11 +168,19 @@ PRESET_STEPS: dict[str, dict[str, TileStep]] = {
 # zstd level per preset where it is not the encoder's default (DEFAULT_ZSTD_LEVEL, 1; `--zstd-level` overrides
 # both): a higher level where its small gain puts a preset under 0.90 of SOG's bytes on a real scene, for a little
 # more encode time; low-plus and low gained nothing, and medium keeps level 1 for its encode speed
-# (bench/results/pos9_levels_*; BENCHMARKS.md, "Figures behind library defaults").
-PRESET_ZSTD_LEVEL: dict[str, int] = {"medium-low": 9, "medium-low-12bit": 16, "medium-low-palette": 16,
+# (bench/results/pos9_levels_*; BENCHMARKS.md, "Figures behind library defaults"). very-high takes level 12 for its
+# decode: its float byte planes at level 12 are 1.2-1.6 % smaller and zstd reads them 8-15 % faster than at level 1,
+# where levels 16 and 19 read as slowly as level 1 (issue 32; BENCHMARKS.md, "Decode speed", vhdec).
+PRESET_ZSTD_LEVEL: dict[str, int] = {"very-high": 12, "medium-low": 9, "medium-low-12bit": 16, "medium-low-palette": 16,
                                      "medium-low-9bit": 16,
                                      "low-plus-9bit": 16, "low-plus-9bit-sh6": 16,
                                      "low-plus-9bit-sh5": 16, "low-plus-10bit-cb8": 16}
+# How much larger (a fraction) a small payload's zstd block may code, at the trial level, than its parts alone and
+# still be one block (container._block_ends), per preset where not 0. very-high's float byte planes cut into blocks
+# of a few KB, each with its tables, made zstd read them at about 1.1 GB/s: joined within 3 %, zstd reads them in
+# 0.4-0.5 of the time, with level 12 in 0.9-1.7 % more bytes than level 1 without a slack (issue 32: decode speed;
+# BENCHMARKS.md, "Decode speed", vhdec).
+PRESET_BLOCK_SLACK: dict[str, float] = {"very-high": 0.03}
 DEFAULT_PRESET = "medium"
 # What each preset is for, in the words the CLI (`encode --help`, `info`) shows: disk bytes per splat with the
 # fields1 transport coding at SH3 / SH0 and the mean PSNR measured on the benchmark scenes (BENCHMARKS.md, "Size
@@ -307,6 +315,11 @@ def preset_transport(preset: str, default: str) -> str:
 def preset_zstd_level(preset: str, default: int) -> int:
     """The zstd level an encode of `preset` uses when none is given (`default`: the encoder's)."""
     return PRESET_ZSTD_LEVEL.get(preset, default)
+
+
+def preset_block_slack(preset: str) -> float:
+    """How much larger a joined zstd block of `preset`'s small payloads may code (container._block_ends)."""
+    return PRESET_BLOCK_SLACK.get(preset, 0.0)
 
 
 def resolve_chunk_order(chunk_order: str, formats: dict[str, str]) -> str:
