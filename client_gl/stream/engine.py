@@ -605,7 +605,7 @@ class StreamEngine:
             try:
                 view = PartialView(a, cam, opts, self.manifest.lod.reduction, self._view_buffers)
                 sel = compiled(a, view, self.cost, self.root, sel_opts, self.refined,
-                               near_parents=np.concatenate([self.refined, self._last_cut]))
+                               near_parents=(self.refined, self._last_cut))
             finally:
                 if interval is not None:
                     sys.setswitchinterval(process_interval)
