@@ -784,7 +784,9 @@ def wanted_bands_at(a: TileArrays, view: TileView, cut_at: np.ndarray, opts: Sel
     at = np.asarray(cut_at, np.intp)
     if opts.max_sse <= 0:  # full detail: every band of every tile
         return np.full(len(at), top, np.int64)
-    out = np.zeros(len(at), np.int64)
+    # not np.zeros: numpy's calloc over 1 KB lets the interpreter lock go (once a frame on the frame loop); a fill
+    # keeps it up to 500 elements
+    out = np.full(len(at), 0, np.int64)
     if top <= 0 or not len(at):
         return out
     area = view.area_px[at]

@@ -143,18 +143,20 @@ def _finish_keys(m, pending, lg, level, step, sse, prio):
 
 
 @njit(**_JIT)
-def _seed(tiles, parents_from, g, kids, known, sse, visible, radius_px, area_px, distance, cand, pending, lg, st,
-          m):
-    """The numbers of tiles[:parents_from], and of tiles[parents_from:] and their children where they are
-    candidates, each tile once: the new candidates into `pending` after its first m (their keys are numpy's), their
-    count then returned (called once a group of tiles: no concatenation of the groups, which let the lock go).
+def _seed(head, parents, more_parents, g, kids, known, sse, visible, radius_px, area_px, distance, cand, pending, lg,
+          st):
+    """The numbers of the tiles `head`, then of `parents` and `more_parents` and their children where they are
+    candidates, each tile once: the new candidates into `pending` (their keys are numpy's), their count returned.
+    (Two arrays of parents, the engine's last refined and cut tiles as they are: concatenating them let the lock go.)
     Only a candidate's children are ever needed (the loop pops candidates; the cut is the visible children of tiles
     it refined): the last frame's cut tiles that are not candidates now (about one in ten at 250M splats) have
     their children left out. st[4] counts the tiles whose numbers are computed."""
     first, last = g[_LO], g[_HI]
+    m = 0
     looked = 0
-    for t in range(tiles.shape[0]):
-        i = tiles[t]
+    parents_from, more_from = head.shape[0], head.shape[0] + parents.shape[0]
+    for t in range(more_from + more_parents.shape[0]):
+        i = head[t] if t < parents_from else parents[t - parents_from] if t < more_from else more_parents[t - more_from]
         if not known[i]:
             _tile_numbers(i, g, known, sse, visible, radius_px, area_px, distance, cand)
             looked += 1
@@ -675,8 +677,8 @@ def select_near_compiled(a: TileArrays, view: PartialView, cost: np.ndarray, roo
                          near_parents=()) -> Selection:
     """selection.select_near's answer (the same Selection), compiled. `near`: tiles to compute the numbers of first,
     as select_near's; `near_parents`: tiles whose children to compute first (the engine gives the last frame's
-    refined and cut tiles, a tuple of two arrays: each seeded as it is, not concatenated). Neither changes the answer,
-    only how many passes it takes."""
+    refined and cut tiles, a tuple of two arrays: both seeded as they are, not concatenated). Neither changes the
+    answer, only how many passes it takes."""
     lo, hi, kids = _children(a)
     n = len(a.parent)
     # the per-tile scratch arrays: the view's buffers (kept from frame to frame by the engine), else new ones; cleared
@@ -705,19 +707,19 @@ def select_near_compiled(a: TileArrays, view: PartialView, cost: np.ndarray, roo
     # the root and `near` (small), then each group of parents as it is: concatenating and converting the last
     # frame's refined and cut tiles (over 500) let the interpreter lock go twice
     head = np.concatenate([np.array([root], np.int64), direct])
-    parent_groups = near_parents if isinstance(near_parents, tuple) and all(
-        isinstance(p, np.ndarray) for p in near_parents) else (near_parents,)
+    if isinstance(near_parents, tuple) and len(near_parents) == 2 and all(
+            isinstance(p, np.ndarray) for p in near_parents):
+        parents, more_parents = (np.ascontiguousarray(p, np.int64) for p in near_parents)
+    else:
+        parents, more_parents = np.ascontiguousarray(near_parents, np.int64).reshape(-1), _NO_TILES
     level, step = np.ascontiguousarray(a.level, np.int64), float(view.level_step)
     lg = buf.get("log2", n, f64)  # the new candidates' _log_arg, then numpy's log2 of it (their keys' one term
     # numba's log2 would not give bit for bit)
     splats_of = np.ascontiguousarray(a.splats, np.int64)
     # the loop's state: queue size, splats, budget flag, refined tiles, tiles looked at, the root still to be queued
     st = np.array([0, splats_of[root], 0, 0, 0, 1], np.int64)
-    m = _seed(head, len(head), g, kids, known, sse, visible, radius_px, area_px, distance, cand, pending, lg, st, 0)
-    for group in parent_groups:
-        if len(group):
-            m = _seed(np.ascontiguousarray(group, np.int64), 0, g, kids, known, sse, visible, radius_px, area_px,
-                      distance, cand, pending, lg, st, m)
+    m = _seed(head, parents, more_parents, g, kids, known, sse, visible, radius_px, area_px, distance, cand, pending,
+              lg, st)
     heap_k, heap_t = buf.get("heap_k", n, f64), buf.get("heap_t", n, i64)
     cost = _f64(cost)
     total = np.array([cost[root]], np.float64)
@@ -752,6 +754,7 @@ def _zero(b):
         b[i] = 0
 
 
+_NO_TILES = np.zeros(0, np.int64)
 _NO_PLANES = (np.zeros(1, np.uint8), np.zeros(0, np.float64), np.zeros((0, 6), np.float64), np.zeros((1, 6)))
 
 
