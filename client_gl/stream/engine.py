@@ -157,9 +157,10 @@ class StreamOptions:
     # go, and makes the decode threads waiting ask it to hand the lock over as soon. None (the default): untouched.
     # 0.2 ms was the default while the view and the cut let the lock go about 15 times a selection (numpy's fills,
     # BLAS dots, copies: the GPU machine at 60M, the selection's p99 1.66-1.69 -> 1.23-1.37 ms, r14); since they
-    # keep it (0.3 a selection, when the tree's arrays grow), 0.2 ms only hands the lock over: on the VM with two
-    # busy threads, 0.22-0.53 waits a selection at 0.2 ms against 0.02-0.07 untouched and 0.00 at 20 ms, the wall
-    # median 0.62-0.75 ms against 0.55-0.63 (BENCHMARKS.md, "Manifest pages", branch selgil).
+    # keep it (0.1 a selection, when the tree's arrays grow), 0.2 ms only hands the lock over: on the VM with two
+    # busy threads, 0.24-1.20 waits a selection at 0.2 ms against 0.02-0.10 untouched (0.00 at 20 ms, which would
+    # make a wait at a release left up to 20 ms), the wall median 0.62-0.84 ms against 0.48-0.70 (BENCHMARKS.md,
+    # "Manifest pages", branch selgil).
     select_switch_interval: float | None = None
 
 
