@@ -48,8 +48,10 @@ def captured_selections(splats: int, frames: int, per_frame: int, max_splats: in
         return view_cls(a, cam, opts, reduction, buffers)
 
     def select_kept(a, view, cost, root, sel_opts, refined, near_parents=()):
+        # the engine's near parents: its last refined and cut tiles, a tuple of two arrays (kept as it gives them)
+        kept = tuple(map(np.array, near_parents)) if isinstance(near_parents, tuple) else np.array(near_parents)
         calls[-1].update(cost=cost.copy(), root=root, sel_opts=sel_opts, refined=np.array(refined),
-                         near_parents=np.array(near_parents))
+                         near_parents=kept)
         return select_fn(a, view, cost, root, sel_opts, refined, near_parents=near_parents)
     engine_module.PartialView, COMPILED_SELECTION._fn = view_kept, select_kept
     try:

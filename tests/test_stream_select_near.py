@@ -90,6 +90,43 @@ def test_view_buffers_are_kept_grown_and_zeroed_where_asked():
     assert len(b._arrays["y"]) == 200
 
 
+def test_view_buffers_zero_with_the_kernel_they_are_given():
+    """ViewBuffers.zero (the compiled selection's kernel, which keeps the interpreter lock) clears the array's bytes
+    where ndarray.fill would: the same zeros, whatever the dtype."""
+    b = ViewBuffers()
+    cleared = []
+    b.zero = lambda raw: (cleared.append((raw.dtype, len(raw))), raw.fill(0))
+    x = b.get("x", 5, np.dtype(np.float64), True)  # a new array: zeros already, nothing to clear
+    x[:] = 7.0
+    assert b.get("x", 4, np.dtype(np.float64), True).tolist() == [0.0] * 4 and x[4] == 7.0
+    assert cleared == [(np.dtype(np.uint8), 32)]  # the four float64's bytes
+    if selection_jit is not None:
+        b.zero = selection_jit._zero
+        for dtype, garbage in ((np.float64, -1.5), (np.bool_, True), (np.uint8, 9), (np.int64, -3)):
+            y = b.get(f"y{dtype.__name__}", 1000, np.dtype(dtype), True)
+            y[:] = garbage
+            again = b.get(f"y{dtype.__name__}", 999, np.dtype(dtype), True)
+            assert np.shares_memory(again, y) and not again.any() and y[999] == garbage
+
+
+@NEEDS_NUMBA
+def test_the_compiled_selection_clears_its_buffers_with_its_kernel(whole):
+    """select_near_compiled sets its view's ViewBuffers.zero to its kernel: the next view's arrays are cleared by it
+    (the same zeros: a tile's numbers are computed again, none left from the last view)."""
+    a, root = whole.arrays, whole.index_of[whole.root]
+    cost = np.array([t.chunks for t in whole.tiles], np.float64) * 4096.0
+    rnd = random.Random(5)
+    b = ViewBuffers()
+    assert b.zero is None
+    for _ in range(3):
+        cam, opts = random_camera(whole, rnd), SelectionOptions(max_splats=200_000)
+        part = PartialView(a, cam, opts, whole.lod.reduction, b)
+        assert not part.known.any() and not part.visible.any() and not part.area_px.any()
+        got = select_near_compiled(a, part, cost, root, opts)
+        assert b.zero is selection_jit._zero
+        assert got == select(a, view_numbers(a, cam, opts), cost, root, opts, frozenset(), whole.lod.reduction)
+
+
 def random_camera(m, rnd: random.Random) -> Camera:
     root = m.tiles[m.index_of[m.root]]
     c, r = np.array(root.sphere_center), root.sphere_radius
@@ -172,8 +209,11 @@ def test_select_near_is_the_whole_tree_selection(whole, path):
                 rnd.sample(range(n), rnd.randrange(n)) if near_kind == 1 else [])
         resident = np.array([rnd.random() < rnd.choice([0.0, 0.3, 0.9]) for _ in range(n)], bool)
         # the compiled path is also told to look below some tiles first (its own random stream: the same views)
+        # (step % 4 == 2: as the engine gives them, the last refined and cut tiles as a tuple of two arrays, each
+        # seeded as it is)
         parents = (sorted(set(previous) | set(last)) if step % 4 == 0 else
-                   other.sample(range(n), other.randrange(n)) if step % 4 == 1 else [])
+                   other.sample(range(n), other.randrange(n)) if step % 4 == 1 else
+                   (np.array(sorted(previous), np.intp), np.array(last, np.intp)) if step % 4 == 2 else [])
         sel, k = check_same(m, cam, opts, previous if rnd.random() < 0.7 else frozenset(
             rnd.sample(range(n), rnd.randrange(n // 4))), near, resident, rnd, path, parents)
         previous, last = sel.refined, sel.cut

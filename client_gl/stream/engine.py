@@ -152,14 +152,16 @@ class StreamOptions:
     # where numba is not installed. False: the numpy path always.
     compiled_selection: bool = True
     # The interpreter's switch interval (seconds, sys.setswitchinterval) while the frame loop computes the view's
-    # numbers and the cut (the compiled selection's; the numpy path's untouched), the process's own restored after:
-    # the frame loop, when it has let the lock go (numpy's fills and BLAS dot release it) and a decode thread's
-    # Python holds it, asks for it back after this long instead of CPython's 5 ms. Process-wide while it is set (the
-    # decode threads waiting ask the frame loop for it back as soon). 0.2 ms: on the GPU machine at 60M, two
-    # alternated pairs, the selection's p99 1.66-1.69 -> 1.23-1.37 ms and the frame's 12.5-12.6 -> 9.0-9.4 ms, the
-    # decode threads' CPU the same (BENCHMARKS.md, "Manifest pages", r14's A/B; the VM's A/B did not resolve it,
-    # branch selwall). None: the interval untouched.
-    select_switch_interval: float | None = 0.0002
+    # numbers and the cut (the compiled selection's; the numpy path's untouched), the process's own restored after.
+    # Process-wide while it is set: a short one makes the frame loop ask for the lock back sooner where it let it
+    # go, and makes the decode threads waiting ask it to hand the lock over as soon. None (the default): untouched.
+    # 0.2 ms was the default while the view and the cut let the lock go about 15 times a selection (numpy's fills,
+    # BLAS dots, copies: the GPU machine at 60M, the selection's p99 1.66-1.69 -> 1.23-1.37 ms, r14); since they
+    # keep it (0.1 a selection, when the tree's arrays grow), 0.2 ms only hands the lock over: on the VM with two
+    # busy threads, 0.24-1.20 waits a selection at 0.2 ms against 0.02-0.10 untouched (0.00 at 20 ms, which would
+    # make a wait at a release left up to 20 ms), the wall median 0.62-0.84 ms against 0.48-0.70 (BENCHMARKS.md,
+    # "Manifest pages", branch selgil).
+    select_switch_interval: float | None = None
 
 
 class CompiledSelection:
@@ -605,7 +607,7 @@ class StreamEngine:
             try:
                 view = PartialView(a, cam, opts, self.manifest.lod.reduction, self._view_buffers)
                 sel = compiled(a, view, self.cost, self.root, sel_opts, self.refined,
-                               near_parents=np.concatenate([self.refined, self._last_cut]))
+                               near_parents=(self.refined, self._last_cut))
             finally:
                 if interval is not None:
                     sys.setswitchinterval(process_interval)

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import heapq
 import math
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from itertools import chain
 
@@ -161,9 +162,13 @@ def _cross(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 
 
 def _norm(v: np.ndarray) -> float:
-    """np.linalg.norm of a float64 vector, as it computes it (the square root of v.dot(v)) without its checks and
-    dispatch: the same bits, 0.5 against 3 us a call (six a frame: _basis and frustum_planes)."""
-    return math.sqrt(v.dot(v))
+    """The length of a 3-vector in Python floats (x*x + y*y + z*z, in that order), the one norm of every path (the
+    numpy reference's view_numbers, PartialView, the compiled selection's basis and planes). Not numpy's v.dot(v):
+    its BLAS dot lets the interpreter lock go whatever the size, 7 times a view, each a chance for a decode thread to
+    take the lock from the frame loop (BENCHMARKS.md, "Manifest pages"); it also rounds differently (an FMA), in the
+    last bit for about 1 vector in 10."""
+    x, y, z = v.tolist()
+    return math.sqrt(x * x + y * y + z * z)
 
 
 def _basis(cam: Camera) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
@@ -299,6 +304,11 @@ class ViewBuffers:
         faults were 0.4-0.5 ms of that frame's view and cut at 250M splats: BENCHMARKS.md, "Manifest pages")."""
         self._arrays: dict[str, np.ndarray] = {}
         self.ahead = ahead
+        # What clears an array asked for with `zero`: None, ndarray.fill; the compiled selection sets a kernel that
+        # keeps the interpreter lock (numpy's fill lets it go above 500 elements, 5 times a selection: each a chance
+        # for a decode thread to take it from the frame loop; BENCHMARKS.md, "Manifest pages"). Called with the
+        # array's bytes (a uint8 view).
+        self.zero: Callable[[np.ndarray], None] | None = None
 
     def get(self, name: str, n: int, dtype, zero: bool = False) -> np.ndarray:
         """An array of n elements of this dtype named `name`: zeros with `zero`, else what the last view left."""
@@ -310,7 +320,10 @@ class ViewBuffers:
             return a[:n]
         out = a[:n]
         if zero:
-            out.fill(0)
+            if self.zero is None:
+                out.fill(0)
+            else:
+                self.zero(out.view(np.uint8))
         return out
 
 
@@ -771,7 +784,9 @@ def wanted_bands_at(a: TileArrays, view: TileView, cut_at: np.ndarray, opts: Sel
     at = np.asarray(cut_at, np.intp)
     if opts.max_sse <= 0:  # full detail: every band of every tile
         return np.full(len(at), top, np.int64)
-    out = np.zeros(len(at), np.int64)
+    # not np.zeros: numpy's calloc over 1 KB lets the interpreter lock go (once a frame on the frame loop); a fill
+    # keeps it up to 500 elements
+    out = np.full(len(at), 0, np.int64)
     if top <= 0 or not len(at):
         return out
     area = view.area_px[at]

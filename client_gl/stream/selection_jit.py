@@ -48,6 +48,8 @@ from splatstream.format.manifest import TileArrays, indexable
 # give it back (the draw set's wall median 0.43-0.79 ms on 0.13-0.15 of CPU beside busy threads, 0.08-0.12 holding it:
 # BENCHMARKS.md, "Manifest pages").
 _JIT = dict(cache=True, nogil=False, error_model="numpy")
+# numpy's ufuncs and copies let the interpreter lock go over this many elements (NPY_BEGIN_THREADS_THRESHOLDED)
+_KEEPS_LOCK = 500
 # The kernels' `g`, the tree and camera (select_near_compiled builds it): positions in the tuple
 _CAM, _CENTRE, _RADIUS, _ERR, _CORNERS, _PLANE_D, _SPLIT, _LO, _HI, _WAS_REFINED, _HIGH, _LOW = range(12)
 
@@ -141,17 +143,20 @@ def _finish_keys(m, pending, lg, level, step, sse, prio):
 
 
 @njit(**_JIT)
-def _seed(tiles, parents_from, g, kids, known, sse, visible, radius_px, area_px, distance, cand, pending, lg, st):
-    """The numbers of tiles[:parents_from], and of tiles[parents_from:] and their children where they are
+def _seed(head, parents, more_parents, g, kids, known, sse, visible, radius_px, area_px, distance, cand, pending, lg,
+          st):
+    """The numbers of the tiles `head`, then of `parents` and `more_parents` and their children where they are
     candidates, each tile once: the new candidates into `pending` (their keys are numpy's), their count returned.
+    (Two arrays of parents, the engine's last refined and cut tiles as they are: concatenating them let the lock go.)
     Only a candidate's children are ever needed (the loop pops candidates; the cut is the visible children of tiles
     it refined): the last frame's cut tiles that are not candidates now (about one in ten at 250M splats) have
     their children left out. st[4] counts the tiles whose numbers are computed."""
     first, last = g[_LO], g[_HI]
     m = 0
     looked = 0
-    for t in range(tiles.shape[0]):
-        i = tiles[t]
+    parents_from, more_from = head.shape[0], head.shape[0] + parents.shape[0]
+    for t in range(more_from + more_parents.shape[0]):
+        i = head[t] if t < parents_from else parents[t - parents_from] if t < more_from else more_parents[t - more_from]
         if not known[i]:
             _tile_numbers(i, g, known, sse, visible, radius_px, area_px, distance, cand)
             looked += 1
@@ -672,11 +677,14 @@ def select_near_compiled(a: TileArrays, view: PartialView, cost: np.ndarray, roo
                          near_parents=()) -> Selection:
     """selection.select_near's answer (the same Selection), compiled. `near`: tiles to compute the numbers of first,
     as select_near's; `near_parents`: tiles whose children to compute first (the engine gives the last frame's
-    refined and cut tiles). Neither changes the answer, only how many passes it takes."""
+    refined and cut tiles, a tuple of two arrays: both seeded as they are, not concatenated). Neither changes the
+    answer, only how many passes it takes."""
     lo, hi, kids = _children(a)
     n = len(a.parent)
-    # the per-tile scratch arrays: the view's buffers (kept from frame to frame by the engine), else new ones
+    # the per-tile scratch arrays: the view's buffers (kept from frame to frame by the engine), else new ones; cleared
+    # by a kernel that keeps the interpreter lock from here on (the next view's too)
     buf = view.buffers if getattr(view, "buffers", None) is not None else ViewBuffers()
+    buf.zero = _zero
     i64, f64, u8 = np.dtype(np.int64), np.dtype(np.float64), np.dtype(np.uint8)
     was = buf.get("was_refined", n, np.dtype(np.bool_), True)
     if len(previous_refined):
@@ -696,15 +704,22 @@ def select_near_compiled(a: TileArrays, view: PartialView, cost: np.ndarray, roo
     prio = buf.get("prio", n, f64)
     pending = buf.get("pending", n, i64)
     direct = np.asarray(near, np.int64)
-    tiles = np.concatenate([[root], direct, np.asarray(near_parents, np.int64)]).astype(np.int64)
+    # the root and `near` (small), then each group of parents as it is: concatenating and converting the last
+    # frame's refined and cut tiles (over 500) let the interpreter lock go twice
+    head = np.concatenate([np.array([root], np.int64), direct])
+    if isinstance(near_parents, tuple) and len(near_parents) == 2 and all(
+            isinstance(p, np.ndarray) for p in near_parents):
+        parents, more_parents = (np.ascontiguousarray(p, np.int64) for p in near_parents)
+    else:
+        parents, more_parents = np.ascontiguousarray(near_parents, np.int64).reshape(-1), _NO_TILES
     level, step = np.ascontiguousarray(a.level, np.int64), float(view.level_step)
     lg = buf.get("log2", n, f64)  # the new candidates' _log_arg, then numpy's log2 of it (their keys' one term
     # numba's log2 would not give bit for bit)
     splats_of = np.ascontiguousarray(a.splats, np.int64)
     # the loop's state: queue size, splats, budget flag, refined tiles, tiles looked at, the root still to be queued
     st = np.array([0, splats_of[root], 0, 0, 0, 1], np.int64)
-    m = _seed(tiles, 1 + len(direct), g, kids, known, sse, visible, radius_px, area_px, distance, cand, pending, lg,
-              st)
+    m = _seed(head, parents, more_parents, g, kids, known, sse, visible, radius_px, area_px, distance, cand, pending,
+              lg, st)
     heap_k, heap_t = buf.get("heap_k", n, f64), buf.get("heap_t", n, i64)
     cost = _f64(cost)
     total = np.array([cost[root]], np.float64)
@@ -712,7 +727,10 @@ def select_near_compiled(a: TileArrays, view: PartialView, cost: np.ndarray, roo
     max_splats = -1 if opts.max_splats is None else int(opts.max_splats)
     budget = math.nan if opts.budget is None else float(opts.budget)
     while True:
-        np.log2(lg[:m], out=lg[:m])
+        # numpy's log2 (see the module's docstring) in pieces of 500 at most: a ufunc lets the interpreter lock go
+        # over more (numpy's threshold; the first pass has about 1,400 at 250M splats). Elementwise: the same bits.
+        for s in range(0, m, _KEEPS_LOCK):
+            np.log2(lg[s:min(s + _KEEPS_LOCK, m)], out=lg[s:min(s + _KEEPS_LOCK, m)])
         m = _refine(g, kids, splats_of, cost, prio, known, sse, visible, radius_px, area_px, distance, cand, heap_k,
                     heap_t, st, total, refd, reflist, max_splats, budget, pending, lg, m, level, step, root)
         if m <= 0:
@@ -729,6 +747,14 @@ def select_near_compiled(a: TileArrays, view: PartialView, cost: np.ndarray, roo
                                float(total[0]), bool(st[2]))
 
 
+@njit(**_JIT)
+def _zero(b):
+    """b[:] = 0 while holding the interpreter lock (ndarray.fill lets it go over 500 elements): ViewBuffers.zero."""
+    for i in range(b.shape[0]):
+        b[i] = 0
+
+
+_NO_TILES = np.zeros(0, np.int64)
 _NO_PLANES = (np.zeros(1, np.uint8), np.zeros(0, np.float64), np.zeros((0, 6), np.float64), np.zeros((1, 6)))
 
 
@@ -741,7 +767,10 @@ def draw_set_compiled(a: TileArrays, view: PartialView | TileView, sel: Selectio
     boolean mask and sums over the tree held were 0.04 ms of it at 21,600 tiles)."""
     lo, hi, kids = _children(a)
     n = len(a.parent)
-    refd = np.zeros(n, np.uint8)
+    # the refined tiles' flags: the view's buffers where it has them (cleared by _zero; np.zeros over the tree held
+    # let the interpreter lock go, once a frame)
+    buf = getattr(view, "buffers", None)
+    refd = np.zeros(n, np.uint8) if buf is None else buf.get("draw_refd", n, np.dtype(np.uint8), True)
     refd[sel.refined_at] = 1
     known = getattr(view, "known", None)
     if known is None:  # a TileView: every tile's numbers are there
@@ -774,6 +803,7 @@ def warm_up() -> None:
     assert sel.refined == frozenset({0}), sel
     resident = np.array([True, True, False])
     sums = np.zeros(3, np.int64)
+    _zero(np.zeros(4, np.uint8))
     assert draw_set_compiled(a, view, sel, resident, 0, sums).tolist() == [0]  # child 2 not resident: the root drawn
     assert sums.tolist() == [2, 200, 100], sums
     assert draw_set_compiled(a, view_numbers(a, cam), sel, resident, 0).tolist() == [0]
