@@ -80,25 +80,63 @@ def _quad6(c: np.ndarray, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 def _eig6(c: np.ndarray) -> np.ndarray:
     """(N, 3) eigenvalues of symmetric 3x3 matrices (closed form, largest first)."""
+    return np.maximum(np.stack(_eig6_columns(c), 1), 1e-300)
+
+
+def _eig6_columns(c: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """_eig6's three columns before the floor at 1e-300 (largest first). Each difference xx - q and the factor
+    2 p taken once (they were written twice), the rest in place: the same operations on the same numbers."""
     xx, xy, xz, yy, yz, zz = (c[:, k] for k in range(6))
-    q = (xx + yy + zz) / 3
-    p1 = xy * xy + xz * xz + yz * yz
-    p2 = (xx - q) ** 2 + (yy - q) ** 2 + (zz - q) ** 2 + 2 * p1
-    p = np.sqrt(np.maximum(p2 / 6, 1e-300))
-    b00, b11, b22 = (xx - q) / p, (yy - q) / p, (zz - q) / p
+    q = xx + yy
+    q += zz
+    q /= 3
+    p1 = xy * xy
+    p1 += xz * xz
+    p1 += yz * yz
+    b00, b11, b22 = xx - q, yy - q, zz - q  # (xx - q) etc., divided by p below
+    p2 = np.square(b00)
+    p2 += np.square(b11)
+    p2 += np.square(b22)
+    p1 *= 2
+    p2 += p1
+    p2 /= 6
+    p = np.sqrt(np.maximum(p2, 1e-300, out=p2), out=p2)
+    b00 /= p
+    b11 /= p
+    b22 /= p
     b01, b02, b12 = xy / p, xz / p, yz / p
-    det_b = b00 * (b11 * b22 - b12 * b12) - b01 * (b01 * b22 - b12 * b02) + b02 * (b01 * b12 - b11 * b02)
-    phi = np.arccos(np.clip(det_b / 2, -1, 1)) / 3
-    e0 = q + 2 * p * np.cos(phi)
-    e2 = q + 2 * p * np.cos(phi + 2 * math.pi / 3)
-    e1 = 3 * q - e0 - e2
-    return np.maximum(np.stack([e0, e1, e2], 1), 1e-300)
+    det_b = b11 * b22
+    det_b -= b12 * b12
+    det_b *= b00
+    t = b01 * b22
+    t -= b12 * b02
+    t *= b01
+    det_b -= t
+    t = b01 * b12
+    t -= b11 * b02
+    t *= b02
+    det_b += t
+    det_b /= 2
+    phi = np.arccos(np.clip(det_b, -1, 1, out=det_b), out=det_b)
+    phi /= 3
+    p *= 2
+    e0 = np.cos(phi)
+    e0 *= p
+    e0 += q
+    phi += 2 * math.pi / 3
+    e2 = np.cos(phi, out=phi)
+    e2 *= p
+    e2 += q
+    q *= 3
+    q -= e0
+    q -= e2
+    return e0, q, e2
 
 
 def _area6(c: np.ndarray) -> np.ndarray:
     """Mean cross-section proxy s1 s2 + s2 s3 + s1 s3 (lod._coverage_area) of covariances stored as six."""
-    s = np.sqrt(_eig6(c))
-    return s[:, 0] * s[:, 1] + s[:, 1] * s[:, 2] + s[:, 0] * s[:, 2]
+    s0, s1, s2 = (np.sqrt(np.maximum(e, 1e-300, out=e), out=e) for e in _eig6_columns(c))
+    return s0 * s1 + s1 * s2 + s0 * s2
 
 
 def covariances6(rotations: np.ndarray, log_scales: np.ndarray) -> np.ndarray:
@@ -358,14 +396,36 @@ def _cross3(sda, sdb, csum, dd):
 
 def _cross2(ca, cb, da, db, dd, u, v):
     """<G_a, G_b> of 2D Gaussians (uu, uv, vv) ca and cb with determinants da and db, centres dd apart."""
-    a, b, cc = ca[0] + cb[0], ca[1] + cb[1], ca[2] + cb[2]
-    det = np.maximum(a * cc - b * b, 1e-300)
+    # In place on four work arrays: the operations (and their order) of
+    #     det = max(a cc - b b, 1e-300), q = (cc du du - 2 b du dv + a dv dv) / det,
+    #     g = 2 pi sqrt(da db / det) exp(-0.5 q)
+    # with a, b, cc the sums of the two footprints' entries: the same numbers, without a new array per operation.
+    a, b, cc = np.add(ca[0], cb[0]), np.add(ca[1], cb[1]), np.add(ca[2], cb[2])
     du, dv = dd[u], dd[v]
+    det = np.multiply(a, cc)
+    t = np.multiply(b, b)
+    det -= t
+    np.maximum(det, 1e-300, out=det)
     with np.errstate(over="ignore", invalid="ignore"):
         # At the domain's edges (centres 1e18 apart, footprints nearly flat) q and the factor overflow to inf: the
         # overlap's limit there is 0, not the NaN that inf * 0 gives.
-        q = (cc * du * du - 2 * b * du * dv + a * dv * dv) / det
-        g = 2 * math.pi * np.sqrt(da * db / det) * np.exp(-0.5 * q)
+        q = np.multiply(cc, du, out=cc)
+        q *= du
+        np.multiply(b, 2, out=b)
+        b *= du
+        b *= dv
+        q -= b
+        np.multiply(a, dv, out=a)
+        a *= dv
+        q += a
+        q /= det
+        g = np.multiply(da, db, out=t)
+        g /= det
+        np.sqrt(g, out=g)
+        g *= 2 * math.pi
+        q *= -0.5
+        np.exp(q, out=q)
+        g *= q
     np.copyto(g, 0.0, where=np.isnan(g))
     return g
 
@@ -696,7 +756,8 @@ def group_ids_of(inputs: dict, target: int, rule: GroupRule = DEFAULT_RULE,
             alive = np.ones(count, bool)
             alive[pb] = False
             size = size[alive]
-            remap = _drop(state, np.arange(count), pa, pb)
+            # The new ids as `index` (the edge rows' type): the rows gathered through it need no conversion.
+            remap = _drop(state, np.arange(count), pa, pb).astype(index, copy=False)
             label = remap[label]
             # Edges between unchanged clusters keep their rows and costs; the others are mapped onto the merged
             # clusters, those inside one cluster dropped, and the pairs that now coincide folded into one row.
@@ -705,12 +766,12 @@ def group_ids_of(inputs: dict, target: int, rule: GroupRule = DEFAULT_RULE,
             apart = ti != tj
             ti, tj, tm = ti[apart], tj[apart], tm[apart]
             count = len(size)
-            key, order, first = _sorted_unique(ti * count + tj)
+            key, order, first = _sorted_unique(ti.astype(np.int64) * count + tj)
             folded = np.add.reduceat(tm[order], first) if len(key) else tm[:0]
             kept = ~touched
             row = order[first]  # a row of each distinct pair: its ends, as key // count and key % count gave them
-            ei = np.concatenate([remap[ei[kept]], ti[row]]).astype(index, copy=False)
-            ej = np.concatenate([remap[ej[kept]], tj[row]]).astype(index, copy=False)
+            ei = np.concatenate([remap[ei[kept]], ti[row]])
+            ej = np.concatenate([remap[ej[kept]], tj[row]])
             mult = np.concatenate([mult[kept], folded]).astype(index, copy=False)
             ecost = np.concatenate([ecost[kept], np.full(len(key), np.nan)])
     label = _morton_finish(state, label, target)
