@@ -452,7 +452,7 @@ def _edge_costs(mu_t, cov_t, alpha, col, w, i, j, rule: GroupRule) -> np.ndarray
     cm[[0, 3, 5]] += 1e-20
     area_m = np.maximum(_area6(cm.T), 1e-300)
     am = np.minimum(1.0, W / area_m)
-    bi, bj = col[i], col[j]
+    bi, bj = np.take(col, i, axis=0), np.take(col, j, axis=0)  # rows: np.take is 4x fancy indexing
     bij = np.einsum("ij,ij->i", bi, bj)
     bni, bnj = np.einsum("ij,ij->i", bi, bi), np.einsum("ij,ij->i", bj, bj)
     bim, bjm = pi * bni + pj * bij, pi * bij + pj * bnj
@@ -579,13 +579,16 @@ def _merge_pairs(state: dict, pa: np.ndarray, pb: np.ndarray) -> None:
     wa, wb = w[pa], w[pb]
     ws = wa + wb
     fa, fb = wa / ws, wb / ws
-    d = mu[pa] - mu[pb]
+    # Rows gathered by np.take (the same rows as mu[pa], 3-7x faster than fancy indexing on (N, 3) and (N, 6)).
+    mu_a, mu_b = np.take(mu, pa, axis=0), np.take(mu, pb, axis=0)
+    cov_a, cov_b = np.take(cov, pa, axis=0), np.take(cov, pb, axis=0)
+    d = mu_a - mu_b
     da, db = d * fb[:, None], -d * fa[:, None]
     cm = np.empty((len(pa), 6))
     for c, (a, b) in enumerate(_SYM6):
-        cm[:, c] = fa * (da[:, a] * da[:, b] + cov[pa, c]) + fb * (db[:, a] * db[:, b] + cov[pb, c])
-    mu[pa] = mu[pa] * fa[:, None] + mu[pb] * fb[:, None]
-    col[pa] = col[pa] * fa[:, None] + col[pb] * fb[:, None]
+        cm[:, c] = fa * (da[:, a] * da[:, b] + cov_a[:, c]) + fb * (db[:, a] * db[:, b] + cov_b[:, c])
+    mu[pa] = mu_a * fa[:, None] + mu_b * fb[:, None]
+    col[pa] = np.take(col, pa, axis=0) * fa[:, None] + np.take(col, pb, axis=0) * fb[:, None]
     cov[pa] = cm
     alpha[pa] = np.minimum(1.0, ws / np.maximum(_area6(cm), 1e-300))
     w[pa] = ws
@@ -836,18 +839,19 @@ def group_errors(positions, log_scales, rotations, opacities, colours, masses, i
     order = stable_int_argsort(ids)
     sid = ids[order]
     groups = int(ids.max()) + 1 if n else 0
-    p = positions.astype(np.float64)[order]
+    p = np.take(positions.astype(np.float64), order, axis=0)  # rows: np.take, 3-7x fancy indexing
     p -= p.mean(axis=0) if n else 0.0
     if terms is None:
         terms = member_terms(log_scales, rotations, opacities, colours, proj)
-    cov, own = terms[0][order], terms[1][order]
+    cov, own = np.take(terms[0], order, axis=0), terms[1][order]
     a = np.clip(opacities.astype(np.float64)[order], 0.0, 1.0)
-    c = colours.astype(np.float64)[order]
+    c = np.take(colours.astype(np.float64), order, axis=0)
     w = masses.astype(np.float64)[order] + 1e-30
     W = np.bincount(sid, weights=w, minlength=groups)
     f = w / W[sid]
     mu = np.stack([np.bincount(sid, weights=f * p[:, k], minlength=groups) for k in range(3)], 1)
-    dm = p - mu[sid]
+    mu_s = np.take(mu, sid, axis=0)
+    dm = p - mu_s
     cm = np.empty((groups, 6))
     for k, (x, y) in enumerate(_SYM6):
         cm[:, k] = np.bincount(sid, weights=f * (dm[:, x] * dm[:, y] + cov[:, k]), minlength=groups)
@@ -855,18 +859,19 @@ def group_errors(positions, log_scales, rotations, opacities, colours, masses, i
     am = np.minimum(1.0, W / np.maximum(_area6(cm), 1e-300))
     col_m = np.stack([np.bincount(sid, weights=f * c[:, k], minlength=groups) for k in range(3)], 1)
     err = np.bincount(sid, weights=own, minlength=groups)
-    err -= 2 * np.bincount(sid, weights=_field_dot(a, c, cov, p, am[sid], col_m[sid], cm[sid], mu[sid], proj),
+    err -= 2 * np.bincount(sid, weights=_field_dot(a, c, cov, p, am[sid], np.take(col_m, sid, axis=0),
+                                                      np.take(cm, sid, axis=0), mu_s, proj),
                            minlength=groups)
     err += _field_dot(am, col_m, cm, mu, am, col_m, cm, mu, proj)
     for off in range(1, max_offset + 1):
-        x = np.arange(n - off)
-        same = sid[x] == sid[x + off]
+        same = sid[:n - off] == sid[off:]  # members x and x + off in one group
         if not same.any():
             break
-        x = x[same]
+        x = np.flatnonzero(same)
         y = x + off
-        err += 2 * np.bincount(sid[x], weights=_field_dot(a[x], c[x], cov[x], p[x], a[y], c[y], cov[y], p[y], proj),
-                               minlength=groups)
+        rx = [np.take(t, x, axis=0) for t in (c, cov, p)]
+        ry = [np.take(t, y, axis=0) for t in (c, cov, p)]
+        err += 2 * np.bincount(sid[x], weights=_field_dot(a[x], *rx, a[y], *ry, proj), minlength=groups)
     return np.maximum(err, 0.0)
 
 
