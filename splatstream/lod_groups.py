@@ -437,7 +437,9 @@ def _cross2(ca, cb, da, db, dd, u, v):
 
 def _det2(c):
     a, b, cc = c
-    return np.maximum(a * cc - b * b, 1e-300)
+    det = a * cc
+    det -= b * b
+    return np.maximum(det, 1e-300, out=det)
 
 
 def _edge_costs(mu_t, cov_t, alpha, col, w, i, j, rule: GroupRule) -> np.ndarray:
@@ -475,10 +477,24 @@ def _edge_costs(mu_t, cov_t, alpha, col, w, i, j, rule: GroupRule) -> np.ndarray
                 pj_ = cj[kuu], cj[kuv], cj[kvv]
                 pm_ = cm[kuu], cm[kuv], cm[kvv]
                 hi, hj, hm = _det2(pi_), _det2(pj_), _det2(pm_)
-                e += (fi * np.sqrt(hi) + fj * np.sqrt(hj) + fm * np.sqrt(hm)
-                      + gij * _cross2(pi_, pj_, hi, hj, d, u, v)
-                      - gim * _cross2(pi_, pm_, hi, hm, di, u, v)
-                      - gjm * _cross2(pj_, pm_, hj, hm, dj, u, v))
+                # fi sqrt(hi) + fj sqrt(hj) + fm sqrt(hm) + gij X_ij - gim X_im - gjm X_jm, left to right as one
+                # expression adds them, accumulated in place (no new array per term).
+                t = np.sqrt(hi)
+                t *= fi
+                for f_, h_ in ((fj, hj), (fm, hm)):
+                    x = np.sqrt(h_)
+                    x *= f_
+                    t += x
+                x = _cross2(pi_, pj_, hi, hj, d, u, v)
+                x *= gij
+                t += x
+                x = _cross2(pi_, pm_, hi, hm, di, u, v)
+                x *= gim
+                t -= x
+                x = _cross2(pj_, pm_, hj, hm, dj, u, v)
+                x *= gjm
+                t -= x
+                e += t
         # Overlaps that overflow (flat footprints on one centre, the domain's edges) leave inf - inf: a cost not
         # known, taken as the largest, as the NaN it was sorted last before.
         np.copyto(e, np.inf, where=np.isnan(e))
@@ -606,9 +622,8 @@ def _drop(state: dict, label: np.ndarray, pa: np.ndarray, pb: np.ndarray) -> np.
     into = np.arange(count)
     into[pb] = pa
     new_id = np.cumsum(alive) - 1
-    rows = np.flatnonzero(alive)  # np.take of these rows: 2-7x the boolean mask's time on (N, k) rows
-    for key in state:  # mu, cov, alpha, col, w and, with regions, region
-        state[key] = np.take(state[key], rows, axis=0)
+    for key in state:  # mu, cov, alpha, col, w and, with regions, region; np.compress: 2-4x a[alive]'s speed
+        state[key] = np.compress(alive, state[key], axis=0)
     return new_id[into[label]]
 
 
@@ -748,16 +763,15 @@ def group_ids_of(inputs: dict, target: int, rule: GroupRule = DEFAULT_RULE,
             edge_costs_at(ecost, todo, state["mu"], state["cov"], state["alpha"], state["col"], state["w"], ei, ej,
                           rule, pool=pool)
             del todo
-            # Rows picked by np.take of their indices, not by boolean masks: the same rows, each mask used 3-4
-            # times (a random mask of 1M rows: 3.5 ms per boolean pick, 0.5 per take and 0.5 once for the indices).
-            ok = np.flatnonzero(ok)
-            ci, cj, cost = np.take(ei, ok), np.take(ej, ok), np.take(ecost, ok)
+            # Rows picked by np.compress, not by boolean indexing: the same rows (a random mask of 1M rows: 1.0 ms
+            # against 3.5), no index array (np.take of the indices: 0.5 ms, but 8 bytes per row kept).
+            ci, cj, cost = np.compress(ok, ei), np.compress(ok, ej), np.compress(ok, ecost)
             if not len(ci):
                 break
             need = count - stage_target
             take = (need if rule.share >= 1 or need <= rule.tail * count
                     else max(1, math.ceil(need * rule.share)))
-            ci, cj, cost = _cheapest_share(ci, cj, cost, take, np.take(mult, ok))
+            ci, cj, cost = _cheapest_share(ci, cj, cost, take, np.compress(ok, mult))
             pa, pb = _greedy_pairs(count, ci, cj, cost, take)
             if not len(pa):
                 break
@@ -767,27 +781,26 @@ def group_ids_of(inputs: dict, target: int, rule: GroupRule = DEFAULT_RULE,
             changed[pa] = changed[pb] = True
             alive = np.ones(count, bool)
             alive[pb] = False
-            size = np.take(size, np.flatnonzero(alive))
+            size = np.compress(alive, size)
             # The new ids as `index` (the edge rows' type): the rows gathered through it need no conversion.
             remap = _drop(state, np.arange(count), pa, pb).astype(index, copy=False)
             label = remap[label]
             # Edges between unchanged clusters keep their rows and costs; the others are mapped onto the merged
             # clusters, those inside one cluster dropped, and the pairs that now coincide folded into one row.
             touched = changed[ei] | changed[ej]
-            kept = np.flatnonzero(~touched)
-            touched = np.flatnonzero(touched)
-            ti, tj = np.take(remap, np.take(ei, touched)), np.take(remap, np.take(ej, touched))
-            tm = np.take(mult, touched)
-            apart = np.flatnonzero(ti != tj)
-            ti, tj, tm = np.take(ti, apart), np.take(tj, apart), np.take(tm, apart)
+            kept = ~touched
+            ti, tj = np.take(remap, np.compress(touched, ei)), np.take(remap, np.compress(touched, ej))
+            tm = np.compress(touched, mult)
+            apart = ti != tj
+            ti, tj, tm = np.compress(apart, ti), np.compress(apart, tj), np.compress(apart, tm)
             count = len(size)
             key, order, first = _sorted_unique(ti.astype(np.int64) * count + tj)
             folded = np.add.reduceat(tm[order], first) if len(key) else tm[:0]
             row = order[first]  # a row of each distinct pair: its ends, as key // count and key % count gave them
-            ei = np.concatenate([np.take(remap, np.take(ei, kept)), ti[row]])
-            ej = np.concatenate([np.take(remap, np.take(ej, kept)), tj[row]])
-            mult = np.concatenate([np.take(mult, kept), folded]).astype(index, copy=False)
-            ecost = np.concatenate([np.take(ecost, kept), np.full(len(key), np.nan)])
+            ei = np.concatenate([np.take(remap, np.compress(kept, ei)), ti[row]])
+            ej = np.concatenate([np.take(remap, np.compress(kept, ej)), tj[row]])
+            mult = np.concatenate([np.compress(kept, mult), folded]).astype(index, copy=False)
+            ecost = np.concatenate([np.compress(kept, ecost), np.full(len(key), np.nan)])
     label = _morton_finish(state, label, target)
     groups = len(state["w"])
     if groups != target:  # only with regions: a region that cannot merge further (one cluster left) is a bug
