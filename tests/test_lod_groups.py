@@ -159,3 +159,20 @@ def test_a_tail_round_takes_every_merge_left():
     assert len(rounds[0.05]) < len(rounds[0.0])
     # a tail round's quota is every merge left, at most 5 % of the clusters then
     assert any(q <= 0.05 * 4000 and q not in rounds[0.0] for q in rounds[0.05])
+
+
+def test_closed_form_eigenvalues_and_area_match_numpy():
+    """_eig6 (the closed form the grouping takes every merged splat's area from, in place since autofast5) against
+    numpy's eigvalsh on random covariances, flat and needle-like ones and a sphere (a repeated eigenvalue)."""
+    rng = np.random.default_rng(3)
+    m = rng.normal(size=(500, 3, 3)) * np.exp(rng.uniform(-4, 2, size=(500, 1, 3)))
+    c = np.concatenate([m @ np.transpose(m, (0, 2, 1)), np.eye(3)[None] * 2.5])
+    six = np.stack([c[:, a, b] for a, b in lod_groups._SYM6], 1)
+    want = np.linalg.eigvalsh(c)[:, ::-1]
+    got = lod_groups._eig6(six)
+    assert np.allclose(got, np.maximum(want, 1e-300), rtol=1e-6, atol=1e-9 * want[:, :1])
+    assert np.allclose(got[-1], [2.5, 2.5, 2.5])
+    s = np.sqrt(np.maximum(want, 0.0))
+    area = s[:, 0] * s[:, 1] + s[:, 1] * s[:, 2] + s[:, 0] * s[:, 2]
+    assert np.allclose(lod_groups._area6(six), area, rtol=1e-5, atol=1e-9 * want[:, 0])
+    assert lod_groups._area6(six)[-1] == pytest.approx(3 * 2.5)
