@@ -289,3 +289,15 @@ def test_encode_target_psnr_and_size_pick_what_eval_measures(tmp_path):
         assert res.returncode == 2 and message in res.stderr and "Traceback" not in res.stderr, (args, res.stderr)
         assert len(res.stderr.strip().splitlines()) <= 3  # argparse's usage lines, or our one line
         assert not (tmp_path / "c").exists()
+
+
+def test_target_presets_are_measured_on_the_merge_the_encode_builds():
+    """A distributed encode is partitioned and builds the grid, so --target-size must compare the grid tree's bytes;
+    in memory the default (auto); a named merge is kept either way."""
+    from cli.commands.encode import target_lod_merge
+    from splatstream.encode.options import IN_MEMORY_LOD_MERGE, PARTITIONED_LOD_MERGE
+
+    assert target_lod_merge(None, distributed=True) == PARTITIONED_LOD_MERGE == "grid"
+    assert target_lod_merge(None, distributed=False) == IN_MEMORY_LOD_MERGE == "auto"
+    assert target_lod_merge("grid", distributed=False) == "grid"
+    assert target_lod_merge("auto", distributed=True) == "auto"  # the driver refuses it later, naming the merge

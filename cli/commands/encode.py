@@ -8,7 +8,7 @@ import time
 
 from splatstream.encode import encode_file
 from splatstream.encode.driver import count_edits
-from splatstream.encode.options import EncodeOptions
+from splatstream.encode.options import EncodeOptions, default_lod_merge
 from splatstream.errors import UsageError
 from splatstream.evaluate import EvalOptions, evaluate, preset_for_target
 from splatstream.format.container import DEFAULT_ZSTD_LEVEL
@@ -181,7 +181,7 @@ def run(args: argparse.Namespace) -> int:
         if args.preset or overrides or args.sh_degree is not None or args.sh_codebook is not None:
             raise UsageError("--target-psnr / --target-size choose the preset: give them without --preset, texel "
                              "formats, --sh-degree or --sh-codebook")
-        preset = _preset_for_target(args, up)
+        preset = _preset_for_target(args, up, distributed=workers is not None or bool(args.scheduler))
     progress = ProgressPrinter("encode", enabled=not args.quiet)
     with progress.library_notes():
         if tree_kind is not None:
@@ -231,7 +231,13 @@ def _encode_foreign_tree(args: argparse.Namespace, kind: str, preset: str, overr
     return encode_tree_to(reader(args.input[0], progress), args.output_dir, args.input[0], opts, progress)
 
 
-def _preset_for_target(args: argparse.Namespace, up: tuple[float, float, float] | None) -> str:
+def target_lod_merge(named: str | None, distributed: bool) -> str:
+    """The LOD merge --target-psnr / --target-size measure presets with: the one the encode will build (a
+    distributed encode is partitioned, so the grid unless one is named), so that the bytes compared are the output's."""
+    return named if named is not None else default_lod_merge(in_memory=not distributed)
+
+
+def _preset_for_target(args: argparse.Namespace, up: tuple[float, float, float] | None, distributed: bool) -> str:
     """Measure every preset on the input (splatstream.evaluate) and pick the one the target asks for."""
     if args.target_psnr is not None and not args.target_psnr > 0:
         raise UsageError(f"--target-psnr {args.target_psnr}: expected a PSNR above 0 dB")
@@ -249,8 +255,9 @@ def _preset_for_target(args: argparse.Namespace, up: tuple[float, float, float] 
     opts = EvalOptions(views=args.target_views, width=TARGET_SIZE, height=TARGET_SIZE, up=up,
                        zstd_level=args.zstd_level, lod=not args.no_lod,
                        encode_options={"max_leaf_splats": args.max_leaf_splats, "reduction": args.reduction,
-                                       "lod_merge": args.lod_merge, "page_tiles": args.page_tiles,
-                                       "page_levels": args.page_levels, "transport": args.transport,
+                                       "lod_merge": target_lod_merge(args.lod_merge, distributed),
+                                       "page_tiles": args.page_tiles, "page_levels": args.page_levels,
+                                       "transport": args.transport,
                                        "chunk_order": args.chunk_order})
     report = evaluate(args.input[0], opts, log=log, renderer=pick_renderer("auto"))
     try:
