@@ -2,7 +2,7 @@
 (its zstd level, the level's shortest match, blocks joined only where no bytes grow) against the preset's now
 (presets.PRESET_ZSTD_LEVEL, PRESET_ZSTD_MIN_MATCH, PRESET_BLOCK_SLACK), on the bundled real scenes.
 
-    PYTHONPATH=. python bench/lossy_zstd_ab.py [--scenes a,b] [--presets p,q] [--rounds 7]
+    PYTHONPATH=. python bench/lossy_zstd_ab.py [--scenes a,b,name=path] [--presets p,q] [--rounds 7]
 
 Each scene is encoded both ways in memory (LOD tree, the encoder's defaults), the decoded texels checked equal, then
 thread CPU (time.thread_time) of a `zstd` pass (every payload into the decoder's kept buffer) and a `verified` pass
@@ -64,6 +64,9 @@ def main() -> None:
     decode_jit.install()
     print("load", os.getloadavg(), flush=True)
     for scene in args.scenes.split(","):
+        if "=" in scene:  # another scene: name=path
+            scene, path = scene.split("=", 1)
+            dq.SCENES[scene] = path
         g = read_gaussians(os.path.join(dq.ROOT, dq.SCENES[scene]))
         for preset in args.presets.split(","):
             cases, cpu = encode_both(g, preset)
