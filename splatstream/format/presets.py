@@ -184,6 +184,7 @@ PRESET_ZSTD_LEVEL: dict[str, int] = {"very-high": 12, "medium-low": 9, "medium-l
 # replace, and each is a sequence more to decode: at level 16 a shortest match of 6 stores 0.05-1.6 % fewer bytes on
 # every real scene measured and zstd reads them 5-12 % faster; the bytes it saves pay for joining more parts into a
 # block (PRESET_BLOCK_SLACK), which reads faster again (issue 32; BENCHMARKS.md, "Decode speed", lossydec).
+# `--zstd-level` leaves it (and the slack) in place: they are the preset's, as its planes are.
 _LOSSY_MIN_MATCH = ("high", "medium-low-sh8", "medium-low-sh16", "medium-low-12bit", "medium-low-palette",
                     "low-plus-9bit", "low-plus-9bit-sh6", "low-plus-9bit-sh5")
 PRESET_ZSTD_MIN_MATCH: dict[str, int] = dict.fromkeys(_LOSSY_MIN_MATCH, 6)
