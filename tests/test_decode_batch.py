@@ -236,6 +236,24 @@ def test_block_ends_with_slack_join_more_parts():
     assert container._block_ends(segments, container.MERGE_MAX_RAW + 1, 0.5) == [True] * len(segments)
 
 
+def test_a_shortest_match_changes_the_frame_not_its_bytes_decompressed():
+    # container._compressor (presets.PRESET_ZSTD_MIN_MATCH): 0 is the level's own parameters, the frame the plain
+    # compressor writes; a shortest match of 6 leaves out the shorter matches (3-5 byte repeats here), the content
+    # size still in the frame header (format.md 5.1), the same bytes decompressed
+    rng = np.random.default_rng(7)
+    words = rng.integers(0, 256, (64, 4), dtype=np.uint8)
+    data = words[rng.integers(0, 64, 4096)].tobytes()  # 4-byte words from a small set: short matches only
+    size = len(data)
+
+    def frame(min_match: int) -> bytes:
+        return container._compressor(16, 0, size, min_match).compress(data)
+
+    assert frame(0) == zstandard.ZstdCompressor(level=16, write_content_size=True).compress(data)
+    longer = frame(6)
+    assert longer != frame(0) and zstandard.frame_content_size(longer) == size
+    assert zstandard.ZstdDecompressor().decompress(longer) == data
+
+
 def test_very_high_joins_blocks_with_its_slack_the_same_bytes_decompressed(fruit, monkeypatch):
     # very-high's slack (presets.PRESET_BLOCK_SLACK; issue 32: each zstd block's tables cost its reader more than
     # their bytes) changes where blocks end and nothing decompressed (format.md 5.2): fewer blocks, within 2 % of

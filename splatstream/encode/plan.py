@@ -25,6 +25,7 @@ from ..format.presets import (
     PRESET_PALETTE_MERGE,
     palette_fallback,
     preset_block_slack,
+    preset_zstd_min_match,
     resolve_chunk_order,
     resolve_formats,
 )
@@ -56,6 +57,8 @@ class TileContext:
     palettes: dict[str, np.ndarray] | None = None
     # How much larger a joined zstd block may code than its parts (container._block_ends; the preset's)
     block_slack: float = 0.0
+    # zstd's shortest match, 0 for the level's own (container._compressor; the preset's)
+    zstd_min_match: int = 0
 
 
 @dataclass(frozen=True)
@@ -162,7 +165,7 @@ def plan_scene(opts: EncodeOptions, formats: dict[str, str], chunk_order: str, s
     up = plan_up(opts, sample)
     formats, steps, palettes = plan_palettes(opts, formats, sample.palettes)
     context = TileContext(formats, chunk_order, sh_degree, codebook, opts.resolved_zstd_level, opts.resolved_transport,
-                          steps, palettes, preset_block_slack(opts.preset))
+                          steps, palettes, preset_block_slack(opts.preset), preset_zstd_min_match(opts.preset))
     return ScenePlan(context, opts.preset, name, splats, bounds, up, opts.max_leaf_splats,
                      float(opts.reduction)), sample
 

@@ -72,7 +72,7 @@ DEFAULT_ZSTD_LEVEL = 1
 
 
 def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level: int = DEFAULT_ZSTD_LEVEL,
-                  transport: str = "fields", block_slack: float = 0.0) -> PayloadEntry:
+                  transport: str = "fields", block_slack: float = 0.0, min_match: int = 0) -> PayloadEntry:
     """Write a payload into `out` (zstd, hashing as it goes) and return its manifest entry.
 
     Each plane's texels are taken one layer at a time as the plane produces them (planes from
@@ -83,7 +83,8 @@ def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level:
     tables, smaller than one table across them (format.md 5.2; BENCHMARKS.md, "Figures behind library defaults"),
     and like parts of a small payload share one, which its decoder reads faster (issue 32). The payload's stored
     sections are held until then, never its texels as a whole.
-    `chunks` is the tile's chunk count (range shapes); `block_slack`: _block_ends' (the preset's).
+    `chunks` is the tile's chunk count (range shapes); `block_slack`: _block_ends' (the preset's); `min_match`: zstd's
+    shortest match where not 0 (0: the level's own; the preset's, presets.PRESET_ZSTD_MIN_MATCH).
     """
     sections: list[Section] = []
     contents: list[list] = []
@@ -147,7 +148,7 @@ def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level:
     # does not depend on the worker count), but it buffers whole jobs, which lifts the encoder's peak memory on large
     # payloads (BENCHMARKS.md, "Figures behind library defaults"). Large payloads stream single-threaded.
     threads = -1 if offset <= WORKER_MODE_MAX_BYTES else 0
-    cctx = zstandard.ZstdCompressor(level=level, threads=threads, write_content_size=True)
+    cctx = _compressor(level, threads, offset, min_match)
     with cctx.stream_writer(_Sink(), size=offset, closefd=False) as stream:
         for i, (pad, part) in enumerate(segments):
             if pad is not None:
@@ -158,6 +159,18 @@ def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level:
     sha = digest.hexdigest()
     return PayloadEntry(payload_name(sha), sha, written, int(position), sum(s.gpu_size for s in sections),
                         tuple(sections))
+
+
+def _compressor(level: int, threads: int, raw_bytes: int, min_match: int) -> zstandard.ZstdCompressor:
+    """A payload's compressor: zstd `level` (its parameters for a frame of `raw_bytes`), with its shortest match
+    `min_match` where that is not 0. Why a longer shortest match: on the lossy presets' small LOD payloads the
+    matches of 3-5 bytes a level finds cost more bytes than the literals they replace and give the reader more
+    sequences to decode (issue 32; presets.PRESET_ZSTD_MIN_MATCH)."""
+    if not min_match:
+        return zstandard.ZstdCompressor(level=level, threads=threads, write_content_size=True)
+    params = zstandard.ZstdCompressionParameters.from_level(level, source_size=raw_bytes, min_match=min_match,
+                                                            threads=threads, write_content_size=1)
+    return zstandard.ZstdCompressor(compression_params=params)
 
 
 def _trial_bytes(data: bytes) -> int:

@@ -171,16 +171,33 @@ PRESET_STEPS: dict[str, dict[str, TileStep]] = {
 # (bench/results/pos9_levels_*; BENCHMARKS.md, "Figures behind library defaults"). very-high takes level 12 for its
 # decode: its float byte planes at level 12 are 1.2-1.6 % smaller and zstd reads them 8-15 % faster than at level 1,
 # where levels 16 and 19 read as slowly as level 1 (issue 32; BENCHMARKS.md, "Decode speed", vhdec).
+# high, medium-low-sh8 and medium-low-sh16 take level 12 with a shortest match of 6 (PRESET_ZSTD_MIN_MATCH) for
+# their decode: 0.4-4 % fewer bytes than level 1 on the real scenes and, with their parts joined within 2 %, zstd reads
+# them 10-20 % faster (issue 32; BENCHMARKS.md, "Decode speed", lossydec).
 PRESET_ZSTD_LEVEL: dict[str, int] = {"very-high": 12, "medium-low": 9, "medium-low-12bit": 16, "medium-low-palette": 16,
                                      "medium-low-9bit": 16,
                                      "low-plus-9bit": 16, "low-plus-9bit-sh6": 16,
-                                     "low-plus-9bit-sh5": 16, "low-plus-10bit-cb8": 16}
+                                     "low-plus-9bit-sh5": 16, "low-plus-10bit-cb8": 16,
+                                     "high": 12, "medium-low-sh8": 12, "medium-low-sh16": 12}
+# zstd's shortest match per preset where not its level's own (3 at level 16, 4-5 at 12 on payloads this small; 0:
+# the level's). On the lossy presets' small LOD payloads the short matches cost more bytes than the literals they
+# replace, and each is a sequence more to decode: at level 16 a shortest match of 6 stores 0.05-1.6 % fewer bytes on
+# every real scene measured and zstd reads them 5-12 % faster; the bytes it saves pay for joining more parts into a
+# block (PRESET_BLOCK_SLACK), which reads faster again (issue 32; BENCHMARKS.md, "Decode speed", lossydec).
+# `--zstd-level` leaves it (and the slack) in place: they are the preset's, as its planes are.
+_LOSSY_MIN_MATCH = ("high", "medium-low-sh8", "medium-low-sh16", "medium-low-12bit", "medium-low-palette",
+                    "low-plus-9bit", "low-plus-9bit-sh6", "low-plus-9bit-sh5")
+PRESET_ZSTD_MIN_MATCH: dict[str, int] = dict.fromkeys(_LOSSY_MIN_MATCH, 6)
 # How much larger (a fraction) a small payload's zstd block may code, at the trial level, than its parts alone and
 # still be one block (container._block_ends), per preset where not 0. very-high's float byte planes cut into blocks
 # of a few KB, each with its tables, made zstd read them at about 1.1 GB/s: joined within 3 %, zstd reads them in
 # 0.4-0.5 of the time, with level 12 in 0.9-1.7 % more bytes than level 1 without a slack (issue 32: decode speed;
 # BENCHMARKS.md, "Decode speed", vhdec).
-PRESET_BLOCK_SLACK: dict[str, float] = {"very-high": 0.03}
+# The lossy presets of PRESET_ZSTD_MIN_MATCH join within 1 % (level 16) or 2 % (level 12): what their shortest match
+# saved, less than it, so that their payloads still take fewer bytes than before on every real scene measured.
+PRESET_BLOCK_SLACK: dict[str, float] = {"very-high": 0.03, "high": 0.02, "medium-low-sh8": 0.02,
+                                        "medium-low-sh16": 0.02, "medium-low-12bit": 0.01, "medium-low-palette": 0.01,
+                                        "low-plus-9bit": 0.01, "low-plus-9bit-sh6": 0.01, "low-plus-9bit-sh5": 0.01}
 DEFAULT_PRESET = "medium"
 # What each preset is for, in the words the CLI (`encode --help`, `info`) shows: disk bytes per splat with the
 # fields1 transport coding at SH3 / SH0 and the mean PSNR measured on the benchmark scenes (BENCHMARKS.md, "Size
@@ -315,6 +332,11 @@ def preset_transport(preset: str, default: str) -> str:
 def preset_zstd_level(preset: str, default: int) -> int:
     """The zstd level an encode of `preset` uses when none is given (`default`: the encoder's)."""
     return PRESET_ZSTD_LEVEL.get(preset, default)
+
+
+def preset_zstd_min_match(preset: str) -> int:
+    """zstd's shortest match for the preset's payloads (PRESET_ZSTD_MIN_MATCH), 0 for its level's own."""
+    return PRESET_ZSTD_MIN_MATCH.get(preset, 0)
 
 
 def preset_block_slack(preset: str) -> float:

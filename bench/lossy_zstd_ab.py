@@ -1,0 +1,98 @@
+"""The lossy presets' zstd choices for decode speed (issue 32, branch lossydec): each preset's encoder as it was
+(its zstd level, the level's shortest match, blocks joined only where no bytes grow) against the preset's now
+(presets.PRESET_ZSTD_LEVEL, PRESET_ZSTD_MIN_MATCH, PRESET_BLOCK_SLACK), on the bundled real scenes.
+
+    PYTHONPATH=. python bench/lossy_zstd_ab.py [--scenes a,b,name=path] [--presets p,q] [--rounds 7]
+
+Each scene is encoded both ways in memory (LOD tree, the encoder's defaults), the decoded texels checked equal, then
+thread CPU (time.thread_time) of a `zstd` pass (every payload into the decoder's kept buffer) and a `verified` pass
+(the streaming client's path, the numba kernels installed) of each, in alternated order each round
+(bench/decode_quiet.py's Case). Prints bytes, encode CPU, least and median pass, the median of the per-round ratios.
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import os
+import statistics
+import sys
+import time
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
+
+import decode_quiet as dq  # noqa: E402
+
+from client_gl.stream import decode_jit  # noqa: E402
+from splatstream.encode import EncodeOptions  # noqa: E402
+from splatstream.encode.local import encode_in_memory  # noqa: E402
+from splatstream.format import presets  # noqa: E402
+from splatstream.io import read_gaussians  # noqa: E402
+
+# (zstd level, shortest match (0: the level's), block slack) of each preset before this branch (main at c8fa564)
+BEFORE = {"high": (1, 0, 0.0), "medium-low-sh8": (1, 0, 0.0), "medium-low-sh16": (1, 0, 0.0),
+          "medium-low-12bit": (16, 0, 0.0), "medium-low-palette": (16, 0, 0.0), "low-plus-9bit": (16, 0, 0.0),
+          "low-plus-9bit-sh6": (16, 0, 0.0), "low-plus-9bit-sh5": (16, 0, 0.0)}
+TABLES = (presets.PRESET_ZSTD_LEVEL, presets.PRESET_ZSTD_MIN_MATCH, presets.PRESET_BLOCK_SLACK)
+
+
+def encode_both(g, preset: str) -> tuple[dict, dict]:
+    """(Case by variant, encode CPU s by variant): "before" the settings of BEFORE, "after" the preset's now."""
+    now = [dict(t) for t in TABLES]
+    cases, cpu = {}, {}
+    for name in ("before", "after"):
+        if name == "before":
+            for table, value in zip(TABLES, BEFORE[preset], strict=True):
+                table.pop(preset, None)
+                if value:
+                    table[preset] = value
+        t = time.process_time()
+        cases[name] = dq.Case(encode_in_memory(g, EncodeOptions(preset=preset)))
+        cpu[name] = time.process_time() - t
+        for table, saved in zip(TABLES, now, strict=True):
+            table.clear()
+            table.update(saved)
+    return cases, cpu
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--scenes", default="winter_fountain,guitar,statue_massa,fruit_drops_sh3,lod_tile_sh3_zero_rest")
+    ap.add_argument("--presets", default=",".join(BEFORE))
+    ap.add_argument("--rounds", type=int, default=7)
+    args = ap.parse_args()
+    decode_jit.install()
+    print("load", os.getloadavg(), flush=True)
+    for scene in args.scenes.split(","):
+        if "=" in scene:  # another scene: name=path
+            scene, path = scene.split("=", 1)
+            dq.SCENES[scene] = path
+        g = read_gaussians(os.path.join(dq.ROOT, dq.SCENES[scene]))
+        for preset in args.presets.split(","):
+            cases, cpu = encode_both(g, preset)
+            digests = {k: hashlib.sha256(b"".join(c.texels())).hexdigest() for k, c in cases.items()}
+            if digests["before"] != digests["after"]:
+                raise SystemExit(f"{scene} {preset}: the decoded texels differ")
+            times: dict = {k: {"zstd": [], "verified": []} for k in cases}
+            for r in range(args.rounds):
+                for k in (("before", "after") if r % 2 == 0 else ("after", "before")):
+                    for v in ("zstd", "verified"):
+                        times[k][v].append(cases[k].run(v))
+            a, b = cases["before"], cases["after"]
+            row = [scene, preset, f"splats {a.splats} payloads {a.payloads}",
+                   f"encode CPU s {cpu['before']:.1f} -> {cpu['after']:.1f}",
+                   f"bytes {a.bytes} -> {b.bytes} ({b.bytes / a.bytes - 1:+.2%})"]
+            for v in ("zstd", "verified"):
+                x, y = times["before"][v], times["after"][v]
+                ratio = statistics.median(q / p for p, q in zip(x, y, strict=True))
+                row.append(f"{v} ms least {min(x) * 1e3:.2f} -> {min(y) * 1e3:.2f}, median "
+                           f"{statistics.median(x) * 1e3:.2f} -> {statistics.median(y) * 1e3:.2f}, ratio {ratio:.3f}")
+            best = [a.splats / min(times[k]["verified"]) / 1e6 for k in ("before", "after")]
+            med = [a.splats / statistics.median(times[k]["verified"]) / 1e6 for k in ("before", "after")]
+            row.append(f"M splats/s best {best[0]:.2f} -> {best[1]:.2f}, median {med[0]:.2f} -> {med[1]:.2f}")
+            print(" | ".join(row), flush=True)
+    print("load", os.getloadavg(), flush=True)
+
+
+if __name__ == "__main__":
+    main()
