@@ -48,7 +48,9 @@ MAX_MERGED_OPACITY = 0.99
 # format_spec/lod.md 6, step 5).
 # OPACITY_MATCH_SSE_PX is the scale of the first merged level (tiles whose children are the originals);
 # OPACITY_MATCH_FAR_SSE_PX that of every level above it (lod.md 6, step 5). Module constants so that a bench or
-# probe can set them (viewing_scale_px reads them at call time).
+# probe can set them (viewing_scale_px reads them at call time). 8 px above the first merged level gained +0.74 dB
+# median under a budget but lost up to 0.9 dB in whole frames without one (BENCHMARKS.md, "The 2 + 8 px rule in
+# frames without a budget"): 2 px stays.
 LOW_PASS_PX2 = 0.3
 OPACITY_MATCH_SSE_PX = 2.0
 OPACITY_MATCH_FAR_SSE_PX = 2.0
