@@ -46,8 +46,14 @@ MAX_MERGED_OPACITY = 0.99
 # the 1-px blur made merged splats too opaque. 2 px: budgeted views gain, levels seen at 1 px lose little; 4 px
 # gains more under a budget but loses too much at 1 px (BENCHMARKS.md, "LOD against peers", the viewing scale;
 # format_spec/lod.md 6, step 5).
+# OPACITY_MATCH_SSE_PX is the scale of the first merged level (tiles whose children are the originals);
+# OPACITY_MATCH_FAR_SSE_PX that of every level above it (lod.md 6, step 5). Module constants so that a bench or
+# probe can set them (viewing_scale_px reads them at call time). 8 px above the first merged level gained +0.74 dB
+# median under a budget but lost up to 0.9 dB in whole frames without one (BENCHMARKS.md, "The 2 + 8 px rule in
+# frames without a budget"): 2 px stays.
 LOW_PASS_PX2 = 0.3
 OPACITY_MATCH_SSE_PX = 2.0
+OPACITY_MATCH_FAR_SSE_PX = 2.0
 # Error statistic over a tile's ORIGINAL splats, each taking the error of the merged splat that stands for it
 # (so untouched singletons cannot hide a merged blob): "max" is a strict bound; a quantile ignores a few outliers.
 ERROR_STAT: str | float = 0.99
@@ -708,6 +714,23 @@ def viewing_blur(error: float) -> float:
     return LOW_PASS_PX2 * pixel * pixel
 
 
+def viewing_scale_px(child_error: float) -> float:
+    """The screen-space error (px) at which an interior tile's opacities and colours are matched: the first merged
+    level (its children are the originals: their error is 0) at OPACITY_MATCH_SSE_PX, the levels above it at
+    OPACITY_MATCH_FAR_SSE_PX (lod.md 6, step 5)."""
+    return OPACITY_MATCH_SSE_PX if child_error == 0.0 else OPACITY_MATCH_FAR_SSE_PX
+
+
+def tile_viewing_blur(error: float, child_error: float) -> float:
+    """The viewing blur of a tile of geometric error `error` whose children's largest error is `child_error`: at
+    viewing_scale_px(child_error). Where that is OPACITY_MATCH_SSE_PX it is viewing_blur(error) itself, which the
+    older probes (bench/probe_lod_*.py) replace to try other scales."""
+    px = viewing_scale_px(child_error)
+    if px == OPACITY_MATCH_SSE_PX:
+        return viewing_blur(error)
+    return LOW_PASS_PX2 * (error / px) ** 2
+
+
 APPEARANCE_TERMS = 5  # shown coverage, colour weight, colour weight x SH band 0 (3)
 
 
@@ -770,10 +793,10 @@ def tile_error_first(merged: Gaussians, counts: np.ndarray, far: np.ndarray, nea
 
 
 def finish_tile_appearance(merged: Gaussians, counts: np.ndarray, far: np.ndarray, near: np.ndarray,
-                           errors: np.ndarray, error: float, sums: np.ndarray) -> float:
+                           errors: np.ndarray, error: float, sums: np.ndarray, child_error: float) -> float:
     """Opacities and colours matched at the viewing scale of `error` (`sums`: the folded appearance_terms at
-    viewing_blur(error)); returns the tile's error."""
-    finish_appearance(merged, counts, sums, viewing_blur(error))
+    tile_viewing_blur(error, child_error)); returns the tile's error."""
+    finish_appearance(merged, counts, sums, tile_viewing_blur(error, child_error))
     return error
 
 
@@ -783,7 +806,8 @@ def finish_tile(merged: Gaussians, counts: np.ndarray, far: np.ndarray, near: np
     colours matched at that error's viewing scale (`appearance(blur)` gives the folded sums). Returns the tile's
     geometric error; `merged` is changed in place."""
     errors, error = tile_error_first(merged, counts, far, near, child_error)
-    return finish_tile_appearance(merged, counts, far, near, errors, error, appearance(viewing_blur(error)))
+    sums = appearance(tile_viewing_blur(error, child_error))
+    return finish_tile_appearance(merged, counts, far, near, errors, error, sums, child_error)
 
 
 def interior_bounds(merged: Gaussians, kids: list[Tile]) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:

@@ -53,7 +53,7 @@ from ..lod import (
     sort_keys,
     split_axis,
     tile_error_first,
-    viewing_blur,
+    tile_viewing_blur,
 )
 from ..ply import RowStats, VertexLayout, check_rows, read_ply_rows
 from ..store import SceneWriter, write_scene_manifest
@@ -789,15 +789,17 @@ def _upper_tiles(engine: Engine, scratch: Scratch, shape: TreeShape, level: int,
                         near[present] = np.minimum(near[present], n)
                 child_error = max(k.geometric_error for k in merged[j][4])
                 errors, error = tile_error_first(g, counts, far, near, child_error)
-                state[j] = (counts, far, near, errors, error)
+                state[j] = (counts, far, near, errors, error, child_error)
             sums = engine.map(partition_sums, [(scratch, p, maps[p], len(merged[p // per_tile][0]),
-                                                viewing_blur(state[p // per_tile][4])) for p in parts],
+                                                tile_viewing_blur(state[p // per_tile][4], state[p // per_tile][5]))
+                                               for p in parts],
                               "upper", progress)
             for j in batch:
                 g, mass, _, _, kids = merged[j]
                 leaf_parts = [lp for p, s in zip(parts, sums, strict=True) if p // per_tile == j for lp in s]
-                counts, far, near, errors, error = state[j]
-                error = finish_tile_appearance(g, counts, far, near, errors, error, fold_leaf_sums(leaf_parts, len(g)))
+                counts, far, near, errors, error, child_error = state[j]
+                error = finish_tile_appearance(g, counts, far, near, errors, error, fold_leaf_sums(leaf_parts, len(g)),
+                                               child_error)
                 lo, hi, c, r = interior_bounds(g, kids)
                 tid = shape.tile_id(lvl, j)
                 _save_tile(scratch, Tile(tid, lvl, [k.id for k in kids], g, error, lo, hi, c, r), mass)
