@@ -48,12 +48,13 @@ MAX_MERGED_OPACITY = 0.99
 # format_spec/lod.md 6, step 5).
 # OPACITY_MATCH_SSE_PX is the scale of the first merged level (tiles whose children are the originals);
 # OPACITY_MATCH_FAR_SSE_PX that of every level above it (lod.md 6, step 5). Module constants so that a bench or
-# probe can set them (viewing_scale_px reads them at call time). 8 px above the first merged level gained +0.74 dB
-# median under a budget but lost up to 0.9 dB in whole frames without one (BENCHMARKS.md, "The 2 + 8 px rule in
-# frames without a budget"): 2 px stays.
+# probe can set them (viewing_scale_px reads them at call time). 8 px above the first merged level: under a splat
+# budget those levels are drawn at 7-30 px, and it gained a median +0.74 dB there (48 points, 45 up, none down by
+# more than 0.2), while whole frames without a budget moved a median +0.04 dB (-0.90 to +0.84; BENCHMARKS.md, "The
+# 2 + 8 px rule in frames without a budget", and "The default viewing scale: 2 + 8 px").
 LOW_PASS_PX2 = 0.3
 OPACITY_MATCH_SSE_PX = 2.0
-OPACITY_MATCH_FAR_SSE_PX = 2.0
+OPACITY_MATCH_FAR_SSE_PX = 8.0
 # Error statistic over a tile's ORIGINAL splats, each taking the error of the merged splat that stands for it
 # (so untouched singletons cannot hide a merged blob): "max" is a strict bound; a quantile ignores a few outliers.
 ERROR_STAT: str | float = 0.99

@@ -52,10 +52,11 @@ def same(a: lod.Tile, b: lod.Tile, fields=("positions", "rotations", "log_scales
 
 def test_the_encoders_scale_is_the_base_tree_and_the_module_is_restored():
     before = (lod.finish_tile, lod.level_auto_groups, lod.appearance_terms, lod.finish_appearance)
-    base, two = build("base"), build("px=2/2")
+    # The encoder's rule since 2026-11-29: 2 px on the first merged level, 8 px above it (lod.md 6 step 5).
+    base, two_eight = build("base"), build("px=2/8")
     assert after_restored(before)
-    assert len(base) == len(two) > 7 and all(same(a, b) for a, b in zip(base, two, strict=True))
-    assert [a.geometric_error for a in base] == [b.geometric_error for b in two]
+    assert len(base) == len(two_eight) > 7 and all(same(a, b) for a, b in zip(base, two_eight, strict=True))
+    assert [a.geometric_error for a in base] == [b.geometric_error for b in two_eight]
 
 
 def after_restored(before) -> bool:
@@ -63,7 +64,7 @@ def after_restored(before) -> bool:
 
 
 def test_scale_above_the_first_merged_level_changes_only_appearance_above_it():
-    base, far = build("base"), build("px=2/8")
+    base, far = build("px=2/2"), build("px=2/8")  # the rule before 2026-11-29 (every level at 2 px), today's
     first = first_merged(base)
     changed = 0
     for a, b in zip(base, far, strict=True):
