@@ -483,3 +483,21 @@ def test_the_engine_selects_near_the_cut_as_over_every_tile(paged_store):
         assert sys.getswitchinterval() == process_interval  # restored after every selection
     assert all(run == runs[0] for run in runs[1:])
     assert runs[0][2] > 3 and runs[0][3] > 0  # pages read and dropped on the way
+
+
+@NEEDS_NUMBA
+def test_the_engines_grown_state_is_numpys():
+    """selection_jit.grown and slot_cost (engine._adopt's per-tile state grown by a page, keeping the interpreter
+    lock) against np.concatenate with zeros and astype * slot bytes: the same dtypes and values, new arrays."""
+    rnd = np.random.default_rng(3)
+    for n in (0, 1, 700, 20_000):
+        for state in (rnd.random(n) < 0.5, rnd.integers(-5, 1 << 40, n, dtype=np.int64)):
+            for grow in (0, 1, 613):
+                out = selection_jit.grown(state, n + grow)
+                want = np.concatenate([state, np.zeros(grow, state.dtype)])
+                assert out.dtype == want.dtype and np.array_equal(out, want) and not np.shares_memory(out, state)
+        slots = rnd.integers(0, 1 << 20, n, dtype=np.int64)
+        for slot_bytes in (256 * 62.0, 1234.5):
+            cost = selection_jit.slot_cost(slots, slot_bytes)
+            assert cost.dtype == np.float64
+            assert cost.tobytes() == (slots.astype(np.float64) * float(slot_bytes)).tobytes()
