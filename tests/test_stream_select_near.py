@@ -25,6 +25,7 @@ from client_gl.stream.selection import (
     Selection,
     SelectionOptions,
     ViewBuffers,
+    boxes_in_frustum,
     draw_set,
     prefetch,
     select,
@@ -190,7 +191,13 @@ def check_same(m, cam, opts, previous, near, resident, rnd, path="numpy", near_p
     if draw_set_compiled is not None:  # the compiled draw set: the same tiles in the same order, either view
         assert draw_set_compiled(a, part, got, resident, root).tolist() == drawn
         assert draw_set_compiled(a, full, want, resident, root).tolist() == drawn
-    assert prefetch(a, part, got, opts, cost) == prefetch(a, full, want, opts, cost)
+    prefetched = prefetch(a, part, got, opts, cost)
+    assert prefetched == prefetch(a, full, want, opts, cost)
+    if selection_jit is not None:  # the widened frustum's box test compiled: the same tiles
+        assert prefetch(a, part, got, opts, cost, selection_jit.boxes_at) == prefetched
+        look = random.Random(7).sample(range(len(m.tiles)), min(300, len(m.tiles)))
+        assert selection_jit.boxes_at(a.box_corners, look, part.planes) == \
+            boxes_in_frustum(None, None, part.planes, a.box_corners[look]).tolist()
     return got, int(known.sum())
 
 

@@ -326,13 +326,17 @@ def planes_nbytes(planes: dict) -> int:
 class _Prefetch:
     """Iterates over the base keys that prefetch() names for a view, computed on first use and kept."""
 
-    def __init__(self, arrays, view, sel, opts, ids, cost) -> None:
+    def __init__(self, arrays, view, sel, opts, ids, cost, compiled: bool = False) -> None:
         self._args, self._ids, self._keys = (arrays, view, sel, opts, cost), ids, None
+        self._compiled = compiled  # StreamOptions.compiled_selection
 
     def __iter__(self):
         if self._keys is None:
             ids = self._ids
-            self._keys = [(int(ids[i]), "base") for _, i in prefetch(*self._args)]
+            # the widened frustum's box test compiled where the selection's kernels are loaded (the same tiles)
+            jit = COMPILED_SELECTION.kernels if self._compiled else None
+            boxes = jit.boxes_at if jit is not None else None
+            self._keys = [(int(ids[i]), "base") for _, i in prefetch(*self._args, boxes=boxes)]
         return iter(self._keys)
 
 
@@ -653,7 +657,8 @@ class StreamEngine:
         self._bands_wanted = (cut, bands)
         keys = self._make_keys(cut, bands)
         # prefetch only when asked for (update asks only when nothing the view wants is missing): 0.2-0.3 ms a frame
-        extra = _Prefetch(a, view, sel, opts, self.ids, self.cost) if self.options.prefetch else ()
+        extra = _Prefetch(a, view, sel, opts, self.ids, self.cost, self.options.compiled_selection) \
+            if self.options.prefetch else ()
         result = (view, sel, bands, keys, extra)
         self._wanted_cache = (key, result)
         self._wanted_serial += 1

@@ -34,6 +34,7 @@ from client_gl.stream.selection import (
     SelectionOptions,
     TileView,
     ViewBuffers,
+    boxes_in_frustum,
     corner_weights,
     positions,
     select_near_heap,
@@ -807,6 +808,31 @@ def coarse_to_fine_compiled(parent: np.ndarray, level: np.ndarray, resident: np.
 
 
 @njit(**_JIT)
+def _boxes_at(idx, corners, plane_d, split):
+    """boxes_in_frustum of the tiles at idx (the same operations in the same order: _shown's box test)."""
+    out = np.ones(idx.shape[0], np.bool_)
+    for j in range(idx.shape[0]):
+        c = idx[j]
+        for p in range(plane_d.shape[0]):
+            s = plane_d[p] + corners[c, 0] * split[p, 0]
+            for k in range(1, 6):
+                s = s + corners[c, k] * split[p, k]
+            if not s >= 0:
+                out[j] = False
+                break
+    return out
+
+
+def boxes_at(corners: np.ndarray, idx: list[int], planes: np.ndarray) -> list[bool]:
+    """selection.wide_visible's box test (boxes_in_frustum of corners[idx]: the same answer) keeping the interpreter
+    lock: numpy's took the rows and tested them in a dozen calls over idx * 6 elements, each letting the lock go
+    (the prefetch's, a frame that prefetches)."""
+    if not idx:
+        return []
+    return _boxes_at(np.array(idx, np.int64), _f64(corners), _f64(planes[:, 3]), _f64(corner_weights(planes))).tolist()
+
+
+@njit(**_JIT)
 def _grown(state, n):
     """state's rows then zeros, n rows in all (engine._adopt's per-tile state grown by a page's tiles): np.concatenate
     and np.zeros over the tree held let the interpreter lock go, 7 times an adoption at 250M splats."""
@@ -890,6 +916,8 @@ def warm_up() -> None:
     assert draw_set_compiled(a, view_numbers(a, cam), sel, resident, 0).tolist() == [0]
     assert draw_set_compiled(a, view, sel, resident, 0, sums, False).tolist() == [0]
     base, filling = coarse_to_fine_compiled(parent, a.level, np.array([True, False, False]), np.array([1, 2]), 0, 1, 1)
+    assert boxes_at(a.box_corners, [0, 2], view.planes) == boxes_in_frustum(None, None, view.planes,
+                                                                           a.box_corners[[0, 2]]).tolist()
     assert grown(np.array([True]), 2).tolist() == [True, False] and grown(parent, 4).tolist() == [-1, 0, 0, 0]
     assert slot_cost(parent, 2.0).tolist() == [-2.0, 0.0, 0.0]
     assert base.tolist() == [0, 1, 2] and filling.tolist() == [True, False, False], (base, filling)
