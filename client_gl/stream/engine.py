@@ -21,7 +21,7 @@ import time
 from collections import deque
 from concurrent.futures import CancelledError, Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from itertools import compress, filterfalse, repeat
+from itertools import chain, compress, filterfalse, repeat
 from multiprocessing import get_context
 from operator import is_
 from typing import Any, Protocol
@@ -404,6 +404,7 @@ class StreamEngine:
         self._order_of: tuple[list[Key], dict[Key, int]] | None = None  # a wish list and its keys' ranks (_upload)
         self._upload_idle: tuple[int, list[Key]] | None = None  # (version, wish list) with nothing to upload
         self._listed: tuple = ()
+        self._priority_list: list[float] = []  # the wish list's priorities, kept (_priorities)
         self._draw_cache: tuple | None = None
         self._ready: dict[Key, _Ready] = {}
         self._ready_bytes = 0
@@ -782,9 +783,19 @@ class StreamEngine:
             entries[r] = page_entry(listed[r][0])
         for r in compress(range(n), map(is_, entries, repeat(None))):  # keys asked for the first time
             entries[r] = self.entry(listed[r])
-        # the priorities as Python floats (the same values as np.arange(n, 0, -1, float64).tolist(), whose array over
-        # 500 keys let the interpreter lock go)
-        return list(zip(map(float, range(n, 0, -1)), listed, entries, strict=True))
+        return list(zip(self._priorities(n), listed, entries, strict=True))
+
+    def _priorities(self, n: int) -> list[float]:
+        """n, n - 1, .., 1 as floats (np.arange(n, 0, -1, float64).tolist()'s values): the tail of a list kept from
+        the longest wish list so far (a list's slice keeps the interpreter lock; np.arange over 500 keys let it go
+        every frame, and Python's map(float, range) cost 2.5x the arange), made again, longer, in pieces of 500
+        under the lock's threshold."""
+        kept = self._priority_list
+        if n > len(kept):
+            top = max(n, 2 * len(kept))
+            kept = self._priority_list = list(chain.from_iterable(
+                np.arange(hi, max(hi - 500, 0), -1, dtype=np.float64).tolist() for hi in range(top, 0, -500)))
+        return kept[len(kept) - n:]
 
     def _draw_counts(self, view, sel: Selection) -> tuple:
         """The draw set and what a frame reports of it and of the residency, kept while neither changes (a still,
