@@ -21,6 +21,8 @@ import subprocess
 import sys
 import tempfile
 
+import numpy as np
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 SHIM = "libgilcount.so"
 
@@ -34,6 +36,8 @@ def main() -> None:
     ap.add_argument("--splats", default="250e6")
     ap.add_argument("--frames", type=int, default=100)
     ap.add_argument("--lines", action="store_true", help="where each release is made (sys.settrace: slow)")
+    ap.add_argument("--update-lines", action="store_true",
+                    help="with --lines: where each release of the whole update is made, not only `wanted`'s")
     ap.add_argument("--busy-threads", type=int, default=0)
     ap.add_argument("--busy-pattern", default=None, metavar="HOLD,REST")
     args = ap.parse_args()
@@ -64,14 +68,24 @@ def main() -> None:
             state["n"] = n
         state["loc"] = loc
 
+    numpy_dir = os.path.dirname(os.path.dirname(np.__file__))
+
     def tracer(frame, event, arg):
         if event == "line":
-            flush((os.path.basename(frame.f_code.co_filename), frame.f_lineno, ""))
+            name = ""
+            while frame.f_back is not None and frame.f_code.co_filename.startswith(numpy_dir):
+                name = f"{frame.f_code.co_name}/{name}"
+                frame = frame.f_back
+            flush((os.path.basename(frame.f_code.co_filename), frame.f_lineno, name))
         return tracer
 
     def profiler(frame, event, arg):
         name = getattr(arg, "__qualname__", str(arg)) if event == "c_call" else ""
         if event in ("c_call", "c_return", "c_exception"):
+            # numpy's Python wrappers (np.concatenate's dispatcher, fromnumeric's) named by the line calling them
+            while frame.f_back is not None and frame.f_code.co_filename.startswith(numpy_dir):
+                name = f"{frame.f_code.co_name}/{name}"
+                frame = frame.f_back
             flush((os.path.basename(frame.f_code.co_filename), frame.f_lineno, name))
 
     def counted(label, fn, lines=True):
@@ -97,9 +111,9 @@ def main() -> None:
 
     if COMPILED_SELECTION.wait() is None:
         raise SystemExit(f"the compiled selection is not available: {COMPILED_SELECTION.error!r}")
-    # the whole update (its lines not: --lines would trace every frame) and the engine's `wanted` (view, cut, pages
-    # wanted, bands, keys) counted too
-    engine_module.StreamEngine.update = counted("update", engine_module.StreamEngine.update, False)
+    # the whole update (its lines with --update-lines only: then `wanted`'s lines are counted in the update's list)
+    # and the engine's `wanted` (view, cut, pages wanted, bands, keys) counted too
+    engine_module.StreamEngine.update = counted("update", engine_module.StreamEngine.update, args.update_lines)
     engine_module.StreamEngine.wanted = counted("wanted", engine_module.StreamEngine.wanted)
     engine_module.PartialView = counted("view", engine_module.PartialView)
     COMPILED_SELECTION._fn = counted("cut", COMPILED_SELECTION._fn)
@@ -113,7 +127,7 @@ def main() -> None:
         for label in ("view", "cut", "wanted", "draw set", "update"):
             print(f"releases of the lock, {label}: {per_part[label]} in {calls[label]} calls "
                   f"({per_part[label] / max(calls[label], 1):.2f} a call)")
-        for (file, line, c), k in where.most_common(20):
+        for (file, line, c), k in where.most_common(40):
             print(f"  {k:6d}  {file}:{line} {c}")
 
 

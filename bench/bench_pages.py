@@ -345,6 +345,7 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
     side = whole.bounds.max[0]
     prof = cProfile.Profile(time.thread_time) if profile else None  # CPU: the VM is shared
     times, cpu = [], []
+    switches: list[tuple[int, int]] = []  # the update's (waits, preemptions): voluntary and involuntary switches
     adopted: list[bool] = []  # frames that adopted (or dropped) pages
     ready: list[bool] = []  # frames after which the compiled selection was ready
     # The bench's whole tree is no client's: out of the collector's passes, whose full passes over it took 120-150 ms
@@ -467,10 +468,12 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
             if prof is not None:
                 prof.enable()
             held = (engine.pages.pages_read, engine.pages.evicted)
-            t0, c0 = time.perf_counter(), time.thread_time()
+            t0, c0, (v0, i0) = time.perf_counter(), time.thread_time(), _context_switches()
             u = engine.update(cam)
             times.append(time.perf_counter() - t0)
             cpu.append(time.thread_time() - c0)
+            v1, i1 = _context_switches()
+            switches.append((v1 - v0, i1 - i0))
             parts.append(parts_now)
             ids = engine.ids
             cuts.update(np.array([int(ids[i]) for i in u.selection.cut], np.int64).tobytes() + b"|")
@@ -523,6 +526,10 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
                       f"{ts[part].max():.1f} ms; CPU median {np.median(cs[part]):.2f}, max {cs[part].max():.1f} ms; "
                       f"{sum(times[i] for i in np.flatnonzero(part)):.2f} s in all")
     print_parts(parts, cs, ts)
+    sw = np.array(switches, np.float64).reshape(-1, 2)
+    print(f"  the whole update's waits a frame (voluntary context switches): mean {sw[:, 0].mean():.2f}, p99 "
+          f"{np.percentile(sw[:, 0], 99):.0f}, frames with one {int((sw[:, 0] > 0).sum())}; preemptions a frame mean "
+          f"{sw[:, 1].mean():.2f}")
     if holds:
         done, busy_cpu = sum(h[0] for h in holds), sum(h[1] for h in holds)
         print(f"  busy threads: {done} holds done in {path_s:.2f} s ({done / path_s:.0f} a second), their CPU "

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from conftest import real
 
-from client_gl.stream.engine import StreamEngine, StreamOptions
+from client_gl.stream.engine import COMPILED_SELECTION, StreamEngine, StreamOptions
 from client_gl.stream.fetch import FetchStats
 from client_gl.stream.pages import PagedTree
 from client_gl.stream.selection import SelectionOptions, view_numbers, wanted_bands
@@ -18,6 +18,11 @@ from splatstream.format.container import verify_payload
 from splatstream.format.manifest import ListPrefix, grown_arrays, indexable, model, parse_manifest, tile_arrays
 from splatstream.ply import read_gaussians_ply
 from splatstream.store import MemoryStore, read_manifest
+
+try:
+    from client_gl.stream import selection_jit
+except ImportError:  # numba is an optional extra (`fast`): the compiled half of a test is skipped without it
+    selection_jit = None
 
 
 class StepFetcher:
@@ -224,9 +229,14 @@ def _coarse_to_fine_walk(engine, keys, sel):
     return [(int(engine.ids[i]), "base") for i in base] + [k for k in keys if k[1] != "base"], filling
 
 
-def test_the_wish_lists_climb_is_the_walk(store):
-    """_coarse_to_fine (the cut's ancestors named in numpy, all cut tiles a level a step) against the walk up from
-    each cut tile: the same list and the same ancestors being filled in, for any cut, residency, gap and step."""
+@pytest.mark.parametrize("compiled", [False, True])
+def test_the_wish_lists_climb_is_the_walk(store, compiled, monkeypatch):
+    """_coarse_to_fine (the cut's ancestors named in numpy, all cut tiles a level a step; or compiled,
+    selection_jit.coarse_to_fine_compiled, which keeps the interpreter lock) against the walk up from each cut tile:
+    the same list and the same ancestors being filled in, for any cut, residency, gap and step."""
+    if compiled and selection_jit is None:
+        pytest.skip("the compiled climb needs the package numba (extra `fast`)")
+    monkeypatch.setattr(COMPILED_SELECTION, "kernels", selection_jit if compiled else None)
     m = read_manifest(store)
     rnd = np.random.default_rng(5)
     for gap, step in ((4, 4), (1, 1), (2, 3), (3, 1)):

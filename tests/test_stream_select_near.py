@@ -25,6 +25,7 @@ from client_gl.stream.selection import (
     Selection,
     SelectionOptions,
     ViewBuffers,
+    boxes_in_frustum,
     draw_set,
     prefetch,
     select,
@@ -190,7 +191,13 @@ def check_same(m, cam, opts, previous, near, resident, rnd, path="numpy", near_p
     if draw_set_compiled is not None:  # the compiled draw set: the same tiles in the same order, either view
         assert draw_set_compiled(a, part, got, resident, root).tolist() == drawn
         assert draw_set_compiled(a, full, want, resident, root).tolist() == drawn
-    assert prefetch(a, part, got, opts, cost) == prefetch(a, full, want, opts, cost)
+    prefetched = prefetch(a, part, got, opts, cost)
+    assert prefetched == prefetch(a, full, want, opts, cost)
+    if selection_jit is not None:  # the widened frustum's box test compiled: the same tiles
+        assert prefetch(a, part, got, opts, cost, selection_jit.boxes_at) == prefetched
+        look = random.Random(7).sample(range(len(m.tiles)), min(300, len(m.tiles)))
+        assert selection_jit.boxes_at(a.box_corners, look, part.planes) == \
+            boxes_in_frustum(None, None, part.planes, a.box_corners[look]).tolist()
     return got, int(known.sum())
 
 
@@ -483,3 +490,21 @@ def test_the_engine_selects_near_the_cut_as_over_every_tile(paged_store):
         assert sys.getswitchinterval() == process_interval  # restored after every selection
     assert all(run == runs[0] for run in runs[1:])
     assert runs[0][2] > 3 and runs[0][3] > 0  # pages read and dropped on the way
+
+
+@NEEDS_NUMBA
+def test_the_engines_grown_state_is_numpys():
+    """selection_jit.grown and slot_cost (engine._adopt's per-tile state grown by a page, keeping the interpreter
+    lock) against np.concatenate with zeros and astype * slot bytes: the same dtypes and values, new arrays."""
+    rnd = np.random.default_rng(3)
+    for n in (0, 1, 700, 20_000):
+        for state in (rnd.random(n) < 0.5, rnd.integers(-5, 1 << 40, n, dtype=np.int64)):
+            for grow in (0, 1, 613):
+                out = selection_jit.grown(state, n + grow)
+                want = np.concatenate([state, np.zeros(grow, state.dtype)])
+                assert out.dtype == want.dtype and np.array_equal(out, want) and not np.shares_memory(out, state)
+        slots = rnd.integers(0, 1 << 20, n, dtype=np.int64)
+        for slot_bytes in (256 * 62.0, 1234.5):
+            cost = selection_jit.slot_cost(slots, slot_bytes)
+            assert cost.dtype == np.float64
+            assert cost.tobytes() == (slots.astype(np.float64) * float(slot_bytes)).tobytes()

@@ -21,7 +21,7 @@ import time
 from collections import deque
 from concurrent.futures import CancelledError, Future, ProcessPoolExecutor, ThreadPoolExecutor
 from dataclasses import dataclass, field
-from itertools import compress, filterfalse, repeat
+from itertools import chain, compress, filterfalse, repeat
 from multiprocessing import get_context
 from operator import is_
 from typing import Any, Protocol
@@ -173,6 +173,9 @@ class CompiledSelection:
     def __init__(self) -> None:
         self._fn = None
         self._draw = None  # selection_jit.draw_set_compiled, ready with _fn
+        # selection_jit itself, ready with _fn: the engine's other kernels that keep the interpreter lock (the wish
+        # list's coarse-to-fine climb, the per-tile state grown by a page)
+        self.kernels = None
         self._thread: threading.Thread | None = None
         self._lock = threading.Lock()
         self.error: BaseException | None = None  # why it is not available (numba missing, a failed compilation)
@@ -225,6 +228,7 @@ class CompiledSelection:
         except Exception as exc:  # a failed compilation leaves the numpy path (the same bytes)
             self.decode_error = exc
         self._draw = selection_jit.draw_set_compiled
+        self.kernels = selection_jit
         self._fn = selection_jit.select_near_compiled
 
 
@@ -322,13 +326,17 @@ def planes_nbytes(planes: dict) -> int:
 class _Prefetch:
     """Iterates over the base keys that prefetch() names for a view, computed on first use and kept."""
 
-    def __init__(self, arrays, view, sel, opts, ids, cost) -> None:
+    def __init__(self, arrays, view, sel, opts, ids, cost, compiled: bool = False) -> None:
         self._args, self._ids, self._keys = (arrays, view, sel, opts, cost), ids, None
+        self._compiled = compiled  # StreamOptions.compiled_selection
 
     def __iter__(self):
         if self._keys is None:
             ids = self._ids
-            self._keys = [(int(ids[i]), "base") for _, i in prefetch(*self._args)]
+            # the widened frustum's box test compiled where the selection's kernels are loaded (the same tiles)
+            jit = COMPILED_SELECTION.kernels if self._compiled else None
+            boxes = jit.boxes_at if jit is not None else None
+            self._keys = [(int(ids[i]), "base") for _, i in prefetch(*self._args, boxes=boxes)]
         return iter(self._keys)
 
 
@@ -396,6 +404,7 @@ class StreamEngine:
         self._order_of: tuple[list[Key], dict[Key, int]] | None = None  # a wish list and its keys' ranks (_upload)
         self._upload_idle: tuple[int, list[Key]] | None = None  # (version, wish list) with nothing to upload
         self._listed: tuple = ()
+        self._priority_list: list[float] = []  # the wish list's priorities, kept (_priorities)
         self._draw_cache: tuple | None = None
         self._ready: dict[Key, _Ready] = {}
         self._ready_bytes = 0
@@ -439,17 +448,35 @@ class StreamEngine:
         self.root = m.index_of[m.root]
         self.ids = self.arrays.ids
         grow = len(m.tiles) - len(self.resident)
+        # Compiled (selection_jit.grown, slot_cost) once the selection's kernels are loaded: the same arrays, made
+        # keeping the interpreter lock (numpy's concatenations, zeros and the costs' product over the tree held let
+        # it go 7 times an adoption: BENCHMARKS.md, "Manifest pages", branch updgil)
+        jit = COMPILED_SELECTION.kernels if self.options.compiled_selection else None
         if not grow:  # an eviction's tree (its per-tile state taken in _evict_pages)
-            self.cost = self.slots_needed.astype(np.float64) * float(self.slot_bytes)
+            self.cost = self._slot_cost(jit)
             return
         # the new tiles' only (a page's tiles are appended; eviction takes the kept rows before adopting)
         chunks = np.array([t.chunks for t in m.tiles[len(self.resident):]], np.int64)
-        self.slots_needed = np.concatenate([self.slots_needed, chunks])
-        self.cost = self.slots_needed.astype(np.float64) * float(self.slot_bytes)
-        self.resident = np.concatenate([self.resident, np.zeros(grow, bool)])
-        self.bands = np.concatenate([self.bands, np.zeros(grow, np.int64)])
-        self.last_drawn = np.concatenate([self.last_drawn, np.zeros(grow, np.int64)])
-        self._filling = np.concatenate([self._filling, np.zeros(grow, bool)])
+        n = len(m.tiles)
+        if jit is not None:
+            slots = jit.grown(self.slots_needed, n)
+            slots[n - grow:] = chunks
+            self.slots_needed = slots
+            self.resident, self.bands, self.last_drawn, self._filling = (
+                jit.grown(state, n) for state in (self.resident, self.bands, self.last_drawn, self._filling))
+        else:
+            self.slots_needed = np.concatenate([self.slots_needed, chunks])
+            self.resident = np.concatenate([self.resident, np.zeros(grow, bool)])
+            self.bands = np.concatenate([self.bands, np.zeros(grow, np.int64)])
+            self.last_drawn = np.concatenate([self.last_drawn, np.zeros(grow, np.int64)])
+            self._filling = np.concatenate([self._filling, np.zeros(grow, bool)])
+        self.cost = self._slot_cost(jit)
+
+    def _slot_cost(self, jit) -> np.ndarray:
+        """Each tile's bytes in the pool (its slots' bytes), the selection's cost."""
+        if jit is not None:
+            return jit.slot_cost(self.slots_needed, self.slot_bytes)
+        return self.slots_needed.astype(np.float64) * float(self.slot_bytes)
 
     def _add_pages(self) -> None:
         """Pages parsed (on the decode workers: a page of a large tree is milliseconds of Python the frame loop
@@ -631,7 +658,8 @@ class StreamEngine:
         self._bands_wanted = (cut, bands)
         keys = self._make_keys(cut, bands)
         # prefetch only when asked for (update asks only when nothing the view wants is missing): 0.2-0.3 ms a frame
-        extra = _Prefetch(a, view, sel, opts, self.ids, self.cost) if self.options.prefetch else ()
+        extra = _Prefetch(a, view, sel, opts, self.ids, self.cost, self.options.compiled_selection) \
+            if self.options.prefetch else ()
         result = (view, sel, bands, keys, extra)
         self._wanted_cache = (key, result)
         self._wanted_serial += 1
@@ -755,7 +783,19 @@ class StreamEngine:
             entries[r] = page_entry(listed[r][0])
         for r in compress(range(n), map(is_, entries, repeat(None))):  # keys asked for the first time
             entries[r] = self.entry(listed[r])
-        return list(zip(np.arange(n, 0, -1, dtype=np.float64).tolist(), listed, entries, strict=True))
+        return list(zip(self._priorities(n), listed, entries, strict=True))
+
+    def _priorities(self, n: int) -> list[float]:
+        """n, n - 1, .., 1 as floats (np.arange(n, 0, -1, float64).tolist()'s values): the tail of a list kept from
+        the longest wish list so far (a list's slice keeps the interpreter lock; np.arange over 500 keys let it go
+        every frame, and Python's map(float, range) cost 2.5x the arange), made again, longer, in pieces of 500
+        under the lock's threshold."""
+        kept = self._priority_list
+        if n > len(kept):
+            top = max(n, 2 * len(kept))
+            kept = self._priority_list = list(chain.from_iterable(
+                np.arange(hi, max(hi - 500, 0), -1, dtype=np.float64).tolist() for hi in range(top, 0, -500)))
+        return kept[len(kept) - n:]
 
     def _draw_counts(self, view, sel: Selection) -> tuple:
         """The draw set and what a frame reports of it and of the residency, kept while neither changes (a still,
@@ -789,16 +829,31 @@ class StreamEngine:
         """The wish list with the ancestors of every cut tile not resident yet, bases ordered by level (then by
         the cut's priority: an ancestor takes the rank of its first descendant), SH bands after every base."""
         a = self.arrays
-        n = len(self.resident)
         cut = sel.cut_at
         gap, step = self.options.fill_gap, self.options.fill_step
         # Every fill_step-th ancestor, from fill_gap levels up, of each cut tile not resident: levels `reduction`
         # apart in splats would otherwise add about as many bytes as the cut itself (1/2 + 1/4 + ... at reduction
-        # 2). All cut tiles climb together, a level a step (numpy over the cut: a Python walk per tile cost 1-2 ms
-        # a frame at 250M); a tile's rank is the least rank of the cut tiles that name it.
-        # The climb goes past the root into a last, spare row (parent -1 is numpy's last row, whose parent is -1):
-        # one numpy call a level, no array shrunk as tiles reach the root, and as many levels as the deepest
-        # climbing tile's (a tile's level is its depth: validate.py).
+        # 2); a tile's rank is the least rank of the cut tiles that name it.
+        jit = COMPILED_SELECTION.kernels if self.options.compiled_selection else None
+        if jit is not None:  # the same bases and flags compiled, keeping the interpreter lock (numpy let it go
+            # about 12 times here a frame at 250M splats: arrays over the tree held, ufunc.at, lexsort)
+            base, self._filling = jit.coarse_to_fine_compiled(a.parent, a.level, self.resident, cut, self.root,
+                                                              gap, step)
+        else:
+            base = self._coarse_to_fine_numpy(cut, gap, step)
+        self._bases = base  # positions of the list's bases, in its order
+        made = self._sh_blocks  # the keys' SH part (after their bases) as _make_keys made it
+        sh = keys[made[1]:] if made is not None and made[0] is keys else [k for k in keys if k[1] != "base"]
+        return list(zip(self.ids[base].tolist(), repeat("base"))) + sh
+
+    def _coarse_to_fine_numpy(self, cut: np.ndarray, gap: int, step: int) -> np.ndarray:
+        """_coarse_to_fine's bases in their order, and self._filling set, in numpy (the reference of
+        selection_jit.coarse_to_fine_compiled). All cut tiles climb together, a level a step (numpy over the cut: a
+        Python walk per tile cost 1-2 ms a frame at 250M). The climb goes past the root into a last, spare row
+        (parent -1 is numpy's last row, whose parent is -1): one numpy call a level, no array shrunk as tiles reach
+        the root, and as many levels as the deepest climbing tile's (a tile's level is its depth: validate.py)."""
+        a = self.arrays
+        n = len(self.resident)
         up = self._parents_or_spare(a.parent)
         none = n + len(cut)
         rank = np.full(n + 1, none, np.int64)
@@ -816,10 +871,7 @@ class StreamEngine:
         self._filling = np.zeros(n, bool)
         self._filling[named] = True
         self._filling[cut] = False
-        self._bases = base  # positions of the list's bases, in its order
-        made = self._sh_blocks  # the keys' SH part (after their bases) as _make_keys made it
-        sh = keys[made[1]:] if made is not None and made[0] is keys else [k for k in keys if k[1] != "base"]
-        return list(zip(self.ids[base].tolist(), repeat("base"))) + sh
+        return base
 
     def _parents_or_spare(self, parent: np.ndarray) -> np.ndarray:
         """The tree's parents with a spare last row whose parent is itself (-1): kept while the tree's arrays

@@ -13,9 +13,10 @@ from __future__ import annotations
 
 import heapq
 import math
+from bisect import bisect_right
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from itertools import chain
+from itertools import accumulate, chain
 
 import numpy as np
 
@@ -276,12 +277,17 @@ def _numbers(a: TileArrays, cam: Camera, basis, planes: np.ndarray, idx) -> tupl
     return sse, visible, radius_px, area, distance
 
 
-def wide_visible(view, idx: list[int]) -> list[bool]:
-    """Whether the boxes of the tiles at positions idx intersect the view's frustum widened by prefetch_margin."""
+def wide_visible(view, idx: list[int], boxes: Callable | None = None) -> list[bool]:
+    """Whether the boxes of the tiles at positions idx intersect the view's frustum widened by prefetch_margin.
+    `boxes(corners, idx, planes)`: the same test another way (selection_jit.boxes_at: the same answer, keeping
+    the interpreter lock)."""
     if not idx:
         return []
     a, cam, basis, widen = view.wide_frustum
-    return boxes_in_frustum(None, None, frustum_planes(cam, widen, basis), a.box_corners[idx]).tolist()
+    planes = frustum_planes(cam, widen, basis)
+    if boxes is not None:
+        return boxes(a.box_corners, idx, planes)
+    return boxes_in_frustum(None, None, planes, a.box_corners[idx]).tolist()
 
 
 def view_numbers(a: TileArrays, cam: Camera, opts: SelectionOptions = SelectionOptions()) -> TileView:
@@ -851,12 +857,13 @@ def draw_set(a: TileArrays, view: TileView, sel: Selection, resident: np.ndarray
 
 
 def prefetch(a: TileArrays, view: TileView, sel: Selection, opts: SelectionOptions,
-             cost: np.ndarray | None = None) -> list[tuple[float, int]]:
+             cost: np.ndarray | None = None, boxes: Callable | None = None) -> list[tuple[float, int]]:
     """Tiles the view will probably want next, best first: children of cut tiles close to the refinement
     threshold (the camera moving closer) and tiles just outside the frustum (the camera turning).
 
     Bounded by the budget: no children of cut tiles when the budget ended the cut (it would not let them in), and
-    with `cost` (per tile, the units of sel.cost) the list stops at prefetch_share of the cut's cost."""
+    with `cost` (per tile, the units of sel.cost) the list stops at prefetch_share of the cut's cost. `boxes`: the
+    widened frustum's box test (wide_visible's)."""
     out: list[tuple[float, int]] = []
     sse, children = view.sse, indexable(a.children)
     near_cut = []
@@ -867,7 +874,7 @@ def prefetch(a: TileArrays, view: TileView, sel: Selection, opts: SelectionOptio
     edge = sorted(k for r in sel.refined for k in children[r])
     view.ensure(edge)
     look = edge + [k for i in near_cut for k in children[i]]
-    wide = dict(zip(look, wide_visible(view, look), strict=True))
+    wide = dict(zip(look, wide_visible(view, look, boxes), strict=True))
     for i in near_cut:
         score = float(sse[i]) / opts.max_sse
         out += [(score, k) for k in children[i] if wide[k]]
@@ -876,6 +883,8 @@ def prefetch(a: TileArrays, view: TileView, sel: Selection, opts: SelectionOptio
     out.sort(key=lambda x: -x[0])
     if cost is not None:
         allowance = opts.prefetch_share * sel.cost
-        spent = np.cumsum([float(cost[i]) for _, i in out])
-        out = out[:int(np.searchsorted(spent, allowance, side="right"))]
+        # Python's running sum and bisect (np.cumsum's sums in its order, searchsorted's side="right"): numpy's let
+        # the interpreter lock go over 500 tiles
+        spent = list(accumulate(cost[[i for _, i in out]].tolist()))
+        out = out[:bisect_right(spent, allowance)]
     return out

@@ -34,6 +34,7 @@ from client_gl.stream.selection import (
     SelectionOptions,
     TileView,
     ViewBuffers,
+    boxes_in_frustum,
     corner_weights,
     positions,
     select_near_heap,
@@ -754,6 +755,112 @@ def _zero(b):
         b[i] = 0
 
 
+@njit(**_JIT)
+def _fill_ranks(parent, level, resident, cut, root, gap, step):
+    """engine._coarse_to_fine's numpy climb, compiled (the same bases in the same order, the same flags): each cut
+    tile's rank its position in the cut, every fill_step-th ancestor from fill_gap levels up of each cut tile not
+    resident ranked by the first such cut tile, the root -1; the bases ranked, ordered by (level, rank) (no two
+    alike: a tile's ancestors are on distinct levels), and the filling flags (ranked, not in the cut). In numpy
+    these were about 13 releases of the interpreter lock a frame at 250M splats (arrays over the tree held)."""
+    n = parent.shape[0]
+    none = n + cut.shape[0]
+    rank = np.full(n, none, np.int64)
+    for j in range(cut.shape[0]):
+        rank[cut[j]] = j
+    for j in range(cut.shape[0]):
+        at = cut[j]
+        if resident[at]:
+            continue
+        d = 0
+        while True:
+            at = parent[at]
+            d += 1
+            if at < 0:
+                break
+            if d >= gap and (d - gap) % step == 0 and j < rank[at]:
+                rank[at] = j
+    rank[root] = -1
+    m = 0
+    for i in range(n):
+        m += rank[i] < none
+    named = np.empty(m, np.int64)
+    order_key = np.empty(m, np.int64)
+    filling = np.zeros(n, np.bool_)
+    k = 0
+    for i in range(n):
+        if rank[i] < none:
+            named[k] = i
+            order_key[k] = level[i] * (none + 1) + rank[i] + 1
+            filling[i] = True
+            k += 1
+    for j in range(cut.shape[0]):
+        filling[cut[j]] = False
+    return named[np.argsort(order_key)], filling
+
+
+def coarse_to_fine_compiled(parent: np.ndarray, level: np.ndarray, resident: np.ndarray, cut: np.ndarray,
+                            root: int, gap: int, step: int) -> tuple[np.ndarray, np.ndarray]:
+    """(bases in the wish list's order, filling flags): engine._coarse_to_fine's numpy climb compiled, keeping the
+    interpreter lock (tests/test_stream_engine.py checks it against the numpy path)."""
+    return _fill_ranks(np.ascontiguousarray(parent, np.int64), np.ascontiguousarray(level, np.int64),
+                       np.ascontiguousarray(resident, np.bool_), np.ascontiguousarray(cut, np.int64), int(root),
+                       int(gap), int(step))
+
+
+@njit(**_JIT)
+def _boxes_at(idx, corners, plane_d, split):
+    """boxes_in_frustum of the tiles at idx (the same operations in the same order: _shown's box test)."""
+    out = np.ones(idx.shape[0], np.bool_)
+    for j in range(idx.shape[0]):
+        c = idx[j]
+        for p in range(plane_d.shape[0]):
+            s = plane_d[p] + corners[c, 0] * split[p, 0]
+            for k in range(1, 6):
+                s = s + corners[c, k] * split[p, k]
+            if not s >= 0:
+                out[j] = False
+                break
+    return out
+
+
+def boxes_at(corners: np.ndarray, idx: list[int], planes: np.ndarray) -> list[bool]:
+    """selection.wide_visible's box test (boxes_in_frustum of corners[idx]: the same answer) keeping the interpreter
+    lock: numpy's took the rows and tested them in a dozen calls over idx * 6 elements, each letting the lock go
+    (the prefetch's, a frame that prefetches)."""
+    if not idx:
+        return []
+    return _boxes_at(np.array(idx, np.int64), _f64(corners), _f64(planes[:, 3]), _f64(corner_weights(planes))).tolist()
+
+
+@njit(**_JIT)
+def _grown(state, n):
+    """state's rows then zeros, n rows in all (engine._adopt's per-tile state grown by a page's tiles): np.concatenate
+    and np.zeros over the tree held let the interpreter lock go, 7 times an adoption at 250M splats."""
+    out = np.zeros(n, state.dtype)
+    for i in range(state.shape[0]):
+        out[i] = state[i]
+    return out
+
+
+@njit(**_JIT)
+def _slot_cost(slots, slot_bytes):
+    """slots.astype(np.float64) * slot_bytes (the same bits: the same conversion and product), keeping the lock."""
+    out = np.empty(slots.shape[0], np.float64)
+    for i in range(slots.shape[0]):
+        out[i] = float(slots[i]) * slot_bytes
+    return out
+
+
+def grown(state: np.ndarray, n: int) -> np.ndarray:
+    """A new array: `state` (bool or int64) then zeros, `n` rows, made keeping the interpreter lock."""
+    return _grown(state, int(n))
+
+
+def slot_cost(slots: np.ndarray, slot_bytes: float) -> np.ndarray:
+    """slots (int64) * slot_bytes as float64, made keeping the interpreter lock."""
+    return _slot_cost(slots, float(slot_bytes))
+
+
 _NO_TILES = np.zeros(0, np.int64)
 _NO_PLANES = (np.zeros(1, np.uint8), np.zeros(0, np.float64), np.zeros((0, 6), np.float64), np.zeros((1, 6)))
 
@@ -808,6 +915,12 @@ def warm_up() -> None:
     assert sums.tolist() == [2, 200, 100], sums
     assert draw_set_compiled(a, view_numbers(a, cam), sel, resident, 0).tolist() == [0]
     assert draw_set_compiled(a, view, sel, resident, 0, sums, False).tolist() == [0]
+    base, filling = coarse_to_fine_compiled(parent, a.level, np.array([True, False, False]), np.array([1, 2]), 0, 1, 1)
+    assert boxes_at(a.box_corners, [0, 2], view.planes) == boxes_in_frustum(None, None, view.planes,
+                                                                           a.box_corners[[0, 2]]).tolist()
+    assert grown(np.array([True]), 2).tolist() == [True, False] and grown(parent, 4).tolist() == [-1, 0, 0, 0]
+    assert slot_cost(parent, 2.0).tolist() == [-2.0, 0.0, 0.0]
+    assert base.tolist() == [0, 1, 2] and filling.tolist() == [True, False, False], (base, filling)
 
 
 class _Tiny:
