@@ -488,16 +488,21 @@ def test_each_level_looks_like_the_full_scene_at_one_pixel_error(name):
     for level, n, (full, full_cov), (coarse, coarse_cov) in level_views(name):
         # Measured (96x96, reference rasteriser): 33.3-49.6 dB over the image on these scenes (opacity and colour
         # matched at 2 px, lod.OPACITY_MATCH_SSE_PX; at 1 px 33.3-50.1 dB; at 4 px the two finest merged levels of
-        # lod_tile's 2x tree lost 2.7-3.2 dB: BENCHMARKS.md, "LOD against peers", the viewing scale).
+        # lod_tile's 2x tree lost 2.7-3.2 dB: BENCHMARKS.md, "LOD against peers", the viewing scale). With the levels
+        # above the first merged one at 8 px (lod.OPACITY_MATCH_FAR_SSE_PX, the default since 2026-11-29, for views
+        # under a splat budget): 33.3-49.6 dB.
         assert psnr(full, coarse) > 33.0, (level, psnr(full, coarse))
         # Nearly the same coverage (measured ratio 0.70-1.00 for levels of 100 splats or more: small roots lose
         # most at their rims, since merged scales are no longer grown for coverage, which blurred every budgeted
         # view; lod.finish_appearance). The 45-74-splat roots of these small scenes: 0.51-0.84.
         assert (0.68 if n >= 100 else 0.45) < coarse_cov.sum() / full_cov.sum() < 1.10, level
-        # Mean colour where covered: measured within 15 %, except fruit_drops' 74-splat root (a 44-pixel
-        # footprint whose soft rim covers less): 34 % brighter (32 % matched at 1 px).
+        # Mean colour where covered: measured within 15 % with every level at 2 px, except fruit_drops' 74-splat
+        # root (a 44-pixel footprint whose soft rim covers less): 34 % brighter (32 % matched at 1 px). With the
+        # levels above the first merged one at 8 px (the default) they are matched for a view that draws them
+        # larger, and seen at 1 px they are brighter: measured up to 18 % (the donut's 2,880-splat level; lod_tile
+        # 10 % darker), fruit_drops' root 40 % (lod.md 3 states this trade).
         np.testing.assert_allclose(coarse.sum((0, 1)) / coarse_cov.sum(), full.sum((0, 1)) / full_cov.sum(),
-                                   rtol=0.35 if n < 100 else 0.17, err_msg=str(level))
+                                   rtol=0.43 if n < 100 else 0.20, err_msg=str(level))
         halo = (coarse_cov > 0.05) & (full_cov < 0.01)
         hole = (full_cov > 0.5) & (coarse_cov < 0.25)
         # Measured: up to 12 halo or hole pixels on the rims of roots 32-75 pixels wide.

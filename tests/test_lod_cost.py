@@ -159,8 +159,11 @@ def test_the_cli_says_which_merge_the_default_took(tmp_path):
 # The cost merge made cheaper (issue 31: edge costs in blocks with the planes' shared terms taken once, the k-NN in
 # blocks of points, one row per pair of clusters, sort-based unique) must not change a single group: digests of the
 # outputs of the code before it (commit 44e23cd), on fruit_drops split into 4 regions, a third of the splats kept.
+# "tree" with every level matched at 2 px (the rule then); "tree_2_8" with the levels above the first merged one at
+# 8 px (lod.OPACITY_MATCH_FAR_SSE_PX, the default since 2026-11-29: opacities and colours, and so the cost groups
+# above, differ on purpose).
 BEFORE = {"edges": "f8f0388318e1242f", "cost": "eb6384da0cc0c97a", "3d": "c709855664435fe3",
-          "cap4": "25a71e7579aadb53", "tree": "a4b62789c5555beb"}
+          "cap4": "25a71e7579aadb53", "tree": "a4b62789c5555beb", "tree_2_8": "a500790a40dc59c1"}
 
 
 def digest(*arrays) -> str:
@@ -188,13 +191,15 @@ def test_groups_are_bit_identical_to_the_code_before(name, rule):
     assert digest(ids) == BEFORE[name]
 
 
-def test_neighbours_and_cost_tree_are_bit_identical_to_the_code_before():
+def test_neighbours_and_cost_tree_are_bit_identical_to_the_code_before(monkeypatch):
     g = fruit()
     p = g.positions.astype(np.float64)
     assert digest(*lod_groups.neighbour_edges(p - p.mean(axis=0), 8)) == BEFORE["edges"]
-    tiles = lod.build_tiles(g, max_leaf_splats=1000, reduction=2.0, merge="cost")
-    assert digest(*[a for t in tiles for a in (t.gaussians.positions, t.gaussians.opacity_logits,
-                                               t.gaussians.log_scales)]) == BEFORE["tree"]
+    for far, pinned in ((lod.OPACITY_MATCH_FAR_SSE_PX, "tree_2_8"), (2.0, "tree")):
+        monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_SSE_PX", far)
+        tiles = lod.build_tiles(g, max_leaf_splats=1000, reduction=2.0, merge="cost")
+        assert digest(*[a for t in tiles for a in (t.gaussians.positions, t.gaussians.opacity_logits,
+                                                   t.gaussians.log_scales)]) == BEFORE[pinned], pinned
 
 
 def test_blocks_change_no_neighbour_and_no_cost():
@@ -385,16 +390,21 @@ def test_encode_with_the_auto_merge_in_memory_and_refused_by_partitions(tmp_path
 # they are at most 5 % of the clusters), the choice on every other group and at the first merged level only; the
 # streaming cut within 0.1 dB of the earlier trees (BENCHMARKS.md, "LOD groups by cost", the auto merge cheaper).
 # Branch autofast4 (stable sorts of keys in sorted runs, the k-NN block's selection with the tie rule only on the
-# rows that need it) kept them to the bit.
+# rows that need it) kept them to the bit, and so did autofast5. AUTO_BEFORE: every level matched at 2 px (the rule
+# until 2026-11-29); AUTO_2_8: the levels above the first merged one at 8 px (lod.OPACITY_MATCH_FAR_SSE_PX, the
+# default since: their opacities and colours, and the cost groups that read them, differ on purpose).
 AUTO_BEFORE = {"fruit_drops_sh3.ply": "4860a209355359b8", "lod_tile_sh3_zero_rest.ply": "a626e0241e1d873b"}
+AUTO_2_8 = {"fruit_drops_sh3.ply": "29ca8cad0afa742b", "lod_tile_sh3_zero_rest.ply": "ac865bcf985e348d"}
 
 
 @pytest.mark.parametrize("scene", sorted(AUTO_BEFORE))
-def test_auto_tree_is_bit_identical_to_the_code_before(scene):
+def test_auto_tree_is_bit_identical_to_the_code_before(scene, monkeypatch):
     g = read_gaussians_ply(real(scene))
-    tiles = lod.build_tiles(g, max_leaf_splats=1000, reduction=2.0, merge="auto")
-    assert digest(*[a for t in tiles for a in (t.gaussians.positions, t.gaussians.opacity_logits,
-                                               t.gaussians.log_scales, t.gaussians.sh_dc)]) == AUTO_BEFORE[scene]
+    for far, pinned in ((lod.OPACITY_MATCH_FAR_SSE_PX, AUTO_2_8), (2.0, AUTO_BEFORE)):
+        monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_SSE_PX", far)
+        tiles = lod.build_tiles(g, max_leaf_splats=1000, reduction=2.0, merge="auto")
+        assert digest(*[a for t in tiles for a in (t.gaussians.positions, t.gaussians.opacity_logits,
+                                                   t.gaussians.log_scales, t.gaussians.sh_dc)]) == pinned[scene], far
 
 
 def test_stable_int_argsort_is_the_stable_argsort():
