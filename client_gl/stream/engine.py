@@ -326,17 +326,15 @@ def planes_nbytes(planes: dict) -> int:
 class _Prefetch:
     """Iterates over the base keys that prefetch() names for a view, computed on first use and kept."""
 
-    def __init__(self, arrays, view, sel, opts, ids, cost, compiled: bool = False) -> None:
+    def __init__(self, arrays, view, sel, opts, ids, cost, kernels=None) -> None:
         self._args, self._ids, self._keys = (arrays, view, sel, opts, cost), ids, None
-        self._compiled = compiled  # StreamOptions.compiled_selection
+        # the widened frustum's box test compiled where the selection's kernels are loaded (the same tiles)
+        self._boxes = kernels.boxes_at if kernels is not None else None
 
     def __iter__(self):
         if self._keys is None:
             ids = self._ids
-            # the widened frustum's box test compiled where the selection's kernels are loaded (the same tiles)
-            jit = COMPILED_SELECTION.kernels if self._compiled else None
-            boxes = jit.boxes_at if jit is not None else None
-            self._keys = [(int(ids[i]), "base") for _, i in prefetch(*self._args, boxes=boxes)]
+            self._keys = [(int(ids[i]), "base") for _, i in prefetch(*self._args, boxes=self._boxes)]
         return iter(self._keys)
 
 
@@ -451,7 +449,7 @@ class StreamEngine:
         # Compiled (selection_jit.grown, slot_cost) once the selection's kernels are loaded: the same arrays, made
         # keeping the interpreter lock (numpy's concatenations, zeros and the costs' product over the tree held let
         # it go 7 times an adoption: BENCHMARKS.md, "Manifest pages", branch updgil)
-        jit = COMPILED_SELECTION.kernels if self.options.compiled_selection else None
+        jit = self._kernels
         if not grow:  # an eviction's tree (its per-tile state taken in _evict_pages)
             self.cost = self._slot_cost(jit)
             return
@@ -471,6 +469,12 @@ class StreamEngine:
             self.last_drawn = np.concatenate([self.last_drawn, np.zeros(grow, np.int64)])
             self._filling = np.concatenate([self._filling, np.zeros(grow, bool)])
         self.cost = self._slot_cost(jit)
+
+    @property
+    def _kernels(self):
+        """selection_jit where the compiled selection is asked for and its kernels are loaded (the frame loop's
+        kernels that keep the interpreter lock), else None: the numpy paths."""
+        return COMPILED_SELECTION.kernels if self.options.compiled_selection else None
 
     def _slot_cost(self, jit) -> np.ndarray:
         """Each tile's bytes in the pool (its slots' bytes), the selection's cost."""
@@ -658,8 +662,7 @@ class StreamEngine:
         self._bands_wanted = (cut, bands)
         keys = self._make_keys(cut, bands)
         # prefetch only when asked for (update asks only when nothing the view wants is missing): 0.2-0.3 ms a frame
-        extra = _Prefetch(a, view, sel, opts, self.ids, self.cost, self.options.compiled_selection) \
-            if self.options.prefetch else ()
+        extra = _Prefetch(a, view, sel, opts, self.ids, self.cost, self._kernels) if self.options.prefetch else ()
         result = (view, sel, bands, keys, extra)
         self._wanted_cache = (key, result)
         self._wanted_serial += 1
@@ -834,7 +837,7 @@ class StreamEngine:
         # Every fill_step-th ancestor, from fill_gap levels up, of each cut tile not resident: levels `reduction`
         # apart in splats would otherwise add about as many bytes as the cut itself (1/2 + 1/4 + ... at reduction
         # 2); a tile's rank is the least rank of the cut tiles that name it.
-        jit = COMPILED_SELECTION.kernels if self.options.compiled_selection else None
+        jit = self._kernels
         if jit is not None:  # the same bases and flags compiled, keeping the interpreter lock (numpy let it go
             # about 12 times here a frame at 250M splats: arrays over the tree held, ufunc.at, lexsort)
             base, self._filling = jit.coarse_to_fine_compiled(a.parent, a.level, self.resident, cut, self.root,
