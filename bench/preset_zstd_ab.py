@@ -1,8 +1,9 @@
-"""The lossy presets' zstd choices for decode speed (issue 32, branch lossydec): each preset's encoder as it was
-(its zstd level, the level's shortest match, blocks joined only where no bytes grow) against the preset's now
+"""The presets' zstd choices for decode speed (issue 32, branches vhdec and lossydec): each preset's encoder as it
+was (its zstd level, the level's shortest match, blocks joined only where no bytes grow) against the preset's now
 (presets.PRESET_ZSTD_LEVEL, PRESET_ZSTD_MIN_MATCH, PRESET_BLOCK_SLACK), on the bundled real scenes.
 
-    PYTHONPATH=. python bench/lossy_zstd_ab.py [--scenes a,b,name=path] [--presets p,q] [--rounds 7]
+    PYTHONPATH=. python bench/preset_zstd_ab.py [--scenes a,b,name=path] [--presets p,q] [--rounds 7]
+    PYTHONPATH=. python bench/preset_zstd_ab.py --presets very-high --rounds 9      # vhdec's measurement
 
 Each scene is encoded both ways in memory (LOD tree, the encoder's defaults), the decoded texels checked equal, then
 thread CPU (time.thread_time) of a `zstd` pass (every payload into the decoder's kept buffer) and a `verified` pass
@@ -29,8 +30,9 @@ from splatstream.encode.local import encode_in_memory  # noqa: E402
 from splatstream.format import presets  # noqa: E402
 from splatstream.io import read_gaussians  # noqa: E402
 
-# (zstd level, shortest match (0: the level's), block slack) of each preset before this branch (main at c8fa564)
-BEFORE = {"high": (1, 0, 0.0), "medium-low-sh8": (1, 0, 0.0), "medium-low-sh16": (1, 0, 0.0),
+# (zstd level, shortest match (0: the level's), block slack) of each preset before its branch: very-high before
+# vhdec (main at e8b6c09), the others before lossydec (main at c8fa564)
+BEFORE = {"very-high": (1, 0, 0.0), "high": (1, 0, 0.0), "medium-low-sh8": (1, 0, 0.0), "medium-low-sh16": (1, 0, 0.0),
           "medium-low-12bit": (16, 0, 0.0), "medium-low-palette": (16, 0, 0.0), "low-plus-9bit": (16, 0, 0.0),
           "low-plus-9bit-sh6": (16, 0, 0.0), "low-plus-9bit-sh5": (16, 0, 0.0)}
 TABLES = (presets.PRESET_ZSTD_LEVEL, presets.PRESET_ZSTD_MIN_MATCH, presets.PRESET_BLOCK_SLACK)
@@ -58,7 +60,7 @@ def encode_both(g, preset: str) -> tuple[dict, dict]:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--scenes", default="winter_fountain,guitar,statue_massa,fruit_drops_sh3,lod_tile_sh3_zero_rest")
-    ap.add_argument("--presets", default=",".join(BEFORE))
+    ap.add_argument("--presets", default=",".join(p for p in BEFORE if p != "very-high"))
     ap.add_argument("--rounds", type=int, default=7)
     args = ap.parse_args()
     decode_jit.install()
