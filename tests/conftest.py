@@ -50,6 +50,22 @@ def pytest_report_header(config) -> str:
             "collected; set SPLATSTREAM_SHARED to the directory holding data/real/ to run them")
 
 
+def load_bench(name: str):
+    """bench/<name>.py (not a package: loaded from its file) as the module splatstream_bench_<name>, registered in
+    sys.modules while it executes (dataclasses look their module up then); bench/ is put on sys.path first, since
+    the probes import their neighbours (lod_vs_peers) by name."""
+    import importlib.util
+
+    bench = str(ROOT / "bench")
+    if bench not in sys.path:
+        sys.path.insert(0, bench)
+    spec = importlib.util.spec_from_file_location(f"splatstream_bench_{name}", ROOT / "bench" / f"{name}.py")
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module
+    spec.loader.exec_module(module)
+    return module
+
+
 def real(name: str) -> pathlib.Path:
     """A real scene (see real_path), or skip the test saying what is missing and how to get it."""
     path = real_path(name)

@@ -2,20 +2,16 @@
 CPU accounting on a trivial command, without encoding (no timing is asserted)."""
 from __future__ import annotations
 
-import importlib.util
 import pathlib
 import sys
+
+from conftest import load_bench
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
 def load():
-    spec = importlib.util.spec_from_file_location("splatstream_bench_encode_bound31",
-                                                  ROOT / "bench" / "encode_bound31.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_bench("encode_bound31")
 
 
 B = load()

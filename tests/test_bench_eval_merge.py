@@ -2,20 +2,14 @@
 both measured the same scene the same way (input, cameras, size, renderer), replacing a row of the same label."""
 from __future__ import annotations
 
-import importlib.util
 import json
 import pathlib
-import sys
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+from conftest import load_bench
 
 
 def load():
-    spec = importlib.util.spec_from_file_location("splatstream_bench_eval_merge", ROOT / "bench" / "eval_merge.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_bench("eval_merge")
 
 
 M = load()

@@ -2,24 +2,16 @@
 Spark's ExtSplats words and the per-view cut of a Spark LoD tree."""
 from __future__ import annotations
 
-import importlib.util
 import math
-import pathlib
-import sys
 
 import numpy as np
+from conftest import load_bench
 
 from splatstream.camera import Camera
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
-
 
 def load():
-    spec = importlib.util.spec_from_file_location("splatstream_bench_lod_vs_peers", ROOT / "bench" / "lod_vs_peers.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the file executes
-    spec.loader.exec_module(module)
-    return module
+    return load_bench("lod_vs_peers")
 
 
 L = load()

@@ -2,20 +2,11 @@
 tuned on the point's scene (leave one scene out), the choices checked on other scenes, and the merged plot points."""
 from __future__ import annotations
 
-import importlib.util
-import pathlib
-import sys
-
-ROOT = pathlib.Path(__file__).resolve().parents[1]
+from conftest import load_bench
 
 
 def load():
-    spec = importlib.util.spec_from_file_location("splatstream_bench_preset_dominance",
-                                                  ROOT / "bench" / "preset_dominance.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_bench("preset_dominance")
 
 
 D = load()

@@ -3,30 +3,20 @@ traversal, its far cameras are the orbit views moved back, and lod.OPACITY_MATCH
 bench/probe_statue31.py's px=2/8 variant measured under a budget."""
 from __future__ import annotations
 
-import importlib.util
 import math
-import pathlib
-import sys
 
 import numpy as np
 import pytest
+from conftest import load_bench
 from test_bench_probe_statue31 import P as STATUE31
 from test_bench_probe_statue31 import same, scene
 
 from splatstream import lod
 from splatstream.camera import Camera
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
-
 
 def load():
-    sys.path.insert(0, str(ROOT / "bench"))  # the probe imports lod_vs_peers from its own folder
-    spec = importlib.util.spec_from_file_location("splatstream_bench_probe_lod28_far",
-                                                  ROOT / "bench" / "probe_lod28_far.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_bench("probe_lod28_far")
 
 
 P = load()

@@ -2,28 +2,18 @@
 itself, without GL."""
 from __future__ import annotations
 
-import importlib.util
 import math
-import pathlib
-import sys
 
 import numpy as np
 import pytest
+from conftest import load_bench
 
 from splatstream.camera import Camera
 from splatstream.gaussians import Gaussians
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
-
 
 def load():
-    sys.path.insert(0, str(ROOT / "bench"))  # the probe imports lod_vs_peers from its own folder
-    spec = importlib.util.spec_from_file_location("splatstream_bench_probe_lod_twoscale",
-                                                  ROOT / "bench" / "probe_lod_twoscale.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_bench("probe_lod_twoscale")
 
 
 P = load()

@@ -2,26 +2,15 @@
 and the lod module is left as it was."""
 from __future__ import annotations
 
-import importlib.util
-import pathlib
-import sys
-
 import numpy as np
+from conftest import load_bench
 
 from splatstream import lod
 from splatstream.gaussians import Gaussians
 
-ROOT = pathlib.Path(__file__).resolve().parents[1]
-
 
 def load():
-    sys.path.insert(0, str(ROOT / "bench"))  # the probe imports lod_vs_peers from its own folder
-    spec = importlib.util.spec_from_file_location("splatstream_bench_probe_statue31",
-                                                  ROOT / "bench" / "probe_statue31.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module
-    spec.loader.exec_module(module)
-    return module
+    return load_bench("probe_statue31")
 
 
 P = load()

@@ -7,20 +7,16 @@ long run and its counts are in BENCHMARKS.md ("Fuzz and fault campaign").
 """
 from __future__ import annotations
 
-import importlib.util
 import json
 import pathlib
-import sys
+
+from conftest import load_bench
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 
 
 def load_fuzz():
-    spec = importlib.util.spec_from_file_location("splatstream_bench_fuzz", ROOT / "bench" / "fuzz.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up while the file executes
-    spec.loader.exec_module(module)
-    return module
+    return load_bench("fuzz")
 
 
 def report(fuzz, cases) -> str:
