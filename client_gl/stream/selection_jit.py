@@ -363,11 +363,9 @@ def _cut(first, last, kids, visible, distance, refd, reflist, nref, prio, root, 
 
 
 @njit(inline="always")
-def _shown(c, all_known, known, visible, corners, plane_d, split):
-    """PartialView.visible_at of tile c: its batch answer where its numbers are computed, else its box alone
-    against the planes (the same operations in the same order as boxes_in_frustum's: the same answer)."""
-    if all_known or known[c]:
-        return visible[c]
+def _box_in(c, corners, plane_d, split):
+    """Tile c's box against the planes (the same operations in the same order as boxes_in_frustum's: the same
+    answer)."""
     for p in range(plane_d.shape[0]):
         s = plane_d[p] + corners[c, 0] * split[p, 0]
         for k in range(1, 6):
@@ -375,6 +373,14 @@ def _shown(c, all_known, known, visible, corners, plane_d, split):
         if not s >= 0:
             return False
     return True
+
+
+@njit(inline="always")
+def _shown(c, all_known, known, visible, corners, plane_d, split):
+    """PartialView.visible_at of tile c: its batch answer where its numbers are computed, else its box alone."""
+    if all_known or known[c]:
+        return visible[c]
+    return _box_in(c, corners, plane_d, split)
 
 
 # the draw set walk's frame states (selection.draw_set's cover(i), one stack frame a tile being covered)
@@ -809,17 +815,10 @@ def coarse_to_fine_compiled(parent: np.ndarray, level: np.ndarray, resident: np.
 
 @njit(**_JIT)
 def _boxes_at(idx, corners, plane_d, split):
-    """boxes_in_frustum of the tiles at idx (the same operations in the same order: _shown's box test)."""
-    out = np.ones(idx.shape[0], np.bool_)
+    """boxes_in_frustum of the tiles at idx (_box_in's test, as the draw walk's _shown)."""
+    out = np.empty(idx.shape[0], np.bool_)
     for j in range(idx.shape[0]):
-        c = idx[j]
-        for p in range(plane_d.shape[0]):
-            s = plane_d[p] + corners[c, 0] * split[p, 0]
-            for k in range(1, 6):
-                s = s + corners[c, k] * split[p, k]
-            if not s >= 0:
-                out[j] = False
-                break
+        out[j] = _box_in(idx[j], corners, plane_d, split)
     return out
 
 
