@@ -4,6 +4,10 @@ was (its zstd level, the level's shortest match, blocks joined only where no byt
 
     PYTHONPATH=. python bench/preset_zstd_ab.py [--scenes a,b,name=path] [--presets p,q] [--rounds 7]
     PYTHONPATH=. python bench/preset_zstd_ab.py --presets very-high --rounds 9      # vhdec's measurement
+    PYTHONPATH=. python bench/preset_zstd_ab.py --presets medium-low-9bit --after 16:6:0.01   # a candidate
+
+`--after LEVEL:MIN_MATCH:SLACK` measures a candidate instead of the preset's settings now (the "after" side), for
+settings not yet in presets.py (issue 32, eval32: the two level-16 presets lossydec left).
 
 Each scene is encoded both ways in memory (LOD tree, the encoder's defaults), the decoded texels checked equal, then
 thread CPU (time.thread_time) of a `zstd` pass (every payload into the decoder's kept buffer) and a `verified` pass
@@ -34,17 +38,27 @@ from splatstream.io import read_gaussians  # noqa: E402
 # vhdec (main at e8b6c09), the others before lossydec (main at c8fa564)
 BEFORE = {"very-high": (1, 0, 0.0), "high": (1, 0, 0.0), "medium-low-sh8": (1, 0, 0.0), "medium-low-sh16": (1, 0, 0.0),
           "medium-low-12bit": (16, 0, 0.0), "medium-low-palette": (16, 0, 0.0), "low-plus-9bit": (16, 0, 0.0),
-          "low-plus-9bit-sh6": (16, 0, 0.0), "low-plus-9bit-sh5": (16, 0, 0.0)}
+          "low-plus-9bit-sh6": (16, 0, 0.0), "low-plus-9bit-sh5": (16, 0, 0.0),
+          # before eval32 (main at 957988b): the two level-16 presets lossydec left on the level's own settings
+          "low-plus-10bit-cb8": (16, 0, 0.0), "medium-low-9bit": (16, 0, 0.0)}
 TABLES = (presets.PRESET_ZSTD_LEVEL, presets.PRESET_ZSTD_MIN_MATCH, presets.PRESET_BLOCK_SLACK)
 
 
-def encode_both(g, preset: str) -> tuple[dict, dict]:
-    """(Case by variant, encode CPU s by variant): "before" the settings of BEFORE, "after" the preset's now."""
+def parse_settings(text: str) -> tuple[int, int, float]:
+    """`LEVEL:MIN_MATCH:SLACK` (e.g. 16:6:0.01) as (zstd level, shortest match (0: the level's), block slack)."""
+    level, min_match, slack = text.split(":")
+    return int(level), int(min_match), float(slack)
+
+
+def encode_both(g, preset: str, after: tuple[int, int, float] | None = None) -> tuple[dict, dict]:
+    """(Case by variant, encode CPU s by variant): "before" the settings of BEFORE, "after" the preset's now, or
+    `after` (level, shortest match, slack) where given."""
     now = [dict(t) for t in TABLES]
     cases, cpu = {}, {}
     for name in ("before", "after"):
-        if name == "before":
-            for table, value in zip(TABLES, BEFORE[preset], strict=True):
+        settings = BEFORE[preset] if name == "before" else after
+        if settings is not None:
+            for table, value in zip(TABLES, settings, strict=True):
                 table.pop(preset, None)
                 if value:
                     table[preset] = value
@@ -62,6 +76,8 @@ def main() -> None:
     ap.add_argument("--scenes", default="winter_fountain,guitar,statue_massa,fruit_drops_sh3,lod_tile_sh3_zero_rest")
     ap.add_argument("--presets", default=",".join(p for p in BEFORE if p != "very-high"))
     ap.add_argument("--rounds", type=int, default=7)
+    ap.add_argument("--after", type=parse_settings, default=None, metavar="LEVEL:MIN_MATCH:SLACK",
+                    help="a candidate's zstd settings instead of the preset's now (e.g. 16:6:0.01)")
     args = ap.parse_args()
     decode_jit.install()
     print("load", os.getloadavg(), flush=True)
@@ -71,7 +87,7 @@ def main() -> None:
             dq.SCENES[scene] = path
         g = read_gaussians(os.path.join(dq.ROOT, dq.SCENES[scene]))
         for preset in args.presets.split(","):
-            cases, cpu = encode_both(g, preset)
+            cases, cpu = encode_both(g, preset, args.after)
             digests = {k: hashlib.sha256(b"".join(c.texels())).hexdigest() for k, c in cases.items()}
             if digests["before"] != digests["after"]:
                 raise SystemExit(f"{scene} {preset}: the decoded texels differ")

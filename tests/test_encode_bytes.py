@@ -191,8 +191,10 @@ def scene_texels(store) -> tuple[list[bytes], int]:
     return texels, stored
 
 
-# (preset, its zstd level before issue 32's lossydec round, which had no shortest match or block slack of its own)
-LOSSY_BEFORE = [("high", 1), ("medium-low-sh8", 1), ("low-plus-9bit-sh5", 16), ("medium-low-12bit", 16)]
+# (preset, its zstd level before issue 32's lossydec round, which had no shortest match or block slack of its own;
+# medium-low-9bit and low-plus-10bit-cb8 before the round after, eval32)
+LOSSY_BEFORE = [("high", 1), ("medium-low-sh8", 1), ("low-plus-9bit-sh5", 16), ("medium-low-12bit", 16),
+                ("medium-low-9bit", 16), ("low-plus-10bit-cb8", 16)]
 
 
 @pytest.mark.parametrize("preset,level", LOSSY_BEFORE, ids=[p for p, _ in LOSSY_BEFORE])
