@@ -229,7 +229,7 @@ PRESET_SUMMARY: dict[str, str] = {
                           "where the values do not fit a palette; statue scans (SOG, SH0) 11.1-11.4 B/splat, "
                           "60-66 dB; other inputs as medium-low-12bit (0-0.35 B/splat fewer: keyed)",
     "medium-low-9bit": "medium-low with 9-bit positions, scales and opacity on tile steps, zstd level 16; about "
-                       "12.2-14.1 B/splat at SH3, 11.2-11.8 at SH0; 47-62 dB",
+                       "12.0-13.8 B/splat at SH3, 11.2-11.7 at SH0; 47-62 dB",
     "low-plus-9bit": "low-plus with 9-bit positions on one step per tile, coarser scales and opacity, zstd level "
                      "16; about 12.4-12.6 B/splat at SH3, 10.4-11.3 at SH0; 44-57 dB",
     "low-plus-9bit-sh6": "low-plus-9bit with per-splat SH bands (no codebook) on importance-scaled steps of about "
@@ -238,7 +238,7 @@ PRESET_SUMMARY: dict[str, str] = {
                          "scaling, about 2.3 bits; about 17.6 B/splat at SH2 (flowers, 44.7 dB), 21.1 at SH3, "
                          "10.4-11.3 at SH0",
     "low-plus-10bit-cb8": "low-plus-9bit with about 10-bit positions and a larger SH codebook (about 1 entry per "
-                          "8 splats, up to 65,536); about 15.8 B/splat at SH2 (flowers, 45.0 dB), 12-15.2 at SH3 "
+                          "8 splats, up to 65,536); about 15.8 B/splat at SH2 (flowers, 45.0 dB), 11.9-14.8 at SH3 "
                           "(48-49 dB)",
     "low-plus": "8-bit positions, rotations, scales and colour, SH codebook (1 per 64); about 12-13.5 B/splat at "
                 "SH3, 11-12 at SH0; 44-57 dB",
