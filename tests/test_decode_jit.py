@@ -414,6 +414,54 @@ def test_a_group_planned_in_one_pass_decodes_as_the_numpy_path(numpy_path, monke
     assert calls == []  # no section of any payload left out of the kernel's call
 
 
+@pytest.mark.parametrize("preset", ["medium", "medium-low-palette", "very-high", "low-plus-10bit-cb8"])
+def test_a_large_group_decodes_in_runs_as_the_numpy_path(numpy_path, monkeypatch, fruit, preset):
+    # above RUN_RAW_BYTES decompressed, unpack_payloads takes a group with the whole kernel in runs (each decompressed
+    # into this thread's kept buffer, which the next run overwrites): every plane, palettes included, as the numpy
+    # path's, whatever the runs; a payload that does not decode is named as before
+    store = encode_in_memory(fruit, EncodeOptions(preset=preset, max_leaf_splats=512))
+    m = read_manifest(store)
+    by_group = payloads_by_group(store, m)
+
+    def decode_all() -> list:
+        out = []
+        for group, items in by_group.items():
+            sources = [f"payload{k}" for k in range(len(items))]
+            planes = container.unpack_payloads(items, group, sources, m.uses_codebook, palettes=m.scene_palettes)
+            out += [(planes_bytes(p), [None if q.palette is None else (q.palette.tobytes(), q.scene_palette)
+                                       for q in p.values()]) for p in planes]
+        return out
+
+    by_numpy = decode_all()
+    decode_jit.install()
+    runs = []
+    unpack_run = container._unpack_run
+
+    def spy(items, *args):
+        runs.append(len(items))
+        return unpack_run(items, *args)
+    monkeypatch.setattr(container, "_unpack_run", spy)
+    largest = max(e.raw_bytes for items in by_group.values() for _, e in items)
+    for budget in (1, largest, 3 * largest, 1 << 40):  # a payload a run, a few, the whole group
+        monkeypatch.setattr(container, "RUN_RAW_BYTES", budget)
+        runs.clear()
+        assert decode_all() == by_numpy, budget
+        assert sum(runs) == sum(len(items) for items in by_group.values())
+        if budget == 1:
+            assert set(runs) == {1}
+        elif budget == 1 << 40:
+            assert len(runs) == len(by_group)
+        else:
+            assert len(by_group) < len(runs) < sum(runs)
+    items = by_group["base"]
+    data, entry = items[-2]
+    items[-2] = (data[:-5], entry)  # a cut frame in the last run: named, as a payload alone is
+    monkeypatch.setattr(container, "RUN_RAW_BYTES", largest)
+    with pytest.raises(FormatError, match=f"payload{len(items) - 2}"):
+        container.unpack_payloads(items, "base", [f"payload{k}" for k in range(len(items))], m.uses_codebook,
+                                  palettes=m.scene_palettes)
+
+
 @pytest.mark.parametrize("damage", ["version", "short"])
 def test_a_malformed_section_in_a_planned_group_is_refused_naming_its_payload(numpy_path, monkeypatch, fruit, damage):
     # a fields1 section that is not well-formed is decoded alone in _unpack_group's planning pass, which refuses it

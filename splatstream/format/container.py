@@ -422,6 +422,36 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
                 for (data, entry), source in zip(items, sources, strict=True)]
     sizes = [entry.raw_bytes for _, entry in items]
     total = sum(sizes)
+    if in_one_call and total > RUN_RAW_BYTES and len(items) > 1:
+        # a large group in runs of about RUN_RAW_BYTES decompressed bytes, each read and decoded while it is in cache
+        out: list[dict[str, EncodedPlane]] = []
+        first = run_bytes = 0
+        for k, size in enumerate(sizes):
+            if k > first and run_bytes + size > RUN_RAW_BYTES:
+                out += _unpack_run(items[first:k], sizes[first:k], run_bytes, group, sources[first:k], codebook,
+                                   between, palettes, in_one_call)
+                first, run_bytes = k, 0
+            run_bytes += size
+        return out + _unpack_run(items[first:], sizes[first:], run_bytes, group, sources[first:], codebook, between,
+                                 palettes, in_one_call)
+    return _unpack_run(items, sizes, total, group, sources, codebook, between, palettes, in_one_call)
+
+
+# The whole kernel's path decodes a group in runs of at most this many decompressed bytes (one payload at least):
+# zstd writes a run into this thread's kept buffer and the kernel reads it back while it is still in cache, and the
+# kernel's output is a block malloc hands back warm. A whole group at once (very-high's LOD tree: 9-14 MB) went out
+# to memory and back twice: very-high's pass takes 5-7 % less time in runs, the lossy presets' (3-5 MB) the same
+# (issue 32; BENCHMARKS.md, "Decode speed", dec32). About this VM's L2 of a core: 256 KB paid the per-run Python,
+# 4 MB lost the cache.
+RUN_RAW_BYTES = 1 << 20
+
+
+def _unpack_run(items: list[tuple[bytes | memoryview, PayloadEntry]], sizes: list[int], total: int, group: str,
+                sources: list[str], codebook: bool, between: Callable[[], object] | None,
+                palettes: Mapping[str, np.ndarray] | None, in_one_call: bool) -> list[dict[str, EncodedPlane]]:
+    """unpack_payloads of `items` (their raw sizes `sizes`, `total` in all) in one go: one zstd read where it can
+    (_decompress_group), then the whole kernel's one call (`in_one_call`) or the batch kernels / numpy a plane at a
+    time."""
     whole, kept = _raw_buffer(total)
     owner = whole if whole.base is None else whole.base
     bufs, firsts, tables, at = [], [], [], 0
