@@ -363,6 +363,44 @@ def test_the_childrens_index_is_taken_by_its_kernel_as_by_numpy():
 
 
 @NEEDS_NUMBA
+def test_the_childrens_index_grows_by_its_kernel_as_by_numpy(whole):
+    """_ChildIndex._grow from grown_arrays' parents (the kernel _grow_blocks) against _grow_numpy given the same
+    parents, page after page of a paged tree: the same blocks, entries in use and flags."""
+    paged = split_pages(whole, 2)
+    files = {ref.file: raw for ref, raw in paged.pages}
+    rnd = random.Random(38)
+    tree = PagedTree(paged.root)
+    index = selection_jit._ChildIndex()
+    index.of(tree.manifest.arrays)
+    steps = 0
+    while tree.pending:
+        for tile_id in rnd.sample(sorted(tree.pending), min(len(tree.pending), rnd.randrange(1, 4))):
+            tree.add_page(tile_id, files[tree.entry(tile_id).file])
+        a = tree.manifest.arrays
+        given = a.__dict__.get("_children_grown")
+        reference = selection_jit._ChildIndex()
+        reference.__dict__.update({k: (v.copy() if isinstance(v, np.ndarray) else v)
+                                   for k, v in index.__dict__.items()})
+        old, given_before = index.n, index.given
+        lo, hi, kids = index.of(a)
+        if given is None or given[0] != old:
+            continue
+        assert index.given == given_before + 1
+        for name in ("lo", "hi"):  # as _grow gives both paths: the rows held, room after them (not yet cleared)
+            grown = np.full(len(getattr(index, name)), -1, np.int64)
+            grown[:old] = getattr(reference, name)[:old]
+            setattr(reference, name, grown)
+        reference._grow_numpy(a, old, len(a.parent), *given[1:], 0)
+        n = len(a.parent)
+        assert lo.tolist() == reference.lo[:n].tolist() and hi.tolist() == reference.hi[:n].tolist()
+        assert kids.tolist() == reference.kids[:reference.used].tolist() and index.used == reference.used
+        assert (index.grown, index.rebuilds) == (reference.grown, reference.rebuilds)
+        assert [kids[lo[i]:hi[i]].tolist() for i in range(n)] == [list(c) for c in a.children]
+        steps += 1
+    assert steps >= 4, steps
+
+
+@NEEDS_NUMBA
 def test_compiled_draw_set_is_draw_sets(whole):
     """selection_jit.draw_set_compiled against draw_set (the numpy reference) on trees whose children are listed in
     shuffled order (the walk's order is the tree's, not the positions'), with refined sets from selections and at
