@@ -40,6 +40,8 @@ def main() -> None:
                     help="with --lines: where each release of the whole update is made, not only `wanted`'s")
     ap.add_argument("--busy-threads", type=int, default=0)
     ap.add_argument("--busy-pattern", default=None, metavar="HOLD,REST")
+    ap.add_argument("--max-tree-tiles", type=int, default=None,
+                    help="the engine's bound on the tiles held (bench_pages' option): pages dropped on the path")
     args = ap.parse_args()
     shim = _preloaded()
     if shim is None:  # build the shim and run again with it preloaded
@@ -123,7 +125,8 @@ def main() -> None:
         per_part.clear(), calls.clear(), where.clear()
         bench_pages.engine_path(bench_pages.synthetic_tree(n, bench_pages.template(0)),
                                 bench_pages.EncodeOptions.page_levels, args.frames, 3_000_000, 8, False,
-                                busy_threads=args.busy_threads, busy_pattern=pattern)
+                                busy_threads=args.busy_threads, busy_pattern=pattern,
+                                max_tree_tiles=args.max_tree_tiles)
         for label in ("view", "cut", "wanted", "draw set", "update"):
             print(f"releases of the lock, {label}: {per_part[label]} in {calls[label]} calls "
                   f"({per_part[label] / max(calls[label], 1):.2f} a call)")

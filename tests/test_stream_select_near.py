@@ -315,6 +315,92 @@ def test_select_near_on_a_paged_tree_with_pages_arriving_and_dropped(whole, path
 
 
 @NEEDS_NUMBA
+def test_the_childrens_index_is_taken_by_its_kernel_as_by_numpy():
+    """_take_blocks (an eviction's kept rows, compiled) against _ChildIndex._take_numpy on random trees and drops:
+    the same blocks, and each kept tile's children those of the tree taken (renumbered, in the tree's order)."""
+    rnd = random.Random(38)
+    checked = moved_total = 0
+    for _ in range(60):
+        n = rnd.randrange(2, 400)
+        parent = np.array([-1] + [rnd.randrange(0, i) for i in range(1, n)], np.int64)
+        children = [[] for _ in range(n)]
+        for i in range(1, n):
+            children[parent[i]].append(i)
+        # drop a few subtrees (a kept tile's parent is kept), the last kept tiles moved into the holes
+        gone = np.zeros(n, bool)
+        for head in rnd.sample(range(1, n), min(n - 1, rnd.randrange(1, 4))):
+            stack = [head]
+            while stack:
+                t = stack.pop()
+                gone[t] = True
+                stack += children[t]
+        kept = np.flatnonzero(~gone)
+        k = len(kept)
+        keep = np.arange(k)
+        holes = [j for j in range(k) if gone[j]]
+        keep[holes] = kept[kept >= k]
+        moved_total += len(holes)
+        index = selection_jit._ChildIndex()
+        tiny = type("T", (), {})()
+        tiny.children = tuple(tuple(c) for c in children)
+        index._rebuild(tiny, n)
+        index.n, index.parent = n, parent
+        reference = selection_jit._ChildIndex()
+        reference.__dict__.update({k_: (v.copy() if isinstance(v, np.ndarray) else v)
+                                   for k_, v in index.__dict__.items()})
+        reference._take_numpy(keep)
+        index._take(tiny, keep)
+        assert index.taken == 1 and index.compacted == 0
+        assert index.lo[:k].tolist() == reference.lo[:k].tolist() and index.hi[:k].tolist() == reference.hi[:k].tolist()
+        new_of = np.full(n, -1, np.int64)
+        new_of[keep] = np.arange(k)
+        for j in range(k):
+            got = index.kids[index.lo[j]:index.hi[j]].tolist()
+            assert got == reference.kids[reference.lo[j]:reference.hi[j]].tolist()
+            assert got == [int(new_of[c]) for c in children[keep[j]] if new_of[c] >= 0]
+            checked += 1
+    assert checked > 3000 and moved_total > 20, (checked, moved_total)
+
+
+@NEEDS_NUMBA
+def test_the_childrens_index_grows_by_its_kernel_as_by_numpy(whole):
+    """_ChildIndex._grow from grown_arrays' parents (the kernel _grow_blocks) against _grow_numpy given the same
+    parents, page after page of a paged tree: the same blocks, entries in use and flags."""
+    paged = split_pages(whole, 2)
+    files = {ref.file: raw for ref, raw in paged.pages}
+    rnd = random.Random(38)
+    tree = PagedTree(paged.root)
+    index = selection_jit._ChildIndex()
+    index.of(tree.manifest.arrays)
+    steps = 0
+    while tree.pending:
+        for tile_id in rnd.sample(sorted(tree.pending), min(len(tree.pending), rnd.randrange(1, 4))):
+            tree.add_page(tile_id, files[tree.entry(tile_id).file])
+        a = tree.manifest.arrays
+        given = a.__dict__.get("_children_grown")
+        reference = selection_jit._ChildIndex()
+        reference.__dict__.update({k: (v.copy() if isinstance(v, np.ndarray) else v)
+                                   for k, v in index.__dict__.items()})
+        old, given_before = index.n, index.given
+        lo, hi, kids = index.of(a)
+        if given is None or given[0] != old:
+            continue
+        assert index.given == given_before + 1
+        for name in ("lo", "hi"):  # as _grow gives both paths: the rows held, room after them (not yet cleared)
+            grown = np.full(len(getattr(index, name)), -1, np.int64)
+            grown[:old] = getattr(reference, name)[:old]
+            setattr(reference, name, grown)
+        reference._grow_numpy(a, old, len(a.parent), *given[1:], 0)
+        n = len(a.parent)
+        assert lo.tolist() == reference.lo[:n].tolist() and hi.tolist() == reference.hi[:n].tolist()
+        assert kids.tolist() == reference.kids[:reference.used].tolist() and index.used == reference.used
+        assert (index.grown, index.rebuilds) == (reference.grown, reference.rebuilds)
+        assert [kids[lo[i]:hi[i]].tolist() for i in range(n)] == [list(c) for c in a.children]
+        steps += 1
+    assert steps >= 4, steps
+
+
+@NEEDS_NUMBA
 def test_compiled_draw_set_is_draw_sets(whole):
     """selection_jit.draw_set_compiled against draw_set (the numpy reference) on trees whose children are listed in
     shuffled order (the walk's order is the tree's, not the positions'), with refined sets from selections and at

@@ -475,6 +475,69 @@ def _draw_sums(resident, splats, drawn, sums):
     sums[0], sums[1], sums[2] = tiles, held, shown
 
 
+@njit(**_JIT)
+def _take_blocks(keep, parent, lo, hi, kids):
+    """_ChildIndex._take_numpy compiled (the same blocks): the blocks of the tiles indexed (`parent`: theirs) taken
+    at the kept positions `keep` (new position -> old), in place: each moved tile's block carried to its new
+    position, and the block of each kept parent of a tile moved or dropped renumbered, its dropped children taken
+    out (the rest in their order, from the block's start). Blocks are disjoint, so taking them one at a time is
+    numpy's taking them all at once."""
+    n, k = parent.shape[0], keep.shape[0]
+    new_of = np.full(n, -1, np.int64)
+    for j in range(k):
+        new_of[keep[j]] = j
+    moved = 0
+    for j in range(k):
+        moved += keep[j] != j
+    src_lo, src_hi = np.empty(moved, np.int64), np.empty(moved, np.int64)
+    m = 0
+    for j in range(k):  # gathered, then written (numpy's lo[moved] = lo[keep[moved]])
+        if keep[j] != j:
+            src_lo[m], src_hi[m] = lo[keep[j]], hi[keep[j]]
+            m += 1
+    m = 0
+    for j in range(k):
+        if keep[j] != j:
+            lo[j], hi[j] = src_lo[m], src_hi[m]
+            m += 1
+    owner = np.zeros(n, np.uint8)  # the parents (old positions) of the tiles not where they were
+    for i in range(n):
+        if new_of[i] != i and parent[i] >= 0:
+            owner[parent[i]] = 1
+    for p in range(n):
+        if not owner[p] or new_of[p] < 0:
+            continue
+        o = new_of[p]
+        w = lo[o]
+        for q in range(lo[o], hi[o]):
+            v = new_of[kids[q]]
+            if v >= 0:
+                kids[w] = v
+                w += 1
+        hi[o] = w
+
+
+@njit(**_JIT)
+def _grow_blocks(lo, hi, kids, used, old, n, heads, counts, new_kids):
+    """_ChildIndex._grow_numpy compiled (the same blocks): the rows old..n cleared, then the blocks of the new parents
+    `heads` (their `counts` children, `new_kids` in order, appended after the `used` entries; kids has room). Returns
+    the entries in use after, or -1 where a head had children before (the index is then made anew)."""
+    for i in range(old, n):
+        lo[i] = 0
+        hi[i] = 0
+    for j in range(heads.shape[0]):
+        if hi[heads[j]] != lo[heads[j]]:
+            return -1
+    at = used
+    for j in range(heads.shape[0]):
+        lo[heads[j]] = at
+        at += counts[j]
+        hi[heads[j]] = at
+    for q in range(new_kids.shape[0]):
+        kids[used + q] = new_kids[q]
+    return used + new_kids.shape[0]
+
+
 class _ChildIndex:
     """Each tile's children as a block of one array, kids[lo[i]:hi[i]] (in the order of a.children), grown with the
     tree.
@@ -561,12 +624,24 @@ class _ChildIndex:
         until the index is compacted, _take_compact, when they outnumber the tree). Taking every kept tile's
         block into new arrays took 0.33-0.55 ms of the eviction frame's cut at 15,000-19,000 tiles; made anew from
         the children's tuples, 1.2-1.5 ms (BENCHMARKS.md, "Manifest pages")."""
+        n = self.n
+        if self.parent is None or len(self.parent) != n or self.used > 2 * n + self.compact_slack:
+            new_of = np.full(n, -1, np.int64)
+            new_of[keep] = np.arange(len(keep))
+            self._take_compact(keep, new_of)
+            return
+        # compiled: one pass over the tiles, keeping the interpreter lock (the numpy below, _take_numpy, took
+        # 0.36-0.43 ms of the eviction frame's cut at 12,000 tiles on the 2-core VM, the most of what made those
+        # frames the selection's slowest, and let the lock go at its fills, sorts and copies; BENCHMARKS.md, gil38c)
+        _take_blocks(np.ascontiguousarray(keep, np.int64), np.ascontiguousarray(self.parent, np.int64), self.lo,
+                     self.hi, self.kids)
+        self.taken += 1
+
+    def _take_numpy(self, keep: np.ndarray) -> None:
+        """_take's blocks in numpy (not compacting): the reference _take_blocks is tested against."""
         k, n = len(keep), self.n
         new_of = np.full(n, -1, np.int64)
         new_of[keep] = np.arange(k)
-        if self.parent is None or len(self.parent) != n or self.used > 2 * n + self.compact_slack:
-            self._take_compact(keep, new_of)
-            return
         moved = np.flatnonzero(keep != np.arange(k))
         lo, hi = self.lo, self.hi
         lo[moved], hi[moved] = lo[keep[moved]], hi[keep[moved]]
@@ -633,17 +708,41 @@ class _ChildIndex:
                 grown = np.zeros(cap, np.int64)
                 grown[:old] = getattr(self, name)[:old]
                 setattr(self, name, grown)
-        self.lo[old:n] = 0
-        self.hi[old:n] = 0
         given = a.__dict__.get("_children_grown")  # grown_arrays' parents given children, from the length indexed
         if given is not None and given[0] == old:  # (the engine's arrays grow once a frame: 0.03-0.04 ms less)
             _, heads, counts, kids = given
             self.given += 1
-        else:
-            par = a.parent[old:n]
-            at = np.flatnonzero(par >= 0)
-            heads, counts = np.unique(par[at], return_counts=True)
-            kids = None
+            self._room_for(len(kids), room)
+            # compiled: the blocks of the new parents written keeping the interpreter lock (the numpy below, about 10
+            # calls, 0.03 ms median of an adopting frame's cut at 250M splats, let it go at fills and copies over 500
+            # entries; BENCHMARKS.md, gil38c)
+            used = _grow_blocks(self.lo, self.hi, self.kids, self.used, old, n, np.ascontiguousarray(heads, np.int64),
+                                np.ascontiguousarray(counts, np.int64), np.ascontiguousarray(kids, np.int64))
+            if used < 0:  # a tile held before with children before and now more (not a page's growth): anew
+                self._rebuild(a, n)
+            elif len(heads):
+                self.used = used
+                self.grown += 1
+            return
+        par = a.parent[old:n]
+        at = np.flatnonzero(par >= 0)
+        heads, counts = np.unique(par[at], return_counts=True)
+        self._grow_numpy(a, old, n, heads, counts, None, room)
+
+    def _room_for(self, more: int, room: int) -> None:
+        """kids with room for `more` entries after those in use (doubled: amortised)."""
+        if self.used + more > len(self.kids):
+            grown = np.zeros(max(2 * (self.used + more), 16, room), np.int64)
+            grown[:self.used] = self.kids[:self.used]
+            self.kids = grown
+
+    def _grow_numpy(self, a: TileArrays, old: int, n: int, heads: np.ndarray, counts: np.ndarray,
+                    kids: np.ndarray | None, room: int) -> None:
+        """The rows old..n cleared, then the blocks of the new parents `heads` (their children `kids`, else found
+        from a.children), in numpy: the path without grown_arrays' parents, and the reference _grow_blocks is tested
+        against."""
+        self.lo[old:n] = 0
+        self.hi[old:n] = 0
         if not heads.size:
             return
         starts = np.cumsum(counts) - counts
@@ -656,10 +755,7 @@ class _ChildIndex:
             # only)
             of_tile = indexable(a.children).__getitem__
             kids = np.fromiter(chain.from_iterable(map(of_tile, heads.tolist())), np.int64, int(counts.sum()))
-        if self.used + len(kids) > len(self.kids):
-            grown = np.zeros(max(2 * (self.used + len(kids)), 16, room), np.int64)
-            grown[:self.used] = self.kids[:self.used]
-            self.kids = grown
+        self._room_for(len(kids), room)
         self.kids[self.used:self.used + len(kids)] = kids
         self.lo[heads] = self.used + starts
         self.hi[heads] = self.used + starts + counts
@@ -920,6 +1016,13 @@ def warm_up() -> None:
     assert grown(np.array([True]), 2).tolist() == [True, False] and grown(parent, 4).tolist() == [-1, 0, 0, 0]
     assert slot_cost(parent, 2.0).tolist() == [-2.0, 0.0, 0.0]
     assert base.tolist() == [0, 1, 2] and filling.tolist() == [True, False, False], (base, filling)
+    lo, hi, kids = np.array([0, 2, 2]), np.array([2, 2, 2]), np.array([1, 2])  # tile 1 dropped, 2 moved into its row
+    _take_blocks(np.array([0, 2], np.int64), parent, lo, hi, kids)
+    assert (lo[:2].tolist(), hi[:2].tolist(), kids[:1].tolist()) == ([0, 2], [1, 2], [1]), (lo, hi, kids)
+    lo, hi, kids = np.array([0, 0, 9, 9]), np.array([1, 0, 9, 9]), np.array([1, 0, 0])  # tile 1 given children 2, 3
+    assert _grow_blocks(lo, hi, kids, 1, 2, 4, np.array([1], np.int64), np.array([2], np.int64),
+                        np.array([2, 3], np.int64)) == 3
+    assert (lo.tolist(), hi.tolist(), kids.tolist()) == ([0, 1, 0, 0], [1, 3, 0, 0], [1, 2, 3]), (lo, hi, kids)
 
 
 class _Tiny:
