@@ -173,12 +173,13 @@ PRESET_STEPS: dict[str, dict[str, TileStep]] = {
 # where levels 16 and 19 read as slowly as level 1 (issue 32; BENCHMARKS.md, "Decode speed", vhdec).
 # high, medium-low-sh8 and medium-low-sh16 take level 12 with a shortest match of 6 (PRESET_ZSTD_MIN_MATCH) for
 # their decode: 0.4-4 % fewer bytes than level 1 on the real scenes and, with their parts joined within 2 %, zstd reads
-# them 10-20 % faster (issue 32; BENCHMARKS.md, "Decode speed", lossydec).
+# them 10-20 % faster (issue 32; BENCHMARKS.md, "Decode speed", lossydec). medium-high took high's settings two rounds
+# later (tidy32): on SH0 scenes its planes are high's, and at level 1 its files were 0.4 % larger than high's there.
 PRESET_ZSTD_LEVEL: dict[str, int] = {"very-high": 12, "medium-low": 9, "medium-low-12bit": 16, "medium-low-palette": 16,
                                      "medium-low-9bit": 16,
                                      "low-plus-9bit": 16, "low-plus-9bit-sh6": 16,
                                      "low-plus-9bit-sh5": 16, "low-plus-10bit-cb8": 16,
-                                     "high": 12, "medium-low-sh8": 12, "medium-low-sh16": 12}
+                                     "high": 12, "medium-high": 12, "medium-low-sh8": 12, "medium-low-sh16": 12}
 # zstd's shortest match per preset where not its level's own (3 at level 16, 4-5 at 12 on payloads this small; 0:
 # the level's). On the lossy presets' small LOD payloads the short matches cost more bytes than the literals they
 # replace, and each is a sequence more to decode: at level 16 a shortest match of 6 stores 0.05-1.6 % fewer bytes on
@@ -188,8 +189,9 @@ PRESET_ZSTD_LEVEL: dict[str, int] = {"very-high": 12, "medium-low": 9, "medium-l
 # medium-low-9bit and low-plus-10bit-cb8 (level 16) took the same the round after (eval32), with a 1 % slack: on all 14
 # real scenes 0.06-1.3 % fewer bytes, zstd 0.75-0.94 and the whole `verified` pass 0.86-0.97 of the time (a 2 % slack
 # grew them by up to 1.1 %: BENCHMARKS.md, "Decode speed", eval32).
-_LOSSY_MIN_MATCH = ("high", "medium-low-sh8", "medium-low-sh16", "medium-low-12bit", "medium-low-palette",
-                    "medium-low-9bit", "low-plus-9bit", "low-plus-9bit-sh6", "low-plus-9bit-sh5", "low-plus-10bit-cb8")
+_LOSSY_MIN_MATCH = ("high", "medium-high", "medium-low-sh8", "medium-low-sh16", "medium-low-12bit",
+                    "medium-low-palette", "medium-low-9bit", "low-plus-9bit", "low-plus-9bit-sh6", "low-plus-9bit-sh5",
+                    "low-plus-10bit-cb8")
 PRESET_ZSTD_MIN_MATCH: dict[str, int] = dict.fromkeys(_LOSSY_MIN_MATCH, 6)
 # How much larger (a fraction) a small payload's zstd block may code, at the trial level, than its parts alone and
 # still be one block (container._block_ends), per preset where not 0. very-high's float byte planes cut into blocks
@@ -198,7 +200,7 @@ PRESET_ZSTD_MIN_MATCH: dict[str, int] = dict.fromkeys(_LOSSY_MIN_MATCH, 6)
 # BENCHMARKS.md, "Decode speed", vhdec).
 # The lossy presets of PRESET_ZSTD_MIN_MATCH join within 1 % (level 16) or 2 % (level 12): what their shortest match
 # saved, less than it, so that their payloads still take fewer bytes than before on every real scene measured.
-PRESET_BLOCK_SLACK: dict[str, float] = {"very-high": 0.03, "high": 0.02, "medium-low-sh8": 0.02,
+PRESET_BLOCK_SLACK: dict[str, float] = {"very-high": 0.03, "high": 0.02, "medium-high": 0.02, "medium-low-sh8": 0.02,
                                         "medium-low-sh16": 0.02, "medium-low-12bit": 0.01, "medium-low-palette": 0.01,
                                         "medium-low-9bit": 0.01, "low-plus-9bit": 0.01, "low-plus-9bit-sh6": 0.01,
                                         "low-plus-9bit-sh5": 0.01, "low-plus-10bit-cb8": 0.01}
