@@ -40,7 +40,9 @@ BEFORE = {"very-high": (1, 0, 0.0), "high": (1, 0, 0.0), "medium-low-sh8": (1, 0
           "medium-low-12bit": (16, 0, 0.0), "medium-low-palette": (16, 0, 0.0), "low-plus-9bit": (16, 0, 0.0),
           "low-plus-9bit-sh6": (16, 0, 0.0), "low-plus-9bit-sh5": (16, 0, 0.0),
           # before eval32 (main at 957988b): the two level-16 presets lossydec left on the level's own settings
-          "low-plus-10bit-cb8": (16, 0, 0.0), "medium-low-9bit": (16, 0, 0.0)}
+          "low-plus-10bit-cb8": (16, 0, 0.0), "medium-low-9bit": (16, 0, 0.0),
+          # before tidy32 (main at 5579774): medium-high on the encoder's default level without a slack
+          "medium-high": (1, 0, 0.0)}
 TABLES = (presets.PRESET_ZSTD_LEVEL, presets.PRESET_ZSTD_MIN_MATCH, presets.PRESET_BLOCK_SLACK)
 
 

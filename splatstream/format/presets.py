@@ -173,12 +173,13 @@ PRESET_STEPS: dict[str, dict[str, TileStep]] = {
 # where levels 16 and 19 read as slowly as level 1 (issue 32; BENCHMARKS.md, "Decode speed", vhdec).
 # high, medium-low-sh8 and medium-low-sh16 take level 12 with a shortest match of 6 (PRESET_ZSTD_MIN_MATCH) for
 # their decode: 0.4-4 % fewer bytes than level 1 on the real scenes and, with their parts joined within 2 %, zstd reads
-# them 10-20 % faster (issue 32; BENCHMARKS.md, "Decode speed", lossydec).
+# them 10-20 % faster (issue 32; BENCHMARKS.md, "Decode speed", lossydec). medium-high took high's settings two rounds
+# later (tidy32): on SH0 scenes its planes are high's, and at level 1 its files were 0.4 % larger than high's there.
 PRESET_ZSTD_LEVEL: dict[str, int] = {"very-high": 12, "medium-low": 9, "medium-low-12bit": 16, "medium-low-palette": 16,
                                      "medium-low-9bit": 16,
                                      "low-plus-9bit": 16, "low-plus-9bit-sh6": 16,
                                      "low-plus-9bit-sh5": 16, "low-plus-10bit-cb8": 16,
-                                     "high": 12, "medium-low-sh8": 12, "medium-low-sh16": 12}
+                                     "high": 12, "medium-high": 12, "medium-low-sh8": 12, "medium-low-sh16": 12}
 # zstd's shortest match per preset where not its level's own (3 at level 16, 4-5 at 12 on payloads this small; 0:
 # the level's). On the lossy presets' small LOD payloads the short matches cost more bytes than the literals they
 # replace, and each is a sequence more to decode: at level 16 a shortest match of 6 stores 0.05-1.6 % fewer bytes on
@@ -188,8 +189,9 @@ PRESET_ZSTD_LEVEL: dict[str, int] = {"very-high": 12, "medium-low": 9, "medium-l
 # medium-low-9bit and low-plus-10bit-cb8 (level 16) took the same the round after (eval32), with a 1 % slack: on all 14
 # real scenes 0.06-1.3 % fewer bytes, zstd 0.75-0.94 and the whole `verified` pass 0.86-0.97 of the time (a 2 % slack
 # grew them by up to 1.1 %: BENCHMARKS.md, "Decode speed", eval32).
-_LOSSY_MIN_MATCH = ("high", "medium-low-sh8", "medium-low-sh16", "medium-low-12bit", "medium-low-palette",
-                    "medium-low-9bit", "low-plus-9bit", "low-plus-9bit-sh6", "low-plus-9bit-sh5", "low-plus-10bit-cb8")
+_LOSSY_MIN_MATCH = ("high", "medium-high", "medium-low-sh8", "medium-low-sh16", "medium-low-12bit",
+                    "medium-low-palette", "medium-low-9bit", "low-plus-9bit", "low-plus-9bit-sh6", "low-plus-9bit-sh5",
+                    "low-plus-10bit-cb8")
 PRESET_ZSTD_MIN_MATCH: dict[str, int] = dict.fromkeys(_LOSSY_MIN_MATCH, 6)
 # How much larger (a fraction) a small payload's zstd block may code, at the trial level, than its parts alone and
 # still be one block (container._block_ends), per preset where not 0. very-high's float byte planes cut into blocks
@@ -198,52 +200,55 @@ PRESET_ZSTD_MIN_MATCH: dict[str, int] = dict.fromkeys(_LOSSY_MIN_MATCH, 6)
 # BENCHMARKS.md, "Decode speed", vhdec).
 # The lossy presets of PRESET_ZSTD_MIN_MATCH join within 1 % (level 16) or 2 % (level 12): what their shortest match
 # saved, less than it, so that their payloads still take fewer bytes than before on every real scene measured.
-PRESET_BLOCK_SLACK: dict[str, float] = {"very-high": 0.03, "high": 0.02, "medium-low-sh8": 0.02,
+PRESET_BLOCK_SLACK: dict[str, float] = {"very-high": 0.03, "high": 0.02, "medium-high": 0.02, "medium-low-sh8": 0.02,
                                         "medium-low-sh16": 0.02, "medium-low-12bit": 0.01, "medium-low-palette": 0.01,
                                         "medium-low-9bit": 0.01, "low-plus-9bit": 0.01, "low-plus-9bit-sh6": 0.01,
                                         "low-plus-9bit-sh5": 0.01, "low-plus-10bit-cb8": 0.01}
 DEFAULT_PRESET = "medium"
-# What each preset is for, in the words the CLI (`encode --help`, `info`) shows: disk bytes per splat with the
-# fields1 transport coding at SH3 / SH0 and the mean PSNR measured on the benchmark scenes (BENCHMARKS.md, "Size
-# against quality").
+# What each preset is for, in the words the CLI (`encode --help`, `info`) shows: disk bytes per splat (full detail,
+# manifest included, no LOD) and mean PSNR over the 14 real-scene eval reports (bench/results/eval_real; SH3 is
+# fruit_drops, SH2 flowers, SH0 the twelve others, lod_tile's all-zero SH3 bands counted as SH0). `python
+# bench/preset_summary_ranges.py` prints the reports' ranges; tests/test_bench_preset_summary_ranges.py holds every
+# "N B/splat at SHk" figure here to them (within 3 %).
 PRESET_SUMMARY: dict[str, str] = {
-    "very-high": "32-bit floats, lossless; about 180 B/splat at SH3, 43 at SH0",
-    "high": "16-bit positions and colour; about 73 B/splat at SH3, 18 at SH0; 61-71 dB",
-    "medium-high": "high with 11-bit SH on importance-scaled steps (about 6 bits where it matters); about 33 "
-                   "B/splat at SH2 (flowers, 61 dB), 45.6 at SH3 (fruit_drops, 64 dB), 18 at SH0",
+    "very-high": "32-bit floats, lossless; about 179 B/splat at SH3, 40.7-43.3 at SH0",
+    "high": "16-bit positions and colour; about 70.6 B/splat at SH3, 46.7 at SH2, 16.4-18 at SH0; 61-77 dB",
+    "medium-high": "high with 11-bit SH on importance-scaled steps (about 6 bits where it matters); about 32.9 "
+                   "B/splat at SH2 (flowers, 61 dB), 45 at SH3 (fruit_drops, 63 dB); high's files at SH0",
     "medium-12bit": "medium with about 12-bit positions (16-bit texels on one step per tile); about 13.8-15.3 "
-                    "B/splat at SH0 (statue scans 63.7-68.1 dB, 3.6-5.8 dB over medium), 27.8 at SH2, 37.2 at SH3",
-    "medium": "the default: 11-bit positions, 8-bit colour, 16-bit SH, scales on a tile step; about 37 B/splat "
-              "at SH3, 13.3-14.8 at SH0; 56-84 dB",
+                    "B/splat at SH0 (statue scans 63.7-68.1 dB, 3.7-5.9 dB over medium), 27.8 at SH2, 37 at SH3",
+    "medium": "the default: 11-bit positions, 8-bit colour, 16-bit SH, scales on a tile step; about 36.7 B/splat "
+              "at SH3, 27.4 at SH2, 13.3-14.9 at SH0; 56-84 dB",
     "medium-low-sh16": "medium-low with per-splat SH bands (no codebook) on importance-scaled steps of about 4 bits; "
-                       "about 23.7 B/splat at SH2 (flowers, 53.6 dB), 30 at SH3, 12-13 at SH0",
-    "medium-low-sh8": "medium-low with per-splat SH bands on importance-scaled steps of about 3 bits; about 21.5 "
-                      "B/splat at SH2 (flowers, 48.5 dB), 27.5 at SH3, 12-13 at SH0",
+                       "about 23.4 B/splat at SH2 (flowers, 53.1 dB), 29.2 at SH3, 12.2-13.2 at SH0",
+    "medium-low-sh8": "medium-low with per-splat SH bands on importance-scaled steps of about 3 bits; about 21.2 "
+                      "B/splat at SH2 (flowers, 48.1 dB), 26.2 at SH3, 12.2-13.2 at SH0",
     "medium-low": "medium's positions, 8-bit rotations and scales, SH codebook (about 1 entry per 16 splats); "
-                  "about 13-15.5 B/splat at SH3, 12-13 at SH0; 47-68 dB",
+                  "about 15.2 B/splat at SH3, 15.4 at SH2, 12.2-13.2 at SH0; 42-71 dB",
     "medium-low-12bit": "medium-low with about 12-bit positions (16-bit texels on one step per tile), coarser "
-                        "scales and opacity, zstd level 16; about 12.9-14.7 B/splat at SH3, 11.7-12.5 at SH0; "
-                        "47-64 dB",
+                        "scales and opacity, zstd level 16; about 14.5 B/splat at SH3, 15.3 at SH2, 11.9-12.9 at "
+                        "SH0; 42-68 dB",
     "medium-low-palette": "medium-low-12bit for SOG inputs: scale and colour palettes (SH0's merged pairwise), "
                           "positions on a step of the splat size / 120, keyed transport; medium-low-12bit's planes "
                           "where the values do not fit a palette; statue scans (SOG, SH0) 11.1-11.4 B/splat, "
-                          "60-66 dB; other inputs as medium-low-12bit (0-0.35 B/splat fewer: keyed)",
+                          "60-66 dB; other inputs as medium-low-12bit (0-0.7 B/splat fewer: keyed)",
     "medium-low-9bit": "medium-low with 9-bit positions, scales and opacity on tile steps, zstd level 16; about "
-                       "12.0-13.8 B/splat at SH3, 11.2-11.7 at SH0; 47-62 dB",
+                       "13.8 B/splat at SH3, 14.4 at SH2, 11.2-12 at SH0; 42-62 dB",
     "low-plus-9bit": "low-plus with 9-bit positions on one step per tile, coarser scales and opacity, zstd level "
-                     "16; about 12.4-12.6 B/splat at SH3, 10.4-11.3 at SH0; 44-57 dB",
+                     "16; about 12.1 B/splat at SH3, 13.7 at SH2, 10.7-11.6 at SH0; 41-61 dB",
     "low-plus-9bit-sh6": "low-plus-9bit with per-splat SH bands (no codebook) on importance-scaled steps of about "
-                         "2.5 bits; about 18.5 B/splat at SH2 (flowers, 45.2 dB), 22.6 at SH3, 10.4-11.3 at SH0",
+                         "2.5 bits; about 18.5 B/splat at SH2 (flowers, 44.7 dB), 22.1 at SH3, 10.7-11.6 at SH0",
     "low-plus-9bit-sh5": "low-plus-9bit-sh6 with one SH step per band, 0 on its grid and a flatter importance "
-                         "scaling, about 2.3 bits; about 17.6 B/splat at SH2 (flowers, 44.7 dB), 21.1 at SH3, "
-                         "10.4-11.3 at SH0",
+                         "scaling, about 2.3 bits; about 17.6 B/splat at SH2 (flowers, 44.2 dB), 20.5 at SH3, "
+                         "10.7-11.6 at SH0",
     "low-plus-10bit-cb8": "low-plus-9bit with about 10-bit positions and a larger SH codebook (about 1 entry per "
-                          "8 splats, up to 65,536); about 15.8 B/splat at SH2 (flowers, 45.0 dB), 11.9-14.8 at SH3 "
-                          "(48-49 dB)",
-    "low-plus": "8-bit positions, rotations, scales and colour, SH codebook (1 per 64); about 12-13.5 B/splat at "
-                "SH3, 11-12 at SH0; 44-57 dB",
-    "low": "low-plus with 16-bit rotations; about 11-12 B/splat at SH3, 10-10.6 at SH0; 37-52 dB",
-    "very-low": "16-bit scales, BC7 colour, SH codebook; about 8-9.5 B/splat at SH3, 7.5-8 at SH0; 32-47 dB",
+                          "8 splats, up to 65,536); about 15.8 B/splat at SH2 (flowers, 45.0 dB), 14.8 at SH3 "
+                          "(fruit_drops, 49.2 dB)",
+    "low-plus": "8-bit positions, rotations, scales and colour, SH codebook (1 per 64); about 12.9 B/splat at "
+                "SH3, 14 at SH2, 11-12.1 at SH0; 40-59 dB",
+    "low": "low-plus with 16-bit rotations; about 11.5 B/splat at SH3, 12.6 at SH2, 9.8-10.8 at SH0; 37-52 dB",
+    "very-low": "16-bit scales, BC7 colour, SH codebook; about 9.4 B/splat at SH3, 9.7 at SH2, 7.5-7.8 at SH0; "
+                "32-47 dB",
 }
 CHUNK_ORDERS = ("auto", "morton", "luminance")
 
