@@ -125,7 +125,7 @@ def test_paged_vector_reads_its_pages_and_decodes_to_expected_values():
 
 
 def test_table_vector_reads_its_tile_tables_and_decodes_to_expected_values():
-    """format.md 6.2 and 8: the `table` vector is `paged`'s input and options written by today's encoder (1.8): its
+    """format.md 6.2 and 8: the `table` vector is `paged`'s input and options written as 1.8 (2026-11-29): its
     root manifest and pages hold tile tables, and with every page read it decodes exactly."""
     scene = VECTORS / "table"
     raw = (scene / "manifest.msgpack").read_bytes()
