@@ -79,9 +79,15 @@ def test_one_tile_and_imported_trees_record_nothing_and_keep_their_version(scene
     assert len(one.tiles) == 1 and not one.lod.enabled and one.version < VERSION_1_8
     assert one.lod.merge is None and one.lod.viewing_scale_px is None
     assert "merge" not in msgpack.unpackb(pack_manifest(one), strict_map_key=False)["lod"]
-    # A tree handed to the encoder (sog_import.py: a foreign LOD tree) was not built by it: nothing recorded.
-    tiles = plan_tiles(scene, EncodeOptions(**TREE), lambda *a: None)
-    given = parse_manifest(encode_in_memory(scene, EncodeOptions(**TREE), tiles=tiles).read_manifest())
+    # A tree the caller built with plan_tiles under the same options (evaluate.py builds it once for every preset)
+    # is the encoder's own: the same manifest as an encode building it.
+    opts = EncodeOptions(lod_merge="grid", **TREE)
+    tiles = plan_tiles(scene, opts, lambda *a: None)
+    assert encode_in_memory(scene, opts, tiles=tiles).read_manifest() == \
+        encode_in_memory(scene, opts).read_manifest()
+    # An imported tree (sog_import.py: a streamed SOG's levels) was not built by it: nothing recorded, 1.8.
+    imported = EncodeOptions(imported_tree=True, **TREE)
+    given = parse_manifest(encode_in_memory(scene, imported, tiles=tiles).read_manifest())
     assert len(given.tiles) > 3 and given.version == VERSION_1_8 and not given.lod.build_recorded
 
 

@@ -75,7 +75,8 @@ class ScenePlan:
     max_leaf_splats: int
     reduction: float
     # The merge the encoder builds an LOD tree with (lod.LOD_MERGES; the manifest's lod.merge, format 1.9), None
-    # where the tree is not its own (an imported one: sog_import.py).
+    # where the tree is not its own (an imported one: sog_import.py, EncodeOptions.imported_tree). A tree handed
+    # in by a caller that built it with plan_tiles and these options (evaluate.py) is the encoder's own.
     lod_merge: str | None = None
     # Step 5's viewing scales (lod.md 6): px on the first merged level and above it (lod.viewing_scales_px()).
     viewing_scale_px: tuple[float, float] | None = None
@@ -181,8 +182,8 @@ def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progr
                 tiles: list[Tile] | None = None) -> EncodePlan:
     """The in-memory engine's plan. `screened`: `g` was read through io.read_gaussians, which refused (or
     dropped) values beyond the format's domain already, so the check is not repeated. `tiles`: a tree built
-    already (a foreign LOD tree: sog_import.py), breadth-first with bounds and errors, its leaves holding `g`;
-    otherwise the LOD builder makes one."""
+    already (a foreign LOD tree: sog_import.py, with `opts.imported_tree`; or plan_tiles' own under these options:
+    evaluate.py), breadth-first with bounds and errors, its leaves holding `g`; otherwise the LOD builder makes one."""
     formats, chunk_order = plan_formats(opts)
     if len(g) == 0:
         raise InputError(source_name or "<gaussians>", None, "holds no splats (none, or none left after dropping "
@@ -203,7 +204,7 @@ def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progr
                             palette_planes=palette_planes(formats))
     scene, sample = plan_scene(opts, formats, chunk_order, sh_degree, sample, len(g), positions_box(g.positions),
                                scene_name(opts, source_name, out_name), progress,
-                               opts.resolved_lod_merge(in_memory=True) if tiles is None else None)
+                               None if tiles is not None and opts.imported_tree else opts.resolved_lod_merge(True))
     progress("tiles", 0.0)
     if tiles is None:
         tiles = plan_tiles(g, opts, progress)
