@@ -722,6 +722,12 @@ def viewing_scale_px(child_error: float) -> float:
     return OPACITY_MATCH_SSE_PX if child_error == 0.0 else OPACITY_MATCH_FAR_SSE_PX
 
 
+def viewing_scales_px() -> tuple[float, float]:
+    """Step 5's viewing scales as the encoder uses them now (read at the call, so a bench's or test's change of the
+    constants is what the manifest records): px on the first merged level, px on the levels above it."""
+    return (float(OPACITY_MATCH_SSE_PX), float(OPACITY_MATCH_FAR_SSE_PX))
+
+
 def tile_viewing_blur(error: float, child_error: float) -> float:
     """The viewing blur of a tile of geometric error `error` whose children's largest error is `child_error`: at
     viewing_scale_px(child_error). Where that is OPACITY_MATCH_SSE_PX it is viewing_blur(error) itself, which the

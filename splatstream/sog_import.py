@@ -193,5 +193,5 @@ def _tree_input(sog: StreamedSog, opts: EncodeOptions | None) -> tuple[Gaussians
     reduction = float(np.exp(np.mean(np.log(np.array(per_level[1:], float) / np.array(per_level[:-1], float))))) \
         if levels > 1 else 2.0
     base = opts if opts is not None else EncodeOptions(lod=True)
-    return g, replace(base, lod=True, max_leaf_splats=max(len(t.gaussians) for t in leaves), reduction=reduction), \
-        tiles
+    return g, replace(base, lod=True, max_leaf_splats=max(len(t.gaussians) for t in leaves), reduction=reduction,
+                      imported_tree=True), tiles

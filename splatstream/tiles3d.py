@@ -464,7 +464,10 @@ def build_tilesets(manifest: Manifest, uris: dict[int, str], boxes: dict[int, tu
                                                             model_to_local(manifest.up)],
                 "anchor": [float(v) for v in anchor], "georeferenced": placement.georeferenced,
                 "longitude": placement.longitude, "latitude": placement.latitude, "height": placement.height,
-                "heading": placement.heading}},
+                "heading": placement.heading,
+                # How the tree was built (format.md 6, 1.9; None: not recorded): tilesets of two encodes compare.
+                "lod_merge": manifest.lod.merge,
+                "viewing_scale_px": list(manifest.lod.viewing_scale_px) if manifest.lod.viewing_scale_px else None}},
         },
         **declared,
         "geometricError": max(diagonal, float(manifest.tile(manifest.root).geometric_error)),

@@ -133,7 +133,8 @@ def tile_maps(d: dict) -> dict:
 
     if "tile_table" not in d or "paged" in d:
         return d
-    m = replace(manifest_from_dict(d), version=VERSION_1_7)
+    m = manifest_from_dict(d)  # without the tree's build record (1.9), which a 1.7 manifest does not have
+    m = replace(m, version=VERSION_1_7, lod=replace(m.lod, merge=None, viewing_scale_px=None))
     return m.with_bytes_on_disk(m.payload_bytes()).to_dict()
 
 

@@ -20,7 +20,7 @@ from splatstream.format.manifest import (
     split_pages,
     tile_rows,
 )
-from splatstream.format.manifest.versions import VERSION_1_7, VERSION_1_8
+from splatstream.format.manifest.versions import FORMAT_VERSION, VERSION_1_7, VERSION_1_8, VERSION_1_9
 from splatstream.ply import read_gaussians_ply
 from splatstream.store import MemoryStore, read_manifest
 
@@ -34,14 +34,14 @@ def scene():
 
 def _old(m):
     """The same tree as a 1.7 writer writes it (tile maps)."""
-    m = replace(m, version=VERSION_1_7)
+    m = replace(m, version=VERSION_1_7, lod=replace(m.lod, merge=None, viewing_scale_px=None))  # no 1.9 record
     return m.with_bytes_on_disk(m.payload_bytes())
 
 
 def test_an_lod_tree_is_written_as_a_tile_table_and_reads_back_as_the_tile_maps(scene):
     raw, m = scene
     d = msgpack.unpackb(raw, strict_map_key=False)
-    assert d["version"] == [1, 8] and "tile_table" in d and "tiles" not in d
+    assert d["version"] == [1, 9] and "tile_table" in d and "tiles" not in d  # 1.9: the tree's build record
     old = parse_manifest(pack_manifest(_old(m)))
     for lazy in (False, True):
         back = parse_manifest(raw, lazy_payloads=lazy)
@@ -72,7 +72,7 @@ def test_a_one_tile_scene_keeps_its_version():
 def test_a_paged_tree_writes_its_pages_as_tile_tables(scene):
     _, m = scene
     paged = split_pages(m, 2)
-    assert paged.root.version == VERSION_1_8
+    assert paged.root.version == VERSION_1_9
     for _, data in paged.pages:
         d = msgpack.unpackb(data, strict_map_key=False)
         assert "tile_table" in d and "tiles" not in d
@@ -158,7 +158,8 @@ def test_versions_and_the_table(scene):
     with pytest.raises(FormatError, match=r"tiles: missing"):
         parse_manifest(pack_manifest_dict(older))
     newer = copy.deepcopy(d)
-    newer["version"] = [1, 9]  # a newer minor version's key in the table is ignored (format.md 6, Versioning)
+    # A newer minor version's key in the table is ignored (format.md 6, Versioning).
+    newer["version"] = [1, FORMAT_VERSION[1] + 1]
     newer["tile_table"]["later"] = b"x"
     assert len(parse_manifest(pack_manifest_dict(newer)).tiles) == d["tile_table"]["count"]
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 import zstandard
 
-from splatstream.format.manifest import parse_manifest
+from splatstream.format.manifest import FORMAT_VERSION, parse_manifest
 from splatstream.scene_decode import decode_scene
 from splatstream.store import load_manifest
 
@@ -95,7 +95,7 @@ def test_newer_major_version_is_rejected(tmp_path):
     with pytest.raises(FormatError, match="version 2.0 is not supported"):
         load_manifest(tmp_path / "s")
     # A newer minor version may add keys: this reader ignores them. In a version it knows, they are damage.
-    m["version"] = [1, 9]
+    m["version"] = [1, FORMAT_VERSION[1] + 1]
     m["a_future_key"] = {"x": 1}
     write_manifest_dict(tmp_path / "s", m)
     assert len(decode_scene(tmp_path / "s")) == 260
@@ -125,7 +125,7 @@ def test_paged_vector_reads_its_pages_and_decodes_to_expected_values():
 
 
 def test_table_vector_reads_its_tile_tables_and_decodes_to_expected_values():
-    """format.md 6.2 and 8: the `table` vector is `paged`'s input and options written by today's encoder (1.8): its
+    """format.md 6.2 and 8: the `table` vector is `paged`'s input and options written as 1.8 (2026-11-29): its
     root manifest and pages hold tile tables, and with every page read it decodes exactly."""
     scene = VECTORS / "table"
     raw = (scene / "manifest.msgpack").read_bytes()

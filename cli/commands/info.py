@@ -27,8 +27,33 @@ def scene_info(m: Manifest) -> dict:
         "preset_summary": PRESET_SUMMARY.get(m.preset),
         "preset_overrides": _overrides(m),
         "section_filters": dict(sorted(Counter(sec.filter for _, _, p in m.payloads() for sec in p.sections).items())),
+        "lod": _lod(m),
     })
     return s
+
+
+def _lod(m: Manifest) -> dict:
+    """The manifest's `lod` map; `merge` and `viewing_scale_px` None where the scene does not record how its tree
+    was built (format 1.9: absent from older scenes and imported trees)."""
+    lod = m.lod
+    return {"enabled": lod.enabled, "max_leaf_splats": lod.max_leaf_splats, "reduction": lod.reduction,
+            "refine": lod.refine, "merge": lod.merge,
+            "viewing_scale_px": list(lod.viewing_scale_px) if lod.viewing_scale_px is not None else None}
+
+
+def _lod_line(lod: dict) -> str | None:
+    """How the tree was built, for the text output (None: no tree)."""
+    if not lod["enabled"]:
+        return None
+    shape = f"leaves of at most {lod['max_leaf_splats']} splats, {lod['reduction']:g}x per level"
+    scales = lod["viewing_scale_px"]
+    if lod["merge"] is None and scales is None:
+        return f"merge and viewing scales not recorded (a scene before format 1.9, or a tree splatstream did not " \
+               f"build); {shape}"
+    merge = f"merge {lod['merge']}" if lod["merge"] is not None else "merge not recorded"
+    viewing = f"opacity/colour matched at {scales[0]:g} px (first merged level), {scales[1]:g} px (above)" \
+        if scales is not None else "viewing scales not recorded"
+    return f"{merge}, {viewing}; {shape}"
 
 
 def _overrides(m: Manifest) -> dict[str, str] | None:
@@ -88,6 +113,9 @@ def run(args: argparse.Namespace) -> int:
         print(f"preset     {info['preset']} is not a preset of this version; the formats below are what counts")
     print(f"tiles      {info['tiles']} in {count(info['levels'], 'level')}, "
           f"{count(info['leaf_tiles'], 'leaf', 'leaves')} holding {count(info['leaf_splats'], 'splat')}")
+    lod_line = _lod_line(info["lod"])
+    if lod_line:
+        print(f"LOD tree   {lod_line}")
     print(f"on disk    {info['bytes_on_disk']} bytes ({info['bytes_per_splat_on_disk']:.2f} B/splat, all levels)")
     print(f"GPU        {info['gpu_bytes']} bytes ({info['gpu_bytes_per_splat']:.2f} B/splat, full detail)")
     for name, a in (info["attributes"] or {}).items():

@@ -57,6 +57,9 @@ class EncodeOptions:
     # manifest of its top `page_levels` levels and pages of the next `page_levels` levels below each of its
     # deepest tiles. Both measured against manifest bytes before the first frame and page fetches (BENCHMARKS.md,
     # "Manifest pages"): scenes up to a few million splats keep one manifest, as before.
+    # The LOD tree handed to the encoder (`tiles=`) is an imported one (sog_import.py: a streamed SOG's or RAD's
+    # levels), not one lod.py built: the manifest then does not record a merge or viewing scales (format.md 6).
+    imported_tree: bool = False
     page_tiles: int = 1024
     page_levels: int = 6
     name: str | None = None

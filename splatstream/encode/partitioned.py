@@ -734,7 +734,7 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
     # The chunk order stays morton where the in-memory engine may keep an input's order (plan_encode): that needs
     # the whole scene in one tile, which a partitioned encode never has for more than one leaf of splats.
     scene, sample = plan_scene(opts, formats, chunk_order, sh_degree, sample, splats, bounds,
-                               scene_name(opts, source_name, out_name), progress)
+                               scene_name(opts, source_name, out_name), progress, opts.resolved_lod_merge(False))
     ctx = scene.context
     payloads = writer.payload_writer()
     codebook_entry = encode_codebook(ctx.codebook, ctx, payloads) if ctx.codebook is not None else None

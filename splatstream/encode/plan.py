@@ -32,7 +32,7 @@ from ..format.presets import (
 from ..format.steps import TileStep, on_grid
 from ..format.texformats import PALETTE_FORMATS
 from ..gaussians import Gaussians
-from ..lod import Tile, build_tiles
+from ..lod import Tile, build_tiles, viewing_scales_px
 from ..vq import Codebook
 from .codebook import codebook_choice
 from .options import EncodeOptions, Progress, no_progress
@@ -74,6 +74,12 @@ class ScenePlan:
     up: tuple[float, float, float]
     max_leaf_splats: int
     reduction: float
+    # The merge the encoder builds an LOD tree with (lod.LOD_MERGES; the manifest's lod.merge, format 1.9), None
+    # where the tree is not its own (an imported one: sog_import.py, EncodeOptions.imported_tree). A tree handed
+    # in by a caller that built it with plan_tiles and these options (evaluate.py) is the encoder's own.
+    lod_merge: str | None = None
+    # Step 5's viewing scales (lod.md 6): px on the first merged level and above it (lod.viewing_scales_px()).
+    viewing_scale_px: tuple[float, float] | None = None
 
 
 @dataclass
@@ -149,12 +155,13 @@ def plan_formats(opts: EncodeOptions) -> tuple[dict[str, str], str]:
 
 
 def plan_scene(opts: EncodeOptions, formats: dict[str, str], chunk_order: str, sh_degree: int, sample: SceneSample,
-               splats: int, bounds: Box, name: str, progress: Progress = no_progress
+               splats: int, bounds: Box, name: str, progress: Progress = no_progress, lod_merge: str | None = None
                ) -> tuple[ScenePlan, SceneSample]:
     """The scene-wide decisions every engine takes from the scene sample: the SH codebook (fitted on the sample's
     rows, which are then dropped: below the sample size they are every splat's SH, 180 MB at 1M splats of SH3,
     which kept the codebook presets' LOD encode above 3x the input in peak memory) and the up direction. Returns
-    the plan and the sample without its codebook rows (it still gives the camera)."""
+    the plan and the sample without its codebook rows (it still gives the camera). `lod_merge`: the merge the
+    engine builds its LOD tree with (recorded in the manifest), None for a tree it did not build."""
     choice = codebook_choice(opts, sh_degree)
     codebook = None
     if choice != "off":
@@ -166,8 +173,8 @@ def plan_scene(opts: EncodeOptions, formats: dict[str, str], chunk_order: str, s
     formats, steps, palettes = plan_palettes(opts, formats, sample.palettes)
     context = TileContext(formats, chunk_order, sh_degree, codebook, opts.resolved_zstd_level, opts.resolved_transport,
                           steps, palettes, preset_block_slack(opts.preset), preset_zstd_min_match(opts.preset))
-    return ScenePlan(context, opts.preset, name, splats, bounds, up, opts.max_leaf_splats,
-                     float(opts.reduction)), sample
+    return ScenePlan(context, opts.preset, name, splats, bounds, up, opts.max_leaf_splats, float(opts.reduction),
+                     lod_merge, viewing_scales_px() if lod_merge is not None else None), sample
 
 
 def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progress,
@@ -175,8 +182,8 @@ def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progr
                 tiles: list[Tile] | None = None) -> EncodePlan:
     """The in-memory engine's plan. `screened`: `g` was read through io.read_gaussians, which refused (or
     dropped) values beyond the format's domain already, so the check is not repeated. `tiles`: a tree built
-    already (a foreign LOD tree: sog_import.py), breadth-first with bounds and errors, its leaves holding `g`;
-    otherwise the LOD builder makes one."""
+    already (a foreign LOD tree: sog_import.py, with `opts.imported_tree`; or plan_tiles' own under these options:
+    evaluate.py), breadth-first with bounds and errors, its leaves holding `g`; otherwise the LOD builder makes one."""
     formats, chunk_order = plan_formats(opts)
     if len(g) == 0:
         raise InputError(source_name or "<gaussians>", None, "holds no splats (none, or none left after dropping "
@@ -196,7 +203,8 @@ def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progr
     sample = SceneSample.of(g, with_codebook=codebook_choice(opts, sh_degree) != "off",
                             palette_planes=palette_planes(formats))
     scene, sample = plan_scene(opts, formats, chunk_order, sh_degree, sample, len(g), positions_box(g.positions),
-                               scene_name(opts, source_name, out_name), progress)
+                               scene_name(opts, source_name, out_name), progress,
+                               None if tiles is not None and opts.imported_tree else opts.resolved_lod_merge(True))
     progress("tiles", 0.0)
     if tiles is None:
         tiles = plan_tiles(g, opts, progress)

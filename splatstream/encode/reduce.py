@@ -16,7 +16,7 @@ from ..format.manifest import (
     TileEntry,
     writer_version,
 )
-from ..format.manifest.versions import VERSION_1_6, VERSION_1_7, VERSION_1_8
+from ..format.manifest.versions import VERSION_1_6, VERSION_1_7, VERSION_1_8, VERSION_1_9
 from ..format.planes import BASE_PLANE_NAMES
 from ..format.presets import ATTRIBUTES
 from .plan import ScenePlan
@@ -47,9 +47,10 @@ class _Sizes:
         self.leaf_disk += entry.bytes
 
 
-def _version(ctx, codebook: SHCodebookEntry | None, tiles: list[TileEntry]) -> tuple[int, int]:
+def _version(ctx, codebook: SHCodebookEntry | None, tiles: list[TileEntry], lod: LodInfo) -> tuple[int, int]:
     """The formats' and chunk order's version (writer_version), 1.6 where a section is stored as morton1 (format.md
-    5.4: the encoder chooses it per section, so only the entries tell)."""
+    5.4: the encoder chooses it per section, so only the entries tell); 1.9 where the manifest records how the LOD
+    tree was built."""
     version = writer_version(ctx.formats, codebook.format if codebook is not None else None, ctx.chunk_order)
     keyed = any(s.filter == MORTON1 for t in tiles for e in t.groups.values() for s in e.sections)
     if ctx.palettes:  # scene palettes in the manifest (format.md 4.3.2)
@@ -58,7 +59,19 @@ def _version(ctx, codebook: SHCodebookEntry | None, tiles: list[TileEntry]) -> t
         version = max(version, VERSION_1_6)
     # An LOD tree's tiles as the tile table (format.md 6.2, 1.8): a fifth of the tile maps' bytes. A one-tile scene's
     # map is under a kilobyte, and its version stays the one its formats need.
-    return max(version, VERSION_1_8) if len(tiles) > 1 else version
+    if len(tiles) > 1:
+        version = max(version, VERSION_1_8)
+    # The tree's build record (format.md 6, lod.md 6: lod.merge, lod.viewing_scale_px) is a 1.9 key.
+    return max(version, VERSION_1_9) if lod.build_recorded else version
+
+
+def lod_info(scene: ScenePlan, tiles: int) -> LodInfo:
+    """The manifest's `lod` map: a tree's build recorded where the encoder built it (scene.lod_merge); a one-tile
+    scene has no merged level, so nothing to record."""
+    tree = tiles > 1
+    built = tree and scene.lod_merge is not None
+    return LodInfo(tree, scene.max_leaf_splats, scene.reduction, "replace",
+                   scene.lod_merge if built else None, scene.viewing_scale_px if built else None)
 
 
 def build_manifest(scene: ScenePlan, camera: CameraEntry, tiles: list[TileEntry],
@@ -78,9 +91,10 @@ def build_manifest(scene: ScenePlan, camera: CameraEntry, tiles: list[TileEntry]
                 sizes.add(entry, BASE_PLANE_NAMES if group == "base" else ("sh",))
     ordered = tuple(sorted(tiles, key=lambda t: t.id))
     root = ordered[0]
+    lod = lod_info(scene, len(ordered))
     m = Manifest(
         # 1.2 (the manifest checksum), fields1 or not; 1.3 where a plane is norm16x4 or norm9x3 (format.md 9)
-        version=_version(ctx, codebook, tiles),
+        version=_version(ctx, codebook, tiles, lod),
         generator=f"splatstream {__version__}",
         name=scene.name,
         splats=scene.splats,
@@ -95,7 +109,7 @@ def build_manifest(scene: ScenePlan, camera: CameraEntry, tiles: list[TileEntry]
         up=scene.up,
         camera=camera,
         sh_codebook=codebook,
-        lod=LodInfo(len(ordered) > 1, scene.max_leaf_splats, scene.reduction, "replace"),
+        lod=lod,
         root=root.id,
         tiles=ordered,
         gpu_bytes=int(sizes.leaf_gpu),

@@ -187,10 +187,25 @@ class LodInfo:
     max_leaf_splats: int
     reduction: float
     refine: str = "replace"
+    # How the encoder built the levels (version 1.9, format.md 6 and lod.md 6; informative): the merge that grouped
+    # each level's splats (`grid`, `cost`, `auto`), and the screen-space errors in px at which step 5 matched
+    # opacity and colour, (first merged level, levels above it). None: not recorded (before 1.9, or a tree the
+    # encoder did not build).
+    merge: str | None = None
+    viewing_scale_px: tuple[float, float] | None = None
+
+    @property
+    def build_recorded(self) -> bool:
+        return self.merge is not None or self.viewing_scale_px is not None
 
     def to_dict(self) -> dict:
-        return {"enabled": self.enabled, "max_leaf_splats": self.max_leaf_splats, "reduction": self.reduction,
-                "refine": self.refine}
+        d = {"enabled": self.enabled, "max_leaf_splats": self.max_leaf_splats, "reduction": self.reduction,
+             "refine": self.refine}
+        if self.merge is not None:
+            d["merge"] = self.merge
+        if self.viewing_scale_px is not None:
+            d["viewing_scale_px"] = [float(v) for v in self.viewing_scale_px]
+        return d
 
 
 @dataclass(frozen=True)

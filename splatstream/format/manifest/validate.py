@@ -73,6 +73,7 @@ from .versions import (
     VERSION_1_6,
     VERSION_1_7,
     VERSION_1_8,
+    VERSION_1_9,
 )
 from .wire import CHECKSUM_KEY, unpack_manifest, verify_checksum
 
@@ -885,10 +886,33 @@ def _camera(d: dict, source: str, strict: bool) -> CameraEntry:
     return camera
 
 
-def _lod(d: dict, source: str, strict: bool) -> LodInfo:
-    lod = _keys(d["lod"], ("enabled", "max_leaf_splats", "reduction", "refine"), source, "lod", strict)
-    return LodInfo(_bool(lod, "enabled", source, "lod"), _int(lod, "max_leaf_splats", source, "lod", 1),
+_LOD_KEYS = ("enabled", "max_leaf_splats", "reduction", "refine")
+# Version 1.9: how the encoder built the tree (format.md 6, lod.md 6), each optional (absent: not recorded).
+_LOD_BUILD_KEYS = ("merge", "viewing_scale_px")
+
+
+def _lod(d: dict, source: str, strict: bool, version: tuple[int, int]) -> LodInfo:
+    build = _LOD_BUILD_KEYS if version >= VERSION_1_9 else ()
+    lod = _keys(d["lod"], _LOD_KEYS, source, "lod", strict, build)
+    info = LodInfo(_bool(lod, "enabled", source, "lod"), _int(lod, "max_leaf_splats", source, "lod", 1),
                    _float(lod, "reduction", source, "lod", 1.0), _str(lod, "refine", source, "lod", ("replace",)))
+    if not build or not (lod.keys() & set(build)):
+        return info
+    merge = lod.get("merge")
+    if merge is not None and (type(merge) is not str or not merge):
+        # Informative and open: a later encoder may name a merge this reader does not know (format.md 6).
+        _fail(source, "lod", "merge", f"expected a merge name (a non-empty string), got {merge!r}")
+    scales = lod.get("viewing_scale_px")
+    if scales is not None:
+        if not (type(scales) in (list, tuple) and len(scales) == 2 and all(type(v) in _NUMBER and _isfinite(v)
+                                                                           and v > 0 for v in scales)):
+            _fail(source, "lod", "viewing_scale_px", f"expected 2 finite numbers > 0 (px on the first merged level, "
+                  f"px above it), got {scales!r}")
+        scales = (float(scales[0]), float(scales[1]))
+    if not info.enabled:
+        _fail(source, "lod", "merge" if merge is not None else "viewing_scale_px",
+              "a build record in a scene without an LOD tree (lod.enabled is false)")
+    return LodInfo(info.enabled, info.max_leaf_splats, info.reduction, info.refine, merge, scales)
 
 
 def _attributes(d: dict, source: str, strict: bool) -> dict[str, AttributeSize]:
@@ -975,7 +999,7 @@ def manifest_from_dict(d, source: str = MANIFEST_NAME, lazy_payloads: bool = Fal
         splats=splats, leaf_splats=leaf_splats, sh_degree=sh_degree, preset=_str(d, "preset", source, ""),
         formats=formats, chunk_size=chunk_size, chunk_order=chunk_order,
         bounds=_box(d, "bounds", source, "", strict), extent_bounds=_box(d, "extent_bounds", source, "", strict),
-        up=up, camera=camera, sh_codebook=codebook, lod=_lod(d, source, strict), root=root, tiles=tuple(tiles),
+        up=up, camera=camera, sh_codebook=codebook, lod=_lod(d, source, strict, version), root=root, tiles=tuple(tiles),
         gpu_bytes=_int(d, "gpu_bytes", source, ""),
         gpu_bytes_per_splat=_float(d, "gpu_bytes_per_splat", source, "", 0.0),
         leaf_bytes_on_disk=_int(d, "leaf_bytes_on_disk", source, ""), attributes=_attributes(d, source, strict),

@@ -4,7 +4,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 FORMAT_NAME = "splatstream"
-FORMAT_VERSION = (1, 8)  # (major, minor) this code reads; what it writes: writer_version
+FORMAT_VERSION = (1, 9)  # (major, minor) this code reads; what it writes: writer_version
 # Version 1.2 added two things (format.md, version history): the manifest's last key `checksum`, the SHA-256 of the
 # file with that value's 64 bytes read as ASCII '0' (format.md 6, "Checksum"), so a flipped byte in the manifest is
 # caught like one in a payload; and the `fields1` transport coding of texels sections (format.md 5.2).
@@ -44,3 +44,9 @@ def writer_version(formats: Mapping[str, str], codebook_format: str | None = Non
 # scene-level list of section layouts plus each section's size and the raw SHA-256, about a fifth of the tile maps'
 # bytes; written by every scene of more than one tile (an LOD tree), so one-tile scenes keep their version.
 VERSION_1_8 = (1, 8)
+# Version 1.9 added the LOD tree's build record (format.md 6, lod.md 6): the `lod` map's optional `merge` and
+# `viewing_scale_px`, how the encoder grouped each level's splats and at which screen-space errors it matched opacity
+# and colour; written by every scene whose tree splatstream built (an imported tree, and a one-tile scene, keep
+# their version). A key added to a known version is damage to its readers (format.md 6, Versioning), so the record
+# needs the new minor version; a 1.8 reader reads a 1.9 scene whole and ignores the two keys.
+VERSION_1_9 = (1, 9)
