@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # Wheels that a bare many-core machine with Python 3.12, numpy and msgpack (the GPU machines' image) lacks for
 # bench/bench_scale.py --workers: Dask and its pure-Python needs, and zstandard; and moderngl with glcontext for the
-# streaming runs (bench/device/run_city.sh stream: the image of 2026-11-29 had none). Downloaded here into .whl/
+# streaming runs (bench/device/run_city.sh stream: the image of 2026-11-29 had none), and the `bc` extra's etcpak and
+# texture2ddecoder (decode_quiet's very-low: its BC7 colour). Downloaded here into .whl/
 # (.gitignore), carried to the machine and installed there with:
 #   python3 -m pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl && export PYTHONPATH=/tmp/site:$PWD
 set -euo pipefail
@@ -9,5 +10,5 @@ cd "$(dirname "$0")/.."
 python3 -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
   --platform manylinux_2_28_x86_64 --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 -d .whl \
   dask==2026.8.0 distributed==2026.8.0 zstandard==0.25.0 tornado==6.6.1 tblib==3.2.2 zict==3.0.0 partd==1.4.2 \
-  locket==1.0.0 moderngl==5.12.0 glcontext==3.0.0
+  locket==1.0.0 moderngl==5.12.0 glcontext==3.0.0 etcpak==0.9.15 archspec texture2ddecoder==1.0.6
 du -sh .whl
