@@ -45,6 +45,13 @@ def cases(tmp, scene):
         (["eval", DONUT, "--size", "5x5"], "--size"),
         (["serve", tmp / "missing"], "missing"),
         (["serve", tmp / "a_dir", "--port", "70000"], "--port"),
+        (["serve", tmp / "a_dir", "--cors-origin", "viewer.example"], "--cors-origin viewer.example"),  # no scheme
+        (["serve", tmp / "a_dir", "--cors-origin", "https://viewer.example/app"], "--cors-origin"),  # a path
+        (["eval", DONUT, "--presets", "low", "--plot", tmp / "o.txt"], "o.txt"),  # refused before any encode
+        (["export-rad", scene, tmp / "o.ply"], "o.ply"),  # a .rad under another extension
+        (["export-rad", tmp / "missing", tmp / "o.rad"], "missing"),
+        (["export-sog-lod", tmp / "missing", tmp / "s"], "missing"),
+        (["export-sog-lod", scene, tmp / "a_file"], "a_file"),
         (["view", tmp / "missing", "--headless"], "missing"),
         (["view", scene, "--headless", "--size", "0x0"], "--size"),
         (["view", scene, "--headless", "--screenshot", tmp / "o.jpg"], "o.jpg"),
