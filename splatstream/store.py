@@ -148,6 +148,21 @@ def fsspec_filesystem(url: str):
     return fs, root.rstrip("/")
 
 
+def check_store_reachable(url: str) -> None:
+    """List an output URL's prefix once before an encode's work, so that a store the encode cannot reach (no
+    credentials, access denied, no such host) is one line naming the URL at the start, not an unexpected exception
+    from the first payload's write after the whole encode. A prefix that does not exist yet is fine: the encode
+    creates it."""
+    fs, root = fsspec_filesystem(url)
+    try:
+        fs.ls(root, detail=False)
+    except FileNotFoundError:
+        return
+    except Exception as exc:  # each store's client raises its own classes (botocore, google.auth, ...)
+        raise InputError(url, None, f"cannot reach the object store ({type(exc).__name__}: {exc}); check the URL "
+                         "and the store's credentials (for s3://, AWS_PROFILE or AWS_ACCESS_KEY_ID)") from None
+
+
 class FsspecStore:
     """A scene under an fsspec URL (an object store bucket prefix, `memory://` in tests): the layout of a scene
     directory (format_spec/format.md 1), read object by object."""

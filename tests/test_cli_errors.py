@@ -90,3 +90,29 @@ def test_view_without_the_gl_client_says_how_to_install_it():
     assert r.returncode == 2, r.stderr
     assert "Traceback" not in r.stderr
     assert "pip install 'splatstream[view]'" in r.stderr.strip().splitlines()[-1]
+
+
+def test_an_unreachable_object_store_is_one_line_before_the_encode():
+    """An output URL whose store refuses us (here a filesystem whose listing fails as s3fs's does without
+    credentials) is refused at the start with one line naming the URL, exit 2, not an 'internal error' raised by
+    the first payload's write after the whole encode."""
+    import subprocess
+    import sys
+
+    pytest.importorskip("fsspec")
+    code = ("import sys, fsspec\n"
+            "from fsspec.spec import AbstractFileSystem\n"
+            "class NoCredentials(Exception): pass\n"
+            "class Refusing(AbstractFileSystem):\n"
+            "    protocol = 'refusing'\n"
+            "    def ls(self, path, detail=True, **kw): raise NoCredentials('Unable to locate credentials')\n"
+            "    def pipe_file(self, path, value, **kw): raise AssertionError('wrote ' + path)\n"
+            "fsspec.register_implementation('refusing', Refusing, clobber=True)\n"
+            "from cli.main import main\n"
+            f"sys.exit(main(['encode', {str(DONUT)!r}, 'refusing://bucket/scene']))\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode == 2, r.stderr
+    lines = [ln for ln in r.stderr.strip().splitlines() if ln]
+    assert len(lines) == 1, r.stderr  # before any progress line: nothing was read or encoded
+    assert lines[0].startswith("splatstream encode: error: refusing://bucket/scene: cannot reach the object store "
+                               "(NoCredentials: Unable to locate credentials)"), lines[0]
