@@ -87,7 +87,11 @@ class DirectoryStore:
     def read_manifest(self) -> bytes:
         path = self.manifest_path
         if not os.path.lexists(path):
-            raise FormatError(path, None, "no such file: not a splatstream scene directory")
+            # Another tool's scene directory (a streamed SOG, an unbundled SOG) is a likely mistake: say what reads it.
+            foreign = [n for n in ("lod-meta.json", "meta.json") if os.path.isfile(os.path.join(self.path, n))]
+            hint = (f" ({foreign[0]} here: a SOG scene, which `splatstream encode` or `convert` reads)"
+                    if foreign else "")
+            raise FormatError(path, None, f"no such file: not a splatstream scene directory{hint}")
         return _read_regular(path, MAX_MANIFEST_BYTES)
 
     def payload_source(self, entry: PayloadEntry) -> str:

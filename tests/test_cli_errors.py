@@ -4,6 +4,7 @@ import pytest
 from conftest import ROOT, run_cli
 
 DONUT = ROOT / "samples" / "donut.ply"
+STREAMED_SOG = ROOT / "tests" / "fixtures" / "foreign" / "fruit_drops_lod"  # another tool's scene directory
 
 
 @pytest.fixture(scope="module")
@@ -34,6 +35,7 @@ def cases(tmp, scene):
         (["info", tmp / "missing"], "missing"),
         (["info", tmp / "a_file"], "a_file"),
         (["info", tmp / "a_dir"], "a_dir"),
+        (["decode", STREAMED_SOG, tmp / "o.ply"], "lod-meta.json here: a SOG scene"),  # says what reads it
         (["convert", tmp / "missing.ply", tmp / "o.ply"], "missing.ply"),
         (["convert", DONUT, tmp / "o.xyz"], "o.xyz"),
         (["render", tmp / "missing", "--out", tmp / "o.png"], "missing"),
