@@ -38,6 +38,9 @@ def cases(tmp, scene):
         (["decode", STREAMED_SOG, tmp / "o.ply"], "lod-meta.json here: a SOG scene"),  # says what reads it
         (["convert", tmp / "missing.ply", tmp / "o.ply"], "missing.ply"),
         (["convert", DONUT, tmp / "o.xyz"], "o.xyz"),
+        (["convert", DONUT, tmp / "o.ply", "--scale", "0"], "--scale"),  # edits checked before the read
+        (["convert", DONUT, tmp / "o.ply", "--filter-box", "1,1,1,0,0,0"], "--filter-box"),
+        (["convert", DONUT, tmp / "o.ply", "--filter", "opacity>abc"], "abc"),
         (["render", tmp / "missing", "--out", tmp / "o.png"], "missing"),
         (["render", scene, "--out", tmp / "o.jpg"], "o.jpg"),
         (["render", scene, "--size", "0x0", "--out", tmp / "o.png"], "--size"),
