@@ -311,7 +311,7 @@ class DirectoryWriter:
 
     def __init__(self, out_dir: str | os.PathLike):
         self.out_dir = os.fspath(out_dir)
-        self._atomic = atomic_directory(self.out_dir)
+        self._atomic = atomic_directory(self.out_dir, holds=MANIFEST_NAME)
         self._mode = 0o666 & ~_umask()  # payloads as readable as any file the user writes (mkstemp gives 0600)
         self.tmp = ""
         self.published = False

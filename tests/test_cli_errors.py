@@ -82,6 +82,34 @@ def test_bad_arguments_exit_2_with_one_line(tmp_path, scene):
         assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")], where  # no temporaries left
 
 
+def test_a_directory_of_other_files_is_never_replaced(tmp_path, scene):
+    """A directory output (a scene, a 3D Tiles tileset, a streamed SOG) replaces an existing directory only where
+    it is empty or holds that kind of output (manifest.msgpack, tileset.json, lod-meta.json): a mistyped path to a
+    directory of the user's own files is one line, exit 2, and the files stay."""
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("the user's own")
+    for args, marker in ((["encode", DONUT, mine], "manifest.msgpack"),
+                         (["export-3dtiles", scene, mine], "tileset.json"),
+                         (["export-sog-lod", scene, mine], "lod-meta.json")):
+        r = run_cli(*args, "-q")
+        assert r.returncode == 2, r.stderr
+        assert r.stderr.strip() == (f"splatstream {args[0]}: error: {mine}: exists and holds other files (notes.txt) "
+                                    f"but no {marker}: not replaced; give a new or empty directory, or remove this "
+                                    "one first")
+        assert sorted(p.name for p in mine.iterdir()) == ["notes.txt"]
+        assert (mine / "notes.txt").read_text() == "the user's own"
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporaries left
+    # an empty directory, and each kind's own earlier output, are still replaced
+    for command, out, marker in (("encode", "scene", "manifest.msgpack"), ("export-3dtiles", "tiles", "tileset.json"),
+                                 ("export-sog-lod", "sog", "lod-meta.json")):
+        (tmp_path / out).mkdir()
+        for _ in range(2):
+            r = run_cli(command, DONUT if command == "encode" else scene, tmp_path / out, "-q")
+            assert r.returncode == 0, r.stderr
+            assert (tmp_path / out / marker).is_file()
+
+
 def test_view_without_the_gl_client_says_how_to_install_it():
     """`view` where moderngl is missing (installed without the [view] extra): the install hint, exit 2."""
     import subprocess

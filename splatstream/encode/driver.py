@@ -16,6 +16,7 @@ from ..atomic import check_output
 from ..edit import Pipeline
 from ..errors import UsageError
 from ..format.manifest import Manifest
+from ..format.names import MANIFEST_NAME
 from ..format.presets import DEFAULT_PRESET
 from ..gaussians import Gaussians
 from ..io import SplatInput, open_input, read_gaussians, read_merged
@@ -153,7 +154,7 @@ def _checked_output(out_dir: str | os.PathLike) -> str:
         check_store_reachable(out)
         return out
     out = local_path(out)
-    check_output(out, directory=True)
+    check_output(out, directory=True, holds=MANIFEST_NAME)
     return out
 
 
