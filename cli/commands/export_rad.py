@@ -34,7 +34,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     # A .rad under another name (a typed .ply, say) is a file no reader of that name could read: refuse it before
     # the export's work, as convert refuses an extension it cannot write.
-    if os.path.splitext(args.output)[1].lower() != ".rad":
+    if not os.path.isdir(args.output) and os.path.splitext(args.output)[1].lower() != ".rad":  # a directory: below
         raise UsageError(f"{args.output}: expected an output file ending in .rad (export-rad writes Spark's .rad)")
     start = time.perf_counter()
     progress = ProgressPrinter("export-rad", enabled=not args.quiet)
