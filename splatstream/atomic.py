@@ -98,14 +98,31 @@ def remove_stale_temporaries(path: str | os.PathLike) -> list[str]:
     return removed
 
 
-def check_output(path: str | os.PathLike, directory: bool = False) -> None:
+def check_replaceable(given: str, path: str, holds: str | None) -> None:
+    """An existing directory that a directory output would replace must be empty or hold `holds` (the file every
+    output of that kind has: manifest.msgpack, tileset.json, ...), so that a mistyped output path never deletes a
+    directory of the user's own files (`encode scene.ply ~/Documents`)."""
+    if holds is None or not os.path.isdir(path) or os.path.islink(path):
+        return
+    entries = sorted(os.listdir(path))
+    if not entries or holds in entries:
+        return
+    shown = ", ".join(entries[:3]) + (", ..." if len(entries) > 3 else "")
+    raise UsageError(f"{given}: exists and holds other files ({shown}) but no {holds}: not replaced; give a new "
+                     "or empty directory, or remove this one first")
+
+
+def check_output(path: str | os.PathLike, directory: bool = False, holds: str | None = None) -> None:
     """Fail now, before a long computation, if `path` cannot be written the way atomic_file / atomic_directory will
-    write it (a missing or unwritable parent, a file where a scene directory goes, or the reverse)."""
+    write it (a missing or unwritable parent, a file where a scene directory goes, or the reverse; a directory of
+    other files where a directory output holding `holds` goes: check_replaceable)."""
     given = os.fspath(path)
     path = os.path.abspath(given)
     parent = os.path.dirname(path)
     if directory and os.path.lexists(path) and not os.path.isdir(path):
         raise UsageError(f"{given}: exists and is not a directory (a scene is written as a directory)")
+    if directory:
+        check_replaceable(given, path, holds)
     if not directory and os.path.isdir(path):
         raise UsageError(f"{given}: is a directory, expected a file name")
     if not directory and not os.path.isdir(parent):
@@ -159,13 +176,15 @@ def _exchange(a: str, b: str) -> bool:
 
 
 @contextlib.contextmanager
-def atomic_directory(path: str | os.PathLike) -> Iterator[str]:
-    """Yield a temporary directory next to `path`; on success it replaces `path` in one step."""
+def atomic_directory(path: str | os.PathLike, holds: str | None = None) -> Iterator[str]:
+    """Yield a temporary directory next to `path`; on success it replaces `path` in one step (an existing `path`
+    only where it is empty or holds `holds`: check_replaceable)."""
     given = os.fspath(path)
     path = os.path.abspath(given)
     parent = os.path.dirname(path)
     if os.path.lexists(path) and not os.path.isdir(path):
         raise UsageError(f"{given}: exists and is not a directory (a scene is written as a directory)")
+    check_replaceable(given, path, holds)
     try:
         os.makedirs(parent, exist_ok=True)
         remove_stale_temporaries(path)

@@ -32,6 +32,7 @@ from .gaussians import Gaussians
 from .io import read_gaussians, scene_up, sniff_format
 from .metrics import psnr_from_mse, ssim
 from .ply import InfiniteOpacityWarning
+from .progress import count
 from .render_ref import render
 from .scene_decode import decode_scene
 from .vq import parse_entries
@@ -282,7 +283,7 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
     t = time.perf_counter()
     references = [renderer(g, cam) for cam in cameras]
     render_s = (time.perf_counter() - t) / len(cameras)
-    log(f"rendered {len(cameras)} reference views at {opts.width}x{opts.height} with {renderer_name} "
+    log(f"rendered {count(len(cameras), 'reference view')} at {opts.width}x{opts.height} with {renderer_name} "
         f"({render_s:.2f} s per view)")
     coverage = float(np.mean([np.mean(r.max(axis=2) > 1e-3) for r in references]))
 

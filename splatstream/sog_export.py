@@ -39,13 +39,13 @@ def export_streamed_sog(scene: str | os.PathLike | SceneStore, out_dir: str | os
         raise UsageError(f"{out}: the output directory is the scene itself")
     if unit_splats < 1:
         raise UsageError(f"unit size {unit_splats}: expected at least 1 splat")
-    check_output(out, directory=True)
+    check_output(out, directory=True, holds=LOD_META_NAME)
     report = progress or (lambda stage, fraction: None)
     degree, tiles = decode_tree_tiles(store, manifest, sh_degree, report)
     report("encode", 0.0)
     sog = streamed_sog(tiles, manifest.root, unit_splats)
     report("encode", 1.0)
-    with atomic_directory(out) as tmp:
+    with atomic_directory(out, holds=LOD_META_NAME) as tmp:
         write_streamed_sog(sog, tmp)
         for base, dirs, files in os.walk(tmp):
             for d in dirs:

@@ -87,7 +87,11 @@ class DirectoryStore:
     def read_manifest(self) -> bytes:
         path = self.manifest_path
         if not os.path.lexists(path):
-            raise FormatError(path, None, "no such file: not a splatstream scene directory")
+            # Another tool's scene directory (a streamed SOG, an unbundled SOG) is a likely mistake: say what reads it.
+            foreign = [n for n in ("lod-meta.json", "meta.json") if os.path.isfile(os.path.join(self.path, n))]
+            hint = (f" ({foreign[0]} here: a SOG scene, which `splatstream encode` or `convert` reads)"
+                    if foreign else "")
+            raise FormatError(path, None, f"no such file: not a splatstream scene directory{hint}")
         return _read_regular(path, MAX_MANIFEST_BYTES)
 
     def payload_source(self, entry: PayloadEntry) -> str:
@@ -146,6 +150,21 @@ def fsspec_filesystem(url: str):
     except (ImportError, ValueError) as exc:
         raise UsageError(f"{url}: cannot open this URL ({exc})") from None
     return fs, root.rstrip("/")
+
+
+def check_store_reachable(url: str) -> None:
+    """List an output URL's prefix once before an encode's work, so that a store the encode cannot reach (no
+    credentials, access denied, no such host) is one line naming the URL at the start, not an unexpected exception
+    from the first payload's write after the whole encode. A prefix that does not exist yet is fine: the encode
+    creates it."""
+    fs, root = fsspec_filesystem(url)
+    try:
+        fs.ls(root, detail=False)
+    except FileNotFoundError:
+        return
+    except Exception as exc:  # each store's client raises its own classes (botocore, google.auth, ...)
+        raise InputError(url, None, f"cannot reach the object store ({type(exc).__name__}: {exc}); check the URL "
+                         "and the store's credentials (for s3://, AWS_PROFILE or AWS_ACCESS_KEY_ID)") from None
 
 
 class FsspecStore:
@@ -292,7 +311,7 @@ class DirectoryWriter:
 
     def __init__(self, out_dir: str | os.PathLike):
         self.out_dir = os.fspath(out_dir)
-        self._atomic = atomic_directory(self.out_dir)
+        self._atomic = atomic_directory(self.out_dir, holds=MANIFEST_NAME)
         self._mode = 0o666 & ~_umask()  # payloads as readable as any file the user writes (mkstemp gives 0600)
         self.tmp = ""
         self.published = False

@@ -498,7 +498,7 @@ def export_tileset(scene: str | os.PathLike | SceneStore, out_dir: str | os.Path
     if isinstance(scene, (str, os.PathLike)) and os.path.exists(out) and \
             os.path.realpath(out) == os.path.realpath(os.fspath(scene)):
         raise UsageError(f"{out}: the output directory is the scene itself")
-    check_output(out, directory=True)
+    check_output(out, directory=True, holds=TILESET_NAME)
     degree = manifest.sh_degree if options.sh_degree is None else max(0, min(options.sh_degree, manifest.sh_degree))
     planes = read_codebook(store, manifest, degree) if degree >= 1 else None
     codebook = decode_planes(planes, manifest.sh_codebook.entries) if planes is not None else None
@@ -507,7 +507,7 @@ def export_tileset(scene: str | os.PathLike | SceneStore, out_dir: str | os.Path
     content_boxes: dict[int, tuple[np.ndarray, np.ndarray]] = {}
     written: dict[str, int] = {}
     report = progress or (lambda stage, fraction: None)
-    with atomic_directory(out) as tmp:
+    with atomic_directory(out, holds=TILESET_NAME) as tmp:
         os.makedirs(os.path.join(tmp, TILESET_CONTENT_DIR))
         for done, tile in enumerate(manifest.tiles):
             g = decode_tile(store, manifest, tile, degree, codebook)

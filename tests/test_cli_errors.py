@@ -4,6 +4,7 @@ import pytest
 from conftest import ROOT, run_cli
 
 DONUT = ROOT / "samples" / "donut.ply"
+STREAMED_SOG = ROOT / "tests" / "fixtures" / "foreign" / "fruit_drops_lod"  # another tool's scene directory
 
 
 @pytest.fixture(scope="module")
@@ -34,8 +35,12 @@ def cases(tmp, scene):
         (["info", tmp / "missing"], "missing"),
         (["info", tmp / "a_file"], "a_file"),
         (["info", tmp / "a_dir"], "a_dir"),
+        (["decode", STREAMED_SOG, tmp / "o.ply"], "lod-meta.json here: a SOG scene"),  # says what reads it
         (["convert", tmp / "missing.ply", tmp / "o.ply"], "missing.ply"),
         (["convert", DONUT, tmp / "o.xyz"], "o.xyz"),
+        (["convert", DONUT, tmp / "o.ply", "--scale", "0"], "--scale"),  # edits checked before the read
+        (["convert", DONUT, tmp / "o.ply", "--filter-box", "1,1,1,0,0,0"], "--filter-box"),
+        (["convert", DONUT, tmp / "o.ply", "--filter", "opacity>abc"], "abc"),
         (["render", tmp / "missing", "--out", tmp / "o.png"], "missing"),
         (["render", scene, "--out", tmp / "o.jpg"], "o.jpg"),
         (["render", scene, "--size", "0x0", "--out", tmp / "o.png"], "--size"),
@@ -45,6 +50,13 @@ def cases(tmp, scene):
         (["eval", DONUT, "--size", "5x5"], "--size"),
         (["serve", tmp / "missing"], "missing"),
         (["serve", tmp / "a_dir", "--port", "70000"], "--port"),
+        (["serve", tmp / "a_dir", "--cors-origin", "viewer.example"], "--cors-origin viewer.example"),  # no scheme
+        (["serve", tmp / "a_dir", "--cors-origin", "https://viewer.example/app"], "--cors-origin"),  # a path
+        (["eval", DONUT, "--presets", "low", "--plot", tmp / "o.txt"], "o.txt"),  # refused before any encode
+        (["export-rad", scene, tmp / "o.ply"], "o.ply"),  # a .rad under another extension
+        (["export-rad", tmp / "missing", tmp / "o.rad"], "missing"),
+        (["export-sog-lod", tmp / "missing", tmp / "s"], "missing"),
+        (["export-sog-lod", scene, tmp / "a_file"], "a_file"),
         (["view", tmp / "missing", "--headless"], "missing"),
         (["view", scene, "--headless", "--size", "0x0"], "--size"),
         (["view", scene, "--headless", "--screenshot", tmp / "o.jpg"], "o.jpg"),
@@ -70,6 +82,34 @@ def test_bad_arguments_exit_2_with_one_line(tmp_path, scene):
         assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")], where  # no temporaries left
 
 
+def test_a_directory_of_other_files_is_never_replaced(tmp_path, scene):
+    """A directory output (a scene, a 3D Tiles tileset, a streamed SOG) replaces an existing directory only where
+    it is empty or holds that kind of output (manifest.msgpack, tileset.json, lod-meta.json): a mistyped path to a
+    directory of the user's own files is one line, exit 2, and the files stay."""
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("the user's own")
+    for args, marker in ((["encode", DONUT, mine], "manifest.msgpack"),
+                         (["export-3dtiles", scene, mine], "tileset.json"),
+                         (["export-sog-lod", scene, mine], "lod-meta.json")):
+        r = run_cli(*args, "-q")
+        assert r.returncode == 2, r.stderr
+        assert r.stderr.strip() == (f"splatstream {args[0]}: error: {mine}: exists and holds other files (notes.txt) "
+                                    f"but no {marker}: not replaced; give a new or empty directory, or remove this "
+                                    "one first")
+        assert sorted(p.name for p in mine.iterdir()) == ["notes.txt"]
+        assert (mine / "notes.txt").read_text() == "the user's own"
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporaries left
+    # an empty directory, and each kind's own earlier output, are still replaced
+    for command, out, marker in (("encode", "scene", "manifest.msgpack"), ("export-3dtiles", "tiles", "tileset.json"),
+                                 ("export-sog-lod", "sog", "lod-meta.json")):
+        (tmp_path / out).mkdir()
+        for _ in range(2):
+            r = run_cli(command, DONUT if command == "encode" else scene, tmp_path / out, "-q")
+            assert r.returncode == 0, r.stderr
+            assert (tmp_path / out / marker).is_file()
+
+
 def test_view_without_the_gl_client_says_how_to_install_it():
     """`view` where moderngl is missing (installed without the [view] extra): the install hint, exit 2."""
     import subprocess
@@ -83,3 +123,29 @@ def test_view_without_the_gl_client_says_how_to_install_it():
     assert r.returncode == 2, r.stderr
     assert "Traceback" not in r.stderr
     assert "pip install 'splatstream[view]'" in r.stderr.strip().splitlines()[-1]
+
+
+def test_an_unreachable_object_store_is_one_line_before_the_encode():
+    """An output URL whose store refuses us (here a filesystem whose listing fails as s3fs's does without
+    credentials) is refused at the start with one line naming the URL, exit 2, not an 'internal error' raised by
+    the first payload's write after the whole encode."""
+    import subprocess
+    import sys
+
+    pytest.importorskip("fsspec")
+    code = ("import sys, fsspec\n"
+            "from fsspec.spec import AbstractFileSystem\n"
+            "class NoCredentials(Exception): pass\n"
+            "class Refusing(AbstractFileSystem):\n"
+            "    protocol = 'refusing'\n"
+            "    def ls(self, path, detail=True, **kw): raise NoCredentials('Unable to locate credentials')\n"
+            "    def pipe_file(self, path, value, **kw): raise AssertionError('wrote ' + path)\n"
+            "fsspec.register_implementation('refusing', Refusing, clobber=True)\n"
+            "from cli.main import main\n"
+            f"sys.exit(main(['encode', {str(DONUT)!r}, 'refusing://bucket/scene']))\n")
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
+    assert r.returncode == 2, r.stderr
+    lines = [ln for ln in r.stderr.strip().splitlines() if ln]
+    assert len(lines) == 1, r.stderr  # before any progress line: nothing was read or encoded
+    assert lines[0].startswith("splatstream encode: error: refusing://bucket/scene: cannot reach the object store "
+                               "(NoCredentials: Unable to locate credentials)"), lines[0]

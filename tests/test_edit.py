@@ -259,6 +259,7 @@ def test_convert_applies_the_edits_in_order(tmp_path):
 def test_edit_options_are_checked(tmp_path, capsys):
     for args, says in ((["--filter-box", "1,1,1,0,0,0"], "min corner"), (["--scale-by", "0"], "above 0"),
                        (["--filter-sphere", "0,0,0"], "4 comma-separated numbers"),
+                       (["--scale-by", "inf"], "--scale-by: expected a finite number, got 'inf'"),
                        (["--translate", "1,2,3", "--target-psnr", "30"], "without edits")):
         assert main(["encode", str(SOURCE_PLY), str(tmp_path / "out"), "-q", *args]) == 2
         err = capsys.readouterr().err

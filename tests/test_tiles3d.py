@@ -283,9 +283,10 @@ def test_export_replaces_atomically_and_refuses_bad_input_in_one_line(scenes, tm
     scene = scenes["fruit"]
     out = tmp_path / "out"
     out.mkdir()
+    (out / "tileset.json").write_text("{}")  # an earlier tileset (other files alone: refused, test_cli_errors)
     (out / "stale.txt").write_text("old")
     assert run_cli("export-3dtiles", scene, out, "--quiet").returncode == 0
-    assert not (out / "stale.txt").exists() and (out / "tileset.json").exists()
+    assert not (out / "stale.txt").exists() and json.loads((out / "tileset.json").read_text())["asset"]
     cases = [
         (("export-3dtiles", tmp_path / "nope", tmp_path / "o1"), "no such directory"),
         (("export-3dtiles", scene, tmp_path / "o2", "--longitude", "10"), "--longitude and --latitude go together"),

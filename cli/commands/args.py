@@ -96,7 +96,8 @@ def _numbers(text: str, count: int, what: str) -> tuple[float, ...]:
     except ValueError:
         values = ()
     if len(values) != count or not all(math.isfinite(v) for v in values):
-        raise UsageError(f"{what}: expected {count} comma-separated numbers, got {text!r}")
+        expected = "a finite number" if count == 1 else f"{count} comma-separated numbers"
+        raise UsageError(f"{what}: expected {expected}, got {text!r}")
     return values
 
 

@@ -62,6 +62,7 @@ def run(args: argparse.Namespace) -> int:
         if given and wrong:
             raise UsageError(f"{flag}: {wrong[0]} is not {'a streamed SOG' if wanted == 'lod_sog' else 'an SPZ file'}")
     check_output(args.output)
+    edits = edits_from(args)  # a bad edit value is refused before the (possibly long) read, as encode does
     start = time.perf_counter()
 
     def say(message: str) -> None:
@@ -84,7 +85,6 @@ def run(args: argparse.Namespace) -> int:
     # merged as io.read_merged merges them: missing SH bands are zeros, so every input looks as it did
     g = Gaussians.concatenate(parts)
     say(f"read {len(g)} splats, SH degree {g.sh_degree}")
-    edits = edits_from(args)
     read = len(g)
     g, counts = edits.run(g)
     for label, kept in counts:

@@ -273,5 +273,5 @@ def _preset_for_target(args: argparse.Namespace, up: tuple[float, float, float] 
     sized = "with all LOD levels" if opts.lod else "without an LOD tree (--no-lod)"
     log(f"{what}: preset {row['label']} ({row['disk_bytes_per_splat']:.2f} B/splat on disk {sized}, "
         f"{row['leaf_bytes_on_disk'] / row['splats']:.2f} at full detail; {psnr} mean PSNR of the full detail over "
-        f"{args.target_views} views)")
+        f"{count(args.target_views, 'view')})")
     return str(row["label"])

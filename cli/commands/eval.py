@@ -71,6 +71,9 @@ def run(args: argparse.Namespace) -> int:
     presets = [] if args.presets.strip().lower() == "none" else parse_list(args.presets)
     if not presets and not args.compare and not args.variants:
         raise UsageError("nothing to evaluate: give --presets, --variants or --compare")
+    # Checked before the encodes and renders: the plot is written last, and PIL picks its format by extension.
+    if args.plot and os.path.splitext(args.plot)[1].lower() != ".png":
+        raise UsageError(f"--plot: only .png images are written, got {args.plot!r}")
     for out in (args.json_out, args.plot, args.markdown):
         if out and os.path.dirname(os.path.abspath(out)) and not os.path.isdir(os.path.dirname(os.path.abspath(out))):
             raise UsageError(f"output directory of {out} does not exist")

@@ -3,9 +3,11 @@ chunks; format_spec/foreign_formats.md)."""
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 
+from splatstream.errors import UsageError
 from splatstream.progress import ProgressPrinter, count
 from splatstream.rad_export import export_rad
 from splatstream.writers.rad import ENCODINGS
@@ -30,6 +32,10 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    # A .rad under another name (a typed .ply, say) is a file no reader of that name could read: refuse it before
+    # the export's work, as convert refuses an extension it cannot write.
+    if not os.path.isdir(args.output) and os.path.splitext(args.output)[1].lower() != ".rad":  # a directory: below
+        raise UsageError(f"{args.output}: expected an output file ending in .rad (export-rad writes Spark's .rad)")
     start = time.perf_counter()
     progress = ProgressPrinter("export-rad", enabled=not args.quiet)
     report = export_rad(args.scene, args.output, args.sh_degree, progress, args.encoding)

@@ -3,7 +3,12 @@
 from __future__ import annotations
 
 import argparse
+import re
 import sys
+
+# An Origin header's value: scheme://host[:port] (RFC 6454), which is all a browser sends; a trailing slash is
+# dropped by the server. Anything else (a bare host name, a URL with a path) would never match a request's Origin.
+ORIGIN = re.compile(r"[A-Za-z][A-Za-z0-9+.-]*://[^/\s?#]+/?")
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -55,6 +60,10 @@ def run(args: argparse.Namespace) -> int:
         return bad("--port", args.port, "0..65535")
     if args.workers < 1:
         return bad("--workers", args.workers, "at least 1")
+    for origin in args.cors_origin:
+        if origin not in ("*", "null") and not ORIGIN.fullmatch(origin):
+            return bad("--cors-origin", origin, "an origin like https://viewer.example (scheme and host, no path), "
+                       "or * for any")
     if args.max_connections < MIN_CONNECTIONS:
         return bad("--max-connections", args.max_connections, f"at least {MIN_CONNECTIONS}")
     for option in ("header_timeout", "keepalive_timeout", "send_timeout"):

@@ -16,12 +16,13 @@ from ..atomic import check_output
 from ..edit import Pipeline
 from ..errors import UsageError
 from ..format.manifest import Manifest
+from ..format.names import MANIFEST_NAME
 from ..format.presets import DEFAULT_PRESET
 from ..gaussians import Gaussians
 from ..io import SplatInput, open_input, read_gaussians, read_merged
 from ..lod import LOD_MERGES, Tile
 from ..ply import RowStats, VertexLayout, check_rows, read_ply_rows
-from ..store import fsspec_filesystem, is_url, local_path, open_writer
+from ..store import check_store_reachable, is_url, local_path, open_writer
 from ..vq import parse_entries
 from .distributed import DaskEngine
 from .local import LocalEngine, default_memory_per_worker, encode_to
@@ -150,10 +151,10 @@ def _checked_output(out_dir: str | os.PathLike) -> str:
     """The output directory or fsspec URL, checked before anything is written (fsspec present, path writable)."""
     out = os.fspath(out_dir)
     if is_url(out):
-        fsspec_filesystem(out)
+        check_store_reachable(out)
         return out
     out = local_path(out)
-    check_output(out, directory=True)
+    check_output(out, directory=True, holds=MANIFEST_NAME)
     return out
 
 
