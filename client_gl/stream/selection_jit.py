@@ -956,6 +956,31 @@ def slot_cost(slots: np.ndarray, slot_bytes: float) -> np.ndarray:
     return _slot_cost(slots, float(slot_bytes))
 
 
+@njit(**_JIT)
+def _move_rows(rows, moved, src):
+    """rows[moved] = rows[src] over rows of bytes, the source rows read before any is written (numpy's order)."""
+    m, w = moved.shape[0], rows.shape[1]
+    taken = np.empty((m, w), np.uint8)
+    for i in range(m):
+        taken[i] = rows[src[i]]
+    for i in range(m):
+        rows[moved[i]] = taken[i]
+
+
+def move_rows(buf: np.ndarray, moved: np.ndarray, src: np.ndarray) -> None:
+    """buf[moved] = buf[src] (rows of any dtype and shape), keeping the interpreter lock: an eviction's moves of the
+    tiles kept into the holes (PagedTree.evict's arrays, the engine's per-tile state), where numpy's fancy
+    assignment let it go once for each of 18 arrays a pass (BENCHMARKS.md, "Manifest pages", evict38). One kernel
+    signature for every dtype (the rows seen as bytes), so that no frame compiles one."""
+    if not len(moved):
+        return
+    if not buf.flags.c_contiguous or buf.dtype.hasobject:
+        buf[moved] = buf[src]
+        return
+    _move_rows(buf.view(np.uint8).reshape(len(buf), -1), np.ascontiguousarray(moved, np.int64),
+               np.ascontiguousarray(src, np.int64))
+
+
 _NO_TILES = np.zeros(0, np.int64)
 _NO_PLANES = (np.zeros(1, np.uint8), np.zeros(0, np.float64), np.zeros((0, 6), np.float64), np.zeros((1, 6)))
 
@@ -1015,6 +1040,9 @@ def warm_up() -> None:
                                                                            a.box_corners[[0, 2]]).tolist()
     assert grown(np.array([True]), 2).tolist() == [True, False] and grown(parent, 4).tolist() == [-1, 0, 0, 0]
     assert slot_cost(parent, 2.0).tolist() == [-2.0, 0.0, 0.0]
+    rows = np.arange(6, dtype=np.float32).reshape(3, 2)
+    move_rows(rows, np.array([0], np.int64), np.array([2], np.int64))
+    assert rows.tolist() == [[4.0, 5.0], [2.0, 3.0], [4.0, 5.0]], rows
     assert base.tolist() == [0, 1, 2] and filling.tolist() == [True, False, False], (base, filling)
     lo, hi, kids = np.array([0, 2, 2]), np.array([2, 2, 2]), np.array([1, 2])  # tile 1 dropped, 2 moved into its row
     _take_blocks(np.array([0, 2], np.int64), parent, lo, hi, kids)
