@@ -569,9 +569,18 @@ def test_held_pages_group_the_tiles_below_each_page_as_the_walk_finds_them(paged
         count = held.below(np.ones(n, np.int64), np.add, 0)
         total = held.below(values, np.add, 0)
         most = held.below(values, np.maximum, np.iinfo(np.int64).min)
+        flags = held.below(values > 20, np.add, 0)  # a bool's sums: np.add.at's on bool (any below)
+        for values_of, got in ((values, total), (values > 20, flags)):  # np.bincount's sums: np.add.at's
+            want = np.zeros(len(held.heads), values_of.dtype)
+            at = held.owner >= 0
+            np.add.at(want, held.owner[at], values_of[at])
+            for d in range(int(held.depth.max(initial=0)), 0, -1):
+                deeper = np.flatnonzero(held.depth == d)
+                np.add.at(want, held.up[deeper], want[deeper])
+            assert got.dtype == want.dtype and np.array_equal(got, want)
         for j, head in enumerate(held.ids.tolist()):
             below = tree.below(head)
-            assert count[j] == len(below) and total[j] == values[below].sum()
+            assert count[j] == len(below) and total[j] == values[below].sum() and flags[j] == (values[below] > 20).any()
             assert most[j] == (values[below].max() if below else np.iinfo(np.int64).min)
         nested += int((held.depth > 0).sum())
     assert nested > 10  # pages held below pages held
@@ -651,9 +660,15 @@ def test_evict_in_arrays_drops_what_the_walk_drops(paged_store):
         order, dropped, read = _evict_by_walk(tree, heads)
         ids = [tree.manifest.tiles[i].id for i in order]
         before = tree.evicted
+        n = len(tree.manifest.tiles)
         keep = tree.evict(heads)
         m = tree.manifest
         assert [t.id for t in m.tiles] == ids and keep.tolist() == order
+        new_of, holes, src = tree.compaction  # the one map the engine takes its state through
+        k = len(keep)
+        assert len(new_of) == n + 1 and new_of[-1] == -1 and np.array_equal(new_of[keep], np.arange(k))
+        assert (new_of >= 0).sum() == k and np.array_equal(holes, np.flatnonzero(keep != np.arange(k)))
+        assert np.array_equal(src, keep[holes])
         moved += sum(i != j for i, j in enumerate(order))
         assert tree.evicted - before == dropped and set(tree.held_pages()) == read
         skipped += dropped < len(set(heads) & set(held))

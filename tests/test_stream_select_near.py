@@ -579,6 +579,51 @@ def test_the_engine_selects_near_the_cut_as_over_every_tile(paged_store):
 
 
 @NEEDS_NUMBA
+def test_moved_rows_are_numpys():
+    """selection_jit.move_rows (an eviction's moves into the holes, keeping the interpreter lock) against numpy's
+    buf[moved] = buf[src]: every dtype and row shape of the tree's arrays and the engine's state, sources read
+    before any row is written (targets among the sources too), a view that is not contiguous."""
+    rnd = np.random.default_rng(7)
+    for n in (1, 9, 2_000):
+        bufs = [rnd.random(n) < 0.5, rnd.integers(-9, 1 << 40, n), rnd.random((n, 3)).astype(np.float32),
+                rnd.random((n, 6)), rnd.integers(0, 255, (n, 2), dtype=np.uint8), rnd.integers(0, 9, n, np.int32),
+                rnd.random((n, 4))[:, 1]]
+        for m in (0, 1, n // 3):
+            moved = np.sort(rnd.choice(n, m, replace=False))
+            src = rnd.choice(n, m, replace=False)  # overlapping the targets: numpy's order
+            for buf in bufs:
+                want = buf.copy()
+                want[moved] = want[src]
+                got = buf.copy() if buf.flags.c_contiguous else buf
+                selection_jit.move_rows(got, moved, src)
+                assert got.dtype == want.dtype and np.array_equal(got, want)
+
+
+@NEEDS_NUMBA
+def test_an_eviction_with_the_compiled_moves_is_numpys(paged_store):
+    """PagedTree.evict with selection_jit.move_rows (the engine's, once the kernels are loaded) against its numpy
+    moves: the same random trees give the same tiles, arrays, positions and compaction map."""
+    from test_stream_engine import _random_tree, _same_arrays
+    for seed in range(6):
+        trees = []
+        for move in (None, selection_jit.move_rows):
+            rnd = random.Random(seed)
+            tree = _random_tree(paged_store, rnd, rnd.randrange(8, 30))
+            held = tree.held_pages()
+            keep = tree.evict(rnd.sample(held, min(3, len(held))), move) if held else None
+            trees.append((tree, keep))
+        (a, keep_a), (b, keep_b) = trees
+        assert [t.id for t in a.manifest.tiles] == [t.id for t in b.manifest.tiles]
+        _same_arrays(a.manifest.arrays, b.manifest.arrays)
+        assert a.manifest.index_of == b.manifest.index_of
+        if keep_a is not None:
+            assert np.array_equal(keep_a, keep_b)
+            assert all(np.array_equal(x, y) for x, y in zip(a.compaction, b.compaction, strict=True))
+            n = len(a.manifest.tiles)
+            assert np.array_equal(a._head_at[:n], b._head_at[:n]) and np.array_equal(a._ids[:n], b._ids[:n])
+
+
+@NEEDS_NUMBA
 def test_the_engines_grown_state_is_numpys():
     """selection_jit.grown and slot_cost (engine._adopt's per-tile state grown by a page, keeping the interpreter
     lock) against np.concatenate with zeros and astype * slot bytes: the same dtypes and values, new arrays."""

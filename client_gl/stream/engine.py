@@ -507,19 +507,24 @@ class StreamEngine:
         heads = self._pages_to_drop()
         if not heads:
             return
-        keep = self.pages.evict(heads)  # (its arrays' storage rewritten: self.ids, the last view's, not read again)
+        # the moves in place by the compiled kernel where it is loaded (it keeps the interpreter lock: numpy's let
+        # it go once an array, 18 a pass; BENCHMARKS.md "Manifest pages", evict38)
+        jit = self._kernels
+        move_rows = jit.move_rows if jit is not None else None
+        keep = self.pages.evict(heads, move_rows)  # (its arrays' storage rewritten: self.ids, the last view's)
         k = len(keep)
-        new_of = np.full(len(self.resident), -1, np.int64)
-        new_of[keep] = np.arange(k)
+        # the tree's one compaction map (new position of each old one, -1 dropped; the moves' targets and sources)
+        new_of, moved, src = self.pages.compaction
         self._forget(self.pages.dropped_ids, heads)
         # the tiles kept keep their positions but for the last ones, moved into the holes (PagedTree.evict): their
         # state moved in place and the arrays cut to the tiles kept (taking every row through `keep` wrote new
         # memory, page faults over the tiles held)
-        moved = np.flatnonzero(keep != np.arange(k))
-        src = keep[moved]
         for name in ("resident", "bands", "last_drawn", "_filling", "slots_needed"):
             state = getattr(self, name)
-            state[moved] = state[src]
+            if move_rows is not None:
+                move_rows(state, moved, src)
+            else:
+                state[moved] = state[src]
             setattr(self, name, state[:k])
         refined, last_cut = new_of[self.refined], new_of[self._last_cut]
         self.refined, self._last_cut = refined[refined >= 0], last_cut[last_cut >= 0]
@@ -570,7 +575,7 @@ class StreamEngine:
         count = held.tiles_below  # tiles below each head
         used_below = held.below(used.astype(np.int64), np.add, 0)
         last = held.below(self.last_drawn, np.maximum, np.iinfo(np.int64).min)
-        recent = np.fromiter((self._page_frame.get(h, 0) >= since for h in held.ids.tolist()), bool, len(held.ids))
+        recent = np.fromiter(map(page_frame.get, held.ids.tolist(), repeat(0)), np.int64, len(held.ids)) >= since
         # not added since the last selection, nor its tile in the cut (the page would be wanted again)
         candidates = np.flatnonzero(~recent & ~in_cut[held.heads] & (count > 0) & (used_below == 0))
         order = candidates[np.lexsort((held.ids[candidates], -count[candidates], last[candidates]))]

@@ -72,12 +72,32 @@ class HeldPages:
         changes)."""
         return self.below(np.ones(len(self.owner), np.int64), np.add, 0)
 
+    @functools.cached_property
+    def _owner_row(self) -> np.ndarray:
+        """owner + 1 per position held: np.bincount's bins (0: the root manifest's tiles, given up)."""
+        return self.owner + 1
+
+    @functools.cached_property
+    def _owned(self) -> tuple[np.ndarray, np.ndarray]:
+        """The positions held that came in a page, and their pages (ufunc.at's indices)."""
+        at = np.flatnonzero(self.owner >= 0)
+        return at, self.owner[at]
+
     def below(self, values: np.ndarray, ufunc: np.ufunc, initial) -> np.ndarray:
         """Per head, `ufunc` (np.add, np.maximum, ...) reduced over `values` (one per position held) of the tiles
-        below it, from `initial` (what a page with no tile below it reads)."""
-        out = np.full(len(self.heads), initial, values.dtype)
-        own = self.owner >= 0
-        ufunc.at(out, self.owner[own], values[own])
+        below it, from `initial` (what a page with no tile below it reads). Sums of integers by np.bincount (exact
+        below 2**53; np.add.at over the tiles held was most of the eviction's choice: BENCHMARKS.md, "Manifest
+        pages", evict38)."""
+        m = len(self.heads)
+        if ufunc is np.add and values.dtype.kind in "bi" and values.dtype.itemsize <= 8:
+            sums = np.bincount(self._owner_row, values, minlength=m + 1)[1:]
+            out = sums.astype(values.dtype) if sums.dtype != values.dtype else sums
+            if initial:
+                out += initial
+        else:
+            out = np.full(m, initial, values.dtype)
+            at, owner = self._owned
+            ufunc.at(out, owner, values[at])
         for d in range(int(self.depth.max(initial=0)), 0, -1):  # the deepest pages first, into the page above them
             at = np.flatnonzero(self.depth == d)
             ufunc.at(out, self.up[at], out[at])
@@ -108,6 +128,7 @@ class PagedTree:
         self.page_bytes = 0
         self.evicted = 0  # pages dropped again (evict)
         self.dropped_ids: list[int] = []  # the ids of the tiles the last eviction dropped
+        self.compaction: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None  # the last eviction's (evict)
         self._read: set[int] = set()  # tiles whose page is held
         self._held: HeldPages | None = None  # held(), until the tree changes
         self._by_id = {t.id: t for t in self._tiles}  # held tiles as the view has them
@@ -269,7 +290,7 @@ class PagedTree:
             return self._held
         n = len(self._tiles)
         position = self._position
-        heads = np.sort(np.fromiter((position[t] for t in self._read), np.int64, len(self._read)))
+        heads = np.sort(np.fromiter(map(position.__getitem__, self._read), np.int64, len(self._read)))
         head_at = self._head_at[:n]
         slot = np.full(n, -1, np.int64)  # each head's index in heads, by its position (a gather, not a search)
         slot[heads] = np.arange(len(heads))
@@ -284,44 +305,54 @@ class PagedTree:
         self._held = HeldPages(heads, self._ids[heads], owner, up, depth)
         return self._held
 
-    def evict(self, heads: list[int]) -> np.ndarray:
+    def evict(self, heads: list[int],
+              move_rows: Callable[[np.ndarray, np.ndarray, np.ndarray], None] | None = None) -> np.ndarray:
         """Drop the pages below these tiles (and every page held below them): the tiles become leaves again, their
         pages wanted again when a cut reaches them. Returns the old position of each tile kept, by its new position
         (the engine's per-tile state is taken through it): the tiles kept keep their positions, but for those after
         the new end, moved into the holes (the lowest hole first, in order). A head not held, or below a head
         dropped before it in `heads`, changes nothing. In array operations over the tiles held and Python over the
         tiles dropped and moved (a walk of the tree for each head, and Python over every tile held, took 73-107 ms
-        of a frame at 250M splats: issue 38, BENCHMARKS.md "Manifest pages")."""
+        of a frame at 250M splats: issue 38, BENCHMARKS.md "Manifest pages"). `move_rows(buf, moved, src)`:
+        buf[moved] = buf[src] (the client's compiled kernel, which keeps the interpreter lock; None: numpy's).
+        After it, `compaction` is (new_of, holes, moved): the new position of each old one (-1: dropped; one entry
+        more, -1), the new positions whose tile was elsewhere (ascending) and the old positions of those tiles, the
+        one map the engine takes its per-tile state through."""
         # the view before the eviction: its arrays' rows are taken, moved within their storage; it and the views
         # before it share the maps edited below, and are not read after the eviction (the engine drops them)
         last = self.manifest
         held = self.held()
         n = len(self._tiles)
-        dropped = np.zeros(len(held.heads), bool)  # pages dropped, the heads given first
+        # in Python lists (a page's index by its head's position): a searchsorted and numpy scalars a head were a
+        # release of the interpreter lock each and microseconds of Python (evict38)
+        slot_of = dict(zip(held.heads.tolist(), range(len(held.heads)), strict=True))
+        up = held.up.tolist()
+        dropped_at = [False] * len(up)  # pages dropped, the heads given first
         for h in heads:
             if h not in self._read:
                 continue
-            j = int(np.searchsorted(held.heads, self._position[h]))
+            j = slot_of[self._position[h]]
             above = j
-            while above >= 0 and not dropped[above]:  # below a page dropped before it: gone already
-                above = int(held.up[above])
+            while above >= 0 and not dropped_at[above]:  # below a page dropped before it: gone already
+                above = up[above]
             if above >= 0:
                 continue
-            dropped[j] = True
+            dropped_at[j] = True
             self._read.discard(h)
             self.pending[h] = self._full[h].page
             self.evicted += 1
+        dropped = np.array(dropped_at, bool)
         if not dropped.any():
             self.dropped_ids = []
+            none = np.zeros(0, np.int64)
+            self.compaction = (np.append(np.arange(n, dtype=np.int64), -1), none, none)
             return np.arange(n, dtype=np.int64)
         self._held = None
         cut = dropped.copy()  # the pages dropped and every page below them
         for d in range(1, int(held.depth.max(initial=0)) + 1):
             at = np.flatnonzero(held.depth == d)
             cut[at] |= cut[held.up[at]]
-        gone = np.zeros(n, bool)
-        own = held.owner >= 0
-        gone[own] = cut[held.owner[own]]
+        gone = np.append(cut, False)[held.owner]  # (owner -1, the root manifest's tiles, reads the False)
         self.dropped_ids = gone_ids = self._ids[np.flatnonzero(gone)].tolist()
         # the tiles of the pages dropped, forgotten in C loops (map over the ids: a Python loop a tile was 0.1-0.2
         # ms of a pass dropping 1,000 tiles)
@@ -348,8 +379,13 @@ class PagedTree:
         del tiles[k:]
         new_of = np.full(n + 1, -1, np.int64)  # index -1 (the root manifest's tiles' head) reads -1
         new_of[keep] = np.arange(k)
-        self._head_at = np.concatenate([new_of[self._head_at[keep]], np.full(k, -1, np.int64)])
-        self._ids = np.concatenate([self._ids[keep], np.zeros(k, np.int64)])
+        self.compaction = (new_of, holes, moved)
+        # the rows moved in their storage (rows from n on are written before they are read: insert), where new
+        # arrays took every row through `keep` (two gathers, two concatenations over the tiles held)
+        move = move_rows if move_rows is not None else _move_rows
+        move(self._head_at, holes, moved)
+        move(self._ids, holes, moved)
+        self._head_at[:k] = new_of[self._head_at[:k]]
         # edited in place (made anew, 1.0-1.3 ms at 19,000 tiles; a copy of a dict with holes 0.3-1.0 ms): the
         # views before the eviction, which share it, are not read after it (their arrays' rows are moved too)
         position = self._position
@@ -360,7 +396,8 @@ class PagedTree:
         if "arrays" in last.__dict__:  # the kept rows taken, not rebuilt from the tiles
             # the moved rows written into the holes of the last view's storage (the last view is not read after
             # the eviction: the engine drops everything made from it)
-            m.__dict__["arrays"] = arrays = taken_arrays(last.arrays, keep, in_place=True)
+            m.__dict__["arrays"] = arrays = taken_arrays(last.arrays, keep, in_place=True, move_rows=move_rows,
+                                                         compaction=(new_of, holes))
             # where they came from, for the compiled selection's children's index (selection_jit._ChildIndex: taken
             # through `keep` instead of made again from the tuples); one link only, the last arrays' own dropped
             arrays.__dict__["_taken_from"] = (last.arrays, keep)
@@ -382,6 +419,11 @@ def _as_held(tiles: list[TileEntry]) -> list[TileEntry]:
     if all(t.page is None for t in tiles):
         return tiles
     return [replace(t, children=()) if t.page is not None else t for t in tiles]
+
+
+def _move_rows(buf: np.ndarray, moved: np.ndarray, src: np.ndarray) -> None:
+    """buf[moved] = buf[src] (the numpy path of evict's `move_rows`)."""
+    buf[moved] = buf[src]
 
 
 def _taken(items: list, at: list[int]) -> list:

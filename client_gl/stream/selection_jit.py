@@ -956,6 +956,51 @@ def slot_cost(slots: np.ndarray, slot_bytes: float) -> np.ndarray:
     return _slot_cost(slots, float(slot_bytes))
 
 
+@njit(**_JIT)
+def _move_rows(rows, moved, src):
+    """rows[moved] = rows[src] over rows of words, the source rows read before any is written (numpy's order):
+    straight where every target comes before every source (an eviction's holes and the tiles after the new end),
+    else through a copy of the source rows."""
+    m, w = moved.shape[0], rows.shape[1]
+    apart = True
+    if m:
+        hi, lo = moved[0], src[0]
+        for i in range(m):
+            hi = max(hi, moved[i])
+            lo = min(lo, src[i])
+        apart = hi < lo
+    if apart:
+        for i in range(m):
+            d, s = moved[i], src[i]
+            for j in range(w):
+                rows[d, j] = rows[s, j]
+        return
+    taken = np.empty((m, w), rows.dtype)
+    for i in range(m):
+        taken[i] = rows[src[i]]
+    for i in range(m):
+        rows[moved[i]] = taken[i]
+
+
+def move_rows(buf: np.ndarray, moved: np.ndarray, src: np.ndarray) -> None:
+    """buf[moved] = buf[src] (rows of any dtype and shape), keeping the interpreter lock: an eviction's moves of the
+    tiles kept into the holes (PagedTree.evict's arrays, the engine's per-tile state), where numpy's fancy
+    assignment let it go once for each of 18 arrays a pass (BENCHMARKS.md, "Manifest pages", evict38). The rows
+    seen as 8-, 4- or 1-byte words: three kernel signatures for every dtype, so that no frame compiles one."""
+    if not len(moved):
+        return
+    if not buf.flags.c_contiguous or buf.dtype.hasobject:
+        buf[moved] = buf[src]
+        return
+    row = buf.itemsize * (buf.size // len(buf))
+    word = np.uint64 if row % 8 == 0 else np.uint32 if row % 4 == 0 else np.uint8
+    if moved.dtype != np.int64 or not moved.flags.c_contiguous:
+        moved = np.ascontiguousarray(moved, np.int64)
+    if src.dtype != np.int64 or not src.flags.c_contiguous:
+        src = np.ascontiguousarray(src, np.int64)
+    _move_rows(buf.view(word).reshape(len(buf), -1), moved, src)
+
+
 _NO_TILES = np.zeros(0, np.int64)
 _NO_PLANES = (np.zeros(1, np.uint8), np.zeros(0, np.float64), np.zeros((0, 6), np.float64), np.zeros((1, 6)))
 
@@ -1015,6 +1060,11 @@ def warm_up() -> None:
                                                                            a.box_corners[[0, 2]]).tolist()
     assert grown(np.array([True]), 2).tolist() == [True, False] and grown(parent, 4).tolist() == [-1, 0, 0, 0]
     assert slot_cost(parent, 2.0).tolist() == [-2.0, 0.0, 0.0]
+    for dtype in (np.float32, np.int16, np.uint8):  # 8-, 4- and 1-byte words; targets apart from sources or not
+        rows = np.arange(6, dtype=dtype).reshape(3, 2)
+        move_rows(rows, np.array([0], np.int64), np.array([2], np.int64))
+        move_rows(rows, np.array([1, 2], np.int64), np.array([2, 1], np.int64))
+        assert rows.tolist() == [[4, 5], [4, 5], [2, 3]], rows
     assert base.tolist() == [0, 1, 2] and filling.tolist() == [True, False, False], (base, filling)
     lo, hi, kids = np.array([0, 2, 2]), np.array([2, 2, 2]), np.array([1, 2])  # tile 1 dropped, 2 moved into its row
     _take_blocks(np.array([0, 2], np.int64), parent, lo, hi, kids)

@@ -656,12 +656,15 @@ class _GrowingRows:
             buf[moved] = arr[src]
         return self
 
-    def take_in_place(self, keep: np.ndarray, moved: np.ndarray, new_of: np.ndarray) -> None:
+    def take_in_place(self, keep: np.ndarray, moved: np.ndarray, new_of: np.ndarray,
+                      move_rows: Callable[[np.ndarray, np.ndarray, np.ndarray], None] | None = None) -> None:
         """The rows at positions `keep` (new -> old, the identity but at `moved`) in this storage: the moved rows
         written into their new positions and the rows after them given up (the arrays viewing the rows held
         before see the moved rows at those positions: PagedTree.evict's last view, not read after it). The
         parents, renumbered through `new_of`, in a new array: the arrays before keep theirs, which with their
-        children is what the compiled selection's children's index grows by (selection_jit._ChildIndex)."""
+        children is what the compiled selection's children's index grows by (selection_jit._ChildIndex).
+        `move_rows(buf, moved, src)`: buf[moved] = buf[src] (the client's compiled kernel, which keeps the
+        interpreter lock; None: numpy's, which lets it go for each array)."""
         src = keep[moved]
         k = len(keep)
         self.children, self.child_views = None, []  # the taken arrays' children are a tuple of their own
@@ -669,6 +672,8 @@ class _GrowingRows:
             if name == "parent":
                 parent = self.buf[name] = np.empty_like(buf)
                 parent[:k] = new_of[buf[keep]]
+            elif move_rows is not None:
+                move_rows(buf, moved, src)
             else:
                 buf[moved] = buf[src]
         self.n = k
@@ -710,7 +715,9 @@ _FIRST_ROWS = 64  # rows of a new storage at least (twice the tiles held when it
 _DERIVED_ROWS = ("box_corners", "splats_f64")  # TileArrays' cached arrays that grow row by row with the tree
 
 
-def taken_arrays(a: TileArrays, keep: np.ndarray, in_place: bool = False) -> TileArrays:
+def taken_arrays(a: TileArrays, keep: np.ndarray, in_place: bool = False,
+                 move_rows: Callable[[np.ndarray, np.ndarray, np.ndarray], None] | None = None,
+                 compaction: tuple[np.ndarray, np.ndarray] | None = None) -> TileArrays:
     """`a` over the tiles at positions `keep` (new position -> old; every kept tile's parent kept, children dropped
     with their parent): the arrays of the tree left when a paged tree drops pages. `keep` in any order: a paged tree
     keeps its tiles where they are and moves the last ones into the holes (client_gl/stream/pages.py), so that
@@ -721,14 +728,22 @@ def taken_arrays(a: TileArrays, keep: np.ndarray, in_place: bool = False) -> Til
     (_GrowingRows), which the next page's tiles grow in place. `in_place`: where `a` is the last grown arrays of
     their storage, the moved rows are written into that storage's holes (a new storage's first write of every row
     was 1.1-1.4 ms of page faults at 17,000 tiles, the moved rows 0.1 ms), and `a` is not to be read after it
-    (its rows at the holes are others'); else new storage, `a` as it was."""
+    (its rows at the holes are others'); else new storage, `a` as it was. `move_rows`: take_in_place's.
+    `compaction`: (new_of, moved) where the caller has them (PagedTree.evict: the same map, not made again): the new
+    position of each old one (-1: dropped; n + 1 entries, the last -1) and the new positions whose tile was
+    elsewhere, ascending."""
     n, k = len(a.ids), len(keep)
-    new_of = np.full(n + 1, -1, np.int64)  # index -1 (the root's parent) reads -1
-    new_of[keep] = np.arange(k)
-    moved = np.flatnonzero(keep != np.arange(k))  # new positions whose tile was elsewhere
+    if compaction is not None:
+        new_of, moved = compaction
+    else:
+        new_of = np.full(n + 1, -1, np.int64)  # index -1 (the root's parent) reads -1
+        new_of[keep] = np.arange(k)
+        moved = np.flatnonzero(keep != np.arange(k))  # new positions whose tile was elsewhere
     children = list(a.children[:k])
     if len(moved):
-        deque(map(children.__setitem__, moved.tolist(), _taken(a.children, keep[moved].tolist())), maxlen=0)
+        # read through indexable: a ListPrefix's own __getitem__ is Python's, 0.1-0.2 ms a pass for the tiles moved
+        deque(map(children.__setitem__, moved.tolist(), _taken(indexable(a.children), keep[moved].tolist())),
+              maxlen=0)
     # the tiles whose children were renumbered or dropped: the parents of the tiles not where they were
     changed = np.flatnonzero(new_of[:n] != np.arange(n))
     redo = np.zeros(n + 1, bool)  # index -1 (the root's parent) ignored
@@ -750,7 +765,7 @@ def taken_arrays(a: TileArrays, keep: np.ndarray, in_place: bool = False) -> Til
     # at 17,000 tiles held, a copy a tenth of it)
     store = a.__dict__.get("_growing")
     if in_place and store is not None and store.n == n:
-        store.take_in_place(keep, moved, new_of)
+        store.take_in_place(keep, moved, new_of, move_rows)
     else:
         store = _GrowingRows.taken(a, keep, moved, max(_FIRST_ROWS, 2 * k))
         parent = store.buf["parent"]
