@@ -30,7 +30,7 @@ from .stream.cache import DiskCache
 from .stream.engine import DECODE_WAIT_S, FrameUpdate, StreamEngine, StreamOptions
 from .stream.fetch import Fetcher
 from .stream.selection import SelectionOptions
-from .stream.sources import Progress, SceneSource, open_source
+from .stream.sources import FetchError, Progress, SceneSource, open_source
 
 DEFAULT_GPU_MEM_MB = 1024.0
 # The first frame waits at most this long for a decode under way (the root's base, taken while the renderer was
@@ -268,7 +268,9 @@ class StreamingSession:
     # --- the frame ----------------------------------------------------------------------------------------------
     def frame(self, cam: Camera, sh_degree: int | None = None, clear: bool = True,
               timing: bool = False) -> FrameRecord:
-        """Stream (unless paused) and draw one frame into the renderer's framebuffer."""
+        """Stream (unless paused) and draw one frame into the renderer's framebuffer. Raises FetchError (an
+        InputError: the CLI's exit 2) when a local scene's payload is damaged or missing (check_damaged)."""
+        self.check_damaged()
         if self.last is None and not self.paused:
             # Nothing drawn yet: the decode under way is the root's base, work that the frames until it is uploaded
             # would wait for anyway; done first, it is drawn in this frame (one empty frame fewer: its draw is the
@@ -326,6 +328,17 @@ class StreamingSession:
         elif not rec.converged:
             m.converged_s = None  # converged means: and stayed so until now
         return rec
+
+    def check_damaged(self) -> None:
+        """Raise the first permanent failure of a local store's payload (Fetcher.damaged: its size or SHA-256
+        against the manifest, or the file missing), one line naming the file: the view will not converge, and
+        waiting for its timeout would read the same bytes again. HTTP scenes never raise here (retried)."""
+        damaged = self.fetcher.damaged()
+        if damaged:
+            first = damaged[0]
+            more = f" ({len(damaged) - 1} more payloads damaged)" if len(damaged) > 1 else ""
+            raise FetchError(first.path or self.source.location, first.kind, first.problem + more,
+                             transient=False, field=first.field)
 
     def problem(self) -> str | None:
         """One line naming what keeps the view from converging, or None: a payload that does not decode (the

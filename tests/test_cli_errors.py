@@ -149,3 +149,34 @@ def test_an_unreachable_object_store_is_one_line_before_the_encode():
     assert len(lines) == 1, r.stderr  # before any progress line: nothing was read or encoded
     assert lines[0].startswith("splatstream encode: error: refusing://bucket/scene: cannot reach the object store "
                                "(NoCredentials: Unable to locate credentials)"), lines[0]
+
+
+@pytest.mark.parametrize("damage", ["flipped", "missing"])
+def test_view_of_a_local_scene_with_a_damaged_payload_exits_2_at_once(tmp_path, scene, gl_context, damage):
+    """A scene directory whose payload was changed (its SHA-256 differs from the manifest) or removed: reading it
+    again gives the same bytes, so `view` names the file and the field after a second read and exits 2, instead
+    of retrying until --timeout and exiting 1 (a --timeout of 60 s: a regression fails, it does not hang)."""
+    import hashlib
+    import shutil
+
+    from splatstream.store import load_manifest
+
+    copy = tmp_path / "donut"
+    shutil.copytree(scene, copy)
+    m = load_manifest(copy)
+    entry = m.tile(m.root).groups["base"]  # wanted by every view
+    path = copy / entry.file
+    data = bytearray(path.read_bytes())
+    if damage == "flipped":
+        data[len(data) // 2] ^= 0xFF
+        path.write_bytes(bytes(data))
+        expected = (f"{path}: sha256: SHA-256 {hashlib.sha256(data).hexdigest()}, the manifest says {entry.sha256} "
+                    "(the file is damaged or was replaced)")
+    else:
+        path.unlink()
+        expected = f"{path}: payload file named in the manifest is missing"
+    record = tmp_path / "metrics.json"
+    r = run_cli("view", copy, "--headless", "-q", "--size", "64x48", "--timeout", "60", "--record", record)
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip() == f"splatstream view: error: {expected}"
+    assert not record.exists()  # no half-written output

@@ -4,7 +4,7 @@ exactly the right bytes, never a corrupt one; the disk cache, cancellation, prio
 checked on the way. Timeouts and backoffs are made small through the constructor so every test is bounded."""
 from __future__ import annotations
 
-import os
+import hashlib
 import random
 import shutil
 import signal
@@ -501,24 +501,50 @@ def test_local_stores_stream_the_same_bytes(root, manifest, kind, tmp_path):
         e.bytes for _, _, e in reqs)
 
 
-def test_a_missing_local_payload_is_retried_not_delivered(root, manifest, tmp_path):
+@pytest.mark.parametrize("damage", ["flipped", "short", "missing"])
+def test_a_damaged_local_payload_fails_permanently_after_two_reads(root, manifest, tmp_path, damage):
+    """A local store reads the same bytes again: a payload whose SHA-256 or size differs from the manifest, or
+    whose file is missing, is read twice (a re-encode may rename the file in mid-read), then reported by damaged()
+    and never requested again; the other payloads all arrive. (Over HTTP the same failure is retried while wanted:
+    test_a_payload_that_stays_corrupt_is_never_delivered.)"""
     scene = tmp_path / "copy"
     shutil.copytree(root / SCENE, scene)
     victim = shas_by_size(manifest)[0]
-    moved = tmp_path / "moved.bin"
-    os.rename(scene / "data" / f"{victim}.bin", moved)
+    path = scene / "data" / f"{victim}.bin"
+    data = bytearray(path.read_bytes())
+    if damage == "flipped":
+        data[len(data) // 2] ^= 0xFF
+        path.write_bytes(bytes(data))
+    elif damage == "short":
+        path.write_bytes(bytes(data[:-1]))
+    else:
+        path.unlink()
+    kind, field = {"flipped": ("checksum", "sha256"), "short": ("checksum", "bytes"),
+                   "missing": ("missing", None)}[damage]
     reqs = requests_of(manifest)
     with fetcher(open_source(scene)) as f:
         f.manifest()
         f.want(reqs)
         bad = [k for _, k, e in reqs if e.sha256 == victim]
         results = collect(f, len(reqs) - len(bad))
-        wait_for(f.stats, lambda s: s.failures.get("missing", 0) >= 2)
-        assert f.done() == [] and f.stats().failures.get("missing", 0) >= 2
-        assert "payload file named in the manifest is missing" in f.stats().last_error
-        os.rename(moved, scene / "data" / f"{victim}.bin")  # back: the next retry gets it
-        results += collect(f, len(bad))
-    assert_exact(root, results, reqs)
+        damaged = wait_for(f.damaged, lambda d: len(d) >= 1)
+        f.want([r for r in reqs if r[1] in bad])  # still wanted: it is not read a third time
+        wait_for(f.stats, lambda s: s.in_flight > 0, timeout_s=0.5)  # (it never is: a pump had its chance)
+        s = f.stats()
+        assert f.done() == []
+    assert_exact(root, results, [r for r in reqs if r[1] not in bad])
+    assert s.failures == {kind: 2} and s.retries == 1 and s.in_flight == 0
+    assert len(damaged) == 1 and damaged[0].kind == kind and damaged[0].field == field
+    assert damaged[0].path == str(path)
+    message = str(damaged[0])
+    assert "\n" not in message and message.startswith(str(path))
+    if damage == "flipped":
+        assert message == (f"{path}: sha256: SHA-256 {hashlib.sha256(data).hexdigest()}, the manifest says "
+                           f"{victim} (the file is damaged or was replaced)")
+    elif damage == "short":
+        assert message == f"{path}: bytes: payload is {len(data) - 1} bytes, the manifest says {len(data)}"
+    else:
+        assert message == f"{path}: payload file named in the manifest is missing"
 
 
 def test_io_waits_for_the_frame_loop_when_asked(root, manifest, server):

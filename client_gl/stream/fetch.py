@@ -16,7 +16,9 @@ thread-safe calls:
 Failures are retried as long as the key stays wanted, with capped exponential backoff and full jitter: per
 payload for its own failures (5xx, 404, checksum mismatch, truncated body, stall), and for all network requests
 together when the link fails (connection refused or lost, no answer in time), so a server that goes away is
-polled gently and streaming resumes when it returns.
+polled gently and streaming resumes when it returns. A local store's damaged or missing payload is the exception:
+reading it again gives the same bytes, so after a second attempt (a re-encode may have replaced the file in
+mid-read) it is a permanent failure (`damaged()`), never tried again, and the view stops with its message.
 """
 from __future__ import annotations
 
@@ -33,13 +35,15 @@ from collections.abc import Awaitable, Callable, Hashable, Iterable
 from dataclasses import dataclass, field
 
 from splatstream.errors import FormatError, UsageError
-from splatstream.format.container import VerifiedPayload, verify_payload
+from splatstream.format.container import VerifiedPayload, sha256_hex, verify_payload
 from splatstream.format.manifest import Manifest, PayloadEntry, parse_manifest
 
 from .cache import DiskCache
 from .sources import (
     CHECKSUM,
     LINK_KINDS,
+    LOCAL_ATTEMPTS,
+    LOCAL_PERMANENT_KINDS,
     NOT_A_SCENE,
     NOT_FOUND,
     STALL,
@@ -181,6 +185,10 @@ class Fetcher:
         self._last_error = ""
         self._key_errors: dict[Key, tuple[str, int]] = {}  # wanted keys failing now: (last message, attempts)
         self._rejected: set[str] = set()  # SHA-256 of payloads that verified but do not decode (reject())
+        # A local store's payloads that failed LOCAL_ATTEMPTS times (damaged or missing): SHA-256 -> the failure,
+        # in the order found. Never requested again: the same bytes would be read.
+        self._damaged: dict[str, FetchError] = {}
+        self._local = bool(getattr(source, "local", False))
         self._manifest_etag: str | None = None
         self._manifest_data: bytes | None = None
         self._recheck: asyncio.Task | None = None
@@ -355,6 +363,13 @@ class Fetcher:
         with self._lock:
             return sorted(((k, m, n) for k, (m, n) in self._key_errors.items()), key=lambda t: -t[2])
 
+    def damaged(self) -> list[FetchError]:
+        """A local store's payloads that failed permanently (size or SHA-256 against the manifest, or missing:
+        LOCAL_PERMANENT_KINDS, LOCAL_ATTEMPTS times), in the order found; each message names the file. Empty for
+        HTTP sources: their failures are retried while wanted."""
+        with self._lock:
+            return list(self._damaged.values())
+
     def reject(self, entry: PayloadEntry) -> None:
         """A delivered payload matched its checksum but does not decode (the scene is broken): drop it from the
         disk cache, and never cache it again in this fetcher."""
@@ -406,7 +421,7 @@ class Fetcher:
                     lookahead -= 1
                     if self.cache is None or disk >= self.cache_readers or lookahead < 0:
                         break
-                if key in self._jobs:
+                if key in self._jobs or entry.sha256 in self._damaged:
                     continue
                 at = self._retry_at.get(key)
                 if at is not None and at > now:
@@ -452,7 +467,14 @@ class Fetcher:
             try:
                 payload = await loop.run_in_executor(None, verify_payload, data, entry, where)
             except FormatError as exc:
-                raise FetchError(where, CHECKSUM, exc.problem) from None
+                if not self._local:
+                    raise FetchError(where, CHECKSUM, exc.problem) from None
+                # A local file: name the field and both values (this message may be the one the view stops on).
+                problem = exc.problem
+                if exc.field == "sha256":
+                    problem = (f"SHA-256 {sha256_hex(data)}, the manifest says {entry.sha256} (the file is damaged "
+                               "or was replaced)")
+                raise FetchError(where, CHECKSUM, problem, field=exc.field) from None
             if self._complete(job, payload, from_cache=False) and self.cache is not None:
                 loop.run_in_executor(None, self._cache_put, entry, payload.data)  # never raises; awaited at shutdown
         except asyncio.CancelledError:
@@ -556,6 +578,14 @@ class Fetcher:
             now = self._loop.time()
             previous = self._key_errors.get(job.key)
             self._key_errors[job.key] = (str(exc), (previous[1] if previous else 0) + 1)
+            if self._local and exc.kind in LOCAL_PERMANENT_KINDS and \
+                    self._key_errors[job.key][1] >= LOCAL_ATTEMPTS:
+                # Reading the same file a third time gives the same bytes: permanent (damaged()).
+                self._damaged.setdefault(job.entry.sha256, exc)
+                self._retry_at.pop(job.key, None)
+                self._schedule_pump()
+                log.debug("giving up: %s", exc)
+                return
             if exc.kind == NOT_FOUND:
                 self._recheck_manifest_soon(now)
             if exc.kind in LINK_KINDS:

@@ -48,14 +48,20 @@ NOT_A_SCENE = "not_a_scene"  # a 200 answer that is not a manifest
 KINDS = (CONNECTION, TIMEOUT, STALL, TRUNCATED, CHECKSUM, HTTP_5XX, NOT_FOUND, HTTP_4XX, MISSING, NOT_A_SCENE)
 # Errors of the link rather than of one file: the fetcher backs off all network requests together on these.
 LINK_KINDS = frozenset({CONNECTION, TIMEOUT})
+# Failures of a local store's file that reading it again will not heal (the same bytes come back): the fetcher
+# makes them permanent after LOCAL_ATTEMPTS attempts (the second read guards against a re-encode renaming the file
+# in mid-read). Over HTTP the same kinds stay transient: a cache or a server may heal.
+LOCAL_PERMANENT_KINDS = frozenset({CHECKSUM, MISSING, TRUNCATED})
+LOCAL_ATTEMPTS = 2
 
 
 class FetchError(InputError):
     """A request failed. `kind` is one of KINDS; `transient` says whether trying again may help; `unreachable`:
     the server was never reached (connection refused, unknown host), so a first request need not wait for it."""
 
-    def __init__(self, where: str, kind: str, problem: str, transient: bool = True, unreachable: bool = False):
-        super().__init__(where, None, problem)
+    def __init__(self, where: str, kind: str, problem: str, transient: bool = True, unreachable: bool = False,
+                 field: str | None = None):
+        super().__init__(where, field, problem)
         self.kind = kind
         self.transient = transient
         self.unreachable = unreachable
@@ -64,7 +70,8 @@ class FetchError(InputError):
 @runtime_checkable
 class SceneSource(Protocol):
     """One scene's bytes. `location` names it in messages; `cache_key` is the manifest's URL for sources worth a
-    disk cache (None: local bytes, not cached)."""
+    disk cache (None: local bytes, not cached). `local`: reading again gives the same bytes (a store on this
+    machine), so a damaged or missing payload is permanent (LOCAL_PERMANENT_KINDS); absent means False."""
 
     location: str
     cache_key: str | None
@@ -245,6 +252,7 @@ class StoreSource:
         self.store = store
         self.location = store.location
         self.cache_key: str | None = None
+        self.local = True  # a damaged payload reads the same again: the fetcher gives up after LOCAL_ATTEMPTS
 
     async def _read(self, fn, *args) -> bytes:
         if isinstance(self.store, MemoryStore):
@@ -265,7 +273,8 @@ class StoreSource:
             data = await self._read(self.store.read_payload, entry)
         except InputError as exc:
             kind = TRUNCATED if "bytes expected" in exc.problem else MISSING
-            raise FetchError(exc.path or self.store.payload_source(entry), kind, exc.problem) from None
+            raise FetchError(exc.path or self.store.payload_source(entry), kind, exc.problem,
+                             field="bytes" if kind == TRUNCATED else exc.field) from None
         if on_bytes:
             on_bytes(len(data))
         return data
