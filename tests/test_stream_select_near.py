@@ -21,6 +21,7 @@ from test_stream_engine import CountingPool, PagedFetcher, orbit
 from client_gl.stream.engine import COMPILED_SELECTION, StreamEngine, StreamOptions
 from client_gl.stream.pages import PagedTree
 from client_gl.stream.selection import (
+    SELECTION_BUFFERS,
     PartialView,
     Selection,
     SelectionOptions,
@@ -89,6 +90,47 @@ def test_view_buffers_are_kept_grown_and_zeroed_where_asked():
     more = b.get("y", 101, np.dtype(np.int64))
     assert not np.shares_memory(more, first) and more.tolist() == [0] * 101
     assert len(b._arrays["y"]) == 200
+
+
+def test_prepared_view_buffers_are_what_get_would_first_make():
+    """ViewBuffers.prepare (the engine's set-up) makes each array of the layout as a first `get` would: zeros of
+    max(n, ahead) elements, that `get` then returns (the same memory) up to that size; an array already made is
+    kept."""
+    b = ViewBuffers(ahead=100)
+    kept = b.get("sse", 3, np.dtype(np.float64), True)
+    kept[:] = 2.0
+    b.prepare(40)
+    assert {name for name, _ in SELECTION_BUFFERS} <= b._arrays.keys()
+    assert np.shares_memory(b.get("sse", 3, np.dtype(np.float64)), kept)  # made before: kept, not zeroed
+    assert b.get("sse", 3, np.dtype(np.float64)).tolist() == [2.0] * 3
+    for name, dtype in SELECTION_BUFFERS:
+        if name == "sse":
+            continue
+        made = b._arrays[name]
+        assert made.dtype == dtype and len(made) == 100 and not made.any()
+        assert np.shares_memory(b.get(name, 100, dtype, True), made)
+    small = ViewBuffers()
+    small.prepare(40)
+    assert all(len(a) == 40 for a in small._arrays.values())
+
+
+@NEEDS_NUMBA
+def test_a_selection_over_prepared_buffers_makes_no_array_there(whole):
+    """Every array a PartialView, the compiled selection and its draw set take from their ViewBuffers is one
+    `prepare` made (SELECTION_BUFFERS names them all): the first frame's selection allocates none of them, and
+    selects as over new buffers."""
+    a, root = whole.arrays, whole.index_of[whole.root]
+    cost = np.array([t.chunks for t in whole.tiles], np.float64) * 4096.0
+    cam, opts = random_camera(whole, random.Random(11)), SelectionOptions(max_splats=200_000)
+    b = ViewBuffers()
+    b.prepare(len(a.parent))
+    made = dict(b._arrays)
+    view = PartialView(a, cam, opts, whole.lod.reduction, b)
+    got = select_near_compiled(a, view, cost, root, opts)
+    draw_set_compiled(a, view, got, np.ones(len(a.parent), bool), root)
+    assert b._arrays.keys() == made.keys() and all(b._arrays[k] is made[k] for k in made)
+    assert got == select_near_compiled(a, PartialView(a, cam, opts, whole.lod.reduction, ViewBuffers()), cost, root,
+                                       opts)
 
 
 def test_view_buffers_zero_with_the_kernel_they_are_given():
@@ -639,3 +681,18 @@ def test_the_engines_grown_state_is_numpys():
             cost = selection_jit.slot_cost(slots, slot_bytes)
             assert cost.dtype == np.float64
             assert cost.tobytes() == (slots.astype(np.float64) * float(slot_bytes)).tobytes()
+
+
+def test_the_engine_makes_its_view_buffers_before_its_first_frame(paged_store):
+    """An engine that selects compiled makes its view's arrays when made (ViewBuffers.prepare, for the tree it
+    expects: PagedTree.rows_ahead), not in its first frame's selection; one that does not, none."""
+    for compiled in (True, False):
+        engine = StreamEngine(PagedFetcher(paged_store), CountingPool(26), StreamOptions(compiled_selection=compiled))
+        held = engine._view_buffers._arrays
+        if compiled:
+            assert held.keys() == {name for name, _ in SELECTION_BUFFERS}
+            assert all(len(x) == max(len(engine.resident), engine.pages.rows_ahead) for x in held.values())
+            assert engine.pages.rows_ahead > len(engine.resident)
+        else:
+            assert not held
+        engine.close()

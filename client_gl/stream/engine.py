@@ -382,6 +382,8 @@ class StreamEngine:
         # The compiled selection's per-tile arrays, kept from frame to frame (ViewBuffers): a frame's view owns them
         # until the next selection (the engine uses a view only in the frame that made it, or while it is cached)
         self._view_buffers = ViewBuffers(self.pages.rows_ahead if self.pages is not None else 0)
+        if options.compiled_selection:  # made here, not in the first frame's selection (ViewBuffers.prepare)
+            self._view_buffers.prepare(len(self.resident))
         self._pages_checked: tuple[int, int] = (0, 0)  # (tiles held, payload evictions) at the last eviction pass
         self.frame = 0
         self.refined = np.zeros(0, np.intp)  # the last selection's refined tiles (positions: its hysteresis)

@@ -297,6 +297,17 @@ def view_numbers(a: TileArrays, cam: Camera, opts: SelectionOptions = SelectionO
     return TileView(sse, visible, radius_px, area, distance, (a, cam, basis, opts.prefetch_margin))
 
 
+# The per-tile arrays a frame's selection takes from its ViewBuffers, by name: PartialView's numbers, the compiled
+# selection's scratch (selection_jit.select_near_compiled) and its draw set's flags (draw_set_compiled).
+# ViewBuffers.prepare makes them all at once, before the first frame (the names and dtypes those take them with).
+SELECTION_BUFFERS: tuple[tuple[str, np.dtype], ...] = tuple(
+    (name, np.dtype(kind)) for names, kind in (
+        (("sse", "radius_px", "distance", "area_px", "prio", "log2", "heap_k", "out_p", "sort_p"), np.float64),
+        (("pending", "heap_t", "reflist", "out_t", "sort_t"), np.int64),
+        (("known", "cand", "refd", "draw_refd"), np.uint8),
+        (("visible", "was_refined"), np.bool_)) for name in names)
+
+
 class ViewBuffers:
     """Per-tile arrays kept from one view to the next: a PartialView (and the compiled selection, selection_jit)
     takes its arrays here instead of allocating a dozen arrays over the tree held every frame (about 0.17 ms a frame
@@ -315,6 +326,21 @@ class ViewBuffers:
         # for a decode thread to take it from the frame loop; BENCHMARKS.md, "Manifest pages"). Called with the
         # array's bytes (a uint8 view).
         self.zero: Callable[[np.ndarray], None] | None = None
+
+    def prepare(self, n: int, layout: tuple[tuple[str, np.dtype], ...] = SELECTION_BUFFERS) -> None:
+        """Make the arrays of `layout` not made yet, as `get` would first make them for n elements (np.zeros of
+        max(n, ahead)), their memory written: the engine's set-up, so that neither the first frame's selection makes
+        them (20 np.zeros over the expected tree) nor the next frames' take their pages' first writes (frame 0 of
+        every fly-through on the GPU machine selected in 1.2-1.6 ms against a p99 of 0.6-0.9: BENCHMARKS.md,
+        "Manifest pages", frame0). Zeros: what a cleared `get` returns, so a first `get` is the same either way."""
+        for name, dtype in layout:
+            if name not in self._arrays:
+                # written here (np.empty, then zeros written), not np.zeros: calloc's pages are given at their first
+                # write, in the frames that reach them (the first pages' tiles: 0.25-0.35 ms of page faults in frame
+                # 1's selection at 250M splats)
+                made = np.empty(max(n, self.ahead), dtype)
+                made.fill(0)
+                self._arrays[name] = made
 
     def get(self, name: str, n: int, dtype, zero: bool = False) -> np.ndarray:
         """An array of n elements of this dtype named `name`: zeros with `zero`, else what the last view left."""
