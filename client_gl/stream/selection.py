@@ -329,18 +329,15 @@ class ViewBuffers:
 
     def prepare(self, n: int, layout: tuple[tuple[str, np.dtype], ...] = SELECTION_BUFFERS) -> None:
         """Make the arrays of `layout` not made yet, as `get` would first make them for n elements (np.zeros of
-        max(n, ahead)), their memory written: the engine's set-up, so that neither the first frame's selection makes
-        them (20 np.zeros over the expected tree) nor the next frames' take their pages' first writes (frame 0 of
-        every fly-through on the GPU machine selected in 1.2-1.6 ms against a p99 of 0.6-0.9: BENCHMARKS.md,
-        "Manifest pages", frame0). Zeros: what a cleared `get` returns, so a first `get` is the same either way."""
+        max(n, ahead)): the engine's set-up, so that the first frame's selection does not (its 20 np.zeros over the
+        expected tree were 0.23-0.27 ms of frame 0's 0.6-0.8 ms of selection CPU at 250M splats on the 2-core VM;
+        frame 0 of every fly-through on the GPU machine selected in 1.2-1.6 ms against a p99 of 0.6-0.9:
+        BENCHMARKS.md, "Manifest pages", frame0). Zeros: what a cleared `get` returns, so a first `get` is the same either way."""
         for name, dtype in layout:
             if name not in self._arrays:
-                # written here (np.empty, then zeros written), not np.zeros: calloc's pages are given at their first
-                # write, in the frames that reach them (the first pages' tiles: 0.25-0.35 ms of page faults in frame
-                # 1's selection at 250M splats)
-                made = np.empty(max(n, self.ahead), dtype)
-                made.fill(0)
-                self._arrays[name] = made
+                # np.zeros as `get`: their memory written as the tree grows into it (writing it all here, 1.2 ms more
+                # of set-up and the memory of the bound, gained nothing measurable in the next frames: frame0)
+                self._arrays[name] = np.zeros(max(n, self.ahead), dtype)
 
     def get(self, name: str, n: int, dtype, zero: bool = False) -> np.ndarray:
         """An array of n elements of this dtype named `name`: zeros with `zero`, else what the last view left."""
