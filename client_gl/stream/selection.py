@@ -332,7 +332,8 @@ class ViewBuffers:
         max(n, ahead)): the engine's set-up, so that the first frame's selection does not (its 20 np.zeros over the
         expected tree were 0.23-0.27 ms of frame 0's 0.6-0.8 ms of selection CPU at 250M splats on the 2-core VM;
         frame 0 of every fly-through on the GPU machine selected in 1.2-1.6 ms against a p99 of 0.6-0.9:
-        BENCHMARKS.md, "Manifest pages", frame0). Zeros: what a cleared `get` returns, so a first `get` is the same either way."""
+        BENCHMARKS.md, "Manifest pages", frame0). Zeros: what a cleared `get` returns, so a first `get` is the same
+        either way."""
         for name, dtype in layout:
             if name not in self._arrays:
                 # np.zeros as `get`: their memory written as the tree grows into it (writing it all here, 1.2 ms more
