@@ -71,6 +71,15 @@ SCENES = {
 DECODES = ("group", "verified", "one")
 
 
+def scene_gaussians(names: str):
+    """(name, Gaussians) of each comma-separated scene: a name of SCENES or `name=path` (added to SCENES)."""
+    for scene in names.split(","):
+        if "=" in scene:  # another scene: name=path
+            scene, path = scene.split("=", 1)
+            SCENES[scene] = path
+        yield scene, read_gaussians(os.path.join(ROOT, SCENES[scene]))
+
+
 def encode(scene: str, preset: str):
     """(scene, preset, MemoryStore or the reason it was skipped, encode CPU s) in a worker process."""
     t = time.process_time()

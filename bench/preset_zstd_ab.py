@@ -32,7 +32,6 @@ from client_gl.stream import decode_jit  # noqa: E402
 from splatstream.encode import EncodeOptions  # noqa: E402
 from splatstream.encode.local import encode_in_memory  # noqa: E402
 from splatstream.format import presets  # noqa: E402
-from splatstream.io import read_gaussians  # noqa: E402
 
 # (zstd level, shortest match (0: the level's), block slack) of each preset before its branch: very-high before
 # vhdec (main at e8b6c09), the others before lossydec (main at c8fa564)
@@ -83,11 +82,7 @@ def main() -> None:
     args = ap.parse_args()
     decode_jit.install()
     print("load", os.getloadavg(), flush=True)
-    for scene in args.scenes.split(","):
-        if "=" in scene:  # another scene: name=path
-            scene, path = scene.split("=", 1)
-            dq.SCENES[scene] = path
-        g = read_gaussians(os.path.join(dq.ROOT, dq.SCENES[scene]))
+    for scene, g in dq.scene_gaussians(args.scenes):
         for preset in args.presets.split(","):
             cases, cpu = encode_both(g, preset, args.after)
             digests = {k: hashlib.sha256(b"".join(c.texels())).hexdigest() for k, c in cases.items()}

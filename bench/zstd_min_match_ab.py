@@ -27,7 +27,6 @@ import decode_quiet as dq  # noqa: E402
 from splatstream.encode import EncodeOptions  # noqa: E402
 from splatstream.encode.local import encode_in_memory  # noqa: E402
 from splatstream.format import container, presets  # noqa: E402
-from splatstream.io import read_gaussians  # noqa: E402
 
 VARIANTS = ("every", "joined")
 _COMPRESSOR = container._compressor
@@ -66,11 +65,7 @@ def main() -> None:
     args = ap.parse_args()
     print("load", os.getloadavg(), flush=True)
     lods = {"both": (True, False), "yes": (True,), "no": (False,)}[args.lod]
-    for scene in args.scenes.split(","):
-        if "=" in scene:  # another scene: name=path
-            scene, path = scene.split("=", 1)
-            dq.SCENES[scene] = path
-        g = read_gaussians(os.path.join(dq.ROOT, dq.SCENES[scene]))
+    for scene, g in dq.scene_gaussians(args.scenes):
         for preset in args.presets.split(","):
             for lod in lods:
                 cases = encode_both(g, preset, lod)

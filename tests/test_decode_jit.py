@@ -386,6 +386,20 @@ def _alone_calls(monkeypatch) -> list[str]:
     return calls
 
 
+def _planes_of_groups(by_group: dict, m, alone: int = 0) -> list:
+    """Every group of `by_group` through unpack_payloads (and its first `alone` payloads through unpack_payload):
+    each payload's plane bytes and palettes, to compare paths by."""
+    out = []
+    for group, items in by_group.items():
+        sources = [f"payload{k}" for k in range(len(items))]
+        planes = container.unpack_payloads(items, group, sources, m.uses_codebook, palettes=m.scene_palettes)
+        planes += [container.unpack_payload(d, e, group, "one", m.uses_codebook, palettes=m.scene_palettes)
+                   for d, e in items[:alone]]
+        out += [(planes_bytes(p), [None if q.palette is None else (q.palette.tobytes(), q.scene_palette)
+                                   for q in p.values()]) for p in planes]
+    return out
+
+
 @pytest.mark.parametrize("preset", ["medium", "high", "very-low", "medium-low-palette", "low-plus-10bit-cb8"])
 def test_a_group_planned_in_one_pass_decodes_as_the_numpy_path(numpy_path, monkeypatch, fruit, preset):
     # container._unpack_group takes a group of the usual kind in its one call (fields1, shuffled, stored as is
@@ -397,15 +411,7 @@ def test_a_group_planned_in_one_pass_decodes_as_the_numpy_path(numpy_path, monke
     by_group = payloads_by_group(store, m)
 
     def decode_all() -> list:
-        out = []
-        for group, items in by_group.items():
-            sources = [f"payload{k}" for k in range(len(items))]
-            planes = container.unpack_payloads(items, group, sources, m.uses_codebook, palettes=m.scene_palettes)
-            planes += [container.unpack_payload(d, e, group, "one", m.uses_codebook, palettes=m.scene_palettes)
-                       for d, e in items[:2]]
-            out += [(planes_bytes(p), [None if q.palette is None else (q.palette.tobytes(), q.scene_palette)
-                                       for q in p.values()]) for p in planes]
-        return out
+        return _planes_of_groups(by_group, m, alone=2)
 
     by_numpy = decode_all()
     decode_jit.install()
@@ -424,13 +430,7 @@ def test_a_large_group_decodes_in_runs_as_the_numpy_path(numpy_path, monkeypatch
     by_group = payloads_by_group(store, m)
 
     def decode_all() -> list:
-        out = []
-        for group, items in by_group.items():
-            sources = [f"payload{k}" for k in range(len(items))]
-            planes = container.unpack_payloads(items, group, sources, m.uses_codebook, palettes=m.scene_palettes)
-            out += [(planes_bytes(p), [None if q.palette is None else (q.palette.tobytes(), q.scene_palette)
-                                       for q in p.values()]) for p in planes]
-        return out
+        return _planes_of_groups(by_group, m)
 
     by_numpy = decode_all()
     decode_jit.install()
