@@ -1,0 +1,555 @@
+#!/usr/bin/env python3
+"""Probe (issue 31, phase 1): refine the merged splats of each LOD level against renders of the full-detail scene.
+
+The Hierarchical-3DGS idea with the originals as ground truth (no training images): for each scene, our default tree
+is built in memory exactly as `splatstream encode` builds it (lod.build_tiles with the encoder's defaults: 16,384-splat
+leaves, reduction 2, merge `auto`, the scene read as `splatstream convert` writes it for bench/lod_vs_peers.py);
+the full-detail scene is rendered with gsplat from training cameras that are not the benchmark's 4 orbit views
+(`training_cameras`: a jittered Fibonacci band of directions around the orbit centre, distances 0.6-1.6x the orbit
+distance, the benchmark's fov); then each merged level d (the tiles at depth d that have children) is optimised
+ALONE, drawn as its whole cut (every tile at depth d plus the leaves shallower than d; the leaves' originals fixed):
+
+    A: opacity logits and SH0 (DC) colour;  B: A + log-scales;  C: B + positions and rotations
+
+with Adam on the MSE of the clamped images (PSNR is the measure). Writes, per variant, the refined values as float16
+DELTAS from the unrefined tree (per tile id, the shapes `Gaussians` uses) with the tree's digest, so that
+bench/probe_lod_refine.py replays the real streaming cut with them (GL renderer, the benchmark's views).
+
+Our renderer's conventions, matched in gsplat: the 0.3 px^2 low-pass (gsplat eps2d=0.3), the 0.99 opacity clamp
+(gsplat clamps alpha at 0.999: the opacities are clamped to 0.99 before, the same within o (1 - exp(power)) for
+o > 0.99), the 1/255 alpha cut (gsplat's), colour max(SH(dir) + 0.5, 0) with SH_C0 (gsplat's with sh_degree), black
+background, pinhole K with the principal point at the image centre and pixel centres at +0.5 (camera.md), the
+OpenCV world-to-camera matrix (Camera.world_to_camera_cv), splats with depth <= near culled (the view rule's near).
+`--device cpu` uses `dense_render`, a small dense torch rasteriser of the same conventions (tests it against
+splatstream.render_ref) for tiny checks here.
+
+    python3 bench/device/refine_lod_levels.py --inputs .refine_in --out $OUT --variants A B C --budget-s 420
+    python bench/device/refine_lod_levels.py --inputs /work/shared/data/real --scenes statue-massa --device cpu \
+        --max-splats 3000 --size 48 --cameras 16 --iters 30 --out /tmp/refine_cpu
+"""
+from __future__ import annotations
+
+import argparse
+import hashlib
+import io
+import json
+import math
+import os
+import sys
+import tempfile
+import time
+import zipfile
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+BENCH = os.path.dirname(HERE)
+sys.path.insert(0, BENCH)
+
+import lod_vs_peers as lvp  # noqa: E402  (bench/ is not a package)
+
+from splatstream import lod  # noqa: E402
+from splatstream.camera import Camera  # noqa: E402
+from splatstream.gaussians import Gaussians  # noqa: E402
+
+# The encoder's defaults for a scene encoded in memory (EncodeOptions: max_leaf_splats, reduction,
+# resolved_lod_merge(in_memory=True)); tests/test_bench_probe_lod_refine.py checks they still are. Not imported here:
+# splatstream.encode imports zstandard, which the GPU machine's image lacks.
+MAX_LEAF_SPLATS = 16384
+REDUCTION = 2.0
+LOD_MERGE = "auto"
+
+VARIANTS = {"A": ("opacity_logits", "sh_dc"),
+            "B": ("opacity_logits", "sh_dc", "log_scales"),
+            "C": ("opacity_logits", "sh_dc", "log_scales", "positions", "rotations")}
+FIELDS = ("opacity_logits", "sh_dc", "log_scales", "positions", "rotations")
+OPACITY_MAX = 0.99  # our renderers' alpha clamp (client_gl splat.frag, render_ref.ALPHA_MAX)
+PART_BYTES = 15 * 2**20  # files back from the device: at most 16 MiB each
+
+
+def say(msg: str) -> None:
+    print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
+
+
+# --- scenes and trees (numpy only) -----------------------------------------------------------------------------
+
+def load_scene(data_dir: str, name: str) -> Gaussians:
+    """The scene as bench/lod_vs_peers.py reads it: `splatstream convert SRC full.ply`, then read_gaussians."""
+    from splatstream.io import read_gaussians, write_gaussians
+
+    g = read_gaussians(os.path.join(data_dir, lvp.SCENES[name].source))
+    with tempfile.TemporaryDirectory() as tmp:
+        path = os.path.join(tmp, "full.ply")
+        write_gaussians(g, path)
+        return read_gaussians(path)
+
+
+def default_tree(g: Gaussians, max_leaf: int = MAX_LEAF_SPLATS) -> list[lod.Tile]:
+    return lod.build_tiles(g, max_leaf, REDUCTION, merge=LOD_MERGE)
+
+
+def tree_digest(tiles: list[lod.Tile], max_leaf: int = MAX_LEAF_SPLATS, max_splats: int | None = None) -> dict:
+    """What must match between the device's tree and the replay's: the shape and every tile's splat count
+    (`positions_sha` too when the arithmetic is bit-identical; a mismatch there alone is only reported)."""
+    counts = [len(t.gaussians) for t in tiles]
+    shape = json.dumps([[t.level, list(t.children), c] for t, c in zip(tiles, counts, strict=True)]).encode()
+    pos = hashlib.sha256()
+    for t in tiles:
+        pos.update(np.ascontiguousarray(t.gaussians.positions, np.float32).tobytes())
+    return {"max_leaf": max_leaf, "max_splats": max_splats, "tiles": len(tiles), "splats": counts,
+            "shape_sha": hashlib.sha256(shape).hexdigest()[:16], "positions_sha": pos.hexdigest()[:16]}
+
+
+def check_digest(ours: dict, theirs: dict) -> None:
+    if ours["tiles"] != theirs["tiles"] or ours["splats"] != theirs["splats"] or ours["shape_sha"] != theirs[
+            "shape_sha"]:
+        raise SystemExit(f"tree digest mismatch: {ours['tiles']} tiles here, {theirs['tiles']} in the refined file "
+                         f"(shape {ours['shape_sha']} / {theirs['shape_sha']})")
+    if ours["positions_sha"] != theirs["positions_sha"]:
+        print("note: same tree shape, merged positions not bit-identical (deltas still apply)", file=sys.stderr)
+
+
+def level_cuts(tiles: list[lod.Tile]) -> dict[int, tuple[list[int], list[int]]]:
+    """Per merged level d: (the tiles at depth d with children: trained; the leaves at depth <= d: fixed)."""
+    cuts = {}
+    for d in sorted({t.level for t in tiles if t.children}):
+        merged = [t.id for t in tiles if t.level == d and t.children]
+        fixed = [t.id for t in tiles if t.level <= d and not t.children]
+        cuts[d] = (merged, fixed)
+    return cuts
+
+
+def training_cameras(positions: np.ndarray, up, n: int, size: int, seed: int = 0,
+                     distance_range: tuple[float, float] = (0.6, 1.6),
+                     elevation_deg: tuple[float, float] = (-20.0, 70.0)) -> list[Camera]:
+    """`n` cameras looking at the benchmark's orbit centre from a jittered Fibonacci band of directions (elevations
+    in `elevation_deg` about `up`: the benchmark views sit at 25 deg), at distances spread log-uniformly over
+    `distance_range` x the benchmark's orbit distance, the benchmark's fov, the view rule's near/far. None is one of
+    the 4 orbit views (their distance and elevation are exact; these are jittered)."""
+    bench = lvp.view_cameras(positions, up, 4, size)[0]
+    centre = np.asarray(bench.target, np.float64)
+    dist = math.dist(bench.eye, bench.target)
+    u = np.asarray(bench.up, np.float64)
+    u = u / np.linalg.norm(u)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    a = helper - u * (helper @ u)
+    a /= np.linalg.norm(a)
+    b = np.cross(u, a)
+    rng = np.random.default_rng(seed)
+    lo, hi = (math.sin(math.radians(e)) for e in elevation_deg)
+    golden = math.pi * (3.0 - math.sqrt(5.0))
+    cams = []
+    for i in range(n):
+        s = lo + (hi - lo) * (i + rng.uniform(0.2, 0.8)) / n  # sin(elevation), jittered within its stratum
+        az = golden * i + rng.uniform(-0.3, 0.3)
+        c = math.sqrt(max(0.0, 1.0 - s * s))
+        d = c * (math.cos(az) * a + math.sin(az) * b) + s * u
+        r = dist * math.exp(rng.uniform(math.log(distance_range[0]), math.log(distance_range[1])))
+        target = centre + rng.normal(0.0, 0.03 * dist, 3)
+        eye = target + r * d
+        cams.append(Camera(tuple(eye), tuple(target), tuple(u), bench.fov_y_deg, size, size,
+                           *lvp._near_far(eye, target)))
+    return cams
+
+
+def replace_refined(tiles: list[lod.Tile], refined: dict[int, dict[str, np.ndarray]]) -> list[lod.Tile]:
+    """A copy of `tiles` with each refined tile's splats carrying its deltas (float16 in the files) added."""
+    import dataclasses
+
+    out = list(tiles)
+    for tid, deltas in refined.items():
+        g = tiles[tid].gaussians
+        vals = {f: getattr(g, f) for f in FIELDS}
+        for f, dv in deltas.items():
+            vals[f] = (vals[f].astype(np.float32) + dv.astype(np.float32)).astype(np.float32)
+        q = vals["rotations"]
+        vals["rotations"] = (q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)).astype(np.float32)
+        out[tid] = dataclasses.replace(tiles[tid], gaussians=Gaussians(vals["positions"], vals["rotations"],
+                                                                       vals["log_scales"], vals["opacity_logits"],
+                                                                       vals["sh_dc"], g.sh_rest))
+    return out
+
+
+def pack_scene(scene: str, digest: dict, refined: dict[int, dict[str, np.ndarray]], info: dict) -> dict[str, bytes]:
+    """npz members (name -> .npy bytes) of one scene and variant: tile ids, offsets, float16 deltas per field."""
+    ids = sorted(refined)
+    members = {"tile_ids": np.asarray(ids, np.int32),
+               "offsets": np.cumsum([0] + [len(next(iter(refined[i].values()))) for i in ids]).astype(np.int64),
+               "digest": np.frombuffer(json.dumps(digest).encode(), np.uint8),
+               "info": np.frombuffer(json.dumps(info).encode(), np.uint8)}
+    fields = sorted({f for i in ids for f in refined[i]})
+    for f in fields:
+        members["d_" + f] = np.concatenate([refined[i][f] for i in ids]).astype(np.float16)
+    out = {}
+    for k, v in members.items():
+        b = io.BytesIO()
+        np.save(b, v)
+        out[f"{scene}/{k}.npy"] = b.getvalue()
+    return out
+
+
+def write_parts(out_dir: str, variant: str, scenes: dict[str, dict[str, bytes]]) -> list[str]:
+    """refine_<variant>_<k>.npz files (zip-deflated .npy members), each under PART_BYTES of members."""
+    paths, part, size = [], {}, 0
+
+    def flush():
+        if not part:
+            return
+        path = os.path.join(out_dir, f"refine_{variant}_{len(paths)}.npz")
+        with zipfile.ZipFile(path + ".part", "w", zipfile.ZIP_DEFLATED, compresslevel=6) as z:
+            for k, v in part.items():
+                z.writestr(k, v)
+        os.replace(path + ".part", path)
+        paths.append(path)
+
+    for members in scenes.values():
+        n = sum(len(v) for v in members.values())
+        if part and size + n > PART_BYTES * 1.15:  # deflate takes ~15 % off float16 deltas
+            flush()
+            part, size = {}, 0
+        part.update(members)
+        size += n
+    flush()
+    return paths
+
+
+def read_refined(paths: list[str], scene: str) -> tuple[dict, dict[int, dict[str, np.ndarray]], dict]:
+    """(digest, {tile id: {field: float16 deltas}}, info) of `scene` from refine_<variant>_<k>.npz files."""
+    for p in paths:
+        with np.load(p) as z:
+            if f"{scene}/tile_ids" not in z.files:
+                continue
+            ids = z[f"{scene}/tile_ids"]
+            off = z[f"{scene}/offsets"]
+            fields = [k.split("/d_", 1)[1] for k in z.files if k.startswith(f"{scene}/d_")]
+            arrays = {f: z[f"{scene}/d_{f}"] for f in fields}
+            refined = {int(t): {f: arrays[f][off[k]:off[k + 1]] for f in fields} for k, t in enumerate(ids)}
+            digest = json.loads(z[f"{scene}/digest"].tobytes())
+            info = json.loads(z[f"{scene}/info"].tobytes())
+            return digest, refined, info
+    raise KeyError(scene)
+
+
+def drawn_tiles(results_dir: str | None, scene: str) -> set[int] | None:
+    """Every tile id drawn at any budget from any view of a lod_vs_peers result (None: no result, keep all)."""
+    path = results_dir and os.path.join(results_dir, f"{scene}.json")
+    if not path or not os.path.exists(path):
+        return None
+    res = json.load(open(path))
+    return {i for row in res["ours"] for ids in row["drawn_tile_ids_per_view"] for i in ids}
+
+
+# --- torch: rendering -------------------------------------------------------------------------------------------
+
+def camera_tensors(cams: list[Camera], torch, device):
+    view = np.stack([c.world_to_camera_cv() for c in cams]).astype(np.float32)
+    ks = np.stack([c.intrinsics() for c in cams]).astype(np.float32)
+    return torch.from_numpy(view).to(device), torch.from_numpy(ks).to(device)
+
+
+def eval_sh_torch(torch, sh, dirs, degree: int):
+    """SH colour (N, 3) before the +0.5 offset: gsplat's pure-torch evaluation (the reference 3DGS basis, ours)."""
+    from gsplat.cuda._torch_impl import _spherical_harmonics
+
+    return _spherical_harmonics(degree, dirs, sh)
+
+
+def dense_render(torch, means, quats, scales, opac, sh, degree: int, cam: Camera):
+    """(H, W, 3) float32: our conventions (render_ref's preprocess; every pixel against every splat, no 3-sigma
+    cut, as the GL renderer's alpha >= 1/255 box), for small tests on the CPU."""
+    dev, dt = means.device, means.dtype
+    m = torch.tensor(cam.world_to_camera_cv(), dtype=dt, device=dev)
+    t = means @ m[:3, :3].T + m[:3, 3]
+    keep = t[:, 2] > cam.near
+    t, means, quats, scales, opac, sh = t[keep], means[keep], quats[keep], scales[keep], opac[keep], sh[keep]
+    fx, fy = cam.focal
+    cx, cy = cam.principal_point
+    tz = t[:, 2]
+    limx, limy = 1.3 * cam.tan_half_fov_x, 1.3 * cam.tan_half_fov_y
+    tx = torch.clamp(t[:, 0] / tz, -limx, limx) * tz
+    ty = torch.clamp(t[:, 1] / tz, -limy, limy) * tz
+    zero = torch.zeros_like(tz)
+    j = torch.stack([torch.stack([fx / tz, zero, -fx * tx / (tz * tz)], -1),
+                     torch.stack([zero, fy / tz, -fy * ty / (tz * tz)], -1)], 1)
+    q = quats / quats.norm(dim=1, keepdim=True)
+    w, x, y, z = q.unbind(1)
+    r = torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+                     2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+                     2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], 1).reshape(-1, 3, 3)
+    rs = r * scales[:, None, :]
+    cov3 = rs @ rs.transpose(1, 2)
+    tm = j @ m[:3, :3]
+    c2 = tm @ cov3 @ tm.transpose(1, 2)
+    a, b, c = c2[:, 0, 0] + 0.3, c2[:, 0, 1], c2[:, 1, 1] + 0.3
+    det = a * c - b * b
+    ca, cb, cc = c / det, -b / det, a / det
+    px = fx * t[:, 0] / tz + cx
+    py = fy * t[:, 1] / tz + cy
+    dirs = means - torch.tensor(cam.eye, dtype=dt, device=dev)
+    dirs = dirs / dirs.norm(dim=1, keepdim=True)
+    colour = torch.clamp_min(eval_sh_torch(torch, sh, dirs, degree) + 0.5, 0.0)
+    order = torch.argsort(tz)
+    gy, gx = torch.meshgrid(torch.arange(cam.height, device=dev, dtype=dt) + 0.5,
+                            torch.arange(cam.width, device=dev, dtype=dt) + 0.5, indexing="ij")
+    dx = px[order][None, :] - gx.reshape(-1, 1)
+    dy = py[order][None, :] - gy.reshape(-1, 1)
+    power = -0.5 * (ca[order] * dx * dx + cc[order] * dy * dy) - cb[order] * dx * dy
+    alpha = torch.clamp(opac[order] * torch.exp(torch.clamp(power, max=0.0)), max=OPACITY_MAX)
+    alpha = torch.where((power > 0) | (alpha < 1.0 / 255.0), torch.zeros_like(alpha), alpha)
+    trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], 1), 1)
+    img = (alpha * trans) @ colour[order]
+    return img.reshape(cam.height, cam.width, 3)
+
+
+class Renderer:
+    """Batched renders of a splat set (torch tensors) from cameras: gsplat on CUDA, dense_render on the CPU."""
+
+    def __init__(self, torch, device: str, degree: int, backend: str = "gsplat"):
+        self.torch, self.device, self.degree = torch, device, degree
+        self.backend = "dense" if device == "cpu" and backend == "gsplat" else backend
+        if self.backend == "gsplat":
+            from gsplat import rasterization
+            self.rasterization = rasterization
+        elif self.backend == "gsplat-torch":
+            self.rasterization = gsplat_torch_rasterization()
+
+    def __call__(self, p: dict, cams: list[Camera]):
+        torch = self.torch
+        opac = torch.sigmoid(p["opacity_logits"]).clamp(max=OPACITY_MAX)
+        scales = torch.exp(p["log_scales"])
+        sh = torch.cat([p["sh_dc"][:, None, :], p["sh_rest"]], 1)
+        if self.backend == "dense":
+            return torch.stack([dense_render(torch, p["positions"], p["rotations"], scales, opac, sh, self.degree, c)
+                                for c in cams])
+        view, ks = camera_tensors(cams, torch, self.device)
+        img, _, _ = self.rasterization(p["positions"], p["rotations"], scales, opac, sh, view, ks,
+                                       cams[0].width, cams[0].height, near_plane=min(c.near for c in cams),
+                                       far_plane=1e10, eps2d=0.3, sh_degree=self.degree)
+        return img
+
+
+def gsplat_torch_rasterization():
+    """gsplat's `_rasterization` (its autograd version) with the CUDA helpers it still calls swapped for gsplat's own
+    pure-torch ones: the same call as `rasterization`, on the CPU, to check our arguments' conventions here."""
+    import gsplat.rendering as gr
+    import torch
+    from gsplat.cuda import _torch_impl as ti
+
+    seen = {}
+
+    def isect_tiles(means2d, radii, depths, tile_size, tile_width, tile_height, **kw):
+        seen.update(radii=radii, depths=depths)  # the compositing below needs them (CUDA's has the tile lists)
+        return ti._isect_tiles(means2d, radii, depths, tile_size, tile_width, tile_height)
+
+    def composite(means2d, conics, colors, opacities, width, height, *a, backgrounds=None, **kw):
+        """gsplat's per-pixel blend (rasterize_to_pixels_fwd.cu: alpha = min(0.999, o exp(power)), skipped when
+        power > 0 or alpha < 1/255, pixel centres at +0.5), every pixel against every splat in depth order."""
+        out_c, out_a = [], []
+        gy, gx = torch.meshgrid(torch.arange(height, dtype=means2d.dtype) + 0.5,
+                                torch.arange(width, dtype=means2d.dtype) + 0.5, indexing="ij")
+        for c in range(means2d.shape[0]):
+            ok = (seen["radii"][c] > 0).all(-1)
+            order = torch.argsort(torch.where(ok, seen["depths"][c], torch.inf))[:int(ok.sum())]
+            m, q, o, col = means2d[c][order], conics[c][order], opacities[c][order], colors[c][order]
+            dx = m[None, :, 0] - gx.reshape(-1, 1)
+            dy = m[None, :, 1] - gy.reshape(-1, 1)
+            power = -0.5 * (q[:, 0] * dx * dx + q[:, 2] * dy * dy) - q[:, 1] * dx * dy
+            alpha = torch.clamp(o * torch.exp(torch.clamp(power, max=0.0)), max=0.999)
+            alpha = torch.where((power > 0) | (alpha < 1.0 / 255.0), torch.zeros_like(alpha), alpha)
+            trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], 1), 1)
+            out_c.append(((alpha * trans) @ col).reshape(height, width, -1))
+            out_a.append((1 - trans[:, -1] * (1 - alpha[:, -1])).reshape(height, width, 1))
+        return torch.stack(out_c), torch.stack(out_a)
+
+    gr.isect_tiles = isect_tiles
+    gr.isect_offset_encode = lambda ids, n, tw, th: torch.zeros((n, th, tw), dtype=torch.int32)
+    gr.spherical_harmonics = lambda deg, dirs, coeffs, masks=None: ti._spherical_harmonics(deg, dirs, coeffs)
+    ti._rasterize_to_pixels = composite  # _rasterization imports it when called
+    return gr._rasterization
+
+
+def to_params(torch, g: Gaussians, device: str) -> dict:
+    f = {"positions": g.positions, "rotations": g.rotations, "log_scales": g.log_scales,
+         "opacity_logits": g.opacity_logits, "sh_dc": g.sh_dc, "sh_rest": g.sh_rest}
+    return {k: torch.from_numpy(np.ascontiguousarray(v, np.float32)).to(device) for k, v in f.items()}
+
+
+def psnr_of(mse: float) -> float:
+    return 99.0 if mse <= 0 else 10.0 * math.log10(1.0 / mse)
+
+
+# --- torch: one scene -------------------------------------------------------------------------------------------
+
+LR = {"opacity_logits": 0.05, "sh_dc": 0.005, "log_scales": 0.005, "rotations": 0.002}  # positions: scaled below
+
+
+def refine_scene(name: str, g: Gaussians, tiles: list[lod.Tile], args, torch, budget_s: float) -> dict:
+    """Per variant: ({tile id: {field: delta}}, per-level report). `budget_s` for the optimisation (GT excluded)."""
+    from splatstream.orientation import detect_up
+
+    dev = args.device
+    up = detect_up(g).up
+    cams = training_cameras(g.positions, up, args.cameras, args.size, seed=args.seed)
+    bench = lvp.view_cameras(g.positions, up, 4, args.size)
+    dist = math.dist(bench[0].eye, bench[0].target)
+    render = Renderer(torch, dev, g.sh_degree)
+    full = to_params(torch, g, dev)
+    t0 = time.perf_counter()
+    with torch.no_grad():
+        gt = torch.cat([render(full, cams[i:i + args.batch]) for i in range(0, len(cams), args.batch)]).clamp(0, 1)
+        gt_bench = render(full, bench).clamp(0, 1)
+    if dev != "cpu":
+        torch.cuda.synchronize()
+    gt_s = time.perf_counter() - t0
+    del full
+    cuts = level_cuts(tiles)
+    keep = drawn_tiles(args.drawn, name)
+    report = {"scene": name, "splats": len(g), "sh_degree": g.sh_degree, "cameras": len(cams), "size": args.size,
+              "gt_s": round(gt_s, 2), "levels": {}}
+    results = {v: {} for v in args.variants}
+    slot = budget_s / max(1, len(cuts) * len(args.variants))
+
+    def mse_over(p, which: list[Camera], target) -> float:
+        with torch.no_grad():
+            errs = [float(((render(p, which[i:i + args.batch]).clamp(0, 1) - target[i:i + args.batch]) ** 2)
+                          .mean(dim=(1, 2, 3)).sum()) for i in range(0, len(which), args.batch)]
+        return sum(errs) / len(which)
+
+    for d, (merged_ids, fixed_ids) in cuts.items():
+        merged = Gaussians.concatenate([tiles[i].gaussians for i in merged_ids])
+        fixed = Gaussians.concatenate([tiles[i].gaussians for i in fixed_ids]) if fixed_ids else None
+        pm = to_params(torch, merged, dev)
+        pf = to_params(torch, fixed, dev) if fixed is not None else None
+
+        def cut(p, pf=pf):
+            return p if pf is None else {k: torch.cat([pf[k], p[k]]) for k in p}
+
+        before = mse_over(cut(pm), cams, gt)
+        before_bench = mse_over(cut(pm), bench, gt_bench)
+        lv = {"merged_tiles": len(merged_ids), "merged_splats": len(merged), "fixed_splats": len(fixed or []),
+              "train_psnr_before": round(psnr_of(before), 3), "bench_psnr_before": round(psnr_of(before_bench), 3)}
+        for v in args.variants:
+            t1 = time.perf_counter()
+            trained = VARIANTS[v]
+            p = {k: (x.clone().requires_grad_(True) if k in trained else x) for k, x in pm.items()}
+            groups = [{"params": [p[k]], "lr": LR.get(k, 2e-4 * dist)} for k in trained]
+            opt = torch.optim.Adam(groups, eps=1e-15)
+            rng = np.random.default_rng(args.seed + d)
+            it = 0
+            while it < args.iters and (it < args.min_iters or time.perf_counter() - t1 < slot):
+                batch = rng.choice(len(cams), size=min(args.batch, len(cams)), replace=False)
+                img = render(cut(p), [cams[i] for i in batch]).clamp(0, 1)
+                loss = ((img - gt[torch.as_tensor(batch, device=gt.device)]) ** 2).mean()
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+                it += 1
+            after = mse_over(cut(p), cams, gt)
+            after_bench = mse_over(cut(p), bench, gt_bench)
+            lv[v] = {"iters": it, "seconds": round(time.perf_counter() - t1, 2),
+                     "train_psnr_after": round(psnr_of(after), 3), "bench_psnr_after": round(psnr_of(after_bench), 3)}
+            say(f"{name} level {d} ({len(merged):,} merged + {len(fixed or []):,} fixed) {v}: train "
+                f"{psnr_of(before):.2f} -> {psnr_of(after):.2f} dB, bench views {psnr_of(before_bench):.2f} -> "
+                f"{psnr_of(after_bench):.2f} dB, {it} it, {lv[v]['seconds']:.1f} s")
+            if after >= before:  # worse on its own training views: keep the unrefined level
+                lv[v]["kept"] = False
+                continue
+            lv[v]["kept"] = True
+            off = 0
+            for tid in merged_ids:
+                n = len(tiles[tid].gaussians)
+                if keep is None or tid in keep:
+                    results[v][tid] = {k: (p[k].detach()[off:off + n] - pm[k][off:off + n]).cpu().numpy()
+                                       for k in trained}
+                off += n
+        report["levels"][d] = lv
+    return {"results": results, "report": report}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--inputs", required=True, help="a folder laid out as the shared data/real (the scene sources)")
+    ap.add_argument("--scenes", nargs="+", default=None, help="default: every lod_vs_peers scene found in --inputs")
+    ap.add_argument("--out", required=True)
+    ap.add_argument("--variants", nargs="+", default=["A", "B", "C"], choices=sorted(VARIANTS))
+    ap.add_argument("--device", default="cuda")
+    ap.add_argument("--cameras", type=int, default=96)
+    ap.add_argument("--size", type=int, default=384,
+                    help="training views' size (the benchmark's: at 40 px, positions and rotations overfit its pixels)")
+    ap.add_argument("--batch", type=int, default=8, help="views per step")
+    ap.add_argument("--iters", type=int, default=300, help="at most, per level and variant")
+    ap.add_argument("--min-iters", type=int, default=30)
+    ap.add_argument("--budget-s", type=float, default=420.0, help="wall clock for everything")
+    ap.add_argument("--drawn", default=None, help="lod_vs_peers result dir: keep only the tiles its cuts drew")
+    ap.add_argument("--max-splats", type=int, default=None, help="CPU tests: only the first N splats of a scene")
+    ap.add_argument("--max-leaf", type=int, default=MAX_LEAF_SPLATS, help="CPU tests: smaller leaves")
+    ap.add_argument("--workers", type=int, default=None, help="tree-building processes")
+    ap.add_argument("--seed", type=int, default=0)
+    args = ap.parse_args(argv)
+    start = time.perf_counter()
+    os.makedirs(args.out, exist_ok=True)
+    names = args.scenes or [n for n, s in lvp.SCENES.items() if os.path.exists(os.path.join(args.inputs, s.source))]
+    say(f"scenes: {' '.join(names)}")
+
+    # the trees on the CPUs (a process per scene, the largest first) while the GPU renders and refines
+    from concurrent.futures import ProcessPoolExecutor
+    pool = ProcessPoolExecutor(max_workers=args.workers or min(len(names), os.cpu_count() or 1))
+    futures = {n: pool.submit(_scene_and_tree, args.inputs, n, args.max_splats, args.max_leaf) for n in names}
+
+    import torch
+    if args.device != "cpu":
+        from gsplat.cuda._backend import _C  # noqa: F401  (JIT-compiles gsplat's CUDA once, ~1 min, while the pool builds the trees)
+    say(f"torch {torch.__version__} on {args.device}, ready after {time.perf_counter() - start:.1f} s")
+    weights = {}
+    packed = {v: {} for v in args.variants}
+    reports = []
+    for k, n in enumerate(names):
+        g, tiles, digest, build_s = futures[n].result()
+        weights[n] = math.sqrt(len(g))
+        left = args.budget_s - (time.perf_counter() - start) - 15.0  # writing the files
+        rest = sum(math.sqrt(len(g)) if m == n else 1.0 for m in names[k:])  # unknown sizes count as 1
+        share = max(5.0, left * weights[n] / max(rest, 1e-9) * 0.85)  # GT renders and evaluation inside it
+        say(f"{n}: {len(g):,} splats, {digest['tiles']} tiles (built in {build_s:.1f} s), budget {share:.0f} s")
+        r = refine_scene(n, g, tiles, args, torch, share)
+        r["report"].update(digest={k2: digest[k2] for k2 in ("tiles", "shape_sha", "positions_sha")},
+                           build_s=round(build_s, 1))
+        reports.append(r["report"])
+        for v in args.variants:
+            packed[v][n] = pack_scene(n, digest, r["results"][v], {"variant": v, "fields": VARIANTS[v],
+                                                                    "levels": r["report"]["levels"]})
+        with open(os.path.join(args.out, "refine_report.json"), "w") as f:
+            json.dump({"args": vars(args), "scenes": reports}, f, indent=1)
+    pool.shutdown()
+    sizes = {}
+    for v in args.variants:
+        for p in write_parts(args.out, v, packed[v]):
+            sizes[os.path.basename(p)] = os.path.getsize(p)
+    say("files: " + ", ".join(f"{k} {s / 2**20:.1f} MiB" for k, s in sizes.items())
+        + f"; total {sum(sizes.values()) / 2**20:.1f} MiB; {time.perf_counter() - start:.0f} s")
+    print_summary(reports, args.variants)
+    return 0
+
+
+def print_summary(reports: list[dict], variants: list[str]) -> None:
+    print("scene level merged | train PSNR before -> " + " ".join(variants) + " | bench-view PSNR before -> "
+          + " ".join(variants) + " | s")
+    for r in reports:
+        for d, lv in r["levels"].items():
+            tr = " ".join(f"{lv[v]['train_psnr_after']:.2f}" for v in variants if v in lv)
+            bv = " ".join(f"{lv[v]['bench_psnr_after']:.2f}" for v in variants if v in lv)
+            secs = sum(lv[v]["seconds"] for v in variants if v in lv)
+            print(f"{r['scene']} {d} {lv['merged_splats']} | {lv['train_psnr_before']:.2f} -> {tr} | "
+                  f"{lv['bench_psnr_before']:.2f} -> {bv} | {secs:.1f}")
+
+
+def _scene_and_tree(data_dir: str, name: str, max_splats: int | None, max_leaf: int):
+    t = time.perf_counter()
+    g = load_scene(data_dir, name)
+    if max_splats:
+        g = g.subset(np.arange(min(max_splats, len(g))))
+    tiles = default_tree(g, max_leaf)
+    return g, tiles, tree_digest(tiles, max_leaf, max_splats), time.perf_counter() - t
+
+
+if __name__ == "__main__":
+    sys.exit(main())
