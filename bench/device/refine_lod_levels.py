@@ -407,7 +407,9 @@ def refine_scene(name: str, g: Gaussians, tiles: list[lod.Tile], args, torch, bu
     report = {"scene": name, "splats": len(g), "sh_degree": g.sh_degree, "cameras": len(cams), "size": args.size,
               "gt_s": round(gt_s, 2), "levels": {}}
     results = {v: {} for v in args.variants}
-    slot = budget_s / max(1, len(cuts) * len(args.variants))
+    evals = cams[:args.eval_cameras]  # the training PSNR reported (and the keep rule): a fixed subset, for time
+    levels = sum(1 for merged, _ in cuts.values() if keep is None or keep.intersection(merged))
+    slot = budget_s / max(1, levels * len(args.variants))
 
     def mse_over(p, which: list[Camera], target) -> float:
         with torch.no_grad():
@@ -416,6 +418,8 @@ def refine_scene(name: str, g: Gaussians, tiles: list[lod.Tile], args, torch, bu
         return sum(errs) / len(which)
 
     for d, (merged_ids, fixed_ids) in cuts.items():
+        if keep is not None and not keep.intersection(merged_ids):
+            continue  # a level no budget's cut draws (the coarsest ones, under 1 % of the splats): not refined
         merged = Gaussians.concatenate([tiles[i].gaussians for i in merged_ids])
         fixed = Gaussians.concatenate([tiles[i].gaussians for i in fixed_ids]) if fixed_ids else None
         pm = to_params(torch, merged, dev)
@@ -424,7 +428,7 @@ def refine_scene(name: str, g: Gaussians, tiles: list[lod.Tile], args, torch, bu
         def cut(p, pf=pf):
             return p if pf is None else {k: torch.cat([pf[k], p[k]]) for k in p}
 
-        before = mse_over(cut(pm), cams, gt)
+        before = mse_over(cut(pm), evals, gt[:len(evals)])
         before_bench = mse_over(cut(pm), bench, gt_bench)
         lv = {"merged_tiles": len(merged_ids), "merged_splats": len(merged), "fixed_splats": len(fixed or []),
               "train_psnr_before": round(psnr_of(before), 3), "bench_psnr_before": round(psnr_of(before_bench), 3)}
@@ -444,7 +448,7 @@ def refine_scene(name: str, g: Gaussians, tiles: list[lod.Tile], args, torch, bu
                 loss.backward()
                 opt.step()
                 it += 1
-            after = mse_over(cut(p), cams, gt)
+            after = mse_over(cut(p), evals, gt[:len(evals)])
             after_bench = mse_over(cut(p), bench, gt_bench)
             lv[v] = {"iters": it, "seconds": round(time.perf_counter() - t1, 2),
                      "train_psnr_after": round(psnr_of(after), 3), "bench_psnr_after": round(psnr_of(after_bench), 3)}
@@ -477,6 +481,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--size", type=int, default=384,
                     help="training views' size (the benchmark's: at 40 px, positions and rotations overfit its pixels)")
     ap.add_argument("--batch", type=int, default=8, help="views per step")
+    ap.add_argument("--eval-cameras", type=int, default=32, help="training views the before/after PSNR is over")
     ap.add_argument("--iters", type=int, default=300, help="at most, per level and variant")
     ap.add_argument("--min-iters", type=int, default=30)
     ap.add_argument("--budget-s", type=float, default=420.0, help="wall clock for everything")
@@ -500,17 +505,24 @@ def main(argv: list[str] | None = None) -> int:
     if args.device != "cpu":
         from gsplat.cuda._backend import _C  # noqa: F401  (JIT-compiles gsplat's CUDA once, ~1 min, while the pool builds the trees)
     say(f"torch {torch.__version__} on {args.device}, ready after {time.perf_counter() - start:.1f} s")
-    weights = {}
     packed = {v: {} for v in args.variants}
     reports = []
     for k, n in enumerate(names):
-        g, tiles, digest, build_s = futures[n].result()
-        weights[n] = math.sqrt(len(g))
+        try:
+            g, tiles, digest, build_s = futures[n].result()
+        except Exception as e:  # one unreadable scene does not cost the others' device time
+            say(f"{n}: FAILED to load or build: {e!r}")
+            continue
         left = args.budget_s - (time.perf_counter() - start) - 15.0  # writing the files
-        rest = sum(math.sqrt(len(g)) if m == n else 1.0 for m in names[k:])  # unknown sizes count as 1
-        share = max(5.0, left * weights[n] / max(rest, 1e-9) * 0.85)  # GT renders and evaluation inside it
+        share = max(5.0, left / (len(names) - k) * 0.85)  # the GT renders and the evaluation come out of the rest
         say(f"{n}: {len(g):,} splats, {digest['tiles']} tiles (built in {build_s:.1f} s), budget {share:.0f} s")
-        r = refine_scene(n, g, tiles, args, torch, share)
+        try:
+            r = refine_scene(n, g, tiles, args, torch, share)
+        except Exception as e:
+            say(f"{n}: FAILED to refine: {e!r}")
+            if args.device != "cpu":
+                torch.cuda.empty_cache()
+            continue
         r["report"].update(digest={k2: digest[k2] for k2 in ("tiles", "shape_sha", "positions_sha")},
                            build_s=round(build_s, 1))
         reports.append(r["report"])

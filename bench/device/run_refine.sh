@@ -18,7 +18,9 @@ OUT=${OUT:-/tmp/refine_out}
 SITE=${SITE:-/tmp/site}
 mkdir -p "$OUT" "$SITE"
 start=$(date +%s)
-whl=$(ls .whl_refine/gsplat-*.whl .whl/gsplat-*.whl 2>/dev/null | head -1)
+whl=
+for f in .whl_refine/gsplat-*.whl .whl/gsplat-*.whl; do [ -f "$f" ] && whl=$f && break; done
+[ -n "$whl" ] || { echo "no gsplat wheel in .whl_refine/ or .whl/ (bench/device_wheels.sh refine)"; exit 1; }
 python3 -m pip install -q --no-index --no-deps --target "$SITE" "$whl"
 export PYTHONPATH=$SITE:$PWD
 export TORCH_CUDA_ARCH_LIST=${TORCH_CUDA_ARCH_LIST:-9.0} MAX_JOBS=${MAX_JOBS:-12}
