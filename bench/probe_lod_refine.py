@@ -12,7 +12,7 @@ GL renderer at 384 px (client_gl, in-memory very-high upload), PSNR / SSIM again
 of the 4 views. `today` (the unrefined tree replayed) must land within ~0.03 dB of the JSON's streamed PSNR; best
 peer as bench/lod_vs_peers_compare.py.
 
-    PYTHONPATH=. python bench/probe_lod_refine.py --refined /tmp/refine_out --variants A B C \
+    PYTHONPATH=. python bench/probe_lod_refine.py --refined RUN1_OUT RUN2_OUT --variants A B C \
         --results bench/results/lod_vs_peers_px28 --cache-dir /tmp/lvp50/cache --out /tmp/refine_replay.jsonl
     PYTHONPATH=. python bench/probe_lod_refine.py --results bench/results/lod_vs_peers_px28 --scenes statue-massa
         # no --refined: only the unrefined replay, against the JSON
@@ -61,7 +61,8 @@ def replay_scene(name: str, args) -> list[dict]:
     files = {}
     for v in args.variants:
         try:
-            files[v] = rl.read_refined(sorted(glob.glob(os.path.join(args.refined, f"refine_{v}_*.npz"))), name)
+            paths = sorted(p for d in args.refined for p in glob.glob(os.path.join(d, f"refine_{v}_*.npz")))
+            files[v] = rl.read_refined(paths, name)
         except KeyError:
             print(f"{name}: no variant {v} in {args.refined}", file=sys.stderr)
     # a CPU test's file (refine_lod_levels --max-splats/--max-leaf): that small tree, whole levels only
@@ -126,7 +127,8 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--results", default=os.path.join(HERE, "results", "lod_vs_peers_px28"))
     ap.add_argument("--cache-dir", default="/tmp/lvp50/cache")
-    ap.add_argument("--refined", default=None, help="the device run's $OUT (refine_<variant>_<k>.npz)")
+    ap.add_argument("--refined", nargs="+", default=None,
+                    help="the device runs' $OUT folders (refine_<variant>_<k>.npz; the runs' files share names)")
     ap.add_argument("--variants", nargs="*", default=["A", "B", "C"])
     ap.add_argument("--scenes", nargs="+", default=None, help="default: those with a JSON in --results")
     ap.add_argument("--levels", action="store_true", help="also each merged level's whole cut")
