@@ -5,6 +5,11 @@
 #
 #   bash bench/device/run_refine.sh .refine_in [refine_lod_levels.py options]
 #
+# The lead's two runs (the tracked files are ~36 MiB of the 64 MiB that travel; bench/device/refine_inputs.sh and
+# bench/device_wheels.sh refine make the folders): `BUDGET_S=360 bash bench/device/run_refine.sh .refine_in`, carry
+# [".whl_refine", ".refine_in"], timeout 450; then `BUDGET_S=200 bash bench/device/run_refine.sh .refine_flowers`,
+# carry [".whl_refine", ".refine_flowers"], timeout 290 (at once: a warm machine keeps gsplat's build).
+#
 # Installs gsplat (--no-deps: the image has torch, jaxtyping, rich, ninja, nvcc), JIT-builds its CUDA extension while
 # the trees are built on the CPUs (refine_lod_levels.py does both), then refines every scene found in the folder
 # within BUDGET_S seconds of wall clock (default 480) and writes refine_<variant>_<k>.npz + refine_report.json to
