@@ -503,7 +503,10 @@ def main(argv: list[str] | None = None) -> int:
 
     import torch
     if args.device != "cpu":
-        from gsplat.cuda._backend import _C  # noqa: F401  (JIT-compiles gsplat's CUDA once, ~1 min, while the pool builds the trees)
+        from gsplat.cuda._backend import _C  # JIT-compiles gsplat's CUDA once, ~1 min, while the pool builds the trees
+        if _C is None:  # no CUDA toolkit found: gsplat leaves it None, and every render would fail
+            pool.shutdown(cancel_futures=True)
+            raise SystemExit("gsplat's CUDA extension is not built (nvcc / CUDA_HOME not found)")
     say(f"torch {torch.__version__} on {args.device}, ready after {time.perf_counter() - start:.1f} s")
     packed = {v: {} for v in args.variants}
     reports = []
