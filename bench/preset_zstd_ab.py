@@ -5,9 +5,12 @@ was (its zstd level, the level's shortest match, blocks joined only where no byt
     PYTHONPATH=. python bench/preset_zstd_ab.py [--scenes a,b,name=path] [--presets p,q] [--rounds 7]
     PYTHONPATH=. python bench/preset_zstd_ab.py --presets very-high --rounds 9      # vhdec's measurement
     PYTHONPATH=. python bench/preset_zstd_ab.py --presets medium-low-9bit --after 16:6:0.01   # a candidate
+    PYTHONPATH=. python bench/preset_zstd_ab.py --presets very-high --before 12:0:0.03 --rounds 9   # vhdec2's
 
-`--after LEVEL:MIN_MATCH:SLACK` measures a candidate instead of the preset's settings now (the "after" side), for
-settings not yet in presets.py (issue 32, eval32: the two level-16 presets lossydec left).
+`--after LEVEL:MIN_MATCH:SLACK[:ONE_BLOCK_SLACK]` measures a candidate instead of the preset's settings now (the
+"after" side), for settings not yet in presets.py (issue 32, eval32: the two level-16 presets lossydec left);
+`--before` the same for the "before" side instead of BEFORE (vhdec2: very-high's one-block slack against vhdec's
+settings, `12:0:0.03`). ONE_BLOCK_SLACK is presets.PRESET_ONE_BLOCK_SLACK's (0 where left out).
 
 Each scene is encoded both ways in memory (LOD tree, the encoder's defaults), the decoded texels checked equal, then
 thread CPU (time.thread_time) of a `zstd` pass (every payload into the decoder's kept buffer) and a `verified` pass
@@ -33,8 +36,8 @@ from splatstream.encode import EncodeOptions  # noqa: E402
 from splatstream.encode.local import encode_in_memory  # noqa: E402
 from splatstream.format import presets  # noqa: E402
 
-# (zstd level, shortest match (0: the level's), block slack) of each preset before its branch: very-high before
-# vhdec (main at e8b6c09), the others before lossydec (main at c8fa564)
+# (zstd level, shortest match (0: the level's), block slack) of each preset before its branch (no one-block slack):
+# very-high before vhdec (main at e8b6c09), the others before lossydec (main at c8fa564)
 BEFORE = {"very-high": (1, 0, 0.0), "high": (1, 0, 0.0), "medium-low-sh8": (1, 0, 0.0), "medium-low-sh16": (1, 0, 0.0),
           "medium-low-12bit": (16, 0, 0.0), "medium-low-palette": (16, 0, 0.0), "low-plus-9bit": (16, 0, 0.0),
           "low-plus-9bit-sh6": (16, 0, 0.0), "low-plus-9bit-sh5": (16, 0, 0.0),
@@ -42,22 +45,25 @@ BEFORE = {"very-high": (1, 0, 0.0), "high": (1, 0, 0.0), "medium-low-sh8": (1, 0
           "low-plus-10bit-cb8": (16, 0, 0.0), "medium-low-9bit": (16, 0, 0.0),
           # before tidy32 (main at 5579774): medium-high on the encoder's default level without a slack
           "medium-high": (1, 0, 0.0)}
-TABLES = (presets.PRESET_ZSTD_LEVEL, presets.PRESET_ZSTD_MIN_MATCH, presets.PRESET_BLOCK_SLACK)
+TABLES = (presets.PRESET_ZSTD_LEVEL, presets.PRESET_ZSTD_MIN_MATCH, presets.PRESET_BLOCK_SLACK,
+          presets.PRESET_ONE_BLOCK_SLACK)
 
 
-def parse_settings(text: str) -> tuple[int, int, float]:
-    """`LEVEL:MIN_MATCH:SLACK` (e.g. 16:6:0.01) as (zstd level, shortest match (0: the level's), block slack)."""
-    level, min_match, slack = text.split(":")
-    return int(level), int(min_match), float(slack)
+def parse_settings(text: str) -> tuple[int, int, float, float]:
+    """`LEVEL:MIN_MATCH:SLACK[:ONE_BLOCK_SLACK]` (e.g. 16:6:0.01) as (zstd level, shortest match (0: the level's),
+    block slack, one-block slack (0 where left out))."""
+    level, min_match, slack, *one = text.split(":")
+    return int(level), int(min_match), float(slack), float(one[0]) if one else 0.0
 
 
-def encode_both(g, preset: str, after: tuple[int, int, float] | None = None) -> tuple[dict, dict]:
-    """(Case by variant, encode CPU s by variant): "before" the settings of BEFORE, "after" the preset's now, or
-    `after` (level, shortest match, slack) where given."""
+def encode_both(g, preset: str, after: tuple[int, int, float, float] | None = None,
+                before: tuple[int, int, float, float] | None = None) -> tuple[dict, dict]:
+    """(Case by variant, encode CPU s by variant): "before" the settings of BEFORE (or `before`), "after" the
+    preset's now, or `after` (level, shortest match, slack, one-block slack) where given."""
     now = [dict(t) for t in TABLES]
     cases, cpu = {}, {}
     for name in ("before", "after"):
-        settings = BEFORE[preset] if name == "before" else after
+        settings = (before or (*BEFORE[preset], 0.0)) if name == "before" else after
         if settings is not None:
             for table, value in zip(TABLES, settings, strict=True):
                 table.pop(preset, None)
@@ -77,14 +83,16 @@ def main() -> None:
     ap.add_argument("--scenes", default="winter_fountain,guitar,statue_massa,fruit_drops_sh3,lod_tile_sh3_zero_rest")
     ap.add_argument("--presets", default=",".join(p for p in BEFORE if p != "very-high"))
     ap.add_argument("--rounds", type=int, default=7)
-    ap.add_argument("--after", type=parse_settings, default=None, metavar="LEVEL:MIN_MATCH:SLACK",
+    ap.add_argument("--after", type=parse_settings, default=None, metavar="LEVEL:MIN_MATCH:SLACK[:ONE_BLOCK_SLACK]",
                     help="a candidate's zstd settings instead of the preset's now (e.g. 16:6:0.01)")
+    ap.add_argument("--before", type=parse_settings, default=None, metavar="LEVEL:MIN_MATCH:SLACK[:ONE_BLOCK_SLACK]",
+                    help="the settings to measure against instead of BEFORE's (e.g. 12:0:0.03)")
     args = ap.parse_args()
     decode_jit.install()
     print("load", os.getloadavg(), flush=True)
     for scene, g in dq.scene_gaussians(args.scenes):
         for preset in args.presets.split(","):
-            cases, cpu = encode_both(g, preset, args.after)
+            cases, cpu = encode_both(g, preset, args.after, args.before)
             digests = {k: hashlib.sha256(b"".join(c.texels())).hexdigest() for k, c in cases.items()}
             if digests["before"] != digests["after"]:
                 raise SystemExit(f"{scene} {preset}: the decoded texels differ")

@@ -19,7 +19,7 @@ from splatstream.encode.local import encode_in_memory
 from splatstream.errors import FormatError
 from splatstream.format import container
 from splatstream.format.decode import decode_payload, decode_payloads
-from splatstream.format.presets import PRESET_BLOCK_SLACK, PRESETS
+from splatstream.format.presets import PRESET_BLOCK_SLACK, PRESET_ONE_BLOCK_SLACK, PRESETS
 from splatstream.format.transport import (
     FIELD_LAYOUTS,
     field_bits,
@@ -264,6 +264,7 @@ def test_very_high_joins_blocks_with_its_slack_the_same_bytes_decompressed(fruit
         return [(store.read_payload(e), e) for t in m.tiles for e in t.groups.values()]
 
     assert PRESET_BLOCK_SLACK["very-high"] > 0
+    monkeypatch.delitem(PRESET_ONE_BLOCK_SLACK, "very-high")  # the slack alone (the one-block rule: the test after)
     joined = encode()
     monkeypatch.setitem(PRESET_BLOCK_SLACK, "very-high", 0.0)
     apart = encode()
@@ -276,6 +277,39 @@ def test_very_high_joins_blocks_with_its_slack_the_same_bytes_decompressed(fruit
     assert 0 < blocks_joined < 0.8 * blocks_apart
     assert sum(len(a) for a, _ in joined) < 1.02 * sum(len(b) for b, _ in apart)  # (the trials' level is 1, the
     # payload's 12: joined blocks may even code smaller)
+
+def test_very_high_stores_a_small_payload_as_one_block_within_its_one_block_slack(fruit, monkeypatch):
+    # very-high's one-block slack (presets.PRESET_ONE_BLOCK_SLACK; issue 32: a block's tables cost zstd's reader more
+    # than their bytes): a payload of at most MERGE_MAX_RAW is stored as one zstd block where that frame takes at most
+    # 1 + slack times the bytes of its joined blocks' (container.write_payload), else as those blocks; nothing
+    # decompressed changes (format.md 5.2)
+    def encode():
+        store = encode_in_memory(fruit, EncodeOptions(preset="very-high", max_leaf_splats=512))
+        m = read_manifest(store)
+        return [(store.read_payload(e), e) for t in m.tiles for e in t.groups.values()]
+
+    slack = PRESET_ONE_BLOCK_SLACK["very-high"]
+    assert 0 < slack <= 0.01
+    one = encode()
+    monkeypatch.delitem(PRESET_ONE_BLOCK_SLACK, "very-high")
+    joined = encode()
+    assert len(one) == len(joined) > 10
+    d = zstandard.ZstdDecompressor()
+    singles = 0
+    for (a, ea), (b, eb) in zip(one, joined, strict=True):
+        assert d.decompress(a) == d.decompress(b) and ea.sections == eb.sections
+        assert len(a) <= (1 + slack) * len(b)
+        if a != b:  # stored as one block: a data block and the frame's empty last one (FLUSH_BLOCK, then the end)
+            assert ea.raw_bytes <= container.MERGE_MAX_RAW and zstd_block_count(b) > 2
+            assert zstd_block_count(a) <= 1 + -(-ea.raw_bytes // zstandard.BLOCKSIZE_MAX)
+            singles += 1
+    assert singles >= 1  # (fruit_drops' SH3 tiles of 512 splats: most of their payloads cost more as one block)
+    assert sum(zstd_block_count(a) for a, _ in one) < sum(zstd_block_count(b) for b, _ in joined)
+    monkeypatch.setitem(PRESET_ONE_BLOCK_SLACK, "very-high", 1.0)  # any cost: every small payload is one block
+    for data, entry in encode():
+        if entry.raw_bytes <= container.MERGE_MAX_RAW:
+            assert zstd_block_count(data) <= 1 + -(-entry.raw_bytes // zstandard.BLOCKSIZE_MAX)
+
 
 def _group_reads(monkeypatch) -> list[bool]:
     """Whether each container._decompress_group call decompressed its group (True) or left it to a payload at a

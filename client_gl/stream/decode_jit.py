@@ -87,7 +87,9 @@ def fields1_kernel(raw, planes_at, params_at, n, layers, words, fields, modes, s
                 if delta:
                     for i in range(n):
                         c = np.int64(b0[i]) | (np.int64(b1[i]) << 8)
-                        s += (c >> 1) ^ -(c & 1)
+                        row[i] = (c >> 1) ^ -(c & 1)
+                    for i in range(n):
+                        s += row[i]
                         row[i] = s & m
                 else:
                     for i in range(n):
@@ -102,7 +104,9 @@ def fields1_kernel(raw, planes_at, params_at, n, layers, words, fields, modes, s
                     for i in range(n):
                         c = (np.int64(b0[i]) | (np.int64(b1[i]) << 8) | (np.int64(b2[i]) << 16)
                              | (np.int64(b3[i]) << 24))
-                        s += (c >> 1) ^ -(c & 1)
+                        row[i] = (c >> 1) ^ -(c & 1)
+                    for i in range(n):
+                        s += row[i]
                         row[i] = s & m
                 else:
                     for i in range(n):

@@ -72,7 +72,8 @@ def tile_group_names(ctx: TileContext) -> list[str]:
 def write_planes(planes: list[EncodedPlane], chunks: int, ctx: TileContext, writer: SceneWriter) -> PayloadEntry:
     with writer.payload_file() as (f, finish):
         entry = write_payload(planes, f, chunks, level=ctx.zstd_level, transport=ctx.transport,
-                              block_slack=ctx.block_slack, min_match=ctx.zstd_min_match)
+                              block_slack=ctx.block_slack, min_match=ctx.zstd_min_match,
+                              one_block_slack=ctx.one_block_slack)
         f.flush()
         finish(entry)
     return entry

@@ -25,6 +25,7 @@ from ..format.presets import (
     PRESET_PALETTE_MERGE,
     palette_fallback,
     preset_block_slack,
+    preset_one_block_slack,
     preset_zstd_min_match,
     resolve_chunk_order,
     resolve_formats,
@@ -59,6 +60,8 @@ class TileContext:
     block_slack: float = 0.0
     # zstd's shortest match, 0 for the level's own (container._compressor; the preset's)
     zstd_min_match: int = 0
+    # How much larger a small payload may be stored as one zstd block (container.write_payload; the preset's)
+    one_block_slack: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -172,7 +175,8 @@ def plan_scene(opts: EncodeOptions, formats: dict[str, str], chunk_order: str, s
     up = plan_up(opts, sample)
     formats, steps, palettes = plan_palettes(opts, formats, sample.palettes)
     context = TileContext(formats, chunk_order, sh_degree, codebook, opts.resolved_zstd_level, opts.resolved_transport,
-                          steps, palettes, preset_block_slack(opts.preset), preset_zstd_min_match(opts.preset))
+                          steps, palettes, preset_block_slack(opts.preset), preset_zstd_min_match(opts.preset),
+                          preset_one_block_slack(opts.preset))
     return ScenePlan(context, opts.preset, name, splats, bounds, up, opts.max_leaf_splats, float(opts.reduction),
                      lod_merge, viewing_scales_px() if lod_merge is not None else None), sample
 

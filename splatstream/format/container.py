@@ -72,7 +72,8 @@ DEFAULT_ZSTD_LEVEL = 1
 
 
 def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level: int = DEFAULT_ZSTD_LEVEL,
-                  transport: str = "fields", block_slack: float = 0.0, min_match: int = 0) -> PayloadEntry:
+                  transport: str = "fields", block_slack: float = 0.0, min_match: int = 0,
+                  one_block_slack: float = 0.0) -> PayloadEntry:
     """Write a payload into `out` (zstd, hashing as it goes) and return its manifest entry.
 
     Each plane's texels are taken one layer at a time as the plane produces them (planes from
@@ -84,7 +85,10 @@ def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level:
     and like parts of a small payload share one, which its decoder reads faster (issue 32). The payload's stored
     sections are held until then, never its texels as a whole.
     `chunks` is the tile's chunk count (range shapes); `block_slack`: _block_ends' (the preset's); `min_match`: zstd's
-    shortest match where not 0 (0: the level's own; the preset's, presets.PRESET_ZSTD_MIN_MATCH).
+    shortest match where not 0 (0: the level's own; the preset's, presets.PRESET_ZSTD_MIN_MATCH); `one_block_slack`
+    where not 0: a payload whose blocks _block_ends joins (at most MERGE_MAX_RAW) is also compressed as one block,
+    and stored so where that frame takes at most 1 + one_block_slack times the bytes of the joined blocks' (the
+    preset's, presets.PRESET_ONE_BLOCK_SLACK).
     """
     sections: list[Section] = []
     contents: list[list] = []
@@ -148,17 +152,33 @@ def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level:
     # does not depend on the worker count), but it buffers whole jobs, which lifts the encoder's peak memory on large
     # payloads (BENCHMARKS.md, "Figures behind library defaults"). Large payloads stream single-threaded.
     threads = -1 if offset <= WORKER_MODE_MAX_BYTES else 0
-    cctx = _compressor(level, threads, offset, min_match)
-    with cctx.stream_writer(_Sink(), size=offset, closefd=False) as stream:
-        for i, (pad, part) in enumerate(segments):
-            if pad is not None:
-                stream.write(pad)
-            stream.write(part)
-            if ends[i]:
-                stream.flush(zstandard.FLUSH_BLOCK)
+    if one_block_slack and offset <= MERGE_MAX_RAW and sum(ends) > 1:
+        # why one block where it costs little: a zstd block's literal and sequence tables are read before its bytes,
+        # a fixed cost that is most of what the lossless preset's blocks of a small payload cost its reader beyond
+        # their bytes (issue 32; presets.PRESET_ONE_BLOCK_SLACK)
+        joined, one = io.BytesIO(), io.BytesIO()
+        _compress_segments(joined, segments, ends, _compressor(level, threads, offset, min_match), offset)
+        _compress_segments(one, segments, [False] * (len(ends) - 1) + [True],
+                           _compressor(level, threads, offset, min_match), offset)
+        chosen = one if one.tell() <= joined.tell() * (1.0 + one_block_slack) else joined
+        _Sink().write(chosen.getvalue())
+    else:
+        _compress_segments(_Sink(), segments, ends, _compressor(level, threads, offset, min_match), offset)
     sha = digest.hexdigest()
     return PayloadEntry(payload_name(sha), sha, written, int(position), sum(s.gpu_size for s in sections),
                         tuple(sections))
+
+
+def _compress_segments(sink, segments: list, ends: list[bool], cctx: zstandard.ZstdCompressor, raw_bytes: int) -> None:
+    """One zstd frame of `segments` ((padding or None, part), `raw_bytes` in all) into `sink`, a zstd block ending
+    after each segment `ends` names."""
+    with cctx.stream_writer(sink, size=raw_bytes, closefd=False) as stream:
+        for (pad, part), end in zip(segments, ends, strict=True):
+            if pad is not None:
+                stream.write(pad)
+            stream.write(part)
+            if end:
+                stream.flush(zstandard.FLUSH_BLOCK)
 
 
 def _compressor(level: int, threads: int, raw_bytes: int, min_match: int) -> zstandard.ZstdCompressor:
