@@ -100,3 +100,17 @@ def test_opacity_and_colour_scales_apart():
     above = [(a, b, c) for a, b, c in zip(base, far, split, strict=True) if a.children and a.level < first]
     assert any(not same(b, c, ("sh_dc",)) for _, b, c in above)
     assert any(not same(a, c, ("opacity_logits",)) for a, _, c in above)
+
+
+def test_grow_is_the_library_rule_and_the_constants_are_restored():
+    # grow=A/G/CAP sets lod.OPACITY_MATCH_FAR_SSE_PX, _GROWTH and _CAP_SSE_PX for the build (issue 31, farpx31);
+    # grow=8/1/inf is the encoder's rule, so the base tree.
+    before = (lod.OPACITY_MATCH_FAR_SSE_PX, lod.OPACITY_MATCH_FAR_GROWTH, lod.OPACITY_MATCH_FAR_CAP_SSE_PX)
+    base, same_rule, grow = build("base"), build("grow=8/1/inf"), build("grow=8/2/16")
+    assert (lod.OPACITY_MATCH_FAR_SSE_PX, lod.OPACITY_MATCH_FAR_GROWTH, lod.OPACITY_MATCH_FAR_CAP_SSE_PX) == before
+    assert all(same(a, b) and a.geometric_error == b.geometric_error for a, b in zip(base, same_rule, strict=True))
+    first = first_merged(base)
+    # k = 0 and 1 (8 px either way) keep their bits; k = 2 (16 px) and above differ.
+    assert all(same(a, b) for a, b in zip(base, grow, strict=True) if a.level >= first - 1)
+    assert any(not same(a, b) for a, b in zip(base, grow, strict=True) if a.level < first - 1)
+    assert P.grow_px(1, 8, 1.5, 32) == 8 and P.grow_px(3, 8, 1.5, 32) == 18 and P.grow_px(5, 8, 1.5, 32) == 32

@@ -303,6 +303,41 @@ def test_far_viewing_scale_changes_only_the_levels_above_the_first_merged_one(mo
     assert ceiling[first - 1] == pytest.approx((0.303, 0.155), abs=0.01)
 
 
+def test_a_growing_far_scale_is_off_by_default_and_grows_by_level(monkeypatch):
+    # lod.OPACITY_MATCH_FAR_GROWTH (issue 31, farpx31): the level k above the first merged one at 8 x growth^(k - 1)
+    # px, at most the cap. Off by default (growth 1, no cap: every level above at 8 px, what the manifest's
+    # two-number record says); with a growth the record is left out (viewing_scales_px None: it cannot say it).
+    assert lod.OPACITY_MATCH_FAR_GROWTH == 1.0 and lod.OPACITY_MATCH_FAR_CAP_SSE_PX == math.inf
+    assert [lod.viewing_scale_px(0.3, k) for k in (1, 2, 5, 9)] == [8.0] * 4
+    assert lod.viewing_scale_px(0.0, 3) == 2.0 and lod.viewing_scales_px() == (2.0, 8.0)
+    monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_GROWTH", 1.5)
+    monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_CAP_SSE_PX", 32.0)
+    assert [lod.viewing_scale_px(0.3, k) for k in (1, 2, 3, 4, 5, 6)] == [8.0, 12.0, 18.0, 27.0, 32.0, 32.0]
+    assert lod.viewing_scale_px(0.0, 3) == 2.0  # the first merged level (child error 0) keeps its 2 px
+    assert lod.tile_viewing_blur(0.8, 0.3, 2) == pytest.approx(0.3 * (0.8 / 12.0) ** 2, rel=1e-12)
+    assert lod.viewing_scales_px() is None
+    monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_CAP_SSE_PX", 6.0)  # a cap under the start: one scale again
+    assert lod.viewing_scale_px(0.3, 4) == 6.0 and lod.viewing_scales_px() == (2.0, 6.0)
+
+
+def test_a_growing_far_scale_changes_the_levels_two_and_more_above_the_first_merged_one(monkeypatch):
+    # The grid merge (groups that do not read opacities): levels k = 0 (the first merged) and 1 keep their bits,
+    # k >= 2 are matched at 12, 18, ... px: a smaller blur, lower opacities on average.
+    g = scene("lod_tile_sh3_zero_rest.ply")
+    eight = lod.build_tiles(g, max_leaf_splats=1000, reduction=2.0, merge="grid")
+    monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_GROWTH", 1.5)
+    grow = lod.build_tiles(g, max_leaf_splats=1000, reduction=2.0, merge="grid")
+    first = max(t.level for t in eight) - 1
+    assert first >= 3
+    for level in range(first + 1):
+        a = np.concatenate([t.gaussians.opacities for t in eight if t.level == level])
+        b = np.concatenate([t.gaussians.opacities for t in grow if t.level == level])
+        if level >= first - 1:
+            np.testing.assert_array_equal(a, b)
+        else:
+            assert b.mean() < a.mean(), level
+
+
 def test_merging_preserves_mass_and_first_moment_and_keeps_singletons():
     g = random_gaussians(5000, seed=3, sh_degree=2)
     mass = lod.splat_mass(g)
