@@ -12,13 +12,14 @@ Variants change one thing of the merge (applied to the module, one build each):
 
 * `base`: the encoder as it is.
 * `px=A/B`: opacity and base colour (lod.md 6 step 5) matched at A px on the first merged level (the children
-  are leaves) and B px above it (0: no blur); the encoder's rule is 2/2. `px=A/B/C`: above it opacity at B px and
-  colour at C px.
+  are leaves) and B px above it (0: no blur); the rule before 2026-11-29 is 2/2, 2/8 the one before 2026-11-30.
+  `px=A/B/C`: above it opacity at B px and colour at C px.
 * `rule:KEY=VALUE`: the cost grouping's GroupRule field (lod_groups.GroupRule) on every level;
   `above:KEY=VALUE`: the same above the first merged level only.
 * `grow=A/G/CAP` (issue 31, branch `farpx31`): the level k above the first merged one (k = 1, 2, ...) matched at
   min(A x G^(k-1), CAP) px (opacity and colour; CAP `inf`: no cap), the first merged level at the encoder's
-  OPACITY_MATCH_SSE_PX; `grow=8/1/inf` is the encoder's rule, `far=C` is `grow=C/1/inf`.
+  OPACITY_MATCH_SSE_PX; `grow=8/1.5/16` is the encoder's rule since 2026-11-30 (lod.OPACITY_MATCH_FAR_GROWTH and
+  _CAP_SSE_PX), `grow=8/1/inf` the 2 + 8 px rule before it; `far=C` is `grow=C/1/inf`.
 * `optical`: the merged opacity from the members' summed optical depth, -log(1 - alpha_i) x dilated area,
   instead of their summed coverage (1 - exp(-depth / area) instead of min(0.99, coverage / area)).
 

@@ -56,13 +56,13 @@ LOW_PASS_PX2 = 0.3
 OPACITY_MATCH_SSE_PX = 2.0
 OPACITY_MATCH_FAR_SSE_PX = 8.0
 # The levels above the first merged one at OPACITY_MATCH_FAR_SSE_PX x GROWTH^(k - 1) px, k levels above it, at most
-# CAP px (viewing_scale_px). 1 and no cap: every level above at OPACITY_MATCH_FAR_SSE_PX, the rule the manifest's
-# two-number record (lod.viewing_scale_px) can say. A budget draws the coarser levels further away (7-30 px):
-# growth 1.5 up to 16 px (chosen leaving one scene out) gained a median +0.24 / +0.19 dB at 2 / 6 % budgets (none of
-# 48 points down by more than 0.07), frames without a budget a median -0.01 (-0.91 to +0.77), but the manifest's
-# record cannot say the rule (BENCHMARKS.md, "A viewing scale growing with the level"): not shipped.
-OPACITY_MATCH_FAR_GROWTH = 1.0
-OPACITY_MATCH_FAR_CAP_SSE_PX = math.inf
+# CAP px (viewing_scale_px): 8, 12, 16, 16, ... A budget draws the coarser levels further away (7-30 px): growth 1.5
+# up to 16 px (chosen leaving one scene out) gained a median +0.24 / +0.19 dB at 2 / 6 % budgets over 8 px on every
+# level above (none of 48 points down by more than 0.07), and frames without a budget moved a median -0.01 dB (-0.91
+# to +0.77; BENCHMARKS.md, "A viewing scale growing with the level"). Growth 1 (or a cap at or under
+# OPACITY_MATCH_FAR_SSE_PX) is one scale above the first merged level, the rule before 2026-11-30.
+OPACITY_MATCH_FAR_GROWTH = 1.5
+OPACITY_MATCH_FAR_CAP_SSE_PX = 16.0
 # Error statistic over a tile's ORIGINAL splats, each taking the error of the merged splat that stands for it
 # (so untouched singletons cannot hide a merged blob): "max" is a strict bound; a quantile ignores a few outliers.
 ERROR_STAT: str | float = 0.99
@@ -737,15 +737,20 @@ def viewing_scale_px(child_error: float, above: int = 1) -> float:
                OPACITY_MATCH_FAR_CAP_SSE_PX)
 
 
-def viewing_scales_px() -> tuple[float, float] | None:
+def viewing_scales_px() -> tuple[float, ...] | None:
     """Step 5's viewing scales as the encoder uses them now (read at the call, so a bench's or test's change of the
-    constants is what the manifest records): px on the first merged level, px on the levels above it. None (not
-    recorded) where the levels above do not share one scale (OPACITY_MATCH_FAR_GROWTH other than 1 below the cap):
-    the record's two numbers cannot say that rule."""
-    far = min(OPACITY_MATCH_FAR_SSE_PX, OPACITY_MATCH_FAR_CAP_SSE_PX)
-    if OPACITY_MATCH_FAR_GROWTH != 1.0 and OPACITY_MATCH_FAR_CAP_SSE_PX > OPACITY_MATCH_FAR_SSE_PX:
+    constants is what the manifest records): px on the first merged level, then on each level above it up to the
+    first at the cap, the last on every level above (viewing_scale_px of k = 0, 1, ...): (2, 8) where the levels above
+    share one scale (the 1.9 record), (2, 8, 12, 16) with the defaults (the 1.10 record). None (not recorded) where the
+    scale grows without a cap: no finite list says it."""
+    scales = [float(OPACITY_MATCH_SSE_PX), float(viewing_scale_px(1.0, 1))]
+    if OPACITY_MATCH_FAR_GROWTH == 1.0 or scales[1] >= OPACITY_MATCH_FAR_CAP_SSE_PX:
+        return tuple(scales)
+    if not (OPACITY_MATCH_FAR_GROWTH > 1.0 and math.isfinite(OPACITY_MATCH_FAR_CAP_SSE_PX)):
         return None
-    return (float(OPACITY_MATCH_SSE_PX), float(far))
+    while scales[-1] < OPACITY_MATCH_FAR_CAP_SSE_PX:
+        scales.append(float(viewing_scale_px(1.0, len(scales))))
+    return tuple(scales)
 
 
 def tile_viewing_blur(error: float, child_error: float, above: int = 1) -> float:
