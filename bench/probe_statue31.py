@@ -12,10 +12,14 @@ Variants change one thing of the merge (applied to the module, one build each):
 
 * `base`: the encoder as it is.
 * `px=A/B`: opacity and base colour (lod.md 6 step 5) matched at A px on the first merged level (the children
-  are leaves) and B px above it (0: no blur); the encoder's rule is 2/2. `px=A/B/C`: above it opacity at B px and
-  colour at C px.
+  are leaves) and B px above it (0: no blur); the rule before 2026-11-29 is 2/2, 2/8 the one before 2026-11-30.
+  `px=A/B/C`: above it opacity at B px and colour at C px.
 * `rule:KEY=VALUE`: the cost grouping's GroupRule field (lod_groups.GroupRule) on every level;
   `above:KEY=VALUE`: the same above the first merged level only.
+* `grow=A/G/CAP` (issue 31, branch `farpx31`): the level k above the first merged one (k = 1, 2, ...) matched at
+  min(A x G^(k-1), CAP) px (opacity and colour; CAP `inf`: no cap), the first merged level at the encoder's
+  OPACITY_MATCH_SSE_PX; `grow=8/1.5/16` is the encoder's rule since 2026-11-30 (lod.OPACITY_MATCH_FAR_GROWTH and
+  _CAP_SSE_PX), `grow=8/1/inf` the 2 + 8 px rule before it; `far=C` is `grow=C/1/inf`.
 * `optical`: the merged opacity from the members' summed optical depth, -log(1 - alpha_i) x dilated area,
   instead of their summed coverage (1 - exp(-depth / area) instead of min(0.99, coverage / area)).
 
@@ -35,6 +39,8 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import json
+import math
 import os
 import subprocess
 import sys
@@ -74,7 +80,7 @@ def _blur(error: float, px: float) -> float:
 def _finish_tile_at(first_px: float, opacity_px: float, colour_px: float):
     """lod.finish_tile with the viewing scale `first_px` on the first merged level; above it opacity matched at
     `opacity_px` and base colour at `colour_px` (0: no blur)."""
-    def finish_tile(merged, counts, far, near, child_error, appearance):
+    def finish_tile(merged, counts, far, near, child_error, appearance, above=1):
         errors, error = lod.tile_error_first(merged, counts, far, near, child_error)
         if child_error == 0.0 or opacity_px == colour_px:
             blur = _blur(error, first_px if child_error == 0.0 else opacity_px)
@@ -122,6 +128,18 @@ def _rule_groups(spec: str, above_only: bool):
     return level_auto_groups
 
 
+def grow_px(above: int, start: float, growth: float, cap: float) -> float:
+    """px of `grow=START/GROWTH/CAP` on the level `above` levels above the first merged one (>= 1)."""
+    return min(start * growth ** (above - 1), cap)
+
+
+def _grow_patches(start: float, growth: float, cap: float) -> dict:
+    """The library's growing rule (lod.viewing_scale_px): the level k above the first merged one at
+    min(start x growth^(k - 1), cap) px."""
+    return {"OPACITY_MATCH_FAR_SSE_PX": start, "OPACITY_MATCH_FAR_GROWTH": growth,
+            "OPACITY_MATCH_FAR_CAP_SSE_PX": cap}
+
+
 def variant_patches(variant: str) -> dict:
     if variant == "base":
         return {}
@@ -131,6 +149,11 @@ def variant_patches(variant: str) -> dict:
     if variant.startswith(("rule:", "above:")):
         kind, spec = variant.split(":", 1)
         return {"level_auto_groups": _rule_groups(spec, kind == "above")}
+    if variant.startswith("grow="):
+        start, growth, cap = (float(x) for x in variant[5:].split("/"))
+        return _grow_patches(start, growth, cap)
+    if variant.startswith("far="):
+        return _grow_patches(float(variant[4:]), 1.0, math.inf)
     if variant == "optical":
         return {"appearance_terms": _optical_terms, "finish_appearance": _optical_finish}
     raise SystemExit(f"unknown variant {variant}")
@@ -145,6 +168,22 @@ def build_variant(g: Gaussians, variant: str, max_leaf_splats: int = 16384, redu
         for k, v in patches.items():
             setattr(lod, k, v)
         return lod.build_tiles(g, max_leaf_splats, reduction, merge="auto")
+    finally:
+        for k, v in saved.items():
+            setattr(lod, k, v)
+
+
+def encode_variant(full: str, out: str, variant: str) -> int:
+    """`splatstream encode FULL OUT` in this process with `variant`'s patches of the lod module (the default encode
+    of a scene this size builds its tree here, lod.build_tiles, `auto`)."""
+    from cli.main import main as cli_main
+
+    patches = variant_patches(variant)
+    saved = {k: getattr(lod, k) for k in patches}
+    try:
+        for k, v in patches.items():
+            setattr(lod, k, v)
+        return cli_main(["encode", full, out])
     finally:
         for k, v in saved.items():
             setattr(lod, k, v)
@@ -179,6 +218,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--splat-transform", default=os.path.join(os.path.dirname(os.path.abspath(__file__)), "peers",
                                                               "node_modules", ".bin", "splat-transform"))
     ap.add_argument("--variants", nargs="+", default=["base"])
+    ap.add_argument("--encode", metavar="OUT",
+                    help="instead: `splatstream encode CACHE/SCENE/full.ply OUT` (the default preset) with the one "
+                         "--variants' patches, for bench/lod_vs_peers.py --our-scene-dir (which reuses OUT)")
+    ap.add_argument("--json", help="also write {variant: [{level, count, share, psnr}]} here")
     args = ap.parse_args(argv)
     if args.one_px:
         one_px(args.variants, args.one_px)
@@ -187,6 +230,10 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("SCENE and --cache-dir, or --one-px")
 
     sdir = os.path.join(args.cache_dir, args.scene)
+    if args.encode:
+        if len(args.variants) != 1:
+            ap.error("--encode takes one variant")
+        return encode_variant(os.path.join(sdir, "full.ply"), args.encode, args.variants[0])
     g = read_gaussians(os.path.join(sdir, "full.ply"))
     n = len(g)
     cams = lvp.view_cameras(g.positions, detect_up(g).up, 4, 384)
@@ -207,9 +254,11 @@ def main(argv: list[str] | None = None) -> int:
             imgs = lvp.render_views(read_gaussians(out), cams)
             print(f"{args.scene} splat-transform {c} ({c / n:.3f}): {psnr(imgs)} dB, error background / "
                   f"silhouette / interior {error_split(imgs, refs)}", flush=True)
+    results: dict[str, list[dict]] = {}
     for variant in args.variants:
         tiles = build_variant(g, variant)
         row = []
+        results[variant] = []
         for level in sorted({t.level for t in tiles}):
             parts = [t.gaussians for t in tiles if t.level == level]
             count = sum(len(p) for p in parts)
@@ -217,9 +266,13 @@ def main(argv: list[str] | None = None) -> int:
                 continue
             merged = Gaussians.concatenate(parts)
             imgs = lvp.render_views(merged, cams)
+            results[variant].append({"level": level, "count": count, "share": count / n, "psnr": psnr(imgs)})
             row.append(f"L{level} {count} ({count / n:.3f}): {psnr(imgs)} dB, ceiling "
                        f"{float(np.mean(merged.opacities >= 0.98)):.2f}, split {error_split(imgs, refs)}")
         print(f"{args.scene} {variant}:\n  " + "\n  ".join(row), flush=True)
+        if args.json:
+            with open(args.json, "w") as f:
+                json.dump({"scene": args.scene, "splats": n, "variants": results}, f, indent=1)
     return 0
 
 

@@ -55,6 +55,14 @@ MAX_MERGED_OPACITY = 0.99
 LOW_PASS_PX2 = 0.3
 OPACITY_MATCH_SSE_PX = 2.0
 OPACITY_MATCH_FAR_SSE_PX = 8.0
+# The levels above the first merged one at OPACITY_MATCH_FAR_SSE_PX x GROWTH^(k - 1) px, k levels above it, at most
+# CAP px (viewing_scale_px): 8, 12, 16, 16, ... A budget draws the coarser levels further away (7-30 px): growth 1.5
+# up to 16 px (chosen leaving one scene out) gained a median +0.24 / +0.19 dB at 2 / 6 % budgets over 8 px on every
+# level above (none of 48 points down by more than 0.07), and frames without a budget moved a median -0.01 dB (-0.91
+# to +0.77; BENCHMARKS.md, "A viewing scale growing with the level"). Growth 1 (or a cap at or under
+# OPACITY_MATCH_FAR_SSE_PX) is one scale above the first merged level, the rule before 2026-11-30.
+OPACITY_MATCH_FAR_GROWTH = 1.5
+OPACITY_MATCH_FAR_CAP_SSE_PX = 16.0
 # Error statistic over a tile's ORIGINAL splats, each taking the error of the merged splat that stands for it
 # (so untouched singletons cannot hide a merged blob): "max" is a strict bound; a quantile ignores a few outliers.
 ERROR_STAT: str | float = 0.99
@@ -715,24 +723,41 @@ def viewing_blur(error: float) -> float:
     return LOW_PASS_PX2 * pixel * pixel
 
 
-def viewing_scale_px(child_error: float) -> float:
+def viewing_scale_px(child_error: float, above: int = 1) -> float:
     """The screen-space error (px) at which an interior tile's opacities and colours are matched: the first merged
-    level (its children are the originals: their error is 0) at OPACITY_MATCH_SSE_PX, the levels above it at
-    OPACITY_MATCH_FAR_SSE_PX (lod.md 6, step 5)."""
-    return OPACITY_MATCH_SSE_PX if child_error == 0.0 else OPACITY_MATCH_FAR_SSE_PX
+    level (its children are the originals: their error is 0) at OPACITY_MATCH_SSE_PX, the level `above` levels above
+    it at OPACITY_MATCH_FAR_SSE_PX x OPACITY_MATCH_FAR_GROWTH^(above - 1), at most OPACITY_MATCH_FAR_CAP_SSE_PX
+    (lod.md 6, step 5; with the defaults every level above at OPACITY_MATCH_FAR_SSE_PX). `above`: the tree's leaf
+    level - 1 - the tile's level, which both encoders know."""
+    if child_error == 0.0:
+        return OPACITY_MATCH_SSE_PX
+    if OPACITY_MATCH_FAR_GROWTH == 1.0:
+        return min(OPACITY_MATCH_FAR_SSE_PX, OPACITY_MATCH_FAR_CAP_SSE_PX)
+    return min(OPACITY_MATCH_FAR_SSE_PX * OPACITY_MATCH_FAR_GROWTH ** (max(above, 1) - 1),
+               OPACITY_MATCH_FAR_CAP_SSE_PX)
 
 
-def viewing_scales_px() -> tuple[float, float]:
+def viewing_scales_px() -> tuple[float, ...] | None:
     """Step 5's viewing scales as the encoder uses them now (read at the call, so a bench's or test's change of the
-    constants is what the manifest records): px on the first merged level, px on the levels above it."""
-    return (float(OPACITY_MATCH_SSE_PX), float(OPACITY_MATCH_FAR_SSE_PX))
+    constants is what the manifest records): px on the first merged level, then on each level above it up to the
+    first at the cap, the last on every level above (viewing_scale_px of k = 0, 1, ...): (2, 8) where the levels above
+    share one scale (the 1.9 record), (2, 8, 12, 16) with the defaults (the 1.10 record). None (not recorded) where the
+    scale grows without a cap: no finite list says it."""
+    scales = [float(OPACITY_MATCH_SSE_PX), float(viewing_scale_px(1.0, 1))]
+    if OPACITY_MATCH_FAR_GROWTH == 1.0 or scales[1] >= OPACITY_MATCH_FAR_CAP_SSE_PX:
+        return tuple(scales)
+    if not (OPACITY_MATCH_FAR_GROWTH > 1.0 and math.isfinite(OPACITY_MATCH_FAR_CAP_SSE_PX)):
+        return None
+    while scales[-1] < OPACITY_MATCH_FAR_CAP_SSE_PX:
+        scales.append(float(viewing_scale_px(1.0, len(scales))))
+    return tuple(scales)
 
 
-def tile_viewing_blur(error: float, child_error: float) -> float:
-    """The viewing blur of a tile of geometric error `error` whose children's largest error is `child_error`: at
-    viewing_scale_px(child_error). Where that is OPACITY_MATCH_SSE_PX it is viewing_blur(error) itself, which the
-    older probes (bench/probe_lod_*.py) replace to try other scales."""
-    px = viewing_scale_px(child_error)
+def tile_viewing_blur(error: float, child_error: float, above: int = 1) -> float:
+    """The viewing blur of a tile of geometric error `error` whose children's largest error is `child_error`, `above`
+    levels above the first merged one: at viewing_scale_px(child_error, above). Where that is OPACITY_MATCH_SSE_PX it
+    is viewing_blur(error) itself, which the older probes (bench/probe_lod_*.py) replace to try other scales."""
+    px = viewing_scale_px(child_error, above)
     if px == OPACITY_MATCH_SSE_PX:
         return viewing_blur(error)
     return LOW_PASS_PX2 * (error / px) ** 2
@@ -800,21 +825,23 @@ def tile_error_first(merged: Gaussians, counts: np.ndarray, far: np.ndarray, nea
 
 
 def finish_tile_appearance(merged: Gaussians, counts: np.ndarray, far: np.ndarray, near: np.ndarray,
-                           errors: np.ndarray, error: float, sums: np.ndarray, child_error: float) -> float:
+                           errors: np.ndarray, error: float, sums: np.ndarray, child_error: float,
+                           above: int = 1) -> float:
     """Opacities and colours matched at the viewing scale of `error` (`sums`: the folded appearance_terms at
-    tile_viewing_blur(error, child_error)); returns the tile's error."""
-    finish_appearance(merged, counts, sums, tile_viewing_blur(error, child_error))
+    tile_viewing_blur(error, child_error, above)); returns the tile's error."""
+    finish_appearance(merged, counts, sums, tile_viewing_blur(error, child_error, above))
     return error
 
 
 def finish_tile(merged: Gaussians, counts: np.ndarray, far: np.ndarray, near: np.ndarray, child_error: float,
-                appearance: Callable[[float], np.ndarray]) -> float:
+                appearance: Callable[[float], np.ndarray], above: int = 1) -> float:
     """The last steps of an interior tile, the same wherever its originals are: the error, then opacities and
-    colours matched at that error's viewing scale (`appearance(blur)` gives the folded sums). Returns the tile's
-    geometric error; `merged` is changed in place."""
+    colours matched at that error's viewing scale (`appearance(blur)` gives the folded sums; `above`: the tile's
+    levels above the first merged one, viewing_scale_px). Returns the tile's geometric error; `merged` is changed in
+    place."""
     errors, error = tile_error_first(merged, counts, far, near, child_error)
-    sums = appearance(tile_viewing_blur(error, child_error))
-    return finish_tile_appearance(merged, counts, far, near, errors, error, sums, child_error)
+    sums = appearance(tile_viewing_blur(error, child_error, above))
+    return finish_tile_appearance(merged, counts, far, near, errors, error, sums, child_error, above)
 
 
 def interior_bounds(merged: Gaussians, kids: list[Tile]) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
@@ -924,7 +951,7 @@ def build_subtree(g: Gaussians, index: np.ndarray, shape: TreeShape, level: int 
             return fold_leaf_sums(parts, size)
 
         error = finish_tile(merged, np.bincount(rep, minlength=size), far, near,
-                            max(k.geometric_error for k in kids), appearance)
+                            max(k.geometric_error for k in kids), appearance, leaf_level - 1 - lvl)
         lo, hi, c, r = interior_bounds(merged, kids)
         return Tile(tid, lvl, child_ids, merged, error, lo, hi, c, r), merged_mass, rep
 

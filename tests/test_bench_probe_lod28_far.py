@@ -26,6 +26,7 @@ def test_the_library_rule_at_8_px_is_the_probes_2_8_variant(monkeypatch):
     g = scene()
     variant = STATUE31.build_variant(g, "px=2/8", max_leaf_splats=500, reduction=2.0)
     monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_SSE_PX", 8.0)
+    monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_GROWTH", 1.0)  # 8 px on every level above (growth since 2026-11-30)
     ours = lod.build_tiles(g, 500, 2.0, merge="auto")
     assert len(ours) == len(variant) > 7
     assert all(same(a, b) and a.geometric_error == b.geometric_error for a, b in zip(ours, variant, strict=True))

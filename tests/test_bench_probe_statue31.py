@@ -41,11 +41,14 @@ def same(a: lod.Tile, b: lod.Tile, fields=("positions", "rotations", "log_scales
 
 def test_the_encoders_scale_is_the_base_tree_and_the_module_is_restored():
     before = (lod.finish_tile, lod.level_auto_groups, lod.appearance_terms, lod.finish_appearance)
-    # The encoder's rule since 2026-11-29: 2 px on the first merged level, 8 px above it (lod.md 6 step 5).
-    base, two_eight = build("base"), build("px=2/8")
+    # The encoder's rule since 2026-11-30: 2 px on the first merged level, 8, 12, 16 px above it (lod.md 6 step 5).
+    base, grown = build("base"), build("grow=8/1.5/16")
     assert after_restored(before)
-    assert len(base) == len(two_eight) > 7 and all(same(a, b) for a, b in zip(base, two_eight, strict=True))
-    assert [a.geometric_error for a in base] == [b.geometric_error for b in two_eight]
+    assert len(base) == len(grown) > 7 and all(same(a, b) for a, b in zip(base, grown, strict=True))
+    assert [a.geometric_error for a in base] == [b.geometric_error for b in grown]
+    # The rule of 2026-11-29 (8 px on every level above): px=2/8 and grow=8/1/inf are the same tree.
+    two_eight, flat = build("px=2/8"), build("grow=8/1/inf")
+    assert all(same(a, b) and a.geometric_error == b.geometric_error for a, b in zip(two_eight, flat, strict=True))
 
 
 def after_restored(before) -> bool:
@@ -53,7 +56,7 @@ def after_restored(before) -> bool:
 
 
 def test_scale_above_the_first_merged_level_changes_only_appearance_above_it():
-    base, far = build("px=2/2"), build("px=2/8")  # the rule before 2026-11-29 (every level at 2 px), today's
+    base, far = build("px=2/2"), build("px=2/8")  # before 2026-11-29 (every level at 2 px), 2026-11-29s
     first = first_merged(base)
     changed = 0
     for a, b in zip(base, far, strict=True):
@@ -100,3 +103,17 @@ def test_opacity_and_colour_scales_apart():
     above = [(a, b, c) for a, b, c in zip(base, far, split, strict=True) if a.children and a.level < first]
     assert any(not same(b, c, ("sh_dc",)) for _, b, c in above)
     assert any(not same(a, c, ("opacity_logits",)) for a, _, c in above)
+
+
+def test_grow_is_the_library_rule_and_the_constants_are_restored():
+    # grow=A/G/CAP sets lod.OPACITY_MATCH_FAR_SSE_PX, _GROWTH and _CAP_SSE_PX for the build (issue 31, farpx31);
+    # grow=8/1/inf is the rule of 2026-11-29, the px=2/8 tree.
+    before = (lod.OPACITY_MATCH_FAR_SSE_PX, lod.OPACITY_MATCH_FAR_GROWTH, lod.OPACITY_MATCH_FAR_CAP_SSE_PX)
+    base, same_rule, grow = build("px=2/8"), build("grow=8/1/inf"), build("grow=8/2/16")
+    assert (lod.OPACITY_MATCH_FAR_SSE_PX, lod.OPACITY_MATCH_FAR_GROWTH, lod.OPACITY_MATCH_FAR_CAP_SSE_PX) == before
+    assert all(same(a, b) and a.geometric_error == b.geometric_error for a, b in zip(base, same_rule, strict=True))
+    first = first_merged(base)
+    # k = 0 and 1 (8 px either way) keep their bits; k = 2 (16 px) and above differ.
+    assert all(same(a, b) for a, b in zip(base, grow, strict=True) if a.level >= first - 1)
+    assert any(not same(a, b) for a, b in zip(base, grow, strict=True) if a.level < first - 1)
+    assert P.grow_px(1, 8, 1.5, 32) == 8 and P.grow_px(3, 8, 1.5, 32) == 18 and P.grow_px(5, 8, 1.5, 32) == 32

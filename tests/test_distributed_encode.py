@@ -108,6 +108,24 @@ def test_partitions_follow_the_far_viewing_scale(scene, tmp_path, monkeypatch):
     assert ref.payloads != default.payloads
 
 
+def test_partitions_follow_a_growing_far_viewing_scale(scene, tmp_path, monkeypatch):
+    """lod.OPACITY_MATCH_FAR_GROWTH (each level above the first merged one at its own scale, lod.viewing_scale_px:
+    the level is the tile's level against the tree's leaf level, which the upper tiles know) reaches the
+    partitioned encoder too: the same bytes as in memory, and not the default's."""
+    opts = EncodeOptions(preset="low", **TREE)
+    default = encode_in_memory(copy_of(scene), opts, name="s")
+    monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_GROWTH", 2.0)
+    ref = encode_in_memory(copy_of(scene), opts, name="s")
+    writer = MemoryWriter("s")
+    space = Scratch.create(str(tmp_path))
+    encode_partitioned(ArrayRows(scene), writer, opts, LocalEngine(SMALL_MEMORY), space, source_name="s")
+    space.remove()
+    got = writer.store()
+    assert got.manifest_bytes == ref.manifest_bytes
+    assert got.payloads == ref.payloads
+    assert ref.payloads != default.payloads
+
+
 def test_ply_read_by_row_ranges_matches(scene_ply, reference, tmp_path):
     out = str(tmp_path / "part")
     encode_file(scene_ply, out, preset="low", memory_per_worker=SMALL_MEMORY, **TREE)

@@ -261,11 +261,12 @@ def test_opacity_and_colour_matched_at_the_two_pixel_viewing_scale():
 
 
 def test_far_viewing_scale_is_8_px_above_the_first_merged_level(monkeypatch):
-    # lod.md 6 step 5: the first merged level (children are originals: child error 0) at 2 px, the levels above it
+    # lod.md 6 step 5: the first merged level (children are originals: child error 0) at 2 px, the level above it
     # at 8 px (+0.74 dB median under a splat budget; BENCHMARKS.md, "The default viewing scale: 2 + 8 px"). The
-    # rule before it (every level at 2 px) stays reachable by setting lod.OPACITY_MATCH_FAR_SSE_PX.
+    # rule before it (every level at 2 px) stays reachable by setting lod.OPACITY_MATCH_FAR_SSE_PX (and growth 1).
     assert lod.OPACITY_MATCH_SSE_PX == 2.0 and lod.OPACITY_MATCH_FAR_SSE_PX == 8.0
     assert lod.viewing_scale_px(0.0) == 2.0 and lod.viewing_scale_px(0.3) == 8.0
+    monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_GROWTH", 1.0)
     monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_SSE_PX", 2.0)
     assert lod.viewing_scale_px(0.0) == 2.0 and lod.viewing_scale_px(0.3) == 2.0
     assert lod.tile_viewing_blur(0.8, 0.3) == lod.viewing_blur(0.8)
@@ -275,8 +276,10 @@ def test_far_viewing_scale_is_8_px_above_the_first_merged_level(monkeypatch):
 
 
 def test_far_viewing_scale_changes_only_the_levels_above_the_first_merged_one(monkeypatch):
-    # The grid merge: groups that do not depend on opacities, so every level's geometry stays the same.
+    # The grid merge: groups that do not depend on opacities, so every level's geometry stays the same. (8 px on
+    # every level above, growth 1: the rule of 2026-11-29 this measured.)
     g = scene("lod_tile_sh3_zero_rest.ply")
+    monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_GROWTH", 1.0)
     monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_SSE_PX", 2.0)
     two = lod.build_tiles(g, max_leaf_splats=1000, reduction=2.0, merge="grid")
     monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_SSE_PX", 8.0)
@@ -301,6 +304,45 @@ def test_far_viewing_scale_changes_only_the_levels_above_the_first_merged_one(mo
     # merged one.
     assert ceiling[first - 2] == pytest.approx((0.555, 0.284), abs=0.01)
     assert ceiling[first - 1] == pytest.approx((0.303, 0.155), abs=0.01)
+
+
+def test_the_far_scale_grows_with_the_level(monkeypatch):
+    # lod.OPACITY_MATCH_FAR_GROWTH (issue 31, farpx31, the default since 2026-11-30): the level k above the first
+    # merged one at 8 x 1.5^(k - 1) px, at most 16 (+0.24 / +0.19 dB median at 2 / 6 % budgets over 8 px on every
+    # level above; BENCHMARKS.md, "A viewing scale growing with the level"). The record lists px per level up to the
+    # first at the cap (format 1.10); without a cap no list says it (None: not recorded).
+    assert lod.OPACITY_MATCH_FAR_GROWTH == 1.5 and lod.OPACITY_MATCH_FAR_CAP_SSE_PX == 16.0
+    assert [lod.viewing_scale_px(0.3, k) for k in (1, 2, 3, 4, 9)] == [8.0, 12.0, 16.0, 16.0, 16.0]
+    assert lod.viewing_scale_px(0.0, 3) == 2.0  # the first merged level (child error 0) keeps its 2 px
+    assert lod.viewing_scales_px() == (2.0, 8.0, 12.0, 16.0)
+    assert lod.tile_viewing_blur(0.8, 0.3, 2) == pytest.approx(0.3 * (0.8 / 12.0) ** 2, rel=1e-12)
+    monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_CAP_SSE_PX", 32.0)
+    assert [lod.viewing_scale_px(0.3, k) for k in (1, 2, 3, 4, 5, 6)] == [8.0, 12.0, 18.0, 27.0, 32.0, 32.0]
+    monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_CAP_SSE_PX", math.inf)
+    assert lod.viewing_scales_px() is None
+    monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_CAP_SSE_PX", 6.0)  # a cap under the start: one scale again
+    assert lod.viewing_scale_px(0.3, 4) == 6.0 and lod.viewing_scales_px() == (2.0, 6.0)
+    monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_GROWTH", 1.0)  # growth 1: 8 px on every level above
+    monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_CAP_SSE_PX", math.inf)
+    assert [lod.viewing_scale_px(0.3, k) for k in (1, 2, 5, 9)] == [8.0] * 4 and lod.viewing_scales_px() == (2.0, 8.0)
+
+
+def test_a_growing_far_scale_changes_the_levels_two_and_more_above_the_first_merged_one(monkeypatch):
+    # The grid merge (groups that do not read opacities): levels k = 0 (the first merged) and 1 keep their bits,
+    # k >= 2 are matched at 12, 16 px instead of 8: a smaller blur, lower opacities on average.
+    g = scene("lod_tile_sh3_zero_rest.ply")
+    grow = lod.build_tiles(g, max_leaf_splats=1000, reduction=2.0, merge="grid")
+    monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_GROWTH", 1.0)
+    eight = lod.build_tiles(g, max_leaf_splats=1000, reduction=2.0, merge="grid")
+    first = max(t.level for t in eight) - 1
+    assert first >= 3
+    for level in range(first + 1):
+        a = np.concatenate([t.gaussians.opacities for t in eight if t.level == level])
+        b = np.concatenate([t.gaussians.opacities for t in grow if t.level == level])
+        if level >= first - 1:
+            np.testing.assert_array_equal(a, b)
+        else:
+            assert b.mean() < a.mean(), level
 
 
 def test_merging_preserves_mass_and_first_moment_and_keeps_singletons():
@@ -490,7 +532,8 @@ def test_each_level_looks_like_the_full_scene_at_one_pixel_error(name):
         # matched at 2 px, lod.OPACITY_MATCH_SSE_PX; at 1 px 33.3-50.1 dB; at 4 px the two finest merged levels of
         # lod_tile's 2x tree lost 2.7-3.2 dB: BENCHMARKS.md, "LOD against peers", the viewing scale). With the levels
         # above the first merged one at 8 px (lod.OPACITY_MATCH_FAR_SSE_PX, the default since 2026-11-29, for views
-        # under a splat budget): 33.3-49.6 dB.
+        # under a splat budget): 33.3-49.6 dB; at 8, 12, 16 px by level (OPACITY_MATCH_FAR_GROWTH, since 2026-11-30):
+        # 33.2-49.6 dB (the donut's 45-splat root 33.24).
         assert psnr(full, coarse) > 33.0, (level, psnr(full, coarse))
         # Nearly the same coverage (measured ratio 0.70-1.00 for levels of 100 splats or more: small roots lose
         # most at their rims, since merged scales are no longer grown for coverage, which blurred every budgeted
@@ -500,9 +543,10 @@ def test_each_level_looks_like_the_full_scene_at_one_pixel_error(name):
         # root (a 44-pixel footprint whose soft rim covers less): 34 % brighter (32 % matched at 1 px). With the
         # levels above the first merged one at 8 px (the default) they are matched for a view that draws them
         # larger, and seen at 1 px they are brighter: measured up to 18 % (the donut's 2,880-splat level; lod_tile
-        # 10 % darker), fruit_drops' root 40 % (lod.md 3 states this trade).
+        # 10 % darker), fruit_drops' root 40 % (lod.md 3 states this trade). At 8, 12, 16 px by level: up to 21 %
+        # (the donut's 180-splat level; lod_tile's 220-splat level 13 % darker), fruit_drops' root 42 %.
         np.testing.assert_allclose(coarse.sum((0, 1)) / coarse_cov.sum(), full.sum((0, 1)) / full_cov.sum(),
-                                   rtol=0.43 if n < 100 else 0.20, err_msg=str(level))
+                                   rtol=0.43 if n < 100 else 0.23, err_msg=str(level))
         halo = (coarse_cov > 0.05) & (full_cov < 0.01)
         hole = (full_cov > 0.5) & (coarse_cov < 0.25)
         # Measured: up to 12 halo or hole pixels on the rims of roots 32-75 pixels wide.

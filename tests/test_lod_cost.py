@@ -160,10 +160,12 @@ def test_the_cli_says_which_merge_the_default_took(tmp_path):
 # blocks of points, one row per pair of clusters, sort-based unique) must not change a single group: digests of the
 # outputs of the code before it (commit 44e23cd), on fruit_drops split into 4 regions, a third of the splats kept.
 # "tree" with every level matched at 2 px (the rule then); "tree_2_8" with the levels above the first merged one at
-# 8 px (lod.OPACITY_MATCH_FAR_SSE_PX, the default since 2026-11-29: opacities and colours, and so the cost groups
-# above, differ on purpose).
+# 8 px (lod.OPACITY_MATCH_FAR_SSE_PX, the default of 2026-11-29: opacities and colours, and so the cost groups
+# above, differ on purpose); "tree_grow" at 8, 12, 16 px by level (lod.OPACITY_MATCH_FAR_GROWTH 1.5, the default
+# since 2026-11-30, farpx31: the levels two and more above the first merged one differ on purpose again).
 BEFORE = {"edges": "f8f0388318e1242f", "cost": "eb6384da0cc0c97a", "3d": "c709855664435fe3",
-          "cap4": "25a71e7579aadb53", "tree": "a4b62789c5555beb", "tree_2_8": "a500790a40dc59c1"}
+          "cap4": "25a71e7579aadb53", "tree": "a4b62789c5555beb", "tree_2_8": "a500790a40dc59c1",
+          "tree_grow": "5067e7a9c3d70317"}
 
 
 def digest(*arrays) -> str:
@@ -195,7 +197,9 @@ def test_neighbours_and_cost_tree_are_bit_identical_to_the_code_before(monkeypat
     g = fruit()
     p = g.positions.astype(np.float64)
     assert digest(*lod_groups.neighbour_edges(p - p.mean(axis=0), 8)) == BEFORE["edges"]
-    for far, pinned in ((lod.OPACITY_MATCH_FAR_SSE_PX, "tree_2_8"), (2.0, "tree")):
+    for growth, far, pinned in ((lod.OPACITY_MATCH_FAR_GROWTH, 8.0, "tree_grow"), (1.0, 8.0, "tree_2_8"),
+                                (1.0, 2.0, "tree")):
+        monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_GROWTH", growth)
         monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_SSE_PX", far)
         tiles = lod.build_tiles(g, max_leaf_splats=1000, reduction=2.0, merge="cost")
         assert digest(*[a for t in tiles for a in (t.gaussians.positions, t.gaussians.opacity_logits,
@@ -392,15 +396,19 @@ def test_encode_with_the_auto_merge_in_memory_and_refused_by_partitions(tmp_path
 # Branch autofast4 (stable sorts of keys in sorted runs, the k-NN block's selection with the tie rule only on the
 # rows that need it) kept them to the bit, and so did autofast5. AUTO_BEFORE: every level matched at 2 px (the rule
 # until 2026-11-29); AUTO_2_8: the levels above the first merged one at 8 px (lod.OPACITY_MATCH_FAR_SSE_PX, the
-# default since: their opacities and colours, and the cost groups that read them, differ on purpose).
+# default then: their opacities and colours, and the cost groups that read them, differ on purpose); AUTO_GROW: at
+# 8, 12, 16 px by level (lod.OPACITY_MATCH_FAR_GROWTH 1.5, the default since 2026-11-30, farpx31).
 AUTO_BEFORE = {"fruit_drops_sh3.ply": "4860a209355359b8", "lod_tile_sh3_zero_rest.ply": "a626e0241e1d873b"}
 AUTO_2_8 = {"fruit_drops_sh3.ply": "29ca8cad0afa742b", "lod_tile_sh3_zero_rest.ply": "ac865bcf985e348d"}
+AUTO_GROW = {"fruit_drops_sh3.ply": "f17f1d974bf66f5b", "lod_tile_sh3_zero_rest.ply": "cc32063b5f246450"}
 
 
 @pytest.mark.parametrize("scene", sorted(AUTO_BEFORE))
 def test_auto_tree_is_bit_identical_to_the_code_before(scene, monkeypatch):
     g = read_gaussians_ply(real(scene))
-    for far, pinned in ((lod.OPACITY_MATCH_FAR_SSE_PX, AUTO_2_8), (2.0, AUTO_BEFORE)):
+    for growth, far, pinned in ((lod.OPACITY_MATCH_FAR_GROWTH, 8.0, AUTO_GROW), (1.0, 8.0, AUTO_2_8),
+                                (1.0, 2.0, AUTO_BEFORE)):
+        monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_GROWTH", growth)
         monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_SSE_PX", far)
         tiles = lod.build_tiles(g, max_leaf_splats=1000, reduction=2.0, merge="auto")
         assert digest(*[a for t in tiles for a in (t.gaussians.positions, t.gaussians.opacity_logits,

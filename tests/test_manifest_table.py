@@ -20,7 +20,7 @@ from splatstream.format.manifest import (
     split_pages,
     tile_rows,
 )
-from splatstream.format.manifest.versions import FORMAT_VERSION, VERSION_1_7, VERSION_1_8, VERSION_1_9
+from splatstream.format.manifest.versions import FORMAT_VERSION, VERSION_1_7, VERSION_1_8, VERSION_1_10
 from splatstream.ply import read_gaussians_ply
 from splatstream.store import MemoryStore, read_manifest
 
@@ -41,7 +41,7 @@ def _old(m):
 def test_an_lod_tree_is_written_as_a_tile_table_and_reads_back_as_the_tile_maps(scene):
     raw, m = scene
     d = msgpack.unpackb(raw, strict_map_key=False)
-    assert d["version"] == [1, 9] and "tile_table" in d and "tiles" not in d  # 1.9: the tree's build record
+    assert d["version"] == [1, 10] and "tile_table" in d and "tiles" not in d  # 1.10: the scales per level
     old = parse_manifest(pack_manifest(_old(m)))
     for lazy in (False, True):
         back = parse_manifest(raw, lazy_payloads=lazy)
@@ -72,7 +72,7 @@ def test_a_one_tile_scene_keeps_its_version():
 def test_a_paged_tree_writes_its_pages_as_tile_tables(scene):
     _, m = scene
     paged = split_pages(m, 2)
-    assert paged.root.version == VERSION_1_9
+    assert paged.root.version == VERSION_1_10
     for _, data in paged.pages:
         d = msgpack.unpackb(data, strict_map_key=False)
         assert "tile_table" in d and "tiles" not in d

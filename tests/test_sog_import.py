@@ -126,7 +126,8 @@ def test_encode_keeps_their_tree(exported, tmp_path):
     assert sum(not t.children for t in rebuilt.tiles) < sum(not t.children for t in kept.tiles)
     # Their kept tree says nothing of how it was built; ours, rebuilt, records its merge and viewing scales (1.9).
     assert not kept.lod.build_recorded and kept.version < (1, 9)
-    assert rebuilt.lod.merge == "auto" and rebuilt.lod.viewing_scale_px == (2.0, 8.0) and rebuilt.version == (1, 9)
+    assert rebuilt.lod.merge == "auto" and rebuilt.lod.viewing_scale_px == (2.0, 8.0, 12.0, 16.0)
+    assert rebuilt.version == (1, 10)
     r = run_cli("encode", exported / "sog", tmp_path / "x", "--workers", "2", "-q")
     assert r.returncode == 2 and "--rebuild-lod" in r.stderr and "Traceback" not in r.stderr, r.stderr
 

@@ -250,8 +250,8 @@ def test_export_plain_content_holds_the_decoded_scene_exactly(scenes, tmp_path):
     assert r.returncode == 0 and r.stderr == ""
     tileset = json.loads((tmp_path / "plain" / "tileset.json").read_text())
     assert tileset["extensions"]["3DTILES_content_gltf"]["extensionsRequired"] == ["KHR_gaussian_splatting"]
-    extras = tileset["asset"]["extras"]["splatstream"]  # the manifest's record of how the tree was built (1.9)
-    assert extras["lod_merge"] == "auto" and extras["viewing_scale_px"] == [2.0, 8.0]
+    extras = tileset["asset"]["extras"]["splatstream"]  # the manifest's record of how the tree was built (1.10)
+    assert extras["lod_merge"] == "auto" and extras["viewing_scale_px"] == [2.0, 8.0, 12.0, 16.0]
     manifest = load_manifest(scene)
     leaf = manifest.leaves[0]
     uri = next(t["content"]["uri"] for t, _ in walk(tileset["root"])

@@ -34,7 +34,8 @@ def scene_info(m: Manifest) -> dict:
 
 def _lod(m: Manifest) -> dict:
     """The manifest's `lod` map; `merge` and `viewing_scale_px` None where the scene does not record how its tree
-    was built (format 1.9: absent from older scenes and imported trees)."""
+    was built (format 1.9: absent from older scenes and imported trees); `viewing_scale_px` has one px per level
+    from the first merged one where the scene records them so (1.10's `viewing_scale_levels_px`)."""
     lod = m.lod
     return {"enabled": lod.enabled, "max_leaf_splats": lod.max_leaf_splats, "reduction": lod.reduction,
             "refine": lod.refine, "merge": lod.merge,
@@ -51,8 +52,13 @@ def _lod_line(lod: dict) -> str | None:
         return f"merge and viewing scales not recorded (a scene before format 1.9, or a tree splatstream did not " \
                f"build); {shape}"
     merge = f"merge {lod['merge']}" if lod["merge"] is not None else "merge not recorded"
-    viewing = f"opacity/colour matched at {scales[0]:g} px (first merged level), {scales[1]:g} px (above)" \
-        if scales is not None else "viewing scales not recorded"
+    if scales is None:
+        viewing = "viewing scales not recorded"
+    elif len(scales) == 2:
+        viewing = f"opacity/colour matched at {scales[0]:g} px (first merged level), {scales[1]:g} px (above)"
+    else:  # format 1.10: one per level from the first merged one, the last on every level above
+        viewing = f"opacity/colour matched at {scales[0]:g} px (first merged level), " \
+                  f"{' / '.join(f'{v:g}' for v in scales[1:])} px (the levels above, the last on every higher one)"
     return f"{merge}, {viewing}; {shape}"
 
 

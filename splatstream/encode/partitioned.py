@@ -763,6 +763,7 @@ def _upper_tiles(engine: Engine, scratch: Scratch, shape: TreeShape, level: int,
         per_tile = 2 ** (kd_p - shape.kd_depths[lvl])  # partitions under each tile of this level
         per_child = 2 ** (kd_p - shape.kd_depths[lvl + 1])
         tiles_here = 2 ** shape.kd_depths[lvl]
+        above = shape.leaf_level - 1 - lvl  # levels above the first merged one (lod.viewing_scale_px)
         batch_tiles = max(1, UPPER_BATCH_SPLATS // shape.max_leaf_splats)
         for first in range(0, tiles_here, batch_tiles):
             batch = range(first, min(tiles_here, first + batch_tiles))
@@ -791,7 +792,8 @@ def _upper_tiles(engine: Engine, scratch: Scratch, shape: TreeShape, level: int,
                 errors, error = tile_error_first(g, counts, far, near, child_error)
                 state[j] = (counts, far, near, errors, error, child_error)
             sums = engine.map(partition_sums, [(scratch, p, maps[p], len(merged[p // per_tile][0]),
-                                                tile_viewing_blur(state[p // per_tile][4], state[p // per_tile][5]))
+                                                tile_viewing_blur(state[p // per_tile][4], state[p // per_tile][5],
+                                                                  above))
                                                for p in parts],
                               "upper", progress)
             for j in batch:
@@ -799,7 +801,7 @@ def _upper_tiles(engine: Engine, scratch: Scratch, shape: TreeShape, level: int,
                 leaf_parts = [lp for p, s in zip(parts, sums, strict=True) if p // per_tile == j for lp in s]
                 counts, far, near, errors, error, child_error = state[j]
                 error = finish_tile_appearance(g, counts, far, near, errors, error, fold_leaf_sums(leaf_parts, len(g)),
-                                               child_error)
+                                               child_error, above)
                 lo, hi, c, r = interior_bounds(g, kids)
                 tid = shape.tile_id(lvl, j)
                 _save_tile(scratch, Tile(tid, lvl, [k.id for k in kids], g, error, lo, hi, c, r), mass)

@@ -16,7 +16,7 @@ from ..format.manifest import (
     TileEntry,
     writer_version,
 )
-from ..format.manifest.versions import VERSION_1_6, VERSION_1_7, VERSION_1_8, VERSION_1_9
+from ..format.manifest.versions import VERSION_1_6, VERSION_1_7, VERSION_1_8, VERSION_1_9, VERSION_1_10
 from ..format.planes import BASE_PLANE_NAMES
 from ..format.presets import ATTRIBUTES
 from .plan import ScenePlan
@@ -61,7 +61,10 @@ def _version(ctx, codebook: SHCodebookEntry | None, tiles: list[TileEntry], lod:
     # map is under a kilobyte, and its version stays the one its formats need.
     if len(tiles) > 1:
         version = max(version, VERSION_1_8)
-    # The tree's build record (format.md 6, lod.md 6: lod.merge, lod.viewing_scale_px) is a 1.9 key.
+    # The tree's build record (format.md 6, lod.md 6: lod.merge, lod.viewing_scale_px) is a 1.9 key; scales per
+    # level (a scale growing with the level: lod.viewing_scale_levels_px) a 1.10 one.
+    if lod.scales_need_1_10:
+        return max(version, VERSION_1_10)
     return max(version, VERSION_1_9) if lod.build_recorded else version
 
 

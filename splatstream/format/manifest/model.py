@@ -189,10 +189,11 @@ class LodInfo:
     refine: str = "replace"
     # How the encoder built the levels (version 1.9, format.md 6 and lod.md 6; informative): the merge that grouped
     # each level's splats (`grid`, `cost`, `auto`), and the screen-space errors in px at which step 5 matched
-    # opacity and colour, (first merged level, levels above it). None: not recorded (before 1.9, or a tree the
-    # encoder did not build).
+    # opacity and colour, (first merged level, levels above it): two numbers, the 1.9 key `viewing_scale_px`; or,
+    # from 1.10, one per level from the first merged one, the last on every level above (`viewing_scale_levels_px`,
+    # written where there are more than two). None: not recorded (before 1.9, or a tree the encoder did not build).
     merge: str | None = None
-    viewing_scale_px: tuple[float, float] | None = None
+    viewing_scale_px: tuple[float, ...] | None = None
 
     @property
     def build_recorded(self) -> bool:
@@ -204,8 +205,14 @@ class LodInfo:
         if self.merge is not None:
             d["merge"] = self.merge
         if self.viewing_scale_px is not None:
-            d["viewing_scale_px"] = [float(v) for v in self.viewing_scale_px]
+            key = "viewing_scale_px" if len(self.viewing_scale_px) == 2 else "viewing_scale_levels_px"
+            d[key] = [float(v) for v in self.viewing_scale_px]
         return d
+
+    @property
+    def scales_need_1_10(self) -> bool:
+        """The scales are more than two numbers: only `viewing_scale_levels_px` (1.10) says them."""
+        return self.viewing_scale_px is not None and len(self.viewing_scale_px) > 2
 
 
 @dataclass(frozen=True)

@@ -74,6 +74,7 @@ from .versions import (
     VERSION_1_7,
     VERSION_1_8,
     VERSION_1_9,
+    VERSION_1_10,
 )
 from .wire import CHECKSUM_KEY, unpack_manifest, verify_checksum
 
@@ -889,10 +890,14 @@ def _camera(d: dict, source: str, strict: bool) -> CameraEntry:
 _LOD_KEYS = ("enabled", "max_leaf_splats", "reduction", "refine")
 # Version 1.9: how the encoder built the tree (format.md 6, lod.md 6), each optional (absent: not recorded).
 _LOD_BUILD_KEYS = ("merge", "viewing_scale_px")
+# Version 1.10: the viewing scale per level (format.md 6), instead of viewing_scale_px.
+_LOD_LEVELS_KEY = "viewing_scale_levels_px"
 
 
 def _lod(d: dict, source: str, strict: bool, version: tuple[int, int]) -> LodInfo:
     build = _LOD_BUILD_KEYS if version >= VERSION_1_9 else ()
+    if version >= VERSION_1_10:
+        build = (*build, _LOD_LEVELS_KEY)
     lod = _keys(d["lod"], _LOD_KEYS, source, "lod", strict, build)
     info = LodInfo(_bool(lod, "enabled", source, "lod"), _int(lod, "max_leaf_splats", source, "lod", 1),
                    _float(lod, "reduction", source, "lod", 1.0), _str(lod, "refine", source, "lod", ("replace",)))
@@ -909,6 +914,15 @@ def _lod(d: dict, source: str, strict: bool, version: tuple[int, int]) -> LodInf
             _fail(source, "lod", "viewing_scale_px", f"expected 2 finite numbers > 0 (px on the first merged level, "
                   f"px above it), got {scales!r}")
         scales = (float(scales[0]), float(scales[1]))
+    levels = lod.get(_LOD_LEVELS_KEY) if _LOD_LEVELS_KEY in build else None
+    if levels is not None:
+        if scales is not None:
+            _fail(source, "lod", _LOD_LEVELS_KEY, "both viewing_scale_px and viewing_scale_levels_px (one record)")
+        if not (type(levels) in (list, tuple) and len(levels) >= 2 and all(type(v) in _NUMBER and _isfinite(v)
+                                                                            and v > 0 for v in levels)):
+            _fail(source, "lod", _LOD_LEVELS_KEY, f"expected 2 or more finite numbers > 0 (px per level from the "
+                  f"first merged one, the last on every level above), got {levels!r}")
+        scales = tuple(float(v) for v in levels)
     if not info.enabled:
         _fail(source, "lod", "merge" if merge is not None else "viewing_scale_px",
               "a build record in a scene without an LOD tree (lod.enabled is false)")
