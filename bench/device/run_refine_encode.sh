@@ -5,18 +5,20 @@
 # root on the GPU machine:
 #
 #   bash bench/device/run_refine_encode.sh .refine_in          # carry [".whl_refine", ".refine_in"], timeout 600
-#   bash bench/device/run_refine_encode.sh .refine_flowers     # carry [".whl_refine", ".refine_flowers"], timeout 420
+#   BUDGET_S=380 bash bench/device/run_refine_encode.sh .refine_flowers   # carry [".whl_refine", ".refine_flowers"],
+#                                                                         # timeout 420
 #
 # (.whl_refine/ from `bash bench/device_wheels.sh refine`: gsplat and zstandard, ~12 MB; tracked files ~37 MB +
 # .refine_in 17.5 MB + 12 MB = ~63 MiB of the 64 MiB that travel.) Per scene, as lod_vs_peers encodes it:
 # `python3 -m cli convert SRC full.ply`, then `python3 -m cli encode full.ply OUT/SCENE --lod-refine` (the default
-# preset and tree, the refinement's defaults); JOBS scenes at once (default 3: one's CPU work, the tree and the
+# preset and tree, the refinement's defaults); JOBS scenes at once (default 4: one's CPU work, the tree and the
 # payloads, beside another's GPU work), the largest first, after gsplat's CUDA extension is built once alone (its
 # import deletes the build lock, so two first importers would break each other's build: ~95 s, kept while the
-# machine stays warm). Then the torch tests (tests/test_lod_refine_torch.py, gsplat against the dense reference on
-# CUDA). Writes to $OUT: scenes.tar.partNN (one tar of every encoded scene directory, split at 15 MiB: at most 6 with
-# the 11 scenes of .refine_in), refine_encode.log (every encode's output: per level the validation PSNR of the
-# level as built and of each variant, what was kept, seconds) and summary.json.
+# machine stays warm). Then the torch tests (tests/test_lod_refine_torch.py as a script: gsplat on CUDA against the
+# numpy reference, the refiner end to end). Writes to $OUT: scenes.tar.partNN (one tar of every encoded scene
+# directory, split at 15 MiB: ~3 parts for the 11 scenes of .refine_in, ~3 for flowers), refine_encode.log (every
+# encode's output: per level the validation PSNR of the level as built and of each variant, what was kept,
+# seconds) and summary.json (per scene the manifest's lod.refinement).
 #
 # Locally, into a --our-scene-dir for bench/lod_vs_peers.py (which reuses a scene directory holding a manifest):
 #   mkdir -p /tmp/refined && cat FILES_AT/scenes.tar.part* | tar -xf - -C /tmp/refined
@@ -28,9 +30,13 @@ IN=${1:?usage: run_refine_encode.sh INPUT_DIR}
 OUT=${OUT:-/tmp/refine_encode_out}
 SITE=${SITE:-/tmp/site}
 WORK=${WORK:-/tmp/refine_encode}
-JOBS=${JOBS:-3}
+JOBS=${JOBS:-4}
+# Every encode ends by this many seconds after the start (SIGTERM: the encoder removes its partial output), so the tar
+# of the finished ones always comes back within the command's timeout: BUDGET_S = the timeout less ~40 s.
+BUDGET_S=${BUDGET_S:-560}
 mkdir -p "$OUT" "$SITE" "$WORK/full" "$WORK/scenes"
 start=$(date +%s)
+DEADLINE=$((start + BUDGET_S))
 ls .whl_refine/gsplat-*.whl .whl_refine/zstandard-*.whl >/dev/null \
   || { echo "gsplat and zstandard wheels missing in .whl_refine/ (bash bench/device_wheels.sh refine)"; exit 1; }
 python3 -m pip install -q --no-index --no-deps --target "$SITE" .whl_refine/*.whl || exit 1
@@ -65,12 +71,16 @@ EOF
 echo "scenes: ${#SCENES[@]}"
 
 encode_one() {  # NAME SOURCE: convert, encode --lod-refine, a line of seconds; its output in WORK/NAME.log
-  local name=$1 src=$2 t0 t1 t2 rc
+  local name=$1 src=$2 t0 t1 t2 rc left
   t0=$(date +%s)
+  left=$((DEADLINE - t0))
+  [ "$left" -gt 30 ] || { echo "$name: rc 124, not started (BUDGET_S spent)"; return 124; }
   python3 -m cli convert "$IN/$src" "$WORK/full/$name.ply" -q || { echo "$name: convert failed"; return 1; }
   t1=$(date +%s)
   # not -q: the per-level lines (lod-refine: level ...) go to the log; the progress lines do not
-  python3 -m cli encode "$WORK/full/$name.ply" "$WORK/scenes/$name" --lod-refine 2>&1 | grep -v "^encode: "
+  left=$((DEADLINE - $(date +%s)))
+  timeout "$left" python3 -m cli encode "$WORK/full/$name.ply" "$WORK/scenes/$name" --lod-refine 2>&1 \
+    | grep -v "^encode: "
   rc=${PIPESTATUS[0]}
   t2=$(date +%s)
   if [ "$rc" -eq 0 ]; then  # what bench/lod_vs_peers.py records of an encode it made itself
@@ -83,7 +93,7 @@ encode_one() {  # NAME SOURCE: convert, encode --lod-refine, a line of seconds; 
   return "$rc"
 }
 export -f encode_one
-export IN WORK
+export IN WORK DEADLINE
 printf '%s\n' "${SCENES[@]}" | xargs -P "$JOBS" -L 1 bash -c 'encode_one "$0" "$1" > "$WORK/$0.log" 2>&1; tail -1 "$WORK/$0.log"'
 
 # What each scene kept (from the manifests) and the logs, in the order of the scenes.
@@ -112,11 +122,13 @@ EOF
 tar -cf - -C "$WORK/scenes" . | split -b 15M -d -a 2 - "$OUT/scenes.tar.part"
 echo "encodes done after $(( $(date +%s) - start )) s"
 
-# The torch tests on the GPU: gsplat (CUDA) against the dense reference renderer, the refiner end to end.
-if python3 -c "import pytest" 2>/dev/null; then
-  timeout 120 python3 -m pytest -q -p no:cacheprovider tests/test_lod_refine_torch.py 2>&1 | tail -5
+# The torch tests on the GPU (gsplat on CUDA against the numpy reference, the refiner end to end), as a script: the
+# image has no pytest.
+left=$((DEADLINE + 30 - $(date +%s)))
+if [ "$left" -gt 10 ]; then
+  timeout "$left" python3 tests/test_lod_refine_torch.py 2>&1 | tail -8
 else
-  echo "no pytest on this machine: tests/test_lod_refine_torch.py not run"
+  echo "no time left for tests/test_lod_refine_torch.py"
 fi
 ls -la "$OUT"
 echo "total $(( $(date +%s) - start )) s"
