@@ -36,7 +36,7 @@ need("gsplat")
 
 import torch  # noqa: E402
 
-from refine_gpu.levels import LevelRefiner, Renderer, RefineSettings, psnr_of, to_params  # noqa: E402
+from refine_gpu.levels import LevelRefiner, RefineSettings, Renderer, psnr_of, to_params  # noqa: E402
 from splatstream.camera import Camera  # noqa: E402
 from splatstream.encode import EncodeOptions, encode_in_memory  # noqa: E402
 from splatstream.format.manifest import parse_manifest  # noqa: E402
