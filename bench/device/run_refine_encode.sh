@@ -94,7 +94,13 @@ encode_one() {  # NAME SOURCE: convert, encode --lod-refine, a line of seconds; 
 }
 export -f encode_one
 export IN WORK DEADLINE
-printf '%s\n' "${SCENES[@]}" | xargs -P "$JOBS" -L 1 bash -c 'encode_one "$0" "$1" > "$WORK/$0.log" 2>&1; tail -1 "$WORK/$0.log"'
+# The first JOBS start 6 s apart: each encode imports gsplat's built extension (torch re-checks it with a no-op ninja
+# run under a lock file that gsplat's import removes), so simultaneous first imports are avoided where it is cheap.
+i=0
+for line in "${SCENES[@]}"; do
+  echo "$(( i < JOBS ? i * 6 : 0 )) $line"
+  i=$((i + 1))
+done | xargs -P "$JOBS" -L 1 bash -c 'sleep "$0"; encode_one "$1" "$2" > "$WORK/$1.log" 2>&1; tail -1 "$WORK/$1.log"'
 
 # What each scene kept (from the manifests) and the logs, in the order of the scenes.
 for line in "${SCENES[@]}"; do
