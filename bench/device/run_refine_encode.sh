@@ -8,8 +8,9 @@
 #   BUDGET_S=380 bash bench/device/run_refine_encode.sh .refine_flowers   # carry [".whl_refine", ".refine_flowers"],
 #                                                                         # timeout 420
 #
-# (.whl_refine/ from `bash bench/device_wheels.sh refine`: gsplat and zstandard, ~12 MB; tracked files ~37 MB +
-# .refine_in 17.5 MB + 12 MB = ~63 MiB of the 64 MiB that travel.) Per scene, as lod_vs_peers encodes it:
+# (.whl_refine/ from `bash bench/device_wheels.sh refine`: gsplat and zstandard, 12.1 MB; tracked files 36.7 MB +
+# .refine_in 17.5 MB + 12.1 MB = 63.2 MiB of the 64 MiB that travel. Where the tree has grown past that:
+# `bash bench/device/refine_inputs.sh split` and three runs, .refine_statues then .refine_others, each timeout 600.) Per scene, as lod_vs_peers encodes it:
 # `python3 -m cli convert SRC full.ply`, then `python3 -m cli encode full.ply OUT/SCENE --lod-refine` (the default
 # preset and tree, the refinement's defaults); JOBS scenes at once (default 4: one's CPU work, the tree and the
 # payloads, beside another's GPU work), the largest first, after gsplat's CUDA extension is built once alone (its
