@@ -7,6 +7,7 @@
 #   bash bench/device/run_refine_encode.sh .refine_in          # carry [".whl_refine", ".refine_in"], timeout 600
 #   BUDGET_S=380 bash bench/device/run_refine_encode.sh .refine_flowers   # carry [".whl_refine", ".refine_flowers"],
 #                                                                         # timeout 420
+#   ONLY=biker,guitar bash bench/device/run_refine_encode.sh .refine_in   # a re-run of the scenes BUDGET_S cut off
 #
 # (.whl_refine/ from `bash bench/device_wheels.sh refine`: gsplat and zstandard, 12.1 MB; tracked files 36.7 MB +
 # .refine_in 17.5 MB + 12.1 MB = 63.2 MiB of the 64 MiB that travel. Where the tree has grown past that:
@@ -63,8 +64,9 @@ root = sys.argv[1]
 def size(p):
     return sum(os.path.getsize(os.path.join(d, f)) for d, _, fs in os.walk(os.path.dirname(p)) for f in fs) \
         if p.endswith(".json") else os.path.getsize(p)
+only = [n for n in os.environ.get("ONLY", "").split(",") if n]  # ONLY=a,b: those scenes alone (a re-run)
 found = [(size(os.path.join(root, s.source)), n) for n, s in lvp.SCENES.items()
-         if os.path.exists(os.path.join(root, s.source))]
+         if os.path.exists(os.path.join(root, s.source)) and (not only or n in only)]
 for _, n in sorted(found, reverse=True):
     print(n, lvp.SCENES[n].source)
 EOF
