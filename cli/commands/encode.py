@@ -231,8 +231,13 @@ def _lod_refiner(args: argparse.Namespace, workers: int | None):
         raise UsageError("--lod-refine: not with --target-psnr / --target-size (they measure unrefined encodes)")
     if args.lod_refine_iters < 1 or args.lod_refine_size < 16:
         raise UsageError("--lod-refine-iters must be at least 1 and --lod-refine-size at least 16")
-    # The GPU shell, an optional extra: imported only when asked for.
-    from refine_gpu.levels import EXTRA, LevelRefiner, RefineSettings, missing
+    # The GPU shell, an optional extra: imported only when asked for. (It needs numpy and the core alone; an install
+    # made before the package existed does not see it.)
+    try:
+        from refine_gpu.levels import EXTRA, LevelRefiner, RefineSettings, missing
+    except ImportError as exc:
+        raise UsageError(f"--lod-refine: the refine_gpu package of this splatstream cannot be imported ({exc}); "
+                         "reinstall splatstream (pip install -e '.[refine]' in a checkout)") from None
 
     lack = missing()
     if lack is not None:
