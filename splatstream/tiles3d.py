@@ -468,7 +468,7 @@ def build_tilesets(manifest: Manifest, uris: dict[int, str], boxes: dict[int, tu
                 # How the tree was built (format.md 6, 1.9; None: not recorded): tilesets of two encodes compare.
                 "lod_merge": manifest.lod.merge,
                 "viewing_scale_px": list(manifest.lod.viewing_scale_px) if manifest.lod.viewing_scale_px else None,
-                # The merged levels' refinement (format.md 6, 1.10; encode --lod-refine), only where there is one.
+                # The merged levels' refinement (format.md 6, 1.11; encode --lod-refine), only where there is one.
                 **({"lod_refinement": manifest.lod.refinement.to_dict()} if manifest.lod.refinement else {})}},
         },
         **declared,

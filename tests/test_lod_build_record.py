@@ -189,6 +189,6 @@ def test_the_validator_accepts_what_the_spec_allows_and_rejects_the_rest(record_
         manifest_from_dict(d)
     # A newer minor version may add lod keys: ignored.
     d = copy.deepcopy(record_dict)
-    d["version"] = [1, FORMAT_VERSION[1] + 1]  # (1.10 is known now: lod.refinement)
+    d["version"] = [1, FORMAT_VERSION[1] + 1]  # (1.11 is known now: lod.refinement)
     d["lod"]["later"] = 1
     assert manifest_from_dict(d).lod.merge == "auto"

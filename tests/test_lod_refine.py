@@ -1,4 +1,4 @@
-"""The optional refinement of the merged LOD levels (lod.md 6, `encode --lod-refine`, format 1.10 `lod.refinement`;
+"""The optional refinement of the merged LOD levels (lod.md 6, `encode --lod-refine`, format 1.11 `lod.refinement`;
 issue 31 phase 2): its numpy core (splatstream/lod_refine.py), the encoder's hook, the manifest record, the
 validator, `info`, and the CLI's refusals. The optimiser (refine_gpu/, torch + gsplat) is replaced here by a numpy
 refiner of the same interface: CI has no torch (tests/test_lod_refine_torch.py runs the real one where it is)."""
@@ -18,7 +18,7 @@ from splatstream.encode import EncodeOptions, encode_gaussians, encode_in_memory
 from splatstream.errors import FormatError, InputError, UsageError
 from splatstream.format.layout import morton_order
 from splatstream.format.manifest import LevelRefinement, LodRefinement, manifest_from_dict, parse_manifest
-from splatstream.format.manifest.versions import VERSION_1_9, VERSION_1_10
+from splatstream.format.manifest.versions import VERSION_1_11
 from splatstream.io import read_gaussians
 from splatstream.lod import build_tiles, extent_bounds
 from splatstream.lod_refine import (
@@ -156,7 +156,7 @@ def test_a_refined_encode_records_it_and_keeps_the_full_detail_bit_for_bit(scene
     out = tmp_path / "refined"
     m = encode_gaussians(scene, out, EncodeOptions(lod_refiner=refiner, **TREE))
     assert refiner.calls == [(len(scene), len(plain.tiles), plain.up)]
-    assert plain.version == VERSION_1_9 and m.version == VERSION_1_10
+    assert plain.version < VERSION_1_11 and m.version == VERSION_1_11  # only the record needs 1.11
     back = parse_manifest((out / "manifest.msgpack").read_bytes())
     r = back.lod.refinement
     assert r is not None and r.to_dict() == m.lod.refinement.to_dict()
@@ -178,7 +178,7 @@ def test_a_refined_encode_records_it_and_keeps_the_full_detail_bit_for_bit(scene
     ref = decode_scene(encode_gaussians(scene, tmp_path / "plain", EncodeOptions(**TREE)) and tmp_path / "plain")
     assert np.array_equal(full.positions, ref.positions) and np.array_equal(full.sh_dc, ref.sh_dc)
     d = msgpack.unpackb((out / "manifest.msgpack").read_bytes(), strict_map_key=False)
-    assert d["version"] == [1, 10] and d["lod"]["refinement"]["cameras"] == {
+    assert d["version"] == [1, 11] and d["lod"]["refinement"]["cameras"] == {
         "training": 96, "training_seed": 0, "validation": 32, "validation_seed": 1}
     info = json.loads(run_cli("info", str(out), "--json").stdout)
     assert info["lod"]["refinement"]["levels"][1]["kept"] == "C"
@@ -222,7 +222,7 @@ def test_the_validator_checks_the_refinement_record(scene):
         with pytest.raises(FormatError, match=match):
             manifest_from_dict(bad)
     old = copy.deepcopy(d)
-    old["version"] = [1, 9]  # a key of 1.10 in a 1.9 manifest: unknown there
+    old["version"] = [1, 9]  # a key of 1.11 in a 1.9 manifest: unknown there
     with pytest.raises(FormatError, match="unknown key 'refinement'"):
         manifest_from_dict(old)
     flat = copy.deepcopy(d)

@@ -40,7 +40,7 @@ from refine_gpu.levels import LevelRefiner, RefineSettings, Renderer, psnr_of, t
 from splatstream.camera import Camera  # noqa: E402
 from splatstream.encode import EncodeOptions, encode_in_memory  # noqa: E402
 from splatstream.format.manifest import parse_manifest  # noqa: E402
-from splatstream.format.manifest.versions import VERSION_1_10  # noqa: E402
+from splatstream.format.manifest.versions import VERSION_1_11  # noqa: E402
 from splatstream.gaussians import Gaussians  # noqa: E402
 from splatstream.lod import build_tiles  # noqa: E402
 from splatstream.lod_refine import level_cuts  # noqa: E402
@@ -118,7 +118,7 @@ def test_the_refiner_on_the_cpu_keeps_per_level_what_validates_best():
     m = parse_manifest(encode_in_memory(g, EncodeOptions(max_leaf_splats=256, lod_refiner=LevelRefiner(
         RefineSettings(iterations=2, size=16, training_cameras=4, validation_cameras=2, batch=2, device="cpu",
                        backend="dense")))).read_manifest())
-    assert m.version == VERSION_1_10 and m.lod.refinement.size_px == 16
+    assert m.version == VERSION_1_11 and m.lod.refinement.size_px == 16
 
 
 def test_the_refiner_on_cuda_improves_the_levels():

@@ -148,7 +148,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                         help="refine every merged level against gsplat renders of the full-detail scene from "
                              "cameras around it (two variants per level, each judged on other cameras; a level "
                              "keeps the better one, or stays as built where neither beats it); recorded in the "
-                             "manifest (format 1.10). In-memory encodes only")
+                             "manifest (format 1.11). In-memory encodes only")
     refine.add_argument("--lod-refine-iters", type=int, default=300, metavar="N",
                         help="optimiser steps per level and variant (default 300)")
     refine.add_argument("--lod-refine-size", type=int, default=384, metavar="PX",

@@ -43,7 +43,7 @@ def _lod(m: Manifest) -> dict:
 
 
 def _refinement_line(lod: dict) -> str | None:
-    """How the merged levels were refined (format 1.10, encode --lod-refine), for the text output; None: not."""
+    """How the merged levels were refined (format 1.11, encode --lod-refine), for the text output; None: not."""
     r = lod.get("refinement")
     if r is None:
         return None

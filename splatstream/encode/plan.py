@@ -81,7 +81,7 @@ class ScenePlan:
     lod_merge: str | None = None
     # Step 5's viewing scales (lod.md 6): px on the first merged level and above it (lod.viewing_scales_px()).
     viewing_scale_px: tuple[float, float] | None = None
-    # The merged levels' refinement (EncodeOptions.lod_refiner, lod_refine.py; the manifest's lod.refinement, 1.10),
+    # The merged levels' refinement (EncodeOptions.lod_refiner, lod_refine.py; the manifest's lod.refinement, 1.11),
     # None where the tree was not refined.
     lod_refinement: LodRefinement | None = None
 

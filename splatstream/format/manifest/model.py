@@ -183,7 +183,7 @@ class CameraEntry:
 
 @dataclass(frozen=True)
 class LevelRefinement:
-    """One merged level of a refined tree (version 1.10, format.md 6, lod.md 6): which refinement it kept (`kept`:
+    """One merged level of a refined tree (version 1.11, format.md 6, lod.md 6): which refinement it kept (`kept`:
     a variant name such as `B` or `C`, or `none`: the level as built) and the validation PSNR in dB of each
     candidate (`unrefined` and every variant tried), the measure it was kept by."""
     level: int
@@ -197,7 +197,7 @@ class LevelRefinement:
 
 @dataclass(frozen=True)
 class LodRefinement:
-    """How the merged levels were refined after the tree was built (version 1.10, format.md 6, lod.md 6;
+    """How the merged levels were refined after the tree was built (version 1.11, format.md 6, lod.md 6;
     informative): the method (`render-fit`), the fields each variant optimised, the image size and iterations, the
     training and validation camera sets (count and seed of the rule lod.md 6 names) and, per merged level, what was
     kept. Readers draw a scene alike with or without it."""
@@ -231,7 +231,7 @@ class LodInfo:
     # encoder did not build).
     merge: str | None = None
     viewing_scale_px: tuple[float, float] | None = None
-    # The optional refinement of the merged levels against renders of the full detail (version 1.10; `encode
+    # The optional refinement of the merged levels against renders of the full detail (version 1.11; `encode
     # --lod-refine`). None: not refined (or not recorded).
     refinement: LodRefinement | None = None
 

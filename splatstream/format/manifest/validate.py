@@ -76,7 +76,7 @@ from .versions import (
     VERSION_1_7,
     VERSION_1_8,
     VERSION_1_9,
-    VERSION_1_10,
+    VERSION_1_11,
 )
 from .wire import CHECKSUM_KEY, unpack_manifest, verify_checksum
 
@@ -896,7 +896,7 @@ _LOD_BUILD_KEYS = ("merge", "viewing_scale_px")
 
 def _lod(d: dict, source: str, strict: bool, version: tuple[int, int]) -> LodInfo:
     build = _LOD_BUILD_KEYS if version >= VERSION_1_9 else ()
-    if version >= VERSION_1_10:
+    if version >= VERSION_1_11:
         build = (*build, "refinement")
     lod = _keys(d["lod"], _LOD_KEYS, source, "lod", strict, build)
     info = LodInfo(_bool(lod, "enabled", source, "lod"), _int(lod, "max_leaf_splats", source, "lod", 1),
@@ -937,7 +937,7 @@ def _name(v, source: str, path: str, key: str) -> str:
 
 
 def _lod_refinement(r, source: str, strict: bool) -> LodRefinement:
-    """Version 1.10's `lod.refinement` (format.md 6; informative, but well formed where present)."""
+    """Version 1.11's `lod.refinement` (format.md 6; informative, but well formed where present)."""
     path = "lod.refinement"
     r = _keys(r, _REFINEMENT_KEYS, source, path, strict)
     method = _name(r["method"], source, path, "method")
