@@ -1,18 +1,21 @@
 #!/usr/bin/env bash
 # The product's `splatstream encode --lod-refine` (issue 31, phase 2) on the GPU machine, for every lod_vs_peers
-# scene in a carried input folder (bench/device/refine_inputs.sh: .refine_in/ or .refine_flowers/), so that the lead
+# scene in a carried input folder (bench/device/refine_inputs.sh: .refine_statues/, .refine_others/, .refine_flowers/,
+# or .refine_in/ = the first two), so that the lead
 # measures the real streamed cut of the product's encodes here with bench/lod_vs_peers.py. Run from the repository
 # root on the GPU machine:
 #
-#   bash bench/device/run_refine_encode.sh .refine_in          # carry [".whl_refine", ".refine_in"], timeout 600
+#   bash bench/device/refine_inputs.sh split                             # .refine_statues/ .refine_others/ here
+#   bash bench/device/run_refine_encode.sh .refine_statues    # carry [".whl_refine", ".refine_statues"], timeout 600
+#   bash bench/device/run_refine_encode.sh .refine_others     # carry [".whl_refine", ".refine_others"], timeout 600
 #   BUDGET_S=380 bash bench/device/run_refine_encode.sh .refine_flowers   # carry [".whl_refine", ".refine_flowers"],
 #                                                                         # timeout 420
-#   ONLY=biker,guitar bash bench/device/run_refine_encode.sh .refine_in   # a re-run of the scenes BUDGET_S cut off
+#   ONLY=biker,guitar bash bench/device/run_refine_encode.sh .refine_others   # a re-run of scenes BUDGET_S cut off
 #
-# (.whl_refine/ from `bash bench/device_wheels.sh refine`: gsplat and zstandard, 12.1 MB; tracked files 36.7 MB +
-# .refine_in 17.5 MB + 12.1 MB = 63.2 MiB of the 64 MiB that travel. Where the tree has grown past that:
-# `bash bench/device/refine_inputs.sh split` and three runs, .refine_statues then .refine_others, each timeout 600.) Per scene, as lod_vs_peers encodes it:
-# `python3 -m cli convert SRC full.ply`, then `python3 -m cli encode full.ply OUT/SCENE --lod-refine` (the default
+# (.whl_refine/ from `bash bench/device_wheels.sh refine`: gsplat and zstandard, 12.1 MB. The tracked files of main
+# with this branch are ~37.4 MB, so .refine_in whole (17.5 MB) would make 63.9 of the 64 MiB that travel: the split
+# folders, 7.9 and 9.5 MB, leave room; .refine_in works where the tree is smaller.) Per scene, as lod_vs_peers
+# encodes it: `python3 -m cli convert SRC full.ply`, then `python3 -m cli encode full.ply OUT/SCENE --lod-refine` (the default
 # preset and tree, the refinement's defaults); JOBS scenes at once (default 4: one's CPU work, the tree and the
 # payloads, beside another's GPU work), the largest first, after gsplat's CUDA extension is built once alone (its
 # import deletes the build lock, so two first importers would break each other's build: ~95 s, kept while the
@@ -23,7 +26,9 @@
 # seconds) and summary.json (per scene the manifest's lod.refinement).
 #
 # Locally, into a --our-scene-dir for bench/lod_vs_peers.py (which reuses a scene directory holding a manifest):
-#   mkdir -p /tmp/refined && cat FILES_AT/scenes.tar.part* | tar -xf - -C /tmp/refined
+#   mkdir -p /tmp/refined && for d in RUN1_FILES_AT RUN2_FILES_AT RUN3_FILES_AT; do
+#     cat "$d"/scenes.tar.part* | tar -xf - -C /tmp/refined; done          # each run's parts are one tar
+#   .venv/bin/pip install -e .    # main's editable install predates refine_gpu (only `encode --lod-refine` needs it)
 #   .venv/bin/python bench/lod_vs_peers.py --skip-peers --peers-from bench/results/lod_vs_peers_viewscale \
 #       --cache-dir /tmp/lvp50/cache --our-scene-dir /tmp/refined --out-dir bench/results/lod_vs_peers_refined
 set -uo pipefail
