@@ -6,12 +6,22 @@
 # (.gitignore), carried to the machine and installed there with:
 #   python3 -m pip install -q --no-index --no-deps --target /tmp/site .whl/*.whl && export PYTHONPATH=/tmp/site:$PWD
 # `device_wheels.sh refine`: gsplat 1.5.3 alone (pure Python; it JIT-compiles its CUDA there, and the image has
-# torch, jaxtyping, rich and ninja) into .whl_refine/ (.gitignore), for bench/device/run_refine.sh: the repository's
-# tracked files are ~35 MiB of the 64 MiB that travel, so the refinement carries this 0.x MiB folder, not .whl.
+# torch, jaxtyping, rich and ninja) and zstandard (the product encoder's, for bench/device/run_refine_encode.sh) into
+# .whl_refine/ (.gitignore), for bench/device/run_refine.sh and run_refine_encode.sh: the repository's tracked files
+# are ~37 MiB of the 64 MiB that travel, so the refinement carries this ~12 MB folder, not .whl.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 if [ "${1:-}" = refine ]; then
   python3 -m pip download --no-deps --only-binary=:all: -d .whl_refine gsplat==1.5.3
+  # encode --lod-refine (bench/device/run_refine_encode.sh) runs the product encoder, which needs zstandard: the
+  # image lacks it. The cp312 wheel of .whl/ where it is there already, else downloaded.
+  zst=(.whl/zstandard-0.25.0-cp312-*.whl)
+  if [ -f "${zst[0]}" ]; then
+    cp "${zst[0]}" .whl_refine/
+  else
+    python3 -m pip download --no-deps --only-binary=:all: --python-version 3.12 --implementation cp \
+      --platform manylinux_2_17_x86_64 --platform manylinux2014_x86_64 -d .whl_refine zstandard==0.25.0
+  fi
   du -sh .whl_refine
   exit 0
 fi

@@ -467,7 +467,9 @@ def build_tilesets(manifest: Manifest, uris: dict[int, str], boxes: dict[int, tu
                 "heading": placement.heading,
                 # How the tree was built (format.md 6, 1.9; None: not recorded): tilesets of two encodes compare.
                 "lod_merge": manifest.lod.merge,
-                "viewing_scale_px": list(manifest.lod.viewing_scale_px) if manifest.lod.viewing_scale_px else None}},
+                "viewing_scale_px": list(manifest.lod.viewing_scale_px) if manifest.lod.viewing_scale_px else None,
+                # The merged levels' refinement (format.md 6, 1.11; encode --lod-refine), only where there is one.
+                **({"lod_refinement": manifest.lod.refinement.to_dict()} if manifest.lod.refinement else {})}},
         },
         **declared,
         "geometricError": max(diagonal, float(manifest.tile(manifest.root).geometric_error)),

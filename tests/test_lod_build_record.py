@@ -23,7 +23,7 @@ from splatstream.encode.scratch import Scratch
 from splatstream.errors import FormatError
 from splatstream.format.layout import morton_order
 from splatstream.format.manifest import manifest_from_dict, pack_manifest, parse_manifest, split_pages
-from splatstream.format.manifest.versions import VERSION_1_8, VERSION_1_9, VERSION_1_10
+from splatstream.format.manifest.versions import FORMAT_VERSION, VERSION_1_8, VERSION_1_9, VERSION_1_10
 from splatstream.io import read_gaussians
 from splatstream.store import MemoryWriter, load_manifest
 
@@ -117,7 +117,7 @@ def test_a_scene_before_1_9_reads_and_info_says_not_recorded():
     assert m.version == VERSION_1_8 and m.lod.enabled and m.lod.merge is None and m.lod.viewing_scale_px is None
     info = json.loads(run_cli("info", scene, "--json").stdout)
     assert info["lod"] == {"enabled": True, "max_leaf_splats": 64, "reduction": 2.0, "refine": "replace",
-                           "merge": None, "viewing_scale_px": None}
+                           "merge": None, "viewing_scale_px": None, "refinement": None}
     text = run_cli("info", scene).stdout
     assert "LOD tree   merge and viewing scales not recorded" in text
 
@@ -230,6 +230,6 @@ def test_the_validator_accepts_what_the_spec_allows_and_rejects_the_rest(record_
         manifest_from_dict(d)
     # A newer minor version may add lod keys: ignored.
     d = copy.deepcopy(record_dict)
-    d["version"] = [1, VERSION_1_10[1] + 1]
+    d["version"] = [1, FORMAT_VERSION[1] + 1]  # (1.11 is known now: lod.refinement)
     d["lod"]["later"] = 1
     assert manifest_from_dict(d).lod.merge == "auto"

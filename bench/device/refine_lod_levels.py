@@ -48,9 +48,23 @@ sys.path.insert(0, BENCH)
 
 import lod_vs_peers as lvp  # noqa: E402  (bench/ is not a package)
 
-from splatstream import lod  # noqa: E402
+from refine_gpu.levels import (  # noqa: E402  (the product's renderer and settings, phase 2)
+    LR,
+    OPACITY_MAX,
+    Renderer,
+    camera_tensors,
+    dense_render,
+    eval_sh_torch,
+    gsplat_torch_rasterization,
+    psnr_of,
+    to_params,
+)
+from splatstream import lod, lod_refine  # noqa: E402
 from splatstream.camera import Camera  # noqa: E402
 from splatstream.gaussians import Gaussians  # noqa: E402
+
+__all__ = ["LR", "OPACITY_MAX", "Renderer", "camera_tensors", "dense_render", "eval_sh_torch",
+           "gsplat_torch_rasterization", "psnr_of", "to_params"]  # re-exported: the replay and tests use them here
 
 # The encoder's defaults for a scene encoded in memory (EncodeOptions: max_leaf_splats, reduction,
 # resolved_lod_merge(in_memory=True)); tests/test_bench_probe_lod_refine.py checks they still are. Not imported here:
@@ -63,7 +77,6 @@ VARIANTS = {"A": ("opacity_logits", "sh_dc"),
             "B": ("opacity_logits", "sh_dc", "log_scales"),
             "C": ("opacity_logits", "sh_dc", "log_scales", "positions", "rotations")}
 FIELDS = ("opacity_logits", "sh_dc", "log_scales", "positions", "rotations")
-OPACITY_MAX = 0.99  # our renderers' alpha clamp (client_gl splat.frag, render_ref.ALPHA_MAX)
 PART_BYTES = 15 * 2**20  # files back from the device: at most 16 MiB each
 
 
@@ -110,46 +123,15 @@ def check_digest(ours: dict, theirs: dict) -> None:
 
 
 def level_cuts(tiles: list[lod.Tile]) -> dict[int, tuple[list[int], list[int]]]:
-    """Per merged level d: (the tiles at depth d with children: trained; the leaves at depth <= d: fixed)."""
-    cuts = {}
-    for d in sorted({t.level for t in tiles if t.children}):
-        merged = [t.id for t in tiles if t.level == d and t.children]
-        fixed = [t.id for t in tiles if t.level <= d and not t.children]
-        cuts[d] = (merged, fixed)
-    return cuts
+    """Per merged level d: (the tiles at depth d with children: trained; the leaves at depth <= d: fixed): the
+    product's rule (splatstream.lod_refine.level_cuts), as this probe's dict."""
+    return {c.level: (list(c.merged), list(c.fixed)) for c in lod_refine.level_cuts(tiles)}
 
 
-def training_cameras(positions: np.ndarray, up, n: int, size: int, seed: int = 0,
-                     distance_range: tuple[float, float] = (0.6, 1.6),
-                     elevation_deg: tuple[float, float] = (-20.0, 70.0)) -> list[Camera]:
-    """`n` cameras looking at the benchmark's orbit centre from a jittered Fibonacci band of directions (elevations
-    in `elevation_deg` about `up`: the benchmark views sit at 25 deg), at distances spread log-uniformly over
-    `distance_range` x the benchmark's orbit distance, the benchmark's fov, the view rule's near/far. None is one of
-    the 4 orbit views (their distance and elevation are exact; these are jittered)."""
-    bench = lvp.view_cameras(positions, up, 4, size)[0]
-    centre = np.asarray(bench.target, np.float64)
-    dist = math.dist(bench.eye, bench.target)
-    u = np.asarray(bench.up, np.float64)
-    u = u / np.linalg.norm(u)
-    helper = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    a = helper - u * (helper @ u)
-    a /= np.linalg.norm(a)
-    b = np.cross(u, a)
-    rng = np.random.default_rng(seed)
-    lo, hi = (math.sin(math.radians(e)) for e in elevation_deg)
-    golden = math.pi * (3.0 - math.sqrt(5.0))
-    cams = []
-    for i in range(n):
-        s = lo + (hi - lo) * (i + rng.uniform(0.2, 0.8)) / n  # sin(elevation), jittered within its stratum
-        az = golden * i + rng.uniform(-0.3, 0.3)
-        c = math.sqrt(max(0.0, 1.0 - s * s))
-        d = c * (math.cos(az) * a + math.sin(az) * b) + s * u
-        r = dist * math.exp(rng.uniform(math.log(distance_range[0]), math.log(distance_range[1])))
-        target = centre + rng.normal(0.0, 0.03 * dist, 3)
-        eye = target + r * d
-        cams.append(Camera(tuple(eye), tuple(target), tuple(u), bench.fov_y_deg, size, size,
-                           *lvp._near_far(eye, target)))
-    return cams
+def training_cameras(positions: np.ndarray, up, n: int, size: int, seed: int = 0) -> list[Camera]:
+    """The product's camera rule (splatstream.lod_refine.refine_cameras; moved there from here, the same cameras):
+    `n` jittered cameras around the benchmark's orbit centre, none one of its 4 orbit views."""
+    return lod_refine.refine_cameras(positions, up, n, size, seed)
 
 
 def replace_refined(tiles: list[lod.Tile], refined: dict[int, dict[str, np.ndarray]]) -> list[lod.Tile]:
@@ -239,148 +221,10 @@ def drawn_tiles(results_dir: str | None, scene: str) -> set[int] | None:
     return {i for row in res["ours"] for ids in row["drawn_tile_ids_per_view"] for i in ids}
 
 
-# --- torch: rendering -------------------------------------------------------------------------------------------
-
-def camera_tensors(cams: list[Camera], torch, device):
-    view = np.stack([c.world_to_camera_cv() for c in cams]).astype(np.float32)
-    ks = np.stack([c.intrinsics() for c in cams]).astype(np.float32)
-    return torch.from_numpy(view).to(device), torch.from_numpy(ks).to(device)
-
-
-def eval_sh_torch(torch, sh, dirs, degree: int):
-    """SH colour (N, 3) before the +0.5 offset: gsplat's pure-torch evaluation (the reference 3DGS basis, ours)."""
-    from gsplat.cuda._torch_impl import _spherical_harmonics
-
-    return _spherical_harmonics(degree, dirs, sh)
-
-
-def dense_render(torch, means, quats, scales, opac, sh, degree: int, cam: Camera):
-    """(H, W, 3) float32: our conventions (render_ref's preprocess; every pixel against every splat, no 3-sigma
-    cut, as the GL renderer's alpha >= 1/255 box), for small tests on the CPU."""
-    dev, dt = means.device, means.dtype
-    m = torch.tensor(cam.world_to_camera_cv(), dtype=dt, device=dev)
-    t = means @ m[:3, :3].T + m[:3, 3]
-    keep = t[:, 2] > cam.near
-    t, means, quats, scales, opac, sh = t[keep], means[keep], quats[keep], scales[keep], opac[keep], sh[keep]
-    fx, fy = cam.focal
-    cx, cy = cam.principal_point
-    tz = t[:, 2]
-    limx, limy = 1.3 * cam.tan_half_fov_x, 1.3 * cam.tan_half_fov_y
-    tx = torch.clamp(t[:, 0] / tz, -limx, limx) * tz
-    ty = torch.clamp(t[:, 1] / tz, -limy, limy) * tz
-    zero = torch.zeros_like(tz)
-    j = torch.stack([torch.stack([fx / tz, zero, -fx * tx / (tz * tz)], -1),
-                     torch.stack([zero, fy / tz, -fy * ty / (tz * tz)], -1)], 1)
-    q = quats / quats.norm(dim=1, keepdim=True)
-    w, x, y, z = q.unbind(1)
-    r = torch.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-                     2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-                     2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], 1).reshape(-1, 3, 3)
-    rs = r * scales[:, None, :]
-    cov3 = rs @ rs.transpose(1, 2)
-    tm = j @ m[:3, :3]
-    c2 = tm @ cov3 @ tm.transpose(1, 2)
-    a, b, c = c2[:, 0, 0] + 0.3, c2[:, 0, 1], c2[:, 1, 1] + 0.3
-    det = a * c - b * b
-    ca, cb, cc = c / det, -b / det, a / det
-    px = fx * t[:, 0] / tz + cx
-    py = fy * t[:, 1] / tz + cy
-    dirs = means - torch.tensor(cam.eye, dtype=dt, device=dev)
-    dirs = dirs / dirs.norm(dim=1, keepdim=True)
-    colour = torch.clamp_min(eval_sh_torch(torch, sh, dirs, degree) + 0.5, 0.0)
-    order = torch.argsort(tz)
-    gy, gx = torch.meshgrid(torch.arange(cam.height, device=dev, dtype=dt) + 0.5,
-                            torch.arange(cam.width, device=dev, dtype=dt) + 0.5, indexing="ij")
-    dx = px[order][None, :] - gx.reshape(-1, 1)
-    dy = py[order][None, :] - gy.reshape(-1, 1)
-    power = -0.5 * (ca[order] * dx * dx + cc[order] * dy * dy) - cb[order] * dx * dy
-    alpha = torch.clamp(opac[order] * torch.exp(torch.clamp(power, max=0.0)), max=OPACITY_MAX)
-    alpha = torch.where((power > 0) | (alpha < 1.0 / 255.0), torch.zeros_like(alpha), alpha)
-    trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], 1), 1)
-    img = (alpha * trans) @ colour[order]
-    return img.reshape(cam.height, cam.width, 3)
-
-
-class Renderer:
-    """Batched renders of a splat set (torch tensors) from cameras: gsplat on CUDA, dense_render on the CPU."""
-
-    def __init__(self, torch, device: str, degree: int, backend: str = "gsplat"):
-        self.torch, self.device, self.degree = torch, device, degree
-        self.backend = "dense" if device == "cpu" and backend == "gsplat" else backend
-        if self.backend == "gsplat":
-            from gsplat import rasterization
-            self.rasterization = rasterization
-        elif self.backend == "gsplat-torch":
-            self.rasterization = gsplat_torch_rasterization()
-
-    def __call__(self, p: dict, cams: list[Camera]):
-        torch = self.torch
-        opac = torch.sigmoid(p["opacity_logits"]).clamp(max=OPACITY_MAX)
-        scales = torch.exp(p["log_scales"])
-        sh = torch.cat([p["sh_dc"][:, None, :], p["sh_rest"]], 1)
-        if self.backend == "dense":
-            return torch.stack([dense_render(torch, p["positions"], p["rotations"], scales, opac, sh, self.degree, c)
-                                for c in cams])
-        view, ks = camera_tensors(cams, torch, self.device)
-        img, _, _ = self.rasterization(p["positions"], p["rotations"], scales, opac, sh, view, ks,
-                                       cams[0].width, cams[0].height, near_plane=min(c.near for c in cams),
-                                       far_plane=1e10, eps2d=0.3, sh_degree=self.degree)
-        return img
-
-
-def gsplat_torch_rasterization():
-    """gsplat's `_rasterization` (its autograd version) with the CUDA helpers it still calls swapped for gsplat's own
-    pure-torch ones: the same call as `rasterization`, on the CPU, to check our arguments' conventions here."""
-    import gsplat.rendering as gr
-    import torch
-    from gsplat.cuda import _torch_impl as ti
-
-    seen = {}
-
-    def isect_tiles(means2d, radii, depths, tile_size, tile_width, tile_height, **kw):
-        seen.update(radii=radii, depths=depths)  # the compositing below needs them (CUDA's has the tile lists)
-        return ti._isect_tiles(means2d, radii, depths, tile_size, tile_width, tile_height)
-
-    def composite(means2d, conics, colors, opacities, width, height, *a, backgrounds=None, **kw):
-        """gsplat's per-pixel blend (rasterize_to_pixels_fwd.cu: alpha = min(0.999, o exp(power)), skipped when
-        power > 0 or alpha < 1/255, pixel centres at +0.5), every pixel against every splat in depth order."""
-        out_c, out_a = [], []
-        gy, gx = torch.meshgrid(torch.arange(height, dtype=means2d.dtype) + 0.5,
-                                torch.arange(width, dtype=means2d.dtype) + 0.5, indexing="ij")
-        for c in range(means2d.shape[0]):
-            ok = (seen["radii"][c] > 0).all(-1)
-            order = torch.argsort(torch.where(ok, seen["depths"][c], torch.inf))[:int(ok.sum())]
-            m, q, o, col = means2d[c][order], conics[c][order], opacities[c][order], colors[c][order]
-            dx = m[None, :, 0] - gx.reshape(-1, 1)
-            dy = m[None, :, 1] - gy.reshape(-1, 1)
-            power = -0.5 * (q[:, 0] * dx * dx + q[:, 2] * dy * dy) - q[:, 1] * dx * dy
-            alpha = torch.clamp(o * torch.exp(torch.clamp(power, max=0.0)), max=0.999)
-            alpha = torch.where((power > 0) | (alpha < 1.0 / 255.0), torch.zeros_like(alpha), alpha)
-            trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1]], 1), 1)
-            out_c.append(((alpha * trans) @ col).reshape(height, width, -1))
-            out_a.append((1 - trans[:, -1] * (1 - alpha[:, -1])).reshape(height, width, 1))
-        return torch.stack(out_c), torch.stack(out_a)
-
-    gr.isect_tiles = isect_tiles
-    gr.isect_offset_encode = lambda ids, n, tw, th: torch.zeros((n, th, tw), dtype=torch.int32)
-    gr.spherical_harmonics = lambda deg, dirs, coeffs, masks=None: ti._spherical_harmonics(deg, dirs, coeffs)
-    ti._rasterize_to_pixels = composite  # _rasterization imports it when called
-    return gr._rasterization
-
-
-def to_params(torch, g: Gaussians, device: str) -> dict:
-    f = {"positions": g.positions, "rotations": g.rotations, "log_scales": g.log_scales,
-         "opacity_logits": g.opacity_logits, "sh_dc": g.sh_dc, "sh_rest": g.sh_rest}
-    return {k: torch.from_numpy(np.ascontiguousarray(v, np.float32)).to(device) for k, v in f.items()}
-
-
-def psnr_of(mse: float) -> float:
-    return 99.0 if mse <= 0 else 10.0 * math.log10(1.0 / mse)
-
+# --- torch: rendering (moved to the product: refine_gpu/levels.py) -------------------------------------------------
 
 # --- torch: one scene -------------------------------------------------------------------------------------------
 
-LR = {"opacity_logits": 0.05, "sh_dc": 0.005, "log_scales": 0.005, "rotations": 0.002}  # positions: scaled below
 
 
 def refine_scene(name: str, g: Gaussians, tiles: list[lod.Tile], args, torch, budget_s: float) -> dict:

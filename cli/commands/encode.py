@@ -140,6 +140,19 @@ def register(sub: argparse._SubParsersAction) -> None:
     cluster.add_argument("--scratch", metavar="PATH|URL",
                          help="where partitions are spilled (default: next to the output, or the system's temporary "
                               "directory for a URL output)")
+    refine = p.add_argument_group(
+        "refining the LOD levels on a GPU (optional)",
+        "The merged LOD levels fitted to renders of the full detail after the tree is built (format_spec/lod.md 6): "
+        "needs torch, gsplat and a CUDA GPU (pip install 'splatstream[refine]'); the full detail is unchanged.")
+    refine.add_argument("--lod-refine", action="store_true",
+                        help="refine every merged level against gsplat renders of the full-detail scene from "
+                             "cameras around it (two variants per level, each judged on other cameras; a level "
+                             "keeps the better one, or stays as built where neither beats it); recorded in the "
+                             "manifest (format 1.11). In-memory encodes only")
+    refine.add_argument("--lod-refine-iters", type=int, default=300, metavar="N",
+                        help="optimiser steps per level and variant (default 300)")
+    refine.add_argument("--lod-refine-size", type=int, default=384, metavar="PX",
+                        help="square size of the training and validation renders (default 384)")
     add_edit_arguments(p, taken=("--scale",))
     p.add_argument("--quiet", "-q", action="store_true", help="no progress display")
     p.set_defaults(func=run)
@@ -171,6 +184,7 @@ def run(args: argparse.Namespace) -> int:
     if args.dry_run:
         print(edit_report(" + ".join(args.input), *count_edits(args.input, edits, args.drop_invalid)[1:]))
         return 0
+    lod_refiner = _lod_refiner(args, workers) if args.lod_refine else None
     tree_kind = _foreign_tree(args)
     t0 = time.perf_counter()
     preset = args.preset or DEFAULT_PRESET
@@ -193,7 +207,8 @@ def run(args: argparse.Namespace) -> int:
                             zstd_level=args.zstd_level, transport=args.transport,
                             lod=not args.no_lod, max_leaf_splats=args.max_leaf_splats, reduction=args.reduction,
                             lod_merge=args.lod_merge, name=args.name, up=up, chunk_order=args.chunk_order,
-                            sh_codebook=args.sh_codebook, page_tiles=args.page_tiles, page_levels=args.page_levels)
+                            sh_codebook=args.sh_codebook, page_tiles=args.page_tiles, page_levels=args.page_levels,
+                            **({"lod_refiner": lod_refiner} if lod_refiner is not None else {}))
     if not args.quiet:
         print(f"wrote {args.output_dir}: {m.splats} splats, SH degree {m.sh_degree}, preset {m.preset}, "
               f"{count(len(m.tiles), 'tile')}, {m.bytes_on_disk / 1e6:.2f} MB on disk "
@@ -201,6 +216,38 @@ def run(args: argparse.Namespace) -> int:
               f"with all LOD levels), {m.gpu_bytes_per_splat:.2f} B/splat on the GPU, "
               f"{time.perf_counter() - t0:.2f}s", file=sys.stderr)
     return 0
+
+
+def _lod_refiner(args: argparse.Namespace, workers: int | None):
+    """The GPU refiner of --lod-refine (refine_gpu.levels), or a UsageError naming what is missing or what does not
+    go with it: checked before the scene is read (importing torch takes seconds; gsplat builds its CUDA extension
+    on first use, then keeps it)."""
+    if args.no_lod:
+        raise UsageError("--lod-refine refines the LOD tree's merged levels: not with --no-lod")
+    if workers is not None or args.scheduler:
+        raise UsageError("--lod-refine refines the tree the in-memory encoder builds: not with --workers or "
+                         "--scheduler (a partitioned encode)")
+    if args.target_psnr is not None or args.target_size is not None:
+        raise UsageError("--lod-refine: not with --target-psnr / --target-size (they measure unrefined encodes)")
+    if args.lod_refine_iters < 1 or args.lod_refine_size < 16:
+        raise UsageError("--lod-refine-iters must be at least 1 and --lod-refine-size at least 16")
+    # The GPU shell, an optional extra: imported only when asked for. (It needs numpy and the core alone; an install
+    # made before the package existed does not see it.)
+    try:
+        from refine_gpu.levels import EXTRA, LevelRefiner, RefineSettings, missing
+    except ImportError as exc:
+        raise UsageError(f"--lod-refine: the refine_gpu package of this splatstream cannot be imported ({exc}); "
+                         "reinstall splatstream (pip install -e '.[refine]' in a checkout)") from None
+
+    lack = missing()
+    if lack is not None:
+        raise UsageError(f"--lod-refine needs torch, gsplat and a CUDA GPU: {lack} (install the extra: {EXTRA})")
+
+    def log(msg: str) -> None:
+        if not args.quiet:
+            print(f"lod-refine: {msg}", file=sys.stderr, flush=True)
+
+    return LevelRefiner(RefineSettings(iterations=args.lod_refine_iters, size=args.lod_refine_size, log=log))
 
 
 def _foreign_tree(args: argparse.Namespace) -> str | None:
@@ -211,7 +258,7 @@ def _foreign_tree(args: argparse.Namespace) -> str | None:
     if kind not in ("lod_sog", "rad"):
         return None
     given = [flag for flag, on in (("edits", bool(edits_from(args))), ("--workers", args.workers is not None),
-                                   ("--scheduler", bool(args.scheduler)),
+                                   ("--scheduler", bool(args.scheduler)), ("--lod-refine", args.lod_refine),
                                    ("--target-psnr/--target-size",
                                     args.target_psnr is not None or args.target_size is not None)) if on]
     if given:

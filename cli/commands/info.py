@@ -39,7 +39,20 @@ def _lod(m: Manifest) -> dict:
     lod = m.lod
     return {"enabled": lod.enabled, "max_leaf_splats": lod.max_leaf_splats, "reduction": lod.reduction,
             "refine": lod.refine, "merge": lod.merge,
-            "viewing_scale_px": list(lod.viewing_scale_px) if lod.viewing_scale_px is not None else None}
+            "viewing_scale_px": list(lod.viewing_scale_px) if lod.viewing_scale_px is not None else None,
+            "refinement": lod.refinement.to_dict() if lod.refinement is not None else None}
+
+
+def _refinement_line(lod: dict) -> str | None:
+    """How the merged levels were refined (format 1.11, encode --lod-refine), for the text output; None: not."""
+    r = lod.get("refinement")
+    if r is None:
+        return None
+    kept = ", ".join(f"{lv['level']}: {lv['kept']}" for lv in r["levels"])
+    cams = r["cameras"]
+    variants = ", ".join(f"{k} = " + "+".join(v) for k, v in r["variants"].items())
+    return (f"{r['method']} at {r['size_px']} px, {r['iterations']} steps per variant ({variants}), "
+            f"{cams['training']} training / {cams['validation']} validation cameras; kept per level {kept}")
 
 
 def _lod_line(lod: dict) -> str | None:
@@ -122,6 +135,9 @@ def run(args: argparse.Namespace) -> int:
     lod_line = _lod_line(info["lod"])
     if lod_line:
         print(f"LOD tree   {lod_line}")
+    refined = _refinement_line(info["lod"])
+    if refined:
+        print(f"refined    {refined}")
     print(f"on disk    {info['bytes_on_disk']} bytes ({info['bytes_per_splat_on_disk']:.2f} B/splat, all levels)")
     print(f"GPU        {info['gpu_bytes']} bytes ({info['gpu_bytes_per_splat']:.2f} B/splat, full detail)")
     for name, a in (info["attributes"] or {}).items():

@@ -73,6 +73,10 @@ _COST_MERGE_IN_PROCESS = ("--lod-merge {} groups each LOD level over the whole s
                           "--memory-per-worker) cannot do: give a --memory-per-worker the scene fits in, or use "
                           "--lod-merge grid")
 
+_REFINE_IN_PROCESS = ("--lod-refine refines the merged levels of the LOD tree the in-memory encoder builds: not with "
+                      "--no-lod, nor with a partitioned encode (--workers, --scheduler, or a scene larger than "
+                      "--memory-per-worker: give a --memory-per-worker the scene fits in)")
+
 
 def encode_file(input_path: str | os.PathLike | Sequence[str | os.PathLike], out_dir: str | os.PathLike,
                 preset: str | None = None,
@@ -110,6 +114,8 @@ def encode_file(input_path: str | os.PathLike | Sequence[str | os.PathLike], out
     in_memory = not distributed and fits_in_process(layouts, opts, memory_per_worker or default_memory_per_worker())
     if edits and not edits.per_splat and not in_memory:
         raise UsageError(_WHOLE_SCENE_EDITS)
+    if opts.lod_refiner is not None and not (opts.lod and in_memory):
+        raise UsageError(_REFINE_IN_PROCESS)
     if opts.lod and opts.lod_merge not in (None, "grid") and not in_memory:
         raise UsageError(_COST_MERGE_IN_PROCESS.format(opts.lod_merge))
     # No merge named (None): plan.plan_tiles takes auto in memory, encode_partitioned the grid (default_lod_merge).

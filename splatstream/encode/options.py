@@ -6,6 +6,7 @@ from dataclasses import dataclass, field
 
 from ..format.container import DEFAULT_ZSTD_LEVEL
 from ..format.presets import DEFAULT_PRESET, preset_transport, preset_zstd_level
+from ..lod_refine import LodRefiner
 
 # progress(stage, fraction in [0, 1]); stages: codebook, tiles, encode
 Progress = Callable[[str, float], None]
@@ -60,6 +61,10 @@ class EncodeOptions:
     # The LOD tree handed to the encoder (`tiles=`) is an imported one (sog_import.py: a streamed SOG's or RAD's
     # levels), not one lod.py built: the manifest then does not record a merge or viewing scales (format.md 6).
     imported_tree: bool = False
+    # The optional refinement of the merged levels against renders of the full detail (lod_refine.py, lod.md 6;
+    # `encode --lod-refine`): a callable the shell hands in (refine_gpu.levels, torch + gsplat on a CUDA GPU), run on
+    # the in-memory engine's own tree after it is built and before any payload is quantised. None: not refined.
+    lod_refiner: LodRefiner | None = None
     page_tiles: int = 1024
     page_levels: int = 6
     name: str | None = None

@@ -19,7 +19,7 @@ from ..format.codec import PaletteValues, chunk_ranges, merged_pairs, scene_pale
 from ..format.container import DEFAULT_ZSTD_LEVEL
 from ..format.layout import CHUNK_SIZE, MAX_BLOCK_ROWS, MAX_BLOCKS_PER_ROW
 from ..format.limits import describe_violations, domain_violations
-from ..format.manifest import Box, CameraEntry
+from ..format.manifest import Box, CameraEntry, LodRefinement
 from ..format.planes import BASE_PLANES
 from ..format.presets import (
     PRESET_PALETTE_MERGE,
@@ -34,6 +34,7 @@ from ..format.steps import TileStep, on_grid
 from ..format.texformats import PALETTE_FORMATS
 from ..gaussians import Gaussians
 from ..lod import Tile, build_tiles, viewing_scales_px
+from ..lod_refine import refine_tree
 from ..vq import Codebook
 from .codebook import codebook_choice
 from .options import EncodeOptions, Progress, no_progress
@@ -83,6 +84,9 @@ class ScenePlan:
     lod_merge: str | None = None
     # Step 5's viewing scales (lod.md 6): px on the first merged level and above it (lod.viewing_scales_px()).
     viewing_scale_px: tuple[float, float] | None = None
+    # The merged levels' refinement (EncodeOptions.lod_refiner, lod_refine.py; the manifest's lod.refinement, 1.11),
+    # None where the tree was not refined.
+    lod_refinement: LodRefinement | None = None
 
 
 @dataclass
@@ -210,11 +214,16 @@ def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progr
                                scene_name(opts, source_name, out_name), progress,
                                None if tiles is not None and opts.imported_tree else opts.resolved_lod_merge(True))
     progress("tiles", 0.0)
+    own_tree = tiles is None
     if tiles is None:
         tiles = plan_tiles(g, opts, progress)
     elif sh_degree != g.sh_degree or any(t.gaussians.sh_degree != sh_degree for t in tiles):
         tiles = [replace(t, gaussians=t.gaussians.with_sh_degree(sh_degree)) for t in tiles]
     progress("tiles", 1.0)
+    if opts.lod_refiner is not None and own_tree and len(tiles) > 1:
+        # lod.md 6's optional step: after the tree, before any payload is quantised; leaves stay the originals.
+        tiles, record = refine_tree(g, tiles, scene.up, opts.lod_refiner, progress)
+        scene = replace(scene, lod_refinement=record)
     return EncodePlan(scene, tiles, sample)
 
 

@@ -16,7 +16,7 @@ from ..format.manifest import (
     TileEntry,
     writer_version,
 )
-from ..format.manifest.versions import VERSION_1_6, VERSION_1_7, VERSION_1_8, VERSION_1_9, VERSION_1_10
+from ..format.manifest.versions import VERSION_1_6, VERSION_1_7, VERSION_1_8, VERSION_1_9, VERSION_1_10, VERSION_1_11
 from ..format.planes import BASE_PLANE_NAMES
 from ..format.presets import ATTRIBUTES
 from .plan import ScenePlan
@@ -64,8 +64,11 @@ def _version(ctx, codebook: SHCodebookEntry | None, tiles: list[TileEntry], lod:
     # The tree's build record (format.md 6, lod.md 6: lod.merge, lod.viewing_scale_px) is a 1.9 key; scales per
     # level (a scale growing with the level: lod.viewing_scale_levels_px) a 1.10 one.
     if lod.scales_need_1_10:
-        return max(version, VERSION_1_10)
-    return max(version, VERSION_1_9) if lod.build_recorded else version
+        version = max(version, VERSION_1_10)
+    elif lod.build_recorded:
+        version = max(version, VERSION_1_9)
+    # The refinement record (encode --lod-refine: lod.refinement) is a 1.11 key; every other scene keeps its version.
+    return max(version, VERSION_1_11) if lod.refinement is not None else version
 
 
 def lod_info(scene: ScenePlan, tiles: int) -> LodInfo:
@@ -74,7 +77,8 @@ def lod_info(scene: ScenePlan, tiles: int) -> LodInfo:
     tree = tiles > 1
     built = tree and scene.lod_merge is not None
     return LodInfo(tree, scene.max_leaf_splats, scene.reduction, "replace",
-                   scene.lod_merge if built else None, scene.viewing_scale_px if built else None)
+                   scene.lod_merge if built else None, scene.viewing_scale_px if built else None,
+                   scene.lod_refinement if tree else None)
 
 
 def build_manifest(scene: ScenePlan, camera: CameraEntry, tiles: list[TileEntry],

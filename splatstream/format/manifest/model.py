@@ -182,6 +182,44 @@ class CameraEntry:
 
 
 @dataclass(frozen=True)
+class LevelRefinement:
+    """One merged level of a refined tree (version 1.11, format.md 6, lod.md 6): which refinement it kept (`kept`:
+    a variant name such as `B` or `C`, or `none`: the level as built) and the validation PSNR in dB of each
+    candidate (`unrefined` and every variant tried), the measure it was kept by."""
+    level: int
+    kept: str
+    validation_psnr: tuple[tuple[str, float], ...] = ()
+
+    def to_dict(self) -> dict:
+        return {"level": self.level, "kept": self.kept,
+                "validation_psnr": {k: float(v) for k, v in self.validation_psnr}}
+
+
+@dataclass(frozen=True)
+class LodRefinement:
+    """How the merged levels were refined after the tree was built (version 1.11, format.md 6, lod.md 6;
+    informative): the method (`render-fit`), the fields each variant optimised, the image size and iterations, the
+    training and validation camera sets (count and seed of the rule lod.md 6 names) and, per merged level, what was
+    kept. Readers draw a scene alike with or without it."""
+    method: str
+    variants: tuple[tuple[str, tuple[str, ...]], ...]
+    size_px: int
+    iterations: int
+    training_cameras: int
+    training_seed: int
+    validation_cameras: int
+    validation_seed: int
+    levels: tuple[LevelRefinement, ...]
+
+    def to_dict(self) -> dict:
+        return {"method": self.method, "variants": {k: list(v) for k, v in self.variants},
+                "size_px": self.size_px, "iterations": self.iterations,
+                "cameras": {"training": self.training_cameras, "training_seed": self.training_seed,
+                            "validation": self.validation_cameras, "validation_seed": self.validation_seed},
+                "levels": [lv.to_dict() for lv in self.levels]}
+
+
+@dataclass(frozen=True)
 class LodInfo:
     enabled: bool
     max_leaf_splats: int
@@ -194,6 +232,9 @@ class LodInfo:
     # written where there are more than two). None: not recorded (before 1.9, or a tree the encoder did not build).
     merge: str | None = None
     viewing_scale_px: tuple[float, ...] | None = None
+    # The optional refinement of the merged levels against renders of the full detail (version 1.11; `encode
+    # --lod-refine`). None: not refined (or not recorded).
+    refinement: LodRefinement | None = None
 
     @property
     def build_recorded(self) -> bool:
@@ -207,6 +248,8 @@ class LodInfo:
         if self.viewing_scale_px is not None:
             key = "viewing_scale_px" if len(self.viewing_scale_px) == 2 else "viewing_scale_levels_px"
             d[key] = [float(v) for v in self.viewing_scale_px]
+        if self.refinement is not None:
+            d["refinement"] = self.refinement.to_dict()
         return d
 
     @property

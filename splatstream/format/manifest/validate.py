@@ -45,7 +45,9 @@ from .model import (
     Box,
     CameraEntry,
     LazyPayloads,
+    LevelRefinement,
     LodInfo,
+    LodRefinement,
     Manifest,
     PagedInfo,
     PageRef,
@@ -75,6 +77,7 @@ from .versions import (
     VERSION_1_8,
     VERSION_1_9,
     VERSION_1_10,
+    VERSION_1_11,
 )
 from .wire import CHECKSUM_KEY, unpack_manifest, verify_checksum
 
@@ -898,11 +901,19 @@ def _lod(d: dict, source: str, strict: bool, version: tuple[int, int]) -> LodInf
     build = _LOD_BUILD_KEYS if version >= VERSION_1_9 else ()
     if version >= VERSION_1_10:
         build = (*build, _LOD_LEVELS_KEY)
+    if version >= VERSION_1_11:
+        build = (*build, "refinement")
     lod = _keys(d["lod"], _LOD_KEYS, source, "lod", strict, build)
     info = LodInfo(_bool(lod, "enabled", source, "lod"), _int(lod, "max_leaf_splats", source, "lod", 1),
                    _float(lod, "reduction", source, "lod", 1.0), _str(lod, "refine", source, "lod", ("replace",)))
     if not build or not (lod.keys() & set(build)):
         return info
+    refinement = None
+    if "refinement" in build and lod.get("refinement") is not None:
+        if not info.enabled:
+            _fail(source, "lod", "refinement", "a refinement record in a scene without an LOD tree (lod.enabled is "
+                  "false)")
+        refinement = _lod_refinement(lod["refinement"], source, strict)
     merge = lod.get("merge")
     if merge is not None and (type(merge) is not str or not merge):
         # Informative and open: a later encoder may name a merge this reader does not know (format.md 6).
@@ -926,7 +937,52 @@ def _lod(d: dict, source: str, strict: bool, version: tuple[int, int]) -> LodInf
     if not info.enabled:
         _fail(source, "lod", "merge" if merge is not None else "viewing_scale_px",
               "a build record in a scene without an LOD tree (lod.enabled is false)")
-    return LodInfo(info.enabled, info.max_leaf_splats, info.reduction, info.refine, merge, scales)
+    return LodInfo(info.enabled, info.max_leaf_splats, info.reduction, info.refine, merge, scales, refinement)
+
+
+_REFINEMENT_KEYS = ("method", "variants", "size_px", "iterations", "cameras", "levels")
+_REFINEMENT_CAMERA_KEYS = ("training", "training_seed", "validation", "validation_seed")
+
+
+def _name(v, source: str, path: str, key: str) -> str:
+    if type(v) is not str or not v:
+        _fail(source, path, key, f"expected a non-empty string, got {v!r}")
+    return v
+
+
+def _lod_refinement(r, source: str, strict: bool) -> LodRefinement:
+    """Version 1.11's `lod.refinement` (format.md 6; informative, but well formed where present)."""
+    path = "lod.refinement"
+    r = _keys(r, _REFINEMENT_KEYS, source, path, strict)
+    method = _name(r["method"], source, path, "method")
+    variants = r["variants"]
+    if type(variants) is not dict or not all(
+            type(k) is str and k and type(v) is list and v and all(type(f) is str and f for f in v)
+            for k, v in variants.items()):
+        _fail(source, path, "variants", f"expected a map of variant name to a list of field names, got {variants!r}")
+    cams = _keys(r["cameras"], _REFINEMENT_CAMERA_KEYS, source, f"{path}.cameras", strict)
+    levels = r["levels"]
+    if type(levels) is not list:
+        _fail(source, path, "levels", f"expected a list, got {type(levels).__name__}")
+    out = []
+    for i, lv in enumerate(levels):
+        where = f"{path}.levels[{i}]"
+        lv = _keys(lv, ("level", "kept", "validation_psnr"), source, where, strict)
+        kept = _name(lv["kept"], source, where, "kept")
+        if kept != "none" and kept not in variants:
+            _fail(source, where, "kept", f"expected none or one of the variants ({', '.join(variants)}), got {kept!r}")
+        psnr = lv["validation_psnr"]
+        if type(psnr) is not dict or not all(type(k) is str and type(v) in _NUMBER and _isfinite(v)
+                                             for k, v in psnr.items()):
+            _fail(source, where, "validation_psnr", f"expected a map of candidate to a finite number, got {psnr!r}")
+        out.append(LevelRefinement(_int(lv, "level", source, where), kept,
+                                   tuple((k, float(v)) for k, v in psnr.items())))
+    return LodRefinement(method, tuple((k, tuple(v)) for k, v in variants.items()),
+                         _int(r, "size_px", source, path, 1), _int(r, "iterations", source, path),
+                         _int(cams, "training", source, f"{path}.cameras", 1),
+                         _int(cams, "training_seed", source, f"{path}.cameras"),
+                         _int(cams, "validation", source, f"{path}.cameras", 1),
+                         _int(cams, "validation_seed", source, f"{path}.cameras"), tuple(out))
 
 
 def _attributes(d: dict, source: str, strict: bool) -> dict[str, AttributeSize]:

@@ -4,7 +4,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 FORMAT_NAME = "splatstream"
-FORMAT_VERSION = (1, 10)  # (major, minor) this code reads; what it writes: writer_version
+FORMAT_VERSION = (1, 11)  # (major, minor) this code reads; what it writes: writer_version
 # Version 1.2 added two things (format.md, version history): the manifest's last key `checksum`, the SHA-256 of the
 # file with that value's 64 bytes read as ASCII '0' (format.md 6, "Checksum"), so a flipped byte in the manifest is
 # caught like one in a payload; and the `fields1` transport coding of texels sections (format.md 5.2).
@@ -55,3 +55,9 @@ VERSION_1_9 = (1, 9)
 # `viewing_scale_px` cannot say). Written instead of `viewing_scale_px` by such trees only: a 1.9 reader ignores the
 # key (a newer minor version's) and says the scales are not recorded; a longer `viewing_scale_px` it would reject.
 VERSION_1_10 = (1, 10)
+# Version 1.11 added the refinement record (format.md 6, lod.md 6): the `lod` map's optional `refinement`, how the
+# merged levels were refined against renders of the full detail after the tree was built (`encode --lod-refine`);
+# written only by such scenes (every other scene keeps its version, byte for byte). A 1.8 to 1.10 reader reads a 1.11
+# scene whole and ignores the key. (1.10 is branch farpx31's `lod.viewing_scale_levels_px`, merged into main while
+# this branch was open: on this branch alone 1.10 adds nothing.)
+VERSION_1_11 = (1, 11)

@@ -1,0 +1,148 @@
+"""The optional refinement of the merged LOD levels against renders of the full-detail scene (lod.md 6, the optional
+step; `encode --lod-refine`; issue 31): the numpy parts.
+
+The optimiser itself (torch + gsplat on a CUDA GPU) lives outside the core, in `refine_gpu/`, and is handed to the
+encoder as a callable (`LodRefiner`, EncodeOptions.lod_refiner), as the streaming client's compiled kernels are:
+the core never imports torch or gsplat. What the core owns is everything the refinement's result depends on
+besides the optimiser: which splats each level's picture is made of (`level_cuts`), the cameras it is trained and
+judged on (`refine_cameras`, a rule of the scene alone), and how refined values enter the tree (`refine_tree`:
+checked, applied to the merged tiles only, bounds recomputed; geometric errors stay the unrefined tree's).
+"""
+from __future__ import annotations
+
+import math
+from collections.abc import Callable
+from dataclasses import dataclass, replace
+
+import numpy as np
+
+from .camera import Camera, scene_orbit_views
+from .errors import InputError
+from .format.limits import describe_violations, domain_violations
+from .format.manifest import LodRefinement
+from .gaussians import Gaussians
+from .lod import Tile, interior_bounds
+
+# The method name the manifest records (lod.refinement.method): the merged splats' values fitted by gradient
+# descent to renders of the full-detail scene (lod.md 6).
+REFINE_METHOD = "render-fit"
+# What each variant optimises (phase 1, BENCHMARKS.md "Refining the merged levels against the originals": B won at
+# the first merged level on several scenes, C at the coarser ones; A, opacity and DC colour alone, never won).
+# Higher SH bands are kept as merged: the refinement never changes sh_rest.
+VARIANT_FIELDS: dict[str, tuple[str, ...]] = {
+    "B": ("opacity_logits", "sh_dc", "log_scales"),
+    "C": ("opacity_logits", "sh_dc", "log_scales", "positions", "rotations"),
+}
+UNREFINED = "none"
+# The camera rule's defaults (phase 1's training set; the validation set is the same rule, another seed and count).
+TRAINING_CAMERAS = 96
+TRAINING_SEED = 0
+VALIDATION_CAMERAS = 32
+VALIDATION_SEED = 1
+DISTANCE_RANGE = (0.6, 1.6)  # x the orbit distance of scene_orbit_views
+ELEVATION_DEG = (-20.0, 70.0)  # about up; the benchmark's orbit views sit at 25 deg
+
+# The GPU side: (full-detail splats, the tree, up, progress) -> ({merged tile id: its refined splats}, the record).
+LodRefiner = Callable[[Gaussians, list[Tile], tuple[float, float, float], Callable[[str, float], None]],
+                      tuple[dict[int, Gaussians], LodRefinement]]
+
+
+@dataclass(frozen=True)
+class LevelCut:
+    """One merged level's whole picture: the merged tiles at depth `level` (refined) and the leaves at depths
+    <= `level` (the originals, drawn with them and fixed), as a client draws the tree cut at that depth."""
+    level: int
+    merged: tuple[int, ...]
+    fixed: tuple[int, ...]
+
+
+def level_cuts(tiles: list[Tile]) -> list[LevelCut]:
+    """Every merged level of the tree, the coarsest (the root's) first."""
+    return [LevelCut(d, tuple(t.id for t in tiles if t.level == d and t.children),
+                     tuple(t.id for t in tiles if t.level <= d and not t.children))
+            for d in sorted({t.level for t in tiles if t.children})]
+
+
+def _near_far(eye: np.ndarray, target: np.ndarray) -> tuple[float, float]:
+    """`splatstream view --eye/--target`'s near/far rule (bench/lod_vs_peers.py renders with it too)."""
+    dist = math.dist(eye, target)
+    return min(0.01, 0.01 * dist), max(1000.0, 100 * dist)
+
+
+def refine_cameras(positions: np.ndarray, up, n: int, size: int, seed: int = TRAINING_SEED) -> list[Camera]:
+    """`n` square cameras of `size` px looking at the scene's orbit centre (scene_orbit_views: the robust median,
+    the distance that fits the robust bounds, its fov and `up`) from a jittered Fibonacci band of directions
+    (elevations ELEVATION_DEG about `up`), at distances log-uniform over DISTANCE_RANGE x the orbit distance, each
+    target jittered by 3 % of that distance. A rule of the scene alone: no benchmark's views (theirs sit exactly on
+    the 25 deg orbit), and a seed gives another set (the validation cameras)."""
+    orbit = scene_orbit_views(positions, 1, size, size, up=up, elevation_deg=25.0)[0]
+    centre = np.asarray(orbit.target, np.float64)
+    dist = math.dist(orbit.eye, orbit.target)
+    u = np.asarray(orbit.up, np.float64)
+    u = u / np.linalg.norm(u)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    a = helper - u * (helper @ u)
+    a /= np.linalg.norm(a)
+    b = np.cross(u, a)
+    rng = np.random.default_rng(seed)
+    lo, hi = (math.sin(math.radians(e)) for e in ELEVATION_DEG)
+    golden = math.pi * (3.0 - math.sqrt(5.0))
+    cams = []
+    for i in range(n):
+        s = lo + (hi - lo) * (i + rng.uniform(0.2, 0.8)) / n  # sin(elevation), jittered within its stratum
+        az = golden * i + rng.uniform(-0.3, 0.3)
+        c = math.sqrt(max(0.0, 1.0 - s * s))
+        d = c * (math.cos(az) * a + math.sin(az) * b) + s * u
+        r = dist * math.exp(rng.uniform(math.log(DISTANCE_RANGE[0]), math.log(DISTANCE_RANGE[1])))
+        target = centre + rng.normal(0.0, 0.03 * dist, 3)
+        eye = target + r * d
+        cams.append(Camera(tuple(eye), tuple(target), tuple(u), orbit.fov_y_deg, size, size, *_near_far(eye, target)))
+    return cams
+
+
+def with_values(g: Gaussians, values: dict[str, np.ndarray]) -> Gaussians:
+    """`g` with some of its fields replaced (float32; rotations normalised: the optimiser's are not unit)."""
+    f = {k: np.ascontiguousarray(values.get(k, getattr(g, k)), np.float32)
+         for k in ("positions", "rotations", "log_scales", "opacity_logits", "sh_dc")}
+    if "rotations" in values:
+        q = f["rotations"]
+        f["rotations"] = (q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)).astype(np.float32)
+    return Gaussians(f["positions"], f["rotations"], f["log_scales"], f["opacity_logits"], f["sh_dc"], g.sh_rest)
+
+
+def apply_refined(tiles: list[Tile], refined: dict[int, Gaussians]) -> list[Tile]:
+    """A copy of the tree with the merged tiles of `refined` holding their refined splats, and the bounds (box and
+    sphere, lod.interior_bounds: the splats' 3-sigma extents and the children's volumes) of those tiles and of their
+    ancestors recomputed, deepest first, so a parent still covers its children. Geometric errors stay as built.
+    Refused (InputError): a leaf (the originals never change), an unknown tile, another splat count or SH degree,
+    values outside the format's domain."""
+    parent = {c: t.id for t in tiles for c in t.children}
+    out = list(tiles)
+    dirty: set[int] = set()
+    for tid, g in refined.items():
+        if not 0 <= tid < len(tiles) or not tiles[tid].children:
+            raise InputError("<lod refinement>", f"tile {tid}", "not a merged tile of this tree (leaves never change)")
+        old = tiles[tid].gaussians
+        if len(g) != len(old) or g.sh_degree != old.sh_degree:
+            raise InputError("<lod refinement>", f"tile {tid}", f"{len(g)} splats of SH degree {g.sh_degree} for "
+                             f"{len(old)} of SH degree {old.sh_degree}")
+        bad = domain_violations(g)
+        if bad:
+            raise InputError("<lod refinement>", f"tile {tid}", describe_violations(bad, len(g))[1])
+        out[tid] = replace(out[tid], gaussians=g)
+        t = tid
+        while t is not None and t not in dirty:
+            dirty.add(t)
+            t = parent.get(t)
+    for tid in sorted(dirty, reverse=True):  # children's ids are above their parent's: deepest first
+        t = out[tid]
+        lo, hi, c, r = interior_bounds(t.gaussians, [out[k] for k in t.children])
+        out[tid] = replace(t, box_min=lo, box_max=hi, sphere_center=c, sphere_radius=r)
+    return out
+
+
+def refine_tree(g: Gaussians, tiles: list[Tile], up, refiner: LodRefiner,
+                progress: Callable[[str, float], None]) -> tuple[list[Tile], LodRefinement]:
+    """The tree with its merged levels refined by `refiner` (the GPU side), and the record the manifest keeps."""
+    refined, record = refiner(g, tiles, tuple(float(v) for v in up), progress)
+    return apply_refined(tiles, refined), record
