@@ -193,11 +193,25 @@ def gsplat_torch_rasterization():
             out_a.append((1 - trans[:, -1] * (1 - alpha[:, -1])).reshape(height, width, 1))
         return torch.stack(out_c), torch.stack(out_a)
 
-    gr.isect_tiles = isect_tiles
-    gr.isect_offset_encode = lambda ids, n, tw, th: torch.zeros((n, th, tw), dtype=torch.int32)
-    gr.spherical_harmonics = lambda deg, dirs, coeffs, masks=None: ti._spherical_harmonics(deg, dirs, coeffs)
-    ti._rasterize_to_pixels = composite  # _rasterization imports it when called
-    return gr._rasterization
+    swaps = {(gr, "isect_tiles"): isect_tiles,
+             (gr, "isect_offset_encode"): lambda ids, n, tw, th: torch.zeros((n, th, tw), dtype=torch.int32),
+             (gr, "spherical_harmonics"): lambda deg, dirs, coeffs, masks=None: ti._spherical_harmonics(deg, dirs,
+                                                                                                         coeffs),
+             (ti, "_rasterize_to_pixels"): composite}  # _rasterization imports it when called
+
+    def rasterization(*args, **kwargs):
+        # Swapped only for the call: gsplat's CUDA `rasterization` reads the same module globals, and a later CUDA
+        # render in this process must find them as gsplat made them.
+        kept = {key: getattr(*key) for key in swaps}
+        for (module, name), f in swaps.items():
+            setattr(module, name, f)
+        try:
+            return gr._rasterization(*args, **kwargs)
+        finally:
+            for (module, name), f in kept.items():
+                setattr(module, name, f)
+
+    return rasterization
 
 
 def to_params(torch, g: Gaussians, device: str) -> dict:

@@ -69,6 +69,17 @@ def test_cpu_renderers_match_the_numpy_reference():
         assert psnr_of(float(np.mean((np.clip(img, 0, 1) - ref) ** 2))) > 50.0, backend
 
 
+def test_the_cpu_gsplat_path_leaves_gsplat_as_it_was():
+    """gsplat-torch swaps gsplat's CUDA helpers only during its call: a CUDA render after it in the same process
+    (the device's script runs every test in one process) must find gsplat's own."""
+    import gsplat.rendering as gr
+    from gsplat.cuda import _torch_impl as ti
+
+    before = (gr.isect_tiles, gr.isect_offset_encode, gr.spherical_harmonics, ti._rasterize_to_pixels)
+    Renderer(torch, "cpu", 1, "gsplat-torch")(to_params(torch, scene(50), "cpu"), [CAM])
+    assert (gr.isect_tiles, gr.isect_offset_encode, gr.spherical_harmonics, ti._rasterize_to_pixels) == before
+
+
 def test_gsplat_on_cuda_matches_the_dense_reference():
     if not torch.cuda.is_available():
         skip("no CUDA device")
