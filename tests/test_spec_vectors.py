@@ -161,3 +161,108 @@ def test_vector_payloads_share_zstd_blocks_as_the_encoder_writes_them(name):
     assert all(b > 0 for b in blocks)  # each payload one well-formed frame
     assert sum(blocks) == VECTOR_BLOCKS[name]
     assert any(b < len(p.sections) for b, p in zip(blocks, payloads, strict=True)) == (name in ACROSS_SECTIONS)
+
+
+# The LOD record vectors (format.md 6 and 8): `paged`'s 600 splats and tree in one manifest, 1.10 and 1.11.
+RECORD_LOD = {"enabled": True, "max_leaf_splats": 64, "reduction": 2.0, "refine": "replace", "merge": "grid",
+              "viewing_scale_levels_px": [2.0, 8.0, 12.0, 16.0]}
+REFINEMENT = {"method": "render-fit",
+              "variants": {"B": ["opacity_logits", "sh_dc", "log_scales"],
+                           "C": ["opacity_logits", "sh_dc", "log_scales", "positions", "rotations"]},
+              "size_px": 384, "iterations": 300,
+              "cameras": {"training": 96, "training_seed": 0, "validation": 32, "validation_seed": 1},
+              "levels": [{"level": d, "kept": "B" if d == 2 else "none",
+                          "validation_psnr": {"none": 30.0, "B": 31.5, "C": 31.25}} for d in (0, 1, 2)]}
+
+
+def raw_manifest(name: str) -> dict:
+    return msgpack.unpackb((VECTORS / name / "manifest.msgpack").read_bytes(), strict_map_key=False)
+
+
+@pytest.mark.parametrize("name", ["levels", "refined"])
+def test_record_vectors_hold_their_lod_records_and_decode_to_expected_values(name):
+    """format.md 6: `levels` (1.10) records the viewing scale per level, `refined` (1.11) also the refinement, each
+    key exactly as the manifest holds it; both decode exactly, and the refinement left the leaves as they were."""
+    d = raw_manifest(name)
+    want = dict(RECORD_LOD, refinement=REFINEMENT) if name == "refined" else RECORD_LOD
+    assert d["version"] == ([1, 11] if name == "refined" else [1, 10]) and d["lod"] == want
+    m = load_manifest(VECTORS / name)
+    assert len(m.tiles) == 41 and m.levels == 4 and m.paged is None
+    assert m.lod.viewing_scale_px == (2.0, 8.0, 12.0, 16.0) and m.lod.merge == "grid"
+    assert (m.lod.refinement.to_dict() if m.lod.refinement else None) == (REFINEMENT if name == "refined" else None)
+    expected = json.loads((VECTORS / name / "expected.json").read_text())
+    g = decode_scene(VECTORS / name)
+    assert len(g) == expected["splats"] == m.splats == 600
+    for field in ("positions", "rotations", "log_scales", "opacities", "sh_dc", "sh_rest"):
+        assert np.array_equal(getattr(g, field), np.array(expected[field], np.float32)), field
+    if name == "refined":
+        plain = load_manifest(VECTORS / "levels")
+        for a, b in zip(plain.tiles, m.tiles, strict=True):
+            same = {k: e.sha256 for k, e in a.groups.items()} == {k: e.sha256 for k, e in b.groups.items()}
+            assert same == (not a.children or a.level != 2), a.id  # only the level that kept B was rewritten
+
+
+@pytest.mark.parametrize("name", ["levels", "refined"])
+def test_record_vector_is_what_the_encoder_writes_today(name, tmp_path):
+    """As the presets' vectors: encoded again by make_vectors, the manifest's version and `lod` map and every
+    payload's decompressed bytes are the vector's."""
+    fresh = tmp_path / name
+    make_vectors().encode_record_vector(name, fresh)
+    regenerate = f"regenerate it: PYTHONPATH=. python format_spec/vectors/make_vectors.py {name}"
+    new, old = load_manifest(fresh), load_manifest(VECTORS / name)
+    assert (new.version, new.lod) == (old.version, old.lod), regenerate
+    unzip = zstandard.ZstdDecompressor()
+    payloads = {(t.id, group): p for t, group, p in old.payloads()}
+    for t, group, p in new.payloads():
+        raw = unzip.decompress((fresh / p.file).read_bytes())
+        assert raw == unzip.decompress((VECTORS / name / payloads[(t.id, group)].file).read_bytes()), regenerate
+
+
+REFINEMENT_REJECTED = [
+    (lambda r: r.update(size_px="384"), "lod.refinement.size_px: expected an integer 1..4611686018427387904, "
+                                         "got '384'"),
+    (lambda r: r["levels"][2].update(kept="D"), "lod.refinement.levels[2].kept: expected none or one of the "
+                                                 "variants (B, C), got 'D'"),
+    (lambda r: r["levels"][2].update(level=3), "lod.refinement.levels[2].level: expected a merged level of this "
+                                                "4-level tree, 2..2 (ascending, each once), got 3"),
+    (lambda r: r["levels"][1].update(level=0), "lod.refinement.levels[1].level: expected a merged level of this "
+                                                "4-level tree, 1..2 (ascending, each once), got 0"),
+    (lambda r: r.update(variants={"B": "opacity_logits"}), "lod.refinement.variants: expected a map of variant name "
+                                                            "to a list of field names, got {'B': 'opacity_logits'}"),
+    (lambda r: r["cameras"].pop("validation_seed"), "lod.refinement.cameras.validation_seed: missing"),
+]
+
+
+@pytest.mark.parametrize("change, message", REFINEMENT_REJECTED)
+def test_a_damaged_refinement_record_is_rejected_in_one_line(change, message):
+    """format.md 6, Validation: `refined`'s manifest with one thing wrong in its record (its checksum left out, as
+    manifest_from_dict checks the map) is rejected naming the field and what was expected."""
+    from splatstream.errors import FormatError
+    from splatstream.format.manifest import manifest_from_dict
+
+    d = raw_manifest("refined")
+    d.pop("checksum")
+    change(d["lod"]["refinement"])
+    with pytest.raises(FormatError) as e:
+        manifest_from_dict(d)
+    assert str(e.value) == f"manifest.msgpack: {message}"
+
+
+def test_a_nil_refinement_or_levels_without_a_tree_is_rejected():
+    from splatstream.errors import FormatError
+    from splatstream.format.manifest import manifest_from_dict
+
+    d = raw_manifest("refined")
+    d.pop("checksum")
+    d["lod"]["refinement"] = None  # present is a map: nil is damage, not "not refined"
+    with pytest.raises(FormatError) as e:
+        manifest_from_dict(d)
+    assert str(e.value) == "manifest.msgpack: lod.refinement: expected a map, got NoneType"
+    d = raw_manifest("levels")
+    d.pop("checksum")
+    d["lod"].pop("merge")
+    d["lod"]["enabled"] = False
+    with pytest.raises(FormatError) as e:  # the key that is there is named
+        manifest_from_dict(d)
+    assert str(e.value) == ("manifest.msgpack: lod.viewing_scale_levels_px: a build record in a scene without an LOD "
+                            "tree (lod.enabled is false)")

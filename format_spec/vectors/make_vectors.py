@@ -2,8 +2,9 @@
 
     PYTHONPATH=. python format_spec/vectors/make_vectors.py [NAME ...]
 
-NAME: high, medium, low, very-low, paged, table (default: all). tests/test_spec_vectors.py encodes the presets' scenes
-again with `encode_vector` and fails when what a preset writes today no longer matches its vector."""
+NAME: high, medium, low, very-low, paged, table, levels, refined (default: all). tests/test_spec_vectors.py encodes
+the presets' scenes again with `encode_vector` (and `levels`, `refined` with `encode_record_vector`) and fails when
+what the encoder writes today no longer matches the vector."""
 import json
 import pathlib
 import shutil
@@ -11,6 +12,8 @@ import sys
 
 from splatstream.encode import EncodeOptions, encode_gaussians
 from splatstream.format.layout import morton_order
+from splatstream.format.manifest import LevelRefinement, LodRefinement
+from splatstream.lod_refine import REFINE_METHOD, UNREFINED, VARIANT_FIELDS, level_cuts, with_values
 from splatstream.ply import read_gaussians_ply
 from splatstream.scene_decode import decode_scene
 
@@ -26,6 +29,26 @@ PAGED_SPLATS = 600
 # The grid merge named, as the vectors were written with it (the in-memory default became auto, issue 31): readers
 # cannot tell merges apart (lod.md 6), so the vectors' bytes stay as they were.
 PAGED = {"max_leaf_splats": 64, "page_tiles": 1, "page_levels": 1, "sh_degree": 1, "lod_merge": "grid"}
+
+# The LOD records of format 1.10 and 1.11 (format.md 6): `paged`'s 600 splats and tree in one manifest (not paged), as
+# today's encoder writes them: `levels` records the viewing scale per level (lod.viewing_scale_levels_px, 1.10),
+# `refined` is the same encode with a refinement record (lod.refinement, 1.11) from REFINER below.
+TREE = {"max_leaf_splats": 64, "sh_degree": 1, "lod_merge": "grid"}
+# `refined`'s record (informative metadata: fixed values, not a GPU's): every merged level tried B and C; the first
+# merged level kept B, the levels above it stayed as built.
+REFINED_PSNR = ((UNREFINED, 30.0), ("B", 31.5), ("C", 31.25))
+REFINED_OPACITY_SCALE = 0.5  # what B "found" on the first merged level: its opacity logits halved (a B field)
+
+
+def refiner(g, tiles, up, progress):
+    """A deterministic stand-in for refine_gpu (lod_refine.LodRefiner; numpy only, so the vector is the same on any
+    machine): the first merged level's opacity logits halved and kept as B, the levels above kept as built."""
+    cuts = level_cuts(tiles)
+    first = cuts[-1].level  # the deepest merged level: its tiles' children are leaves
+    refined = {t.id: with_values(t.gaussians, {"opacity_logits": t.gaussians.opacity_logits * REFINED_OPACITY_SCALE})
+               for t in tiles if t.children and t.level == first}
+    levels = tuple(LevelRefinement(c.level, "B" if c.level == first else UNREFINED, REFINED_PSNR) for c in cuts)
+    return refined, LodRefinement(REFINE_METHOD, tuple(VARIANT_FIELDS.items()), 384, 300, 96, 0, 32, 1, levels)
 
 
 def expected_values(g) -> dict:
@@ -58,11 +81,30 @@ def paged_vector(source, name: str) -> None:
     print("wrote", out)
 
 
+def encode_record_vector(name: str, out: pathlib.Path, source=None) -> None:
+    """The LOD record vector `name` (`levels` or `refined`, without expected.json)."""
+    source = read_gaussians_ply(SOURCE) if source is None else source
+    g = source.subset(morton_order(source.positions)[:PAGED_SPLATS])
+    extra = {"lod_refiner": refiner} if name == "refined" else {}
+    encode_gaussians(g, out, EncodeOptions(preset="medium", name=f"vector-{name}", zstd_level=3, **TREE, **extra))
+
+
+RECORDS = ["levels", "refined"]
+
+
 def main(names: list[str]) -> None:
-    unknown = set(names) - {*PRESETS, "paged", "table"}
+    unknown = set(names) - {*PRESETS, "paged", "table", *RECORDS}
     if unknown:
-        raise SystemExit(f"unknown vector {sorted(unknown)[0]!r} (choose from {', '.join(PRESETS)}, paged, table)")
+        raise SystemExit(f"unknown vector {sorted(unknown)[0]!r} (choose from {', '.join(PRESETS)}, paged, table, "
+                         f"{', '.join(RECORDS)})")
     source = read_gaussians_ply(SOURCE)
+    for name in RECORDS:
+        if not names or name in names:
+            out = HERE / name
+            shutil.rmtree(out, ignore_errors=True)
+            encode_record_vector(name, out, source)
+            (out / "expected.json").write_text(json.dumps(expected_values(decode_scene(out))) + "\n")
+            print("wrote", out)
     for name in ("paged", "table"):
         if not names or name in names:
             paged_vector(source, name)

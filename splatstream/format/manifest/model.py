@@ -185,7 +185,7 @@ class CameraEntry:
 class LevelRefinement:
     """One merged level of a refined tree (version 1.11, format.md 6, lod.md 6): which refinement it kept (`kept`:
     a variant name such as `B` or `C`, or `none`: the level as built) and the validation PSNR in dB of each
-    candidate (`unrefined` and every variant tried), the measure it was kept by."""
+    candidate (`none`, the level as built, and every variant tried), the measure it was kept by."""
     level: int
     kept: str
     validation_psnr: tuple[tuple[str, float], ...] = ()

@@ -909,7 +909,7 @@ def _lod(d: dict, source: str, strict: bool, version: tuple[int, int]) -> LodInf
     if not build or not (lod.keys() & set(build)):
         return info
     refinement = None
-    if "refinement" in build and lod.get("refinement") is not None:
+    if "refinement" in build and "refinement" in lod:  # present means a map: a nil is damage, not "not refined"
         if not info.enabled:
             _fail(source, "lod", "refinement", "a refinement record in a scene without an LOD tree (lod.enabled is "
                   "false)")
@@ -935,7 +935,8 @@ def _lod(d: dict, source: str, strict: bool, version: tuple[int, int]) -> LodInf
                   f"first merged one, the last on every level above), got {levels!r}")
         scales = tuple(float(v) for v in levels)
     if not info.enabled:
-        _fail(source, "lod", "merge" if merge is not None else "viewing_scale_px",
+        named = [k for k in (*_LOD_BUILD_KEYS, _LOD_LEVELS_KEY) if lod.get(k) is not None]  # the key that is there
+        _fail(source, "lod", named[0] if named else "viewing_scale_px",
               "a build record in a scene without an LOD tree (lod.enabled is false)")
     return LodInfo(info.enabled, info.max_leaf_splats, info.reduction, info.refine, merge, scales, refinement)
 
@@ -983,6 +984,19 @@ def _lod_refinement(r, source: str, strict: bool) -> LodRefinement:
                          _int(cams, "training_seed", source, f"{path}.cameras"),
                          _int(cams, "validation", source, f"{path}.cameras", 1),
                          _int(cams, "validation_seed", source, f"{path}.cameras"), tuple(out))
+
+
+def _check_refined_levels(r: LodRefinement, tiles: list[TileEntry], paged: PagedInfo | None, source: str) -> None:
+    """Each `lod.refinement.levels[i].level` is a merged level of this tree (a depth above its deepest level: 0 to
+    levels - 2, the levels counted by `paged.levels` in a paged root manifest, which holds only the top ones), in
+    ascending order without repeats, as the encoder writes them (lod_refine.level_cuts)."""
+    depth = paged.levels if paged is not None else 1 + max(t.level for t in tiles)
+    previous = -1
+    for i, lv in enumerate(r.levels):
+        if not previous < lv.level <= depth - 2:
+            _fail(source, f"lod.refinement.levels[{i}]", "level", f"expected a merged level of this {depth}-level "
+                  f"tree, {previous + 1}..{depth - 2} (ascending, each once), got {lv.level}")
+        previous = lv.level
 
 
 def _attributes(d: dict, source: str, strict: bool) -> dict[str, AttributeSize]:
@@ -1075,6 +1089,8 @@ def manifest_from_dict(d, source: str = MANIFEST_NAME, lazy_payloads: bool = Fal
         leaf_bytes_on_disk=_int(d, "leaf_bytes_on_disk", source, ""), attributes=_attributes(d, source, strict),
         encode_seconds=_float(d, "encode_seconds", source, "", 0.0), bytes_on_disk=_int(d, "bytes_on_disk", source, ""),
         paged=paged, palettes=palettes)
+    if manifest.lod.refinement is not None:
+        _check_refined_levels(manifest.lod.refinement, tiles, paged, source)
     if strict and paged is None:  # a newer minor version may add payloads these totals count; only its own keys
         _check_totals(manifest, source)
     return manifest
