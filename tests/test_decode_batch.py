@@ -371,3 +371,30 @@ def test_a_large_group_is_decompressed_a_payload_at_a_time(fruit, monkeypatch):
     reads = _group_reads(monkeypatch)
     assert [planes_bytes(p) for p in container.unpack_payloads(items, "base", sources)] == together
     assert reads == [False]
+
+
+def test_whole_ranges_checks_ranges_in_a_row_at_once_or_each_apart_and_names_a_bad_one():
+    """container._whole_ranges, the whole kernel's range check: ranges the planner found in one row of one shape
+    (`shape`) come back as views of one checked array, ranges apart (shape None) each checked alone; the values are
+    the bytes at range_at either way, and a bad payload is named (issue 32: the planner's one walk over them)."""
+    from splatstream.format.manifest import Section
+    from splatstream.format.planes import group_planes
+
+    spec = next(s for s in group_planes("base") if s.name == "scale")
+    ranges = [np.array([[[[-1.0, 0.0, 0.5]], [[0.0, 1.0, 2.0]]]], np.float16),
+              np.array([[[[-2.0, -1.0, 0.0]], [[2.0, 3.0, 4.0]]], [[[0.0, 0.0, 0.0]], [[0.5, 0.5, 0.5]]]], np.float16)]
+    rs = [Section("scale.range", "range", 0, r.nbytes, "shuffle2", dtype="f16", shape=r.shape) for r in ranges]
+    for gap in (0, 4):  # in a row, or 4 bytes apart
+        out = np.zeros(64, np.uint8)
+        range_at = [8, 8 + ranges[0].nbytes + gap]
+        for at, r in zip(range_at, ranges, strict=True):
+            out[at:at + r.nbytes] = r.view(np.uint8).reshape(-1)
+        shape = ranges[0].shape[1:] if gap == 0 else None
+        got = container._whole_ranges(out, range_at, rs, shape, spec, ["payload1", "payload2"])
+        assert [g.shape for g in got] == [(1, 2, 1, 3), (2, 2, 1, 3)]
+        assert all(np.array_equal(g, r) for g, r in zip(got, ranges, strict=True))
+        assert all(np.shares_memory(g, out) for g in got)
+        bad = out.copy()
+        bad[range_at[1]:range_at[1] + 2] = np.array([np.nan], np.float16).view(np.uint8)
+        with pytest.raises(FormatError, match="payload2"):
+            container._whole_ranges(bad, range_at, rs, shape, spec, ["payload1", "payload2"])

@@ -718,11 +718,14 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
         else:
             floats_each = float_format is not None
         range_at = None
+        range_sections: list[Section] = []  # the plane's range sections (not mixed: one a payload)
+        range_shape = None  # their shape less the first axis where every one has it and they lie in a row, else None
         if palette_plane and not mixed:
             range_at = _PALETTES
         elif spec.range_dtype or mixed:  # a plane's ranges in a row, each aligned to its element: checked at once
             range_at = []
             range_name = spec.range_name
+            in_row = True
             for t, first in zip(tables, firsts, strict=True):
                 if mixed and (t[name].format in PALETTE_FORMATS or not spec.range_dtype):
                     range_at.append(-1)  # its palettes (or no ranges): _mixed_plane
@@ -733,16 +736,27 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
                 if element <= 1 or size % element:
                     element = 1
                 if element in (2, 4, 8):
-                    out_bytes += -out_bytes % element
+                    pad = -out_bytes % element
+                    if pad and range_sections:
+                        in_row = False
+                    out_bytes += pad
+                if range_sections:
+                    if r.shape[1:] != range_shape:
+                        in_row = False
+                else:
+                    range_shape = r.shape[1:]
+                range_sections.append(r)
                 unit_rows += (first + r.offset, size // element, element, out_bytes)
                 range_at.append(out_bytes)
                 out_bytes += size
-        plan.append((spec, texels, range_at, float_span, floats_each, mixed))
+            if not in_row:
+                range_shape = None
+        plan.append((spec, texels, range_at, range_sections, range_shape, float_span, floats_each, mixed))
     if between is not None:
         between()
     out = run_whole(whole, flat, tuple(index), unit_rows, out_bytes, most_n, most_f)
     result: list[dict[str, EncodedPlane]] = [{} for _ in tables]
-    for spec, texels, range_at, float_span, floats_each, mixed in plan:
+    for spec, texels, range_at, range_sections, range_shape, float_span, floats_each, mixed in plan:
         if between is not None:
             between()
         count, name = spec.layers, spec.name
@@ -755,7 +769,7 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
         elif range_at is None:
             checked = [None] * len(texels)
         else:
-            checked = _whole_ranges(out, range_at, 0, tables, spec, sources)
+            checked = _whole_ranges(out, range_at, range_sections, range_shape, spec, sources)
         if float_span is not None and not _floats_ok(out, *float_span):
             floats_each = True  # some payload's texels leave [0, 1] (or the stretch is not whole floats): named below
         for k, (planes, (s, first, size, starts), plane_ranges) in enumerate(zip(result, texels, checked,
@@ -855,34 +869,29 @@ def _whole_palettes(bufs: list[np.ndarray], tables: list[dict], spec, palettes: 
     return out
 
 
-def _whole_ranges(out: np.ndarray, unit_at: list[int], ranges: int, tables: list[dict], spec,
+def _whole_ranges(out: np.ndarray, range_at: list[int], rs: list[Section], shape: tuple | None, spec,
                   sources: list[str]) -> list[np.ndarray]:
-    """Each payload's ranges of one plane from the whole kernel's `out` (its range units from unit_at[ranges], one
-    a payload, in a row), checked: all at once where they lie in one run of one shape, as slices of one view, a
-    payload's own check only to name a bad one (_checked_ranges)."""
-    range_name = spec.range_name
-    rs = [t[range_name] for t in tables]
-    first = unit_at[ranges]
+    """Each payload's ranges of one plane from the whole kernel's `out` (payload k's range section rs[k], its bytes
+    from range_at[k]), checked: all at once where they lie in a row with one shape less the first axis (`shape`, else
+    None; _unpack_group's planner found that in its walk over them, which saves this a second one: issue 32), as
+    slices of one view, a payload's own check only to name a bad one (_checked_ranges)."""
+    first = range_at[0]
     if len(rs) == 1:  # one payload: its own check
         r = rs[0]
         one = out[first:first + r.size].view(spec.range_dtype).reshape(r.shape)
         _check_ranges(one, spec.name, r.name, sources[0])
         return [one]
-    total = 0
-    shape = rs[0].shape[1:]
-    for r in rs:
-        total += r.size
-        if r.shape[1:] != shape:
-            shape = None
-    if shape is not None and unit_at[ranges + len(rs) - 1] + rs[-1].size - first == total:
-        together = out[first:first + total].view(spec.range_dtype).reshape(-1, *shape)
+    if shape is not None:
+        last = rs[-1]
+        together = out[first:range_at[-1] + last.size].view(spec.range_dtype).reshape(-1, *shape)
         if _ranges_ok(together, spec.name):
             views, chunk = [], 0
             for r in rs:
-                views.append(together[chunk:chunk + r.shape[0]])
-                chunk += r.shape[0]
+                rows = r.shape[0]
+                views.append(together[chunk:chunk + rows])
+                chunk += rows
             return views
-    got = [out[unit_at[ranges + k]:unit_at[ranges + k] + r.size] for k, r in enumerate(rs)]
+    got = [out[at:at + r.size] for at, r in zip(range_at, rs, strict=True)]
     return _checked_ranges(got, rs, spec, sources)
 
 

@@ -1341,9 +1341,10 @@ def whole_kernel() -> object:
 def _whole_tables(keys: tuple) -> tuple:
     """The whole kernel's `fields`, `modes` and `orders` for sections of these (format, layers, header, width,
     height), each table once, and per section (its first column of fields, of modes, how many of modes, where its
-    slot_to_texel starts in orders). Cached: a scene's payloads repeat a few combinations of formats, modes and
-    geometries, and concatenating the tables was a fifth of a small payload's Python around the kernel. The arrays
-    are writable and C-ordered (the one argument type decode_jit.warm_up compiles) and never written."""
+    slot_to_texel starts in orders), as a tuple of tuples and as an int64 array of 4 columns. Cached: a scene's
+    payloads repeat a few combinations of formats, modes and geometries, and concatenating the tables was a fifth of
+    a small payload's Python around the kernel. The arrays are writable and C-ordered (the one argument type
+    decode_jit.warm_up compiles) and never written."""
     field_parts, mode_parts, order_parts, columns = [], [], [], []
     fields_at: dict[str, int] = {}
     modes_at: dict[tuple, int] = {}
@@ -1369,7 +1370,8 @@ def _whole_tables(keys: tuple) -> tuple:
         columns.append((f, m, table.shape[1], o))
     return (np.concatenate(field_parts, axis=1) if field_parts else np.zeros((5, 0), np.int64),
             np.concatenate(mode_parts, axis=1) if mode_parts else np.zeros((3, 0), np.int64),
-            np.concatenate(order_parts) if order_parts else np.zeros(0, np.int64), tuple(columns))
+            np.concatenate(order_parts) if order_parts else np.zeros(0, np.int64), tuple(columns),
+            np.array(columns, np.int64).reshape(-1, 4))
 
 
 class _Fields1Rows(dict):
@@ -1471,12 +1473,12 @@ def run_whole(raw: np.ndarray, flat: list[int], keys: tuple, unit_rows: list[int
     its element count, its element size, where its bytes go in out); returns `out`, out_bytes rounded up to 16, which
     the kernel wrote. `most_n` and `most_f`: the most slots and fields of a section (the work array's shape).
     Its callers: unfilter_whole, and container._unpack_group, which plans a group's call with its planes'."""
-    fields, modes, orders, columns = _whole_tables(keys)
-    # columns per combination: (first column of fields, of modes, how many of modes, where its orders start)
+    fields, modes, orders, columns, column_array = _whole_tables(keys)
+    # columns per combination: (first column of fields, of modes, how many of modes, where its orders start), as a
+    # tuple and as an array (cached with the tables: not converted again a call)
     if len(flat) > 9 * _FEW_ROWS:  # a group's hundreds of sections: by numpy, a fixed cost of a few calls
-        part = np.array(flat, np.int64).reshape(-1, 9)
-        part = np.concatenate([part, np.array(columns, np.int64).reshape(-1, 4)[part[:, 8]]], axis=1)
-        rows = part[:, _WHOLE_COLUMNS]
+        part = np.fromiter(flat, np.int64, len(flat)).reshape(-1, 9)  # fromiter: a fifth less than np.array here
+        rows = np.concatenate([part, column_array[part[:, 8]]], axis=1)[:, _WHOLE_COLUMNS]
     else:  # a payload's few: a loop costs less than those calls
         row_list: list[int] = []
         for i in range(0, len(flat), 9):
