@@ -98,8 +98,9 @@ def view_cameras(positions: np.ndarray, up, views: int, size: int):
 
 
 def _near_far(eye, target) -> tuple[float, float]:
-    dist = math.dist(eye, target)
-    return min(0.01, 0.01 * dist), max(1000.0, 100 * dist)
+    from splatstream.camera import look_at_near_far
+
+    return look_at_near_far(eye, target)
 
 
 def camera_key(cameras) -> str:

@@ -16,7 +16,7 @@ import numpy as np
 from PIL import Image
 
 from splatstream.atomic import atomic_file
-from splatstream.camera import Camera
+from splatstream.camera import Camera, look_at_near_far
 from splatstream.camera_path import CameraPath
 
 from .gpu.gl import wait_for_gpu
@@ -46,8 +46,7 @@ class HeadlessRun:
 
 def scene_camera(session: StreamingSession, size: tuple[int, int]) -> Camera:
     c = session.manifest.camera
-    dist = sum((a - b) ** 2 for a, b in zip(c.eye, c.target, strict=True)) ** 0.5
-    return Camera(c.eye, c.target, c.up, c.fov_y, size[0], size[1], min(0.01, 0.01 * dist), max(1000.0, 100 * dist))
+    return Camera(c.eye, c.target, c.up, c.fov_y, size[0], size[1], *look_at_near_far(c.eye, c.target))
 
 
 def write_png(path: str, image) -> None:

@@ -342,6 +342,13 @@ def suggested_camera(positions: np.ndarray | None = None, up: Sequence[float] = 
     return Camera(tuple(eye), tuple(med), tuple(up), fov_y_deg, width, height, near, far)
 
 
+def look_at_near_far(eye: Sequence[float], target: Sequence[float]) -> tuple[float, float]:
+    """The near and far planes of a camera placed by its eye and target (`view --eye/--target`, a headless view's
+    scene camera, the LOD refinement's cameras): 1 % of the distance, at most 0.01; 100x it, at least 1000."""
+    dist = math.dist(eye, target)
+    return min(0.01, 0.01 * dist), max(1000.0, 100.0 * dist)
+
+
 def orbit_views(center: Sequence[float], radius: float, n: int, up: Sequence[float] = DEFAULT_UP,
                 elevation_deg: float = 25.0, fov_y_deg: float = DEFAULT_FOV_Y_DEG, width: int = 512,
                 height: int = 512, near: float | None = None, far: float | None = None,

@@ -16,7 +16,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from .camera import Camera, scene_orbit_views
+from .camera import Camera, look_at_near_far, scene_orbit_views
 from .errors import InputError
 from .format.limits import describe_violations, domain_violations
 from .format.manifest import LodRefinement
@@ -63,12 +63,6 @@ def level_cuts(tiles: list[Tile]) -> list[LevelCut]:
             for d in sorted({t.level for t in tiles if t.children})]
 
 
-def _near_far(eye: np.ndarray, target: np.ndarray) -> tuple[float, float]:
-    """`splatstream view --eye/--target`'s near/far rule (bench/lod_vs_peers.py renders with it too)."""
-    dist = math.dist(eye, target)
-    return min(0.01, 0.01 * dist), max(1000.0, 100 * dist)
-
-
 def refine_cameras(positions: np.ndarray, up, n: int, size: int, seed: int = TRAINING_SEED) -> list[Camera]:
     """`n` square cameras of `size` px looking at the scene's orbit centre (scene_orbit_views: the robust median,
     the distance that fits the robust bounds, its fov and `up`) from a jittered Fibonacci band of directions
@@ -96,7 +90,8 @@ def refine_cameras(positions: np.ndarray, up, n: int, size: int, seed: int = TRA
         r = dist * math.exp(rng.uniform(math.log(DISTANCE_RANGE[0]), math.log(DISTANCE_RANGE[1])))
         target = centre + rng.normal(0.0, 0.03 * dist, 3)
         eye = target + r * d
-        cams.append(Camera(tuple(eye), tuple(target), tuple(u), orbit.fov_y_deg, size, size, *_near_far(eye, target)))
+        cams.append(Camera(tuple(eye), tuple(target), tuple(u), orbit.fov_y_deg, size, size,
+                           *look_at_near_far(eye, target)))
     return cams
 
 

@@ -8,7 +8,7 @@ import os
 import sys
 
 from splatstream.atomic import check_output
-from splatstream.camera import DEFAULT_FOV_Y_DEG, Camera
+from splatstream.camera import DEFAULT_FOV_Y_DEG, Camera, look_at_near_far
 from splatstream.camera_path import load_camera_path
 from splatstream.errors import UsageError
 
@@ -136,10 +136,9 @@ def _fixed_camera(args, size):
         raise UsageError("--eye and --target go together (or give neither for the scene's camera)")
     eye, target = parse_vector(args.eye, "--eye"), parse_vector(args.target, "--target")
     up = parse_vector(args.up, "--up", nonzero=True) if args.up else (0.0, 0.0, 1.0)
-    dist = math.dist(eye, target)
     try:
-        return Camera(eye, target, up, args.fov_y or DEFAULT_FOV_Y_DEG, size[0], size[1], min(0.01, 0.01 * dist),
-                      max(1000.0, 100 * dist))
+        return Camera(eye, target, up, args.fov_y or DEFAULT_FOV_Y_DEG, size[0], size[1],
+                      *look_at_near_far(eye, target))
     except ValueError as exc:
         raise UsageError(f"bad camera: {exc}") from None
 
