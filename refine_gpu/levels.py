@@ -274,11 +274,7 @@ class LevelRefiner:
         del full
 
         def mse_over(p: dict, cams: list[Camera], target) -> float:
-            with torch.no_grad():
-                err = sum(float(((render(p, cams[i:i + s.batch]).clamp(0, 1) - target[i:i + s.batch]) ** 2)
-                                .mean(dim=(1, 2, 3)).sum()) for i in range(0, len(cams), s.batch))
-            err /= len(cams)
-            return err if math.isfinite(err) else math.inf
+            return mean_mse(torch, render, p, cams, target, s.batch)
 
         cuts = level_cuts(tiles)
         refined: dict[int, Gaussians] = {}
@@ -299,7 +295,9 @@ class LevelRefiner:
             results = {}
             iters = {}
             for v in s.variants:
-                p, iters[v] = self._fit(torch, whole, pm, VARIANT_FIELDS[v], train, gt, render, dist, cut.level)
+                p, iters[v] = fit_fields(torch, render, whole, pm, VARIANT_FIELDS[v], train, gt, dist,
+                                         iterations=s.iterations, batch=s.batch, seed=s.seed + cut.level,
+                                         seconds=s.seconds_per_variant, min_iterations=s.min_iterations)
                 scores[v] = mse_over(whole(p), valid, gt_valid)
                 results[v] = p
             kept = min(scores, key=lambda c: scores[c])  # the unrefined level first: a tie keeps it
@@ -325,26 +323,37 @@ class LevelRefiner:
                                s.validation_seed, tuple(levels))
         return refined, record
 
-    def _fit(self, torch, whole, pm: dict, fields: tuple[str, ...], cams: list[Camera], gt, render, dist: float,
-             level: int) -> tuple[dict, int]:
-        """Adam on the training views' MSE, `fields` of the merged splats free, the rest fixed (phase 1's loop)."""
-        s = self.settings
-        p = {f: (x.clone().requires_grad_(True) if f in fields else x) for f, x in pm.items()}
-        groups = [{"params": [p[f]], "lr": LR.get(f, POSITION_LR_PER_DISTANCE * dist)} for f in fields]
-        opt = torch.optim.Adam(groups, eps=1e-15)
-        rng = np.random.default_rng(s.seed + level)
-        t0 = time.perf_counter()
-        it = 0
-        while it < s.iterations and (s.seconds_per_variant is None or it < s.min_iterations
-                                     or time.perf_counter() - t0 < s.seconds_per_variant):
-            batch = rng.choice(len(cams), size=min(s.batch, len(cams)), replace=False)
-            img = render(whole(p), [cams[i] for i in batch]).clamp(0, 1)
-            loss = ((img - gt[torch.as_tensor(batch, device=gt.device)]) ** 2).mean()
-            opt.zero_grad(set_to_none=True)
-            loss.backward()
-            opt.step()
-            it += 1
-        return {f: x.detach() for f, x in p.items()}, it
+
+def fit_fields(torch, render, whole, pm: dict, fields: tuple[str, ...], cams: list[Camera], gt, dist: float, *,
+               iterations: int, batch: int, seed: int, seconds: float | None = None,
+               min_iterations: int = 0) -> tuple[dict, int]:
+    """Adam on the MSE of `cams`' renders against `gt` (batches of `batch` views), `fields` of the merged splats `pm`
+    free, the rest fixed (`whole` adds the level's fixed splats): at most `iterations` steps, and where `seconds` is
+    given, no step begun after it once `min_iterations` are done. Returns the fitted values and the steps taken."""
+    p = {f: (x.clone().requires_grad_(True) if f in fields else x) for f, x in pm.items()}
+    groups = [{"params": [p[f]], "lr": LR.get(f, POSITION_LR_PER_DISTANCE * dist)} for f in fields]
+    opt = torch.optim.Adam(groups, eps=1e-15)
+    rng = np.random.default_rng(seed)
+    t0 = time.perf_counter()
+    it = 0
+    while it < iterations and (seconds is None or it < min_iterations or time.perf_counter() - t0 < seconds):
+        views = rng.choice(len(cams), size=min(batch, len(cams)), replace=False)
+        img = render(whole(p), [cams[i] for i in views]).clamp(0, 1)
+        loss = ((img - gt[torch.as_tensor(views, device=gt.device)]) ** 2).mean()
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        it += 1
+    return {f: x.detach() for f, x in p.items()}, it
+
+
+def mean_mse(torch, render, p: dict, cams: list[Camera], target, batch: int) -> float:
+    """The mean over `cams` of each render's MSE against `target` (clamped images), inf where not finite."""
+    with torch.no_grad():
+        err = sum(float(((render(p, cams[i:i + batch]).clamp(0, 1) - target[i:i + batch]) ** 2)
+                        .mean(dim=(1, 2, 3)).sum()) for i in range(0, len(cams), batch))
+    err /= len(cams)
+    return err if math.isfinite(err) else math.inf
 
 
 def _in_domain(field_name: str, v: np.ndarray) -> np.ndarray:

@@ -55,7 +55,9 @@ from refine_gpu.levels import (  # noqa: E402  (the product's renderer and setti
     camera_tensors,
     dense_render,
     eval_sh_torch,
+    fit_fields,
     gsplat_torch_rasterization,
+    mean_mse,
     psnr_of,
     to_params,
 )
@@ -256,10 +258,7 @@ def refine_scene(name: str, g: Gaussians, tiles: list[lod.Tile], args, torch, bu
     slot = budget_s / max(1, levels * len(args.variants))
 
     def mse_over(p, which: list[Camera], target) -> float:
-        with torch.no_grad():
-            errs = [float(((render(p, which[i:i + args.batch]).clamp(0, 1) - target[i:i + args.batch]) ** 2)
-                          .mean(dim=(1, 2, 3)).sum()) for i in range(0, len(which), args.batch)]
-        return sum(errs) / len(which)
+        return mean_mse(torch, render, p, which, target, args.batch)
 
     for d, (merged_ids, fixed_ids) in cuts.items():
         if keep is not None and not keep.intersection(merged_ids):
@@ -279,19 +278,8 @@ def refine_scene(name: str, g: Gaussians, tiles: list[lod.Tile], args, torch, bu
         for v in args.variants:
             t1 = time.perf_counter()
             trained = VARIANTS[v]
-            p = {k: (x.clone().requires_grad_(True) if k in trained else x) for k, x in pm.items()}
-            groups = [{"params": [p[k]], "lr": LR.get(k, 2e-4 * dist)} for k in trained]
-            opt = torch.optim.Adam(groups, eps=1e-15)
-            rng = np.random.default_rng(args.seed + d)
-            it = 0
-            while it < args.iters and (it < args.min_iters or time.perf_counter() - t1 < slot):
-                batch = rng.choice(len(cams), size=min(args.batch, len(cams)), replace=False)
-                img = render(cut(p), [cams[i] for i in batch]).clamp(0, 1)
-                loss = ((img - gt[torch.as_tensor(batch, device=gt.device)]) ** 2).mean()
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                opt.step()
-                it += 1
+            p, it = fit_fields(torch, render, cut, pm, trained, cams, gt, dist, iterations=args.iters,
+                               batch=args.batch, seed=args.seed + d, seconds=slot, min_iterations=args.min_iters)
             after = mse_over(cut(p), evals, gt[:len(evals)])
             after_bench = mse_over(cut(p), bench, gt_bench)
             lv[v] = {"iters": it, "seconds": round(time.perf_counter() - t1, 2),
@@ -307,7 +295,7 @@ def refine_scene(name: str, g: Gaussians, tiles: list[lod.Tile], args, torch, bu
             for tid in merged_ids:
                 n = len(tiles[tid].gaussians)
                 if keep is None or tid in keep:
-                    results[v][tid] = {k: (p[k].detach()[off:off + n] - pm[k][off:off + n]).cpu().numpy()
+                    results[v][tid] = {k: (p[k][off:off + n] - pm[k][off:off + n]).cpu().numpy()
                                        for k in trained}
                 off += n
         report["levels"][d] = lv
