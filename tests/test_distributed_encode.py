@@ -90,31 +90,16 @@ def test_partitions_of_every_size_give_the_single_process_bytes(scene, tmp_path,
     assert os.listdir(tmp_path) == []  # scratch removed
 
 
-def test_partitions_follow_the_far_viewing_scale(scene, tmp_path, monkeypatch):
+@pytest.mark.parametrize("constant", ["OPACITY_MATCH_FAR_SSE_PX", "OPACITY_MATCH_FAR_GROWTH"])
+def test_partitions_follow_the_far_viewing_scale(scene, tmp_path, monkeypatch, constant):
     """lod.OPACITY_MATCH_FAR_SSE_PX (the levels above the first merged one matched at their own scale: 8 px by
-    default, lod.md 6 step 5) reaches the partitioned encoder's upper tiles too: with another value, the same bytes
-    as in memory, and not the default's."""
+    default, lod.md 6 step 5) and lod.OPACITY_MATCH_FAR_GROWTH (each level above the first merged one at its own
+    scale, lod.viewing_scale_px: the level is the tile's level against the tree's leaf level, which the upper tiles
+    know) reach the partitioned encoder's upper tiles too: with another value, the same bytes as in memory, and not
+    the default's."""
     opts = EncodeOptions(preset="low", **TREE)
     default = encode_in_memory(copy_of(scene), opts, name="s")
-    monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_SSE_PX", 2.0)
-    ref = encode_in_memory(copy_of(scene), opts, name="s")
-    writer = MemoryWriter("s")
-    space = Scratch.create(str(tmp_path))
-    encode_partitioned(ArrayRows(scene), writer, opts, LocalEngine(SMALL_MEMORY), space, source_name="s")
-    space.remove()
-    got = writer.store()
-    assert got.manifest_bytes == ref.manifest_bytes
-    assert got.payloads == ref.payloads
-    assert ref.payloads != default.payloads
-
-
-def test_partitions_follow_a_growing_far_viewing_scale(scene, tmp_path, monkeypatch):
-    """lod.OPACITY_MATCH_FAR_GROWTH (each level above the first merged one at its own scale, lod.viewing_scale_px:
-    the level is the tile's level against the tree's leaf level, which the upper tiles know) reaches the
-    partitioned encoder too: the same bytes as in memory, and not the default's."""
-    opts = EncodeOptions(preset="low", **TREE)
-    default = encode_in_memory(copy_of(scene), opts, name="s")
-    monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_GROWTH", 2.0)
+    monkeypatch.setattr(lod, constant, 2.0)
     ref = encode_in_memory(copy_of(scene), opts, name="s")
     writer = MemoryWriter("s")
     space = Scratch.create(str(tmp_path))

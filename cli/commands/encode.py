@@ -208,7 +208,7 @@ def run(args: argparse.Namespace) -> int:
                             lod=not args.no_lod, max_leaf_splats=args.max_leaf_splats, reduction=args.reduction,
                             lod_merge=args.lod_merge, name=args.name, up=up, chunk_order=args.chunk_order,
                             sh_codebook=args.sh_codebook, page_tiles=args.page_tiles, page_levels=args.page_levels,
-                            **({"lod_refiner": lod_refiner} if lod_refiner is not None else {}))
+                            lod_refiner=lod_refiner)
     if not args.quiet:
         print(f"wrote {args.output_dir}: {m.splats} splats, SH degree {m.sh_degree}, preset {m.preset}, "
               f"{count(len(m.tiles), 'tile')}, {m.bytes_on_disk / 1e6:.2f} MB on disk "
