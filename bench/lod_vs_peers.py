@@ -60,6 +60,7 @@ class Scene:
     source: str  # relative to --data-dir
     no_images: bool = False  # licence forbids derived images: nothing rendered is written to disk
     shipped_levels: tuple[int, ...] = ()  # LOD levels the source itself carries (streamed SOG), measured too
+    outside: bool = False  # not in ../shared/data: only when named (--scenes), its source under --data-dir
 
 
 SCENES: dict[str, Scene] = {s.name: s for s in [
@@ -69,6 +70,9 @@ SCENES: dict[str, Scene] = {s.name: s for s in [
     Scene("biker", "biker.compressed.ply", no_images=True),
     Scene("flowers", "flowers_lod/lod-meta.json", shipped_levels=(1, 2, 3)),
     *[Scene(f"statue-{s}", f"statues/{s}.sog") for s in STATUES],
+    # Issue 31's own scene, held out (nothing was tuned on it): PlayCanvas engine examples/assets/splats/playbot
+    # (CC-BY-4.0, Stephane Agullo, https://superspl.at/view?id=ee6d8bc4), 500,000 splats, SH2, 7 shipped levels.
+    Scene("playbot", "playbot/lod-meta.json", shipped_levels=(1, 2, 3, 4, 5, 6), outside=True),
 ]}
 
 
@@ -718,7 +722,10 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--scenes", default=",".join(SCENES), help=f"comma list (default all: {', '.join(SCENES)})")
+    inside = [n for n, s in SCENES.items() if not s.outside]
+    ap.add_argument("--scenes", default=",".join(inside),
+                    help=f"comma list (default every scene of ../shared/data: {', '.join(inside)}; outside it, "
+                         f"named only: {', '.join(n for n in SCENES if n not in inside)})")
     ap.add_argument("--budgets", default=",".join(map(str, DEFAULT_BUDGETS)),
                     help="comma list: fractions of the scene's splats (<= 1) or splat counts (default 0.02,0.06,"
                          "0.25,0.5)")
