@@ -664,7 +664,7 @@ def plot(results: list[dict], path: str) -> None:
     cols = min(4, max(1, len(results)))
     rows = math.ceil(len(results) / cols)
     pw, ph = 380, 290
-    img = Image.new("RGB", (cols * pw, rows * ph + 40), "white")
+    img = Image.new("RGB", (4 * pw, rows * ph + 40), "white")  # 4 panels wide: the title whole, one scene too
     d = ImageDraw.Draw(img)
     try:
         font = ImageFont.load_default(size=12)
