@@ -57,18 +57,19 @@ def main() -> int:
     ob = {r["budget"]: r for r in b["ours"]}
     rows = [f"| budget N | best peer of N splats | every peer level of N splats (PSNR / SSIM) "
             f"| ours {na} (PSNR / SSIM) "
-            f"| ours {nb} | {nb} - best peer | fill {na} | fill {nb} | MB downloaded / drawn tiles {na} | {nb} |",
-            "|---:|---:|---|---:|---:|---:|---|---|---|---|"]
+            f"| {na} - best peer | ours {nb} | {nb} - best peer | fill {na} | fill {nb} "
+            f"| MB downloaded / drawn tiles {na} | {nb} |",
+            "|---:|---:|---|---:|---:|---:|---:|---|---|---|---|"]
     for n in sorted(a["budget_splats"], reverse=True):
         ps = peers_at(a, n)
         best = max(ps) if ps else None
         q_a, f_a, m_a = ours_cell(oa.get(n), ma)
         q_b, f_b, m_b = ours_cell(ob.get(n), mb)
         gain = f"{ob[n]['psnr_mean'] - best[0]:+.2f}" if best and n in ob else "-"
+        gain_a = f"{oa[n]['psnr_mean'] - best[0]:+.2f}" if best and n in oa else "-"
         every = "; ".join(f"{lab} {p:.2f} / {s:.4f}" for p, s, lab in sorted(ps, reverse=True))
-        rows.append(f"| {n:,} | {best[0]:.2f} ({best[2]}) | {every} | {q_a} | {q_b} | {gain} | {f_a} | {f_b} | "
-                    f"{m_a} | {m_b} |" if best else f"| {n:,} | - | - | {q_a} | {q_b} | - | {f_a} | {f_b} | {m_a} | "
-                    f"{m_b} |")
+        peer = f"{best[0]:.2f} ({best[2]}) | {every}" if best else "- | -"
+        rows.append(f"| {n:,} | {peer} | {q_a} | {gain_a} | {q_b} | {gain} | {f_a} | {f_b} | {m_a} | {m_b} |")
     print("\n".join(rows))
     return 0
 
