@@ -423,6 +423,16 @@ def budget_counts(n: int, budgets: list[float]) -> list[int]:
     return [int(b) if b > 1 else max(1, int(round(b * n))) for b in budgets]
 
 
+def unique_budgets(n: int, budgets: list[float]) -> tuple[list[float], list[int]]:
+    """The budgets and their splat counts, each count once (its first budget kept): a fraction and a count that
+    name the same N (0.5 and 250000 of 500,000 splats) would otherwise measure it twice and rebuild the chained
+    peer level of N from itself."""
+    kept: dict[int, float] = {}
+    for b, nb in zip(budgets, budget_counts(n, budgets), strict=True):
+        kept.setdefault(nb, b)
+    return list(kept.values()), list(kept)
+
+
 def measure(images: list[np.ndarray], refs: list[np.ndarray]) -> dict:
     q = [quality(a, b) for a, b in zip(images, refs, strict=True)]
     ps = [p for p, _ in q]
@@ -453,7 +463,7 @@ def run_scene(scene: Scene, args, peers: Peers | None) -> dict | None:
         return None
     cameras = view_cameras(g.positions, detect_up(g).up, args.views, args.size)
     key = camera_key(cameras)
-    counts = budget_counts(n, args.budgets)
+    budgets, counts = unique_budgets(n, args.budgets)
     say(f"{scene.name}: {n:,} splats, SH{g.sh_degree}, budgets {counts}")
 
     ref_path = os.path.join(sdir, f"ref_{key}.npy")
@@ -469,7 +479,7 @@ def run_scene(scene: Scene, args, peers: Peers | None) -> dict | None:
 
     result = {"scene": scene.name, "source": scene.source, "splats": n, "sh_degree": g.sh_degree,
               "input_bytes": os.path.getsize(src) if os.path.isfile(src) else None,
-              "full_ply_bytes": os.path.getsize(full), "budgets": args.budgets, "budget_splats": counts,
+              "full_ply_bytes": os.path.getsize(full), "budgets": budgets, "budget_splats": counts,
               "size": [args.size, args.size], "views": args.views,
               "cameras": [c.to_dict() for c in cameras],
               "camera_rule": "splatstream.camera.scene_orbit_views(positions, views, size, size, up=detect_up, "
@@ -616,7 +626,7 @@ def write_table(results: list[dict], path: str) -> str:
             p, k, c, o = peers.get(nb), spark.get(nb), clamp.get(nb), ours.get(nb)
             pb = "-" if p is None else f"{p['ply_bytes']:,}" + (f" / {p['sog_bytes']:,}" if p.get("sog_bytes") else "")
             lines.append(
-                f"| {res['scene']} | {res['splats']:,} | {nb:,} ({b * 100:g} %) | {db(p)} | {ss(p)} | {pb} | "
+                f"| {res['scene']} | {res['splats']:,} | {budget_label(b, nb)} | {db(p)} | {ss(p)} | {pb} | "
                 f"{'-' if k is None else _drawn(k)} | {db(k)} | {ss(k)} | {db(c)} | {ss(c)} | "
                 f"{'-' if o is None else _drawn(o)} | {db(o)} | {ss(o)} | "
                 f"{'-' if o is None else format(o['bytes_downloaded_mean'], ',')} | "
@@ -630,6 +640,11 @@ def write_table(results: list[dict], path: str) -> str:
     with open(path, "w") as f:
         f.write(text)
     return text
+
+
+def budget_label(budget: float, splats: int) -> str:
+    """'10,000 (2 %)' for a fraction of the scene, '8,406' for a count (budgets > 1 are splat counts)."""
+    return f"{splats:,} ({budget * 100:g} %)" if budget <= 1 else f"{splats:,}"
 
 
 def _f(v) -> str:
@@ -649,7 +664,7 @@ def plot(results: list[dict], path: str) -> None:
     cols = min(4, max(1, len(results)))
     rows = math.ceil(len(results) / cols)
     pw, ph = 380, 290
-    img = Image.new("RGB", (cols * pw, rows * ph + 40), "white")
+    img = Image.new("RGB", (4 * pw, rows * ph + 40), "white")  # 4 panels wide: the title whole, one scene too
     d = ImageDraw.Draw(img)
     try:
         font = ImageFont.load_default(size=12)

@@ -86,3 +86,13 @@ def test_spark_gaussians_inflate_and_clamp():
     assert np.allclose(inflated.log_scales[2], 24 / math.e / 3, atol=1e-5)
     assert np.allclose(inflated.log_scales[:2], 0) and np.allclose(clamped.log_scales, 0)
     assert np.allclose(clamped.sh_dc, 0)
+
+
+def test_unique_budgets_measure_each_count_once():
+    # 0.5 and 250000 of 500,000 splats name the same N: measured once (the chained peer level of N is not rebuilt
+    # from itself), the first budget kept for its label
+    budgets, counts = L.unique_budgets(500000, [0.02, 0.5, 250000.0, 125000.0, 0.25, 3000.0])
+    assert counts == [10000, 250000, 125000, 3000]
+    assert budgets == [0.02, 0.5, 125000.0, 3000.0]
+    assert [L.budget_label(b, n) for b, n in zip(budgets, counts, strict=True)] == \
+        ["10,000 (2 %)", "250,000 (50 %)", "125,000", "3,000"]
