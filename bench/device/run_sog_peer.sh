@@ -34,6 +34,12 @@
 #     nvidia-h200 on 2026-11-28: Dawn listed "[0] NVIDIA H200" (with .gl: NVIDIA's Vulkan ICD, libGLX_nvidia,
 #     needs libglvnd's libraries, else "vkCreateInstance: Found no drivers") and flowers' SOG took 5 s (k-means
 #     1.8 s on the GPU).
+#     playbot (issue 32's own scene, held out: PlayCanvas engine examples/assets/splats/playbot, CC-BY-4.0, Stephane
+#     Agullo; 500,000 splats, SH2) is outside ../shared/data, named only: `SPLIT=1 SOG_SCENES=playbot bash
+#     bench/device/run_sog_peer.sh pack` takes its finest level (one SOG, 0_0, 8.2 MB) from $SPLATSTREAM_HELDOUT
+#     (default ../heldout). Packed so on 2026-11-30 with a 38.69 MB tree: the first call (.stcarry, 26 MB, and .gl,
+#     0.38 MB) sends about 65.5 MB of the 67.1, the second (.stcarry_scenes and .gl) about 47.6 MB; one call would
+#     be about 6.6 MB over.
 #  2. One device call (the `run` tool), carrying [".stcarry"]: `bash bench/device/run_sog_peer.sh`, timeout_s 600.
 #     It prints the SHA-256 of each input PLY beside the one made here, the adapters Dawn lists, and writes
 #     $OUT/<stem>.sog and $OUT/sog_peer.log.
@@ -48,7 +54,8 @@ c=$here/.stcarry
 stem_of() {
   case "$1" in
     flowers) echo flowers ;; fruit) echo fruit_drops_sh3 ;; lodtile) echo lod_tile_sh3_zero_rest ;;
-    *) echo "unknown scene $1 (flowers, fruit, lodtile)" >&2; return 2 ;;
+    playbot) echo playbot ;;
+    *) echo "unknown scene $1 (flowers, fruit, lodtile, playbot)" >&2; return 2 ;;
   esac
 }
 input_ply() {  # SCENE DIR OUT.ply NODE_CMD...: the scene's input PLY from its files under DIR
@@ -56,6 +63,8 @@ input_ply() {  # SCENE DIR OUT.ply NODE_CMD...: the scene's input PLY from its f
   shift 3
   if [ "$scene" = flowers ]; then
     "$@" -q -w "$dir"/flowers_lod/0_*/meta.json "$out"
+  elif [ "$scene" = playbot ]; then  # its finest level is one SOG (0_0), all 500,000 splats
+    "$@" -q -w "$dir"/playbot/0_0/meta.json "$out"
   else
     cp "$dir/$(stem_of "$scene").ply" "$out"
   fi
@@ -64,6 +73,7 @@ input_ply() {  # SCENE DIR OUT.ply NODE_CMD...: the scene's input PLY from its f
 if [ "${1:-}" = pack ]; then
   set -euo pipefail
   real=${SPLATSTREAM_SHARED:-$here/../shared}/data/real
+  heldout=${SPLATSTREAM_HELDOUT:-$here/../heldout}  # scenes outside ../shared/data (playbot), named only
   nm=${ST_NODE_MODULES:-$here/.ci/node/node_modules}
   [ -d "$nm/@playcanvas/splat-transform" ] || { echo "no splat-transform under $nm (ST_NODE_MODULES)"; exit 1; }
   exclude=$(git -C "$here" rev-parse --git-path info/exclude)
@@ -112,6 +122,9 @@ if [ "${1:-}" = pack ]; then
     if [ "$s" = flowers ]; then
       mkdir -p "$c.part/scenes/flowers_lod"
       cp -r "$real"/flowers_lod/0_* "$c.part/scenes/flowers_lod/"
+    elif [ "$s" = playbot ]; then
+      mkdir -p "$c.part/scenes/playbot"
+      cp -r "$heldout"/playbot/0_0 "$heldout"/playbot/playbot.txt "$c.part/scenes/playbot/"
     else
       cp "$real/$stem.ply" "$c.part/scenes/"
     fi
