@@ -56,7 +56,7 @@ def main() -> None:
             continue
         m = parse_manifest(store.read_manifest())
         jobs = [(store.read_payload(e), e, grp) for t in m.tiles for grp, e in t.groups.items()]
-        # the scene's palettes (format.md 4.3.2): a palette plane without its own section (medium-low-palette) needs them
+        # the scene's palettes (format.md 4.3.2): medium-low-palette's planes without their own palette section
         sets[p] = (jobs, m.uses_codebook, sum(t.splats * len(t.groups) for t in m.tiles), m.scene_palettes)
     times: dict[str, list[float]] = {p: [] for p in sets}
     for _ in range(args.runs):
