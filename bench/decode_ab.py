@@ -56,13 +56,14 @@ def main() -> None:
             continue
         m = parse_manifest(store.read_manifest())
         jobs = [(store.read_payload(e), e, grp) for t in m.tiles for grp, e in t.groups.items()]
-        sets[p] = (jobs, m.uses_codebook, sum(t.splats * len(t.groups) for t in m.tiles))
+        # the scene's palettes (format.md 4.3.2): medium-low-palette's planes without their own palette section
+        sets[p] = (jobs, m.uses_codebook, sum(t.splats * len(t.groups) for t in m.tiles), m.scene_palettes)
     times: dict[str, list[float]] = {p: [] for p in sets}
     for _ in range(args.runs):
-        for p, (jobs, codebook, _) in sets.items():
+        for p, (jobs, codebook, _, palettes) in sets.items():
             t = time.thread_time()
             for data, entry, group in jobs:
-                decode_payload(data, entry, group, p, codebook=codebook)
+                decode_payload(data, entry, group, p, codebook=codebook, palettes=palettes)
             times[p].append(time.thread_time() - t)
     for p, ts in times.items():
         n = sets[p][2]

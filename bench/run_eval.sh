@@ -25,6 +25,10 @@
 # RENDERER=auto draws with the GL client when it can (encoded scenes from their own textures, as the client shows
 # them; agrees with the reference to ~0.01 dB), else with the numpy reference 3DGS rasterizer (RENDERER=ref forces
 # it: exact forward pass, ~25 s/view at 1M).
+# Held-out scenes, outside ../shared/data, measured only when named (SCENES=playbot; not part of SCENES=real), their
+# sources under $SPLATSTREAM_HELDOUT (default ../heldout): playbot (PlayCanvas engine examples/assets/splats/playbot,
+# CC-BY-4.0, Stephane Agullo, https://superspl.at/view?id=ee6d8bc4; 500,000 splats, SH2, a streamed SOG: its finest
+# level converted like flowers; its SOG peer is made on the GPU machine like flowers', PEER_FORMATS as flowers').
 set -euo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
 out=${1:-$here/bench/out}
@@ -34,6 +38,7 @@ size=${SIZE:-512x512}
 renderer=${RENDERER:-auto}
 attribution=${ATTRIBUTION-low,medium}
 shared=${SPLATSTREAM_SHARED:-$here/../shared}
+heldout=${SPLATSTREAM_HELDOUT:-$here/../heldout}
 mkdir -p "$out"
 
 REAL="fruit lodtile flowers donut biker guitar winter_fountain statue-angel statue-angel-kneeling
@@ -58,6 +63,7 @@ scene_path() {
     winter_fountain) echo "$shared/data/real/winter_fountain.splat" ;;
     flowers) converted flowers "$shared/data/real/flowers_lod/lod-meta.json" ;;
     statue-*) converted "$1" "$shared/data/real/statues/${1#statue-}.sog" ;;
+    playbot) converted playbot "$heldout/playbot/lod-meta.json" ;;
     s1m)
       if [ ! -f "$out/s1m.ply" ]; then
         python3 "$shared/tools/make_scene.py" --splats 1000000 --seed 0 --out "$out/s1m.ply" >&2
@@ -79,7 +85,7 @@ for scene in $scenes; do
   compare=()
   if [ "${PEERS:-1}" = 1 ] && { [ -n "${SPLAT_TRANSFORM:-}" ] || command -v npm >/dev/null; }; then
     formats=${PEER_FORMATS:-}
-    [ -z "$formats" ] && [ "$scene" = flowers ] && formats="compressed.ply spz"
+    [ -z "$formats" ] && { [ "$scene" = flowers ] || [ "$scene" = playbot ]; } && formats="compressed.ply spz"
     mapfile -t compare < <(PEER_FORMATS=$formats "$here/bench/eval_peers.sh" "$input" "$out/peers/$scene")
   fi
   echo "== $scene: $input" >&2
