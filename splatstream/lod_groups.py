@@ -681,7 +681,8 @@ def _sorted_unique(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
 
 class _ParkedRows:
     """group_ids_of's edge rows parked over a stage's cap: chunks of (ends, multiplicities), each in the cluster ids
-    of the round that parked it, with the remaps of the rounds after it (ids of round r -> of round r + 1)."""
+    of the round that parked it, with the remaps of the rounds after it (ids of round r -> of round r + 1). A chunk's
+    rows are not folded: a pair may come in several rows, and rows inside one cluster are dropped only by join."""
 
     def __init__(self) -> None:
         self.chunks: list[tuple[int, np.ndarray, np.ndarray, np.ndarray]] = []
@@ -844,11 +845,25 @@ def group_ids_of(inputs: dict, target: int, rule: GroupRule = DEFAULT_RULE,
             label = remap[label]
             parked.step(remap)
             # Edges between unchanged clusters keep their rows and costs; the others are mapped onto the merged
-            # clusters, those inside one cluster dropped, and the pairs that now coincide folded into one row.
-            touched = changed[ei] | changed[ej]
+            # clusters, those now over the cap parked as they are (folded at the stage's end: in the pairs stage
+            # that is every one of them), the others' rows inside one cluster dropped and the pairs that now
+            # coincide folded into one row.
+            touched = np.take(changed, ei)
+            touched |= np.take(changed, ej)
             kept = ~touched
             ti, tj = np.take(remap, np.compress(touched, ei)), np.take(remap, np.compress(touched, ej))
             tm = np.compress(touched, mult)
+            del touched
+            if cap:
+                under = np.take(size, ti)
+                under += np.take(size, tj)
+                under = under <= cap
+                if not under.all():
+                    over = ~under
+                    parked.add(np.compress(over, ti), np.compress(over, tj), np.compress(over, tm))
+                    ti, tj, tm = np.compress(under, ti), np.compress(under, tj), np.compress(under, tm)
+                    del over
+                del under
             apart = ti != tj
             ti, tj, tm = np.compress(apart, ti), np.compress(apart, tj), np.compress(apart, tm)
             count = len(size)
@@ -856,12 +871,6 @@ def group_ids_of(inputs: dict, target: int, rule: GroupRule = DEFAULT_RULE,
             folded = np.add.reduceat(tm[order], first) if len(key) else tm[:0]
             row = order[first]  # a row of each distinct pair: its ends, as key // count and key % count gave them
             ti, tj = ti[row], tj[row]
-            if cap:  # the merged rows now over the cap: parked
-                under = size[ti] + size[tj] <= cap
-                if not under.all():
-                    over = ~under
-                    parked.add(np.compress(over, ti), np.compress(over, tj), np.compress(over, folded))
-                    ti, tj, folded = np.compress(under, ti), np.compress(under, tj), np.compress(under, folded)
             ei = np.concatenate([np.take(remap, np.compress(kept, ei)), ti])
             ej = np.concatenate([np.take(remap, np.compress(kept, ej)), tj])
             mult = np.concatenate([np.compress(kept, mult), folded]).astype(index, copy=False)
