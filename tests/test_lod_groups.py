@@ -176,3 +176,27 @@ def test_closed_form_eigenvalues_and_area_match_numpy():
     area = s[:, 0] * s[:, 1] + s[:, 1] * s[:, 2] + s[:, 0] * s[:, 2]
     assert np.allclose(lod_groups._area6(six), area, rtol=1e-5, atol=1e-9 * want[:, 0])
     assert lod_groups._area6(six)[-1] == pytest.approx(3 * 2.5)
+
+
+def test_parked_rows_join_maps_drops_and_folds():
+    """group_ids_of's parked rows (enc31c): chunks parked in two rounds' cluster ids are mapped through the later
+    rounds' remaps, rows inside one cluster dropped, repeated ordered pairs folded (multiplicities summed), and
+    appended to the live rows with no cost (NaN)."""
+    parked = lod_groups._ParkedRows()
+    parked.step(np.array([0, 1, 2], np.int32))  # no chunk yet: not kept
+    # round 0's ids (5 clusters): rows (0, 1) x2, (3, 4), (2, 0)
+    parked.add(np.array([0, 3, 2], np.int32), np.array([1, 4, 0], np.int32), np.array([2, 1, 1], np.int32))
+    parked.step(np.array([0, 1, 1, 2, 3], np.int32))  # round 1 merges clusters 1 and 2: 5 -> 4
+    # round 1's ids: (1, 0) once more (the same ordered pair as round 0's (2, 0)), and (2, 3)
+    parked.add(np.array([1, 2], np.int32), np.array([0, 3], np.int32), np.array([1, 4], np.int32))
+    parked.step(np.array([0, 1, 2, 2], np.int32))  # round 2 merges clusters 2 and 3: 4 -> 3
+    ei, ej = np.array([0], np.int32), np.array([2], np.int32)
+    mult, cost = np.array([1], np.int32), np.array([0.5])
+    ei, ej, mult, cost = parked.join(ei, ej, mult, cost, 3)
+    # round 0 (3, 4) and round 1 (2, 3) now lie inside cluster 2: dropped; (0, 1) x2 and the two (1, 0) folded
+    assert ei.tolist() == [0, 0, 1]
+    assert ej.tolist() == [2, 1, 0]
+    assert mult.tolist() == [1, 2, 2]
+    assert mult.dtype == np.int32
+    assert cost[0] == 0.5 and np.isnan(cost[1:]).all()
+    assert not parked.chunks and not parked.remaps

@@ -1,0 +1,132 @@
+"""Where one in-process encode's CPU and peak memory go: CPU per phase, and what runs at the peak RSS.
+
+    PYTHONPATH=. python bench/encode_phases.py SCENE OUT_DIR [--preset medium] [--lod-merge grid|auto|cost]
+        [--threads]
+
+Runs `encode_file` once in this process with every thread pool (the LOD tree's, the payloads') replaced by an
+inline executor, so that every job runs on the calling thread and the process CPU of each wrapped function is its
+own (inclusive: the grouping's row includes its k-NN, costs and matching). Without pools a phase's CPU is the
+work itself, not the interpreter-lock hand-offs of two threads (BENCHMARKS.md, "Where the grid encode's CPU goes");
+`--threads` keeps the pools as shipped. A thread samples the RSS every 3 ms and records, at its largest, the
+wrapped phases running and the main thread's innermost lines. Prints one JSON object: CPU s per wrapped function,
+the whole encode's CPU and wall, the peak RSS and where it was reached.
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import functools
+import json
+import os
+import resource
+import shutil
+import sys
+import threading
+import time
+from concurrent.futures import Future
+
+import splatstream.encode.driver as driver
+import splatstream.encode.local as local
+import splatstream.encode.plan as plan
+import splatstream.io as splat_io
+import splatstream.lod as lod
+import splatstream.lod_groups as lod_groups
+from splatstream.format import transport
+
+
+class InlineExecutor:
+    """A ThreadPoolExecutor stand-in that runs every job at once on the calling thread."""
+
+    def __init__(self, *args, **kwargs) -> None:
+        pass
+
+    def submit(self, fn, *args, **kwargs) -> Future:
+        done: Future = Future()
+        done.set_result(fn(*args, **kwargs))
+        return done
+
+    def map(self, fn, *iterables):
+        return [fn(*args) for args in zip(*iterables, strict=False)]
+
+    def shutdown(self, *args, **kwargs) -> None:
+        pass
+
+    def __enter__(self) -> InlineExecutor:
+        return self
+
+    def __exit__(self, *exc) -> None:
+        pass
+
+
+# (module, function) pairs timed; a name imported by another module is wrapped where it is called from.
+WRAPPED = (
+    (splat_io, "read_gaussians"), (plan, "build_tiles"), (lod, "_kd_leaves"), (lod, "_leaf_orders"),
+    (lod, "level_auto_groups"), (lod, "level_cost_groups"), (lod, "auto_tile_choice"), (lod, "group_ids_of"),
+    (lod, "merge_groups"), (lod, "merge_gaussians"), (lod, "finish_tile"), (lod, "extent_bounds"),
+    (lod_groups, "neighbour_keys"), (lod_groups, "edge_costs_at"), (lod_groups, "_greedy_pairs"),
+    (lod_groups, "_cheapest_share"), (lod_groups, "_merge_pairs"), (lod_groups, "_drop"),
+    (lod_groups, "covariances6"), (lod_groups, "_sorted_unique"), (lod_groups, "_morton_finish"),
+    (local, "encode_group"), (transport, "choose_modes"),
+)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("scene")
+    ap.add_argument("out")
+    ap.add_argument("--preset", default="medium")
+    ap.add_argument("--lod-merge", default=None)
+    ap.add_argument("--threads", action="store_true", help="keep the thread pools as shipped")
+    args = ap.parse_args()
+    if not args.threads:
+        lod.ThreadPoolExecutor = InlineExecutor
+        local.ThreadPoolExecutor = InlineExecutor
+    cpu: dict[str, float] = collections.defaultdict(float)
+    running: list[str] = []
+    peak = [0, ""]
+    main_thread = threading.get_ident()
+    page = os.sysconf("SC_PAGE_SIZE")
+
+    def sample() -> None:
+        while True:
+            with open("/proc/self/statm") as statm:
+                rss = int(statm.read().split()[1]) * page
+            if rss > peak[0]:
+                frame, lines = sys._current_frames().get(main_thread), []
+                while frame is not None and len(lines) < 4:
+                    lines.append(f"{os.path.basename(frame.f_code.co_filename)}:{frame.f_lineno}")
+                    frame = frame.f_back
+                peak[0], peak[1] = rss, "/".join(running) + " @ " + " < ".join(lines)
+            time.sleep(0.003)
+
+    def wrap(module, name: str) -> None:
+        fn = getattr(module, name)
+
+        @functools.wraps(fn)
+        def timed(*a, **k):
+            t0 = time.process_time()
+            running.append(name)
+            try:
+                return fn(*a, **k)
+            finally:
+                running.pop()
+                cpu[name] += time.process_time() - t0
+
+        setattr(module, name, timed)
+
+    for module, name in WRAPPED:
+        wrap(module, name)
+    threading.Thread(target=sample, daemon=True).start()
+    shutil.rmtree(args.out, ignore_errors=True)
+    options = {} if args.lod_merge is None else {"lod_merge": args.lod_merge}
+    t0, w0 = time.process_time(), time.perf_counter()
+    driver.encode_file(args.scene, args.out, preset=args.preset, **options)
+    total, wall = time.process_time() - t0, time.perf_counter() - w0
+    print(json.dumps({"cpu_s": round(total, 3), "wall_s": round(wall, 3), "load": os.getloadavg()[0],
+                      "peak_rss_mb": round(peak[0] / 2**20, 1), "peak_at": peak[1],
+                      "maxrss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+                      **{name: round(s, 3) for name, s in cpu.items()}}, indent=1))
+
+
+if __name__ == "__main__":
+    main()
