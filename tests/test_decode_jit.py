@@ -552,7 +552,7 @@ def _ranges_answer(values: np.ndarray, plane: str) -> bool:
 @pytest.mark.parametrize("dtype", ["<f4", "<f2"])
 @pytest.mark.parametrize("plane", ["position", "scale", "color"])
 def test_the_whole_kernels_range_checks_answer_as_ranges_ok(numpy_path, dtype, plane):
-    """Each range unit checked by the whole kernel (transport.CHECK_RANGES, container's codes and bounds) fails its
+    """A span of ranges checked by the whole kernel (transport.CHECK_RANGES, container's codes and bounds) fails its
     check exactly where container._ranges_ok refuses the same values: finite, ordered, inside the plane's domain;
     NaN, infinities, -0.0, float16 subnormals and values at and past the domain's ends among them."""
     rng = np.random.default_rng(zlib.crc32(f"ranges {dtype} {plane}".encode()))
@@ -575,7 +575,8 @@ def test_the_whole_kernels_range_checks_answer_as_ranges_ok(numpy_path, dtype, p
         raw[16:] = values.view(np.uint8).ravel()
         transport.use_whole_kernel(decode_jit.whole_kernel)
         try:
-            out, status = transport.run_whole(raw, [], (), [16, values.nbytes, 1, 0, code, k], values.nbytes, 0, 0,
+            out, status = transport.run_whole(raw, [], (), [16, values.nbytes, 1, 0, transport.CHECK_NONE],
+                                              values.nbytes, 0, 0, [0, values.nbytes, k, code],
                                               container._CHECK_BOUNDS)
         finally:
             transport.use_whole_kernel(None)
@@ -637,8 +638,7 @@ def test_the_whole_kernels_float_checks_answer_as_check_float_texels(numpy_path,
             check = transport.FLOAT_CHECKS[fmt]
             transport.use_whole_kernel(decode_jit.whole_kernel)
             try:
-                out, status = real_run_whole(raw, [], (), [16, values.size, element, 0, check, 0], values.nbytes,
-                                             0, 0)
+                out, status = real_run_whole(raw, [], (), [16, values.size, element, 0, check], values.nbytes, 0, 0)
             finally:
                 transport.use_whole_kernel(None)
             statuses.append(status)

@@ -266,18 +266,23 @@ def ranges_outside(values, k, low, high):
     return False
 
 
+_TWO_TO_MINUS_24 = 2.0 ** -24  # a half's subnormal step
+_TWO_TO_MINUS_25 = 2.0 ** -25  # (1024 + mantissa) x 2^exponent x this: a normal half's value
+
+
 @njit(**_JIT)
 def half_value(h):
     """An IEEE 754 half's bits `h` (uint16) as its exact float64 value (numba has no float16 arithmetic): +-inf for
-    the infinities, NaN for NaNs."""
+    the infinities, NaN for NaNs. The power of two by a shift, not `**` (a pow call a value: that made medium's
+    float16 range checks cost more in the kernel than they saved in Python)."""
     sign = -1.0 if h & 0x8000 else 1.0
-    exponent = (h >> 10) & 0x1F
+    exponent = np.int64((h >> 10) & 0x1F)
     mantissa = np.float64(h & 0x3FF)
     if exponent == 0x1F:
         return sign * math.inf if mantissa == 0 else math.nan
     if exponent == 0:
-        return sign * mantissa * 2.0 ** -24
-    return sign * (1024.0 + mantissa) * 2.0 ** (np.int64(exponent) - 25)
+        return sign * mantissa * _TWO_TO_MINUS_24
+    return sign * (1024.0 + mantissa) * np.float64(np.int64(1) << exponent) * _TWO_TO_MINUS_25
 
 
 @njit(**_JIT)
@@ -296,17 +301,18 @@ def halves_outside(values, k, low, high):
 
 
 @njit(**_JIT)
-def whole_kernel(raw, rows, fields, modes, orders, work, out8, out16, out32, outf32, units, bounds):
+def whole_kernel(raw, rows, fields, modes, orders, work, out8, out16, out32, outf32, units, spans, bounds):
     """A whole payload's, or a whole group's, fields1 sections of every format and shuffled units in one call
     (transport.use_whole_kernel): per row of `rows` fields1_kernel into the out view of its word size (out8, out16,
     out32: views of one buffer), with its columns of `fields` and `modes`; then per row of `units` unshuffle_kernel's
     bytes into out8. One call that releases the interpreter lock for all of it, where a plane at a time took one or
     two calls a plane, each taking the lock back after it (issue 38's fly-through; issue 32's small payloads).
 
-    Then each row's and unit's check (transport.CHECK_*: float texels in [0, 1], ranges finite, ordered and inside
-    bounds[code], float32 or float16 by bounds[code, 2]) on the values just written, while they are in cache; returns
-    the CHECK_FAILED_* bits of the checks that failed (0: all passed), and the caller checks as it would without the
-    kernel only then (issue 32: those checks were a numpy call a plane a run after the call)."""
+    Then each row's and unit's check (transport.CHECK_*: float texels in [0, 1]) and each span's (a plane's ranges
+    finite, ordered and inside bounds[code], float32 or float16 by bounds[code, 2]) on the values just written,
+    while they are in cache; returns the CHECK_FAILED_* bits of the checks that failed (0: all passed), and the
+    caller checks as it would without the kernel only then (issue 32: those checks were a numpy call a plane a run
+    after the call)."""
     status = 0
     for s in range(rows.shape[0]):
         n, first, length = rows[s, 2], rows[s, 4], rows[s, 5]
@@ -344,14 +350,15 @@ def whole_kernel(raw, rows, fields, modes, orders, work, out8, out16, out32, out
             if at % 2 or size % 2 or floats_outside(out16[at // 2:(at + size) // 2], np.uint16(0x3C00),
                                                     np.uint16(0x8000)):
                 status |= 1
-        elif check >= 3:  # CHECK_RANGES and after: ranges inside bounds[check] (float32 or float16: bounds[check, 2])
-            if bounds[check, 2] == 4:
-                if at % 4 or size % 4 or ranges_outside(outf32[at // 4:(at + size) // 4], units[u, 5],
-                                                        bounds[check, 0], bounds[check, 1]):
-                    status |= 2
-            elif at % 2 or size % 2 or halves_outside(out16[at // 2:(at + size) // 2], units[u, 5],
-                                                      bounds[check, 0], bounds[check, 1]):
+    for p in range(spans.shape[0]):  # a plane's ranges in a row: inside bounds[check], float32 or float16 (its [2])
+        at, size, half, check = spans[p, 0], spans[p, 1], spans[p, 2], spans[p, 3]
+        if bounds[check, 2] == 4:
+            if at % 4 or size % 4 or ranges_outside(outf32[at // 4:(at + size) // 4], half, bounds[check, 0],
+                                                    bounds[check, 1]):
                 status |= 2
+        elif at % 2 or size % 2 or halves_outside(out16[at // 2:(at + size) // 2], half, bounds[check, 0],
+                                                  bounds[check, 1]):
+            status |= 2
     return status
 
 

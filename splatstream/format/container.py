@@ -631,7 +631,8 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
     header_of, rows_of, elements, float_checks = FIELDS1_HEADER_BYTES, FIELDS1_ROWS, _ELEMENTS, FLOAT_CHECKS
     owner = whole if whole.base is None else whole.base
     flat: list[int] = []  # run_whole's 9 ints a fields1 section
-    unit_rows: list[int] = []  # and its 6 a shuffled unit
+    unit_rows: list[int] = []  # and its 5 a shuffled unit
+    span_rows: list[int] = []  # and its 4 a plane's ranges checked in the kernel
     index: dict[tuple, int] = {}  # (format, layers, header, width, height) -> its index in the tables' key
     out_bytes = most_n = most_f = 0
     plan = []  # per plane: (spec, per payload (section, where its texels start in out or -1: decoded alone, bytes,
@@ -710,7 +711,7 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
                         out_bytes += pad
                     if plane_first < 0:
                         plane_first = out_bytes
-                    unit_rows += (at + i * unit, unit // element, element, out_bytes, check, 0)
+                    unit_rows += (at + i * unit, unit // element, element, out_bytes, check)
                     if starts is not None:
                         starts.append(out_bytes)
                     else:
@@ -719,7 +720,7 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
                 if starts is not None:
                     add((s, starts[0], unit, starts))
         float_span = None
-        ranges_checked = False  # the plane's ranges all checked by the kernel (a range check code on each unit)
+        ranges_checked = False  # the plane's ranges all checked by the kernel (a span of span_rows)
         if float_format is not None and not floats_each and plane_first >= 0:
             float_span = (float_format, plane_first, out_bytes, pads)
         else:
@@ -733,12 +734,9 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
             range_at = []
             range_name = spec.range_name
             in_row = True
-            # ranges checked by the kernel (its status says whether all passed), each unit in chunks of `k`
-            # minimums then `k` maximums; a unit it cannot so check leaves the plane to _whole_ranges' checks
             range_dtype = spec.range_dtype
-            range_check = _RANGE_CHECKS.get((name, range_dtype)) or _RANGE_CHECKS.get(("", range_dtype), CHECK_NONE)
-            ranges_checked = range_check != CHECK_NONE
-            value_bytes = 2 * np.dtype(range_dtype).itemsize if ranges_checked else 0
+            range_check = CHECK_NONE if mixed else (_RANGE_CHECKS.get((name, range_dtype))
+                                                    or _RANGE_CHECKS.get(("", range_dtype), CHECK_NONE))
             for t, first in zip(tables, firsts, strict=True):
                 if mixed and (t[name].format in PALETTE_FORMATS or not spec.range_dtype):
                     range_at.append(-1)  # its palettes (or no ranges): _mixed_plane
@@ -759,22 +757,25 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
                 else:
                     range_shape = r.shape[1:]
                 range_sections.append(r)
-                chunks = r.shape[0] if r.shape and ranges_checked else 0
-                k = size // (value_bytes * chunks) if chunks else 0
-                if k and k * value_bytes * chunks == size:
-                    unit_rows += (first + r.offset, size // element, element, out_bytes, range_check, k)
-                else:
-                    unit_rows += (first + r.offset, size // element, element, out_bytes, CHECK_NONE, 0)
-                    ranges_checked = False
+                unit_rows += (first + r.offset, size // element, element, out_bytes, CHECK_NONE)
                 range_at.append(out_bytes)
                 out_bytes += size
             if not in_row:
                 range_shape = None
+            elif range_check != CHECK_NONE and range_sections:
+                # the plane's ranges in a row, of one shape: checked by the kernel as one span (its status says
+                # whether all passed) in chunks of `half` minimums then `half` maximums, as _ranges_ok pairs them;
+                # else _whole_ranges checks them after the call
+                half = math.prod(range_shape) // 2
+                if half and not math.prod(range_shape) % 2:
+                    span_rows += (range_at[0], out_bytes - range_at[0], half, range_check)
+                    ranges_checked = True
         plan.append((spec, texels, range_at, range_sections, range_shape, float_span, floats_each, mixed,
                      ranges_checked))
     if between is not None:
         between()
-    out, status = run_whole(whole, flat, tuple(index), unit_rows, out_bytes, most_n, most_f, _CHECK_BOUNDS)
+    out, status = run_whole(whole, flat, tuple(index), unit_rows, out_bytes, most_n, most_f, span_rows,
+                            _CHECK_BOUNDS)
     floats_passed = not status & CHECK_FAILED_FLOATS  # every float texel the kernel wrote in [0, 1]
     ranges_passed = not status & CHECK_FAILED_RANGES  # every range it checked finite, ordered, in its domain
     result: list[dict[str, EncodedPlane]] = [{} for _ in tables]

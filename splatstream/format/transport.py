@@ -1316,14 +1316,14 @@ _whole_kernel = None  # see use_whole_kernel
 def use_whole_kernel(kernel) -> object:
     """Decode every fields1 section, of any format, and undo the byte shuffle of every unit of one decompressed
     buffer in one call (None: not so); returns the one it replaces. Called as kernel(raw, rows, fields, modes, orders,
-    work, out8, out16, out32, outf32, units, bounds) -> status: per fields1 section a row of `rows` (where its byte
-    planes and its parameters start in `raw`, its slots, where its slot_to_texel starts in `orders`, where its
+    work, out8, out16, out32, outf32, units, spans, bounds) -> status: per fields1 section a row of `rows` (where its
+    byte planes and its parameters start in `raw`, its slots, where its slot_to_texel starts in `orders`, where its
     texels start and how many words they are in the out view of its word size, where its columns of `fields` start
     and how many, where its columns of `modes` start and how many, words a texel, bytes a word, the check of its
     texels), which is use_fields_kernel's call for it; per unit a row of `units` (where it starts in `raw`, its
-    element count, its element size, where its bytes go in out8, the check of its values, a range check's values a
-    chunk's minimum). out8, out16, out32 and outf32 are views of one buffer; the checks and `bounds` are run_whole's
-    (CHECK_*); the status: the CHECK_FAILED_* bits of the checks that failed.
+    element count, its element size, where its bytes go in out8, the check of its values); per span of ranges to
+    check a row of `spans`. out8, out16, out32 and outf32 are views of one buffer; the checks, `spans` and `bounds`
+    are run_whole's (CHECK_*); the status: the CHECK_FAILED_* bits of the checks that failed.
 
     Why: a decode thread holds the interpreter lock for the Python between its compiled calls and must take it back
     after each one (issue 38: the frame thread waits for it; issue 32: that Python is most of a small payload's
@@ -1460,7 +1460,7 @@ def unfilter_whole(raw: np.ndarray, sections: list[tuple[str, int, int, int, int
             element = 1
         if element in (2, 4, 8):  # aligned for views of its elements (a plane's ranges still lie in a row)
             out_bytes += -out_bytes % element
-        unit_rows += (at, size // element, element, out_bytes, CHECK_NONE, 0)
+        unit_rows += (at, size // element, element, out_bytes, CHECK_NONE)
         unit_at.append(out_bytes)
         out_bytes += size
     out, _ = run_whole(raw, flat, tuple(index), unit_rows, out_bytes, most_n, most_f)  # its callers check the values
@@ -1468,14 +1468,16 @@ def unfilter_whole(raw: np.ndarray, sections: list[tuple[str, int, int, int, int
 
 
 def run_whole(raw: np.ndarray, flat: list[int], keys: tuple, unit_rows: list[int], out_bytes: int, most_n: int,
-              most_f: int, bounds: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+              most_f: int, span_rows: list[int] | None = None, bounds: np.ndarray | None = None
+              ) -> tuple[np.ndarray, int]:
     """The whole kernel's call (use_whole_kernel) over `raw` for sections and units already planned: `flat` 9 ints a
     fields1 section (where its byte planes start, where its parameters start, slots, where its texels start in the
     out view of its word size, how many words, fields, words a texel, bytes a word, the index of its key in `keys`),
-    `keys` the distinct (format, layers, header, width, height) of them, `unit_rows` 6 ints a unit (where it starts,
-    its element count, its element size, where its bytes go in out, the check of its values: CHECK_*, and for a
-    range check the values of a chunk's minimum), `bounds` a range check's (low, high, bytes a value: 4 float32, 2
-    float16) by its CHECK_ code (float64, (codes, 3); None: no range checks); returns (`out`, out_bytes rounded up
+    `keys` the distinct (format, layers, header, width, height) of them, `unit_rows` 5 ints a unit (where it starts,
+    its element count, its element size, where its bytes go in out, the check of its values: CHECK_NONE, CHECK_F32
+    or CHECK_F16), `span_rows` 4 ints a span of ranges to check after the units (where it starts in out, its bytes,
+    the values of a chunk's minimum, its CHECK_RANGES code), `bounds` a range check's (low, high, bytes a value: 4
+    float32, 2 float16) by its code (float64, (codes, 3); None: no range checks); returns (`out`, out_bytes rounded up
     to 16, which the kernel wrote, and the kernel's status: the CHECK_FAILED_* bits of the checks that failed, 0 when
     every one passed).
     `most_n` and `most_f`: the most slots and fields of a section (the work array's shape).
@@ -1496,8 +1498,8 @@ def run_whole(raw: np.ndarray, flat: list[int], keys: tuple, unit_rows: list[int
     out = np.empty(out_bytes + -out_bytes % 16, np.uint8)
     work = _scratch("kernel", 8 * most_f * most_n).view(np.int64).reshape(most_f, most_n)
     status = _whole_kernel(raw, rows, fields, modes, orders, work, out, out.view(np.uint16), out.view(np.uint32),
-                           out.view(np.float32), np.array(unit_rows, np.int64).reshape(-1, 6),
-                           _NO_BOUNDS if bounds is None else bounds)
+                           out.view(np.float32), np.array(unit_rows, np.int64).reshape(-1, 5),
+                           np.array(span_rows or (), np.int64).reshape(-1, 4), _NO_BOUNDS if bounds is None else bounds)
     return out, int(status)
 
 
@@ -1506,16 +1508,16 @@ def run_whole(raw: np.ndarray, flat: list[int], keys: tuple, unit_rows: list[int
 # its texels' check)
 _WHOLE_COLUMNS = np.array([0, 1, 2, 12, 3, 4, 9, 5, 10, 11, 6, 7, 13])
 
-# The whole kernel's checks of the values it writes (a row's or a unit's CHECK_ code), which its caller would
-# otherwise make with numpy after the call (issue 32: a float plane's max and a range plane's check, one call a plane a
-# run, were about 1 ms of very-high's 13 ms pass on the LOD tree): CHECK_NONE none; CHECK_F32 / CHECK_F16 float
-# texels (format.md 4.2: t in [0, 1]: each word's bits at most those of 1.0, or -0.0's); a code from CHECK_RANGES on
-# ranges (format.md 4.3, 4.8: chunks of `k` minimums then `k` maximums, every value finite, each minimum at most its
-# maximum, all inside bounds[code][:2]; float32 or float16 values by bounds[code][2], their bytes). A check that
-# fails sets its CHECK_FAILED_ bit in the kernel's status, and the caller then checks as it does without the kernel,
-# which names the payload and section; so the kernel's
-# checks are a fast yes, never the refusal itself. A unit the kernel cannot check as asked (its bytes not whole
-# values or not aligned to them, no chunks) fails its check.
+# The whole kernel's checks of the values it writes (a row's, a unit's or a span's CHECK_ code), which its caller
+# would otherwise make with numpy after the call (issue 32: a float plane's max and a range plane's check, one call a
+# plane a run, were about 1 ms of very-high's 13 ms pass on the LOD tree): CHECK_NONE none; CHECK_F32 / CHECK_F16
+# float texels (format.md 4.2: t in [0, 1]: each word's bits at most those of 1.0, or -0.0's); a span's code from
+# CHECK_RANGES on ranges (format.md 4.3, 4.8: a plane's range sections in a row, one span a plane, in chunks of `k`
+# minimums then `k` maximums: every value finite, each minimum at most its maximum, all inside bounds[code][:2];
+# float32 or float16 values by bounds[code][2], their bytes). A check that fails sets its CHECK_FAILED_ bit in the
+# kernel's status, and the caller then checks as it does without the kernel, which names the payload and section;
+# so the kernel's checks are a fast yes, never the refusal itself. Values the kernel cannot check as asked (not whole
+# values, not aligned to them, not whole chunks, none) fail their check.
 CHECK_NONE, CHECK_F32, CHECK_F16 = 0, 1, 2
 CHECK_RANGES = 3  # range checks: codes from here, one per (low, high) of the caller's bounds
 CHECK_FAILED_FLOATS, CHECK_FAILED_RANGES = 1, 2
