@@ -525,3 +525,148 @@ def test_a_group_of_two_scenes_payloads_decodes_as_the_numpy_path(numpy_path, mo
         items[3] = (_float_damaged(data, entry, shuffled[0], 1.5), entry)
         with pytest.raises(FormatError, match=f"payload3.*section {shuffled[0]}.*outside"):
             container.unpack_payloads(items, "base", sources)
+
+
+def test_half_value_reads_every_float16_as_numpy_does():
+    # the whole kernel's float16 range check reads a half's bits itself (numba has no float16 arithmetic)
+    bits = np.arange(1 << 16, dtype=np.uint16)
+    expected = bits.view(np.float16).astype(np.float64)
+    got = np.array([decode_jit.half_value(b) for b in bits])
+    assert np.array_equal(np.isnan(got), np.isnan(expected))
+    assert np.array_equal(got[~np.isnan(got)], expected[~np.isnan(expected)])
+
+
+def _ranges_answer(values: np.ndarray, plane: str) -> bool:
+    """_ranges_ok's answer by its Python and numpy paths and by the ranges kernel, which must agree."""
+    answers = set()
+    for kernel in (None, decode_jit.ranges_kernel):
+        previous = container.use_ranges_kernel(kernel)
+        try:
+            answers.add(container._ranges_ok(values, plane))
+        finally:
+            container.use_ranges_kernel(previous)
+    assert len(answers) == 1
+    return answers.pop()
+
+
+@pytest.mark.parametrize("dtype", ["<f4", "<f2"])
+@pytest.mark.parametrize("plane", ["position", "scale", "color"])
+def test_the_whole_kernels_range_checks_answer_as_ranges_ok(numpy_path, dtype, plane):
+    """A span of ranges checked by the whole kernel (transport.CHECK_RANGES, container's codes and bounds) fails its
+    check exactly where container._ranges_ok refuses the same values: finite, ordered, inside the plane's domain;
+    NaN, infinities, -0.0, float16 subnormals and values at and past the domain's ends among them."""
+    rng = np.random.default_rng(zlib.crc32(f"ranges {dtype} {plane}".encode()))
+    low, high = container._LIMITS32.get(plane, (-6e4, 6e4))
+    specials = [np.nan, np.inf, -np.inf, -0.0, 0.0, 6e-8, low, high, np.nextafter(np.float32(high), np.inf),
+                2 * low, 1e30, -1e30]
+    code = container._RANGE_CHECKS.get((plane, dtype)) or container._RANGE_CHECKS["", dtype]
+    answers = []
+    for case in range(60):
+        chunks, k = 1 + case % 3, [3, 4, 1][case % 3]
+        lo = rng.uniform(-3, 3, (chunks, k))
+        values = np.stack([lo, lo + rng.uniform(0, 2, (chunks, k))], axis=1)
+        with np.errstate(over="ignore", invalid="ignore"):
+            values = values.astype(dtype)
+            if case % 4:  # a damage at a random place (the fourth case of each four left whole)
+                values.reshape(-1)[rng.integers(values.size)] = specials[rng.integers(len(specials))]
+            if case % 7 == 5:  # a minimum above its maximum
+                values[0, 0, 0], values[0, 1, 0] = values[0, 1, 0] + 1, values[0, 0, 0]
+        raw = np.zeros(16 + values.nbytes, np.uint8)
+        raw[16:] = values.view(np.uint8).ravel()
+        transport.use_whole_kernel(decode_jit.whole_kernel)
+        try:
+            out, status = transport.run_whole(raw, [], (), [16, values.nbytes, 1, 0, transport.CHECK_NONE],
+                                              values.nbytes, 0, 0, [0, values.nbytes, k, code],
+                                              container._CHECK_BOUNDS)
+        finally:
+            transport.use_whole_kernel(None)
+        assert out[:values.nbytes].tobytes() == values.tobytes()
+        expected = _ranges_answer(values, plane)
+        assert (status == 0) == expected, (case, values)
+        answers.append(expected)
+    assert any(answers) and not all(answers)  # both answers met
+
+
+@pytest.mark.parametrize("fmt", ["f32x4", "f16x4"])
+def test_the_whole_kernels_float_checks_answer_as_check_float_texels(numpy_path, monkeypatch, fmt):
+    """A float format's texels, from fields1 rows and from shuffled units, fail the whole kernel's check
+    (transport.CHECK_F32, CHECK_F16) exactly where container._check_float_texels refuses them: t in [0, 1] or -0.0."""
+    float_type, bits, one, negative_zero = container.FLOAT_TEXEL_BITS[fmt]
+    rng = np.random.default_rng(zlib.crc32(fmt.encode()))
+    statuses: list[int] = []
+    real_run_whole = transport.run_whole
+
+    def run_whole(*args):
+        out, status = real_run_whole(*args)
+        statuses.append(status)
+        return out, status
+
+    monkeypatch.setattr(transport, "run_whole", run_whole)
+
+    def refused(texels: np.ndarray) -> bool:
+        section = container.Section(name="t", kind="texels", format=fmt, filter="none", offset=0, size=texels.size)
+        try:
+            container._check_float_texels([texels], section, "s")
+        except FormatError:
+            return True
+        return False
+
+    answers = []
+    for case in range(24):
+        w, h = 16, 16 * (1 + case % 2)
+        if case % 3 == 0:  # fields1: random planes (floats of every kind) or zero planes (0.0 throughout)
+            modes = [random_modes(rng, field_bits(fmt))]
+            content = random_content(rng, fmt, w, h, 1, modes)
+            if case % 2:
+                head = 1 + len(field_bits(fmt))
+                content = content[:head] + bytes(len(content) - head)
+            raw = np.frombuffer(bytes(16) + content, np.uint8).copy()
+            transport.use_whole_kernel(decode_jit.whole_kernel)
+            try:
+                out, got, _ = transport.unfilter_whole(raw, [(fmt, 1, 16, len(content), w, h)], [])
+            finally:
+                transport.use_whole_kernel(None)
+            texels = out[got[0][0]:got[0][0] + got[0][1]]
+            assert texels.tobytes() == unfilter_fields(content, fmt, w, h, 1).tobytes()
+        else:  # a shuffled unit: floats in [0, 1], one damaged in most cases
+            values = rng.uniform(0, 1, w * h * 4).astype(float_type)
+            if case % 3 == 1:
+                values[rng.integers(values.size)] = [np.nan, np.inf, -1.0, 1.0001, -0.0, 1.0, 2.0][case % 7]
+            element = values.itemsize
+            unit = transport.shuffle(values.view(np.uint8), element)
+            raw = np.concatenate([np.zeros(16, np.uint8), unit])
+            check = transport.FLOAT_CHECKS[fmt]
+            transport.use_whole_kernel(decode_jit.whole_kernel)
+            try:
+                out, status = real_run_whole(raw, [], (), [16, values.size, element, 0, check], values.nbytes, 0, 0)
+            finally:
+                transport.use_whole_kernel(None)
+            statuses.append(status)
+            texels = out[:values.nbytes]
+            assert texels.tobytes() == values.tobytes()
+        status = statuses.pop()
+        assert status in (0, transport.CHECK_FAILED_FLOATS)
+        assert (status != 0) == refused(texels), case
+        answers.append(status)
+    assert any(answers) and not all(answers)
+
+
+@pytest.mark.parametrize("preset", ["medium", "very-high"])
+@pytest.mark.parametrize("name", ["position.range", "scale.range", "color.range"])
+@pytest.mark.parametrize("value", [np.nan, np.inf, -1e30, 1e30])
+def test_a_bad_range_in_a_group_is_refused_as_by_the_numpy_path(numpy_path, fruit, preset, name, value):
+    """A damaged range (float32 or float16) in one payload of a group: the whole kernel's status sends the group to
+    the checks the numpy path makes, which refuse it with the same one-line message naming the payload and section."""
+    store = encode_in_memory(fruit, EncodeOptions(preset=preset, max_leaf_splats=512))
+    m = read_manifest(store)
+    items = [(store.read_payload(t.groups["base"]), t.groups["base"]) for t in m.tiles][:4]
+    data, entry = items[2]
+    items[2] = (_damaged(data, entry, name, value), entry)
+    sources = [f"payload{k}" for k in range(4)]
+    with pytest.raises(FormatError, match=f"payload2.*{name}") as by_numpy:
+        container.unpack_payloads(items, "base", sources)
+    decode_jit.install()
+    with pytest.raises(FormatError, match=f"payload2.*{name}") as by_kernel:
+        container.unpack_payloads(items, "base", sources)
+    assert str(by_kernel.value) == str(by_numpy.value)
+    assert "\n" not in str(by_kernel.value)

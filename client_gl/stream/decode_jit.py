@@ -239,12 +239,81 @@ def unshuffle_many_kernel(raw, table, element, out):
 
 
 @njit(**_JIT)
-def whole_kernel(raw, rows, fields, modes, orders, work, out8, out16, out32, units):
+def floats_outside(words, one, negative_zero):
+    """Whether any of `words` (float texels' bits as unsigned integers) leaves [0, 1] (format.md 4.2): bits above
+    those of 1.0 other than -0.0's (NaN, inf and negatives lie above, as container._check_float_texels reads them).
+    An OR over the words, no early exit: the loop vectorises (the words were just written, still in cache)."""
+    bad = False
+    for i in range(words.shape[0]):
+        v = words[i]
+        bad |= (v > one) & (v != negative_zero)
+    return bad
+
+
+@njit(**_JIT)
+def ranges_outside(values, k, low, high):
+    """Whether `values` (float32: chunks of `k` minimums then `k` maximums) fail ranges_kernel's checks: a value not
+    finite, a minimum above its maximum, or one outside [low, high] (compared as float64, as ranges_kernel does).
+    Also True where the values are not whole chunks or there are none (the caller's own check decides those)."""
+    if k <= 0 or values.shape[0] == 0 or values.shape[0] % (2 * k):
+        return True
+    for c in range(0, values.shape[0], 2 * k):
+        for j in range(k):
+            lo = np.float64(values[c + j])
+            hi = np.float64(values[c + k + j])
+            if not (math.isfinite(lo) and math.isfinite(hi) and low <= lo and lo <= hi and hi <= high):
+                return True
+    return False
+
+
+_TWO_TO_MINUS_24 = 2.0 ** -24  # a half's subnormal step
+_TWO_TO_MINUS_25 = 2.0 ** -25  # (1024 + mantissa) x 2^exponent x this: a normal half's value
+
+
+@njit(**_JIT)
+def half_value(h):
+    """An IEEE 754 half's bits `h` (uint16) as its exact float64 value (numba has no float16 arithmetic): +-inf for
+    the infinities, NaN for NaNs. The power of two by a shift, not `**` (a pow call a value: that made medium's
+    float16 range checks cost more in the kernel than they saved in Python)."""
+    sign = -1.0 if h & 0x8000 else 1.0
+    exponent = np.int64((h >> 10) & 0x1F)
+    mantissa = np.float64(h & 0x3FF)
+    if exponent == 0x1F:
+        return sign * math.inf if mantissa == 0 else math.nan
+    if exponent == 0:
+        return sign * mantissa * _TWO_TO_MINUS_24
+    return sign * (1024.0 + mantissa) * np.float64(np.int64(1) << exponent) * _TWO_TO_MINUS_25
+
+
+@njit(**_JIT)
+def halves_outside(values, k, low, high):
+    """ranges_outside of float16 ranges (their bits as uint16), each value compared as its exact float64, as
+    container._ranges_ok compares them (float16 widened to float32, exact, then to float64)."""
+    if k <= 0 or values.shape[0] == 0 or values.shape[0] % (2 * k):
+        return True
+    for c in range(0, values.shape[0], 2 * k):
+        for j in range(k):
+            lo = half_value(values[c + j])
+            hi = half_value(values[c + k + j])
+            if not (math.isfinite(lo) and math.isfinite(hi) and low <= lo and lo <= hi and hi <= high):
+                return True
+    return False
+
+
+@njit(**_JIT)
+def whole_kernel(raw, rows, fields, modes, orders, work, out8, out16, out32, outf32, units, spans, bounds):
     """A whole payload's, or a whole group's, fields1 sections of every format and shuffled units in one call
     (transport.use_whole_kernel): per row of `rows` fields1_kernel into the out view of its word size (out8, out16,
     out32: views of one buffer), with its columns of `fields` and `modes`; then per row of `units` unshuffle_kernel's
     bytes into out8. One call that releases the interpreter lock for all of it, where a plane at a time took one or
-    two calls a plane, each taking the lock back after it (issue 38's fly-through; issue 32's small payloads)."""
+    two calls a plane, each taking the lock back after it (issue 38's fly-through; issue 32's small payloads).
+
+    Then each row's and unit's check (transport.CHECK_*: float texels in [0, 1]) and each span's (a plane's ranges
+    finite, ordered and inside bounds[code], float32 or float16 by bounds[code, 2]) on the values just written,
+    while they are in cache; returns the CHECK_FAILED_* bits of the checks that failed (0: all passed), and the
+    caller checks as it would without the kernel only then (issue 32: those checks were a numpy call a plane a run
+    after the call)."""
+    status = 0
     for s in range(rows.shape[0]):
         n, first, length = rows[s, 2], rows[s, 4], rows[s, 5]
         f0, nf, m0, nm, words = rows[s, 6], rows[s, 7], rows[s, 8], rows[s, 9], rows[s, 10]
@@ -259,10 +328,38 @@ def whole_kernel(raw, rows, fields, modes, orders, work, out8, out16, out32, uni
         else:
             fields1_kernel(raw, rows[s, 0], rows[s, 1], n, layers, words, fields[:, f0:f0 + nf],
                            modes[:, m0:m0 + nm], order, work, out32[first:first + length])
+        check = rows[s, 12]
+        if check == 1:  # CHECK_F32
+            if rows[s, 11] != 4 or floats_outside(out32[first:first + length], np.uint32(0x3F800000),
+                                                  np.uint32(0x80000000)):
+                status |= 1
+        elif check == 2:  # CHECK_F16
+            if rows[s, 11] != 2 or floats_outside(out16[first:first + length], np.uint16(0x3C00),
+                                                  np.uint16(0x8000)):
+                status |= 1
     for u in range(units.shape[0]):
-        count, element = units[u, 1], units[u, 2]
-        unshuffle_into(raw[units[u, 0]:units[u, 0] + count * element], count, element,
-                       out8[units[u, 3]:units[u, 3] + count * element])
+        count, element, at = units[u, 1], units[u, 2], units[u, 3]
+        size = count * element
+        unshuffle_into(raw[units[u, 0]:units[u, 0] + size], count, element, out8[at:at + size])
+        check = units[u, 4]
+        if check == 1:  # CHECK_F32: whole aligned words only (else the caller's check)
+            if at % 4 or size % 4 or floats_outside(out32[at // 4:(at + size) // 4], np.uint32(0x3F800000),
+                                                    np.uint32(0x80000000)):
+                status |= 1
+        elif check == 2:  # CHECK_F16
+            if at % 2 or size % 2 or floats_outside(out16[at // 2:(at + size) // 2], np.uint16(0x3C00),
+                                                    np.uint16(0x8000)):
+                status |= 1
+    for p in range(spans.shape[0]):  # a plane's ranges in a row: inside bounds[check], float32 or float16 (its [2])
+        at, size, half, check = spans[p, 0], spans[p, 1], spans[p, 2], spans[p, 3]
+        if bounds[check, 2] == 4:
+            if at % 4 or size % 4 or ranges_outside(outf32[at // 4:(at + size) // 4], half, bounds[check, 0],
+                                                    bounds[check, 1]):
+                status |= 2
+        elif at % 2 or size % 2 or halves_outside(out16[at // 2:(at + size) // 2], half, bounds[check, 0],
+                                                  bounds[check, 1]):
+            status |= 2
+    return status
 
 
 def _spread_table() -> np.ndarray:

@@ -34,10 +34,15 @@ from .names import payload_name, sha256_hex
 from .planes import RANGE_DTYPE_NAMES, group_planes, palette_shape
 from .texformats import PALETTE_FORMATS, TEXEL_DTYPES
 from .transport import (
+    CHECK_FAILED_FLOATS,
+    CHECK_FAILED_RANGES,
+    CHECK_NONE,
+    CHECK_RANGES,
     FIELD_LAYOUTS,
     FIELDS1,
     FIELDS1_HEADER_BYTES,
     FIELDS1_ROWS,
+    FLOAT_CHECKS,
     batch_kernels,
     field_bits,
     fields_kernel,
@@ -623,10 +628,11 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
     those offsets. (This folds decpy2's two planners, the fast one and the one that kept the refusals: issue 32.)"""
     specs = group_planes(group, codebook)
     view = whole.data  # the headers' bytes through a memoryview (a third of a numpy slice's cost)
-    header_of, rows_of, elements = FIELDS1_HEADER_BYTES, FIELDS1_ROWS, _ELEMENTS
+    header_of, rows_of, elements, float_checks = FIELDS1_HEADER_BYTES, FIELDS1_ROWS, _ELEMENTS, FLOAT_CHECKS
     owner = whole if whole.base is None else whole.base
     flat: list[int] = []  # run_whole's 9 ints a fields1 section
-    unit_rows: list[int] = []  # and its 4 a shuffled unit
+    unit_rows: list[int] = []  # and its 5 a shuffled unit
+    span_rows: list[int] = []  # and its 4 a plane's ranges checked in the kernel
     index: dict[tuple, int] = {}  # (format, layers, header, width, height) -> its index in the tables' key
     out_bytes = most_n = most_f = 0
     plan = []  # per plane: (spec, per payload (section, where its texels start in out or -1: decoded alone, bytes,
@@ -688,9 +694,10 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
                     most_f = nf
             elif filt == MORTON1:  # decoded alone after the call (format.md 5.4; the manifest checked its geometry)
                 add((s, -1, 0, None))
-            else:  # shuffled (float formats too: checked after the call), a unit a layer; "none" a unit of 1-byte
-                # elements, which the kernel copies
+            else:  # shuffled (float formats too: checked by the kernel, CHECK_F32/F16), a unit a layer; "none" a unit
+                # of 1-byte elements, which the kernel copies
                 element = elements.get(filt) or _element(filt)
+                check = float_checks.get(fmt, CHECK_NONE)
                 unit = s.size // count
                 if element <= 1 or unit % element:
                     element = 1
@@ -704,7 +711,7 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
                         out_bytes += pad
                     if plane_first < 0:
                         plane_first = out_bytes
-                    unit_rows += (at + i * unit, unit // element, element, out_bytes)
+                    unit_rows += (at + i * unit, unit // element, element, out_bytes, check)
                     if starts is not None:
                         starts.append(out_bytes)
                     else:
@@ -713,6 +720,7 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
                 if starts is not None:
                     add((s, starts[0], unit, starts))
         float_span = None
+        ranges_checked = False  # the plane's ranges all checked by the kernel (a span of span_rows)
         if float_format is not None and not floats_each and plane_first >= 0:
             float_span = (float_format, plane_first, out_bytes, pads)
         else:
@@ -726,6 +734,9 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
             range_at = []
             range_name = spec.range_name
             in_row = True
+            range_dtype = spec.range_dtype
+            range_check = CHECK_NONE if mixed else (_RANGE_CHECKS.get((name, range_dtype))
+                                                    or _RANGE_CHECKS.get(("", range_dtype), CHECK_NONE))
             for t, first in zip(tables, firsts, strict=True):
                 if mixed and (t[name].format in PALETTE_FORMATS or not spec.range_dtype):
                     range_at.append(-1)  # its palettes (or no ranges): _mixed_plane
@@ -746,17 +757,30 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
                 else:
                     range_shape = r.shape[1:]
                 range_sections.append(r)
-                unit_rows += (first + r.offset, size // element, element, out_bytes)
+                unit_rows += (first + r.offset, size // element, element, out_bytes, CHECK_NONE)
                 range_at.append(out_bytes)
                 out_bytes += size
             if not in_row:
                 range_shape = None
-        plan.append((spec, texels, range_at, range_sections, range_shape, float_span, floats_each, mixed))
+            elif range_check != CHECK_NONE and range_sections:
+                # the plane's ranges in a row, of one shape: checked by the kernel as one span (its status says
+                # whether all passed) in chunks of `half` minimums then `half` maximums, as _ranges_ok pairs them;
+                # else _whole_ranges checks them after the call
+                half = math.prod(range_shape) // 2
+                if half and not math.prod(range_shape) % 2:
+                    span_rows += (range_at[0], out_bytes - range_at[0], half, range_check)
+                    ranges_checked = True
+        plan.append((spec, texels, range_at, range_sections, range_shape, float_span, floats_each, mixed,
+                     ranges_checked))
     if between is not None:
         between()
-    out = run_whole(whole, flat, tuple(index), unit_rows, out_bytes, most_n, most_f)
+    out, status = run_whole(whole, flat, tuple(index), unit_rows, out_bytes, most_n, most_f, span_rows,
+                            _CHECK_BOUNDS)
+    floats_passed = not status & CHECK_FAILED_FLOATS  # every float texel the kernel wrote in [0, 1]
+    ranges_passed = not status & CHECK_FAILED_RANGES  # every range it checked finite, ordered, in its domain
     result: list[dict[str, EncodedPlane]] = [{} for _ in tables]
-    for spec, texels, range_at, range_sections, range_shape, float_span, floats_each, mixed in plan:
+    for (spec, texels, range_at, range_sections, range_shape, float_span, floats_each, mixed,
+         ranges_checked) in plan:
         if between is not None:
             between()
         count, name = spec.layers, spec.name
@@ -769,8 +793,10 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
         elif range_at is None:
             checked = [None] * len(texels)
         else:
-            checked = _whole_ranges(out, range_at, range_sections, range_shape, spec, sources)
-        if float_span is not None and not _floats_ok(out, *float_span):
+            checked = _whole_ranges(out, range_at, range_sections, range_shape, spec, sources,
+                                    ranges_checked and ranges_passed)
+        if float_span is not None and not (floats_passed and _whole_floats(*float_span)) \
+                and not _floats_ok(out, *float_span):
             floats_each = True  # some payload's texels leave [0, 1] (or the stretch is not whole floats): named below
         for k, (planes, (s, first, size, starts), plane_ranges) in enumerate(zip(result, texels, checked,
                                                                                   strict=True)):
@@ -825,6 +851,12 @@ def _mixed_plane(out: np.ndarray, range_at: list[int], bufs: list[np.ndarray], t
     return checked, got
 
 
+def _whole_floats(fmt: str, lo: int, hi: int, pads: list[tuple[int, int]]) -> bool:
+    """Whether a float plane's stretch out[lo:hi] is whole floats of `fmt`: where the whole kernel's checks of every
+    texel in it passed (transport.CHECK_F32, CHECK_F16), _floats_ok would pass it too."""
+    return not (hi - lo) % FLOAT_TEXEL_BITS[fmt][1].itemsize
+
+
 def _floats_ok(out: np.ndarray, fmt: str, lo: int, hi: int, pads: list[tuple[int, int]]) -> bool:
     """Every texel of a float plane (format.md 4.2: t in [0, 1]) in out[lo:hi] (the plane's texels of every payload,
     one after the other, the alignment gaps `pads` between them zeroed first: 0 passes) in the bits of `fmt`'s floats,
@@ -870,21 +902,23 @@ def _whole_palettes(bufs: list[np.ndarray], tables: list[dict], spec, palettes: 
 
 
 def _whole_ranges(out: np.ndarray, range_at: list[int], rs: list[Section], shape: tuple | None, spec,
-                  sources: list[str]) -> list[np.ndarray]:
+                  sources: list[str], passed: bool = False) -> list[np.ndarray]:
     """Each payload's ranges of one plane from the whole kernel's `out` (payload k's range section rs[k], its bytes
     from range_at[k]), checked: all at once where they lie in a row with one shape less the first axis (`shape`, else
     None; _unpack_group's planner found that in its walk over them, which saves this a second one: issue 32), as
-    slices of one view, a payload's own check only to name a bad one (_checked_ranges)."""
+    slices of one view, a payload's own check only to name a bad one (_checked_ranges). `passed`: the whole kernel
+    checked them all and every one passed (transport.CHECK_RANGES): the views alone."""
     first = range_at[0]
     if len(rs) == 1:  # one payload: its own check
         r = rs[0]
         one = out[first:first + r.size].view(spec.range_dtype).reshape(r.shape)
-        _check_ranges(one, spec.name, r.name, sources[0])
+        if not passed:
+            _check_ranges(one, spec.name, r.name, sources[0])
         return [one]
     if shape is not None:
         last = rs[-1]
         together = out[first:range_at[-1] + last.size].view(spec.range_dtype).reshape(-1, *shape)
-        if _ranges_ok(together, spec.name):
+        if passed or _ranges_ok(together, spec.name):
             views, chunk = [], 0
             for r in rs:
                 rows = r.shape[0]
@@ -892,6 +926,8 @@ def _whole_ranges(out: np.ndarray, range_at: list[int], rs: list[Section], shape
                 chunk += rows
             return views
     got = [out[at:at + r.size] for at, r in zip(range_at, rs, strict=True)]
+    if passed:
+        return [g.view(spec.range_dtype).reshape(r.shape) for g, r in zip(got, rs, strict=True)]
     return _checked_ranges(got, rs, spec, sources)
 
 
@@ -1003,6 +1039,14 @@ FLOAT_TEXEL_BITS = {fmt: _float_bits(fmt) for fmt in FLOAT_TEXEL_FORMATS}
 RANGE_LIMITS = {"position": (-MAX_ABS_POSITION, MAX_ABS_POSITION), "scale": (MIN_LOG_SCALE, MAX_LOG_SCALE)}
 _NO_LIMIT = (-np.inf, np.inf)
 _LIMITS32 = {plane: (float(np.float32(lo)), float(np.float32(hi))) for plane, (lo, hi) in RANGE_LIMITS.items()}
+# The whole kernel's range checks (transport.CHECK_RANGES): a (plane, range dtype)'s code ("": a plane without
+# limits), and each code's (low, high, bytes a value) as _ranges_ok compares them with the ranges kernel (_LIMITS32)
+_RANGE_BOUNDS = [("", _NO_LIMIT)] + list(_LIMITS32.items())
+_RANGE_CHECKS = {(plane, dtype): CHECK_RANGES + i * len(_RANGE_BOUNDS) + j
+                 for i, dtype in enumerate(("<f4", "<f2")) for j, (plane, _) in enumerate(_RANGE_BOUNDS)}
+_CHECK_BOUNDS = np.array([(0.0, 0.0, 0.0)] * CHECK_RANGES
+                         + [(lo, hi, np.dtype(dtype).itemsize)
+                            for dtype in ("<f4", "<f2") for _, (lo, hi) in _RANGE_BOUNDS], np.float64)
 SMALL_RANGES = 256  # values of a range section checked in Python (_ranges_ok)
 
 

@@ -1316,12 +1316,14 @@ _whole_kernel = None  # see use_whole_kernel
 def use_whole_kernel(kernel) -> object:
     """Decode every fields1 section, of any format, and undo the byte shuffle of every unit of one decompressed
     buffer in one call (None: not so); returns the one it replaces. Called as kernel(raw, rows, fields, modes, orders,
-    work, out8, out16, out32, units): per fields1 section a row of `rows` (where its byte planes and its parameters
-    start in `raw`, its slots, where its slot_to_texel starts in `orders`, where its texels start and how many words
-    they are in the out view of its word size, where its columns of `fields` start and how many, where its columns
-    of `modes` start and how many, words a texel, bytes a word), which is use_fields_kernel's call for it; per unit a
-    row of `units` (where it starts in `raw`, its element count, its element size, where its bytes go in out8).
-    out8, out16 and out32 are views of one buffer.
+    work, out8, out16, out32, outf32, units, spans, bounds) -> status: per fields1 section a row of `rows` (where its
+    byte planes and its parameters start in `raw`, its slots, where its slot_to_texel starts in `orders`, where its
+    texels start and how many words they are in the out view of its word size, where its columns of `fields` start
+    and how many, where its columns of `modes` start and how many, words a texel, bytes a word, the check of its
+    texels), which is use_fields_kernel's call for it; per unit a row of `units` (where it starts in `raw`, its
+    element count, its element size, where its bytes go in out8, the check of its values); per span of ranges to
+    check a row of `spans`. out8, out16, out32 and outf32 are views of one buffer; the checks, `spans` and `bounds`
+    are run_whole's (CHECK_*); the status: the CHECK_FAILED_* bits of the checks that failed.
 
     Why: a decode thread holds the interpreter lock for the Python between its compiled calls and must take it back
     after each one (issue 38: the frame thread waits for it; issue 32: that Python is most of a small payload's
@@ -1341,7 +1343,8 @@ def whole_kernel() -> object:
 def _whole_tables(keys: tuple) -> tuple:
     """The whole kernel's `fields`, `modes` and `orders` for sections of these (format, layers, header, width,
     height), each table once, and per section (its first column of fields, of modes, how many of modes, where its
-    slot_to_texel starts in orders), as a tuple of tuples and as an int64 array of 4 columns. Cached: a scene's
+    slot_to_texel starts in orders, its texels' check: FLOAT_CHECKS), as a tuple of tuples and as an int64 array of 5
+    columns. Cached: a scene's
     payloads repeat a few combinations of formats, modes and geometries, and concatenating the tables was a fifth of
     a small payload's Python around the kernel. The arrays are writable and C-ordered (the one argument type
     decode_jit.warm_up compiles) and never written."""
@@ -1367,11 +1370,11 @@ def _whole_tables(keys: tuple) -> tuple:
             o = orders_at[width, height] = order_words
             order_parts.append(slot_to_texel(width, height))
             order_words += width * height
-        columns.append((f, m, table.shape[1], o))
+        columns.append((f, m, table.shape[1], o, FLOAT_CHECKS.get(fmt, CHECK_NONE)))
     return (np.concatenate(field_parts, axis=1) if field_parts else np.zeros((5, 0), np.int64),
             np.concatenate(mode_parts, axis=1) if mode_parts else np.zeros((3, 0), np.int64),
             np.concatenate(order_parts) if order_parts else np.zeros(0, np.int64), tuple(columns),
-            np.array(columns, np.int64).reshape(-1, 4))
+            np.array(columns, np.int64).reshape(-1, 5))
 
 
 class _Fields1Rows(dict):
@@ -1457,25 +1460,31 @@ def unfilter_whole(raw: np.ndarray, sections: list[tuple[str, int, int, int, int
             element = 1
         if element in (2, 4, 8):  # aligned for views of its elements (a plane's ranges still lie in a row)
             out_bytes += -out_bytes % element
-        unit_rows += (at, size // element, element, out_bytes)
+        unit_rows += (at, size // element, element, out_bytes, CHECK_NONE)
         unit_at.append(out_bytes)
         out_bytes += size
-    out = run_whole(raw, flat, tuple(index), unit_rows, out_bytes, most_n, most_f)
+    out, _ = run_whole(raw, flat, tuple(index), unit_rows, out_bytes, most_n, most_f)  # its callers check the values
     return out, got, unit_at
 
 
 def run_whole(raw: np.ndarray, flat: list[int], keys: tuple, unit_rows: list[int], out_bytes: int, most_n: int,
-              most_f: int) -> np.ndarray:
+              most_f: int, span_rows: list[int] | None = None, bounds: np.ndarray | None = None
+              ) -> tuple[np.ndarray, int]:
     """The whole kernel's call (use_whole_kernel) over `raw` for sections and units already planned: `flat` 9 ints a
     fields1 section (where its byte planes start, where its parameters start, slots, where its texels start in the
     out view of its word size, how many words, fields, words a texel, bytes a word, the index of its key in `keys`),
-    `keys` the distinct (format, layers, header, width, height) of them, `unit_rows` 4 ints a unit (where it starts,
-    its element count, its element size, where its bytes go in out); returns `out`, out_bytes rounded up to 16, which
-    the kernel wrote. `most_n` and `most_f`: the most slots and fields of a section (the work array's shape).
+    `keys` the distinct (format, layers, header, width, height) of them, `unit_rows` 5 ints a unit (where it starts,
+    its element count, its element size, where its bytes go in out, the check of its values: CHECK_NONE, CHECK_F32
+    or CHECK_F16), `span_rows` 4 ints a span of ranges to check after the units (where it starts in out, its bytes,
+    the values of a chunk's minimum, its CHECK_RANGES code), `bounds` a range check's (low, high, bytes a value: 4
+    float32, 2 float16) by its code (float64, (codes, 3); None: no range checks); returns (`out`, out_bytes rounded up
+    to 16, which the kernel wrote, and the kernel's status: the CHECK_FAILED_* bits of the checks that failed, 0 when
+    every one passed).
+    `most_n` and `most_f`: the most slots and fields of a section (the work array's shape).
     Its callers: unfilter_whole, and container._unpack_group, which plans a group's call with its planes'."""
     fields, modes, orders, columns, column_array = _whole_tables(keys)
-    # columns per combination: (first column of fields, of modes, how many of modes, where its orders start), as a
-    # tuple and as an array (cached with the tables: not converted again a call)
+    # columns per combination: (first column of fields, of modes, how many of modes, where its orders start, its
+    # texels' check), as a tuple and as an array (cached with the tables: not converted again a call)
     if len(flat) > 9 * _FEW_ROWS:  # a group's hundreds of sections: by numpy, a fixed cost of a few calls
         part = np.fromiter(flat, np.int64, len(flat)).reshape(-1, 9)  # fromiter: a fifth less than np.array here
         rows = np.concatenate([part, column_array[part[:, 8]]], axis=1)[:, _WHOLE_COLUMNS]
@@ -1483,19 +1492,37 @@ def run_whole(raw: np.ndarray, flat: list[int], keys: tuple, unit_rows: list[int
         row_list: list[int] = []
         for i in range(0, len(flat), 9):
             planes_at, params_at, n, first, length, nf, words, size_of, u = flat[i:i + 9]
-            f, m, nm, o = columns[u]
-            row_list += (planes_at, params_at, n, o, first, length, f, nf, m, nm, words, size_of)
-        rows = np.array(row_list, np.int64).reshape(-1, 12)
+            f, m, nm, o, check = columns[u]
+            row_list += (planes_at, params_at, n, o, first, length, f, nf, m, nm, words, size_of, check)
+        rows = np.array(row_list, np.int64).reshape(-1, 13)
     out = np.empty(out_bytes + -out_bytes % 16, np.uint8)
     work = _scratch("kernel", 8 * most_f * most_n).view(np.int64).reshape(most_f, most_n)
-    _whole_kernel(raw, rows, fields, modes, orders, work, out, out.view(np.uint16), out.view(np.uint32),
-                  np.array(unit_rows, np.int64).reshape(-1, 4))
-    return out
+    status = _whole_kernel(raw, rows, fields, modes, orders, work, out, out.view(np.uint16), out.view(np.uint32),
+                           out.view(np.float32), np.array(unit_rows, np.int64).reshape(-1, 5),
+                           np.array(span_rows or (), np.int64).reshape(-1, 4), _NO_BOUNDS if bounds is None else bounds)
+    return out, int(status)
 
 
-# The whole kernel's row of a section from unfilter_whole's 9 flat ints and its combination's 4 columns: (planes at,
-# parameters at, slots, orders at, out at, out words, fields at, fields, modes at, modes, words a texel, word bytes)
-_WHOLE_COLUMNS = np.array([0, 1, 2, 12, 3, 4, 9, 5, 10, 11, 6, 7])
+# The whole kernel's row of a section from unfilter_whole's 9 flat ints and its combination's 5 columns: (planes at,
+# parameters at, slots, orders at, out at, out words, fields at, fields, modes at, modes, words a texel, word bytes,
+# its texels' check)
+_WHOLE_COLUMNS = np.array([0, 1, 2, 12, 3, 4, 9, 5, 10, 11, 6, 7, 13])
+
+# The whole kernel's checks of the values it writes (a row's, a unit's or a span's CHECK_ code), which its caller
+# would otherwise make with numpy after the call (issue 32: a float plane's max and a range plane's check, one call a
+# plane a run, were about 1 ms of very-high's 13 ms pass on the LOD tree): CHECK_NONE none; CHECK_F32 / CHECK_F16
+# float texels (format.md 4.2: t in [0, 1]: each word's bits at most those of 1.0, or -0.0's); a span's code from
+# CHECK_RANGES on ranges (format.md 4.3, 4.8: a plane's range sections in a row, one span a plane, in chunks of `k`
+# minimums then `k` maximums: every value finite, each minimum at most its maximum, all inside bounds[code][:2];
+# float32 or float16 values by bounds[code][2], their bytes). A check that fails sets its CHECK_FAILED_ bit in the
+# kernel's status, and the caller then checks as it does without the kernel, which names the payload and section;
+# so the kernel's checks are a fast yes, never the refusal itself. Values the kernel cannot check as asked (not whole
+# values, not aligned to them, not whole chunks, none) fail their check.
+CHECK_NONE, CHECK_F32, CHECK_F16 = 0, 1, 2
+CHECK_RANGES = 3  # range checks: codes from here, one per (low, high) of the caller's bounds
+CHECK_FAILED_FLOATS, CHECK_FAILED_RANGES = 1, 2
+FLOAT_CHECKS = {"f32x4": CHECK_F32, "f16x4": CHECK_F16}
+_NO_BOUNDS = np.zeros((CHECK_RANGES, 3), np.float64)
 _FEW_ROWS = 24  # sections up to which unfilter_whole builds the rows in Python
 # A fields1 format's header bytes per layer (its modes), without the first byte
 FIELDS1_HEADER_BYTES = {fmt: len(layout[2]) * layout[1] for fmt, layout in FIELD_LAYOUTS.items()}
