@@ -22,8 +22,13 @@ renderer, 384 px, 4 views, against the cached full-detail renders) for
                 fitted on the OTHER scenes (leave one scene out; each training scene's cell mean weighted equally)
                 of the log-scale of each sorted axis (smallest, middle, largest), opacity logit and DC colour.
 
-    PYTHONPATH=. python bench/probe_lod_distill.py --results bench/results/lod_vs_peers_farpx31_g15c16 \
-        --work /tmp/distill31 --out /tmp/distill31/replay.jsonl
+    PYTHONPATH=. python bench/probe_lod_distill.py --out D/deltas.jsonl        # the deltas (cached: /tmp/distill31)
+    PYTHONPATH=. python bench/probe_lod_distill.py --replay --out D/replay.jsonl   # the 12 scenes' LOSO replay
+    PYTHONPATH=. python bench/probe_lod_distill.py --appearance-only --replay donut statue-massa statue-angel guitar \
+        --out D/appearance.jsonl    # the refined per-splat appearance on the built positions and rotations
+    PYTHONPATH=. python bench/probe_lod_distill.py --summary D/replay.jsonl D/appearance.jsonl
+(--results: today's default cut, bench/results/lod_vs_peers_farpx31_g15c16, whose drawn splat counts the tree built
+here matches; D = bench/results/lod_distill31.)
 """
 from __future__ import annotations
 
@@ -182,6 +187,22 @@ def refined_tree(name: str, cache_dir: str, refined_dir: str) -> tuple[list[lod.
     return tiles, refined
 
 
+def appearance_only(tiles: list[lod.Tile], refined: list[lod.Tile]) -> list[lod.Tile]:
+    """The default tree with each PAIRED merged splat's log-scales, opacity and DC colour the refined ones (positions,
+    rotations and the unpaired splats as built): how much of the gain is per-splat appearance, not the moves."""
+    out = list(tiles)
+    for t in tiles:
+        if not t.children:
+            continue
+        b, r = t.gaussians, refined[t.id].gaussians
+        p = pair(b, r)
+        ok = np.flatnonzero(p >= 0)
+        ls, op, dc = b.log_scales.copy(), b.opacity_logits.copy(), b.sh_dc.copy()
+        ls[p[ok]], op[p[ok]], dc[p[ok]] = r.log_scales[ok], r.opacity_logits[ok], r.sh_dc[ok]
+        out[t.id] = dataclasses.replace(t, gaussians=Gaussians(b.positions, b.rotations, ls, op, dc, b.sh_rest))
+    return out
+
+
 def fit_cells(scenes: dict[str, dict]) -> dict[int, np.ndarray]:
     """Per cell: the mean over training scenes (each with >= MIN_CELL splats there) of the scene's cell mean of
     (d_ls of the smallest, middle and largest axis, d_logit, d_dc x3)."""
@@ -291,6 +312,39 @@ def replay(name: str, results: str, cache_dir: str, trees: dict[str, list[lod.Ti
     return lines
 
 
+def summary(replay_path: str, appearance_path: str | None) -> str:
+    """Markdown: each replayed point's dB against today, then per tree the counts (up, down by more than 0.1 dB,
+    >= 1 dB over the best peer) and its median share of the refined gain."""
+    def lines(path):
+        return [r for r in map(json.loads, open(path)) if r.get("kind") == "replay"]
+
+    rows = lines(replay_path)
+    app = {(r["scene"], r["budget"]): r for r in (lines(appearance_path) if appearance_path else [])}
+    out = ["| scene | budget | best peer | today | refined | systematic (LOSO) | scales only | opacity + colour only "
+           "| refined appearance on built positions |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|"]
+    seen: dict[str, int] = {}
+    for r in rows:
+        k = seen[r["scene"]] = seen.get(r["scene"], -1) + 1
+        t, a = r["today"], app.get((r["scene"], r["budget"]))
+        moved = f"{a['refined_appearance'] - t:+.2f}" if a else ""
+        out.append(f"| {r['scene']} | {r['budget']:,} ({('2', '6', '25', '50')[k]} %) | {r['best_peer']:.2f} | "
+                   f"{t:.2f} | {r['refined'] - t:+.2f} | {r['systematic'] - t:+.2f} | {r['sys_scale'] - t:+.2f} | "
+                   f"{r['sys_opacity_colour'] - t:+.2f} | {moved} |")
+    for v in ("refined", "systematic", "sys_scale", "sys_opacity_colour"):
+        d = np.array([r[v] - r["today"] for r in rows])
+        share = np.median([(r[v] - r["today"]) / (r["refined"] - r["today"]) for r in rows])
+        out.append(f"{v}: {len(d)} points, median {np.median(d):+.2f} dB (min {d.min():+.2f}, max {d.max():+.2f}), "
+                   f"up {int((d > 0).sum())}, down by > 0.1 dB {int((d < -0.1).sum())}, >= 1 dB over the best peer "
+                   f"{sum(r[v] - r['best_peer'] >= 1 for r in rows)} (today "
+                   f"{sum(r['today'] - r['best_peer'] >= 1 for r in rows)}); median share of the refined gain "
+                   f"{share:+.1%}")
+    if app:
+        s = [(a["refined_appearance"] - a["today"]) / (a["refined"] - a["today"]) for a in app.values()]
+        out.append(f"refined appearance on built positions: {len(s)} points, median share of the refined gain "
+                   f"{np.median(s):.1%} ({min(s):.1%} to {max(s):.1%})")
+    return "\n".join(out)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--results", default=os.path.join(HERE, "results", "lod_vs_peers_farpx31_g15c16"))
@@ -299,8 +353,15 @@ def main() -> int:
     ap.add_argument("--work", default="/tmp/distill31", help="per-scene deltas cached here (deltas_SCENE.npz)")
     ap.add_argument("--scenes", nargs="+", default=None)
     ap.add_argument("--replay", nargs="*", default=None, help="scenes to replay (default: none; bare: all)")
+    ap.add_argument("--appearance-only", action="store_true",
+                    help="replay today, refined and the refined appearance on the built positions/rotations only")
     ap.add_argument("--out", default=None, help="append JSON lines (deltas tables, replays) here")
+    ap.add_argument("--summary", nargs="+", metavar="JSONL", default=None,
+                    help="only print the table of a replay's --out (and an --appearance-only run's --out)")
     args = ap.parse_args()
+    if args.summary:
+        print(summary(args.summary[0], args.summary[1] if len(args.summary) > 1 else None))
+        return 0
     os.makedirs(args.work, exist_ok=True)
     names = args.scenes or [n for n in lvp.SCENES if os.path.isdir(os.path.join(args.refined, n))]
     deltas: dict[str, dict] = {}
@@ -326,6 +387,8 @@ def main() -> int:
         trees = {"today": tiles, "refined": refined, "systematic": apply_cells(tiles, model),
                  "sys_scale": apply_cells(tiles, model, ("scale",)),
                  "sys_opacity_colour": apply_cells(tiles, model, ("opacity", "colour"))}
+        if args.appearance_only:
+            trees = {"today": tiles, "refined": refined, "refined_appearance": appearance_only(tiles, refined)}
         for line in replay(n, args.results, args.cache_dir, trees):
             if args.out:
                 with open(args.out, "a") as f:
