@@ -1,8 +1,8 @@
 # vhdec4 device A/B: bench/decode_quiet.py of main (.oldvh: a `git archive` of main's commit) and of this tree
 # (branch vhdec4, merged or checked out), alternated in one lease on the same pinned cores, JSONs to $OUT.
 #
-# Run from the repository root of the tree under test (main with vhdec4 merged, or the branch). /work/notes does not
-# travel to the device: copy it into .oldvh, then with the run tool:
+# Run from the repository root of the tree under test (main with vhdec4 merged, or the branch): copy this script
+# into .oldvh, then with the run tool:
 #   carry: [".whl", ".oldvh"]     command: bash .oldvh/vhdec4_ab.sh
 # .whl holds zstandard-*.whl (cp312; as /work/main/.whl does); .oldvh is made here, before the run, from main's commit
 # before the merge (the base; vhdec4 was branched from a3259bd, and main's decode code is the same at 292580e):
