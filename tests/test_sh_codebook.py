@@ -240,17 +240,19 @@ def test_renumbering_by_use_keeps_every_assignment(monkeypatch):
 
 def test_low_plus_10bit_cb8_has_the_large_codebook(fruit, tmp_path):
     """low-plus-10bit-cb8 (issue 32): low-plus-9bit's rotations, scales, colour, their steps and zstd level, 16-bit
-    positions on one 760-level tile step, and the codebook sized "large" (one entry per 8 splats: 512 on
-    fruit_drops' 4,721 splats, against low-plus-9bit's 64): a lower weighted SH error than low-plus-9bit's."""
-    from splatstream.format.presets import PRESET_STEPS, PRESET_ZSTD_LEVEL, PRESETS, TileStep
+    positions on one 1023-level tile step (keyed transport), and the codebook sized "large" (one entry per 8 splats:
+    512 on fruit_drops' 4,721 splats, against low-plus-9bit's 64): a lower weighted SH error than low-plus-9bit's."""
+    from splatstream.format.presets import PRESET_STEPS, PRESET_TRANSPORT, PRESET_ZSTD_LEVEL, PRESETS, TileStep
 
     assert PRESETS["low-plus-10bit-cb8"] == {**PRESETS["low-plus-9bit"], "position": "norm16x4"}
     assert PRESET_STEPS["low-plus-10bit-cb8"] == {**PRESET_STEPS["low-plus-9bit"],
-                                                  "position": TileStep((760.0,) * 3, shared=3)}
+                                                  "position": TileStep((1023.0,) * 3, shared=3)}
+    assert PRESET_TRANSPORT["low-plus-10bit-cb8"] == "keyed"
     assert PRESET_ZSTD_LEVEL["low-plus-10bit-cb8"] == PRESET_ZSTD_LEVEL["low-plus-9bit"] == 16
     errors = {}
     for preset in ("low-plus-9bit", "low-plus-10bit-cb8"):
-        m = encode_gaussians(fruit, tmp_path / preset, EncodeOptions(preset=preset, lod=False))
+        # fields transport: the keyed one re-sorts splats inside chunks, and the decode is compared in splat order
+        m = encode_gaussians(fruit, tmp_path / preset, EncodeOptions(preset=preset, lod=False, transport="fields"))
         assert m.sh_codebook.entries == {"low-plus-9bit": 64, "low-plus-10bit-cb8": 512}[preset]
         dec = decode_scene(tmp_path / preset)
         g = fruit.subset(splat_order(fruit, m.chunk_order))
