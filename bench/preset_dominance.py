@@ -69,7 +69,7 @@ CHOICES: list[tuple[str, str, tuple[str, ...], str]] = [
     ("low-plus-9bit-sh5", "st-spz", ("flowers", "fruit_drops_sh3"),
      "one zero-anchored SH step per band, G 5, exponent 0.3 (flowers; exponent on fruit_drops)"),
     ("low-plus-10bit-cb8", "st-sog", ("flowers",),
-     "SH codebook of one entry per 8 splats (65,536), two-cell search, 760-level positions (flowers)"),
+     "SH codebook of one entry per 8 splats (65,536), two-cell search, 1023-level keyed positions (flowers)"),
 ]
 
 

@@ -58,6 +58,30 @@ def test_codebook_is_exact_when_rows_repeat():
     np.testing.assert_array_equal(cb.entries[cb.assign(rows)], rows)
 
 
+@pytest.mark.parametrize("probes", [1, 2])
+def test_tree_codebook_of_a_palette_is_the_palette_bit_for_bit(monkeypatch, probes):
+    """Rows holding no more distinct values than the entries (a SOG input's SH palette) get those rows as the
+    codebook on the tree path too (before: a fit per cell, and with probes=2 a Lloyd round whose float means left
+    most entries an ulp off); rows not in it (LOD tiles' merged splats) still get a tree-nearest entry."""
+    monkeypatch.setattr(vq, "FLAT_LIMIT", 0)  # the tree at a test's size
+    rng = np.random.default_rng(7)
+    palette = rng.choice(np.linspace(-0.5, 0.5, 256).astype(np.float32), size=(3000, 24))
+    rows = palette[rng.integers(0, 3000, 20000)]
+    weights = rng.random(20000)
+    cb = build_codebook(rows, 4096, weights=weights, probes=probes)
+    assert len(cb.top) > 1 and cb.probes == probes and cb.starts[-1] == len(cb.entries)
+    assert len(cb.entries) == len(np.unique(rows, axis=0)) <= 4096
+    labels = cb.assign(rows)
+    np.testing.assert_array_equal(cb.entries[labels], rows)  # every row exact
+    assert len(np.unique(labels)) == len(cb.entries)  # every entry a row of the palette, none twice
+    # The tree holds every row in the cell of its nearest top centroid: the search (rows not in the palette, e.g.
+    # LOD tiles' merged splats, take it) finds a palette row itself too.
+    np.testing.assert_array_equal(cb.entries[cb._search(rows[:2000])], rows[:2000])
+    merged = (rows[:500] + rows[500:1000]) / 2
+    near = cb.assign(merged)
+    assert near.min() >= 0 and near.max() < len(cb.entries)
+
+
 def test_tree_codebook_beats_uniform_noise_floor_and_assigns_consistently():
     rng = np.random.default_rng(2)
     centres = rng.normal(size=(2000, 45)).astype(np.float32)
@@ -216,17 +240,19 @@ def test_renumbering_by_use_keeps_every_assignment(monkeypatch):
 
 def test_low_plus_10bit_cb8_has_the_large_codebook(fruit, tmp_path):
     """low-plus-10bit-cb8 (issue 32): low-plus-9bit's rotations, scales, colour, their steps and zstd level, 16-bit
-    positions on one 760-level tile step, and the codebook sized "large" (one entry per 8 splats: 512 on
-    fruit_drops' 4,721 splats, against low-plus-9bit's 64): a lower weighted SH error than low-plus-9bit's."""
-    from splatstream.format.presets import PRESET_STEPS, PRESET_ZSTD_LEVEL, PRESETS, TileStep
+    positions on one 1023-level tile step (keyed transport), and the codebook sized "large" (one entry per 8 splats:
+    512 on fruit_drops' 4,721 splats, against low-plus-9bit's 64): a lower weighted SH error than low-plus-9bit's."""
+    from splatstream.format.presets import PRESET_STEPS, PRESET_TRANSPORT, PRESET_ZSTD_LEVEL, PRESETS, TileStep
 
     assert PRESETS["low-plus-10bit-cb8"] == {**PRESETS["low-plus-9bit"], "position": "norm16x4"}
     assert PRESET_STEPS["low-plus-10bit-cb8"] == {**PRESET_STEPS["low-plus-9bit"],
-                                                  "position": TileStep((760.0,) * 3, shared=3)}
+                                                  "position": TileStep((1023.0,) * 3, shared=3)}
+    assert PRESET_TRANSPORT["low-plus-10bit-cb8"] == "keyed"
     assert PRESET_ZSTD_LEVEL["low-plus-10bit-cb8"] == PRESET_ZSTD_LEVEL["low-plus-9bit"] == 16
     errors = {}
     for preset in ("low-plus-9bit", "low-plus-10bit-cb8"):
-        m = encode_gaussians(fruit, tmp_path / preset, EncodeOptions(preset=preset, lod=False))
+        # fields transport: the keyed one re-sorts splats inside chunks, and the decode is compared in splat order
+        m = encode_gaussians(fruit, tmp_path / preset, EncodeOptions(preset=preset, lod=False, transport="fields"))
         assert m.sh_codebook.entries == {"low-plus-9bit": 64, "low-plus-10bit-cb8": 512}[preset]
         dec = decode_scene(tmp_path / preset)
         g = fruit.subset(splat_order(fruit, m.chunk_order))

@@ -48,10 +48,11 @@ PRESETS: dict[str, dict[str, str]] = {
     "low-plus-9bit-sh5": {"position": "norm9x3", "rotation": "norm8x4", "scale": "norm8x4", "color": "norm8x4",
                           "sh": "norm565"},
     # low-plus-9bit's rotations, scales and colour (and their tile steps, zstd level 16) with about 10-bit positions
-    # (16-bit texels on one tile step of 760 levels) and the SH codebook at about one entry per 8 splats, up to
-    # 65,536 (vq.py "large"; issue 32). Made for flowers (SH2, 542k splats, 262k distinct SH rows), where SOG's
-    # 64k palette (4.4 B/splat of SH) beats every codebook of 16k entries or fewer (BENCHMARKS.md, "A 64k SH codebook
-    # on flowers").
+    # (16-bit texels on one tile step of 1023 levels, the keyed transport) and the SH codebook at about one entry per
+    # 8 splats, up to 65,536 (vq.py "large"; issue 32). Made for flowers (SH2, 542k splats, 262k distinct SH rows),
+    # where SOG's 64k palette (4.4 B/splat of SH) beats every codebook of 16k entries or fewer (BENCHMARKS.md, "A 64k
+    # SH codebook on flowers"). The keyed transport's 0.36 B/splat on flowers went into positions (760 -> 1023
+    # levels): 15.79 -> 15.57 B/splat, 44.96 -> 45.06 dB (BENCHMARKS.md, "SOG's point on playbot").
     "low-plus-10bit-cb8": {"position": "norm16x4", "rotation": "norm8x4", "scale": "norm8x4", "color": "norm8x4",
                            "sh": "norm565"},
     # medium's positions, 8-bit smallest-three rotations, 8-bit scales and the SH codebook at its finer size: on
@@ -162,7 +163,7 @@ PRESET_STEPS: dict[str, dict[str, TileStep]] = {
     "low-plus-9bit-sh5": {"position": TileStep((400.0,) * 3, shared=3), "scale": TileStep((200.0,) * 3, shared=3),
                           "color": TileStep((255.0, 255.0, 255.0, 55.0), shared=3),
                           **sh_pooled_steps(5.0, SH5_IMPORTANCE)},
-    "low-plus-10bit-cb8": {"position": TileStep((760.0,) * 3, shared=3), "scale": TileStep((200.0,) * 3, shared=3),
+    "low-plus-10bit-cb8": {"position": TileStep((1023.0,) * 3, shared=3), "scale": TileStep((200.0,) * 3, shared=3),
                            "color": TileStep((255.0, 255.0, 255.0, 55.0), shared=3)},
 }
 # zstd level per preset where it is not the encoder's default (DEFAULT_ZSTD_LEVEL, 1; `--zstd-level` overrides
@@ -247,9 +248,9 @@ PRESET_SUMMARY: dict[str, str] = {
     "low-plus-9bit-sh5": "low-plus-9bit-sh6 with one SH step per band, 0 on its grid and a flatter importance "
                          "scaling, about 2.3 bits; about 17.6 B/splat at SH2 (flowers, 44.2 dB), 20.5 at SH3, "
                          "10.7-11.6 at SH0",
-    "low-plus-10bit-cb8": "low-plus-9bit with about 10-bit positions and a larger SH codebook (about 1 entry per "
-                          "8 splats, up to 65,536); about 15.8 B/splat at SH2 (flowers, 45.0 dB), 14.8 at SH3 "
-                          "(fruit_drops, 49.2 dB)",
+    "low-plus-10bit-cb8": "low-plus-9bit with 10-bit positions (keyed transport) and a larger SH codebook (about "
+                          "1 entry per 8 splats, up to 65,536); about 15.6 B/splat at SH2 (flowers, 45.1 dB), 14.9 "
+                          "at SH3 (fruit_drops, 48.8 dB)",
     "low-plus": "8-bit positions, rotations, scales and colour, SH codebook (1 per 64); about 12.9 B/splat at "
                 "SH3, 14 at SH2, 11-12.1 at SH0; 40-59 dB",
     "low": "low-plus with 16-bit rotations; about 11.5 B/splat at SH3, 12.6 at SH2, 9.8-10.8 at SH0; 37-52 dB",
@@ -297,8 +298,9 @@ def step_attribute(key: str) -> str:
 
 # The transport a preset's payloads are written with when none is given (format/transport.py TRANSPORTS); "fields"
 # for every preset not named here. `keyed` (morton1 positions, format.md 5.4) measured 0.3 B/splat smaller on the
-# statue scans and about 10 % slower to decode (BENCHMARKS.md, issue 32); medium-low-palette uses it.
-PRESET_TRANSPORT: dict[str, str] = {"medium-low-palette": "keyed"}
+# statue scans and about 10 % slower to decode (BENCHMARKS.md, issue 32); medium-low-palette uses it, and
+# low-plus-10bit-cb8 (0.32-0.36 B/splat on flowers and playbot, spent on its positions' 1023 levels).
+PRESET_TRANSPORT: dict[str, str] = {"medium-low-palette": "keyed", "low-plus-10bit-cb8": "keyed"}
 
 
 # Presets that store attributes as palette indices (pal8x4, format.md 4.3.2) only where the scene's values fit the
