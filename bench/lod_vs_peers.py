@@ -356,6 +356,24 @@ def our_views(scene_out: str, n: int, cameras, size: int, workdir: str) -> list[
     return out
 
 
+def view_argv(scene: str, n: int, size: int, eye, target, up, fov_y_deg: float, timeout_s: int = 120) -> list[str]:
+    """`splatstream view SCENE --headless --max-splats N` from one of the benchmark's cameras, at size x size."""
+    return ["view", scene, "--headless", "--max-splats", str(n), "--size", f"{size}x{size}",
+            "--eye=" + ",".join(map(repr, eye)), "--target=" + ",".join(map(repr, target)),
+            "--up=" + ",".join(map(repr, up)), "--fov-y=" + repr(fov_y_deg), "--timeout", str(timeout_s)]
+
+
+def drawn_tile_bytes(manifest, tile_ids) -> tuple[int, int]:
+    """The payload bytes of the drawn tiles (every group), and of their base group alone."""
+    every = base = 0
+    for tid in tile_ids:
+        for name, group in manifest.tile(int(tid)).groups.items():
+            every += group.bytes
+            if name == "base":
+                base += group.bytes
+    return every, base
+
+
 def view_worker(scene_out: str, n: int, cams_path: str, workdir: str, size: int) -> None:
     """What `splatstream view SCENE --headless --max-splats N --no-prefetch --eye/--target/--up/--fov-y --size`
     does (its own argument parsing and options), keeping the float image and the drawn tile ids."""
@@ -374,10 +392,7 @@ def view_worker(scene_out: str, n: int, cams_path: str, workdir: str, size: int)
 
     manifest = parse_manifest(open(os.path.join(scene_out, MANIFEST_NAME), "rb").read())
     for i, cam in enumerate(cams):
-        argv = ["view", scene_out, "--headless", "--max-splats", str(n), "--no-prefetch", "--quiet",
-                "--size", f"{size}x{size}", "--eye=" + ",".join(map(repr, cam.eye)),
-                "--target=" + ",".join(map(repr, cam.target)), "--up=" + ",".join(map(repr, cam.up)),
-                "--fov-y=" + repr(cam.fov_y_deg), "--timeout", "120"]
+        argv = view_argv(scene_out, n, size, cam.eye, cam.target, cam.up, cam.fov_y_deg) + ["--no-prefetch", "--quiet"]
         args = build_parser().parse_args(argv)
         options = view_cmd._options(args)
         camera = view_cmd._fixed_camera(args, parse_size(args.size))
@@ -396,14 +411,7 @@ def view_worker(scene_out: str, n: int, cams_path: str, workdir: str, size: int)
             image = np.asarray(session.read_image(), dtype=np.float32)[..., :3]
             draw = list(session.last.draw)
             stats = session.fetcher.stats()
-            drawn_bytes = drawn_base = 0
-            for tid in draw:
-                t = manifest.tile(int(tid))
-                for name in t.groups:
-                    b = t.groups[name].bytes
-                    drawn_bytes += b
-                    if name == "base":
-                        drawn_base += b
+            drawn_bytes, drawn_base = drawn_tile_bytes(manifest, draw)
             report = {"argv": ["splatstream", *argv], "drawn_splats": rec.drawn_splats,
                       "drawn_tiles": len(draw), "drawn_tile_ids": [int(x) for x in draw],
                       "drawn_tile_bytes": drawn_bytes, "drawn_tile_base_bytes": drawn_base,

@@ -25,17 +25,14 @@ import sys
 import tempfile
 import time
 
-
-def drawn_tile_bytes(manifest, tile_ids: list[int]) -> int:
-    return sum(g.bytes for tid in tile_ids for g in manifest.tile(int(tid)).groups.values())
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+import lod_vs_peers as lvp  # noqa: E402  (bench/ is not a package)
 
 
 def view_once(scene: str, cam: dict, n: int, size: int, prefetch: bool, workdir: str, settle: int = 0) -> dict:
     rec_path = os.path.join(workdir, f"rec_{n}_{int(prefetch)}_{settle}.json")
-    argv = ["view", scene, "--headless", "--max-splats", str(n), "--size", f"{size}x{size}",
-            "--eye=" + ",".join(map(repr, cam["eye"])), "--target=" + ",".join(map(repr, cam["target"])),
-            "--up=" + ",".join(map(repr, cam["up"])), "--fov-y=" + repr(cam["fov_y_deg"]), "--record", rec_path,
-            "--timeout", "300"]
+    argv = lvp.view_argv(scene, n, size, cam["eye"], cam["target"], cam["up"], cam["fov_y_deg"], timeout_s=300)
+    argv += ["--record", rec_path]
     if not prefetch:
         argv.append("--no-prefetch")
     if settle:  # frames drawn after convergence, as an open window keeps drawing: what prefetch fetches meanwhile
@@ -83,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
             row = {"budget": n}
             if o is not None:
                 row["bench_drawn_splats"] = o["splats_drawn_per_view"][args.view]
-                row["drawn_tile_bytes"] = drawn_tile_bytes(manifest, o["drawn_tile_ids_per_view"][args.view])
+                row["drawn_tile_bytes"] = lvp.drawn_tile_bytes(manifest, o["drawn_tile_ids_per_view"][args.view])[0]
                 row["bench_bytes_downloaded"] = o["bytes_downloaded_per_view"][args.view]
             modes = [("prefetch", True, 0), ("no_prefetch", False, 0)]
             if args.settle_frames:
