@@ -50,6 +50,22 @@ def pytest_report_header(config) -> str:
             "collected; set SPLATSTREAM_SHARED to the directory holding data/real/ to run them")
 
 
+def lod_probe_scene(n: int, seed: int, random_sh: bool):
+    """A random SH1 Gaussians of n splats for the LOD probes' tests (bench/probe_lod_refine.py, probe_lod_distill.py):
+    positions and colours N(0, 1), log-scales N(-3.5, 0.4), opacity logits N(0, 1.5), SH rest N(0, 1) or zero."""
+    import numpy as np
+
+    from splatstream.gaussians import Gaussians
+
+    rng = np.random.default_rng(seed)
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    return Gaussians(rng.normal(size=(n, 3)).astype(np.float32), q.astype(np.float32),
+                     rng.normal(-3.5, 0.4, size=(n, 3)).astype(np.float32),
+                     rng.normal(0, 1.5, size=n).astype(np.float32), rng.normal(size=(n, 3)).astype(np.float32),
+                     rng.normal(size=(n, 3, 3)).astype(np.float32) if random_sh else np.zeros((n, 3, 3), np.float32))
+
+
 def load_bench(name: str):
     """bench/<name>.py (not a package: loaded from its file) as the module splatstream_bench_<name>, registered in
     sys.modules while it executes (dataclasses look their module up then); bench/ is put on sys.path first, since

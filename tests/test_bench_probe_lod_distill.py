@@ -3,7 +3,7 @@ built splats, the levels from the leaves, and the cell correction applied to eac
 from __future__ import annotations
 
 import numpy as np
-from conftest import load_bench
+from conftest import load_bench, lod_probe_scene
 
 from splatstream.gaussians import Gaussians
 
@@ -11,13 +11,7 @@ P = load_bench("probe_lod_distill")
 
 
 def scene(n: int = 3000, seed: int = 5) -> Gaussians:
-    rng = np.random.default_rng(seed)
-    q = rng.normal(size=(n, 4))
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    return Gaussians(rng.normal(size=(n, 3)).astype(np.float32), q.astype(np.float32),
-                     rng.normal(-3.5, 0.4, size=(n, 3)).astype(np.float32),
-                     rng.normal(0, 1.5, size=n).astype(np.float32), rng.normal(size=(n, 3)).astype(np.float32),
-                     rng.normal(size=(n, 3, 3)).astype(np.float32))
+    return lod_probe_scene(n, seed, random_sh=True)
 
 
 def test_pairing_recovers_a_shuffled_moved_tile():

@@ -7,7 +7,7 @@ import math
 
 import numpy as np
 import pytest
-from conftest import load_bench
+from conftest import load_bench, lod_probe_scene
 
 from splatstream.gaussians import Gaussians
 
@@ -16,13 +16,7 @@ R = P.rl  # bench/device/refine_lod_levels.py, as the replay imports it
 
 
 def scene(n: int = 3000, seed: int = 3) -> Gaussians:
-    rng = np.random.default_rng(seed)
-    q = rng.normal(size=(n, 4))
-    q /= np.linalg.norm(q, axis=1, keepdims=True)
-    return Gaussians(rng.normal(size=(n, 3)).astype(np.float32), q.astype(np.float32),
-                     rng.normal(-3.5, 0.4, size=(n, 3)).astype(np.float32),
-                     rng.normal(0, 1.5, size=n).astype(np.float32), rng.normal(size=(n, 3)).astype(np.float32),
-                     np.zeros((n, 3, 3), np.float32))
+    return lod_probe_scene(n, seed, random_sh=False)
 
 
 def test_tree_rule_is_the_encoders_default():
