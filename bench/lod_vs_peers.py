@@ -341,13 +341,13 @@ def ensure_encoded(full: str, out: str, extra: list[str] | None = None) -> dict:
     return info
 
 
-def our_views(scene_out: str, n: int, cameras, size: int, workdir: str) -> list[dict]:
+def our_views(scene_out: str, n: int, cameras, size: int, workdir: str, view_args: str = "") -> list[dict]:
     """Stream the scene at a splat budget from each camera, in a subprocess (its own GL context); per view the
-    float image (loaded back), the record and the drawn tile ids."""
+    float image (loaded back), the record and the drawn tile ids. `view_args`: more `view` options, one string."""
     cams_path = os.path.join(workdir, "cameras.json")
     json.dump([c.to_dict() for c in cameras], open(cams_path, "w"))
     subprocess.run([sys.executable, os.path.abspath(__file__), "_view_worker", scene_out, str(n), cams_path,
-                    workdir, str(size)], check=True, stdout=sys.stderr)
+                    workdir, str(size), view_args], check=True, stdout=sys.stderr)
     out = []
     for i in range(len(cameras)):
         rec = json.load(open(os.path.join(workdir, f"view{i}.json")))
@@ -374,7 +374,7 @@ def drawn_tile_bytes(manifest, tile_ids) -> tuple[int, int]:
     return every, base
 
 
-def view_worker(scene_out: str, n: int, cams_path: str, workdir: str, size: int) -> None:
+def view_worker(scene_out: str, n: int, cams_path: str, workdir: str, size: int, view_args: str = "") -> None:
     """What `splatstream view SCENE --headless --max-splats N --no-prefetch --eye/--target/--up/--fov-y --size`
     does (its own argument parsing and options), keeping the float image and the drawn tile ids."""
     from cli.commands import view as view_cmd
@@ -392,7 +392,8 @@ def view_worker(scene_out: str, n: int, cams_path: str, workdir: str, size: int)
 
     manifest = parse_manifest(open(os.path.join(scene_out, MANIFEST_NAME), "rb").read())
     for i, cam in enumerate(cams):
-        argv = view_argv(scene_out, n, size, cam.eye, cam.target, cam.up, cam.fov_y_deg) + ["--no-prefetch", "--quiet"]
+        argv = (view_argv(scene_out, n, size, cam.eye, cam.target, cam.up, cam.fov_y_deg) + ["--no-prefetch", "--quiet"]
+                + shlex.split(view_args))
         args = build_parser().parse_args(argv)
         options = view_cmd._options(args)
         camera = view_cmd._fixed_camera(args, parse_size(args.size))
@@ -578,7 +579,7 @@ def run_scene(scene: Scene, args, peers: Peers | None) -> dict | None:
         for nb in counts:
             with tempfile.TemporaryDirectory(prefix="lvp-") as work:
                 t = time.perf_counter()
-                recs = our_views(out, nb, cameras, args.size, work)
+                recs = our_views(out, nb, cameras, args.size, work, args.view_args)
                 secs = time.perf_counter() - t
             m = measure([r["image"] for r in recs], refs)
             if not scene.no_images and args.save_images:
@@ -741,7 +742,7 @@ def plot(results: list[dict], path: str) -> None:
 def main(argv: list[str] | None = None) -> int:
     argv = sys.argv[1:] if argv is None else argv
     if argv and argv[0] == "_view_worker":
-        view_worker(argv[1], int(argv[2]), argv[3], argv[4], int(argv[5]))
+        view_worker(argv[1], int(argv[2]), argv[3], argv[4], int(argv[5]), argv[6] if len(argv) > 6 else "")
         return 0
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -770,6 +771,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--encode-args", default="",
                     help="extra arguments of our `splatstream encode` (e.g. '--lod-merge auto'; a scene directory "
                          "that already holds a manifest is reused as it is)")
+    ap.add_argument("--view-args", default="",
+                    help="extra options of our `splatstream view` (e.g. '--sh-bands all'), one string")
     ap.add_argument("--skip-ours", action="store_true")
     ap.add_argument("--no-spark", dest="spark", action="store_false",
                     help="without Spark's LoD (its tree build and per-view cuts)")
