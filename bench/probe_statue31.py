@@ -20,6 +20,11 @@ Variants change one thing of the merge (applied to the module, one build each):
   min(A x G^(k-1), CAP) px (opacity and colour; CAP `inf`: no cap), the first merged level at the encoder's
   OPACITY_MATCH_SSE_PX; `grow=8/1.5/16` is the encoder's rule since 2026-11-30 (lod.OPACITY_MATCH_FAR_GROWTH and
   _CAP_SSE_PX), `grow=8/1/inf` the 2 + 8 px rule before it; `far=C` is `grow=C/1/inf`.
+* `opmax=C` (issue 31, branch `lodop31`): step 5's match without the 0.99 ceiling, capped at C (an opacity above 1
+  draws as a flat-topped, wider splat: the renderer clamps alpha per pixel); `opmax=C@grow=A/G/CAP` with that
+  viewing scale too. The probe carries an opacity o > 1 in a logit OVER_LOGIT + (o - 1) (the sigmoid of any logit
+  there is 1.0 in float32) and, for every render of this process, reads the colour plane's opacity through
+  over_opacity (the identity on every logit below OVER_LOGIT - 1).
 * `optical`: the merged opacity from the members' summed optical depth, -log(1 - alpha_i) x dilated area,
   instead of their summed coverage (1 - exp(-depth / area) instead of min(0.99, coverage / area)).
 
@@ -140,9 +145,59 @@ def _grow_patches(start: float, growth: float, cap: float) -> dict:
             "OPACITY_MATCH_FAR_CAP_SSE_PX": cap}
 
 
+OVER_DRAW_MAX = 8.0  # the largest opacity the patched shaders draw (the largest cap probed)
+OVER_LOGIT = 40.0  # float32 sigmoid(40) == 1.0; no input reaches it (ply clamps opacity logits at about 13.8)
+
+
+def over_logits(alpha: np.ndarray) -> np.ndarray:
+    """Logits of opacities that may exceed 1: o > 1 as OVER_LOGIT + (o - 1) (probe-only carrier)."""
+    a = np.asarray(alpha, np.float64)
+    below = np.log(np.minimum(a, 0.999) / (1.0 - np.minimum(a, 0.999)))
+    return np.where(a >= 0.999, OVER_LOGIT + (a - 1.0), below).astype(np.float32)
+
+
+def over_opacity(logits: np.ndarray) -> np.ndarray:
+    """The inverse of over_logits: the sigmoid below OVER_LOGIT - 1, o = 1 + (logit - OVER_LOGIT) above."""
+    from splatstream.gaussians import sigmoid
+
+    lg = np.asarray(logits)
+    return np.where(lg >= OVER_LOGIT - 1.0, 1.0 + (lg.astype(np.float64) - OVER_LOGIT),
+                    sigmoid(lg)).astype(np.float32)
+
+
+def install_over_opacity() -> None:
+    """Every later encode of this process (the renders' in-memory encode) stores over_opacity in the colour plane,
+    and every shader compiled after this draws the decoded opacity up to OVER_DRAW_MAX instead of clamping it at 1
+    (splat.vert, cull.comp). Call it before the first render: compiled programs are kept. The CPU-sort path's host
+    mirror still clips at 1 (its off-screen cull only: extents up to 17 % short for an opacity of 8)."""
+    from client_gl.gpu import shadergen
+    from splatstream.format import codec
+
+    if codec.sigmoid is over_opacity:
+        return
+    codec.sigmoid = over_opacity
+    plain = shadergen.read_shader
+    shadergen.read_shader = lambda name: plain(name).replace("clamp(col.a, 0.0, 1.0)",
+                                                             f"clamp(col.a, 0.0, {OVER_DRAW_MAX!r})")
+
+
+def _finish_uncapped(cap: float):
+    """lod.finish_appearance with the match's ceiling at `cap` instead of MAX_MERGED_OPACITY."""
+    def finish_appearance(merged, counts, sums, blur):
+        covered, total = sums[0], sums[1]
+        single = counts == 1
+        alpha = np.clip(covered / lod._coverage_area(merged.log_scales, blur), 1e-7, cap)
+        merged.opacity_logits = np.where(single, merged.opacity_logits, over_logits(alpha))
+        merged.sh_dc = np.where(single[:, None], merged.sh_dc, (sums[2:5].T / total[:, None]).astype(np.float32))
+    return finish_appearance
+
+
 def variant_patches(variant: str) -> dict:
     if variant == "base":
         return {}
+    if variant.startswith("opmax="):
+        cap, _, scale = variant[6:].partition("@")
+        return {"finish_appearance": _finish_uncapped(float(cap)), **(variant_patches(scale) if scale else {})}
     if variant.startswith("px="):
         px = [float(x) for x in variant[3:].split("/")]
         return {"finish_tile": _finish_tile_at(px[0], px[1], px[-1])}
@@ -194,6 +249,9 @@ def one_px(variants: list[str], reduction: float) -> None:
     sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "tests"))
     import test_lod  # the test's own scenes, cameras and renderer
 
+    if any(v.startswith("opmax=") for v in variants):
+        # the reference rasteriser reads Gaussians.opacities: the probe's opacities above 1 drawn as they are
+        Gaussians.opacities = property(lambda self: over_opacity(self.opacity_logits))
     for name in test_lod.REAL_PLYS:
         for variant in variants:
             tiles = build_variant(test_lod.scene(name), variant, test_lod.MAX_LEAF, reduction)
@@ -233,6 +291,8 @@ def main(argv: list[str] | None = None) -> int:
     if args.encode:
         if len(args.variants) != 1:
             ap.error("--encode takes one variant")
+        if args.variants[0].startswith("opmax="):
+            ap.error("--encode cannot write opmax: the view client clamps opacity at 1 (whole levels only)")
         return encode_variant(os.path.join(sdir, "full.ply"), args.encode, args.variants[0])
     g = read_gaussians(os.path.join(sdir, "full.ply"))
     n = len(g)
@@ -254,6 +314,8 @@ def main(argv: list[str] | None = None) -> int:
             imgs = lvp.render_views(read_gaussians(out), cams)
             print(f"{args.scene} splat-transform {c} ({c / n:.3f}): {psnr(imgs)} dB, error background / "
                   f"silhouette / interior {error_split(imgs, refs)}", flush=True)
+    if any(v.startswith("opmax=") for v in args.variants):
+        install_over_opacity()  # before the first render: shaders compiled later draw opacities above 1
     results: dict[str, list[dict]] = {}
     for variant in args.variants:
         tiles = build_variant(g, variant)
@@ -268,7 +330,9 @@ def main(argv: list[str] | None = None) -> int:
             imgs = lvp.render_views(merged, cams)
             results[variant].append({"level": level, "count": count, "share": count / n, "psnr": psnr(imgs)})
             row.append(f"L{level} {count} ({count / n:.3f}): {psnr(imgs)} dB, ceiling "
-                       f"{float(np.mean(merged.opacities >= 0.98)):.2f}, split {error_split(imgs, refs)}")
+                       f"{float(np.mean(merged.opacities >= 0.98)):.2f}, over 1 "
+                       f"{float(np.mean(merged.opacity_logits >= OVER_LOGIT - 1.0)):.2f}, "
+                       f"split {error_split(imgs, refs)}")
         print(f"{args.scene} {variant}:\n  " + "\n  ".join(row), flush=True)
         if args.json:
             with open(args.json, "w") as f:

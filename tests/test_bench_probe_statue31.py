@@ -117,3 +117,26 @@ def test_grow_is_the_library_rule_and_the_constants_are_restored():
     assert all(same(a, b) for a, b in zip(base, grow, strict=True) if a.level >= first - 1)
     assert any(not same(a, b) for a, b in zip(base, grow, strict=True) if a.level < first - 1)
     assert P.grow_px(1, 8, 1.5, 32) == 8 and P.grow_px(3, 8, 1.5, 32) == 18 and P.grow_px(5, 8, 1.5, 32) == 32
+
+
+def test_opmax_lifts_the_ceiling_up_to_the_cap_and_nothing_else():
+    before = (lod.finish_tile, lod.level_auto_groups, lod.appearance_terms, lod.finish_appearance)
+    alpha = np.array([0.01, 0.5, 0.98, 1.0, 1.7, 8.0])
+    assert np.allclose(P.over_opacity(P.over_logits(alpha)), alpha, atol=2e-6)
+    logits = np.array([-20.0, -1.0, 0.0, 4.6, 13.8], np.float32)  # every logit an input can carry: the sigmoid
+    assert np.array_equal(P.over_opacity(logits), 1.0 / (1.0 + np.exp(-logits)))
+    base, lifted = build("base"), build("opmax=2")
+    assert after_restored(before)
+    first = first_merged(base)
+    assert all(same(a, b) for a, b in zip(base, lifted, strict=True) if a.level > first)  # the leaves
+    over = np.concatenate([P.over_opacity(t.gaussians.opacity_logits) for t in lifted if t.children])
+    at_ceiling = np.concatenate([t.gaussians.opacities for t in base if t.children]) >= lod.MAX_MERGED_OPACITY - 1e-6
+    assert at_ceiling.mean() > 0.2 and (over > 1.0).mean() > 0.2  # the 0.99 ceiling is gone ...
+    assert over.max() <= 2.0 + 1e-5  # ... up to the cap
+    # The first merged level: the same groups, so the same splats but for the opacities above 0.99.
+    for a, b in zip(base, lifted, strict=True):
+        if a.level == first and a.children:
+            assert same(a, b, ("positions", "rotations", "log_scales", "sh_dc"))
+            pa, pb = a.gaussians.opacities, P.over_opacity(b.gaussians.opacity_logits)
+            below = pa < lod.MAX_MERGED_OPACITY - 1e-6  # below the ceiling: the same match
+            assert np.allclose(pa[below], pb[below], atol=1e-5) and np.all(pb[~below] >= pa[~below] - 1e-5)
