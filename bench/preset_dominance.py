@@ -45,13 +45,13 @@ TUNED: dict[str, tuple[str, ...]] = {
     "very-high": (),
     **{p: BENCH for p in ("high", "medium-low", "medium-low-12bit", "low-plus-9bit", "low-plus", "low", "very-low")},
     **{p: BENCH + ("guitar.compressed",) for p in ("medium", "medium-low-9bit")},
-    **{p: SH_TUNED for p in ("medium-high", "medium-low-sh16", "medium-low-sh8", "low-plus-9bit-sh6",
+    **{p: SH_TUNED for p in ("high-sh255", "medium-high", "medium-low-sh16", "medium-low-sh8", "low-plus-9bit-sh6",
                              "low-plus-9bit-sh5", "low-plus-10bit-cb8")},
     "medium-12bit": BENCH + STATUE_TUNED,
     "medium-low-palette": BENCH + STATUES,
 }
 # A per-splat SH preset on a scene without SH bands is its base (not measured again there)
-SH_BASE = {"medium-high": "high", "medium-low-sh16": "medium-low", "medium-low-sh8": "medium-low",
+SH_BASE = {"high-sh255": "high", "medium-high": "high", "medium-low-sh16": "medium-low", "medium-low-sh8": "medium-low",
            "low-plus-9bit-sh6": "low-plus-9bit", "low-plus-9bit-sh5": "low-plus-9bit"}
 # (preset, peer label, scenes the choice was made on, what was chosen there)
 CHOICES: list[tuple[str, str, tuple[str, ...], str]] = [

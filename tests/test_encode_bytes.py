@@ -200,9 +200,10 @@ def scene_texels(store) -> tuple[list[bytes], int]:
 
 
 # (preset, its zstd level before issue 32's lossydec round, which had no shortest match or block slack of its own;
-# medium-low-9bit and low-plus-10bit-cb8 before the round after, eval32; medium-high before tidy32)
+# medium-low-9bit and low-plus-10bit-cb8 before the round after, eval32; medium-high before tidy32; high-sh255, new in
+# hole32, against the encoder's default level)
 LOSSY_BEFORE = [("high", 1), ("medium-low-sh8", 1), ("low-plus-9bit-sh5", 16), ("medium-low-12bit", 16),
-                ("medium-low-9bit", 16), ("low-plus-10bit-cb8", 16), ("medium-high", 1)]
+                ("medium-low-9bit", 16), ("low-plus-10bit-cb8", 16), ("medium-high", 1), ("high-sh255", 1)]
 
 
 @pytest.mark.parametrize("preset,level", LOSSY_BEFORE, ids=[p for p, _ in LOSSY_BEFORE])

@@ -4,7 +4,7 @@ import os
 
 import numpy as np
 import pytest
-from conftest import real, run_cli
+from conftest import ROOT, real, run_cli
 from PIL import Image
 
 from cli.main import main
@@ -224,6 +224,22 @@ def test_preset_for_target_picks_smallest_meeting_psnr_and_best_under_size():
         preset_for_target(rows, target_psnr=50, target_bytes=12)
     with pytest.raises(UsageError, match="highest: medium at 60.40"):
         preset_for_target(rows[1:], target_psnr=70)
+
+
+def test_high_sh255_is_measured_by_default_and_targets_between_medium_high_and_high_pick_it():
+    """Issue 32, hole32: eval (and so --target-psnr / --target-size, which measure eval's presets) takes high-sh255
+    between high and medium-high; on fruit_drops' stored report (8 views at 512 px) a target between its
+    neighbours' points picks it."""
+    from splatstream.evaluate import PRESET_ORDER, preset_for_target
+
+    assert PRESET_ORDER.index("high") + 1 == PRESET_ORDER.index("high-sh255") == PRESET_ORDER.index("medium-high") - 1
+    rows = json.loads((ROOT / "bench" / "results" / "eval_real" / "fruit.json").read_text())["rows"]
+    points = {r["label"]: (r["disk_bytes_per_splat"], r["psnr_mean"]) for r in rows if r["kind"] == "preset"}
+    assert points["medium-high"][0] < points["high-sh255"][0] < points["high"][0]  # 45.05 < 55.66 < 70.55 B
+    assert points["medium-high"][1] < points["high-sh255"][1] < points["high"][1]  # 63.32 < 63.65 < 63.66 dB
+    assert preset_for_target(rows, target_psnr=63.5)["label"] == "high-sh255"
+    assert preset_for_target(rows, target_bytes=60)["label"] == "high-sh255"
+    assert preset_for_target(rows, target_bytes=50)["label"] == "medium-high"
 
 
 def test_encode_target_size_is_the_size_of_the_scene_written_with_its_lod_tree(tmp_path):

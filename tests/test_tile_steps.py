@@ -276,7 +276,8 @@ def test_sh_step_presets_keep_sh_per_splat_on_importance_scaled_band_steps(tmp_p
     from splatstream.encode.jobs import splat_order
     from splatstream.format.presets import PRESET_SH_CODEBOOK, SH_IMPORTANCE
 
-    for preset, levels in (("medium-high", 63.0), ("medium-low-sh16", 16.0), ("medium-low-sh8", 8.0)):
+    for preset, levels in (("high-sh255", 255.0), ("medium-high", 63.0), ("medium-low-sh16", 16.0),
+                           ("medium-low-sh8", 8.0)):
         assert preset not in PRESET_SH_CODEBOOK
         assert preset_steps(preset) == {f"sh{b}": TileStep((levels,) * 3, importance=SH_IMPORTANCE) for b in (1, 2, 3)}
     g = read_gaussians(real("fruit_drops_sh3.ply"))
@@ -290,6 +291,32 @@ def test_sh_step_presets_keep_sh_per_splat_on_importance_scaled_band_steps(tmp_p
         errors[preset] = float(np.sqrt(np.mean((d.sh_rest - stored.sh_rest) ** 2)))
     assert sizes["medium-low-sh8"] < sizes["medium-low-sh16"]
     assert errors["medium-low-sh16"] < errors["medium-low-sh8"] < 0.05, errors  # measured 0.0075, 0.0149
+
+
+def test_high_sh255_lies_between_medium_high_and_high_in_sh_bytes_and_sh_error(tmp_path):
+    """high-sh255 (issue 32, hole32): high's planes and zstd settings, its SH on steps of 255 levels, between
+    medium-high (63) and high (no step) in SH bytes and SH error; every other plane is stored as high's."""
+    from splatstream.format.presets import preset_block_slack, preset_zstd_level, preset_zstd_min_match
+
+    assert PRESETS["high-sh255"] == PRESETS["medium-high"] == PRESETS["high"]
+    for setting in (preset_zstd_level, preset_zstd_min_match, preset_block_slack):
+        args = (0,) if setting is preset_zstd_level else ()
+        assert setting("high-sh255", *args) == setting("high", *args) == setting("medium-high", *args)
+    g = read_gaussians(real("fruit_drops_sh3.ply"))
+    sizes, errors, others = {}, {}, {}
+    for preset in ("medium-high", "high-sh255", "high"):
+        m = encode_gaussians(g, tmp_path / preset, EncodeOptions(preset=preset, lod=False))
+        assert m.version == (1, 2) and m.sh_codebook is None
+        sizes[preset] = m.attributes["sh"].disk_bytes
+        others[preset] = {a: m.attributes[a].disk_bytes for a in ("position", "rotation", "scale", "color")}
+        d = decode_scene(tmp_path / preset)
+        stored = g.subset(splat_order(g, m.chunk_order))
+        errors[preset] = float(np.sqrt(np.mean((d.sh_rest - stored.sh_rest) ** 2)))
+    assert others["medium-high"] == others["high-sh255"] == others["high"]
+    # measured: SH 125,665 / 175,739 / 246,019 bytes at RMS 0.00188 / 0.00047 / 0.00007 (the steps: 4x finer, 4x less)
+    assert sizes["medium-high"] < sizes["high-sh255"] < sizes["high"], sizes
+    assert 1.2 < sizes["high-sh255"] / sizes["medium-high"] < 1.6 and 1.2 < sizes["high"] / sizes["high-sh255"] < 1.6
+    assert errors["high"] < errors["high-sh255"] < errors["medium-high"] / 3 < 0.001, errors
 
 
 def test_zero_on_the_grid_decodes_small_coefficients_to_zero_within_half_a_step():

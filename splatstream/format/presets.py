@@ -19,6 +19,13 @@ ATTRIBUTES = ("position", "rotation", "scale", "color", "sh")
 PRESETS: dict[str, dict[str, str]] = {
     "very-high": {"position": "f32x4", "rotation": "f32x4", "scale": "f32x4", "color": "f32x4", "sh": "f32x4"},
     "high": {"position": "f16x4", "rotation": "norm10_2", "scale": "norm11", "color": "f16x4", "sh": "norm11"},
+    # high with its 11-bit SH on importance-scaled tile steps of 255 levels (medium-high's are 63; issue 32, hole32):
+    # on flowers and playbot (SH2) medium-high -> high was one 1.42-1.44x step in bytes with nothing between. SH
+    # alone makes the difference (flowers: 15.4 -> 29.1 B/splat of SH, every other plane the same), so the step's G
+    # alone fills it: chosen on flowers (G = 127: 35.76 B, 61.72 dB; 255: 38.70 B, 61.98 dB, against the geometric
+    # middle 39.22 B), checked on playbot, fruit_drops and lod_tile (BENCHMARKS.md, "The hole between medium-high
+    # and high"). On SH0 scenes its files are high's.
+    "high-sh255": {"position": "f16x4", "rotation": "norm10_2", "scale": "norm11", "color": "f16x4", "sh": "norm11"},
     # high's positions, rotations, scales and colour with 11-bit SH on importance-scaled tile steps (issue 32): on
     # the real SH2 scene flowers (542k splats) between medium and high, where compressed.ply sits.
     "medium-high": {"position": "f16x4", "rotation": "norm10_2", "scale": "norm11", "color": "f16x4", "sh": "norm11"},
@@ -144,6 +151,7 @@ PRESET_STEPS: dict[str, dict[str, TileStep]] = {
     # compressed.ply's bytes at +0.45 dB; held out on biker (the other compressed.ply input) 0.856 at +0.22 dB, and on
     # the 12 other real scenes 0.16-0.42 B/splat fewer for 0.01-0.23 dB (BENCHMARKS.md, "Guitar's near misses").
     "medium": {"scale": TileStep((1023.0,) * 3, shared=3)},
+    "high-sh255": sh_steps(255.0),
     "medium-high": sh_steps(63.0),
     "medium-12bit": {"position": TileStep((4095.0,) * 3, shared=3)},
     "medium-low-sh16": sh_steps(16.0),
@@ -176,11 +184,13 @@ PRESET_STEPS: dict[str, dict[str, TileStep]] = {
 # their decode: 0.4-4 % fewer bytes than level 1 on the real scenes and, with their parts joined within 2 %, zstd reads
 # them 10-20 % faster (issue 32; BENCHMARKS.md, "Decode speed", lossydec). medium-high took high's settings two rounds
 # later (tidy32): on SH0 scenes its planes are high's, and at level 1 its files were 0.4 % larger than high's there.
+# high-sh255 (hole32) takes them from the start, for the same reason.
 PRESET_ZSTD_LEVEL: dict[str, int] = {"very-high": 12, "medium-low": 9, "medium-low-12bit": 16, "medium-low-palette": 16,
                                      "medium-low-9bit": 16,
                                      "low-plus-9bit": 16, "low-plus-9bit-sh6": 16,
                                      "low-plus-9bit-sh5": 16, "low-plus-10bit-cb8": 16,
-                                     "high": 12, "medium-high": 12, "medium-low-sh8": 12, "medium-low-sh16": 12}
+                                     "high": 12, "high-sh255": 12, "medium-high": 12, "medium-low-sh8": 12,
+                                     "medium-low-sh16": 12}
 # zstd's shortest match per preset where not its level's own (3 at level 16, 4-5 at 12 on payloads this small; 0:
 # the level's). On the lossy presets' small LOD payloads the short matches cost more bytes than the literals they
 # replace, and each is a sequence more to decode: at level 16 a shortest match of 6 stores 0.05-1.6 % fewer bytes on
@@ -190,7 +200,7 @@ PRESET_ZSTD_LEVEL: dict[str, int] = {"very-high": 12, "medium-low": 9, "medium-l
 # medium-low-9bit and low-plus-10bit-cb8 (level 16) took the same the round after (eval32), with a 1 % slack: on all 14
 # real scenes 0.06-1.3 % fewer bytes, zstd 0.75-0.94 and the whole `verified` pass 0.86-0.97 of the time (a 2 % slack
 # grew them by up to 1.1 %: BENCHMARKS.md, "Decode speed", eval32).
-_LOSSY_MIN_MATCH = ("high", "medium-high", "medium-low-sh8", "medium-low-sh16", "medium-low-12bit",
+_LOSSY_MIN_MATCH = ("high", "high-sh255", "medium-high", "medium-low-sh8", "medium-low-sh16", "medium-low-12bit",
                     "medium-low-palette", "medium-low-9bit", "low-plus-9bit", "low-plus-9bit-sh6", "low-plus-9bit-sh5",
                     "low-plus-10bit-cb8")
 PRESET_ZSTD_MIN_MATCH: dict[str, int] = dict.fromkeys(_LOSSY_MIN_MATCH, 6)
@@ -201,8 +211,9 @@ PRESET_ZSTD_MIN_MATCH: dict[str, int] = dict.fromkeys(_LOSSY_MIN_MATCH, 6)
 # BENCHMARKS.md, "Decode speed", vhdec).
 # The lossy presets of PRESET_ZSTD_MIN_MATCH join within 1 % (level 16) or 2 % (level 12): what their shortest match
 # saved, less than it, so that their payloads still take fewer bytes than before on every real scene measured.
-PRESET_BLOCK_SLACK: dict[str, float] = {"very-high": 0.035, "high": 0.02, "medium-high": 0.02, "medium-low-sh8": 0.02,
-                                        "medium-low-sh16": 0.02, "medium-low-12bit": 0.01, "medium-low-palette": 0.01,
+PRESET_BLOCK_SLACK: dict[str, float] = {"very-high": 0.035, "high": 0.02, "high-sh255": 0.02, "medium-high": 0.02,
+                                        "medium-low-sh8": 0.02, "medium-low-sh16": 0.02, "medium-low-12bit": 0.01,
+                                        "medium-low-palette": 0.01,
                                         "medium-low-9bit": 0.01, "low-plus-9bit": 0.01, "low-plus-9bit-sh6": 0.01,
                                         "low-plus-9bit-sh5": 0.01, "low-plus-10bit-cb8": 0.01}
 # How much larger a small payload's zstd frame may be as one block than with the blocks PRESET_BLOCK_SLACK joins, and
@@ -220,6 +231,9 @@ DEFAULT_PRESET = "medium"
 PRESET_SUMMARY: dict[str, str] = {
     "very-high": "32-bit floats, lossless; about 179 B/splat at SH3, 40.7-43.3 at SH0",
     "high": "16-bit positions and colour; about 70.6 B/splat at SH3, 46.7 at SH2, 16.4-18 at SH0; 61-77 dB",
+    "high-sh255": "high with 11-bit SH on importance-scaled steps of 255 levels (about 8 bits where it matters), "
+                  "between medium-high and high; about 38.7 B/splat at SH2 (flowers, 62 dB), 55.7 at SH3 "
+                  "(fruit_drops, 63.6 dB); high's files at SH0",
     "medium-high": "high with 11-bit SH on importance-scaled steps (about 6 bits where it matters); about 32.9 "
                    "B/splat at SH2 (flowers, 61 dB), 45 at SH3 (fruit_drops, 63 dB); high's files at SH0",
     "medium-12bit": "medium with about 12-bit positions (16-bit texels on one step per tile); about 13.8-15.3 "
