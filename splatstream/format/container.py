@@ -242,11 +242,14 @@ def _block_ends(segments: list[tuple[bytes | None, object]], raw_bytes: int, sla
         pad, part = segments[k]
         return (pad or b"") + bytes(memoryview(part).cast("B"))
 
+    def trial(part: bytes) -> int:  # a part above `most` joins nothing, nor anything it: its size is never compared
+        return _trial_bytes(part) if len(part) <= most else 0
+
     block = data(0)
-    block_size = _trial_bytes(block)
+    block_size = trial(block)
     for k in range(1, count):
         part = data(k)
-        alone = _trial_bytes(part)
+        alone = trial(part)
         if len(block) + len(part) <= most:
             joined = block + part
             joined_size = _trial_bytes(joined)
