@@ -62,13 +62,13 @@ from .transport import (
 
 WORKER_MODE_MAX_BYTES = 32 << 20
 # Payloads of at most this many decompressed bytes choose where their zstd blocks end by trial (_block_ends); larger
-# ones end a block after every part. Blocks grow to at most MERGED_BLOCK_MAX bytes (a trial compresses the block so
-# far again with each part added: this bounds that work).
+# ones end a block after every part, but where their preset joins them anyway (below). Blocks grow to at most
+# MERGED_BLOCK_MAX bytes (a trial compresses the block so far again with each part added: this bounds that work).
 MERGE_MAX_RAW = 1 << 18
 MERGED_BLOCK_MAX = 1 << 16
 # A larger payload's blocks where its preset joins them anyway (write_payload's `one_block_slack`: very-high) grow to
-# zstd's largest block, 128 KB: at 64 KB very-high's large payloads kept about twice the blocks for 0.2 % fewer bytes
-# (issue 32; BENCHMARKS.md, "Decode speed", vhdec5).
+# zstd's largest block, 128 KB: on playbot's LOD tree zstd read very-high's payloads in 0.75-0.77x the time of a block
+# a part at 128 KB, 0.89x at 64 KB, for 1.08 % and 0.88 % more bytes (issue 32; BENCHMARKS.md, "Decode speed", vhdec5).
 LARGE_MERGED_BLOCK_MAX = 1 << 17
 # The trials' level whatever the payload's: about the same choices as at level 9, in a fifth of the time.
 MERGE_TRIAL_LEVEL = 1
