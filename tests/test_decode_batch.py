@@ -197,6 +197,23 @@ def test_block_ends_join_like_parts_of_small_payloads_only():
     assert ends[2]  # the noise and the skewed bytes have unlike statistics: a block ends between them
     assert container._block_ends(segments, container.MERGE_MAX_RAW + 1) == [True] * len(segments)
     assert container._block_ends(segments[:1], 1024) == [True]
+    # a large payload of a preset that joins anyway (very-high: write_payload's one_block_slack) joins as a small one
+    assert container._block_ends(segments, container.MERGE_MAX_RAW + 1, join_large=True) == ends
+
+
+def test_large_payloads_join_blocks_up_to_zstds_largest_block():
+    # container._block_ends with join_large: blocks of like parts grow to LARGE_MERGED_BLOCK_MAX (zstd's 128 KB)
+    # above MERGE_MAX_RAW, to MERGED_BLOCK_MAX below it
+    rng = np.random.default_rng(6)
+    part = 8 * 1024
+    segments = [(None, rng.integers(0, 256, part, dtype=np.uint8)) for _ in range(40)]  # 320 KB of like noise
+    raw = 40 * part
+    assert raw > container.MERGE_MAX_RAW and container.LARGE_MERGED_BLOCK_MAX == zstandard.BLOCKSIZE_MAX
+    ends = container._block_ends(segments, raw, 0.035, join_large=True)
+    assert ends[-1] and sum(ends) == -(-raw // container.LARGE_MERGED_BLOCK_MAX)  # 128 KB blocks: 16 parts each
+    assert [k for k, e in enumerate(ends) if e][:2] == [15, 31]
+    small = container._block_ends(segments[:24], 24 * part, 0.035)  # 192 KB: a small payload, 64 KB blocks
+    assert sum(small) == 3
 
 
 def test_small_payloads_have_fewer_blocks_and_bytes_and_the_same_raw_bytes(fruit, monkeypatch):
@@ -309,6 +326,35 @@ def test_very_high_stores_a_small_payload_as_one_block_within_its_one_block_slac
     for data, entry in encode():
         if entry.raw_bytes <= container.MERGE_MAX_RAW:
             assert zstd_block_count(data) <= 1 + -(-entry.raw_bytes // zstandard.BLOCKSIZE_MAX)
+
+
+def test_very_high_joins_the_blocks_of_large_payloads_too(monkeypatch):
+    # very-high (its one-block slack, presets.PRESET_ONE_BLOCK_SLACK) joins the parts of payloads above MERGE_MAX_RAW
+    # as of small ones (issue 32: a block a byte plane made a third of zstd's read time block tables on playbot's LOD
+    # tree); nothing decompressed changes (format.md 5.2): fewer blocks, within 2 % of the bytes
+    g = read_gaussians(real("fruit_drops_sh3.ply"))
+
+    def encode():
+        store = encode_in_memory(g, EncodeOptions(preset="very-high"))
+        m = read_manifest(store)
+        return [(store.read_payload(e), e) for t in m.tiles for e in t.groups.values()]
+
+    joined = encode()
+    monkeypatch.setattr(container, "LARGE_MERGED_BLOCK_MAX", 0)  # a block a part above MERGE_MAX_RAW, as before
+    apart = encode()
+    assert len(joined) == len(apart)
+    large = [k for k, (_, e) in enumerate(joined) if e.raw_bytes > container.MERGE_MAX_RAW]
+    assert len(large) >= 2
+    d = zstandard.ZstdDecompressor()
+    for k, ((a, ea), (b, eb)) in enumerate(zip(joined, apart, strict=True)):
+        assert d.decompress(a) == d.decompress(b) and ea.sections == eb.sections and ea.raw_bytes == eb.raw_bytes
+        assert k in large or a == b  # a small payload's blocks as before
+    joined = [joined[k] for k in large]
+    apart = [apart[k] for k in large]
+    blocks_joined = sum(zstd_block_count(a) for a, _ in joined)
+    blocks_apart = sum(zstd_block_count(b) for b, _ in apart)
+    assert 0 < blocks_joined < 0.8 * blocks_apart
+    assert sum(len(a) for a, _ in joined) < 1.02 * sum(len(b) for b, _ in apart)
 
 
 def _group_reads(monkeypatch) -> list[bool]:

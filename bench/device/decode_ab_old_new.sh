@@ -8,6 +8,8 @@
 # before the merge (the base; vhdec4 was branched from a3259bd, and main's decode code is the same at 292580e):
 #   rm -rf .oldvh && mkdir .oldvh && git archive <base commit> splatstream client_gl cli bench tests | tar -x -C .oldvh
 #   cp bench/device/decode_ab_old_new.sh .oldvh/vhdec4_ab.sh   (and drop .oldvh/bench/results and all of .oldvh/tests/data but guitar and winter_fountain: 61 of the 64 MiB)
+# vhdec5 (very-high's payloads above 256 KB join their zstd blocks): guitar and winter_fountain have no such payload;
+# keep tests/data/real/fruit_drops_sh3.ply (1.2 MB) in .oldvh too and run with SCENES=fruit_drops_sh3 PRESETS=very-high.
 # If a call nears the run tool's 600 s, run it as two calls with ROUNDS=1 (the order then: new, old) or PRESETS fewer.
 # Knobs (environment; defaults are the device's): PY (python3), CORES (2-5), ROUNDS (2), RUNS (3), JOBS (8),
 # SCENES (guitar,winter_fountain), PRESETS (very-high,medium,high). About 4-5 minutes a round on the H200 host.

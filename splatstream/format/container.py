@@ -62,10 +62,14 @@ from .transport import (
 
 WORKER_MODE_MAX_BYTES = 32 << 20
 # Payloads of at most this many decompressed bytes choose where their zstd blocks end by trial (_block_ends); larger
-# ones end a block after every part. Blocks grow to at most MERGED_BLOCK_MAX bytes (a trial compresses the block so
-# far again with each part added: this bounds that work).
+# ones end a block after every part, but where their preset joins them anyway (below). Blocks grow to at most
+# MERGED_BLOCK_MAX bytes (a trial compresses the block so far again with each part added: this bounds that work).
 MERGE_MAX_RAW = 1 << 18
 MERGED_BLOCK_MAX = 1 << 16
+# A larger payload's blocks where its preset joins them anyway (write_payload's `one_block_slack`: very-high) grow to
+# zstd's largest block, 128 KB: on playbot's LOD tree zstd read very-high's payloads in 0.75-0.77x the time of a block
+# a part at 128 KB, 0.89x at 64 KB, for 1.08 % and 0.88 % more bytes (issue 32; BENCHMARKS.md, "Decode speed", vhdec5).
+LARGE_MERGED_BLOCK_MAX = 1 << 17
 # The trials' level whatever the payload's: about the same choices as at level 9, in a fifth of the time.
 MERGE_TRIAL_LEVEL = 1
 # zstd level of the encoder's payloads. With a zstd block per byte plane, level 1 is as small as level 3 or smaller
@@ -93,7 +97,9 @@ def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level:
     shortest match where not 0 (0: the level's own; the preset's, presets.PRESET_ZSTD_MIN_MATCH); `one_block_slack`
     where not 0: a payload whose blocks _block_ends joins (at most MERGE_MAX_RAW) is also compressed as one block,
     and stored so where that frame takes at most 1 + one_block_slack times the bytes of the joined blocks' (the
-    preset's, presets.PRESET_ONE_BLOCK_SLACK).
+    preset's, presets.PRESET_ONE_BLOCK_SLACK); such a preset's payloads above MERGE_MAX_RAW join their parts too
+    (_block_ends with `block_slack`, blocks up to LARGE_MERGED_BLOCK_MAX), where other presets' end a block after every
+    part.
     """
     sections: list[Section] = []
     contents: list[list] = []
@@ -152,7 +158,10 @@ def write_payload(planes: list[EncodedPlane], out: BinaryIO, chunks: int, level:
         for j, part in enumerate(parts or [b""]):
             segments.append((bytes(pad) if j == 0 and pad else None, part))
         position = section.offset + section.size
-    ends = _block_ends(segments, offset, block_slack)
+    # why large payloads join too where the preset trades bytes for fewer blocks: very-high's payloads of a few
+    # thousand splats (playbot's LOD tree) kept a block a byte plane, and each block's tables were about a third of
+    # zstd's read time (issue 32; BENCHMARKS.md, "Decode speed", vhdec5)
+    ends = _block_ends(segments, offset, block_slack, join_large=one_block_slack > 0)
     # zstd's worker mode makes slightly smaller payloads than the single-threaded mode at the same speed (its output
     # does not depend on the worker count), but it buffers whole jobs, which lifts the encoder's peak memory on large
     # payloads (BENCHMARKS.md, "Figures behind library defaults"). Large payloads stream single-threaded.
@@ -206,13 +215,15 @@ def _trial_bytes(data: bytes) -> int:
     return len(c.compress(data))
 
 
-def _block_ends(segments: list[tuple[bytes | None, object]], raw_bytes: int, slack: float = 0.0) -> list[bool]:
+def _block_ends(segments: list[tuple[bytes | None, object]], raw_bytes: int, slack: float = 0.0,
+                join_large: bool = False) -> list[bool]:
     """Whether a zstd block ends after each segment ((padding or None, part): a byte plane, a layer, a range) of a
-    payload of `raw_bytes` decompressed bytes. Above MERGE_MAX_RAW after every part. Else a part joins the block
-    before it where the two coded as one block take no more bytes than each alone (zstd at MERGE_TRIAL_LEVEL; with
-    `slack`, no more than 1 + slack times as many), and the block stays under MERGED_BLOCK_MAX bytes: planes of like
-    statistics (the high bytes of a plane's fields, the noise of low bytes) then share one literal table, and those
-    of unlike statistics keep their own (format.md 5.2).
+    payload of `raw_bytes` decompressed bytes. Above MERGE_MAX_RAW after every part, unless `join_large`. Else a part
+    joins the block before it where the two coded as one block take no more bytes than each alone (zstd at
+    MERGE_TRIAL_LEVEL; with `slack`, no more than 1 + slack times as many), and the block stays under MERGED_BLOCK_MAX
+    bytes (LARGE_MERGED_BLOCK_MAX above MERGE_MAX_RAW): planes of like statistics (the high bytes of a plane's fields,
+    the noise of low bytes) then share one literal table, and those of unlike statistics keep their own (format.md
+    5.2).
 
     Why: a block's fixed cost, its tables written and read, is most of what a small payload's many 1 KB byte planes
     pay zstd beyond their literals. On guitar's and winter_fountain's 221 LOD tiles (about 820 splats a payload)
@@ -221,8 +232,9 @@ def _block_ends(segments: list[tuple[bytes | None, object]], raw_bytes: int, sla
     slack trades bytes for zstd's read time: each block's literal table costs the reader more than its bytes
     (very-high's: presets.PRESET_BLOCK_SLACK)."""
     count = len(segments)
-    if raw_bytes > MERGE_MAX_RAW or count < 2:
+    if count < 2 or (raw_bytes > MERGE_MAX_RAW and not join_large):
         return [True] * count
+    most = MERGED_BLOCK_MAX if raw_bytes <= MERGE_MAX_RAW else LARGE_MERGED_BLOCK_MAX
     ends = [False] * count
     ends[-1] = True
 
@@ -230,12 +242,15 @@ def _block_ends(segments: list[tuple[bytes | None, object]], raw_bytes: int, sla
         pad, part = segments[k]
         return (pad or b"") + bytes(memoryview(part).cast("B"))
 
+    def trial(part: bytes) -> int:  # a part above `most` joins nothing, nor anything it: its size is never compared
+        return _trial_bytes(part) if len(part) <= most else 0
+
     block = data(0)
-    block_size = _trial_bytes(block)
+    block_size = trial(block)
     for k in range(1, count):
         part = data(k)
-        alone = _trial_bytes(part)
-        if len(block) + len(part) <= MERGED_BLOCK_MAX:
+        alone = trial(part)
+        if len(block) + len(part) <= most:
             joined = block + part
             joined_size = _trial_bytes(joined)
             if joined_size <= (block_size + alone) * (1.0 + slack):
