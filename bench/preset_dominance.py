@@ -233,7 +233,7 @@ def preset_table(scenes: dict[str, dict], columns: int = 0) -> str:
         if r is None:
             return "not run"
         return f"{r['disk_bytes_per_splat']:.2f} B, " + \
-            ("lossless" if r["psnr_mean"] is None else f"{r['psnr_mean']:.1f} dB")
+            ("identical render" if r["psnr_mean"] is None else f"{r['psnr_mean']:.1f} dB")
 
     head = [_short(n, s) for n, s in scenes.items()]
     lines = ["| preset | " + " | ".join(head) + " |", "|---|" + "---|" * len(head)]

@@ -105,7 +105,7 @@ def main() -> None:
         cells = []
         for sh in sorted(table.get(name, {})):
             r = table[name][sh]
-            psnr = "lossless" if r["psnr"] is None else f"{r['psnr'][0]:.1f}-{r['psnr'][1]:.1f} dB"
+            psnr = "identical render" if r["psnr"] is None else f"{r['psnr'][0]:.1f}-{r['psnr'][1]:.1f} dB"
             cells.append(f"SH{sh} ({r['scenes']}): {r['bytes'][0]:.2f}-{r['bytes'][1]:.2f} B/splat, {psnr}")
         everywhere = [p for by_sh in points(reports).get(name, {}).values() for _, p in by_sh if p is not None]
         if everywhere:
