@@ -140,8 +140,8 @@ def read_manifest_dict(scene_dir) -> dict:
 
 
 def tile_maps(d: dict) -> dict:
-    """A manifest map holding a tile table (1.8, or 1.12's compact one; unpaged) as the map the same scene has as version 1.7 (tile maps,
-    bytes_on_disk settled); any other map as it is."""
+    """A manifest map holding a tile table (1.8, or 1.12's compact one; unpaged) as the map the same scene has as
+    version 1.7 (tile maps, bytes_on_disk settled); any other map as it is."""
     from dataclasses import replace
 
     from splatstream.format.manifest import manifest_from_dict
