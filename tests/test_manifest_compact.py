@@ -5,7 +5,7 @@ import msgpack
 import numpy as np
 import pytest
 import zstandard
-from conftest import real
+from conftest import real, run_cli
 
 from splatstream.encode import EncodeOptions, encode_in_memory
 from splatstream.errors import FormatError
@@ -124,3 +124,16 @@ def test_a_compact_table_in_an_older_version_is_an_unknown_key(scenes):
     raw, _ = scenes[True]
     with pytest.raises(FormatError, match=r"tiles: missing"):
         parse_manifest(_damaged(raw, lambda d: d.update(version=[1, 11])))
+
+
+def test_encode_writes_the_compact_table_unless_told_not_to(tmp_path):
+    """`encode` writes a tree as 1.12 (the compact table); `--no-compact-table` as the 1.8 table, the same payloads."""
+    for name, extra in (("compact", []), ("plain", ["--no-compact-table"])):
+        r = run_cli("encode", real("fruit_drops_sh3.ply"), tmp_path / name, "--max-leaf-splats", "2000", "-q", *extra)
+        assert r.returncode == 0, r.stderr
+    compact, plain = ((tmp_path / n / "manifest.msgpack").read_bytes() for n in ("compact", "plain"))
+    assert "tile_table_zstd" in msgpack.unpackb(compact, strict_map_key=False)
+    assert "tile_table" in msgpack.unpackb(plain, strict_map_key=False)
+    assert parse_manifest(compact).version == VERSION_1_12 and parse_manifest(plain).version == VERSION_1_10
+    assert sorted(p.name for p in (tmp_path / "compact" / "data").iterdir()) == sorted(
+        p.name for p in (tmp_path / "plain" / "data").iterdir())
