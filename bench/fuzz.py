@@ -954,7 +954,7 @@ def mutate_gltf_dir(rng: random.Random, gltf: pathlib.Path) -> str:
 
 
 def _manifest_dict(scene: pathlib.Path) -> dict:
-    """The manifest map; an unpaged 1.8 tile table (format.md 6.2) as the same scene's 1.7 tile maps, so that a
+    """The manifest map; an unpaged 1.8 or 1.12 tile table (format.md 6.2) as the same scene's 1.7 tile maps, so that a
     campaign damages one tile's map as before (the table's own damage: tests/test_manifest_table.py)."""
     from dataclasses import replace
 
@@ -964,7 +964,7 @@ def _manifest_dict(scene: pathlib.Path) -> dict:
     from splatstream.format.manifest.versions import VERSION_1_7
 
     d = msgpack.unpackb((scene / "manifest.msgpack").read_bytes(), raw=False, strict_map_key=False)
-    if "tile_table" not in d or "paged" in d:
+    if not {"tile_table", "tile_table_zstd"} & d.keys() or "paged" in d:
         return d
     m = replace(manifest_from_dict(d), version=VERSION_1_7)
     return m.with_bytes_on_disk(m.payload_bytes()).to_dict()

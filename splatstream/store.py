@@ -249,11 +249,15 @@ class PayloadWriter(Protocol):
     def payload_file(self) -> contextlib.AbstractContextManager[tuple[BinaryIO, callable]]: ...
 
 
-def write_scene_manifest(writer: SceneWriter, m: Manifest, page_tiles: int, page_levels: int) -> Manifest:
+def write_scene_manifest(writer: SceneWriter, m: Manifest, page_tiles: int, page_levels: int,
+                         compact_table: bool = False) -> Manifest:
     """Publish a scene's manifest: as it is, or, for a tree of more than `page_tiles` tiles (0: never), as a root
     manifest and its pages (format.md 6.1), the pages written like payloads before the root that names them.
+    compact_table: a tree's tiles as the compact tile table (format.md 6.2, version 1.12: Manifest.compacted).
     Returns the whole manifest as a reader of the scene gets it (load_manifest: every tile; a paged scene's
     version, `paged` and `bytes_on_disk` from its root)."""
+    if compact_table and len(m.tiles) > 1:
+        m = m.compacted()
     if not page_tiles or len(m.tiles) <= page_tiles:
         writer.write_manifest(m)
         return m

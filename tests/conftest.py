@@ -140,14 +140,14 @@ def read_manifest_dict(scene_dir) -> dict:
 
 
 def tile_maps(d: dict) -> dict:
-    """A manifest map holding a tile table (1.8, unpaged) as the map the same scene has as version 1.7 (tile maps,
-    bytes_on_disk settled); any other map as it is."""
+    """A manifest map holding a tile table (1.8, or 1.12's compact one; unpaged) as the map the same scene has as
+    version 1.7 (tile maps, bytes_on_disk settled); any other map as it is."""
     from dataclasses import replace
 
     from splatstream.format.manifest import manifest_from_dict
     from splatstream.format.manifest.versions import VERSION_1_7
 
-    if "tile_table" not in d or "paged" in d:
+    if not {"tile_table", "tile_table_zstd"} & d.keys() or "paged" in d:
         return d
     m = manifest_from_dict(d)  # without the tree's build record (1.9), which a 1.7 manifest does not have
     m = replace(m, version=VERSION_1_7, lod=replace(m.lod, merge=None, viewing_scale_px=None))

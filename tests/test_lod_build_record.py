@@ -28,7 +28,9 @@ from splatstream.io import read_gaussians
 from splatstream.store import MemoryWriter, load_manifest
 
 VECTORS = pathlib.Path(__file__).resolve().parents[1] / "format_spec" / "vectors"
-TREE = {"max_leaf_splats": 300}
+# The 1.8 tile table (compact_table off): these tests pin the versions the records need (1.9, 1.10); a compact
+# table makes any tree 1.12 (format.md 6.2, test_manifest_compact.py).
+TREE = {"max_leaf_splats": 300, "compact_table": False}
 
 
 @pytest.fixture(scope="module")
@@ -151,7 +153,7 @@ def test_the_table_vector_is_a_2_px_tree_that_today_s_encoder_records(tmp_path, 
     spec.loader.exec_module(make_vectors)
     source = read_gaussians(make_vectors.SOURCE)
     g = source.subset(morton_order(source.positions)[:make_vectors.PAGED_SPLATS])
-    opts = EncodeOptions(preset="medium", name="vector-table", zstd_level=3, **make_vectors.PAGED)
+    opts = EncodeOptions(preset="medium", name="vector-table", zstd_level=3, compact_table=False, **make_vectors.PAGED)
     old = load_manifest(VECTORS / "table")
     old_files = {p.file for _, _, p in old.payloads()}
     encode_gaussians(g, tmp_path / "today", opts)

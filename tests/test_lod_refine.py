@@ -31,7 +31,9 @@ from splatstream.lod_refine import (
 )
 from splatstream.scene_decode import decode_scene
 
-TREE = {"max_leaf_splats": 300}
+# The 1.8 tile table (compact_table off), so the versions pinned here are the refinement record's (1.11); a compact
+# table makes any tree 1.12 (format.md 6.2).
+TREE = {"max_leaf_splats": 300, "compact_table": False}
 
 
 @pytest.fixture(scope="module")

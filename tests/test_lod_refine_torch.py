@@ -129,7 +129,7 @@ def test_the_refiner_on_the_cpu_keeps_per_level_what_validates_best():
     m = parse_manifest(encode_in_memory(g, EncodeOptions(max_leaf_splats=256, lod_refiner=LevelRefiner(
         RefineSettings(iterations=2, size=16, training_cameras=4, validation_cameras=2, batch=2, device="cpu",
                        backend="dense")))).read_manifest())
-    assert m.version == VERSION_1_11 and m.lod.refinement.size_px == 16
+    assert m.version >= VERSION_1_11 and m.lod.refinement.size_px == 16  # 1.12 with the compact table
 
 
 def test_the_refiner_on_cuda_improves_the_levels():

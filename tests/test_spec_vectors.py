@@ -3,6 +3,7 @@ import hashlib
 import importlib.util
 import json
 import pathlib
+from dataclasses import replace
 
 import msgpack
 import numpy as np
@@ -139,6 +140,52 @@ def test_table_vector_reads_its_tile_tables_and_decodes_to_expected_values():
     assert len(g) == expected["splats"] == m.splats == 600
     for field in ("positions", "rotations", "log_scales", "opacities", "sh_dc", "sh_rest"):
         assert np.array_equal(getattr(g, field), np.array(expected[field], np.float32)), field
+
+
+def test_compact_vector_holds_compact_tables_and_decodes_to_expected_values():
+    """format.md 6.2 and 8: the `compact` vector (1.12) is `levels`'s tree paged two levels to a file; its root
+    manifest and every page hold `tile_table_zstd` (a zstd frame of the table with f32 bounds), and with every page
+    read it is `levels`'s tree: the same payloads, each tile's bounds `levels`'s rounded outward to float32."""
+    scene = VECTORS / "compact"
+    raw = (scene / "manifest.msgpack").read_bytes()
+    d = msgpack.unpackb(raw, strict_map_key=False)
+    assert "tile_table_zstd" in d and "tile_table" not in d and d["version"] == [1, 12]
+    table = msgpack.unpackb(zstandard.ZstdDecompressor().decompress(d["tile_table_zstd"]), strict_map_key=False)
+    assert len(table["box"]) == table["count"] * 6 * 4  # f32
+    root = parse_manifest(raw)
+    assert root.paged.page_levels == 2 and {t.level for t in root.tiles} == {0, 1}
+    m = load_manifest(scene)
+    plain = load_manifest(VECTORS / "levels")
+    assert len(m.tiles) == len(plain.tiles) == root.paged.tiles == 41
+    payloads = {p.file for _, _, p in m.payloads()}
+    pages = {p.name for p in (scene / "data").iterdir()} - {f.split("/")[1] for f in payloads}
+    assert len(pages) == root.paged.pages > 1
+    for name in pages:
+        page = msgpack.unpackb((scene / "data" / name).read_bytes(), strict_map_key=False)
+        assert "tile_table_zstd" in page and page["version"] == [1, 12]
+    for a, b in zip(m.tiles, plain.tiles, strict=True):
+        assert {k: e.sha256 for k, e in a.groups.items()} == {k: e.sha256 for k, e in b.groups.items()}
+        assert all(float(np.float32(v)) == v for v in (*a.box.min, *a.box.max, *a.sphere_center, a.sphere_radius))
+        assert all(x <= y for x, y in zip(a.box.min, b.box.min, strict=True))
+        assert all(x >= y for x, y in zip(a.box.max, b.box.max, strict=True))
+        assert a.sphere_radius >= b.sphere_radius and a.geometric_error >= b.geometric_error
+    expected = json.loads((scene / "expected.json").read_text())
+    g = decode_scene(scene)
+    assert len(g) == expected["splats"] == m.splats == 600
+    for field in ("positions", "rotations", "log_scales", "opacities", "sh_dc", "sh_rest"):
+        assert np.array_equal(getattr(g, field), np.array(expected[field], np.float32)), field
+
+
+def test_compact_vector_is_what_the_encoder_writes_today(tmp_path):
+    """Encoded again by make_vectors: the same version, the same tiles (bounds included) and the same payloads'
+    decompressed bytes (zstd's own bytes may differ between zstd versions: those are not pinned)."""
+    fresh = tmp_path / "compact"
+    make_vectors().encode_compact_vector(fresh)
+    regenerate = "regenerate it: PYTHONPATH=. python format_spec/vectors/make_vectors.py compact"
+    new, old = load_manifest(fresh), load_manifest(VECTORS / "compact")
+    assert (new.version, new.lod, new.paged) == (old.version, old.lod, old.paged), regenerate
+    unnamed = [[replace(t, page=None).to_dict() for t in m.tiles] for m in (new, old)]  # a page's name is its hash
+    assert unnamed[0] == unnamed[1], regenerate
 
 
 # The committed vectors' zstd blocks (format.md 5.2, 8): written by the encoder that lets like parts of a small

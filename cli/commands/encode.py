@@ -104,6 +104,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                         f"{EncodeOptions.page_tiles}: measured, BENCHMARKS.md)")
     p.add_argument("--page-levels", type=int, default=EncodeOptions.page_levels,
                    help=f"tree levels in the root manifest and in each page (default {EncodeOptions.page_levels})")
+    p.add_argument("--no-compact-table", action="store_true",
+                   help="write a tree's tiles as format 1.8's tile table, not the compact one of 1.12 (f32 bounds "
+                        "rounded outward, zstd: a third of the manifest's bytes, which a small budget reads before "
+                        "any tile; BENCHMARKS.md), for readers older than 1.12")
     p.add_argument("--zstd-level", type=int, default=None,
                    help=f"zstd level of the payloads (1..22; default {DEFAULT_ZSTD_LEVEL}, "
                         + ", ".join(f"{k} {v}" for k, v in PRESET_ZSTD_LEVEL.items())
@@ -208,7 +212,7 @@ def run(args: argparse.Namespace) -> int:
                             lod=not args.no_lod, max_leaf_splats=args.max_leaf_splats, reduction=args.reduction,
                             lod_merge=args.lod_merge, name=args.name, up=up, chunk_order=args.chunk_order,
                             sh_codebook=args.sh_codebook, page_tiles=args.page_tiles, page_levels=args.page_levels,
-                            lod_refiner=lod_refiner)
+                            compact_table=not args.no_compact_table, lod_refiner=lod_refiner)
     if not args.quiet:
         print(f"wrote {args.output_dir}: {m.splats} splats, SH degree {m.sh_degree}, preset {m.preset}, "
               f"{count(len(m.tiles), 'tile')}, {m.bytes_on_disk / 1e6:.2f} MB on disk "
@@ -274,7 +278,7 @@ def _encode_foreign_tree(args: argparse.Namespace, kind: str, preset: str, overr
     opts = EncodeOptions(preset=preset, overrides=overrides, sh_degree=args.sh_degree,
                          zstd_level=args.zstd_level, transport=args.transport, name=args.name, up=up,
                          chunk_order=args.chunk_order, sh_codebook=args.sh_codebook, page_tiles=args.page_tiles,
-                         page_levels=args.page_levels)
+                         page_levels=args.page_levels, compact_table=not args.no_compact_table)
     return encode_tree_to(reader(args.input[0], progress), args.output_dir, args.input[0], opts, progress)
 
 
@@ -304,6 +308,7 @@ def _preset_for_target(args: argparse.Namespace, up: tuple[float, float, float] 
                        encode_options={"max_leaf_splats": args.max_leaf_splats, "reduction": args.reduction,
                                        "lod_merge": target_lod_merge(args.lod_merge, distributed),
                                        "page_tiles": args.page_tiles, "page_levels": args.page_levels,
+                                       "compact_table": not args.no_compact_table,
                                        "transport": args.transport,
                                        "chunk_order": args.chunk_order})
     report = evaluate(args.input[0], opts, log=log, renderer=pick_renderer("auto"))

@@ -2,9 +2,9 @@
 
     PYTHONPATH=. python format_spec/vectors/make_vectors.py [NAME ...]
 
-NAME: high, medium, low, very-low, paged, table, levels, refined (default: all). tests/test_spec_vectors.py encodes
-the presets' scenes again with `encode_vector` (and `levels`, `refined` with `encode_record_vector`) and fails when
-what the encoder writes today no longer matches the vector."""
+NAME: high, medium, low, very-low, paged, table, levels, refined, compact (default: all). tests/test_spec_vectors.py
+encodes the presets' scenes again with `encode_vector` (`levels`, `refined` with `encode_record_vector`, `compact`
+with `encode_compact_vector`) and fails when what the encoder writes today no longer matches the vector."""
 import json
 import pathlib
 import shutil
@@ -33,7 +33,11 @@ PAGED = {"max_leaf_splats": 64, "page_tiles": 1, "page_levels": 1, "sh_degree": 
 # The LOD records of format 1.10 and 1.11 (format.md 6): `paged`'s 600 splats and tree in one manifest (not paged), as
 # today's encoder writes them: `levels` records the viewing scale per level (lod.viewing_scale_levels_px, 1.10),
 # `refined` is the same encode with a refinement record (lod.refinement, 1.11) from REFINER below.
-TREE = {"max_leaf_splats": 64, "sh_degree": 1, "lod_merge": "grid"}
+# Both keep the 1.8 tile table (compact_table=False), so they stay vectors of those two versions.
+TREE = {"max_leaf_splats": 64, "sh_degree": 1, "lod_merge": "grid", "compact_table": False}
+# The compact tile table of format 1.12 (format.md 6.2): the same tree as `levels`, paged two levels to a file so that
+# the root manifest and its pages all hold `tile_table_zstd` (f32 bounds rounded outward, zstd-compressed).
+COMPACT = {"max_leaf_splats": 64, "sh_degree": 1, "lod_merge": "grid", "page_tiles": 1, "page_levels": 2}
 # `refined`'s record (informative metadata: fixed values, not a GPU's): every merged level tried B and C; the first
 # merged level kept B, the levels above it stayed as built.
 REFINED_PSNR = ((UNREFINED, 30.0), ("B", 31.5), ("C", 31.25))
@@ -92,12 +96,25 @@ def encode_record_vector(name: str, out: pathlib.Path, source=None) -> None:
 RECORDS = ["levels", "refined"]
 
 
+def encode_compact_vector(out: pathlib.Path, source=None) -> None:
+    """The compact-table vector (format 1.12, without expected.json)."""
+    source = read_gaussians_ply(SOURCE) if source is None else source
+    g = source.subset(morton_order(source.positions)[:PAGED_SPLATS])
+    encode_gaussians(g, out, EncodeOptions(preset="medium", name="vector-compact", zstd_level=3, **COMPACT))
+
+
 def main(names: list[str]) -> None:
-    unknown = set(names) - {*PRESETS, "paged", "table", *RECORDS}
+    unknown = set(names) - {*PRESETS, "paged", "table", *RECORDS, "compact"}
     if unknown:
         raise SystemExit(f"unknown vector {sorted(unknown)[0]!r} (choose from {', '.join(PRESETS)}, paged, table, "
-                         f"{', '.join(RECORDS)})")
+                         f"{', '.join(RECORDS)}, compact)")
     source = read_gaussians_ply(SOURCE)
+    if not names or "compact" in names:
+        out = HERE / "compact"
+        shutil.rmtree(out, ignore_errors=True)
+        encode_compact_vector(out, source)
+        (out / "expected.json").write_text(json.dumps(expected_values(decode_scene(out))) + "\n")
+        print("wrote", out)
     for name in RECORDS:
         if not names or name in names:
             out = HERE / name

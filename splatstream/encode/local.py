@@ -54,7 +54,7 @@ def encode_to(g: Gaussians, writer: SceneWriter, opts: EncodeOptions, progress: 
                 progress("encode", done / total)
             entries.append(tile_entry(tile, payloads))
         m = build_manifest(plan.scene, camera.result(), entries, codebook)
-    return write_scene_manifest(writer, m, opts.page_tiles, opts.page_levels)
+    return write_scene_manifest(writer, m, opts.page_tiles, opts.page_levels, opts.compact_table)
 
 
 @contextlib.contextmanager

@@ -67,6 +67,10 @@ class EncodeOptions:
     lod_refiner: LodRefiner | None = None
     page_tiles: int = 1024
     page_levels: int = 6
+    # A tree's tiles as the compact tile table (format.md 6.2, version 1.12: bounds as f32 rounded outward, the table
+    # zstd-compressed): a third of the 1.8 table's bytes on the real scenes, which a small budget reads before any
+    # tile (issue 31; BENCHMARKS.md, "Manifest pages"). False: the 1.8 table and the version the scene needs.
+    compact_table: bool = True
     name: str | None = None
     up: tuple[float, float, float] | None = None
     chunk_order: str = "auto"  # "morton", "luminance", or "auto" (luminance when only colour/SH are BC-compressed)

@@ -750,7 +750,7 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
         engine.map_behind(delete_scratch, [(scratch, [f"originals/{p}"]) for p in range(partitions)], "cleanup")
     m = build_manifest(scene, sample.camera(scene.up), sorted(entries, key=lambda t: t.id), codebook_entry)
     engine.settle()
-    return write_scene_manifest(writer, m, opts.page_tiles, opts.page_levels)
+    return write_scene_manifest(writer, m, opts.page_tiles, opts.page_levels, opts.compact_table)
 
 
 def _upper_tiles(engine: Engine, scratch: Scratch, shape: TreeShape, level: int, root_splats: list[int],

@@ -19,14 +19,28 @@ from __future__ import annotations
 from collections.abc import Sequence
 from typing import NoReturn
 
+import msgpack
 import numpy as np
+import zstandard
 
 from ...errors import FormatError
 from ..layout import ALIGN, BLOCK
 from ..names import payload_name
 from ..planes import MAX_SH_DEGREE
+from .wire import check_msgpack_bomb
 
 TABLE_KEY = "tile_table"
+# Version 1.12 (format.md 6.2, "The compact tile table"): the same table with its bounds as f32 rounded outward,
+# packed with msgpack and compressed with zstd, as one bin under this key in place of `tile_table`. A budgeted view
+# of a 45-100k-splat scene draws a few tens of KB of tiles: the 1.8 table's 35-41 KB was most of what it read
+# (issue 31, BENCHMARKS.md "Manifest pages", branch manifest31).
+TABLE_ZSTD_KEY = "tile_table_zstd"
+COMPACT_FLOAT_COLUMNS = ("box", "sphere", "geometric_error")  # f32 in the compact table, f64 in the plain one
+# zstd level of the compact table: written once, read before the first frame; 19 is 3-7 % smaller than 3 or 9 on
+# the real scenes' tables (donut 11.4 KB against 12.0 at 9), for 8-19 ms of encode CPU (0.2 ms a KB of table)
+COMPACT_TABLE_ZSTD_LEVEL = 19
+# The largest compact table a reader inflates: a manifest's own limit (wire.MAX_MANIFEST_BYTES)
+MAX_COMPACT_TABLE_BYTES = 64 << 20
 
 # Column name -> (dtype, values per row); rows: "tile" (T), "payload" (T x groups), or a count of their own.
 _TILE_COLUMNS = {"id": ("<u4", 1), "level": ("u1", 1), "children": ("<u4", 1), "splats": ("<u4", 1),
@@ -70,9 +84,78 @@ def packable(tiles: Sequence) -> bool:
     return True
 
 
-def pack_tile_table(tiles: Sequence, group_names: Sequence[str]) -> dict:
-    """The `tile_table` map of these tiles (in their order): format.md 6.2. Raises ValueError where a payload is
-    not laid out as the table derives it (packable)."""
+def down_f32(x) -> np.ndarray:
+    """Each value as the largest float32 at or below it (a box's min, rounded outward)."""
+    x = np.asarray(x, np.float64)
+    with np.errstate(over="ignore"):  # beyond float32's range: inf, which compact_columns refuses
+        f = x.astype(np.float32)
+    return np.where(f.astype(np.float64) > x, np.nextafter(f, np.float32(-np.inf)), f)
+
+
+def up_f32(x) -> np.ndarray:
+    """Each value as the smallest float32 at or above it (a box's max, a radius, a geometric error)."""
+    x = np.asarray(x, np.float64)
+    with np.errstate(over="ignore"):  # beyond float32's range: inf, which compact_columns refuses
+        f = x.astype(np.float32)
+    return np.where(f.astype(np.float64) < x, np.nextafter(f, np.float32(np.inf)), f)
+
+
+def compact_columns(box: np.ndarray, sphere: np.ndarray, error: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Tiles' bounds (box T x 6, sphere T x 4, geometric error T; f64) as float32 values that still hold what the
+    f64 ones did (format.md 6.2, the compact table): the box rounded outward, each centre to the nearest float32 and
+    its radius grown by the centre's move and rounded up, the geometric error rounded up, so culling and the
+    screen-space error stay conservative. Values already float32 come back unchanged (compacting twice is
+    compacting once). Raises ValueError where a bound is beyond float32's range."""
+    box = np.concatenate([down_f32(box[:, :3]), up_f32(box[:, 3:])], axis=1)
+    center = sphere[:, :3].astype(np.float32)
+    moved = np.sqrt(((center.astype(np.float64) - sphere[:, :3]) ** 2).sum(axis=1))
+    radius = np.where(moved == 0.0, sphere[:, 3], np.nextafter(sphere[:, 3] + moved, np.inf))
+    sphere = np.concatenate([center, up_f32(radius)[:, None]], axis=1)
+    error = up_f32(error)
+    if not (np.isfinite(box).all() and np.isfinite(sphere).all() and np.isfinite(error).all()):
+        raise ValueError("a tile's bounds are beyond float32's range: not a compact tile table")
+    return box, sphere, error
+
+
+def pack_compact_table(tiles: Sequence, group_names: Sequence[str]) -> bytes:
+    """The `tile_table_zstd` bin of these tiles (format.md 6.2, version 1.12): the tile table with f32 bounds
+    (rounded outward: compact_bounds), msgpack-packed and zstd-compressed. Raises ValueError where the table
+    cannot be written (packable) or a bound is beyond float32's range."""
+    d = pack_tile_table(tiles, group_names, compact=True)
+    raw = msgpack.packb(d, use_bin_type=True)
+    return zstandard.ZstdCompressor(level=COMPACT_TABLE_ZSTD_LEVEL, write_content_size=True).compress(raw)
+
+
+def unpack_compact_table(v, source: str) -> dict:
+    """The tile table map a `tile_table_zstd` bin holds (its f32 columns as they are; read_columns(compact=True)
+    reads them), or FormatError naming the key: not a bin, not a zstd frame that states its size, larger than
+    MAX_COMPACT_TABLE_BYTES, or not a msgpack map."""
+    if type(v) is not bytes:
+        raise FormatError(source, TABLE_ZSTD_KEY, f"expected a bin (a zstd frame), got {type(v).__name__}")
+    try:
+        size = zstandard.frame_content_size(v)
+    except zstandard.ZstdError as exc:
+        raise FormatError(source, TABLE_ZSTD_KEY, f"not a zstd frame ({exc})") from None
+    if not 0 < size <= MAX_COMPACT_TABLE_BYTES:
+        raise FormatError(source, TABLE_ZSTD_KEY, "expected a zstd frame stating its size, "
+                          f"1..{MAX_COMPACT_TABLE_BYTES} bytes, got {'no size' if size < 0 else size}")
+    try:
+        raw = zstandard.ZstdDecompressor().decompress(v, max_output_size=size)
+    except zstandard.ZstdError as exc:
+        raise FormatError(source, TABLE_ZSTD_KEY, f"a damaged zstd frame ({exc})") from None
+    if len(raw) != size:
+        raise FormatError(source, TABLE_ZSTD_KEY, f"the frame states {size} bytes but holds {len(raw)}")
+    check_msgpack_bomb(raw, f"{source} {TABLE_ZSTD_KEY}")
+    try:
+        return msgpack.unpackb(raw, raw=False, strict_map_key=False)
+    except Exception as exc:  # msgpack raises several unrelated types for garbage
+        raise FormatError(source, TABLE_ZSTD_KEY, f"not a msgpack map ({exc.__class__.__name__}: {exc})") from None
+
+
+def pack_tile_table(tiles: Sequence, group_names: Sequence[str], compact: bool = False) -> dict:
+    """The `tile_table` map of these tiles (in their order): format.md 6.2. compact: the bounds as f32 rounded
+    outward (the map a 1.12 `tile_table_zstd` holds). Raises ValueError where a payload is not laid out as the
+    table derives it (packable), or, compact, where a bound is beyond float32's range."""
     if not packable(tiles):
         raise ValueError("a payload's sections are not in order at 16-byte alignment: not a 1.8 tile table")
     n, g = len(tiles), len(group_names)
@@ -96,6 +179,13 @@ def pack_tile_table(tiles: Sequence, group_names: Sequence[str]) -> dict:
             sizes += [s.size for s in e.sections]
     if len(layouts) > MAX_LAYOUTS:
         raise ValueError(f"{len(layouts)} section layouts: more than {MAX_LAYOUTS}")
+    box = np.array([(*t.box.min, *t.box.max) for t in tiles], np.float64).reshape(n, 6)
+    sphere = np.array([(*t.sphere_center, t.sphere_radius) for t in tiles], np.float64).reshape(n, 4)
+    error = np.array([t.geometric_error for t in tiles], np.float64)
+    float_type = "<f8"
+    if compact:
+        float_type = "<f4"
+        box, sphere, error = compact_columns(box, sphere, error)
     d = {
         "count": n,
         "id": _bin([t.id for t in tiles], "<u4"),
@@ -103,9 +193,9 @@ def pack_tile_table(tiles: Sequence, group_names: Sequence[str]) -> dict:
         "children": _bin([len(t.children) for t in tiles], "<u4"),
         "splats": _bin([t.splats for t in tiles], "<u4"),
         "texture": _bin([(t.texture[0] // BLOCK, t.texture[1] // BLOCK) for t in tiles], "<u2"),
-        "box": _bin([(*t.box.min, *t.box.max) for t in tiles], "<f8"),
-        "sphere": _bin([(*t.sphere_center, t.sphere_radius) for t in tiles], "<f8"),
-        "geometric_error": _bin([t.geometric_error for t in tiles], "<f8"),
+        "box": _bin(box, float_type),
+        "sphere": _bin(sphere, float_type),
+        "geometric_error": _bin(error, float_type),
         "child_ids": _bin(child_ids, "<u4"),
         "groups": list(group_names),
         "layouts": [[list(s) for s in key] for key in layouts],
@@ -146,9 +236,12 @@ def _array(d: dict, key: str, dtype: str, width: int, rows: int, source: str, fi
     return a.reshape(rows, width) if width > 1 else a
 
 
-def read_columns(d, source: str, strict: bool, max_tiles: int, paged: bool, group_names: tuple[str, ...]) -> Columns:
+def read_columns(d, source: str, strict: bool, max_tiles: int, paged: bool, group_names: tuple[str, ...],
+                 compact: bool = False) -> Columns:
     """The columns of a `tile_table` map (format.md 6.2), each a bin of the length its rows make, or FormatError
-    naming the column (`tile_table.sizes: expected 96 bytes (24 x 1 <u4), got 95`); `groups` the scene's."""
+    naming the column (`tile_table.sizes: expected 96 bytes (24 x 1 <u4), got 95`); `groups` the scene's.
+    compact: the map of a 1.12 `tile_table_zstd` (unpack_compact_table), whose bounds are f32 (given back as f64,
+    exactly)."""
     if type(d) is not dict:
         raise FormatError(source, TABLE_KEY, f"expected a map, got {type(d).__name__}")
     for k in _KEYS:
@@ -175,7 +268,10 @@ def read_columns(d, source: str, strict: bool, max_tiles: int, paged: bool, grou
         if type(lay) is not list or not all(type(s) is list and len(s) == 2 and type(s[0]) is str and type(s[1])
                                             is str for s in lay):
             _fail(source, f"layouts[{i}]", f"expected a list of [section name, filter] pairs, got {lay!r:.80}")
-    cols = {k: _array(d, k, dt, w, n, source) for k, (dt, w) in _TILE_COLUMNS.items()}
+    cols = {k: _array(d, k, "<f4" if compact and k in COMPACT_FLOAT_COLUMNS else dt, w, n, source)
+            for k, (dt, w) in _TILE_COLUMNS.items()}
+    if compact:
+        cols.update({k: cols[k].astype(np.float64) for k in COMPACT_FLOAT_COLUMNS})
     g = len(groups)
     cols.update({k: _array(d, k, dt, w * g, n, source) for k, (dt, w) in _PAYLOAD_COLUMNS.items()})
     cols["sha256"] = cols["sha256"].reshape(n, g, 32)

@@ -61,7 +61,7 @@ from .model import (
     filter_element,
     texels_size,
 )
-from .table import TABLE_KEY, canonical_offsets, read_columns
+from .table import TABLE_KEY, TABLE_ZSTD_KEY, canonical_offsets, read_columns, unpack_compact_table
 from .versions import (
     CHECKSUM_VERSION,
     CHUNK_ORDERS_1_4,
@@ -78,6 +78,7 @@ from .versions import (
     VERSION_1_9,
     VERSION_1_10,
     VERSION_1_11,
+    VERSION_1_12,
 )
 from .wire import CHECKSUM_KEY, unpack_manifest, verify_checksum
 
@@ -98,6 +99,7 @@ _TOP_KEYS = ("format", "version", "splats", "sh_degree", "formats", "chunk_size"
              "extent_bounds", "gpu_bytes", "gpu_bytes_per_splat", "leaf_bytes_on_disk", "encode_seconds",
              "bytes_on_disk")
 _TOP_KEYS_TABLE = tuple(TABLE_KEY if k == "tiles" else k for k in _TOP_KEYS)  # 1.8: the tile table (6.2)
+_TOP_KEYS_COMPACT = tuple(TABLE_ZSTD_KEY if k == "tiles" else k for k in _TOP_KEYS)  # 1.12: the compact table
 _TILE_KEYS = ("id", "splats", "chunks", "texture", "sphere", "groups", "level", "children", "box", "geometric_error")
 _PAYLOAD_KEYS = ("sha256", "file", "raw_bytes", "bytes", "gpu_bytes", "sections")
 _SECTION_KEYS = ("name", "kind", "offset", "size", "filter")
@@ -672,11 +674,28 @@ def _kind(entry: PayloadEntry) -> tuple[tuple[Section, ...], np.ndarray, np.ndar
     return tuple(template), np.array(lo, np.int64), np.array(hi, np.int64), entry.gpu_bytes
 
 
-def _table_tiles(v, scene: _Scene) -> list[TileEntry]:
+def _tiles_key(d: dict, version: tuple[int, int]) -> str:
+    """The key a manifest's or page's tiles are under: `tile_table_zstd` (1.12), `tile_table` (1.8) or `tiles`."""
+    if version >= VERSION_1_12 and TABLE_ZSTD_KEY in d:
+        return TABLE_ZSTD_KEY
+    return TABLE_KEY if version >= VERSION_1_8 and TABLE_KEY in d else "tiles"
+
+
+def _any_tiles(d: dict, key: str, scene: _Scene) -> list[TileEntry]:
+    """The tiles under `key` (_tiles_key), checked."""
+    if key == "tiles":
+        return _tiles(_list(d, "tiles", scene.source, "", MAX_TILES), scene)
+    return _table_tiles(d[key], scene, compact=key == TABLE_ZSTD_KEY)
+
+
+def _table_tiles(v, scene: _Scene, compact: bool = False) -> list[TileEntry]:
     """A tile table (format.md 6.2, version 1.8) into its tiles, every field checked over the columns; a payload
-    entry at fault is named by the same line as a tile map's (`tile_table[3].groups.base.sections[2].size`)."""
+    entry at fault is named by the same line as a tile map's (`tile_table[3].groups.base.sections[2].size`).
+    compact: `v` is a 1.12 `tile_table_zstd` bin (inflated here; its columns named as a tile table's)."""
     source, strict = scene.source, scene.strict
-    c = read_columns(v, source, strict, MAX_TILES, bool(scene.tile_optional), scene.group_names)
+    if compact:
+        v = unpack_compact_table(v, source)
+    c = read_columns(v, source, strict, MAX_TILES, bool(scene.tile_optional), scene.group_names, compact)
     n, g = c.count, len(c.groups)
     chunks = _table_tile_checks(c, source)
     texture = c.texture.astype(np.int64) * BLOCK
@@ -1049,8 +1068,9 @@ def manifest_from_dict(d, source: str = MANIFEST_NAME, lazy_payloads: bool = Fal
         optional += ("paged",)
     if version >= VERSION_1_7:
         optional += ("palettes",)
-    table = version >= VERSION_1_8 and TABLE_KEY in d
-    _keys(d, _TOP_KEYS_TABLE if table else _TOP_KEYS, source, "", strict, optional)
+    tiles_key = _tiles_key(d, version)
+    _keys(d, {TABLE_ZSTD_KEY: _TOP_KEYS_COMPACT, TABLE_KEY: _TOP_KEYS_TABLE}.get(tiles_key, _TOP_KEYS), source, "",
+          strict, optional)
     splats = _int(d, "splats", source, "", 1)
     sh_degree = _int(d, "sh_degree", source, "", 0, MAX_SH_DEGREE)
     formats = _formats(d, version, source, strict)
@@ -1062,7 +1082,7 @@ def manifest_from_dict(d, source: str = MANIFEST_NAME, lazy_payloads: bool = Fal
     palettes = _palettes(d, formats, source) if version >= VERSION_1_7 and "palettes" in d else None
     scene = _Scene(source, strict, formats, sh_degree, codebook is not None, lazy_payloads, version,
                    tuple(palettes or ()))
-    tiles = _table_tiles(d[TABLE_KEY], scene) if table else _tiles(_list(d, "tiles", source, "", MAX_TILES), scene)
+    tiles = _any_tiles(d, tiles_key, scene)
     if not tiles:
         _fail(source, "", "tiles", "no tiles: a scene has at least its root tile")
     root = _int(d, "root", source, "", 0, 2**31 - 1)
@@ -1119,13 +1139,13 @@ def page_tiles(d, source: str, root: Manifest, parent: TileEntry, lazy_payloads:
         raise FormatError(source, "version", f"expected {list(root.version)} (the manifest's), got "
                           f"{d.get('version')!r}")
     strict = root.version[1] <= FORMAT_VERSION[1]
-    table = root.version >= VERSION_1_8 and TABLE_KEY in d
-    _keys(d, ("format", "version", "parent", TABLE_KEY if table else "tiles"), source, "", strict)
+    tiles_key = _tiles_key(d, root.version)
+    _keys(d, ("format", "version", "parent", tiles_key), source, "", strict)
     if _int(d, "parent", source, "", 0, 2**31 - 1) != parent.id:
         _fail(source, "", "parent", f"expected {parent.id} (the tile naming this page), got {d['parent']}")
     scene = _Scene(source, strict, root.formats, root.sh_degree, root.sh_codebook is not None, lazy_payloads,
                    root.version, tuple(root.palettes or ()))
-    tiles = _table_tiles(d[TABLE_KEY], scene) if table else _tiles(_list(d, "tiles", source, "", MAX_TILES), scene)
+    tiles = _any_tiles(d, tiles_key, scene)
     k = root.paged.page_levels
     by_id = {t.id: t for t in tiles}
     position = {t.id: i for i, t in enumerate(tiles)}

@@ -4,7 +4,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 FORMAT_NAME = "splatstream"
-FORMAT_VERSION = (1, 11)  # (major, minor) this code reads; what it writes: writer_version
+FORMAT_VERSION = (1, 12)  # (major, minor) this code reads; what it writes: writer_version
 # Version 1.2 added two things (format.md, version history): the manifest's last key `checksum`, the SHA-256 of the
 # file with that value's 64 bytes read as ASCII '0' (format.md 6, "Checksum"), so a flipped byte in the manifest is
 # caught like one in a payload; and the `fields1` transport coding of texels sections (format.md 5.2).
@@ -61,3 +61,9 @@ VERSION_1_10 = (1, 10)
 # scene whole and ignores the key. (1.10 is branch farpx31's `lod.viewing_scale_levels_px`, merged into main while
 # this branch was open: on this branch alone 1.10 adds nothing.)
 VERSION_1_11 = (1, 11)
+# Version 1.12 added the compact tile table (format.md 6.2): `tile_table_zstd`, the tile table with its bounds as f32
+# rounded outward, msgpack-packed and zstd-compressed, in place of `tile_table`; written by every tree splatstream
+# encodes (its pages too). A 45-100k-splat scene's manifest went from 35-41 KB to 12-13 KB, which at a 2 % budget was
+# most of what a view read (issue 31). A 1.8 to 1.11 reader rejects it naming the missing `tiles` (it knows neither
+# key of a newer minor version): it fails cleanly and misreads nothing.
+VERSION_1_12 = (1, 12)
