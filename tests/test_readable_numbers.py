@@ -53,6 +53,7 @@ def test_encode_and_info_say_which_bytes_per_splat_is_which_in_plain_words(tmp_p
     assert "B/splat at full detail, " in last and " with all LOD levels)" in last
     r = run_cli("info", tmp_path / "d")
     assert "tiles      1 in 1 level, 1 leaf holding 45,624 splats" in r.stdout
+    assert "splats     45,624  SH degree 0" in r.stdout  # '500000' beside '500,000' two lines down on playbot
     assert "  level 0: 1 tile, 45,624 splats, " in r.stdout
 
 
