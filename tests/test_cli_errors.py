@@ -59,6 +59,9 @@ def cases(tmp, scene):
         (["export-sog-lod", tmp / "missing", tmp / "s"], "missing"),
         (["export-sog-lod", scene, tmp / "a_file"], "a_file"),
         (["view", tmp / "missing", "--headless"], "missing"),
+        (["view", "http://127.0.0.1:9/playbot/lod-meta.json", "--headless"],  # was a 404 for .../manifest.msgpack
+         "lod-meta.json: over HTTP `view` streams a served scene (http://HOST/scenes/ID"),
+        (["view", "https://cdn.example/scenes/garden.rad?v=2", "--headless"], "garden.rad?v=2: over HTTP"),
         (["view", scene, "--headless", "--size", "0x0"], "--size"),
         (["view", scene, "--headless", "--screenshot", tmp / "o.jpg"], "o.jpg"),
         (["view", scene, "--headless", "--fill-gap", "0"], "--fill-gap"),

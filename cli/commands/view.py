@@ -143,6 +143,24 @@ def _fixed_camera(args, size):
         raise UsageError(f"bad camera: {exc}") from None
 
 
+# What `view` reads only from a local path: another tool's LOD tree or a splat file is encoded in memory first, and
+# over HTTP the client reads our scene layout alone (http://HOST/scenes/ID).
+_LOCAL_ONLY_SUFFIXES = ("lod-meta.json", "meta.json", ".rad", ".ply", ".spz", ".splat", ".sog", ".glb", ".gltf")
+
+
+def check_served_source(source: str) -> None:
+    """A URL naming a streamed SOG, a .rad or a splat file fails here in one line saying what `view` reads over
+    HTTP, instead of a 404 for '.../lod-meta.json/manifest.msgpack' (a new user's `view
+    http://HOST/playbot/lod-meta.json`)."""
+    if not source.lower().startswith(("http://", "https://")):
+        return
+    path = source.split("?", 1)[0].split("#", 1)[0].rstrip("/").lower()
+    if path.endswith(_LOCAL_ONLY_SUFFIXES):
+        raise UsageError(f"{source}: over HTTP `view` streams a served scene (http://HOST/scenes/ID, `splatstream "
+                         "serve`); a streamed SOG, a .rad or a splat file it reads from a local path (download it, "
+                         "or encode it and serve the scene)")
+
+
 def _check_outputs(args) -> None:
     for out in (args.record, args.screenshot):
         if out:
@@ -163,6 +181,7 @@ def run(args: argparse.Namespace) -> int:
     if args.camera_path:
         path = load_camera_path(args.camera_path)
     _check_outputs(args)
+    check_served_source(os.fspath(args.source))
     if not args.headless:
         from client_gl.window import WindowRun, run_window  # the GL client: see _options
 
