@@ -119,6 +119,7 @@ class StreamMetrics:
             "resident_gpu_bytes": last.resident_gpu_bytes if last else 0,
             "resident_gpu_bytes_peak": self.resident_gpu_bytes_peak,
             "resident_splats": last.resident_splats if last else 0,
+            "drawn_splats": last.drawn_splats if last else 0,  # at most --max-splats; resident adds stand-ins
             "work_bytes_peak": self.work_bytes_peak,
             "manifest_s": self.manifest_s, "pool_s": self.pool_s, "built_s": self.built_s,
             "frames": [f.to_json() for f in self.frames],

@@ -187,9 +187,40 @@ def parse_variant(spec: str) -> tuple[str, str, dict[str, str], int | None, str 
 
 
 def path_size(path: str) -> int:
+    """Bytes on disk of a splat input as eval reads it: a file's size; a directory's files; an unbundled SOG's
+    meta.json with its directory (the WebP planes beside it); a streamed SOG's lod-meta.json (or its directory)
+    with the units of its finest level, which eval reads: playbot's lod-meta.json alone is 1,040 bytes, and eval
+    reported 0.0 B/splat and a compression of 0.0x against it."""
+    lod_meta = os.path.join(path, "lod-meta.json") if os.path.isdir(path) else path
+    if os.path.basename(lod_meta).lower() == "lod-meta.json" and os.path.isfile(lod_meta):
+        return _finest_level_bytes(lod_meta)
+    if os.path.basename(path).lower() == "meta.json" and os.path.isfile(path):
+        return _tree_bytes(os.path.dirname(os.path.abspath(path)))
     if os.path.isdir(path):
-        return sum(os.path.getsize(os.path.join(d, f)) for d, _, files in os.walk(path) for f in files)
+        return _tree_bytes(path)
     return os.path.getsize(path)
+
+
+def _tree_bytes(directory: str) -> int:
+    return sum(os.path.getsize(os.path.join(d, f)) for d, _, files in os.walk(directory) for f in files)
+
+
+def _finest_level_bytes(lod_meta: str) -> int:
+    """lod-meta.json and the unit directories its level 0 names (the reader has checked the file; anything it
+    does not name is not counted)."""
+    import json
+
+    with open(lod_meta, "rb") as f:
+        meta = json.loads(f.read())
+    filenames, units, stack = meta["filenames"], set(), [meta["tree"]]
+    while stack:
+        node = stack.pop()
+        stack.extend(node.get("children") or [])
+        finest = (node.get("lods") or {}).get("0")
+        if finest is not None:
+            units.add(os.path.dirname(filenames[finest["file"]]))
+    root = os.path.dirname(os.path.abspath(lod_meta))
+    return os.path.getsize(lod_meta) + sum(_tree_bytes(os.path.join(root, u)) if u else 0 for u in sorted(units))
 
 
 def parse_compare(spec: str) -> tuple[str, str, str]:
@@ -269,9 +300,9 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
     log = log or (lambda msg: None)
     compares, variants = _checked_runs(opts)
     input_path = os.fspath(input_path)
-    input_size = os.path.getsize(input_path)
     t = time.perf_counter()
     g = read_gaussians(input_path)
+    input_size = path_size(input_path)
     log(f"read {input_path}: {len(g)} splats, SH degree {g.sh_degree} ({time.perf_counter() - t:.1f} s)")
     if len(g) == 0:
         raise InputError(input_path, None, "the scene holds no splats")
@@ -490,7 +521,10 @@ def _fmt_psnr(v: float | None) -> str:
 def report_markdown(report: dict, reference_table: bool = False) -> str:
     """The table of every row (and, on request, the published reference table for comparison)."""
     inp = report["input"]
-    lines = [f"Scene `{os.path.basename(inp['path'])}`: {inp['splats']:,} splats, SH{inp['sh_degree']}, "
+    shown = os.path.basename(os.path.abspath(inp["path"]))
+    if shown.lower() in ("lod-meta.json", "meta.json"):  # the format's name: its directory says which scene
+        shown = f"{os.path.basename(os.path.dirname(os.path.abspath(inp['path'])))}/{shown}"
+    lines = [f"Scene `{shown}`: {inp['splats']:,} splats, SH{inp['sh_degree']}, "
              f"{inp['bytes']:,} bytes ({inp['bytes_per_splat']:.1f} B/splat). {len(report['cameras'])} views at "
              f"{report['size'][0]}x{report['size'][1]}, renderer: {report['renderer']}. PSNR/SSIM: mean over views "
              f"(worst view in brackets). splatstream {report.get('source', {}).get('commit', '')[:10]}"

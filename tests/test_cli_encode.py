@@ -104,3 +104,25 @@ def test_wrong_paths_give_clear_errors(tmp_path):
     assert r.returncode == 0, r.stderr
     r = run_cli("decode", tmp_path / "s", tmp_path / "nodir" / "out.ply")
     assert r.returncode == 2 and "output directory" in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.mark.parametrize("given", ["fruit_drops_lod/lod-meta.json", "fruit_drops_lod", "fruit_drops_lod/0_0/meta.json"])
+def test_streamed_sog_scene_is_named_after_its_directory(tmp_path, given):
+    """A streamed SOG's index is lod-meta.json and an unbundled SOG's meta.json, whatever the scene: a new user's
+    playbot/lod-meta.json became a scene named "lod-meta" in info and the server's /api/scenes."""
+    from conftest import ROOT
+    src = ROOT / "tests" / "fixtures" / "foreign" / given
+    r = run_cli("encode", src, tmp_path / "scene", "-q")
+    assert r.returncode == 0, r.stderr
+    info = json.loads(run_cli("info", tmp_path / "scene", "--json").stdout)
+    assert info["name"] == ("0_0" if given.endswith("0_0/meta.json") else "fruit_drops_lod")
+    r = run_cli("encode", src, tmp_path / "named", "-q", "--name", "mine")  # --name still wins
+    assert json.loads(run_cli("info", tmp_path / "named", "--json").stdout)["name"] == "mine"
+
+
+def test_scene_name_from_a_url_and_a_plain_file():
+    from splatstream.encode.plan import scene_name
+    opts = EncodeOptions()
+    assert scene_name(opts, "s3://bucket/scenes/garden/lod-meta.json", "out") == "garden"
+    assert scene_name(opts, "captures/garden.ply", "out") == "garden"
+    assert scene_name(opts, None, "out") == "out"

@@ -36,6 +36,7 @@ def cases(tmp, scene):
         (["info", tmp / "a_file"], "a_file"),
         (["info", tmp / "a_dir"], "a_dir"),
         (["decode", STREAMED_SOG, tmp / "o.ply"], "lod-meta.json here: a SOG scene"),  # says what reads it
+        (["info", STREAMED_SOG / "lod-meta.json"], "lod-meta.json is read by `splatstream encode`, `convert`"),
         (["convert", tmp / "missing.ply", tmp / "o.ply"], "missing.ply"),
         (["convert", DONUT, tmp / "o.xyz"], "o.xyz"),
         (["convert", DONUT, tmp / "o.ply", "--scale", "0"], "--scale"),  # edits checked before the read
@@ -58,6 +59,9 @@ def cases(tmp, scene):
         (["export-sog-lod", tmp / "missing", tmp / "s"], "missing"),
         (["export-sog-lod", scene, tmp / "a_file"], "a_file"),
         (["view", tmp / "missing", "--headless"], "missing"),
+        (["view", "http://127.0.0.1:9/playbot/lod-meta.json", "--headless"],  # was a 404 for .../manifest.msgpack
+         "lod-meta.json: over HTTP `view` streams a served scene (http://HOST/scenes/ID"),
+        (["view", "https://cdn.example/scenes/garden.rad?v=2", "--headless"], "garden.rad?v=2: over HTTP"),
         (["view", scene, "--headless", "--size", "0x0"], "--size"),
         (["view", scene, "--headless", "--screenshot", tmp / "o.jpg"], "o.jpg"),
         (["view", scene, "--headless", "--fill-gap", "0"], "--fill-gap"),

@@ -317,3 +317,20 @@ def test_target_presets_are_measured_on_the_merge_the_encode_builds():
     assert target_lod_merge(None, distributed=False) == IN_MEMORY_LOD_MERGE == "auto"
     assert target_lod_merge("grid", distributed=False) == "grid"
     assert target_lod_merge("auto", distributed=True) == "auto"  # the driver refuses it later, naming the merge
+
+
+def test_a_streamed_sog_is_sized_by_its_finest_level_not_its_index(tmp_path):
+    """eval of playbot/lod-meta.json said '1,040 bytes (0.0 B/splat)' and a compression of 0.0x: the index alone.
+    The input's bytes are the index and the units of the level eval reads (level 0: 0_0/ here, not 1_0/)."""
+    from conftest import ROOT
+
+    from splatstream.evaluate import path_size, report_markdown
+    sog = ROOT / "tests" / "fixtures" / "foreign" / "fruit_drops_lod"
+    files = lambda d: sum(f.stat().st_size for f in d.rglob("*") if f.is_file())  # noqa: E731
+    finest = (sog / "lod-meta.json").stat().st_size + files(sog / "0_0")
+    assert path_size(str(sog / "lod-meta.json")) == path_size(str(sog)) == finest
+    assert path_size(str(sog / "0_0" / "meta.json")) == files(sog / "0_0")  # an unbundled SOG: its directory
+    rep = evaluate(str(sog / "lod-meta.json"), EvalOptions(presets=["low"], views=1, width=48, height=40))
+    assert rep["input"]["bytes"] == finest and rep["input"]["splats"] == 74
+    assert rep["rows"][0]["compression"] == pytest.approx(finest / rep["rows"][0]["disk_bytes"], rel=1e-6)
+    assert report_markdown(rep).startswith(f"Scene `fruit_drops_lod/lod-meta.json`: 74 splats, SH3, {finest:,} bytes")

@@ -149,6 +149,22 @@ def test_mapping_gives_every_parent_a_child():
     assert tree.splats.positions[0, 0] == pytest.approx(1.5)  # merged root: the mean
 
 
+def test_a_parent_whose_16_nearest_children_are_only_children_still_gets_one():
+    """20 parents on a line, each with one child beside it, a 21st parent past their end and 3 more children far
+    on the other side (nearest the first parent): the 21st parent's 16 nearest children are all only children, so
+    it stayed childless and Spark drew it at full detail (61 such splats in playbot's kept tree, issue 31)."""
+    line = [[float(i), 0, 0] for i in range(20)]
+    tiles = {0: TreeTile(0, 0, (1,), _splats(line + [[25.0, 0, 0]])),
+             1: TreeTile(1, 1, (), _splats([[i + 0.01, 0, 0] for i in range(20)] + [[-10.0, 0, 0]] * 3))}
+    tree = rad_tree(tiles, 0)
+    parents = np.flatnonzero(tree.depth == 1)
+    assert (tree.child_count[parents] >= 1).all() and tree.child_count[parents].sum() == 23
+    assert ((tree.child_count == 0) == (tree.depth == tree.levels() - 1)).all()  # leaves only at full detail
+    last = parents[-1]
+    taken = tree.splats.positions[tree.child_start[last], 0]
+    assert taken == pytest.approx(0.01)  # the nearest child whose parent (the first, with 4) keeps others
+
+
 def test_several_chunks(tmp_path):
     """70,000 leaves under two parents: two chunks, read back in place."""
     n = 70000

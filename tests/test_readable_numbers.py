@@ -28,6 +28,16 @@ def test_view_summary_says_read_for_local_and_reports_resident_memory():
     assert transfer_and_memory(report).startswith("1.80 MB downloaded, GPU 0.2 MiB for 1 resident splat (")
 
 
+def test_view_summary_says_how_many_splats_were_drawn_against_the_budget():
+    # playbot's kept tree under --max-splats 3000: level 1 (3,000 splats) drawn, the root (1,873) still resident;
+    # the summary gave only the 4,873 resident, which reads as a budget exceeded
+    report = {"bytes_downloaded": 116_362, "resident_gpu_bytes": 169_000, "resident_splats": 4873,
+              "drawn_splats": 3000, "gpu_budget_bytes": 1024 << 20, "fetch": {"manifest_source": "local"}}
+    assert transfer_and_memory(report, 3000) == ("3,000 splats drawn (--max-splats 3,000), 0.12 MB read, GPU 0.2 MiB "
+                                                 "for 4,873 resident splats (budget 1024 MiB)")
+    assert transfer_and_memory(report).startswith("3,000 splats drawn, 0.12 MB read, ")
+
+
 def test_info_help_describes_its_positional():
     r = run_cli("info", "--help")
     assert r.returncode == 0
@@ -43,6 +53,7 @@ def test_encode_and_info_say_which_bytes_per_splat_is_which_in_plain_words(tmp_p
     assert "B/splat at full detail, " in last and " with all LOD levels)" in last
     r = run_cli("info", tmp_path / "d")
     assert "tiles      1 in 1 level, 1 leaf holding 45,624 splats" in r.stdout
+    assert "splats     45,624  SH degree 0" in r.stdout  # '500000' beside '500,000' two lines down on playbot
     assert "  level 0: 1 tile, 45,624 splats, " in r.stdout
 
 

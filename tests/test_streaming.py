@@ -256,6 +256,7 @@ def test_budget_holds_while_a_camera_path_flies_across(ctx, root, tmp_path):
     assert report["evictions"] > 0
     first = next(i for i, f in enumerate(report["frames"]) if f["drawn_splats"] > 0)
     assert all(f["drawn_splats"] > 0 for f in report["frames"][first:])  # never an empty frame once drawing
+    assert report["drawn_splats"] == report["frames"][-1]["drawn_splats"] > 0  # the record's, beside resident
     assert mid is not None and json.dumps(report)
 
 

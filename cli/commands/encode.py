@@ -123,7 +123,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--chunk-order", default="auto", choices=["auto", "morton", "luminance"],
                    help="order of splats inside each chunk: luminance groups similar colours into the same BC block; "
                         "auto (default) uses it when colour or SH, but not position/rotation/scale, are BC-compressed")
-    p.add_argument("--name", help="scene name recorded in the manifest (default: input file name)")
+    p.add_argument("--name", help="scene name recorded in the manifest (default: the input file's name; for a "
+                   "lod-meta.json or meta.json, its directory's)")
     p.add_argument("--up", help="up vector of the scene, e.g. 0,-1,0 (3DGS/COLMAP captures) or 0,0,1 (z-up tools); "
                                "default: detected (y down unless the splats' surfaces show z up)")
     p.add_argument("--drop-invalid", action="store_true",

@@ -123,7 +123,7 @@ def run(args: argparse.Namespace) -> int:
         print(json.dumps(info))
         return 0
     print(f"scene      {info['name']}  (format version {info['version'][0]}.{info['version'][1]})")
-    print(f"splats     {info['splats']}  SH degree {info['sh_degree']}  preset {info['preset']}")
+    print(f"splats     {info['splats']:,}  SH degree {info['sh_degree']}  preset {info['preset']}")
     overrides = info["preset_overrides"]
     if info["preset_summary"]:
         changed = f"; differs from it in: {', '.join(f'{a}={f}' for a, f in overrides.items())}" if overrides else ""

@@ -143,6 +143,24 @@ def _fixed_camera(args, size):
         raise UsageError(f"bad camera: {exc}") from None
 
 
+# What `view` reads only from a local path: another tool's LOD tree or a splat file is encoded in memory first, and
+# over HTTP the client reads our scene layout alone (http://HOST/scenes/ID).
+_LOCAL_ONLY_SUFFIXES = ("lod-meta.json", "meta.json", ".rad", ".ply", ".spz", ".splat", ".sog", ".glb", ".gltf")
+
+
+def check_served_source(source: str) -> None:
+    """A URL naming a streamed SOG, a .rad or a splat file fails here in one line saying what `view` reads over
+    HTTP, instead of a 404 for '.../lod-meta.json/manifest.msgpack' (a new user's `view
+    http://HOST/playbot/lod-meta.json`)."""
+    if not source.lower().startswith(("http://", "https://")):
+        return
+    path = source.split("?", 1)[0].split("#", 1)[0].rstrip("/").lower()
+    if path.endswith(_LOCAL_ONLY_SUFFIXES):
+        raise UsageError(f"{source}: over HTTP `view` streams a served scene (http://HOST/scenes/ID, `splatstream "
+                         "serve`); a streamed SOG, a .rad or a splat file it reads from a local path (download it, "
+                         "or encode it and serve the scene)")
+
+
 def _check_outputs(args) -> None:
     for out in (args.record, args.screenshot):
         if out:
@@ -163,6 +181,7 @@ def run(args: argparse.Namespace) -> int:
     if args.camera_path:
         path = load_camera_path(args.camera_path)
     _check_outputs(args)
+    check_served_source(os.fspath(args.source))
     if not args.headless:
         from client_gl.window import WindowRun, run_window  # the GL client: see _options
 
@@ -188,16 +207,21 @@ def run(args: argparse.Namespace) -> int:
         print(f"view: first frame {ff:.3f} s, " if ff is not None else "view: no frame drawn, ", end="",
               file=sys.stderr)
         print(f"converged {conv:.3f} s, " if conv is not None else "not converged, ", end="", file=sys.stderr)
-        print(transfer_and_memory(report), file=sys.stderr)
+        print(transfer_and_memory(report, args.max_splats), file=sys.stderr)
     return code
 
 
-def transfer_and_memory(report: dict) -> str:
-    """'1.80 MB read, GPU 3.1 MiB for 4,721 resident splats (budget 1024 MiB)': bytes read from a local scene or
-    downloaded from a server, and the GPU memory the resident splats use against the budget (the pool itself is
-    allocated whole up front: its size says nothing about the scene)."""
+def transfer_and_memory(report: dict, max_splats: int | None = None) -> str:
+    """'4,721 splats drawn, 1.80 MB read, GPU 3.1 MiB for 4,721 resident splats (budget 1024 MiB)': the splats the
+    last frame drew (against --max-splats where one is set: resident splats alone, which keep the coarser tiles
+    drawn on the way, read as over the budget), bytes read from a local scene or downloaded from a server, and the
+    GPU memory the resident splats use against the budget (the pool itself is allocated whole up front: its size
+    says nothing about the scene)."""
     local = report.get("fetch", {}).get("manifest_source") == "local"
     splats = report.get("resident_splats", 0)
-    return (f"{report['bytes_downloaded'] / 1e6:.2f} MB {'read' if local else 'downloaded'}, "
+    drawn = report.get("drawn_splats")
+    shown = "" if drawn is None else f"{drawn:,} splat{'' if drawn == 1 else 's'} drawn" + (
+        f" (--max-splats {max_splats:,})" if max_splats is not None else "") + ", "
+    return (f"{shown}{report['bytes_downloaded'] / 1e6:.2f} MB {'read' if local else 'downloaded'}, "
             f"GPU {report['resident_gpu_bytes'] / 2**20:.1f} MiB for {splats:,} resident "
             f"splat{'' if splats == 1 else 's'} (budget {report['gpu_budget_bytes'] / 2**20:.0f} MiB)")

@@ -35,6 +35,7 @@ from ..format.texformats import PALETTE_FORMATS
 from ..gaussians import Gaussians
 from ..lod import Tile, build_tiles, viewing_scales_px
 from ..lod_refine import refine_tree
+from ..store import is_url
 from ..vq import Codebook
 from .codebook import codebook_choice
 from .options import EncodeOptions, Progress, no_progress
@@ -106,11 +107,23 @@ def resolve_sh_degree(opts: EncodeOptions, g: Gaussians) -> int:
     return g.sh_degree if opts.sh_degree is None else min(opts.sh_degree, g.sh_degree)
 
 
+# Inputs whose file name is the format's, not the scene's (a streamed SOG's index, an unbundled SOG's meta): such a
+# scene is named after the directory that holds them (playbot/lod-meta.json is "playbot", not "lod-meta").
+_FORMAT_FILE_NAMES = ("lod-meta.json", "meta.json")
+
+
 def scene_name(opts: EncodeOptions, source_name: str | None, out_name: str | None) -> str:
     if opts.name:
         return opts.name
     if source_name:
-        return os.path.splitext(os.path.basename(source_name))[0]
+        path = source_name if is_url(source_name) else os.path.abspath(source_name).replace(os.sep, "/")
+        parent, _, base = path.rstrip("/").rpartition("/")
+        if base.lower() in _FORMAT_FILE_NAMES:
+            base = parent.rpartition("/")[2]
+        else:
+            base = os.path.splitext(base)[0]
+        if base:
+            return base
     return out_name or "scene"
 
 

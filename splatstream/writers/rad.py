@@ -16,7 +16,8 @@ The mapping (pure; `splatstream/rad_export.py` wires it to a scene):
 * The splats of our tile T at depth d + 1 become children of the splats of its parent tile: each goes to the
   parent tile's splat nearest to its centre. A parent splat that none chose takes, among its nearest child
   splats, the first whose parent keeps another child, so that no coarse splat survives into full detail (a
-  parent with no children is a leaf to Spark and would be drawn at every distance).
+  parent with no children is a leaf to Spark and would be drawn at every distance), looking further (16, 64, 256,
+  then 1,024 nearest) while any is left childless.
 * Leaves of our tree shallower than the deepest are leaves of the splat tree at their depth: our REPLACE cut at
   depth d is exactly the splats at splat depth d + 1 plus the leaves above them.
 
@@ -48,7 +49,10 @@ RAD_CHUNK_MAGIC = 0x43444152  # "RADC"
 CHUNK_SPLATS = 65536  # Spark's traversal addresses a child as (chunk << 16) | index: the size is fixed
 MAX_CHILDREN = 0xFFFF  # child_count is u16
 GZ_LEVEL = 6
-STEAL_CANDIDATES = 16
+# A childless parent looks among this many nearest child splats for one to take, then 4x as many for those still
+# childless, up to the last: on playbot's kept tree (PlayCanvas's own levels, issue 31) 16 left 61 coarse splats
+# childless, each drawn by Spark at full detail and read back by `convert` as part of the finest level.
+STEAL_CANDIDATES = (16, 64, 256, 1024)
 NEAREST_BLOCK_BYTES = 32 << 20
 NEAREST_BRUTE_PAIRS = 1 << 22  # below this many pairs, every pair
 NEAREST_QUERY_BLOCK = 256
@@ -184,9 +188,11 @@ def _parents(children: np.ndarray, parents: np.ndarray) -> np.ndarray:
     least one child where a neighbouring parent can spare one (see the module's docstring)."""
     to = nearest(children, parents)
     counts = np.bincount(to, minlength=len(parents))
-    orphans = np.flatnonzero(counts == 0)
-    if len(orphans) and len(children) > 1:
-        near = nearest(parents[orphans], children, STEAL_CANDIDATES).reshape(len(orphans), -1)
+    for k in STEAL_CANDIDATES:
+        orphans = np.flatnonzero(counts == 0)
+        if not len(orphans) or len(children) <= 1:
+            break
+        near = nearest(parents[orphans], children, k).reshape(len(orphans), -1)
         for parent, candidates in zip(orphans, near, strict=True):
             for child in candidates:
                 if counts[to[child]] > 1:
@@ -194,6 +200,8 @@ def _parents(children: np.ndarray, parents: np.ndarray) -> np.ndarray:
                     to[child] = parent
                     counts[parent] = 1
                     break
+        if k >= len(children):
+            break
     return to
 
 
