@@ -71,8 +71,18 @@ def test_slot_bytes_of_the_presets():
     assert layout.slot_bytes() == (4 * 4 + 2) * 256 + 256 + 2
     assert layout.fixed_bytes() == 32 * 16 * 2 * 15 + 2 * 256
     assert PoolLayout(MEDIUM, 0, cb).codebook is None  # no SH bands: nothing to look up
-    assert atlas_grid(1) == (1, 1) and atlas_grid(128) == (128, 1) and atlas_grid(129) == (128, 2)
-    assert layout.pool_bytes(200) == layout.fixed_bytes() + 256 * layout.slot_bytes()  # whole rows
+    assert atlas_grid(1) == (1, 1) and atlas_grid(128) == (128, 1) and atlas_grid(129) == (65, 2)
+    assert atlas_grid(200) == (100, 2) and atlas_grid(257) == (86, 3) and atlas_grid(128 * 1024) == (128, 1024)
+    assert layout.pool_bytes(200) == layout.fixed_bytes() + 200 * layout.slot_bytes()  # two rows of 100
+    assert layout.pool_bytes(201) == layout.fixed_bytes() + 202 * layout.slot_bytes()  # two rows of 101
+
+
+def test_atlas_grid_is_the_fewest_rows_and_columns():
+    for slots in range(1, 128 * 1024 + 1, 7):
+        cols, rows = atlas_grid(slots)
+        assert cols <= 128 and rows == -(-slots // 128)  # rows as wide as a texture allows
+        assert slots <= cols * rows < slots + rows  # at most rows - 1 slots beyond those asked for
+        assert atlas_grid(cols * rows) == (cols, rows)  # a pool of the grid's capacity has that grid
 
 
 def test_layout_rejects_what_it_cannot_hold():
@@ -93,14 +103,18 @@ def test_slots_for_budget_fill_the_budget(codebook):
     per_slot, fixed = layout.slot_bytes(), layout.fixed_bytes()
     assert slots_for_budget(fixed + 10 * per_slot, VERY_HIGH, 3, codebook) == 10
     assert slots_for_budget(fixed + 10 * per_slot - 1, VERY_HIGH, 3, codebook) == 9
-    assert slots_for_budget(fixed + 200 * per_slot, VERY_HIGH, 3, codebook) == 128  # whole atlas rows above 128
+    # above one atlas row: a grid of fewer columns, not whole rows of 128 (which held 128 of these 200: 64 %)
+    assert slots_for_budget(fixed + 200 * per_slot, VERY_HIGH, 3, codebook) == 200
+    assert slots_for_budget(fixed + 201 * per_slot, VERY_HIGH, 3, codebook) == 200  # 2 x 101 would pass it
+    assert slots_for_budget(fixed + 257 * per_slot, VERY_HIGH, 3, codebook) == 256  # 3 x 86 would pass it
     rng = np.random.default_rng(0)
     for budget in rng.integers(fixed + per_slot, fixed + 5000 * per_slot, 200):
         slots = slots_for_budget(int(budget), VERY_HIGH, 3, codebook)
         assert layout.pool_bytes(slots) <= budget  # never above the budget
-        step = 1 if slots < 128 else 128
-        if slots + step <= 5000:
-            assert layout.pool_bytes(slots + step) > budget  # and as large as it can be
+        cols, rows = atlas_grid(slots)
+        assert cols * rows == slots  # the pool allocates exactly these slots
+        held = (int(budget) - fixed) // per_slot
+        assert held - slots < -(-held // 128)  # within a slot a row of what the budget holds
     with pytest.raises(UsageError, match="holds no slot"):
         slots_for_budget(fixed + per_slot - 1, VERY_HIGH, 3, codebook)
     assert slots_for_budget(1 << 50, VERY_HIGH, 3, codebook) == 128 * 1024  # one atlas of 16384 texels at most

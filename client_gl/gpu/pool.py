@@ -5,9 +5,9 @@ per-frame DRAW SET hides resident tiles without touching their data (REPLACE ref
 but hidden until its children can take over). Nothing is reallocated after the pool is made: the slot count comes
 from the caller (slots.slots_for_budget turns a GPU byte budget into one), a tile that does not fit raises.
 
-Atlas layout: slot s is the 16x16 block at ((s % cols) * 16, (s // cols) * 16), cols = min(128, slots), the same
-block layout as a tile texture (format_spec/format.md 4.1). Global splat index = s * 256 + j. A tile's chunk blocks
-are copied as the file stores them, still in their texel format.
+Atlas layout: slot s is the 16x16 block at ((s % cols) * 16, (s // cols) * 16), (cols, rows) = atlas_grid(slots)
+(at most 128 columns), the same block layout as a tile texture (format_spec/format.md 4.1). Global splat index =
+s * 256 + j. A tile's chunk blocks are copied as the file stores them, still in their texel format.
 
 Per slot, beside the atlases: a 64-word range record (RGBA32UI, 16 texels at ((s % cols) * 16, s // cols); word
 offsets residency_layout.RANGE_WORDS, ranges as the file stores them) and a slot-state texel (RG8UI at
@@ -103,7 +103,7 @@ def _put_ranges(records: np.ndarray, name: str, ranges: np.ndarray, dtype: str) 
 
 
 class ChunkPool:
-    """Atlases for `slots` 256-splat slots (rounded up to whole atlas rows) of one scene's formats and SH bands.
+    """Atlases for `slots` 256-splat slots (rounded up to a whole atlas grid) of one scene's formats and SH bands.
 
     codebook: the scene's SH codebook shape for scenes encoded with one (its bands come with set_codebook_band).
     host_mirror: keep the CPU-sort path's per-splat centres, opacities and largest log scales (tiles must then

@@ -139,10 +139,13 @@ class PoolLayout:
 
 
 def atlas_grid(slots: int) -> tuple[int, int]:
-    """(cols, rows) of slots of an atlas holding at least `slots` slots: rows of min(slots, MAX_COLS) slots.
+    """(cols, rows) of slots of an atlas holding at least `slots` slots: the fewest rows of at most MAX_COLS slots
+    (rows = ceil(slots / MAX_COLS)), and the fewest columns for them (cols = ceil(slots / rows)).
 
-    A pool's capacity is cols * rows: the slots of a partly used last row are allocated anyway, so they are
-    usable."""
+    A pool's capacity is cols * rows, at most rows - 1 slots above `slots`: the slots of a partly used last row are
+    allocated anyway, so they are usable. Rows of MAX_COLS each would round a budget of 1.9 rows down to one
+    (58 % of a 0.9 MiB budget on guitar: BENCHMARKS.md, "GPU memory budget filled"). The grid of cols * rows is
+    (cols, rows) again (cols * rows > MAX_COLS * (rows - 1), as slots is)."""
     slots = max(1, int(slots))
-    cols = min(MAX_COLS, slots)
-    return cols, -(-slots // cols)
+    rows = -(-slots // MAX_COLS)
+    return -(-slots // rows), rows

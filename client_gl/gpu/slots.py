@@ -11,7 +11,7 @@ import numpy as np
 
 from splatstream.errors import UsageError
 
-from .residency_layout import MAX_COLS, MAX_ROWS, CodebookLayout, PoolLayout
+from .residency_layout import MAX_COLS, MAX_ROWS, CodebookLayout, PoolLayout, atlas_grid
 
 
 class SlotAllocator:
@@ -86,15 +86,18 @@ def slots_for_budget(gpu_budget_bytes: int, formats: Mapping[str, str], sh_degre
     """How many slots a pool may have so that its GPU bytes (atlases of every plane and SH band, range records,
     slot states, plus the SH codebook's textures as a fixed cost) stay within `gpu_budget_bytes`.
 
-    Above one atlas row (128 slots) the result is a whole number of rows, so the pool allocates exactly that many
-    slots. UsageError when the budget does not hold a single slot."""
+    The result is a whole atlas grid (atlas_grid's cols * rows, within rows - 1 slots of what the budget holds), so
+    the pool allocates exactly that many slots. UsageError when the budget does not hold a single slot."""
     layout = PoolLayout(formats, sh_degree, codebook)
     per_slot, fixed = layout.slot_bytes(), layout.fixed_bytes()
     slots = (int(gpu_budget_bytes) - fixed) // per_slot
     if slots < 1:
         raise UsageError(f"a GPU budget of {int(gpu_budget_bytes)} bytes holds no slot: one slot of these formats "
                          f"takes {per_slot} bytes" + (f" beside the SH codebook's {fixed}" if fixed else ""))
-    slots = min(slots, int(max_slots))
-    if slots > MAX_COLS:
-        slots -= slots % MAX_COLS
-    return slots
+    most = min(slots, int(max_slots))
+    # the largest grid within `most`: atlas_grid(n) holds n to n + rows - 1 slots, so at most rows steps down
+    for n in range(most, 0, -1):
+        cols, rows = atlas_grid(n)
+        if cols * rows <= most:
+            return cols * rows
+    raise AssertionError("atlas_grid(1) is one slot")  # not reached
