@@ -87,3 +87,14 @@ def test_eval_plot_labels_of_close_presets_do_not_overlap(tmp_path):
     for i, a in enumerate(boxes):
         assert all(_overlap(a, b, 0.0) == 0 for b in boxes[i + 1:]), (a, boxes)
     assert (tmp_path / "plot.png").stat().st_size > 10_000
+
+
+def test_eval_plot_joins_the_presets_along_their_frontier():
+    """The line is the best PSNR each size buys, smallest first: a dominated preset is not on it, a preset with
+    fewer bytes and more dB than its list neighbours is (playbot's low-plus-10bit-cb8 drew a zigzag before).
+    Coordinates as drawn: x grows with the bytes, y shrinks as the PSNR grows."""
+    from splatstream.evaluate import _frontier
+
+    coords = [(10.0, 400.0), (12.0, 380.0), (15.0, 200.0), (20.0, 350.0), (26.0, 190.0), (26.0, 185.0), (44.0, 100.0)]
+    assert _frontier(coords) == [0, 1, 2, 5, 6]
+    assert _frontier([]) == [] and _frontier([(1.0, 1.0)]) == [0]
