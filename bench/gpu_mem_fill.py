@@ -18,7 +18,6 @@ import argparse
 import json
 import os
 import sys
-import time
 
 import numpy as np
 
@@ -27,7 +26,8 @@ def measure(scene: str, mib: float, size: tuple[int, int], timeout_s: float = 12
             target_fraction: float | None = None) -> dict:
     from dataclasses import replace
 
-    from client_gl.gpu.gl import wait_for_gpu
+    from lod_vs_peers import stream_until_converged
+
     from client_gl.offscreen import create_context
     from client_gl.streaming import StreamingSession, ViewOptions
     from client_gl.view_headless import scene_camera
@@ -38,16 +38,7 @@ def measure(scene: str, mib: float, size: tuple[int, int], timeout_s: float = 12
         if target_fraction is not None:  # the engine's share of the pool the cut may fill (StreamOptions)
             session.engine.options = replace(session.engine.options, target_fraction=target_fraction)
         cam = scene_camera(session, size)
-        t0 = time.perf_counter()
-        while True:
-            rec = session.frame(cam)
-            wait_for_gpu()
-            if session.converged:
-                break
-            if time.perf_counter() - t0 > timeout_s:
-                raise SystemExit(f"{scene} at {mib} MiB: not converged after {timeout_s} s")
-            if not rec.uploaded_bytes:
-                session.wait(0.005)
+        stream_until_converged(session, cam, timeout_s, f"{scene} at {mib} MiB")
         eng, pool = session.engine, session.pool
         _, sel, *_ = eng.wanted(cam)
         ids = eng.ids
@@ -68,7 +59,6 @@ def measure(scene: str, mib: float, size: tuple[int, int], timeout_s: float = 12
             if hasattr(session.metrics, "evictions") else None,
         }
         out["splat_eq_bytes"] = out["drawn_splats"] * slot_bytes / 256
-        # the smallest refinement the budget skipped: a cut tile the view would refine whose children did not fit
         out["frac_drawn_slots"] = out["drawn_slot_bytes"] / session.budget
         out["frac_splat_eq"] = out["splat_eq_bytes"] / session.budget
         out["frac_resident"] = out["resident_bytes"] / session.budget

@@ -374,13 +374,29 @@ def drawn_tile_bytes(manifest, tile_ids) -> tuple[int, int]:
     return every, base
 
 
+def stream_until_converged(session, camera, timeout_s: float, what: str):
+    """Draw frames of a StreamingSession from one camera until it has converged (what `view --headless` waits
+    for), or exit naming `what` after timeout_s seconds; the last frame's record."""
+    from client_gl.gpu.gl import wait_for_gpu
+
+    t0 = time.perf_counter()
+    while True:
+        rec = session.frame(camera)
+        wait_for_gpu()
+        if session.converged:
+            return rec
+        if time.perf_counter() - t0 > timeout_s:
+            raise SystemExit(f"{what}: not converged after {timeout_s} s")
+        if not rec.uploaded_bytes:
+            session.wait(0.005)
+
+
 def view_worker(scene_out: str, n: int, cams_path: str, workdir: str, size: int, view_args: str = "") -> None:
     """What `splatstream view SCENE --headless --max-splats N --no-prefetch --eye/--target/--up/--fov-y --size`
     does (its own argument parsing and options), keeping the float image and the drawn tile ids."""
     from cli.commands import view as view_cmd
     from cli.commands.args import parse_size
     from cli.main import build_parser
-    from client_gl.gpu.gl import wait_for_gpu
     from client_gl.offscreen import create_context
     from client_gl.streaming import StreamingSession
     from splatstream.camera import Camera
@@ -399,16 +415,7 @@ def view_worker(scene_out: str, n: int, cams_path: str, workdir: str, size: int,
         camera = view_cmd._fixed_camera(args, parse_size(args.size))
         session = StreamingSession.open(scene_out, ctx, options)
         try:
-            t0 = time.perf_counter()
-            while True:
-                rec = session.frame(camera)
-                wait_for_gpu()
-                if session.converged:
-                    break
-                if time.perf_counter() - t0 > args.timeout:
-                    raise SystemExit(f"view {i}: not converged after {args.timeout} s")
-                if not rec.uploaded_bytes:
-                    session.wait(0.005)
+            rec = stream_until_converged(session, camera, args.timeout, f"view {i}")
             image = np.asarray(session.read_image(), dtype=np.float32)[..., :3]
             draw = list(session.last.draw)
             stats = session.fetcher.stats()
