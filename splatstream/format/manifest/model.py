@@ -19,8 +19,8 @@ import numpy as np
 from ..names import payload_name
 from ..planes import MAX_SH_DEGREE, band_of, groups_for_degree
 from ..texformats import FORMATS, blob_size
-from .table import TABLE_KEY, TABLE_ZSTD_KEY, compact_columns, pack_compact_table, pack_tile_table
-from .versions import FORMAT_NAME, VERSION_1_8, VERSION_1_12
+from .table import bounds_columns, compact_columns, tiles_body
+from .versions import FORMAT_NAME, VERSION_1_12
 from .wire import pack_manifest
 
 Vec3 = tuple[float, float, float]
@@ -449,22 +449,14 @@ class Manifest:
     def tiles_dict(self) -> dict:
         """The manifest's tiles as its version writes them: the compact tile table from 1.12 on, the tile table from
         1.8 on (format.md 6.2), else the array of tile maps."""
-        if self.version >= VERSION_1_12:
-            return {TABLE_ZSTD_KEY: pack_compact_table(self.tiles, self.tile_groups())}
-        if self.version >= VERSION_1_8:
-            return {TABLE_KEY: pack_tile_table(self.tiles, self.tile_groups())}
-        return {"tiles": [t.to_dict() for t in self.tiles]}
+        return tiles_body(self.version, self.tiles, self.tile_groups())
 
     def compacted(self) -> Manifest:
         """This manifest as 1.12 writes it (format.md 6.2, the compact tile table): version at least 1.12, each
         tile's bounds as the float32 values the table holds (table.compact_columns: rounded outward), so that what
         a reader gets back is this manifest; `bytes_on_disk` settled again. An unchanged manifest where it is
         already compact."""
-        n = len(self.tiles)
-        box = np.array([(*t.box.min, *t.box.max) for t in self.tiles], np.float64).reshape(n, 6)
-        sphere = np.array([(*t.sphere_center, t.sphere_radius) for t in self.tiles], np.float64).reshape(n, 4)
-        error = np.array([t.geometric_error for t in self.tiles], np.float64)
-        box, sphere, error = (a.tolist() for a in compact_columns(box, sphere, error))
+        box, sphere, error = (a.tolist() for a in compact_columns(*bounds_columns(self.tiles)))
         tiles = tuple(replace(t, box=Box(tuple(b[:3]), tuple(b[3:])), sphere_center=tuple(s[:3]),
                               sphere_radius=s[3], geometric_error=e)
                       for t, b, s, e in zip(self.tiles, box, sphere, error, strict=True))

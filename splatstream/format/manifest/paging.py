@@ -17,9 +17,9 @@ import msgpack
 from ...errors import FormatError
 from ..names import payload_name
 from .model import Manifest, PagedInfo, PageRef, TileEntry
-from .table import TABLE_KEY, TABLE_ZSTD_KEY, pack_compact_table, pack_tile_table
+from .table import tiles_body
 from .validate import MAX_PAGE_BYTES, PAGE_FORMAT, check_whole_tree, page_tiles
-from .versions import VERSION_1_5, VERSION_1_8, VERSION_1_12
+from .versions import VERSION_1_5
 from .wire import check_msgpack_bomb, pack_manifest
 
 
@@ -35,12 +35,7 @@ def pack_page(version: tuple[int, int], parent: int, tiles: list[TileEntry]) -> 
     """A page's bytes (format.md 6.1): its tiles in id order, as a tile table from 1.8 on (6.2), a compact one from
     1.12 on."""
     ordered = sorted(tiles, key=lambda t: t.id)
-    if version >= VERSION_1_12:
-        body = {TABLE_ZSTD_KEY: pack_compact_table(ordered, list(ordered[0].groups))}
-    elif version >= VERSION_1_8:
-        body = {TABLE_KEY: pack_tile_table(ordered, list(ordered[0].groups))}
-    else:
-        body = {"tiles": [t.to_dict() for t in ordered]}
+    body = tiles_body(version, ordered, list(ordered[0].groups))
     return msgpack.packb({"format": PAGE_FORMAT, "version": list(version), "parent": parent, **body},
                          use_bin_type=True)
 

@@ -27,6 +27,7 @@ from ...errors import FormatError
 from ..layout import ALIGN, BLOCK
 from ..names import payload_name
 from ..planes import MAX_SH_DEGREE
+from .versions import VERSION_1_8, VERSION_1_12
 from .wire import check_msgpack_bomb
 
 TABLE_KEY = "tile_table"
@@ -100,6 +101,25 @@ def up_f32(x) -> np.ndarray:
     return np.where(f.astype(np.float64) < x, np.nextafter(f, np.float32(np.inf)), f)
 
 
+def bounds_columns(tiles: Sequence) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The tiles' bounds as float64 columns: box (T x 6: min then max), sphere (T x 4: centre then radius) and
+    geometric error (T)."""
+    n = len(tiles)
+    box = np.array([(*t.box.min, *t.box.max) for t in tiles], np.float64).reshape(n, 6)
+    sphere = np.array([(*t.sphere_center, t.sphere_radius) for t in tiles], np.float64).reshape(n, 4)
+    return box, sphere, np.array([t.geometric_error for t in tiles], np.float64)
+
+
+def tiles_body(version: tuple[int, int], tiles: Sequence, group_names: Sequence[str]) -> dict:
+    """The key a manifest or page of this version holds its tiles under, and its value: the compact tile table from
+    1.12 on, the tile table from 1.8 on (format.md 6.2), else the array of tile maps (6)."""
+    if version >= VERSION_1_12:
+        return {TABLE_ZSTD_KEY: pack_compact_table(tiles, group_names)}
+    if version >= VERSION_1_8:
+        return {TABLE_KEY: pack_tile_table(tiles, group_names)}
+    return {"tiles": [t.to_dict() for t in tiles]}
+
+
 def compact_columns(box: np.ndarray, sphere: np.ndarray, error: np.ndarray) -> tuple[np.ndarray, ...]:
     """Tiles' bounds (box T x 6, sphere T x 4, geometric error T; f64) as float32 values that still hold what the
     f64 ones did (format.md 6.2, the compact table): the box rounded outward, each centre to the nearest float32 and
@@ -119,7 +139,7 @@ def compact_columns(box: np.ndarray, sphere: np.ndarray, error: np.ndarray) -> t
 
 def pack_compact_table(tiles: Sequence, group_names: Sequence[str]) -> bytes:
     """The `tile_table_zstd` bin of these tiles (format.md 6.2, version 1.12): the tile table with f32 bounds
-    (rounded outward: compact_bounds), msgpack-packed and zstd-compressed. Raises ValueError where the table
+    (rounded outward: compact_columns), msgpack-packed and zstd-compressed. Raises ValueError where the table
     cannot be written (packable) or a bound is beyond float32's range."""
     d = pack_tile_table(tiles, group_names, compact=True)
     raw = msgpack.packb(d, use_bin_type=True)
@@ -179,9 +199,7 @@ def pack_tile_table(tiles: Sequence, group_names: Sequence[str], compact: bool =
             sizes += [s.size for s in e.sections]
     if len(layouts) > MAX_LAYOUTS:
         raise ValueError(f"{len(layouts)} section layouts: more than {MAX_LAYOUTS}")
-    box = np.array([(*t.box.min, *t.box.max) for t in tiles], np.float64).reshape(n, 6)
-    sphere = np.array([(*t.sphere_center, t.sphere_radius) for t in tiles], np.float64).reshape(n, 4)
-    error = np.array([t.geometric_error for t in tiles], np.float64)
+    box, sphere, error = bounds_columns(tiles)
     float_type = "<f8"
     if compact:
         float_type = "<f4"
