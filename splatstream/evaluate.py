@@ -33,6 +33,7 @@ from .io import read_gaussians, scene_up, sniff_format
 from .metrics import psnr_from_mse, ssim
 from .ply import InfiniteOpacityWarning
 from .progress import count
+from .readers.sog import finest_level_units, sog_kind
 from .render_ref import render
 from .scene_decode import decode_scene
 from .vq import parse_entries
@@ -191,9 +192,10 @@ def path_size(path: str) -> int:
     meta.json with its directory (the WebP planes beside it); a streamed SOG's lod-meta.json (or its directory)
     with the units of its finest level, which eval reads: playbot's lod-meta.json alone is 1,040 bytes, and eval
     reported 0.0 B/splat and a compression of 0.0x against it."""
-    lod_meta = os.path.join(path, "lod-meta.json") if os.path.isdir(path) else path
-    if os.path.basename(lod_meta).lower() == "lod-meta.json" and os.path.isfile(lod_meta):
-        return _finest_level_bytes(lod_meta)
+    if sog_kind(path) == "lod":
+        lod_meta, units = finest_level_units(path)
+        root = os.path.dirname(os.path.abspath(lod_meta))
+        return os.path.getsize(lod_meta) + sum(_tree_bytes(os.path.join(root, u)) if u else 0 for u in units)
     if os.path.basename(path).lower() == "meta.json" and os.path.isfile(path):
         return _tree_bytes(os.path.dirname(os.path.abspath(path)))
     if os.path.isdir(path):
@@ -203,24 +205,6 @@ def path_size(path: str) -> int:
 
 def _tree_bytes(directory: str) -> int:
     return sum(os.path.getsize(os.path.join(d, f)) for d, _, files in os.walk(directory) for f in files)
-
-
-def _finest_level_bytes(lod_meta: str) -> int:
-    """lod-meta.json and the unit directories its level 0 names (the reader has checked the file; anything it
-    does not name is not counted)."""
-    import json
-
-    with open(lod_meta, "rb") as f:
-        meta = json.loads(f.read())
-    filenames, units, stack = meta["filenames"], set(), [meta["tree"]]
-    while stack:
-        node = stack.pop()
-        stack.extend(node.get("children") or [])
-        finest = (node.get("lods") or {}).get("0")
-        if finest is not None:
-            units.add(os.path.dirname(filenames[finest["file"]]))
-    root = os.path.dirname(os.path.abspath(lod_meta))
-    return os.path.getsize(lod_meta) + sum(_tree_bytes(os.path.join(root, u)) if u else 0 for u in sorted(units))
 
 
 def parse_compare(spec: str) -> tuple[str, str, str]:

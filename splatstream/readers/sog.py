@@ -490,6 +490,21 @@ def read_streamed_sog(path: str | os.PathLike) -> StreamedSog:
     return _load_streamed(directory, path, name, None)
 
 
+def finest_level_units(path: str | os.PathLike) -> tuple[str, list[str]]:
+    """(the lod-meta.json's path, the directories of the units its level 0 names, relative to it, sorted) of a
+    streamed SOG given as the file or its directory: what reading its finest level touches."""
+    path = os.fspath(path)
+    directory, name = _streamed_location(path)
+    lod = _lod_meta(path, _json(_dir_source(directory, path), name, "lod-meta.json"))
+    units, stack = set(), [lod.tree]
+    while stack:
+        node = stack.pop()
+        stack.extend(node.children)
+        if 0 in node.lods:
+            units.add(os.path.dirname(lod.filenames[node.lods[0][0]]))
+    return os.path.join(directory, name), sorted(units)
+
+
 def sog_kind(path: str) -> str | None:
     """'sog' (bundled zip, meta.json file or a directory with meta.json), 'lod' (lod-meta.json file or a
     directory with one), or None."""
