@@ -47,6 +47,8 @@ TUNED: dict[str, tuple[str, ...]] = {
     **{p: BENCH + ("guitar.compressed",) for p in ("medium", "medium-low-9bit")},
     **{p: SH_TUNED for p in ("high-sh255", "medium-high", "medium-low-sh16", "medium-low-sh8", "low-plus-9bit-sh6",
                              "low-plus-9bit-sh5", "low-plus-10bit-cb8")},
+    # very-low-rgb127 (step32): its colour step chosen on flowers, on very-low's planes (tuned on the bench scenes)
+    "very-low-rgb127": SH_TUNED,
     "medium-12bit": BENCH + STATUE_TUNED,
     "medium-low-palette": BENCH + STATUES,
 }

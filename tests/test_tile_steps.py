@@ -458,3 +458,33 @@ def test_medium_scales_lie_on_one_1023_level_tile_step(tmp_path, monkeypatch):
     per_chunk = encode_gaussians(g, tmp_path / "c", EncodeOptions(preset="medium", lod=False))
     assert per_chunk.formats == m.formats and m.bytes_on_disk < per_chunk.bytes_on_disk
     assert scale_error(tmp_path / "pc").mean() < err.mean()  # x and z had 2047 levels of their own chunk
+
+
+def test_very_low_rgb127_is_very_low_with_8_bit_colour_on_a_127_level_step_between_very_low_and_low(tmp_path):
+    """very-low-rgb127 (issue 32, step32): very-low's positions, rotations, scales and SH codebook with low's norm8x4
+    colour (not BC7) on one tile step of 127 levels for R, G, B and 55 for opacity. The scene stays 1.2, its bytes
+    lie between very-low's and low's, and so does its colour error: SH0 within the 127-level step of the median
+    chunk, opacity within the 55-level one. Colour is compared on encodes with exact positions (the override drops
+    only the position format), so that each decoded splat is matched to its own input splat."""
+    assert PRESETS["very-low-rgb127"] == {**PRESETS["very-low"], "color": PRESETS["low"]["color"]}
+    assert PRESET_SH_CODEBOOK["very-low-rgb127"] == PRESET_SH_CODEBOOK["very-low"] == "auto"
+    assert preset_steps("very-low-rgb127") == {"color": TileStep((127.0, 127.0, 127.0, 55.0), shared=3)}
+    g = read_gaussians(real("fruit_drops_sh3.ply")).subset(np.arange(1800))
+    sizes, errors = {}, {}
+    for preset in ("very-low", "very-low-rgb127", "low"):
+        m = encode_gaussians(g, tmp_path / preset, EncodeOptions(preset=preset, lod=False))
+        assert m.version == (1, 2) and m.uses_codebook
+        sizes[preset] = m.bytes_on_disk
+        encode_gaussians(g, tmp_path / f"{preset}-p", EncodeOptions(preset=preset, lod=False,
+                                                                    overrides={"position": "f32x4"}))
+        dec = decode_scene(tmp_path / f"{preset}-p")
+        nearest = np.abs(dec.positions[:, None, :] - g.positions[None, :, :]).max(axis=2).argmin(axis=1)
+        errors[preset] = np.abs(dec.sh_dc - g.sh_dc[nearest]), np.abs(dec.opacities - g.opacities[nearest])
+    # measured: 21,115 / 22,172 / 25,126 bytes; SH0 RMS error 0.0672 / 0.0074 / 0.0037 (BC7 / the step / 8 bits per
+    # chunk); the largest SH0 and opacity errors 0.0127 and 0.0089 against the bounds 0.0321 and 0.0180
+    assert sizes["very-low"] < sizes["very-low-rgb127"] < sizes["low"], sizes
+    rms = {p: float(np.sqrt(np.mean(e[0] ** 2))) for p, e in errors.items()}
+    assert rms["low"] < rms["very-low-rgb127"] < rms["very-low"], rms
+    sh_dc, opacity = errors["very-low-rgb127"]
+    assert 0 < sh_dc.max() <= float((g.sh_dc.max(axis=0) - g.sh_dc.min(axis=0)).max()) / 127
+    assert 0 < opacity.max() <= float(g.opacities.max() - g.opacities.min()) / 55

@@ -101,6 +101,16 @@ PRESETS: dict[str, dict[str, str]] = {
     # scene 45.2 -> 50.0) and, coded with fields1, costs about 1 B/splat more (fruit_drops 11.2 -> 11.7 B).
     # Rotations stay norm565 (3 x 5/6/5 bits, w from the rest) to keep real SH3 scenes under 12 B/splat.
     "low": {"position": "norm8x4", "rotation": "norm565", "scale": "norm8x4", "color": "norm8x4", "sh": "norm565"},
+    # very-low's positions, rotations, scales and SH codebook with norm8x4 colour (low's) on one tile step of 127
+    # levels for R, G, B (55 for opacity; PRESET_STEPS), instead of BC7 (issue 32, step32): very-low -> low was one
+    # 1.29-1.30x step in bytes on flowers and playbot (1.31-1.39x on the SH0 scenes). Per plane (flowers, B/splat)
+    # the two differ in colour (BC7 0.82, norm8x4 2.92) and scales (norm565 1.59, norm8x4 2.89), and the colour buys
+    # the PSNR: very-low with norm8x4 colour 11.63 B at 37.68 dB, with norm8x4 scales 10.70 B at 35.15 (very-low
+    # 9.70 B at 35.06, low 12.63 B at 37.83). G chosen on flowers (63: 10.79 B, 37.64 dB; 95: 11.00, 37.66; 127:
+    # 11.16, 37.67; 255: 11.53, 37.68; the geometric middle 11.07 B), checked on playbot, fruit_drops, lod_tile and
+    # the eleven SH0 scenes (BENCHMARKS.md, "The hole between very-low and low").
+    "very-low-rgb127": {"position": "norm8x4", "rotation": "norm565", "scale": "norm565", "color": "norm8x4",
+                        "sh": "norm565"},
     # Not the seed's very-low (BC7 for position, rotation and scale): BC7 scales ruined the picture. Packed 16-bit
     # scales and rotations do far better at fewer bytes, and the codebook keeps all three SH bands for less
     # (BENCHMARKS.md, "Figures behind library defaults").
@@ -111,7 +121,8 @@ PRESETS: dict[str, dict[str, str]] = {
 PRESET_SH_CODEBOOK: dict[str, str] = {"low-plus-10bit-cb8": "large",
                                       "medium-low": "fine", "medium-low-12bit": "fine", "medium-low-palette": "fine",
                                       "medium-low-9bit": "fine",
-                                      "low-plus-9bit": "auto", "low-plus": "auto", "low": "auto", "very-low": "auto"}
+                                      "low-plus-9bit": "auto", "low-plus": "auto", "low": "auto",
+                                      "very-low-rgb127": "auto", "very-low": "auto"}
 # Tile-wide quantisation steps (format/steps.py, format.md 4.3.1): levels of the tile's median chunk per component,
 # the first `shared` components on one step. Per-chunk grids give a chunk of widely spread values a coarse step and a
 # tight chunk a fine one; one step per tile spends the bits where values spread. On donut one step for positions
@@ -173,6 +184,7 @@ PRESET_STEPS: dict[str, dict[str, TileStep]] = {
                           **sh_pooled_steps(5.0, SH5_IMPORTANCE)},
     "low-plus-10bit-cb8": {"position": TileStep((1023.0,) * 3, shared=3), "scale": TileStep((200.0,) * 3, shared=3),
                            "color": TileStep((255.0, 255.0, 255.0, 55.0), shared=3)},
+    "very-low-rgb127": {"color": TileStep((127.0, 127.0, 127.0, 55.0), shared=3)},
 }
 # zstd level per preset where it is not the encoder's default (DEFAULT_ZSTD_LEVEL, 1; `--zstd-level` overrides
 # both): a higher level where its small gain puts a preset under 0.90 of SOG's bytes on a real scene, for a little
@@ -268,6 +280,8 @@ PRESET_SUMMARY: dict[str, str] = {
     "low-plus": "8-bit positions, rotations, scales and colour, SH codebook (1 per 64); about 12.9 B/splat at "
                 "SH3, 14 at SH2, 11-12.1 at SH0; 40-59 dB",
     "low": "low-plus with 16-bit rotations; about 11.5 B/splat at SH3, 12.6 at SH2, 9.8-10.8 at SH0; 37-52 dB",
+    "very-low-rgb127": "very-low with 8-bit colour (low's norm8x4, not BC7) on a tile step of 127 levels, "
+                       "between very-low and low; about 9.9 B/splat at SH3, 11.2 at SH2, 8.4-9 at SH0; 35-51 dB",
     "very-low": "16-bit scales, BC7 colour, SH codebook; about 9.4 B/splat at SH3, 9.7 at SH2, 7.5-7.8 at SH0; "
                 "32-47 dB",
 }
