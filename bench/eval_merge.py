@@ -4,17 +4,18 @@
 
 A preset added after a full `bench/run_eval.sh` round is measured alone (`eval SCENE --presets NEW`, same views,
 size and renderer) and merged here, instead of re-running every preset of every scene. The rows are added only when
-both reports have the same input (path, bytes, splats), the same cameras, render size and renderer; a row of the
-same label in TARGET is replaced. `--rename` relabels a row (a setting measured under a probe name before it became
-a named preset; the settings must be the preset's). Every merged row keeps the source's commit under `merged_from`,
-so the table says where each row was measured. Only rows of kind `preset` are merged, unless `--peers`: then the
-peers' rows (kind `compare`, e.g. a SOG point encoded later on the GPU machine and compared alone with `eval --presets
-none --compare ...`) too, after the presets.
+both reports have the same input (path, bytes, splats), the same cameras (floats to 1e-12 relative), render size and
+renderer; a row of the same label in TARGET is replaced. `--rename` relabels a row (a setting measured under a probe
+name before it became a named preset; the settings must be the preset's). Every merged row keeps the source's commit
+under `merged_from`, so the table says where each row was measured. Only rows of kind `preset` are merged, unless
+`--peers`: then the peers' rows (kind `compare`, e.g. a SOG point encoded later on the GPU machine and compared
+alone with `eval --presets none --compare ...`) too, after the presets.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import math
 import os
 import sys
 
@@ -26,10 +27,27 @@ def same_measurement(a: dict, b: dict) -> str | None:
             return f"input {key}: {a['input'][key]} != {b['input'][key]}"
     if os.path.basename(a["input"]["path"]) != os.path.basename(b["input"]["path"]):
         return f"input {a['input']['path']} != {b['input']['path']}"
-    for key in ("cameras", "size", "renderer"):
+    for key in ("size", "renderer"):
         if a[key] != b[key]:
             return f"{key} differ"
+    if not same_cameras(a["cameras"], b["cameras"]):
+        return "cameras differ"
     return None
+
+
+def same_cameras(a: list[dict], b: list[dict]) -> bool:
+    """The same views: equal fields, floats to 1e-12 relative (the orbit's arithmetic has moved eyes and near planes
+    by an ulp between commits, step32: fruit_drops' 8 views, every view's PSNR the same to the last digit)."""
+    def close(x, y) -> bool:
+        if isinstance(x, float) or isinstance(y, float):
+            return isinstance(x, (int, float)) and isinstance(y, (int, float)) and math.isclose(x, y, rel_tol=1e-12,
+                                                                                                  abs_tol=1e-15)
+        if isinstance(x, list) and isinstance(y, list):
+            return len(x) == len(y) and all(close(u, v) for u, v in zip(x, y, strict=True))
+        if isinstance(x, dict) and isinstance(y, dict):
+            return x.keys() == y.keys() and all(close(x[k], y[k]) for k in x)
+        return x == y
+    return close(a, b)
 
 
 def merge(target: dict, source: dict, rename: dict[str, str], peers: bool = False) -> list[str]:

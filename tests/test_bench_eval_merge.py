@@ -52,3 +52,16 @@ def test_other_cameras_are_refused_and_the_target_is_untouched(tmp_path, capsys)
     assert M.main([target, source, "--peers"]) == 1
     assert "cameras differ" in capsys.readouterr().err
     assert json.loads(pathlib.Path(target).read_text()) == before
+
+
+def test_cameras_an_ulp_apart_are_the_same_views(tmp_path):
+    """step32: camera.look_at_near_far's refactor moved fruit_drops' eyes and near planes by an ulp (every view's PSNR
+    the same to the last digit); such cameras are the same views, a real difference is still refused."""
+    target = write(tmp_path / "t.json", report("a", [row("preset", "medium", 50.0)], cameras=((0.35712093311489490,
+                                                                                             -2.5069121102696568),)))
+    source = write(tmp_path / "s.json", report("b", [row("preset", "new", 45.0)], cameras=((0.35712093311489485,
+                                                                                          -2.506912110269657),)))
+    assert M.main([target, source]) == 0
+    assert [r["label"] for r in json.loads(pathlib.Path(target).read_text())["rows"]] == ["medium", "new"]
+    assert not M.same_cameras([{"eye": [0.0, 1.0], "up": [0, -1, 0]}], [{"eye": [0.0, 1.0 + 1e-9], "up": [0, -1, 0]}])
+    assert not M.same_cameras([{"eye": [0.0, 1.0]}], [{"eye": [0.0, 1.0], "near": 0.1}])
