@@ -334,3 +334,18 @@ def test_a_streamed_sog_is_sized_by_its_finest_level_not_its_index(tmp_path):
     assert rep["input"]["bytes"] == finest and rep["input"]["splats"] == 74
     assert rep["rows"][0]["compression"] == pytest.approx(finest / rep["rows"][0]["disk_bytes"], rel=1e-6)
     assert report_markdown(rep).startswith(f"Scene `fruit_drops_lod/lod-meta.json`: 74 splats, SH3, {finest:,} bytes")
+
+
+def test_very_low_rgb127_is_measured_by_default_and_targets_between_very_low_and_low_pick_it():
+    """Issue 32, step32: eval (and so --target-psnr / --target-size) takes very-low-rgb127 between low and very-low;
+    on fruit_drops' stored report (8 views at 512 px) targets between its neighbours' points pick it."""
+    from splatstream.evaluate import PRESET_ORDER, preset_for_target
+
+    assert PRESET_ORDER.index("low") + 1 == PRESET_ORDER.index("very-low-rgb127") == PRESET_ORDER.index("very-low") - 1
+    rows = json.loads((ROOT / "bench" / "results" / "eval_real" / "fruit.json").read_text())["rows"]
+    points = {r["label"]: (r["disk_bytes_per_splat"], r["psnr_mean"]) for r in rows if r["kind"] == "preset"}
+    assert points["very-low"][0] < points["very-low-rgb127"][0] < points["low"][0]  # 9.36 < 9.86 < 11.50 B
+    assert points["very-low"][1] < points["very-low-rgb127"][1] < points["low"][1]  # 34.02 < 35.23 < 37.61 dB
+    assert preset_for_target(rows, target_psnr=35)["label"] == "very-low-rgb127"
+    assert preset_for_target(rows, target_bytes=10)["label"] == "very-low-rgb127"
+    assert preset_for_target(rows, target_bytes=9.5)["label"] == "very-low"
