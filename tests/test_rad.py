@@ -333,3 +333,19 @@ def test_nearest_spatial_blocks_equal_every_pair(n, m, k):
             return ((points[:, None, :] - centres[idx]) ** 2).sum(axis=2)
         assert np.allclose(dist(fast), dist(brute), rtol=1e-12, atol=1e-12)
         assert (np.diff(dist(fast), axis=1) >= -1e-12).all()
+
+
+def test_export_reports_the_tree_and_the_chunks(exported, tmp_path):
+    """The nearest-parent searches (most of an export's time: playbot 31 of 34 s of CPU) are heard as stage
+    "tree", by the share of the splats below the root placed, then the chunks as "encode": each from 0 to exactly
+    1, never backwards."""
+    work, _ = exported
+    heard: list[tuple[str, float]] = []
+    export_rad(work / "scene", tmp_path / "p.rad", progress=lambda stage, fraction: heard.append((stage, fraction)))
+    stages = [stage for stage, _ in heard if stage != "decode"]
+    assert stages == sorted(stages, key=["tree", "encode"].index)
+    for name in ("tree", "encode"):
+        fractions = [f for stage, f in heard if stage == name]
+        assert fractions[0] == 0.0 and fractions[-1] == 1.0 and fractions == sorted(fractions), name
+    assert len([f for stage, f in heard if stage == "tree"]) > 3  # more than the start and the end
+    assert (tmp_path / "p.rad").read_bytes() == (work / "scene.rad").read_bytes()
