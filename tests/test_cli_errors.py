@@ -46,6 +46,9 @@ def cases(tmp, scene):
         (["render", scene, "--out", tmp / "o.jpg"], "o.jpg"),
         (["render", scene, "--size", "0x0", "--out", tmp / "o.png"], "--size"),
         (["render", scene, "--eye", "1,1", "--out", tmp / "o.png"], "--eye"),
+        # 'bad camera: camera eye and target coincide' named neither option; --fov-y 200 was 'camera fov_y_deg ...'
+        (["render", scene, "--eye", "1,1,1", "--target", "1,1,1", "--out", tmp / "o.png"], "--eye and --target"),
+        (["render", scene, "--fov-y", "200", "--out", tmp / "o.png"], "--fov-y 200: expected degrees in (0, 180)"),
         (["eval", scene], "is a directory"),
         (["eval", tmp / "missing.ply"], "missing.ply"),
         (["eval", DONUT, "--size", "5x5"], "--size"),
@@ -65,6 +68,7 @@ def cases(tmp, scene):
         (["view", scene, "--headless", "--size", "0x0"], "--size"),
         (["view", scene, "--headless", "--screenshot", tmp / "o.jpg"], "o.jpg"),
         (["view", scene, "--headless", "--fill-gap", "0"], "--fill-gap"),
+        (["view", scene, "--headless", "--eye", "1,1,1", "--target", "1,1,1"], "--eye and --target"),
         (["view", scene, "--headless", "--sh-bands", "0.9,x,1"], "--sh-bands"),
         (["export-3dtiles", tmp / "missing", tmp / "t"], "missing"),
         (["export-3dtiles", scene, tmp / "t", "--latitude", "10"], "--longitude"),

@@ -58,7 +58,7 @@ def test_render_ply_with_camera(gl_ok, tmp_path):
     (["--size", "12"], "--size"),
     (["--eye", "1,2"], "--eye"),
     (["--background", "red"], "--background"),
-    (["--eye", "0,0,0", "--target", "0,0,0"], "camera"),
+    (["--eye", "0,0,0", "--target", "0,0,0"], "--eye and --target"),
 ])
 def test_bad_arguments(gl_ok, tmp_path, args, message):
     out = tmp_path / "x.png"

@@ -16,7 +16,7 @@ from splatstream.io import read_gaussians, scene_up
 from splatstream.orientation import view_side
 from splatstream.store import is_scene_dir, load_manifest
 
-from .args import parse_size, parse_vector
+from .args import check_look, parse_size, parse_vector
 from .renderers import gl_client
 
 DEFAULT_SIZE = (1280, 720)
@@ -73,6 +73,7 @@ def _camera(args, scene_camera: dict | None, positions: np.ndarray | None, scene
     if args.up is None and scene_camera is not None:
         up = default.up
     fov = args.fov_y if args.fov_y is not None else default.fov_y_deg
+    check_look(eye, target, args.fov_y)
     dist = float(np.linalg.norm(np.subtract(eye, target)))
     near = min(REFERENCE_NEAR, 0.01 * dist) if dist > 0 else REFERENCE_NEAR
     try:
