@@ -1,7 +1,11 @@
 """One exit-code convention for every command: bad input or usage exits 2 with one line naming the path or option
 and what was expected; never a traceback; no output left behind."""
+import numpy as np
 import pytest
 from conftest import ROOT, run_cli
+
+from splatstream.io import read_gaussians
+from splatstream.ply import write_gaussians_ply
 
 DONUT = ROOT / "samples" / "donut.ply"
 STREAMED_SOG = ROOT / "tests" / "fixtures" / "foreign" / "fruit_drops_lod"  # another tool's scene directory
@@ -18,7 +22,17 @@ def scene(tmp_path_factory):
 def cases(tmp, scene):
     (tmp / "a_file").write_text("x")
     (tmp / "a_dir").mkdir()
+    broken = read_gaussians(DONUT)
+    broken.positions[7] = np.nan
+    write_gaussians_ply(broken, tmp / "nan.ply")
+    # view, render and eval said "pass --drop-invalid to drop them" and then refused that option: the hint names
+    # the commands that take it
+    drop_hint = "`encode` and `convert` drop them with --drop-invalid"
     return [
+        (["render", tmp / "nan.ply", "--out", tmp / "o.png", "-q"], drop_hint),  # -q: no progress lines first
+        (["view", tmp / "nan.ply", "--headless", "-q"], drop_hint),
+        (["eval", tmp / "nan.ply", "--presets", "low", "-q"], drop_hint),
+        (["convert", tmp / "nan.ply", tmp / "o.ply", "-q"], drop_hint),
         (["encode", tmp / "missing.ply", tmp / "o"], "missing.ply"),
         (["encode", DONUT, tmp / "o", "--up", "0,0,0"], "--up"),
         (["encode", DONUT, tmp / "o", "--up", "1,x,0"], "--up"),
