@@ -74,7 +74,7 @@ def cases(tmp, scene):
         (["export-rad", scene, tmp / "o.ply"], "o.ply"),  # a .rad under another extension
         (["export-rad", tmp / "missing", tmp / "o.rad"], "missing"),
         (["export-sog-lod", tmp / "missing", tmp / "s"], "missing"),
-        (["export-sog-lod", scene, tmp / "a_file"], "a_file"),
+        (["export-sog-lod", scene, tmp / "a_file"], "a_file: exists and is not a directory (the output is a directory"),
         (["view", tmp / "missing", "--headless"], "missing"),
         (["view", "http://127.0.0.1:9/playbot/lod-meta.json", "--headless"],  # was a 404 for .../manifest.msgpack
          "lod-meta.json: over HTTP `view` streams a served scene (http://HOST/scenes/ID"),
