@@ -122,7 +122,7 @@ def test_cli_export_and_errors(exported, tmp_path):
     r = subprocess.run([*cli, "export-rad", str(work / "scene"), str(tmp_path / "o.rad"), "--sh-degree", "0"],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
-    assert "8 tree levels" in r.stderr and "4721 splats of full detail" in r.stderr
+    assert "8 tree levels" in r.stderr and "4,721 splats of full detail" in r.stderr
     assert read_rad_tree(tmp_path / "o.rad").splats.sh_degree == 0
     for args, message in (([tmp_path / "missing", tmp_path / "o.rad"], "missing"),
                           ([work / "scene", tmp_path / "nodir" / "o.rad"], "does not exist"),

@@ -117,7 +117,7 @@ def test_cli_export_and_errors(exported, tmp_path):
     r = subprocess.run([*cli, "export-sog-lod", str(work / "scene"), str(tmp_path / "out"), "--sh-degree", "0"],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
-    assert "7 LOD levels" in r.stderr and "4721 splats at level 0" in r.stderr
+    assert "7 LOD levels" in r.stderr and "4,721 splats at level 0" in r.stderr
     units = [json.loads(p.read_text()) for p in (tmp_path / "out").glob("*/meta.json")]
     assert units and all("shN" not in u for u in units)
     for args, message in (([tmp_path / "missing", tmp_path / "o"], "missing"),
