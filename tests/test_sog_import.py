@@ -4,6 +4,7 @@ own export) coarse to fine."""
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -174,3 +175,18 @@ def test_tree_progress_is_heard_tile_by_tile(exported, tmp_path, gl_context):
     lines = r.stderr.splitlines()
     for stage in ("read", "tree", "tiles", "encode"):
         assert any(line.startswith(f"view: {stage} 100% (") for line in lines), (stage, r.stderr)
+
+
+def test_a_missing_unit_is_named_as_lod_meta_json_names_it(exported, tmp_path):
+    """A unit directory gone from a streamed SOG: the error is lod-meta.json's entry that names it (it said 'SOG
+    meta.json: names ...', which read as the unit's own meta.json naming something), exit 2, no output."""
+    damaged = tmp_path / "sog"
+    shutil.copytree(exported / "sog", damaged)
+    meta = json.loads((damaged / "lod-meta.json").read_text())
+    gone = meta["filenames"][1]
+    shutil.rmtree(damaged / gone.split("/")[0])
+    r = run_cli("encode", damaged, tmp_path / "out", "-q")
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert r.stderr.strip() == (f"splatstream encode: error: {damaged}: lod-meta.json filenames[1]: names '{gone}', "
+                                f"which does not exist in {damaged}"), r.stderr
+    assert not (tmp_path / "out").exists()
