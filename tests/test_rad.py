@@ -349,3 +349,14 @@ def test_export_reports_the_tree_and_the_chunks(exported, tmp_path):
         assert fractions[0] == 0.0 and fractions[-1] == 1.0 and fractions == sorted(fractions), name
     assert len([f for stage, f in heard if stage == "tree"]) > 3  # more than the start and the end
     assert (tmp_path / "p.rad").read_bytes() == (work / "scene.rad").read_bytes()
+
+
+def test_a_truncated_file_says_so(exported, tmp_path):
+    """A .rad cut short inside a chunk's property: the property, the bytes it needs and the file's end (it said
+    'expected raw DEFLATE data (Error -5 ...: incomplete or truncated stream)')."""
+    work, _ = exported
+    data = (work / "scene.rad").read_bytes()
+    (tmp_path / "cut.rad").write_bytes(data[:len(data) - 1000])
+    with pytest.raises(InputError, match=r"chunk \d+ \w+: needs bytes [\d,]+\.\.[\d,]+, past the end of its file "
+                                         rf"\({len(data) - 1000:,} bytes\): truncated\?"):
+        read_rad_tree(tmp_path / "cut.rad")
