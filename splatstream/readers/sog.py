@@ -67,10 +67,23 @@ class _Source:
         return self._read(name, field, memory_budget() if max_bytes is None else min(max_bytes, memory_budget()))
 
 
+def _starts_as_zip(path: str) -> bool:
+    try:
+        with open(path, "rb") as f:
+            return f.read(4) == b"PK\x03\x04"
+    except OSError:
+        return False
+
+
 def _zip_source(path: str) -> _Source:
     try:
         archive = zipfile.ZipFile(path)
     except (zipfile.BadZipFile, OSError) as exc:
+        if _starts_as_zip(path):
+            # a .sog cut short keeps its first members but loses the directory at the end, which zipfile reads
+            # first: it said "File is not a zip file" of what is one, truncated
+            raise InputError(path, "zip archive", "starts as a zip file but its central directory (at the end) "
+                             f"is missing: truncated? ({exc})") from None
         raise InputError(path, "zip archive", f"not a readable zip file ({exc})") from None
     total = os.path.getsize(path)
 
