@@ -109,6 +109,11 @@ def run(args: argparse.Namespace) -> int:
         cam = _camera(args, None, g.positions, up, size, view_side(g, up), g.opacity_logits)
         source = ("gaussians", g)
         splats = len(g)
+        if not args.quiet:
+            # A splat file is encoded in memory before it is drawn: seconds for a large one (playbot's 500,000
+            # splats: 13 s of "load" on a busy 2-core machine, with nothing printed before the last line).
+            print(f"render: {len(g):,} splats read from {args.scene} ({time.perf_counter() - t0:.1f}s); encoding "
+                  f"them at {args.preset} for the GPU", file=sys.stderr, flush=True)
     renderer = offscreen.HeadlessRenderer(offscreen.RenderOptions(sort=args.sort, draw=args.draw))
     try:
         if source[0] == "scene" and args.max_sse is not None:
