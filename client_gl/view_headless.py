@@ -18,6 +18,7 @@ from PIL import Image
 from splatstream.atomic import atomic_file
 from splatstream.camera import Camera, look_at_near_far
 from splatstream.camera_path import CameraPath
+from splatstream.progress import ProgressPrinter
 
 from .gpu.gl import wait_for_gpu
 from .streaming import StreamingSession, ViewOptions, freeze_long_lived
@@ -88,9 +89,9 @@ def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
     say = (lambda msg: None) if run.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
     tty = sys.stderr.isatty() and not run.quiet
 
-    def encode_progress(stage: str, fraction: float) -> None:
-        if fraction >= 1.0 or fraction == 0.0:
-            say(f"view: {stage} {fraction * 100:.0f}%")
+    # Reading and encoding a file or a foreign tree before the first frame (playbot's streamed SOG: 10-20 s) shows
+    # its stages as `encode` does: a line per stage and 25 % step with the time taken, a bar on a terminal.
+    encode_progress = ProgressPrinter("view", enabled=not run.quiet)
 
     # The timeout counts from here: the manifest's request (however slowly it arrives) is inside it.
     # A request that takes half the timeout (a server dripping bytes) fails and is named before the timeout ends.

@@ -112,6 +112,12 @@ def check_replaceable(given: str, path: str, holds: str | None) -> None:
                      "or empty directory, or remove this one first")
 
 
+# Where a directory output (a scene, a 3D Tiles tileset, a streamed SOG) would replace a file: it said "a scene is
+# written as a directory" for export-sog-lod and export-3dtiles too.
+NOT_A_DIRECTORY = "exists and is not a directory (the output is a directory: a scene, a 3D Tiles tileset or a " \
+    "streamed SOG)"
+
+
 def check_output(path: str | os.PathLike, directory: bool = False, holds: str | None = None) -> None:
     """Fail now, before a long computation, if `path` cannot be written the way atomic_file / atomic_directory will
     write it (a missing or unwritable parent, a file where a scene directory goes, or the reverse; a directory of
@@ -120,7 +126,7 @@ def check_output(path: str | os.PathLike, directory: bool = False, holds: str | 
     path = os.path.abspath(given)
     parent = os.path.dirname(path)
     if directory and os.path.lexists(path) and not os.path.isdir(path):
-        raise UsageError(f"{given}: exists and is not a directory (a scene is written as a directory)")
+        raise UsageError(f"{given}: {NOT_A_DIRECTORY}")
     if directory:
         check_replaceable(given, path, holds)
     if not directory and os.path.isdir(path):
@@ -183,7 +189,7 @@ def atomic_directory(path: str | os.PathLike, holds: str | None = None) -> Itera
     path = os.path.abspath(given)
     parent = os.path.dirname(path)
     if os.path.lexists(path) and not os.path.isdir(path):
-        raise UsageError(f"{given}: exists and is not a directory (a scene is written as a directory)")
+        raise UsageError(f"{given}: {NOT_A_DIRECTORY}")
     check_replaceable(given, path, holds)
     try:
         os.makedirs(parent, exist_ok=True)
@@ -195,7 +201,7 @@ def atomic_directory(path: str | os.PathLike, holds: str | None = None) -> Itera
             os.rmdir(tmp)
             raise
     except OSError as exc:
-        raise UsageError(f"{given}: cannot write a scene directory here ({exc.strerror})") from None
+        raise UsageError(f"{given}: cannot write a directory here ({exc.strerror})") from None
     try:
         _lock(lock)  # held while this process lives: the lock travels with the directory through the renames
         yield tmp
@@ -210,7 +216,7 @@ def atomic_directory(path: str | os.PathLike, holds: str | None = None) -> Itera
             shutil.rmtree(old, ignore_errors=True)
         else:
             if os.path.lexists(path):
-                raise UsageError(f"{given}: exists and is not a directory (a scene is written as a directory)")
+                raise UsageError(f"{given}: {NOT_A_DIRECTORY}")
             os.rename(tmp, path)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)

@@ -31,6 +31,7 @@ from .ply import (
     vertex_layout,
     write_gaussians_ply,
 )
+from .reader_support import DROP_INVALID_HINT
 from .readers.compressed_ply import is_compressed_ply, read_compressed_ply
 from .readers.gltf import read_gltf
 from .readers.rad import read_rad
@@ -187,7 +188,7 @@ def screen_gaussians(g: Gaussians, path: str, drop_invalid: bool = False) -> Gau
         return g
     bad, message = describe_violations(violations, len(g))
     if not drop_invalid:
-        raise InputError(path, None, message + "; pass --drop-invalid to drop them")
+        raise InputError(path, None, f"{message}; {DROP_INVALID_HINT}")
     warnings.warn(f"{path}: {message}; dropped", stacklevel=3)
     return g.subset(~bad)
 

@@ -15,7 +15,7 @@ import numpy as np
 from .atomic import atomic_file
 from .errors import InputError
 from .gaussians import SH_REST_COEFFS, Gaussians, normalize_quaternions
-from .reader_support import check_memory, model_bytes_per_splat, opacity_logits_from_unit
+from .reader_support import DROP_INVALID_HINT, check_memory, model_bytes_per_splat, opacity_logits_from_unit
 
 PLY_TYPES = {
     "char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1",
@@ -402,12 +402,12 @@ def check_rows(path: str, stats: RowStats, drop_invalid: bool) -> None:
         detail = ", ".join(f"{k}: {v}" for k, v in stats.per_field.items())
         msg = f"{stats.bad_rows} of {n} splats have non-finite values (NaN or inf) ({detail})"
         if not drop_invalid:
-            raise InputError(path, "element vertex", msg + "; pass --drop-invalid to drop them")
+            raise InputError(path, "element vertex", f"{msg}; {DROP_INVALID_HINT}")
         warnings.warn(f"{path}: {msg}; dropped", stacklevel=3)
     if stats.zero_q:
         msg = f"{stats.zero_q} of {n} splats have a zero-length quaternion (rot_0..rot_3 all 0)"
         if not drop_invalid:
-            raise InputError(path, "element vertex", msg + "; pass --drop-invalid to drop them")
+            raise InputError(path, "element vertex", f"{msg}; {DROP_INVALID_HINT}")
         warnings.warn(f"{path}: {msg}; dropped", stacklevel=3)
 
 

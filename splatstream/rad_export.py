@@ -39,13 +39,11 @@ def export_rad(scene: str | os.PathLike | SceneStore, out: str | os.PathLike, sh
     check_output(out)
     report = progress or (lambda stage, fraction: None)
     degree, tiles = decode_tree_tiles(store, manifest, sh_degree, report)
-    report("encode", 0.0)
     try:
-        tree = rad_tree(tiles, manifest.root)
+        tree = rad_tree(tiles, manifest.root, lambda fraction: report("tree", fraction))
     except ValueError as e:
         raise UsageError(f"{os.fspath(scene) if not isinstance(scene, SceneStore) else 'scene'}: {e}") from None
-    data = rad_bytes(tree, degree, encoding)
-    report("encode", 1.0)
+    data = rad_bytes(tree, degree, encoding, lambda fraction: report("encode", fraction))
     with atomic_file(out) as f:
         f.write(data)
     os.chmod(out, 0o644)

@@ -42,9 +42,7 @@ def export_streamed_sog(scene: str | os.PathLike | SceneStore, out_dir: str | os
     check_output(out, directory=True, holds=LOD_META_NAME)
     report = progress or (lambda stage, fraction: None)
     degree, tiles = decode_tree_tiles(store, manifest, sh_degree, report)
-    report("encode", 0.0)
-    sog = streamed_sog(tiles, manifest.root, unit_splats)
-    report("encode", 1.0)
+    sog = streamed_sog(tiles, manifest.root, unit_splats, lambda fraction: report("encode", fraction))
     with atomic_directory(out, holds=LOD_META_NAME) as tmp:
         write_streamed_sog(sog, tmp)
         for base, dirs, files in os.walk(tmp):

@@ -30,6 +30,11 @@ def test_encode_info_decode(tmp_path):
     assert info["bytes_on_disk"] < info["gpu_bytes"]
     r = run_cli("decode", tmp_path / "scene", tmp_path / "out.ply")
     assert r.returncode == 0, r.stderr
+    # what is being written is said before the write (a .sog's takes seconds), then what was written
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 2 and lines[0].startswith("decode: ") and lines[0].endswith(
+        f"; writing {tmp_path / 'out.ply'} (standard 3DGS PLY)"), r.stderr
+    assert lines[1].startswith(f"wrote {tmp_path / 'out.ply'}: "), r.stderr
     back = read_gaussians_ply(tmp_path / "out.ply")
     d = decode_scene(tmp_path / "scene")
     assert np.array_equal(back.positions, d.positions) and np.array_equal(back.sh_rest, d.sh_rest)

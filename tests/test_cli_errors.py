@@ -1,7 +1,11 @@
 """One exit-code convention for every command: bad input or usage exits 2 with one line naming the path or option
 and what was expected; never a traceback; no output left behind."""
+import numpy as np
 import pytest
 from conftest import ROOT, run_cli
+
+from splatstream.io import read_gaussians
+from splatstream.ply import write_gaussians_ply
 
 DONUT = ROOT / "samples" / "donut.ply"
 STREAMED_SOG = ROOT / "tests" / "fixtures" / "foreign" / "fruit_drops_lod"  # another tool's scene directory
@@ -18,7 +22,17 @@ def scene(tmp_path_factory):
 def cases(tmp, scene):
     (tmp / "a_file").write_text("x")
     (tmp / "a_dir").mkdir()
+    broken = read_gaussians(DONUT)
+    broken.positions[7] = np.nan
+    write_gaussians_ply(broken, tmp / "nan.ply")
+    # view, render and eval said "pass --drop-invalid to drop them" and then refused that option: the hint names
+    # the commands that take it
+    drop_hint = "`encode` and `convert` drop them with --drop-invalid"
     return [
+        (["render", tmp / "nan.ply", "--out", tmp / "o.png", "-q"], drop_hint),  # -q: no progress lines first
+        (["view", tmp / "nan.ply", "--headless", "-q"], drop_hint),
+        (["eval", tmp / "nan.ply", "--presets", "low", "-q"], drop_hint),
+        (["convert", tmp / "nan.ply", tmp / "o.ply", "-q"], drop_hint),
         (["encode", tmp / "missing.ply", tmp / "o"], "missing.ply"),
         (["encode", DONUT, tmp / "o", "--up", "0,0,0"], "--up"),
         (["encode", DONUT, tmp / "o", "--up", "1,x,0"], "--up"),
@@ -46,6 +60,9 @@ def cases(tmp, scene):
         (["render", scene, "--out", tmp / "o.jpg"], "o.jpg"),
         (["render", scene, "--size", "0x0", "--out", tmp / "o.png"], "--size"),
         (["render", scene, "--eye", "1,1", "--out", tmp / "o.png"], "--eye"),
+        # 'bad camera: camera eye and target coincide' named neither option; --fov-y 200 was 'camera fov_y_deg ...'
+        (["render", scene, "--eye", "1,1,1", "--target", "1,1,1", "--out", tmp / "o.png"], "--eye and --target"),
+        (["render", scene, "--fov-y", "200", "--out", tmp / "o.png"], "--fov-y 200: expected degrees in (0, 180)"),
         (["eval", scene], "is a directory"),
         (["eval", tmp / "missing.ply"], "missing.ply"),
         (["eval", DONUT, "--size", "5x5"], "--size"),
@@ -57,7 +74,7 @@ def cases(tmp, scene):
         (["export-rad", scene, tmp / "o.ply"], "o.ply"),  # a .rad under another extension
         (["export-rad", tmp / "missing", tmp / "o.rad"], "missing"),
         (["export-sog-lod", tmp / "missing", tmp / "s"], "missing"),
-        (["export-sog-lod", scene, tmp / "a_file"], "a_file"),
+        (["export-sog-lod", scene, tmp / "a_file"], "a_file: exists and is not a directory (the output is a directory"),
         (["view", tmp / "missing", "--headless"], "missing"),
         (["view", "http://127.0.0.1:9/playbot/lod-meta.json", "--headless"],  # was a 404 for .../manifest.msgpack
          "lod-meta.json: over HTTP `view` streams a served scene (http://HOST/scenes/ID"),
@@ -65,6 +82,7 @@ def cases(tmp, scene):
         (["view", scene, "--headless", "--size", "0x0"], "--size"),
         (["view", scene, "--headless", "--screenshot", tmp / "o.jpg"], "o.jpg"),
         (["view", scene, "--headless", "--fill-gap", "0"], "--fill-gap"),
+        (["view", scene, "--headless", "--eye", "1,1,1", "--target", "1,1,1"], "--eye and --target"),
         (["view", scene, "--headless", "--sh-bands", "0.9,x,1"], "--sh-bands"),
         (["export-3dtiles", tmp / "missing", tmp / "t"], "missing"),
         (["export-3dtiles", scene, tmp / "t", "--latitude", "10"], "--longitude"),

@@ -378,3 +378,13 @@ def test_render_of_decode_matches_render_of_tool_ply():
     ours, theirs = render_ref.render(g, camera), render_ref.render(tool_g, camera)
     assert ours.max() > 0.05  # the scene is in view
     assert np.abs(ours - theirs).max() < 1e-3
+
+
+def test_a_truncated_sog_says_so(tmp_path):
+    """A .sog cut short keeps its zip members' start and loses the central directory at the end: it said 'not a
+    readable zip file (File is not a zip file)' of what is one, truncated; a file that is no zip still says that."""
+    data = (pathlib.Path(__file__).parent / "fixtures" / "foreign" / "fruit_drops.sog").read_bytes()
+    (tmp_path / "cut.sog").write_bytes(data[:len(data) // 2])
+    with pytest.raises(InputError, match=r"zip archive: starts as a zip file but its central directory \(at the "
+                                         r"end\) is missing: truncated\?"):
+        read_gaussians(tmp_path / "cut.sog")

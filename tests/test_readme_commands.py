@@ -2,11 +2,11 @@
 new user would type them (issue 34). Inputs the README names but does not ship are made small here: `scene.ply`,
 `city.ply` and `capture.ply` are the bundled fruit_drops scene (4,721 splats), `broken.ply` is it with a NaN,
 `scene.sog` and `lod/` are the SOG fixtures, `../shared/data/real/fruit_drops_sh3.ply` and
-`../shared/data/real/statues/st-peter.sog` the bundled copies, and the
-eval's `scene.sog.ply` / `scene.spz.ply` (other tools' outputs) are our own conversions. Port 8000 (written, or
-`serve`'s default) becomes a free port. `serve` runs in the background until its block ends; a `view` that opens
-a window runs under Xvfb and is closed with Esc once its window is up. Not run: the install steps (`pip install`,
-`bash .ci/run`: CI runs them itself) and the line that needs a running Dask scheduler and an S3 bucket."""
+`../shared/data/real/statues/st-peter.sog` the bundled copies; the eval's other tools' outputs are `scene.sog` and
+the README's own `scene.spz`. Port 8000 (written, or `serve`'s default) becomes a free port. `serve` runs in the
+background until its block ends; a `view` that opens a window runs under Xvfb and is closed with Esc once its
+window is up. Not run: the install steps (`pip install`, `bash .ci/run`: CI runs them itself) and the line that
+needs a running Dask scheduler and an S3 bucket."""
 from __future__ import annotations
 
 import os
@@ -194,12 +194,6 @@ def test_readme_block_runs_as_written(index, workdir, request):
     block = BLOCKS[index]
     needs_window = any(c.startswith("splatstream view") and "--headless" not in c for c in block)
     display = request.getfixturevalue("display") if needs_window else None
-    if any(c.startswith("splatstream eval") and "--compare" in c for c in block):
-        # stand-ins for other tools' outputs of the same scene: our own SOG and SPZ conversions, back to PLY
-        for src, dst in (("scene.sog", "scene.sog.ply"), ("scene.spz", "scene.spz.ply")):
-            r = subprocess.run([sys.executable, "-m", "cli", "convert", "-q", src, dst], cwd=workdir,
-                               capture_output=True, text=True, timeout=300)
-            assert r.returncode == 0, r.stderr
     runner = Block(workdir, display)
     try:
         for line in block:

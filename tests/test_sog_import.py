@@ -4,6 +4,7 @@ own export) coarse to fine."""
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -158,3 +159,34 @@ def test_encode_keeps_splat_transforms_tree_and_view_streams_it(name, tmp_path, 
 if not FLOWERS_CASES:  # without the shared data these cases are not collected (conftest.NOT_BUNDLED), not skipped
     del test_splat_transform_streamed_sog_becomes_our_tree, test_view_headless_streams_flowers_lod
     del test_encode_keeps_splat_transforms_tree_and_view_streams_it
+
+
+def test_tree_progress_is_heard_tile_by_tile(exported, tmp_path, gl_context):
+    """Measuring a kept tree's errors is the slow part before the first tile (playbot: about 10 s): tree_tiles
+    reports stage "tree" by tile, 0 to exactly 1, and `view --headless` shows it as `encode` shows its stages."""
+    sog = read_streamed_sog(exported / "sog")
+    heard: list[tuple[str, float]] = []
+    tiles = tree_tiles(sog, lambda stage, fraction: heard.append((stage, fraction)))
+    fractions = [f for stage, f in heard if stage == "tree"]
+    assert len(heard) == len(fractions) == len(tiles) + 1
+    assert fractions[0] == 0.0 and fractions[-1] == 1.0 and fractions == sorted(fractions)
+    r = run_cli("view", exported / "sog", "--headless", "--size", "96x64", "--no-cache")
+    assert r.returncode == 0, r.stderr
+    lines = r.stderr.splitlines()
+    for stage in ("read", "tree", "tiles", "encode"):
+        assert any(line.startswith(f"view: {stage} 100% (") for line in lines), (stage, r.stderr)
+
+
+def test_a_missing_unit_is_named_as_lod_meta_json_names_it(exported, tmp_path):
+    """A unit directory gone from a streamed SOG: the error is lod-meta.json's entry that names it (it said 'SOG
+    meta.json: names ...', which read as the unit's own meta.json naming something), exit 2, no output."""
+    damaged = tmp_path / "sog"
+    shutil.copytree(exported / "sog", damaged)
+    meta = json.loads((damaged / "lod-meta.json").read_text())
+    gone = meta["filenames"][1]
+    shutil.rmtree(damaged / gone.split("/")[0])
+    r = run_cli("encode", damaged, tmp_path / "out", "-q")
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert r.stderr.strip() == (f"splatstream encode: error: {damaged}: lod-meta.json filenames[1]: names '{gone}', "
+                                f"which does not exist in {damaged}"), r.stderr
+    assert not (tmp_path / "out").exists()

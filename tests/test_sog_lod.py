@@ -117,7 +117,7 @@ def test_cli_export_and_errors(exported, tmp_path):
     r = subprocess.run([*cli, "export-sog-lod", str(work / "scene"), str(tmp_path / "out"), "--sh-degree", "0"],
                        capture_output=True, text=True, timeout=300)
     assert r.returncode == 0, r.stderr
-    assert "7 LOD levels" in r.stderr and "4721 splats at level 0" in r.stderr
+    assert "7 LOD levels" in r.stderr and "4,721 splats at level 0" in r.stderr
     units = [json.loads(p.read_text()) for p in (tmp_path / "out").glob("*/meta.json")]
     assert units and all("shN" not in u for u in units)
     for args, message in (([tmp_path / "missing", tmp_path / "o"], "missing"),
@@ -173,3 +173,19 @@ def test_mapping_routes_interior_splats_and_repeats_shallow_leaves():
     assert c["lods"]["0"]["offset"] == 2 and a["lods"]["0"]["offset"] == 0
     assert a["bound"]["max"][0] < 0 < c["bound"]["min"][0]
     assert meta["tree"]["bound"]["min"] == a["bound"]["min"] and meta["tree"]["bound"]["max"] == c["bound"]["max"]
+
+
+def test_export_reports_progress_as_it_packs_units(exported, tmp_path):
+    """The units' SOG encode is the slow part of an export (playbot: about 28 s): it is heard unit by unit, by
+    the share of the splats packed, from 0 to exactly 1, never backwards; and the CLI shows it."""
+    work, report = exported
+    heard: list[tuple[str, float]] = []
+    export_streamed_sog(work / "scene", tmp_path / "sog", unit_splats=2000,
+                        progress=lambda stage, fraction: heard.append((stage, fraction)))
+    encode = [f for stage, f in heard if stage == "encode"]
+    assert encode[0] == 0.0 and encode[-1] == 1.0 and encode == sorted(encode)
+    assert len(set(encode)) - 1 == report.units  # one report a unit
+    r = run_cli("export-sog-lod", work / "scene", tmp_path / "cli", "--unit-splats", "2000")
+    assert r.returncode == 0, r.stderr
+    steps = [line for line in r.stderr.splitlines() if line.startswith("export-sog-lod: encode ")]
+    assert len(steps) >= 3 and steps[-1].startswith("export-sog-lod: encode 100% ("), r.stderr

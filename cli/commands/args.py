@@ -34,6 +34,17 @@ def parse_vector(text: str, what: str, nonzero: bool = False) -> tuple[float, fl
     return values  # type: ignore[return-value]
 
 
+def check_look(eye, target, fov_y: float | None) -> None:
+    """A camera the user's --eye, --target and --fov-y can make: one line naming the options where it cannot (the
+    Camera's own message, 'camera eye and target coincide', named neither)."""
+    if tuple(map(float, eye)) == tuple(map(float, target)):
+        point = ",".join(f"{float(v):g}" for v in eye)
+        raise UsageError(f"--eye and --target: the camera's eye and target are the same point ({point}); give "
+                         "a target the camera looks at from the eye")
+    if fov_y is not None and not 0 < fov_y < 180:
+        raise UsageError(f"--fov-y {fov_y:g}: expected degrees in (0, 180)")
+
+
 def parse_size(text: str, smallest: int = 1, largest: int = 16384, what: str = "--size") -> tuple[int, int]:
     """'WxH' -> (width, height), each within [smallest, largest]."""
     try:

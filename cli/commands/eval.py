@@ -42,9 +42,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "splat-transform 2.x; default: a file that reads turned against the input is warned about), "
                         "rdf, stored without the axis turn (splat-transform 3.x), or auto: whichever matches the input")
     p.add_argument("--compare", nargs="+", default=[], metavar="[LABEL=]FILE[@SIZED]",
-                   help="other tools' outputs to put in the table: a file we can read (PLY, compressed PLY, SPZ, "
-                        ".splat); @SIZED names the file or directory whose size counts (e.g. a .sog converted back "
-                        "to PLY for reading)")
+                   help="other tools' outputs to put in the table: any file convert reads (PLY, compressed PLY, "
+                        "SPZ, .splat, SOG, ...), its own size counted; @SIZED names another file or directory "
+                        "whose size counts instead (e.g. the .sog a PLY was decoded from)")
     p.add_argument("--attribution", default="", metavar="PRESETS",
                    help="for these presets, also encode with one attribute lossless (f32x4) at a time and with "
                         "only one attribute quantised, to show which attribute's error dominates")

@@ -75,11 +75,11 @@ def run(args: argparse.Namespace) -> int:
     if not args.quiet:
         where = (f"longitude {placement.longitude:g}, latitude {placement.latitude:g}, height {placement.height:g} m"
                  if located else "longitude 0, latitude 0 (not georeferenced)")
-        external = (f", {count(report.external_tilesets, 'external tileset')} of {report.external_bytes} bytes"
+        external = (f", {count(report.external_tilesets, 'external tileset')} of {report.external_bytes:,} bytes"
                     if report.external_tilesets else "")
         print(f"export-3dtiles: {count(report.tiles, 'tile')} ({count(report.files, 'file')}, "
-              f"{report.content_bytes} bytes of "
-              f"{args.content} content, tileset.json {report.tileset_bytes} bytes{external}) at {where}, heading "
+              f"{report.content_bytes:,} bytes of "
+              f"{args.content} content, tileset.json {report.tileset_bytes:,} bytes{external}) at {where}, heading "
               f"{placement.heading:g}, anchor {placement.anchor} -> {args.output_dir} "
               f"({time.perf_counter() - start:.1f}s)", file=sys.stderr)
     return 0

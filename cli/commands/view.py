@@ -12,7 +12,7 @@ from splatstream.camera import DEFAULT_FOV_Y_DEG, Camera, look_at_near_far
 from splatstream.camera_path import load_camera_path
 from splatstream.errors import UsageError
 
-from .args import parse_size, parse_vector
+from .args import check_look, parse_size, parse_vector
 from .renderers import gl_client
 
 DRAWS = ["auto", "compute", "fetch", "points", "instanced", "triangles"]
@@ -136,6 +136,7 @@ def _fixed_camera(args, size):
         raise UsageError("--eye and --target go together (or give neither for the scene's camera)")
     eye, target = parse_vector(args.eye, "--eye"), parse_vector(args.target, "--target")
     up = parse_vector(args.up, "--up", nonzero=True) if args.up else (0.0, 0.0, 1.0)
+    check_look(eye, target, args.fov_y)
     try:
         return Camera(eye, target, up, args.fov_y or DEFAULT_FOV_Y_DEG, size[0], size[1],
                       *look_at_near_far(eye, target))

@@ -138,7 +138,12 @@ def _chunk(buf: bytes, at: int, path: str, index: int, codes: int) -> tuple[int,
         if name not in _DIMS:
             raise InputError(path, pfield, f"property {name!r} is not read (expected one of {sorted(_DIMS)})")
         start = payload + _int(prop, "offset", path, pfield)
-        data = buf[start:start + _int(prop, "bytes", path, pfield)]
+        end = start + _int(prop, "bytes", path, pfield)
+        if end > len(buf):
+            # said before as the DEFLATE error of the bytes that were there ("incomplete or truncated stream")
+            raise InputError(path, pfield, f"needs bytes {start:,}..{end:,}, past the end of its file "
+                             f"({len(buf):,} bytes): truncated?")
+        data = buf[start:end]
         if prop.get("compression") == "gz":
             try:
                 data = zlib.decompress(data, -15)

@@ -67,10 +67,23 @@ class _Source:
         return self._read(name, field, memory_budget() if max_bytes is None else min(max_bytes, memory_budget()))
 
 
+def _starts_as_zip(path: str) -> bool:
+    try:
+        with open(path, "rb") as f:
+            return f.read(4) == b"PK\x03\x04"
+    except OSError:
+        return False
+
+
 def _zip_source(path: str) -> _Source:
     try:
         archive = zipfile.ZipFile(path)
     except (zipfile.BadZipFile, OSError) as exc:
+        if _starts_as_zip(path):
+            # a .sog cut short keeps its first members but loses the directory at the end, which zipfile reads
+            # first: it said "File is not a zip file" of what is one, truncated
+            raise InputError(path, "zip archive", "starts as a zip file but its central directory (at the end) "
+                             f"is missing: truncated? ({exc})") from None
         raise InputError(path, "zip archive", f"not a readable zip file ({exc})") from None
     total = os.path.getsize(path)
 
@@ -121,8 +134,10 @@ def _dir_source(directory: str, label: str) -> _Source:
     return _Source(directory, label, read)
 
 
-def _json(source: _Source, name: str, what: str) -> dict:
-    data = source.read(name, what, MAX_JSON_BYTES)
+def _json(source: _Source, name: str, what: str, named_by: str | None = None) -> dict:
+    """The JSON object of file `name` (a `what`); `named_by` is the field that names the file, which an error for
+    a missing file names (default: `what`)."""
+    data = source.read(name, named_by or what, MAX_JSON_BYTES)
     if len(data) > MAX_JSON_BYTES:
         raise InputError(source.label, name, f"{len(data)} bytes (a {what} is at most {MAX_JSON_BYTES})")
     try:
@@ -213,10 +228,11 @@ def _codebook_lookup(label: str, field: str, codebook: np.ndarray, indices: np.n
         return codebook[indices].astype(np.float32)
 
 
-def _read_unit(source: _Source, meta_name: str) -> Gaussians:
-    """Decode one SOG v2 scene whose meta.json is `meta_name` inside `source`."""
+def _read_unit(source: _Source, meta_name: str, named_by: str | None = None) -> Gaussians:
+    """Decode one SOG v2 scene whose meta.json is `meta_name` inside `source` (named by the field `named_by`: a
+    unit of a streamed SOG missing is lod-meta.json's fault, not its own meta.json's)."""
     label = source.label if meta_name == "meta.json" else f"{source.label}/{meta_name}"
-    meta = _json(source, meta_name, "SOG meta.json")
+    meta = _json(source, meta_name, "SOG meta.json", named_by)
     base = os.path.dirname(meta_name)
 
     def name_of(file: str) -> str:
@@ -443,13 +459,14 @@ def _load_streamed(directory: str, label: str, meta_name: str, levels: set[int] 
     splats: dict[int, dict[int, Gaussians]] = {id(leaf): {} for leaf in leaves}
     for leaf, level, (file, offset, count) in wanted:
         if file not in units:
-            units[file] = _read_unit(source, inside(lod.filenames[file]))
+            units[file] = _read_unit(source, inside(lod.filenames[file]), f"lod-meta.json filenames[{file}]")
         unit = units[file]
         if offset + count > len(unit):
             raise InputError(label, "tree", f"reference to rows {offset}..{offset + count} of "
                              f"{lod.filenames[file]}, which holds {len(unit)} splats")
         splats[id(leaf)][level] = unit.subset(slice(offset, offset + count))
-    environment = _read_unit(source, inside(lod.environment)) if lod.environment else None
+    environment = _read_unit(source, inside(lod.environment), "lod-meta.json environment") \
+        if lod.environment else None
     return StreamedSog(lod.levels, lod.tree, splats, environment)
 
 

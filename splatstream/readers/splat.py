@@ -13,7 +13,7 @@ import numpy as np
 from ..atomic import atomic_file
 from ..errors import InputError
 from ..gaussians import SH_C0, Gaussians, normalize_quaternions, sigmoid
-from ..reader_support import check_memory, model_bytes_per_splat, opacity_logits_from_unit
+from ..reader_support import DROP_INVALID_HINT, check_memory, model_bytes_per_splat, opacity_logits_from_unit
 
 SPLAT_RECORD = np.dtype([("position", "<f4", (3,)), ("scale", "<f4", (3,)), ("rgba", "u1", (4,)),
                          ("rotation", "u1", (4,))])
@@ -56,7 +56,7 @@ def read_splat(path: str | os.PathLike, drop_invalid: bool = False) -> Gaussians
                              "this does not look like a .splat file")
         msg = f"{int(bad.sum())} of {n} splats are invalid ({counts})"
         if not drop_invalid:
-            raise InputError(path, "records", msg + "; pass --drop-invalid to drop them")
+            raise InputError(path, "records", f"{msg}; {DROP_INVALID_HINT}")
         warnings.warn(f"{path}: {msg}; dropped", stacklevel=2)
         records = records[~bad]
         positions, scales = records["position"], records["scale"]
