@@ -25,7 +25,7 @@ from splatstream.gaussians import Gaussians
 from splatstream.lod import Tile
 from splatstream.lod_refine import REFINE_METHOD, UNREFINED, VARIANT_FIELDS, level_cuts, refine_cameras, with_values
 
-from . import raster
+from . import ITERATIONS, SIZE_PX, TRAINING_CAMERAS, VALIDATION_CAMERAS, raster
 
 VARIANT = "A"
 EXTRA = "pip install 'splatstream[fast]'"
@@ -44,10 +44,10 @@ def missing() -> str | None:
 class CpuRefineSettings:
     """The CPU fit's settings (BENCHMARKS.md, "Refining the merged levels on the CPU"): 256 px renders, 32 training
     and 16 validation cameras, full-batch Adam."""
-    iterations: int = 60
-    size: int = 256
-    training_cameras: int = 32
-    validation_cameras: int = 16
+    iterations: int = ITERATIONS
+    size: int = SIZE_PX
+    training_cameras: int = TRAINING_CAMERAS
+    validation_cameras: int = VALIDATION_CAMERAS
     training_seed: int = 1000
     validation_seed: int = 1001
     lr_opacity_logit: float = 0.1
