@@ -229,7 +229,8 @@ def pair_lists(g: Gaussians, cams: list[Camera], sh_degree: int | None = None) -
 
 
 def threads() -> int:
-    return max(1, min(numba.get_num_threads(), os.cpu_count() or 1))
+    # each thread keeps a gradient row of the whole splat set: at most 8 rows
+    return max(1, min(numba.get_num_threads(), os.cpu_count() or 1, 8))
 
 
 def loss_and_grad(pl: PairLists, opacity: np.ndarray, dc_colour: np.ndarray, target: np.ndarray,
