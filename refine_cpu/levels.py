@@ -23,9 +23,22 @@ from splatstream.format.limits import MAX_ABS_SH
 from splatstream.format.manifest import LevelRefinement, LodRefinement
 from splatstream.gaussians import Gaussians
 from splatstream.lod import Tile
-from splatstream.lod_refine import REFINE_METHOD, UNREFINED, VARIANT_FIELDS, level_cuts, refine_cameras, with_values
+from splatstream.lod_refine import (
+    CPU_ITERATIONS,
+    CPU_SIZE_PX,
+    CPU_TRAINING_CAMERAS,
+    CPU_TRAINING_SEED,
+    CPU_VALIDATION_CAMERAS,
+    CPU_VALIDATION_SEED,
+    REFINE_METHOD,
+    UNREFINED,
+    VARIANT_FIELDS,
+    level_cuts,
+    refine_cameras,
+    with_values,
+)
 
-from . import ITERATIONS, SIZE_PX, TRAINING_CAMERAS, VALIDATION_CAMERAS, raster
+from . import raster
 
 VARIANT = "A"
 EXTRA = "pip install 'splatstream[fast]'"
@@ -44,12 +57,12 @@ def missing() -> str | None:
 class CpuRefineSettings:
     """The CPU fit's settings (BENCHMARKS.md, "Refining the merged levels on the CPU"): 256 px renders, 32 training
     and 16 validation cameras, full-batch Adam."""
-    iterations: int = ITERATIONS
-    size: int = SIZE_PX
-    training_cameras: int = TRAINING_CAMERAS
-    validation_cameras: int = VALIDATION_CAMERAS
-    training_seed: int = 1000
-    validation_seed: int = 1001
+    iterations: int = CPU_ITERATIONS
+    size: int = CPU_SIZE_PX
+    training_cameras: int = CPU_TRAINING_CAMERAS
+    validation_cameras: int = CPU_VALIDATION_CAMERAS
+    training_seed: int = CPU_TRAINING_SEED
+    validation_seed: int = CPU_VALIDATION_SEED
     lr_opacity_logit: float = 0.1
     lr_sh_dc: float = 0.02
     log: Callable[[str], None] = field(default=lambda msg: None, repr=False)

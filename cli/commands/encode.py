@@ -6,7 +6,6 @@ import os
 import sys
 import time
 
-import refine_cpu  # the CPU refinement's defaults only (its package root imports neither numba nor numpy)
 from splatstream.encode import encode_file
 from splatstream.encode.driver import count_edits
 from splatstream.encode.options import EncodeOptions, default_lod_merge
@@ -25,6 +24,7 @@ from splatstream.format.texformats import VALUE_FORMATS
 from splatstream.format.transport import TRANSPORTS
 from splatstream.io import open_input
 from splatstream.lod import LOD_MERGES
+from splatstream.lod_refine import CPU_ITERATIONS, CPU_SIZE_PX
 from splatstream.progress import ProgressPrinter, count
 from splatstream.rad_import import read_tree as rad_read_tree
 from splatstream.sog_import import encode_tree_to
@@ -160,10 +160,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                              "variant A (opacity and DC colour, the geometry fixed). In-memory encodes only")
     refine.add_argument("--lod-refine-iters", type=int, default=None, metavar="N",
                         help="optimiser steps per level and variant (default 300 on the GPU, "
-                             f"{refine_cpu.ITERATIONS} full-batch steps on the CPU)")
+                             f"{CPU_ITERATIONS} full-batch steps on the CPU)")
     refine.add_argument("--lod-refine-size", type=int, default=None, metavar="PX",
                         help="square size of the training and validation renders (default 384 on the GPU, "
-                             f"{refine_cpu.SIZE_PX} on the CPU)")
+                             f"{CPU_SIZE_PX} on the CPU)")
     add_edit_arguments(p, taken=("--scale",))
     p.add_argument("--quiet", "-q", action="store_true", help="no progress display")
     p.set_defaults(func=run)
@@ -278,8 +278,8 @@ def _cpu_refiner(args: argparse.Namespace, log):
     except ImportError as exc:
         raise UsageError(f"--lod-refine cpu: the refine_cpu package of this splatstream cannot be imported ({exc}); "
                          "reinstall splatstream (pip install -e '.[fast]' in a checkout)") from None
-    return LodRefiner(CpuRefineSettings(iterations=args.lod_refine_iters or refine_cpu.ITERATIONS,
-                                        size=args.lod_refine_size or refine_cpu.SIZE_PX, log=log))
+    return LodRefiner(CpuRefineSettings(iterations=args.lod_refine_iters or CPU_ITERATIONS,
+                                        size=args.lod_refine_size or CPU_SIZE_PX, log=log))
 
 
 def _foreign_tree(args: argparse.Namespace) -> str | None:
