@@ -104,7 +104,8 @@ class LodRefiner:
             first = len(whole) - len(merged)  # the merged splats come last
             pl_train = raster.pair_lists(whole, train, degree)
             pl_valid = raster.pair_lists(whole, valid, degree)
-            logits, dc, iters = fit_opacity_dc(pl_train, whole, first, gt, s)
+            logits, dc, iters = fit_opacity_dc(pl_train, whole, first, gt, s,
+                                               lambda it, k=k: progress("refine", (k + 1 + it / s.iterations) / steps))
             op_all = whole.opacities.astype(np.float64)
             dc_all = raster.SH_C0 * whole.sh_dc.astype(np.float64)
             before = raster.loss_and_grad(pl_valid, op_all, dc_all, gt_valid, grad=False)[0]
@@ -143,10 +144,12 @@ def _sigmoid(x: np.ndarray) -> np.ndarray:
 
 
 def fit_opacity_dc(pl: raster.PairLists, whole: Gaussians, first: int, target: np.ndarray,
-                   s: CpuRefineSettings) -> tuple[np.ndarray, np.ndarray, int]:
+                   s: CpuRefineSettings, on_step: Callable[[int], None] = lambda it: None,
+                   ) -> tuple[np.ndarray, np.ndarray, int]:
     """Full-batch Adam on the opacity logits and DC colour of splats `first`: of `whole` (the rest fixed) against
-    `target` (the cameras' full-detail renders, clamped). Returns the fitted logits (float32), sh_dc (float32) and
-    the steps taken."""
+    `target` (the cameras' full-detail renders, clamped); `on_step(steps done)` after each step (the encode's
+    progress: a large level's fit takes minutes). Returns the fitted logits (float32), sh_dc (float32) and the steps
+    taken."""
     logits = whole.opacity_logits[first:].astype(np.float64).copy()
     sh_dc = whole.sh_dc[first:].astype(np.float64).copy()
     op_all = whole.opacities.astype(np.float64)
@@ -168,5 +171,6 @@ def fit_opacity_dc(pl: raster.PairLists, whole: Gaussians, first: int, target: n
             b *= b2
             b += (1 - b2) * gr * gr
             p -= lr * (a / (1 - b1 ** it)) / (np.sqrt(b / (1 - b2 ** it)) + eps)
+        on_step(it)
     np.clip(sh_dc, -MAX_ABS_SH, MAX_ABS_SH, out=sh_dc)
     return logits.astype(np.float32), sh_dc.astype(np.float32), s.iterations
