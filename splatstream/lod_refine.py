@@ -1,12 +1,13 @@
 """The optional refinement of the merged LOD levels against renders of the full-detail scene (lod.md 6, the optional
 step; `encode --lod-refine`; issue 31): the numpy parts.
 
-The optimiser itself (torch + gsplat on a CUDA GPU) lives outside the core, in `refine_gpu/`, and is handed to the
-encoder as a callable (`LodRefiner`, EncodeOptions.lod_refiner), as the streaming client's compiled kernels are:
-the core never imports torch or gsplat. What the core owns is everything the refinement's result depends on
-besides the optimiser: which splats each level's picture is made of (`level_cuts`), the cameras it is trained and
-judged on (`refine_cameras`, a rule of the scene alone), and how refined values enter the tree (`refine_tree`:
-checked, applied to the merged tiles only, bounds recomputed; geometric errors stay the unrefined tree's).
+The optimiser itself (torch + gsplat on a CUDA GPU in `refine_gpu/`, or numba on the CPU in `refine_cpu/`) lives
+outside the core and is handed to the encoder as a callable (`LodRefiner`, EncodeOptions.lod_refiner), as the
+streaming client's compiled kernels are: the core never imports torch, gsplat or numba. What the core owns is
+everything the refinement's result depends on besides the optimiser: which splats each level's picture is made of
+(`level_cuts`), the cameras it is trained and judged on (`refine_cameras`, a rule of the scene alone), and how refined
+values enter the tree (`refine_tree`: checked, applied to the merged tiles only, bounds recomputed; geometric errors
+stay the unrefined tree's).
 """
 from __future__ import annotations
 
@@ -27,9 +28,11 @@ from .lod import Tile, interior_bounds
 # descent to renders of the full-detail scene (lod.md 6).
 REFINE_METHOD = "render-fit"
 # What each variant optimises (phase 1, BENCHMARKS.md "Refining the merged levels against the originals": B won at
-# the first merged level on several scenes, C at the coarser ones; A, opacity and DC colour alone, never won).
-# Higher SH bands are kept as merged: the refinement never changes sh_rest.
+# the first merged level on several scenes, C at the coarser ones; A, opacity and DC colour alone, never won there,
+# but was already +1.02 dB or more above the best peer at all 48 points). The GPU refiner tries B and C; A, the
+# geometry fixed, is the CPU refiner's (refine_cpu/). Higher SH bands are kept as merged: no variant changes sh_rest.
 VARIANT_FIELDS: dict[str, tuple[str, ...]] = {
+    "A": ("opacity_logits", "sh_dc"),
     "B": ("opacity_logits", "sh_dc", "log_scales"),
     "C": ("opacity_logits", "sh_dc", "log_scales", "positions", "rotations"),
 }
@@ -39,10 +42,20 @@ TRAINING_CAMERAS = 96
 TRAINING_SEED = 0
 VALIDATION_CAMERAS = 32
 VALIDATION_SEED = 1
+# The CPU refiner's defaults (refine_cpu/, BENCHMARKS.md "Refining the merged levels on the CPU"), here where the
+# CLI's help reads them without importing the shell (numba): full-batch steps per level, render size, camera counts
+# and seeds.
+CPU_ITERATIONS = 60
+CPU_SIZE_PX = 256
+CPU_TRAINING_CAMERAS = 32
+CPU_VALIDATION_CAMERAS = 16
+CPU_TRAINING_SEED = 1000
+CPU_VALIDATION_SEED = 1001
 DISTANCE_RANGE = (0.6, 1.6)  # x the orbit distance of scene_orbit_views
 ELEVATION_DEG = (-20.0, 70.0)  # about up; the benchmark's orbit views sit at 25 deg
 
-# The GPU side: (full-detail splats, the tree, up, progress) -> ({merged tile id: its refined splats}, the record).
+# The optimiser's side (refine_gpu, refine_cpu): (full-detail splats, the tree, up, progress) -> ({merged tile id:
+# its refined splats}, the record).
 LodRefiner = Callable[[Gaussians, list[Tile], tuple[float, float, float], Callable[[str, float], None]],
                       tuple[dict[int, Gaussians], LodRefinement]]
 
@@ -138,6 +151,7 @@ def apply_refined(tiles: list[Tile], refined: dict[int, Gaussians]) -> list[Tile
 
 def refine_tree(g: Gaussians, tiles: list[Tile], up, refiner: LodRefiner,
                 progress: Callable[[str, float], None]) -> tuple[list[Tile], LodRefinement]:
-    """The tree with its merged levels refined by `refiner` (the GPU side), and the record the manifest keeps."""
+    """The tree with its merged levels refined by `refiner` (the optimiser's side), and the record the manifest
+    keeps."""
     refined, record = refiner(g, tiles, tuple(float(v) for v in up), progress)
     return apply_refined(tiles, refined), record

@@ -24,6 +24,7 @@ from splatstream.format.texformats import VALUE_FORMATS
 from splatstream.format.transport import TRANSPORTS
 from splatstream.io import open_input
 from splatstream.lod import LOD_MERGES
+from splatstream.lod_refine import CPU_ITERATIONS, CPU_SIZE_PX
 from splatstream.progress import ProgressPrinter, count
 from splatstream.rad_import import read_tree as rad_read_tree
 from splatstream.sog_import import encode_tree_to
@@ -146,18 +147,23 @@ def register(sub: argparse._SubParsersAction) -> None:
                          help="where partitions are spilled (default: next to the output, or the system's temporary "
                               "directory for a URL output)")
     refine = p.add_argument_group(
-        "refining the LOD levels on a GPU (optional)",
-        "The merged LOD levels fitted to renders of the full detail after the tree is built (format_spec/lod.md 6): "
-        "needs torch, gsplat and a CUDA GPU (pip install 'splatstream[refine]'); the full detail is unchanged.")
-    refine.add_argument("--lod-refine", action="store_true",
-                        help="refine every merged level against gsplat renders of the full-detail scene from "
-                             "cameras around it (two variants per level, each judged on other cameras; a level "
-                             "keeps the better one, or stays as built where neither beats it); recorded in the "
-                             "manifest (format 1.11). In-memory encodes only")
-    refine.add_argument("--lod-refine-iters", type=int, default=300, metavar="N",
-                        help="optimiser steps per level and variant (default 300)")
-    refine.add_argument("--lod-refine-size", type=int, default=384, metavar="PX",
-                        help="square size of the training and validation renders (default 384)")
+        "refining the LOD levels (optional)",
+        "The merged LOD levels fitted to renders of the full detail after the tree is built (format_spec/lod.md 6); "
+        "the full detail is unchanged. On a GPU (--lod-refine, or --lod-refine gpu): torch, gsplat and a CUDA GPU "
+        "(pip install 'splatstream[refine]'). On the CPU (--lod-refine cpu): numba (pip install "
+        "'splatstream[fast]'), the merged splats' opacity and DC colour only.")
+    refine.add_argument("--lod-refine", nargs="?", const="gpu", choices=("gpu", "cpu"), default=None,
+                        help="refine every merged level against renders of the full-detail scene from cameras around "
+                             "it, judged on other cameras (a level stays as built where no fit beats it); recorded in "
+                             "the manifest (format 1.11). gpu (the default): gsplat, two variants per level (B: "
+                             "opacity, DC colour, scales; C: also positions and rotations); cpu: a numba rasteriser, "
+                             "variant A (opacity and DC colour, the geometry fixed). In-memory encodes only")
+    refine.add_argument("--lod-refine-iters", type=int, default=None, metavar="N",
+                        help="optimiser steps per level and variant (default 300 on the GPU, "
+                             f"{CPU_ITERATIONS} full-batch steps on the CPU)")
+    refine.add_argument("--lod-refine-size", type=int, default=None, metavar="PX",
+                        help="square size of the training and validation renders (default 384 on the GPU, "
+                             f"{CPU_SIZE_PX} on the CPU)")
     add_edit_arguments(p, taken=("--scale",))
     p.add_argument("--quiet", "-q", action="store_true", help="no progress display")
     p.set_defaults(func=run)
@@ -224,9 +230,9 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _lod_refiner(args: argparse.Namespace, workers: int | None):
-    """The GPU refiner of --lod-refine (refine_gpu.levels), or a UsageError naming what is missing or what does not
-    go with it: checked before the scene is read (importing torch takes seconds; gsplat builds its CUDA extension
-    on first use, then keeps it)."""
+    """The refiner of --lod-refine (refine_gpu.levels on a GPU, refine_cpu.levels on the CPU), or a UsageError naming
+    what is missing or what does not go with it: checked before the scene is read (importing torch takes seconds;
+    gsplat builds its CUDA extension on first use, then keeps it)."""
     if args.no_lod:
         raise UsageError("--lod-refine refines the LOD tree's merged levels: not with --no-lod")
     if workers is not None or args.scheduler:
@@ -234,8 +240,16 @@ def _lod_refiner(args: argparse.Namespace, workers: int | None):
                          "--scheduler (a partitioned encode)")
     if args.target_psnr is not None or args.target_size is not None:
         raise UsageError("--lod-refine: not with --target-psnr / --target-size (they measure unrefined encodes)")
-    if args.lod_refine_iters < 1 or args.lod_refine_size < 16:
+    if (args.lod_refine_iters is not None and args.lod_refine_iters < 1) or \
+            (args.lod_refine_size is not None and args.lod_refine_size < 16):
         raise UsageError("--lod-refine-iters must be at least 1 and --lod-refine-size at least 16")
+
+    def log(msg: str) -> None:
+        if not args.quiet:
+            print(f"lod-refine: {msg}", file=sys.stderr, flush=True)
+
+    if args.lod_refine == "cpu":
+        return _cpu_refiner(args, log)
     # The GPU shell, an optional extra: imported only when asked for. (It needs numpy and the core alone; an install
     # made before the package existed does not see it.)
     try:
@@ -246,13 +260,26 @@ def _lod_refiner(args: argparse.Namespace, workers: int | None):
 
     lack = missing()
     if lack is not None:
-        raise UsageError(f"--lod-refine needs torch, gsplat and a CUDA GPU: {lack} (install the extra: {EXTRA})")
+        raise UsageError(f"--lod-refine needs torch, gsplat and a CUDA GPU: {lack} (install the extra: {EXTRA}; "
+                         "or refine on the CPU: --lod-refine cpu)")
+    return LevelRefiner(RefineSettings(iterations=args.lod_refine_iters or 300, size=args.lod_refine_size or 384,
+                                       log=log))
 
-    def log(msg: str) -> None:
-        if not args.quiet:
-            print(f"lod-refine: {msg}", file=sys.stderr, flush=True)
 
-    return LevelRefiner(RefineSettings(iterations=args.lod_refine_iters, size=args.lod_refine_size, log=log))
+def _cpu_refiner(args: argparse.Namespace, log):
+    """refine_cpu.levels.LodRefiner (numba, the `fast` extra), imported only when asked for."""
+    try:
+        import numba  # noqa: F401
+    except ImportError:
+        raise UsageError("--lod-refine cpu needs numba, which is not installed (install the extra: pip install "
+                         "'splatstream[fast]')") from None
+    try:
+        from refine_cpu.levels import CpuRefineSettings, LodRefiner
+    except ImportError as exc:
+        raise UsageError(f"--lod-refine cpu: the refine_cpu package of this splatstream cannot be imported ({exc}); "
+                         "reinstall splatstream (pip install -e '.[fast]' in a checkout)") from None
+    return LodRefiner(CpuRefineSettings(iterations=args.lod_refine_iters or CPU_ITERATIONS,
+                                        size=args.lod_refine_size or CPU_SIZE_PX, log=log))
 
 
 def _foreign_tree(args: argparse.Namespace) -> str | None:

@@ -1,0 +1,176 @@
+"""The merged LOD levels refined on the CPU (lod.md 6, the optional step; `encode --lod-refine cpu`; issue 31):
+variant A, each merged splat's opacity logit and DC colour fitted with the geometry fixed.
+
+Each merged level is refined ALONE, drawn as its whole cut (lod_refine.level_cuts: its merged tiles and the
+shallower leaves, the originals fixed), by full-batch Adam on the MSE of the clamped images against renders of the
+full detail (refine_cpu.raster, our renderer's conventions) from lod_refine.refine_cameras' training cameras. With
+the geometry fixed, each camera's per-pixel (splat, gaussian weight) pairs are built once per level and every step
+is a sparse forward and backward pass over them (raster.loss_and_grad). The fit, and the level as built, are then
+judged on VALIDATION cameras (the same rule, another seed and count), and the fit is kept only where it beats the
+level as built. Phase 1 (BENCHMARKS.md, "Refining the merged levels against the originals", variant A on gsplat)
+measured this variant +1.02 dB or more above the best peer at all 48 points.
+"""
+from __future__ import annotations
+
+import math
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from splatstream.format.limits import MAX_ABS_SH
+from splatstream.format.manifest import LevelRefinement, LodRefinement
+from splatstream.gaussians import Gaussians
+from splatstream.lod import Tile
+from splatstream.lod_refine import (
+    CPU_ITERATIONS,
+    CPU_SIZE_PX,
+    CPU_TRAINING_CAMERAS,
+    CPU_TRAINING_SEED,
+    CPU_VALIDATION_CAMERAS,
+    CPU_VALIDATION_SEED,
+    REFINE_METHOD,
+    UNREFINED,
+    VARIANT_FIELDS,
+    level_cuts,
+    refine_cameras,
+    with_values,
+)
+
+from . import raster
+
+VARIANT = "A"
+EXTRA = "pip install 'splatstream[fast]'"
+
+
+def missing() -> str | None:
+    """What this machine lacks for the CPU refinement (None: nothing): numba."""
+    try:
+        import numba  # noqa: F401
+    except ImportError:
+        return "numba is not installed"
+    return None
+
+
+@dataclass
+class CpuRefineSettings:
+    """The CPU fit's settings (BENCHMARKS.md, "Refining the merged levels on the CPU"): 256 px renders, 32 training
+    and 16 validation cameras, full-batch Adam."""
+    iterations: int = CPU_ITERATIONS
+    size: int = CPU_SIZE_PX
+    training_cameras: int = CPU_TRAINING_CAMERAS
+    validation_cameras: int = CPU_VALIDATION_CAMERAS
+    training_seed: int = CPU_TRAINING_SEED
+    validation_seed: int = CPU_VALIDATION_SEED
+    lr_opacity_logit: float = 0.1
+    lr_sh_dc: float = 0.02
+    log: Callable[[str], None] = field(default=lambda msg: None, repr=False)
+
+
+def psnr_of(mse: float) -> float:
+    return 99.0 if mse <= 0 else 10.0 * math.log10(1.0 / mse) if math.isfinite(mse) else -99.0
+
+
+class LodRefiner:
+    """lod_refine.LodRefiner on the CPU: (splats, tree, up, progress) -> ({tile id: refined splats}, record)."""
+
+    def __init__(self, settings: CpuRefineSettings | None = None):
+        self.settings = settings or CpuRefineSettings()
+        self.report: list[dict] = []  # per level: splats, pairs, validation PSNR per candidate, kept, seconds
+
+    def __call__(self, g: Gaussians, tiles: list[Tile], up, progress) -> tuple[dict[int, Gaussians], LodRefinement]:
+        s = self.settings
+        degree = g.sh_degree
+        train = refine_cameras(g.positions, up, s.training_cameras, s.size, s.training_seed)
+        valid = refine_cameras(g.positions, up, s.validation_cameras, s.size, s.validation_seed)
+        cuts = level_cuts(tiles)
+        # progress: the full-detail renders count as one level's worth, each level one
+        steps = len(cuts) + 1
+        progress("refine", 0.0)
+        t0 = time.perf_counter()
+        gt = np.clip(np.stack([raster.render(g, c, degree) for c in train]), 0.0, 1.0)
+        gt_valid = np.clip(np.stack([raster.render(g, c, degree) for c in valid]), 0.0, 1.0)
+        s.log(f"full-detail renders: {len(train) + len(valid)} at {s.size} px ({time.perf_counter() - t0:.1f} s)")
+        progress("refine", 1 / steps)
+        refined: dict[int, Gaussians] = {}
+        levels: list[LevelRefinement] = []
+        self.report = []
+        for k, cut in enumerate(cuts):
+            t1 = time.perf_counter()
+            merged = Gaussians.concatenate([tiles[i].gaussians for i in cut.merged])
+            parts = [tiles[i].gaussians for i in cut.fixed] + [merged]
+            whole = Gaussians.concatenate(parts)
+            first = len(whole) - len(merged)  # the merged splats come last
+            pl_train = raster.pair_lists(whole, train, degree)
+            pl_valid = raster.pair_lists(whole, valid, degree)
+            logits, dc, iters = fit_opacity_dc(pl_train, whole, first, gt, s,
+                                               lambda it, k=k: progress("refine", (k + 1 + it / s.iterations) / steps))
+            op_all = whole.opacities.astype(np.float64)
+            dc_all = raster.SH_C0 * whole.sh_dc.astype(np.float64)
+            before = raster.loss_and_grad(pl_valid, op_all, dc_all, gt_valid, grad=False)[0]
+            op_fit, dc_fit = op_all.copy(), dc_all.copy()
+            op_fit[first:] = _sigmoid(logits)
+            dc_fit[first:] = raster.SH_C0 * dc
+            after = raster.loss_and_grad(pl_valid, op_fit, dc_fit, gt_valid, grad=False)[0]
+            scores = {UNREFINED: before, VARIANT: after}
+            kept = VARIANT if after < before else UNREFINED  # a tie keeps the level as built
+            if kept == VARIANT:
+                off = 0
+                for tid in cut.merged:
+                    n = len(tiles[tid].gaussians)
+                    refined[tid] = with_values(tiles[tid].gaussians, {
+                        "opacity_logits": logits[off:off + n], "sh_dc": dc[off:off + n]})
+                    off += n
+            psnr = {c: round(psnr_of(e), 3) for c, e in scores.items()}
+            secs = time.perf_counter() - t1
+            levels.append(LevelRefinement(cut.level, kept, tuple(psnr.items())))
+            self.report.append({"level": cut.level, "merged_splats": len(merged), "splats": len(whole),
+                                "pairs": len(pl_train.g) + len(pl_valid.g),
+                                "pair_bytes": pl_train.nbytes + pl_valid.nbytes, "validation_psnr": psnr,
+                                "kept": kept, "iterations": iters, "seconds": round(secs, 2)})
+            s.log(f"level {cut.level} ({len(merged):,} merged splats): validation PSNR "
+                  + ", ".join(f"{c} {v:.2f}" for c, v in psnr.items()) + f" dB; kept {kept} ({secs:.1f} s)")
+            progress("refine", (k + 2) / steps)
+            del pl_train, pl_valid
+        record = LodRefinement(REFINE_METHOD, ((VARIANT, VARIANT_FIELDS[VARIANT]),), s.size, s.iterations,
+                               s.training_cameras, s.training_seed, s.validation_cameras, s.validation_seed,
+                               tuple(levels))
+        return refined, record
+
+
+def _sigmoid(x: np.ndarray) -> np.ndarray:
+    return 1.0 / (1.0 + np.exp(-x))
+
+
+def fit_opacity_dc(pl: raster.PairLists, whole: Gaussians, first: int, target: np.ndarray,
+                   s: CpuRefineSettings, on_step: Callable[[int], None] = lambda it: None,
+                   ) -> tuple[np.ndarray, np.ndarray, int]:
+    """Full-batch Adam on the opacity logits and DC colour of splats `first`: of `whole` (the rest fixed) against
+    `target` (the cameras' full-detail renders, clamped); `on_step(steps done)` after each step (the encode's
+    progress: a large level's fit takes minutes). Returns the fitted logits (float32), sh_dc (float32) and the steps
+    taken."""
+    logits = whole.opacity_logits[first:].astype(np.float64).copy()
+    sh_dc = whole.sh_dc[first:].astype(np.float64).copy()
+    op_all = whole.opacities.astype(np.float64)
+    dc_all = raster.SH_C0 * whole.sh_dc.astype(np.float64)
+    params = [logits, sh_dc]
+    lrs = [s.lr_opacity_logit, s.lr_sh_dc]
+    m1 = [np.zeros_like(p) for p in params]
+    m2 = [np.zeros_like(p) for p in params]
+    b1, b2, eps = 0.9, 0.999, 1e-15
+    for it in range(1, s.iterations + 1):
+        sig = _sigmoid(logits)
+        op_all[first:] = sig
+        dc_all[first:] = raster.SH_C0 * sh_dc
+        _, g_op, g_dc = raster.loss_and_grad(pl, op_all, dc_all, target)
+        grads = [g_op[first:] * sig * (1.0 - sig), g_dc[first:] * raster.SH_C0]
+        for p, gr, a, b, lr in zip(params, grads, m1, m2, lrs, strict=True):
+            a *= b1
+            a += (1 - b1) * gr
+            b *= b2
+            b += (1 - b2) * gr * gr
+            p -= lr * (a / (1 - b1 ** it)) / (np.sqrt(b / (1 - b2 ** it)) + eps)
+        on_step(it)
+    np.clip(sh_dc, -MAX_ABS_SH, MAX_ABS_SH, out=sh_dc)
+    return logits.astype(np.float32), sh_dc.astype(np.float32), s.iterations

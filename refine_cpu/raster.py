@@ -1,0 +1,338 @@
+"""A numba rasteriser with our renderer's conventions, and for fixed geometry its per-pixel pair lists, forward and
+backward over opacity and DC colour (the CPU refinement of the merged LOD levels, lod.md 6).
+
+The conventions are splatstream/render_ref.py's (its numpy reference, whose `preprocess` this module reuses as is):
+the pinhole of `Camera` with pixel (col, row) at (col, row) after ndc2Pix, EWA with the 0.3 px^2 low-pass, splats
+with depth <= near culled, depth order (stable, ties by index), alpha = min(0.99, o g) with g = exp(power), skipped
+when power > 0 or alpha < 1/255, a pixel stops once T (1 - alpha) < 1e-4, colour max(SH(dir) + 0.5, 0), black
+background. refine_gpu/levels.py's docstring lists the same (gsplat's, matched there).
+
+With the geometry fixed (positions, rotations, scales), what a pixel sees is a fixed list of (splat, g) pairs in
+depth order: only opacities and colours change. `PairLists` holds them for a set of cameras (CSR over pixels: the
+pairs with g >= 1/255, as o <= 1 makes any other alpha fall under the cut), and `loss_and_grad` is a forward and a
+backward pass over them: the MSE of the clamped images against targets, its gradient with respect to each splat's
+opacity and to the pre-clamp colour's DC term (the view-dependent SH rest is fixed per camera and splat).
+"""
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass
+
+import numba
+import numpy as np
+
+from splatstream.camera import Camera
+from splatstream.gaussians import Gaussians
+from splatstream.render_ref import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE, preprocess, tile_lists
+from splatstream.sh import SH_C0, eval_sh, view_directions
+
+# Pairs are kept while T under the ORIGINAL opacities stays above this (a pixel stops at T_MIN = 1e-4): a fitted
+# opacity a little lower than built still finds the pairs behind (three splats at 0.99 reach 1e-6).
+T_STORE = 1e-6
+
+
+@dataclass
+class Projection:
+    """One camera's projected splats (render_ref.preprocess, depth order) and its tile lists."""
+    index: np.ndarray      # (M,) int64 splat index into the splat set
+    xy: np.ndarray         # (M, 2) float64 pixel-index coordinates
+    conic: np.ndarray      # (M, 3) float64
+    base: np.ndarray       # (M, 3) float64: SH(dir) + 0.5 without the DC term (the fixed, view-dependent part)
+    tile_ids: np.ndarray   # tile-major, depth-minor projected ids
+    tile_offsets: np.ndarray
+    width: int
+    height: int
+
+
+def project(g: Gaussians, cam: Camera, sh_degree: int | None = None) -> Projection:
+    p = preprocess(g, cam, sh_degree)
+    grid_x, grid_y = -(-cam.width // TILE), -(-cam.height // TILE)
+    ids, offsets = tile_lists(p, grid_x, grid_y)
+    zero_dc = np.zeros((len(p.index), 3))
+    base = eval_sh(zero_dc, g.sh_rest[p.index], view_directions(g.positions[p.index], np.asarray(cam.eye)),
+                   sh_degree, clamp=False)
+    return Projection(p.index, p.xy, p.conic, base, ids, offsets, cam.width, cam.height)
+
+
+def colours_of(proj: Projection, sh_dc: np.ndarray) -> np.ndarray:
+    return np.maximum(proj.base + SH_C0 * np.asarray(sh_dc, np.float64)[proj.index], 0.0)
+
+
+def render(g: Gaussians, cam: Camera, sh_degree: int | None = None) -> np.ndarray:
+    """(H, W, 3) float32, not clamped above: render_ref.render's picture, compiled."""
+    if len(g) == 0:
+        return np.zeros((cam.height, cam.width, 3), np.float32)
+    proj = project(g, cam, sh_degree)
+    return render_projection(proj, g.opacities.astype(np.float64)[proj.index], colours_of(proj, g.sh_dc))
+
+
+def render_projection(proj: Projection, opacity: np.ndarray, colour: np.ndarray) -> np.ndarray:
+    """The picture of projected splats with these opacities and colours (per projected splat)."""
+    img = np.zeros((proj.height, proj.width, 3), np.float64)
+    if len(proj.index):
+        _render_tiles(proj.xy, proj.conic, np.ascontiguousarray(opacity, np.float64),
+                      np.ascontiguousarray(colour, np.float64), proj.tile_ids, proj.tile_offsets,
+                      proj.width, proj.height, img)
+    return img.astype(np.float32)
+
+
+@numba.njit(parallel=True, cache=True)
+def _render_tiles(xy, conic, opacity, colour, tile_ids, tile_offsets, width, height, img):
+    grid_x = (width + TILE - 1) // TILE
+    grid_y = (height + TILE - 1) // TILE
+    for t in numba.prange(grid_x * grid_y):
+        ty = t // grid_x
+        tx = t - ty * grid_x
+        s, e = tile_offsets[t], tile_offsets[t + 1]
+        for ly in range(TILE):
+            y = ty * TILE + ly
+            if y >= height:
+                break
+            for lx in range(TILE):
+                x = tx * TILE + lx
+                if x >= width:
+                    break
+                trans = 1.0
+                r = 0.0
+                gr = 0.0
+                b = 0.0
+                for k in range(s, e):
+                    i = tile_ids[k]
+                    dx = xy[i, 0] - x
+                    dy = xy[i, 1] - y
+                    power = -0.5 * (conic[i, 0] * dx * dx + conic[i, 2] * dy * dy) - conic[i, 1] * dx * dy
+                    if power > 0.0:
+                        continue
+                    alpha = min(ALPHA_MAX, opacity[i] * math.exp(power))
+                    if alpha < ALPHA_MIN:
+                        continue
+                    tn = trans * (1.0 - alpha)
+                    if tn < T_MIN:
+                        break
+                    w = alpha * trans
+                    r += w * colour[i, 0]
+                    gr += w * colour[i, 1]
+                    b += w * colour[i, 2]
+                    trans = tn
+                img[y, x, 0] = r
+                img[y, x, 1] = gr
+                img[y, x, 2] = b
+
+
+# --- pair lists (fixed geometry) -----------------------------------------------------------------------------------
+
+@numba.njit(parallel=True, cache=True)
+def _pairs_per_pixel(xy, conic, opacity, tile_ids, tile_offsets, width, height, counts, fill, out_off, out_proj,
+                     out_g):
+    """Pass 1 (fill False): counts[pixel]; pass 2 (fill True): the pairs at out_off[pixel]."""
+    grid_x = (width + TILE - 1) // TILE
+    grid_y = (height + TILE - 1) // TILE
+    for t in numba.prange(grid_x * grid_y):
+        ty = t // grid_x
+        tx = t - ty * grid_x
+        s, e = tile_offsets[t], tile_offsets[t + 1]
+        for ly in range(TILE):
+            y = ty * TILE + ly
+            if y >= height:
+                break
+            for lx in range(TILE):
+                x = tx * TILE + lx
+                if x >= width:
+                    break
+                pix = y * width + x
+                n = 0
+                pos = out_off[pix] if fill else 0
+                trans = 1.0
+                for k in range(s, e):
+                    i = tile_ids[k]
+                    dx = xy[i, 0] - x
+                    dy = xy[i, 1] - y
+                    power = -0.5 * (conic[i, 0] * dx * dx + conic[i, 2] * dy * dy) - conic[i, 1] * dx * dy
+                    if power > 0.0:
+                        continue
+                    g = math.exp(power)
+                    if g < ALPHA_MIN:
+                        continue
+                    if fill:
+                        out_proj[pos + n] = i
+                        out_g[pos + n] = g
+                    n += 1
+                    alpha = min(ALPHA_MAX, opacity[i] * g)
+                    if alpha >= ALPHA_MIN:
+                        trans *= 1.0 - alpha
+                        if trans < T_STORE:
+                            break
+                if not fill:
+                    counts[pix] = n
+
+
+@dataclass
+class PairLists:
+    """The pairs of several cameras of one size, one splat set, fixed geometry. Pixel q of camera c is row
+    c * H * W + q of `pixel_offsets` (CSR); a pair's `proj` indexes the cameras' projected splats, concatenated
+    (`splat`: their index in the splat set, `base`: their fixed colour part)."""
+    pixel_offsets: np.ndarray  # (C * H * W + 1,) int64
+    proj: np.ndarray           # (P,) int32
+    g: np.ndarray              # (P,) float32
+    splat: np.ndarray          # (M,) int32
+    base: np.ndarray           # (M, 3) float32
+    cameras: int
+    width: int
+    height: int
+
+    @property
+    def nbytes(self) -> int:
+        return sum(a.nbytes for a in (self.pixel_offsets, self.proj, self.g, self.splat, self.base))
+
+    @property
+    def max_pairs(self) -> int:
+        return int(np.diff(self.pixel_offsets).max(initial=0))
+
+
+def pair_lists(g: Gaussians, cams: list[Camera], sh_degree: int | None = None) -> PairLists:
+    """The pair lists of `g` seen from `cams` (all of one size)."""
+    width, height = cams[0].width, cams[0].height
+    hw = width * height
+    offsets = [np.zeros(1, np.int64)]
+    projs, gs, splats, bases = [], [], [], []
+    total, proj_total = 0, 0
+    opacity_all = g.opacities.astype(np.float64)
+    for cam in cams:
+        if (cam.width, cam.height) != (width, height):
+            raise ValueError("pair_lists: the cameras differ in size")
+        p = project(g, cam, sh_degree)
+        counts = np.zeros(hw, np.int64)
+        op = opacity_all[p.index]
+        empty_i = np.zeros(0, np.int32)
+        empty_f = np.zeros(0, np.float32)
+        if len(p.index):
+            _pairs_per_pixel(p.xy, p.conic, op, p.tile_ids, p.tile_offsets, width, height, counts, False,
+                             counts, empty_i, empty_f)
+        off = np.zeros(hw + 1, np.int64)
+        np.cumsum(counts, out=off[1:])
+        n = int(off[-1])
+        pr = np.empty(n, np.int32)
+        gg = np.empty(n, np.float32)
+        if n:
+            _pairs_per_pixel(p.xy, p.conic, op, p.tile_ids, p.tile_offsets, width, height, counts, True, off, pr,
+                             gg)
+        projs.append(pr + proj_total)
+        gs.append(gg)
+        offsets.append(off[1:] + total)
+        splats.append(p.index.astype(np.int32))
+        bases.append(p.base.astype(np.float32))
+        total += n
+        proj_total += len(p.index)
+    return PairLists(np.concatenate(offsets), np.concatenate(projs), np.concatenate(gs), np.concatenate(splats),
+                     np.concatenate(bases).reshape(-1, 3), len(cams), width, height)
+
+
+def threads() -> int:
+    # each thread keeps a gradient row of the whole splat set: at most 8 rows
+    return max(1, min(numba.get_num_threads(), os.cpu_count() or 1, 8))
+
+
+def loss_and_grad(pl: PairLists, opacity: np.ndarray, dc_colour: np.ndarray, target: np.ndarray,
+                  grad: bool = True) -> tuple[float, np.ndarray, np.ndarray]:
+    """The mean over pixels and channels of (clamp(C, 0, 1) - target)^2 (target (C, H, W, 3)), and, where `grad`,
+    its gradient with respect to each splat's opacity (N,) and to its colour's DC term SH_C0 sh_dc (N, 3), through
+    the max(., 0) colour clamp, the image clamp and the 0.99 alpha clamp (zero past each). `opacity` (N,) and
+    `dc_colour` (N, 3) = SH_C0 sh_dc are per splat of the set the lists were made of."""
+    n = len(opacity)
+    nt = threads()
+    g_op = np.zeros((nt, n if grad else 0))
+    g_dc = np.zeros((nt, n if grad else 0, 3))
+    losses = np.zeros(pl.cameras)
+    tgt = np.ascontiguousarray(target, np.float32).reshape(pl.cameras, -1, 3)
+    scale = 2.0 / (tgt.size)
+    _loss_grad(pl.pixel_offsets, pl.proj, pl.g, pl.splat, pl.base, np.ascontiguousarray(opacity, np.float64),
+               np.ascontiguousarray(dc_colour, np.float64), tgt, pl.cameras, pl.width * pl.height,
+               max(1, pl.max_pairs), grad, scale, nt, losses, g_op, g_dc)
+    loss = float(losses.sum()) / tgt.size
+    if not grad:
+        return loss, np.zeros(0), np.zeros((0, 3))
+    return loss, g_op.sum(0), g_dc.sum(0)
+
+
+@numba.njit(parallel=True, cache=True)
+def _loss_grad(pixel_offsets, proj, pg, splat, base, opacity, dc, target, ncam, hw, max_pairs, grad, scale, nt,
+               losses, g_op, g_dc):
+    for t in numba.prange(nt):
+        alphas = np.empty(max_pairs)
+        ks = np.empty(max_pairs, np.int64)
+        for c in range(ncam):
+            if c % nt != t:  # cameras round-robin over threads, each thread its own gradient row
+                continue
+            cam_loss = 0.0
+            for q in range(hw):
+                row = c * hw + q
+                s, e = pixel_offsets[row], pixel_offsets[row + 1]
+                trans = 1.0
+                r0 = 0.0
+                r1 = 0.0
+                r2 = 0.0
+                m = 0
+                for k in range(s, e):
+                    i = splat[proj[k]]
+                    alpha = opacity[i] * pg[k]
+                    if alpha > ALPHA_MAX:
+                        alpha = ALPHA_MAX
+                    if alpha < ALPHA_MIN:
+                        continue
+                    tn = trans * (1.0 - alpha)
+                    if tn < T_MIN:
+                        break
+                    b = proj[k]
+                    w = alpha * trans
+                    r0 += w * max(base[b, 0] + dc[i, 0], 0.0)
+                    r1 += w * max(base[b, 1] + dc[i, 1], 0.0)
+                    r2 += w * max(base[b, 2] + dc[i, 2], 0.0)
+                    alphas[m] = alpha
+                    ks[m] = k
+                    m += 1
+                    trans = tn
+                d0 = min(r0, 1.0) - target[c, q, 0]
+                d1 = min(r1, 1.0) - target[c, q, 1]
+                d2 = min(r2, 1.0) - target[c, q, 2]
+                cam_loss += d0 * d0 + d1 * d1 + d2 * d2
+                if not grad:
+                    continue
+                # dL/dC through clamp(C, 0, 1) (C >= 0 always)
+                e0 = scale * d0 if r0 < 1.0 else 0.0
+                e1 = scale * d1 if r1 < 1.0 else 0.0
+                e2 = scale * d2 if r2 < 1.0 else 0.0
+                if e0 == 0.0 and e1 == 0.0 and e2 == 0.0:
+                    continue
+                # back to front: T_j = T_{j+1} / (1 - a_j); behind = sum over later splats of c a T
+                s0 = 0.0
+                s1 = 0.0
+                s2 = 0.0
+                tj = trans
+                for j in range(m - 1, -1, -1):
+                    a = alphas[j]
+                    k = ks[j]
+                    b = proj[k]
+                    i = splat[b]
+                    tj = tj / (1.0 - a)
+                    p0 = base[b, 0] + dc[i, 0]
+                    p1 = base[b, 1] + dc[i, 1]
+                    p2 = base[b, 2] + dc[i, 2]
+                    c0 = max(p0, 0.0)
+                    c1 = max(p1, 0.0)
+                    c2 = max(p2, 0.0)
+                    w = a * tj
+                    if p0 > 0.0:
+                        g_dc[t, i, 0] += e0 * w
+                    if p1 > 0.0:
+                        g_dc[t, i, 1] += e1 * w
+                    if p2 > 0.0:
+                        g_dc[t, i, 2] += e2 * w
+                    inv = 1.0 / (1.0 - a)
+                    da = (e0 * (c0 * tj - s0 * inv) + e1 * (c1 * tj - s1 * inv) + e2 * (c2 * tj - s2 * inv))
+                    if opacity[i] * pg[k] < ALPHA_MAX:
+                        g_op[t, i] += da * pg[k]
+                    s0 += c0 * w
+                    s1 += c1 * w
+                    s2 += c2 * w
+            losses[c] = cam_loss
