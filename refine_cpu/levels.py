@@ -12,14 +12,13 @@ measured this variant +1.02 dB or more above the best peer at all 48 points.
 """
 from __future__ import annotations
 
-import math
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
-from splatstream.format.limits import MAX_ABS_SH
+from splatstream import lod_refine
 from splatstream.format.manifest import LevelRefinement, LodRefinement
 from splatstream.gaussians import Gaussians
 from splatstream.lod import Tile
@@ -30,33 +29,23 @@ from splatstream.lod_refine import (
     CPU_TRAINING_SEED,
     CPU_VALIDATION_CAMERAS,
     CPU_VALIDATION_SEED,
-    REFINE_METHOD,
     UNREFINED,
-    VARIANT_FIELDS,
+    in_domain,
+    kept_candidate,
     level_cuts,
-    refine_cameras,
-    with_values,
+    level_outcome,
+    split_merged,
 )
 
 from . import raster
 
-VARIANT = "A"
-EXTRA = "pip install 'splatstream[fast]'"
-
-
-def missing() -> str | None:
-    """What this machine lacks for the CPU refinement (None: nothing): numba."""
-    try:
-        import numba  # noqa: F401
-    except ImportError:
-        return "numba is not installed"
-    return None
+VARIANT = "A"  # the one variant fitted here (lod_refine.VARIANT_FIELDS): opacity and DC colour, the geometry fixed
 
 
 @dataclass
-class CpuRefineSettings:
+class CpuRefineSettings(lod_refine.RefineSettings):
     """The CPU fit's settings (BENCHMARKS.md, "Refining the merged levels on the CPU"): 256 px renders, 32 training
-    and 16 validation cameras, full-batch Adam."""
+    and 16 validation cameras, full-batch Adam at these learning rates."""
     iterations: int = CPU_ITERATIONS
     size: int = CPU_SIZE_PX
     training_cameras: int = CPU_TRAINING_CAMERAS
@@ -65,11 +54,6 @@ class CpuRefineSettings:
     validation_seed: int = CPU_VALIDATION_SEED
     lr_opacity_logit: float = 0.1
     lr_sh_dc: float = 0.02
-    log: Callable[[str], None] = field(default=lambda msg: None, repr=False)
-
-
-def psnr_of(mse: float) -> float:
-    return 99.0 if mse <= 0 else 10.0 * math.log10(1.0 / mse) if math.isfinite(mse) else -99.0
 
 
 class LodRefiner:
@@ -82,8 +66,7 @@ class LodRefiner:
     def __call__(self, g: Gaussians, tiles: list[Tile], up, progress) -> tuple[dict[int, Gaussians], LodRefinement]:
         s = self.settings
         degree = g.sh_degree
-        train = refine_cameras(g.positions, up, s.training_cameras, s.size, s.training_seed)
-        valid = refine_cameras(g.positions, up, s.validation_cameras, s.size, s.validation_seed)
+        train, valid = s.cameras(g.positions, up)
         cuts = level_cuts(tiles)
         # progress: the full-detail renders count as one level's worth, each level one
         steps = len(cuts) + 1
@@ -104,7 +87,7 @@ class LodRefiner:
             first = len(whole) - len(merged)  # the merged splats come last
             pl_train = raster.pair_lists(whole, train, degree)
             pl_valid = raster.pair_lists(whole, valid, degree)
-            logits, dc, iters = fit_opacity_dc(pl_train, whole, first, gt, s,
+            logits, dc = fit_opacity_dc(pl_train, whole, first, gt, s,
                                                lambda it, k=k: progress("refine", (k + 1 + it / s.iterations) / steps))
             op_all = whole.opacities.astype(np.float64)
             dc_all = raster.SH_C0 * whole.sh_dc.astype(np.float64)
@@ -114,29 +97,19 @@ class LodRefiner:
             dc_fit[first:] = raster.SH_C0 * dc
             after = raster.loss_and_grad(pl_valid, op_fit, dc_fit, gt_valid, grad=False)[0]
             scores = {UNREFINED: before, VARIANT: after}
-            kept = VARIANT if after < before else UNREFINED  # a tie keeps the level as built
+            kept = kept_candidate(scores)
             if kept == VARIANT:
-                off = 0
-                for tid in cut.merged:
-                    n = len(tiles[tid].gaussians)
-                    refined[tid] = with_values(tiles[tid].gaussians, {
-                        "opacity_logits": logits[off:off + n], "sh_dc": dc[off:off + n]})
-                    off += n
-            psnr = {c: round(psnr_of(e), 3) for c, e in scores.items()}
+                refined.update(split_merged(tiles, cut, {"opacity_logits": logits, "sh_dc": dc}))
             secs = time.perf_counter() - t1
-            levels.append(LevelRefinement(cut.level, kept, tuple(psnr.items())))
+            level, psnr = level_outcome(cut, scores, kept, len(merged), secs, s.log)
+            levels.append(level)
             self.report.append({"level": cut.level, "merged_splats": len(merged), "splats": len(whole),
                                 "pairs": len(pl_train.g) + len(pl_valid.g),
                                 "pair_bytes": pl_train.nbytes + pl_valid.nbytes, "validation_psnr": psnr,
-                                "kept": kept, "iterations": iters, "seconds": round(secs, 2)})
-            s.log(f"level {cut.level} ({len(merged):,} merged splats): validation PSNR "
-                  + ", ".join(f"{c} {v:.2f}" for c, v in psnr.items()) + f" dB; kept {kept} ({secs:.1f} s)")
+                                "kept": kept, "iterations": s.iterations, "seconds": round(secs, 2)})
             progress("refine", (k + 2) / steps)
             del pl_train, pl_valid
-        record = LodRefinement(REFINE_METHOD, ((VARIANT, VARIANT_FIELDS[VARIANT]),), s.size, s.iterations,
-                               s.training_cameras, s.training_seed, s.validation_cameras, s.validation_seed,
-                               tuple(levels))
-        return refined, record
+        return refined, s.record((VARIANT,), levels)
 
 
 def _sigmoid(x: np.ndarray) -> np.ndarray:
@@ -145,11 +118,11 @@ def _sigmoid(x: np.ndarray) -> np.ndarray:
 
 def fit_opacity_dc(pl: raster.PairLists, whole: Gaussians, first: int, target: np.ndarray,
                    s: CpuRefineSettings, on_step: Callable[[int], None] = lambda it: None,
-                   ) -> tuple[np.ndarray, np.ndarray, int]:
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """Full-batch Adam on the opacity logits and DC colour of splats `first`: of `whole` (the rest fixed) against
     `target` (the cameras' full-detail renders, clamped); `on_step(steps done)` after each step (the encode's
-    progress: a large level's fit takes minutes). Returns the fitted logits (float32), sh_dc (float32) and the steps
-    taken."""
+    progress: a large level's fit takes minutes). Returns the fitted logits and sh_dc (float32; sh_dc within the
+    format's limits), after `s.iterations` steps."""
     logits = whole.opacity_logits[first:].astype(np.float64).copy()
     sh_dc = whole.sh_dc[first:].astype(np.float64).copy()
     op_all = whole.opacities.astype(np.float64)
@@ -172,5 +145,4 @@ def fit_opacity_dc(pl: raster.PairLists, whole: Gaussians, first: int, target: n
             b += (1 - b2) * gr * gr
             p -= lr * (a / (1 - b1 ** it)) / (np.sqrt(b / (1 - b2 ** it)) + eps)
         on_step(it)
-    np.clip(sh_dc, -MAX_ABS_SH, MAX_ABS_SH, out=sh_dc)
-    return logits.astype(np.float32), sh_dc.astype(np.float32), s.iterations
+    return logits.astype(np.float32), in_domain("sh_dc", sh_dc).astype(np.float32)

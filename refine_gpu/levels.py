@@ -20,27 +20,29 @@ from __future__ import annotations
 
 import math
 import time
-from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
+from splatstream import lod_refine
 from splatstream.camera import Camera, scene_orbit_views
-from splatstream.format.limits import MAX_ABS_POSITION, MAX_ABS_SH, MAX_LOG_SCALE, MIN_LOG_SCALE
 from splatstream.format.manifest import LevelRefinement, LodRefinement
 from splatstream.gaussians import Gaussians
 from splatstream.lod import Tile
 from splatstream.lod_refine import (
-    REFINE_METHOD,
+    GPU_ITERATIONS,
+    GPU_SIZE_PX,
     TRAINING_CAMERAS,
     TRAINING_SEED,
     UNREFINED,
     VALIDATION_CAMERAS,
     VALIDATION_SEED,
     VARIANT_FIELDS,
+    in_domain,
+    kept_candidate,
     level_cuts,
-    refine_cameras,
-    with_values,
+    level_outcome,
+    split_merged,
 )
 
 OPACITY_MAX = 0.99  # our renderers' alpha clamp (client_gl splat.frag, render_ref.ALPHA_MAX)
@@ -220,18 +222,14 @@ def to_params(torch, g: Gaussians, device: str) -> dict:
     return {k: torch.from_numpy(np.ascontiguousarray(v, np.float32)).to(device) for k, v in f.items()}
 
 
-def psnr_of(mse: float) -> float:
-    return 99.0 if mse <= 0 else 10.0 * math.log10(1.0 / mse) if math.isfinite(mse) else -99.0
-
-
 # --- the refiner -------------------------------------------------------------------------------------------------
 
 @dataclass
-class RefineSettings:
+class RefineSettings(lod_refine.RefineSettings):
     """Phase 1's settings (BENCHMARKS.md, "Refining the merged levels against the originals"): 384 px (at 40 px,
     positions and rotations overfit the pixels), 300 Adam steps of 8 views per level and variant."""
-    iterations: int = 300
-    size: int = 384
+    iterations: int = GPU_ITERATIONS
+    size: int = GPU_SIZE_PX
     training_cameras: int = TRAINING_CAMERAS
     validation_cameras: int = VALIDATION_CAMERAS
     training_seed: int = TRAINING_SEED
@@ -244,7 +242,6 @@ class RefineSettings:
     device: str = "cuda"
     backend: str = "gsplat"  # "dense" / "gsplat-torch": the CPU stand-ins (tests)
     seed: int = 0
-    log: Callable[[str], None] = field(default=lambda msg: None, repr=False)
 
 
 class LevelRefiner:
@@ -259,8 +256,7 @@ class LevelRefiner:
 
         s = self.settings
         dev = s.device
-        train = refine_cameras(g.positions, up, s.training_cameras, s.size, s.training_seed)
-        valid = refine_cameras(g.positions, up, s.validation_cameras, s.size, s.validation_seed)
+        train, valid = s.cameras(g.positions, up)
         orbit = scene_orbit_views(g.positions, 1, s.size, s.size, up=up, elevation_deg=25.0)[0]
         dist = math.dist(orbit.eye, orbit.target)
         render = Renderer(torch, dev, g.sh_degree, s.backend)
@@ -300,28 +296,19 @@ class LevelRefiner:
                                          seconds=s.seconds_per_variant, min_iterations=s.min_iterations)
                 scores[v] = mse_over(whole(p), valid, gt_valid)
                 results[v] = p
-            kept = min(scores, key=lambda c: scores[c])  # the unrefined level first: a tie keeps it
+            kept = kept_candidate(scores)
             if kept != UNREFINED:
                 p = results[kept]
-                off = 0
-                for tid in cut.merged:
-                    n = len(tiles[tid].gaussians)
-                    refined[tid] = with_values(tiles[tid].gaussians, {
-                        f: _in_domain(f, p[f].detach()[off:off + n].cpu().numpy()) for f in VARIANT_FIELDS[kept]})
-                    off += n
-            psnr = {c: round(psnr_of(e), 3) for c, e in scores.items()}
+                refined.update(split_merged(tiles, cut, {f: in_domain(f, p[f].detach().cpu().numpy())
+                                                         for f in VARIANT_FIELDS[kept]}))
             secs = time.perf_counter() - t0
-            levels.append(LevelRefinement(cut.level, kept, tuple(psnr.items())))
+            level, psnr = level_outcome(cut, scores, kept, len(merged), secs, s.log)
+            levels.append(level)
             self.report.append({"level": cut.level, "merged_splats": len(merged), "validation_psnr": psnr,
                                 "kept": kept, "iterations": iters, "seconds": round(secs, 2)})
-            s.log(f"level {cut.level} ({len(merged):,} merged splats): validation PSNR "
-                  + ", ".join(f"{c} {v:.2f}" for c, v in psnr.items()) + f" dB; kept {kept} ({secs:.1f} s)")
             progress("refine", (k + 1) / len(cuts))
             del pm, pf, results
-        record = LodRefinement(REFINE_METHOD, tuple((v, VARIANT_FIELDS[v]) for v in s.variants), s.size,
-                               s.iterations, s.training_cameras, s.training_seed, s.validation_cameras,
-                               s.validation_seed, tuple(levels))
-        return refined, record
+        return refined, s.record(s.variants, levels)
 
 
 def fit_fields(torch, render, whole, pm: dict, fields: tuple[str, ...], cams: list[Camera], gt, dist: float, *,
@@ -354,14 +341,3 @@ def mean_mse(torch, render, p: dict, cams: list[Camera], target, batch: int) -> 
                         .mean(dim=(1, 2, 3)).sum()) for i in range(0, len(cams), batch))
     err /= len(cams)
     return err if math.isfinite(err) else math.inf
-
-
-def _in_domain(field_name: str, v: np.ndarray) -> np.ndarray:
-    """The format's limits (format.md 4.8), which an optimiser step may in principle cross: clamped, not refused."""
-    if field_name == "log_scales":
-        return np.clip(v, MIN_LOG_SCALE, MAX_LOG_SCALE)
-    if field_name == "sh_dc":
-        return np.clip(v, -MAX_ABS_SH, MAX_ABS_SH)
-    if field_name == "positions":
-        return np.clip(v, -MAX_ABS_POSITION, MAX_ABS_POSITION)
-    return v

@@ -13,14 +13,21 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from .camera import Camera, look_at_near_far, scene_orbit_views
 from .errors import InputError
-from .format.limits import describe_violations, domain_violations
-from .format.manifest import LodRefinement
+from .format.limits import (
+    MAX_ABS_POSITION,
+    MAX_ABS_SH,
+    MAX_LOG_SCALE,
+    MIN_LOG_SCALE,
+    describe_violations,
+    domain_violations,
+)
+from .format.manifest import LevelRefinement, LodRefinement
 from .gaussians import Gaussians
 from .lod import Tile, interior_bounds
 
@@ -42,9 +49,13 @@ TRAINING_CAMERAS = 96
 TRAINING_SEED = 0
 VALIDATION_CAMERAS = 32
 VALIDATION_SEED = 1
-# The CPU refiner's defaults (refine_cpu/, BENCHMARKS.md "Refining the merged levels on the CPU"), here where the
-# CLI's help reads them without importing the shell (numba): full-batch steps per level, render size, camera counts
-# and seeds.
+# Each refiner's defaults live here, where the CLI's help and defaults read them without importing a shell (torch,
+# numba). The GPU refiner's (refine_gpu/, phase 1's, BENCHMARKS.md "Refining the merged levels against the
+# originals"): Adam steps per level and variant, render size; its cameras are the rule's defaults above.
+GPU_ITERATIONS = 300
+GPU_SIZE_PX = 384
+# The CPU refiner's (refine_cpu/, BENCHMARKS.md "Refining the merged levels on the CPU"): full-batch steps per level,
+# render size, camera counts and seeds.
 CPU_ITERATIONS = 60
 CPU_SIZE_PX = 256
 CPU_TRAINING_CAMERAS = 32
@@ -116,6 +127,78 @@ def with_values(g: Gaussians, values: dict[str, np.ndarray]) -> Gaussians:
         q = f["rotations"]
         f["rotations"] = (q / np.maximum(np.linalg.norm(q, axis=1, keepdims=True), 1e-12)).astype(np.float32)
     return Gaussians(f["positions"], f["rotations"], f["log_scales"], f["opacity_logits"], f["sh_dc"], g.sh_rest)
+
+
+@dataclass
+class RefineSettings:
+    """What every refiner is set by and the manifest's record names (lod.refinement): the square render size, the
+    optimiser's steps per level (and variant), the training and validation cameras (count and seed of
+    `refine_cameras`' rule), and where the refiner's progress lines go. Each refiner's settings extend these with
+    its own defaults (refine_gpu.levels.RefineSettings, refine_cpu.levels.CpuRefineSettings)."""
+    iterations: int
+    size: int
+    training_cameras: int
+    validation_cameras: int
+    training_seed: int
+    validation_seed: int
+    log: Callable[[str], None] = field(default=lambda msg: None, repr=False)
+
+    def cameras(self, positions: np.ndarray, up) -> tuple[list[Camera], list[Camera]]:
+        """The training and the validation cameras of a scene (`refine_cameras`: one rule, two seeds)."""
+        return (refine_cameras(positions, up, self.training_cameras, self.size, self.training_seed),
+                refine_cameras(positions, up, self.validation_cameras, self.size, self.validation_seed))
+
+    def record(self, variants: tuple[str, ...], levels: list[LevelRefinement]) -> LodRefinement:
+        """The manifest's record of a refinement by these settings that tried `variants` (VARIANT_FIELDS' names)."""
+        return LodRefinement(REFINE_METHOD, tuple((v, VARIANT_FIELDS[v]) for v in variants), self.size,
+                             self.iterations, self.training_cameras, self.training_seed, self.validation_cameras,
+                             self.validation_seed, tuple(levels))
+
+
+def psnr_of(mse: float) -> float:
+    """A validation MSE as the record's PSNR: finite where the MSE is 0 (99 dB) or not finite (-99 dB), as the
+    manifest's numbers must be (metrics.psnr_from_mse says inf)."""
+    return 99.0 if mse <= 0 else 10.0 * math.log10(1.0 / mse) if math.isfinite(mse) else -99.0
+
+
+def kept_candidate(validation_mse: dict[str, float]) -> str:
+    """The candidate (UNREFINED or a variant) with the lowest validation MSE; `validation_mse` names UNREFINED first,
+    so that a tie, or a fit whose error is not a number, keeps the level as built."""
+    return min(validation_mse, key=lambda c: validation_mse[c])
+
+
+def level_outcome(cut: LevelCut, validation_mse: dict[str, float], kept: str, merged_splats: int,
+                  seconds: float, log: Callable[[str], None]) -> tuple[LevelRefinement, dict[str, float]]:
+    """One level's entry of the record (the candidates' validation PSNR, rounded to 3 decimals, and what was kept),
+    its line in the log, and the PSNR per candidate (for the refiner's report)."""
+    psnr = {c: round(psnr_of(e), 3) for c, e in validation_mse.items()}
+    log(f"level {cut.level} ({merged_splats:,} merged splats): validation PSNR "
+        + ", ".join(f"{c} {v:.2f}" for c, v in psnr.items()) + f" dB; kept {kept} ({seconds:.1f} s)")
+    return LevelRefinement(cut.level, kept, tuple(psnr.items())), psnr
+
+
+def split_merged(tiles: list[Tile], cut: LevelCut, values: dict[str, np.ndarray]) -> dict[int, Gaussians]:
+    """A level's fitted values (fields over its merged splats, concatenated in `cut.merged`'s order) as each merged
+    tile's refined splats (`with_values`), the input of `apply_refined`."""
+    refined: dict[int, Gaussians] = {}
+    off = 0
+    for tid in cut.merged:
+        n = len(tiles[tid].gaussians)
+        refined[tid] = with_values(tiles[tid].gaussians, {f: v[off:off + n] for f, v in values.items()})
+        off += n
+    return refined
+
+
+def in_domain(field_name: str, v: np.ndarray) -> np.ndarray:
+    """A fitted field within the format's limits (format.md 4.8), which an optimiser step may in principle cross:
+    clamped, not refused (apply_refined refuses what is still outside)."""
+    if field_name == "log_scales":
+        return np.clip(v, MIN_LOG_SCALE, MAX_LOG_SCALE)
+    if field_name == "sh_dc":
+        return np.clip(v, -MAX_ABS_SH, MAX_ABS_SH)
+    if field_name == "positions":
+        return np.clip(v, -MAX_ABS_POSITION, MAX_ABS_POSITION)
+    return v
 
 
 def apply_refined(tiles: list[Tile], refined: dict[int, Gaussians]) -> list[Tile]:

@@ -17,16 +17,24 @@ from splatstream.camera import scene_orbit_views
 from splatstream.encode import EncodeOptions, encode_gaussians, encode_in_memory
 from splatstream.errors import FormatError, InputError, UsageError
 from splatstream.format.layout import morton_order
+from splatstream.format.limits import MAX_LOG_SCALE, MIN_LOG_SCALE
 from splatstream.format.manifest import LevelRefinement, LodRefinement, manifest_from_dict, parse_manifest
 from splatstream.format.manifest.versions import VERSION_1_11
 from splatstream.io import read_gaussians
 from splatstream.lod import build_tiles, extent_bounds
 from splatstream.lod_refine import (
     DISTANCE_RANGE,
+    UNREFINED,
     VARIANT_FIELDS,
+    RefineSettings,
     apply_refined,
+    in_domain,
+    kept_candidate,
     level_cuts,
+    level_outcome,
+    psnr_of,
     refine_cameras,
+    split_merged,
     with_values,
 )
 from splatstream.scene_decode import decode_scene
@@ -231,6 +239,48 @@ def test_the_validator_checks_the_refinement_record(scene):
     flat["lod"]["enabled"] = False
     with pytest.raises(FormatError, match="without an LOD tree"):
         manifest_from_dict(flat)
+
+
+def test_the_refiners_share_the_choice_the_split_and_the_record(scene):
+    """What refine_gpu and refine_cpu both use from the core: the kept candidate, a level's values split over its
+    merged tiles, the domain clamp, the record's PSNR and the record itself."""
+    # the lowest validation MSE wins; the level as built (named first) on a tie or against a fit that is not a number
+    assert kept_candidate({UNREFINED: 0.02, "B": 0.01, "C": 0.015}) == "B"
+    assert kept_candidate({UNREFINED: 0.01, "A": 0.01}) == UNREFINED
+    assert kept_candidate({UNREFINED: 0.01, "A": math.nan}) == UNREFINED
+    assert kept_candidate({UNREFINED: math.inf, "B": math.nan, "C": 0.5}) == "C"
+    assert (psnr_of(0.01), psnr_of(0.0), psnr_of(math.inf), psnr_of(math.nan)) == (20.0, 99.0, -99.0, -99.0)
+    tiles = build_tiles(scene, 300, 2.0, merge="auto")
+    cut = level_cuts(tiles)[1]
+    assert len(cut.merged) > 1
+    n = sum(len(tiles[t].gaussians) for t in cut.merged)
+    logits = np.arange(n, dtype=np.float64)
+    dc = np.full((n, 3), 1e9)
+    refined = split_merged(tiles, cut, {"opacity_logits": logits, "sh_dc": in_domain("sh_dc", dc)})
+    assert sorted(refined) == sorted(cut.merged)
+    off = 0
+    for tid in cut.merged:
+        old, new = tiles[tid].gaussians, refined[tid]
+        assert np.array_equal(new.opacity_logits, logits[off:off + len(old)].astype(np.float32))
+        assert np.array_equal(new.positions, old.positions) and np.array_equal(new.sh_rest, old.sh_rest)
+        off += len(old)
+    assert apply_refined(tiles, refined)  # the clamped colour is inside the format's domain
+    assert np.array_equal(in_domain("log_scales", np.array([-1e3, 0.0, 1e3])), [MIN_LOG_SCALE, 0.0, MAX_LOG_SCALE])
+    assert np.array_equal(in_domain("opacity_logits", np.array([-1e3, 1e3])), [-1e3, 1e3])  # any logit is valid
+    logs: list[str] = []
+    level, psnr = level_outcome(cut, {UNREFINED: 0.01, "A": 0.001}, "A", n, 1.25, logs.append)
+    assert level == LevelRefinement(cut.level, "A", ((UNREFINED, 20.0), ("A", 30.0))) and psnr == {UNREFINED: 20.0,
+                                                                                                 "A": 30.0}
+    assert logs == [f"level {cut.level} ({n:,} merged splats): validation PSNR none 20.00, A 30.00 dB; kept A "
+                    "(1.2 s)"]
+    s = RefineSettings(iterations=7, size=32, training_cameras=3, validation_cameras=2, training_seed=5,
+                       validation_seed=6)
+    train, valid = s.cameras(scene.positions, (0.0, 1.0, 0.0))
+    assert train == refine_cameras(scene.positions, (0.0, 1.0, 0.0), 3, 32, 5)
+    assert valid == refine_cameras(scene.positions, (0.0, 1.0, 0.0), 2, 32, 6)
+    assert s.record(("B", "C"), [level]) == LodRefinement("render-fit", (("B", VARIANT_FIELDS["B"]),
+                                                                          ("C", VARIANT_FIELDS["C"])),
+                                                          32, 7, 3, 5, 2, 6, (level,))
 
 
 def test_cli_refusals_come_before_the_scene_is_read(tmp_path):

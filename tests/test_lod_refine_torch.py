@@ -36,14 +36,14 @@ need("gsplat")
 
 import torch  # noqa: E402
 
-from refine_gpu.levels import LevelRefiner, RefineSettings, Renderer, psnr_of, to_params  # noqa: E402
+from refine_gpu.levels import LevelRefiner, RefineSettings, Renderer, to_params  # noqa: E402
 from splatstream.camera import Camera  # noqa: E402
 from splatstream.encode import EncodeOptions, encode_in_memory  # noqa: E402
 from splatstream.format.manifest import parse_manifest  # noqa: E402
 from splatstream.format.manifest.versions import VERSION_1_11  # noqa: E402
 from splatstream.gaussians import Gaussians  # noqa: E402
 from splatstream.lod import build_tiles  # noqa: E402
-from splatstream.lod_refine import level_cuts  # noqa: E402
+from splatstream.lod_refine import level_cuts, psnr_of  # noqa: E402
 from splatstream.render_ref import render  # noqa: E402
 
 

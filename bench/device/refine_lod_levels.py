@@ -58,12 +58,12 @@ from refine_gpu.levels import (  # noqa: E402  (the product's renderer and setti
     fit_fields,
     gsplat_torch_rasterization,
     mean_mse,
-    psnr_of,
     to_params,
 )
 from splatstream import lod, lod_refine  # noqa: E402
 from splatstream.camera import Camera  # noqa: E402
 from splatstream.gaussians import Gaussians  # noqa: E402
+from splatstream.lod_refine import psnr_of  # noqa: E402
 
 __all__ = ["LR", "OPACITY_MAX", "Renderer", "camera_tensors", "dense_render", "eval_sh_torch",
            "gsplat_torch_rasterization", "psnr_of", "to_params"]  # re-exported: the replay and tests use them here

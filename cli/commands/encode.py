@@ -24,7 +24,7 @@ from splatstream.format.texformats import VALUE_FORMATS
 from splatstream.format.transport import TRANSPORTS
 from splatstream.io import open_input
 from splatstream.lod import LOD_MERGES
-from splatstream.lod_refine import CPU_ITERATIONS, CPU_SIZE_PX
+from splatstream.lod_refine import CPU_ITERATIONS, CPU_SIZE_PX, GPU_ITERATIONS, GPU_SIZE_PX
 from splatstream.progress import ProgressPrinter, count
 from splatstream.rad_import import read_tree as rad_read_tree
 from splatstream.sog_import import encode_tree_to
@@ -159,10 +159,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                              "opacity, DC colour, scales; C: also positions and rotations); cpu: a numba rasteriser, "
                              "variant A (opacity and DC colour, the geometry fixed). In-memory encodes only")
     refine.add_argument("--lod-refine-iters", type=int, default=None, metavar="N",
-                        help="optimiser steps per level and variant (default 300 on the GPU, "
+                        help=f"optimiser steps per level and variant (default {GPU_ITERATIONS} on the GPU, "
                              f"{CPU_ITERATIONS} full-batch steps on the CPU)")
     refine.add_argument("--lod-refine-size", type=int, default=None, metavar="PX",
-                        help="square size of the training and validation renders (default 384 on the GPU, "
+                        help=f"square size of the training and validation renders (default {GPU_SIZE_PX} on the GPU, "
                              f"{CPU_SIZE_PX} on the CPU)")
     add_edit_arguments(p, taken=("--scale",))
     p.add_argument("--quiet", "-q", action="store_true", help="no progress display")
@@ -262,8 +262,8 @@ def _lod_refiner(args: argparse.Namespace, workers: int | None):
     if lack is not None:
         raise UsageError(f"--lod-refine needs torch, gsplat and a CUDA GPU: {lack} (install the extra: {EXTRA}; "
                          "or refine on the CPU: --lod-refine cpu)")
-    return LevelRefiner(RefineSettings(iterations=args.lod_refine_iters or 300, size=args.lod_refine_size or 384,
-                                       log=log))
+    return LevelRefiner(RefineSettings(iterations=args.lod_refine_iters or GPU_ITERATIONS,
+                                       size=args.lod_refine_size or GPU_SIZE_PX, log=log))
 
 
 def _cpu_refiner(args: argparse.Namespace, log):
