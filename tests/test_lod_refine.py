@@ -290,6 +290,11 @@ def test_cli_refusals_come_before_the_scene_is_read(tmp_path):
                            (["--lod-refine-iters", "0"], "--lod-refine-iters must be at least 1")]:
         r = run_cli("encode", missing_input, str(tmp_path / "out"), "--lod-refine", *extra)
         assert r.returncode == 2 and message in r.stderr and r.stderr.count("\n") == 1, r.stderr
+    # the refinement's settings alone would be ignored: refused, naming the option they set
+    for extra in (["--lod-refine-iters", "30"], ["--lod-refine-size", "64"]):
+        r = run_cli("encode", missing_input, str(tmp_path / "out"), *extra)
+        assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
+        assert "give them with --lod-refine (gpu or cpu)" in r.stderr and "no-such-scene" not in r.stderr
     from refine_gpu.levels import missing
 
     lack = missing()

@@ -195,6 +195,9 @@ def run(args: argparse.Namespace) -> int:
     if args.dry_run:
         print(edit_report(" + ".join(args.input), *count_edits(args.input, edits, args.drop_invalid)[1:]))
         return 0
+    if not args.lod_refine and (args.lod_refine_iters is not None or args.lod_refine_size is not None):
+        raise UsageError("--lod-refine-iters and --lod-refine-size set the refinement: give them with --lod-refine "
+                         "(gpu or cpu)")
     lod_refiner = _lod_refiner(args, workers) if args.lod_refine else None
     tree_kind = _foreign_tree(args)
     t0 = time.perf_counter()
