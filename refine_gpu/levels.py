@@ -44,8 +44,9 @@ from splatstream.lod_refine import (
     level_outcome,
     split_merged,
 )
+from splatstream.render_ref import ALPHA_MAX
 
-OPACITY_MAX = 0.99  # our renderers' alpha clamp (client_gl splat.frag, render_ref.ALPHA_MAX)
+OPACITY_MAX = ALPHA_MAX  # our renderers' alpha clamp (client_gl splat.frag), render_ref's
 # Adam's learning rates per field (phase 1's); positions' is 2e-4 x the orbit distance (scale-free).
 LR = {"opacity_logits": 0.05, "sh_dc": 0.005, "log_scales": 0.005, "rotations": 0.002}
 POSITION_LR_PER_DISTANCE = 2e-4

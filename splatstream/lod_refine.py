@@ -5,9 +5,11 @@ The optimiser itself (torch + gsplat on a CUDA GPU in `refine_gpu/`, or numba on
 outside the core and is handed to the encoder as a callable (`LodRefiner`, EncodeOptions.lod_refiner), as the
 streaming client's compiled kernels are: the core never imports torch, gsplat or numba. What the core owns is
 everything the refinement's result depends on besides the optimiser: which splats each level's picture is made of
-(`level_cuts`), the cameras it is trained and judged on (`refine_cameras`, a rule of the scene alone), and how refined
-values enter the tree (`refine_tree`: checked, applied to the merged tiles only, bounds recomputed; geometric errors
-stay the unrefined tree's).
+(`level_cuts`), the cameras it is trained and judged on (`refine_cameras`, a rule of the scene alone), which
+candidate a level keeps (`kept_candidate`), what the manifest records (`RefineSettings.record`, `level_outcome`),
+and how refined values enter the tree (`split_merged`, `refine_tree`: checked, applied to the merged tiles only,
+bounds recomputed; geometric errors stay the unrefined tree's). Both optimisers use these, so the GPU's and the
+CPU's refinements differ only in how they fit.
 """
 from __future__ import annotations
 
