@@ -5,11 +5,31 @@ import contextlib
 import logging
 import sys
 import time
+from collections.abc import Callable
 
 
 def count(n: int, noun: str, plural: str | None = None) -> str:
     """'1 tile', '11 tiles', '1 leaf' / '2 leaves' (with `plural`): a number a user reads, with its noun."""
     return f"{n:,} {noun if n == 1 else (plural or noun + 's')}"
+
+
+class Tally:
+    """Units done of a known total, reported as the share done (0 when made, then at most 1 after each `add`): the
+    progress of a slow loop over splats or chunks (the RAD and streamed SOG exporters'), where `report` may be None."""
+
+    def __init__(self, report: Callable[[float], None] | None, total: int):
+        self.report = report or (lambda fraction: None)
+        self.total = max(1, total)
+        self.done = 0
+        self.report(0.0)
+
+    def add(self, units: int) -> None:
+        self.done += units
+        self.report(min(1.0, self.done / self.total))
+
+    def finish(self) -> None:
+        """All done (1), where the units counted may not reach the total."""
+        self.report(1.0)
 
 
 class ProgressPrinter:

@@ -43,6 +43,7 @@ import numpy as np
 
 from ..format.layout import morton_codes
 from ..gaussians import SH_C0, Gaussians, covariances
+from ..progress import Tally
 from .sog_lod import TreeTile
 
 RAD_MAGIC = 0x30444152  # "RAD0"
@@ -211,11 +212,8 @@ def rad_tree(tiles: dict[int, TreeTile], root: int,
     """The RAD splat tree of a tree of ours (see the module's docstring). `progress` hears the share of the splats
     below the root given their parents (the nearest-parent searches are most of an export's time: 31 of 34 s of
     CPU for playbot's 500,000 splats on a busy 2-core machine, rad_bytes the rest)."""
-    report = progress or (lambda fraction: None)
     root_tile = tiles[root]
-    below_root = max(1, sum(len(t.splats) for t in tiles.values()) - len(root_tile.splats))
-    placed = 0
-    report(0.0)
+    placed = Tally(progress, sum(len(t.splats) for t in tiles.values()) - len(root_tile.splats))
     # Each depth as (tile, row) per splat in file order; the splats of a depth are the children of the one above.
     tile_ids = np.full(len(root_tile.splats), root, np.int64)
     rows = np.arange(len(root_tile.splats))
@@ -243,8 +241,7 @@ def rad_tree(tiles: dict[int, TreeTile], root: int,
             kid_tiles.append(np.concatenate([np.full(len(k.splats), k.id, np.int64) for k in kids]))
             kid_rows.append(np.concatenate([np.arange(len(k.splats)) for k in kids]))
             kid_parent.append(mine[to])
-            placed += len(pos)
-            report(min(1.0, placed / below_root))
+            placed.add(len(pos))
         if not kid_tiles:
             child_count.append(np.zeros(len(tile_ids), np.int64))
             break
@@ -265,7 +262,7 @@ def rad_tree(tiles: dict[int, TreeTile], root: int,
     # of splat i follow the root and the children of every splat before i.
     start = 1 + np.concatenate([[0], np.cumsum(count)[:-1]])
     start[count == 0] = 0
-    report(1.0)
+    placed.finish()
     return RadTree(Gaussians.concatenate(parts), count.astype(np.uint16), start.astype(np.uint32),
                    np.concatenate(depths))
 
@@ -442,14 +439,13 @@ def rad_bytes(tree: RadTree, sh_degree: int, encoding: str = "exact",
     of the chunks written."""
     if encoding not in ENCODINGS:
         raise ValueError(f"RAD encoding {encoding!r}: expected one of {', '.join(ENCODINGS)}")
-    report = progress or (lambda fraction: None)
     ranges = spark_ranges(tree.splats) if encoding == "spark" else None
     n = len(tree.splats)
     chunks = []
-    report(0.0)
+    written = Tally(progress, n)
     for base in range(0, n, CHUNK_SPLATS):
         chunks.append(rad_chunk(tree, base, min(CHUNK_SPLATS, n - base), sh_degree, ranges))
-        report(min(1.0, (base + CHUNK_SPLATS) / max(1, n)))
+        written.add(min(CHUNK_SPLATS, n - base))
     table, offset = [], 0
     for c in chunks:
         table.append({"offset": offset, "bytes": len(c)})

@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..gaussians import Gaussians, covariances
+from ..progress import Tally
 from .sog import GENERATOR, SogUnit, sog_unit, write_unit
 
 LOD_META_NAME = "lod-meta.json"
@@ -111,7 +112,6 @@ def streamed_sog(tiles: dict[int, TreeTile], root: int, unit_splats: int = UNIT_
     """The lod-meta.json object and the units of a tree of ours (see the module's docstring). `progress` hears
     the share of the splats packed into units: each unit's SOG encode (its SH palette's k-means, its WebP
     planes) is the slow part (about 28 s for playbot's 919,279 splats on a busy 2-core machine)."""
-    report = progress or (lambda fraction: None)
     below = _leaves_below(tiles, root)
     leaves = below[root]
     depth = max(tiles[leaf].level for leaf in leaves)
@@ -146,10 +146,8 @@ def streamed_sog(tiles: dict[int, TreeTile], root: int, unit_splats: int = UNIT_
     counts = [0] * levels
     references: dict[int, dict[str, dict]] = {leaf: {} for leaf in leaves}
     referenced: dict[int, list[Gaussians]] = {leaf: [] for leaf in leaves}
-    total = max(1, sum(len(share[path[min(depth - level, len(path) - 1)]][leaf])
-                       for leaf, path in chain.items() for level in range(levels)))
-    packed = 0
-    report(0.0)
+    packed = Tally(progress, sum(len(share[path[min(depth - level, len(path) - 1)]][leaf])
+                                 for leaf, path in chain.items() for level in range(levels)))
     for level in range(levels):
         parts = []
         for leaf in leaves:
@@ -168,8 +166,7 @@ def streamed_sog(tiles: dict[int, TreeTile], root: int, unit_splats: int = UNIT_
                 offset += len(part)
             counts[level] += offset
             units[name] = sog_unit(Gaussians.concatenate([part for _, part in members]), reorder=False)
-            packed += offset
-            report(min(1.0, packed / total))
+            packed.add(offset)
 
     def node(tid: int) -> dict:
         t = tiles[tid]
