@@ -197,6 +197,18 @@ def test_a_refined_encode_records_it_and_keeps_the_full_detail_bit_for_bit(scene
     assert "refined" not in run_cli("info", str(tmp_path / "plain")).stdout
 
 
+def test_a_tree_of_one_tile_is_not_refined_and_says_so(scene, caplog):
+    """No merged level to refine (the scene under --max-leaf-splats): the refiner is not called, the manifest
+    records no refinement, and a note says why rather than nothing."""
+    refiner = NumpyRefiner()
+    with caplog.at_level("INFO", logger="splatstream"):
+        m = parse_manifest(encode_in_memory(scene, EncodeOptions(max_leaf_splats=len(scene) + 1,
+                                                                 lod_refiner=refiner)).read_manifest())
+    assert len(m.tiles) == 1 and m.lod.refinement is None and refiner.calls == []
+    assert f"the tree is one tile ({len(scene):,} splats, under --max-leaf-splats), with no merged level; nothing " \
+           "refined" in caplog.text
+
+
 def test_the_partitioned_encoder_refuses_a_refiner(scene, tmp_path):
     from splatstream.encode.driver import encode_file
     from splatstream.io import write_gaussians

@@ -237,6 +237,10 @@ def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progr
         # lod.md 6's optional step: after the tree, before any payload is quantised; leaves stay the originals.
         tiles, record = refine_tree(g, tiles, scene.up, opts.lod_refiner, progress)
         scene = replace(scene, lod_refinement=record)
+    elif opts.lod_refiner is not None and own_tree:
+        # asked for, and nothing to do: said, not silent (the manifest then records no refinement)
+        log.info("LOD refinement: the tree is one tile (%s splats, under --max-leaf-splats), with no merged level; "
+                 "nothing refined", f"{len(g):,}")
     return EncodePlan(scene, tiles, sample)
 
 
