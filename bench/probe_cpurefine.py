@@ -1,5 +1,5 @@
 """Probe of the CPU refinement of the merged LOD levels (refine_cpu/, issue 31): the default encode and the encode with
-refine_cpu.levels.LodRefiner of one canonical PLY (bench/lod_vs_peers.py's CACHE/SCENE/full.ply), each timed in
+refine_cpu.levels.CpuLevelRefiner of one canonical PLY (bench/lod_vs_peers.py's CACHE/SCENE/full.ply), each timed in
 CPU seconds (user + sys of this process) with its peak resident memory, and the refiner's per-level report; then
 bench/lod_vs_peers.py streams the refined scene with the real client (--our-scene-dir OUT/refined; OUT/plain:
 the default).
@@ -18,7 +18,7 @@ import time
 
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
-from refine_cpu.levels import CpuRefineSettings, LodRefiner  # noqa: E402
+from refine_cpu.levels import CpuLevelRefiner, CpuRefineSettings  # noqa: E402
 from splatstream.encode import encode_file  # noqa: E402
 
 
@@ -52,7 +52,7 @@ def main() -> None:
     if args.plain:
         res["plain"] = timed_encode(args.full_ply, os.path.join(args.out, "plain", scene))
         print("plain", res["plain"], flush=True)
-    refiner = LodRefiner(CpuRefineSettings(iterations=args.iterations, size=args.size,
+    refiner = CpuLevelRefiner(CpuRefineSettings(iterations=args.iterations, size=args.size,
                                            training_cameras=args.training_cameras,
                                            log=lambda m: print("lod-refine:", m, flush=True)))
     res["refined"] = timed_encode(args.full_ply, os.path.join(args.out, "refined", scene), lod_refiner=refiner)

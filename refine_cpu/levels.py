@@ -56,7 +56,7 @@ class CpuRefineSettings(lod_refine.RefineSettings):
     lr_sh_dc: float = 0.02
 
 
-class LodRefiner:
+class CpuLevelRefiner:
     """lod_refine.LodRefiner on the CPU: (splats, tree, up, progress) -> ({tile id: refined splats}, record)."""
 
     def __init__(self, settings: CpuRefineSettings | None = None):
@@ -113,6 +113,7 @@ class LodRefiner:
 
 
 def _sigmoid(x: np.ndarray) -> np.ndarray:
+    # float64 throughout the fit (gaussians.sigmoid rounds to float32, the stored opacity's precision)
     return 1.0 / (1.0 + np.exp(-x))
 
 

@@ -12,7 +12,7 @@ from conftest import real
 pytest.importorskip("numba")
 
 from refine_cpu import raster  # noqa: E402
-from refine_cpu.levels import CpuRefineSettings, LodRefiner  # noqa: E402
+from refine_cpu.levels import CpuLevelRefiner, CpuRefineSettings  # noqa: E402
 from splatstream import render_ref  # noqa: E402
 from splatstream.camera import scene_orbit_views  # noqa: E402
 from splatstream.format.layout import morton_order  # noqa: E402
@@ -89,7 +89,7 @@ def test_the_refiner_fits_the_merged_levels_and_keeps_only_what_validates(part):
     cuts = level_cuts(tiles)
     logs: list[str] = []
     seen: list[tuple[str, float]] = []
-    refiner = LodRefiner(CpuRefineSettings(iterations=25, size=48, training_cameras=8, validation_cameras=4,
+    refiner = CpuLevelRefiner(CpuRefineSettings(iterations=25, size=48, training_cameras=8, validation_cameras=4,
                                            log=logs.append))
     refined, record = refiner(part, tiles, (0.0, 1.0, 0.0), lambda phase, f: seen.append((phase, f)))
     assert record.variants == (("A", VARIANT_FIELDS["A"]),) == (("A", ("opacity_logits", "sh_dc")),)

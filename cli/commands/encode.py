@@ -270,18 +270,18 @@ def _lod_refiner(args: argparse.Namespace, workers: int | None):
 
 
 def _cpu_refiner(args: argparse.Namespace, log):
-    """refine_cpu.levels.LodRefiner (numba, the `fast` extra), imported only when asked for."""
+    """refine_cpu.levels.CpuLevelRefiner (numba, the `fast` extra), imported only when asked for."""
     try:
         import numba  # noqa: F401
     except ImportError:
         raise UsageError("--lod-refine cpu needs numba, which is not installed (install the extra: pip install "
                          "'splatstream[fast]')") from None
     try:
-        from refine_cpu.levels import CpuRefineSettings, LodRefiner
+        from refine_cpu.levels import CpuLevelRefiner, CpuRefineSettings
     except ImportError as exc:
         raise UsageError(f"--lod-refine cpu: the refine_cpu package of this splatstream cannot be imported ({exc}); "
                          "reinstall splatstream (pip install -e '.[fast]' in a checkout)") from None
-    return LodRefiner(CpuRefineSettings(iterations=args.lod_refine_iters or CPU_ITERATIONS,
+    return CpuLevelRefiner(CpuRefineSettings(iterations=args.lod_refine_iters or CPU_ITERATIONS,
                                         size=args.lod_refine_size or CPU_SIZE_PX, log=log))
 
 
