@@ -12,7 +12,7 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
-PACKAGES = ("splatstream", "server", "client_gl", "cli")
+PACKAGES = ("splatstream", "server", "client_gl", "cli", "refine_gpu", "refine_cpu")
 
 # Cross-module private imports not yet given a public name: (importing module, imported module, name). Empty:
 # keep it so, or list one here with the reason, and remove it once the import is gone.
