@@ -299,7 +299,8 @@ def test_cli_refusals_come_before_the_scene_is_read(tmp_path):
     missing_input = str(tmp_path / "no-such-scene.ply")
     for extra, message in [(["--workers", "2"], "not with --workers or --scheduler"),
                            (["--no-lod"], "not with --no-lod"),
-                           (["--lod-refine-iters", "0"], "--lod-refine-iters must be at least 1")]:
+                           (["--lod-refine-iters", "0"], "--lod-refine-iters 0: expected at least 1 step"),
+                           (["--lod-refine-size", "20000"], "--lod-refine-size 20000: expected 16 to 16384 px")]:
         r = run_cli("encode", missing_input, str(tmp_path / "out"), "--lod-refine", *extra)
         assert r.returncode == 2 and message in r.stderr and r.stderr.count("\n") == 1, r.stderr
     # the refinement's settings alone would be ignored: refused, naming the option they set

@@ -175,7 +175,7 @@ def test_cli_refusals_of_the_cpu_refinement(tmp_path):
     for extra, message in [(["--workers", "2"], "not with --workers or --scheduler"),
                            (["--no-lod"], "not with --no-lod"),
                            (["--target-size", "20"], "not with --target-psnr / --target-size"),
-                           (["--lod-refine-size", "8"], "--lod-refine-size at least 16")]:
+                           (["--lod-refine-size", "8"], "--lod-refine-size 8: expected 16 to 16384 px")]:
         r = run_cli("encode", missing_input, out, *extra, "--lod-refine", "cpu")
         assert r.returncode == 2 and message in r.stderr and r.stderr.count("\n") == 1, r.stderr
     r = run_cli("encode", missing_input, out, "--lod-refine", "tpu")

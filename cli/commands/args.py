@@ -45,7 +45,11 @@ def check_look(eye, target, fov_y: float | None) -> None:
         raise UsageError(f"--fov-y {fov_y:g}: expected degrees in (0, 180)")
 
 
-def parse_size(text: str, smallest: int = 1, largest: int = 16384, what: str = "--size") -> tuple[int, int]:
+# The largest side of a picture the commands render (render, view --size; encode --lod-refine-size).
+MAX_RENDER_SIDE = 16384
+
+
+def parse_size(text: str, smallest: int = 1, largest: int = MAX_RENDER_SIDE, what: str = "--size") -> tuple[int, int]:
     """'WxH' -> (width, height), each within [smallest, largest]."""
     try:
         w, h = (int(v) for v in text.lower().split("x"))

@@ -5,6 +5,7 @@ import argparse
 import os
 import sys
 import time
+from collections.abc import Callable
 
 from splatstream.encode import encode_file
 from splatstream.encode.driver import count_edits
@@ -24,13 +25,13 @@ from splatstream.format.texformats import VALUE_FORMATS
 from splatstream.format.transport import TRANSPORTS
 from splatstream.io import open_input
 from splatstream.lod import LOD_MERGES
-from splatstream.lod_refine import CPU_ITERATIONS, CPU_SIZE_PX, GPU_ITERATIONS, GPU_SIZE_PX
+from splatstream.lod_refine import CPU_ITERATIONS, CPU_SIZE_PX, GPU_ITERATIONS, GPU_SIZE_PX, LodRefiner
 from splatstream.progress import ProgressPrinter, count
 from splatstream.rad_import import read_tree as rad_read_tree
 from splatstream.sog_import import encode_tree_to
 from splatstream.sog_import import read_tree as sog_read_tree
 
-from .args import add_edit_arguments, edit_report, edits_from, parse_bytes, parse_vector
+from .args import MAX_RENDER_SIDE, add_edit_arguments, edit_report, edits_from, parse_bytes, parse_vector
 from .renderers import pick_renderer
 
 # The views --target-psnr / --target-size measure presets on: `splatstream eval`'s defaults.
@@ -232,7 +233,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _lod_refiner(args: argparse.Namespace, workers: int | None):
+def _lod_refiner(args: argparse.Namespace, workers: int | None) -> LodRefiner:
     """The refiner of --lod-refine (refine_gpu.levels on a GPU, refine_cpu.levels on the CPU), or a UsageError naming
     what is missing or what does not go with it: checked before the scene is read (importing torch takes seconds;
     gsplat builds its CUDA extension on first use, then keeps it)."""
@@ -243,9 +244,11 @@ def _lod_refiner(args: argparse.Namespace, workers: int | None):
                          "--scheduler (a partitioned encode)")
     if args.target_psnr is not None or args.target_size is not None:
         raise UsageError("--lod-refine: not with --target-psnr / --target-size (they measure unrefined encodes)")
-    if (args.lod_refine_iters is not None and args.lod_refine_iters < 1) or \
-            (args.lod_refine_size is not None and args.lod_refine_size < 16):
-        raise UsageError("--lod-refine-iters must be at least 1 and --lod-refine-size at least 16")
+    if args.lod_refine_iters is not None and args.lod_refine_iters < 1:
+        raise UsageError(f"--lod-refine-iters {args.lod_refine_iters}: expected at least 1 step")
+    # at most render's and view's largest side: a larger one would fail only once its renders are allocated
+    if args.lod_refine_size is not None and not 16 <= args.lod_refine_size <= MAX_RENDER_SIDE:
+        raise UsageError(f"--lod-refine-size {args.lod_refine_size}: expected 16 to {MAX_RENDER_SIDE} px")
 
     def log(msg: str) -> None:
         if not args.quiet:
@@ -269,7 +272,7 @@ def _lod_refiner(args: argparse.Namespace, workers: int | None):
                                        size=args.lod_refine_size or GPU_SIZE_PX, log=log))
 
 
-def _cpu_refiner(args: argparse.Namespace, log):
+def _cpu_refiner(args: argparse.Namespace, log: Callable[[str], None]) -> LodRefiner:
     """refine_cpu.levels.CpuLevelRefiner (numba, the `fast` extra), imported only when asked for."""
     try:
         import numba  # noqa: F401
