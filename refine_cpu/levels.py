@@ -43,7 +43,7 @@ VARIANT = "A"  # the one variant fitted here (lod_refine.VARIANT_FIELDS): opacit
 
 
 @dataclass
-class CpuRefineSettings(lod_refine.RefineSettings):
+class CpuRefineSettings(lod_refine.SharedRefineSettings):
     """The CPU fit's settings (BENCHMARKS.md, "Refining the merged levels on the CPU"): 256 px renders, 32 training
     and 16 validation cameras, full-batch Adam at these learning rates."""
     iterations: int = CPU_ITERATIONS

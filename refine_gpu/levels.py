@@ -226,7 +226,7 @@ def to_params(torch, g: Gaussians, device: str) -> dict:
 # --- the refiner -------------------------------------------------------------------------------------------------
 
 @dataclass
-class RefineSettings(lod_refine.RefineSettings):
+class RefineSettings(lod_refine.SharedRefineSettings):
     """Phase 1's settings (BENCHMARKS.md, "Refining the merged levels against the originals"): 384 px (at 40 px,
     positions and rotations overfit the pixels), 300 Adam steps of 8 views per level and variant."""
     iterations: int = GPU_ITERATIONS

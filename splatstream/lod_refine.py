@@ -6,7 +6,7 @@ outside the core and is handed to the encoder as a callable (`LodRefiner`, Encod
 streaming client's compiled kernels are: the core never imports torch, gsplat or numba. What the core owns is
 everything the refinement's result depends on besides the optimiser: which splats each level's picture is made of
 (`level_cuts`), the cameras it is trained and judged on (`refine_cameras`, a rule of the scene alone), which
-candidate a level keeps (`kept_candidate`), what the manifest records (`RefineSettings.record`, `level_outcome`),
+candidate a level keeps (`kept_candidate`), what the manifest records (`SharedRefineSettings.record`, `level_outcome`),
 and how refined values enter the tree (`split_merged`, `refine_tree`: checked, applied to the merged tiles only,
 bounds recomputed; geometric errors stay the unrefined tree's). Both optimisers use these, so the GPU's and the
 CPU's refinements differ only in how they fit.
@@ -132,7 +132,7 @@ def with_values(g: Gaussians, values: dict[str, np.ndarray]) -> Gaussians:
 
 
 @dataclass
-class RefineSettings:
+class SharedRefineSettings:
     """What every refiner is set by and the manifest's record names (lod.refinement): the square render size, the
     optimiser's steps per level (and variant), the training and validation cameras (count and seed of
     `refine_cameras`' rule), and where the refiner's progress lines go. Each refiner's settings extend these with

@@ -26,7 +26,7 @@ from splatstream.lod_refine import (
     DISTANCE_RANGE,
     UNREFINED,
     VARIANT_FIELDS,
-    RefineSettings,
+    SharedRefineSettings,
     apply_refined,
     in_domain,
     kept_candidate,
@@ -285,8 +285,8 @@ def test_the_refiners_share_the_choice_the_split_and_the_record(scene):
                                                                                                  "A": 30.0}
     assert logs == [f"level {cut.level} ({n:,} merged splats): validation PSNR none 20.00, A 30.00 dB; kept A "
                     "(1.2 s)"]
-    s = RefineSettings(iterations=7, size=32, training_cameras=3, validation_cameras=2, training_seed=5,
-                       validation_seed=6)
+    s = SharedRefineSettings(iterations=7, size=32, training_cameras=3, validation_cameras=2, training_seed=5,
+                             validation_seed=6)
     train, valid = s.cameras(scene.positions, (0.0, 1.0, 0.0))
     assert train == refine_cameras(scene.positions, (0.0, 1.0, 0.0), 3, 32, 5)
     assert valid == refine_cameras(scene.positions, (0.0, 1.0, 0.0), 2, 32, 6)
