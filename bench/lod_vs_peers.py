@@ -690,7 +690,8 @@ def _drawn(o: dict) -> str:
 
 
 def plot(results: list[dict], path: str) -> None:
-    """PSNR (mean over views) against splats drawn (log axis), one panel per scene; peers vs ours. Pillow only."""
+    """PSNR (mean over views) against splats drawn (log axis), one panel per scene; peers vs ours (and a result's
+    "ours_default" rows, where it has them, as a second series of ours). Pillow only."""
     from PIL import Image, ImageDraw, ImageFont
 
     cols = min(4, max(1, len(results)))
@@ -707,9 +708,11 @@ def plot(results: list[dict], path: str) -> None:
            "levels, green: Spark cuts (dark: lodInflate, light: clamped), blue: splatstream view "
            "--max-splats; orange: a source's own levels; grey ticks: budgets",
            fill="black", font=big)
+    if any(r.get("ours_default") for r in results):  # a second encode of ours beside it (bench/cpurefine31_table.py)
+        d.text((10, 26), "light blue: our default encode; blue: the encode compared with it", fill="black", font=font)
     colours = {"peers": (220, 50, 47), "spark": (40, 160, 60), "spark_clamp": (150, 210, 150),
-               "shipped": (240, 150, 30), "ours": (38, 100, 210)}
-    series = ("peers", "spark", "spark_clamp", "shipped", "ours")
+               "shipped": (240, 150, 30), "ours_default": (140, 180, 235), "ours": (38, 100, 210)}
+    series = ("peers", "spark", "spark_clamp", "shipped", "ours_default", "ours")  # ours_default: a second encode
     for k, res in enumerate(results):
         ox, oy = (k % cols) * pw, 40 + (k // cols) * ph
         left, right, top, bottom = ox + 50, ox + pw - 15, oy + 25, oy + ph - 40
