@@ -96,3 +96,16 @@ def test_unique_budgets_measure_each_count_once():
     assert budgets == [0.02, 0.5, 125000.0, 3000.0]
     assert [L.budget_label(b, n) for b, n in zip(budgets, counts, strict=True)] == \
         ["10,000 (2 %)", "250,000 (50 %)", "125,000", "3,000"]
+
+
+def test_cameras_an_ulp_apart_are_the_same_views():
+    """cpurefine: statue-angel's stored peer rows were dropped by `--peers-from` because the orbit's eyes moved by an
+    ulp (camera.look_at_near_far); such cameras are the same views, a real difference or a missing field is not."""
+    stored = [{"eye": [0.35712093311489490, -2.5069121102696568, 1.0], "near": 0.1, "fov_y_deg": 50.0}]
+    today = [{"eye": [0.35712093311489485, -2.506912110269657, 1.0], "near": 0.1, "fov_y_deg": 50.0}]
+    assert stored != today
+    assert L.same_cameras(stored, today)
+    assert not L.same_cameras([{"eye": [0.0, 1.0]}], [{"eye": [0.0, 1.0 + 1e-9]}])
+    assert not L.same_cameras([{"eye": [0.0, 1.0]}], [{"eye": [0.0, 1.0], "near": 0.1}])
+    assert not L.same_cameras(stored, stored * 2)
+    assert not L.same_cameras(None, today)
