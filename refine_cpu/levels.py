@@ -21,7 +21,7 @@ import numpy as np
 
 from splatstream.format.limits import MAX_ABS_SH
 from splatstream.format.manifest import LevelRefinement, LodRefinement
-from splatstream.gaussians import Gaussians
+from splatstream.gaussians import Gaussians, covariances
 from splatstream.lod import Tile
 from splatstream.lod_refine import (
     CPU_ITERATIONS,
@@ -89,8 +89,10 @@ class LodRefiner:
         steps = len(cuts) + 1
         progress("refine", 0.0)
         t0 = time.perf_counter()
-        gt = np.clip(np.stack([raster.render(g, c, degree) for c in train]), 0.0, 1.0)
-        gt_valid = np.clip(np.stack([raster.render(g, c, degree) for c in valid]), 0.0, 1.0)
+        cov3d = covariances(g)  # the full detail's covariances, once for all 48 cameras
+        gt = np.clip(np.stack([raster.render(g, c, degree, cov3d) for c in train]), 0.0, 1.0)
+        gt_valid = np.clip(np.stack([raster.render(g, c, degree, cov3d) for c in valid]), 0.0, 1.0)
+        del cov3d
         s.log(f"full-detail renders: {len(train) + len(valid)} at {s.size} px ({time.perf_counter() - t0:.1f} s)")
         progress("refine", 1 / steps)
         refined: dict[int, Gaussians] = {}
@@ -103,9 +105,12 @@ class LodRefiner:
             whole = Gaussians.concatenate(parts)
             first = len(whole) - len(merged)  # the merged splats come last
             pl_train = raster.pair_lists(whole, train, degree)
-            pl_valid = raster.pair_lists(whole, valid, degree)
             logits, dc, iters = fit_opacity_dc(pl_train, whole, first, gt, s,
                                                lambda it, k=k: progress("refine", (k + 1 + it / s.iterations) / steps))
+            # the validation pairs only once the training pairs are gone: the peak holds one set, not both
+            train_pairs, train_bytes = len(pl_train.g), pl_train.nbytes
+            del pl_train
+            pl_valid = raster.pair_lists(whole, valid, degree)
             op_all = whole.opacities.astype(np.float64)
             dc_all = raster.SH_C0 * whole.sh_dc.astype(np.float64)
             before = raster.loss_and_grad(pl_valid, op_all, dc_all, gt_valid, grad=False)[0]
@@ -126,13 +131,13 @@ class LodRefiner:
             secs = time.perf_counter() - t1
             levels.append(LevelRefinement(cut.level, kept, tuple(psnr.items())))
             self.report.append({"level": cut.level, "merged_splats": len(merged), "splats": len(whole),
-                                "pairs": len(pl_train.g) + len(pl_valid.g),
-                                "pair_bytes": pl_train.nbytes + pl_valid.nbytes, "validation_psnr": psnr,
+                                "pairs": train_pairs + len(pl_valid.g),
+                                "pair_bytes": train_bytes + pl_valid.nbytes, "validation_psnr": psnr,
                                 "kept": kept, "iterations": iters, "seconds": round(secs, 2)})
             s.log(f"level {cut.level} ({len(merged):,} merged splats): validation PSNR "
                   + ", ".join(f"{c} {v:.2f}" for c, v in psnr.items()) + f" dB; kept {kept} ({secs:.1f} s)")
             progress("refine", (k + 2) / steps)
-            del pl_train, pl_valid
+            del pl_valid
         record = LodRefinement(REFINE_METHOD, ((VARIANT, VARIANT_FIELDS[VARIANT]),), s.size, s.iterations,
                                s.training_cameras, s.training_seed, s.validation_cameras, s.validation_seed,
                                tuple(levels))
