@@ -20,7 +20,7 @@ import numpy as np
 
 from splatstream import lod_refine
 from splatstream.format.manifest import LevelRefinement, LodRefinement
-from splatstream.gaussians import Gaussians
+from splatstream.gaussians import Gaussians, covariances
 from splatstream.lod import Tile
 from splatstream.lod_refine import (
     CPU_ITERATIONS,
@@ -72,8 +72,10 @@ class CpuLevelRefiner:
         steps = len(cuts) + 1
         progress("refine", 0.0)
         t0 = time.perf_counter()
-        gt = np.clip(np.stack([raster.render(g, c, degree) for c in train]), 0.0, 1.0)
-        gt_valid = np.clip(np.stack([raster.render(g, c, degree) for c in valid]), 0.0, 1.0)
+        cov3d = covariances(g)  # the full detail's covariances, once for all 48 cameras
+        gt = np.clip(np.stack([raster.render(g, c, degree, cov3d) for c in train]), 0.0, 1.0)
+        gt_valid = np.clip(np.stack([raster.render(g, c, degree, cov3d) for c in valid]), 0.0, 1.0)
+        del cov3d
         s.log(f"full-detail renders: {len(train) + len(valid)} at {s.size} px ({time.perf_counter() - t0:.1f} s)")
         progress("refine", 1 / steps)
         refined: dict[int, Gaussians] = {}
@@ -86,9 +88,12 @@ class CpuLevelRefiner:
             whole = Gaussians.concatenate(parts)
             first = len(whole) - len(merged)  # the merged splats come last
             pl_train = raster.pair_lists(whole, train, degree)
-            pl_valid = raster.pair_lists(whole, valid, degree)
             logits, dc = fit_opacity_dc(pl_train, whole, first, gt, s,
                                                lambda it, k=k: progress("refine", (k + 1 + it / s.iterations) / steps))
+            # the validation pairs only once the training pairs are gone: the peak holds one set, not both
+            train_pairs, train_bytes = len(pl_train.g), pl_train.nbytes
+            del pl_train
+            pl_valid = raster.pair_lists(whole, valid, degree)
             op_all = whole.opacities.astype(np.float64)
             dc_all = raster.SH_C0 * whole.sh_dc.astype(np.float64)
             before = raster.loss_and_grad(pl_valid, op_all, dc_all, gt_valid, grad=False)[0]
@@ -104,11 +109,11 @@ class CpuLevelRefiner:
             level, psnr = level_outcome(cut, scores, kept, len(merged), secs, s.log)
             levels.append(level)
             self.report.append({"level": cut.level, "merged_splats": len(merged), "splats": len(whole),
-                                "pairs": len(pl_train.g) + len(pl_valid.g),
-                                "pair_bytes": pl_train.nbytes + pl_valid.nbytes, "validation_psnr": psnr,
+                                "pairs": train_pairs + len(pl_valid.g),
+                                "pair_bytes": train_bytes + pl_valid.nbytes, "validation_psnr": psnr,
                                 "kept": kept, "iterations": s.iterations, "seconds": round(secs, 2)})
             progress("refine", (k + 2) / steps)
-            del pl_train, pl_valid
+            del pl_valid
         return refined, s.record((VARIANT,), levels)
 
 

@@ -23,13 +23,17 @@ import numba
 import numpy as np
 
 from splatstream.camera import Camera
-from splatstream.gaussians import Gaussians
+from splatstream.gaussians import Gaussians, covariances
 from splatstream.render_ref import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE, preprocess, tile_lists
 from splatstream.sh import SH_C0, eval_sh, view_directions
 
 # Pairs are kept while T under the ORIGINAL opacities stays above this (a pixel stops at T_MIN = 1e-4): a fitted
 # opacity a little lower than built still finds the pairs behind (three splats at 0.99 reach 1e-6).
 T_STORE = 1e-6
+# exp(power) < ALPHA_MIN for any power below this (a margin of 1e-6 in the log, far above exp's rounding): the
+# kernels skip such a splat before its exp, where the exp would only have led to the same skip (g < 1/255, or with an
+# opacity <= 1 alpha < 1/255). Most of a tile's splats miss most of its pixels, so most exps are saved.
+POWER_SKIP = math.log(ALPHA_MIN) - 1e-6
 
 
 @dataclass
@@ -45,8 +49,10 @@ class Projection:
     height: int
 
 
-def project(g: Gaussians, cam: Camera, sh_degree: int | None = None) -> Projection:
-    p = preprocess(g, cam, sh_degree)
+def project(g: Gaussians, cam: Camera, sh_degree: int | None = None, cov3d: np.ndarray | None = None) -> Projection:
+    """`cov3d`: covariances(g), computed once where one splat set is projected for many cameras."""
+    # preprocess's own colours (DC included) are not needed: `base` below is the view-dependent part
+    p = preprocess(g, cam, sh_degree, cov3d=cov3d, color=False)
     grid_x, grid_y = -(-cam.width // TILE), -(-cam.height // TILE)
     ids, offsets = tile_lists(p, grid_x, grid_y)
     zero_dc = np.zeros((len(p.index), 3))
@@ -59,11 +65,11 @@ def colours_of(proj: Projection, sh_dc: np.ndarray) -> np.ndarray:
     return np.maximum(proj.base + SH_C0 * np.asarray(sh_dc, np.float64)[proj.index], 0.0)
 
 
-def render(g: Gaussians, cam: Camera, sh_degree: int | None = None) -> np.ndarray:
-    """(H, W, 3) float32, not clamped above: render_ref.render's picture, compiled."""
+def render(g: Gaussians, cam: Camera, sh_degree: int | None = None, cov3d: np.ndarray | None = None) -> np.ndarray:
+    """(H, W, 3) float32, not clamped above: render_ref.render's picture, compiled. `cov3d` as in `project`."""
     if len(g) == 0:
         return np.zeros((cam.height, cam.width, 3), np.float32)
-    proj = project(g, cam, sh_degree)
+    proj = project(g, cam, sh_degree, cov3d)
     return render_projection(proj, g.opacities.astype(np.float64)[proj.index], colours_of(proj, g.sh_dc))
 
 
@@ -103,6 +109,8 @@ def _render_tiles(xy, conic, opacity, colour, tile_ids, tile_offsets, width, hei
                     dy = xy[i, 1] - y
                     power = -0.5 * (conic[i, 0] * dx * dx + conic[i, 2] * dy * dy) - conic[i, 1] * dx * dy
                     if power > 0.0:
+                        continue
+                    if power < POWER_SKIP and opacity[i] <= 1.0:
                         continue
                     alpha = min(ALPHA_MAX, opacity[i] * math.exp(power))
                     if alpha < ALPHA_MIN:
@@ -149,7 +157,7 @@ def _pairs_per_pixel(xy, conic, opacity, tile_ids, tile_offsets, width, height, 
                     dx = xy[i, 0] - x
                     dy = xy[i, 1] - y
                     power = -0.5 * (conic[i, 0] * dx * dx + conic[i, 2] * dy * dy) - conic[i, 1] * dx * dy
-                    if power > 0.0:
+                    if power > 0.0 or power < POWER_SKIP:
                         continue
                     g = math.exp(power)
                     if g < ALPHA_MIN:
@@ -191,41 +199,46 @@ class PairLists:
 
 
 def pair_lists(g: Gaussians, cams: list[Camera], sh_degree: int | None = None) -> PairLists:
-    """The pair lists of `g` seen from `cams` (all of one size)."""
+    """The pair lists of `g` seen from `cams` (all of one size).
+
+    Two passes, so the pairs are written once into arrays of their final size (no per-camera pieces concatenated:
+    that held the pairs twice at the peak): each camera's projection and per-pixel counts first, then the pairs."""
     width, height = cams[0].width, cams[0].height
+    if any((cam.width, cam.height) != (width, height) for cam in cams):
+        raise ValueError("pair_lists: the cameras differ in size")
     hw = width * height
-    offsets = [np.zeros(1, np.int64)]
-    projs, gs, splats, bases = [], [], [], []
-    total, proj_total = 0, 0
     opacity_all = g.opacities.astype(np.float64)
-    for cam in cams:
-        if (cam.width, cam.height) != (width, height):
-            raise ValueError("pair_lists: the cameras differ in size")
-        p = project(g, cam, sh_degree)
+    cov3d = covariances(g) if len(g) else None
+    empty_i = np.zeros(0, np.int32)
+    empty_f = np.zeros(0, np.float32)
+    no_counts = np.zeros(0, np.int64)  # pass 2 writes no counts (an int64 array: pass 1's compiled signature)
+    pixel_offsets = np.zeros(len(cams) * hw + 1, np.int64)
+    projections = []
+    total = 0
+    for c, cam in enumerate(cams):
+        p = project(g, cam, sh_degree, cov3d)
         counts = np.zeros(hw, np.int64)
-        op = opacity_all[p.index]
-        empty_i = np.zeros(0, np.int32)
-        empty_f = np.zeros(0, np.float32)
         if len(p.index):
-            _pairs_per_pixel(p.xy, p.conic, op, p.tile_ids, p.tile_offsets, width, height, counts, False,
-                             counts, empty_i, empty_f)
-        off = np.zeros(hw + 1, np.int64)
+            _pairs_per_pixel(p.xy, p.conic, opacity_all[p.index], p.tile_ids, p.tile_offsets, width, height, counts,
+                             False, counts, empty_i, empty_f)
+        off = pixel_offsets[c * hw:(c + 1) * hw + 1]
         np.cumsum(counts, out=off[1:])
-        n = int(off[-1])
-        pr = np.empty(n, np.int32)
-        gg = np.empty(n, np.float32)
-        if n:
-            _pairs_per_pixel(p.xy, p.conic, op, p.tile_ids, p.tile_offsets, width, height, counts, True, off, pr,
-                             gg)
-        projs.append(pr + proj_total)
-        gs.append(gg)
-        offsets.append(off[1:] + total)
-        splats.append(p.index.astype(np.int32))
-        bases.append(p.base.astype(np.float32))
-        total += n
+        off[1:] += total
+        total = int(off[-1])
+        projections.append(p)
+    proj = np.empty(total, np.int32)
+    pair_g = np.empty(total, np.float32)
+    proj_total = 0
+    for c, p in enumerate(projections):
+        s, e = pixel_offsets[c * hw], pixel_offsets[(c + 1) * hw]
+        if e > s:
+            _pairs_per_pixel(p.xy, p.conic, opacity_all[p.index], p.tile_ids, p.tile_offsets, width, height,
+                             no_counts, True, pixel_offsets[c * hw:(c + 1) * hw + 1], proj, pair_g)
+            proj[s:e] += proj_total
         proj_total += len(p.index)
-    return PairLists(np.concatenate(offsets), np.concatenate(projs), np.concatenate(gs), np.concatenate(splats),
-                     np.concatenate(bases).reshape(-1, 3), len(cams), width, height)
+    splat = np.concatenate([p.index.astype(np.int32) for p in projections])
+    base = np.concatenate([p.base.astype(np.float32) for p in projections]).reshape(-1, 3)
+    return PairLists(pixel_offsets, proj, pair_g, splat, base, len(cams), width, height)
 
 
 def threads() -> int:
@@ -259,8 +272,11 @@ def loss_and_grad(pl: PairLists, opacity: np.ndarray, dc_colour: np.ndarray, tar
 def _loss_grad(pixel_offsets, proj, pg, splat, base, opacity, dc, target, ncam, hw, max_pairs, grad, scale, nt,
                losses, g_op, g_dc):
     for t in numba.prange(nt):
+        # what the forward pass met, per blended pair, for the backward pass (no second gather of the same values)
         alphas = np.empty(max_pairs)
         ks = np.empty(max_pairs, np.int64)
+        splats = np.empty(max_pairs, np.int64)
+        cols = np.empty((max_pairs, 3))
         for c in range(ncam):
             if c % nt != t:  # cameras round-robin over threads, each thread its own gradient row
                 continue
@@ -285,11 +301,18 @@ def _loss_grad(pixel_offsets, proj, pg, splat, base, opacity, dc, target, ncam, 
                         break
                     b = proj[k]
                     w = alpha * trans
-                    r0 += w * max(base[b, 0] + dc[i, 0], 0.0)
-                    r1 += w * max(base[b, 1] + dc[i, 1], 0.0)
-                    r2 += w * max(base[b, 2] + dc[i, 2], 0.0)
+                    c0 = max(base[b, 0] + dc[i, 0], 0.0)
+                    c1 = max(base[b, 1] + dc[i, 1], 0.0)
+                    c2 = max(base[b, 2] + dc[i, 2], 0.0)
+                    r0 += w * c0
+                    r1 += w * c1
+                    r2 += w * c2
                     alphas[m] = alpha
                     ks[m] = k
+                    splats[m] = i
+                    cols[m, 0] = c0
+                    cols[m, 1] = c1
+                    cols[m, 2] = c2
                     m += 1
                     trans = tn
                 d0 = min(r0, 1.0) - target[c, q, 0]
@@ -311,27 +334,23 @@ def _loss_grad(pixel_offsets, proj, pg, splat, base, opacity, dc, target, ncam, 
                 tj = trans
                 for j in range(m - 1, -1, -1):
                     a = alphas[j]
-                    k = ks[j]
-                    b = proj[k]
-                    i = splat[b]
+                    i = splats[j]
                     tj = tj / (1.0 - a)
-                    p0 = base[b, 0] + dc[i, 0]
-                    p1 = base[b, 1] + dc[i, 1]
-                    p2 = base[b, 2] + dc[i, 2]
-                    c0 = max(p0, 0.0)
-                    c1 = max(p1, 0.0)
-                    c2 = max(p2, 0.0)
+                    c0 = cols[j, 0]
+                    c1 = cols[j, 1]
+                    c2 = cols[j, 2]
                     w = a * tj
-                    if p0 > 0.0:
+                    # max(p, 0) > 0 exactly where p > 0: the gradient through the colour clamp
+                    if c0 > 0.0:
                         g_dc[t, i, 0] += e0 * w
-                    if p1 > 0.0:
+                    if c1 > 0.0:
                         g_dc[t, i, 1] += e1 * w
-                    if p2 > 0.0:
+                    if c2 > 0.0:
                         g_dc[t, i, 2] += e2 * w
                     inv = 1.0 / (1.0 - a)
                     da = (e0 * (c0 * tj - s0 * inv) + e1 * (c1 * tj - s1 * inv) + e2 * (c2 * tj - s2 * inv))
-                    if opacity[i] * pg[k] < ALPHA_MAX:
-                        g_op[t, i] += da * pg[k]
+                    if a < ALPHA_MAX:  # the 0.99 clamp: alpha < 0.99 exactly where o g < 0.99
+                        g_op[t, i] += da * pg[ks[j]]
                     s0 += c0 * w
                     s1 += c1 * w
                     s2 += c2 * w

@@ -76,8 +76,12 @@ def cov2d(means: np.ndarray, cov3d: np.ndarray, camera: Camera) -> tuple[np.ndar
     return out, t
 
 
-def preprocess(g: Gaussians, camera: Camera, sh_degree: int | None = None) -> Projected:
-    """Project, cull and colour the splats; returns the survivors sorted by depth (stable)."""
+def preprocess(g: Gaussians, camera: Camera, sh_degree: int | None = None, *, cov3d: np.ndarray | None = None,
+               color: bool = True) -> Projected:
+    """Project, cull and colour the splats; returns the survivors sorted by depth (stable).
+
+    `cov3d`: covariances(g), when the caller projects one splat set for many cameras (the same numbers, computed
+    once); `color` False leaves `color` empty (0, 3) for callers that colour the splats themselves."""
     width, height = camera.width, camera.height
     grid_x = (width + TILE - 1) // TILE
     grid_y = (height + TILE - 1) // TILE
@@ -86,7 +90,7 @@ def preprocess(g: Gaussians, camera: Camera, sh_degree: int | None = None) -> Pr
     depth_all = pos @ m[2, :3] + m[2, 3]
     keep = np.nonzero(depth_all > camera.near)[0]
     pos = pos[keep]
-    cov, t = cov2d(pos, covariances(g.subset(keep)), camera)
+    cov, t = cov2d(pos, covariances(g.subset(keep)) if cov3d is None else cov3d[keep], camera)
     a, b, c = cov[:, 0], cov[:, 1], cov[:, 2]
     det = a * c - b * b
     ok = (det != 0) & np.isfinite(det)
@@ -116,7 +120,8 @@ def preprocess(g: Gaussians, camera: Camera, sh_degree: int | None = None) -> Pr
     order = sel[np.argsort(t[sel, 2], kind="stable")]
     idx = keep[order]
     eye = np.asarray(camera.eye)
-    color = eval_sh(g.sh_dc[idx], g.sh_rest[idx], view_directions(g.positions[idx], eye), sh_degree)
+    colors = (eval_sh(g.sh_dc[idx], g.sh_rest[idx], view_directions(g.positions[idx], eye), sh_degree) if color
+              else np.zeros((0, 3)))
     return Projected(
         index=idx,
         xy=np.stack([px[order], py[order]], axis=1),
@@ -126,7 +131,7 @@ def preprocess(g: Gaussians, camera: Camera, sh_degree: int | None = None) -> Pr
         radius=radius[order].astype(np.int64),
         rect_min=np.stack([rx0[order], ry0[order]], axis=1),
         rect_max=np.stack([rx1[order], ry1[order]], axis=1),
-        color=color,
+        color=colors,
     )
 
 
@@ -145,7 +150,10 @@ def tile_lists(p: Projected, grid_x: int, grid_y: int) -> tuple[np.ndarray, np.n
     tx = p.rect_min[splat, 0] + local % w[splat]
     ty = p.rect_min[splat, 1] + local // w[splat]
     tile = ty * grid_x + tx
-    order = np.argsort(tile, kind="stable")  # splats are already in depth order: stable keeps it per tile
+    # splats are already in depth order: stable keeps it per tile. A stable order is unique, so a 16-bit key
+    # (numpy's radix sort, linear) gives the same order as the int64 one (a merge sort) where the tiles fit
+    key = tile.astype(np.int16) if ntiles <= np.iinfo(np.int16).max else tile
+    order = np.argsort(key, kind="stable")
     offsets = np.zeros(ntiles + 1, np.int64)
     np.cumsum(np.bincount(tile, minlength=ntiles), out=offsets[1:])
     return splat[order], offsets

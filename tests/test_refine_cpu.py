@@ -55,6 +55,24 @@ def test_pair_lists_draw_the_same_picture(part):
     assert loss < 1e-10  # the pairs' forward is the reference's picture
 
 
+def test_pair_lists_of_several_cameras_are_each_cameras_lists_in_turn(part):
+    # pair_lists writes every camera's pairs into arrays of their final size (two passes): the same arrays as the
+    # cameras' own lists, concatenated
+    cams = scene_orbit_views(part.positions, 3, 40, 32, elevation_deg=25.0)
+    whole = raster.pair_lists(part, cams)
+    ones = [raster.pair_lists(part, [c]) for c in cams]
+    hw = 40 * 32
+    proj_off, pair_off = 0, 0
+    for c, one in enumerate(ones):
+        assert np.array_equal(whole.pixel_offsets[c * hw:(c + 1) * hw + 1], one.pixel_offsets + pair_off)
+        s, e = pair_off, pair_off + len(one.g)
+        assert np.array_equal(whole.proj[s:e], one.proj + proj_off) and np.array_equal(whole.g[s:e], one.g)
+        pair_off, proj_off = e, proj_off + len(one.splat)
+    assert len(whole.g) == pair_off and len(whole.splat) == proj_off > 0
+    assert np.array_equal(whole.splat, np.concatenate([o.splat for o in ones]))
+    assert np.array_equal(whole.base, np.concatenate([o.base for o in ones]))
+
+
 def test_gradients_match_finite_differences(part):
     cams = scene_orbit_views(part.positions, 2, 48, 48, elevation_deg=25.0)
     pl = raster.pair_lists(part, cams)
