@@ -27,6 +27,13 @@ from splatstream.gaussians import Gaussians, covariances
 from splatstream.render_ref import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE, preprocess, tile_lists
 from splatstream.sh import SH_C0, eval_sh, view_directions
 
+# numba's workqueue threading layer unless the user names one: between the parallel loops (the pair lists, the fit's
+# steps) the refiner runs serial numpy, and OpenMP's threads spin-wait through it. On a 16-core host (donut, `encode
+# --lod-refine cpu`) OpenMP took 557 s of CPU for 79 s of wall clock, workqueue 363 s for 76 s, the same bytes
+# (BENCHMARKS.md, "Both refiners on the GPU machine"). Read when the first parallel loop starts, so set at import.
+if "NUMBA_THREADING_LAYER" not in os.environ:
+    numba.config.THREADING_LAYER = "workqueue"
+
 # Pairs are kept while T under the ORIGINAL opacities stays above this (a pixel stops at T_MIN = 1e-4): a fitted
 # opacity a little lower than built still finds the pairs behind (three splats at 0.99 reach 1e-6).
 T_STORE = 1e-6

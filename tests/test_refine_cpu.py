@@ -4,6 +4,7 @@ small real scene."""
 from __future__ import annotations
 
 import json
+import os
 
 import numpy as np
 import pytest
@@ -205,3 +206,30 @@ def test_cli_refusals_of_the_cpu_refinement(tmp_path):
     assert r.returncode == 2 and r.stderr.count("\n") == 1, r.stderr
     assert "--lod-refine cpu needs numba" in r.stderr and "pip install 'splatstream[fast]'" in r.stderr
     assert "no-such-scene" not in r.stderr and not (tmp_path / "out").exists()
+
+
+def test_the_refiner_runs_numbas_workqueue_layer_unless_one_is_named():
+    """OpenMP's threads spin between the refiner's parallel loops (BENCHMARKS.md, "Both refiners on the GPU
+    machine"): the refiner asks for workqueue, and a layer the user names is kept."""
+    import subprocess
+    import sys
+
+    code = ("import numpy as np, numba\n"
+            "from refine_cpu import raster\n"
+            "@numba.njit(parallel=True)\n"
+            "def f(a):\n"
+            "    s = 0.0\n"
+            "    for i in numba.prange(a.size):\n"
+            "        s += a[i]\n"
+            "    return s\n"
+            "f(np.ones(8))\n"
+            "print(numba.threading_layer())\n")
+    root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_THREADING_LAYER"}
+    env["PYTHONPATH"] = root + os.pathsep + env.get("PYTHONPATH", "")
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True)
+    assert out.returncode == 0 and out.stdout.strip() == "workqueue", out.stderr
+    # a layer the user names is the one numba runs (omp: the layer numba picks by itself where tbb is absent)
+    named = subprocess.run([sys.executable, "-c", code], env={**env, "NUMBA_THREADING_LAYER": "omp"},
+                           capture_output=True, text=True)
+    assert named.returncode == 0 and named.stdout.strip() == "omp", named.stderr
