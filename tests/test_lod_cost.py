@@ -398,9 +398,15 @@ def test_encode_with_the_auto_merge_in_memory_and_refused_by_partitions(tmp_path
 # until 2026-11-29); AUTO_2_8: the levels above the first merged one at 8 px (lod.OPACITY_MATCH_FAR_SSE_PX, the
 # default then: their opacities and colours, and the cost groups that read them, differ on purpose); AUTO_GROW: at
 # 8, 12, 16 px by level (lod.OPACITY_MATCH_FAR_GROWTH 1.5, the default since 2026-11-30, farpx31).
-AUTO_BEFORE = {"fruit_drops_sh3.ply": "4860a209355359b8", "lod_tile_sh3_zero_rest.ply": "a626e0241e1d873b"}
-AUTO_2_8 = {"fruit_drops_sh3.ply": "29ca8cad0afa742b", "lod_tile_sh3_zero_rest.ply": "ac865bcf985e348d"}
-AUTO_GROW = {"fruit_drops_sh3.ply": "f17f1d974bf66f5b", "lod_tile_sh3_zero_rest.ply": "cc32063b5f246450"}
+# OpenBLAS picks its kernels by CPU model (or OPENBLAS_CORETYPE): its SkylakeX and Haswell kernels round the merges'
+# eigh and matmuls differently on lod_tile (fruit_drops' trees are the same under both), so each is pinned for both
+# (the first made with SkylakeX kernels, the second with Haswell's on an AMD EPYC, 2026-11-30).
+AUTO_BEFORE = {"fruit_drops_sh3.ply": {"4860a209355359b8"},
+               "lod_tile_sh3_zero_rest.ply": {"a626e0241e1d873b", "ca1f8b3c0b476af5"}}
+AUTO_2_8 = {"fruit_drops_sh3.ply": {"29ca8cad0afa742b"},
+            "lod_tile_sh3_zero_rest.ply": {"ac865bcf985e348d", "21b92b071772f20e"}}
+AUTO_GROW = {"fruit_drops_sh3.ply": {"f17f1d974bf66f5b"},
+             "lod_tile_sh3_zero_rest.ply": {"cc32063b5f246450", "535ff0c919f064da"}}
 
 
 @pytest.mark.parametrize("scene", sorted(AUTO_BEFORE))
@@ -412,7 +418,7 @@ def test_auto_tree_is_bit_identical_to_the_code_before(scene, monkeypatch):
         monkeypatch.setattr(lod, "OPACITY_MATCH_FAR_SSE_PX", far)
         tiles = lod.build_tiles(g, max_leaf_splats=1000, reduction=2.0, merge="auto")
         assert digest(*[a for t in tiles for a in (t.gaussians.positions, t.gaussians.opacity_logits,
-                                                   t.gaussians.log_scales, t.gaussians.sh_dc)]) == pinned[scene], far
+                                                   t.gaussians.log_scales, t.gaussians.sh_dc)]) in pinned[scene], far
 
 
 def test_stable_int_argsort_is_the_stable_argsort():

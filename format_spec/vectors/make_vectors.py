@@ -52,7 +52,8 @@ def refiner(g, tiles, up, progress):
     refined = {t.id: with_values(t.gaussians, {"opacity_logits": t.gaussians.opacity_logits * REFINED_OPACITY_SCALE})
                for t in tiles if t.children and t.level == first}
     levels = tuple(LevelRefinement(c.level, "B" if c.level == first else UNREFINED, REFINED_PSNR) for c in cuts)
-    return refined, LodRefinement(REFINE_METHOD, tuple(VARIANT_FIELDS.items()), 384, 300, 96, 0, 32, 1, levels)
+    return refined, LodRefinement(REFINE_METHOD, tuple((v, VARIANT_FIELDS[v]) for v in ("B", "C")), 384, 300, 96, 0,
+                                  32, 1, levels)
 
 
 def expected_values(g) -> dict:
