@@ -47,6 +47,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+# the views compared to 1e-12 relative: camera.look_at_near_far's arithmetic moved the orbit's eyes and near planes
+# by an ulp between commits (statue-angel's stored peer rows); one rule with the eval reports' merge
+from eval_merge import same_cameras  # bench/ is not a package: run from it or with it on sys.path
+
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(HERE)
 DATA = "/work/shared/data/real"
@@ -110,22 +114,6 @@ def _near_far(eye, target) -> tuple[float, float]:
 def camera_key(cameras) -> str:
     blob = json.dumps([c.to_dict() for c in cameras], sort_keys=True).encode()
     return hashlib.sha256(blob).hexdigest()[:12]
-
-
-def same_cameras(a: list[dict], b: list[dict]) -> bool:
-    """The same views: equal fields, floats to 1e-12 relative (as bench/eval_merge.py: camera.look_at_near_far's
-    arithmetic moved the orbit's eyes and near planes by an ulp between commits, so statue-angel's stored peer rows
-    were refused by an exact comparison although the views are the same; a real difference is still refused)."""
-    def close(x, y) -> bool:
-        if isinstance(x, float) or isinstance(y, float):
-            return isinstance(x, (int, float)) and isinstance(y, (int, float)) and math.isclose(x, y, rel_tol=1e-12,
-                                                                                                  abs_tol=1e-15)
-        if isinstance(x, list) and isinstance(y, list):
-            return len(x) == len(y) and all(close(u, v) for u, v in zip(x, y, strict=True))
-        if isinstance(x, dict) and isinstance(y, dict):
-            return x.keys() == y.keys() and all(close(x[k], y[k]) for k in x)
-        return x == y
-    return close(a, b)
 
 
 def quality(img: np.ndarray, ref: np.ndarray) -> tuple[float, float]:
