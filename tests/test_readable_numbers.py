@@ -50,7 +50,7 @@ def test_encode_and_info_say_which_bytes_per_splat_is_which_in_plain_words(tmp_p
     r = run_cli("encode", ROOT / "samples" / "donut.ply", tmp_path / "d", "--max-leaf-splats", "100000")
     assert r.returncode == 0, r.stderr
     last = r.stderr.strip().splitlines()[-1]
-    assert ", 1 tile, " in last
+    assert ": 45,624 splats, " in last and ", 1 tile, " in last
     assert "B/splat at full detail, " in last and " with all LOD levels)" in last
     r = run_cli("info", tmp_path / "d")
     assert "tiles      1 in 1 level, 1 leaf holding 45,624 splats" in r.stdout

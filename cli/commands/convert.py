@@ -84,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
         parts.append(g)
     # merged as io.read_merged merges them: missing SH bands are zeros, so every input looks as it did
     g = Gaussians.concatenate(parts)
-    say(f"read {len(g)} splats, SH degree {g.sh_degree}")
+    say(f"read {len(g):,} splats, SH degree {g.sh_degree}")
     read = len(g)
     g, counts = edits.run(g)
     for label, kept in counts:

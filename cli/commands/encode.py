@@ -225,7 +225,7 @@ def run(args: argparse.Namespace) -> int:
                             sh_codebook=args.sh_codebook, page_tiles=args.page_tiles, page_levels=args.page_levels,
                             compact_table=not args.no_compact_table, lod_refiner=lod_refiner)
     if not args.quiet:
-        print(f"wrote {args.output_dir}: {m.splats} splats, SH degree {m.sh_degree}, preset {m.preset}, "
+        print(f"wrote {args.output_dir}: {m.splats:,} splats, SH degree {m.sh_degree}, preset {m.preset}, "
               f"{count(len(m.tiles), 'tile')}, {m.bytes_on_disk / 1e6:.2f} MB on disk "
               f"({m.leaf_bytes_on_disk / m.splats:.2f} B/splat at full detail, {m.bytes_on_disk / m.splats:.2f} "
               f"with all LOD levels), {m.gpu_bytes_per_splat:.2f} B/splat on the GPU, "
