@@ -198,7 +198,11 @@ def test_cli_refusals_of_the_cpu_refinement(tmp_path):
         r = run_cli("encode", missing_input, out, *extra, "--lod-refine", "cpu")
         assert r.returncode == 2 and message in r.stderr and r.stderr.count("\n") == 1, r.stderr
     r = run_cli("encode", missing_input, out, "--lod-refine", "tpu")
-    assert r.returncode == 2 and "invalid choice: 'tpu'" in r.stderr
+    assert r.returncode == 2 and "'tpu' is neither gpu nor cpu" in r.stderr
+    # the output directory after the option is taken as its value (argparse): the message says how to write it
+    r = run_cli("encode", missing_input, "--lod-refine", out)
+    assert r.returncode == 2 and "is neither gpu nor cpu" in r.stderr and "--lod-refine=gpu" in r.stderr, r.stderr
+    assert not (tmp_path / "out").exists()
     # numba absent (its import blocked in that process): one line naming the extra, before the scene is read
     block = "import sys; sys.modules['numba'] = None; from cli.main import main; sys.exit(main())"
     r = subprocess.run([sys.executable, "-c", block, "encode", missing_input, out, "--lod-refine", "cpu"],

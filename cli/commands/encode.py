@@ -153,7 +153,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "the full detail is unchanged. On a GPU (--lod-refine, or --lod-refine gpu): torch, gsplat and a CUDA GPU "
         "(pip install 'splatstream[refine]'). On the CPU (--lod-refine cpu): numba (pip install "
         "'splatstream[fast]'), the merged splats' opacity and DC colour only.")
-    refine.add_argument("--lod-refine", nargs="?", const="gpu", choices=("gpu", "cpu"), default=None,
+    refine.add_argument("--lod-refine", nargs="?", const="gpu", type=_refiner_name, metavar="{gpu,cpu}", default=None,
                         help="refine every merged level against renders of the full-detail scene from cameras around "
                              "it, judged on other cameras (a level stays as built where no fit beats it); recorded in "
                              "the manifest (format 1.11). gpu (the default): gsplat, two variants per level (B: "
@@ -168,6 +168,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     add_edit_arguments(p, taken=("--scale",))
     p.add_argument("--quiet", "-q", action="store_true", help="no progress display")
     p.set_defaults(func=run)
+
+
+def _refiner_name(value: str) -> str:
+    # The value is optional, so argparse gives --lod-refine the next word whatever it is: a scene or an output
+    # directory after the option would read as the refiner's name; the message says how to write it instead.
+    if value in ("gpu", "cpu"):
+        return value
+    raise argparse.ArgumentTypeError(f"{value!r} is neither gpu nor cpu (to refine on the GPU with the scene or "
+                                     "output directory after it, write --lod-refine=gpu, or put the option last)")
 
 
 def run(args: argparse.Namespace) -> int:
