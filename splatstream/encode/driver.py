@@ -71,7 +71,7 @@ _WHOLE_SCENE_EDITS = ("--filter-density counts each splat's neighbours over the 
 _COST_MERGE_IN_PROCESS = ("--lod-merge {} groups each LOD level over the whole scene, which the partitioned encoder "
                           "(subtrees built apart; --workers, --scheduler, or a scene larger than "
                           "--memory-per-worker) cannot do: give a --memory-per-worker the scene fits in, or use "
-                          "--lod-merge grid")
+                          "--lod-merge auto (inside each partition) or grid")
 
 _REFINE_IN_PROCESS = ("--lod-refine refines the merged levels of the LOD tree the in-memory encoder builds: not with "
                       "--no-lod, nor with a partitioned encode (--workers, --scheduler, or a scene larger than "
@@ -116,9 +116,10 @@ def encode_file(input_path: str | os.PathLike | Sequence[str | os.PathLike], out
         raise UsageError(_WHOLE_SCENE_EDITS)
     if opts.lod_refiner is not None and not (opts.lod and in_memory):
         raise UsageError(_REFINE_IN_PROCESS)
-    if opts.lod and opts.lod_merge not in (None, "grid") and not in_memory:
+    if opts.lod and opts.lod_merge == "cost" and not in_memory:
         raise UsageError(_COST_MERGE_IN_PROCESS.format(opts.lod_merge))
-    # No merge named (None): plan.plan_tiles takes auto in memory, encode_partitioned the grid (default_lod_merge).
+    # No merge named (None): auto on either engine (default_lod_merge); encode_partitioned runs it inside each
+    # partition and takes the grid where a partition of auto's size does not fit a worker (said in the log).
     if in_memory:
         progress("read", 0.0)
         g = read_merged(sources, drop_invalid)
