@@ -36,7 +36,7 @@ def fits_in_process(layout: VertexLayout | None | list[VertexLayout | None], opt
                     memory: int) -> bool:
     """Whether the whole scene is encoded in memory (as encode_gaussians does) rather than by partitions: no LOD,
     an input that is read whole anyway (`layout` None: not a binary PLY; of merged inputs, any one), or one whose
-    build fits the memory. The output is the same."""
+    build fits the memory. The output is the same (with auto, for a scene of one merge domain: partitioned.py)."""
     layouts = layout if isinstance(layout, list) else [layout]
     if not opts.lod or any(x is None for x in layouts):
         return True
@@ -90,7 +90,8 @@ def encode_file(input_path: str | os.PathLike | Sequence[str | os.PathLike], out
     else by partitions (encode/partitioned.py), reading the input by row ranges. `workers` (a local Dask cluster
     of that many processes) or `scheduler` (an existing Dask cluster) run the partitions on Dask
     (encode/distributed.py). `edits` (edit.Pipeline) run on the splats as read, whole or chunk by chunk. The output
-    is the same in every case."""
+    is the same in every case, except that the default merge (auto) by partitions groups inside merge domains of at
+    most `lod_merge_domain_splats` splats: a scene above that encodes otherwise in memory (partitioned.py)."""
     opts = EncodeOptions(preset=preset or DEFAULT_PRESET, reorder_input=True, **options)
     plan_formats(opts)  # fail before the (possibly long) read
     if opts.lod_merge is not None and opts.lod_merge not in LOD_MERGES:
