@@ -25,8 +25,8 @@ from splatstream.scene_decode import decode_scene
 from splatstream.store import FsspecStore, MemoryWriter, load_manifest
 
 # Small leaves so a few thousand splats make a tree of 4 tile levels; a small memory per worker so it is split
-# into partitions (8 at 1 MiB: 650 splats each) with two levels of tiles above them. The grid merge named: left to
-# the default, the scene in memory takes auto and the partitioned encode the grid (options.default_lod_merge).
+# into partitions (8 at 1 MiB: 650 splats each) with two levels of tiles above them. The grid merge named: its output
+# is the single-process one for any partitioning (the default, auto, is tests/test_partitioned_auto.py's).
 TREE = {"max_leaf_splats": 300, "lod_merge": "grid"}
 SMALL_MEMORY = 1 << 20
 

@@ -219,7 +219,7 @@ def test_partitioned_encode_with_edits_is_the_in_memory_one(scene_ply, tmp_path)
     g = read_gaussians(scene_ply)
     kept = len(EDITS.apply(g))
     assert (len(g), kept) == (4721, 1798)
-    # the grid named: partitions merge with it, the scene in memory by default with auto
+    # the grid named: the same bytes in memory and by partitions for any partitioning (auto: by merge domains)
     tree = {"max_leaf_splats": 300, "preset": "low", "lod_merge": "grid"}
     encode_file(scene_ply, tmp_path / "memory", edits=EDITS, **tree)
     encode_file(scene_ply, tmp_path / "parts", edits=EDITS, memory_per_worker=1 << 20, **tree)
@@ -297,7 +297,7 @@ def test_partitioned_encode_of_merged_inputs_is_the_in_memory_one(scene_ply, sec
     of the merged scene in memory; on Dask too, where the second input is a .splat spilled to scratch."""
     both = Pipeline([Box((-3, -3, -3), (3, 3, 3)), parse_filter("opacity>0.05")])
     merged = Gaussians.concatenate([read_gaussians(scene_ply), read_gaussians(second_ply)])
-    tree = {"max_leaf_splats": 300, "preset": "low", "name": "merged", "lod_merge": "grid"}  # as partitions merge
+    tree = {"max_leaf_splats": 300, "preset": "low", "name": "merged", "lod_merge": "grid"}  # any partitioning
     m = encode_file([scene_ply, second_ply], tmp_path / "memory", edits=both, **tree)
     assert (m.splats, m.sh_degree) == (len(both.apply(merged)), 3)
     assert m.splats == 5471 < len(merged)

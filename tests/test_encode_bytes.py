@@ -25,8 +25,8 @@ from splatstream.readers.splat import write_splat
 from splatstream.store import read_manifest
 
 # Small leaves and a small memory per worker: a tree of several levels split into partitions. The grid merge named:
-# the default merge is auto in memory and the grid by partitions (options.default_lod_merge), and these digests are
-# the grid's on every engine.
+# these digests are the grid's on every engine (the default merge is auto, whose partitions are its merge domains:
+# the same bytes as in memory only where the scene is one domain).
 TREE = {"max_leaf_splats": 300, "lod_merge": "grid"}
 SMALL_MEMORY = 1 << 20
 
@@ -126,21 +126,27 @@ def test_output_bytes_are_615105a_s(inputs, tmp_path, case):
     assert encode_case(inputs, str(tmp_path / "out"), *case) == DIGESTS[source, preset, extra]
 
 
-def test_the_default_merge_is_auto_in_memory_and_the_grid_by_partitions(inputs, tmp_path):
-    """Issue 31: an encode that names no merge takes auto where the scene is in memory (sharper at a splat budget)
-    and the grid where it is partitioned (its subtrees built apart), which still refuses a named auto."""
+def test_the_default_merge_is_auto_in_memory_and_by_partitions(inputs, tmp_path):
+    """Issue 31: an encode that names no merge takes auto (sharper at a splat budget), in memory and by partitions
+    (inside partitions of at most 2^21 splats, its merge domains: branch partauto31); a scene of one domain is the
+    in-memory bytes on Dask. Where a domain does not fit the memory per worker the default takes the grid and a named
+    auto is refused."""
     default = {"max_leaf_splats": 300}
     encode_file(inputs["ply"], str(tmp_path / "memory"), preset="low", **default)
     encode_file(inputs["ply"], str(tmp_path / "auto"), preset="low", lod_merge="auto", **default)
     encode_file(inputs["ply"], str(tmp_path / "parts"), preset="low", **ENGINES["partitioned"], **default)
     in_memory = directory_digest(str(tmp_path / "memory"))
     assert in_memory == directory_digest(str(tmp_path / "auto")) != DIGESTS["ply", "low", ""]
-    assert directory_digest(str(tmp_path / "parts")) == DIGESTS["ply", "low", ""]
-    for engine in ("partitioned", "dask"):  # refused before a worker starts
-        with pytest.raises(UsageError, match="--lod-merge auto groups each LOD level over the whole scene"):
+    assert directory_digest(str(tmp_path / "parts")) == DIGESTS["ply", "low", ""]  # 1 MiB: the grid
+    for engine in ("partitioned", "dask"):
+        if engine == "dask":
+            pytest.importorskip("distributed")
+        with pytest.raises(UsageError, match="--lod-merge auto: its merge domains"):
             encode_file(inputs["ply"], str(tmp_path / engine), preset="low", lod_merge="auto", **ENGINES[engine],
                         **default)
         assert not (tmp_path / engine).exists()
+    encode_file(inputs["ply"], str(tmp_path / "dask"), preset="low", workers=2, **default)
+    assert directory_digest(str(tmp_path / "dask")) == in_memory
 
 
 @pytest.mark.parametrize("engine", ["memory", "partitioned"])

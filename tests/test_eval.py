@@ -308,15 +308,15 @@ def test_encode_target_psnr_and_size_pick_what_eval_measures(tmp_path):
 
 
 def test_target_presets_are_measured_on_the_merge_the_encode_builds():
-    """A distributed encode is partitioned and builds the grid, so --target-size must compare the grid tree's bytes;
-    in memory the default (auto); a named merge is kept either way."""
+    """--target-size must compare the bytes of the tree the encode builds: auto by default on either engine (a
+    distributed encode runs it inside its partitions since branch partauto31); a named merge is kept either way."""
     from cli.commands.encode import target_lod_merge
     from splatstream.encode.options import IN_MEMORY_LOD_MERGE, PARTITIONED_LOD_MERGE
 
-    assert target_lod_merge(None, distributed=True) == PARTITIONED_LOD_MERGE == "grid"
+    assert target_lod_merge(None, distributed=True) == PARTITIONED_LOD_MERGE == "auto"
     assert target_lod_merge(None, distributed=False) == IN_MEMORY_LOD_MERGE == "auto"
     assert target_lod_merge("grid", distributed=False) == "grid"
-    assert target_lod_merge("auto", distributed=True) == "auto"  # the driver refuses it later, naming the merge
+    assert target_lod_merge("grid", distributed=True) == "grid"
 
 
 def test_a_streamed_sog_is_sized_by_its_finest_level_not_its_index(tmp_path):

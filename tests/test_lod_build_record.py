@@ -75,16 +75,21 @@ def test_a_named_merge_is_recorded_and_the_constants_are_read_at_the_encode(scen
 
 
 def test_a_partitioned_encode_records_the_grid_as_the_in_process_grid_does(scene, tmp_path):
-    """The partitioned encoder's merge is the grid (its default); its manifest is the in-process grid encode's,
-    byte for byte, record included."""
-    writer = MemoryWriter("s")
-    space = Scratch.create(str(tmp_path))
-    encode_partitioned(ArrayRows(scene), writer, EncodeOptions(**TREE), LocalEngine(1 << 20), space, source_name="s")
-    space.remove()
-    raw = writer.store().manifest_bytes
-    m = parse_manifest(raw)
+    """A partitioned grid encode's manifest is the in-process grid encode's, byte for byte, record included; a
+    partitioned auto encode (its default since branch partauto31) records auto."""
+    raws = {}
+    for merge in ("grid", "auto"):
+        writer = MemoryWriter("s")
+        space = Scratch.create(str(tmp_path))
+        opts = EncodeOptions(lod_merge=merge, lod_merge_domain_splats=len(scene) // 4, **TREE)
+        encode_partitioned(ArrayRows(scene), writer, opts, LocalEngine(8 << 20), space, source_name="s")
+        space.remove()
+        raws[merge] = writer.store().manifest_bytes
+    m = parse_manifest(raws["grid"])
     assert m.lod.merge == "grid" and m.lod.viewing_scale_px == (2.0, 8.0, 12.0, 16.0) and m.version == VERSION_1_10
-    assert raw == encode_in_memory(scene, EncodeOptions(lod_merge="grid", **TREE), name="s").manifest_bytes
+    assert raws["grid"] == encode_in_memory(scene, EncodeOptions(lod_merge="grid", **TREE), name="s").manifest_bytes
+    m = parse_manifest(raws["auto"])
+    assert m.lod.merge == "auto" and m.lod.viewing_scale_px == (2.0, 8.0, 12.0, 16.0)
 
 
 def test_one_tile_and_imported_trees_record_nothing_and_keep_their_version(scene):

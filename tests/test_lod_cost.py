@@ -143,17 +143,24 @@ def test_encode_with_the_cost_merge_in_memory_and_refused_by_partitions(tmp_path
 
 
 def test_the_cli_says_which_merge_the_default_took(tmp_path):
-    """Issue 31: no --lod-merge is auto in memory and the grid by partitions, and the encode says which; a named
-    auto with --workers is refused before anything is written."""
+    """Issue 31: no --lod-merge is auto, in memory and by partitions (inside each partition: branch partauto31), and
+    the encode says which; a partition of auto's size that does not fit a worker takes the grid, said; a named cost
+    with --workers is refused before anything is written."""
     src = real("fruit_drops_sh3.ply")
     r = run_cli("encode", src, tmp_path / "memory", "--max-leaf-splats", "1000", "--preset", "low")
     assert r.returncode == 0 and "LOD merge auto (the default in memory" in r.stderr, r.stderr
-    r = run_cli("encode", src, tmp_path / "parts", "--max-leaf-splats", "1000", "--preset", "low",
+    r = run_cli("encode", src, tmp_path / "small", "--max-leaf-splats", "1000", "--preset", "low",
                 "--memory-per-worker", "1MiB")
-    assert r.returncode == 0 and "LOD merge grid (the default of a partitioned encode" in r.stderr, r.stderr
-    r = run_cli("encode", src, tmp_path / "workers", "--lod-merge", "auto", "--workers", "2")
-    assert r.returncode == 2 and "--lod-merge auto groups each LOD level over the whole scene" in r.stderr, r.stderr
+    assert r.returncode == 0 and "LOD merge grid: its merge domains (subtrees of at most 2,097,152 splats) need 7 " \
+        "MiB per worker, more than the memory per worker (1 MiB)" in r.stderr, r.stderr
+    r = run_cli("encode", src, tmp_path / "workers", "--lod-merge", "cost", "--workers", "2")
+    assert r.returncode == 2 and "--lod-merge cost groups each LOD level over the whole scene" in r.stderr, r.stderr
     assert not (tmp_path / "workers").exists()
+    pytest.importorskip("distributed")
+    r = run_cli("encode", src, tmp_path / "parts", "--max-leaf-splats", "1000", "--preset", "low", "--workers", "1",
+                "--memory-per-worker", "64MiB")
+    assert r.returncode == 0 and "LOD merge auto (the default), inside 1 partitions of at most 4,721" in r.stderr, \
+        r.stderr
 
 
 # The cost merge made cheaper (issue 31: edge costs in blocks with the planes' shared terms taken once, the k-NN in
@@ -372,7 +379,7 @@ def test_auto_tree_on_real_scenes_is_whole_and_deterministic(scene):
     assert [len(t.gaussians) for t in leaf_parents] == [len(cost[t.id].gaussians) for t in leaf_parents]
 
 
-def test_encode_with_the_auto_merge_in_memory_and_refused_by_partitions(tmp_path):
+def test_encode_with_the_auto_merge_in_memory_and_by_partitions(tmp_path):
     path = str(real("fruit_drops_sh3.ply"))
     auto = encode_file(path, tmp_path / "memory", lod_merge="auto", max_leaf_splats=1000, preset="low")
     with cost_merge_with_the_auto_rule():
@@ -384,8 +391,7 @@ def test_encode_with_the_auto_merge_in_memory_and_refused_by_partitions(tmp_path
     firsts = [i for i, t in enumerate(auto.tiles) if t.children and not auto.tiles[t.children[0]].children]
     assert [auto.tiles[i].splats for i in firsts] == [cost.tiles[i].splats for i in firsts]
     assert abs(sum(t.splats for t in auto.tiles) - sum(t.splats for t in cost.tiles)) <= len(auto.tiles) // 4
-    with pytest.raises(UsageError, match="--lod-merge auto groups each LOD level over the whole scene"):
-        encode_file(path, tmp_path / "parts", lod_merge="auto", memory_per_worker=1 << 20, max_leaf_splats=1000)
+    # By partitions (branch partauto31): tests/test_partitioned_auto.py
 
 
 # The auto merge's trees pinned. Branch autodef (the per-member terms of choice_error taken once per tile, integer

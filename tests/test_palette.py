@@ -243,7 +243,7 @@ def test_a_partitioned_encode_fits_the_same_scene_palettes(tmp_path):
     from splatstream.store import MemoryWriter
 
     g = _sog_input()
-    # the grid named: partitions merge with it, the scene in memory by default with auto
+    # the grid named: the same bytes in memory and by partitions for any partitioning (auto: by merge domains)
     opts = EncodeOptions(preset="medium-low-12bit", overrides=PAL, max_leaf_splats=400, lod_merge="grid")
     ref = encode_in_memory(g, opts, name="s")
     writer = MemoryWriter("s")

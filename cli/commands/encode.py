@@ -96,10 +96,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="how LOD levels are merged: grid (a Morton grid per tile, every tile halved) or "
                         "cost (groups by merge cost over each whole level, the splats each tile keeps decided "
                         "across the scene) or auto (the cost merge's counts, and per tile the cost merge's groups or "
-                        "the grid's, whichever is closer to the tile's splats); cost and auto in-process encodes "
-                        "only. Default: auto where the scene is encoded in memory (sharper at most splat budgets, "
-                        "1.4-1.9x the grid's encode CPU), grid where it is partitioned (--workers, --scheduler, a "
-                        "scene over --memory-per-worker): BENCHMARKS.md, LOD against peers")
+                        "the grid's, whichever is closer to the tile's splats); cost in-process encodes only. "
+                        "Default: auto (sharper at most splat budgets, 1.4-1.9x the grid's encode CPU: "
+                        "BENCHMARKS.md, LOD against peers); a partitioned encode (--workers, --scheduler, a scene "
+                        "over --memory-per-worker) runs it inside partitions of at most 2M splats and over the "
+                        "levels above them, and takes the grid where such a partition does not fit a worker")
     p.add_argument("--page-tiles", type=int, default=EncodeOptions.page_tiles,
                    help="write a tree of more than N tiles as a root manifest and manifest pages, so a client needs "
                         f"only the tree's top before its first frame (format 1.5; 0: never; default "
@@ -326,8 +327,8 @@ def _encode_foreign_tree(args: argparse.Namespace, kind: str, preset: str, overr
 
 
 def target_lod_merge(named: str | None, distributed: bool) -> str:
-    """The LOD merge --target-psnr / --target-size measure presets with: the one the encode will build (a
-    distributed encode is partitioned, so the grid unless one is named), so that the bytes compared are the output's."""
+    """The LOD merge --target-psnr / --target-size measure presets with: the one the encode will build (the
+    default is auto on either engine), so that the bytes compared are the output's."""
     return named if named is not None else default_lod_merge(in_memory=not distributed)
 
 

@@ -36,7 +36,7 @@ def fits_in_process(layout: VertexLayout | None | list[VertexLayout | None], opt
                     memory: int) -> bool:
     """Whether the whole scene is encoded in memory (as encode_gaussians does) rather than by partitions: no LOD,
     an input that is read whole anyway (`layout` None: not a binary PLY; of merged inputs, any one), or one whose
-    build fits the memory. The output is the same."""
+    build fits the memory. The output is the same (with auto, for a scene of one merge domain: partitioned.py)."""
     layouts = layout if isinstance(layout, list) else [layout]
     if not opts.lod or any(x is None for x in layouts):
         return True
@@ -71,7 +71,7 @@ _WHOLE_SCENE_EDITS = ("--filter-density counts each splat's neighbours over the 
 _COST_MERGE_IN_PROCESS = ("--lod-merge {} groups each LOD level over the whole scene, which the partitioned encoder "
                           "(subtrees built apart; --workers, --scheduler, or a scene larger than "
                           "--memory-per-worker) cannot do: give a --memory-per-worker the scene fits in, or use "
-                          "--lod-merge grid")
+                          "--lod-merge auto (inside each partition) or grid")
 
 _REFINE_IN_PROCESS = ("--lod-refine refines the merged levels of the LOD tree the in-memory encoder builds: not with "
                       "--no-lod, nor with a partitioned encode (--workers, --scheduler, or a scene larger than "
@@ -90,7 +90,8 @@ def encode_file(input_path: str | os.PathLike | Sequence[str | os.PathLike], out
     else by partitions (encode/partitioned.py), reading the input by row ranges. `workers` (a local Dask cluster
     of that many processes) or `scheduler` (an existing Dask cluster) run the partitions on Dask
     (encode/distributed.py). `edits` (edit.Pipeline) run on the splats as read, whole or chunk by chunk. The output
-    is the same in every case."""
+    is the same in every case, except that the default merge (auto) by partitions groups inside merge domains of at
+    most `lod_merge_domain_splats` splats: a scene above that encodes otherwise in memory (partitioned.py)."""
     opts = EncodeOptions(preset=preset or DEFAULT_PRESET, reorder_input=True, **options)
     plan_formats(opts)  # fail before the (possibly long) read
     if opts.lod_merge is not None and opts.lod_merge not in LOD_MERGES:
@@ -116,9 +117,10 @@ def encode_file(input_path: str | os.PathLike | Sequence[str | os.PathLike], out
         raise UsageError(_WHOLE_SCENE_EDITS)
     if opts.lod_refiner is not None and not (opts.lod and in_memory):
         raise UsageError(_REFINE_IN_PROCESS)
-    if opts.lod and opts.lod_merge not in (None, "grid") and not in_memory:
+    if opts.lod and opts.lod_merge == "cost" and not in_memory:
         raise UsageError(_COST_MERGE_IN_PROCESS.format(opts.lod_merge))
-    # No merge named (None): plan.plan_tiles takes auto in memory, encode_partitioned the grid (default_lod_merge).
+    # No merge named (None): auto on either engine (default_lod_merge); encode_partitioned runs it inside each
+    # partition and takes the grid where a partition of auto's size does not fit a worker (said in the log).
     if in_memory:
         progress("read", 0.0)
         g = read_merged(sources, drop_invalid)

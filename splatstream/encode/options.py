@@ -16,11 +16,13 @@ def no_progress(stage: str, fraction: float) -> None:
     return None
 
 
-# The LOD merge of an encode that names none: the scene in memory takes "auto" (BENCHMARKS.md, "LOD against peers",
-# the per-tile choice: a median 0.36 dB above the best peer at 2-50 % budgets, the grid 0.43 dB below); a
-# partitioned encode builds its subtrees apart, and the cost merges group a whole level at once, so it takes "grid".
+# The LOD merge of an encode that names none: "auto" on either engine. In memory (BENCHMARKS.md, "LOD against peers",
+# the per-tile choice: a median 0.36 dB above the best peer at 2-50 % budgets, the grid 0.43 dB below); by
+# partitions, auto inside each partition (its merge domain, partitioned.merge_domain_level) and over the whole
+# level above them: -0.25 to +0.09 dB from the in-memory auto on biker and flowers in 4 and 16 partitions, above the
+# grid at 7 of 8 points (BENCHMARKS.md, "The auto merge in partitioned encodes"; the grid until branch partauto31).
 IN_MEMORY_LOD_MERGE = "auto"
-PARTITIONED_LOD_MERGE = "grid"
+PARTITIONED_LOD_MERGE = "auto"
 
 
 def default_lod_merge(in_memory: bool) -> str:
@@ -49,11 +51,15 @@ class EncodeOptions:
     # How each level's splats are grouped for merging (lod.LOD_MERGES, format_spec/lod.md 6): "grid" (a Morton grid
     # per tile, every tile halved), "cost" (groups by merge cost over the whole level, the count each tile keeps
     # decided across the scene) or "auto" (the cost merge's counts, and per tile the cost merge's groups or the
-    # grid's, whichever is closer to the tile's members); cost and auto in-process encodes only. None (the
-    # default): "auto" where the scene is encoded in memory, "grid" where it is partitioned (default_lod_merge).
+    # grid's, whichever is closer to the tile's members); cost in-process encodes only, auto in partitioned ones
+    # inside each partition (lod_merge_domain_splats). None (the default): "auto" (default_lod_merge).
     # auto's budgeted picture is a median 0.3 dB above the best peer's where the grid's is 0.4 dB below, for
     # 1.4-1.9x the grid's encode CPU (BENCHMARKS.md, "LOD against peers", the default merge; autofast4).
     lod_merge: str | None = None
+    # A partitioned encode's "auto" merge groups each level inside subtrees of at most this many original splats
+    # (its merge domains: the partitions, partitioned.merge_domain_level), the levels above them over the whole
+    # level; a function of the scene's splat count, so the output is the same on any engine and worker count.
+    lod_merge_domain_splats: int = 1 << 21
     # Manifest pages (format.md 6.1): a tree of more than `page_tiles` tiles (0: never) is written as a root
     # manifest of its top `page_levels` levels and pages of the next `page_levels` levels below each of its
     # deepest tiles. Both measured against manifest bytes before the first frame and page fetches (BENCHMARKS.md,

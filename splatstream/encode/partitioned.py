@@ -18,7 +18,11 @@ ARCHITECTURE.md "Distributed encoding".
    combine exactly; per-leaf sums, folded in kd order, as lod.build_subtree folds them).
 7. the manifest, last.
 
-The output is byte-identical whatever the number of workers and partitions, and identical to encode_to's.
+The output is byte-identical whatever the engine, the number of workers and partitions and the chunking. With the
+grid merge it is encode_to's; with "auto" (the default) the partitions are auto's merge domains, a tile level fixed
+by the scene's splat count (merge_domain_level): each partition groups the levels inside it over its own splats, and
+the levels above the partitions are grouped a whole level at once (merge_level), so it is encode_to's where the scene
+is one domain (at most EncodeOptions.lod_merge_domain_splats splats) and differs from it above that.
 """
 from __future__ import annotations
 
@@ -48,12 +52,15 @@ from ..lod import (
     interior_bounds,
     kd_route,
     leaf_sums,
+    level_auto_groups,
     merge_gaussians,
+    merge_groups,
     original_reach,
     sort_keys,
     split_axis,
     tile_error_first,
     tile_viewing_blur,
+    viewing_blur,
 )
 from ..ply import RowStats, VertexLayout, check_rows, read_ply_rows
 from ..store import SceneWriter, write_scene_manifest
@@ -72,6 +79,13 @@ PARTITION_MEMORY_FACTOR = 4.0
 GATHER_KEYS = 1 << 22
 # Centres the scan keeps as the sample that brackets each kd median (every n-th row; about this many in all).
 SPLIT_SAMPLE = 1 << 20
+# The LOD merges a partitioned encode builds (lod.LOD_MERGES): "cost" groups a whole level of the scene at once.
+PARTITIONED_MERGES = ("grid", "auto")
+# Bytes a partition task of the "auto" merge needs per splat beyond the grid's PARTITION_MEMORY_FACTOR: the cost
+# grouping's arrays (lod_groups.group_ids_of), whatever the SH degree. Measured (tracemalloc over lod.build_tiles,
+# branch partauto31): auto's peak above the grid's about 450-480 bytes a splat on biker (SH0) and a 135k slice of
+# flowers (SH2).
+AUTO_GROUPING_BYTES = 512
 # Upper tiles merged at once on the client (their splats and their members): bounds the client's memory.
 UPPER_BATCH_SPLATS = 1 << 20
 ATTRIBUTES = ("positions", "rotations", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
@@ -419,10 +433,12 @@ class PartitionResult:
 
 
 def build_partition(p: int, level: int, shape: TreeShape, chunk_counts: list[np.ndarray], scratch: Scratch,
-                    ctx: TileContext, writer, threads: int, keep_originals: bool,
+                    ctx: TileContext, writer, threads: int, keep_originals: bool, merge: str,
                     report: Callable[[float], None]) -> PartitionResult:
-    """One partition: read its rows, build its subtree, write its tiles' payloads; its root and (for the tiles
-    above) its originals go to scratch. `report(fraction)`: the task's progress."""
+    """One partition: read its rows, build its subtree with the LOD merge `merge` (for "auto", the partition's
+    splats are the whole scene of the levels inside its subtree: the partition is auto's merge domain), write its
+    tiles' payloads; its root and (for the tiles above) its originals go to scratch. `report(fraction)`: the task's
+    progress."""
     g, index = _read_partition(scratch, p, chunk_counts, ctx.sh_degree)
     n = len(g)
 
@@ -431,7 +447,8 @@ def build_partition(p: int, level: int, shape: TreeShape, chunk_counts: list[np.
             report(0.6 * fraction)
 
     # `threads` as for the tiles' encode: the engine already runs partitions side by side
-    sub = build_subtree(g, index, shape, level, p, progress=build_progress, reorder_input=True, threads=threads)
+    sub = build_subtree(g, index, shape, level, p, progress=build_progress, reorder_input=True, threads=threads,
+                        merge=merge)
     del g, index
     entries = _encode_tiles(list(sub.tiles.values()), ctx, writer, threads, lambda f: report(0.6 + 0.4 * f))
     if keep_originals:
@@ -455,6 +472,30 @@ def merge_children(scratch: Scratch, shape: TreeShape, lvl: int, j: int
     for k, _ in kids:
         k.gaussians = Gaussians.empty(0)
     return g, mass, assign, offsets, [k for k, _ in kids]
+
+
+def merge_level(scratch: Scratch, shape: TreeShape, lvl: int, threads: int
+                ) -> list[tuple[Gaussians, np.ndarray, np.ndarray, np.ndarray, list[Tile]]]:
+    """Every tile of level lvl (above the partitions) from its children's splats by the "auto" merge over the whole
+    level at once (lod.level_auto_groups, as lod.build_subtree groups a level: the level's count and each tile's
+    decided by cost across the level), each tile as merge_children returns it. One task: the level's members are the
+    partition roots' splats or fewer (at most max_leaf_splats per partition)."""
+    kids_of = [[_load_tile(scratch, c) for c in shape.children(lvl, j)] for j in range(2 ** shape.kd_depths[lvl])]
+    sets = [Gaussians.concatenate([k.gaussians for k, _ in kids]) for kids in kids_of]
+    masses = [np.concatenate([m for _, m in kids]) for kids in kids_of]
+    targets = [shape.target(len(m)) for m in sets]
+    blurs = [viewing_blur(max(k.geometric_error for k, _ in kids)) for kids in kids_of]
+    # the same groups on any number of threads (level_auto_groups: each block and tile a pure function)
+    with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
+        groups, _ = level_auto_groups(sets, masses, targets, shape.max_leaf_splats, blurs, pool=pool)
+    out = []
+    for kids, members, mass, grp in zip(kids_of, sets, masses, groups, strict=True):
+        g, merged_mass, assign = merge_groups(members, mass, *grp)
+        offsets = np.cumsum([0] + [len(k.gaussians) for k, _ in kids])
+        for k, _ in kids:
+            k.gaussians = Gaussians.empty(0)
+        out.append((g, merged_mass, assign, offsets, [k for k, _ in kids]))
+    return out
 
 
 def partition_extremes(scratch: Scratch, p: int, mapping: np.ndarray, merged_positions: np.ndarray, size: int
@@ -496,6 +537,37 @@ def encode_saved_tile(scratch: Scratch, tid: int, ctx: TileContext, writer) -> T
 
 
 # ---------------------------------------------------------------------------------------------- the client
+
+
+def merge_domain_level(shape: TreeShape, domain_splats: int) -> int:
+    """The tile level whose subtrees are the "auto" merge's domains in a partitioned encode: the shallowest whose
+    tiles hold at most `domain_splats` originals (ceil(splats / 2^kd), a function of the tree's shape alone, so the
+    output is the same whatever the engine, workers and memory per worker)."""
+    for lvl, kd in enumerate(shape.kd_depths):
+        if -(-shape.splats // 2**kd) <= domain_splats:
+            return lvl
+    return shape.leaf_level
+
+
+def _auto_partitions(shape: TreeShape, row_bytes: int, engine: Engine, opts: EncodeOptions, level: int
+                     ) -> tuple[str, int]:
+    """The merge and partition level of a partitioned "auto" encode: the partitions are auto's merge domains
+    (merge_domain_level), whatever the workers; where a domain does not fit a worker's memory, the grid at the
+    grid's partition level (refused when the caller named auto)."""
+    domain = merge_domain_level(shape, opts.lod_merge_domain_splats)
+    largest = -(-shape.splats // 2 ** shape.kd_depths[domain])
+    need = largest * (row_bytes * PARTITION_MEMORY_FACTOR + AUTO_GROUPING_BYTES)
+    if need <= engine.memory_per_worker:
+        log.info("LOD merge auto%s, inside %d partitions of at most %s splats and over the levels above them",
+                 "" if opts.lod_merge is not None else " (the default)", 2 ** shape.kd_depths[domain], f"{largest:,}")
+        return "auto", domain
+    message = (f"its merge domains (subtrees of at most {opts.lod_merge_domain_splats:,} splats) need "
+               f"{math.ceil(need / 2**20):,} MiB per worker, more than the memory per worker "
+               f"({engine.memory_per_worker // 2**20:,} MiB)")
+    if opts.lod_merge is not None:
+        raise UsageError(f"--lod-merge auto: {message}: give more --memory-per-worker or --lod-merge grid")
+    log.warning("LOD merge grid: %s", message)
+    return "grid", level
 
 
 def partition_level(shape: TreeShape, row_bytes: int, engine: Engine) -> int:
@@ -693,14 +765,11 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
     formats, chunk_order = plan_formats(opts)
     if not opts.lod:
         raise UsageError("a partitioned encode needs LOD (--no-lod keeps the whole scene in one tile)")
-    if opts.resolved_lod_merge(in_memory=False) != "grid":
-        # The cost merge groups a whole tree level at once; partitions build their subtrees apart (issue 31). Named
-        # by the caller only: left to the default, a partitioned encode takes the grid (options.default_lod_merge).
-        raise UsageError(f"--lod-merge {opts.lod_merge} runs only in-process (one machine, the scene in memory): "
-                         "a partitioned encode merges with the grid")
-    if opts.lod_merge is None:
-        log.info("LOD merge grid (the default of a partitioned encode: its subtrees are built apart, and auto groups "
-                 "a whole level at once; the scene in memory takes auto)")
+    merge = opts.resolved_lod_merge(in_memory=False)
+    if merge not in PARTITIONED_MERGES:
+        # The cost merge groups a whole tree level at once; partitions build their subtrees apart (issue 31).
+        raise UsageError(f"--lod-merge {merge} runs only in-process (one machine, the scene in memory): a "
+                         f"partitioned encode merges with {' or '.join(PARTITIONED_MERGES)}")
     sh_degree = opts.sh_degree if opts.sh_degree is not None else rows.sh_degree
     sh_degree = min(sh_degree, rows.sh_degree)
     row_bytes = routed_row_bytes(sh_degree)
@@ -717,6 +786,8 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
 
     shape = TreeShape.of(splats, opts.max_leaf_splats, opts.reduction)
     level = partition_level(shape, row_bytes, engine)
+    if merge == "auto":
+        merge, level = _auto_partitions(shape, row_bytes, engine, opts, level)
     kd = shape.kd_depths[level]
     partitions = 2 ** kd
     splits = _top_splits(engine, scratch, chunks, kd, splats, (lo, hi), split_sample, progress)
@@ -734,18 +805,18 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
     # The chunk order stays morton where the in-memory engine may keep an input's order (plan_encode): that needs
     # the whole scene in one tile, which a partitioned encode never has for more than one leaf of splats.
     scene, sample = plan_scene(opts, formats, chunk_order, sh_degree, sample, splats, bounds,
-                               scene_name(opts, source_name, out_name), progress, opts.resolved_lod_merge(False))
+                               scene_name(opts, source_name, out_name), progress, merge)
     ctx = scene.context
     payloads = writer.payload_writer()
     codebook_entry = encode_codebook(ctx.codebook, ctx, payloads) if ctx.codebook is not None else None
 
     results = engine.map(build_partition, [(p, level, shape, chunk_counts, scratch, ctx, payloads,
-                                            engine.threads_per_task, level > 0) for p in range(partitions)],
+                                            engine.threads_per_task, level > 0, merge) for p in range(partitions)],
                          "tiles", progress, heavy=True, task_progress=True)
     entries = [e for r in results for e in r.entries]
     engine.map_behind(delete_scratch, [(scratch, [f"route/{i}"]) for i in range(len(spans))], "cleanup")
     entries += _upper_tiles(engine, scratch, shape, level, [r.root_splats for r in results], ctx, payloads,
-                            progress)
+                            progress, merge)
     if level > 0:
         engine.map_behind(delete_scratch, [(scratch, [f"originals/{p}"]) for p in range(partitions)], "cleanup")
     m = build_manifest(scene, sample.camera(scene.up), sorted(entries, key=lambda t: t.id), codebook_entry)
@@ -754,8 +825,9 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
 
 
 def _upper_tiles(engine: Engine, scratch: Scratch, shape: TreeShape, level: int, root_splats: list[int],
-                 ctx: TileContext, payloads, progress: Progress) -> list[TileEntry]:
-    """The tiles above the partitions, level by level (in batches of tiles, for the client's memory)."""
+                 ctx: TileContext, payloads, progress: Progress, merge: str = "grid") -> list[TileEntry]:
+    """The tiles above the partitions, level by level (in batches of tiles, for the client's memory; "auto": a
+    level at once, grouped in one task by merge_level)."""
     entries: list[TileEntry] = []
     kd_p = shape.kd_depths[level]
     maps = [np.arange(n) for n in root_splats]  # per partition: its root's splats -> the current ancestor's
@@ -764,11 +836,15 @@ def _upper_tiles(engine: Engine, scratch: Scratch, shape: TreeShape, level: int,
         per_child = 2 ** (kd_p - shape.kd_depths[lvl + 1])
         tiles_here = 2 ** shape.kd_depths[lvl]
         above = shape.leaf_level - 1 - lvl  # levels above the first merged one (lod.viewing_scale_px)
-        batch_tiles = max(1, UPPER_BATCH_SPLATS // shape.max_leaf_splats)
+        batch_tiles = tiles_here if merge == "auto" else max(1, UPPER_BATCH_SPLATS // shape.max_leaf_splats)
         for first in range(0, tiles_here, batch_tiles):
             batch = range(first, min(tiles_here, first + batch_tiles))
-            merged = dict(zip(batch, engine.map(merge_children, [(scratch, shape, lvl, j) for j in batch], "upper",
-                                                progress), strict=True))
+            if merge == "auto":
+                merged = dict(enumerate(engine.map(merge_level, [(scratch, shape, lvl, engine.threads_per_task)],
+                                                   "upper", progress, heavy=True)[0]))
+            else:
+                merged = dict(zip(batch, engine.map(merge_children, [(scratch, shape, lvl, j) for j in batch],
+                                                    "upper", progress), strict=True))
             parts = [p for j in batch for p in range(j * per_tile, (j + 1) * per_tile)]
             for p in parts:
                 j = p // per_tile
