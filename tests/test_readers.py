@@ -6,6 +6,7 @@ The fixtures and how they were made: tests/fixtures/foreign/README.md.
 from __future__ import annotations
 
 import gzip
+import json
 import pathlib
 import shutil
 import struct
@@ -98,6 +99,19 @@ def test_sog_version_1_matches_tool_ply_output(tmp_path, name, bands):
         # The same float64 lerps as the tool's: bit-identical but for our normalised rotations.
         assert errors["positions"] == errors["log_scales"] == errors["sh_dc"] == errors["sh_rest"] == 0
         assert np.abs(g.opacity_logits - ref["opacity_logits"]).max() == 0
+
+
+def test_sog_version_1_unit_of_a_streamed_sog(tmp_path):
+    """A streamed SOG whose units are version 1 (lod-meta.json names a unit's meta.json): its rows as the unit's."""
+    shutil.copytree(FIXTURES / "logo_v1_sub300", tmp_path / "0_0")
+    tree = {"bound": {"min": [-2, -3, -1], "max": [2, 1, 1]},
+            "children": [{"lods": {"0": {"file": 0, "offset": 0, "count": 120}}},
+                         {"lods": {"0": {"file": 0, "offset": 120, "count": 180}}}]}
+    (tmp_path / "lod-meta.json").write_text(json.dumps({"lodLevels": 1, "filenames": ["0_0/meta.json"],
+                                                        "counts": [300], "tree": tree}))
+    g = read_gaussians(tmp_path / "lod-meta.json")
+    assert len(g) == 300
+    assert_matches(g, tool_output(FIXTURES / "logo_v1_sub300.tool.ply"))
 
 
 @pytest.mark.parametrize("name", ["fruit_drops_v2.spz", "fruit_drops_v3.spz", "fruit_drops_v4.spz"])
