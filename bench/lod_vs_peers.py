@@ -77,6 +77,9 @@ SCENES: dict[str, Scene] = {s.name: s for s in [
     # Issue 31's own scene, held out (nothing was tuned on it): PlayCanvas engine examples/assets/splats/playbot
     # (CC-BY-4.0, Stephane Agullo, https://superspl.at/view?id=ee6d8bc4), 500,000 splats, SH2, 7 shipped levels.
     Scene("playbot", "playbot/lod-meta.json", shipped_levels=(1, 2, 3, 4, 5, 6), outside=True),
+    # A third held-out scene (issues 31/32, branch heldout57): PlayCanvas engine examples/assets/splats/
+    # playcanvas-logo (engine repository MIT), 307,128 splats, SH0, a SOG version 1 (meta.json + WebP planes).
+    Scene("playcanvas-logo", "playcanvas-logo/meta.json", outside=True),
 ]}
 
 
@@ -466,6 +469,7 @@ def _num(v: float) -> float | None:
 
 
 def run_scene(scene: Scene, args, peers: Peers | None) -> dict | None:
+    from splatstream.evaluate import path_size
     from splatstream.io import read_gaussians
     from splatstream.orientation import detect_up
 
@@ -498,7 +502,7 @@ def run_scene(scene: Scene, args, peers: Peers | None) -> dict | None:
         _save_pngs(os.path.join(sdir, "png"), "full", refs)
 
     result = {"scene": scene.name, "source": scene.source, "splats": n, "sh_degree": g.sh_degree,
-              "input_bytes": os.path.getsize(src) if os.path.isfile(src) else None,
+              "input_bytes": path_size(src),  # an unbundled SOG's meta.json counts its planes too
               "full_ply_bytes": os.path.getsize(full), "budgets": budgets, "budget_splats": counts,
               "size": [args.size, args.size], "views": args.views,
               "cameras": [c.to_dict() for c in cameras],
@@ -584,8 +588,6 @@ def run_scene(scene: Scene, args, peers: Peers | None) -> dict | None:
     if not args.skip_ours:
         out = os.path.join(args.our_scene_dir, scene.name)
         enc = ensure_encoded(full, out, shlex.split(args.encode_args))
-        from splatstream.evaluate import path_size
-
         result["ours_encode"] = enc | {"dir": out, "bytes_on_disk": path_size(out)}
         for nb in counts:
             with tempfile.TemporaryDirectory(prefix="lvp-") as work:

@@ -29,6 +29,8 @@
 # sources under $SPLATSTREAM_HELDOUT (default ../heldout): playbot (PlayCanvas engine examples/assets/splats/playbot,
 # CC-BY-4.0, Stephane Agullo, https://superspl.at/view?id=ee6d8bc4; 500,000 splats, SH2, a streamed SOG: its finest
 # level converted like flowers; its SOG peer is made on the GPU machine like flowers', PEER_FORMATS as flowers').
+# playcanvas-logo (PlayCanvas engine examples/assets/splats/playcanvas-logo, engine MIT; 307,128 splats, SH0, a SOG
+# version 1 meta.json + WebP planes, converted like the statues; SH0, so its SOG peer is made here with -g cpu).
 set -euo pipefail
 here=$(cd "$(dirname "$0")/.." && pwd)
 out=${1:-$here/bench/out}
@@ -64,6 +66,7 @@ scene_path() {
     flowers) converted flowers "$shared/data/real/flowers_lod/lod-meta.json" ;;
     statue-*) converted "$1" "$shared/data/real/statues/${1#statue-}.sog" ;;
     playbot) converted playbot "$heldout/playbot/lod-meta.json" ;;
+    playcanvas-logo) converted playcanvas-logo "$heldout/playcanvas-logo/meta.json" ;;
     s1m)
       if [ ! -f "$out/s1m.ply" ]; then
         python3 "$shared/tools/make_scene.py" --splats 1000000 --seed 0 --out "$out/s1m.ply" >&2

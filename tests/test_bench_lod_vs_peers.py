@@ -3,6 +3,7 @@ Spark's ExtSplats words and the per-view cut of a Spark LoD tree."""
 from __future__ import annotations
 
 import math
+import pathlib
 
 import numpy as np
 from conftest import load_bench
@@ -109,3 +110,14 @@ def test_cameras_an_ulp_apart_are_the_same_views():
     assert not L.same_cameras([{"eye": [0.0, 1.0]}], [{"eye": [0.0, 1.0], "near": 0.1}])
     assert not L.same_cameras(stored, stored * 2)
     assert not L.same_cameras(None, today)
+
+
+def test_held_out_scenes_are_named_only_and_read_as_the_user_would(tmp_path):
+    """The held-out scenes (not in ../shared/data) run only when named; the SOG version 1 logo is its meta.json,
+    whose input bytes count the WebP planes beside it (the fixture here: 300 splats of it)."""
+    from splatstream.evaluate import path_size
+
+    assert {n for n, s in L.SCENES.items() if s.outside} == {"playbot", "playcanvas-logo"}
+    assert L.SCENES["playcanvas-logo"].source == "playcanvas-logo/meta.json"
+    fixture = pathlib.Path(__file__).parent / "fixtures" / "foreign" / "logo_v1_sub300"
+    assert path_size(str(fixture / "meta.json")) == sum(p.stat().st_size for p in fixture.iterdir()) > 5000

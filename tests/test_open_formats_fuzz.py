@@ -132,9 +132,72 @@ def test_sog_meta_lies(tmp_path, keys, value, match):
     must_fail_cleanly(scene, match)
 
 
-def test_sog_version_one_is_refused_by_name(tmp_path):
-    scene = unbundled(tmp_path, lambda meta, _: meta.pop("version"))
-    must_fail_cleanly(scene, "SOG version 1")
+def unbundled_v1(tmp_path: pathlib.Path, edit) -> pathlib.Path:
+    """The SOG version 1 fixture (300 splats of PlayCanvas's logo with a band-2 SH palette), meta.json edited."""
+    scene = tmp_path / "scene_v1"
+    shutil.rmtree(scene, ignore_errors=True)
+    shutil.copytree(FIXTURES / "logo_v1_sub300_sh2", scene)
+    meta = json.loads((scene / "meta.json").read_text())
+    edit(meta, scene)
+    (scene / "meta.json").write_text(json.dumps(meta))
+    return scene
+
+
+def _relabel(scene: pathlib.Path, label: int) -> None:
+    from PIL import Image
+    rgba = np.asarray(Image.open(scene / "shN_labels.webp").convert("RGBA")).copy()
+    rgba[0, 0, :2] = label & 255, label >> 8
+    Image.fromarray(rgba).save(scene / "shN_labels.webp", format="WEBP", lossless=True, exact=True)
+
+
+def _recentroid(scene: pathlib.Path, width: int) -> None:
+    from PIL import Image
+    Image.fromarray(np.full((2, width, 4), 255, np.uint8)).save(scene / "shN_centroids.webp", format="WEBP",
+                                                               lossless=True)
+
+
+@pytest.mark.parametrize("edit,match", [
+    (lambda m, s: m.update(version=1), "expected 2, or none"),
+    (lambda m, s: m["means"].pop("shape"), "means.shape"),
+    (lambda m, s: m["means"].update(shape=[]), "means.shape"),
+    (lambda m, s: m["means"].update(shape=["300", 3]), r"means.shape\[0\]"),
+    (lambda m, s: m["means"].update(shape=[10 ** 15, 3]), r"means.shape\[0\]"),
+    (lambda m, s: [m[k]["shape"].__setitem__(0, 5000) for k in ("means", "scales", "quats", "sh0")],
+     "expected at least 5000"),
+    (lambda m, s: m["means"].update(shape=[5000, 3]), "means.shape says 5000"),
+    (lambda m, s: m["sh0"].update(shape=[299, 1, 4]), "sh0.shape"),
+    (lambda m, s: m["scales"].update(shape=7), "scales.shape"),
+    (lambda m, s: m["scales"].pop("mins"), "scales.mins"),
+    (lambda m, s: m["scales"].update(maxs=[1, 2]), "scales.maxs"),
+    (lambda m, s: m["sh0"].update(mins=[0, 0, 0]), "sh0.mins"),
+    (lambda m, s: m["sh0"].update(maxs=[0, 0, 0, float("nan")]), "sh0.maxs"),
+    (lambda m, s: m["quats"].update(encoding="quaternion_xyz"), "quats.encoding"),
+    (lambda m, s: m.pop("sh0"), "sh0"),
+    (lambda m, s: m["shN"].update(mins=[-1]), "shN.mins"),
+    (lambda m, s: m["shN"].pop("maxs"), "shN.maxs"),
+    (lambda m, s: m["shN"].update(files=["shN_centroids.webp"]), "shN.files"),
+    (lambda m, s: _recentroid(s, 100), "100 texels wide"),
+    (lambda m, s: _relabel(s, 128), "past the palette"),
+])
+def test_sog_version_1_lies(tmp_path, edit, match):
+    """A broken SOG version 1 meta.json or plane is a one-line error naming the file and the field."""
+    error = must_fail_cleanly(unbundled_v1(tmp_path, edit), match)
+    assert "\n" not in str(error)
+
+
+def test_bit_flips_in_sog_version_1(tmp_path):
+    base = FIXTURES / "logo_v1_sub300_sh2"
+    for member in sorted(p.name for p in base.iterdir()):
+        data = np.frombuffer((base / member).read_bytes(), np.uint8)
+        for _ in range(4):
+            scene = tmp_path / "scene"
+            shutil.rmtree(scene, ignore_errors=True)
+            shutil.copytree(base, scene)
+            corrupt = data.copy()
+            at = RNG.integers(0, len(data), size=2)
+            corrupt[at] ^= RNG.integers(1, 256, size=2, dtype=np.uint8)
+            (scene / member).write_bytes(corrupt.tobytes())
+            decodes_or_fails_cleanly(scene)
 
 
 def test_sog_lossy_and_oversized_textures(tmp_path):

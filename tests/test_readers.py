@@ -6,10 +6,12 @@ The fixtures and how they were made: tests/fixtures/foreign/README.md.
 from __future__ import annotations
 
 import gzip
+import json
 import pathlib
 import shutil
 import struct
 import warnings
+import zipfile
 
 import numpy as np
 import pytest
@@ -38,7 +40,8 @@ def tool_output(path: pathlib.Path) -> dict[str, np.ndarray]:
         return np.stack([v[n].astype(np.float64) for n in names], axis=1)
 
     k = sum(1 for n in v.dtype.names if n.startswith("f_rest_")) // 3
-    rest = cols([f"f_rest_{i}" for i in range(3 * k)]).reshape(len(v), 3, k).transpose(0, 2, 1)
+    rest = cols([f"f_rest_{i}" for i in range(3 * k)]).reshape(len(v), 3, k).transpose(0, 2, 1) if k \
+        else np.zeros((len(v), 0, 3))
     return {"positions": cols(["x", "y", "z"]), "log_scales": cols(["scale_0", "scale_1", "scale_2"]),
             "sh_dc": cols(["f_dc_0", "f_dc_1", "f_dc_2"]), "opacity_logits": v["opacity"].astype(np.float64),
             "rotations": cols(["rot_0", "rot_1", "rot_2", "rot_3"]), "sh_rest": rest}
@@ -76,6 +79,39 @@ def test_fixture_matches_tool_ply_output(name):
     assert len(g) == len(ref["positions"]) == FIXTURE_COUNT
     assert g.sh_rest.shape[1] == ref["sh_rest"].shape[1] == (3 if "sh1" in name else 15)
     assert_matches(g, ref)
+
+
+@pytest.mark.parametrize("name,bands", [("logo_v1_sub300", 0), ("logo_v1_sub300_sh2", 2)])
+def test_sog_version_1_matches_tool_ply_output(tmp_path, name, bands):
+    """SOG version 1 (no `version`, per-channel mins/maxs): 300 splats cut from PlayCanvas's logo, the second with
+    a made-up band-2 SH palette (tests/fixtures/foreign/make_sog_v1.py), against splat-transform's readSogV1.
+    Unbundled (the meta.json or its directory) and bundled as a .sog zip, as a v2 scene can be."""
+    ref = tool_output(FIXTURES / f"{name}.tool.ply")
+    assert ref["sh_rest"].shape[1] == (0, 3, 8, 15)[bands] and (not bands or np.abs(ref["sh_rest"]).max() > 0.3)
+    bundled = tmp_path / f"{name}.sog"
+    with zipfile.ZipFile(bundled, "w") as archive:
+        for member in sorted((FIXTURES / name).iterdir()):
+            archive.write(member, member.name)
+    for path in (FIXTURES / name / "meta.json", FIXTURES / name, bundled):
+        g = read_gaussians(path)
+        assert len(g) == len(ref["positions"]) == 300 and g.sh_rest.shape == ref["sh_rest"].shape
+        errors = assert_matches(g, ref)
+        # The same float64 lerps as the tool's: bit-identical but for our normalised rotations.
+        assert errors["positions"] == errors["log_scales"] == errors["sh_dc"] == errors["sh_rest"] == 0
+        assert np.abs(g.opacity_logits - ref["opacity_logits"]).max() == 0
+
+
+def test_sog_version_1_unit_of_a_streamed_sog(tmp_path):
+    """A streamed SOG whose units are version 1 (lod-meta.json names a unit's meta.json): its rows as the unit's."""
+    shutil.copytree(FIXTURES / "logo_v1_sub300", tmp_path / "0_0")
+    tree = {"bound": {"min": [-2, -3, -1], "max": [2, 1, 1]},
+            "children": [{"lods": {"0": {"file": 0, "offset": 0, "count": 120}}},
+                         {"lods": {"0": {"file": 0, "offset": 120, "count": 180}}}]}
+    (tmp_path / "lod-meta.json").write_text(json.dumps({"lodLevels": 1, "filenames": ["0_0/meta.json"],
+                                                        "counts": [300], "tree": tree}))
+    g = read_gaussians(tmp_path / "lod-meta.json")
+    assert len(g) == 300
+    assert_matches(g, tool_output(FIXTURES / "logo_v1_sub300.tool.ply"))
 
 
 @pytest.mark.parametrize("name", ["fruit_drops_v2.spz", "fruit_drops_v3.spz", "fruit_drops_v4.spz"])

@@ -1,4 +1,5 @@
-"""PlayCanvas SOG version 2 (as written by splat-transform / SuperSplat), bundled or not, and streamed SOG.
+"""PlayCanvas SOG version 2 (as written by splat-transform / SuperSplat) and version 1, bundled or not, and
+streamed SOG.
 
 A SOG scene is a `meta.json` plus lossless WebP "textures" (one texel per splat, in texel order):
 
@@ -10,6 +11,12 @@ A SOG scene is a `meta.json` plus lossless WebP "textures" (one texel per splat,
 * `sh0.webp`: per channel an index into sh0.codebook (f_dc), alpha = sigmoid(opacity) * 255.
 * `shN_labels.webp` (optional): 16-bit palette index (R low, G high); `shN_centroids.webp`: 64 palette entries
   per row, each entry K texels (K = 3, 8, 15 coefficients), texel RGB = indices into shN.codebook per channel.
+
+SOG version 1 (deprecated; meta.json without `version`, still read by PlayCanvas's engine and splat-transform's
+readSogV1): the same planes, but no codebooks: the count is `means.shape[0]`; scales (log) and sh0 are bytes b
+lerped per channel between `mins` and `maxs` (lo + (hi - lo) b / 255), sh0's alpha lerped between mins[3] and
+maxs[3] being the opacity *logit*; shN has scalar `mins`/`maxs` for every coefficient byte, no `count` or
+`bands` (the centroids' width, 64 K texels, says K).
 
 Bundled `.sog` = a zip holding meta.json and the WebP files. Streamed SOG = `lod-meta.json` naming SOG units
 (directories with a meta.json) and a tree whose nodes reference row ranges of units per LOD level; level 0 is
@@ -228,9 +235,63 @@ def _codebook_lookup(label: str, field: str, codebook: np.ndarray, indices: np.n
         return codebook[indices].astype(np.float32)
 
 
+def _lerp_bytes(texels: np.ndarray, lo: np.ndarray | float, hi: np.ndarray | float) -> np.ndarray:
+    """SOG version 1's dequantiser: lo + (hi - lo) * byte / 255, in float64 then float32 (as splat-transform's
+    readSogV1 and the engine compute it, so the values are theirs to float rounding)."""
+    with np.errstate(over="ignore"):  # beyond float32: reported by the value screen of io.read_gaussians
+        return (lo + (np.asarray(hi, np.float64) - lo) * (texels.astype(np.float64) / 255.0)).astype(np.float32)
+
+
+def _v1_count(label: str, meta: dict, budget: int) -> int:
+    """The splat count of a SOG version 1 meta.json: `means.shape[0]` (what the engine and splat-transform read);
+    every other section's `shape`, where given, must say the same count."""
+    high = max(0, budget // BYTES_PER_SPLAT)
+    shape = meta["means"].get("shape")
+    if not isinstance(shape, list) or not shape:
+        raise InputError(label, "means.shape", f"{shape!r} (a SOG version 1 meta.json gives the splat count as "
+                         "means.shape [count, 3])")
+    count = _int(label, "means.shape[0]", shape[0], 0, high)
+    for key in ("scales", "quats", "sh0"):
+        other = meta[key].get("shape")
+        if other is not None and (not isinstance(other, list) or not other or other[0] != count):
+            raise InputError(label, f"{key}.shape", f"{other!r} (expected [{count}, ...]: means.shape says "
+                             f"{count} splats)")
+    return count
+
+
+V1_SH_BANDS_BY_WIDTH = {64 * k: bands for bands, k in enumerate(SH_REST_COEFFS) if k}  # 192, 512, 960
+
+
+def _v1_sh_rest(source: _Source, label: str, shn: dict, name_of: Callable[[str], str], count: int,
+                max_texels: int) -> np.ndarray:
+    """SOG version 1's SH palette: no band count (the centroids' width says it: 64 entries a row, K texels each) and
+    no palette size (every stored entry counts); texel bytes lerped between the scalar `shN.mins` and `shN.maxs`."""
+    lo = float(_floats(label, "shN.mins", [shn.get("mins")], 1)[0])
+    hi = float(_floats(label, "shN.maxs", [shn.get("maxs")], 1)[0])
+    centroids_name, labels_name = _files(label, "shN", shn, 2)
+    data = source.read(name_of(centroids_name), "shN.files[0]", 5 * 64 * 15 * 1024 + (1 << 16))
+    size = webp_size(data)
+    width = size[0] if size is not None else 0
+    bands = V1_SH_BANDS_BY_WIDTH.get(width)
+    if size is not None and bands is None:
+        raise InputError(label, f"shN.files[0] ({centroids_name})", f"{width} texels wide (a version 1 palette is "
+                         f"{', '.join(map(str, V1_SH_BANDS_BY_WIDTH))} wide, for SH bands 1, 2, 3)")
+    k = SH_REST_COEFFS[bands or 1]
+    centroids = _texture(source, name_of(centroids_name), "shN.files[0]", 0, 64 * k * 1024, width=64 * k,
+                         data=data)
+    labels = _texture(source, name_of(labels_name), "shN.files[1]", count, max_texels)[:count]
+    index = labels[:, 0].astype(np.int64) | (labels[:, 1].astype(np.int64) << 8)
+    stored_entries = len(centroids) // k
+    if len(index) and int(index.max()) >= stored_entries:
+        raise InputError(label, "shN.files[1]", f"palette label {int(index.max())} is past the palette "
+                         f"({stored_entries} entries stored)")
+    return _lerp_bytes(centroids[:, :3].reshape(-1, k, 3)[index], lo, hi)
+
+
 def _read_unit(source: _Source, meta_name: str, named_by: str | None = None) -> Gaussians:
-    """Decode one SOG v2 scene whose meta.json is `meta_name` inside `source` (named by the field `named_by`: a
-    unit of a streamed SOG missing is lod-meta.json's fault, not its own meta.json's)."""
+    """Decode one SOG scene (version 2, or the deprecated version 1) whose meta.json is `meta_name` inside `source`
+    (named by the field `named_by`: a unit of a streamed SOG missing is lod-meta.json's fault, not its own
+    meta.json's)."""
     label = source.label if meta_name == "meta.json" else f"{source.label}/{meta_name}"
     meta = _json(source, meta_name, "SOG meta.json", named_by)
     base = os.path.dirname(meta_name)
@@ -239,16 +300,15 @@ def _read_unit(source: _Source, meta_name: str, named_by: str | None = None) -> 
         return f"{base}/{file}" if base else file
 
     version = meta.get("version")
-    if version is None:
-        raise InputError(label, "version", "missing: a SOG version 1 scene (deprecated, per-channel min/max "
-                         "layout) is not supported; re-save it with a current splat-transform (version 2)")
-    if version != 2:
-        raise InputError(label, "version", f"{version!r} (expected 2)")
+    if version is not None and version != 2:
+        raise InputError(label, "version", f"{version!r} (expected 2, or none: version 1)")
+    v1 = version is None  # the deprecated layout: per-channel mins/maxs instead of codebooks (module docstring)
     budget = memory_budget()
-    count = _int(label, "count", meta.get("count"), 0, max(0, budget // BYTES_PER_SPLAT))
     for key in ("means", "scales", "quats", "sh0"):
         if not isinstance(meta.get(key), dict):
             raise InputError(label, key, "missing or not an object")
+    count = _v1_count(label, meta, budget) if v1 else \
+        _int(label, "count", meta.get("count"), 0, max(0, budget // BYTES_PER_SPLAT))
     model = meta.get("model", "default")
     if model != "default":
         warnings.warn(f"{label}: splat model {model!r} (trained with a special kernel) is read as ordinary "
@@ -256,8 +316,17 @@ def _read_unit(source: _Source, meta_name: str, named_by: str | None = None) -> 
     means = meta["means"]
     mins = _floats(label, "means.mins", means.get("mins"), 3)
     maxs = _floats(label, "means.maxs", means.get("maxs"), 3)
-    scale_book = _floats(label, "scales.codebook", meta["scales"].get("codebook"), max_length=256)
-    color_book = _floats(label, "sh0.codebook", meta["sh0"].get("codebook"), max_length=256)
+    if v1:
+        quats_encoding = meta["quats"].get("encoding", "quaternion_packed")
+        if quats_encoding != "quaternion_packed":
+            raise InputError(label, "quats.encoding", f"{quats_encoding!r} (expected 'quaternion_packed')")
+        scale_lo = _floats(label, "scales.mins", meta["scales"].get("mins"), 3)
+        scale_hi = _floats(label, "scales.maxs", meta["scales"].get("maxs"), 3)
+        color_lo = _floats(label, "sh0.mins", meta["sh0"].get("mins"), 4)
+        color_hi = _floats(label, "sh0.maxs", meta["sh0"].get("maxs"), 4)
+    else:
+        scale_book = _floats(label, "scales.codebook", meta["scales"].get("codebook"), max_length=256)
+        color_book = _floats(label, "sh0.codebook", meta["sh0"].get("codebook"), max_length=256)
     # The writer lays texels out on a width of ceil(sqrt(count) / 4) * 4 and pads the height to a multiple of 4;
     # twice the count plus slack is a generous ceiling that still bounds the decoded size by `count`.
     max_texels = 2 * count + 4096
@@ -296,17 +365,26 @@ def _read_unit(source: _Source, meta_name: str, named_by: str | None = None) -> 
 
     scales = _texture(source, name_of(_files(label, "scales", meta["scales"], 1)[0]), "scales.files[0]", count,
                       max_texels)[:count]
-    log_scales = _codebook_lookup(label, "scales.files[0]", scale_book, scales[:, :3])
+    log_scales = _lerp_bytes(scales[:, :3], scale_lo, scale_hi) if v1 else \
+        _codebook_lookup(label, "scales.files[0]", scale_book, scales[:, :3])
     del scales
     sh0 = _texture(source, name_of(_files(label, "sh0", meta["sh0"], 1)[0]), "sh0.files[0]", count,
                    max_texels)[:count]
-    sh_dc = _codebook_lookup(label, "sh0.files[0]", color_book, sh0[:, :3])
-    opacity_logits = opacity_logits_from_unit(sh0[:, 3].astype(np.float32) / np.float32(255.0))
+    if v1:  # colour and the opacity logit itself (not its sigmoid) lerped per channel
+        sh_dc = _lerp_bytes(sh0[:, :3], color_lo[:3], color_hi[:3])
+        opacity_logits = _lerp_bytes(sh0[:, 3], color_lo[3], color_hi[3])
+    else:
+        sh_dc = _codebook_lookup(label, "sh0.files[0]", color_book, sh0[:, :3])
+        opacity_logits = opacity_logits_from_unit(sh0[:, 3].astype(np.float32) / np.float32(255.0))
     del sh0
 
     sh_rest = np.zeros((count, 0, 3), np.float32)
     shn = meta.get("shN")
-    if shn is not None:
+    if shn is not None and v1:
+        if not isinstance(shn, dict):
+            raise InputError(label, "shN", "not an object")
+        sh_rest = _v1_sh_rest(source, label, shn, name_of, count, max_texels)
+    elif shn is not None:
         if not isinstance(shn, dict):
             raise InputError(label, "shN", "not an object")
         bands = _int(label, "shN.bands", shn.get("bands"), 0, 3)
