@@ -226,6 +226,8 @@ def main() -> None:
     ap.add_argument("--single", default="", help="sizes also encoded by the single-process encoder (comma-separated)")
     ap.add_argument("--memory-per-worker", default="1GB", help="partition size budget of each worker")
     ap.add_argument("--preset", default="medium")
+    ap.add_argument("--lod-merge", default="", help="comma-separated LOD merges to run each engine with (e.g. "
+                    "auto,grid); empty: the encoder's default only")
     ap.add_argument("--scenes", default="/tmp/bench_scale", help="where scenes and outputs are written")
     ap.add_argument("--generator", choices=["auto", "make_scene", "synthetic"], default="auto")
     ap.add_argument("--keep", action="store_true", help="keep the scenes")
@@ -245,6 +247,9 @@ def main() -> None:
         print(f"{n} splats: scene {input_mb:.0f} MiB ({time.perf_counter() - t:.0f}s)", flush=True)
         runs = [("single", [])] if n in single else []
         runs += [(f"dask-{w}", ["--workers", str(w), "--memory-per-worker", a.memory_per_worker]) for w in workers]
+        merges = [m for m in a.lod_merge.split(",") if m]
+        if merges:
+            runs = [(f"{name}-{m}", [*extra, "--lod-merge", m]) for name, extra in runs for m in merges]
         for name, extra in runs:
             out = directory / f"out_{n}_{name}"
             load = os.getloadavg()[0]
