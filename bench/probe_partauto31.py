@@ -7,7 +7,7 @@ every partition runs here, so it is the one worker's peak).
     PYTHONPATH=. python bench/probe_partauto31.py IN.ply OUT/SCENE auto 4096 -     # in memory
 
 Arguments: input (a binary PLY: only those are read by rows, so partitioned in one process), output directory,
---lod-merge, --memory-per-worker in MiB, EncodeOptions.lod_merge_domain_splats (- for the default, 2^21).
+--lod-merge, --memory-per-worker in MiB, EncodeOptions.lod_merge_domain_splats (- for the default, 2^20).
 """
 import json
 import logging

@@ -149,7 +149,7 @@ def _level_psnr(store, level: int, reference: np.ndarray, box: tuple) -> float:
 def test_auto_partitions_coarse_levels_draw_near_the_single_process_auto(scene, tmp_path):
     """Every merged level drawn whole (numpy proxy views: 6 axis views, 64 px) against the originals: the
     partitioned auto's PSNR near the single-process auto's (measured: -1.1 to +2.4 dB by level, a mean of +0.7 dB; 8
-    domains of 666 splats, far smaller than the default's 2^21). On this proxy of the toy tree the grid draws
+    domains of 666 splats, far smaller than the default's 2^20). On this proxy of the toy tree the grid draws
     sharper than both; the real client on biker and flowers is BENCHMARKS.md's measure ("The auto merge in
     partitioned encodes")."""
     opts = EncodeOptions(preset="low", **TREE)

@@ -59,7 +59,9 @@ class EncodeOptions:
     # A partitioned encode's "auto" merge groups each level inside subtrees of at most this many original splats
     # (its merge domains: the partitions, partitioned.merge_domain_level), the levels above them over the whole
     # level; a function of the scene's splat count, so the output is the same on any engine and worker count.
-    lod_merge_domain_splats: int = 1 << 21
+    # 2^20: 16 partitions of a 16M-splat scene (16 workers busy); 2^21 left half of them idle (BENCHMARKS.md, "The
+    # auto merge in partitioned encodes", 16M on 16 cores), and domains 8-64x smaller measured as close to in memory.
+    lod_merge_domain_splats: int = 1 << 20
     # Manifest pages (format.md 6.1): a tree of more than `page_tiles` tiles (0: never) is written as a root
     # manifest of its top `page_levels` levels and pages of the next `page_levels` levels below each of its
     # deepest tiles. Both measured against manifest bytes before the first frame and page fetches (BENCHMARKS.md,
