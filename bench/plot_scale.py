@@ -63,7 +63,8 @@ def speedup_series(runs: list[dict]) -> tuple[dict, dict]:
     one = {r["splats"]: r["us_per_splat"] for r in dask if r["engine"] == "dask-1"}
     speed, mem = {}, {}
     for n in sorted({r["splats"] for r in dask}):
-        here = sorted((int(r["engine"].split("-")[1]), r) for r in dask if r["splats"] == n)
+        # "dask-W" or, with bench_scale --lod-merge, "dask-W-MERGE" (several runs of one worker count)
+        here = sorted(((int(r["engine"].split("-")[1]), r) for r in dask if r["splats"] == n), key=lambda t: t[0])
         base_n = n if n in one else min(one, key=lambda m: abs(m - n), default=None)
         if base_n is None:  # no 1-worker run at all: relative to the fewest workers, as if they scaled perfectly
             base_s = here[0][1]["wall_s"] * here[0][0]
