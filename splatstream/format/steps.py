@@ -50,16 +50,16 @@ class TileStep:
     # coefficients of small spread finer steps than they deserve.
     pooled: bool = False
     # Size-relative step (positions, issue 32): with per_size = K > 0 the step of the shared components is the
-    # tile's median splat size (the largest axis of exp(log scale), splat_sizes) / K, in place of the median chunk's
-    # extent / levels[0]; the median chunk then gets K x (its extent / the median size) levels, clamped to
-    # [size_levels_min, levels[0]]. A position error hurts a splat in proportion to its size, so a scene of small
-    # splats in wide chunks gets a fine step and one of large splats a coarse one (statue scans: BENCHMARKS.md,
-    # "A position step from the splats' size").
+    # tile's median splat size (the largest axis of exp(log scale) unless size_axis says, splat_sizes) / K, in
+    # place of the median chunk's extent / levels[0]; the median chunk then gets K x (its extent / the median size)
+    # levels, clamped to [size_levels_min, levels[0]]. A position error hurts a splat in proportion to its size,
+    # so a scene of small splats in wide chunks gets a fine step and one of large splats a coarse one (statue scans:
+    # BENCHMARKS.md, "A position step from the splats' size").
     per_size: float = 0.0
     size_levels_min: float = 1.0
     # Which axis of exp(log scale) is a splat's size for per_size, counted from the smallest (0) to the largest
-    # (2). The middle axis is the width of a thin strand (issue 32, playcanvas-logo: its strands' position error
-    # across them is what the renders see; BENCHMARKS.md, "Why the presets lose on the held-out logo").
+    # (2). The middle axis is the width of a thin strand (issue 32, branch logo32: a rule on it was measured on
+    # playcanvas-logo and not wired, no preset uses it; BENCHMARKS.md, "Why the presets lose on the held-out logo").
     size_axis: int = 2
 
     def check(self, fmt_name: str, components: int) -> None:
