@@ -6,7 +6,8 @@ CONFIG is "LABEL:PRESET[,ATTR=FORMAT...][,sh_codebook=off|auto|fine|N][,sh_steps
 tile-step levels of SH bands 1, 2, 3, format.md 4.3.1; one value applies to every band), and with sh_steps
 `sh_importance=E` (the importance exponent), `sh_zero=1` (0 on each chunk's grid), `sh_pool=1` (one step per band
 plane), `sh_round=R` (rounding offset towards 0); `pos_k=K` (and `pos_gmin=`) a size-relative position step
-(TileStep.per_size: the tile's median splat size / K, between pos_gmin and pos_g, else 4095, levels);
+(TileStep.per_size: the tile's median splat size / K, between pos_gmin and pos_g, else 4095, levels; `pos_axis=1`
+the middle axis as the size, TileStep.size_axis);
 `pos_g=`, `scale_g=`, `rgb_g=`, `opa_g=` replace (or add)
 the preset's tile-step levels of positions, log scales, SH0 R, G, B and opacity (a colour step added by `rgb_g` or
 `opa_g` alone has the other's levels from low-plus-9bit's: 255 and 55). Every config is encoded
@@ -58,7 +59,7 @@ def parse_config(spec: str) -> tuple[str, str, dict]:
             extra["sh_round"] = float(v)
         elif k == "sh_pool":
             extra["sh_pool"] = bool(int(v))
-        elif k in ("pos_g", "scale_g", "rgb_g", "opa_g", "pos_k", "pos_gmin"):
+        elif k in ("pos_g", "scale_g", "rgb_g", "opa_g", "pos_k", "pos_gmin", "pos_axis"):
             extra[k] = float(v)
         elif k == "zstd":
             extra["zstd"] = int(v)
@@ -87,7 +88,8 @@ def register(label: str, preset: str, extra: dict) -> str:
         steps["position"] = TileStep((extra["pos_g"],) * 3, shared=3)
     if "pos_k" in extra:  # a size-relative position step (TileStep.per_size), at most pos_g (else 4095) levels
         steps["position"] = TileStep((extra.get("pos_g", 4095.0),) * 3, shared=3, per_size=extra["pos_k"],
-                                     size_levels_min=extra.get("pos_gmin", 1.0))
+                                     size_levels_min=extra.get("pos_gmin", 1.0),
+                                     size_axis=int(extra.get("pos_axis", 2)))
     if "scale_g" in extra:
         steps["scale"] = TileStep((extra["scale_g"],) * 3, shared=3)
     if "rgb_g" in extra or "opa_g" in extra:

@@ -488,3 +488,24 @@ def test_very_low_rgb127_is_very_low_with_8_bit_colour_on_a_127_level_step_betwe
     sh_dc, opacity = errors["very-low-rgb127"]
     assert 0 < sh_dc.max() <= float((g.sh_dc.max(axis=0) - g.sh_dc.min(axis=0)).max()) / 127
     assert 0 < opacity.max() <= float(g.opacities.max() - g.opacities.min()) / 55
+
+
+def test_a_size_relative_step_may_take_the_middle_axis_as_the_splat_size():
+    """TileStep.size_axis (issue 32, logo32's probe): 1 takes the middle axis of exp(log scale) as the size, so a
+    thin strand (one long axis) gets the step of its width; 0 the smallest, 2 (the default) the largest."""
+    log_scales = np.log(np.array([[0.01, 0.02, 0.04], [0.05, 0.01, 0.01], [0.03, 0.002, 0.03]]))
+    np.testing.assert_allclose(splat_sizes(log_scales, 1), [0.02, 0.01, 0.03])
+    np.testing.assert_allclose(splat_sizes(log_scales, 0), [0.01, 0.01, 0.002])
+    np.testing.assert_allclose(splat_sizes(log_scales, 2), splat_sizes(log_scales))
+    with pytest.raises(UsageError):
+        TileStep((4095.0,) * 3, shared=3, per_size=40.0, size_axis=3).check("norm16x4", 3)
+    step = TileStep((65535.0,) * 3, shared=3, per_size=40.0, size_levels_min=4095.0, size_axis=1)
+    rng = np.random.default_rng(7)
+    values = (rng.random((4 * CHUNK_SIZE, 1, 3)) * [[[1.0, 1.5, 2.0]]]).astype(np.float32)
+    widths = np.full(len(values), 2e-5)  # 40 x 2 / 2e-5 = 4M levels: clamped to 65535
+    plane = encode_plane(values, POSITION, "norm16x4", step=step, sizes=widths)
+    err = np.abs(decode_plane(plane, len(values)) - values).max()
+    assert err <= 2.0 / 65535 / 2 * 1.01, err
+    coarse = encode_plane(values, POSITION, "norm16x4", step=step, sizes=np.full(len(values), 1.0))  # 80: 4095
+    err = np.abs(decode_plane(coarse, len(values)) - values).max()
+    assert 2.0 / 4095 / 4 < err <= 2.0 / 4095 / 2 * 1.01, err

@@ -57,7 +57,7 @@ def keyed_order(g: Gaussians, order: np.ndarray, ctx: TileContext) -> np.ndarray
 
 def step_splat_sizes(g: Gaussians, step: TileStep | None) -> np.ndarray | None:
     """The splats' sizes a size-relative step needs (TileStep.per_size), else None."""
-    return splat_sizes(g.log_scales) if step is not None and step.per_size else None
+    return splat_sizes(g.log_scales, step.size_axis) if step is not None and step.per_size else None
 
 
 def tile_order(g: Gaussians, ctx: TileContext) -> np.ndarray:

@@ -50,13 +50,17 @@ class TileStep:
     # coefficients of small spread finer steps than they deserve.
     pooled: bool = False
     # Size-relative step (positions, issue 32): with per_size = K > 0 the step of the shared components is the
-    # tile's median splat size (the largest axis of exp(log scale), splat_sizes) / K, in place of the median chunk's
-    # extent / levels[0]; the median chunk then gets K x (its extent / the median size) levels, clamped to
-    # [size_levels_min, levels[0]]. A position error hurts a splat in proportion to its size, so a scene of small
-    # splats in wide chunks gets a fine step and one of large splats a coarse one (statue scans: BENCHMARKS.md,
-    # "A position step from the splats' size").
+    # tile's median splat size (the largest axis of exp(log scale) unless size_axis says, splat_sizes) / K, in
+    # place of the median chunk's extent / levels[0]; the median chunk then gets K x (its extent / the median size)
+    # levels, clamped to [size_levels_min, levels[0]]. A position error hurts a splat in proportion to its size,
+    # so a scene of small splats in wide chunks gets a fine step and one of large splats a coarse one (statue scans:
+    # BENCHMARKS.md, "A position step from the splats' size").
     per_size: float = 0.0
     size_levels_min: float = 1.0
+    # Which axis of exp(log scale) is a splat's size for per_size, counted from the smallest (0) to the largest
+    # (2). The middle axis is the width of a thin strand (issue 32, branch logo32: a rule on it was measured on
+    # playcanvas-logo and not wired, no preset uses it; BENCHMARKS.md, "Why the presets lose on the held-out logo").
+    size_axis: int = 2
 
     def check(self, fmt_name: str, components: int) -> None:
         fmt = get_format(fmt_name)
@@ -64,6 +68,8 @@ class TileStep:
             raise UsageError(f"a tile step needs an integer texel format, not {fmt_name}")
         if len(self.levels) != components or min(self.levels) < 1 or not 1 <= self.shared <= components:
             raise UsageError(f"tile step levels {self.levels} (shared {self.shared}) for {components} components")
+        if self.size_axis not in (0, 1, 2):
+            raise UsageError(f"tile step size axis {self.size_axis}: 0 (smallest), 1 (middle) or 2 (largest)")
 
 
 def step_sizes(extent: np.ndarray, step: TileStep, median_size: float | None = None) -> np.ndarray:
@@ -83,9 +89,13 @@ def shared_levels(median_extent: float, step: TileStep, median_size: float | Non
     return float(np.clip(step.per_size * median_extent / median_size, step.size_levels_min, step.levels[0]))
 
 
-def splat_sizes(log_scales: np.ndarray) -> np.ndarray:
-    """(N,) a splat's size for a size-relative step: the largest axis of exp(log scale)."""
-    return np.exp(np.asarray(log_scales, np.float64).max(axis=1))
+def splat_sizes(log_scales: np.ndarray, axis: int = 2) -> np.ndarray:
+    """(N,) a splat's size for a size-relative step: the `axis`-th smallest axis of exp(log scale) (2: the largest,
+    1: the middle one; TileStep.size_axis)."""
+    ls = np.asarray(log_scales, np.float64)
+    if axis == 2:
+        return np.exp(ls.max(axis=1))
+    return np.exp(np.sort(ls, axis=1)[:, axis])
 
 
 def pooled_step_size(extents: np.ndarray, step: TileStep) -> float:
