@@ -64,8 +64,22 @@ CPU_TRAINING_CAMERAS = 32
 CPU_VALIDATION_CAMERAS = 16
 CPU_TRAINING_SEED = 1000
 CPU_VALIDATION_SEED = 1001
+# and its far cameras per level (lod_refine.far_level_cameras; the seeds + the level)
+CPU_FAR_TRAINING_CAMERAS = 16
+CPU_FAR_VALIDATION_CAMERAS = 8
+CPU_FAR_TRAINING_SEED = 2000
+CPU_FAR_VALIDATION_SEED = 3000
+CPU_FAR_WEIGHT = 0.1  # the far cameras' mean squared error x this in the loss, the near cameras' x 1
 DISTANCE_RANGE = (0.6, 1.6)  # x the orbit distance of scene_orbit_views
 ELEVATION_DEG = (-20.0, 70.0)  # about up; the benchmark's orbit views sit at 25 deg
+# The far cameras of a level (far_level_cameras; issue 31, branch far31): the distances at which a client without a
+# budget draws the level, by the client's default screen-space error threshold (client_gl SelectionOptions.max_sse,
+# lod.md 3): a tile is drawn, not refined, while geometric_error x focal / distance <= this many px.
+FAR_SSE_PX = 1.5
+FAR_MAX_DISTANCE = 64.0  # x the orbit distance: the farthest far camera (the scene a few px across beyond that)
+FAR_ROOT_SPAN = 4.0  # the root is drawn at every distance past its own: its far cameras span this factor from there
+FAR_MIN_PX = 8  # the smallest far camera's side (px)
+FAR_FILL = 1.25  # a far camera's side: this x the px the scene's fitted extent spans at its nearest distance
 
 # The optimiser's side (refine_gpu, refine_cpu): (full-detail splats, the tree, up, progress) -> ({merged tile id:
 # its refined splats}, the record).
@@ -95,9 +109,49 @@ def refine_cameras(positions: np.ndarray, up, n: int, size: int, seed: int = TRA
     (elevations ELEVATION_DEG about `up`), at distances log-uniform over DISTANCE_RANGE x the orbit distance, each
     target jittered by 3 % of that distance. A rule of the scene alone: no benchmark's views (theirs sit exactly on
     the 25 deg orbit), and a seed gives another set (the validation cameras)."""
+    return _band_cameras(positions, up, n, size, seed, DISTANCE_RANGE, size)
+
+
+def orbit_distance_and_focal(positions: np.ndarray, up, size: int) -> tuple[float, float]:
+    """The orbit distance of refine_cameras' rule (world units) and the focal length (px) of its `size` px cameras."""
+    orbit = scene_orbit_views(positions, 1, size, size, up=up, elevation_deg=25.0)[0]
+    return math.dist(orbit.eye, orbit.target), size / (2.0 * math.tan(math.radians(orbit.fov_y_deg) / 2.0))
+
+
+def level_far_range(tiles: list[Tile], cut: LevelCut, dist: float, focal: float) -> tuple[float, float] | None:
+    """The distances (x the orbit distance `dist`) past refine_cameras' DISTANCE_RANGE at which a client without a
+    budget draws level `cut.level` through `size` px cameras of focal length `focal`: its merged tiles' (median)
+    geometric error projects to at most FAR_SSE_PX there, and the level above's (median) to more (the root: up to
+    FAR_ROOT_SPAN x its own distance); capped at FAR_MAX_DISTANCE. None where that range lies within DISTANCE_RANGE
+    (a fine level: drawn without a budget only from near, where refine_cameras already sits)."""
+    err = float(np.median([tiles[i].geometric_error for i in cut.merged]))
+    lo = err * focal / FAR_SSE_PX / dist
+    above = [t.geometric_error for t in tiles if t.level == cut.level - 1 and t.children]
+    hi = float(np.median(above)) * focal / FAR_SSE_PX / dist if above else FAR_ROOT_SPAN * lo
+    lo, hi = max(lo, DISTANCE_RANGE[1]), min(hi, FAR_MAX_DISTANCE)
+    return (lo, hi) if hi > lo * 1.01 else None
+
+
+def far_level_cameras(positions: np.ndarray, up, n: int, size: int, seed: int,
+                      far_range: tuple[float, float]) -> list[Camera]:
+    """`n` cameras of refine_cameras' rule (directions, jitter) at distances log-uniform over `far_range` x the orbit
+    distance (level_far_range), each the centre crop of a `size` px camera there: the same px per world unit (a
+    splat as many px across as the client draws it at that distance) in a square of side FAR_FILL x the scene's
+    fitted extent at the nearest of them (at least FAR_MIN_PX), so the scene fills about as much of each as of a
+    near camera and each camera's pixels count alike in the fit's mean."""
+    side = min(size, max(FAR_MIN_PX, math.ceil(FAR_FILL * size / far_range[0])))
+    return _band_cameras(positions, up, n, size, seed, far_range, side)
+
+
+def _band_cameras(positions: np.ndarray, up, n: int, size: int, seed: int, distance_range: tuple[float, float],
+                  side: int) -> list[Camera]:
+    """refine_cameras' rule at `distance_range` x the orbit distance, each camera the centre `side` px crop of a
+    `size` px one (side == size: the whole camera)."""
     orbit = scene_orbit_views(positions, 1, size, size, up=up, elevation_deg=25.0)[0]
     centre = np.asarray(orbit.target, np.float64)
     dist = math.dist(orbit.eye, orbit.target)
+    fov = orbit.fov_y_deg if side == size else \
+        math.degrees(2.0 * math.atan(math.tan(math.radians(orbit.fov_y_deg) / 2.0) * side / size))
     u = np.asarray(orbit.up, np.float64)
     u = u / np.linalg.norm(u)
     helper = np.array([1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
@@ -113,11 +167,10 @@ def refine_cameras(positions: np.ndarray, up, n: int, size: int, seed: int = TRA
         az = golden * i + rng.uniform(-0.3, 0.3)
         c = math.sqrt(max(0.0, 1.0 - s * s))
         d = c * (math.cos(az) * a + math.sin(az) * b) + s * u
-        r = dist * math.exp(rng.uniform(math.log(DISTANCE_RANGE[0]), math.log(DISTANCE_RANGE[1])))
+        r = dist * math.exp(rng.uniform(math.log(distance_range[0]), math.log(distance_range[1])))
         target = centre + rng.normal(0.0, 0.03 * dist, 3)
         eye = target + r * d
-        cams.append(Camera(tuple(eye), tuple(target), tuple(u), orbit.fov_y_deg, size, size,
-                           *look_at_near_far(eye, target)))
+        cams.append(Camera(tuple(eye), tuple(target), tuple(u), fov, side, side, *look_at_near_far(eye, target)))
     return cams
 
 

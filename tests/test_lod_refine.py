@@ -24,14 +24,21 @@ from splatstream.io import read_gaussians
 from splatstream.lod import build_tiles, extent_bounds
 from splatstream.lod_refine import (
     DISTANCE_RANGE,
+    FAR_FILL,
+    FAR_MAX_DISTANCE,
+    FAR_MIN_PX,
+    FAR_SSE_PX,
     UNREFINED,
     VARIANT_FIELDS,
     SharedRefineSettings,
     apply_refined,
+    far_level_cameras,
     in_domain,
     kept_candidate,
     level_cuts,
+    level_far_range,
     level_outcome,
+    orbit_distance_and_focal,
     psnr_of,
     refine_cameras,
     split_merged,
@@ -87,6 +94,46 @@ def test_refine_cameras_are_a_rule_of_the_scene_and_not_the_orbit_views(scene):
     # phase 1's training set (bench/device/refine_lod_levels.training_cameras, seed 0): the same cameras
     first = cams[0]
     assert first.near == min(0.01, 0.01 * math.dist(first.eye, first.target))
+
+
+def test_far_cameras_sit_where_a_client_without_a_budget_draws_the_level(scene):
+    up = (0.0, 0.0, 1.0)
+    tiles = build_tiles(scene, 300, 2.0, merge="auto")
+    cuts = level_cuts(tiles)
+    orbit = scene_orbit_views(scene.positions, 1, 64, 64, up=up, elevation_deg=25.0)[0]
+    dist, focal = orbit_distance_and_focal(scene.positions, up, 64)
+    assert dist == pytest.approx(math.dist(orbit.eye, orbit.target))
+    assert focal == pytest.approx(32.0 / math.tan(math.radians(orbit.fov_y_deg) / 2.0))
+    ranges = [level_far_range(tiles, cut, dist, focal) for cut in cuts]
+    assert ranges[0] is not None  # the root: drawn from its own distance on, up to FAR_ROOT_SPAN x that
+    for cut, rng in zip(cuts, ranges, strict=True):
+        err = float(np.median([tiles[i].geometric_error for i in cut.merged]))
+        if rng is None:  # drawn without a budget only within the near cameras' distances
+            assert err * focal / FAR_SSE_PX / dist * 1.01 >= DISTANCE_RANGE[1] or cut.level > 0
+            continue
+        lo, hi = rng
+        assert DISTANCE_RANGE[1] <= lo < hi <= FAR_MAX_DISTANCE
+        # at the range's near end the level's error projects to FAR_SSE_PX (or the near cameras' end is farther)
+        assert err * focal / (lo * dist) == pytest.approx(FAR_SSE_PX) or lo == DISTANCE_RANGE[1]
+    # coarser levels are drawn from farther
+    lows = [r[0] for r in ranges if r is not None]
+    assert lows == sorted(lows, reverse=True)
+    rng = ranges[0]
+    cams = far_level_cameras(scene.positions, up, 12, 64, 7, rng)
+    assert cams == far_level_cameras(scene.positions, up, 12, 64, 7, rng)  # deterministic
+    side = min(64, max(FAR_MIN_PX, math.ceil(FAR_FILL * 64 / rng[0])))
+    d = np.array([math.dist(c.eye, c.target) for c in cams]) / dist
+    assert d.min() >= rng[0] - 1e-9 and d.max() <= rng[1] + 1e-9
+    for c in cams:
+        assert (c.width, c.height) == (side, side)
+        # a crop of a 64 px camera there: the same px per world unit
+        assert c.height / (2 * math.tan(math.radians(c.fov_y_deg) / 2)) == pytest.approx(focal)
+    # the directions are refine_cameras' rule (the same seed: the same directions, other distances)
+    near = refine_cameras(scene.positions, up, 12, 64, seed=7)
+    for a, b in zip(cams, near, strict=True):
+        da = (np.asarray(a.eye) - a.target) / math.dist(a.eye, a.target)
+        db = (np.asarray(b.eye) - b.target) / math.dist(b.eye, b.target)
+        assert np.allclose(da, db) and np.allclose(a.target, b.target)
 
 
 def moved(g, rng, grow: float = 0.4, shift: float = 0.05):

@@ -109,8 +109,12 @@ def test_the_refiner_fits_the_merged_levels_and_keeps_only_what_validates(part):
     logs: list[str] = []
     seen: list[tuple[str, float]] = []
     refiner = CpuLevelRefiner(CpuRefineSettings(iterations=25, size=48, training_cameras=8, validation_cameras=4,
-                                           log=logs.append))
+                                           far_training_cameras=4, far_validation_cameras=2, log=logs.append))
     refined, record = refiner(part, tiles, (0.0, 1.0, 0.0), lambda phase, f: seen.append((phase, f)))
+    # the coarsest level is also fitted and judged from where a client without a budget draws it (far31)
+    root = refiner.report[0]
+    assert root["far_cameras"] == 6 and root["far_range"][0] > 1.6 and 8 <= root["far_px"] < 48
+    assert all(len(r["validation_psnr_near_far"]["A"]) == (2 if r["far_cameras"] else 1) for r in refiner.report)
     assert record.variants == (("A", VARIANT_FIELDS["A"]),) == (("A", ("opacity_logits", "sh_dc")),)
     assert (record.size_px, record.iterations, record.training_cameras, record.validation_cameras) == (48, 25, 8, 4)
     assert [lv.level for lv in record.levels] == [c.level for c in cuts] and len(logs) == len(cuts) + 1
