@@ -21,11 +21,21 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+from numba import types
+from numba.extending import intrinsic
 
 from splatstream.camera import Camera
 from splatstream.gaussians import Gaussians, covariances
-from splatstream.render_ref import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE, preprocess, tile_lists
-from splatstream.sh import SH_C0, eval_sh, view_directions
+from splatstream.render_ref import (
+    ALPHA_MAX,
+    ALPHA_MIN,
+    FRUSTUM_CLAMP,
+    LOW_PASS,
+    RADIUS_SIGMAS,
+    T_MIN,
+    TILE,
+)
+from splatstream.sh import COLOR_OFFSET, SH_C0, SH_C1, SH_C2, SH_C3, SH_COEFFS_FOR_DEGREE
 
 # numba's workqueue threading layer unless the user names one: between the parallel loops (the pair lists, the fit's
 # steps) the refiner runs serial numpy, and OpenMP's threads spin-wait through it. On a 16-core host (donut, `encode
@@ -57,15 +67,34 @@ class Projection:
 
 
 def project(g: Gaussians, cam: Camera, sh_degree: int | None = None, cov3d: np.ndarray | None = None) -> Projection:
-    """`cov3d`: covariances(g), computed once where one splat set is projected for many cameras."""
-    # preprocess's own colours (DC included) are not needed: `base` below is the view-dependent part
-    p = preprocess(g, cam, sh_degree, cov3d=cov3d, color=False)
-    grid_x, grid_y = -(-cam.width // TILE), -(-cam.height // TILE)
-    ids, offsets = tile_lists(p, grid_x, grid_y)
-    zero_dc = np.zeros((len(p.index), 3))
-    base = eval_sh(zero_dc, g.sh_rest[p.index], view_directions(g.positions[p.index], np.asarray(cam.eye)),
-                   sh_degree, clamp=False)
-    return Projection(p.index, p.xy, p.conic, base, ids, offsets, cam.width, cam.height)
+    """render_ref.preprocess (depth order), tile_lists and the view-dependent colour part, compiled and bit for bit
+    the numpy path's (per splat in parallel; only the depth sort is numpy's). `cov3d`: covariances(g), computed once
+    where one splat set is projected for many cameras."""
+    n = len(g)
+    width, height = cam.width, cam.height
+    grid_x, grid_y = -(-width // TILE), -(-height // TILE)
+    if cov3d is None:
+        cov3d = covariances(g)
+    ok = np.empty(n, np.uint8)
+    depth = np.empty(n)
+    xy = np.empty((n, 2))
+    conic = np.empty((n, 3))
+    rect = np.empty((n, 4), np.int64)
+    fx, fy = cam.focal
+    tan_x, tan_y = cam.tan_half_fov_x, cam.tan_half_fov_y
+    if n:
+        _project_splats(g.positions, cov3d, cam.world_to_camera_cv(), fx, fy, tan_x, tan_y, FRUSTUM_CLAMP * tan_x,
+                        FRUSTUM_CLAMP * tan_y, cam.near, width, height, grid_x, grid_y, ok, depth, xy, conic, rect)
+    sel = np.flatnonzero(ok)
+    order = sel[np.argsort(depth[sel], kind="stable")]  # ties by index, as preprocess's
+    del depth
+    ids, offsets = _bin_tiles(order, rect, grid_x, grid_x * grid_y)
+    have = g.sh_degree
+    degree = have if sh_degree is None else min(int(sh_degree), have)
+    base = np.empty((n, 3))
+    if len(order):
+        _view_colours(ok, g.positions, g.sh_rest, np.asarray(cam.eye, np.float64), SH_COEFFS_FOR_DEGREE[degree], base)
+    return Projection(order, xy[order], conic[order], base[order], ids, offsets, width, height)
 
 
 def colours_of(proj: Projection, sh_dc: np.ndarray) -> np.ndarray:
@@ -133,6 +162,192 @@ def _render_tiles(xy, conic, opacity, colour, tile_ids, tile_offsets, width, hei
                 img[y, x, 0] = r
                 img[y, x, 1] = gr
                 img[y, x, 2] = b
+
+
+# --- the projection, compiled (render_ref.preprocess + tile_lists + the view-dependent colour part) -----------------
+#
+# Bit for bit render_ref's numpy path (tests/test_refine_cpu.py checks every array): the same float64 operations in
+# the same order, and where numpy hands a product to OpenBLAS (the view transform, the EWA Jacobian and covariance
+# products) the kernel computes what OpenBLAS's x86-64 dgemm/dgemv kernels compute for these 3-long dot products,
+# a chain of fused multiply-adds in index order (fma(a2, b2, fma(a1, b1, a0 b0)), then 0 + that: beta = 0 zeroes C
+# first). Where the two disagreed the refined scene's bytes would move, not only the images' last bits.
+
+@intrinsic
+def _fma(typingctx, a, b, c):
+    """a * b + c rounded once (LLVM's llvm.fma: one instruction where the CPU has FMA)."""
+    sig = types.float64(types.float64, types.float64, types.float64)
+
+    def codegen(context, builder, signature, args):
+        return builder.fma(*args)
+    return sig, codegen
+
+
+@numba.njit(inline="always")
+def _dot3(a0, a1, a2, b0, b1, b2):
+    # OpenBLAS's sum of a 3-long product (the dgemm/dgemv kernels' FMA chain in index order, C zeroed first)
+    return 0.0 + _fma(a2, b2, _fma(a1, b1, a0 * b0))
+
+
+@numba.njit(inline="always")
+def _clip(x, lo, hi):
+    # np.clip: a NaN stays NaN
+    if x < lo:
+        return lo
+    if x > hi:
+        return hi
+    return x
+
+
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def _project_splats(pos, cov3d, m, fx, fy, tan_x, tan_y, lim_x, lim_y, near, width, height, grid_x, grid_y,
+                    ok, depth, xy, conic, rect):
+    """render_ref.preprocess per splat, before the depth sort: ok[i] 1 where splat i survives (in front of the near
+    plane, a finite invertible 2D covariance, a radius > 0 touching at least one tile), its view depth, pixel
+    position, conic and tile rectangle (x0, y0, x1, y1)."""
+    big = 1e9
+    for i in numba.prange(pos.shape[0]):
+        ok[i] = 0
+        p0 = np.float64(pos[i, 0])
+        p1 = np.float64(pos[i, 1])
+        p2 = np.float64(pos[i, 2])
+        # depth_all = pos @ m[2, :3] + m[2, 3] (a dgemv) decides the near cull; the sort's depth is the dgemm's t.z
+        if not _dot3(p0, p1, p2, m[2, 0], m[2, 1], m[2, 2]) + m[2, 3] > near:
+            continue
+        t0 = _dot3(p0, p1, p2, m[0, 0], m[0, 1], m[0, 2]) + m[0, 3]
+        t1 = _dot3(p0, p1, p2, m[1, 0], m[1, 1], m[1, 2]) + m[1, 3]
+        tz = _dot3(p0, p1, p2, m[2, 0], m[2, 1], m[2, 2]) + m[2, 3]
+        # cov2d: the EWA Jacobian J (2 x 3, J[0, 1] = J[1, 0] = 0), T = J W, Sigma' = (T Sigma) T^T
+        tx = _clip(t0 / tz, -lim_x, lim_x) * tz
+        ty = _clip(t1 / tz, -lim_y, lim_y) * tz
+        tz2 = tz * tz
+        j00 = fx / tz
+        j02 = -fx * tx / tz2
+        j11 = fy / tz
+        j12 = -fy * ty / tz2
+        a00 = _dot3(j00, 0.0, j02, m[0, 0], m[1, 0], m[2, 0])
+        a01 = _dot3(j00, 0.0, j02, m[0, 1], m[1, 1], m[2, 1])
+        a02 = _dot3(j00, 0.0, j02, m[0, 2], m[1, 2], m[2, 2])
+        a10 = _dot3(0.0, j11, j12, m[0, 0], m[1, 0], m[2, 0])
+        a11 = _dot3(0.0, j11, j12, m[0, 1], m[1, 1], m[2, 1])
+        a12 = _dot3(0.0, j11, j12, m[0, 2], m[1, 2], m[2, 2])
+        c = cov3d[i]
+        d00 = _dot3(a00, a01, a02, c[0, 0], c[1, 0], c[2, 0])
+        d01 = _dot3(a00, a01, a02, c[0, 1], c[1, 1], c[2, 1])
+        d02 = _dot3(a00, a01, a02, c[0, 2], c[1, 2], c[2, 2])
+        d10 = _dot3(a10, a11, a12, c[0, 0], c[1, 0], c[2, 0])
+        d11 = _dot3(a10, a11, a12, c[0, 1], c[1, 1], c[2, 1])
+        d12 = _dot3(a10, a11, a12, c[0, 2], c[1, 2], c[2, 2])
+        ca = _dot3(d00, d01, d02, a00, a01, a02) + LOW_PASS
+        cb = _dot3(d00, d01, d02, a10, a11, a12)
+        cc = _dot3(d10, d11, d12, a10, a11, a12) + LOW_PASS
+        det = ca * cc - cb * cb
+        if det == 0.0 or not np.isfinite(det):
+            continue
+        det_inv = 1.0 / det
+        k0 = cc * det_inv
+        k1 = -cb * det_inv
+        k2 = ca * det_inv
+        mid = 0.5 * (ca + cc)
+        v = mid * mid - det
+        if v < 0.1:  # np.maximum(0.1, v): a NaN stays NaN
+            v = 0.1
+        sq = np.sqrt(v)
+        lam1 = mid + sq
+        lam2 = mid - sq
+        lam = lam1 if lam1 >= lam2 or np.isnan(lam1) else lam2
+        if np.isnan(lam2):
+            lam = lam2
+        radius = np.ceil(RADIUS_SIGMAS * np.sqrt(lam))
+        px = ((t0 / (tz * tan_x) + 1.0) * width - 1.0) * 0.5
+        py = ((t1 / (tz * tan_y) + 1.0) * height - 1.0) * 0.5
+        if not (np.isfinite(radius) and np.isfinite(px) and np.isfinite(py) and np.isfinite(k0)
+                and np.isfinite(k1) and np.isfinite(k2)):
+            continue
+        # getRect: (int) truncates towards zero, then clamps to [0, grid]
+        rx0 = np.int64(_clip(np.trunc(_clip((px - radius) / TILE, -big, big)), 0, grid_x))
+        ry0 = np.int64(_clip(np.trunc(_clip((py - radius) / TILE, -big, big)), 0, grid_y))
+        rx1 = np.int64(_clip(np.trunc(_clip((px + radius + TILE - 1) / TILE, -big, big)), 0, grid_x))
+        ry1 = np.int64(_clip(np.trunc(_clip((py + radius + TILE - 1) / TILE, -big, big)), 0, grid_y))
+        if not (radius > 0 and (rx1 - rx0) * (ry1 - ry0) > 0):
+            continue
+        ok[i] = 1
+        depth[i] = tz
+        xy[i, 0] = px
+        xy[i, 1] = py
+        conic[i, 0] = k0
+        conic[i, 1] = k1
+        conic[i, 2] = k2
+        rect[i, 0] = rx0
+        rect[i, 1] = ry0
+        rect[i, 2] = rx1
+        rect[i, 3] = ry1
+
+
+@numba.njit(cache=True)
+def _bin_tiles(order, rect, grid_x, ntiles):
+    """render_ref.tile_lists of the splats `order` (depth order): each tile's projected ids (positions in `order`)
+    in depth order, by a counting sort (stable, so numpy's stable argsort's order, which is unique)."""
+    offsets = np.zeros(ntiles + 1, np.int64)
+    for j in range(order.shape[0]):
+        i = order[j]
+        for ty in range(rect[i, 1], rect[i, 3]):
+            for tx in range(rect[i, 0], rect[i, 2]):
+                offsets[ty * grid_x + tx + 1] += 1
+    for t in range(ntiles):
+        offsets[t + 1] += offsets[t]
+    cursor = offsets[:-1].copy()
+    ids = np.empty(offsets[ntiles], np.int64)
+    for j in range(order.shape[0]):
+        i = order[j]
+        for ty in range(rect[i, 1], rect[i, 3]):
+            for tx in range(rect[i, 0], rect[i, 2]):
+                t = ty * grid_x + tx
+                ids[cursor[t]] = j
+                cursor[t] += 1
+    return ids, offsets
+
+
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def _view_colours(ok, pos, sh_rest, eye, coeffs, base):
+    """base[i] = eval_sh(0, sh_rest, view_directions(pos, eye), clamp=False) of each splat with ok[i]: the
+    view-dependent part of its colour and the 0.5 offset (sh.sh_basis's products and einsum's sum, in their order;
+    `coeffs`: the basis size, (degree + 1)^2). In splat order, not depth order: the SH rows are read in sequence."""
+    for i in numba.prange(ok.shape[0]):
+        if not ok[i]:
+            continue
+        d0 = np.float64(pos[i, 0]) - eye[0]
+        d1 = np.float64(pos[i, 1]) - eye[1]
+        d2 = np.float64(pos[i, 2]) - eye[2]
+        n = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        x = y = z = 0.0  # a splat at the eye: the zero direction
+        if n > 0:
+            x = d0 / n
+            y = d1 / n
+            z = d2 / n
+        xx, yy, zz = x * x, y * y, z * z
+        xy, yz, xz = x * y, y * z, x * z
+        for ch in range(3):
+            # sh_basis's products, summed in einsum's order (the DC term, zero here, first: colours_of adds it)
+            acc = SH_C0 * 0.0
+            if coeffs > 1:
+                acc += -SH_C1 * y * np.float64(sh_rest[i, 0, ch])
+                acc += SH_C1 * z * np.float64(sh_rest[i, 1, ch])
+                acc += -SH_C1 * x * np.float64(sh_rest[i, 2, ch])
+            if coeffs > 4:
+                acc += SH_C2[0] * xy * np.float64(sh_rest[i, 3, ch])
+                acc += SH_C2[1] * yz * np.float64(sh_rest[i, 4, ch])
+                acc += SH_C2[2] * (2.0 * zz - xx - yy) * np.float64(sh_rest[i, 5, ch])
+                acc += SH_C2[3] * xz * np.float64(sh_rest[i, 6, ch])
+                acc += SH_C2[4] * (xx - yy) * np.float64(sh_rest[i, 7, ch])
+            if coeffs > 9:
+                acc += SH_C3[0] * y * (3.0 * xx - yy) * np.float64(sh_rest[i, 8, ch])
+                acc += SH_C3[1] * xy * z * np.float64(sh_rest[i, 9, ch])
+                acc += SH_C3[2] * y * (4.0 * zz - xx - yy) * np.float64(sh_rest[i, 10, ch])
+                acc += SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * np.float64(sh_rest[i, 11, ch])
+                acc += SH_C3[4] * x * (4.0 * zz - xx - yy) * np.float64(sh_rest[i, 12, ch])
+                acc += SH_C3[5] * z * (xx - yy) * np.float64(sh_rest[i, 13, ch])
+                acc += SH_C3[6] * x * (xx - 3.0 * yy) * np.float64(sh_rest[i, 14, ch])
+            base[i, ch] = acc + COLOR_OFFSET
 
 
 # --- pair lists (fixed geometry) -----------------------------------------------------------------------------------
