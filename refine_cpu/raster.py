@@ -51,6 +51,55 @@ T_STORE = 1e-6
 # kernels skip such a splat before its exp, where the exp would only have led to the same skip (g < 1/255, or with an
 # opacity <= 1 alpha < 1/255). Most of a tile's splats miss most of its pixels, so most exps are saved.
 POWER_SKIP = math.log(ALPHA_MIN) - 1e-6
+# The tile walk first lists, per pixel row, the splats that can reach it and the columns they can reach: those where
+# power >= ROW_POWER, an ellipse solved per row (POWER_SKIP less 0.5: a margin in the exponent far above the rounding
+# of either computation), widened by a pixel each side. Outside it, power < POWER_SKIP for certain, where the kernels
+# skip the splat anyway, so the row lists change no bit; inside, each pixel runs the kernels' own test. Splats too
+# far out or too wide (ROW_MAX px) for that bound to hold are kept for the whole row.
+ROW_POWER = POWER_SKIP - 0.5
+ROW_MAX = 1e6
+
+
+@numba.njit(inline="always")
+def _row_candidates(xy, conic, opacity, tile_ids, s, e, y, x0, x1, cull_any_opacity, row_i, row_lo, row_hi):
+    """Of the tile's splats tile_ids[s:e] (depth order), those that can pass the POWER_SKIP test somewhere on pixel
+    row y within columns [x0, x1), with the first and last column they can (row_i, row_lo, row_hi; returns how
+    many). `cull_any_opacity` False: a splat with an opacity above 1 is kept whole (the render skips below POWER_SKIP
+    only where the opacity is at most 1)."""
+    reach = -2.0 * ROW_POWER
+    n = 0
+    for k in range(s, e):
+        i = tile_ids[k]
+        lo = x0
+        hi = x1 - 1
+        a = conic[i, 0]
+        b = conic[i, 1]
+        c = conic[i, 2]
+        cx = xy[i, 0]
+        dy = xy[i, 1] - y
+        if ((cull_any_opacity or opacity[i] <= 1.0) and a > 0.0 and abs(cx) <= ROW_MAX
+                and abs(xy[i, 1]) <= ROW_MAX):
+            det = a * c - b * b
+            if det > 0.0:
+                # power >= ROW_POWER  <=>  a dx^2 + 2 b dy dx + c dy^2 <= reach, dx = cx - x: a quadratic in x
+                bd = b * dy
+                wide = (abs(bd) + math.sqrt(a * reach + (b * b + a * c) * dy * dy)) / a
+                if wide <= ROW_MAX:
+                    disc = a * reach - det * dy * dy
+                    if disc < 0.0:
+                        continue
+                    sq = math.sqrt(disc)
+                    first = math.floor(cx + (bd - sq) / a) - 1
+                    last = math.ceil(cx + (bd + sq) / a) + 1
+                    lo = max(lo, first)
+                    hi = min(hi, last)
+                    if lo > hi:
+                        continue
+        row_i[n] = i
+        row_lo[n] = lo
+        row_hi[n] = hi
+        n += 1
+    return n
 
 
 @dataclass
@@ -127,20 +176,25 @@ def _render_tiles(xy, conic, opacity, colour, tile_ids, tile_offsets, width, hei
         ty = t // grid_x
         tx = t - ty * grid_x
         s, e = tile_offsets[t], tile_offsets[t + 1]
+        row_i = np.empty(e - s, np.int64)
+        row_lo = np.empty(e - s, np.int64)
+        row_hi = np.empty(e - s, np.int64)
+        x0 = tx * TILE
+        x1 = min(x0 + TILE, width)
         for ly in range(TILE):
             y = ty * TILE + ly
             if y >= height:
                 break
-            for lx in range(TILE):
-                x = tx * TILE + lx
-                if x >= width:
-                    break
+            n = _row_candidates(xy, conic, opacity, tile_ids, s, e, y, x0, x1, False, row_i, row_lo, row_hi)
+            for x in range(x0, x1):
                 trans = 1.0
                 r = 0.0
                 gr = 0.0
                 b = 0.0
-                for k in range(s, e):
-                    i = tile_ids[k]
+                for k in range(n):
+                    if x < row_lo[k] or x > row_hi[k]:
+                        continue
+                    i = row_i[k]
                     dx = xy[i, 0] - x
                     dy = xy[i, 1] - y
                     power = -0.5 * (conic[i, 0] * dx * dx + conic[i, 2] * dy * dy) - conic[i, 1] * dx * dy
@@ -362,20 +416,25 @@ def _pairs_per_pixel(xy, conic, opacity, tile_ids, tile_offsets, width, height, 
         ty = t // grid_x
         tx = t - ty * grid_x
         s, e = tile_offsets[t], tile_offsets[t + 1]
+        row_i = np.empty(e - s, np.int64)
+        row_lo = np.empty(e - s, np.int64)
+        row_hi = np.empty(e - s, np.int64)
+        x0 = tx * TILE
+        x1 = min(x0 + TILE, width)
         for ly in range(TILE):
             y = ty * TILE + ly
             if y >= height:
                 break
-            for lx in range(TILE):
-                x = tx * TILE + lx
-                if x >= width:
-                    break
+            nr = _row_candidates(xy, conic, opacity, tile_ids, s, e, y, x0, x1, True, row_i, row_lo, row_hi)
+            for x in range(x0, x1):
                 pix = y * width + x
                 n = 0
                 pos = out_off[pix] if fill else 0
                 trans = 1.0
-                for k in range(s, e):
-                    i = tile_ids[k]
+                for k in range(nr):
+                    if x < row_lo[k] or x > row_hi[k]:
+                        continue
+                    i = row_i[k]
                     dx = xy[i, 0] - x
                     dy = xy[i, 1] - y
                     power = -0.5 * (conic[i, 0] * dx * dx + conic[i, 2] * dy * dy) - conic[i, 1] * dx * dy
@@ -424,18 +483,21 @@ def pair_lists(g: Gaussians, cams: list[Camera], sh_degree: int | None = None) -
     """The pair lists of `g` seen from `cams` (all of one size).
 
     Two passes, so the pairs are written once into arrays of their final size (no per-camera pieces concatenated:
-    that held the pairs twice at the peak): each camera's projection and per-pixel counts first, then the pairs."""
+    that held the pairs twice at the peak): each camera's per-pixel counts first, then the pairs. The second pass
+    projects each camera again (the same bits) and writes what the lists keep of it (16 B a projected splat) straight
+    into place, rather than keeping every camera's projection from the first: at a million splats 32 projections
+    held 2-3 GB (about 80 B a splat)."""
     width, height = cams[0].width, cams[0].height
     if any((cam.width, cam.height) != (width, height) for cam in cams):
         raise ValueError("pair_lists: the cameras differ in size")
     hw = width * height
     opacity_all = g.opacities.astype(np.float64)
-    cov3d = covariances(g) if len(g) else None
+    cov3d = covariances(g)
     empty_i = np.zeros(0, np.int32)
     empty_f = np.zeros(0, np.float32)
     no_counts = np.zeros(0, np.int64)  # pass 2 writes no counts (an int64 array: pass 1's compiled signature)
     pixel_offsets = np.zeros(len(cams) * hw + 1, np.int64)
-    projections = []
+    projected = np.zeros(len(cams) + 1, np.int64)  # camera c's projected splats: [projected[c], projected[c + 1])
     total = 0
     for c, cam in enumerate(cams):
         p = project(g, cam, sh_degree, cov3d)
@@ -447,19 +509,24 @@ def pair_lists(g: Gaussians, cams: list[Camera], sh_degree: int | None = None) -
         np.cumsum(counts, out=off[1:])
         off[1:] += total
         total = int(off[-1])
-        projections.append(p)
+        projected[c + 1] = projected[c] + len(p.index)
+        del p
     proj = np.empty(total, np.int32)
     pair_g = np.empty(total, np.float32)
-    proj_total = 0
-    for c, p in enumerate(projections):
+    splat = np.empty(projected[-1], np.int32)
+    base = np.empty((projected[-1], 3), np.float32)
+    for c, cam in enumerate(cams):
+        if projected[c + 1] == projected[c]:
+            continue
+        p = project(g, cam, sh_degree, cov3d)
+        splat[projected[c]:projected[c + 1]] = p.index
+        base[projected[c]:projected[c + 1]] = p.base
         s, e = pixel_offsets[c * hw], pixel_offsets[(c + 1) * hw]
         if e > s:
             _pairs_per_pixel(p.xy, p.conic, opacity_all[p.index], p.tile_ids, p.tile_offsets, width, height,
                              no_counts, True, pixel_offsets[c * hw:(c + 1) * hw + 1], proj, pair_g)
-            proj[s:e] += proj_total
-        proj_total += len(p.index)
-    splat = np.concatenate([p.index.astype(np.int32) for p in projections])
-    base = np.concatenate([p.base.astype(np.float32) for p in projections]).reshape(-1, 3)
+            proj[s:e] += projected[c]
+        del p
     return PairLists(pixel_offsets, proj, pair_g, splat, base, len(cams), width, height)
 
 
