@@ -137,13 +137,16 @@ def project(g: Gaussians, cam: Camera, sh_degree: int | None = None, cov3d: np.n
     sel = np.flatnonzero(ok)
     order = sel[np.argsort(depth[sel], kind="stable")]  # ties by index, as preprocess's
     del depth
-    ids, offsets = _bin_tiles(order, rect, grid_x, grid_x * grid_y)
+    # a run of `order` per thread, and only where the runs are long enough to pay for their per-tile counts
+    chunks = max(1, min(numba.get_num_threads(), len(order) // 65536))
+    ids, offsets = _bin_tiles(order, rect, grid_x, grid_x * grid_y, chunks)
     have = g.sh_degree
     degree = have if sh_degree is None else min(int(sh_degree), have)
     base = np.empty((n, 3))
     if len(order):
         _view_colours(ok, g.positions, g.sh_rest, np.asarray(cam.eye, np.float64), SH_COEFFS_FOR_DEGREE[degree], base)
-    return Projection(order, xy[order], conic[order], base[order], ids, offsets, width, height)
+    xy_o, conic_o, base_o = _gather_rows(order, xy, conic, base)
+    return Projection(order, xy_o, conic_o, base_o, ids, offsets, width, height)
 
 
 def colours_of(proj: Projection, sh_dc: np.ndarray) -> np.ndarray:
@@ -337,28 +340,58 @@ def _project_splats(pos, cov3d, m, fx, fy, tan_x, tan_y, lim_x, lim_y, near, wid
         rect[i, 3] = ry1
 
 
-@numba.njit(cache=True)
-def _bin_tiles(order, rect, grid_x, ntiles):
+@numba.njit(parallel=True, cache=True)
+def _bin_tiles(order, rect, grid_x, ntiles, chunks):
     """render_ref.tile_lists of the splats `order` (depth order): each tile's projected ids (positions in `order`)
-    in depth order, by a counting sort (stable, so numpy's stable argsort's order, which is unique)."""
+    in depth order, by a counting sort (stable, so numpy's stable argsort's order, which is unique). In parallel
+    over `chunks` consecutive runs of `order`: each run's count per tile, then each run fills from its own start in
+    every tile (the runs' starts in run order keep the sort stable)."""
+    n = order.shape[0]
+    step = (n + chunks - 1) // chunks
+    counts = np.zeros((chunks, ntiles), np.int64)
+    for c in numba.prange(chunks):
+        for j in range(c * step, min(n, (c + 1) * step)):
+            i = order[j]
+            for ty in range(rect[i, 1], rect[i, 3]):
+                for tx in range(rect[i, 0], rect[i, 2]):
+                    counts[c, ty * grid_x + tx] += 1
     offsets = np.zeros(ntiles + 1, np.int64)
-    for j in range(order.shape[0]):
-        i = order[j]
-        for ty in range(rect[i, 1], rect[i, 3]):
-            for tx in range(rect[i, 0], rect[i, 2]):
-                offsets[ty * grid_x + tx + 1] += 1
+    start = np.empty((chunks, ntiles), np.int64)
+    total = 0
     for t in range(ntiles):
-        offsets[t + 1] += offsets[t]
-    cursor = offsets[:-1].copy()
-    ids = np.empty(offsets[ntiles], np.int64)
-    for j in range(order.shape[0]):
-        i = order[j]
-        for ty in range(rect[i, 1], rect[i, 3]):
-            for tx in range(rect[i, 0], rect[i, 2]):
-                t = ty * grid_x + tx
-                ids[cursor[t]] = j
-                cursor[t] += 1
+        offsets[t] = total
+        for c in range(chunks):
+            start[c, t] = total
+            total += counts[c, t]
+    offsets[ntiles] = total
+    ids = np.empty(total, np.int64)
+    for c in numba.prange(chunks):
+        cursor = start[c]
+        for j in range(c * step, min(n, (c + 1) * step)):
+            i = order[j]
+            for ty in range(rect[i, 1], rect[i, 3]):
+                for tx in range(rect[i, 0], rect[i, 2]):
+                    t = ty * grid_x + tx
+                    ids[cursor[t]] = j
+                    cursor[t] += 1
     return ids, offsets
+
+
+@numba.njit(parallel=True, cache=True)
+def _gather_rows(order, xy, conic, base):
+    """xy[order], conic[order], base[order], in parallel."""
+    m = order.shape[0]
+    xy_o = np.empty((m, 2))
+    conic_o = np.empty((m, 3))
+    base_o = np.empty((m, 3))
+    for j in numba.prange(m):
+        i = order[j]
+        xy_o[j, 0] = xy[i, 0]
+        xy_o[j, 1] = xy[i, 1]
+        for k in range(3):
+            conic_o[j, k] = conic[i, k]
+            base_o[j, k] = base[i, k]
+    return xy_o, conic_o, base_o
 
 
 @numba.njit(parallel=True, cache=True, error_model="numpy")

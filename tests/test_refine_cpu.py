@@ -76,6 +76,24 @@ def test_the_compiled_projection_is_the_numpy_paths_bit_for_bit(fruit):
             fruit.opacities.astype(np.float64)[ref["index"]], raster.colours_of(mine, fruit.sh_dc)))
 
 
+def test_the_tile_binning_is_the_same_in_any_number_of_runs():
+    # raster._bin_tiles fills each tile from consecutive runs of the depth order in parallel (one run per thread at
+    # 65,536 projected splats and more): the same lists as one run and as render_ref.tile_lists' stable argsort
+    rng = np.random.default_rng(7)
+    grid_x, grid_y, n = 7, 5, 3000
+    lo = np.stack([rng.integers(0, grid_x, n), rng.integers(0, grid_y, n)], axis=1)
+    hi = lo + rng.integers(0, 3, (n, 2))  # some rectangles empty, some past the grid (the kernel clips them first)
+    hi = np.minimum(hi, [grid_x, grid_y])
+    rect = np.concatenate([lo, hi], axis=1).astype(np.int64)
+    order = rng.permutation(n)[: n - 100]
+    p = render_ref.Projected(index=order, xy=None, depth=None, conic=None, opacity=None, radius=None,
+                             rect_min=rect[order, :2], rect_max=rect[order, 2:], color=None)
+    want_ids, want_offsets = render_ref.tile_lists(p, grid_x, grid_y)
+    for chunks in (1, 2, 3, 8, 64):
+        ids, offsets = raster._bin_tiles(order, rect, grid_x, grid_x * grid_y, chunks)
+        assert np.array_equal(offsets, want_offsets) and np.array_equal(ids, want_ids), chunks
+
+
 def brute_force_walk(proj, opacity, colour):
     """raster's render and pairs of one camera by the walk it had before its row lists: every splat of the pixel's
     tile, in depth order, through the kernels' own tests (plain Python floats: IEEE doubles, as the kernels')."""
