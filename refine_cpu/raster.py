@@ -1,11 +1,12 @@
 """A numba rasteriser with our renderer's conventions, and for fixed geometry its per-pixel pair lists, forward and
 backward over opacity and DC colour (the CPU refinement of the merged LOD levels, lod.md 6).
 
-The conventions are splatstream/render_ref.py's (its numpy reference, whose `preprocess` this module reuses as is):
-the pinhole of `Camera` with pixel (col, row) at (col, row) after ndc2Pix, EWA with the 0.3 px^2 low-pass, splats
-with depth <= near culled, depth order (stable, ties by index), alpha = min(0.99, o g) with g = exp(power), skipped
-when power > 0 or alpha < 1/255, a pixel stops once T (1 - alpha) < 1e-4, colour max(SH(dir) + 0.5, 0), black
-background. refine_gpu/levels.py's docstring lists the same (gsplat's, matched there).
+The conventions are splatstream/render_ref.py's (its numpy reference, whose `preprocess`, `tile_lists` and SH colour
+`project` computes bit for bit, compiled): the pinhole of `Camera` with pixel (col, row) at (col, row) after ndc2Pix,
+EWA with the 0.3 px^2 low-pass, splats with depth <= near culled, depth order (stable, ties by index), alpha =
+min(0.99, o g) with g = exp(power), skipped when power > 0 or alpha < 1/255, a pixel stops once T (1 - alpha) < 1e-4,
+colour max(SH(dir) + 0.5, 0), black background. refine_gpu/levels.py's docstring lists the same (gsplat's, matched
+there).
 
 With the geometry fixed (positions, rotations, scales), what a pixel sees is a fixed list of (splat, g) pairs in
 depth order: only opacities and colours change. `PairLists` holds them for a set of cameras (CSR over pixels: the
@@ -104,7 +105,7 @@ def _row_candidates(xy, conic, opacity, tile_ids, s, e, y, x0, x1, cull_any_opac
 
 @dataclass
 class Projection:
-    """One camera's projected splats (render_ref.preprocess, depth order) and its tile lists."""
+    """One camera's projected splats (render_ref.preprocess's, depth order) and its tile lists."""
     index: np.ndarray      # (M,) int64 splat index into the splat set
     xy: np.ndarray         # (M, 2) float64 pixel-index coordinates
     conic: np.ndarray      # (M, 3) float64
