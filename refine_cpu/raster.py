@@ -1,11 +1,12 @@
 """A numba rasteriser with our renderer's conventions, and for fixed geometry its per-pixel pair lists, forward and
 backward over opacity and DC colour (the CPU refinement of the merged LOD levels, lod.md 6).
 
-The conventions are splatstream/render_ref.py's (its numpy reference, whose `preprocess` this module reuses as is):
-the pinhole of `Camera` with pixel (col, row) at (col, row) after ndc2Pix, EWA with the 0.3 px^2 low-pass, splats
-with depth <= near culled, depth order (stable, ties by index), alpha = min(0.99, o g) with g = exp(power), skipped
-when power > 0 or alpha < 1/255, a pixel stops once T (1 - alpha) < 1e-4, colour max(SH(dir) + 0.5, 0), black
-background. refine_gpu/levels.py's docstring lists the same (gsplat's, matched there).
+The conventions are splatstream/render_ref.py's (its numpy reference, whose `preprocess`, `tile_lists` and SH colour
+`project` computes bit for bit, compiled): the pinhole of `Camera` with pixel (col, row) at (col, row) after ndc2Pix,
+EWA with the 0.3 px^2 low-pass, splats with depth <= near culled, depth order (stable, ties by index), alpha =
+min(0.99, o g) with g = exp(power), skipped when power > 0 or alpha < 1/255, a pixel stops once T (1 - alpha) < 1e-4,
+colour max(SH(dir) + 0.5, 0), black background. refine_gpu/levels.py's docstring lists the same (gsplat's, matched
+there).
 
 With the geometry fixed (positions, rotations, scales), what a pixel sees is a fixed list of (splat, g) pairs in
 depth order: only opacities and colours change. `PairLists` holds them for a set of cameras (CSR over pixels: the
@@ -21,11 +22,21 @@ from dataclasses import dataclass
 
 import numba
 import numpy as np
+from numba import types
+from numba.extending import intrinsic
 
 from splatstream.camera import Camera
 from splatstream.gaussians import Gaussians, covariances
-from splatstream.render_ref import ALPHA_MAX, ALPHA_MIN, T_MIN, TILE, preprocess, tile_lists
-from splatstream.sh import SH_C0, eval_sh, view_directions
+from splatstream.render_ref import (
+    ALPHA_MAX,
+    ALPHA_MIN,
+    FRUSTUM_CLAMP,
+    LOW_PASS,
+    RADIUS_SIGMAS,
+    T_MIN,
+    TILE,
+)
+from splatstream.sh import COLOR_OFFSET, SH_C0, SH_C1, SH_C2, SH_C3, SH_COEFFS_FOR_DEGREE
 
 # numba's workqueue threading layer unless the user names one: between the parallel loops (the pair lists, the fit's
 # steps) the refiner runs serial numpy, and OpenMP's threads spin-wait through it. On a 16-core host (donut, `encode
@@ -41,11 +52,60 @@ T_STORE = 1e-6
 # kernels skip such a splat before its exp, where the exp would only have led to the same skip (g < 1/255, or with an
 # opacity <= 1 alpha < 1/255). Most of a tile's splats miss most of its pixels, so most exps are saved.
 POWER_SKIP = math.log(ALPHA_MIN) - 1e-6
+# The tile walk first lists, per pixel row, the splats that can reach it and the columns they can reach: those where
+# power >= ROW_POWER, an ellipse solved per row (POWER_SKIP less 0.5: a margin in the exponent far above the rounding
+# of either computation), widened by a pixel each side. Outside it, power < POWER_SKIP for certain, where the kernels
+# skip the splat anyway, so the row lists change no bit; inside, each pixel runs the kernels' own test. Splats too
+# far out or too wide (ROW_MAX px) for that bound to hold are kept for the whole row.
+ROW_POWER = POWER_SKIP - 0.5
+ROW_MAX = 1e6
+
+
+@numba.njit(inline="always")
+def _row_candidates(xy, conic, opacity, tile_ids, s, e, y, x0, x1, cull_any_opacity, row_i, row_lo, row_hi):
+    """Of the tile's splats tile_ids[s:e] (depth order), those that can pass the POWER_SKIP test somewhere on pixel
+    row y within columns [x0, x1), with the first and last column they can (row_i, row_lo, row_hi; returns how
+    many). `cull_any_opacity` False: a splat with an opacity above 1 is kept whole (the render skips below POWER_SKIP
+    only where the opacity is at most 1)."""
+    reach = -2.0 * ROW_POWER
+    n = 0
+    for k in range(s, e):
+        i = tile_ids[k]
+        lo = x0
+        hi = x1 - 1
+        a = conic[i, 0]
+        b = conic[i, 1]
+        c = conic[i, 2]
+        cx = xy[i, 0]
+        dy = xy[i, 1] - y
+        if ((cull_any_opacity or opacity[i] <= 1.0) and a > 0.0 and abs(cx) <= ROW_MAX
+                and abs(xy[i, 1]) <= ROW_MAX):
+            det = a * c - b * b
+            if det > 0.0:
+                # power >= ROW_POWER  <=>  a dx^2 + 2 b dy dx + c dy^2 <= reach, dx = cx - x: a quadratic in x
+                bd = b * dy
+                wide = (abs(bd) + math.sqrt(a * reach + (b * b + a * c) * dy * dy)) / a
+                if wide <= ROW_MAX:
+                    disc = a * reach - det * dy * dy
+                    if disc < 0.0:
+                        continue
+                    sq = math.sqrt(disc)
+                    first = math.floor(cx + (bd - sq) / a) - 1
+                    last = math.ceil(cx + (bd + sq) / a) + 1
+                    lo = max(lo, first)
+                    hi = min(hi, last)
+                    if lo > hi:
+                        continue
+        row_i[n] = i
+        row_lo[n] = lo
+        row_hi[n] = hi
+        n += 1
+    return n
 
 
 @dataclass
 class Projection:
-    """One camera's projected splats (render_ref.preprocess, depth order) and its tile lists."""
+    """One camera's projected splats (render_ref.preprocess's, depth order) and its tile lists."""
     index: np.ndarray      # (M,) int64 splat index into the splat set
     xy: np.ndarray         # (M, 2) float64 pixel-index coordinates
     conic: np.ndarray      # (M, 3) float64
@@ -57,15 +117,37 @@ class Projection:
 
 
 def project(g: Gaussians, cam: Camera, sh_degree: int | None = None, cov3d: np.ndarray | None = None) -> Projection:
-    """`cov3d`: covariances(g), computed once where one splat set is projected for many cameras."""
-    # preprocess's own colours (DC included) are not needed: `base` below is the view-dependent part
-    p = preprocess(g, cam, sh_degree, cov3d=cov3d, color=False)
-    grid_x, grid_y = -(-cam.width // TILE), -(-cam.height // TILE)
-    ids, offsets = tile_lists(p, grid_x, grid_y)
-    zero_dc = np.zeros((len(p.index), 3))
-    base = eval_sh(zero_dc, g.sh_rest[p.index], view_directions(g.positions[p.index], np.asarray(cam.eye)),
-                   sh_degree, clamp=False)
-    return Projection(p.index, p.xy, p.conic, base, ids, offsets, cam.width, cam.height)
+    """render_ref.preprocess (depth order), tile_lists and the view-dependent colour part, compiled and bit for bit
+    the numpy path's (per splat in parallel; only the depth sort is numpy's). `cov3d`: covariances(g), computed once
+    where one splat set is projected for many cameras."""
+    n = len(g)
+    width, height = cam.width, cam.height
+    grid_x, grid_y = -(-width // TILE), -(-height // TILE)
+    if cov3d is None:
+        cov3d = covariances(g)
+    ok = np.empty(n, np.uint8)
+    depth = np.empty(n)
+    xy = np.empty((n, 2))
+    conic = np.empty((n, 3))
+    rect = np.empty((n, 4), np.int64)
+    fx, fy = cam.focal
+    tan_x, tan_y = cam.tan_half_fov_x, cam.tan_half_fov_y
+    if n:
+        _project_splats(g.positions, cov3d, cam.world_to_camera_cv(), fx, fy, tan_x, tan_y, FRUSTUM_CLAMP * tan_x,
+                        FRUSTUM_CLAMP * tan_y, cam.near, width, height, grid_x, grid_y, ok, depth, xy, conic, rect)
+    sel = np.flatnonzero(ok)
+    order = sel[np.argsort(depth[sel], kind="stable")]  # ties by index, as preprocess's
+    del depth
+    # a run of `order` per thread, and only where the runs are long enough to pay for their per-tile counts
+    chunks = max(1, min(numba.get_num_threads(), len(order) // 65536))
+    ids, offsets = _bin_tiles(order, rect, grid_x, grid_x * grid_y, chunks)
+    have = g.sh_degree
+    degree = have if sh_degree is None else min(int(sh_degree), have)
+    base = np.empty((n, 3))
+    if len(order):
+        _view_colours(ok, g.positions, g.sh_rest, np.asarray(cam.eye, np.float64), SH_COEFFS_FOR_DEGREE[degree], base)
+    xy_o, conic_o, base_o = _gather_rows(order, xy, conic, base)
+    return Projection(order, xy_o, conic_o, base_o, ids, offsets, width, height)
 
 
 def colours_of(proj: Projection, sh_dc: np.ndarray) -> np.ndarray:
@@ -98,20 +180,25 @@ def _render_tiles(xy, conic, opacity, colour, tile_ids, tile_offsets, width, hei
         ty = t // grid_x
         tx = t - ty * grid_x
         s, e = tile_offsets[t], tile_offsets[t + 1]
+        row_i = np.empty(e - s, np.int64)
+        row_lo = np.empty(e - s, np.int64)
+        row_hi = np.empty(e - s, np.int64)
+        x0 = tx * TILE
+        x1 = min(x0 + TILE, width)
         for ly in range(TILE):
             y = ty * TILE + ly
             if y >= height:
                 break
-            for lx in range(TILE):
-                x = tx * TILE + lx
-                if x >= width:
-                    break
+            n = _row_candidates(xy, conic, opacity, tile_ids, s, e, y, x0, x1, False, row_i, row_lo, row_hi)
+            for x in range(x0, x1):
                 trans = 1.0
                 r = 0.0
                 gr = 0.0
                 b = 0.0
-                for k in range(s, e):
-                    i = tile_ids[k]
+                for k in range(n):
+                    if x < row_lo[k] or x > row_hi[k]:
+                        continue
+                    i = row_i[k]
                     dx = xy[i, 0] - x
                     dy = xy[i, 1] - y
                     power = -0.5 * (conic[i, 0] * dx * dx + conic[i, 2] * dy * dy) - conic[i, 1] * dx * dy
@@ -135,6 +222,222 @@ def _render_tiles(xy, conic, opacity, colour, tile_ids, tile_offsets, width, hei
                 img[y, x, 2] = b
 
 
+# --- the projection, compiled (render_ref.preprocess + tile_lists + the view-dependent colour part) -----------------
+#
+# Bit for bit render_ref's numpy path (tests/test_refine_cpu.py checks every array): the same float64 operations in
+# the same order, and where numpy hands a product to OpenBLAS (the view transform, the EWA Jacobian and covariance
+# products) the kernel computes what OpenBLAS's x86-64 dgemm/dgemv kernels compute for these 3-long dot products,
+# a chain of fused multiply-adds in index order (fma(a2, b2, fma(a1, b1, a0 b0)), then 0 + that: beta = 0 zeroes C
+# first). Where the two disagreed the refined scene's bytes would move, not only the images' last bits.
+
+@intrinsic
+def _fma(typingctx, a, b, c):
+    """a * b + c rounded once (LLVM's llvm.fma: one instruction where the CPU has FMA)."""
+    sig = types.float64(types.float64, types.float64, types.float64)
+
+    def codegen(context, builder, signature, args):
+        return builder.fma(*args)
+    return sig, codegen
+
+
+@numba.njit(inline="always")
+def _dot3(a0, a1, a2, b0, b1, b2):
+    # OpenBLAS's sum of a 3-long product (the dgemm/dgemv kernels' FMA chain in index order, C zeroed first)
+    return 0.0 + _fma(a2, b2, _fma(a1, b1, a0 * b0))
+
+
+@numba.njit(inline="always")
+def _clip(x, lo, hi):
+    # np.clip: a NaN stays NaN
+    if x < lo:
+        return lo
+    if x > hi:
+        return hi
+    return x
+
+
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def _project_splats(pos, cov3d, m, fx, fy, tan_x, tan_y, lim_x, lim_y, near, width, height, grid_x, grid_y,
+                    ok, depth, xy, conic, rect):
+    """render_ref.preprocess per splat, before the depth sort: ok[i] 1 where splat i survives (in front of the near
+    plane, a finite invertible 2D covariance, a radius > 0 touching at least one tile), its view depth, pixel
+    position, conic and tile rectangle (x0, y0, x1, y1)."""
+    big = 1e9
+    for i in numba.prange(pos.shape[0]):
+        ok[i] = 0
+        p0 = np.float64(pos[i, 0])
+        p1 = np.float64(pos[i, 1])
+        p2 = np.float64(pos[i, 2])
+        # depth_all = pos @ m[2, :3] + m[2, 3] (a dgemv) decides the near cull; the sort's depth is the dgemm's t.z
+        if not _dot3(p0, p1, p2, m[2, 0], m[2, 1], m[2, 2]) + m[2, 3] > near:
+            continue
+        t0 = _dot3(p0, p1, p2, m[0, 0], m[0, 1], m[0, 2]) + m[0, 3]
+        t1 = _dot3(p0, p1, p2, m[1, 0], m[1, 1], m[1, 2]) + m[1, 3]
+        tz = _dot3(p0, p1, p2, m[2, 0], m[2, 1], m[2, 2]) + m[2, 3]
+        # cov2d: the EWA Jacobian J (2 x 3, J[0, 1] = J[1, 0] = 0), T = J W, Sigma' = (T Sigma) T^T
+        tx = _clip(t0 / tz, -lim_x, lim_x) * tz
+        ty = _clip(t1 / tz, -lim_y, lim_y) * tz
+        tz2 = tz * tz
+        j00 = fx / tz
+        j02 = -fx * tx / tz2
+        j11 = fy / tz
+        j12 = -fy * ty / tz2
+        a00 = _dot3(j00, 0.0, j02, m[0, 0], m[1, 0], m[2, 0])
+        a01 = _dot3(j00, 0.0, j02, m[0, 1], m[1, 1], m[2, 1])
+        a02 = _dot3(j00, 0.0, j02, m[0, 2], m[1, 2], m[2, 2])
+        a10 = _dot3(0.0, j11, j12, m[0, 0], m[1, 0], m[2, 0])
+        a11 = _dot3(0.0, j11, j12, m[0, 1], m[1, 1], m[2, 1])
+        a12 = _dot3(0.0, j11, j12, m[0, 2], m[1, 2], m[2, 2])
+        c = cov3d[i]
+        d00 = _dot3(a00, a01, a02, c[0, 0], c[1, 0], c[2, 0])
+        d01 = _dot3(a00, a01, a02, c[0, 1], c[1, 1], c[2, 1])
+        d02 = _dot3(a00, a01, a02, c[0, 2], c[1, 2], c[2, 2])
+        d10 = _dot3(a10, a11, a12, c[0, 0], c[1, 0], c[2, 0])
+        d11 = _dot3(a10, a11, a12, c[0, 1], c[1, 1], c[2, 1])
+        d12 = _dot3(a10, a11, a12, c[0, 2], c[1, 2], c[2, 2])
+        ca = _dot3(d00, d01, d02, a00, a01, a02) + LOW_PASS
+        cb = _dot3(d00, d01, d02, a10, a11, a12)
+        cc = _dot3(d10, d11, d12, a10, a11, a12) + LOW_PASS
+        det = ca * cc - cb * cb
+        if det == 0.0 or not np.isfinite(det):
+            continue
+        det_inv = 1.0 / det
+        k0 = cc * det_inv
+        k1 = -cb * det_inv
+        k2 = ca * det_inv
+        mid = 0.5 * (ca + cc)
+        v = mid * mid - det
+        if v < 0.1:  # np.maximum(0.1, v): a NaN stays NaN
+            v = 0.1
+        sq = np.sqrt(v)
+        lam1 = mid + sq
+        lam2 = mid - sq
+        lam = lam1 if lam1 >= lam2 or np.isnan(lam1) else lam2
+        if np.isnan(lam2):
+            lam = lam2
+        radius = np.ceil(RADIUS_SIGMAS * np.sqrt(lam))
+        px = ((t0 / (tz * tan_x) + 1.0) * width - 1.0) * 0.5
+        py = ((t1 / (tz * tan_y) + 1.0) * height - 1.0) * 0.5
+        if not (np.isfinite(radius) and np.isfinite(px) and np.isfinite(py) and np.isfinite(k0)
+                and np.isfinite(k1) and np.isfinite(k2)):
+            continue
+        # getRect: (int) truncates towards zero, then clamps to [0, grid]
+        rx0 = np.int64(_clip(np.trunc(_clip((px - radius) / TILE, -big, big)), 0, grid_x))
+        ry0 = np.int64(_clip(np.trunc(_clip((py - radius) / TILE, -big, big)), 0, grid_y))
+        rx1 = np.int64(_clip(np.trunc(_clip((px + radius + TILE - 1) / TILE, -big, big)), 0, grid_x))
+        ry1 = np.int64(_clip(np.trunc(_clip((py + radius + TILE - 1) / TILE, -big, big)), 0, grid_y))
+        if not (radius > 0 and (rx1 - rx0) * (ry1 - ry0) > 0):
+            continue
+        ok[i] = 1
+        depth[i] = tz
+        xy[i, 0] = px
+        xy[i, 1] = py
+        conic[i, 0] = k0
+        conic[i, 1] = k1
+        conic[i, 2] = k2
+        rect[i, 0] = rx0
+        rect[i, 1] = ry0
+        rect[i, 2] = rx1
+        rect[i, 3] = ry1
+
+
+@numba.njit(parallel=True, cache=True)
+def _bin_tiles(order, rect, grid_x, ntiles, chunks):
+    """render_ref.tile_lists of the splats `order` (depth order): each tile's projected ids (positions in `order`)
+    in depth order, by a counting sort (stable, so numpy's stable argsort's order, which is unique). In parallel
+    over `chunks` consecutive runs of `order`: each run's count per tile, then each run fills from its own start in
+    every tile (the runs' starts in run order keep the sort stable)."""
+    n = order.shape[0]
+    step = (n + chunks - 1) // chunks
+    counts = np.zeros((chunks, ntiles), np.int64)
+    for c in numba.prange(chunks):
+        for j in range(c * step, min(n, (c + 1) * step)):
+            i = order[j]
+            for ty in range(rect[i, 1], rect[i, 3]):
+                for tx in range(rect[i, 0], rect[i, 2]):
+                    counts[c, ty * grid_x + tx] += 1
+    offsets = np.zeros(ntiles + 1, np.int64)
+    start = np.empty((chunks, ntiles), np.int64)
+    total = 0
+    for t in range(ntiles):
+        offsets[t] = total
+        for c in range(chunks):
+            start[c, t] = total
+            total += counts[c, t]
+    offsets[ntiles] = total
+    ids = np.empty(total, np.int64)
+    for c in numba.prange(chunks):
+        cursor = start[c]
+        for j in range(c * step, min(n, (c + 1) * step)):
+            i = order[j]
+            for ty in range(rect[i, 1], rect[i, 3]):
+                for tx in range(rect[i, 0], rect[i, 2]):
+                    t = ty * grid_x + tx
+                    ids[cursor[t]] = j
+                    cursor[t] += 1
+    return ids, offsets
+
+
+@numba.njit(parallel=True, cache=True)
+def _gather_rows(order, xy, conic, base):
+    """xy[order], conic[order], base[order], in parallel."""
+    m = order.shape[0]
+    xy_o = np.empty((m, 2))
+    conic_o = np.empty((m, 3))
+    base_o = np.empty((m, 3))
+    for j in numba.prange(m):
+        i = order[j]
+        xy_o[j, 0] = xy[i, 0]
+        xy_o[j, 1] = xy[i, 1]
+        for k in range(3):
+            conic_o[j, k] = conic[i, k]
+            base_o[j, k] = base[i, k]
+    return xy_o, conic_o, base_o
+
+
+@numba.njit(parallel=True, cache=True, error_model="numpy")
+def _view_colours(ok, pos, sh_rest, eye, coeffs, base):
+    """base[i] = eval_sh(0, sh_rest, view_directions(pos, eye), clamp=False) of each splat with ok[i]: the
+    view-dependent part of its colour and the 0.5 offset (sh.sh_basis's products and einsum's sum, in their order;
+    `coeffs`: the basis size, (degree + 1)^2). In splat order, not depth order: the SH rows are read in sequence."""
+    for i in numba.prange(ok.shape[0]):
+        if not ok[i]:
+            continue
+        d0 = np.float64(pos[i, 0]) - eye[0]
+        d1 = np.float64(pos[i, 1]) - eye[1]
+        d2 = np.float64(pos[i, 2]) - eye[2]
+        n = np.sqrt(d0 * d0 + d1 * d1 + d2 * d2)
+        x = y = z = 0.0  # a splat at the eye: the zero direction
+        if n > 0:
+            x = d0 / n
+            y = d1 / n
+            z = d2 / n
+        xx, yy, zz = x * x, y * y, z * z
+        xy, yz, xz = x * y, y * z, x * z
+        for ch in range(3):
+            # sh_basis's products, summed in einsum's order (the DC term, zero here, first: colours_of adds it)
+            acc = SH_C0 * 0.0
+            if coeffs > 1:
+                acc += -SH_C1 * y * np.float64(sh_rest[i, 0, ch])
+                acc += SH_C1 * z * np.float64(sh_rest[i, 1, ch])
+                acc += -SH_C1 * x * np.float64(sh_rest[i, 2, ch])
+            if coeffs > 4:
+                acc += SH_C2[0] * xy * np.float64(sh_rest[i, 3, ch])
+                acc += SH_C2[1] * yz * np.float64(sh_rest[i, 4, ch])
+                acc += SH_C2[2] * (2.0 * zz - xx - yy) * np.float64(sh_rest[i, 5, ch])
+                acc += SH_C2[3] * xz * np.float64(sh_rest[i, 6, ch])
+                acc += SH_C2[4] * (xx - yy) * np.float64(sh_rest[i, 7, ch])
+            if coeffs > 9:
+                acc += SH_C3[0] * y * (3.0 * xx - yy) * np.float64(sh_rest[i, 8, ch])
+                acc += SH_C3[1] * xy * z * np.float64(sh_rest[i, 9, ch])
+                acc += SH_C3[2] * y * (4.0 * zz - xx - yy) * np.float64(sh_rest[i, 10, ch])
+                acc += SH_C3[3] * z * (2.0 * zz - 3.0 * xx - 3.0 * yy) * np.float64(sh_rest[i, 11, ch])
+                acc += SH_C3[4] * x * (4.0 * zz - xx - yy) * np.float64(sh_rest[i, 12, ch])
+                acc += SH_C3[5] * z * (xx - yy) * np.float64(sh_rest[i, 13, ch])
+                acc += SH_C3[6] * x * (xx - 3.0 * yy) * np.float64(sh_rest[i, 14, ch])
+            base[i, ch] = acc + COLOR_OFFSET
+
+
 # --- pair lists (fixed geometry) -----------------------------------------------------------------------------------
 
 @numba.njit(parallel=True, cache=True)
@@ -147,20 +450,25 @@ def _pairs_per_pixel(xy, conic, opacity, tile_ids, tile_offsets, width, height, 
         ty = t // grid_x
         tx = t - ty * grid_x
         s, e = tile_offsets[t], tile_offsets[t + 1]
+        row_i = np.empty(e - s, np.int64)
+        row_lo = np.empty(e - s, np.int64)
+        row_hi = np.empty(e - s, np.int64)
+        x0 = tx * TILE
+        x1 = min(x0 + TILE, width)
         for ly in range(TILE):
             y = ty * TILE + ly
             if y >= height:
                 break
-            for lx in range(TILE):
-                x = tx * TILE + lx
-                if x >= width:
-                    break
+            nr = _row_candidates(xy, conic, opacity, tile_ids, s, e, y, x0, x1, True, row_i, row_lo, row_hi)
+            for x in range(x0, x1):
                 pix = y * width + x
                 n = 0
                 pos = out_off[pix] if fill else 0
                 trans = 1.0
-                for k in range(s, e):
-                    i = tile_ids[k]
+                for k in range(nr):
+                    if x < row_lo[k] or x > row_hi[k]:
+                        continue
+                    i = row_i[k]
                     dx = xy[i, 0] - x
                     dy = xy[i, 1] - y
                     power = -0.5 * (conic[i, 0] * dx * dx + conic[i, 2] * dy * dy) - conic[i, 1] * dx * dy
@@ -209,18 +517,21 @@ def pair_lists(g: Gaussians, cams: list[Camera], sh_degree: int | None = None) -
     """The pair lists of `g` seen from `cams` (all of one size).
 
     Two passes, so the pairs are written once into arrays of their final size (no per-camera pieces concatenated:
-    that held the pairs twice at the peak): each camera's projection and per-pixel counts first, then the pairs."""
+    that held the pairs twice at the peak): each camera's per-pixel counts first, then the pairs. The second pass
+    projects each camera again (the same bits) and writes what the lists keep of it (16 B a projected splat) straight
+    into place, rather than keeping every camera's projection from the first: at a million splats 32 projections
+    held 2-3 GB (about 80 B a splat)."""
     width, height = cams[0].width, cams[0].height
     if any((cam.width, cam.height) != (width, height) for cam in cams):
         raise ValueError("pair_lists: the cameras differ in size")
     hw = width * height
     opacity_all = g.opacities.astype(np.float64)
-    cov3d = covariances(g) if len(g) else None
+    cov3d = covariances(g)
     empty_i = np.zeros(0, np.int32)
     empty_f = np.zeros(0, np.float32)
     no_counts = np.zeros(0, np.int64)  # pass 2 writes no counts (an int64 array: pass 1's compiled signature)
     pixel_offsets = np.zeros(len(cams) * hw + 1, np.int64)
-    projections = []
+    projected = np.zeros(len(cams) + 1, np.int64)  # camera c's projected splats: [projected[c], projected[c + 1])
     total = 0
     for c, cam in enumerate(cams):
         p = project(g, cam, sh_degree, cov3d)
@@ -232,19 +543,24 @@ def pair_lists(g: Gaussians, cams: list[Camera], sh_degree: int | None = None) -
         np.cumsum(counts, out=off[1:])
         off[1:] += total
         total = int(off[-1])
-        projections.append(p)
+        projected[c + 1] = projected[c] + len(p.index)
+        del p
     proj = np.empty(total, np.int32)
     pair_g = np.empty(total, np.float32)
-    proj_total = 0
-    for c, p in enumerate(projections):
+    splat = np.empty(projected[-1], np.int32)
+    base = np.empty((projected[-1], 3), np.float32)
+    for c, cam in enumerate(cams):
+        if projected[c + 1] == projected[c]:
+            continue
+        p = project(g, cam, sh_degree, cov3d)
+        splat[projected[c]:projected[c + 1]] = p.index
+        base[projected[c]:projected[c + 1]] = p.base
         s, e = pixel_offsets[c * hw], pixel_offsets[(c + 1) * hw]
         if e > s:
             _pairs_per_pixel(p.xy, p.conic, opacity_all[p.index], p.tile_ids, p.tile_offsets, width, height,
                              no_counts, True, pixel_offsets[c * hw:(c + 1) * hw + 1], proj, pair_g)
-            proj[s:e] += proj_total
-        proj_total += len(p.index)
-    splat = np.concatenate([p.index.astype(np.int32) for p in projections])
-    base = np.concatenate([p.base.astype(np.float32) for p in projections]).reshape(-1, 3)
+            proj[s:e] += projected[c]
+        del p
     return PairLists(pixel_offsets, proj, pair_g, splat, base, len(cams), width, height)
 
 

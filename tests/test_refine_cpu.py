@@ -4,6 +4,7 @@ small real scene."""
 from __future__ import annotations
 
 import json
+import math
 import os
 
 import numpy as np
@@ -15,11 +16,12 @@ pytest.importorskip("numba")
 from refine_cpu import raster  # noqa: E402
 from refine_cpu.levels import CpuLevelRefiner, CpuRefineSettings  # noqa: E402
 from splatstream import render_ref  # noqa: E402
-from splatstream.camera import scene_orbit_views  # noqa: E402
+from splatstream.camera import Camera, scene_orbit_views  # noqa: E402
 from splatstream.format.layout import morton_order  # noqa: E402
 from splatstream.io import read_gaussians  # noqa: E402
 from splatstream.lod import build_tiles  # noqa: E402
-from splatstream.lod_refine import VARIANT_FIELDS, level_cuts  # noqa: E402
+from splatstream.lod_refine import VARIANT_FIELDS, level_cuts, refine_cameras  # noqa: E402
+from splatstream.sh import eval_sh, view_directions  # noqa: E402
 
 
 @pytest.fixture(scope="module")
@@ -43,6 +45,110 @@ def test_forward_matches_the_numpy_reference(fruit):
         mine = raster.render(fruit, cam)
         assert mine.shape == ref.shape == (64, 80, 3) and ref.max() > 0.2
         assert psnr(mine, ref) > 60.0
+
+
+def numpy_projection(g, cam, sh_degree=None):
+    """raster.project's arrays by the numpy path it replaced: render_ref.preprocess, tile_lists, eval_sh."""
+    p = render_ref.preprocess(g, cam, sh_degree, color=False)
+    ids, offsets = render_ref.tile_lists(p, -(-cam.width // render_ref.TILE), -(-cam.height // render_ref.TILE))
+    base = eval_sh(np.zeros((len(p.index), 3)), g.sh_rest[p.index],
+                   view_directions(g.positions[p.index], np.asarray(cam.eye)), sh_degree, clamp=False)
+    return {"index": p.index, "xy": p.xy, "conic": p.conic, "base": base, "tile_ids": ids, "tile_offsets": offsets}
+
+
+def test_the_compiled_projection_is_the_numpy_paths_bit_for_bit(fruit):
+    # every array equal, not close: a last bit moved in a full-detail render or a pair's weight would move the
+    # refined scene's bytes. The refiner's own cameras, one inside the scene (splats behind it culled), another size,
+    # and a lowered SH degree.
+    cams = refine_cameras(fruit.positions, (0.0, 1.0, 0.0), 4, 96, seed=3)
+    centre = np.median(fruit.positions, axis=0).astype(np.float64)
+    inside = Camera(tuple(centre), tuple(centre + [1.0, 0.0, 0.0]), (0.0, 1.0, 0.0), 60.0, 80, 48, 0.01, 100.0)
+    for cam, degree in [*((c, None) for c in cams), (inside, None), (cams[0], 1)]:
+        mine = raster.project(fruit, cam, degree)
+        ref = numpy_projection(fruit, cam, degree)
+        assert 0 < len(ref["index"]) < (len(fruit) // 2 + 1 if cam is inside else len(fruit) + 1)
+        for name, want in ref.items():
+            got = getattr(mine, name)
+            assert got.dtype == want.dtype and got.shape == want.shape, name
+            assert np.array_equal(got.view(np.uint8), np.ascontiguousarray(want).view(np.uint8)), name
+        assert np.array_equal(raster.render(fruit, cam, degree), raster.render_projection(
+            raster.Projection(**ref, width=cam.width, height=cam.height),
+            fruit.opacities.astype(np.float64)[ref["index"]], raster.colours_of(mine, fruit.sh_dc)))
+
+
+def test_the_tile_binning_is_the_same_in_any_number_of_runs():
+    # raster._bin_tiles fills each tile from consecutive runs of the depth order in parallel (one run per thread at
+    # 65,536 projected splats and more): the same lists as one run and as render_ref.tile_lists' stable argsort
+    rng = np.random.default_rng(7)
+    grid_x, grid_y, n = 7, 5, 3000
+    lo = np.stack([rng.integers(0, grid_x, n), rng.integers(0, grid_y, n)], axis=1)
+    hi = lo + rng.integers(0, 3, (n, 2))  # some rectangles empty, some past the grid (the kernel clips them first)
+    hi = np.minimum(hi, [grid_x, grid_y])
+    rect = np.concatenate([lo, hi], axis=1).astype(np.int64)
+    order = rng.permutation(n)[: n - 100]
+    p = render_ref.Projected(index=order, xy=None, depth=None, conic=None, opacity=None, radius=None,
+                             rect_min=rect[order, :2], rect_max=rect[order, 2:], color=None)
+    want_ids, want_offsets = render_ref.tile_lists(p, grid_x, grid_y)
+    for chunks in (1, 2, 3, 8, 64):
+        ids, offsets = raster._bin_tiles(order, rect, grid_x, grid_x * grid_y, chunks)
+        assert np.array_equal(offsets, want_offsets) and np.array_equal(ids, want_ids), chunks
+
+
+def brute_force_walk(proj, opacity, colour):
+    """raster's render and pairs of one camera by the walk it had before its row lists: every splat of the pixel's
+    tile, in depth order, through the kernels' own tests (plain Python floats: IEEE doubles, as the kernels')."""
+    width, height = proj.width, proj.height
+    grid_x = -(-width // render_ref.TILE)
+    img = np.zeros((height, width, 3))
+    pairs = []
+    for y in range(height):
+        for x in range(width):
+            t = (y // render_ref.TILE) * grid_x + x // render_ref.TILE
+            ids = proj.tile_ids[proj.tile_offsets[t]:proj.tile_offsets[t + 1]]
+            trans, rgb, done = 1.0, [0.0, 0.0, 0.0], False
+            pix, trans_store = [], 1.0
+            for i in ids:
+                dx, dy = float(proj.xy[i, 0]) - x, float(proj.xy[i, 1]) - y
+                a, b, c = (float(v) for v in proj.conic[i])
+                power = -0.5 * (a * dx * dx + c * dy * dy) - b * dx * dy
+                if power > 0.0 or power < raster.POWER_SKIP:
+                    continue
+                g = math.exp(power)
+                alpha = min(render_ref.ALPHA_MAX, float(opacity[i]) * g)
+                if g >= render_ref.ALPHA_MIN and trans_store >= raster.T_STORE:
+                    pix.append((int(i), np.float32(g)))
+                    if alpha >= render_ref.ALPHA_MIN:
+                        trans_store *= 1.0 - alpha
+                if done or alpha < render_ref.ALPHA_MIN:
+                    continue
+                tn = trans * (1.0 - alpha)
+                if tn < render_ref.T_MIN:
+                    done = True
+                    continue
+                for ch in range(3):
+                    rgb[ch] += alpha * trans * float(colour[i, ch])
+                trans = tn
+            img[y, x] = rgb
+            pairs.append(pix)
+    return img.astype(np.float32), pairs
+
+
+def test_the_row_lists_skip_only_what_the_walk_skipped(part):
+    # the tile walk lists each pixel row's reachable splats first (raster._row_candidates): the same picture and the
+    # same pairs, bit for bit, as walking every splat of the tile; here with splats of every size (a close camera)
+    cams = [*scene_orbit_views(part.positions, 1, 40, 24, elevation_deg=25.0),
+            *refine_cameras(part.positions, (0.0, 1.0, 0.0), 1, 24, seed=5)]
+    for cam in cams:
+        proj = raster.project(part, cam)
+        opacity = part.opacities.astype(np.float64)[proj.index]
+        colour = raster.colours_of(proj, part.sh_dc)
+        want_img, want_pairs = brute_force_walk(proj, opacity, colour)
+        assert np.array_equal(raster.render_projection(proj, opacity, colour).view(np.uint32), want_img.view(np.uint32))
+        pl = raster.pair_lists(part, [cam])
+        assert len(pl.g) == sum(len(p) for p in want_pairs) > 1000
+        got = [list(zip(pl.proj[s:e].tolist(), pl.g[s:e], strict=True))
+               for s, e in zip(pl.pixel_offsets[:-1], pl.pixel_offsets[1:], strict=True)]
+        assert got == want_pairs
 
 
 def test_pair_lists_draw_the_same_picture(part):
