@@ -151,7 +151,7 @@ def test_the_cli_says_which_merge_the_default_took(tmp_path):
     assert r.returncode == 0 and "LOD merge auto (the default in memory" in r.stderr, r.stderr
     r = run_cli("encode", src, tmp_path / "small", "--max-leaf-splats", "1000", "--preset", "low",
                 "--memory-per-worker", "1MiB")
-    assert r.returncode == 0 and "LOD merge grid: its merge domains (subtrees of at most 2,097,152 splats) need 7 " \
+    assert r.returncode == 0 and "LOD merge grid: its merge domains (subtrees of at most 1,048,576 splats) need 7 " \
         "MiB per worker, more than the memory per worker (1 MiB)" in r.stderr, r.stderr
     r = run_cli("encode", src, tmp_path / "workers", "--lod-merge", "cost", "--workers", "2")
     assert r.returncode == 2 and "--lod-merge cost groups each LOD level over the whole scene" in r.stderr, r.stderr
