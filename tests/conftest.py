@@ -1,4 +1,5 @@
 import contextlib
+import hashlib
 import os
 import pathlib
 import signal
@@ -90,6 +91,16 @@ def real(name: str) -> pathlib.Path:
                     "shared test data (data/real/); set SPLATSTREAM_SHARED to the directory holding data/real/ "
                     "(default: ../shared beside the clone)")
     return path
+
+
+def tree_digest(path) -> dict[str, str]:
+    """Every file below `path` by its relative path: its SHA-256 (a scene directory compared byte for byte)."""
+    out = {}
+    for root, _, files in os.walk(path):
+        for f in files:
+            full = os.path.join(root, f)
+            out[os.path.relpath(full, path)] = hashlib.sha256(open(full, "rb").read()).hexdigest()
+    return out
 
 
 def run_cli(*args: str, cwd=None) -> subprocess.CompletedProcess:

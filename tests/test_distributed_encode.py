@@ -10,7 +10,7 @@ import socket
 
 import numpy as np
 import pytest
-from conftest import real
+from conftest import real, tree_digest
 
 from splatstream import lod
 from splatstream.encode import EncodeOptions, encode_file, encode_in_memory
@@ -43,15 +43,6 @@ def scene_ply(scene, tmp_path_factory) -> str:
     path = tmp_path_factory.mktemp("input") / "scene.ply"
     write_gaussians_ply(scene, path)
     return str(path)
-
-
-def tree_digest(path: str) -> dict[str, str]:
-    out = {}
-    for root, _, files in os.walk(path):
-        for f in files:
-            full = os.path.join(root, f)
-            out[os.path.relpath(full, path)] = hashlib.sha256(open(full, "rb").read()).hexdigest()
-    return out
 
 
 def store_digest(files: dict[str, bytes]) -> dict[str, str]:

@@ -9,7 +9,7 @@ import os
 
 import numpy as np
 import pytest
-from conftest import real
+from conftest import real, tree_digest
 
 from splatstream.encode import EncodeOptions, encode_file, encode_in_memory
 from splatstream.encode.local import LocalEngine
@@ -50,15 +50,6 @@ def store_digest(store) -> str:
     for k in sorted(store.payloads):
         h.update(k.encode() + store.payloads[k])
     return h.hexdigest()
-
-
-def tree_digest(path: str) -> dict[str, str]:
-    out = {}
-    for root, _, files in os.walk(path):
-        for f in files:
-            full = os.path.join(root, f)
-            out[os.path.relpath(full, path)] = hashlib.sha256(open(full, "rb").read()).hexdigest()
-    return out
 
 
 def partitioned(scene: Gaussians, opts: EncodeOptions, memory: int, threads: int, tmp_path) -> MemoryWriter:
