@@ -128,9 +128,9 @@ def test_output_bytes_are_615105a_s(inputs, tmp_path, case):
 
 def test_the_default_merge_is_auto_in_memory_and_by_partitions(inputs, tmp_path):
     """Issue 31: an encode that names no merge takes auto (sharper at a splat budget), in memory and by partitions
-    (inside partitions of at most 2^21 splats, its merge domains: branch partauto31); a scene of one domain is the
-    in-memory bytes on Dask. Where a domain does not fit the memory per worker the default takes the grid and a named
-    auto is refused."""
+    (inside partitions of at most 2^20 splats, its merge domains: branch partauto31, 6e9207e); a scene of one
+    domain is the in-memory bytes on Dask. Where a domain does not fit the memory per worker the default takes the
+    grid and a named auto is refused."""
     default = {"max_leaf_splats": 300}
     encode_file(inputs["ply"], str(tmp_path / "memory"), preset="low", **default)
     encode_file(inputs["ply"], str(tmp_path / "auto"), preset="low", lod_merge="auto", **default)

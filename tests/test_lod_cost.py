@@ -13,6 +13,7 @@ from conftest import real, run_cli
 
 from splatstream import lod, lod_groups
 from splatstream.encode import encode_file
+from splatstream.encode.options import EncodeOptions
 from splatstream.errors import UsageError
 from splatstream.gaussians import Gaussians
 from splatstream.lod_groups import GroupRule
@@ -149,6 +150,10 @@ def test_the_cli_says_which_merge_the_default_took(tmp_path):
     src = real("fruit_drops_sh3.ply")
     r = run_cli("encode", src, tmp_path / "memory", "--max-leaf-splats", "1000", "--preset", "low")
     assert r.returncode == 0 and "LOD merge auto (the default in memory" in r.stderr, r.stderr
+    # the domain size the help names is the encoder's (it said 2M splats after the domains became 2^20: newuser57)
+    r = run_cli("encode", "--help")
+    assert r.returncode == 0 and f"partitions of at most {EncodeOptions.lod_merge_domain_splats:,} splats" in \
+        " ".join(r.stdout.split()), r.stdout
     r = run_cli("encode", src, tmp_path / "small", "--max-leaf-splats", "1000", "--preset", "low",
                 "--memory-per-worker", "1MiB")
     assert r.returncode == 0 and "LOD merge grid: its merge domains (subtrees of at most 1,048,576 splats) need 7 " \
@@ -159,7 +164,7 @@ def test_the_cli_says_which_merge_the_default_took(tmp_path):
     pytest.importorskip("distributed")
     r = run_cli("encode", src, tmp_path / "parts", "--max-leaf-splats", "1000", "--preset", "low", "--workers", "1",
                 "--memory-per-worker", "64MiB")
-    assert r.returncode == 0 and "LOD merge auto (the default), inside 1 partitions of at most 4,721" in r.stderr, \
+    assert r.returncode == 0 and "LOD merge auto (the default), inside 1 partition of at most 4,721" in r.stderr, \
         r.stderr
 
 

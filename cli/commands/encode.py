@@ -99,8 +99,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "the grid's, whichever is closer to the tile's splats); cost in-process encodes only. "
                         "Default: auto (sharper at most splat budgets, 1.4-1.9x the grid's encode CPU: "
                         "BENCHMARKS.md, LOD against peers); a partitioned encode (--workers, --scheduler, a scene "
-                        "over --memory-per-worker) runs it inside partitions of at most 2M splats and over the "
-                        "levels above them, and takes the grid where such a partition does not fit a worker")
+                        "over --memory-per-worker) runs it inside partitions of at most "
+                        f"{EncodeOptions.lod_merge_domain_splats:,} splats and over the levels above them, and "
+                        "takes the grid where such a partition does not fit a worker")
     p.add_argument("--page-tiles", type=int, default=EncodeOptions.page_tiles,
                    help="write a tree of more than N tiles as a root manifest and manifest pages, so a client needs "
                         f"only the tree's top before its first frame (format 1.5; 0: never; default "

@@ -558,8 +558,10 @@ def _auto_partitions(shape: TreeShape, row_bytes: int, engine: Engine, opts: Enc
     largest = -(-shape.splats // 2 ** shape.kd_depths[domain])
     need = largest * (row_bytes * PARTITION_MEMORY_FACTOR + AUTO_GROUPING_BYTES)
     if need <= engine.memory_per_worker:
-        log.info("LOD merge auto%s, inside %d partitions of at most %s splats and over the levels above them",
-                 "" if opts.lod_merge is not None else " (the default)", 2 ** shape.kd_depths[domain], f"{largest:,}")
+        partitions = 2 ** shape.kd_depths[domain]
+        log.info("LOD merge auto%s, inside %s of at most %s splats and over the levels above them",
+                 "" if opts.lod_merge is not None else " (the default)",
+                 "1 partition" if partitions == 1 else f"{partitions:,} partitions", f"{largest:,}")
         return "auto", domain
     message = (f"its merge domains (subtrees of at most {opts.lod_merge_domain_splats:,} splats) need "
                f"{math.ceil(need / 2**20):,} MiB per worker, more than the memory per worker "
