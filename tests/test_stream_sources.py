@@ -90,3 +90,13 @@ def test_a_local_store_reports_missing_payloads(tmp_path):
         asyncio.run(open_source(scene).fetch_payload(entry))
     assert exc.value.kind == "missing" and exc.value.transient
     assert str(exc.value) == f"{scene}/{entry.file}: payload file named in the manifest is missing"
+
+
+def test_an_unbundled_sog_directory_is_a_splat_file():
+    """A directory holding a SOG's meta.json and planes (no manifest.msgpack) is streamed as its meta.json is, as
+    `convert`, `render` and `encode` read it (newuser57: `view` refused PlayCanvas's logo directory)."""
+    unit = real("flowers_lod/3_0")
+    src = open_source(unit, encode_options=EncodeOptions(max_leaf_splats=1000))
+    assert isinstance(src, StoreSource) and isinstance(src.store, MemoryStore)
+    by_meta = open_source(unit / "meta.json", encode_options=EncodeOptions(max_leaf_splats=1000))
+    assert asyncio.run(src.fetch_manifest()) == asyncio.run(by_meta.fetch_manifest())

@@ -287,6 +287,7 @@ class StoreSource:
 # What the user typed
 
 
+SOG_META_NAME = "meta.json"  # an unbundled SOG scene's (version 1 or 2) description, beside its WebP planes
 OBJECT_STORE_SCHEMES = ("s3", "gs", "gcs", "az", "abfs", "memory")
 
 
@@ -295,7 +296,8 @@ def open_source(spec: str | os.PathLike, *, encode_options=None, progress: Progr
     """A source for an `http(s)://` scene URL, a scene directory (or its manifest.msgpack), a PlayCanvas streamed
     SOG (lod-meta.json or its directory: its own LOD tree, encoded in memory), a Spark .rad (its own LoD tree,
     encoded in memory), or a splat file
-    (3DGS PLY, compressed PLY, SPZ, .splat: read and encoded in memory with LOD on; `progress(stage, fraction)`
+    (3DGS PLY, compressed PLY, SPZ, .splat, SOG: a .sog, a meta.json or its directory: read and encoded in memory
+    with LOD on; `progress(stage, fraction)`
     follows the read and the encode; `encode_options` an EncodeOptions). Raises UsageError or InputError with
     one line naming `spec` and what was expected."""
     text = os.fspath(spec)
@@ -321,6 +323,10 @@ def open_source(spec: str | os.PathLike, *, encode_options=None, progress: Progr
         # Spark's LoD tree of splats, converted into our tiles on the fly (splatstream/rad_import.py).
         return StoreSource(encode_rad(text, encode_options, progress))
     if os.path.isdir(text):
+        if not os.path.isfile(os.path.join(text, MANIFEST_NAME)) and \
+                os.path.isfile(os.path.join(text, SOG_META_NAME)):
+            # An unbundled SOG's directory, as `convert`, `render` and `encode` read it (its meta.json).
+            return StoreSource(encode_splat_file(os.path.join(text, SOG_META_NAME), encode_options, progress))
         if not os.path.isfile(os.path.join(text, MANIFEST_NAME)):
             raise InputError(text, None, f"not a scene directory (no {MANIFEST_NAME}; encode a splat file with "
                              f"`splatstream encode`, or pass the splat file itself)")
