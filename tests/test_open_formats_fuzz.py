@@ -159,7 +159,7 @@ def _recentroid(scene: pathlib.Path, width: int) -> None:
 
 @pytest.mark.parametrize("edit,match", [
     (lambda m, s: m.update(version=1), "expected 2, or none"),
-    (lambda m, s: m["means"].pop("shape"), "means.shape"),
+    (lambda m, s: m["means"].pop("shape"), "means.shape: missing"),
     (lambda m, s: m["means"].update(shape=[]), "means.shape"),
     (lambda m, s: m["means"].update(shape=["300", 3]), r"means.shape\[0\]"),
     (lambda m, s: m["means"].update(shape=[10 ** 15, 3]), r"means.shape\[0\]"),

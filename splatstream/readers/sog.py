@@ -248,7 +248,8 @@ def _v1_count(label: str, meta: dict, budget: int) -> int:
     high = max(0, budget // BYTES_PER_SPLAT)
     shape = meta["means"].get("shape")
     if not isinstance(shape, list) or not shape:
-        raise InputError(label, "means.shape", f"{shape!r} (a SOG version 1 meta.json gives the splat count as "
+        got = "missing" if shape is None else repr(shape)
+        raise InputError(label, "means.shape", f"{got} (a SOG version 1 meta.json gives the splat count as "
                          "means.shape [count, 3])")
     count = _int(label, "means.shape[0]", shape[0], 0, high)
     for key in ("scales", "quats", "sh0"):
