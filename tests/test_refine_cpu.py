@@ -267,6 +267,9 @@ def test_cli_refines_on_the_cpu_records_it_and_keeps_the_leaves(fruit, tmp_path)
                 "--lod-refine-size", "64")
     assert r.returncode == 0, r.stderr
     assert "lod-refine: full-detail renders" in r.stderr and "lod-refine: level 0 (" in r.stderr  # progress shown
+    lines = r.stderr.splitlines()
+    last_level = max(i for i, line in enumerate(lines) if line.startswith("lod-refine: level "))
+    assert [i for i, line in enumerate(lines) if line.startswith("encode: refine 100%")] > [last_level], r.stderr
     mp, mr = read_manifest(open_store(plain)), read_manifest(open_store(refined))
     rec = mr.lod.refinement
     assert mp.lod.refinement is None and rec is not None
