@@ -468,10 +468,16 @@ def merge_children(scratch: Scratch, shape: TreeShape, lvl: int, j: int
     members = Gaussians.concatenate([k.gaussians for k, _ in kids])
     target = min(shape.max_leaf_splats, math.ceil(len(members) / shape.reduction))
     g, mass, assign = merge_gaussians(members, np.concatenate([m for _, m in kids]), target)
+    return g, mass, assign, *_released(kids)
+
+
+def _released(kids: list[tuple[Tile, np.ndarray]]) -> tuple[np.ndarray, list[Tile]]:
+    """The children's offsets among their merged members, and the children without their splats (only their bounds
+    are needed from here on)."""
     offsets = np.cumsum([0] + [len(k.gaussians) for k, _ in kids])
     for k, _ in kids:
         k.gaussians = Gaussians.empty(0)
-    return g, mass, assign, offsets, [k for k, _ in kids]
+    return offsets, [k for k, _ in kids]
 
 
 def merge_level(scratch: Scratch, shape: TreeShape, lvl: int, threads: int
@@ -491,10 +497,7 @@ def merge_level(scratch: Scratch, shape: TreeShape, lvl: int, threads: int
     out = []
     for kids, members, mass, grp in zip(kids_of, sets, masses, groups, strict=True):
         g, merged_mass, assign = merge_groups(members, mass, *grp)
-        offsets = np.cumsum([0] + [len(k.gaussians) for k, _ in kids])
-        for k, _ in kids:
-            k.gaussians = Gaussians.empty(0)
-        out.append((g, merged_mass, assign, offsets, [k for k, _ in kids]))
+        out.append((g, merged_mass, assign, *_released(kids)))
     return out
 
 

@@ -242,10 +242,9 @@ def _lerp_bytes(texels: np.ndarray, lo: np.ndarray | float, hi: np.ndarray | flo
         return (lo + (np.asarray(hi, np.float64) - lo) * (texels.astype(np.float64) / 255.0)).astype(np.float32)
 
 
-def _v1_count(label: str, meta: dict, budget: int) -> int:
-    """The splat count of a SOG version 1 meta.json: `means.shape[0]` (what the engine and splat-transform read);
-    every other section's `shape`, where given, must say the same count."""
-    high = max(0, budget // BYTES_PER_SPLAT)
+def _v1_count(label: str, meta: dict, high: int) -> int:
+    """The splat count of a SOG version 1 meta.json (at most `high`): `means.shape[0]` (what the engine and
+    splat-transform read); every other section's `shape`, where given, must say the same count."""
     shape = meta["means"].get("shape")
     if not isinstance(shape, list) or not shape:
         got = "missing" if shape is None else repr(shape)
@@ -304,12 +303,11 @@ def _read_unit(source: _Source, meta_name: str, named_by: str | None = None) -> 
     if version is not None and version != 2:
         raise InputError(label, "version", f"{version!r} (expected 2, or none: version 1)")
     v1 = version is None  # the deprecated layout: per-channel mins/maxs instead of codebooks (module docstring)
-    budget = memory_budget()
     for key in ("means", "scales", "quats", "sh0"):
         if not isinstance(meta.get(key), dict):
             raise InputError(label, key, "missing or not an object")
-    count = _v1_count(label, meta, budget) if v1 else \
-        _int(label, "count", meta.get("count"), 0, max(0, budget // BYTES_PER_SPLAT))
+    most = max(0, memory_budget() // BYTES_PER_SPLAT)
+    count = _v1_count(label, meta, most) if v1 else _int(label, "count", meta.get("count"), 0, most)
     model = meta.get("model", "default")
     if model != "default":
         warnings.warn(f"{label}: splat model {model!r} (trained with a special kernel) is read as ordinary "
