@@ -76,12 +76,8 @@ def cov2d(means: np.ndarray, cov3d: np.ndarray, camera: Camera) -> tuple[np.ndar
     return out, t
 
 
-def preprocess(g: Gaussians, camera: Camera, sh_degree: int | None = None, *, cov3d: np.ndarray | None = None,
-               color: bool = True) -> Projected:
-    """Project, cull and colour the splats; returns the survivors sorted by depth (stable).
-
-    `cov3d`: covariances(g), when the caller projects one splat set for many cameras (the same numbers, computed
-    once); `color` False leaves `color` empty (0, 3) for callers that colour the splats themselves."""
+def preprocess(g: Gaussians, camera: Camera, sh_degree: int | None = None) -> Projected:
+    """Project, cull and colour the splats; returns the survivors sorted by depth (stable)."""
     width, height = camera.width, camera.height
     grid_x = (width + TILE - 1) // TILE
     grid_y = (height + TILE - 1) // TILE
@@ -90,7 +86,7 @@ def preprocess(g: Gaussians, camera: Camera, sh_degree: int | None = None, *, co
     depth_all = pos @ m[2, :3] + m[2, 3]
     keep = np.nonzero(depth_all > camera.near)[0]
     pos = pos[keep]
-    cov, t = cov2d(pos, covariances(g.subset(keep)) if cov3d is None else cov3d[keep], camera)
+    cov, t = cov2d(pos, covariances(g.subset(keep)), camera)
     a, b, c = cov[:, 0], cov[:, 1], cov[:, 2]
     det = a * c - b * b
     ok = (det != 0) & np.isfinite(det)
@@ -120,8 +116,7 @@ def preprocess(g: Gaussians, camera: Camera, sh_degree: int | None = None, *, co
     order = sel[np.argsort(t[sel, 2], kind="stable")]
     idx = keep[order]
     eye = np.asarray(camera.eye)
-    colors = (eval_sh(g.sh_dc[idx], g.sh_rest[idx], view_directions(g.positions[idx], eye), sh_degree) if color
-              else np.zeros((0, 3)))
+    colors = eval_sh(g.sh_dc[idx], g.sh_rest[idx], view_directions(g.positions[idx], eye), sh_degree)
     return Projected(
         index=idx,
         xy=np.stack([px[order], py[order]], axis=1),
