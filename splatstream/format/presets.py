@@ -389,6 +389,22 @@ def preset_block_slack(preset: str) -> float:
     return PRESET_BLOCK_SLACK.get(preset, 0.0)
 
 
+# Presets whose encoder stores each splat's rotation as the one of its 24 equivalent (rotation, scales) pairs closest
+# to the identity (rotation_canon.canonical_gauge; format.md 4.5): the same covariances, a decoder sees nothing new
+# (issue 32, rot32). Only where the rotation is quantised (a float rotation is stored as given); palette scales take
+# it too: one palette holds the three axes (planes.PALETTE_GROUPS), so a permuted scale stays on it.
+# The gauge's group per preset: "cube" (all 24) or "half-turns" (1, i, j, k: scales unchanged).
+PRESET_ROTATION_GAUGE: dict[str, str] = {}
+
+
+def rotation_gauge(preset: str, formats: dict[str, str]) -> str | None:
+    """The canonical gauge `preset`'s encoder picks with these formats (PRESET_ROTATION_GAUGE), None for none: none
+    for float rotations (stored as given)."""
+    if get_format(formats["rotation"]).levels[0] == 0:
+        return None
+    return PRESET_ROTATION_GAUGE.get(preset)
+
+
 def preset_one_block_slack(preset: str) -> float:
     """How much larger `preset`'s small payloads may be stored as one zstd block (container.write_payload)."""
     return PRESET_ONE_BLOCK_SLACK.get(preset, 0.0)
