@@ -65,6 +65,8 @@ def parse_config(spec: str) -> tuple[str, str, dict]:
             extra["zstd"] = int(v)
         elif k == "transport":
             extra["transport"] = v
+        elif k == "gauge":  # the canonical rotation gauge (presets.PRESET_ROTATION_GAUGE): cube, half-turns, off
+            extra["gauge"] = v
         else:
             extra["overrides"][k] = v
     return label, preset, extra
@@ -100,6 +102,11 @@ def register(label: str, preset: str, extra: dict) -> str:
     P.PRESET_SH_CODEBOOK[name] = cb
     P.PRESET_ZSTD_LEVEL[name] = extra.get("zstd", P.PRESET_ZSTD_LEVEL.get(preset, 1))
     P.PRESET_TRANSPORT[name] = extra.get("transport", P.PRESET_TRANSPORT.get(preset, "fields"))
+    gauge = extra.get("gauge", P.PRESET_ROTATION_GAUGE.get(preset, "off"))
+    if gauge == "off":
+        P.PRESET_ROTATION_GAUGE.pop(name, None)
+    else:
+        P.PRESET_ROTATION_GAUGE[name] = gauge
     return name
 
 

@@ -21,6 +21,7 @@ from splatstream.encode.partitioned import ArrayRows, encode_partitioned
 from splatstream.encode.plan import plan_tiles
 from splatstream.encode.scratch import Scratch
 from splatstream.errors import FormatError
+from splatstream.format import presets
 from splatstream.format.layout import morton_order
 from splatstream.format.manifest import manifest_from_dict, pack_manifest, parse_manifest, split_pages
 from splatstream.format.manifest.versions import FORMAT_VERSION, VERSION_1_8, VERSION_1_9, VERSION_1_10
@@ -152,7 +153,9 @@ def test_the_table_vector_is_a_2_px_tree_that_today_s_encoder_records(tmp_path, 
     """format.md 8: the `table` vector (1.8) was written before the 2 + 8 px rule, so it is a 2-px tree that cannot
     say so. Its input and options encoded today with the far scale at 2 px give the same payload files and tiles,
     and the record says [2, 2] (version 1.9; pages differ in their version and the names of the pages below them);
-    at today's scales (8, 12, 16 px) the levels above the first merged one differ."""
+    at today's scales (8, 12, 16 px) the levels above the first merged one differ. It was also written before
+    `medium` stored its rotations in the half-turn gauge (rot32, format.md 4.5), so the gauge is off here."""
+    monkeypatch.delitem(presets.PRESET_ROTATION_GAUGE, "medium")
     spec = importlib.util.spec_from_file_location("make_vectors", VECTORS / "make_vectors.py")
     make_vectors = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(make_vectors)

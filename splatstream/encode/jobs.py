@@ -5,6 +5,8 @@ pool of threads or a cluster of workers can run them and the result does not dep
 """
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 
 from ..format.codec import EncodedPlane, encode_index_plane, encode_plane, plane_values
@@ -16,6 +18,7 @@ from ..format.planes import BASE_PLANES, SH_INDEX_FORMAT, band_of, band_plane, c
 from ..format.steps import TileStep, splat_sizes
 from ..gaussians import Gaussians
 from ..lod import Tile, extent_bounds
+from ..rotation_canon import canonical_gauge
 from ..store import SceneWriter
 from ..vq import Codebook
 from .codebook import assign_sh_codebook, codebook_planes, codebook_weights
@@ -84,6 +87,11 @@ def group_planes_of(g: Gaussians, order: np.ndarray, group: str, ctx: TileContex
     if ctx.codebook is not None and group == "sh1":
         return [encode_index_plane(assign_sh_codebook(ctx.codebook, g), order)]
     specs = BASE_PLANES if group == "base" else (band_plane(band_of(group)),)
+    if group == "base" and ctx.rotation_gauge:
+        # The same covariances with rotations near the identity, which code smaller (rotation_canon.py). Only the
+        # rotation and scale planes read the swapped values; every other plane and the order are the tile's own.
+        rotations, log_scales = canonical_gauge(g.rotations, g.log_scales, ctx.rotation_gauge)
+        g = replace(g, rotations=rotations, log_scales=log_scales)
     planes = []
     for s in specs:
         step = ctx.steps.get(s.name, ctx.steps.get(s.attribute))

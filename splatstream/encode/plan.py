@@ -29,6 +29,7 @@ from ..format.presets import (
     preset_zstd_min_match,
     resolve_chunk_order,
     resolve_formats,
+    rotation_gauge,
 )
 from ..format.steps import TileStep, on_grid
 from ..format.texformats import PALETTE_FORMATS
@@ -64,6 +65,9 @@ class TileContext:
     zstd_min_match: int = 0
     # How much larger a small payload may be stored as one zstd block (container.write_payload; the preset's)
     one_block_slack: float = 0.0
+    # Store each splat's rotation and scales as the equivalent pair whose rotation is closest to the identity in
+    # this group (rotation_canon.canonical_gauge: "cube" or "half-turns"; the preset's: presets.rotation_gauge)
+    rotation_gauge: str | None = None
 
 
 @dataclass(frozen=True)
@@ -193,7 +197,7 @@ def plan_scene(opts: EncodeOptions, formats: dict[str, str], chunk_order: str, s
     formats, steps, palettes = plan_palettes(opts, formats, sample.palettes)
     context = TileContext(formats, chunk_order, sh_degree, codebook, opts.resolved_zstd_level, opts.resolved_transport,
                           steps, palettes, preset_block_slack(opts.preset), preset_zstd_min_match(opts.preset),
-                          preset_one_block_slack(opts.preset))
+                          preset_one_block_slack(opts.preset), rotation_gauge(opts.preset, formats))
     return ScenePlan(context, opts.preset, name, splats, bounds, up, opts.max_leaf_splats, float(opts.reduction),
                      lod_merge, viewing_scales_px() if lod_merge is not None else None), sample
 

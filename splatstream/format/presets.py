@@ -389,6 +389,28 @@ def preset_block_slack(preset: str) -> float:
     return PRESET_BLOCK_SLACK.get(preset, 0.0)
 
 
+# Presets whose encoder stores each splat's rotation as the one of its equivalent (rotation, scales) pairs closest to
+# the identity (rotation_canon.canonical_gauge; format.md 4.5): the same covariances, a decoder sees nothing new
+# (issue 32, rot32; BENCHMARKS.md, "Rotations in a canonical gauge"). "cube" (of all 24, the scales permuted) for the
+# xyz rotations (norm565), whose w, derived from x, y, z, was coarse where it is small: there it is at least 0.85,
+# +0.15 to +3.8 dB with 1-4 % fewer bytes on 13 of 14 scenes measured (fruit -0.17 dB); "half-turns" (of 1, i, j, k:
+# the same components in another order, the scales kept, so the same picture) for smallest-three rotations, whose
+# largest-component index is then constant: 0.3-1.6 % fewer bytes at the same PSNR (medium on guitar +0.2 %). The
+# cube's mixing of components moves a rotation off another tool's 8- or 10-bit grid (a SOG's, a compressed PLY's),
+# which cost smallest-three presets up to 2.2 dB there. Only where the rotation is quantised (a float rotation is
+# stored as given); palette scales could take the cube too: one palette holds the three axes (PALETTE_GROUPS).
+PRESET_ROTATION_GAUGE: dict[str, str] = {"low": "cube", "very-low-rgb127": "cube", "very-low": "cube",
+                                         "medium": "half-turns", "medium-low": "half-turns"}
+
+
+def rotation_gauge(preset: str, formats: dict[str, str]) -> str | None:
+    """The canonical gauge `preset`'s encoder picks with these formats (PRESET_ROTATION_GAUGE), None for none: none
+    for float rotations (stored as given)."""
+    if get_format(formats["rotation"]).levels[0] == 0:
+        return None
+    return PRESET_ROTATION_GAUGE.get(preset)
+
+
 def preset_one_block_slack(preset: str) -> float:
     """How much larger `preset`'s small payloads may be stored as one zstd block (container.write_payload)."""
     return PRESET_ONE_BLOCK_SLACK.get(preset, 0.0)
