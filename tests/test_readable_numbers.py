@@ -39,6 +39,20 @@ def test_view_summary_says_how_many_splats_were_drawn_against_the_budget():
     assert transfer_and_memory(report).startswith("3,000 splats drawn, 0.12 MB read, ")
 
 
+def test_view_summary_gives_a_fractional_budget_and_the_bytes_from_the_disk_cache():
+    # --gpu-mem-mb 0.5 on the logo: 'GPU 0.5 MiB for 23,784 resident splats (budget 0 MiB)', read as over budget;
+    # a second view of a served scene: '0.00 MB downloaded' and nothing about the 0.10 MB the disk cache gave
+    report = {"bytes_downloaded": 0, "resident_gpu_bytes": 148_036, "resident_splats": 5436, "drawn_splats": 4833,
+              "gpu_budget_bytes": 1 << 19, "fetch": {"manifest_source": "revalidated", "bytes_from_cache": 103_107}}
+    assert transfer_and_memory(report) == ("4,833 splats drawn, 0.00 MB downloaded (0.10 MB from the disk cache), "
+                                           "GPU 0.1 MiB for 5,436 resident splats (budget 0.5 MiB)")
+    report["gpu_budget_bytes"] = int(0.07 * 2**20)
+    assert transfer_and_memory(report).endswith("(budget 0.07 MiB)")
+    report["gpu_budget_bytes"], report["fetch"]["bytes_from_cache"] = 1024 << 20, 0
+    assert transfer_and_memory(report).endswith("0.00 MB downloaded, GPU 0.1 MiB for 5,436 resident splats "
+                                                "(budget 1024 MiB)")
+
+
 def test_info_help_describes_its_positional():
     r = run_cli("info", "--help")
     assert r.returncode == 0

@@ -216,14 +216,19 @@ def run(args: argparse.Namespace) -> int:
 def transfer_and_memory(report: dict, max_splats: int | None = None) -> str:
     """'4,721 splats drawn, 1.80 MB read, GPU 3.1 MiB for 4,721 resident splats (budget 1024 MiB)': the splats the
     last frame drew (against --max-splats where one is set: resident splats alone, which keep the coarser tiles
-    drawn on the way, read as over the budget), bytes read from a local scene or downloaded from a server, and the
-    GPU memory the resident splats use against the budget (the pool itself is allocated whole up front: its size
-    says nothing about the scene)."""
+    drawn on the way, read as over the budget), bytes read from a local scene or downloaded from a server (and those
+    taken from the disk cache), and the GPU memory the resident splats use against the budget as given (the pool
+    itself is allocated whole up front: its size says nothing about the scene)."""
     local = report.get("fetch", {}).get("manifest_source") == "local"
     splats = report.get("resident_splats", 0)
     drawn = report.get("drawn_splats")
     shown = "" if drawn is None else f"{drawn:,} splat{'' if drawn == 1 else 's'} drawn" + (
         f" (--max-splats {max_splats:,})" if max_splats is not None else "") + ", "
-    return (f"{shown}{report['bytes_downloaded'] / 1e6:.2f} MB {'read' if local else 'downloaded'}, "
+    # Payloads taken from the disk cache are neither read from the scene nor downloaded: a second view of a served
+    # scene said '0.00 MB downloaded' and no more, as if nothing had been loaded.
+    cached = report.get("fetch", {}).get("bytes_from_cache", 0)
+    from_cache = f" ({cached / 1e6:.2f} MB from the disk cache)" if cached else ""
+    # The budget as given (--gpu-mem-mb 0.5 printed 'budget 0 MiB' beside 'GPU 0.5 MiB', read as over it).
+    return (f"{shown}{report['bytes_downloaded'] / 1e6:.2f} MB {'read' if local else 'downloaded'}{from_cache}, "
             f"GPU {report['resident_gpu_bytes'] / 2**20:.1f} MiB for {splats:,} resident "
-            f"splat{'' if splats == 1 else 's'} (budget {report['gpu_budget_bytes'] / 2**20:.0f} MiB)")
+            f"splat{'' if splats == 1 else 's'} (budget {report['gpu_budget_bytes'] / 2**20:.4g} MiB)")
