@@ -86,6 +86,23 @@ def test_eval_cli_missing_input(tmp_path, capsys):
     assert "no such file" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("flag, name", [("--json", "r.json"), ("--plot", "p.png"), ("--markdown", "t.md")])
+def test_eval_outputs_that_cannot_be_written_are_refused_before_measuring(flag, name, tmp_path, capsys):
+    # --json into a read-only directory was found after every encode and render: exit 1 and the system's words
+    # ('ro/x.json: Read-only file system'); /proc takes no new file, whoever runs the test (root included)
+    rc = main(["eval", str(real("fruit_drops_sh3.ply")), "--renderer", "ref", "--size", "32x32", "--views", "1",
+               "--presets", "low", flag, f"/proc/{name}"])
+    assert rc == 2
+    captured = capsys.readouterr()
+    assert f"/proc/{name}: cannot write in /proc" in captured.err
+    assert "| low |" not in captured.out and "low:" not in captured.err  # nothing measured
+    assert main(["eval", str(real("fruit_drops_sh3.ply")), "--presets", "low", "--encoded", "/proc/enc"]) == 2
+    assert "/proc/enc/low: cannot write in /proc" in capsys.readouterr().err
+    (tmp_path / "d.json").mkdir()
+    assert main(["eval", str(real("fruit_drops_sh3.ply")), "--presets", "low", "--json", str(tmp_path / "d.json")]) == 2
+    assert "is a directory, expected a file name" in capsys.readouterr().err
+
+
 def test_parse_compare_and_seed_sizes(tmp_path):
     f = tmp_path / "a.ply"
     f.write_bytes(b"x")
