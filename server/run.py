@@ -175,7 +175,10 @@ def serve(root: str, host: str = "127.0.0.1", port: int = 8000, cors_origins: It
               file=sys.stderr, flush=True)
     bound = sock.getsockname()
     shown = f"[{bound[0]}]" if sock.family == socket.AF_INET6 else bound[0]
-    print(f"splatstream serve: {len(ids)} scene{'s' if len(ids) != 1 else ''} from {os.path.abspath(root)} at "
+    # A root of exported tilesets alone said '0 scenes from ...', which reads as nothing served: they are counted.
+    tilesets = find_tilesets(root)
+    also = f" and {len(tilesets)} 3D Tiles tileset{'s' if len(tilesets) != 1 else ''}" if tilesets else ""
+    print(f"splatstream serve: {len(ids)} scene{'s' if len(ids) != 1 else ''}{also} from {os.path.abspath(root)} at "
           f"http://{shown}:{bound[1]}/ ({workers} worker{'s' if workers != 1 else ''} of at most "
           f"{limits.max_connections} connections; scene list at /api/scenes; "
           f"SIGTERM or Ctrl-C stops)", file=sys.stderr, flush=True)
