@@ -316,7 +316,7 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
         t = time.perf_counter()
         tree = plan_tiles(g, EncodeOptions(lod=True, **opts.encode_options), no_progress)
         tree_s = time.perf_counter() - t
-        log(f"built the LOD tree every encode takes: {len(tree)} tiles ({tree_s:.2f} s)")
+        log(f"built the LOD tree every encode takes: {count(len(tree), 'tile')} ({tree_s:.2f} s)")
     try:
         def encode_and_measure(label: str, kind: str, preset: str, overrides: dict[str, str],
                                sh_degree: int | None = None, sh_codebook: str | None = None) -> Row:
@@ -509,8 +509,9 @@ def report_markdown(report: dict, reference_table: bool = False) -> str:
     if shown.lower() in ("lod-meta.json", "meta.json"):  # the format's name: its directory says which scene
         shown = f"{os.path.basename(os.path.dirname(os.path.abspath(inp['path'])))}/{shown}"
     lines = [f"Scene `{shown}`: {inp['splats']:,} splats, SH{inp['sh_degree']}, "
-             f"{inp['bytes']:,} bytes ({inp['bytes_per_splat']:.1f} B/splat). {len(report['cameras'])} views at "
-             f"{report['size'][0]}x{report['size'][1]}, renderer: {report['renderer']}. PSNR/SSIM: mean over views "
+             f"{inp['bytes']:,} bytes ({inp['bytes_per_splat']:.1f} B/splat). "
+             f"{count(len(report['cameras']), 'view')} at {report['size'][0]}x{report['size'][1]}, "
+             f"renderer: {report['renderer']}. PSNR/SSIM: mean over views "
              f"(worst view in brackets). splatstream {report.get('source', {}).get('commit', '')[:10]}"
              + (" with local changes" if report.get("source", {}).get("local_changes") else "") + ".", "",
              "| Quality | Pos | Rot | Scl | Col | SH | bytes/splat GPU | disk | Compr | PSNR | SSIM | encode s |",

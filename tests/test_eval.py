@@ -197,6 +197,15 @@ def test_reference_table_only_on_request(tmp_path):
                   "--reference-table", "-q")
     assert res.returncode == 0, res.stderr
     assert "Reference, not measured here" in res.stdout and "| medium | " in res.stdout
+    assert " 4,721 splats, SH3, " in res.stdout and ". 1 view at 32x32, " in res.stdout  # it said '1 views'
+
+
+def test_eval_lod_counts_one_tile_in_the_singular():
+    # a one-tile scene's shared tree was logged as '1 tiles' (encode --target-size on fruit_drops: newuser58)
+    res = run_cli("eval", real("fruit_drops_sh3.ply"), "--presets", "low", "--views", "1", "--size", "32x32",
+                  "--renderer", "ref", "--lod")
+    assert res.returncode == 0, res.stderr
+    assert "built the LOD tree every encode takes: 1 tile (" in res.stderr, res.stderr
 
 
 @pytest.mark.parametrize("scene", ["fruit_drops_sh3.ply", "lod_tile_sh3_zero_rest.ply"])
