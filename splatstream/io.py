@@ -253,6 +253,12 @@ def _read_any(inp: SplatInput, drop_invalid: bool) -> Gaussians:
 def output_format(path: str | os.PathLike) -> str:
     """Writer for an output path, from its extension; raises InputError for extensions we cannot write."""
     ext = os.path.splitext(os.fspath(path))[1].lower()
+    if os.fspath(path).lower().endswith(".compressed.ply"):
+        # PlayCanvas's name for its compressed PLY, which we read but do not write: `convert x.spz x.compressed.ply`
+        # wrote a standard 3DGS PLY (4x the bytes) under that name.
+        raise InputError(path, None, "cannot write PlayCanvas compressed PLY (the .compressed.ply name; it is read, "
+                         "not written): name it .ply for a standard 3DGS PLY, or write .sog or .spz for a compact "
+                         "file")
     if ext not in WRITABLE_EXTENSIONS:
         raise InputError(path, None, f"cannot write {ext or 'extensionless'} files (expected one of "
                          f"{', '.join(WRITABLE_EXTENSIONS)})")
