@@ -175,6 +175,9 @@ def serve(root: str, host: str = "127.0.0.1", port: int = 8000, cors_origins: It
               file=sys.stderr, flush=True)
     bound = sock.getsockname()
     shown = f"[{bound[0]}]" if sock.family == socket.AF_INET6 else bound[0]
+    # The scenes /api/scenes lists: a scene whose manifest does not parse was counted here and skipped there, its
+    # warning only at the first request ('2 scenes from ...' and a list of 1); read now, the warning comes now.
+    ids = [scene["id"] for scene in SceneRoot(root).list_scenes()]
     # A root of exported tilesets alone said '0 scenes from ...', which reads as nothing served: they are counted.
     tilesets = find_tilesets(root)
     also = f" and {len(tilesets)} 3D Tiles tileset{'s' if len(tilesets) != 1 else ''}" if tilesets else ""
