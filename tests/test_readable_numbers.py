@@ -54,6 +54,21 @@ def test_view_summary_gives_a_fractional_budget_and_the_bytes_from_the_disk_cach
                                                 "(budget 1024 MiB)")
 
 
+def test_view_summary_says_a_splat_file_was_read_whole_and_its_tiles_counted(tmp_path):
+    # `view guitar.spz --max-splats 30000` said '0.52 MB read' of a 1.40 MB file it had read whole and encoded in
+    # memory: the bytes are that encode's tiles
+    report = {"bytes_downloaded": 516_856, "resident_gpu_bytes": 600_000, "resident_splats": 31_855,
+              "drawn_splats": 29_767, "gpu_budget_bytes": 1024 << 20, "fetch": {"manifest_source": "local"},
+              "source": str(ROOT / "tests" / "data" / "real" / "guitar.compressed.ply")}
+    assert transfer_and_memory(report).startswith(
+        "29,767 splats drawn, 0.52 MB read from its in-memory encode (the file read whole first), GPU ")
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    (scene / "manifest.msgpack").write_bytes(b"")
+    report["source"] = str(scene)  # a scene directory's payloads are read as they are
+    assert transfer_and_memory(report).startswith("29,767 splats drawn, 0.52 MB read, GPU ")
+
+
 def test_info_help_describes_its_positional():
     r = run_cli("info", "--help")
     assert r.returncode == 0
