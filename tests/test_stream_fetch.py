@@ -439,6 +439,18 @@ def test_manifest_errors_are_one_line_and_name_the_url(root, server, tmp_path):
     assert DiskCache(tmp_path / "c").get_manifest(server.url("broken") + "/manifest.msgpack") is None
 
 
+def test_a_local_manifest_that_does_not_parse_is_named_as_the_file(tmp_path):
+    # `view DIR` named the directory ('bad/tm: not a splatstream manifest ...') where `info` and `decode` name
+    # DIR/manifest.msgpack (newuser58)
+    scene = tmp_path / "tm"
+    scene.mkdir()
+    (scene / "manifest.msgpack").write_bytes(b"\x8f\xa6format")  # a map cut short
+    with fetcher(open_source(scene)) as f:
+        with pytest.raises(FetchError) as exc:
+            f.manifest()
+    assert str(exc.value).startswith(f"{scene / 'manifest.msgpack'}: not a splatstream manifest ("), str(exc.value)
+
+
 def test_an_unreachable_server_is_reported_at_once(tmp_path):
     """Connection refused or an unknown host, nothing cached: one line at once, not after the manifest timeout."""
     port = _free_port()

@@ -251,6 +251,9 @@ class StoreSource:
     def __init__(self, store: SceneStore):
         self.store = store
         self.location = store.location
+        # Where a manifest that does not parse is named: the file (a directory store's manifest_path), as `info` and
+        # `decode` name it; `view DIR` named the directory.
+        self.manifest_location = getattr(store, "manifest_path", store.location)
         self.cache_key: str | None = None
         self.local = True  # a damaged payload reads the same again: the fetcher gives up after LOCAL_ATTEMPTS
 
