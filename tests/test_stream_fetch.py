@@ -30,6 +30,7 @@ from client_gl.stream.fetch import (
     RetryPolicy,
 )
 from client_gl.stream.sources import FetchError, HttpSource, StoreSource, open_source
+from splatstream.errors import InputError
 from splatstream.format.container import VerifiedPayload
 from splatstream.format.manifest import Manifest
 from splatstream.store import DirectoryStore, MemoryStore, load_manifest
@@ -449,6 +450,20 @@ def test_a_local_manifest_that_does_not_parse_is_named_as_the_file(tmp_path):
         with pytest.raises(FetchError) as exc:
             f.manifest()
     assert str(exc.value).startswith(f"{scene / 'manifest.msgpack'}: not a splatstream manifest ("), str(exc.value)
+
+
+def test_an_exported_3d_tiles_tileset_is_named_as_one(tmp_path):
+    # `view TILES_DIR` said 'not a scene directory ... pass the splat file itself', and `view TILES_DIR/tileset.json`
+    # 'unrecognised file format' (newuser58)
+    tiles = tmp_path / "tiles"
+    tiles.mkdir()
+    (tiles / "tileset.json").write_text('{"asset": {"version": "1.1"}}')
+    for given in (tiles, tiles / "tileset.json"):
+        with pytest.raises(InputError) as exc:
+            open_source(str(given))
+        assert str(exc.value) == (f"{given}: a 3D Tiles tileset (`splatstream export-3dtiles`), which CesiumJS draws "
+                                  "(`splatstream serve` serves it); `view` streams the scene directory it was "
+                                  "exported from")
 
 
 def test_an_unreachable_server_is_reported_at_once(tmp_path):
