@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 from .errors import InputError
 from .format.limits import describe_violations, domain_violations
+from .format.names import MANIFEST_NAME
 from .gaussians import Gaussians
 from .orientation import UpChoice, detect_up
 from .ply import (
@@ -117,6 +118,11 @@ def sniff_format(path: str | os.PathLike) -> str:
 def _sniff(path: str) -> tuple[str, PlyHeader | None]:
     if os.path.isdir(path):
         kind = sog_kind(path)
+        if kind is None and os.path.isfile(os.path.join(path, MANIFEST_NAME)):
+            # Re-encoding one of our scenes at another preset (`encode out/logo out/logo_low --preset low`) said
+            # only 'a directory without meta.json or lod-meta.json'.
+            raise InputError(path, None, f"is a splatstream scene ({MANIFEST_NAME}), not a splat file: `splatstream "
+                             f"decode {path} scene.ply` writes its full detail as a file that encode and convert read")
         if kind is None:
             raise InputError(path, None, "is a directory without meta.json or lod-meta.json (expected a splat file "
                              "or a SOG scene directory)")

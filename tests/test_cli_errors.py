@@ -45,6 +45,10 @@ def cases(tmp, scene):
         (["encode", DONUT, tmp / "o", "--zstd-level", "99"], "--zstd-level"),
         (["encode", DONUT, tmp / "o", "--sh-codebook", "many"], "many"),
         (["encode", tmp / "a_dir", tmp / "o"], "a_dir"),
+        # one of our own scenes as input: it said only 'a directory without meta.json or lod-meta.json'
+        (["encode", scene, tmp / "o", "--preset", "low"], f"{scene}: is a splatstream scene (manifest.msgpack), not "
+                                                          f"a splat file: `splatstream decode {scene} scene.ply`"),
+        (["convert", scene, tmp / "o.ply"], "is a splatstream scene (manifest.msgpack), not a splat file"),
         (["encode", tmp / "a_file", tmp / "o"], "a_file"),
         (["decode", tmp / "missing", tmp / "o.ply"], "missing"),
         (["decode", scene, "/proc/o.ply"], "/proc/o.ply"),
