@@ -582,6 +582,25 @@ def test_cli_counts_only_the_scenes_it_lists(tmp_path):
         proc.communicate(timeout=30)
 
 
+def test_cli_warns_of_scene_directories_it_cannot_serve(tmp_path):
+    """A scene under a name that is not URL-safe ('my scene', 'été', or inside 'dir x/') was left out of /api/scenes
+    without a word; hidden directories (build temporaries) stay skipped quietly."""
+    root = tmp_path / "root"
+    for name in ("ok", "my scene", "été", "dir x/inner", ".hidden/s"):
+        write_fake_scene(root / name, [100])
+    proc = _cli(str(root), "--port", "0", "--no-access-log")
+    try:
+        warning = proc.stderr.readline()
+        assert warning.strip() == ("splatstream serve: warning: 3 scene directories not served: a name in the path is "
+                                   "not URL-safe (letters, digits, '.', '_', '-'; not starting with '.'): "
+                                   "'dir x/inner', 'my scene', 'été'; rename them"), warning
+        started = proc.stderr.readline()
+        assert started.startswith(f"splatstream serve: 1 scene from {root} at "), started
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.communicate(timeout=30)
+
+
 def test_cli_port_in_use(root):
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
