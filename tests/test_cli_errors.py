@@ -230,3 +230,26 @@ def test_a_mount_point_is_refused_before_the_work_not_after(tmp_path, scene, mon
         assert not list(volume.iterdir()) and not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
     assert main(["encode", str(DONUT), str(volume / "scene"), "-q"]) == 0
     assert (volume / "scene" / "manifest.msgpack").is_file()
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["info", "scene"], "splatstream info: terminated (SIGTERM)"),
+    (["serve", "root"], "splatstream serve: terminated (SIGTERM)"),
+    (["view", "scene", "--headless"], "splatstream view: terminated (SIGTERM)"),
+    (["view", "scene", "--headless", "--record", "r.json"],
+     "splatstream view: terminated (SIGTERM); partial output removed"),
+    (["decode", "scene", "x.ply"], "splatstream decode: terminated (SIGTERM); partial output removed"),
+])
+def test_sigterm_says_partial_output_removed_only_where_there_was_output(argv, said, monkeypatch, capsys):
+    """`serve` stopped before its start line said 'terminated (SIGTERM); partial output removed' (newuser58)."""
+    import importlib
+
+    import cli.main as cli_main
+
+    def terminated(args):
+        raise cli_main.Terminated
+
+    module = importlib.import_module(f"cli.commands.{argv[0]}")
+    monkeypatch.setattr(module, "run", terminated)
+    assert main(argv) == 143
+    assert capsys.readouterr().err.strip() == said
