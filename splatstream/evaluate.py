@@ -287,7 +287,7 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
     t = time.perf_counter()
     g = read_gaussians(input_path)
     input_size = path_size(input_path)
-    log(f"read {input_path}: {len(g)} splats, SH degree {g.sh_degree} ({time.perf_counter() - t:.1f} s)")
+    log(f"read {input_path}: {len(g):,} splats, SH degree {g.sh_degree} ({time.perf_counter() - t:.1f} s)")
     if len(g) == 0:
         raise InputError(input_path, None, "the scene holds no splats")
     evr = renderer or reference_renderer()
@@ -400,6 +400,11 @@ def _compare_row(label: str, path: str, size_path: str, g: Gaussians, input_size
                  log: Callable[[str], None]) -> Row:
     """The row of another tool's output (--compare): read, turned back if its SPZ axes differ, measured."""
     other, clamped = read_compare(path)
+    if len(other) != len(g):
+        # `--compare other=guitar.spz` on the logo (another scene by mistake) gave 11.7 dB and 15.44 B/splat without
+        # a word; a decimating tool's output is fine, but its bytes per splat are per its own splats.
+        log(f"{label}: {count(len(other), 'splat')}, the input {len(g):,}: another scene, or a decimated one? (its "
+            f"B/splat is per its own splats)")
     if clamped:
         log(f"{label}: {clamped} opacity logits of +-inf (8-bit opacity 0 or 1) read as +-13.8")
     other, spz_turned = _spz_axes(other, g, path, spz_axes)

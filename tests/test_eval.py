@@ -200,6 +200,16 @@ def test_reference_table_only_on_request(tmp_path):
     assert " 4,721 splats, SH3, " in res.stdout and ". 1 view at 32x32, " in res.stdout  # it said '1 views'
 
 
+def test_a_compare_of_another_splat_count_is_said():
+    # `eval logo.ply --compare other=guitar.spz` (another scene by mistake): 11.7 dB and 15.44 B/splat, no word
+    res = run_cli("eval", real("fruit_drops_sh3.ply"), "--presets", "none", "--views", "1", "--size", "32x32",
+                  "--renderer", "ref", "--compare", f"other={real('winter_fountain_first3000.splat')}")
+    assert res.returncode == 0, res.stderr
+    assert "read " in res.stderr and ": 4,721 splats, SH degree 3 (" in res.stderr  # with separators
+    assert ("other: 3,000 splats, the input 4,721: another scene, or a decimated one? (its B/splat is per its own "
+            "splats)") in res.stderr, res.stderr
+
+
 def test_eval_lod_counts_one_tile_in_the_singular():
     # a one-tile scene's shared tree was logged as '1 tiles' (encode --target-size on fruit_drops: newuser58)
     res = run_cli("eval", real("fruit_drops_sh3.ply"), "--presets", "low", "--views", "1", "--size", "32x32",
