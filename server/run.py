@@ -87,6 +87,10 @@ def unreadable_files(root: str, limit: int = 5) -> tuple[list[str], int]:
     return named, scenes
 
 
+# Scenes whose manifests `serve` reads at start (to count and warn as /api/scenes will); above it, directories count.
+START_CHECKED_SCENES = 256
+
+
 def unservable_scene_names(root: str, limit: int = 5, max_dirs: int = 10_000) -> tuple[list[str], int]:
     """Scene directories (holding manifest.msgpack) that the server skips because a segment of their path is not a
     URL-safe name (`my scene`, `été`): at most `limit` named, and how many. Hidden directories (a leading '.', as
@@ -219,7 +223,9 @@ def serve(root: str, host: str = "127.0.0.1", port: int = 8000, cors_origins: It
     shown = f"[{bound[0]}]" if sock.family == socket.AF_INET6 else bound[0]
     # The scenes /api/scenes lists: a scene whose manifest does not parse was counted here and skipped there, its
     # warning only at the first request ('2 scenes from ...' and a list of 1); read now, the warning comes now.
-    ids = [scene["id"] for scene in SceneRoot(root).list_scenes()]
+    # Up to START_CHECKED_SCENES: a root of thousands is not held up reading every manifest before it serves.
+    if len(ids) <= START_CHECKED_SCENES:
+        ids = [scene["id"] for scene in SceneRoot(root).list_scenes()]
     # A root of exported tilesets alone said '0 scenes from ...', which reads as nothing served: they are counted.
     tilesets = find_tilesets(root)
     also = f" and {len(tilesets)} 3D Tiles tileset{'s' if len(tilesets) != 1 else ''}" if tilesets else ""
