@@ -135,7 +135,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"splatstream {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except Terminated:
-        print(f"splatstream {args.command}: terminated (SIGTERM); partial output removed", file=sys.stderr)
+        # 'partial output removed' only where there was output: `serve` stopped before its start line, or `view`
+        # with no --screenshot/--record/--frames-dir, said so too.
+        writes = args.command not in ("info", "serve") and not (args.command == "view" and not any(
+            getattr(args, name, None) for name in ("screenshot", "record", "frames_dir")))
+        print(f"splatstream {args.command}: terminated (SIGTERM)" + ("; partial output removed" if writes else ""),
+              file=sys.stderr)
         return EXIT_TERMINATED
     except KeyboardInterrupt:
         print(f"splatstream {args.command}: interrupted", file=sys.stderr)

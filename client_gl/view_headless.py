@@ -56,6 +56,10 @@ def write_png(path: str, image) -> None:
         Image.fromarray(rgb8, "RGB").save(f, format="PNG")
 
 
+# Failed attempts in a row at one payload before the view says so (one failure is a blip the retry hides).
+RETRIES_BEFORE_A_WARNING = 2
+
+
 def _status_line(rec, downloaded: int) -> str:
     """The progress line of one frame record (FrameRecord)."""
     return (f"view: {rec.t:6.2f}s  {downloaded / 1e6:8.2f} MB  {rec.drawn_splats:>10,} drawn  "
@@ -105,6 +109,7 @@ def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
         start = time.perf_counter()
         frame = 0
         last_line = 0.0
+        warned = False
         code = EXIT_OK
         while True:
             now = time.perf_counter() - start
@@ -124,6 +129,14 @@ def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
                     sys.stderr.flush()
                 elif done or frame % 20 == 1:
                     say(line)
+            failing = None if warned or done else session.fetcher.failing()
+            if failing and failing[0][2] >= RETRIES_BEFORE_A_WARNING:
+                # A payload the server keeps refusing (a scene missing a file: 404) was named only at --timeout,
+                # after two minutes of 'streaming' lines: said once, as soon as it has failed twice in a row.
+                warned = True
+                if tty:
+                    sys.stderr.write("\n")
+                say(f"view: {failing[0][1]}; retrying until --timeout {run.timeout_s:g} s")
             if done:
                 if session.engine.failed:  # converged without payloads that do not decode: not the scene's picture
                     say(f"view: {session.problem()}")

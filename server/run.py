@@ -16,6 +16,7 @@ from splatstream.format.names import DATA_DIR, MANIFEST_NAME
 
 from .app import SHUTDOWN_TIMEOUT, AccessLog, create_app, create_runner, start_site
 from .limits import FdLimitTooLow, Limits, accept_error_handler, fit_to_fd_limit
+from .paths import MAX_SCENE_DEPTH, SEGMENT_RE
 from .scenes import SceneRoot
 from .throttle import Link
 from .tilesets import find_tilesets
@@ -84,6 +85,44 @@ def unreadable_files(root: str, limit: int = 5) -> tuple[list[str], int]:
                     why = exc.strerror or str(exc)
                 named.append(f"{os.path.relpath(bad[0], root)} ({why})")
     return named, scenes
+
+
+# Scenes whose manifests `serve` reads at start (to count and warn as /api/scenes will); above it, directories count.
+START_CHECKED_SCENES = 256
+
+
+def unservable_scene_names(root: str, limit: int = 5, max_dirs: int = 10_000) -> tuple[list[str], int]:
+    """Scene directories (holding manifest.msgpack) that the server skips because a segment of their path is not a
+    URL-safe name (`my scene`, `été`): at most `limit` named, and how many. Hidden directories (a leading '.', as
+    build temporaries are) are skipped on purpose and not counted; so is anything deeper than a scene id can be."""
+    named: list[str] = []
+    count = 0
+    visited = 0
+    stack: list[tuple[str, tuple[str, ...], bool]] = [(root, (), True)]
+    while stack and visited < max_dirs:
+        directory, segs, safe = stack.pop()
+        visited += 1
+        try:
+            entries = sorted(os.scandir(directory), key=lambda e: e.name)
+        except OSError:
+            continue
+        for e in entries:
+            if e.name.startswith(".") or len(segs) >= MAX_SCENE_DEPTH:
+                continue
+            try:
+                if not e.is_dir(follow_symlinks=False):
+                    continue
+            except OSError:
+                continue
+            child, child_safe = (*segs, e.name), safe and bool(SEGMENT_RE.match(e.name))
+            if os.path.isfile(os.path.join(e.path, MANIFEST_NAME)):
+                if not child_safe:
+                    count += 1
+                    if len(named) < limit:
+                        named.append("/".join(child))
+            else:
+                stack.append((e.path, child, child_safe))
+    return sorted(named), count
 
 
 def bind(host: str, port: int, backlog: int = 1024) -> socket.socket:
@@ -169,13 +208,28 @@ def serve(root: str, host: str = "127.0.0.1", port: int = 8000, cors_origins: It
         print(f"splatstream serve: warning: {scenes} scene{'s' if scenes != 1 else ''} with files this server "
               f"(uid {os.geteuid()}) may not read; they answer 403: {', '.join(named)}"
               f"{', ...' if scenes > len(named) else ''}", file=sys.stderr, flush=True)
+    named, unsafe = unservable_scene_names(root)
+    if unsafe:
+        # A scene under 'my scene/' was left out of /api/scenes without a word.
+        print(f"splatstream serve: warning: {unsafe} scene director{'ies' if unsafe != 1 else 'y'} not served: a "
+              f"name in the path is not URL-safe (letters, digits, '.', '_', '-'; not starting with '.'): "
+              f"{', '.join(repr(n) for n in named)}{', ...' if unsafe > len(named) else ''}; rename "
+              f"{'them' if unsafe != 1 else 'it'}", file=sys.stderr, flush=True)
     if lowered:
         print(f"splatstream serve: warning: --max-connections lowered from {requested.max_connections} to "
               f"{limits.max_connections} per worker to fit the file descriptor limit {fd_limit} (ulimit -n)",
               file=sys.stderr, flush=True)
     bound = sock.getsockname()
     shown = f"[{bound[0]}]" if sock.family == socket.AF_INET6 else bound[0]
-    print(f"splatstream serve: {len(ids)} scene{'s' if len(ids) != 1 else ''} from {os.path.abspath(root)} at "
+    # The scenes /api/scenes lists: a scene whose manifest does not parse was counted here and skipped there, its
+    # warning only at the first request ('2 scenes from ...' and a list of 1); read now, the warning comes now.
+    # Up to START_CHECKED_SCENES: a root of thousands is not held up reading every manifest before it serves.
+    if len(ids) <= START_CHECKED_SCENES:
+        ids = [scene["id"] for scene in SceneRoot(root).list_scenes()]
+    # A root of exported tilesets alone said '0 scenes from ...', which reads as nothing served: they are counted.
+    tilesets = find_tilesets(root)
+    also = f" and {len(tilesets)} 3D Tiles tileset{'s' if len(tilesets) != 1 else ''}" if tilesets else ""
+    print(f"splatstream serve: {len(ids)} scene{'s' if len(ids) != 1 else ''}{also} from {os.path.abspath(root)} at "
           f"http://{shown}:{bound[1]}/ ({workers} worker{'s' if workers != 1 else ''} of at most "
           f"{limits.max_connections} connections; scene list at /api/scenes; "
           f"SIGTERM or Ctrl-C stops)", file=sys.stderr, flush=True)

@@ -101,8 +101,16 @@ def remove_stale_temporaries(path: str | os.PathLike) -> list[str]:
 def check_replaceable(given: str, path: str, holds: str | None) -> None:
     """An existing directory that a directory output would replace must be empty or hold `holds` (the file every
     output of that kind has: manifest.msgpack, tileset.json, ...), so that a mistyped output path never deletes a
-    directory of the user's own files (`encode scene.ply ~/Documents`)."""
-    if holds is None or not os.path.isdir(path) or os.path.islink(path):
+    directory of the user's own files (`encode scene.ply ~/Documents`). Nor may it be a mount point (a container's
+    volume, `docker run -v $PWD/out:/out ... encode scene.ply /out`): the finished output takes its place by a
+    rename, which cannot move a mount point, so the whole encode ran and then failed with 'Device or resource
+    busy'."""
+    if not os.path.isdir(path) or os.path.islink(path):
+        return
+    if os.path.ismount(path):
+        raise UsageError(f"{given}: is a mount point, which the finished output cannot replace (it is renamed into "
+                         f"place); give a directory inside it, e.g. {os.path.join(given, 'scene')}")
+    if holds is None:
         return
     entries = sorted(os.listdir(path))
     if not entries or holds in entries:

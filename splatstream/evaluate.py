@@ -287,7 +287,7 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
     t = time.perf_counter()
     g = read_gaussians(input_path)
     input_size = path_size(input_path)
-    log(f"read {input_path}: {len(g)} splats, SH degree {g.sh_degree} ({time.perf_counter() - t:.1f} s)")
+    log(f"read {input_path}: {len(g):,} splats, SH degree {g.sh_degree} ({time.perf_counter() - t:.1f} s)")
     if len(g) == 0:
         raise InputError(input_path, None, "the scene holds no splats")
     evr = renderer or reference_renderer()
@@ -316,7 +316,7 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
         t = time.perf_counter()
         tree = plan_tiles(g, EncodeOptions(lod=True, **opts.encode_options), no_progress)
         tree_s = time.perf_counter() - t
-        log(f"built the LOD tree every encode takes: {len(tree)} tiles ({tree_s:.2f} s)")
+        log(f"built the LOD tree every encode takes: {count(len(tree), 'tile')} ({tree_s:.2f} s)")
     try:
         def encode_and_measure(label: str, kind: str, preset: str, overrides: dict[str, str],
                                sh_degree: int | None = None, sh_codebook: str | None = None) -> Row:
@@ -400,6 +400,11 @@ def _compare_row(label: str, path: str, size_path: str, g: Gaussians, input_size
                  log: Callable[[str], None]) -> Row:
     """The row of another tool's output (--compare): read, turned back if its SPZ axes differ, measured."""
     other, clamped = read_compare(path)
+    if len(other) != len(g):
+        # `--compare other=guitar.spz` on the logo (another scene by mistake) gave 11.7 dB and 15.44 B/splat without
+        # a word; a decimating tool's output is fine, but its bytes per splat are per its own splats.
+        log(f"{label}: {count(len(other), 'splat')}, the input {len(g):,}: another scene, or a decimated one? (its "
+            f"B/splat is per its own splats)")
     if clamped:
         log(f"{label}: {clamped} opacity logits of +-inf (8-bit opacity 0 or 1) read as +-13.8")
     other, spz_turned = _spz_axes(other, g, path, spz_axes)
@@ -509,8 +514,9 @@ def report_markdown(report: dict, reference_table: bool = False) -> str:
     if shown.lower() in ("lod-meta.json", "meta.json"):  # the format's name: its directory says which scene
         shown = f"{os.path.basename(os.path.dirname(os.path.abspath(inp['path'])))}/{shown}"
     lines = [f"Scene `{shown}`: {inp['splats']:,} splats, SH{inp['sh_degree']}, "
-             f"{inp['bytes']:,} bytes ({inp['bytes_per_splat']:.1f} B/splat). {len(report['cameras'])} views at "
-             f"{report['size'][0]}x{report['size'][1]}, renderer: {report['renderer']}. PSNR/SSIM: mean over views "
+             f"{inp['bytes']:,} bytes ({inp['bytes_per_splat']:.1f} B/splat). "
+             f"{count(len(report['cameras']), 'view')} at {report['size'][0]}x{report['size'][1]}, "
+             f"renderer: {report['renderer']}. PSNR/SSIM: mean over views "
              f"(worst view in brackets). splatstream {report.get('source', {}).get('commit', '')[:10]}"
              + (" with local changes" if report.get("source", {}).get("local_changes") else "") + ".", "",
              "| Quality | Pos | Rot | Scl | Col | SH | bytes/splat GPU | disk | Compr | PSNR | SSIM | encode s |",

@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 from .errors import InputError
 from .format.limits import describe_violations, domain_violations
+from .format.names import MANIFEST_NAME
 from .gaussians import Gaussians
 from .orientation import UpChoice, detect_up
 from .ply import (
@@ -117,6 +118,11 @@ def sniff_format(path: str | os.PathLike) -> str:
 def _sniff(path: str) -> tuple[str, PlyHeader | None]:
     if os.path.isdir(path):
         kind = sog_kind(path)
+        if kind is None and os.path.isfile(os.path.join(path, MANIFEST_NAME)):
+            # Re-encoding one of our scenes at another preset (`encode out/logo out/logo_low --preset low`) said
+            # only 'a directory without meta.json or lod-meta.json'.
+            raise InputError(path, None, f"is a splatstream scene ({MANIFEST_NAME}), not a splat file: `splatstream "
+                             f"decode {path} scene.ply` writes its full detail as a file that encode and convert read")
         if kind is None:
             raise InputError(path, None, "is a directory without meta.json or lod-meta.json (expected a splat file "
                              "or a SOG scene directory)")
@@ -253,6 +259,12 @@ def _read_any(inp: SplatInput, drop_invalid: bool) -> Gaussians:
 def output_format(path: str | os.PathLike) -> str:
     """Writer for an output path, from its extension; raises InputError for extensions we cannot write."""
     ext = os.path.splitext(os.fspath(path))[1].lower()
+    if os.fspath(path).lower().endswith(".compressed.ply"):
+        # PlayCanvas's name for its compressed PLY, which we read but do not write: `convert x.spz x.compressed.ply`
+        # wrote a standard 3DGS PLY (4x the bytes) under that name.
+        raise InputError(path, None, "cannot write PlayCanvas compressed PLY (the .compressed.ply name; it is read, "
+                         "not written): name it .ply for a standard 3DGS PLY, or write .sog or .spz for a compact "
+                         "file")
     if ext not in WRITABLE_EXTENSIONS:
         raise InputError(path, None, f"cannot write {ext or 'extensionless'} files (expected one of "
                          f"{', '.join(WRITABLE_EXTENSIONS)})")

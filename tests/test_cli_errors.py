@@ -1,9 +1,12 @@
 """One exit-code convention for every command: bad input or usage exits 2 with one line naming the path or option
 and what was expected; never a traceback; no output left behind."""
+import os
+
 import numpy as np
 import pytest
 from conftest import ROOT, run_cli
 
+from cli.main import main
 from splatstream.io import read_gaussians
 from splatstream.ply import write_gaussians_ply
 
@@ -42,6 +45,10 @@ def cases(tmp, scene):
         (["encode", DONUT, tmp / "o", "--zstd-level", "99"], "--zstd-level"),
         (["encode", DONUT, tmp / "o", "--sh-codebook", "many"], "many"),
         (["encode", tmp / "a_dir", tmp / "o"], "a_dir"),
+        # one of our own scenes as input: it said only 'a directory without meta.json or lod-meta.json'
+        (["encode", scene, tmp / "o", "--preset", "low"], f"{scene}: is a splatstream scene (manifest.msgpack), not "
+                                                          f"a splat file: `splatstream decode {scene} scene.ply`"),
+        (["convert", scene, tmp / "o.ply"], "is a splatstream scene (manifest.msgpack), not a splat file"),
         (["encode", tmp / "a_file", tmp / "o"], "a_file"),
         (["decode", tmp / "missing", tmp / "o.ply"], "missing"),
         (["decode", scene, "/proc/o.ply"], "/proc/o.ply"),
@@ -202,3 +209,47 @@ def test_view_of_a_local_scene_with_a_damaged_payload_exits_2_at_once(tmp_path, 
     assert r.returncode == 2, r.stderr
     assert r.stderr.strip() == f"splatstream view: error: {expected}"
     assert not record.exists()  # no half-written output
+
+
+def test_a_mount_point_is_refused_before_the_work_not_after(tmp_path, scene, monkeypatch, capsys):
+    """An output directory that is a mount point (a container's volume: `docker run -v $PWD/out:/out ... encode
+    scene.ply /out`) cannot be replaced by the rename that puts a finished output in place: on a tmpfs mounted
+    there, encode and export-sog-lod ran to the end and failed with 'Device or resource busy', exit 1. Now one line
+    before any work, exit 2, naming a directory inside it. (The mount is stood in for: making one needs root.)"""
+    volume = tmp_path / "volume"
+    volume.mkdir()
+    real_ismount = os.path.ismount
+    monkeypatch.setattr(os.path, "ismount", lambda p: os.path.abspath(p) == str(volume) or real_ismount(p))
+    for args in (["encode", str(DONUT), str(volume)], ["export-sog-lod", str(scene), str(volume)],
+                 ["export-3dtiles", str(scene), str(volume)]):
+        assert main([*args, "-q"]) == 2
+        err = capsys.readouterr().err
+        assert err.strip() == (f"splatstream {args[0]}: error: {volume}: is a mount point, which the finished output "
+                               f"cannot replace (it is renamed into place); give a directory inside it, e.g. "
+                               f"{volume / 'scene'}"), err
+        assert not list(volume.iterdir()) and not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+    assert main(["encode", str(DONUT), str(volume / "scene"), "-q"]) == 0
+    assert (volume / "scene" / "manifest.msgpack").is_file()
+
+
+@pytest.mark.parametrize("argv, said", [
+    (["info", "scene"], "splatstream info: terminated (SIGTERM)"),
+    (["serve", "root"], "splatstream serve: terminated (SIGTERM)"),
+    (["view", "scene", "--headless"], "splatstream view: terminated (SIGTERM)"),
+    (["view", "scene", "--headless", "--record", "r.json"],
+     "splatstream view: terminated (SIGTERM); partial output removed"),
+    (["decode", "scene", "x.ply"], "splatstream decode: terminated (SIGTERM); partial output removed"),
+])
+def test_sigterm_says_partial_output_removed_only_where_there_was_output(argv, said, monkeypatch, capsys):
+    """`serve` stopped before its start line said 'terminated (SIGTERM); partial output removed' (newuser58)."""
+    import importlib
+
+    import cli.main as cli_main
+
+    def terminated(args):
+        raise cli_main.Terminated
+
+    module = importlib.import_module(f"cli.commands.{argv[0]}")
+    monkeypatch.setattr(module, "run", terminated)
+    assert main(argv) == 143
+    assert capsys.readouterr().err.strip() == said

@@ -52,6 +52,15 @@ def test_a_bad_vector_is_still_a_one_line_usage_error():
     assert r.stderr.strip().count("\n") == 0 and "--eye" in r.stderr and "-1,-2" in r.stderr
 
 
+@pytest.mark.parametrize("colour", ["2,0,0", "-1,0,0", "255,255,255"])
+def test_a_background_outside_0_1_is_refused_as_the_help_says(colour, tmp_path):
+    # render --help says 'R,G,B in [0, 1]'; these drew without a word (newuser58)
+    r = run_cli("render", DONUT, "--out", tmp_path / "x.png", "--background", colour)
+    assert r.returncode == 2 and not (tmp_path / "x.png").exists()
+    assert r.stderr.strip() == (f"splatstream render: error: --background {colour}: expected R,G,B each in [0, 1] "
+                                "(1,1,1 is white)")
+
+
 @pytest.fixture(scope="module")
 def small_ply(tmp_path_factory):
     g = read_gaussians(DONUT)

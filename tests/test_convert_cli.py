@@ -78,6 +78,10 @@ def test_corrupt_splat_and_bad_arguments(tmp_path, capsys):
     assert not out.exists() and not list(out_dir.iterdir())
     assert main(["convert", str(FIXTURES / "fruit_drops_v4.spz"), str(out_dir / "x.rad")]) == 2
     assert "cannot write .rad files" in capsys.readouterr().err
+    # a .compressed.ply output was written as a standard 3DGS PLY under PlayCanvas's compressed PLY name (newuser58)
+    for command in (["convert", str(FIXTURES / "fruit_drops_v4.spz")], ["decode", str(tmp_path / "no_scene")]):
+        assert main([*command, str(out_dir / "x.compressed.ply")]) == 2
+        assert "x.compressed.ply: cannot write PlayCanvas compressed PLY" in capsys.readouterr().err
     assert main(["convert", str(tmp_path / "missing.ply"), str(out)]) == 2
     assert "no such file" in capsys.readouterr().err
     assert not list(out_dir.iterdir())

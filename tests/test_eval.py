@@ -86,6 +86,23 @@ def test_eval_cli_missing_input(tmp_path, capsys):
     assert "no such file" in capsys.readouterr().err
 
 
+@pytest.mark.parametrize("flag, name", [("--json", "r.json"), ("--plot", "p.png"), ("--markdown", "t.md")])
+def test_eval_outputs_that_cannot_be_written_are_refused_before_measuring(flag, name, tmp_path, capsys):
+    # --json into a read-only directory was found after every encode and render: exit 1 and the system's words
+    # ('ro/x.json: Read-only file system'); /proc takes no new file, whoever runs the test (root included)
+    rc = main(["eval", str(real("fruit_drops_sh3.ply")), "--renderer", "ref", "--size", "32x32", "--views", "1",
+               "--presets", "low", flag, f"/proc/{name}"])
+    assert rc == 2
+    captured = capsys.readouterr()
+    assert f"/proc/{name}: cannot write in /proc" in captured.err
+    assert "| low |" not in captured.out and "low:" not in captured.err  # nothing measured
+    assert main(["eval", str(real("fruit_drops_sh3.ply")), "--presets", "low", "--encoded", "/proc/enc"]) == 2
+    assert "/proc/enc/low: cannot write in /proc" in capsys.readouterr().err
+    (tmp_path / "d.json").mkdir()
+    assert main(["eval", str(real("fruit_drops_sh3.ply")), "--presets", "low", "--json", str(tmp_path / "d.json")]) == 2
+    assert "is a directory, expected a file name" in capsys.readouterr().err
+
+
 def test_parse_compare_and_seed_sizes(tmp_path):
     f = tmp_path / "a.ply"
     f.write_bytes(b"x")
@@ -180,6 +197,25 @@ def test_reference_table_only_on_request(tmp_path):
                   "--reference-table", "-q")
     assert res.returncode == 0, res.stderr
     assert "Reference, not measured here" in res.stdout and "| medium | " in res.stdout
+    assert " 4,721 splats, SH3, " in res.stdout and ". 1 view at 32x32, " in res.stdout  # it said '1 views'
+
+
+def test_a_compare_of_another_splat_count_is_said():
+    # `eval logo.ply --compare other=guitar.spz` (another scene by mistake): 11.7 dB and 15.44 B/splat, no word
+    res = run_cli("eval", real("fruit_drops_sh3.ply"), "--presets", "none", "--views", "1", "--size", "32x32",
+                  "--renderer", "ref", "--compare", f"other={real('winter_fountain_first3000.splat')}")
+    assert res.returncode == 0, res.stderr
+    assert "read " in res.stderr and ": 4,721 splats, SH degree 3 (" in res.stderr  # with separators
+    assert ("other: 3,000 splats, the input 4,721: another scene, or a decimated one? (its B/splat is per its own "
+            "splats)") in res.stderr, res.stderr
+
+
+def test_eval_lod_counts_one_tile_in_the_singular():
+    # a one-tile scene's shared tree was logged as '1 tiles' (encode --target-size on fruit_drops: newuser58)
+    res = run_cli("eval", real("fruit_drops_sh3.ply"), "--presets", "low", "--views", "1", "--size", "32x32",
+                  "--renderer", "ref", "--lod")
+    assert res.returncode == 0, res.stderr
+    assert "built the LOD tree every encode takes: 1 tile (" in res.stderr, res.stderr
 
 
 @pytest.mark.parametrize("scene", ["fruit_drops_sh3.ply", "lod_tile_sh3_zero_rest.ply"])

@@ -187,8 +187,13 @@ def test_view_names_a_permanent_payload_failure_at_the_timeout(server, tmp_path)
     server.set_mode(Mode("404", "root"))
     r = view(server.url("s"), tmp_path, "--timeout", "4")
     assert r.returncode == 1, r.stderr
-    last = r.stderr.strip().splitlines()[-2]
+    lines = r.stderr.strip().splitlines()
+    last = lines[-2]
     assert last.startswith(f"view: not converged after 4 s: {server.url('s')}/data/") and "404" in last, r.stderr
+    # and said once as it happened, not only at the timeout (a missing payload: 120 s of 'streaming' lines before)
+    said = [ln for ln in lines if ln.endswith("; retrying until --timeout 4 s")]
+    assert len(said) == 1 and said[0].startswith(f"view: {server.url('s')}/data/") and "404" in said[0], r.stderr
+    assert lines.index(said[0]) < len(lines) - 2
 
 
 def test_view_refuses_a_tile_declaring_a_huge_texture(server, tmp_path):

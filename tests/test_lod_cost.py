@@ -158,6 +158,8 @@ def test_the_cli_says_which_merge_the_default_took(tmp_path):
                 "--memory-per-worker", "1MiB")
     assert r.returncode == 0 and "LOD merge grid: its merge domains (subtrees of at most 1,048,576 splats) need 7 " \
         "MiB per worker, more than the memory per worker (1 MiB)" in r.stderr, r.stderr
+    # and how it split the scene (the grid's partitions were not said: newuser58)
+    assert "LOD merge grid, inside 8 partitions of at most 591 splats" in r.stderr, r.stderr
     r = run_cli("encode", src, tmp_path / "workers", "--lod-merge", "cost", "--workers", "2")
     assert r.returncode == 2 and "--lod-merge cost groups each LOD level over the whole scene" in r.stderr, r.stderr
     assert not (tmp_path / "workers").exists()

@@ -560,6 +560,47 @@ def test_cli_bad_root(tmp_path, setup, message):
     assert proc.returncode == 2 and message in err and "Traceback" not in err
 
 
+def test_cli_counts_only_the_scenes_it_lists(tmp_path):
+    """A scene whose manifest does not parse is skipped by /api/scenes: the start line counted it ('2 scenes from
+    ...' beside a list of 1) and its warning came only with the first request. Now both at start."""
+    root = tmp_path / "root"
+    write_fake_scene(root / "good", [100])
+    write_fake_scene(root / "broken", [100])
+    data = (root / "broken" / MANIFEST_NAME).read_bytes()
+    (root / "broken" / MANIFEST_NAME).write_bytes(data[:len(data) // 2])  # truncated
+    proc = _cli(str(root), "--port", "0", "--no-access-log")
+    try:
+        warning = proc.stderr.readline()
+        assert "scene broken: skipped, its manifest is not valid: broken/manifest.msgpack" in warning, warning
+        started = proc.stderr.readline()
+        assert started.startswith(f"splatstream serve: 1 scene from {root} at http://127.0.0.1:"), started
+        port = int(re.search(r"at http://127\.0\.0\.1:(\d+)/", started).group(1))
+        status, _, body = request(port, "/api/scenes")
+        assert status == 200 and [s["id"] for s in json.loads(body)["scenes"]] == ["good"]
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.communicate(timeout=30)
+
+
+def test_cli_warns_of_scene_directories_it_cannot_serve(tmp_path):
+    """A scene under a name that is not URL-safe ('my scene', 'été', or inside 'dir x/') was left out of /api/scenes
+    without a word; hidden directories (build temporaries) stay skipped quietly."""
+    root = tmp_path / "root"
+    for name in ("ok", "my scene", "été", "dir x/inner", ".hidden/s"):
+        write_fake_scene(root / name, [100])
+    proc = _cli(str(root), "--port", "0", "--no-access-log")
+    try:
+        warning = proc.stderr.readline()
+        assert warning.strip() == ("splatstream serve: warning: 3 scene directories not served: a name in the path is "
+                                   "not URL-safe (letters, digits, '.', '_', '-'; not starting with '.'): "
+                                   "'dir x/inner', 'my scene', 'été'; rename them"), warning
+        started = proc.stderr.readline()
+        assert started.startswith(f"splatstream serve: 1 scene from {root} at "), started
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.communicate(timeout=30)
+
+
 def test_cli_port_in_use(root):
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))

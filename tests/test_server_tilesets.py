@@ -60,7 +60,7 @@ class Server:
         self.proc = subprocess.Popen([sys.executable, "-m", "cli", "serve", str(root), "--port", "0",
                                       "--no-access-log", *extra], stderr=subprocess.PIPE, stdout=subprocess.DEVNULL,
                                      stdin=subprocess.DEVNULL, text=True)
-        line = self.proc.stderr.readline()
+        self.started = line = self.proc.stderr.readline()
         m = re.search(r"http://127\.0\.0\.1:(\d+)/", line)
         if not m:
             self.stop()
@@ -103,6 +103,9 @@ def served(tmp_path):
 
 def test_tileset_files_with_caching_headers_conditionals_ranges_and_cors(served):
     server, root, names = served
+    # the start line counts the tilesets: it said '0 scenes from ROOT', which reads as nothing served
+    assert server.started.startswith(f"splatstream serve: 0 scenes and 1 3D Tiles tileset from {root} at "), \
+        server.started
     base = "/scenes/city/block-7"
     raw = (root / "city/block-7/tileset.json").read_bytes()
     status, h, body = server.request(f"{base}/tileset.json", headers={"Origin": ORIGIN})

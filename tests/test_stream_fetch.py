@@ -30,6 +30,7 @@ from client_gl.stream.fetch import (
     RetryPolicy,
 )
 from client_gl.stream.sources import FetchError, HttpSource, StoreSource, open_source
+from splatstream.errors import InputError
 from splatstream.format.container import VerifiedPayload
 from splatstream.format.manifest import Manifest
 from splatstream.store import DirectoryStore, MemoryStore, load_manifest
@@ -437,6 +438,32 @@ def test_manifest_errors_are_one_line_and_name_the_url(root, server, tmp_path):
         with pytest.raises(FetchError, match="/scenes/broken/manifest.msgpack: not a splatstream manifest"):
             f.manifest()
     assert DiskCache(tmp_path / "c").get_manifest(server.url("broken") + "/manifest.msgpack") is None
+
+
+def test_a_local_manifest_that_does_not_parse_is_named_as_the_file(tmp_path):
+    # `view DIR` named the directory ('bad/tm: not a splatstream manifest ...') where `info` and `decode` name
+    # DIR/manifest.msgpack (newuser58)
+    scene = tmp_path / "tm"
+    scene.mkdir()
+    (scene / "manifest.msgpack").write_bytes(b"\x8f\xa6format")  # a map cut short
+    with fetcher(open_source(scene)) as f:
+        with pytest.raises(FetchError) as exc:
+            f.manifest()
+    assert str(exc.value).startswith(f"{scene / 'manifest.msgpack'}: not a splatstream manifest ("), str(exc.value)
+
+
+def test_an_exported_3d_tiles_tileset_is_named_as_one(tmp_path):
+    # `view TILES_DIR` said 'not a scene directory ... pass the splat file itself', and `view TILES_DIR/tileset.json`
+    # 'unrecognised file format' (newuser58)
+    tiles = tmp_path / "tiles"
+    tiles.mkdir()
+    (tiles / "tileset.json").write_text('{"asset": {"version": "1.1"}}')
+    for given in (tiles, tiles / "tileset.json"):
+        with pytest.raises(InputError) as exc:
+            open_source(str(given))
+        assert str(exc.value) == (f"{given}: a 3D Tiles tileset (`splatstream export-3dtiles`), which CesiumJS draws "
+                                  "(`splatstream serve` serves it); `view` streams the scene directory it was "
+                                  "exported from")
 
 
 def test_an_unreachable_server_is_reported_at_once(tmp_path):

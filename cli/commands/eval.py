@@ -7,6 +7,7 @@ import json
 import os
 import sys
 
+from splatstream.atomic import check_output
 from splatstream.errors import InputError, UsageError
 from splatstream.evaluate import PRESET_ORDER, EvalOptions, evaluate, plot_rate_distortion, report_markdown
 
@@ -74,9 +75,13 @@ def run(args: argparse.Namespace) -> int:
     # Checked before the encodes and renders: the plot is written last, and PIL picks its format by extension.
     if args.plot and os.path.splitext(args.plot)[1].lower() != ".png":
         raise UsageError(f"--plot: only .png images are written, got {args.plot!r}")
+    # A missing or unwritable directory, or a directory where the file goes, is found now: a --json into a
+    # read-only directory failed after every encode and render, with exit 1 and only the system's words.
     for out in (args.json_out, args.plot, args.markdown):
-        if out and os.path.dirname(os.path.abspath(out)) and not os.path.isdir(os.path.dirname(os.path.abspath(out))):
-            raise UsageError(f"output directory of {out} does not exist")
+        if out:
+            check_output(out)
+    if args.encoded and presets:  # the scenes go in directories below it, one per preset
+        check_output(os.path.join(args.encoded, presets[0]), directory=True)
     up = parse_vector(args.up, "--up", nonzero=True) if args.up else None
     opts = EvalOptions(presets=presets, views=args.views, width=w, height=h, up=up,
                        elevation_deg=args.elevation, encoded_dir=args.encoded, compare=args.compare,

@@ -86,6 +86,9 @@ def run(args: argparse.Namespace) -> int:
     offscreen = gl_client()
     size = parse_size(args.size)
     background = _optional_vector(args.background, "--background")
+    if background is not None and not all(0.0 <= v <= 1.0 for v in background):
+        # The help says [0, 1]; `--background 2,0,0` or `-1,0,0` (a 0..255 colour, a typo) drew without a word.
+        raise UsageError(f"--background {args.background}: expected R,G,B each in [0, 1] (1,1,1 is white)")
     if args.preset not in PRESETS:
         raise UsageError(f"unknown preset {args.preset!r} (choose one of {', '.join(PRESETS)})")
     ext = os.path.splitext(args.out)[1].lower()

@@ -662,7 +662,8 @@ class Fetcher:
                 try:
                     parsed = parse_manifest(reply.data, self.source.location, lazy_payloads=True)
                 except FormatError as exc:
-                    raise FetchError(self.source.location, NOT_A_SCENE, f"not a splatstream manifest "
+                    where = getattr(self.source, "manifest_location", self.source.location)
+                    raise FetchError(where, NOT_A_SCENE, f"not a splatstream manifest "
                                      f"({exc.field + ': ' if exc.field else ''}{exc.problem})",
                                      transient=False) from None
                 if self.cache is not None and key:

@@ -22,7 +22,7 @@ import yarl
 from splatstream.encode import EncodeOptions, encode_in_memory
 from splatstream.errors import InputError, UsageError
 from splatstream.format.manifest import MAX_MANIFEST_BYTES, PayloadEntry
-from splatstream.format.names import MANIFEST_NAME, manifest_url, payload_url
+from splatstream.format.names import MANIFEST_NAME, TILESET_NAME, manifest_url, payload_url
 from splatstream.io import declared_up, read_gaussians
 from splatstream.rad_import import encode_rad
 from splatstream.readers.rad import is_rad
@@ -251,6 +251,9 @@ class StoreSource:
     def __init__(self, store: SceneStore):
         self.store = store
         self.location = store.location
+        # Where a manifest that does not parse is named: the file (a directory store's manifest_path), as `info` and
+        # `decode` name it; `view DIR` named the directory.
+        self.manifest_location = getattr(store, "manifest_path", store.location)
         self.cache_key: str | None = None
         self.local = True  # a damaged payload reads the same again: the fetcher gives up after LOCAL_ATTEMPTS
 
@@ -322,6 +325,12 @@ def open_source(spec: str | os.PathLike, *, encode_options=None, progress: Progr
     if _is_rad(text):
         # Spark's LoD tree of splats, converted into our tiles on the fly (splatstream/rad_import.py).
         return StoreSource(encode_rad(text, encode_options, progress))
+    if os.path.basename(text) == TILESET_NAME or (os.path.isdir(text) and os.path.isfile(
+            os.path.join(text, TILESET_NAME)) and not os.path.isfile(os.path.join(text, MANIFEST_NAME))):
+        # export-3dtiles' output: said 'not a scene directory ... pass the splat file itself' (its tileset.json:
+        # 'unrecognised file format'), no word of what it is or what draws it.
+        raise InputError(text, None, "a 3D Tiles tileset (`splatstream export-3dtiles`), which CesiumJS draws "
+                         "(`splatstream serve` serves it); `view` streams the scene directory it was exported from")
     if os.path.isdir(text):
         if not os.path.isfile(os.path.join(text, MANIFEST_NAME)) and \
                 os.path.isfile(os.path.join(text, SOG_META_NAME)):

@@ -63,6 +63,7 @@ from ..lod import (
     viewing_blur,
 )
 from ..ply import RowStats, VertexLayout, check_rows, read_ply_rows
+from ..progress import count
 from ..store import SceneWriter, write_scene_manifest
 from .codebook import codebook_choice
 from .jobs import encode_codebook, encode_tile
@@ -795,6 +796,11 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
         merge, level = _auto_partitions(shape, row_bytes, engine, opts, level)
     kd = shape.kd_depths[level]
     partitions = 2 ** kd
+    if merge == "grid":
+        # The auto merge says its partitions (_auto_partitions); the grid said none, so `--workers 2
+        # --memory-per-worker 20MB` on guitar (8 partitions) read as if nothing had been split.
+        log.info("LOD merge grid, inside %s of at most %s splats", count(partitions, "partition"),
+                 f"{-(-splats // partitions):,}")
     splits = _top_splits(engine, scratch, chunks, kd, splats, (lo, hi), split_sample, progress)
     del split_sample
 

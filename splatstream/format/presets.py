@@ -241,7 +241,8 @@ DEFAULT_PRESET = "medium"
 # bench/preset_summary_ranges.py` prints the reports' ranges; tests/test_bench_preset_summary_ranges.py holds every
 # "N B/splat at SHk" figure here to them (within 3 %).
 PRESET_SUMMARY: dict[str, str] = {
-    "very-high": "32-bit floats, lossless; about 179 B/splat at SH3, 40.7-43.3 at SH0",
+    "very-high": "32-bit floats, near-lossless (renders identical to the input's, values within 2^-24 of their "
+                 "chunk's range: not a bit-exact copy); about 179 B/splat at SH3, 40.7-43.3 at SH0",
     "high": "16-bit positions and colour; about 70.6 B/splat at SH3, 46.7 at SH2, 16.4-18 at SH0; 61-77 dB",
     "high-sh255": "high with 11-bit SH on importance-scaled steps of 255 levels (about 8 bits where it matters), "
                   "between medium-high and high; about 38.7 B/splat at SH2 (flowers, 62 dB), 55.7 at SH3 "
