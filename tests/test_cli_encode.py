@@ -1,5 +1,6 @@
 """The encode / info / decode commands end to end, as a user runs them."""
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -131,3 +132,14 @@ def test_scene_name_from_a_url_and_a_plain_file():
     assert scene_name(opts, "s3://bucket/scenes/garden/lod-meta.json", "out") == "garden"
     assert scene_name(opts, "captures/garden.ply", "out") == "garden"
     assert scene_name(opts, None, "out") == "out"
+
+
+def test_streamed_sog_merged_with_another_input_says_its_tree_is_not_kept(tmp_path):
+    # several inputs are one splat set with our tree: a streamed SOG among them gives its finest level only, and
+    # says so (it was dropped without a word: newuser58)
+    sog = Path(__file__).parent / "fixtures" / "foreign" / "fruit_drops_lod" / "lod-meta.json"
+    r = run_cli("encode", sog, real("fruit_drops_sh3.ply"), tmp_path / "scene", "--preset", "low")
+    assert r.returncode == 0, r.stderr
+    assert f"encode: {sog} holds its own LOD tree; merged with the other inputs its finest level is read" in r.stderr
+    info = json.loads(run_cli("info", tmp_path / "scene", "--json").stdout)
+    assert info["splats"] == 4721 + 74

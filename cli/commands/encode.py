@@ -301,6 +301,12 @@ def _cpu_refiner(args: argparse.Namespace, log: Callable[[str], None]) -> LodRef
 
 def _foreign_tree(args: argparse.Namespace) -> str | None:
     """"lod_sog" or "rad" where the one input is an LOD tree of a peer's that `encode` keeps, else None."""
+    if len(args.input) > 1 and not args.no_lod:
+        # Several inputs are merged into one splat set whose tree is ours: a peer's tree among them is not kept.
+        for path in args.input:
+            if os.path.exists(path) and open_input(path).format in ("lod_sog", "rad"):
+                print(f"encode: {path} holds its own LOD tree; merged with the other inputs its finest level is "
+                      "read and our tree built over all of them", file=sys.stderr)
     if len(args.input) != 1 or args.no_lod or args.rebuild_lod or not os.path.exists(args.input[0]):
         return None  # (a missing input fails in encode_file, with its usual message)
     kind = open_input(args.input[0]).format
