@@ -144,6 +144,10 @@ def bind(host: str, port: int, backlog: int = 1024) -> socket.socket:
         if exc.errno == errno.EACCES:
             raise ServeError(f"no permission to listen on {host}:{port} (ports below 1024 need privileges)",
                              EXIT_BAD_ROOT) from None
+        if exc.errno == errno.EADDRNOTAVAIL:
+            raise ServeError(f"cannot listen on {host}:{port}: {host} is not an address of this machine "
+                             f"(--host 127.0.0.1 for this machine only, 0.0.0.0 for every interface)",
+                             EXIT_BAD_ROOT) from None
         raise ServeError(f"cannot listen on {host}:{port}: {exc.strerror}", EXIT_ERROR) from None
     sock.setblocking(False)
     return sock

@@ -611,6 +611,14 @@ def test_cli_port_in_use(root):
     assert proc.returncode == 2 and "already in use" in err and "Traceback" not in err
 
 
+def test_cli_host_not_of_this_machine(root):
+    # 192.0.2.1 (TEST-NET-1, RFC 5737) is never a local address: a usage error (2), not a failure (1)
+    proc = _cli(str(root), "--host", "192.0.2.1", "--port", "0")
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 2 and "192.0.2.1 is not an address of this machine" in err, err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+
+
 @pytest.mark.parametrize("workers", [1, 2])
 def test_cli_graceful_sigterm(tmp_path, workers):
     root = tmp_path / "root"
