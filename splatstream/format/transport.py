@@ -346,6 +346,43 @@ def _plane_costs(codes: list[np.ndarray], bits: list[int]) -> list[float]:
     return totals
 
 
+def _block_costs(blocks: list[tuple[np.ndarray, int]]) -> list[list[float]]:
+    """_plane_cost of every row of several (codes (rows, slots), bits) blocks, rows of one block of one code type
+    and all of one length: one bincount and one log2 for all their byte planes, each block's planes taken from it
+    in one strided pass (no per-row views or list of planes). Byte-identical to _plane_costs over the rows in
+    order: the same counts, each plane's terms the same elementwise operations, each plane's sum numpy's sum over a
+    contiguous array of the same values in the same order, a row's planes added low byte first."""
+    n = blocks[0][0].shape[1]
+    nbytes = [(b + 7) // 8 for _, b in blocks]
+    count = sum(len(z) * k for (z, _), k in zip(blocks, nbytes, strict=True))
+    idx = np.empty((count, n), np.intp)
+    start = 0
+    for (z, _), k in zip(blocks, nbytes, strict=True):
+        rows = len(z)
+        planes = z.view(np.uint8).reshape(rows, n, z.dtype.itemsize)[:, :, :k].transpose(0, 2, 1)
+        offsets = (np.arange(start, start + rows * k, dtype=np.intp) * 256).reshape(rows, k, 1)
+        np.add(planes, offsets, out=idx[start:start + rows * k].reshape(rows, k, n))
+        start += rows * k
+    counts = np.bincount(idx.reshape(-1), minlength=256 * count).reshape(count, 256)
+    seen = counts > 0
+    c = counts[seen]  # row after row: each plane's nonzero counts in _plane_cost's order
+    terms = c * np.log2(n / c)
+    ends = np.cumsum(seen.sum(axis=1)).tolist()
+    add = np.add.reduce  # what ndarray.sum calls, without its Python wrapper (~40 planes a layer)
+    out, plane, begin = [], 0, 0
+    for (z, _), k in zip(blocks, nbytes, strict=True):
+        costs = []
+        for _ in range(len(z)):
+            total = 0.0
+            for _ in range(k):
+                end = ends[plane]
+                total += float(add(terms[begin:end])) / 8
+                begin, plane = end, plane + 1
+            costs.append(total)
+        out.append(costs)
+    return out
+
+
 def _sample_blocks(blocks: int) -> np.ndarray | None:
     """Blocks the encoder measures modes on: all of them (None), or an even spread of about SAMPLE_SLOTS slots."""
     want = max(1, SAMPLE_SLOTS // BLOCK_TEXELS)
@@ -357,56 +394,146 @@ def _sample_blocks(blocks: int) -> np.ndarray | None:
 Modes = list[tuple[bool, int | None]]  # per field: (delta, reference field or None)
 
 
+def _residual_rows(values: np.ndarray, bits: np.ndarray, pred: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """_residual_pair of several fields of one code type at once: `values` (rows, slots) in _field_dtype of every
+    row's `bits`, `pred` (rows, slots) int32 or None; (plain, delta) codes as (rows, slots) arrays. Row for row the
+    same elementwise integer operations as _residual_pair (masking with a field's whole width, as the one-row form
+    skips, changes nothing), so the same codes: choose_modes pays numpy's per-call overhead once per code type of a
+    layer instead of once per residual (~12 a layer on a few blocks)."""
+    t = values.dtype.type
+    x = values.copy()
+    if pred is not None:
+        x -= pred.astype(t)
+    d = x.copy()
+    d[:, 1:] -= x[:, :-1]
+    mask = ((np.uint64(1) << bits.astype(np.uint64)) - np.uint64(1)).astype(t)[:, None]
+    x &= mask
+    d &= mask
+    if values.dtype.itemsize == 1:  # fields of up to 8 bits: no zigzag
+        return x, d
+    top = (bits.astype(t) - t(1))[:, None]
+    return ((x << t(1)) ^ np.negative(x >> top)) & mask, ((d << t(1)) ^ np.negative(d >> top)) & mask
+
+
+class _LayerTrials:
+    """What choose_modes computed on a sample that is the whole layer: every field's codes alone (without and with
+    delta) and against every reference it tried (the block parameters and both codes). code_layer takes the chosen
+    ones from here instead of fitting and coding the chosen modes again: the same fits (_fit_pairs equals
+    _fit_cross pair by pair), the same predictions and residuals (_residual_rows equals _residual), so the same
+    planes."""
+
+    def __init__(self) -> None:
+        self.alone: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.cross: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]] = {}
+
+    def code(self, i: int, delta: bool, ref: int | None) -> tuple[np.ndarray, list[np.ndarray]]:
+        """Field i's codes under (delta, ref) and its block parameters (slope, intercept; none without ref)."""
+        if ref is None:
+            return self.alone[i][int(delta)], []
+        slope, intercept, codes = self.cross[(i, ref)]
+        return codes[int(delta)], [slope, intercept]
+
+
+def _coded_rows(sample: list[np.ndarray], bits: tuple[int, ...], pairs: list[tuple[int, int]],
+                slopes: np.ndarray | None, intercepts: np.ndarray | None
+                ) -> tuple[list[tuple[np.ndarray, int]], dict[tuple[str, int], tuple[int, int]]]:
+    """Every code choose_modes measures, as blocks of rows of one code type: [(codes (rows, slots), bits a code's
+    planes cover)], and where each candidate's two rows (plain, delta) are: {("alone", i) or ("pair", p): (block,
+    first row)}."""
+    blocks: list[tuple[np.ndarray, int]] = []
+    where: dict[tuple[str, int], tuple[int, int]] = {}
+    kinds = [("alone", i, i) for i in range(len(sample))] + [("pair", p, i) for p, (i, _) in enumerate(pairs)]
+    for t in sorted({_field_dtype(bits[i]) for _, _, i in kinds}, key=lambda t: np.dtype(t).itemsize):
+        for kind in ("alone", "pair"):
+            rows = [(k, i) for kk, k, i in kinds if kk == kind and _field_dtype(bits[i]) is t]
+            if not rows:
+                continue
+            values = np.stack([sample[i] for _, i in rows])
+            row_bits = np.array([bits[i] for _, i in rows])
+            pred = None
+            if kind == "pair":
+                ps = [k for k, _ in rows]
+                pred = _cross_prediction(np.stack([sample[pairs[p][1]] for p in ps]).astype(np.int32),
+                                         slopes[ps], intercepts[ps])
+            x, d = _residual_rows(values, row_bits, pred)
+            width = max(bits[i] for _, i in rows)  # the planes measured: (bits + 7) // 8 of each code type
+            for r, (k, _) in enumerate(rows):
+                where[(kind, k)] = (len(blocks), 2 * r)
+            blocks.append((np.stack([x, d], axis=1).reshape(2 * len(rows), -1), width))
+    return blocks, where
+
+
+def _choose(fields: list[np.ndarray], bits: tuple[int, ...]) -> tuple[Modes, _LayerTrials | None]:
+    """choose_modes, and its trials where its sample is the whole layer (else None)."""
+    nf = len(fields)
+    blocks = len(fields[0]) // BLOCK_TEXELS
+    pick = _sample_blocks(blocks)
+    sample = fields if pick is None else [f.reshape(blocks, BLOCK_TEXELS)[pick].reshape(-1) for f in fields]
+    pairs = [(i, r) for i in range(nf) for r in range(nf) if i != r and bits[i] <= 16 and bits[r] <= 16]
+    slopes = intercepts = None
+    if pairs:
+        slopes, intercepts = _fit_pairs(sample, bits, pairs)
+    code_blocks, where = _coded_rows(sample, bits, pairs, slopes, intercepts)
+    costs = _block_costs(code_blocks)
+
+    def pair_of(kind: str, k: int) -> tuple[float, float]:
+        b, r = where[(kind, k)]
+        return costs[b][r], costs[b][r + 1]
+
+    alone = []
+    for i in range(nf):
+        plain, delta = pair_of("alone", i)
+        alone.append((plain, False) if plain <= delta else (delta, True))  # min of {False, True}: ties keep False
+    param_cost = 3.0 * len(sample[0]) // BLOCK_TEXELS  # i8 slope + i16 intercept per block, before zstd
+    cross: dict[tuple[int, int], tuple[float, bool]] = {}
+    for p, pair in enumerate(pairs):
+        plain, delta = pair_of("pair", p)
+        plain, delta = plain + param_cost, delta + param_cost
+        cross[pair] = (plain, False) if plain <= delta else (delta, True)
+    best = _best_anchors(nf, alone, cross)
+    if pick is not None:
+        return best, None
+    trials = _LayerTrials()
+    for i in range(nf):
+        b, r = where[("alone", i)]
+        trials.alone[i] = (code_blocks[b][0][r], code_blocks[b][0][r + 1])
+    for p, pair in enumerate(pairs):
+        b, r = where[("pair", p)]
+        trials.cross[pair] = (slopes[p], intercepts[p], (code_blocks[b][0][r], code_blocks[b][0][r + 1]))
+    return best, trials
+
+
+def _best_anchors(nf: int, alone: list[tuple[float, bool]], cross: dict[tuple[int, int], tuple[float, bool]]
+                  ) -> Modes:
+    """The modes of the cheapest set of anchors: every set tried in increasing mask order (the first of equal
+    totals kept), each other field taking its cheapest option in the order alone, then its anchors by increasing
+    index (the first of equal costs kept), a set's total summed in field order."""
+    best_total, best = float("inf"), None
+    for mask in range(1, 1 << nf):
+        total, modes = 0.0, []
+        for i in range(nf):
+            cost, d = alone[i]
+            r = None
+            if not mask >> i & 1:
+                for a in range(nf):
+                    if mask >> a & 1 and (i, a) in cross:
+                        c, dc = cross[(i, a)]
+                        if c < cost:
+                            cost, d, r = c, dc, a
+            total += cost
+            modes.append((d, r))
+        if total < best_total:
+            best_total, best = total, modes
+    return best
+
+
 def choose_modes(fields: list[np.ndarray], bits: tuple[int, ...]) -> Modes:
     """Per field (delta, reference field or None), chosen on a sample of blocks by the byte-plane entropy.
 
     Fields with a reference are predicted from an **anchor** (a field without one) of the same texel. Every set of
     anchors is tried (4 fields at most: 15 sets), each other field taking its best anchor or none.
     """
-    nf = len(fields)
-    blocks = len(fields[0]) // BLOCK_TEXELS
-    pick = _sample_blocks(blocks)
-    sample = fields if pick is None else [f.reshape(blocks, BLOCK_TEXELS)[pick].reshape(-1) for f in fields]
-    # Every residual first, then all their entropies in one batch (_plane_costs), then the same choices as before.
-    codes: list[np.ndarray] = []
-    code_bits: list[int] = []
-    for f, b in zip(sample, bits, strict=True):
-        codes += _residual_pair(f, b, None)
-        code_bits += [b, b]
-    pairs = [(i, r) for i in range(nf) for r in range(nf) if i != r and bits[i] <= 16 and bits[r] <= 16]
-    if pairs:
-        slopes, intercepts = _fit_pairs(sample, bits, pairs)
-        preds = _cross_prediction(np.stack([sample[r] for _, r in pairs]).astype(np.int32), slopes, intercepts)
-        for (i, _), pred in zip(pairs, preds, strict=True):
-            codes += _residual_pair(sample[i], bits[i], pred)
-            code_bits += [bits[i], bits[i]]
-    entropy = _plane_costs(codes, code_bits)
-    alone = []
-    for i in range(nf):
-        costs = {False: entropy[2 * i], True: entropy[2 * i + 1]}
-        d = min(costs, key=costs.get)
-        alone.append((costs[d], d))
-    cross: dict[tuple[int, int], tuple[float, bool]] = {}
-    param_cost = 3.0 * len(sample[0]) // BLOCK_TEXELS  # i8 slope + i16 intercept per block, before zstd
-    for p, pair in enumerate(pairs):
-        e = 2 * nf + 2 * p
-        costs = {False: entropy[e] + param_cost, True: entropy[e + 1] + param_cost}
-        d = min(costs, key=costs.get)
-        cross[pair] = (costs[d], d)
-    best_total, best = float("inf"), None
-    for mask in range(1, 1 << nf):
-        anchors = [i for i in range(nf) if mask >> i & 1]
-        total, modes = 0.0, []
-        for i in range(nf):
-            options = [(alone[i][0], alone[i][1], None)]
-            if i not in anchors:
-                options += [(cross[(i, r)][0], cross[(i, r)][1], r) for r in anchors if (i, r) in cross]
-            cost, d, r = min(options, key=lambda o: o[0])
-            total += cost
-            modes.append((d, r))
-        if total < best_total:
-            best_total, best = total, modes
-    return best
+    return _choose(fields, bits)[0]
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -429,8 +556,16 @@ def code_layer(layer: np.ndarray, fmt: str, width: int, height: int, modes: Mode
     """One layer's texel bytes -> its part of the fields1 content (modes chosen on a sample unless given)."""
     bits = field_bits(fmt)
     fields = split_layer(layer, fmt, width, height)
-    coded = CodedLayer(modes if modes is not None else choose_modes(fields, bits))
+    trials = None
+    if modes is None:
+        modes, trials = _choose(fields, bits)
+    coded = CodedLayer(modes)
     for i, (delta, ref) in enumerate(coded.modes):
+        if trials is not None:  # chosen on the whole layer: its codes and fits are at hand
+            z, params = trials.code(i, delta, ref)
+            coded.params += params
+            coded.planes += _planes(z, bits[i]) if bits[i] > 8 else [z.copy()]  # a copy: not a view of every trial
+            continue
         pred = None
         if ref is not None:
             slope, intercept = _fit_cross(fields[i], fields[ref], max(bits[i], bits[ref]))
