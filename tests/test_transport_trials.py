@@ -145,7 +145,7 @@ def test_residual_rows_equal_residual_pair_row_by_row(bits):
         values = np.stack([rng.integers(0, 1 << b, n, dtype=np.uint64).astype(t) for b in rows])
         pred = rng.integers(-40000, 70000, (len(rows), n)).astype(np.int32)
         for p in (None, pred):
-            x, d = _residual_rows(values, np.array(rows), p)
+            x, d = _residual_rows(values, tuple(rows), p)
             for k, b in enumerate(rows):
                 plain, delta = _residual_pair(values[k], b, None if p is None else p[k])
                 assert x[k].dtype == plain.dtype and np.array_equal(x[k], plain) and np.array_equal(d[k], delta)
@@ -163,3 +163,10 @@ def test_block_costs_equal_plane_cost_row_by_row():
     costs = _block_costs(blocks)
     assert costs == [[_plane_cost(z, b) for z in codes] for codes, b in blocks]
     assert costs[0][1] == 0.0 and abs(costs[0][0] - n) < 0.05 * n
+
+
+def test_block_costs_with_more_planes_than_a_uint16_bin_index_holds():
+    rng = np.random.default_rng(5)
+    n = BLOCK_TEXELS
+    codes = rng.geometric(0.2, (300, n)).astype(np.uint16)  # 600 byte planes: bins past 2^16
+    assert _block_costs([(codes, 12)]) == [[_plane_cost(z, 12) for z in codes]]

@@ -248,22 +248,41 @@ def _fit_from_sums(dot: np.ndarray, sv: np.ndarray, sr: np.ndarray, rr: np.ndarr
     return slope.astype(np.int8), np.clip(intercept, INTERCEPT_MIN, INTERCEPT_MAX).astype("<i2")
 
 
+@functools.lru_cache(maxsize=64)
+def _fit_plan(bits: tuple[int, ...], pairs: tuple[tuple[int, int], ...]) -> tuple[tuple, ...]:
+    """_fit_pairs' work for one (bits, pairs), worked out once: per fit type (float32 or float64), the pairs it
+    fits, the fields they use (None: all, in order) and each pair's field and reference among them."""
+    plan = []
+    for t in (np.float32, np.float64):
+        rows = [p for p, (i, r) in enumerate(pairs) if _fit_type(max(bits[i], bits[r])) is t]
+        if not rows:
+            continue
+        used = sorted({k for p in rows for k in pairs[p]})
+        at = {k: n for n, k in enumerate(used)}
+        ii = np.array([at[pairs[p][0]] for p in rows], np.intp)
+        ri = np.array([at[pairs[p][1]] for p in rows], np.intp)
+        plan.append((t, np.array(rows, np.intp), None if used == list(range(len(bits))) else np.array(used, np.intp),
+                     len(used), ii, ri))
+    return tuple(plan)
+
+
 def _fit_pairs(fields: list[np.ndarray], bits: tuple[int, ...], pairs: list[tuple[int, int]]
                ) -> tuple[np.ndarray, np.ndarray]:
     """_fit_cross(fields[i], fields[r], max(bits[i], bits[r])) of every pair (i, r) at once, as (pairs, blocks)
     slopes and intercepts (choose_modes' up to 12 pairs per layer on ~6 blocks: numpy's per-call overhead). The
     same results: every block sum is an exact integer in its float type (_fit_cross), so summing several fields'
     blocks in one call gives the same sums, and the rest is the same elementwise arithmetic."""
-    sv, sr, rr, dot = (np.empty((len(pairs), len(fields[0]) // BLOCK_TEXELS)) for _ in range(4))
-    for t in {_fit_type(max(bits[i], bits[r])) for i, r in pairs}:
-        rows = [p for p, (i, r) in enumerate(pairs) if _fit_type(max(bits[i], bits[r])) is t]
-        used = sorted({k for p in rows for k in pairs[p]})
-        at = {k: n for n, k in enumerate(used)}
-        blk = np.stack([fields[k] for k in used]).reshape(len(used), -1, BLOCK_TEXELS).astype(t)
+    return _fit_stacked(np.stack(fields), tuple(bits), tuple(pairs))
+
+
+def _fit_stacked(stacked: np.ndarray, bits: tuple[int, ...], pairs: tuple[tuple[int, int], ...]
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """_fit_pairs of the fields as one (fields, slots) array of any integer type that holds them."""
+    sv, sr, rr, dot = (np.empty((len(pairs), stacked.shape[1] // BLOCK_TEXELS)) for _ in range(4))
+    for t, rows, used, count, ii, ri in _fit_plan(bits, pairs):
+        blk = (stacked if used is None else stacked[used]).reshape(count, -1, BLOCK_TEXELS).astype(t)
         sums = blk.sum(axis=2, dtype=np.float64)
         dots = np.einsum("mbk,nbk->mnb", blk, blk).astype(np.float64)
-        ii = [at[pairs[p][0]] for p in rows]
-        ri = [at[pairs[p][1]] for p in rows]
         sv[rows], sr[rows], rr[rows], dot[rows] = sums[ii], sums[ri], dots[ri, ri], dots[ri, ii]
     return _fit_from_sums(dot, sv, sr, rr)
 
@@ -355,12 +374,15 @@ def _block_costs(blocks: list[tuple[np.ndarray, int]]) -> list[list[float]]:
     n = blocks[0][0].shape[1]
     nbytes = [(b + 7) // 8 for _, b in blocks]
     count = sum(len(z) * k for (z, _), k in zip(blocks, nbytes, strict=True))
-    idx = np.empty((count, n), np.intp)
+    # bin = plane * 256 + byte; in uint16 where that fits (64 planes at most a layer today): bincount's own cast of
+    # it is cheaper than writing intp here
+    index_type = np.uint16 if 256 * count <= 1 << 16 else np.intp
+    idx = np.empty((count, n), index_type)
     start = 0
     for (z, _), k in zip(blocks, nbytes, strict=True):
         rows = len(z)
         planes = z.view(np.uint8).reshape(rows, n, z.dtype.itemsize)[:, :, :k].transpose(0, 2, 1)
-        offsets = (np.arange(start, start + rows * k, dtype=np.intp) * 256).reshape(rows, k, 1)
+        offsets = (np.arange(start, start + rows * k, dtype=np.intp) * 256).astype(index_type).reshape(rows, k, 1)
         np.add(planes, offsets, out=idx[start:start + rows * k].reshape(rows, k, n))
         start += rows * k
     counts = np.bincount(idx.reshape(-1), minlength=256 * count).reshape(count, 256)
@@ -394,24 +416,35 @@ def _sample_blocks(blocks: int) -> np.ndarray | None:
 Modes = list[tuple[bool, int | None]]  # per field: (delta, reference field or None)
 
 
-def _residual_rows(values: np.ndarray, bits: np.ndarray, pred: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+@functools.lru_cache(maxsize=64)
+def _row_masks(dtype: str, bits: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """_residual_rows' per-row field masks and zigzag shifts (bits - 1), as (rows, 1) arrays of the code type."""
+    t = np.dtype(dtype).type
+    mask = np.array([(1 << b) - 1 for b in bits], np.uint64).astype(t)[:, None]
+    top = np.array([b - 1 for b in bits], np.uint64).astype(t)[:, None]
+    for m in (mask, top):
+        m.setflags(write=False)
+    return mask, top
+
+
+def _residual_rows(values: np.ndarray, bits: tuple[int, ...], pred: np.ndarray | None
+                   ) -> tuple[np.ndarray, np.ndarray]:
     """_residual_pair of several fields of one code type at once: `values` (rows, slots) in _field_dtype of every
     row's `bits`, `pred` (rows, slots) int32 or None; (plain, delta) codes as (rows, slots) arrays. Row for row the
     same elementwise integer operations as _residual_pair (masking with a field's whole width, as the one-row form
     skips, changes nothing), so the same codes: choose_modes pays numpy's per-call overhead once per code type of a
     layer instead of once per residual (~12 a layer on a few blocks)."""
     t = values.dtype.type
+    mask, top = _row_masks(values.dtype.str, bits)
     x = values.copy()
     if pred is not None:
         x -= pred.astype(t)
     d = x.copy()
     d[:, 1:] -= x[:, :-1]
-    mask = ((np.uint64(1) << bits.astype(np.uint64)) - np.uint64(1)).astype(t)[:, None]
     x &= mask
     d &= mask
     if values.dtype.itemsize == 1:  # fields of up to 8 bits: no zigzag
         return x, d
-    top = (bits.astype(t) - t(1))[:, None]
     return ((x << t(1)) ^ np.negative(x >> top)) & mask, ((d << t(1)) ^ np.negative(d >> top)) & mask
 
 
@@ -434,73 +467,95 @@ class _LayerTrials:
         return codes[int(delta)], [slope, intercept]
 
 
-def _coded_rows(sample: list[np.ndarray], bits: tuple[int, ...], pairs: list[tuple[int, int]],
-                slopes: np.ndarray | None, intercepts: np.ndarray | None
-                ) -> tuple[list[tuple[np.ndarray, int]], dict[tuple[str, int], tuple[int, int]]]:
-    """Every code choose_modes measures, as blocks of rows of one code type: [(codes (rows, slots), bits a code's
-    planes cover)], and where each candidate's two rows (plain, delta) are: {("alone", i) or ("pair", p): (block,
-    first row)}."""
-    blocks: list[tuple[np.ndarray, int]] = []
-    where: dict[tuple[str, int], tuple[int, int]] = {}
-    kinds = [("alone", i, i) for i in range(len(sample))] + [("pair", p, i) for p, (i, _) in enumerate(pairs)]
-    for t in sorted({_field_dtype(bits[i]) for _, _, i in kinds}, key=lambda t: np.dtype(t).itemsize):
-        for kind in ("alone", "pair"):
-            rows = [(k, i) for kk, k, i in kinds if kk == kind and _field_dtype(bits[i]) is t]
-            if not rows:
-                continue
-            values = np.stack([sample[i] for _, i in rows])
-            row_bits = np.array([bits[i] for _, i in rows])
-            pred = None
-            if kind == "pair":
-                ps = [k for k, _ in rows]
-                pred = _cross_prediction(np.stack([sample[pairs[p][1]] for p in ps]).astype(np.int32),
-                                         slopes[ps], intercepts[ps])
-            x, d = _residual_rows(values, row_bits, pred)
-            width = max(bits[i] for _, i in rows)  # the planes measured: (bits + 7) // 8 of each code type
-            for r, (k, _) in enumerate(rows):
-                where[(kind, k)] = (len(blocks), 2 * r)
-            blocks.append((np.stack([x, d], axis=1).reshape(2 * len(rows), -1), width))
-    return blocks, where
+@dataclass(frozen=True)
+class _CodeGroup:
+    """Candidates of one kind (fields alone, or pairs) whose codes share a type: coded together."""
+
+    dtype: np.dtype
+    pairs: bool
+    keys: tuple[int, ...]  # field indices (alone) or pair indices
+    fields: np.ndarray  # (rows,) index of each row's field among the fields of `dtype` (pairs only)
+    refs: np.ndarray  # (rows,) each row's reference field (pairs only)
+    bits: tuple[int, ...]  # each row's field bits
+    width: int  # the widest of them: (width + 7) // 8 byte planes measured per code
+
+
+@functools.lru_cache(maxsize=64)
+def _trial_plan(bits: tuple[int, ...]) -> tuple[tuple[tuple[int, int], ...], tuple[_CodeGroup, ...],
+                                                 dict[np.dtype, tuple[int, ...]]]:
+    """choose_modes' work for one field layout, worked out once: the pairs tried, the code groups (by code type,
+    narrowest first; fields alone, then pairs) and the fields of each code type."""
+    nf = len(bits)
+    pairs = tuple((i, r) for i in range(nf) for r in range(nf) if i != r and bits[i] <= 16 and bits[r] <= 16)
+    of_type: dict[np.dtype, tuple[int, ...]] = {}
+    for i in range(nf):
+        t = np.dtype(_field_dtype(bits[i]))
+        of_type[t] = of_type.get(t, ()) + (i,)
+    groups = []
+    for t in sorted(of_type, key=lambda t: t.itemsize):
+        members = of_type[t]
+        groups.append(_CodeGroup(t, False, members, np.arange(len(members)), np.empty(0, np.intp),
+                                 tuple(bits[i] for i in members), max(bits[i] for i in members)))
+        ps = [p for p, (i, _) in enumerate(pairs) if i in members]
+        if ps:
+            groups.append(_CodeGroup(t, True, tuple(ps), np.array([members.index(pairs[p][0]) for p in ps], np.intp),
+                                     np.array([pairs[p][1] for p in ps], np.intp),
+                                     tuple(bits[pairs[p][0]] for p in ps), max(bits[pairs[p][0]] for p in ps)))
+    return pairs, tuple(groups), of_type
 
 
 def _choose(fields: list[np.ndarray], bits: tuple[int, ...]) -> tuple[Modes, _LayerTrials | None]:
-    """choose_modes, and its trials where its sample is the whole layer (else None)."""
-    nf = len(fields)
+    """choose_modes, and its trials where its sample is the whole layer (else None).
+
+    Every candidate's codes (each field alone, each field against each other field) without and with delta come
+    from one _residual_rows per code group, their entropies from one _block_costs; the fits from one _fit_stacked."""
+    nf, bits = len(fields), tuple(bits)
     blocks = len(fields[0]) // BLOCK_TEXELS
     pick = _sample_blocks(blocks)
     sample = fields if pick is None else [f.reshape(blocks, BLOCK_TEXELS)[pick].reshape(-1) for f in fields]
-    pairs = [(i, r) for i in range(nf) for r in range(nf) if i != r and bits[i] <= 16 and bits[r] <= 16]
-    slopes = intercepts = None
+    pairs, groups, of_type = _trial_plan(bits)
+    by_type = {t: np.stack([sample[i] for i in members]) for t, members in of_type.items()}
+    slopes = intercepts = refs = None
     if pairs:
-        slopes, intercepts = _fit_pairs(sample, bits, pairs)
-    code_blocks, where = _coded_rows(sample, bits, pairs, slopes, intercepts)
+        refs = np.stack(sample).astype(np.int32)  # the fields as _cross_prediction takes its references
+        slopes, intercepts = _fit_stacked(refs, bits, pairs)
+    coded, code_blocks = [], []
+    for g in groups:
+        values = by_type[g.dtype]
+        pred = None
+        if g.pairs:
+            values = values[g.fields]
+            keys = list(g.keys)
+            pred = _cross_prediction(refs[g.refs], slopes[keys], intercepts[keys])
+        x, d = _residual_rows(values, g.bits, pred)
+        coded.append((x, d))
+        code_blocks += [(x, g.width), (d, g.width)]
     costs = _block_costs(code_blocks)
-
-    def pair_of(kind: str, k: int) -> tuple[float, float]:
-        b, r = where[(kind, k)]
-        return costs[b][r], costs[b][r + 1]
-
-    alone = []
-    for i in range(nf):
-        plain, delta = pair_of("alone", i)
-        alone.append((plain, False) if plain <= delta else (delta, True))  # min of {False, True}: ties keep False
     param_cost = 3.0 * len(sample[0]) // BLOCK_TEXELS  # i8 slope + i16 intercept per block, before zstd
+    alone: list[tuple[float, bool]] = [(0.0, False)] * nf
     cross: dict[tuple[int, int], tuple[float, bool]] = {}
-    for p, pair in enumerate(pairs):
-        plain, delta = pair_of("pair", p)
-        plain, delta = plain + param_cost, delta + param_cost
-        cross[pair] = (plain, False) if plain <= delta else (delta, True)
-    best = _best_anchors(nf, alone, cross)
+    for k, g in enumerate(groups):
+        plain_costs, delta_costs = costs[2 * k], costs[2 * k + 1]
+        for row, key in enumerate(g.keys):
+            plain, delta = plain_costs[row], delta_costs[row]
+            if g.pairs:
+                plain, delta = plain + param_cost, delta + param_cost
+            best = (plain, False) if plain <= delta else (delta, True)  # min over {False, True}: ties keep False
+            if g.pairs:
+                cross[pairs[key]] = best
+            else:
+                alone[key] = best
+    modes = _best_anchors(nf, alone, cross)
     if pick is not None:
-        return best, None
+        return modes, None
     trials = _LayerTrials()
-    for i in range(nf):
-        b, r = where[("alone", i)]
-        trials.alone[i] = (code_blocks[b][0][r], code_blocks[b][0][r + 1])
-    for p, pair in enumerate(pairs):
-        b, r = where[("pair", p)]
-        trials.cross[pair] = (slopes[p], intercepts[p], (code_blocks[b][0][r], code_blocks[b][0][r + 1]))
-    return best, trials
+    for g, (x, d) in zip(groups, coded, strict=True):
+        for row, key in enumerate(g.keys):
+            if g.pairs:
+                trials.cross[pairs[key]] = (slopes[key], intercepts[key], (x[row], d[row]))
+            else:
+                trials.alone[key] = (x[row], d[row])
+    return modes, trials
 
 
 def _best_anchors(nf: int, alone: list[tuple[float, bool]], cross: dict[tuple[int, int], tuple[float, bool]]
