@@ -170,3 +170,12 @@ def test_block_costs_with_more_planes_than_a_uint16_bin_index_holds():
     n = BLOCK_TEXELS
     codes = rng.geometric(0.2, (300, n)).astype(np.uint16)  # 600 byte planes: bins past 2^16
     assert _block_costs([(codes, 12)]) == [[_plane_cost(z, 12) for z in codes]]
+
+
+def test_choose_modes_takes_fields_in_wider_arrays_as_before():
+    """Fields handed in a wider integer type than their code type (a caller's arrays, not split_layer's) give the
+    reference's modes: each residual is cut to its code type as _residual_pair cut it."""
+    layer, width, height = correlated_layer("norm8x4", 6, seed=11)
+    fields = [f.astype(np.uint16) for f in split_layer(layer, "norm8x4", width, height)]
+    bits = field_bits("norm8x4")
+    assert choose_modes(fields, bits) == reference_choose_modes(fields, bits)

@@ -514,7 +514,8 @@ def _choose(fields: list[np.ndarray], bits: tuple[int, ...]) -> tuple[Modes, _La
     pick = _sample_blocks(blocks)
     sample = fields if pick is None else [f.reshape(blocks, BLOCK_TEXELS)[pick].reshape(-1) for f in fields]
     pairs, groups, of_type = _trial_plan(bits)
-    by_type = {t: np.stack([sample[i] for i in members]) for t, members in of_type.items()}
+    # each field in its code type (split_layer's already; a caller's wider array is cut as _residual_pair cut it)
+    by_type = {t: np.stack([sample[i] for i in members]).astype(t, copy=False) for t, members in of_type.items()}
     slopes = intercepts = refs = None
     if pairs:
         refs = np.stack(sample).astype(np.int32)  # the fields as _cross_prediction takes its references
