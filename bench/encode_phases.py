@@ -31,7 +31,7 @@ import splatstream.encode.plan as plan
 import splatstream.io as splat_io
 import splatstream.lod as lod
 import splatstream.lod_groups as lod_groups
-from splatstream.format import transport
+from splatstream.format import codec, container, transport
 
 
 class InlineExecutor:
@@ -66,8 +66,14 @@ WRAPPED = (
     (lod_groups, "neighbour_keys"), (lod_groups, "edge_costs_at"), (lod_groups, "_greedy_pairs"),
     (lod_groups, "_cheapest_share"), (lod_groups, "_merge_pairs"), (lod_groups, "_drop"),
     (lod_groups, "covariances6"), (lod_groups, "_sorted_unique"), (lod_groups, "_morton_finish"),
-    (local, "encode_group"), (transport, "choose_modes"),
+    (local, "encode_group"), (container, "filter_texels"), (transport, "code_layer"), (transport, "_choose"),
+    (transport, "split_layer"), (transport, "_zstd_size"), (container, "_block_ends"),
+    (container, "_compress_segments"), (codec, "chunk_ranges"), (codec, "_texture_blob"),
 )
+# The payload stage's rows (encfast31): `_choose` is choose_modes' work (code_layer calls it, choose_modes wraps it;
+# before encfast31 this row was `choose_modes`); `filter_texels` holds code_layer and the layers' quantisation (the
+# plane's lazy layers are made as it asks for them), `_zstd_size` the fields1-or-shuffle trials; `_block_ends` and
+# `_compress_segments` are write_payload's block trials and its compression.
 
 
 def main() -> None:

@@ -248,22 +248,41 @@ def _fit_from_sums(dot: np.ndarray, sv: np.ndarray, sr: np.ndarray, rr: np.ndarr
     return slope.astype(np.int8), np.clip(intercept, INTERCEPT_MIN, INTERCEPT_MAX).astype("<i2")
 
 
+@functools.lru_cache(maxsize=64)
+def _fit_plan(bits: tuple[int, ...], pairs: tuple[tuple[int, int], ...]) -> tuple[tuple, ...]:
+    """_fit_pairs' work for one (bits, pairs), worked out once: per fit type (float32 or float64), the pairs it
+    fits, the fields they use (None: all, in order) and each pair's field and reference among them."""
+    plan = []
+    for t in (np.float32, np.float64):
+        rows = [p for p, (i, r) in enumerate(pairs) if _fit_type(max(bits[i], bits[r])) is t]
+        if not rows:
+            continue
+        used = sorted({k for p in rows for k in pairs[p]})
+        at = {k: n for n, k in enumerate(used)}
+        ii = np.array([at[pairs[p][0]] for p in rows], np.intp)
+        ri = np.array([at[pairs[p][1]] for p in rows], np.intp)
+        plan.append((t, np.array(rows, np.intp), None if used == list(range(len(bits))) else np.array(used, np.intp),
+                     len(used), ii, ri))
+    return tuple(plan)
+
+
 def _fit_pairs(fields: list[np.ndarray], bits: tuple[int, ...], pairs: list[tuple[int, int]]
                ) -> tuple[np.ndarray, np.ndarray]:
     """_fit_cross(fields[i], fields[r], max(bits[i], bits[r])) of every pair (i, r) at once, as (pairs, blocks)
     slopes and intercepts (choose_modes' up to 12 pairs per layer on ~6 blocks: numpy's per-call overhead). The
     same results: every block sum is an exact integer in its float type (_fit_cross), so summing several fields'
     blocks in one call gives the same sums, and the rest is the same elementwise arithmetic."""
-    sv, sr, rr, dot = (np.empty((len(pairs), len(fields[0]) // BLOCK_TEXELS)) for _ in range(4))
-    for t in {_fit_type(max(bits[i], bits[r])) for i, r in pairs}:
-        rows = [p for p, (i, r) in enumerate(pairs) if _fit_type(max(bits[i], bits[r])) is t]
-        used = sorted({k for p in rows for k in pairs[p]})
-        at = {k: n for n, k in enumerate(used)}
-        blk = np.stack([fields[k] for k in used]).reshape(len(used), -1, BLOCK_TEXELS).astype(t)
+    return _fit_stacked(np.stack(fields), tuple(bits), tuple(pairs))
+
+
+def _fit_stacked(stacked: np.ndarray, bits: tuple[int, ...], pairs: tuple[tuple[int, int], ...]
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """_fit_pairs of the fields as one (fields, slots) array of any integer type that holds them."""
+    sv, sr, rr, dot = (np.empty((len(pairs), stacked.shape[1] // BLOCK_TEXELS)) for _ in range(4))
+    for t, rows, used, count, ii, ri in _fit_plan(bits, pairs):
+        blk = (stacked if used is None else stacked[used]).reshape(count, -1, BLOCK_TEXELS).astype(t)
         sums = blk.sum(axis=2, dtype=np.float64)
         dots = np.einsum("mbk,nbk->mnb", blk, blk).astype(np.float64)
-        ii = [at[pairs[p][0]] for p in rows]
-        ri = [at[pairs[p][1]] for p in rows]
         sv[rows], sr[rows], rr[rows], dot[rows] = sums[ii], sums[ri], dots[ri, ri], dots[ri, ii]
     return _fit_from_sums(dot, sv, sr, rr)
 
@@ -346,6 +365,46 @@ def _plane_costs(codes: list[np.ndarray], bits: list[int]) -> list[float]:
     return totals
 
 
+def _block_costs(blocks: list[tuple[np.ndarray, int]]) -> list[list[float]]:
+    """_plane_cost of every row of several (codes (rows, slots), bits) blocks, rows of one block of one code type
+    and all of one length: one bincount and one log2 for all their byte planes, each block's planes taken from it
+    in one strided pass (no per-row views or list of planes). Byte-identical to _plane_costs over the rows in
+    order: the same counts, each plane's terms the same elementwise operations, each plane's sum numpy's sum over a
+    contiguous array of the same values in the same order, a row's planes added low byte first."""
+    n = blocks[0][0].shape[1]
+    nbytes = [(b + 7) // 8 for _, b in blocks]
+    count = sum(len(z) * k for (z, _), k in zip(blocks, nbytes, strict=True))
+    # bin = plane * 256 + byte; in uint16 where that fits (64 planes at most a layer today): bincount's own cast of
+    # it is cheaper than writing intp here
+    index_type = np.uint16 if 256 * count <= 1 << 16 else np.intp
+    idx = np.empty((count, n), index_type)
+    start = 0
+    for (z, _), k in zip(blocks, nbytes, strict=True):
+        rows = len(z)
+        planes = z.view(np.uint8).reshape(rows, n, z.dtype.itemsize)[:, :, :k].transpose(0, 2, 1)
+        offsets = (np.arange(start, start + rows * k, dtype=np.intp) * 256).astype(index_type).reshape(rows, k, 1)
+        np.add(planes, offsets, out=idx[start:start + rows * k].reshape(rows, k, n))
+        start += rows * k
+    counts = np.bincount(idx.reshape(-1), minlength=256 * count).reshape(count, 256)
+    seen = counts > 0
+    c = counts[seen]  # row after row: each plane's nonzero counts in _plane_cost's order
+    terms = c * np.log2(n / c)
+    ends = np.cumsum(seen.sum(axis=1)).tolist()
+    add = np.add.reduce  # what ndarray.sum calls, without its Python wrapper (~40 planes a layer)
+    out, plane, begin = [], 0, 0
+    for (z, _), k in zip(blocks, nbytes, strict=True):
+        costs = []
+        for _ in range(len(z)):
+            total = 0.0
+            for _ in range(k):
+                end = ends[plane]
+                total += float(add(terms[begin:end])) / 8
+                begin, plane = end, plane + 1
+            costs.append(total)
+        out.append(costs)
+    return out
+
+
 def _sample_blocks(blocks: int) -> np.ndarray | None:
     """Blocks the encoder measures modes on: all of them (None), or an even spread of about SAMPLE_SLOTS slots."""
     want = max(1, SAMPLE_SLOTS // BLOCK_TEXELS)
@@ -357,56 +416,180 @@ def _sample_blocks(blocks: int) -> np.ndarray | None:
 Modes = list[tuple[bool, int | None]]  # per field: (delta, reference field or None)
 
 
+@functools.lru_cache(maxsize=64)
+def _row_masks(dtype: str, bits: tuple[int, ...]) -> tuple[np.ndarray, np.ndarray]:
+    """_residual_rows' per-row field masks and zigzag shifts (bits - 1), as (rows, 1) arrays of the code type."""
+    t = np.dtype(dtype).type
+    mask = np.array([(1 << b) - 1 for b in bits], np.uint64).astype(t)[:, None]
+    top = np.array([b - 1 for b in bits], np.uint64).astype(t)[:, None]
+    for m in (mask, top):
+        m.setflags(write=False)
+    return mask, top
+
+
+def _residual_rows(values: np.ndarray, bits: tuple[int, ...], pred: np.ndarray | None
+                   ) -> tuple[np.ndarray, np.ndarray]:
+    """_residual_pair of several fields of one code type at once: `values` (rows, slots) in _field_dtype of every
+    row's `bits`, `pred` (rows, slots) int32 or None; (plain, delta) codes as (rows, slots) arrays. Row for row the
+    same elementwise integer operations as _residual_pair (masking with a field's whole width, as the one-row form
+    skips, changes nothing), so the same codes: choose_modes pays numpy's per-call overhead once per code type of a
+    layer instead of once per residual (~12 a layer on a few blocks)."""
+    t = values.dtype.type
+    mask, top = _row_masks(values.dtype.str, bits)
+    x = values.copy()
+    if pred is not None:
+        x -= pred.astype(t)
+    d = x.copy()
+    d[:, 1:] -= x[:, :-1]
+    x &= mask
+    d &= mask
+    if values.dtype.itemsize == 1:  # fields of up to 8 bits: no zigzag
+        return x, d
+    return ((x << t(1)) ^ np.negative(x >> top)) & mask, ((d << t(1)) ^ np.negative(d >> top)) & mask
+
+
+class _LayerTrials:
+    """What choose_modes computed on a sample that is the whole layer: every field's codes alone (without and with
+    delta) and against every reference it tried (the block parameters and both codes). code_layer takes the chosen
+    ones from here instead of fitting and coding the chosen modes again: the same fits (_fit_pairs equals
+    _fit_cross pair by pair), the same predictions and residuals (_residual_rows equals _residual), so the same
+    planes."""
+
+    def __init__(self) -> None:
+        self.alone: dict[int, tuple[np.ndarray, np.ndarray]] = {}
+        self.cross: dict[tuple[int, int], tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]] = {}
+
+    def code(self, i: int, delta: bool, ref: int | None) -> tuple[np.ndarray, list[np.ndarray]]:
+        """Field i's codes under (delta, ref) and its block parameters (slope, intercept; none without ref)."""
+        if ref is None:
+            return self.alone[i][int(delta)], []
+        slope, intercept, codes = self.cross[(i, ref)]
+        return codes[int(delta)], [slope, intercept]
+
+
+@dataclass(frozen=True)
+class _CodeGroup:
+    """Candidates of one kind (fields alone, or pairs) whose codes share a type: coded together."""
+
+    dtype: np.dtype
+    pairs: bool
+    keys: tuple[int, ...]  # field indices (alone) or pair indices
+    fields: np.ndarray  # (rows,) index of each row's field among the fields of `dtype` (pairs only)
+    refs: np.ndarray  # (rows,) each row's reference field (pairs only)
+    bits: tuple[int, ...]  # each row's field bits
+    width: int  # the widest of them: (width + 7) // 8 byte planes measured per code
+
+
+@functools.lru_cache(maxsize=64)
+def _trial_plan(bits: tuple[int, ...]) -> tuple[tuple[tuple[int, int], ...], tuple[_CodeGroup, ...],
+                                                 dict[np.dtype, tuple[int, ...]]]:
+    """choose_modes' work for one field layout, worked out once: the pairs tried, the code groups (by code type,
+    narrowest first; fields alone, then pairs) and the fields of each code type."""
+    nf = len(bits)
+    pairs = tuple((i, r) for i in range(nf) for r in range(nf) if i != r and bits[i] <= 16 and bits[r] <= 16)
+    of_type: dict[np.dtype, tuple[int, ...]] = {}
+    for i in range(nf):
+        t = np.dtype(_field_dtype(bits[i]))
+        of_type[t] = of_type.get(t, ()) + (i,)
+    groups = []
+    for t in sorted(of_type, key=lambda t: t.itemsize):
+        members = of_type[t]
+        groups.append(_CodeGroup(t, False, members, np.arange(len(members)), np.empty(0, np.intp),
+                                 tuple(bits[i] for i in members), max(bits[i] for i in members)))
+        ps = [p for p, (i, _) in enumerate(pairs) if i in members]
+        if ps:
+            groups.append(_CodeGroup(t, True, tuple(ps), np.array([members.index(pairs[p][0]) for p in ps], np.intp),
+                                     np.array([pairs[p][1] for p in ps], np.intp),
+                                     tuple(bits[pairs[p][0]] for p in ps), max(bits[pairs[p][0]] for p in ps)))
+    return pairs, tuple(groups), of_type
+
+
+def _choose(fields: list[np.ndarray], bits: tuple[int, ...]) -> tuple[Modes, _LayerTrials | None]:
+    """choose_modes, and its trials where its sample is the whole layer (else None).
+
+    Every candidate's codes (each field alone, each field against each other field) without and with delta come
+    from one _residual_rows per code group, their entropies from one _block_costs; the fits from one _fit_stacked."""
+    nf, bits = len(fields), tuple(bits)
+    blocks = len(fields[0]) // BLOCK_TEXELS
+    pick = _sample_blocks(blocks)
+    sample = fields if pick is None else [f.reshape(blocks, BLOCK_TEXELS)[pick].reshape(-1) for f in fields]
+    pairs, groups, of_type = _trial_plan(bits)
+    # each field in its code type (split_layer's already; a caller's wider array is cut as _residual_pair cut it)
+    by_type = {t: np.stack([sample[i] for i in members]).astype(t, copy=False) for t, members in of_type.items()}
+    slopes = intercepts = refs = None
+    if pairs:
+        refs = np.stack(sample).astype(np.int32)  # the fields as _cross_prediction takes its references
+        slopes, intercepts = _fit_stacked(refs, bits, pairs)
+    coded, code_blocks = [], []
+    for g in groups:
+        values = by_type[g.dtype]
+        pred = None
+        if g.pairs:
+            values = values[g.fields]
+            keys = list(g.keys)
+            pred = _cross_prediction(refs[g.refs], slopes[keys], intercepts[keys])
+        x, d = _residual_rows(values, g.bits, pred)
+        coded.append((x, d))
+        code_blocks += [(x, g.width), (d, g.width)]
+    costs = _block_costs(code_blocks)
+    param_cost = 3.0 * len(sample[0]) // BLOCK_TEXELS  # i8 slope + i16 intercept per block, before zstd
+    alone: list[tuple[float, bool]] = [(0.0, False)] * nf
+    cross: dict[tuple[int, int], tuple[float, bool]] = {}
+    for k, g in enumerate(groups):
+        plain_costs, delta_costs = costs[2 * k], costs[2 * k + 1]
+        for row, key in enumerate(g.keys):
+            plain, delta = plain_costs[row], delta_costs[row]
+            if g.pairs:
+                plain, delta = plain + param_cost, delta + param_cost
+            best = (plain, False) if plain <= delta else (delta, True)  # min over {False, True}: ties keep False
+            if g.pairs:
+                cross[pairs[key]] = best
+            else:
+                alone[key] = best
+    modes = _best_anchors(nf, alone, cross)
+    if pick is not None:
+        return modes, None
+    trials = _LayerTrials()
+    for g, (x, d) in zip(groups, coded, strict=True):
+        for row, key in enumerate(g.keys):
+            if g.pairs:
+                trials.cross[pairs[key]] = (slopes[key], intercepts[key], (x[row], d[row]))
+            else:
+                trials.alone[key] = (x[row], d[row])
+    return modes, trials
+
+
+def _best_anchors(nf: int, alone: list[tuple[float, bool]], cross: dict[tuple[int, int], tuple[float, bool]]
+                  ) -> Modes:
+    """The modes of the cheapest set of anchors: every set tried in increasing mask order (the first of equal
+    totals kept), each other field taking its cheapest option in the order alone, then its anchors by increasing
+    index (the first of equal costs kept), a set's total summed in field order."""
+    best_total, best = float("inf"), None
+    for mask in range(1, 1 << nf):
+        total, modes = 0.0, []
+        for i in range(nf):
+            cost, d = alone[i]
+            r = None
+            if not mask >> i & 1:
+                for a in range(nf):
+                    if mask >> a & 1 and (i, a) in cross:
+                        c, dc = cross[(i, a)]
+                        if c < cost:
+                            cost, d, r = c, dc, a
+            total += cost
+            modes.append((d, r))
+        if total < best_total:
+            best_total, best = total, modes
+    return best
+
+
 def choose_modes(fields: list[np.ndarray], bits: tuple[int, ...]) -> Modes:
     """Per field (delta, reference field or None), chosen on a sample of blocks by the byte-plane entropy.
 
     Fields with a reference are predicted from an **anchor** (a field without one) of the same texel. Every set of
     anchors is tried (4 fields at most: 15 sets), each other field taking its best anchor or none.
     """
-    nf = len(fields)
-    blocks = len(fields[0]) // BLOCK_TEXELS
-    pick = _sample_blocks(blocks)
-    sample = fields if pick is None else [f.reshape(blocks, BLOCK_TEXELS)[pick].reshape(-1) for f in fields]
-    # Every residual first, then all their entropies in one batch (_plane_costs), then the same choices as before.
-    codes: list[np.ndarray] = []
-    code_bits: list[int] = []
-    for f, b in zip(sample, bits, strict=True):
-        codes += _residual_pair(f, b, None)
-        code_bits += [b, b]
-    pairs = [(i, r) for i in range(nf) for r in range(nf) if i != r and bits[i] <= 16 and bits[r] <= 16]
-    if pairs:
-        slopes, intercepts = _fit_pairs(sample, bits, pairs)
-        preds = _cross_prediction(np.stack([sample[r] for _, r in pairs]).astype(np.int32), slopes, intercepts)
-        for (i, _), pred in zip(pairs, preds, strict=True):
-            codes += _residual_pair(sample[i], bits[i], pred)
-            code_bits += [bits[i], bits[i]]
-    entropy = _plane_costs(codes, code_bits)
-    alone = []
-    for i in range(nf):
-        costs = {False: entropy[2 * i], True: entropy[2 * i + 1]}
-        d = min(costs, key=costs.get)
-        alone.append((costs[d], d))
-    cross: dict[tuple[int, int], tuple[float, bool]] = {}
-    param_cost = 3.0 * len(sample[0]) // BLOCK_TEXELS  # i8 slope + i16 intercept per block, before zstd
-    for p, pair in enumerate(pairs):
-        e = 2 * nf + 2 * p
-        costs = {False: entropy[e] + param_cost, True: entropy[e + 1] + param_cost}
-        d = min(costs, key=costs.get)
-        cross[pair] = (costs[d], d)
-    best_total, best = float("inf"), None
-    for mask in range(1, 1 << nf):
-        anchors = [i for i in range(nf) if mask >> i & 1]
-        total, modes = 0.0, []
-        for i in range(nf):
-            options = [(alone[i][0], alone[i][1], None)]
-            if i not in anchors:
-                options += [(cross[(i, r)][0], cross[(i, r)][1], r) for r in anchors if (i, r) in cross]
-            cost, d, r = min(options, key=lambda o: o[0])
-            total += cost
-            modes.append((d, r))
-        if total < best_total:
-            best_total, best = total, modes
-    return best
+    return _choose(fields, bits)[0]
 
 
 # ---------------------------------------------------------------------------------------------------------------
@@ -429,8 +612,16 @@ def code_layer(layer: np.ndarray, fmt: str, width: int, height: int, modes: Mode
     """One layer's texel bytes -> its part of the fields1 content (modes chosen on a sample unless given)."""
     bits = field_bits(fmt)
     fields = split_layer(layer, fmt, width, height)
-    coded = CodedLayer(modes if modes is not None else choose_modes(fields, bits))
+    trials = None
+    if modes is None:
+        modes, trials = _choose(fields, bits)
+    coded = CodedLayer(modes)
     for i, (delta, ref) in enumerate(coded.modes):
+        if trials is not None:  # chosen on the whole layer: its codes and fits are at hand
+            z, params = trials.code(i, delta, ref)
+            coded.params += params
+            coded.planes += _planes(z, bits[i]) if bits[i] > 8 else [z.copy()]  # a copy: not a view of every trial
+            continue
         pred = None
         if ref is not None:
             slope, intercept = _fit_cross(fields[i], fields[ref], max(bits[i], bits[ref]))
