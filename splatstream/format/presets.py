@@ -394,13 +394,19 @@ def preset_block_slack(preset: str) -> float:
 # (issue 32, rot32; BENCHMARKS.md, "Rotations in a canonical gauge"). "cube" (of all 24, the scales permuted) for the
 # xyz rotations (norm565), whose w, derived from x, y, z, was coarse where it is small: there it is at least 0.85,
 # +0.15 to +3.8 dB with 1-4 % fewer bytes on 13 of 14 scenes measured (fruit -0.17 dB); "half-turns" (of 1, i, j, k:
-# the same components in another order, the scales kept, so the same picture) for smallest-three rotations, whose
-# largest-component index is then constant: 0.3-1.6 % fewer bytes at the same PSNR (medium on guitar +0.2 %). The
-# cube's mixing of components moves a rotation off another tool's 8- or 10-bit grid (a SOG's, a compressed PLY's),
-# which cost smallest-three presets up to 2.2 dB there. Only where the rotation is quantised (a float rotation is
-# stored as given); palette scales could take the cube too: one palette holds the three axes (PALETTE_GROUPS).
-PRESET_ROTATION_GAUGE: dict[str, str] = {"low": "cube", "very-low-rgb127": "cube", "very-low": "cube",
-                                         "medium": "half-turns", "medium-low": "half-turns"}
+# the same components in another order, the scales kept, so the same picture) for every smallest-three preset
+# (norm10_2, norm8x4), whose largest-component index is then constant: medium and medium-low in rot32, the others in
+# evalrefresh32 (bench/rot_halfturn_bytes.py on all 16 real scenes: fewer bytes on 15 of 16 for the norm10_2
+# presets, at most +0.18 % on guitar, a compressed PLY; on all 16 for the norm8x4 ones; BENCHMARKS.md, "Half turns
+# for every smallest-three preset"). The cube's mixing of components moves a rotation off another tool's 8- or 10-bit
+# grid (a SOG's, a compressed PLY's), which cost smallest-three presets up to 2.2 dB there. Only where the rotation
+# is quantised (a float rotation is stored as given); palette scales could take the cube too: one palette holds the
+# three axes (PALETTE_GROUPS).
+PRESET_ROTATION_GAUGE: dict[str, str] = {
+    "low": "cube", "very-low-rgb127": "cube", "very-low": "cube",
+    **dict.fromkeys(("high", "high-sh255", "medium-high", "medium-12bit", "medium", "medium-low-sh16", "medium-low-sh8",
+                     "low-plus-9bit-sh6", "low-plus-9bit-sh5", "low-plus-10bit-cb8", "medium-low", "medium-low-9bit",
+                     "medium-low-12bit", "medium-low-palette", "low-plus-9bit", "low-plus"), "half-turns")}
 
 
 def rotation_gauge(preset: str, formats: dict[str, str]) -> str | None:
