@@ -243,48 +243,48 @@ DEFAULT_PRESET = "medium"
 PRESET_SUMMARY: dict[str, str] = {
     "very-high": "32-bit floats, near-lossless (renders identical to the input's, values within 2^-24 of their "
                  "chunk's range: not a bit-exact copy); about 179 B/splat at SH3, 40.7-43.3 at SH0",
-    "high": "16-bit positions and colour; about 70.6 B/splat at SH3, 46.7 at SH2, 16.4-18 at SH0; 61-77 dB",
+    "high": "16-bit positions and colour; about 70.4 B/splat at SH3, 46.4 at SH2, 16.3-17.9 at SH0; 61-77 dB",
     "high-sh255": "high with 11-bit SH on importance-scaled steps of 255 levels (about 8 bits where it matters), "
-                  "between medium-high and high; about 38.7 B/splat at SH2 (flowers, 62 dB), 55.7 at SH3 "
+                  "between medium-high and high; about 38.4 B/splat at SH2 (flowers, 62 dB), 55.5 at SH3 "
                   "(fruit_drops, 63.6 dB); high's files at SH0",
-    "medium-high": "high with 11-bit SH on importance-scaled steps (about 6 bits where it matters); about 32.9 "
-                   "B/splat at SH2 (flowers, 61 dB), 45 at SH3 (fruit_drops, 63 dB); high's files at SH0",
-    "medium-12bit": "medium with about 12-bit positions (16-bit texels on one step per tile); about 13.8-15.3 "
-                    "B/splat at SH0 (statue scans 63.7-68.1 dB, 3.7-5.9 dB over medium), 27.8 at SH2, 37 at SH3",
-    "medium": "the default: 11-bit positions, 8-bit colour, 16-bit SH, scales on a tile step; about 36.7 B/splat "
-              "at SH3, 27.4 at SH2, 13.3-14.9 at SH0; 56-84 dB",
+    "medium-high": "high with 11-bit SH on importance-scaled steps (about 6 bits where it matters); about 32.7 "
+                   "B/splat at SH2 (flowers, 61 dB), 44.9 at SH3 (fruit_drops, 63 dB); high's files at SH0",
+    "medium-12bit": "medium with about 12-bit positions (16-bit texels on one step per tile); about 13.7-15.2 "
+                    "B/splat at SH0 (statue scans 63.7-68.1 dB, 3.7-5.9 dB over medium), 27.5 at SH2, 36.9 at SH3",
+    "medium": "the default: 11-bit positions, 8-bit colour, 16-bit SH, scales on a tile step; about 36.6 B/splat "
+              "at SH3, 27.1 at SH2, 13.2-14.8 at SH0; 56-84 dB",
     "medium-low-sh16": "medium-low with per-splat SH bands (no codebook) on importance-scaled steps of about 4 bits; "
-                       "about 23.4 B/splat at SH2 (flowers, 53.1 dB), 29.2 at SH3, 12.2-13.2 at SH0",
-    "medium-low-sh8": "medium-low with per-splat SH bands on importance-scaled steps of about 3 bits; about 21.2 "
-                      "B/splat at SH2 (flowers, 48.1 dB), 26.2 at SH3, 12.2-13.2 at SH0",
+                       "about 23.1 B/splat at SH2 (flowers, 53.1 dB), 29 at SH3, 12.1-13.1 at SH0",
+    "medium-low-sh8": "medium-low with per-splat SH bands on importance-scaled steps of about 3 bits; about 21 "
+                      "B/splat at SH2 (flowers, 48.1 dB), 26 at SH3, 12.1-13.1 at SH0",
     "medium-low": "medium's positions, 8-bit rotations and scales, SH codebook (about 1 entry per 16 splats); "
-                  "about 15.2 B/splat at SH3, 15.4 at SH2, 12.2-13.2 at SH0; 42-71 dB",
+                  "about 15 B/splat at SH3, 15.2 at SH2, 12.1-13.1 at SH0; 42-71 dB",
     "medium-low-12bit": "medium-low with about 12-bit positions (16-bit texels on one step per tile), coarser "
-                        "scales and opacity, zstd level 16; about 14.5 B/splat at SH3, 15.3 at SH2, 11.9-12.9 at "
+                        "scales and opacity, zstd level 16; about 14.3 B/splat at SH3, 15 at SH2, 11.9-12.7 at "
                         "SH0; 42-68 dB",
     "medium-low-palette": "medium-low-12bit for SOG inputs: scale and colour palettes (SH0's merged pairwise), "
                           "positions on a step of the splat size / 120, keyed transport; medium-low-12bit's planes "
-                          "where the values do not fit a palette; statue scans (SOG, SH0) 11.1-11.4 B/splat, "
+                          "where the values do not fit a palette; statue scans (SOG, SH0) 11-11.3 B/splat, "
                           "60-66 dB; other inputs as medium-low-12bit (0-0.7 B/splat fewer: keyed)",
     "medium-low-9bit": "medium-low with 9-bit positions, scales and opacity on tile steps, zstd level 16; about "
-                       "13.8 B/splat at SH3, 14.4 at SH2, 11.2-12 at SH0; 42-62 dB",
+                       "13.6 B/splat at SH3, 14.1 at SH2, 11.2-11.9 at SH0; 42-62 dB",
     "low-plus-9bit": "low-plus with 9-bit positions on one step per tile, coarser scales and opacity, zstd level "
-                     "16; about 12.1 B/splat at SH3, 13.7 at SH2, 10.7-11.6 at SH0; 41-61 dB",
+                     "16; about 12 B/splat at SH3, 13.4 at SH2, 10.6-11.4 at SH0; 41-61 dB",
     "low-plus-9bit-sh6": "low-plus-9bit with per-splat SH bands (no codebook) on importance-scaled steps of about "
-                         "2.5 bits; about 18.5 B/splat at SH2 (flowers, 44.7 dB), 22.1 at SH3, 10.7-11.6 at SH0",
+                         "2.5 bits; about 18.2 B/splat at SH2 (flowers, 44.7 dB), 22 at SH3, 10.6-11.4 at SH0",
     "low-plus-9bit-sh5": "low-plus-9bit-sh6 with one SH step per band, 0 on its grid and a flatter importance "
-                         "scaling, about 2.3 bits; about 17.6 B/splat at SH2 (flowers, 44.2 dB), 20.5 at SH3, "
-                         "10.7-11.6 at SH0",
+                         "scaling, about 2.3 bits; about 17.3 B/splat at SH2 (flowers, 44.2 dB), 20.4 at SH3, "
+                         "10.6-11.4 at SH0",
     "low-plus-10bit-cb8": "low-plus-9bit with 10-bit positions (keyed transport) and a larger SH codebook (about "
-                          "1 entry per 8 splats, up to 65,536); about 15.6 B/splat at SH2 (flowers, 45.1 dB), 14.9 "
+                          "1 entry per 8 splats, up to 65,536); about 15.3 B/splat at SH2 (flowers, 45.1 dB), 14.5 "
                           "at SH3 (fruit_drops, 48.8 dB)",
-    "low-plus": "8-bit positions, rotations, scales and colour, SH codebook (1 per 64); about 12.9 B/splat at "
-                "SH3, 14 at SH2, 11-12.1 at SH0; 40-59 dB",
-    "low": "low-plus with 16-bit rotations; about 11.5 B/splat at SH3, 12.6 at SH2, 9.8-10.8 at SH0; 37-52 dB",
+    "low-plus": "8-bit positions, rotations, scales and colour, SH codebook (1 per 64); about 12.7 B/splat at "
+                "SH3, 13.7 at SH2, 11-11.9 at SH0; 40-59 dB",
+    "low": "low-plus with 16-bit rotations; about 11.4 B/splat at SH3, 12.1 at SH2, 9.6-10.5 at SH0; 38-52 dB",
     "very-low-rgb127": "very-low with 8-bit colour (low's norm8x4, not BC7) on a tile step of 127 levels, "
-                       "between very-low and low; about 9.9 B/splat at SH3, 11.2 at SH2, 8.4-9 at SH0; 35-51 dB",
-    "very-low": "16-bit scales, BC7 colour, SH codebook; about 9.4 B/splat at SH3, 9.7 at SH2, 7.5-7.8 at SH0; "
-                "32-47 dB",
+                       "between very-low and low; about 9.8 B/splat at SH3, 10.7 at SH2, 8.3-8.8 at SH0; 36-52 dB",
+    "very-low": "16-bit scales, BC7 colour, SH codebook; about 9.1 B/splat at SH3, 9.2 at SH2, 7.3-7.6 at SH0; "
+                "33-47 dB",
 }
 CHUNK_ORDERS = ("auto", "morton", "luminance")
 
@@ -395,13 +395,19 @@ def preset_block_slack(preset: str) -> float:
 # (issue 32, rot32; BENCHMARKS.md, "Rotations in a canonical gauge"). "cube" (of all 24, the scales permuted) for the
 # xyz rotations (norm565), whose w, derived from x, y, z, was coarse where it is small: there it is at least 0.85,
 # +0.15 to +3.8 dB with 1-4 % fewer bytes on 13 of 14 scenes measured (fruit -0.17 dB); "half-turns" (of 1, i, j, k:
-# the same components in another order, the scales kept, so the same picture) for smallest-three rotations, whose
-# largest-component index is then constant: 0.3-1.6 % fewer bytes at the same PSNR (medium on guitar +0.2 %). The
-# cube's mixing of components moves a rotation off another tool's 8- or 10-bit grid (a SOG's, a compressed PLY's),
-# which cost smallest-three presets up to 2.2 dB there. Only where the rotation is quantised (a float rotation is
-# stored as given); palette scales could take the cube too: one palette holds the three axes (PALETTE_GROUPS).
-PRESET_ROTATION_GAUGE: dict[str, str] = {"low": "cube", "very-low-rgb127": "cube", "very-low": "cube",
-                                         "medium": "half-turns", "medium-low": "half-turns"}
+# the same components in another order, the scales kept, so the same picture) for every smallest-three preset
+# (norm10_2, norm8x4), whose largest-component index is then constant: medium and medium-low in rot32, the others in
+# evalrefresh32 (bench/rot_halfturn_bytes.py on all 16 real scenes: fewer bytes on 15 of 16 for the norm10_2
+# presets, at most +0.18 % on guitar, a compressed PLY; on all 16 for the norm8x4 ones; BENCHMARKS.md, "Half turns
+# for every smallest-three preset"). The cube's mixing of components moves a rotation off another tool's 8- or 10-bit
+# grid (a SOG's, a compressed PLY's), which cost smallest-three presets up to 2.2 dB there. Only where the rotation
+# is quantised (a float rotation is stored as given); palette scales could take the cube too: one palette holds the
+# three axes (PALETTE_GROUPS).
+PRESET_ROTATION_GAUGE: dict[str, str] = {
+    "low": "cube", "very-low-rgb127": "cube", "very-low": "cube",
+    **dict.fromkeys(("high", "high-sh255", "medium-high", "medium-12bit", "medium", "medium-low-sh16", "medium-low-sh8",
+                     "low-plus-9bit-sh6", "low-plus-9bit-sh5", "low-plus-10bit-cb8", "medium-low", "medium-low-9bit",
+                     "medium-low-12bit", "medium-low-palette", "low-plus-9bit", "low-plus"), "half-turns")}
 
 
 def rotation_gauge(preset: str, formats: dict[str, str]) -> str | None:
