@@ -163,3 +163,17 @@ def test_cli_refines_by_partitions_with_any_workers_as_in_memory(tmp_path):
     m = read_manifest(open_store(tmp_path / "w2"))
     assert [lv["level"] for lv in info["lod"]["refinement"]["levels"]] == sorted(
         {t.level for t in m.tiles if t.children})
+
+
+def test_partitions_of_single_leaves_are_refined_above_against_the_originals(tmp_path):
+    """Domains smaller than a leaf: the partitions are the leaves, with no merged level of their own, so the task
+    above refines every merged level, its leaves the originals; recorded, and the same bytes with other memory."""
+    src = real("fruit_drops_sh3.ply")
+    kw = {**TREE, "lod_merge_domain_splats": 200}
+    digests = []
+    for name, memory in (("a", MEMORY), ("b", 3 * MEMORY)):
+        encode_file(src, tmp_path / name, memory_per_worker=memory, lod_refiner=refiner(), **kw)
+        digests.append(tree_digest(tmp_path / name))
+    assert digests[0] == digests[1]
+    m = read_manifest(open_store(tmp_path / "a"))
+    assert [lv.level for lv in m.lod.refinement.levels] == sorted({t.level for t in m.tiles if t.children})
