@@ -17,6 +17,10 @@ ARCHITECTURE.md "Distributed encoding".
    take from the ORIGINAL splats come from two passes over the partitions (max/min and integer counts, which
    combine exactly; per-leaf sums, folded in kd order, as lod.build_subtree folds them).
 7. the manifest, last.
+With `--lod-refine cpu` (EncodeOptions.lod_refiner) the partitions are the merge domains whatever the merge, each
+task of step 5 refines its subtree against its own originals before encoding it, and the levels of step 6 are refined
+in one task (refine_upper) against the partitions' refined roots before they are encoded (lod.md 6, "The refinement by
+partitions").
 
 The output is byte-identical whatever the engine, the number of workers and partitions and the chunking. With the
 grid merge it is encode_to's; with "auto" (the default) the partitions are auto's merge domains, a tile level fixed
