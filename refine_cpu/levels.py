@@ -91,7 +91,13 @@ class CpuRefineSettings(lod_refine.SharedRefineSettings):
 
 
 class CpuLevelRefiner:
-    """lod_refine.LodRefiner on the CPU: (splats, tree, up, progress) -> ({tile id: refined splats}, record)."""
+    """lod_refine.LodRefiner on the CPU: (splats, tree, up, progress) -> ({tile id: refined splats}, record).
+    Picklable (its settings' log included, by Dask's cloudpickle), so it runs in a partitioned encode's tasks."""
+
+    name = "--lod-refine cpu"
+    # a partitioned encode refines its merge domains with it, each in its own task (lod.md 6, "The refinement by
+    # partitions"): its fit's bytes do not depend on the threads it runs on (raster.GRADIENT_ROWS)
+    runs_by_partitions = True
 
     def __init__(self, settings: CpuRefineSettings | None = None):
         self.settings = settings or CpuRefineSettings()

@@ -564,9 +564,11 @@ def pair_lists(g: Gaussians, cams: list[Camera], sh_degree: int | None = None) -
     return PairLists(pixel_offsets, proj, pair_g, splat, base, len(cams), width, height)
 
 
-def threads() -> int:
-    # each thread keeps a gradient row of the whole splat set: at most 8 rows
-    return max(1, min(numba.get_num_threads(), os.cpu_count() or 1, 8))
+# The gradient rows of loss_and_grad (cameras round-robin over them, each row summed alone, the rows added in order):
+# a constant, not the thread count, so that the fit's floats, and the refined bytes, are the same on any number of
+# threads (a partitioned encode refines in Dask workers and in this process alike; branch partrefine31). 8 rows of the
+# whole splat set, as the most threads took before (each thread now takes rows in turn where there are fewer).
+GRADIENT_ROWS = 8
 
 
 def loss_and_grad(pl: PairLists, opacity: np.ndarray, dc_colour: np.ndarray, target: np.ndarray,
@@ -576,7 +578,7 @@ def loss_and_grad(pl: PairLists, opacity: np.ndarray, dc_colour: np.ndarray, tar
     the max(., 0) colour clamp, the image clamp and the 0.99 alpha clamp (zero past each). `opacity` (N,) and
     `dc_colour` (N, 3) = SH_C0 sh_dc are per splat of the set the lists were made of."""
     n = len(opacity)
-    nt = threads()
+    nt = GRADIENT_ROWS
     g_op = np.zeros((nt, n if grad else 0))
     g_dc = np.zeros((nt, n if grad else 0, 3))
     losses = np.zeros(pl.cameras)

@@ -248,6 +248,8 @@ class RefineSettings(lod_refine.SharedRefineSettings):
 class LevelRefiner:
     """lod_refine.LodRefiner on torch: (splats, tree, up, progress) -> ({tile id: refined splats}, record)."""
 
+    name = "--lod-refine gpu"  # in messages (encode/driver.py); it does not run by partitions (no runs_by_partitions)
+
     def __init__(self, settings: RefineSettings | None = None):
         self.settings = settings or RefineSettings()
         self.report: list[dict] = []  # per level: splats, validation PSNR per candidate, kept, seconds

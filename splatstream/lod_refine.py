@@ -82,7 +82,9 @@ FAR_MIN_PX = 8  # the smallest far camera's side (px)
 FAR_FILL = 1.25  # a far camera's side: this x the px the scene's fitted extent spans at its nearest distance
 
 # The optimiser's side (refine_gpu, refine_cpu): (full-detail splats, the tree, up, progress) -> ({merged tile id:
-# its refined splats}, the record).
+# its refined splats}, the record). A refiner whose attribute `runs_by_partitions` is true also refines partitioned
+# encodes (encode/partitioned.py: each merge domain in its own task, on any engine, so it must pickle); `name`, where
+# it has one, is how messages name it.
 LodRefiner = Callable[[Gaussians, list[Tile], tuple[float, float, float], Callable[[str, float], None]],
                       tuple[dict[int, Gaussians], LodRefinement]]
 
@@ -293,3 +295,47 @@ def refine_tree(g: Gaussians, tiles: list[Tile], up, refiner: LodRefiner,
     keeps."""
     refined, record = refiner(g, tiles, tuple(float(v) for v in up), progress)
     return apply_refined(tiles, refined), record
+
+
+# ---------------------------------------------------------------------------------------------- by partitions
+
+
+def refine_subtree(g: Gaussians, tiles: dict[int, Tile], up, refiner: LodRefiner,
+                   progress: Callable[[str, float], None]) -> tuple[dict[int, Tile], LodRefinement]:
+    """refine_tree over one subtree of a larger tree (a partitioned encode's merge domain, or the tiles above the
+    partitions with the partitions' roots as its leaves): `tiles` by global id, `g` the splats its leaves hold (the
+    "full detail" its levels are fitted to). The subtree is numbered 0.. in the order of its global ids (a parent's
+    id is below its children's in both) for the refiner, and its refined tiles come back by global id; the record
+    names the global depths."""
+    ids = sorted(tiles)
+    local = {tid: i for i, tid in enumerate(ids)}
+    renumbered = [replace(tiles[tid], id=i, children=[local[c] for c in tiles[tid].children])
+                  for i, tid in enumerate(ids)]
+    refined, record = refine_tree(g, renumbered, up, refiner, progress)
+    return {tid: replace(t, id=tid, children=list(tiles[tid].children)) for tid, t in zip(ids, refined, strict=True)}, \
+        record
+
+
+def domains_record(domains: list[LodRefinement], above: LodRefinement | None) -> LodRefinement:
+    """The manifest's one record (lod.md 6, "The refinement by partitions") of a partitioned encode's refinements:
+    the levels above the partitions as `above` fitted them (None: not refined, none listed), and each level inside
+    the merge domains once, from every domain's own fit and choice: kept the variant where any domain kept it (else
+    none), each candidate's validation PSNR that of the domains' mean validation MSE, the level as written (each
+    domain's kept candidate) recorded under the variant. Settings (size, steps, cameras) are the domains'."""
+    first = domains[0] if domains else above
+    assert first is not None, "no refinement to record"
+    by_level: dict[int, list[LevelRefinement]] = {}
+    for r in domains:
+        for lv in r.levels:
+            by_level.setdefault(lv.level, []).append(lv)
+    variants = [v for v, _ in first.variants]
+    levels = list(above.levels) if above is not None else []
+    for level in sorted(by_level):
+        entries = by_level[level]
+        kept = next((v for v in variants if any(e.kept == v for e in entries)), UNREFINED)
+        mse = {c: float(np.mean([10.0 ** (-dict(e.validation_psnr)[c] / 10.0) for e in entries]))
+               for c in dict(entries[0].validation_psnr)}
+        if kept != UNREFINED:  # the level as written: each domain's kept candidate
+            mse[kept] = float(np.mean([10.0 ** (-dict(e.validation_psnr)[e.kept] / 10.0) for e in entries]))
+        levels.append(LevelRefinement(level, kept, tuple((c, round(psnr_of(e), 3)) for c, e in mse.items())))
+    return replace(first, levels=tuple(levels))

@@ -256,13 +256,14 @@ def test_a_tree_of_one_tile_is_not_refined_and_says_so(scene, caplog):
            "refined" in caplog.text
 
 
-def test_the_partitioned_encoder_refuses_a_refiner(scene, tmp_path):
+def test_the_partitioned_encoder_refuses_a_refiner_that_does_not_run_by_partitions(scene, tmp_path):
     from splatstream.encode.driver import encode_file
     from splatstream.io import write_gaussians
 
     src = tmp_path / "s.ply"
     write_gaussians(scene, src)
-    with pytest.raises(UsageError, match="--lod-refine"):
+    # (refine_cpu's does: tests/test_partitioned_refine.py; this one says nothing of it, as refine_gpu's)
+    with pytest.raises(UsageError, match="--lod-refine refines in-memory encodes only, not a partitioned one"):
         encode_file(src, tmp_path / "out", workers=1, lod_refiner=NumpyRefiner(), **TREE)
     with pytest.raises(UsageError, match="--no-lod"):
         encode_file(src, tmp_path / "out", lod=False, lod_refiner=NumpyRefiner())

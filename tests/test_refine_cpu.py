@@ -304,8 +304,8 @@ def test_cli_refusals_of_the_cpu_refinement(tmp_path):
 
     missing_input = str(tmp_path / "no-such-scene.ply")
     out = str(tmp_path / "out")
-    for extra, message in [(["--workers", "2"], "not with --workers or --scheduler"),
-                           (["--no-lod"], "not with --no-lod"),
+    # (--workers, --scheduler: refined by partitions since branch partrefine31, tests/test_partitioned_refine.py)
+    for extra, message in [(["--no-lod"], "not with --no-lod"),
                            (["--target-size", "20"], "not with --target-psnr / --target-size"),
                            (["--lod-refine-size", "8"], "--lod-refine-size 8: expected 16 to 16384 px")]:
         r = run_cli("encode", missing_input, out, *extra, "--lod-refine", "cpu")

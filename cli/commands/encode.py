@@ -160,7 +160,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                              "it, judged on other cameras (a level stays as built where no fit beats it); recorded in "
                              "the manifest (format 1.11). gpu (the default): gsplat, two variants per level (B: "
                              "opacity, DC colour, scales; C: also positions and rotations); cpu: a numba rasteriser, "
-                             "variant A (opacity and DC colour, the geometry fixed). In-memory encodes only")
+                             "variant A (opacity and DC colour, the geometry fixed), also by partitions (--workers, "
+                             "--scheduler, a scene over the memory: each merge domain against its own originals, the "
+                             "levels above them against the domains' refined roots; format_spec/lod.md 6). gpu: "
+                             "in-memory encodes only")
     refine.add_argument("--lod-refine-iters", type=int, default=None, metavar="N",
                         help=f"optimiser steps per level and variant (default {GPU_ITERATIONS} on the GPU, "
                              f"{CPU_ITERATIONS} full-batch steps on the CPU)")
@@ -250,9 +253,10 @@ def _lod_refiner(args: argparse.Namespace, workers: int | None) -> LodRefiner:
     gsplat builds its CUDA extension on first use, then keeps it)."""
     if args.no_lod:
         raise UsageError("--lod-refine refines the LOD tree's merged levels: not with --no-lod")
-    if workers is not None or args.scheduler:
-        raise UsageError("--lod-refine refines the tree the in-memory encoder builds: not with --workers or "
-                         "--scheduler (a partitioned encode)")
+    if args.lod_refine == "gpu" and (workers is not None or args.scheduler):
+        raise UsageError("--lod-refine gpu refines in-memory encodes only, not with --workers or --scheduler (a "
+                         "partitioned encode): its fit is not measured by partitions, and every Dask worker process "
+                         "would hold a CUDA context of its own on the GPU; refine with --lod-refine cpu")
     if args.target_psnr is not None or args.target_size is not None:
         raise UsageError("--lod-refine: not with --target-psnr / --target-size (they measure unrefined encodes)")
     if args.lod_refine_iters is not None and args.lod_refine_iters < 1:

@@ -73,9 +73,13 @@ _COST_MERGE_IN_PROCESS = ("--lod-merge {} groups each LOD level over the whole s
                           "--memory-per-worker) cannot do: give a --memory-per-worker the scene fits in, or use "
                           "--lod-merge auto (inside each partition) or grid")
 
-_REFINE_IN_PROCESS = ("--lod-refine refines the merged levels of the LOD tree the in-memory encoder builds: not with "
-                      "--no-lod, nor with a partitioned encode (--workers, --scheduler, or a scene larger than "
-                      "--memory-per-worker: give a --memory-per-worker the scene fits in)")
+_REFINE_NO_LOD = "--lod-refine refines the merged levels of the LOD tree: not with --no-lod"
+# A refiner that says it runs by partitions (LodRefiner.runs_by_partitions: refine_cpu's) refines a partitioned
+# encode's merge domains in their own tasks (lod.md 6, "The refinement by partitions"); the others only in memory.
+_REFINE_IN_PROCESS = ("{} refines in-memory encodes only, not a partitioned one (--workers, --scheduler, or a scene "
+                      "larger than --memory-per-worker): its fit is not measured by partitions, and on Dask every "
+                      "worker process would hold a CUDA context of its own on the GPU; refine with --lod-refine cpu, "
+                      "or give a --memory-per-worker the scene fits in")
 
 
 def encode_file(input_path: str | os.PathLike | Sequence[str | os.PathLike], out_dir: str | os.PathLike,
@@ -115,8 +119,10 @@ def encode_file(input_path: str | os.PathLike | Sequence[str | os.PathLike], out
     in_memory = not distributed and fits_in_process(layouts, opts, memory_per_worker or default_memory_per_worker())
     if edits and not edits.per_splat and not in_memory:
         raise UsageError(_WHOLE_SCENE_EDITS)
-    if opts.lod_refiner is not None and not (opts.lod and in_memory):
-        raise UsageError(_REFINE_IN_PROCESS)
+    if opts.lod_refiner is not None and not opts.lod:
+        raise UsageError(_REFINE_NO_LOD)
+    if opts.lod_refiner is not None and not in_memory and not getattr(opts.lod_refiner, "runs_by_partitions", False):
+        raise UsageError(_REFINE_IN_PROCESS.format(getattr(opts.lod_refiner, "name", "this --lod-refine")))
     if opts.lod and opts.lod_merge == "cost" and not in_memory:
         raise UsageError(_COST_MERGE_IN_PROCESS.format(opts.lod_merge))
     # No merge named (None): auto on either engine (default_lod_merge); encode_partitioned runs it inside each

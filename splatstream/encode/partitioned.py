@@ -17,6 +17,10 @@ ARCHITECTURE.md "Distributed encoding".
    take from the ORIGINAL splats come from two passes over the partitions (max/min and integer counts, which
    combine exactly; per-leaf sums, folded in kd order, as lod.build_subtree folds them).
 7. the manifest, last.
+With `--lod-refine cpu` (EncodeOptions.lod_refiner) the partitions are the merge domains whatever the merge, each
+task of step 5 refines its subtree against its own originals before encoding it, and the levels of step 6 are refined
+in one task (refine_upper) against the partitions' refined roots before they are encoded (lod.md 6, "The refinement by
+partitions").
 
 The output is byte-identical whatever the engine, the number of workers and partitions and the chunking. With the
 grid merge it is encode_to's; with "auto" (the default) the partitions are auto's merge domains, a tile level fixed
@@ -29,14 +33,14 @@ from __future__ import annotations
 import math
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Protocol
 
 import numpy as np
 
 from ..edit import Pipeline
 from ..errors import UsageError
-from ..format.manifest import Box, TileEntry
+from ..format.manifest import Box, LodRefinement, TileEntry
 from ..gaussians import SH_REST_COEFFS, Gaussians
 from ..io import SplatInput, read_gaussians
 from ..lod import (
@@ -62,6 +66,7 @@ from ..lod import (
     tile_viewing_blur,
     viewing_blur,
 )
+from ..lod_refine import LodRefiner, domains_record, refine_subtree
 from ..ply import RowStats, VertexLayout, check_rows, read_ply_rows
 from ..progress import count
 from ..store import SceneWriter, write_scene_manifest
@@ -395,16 +400,16 @@ def _read_partition(scratch: Scratch, p: int, chunk_counts: list[np.ndarray], sh
     return g, index
 
 
-def _save_tile(scratch: Scratch, tile: Tile, mass: np.ndarray) -> None:
+def _save_tile(scratch: Scratch, tile: Tile, mass: np.ndarray, prefix: str = "tile") -> None:
     g = tile.gaussians
-    scratch.save(f"tile/{tile.id}", mass=mass, level=np.array(tile.level), error=np.array(tile.geometric_error),
+    scratch.save(f"{prefix}/{tile.id}", mass=mass, level=np.array(tile.level), error=np.array(tile.geometric_error),
                  box_min=tile.box_min, box_max=tile.box_max, sphere_center=tile.sphere_center,
                  sphere_radius=np.array(tile.sphere_radius), children=np.array(tile.children, np.int64),
                  **{k: getattr(g, k) for k in ATTRIBUTES})
 
 
-def _load_tile(scratch: Scratch, tid: int) -> tuple[Tile, np.ndarray]:
-    a = scratch.load(f"tile/{tid}")
+def _load_tile(scratch: Scratch, tid: int, prefix: str = "tile") -> tuple[Tile, np.ndarray]:
+    a = scratch.load(f"{prefix}/{tid}")
     g = Gaussians(*(a[k] for k in ATTRIBUTES))
     tile = Tile(tid, int(a["level"]), [int(c) for c in a["children"]], g, float(a["error"]), a["box_min"],
                 a["box_max"], a["sphere_center"], float(a["sphere_radius"]))
@@ -431,33 +436,55 @@ class PartitionResult:
     entries: list[TileEntry]
     root_splats: int
     splats: int
+    refinement: LodRefinement | None = None  # the partition's own levels refined (lod_refine.refine_subtree)
 
 
 def build_partition(p: int, level: int, shape: TreeShape, chunk_counts: list[np.ndarray], scratch: Scratch,
                     ctx: TileContext, writer, threads: int, keep_originals: bool, merge: str,
+                    refiner: LodRefiner | None, up: tuple[float, float, float] | None,
                     report: Callable[[float], None]) -> PartitionResult:
     """One partition: read its rows, build its subtree with the LOD merge `merge` (for "auto", the partition's
-    splats are the whole scene of the levels inside its subtree: the partition is auto's merge domain), write its
-    tiles' payloads; its root and (for the tiles above) its originals go to scratch. `report(fraction)`: the task's
-    progress."""
+    splats are the whole scene of the levels inside its subtree: the partition is auto's merge domain), refine its
+    merged levels against its own originals where `refiner` is given (lod.md 6, "The refinement by partitions"),
+    write its tiles' payloads; its root and (for the tiles above) its originals go to scratch. `report(fraction)`:
+    the task's progress."""
     g, index = _read_partition(scratch, p, chunk_counts, ctx.sh_degree)
     n = len(g)
+    refining = refiner is not None and level < shape.leaf_level
+    # the task's progress: the build, the refinement (the longest part where asked for), the payloads
+    spans = (0.1, 0.75) if refining else (0.6, 0.0)
 
     def build_progress(stage: str, fraction: float) -> None:
         if stage == "lod-merge":
-            report(0.6 * fraction)
+            report(spans[0] * fraction)
 
     # `threads` as for the tiles' encode: the engine already runs partitions side by side
     sub = build_subtree(g, index, shape, level, p, progress=build_progress, reorder_input=True, threads=threads,
                         merge=merge)
     del g, index
-    entries = _encode_tiles(list(sub.tiles.values()), ctx, writer, threads, lambda f: report(0.6 + 0.4 * f))
+    tiles, root, record = sub.tiles, sub.root, None
+    if refining:
+        def refine_progress(stage: str, fraction: float) -> None:
+            if stage == "refine":
+                report(spans[0] + spans[1] * fraction)
+
+        # the subtree's own originals (leaf order: the leaves' splats) are its full detail, as the whole scene's
+        # are in memory
+        tiles, record = refine_subtree(sub.ordered, sub.tiles, up, refiner, refine_progress)
+        root = tiles[sub.root.id]
+    done = spans[0] + spans[1]
+    entries = _encode_tiles(list(tiles.values()), ctx, writer, threads, lambda f: report(done + (1 - done) * f))
     if keep_originals:
         o = sub.ordered
         scratch.save(f"originals/{p}", positions=o.positions, log_scales=o.log_scales, opacity=o.opacity_logits,
                      sh_dc=o.sh_dc, rep=sub.represented_by.astype(np.int32), leaf_starts=sub.leaf_starts)
-        _save_tile(scratch, sub.root, sub.root_mass)
-    return PartitionResult(entries, len(sub.root.gaussians), n)
+        # The levels above are merged from the root as built (as in memory, where the whole tree is built before it
+        # is refined: the tree's shape and errors those of the encode without refinement), inside the root's final
+        # bounds (its parents cover them); the refined root is the full detail of the levels above (refine_upper).
+        _save_tile(scratch, replace(root, gaussians=sub.root.gaussians), sub.root_mass)
+        if record is not None:
+            _save_tile(scratch, root, sub.root_mass, "refined")
+    return PartitionResult(entries, len(sub.root.gaussians), n, record)
 
 
 def merge_children(scratch: Scratch, shape: TreeShape, lvl: int, j: int
@@ -561,6 +588,8 @@ def _auto_partitions(shape: TreeShape, row_bytes: int, engine: Engine, opts: Enc
     domain = merge_domain_level(shape, opts.lod_merge_domain_splats)
     largest = -(-shape.splats // 2 ** shape.kd_depths[domain])
     need = largest * (row_bytes * PARTITION_MEMORY_FACTOR + AUTO_GROUPING_BYTES)
+    if opts.lod_refiner is not None:  # the domains are the refinement's too: refused where they do not fit
+        domain = _domain_level(shape, row_bytes, engine, opts, AUTO_GROUPING_BYTES)
     if need <= engine.memory_per_worker:
         partitions = 2 ** shape.kd_depths[domain]
         log.info("LOD merge auto%s, inside %s of at most %s splats and over the levels above them",
@@ -574,6 +603,21 @@ def _auto_partitions(shape: TreeShape, row_bytes: int, engine: Engine, opts: Enc
         raise UsageError(f"--lod-merge auto: {message}: give more --memory-per-worker or --lod-merge grid")
     log.warning("LOD merge grid: %s", message)
     return "grid", level
+
+
+def _domain_level(shape: TreeShape, row_bytes: int, engine: Engine, opts: EncodeOptions, extra_bytes: int) -> int:
+    """The partition level of a refined partitioned encode: the merge domains (merge_domain_level), whatever the
+    merge, so that each level is refined over the same splats whatever the engine, workers and memory per worker;
+    refused (UsageError) where a domain does not fit a worker (`extra_bytes` a splat beyond the grid's build)."""
+    domain = merge_domain_level(shape, opts.lod_merge_domain_splats)
+    largest = -(-shape.splats // 2 ** shape.kd_depths[domain])
+    need = largest * (row_bytes * PARTITION_MEMORY_FACTOR + extra_bytes)
+    if need > engine.memory_per_worker:
+        raise UsageError(f"--lod-refine by partitions refines each merge domain (a subtree of at most "
+                         f"{opts.lod_merge_domain_splats:,} splats) in one task, which needs "
+                         f"{math.ceil(need / 2**20):,} MiB per worker, more than the memory per worker "
+                         f"({engine.memory_per_worker // 2**20:,} MiB): give more --memory-per-worker")
+    return domain
 
 
 def partition_level(shape: TreeShape, row_bytes: int, engine: Engine) -> int:
@@ -794,6 +838,8 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
     level = partition_level(shape, row_bytes, engine)
     if merge == "auto":
         merge, level = _auto_partitions(shape, row_bytes, engine, opts, level)
+    elif opts.lod_refiner is not None:
+        level = _domain_level(shape, row_bytes, engine, opts, 0)
     kd = shape.kd_depths[level]
     partitions = 2 ** kd
     if merge == "grid":
@@ -821,25 +867,62 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
     payloads = writer.payload_writer()
     codebook_entry = encode_codebook(ctx.codebook, ctx, payloads) if ctx.codebook is not None else None
 
+    refiner = opts.lod_refiner
     results = engine.map(build_partition, [(p, level, shape, chunk_counts, scratch, ctx, payloads,
-                                            engine.threads_per_task, level > 0, merge) for p in range(partitions)],
+                                            engine.threads_per_task, level > 0, merge, refiner, scene.up)
+                                           for p in range(partitions)],
                          "tiles", progress, heavy=True, task_progress=True)
     entries = [e for r in results for e in r.entries]
     engine.map_behind(delete_scratch, [(scratch, [f"route/{i}"]) for i in range(len(spans))], "cleanup")
-    entries += _upper_tiles(engine, scratch, shape, level, [r.root_splats for r in results], ctx, payloads,
-                            progress, merge)
+    upper, above = _upper_tiles(engine, scratch, shape, level, [r.root_splats for r in results], ctx, payloads,
+                                progress, merge, refiner if REFINE_UPPER_LEVELS else None, scene.up)
+    entries += upper
     if level > 0:
-        engine.map_behind(delete_scratch, [(scratch, [f"originals/{p}"]) for p in range(partitions)], "cleanup")
+        refined_roots = refiner is not None and level < shape.leaf_level
+        engine.map_behind(delete_scratch, [(scratch, [f"originals/{p}"] + ([f"refined/{shape.tile_id(level, p)}"]
+                                                                          if refined_roots else []))
+                                           for p in range(partitions)], "cleanup")
+    records = [r.refinement for r in results if r.refinement is not None]
+    if records or above is not None:
+        scene = replace(scene, lod_refinement=domains_record(records, above))
+        _log_domains(records, above)
+    elif refiner is not None:
+        log.info("LOD refinement: the tree is one tile (%s splats, under --max-leaf-splats), with no merged level; "
+                 "nothing refined", f"{splats:,}")
     m = build_manifest(scene, sample.camera(scene.up), sorted(entries, key=lambda t: t.id), codebook_entry)
     engine.settle()
     return write_scene_manifest(writer, m, opts.page_tiles, opts.page_levels, opts.compact_table)
 
 
+# The levels above the partitions refined (refine_upper) in a refined partitioned encode; False leaves them as built
+# (a switch for the measurement that chose it: BENCHMARKS.md, "Refining the merged levels by partitions").
+REFINE_UPPER_LEVELS = True
+
+
+def _log_domains(records: list[LodRefinement], above: LodRefinement | None) -> None:
+    """One line: what each refined level kept, and in how many of the merge domains (lod_refine.domains_record
+    folds them into the manifest's record)."""
+    counts: dict[int, dict[str, int]] = {}
+    for r in records:
+        for lv in r.levels:
+            counts.setdefault(lv.level, {}).setdefault(lv.kept, 0)
+            counts[lv.level][lv.kept] += 1
+    parts = [f"level {lv.level} {lv.kept} (above the partitions)" for lv in (above.levels if above else ())]
+    parts += [f"level {level} " + ", ".join(f"{k} in {c}" for k, c in sorted(kept.items()))
+              for level, kept in sorted(counts.items())]
+    log.info("LOD refinement by %s: kept %s", "1 merge domain" if len(records) == 1 else
+             f"{len(records):,} merge domains", "; ".join(parts))
+
+
 def _upper_tiles(engine: Engine, scratch: Scratch, shape: TreeShape, level: int, root_splats: list[int],
-                 ctx: TileContext, payloads, progress: Progress, merge: str = "grid") -> list[TileEntry]:
+                 ctx: TileContext, payloads, progress: Progress, merge: str = "grid",
+                 refiner: LodRefiner | None = None, up: tuple[float, float, float] | None = None
+                 ) -> tuple[list[TileEntry], LodRefinement | None]:
     """The tiles above the partitions, level by level (in batches of tiles, for the client's memory; "auto": a
-    level at once, grouped in one task by merge_level)."""
+    level at once, grouped in one task by merge_level), and where `refiner` is given their levels refined in one
+    task (refine_upper) before any of them is encoded, with that refinement's record."""
     entries: list[TileEntry] = []
+    upper_ids: list[int] = []
     kd_p = shape.kd_depths[level]
     maps = [np.arange(n) for n in root_splats]  # per partition: its root's splats -> the current ancestor's
     for lvl in range(level - 1, -1, -1):
@@ -893,6 +976,49 @@ def _upper_tiles(engine: Engine, scratch: Scratch, shape: TreeShape, level: int,
                 tid = shape.tile_id(lvl, j)
                 _save_tile(scratch, Tile(tid, lvl, [k.id for k in kids], g, error, lo, hi, c, r), mass)
             del merged, state, sums, ext
+            if refiner is not None:  # encoded once refined, below
+                upper_ids += [shape.tile_id(lvl, j) for j in batch]
+                continue
             entries += engine.map(encode_saved_tile, [(scratch, shape.tile_id(lvl, j), ctx, payloads)
                                                       for j in batch], "upper", progress)
-    return entries
+    record = None
+    if refiner is not None and upper_ids:
+        record = engine.map(refine_upper, [(scratch, shape, level, refiner, up)], "refine-upper", progress,
+                            heavy=True, task_progress=True)[0]
+        entries += engine.map(encode_saved_tile, [(scratch, tid, ctx, payloads) for tid in upper_ids], "upper",
+                              progress)
+    return entries, record
+
+
+def refine_upper(scratch: Scratch, shape: TreeShape, level: int, refiner: LodRefiner,
+                 up: tuple[float, float, float] | None, report: Callable[[float], None]) -> LodRefinement:
+    """The levels above the partitions refined in one task (lod.md 6, "The refinement by partitions"): the
+    originals are not here (the whole scene), so their full detail is the partitions' roots as refined, the finest
+    level this task holds (at most max_leaf_splats a partition), the tree above them cut with those roots as its
+    leaves. The refined tiles go back to scratch, to be encoded."""
+    tiles: dict[int, Tile] = {}
+    masses: dict[int, np.ndarray] = {}
+    for lvl in range(level + 1):
+        for j in range(2 ** shape.kd_depths[lvl]):
+            tid = shape.tile_id(lvl, j)
+            tiles[tid], masses[tid] = _load_tile(scratch, tid)
+    roots = [tid for tid, t in tiles.items() if t.level == level]
+    for tid in roots:  # the leaves of the tree refined here, as refined (a partition that is a leaf: its originals)
+        root = _load_tile(scratch, tid, "refined")[0] if level < shape.leaf_level else tiles[tid]
+        tiles[tid] = Tile(tid, level, [], *_tile_fields(root))
+    g = Gaussians.concatenate([tiles[tid].gaussians for tid in sorted(roots)])
+
+    def refine_progress(stage: str, fraction: float) -> None:
+        if stage == "refine":
+            report(fraction)
+
+    refined, record = refine_subtree(g, tiles, up, refiner, refine_progress)
+    for tid, t in refined.items():
+        if t.level < level:
+            _save_tile(scratch, t, masses[tid])
+    return record
+
+
+def _tile_fields(t: Tile) -> tuple:
+    """A tile's splats, error and bounds (Tile's fields after id, level and children)."""
+    return t.gaussians, t.geometric_error, t.box_min, t.box_max, t.sphere_center, t.sphere_radius
