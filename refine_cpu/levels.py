@@ -19,6 +19,7 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass
 
+import numba
 import numpy as np
 
 from splatstream import lod_refine
@@ -69,6 +70,8 @@ class CpuRefineSettings(lod_refine.SharedRefineSettings):
     far_training_seed: int = CPU_FAR_TRAINING_SEED
     far_validation_seed: int = CPU_FAR_VALIDATION_SEED
     far_weight: float = CPU_FAR_WEIGHT  # the far cameras' mean error x this, beside the near cameras' (x 1)
+    # numba threads of one fit; 0: numba's default (every core). A local cluster of N workers gives each cores / N.
+    threads: int = 0
 
     def far_cameras(self, positions: np.ndarray, up, tiles: list[Tile], cuts: list[lod_refine.LevelCut]
                     ) -> list[tuple[list, list, tuple[float, float] | None]]:
@@ -112,11 +115,25 @@ class CpuLevelRefiner:
         steps = len(cuts) + 1
         progress("refine", 0.0)
         t0 = time.perf_counter()
+        if s.threads:
+            # a partition task beside others on one machine: its share of the cores, not all of them each (the bytes
+            # do not depend on it: the gradient sums in fixed rows)
+            numba.set_num_threads(max(1, min(s.threads, numba.config.NUMBA_NUM_THREADS)))
         cov3d = covariances(g)  # the full detail's covariances, once for all 48 cameras
-        gt = np.clip(np.stack([raster.render(g, c, degree, cov3d) for c in train]), 0.0, 1.0)
-        gt_valid = np.clip(np.stack([raster.render(g, c, degree, cov3d) for c in valid]), 0.0, 1.0)
         far = s.far_cameras(g.positions, up, tiles, cuts)
-        far_gt = [tuple(np.clip(np.stack([raster.render(g, c, degree, cov3d) for c in cams]), 0.0, 1.0)
+        n_renders = len(train) + len(valid) + sum(len(a) + len(b) for a, b, _ in far)
+        done = [0]
+
+        def render(c, cov: np.ndarray) -> np.ndarray:
+            # the full-detail renders move the bar too (15 s of a silent first step on lod_tile: newuser58)
+            img = raster.render(g, c, degree, cov)
+            done[0] += 1
+            progress("refine", min(done[0] / n_renders, 0.99) / steps)
+            return img
+
+        gt = np.clip(np.stack([render(c, cov3d) for c in train]), 0.0, 1.0)
+        gt_valid = np.clip(np.stack([render(c, cov3d) for c in valid]), 0.0, 1.0)
+        far_gt = [tuple(np.clip(np.stack([render(c, cov3d) for c in cams]), 0.0, 1.0)
                         if cams else None for cams in (train_far, valid_far)) for train_far, valid_far, _ in far]
         del cov3d
         n_far = sum(len(a) + len(b) for a, b, _ in far)

@@ -49,7 +49,7 @@ def test_forward_matches_the_numpy_reference(fruit):
 
 def numpy_projection(g, cam, sh_degree=None):
     """raster.project's arrays by the numpy path it replaced: render_ref.preprocess, tile_lists, eval_sh."""
-    p = render_ref.preprocess(g, cam, sh_degree, color=False)
+    p = render_ref.preprocess(g, cam, sh_degree)
     ids, offsets = render_ref.tile_lists(p, -(-cam.width // render_ref.TILE), -(-cam.height // render_ref.TILE))
     base = eval_sh(np.zeros((len(p.index), 3)), g.sh_rest[p.index],
                    view_directions(g.positions[p.index], np.asarray(cam.eye)), sh_degree, clamp=False)

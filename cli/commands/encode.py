@@ -270,7 +270,7 @@ def _lod_refiner(args: argparse.Namespace, workers: int | None) -> LodRefiner:
             print(f"lod-refine: {msg}", file=sys.stderr, flush=True)
 
     if args.lod_refine == "cpu":
-        return _cpu_refiner(args, log)
+        return _cpu_refiner(args, log, workers)
     # The GPU shell, an optional extra: imported only when asked for. (It needs numpy and the core alone; an install
     # made before the package existed does not see it.)
     try:
@@ -287,7 +287,7 @@ def _lod_refiner(args: argparse.Namespace, workers: int | None) -> LodRefiner:
                                        size=args.lod_refine_size or GPU_SIZE_PX, log=log))
 
 
-def _cpu_refiner(args: argparse.Namespace, log: Callable[[str], None]) -> LodRefiner:
+def _cpu_refiner(args: argparse.Namespace, log: Callable[[str], None], workers: int | None) -> LodRefiner:
     """refine_cpu.levels.CpuLevelRefiner (numba, the `fast` extra), imported only when asked for."""
     try:
         import numba  # noqa: F401
@@ -299,8 +299,11 @@ def _cpu_refiner(args: argparse.Namespace, log: Callable[[str], None]) -> LodRef
     except ImportError as exc:
         raise UsageError(f"--lod-refine cpu: the refine_cpu package of this splatstream cannot be imported ({exc}); "
                          "reinstall splatstream (pip install -e '.[fast]' in a checkout)") from None
+    # --workers N on this machine: N fits at once, each on its share of the cores (an existing cluster's workers keep
+    # numba's default: their machines are not this one)
+    threads = max(1, (os.cpu_count() or 1) // workers) if workers else 0
     return CpuLevelRefiner(CpuRefineSettings(iterations=args.lod_refine_iters or CPU_ITERATIONS,
-                                        size=args.lod_refine_size or CPU_SIZE_PX, log=log))
+                                        size=args.lod_refine_size or CPU_SIZE_PX, log=log, threads=threads))
 
 
 def _foreign_tree(args: argparse.Namespace) -> str | None:
