@@ -113,14 +113,19 @@ def main(argv: list[str] | None = None) -> int:
             return 1
         if args.dry_run:
             continue
-        with open(path + ".part", "w") as f:
-            json.dump(report, f, indent=1)
-        os.replace(path + ".part", path)
-        md = os.path.splitext(path)[0] + ".md"
-        if os.path.exists(md):
-            with open(md, "w") as f:
-                f.write(report_markdown(report))
+        write_report(path, report)
     return 0
+
+
+def write_report(path: str, report: dict) -> None:
+    """The report's JSON replaced whole (written beside it, then renamed) and its .md, where there is one, from it."""
+    with open(path + ".part", "w") as f:
+        json.dump(report, f, indent=1)
+    os.replace(path + ".part", path)
+    md = os.path.splitext(path)[0] + ".md"
+    if os.path.exists(md):
+        with open(md, "w") as f:
+            f.write(report_markdown(report))
 
 
 if __name__ == "__main__":

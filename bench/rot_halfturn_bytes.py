@@ -34,11 +34,11 @@ import tempfile
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-from eval_refresh_bytes import scene_path  # noqa: E402
+from eval_refresh_bytes import scene_path, write_report  # noqa: E402
 
 from splatstream.encode import EncodeOptions  # noqa: E402
 from splatstream.encode.local import encode_gaussians  # noqa: E402
-from splatstream.evaluate import report_markdown, source_version  # noqa: E402
+from splatstream.evaluate import source_version  # noqa: E402
 from splatstream.format import presets as P  # noqa: E402
 from splatstream.io import read_gaussians  # noqa: E402
 
@@ -150,13 +150,7 @@ def main(argv: list[str] | None = None) -> int:
                 return 1
             for label, before, after in changed:
                 print(f"{path}: {label:>20} {before} -> {after} B ({after / before - 1:+.2%})")
-            with open(path + ".part", "w") as f:
-                json.dump(report, f, indent=1)
-            os.replace(path + ".part", path)
-            md = os.path.splitext(path)[0] + ".md"
-            if os.path.exists(md):
-                with open(md, "w") as f:
-                    f.write(report_markdown(report))
+            write_report(path, report)
         return 0
     if not args.json:
         ap.error("--json is needed to measure")
