@@ -15,9 +15,10 @@ peer at all 48 points.
 """
 from __future__ import annotations
 
+import os
 import time
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numba
 import numpy as np
@@ -70,8 +71,10 @@ class CpuRefineSettings(lod_refine.SharedRefineSettings):
     far_training_seed: int = CPU_FAR_TRAINING_SEED
     far_validation_seed: int = CPU_FAR_VALIDATION_SEED
     far_weight: float = CPU_FAR_WEIGHT  # the far cameras' mean error x this, beside the near cameras' (x 1)
-    # numba threads of one fit; 0: numba's default (every core). A local cluster of N workers gives each cores / N.
+    # numba threads of one fit; 0: numba's default (every core). With `share_cores` (a local cluster: its workers
+    # share this machine) CpuLevelRefiner.for_concurrent_fits sets it to the cores / the fits that run at once.
     threads: int = 0
+    share_cores: bool = False
 
     def far_cameras(self, positions: np.ndarray, up, tiles: list[Tile], cuts: list[lod_refine.LevelCut]
                     ) -> list[tuple[list, list, tuple[float, float] | None]]:
@@ -105,6 +108,14 @@ class CpuLevelRefiner:
     def __init__(self, settings: CpuRefineSettings | None = None):
         self.settings = settings or CpuRefineSettings()
         self.report: list[dict] = []  # per level: splats, pairs, validation PSNR per candidate, kept, seconds
+
+    def for_concurrent_fits(self, fits: int) -> CpuLevelRefiner:
+        """This refiner for `fits` fits at once on this machine (settings.share_cores): cores / fits numba threads
+        each, so that 16 workers fitting 4 partitions give each fit 4 threads, not 1, and the upper levels' one fit
+        every core; without share_cores (an existing cluster's machines) itself."""
+        if not self.settings.share_cores:
+            return self
+        return CpuLevelRefiner(replace(self.settings, threads=max(1, (os.cpu_count() or 1) // max(1, fits))))
 
     def __call__(self, g: Gaussians, tiles: list[Tile], up, progress) -> tuple[dict[int, Gaussians], LodRefinement]:
         s = self.settings

@@ -84,7 +84,9 @@ FAR_FILL = 1.25  # a far camera's side: this x the px the scene's fitted extent 
 # The optimiser's side (refine_gpu, refine_cpu): (full-detail splats, the tree, up, progress) -> ({merged tile id:
 # its refined splats}, the record). A refiner whose attribute `runs_by_partitions` is true also refines partitioned
 # encodes (encode/partitioned.py: each merge domain in its own task, on any engine, so it must pickle); `name`, where
-# it has one, is how messages name it.
+# it has one, is how messages name it; `for_concurrent_fits(n)`, where it has one, gives the refiner to run when n
+# fits run at once (a share of the machine's cores each; partitioned.py asks it before the partitions and the upper
+# levels).
 LodRefiner = Callable[[Gaussians, list[Tile], tuple[float, float, float], Callable[[str, float], None]],
                       tuple[dict[int, Gaussians], LodRefinement]]
 

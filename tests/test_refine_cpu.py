@@ -350,3 +350,20 @@ def test_the_refiner_runs_numbas_workqueue_layer_unless_one_is_named():
     named = subprocess.run([sys.executable, "-c", code], env={**env, "NUMBA_THREADING_LAYER": "omp"},
                            capture_output=True, text=True)
     assert named.returncode == 0 and named.stdout.strip() == "omp", named.stderr
+
+
+def test_concurrent_fits_share_this_machines_cores():
+    # a local cluster's partitions fit at once (cores / fits threads each; 16 workers on 4 partitions: 4, not 1), the
+    # upper levels' single fit every core; an existing cluster's refiner keeps numba's default
+    import os
+
+    from refine_cpu.levels import CpuLevelRefiner, CpuRefineSettings
+
+    cores = os.cpu_count() or 1
+    shared = CpuLevelRefiner(CpuRefineSettings(share_cores=True))
+    assert shared.for_concurrent_fits(4).settings.threads == max(1, cores // 4)
+    assert shared.for_concurrent_fits(1).settings.threads == cores
+    assert shared.for_concurrent_fits(10 * cores).settings.threads == 1
+    assert shared.for_concurrent_fits(4).settings.iterations == shared.settings.iterations
+    own = CpuLevelRefiner(CpuRefineSettings())
+    assert own.for_concurrent_fits(4) is own and own.settings.threads == 0

@@ -299,11 +299,11 @@ def _cpu_refiner(args: argparse.Namespace, log: Callable[[str], None], workers: 
     except ImportError as exc:
         raise UsageError(f"--lod-refine cpu: the refine_cpu package of this splatstream cannot be imported ({exc}); "
                          "reinstall splatstream (pip install -e '.[fast]' in a checkout)") from None
-    # --workers N on this machine: N fits at once, each on its share of the cores (an existing cluster's workers keep
-    # numba's default: their machines are not this one)
-    threads = max(1, (os.cpu_count() or 1) // workers) if workers else 0
+    # --workers N on this machine: the fits that run at once share its cores (CpuLevelRefiner.for_concurrent_fits,
+    # asked by the partitioned encode); an existing cluster's workers keep numba's default: their machines are not this
     return CpuLevelRefiner(CpuRefineSettings(iterations=args.lod_refine_iters or CPU_ITERATIONS,
-                                        size=args.lod_refine_size or CPU_SIZE_PX, log=log, threads=threads))
+                                        size=args.lod_refine_size or CPU_SIZE_PX, log=log,
+                                        share_cores=workers is not None))
 
 
 def _foreign_tree(args: argparse.Namespace) -> str | None:

@@ -868,14 +868,18 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
     codebook_entry = encode_codebook(ctx.codebook, ctx, payloads) if ctx.codebook is not None else None
 
     refiner = opts.lod_refiner
+    # the refiner for the fits that run at once: the partitions (at most one per worker), then the upper levels' one
+    concurrent_fits = getattr(refiner, "for_concurrent_fits", None)
+    partition_refiner = concurrent_fits(min(engine.workers, partitions)) if concurrent_fits else refiner
+    upper_refiner = concurrent_fits(1) if concurrent_fits else refiner
     results = engine.map(build_partition, [(p, level, shape, chunk_counts, scratch, ctx, payloads,
-                                            engine.threads_per_task, level > 0, merge, refiner, scene.up)
+                                            engine.threads_per_task, level > 0, merge, partition_refiner, scene.up)
                                            for p in range(partitions)],
                          "tiles", progress, heavy=True, task_progress=True)
     entries = [e for r in results for e in r.entries]
     engine.map_behind(delete_scratch, [(scratch, [f"route/{i}"]) for i in range(len(spans))], "cleanup")
     upper, above = _upper_tiles(engine, scratch, shape, level, [r.root_splats for r in results], ctx, payloads,
-                                progress, merge, refiner if REFINE_UPPER_LEVELS else None, scene.up)
+                                progress, merge, upper_refiner if REFINE_UPPER_LEVELS else None, scene.up)
     entries += upper
     if level > 0:
         refined_roots = refiner is not None and level < shape.leaf_level
