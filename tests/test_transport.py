@@ -21,16 +21,16 @@ from splatstream.format.transport import (
     FIELD_LAYOUTS,
     FIELDS1,
     FIELDS_VERSION,
+    _block_costs,
     _block_stats,
     _cross_prediction,
     _fit_cross,
     _fit_from_stats,
-    _fit_pairs,
+    _fit_stacked,
     _fit_type,
     _plane_cost,
-    _plane_costs,
     _residual,
-    _residual_pair,
+    _residual_rows,
     choose_modes,
     content_bounds,
     fields_content,
@@ -238,7 +238,8 @@ def test_choose_modes_shared_work_gives_the_one_pair_results(bits):
     assert np.any(slope != 0)
     for pred in (None, _cross_prediction(ref, slope, intercept), _cross_prediction(ref.astype(np.int32), slope,
                                                                                      intercept)):
-        plain, delta = _residual_pair(values, bits, pred)
+        plain, delta = (z[0] for z in _residual_rows(values[None], (bits,), None if pred is None else
+                                                     pred.astype(np.int32)[None]))
         assert np.array_equal(plain, _residual(values, bits, False, pred))
         assert np.array_equal(delta, _residual(values, bits, True, pred))
     fields = [values, ref, (values // 2).astype(dt)]
@@ -247,8 +248,8 @@ def test_choose_modes_shared_work_gives_the_one_pair_results(bits):
 
 
 @pytest.mark.parametrize("bits", [(5, 6, 5), (8, 8, 8, 8), (11, 10, 11), (10, 10, 10, 2), (16, 16, 16, 16)])
-def test_fit_pairs_equals_fit_cross_pair_by_pair(bits):
-    """_fit_pairs (choose_modes' fits of every pair at once) gives _fit_cross's slopes and intercepts exactly."""
+def test_fit_stacked_equals_fit_cross_pair_by_pair(bits):
+    """_fit_stacked (choose_modes' fits of every pair at once) gives _fit_cross's slopes and intercepts exactly."""
     rng = np.random.default_rng(sum(bits))
     n = 7 * BLOCK_TEXELS
     base = rng.integers(0, 1 << min(bits), n)
@@ -256,7 +257,7 @@ def test_fit_pairs_equals_fit_cross_pair_by_pair(bits):
                                                                                       np.uint16)
               for k, b in enumerate(bits)]
     pairs = [(i, r) for i in range(len(bits)) for r in range(len(bits)) if i != r]
-    slopes, intercepts = _fit_pairs(fields, bits, pairs)
+    slopes, intercepts = _fit_stacked(np.stack(fields), bits, tuple(pairs))
     assert slopes.shape == (len(pairs), 7) and np.any(slopes != 0)
     for p, (i, r) in enumerate(pairs):
         slope, intercept = _fit_cross(fields[i], fields[r], max(bits[i], bits[r]))
@@ -264,8 +265,8 @@ def test_fit_pairs_equals_fit_cross_pair_by_pair(bits):
         assert slopes[p].dtype == slope.dtype and intercepts[p].dtype == intercept.dtype
 
 
-def test_plane_costs_batch_equals_one_at_a_time():
-    """_plane_costs (choose_modes' one batch of entropies per layer) gives _plane_cost's floats exactly, for 8, 16
+def test_block_costs_batch_equals_one_at_a_time():
+    """_block_costs (choose_modes' one batch of entropies per layer) gives _plane_cost's floats exactly, for 8, 16
     and 32-bit codes, planes with one value, all 256 values and the skewed counts of real residuals."""
     rng = np.random.default_rng(31)
     n = 6 * BLOCK_TEXELS
@@ -273,7 +274,7 @@ def test_plane_costs_batch_equals_one_at_a_time():
              rng.geometric(0.3, n).astype(np.uint16), (rng.integers(0, 1 << 20, n) * 3).astype(np.uint32),
              rng.integers(0, 1 << 10, n).astype(np.uint16)]
     bits = [8, 5, 16, 32, 11]
-    batch = _plane_costs(codes, bits)
+    batch = [c for (c,) in _block_costs([(z[None], b) for z, b in zip(codes, bits, strict=True)])]
     assert batch == [_plane_cost(z, b) for z, b in zip(codes, bits, strict=True)]
     assert batch[1] == 0.0 and abs(batch[0] - n) < 0.05 * n  # one value: 0 bits; uniform bytes: ~8 bits a slot
 

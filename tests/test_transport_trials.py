@@ -17,7 +17,6 @@ from splatstream.format.transport import (
     _fit_cross,
     _plane_cost,
     _residual,
-    _residual_pair,
     _residual_rows,
     _sample_blocks,
     choose_modes,
@@ -137,7 +136,7 @@ def test_code_layer_with_its_trials_equals_coding_the_chosen_modes_again(fmt):
 
 
 @pytest.mark.parametrize("bits", [(5, 6, 5), (10, 10, 10, 2), (11, 10, 11), (9, 9, 9), (16, 16), (8, 8), (32, 32)])
-def test_residual_rows_equal_residual_pair_row_by_row(bits):
+def test_residual_rows_equal_residual_row_by_row(bits):
     rng = np.random.default_rng(sum(bits))
     n = 3 * BLOCK_TEXELS
     for t in {_field_dtype(b) for b in bits}:
@@ -147,7 +146,7 @@ def test_residual_rows_equal_residual_pair_row_by_row(bits):
         for p in (None, pred):
             x, d = _residual_rows(values, tuple(rows), p)
             for k, b in enumerate(rows):
-                plain, delta = _residual_pair(values[k], b, None if p is None else p[k])
+                plain, delta = (_residual(values[k], b, d, None if p is None else p[k]) for d in (False, True))
                 assert x[k].dtype == plain.dtype and np.array_equal(x[k], plain) and np.array_equal(d[k], delta)
 
 
@@ -174,7 +173,7 @@ def test_block_costs_with_more_planes_than_a_uint16_bin_index_holds():
 
 def test_choose_modes_takes_fields_in_wider_arrays_as_before():
     """Fields handed in a wider integer type than their code type (a caller's arrays, not split_layer's) give the
-    reference's modes: each residual is cut to its code type as _residual_pair cut it."""
+    reference's modes: each residual is cut to its code type as _residual cuts it."""
     layer, width, height = correlated_layer("norm8x4", 6, seed=11)
     fields = [f.astype(np.uint16) for f in split_layer(layer, "norm8x4", width, height)]
     bits = field_bits("norm8x4")

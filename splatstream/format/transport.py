@@ -250,7 +250,7 @@ def _fit_from_sums(dot: np.ndarray, sv: np.ndarray, sr: np.ndarray, rr: np.ndarr
 
 @functools.lru_cache(maxsize=64)
 def _fit_plan(bits: tuple[int, ...], pairs: tuple[tuple[int, int], ...]) -> tuple[tuple, ...]:
-    """_fit_pairs' work for one (bits, pairs), worked out once: per fit type (float32 or float64), the pairs it
+    """_fit_stacked's work for one (bits, pairs), worked out once: per fit type (float32 or float64), the pairs it
     fits, the fields they use (None: all, in order) and each pair's field and reference among them."""
     plan = []
     for t in (np.float32, np.float64):
@@ -266,18 +266,13 @@ def _fit_plan(bits: tuple[int, ...], pairs: tuple[tuple[int, int], ...]) -> tupl
     return tuple(plan)
 
 
-def _fit_pairs(fields: list[np.ndarray], bits: tuple[int, ...], pairs: list[tuple[int, int]]
-               ) -> tuple[np.ndarray, np.ndarray]:
-    """_fit_cross(fields[i], fields[r], max(bits[i], bits[r])) of every pair (i, r) at once, as (pairs, blocks)
-    slopes and intercepts (choose_modes' up to 12 pairs per layer on ~6 blocks: numpy's per-call overhead). The
-    same results: every block sum is an exact integer in its float type (_fit_cross), so summing several fields'
-    blocks in one call gives the same sums, and the rest is the same elementwise arithmetic."""
-    return _fit_stacked(np.stack(fields), tuple(bits), tuple(pairs))
-
-
 def _fit_stacked(stacked: np.ndarray, bits: tuple[int, ...], pairs: tuple[tuple[int, int], ...]
                  ) -> tuple[np.ndarray, np.ndarray]:
-    """_fit_pairs of the fields as one (fields, slots) array of any integer type that holds them."""
+    """_fit_cross(fields[i], fields[r], max(bits[i], bits[r])) of every pair (i, r) at once, the fields as one
+    (fields, slots) array of any integer type that holds them, as (pairs, blocks) slopes and intercepts
+    (choose_modes' up to 12 pairs per layer on ~6 blocks: numpy's per-call overhead). The same results: every block
+    sum is an exact integer in its float type (_fit_cross), so summing several fields' blocks in one call gives the
+    same sums, and the rest is the same elementwise arithmetic."""
     sv, sr, rr, dot = (np.empty((len(pairs), stacked.shape[1] // BLOCK_TEXELS)) for _ in range(4))
     for t, rows, used, count, ii, ri in _fit_plan(bits, pairs):
         blk = (stacked if used is None else stacked[used]).reshape(count, -1, BLOCK_TEXELS).astype(t)
@@ -299,21 +294,6 @@ def _residual(values: np.ndarray, bits: int, delta: bool, pred: np.ndarray | Non
     if bits not in (8, 16, 32):
         x &= t((1 << bits) - 1)
     return x if bits <= 8 else _zigzag(x, bits)
-
-
-def _residual_pair(values: np.ndarray, bits: int, pred: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
-    """_residual without and with delta, the subtraction of the prediction done once for both."""
-    t = _field_dtype(bits)
-    x = values.astype(t)  # a copy
-    if pred is not None:
-        x -= pred.astype(t)
-    d = x.copy()
-    d[1:] -= x[:-1]
-    if bits not in (8, 16, 32):
-        mask = t((1 << bits) - 1)
-        x &= mask
-        d &= mask
-    return (x, d) if bits <= 8 else (_zigzag(x, bits), _zigzag(d, bits))
 
 
 def _planes(z: np.ndarray, bits: int) -> list[np.ndarray]:
@@ -338,37 +318,10 @@ def _plane_cost(z: np.ndarray, bits: int) -> float:
     return total
 
 
-def _plane_costs(codes: list[np.ndarray], bits: list[int]) -> list[float]:
-    """_plane_cost of many code arrays of one length at once: one bincount and one log2 for all their byte planes
-    (choose_modes measures ~30 residuals per layer on a sample of ~6 blocks, where numpy's per-call overhead is the
-    cost). Byte-identical to _plane_cost: each plane's terms are the same elementwise operations on the same
-    counts, and each plane's sum is numpy's sum over a contiguous array of the same values in the same order."""
-    planes, owner = [], []
-    for j, (z, b) in enumerate(zip(codes, bits, strict=True)):
-        v = z.view(np.uint8).reshape(-1, z.dtype.itemsize)
-        for k in range((b + 7) // 8):
-            planes.append(v[:, k])
-            owner.append(j)
-    n = len(planes[0])
-    idx = np.stack(planes).astype(np.intp)
-    idx += (np.arange(len(planes), dtype=np.intp) * 256)[:, None]
-    counts = np.bincount(idx.reshape(-1), minlength=256 * len(planes)).reshape(len(planes), 256)
-    seen = counts > 0
-    c = counts[seen]  # row after row: each plane's nonzero counts in _plane_cost's order
-    terms = c * np.log2(n / c)
-    ends = np.cumsum(seen.sum(axis=1)).tolist()
-    totals = [0.0] * len(codes)
-    start = 0
-    for j, end in zip(owner, ends, strict=True):
-        totals[j] += float(terms[start:end].sum()) / 8
-        start = end
-    return totals
-
-
 def _block_costs(blocks: list[tuple[np.ndarray, int]]) -> list[list[float]]:
     """_plane_cost of every row of several (codes (rows, slots), bits) blocks, rows of one block of one code type
     and all of one length: one bincount and one log2 for all their byte planes, each block's planes taken from it
-    in one strided pass (no per-row views or list of planes). Byte-identical to _plane_costs over the rows in
+    in one strided pass (no per-row views or list of planes). Byte-identical to _plane_cost row by row, in
     order: the same counts, each plane's terms the same elementwise operations, each plane's sum numpy's sum over a
     contiguous array of the same values in the same order, a row's planes added low byte first."""
     n = blocks[0][0].shape[1]
@@ -429,11 +382,12 @@ def _row_masks(dtype: str, bits: tuple[int, ...]) -> tuple[np.ndarray, np.ndarra
 
 def _residual_rows(values: np.ndarray, bits: tuple[int, ...], pred: np.ndarray | None
                    ) -> tuple[np.ndarray, np.ndarray]:
-    """_residual_pair of several fields of one code type at once: `values` (rows, slots) in _field_dtype of every
-    row's `bits`, `pred` (rows, slots) int32 or None; (plain, delta) codes as (rows, slots) arrays. Row for row the
-    same elementwise integer operations as _residual_pair (masking with a field's whole width, as the one-row form
-    skips, changes nothing), so the same codes: choose_modes pays numpy's per-call overhead once per code type of a
-    layer instead of once per residual (~12 a layer on a few blocks)."""
+    """_residual without and with delta of several fields of one code type at once: `values` (rows, slots) in
+    _field_dtype of every row's `bits`, `pred` (rows, slots) int32 or None; (plain, delta) codes as (rows, slots)
+    arrays, the prediction subtracted once for both. Row for row the same elementwise integer operations as
+    _residual (masking with a field's whole width, as the one-row form skips, changes nothing), so the same codes:
+    choose_modes pays numpy's per-call overhead once per code type of a layer instead of once per residual (~12 a
+    layer on a few blocks)."""
     t = values.dtype.type
     mask, top = _row_masks(values.dtype.str, bits)
     x = values.copy()
@@ -451,7 +405,7 @@ def _residual_rows(values: np.ndarray, bits: tuple[int, ...], pred: np.ndarray |
 class _LayerTrials:
     """What choose_modes computed on a sample that is the whole layer: every field's codes alone (without and with
     delta) and against every reference it tried (the block parameters and both codes). code_layer takes the chosen
-    ones from here instead of fitting and coding the chosen modes again: the same fits (_fit_pairs equals
+    ones from here instead of fitting and coding the chosen modes again: the same fits (_fit_stacked equals
     _fit_cross pair by pair), the same predictions and residuals (_residual_rows equals _residual), so the same
     planes."""
 
@@ -514,7 +468,7 @@ def _choose(fields: list[np.ndarray], bits: tuple[int, ...]) -> tuple[Modes, _La
     pick = _sample_blocks(blocks)
     sample = fields if pick is None else [f.reshape(blocks, BLOCK_TEXELS)[pick].reshape(-1) for f in fields]
     pairs, groups, of_type = _trial_plan(bits)
-    # each field in its code type (split_layer's already; a caller's wider array is cut as _residual_pair cut it)
+    # each field in its code type (split_layer's already; a caller's wider array is cut as _residual cuts it)
     by_type = {t: np.stack([sample[i] for i in members]).astype(t, copy=False) for t, members in of_type.items()}
     slopes = intercepts = refs = None
     if pairs:
