@@ -132,7 +132,8 @@ class CpuLevelRefiner:
             numba.set_num_threads(max(1, min(s.threads, numba.config.NUMBA_NUM_THREADS)))
         cov3d = covariances(g)  # the full detail's covariances, once for all 48 cameras
         far = s.far_cameras(g.positions, up, tiles, cuts)
-        n_renders = len(train) + len(valid) + sum(len(a) + len(b) for a, b, _ in far)
+        n_far = sum(len(a) + len(b) for a, b, _ in far)
+        n_renders = len(train) + len(valid) + n_far
         done = [0]
 
         def render(c, cov: np.ndarray) -> np.ndarray:
@@ -147,7 +148,6 @@ class CpuLevelRefiner:
         far_gt = [tuple(np.clip(np.stack([render(c, cov3d) for c in cams]), 0.0, 1.0)
                         if cams else None for cams in (train_far, valid_far)) for train_far, valid_far, _ in far]
         del cov3d
-        n_far = sum(len(a) + len(b) for a, b, _ in far)
         s.log(f"full-detail renders: {len(train) + len(valid)} at {s.size} px, {n_far} far "
               f"({time.perf_counter() - t0:.1f} s)")
         progress("refine", 1 / steps)

@@ -585,16 +585,14 @@ def _auto_partitions(shape: TreeShape, row_bytes: int, engine: Engine, opts: Enc
     """The merge and partition level of a partitioned "auto" encode: the partitions are auto's merge domains
     (merge_domain_level), whatever the workers; where a domain does not fit a worker's memory, the grid at the
     grid's partition level (refused when the caller named auto)."""
-    domain = merge_domain_level(shape, opts.lod_merge_domain_splats)
-    largest = -(-shape.splats // 2 ** shape.kd_depths[domain])
-    need = largest * (row_bytes * PARTITION_MEMORY_FACTOR + AUTO_GROUPING_BYTES)
-    if opts.lod_refiner is not None:  # the domains are the refinement's too: refused where they do not fit
-        domain = _domain_level(shape, row_bytes, engine, opts, AUTO_GROUPING_BYTES)
+    domain, largest, need = _merge_domains(shape, row_bytes, opts, AUTO_GROUPING_BYTES)
+    if opts.lod_refiner is not None and need > engine.memory_per_worker:
+        raise _refined_domain_too_big(opts, need, engine)  # the domains are the refinement's too
     if need <= engine.memory_per_worker:
         partitions = 2 ** shape.kd_depths[domain]
         log.info("LOD merge auto%s, inside %s of at most %s splats and over the levels above them",
                  "" if opts.lod_merge is not None else " (the default)",
-                 "1 partition" if partitions == 1 else f"{partitions:,} partitions", f"{largest:,}")
+                 count(partitions, "partition"), f"{largest:,}")
         return "auto", domain
     message = (f"its merge domains (subtrees of at most {opts.lod_merge_domain_splats:,} splats) need "
                f"{math.ceil(need / 2**20):,} MiB per worker, more than the memory per worker "
@@ -605,18 +603,28 @@ def _auto_partitions(shape: TreeShape, row_bytes: int, engine: Engine, opts: Enc
     return "grid", level
 
 
-def _domain_level(shape: TreeShape, row_bytes: int, engine: Engine, opts: EncodeOptions, extra_bytes: int) -> int:
-    """The partition level of a refined partitioned encode: the merge domains (merge_domain_level), whatever the
-    merge, so that each level is refined over the same splats whatever the engine, workers and memory per worker;
-    refused (UsageError) where a domain does not fit a worker (`extra_bytes` a splat beyond the grid's build)."""
+def _merge_domains(shape: TreeShape, row_bytes: int, opts: EncodeOptions, extra_bytes: int) -> tuple[int, int, int]:
+    """The merge domains' tile level (merge_domain_level), the largest domain's splats, and the bytes a task needs to
+    hold it (`extra_bytes` a splat beyond the grid's build)."""
     domain = merge_domain_level(shape, opts.lod_merge_domain_splats)
     largest = -(-shape.splats // 2 ** shape.kd_depths[domain])
-    need = largest * (row_bytes * PARTITION_MEMORY_FACTOR + extra_bytes)
+    return domain, largest, largest * (row_bytes * PARTITION_MEMORY_FACTOR + extra_bytes)
+
+
+def _refined_domain_too_big(opts: EncodeOptions, need: int, engine: Engine) -> UsageError:
+    return UsageError(f"--lod-refine by partitions refines each merge domain (a subtree of at most "
+                      f"{opts.lod_merge_domain_splats:,} splats) in one task, which needs "
+                      f"{math.ceil(need / 2**20):,} MiB per worker, more than the memory per worker "
+                      f"({engine.memory_per_worker // 2**20:,} MiB): give more --memory-per-worker")
+
+
+def _domain_level(shape: TreeShape, row_bytes: int, engine: Engine, opts: EncodeOptions, extra_bytes: int) -> int:
+    """The partition level of a refined partitioned encode: the merge domains, whatever the merge, so that each level
+    is refined over the same splats whatever the engine, workers and memory per worker; refused (UsageError) where a
+    domain does not fit a worker."""
+    domain, _, need = _merge_domains(shape, row_bytes, opts, extra_bytes)
     if need > engine.memory_per_worker:
-        raise UsageError(f"--lod-refine by partitions refines each merge domain (a subtree of at most "
-                         f"{opts.lod_merge_domain_splats:,} splats) in one task, which needs "
-                         f"{math.ceil(need / 2**20):,} MiB per worker, more than the memory per worker "
-                         f"({engine.memory_per_worker // 2**20:,} MiB): give more --memory-per-worker")
+        raise _refined_domain_too_big(opts, need, engine)
     return domain
 
 
@@ -914,8 +922,7 @@ def _log_domains(records: list[LodRefinement], above: LodRefinement | None) -> N
     parts = [f"level {lv.level} {lv.kept} (above the partitions)" for lv in (above.levels if above else ())]
     parts += [f"level {level} " + ", ".join(f"{k} in {c}" for k, c in sorted(kept.items()))
               for level, kept in sorted(counts.items())]
-    log.info("LOD refinement by %s: kept %s", "1 merge domain" if len(records) == 1 else
-             f"{len(records):,} merge domains", "; ".join(parts))
+    log.info("LOD refinement by %s: kept %s", count(len(records), "merge domain"), "; ".join(parts))
 
 
 def _upper_tiles(engine: Engine, scratch: Scratch, shape: TreeShape, level: int, root_splats: list[int],
@@ -1009,7 +1016,7 @@ def refine_upper(scratch: Scratch, shape: TreeShape, level: int, refiner: LodRef
     roots = [tid for tid, t in tiles.items() if t.level == level]
     for tid in roots:  # the leaves of the tree refined here, as refined (a partition that is a leaf: its originals)
         root = _load_tile(scratch, tid, "refined")[0] if level < shape.leaf_level else tiles[tid]
-        tiles[tid] = Tile(tid, level, [], *_tile_fields(root))
+        tiles[tid] = replace(root, children=[])
     g = Gaussians.concatenate([tiles[tid].gaussians for tid in sorted(roots)])
 
     def refine_progress(stage: str, fraction: float) -> None:
@@ -1021,8 +1028,3 @@ def refine_upper(scratch: Scratch, shape: TreeShape, level: int, refiner: LodRef
         if t.level < level:
             _save_tile(scratch, t, masses[tid])
     return record
-
-
-def _tile_fields(t: Tile) -> tuple:
-    """A tile's splats, error and bounds (Tile's fields after id, level and children)."""
-    return t.gaussians, t.geometric_error, t.box_min, t.box_max, t.sphere_center, t.sphere_radius
