@@ -26,6 +26,7 @@ from splatstream.format.names import MANIFEST_NAME, TILESET_NAME, manifest_url, 
 from splatstream.io import declared_up, read_gaussians
 from splatstream.rad_import import encode_rad
 from splatstream.readers.rad import is_rad
+from splatstream.readers.sog import SOG_META_NAME
 from splatstream.sog_import import encode_streamed_sog
 from splatstream.store import DirectoryStore, FsspecStore, MemoryStore, SceneStore
 
@@ -290,7 +291,6 @@ class StoreSource:
 # What the user typed
 
 
-SOG_META_NAME = "meta.json"  # an unbundled SOG scene's (version 1 or 2) description, beside its WebP planes
 OBJECT_STORE_SCHEMES = ("s3", "gs", "gcs", "az", "abfs", "memory")
 
 

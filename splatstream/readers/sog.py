@@ -46,6 +46,7 @@ from ..errors import InputError
 from ..gaussians import SH_REST_COEFFS, Gaussians, normalize_quaternions
 from ..reader_support import memory_budget, opacity_logits_from_unit, read_regular_file
 
+SOG_META_NAME = "meta.json"  # an unbundled SOG scene's (version 1 or 2) description, beside its WebP planes
 MAX_JSON_BYTES = 64 << 20
 ZIP_PIECE = 1 << 20  # zip members are inflated this much at a time
 # Bytes of memory a decoded splat costs at peak (six RGBA textures plus the float32 model and temporaries).
@@ -605,13 +606,13 @@ def sog_kind(path: str) -> str | None:
     if os.path.isdir(path):
         if os.path.isfile(os.path.join(path, "lod-meta.json")):
             return "lod"
-        if os.path.isfile(os.path.join(path, "meta.json")):
+        if os.path.isfile(os.path.join(path, SOG_META_NAME)):
             return "sog"
         return None
     name = os.path.basename(path).lower()
     if name == "lod-meta.json":
         return "lod"
-    if name == "meta.json":
+    if name == SOG_META_NAME:
         return "sog"
     with open(path, "rb") as f:
         head = f.read(4)
