@@ -368,6 +368,9 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
     return report
 
 
+MAX_EVAL_VIEWS = 1024
+
+
 def _checked_runs(opts: EvalOptions) -> tuple[list, list]:
     """The --compare and --variant runs of `opts`, parsed; every option checked (presets, views, size, the compared
     files readable) before any work, so a mistake fails at once, not after the long preset runs."""
@@ -375,6 +378,10 @@ def _checked_runs(opts: EvalOptions) -> tuple[list, list]:
         resolve_formats(p, {})  # UsageError for unknown presets
     if opts.views < 1:
         raise UsageError("--views must be at least 1")
+    # Each view renders the original and every encoded version: a slip like 8000 for 8 would run for days.
+    if opts.views > MAX_EVAL_VIEWS:
+        raise UsageError(f"--views must be at most {MAX_EVAL_VIEWS} (each view renders the original and every "
+                         f"preset; got {opts.views})")
     if opts.width < 11 or opts.height < 11:
         raise UsageError("--size must be at least 11x11 (the SSIM window)")
     compares = [parse_compare(c) for c in opts.compare]

@@ -73,6 +73,7 @@ def test_eval_api_reproducible_cameras_and_encoded_dir(tmp_path):
     (["--presets", "ultra"], "unknown preset"),
     (["--size", "big"], "--size"),
     (["--views", "0"], "--views"),
+    (["--views", "8000"], "--views must be at most 1024"),
     (["--compare", "/nonexistent/x.ply"], "no such file"),
 ])
 def test_eval_cli_bad_arguments(args, message, capsys):

@@ -163,3 +163,13 @@ def test_very_high_is_called_near_lossless_as_it_decodes(tmp_path):
     helptext = " ".join(run_cli("encode", "--help").stdout.split())
     for text in (info, helptext):
         assert "very-high" in text and "near-lossless" in text and "floats, lossless" not in text
+
+
+def test_info_gives_byte_counts_with_thousands_separators(tmp_path):
+    scene = tmp_path / "s"
+    enc = run_cli("encode", ROOT / "samples" / "donut.ply", scene)
+    assert enc.returncode == 0, enc.stderr
+    out = run_cli("info", scene).stdout
+    on_disk = re.search(r"^on disk +([\d,]+) bytes", out, re.M).group(1)
+    per_level = re.findall(r"level \d+: .* ([\d,]+) bytes on disk$", out, re.M)
+    assert "," in on_disk and all(re.fullmatch(r"\d{1,3}(,\d{3})*", n) for n in [on_disk, *per_level])

@@ -130,7 +130,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"preset     {info['preset']}: {info['preset_summary']}{changed}")
     else:
         print(f"preset     {info['preset']} is not a preset of this version; the formats below are what counts")
-    print(f"tiles      {info['tiles']} in {count(info['levels'], 'level')}, "
+    print(f"tiles      {info['tiles']:,} in {count(info['levels'], 'level')}, "
           f"{count(info['leaf_tiles'], 'leaf', 'leaves')} holding {count(info['leaf_splats'], 'splat')}")
     lod_line = _lod_line(info["lod"])
     if lod_line:
@@ -138,8 +138,8 @@ def run(args: argparse.Namespace) -> int:
     refined = _refinement_line(info["lod"])
     if refined:
         print(f"refined    {refined}")
-    print(f"on disk    {info['bytes_on_disk']} bytes ({info['bytes_per_splat_on_disk']:.2f} B/splat, all levels)")
-    print(f"GPU        {info['gpu_bytes']} bytes ({info['gpu_bytes_per_splat']:.2f} B/splat, full detail)")
+    print(f"on disk    {info['bytes_on_disk']:,} bytes ({info['bytes_per_splat_on_disk']:.2f} B/splat, all levels)")
+    print(f"GPU        {info['gpu_bytes']:,} bytes ({info['gpu_bytes_per_splat']:.2f} B/splat, full detail)")
     for name, a in (info["attributes"] or {}).items():
         print(f"  {name:<9} {a['format']:<9} GPU {a['gpu_bytes'] / info['splats']:7.2f} B/splat   "
               f"disk {a['disk_bytes'] / info['splats']:7.2f} B/splat")
@@ -147,9 +147,9 @@ def run(args: argparse.Namespace) -> int:
     print(f"payloads   sections stored as: {filters} (format.md 5)")
     cb = info["sh_codebook"]
     if cb:
-        print(f"  SH codebook: {cb['entries']} entries in {cb['format']}, {cb['bytes_on_disk']} bytes on disk, "
-              f"{cb['gpu_bytes']} on the GPU, shared by every tile ({cb['index_format']} index per splat)")
+        print(f"  SH codebook: {cb['entries']:,} entries in {cb['format']}, {cb['bytes_on_disk']:,} bytes on disk, "
+              f"{cb['gpu_bytes']:,} on the GPU, shared by every tile ({cb['index_format']} index per splat)")
     for lv in info["bytes_per_level"]:
         print(f"  level {lv['level']}: {count(lv['tiles'], 'tile')}, {count(lv['splats'], 'splat')}, "
-              f"{lv['bytes_on_disk']} bytes on disk")
+              f"{lv['bytes_on_disk']:,} bytes on disk")
     return 0
