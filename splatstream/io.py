@@ -54,6 +54,8 @@ FORMAT_NAMES = {
     "gltf": "glTF with KHR_gaussian_splatting",
 }
 WRITABLE_EXTENSIONS = {".ply": "ply", ".splat": "splat", ".spz": "spz", ".glb": "gltf", ".sog": "sog"}
+# Writable formats that hold fewer SH bands than the scene may have (.splat: colour alone, no bands).
+WRITTEN_MAX_SH_DEGREE = {"splat": 0}
 SPLAT_RECORD_BYTES = 32
 
 
@@ -269,6 +271,11 @@ def output_format(path: str | os.PathLike) -> str:
         raise InputError(path, None, f"cannot write {ext or 'extensionless'} files (expected one of "
                          f"{', '.join(WRITABLE_EXTENSIONS)})")
     return WRITABLE_EXTENSIONS[ext]
+
+
+def written_sh_degree(fmt: str, sh_degree: int) -> int:
+    """The SH degree a file of writable format `fmt` holds when Gaussians of `sh_degree` are written to it."""
+    return min(sh_degree, WRITTEN_MAX_SH_DEGREE.get(fmt, sh_degree))
 
 
 def write_gaussians(g: Gaussians, path: str | os.PathLike, spz_version: int = 4,
