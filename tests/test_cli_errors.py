@@ -278,3 +278,19 @@ def test_a_full_disk_names_the_output_being_written(tmp_path, scene, command, ou
     assert said.startswith(f"splatstream {command}: error: writing {tmp_path / output}: "), r.stderr
     assert "File too large" in said or " requested and " in said, said  # numpy's tofile has its own words
     assert not (tmp_path / output).exists() and not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_an_exported_tileset_given_as_a_scene_says_what_it_is(tmp_path):
+    """export-3dtiles' output given to info/decode/render/convert/encode said only 'not a splatstream scene
+    directory', 'a directory without meta.json or lod-meta.json' or 'unrecognised file format' (`view` already
+    said what it is): each says it is a 3D Tiles tileset, which CesiumJS draws, and to give the scene instead."""
+    tiles = tmp_path / "tiles"
+    (tiles / "tiles").mkdir(parents=True)
+    (tiles / "tileset.json").write_text('{"asset": {"version": "1.1"}, "geometricError": 1, "root": {}}')
+    for argv in (["info", tiles], ["decode", tiles, tmp_path / "o.ply"], ["export-rad", tiles, tmp_path / "o.rad"],
+                 ["render", tiles, "--out", tmp_path / "o.png", "-q"], ["encode", tiles, tmp_path / "o", "-q"],
+                 ["convert", tiles / "tileset.json", tmp_path / "o.ply", "-q"]):
+        r = run_cli(*argv)
+        assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+        assert "3D Tiles tileset" in r.stderr and "export-3dtiles" in r.stderr, (argv[0], r.stderr)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["tiles"]
