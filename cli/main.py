@@ -3,8 +3,10 @@
 from __future__ import annotations
 
 import argparse
+import errno
 import importlib
 import os
+import re
 import signal
 import sys
 import threading
@@ -119,6 +121,21 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+# A write that found no room: its OSError names no file (write(2) has only a descriptor), and "error: No space left
+# on device" did not say which output of the command's filled the disk. numpy's tofile says it without an errno
+# ("Not enough free space to write N bytes after offset M", "N requested and M written").
+_OUT_OF_ROOM = {errno.ENOSPC, errno.EDQUOT, errno.EFBIG}
+_NUMPY_SHORT_WRITE = re.compile(r"^Not enough free space to write |^\d+ requested and \d+ written$")
+
+
+def _output_named(args: argparse.Namespace, exc: OSError) -> str:
+    """'writing OUT: ' for an out-of-room error naming no file, where the command has one output; else ''."""
+    if exc.filename or not (exc.errno in _OUT_OF_ROOM or (exc.errno is None and _NUMPY_SHORT_WRITE.match(str(exc)))):
+        return ""
+    outputs = [str(v) for name in ("output_dir", "output", "out") if (v := getattr(args, name, None))]
+    return f"writing {outputs[0]}: " if len(outputs) == 1 else ""
+
+
 def _show_warning(message, category, filename, lineno, file=None, line=None):
     print(f"splatstream: warning: {message}", file=sys.stderr)
 
@@ -155,7 +172,7 @@ def main(argv: list[str] | None = None) -> int:
         os.dup2(devnull, sys.stdout.fileno())
         return EXIT_BROKEN_PIPE
     except OSError as exc:
-        where = f"{exc.filename}: " if exc.filename else ""
+        where = f"{exc.filename}: " if exc.filename else _output_named(args, exc)
         print(f"splatstream {args.command}: error: {where}{exc.strerror or exc}", file=sys.stderr)
         return EXIT_FAILURE
     except Exception as exc:  # a bug: one line, not a traceback (SPLATSTREAM_DEBUG=1 shows it)

@@ -56,6 +56,9 @@ def check_root(root: str) -> list[str]:
                     f"/scenes/{os.path.basename(os.path.abspath(root))}/{MANIFEST_NAME}")
         elif os.path.isfile(os.path.join(root, "tileset.json")):
             hint = f"; {root} is itself a tileset directory: serve its parent"
+        elif os.path.isfile(os.path.join(root, STREAMED_SOG_META)) or unserved_exports(root, 1)[1]:
+            hint = ("; a streamed SOG (lod-meta.json) or a Spark .rad is not served by splatstream serve: serve it "
+                    "with a static web server that answers Range requests (nginx, an object store)")
         raise ServeError(f"{root}: holds no scene (a scene is a directory with {MANIFEST_NAME}) and no tileset "
                          f"(a directory with tileset.json){hint}", EXIT_BAD_ROOT)
     return ids
@@ -122,6 +125,49 @@ def unservable_scene_names(root: str, limit: int = 5, max_dirs: int = 10_000) ->
                         named.append("/".join(child))
             else:
                 stack.append((e.path, child, child_safe))
+    return sorted(named), count
+
+
+# What `export-sog-lod` and `export-rad` write (splatstream/writers/sog_lod.LOD_META_NAME; a .rad is one file): the
+# server serves neither (README, "Viewing in PlayCanvas"), and a root holding them said nothing of them at start.
+STREAMED_SOG_META = "lod-meta.json"
+RAD_SUFFIX = ".rad"
+
+
+def unserved_exports(root: str, limit: int = 5, max_dirs: int = 10_000) -> tuple[list[str], int]:
+    """Streamed SOG directories (holding lod-meta.json, not a scene) and Spark .rad files under `root`, which this
+    server does not serve: at most `limit` named (a directory with a trailing '/'), and how many. Hidden entries and
+    scenes' insides are skipped, as the scene scan skips them."""
+    named: list[str] = []
+    count = 0
+    visited = 0
+    stack: list[tuple[str, tuple[str, ...]]] = [(root, ())]
+    while stack and visited < max_dirs:
+        directory, segs = stack.pop()
+        visited += 1
+        try:
+            entries = sorted(os.scandir(directory), key=lambda e: e.name)
+        except OSError:
+            continue
+        for e in entries:
+            if e.name.startswith(".") or len(segs) >= MAX_SCENE_DEPTH:
+                continue
+            child = "/".join((*segs, e.name))
+            try:
+                if e.is_file() and e.name.endswith(RAD_SUFFIX):
+                    found = f"{child} (a Spark .rad)"
+                elif not e.is_dir(follow_symlinks=False) or os.path.isfile(os.path.join(e.path, MANIFEST_NAME)):
+                    continue
+                elif os.path.isfile(os.path.join(e.path, STREAMED_SOG_META)):
+                    found = f"{child}/ (a PlayCanvas streamed SOG)"
+                else:
+                    stack.append((e.path, (*segs, e.name)))
+                    continue
+            except OSError:
+                continue
+            count += 1
+            if len(named) < limit:
+                named.append(found)
     return sorted(named), count
 
 
@@ -219,6 +265,13 @@ def serve(root: str, host: str = "127.0.0.1", port: int = 8000, cors_origins: It
               f"name in the path is not URL-safe (letters, digits, '.', '_', '-'; not starting with '.'): "
               f"{', '.join(repr(n) for n in named)}{', ...' if unsafe > len(named) else ''}; rename "
               f"{'them' if unsafe != 1 else 'it'}", file=sys.stderr, flush=True)
+    named, exports = unserved_exports(root)
+    if exports:
+        # `serve exports/` beside `sog/garden` and `garden.rad` answered their URLs 404 without a word at start.
+        print(f"splatstream serve: note: {exports} export{'s' if exports != 1 else ''} not served (this server serves "
+              f"scene directories and 3D Tiles tilesets): {', '.join(named)}{', ...' if exports > len(named) else ''};"
+              f" serve {'them' if exports != 1 else 'it'} with a static web server that answers Range requests "
+              f"(nginx, an object store)", file=sys.stderr, flush=True)
     if lowered:
         print(f"splatstream serve: warning: --max-connections lowered from {requested.max_connections} to "
               f"{limits.max_connections} per worker to fit the file descriptor limit {fd_limit} (ulimit -n)",

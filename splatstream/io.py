@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 from .errors import InputError
 from .format.limits import describe_violations, domain_violations
-from .format.names import MANIFEST_NAME
+from .format.names import MANIFEST_NAME, TILESET_NAME
 from .gaussians import Gaussians
 from .orientation import UpChoice, detect_up
 from .ply import (
@@ -54,6 +54,8 @@ FORMAT_NAMES = {
     "gltf": "glTF with KHR_gaussian_splatting",
 }
 WRITABLE_EXTENSIONS = {".ply": "ply", ".splat": "splat", ".spz": "spz", ".glb": "gltf", ".sog": "sog"}
+# Writable formats that hold fewer SH bands than the scene may have (.splat: colour alone, no bands).
+WRITTEN_MAX_SH_DEGREE = {"splat": 0}
 SPLAT_RECORD_BYTES = 32
 
 
@@ -115,6 +117,13 @@ def sniff_format(path: str | os.PathLike) -> str:
     return _sniff(os.fspath(path))[0]
 
 
+# export-3dtiles' output given to convert, render, encode or eval: said 'unrecognised file format' (tileset.json) or
+# 'a directory without meta.json or lod-meta.json', no word of what it is. Its tiles' .glb files are read.
+_TILESET_SAID = (f"is a 3D Tiles tileset ({TILESET_NAME}, written by `splatstream export-3dtiles`), which CesiumJS "
+                 "draws: not read as one scene (each tiles/<sha256>.glb is one tile, read as a glTF file); give the "
+                 "scene it was exported from")
+
+
 def _sniff(path: str) -> tuple[str, PlyHeader | None]:
     if os.path.isdir(path):
         kind = sog_kind(path)
@@ -123,6 +132,8 @@ def _sniff(path: str) -> tuple[str, PlyHeader | None]:
             # only 'a directory without meta.json or lod-meta.json'.
             raise InputError(path, None, f"is a splatstream scene ({MANIFEST_NAME}), not a splat file: `splatstream "
                              f"decode {path} scene.ply` writes its full detail as a file that encode and convert read")
+        if kind is None and os.path.isfile(os.path.join(path, TILESET_NAME)):
+            raise InputError(path, None, _TILESET_SAID)
         if kind is None:
             raise InputError(path, None, "is a directory without meta.json or lod-meta.json (expected a splat file "
                              "or a SOG scene directory)")
@@ -159,6 +170,8 @@ def _sniff(path: str) -> tuple[str, PlyHeader | None]:
             raise InputError(path, "file length", f"{size} bytes is not a multiple of 32 (a .splat file is a sequence "
                              f"of 32-byte records; {size % 32} bytes left over: truncated?)")
         return "splat", None
+    if os.path.basename(path) == TILESET_NAME:
+        raise InputError(path, None, _TILESET_SAID)
     raise InputError(path, None, "unrecognised file format (expected a 3DGS PLY, a PlayCanvas compressed PLY, an "
                      "SPZ file, a .splat file, a SOG scene (.sog, meta.json, lod-meta.json), a Spark .rad or a "
                      "glTF/GLB file with KHR_gaussian_splatting)")
@@ -269,6 +282,11 @@ def output_format(path: str | os.PathLike) -> str:
         raise InputError(path, None, f"cannot write {ext or 'extensionless'} files (expected one of "
                          f"{', '.join(WRITABLE_EXTENSIONS)})")
     return WRITABLE_EXTENSIONS[ext]
+
+
+def written_sh_degree(fmt: str, sh_degree: int) -> int:
+    """The SH degree a file of writable format `fmt` holds when Gaussians of `sh_degree` are written to it."""
+    return min(sh_degree, WRITTEN_MAX_SH_DEGREE.get(fmt, sh_degree))
 
 
 def write_gaussians(g: Gaussians, path: str | os.PathLike, spz_version: int = 4,

@@ -27,6 +27,10 @@ class Tally:
         self.done += units
         self.report(min(1.0, self.done / self.total))
 
+    def within(self, units: int, fraction: float) -> None:
+        """Part of the next `units` done (a slow step inside them: a SOG unit's SH palette); `add` counts them."""
+        self.report(min(1.0, (self.done + units * min(max(fraction, 0.0), 1.0)) / self.total))
+
     def finish(self) -> None:
         """All done (1), where the units counted may not reach the total."""
         self.report(1.0)

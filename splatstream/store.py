@@ -25,7 +25,7 @@ from .format.manifest import (
     resolve_pages,
     split_pages,
 )
-from .format.names import DATA_DIR, MANIFEST_NAME, is_payload_path
+from .format.names import DATA_DIR, MANIFEST_NAME, TILESET_NAME, is_payload_path
 
 
 class SceneStore(Protocol):
@@ -94,6 +94,10 @@ class DirectoryStore:
             foreign = [n for n in ("lod-meta.json", "meta.json") if os.path.isfile(os.path.join(self.path, n))]
             hint = (f" ({foreign[0]} here: a SOG scene, which `splatstream encode` or `convert` reads)"
                     if foreign else "")
+            if not foreign and os.path.isfile(os.path.join(self.path, TILESET_NAME)):
+                # export-3dtiles' output (`info tiles/garden`): said only 'not a splatstream scene directory'
+                hint = (f" ({TILESET_NAME} here: a 3D Tiles tileset written by `splatstream export-3dtiles`, which "
+                        "CesiumJS draws; the scene directory it was exported from is read here)")
             raise FormatError(path, None, f"no such file: not a splatstream scene directory{hint}")
         return _read_regular(path, MAX_MANIFEST_BYTES)
 

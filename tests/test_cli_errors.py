@@ -253,3 +253,44 @@ def test_sigterm_says_partial_output_removed_only_where_there_was_output(argv, s
     monkeypatch.setattr(module, "run", terminated)
     assert main(argv) == 143
     assert capsys.readouterr().err.strip() == said
+
+
+@pytest.mark.parametrize("command, output", [("convert", "o.ply"), ("export-rad", "o.rad"),
+                                             ("export-sog-lod", "o_sog")])
+def test_a_full_disk_names_the_output_being_written(tmp_path, scene, command, output):
+    """A write that finds no room (a full disk; here a file size limit, the same failure of write(2), EFBIG) said
+    only 'error: No space left on device' / 'File too large', naming no file: it names the output, and nothing
+    is left there."""
+    import resource
+    import subprocess
+    import sys
+
+    source = DONUT if command == "convert" else scene
+
+    def limit_file_size() -> None:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (20_000, 20_000))  # (Python ignores SIGXFSZ: write fails)
+
+    r = subprocess.run([sys.executable, "-m", "cli", command, str(source), str(tmp_path / output), "-q"],
+                       capture_output=True, text=True, stdin=subprocess.DEVNULL, timeout=600,
+                       preexec_fn=limit_file_size)
+    assert r.returncode == 1, r.stderr
+    said = r.stderr.strip().splitlines()[-1]
+    assert said.startswith(f"splatstream {command}: error: writing {tmp_path / output}: "), r.stderr
+    assert "File too large" in said or " requested and " in said, said  # numpy's tofile has its own words
+    assert not (tmp_path / output).exists() and not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
+def test_an_exported_tileset_given_as_a_scene_says_what_it_is(tmp_path):
+    """export-3dtiles' output given to info/decode/render/convert/encode said only 'not a splatstream scene
+    directory', 'a directory without meta.json or lod-meta.json' or 'unrecognised file format' (`view` already
+    said what it is): each says it is a 3D Tiles tileset, which CesiumJS draws, and to give the scene instead."""
+    tiles = tmp_path / "tiles"
+    (tiles / "tiles").mkdir(parents=True)
+    (tiles / "tileset.json").write_text('{"asset": {"version": "1.1"}, "geometricError": 1, "root": {}}')
+    for argv in (["info", tiles], ["decode", tiles, tmp_path / "o.ply"], ["export-rad", tiles, tmp_path / "o.rad"],
+                 ["render", tiles, "--out", tmp_path / "o.png", "-q"], ["encode", tiles, tmp_path / "o", "-q"],
+                 ["convert", tiles / "tileset.json", tmp_path / "o.ply", "-q"]):
+        r = run_cli(*argv)
+        assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+        assert "3D Tiles tileset" in r.stderr and "export-3dtiles" in r.stderr, (argv[0], r.stderr)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["tiles"]

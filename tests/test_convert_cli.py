@@ -46,6 +46,19 @@ def test_convert_sh_to_splat_notes_the_loss(tmp_path, capsys):
     assert "bands 1..3 are dropped" in capsys.readouterr().err
 
 
+def test_decode_to_splat_says_the_sh_degree_written(tmp_path):
+    """decode said 'wrote x.splat: ... SH degree 3' of a .splat, which holds no SH bands: it says 0 and what is
+    dropped, as convert does."""
+    r = run_cli("encode", FIXTURES / "fruit_drops_v4.spz", tmp_path / "scene", "--no-lod", "--quiet")
+    assert r.returncode == 0, r.stderr
+    r = run_cli("decode", tmp_path / "scene", tmp_path / "x.splat")
+    assert r.returncode == 0, r.stderr
+    assert "bands 1..3 are dropped" in r.stderr and "296 splats, SH degree 0" in r.stderr, r.stderr
+    assert read_gaussians(tmp_path / "x.splat").sh_degree == 0
+    r = run_cli("decode", tmp_path / "scene", tmp_path / "x.spz")  # a format that keeps the bands says them
+    assert "296 splats, SH degree 3" in r.stderr and "dropped" not in r.stderr, r.stderr
+
+
 def assert_clean_failure(result, out: pathlib.Path, *phrases: str) -> None:
     assert result.returncode == 2, result.stderr
     assert "Traceback" not in result.stderr

@@ -360,3 +360,14 @@ def test_a_truncated_file_says_so(exported, tmp_path):
     with pytest.raises(InputError, match=r"chunk \d+ \w+: needs bytes [\d,]+\.\.[\d,]+, past the end of its file "
                                          rf"\({len(data) - 1000:,} bytes\): truncated\?"):
         read_rad_tree(tmp_path / "cut.rad")
+
+
+@pytest.mark.parametrize("keep", [6, 100])
+def test_a_file_cut_in_its_header_says_so(exported, tmp_path, keep):
+    """A .rad cut inside its JSON header (a download stopped early): the bytes the header needs and the file's end
+    (it said 'header: expected JSON (Expecting property name enclosed in double quotes: line 7 column 3 ...)')."""
+    work, _ = exported
+    (tmp_path / "cut.rad").write_bytes((work / "scene.rad").read_bytes()[:keep])
+    with pytest.raises(InputError, match=r"header: needs .*the file has 6: truncated\?" if keep == 6 else
+                       r"header: needs bytes 8\.\.[\d,]+, past the end of its file \(100 bytes\): truncated\?"):
+        read_rad_tree(tmp_path / "cut.rad")

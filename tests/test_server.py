@@ -601,6 +601,33 @@ def test_cli_warns_of_scene_directories_it_cannot_serve(tmp_path):
         proc.communicate(timeout=30)
 
 
+def test_cli_names_the_exports_it_does_not_serve(tmp_path):
+    """`serve` of a root holding `export-sog-lod`'s and `export-rad`'s outputs beside a scene answered their URLs
+    404 without a word at start; a root holding only a streamed SOG said 'holds no scene ... and no tileset'."""
+    root = tmp_path / "root"
+    write_fake_scene(root / "scene", [100])
+    (root / "sog" / "garden").mkdir(parents=True)
+    (root / "sog" / "garden" / "lod-meta.json").write_text("{}")
+    (root / "garden.rad").write_bytes(b"RAD0")
+    (root / ".build.rad").write_bytes(b"RAD0")  # hidden: skipped quietly, as hidden scenes are
+    (root / "scene" / "x.rad").write_bytes(b"RAD0")  # inside a scene: not looked at
+    proc = _cli(str(root), "--port", "0", "--no-access-log")
+    try:
+        note = proc.stderr.readline()
+        assert note.strip() == ("splatstream serve: note: 2 exports not served (this server serves scene directories "
+                                "and 3D Tiles tilesets): garden.rad (a Spark .rad), sog/garden/ (a PlayCanvas streamed "
+                                "SOG); serve them with a static web server that answers Range requests (nginx, an "
+                                "object store)"), note
+        started = proc.stderr.readline()
+        assert started.startswith(f"splatstream serve: 1 scene from {root} at "), started
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.communicate(timeout=30)
+    proc = _cli(str(root / "sog"), "--port", "0")
+    out, err = proc.communicate(timeout=30)
+    assert proc.returncode == 2 and "a streamed SOG (lod-meta.json) or a Spark .rad is not served" in err, err
+
+
 def test_cli_port_in_use(root):
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))

@@ -10,7 +10,15 @@ from splatstream.atomic import check_output
 from splatstream.axes import RDF_TO_RUB, turn
 from splatstream.errors import InputError, UsageError
 from splatstream.gaussians import Gaussians
-from splatstream.io import FORMAT_NAMES, open_input, output_format, read_gaussians, screen_gaussians, write_gaussians
+from splatstream.io import (
+    FORMAT_NAMES,
+    open_input,
+    output_format,
+    read_gaussians,
+    screen_gaussians,
+    write_gaussians,
+    written_sh_degree,
+)
 from splatstream.readers.sog import read_sog_level
 
 from .args import add_edit_arguments, edit_report, edits_from
@@ -94,8 +102,8 @@ def run(args: argparse.Namespace) -> int:
         return 0
     if len(g) == 0:
         raise UsageError(f"{' + '.join(args.input)}: the edits keep no splats; nothing to convert")
-    if out_format == "splat" and g.sh_degree > 0:
-        say(f"note: .splat has no SH bands; bands 1..{g.sh_degree} are dropped")
+    if (kept_sh := written_sh_degree(out_format, g.sh_degree)) < g.sh_degree:
+        say(f"note: .splat has no SH bands; bands {kept_sh + 1}..{g.sh_degree} are dropped")
     glb = "SPZ-compressed splats" if args.glb_compression == "spz" else "uncompressed splats"
     detail = {"spz": f", version {args.spz_version}", "gltf": f", {glb}"}
     say(f"writing {args.output} ({FORMAT_NAMES[out_format]}{detail.get(out_format, '')})")

@@ -7,7 +7,7 @@ import time
 
 from splatstream.atomic import check_output
 from splatstream.errors import UsageError
-from splatstream.io import FORMAT_NAMES, output_format, write_gaussians
+from splatstream.io import FORMAT_NAMES, output_format, write_gaussians, written_sh_degree
 from splatstream.scene_decode import decode_scene
 
 
@@ -37,7 +37,11 @@ def run(args: argparse.Namespace) -> int:
     # 2-core machine, with nothing printed before): say what is being written, as convert does.
     print(f"decode: {len(g):,} splats decoded ({time.perf_counter() - start:.1f}s); writing {args.output} "
           f"({FORMAT_NAMES[out_format]})", file=sys.stderr, flush=True)
+    sh_degree = written_sh_degree(out_format, g.sh_degree)
+    if sh_degree < g.sh_degree:  # as convert says it (decode said 'SH degree 2' of a .splat, which holds none)
+        print(f"decode: note: {FORMAT_NAMES[out_format]} has no SH bands; bands {sh_degree + 1}..{g.sh_degree} are "
+              f"dropped", file=sys.stderr, flush=True)
     write_gaussians(g, args.output)
-    print(f"wrote {args.output}: {len(g):,} splats, SH degree {g.sh_degree} ({time.perf_counter() - start:.1f}s)",
+    print(f"wrote {args.output}: {len(g):,} splats, SH degree {sh_degree} ({time.perf_counter() - start:.1f}s)",
           file=sys.stderr)
     return 0

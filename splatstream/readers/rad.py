@@ -161,7 +161,14 @@ def read_rad_tree(path: str | os.PathLike) -> RadTree:
     buf = read_regular_file(path, memory_budget())
     if not is_rad(buf):
         raise InputError(path, "magic", "expected RAD0")
+    if len(buf) < 8:
+        raise InputError(path, "header", f"needs 8 bytes (magic and header length), the file has {len(buf)}: "
+                         "truncated?")
     length = struct.unpack_from("<I", buf, 4)[0]
+    if len(buf) < 8 + length:
+        # said before as the JSON error of the bytes that were there ("Expecting property name ...: char 92")
+        raise InputError(path, "header", f"needs bytes 8..{8 + length:,}, past the end of its file ({len(buf):,} "
+                         "bytes): truncated?")
     meta = _json(buf[8:8 + length], path, "header")
     if meta.get("version") != 1 or meta.get("type") != "gsplat":
         raise InputError(path, "header", f"version {meta.get('version')!r} type {meta.get('type')!r}, "

@@ -23,6 +23,7 @@ import json
 import math
 import os
 import zipfile
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
@@ -172,12 +173,14 @@ def _quats(rotations: np.ndarray) -> np.ndarray:
     return out
 
 
-def _shn(g: Gaussians, seed: int) -> tuple[dict, dict[str, bytes], np.ndarray]:
-    """The SH palette section of meta.json, the centroids WebP, and the label texels."""
+def _shn(g: Gaussians, seed: int, progress: Callable[[float], None] | None = None) -> tuple[dict, dict[str, bytes],
+                                                                                          np.ndarray]:
+    """The SH palette section of meta.json, the centroids WebP, and the label texels (`progress`: the palette's fit,
+    build_codebook's)."""
     k = SH_REST_COEFFS[g.sh_degree]
     rows = g.sh_rest.transpose(0, 2, 1).reshape(len(g), 3 * k)  # channel-major, as splat-transform clusters them
     size = palette_size(len(g))
-    codebook = build_codebook(rows, size, seed=seed)
+    codebook = build_codebook(rows, size, seed=seed, progress=progress)
     labels = codebook.assign(rows)
     entries = codebook.entries.reshape(-1, 3, k)  # (palette, channel, coefficient)
     book, index = quantise_1d(entries, seed=seed)
@@ -193,9 +196,17 @@ def _shn(g: Gaussians, seed: int) -> tuple[dict, dict[str, bytes], np.ndarray]:
     return meta, {SHN_NAMES[0]: centroids}, label_texels
 
 
-def sog_unit(g: Gaussians, reorder: bool = True, seed: int = 0) -> SogUnit:
+# Shares of a unit's time: with SH bands their palette's fit is most of it (45 of 54 s of playbot's streamed SOG).
+_SHARE_PLANES_WITH_SH = 0.15
+
+
+def sog_unit(g: Gaussians, reorder: bool = True, seed: int = 0,
+             progress: Callable[[float], None] | None = None) -> SogUnit:
     """The SOG files of `g`. `reorder`: store the splats in Morton order (what splat-transform does for a whole
-    scene); False keeps the given order (a streamed SOG unit, whose row ranges are the tree's references)."""
+    scene); False keeps the given order (a streamed SOG unit, whose row ranges are the tree's references).
+    `progress` hears the share of the unit done (the planes, then the SH palette's fit), the files unchanged."""
+    report = progress or (lambda fraction: None)
+    planes_share = _SHARE_PLANES_WITH_SH if g.sh_degree > 0 and len(g) > 0 else 1.0
     n = len(g)
     width, height = texture_size(n)
     if width > MAX_TEXTURE_SIDE or height > MAX_TEXTURE_SIDE:
@@ -216,6 +227,7 @@ def sog_unit(g: Gaussians, reorder: bool = True, seed: int = 0) -> SogUnit:
         "scales.webp": _webp(scale_texels, width, height),
         "sh0.webp": _webp(color_texels, width, height),
     }
+    report(planes_share)
     meta: dict = {
         "version": SOG_VERSION,
         "asset": {"generator": GENERATOR},
@@ -226,10 +238,12 @@ def sog_unit(g: Gaussians, reorder: bool = True, seed: int = 0) -> SogUnit:
         "sh0": {"codebook": [float(v) for v in color_book], "files": ["sh0.webp"]},
     }
     if g.sh_degree > 0 and n > 0:
-        shn_meta, shn_files, label_texels = _shn(g, seed)
+        shn_meta, shn_files, label_texels = _shn(
+            g, seed, lambda fraction: report(planes_share + (1.0 - planes_share) * fraction))
         files.update(shn_files)
         files[SHN_NAMES[1]] = _webp(label_texels, width, height)
         meta["shN"] = shn_meta
+    report(1.0)
     return SogUnit(meta, files)
 
 

@@ -110,8 +110,9 @@ def _pack(parts: list[tuple[int, Gaussians]], unit_splats: int) -> list[list[tup
 def streamed_sog(tiles: dict[int, TreeTile], root: int, unit_splats: int = UNIT_SPLATS,
                  progress: Callable[[float], None] | None = None) -> SogLodFiles:
     """The lod-meta.json object and the units of a tree of ours (see the module's docstring). `progress` hears
-    the share of the splats packed into units: each unit's SOG encode (its SH palette's k-means, its WebP
-    planes) is the slow part (about 28 s for playbot's 919,279 splats on a busy 2-core machine)."""
+    the share of the splats packed into units, and inside a unit the share of its SOG encode done (its WebP planes,
+    then its SH palette's k-means by cell): that encode is the slow part (about 28 s for playbot's 919,279 splats on
+    a busy 2-core machine, 30-35 s a 524,288-splat unit of a 2M-splat scene at a load of 6)."""
     below = _leaves_below(tiles, root)
     leaves = below[root]
     depth = max(tiles[leaf].level for leaf in leaves)
@@ -165,7 +166,8 @@ def streamed_sog(tiles: dict[int, TreeTile], root: int, unit_splats: int = UNIT_
                 references[leaf][str(level)] = {"file": len(filenames) - 1, "offset": offset, "count": len(part)}
                 offset += len(part)
             counts[level] += offset
-            units[name] = sog_unit(Gaussians.concatenate([part for _, part in members]), reorder=False)
+            units[name] = sog_unit(Gaussians.concatenate([part for _, part in members]), reorder=False,
+                                   progress=lambda fraction, n=offset: packed.within(n, fraction))
             packed.add(offset)
 
     def node(tid: int) -> dict:
