@@ -369,8 +369,8 @@ class StreamEngine:
         max_splats = options.selection.max_splats
         root_splats = int(self.arrays.splats[self.root])
         if max_splats is not None and max_splats < root_splats:
-            raise UsageError(f"{location}: --max-splats {max_splats} is below the scene's coarsest level (its root "
-                             f"tile holds {root_splats} splats): expected at least {root_splats}")
+            raise UsageError(f"{location}: --max-splats {max_splats:,} is below the scene's coarsest level (its root "
+                             f"tile holds {root_splats:,} splats): expected at least {root_splats:,}")
         self.codebook_bands: set[int] = set()
         self._pages_wanted: list[Key] = []
         self._pages_arrived: dict[int, Future] = {}  # tile id -> its page's tiles, being parsed
