@@ -24,6 +24,7 @@ from refine_cpu.levels import CpuLevelRefiner, CpuRefineSettings  # noqa: E402
 # fruit_drops (5,321 splats) in leaves of at most 300: domains of at most 700 splats are the tile level of kd depth
 # 3, 8 partitions of 665-666 splats, three levels above them (1, 2 and 4 tiles) refined against their roots.
 TREE = {"preset": "low", "max_leaf_splats": 300, "lod_merge_domain_splats": 700}
+TIERS = {"lod_upper_domain_roots": 2}
 MEMORY = 2 << 20  # a domain fits (0.95 MiB), the scene (5 MiB) does not: partitioned in this process
 # A fit small enough for a test (the defaults' far cameras and camera counts kept)
 ITERS, SIZE = 5, 32
@@ -41,7 +42,10 @@ def encodes(tmp_path_factory) -> dict:
     out = {}
     for name, kw in [("local", {"memory_per_worker": MEMORY, "lod_refiner": refiner()}),
                      ("dask2", {"workers": 2, "lod_refiner": refiner()}),
-                     ("plain", {"memory_per_worker": MEMORY})]:
+                     ("plain", {"memory_per_worker": MEMORY}),
+                     # upper domains of 2 roots: the levels above the partitions refined in three tiers (2, 1, 0)
+                     ("tiers", {"memory_per_worker": MEMORY, "lod_refiner": refiner(), **TIERS}),
+                     ("tiers_dask2", {"workers": 2, "lod_refiner": refiner(), **TIERS})]:
         encode_file(src, root / name, **TREE, **kw)
         out[name] = root / name
     return out
@@ -49,6 +53,27 @@ def encodes(tmp_path_factory) -> dict:
 
 def test_the_bytes_are_the_same_in_this_process_and_on_dask(encodes):
     assert tree_digest(encodes["local"]) == tree_digest(encodes["dask2"])
+
+
+def test_upper_domains_refine_tier_by_tier_with_the_same_bytes_on_any_engine(encodes):
+    assert tree_digest(encodes["tiers"]) == tree_digest(encodes["tiers_dask2"])
+    one, tiers = (read_manifest(open_store(encodes[k])) for k in ("local", "tiers"))
+    # the domains' own levels (3-5) as before; the levels above grouped and refined per upper domain
+    assert [(t.id, t.children) for t in one.tiles] == [(t.id, t.children) for t in tiers.tiles]
+    def digests(t) -> dict:
+        return {g: e.sha256 for g, e in t.groups.items()}
+
+    for a, b in zip(one.tiles, tiers.tiles, strict=True):
+        assert a.level < 3 or digests(a) == digests(b), a.id
+    assert any(digests(a) != digests(b) for a, b in zip(one.tiles, tiers.tiles, strict=True) if a.level < 3)
+    rec = tiers.lod.refinement
+    assert [lv.level for lv in rec.levels] == [0, 1, 2, 3, 4, 5]  # every merged level once, the root's first
+    by_id = {t.id: t for t in tiers.tiles}
+    for t in tiers.tiles:  # no holes: a parent's bounds cover its children's, refined in another tier or not
+        for c in t.children:
+            assert all(a <= b for a, b in zip(t.box.min, by_id[c].box.min, strict=True))
+            assert all(a >= b for a, b in zip(t.box.max, by_id[c].box.max, strict=True))
+            assert by_id[c].geometric_error <= t.geometric_error
 
 
 def test_every_merged_level_is_refined_and_recorded_and_the_leaves_stay(encodes):
@@ -171,7 +196,9 @@ def test_partitions_of_single_leaves_are_refined_above_against_the_originals(tmp
     src = real("fruit_drops_sh3.ply")
     kw = {**TREE, "lod_merge_domain_splats": 200}
     digests = []
-    for name, memory in (("a", MEMORY), ("b", 3 * MEMORY)):
+    # (not 3x MEMORY: the whole scene fits there and is encoded in memory, every level grouped whole, where the
+    # partitioned encode groups the levels above the partitions by upper domains)
+    for name, memory in (("a", MEMORY), ("b", 2 * MEMORY)):
         encode_file(src, tmp_path / name, memory_per_worker=memory, lod_refiner=refiner(), **kw)
         digests.append(tree_digest(tmp_path / name))
     assert digests[0] == digests[1]
