@@ -19,14 +19,15 @@ ARCHITECTURE.md "Distributed encoding".
 7. the manifest, last.
 With `--lod-refine cpu` (EncodeOptions.lod_refiner) the partitions are the merge domains whatever the merge, each
 task of step 5 refines its subtree against its own originals before encoding it, and the levels of step 6 are refined
-in one task (refine_upper) against the partitions' refined roots before they are encoded (lod.md 6, "The refinement by
-partitions").
+by upper domains, tier after tier (refine_upper: a task per upper domain against its roots as refined), before they
+are encoded (lod.md 6, "The refinement by partitions").
 
 The output is byte-identical whatever the engine, the number of workers and partitions and the chunking. With the
 grid merge it is encode_to's; with "auto" (the default) the partitions are auto's merge domains, a tile level fixed
 by the scene's splat count (merge_domain_level): each partition groups the levels inside it over its own splats, and
-the levels above the partitions are grouped a whole level at once (merge_level), so it is encode_to's where the scene
-is one domain (at most EncodeOptions.lod_merge_domain_splats splats) and differs from it above that.
+the levels above the partitions are grouped by upper domains (upper_domain_levels: tiers of kd subtrees of at most
+EncodeOptions.lod_upper_domain_roots roots each, a task per domain and level, merge_level), so it is encode_to's where
+the scene is one domain (at most EncodeOptions.lod_merge_domain_splats splats) and differs from it above that.
 """
 from __future__ import annotations
 
@@ -613,8 +614,8 @@ def _auto_partitions(shape: TreeShape, row_bytes: int, engine: Engine, opts: Enc
     (merge_domain_level), whatever the workers; where a domain does not fit a worker's memory, the grid at the
     grid's partition level (refused when the caller named auto)."""
     domain, largest, need = _merge_domains(shape, row_bytes, opts, AUTO_GROUPING_BYTES)
-    if opts.lod_refiner is not None and need > engine.memory_per_worker:
-        raise _refined_domain_too_big(opts, need, engine)  # the domains are the refinement's too
+    if opts.lod_refiner is not None:  # the domains are the refinement's too
+        _check_refined_need(shape, row_bytes, opts, engine, domain, largest, need)
     if need <= engine.memory_per_worker:
         partitions = 2 ** shape.kd_depths[domain]
         log.info("LOD merge auto%s, inside %s of at most %s splats and over the levels above them",
@@ -638,20 +639,53 @@ def _merge_domains(shape: TreeShape, row_bytes: int, opts: EncodeOptions, extra_
     return domain, largest, largest * (row_bytes * PARTITION_MEMORY_FACTOR + extra_bytes)
 
 
-def _refined_domain_too_big(opts: EncodeOptions, need: int, engine: Engine) -> UsageError:
+def _refined_domain_too_big(opts: EncodeOptions, need: int, engine: Engine, fit: int = 0) -> UsageError:
+    fit_part = (f" (the refiner's renders, targets and pair lists {math.ceil(fit / 2**20):,} MiB of it: a smaller "
+                f"--lod-refine-size takes less)") if fit else ""
     return UsageError(f"--lod-refine by partitions refines each merge domain (a subtree of at most "
                       f"{opts.lod_merge_domain_splats:,} splats) in one task, which needs "
-                      f"{math.ceil(need / 2**20):,} MiB per worker, more than the memory per worker "
+                      f"{math.ceil(need / 2**20):,} MiB per worker{fit_part}, more than the memory per worker "
                       f"({engine.memory_per_worker // 2**20:,} MiB): give more --memory-per-worker")
+
+
+def refined_task_need(shape: TreeShape, row_bytes: int, opts: EncodeOptions, domain: int, largest: int,
+                      build_need: int) -> tuple[int, int]:
+    """Bytes the largest refined task needs (a merge domain's, or an upper domain's: upper_domain_levels), and of
+    them the refiner's own fit (LodRefiner's optional peak_bytes; 0 where it has none). A domain's fit follows its
+    build in the same task, the build's temporaries freed: the tree held (its originals and merged levels, about
+    twice the originals) and the fit's peak; an upper domain's task holds its roots (at most max_leaf_splats each) as
+    its full detail, and the tiles above them."""
+    peak = getattr(opts.lod_refiner, "peak_bytes", None)
+    if peak is None:
+        return build_need, 0
+    need, fit = build_need, 0
+    if domain < shape.leaf_level:  # a partition of a single leaf has no merged level of its own
+        fit = peak(largest, row_bytes)
+        need = max(build_need, 2 * largest * row_bytes + fit)
+    bottom = domain
+    for top in upper_domain_levels(shape, domain, opts.lod_upper_domain_roots):
+        roots = 2 ** (shape.kd_depths[bottom] - shape.kd_depths[top]) * shape.max_leaf_splats
+        upper_fit = peak(roots, row_bytes)
+        if 2 * roots * row_bytes + upper_fit > need:
+            need, fit = 2 * roots * row_bytes + upper_fit, upper_fit
+        bottom = top
+    return need, fit
+
+
+def _check_refined_need(shape: TreeShape, row_bytes: int, opts: EncodeOptions, engine: Engine, domain: int,
+                        largest: int, build_need: int) -> None:
+    """Refused (UsageError, one line naming --memory-per-worker) where a refined task does not fit a worker."""
+    need, fit = refined_task_need(shape, row_bytes, opts, domain, largest, build_need)
+    if need > engine.memory_per_worker:
+        raise _refined_domain_too_big(opts, need, engine, fit)
 
 
 def _domain_level(shape: TreeShape, row_bytes: int, engine: Engine, opts: EncodeOptions, extra_bytes: int) -> int:
     """The partition level of a refined partitioned encode: the merge domains, whatever the merge, so that each level
     is refined over the same splats whatever the engine, workers and memory per worker; refused (UsageError) where a
-    domain does not fit a worker."""
-    domain, _, need = _merge_domains(shape, row_bytes, opts, extra_bytes)
-    if need > engine.memory_per_worker:
-        raise _refined_domain_too_big(opts, need, engine)
+    domain, with its refiner's fit, does not fit a worker."""
+    domain, largest, need = _merge_domains(shape, row_bytes, opts, extra_bytes)
+    _check_refined_need(shape, row_bytes, opts, engine, domain, largest, need)
     return domain
 
 
