@@ -49,6 +49,12 @@ from splatstream.lod_refine import (
 
 from . import raster
 
+# CpuLevelRefiner.peak_bytes: pairs a pixel of the training cameras (raster keeps a pixel's pairs while T > 1e-6;
+# measured 21 on biker's whole scene at 256 px, 25 and 41 on fruit_drops at 128 and 32 px), and copies of a
+# full-detail splat's values held at the peak (fitted to fruit_drops at 32 px, where the splats dominate, on its
+# first, compiling fit: 30.4 MiB, 14.4 once compiled; on the safe side).
+PAIRS_PER_PIXEL = 32
+SPLAT_COPIES = 14
 VARIANT = "A"  # the one variant fitted here (lod_refine.VARIANT_FIELDS): opacity and DC colour, the geometry fixed
 
 
@@ -116,6 +122,25 @@ class CpuLevelRefiner:
         if not self.settings.share_cores:
             return self
         return CpuLevelRefiner(replace(self.settings, threads=max(1, (os.cpu_count() or 1) // max(1, fits))))
+
+    def peak_bytes(self, splats: int, splat_bytes: int) -> int:
+        """The fit's own peak over a tree of `splats` full-detail splats of `splat_bytes` bytes each, beyond the tree
+        (a model, for the memory a refined partition task needs; partitioned.py): the clamped targets (float32 RGB,
+        every near and far camera), the training set's pair lists (raster.PairLists: a pixel offset and
+        PAIRS_PER_PIXEL pairs of 8 bytes a pixel, far cameras counted at the full size), and a full-detail splat's
+        share: each training camera's projected splat (16 bytes) and SPLAT_COPIES copies of its values (the level
+        cuts' concatenations, the fit's and the tree's copies). Measured (BENCHMARKS.md, "Upper domains", the
+        refiner's memory): the peak RSS above the tree 242 / 349 / 574 MiB on biker (SH0) slices of 20k / 60k / 153k
+        splats (the first fit of each process: numba's compilation included), this model 878 / 941 / 1,088 MiB;
+        tracemalloc's peak 14.4 / 128.9 MiB on fruit_drops (SH3, 4,721 splats) at 32 / 128 px once compiled (30.4 at
+        32 px compiling), this model 32 / 230 MiB; 5,030 MiB for a 2^20-splat SH3 domain at the defaults (not
+        measured at that size: the pairs a splat fell from 8.7 to 4.2 KB between biker's 20k and 153k)."""
+        s = self.settings
+        pixels = s.size * s.size
+        near_and_far = s.training_cameras + s.validation_cameras + s.far_training_cameras + s.far_validation_cameras
+        training = s.training_cameras + s.far_training_cameras
+        return int(12 * pixels * near_and_far + (8 + 8 * PAIRS_PER_PIXEL) * pixels * training
+                   + (16 * training + SPLAT_COPIES * splat_bytes) * splats)
 
     def __call__(self, g: Gaussians, tiles: list[Tile], up, progress) -> tuple[dict[int, Gaussians], LodRefinement]:
         s = self.settings

@@ -86,7 +86,8 @@ FAR_FILL = 1.25  # a far camera's side: this x the px the scene's fitted extent 
 # encodes (encode/partitioned.py: each merge domain in its own task, on any engine, so it must pickle); `name`, where
 # it has one, is how messages name it; `for_concurrent_fits(n)`, where it has one, gives the refiner to run when n
 # fits run at once (a share of the machine's cores each; partitioned.py asks it before the partitions and the upper
-# levels).
+# levels); `peak_bytes(splats)`, where it has one, the memory its fit of a tree of that many full-detail splats takes
+# beyond the tree (partitioned.py counts it in what a refined partition task needs of --memory-per-worker).
 LodRefiner = Callable[[Gaussians, list[Tile], tuple[float, float, float], Callable[[str, float], None]],
                       tuple[dict[int, Gaussians], LodRefinement]]
 

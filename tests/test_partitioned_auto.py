@@ -13,7 +13,7 @@ from conftest import real, tree_digest
 
 from splatstream.encode import EncodeOptions, encode_file, encode_in_memory
 from splatstream.encode.local import LocalEngine
-from splatstream.encode.partitioned import ArrayRows, encode_partitioned, merge_domain_level
+from splatstream.encode.partitioned import ArrayRows, encode_partitioned, merge_domain_level, upper_domain_levels
 from splatstream.encode.scratch import Scratch
 from splatstream.errors import UsageError
 from splatstream.gaussians import SH_C0, Gaussians
@@ -74,6 +74,40 @@ def test_the_domains_are_a_tile_level_of_the_splat_count_alone(scene):
     assert merge_domain_level(shape, 1) == shape.leaf_level
 
 
+# Upper domains of at most 2 roots: three tiers above the 8 partitions (levels 2, 1 and 0, each grouped in 4, 2 and 1
+# tasks), where the default (8) groups each upper level whole, one tier.
+TIERS = {**TREE, "lod_upper_domain_roots": 2}
+
+
+def test_the_upper_domains_are_tiers_of_the_tree_alone(scene):
+    shape = TreeShape.of(len(scene), 300, 2.0)
+    assert upper_domain_levels(shape, 3, 8) == [0]  # 8 roots: one tier, the whole of each upper level
+    assert upper_domain_levels(shape, 3, 2) == [2, 1, 0]
+    assert upper_domain_levels(shape, 3, 4) == [1, 0]
+    assert upper_domain_levels(shape, 0, 2) == []  # the scene is one partition: nothing above it
+    assert upper_domain_levels(shape, 3, 1) == [2, 1, 0]  # at least one level a tier
+    city = TreeShape.of(60_000_000, 16384, 2.0)  # 2^20-splat domains: 64 partitions at level 7
+    assert merge_domain_level(city, 1 << 20) == 7 and upper_domain_levels(city, 7, 8) == [4, 0]
+    assert upper_domain_levels(TreeShape.of(600_000_000, 16384, 2.0), 11, 8) == [8, 5, 2, 0]
+
+
+def test_upper_domains_give_the_same_bytes_with_any_memory_threads_and_engine(scene, scene_ply, tmp_path):
+    opts = EncodeOptions(preset="low", **TIERS)
+    digests = {store_digest(partitioned(scene, opts, memory, threads, tmp_path).store())
+               for memory, threads in ((1 << 40, 1), (MEMORY, 2), (8 << 20, 3))}
+    assert len(digests) == 1
+    one_tier = partitioned(scene, EncodeOptions(preset="low", **TREE), MEMORY, 1, tmp_path).store()
+    assert store_digest(one_tier) not in digests  # the upper levels' counts shared within each upper domain
+    pytest.importorskip("distributed")
+    out = str(tmp_path / "local")
+    encode_file(scene_ply, out, preset="low", memory_per_worker=MEMORY, **TIERS)
+    want = tree_digest(out)
+    for workers in (1, 2):
+        got = str(tmp_path / f"w{workers}")
+        encode_file(scene_ply, got, preset="low", workers=workers, memory_per_worker=MEMORY, **TIERS)
+        assert tree_digest(got) == want, workers
+
+
 def test_auto_partitions_are_the_same_with_any_memory_and_threads(scene, tmp_path):
     opts = EncodeOptions(preset="low", **TREE)
     # The grid's partition level would change with the memory (from one partition to single leaves); auto's does not.
@@ -107,9 +141,10 @@ def test_auto_partitions_on_dask_and_in_process_give_the_same_files(scene_ply, t
     assert load_manifest(out).lod.merge == "auto"
 
 
-def test_auto_partitions_have_no_holes_and_keep_replace(scene, tmp_path):
-    writer = partitioned(scene, EncodeOptions(preset="low", **TREE), MEMORY, 2, tmp_path)
-    grid = partitioned(scene, EncodeOptions(preset="low", **{**TREE, "lod_merge": "grid"}), MEMORY, 2, tmp_path)
+@pytest.mark.parametrize("tree", [TREE, TIERS], ids=["one-tier", "three-tiers"])
+def test_auto_partitions_have_no_holes_and_keep_replace(scene, tmp_path, tree):
+    writer = partitioned(scene, EncodeOptions(preset="low", **tree), MEMORY, 2, tmp_path)
+    grid = partitioned(scene, EncodeOptions(preset="low", **{**tree, "lod_merge": "grid"}), MEMORY, 2, tmp_path)
     m, g = writer.manifest, grid.manifest
     assert [t.children for t in m.tiles] == [t.children for t in g.tiles]  # the same tiles, ids and REPLACE structure
     by_id = {t.id: t for t in m.tiles}

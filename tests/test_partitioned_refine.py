@@ -5,15 +5,19 @@ and worker count, the full detail unchanged, the refined levels not the unrefine
 from __future__ import annotations
 
 import json
+import tracemalloc
 
 import numpy as np
 import pytest
 from conftest import real, run_cli, tree_digest
 
 from splatstream.encode import encode_file
+from splatstream.encode.partitioned import routed_row_bytes
 from splatstream.errors import UsageError
 from splatstream.format.manifest import LevelRefinement, LodRefinement
-from splatstream.lod_refine import domains_record
+from splatstream.io import read_gaussians
+from splatstream.lod import build_tiles
+from splatstream.lod_refine import domains_record, refine_tree
 from splatstream.store import open_store, read_manifest
 
 numba = pytest.importorskip("numba")
@@ -24,7 +28,12 @@ from refine_cpu.levels import CpuLevelRefiner, CpuRefineSettings  # noqa: E402
 # fruit_drops (5,321 splats) in leaves of at most 300: domains of at most 700 splats are the tile level of kd depth
 # 3, 8 partitions of 665-666 splats, three levels above them (1, 2 and 4 tiles) refined against their roots.
 TREE = {"preset": "low", "max_leaf_splats": 300, "lod_merge_domain_splats": 700}
-MEMORY = 2 << 20  # a domain fits (0.95 MiB), the scene (5 MiB) does not: partitioned in this process
+TIERS = {"lod_upper_domain_roots": 2}
+# A domain's task fits (its build 0.84 MiB; with the fit at 32 px, CpuLevelRefiner.peak_bytes, 23.4 MiB, the upper
+# domains' the largest), the scene's in-memory encode does not (4.4 MiB, 34 MiB with the fit): partitioned in this
+# process
+MEMORY = 24 << 20
+PLAIN_MEMORY = 2 << 20  # without the fit: a domain fits (0.84 MiB), the scene (4.4 MiB) does not
 # A fit small enough for a test (the defaults' far cameras and camera counts kept)
 ITERS, SIZE = 5, 32
 
@@ -41,7 +50,10 @@ def encodes(tmp_path_factory) -> dict:
     out = {}
     for name, kw in [("local", {"memory_per_worker": MEMORY, "lod_refiner": refiner()}),
                      ("dask2", {"workers": 2, "lod_refiner": refiner()}),
-                     ("plain", {"memory_per_worker": MEMORY})]:
+                     ("plain", {"memory_per_worker": PLAIN_MEMORY}),
+                     # upper domains of 2 roots: the levels above the partitions refined in three tiers (2, 1, 0)
+                     ("tiers", {"memory_per_worker": MEMORY, "lod_refiner": refiner(), **TIERS}),
+                     ("tiers_dask2", {"workers": 2, "lod_refiner": refiner(), **TIERS})]:
         encode_file(src, root / name, **TREE, **kw)
         out[name] = root / name
     return out
@@ -49,6 +61,27 @@ def encodes(tmp_path_factory) -> dict:
 
 def test_the_bytes_are_the_same_in_this_process_and_on_dask(encodes):
     assert tree_digest(encodes["local"]) == tree_digest(encodes["dask2"])
+
+
+def test_upper_domains_refine_tier_by_tier_with_the_same_bytes_on_any_engine(encodes):
+    assert tree_digest(encodes["tiers"]) == tree_digest(encodes["tiers_dask2"])
+    one, tiers = (read_manifest(open_store(encodes[k])) for k in ("local", "tiers"))
+    # the domains' own levels (3-5) as before; the levels above grouped and refined per upper domain
+    assert [(t.id, t.children) for t in one.tiles] == [(t.id, t.children) for t in tiers.tiles]
+    def digests(t) -> dict:
+        return {g: e.sha256 for g, e in t.groups.items()}
+
+    for a, b in zip(one.tiles, tiers.tiles, strict=True):
+        assert a.level < 3 or digests(a) == digests(b), a.id
+    assert any(digests(a) != digests(b) for a, b in zip(one.tiles, tiers.tiles, strict=True) if a.level < 3)
+    rec = tiers.lod.refinement
+    assert [lv.level for lv in rec.levels] == [0, 1, 2, 3, 4, 5]  # every merged level once, the root's first
+    by_id = {t.id: t for t in tiers.tiles}
+    for t in tiers.tiles:  # no holes: a parent's bounds cover its children's, refined in another tier or not
+        for c in t.children:
+            assert all(a <= b for a, b in zip(t.box.min, by_id[c].box.min, strict=True))
+            assert all(a >= b for a, b in zip(t.box.max, by_id[c].box.max, strict=True))
+            assert by_id[c].geometric_error <= t.geometric_error
 
 
 def test_every_merged_level_is_refined_and_recorded_and_the_leaves_stay(encodes):
@@ -115,8 +148,34 @@ def test_a_domain_over_the_memory_and_a_refiner_that_does_not_run_by_partitions_
             raise AssertionError("not called")
 
     with pytest.raises(UsageError, match="--lod-refine gpu refines in-memory encodes only, not a partitioned one"):
-        encode_file(src, tmp_path / "b", memory_per_worker=MEMORY, lod_refiner=InMemoryOnly(), **TREE)
+        encode_file(src, tmp_path / "b", memory_per_worker=PLAIN_MEMORY, lod_refiner=InMemoryOnly(), **TREE)
     assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_the_fit_memory_is_counted_in_what_a_domain_needs(tmp_path):
+    """A worker that holds a domain's build (0.84 MiB) but not its fit (CpuLevelRefiner.peak_bytes: 23.4 MiB at 32
+    px) is refused, in one line naming the setting and the fit's share, before anything is written; the fit's
+    model bounds what a real fit of the whole scene takes (tracemalloc: the pair lists and targets are numpy
+    arrays)."""
+    src = real("fruit_drops_sh3.ply")
+    with pytest.raises(UsageError, match=r"needs 24 MiB per worker \(the refiner's renders, targets and pair lists "
+                                         r"23 MiB of it: a smaller --lod-refine-size takes less\), more than the "
+                                         r"memory per worker \(20 MiB\): give more --memory-per-worker"):
+        encode_file(src, tmp_path / "a", memory_per_worker=20 << 20, lod_refiner=refiner(), **TREE)
+    assert not (tmp_path / "a").exists()
+    g = read_gaussians(src)
+    tiles = build_tiles(g, 300, 2.0, merge="auto")
+    fit = refiner()
+    tracemalloc.start()
+    try:
+        refine_tree(g, tiles, (0.0, 0.0, 1.0), fit, lambda stage, fraction: None)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    model = fit.peak_bytes(len(g), routed_row_bytes(g.sh_degree))
+    # measured: 14.4 MiB against 32.1 (30.4 on a first fit, numba compiling: the model's splat term fitted there)
+    assert model / 4 <= peak <= model, (peak, model)
+    assert CpuLevelRefiner(CpuRefineSettings(size=64)).peak_bytes(1000, 64) > fit.peak_bytes(1000, 64)
 
 
 def test_the_fit_is_the_same_on_any_number_of_threads():
@@ -171,7 +230,9 @@ def test_partitions_of_single_leaves_are_refined_above_against_the_originals(tmp
     src = real("fruit_drops_sh3.ply")
     kw = {**TREE, "lod_merge_domain_splats": 200}
     digests = []
-    for name, memory in (("a", MEMORY), ("b", 3 * MEMORY)):
+    # (not 2x MEMORY: the whole scene fits there and is encoded in memory, every level grouped whole, where the
+    # partitioned encode groups the levels above the partitions by upper domains)
+    for name, memory in (("a", MEMORY), ("b", MEMORY + (4 << 20))):
         encode_file(src, tmp_path / name, memory_per_worker=memory, lod_refiner=refiner(), **kw)
         digests.append(tree_digest(tmp_path / name))
     assert digests[0] == digests[1]

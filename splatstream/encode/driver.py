@@ -36,14 +36,19 @@ def fits_in_process(layout: VertexLayout | None | list[VertexLayout | None], opt
                     memory: int) -> bool:
     """Whether the whole scene is encoded in memory (as encode_gaussians does) rather than by partitions: no LOD,
     an input that is read whole anyway (`layout` None: not a binary PLY; of merged inputs, any one), or one whose
-    build fits the memory. The output is the same (with auto, for a scene of one merge domain: partitioned.py)."""
+    build, and the refiner's fit where it says its memory (LodRefiner's peak_bytes), fit the memory. The output is
+    the same (with auto, for a scene of one merge domain: partitioned.py)."""
     layouts = layout if isinstance(layout, list) else [layout]
     if not opts.lod or any(x is None for x in layouts):
         return True
     top = max(x.sh_degree for x in layouts)  # type: ignore[union-attr]
     degree = top if opts.sh_degree is None else min(opts.sh_degree, top)
     rows = sum(x.rows for x in layouts)  # type: ignore[union-attr]
-    return rows * routed_row_bytes(degree) * PARTITION_MEMORY_FACTOR <= memory
+    need = rows * routed_row_bytes(degree) * PARTITION_MEMORY_FACTOR
+    peak = getattr(opts.lod_refiner, "peak_bytes", None)
+    if peak is not None:  # the fit follows the build: the tree held (about twice the splats) and the fit's own peak
+        need = max(need, 2 * rows * routed_row_bytes(degree) + peak(rows, routed_row_bytes(degree)))
+    return need <= memory
 
 
 def _paths(input_path: str | os.PathLike | Sequence[str | os.PathLike]) -> list[str]:

@@ -62,6 +62,13 @@ class EncodeOptions:
     # 2^20: 16 partitions of a 16M-splat scene (16 workers busy); 2^21 left half of them idle (BENCHMARKS.md, "The
     # auto merge in partitioned encodes", 16M on 16 cores), and domains 8-64x smaller measured as close to in memory.
     lod_merge_domain_splats: int = 1 << 20
+    # Above the merge domains, the partitions' roots are grouped into upper domains (partitioned.upper_domain_levels):
+    # the subtrees of the shallowest tile level whose tiles hold at most this many roots, each level of them grouped
+    # over its own tiles in a task of its own, tier after tier up to the root (one task a level was serial: 35 s of a
+    # 249 s encode of 60M splats, growing with the partitions; BENCHMARKS.md, "Upper domains"). A function of the
+    # tree's shape, so the output is the same on any engine and worker count. 8: at 60M (64 partitions) the lowest
+    # upper levels in 8 parallel tasks of at most 8 roots (128k members at 16,384 splats a leaf).
+    lod_upper_domain_roots: int = 8
     # Manifest pages (format.md 6.1): a tree of more than `page_tiles` tiles (0: never) is written as a root
     # manifest of its top `page_levels` levels and pages of the next `page_levels` levels below each of its
     # deepest tiles. Both measured against manifest bytes before the first frame and page fetches (BENCHMARKS.md,

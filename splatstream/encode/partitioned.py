@@ -19,14 +19,15 @@ ARCHITECTURE.md "Distributed encoding".
 7. the manifest, last.
 With `--lod-refine cpu` (EncodeOptions.lod_refiner) the partitions are the merge domains whatever the merge, each
 task of step 5 refines its subtree against its own originals before encoding it, and the levels of step 6 are refined
-in one task (refine_upper) against the partitions' refined roots before they are encoded (lod.md 6, "The refinement by
-partitions").
+by upper domains, tier after tier (refine_upper: a task per upper domain against its roots as refined), before they
+are encoded (lod.md 6, "The refinement by partitions").
 
 The output is byte-identical whatever the engine, the number of workers and partitions and the chunking. With the
 grid merge it is encode_to's; with "auto" (the default) the partitions are auto's merge domains, a tile level fixed
 by the scene's splat count (merge_domain_level): each partition groups the levels inside it over its own splats, and
-the levels above the partitions are grouped a whole level at once (merge_level), so it is encode_to's where the scene
-is one domain (at most EncodeOptions.lod_merge_domain_splats splats) and differs from it above that.
+the levels above the partitions are grouped by upper domains (upper_domain_levels: tiers of kd subtrees of at most
+EncodeOptions.lod_upper_domain_roots roots each, a task per domain and level, merge_level), so it is encode_to's where
+the scene is one domain (at most EncodeOptions.lod_merge_domain_splats splats) and differs from it above that.
 """
 from __future__ import annotations
 
@@ -508,13 +509,14 @@ def _released(kids: list[tuple[Tile, np.ndarray]]) -> tuple[np.ndarray, list[Til
     return offsets, [k for k, _ in kids]
 
 
-def merge_level(scratch: Scratch, shape: TreeShape, lvl: int, threads: int
+def merge_level(scratch: Scratch, shape: TreeShape, lvl: int, threads: int, top: int = 0, domain: int = 0
                 ) -> list[tuple[Gaussians, np.ndarray, np.ndarray, np.ndarray, list[Tile]]]:
-    """Every tile of level lvl (above the partitions) from its children's splats by the "auto" merge over the whole
-    level at once (lod.level_auto_groups, as lod.build_subtree groups a level: the level's count and each tile's
-    decided by cost across the level), each tile as merge_children returns it. One task: the level's members are the
-    partition roots' splats or fewer (at most max_leaf_splats per partition)."""
-    kids_of = [[_load_tile(scratch, c) for c in shape.children(lvl, j)] for j in range(2 ** shape.kd_depths[lvl])]
+    """The tiles of level lvl (above the partitions) under tile `domain` of level `top` (their upper domain,
+    upper_domain_levels; top 0: the whole level) from their children's splats by the "auto" merge over those tiles
+    at once (lod.level_auto_groups, as lod.build_subtree groups a level: the count and each tile's decided by cost
+    across the domain's tiles), each tile as merge_children returns it. Its members are the roots' splats under the
+    domain or fewer (at most max_leaf_splats per root)."""
+    kids_of = [[_load_tile(scratch, c) for c in shape.children(lvl, j)] for j in _tiles_under(shape, top, domain, lvl)]
     sets = [Gaussians.concatenate([k.gaussians for k, _ in kids]) for kids in kids_of]
     masses = [np.concatenate([m for _, m in kids]) for kids in kids_of]
     targets = [shape.target(len(m)) for m in sets]
@@ -527,6 +529,32 @@ def merge_level(scratch: Scratch, shape: TreeShape, lvl: int, threads: int
         g, merged_mass, assign = merge_groups(members, mass, *grp)
         out.append((g, merged_mass, assign, *_released(kids)))
     return out
+
+
+def _tiles_under(shape: TreeShape, top: int, j: int, lvl: int) -> range:
+    """Positions (kd order) of the tiles of level `lvl` under tile j of level `top` (lvl >= top)."""
+    per = 2 ** (shape.kd_depths[lvl] - shape.kd_depths[top])
+    return range(j * per, (j + 1) * per)
+
+
+def upper_domain_levels(shape: TreeShape, level: int, roots_per_domain: int) -> list[int]:
+    """The tiers of upper domains above the partition level `level` (lod.md 6, "Upper domains"): each tier's top
+    level, lowest first, the last 0 (the root). A tier whose roots (the partitions' roots, or the tier below's tops)
+    are at level b has as its top the shallowest level t < b whose tiles cover at most `roots_per_domain` of them
+    (2^(kd(b) - kd(t)); at least one level a tier): each tile of t is an upper domain, its levels t..b-1 grouped over
+    its own tiles only. A function of the tree's shape alone (kd subtrees: spatially contiguous, kd order)."""
+    tops: list[int] = []
+    b = level
+    while b > 0:
+        t = next((t for t in range(b) if 2 ** (shape.kd_depths[b] - shape.kd_depths[t]) <= roots_per_domain), b - 1)
+        tops.append(t)
+        b = t
+    return tops
+
+
+def _upper_domain_of(tops: list[int], lvl: int) -> int:
+    """The top level of the tier that holds upper level `lvl` (its tiles are grouped under that level's tiles)."""
+    return next(t for t in tops if t <= lvl)
 
 
 def partition_extremes(scratch: Scratch, p: int, mapping: np.ndarray, merged_positions: np.ndarray, size: int
@@ -586,8 +614,8 @@ def _auto_partitions(shape: TreeShape, row_bytes: int, engine: Engine, opts: Enc
     (merge_domain_level), whatever the workers; where a domain does not fit a worker's memory, the grid at the
     grid's partition level (refused when the caller named auto)."""
     domain, largest, need = _merge_domains(shape, row_bytes, opts, AUTO_GROUPING_BYTES)
-    if opts.lod_refiner is not None and need > engine.memory_per_worker:
-        raise _refined_domain_too_big(opts, need, engine)  # the domains are the refinement's too
+    if opts.lod_refiner is not None:  # the domains are the refinement's too
+        _check_refined_need(shape, row_bytes, opts, engine, domain, largest, need)
     if need <= engine.memory_per_worker:
         partitions = 2 ** shape.kd_depths[domain]
         log.info("LOD merge auto%s, inside %s of at most %s splats and over the levels above them",
@@ -611,20 +639,53 @@ def _merge_domains(shape: TreeShape, row_bytes: int, opts: EncodeOptions, extra_
     return domain, largest, largest * (row_bytes * PARTITION_MEMORY_FACTOR + extra_bytes)
 
 
-def _refined_domain_too_big(opts: EncodeOptions, need: int, engine: Engine) -> UsageError:
+def _refined_domain_too_big(opts: EncodeOptions, need: int, engine: Engine, fit: int = 0) -> UsageError:
+    fit_part = (f" (the refiner's renders, targets and pair lists {math.ceil(fit / 2**20):,} MiB of it: a smaller "
+                f"--lod-refine-size takes less)") if fit else ""
     return UsageError(f"--lod-refine by partitions refines each merge domain (a subtree of at most "
                       f"{opts.lod_merge_domain_splats:,} splats) in one task, which needs "
-                      f"{math.ceil(need / 2**20):,} MiB per worker, more than the memory per worker "
+                      f"{math.ceil(need / 2**20):,} MiB per worker{fit_part}, more than the memory per worker "
                       f"({engine.memory_per_worker // 2**20:,} MiB): give more --memory-per-worker")
+
+
+def refined_task_need(shape: TreeShape, row_bytes: int, opts: EncodeOptions, domain: int, largest: int,
+                      build_need: int) -> tuple[int, int]:
+    """Bytes the largest refined task needs (a merge domain's, or an upper domain's: upper_domain_levels), and of
+    them the refiner's own fit (LodRefiner's optional peak_bytes; 0 where it has none). A domain's fit follows its
+    build in the same task, the build's temporaries freed: the tree held (its originals and merged levels, about
+    twice the originals) and the fit's peak; an upper domain's task holds its roots (at most max_leaf_splats each) as
+    its full detail, and the tiles above them."""
+    peak = getattr(opts.lod_refiner, "peak_bytes", None)
+    if peak is None:
+        return build_need, 0
+    need, fit = build_need, 0
+    if domain < shape.leaf_level:  # a partition of a single leaf has no merged level of its own
+        fit = peak(largest, row_bytes)
+        need = max(build_need, 2 * largest * row_bytes + fit)
+    bottom = domain
+    for top in upper_domain_levels(shape, domain, opts.lod_upper_domain_roots):
+        roots = 2 ** (shape.kd_depths[bottom] - shape.kd_depths[top]) * shape.max_leaf_splats
+        upper_fit = peak(roots, row_bytes)
+        if 2 * roots * row_bytes + upper_fit > need:
+            need, fit = 2 * roots * row_bytes + upper_fit, upper_fit
+        bottom = top
+    return need, fit
+
+
+def _check_refined_need(shape: TreeShape, row_bytes: int, opts: EncodeOptions, engine: Engine, domain: int,
+                        largest: int, build_need: int) -> None:
+    """Refused (UsageError, one line naming --memory-per-worker) where a refined task does not fit a worker."""
+    need, fit = refined_task_need(shape, row_bytes, opts, domain, largest, build_need)
+    if need > engine.memory_per_worker:
+        raise _refined_domain_too_big(opts, need, engine, fit)
 
 
 def _domain_level(shape: TreeShape, row_bytes: int, engine: Engine, opts: EncodeOptions, extra_bytes: int) -> int:
     """The partition level of a refined partitioned encode: the merge domains, whatever the merge, so that each level
     is refined over the same splats whatever the engine, workers and memory per worker; refused (UsageError) where a
-    domain does not fit a worker."""
-    domain, _, need = _merge_domains(shape, row_bytes, opts, extra_bytes)
-    if need > engine.memory_per_worker:
-        raise _refined_domain_too_big(opts, need, engine)
+    domain, with its refiner's fit, does not fit a worker."""
+    domain, largest, need = _merge_domains(shape, row_bytes, opts, extra_bytes)
+    _check_refined_need(shape, row_bytes, opts, engine, domain, largest, need)
     return domain
 
 
@@ -879,7 +940,6 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
     # the refiner for the fits that run at once: the partitions (at most one per worker), then the upper levels' one
     concurrent_fits = getattr(refiner, "for_concurrent_fits", None)
     partition_refiner = concurrent_fits(min(engine.workers, partitions)) if concurrent_fits else refiner
-    upper_refiner = concurrent_fits(1) if concurrent_fits else refiner
     results = engine.map(build_partition, [(p, level, shape, chunk_counts, scratch, ctx, payloads,
                                             engine.threads_per_task, level > 0, merge, partition_refiner, scene.up)
                                            for p in range(partitions)],
@@ -887,7 +947,8 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
     entries = [e for r in results for e in r.entries]
     engine.map_behind(delete_scratch, [(scratch, [f"route/{i}"]) for i in range(len(spans))], "cleanup")
     upper, above = _upper_tiles(engine, scratch, shape, level, [r.root_splats for r in results], ctx, payloads,
-                                progress, merge, upper_refiner if REFINE_UPPER_LEVELS else None, scene.up)
+                                progress, merge, refiner if REFINE_UPPER_LEVELS else None, scene.up,
+                                opts.lod_upper_domain_roots)
     entries += upper
     if level > 0:
         refined_roots = refiner is not None and level < shape.leaf_level
@@ -927,14 +988,17 @@ def _log_domains(records: list[LodRefinement], above: LodRefinement | None) -> N
 
 def _upper_tiles(engine: Engine, scratch: Scratch, shape: TreeShape, level: int, root_splats: list[int],
                  ctx: TileContext, payloads, progress: Progress, merge: str = "grid",
-                 refiner: LodRefiner | None = None, up: tuple[float, float, float] | None = None
+                 refiner: LodRefiner | None = None, up: tuple[float, float, float] | None = None,
+                 roots_per_domain: int = EncodeOptions.lod_upper_domain_roots
                  ) -> tuple[list[TileEntry], LodRefinement | None]:
     """The tiles above the partitions, level by level (in batches of tiles, for the client's memory; "auto": a
-    level at once, grouped in one task by merge_level), and where `refiner` is given their levels refined in one
-    task (refine_upper) before any of them is encoded, with that refinement's record."""
+    level at once, grouped by merge_level in a task per upper domain, upper_domain_levels), and where `refiner` is
+    given their levels refined tier by tier, a task per upper domain (refine_upper), before any of them is encoded,
+    with that refinement's record."""
     entries: list[TileEntry] = []
     upper_ids: list[int] = []
     kd_p = shape.kd_depths[level]
+    tops = upper_domain_levels(shape, level, roots_per_domain)
     maps = [np.arange(n) for n in root_splats]  # per partition: its root's splats -> the current ancestor's
     for lvl in range(level - 1, -1, -1):
         per_tile = 2 ** (kd_p - shape.kd_depths[lvl])  # partitions under each tile of this level
@@ -945,8 +1009,12 @@ def _upper_tiles(engine: Engine, scratch: Scratch, shape: TreeShape, level: int,
         for first in range(0, tiles_here, batch_tiles):
             batch = range(first, min(tiles_here, first + batch_tiles))
             if merge == "auto":
-                merged = dict(enumerate(engine.map(merge_level, [(scratch, shape, lvl, engine.threads_per_task)],
-                                                   "upper", progress, heavy=True)[0]))
+                top = _upper_domain_of(tops, lvl)  # a task per upper domain: its tiles of this level grouped at once
+                domains = range(2 ** shape.kd_depths[top])
+                found = engine.map(merge_level, [(scratch, shape, lvl, engine.threads_per_task, top, d)
+                                                 for d in domains],
+                                   "upper", progress, heavy=True)
+                merged = dict(enumerate(m for ms in found for m in ms))  # domains in kd order: the level's tiles
             else:
                 merged = dict(zip(batch, engine.map(merge_children, [(scratch, shape, lvl, j) for j in batch],
                                                     "upper", progress), strict=True))
@@ -994,29 +1062,54 @@ def _upper_tiles(engine: Engine, scratch: Scratch, shape: TreeShape, level: int,
                                                       for j in batch], "upper", progress)
     record = None
     if refiner is not None and upper_ids:
-        record = engine.map(refine_upper, [(scratch, shape, level, refiner, up)], "refine-upper", progress,
-                            heavy=True, task_progress=True)[0]
+        # tier after tier (upper_domain_levels), each upper domain in its own task against its roots as refined
+        bottom, tiers = level, []
+        for top in tops:
+            domains = range(2 ** shape.kd_depths[top])
+            fits = min(engine.workers, len(domains))
+            tier_refiner = refiner.for_concurrent_fits(fits) if hasattr(refiner, "for_concurrent_fits") else refiner
+            # the partitions' roots as refined (a partition that is a leaf: its originals); a higher tier's roots:
+            # the tier below's tops, refined in place
+            prefix = "refined" if bottom == level and level < shape.leaf_level else "tile"
+            records = engine.map(refine_upper, [(scratch, shape, bottom, top, d, tier_refiner, up, prefix)
+                                                for d in domains], "refine-upper", progress, heavy=True,
+                                 task_progress=True)
+            tiers.append(records)
+            bottom = top
+        # each level once, the root's tier first (lod_refine.domains_record lists `above`'s levels first), a tier of
+        # several domains as the partitions' (kept where any kept it, the domains' mean validation MSE)
+        for records in reversed(tiers):
+            record = records[0] if len(records) == 1 and record is None else domains_record(records, record)
         entries += engine.map(encode_saved_tile, [(scratch, tid, ctx, payloads) for tid in upper_ids], "upper",
                               progress)
     return entries, record
 
 
-def refine_upper(scratch: Scratch, shape: TreeShape, level: int, refiner: LodRefiner,
-                 up: tuple[float, float, float] | None, report: Callable[[float], None]) -> LodRefinement:
-    """The levels above the partitions refined in one task (lod.md 6, "The refinement by partitions"): the
-    originals are not here (the whole scene), so their full detail is the partitions' roots as refined, the finest
-    level this task holds (at most max_leaf_splats a partition), the tree above them cut with those roots as its
-    leaves. The refined tiles go back to scratch, to be encoded."""
+def refine_upper(scratch: Scratch, shape: TreeShape, level: int, top: int, domain: int, refiner: LodRefiner,
+                 up: tuple[float, float, float] | None, roots_prefix: str, report: Callable[[float], None]
+                 ) -> LodRefinement:
+    """The levels top..level-1 of one upper domain (tile `domain` of level `top`; upper_domain_levels) refined in
+    one task (lod.md 6, "The refinement by partitions"): the originals are not here (the whole scene), so their full
+    detail is the domain's roots at `level` as refined (under `roots_prefix` in scratch: the partitions' roots, or
+    the tier below's tops), the finest level this task holds (at most max_leaf_splats a root), the subtree above them
+    cut with those roots as its leaves. The refined tiles go back to scratch, to be encoded (and a top to be the
+    next tier's root)."""
     tiles: dict[int, Tile] = {}
     masses: dict[int, np.ndarray] = {}
-    for lvl in range(level + 1):
-        for j in range(2 ** shape.kd_depths[lvl]):
+    for lvl in range(top, level + 1):
+        for j in _tiles_under(shape, top, domain, lvl):
             tid = shape.tile_id(lvl, j)
             tiles[tid], masses[tid] = _load_tile(scratch, tid)
     roots = [tid for tid, t in tiles.items() if t.level == level]
-    for tid in roots:  # the leaves of the tree refined here, as refined (a partition that is a leaf: its originals)
-        root = _load_tile(scratch, tid, "refined")[0] if level < shape.leaf_level else tiles[tid]
+    for tid in roots:  # the leaves of the tree refined here, as refined
+        root = _load_tile(scratch, tid, roots_prefix)[0] if roots_prefix != "tile" else tiles[tid]
         tiles[tid] = replace(root, children=[])
+    # the bounds above the roots from the roots as refined (a tier's tops refined after the tier above was merged;
+    # the partitions' roots were saved with their refined bounds, so there this is the merge's own result)
+    for tid in sorted((t for t in tiles if tiles[t].level < level), reverse=True):
+        t = tiles[tid]
+        lo, hi, c, r = interior_bounds(t.gaussians, [tiles[k] for k in t.children])
+        tiles[tid] = replace(t, box_min=lo, box_max=hi, sphere_center=c, sphere_radius=r)
     g = Gaussians.concatenate([tiles[tid].gaussians for tid in sorted(roots)])
 
     def refine_progress(stage: str, fraction: float) -> None:
