@@ -156,13 +156,17 @@ def tile_maps(d: dict) -> dict:
     from dataclasses import replace
 
     from splatstream.format.manifest import manifest_from_dict
-    from splatstream.format.manifest.versions import VERSION_1_7
+    from splatstream.format.manifest.versions import VERSION_1_7, writer_version
 
     if not {"tile_table", "tile_table_zstd"} & d.keys() or "paged" in d:
         return d
     m = manifest_from_dict(d)  # without the tree's build record (1.9), which a 1.7 manifest does not have
     m = replace(m, version=VERSION_1_7, lod=replace(m.lod, merge=None, viewing_scale_px=None))
-    return m.with_bytes_on_disk(m.payload_bytes()).to_dict()
+    out = m.with_bytes_on_disk(m.payload_bytes()).to_dict()
+    # A scene whose texel formats need a newer version (1.13: cube565 rotations) keeps it, with the same tile maps
+    # (a manifest from 1.8 on may hold `tiles`, format.md 6.2; [1, 13] packs to as many bytes as [1, 7])
+    out["version"] = list(max(VERSION_1_7, writer_version(m.formats)))
+    return out
 
 
 def write_manifest_dict(scene_dir, m: dict, settle: bool = False) -> None:

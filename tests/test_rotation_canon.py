@@ -93,13 +93,16 @@ def test_a_quarter_turn_swaps_the_two_scales_it_exchanges():
     np.testing.assert_array_equal(ls, [[-2.0, -1.0, -3.0]])
 
 
-@pytest.mark.parametrize("preset,gauge", [("medium", "half-turns"), ("medium-low", "half-turns"), ("low", "cube")])
-def test_the_encoder_stores_the_gauge_with_the_same_picture_and_fewer_bytes(preset, gauge, monkeypatch):
+# low with its rotations as before format 1.13 (norm565 over [-1, 1]): cube565 stores the cube gauge always, which
+# its range needs (presets.rotation_gauge; tests/test_format_1_13.py), so the gauge's own effect is measured on norm565
+@pytest.mark.parametrize("preset,gauge,overrides", [("medium", "half-turns", {}), ("medium-low", "half-turns", {}),
+                                                    ("low", "cube", {"rotation": "norm565"})])
+def test_the_encoder_stores_the_gauge_with_the_same_picture_and_fewer_bytes(preset, gauge, overrides, monkeypatch):
     g = read_gaussians(real("guitar.compressed.ply")).subset(np.arange(20_000))
     sizes, decoded = {}, {}
     for on in (False, True):
         monkeypatch.setattr(P, "PRESET_ROTATION_GAUGE", {preset: gauge} if on else {})
-        store = encode_in_memory(g, EncodeOptions(preset=preset, lod=False))
+        store = encode_in_memory(g, EncodeOptions(preset=preset, lod=False, overrides=overrides))
         sizes[on] = sum(len(b) for b in store.payloads.values())
         decoded[on] = decode_scene(store)
     q = decoded[True].rotations

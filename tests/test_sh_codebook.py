@@ -117,7 +117,7 @@ def test_index_plane_round_trips():
 def test_encoded_codebook_round_trips_within_one_step(fruit, tmp_path):
     m = encode_gaussians(fruit, tmp_path / "s", EncodeOptions(preset="low", lod=False))
     cb = m.sh_codebook
-    assert m.version == (1, 2) and cb.entries == 64 and cb.index_format == "index16"
+    assert m.version == (1, 13) and cb.entries == 64 and cb.index_format == "index16"  # 1.13: low's cube565
     assert cb.format == m.formats["sh"] == "norm565"
     assert set(cb.groups) == {"sh1", "sh2", "sh3"} and set(m.tiles[0].groups) == {"base", "sh1"}
     # The codebook the encoder fitted (deterministic for the same input), entries numbered by falling use.
@@ -187,7 +187,7 @@ def test_every_scene_is_version_1_2(fruit, tmp_path):
     m = encode_gaussians(few, tmp_path / "s", EncodeOptions(preset="medium"))
     assert m.version == (1, 2) and m.sh_codebook is None
     m = encode_gaussians(few, tmp_path / "s", EncodeOptions(preset="low", transport="shuffle"))
-    assert m.version == (1, 2) and m.sh_codebook is not None
+    assert m.version == (1, 13) and m.sh_codebook is not None  # 1.13: low's cube565 rotations (format.md 4.5)
     assert {s.filter for _, _, p in m.payloads() for s in p.sections} <= {"none", "shuffle2", "shuffle4"}
     m = encode_gaussians(fruit.subset(np.arange(600)), tmp_path / "t", EncodeOptions(preset="medium", sh_codebook=32))
     assert m.sh_codebook.entries == 32 and m.formats["sh"] == "norm565"

@@ -53,13 +53,14 @@ def _t_fetch(plane: str, fmt_name: str, array: bool) -> str:
     args = "ivec2 p, int layer" if array else "ivec2 p"
     coord = "ivec3(p, layer)" if array else "p"
     fetch = f"texelFetch(u_{plane}, {coord}, 0)"
-    if fmt.name == "norm11":
+    layout = fmt.texels  # cube565 is norm565's texels (format.md 4.5)
+    if layout == "norm11":
         body = (f"uint w = {fetch}.r;\n    return vec4(float(w & 2047u) / 2047.0, float((w >> 11) & 1023u) / 1023.0, "
                 "float(w >> 21) / 2047.0, 0.0);")
-    elif fmt.name == "norm9x3":  # bits 27-31 are zero (format.md 4.2); the masks ignore them anyway
+    elif layout == "norm9x3":  # bits 27-31 are zero (format.md 4.2); the masks ignore them anyway
         body = (f"uint w = {fetch}.r;\n    return vec4(float(w & 511u) / 511.0, float((w >> 9) & 511u) / 511.0, "
                 "float((w >> 18) & 511u) / 511.0, 0.0);")
-    elif fmt.name == "norm565":
+    elif layout == "norm565":
         body = (f"uint w = {fetch}.r;\n    return vec4(float(w & 31u) / 31.0, float((w >> 5) & 63u) / 63.0, "
                 "float(w >> 11) / 31.0, 0.0);")
     else:  # float, unorm and BC formats: the texture unit returns the normalised values
@@ -68,7 +69,7 @@ def _t_fetch(plane: str, fmt_name: str, array: bool) -> str:
 
 
 def _sampler(plane: str, fmt_name: str, array: bool) -> str:
-    prefix = "u" if fmt_name in _INTEGER_FORMATS else ""
+    prefix = "u" if get_format(fmt_name).texels in _INTEGER_FORMATS else ""
     kind = "sampler2DArray" if array else "sampler2D"
     return f"uniform {prefix}{kind} u_{plane};\n"
 
@@ -78,7 +79,9 @@ def _rotation_decoder(fmt_name: str) -> str:
     if mode == "full":
         body = "vec4 q = t * 2.0 - 1.0;"
     elif mode == "xyz":
-        body = "vec3 v = t.xyz * 2.0 - 1.0;\n    vec4 q = vec4(sqrt(max(0.0, 1.0 - dot(v, v))), v);"
+        span = get_format(fmt_name).rotation_range  # cube565: x, y, z over the cube gauge's range (format.md 4.5)
+        scaled = "" if span == 1.0 else f" * {_f(span)}"
+        body = f"vec3 v = (t.xyz * 2.0 - 1.0){scaled};\n    vec4 q = vec4(sqrt(max(0.0, 1.0 - dot(v, v))), v);"
     else:
         levels = get_format(fmt_name).levels[3]
         body = (f"int largest = clamp(int(round(t.w * {_f(levels)})), 0, 3);\n"

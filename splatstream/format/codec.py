@@ -70,13 +70,14 @@ def plane_values(g: Gaussians, spec: PlaneSpec) -> np.ndarray:
 
 
 def rotation_mode(fmt_name: str) -> str:
-    """How a texel format holds a quaternion: 'full' (w,x,y,z), 'smallest3' (3 comps + index), 'xyz' (w >= 0)."""
+    """How a texel format holds a quaternion: 'full' (w,x,y,z), 'smallest3' (3 comps + index), 'xyz' (w >= 0; over
+    the format's rotation_range, format.md 4.5)."""
     fmt = get_format(fmt_name)
     if fmt.levels[0] == 0:
         return "full"
-    if fmt.components == 4 and fmt.block == 1:
+    if fmt.components == 4 and fmt.block == 1 and fmt.rotation_range == 1.0:
         return "smallest3"
-    return "xyz"
+    return "xyz"  # a format over a gauge's range (cube565) holds x, y, z whatever its texel
 
 
 def encode_rotations(q: np.ndarray, fmt_name: str) -> np.ndarray:
@@ -87,7 +88,10 @@ def encode_rotations(q: np.ndarray, fmt_name: str) -> np.ndarray:
     if mode == "xyz":
         q = normalize_quaternions(q)  # w >= 0, so w is recovered from x, y, z
         t = np.zeros_like(q)
-        t[:, :3] = (q[:, 1:] + 1.0) * 0.5
+        span = get_format(fmt_name).rotation_range
+        # over the format's range (format.md 4.5: cube565's [-tan(pi/8), tan(pi/8)], the cube gauge's); values out
+        # of it are clamped by the texel quantiser (the encoder stores cube565 rotations in the gauge only)
+        t[:, :3] = (q[:, 1:] + 1.0) * 0.5 if span == 1.0 else (q[:, 1:] / np.float32(span) + 1.0) * 0.5
         return t
     n = len(q)
     largest = np.argmax(np.abs(q), axis=1)
@@ -108,7 +112,8 @@ def decode_rotations(t: np.ndarray, fmt_name: str) -> np.ndarray:
     if mode == "full":
         return normalize_quaternions(t * 2.0 - 1.0)
     if mode == "xyz":
-        xyz = t[:, :3] * 2.0 - 1.0
+        span = get_format(fmt_name).rotation_range
+        xyz = t[:, :3] * 2.0 - 1.0 if span == 1.0 else (t[:, :3] * 2.0 - 1.0) * np.float32(span)
         w = np.sqrt(np.maximum(0.0, 1.0 - (xyz * xyz).sum(axis=1)))
         return normalize_quaternions(np.concatenate([w[:, None], xyz], axis=1))
     n = len(t)

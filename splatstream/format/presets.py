@@ -8,7 +8,7 @@ from __future__ import annotations
 from ..errors import UsageError
 from .planes import PALETTE_ATTRIBUTES
 from .steps import TileStep
-from .texformats import FORMATS, PALETTE_FORMATS, VALUE_FORMATS, get_format
+from .texformats import FORMATS, PALETTE_FORMATS, ROTATION_ONLY_FORMATS, VALUE_FORMATS, get_format
 
 ATTRIBUTES = ("position", "rotation", "scale", "color", "sh")
 
@@ -99,8 +99,9 @@ PRESETS: dict[str, dict[str, str]] = {
     # low keeps SH1..SH3 in a scene-wide codebook (PRESET_SH_CODEBOOK; sh is the codebook's format). Its colour was
     # BC7 until format 1.2: norm8x4 colour gains 1.3-5.4 dB on real scenes (fruit_drops 36.1 -> 37.9 dB, the 1M
     # scene 45.2 -> 50.0) and, coded with fields1, costs about 1 B/splat more (fruit_drops 11.2 -> 11.7 B).
-    # Rotations stay norm565 (3 x 5/6/5 bits, w from the rest) to keep real SH3 scenes under 12 B/splat.
-    "low": {"position": "norm8x4", "rotation": "norm565", "scale": "norm8x4", "color": "norm8x4", "sh": "norm565"},
+    # Rotations stay 16-bit (3 x 5/6/5 bits, w from the rest) to keep real SH3 scenes under 12 B/splat; since
+    # format 1.13 cube565, the cube gauge's x, y, z over its range [-tan(pi/8), tan(pi/8)] (2.4x finer; rotrange32).
+    "low": {"position": "norm8x4", "rotation": "cube565", "scale": "norm8x4", "color": "norm8x4", "sh": "norm565"},
     # very-low's positions, rotations, scales and SH codebook with norm8x4 colour (low's) on one tile step of 127
     # levels for R, G, B (55 for opacity; PRESET_STEPS), instead of BC7 (issue 32, step32): very-low -> low was one
     # 1.29-1.30x step in bytes on flowers and playbot (1.31-1.39x on the SH0 scenes). Per plane (flowers, B/splat)
@@ -109,12 +110,12 @@ PRESETS: dict[str, dict[str, str]] = {
     # 9.70 B at 35.06, low 12.63 B at 37.83). G chosen on flowers (63: 10.79 B, 37.64 dB; 95: 11.00, 37.66; 127:
     # 11.16, 37.67; 255: 11.53, 37.68; the geometric middle 11.07 B), checked on playbot, fruit_drops, lod_tile and
     # the eleven SH0 scenes (BENCHMARKS.md, "The hole between very-low and low").
-    "very-low-rgb127": {"position": "norm8x4", "rotation": "norm565", "scale": "norm565", "color": "norm8x4",
+    "very-low-rgb127": {"position": "norm8x4", "rotation": "cube565", "scale": "norm565", "color": "norm8x4",
                         "sh": "norm565"},
     # Not the seed's very-low (BC7 for position, rotation and scale): BC7 scales ruined the picture. Packed 16-bit
     # scales and rotations do far better at fewer bytes, and the codebook keeps all three SH bands for less
     # (BENCHMARKS.md, "Figures behind library defaults").
-    "very-low": {"position": "norm8x4", "rotation": "norm565", "scale": "norm565", "color": "bc7", "sh": "norm565"},
+    "very-low": {"position": "norm8x4", "rotation": "cube565", "scale": "norm565", "color": "bc7", "sh": "norm565"},
 }
 # Presets whose SH bands go through a scene-wide codebook (vq.py: "auto" about one entry per 64 splats, "fine" one
 # per 16, at least 256, at most 16,384 below 1M splats, "large" one per 8, 256..65,536).
@@ -280,11 +281,12 @@ PRESET_SUMMARY: dict[str, str] = {
                           "at SH3 (fruit_drops, 48.8 dB)",
     "low-plus": "8-bit positions, rotations, scales and colour, SH codebook (1 per 64); about 12.7 B/splat at "
                 "SH3, 13.7 at SH2, 11-11.9 at SH0; 40-59 dB",
-    "low": "low-plus with 16-bit rotations; about 11.4 B/splat at SH3, 12.1 at SH2, 9.6-10.5 at SH0; 38-52 dB",
+    "low": "low-plus with 16-bit rotations (cube565); about 11.7 B/splat at SH3, 12.6 at SH2, 10.1-10.9 at SH0; "
+           "40-57 dB",
     "very-low-rgb127": "very-low with 8-bit colour (low's norm8x4, not BC7) on a tile step of 127 levels, "
-                       "between very-low and low; about 9.8 B/splat at SH3, 10.7 at SH2, 8.3-8.8 at SH0; 36-52 dB",
-    "very-low": "16-bit scales, BC7 colour, SH codebook; about 9.1 B/splat at SH3, 9.2 at SH2, 7.3-7.6 at SH0; "
-                "33-47 dB",
+                       "between very-low and low; about 10.0 B/splat at SH3, 11.1 at SH2, 8.8-9.2 at SH0; 38-56 dB",
+    "very-low": "16-bit scales and rotations (cube565), BC7 colour, SH codebook; about 9.4 B/splat at SH3, 9.7 at "
+                "SH2, 7.7-8.0 at SH0; 33-48 dB",
 }
 CHUNK_ORDERS = ("auto", "morton", "luminance")
 
@@ -308,6 +310,8 @@ def resolve_formats(preset: str, overrides: dict[str, str] | None = None) -> dic
         if fmt in PALETTE_FORMATS and attr not in PALETTE_ATTRIBUTES:
             raise UsageError(f"{fmt} (palette indices, format.md 4.3.2) holds only {' and '.join(PALETTE_ATTRIBUTES)}, "
                              f"not {attr}")
+        if fmt in ROTATION_ONLY_FORMATS and attr != "rotation":
+            raise UsageError(f"{fmt} (quaternions in the cube gauge, format.md 4.5) holds only rotation, not {attr}")
         formats[attr] = fmt
     return formats
 
@@ -403,6 +407,10 @@ def preset_block_slack(preset: str) -> float:
 # grid (a SOG's, a compressed PLY's), which cost smallest-three presets up to 2.2 dB there. Only where the rotation
 # is quantised (a float rotation is stored as given); palette scales could take the cube too: one palette holds the
 # three axes (PALETTE_GROUPS).
+# Since format 1.13 (rotrange32) the cube presets store their rotations as cube565, the gauge's x, y, z over its range
+# [-tan(pi/8), tan(pi/8)] instead of [-1, 1] (2.4x finer; format.md 4.5): at eval's 8 views of 512 px, chosen on
+# fruit_drops, guitar and statue-massa (low +5.1 to +5.7 dB, very-low-rgb127 +2.1 to +4.4, very-low +1.1 to +2.1, for
+# 2.2-6.4 % more bytes) and held out on the 13 other real scenes (BENCHMARKS.md, "Rotations over the gauge's range").
 PRESET_ROTATION_GAUGE: dict[str, str] = {
     "low": "cube", "very-low-rgb127": "cube", "very-low": "cube",
     **dict.fromkeys(("high", "high-sh255", "medium-high", "medium-12bit", "medium", "medium-low-sh16", "medium-low-sh8",
@@ -413,8 +421,11 @@ PRESET_ROTATION_GAUGE: dict[str, str] = {
 def rotation_gauge(preset: str, formats: dict[str, str]) -> str | None:
     """The canonical gauge `preset`'s encoder picks with these formats (PRESET_ROTATION_GAUGE), None for none: none
     for float rotations (stored as given)."""
-    if get_format(formats["rotation"]).levels[0] == 0:
+    fmt = get_format(formats["rotation"])
+    if fmt.levels[0] == 0:
         return None
+    if fmt.rotation_range != 1.0:  # the format holds only the gauge's range (cube565, format.md 4.5): any preset
+        return "cube"
     return PRESET_ROTATION_GAUGE.get(preset)
 
 

@@ -9,11 +9,16 @@ blocks, row-major block order). Every decoder returns (H, W, 4) float32.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..errors import UsageError
+
+# The largest |x|, |y|, |z| of a unit quaternion in the cube gauge (rotation_canon: of the 24 rotations of a cube
+# applied to a splat's axes, the one closest to the identity has |x|, |y|, |z| <= tan(pi/8) w and w >= 0.854).
+CUBE_GAUGE_RANGE = math.tan(math.pi / 8)
 
 
 @dataclass(frozen=True)
@@ -25,6 +30,16 @@ class TexelFormat:
     gl_internal: str         # GL internal format the client creates the texture with
     block: int = 1           # 4 for BC formats (dimensions must be multiples of 4)
     shuffle: int = 0         # byte-shuffle element size applied before zstd (0 = none)
+    # Another format whose texel layout (bits, fields1 fields, GL texture) this one shares: a rotation format that
+    # differs only in what its values mean (format.md 4.5). "" for a layout of its own.
+    same_texels_as: str = ""
+    # xyz rotations (format.md 4.5): the components stored, c = (2t - 1) * rotation_range; 1 for [-1, 1].
+    rotation_range: float = 1.0
+
+    @property
+    def texels(self) -> str:
+        """The name of this format's texel layout (its own, or the format it shares its texels with)."""
+        return self.same_texels_as or self.name
 
     @property
     def bytes_per_texel(self) -> float:
@@ -53,6 +68,10 @@ FORMATS: dict[str, TexelFormat] = {f.name: f for f in (
     # Format 1.3: 16-bit unorm components, the per-chunk-ranged position format between norm11 and f16x4 (issue 15).
     TexelFormat("norm16x4", 64, 4, (65535, 65535, 65535, 65535), "RGBA16", shuffle=2),
     TexelFormat("norm565", 16, 3, (31, 63, 31), "R16UI", shuffle=2),
+    # Format 1.13, rotation only (format.md 4.5): norm565's texels holding x, y, z of a cube-gauge quaternion over
+    # [-tan(pi/8), tan(pi/8)], 2.4x finer than norm565's [-1, 1] (issue 32, rotrange32).
+    TexelFormat("cube565", 16, 3, (31, 63, 31), "R16UI", shuffle=2, same_texels_as="norm565",
+                rotation_range=CUBE_GAUGE_RANGE),
     TexelFormat("bc7", 8, 4, (255, 255, 255, 255), "COMPRESSED_RGBA_BPTC_UNORM", block=4),
     TexelFormat("bc1", 4, 3, (31, 63, 31), "COMPRESSED_RGB_S3TC_DXT1", block=4),
     # Not a value format: a codebook entry index (0..65535) per texel, for the SH codebook's per-splat index.
@@ -65,6 +84,8 @@ FORMATS: dict[str, TexelFormat] = {f.name: f for f in (
 PALETTE_FORMATS = ("pal8x4",)
 # Formats an attribute can be quantised to (index16 only holds codebook indices).
 VALUE_FORMATS = tuple(name for name in FORMATS if name != "index16")
+# Texel formats only the rotation plane may name: their values are quaternion components over a gauge's range.
+ROTATION_ONLY_FORMATS = tuple(name for name, f in FORMATS.items() if f.rotation_range != 1.0)
 
 
 def get_format(name: str) -> TexelFormat:
@@ -102,6 +123,7 @@ TEXEL_DTYPES = {
     "norm565": np.dtype("<u2"), "norm16x4": np.dtype(("<u2", 4)), "index16": np.dtype("<u2"),
     "pal8x4": np.dtype((np.uint8, 4)),
 }
+TEXEL_DTYPES.update({name: TEXEL_DTYPES[f.texels] for name, f in FORMATS.items() if f.same_texels_as})
 
 
 def pack_texels(fmt_name: str, t: np.ndarray) -> np.ndarray:
@@ -109,24 +131,25 @@ def pack_texels(fmt_name: str, t: np.ndarray) -> np.ndarray:
     fmt = get_format(fmt_name)
     if t.shape[1] < 4 and (fmt.components == 4 or fmt.levels[0] == 0):
         t = np.concatenate([t, np.zeros((len(t), 4 - t.shape[1]), np.float32)], axis=1)
-    if fmt.name == "f32x4":
+    layout = fmt.texels
+    if layout == "f32x4":
         return np.ascontiguousarray(t, dtype="<f4")
-    if fmt.name == "f16x4":
+    if layout == "f16x4":
         return np.clip(t, 0.0, 1.0).astype("<f2")
-    if fmt.name == "norm10_2":
+    if layout == "norm10_2":
         return (_q(t[:, 0], 1023) | (_q(t[:, 1], 1023) << 10) | (_q(t[:, 2], 1023) << 20)
                 | (_q(t[:, 3], 3) << 30)).astype("<u4")
-    if fmt.name == "norm11":
+    if layout == "norm11":
         return (_q(t[:, 0], 2047) | (_q(t[:, 1], 1023) << 11) | (_q(t[:, 2], 2047) << 21)).astype("<u4")
-    if fmt.name == "norm9x3":
+    if layout == "norm9x3":
         return (_q(t[:, 0], 511) | (_q(t[:, 1], 511) << 9) | (_q(t[:, 2], 511) << 18)).astype("<u4")
-    if fmt.name in ("norm8x4", "pal8x4"):
+    if layout in ("norm8x4", "pal8x4"):
         return _q(t, 255).astype(np.uint8)
-    if fmt.name == "norm16x4":
+    if layout == "norm16x4":
         return _q(t, 65535).astype("<u2")
-    if fmt.name == "norm565":
+    if layout == "norm565":
         return (_q(t[:, 0], 31) | (_q(t[:, 1], 63) << 5) | (_q(t[:, 2], 31) << 11)).astype("<u2")
-    if fmt.name == "index16":
+    if layout == "index16":
         return _q(t[:, 0], 65535).astype("<u2")
     raise ValueError(f"{fmt.name} is a block format: use encode_image")
 
@@ -134,33 +157,34 @@ def pack_texels(fmt_name: str, t: np.ndarray) -> np.ndarray:
 def unpack_texels(fmt_name: str, texels: np.ndarray) -> np.ndarray:
     """(M,) texels (as pack_texels returns them, or raw bytes) -> (M, 4) float32 normalised values."""
     fmt = get_format(fmt_name)
-    if fmt.name in ("f32x4", "f16x4", "norm8x4", "norm16x4", "pal8x4"):
-        raw = np.frombuffer(np.ascontiguousarray(texels), TEXEL_DTYPES[fmt.name].base).reshape(-1, 4)
-        if fmt.name in ("norm8x4", "pal8x4"):
+    layout = fmt.texels
+    if layout in ("f32x4", "f16x4", "norm8x4", "norm16x4", "pal8x4"):
+        raw = np.frombuffer(np.ascontiguousarray(texels), TEXEL_DTYPES[layout].base).reshape(-1, 4)
+        if layout in ("norm8x4", "pal8x4"):
             return raw / np.float32(255.0)
-        if fmt.name == "norm16x4":
+        if layout == "norm16x4":
             return raw / np.float32(65535.0)
         return raw.astype(np.float32)
-    word = np.frombuffer(np.ascontiguousarray(texels), TEXEL_DTYPES[fmt.name]).astype(np.uint32)
+    word = np.frombuffer(np.ascontiguousarray(texels), TEXEL_DTYPES[layout]).astype(np.uint32)
     out = np.zeros((word.size, 4), np.float32)
-    if fmt.name == "norm10_2":
+    if layout == "norm10_2":
         out[:, 0] = (word & 1023) / 1023.0
         out[:, 1] = ((word >> 10) & 1023) / 1023.0
         out[:, 2] = ((word >> 20) & 1023) / 1023.0
         out[:, 3] = (word >> 30) / 3.0
-    elif fmt.name == "norm11":
+    elif layout == "norm11":
         out[:, 0] = (word & 2047) / 2047.0
         out[:, 1] = ((word >> 11) & 1023) / 1023.0
         out[:, 2] = (word >> 21) / 2047.0
-    elif fmt.name == "norm9x3":  # bits 27-31 are zero in a valid texel and ignored here, as in the shader
+    elif layout == "norm9x3":  # bits 27-31 are zero in a valid texel and ignored here, as in the shader
         out[:, 0] = (word & 511) / 511.0
         out[:, 1] = ((word >> 9) & 511) / 511.0
         out[:, 2] = ((word >> 18) & 511) / 511.0
-    elif fmt.name == "norm565":
+    elif layout == "norm565":
         out[:, 0] = (word & 31) / 31.0
         out[:, 1] = ((word >> 5) & 63) / 63.0
         out[:, 2] = (word >> 11) / 31.0
-    elif fmt.name == "index16":
+    elif layout == "index16":
         out[:, 0] = word / 65535.0
     else:
         raise ValueError(f"{fmt.name} is a block format: use decode_image")

@@ -63,6 +63,8 @@ FIELD_LAYOUTS: dict[str, tuple[str, int, tuple[tuple[int, int], ...]]] = {
     "index16": ("<u2", 1, ((0, 16),)),
     "pal8x4": ("<u1", 4, ((0, 8),)),
 }
+# A format that shares another's texels (texformats.TexelFormat.same_texels_as: cube565) shares its fields too.
+FIELD_LAYOUTS.update({name: FIELD_LAYOUTS[f.texels] for name, f in FORMATS.items() if f.same_texels_as})
 # Unsigned type that holds one whole texel, for moving texels as single elements.
 _TEXEL_UINT = {4: np.dtype("<u4"), 8: np.dtype("<u8"), 2: np.dtype("<u2")}
 

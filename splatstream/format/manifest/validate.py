@@ -38,7 +38,7 @@ from ..planes import (
     groups_for_degree,
     palette_shape,
 )
-from ..texformats import FORMATS, PALETTE_FORMATS, VALUE_FORMATS
+from ..texformats import FORMATS, PALETTE_FORMATS, ROTATION_ONLY_FORMATS, VALUE_FORMATS
 from ..transport import FIELD_LAYOUTS, FIELDS1, content_bounds
 from .model import (
     AttributeSize,
@@ -69,6 +69,7 @@ from .versions import (
     FORMAT_VERSION,
     FORMATS_1_3,
     FORMATS_1_6,
+    FORMATS_1_13,
     VERSION_1_3,
     VERSION_1_4,
     VERSION_1_5,
@@ -79,6 +80,7 @@ from .versions import (
     VERSION_1_10,
     VERSION_1_11,
     VERSION_1_12,
+    VERSION_1_13,
 )
 from .wire import CHECKSUM_KEY, unpack_manifest, verify_checksum
 
@@ -847,6 +849,10 @@ def _formats(d: dict, version: tuple[int, int], source: str, strict: bool) -> di
             _fail(source, "formats", a, _newer_than(version, f, VERSION_1_3))
         if f in FORMATS_1_6 and version < VERSION_1_6:
             _fail(source, "formats", a, _newer_than(version, f, VERSION_1_6))
+        if f in FORMATS_1_13 and version < VERSION_1_13:
+            _fail(source, "formats", a, _newer_than(version, f, VERSION_1_13))
+        if f in ROTATION_ONLY_FORMATS and a != "rotation":
+            _fail(source, "formats", a, f"{f} holds rotations in the cube gauge (format.md 4.5) only")
         if f in PALETTE_FORMATS and a not in PALETTE_ATTRIBUTES:
             _fail(source, "formats", a, f"{f} holds palette indices of {' or '.join(PALETTE_ATTRIBUTES)} only")
     if FORMATS[formats["color"]].components < 4:
@@ -860,7 +866,8 @@ def _codebook(d: dict, version: tuple[int, int], formats: dict[str, str], sh_deg
         return None
     c = _keys(d["sh_codebook"], ("entries", "format", "index_format", "groups"), source, "sh_codebook", strict)
     entries = _int(c, "entries", source, "sh_codebook", 1, 65536)
-    cb_format = _str(c, "format", source, "sh_codebook", tuple(f for f in VALUE_FORMATS if f not in PALETTE_FORMATS))
+    cb_format = _str(c, "format", source, "sh_codebook",
+                     tuple(f for f in VALUE_FORMATS if f not in PALETTE_FORMATS + ROTATION_ONLY_FORMATS))
     if cb_format in FORMATS_1_3 and version < VERSION_1_3:
         _fail(source, "sh_codebook", "format", _newer_than(version, cb_format, VERSION_1_3))
     index_format = _str(c, "index_format", source, "sh_codebook", (SH_INDEX_FORMAT,))
