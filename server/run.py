@@ -10,9 +10,10 @@ import signal
 import socket
 import stat
 import sys
-from collections.abc import Iterable
+from collections.abc import Callable, Iterable
 
-from splatstream.format.names import DATA_DIR, MANIFEST_NAME
+from splatstream.format.names import DATA_DIR, MANIFEST_NAME, TILESET_NAME
+from splatstream.writers.sog_lod import LOD_META_NAME
 
 from .app import SHUTDOWN_TIMEOUT, AccessLog, create_app, create_runner, start_site
 from .limits import FdLimitTooLow, Limits, accept_error_handler, fit_to_fd_limit
@@ -54,9 +55,9 @@ def check_root(root: str) -> list[str]:
         if os.path.isfile(os.path.join(root, MANIFEST_NAME)):
             hint = (f"; {root} is itself a scene directory: serve its parent and open it as "
                     f"/scenes/{os.path.basename(os.path.abspath(root))}/{MANIFEST_NAME}")
-        elif os.path.isfile(os.path.join(root, "tileset.json")):
+        elif os.path.isfile(os.path.join(root, TILESET_NAME)):
             hint = f"; {root} is itself a tileset directory: serve its parent"
-        elif os.path.isfile(os.path.join(root, STREAMED_SOG_META)) or unserved_exports(root, 1)[1]:
+        elif os.path.isfile(os.path.join(root, LOD_META_NAME)) or unserved_exports(root, 1)[1]:
             hint = ("; a streamed SOG (lod-meta.json) or a Spark .rad is not served by splatstream serve: serve it "
                     "with a static web server that answers Range requests (nginx, an object store)")
         raise ServeError(f"{root}: holds no scene (a scene is a directory with {MANIFEST_NAME}) and no tileset "
@@ -94,54 +95,12 @@ def unreadable_files(root: str, limit: int = 5) -> tuple[list[str], int]:
 START_CHECKED_SCENES = 256
 
 
-def unservable_scene_names(root: str, limit: int = 5, max_dirs: int = 10_000) -> tuple[list[str], int]:
-    """Scene directories (holding manifest.msgpack) that the server skips because a segment of their path is not a
-    URL-safe name (`my scene`, `été`): at most `limit` named, and how many. Hidden directories (a leading '.', as
-    build temporaries are) are skipped on purpose and not counted; so is anything deeper than a scene id can be."""
-    named: list[str] = []
-    count = 0
-    visited = 0
-    stack: list[tuple[str, tuple[str, ...], bool]] = [(root, (), True)]
-    while stack and visited < max_dirs:
-        directory, segs, safe = stack.pop()
-        visited += 1
-        try:
-            entries = sorted(os.scandir(directory), key=lambda e: e.name)
-        except OSError:
-            continue
-        for e in entries:
-            if e.name.startswith(".") or len(segs) >= MAX_SCENE_DEPTH:
-                continue
-            try:
-                if not e.is_dir(follow_symlinks=False):
-                    continue
-            except OSError:
-                continue
-            child, child_safe = (*segs, e.name), safe and bool(SEGMENT_RE.match(e.name))
-            if os.path.isfile(os.path.join(e.path, MANIFEST_NAME)):
-                if not child_safe:
-                    count += 1
-                    if len(named) < limit:
-                        named.append("/".join(child))
-            else:
-                stack.append((e.path, child, child_safe))
-    return sorted(named), count
-
-
-# What `export-sog-lod` and `export-rad` write (splatstream/writers/sog_lod.LOD_META_NAME; a .rad is one file): the
-# server serves neither (README, "Viewing in PlayCanvas"), and a root holding them said nothing of them at start.
-STREAMED_SOG_META = "lod-meta.json"
-RAD_SUFFIX = ".rad"
-
-
-def unserved_exports(root: str, limit: int = 5, max_dirs: int = 10_000) -> tuple[list[str], int]:
-    """Streamed SOG directories (holding lod-meta.json, not a scene) and Spark .rad files under `root`, which this
-    server does not serve: at most `limit` named (a directory with a trailing '/'), and how many. Hidden entries and
-    scenes' insides are skipped, as the scene scan skips them."""
-    named: list[str] = []
-    count = 0
-    visited = 0
+def _walk_root(root: str, visit: Callable[[os.DirEntry, tuple[str, ...]], bool], max_dirs: int) -> None:
+    """Depth first over what the scene scan could reach under `root`: hidden entries (a leading '.', as build
+    temporaries are) and anything deeper than a scene id can be are skipped, at most `max_dirs` directories read.
+    `visit(entry, its path's segments)` says whether to descend into it; an entry that cannot be read is passed by."""
     stack: list[tuple[str, tuple[str, ...]]] = [(root, ())]
+    visited = 0
     while stack and visited < max_dirs:
         directory, segs = stack.pop()
         visited += 1
@@ -152,23 +111,74 @@ def unserved_exports(root: str, limit: int = 5, max_dirs: int = 10_000) -> tuple
         for e in entries:
             if e.name.startswith(".") or len(segs) >= MAX_SCENE_DEPTH:
                 continue
-            child = "/".join((*segs, e.name))
+            child = (*segs, e.name)
             try:
-                if e.is_file() and e.name.endswith(RAD_SUFFIX):
-                    found = f"{child} (a Spark .rad)"
-                elif not e.is_dir(follow_symlinks=False) or os.path.isfile(os.path.join(e.path, MANIFEST_NAME)):
-                    continue
-                elif os.path.isfile(os.path.join(e.path, STREAMED_SOG_META)):
-                    found = f"{child}/ (a PlayCanvas streamed SOG)"
-                else:
-                    stack.append((e.path, (*segs, e.name)))
-                    continue
+                if visit(e, child):
+                    stack.append((e.path, child))
             except OSError:
                 continue
-            count += 1
-            if len(named) < limit:
-                named.append(found)
-    return sorted(named), count
+
+
+class _Found:
+    """At most `limit` names kept, every one counted."""
+
+    def __init__(self, limit: int) -> None:
+        self.limit, self.named, self.count = limit, [], 0
+
+    def add(self, name: str) -> None:
+        self.count += 1
+        if len(self.named) < self.limit:
+            self.named.append(name)
+
+    def result(self) -> tuple[list[str], int]:
+        return sorted(self.named), self.count
+
+
+def unservable_scene_names(root: str, limit: int = 5, max_dirs: int = 10_000) -> tuple[list[str], int]:
+    """Scene directories (holding manifest.msgpack) that the server skips because a segment of their path is not a
+    URL-safe name (`my scene`, `été`): at most `limit` named, and how many. Hidden directories are skipped on purpose
+    and not counted; so is anything deeper than a scene id can be. Unlike the scene scan it descends below unsafe
+    names (to find the scenes there) and never follows a symlinked directory."""
+    found = _Found(limit)
+
+    def visit(e: os.DirEntry, segs: tuple[str, ...]) -> bool:
+        if not e.is_dir(follow_symlinks=False):
+            return False
+        if not os.path.isfile(os.path.join(e.path, MANIFEST_NAME)):
+            return True
+        if not all(SEGMENT_RE.match(s) for s in segs):
+            found.add("/".join(segs))
+        return False
+
+    _walk_root(root, visit, max_dirs)
+    return found.result()
+
+
+# What `export-sog-lod` and `export-rad` write (a streamed SOG's LOD_META_NAME; a .rad is one file): the server serves
+# neither (README, "Viewing in PlayCanvas"), and a root holding them said nothing of them at start.
+RAD_SUFFIX = ".rad"
+
+
+def unserved_exports(root: str, limit: int = 5, max_dirs: int = 10_000) -> tuple[list[str], int]:
+    """Streamed SOG directories (holding lod-meta.json, not a scene) and Spark .rad files under `root`, which this
+    server does not serve: at most `limit` named (a directory with a trailing '/'), and how many. Hidden entries and
+    scenes' insides are skipped, as the scene scan skips them."""
+    found = _Found(limit)
+
+    def visit(e: os.DirEntry, segs: tuple[str, ...]) -> bool:
+        name = "/".join(segs)
+        if e.is_file() and e.name.endswith(RAD_SUFFIX):
+            found.add(f"{name} (a Spark .rad)")
+        elif not e.is_dir(follow_symlinks=False) or os.path.isfile(os.path.join(e.path, MANIFEST_NAME)):
+            pass
+        elif os.path.isfile(os.path.join(e.path, LOD_META_NAME)):
+            found.add(f"{name}/ (a PlayCanvas streamed SOG)")
+        else:
+            return True
+        return False
+
+    _walk_root(root, visit, max_dirs)
+    return found.result()
 
 
 def bind(host: str, port: int, backlog: int = 1024) -> socket.socket:
