@@ -98,14 +98,7 @@ def test_upper_domains_give_the_same_bytes_with_any_memory_threads_and_engine(sc
     assert len(digests) == 1
     one_tier = partitioned(scene, EncodeOptions(preset="low", **TREE), MEMORY, 1, tmp_path).store()
     assert store_digest(one_tier) not in digests  # the upper levels' counts shared within each upper domain
-    pytest.importorskip("distributed")
-    out = str(tmp_path / "local")
-    encode_file(scene_ply, out, preset="low", memory_per_worker=MEMORY, **TIERS)
-    want = tree_digest(out)
-    for workers in (1, 2):
-        got = str(tmp_path / f"w{workers}")
-        encode_file(scene_ply, got, preset="low", workers=workers, memory_per_worker=MEMORY, **TIERS)
-        assert tree_digest(got) == want, workers
+    _assert_dask_gives_the_in_process_files(scene_ply, tmp_path, TIERS)
 
 
 def test_auto_partitions_are_the_same_with_any_memory_and_threads(scene, tmp_path):
@@ -130,15 +123,22 @@ def test_one_domain_is_the_single_process_auto(scene, tmp_path):
 
 
 def test_auto_partitions_on_dask_and_in_process_give_the_same_files(scene_ply, tmp_path):
+    out = _assert_dask_gives_the_in_process_files(scene_ply, tmp_path, TREE)
+    assert load_manifest(out).lod.merge == "auto"
+
+
+def _assert_dask_gives_the_in_process_files(scene_ply, tmp_path, tree: dict) -> str:
+    """The partitioned encode in this process and on local Dask clusters of 1 and 2 workers: the same files; the
+    in-process output's directory."""
     pytest.importorskip("distributed")
     out = str(tmp_path / "local")
-    encode_file(scene_ply, out, preset="low", memory_per_worker=MEMORY, **TREE)
+    encode_file(scene_ply, out, preset="low", memory_per_worker=MEMORY, **tree)
     want = tree_digest(out)
     for workers in (1, 2):
         got = str(tmp_path / f"w{workers}")
-        encode_file(scene_ply, got, preset="low", workers=workers, memory_per_worker=MEMORY, **TREE)
+        encode_file(scene_ply, got, preset="low", workers=workers, memory_per_worker=MEMORY, **tree)
         assert tree_digest(got) == want, workers
-    assert load_manifest(out).lod.merge == "auto"
+    return out
 
 
 @pytest.mark.parametrize("tree", [TREE, TIERS], ids=["one-tier", "three-tiers"])
