@@ -16,6 +16,7 @@ import re
 import stat
 import warnings
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from .errors import InputError
@@ -290,10 +291,11 @@ def written_sh_degree(fmt: str, sh_degree: int) -> int:
 
 
 def write_gaussians(g: Gaussians, path: str | os.PathLike, spz_version: int = 4,
-                    glb_compression: str = "none") -> None:
+                    glb_compression: str = "none", progress: Callable[[float], None] | None = None) -> None:
     """Write Gaussians (atomically) to a file whose format follows the extension (.ply, .splat, .spz, .glb, .sog).
 
-    spz_version: 3 or 4 for .spz outputs. glb_compression: "none" or "spz" for .glb outputs.
+    spz_version: 3 or 4 for .spz outputs. glb_compression: "none" or "spz" for .glb outputs. `progress`: the share
+    of a .sog written (its SH palette's fit takes seconds; the other formats are written in one step).
     """
     fmt = output_format(path)
     if fmt == "ply":
@@ -303,6 +305,6 @@ def write_gaussians(g: Gaussians, path: str | os.PathLike, spz_version: int = 4,
     elif fmt == "gltf":
         write_glb(g, path, glb_compression)
     elif fmt == "sog":
-        write_sog(g, path)
+        write_sog(g, path, progress)
     else:
         write_splat(g, path)
