@@ -37,6 +37,7 @@ def with_context(scene, refine_subtree):
         rows = [keys.get(r.tobytes()) for r in np.ascontiguousarray(g.positions)]
         if any(r is None for r in rows):  # not a domain: the levels above the partitions
             return refine_subtree(g, tiles, up, refiner, progress, frame)
+        # (rows of one position: the last of them matched, the others left in the context; biker: 6 of 152,746)
         rest = np.setdiff1d(np.arange(len(scene)), np.asarray(rows))
         context = scene.subset(rest)
         top = min(tiles, key=lambda t: tiles[t].level)
