@@ -95,7 +95,7 @@ def test_every_fit_is_seen_from_the_whole_scenes_cameras(tmp_path):
     """Each domain (and the levels above) is fitted from the camera rule of the WHOLE scene (lod_refine.CameraFrame
     of the scene's sample of centres: here every centre, the in-memory encode's frame), not around its own splats:
     so the domain alone in the frame the in-memory encode fits the whole tree in (BENCHMARKS.md, "Closing the
-    partitioned refinement's gap": 0.3-1.2 dB of the 4 domains' gap to the in-memory refinement)."""
+    partitioned refinement's gap": cameras around each domain cost 0.2-1.2 dB streamed on 3 of 4 scenes)."""
     from splatstream.io import read_gaussians
     from splatstream.lod_refine import CameraFrame, far_level_cameras, orbit_distance_and_focal, refine_cameras
 

@@ -470,7 +470,8 @@ def build_partition(p: int, level: int, shape: TreeShape, chunk_counts: list[np.
 
         # the subtree's own originals (leaf order: the leaves' splats) are its full detail, as the whole scene's
         # are in memory; its cameras the whole scene's (`frame`): the domain alone, seen from where the scene is seen
-        # (its own frame, nearer, cost 0.3-1.2 dB streamed: BENCHMARKS.md "Closing the partitioned refinement's gap")
+        # (its own frame, nearer, cost 0.2-1.2 dB on 3 of 4 scenes: BENCHMARKS.md "Closing the partitioned
+        # refinement's gap")
         tiles, record = refine_subtree(sub.ordered, sub.tiles, up, refiner, refine_progress, frame)
         root = tiles[sub.root.id]
     done = spans[0] + spans[1]
