@@ -82,8 +82,8 @@ class CpuRefineSettings(lod_refine.SharedRefineSettings):
     threads: int = 0
     share_cores: bool = False
 
-    def far_cameras(self, positions: np.ndarray, up, tiles: list[Tile], cuts: list[lod_refine.LevelCut]
-                    ) -> list[tuple[list, list, tuple[float, float] | None]]:
+    def far_cameras(self, positions: np.ndarray | lod_refine.CameraFrame, up, tiles: list[Tile],
+                    cuts: list[lod_refine.LevelCut]) -> list[tuple[list, list, tuple[float, float] | None]]:
         """Per level of `cuts`, its far (training, validation) cameras and their distances (x the orbit distance);
         none where the level has no far range (lod_refine.level_far_range) or the counts are 0."""
         if self.far_training_cameras <= 0:
@@ -142,10 +142,14 @@ class CpuLevelRefiner:
         return int(12 * pixels * near_and_far + (8 + 8 * PAIRS_PER_PIXEL) * pixels * training
                    + (16 * training + SPLAT_COPIES * splat_bytes) * splats)
 
-    def __call__(self, g: Gaussians, tiles: list[Tile], up, progress) -> tuple[dict[int, Gaussians], LodRefinement]:
+    def __call__(self, g: Gaussians, tiles: list[Tile], up, progress, frame: lod_refine.CameraFrame | None = None
+                 ) -> tuple[dict[int, Gaussians], LodRefinement]:
         s = self.settings
         degree = g.sh_degree
-        train, valid = s.cameras(g.positions, up)
+        # the cameras: placed by the whole scene's frame (a partitioned encode's merge domain: lod_refine.CameraFrame),
+        # else by `g`'s own positions (the whole scene in memory)
+        placed_by = frame if frame is not None else g.positions
+        train, valid = s.cameras(placed_by, up)
         cuts = level_cuts(tiles)
         # progress: the full-detail renders count as one level's worth, each level one
         steps = len(cuts) + 1
@@ -156,7 +160,7 @@ class CpuLevelRefiner:
             # do not depend on it: the gradient sums in fixed rows)
             numba.set_num_threads(max(1, min(s.threads, numba.config.NUMBA_NUM_THREADS)))
         cov3d = covariances(g)  # the full detail's covariances, once for all 48 cameras
-        far = s.far_cameras(g.positions, up, tiles, cuts)
+        far = s.far_cameras(placed_by, up, tiles, cuts)
         n_far = sum(len(a) + len(b) for a, b, _ in far)
         n_renders = len(train) + len(valid) + n_far
         done = [0]

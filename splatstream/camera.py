@@ -383,7 +383,15 @@ def scene_orbit_views(positions: np.ndarray, n: int, width: int = 512, height: i
                       fov_y_deg: float = DEFAULT_FOV_Y_DEG, percentile: float = 95.0,
                       distance_scale: float = 1.0) -> list[Camera]:
     """Evaluation views for a scene: `orbit_views` around the median, at the distance that fits the robust bounds."""
-    med, lo, hi = robust_bounds(positions, percentile)
+    return bounds_orbit_views(*robust_bounds(positions, percentile), n, width, height, up, elevation_deg, fov_y_deg,
+                              distance_scale)
+
+
+def bounds_orbit_views(med: np.ndarray, lo: np.ndarray, hi: np.ndarray, n: int, width: int = 512, height: int = 512,
+                       up: Sequence[float] = DEFAULT_UP, elevation_deg: float = 25.0,
+                       fov_y_deg: float = DEFAULT_FOV_Y_DEG, distance_scale: float = 1.0) -> list[Camera]:
+    """scene_orbit_views from the scene's robust bounds (robust_bounds: median, lo, hi) already taken: the same
+    cameras, where the positions are not at hand (a partitioned encode's task holds a part of the scene)."""
     radius = float(np.linalg.norm(np.maximum(hi - med, med - lo))) or 1.0
     dist = fit_distance(radius, fov_y_deg, width / height) * distance_scale
     return orbit_views(med, dist, n, up, elevation_deg, fov_y_deg, width, height)

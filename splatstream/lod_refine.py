@@ -19,7 +19,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from .camera import Camera, look_at_near_far, scene_orbit_views
+from .camera import Camera, bounds_orbit_views, look_at_near_far, robust_bounds
 from .errors import InputError
 from .format.limits import (
     MAX_ABS_POSITION,
@@ -83,13 +83,40 @@ FAR_FILL = 1.25  # a far camera's side: this x the px the scene's fitted extent 
 
 # The optimiser's side (refine_gpu, refine_cpu): (full-detail splats, the tree, up, progress) -> ({merged tile id:
 # its refined splats}, the record). A refiner whose attribute `runs_by_partitions` is true also refines partitioned
-# encodes (encode/partitioned.py: each merge domain in its own task, on any engine, so it must pickle); `name`, where
+# encodes (encode/partitioned.py: each merge domain in its own task, on any engine, so it must pickle), and is then
+# called with the keyword `frame=` (a CameraFrame: the whole scene's, which places its cameras); `name`, where
 # it has one, is how messages name it; `for_concurrent_fits(n)`, where it has one, gives the refiner to run when n
 # fits run at once (a share of the machine's cores each; partitioned.py asks it before the partitions and the upper
 # levels); `peak_bytes(splats)`, where it has one, the memory its fit of a tree of that many full-detail splats takes
 # beyond the tree (partitioned.py counts it in what a refined partition task needs of --memory-per-worker).
 LodRefiner = Callable[[Gaussians, list[Tile], tuple[float, float, float], Callable[[str, float], None]],
                       tuple[dict[int, Gaussians], LodRefinement]]
+
+
+@dataclass(frozen=True)
+class CameraFrame:
+    """What places the camera rule (refine_cameras, far_level_cameras): the robust bounds (camera.robust_bounds: the
+    per-axis median and the central 95 % box) of the scene's splat centres. A partitioned encode's merge domain is
+    fitted from the WHOLE scene's frame, taken from the scene's sample of centres (encode/sample.py: every centre up
+    to 2,000,000, so the in-memory encode's own), not from its own splats: the domain is seen from where the scene is
+    (BENCHMARKS.md, "Closing the partitioned refinement's gap")."""
+    median: np.ndarray
+    lo: np.ndarray
+    hi: np.ndarray
+
+    @staticmethod
+    def of(positions: np.ndarray) -> CameraFrame:
+        return CameraFrame(*robust_bounds(positions))
+
+
+def _frame(where: np.ndarray | CameraFrame) -> CameraFrame:
+    return where if isinstance(where, CameraFrame) else CameraFrame.of(where)
+
+
+def _orbit(where: np.ndarray | CameraFrame, up, size: int) -> Camera:
+    """The orbit view the camera rule is placed by (camera.scene_orbit_views' first, 25 deg up, of the frame)."""
+    f = _frame(where)
+    return bounds_orbit_views(f.median, f.lo, f.hi, 1, size, size, up=up, elevation_deg=25.0)[0]
 
 
 @dataclass(frozen=True)
@@ -108,18 +135,20 @@ def level_cuts(tiles: list[Tile]) -> list[LevelCut]:
             for d in sorted({t.level for t in tiles if t.children})]
 
 
-def refine_cameras(positions: np.ndarray, up, n: int, size: int, seed: int = TRAINING_SEED) -> list[Camera]:
+def refine_cameras(positions: np.ndarray | CameraFrame, up, n: int, size: int, seed: int = TRAINING_SEED
+                   ) -> list[Camera]:
     """`n` square cameras of `size` px looking at the scene's orbit centre (scene_orbit_views: the robust median,
-    the distance that fits the robust bounds, its fov and `up`) from a jittered Fibonacci band of directions
-    (elevations ELEVATION_DEG about `up`), at distances log-uniform over DISTANCE_RANGE x the orbit distance, each
-    target jittered by 3 % of that distance. A rule of the scene alone: no benchmark's views (theirs sit exactly on
-    the 25 deg orbit), and a seed gives another set (the validation cameras)."""
+    the distance that fits the robust bounds, its fov and `up`; of the positions, or of their CameraFrame) from a
+    jittered Fibonacci band of directions (elevations ELEVATION_DEG about `up`), at distances log-uniform over
+    DISTANCE_RANGE x the orbit distance, each target jittered by 3 % of that distance. A rule of the scene alone: no
+    benchmark's views (theirs sit exactly on the 25 deg orbit), and a seed gives another set (the validation
+    cameras)."""
     return _band_cameras(positions, up, n, size, seed, DISTANCE_RANGE, size)
 
 
-def orbit_distance_and_focal(positions: np.ndarray, up, size: int) -> tuple[float, float]:
+def orbit_distance_and_focal(positions: np.ndarray | CameraFrame, up, size: int) -> tuple[float, float]:
     """The orbit distance of refine_cameras' rule (world units) and the focal length (px) of its `size` px cameras."""
-    orbit = scene_orbit_views(positions, 1, size, size, up=up, elevation_deg=25.0)[0]
+    orbit = _orbit(positions, up, size)
     return math.dist(orbit.eye, orbit.target), size / (2.0 * math.tan(math.radians(orbit.fov_y_deg) / 2.0))
 
 
@@ -137,7 +166,7 @@ def level_far_range(tiles: list[Tile], cut: LevelCut, dist: float, focal: float)
     return (lo, hi) if hi > lo * 1.01 else None
 
 
-def far_level_cameras(positions: np.ndarray, up, n: int, size: int, seed: int,
+def far_level_cameras(positions: np.ndarray | CameraFrame, up, n: int, size: int, seed: int,
                       far_range: tuple[float, float]) -> list[Camera]:
     """`n` cameras of refine_cameras' rule (directions, jitter) at distances log-uniform over `far_range` x the orbit
     distance (level_far_range), each the centre crop of a `size` px camera there: the same px per world unit (a
@@ -148,11 +177,11 @@ def far_level_cameras(positions: np.ndarray, up, n: int, size: int, seed: int,
     return _band_cameras(positions, up, n, size, seed, far_range, side)
 
 
-def _band_cameras(positions: np.ndarray, up, n: int, size: int, seed: int, distance_range: tuple[float, float],
-                  side: int) -> list[Camera]:
+def _band_cameras(positions: np.ndarray | CameraFrame, up, n: int, size: int, seed: int,
+                  distance_range: tuple[float, float], side: int) -> list[Camera]:
     """refine_cameras' rule at `distance_range` x the orbit distance, each camera the centre `side` px crop of a
     `size` px one (side == size: the whole camera)."""
-    orbit = scene_orbit_views(positions, 1, size, size, up=up, elevation_deg=25.0)[0]
+    orbit = _orbit(positions, up, size)
     centre = np.asarray(orbit.target, np.float64)
     dist = math.dist(orbit.eye, orbit.target)
     fov = orbit.fov_y_deg if side == size else \
@@ -203,7 +232,7 @@ class SharedRefineSettings:
     validation_seed: int
     log: Callable[[str], None] = field(default=lambda msg: None, repr=False)
 
-    def cameras(self, positions: np.ndarray, up) -> tuple[list[Camera], list[Camera]]:
+    def cameras(self, positions: np.ndarray | CameraFrame, up) -> tuple[list[Camera], list[Camera]]:
         """The training and the validation cameras of a scene (`refine_cameras`: one rule, two seeds)."""
         return (refine_cameras(positions, up, self.training_cameras, self.size, self.training_seed),
                 refine_cameras(positions, up, self.validation_cameras, self.size, self.validation_seed))
@@ -293,10 +322,13 @@ def apply_refined(tiles: list[Tile], refined: dict[int, Gaussians]) -> list[Tile
 
 
 def refine_tree(g: Gaussians, tiles: list[Tile], up, refiner: LodRefiner,
-                progress: Callable[[str, float], None]) -> tuple[list[Tile], LodRefinement]:
+                progress: Callable[[str, float], None], frame: CameraFrame | None = None
+                ) -> tuple[list[Tile], LodRefinement]:
     """The tree with its merged levels refined by `refiner` (the optimiser's side), and the record the manifest
-    keeps."""
-    refined, record = refiner(g, tiles, tuple(float(v) for v in up), progress)
+    keeps. `frame`: where the cameras are placed from (None: `g`'s own positions, the whole scene in memory)."""
+    up = tuple(float(v) for v in up)
+    refined, record = refiner(g, tiles, up, progress) if frame is None else \
+        refiner(g, tiles, up, progress, frame=frame)
     return apply_refined(tiles, refined), record
 
 
@@ -304,17 +336,19 @@ def refine_tree(g: Gaussians, tiles: list[Tile], up, refiner: LodRefiner,
 
 
 def refine_subtree(g: Gaussians, tiles: dict[int, Tile], up, refiner: LodRefiner,
-                   progress: Callable[[str, float], None]) -> tuple[dict[int, Tile], LodRefinement]:
+                   progress: Callable[[str, float], None], frame: CameraFrame | None = None
+                   ) -> tuple[dict[int, Tile], LodRefinement]:
     """refine_tree over one subtree of a larger tree (a partitioned encode's merge domain, or the tiles above the
     partitions with the partitions' roots as its leaves): `tiles` by global id, `g` the splats its leaves hold (the
-    "full detail" its levels are fitted to). The subtree is numbered 0.. in the order of its global ids (a parent's
-    id is below its children's in both) for the refiner, and its refined tiles come back by global id; the record
-    names the global depths."""
+    "full detail" its levels are fitted to), `frame` the whole scene's CameraFrame (its cameras: the subtree alone in
+    the frame of the whole scene, as the client sees it; None: around `g`). The subtree is numbered 0.. in the order
+    of its global ids (a parent's id is below its children's in both) for the refiner, and its refined tiles come
+    back by global id; the record names the global depths."""
     ids = sorted(tiles)
     local = {tid: i for i, tid in enumerate(ids)}
     renumbered = [replace(tiles[tid], id=i, children=[local[c] for c in tiles[tid].children])
                   for i, tid in enumerate(ids)]
-    refined, record = refine_tree(g, renumbered, up, refiner, progress)
+    refined, record = refine_tree(g, renumbered, up, refiner, progress, frame)
     return {tid: replace(t, id=tid, children=list(tiles[tid].children)) for tid, t in zip(ids, refined, strict=True)}, \
         record
 

@@ -67,7 +67,7 @@ from ..lod import (
     tile_viewing_blur,
     viewing_blur,
 )
-from ..lod_refine import LodRefiner, domains_record, refine_subtree
+from ..lod_refine import CameraFrame, LodRefiner, domains_record, refine_subtree
 from ..ply import RowStats, VertexLayout, check_rows, read_ply_rows
 from ..progress import count
 from ..store import SceneWriter, write_scene_manifest
@@ -443,12 +443,12 @@ class PartitionResult:
 def build_partition(p: int, level: int, shape: TreeShape, chunk_counts: list[np.ndarray], scratch: Scratch,
                     ctx: TileContext, writer, threads: int, keep_originals: bool, merge: str,
                     refiner: LodRefiner | None, up: tuple[float, float, float] | None,
-                    report: Callable[[float], None]) -> PartitionResult:
+                    frame: CameraFrame | None, report: Callable[[float], None]) -> PartitionResult:
     """One partition: read its rows, build its subtree with the LOD merge `merge` (for "auto", the partition's
     splats are the whole scene of the levels inside its subtree: the partition is auto's merge domain), refine its
-    merged levels against its own originals where `refiner` is given (lod.md 6, "The refinement by partitions"),
-    write its tiles' payloads; its root and (for the tiles above) its originals go to scratch. `report(fraction)`:
-    the task's progress."""
+    merged levels against its own originals where `refiner` is given (lod.md 6, "The refinement by partitions"; its
+    cameras placed by the whole scene's `frame`), write its tiles' payloads; its root and (for the tiles above) its
+    originals go to scratch. `report(fraction)`: the task's progress."""
     g, index = _read_partition(scratch, p, chunk_counts, ctx.sh_degree)
     n = len(g)
     refining = refiner is not None and level < shape.leaf_level
@@ -470,8 +470,10 @@ def build_partition(p: int, level: int, shape: TreeShape, chunk_counts: list[np.
                 report(spans[0] + spans[1] * fraction)
 
         # the subtree's own originals (leaf order: the leaves' splats) are its full detail, as the whole scene's
-        # are in memory
-        tiles, record = refine_subtree(sub.ordered, sub.tiles, up, refiner, refine_progress)
+        # are in memory; its cameras the whole scene's (`frame`): the domain alone, seen from where the scene is seen
+        # (its own frame, nearer, cost 0.2-1.2 dB on 3 of 4 scenes: BENCHMARKS.md "Closing the partitioned
+        # refinement's gap")
+        tiles, record = refine_subtree(sub.ordered, sub.tiles, up, refiner, refine_progress, frame)
         root = tiles[sub.root.id]
     done = spans[0] + spans[1]
     entries = _encode_tiles(list(tiles.values()), ctx, writer, threads, lambda f: report(done + (1 - done) * f))
@@ -937,18 +939,22 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
     codebook_entry = encode_codebook(ctx.codebook, ctx, payloads) if ctx.codebook is not None else None
 
     refiner = opts.lod_refiner
+    # where every refined fit's cameras are placed (the domains' and the levels above's): the whole scene's frame,
+    # from the scene's sample of centres (every centre up to 2M: the in-memory encode's frame)
+    frame = CameraFrame.of(sample.positions) if refiner is not None else None
     # the refiner for the fits that run at once: the partitions (at most one per worker), then the upper levels' one
     concurrent_fits = getattr(refiner, "for_concurrent_fits", None)
     partition_refiner = concurrent_fits(min(engine.workers, partitions)) if concurrent_fits else refiner
     results = engine.map(build_partition, [(p, level, shape, chunk_counts, scratch, ctx, payloads,
-                                            engine.threads_per_task, level > 0, merge, partition_refiner, scene.up)
+                                            engine.threads_per_task, level > 0, merge, partition_refiner, scene.up,
+                                            frame)
                                            for p in range(partitions)],
                          "tiles", progress, heavy=True, task_progress=True)
     entries = [e for r in results for e in r.entries]
     engine.map_behind(delete_scratch, [(scratch, [f"route/{i}"]) for i in range(len(spans))], "cleanup")
     upper, above = _upper_tiles(engine, scratch, shape, level, [r.root_splats for r in results], ctx, payloads,
                                 progress, merge, refiner if REFINE_UPPER_LEVELS else None, scene.up,
-                                opts.lod_upper_domain_roots)
+                                opts.lod_upper_domain_roots, frame)
     entries += upper
     if level > 0:
         refined_roots = refiner is not None and level < shape.leaf_level
@@ -989,8 +995,8 @@ def _log_domains(records: list[LodRefinement], above: LodRefinement | None) -> N
 def _upper_tiles(engine: Engine, scratch: Scratch, shape: TreeShape, level: int, root_splats: list[int],
                  ctx: TileContext, payloads, progress: Progress, merge: str = "grid",
                  refiner: LodRefiner | None = None, up: tuple[float, float, float] | None = None,
-                 roots_per_domain: int = EncodeOptions.lod_upper_domain_roots
-                 ) -> tuple[list[TileEntry], LodRefinement | None]:
+                 roots_per_domain: int = EncodeOptions.lod_upper_domain_roots,
+                 frame: CameraFrame | None = None) -> tuple[list[TileEntry], LodRefinement | None]:
     """The tiles above the partitions, level by level (in batches of tiles, for the client's memory; "auto": a
     level at once, grouped by merge_level in a task per upper domain, upper_domain_levels), and where `refiner` is
     given their levels refined tier by tier, a task per upper domain (refine_upper), before any of them is encoded,
@@ -1071,7 +1077,7 @@ def _upper_tiles(engine: Engine, scratch: Scratch, shape: TreeShape, level: int,
             # the partitions' roots as refined (a partition that is a leaf: its originals); a higher tier's roots:
             # the tier below's tops, refined in place
             prefix = "refined" if bottom == level and level < shape.leaf_level else "tile"
-            records = engine.map(refine_upper, [(scratch, shape, bottom, top, d, tier_refiner, up, prefix)
+            records = engine.map(refine_upper, [(scratch, shape, bottom, top, d, tier_refiner, up, prefix, frame)
                                                 for d in domains], "refine-upper", progress, heavy=True,
                                  task_progress=True)
             tiers.append(records)
@@ -1086,14 +1092,14 @@ def _upper_tiles(engine: Engine, scratch: Scratch, shape: TreeShape, level: int,
 
 
 def refine_upper(scratch: Scratch, shape: TreeShape, level: int, top: int, domain: int, refiner: LodRefiner,
-                 up: tuple[float, float, float] | None, roots_prefix: str, report: Callable[[float], None]
-                 ) -> LodRefinement:
+                 up: tuple[float, float, float] | None, roots_prefix: str, frame: CameraFrame | None,
+                 report: Callable[[float], None]) -> LodRefinement:
     """The levels top..level-1 of one upper domain (tile `domain` of level `top`; upper_domain_levels) refined in
     one task (lod.md 6, "The refinement by partitions"): the originals are not here (the whole scene), so their full
     detail is the domain's roots at `level` as refined (under `roots_prefix` in scratch: the partitions' roots, or
     the tier below's tops), the finest level this task holds (at most max_leaf_splats a root), the subtree above them
-    cut with those roots as its leaves. The refined tiles go back to scratch, to be encoded (and a top to be the
-    next tier's root)."""
+    cut with those roots as its leaves; the cameras placed by the whole scene's `frame`. The refined tiles go back to
+    scratch, to be encoded (and a top to be the next tier's root)."""
     tiles: dict[int, Tile] = {}
     masses: dict[int, np.ndarray] = {}
     for lvl in range(top, level + 1):
@@ -1116,7 +1122,7 @@ def refine_upper(scratch: Scratch, shape: TreeShape, level: int, top: int, domai
         if stage == "refine":
             report(fraction)
 
-    refined, record = refine_subtree(g, tiles, up, refiner, refine_progress)
+    refined, record = refine_subtree(g, tiles, up, refiner, refine_progress, frame)
     for tid, t in refined.items():
         if t.level < level:
             _save_tile(scratch, t, masses[tid])
