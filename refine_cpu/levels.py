@@ -117,7 +117,7 @@ class CpuLevelRefiner:
 
     def for_concurrent_fits(self, fits: int) -> CpuLevelRefiner:
         """This refiner for `fits` fits at once on this machine (settings.share_cores): cores / fits numba threads
-        each, so that 16 workers fitting 4 partitions give each fit 4 threads, not 1, and the upper levels' one fit
+        each, so that 16 workers fitting 4 partitions give each fit 4 threads, not 1, and an upper tier of one domain
         every core; without share_cores (an existing cluster's machines) itself."""
         if not self.settings.share_cores:
             return self

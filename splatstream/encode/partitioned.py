@@ -540,11 +540,12 @@ def _tiles_under(shape: TreeShape, top: int, j: int, lvl: int) -> range:
 
 
 def upper_domain_levels(shape: TreeShape, level: int, roots_per_domain: int) -> list[int]:
-    """The tiers of upper domains above the partition level `level` (lod.md 6, "Upper domains"): each tier's top
-    level, lowest first, the last 0 (the root). A tier whose roots (the partitions' roots, or the tier below's tops)
-    are at level b has as its top the shallowest level t < b whose tiles cover at most `roots_per_domain` of them
-    (2^(kd(b) - kd(t)); at least one level a tier): each tile of t is an upper domain, its levels t..b-1 grouped over
-    its own tiles only. A function of the tree's shape alone (kd subtrees: spatially contiguous, kd order)."""
+    """The tiers of upper domains above the partition level `level` (lod.md 6, "The auto merge by partitions"): each
+    tier's top level, lowest first, the last 0 (the root). A tier whose roots (the partitions' roots, or the tier
+    below's tops) are at level b has as its top the shallowest level t < b whose tiles cover at most
+    `roots_per_domain` of them (2^(kd(b) - kd(t)); at least one level a tier): each tile of t is an upper domain, its
+    levels t..b-1 grouped over its own tiles only. A function of the tree's shape alone (kd subtrees: spatially
+    contiguous, kd order)."""
     tops: list[int] = []
     b = level
     while b > 0:
@@ -942,7 +943,8 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
     # where every refined fit's cameras are placed (the domains' and the levels above's): the whole scene's frame,
     # from the scene's sample of centres (every centre up to 2M: the in-memory encode's frame)
     frame = CameraFrame.of(sample.positions) if refiner is not None else None
-    # the refiner for the fits that run at once: the partitions (at most one per worker), then the upper levels' one
+    # the refiner for the fits that run at once: the partitions (at most one per worker); each tier of upper domains
+    # asks again in _upper_tiles
     concurrent_fits = getattr(refiner, "for_concurrent_fits", None)
     partition_refiner = concurrent_fits(min(engine.workers, partitions)) if concurrent_fits else refiner
     results = engine.map(build_partition, [(p, level, shape, chunk_counts, scratch, ctx, payloads,
