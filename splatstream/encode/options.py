@@ -57,15 +57,17 @@ class EncodeOptions:
     # 1.4-1.9x the grid's encode CPU (BENCHMARKS.md, "LOD against peers", the default merge; autofast4).
     lod_merge: str | None = None
     # A partitioned encode's "auto" merge groups each level inside subtrees of at most this many original splats
-    # (its merge domains: the partitions, partitioned.merge_domain_level), the levels above them over the whole
-    # level; a function of the scene's splat count, so the output is the same on any engine and worker count.
+    # (its merge domains: the partitions, partitioned.merge_domain_level), the levels above them by upper domains
+    # (lod_upper_domain_roots, below); a function of the scene's splat count, so the output is the same on any
+    # engine and worker count.
     # 2^20: 16 partitions of a 16M-splat scene (16 workers busy); 2^21 left half of them idle (BENCHMARKS.md, "The
     # auto merge in partitioned encodes", 16M on 16 cores), and domains 8-64x smaller measured as close to in memory.
     lod_merge_domain_splats: int = 1 << 20
     # Above the merge domains, the partitions' roots are grouped into upper domains (partitioned.upper_domain_levels):
     # the subtrees of the shallowest tile level whose tiles hold at most this many roots, each level of them grouped
     # over its own tiles in a task of its own, tier after tier up to the root (one task a level was serial: 35 s of a
-    # 249 s encode of 60M splats, growing with the partitions; BENCHMARKS.md, "Upper domains"). A function of the
+    # 249 s encode of 60M splats, growing with the partitions; with it 26.9 s of 216.6 s on the same 16 cores, the
+    # per-level folds still serial; BENCHMARKS.md, "Upper domains"). A function of the
     # tree's shape, so the output is the same on any engine and worker count. 8: at 60M (64 partitions) the lowest
     # upper levels in 8 parallel tasks of at most 8 roots (128k members at 16,384 splats a leaf).
     lod_upper_domain_roots: int = 8

@@ -18,7 +18,8 @@ ARCHITECTURE.md "Distributed encoding".
    combine exactly; per-leaf sums, folded in kd order, as lod.build_subtree folds them).
 7. the manifest, last.
 With `--lod-refine cpu` (EncodeOptions.lod_refiner) the partitions are the merge domains whatever the merge, each
-task of step 5 refines its subtree against its own originals before encoding it, and the levels of step 6 are refined
+task of step 5 refines its subtree against its own originals, from the whole scene's cameras (lod_refine.CameraFrame),
+before encoding it, and the levels of step 6 are refined
 by upper domains, tier after tier (refine_upper: a task per upper domain against its roots as refined), before they
 are encoded (lod.md 6, "The refinement by partitions").
 
