@@ -10,15 +10,15 @@ import signal
 import socket
 import stat
 import sys
-from collections.abc import Callable, Iterable
+from collections.abc import Iterable
 
 from splatstream.format.names import DATA_DIR, MANIFEST_NAME, TILESET_NAME
 from splatstream.writers.sog_lod import LOD_META_NAME
 
 from .app import SHUTDOWN_TIMEOUT, AccessLog, create_app, create_runner, start_site
 from .limits import FdLimitTooLow, Limits, accept_error_handler, fit_to_fd_limit
-from .paths import MAX_SCENE_DEPTH, SEGMENT_RE
-from .scenes import SceneRoot
+from .paths import SEGMENT_RE
+from .scenes import SceneRoot, walk_root
 from .throttle import Link
 from .tilesets import find_tilesets
 
@@ -65,58 +65,9 @@ def check_root(root: str) -> list[str]:
     return ids
 
 
-def unreadable_files(root: str, limit: int = 5) -> tuple[list[str], int]:
-    """Scene files this process may not read (at most `limit` named, and how many scenes have some): each scene's
-    manifest and first payload are checked, so a tree written by another user with mode 0600 is reported at
-    start, not as a 403 per request."""
-    named: list[str] = []
-    scenes = 0
-    for _, directory in SceneRoot(root).scan():
-        candidates = [os.path.join(directory, MANIFEST_NAME)]
-        try:
-            with os.scandir(os.path.join(directory, DATA_DIR)) as it:
-                candidates += [e.path for e in it if e.name.endswith(".bin")][:1]
-        except OSError:
-            pass
-        bad = [p for p in candidates if not os.access(p, os.R_OK)]
-        if bad:
-            scenes += 1
-            if len(named) < limit:
-                try:
-                    st = os.stat(bad[0])
-                    why = f"mode {stat.S_IMODE(st.st_mode):04o}, owner uid {st.st_uid}"
-                except OSError as exc:
-                    why = exc.strerror or str(exc)
-                named.append(f"{os.path.relpath(bad[0], root)} ({why})")
-    return named, scenes
-
-
-# Scenes whose manifests `serve` reads at start (to count and warn as /api/scenes will); above it, directories count.
-START_CHECKED_SCENES = 256
-
-
-def _walk_root(root: str, visit: Callable[[os.DirEntry, tuple[str, ...]], bool], max_dirs: int) -> None:
-    """Depth first over what the scene scan could reach under `root`: hidden entries (a leading '.', as build
-    temporaries are) and anything deeper than a scene id can be are skipped, at most `max_dirs` directories read.
-    `visit(entry, its path's segments)` says whether to descend into it; an entry that cannot be read is passed by."""
-    stack: list[tuple[str, tuple[str, ...]]] = [(root, ())]
-    visited = 0
-    while stack and visited < max_dirs:
-        directory, segs = stack.pop()
-        visited += 1
-        try:
-            entries = sorted(os.scandir(directory), key=lambda e: e.name)
-        except OSError:
-            continue
-        for e in entries:
-            if e.name.startswith(".") or len(segs) >= MAX_SCENE_DEPTH:
-                continue
-            child = (*segs, e.name)
-            try:
-                if visit(e, child):
-                    stack.append((e.path, child))
-            except OSError:
-                continue
+def _listing(named: list[str], count: int) -> str:
+    """The names a start-up warning shows, and ', ...' where more were counted than named."""
+    return ", ".join(named) + (", ..." if count > len(named) else "")
 
 
 class _Found:
@@ -132,6 +83,33 @@ class _Found:
 
     def result(self) -> tuple[list[str], int]:
         return sorted(self.named), self.count
+
+
+def unreadable_files(root: str, limit: int = 5) -> tuple[list[str], int]:
+    """Scene files this process may not read (at most `limit` named, and how many scenes have some): each scene's
+    manifest and first payload are checked, so a tree written by another user with mode 0600 is reported at
+    start, not as a 403 per request."""
+    found = _Found(limit)
+    for _, directory in SceneRoot(root).scan():
+        candidates = [os.path.join(directory, MANIFEST_NAME)]
+        try:
+            with os.scandir(os.path.join(directory, DATA_DIR)) as it:
+                candidates += [e.path for e in it if e.name.endswith(".bin")][:1]
+        except OSError:
+            pass
+        bad = [p for p in candidates if not os.access(p, os.R_OK)]
+        if bad:
+            try:
+                st = os.stat(bad[0])
+                why = f"mode {stat.S_IMODE(st.st_mode):04o}, owner uid {st.st_uid}"
+            except OSError as exc:
+                why = exc.strerror or str(exc)
+            found.add(f"{os.path.relpath(bad[0], root)} ({why})")
+    return found.named, found.count  # in the scan's order (by scene id)
+
+
+# Scenes whose manifests `serve` reads at start (to count and warn as /api/scenes will); above it, directories count.
+START_CHECKED_SCENES = 256
 
 
 def unservable_scene_names(root: str, limit: int = 5, max_dirs: int = 10_000) -> tuple[list[str], int]:
@@ -150,7 +128,7 @@ def unservable_scene_names(root: str, limit: int = 5, max_dirs: int = 10_000) ->
             found.add("/".join(segs))
         return False
 
-    _walk_root(root, visit, max_dirs)
+    walk_root(root, visit, max_dirs)
     return found.result()
 
 
@@ -177,7 +155,7 @@ def unserved_exports(root: str, limit: int = 5, max_dirs: int = 10_000) -> tuple
             return True
         return False
 
-    _walk_root(root, visit, max_dirs)
+    walk_root(root, visit, max_dirs)
     return found.result()
 
 
@@ -266,20 +244,20 @@ def serve(root: str, host: str = "127.0.0.1", port: int = 8000, cors_origins: It
     named, scenes = unreadable_files(root)
     if scenes:
         print(f"splatstream serve: warning: {scenes} scene{'s' if scenes != 1 else ''} with files this server "
-              f"(uid {os.geteuid()}) may not read; they answer 403: {', '.join(named)}"
-              f"{', ...' if scenes > len(named) else ''}", file=sys.stderr, flush=True)
+              f"(uid {os.geteuid()}) may not read; they answer 403: {_listing(named, scenes)}",
+              file=sys.stderr, flush=True)
     named, unsafe = unservable_scene_names(root)
     if unsafe:
         # A scene under 'my scene/' was left out of /api/scenes without a word.
         print(f"splatstream serve: warning: {unsafe} scene director{'ies' if unsafe != 1 else 'y'} not served: a "
               f"name in the path is not URL-safe (letters, digits, '.', '_', '-'; not starting with '.'): "
-              f"{', '.join(repr(n) for n in named)}{', ...' if unsafe > len(named) else ''}; rename "
+              f"{_listing([repr(n) for n in named], unsafe)}; rename "
               f"{'them' if unsafe != 1 else 'it'}", file=sys.stderr, flush=True)
     named, exports = unserved_exports(root)
     if exports:
         # `serve exports/` beside `sog/garden` and `garden.rad` answered their URLs 404 without a word at start.
         print(f"splatstream serve: note: {exports} export{'s' if exports != 1 else ''} not served (this server serves "
-              f"scene directories and 3D Tiles tilesets): {', '.join(named)}{', ...' if exports > len(named) else ''};"
+              f"scene directories and 3D Tiles tilesets): {_listing(named, exports)};"
               f" serve {'them' if exports != 1 else 'it'} with a static web server that answers Range requests "
               f"(nginx, an object store)", file=sys.stderr, flush=True)
     if lowered:

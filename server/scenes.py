@@ -12,6 +12,7 @@ import logging
 import os
 import stat
 from collections import OrderedDict
+from collections.abc import Callable
 from dataclasses import dataclass
 
 from splatstream.errors import SplatstreamError
@@ -249,6 +250,31 @@ class SceneRoot:
 
     def list_scenes(self) -> list[dict]:
         return [s for sid, d in self.scan() if (s := self.summary(sid, d)) is not None]
+
+
+def walk_root(root: str, visit: Callable[[os.DirEntry, tuple[str, ...]], bool], max_dirs: int) -> None:
+    """Depth first under `root` for `serve`'s start-up checks (SceneRoot.scan keeps its own walk: it runs per request,
+    and turns a lack of file descriptors into OutOfResources): hidden entries (a leading '.', as build
+    temporaries are) and anything deeper than a scene id can be are skipped, at most `max_dirs` directories read.
+    `visit(entry, its path's segments)` says whether to descend into it; an entry that cannot be read is passed by."""
+    stack: list[tuple[str, tuple[str, ...]]] = [(root, ())]
+    visited = 0
+    while stack and visited < max_dirs:
+        directory, segs = stack.pop()
+        visited += 1
+        try:
+            entries = sorted(os.scandir(directory), key=lambda e: e.name)
+        except OSError:
+            continue
+        for e in entries:
+            if e.name.startswith(".") or len(segs) >= MAX_SCENE_DEPTH:
+                continue
+            child = (*segs, e.name)
+            try:
+                if visit(e, child):
+                    stack.append((e.path, child))
+            except OSError:
+                continue
 
 
 def _report_unreadable(path: str) -> None:

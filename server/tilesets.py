@@ -33,7 +33,15 @@ from .paths import (
     is_inside,
     percent_decode,
 )
-from .scenes import SMALL_FILE_BYTES, NotFound, OpenedFile, SceneRoot, read_first_bytes, real_path_of_fd
+from .scenes import (
+    SMALL_FILE_BYTES,
+    NotFound,
+    OpenedFile,
+    SceneRoot,
+    read_first_bytes,
+    real_path_of_fd,
+    walk_root,
+)
 
 TILESET_TYPE = "application/json"
 CONTENT_TYPE = "model/gltf-binary"
@@ -129,28 +137,17 @@ def find_tilesets(root: str, limit: int = 10_000) -> list[str]:
     names, at most MAX_SCENE_DEPTH deep, not hidden, not inside a scene or a tileset, links only inside the root."""
     real_root = os.path.realpath(root)
     found: list[str] = []
-    stack: list[tuple[str, tuple[str, ...]]] = [(root, ())]
-    visited = 0
-    while stack and visited < limit:
-        directory, segs = stack.pop()
-        visited += 1
-        try:
-            entries = list(os.scandir(directory))
-        except OSError:
-            continue
-        for e in entries:
-            if not SEGMENT_RE.match(e.name) or len(segs) >= MAX_SCENE_DEPTH:
-                continue
-            try:
-                if not e.is_dir() or (e.is_symlink() and not is_inside(os.path.realpath(e.path), real_root)):
-                    continue
-            except OSError:
-                continue
-            child = (*segs, e.name)
-            if _is_regular(os.path.join(e.path, MANIFEST_NAME)):
-                continue
-            if _is_regular(os.path.join(e.path, TILESET_NAME)):
-                found.append("/".join(child))
-            else:
-                stack.append((e.path, child))
+
+    def visit(e: os.DirEntry, segs: tuple[str, ...]) -> bool:
+        if not SEGMENT_RE.match(e.name) or not e.is_dir() or (
+                e.is_symlink() and not is_inside(os.path.realpath(e.path), real_root)):
+            return False
+        if _is_regular(os.path.join(e.path, MANIFEST_NAME)):
+            return False
+        if _is_regular(os.path.join(e.path, TILESET_NAME)):
+            found.append("/".join(segs))
+            return False
+        return True
+
+    walk_root(root, visit, limit)
     return sorted(found)
