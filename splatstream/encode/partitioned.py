@@ -946,8 +946,7 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
     frame = CameraFrame.of(sample.positions) if refiner is not None else None
     # the refiner for the fits that run at once: the partitions (at most one per worker); each tier of upper domains
     # asks again in _upper_tiles
-    concurrent_fits = getattr(refiner, "for_concurrent_fits", None)
-    partition_refiner = concurrent_fits(min(engine.workers, partitions)) if concurrent_fits else refiner
+    partition_refiner = _for_fits(refiner, min(engine.workers, partitions))
     results = engine.map(build_partition, [(p, level, shape, chunk_counts, scratch, ctx, payloads,
                                             engine.threads_per_task, level > 0, merge, partition_refiner, scene.up,
                                             frame)
@@ -993,6 +992,12 @@ def _log_domains(records: list[LodRefinement], above: LodRefinement | None) -> N
     parts += [f"level {level} " + ", ".join(f"{k} in {c}" for k, c in sorted(kept.items()))
               for level, kept in sorted(counts.items())]
     log.info("LOD refinement by %s: kept %s", count(len(records), "merge domain"), "; ".join(parts))
+
+
+def _for_fits(refiner: LodRefiner | None, fits: int) -> LodRefiner | None:
+    """The refiner to run when `fits` fits run at once (its `for_concurrent_fits`, where it has one: lod_refine)."""
+    share = getattr(refiner, "for_concurrent_fits", None)
+    return share(fits) if share else refiner
 
 
 def _upper_tiles(engine: Engine, scratch: Scratch, shape: TreeShape, level: int, root_splats: list[int],
@@ -1076,7 +1081,7 @@ def _upper_tiles(engine: Engine, scratch: Scratch, shape: TreeShape, level: int,
         for top in tops:
             domains = range(2 ** shape.kd_depths[top])
             fits = min(engine.workers, len(domains))
-            tier_refiner = refiner.for_concurrent_fits(fits) if hasattr(refiner, "for_concurrent_fits") else refiner
+            tier_refiner = _for_fits(refiner, fits)
             # the partitions' roots as refined (a partition that is a leaf: its originals); a higher tier's roots:
             # the tier below's tops, refined in place
             prefix = "refined" if bottom == level and level < shape.leaf_level else "tile"
