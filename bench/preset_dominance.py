@@ -231,6 +231,11 @@ def preset_table(scenes: dict[str, dict], columns: int = 0) -> str:
 
     def cell(r: dict | None, preset: str = "", s: dict | None = None) -> str:
         if r is None and s is not None and not s["input"]["sh_degree"] and preset in SH_BASE:
+            base = s["presets"].get(SH_BASE[preset])
+            # medium-low's rotations where its encoder chose cube8x4 (format 1.14): the per-splat SH presets keep
+            # the half turns (norm8x4), so on such a scene they are its planes but for the rotations
+            if base is not None and base["formats"]["rotation"] != PRESETS[preset]["rotation"]:
+                return f"= {SH_BASE[preset]} with {PRESETS[preset]['rotation']} rotations (no SH bands)"
             return f"= {SH_BASE[preset]} (no SH bands)"
         if r is None:
             return "not run"

@@ -49,9 +49,9 @@ def test_shader_decode_equals_numpy(gl_compute_context, gaussians, fmt):
     if FORMATS[fmt].block > 1:
         pytest.importorskip("etcpak")
         pytest.importorskip("texture2ddecoder")
-    color = fmt if FORMATS[fmt].components == 4 else "f16x4"
     rotation = fmt
-    fmt = FORMATS[fmt].texels  # a rotation-only format (cube565, format.md 4.5) for the rotation, its texels elsewhere
+    fmt = FORMATS[fmt].texels  # a rotation-only format (cube565, cube8x4, format.md 4.5) for the rotation, its
+    color = fmt if FORMATS[fmt].components == 4 else "f16x4"  # texels elsewhere
     overrides = {"position": fmt, "rotation": rotation, "scale": fmt, "color": color, "sh": fmt}
     scene = tiles_from_gaussians(gaussians, "very-high", overrides=overrides)
     tile = scene.tiles[0]

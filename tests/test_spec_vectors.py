@@ -18,9 +18,14 @@ VECTORS = pathlib.Path(__file__).resolve().parents[1] / "format_spec" / "vectors
 
 
 # Each vector's version: 1.2 (the manifest carries its checksum), 1.13 where the rotations are cube565 (format.md
-# 4.5, since rotrange32). `low-norm565` is `low` as written before 1.13 (norm565 rotations in the cube gauge, 1.2): a
-# reader still decodes such a scene exactly as it did.
-PRESET_VECTORS = {"high": (1, 2), "medium": (1, 2), "low": (1, 13), "very-low": (1, 13), "low-norm565": (1, 2)}
+# 4.5, since rotrange32), 1.14 where they are cube8x4 (medium-low on fruit_drops' splats, off any 8-bit grid, since
+# cube32). `low-norm565` is `low` as written before 1.13 (norm565 rotations in the cube gauge, 1.2): a reader still
+# decodes such a scene exactly as it did.
+PRESET_VECTORS = {"high": (1, 2), "medium": (1, 2), "medium-low": (1, 14), "low": (1, 13), "very-low": (1, 13),
+                  "low-norm565": (1, 2)}
+# The rotation format each vector holds (format.md 4.5).
+VECTOR_ROTATIONS = {"high": "norm10_2", "medium": "norm10_2", "medium-low": "cube8x4", "low": "cube565",
+                    "very-low": "cube565", "low-norm565": "norm565"}
 
 
 @pytest.mark.parametrize("name", sorted(PRESET_VECTORS))
@@ -31,10 +36,9 @@ def test_vector_decodes_to_expected_values(name):
     scene = VECTORS / name
     expected = json.loads((scene / "expected.json").read_text())
     m = load_manifest(scene)
-    codebook = preset in ("low", "very-low")  # SH codebook (format 1.1 and later)
+    codebook = preset in ("medium-low", "low", "very-low")  # SH codebook (format 1.1 and later)
     assert m.version == PRESET_VECTORS[name] and m.uses_codebook == codebook
-    if preset in ("low", "very-low"):
-        assert m.formats["rotation"] == ("norm565" if name == "low-norm565" else "cube565")
+    assert m.formats["rotation"] == VECTOR_ROTATIONS[name]
     assert m.preset == preset and m.splats == expected["splats"] == 260
     g = decode_scene(scene)
     for field in ("positions", "rotations", "log_scales", "opacities", "sh_dc", "sh_rest"):
@@ -52,7 +56,7 @@ def make_vectors():
     return module
 
 
-@pytest.mark.parametrize("preset", ["high", "medium", "low", "very-low"])
+@pytest.mark.parametrize("preset", ["high", "medium", "medium-low", "low", "very-low"])
 def test_vector_is_what_the_preset_writes_today(preset, tmp_path):
     """An old vector still decodes to its values (above), but it may no longer show what its preset writes:
     medium's did not have its scales on a tile step (issue 32) for a while. The scene is encoded again by
@@ -201,12 +205,14 @@ def test_compact_vector_is_what_the_encoder_writes_today(tmp_path):
 # payload share a block (container._block_ends), where a block per part had made 125 / 81 / 62 / 56 / 1214; medium's
 # and very-low's rewritten with their rotations in a canonical gauge (issue 32, rot32: 49 and 12 blocks before), high's
 # with its rotations in the half turns (evalrefresh32: 38 before); low's and very-low's with cube565 rotations (format
-# 1.13, rotrange32: 14 and 16 before; the old low kept as low-norm565).
-VECTOR_BLOCKS = {"high": 27, "medium": 51, "low": 12, "very-low": 13, "low-norm565": 14, "table": 165}
+# 1.13, rotrange32: 14 and 16 before; the old low kept as low-norm565); medium-low's written with cube8x4 rotations
+# (format 1.14, cube32).
+VECTOR_BLOCKS = {"high": 27, "medium": 51, "medium-low": 45, "low": 12, "very-low": 13, "low-norm565": 14,
+                 "table": 165}
 # Those with a payload of fewer blocks than sections: a block there holds the end of one section and the start of
 # the next (in high's and medium's the shared blocks are within sections; very-low's, rewritten in rot32, ended a
 # block with every section, and rewritten in rotrange32 has the case again; low, low-norm565 and table keep it).
-ACROSS_SECTIONS = {"low", "very-low", "low-norm565", "table"}
+ACROSS_SECTIONS = {"medium-low", "low", "very-low", "low-norm565", "table"}
 
 
 @pytest.mark.parametrize("name", sorted(VECTOR_BLOCKS))

@@ -6,7 +6,7 @@ import json
 from collections import Counter
 
 from splatstream.format.manifest import Manifest, scene_summary
-from splatstream.format.presets import PRESET_SH_CODEBOOK, PRESET_SUMMARY, PRESETS
+from splatstream.format.presets import PRESET_SH_CODEBOOK, PRESET_SUMMARY, PRESETS, rotation_choices
 from splatstream.progress import count
 from splatstream.store import load_manifest
 
@@ -79,7 +79,9 @@ def _overrides(m: Manifest) -> dict[str, str] | None:
     """What the scene's formats and codebook change from its preset's (None: a preset this version does not know)."""
     if m.preset not in PRESETS:
         return None
-    out = {a: f for a, f in m.formats.items() if PRESETS[m.preset].get(a) != f and (a != "sh" or m.sh_degree > 0)}
+    # a rotation format the preset's encoder measured and chose (presets.rotation_choices) is the preset's own
+    out = {a: f for a, f in m.formats.items() if PRESETS[m.preset].get(a) != f and (a != "sh" or m.sh_degree > 0)
+           and not (a == "rotation" and f in rotation_choices(m.preset))}
     if m.sh_degree > 0 and m.uses_codebook != (m.preset in PRESET_SH_CODEBOOK):
         out["sh_codebook"] = str(m.sh_codebook.entries) if m.sh_codebook else "off"
     return out

@@ -2,9 +2,10 @@
 
     PYTHONPATH=. python format_spec/vectors/make_vectors.py [NAME ...]
 
-NAME: high, medium, low, very-low, paged, table, levels, refined, compact (default: all). tests/test_spec_vectors.py
-encodes the presets' scenes again with `encode_vector` (`levels`, `refined` with `encode_record_vector`, `compact`
-with `encode_compact_vector`) and fails when what the encoder writes today no longer matches the vector."""
+NAME: high, medium, medium-low, low, very-low, paged, table, levels, refined, compact (default: all).
+tests/test_spec_vectors.py encodes the presets' scenes again with `encode_vector` (`levels`, `refined` with
+`encode_record_vector`, `compact` with `encode_compact_vector`) and fails when what the encoder writes today no
+longer matches the vector."""
 import json
 import pathlib
 import shutil
@@ -21,7 +22,7 @@ HERE = pathlib.Path(__file__).resolve().parent
 # The bundled copy of the shared data's scene (the same bytes: tests/data/real/README.md), so a fresh clone can
 # regenerate the vectors.
 SOURCE = HERE.parents[1] / "tests" / "data" / "real" / "fruit_drops_sh3.ply"
-PRESETS = ["high", "medium", "low", "very-low"]
+PRESETS = ["high", "medium", "medium-low", "low", "very-low"]
 SPLATS = 260
 # A paged scene (format.md 6.1, version 1.5): an LOD tree of 600 splats (SH degree 1) in leaves of at most 64, one
 # level in the root manifest and in each page, so it has a page below every interior tile.

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..errors import InputError, UsageError
-from ..format.codec import PaletteValues, chunk_ranges, merged_pairs, scene_palettes
+from ..format.codec import PaletteValues, chunk_ranges, decode_rotations, encode_rotations, merged_pairs, scene_palettes
 from ..format.container import DEFAULT_ZSTD_LEVEL
 from ..format.layout import CHUNK_SIZE, MAX_BLOCK_ROWS, MAX_BLOCKS_PER_ROW
 from ..format.limits import describe_violations, domain_violations
@@ -29,13 +29,15 @@ from ..format.presets import (
     preset_zstd_min_match,
     resolve_chunk_order,
     resolve_formats,
+    rotation_choices,
     rotation_gauge,
 )
 from ..format.steps import TileStep, on_grid
-from ..format.texformats import PALETTE_FORMATS
+from ..format.texformats import PALETTE_FORMATS, pack_texels, unpack_texels
 from ..gaussians import Gaussians
 from ..lod import Tile, build_tiles, viewing_scales_px
 from ..lod_refine import refine_tree
+from ..rotation_canon import canonical_gauge
 from ..store import is_url
 from ..vq import Codebook
 from .codebook import codebook_choice
@@ -195,6 +197,7 @@ def plan_scene(opts: EncodeOptions, formats: dict[str, str], chunk_order: str, s
     sample = replace(sample, codebook_rows=None, codebook_weights=None)
     up = plan_up(opts, sample)
     formats, steps, palettes = plan_palettes(opts, formats, sample.palettes)
+    formats = plan_rotation_format(opts, formats, sample.orient.rotations, sample.orient.log_scales)
     context = TileContext(formats, chunk_order, sh_degree, codebook, opts.resolved_zstd_level, opts.resolved_transport,
                           steps, palettes, preset_block_slack(opts.preset), preset_zstd_min_match(opts.preset),
                           preset_one_block_slack(opts.preset), rotation_gauge(opts.preset, formats))
@@ -271,6 +274,42 @@ def plan_palettes(opts: EncodeOptions, formats: dict[str, str], fitted: dict[str
             for i in indices:
                 palettes[name][i] = merged_pairs(palettes[name][i])
     return formats, steps, palettes
+
+
+def rotation_error_deg(rotations: np.ndarray, log_scales: np.ndarray, preset: str, formats: dict[str, str]
+                       ) -> np.ndarray:
+    """(N,) float64: each splat's rotation error in degrees as `preset` with these formats stores it: the angle of
+    the rotation between the quaternion the encoder quantises (the input's in the preset's gauge, rotation_canon) and
+    the one a reader decodes (codec's numpy reference through the texels). A gauge change is exact, so this is the
+    angle by which the splat's axes turn."""
+    q = np.asarray(rotations, np.float32)
+    gauge = rotation_gauge(preset, formats)
+    if gauge:
+        q, _ = canonical_gauge(q, log_scales, gauge)
+    fmt = formats["rotation"]
+    stored = decode_rotations(unpack_texels(fmt, pack_texels(fmt, encode_rotations(q, fmt))), fmt)
+    a, b = q.astype(np.float64), stored.astype(np.float64)
+    # conj(a) * b, the turn from one to the other; its angle by atan2, which stays exact near 0 (arccos does not)
+    w = np.sum(a * b, axis=1)
+    v = a[:, :1] * b[:, 1:] - b[:, :1] * a[:, 1:] - np.cross(a[:, 1:], b[:, 1:])
+    return np.degrees(2.0 * np.arctan2(np.linalg.norm(v, axis=1), np.abs(w)))
+
+
+def plan_rotation_format(opts: EncodeOptions, formats: dict[str, str], rotations: np.ndarray,
+                         log_scales: np.ndarray) -> dict[str, str]:
+    """The formats with the rotation format the preset measures closest to the input (presets.rotation_choices):
+    of its candidates, the one with the smallest mean rotation error (rotation_error_deg) over these rotations (the
+    scene sample's, so every engine decides alike), the preset's own on a tie; logged in one line. Unchanged for a
+    preset with one rotation format, or one given by the options."""
+    choices = rotation_choices(opts.preset, opts.overrides)
+    if len(choices) < 2 or formats["rotation"] != choices[0] or len(rotations) == 0:
+        return formats
+    errors = {fmt: float(np.mean(rotation_error_deg(rotations, log_scales, opts.preset, {**formats, "rotation": fmt})))
+              for fmt in choices}
+    best = min(choices, key=lambda fmt: errors[fmt])  # the first of equal errors: the preset's own
+    log.info("%s rotations: %s (mean angle error %s over %s sampled splats)", opts.preset, best,
+             ", ".join(f"{fmt} {errors[fmt]:.3f} deg" for fmt in choices), f"{len(rotations):,}")
+    return {**formats, "rotation": best}
 
 
 def palette_planes(formats: dict[str, str]) -> tuple[str, ...]:

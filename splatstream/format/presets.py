@@ -63,7 +63,8 @@ PRESETS: dict[str, dict[str, str]] = {
     "low-plus-10bit-cb8": {"position": "norm16x4", "rotation": "norm8x4", "scale": "norm8x4", "color": "norm8x4",
                            "sh": "norm565"},
     # medium's positions, 8-bit smallest-three rotations, 8-bit scales and the SH codebook at its finer size: on
-    # the 1M scene within 1.2 dB of medium at 40 % of its bytes; on fruit_drops 46.6 dB at 15.3 B.
+    # the 1M scene within 1.2 dB of medium at 40 % of its bytes; on fruit_drops 46.6 dB at 15.3 B. Its rotations are
+    # measured per scene since format 1.14 (PRESET_ROTATION_CHOICES): these half turns, or cube8x4 where closer.
     "medium-low": {"position": "norm11", "rotation": "norm8x4", "scale": "norm8x4", "color": "norm8x4",
                    "sh": "norm565"},
     # medium-low with 9-bit positions (norm9x3, format 1.3) and zstd level 16: between low-plus and medium-low on
@@ -258,8 +259,9 @@ PRESET_SUMMARY: dict[str, str] = {
                        "about 23.1 B/splat at SH2 (flowers, 53.1 dB), 29 at SH3, 12.1-13.1 at SH0",
     "medium-low-sh8": "medium-low with per-splat SH bands on importance-scaled steps of about 3 bits; about 21 "
                       "B/splat at SH2 (flowers, 48.1 dB), 26 at SH3, 12.1-13.1 at SH0",
-    "medium-low": "medium's positions, 8-bit rotations and scales, SH codebook (about 1 entry per 16 splats); "
-                  "about 15 B/splat at SH3, 15.2 at SH2, 12.1-13.1 at SH0; 42-71 dB",
+    "medium-low": "medium's positions, 8-bit rotations (half turns, or cube8x4 where that measures closer to the "
+                  "input) and scales, SH codebook (about 1 entry per 16 splats); about 15.1 B/splat at SH3, 15.2 at "
+                  "SH2, 12.2-13.1 at SH0; 42-74 dB",
     "medium-low-12bit": "medium-low with about 12-bit positions (16-bit texels on one step per tile), coarser "
                         "scales and opacity, zstd level 16; about 14.3 B/splat at SH3, 15 at SH2, 11.9-12.7 at "
                         "SH0; 42-68 dB",
@@ -418,13 +420,33 @@ PRESET_ROTATION_GAUGE: dict[str, str] = {
                      "medium-low-12bit", "medium-low-palette", "low-plus-9bit", "low-plus"), "half-turns")}
 
 
+# Presets whose encoder measures more than one rotation format on the scene and keeps the one closest to the input
+# (encode/plan.plan_rotation_format: the mean angle between each splat's rotation and its stored one, over the scene
+# sample's rotations; the first, the preset's own in PRESETS, on a tie), unless the rotation format is given. For
+# medium-low (issue 32, cube32): its half turns (norm8x4, smallest three) keep a rotation that lies on an 8-bit
+# smallest-three grid (a SOG file's) exactly, where the cube in cube8x4 (format 1.14: the gauge's x, y, z over its
+# range, 1.7x finer) moves it off (-0.48 dB on the statues); off any such grid (PLY, .splat, a compressed PLY's 10
+# bits) cube8x4 is the closer, +0.2 to +2.9 dB (bench/rot_range_probe.py, rotrange32). The measure decides where the
+# input lies without a test for grids: chosen on fruit_drops and guitar, held out on the 14 other real scenes
+# (BENCHMARKS.md, "medium-low's rotations over the cube gauge's range").
+PRESET_ROTATION_CHOICES: dict[str, tuple[str, ...]] = {"medium-low": ("norm8x4", "cube8x4")}
+
+
+def rotation_choices(preset: str, overrides: dict[str, str] | None = None) -> tuple[str, ...]:
+    """The rotation formats the encoder measures for `preset` (PRESET_ROTATION_CHOICES), the preset's own first;
+    none where the rotation format is given (`--rotation`) or the preset has one only."""
+    if overrides and "rotation" in overrides:
+        return ()
+    return PRESET_ROTATION_CHOICES.get(preset, ())
+
+
 def rotation_gauge(preset: str, formats: dict[str, str]) -> str | None:
     """The canonical gauge `preset`'s encoder picks with these formats (PRESET_ROTATION_GAUGE), None for none: none
     for float rotations (stored as given)."""
     fmt = get_format(formats["rotation"])
     if fmt.levels[0] == 0:
         return None
-    if fmt.rotation_range != 1.0:  # the format holds only the gauge's range (cube565, format.md 4.5): any preset
+    if fmt.rotation_range != 1.0:  # the format holds only the gauge's range (cube565, cube8x4, format.md 4.5)
         return "cube"
     return PRESET_ROTATION_GAUGE.get(preset)
 

@@ -72,6 +72,11 @@ FORMATS: dict[str, TexelFormat] = {f.name: f for f in (
     # [-tan(pi/8), tan(pi/8)], 2.4x finer than norm565's [-1, 1] (issue 32, rotrange32).
     TexelFormat("cube565", 16, 3, (31, 63, 31), "R16UI", shuffle=2, same_texels_as="norm565",
                 rotation_range=CUBE_GAUGE_RANGE),
+    # Format 1.14, rotation only (format.md 4.5): norm8x4's texels holding x, y, z of a cube-gauge quaternion over
+    # [-tan(pi/8), tan(pi/8)] in R, G, B (A written 0, not read), 1.7x finer than smallest three's 8-bit
+    # [-0.707, 0.707]; medium-low's where it measures closer to the input than the half turns (issue 32, cube32).
+    TexelFormat("cube8x4", 32, 4, (255, 255, 255, 255), "RGBA8", shuffle=4, same_texels_as="norm8x4",
+                rotation_range=CUBE_GAUGE_RANGE),
     TexelFormat("bc7", 8, 4, (255, 255, 255, 255), "COMPRESSED_RGBA_BPTC_UNORM", block=4),
     TexelFormat("bc1", 4, 3, (31, 63, 31), "COMPRESSED_RGB_S3TC_DXT1", block=4),
     # Not a value format: a codebook entry index (0..65535) per texel, for the SH codebook's per-splat index.

@@ -70,6 +70,7 @@ from .versions import (
     FORMATS_1_3,
     FORMATS_1_6,
     FORMATS_1_13,
+    FORMATS_1_14,
     VERSION_1_3,
     VERSION_1_4,
     VERSION_1_5,
@@ -81,6 +82,7 @@ from .versions import (
     VERSION_1_11,
     VERSION_1_12,
     VERSION_1_13,
+    VERSION_1_14,
 )
 from .wire import CHECKSUM_KEY, unpack_manifest, verify_checksum
 
@@ -851,6 +853,8 @@ def _formats(d: dict, version: tuple[int, int], source: str, strict: bool) -> di
             _fail(source, "formats", a, _newer_than(version, f, VERSION_1_6))
         if f in FORMATS_1_13 and version < VERSION_1_13:
             _fail(source, "formats", a, _newer_than(version, f, VERSION_1_13))
+        if f in FORMATS_1_14 and version < VERSION_1_14:
+            _fail(source, "formats", a, _newer_than(version, f, VERSION_1_14))
         if f in ROTATION_ONLY_FORMATS and a != "rotation":
             _fail(source, "formats", a, f"{f} holds rotations in the cube gauge (format.md 4.5) only")
         if f in PALETTE_FORMATS and a not in PALETTE_ATTRIBUTES:

@@ -4,7 +4,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 FORMAT_NAME = "splatstream"
-FORMAT_VERSION = (1, 13)  # (major, minor) this code reads; what it writes: writer_version
+FORMAT_VERSION = (1, 14)  # (major, minor) this code reads; what it writes: writer_version
 # Version 1.2 added two things (format.md, version history): the manifest's last key `checksum`, the SHA-256 of the
 # file with that value's 64 bytes read as ASCII '0' (format.md 6, "Checksum"), so a flipped byte in the manifest is
 # caught like one in a payload; and the `fields1` transport coding of texels sections (format.md 5.2).
@@ -33,13 +33,21 @@ VERSION_1_7 = (1, 7)
 # so it fails cleanly and misreads nothing (a manifest key saying "ranged" would be ignored by them: wrong rotations).
 VERSION_1_13 = (1, 13)
 FORMATS_1_13 = ("cube565",)
+# Version 1.14 added the rotation format cube8x4 (format.md 4.5): norm8x4's texels holding x, y, z of a cube-gauge
+# quaternion over [-tan(pi/8), tan(pi/8)] (w derived), 1.7x finer than smallest three's 8 bits; medium-low's where the
+# encoder measures it closer to the input's rotations than the half turns (issue 32, cube32). Written only by scenes
+# with such a plane; a 1.0-1.13 reader rejects the manifest naming the unknown texel format, as for cube565.
+VERSION_1_14 = (1, 14)
+FORMATS_1_14 = ("cube8x4",)
 
 
 def writer_version(formats: Mapping[str, str], codebook_format: str | None = None,
                    chunk_order: str = "morton") -> tuple[int, int]:
-    """The version a writer writes a scene of these texel formats and chunk order as: 1.13 with a cube565 rotation
-    plane, 1.6 with a palette plane, 1.4 in the chunk order `input`, 1.3 with a norm16x4 or norm9x3 plane (or SH
-    codebook), 1.2 otherwise (every scene carries the 1.2 manifest checksum)."""
+    """The version a writer writes a scene of these texel formats and chunk order as: 1.14 with a cube8x4 rotation
+    plane, 1.13 with a cube565 one, 1.6 with a palette plane, 1.4 in the chunk order `input`, 1.3 with a norm16x4 or
+    norm9x3 plane (or SH codebook), 1.2 otherwise (every scene carries the 1.2 manifest checksum)."""
+    if set(formats.values()) & set(FORMATS_1_14):
+        return VERSION_1_14
     if set(formats.values()) & set(FORMATS_1_13):
         return VERSION_1_13
     if set(formats.values()) & set(FORMATS_1_6):
