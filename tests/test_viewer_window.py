@@ -234,3 +234,60 @@ def test_window_exit_when_converged_with_screenshot_alone(display, served, tmp_p
     shot = np.asarray(Image.open(tmp_path / "shot.png"), np.float32) / 255.0
     assert shot.ndim == 3 and shot.shape[2] == 3
     assert shot.std() > 0.02  # the scene is in the picture, not an empty background
+
+
+def test_window_says_which_payload_keeps_failing(display, tmp_path):
+    """A served scene whose payloads the server does not have (stopped, or a file gone: 404): the window showed
+    only 'OFFLINE' or nothing and printed nothing, so it looked stuck. It now names the payload's URL and why on
+    stderr once it has failed twice in a row (as --headless does), and keeps retrying."""
+    from splatstream.store import load_manifest
+
+    root = tmp_path / "root"
+    r = subprocess.run([sys.executable, "-m", "cli", "encode", str(ROOT / "samples" / "donut.ply"),
+                        str(root / "donut"), "--max-leaf-splats", "8000", "-q"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    m = load_manifest(root / "donut")
+    keep = {e.file for e in (m.tile(m.root).groups[g] for g in m.tile(m.root).groups)}
+    removed = [p for p in (root / "donut" / "data").iterdir() if f"data/{p.name}" not in keep]
+    assert removed  # every tile but the root: its picture comes, the finer tiles answer 404
+    for p in removed:
+        p.unlink()
+    server = subprocess.Popen([sys.executable, "-m", "cli", "serve", str(root), "--port", "0", "--no-access-log"],
+                              stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+    try:
+        url = server.stderr.readline().split("at ", 1)[1].split(" ", 1)[0].rstrip("/") + "/scenes/donut"
+        env = {**os.environ, "DISPLAY": display, "SPLATSTREAM_CACHE_DIR": str(tmp_path / "cache")}
+        viewer = subprocess.Popen([sys.executable, "-m", "cli", "view", url, "--size", f"{SIZE[0]}x{SIZE[1]}",
+                                   "--no-vsync"], env=env, cwd=tmp_path, stdout=subprocess.PIPE,
+                                  stderr=subprocess.STDOUT, text=True)
+        output = ViewerOutput(viewer.stdout)
+        try:
+            window = wait_for_window(display, viewer, output)
+            said = output.wait_for(f"view: {url}/data/", -1, "line naming the failing payload")
+            line = output.lines[said]
+            assert "not on the server (404" in line and line.endswith("; retrying"), line
+            assert viewer.poll() is None  # still open, retrying
+            xdo(display, "windowfocus", "--sync", window)
+            xdo(display, "key", "Escape")
+            viewer.wait(HANG_S)
+            output.join()
+        finally:
+            if viewer.poll() is None:
+                viewer.kill()
+                viewer.wait()
+    finally:
+        server.send_signal(signal.SIGTERM)
+        server.wait(10)
+    out = output.text()
+    assert viewer.returncode == 0, out
+    assert "Traceback" not in out
+    assert len([ln for ln in output.lines if ln.startswith(f"view: {url}/data/")]) == 1, out  # once, not a frame
+
+
+def test_overlay_gpu_line_says_the_budget_as_given():
+    # `view --gpu-mem-mb 0.5` in a window: 'GPU 0.5 MiB resident of 0 MiB budget' (the budget rounded to MiB), read
+    # as over budget; the headless summary says 'budget 0.5 MiB' since newuser58
+    from client_gl.window import gpu_line
+
+    assert gpu_line(524_288, int(0.5 * 2**20)) == "GPU     0.5 MiB resident of 0.5 MiB budget"
+    assert gpu_line(16_866_200, 1024 * 2**20) == "GPU     16.1 MiB resident of 1024 MiB budget"
