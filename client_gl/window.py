@@ -445,7 +445,13 @@ class Viewer:
         imgui.text("H: controls")
         imgui.end()
         if self.show_help:
-            imgui.set_next_window_pos((10, 330), imgui.Cond_.first_use_ever)
+            # Below the stats where the whole list fits; in a shorter window (960x600 cut off its last lines, Esc
+            # among them) from the window's bottom up, over the stats if need be. Placed each time it is shown.
+            height = (len(CONTROLS) + 2) * imgui.get_text_line_height_with_spacing() + 16
+            if 330 + height <= imgui.get_io().display_size.y:
+                imgui.set_next_window_pos((10, 330), imgui.Cond_.appearing)
+            else:
+                imgui.set_next_window_pos((10, imgui.get_io().display_size.y - 10), imgui.Cond_.appearing, (0, 1))
             imgui.begin("controls", None, imgui.WindowFlags_.always_auto_resize)
             for key, what in CONTROLS:
                 imgui.text(f"{key:<20} {what}")

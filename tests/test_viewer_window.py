@@ -291,3 +291,47 @@ def test_overlay_gpu_line_says_the_budget_as_given():
 
     assert gpu_line(524_288, int(0.5 * 2**20)) == "GPU     0.5 MiB resident of 0.5 MiB budget"
     assert gpu_line(16_866_200, 1024 * 2**20) == "GPU     16.1 MiB resident of 1024 MiB budget"
+
+
+def test_window_controls_list_fits_a_short_window(display, served, tmp_path):
+    """H in a window shorter than the controls list below the stats (a 960x600 window cut off its last lines, Esc
+    among them): the list is placed from the window's bottom up, so all of it shows."""
+    env = {**os.environ, "DISPLAY": display, "SPLATSTREAM_CACHE_DIR": str(tmp_path / "cache")}
+    viewer = subprocess.Popen([sys.executable, "-m", "cli", "view", served, "--size", f"{SIZE[0]}x{SIZE[1]}",
+                               "--gpu-mem-mb", "64", "--no-vsync"], env=env, cwd=tmp_path,
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    output = ViewerOutput(viewer.stdout)
+
+    def frame_after(keys: list[str], seen: int) -> tuple[np.ndarray, int]:
+        """The window's pixels once `keys` and a screenshot key have been handled: events are handled in order,
+        between frames, so each 'saved' line comes a frame or more after the keys before it."""
+        xdo(display, "key", *keys, "p")
+        seen = output.wait_for("saved ", seen, "line for the screenshot (P)")
+        return grab(display, window), seen
+
+    try:
+        window = wait_for_window(display, viewer, output)
+        seen = output.wait_for("view: converged", -1, "converged view of the scene")
+        xdo(display, "windowfocus", "--sync", window)
+        without, seen = frame_after([], seen)
+        shown, seen = frame_after(["h"], seen)
+        # The list is 16 lines (about 290 px) high. Placed at y = 330 as before, only its top rows are in a 420 px
+        # window, and the band 130-300 px right of the stats panel (x 400-520) shows the scene unchanged; placed
+        # from the bottom up, the list covers it. An auto-sized ImGui window shows a frame or two after it opens.
+        for _ in range(10):
+            if np.abs(shown[130:300, 400:520] - without[130:300, 400:520]).mean() > 0.02:
+                break
+            shown, seen = frame_after([], seen)
+        xdo(display, "key", "Escape")
+        viewer.wait(HANG_S)
+        output.join()
+    finally:
+        if viewer.poll() is None:
+            viewer.kill()
+            viewer.wait()
+    assert viewer.returncode == 0, output.text()
+    band = np.abs(shown[130:300, 400:520] - without[130:300, 400:520]).mean()
+    assert band > 0.02, band
+    # its last line (Esc) is inside the window: the list's bottom edge is above the window's
+    rows = np.abs(shown[:, 20:200] - without[:, 20:200]).mean(axis=(1, 2))
+    assert rows[-8:].max() < rows[SIZE[1] - 60:SIZE[1] - 20].max(), rows[-60:]
