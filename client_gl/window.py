@@ -28,7 +28,7 @@ from .camera_control import CameraController, state_from_camera
 from .gpu.gl import fence, gpu_wait
 from .render_thread import WAIT_S, Frame, RenderThread
 from .streaming import PreparedSource, StreamingSession, ViewOptions, freeze_long_lived
-from .view_headless import RETRIES_BEFORE_A_WARNING, write_png
+from .view_headless import RETRIES_BEFORE_A_WARNING, new_version_line, write_png
 
 EXIT_OK = 0
 EXIT_NOT_CONVERGED = 1
@@ -178,6 +178,7 @@ class Viewer:
         self.rate = 0.0
         self._rate_window: list[tuple[float, int]] = []
         self.messages: list[str] = []
+        self._versions = 0  # the session's manifest_changes said so far
         self.problem: str | None = None  # a payload failing RETRIES_BEFORE_A_WARNING times in a row, while it does
         self.screenshots: list[str] = []
         self.exit_code = EXIT_OK
@@ -596,6 +597,11 @@ class Viewer:
         and why), shown in the overlay while it lasts, and the recovery is said too."""
         if self.session is None:
             return
+        if self.session.manifest_changes != self._versions:  # re-encoded on the server, continued with (http.md 10)
+            self._versions = self.session.manifest_changes
+            line = new_version_line(self.session)
+            self._say(line)
+            self.messages.append(line[len("view: "):])
         failing = self.session.fetcher.failing()
         if failing and failing[0][2] >= RETRIES_BEFORE_A_WARNING:
             if self.problem is None:
