@@ -60,6 +60,15 @@ def write_png(path: str, image) -> None:
 RETRIES_BEFORE_A_WARNING = 2
 
 
+def new_version_line(session: StreamingSession) -> str:
+    """Said when a session has continued with a new version of its scene (re-encoded on the server while streamed:
+    http.md 10). The view rebuilt its pool and fetched again with nothing said: the picture went coarse, or
+    changed, for no reason a user could read."""
+    m = session.manifest
+    return (f"view: {session.source.location}: the scene was re-encoded on the server; continuing with its new version "
+            f"({m.splats:,} splats, preset {m.preset})")
+
+
 def _status_line(rec, downloaded: int) -> str:
     """The progress line of one frame record (FrameRecord)."""
     return (f"view: {rec.t:6.2f}s  {downloaded / 1e6:8.2f} MB  {rec.drawn_splats:>10,} drawn  "
@@ -110,6 +119,7 @@ def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
         frame = 0
         last_line = 0.0
         warned = False
+        versions = session.manifest_changes
         code = EXIT_OK
         while True:
             now = time.perf_counter() - start
@@ -129,6 +139,11 @@ def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
                     sys.stderr.flush()
                 elif done or frame % 20 == 1:
                     say(line)
+            if session.manifest_changes != versions:
+                versions = session.manifest_changes
+                if tty:
+                    sys.stderr.write("\n")
+                say(new_version_line(session))
             failing = None if warned or done else session.fetcher.failing()
             if failing and failing[0][2] >= RETRIES_BEFORE_A_WARNING:
                 # A payload the server keeps refusing (a scene missing a file: 404) was named only at --timeout,

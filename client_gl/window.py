@@ -28,7 +28,7 @@ from .camera_control import CameraController, state_from_camera
 from .gpu.gl import fence, gpu_wait
 from .render_thread import WAIT_S, Frame, RenderThread
 from .streaming import PreparedSource, StreamingSession, ViewOptions, freeze_long_lived
-from .view_headless import write_png
+from .view_headless import RETRIES_BEFORE_A_WARNING, new_version_line, write_png
 
 EXIT_OK = 0
 EXIT_NOT_CONVERGED = 1
@@ -51,6 +51,14 @@ CONTROLS = [
     ("H or ?", "show / hide these controls"),
     ("Esc", "quit"),
 ]
+
+
+
+def gpu_line(resident_bytes: int, budget_bytes: int) -> str:
+    """The overlay's GPU memory line. The budget as given, as the headless summary writes it: `--gpu-mem-mb 0.5`
+    showed 'GPU 0.5 MiB resident of 0 MiB budget', read as over budget."""
+    return f"GPU     {resident_bytes / 2**20:.1f} MiB resident of {budget_bytes / 2**20:.4g} MiB budget"
+
 
 _BLIT_VS = """#version 410
 out vec2 uv;
@@ -170,6 +178,8 @@ class Viewer:
         self.rate = 0.0
         self._rate_window: list[tuple[float, int]] = []
         self.messages: list[str] = []
+        self._versions = 0  # the session's manifest_changes said so far
+        self.problem: str | None = None  # a payload failing RETRIES_BEFORE_A_WARNING times in a row, while it does
         self.screenshots: list[str] = []
         self.exit_code = EXIT_OK
         self._settled = False  # the view was at rest at the last frame (settled())
@@ -436,7 +446,13 @@ class Viewer:
         imgui.text("H: controls")
         imgui.end()
         if self.show_help:
-            imgui.set_next_window_pos((10, 330), imgui.Cond_.first_use_ever)
+            # Below the stats where the whole list fits; in a shorter window (960x600 cut off its last lines, Esc
+            # among them) from the window's bottom up, over the stats if need be. Placed each time it is shown.
+            height = (len(CONTROLS) + 2) * imgui.get_text_line_height_with_spacing() + 16
+            if 330 + height <= imgui.get_io().display_size.y:
+                imgui.set_next_window_pos((10, 330), imgui.Cond_.appearing)
+            else:
+                imgui.set_next_window_pos((10, imgui.get_io().display_size.y - 10), imgui.Cond_.appearing, (0, 1))
             imgui.begin("controls", None, imgui.WindowFlags_.always_auto_resize)
             for key, what in CONTROLS:
                 imgui.text(f"{key:<20} {what}")
@@ -468,19 +484,28 @@ class Viewer:
         else:
             imgui.text(f"network {stats.bytes_downloaded / 1e6:.1f} MB, {self.rate * 8 / 1e6:.1f} Mbit/s"
                        f"{'  OFFLINE' if stats.offline else ''}")
-        imgui.text(f"GPU     {s.pool.resident_bytes / 2**20:.1f} MiB resident of {s.budget / 2**20:.0f} MiB budget")
+        imgui.text(gpu_line(s.pool.resident_bytes, s.budget))
         degree = min(s.options.sh_degree, s.manifest.sh_degree)
         imgui.text(f"SH      degree {degree} (scene {s.manifest.sh_degree})   {path}")
         imgui.text(f"camera  {self.controller.mode} (C switches)")
+        if self.problem is not None:
+            imgui.text_colored((1.0, 0.55, 0.4, 1.0), "retrying:")
+            imgui.same_line()
+            imgui.text_wrapped(self.problem)
 
     def _controls(self, imgui) -> None:
         s = self.session
         changed, self.ui_sse = imgui.slider_float("max SSE px", self.ui_sse, 0.0, 16.0, "%.2f")
         if changed:
             self._reconfigure(max_sse=self.ui_sse)
-        _, self.ui_budget = imgui.input_float("GPU MiB", self.ui_budget, 64.0, 256.0, "%.0f")
-        if imgui.is_item_deactivated_after_edit() and self.ui_budget > 1:
-            self._reconfigure(gpu_mem_mb=float(self.ui_budget))
+        _, self.ui_budget = imgui.input_float("GPU MiB", self.ui_budget, 64.0, 256.0, "%.4g")
+        if imgui.is_item_deactivated_after_edit():
+            if self.ui_budget > 1:
+                self._reconfigure(gpu_mem_mb=float(self.ui_budget))
+            else:  # was ignored while the field kept showing it, as if in force: say so and show the budget held
+                self.messages.append(f"GPU MiB {self.ui_budget:.4g} not taken: 1 or more here "
+                                     f"(--gpu-mem-mb takes less)")
+                self.ui_budget = s.budget / 2**20
         self.ui_degree = min(self.ui_degree, s.manifest.sh_degree)  # the slider shows what the scene can have
         changed, self.ui_degree = imgui.slider_int("SH degree", self.ui_degree, 0, s.manifest.sh_degree)
         if changed:
@@ -540,6 +565,7 @@ class Viewer:
                 self.fps, fps_frames, fps_start = fps_frames / (now - fps_start), 0, now
             if self.load_error is not None and self.run.exit_when_converged:
                 break
+            self._watch_failures()
             settled = self.settled()
             if settled and not self._settled:
                 # One line each time the view comes to rest: scripts and the window test wait for it, not a clock.
@@ -563,6 +589,28 @@ class Viewer:
             if self.session is None and self.load_error is None:
                 time.sleep(0.005)
         return self.exit_code
+
+    def _watch_failures(self) -> None:
+        """A payload that keeps failing (the server stopped or gone, a file missing: 404) showed only as OFFLINE
+        in the overlay, or not at all, and nothing was printed: the window looked stuck while streaming. As
+        --headless does, it is said on stderr once it has failed RETRIES_BEFORE_A_WARNING times in a row (its URL
+        and why), shown in the overlay while it lasts, and the recovery is said too."""
+        if self.session is None:
+            return
+        if self.session.manifest_changes != self._versions:  # re-encoded on the server, continued with (http.md 10)
+            self._versions = self.session.manifest_changes
+            line = new_version_line(self.session)
+            self._say(line)
+            self.messages.append(line[len("view: "):])
+        failing = self.session.fetcher.failing()
+        if failing and failing[0][2] >= RETRIES_BEFORE_A_WARNING:
+            if self.problem is None:
+                self._say(f"view: {failing[0][1]}; retrying")
+            more = len(failing) - 1
+            self.problem = failing[0][1] + (f" ({more} more payloads failing)" if more else "")
+        elif not failing and self.problem is not None:
+            self.problem = None
+            self._say("view: payloads arrive again; streaming")
 
     def settled(self) -> bool:
         """The view at rest: every tile it wants resident, nothing in flight (the last frame's `converged`), the

@@ -143,3 +143,13 @@ def test_streamed_sog_merged_with_another_input_says_its_tree_is_not_kept(tmp_pa
     assert f"encode: {sog} holds its own LOD tree; merged with the other inputs its finest level is read" in r.stderr
     info = json.loads(run_cli("info", tmp_path / "scene", "--json").stdout)
     assert info["splats"] == 4721 + 74
+
+
+def test_target_on_a_kept_tree_names_both_ways_out(tmp_path):
+    # `encode playbot --target-size 20` said only 'add --rebuild-lod'; --no-lod (its finest level alone) is the
+    # other way the README gives, and a target is then measured (newuser60)
+    sog = Path(__file__).parent / "fixtures" / "foreign" / "fruit_drops_lod" / "lod-meta.json"
+    r = run_cli("encode", sog, tmp_path / "scene", "--target-size", "20")
+    assert r.returncode == 2 and not (tmp_path / "scene").exists(), r.stderr
+    assert r.stderr.strip().endswith("add --rebuild-lod to build ours from its finest level, or --no-lod for its "
+                                     "finest level alone"), r.stderr

@@ -91,6 +91,10 @@ def cases(tmp, scene):
         (["view", scene, "--headless", "--fill-gap", "0"], "--fill-gap"),
         (["view", scene, "--headless", "--eye", "1,1,1", "--target", "1,1,1"], "--eye and --target"),
         (["view", scene, "--headless", "--sh-bands", "0.9,x,1"], "--sh-bands"),
+        # taken in a window without a word, and nothing written or kept (newuser60)
+        (["view", scene, "--frames-dir", tmp], "--frames-dir: only with --headless"),
+        (["view", scene, "--until-converged"], "--until-converged: only with --headless"),
+        (["view", scene, "--headless", "--measure-frames", "-3"], "--measure-frames -3: expected 0 or more"),
         (["export-3dtiles", tmp / "missing", tmp / "t"], "missing"),
         (["export-3dtiles", scene, tmp / "t", "--latitude", "10"], "--longitude"),
         (["export-3dtiles", scene, tmp / "t", "--content", "weird"], "--content"),

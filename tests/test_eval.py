@@ -387,3 +387,23 @@ def test_very_low_rgb127_is_measured_by_default_and_targets_between_very_low_and
     assert preset_for_target(rows, target_psnr=37)["label"] == "very-low-rgb127"
     assert preset_for_target(rows, target_bytes=10.1)["label"] == "very-low-rgb127"
     assert preset_for_target(rows, target_bytes=9.5)["label"] == "very-low"
+
+
+def test_eval_reads_a_sog_directory_as_convert_does(tmp_path, capsys):
+    # `eval /work/heldout/playcanvas-logo` (a SOG v1 directory, which convert, encode and render read) was refused:
+    # 'is a directory; eval takes ... another format `convert` reads'. Its input bytes are the planes' (13.2 B/splat
+    # for the whole logo), as for its meta.json.
+    sog_dir = ROOT / "tests" / "fixtures" / "foreign" / "logo_v1_sub300"
+    common = ["--presets", "low", "--views", "1", "--size", "32x32", "--renderer", "ref", "-q", "--json"]
+    assert main(["eval", str(sog_dir), *common, str(tmp_path / "dir.json")]) == 0, capsys.readouterr().err
+    assert main(["eval", str(sog_dir / "meta.json"), *common, str(tmp_path / "meta.json")]) == 0
+    by_dir, by_meta = (json.loads((tmp_path / n).read_text()) for n in ("dir.json", "meta.json"))
+    assert by_dir["input"]["splats"] == by_meta["input"]["splats"] == 300
+    assert by_dir["input"]["bytes"] == by_meta["input"]["bytes"] > 1000  # the planes, not the meta.json alone
+    # a splatstream scene's directory is still refused, saying what gives its splats
+    scene = tmp_path / "scene"
+    assert main(["encode", str(sog_dir), str(scene), "-q"]) == 0
+    capsys.readouterr()
+    assert main(["eval", str(scene), "--presets", "low"]) == 2
+    err = capsys.readouterr().err
+    assert "is a directory; eval takes the original splat file" in err and "`splatstream decode`" in err, err

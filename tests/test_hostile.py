@@ -171,6 +171,10 @@ def test_view_continues_with_a_scene_re_encoded_mid_stream(root, server, tmp_pat
     assert r.returncode == 0, r.stderr
     log = server.requests("/data/")
     assert any(status == 404 for _, status in log), log  # old payloads were asked for after the swap
+    # and the switch is said (the view rebuilt its pool and fetched again without a word: newuser60)
+    said = [ln for ln in r.stderr.splitlines() if "the scene was re-encoded on the server" in ln]
+    assert len(said) == 1 and said[0].startswith(f"view: {server.url('s')}/manifest.msgpack: "), r.stderr
+    assert said[0].endswith(" splats, preset medium)"), said[0]
     clean = HostileServer(root / "root")
     (root / "root" / "s2").exists() or (root / "root" / "s2").symlink_to(root / "s2")
     with clean:

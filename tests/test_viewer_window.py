@@ -234,3 +234,104 @@ def test_window_exit_when_converged_with_screenshot_alone(display, served, tmp_p
     shot = np.asarray(Image.open(tmp_path / "shot.png"), np.float32) / 255.0
     assert shot.ndim == 3 and shot.shape[2] == 3
     assert shot.std() > 0.02  # the scene is in the picture, not an empty background
+
+
+def test_window_says_which_payload_keeps_failing(display, tmp_path):
+    """A served scene whose payloads the server does not have (stopped, or a file gone: 404): the window showed
+    only 'OFFLINE' or nothing and printed nothing, so it looked stuck. It now names the payload's URL and why on
+    stderr once it has failed twice in a row (as --headless does), and keeps retrying."""
+    from splatstream.store import load_manifest
+
+    root = tmp_path / "root"
+    r = subprocess.run([sys.executable, "-m", "cli", "encode", str(ROOT / "samples" / "donut.ply"),
+                        str(root / "donut"), "--max-leaf-splats", "8000", "-q"], capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    m = load_manifest(root / "donut")
+    keep = {e.file for e in (m.tile(m.root).groups[g] for g in m.tile(m.root).groups)}
+    removed = [p for p in (root / "donut" / "data").iterdir() if f"data/{p.name}" not in keep]
+    assert removed  # every tile but the root: its picture comes, the finer tiles answer 404
+    for p in removed:
+        p.unlink()
+    server = subprocess.Popen([sys.executable, "-m", "cli", "serve", str(root), "--port", "0", "--no-access-log"],
+                              stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
+    try:
+        url = server.stderr.readline().split("at ", 1)[1].split(" ", 1)[0].rstrip("/") + "/scenes/donut"
+        env = {**os.environ, "DISPLAY": display, "SPLATSTREAM_CACHE_DIR": str(tmp_path / "cache")}
+        viewer = subprocess.Popen([sys.executable, "-m", "cli", "view", url, "--size", f"{SIZE[0]}x{SIZE[1]}",
+                                   "--no-vsync"], env=env, cwd=tmp_path, stdout=subprocess.PIPE,
+                                  stderr=subprocess.STDOUT, text=True)
+        output = ViewerOutput(viewer.stdout)
+        try:
+            window = wait_for_window(display, viewer, output)
+            said = output.wait_for(f"view: {url}/data/", -1, "line naming the failing payload")
+            line = output.lines[said]
+            assert "not on the server (404" in line and line.endswith("; retrying"), line
+            assert viewer.poll() is None  # still open, retrying
+            xdo(display, "windowfocus", "--sync", window)
+            xdo(display, "key", "Escape")
+            viewer.wait(HANG_S)
+            output.join()
+        finally:
+            if viewer.poll() is None:
+                viewer.kill()
+                viewer.wait()
+    finally:
+        server.send_signal(signal.SIGTERM)
+        server.wait(10)
+    out = output.text()
+    assert viewer.returncode == 0, out
+    assert "Traceback" not in out
+    assert len([ln for ln in output.lines if ln.startswith(f"view: {url}/data/")]) == 1, out  # once, not a frame
+
+
+def test_overlay_gpu_line_says_the_budget_as_given():
+    # `view --gpu-mem-mb 0.5` in a window: 'GPU 0.5 MiB resident of 0 MiB budget' (the budget rounded to MiB), read
+    # as over budget; the headless summary says 'budget 0.5 MiB' since newuser58
+    from client_gl.window import gpu_line
+
+    assert gpu_line(524_288, int(0.5 * 2**20)) == "GPU     0.5 MiB resident of 0.5 MiB budget"
+    assert gpu_line(16_866_200, 1024 * 2**20) == "GPU     16.1 MiB resident of 1024 MiB budget"
+
+
+def test_window_controls_list_fits_a_short_window(display, served, tmp_path):
+    """H in a window shorter than the controls list below the stats (a 960x600 window cut off its last lines, Esc
+    among them): the list is placed from the window's bottom up, so all of it shows."""
+    env = {**os.environ, "DISPLAY": display, "SPLATSTREAM_CACHE_DIR": str(tmp_path / "cache")}
+    viewer = subprocess.Popen([sys.executable, "-m", "cli", "view", served, "--size", f"{SIZE[0]}x{SIZE[1]}",
+                               "--gpu-mem-mb", "64", "--no-vsync"], env=env, cwd=tmp_path,
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    output = ViewerOutput(viewer.stdout)
+
+    def frame_after(keys: list[str], seen: int) -> tuple[np.ndarray, int]:
+        """The window's pixels once `keys` and a screenshot key have been handled: events are handled in order,
+        between frames, so each 'saved' line comes a frame or more after the keys before it."""
+        xdo(display, "key", *keys, "p")
+        seen = output.wait_for("saved ", seen, "line for the screenshot (P)")
+        return grab(display, window), seen
+
+    try:
+        window = wait_for_window(display, viewer, output)
+        seen = output.wait_for("view: converged", -1, "converged view of the scene")
+        xdo(display, "windowfocus", "--sync", window)
+        without, seen = frame_after([], seen)
+        shown, seen = frame_after(["h"], seen)
+        # The list is 16 lines (about 290 px) high. Placed at y = 330 as before, only its top rows are in a 420 px
+        # window, and the band 130-300 px right of the stats panel (x 400-520) shows the scene unchanged; placed
+        # from the bottom up, the list covers it. An auto-sized ImGui window shows a frame or two after it opens.
+        for _ in range(10):
+            if np.abs(shown[130:300, 400:520] - without[130:300, 400:520]).mean() > 0.02:
+                break
+            shown, seen = frame_after([], seen)
+        xdo(display, "key", "Escape")
+        viewer.wait(HANG_S)
+        output.join()
+    finally:
+        if viewer.poll() is None:
+            viewer.kill()
+            viewer.wait()
+    assert viewer.returncode == 0, output.text()
+    band = np.abs(shown[130:300, 400:520] - without[130:300, 400:520]).mean()
+    assert band > 0.02, band
+    # its last line (Esc) is inside the window: the list's bottom edge is above the window's
+    rows = np.abs(shown[:, 20:200] - without[:, 20:200]).mean(axis=(1, 2))
+    assert rows[-8:].max() < rows[SIZE[1] - 60:SIZE[1] - 20].max(), rows[-60:]

@@ -326,7 +326,7 @@ def _foreign_tree(args: argparse.Namespace) -> str | None:
     if given:
         raise UsageError(f"{args.input[0]} holds its own LOD tree, which encode keeps (in memory, as read): "
                          f"{', '.join(given)} apply only to a tree we build; add --rebuild-lod to build ours from "
-                         "its finest level")
+                         "its finest level" + ("" if args.lod_refine else ", or --no-lod for its finest level alone"))
     return kind
 
 

@@ -10,6 +10,8 @@ import sys
 from splatstream.atomic import check_output
 from splatstream.errors import InputError, UsageError
 from splatstream.evaluate import PRESET_ORDER, EvalOptions, evaluate, plot_rate_distortion, report_markdown
+from splatstream.readers.sog import sog_kind
+from splatstream.store import is_scene_dir
 
 from .args import parse_size, parse_vector
 from .renderers import RENDERER_CHOICES, pick_renderer
@@ -63,10 +65,15 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    if os.path.isdir(args.input):
+    # A SOG's directory (meta.json and its planes; a streamed SOG's lod-meta.json and its units) is read as
+    # convert, encode and render read it: eval refused it, saying it takes a format `convert` reads.
+    if os.path.isdir(args.input) and sog_kind(args.input) is None:
+        hint = (" (this is a splatstream scene: `splatstream decode` writes its splats to a file)"
+                if is_scene_dir(args.input) else "")
         raise InputError(args.input, None, "is a directory; eval takes the original splat file (a 3DGS PLY or "
-                         "another format `convert` reads) and encodes it itself")
-    if not os.path.isfile(args.input):
+                         "another format `convert` reads: a SOG's meta.json or lod-meta.json, or its directory) "
+                         f"and encodes it itself{hint}")
+    if not os.path.exists(args.input):
         raise InputError(args.input, None, "no such file")
     w, h = parse_size(args.size, smallest=11, largest=8192)
     presets = [] if args.presets.strip().lower() == "none" else parse_list(args.presets)

@@ -102,6 +102,8 @@ def _options(args):
         raise UsageError(f"--timeout {args.timeout}: expected a positive number of seconds")
     if args.frame_every < 1:
         raise UsageError(f"--frame-every {args.frame_every}: expected at least 1")
+    if args.measure_frames < 0:  # was taken as 0 without a word
+        raise UsageError(f"--measure-frames {args.measure_frames}: expected 0 or more frames")
     if args.fill_gap < 1:
         raise UsageError(f"--fill-gap {args.fill_gap}: expected 1 or more levels")
     if args.fov_y is not None and not 0 < args.fov_y < 180:
@@ -170,6 +172,10 @@ def _check_outputs(args) -> None:
             check_output(out)
     if args.screenshot and os.path.splitext(args.screenshot)[1].lower() not in (".png", ""):
         raise UsageError(f"--screenshot: only .png images are written, got {args.screenshot!r}")
+    # A window wrote no frames for --frames-dir and kept nothing of --until-converged, without a word (newuser60)
+    for flag, given in (("--frames-dir", args.frames_dir), ("--until-converged", args.until_converged)):
+        if given and not args.headless:
+            raise UsageError(f"{flag}: only with --headless (a window saves its frame with P, or --screenshot)")
     if args.frames_dir:
         if not os.path.isdir(args.frames_dir):
             raise UsageError(f"--frames-dir {args.frames_dir}: no such directory")
