@@ -72,6 +72,9 @@ class DirectoryStore:
 
     def __post_init__(self) -> None:
         self.path = os.fspath(self.path)
+        # `info scene/manifest.msgpack` (a path completed one step too far) names the scene it is the manifest of
+        if os.path.basename(self.path) == MANIFEST_NAME and os.path.isfile(self.path):
+            self.path = os.path.dirname(self.path) or "."
         if not os.path.isdir(self.path):
             what = "no such directory" if not os.path.exists(self.path) else "not a directory"
             # `info playbot/lod-meta.json` is a new user's first try: say which commands read such a file

@@ -153,3 +153,4 @@ def test_target_on_a_kept_tree_names_both_ways_out(tmp_path):
     assert r.returncode == 2 and not (tmp_path / "scene").exists(), r.stderr
     assert r.stderr.strip().endswith("add --rebuild-lod to build ours from its finest level, or --no-lod for its "
                                      "finest level alone"), r.stderr
+    assert "--target-psnr/--target-size applies only to a tree we build" in r.stderr, r.stderr

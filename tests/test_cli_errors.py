@@ -298,3 +298,10 @@ def test_an_exported_tileset_given_as_a_scene_says_what_it_is(tmp_path):
         assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
         assert "3D Tiles tileset" in r.stderr and "export-3dtiles" in r.stderr, (argv[0], r.stderr)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["tiles"]
+
+
+def test_info_of_a_scene_manifest_reads_its_scene(scene):
+    # `info scene/manifest.msgpack` (a path completed one step too far) was refused as 'not a directory' (newuser60)
+    by_dir, by_manifest = run_cli("info", scene), run_cli("info", scene / "manifest.msgpack")
+    assert by_manifest.returncode == 0, by_manifest.stderr
+    assert by_manifest.stdout == by_dir.stdout and "splats" in by_dir.stdout

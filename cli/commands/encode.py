@@ -324,8 +324,9 @@ def _foreign_tree(args: argparse.Namespace) -> str | None:
                                    ("--target-psnr/--target-size",
                                     args.target_psnr is not None or args.target_size is not None)) if on]
     if given:
+        verb = "applies" if len(given) == 1 else "apply"
         raise UsageError(f"{args.input[0]} holds its own LOD tree, which encode keeps (in memory, as read): "
-                         f"{', '.join(given)} apply only to a tree we build; add --rebuild-lod to build ours from "
+                         f"{', '.join(given)} {verb} only to a tree we build; add --rebuild-lod to build ours from "
                          "its finest level" + ("" if args.lod_refine else ", or --no-lod for its finest level alone"))
     return kind
 
