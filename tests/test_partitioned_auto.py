@@ -13,7 +13,13 @@ from conftest import real, tree_digest
 
 from splatstream.encode import EncodeOptions, encode_file, encode_in_memory
 from splatstream.encode.local import LocalEngine
-from splatstream.encode.partitioned import ArrayRows, encode_partitioned, merge_domain_level, upper_domain_levels
+from splatstream.encode.partitioned import (
+    ArrayRows,
+    encode_partitioned,
+    merge_domain_level,
+    upper_domain_levels,
+    upper_step_splats,
+)
 from splatstream.encode.scratch import Scratch
 from splatstream.errors import UsageError
 from splatstream.gaussians import SH_C0, Gaussians
@@ -212,6 +218,24 @@ def test_a_named_auto_that_does_not_fit_is_refused_and_the_default_takes_the_gri
     grid = partitioned(scene, EncodeOptions(preset="low", **{**TREE, "lod_merge": "grid"}), small, 1, tmp_path)
     assert got.manifest_bytes == grid.store().manifest_bytes
     assert "LOD merge grid: its merge domains" in caplog.text
+
+
+def test_the_upper_domains_steps_are_counted_in_the_memory(scene, tmp_path, caplog):
+    """A domain that fits (0.95 MiB) under upper steps that do not: 8 roots of at most 300 splats, each counted at a
+    routed splat's bytes plus the grouping's (244 + 512): 1.73 MiB (upper_step_splats)."""
+    shape = TreeShape.of(len(scene), 300, 2.0)
+    assert upper_step_splats(shape, 3, 8) == (8, 300) and upper_step_splats(shape, 3, 2) == (2, 300)
+    city = TreeShape.of(60_000_000, 16384, 2.0)
+    assert upper_step_splats(city, 7, 8) == (8, 16384)  # 94.5 MiB at SH3, against the partitions' 1.5 GiB
+    memory = 3 << 19  # 1.5 MiB
+    with pytest.raises(UsageError, match=r"--lod-merge auto: the steps of its upper domains \(8 roots of at most 300 "
+                                         r"splats each\) need 2 MiB per worker"):
+        partitioned(scene, EncodeOptions(preset="low", **TREE), memory, 1, tmp_path)
+    got = partitioned(scene, EncodeOptions(preset="low", **{**TREE, "lod_merge": None}), memory, 1, tmp_path).store()
+    assert store_digest(got) != MAIN_DIGESTS["one-tier"]  # the grid's
+    assert "LOD merge grid: the steps of its upper domains" in caplog.text
+    fewer = EncodeOptions(preset="low", **{**TIERS, "lod_merge": None})  # 2 roots a step: 0.43 MiB
+    assert store_digest(partitioned(scene, fewer, memory, 1, tmp_path).store()) == MAIN_DIGESTS["three-tiers"]
 
 
 def test_cost_is_still_refused_by_partitions(scene_ply, tmp_path):

@@ -698,19 +698,43 @@ def _auto_partitions(shape: TreeShape, row_bytes: int, engine: Engine, opts: Enc
     domain, largest, need = _merge_domains(shape, row_bytes, opts, AUTO_GROUPING_BYTES)
     if opts.lod_refiner is not None:  # the domains are the refinement's too
         _check_refined_need(shape, row_bytes, opts, engine, domain, largest, need)
-    if need <= engine.memory_per_worker:
+    roots, root_splats = upper_step_splats(shape, domain, opts.lod_upper_domain_roots)
+    step_need = roots * root_splats * (row_bytes + AUTO_GROUPING_BYTES)
+    if need <= engine.memory_per_worker and step_need <= engine.memory_per_worker:
         partitions = 2 ** shape.kd_depths[domain]
         log.info("LOD merge auto%s, inside %s of at most %s splats and over the levels above them",
                  "" if opts.lod_merge is not None else " (the default)",
                  count(partitions, "partition"), f"{largest:,}")
         return "auto", domain
-    message = (f"its merge domains (subtrees of at most {opts.lod_merge_domain_splats:,} splats) need "
-               f"{math.ceil(need / 2**20):,} MiB per worker, more than the memory per worker "
-               f"({engine.memory_per_worker // 2**20:,} MiB)")
+    if need > engine.memory_per_worker:
+        message = (f"its merge domains (subtrees of at most {opts.lod_merge_domain_splats:,} splats) need "
+                   f"{math.ceil(need / 2**20):,} MiB per worker")
+    else:
+        message = (f"the steps of its upper domains ({roots:,} roots of at most {root_splats:,} splats each) need "
+                   f"{math.ceil(step_need / 2**20):,} MiB per worker")
+    message += f", more than the memory per worker ({engine.memory_per_worker // 2**20:,} MiB)"
     if opts.lod_merge is not None:
         raise UsageError(f"--lod-merge auto: {message}: give more --memory-per-worker or --lod-merge grid")
     log.warning("LOD merge grid: %s", message)
     return "grid", level
+
+
+def upper_step_splats(shape: TreeShape, level: int, roots_per_domain: int) -> tuple[int, int]:
+    """What an upper domain's step (upper_domain_step) holds at most, above partitions at `level`: (roots, splats a
+    root): the most roots a domain of any tier has (upper_domain_levels) and a bound on a root tile's splats (a
+    partition's root, or a tier's top: at most max_leaf_splats, and a merged root at most its partition's splats over
+    the reduction). The step holds those tiles, their members and the cost grouping's arrays, the folds it finishes
+    (smaller: each level up halves the splats) and the payloads' encoders; measured (tracemalloc, the 2M-splat city in
+    64 partitions, SH3, branch folds31) 29.9 MiB at the peak for 8 roots of about 15,600 splats, 251 bytes a root
+    splat, where merge_level's alone was 28.9 MiB; counted as a routed splat's bytes plus the grouping's (756 at
+    SH3)."""
+    roots, b = 0, level
+    for t in upper_domain_levels(shape, level, roots_per_domain):
+        roots = max(roots, 2 ** (shape.kd_depths[b] - shape.kd_depths[t]))
+        b = t
+    largest = -(-shape.splats // 2 ** shape.kd_depths[level])
+    root = largest if level == shape.leaf_level else shape.target(largest)
+    return roots, min(shape.max_leaf_splats, root)
 
 
 def _merge_domains(shape: TreeShape, row_bytes: int, opts: EncodeOptions, extra_bytes: int) -> tuple[int, int, int]:
