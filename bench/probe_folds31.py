@@ -74,6 +74,8 @@ def main() -> None:
     ap.add_argument("--memory-mib", type=int, default=1024)
     ap.add_argument("--workers", type=int)
     ap.add_argument("--trace", action="store_true", help="each heavy upper task's peak memory (tracemalloc)")
+    ap.add_argument("--traffic", action="store_true",
+                    help="the pickled bytes of each upper task's arguments and result (what Dask carries)")
     ap.add_argument("--max-leaf", type=int)
     ap.add_argument("--preset", default="medium")
     ap.add_argument("--label", default="")
@@ -113,6 +115,29 @@ def main() -> None:
             return out
         return run
 
+    traffic: dict[str, list[int]] = {}  # --traffic: per task, [calls, argument bytes, result bytes] (pickled)
+
+    def carried(name: str, fn):
+        def run(*args, **kwargs):
+            import pickle
+
+            out = fn(*args, **kwargs)
+            if in_upper[0]:
+                # the arguments but the payload writer and context (the same object every task: Dask sends them
+                # once a task too, but they are not the upper stage's data)
+                sent = [v for v in args if not callable(getattr(v, "write", None)) and
+                        type(v).__name__ not in ("TileContext", "DirectoryPayloads", "MemoryWriter")]
+                acc = traffic.setdefault(name, [0, 0, 0])
+                acc[0] += 1
+                acc[1] += len(pickle.dumps(sent, protocol=5))
+                acc[2] += len(pickle.dumps(out, protocol=5))
+            return out
+        return run
+
+    if a.traffic:
+        for name in POOLED + HEAVY:
+            if hasattr(partitioned, name):
+                setattr(partitioned, name, carried(name, getattr(partitioned, name)))
     for name in POOLED if not a.workers else ():  # on Dask the tasks run in the workers (and must pickle)
         if hasattr(partitioned, name):
             setattr(partitioned, name, timed(name, getattr(partitioned, name), time.thread_time, True))
@@ -172,6 +197,8 @@ def main() -> None:
            "steps": {k: {"calls": v[0], "cpu_s": round(v[1], 3)} for k, v in sorted(steps.items())},
            "client_other_cpu_s": round(upper_cpu - timed_cpu, 3), "workers": a.workers,
            "task_peak_mib": {k: round(max(v) / 2**20, 2) for k, v in peaks.items()},
+           "traffic_mb": {k: {"tasks": v[0], "args": round(v[1] / 1e6, 2), "results": round(v[2] / 1e6, 2)}
+                          for k, v in traffic.items()},
            "upper_maps": len(maps), "upper_map_walls": {
                name: {"maps": sum(1 for m in maps if m["task"] == name), "tasks": sum(m["tasks"] for m in maps
                                                                                      if m["task"] == name),

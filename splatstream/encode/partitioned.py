@@ -726,8 +726,8 @@ def upper_step_splats(shape: TreeShape, level: int, roots_per_domain: int) -> tu
     the reduction). The step holds those tiles, their members and the cost grouping's arrays, the folds it finishes
     (smaller: each level up halves the splats) and the payloads' encoders; measured (tracemalloc, the 2M-splat city in
     64 partitions, SH3, branch folds31) 29.9 MiB at the peak for 8 roots of about 15,600 splats, 251 bytes a root
-    splat, where merge_level's alone was 28.9 MiB; counted as a routed splat's bytes plus the grouping's (756 at
-    SH3)."""
+    splat, where tier31's merge task (merge_level) was 28.9 MiB; counted as a routed splat's bytes plus the
+    grouping's (756 at SH3)."""
     roots, b = 0, level
     for t in upper_domain_levels(shape, level, roots_per_domain):
         roots = max(roots, 2 ** (shape.kd_depths[b] - shape.kd_depths[t]))
