@@ -81,8 +81,7 @@ def main() -> None:
             return run
 
         for name in ("merge_level", "refine_upper", "partition_extremes", "partition_sums", "encode_saved_tile"):
-            if hasattr(partitioned, name):  # merge_level: tier31's (since folds31, upper_domain_step: probe_folds31)
-                setattr(partitioned, name, timed(getattr(partitioned, name)))
+            setattr(partitioned, name, timed(getattr(partitioned, name)))
     shutil.rmtree(a.out, ignore_errors=True)
     t0, c0 = time.perf_counter(), time.process_time()
     encode_file(a.input, a.out, preset=a.preset, progress=progress, workers=a.workers,

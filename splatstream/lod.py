@@ -817,10 +817,9 @@ def finish_appearance(merged: Gaussians, counts: np.ndarray, sums: np.ndarray, b
     merged.sh_dc = np.where(single[:, None], merged.sh_dc, sh_dc.astype(np.float32))
 
 
-def tile_error_first(merged: Gaussians | np.ndarray, counts: np.ndarray, far: np.ndarray, near: np.ndarray,
+def tile_error_first(merged: Gaussians, counts: np.ndarray, far: np.ndarray, near: np.ndarray,
                      child_error: float) -> tuple[np.ndarray, float]:
-    """An interior tile's per-splat errors and its error (at least its children's), before its appearance. `merged`:
-    the tile's merged splats, or their original_reach (errors_from_extremes)."""
+    """An interior tile's per-splat errors and its error (at least its children's), before its appearance."""
     errors = errors_from_extremes(far, near, merged)
     return errors, max(tile_error(errors, counts), child_error)
 

@@ -13,11 +13,9 @@ ARCHITECTURE.md "Distributed encoding".
 5. partitions: each task reads its sections, builds its subtree (lod.build_subtree, the code the single-process
    encoder runs on the whole scene), writes its tiles' payloads (content-addressed: no coordination) and keeps its
    originals in scratch for the tiles above.
-6. upper tiles: level by level from the partition roots' splats, a step per upper domain (upper_domain_step: the
-   level below finished and encoded, this level merged); the errors and appearance they take from the ORIGINAL
-   splats come from two passes over the partitions (max/min and integer counts, which combine exactly, folded on
-   the client into each tile's error; per-leaf sums, folded in kd order by the next step, as lod.build_subtree
-   folds them).
+6. upper tiles: level by level on the client from the partition roots' splats; the errors and appearance they
+   take from the ORIGINAL splats come from two passes over the partitions (max/min and integer counts, which
+   combine exactly; per-leaf sums, folded in kd order, as lod.build_subtree folds them).
 7. the manifest, last.
 With `--lod-refine cpu` (EncodeOptions.lod_refiner) the partitions are the merge domains whatever the merge, each
 task of step 5 refines its subtree against its own originals, from the whole scene's cameras (lod_refine.CameraFrame),
@@ -29,9 +27,8 @@ The output is byte-identical whatever the engine, the number of workers and part
 grid merge it is encode_to's; with "auto" (the default) the partitions are auto's merge domains, a tile level fixed
 by the scene's splat count (merge_domain_level): each partition groups the levels inside it over its own splats, and
 the levels above the partitions are grouped by upper domains (upper_domain_levels: tiers of kd subtrees of at most
-EncodeOptions.lod_upper_domain_roots roots each, a step per domain and level, upper_domain_step), so it is
-encode_to's where the scene is one domain (at most EncodeOptions.lod_merge_domain_splats splats) and differs from it
-above that.
+EncodeOptions.lod_upper_domain_roots roots each, a task per domain and level, merge_level), so it is encode_to's where
+the scene is one domain (at most EncodeOptions.lod_merge_domain_splats splats) and differs from it above that.
 """
 from __future__ import annotations
 
@@ -97,6 +94,8 @@ PARTITIONED_MERGES = ("grid", "auto")
 # branch partauto31): auto's peak above the grid's about 450-480 bytes a splat on biker (SH0) and a 135k slice of
 # flowers (SH2).
 AUTO_GROUPING_BYTES = 512
+# Upper tiles merged at once on the client (their splats and their members): bounds the client's memory.
+UPPER_BATCH_SPLATS = 1 << 20
 ATTRIBUTES = ("positions", "rotations", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
 
 
@@ -492,28 +491,16 @@ def build_partition(p: int, level: int, shape: TreeShape, chunk_counts: list[np.
     return PartitionResult(entries, len(sub.root.gaussians), n, record)
 
 
-def _merged_tiles(kids_of: list[list[tuple[Tile, np.ndarray]]], shape: TreeShape, threads: int, merge: str
-                  ) -> list[tuple[Gaussians, np.ndarray, np.ndarray, np.ndarray, list[Tile]]]:
-    """The tiles of one upper level under one upper domain from their children (`kids_of`: per tile, its children
-    and their masses, in kd order), as lod.build_subtree merges them: "auto" over those tiles at once
-    (lod.level_auto_groups, as lod.build_subtree groups a level: the count and each tile's decided by cost across
-    the domain's tiles), the grid tile by tile. Per tile: (merged splats, their mass, each member's merged splat, the
-    children's offsets among the members, the children without their splats: only their bounds are needed from here
-    on)."""
-    sets = [Gaussians.concatenate([k.gaussians for k, _ in kids]) for kids in kids_of]
-    masses = [np.concatenate([m for _, m in kids]) for kids in kids_of]
-    if merge == "auto":
-        targets = [shape.target(len(m)) for m in sets]
-        blurs = [viewing_blur(max(k.geometric_error for k, _ in kids)) for kids in kids_of]
-        # the same groups on any number of threads (level_auto_groups: each block and tile a pure function)
-        with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
-            groups, _ = level_auto_groups(sets, masses, targets, shape.max_leaf_splats, blurs, pool=pool)
-        merged = [merge_groups(members, mass, *grp) for members, mass, grp in zip(sets, masses, groups, strict=True)]
-    else:
-        merged = [merge_gaussians(members, mass, min(shape.max_leaf_splats, math.ceil(len(members) / shape.reduction)))
-                  for members, mass in zip(sets, masses, strict=True)]
-    return [(g, merged_mass, assign, *_released(kids))
-            for (g, merged_mass, assign), kids in zip(merged, kids_of, strict=True)]
+def merge_children(scratch: Scratch, shape: TreeShape, lvl: int, j: int
+                   ) -> tuple[Gaussians, np.ndarray, np.ndarray, np.ndarray, list[Tile]]:
+    """Tile j of level lvl (above the partitions) from its children's splats, as lod.build_subtree merges them:
+    (merged splats, their mass, each member's merged splat, the children's offsets among the members, the children
+    without their splats: only their bounds are needed from here on)."""
+    kids = [_load_tile(scratch, c) for c in shape.children(lvl, j)]
+    members = Gaussians.concatenate([k.gaussians for k, _ in kids])
+    target = min(shape.max_leaf_splats, math.ceil(len(members) / shape.reduction))
+    g, mass, assign = merge_gaussians(members, np.concatenate([m for _, m in kids]), target)
+    return g, mass, assign, *_released(kids)
 
 
 def _released(kids: list[tuple[Tile, np.ndarray]]) -> tuple[np.ndarray, list[Tile]]:
@@ -525,91 +512,26 @@ def _released(kids: list[tuple[Tile, np.ndarray]]) -> tuple[np.ndarray, list[Til
     return offsets, [k for k, _ in kids]
 
 
-@dataclass
-class MergedTile:
-    """What the client keeps of an upper tile between its merge and its finish (upper_domain_step): the partitions'
-    maps (`assign`, `offsets`), the passes over the originals (`positions`) and the tile's error (`reach`: its merged
-    splats' lod.original_reach; `child_error`). Its splats, mass and children wait in scratch (merged/ID)."""
-
-    tid: int
-    assign: np.ndarray
-    offsets: np.ndarray
-    positions: np.ndarray
-    reach: np.ndarray
-    child_error: float
-
-
-@dataclass
-class TileFolds:
-    """An upper tile's folds over the originals, for its finish (upper_domain_step): its merged splats' member
-    counts and error extremes (summed and folded over the partitions under it), per-splat errors and error
-    (lod.tile_error_first), and its partitions' leaves' appearance sums in kd order (partition_sums)."""
-
-    counts: np.ndarray
-    far: np.ndarray
-    near: np.ndarray
-    errors: np.ndarray
-    error: float
-    child_error: float
-    leaf_sums: list[tuple[np.ndarray, np.ndarray]]
-
-
-def _finish_tile(scratch: Scratch, tid: int, lvl: int, folds: TileFolds, above: int) -> tuple[Tile, np.ndarray]:
-    """An upper tile merged by the step below (merged/ID in scratch) finished from its folds: its appearance at its
-    error's viewing scale (lod.finish_tile_appearance), its bounds from its splats and children
-    (lod.interior_bounds)."""
-    a = scratch.load(f"merged/{tid}")
-    g = Gaussians(*(a[k] for k in ATTRIBUTES))
-    kids = [Tile(int(i), lvl + 1, [], Gaussians.empty(0), float(e), lo, hi, c, float(r))
-            for i, e, lo, hi, c, r in zip(a["kid_ids"], a["kid_errors"], a["kid_box_min"], a["kid_box_max"],
-                                         a["kid_sphere_center"], a["kid_sphere_radius"], strict=True)]
-    f = folds
-    error = finish_tile_appearance(g, f.counts, f.far, f.near, f.errors, f.error, fold_leaf_sums(f.leaf_sums, len(g)),
-                                   f.child_error, above)
-    lo, hi, c, r = interior_bounds(g, kids)
-    return Tile(tid, lvl, [k.id for k in kids], g, error, lo, hi, c, r), a["mass"]
-
-
-def upper_domain_step(scratch: Scratch, shape: TreeShape, level: int, lvl: int, top: int, domain: int,
-                      threads: int, merge: str, folds: dict[int, TileFolds], ctx: TileContext, writer,
-                      encode: bool) -> tuple[list[TileEntry], list[MergedTile]]:
-    """One upper domain's step (tile `domain` of level `top`, upper_domain_levels; lod.md 6): the tiles of level
-    lvl + 1 under it finished from their `folds` (the client's folds of the passes over the originals: _finish_tile),
-    encoded where `encode` (else saved, to be refined), then the tiles of level lvl under it merged from them
-    (_merged_tiles; from the partitions' roots in scratch where lvl + 1 is the partition level `level`) and saved
-    (merged/ID) for the passes over the originals and the next step's finish. lvl -1: the root finished, nothing
-    merged. Returns the finished tiles' entries and the merged tiles' MergedTile."""
-    entries: list[TileEntry] = []
-    finished: dict[int, tuple[Tile, np.ndarray]] = {}
-    above = shape.leaf_level - 1 - (lvl + 1)  # levels above the first merged one (lod.viewing_scale_px)
-    for tid, f in folds.items():
-        tile, mass = _finish_tile(scratch, tid, lvl + 1, f, above)
-        if encode:
-            entries.append(encode_tile(tile, ctx, writer))
-        else:  # refined first (refine_upper), then encoded
-            _save_tile(scratch, tile, mass)
-        finished[tid] = (tile, mass)
-    if lvl < 0:
-        return entries, []
-
-    def child(c: int) -> tuple[Tile, np.ndarray]:
-        return finished.pop(c) if lvl + 1 < level else _load_tile(scratch, c)
-
-    positions = _tiles_under(shape, top, domain, lvl)
-    kids_of = [[child(c) for c in shape.children(lvl, j)] for j in positions]
+def merge_level(scratch: Scratch, shape: TreeShape, lvl: int, threads: int, top: int = 0, domain: int = 0
+                ) -> list[tuple[Gaussians, np.ndarray, np.ndarray, np.ndarray, list[Tile]]]:
+    """The tiles of level lvl (above the partitions) under tile `domain` of level `top` (their upper domain,
+    upper_domain_levels; top 0: the whole level) from their children's splats by the "auto" merge over those tiles
+    at once (lod.level_auto_groups, as lod.build_subtree groups a level: the count and each tile's decided by cost
+    across the domain's tiles), each tile as merge_children returns it. Its members are the roots' splats under the
+    domain or fewer (at most max_leaf_splats per root)."""
+    kids_of = [[_load_tile(scratch, c) for c in shape.children(lvl, j)] for j in _tiles_under(shape, top, domain, lvl)]
+    sets = [Gaussians.concatenate([k.gaussians for k, _ in kids]) for kids in kids_of]
+    masses = [np.concatenate([m for _, m in kids]) for kids in kids_of]
+    targets = [shape.target(len(m)) for m in sets]
+    blurs = [viewing_blur(max(k.geometric_error for k, _ in kids)) for kids in kids_of]
+    # the same groups on any number of threads (level_auto_groups: each block and tile a pure function)
+    with ThreadPoolExecutor(max_workers=max(1, threads)) as pool:
+        groups, _ = level_auto_groups(sets, masses, targets, shape.max_leaf_splats, blurs, pool=pool)
     out = []
-    for j, (g, mass, assign, offsets, kids) in zip(positions, _merged_tiles(kids_of, shape, threads, merge),
-                                                    strict=True):
-        tid = shape.tile_id(lvl, j)
-        scratch.save(f"merged/{tid}", mass=mass, kid_ids=np.array([k.id for k in kids], np.int64),
-                     kid_errors=np.array([k.geometric_error for k in kids]),
-                     kid_box_min=np.stack([k.box_min for k in kids]), kid_box_max=np.stack([k.box_max for k in kids]),
-                     kid_sphere_center=np.stack([k.sphere_center for k in kids]),
-                     kid_sphere_radius=np.array([k.sphere_radius for k in kids]),
-                     **{k: getattr(g, k) for k in ATTRIBUTES})
-        out.append(MergedTile(tid, assign, offsets, g.positions, original_reach(g),
-                              max(k.geometric_error for k in kids)))
-    return entries, out
+    for kids, members, mass, grp in zip(kids_of, sets, masses, groups, strict=True):
+        g, merged_mass, assign = merge_groups(members, mass, *grp)
+        out.append((g, merged_mass, assign, *_released(kids)))
+    return out
 
 
 def _tiles_under(shape: TreeShape, top: int, j: int, lvl: int) -> range:
@@ -698,43 +620,19 @@ def _auto_partitions(shape: TreeShape, row_bytes: int, engine: Engine, opts: Enc
     domain, largest, need = _merge_domains(shape, row_bytes, opts, AUTO_GROUPING_BYTES)
     if opts.lod_refiner is not None:  # the domains are the refinement's too
         _check_refined_need(shape, row_bytes, opts, engine, domain, largest, need)
-    roots, root_splats = upper_step_splats(shape, domain, opts.lod_upper_domain_roots)
-    step_need = roots * root_splats * (row_bytes + AUTO_GROUPING_BYTES)
-    if need <= engine.memory_per_worker and step_need <= engine.memory_per_worker:
+    if need <= engine.memory_per_worker:
         partitions = 2 ** shape.kd_depths[domain]
         log.info("LOD merge auto%s, inside %s of at most %s splats and over the levels above them",
                  "" if opts.lod_merge is not None else " (the default)",
                  count(partitions, "partition"), f"{largest:,}")
         return "auto", domain
-    if need > engine.memory_per_worker:
-        message = (f"its merge domains (subtrees of at most {opts.lod_merge_domain_splats:,} splats) need "
-                   f"{math.ceil(need / 2**20):,} MiB per worker")
-    else:
-        message = (f"the steps of its upper domains ({roots:,} roots of at most {root_splats:,} splats each) need "
-                   f"{math.ceil(step_need / 2**20):,} MiB per worker")
-    message += f", more than the memory per worker ({engine.memory_per_worker // 2**20:,} MiB)"
+    message = (f"its merge domains (subtrees of at most {opts.lod_merge_domain_splats:,} splats) need "
+               f"{math.ceil(need / 2**20):,} MiB per worker, more than the memory per worker "
+               f"({engine.memory_per_worker // 2**20:,} MiB)")
     if opts.lod_merge is not None:
         raise UsageError(f"--lod-merge auto: {message}: give more --memory-per-worker or --lod-merge grid")
     log.warning("LOD merge grid: %s", message)
     return "grid", level
-
-
-def upper_step_splats(shape: TreeShape, level: int, roots_per_domain: int) -> tuple[int, int]:
-    """What an upper domain's step (upper_domain_step) holds at most, above partitions at `level`: (roots, splats a
-    root): the most roots a domain of any tier has (upper_domain_levels) and a bound on a root tile's splats (a
-    partition's root, or a tier's top: at most max_leaf_splats, and a merged root at most its partition's splats over
-    the reduction). The step holds those tiles, their members and the cost grouping's arrays, the folds it finishes
-    (smaller: each level up halves the splats) and the payloads' encoders; measured (tracemalloc, the 2M-splat city in
-    64 partitions, SH3, branch folds31) 29.9 MiB at the peak for 8 roots of about 15,600 splats, 251 bytes a root
-    splat, where tier31's merge task (merge_level) was 28.9 MiB; counted as a routed splat's bytes plus the
-    grouping's (756 at SH3)."""
-    roots, b = 0, level
-    for t in upper_domain_levels(shape, level, roots_per_domain):
-        roots = max(roots, 2 ** (shape.kd_depths[b] - shape.kd_depths[t]))
-        b = t
-    largest = -(-shape.splats // 2 ** shape.kd_depths[level])
-    root = largest if level == shape.leaf_level else shape.target(largest)
-    return roots, min(shape.max_leaf_splats, root)
 
 
 def _merge_domains(shape: TreeShape, row_bytes: int, opts: EncodeOptions, extra_bytes: int) -> tuple[int, int, int]:
@@ -1107,68 +1005,75 @@ def _upper_tiles(engine: Engine, scratch: Scratch, shape: TreeShape, level: int,
                  refiner: LodRefiner | None = None, up: tuple[float, float, float] | None = None,
                  roots_per_domain: int = EncodeOptions.lod_upper_domain_roots,
                  frame: CameraFrame | None = None) -> tuple[list[TileEntry], LodRefinement | None]:
-    """The tiles above the partitions, level by level, by upper domains (upper_domain_levels; the grid's too, each
-    tile merged alone): per level a step per upper domain (upper_domain_step: the level below finished and encoded,
-    this level merged), then the two passes over the partitions' originals (a task per partition: partition_extremes,
-    partition_sums) and between them the client's fold of the extremes into each tile's error, O(the roots' splats);
-    a last step finishes the root. Where `refiner` is given the levels are refined tier by tier, a task per upper
-    domain (refine_upper), before any of them is encoded, with that refinement's record."""
-    if level == 0:  # the scene is one partition: nothing above it
-        return [], None
+    """The tiles above the partitions, level by level (in batches of tiles, for the client's memory; "auto": a
+    level at once, grouped by merge_level in a task per upper domain, upper_domain_levels), and where `refiner` is
+    given their levels refined tier by tier, a task per upper domain (refine_upper), before any of them is encoded,
+    with that refinement's record."""
     entries: list[TileEntry] = []
     upper_ids: list[int] = []
     kd_p = shape.kd_depths[level]
     tops = upper_domain_levels(shape, level, roots_per_domain)
     maps = [np.arange(n) for n in root_splats]  # per partition: its root's splats -> the current ancestor's
-    folds: dict[int, TileFolds] = {}  # the level below's tiles, waiting for their finish (by tile id)
-    for lvl in range(level - 1, -2, -1):  # -1: the root's finish alone
-        top = _upper_domain_of(tops, lvl) if lvl >= 0 else 0
-        domains = range(2 ** shape.kd_depths[top])
-        below = lvl + 1 if lvl + 1 < level else None  # the level whose tiles this step finishes
-        steps = engine.map(upper_domain_step,
-                           [(scratch, shape, level, lvl, top, d, engine.threads_per_task, merge,
-                             {} if below is None else {shape.tile_id(below, j): folds.pop(shape.tile_id(below, j))
-                                                       for j in _tiles_under(shape, top, d, below)},
-                             ctx, payloads, refiner is None) for d in domains],
-                           "upper", progress, heavy=True)
-        if below is not None:
-            engine.map_behind(delete_scratch, [(scratch, [f"merged/{shape.tile_id(below, j)}"
-                                                          for j in range(2 ** shape.kd_depths[below])])], "cleanup")
-            upper_ids += [shape.tile_id(below, j) for j in range(2 ** shape.kd_depths[below])]
-        entries += [e for found, _ in steps for e in found]
-        if lvl < 0:
-            break
-        merged = [m for _, ms in steps for m in ms]  # domains in kd order: the level's tiles
+    for lvl in range(level - 1, -1, -1):
         per_tile = 2 ** (kd_p - shape.kd_depths[lvl])  # partitions under each tile of this level
         per_child = 2 ** (kd_p - shape.kd_depths[lvl + 1])
-        for p in range(len(maps)):
-            j = p // per_tile
-            m = merged[j]
-            maps[p] = m.assign[m.offsets[p // per_child - j * shape.fan(lvl)] + maps[p]]
-        ext = engine.map(partition_extremes, [(scratch, p, maps[p], merged[p // per_tile].positions,
-                                               len(merged[p // per_tile].positions)) for p in range(len(maps))],
-                         "upper", progress)
+        tiles_here = 2 ** shape.kd_depths[lvl]
         above = shape.leaf_level - 1 - lvl  # levels above the first merged one (lod.viewing_scale_px)
-        for j, m in enumerate(merged):
-            size = len(m.positions)
-            counts = np.zeros(size, np.int64)
-            far = np.full(size, -np.inf)
-            near = np.full(size, np.inf)
-            for present, c, f, n in ext[j * per_tile:(j + 1) * per_tile]:
-                counts[present] += c
-                far[present] = np.maximum(far[present], f)
-                near[present] = np.minimum(near[present], n)
-            errors, error = tile_error_first(m.reach, counts, far, near, m.child_error)
-            folds[m.tid] = TileFolds(counts, far, near, errors, error, m.child_error, [])
-        del ext
-        sums = engine.map(partition_sums, [(scratch, p, maps[p], len(merged[p // per_tile].positions),
-                                            tile_viewing_blur(folds[merged[p // per_tile].tid].error,
-                                                              merged[p // per_tile].child_error, above))
-                                           for p in range(len(maps))],
-                          "upper", progress)
-        for p, s in enumerate(sums):  # partitions in kd order: each tile's leaves in kd order
-            folds[merged[p // per_tile].tid].leaf_sums.extend(s)
-        del merged, sums
+        batch_tiles = tiles_here if merge == "auto" else max(1, UPPER_BATCH_SPLATS // shape.max_leaf_splats)
+        for first in range(0, tiles_here, batch_tiles):
+            batch = range(first, min(tiles_here, first + batch_tiles))
+            if merge == "auto":
+                top = _upper_domain_of(tops, lvl)  # a task per upper domain: its tiles of this level grouped at once
+                domains = range(2 ** shape.kd_depths[top])
+                found = engine.map(merge_level, [(scratch, shape, lvl, engine.threads_per_task, top, d)
+                                                 for d in domains],
+                                   "upper", progress, heavy=True)
+                merged = dict(enumerate(m for ms in found for m in ms))  # domains in kd order: the level's tiles
+            else:
+                merged = dict(zip(batch, engine.map(merge_children, [(scratch, shape, lvl, j) for j in batch],
+                                                    "upper", progress), strict=True))
+            parts = [p for j in batch for p in range(j * per_tile, (j + 1) * per_tile)]
+            for p in parts:
+                j = p // per_tile
+                g, mass, assign, offsets, kids = merged[j]
+                maps[p] = assign[offsets[p // per_child - j * shape.fan(lvl)] + maps[p]]
+            ext = engine.map(partition_extremes, [(scratch, p, maps[p], merged[p // per_tile][0].positions,
+                                                   len(merged[p // per_tile][0])) for p in parts], "upper", progress)
+            state = {}
+            for j in batch:
+                g = merged[j][0]
+                size = len(g)
+                counts = np.zeros(size, np.int64)
+                far = np.full(size, -np.inf)
+                near = np.full(size, np.inf)
+                for p, (present, c, f, n) in zip(parts, ext, strict=True):
+                    if p // per_tile == j:
+                        counts[present] += c
+                        far[present] = np.maximum(far[present], f)
+                        near[present] = np.minimum(near[present], n)
+                child_error = max(k.geometric_error for k in merged[j][4])
+                errors, error = tile_error_first(g, counts, far, near, child_error)
+                state[j] = (counts, far, near, errors, error, child_error)
+            sums = engine.map(partition_sums, [(scratch, p, maps[p], len(merged[p // per_tile][0]),
+                                                tile_viewing_blur(state[p // per_tile][4], state[p // per_tile][5],
+                                                                  above))
+                                               for p in parts],
+                              "upper", progress)
+            for j in batch:
+                g, mass, _, _, kids = merged[j]
+                leaf_parts = [lp for p, s in zip(parts, sums, strict=True) if p // per_tile == j for lp in s]
+                counts, far, near, errors, error, child_error = state[j]
+                error = finish_tile_appearance(g, counts, far, near, errors, error, fold_leaf_sums(leaf_parts, len(g)),
+                                               child_error, above)
+                lo, hi, c, r = interior_bounds(g, kids)
+                tid = shape.tile_id(lvl, j)
+                _save_tile(scratch, Tile(tid, lvl, [k.id for k in kids], g, error, lo, hi, c, r), mass)
+            del merged, state, sums, ext
+            if refiner is not None:  # encoded once refined, below
+                upper_ids += [shape.tile_id(lvl, j) for j in batch]
+                continue
+            entries += engine.map(encode_saved_tile, [(scratch, shape.tile_id(lvl, j), ctx, payloads)
+                                                      for j in batch], "upper", progress)
     record = None
     if refiner is not None and upper_ids:
         # tier after tier (upper_domain_levels), each upper domain in its own task against its roots as refined
