@@ -23,6 +23,7 @@ from splatstream.atomic import atomic_file
 from splatstream.camera import Camera
 from splatstream.camera_path import CameraPath
 from splatstream.errors import SplatstreamError, UsageError
+from splatstream.progress import mib
 
 from .camera_control import CameraController, state_from_camera
 from .gpu.gl import fence, gpu_wait
@@ -57,7 +58,7 @@ CONTROLS = [
 def gpu_line(resident_bytes: int, budget_bytes: int) -> str:
     """The overlay's GPU memory line. The budget as given, as the headless summary writes it: `--gpu-mem-mb 0.5`
     showed 'GPU 0.5 MiB resident of 0 MiB budget', read as over budget."""
-    return f"GPU     {resident_bytes / 2**20:.1f} MiB resident of {budget_bytes / 2**20:.4g} MiB budget"
+    return f"GPU     {resident_bytes / 2**20:.1f} MiB resident of {mib(budget_bytes)} MiB budget"
 
 
 _BLIT_VS = """#version 410

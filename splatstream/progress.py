@@ -13,6 +13,12 @@ def count(n: int, noun: str, plural: str | None = None) -> str:
     return f"{n:,} {noun if n == 1 else (plural or noun + 's')}"
 
 
+def mib(nbytes: float) -> str:
+    """A memory size given in MiB as a user reads it: '0.5', '1024', '1,000,000' (a plain .4g wrote '1e+06')."""
+    value = nbytes / 2**20
+    return f"{round(value):,}" if value >= 10_000 else f"{value:.4g}"
+
+
 class Tally:
     """Units done of a known total, reported as the share done (0 when made, then at most 1 after each `add`): the
     progress of a slow loop over splats or chunks (the RAD and streamed SOG exporters'), where `report` may be None."""

@@ -49,6 +49,8 @@ def test_view_summary_gives_a_fractional_budget_and_the_bytes_from_the_disk_cach
                                            "GPU 0.1 MiB for 5,436 resident splats (budget 0.5 MiB)")
     report["gpu_budget_bytes"] = int(0.07 * 2**20)
     assert transfer_and_memory(report).endswith("(budget 0.07 MiB)")
+    report["gpu_budget_bytes"] = int(1e9) << 20  # `--gpu-mem-mb 1e9` said 'budget 1e+09 MiB' (newuser60)
+    assert transfer_and_memory(report).endswith("(budget 1,000,000,000 MiB)")
     report["gpu_budget_bytes"], report["fetch"]["bytes_from_cache"] = 1024 << 20, 0
     assert transfer_and_memory(report).endswith("0.00 MB downloaded, GPU 0.1 MiB for 5,436 resident splats "
                                                 "(budget 1024 MiB)")

@@ -12,6 +12,7 @@ from splatstream.camera import DEFAULT_FOV_Y_DEG, Camera, look_at_near_far
 from splatstream.camera_path import load_camera_path
 from splatstream.errors import UsageError
 from splatstream.format.names import MANIFEST_NAME
+from splatstream.progress import mib
 
 from .args import check_look, parse_size, parse_vector
 from .renderers import gl_client
@@ -245,4 +246,4 @@ def transfer_and_memory(report: dict, max_splats: int | None = None) -> str:
     # The budget as given (--gpu-mem-mb 0.5 printed 'budget 0 MiB' beside 'GPU 0.5 MiB', read as over it).
     return (f"{shown}{report['bytes_downloaded'] / 1e6:.2f} MB {local_word if local else 'downloaded'}{from_cache}, "
             f"GPU {report['resident_gpu_bytes'] / 2**20:.1f} MiB for {splats:,} resident "
-            f"splat{'' if splats == 1 else 's'} (budget {report['gpu_budget_bytes'] / 2**20:.4g} MiB)")
+            f"splat{'' if splats == 1 else 's'} (budget {mib(report['gpu_budget_bytes'])} MiB)")
