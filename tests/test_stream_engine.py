@@ -255,6 +255,8 @@ def _coarse_to_fine_walk(engine, keys, sel):
                 rank.setdefault(j, r)
             j, d = parent[j], d + 1
     rank[engine.root] = -1
+    loading = {engine.manifest.index_of[k[0]] for k in engine._pages_wanted}  # heads whose pages load: not fetched
+    rank = {i: r for i, r in rank.items() if i not in loading or i not in set(sel.cut)}
     base = sorted(rank, key=lambda i: (level[i], rank[i]))
     filling = sorted(i for i in rank if i not in set(sel.cut))
     return [(int(engine.ids[i]), "base") for i in base] + [k for k in keys if k[1] != "base"], filling
