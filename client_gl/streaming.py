@@ -209,7 +209,7 @@ class StreamingSession:
         stream_opts = StreamOptions(selection=replace(options.selection(), sh_degree=degree),
                                     upload_bytes_per_frame=options.upload_bytes_per_frame, prefetch=options.prefetch,
                                     fill_levels=options.fill_levels, fill_gap=options.fill_gap,
-                                    fill_min_bytes=options.fill_min_bytes,
+                                    fill_min_bytes=options.fill_min_bytes, root_first=root_wanted(m, options),
                                     decode_workers=options.decode_workers,
                                     decode_processes=options.decode_processes,
                                     decode_workers_moving=options.decode_workers_moving,

@@ -135,6 +135,10 @@ def test_a_small_cut_is_fetched_directly_without_the_root(root, server, budget):
     u0, _, bases0, _ = _stream(server, "whole", cam, StreamOptions(sel, prefetch=False, fill_min_bytes=0))
     assert sorted(u0.draw) == sorted(u.draw)
     assert bases0[0] == m.root and set(bases0) > set(u.draw)  # coarse to fine: the root first, then ancestors
+    # a session that asked for the root with the manifest (no splat budget bounds the cut): the root, drawn first,
+    # and the cut, no other ancestor
+    u1, _, bases1, _ = _stream(server, "whole", cam, StreamOptions(sel, prefetch=False, root_first=True))
+    assert sorted(u1.draw) == sorted(u.draw) and bases1[0] == m.root and sorted(bases1[1:]) == sorted(u.draw)
 
 
 def test_a_large_cut_still_loads_coarse_to_fine(root, server):

@@ -111,6 +111,10 @@ class StreamOptions:
     # drawn bytes on top (BENCHMARKS.md, "A small cut fetched directly"). 0: always coarse to fine (as before).
     # The `--fill-min-kb` default of commands/view.py is this one.
     fill_min_bytes: int = 64 << 10
+    # The root's base stays in the wish list of a small cut too: set by a session that asked for the root with the
+    # manifest, before the view was known (streaming.root_wanted: no splat budget that bounds the cut), so that the
+    # root it fetched anyway is drawn first, as before, rather than dropped.
+    root_first: bool = False
     decode_workers: int = 2
     # Decode threads that run while the camera moves (all decode_workers while it rests): each thread decoding
     # Python takes the interpreter lock from the frame loop in the frames of a flight (the slow frames of the 250M
@@ -870,9 +874,10 @@ class StreamEngine:
             base = cut if loading is None else cut[~loading]
             if self._drawn_ids is None and loading is not None and loading.any():
                 self._root_first = True
-            if self._root_first and self._drawn_ids is None and not (base == self.root).any():
+            if (self.options.root_first or self._root_first and self._drawn_ids is None) and \
+                    not (base == self.root).any():
                 # nothing drawn yet and part of the cut waits for its page (a round trip more than the root): the
-                # root, until the first frame draws, so that it comes as soon as without paging
+                # root, until the first frame draws, so that it comes as soon as without paging (root_first: always)
                 base = np.concatenate(([self.root], base)).astype(np.intp)
             self._bases = base
             self._filling = np.zeros(len(self.resident), bool)
