@@ -239,6 +239,7 @@ class _PathFetcher:
         # every wish list handed over (priorities, keys, entries, in order), hashed after the path (out of the
         # frames' time): the same digest before and after a change of the engine's bookkeeping, the same requests
         self.lists: list = []
+        self.read: dict[str, tuple[int, int]] = {}  # group -> (files, bytes) handed over
 
     def manifest(self) -> Manifest:
         return self._root
@@ -255,6 +256,9 @@ class _PathFetcher:
 
     def done(self):
         out, self._wanted = self._wanted[:self._per_frame], self._wanted[self._per_frame:]
+        for key, entry in out:  # what the path read: pages, and payloads by group (issue 31)
+            n, nbytes = self.read.get(key[1], (0, 0))
+            self.read[key[1]] = (n + 1, nbytes + int(entry.bytes))
         return [(key, entry, self._files.get(entry.file, b"")) for key, entry in out]
 
     def stats(self):
@@ -542,6 +546,8 @@ def engine_path(whole: Manifest, k: int, frames: int, max_splats: int, per_frame
     print(f"  every frame's cut: sha256 {cuts.hexdigest()[:16]}, draw set: {draws.hexdigest()[:16]}; the last cut "
           f"{len(u.selection.cut)} tiles, {u.selection.splats} splats; the fetcher's requests: sha256 "
           f"{fetcher.requests_digest()} over {len(fetcher.lists)} wish lists")
+    print("  read along the path: " + ", ".join(f"{g}: {n} files, {b / 1e6:.2f} MB"
+                                                  for g, (n, b) in sorted(fetcher.read.items())))
     if parts_json:
         with open(parts_json, "w") as f:
             json.dump([{"frame": i, "update_cpu": round(float(cs[i]), 3), "update_wall": round(float(ts[i]), 3),

@@ -50,6 +50,7 @@ class ViewOptions:
     prefetch: bool = True
     fill_levels: bool = StreamOptions.fill_levels  # coarse to fine through every level (False: --skip-levels)
     fill_gap: int = StreamOptions.fill_gap
+    fill_min_bytes: int = StreamOptions.fill_min_bytes  # coarse to fine only above these missing bytes (--fill-min-kb)
     cache: bool = True  # disk cache of payloads (HTTP sources)
     cache_dir: str | None = None
     max_in_flight: int = 6
@@ -160,10 +161,12 @@ class PreparedSource:
         except BaseException:
             fetcher.close()
             raise
-        # The root's base is wanted whatever the view: ask for it now, so it arrives while the GPU pool and the
-        # shaders are built (the engine's first wish list names it again; the fetcher takes it once).
+        # The root's base is wanted whatever the view (but where the splat budget keeps the cut small enough to be
+        # fetched directly: root_wanted): ask for it now, so it arrives while the GPU pool and the shaders are built
+        # (the engine's first wish list names it again; the fetcher takes it once).
         root = manifest.tile(manifest.root)
-        fetcher.want([(1.0, (root.id, "base"), root.groups["base"])])
+        if root_wanted(manifest, options):
+            fetcher.want([(1.0, (root.id, "base"), root.groups["base"])])
         return cls(source, fetcher, manifest, start, time.perf_counter() - start)
 
 
@@ -206,6 +209,7 @@ class StreamingSession:
         stream_opts = StreamOptions(selection=replace(options.selection(), sh_degree=degree),
                                     upload_bytes_per_frame=options.upload_bytes_per_frame, prefetch=options.prefetch,
                                     fill_levels=options.fill_levels, fill_gap=options.fill_gap,
+                                    fill_min_bytes=options.fill_min_bytes, root_first=root_wanted(m, options),
                                     decode_workers=options.decode_workers,
                                     decode_processes=options.decode_processes,
                                     decode_workers_moving=options.decode_workers_moving,
@@ -392,6 +396,19 @@ def freeze_long_lived() -> None:
     whichever frame allocated next. gc.freeze() moves what exists now out of the collector's walks (no collection
     first: that would be the same stall before the first frame)."""
     gc.freeze()
+
+
+def root_wanted(manifest: Manifest, options: ViewOptions) -> bool:
+    """Whether the first frame will want the root's base before any view is known: not where the splat budget
+    bounds the cut's base payloads (estimated at the root's bytes a splat) to fill_min_bytes or less, since the
+    engine then fetches the cut itself, without its ancestors (StreamEngine._ancestors_worth)."""
+    if not options.fill_levels or options.fill_min_bytes <= 0 or options.max_splats is None:
+        return True
+    root = manifest.tile(manifest.root)
+    if options.max_splats <= root.splats:  # the cut is the root
+        return True
+    per_splat = root.groups["base"].bytes / max(root.splats, 1)
+    return options.max_splats * per_splat > options.fill_min_bytes
 
 
 def check_root_fits(manifest: Manifest, budget: int, sh_degree: int, codebook: CodebookLayout | None,

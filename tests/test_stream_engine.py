@@ -132,7 +132,8 @@ def test_budget_holds_and_eviction_follows_the_camera():
     leaf_chunks = sum(t.chunks for t in m.leaves)
     pool = CountingPool(leaf_chunks // 3)  # a third of the full detail fits
     fetcher = StepFetcher(store, per_frame=4)
-    engine = StreamEngine(fetcher, pool, StreamOptions(SelectionOptions(max_sse=0.5)))
+    # always coarse to fine: the ancestors held are what makes the pool evict here
+    engine = StreamEngine(fetcher, pool, StreamOptions(SelectionOptions(max_sse=0.5), fill_min_bytes=0))
     lo, hi = np.array(m.bounds.min), np.array(m.bounds.max)
     evicted, converged, root_joined = 0, 0, False
     for step in range(12):  # fly along the scene, looking across it from close by
@@ -208,6 +209,36 @@ def test_coarse_to_fine_fills_each_level_before_the_next(store):
     engine.close()
 
 
+def test_a_small_cut_draws_without_the_root_and_never_a_blank_frame(store):
+    """A cut under fill_min_bytes is fetched without the root (client.md 1.4): nothing is drawn until the whole
+    cut is there, and when the camera turns to tiles not fetched yet the last picture stays drawn (1.9), never an
+    empty frame; the root is never fetched."""
+    m = read_manifest(store)
+    fetcher = StepFetcher(store, per_frame=2)
+    engine = StreamEngine(fetcher, CountingPool(10_000),
+                          StreamOptions(SelectionOptions(max_sse=1.0, max_splats=900), prefetch=False))
+    drawn_any = False
+    for step in range(6):
+        cam = orbit(m, (1.6, 0.6, 1.0)[step % 3], 0.3 + 1.1 * step)  # turning, and nearer
+        for _ in range(200):
+            u = engine.update(cam)
+            engine.wait(0.05)
+            if u.draw:
+                if not drawn_any:  # the first picture is the whole cut
+                    assert sorted(u.draw) == sorted(int(engine.ids[i]) for i in u.selection.cut_at)
+                drawn_any = True
+            else:
+                assert not drawn_any, f"a blank frame after the camera turned (step {step})"
+            assert u.drawn_splats <= 900
+            if u.converged:
+                break
+        assert u.converged and m.root not in u.draw
+    bases = [t for t, g in fetcher.fetched if g == "base"]
+    assert m.root not in bases and len(bases) == len(set(bases))
+    assert sum(m.tile(t).groups["base"].bytes for t in u.draw) <= StreamOptions.fill_min_bytes
+    engine.close()
+
+
 def _coarse_to_fine_walk(engine, keys, sel):
     """The wish list's bases as a walk up from each cut tile (the engine's first version, kept as the reference of its
     numpy climb): ranks by first naming cut tile, ancestors every fill_step-th level from fill_gap up."""
@@ -224,6 +255,8 @@ def _coarse_to_fine_walk(engine, keys, sel):
                 rank.setdefault(j, r)
             j, d = parent[j], d + 1
     rank[engine.root] = -1
+    loading = {engine.manifest.index_of[k[0]] for k in engine._pages_wanted}  # heads whose pages load: not fetched
+    rank = {i: r for i, r in rank.items() if i not in loading or i not in set(sel.cut)}
     base = sorted(rank, key=lambda i: (level[i], rank[i]))
     filling = sorted(i for i in rank if i not in set(sel.cut))
     return [(int(engine.ids[i]), "base") for i in base] + [k for k in keys if k[1] != "base"], filling
@@ -242,7 +275,7 @@ def test_the_wish_lists_climb_is_the_walk(store, compiled, monkeypatch):
     for gap, step in ((4, 4), (1, 1), (2, 3), (3, 1)):
         engine = StreamEngine(StepFetcher(store), CountingPool(10_000),
                               StreamOptions(SelectionOptions(max_sse=float(rnd.choice([0.0, 0.5, 2.0]))),
-                                            fill_gap=gap, fill_step=step))
+                                            fill_gap=gap, fill_step=step, fill_min_bytes=0))  # always the climb
         for k in range(12):
             engine.resident[:] = rnd.random(len(engine.resident)) < (0.0, 0.3, 0.9)[k % 3]
             _, sel, _, keys, _ = engine.wanted(orbit(m, float(rnd.uniform(0.3, 3.0)), float(rnd.uniform(0, 6))))
@@ -1079,7 +1112,8 @@ def test_the_requests_of_a_paged_scene_are_the_per_key_paths(paged_store):
     whole = read_manifest(paged_store)
     fetcher = CheckingFetcher(paged_store, per_frame=3)
     engine = StreamEngine(fetcher, CountingPool(10_000),
-                          StreamOptions(SelectionOptions(max_sse=1.0), prefetch=False, fill_gap=1, fill_step=1))
+                          StreamOptions(SelectionOptions(max_sse=1.0), prefetch=False, fill_gap=1, fill_step=1,
+                                        fill_min_bytes=0))  # always the climb (the walk is its reference)
     fetcher.engine = engine
     original = fetcher.want
 

@@ -62,6 +62,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     s.add_argument("--fill-gap", type=int, default=4, metavar="N",
                    help="fill in the LOD level N levels above each wanted tile, then every fourth level up to the "
                         "root (default 4: coarse to fine in 16x steps of splats; 1: from the parents up)")
+    s.add_argument("--fill-min-kb", type=float, metavar="KB",
+                   help="fill in the LOD levels above the wanted tiles (the root included) only while more than KB "
+                        "KiB of the wanted tiles are missing (default: the client's, 64: a small cut is fetched and "
+                        "drawn directly; 0: always coarse to fine)")
     s.add_argument("--sort", default="auto", choices=["auto", "cpu", "gpu"], help="depth sort (as `render`)")
     s.add_argument("--draw", default="auto", choices=DRAWS, help="GPU-path rasterizer (as `render`)")
     h = p.add_argument_group("headless output")
@@ -105,6 +109,8 @@ def _options(args):
         raise UsageError(f"--frame-every {args.frame_every}: expected at least 1")
     if args.measure_frames < 0:  # was taken as 0 without a word
         raise UsageError(f"--measure-frames {args.measure_frames}: expected 0 or more frames")
+    if args.fill_min_kb is not None and not (args.fill_min_kb >= 0 and math.isfinite(args.fill_min_kb)):
+        raise UsageError(f"--fill-min-kb {args.fill_min_kb:g}: expected 0 or more kilobytes")
     if args.fill_gap < 1:
         raise UsageError(f"--fill-gap {args.fill_gap}: expected 1 or more levels")
     if args.fov_y is not None and not 0 < args.fov_y < 180:
@@ -112,6 +118,8 @@ def _options(args):
     return ViewOptions(gpu_mem_mb=args.gpu_mem_mb, max_splats=args.max_splats, max_sse=args.max_sse,
                        sh_degree=3 if args.sh_degree is None else args.sh_degree, prefetch=not args.no_prefetch,
                        fill_levels=not args.skip_levels, fill_gap=args.fill_gap,
+                       fill_min_bytes=ViewOptions.fill_min_bytes if args.fill_min_kb is None
+                       else int(args.fill_min_kb * 1024),
                        cache=not args.no_cache,
                        render=RenderOptions(sort=args.sort, draw=args.draw),
                        **_band_shares(args.sh_bands))

@@ -103,6 +103,18 @@ class StreamOptions:
     # commands/view.py is the same 4.
     fill_gap: int = 4
     fill_step: int = 4
+    # Coarse to fine only where it pays (issue 31): the ancestors, the root included, are wanted only while the cut's
+    # missing base payloads (a page head whose page is loading counted as `lod.reduction` times its own, what its
+    # children will be) exceed this many bytes. Below it the cut itself arrives about as soon as an ancestor would:
+    # 64 KiB is under the reference link's bandwidth-delay product (20 Mbit/s x 40 ms = 100 KB) and above the 2 %
+    # cuts of donut and biker (17 and 49 KB), the scenes it was chosen on; the ancestors were then 0.09-0.10x of the
+    # drawn bytes on top (BENCHMARKS.md, "A small cut fetched directly"). 0: always coarse to fine (as before).
+    # The `--fill-min-kb` default of commands/view.py is this one.
+    fill_min_bytes: int = 64 << 10
+    # The root's base stays in the wish list of a small cut too: set by a session that asked for the root with the
+    # manifest, before the view was known (streaming.root_wanted: no splat budget that bounds the cut), so that the
+    # root it fetched anyway is drawn first, as before, rather than dropped.
+    root_first: bool = False
     decode_workers: int = 2
     # Decode threads that run while the camera moves (all decode_workers while it rests): each thread decoding
     # Python takes the interpreter lock from the frame loop in the frames of a flight (the slow frames of the 250M
@@ -406,6 +418,8 @@ class StreamEngine:
         self._listed: tuple = ()
         self._priority_list: list[float] = []  # the wish list's priorities, kept (_priorities)
         self._draw_cache: tuple | None = None
+        self._drawn_ids: np.ndarray | None = None  # the ids of the last draw set that was not empty (_draw_counts)
+        self._root_first = False  # a small cut waited for pages before the first frame: the root is wanted until then
         self._ready: dict[Key, _Ready] = {}
         self._ready_bytes = 0
         self._decoding: set[Key] = set()
@@ -821,6 +835,20 @@ class StreamEngine:
             held = self._draw_set_of(view, sel, compiled, False)
             if len(held[0]):
                 drawn, resident_tiles, resident_splats, drawn_splats = held
+            elif not self.resident[self.root]:  # no ancestor covers it (the root was not fetched): the last set
+                drawn, drawn_splats = drawn[:0], 0
+        if len(drawn):
+            self._drawn_ids = self.ids[drawn]
+        elif self._drawn_ids is not None and not self.resident[self.root]:
+            # Without the root (a small cut fetched directly: _ancestors_worth) nothing covers a region whose cut
+            # tile is missing, and the walk draws nothing: the last set drawn stands in while its tiles are
+            # resident (they are never evicted while drawn; a region the camera turned to stays empty meanwhile)
+            index_of = self.manifest.index_of
+            held = [index_of.get(t) for t in self._drawn_ids.tolist()]
+            if all(i is not None and self.resident[i] for i in held):
+                splats = int(self.arrays.splats[held].sum())
+                if max_splats is None or splats <= max_splats:  # (the budget holds in every frame: 2)
+                    drawn, drawn_splats = np.array(held, np.intp), splats
         counts = (self.ids[drawn].tolist(), resident_tiles, resident_splats, drawn_splats)
         return (self._wanted_serial, self._version), drawn, counts
 
@@ -840,6 +868,22 @@ class StreamEngine:
         the cut's priority: an ancestor takes the rank of its first descendant), SH bands after every base."""
         a = self.arrays
         cut = sel.cut_at
+        # A page head whose page is loading stands for the children the cut wants: an ancestor, not a cut tile
+        loading = np.isin(self.ids[cut], [k[0] for k in self._pages_wanted]) if self._pages_wanted else None
+        if not self._ancestors_worth(cut, loading):  # the cut itself (the root only where it is a cut tile)
+            base = cut if loading is None else cut[~loading]
+            if self._drawn_ids is None and loading is not None and loading.any():
+                self._root_first = True
+            if (self.options.root_first or self._root_first and self._drawn_ids is None) and \
+                    not (base == self.root).any():
+                # nothing drawn yet and part of the cut waits for its page (a round trip more than the root): the
+                # root, until the first frame draws, so that it comes as soon as without paging (root_first: always)
+                base = np.concatenate(([self.root], base)).astype(np.intp)
+            self._bases = base
+            self._filling = np.zeros(len(self.resident), bool)
+            made = self._sh_blocks
+            sh = keys[made[1]:] if made is not None and made[0] is keys else [k for k in keys if k[1] != "base"]
+            return list(zip(self.ids[self._bases].tolist(), repeat("base"))) + sh
         gap, step = self.options.fill_gap, self.options.fill_step
         # Every fill_step-th ancestor, from fill_gap levels up, of each cut tile not resident: levels `reduction`
         # apart in splats would otherwise add about as many bytes as the cut itself (1/2 + 1/4 + ... at reduction
@@ -851,10 +895,30 @@ class StreamEngine:
                                                               gap, step)
         else:
             base = self._coarse_to_fine_numpy(cut, gap, step)
+        if loading is not None and loading.any():
+            # a head whose page loads is not fetched either: its children replace it a round trip later, and the
+            # fill rule names levels fill_gap apart, not the level just above them (it was drawn, then replaced:
+            # 0.53-0.59x of the drawn bytes at 50 % with --page-levels 4); its ancestors are named from it
+            base = base[~np.isin(base, cut[loading])]
         self._bases = base  # positions of the list's bases, in its order
         made = self._sh_blocks  # the keys' SH part (after their bases) as _make_keys made it
         sh = keys[made[1]:] if made is not None and made[0] is keys else [k for k in keys if k[1] != "base"]
         return list(zip(self.ids[base].tolist(), repeat("base"))) + sh
+
+    def _ancestors_worth(self, cut: np.ndarray, loading: np.ndarray | None) -> bool:
+        """Whether the cut's ancestors (the root included) are worth fetching: its missing base payloads exceed
+        fill_min_bytes (a head whose page is loading counts `lod.reduction` times its own: its children's)."""
+        limit = self.options.fill_min_bytes
+        if limit <= 0:
+            return True
+        missing = ~self.resident[cut]
+        nbytes = self.arrays.base_bytes
+        if loading is None:
+            need = int(nbytes[cut[missing]].sum())
+        else:
+            need = int(nbytes[cut[missing & ~loading]].sum()) + \
+                int(float(self.manifest.lod.reduction) * nbytes[cut[missing & loading]].sum())
+        return need > limit
 
     def _coarse_to_fine_numpy(self, cut: np.ndarray, gap: int, step: int) -> np.ndarray:
         """_coarse_to_fine's bases in their order, and self._filling set, in numpy (the reference of
