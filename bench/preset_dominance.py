@@ -227,14 +227,16 @@ def preset_table(scenes: dict[str, dict], columns: int = 0) -> str:
         names = list(scenes)
         return "\n\n".join(preset_table({n: scenes[n] for n in names[i:i + columns]})
                             for i in range(0, len(names), columns))
-    from splatstream.format.presets import PRESETS
+    from splatstream.format.presets import PRESETS, rotation_choices
 
     def cell(r: dict | None, preset: str = "", s: dict | None = None) -> str:
         if r is None and s is not None and not s["input"]["sh_degree"] and preset in SH_BASE:
             base = s["presets"].get(SH_BASE[preset])
-            # medium-low's rotations where its encoder chose cube8x4 (format 1.14): the per-splat SH presets keep
-            # the half turns (norm8x4), so on such a scene they are its planes but for the rotations
-            if base is not None and base["formats"]["rotation"] != PRESETS[preset]["rotation"]:
+            # a rotation format the base preset's encoder measured (format 1.14: medium-low's cube8x4) is the SH
+            # preset's too where it measures the same candidates (medium-low-sh16, -sh8 since shvariants32): the
+            # same sample, the same choice; otherwise it is the base's planes but for the rotations
+            if base is not None and base["formats"]["rotation"] != PRESETS[preset]["rotation"] \
+                    and base["formats"]["rotation"] not in rotation_choices(preset):
                 return f"= {SH_BASE[preset]} with {PRESETS[preset]['rotation']} rotations (no SH bands)"
             return f"= {SH_BASE[preset]} (no SH bands)"
         if r is None:

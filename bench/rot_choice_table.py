@@ -1,8 +1,9 @@
 """`medium-low`'s row before and after its measured rotation choice (issue 32, cube32: norm8x4 half turns or, format
-1.14, cube8x4), from a stored `splatstream eval` report and a fresh one of the same scene and cameras.
+1.14, cube8x4), from a stored `splatstream eval` report and a fresh one of the same scene and cameras; `--preset`
+another preset's row (its per-splat SH variants `medium-low-sh16`, `-sh8`, which measure the same since shvariants32).
 
     python bench/rot_choice_table.py NAME=STORED.json,NEW.json [...] [--held-out NAME,...] [--markdown OUT.md]
-        [--json OUT.json]
+        [--json OUT.json] [--preset PRESET]
 
 Per scene: the rotation format the encoder chose, disk B/splat and mean PSNR before -> after; whether `medium-low`
 lies strictly between its neighbours in bytes and in PSNR, before and after (its neighbours: the stored report's
@@ -28,16 +29,16 @@ def preset_rows(path: str) -> dict[str, dict]:
             and "preset" in r and not r.get("overrides")}
 
 
-def neighbours(rows: dict[str, dict]) -> tuple[str, str]:
-    """The preset rows next to PRESET's in bytes: (the nearest smaller, the nearest larger)."""
+def neighbours(rows: dict[str, dict], preset: str = PRESET) -> tuple[str, str]:
+    """The preset rows next to `preset`'s in bytes: (the nearest smaller, the nearest larger)."""
     size = {p: r["disk_bytes_per_splat"] for p, r in rows.items()}
-    b = size[PRESET]
+    b = size[preset]
     return (max((p for p in size if size[p] < b / TWIN), key=size.__getitem__),
             min((p for p in size if size[p] > b * TWIN), key=size.__getitem__))
 
 
-def _between(rows: dict[str, dict], row: dict) -> bool:
-    lo, hi = (rows[p] for p in neighbours(rows))
+def _between(rows: dict[str, dict], row: dict, preset: str = PRESET) -> bool:
+    lo, hi = (rows[p] for p in neighbours(rows, preset))
     return bool(lo["disk_bytes_per_splat"] < row["disk_bytes_per_splat"] < hi["disk_bytes_per_splat"]
                 and lo["psnr_mean"] < row["psnr_mean"] < hi["psnr_mean"])
 
@@ -47,20 +48,21 @@ def _side(a: float | None, b: float, tolerance: float = 0.0) -> int:
     return 0 if abs(a - b) <= tolerance else (a > b) - (a < b)
 
 
-def scene_row(stored: str, new: str) -> dict:
+def scene_row(stored: str, new: str, preset: str = PRESET) -> dict:
     rows = preset_rows(stored)
-    old, fresh = rows[PRESET], preset_rows(new)[PRESET]
-    crossed = [p for p, r in rows.items() if p != PRESET and (
+    old, fresh = rows[preset], preset_rows(new)[preset]
+    crossed = [p for p, r in rows.items() if p != preset and (
         _side(r["disk_bytes_per_splat"], old["disk_bytes_per_splat"])
         != _side(r["disk_bytes_per_splat"], fresh["disk_bytes_per_splat"])
         or _side(r["psnr_mean"], old["psnr_mean"], PSNR_NOISE)
         != _side(r["psnr_mean"], fresh["psnr_mean"], PSNR_NOISE))]
-    return {"rotation": fresh["formats"]["rotation"], "neighbours": neighbours(rows),
+    return {"rotation": fresh["formats"]["rotation"], "neighbours": neighbours(rows, preset),
             "bytes_before": old["disk_bytes_per_splat"], "bytes_after": fresh["disk_bytes_per_splat"],
             "psnr_before": old["psnr_mean"], "psnr_after": fresh["psnr_mean"],
             "bytes_change": fresh["disk_bytes_per_splat"] / old["disk_bytes_per_splat"] - 1,
             "psnr_change": fresh["psnr_mean"] - old["psnr_mean"],
-            "between_before": _between(rows, old), "between_after": _between(rows, fresh), "crossed": crossed}
+            "between_before": _between(rows, old, preset), "between_after": _between(rows, fresh, preset),
+            "crossed": crossed}
 
 
 def summary(scenes: dict[str, dict], names: list[str]) -> str:
@@ -79,16 +81,17 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--held-out", default="", help="comma-separated scene names not chosen on")
     ap.add_argument("--markdown")
     ap.add_argument("--json")
+    ap.add_argument("--preset", default=PRESET, help=f"the preset whose row is compared (default {PRESET})")
     a = ap.parse_args(argv)
     scenes = {}
     for pair in a.pairs:
         name, paths = pair.split("=", 1)
         stored, new = paths.split(",")
-        scenes[name] = scene_row(stored, new)
+        scenes[name] = scene_row(stored, new, a.preset)
     held = [s for s in a.held_out.split(",") if s]
     chosen = [s for s in scenes if s not in held]
-    lines = [f"| scene | rotation chosen | `{PRESET}` B/splat | PSNR dB | its neighbours (smaller, larger) | strictly "
-             "between them (before -> after) | presets that changed side |", "|---|---|---|---|---|---|---|"]
+    lines = [f"| scene | rotation chosen | `{a.preset}` B/splat | PSNR dB | its neighbours (smaller, larger) | "
+             "strictly between them (before -> after) | presets that changed side |", "|---|---|---|---|---|---|---|"]
     for name, r in scenes.items():
         mark = "" if name in held else " (choice)"
         lines.append(f"| {name}{mark} | {r['rotation']} | {r['bytes_before']:.2f} -> {r['bytes_after']:.2f} "

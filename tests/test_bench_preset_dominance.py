@@ -67,3 +67,16 @@ def test_merged_points_join_identical_presets_and_sort_by_bytes():
     merged = D._merged_points(presets)
     assert [r["label"] for r in merged] == ["low", "medium-low = -sh16", "medium", "high = medium-high"]
     assert [r["disk_bytes_per_splat"] for r in merged] == [10.41, 12.88, 14.80, 17.40]
+
+
+def test_sh0_cells_of_the_per_splat_sh_presets_follow_the_measured_rotation():
+    """On an SH0 scene the per-splat SH presets are their base's planes; medium-low's measured cube8x4 is theirs too
+    (they measure the same candidates, shvariants32), while a rotation format they do not measure would be named."""
+    ml = {**row("preset", "medium-low", 12.0, 60.0), "formats": {"rotation": "cube8x4"}}
+    table = D.preset_table({"d.ply": scene("d.ply", [ml])})
+    line = next(s for s in table.splitlines() if s.startswith("| medium-low-sh16 |"))
+    assert line == "| medium-low-sh16 | = medium-low (no SH bands) |"
+    ml["formats"] = {"rotation": "norm565"}
+    table = D.preset_table({"d.ply": scene("d.ply", [ml])})
+    line = next(s for s in table.splitlines() if s.startswith("| medium-low-sh8 |"))
+    assert line == "| medium-low-sh8 | = medium-low with norm8x4 rotations (no SH bands) |"

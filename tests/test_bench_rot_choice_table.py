@@ -39,3 +39,16 @@ def test_neighbours_skip_twins_and_rows_that_change_side_are_named(tmp_path):
 def test_very_low_trade_is_db_per_e_fold_of_bytes():
     ref, v = row("very-low-rgb127", 10.0, 40.0), row("very-low", 10.0 / math.e, 35.0)
     assert math.isclose(V.trade(ref, v), 5.0)
+
+
+def test_another_presets_row_is_compared_with_preset(tmp_path):
+    """--preset (shvariants32): medium-low-sh16's row against its own neighbours; medium-low, 1.5 % under it in
+    bytes, is a neighbour, and the row that changes side of it when -sh16 takes cube8x4 too."""
+    stored = [row("medium", 14.0, 62.0), row("medium-low-sh16", 13.07, 52.6), row("medium-low", 12.88, 53.5),
+              row("medium-low-12bit", 12.71, 50.3), row("low", 10.0, 45.0)]
+    new = [row("medium-low-sh16", 12.80, 53.5, "cube8x4")]
+    r = T.scene_row(write(tmp_path / "a.json", stored), write(tmp_path / "b.json", new), "medium-low-sh16")
+    assert r["neighbours"] == ("medium-low", "medium") and r["rotation"] == "cube8x4"
+    assert not r["between_before"] and not r["between_after"]
+    assert r["crossed"] == ["medium-low"]  # passed in bytes, met in PSNR
+    assert math.isclose(r["psnr_change"], 0.9)

@@ -214,3 +214,39 @@ def test_every_engine_measures_the_same_choice(tmp_path):
                 memory_per_worker=1 << 20, **tree)
     assert load_manifest(tmp_path / "parts").formats["rotation"] == "cube8x4"
     assert _directory_digest(tmp_path / "parts") == _directory_digest(tmp_path / "memory")
+
+
+@pytest.mark.parametrize("preset", ["medium-low-sh16", "medium-low-sh8"])
+def test_medium_lows_per_splat_sh_variants_measure_the_same_choice(preset, medium_low_scene, tmp_path, caplog):
+    """medium-low's planes with per-splat SH bands (shvariants32) measure the same candidates as medium-low: off the
+    grid (fruit_drops' PLY rotations) cube8x4 and version 1.14, on norm8x4's grid the half turns, which decode to
+    what the half turns given with --rotation norm8x4 decode to; the rotation given is kept."""
+    assert rotation_choices(preset) == rotation_choices("medium-low") == ("norm8x4", "cube8x4")
+    assert rotation_choices(preset, {"rotation": "norm8x4"}) == ()
+    formats = resolve_formats(preset)
+    q = _random_rotations(20_000, 3)
+    scales = np.zeros((len(q), 3), np.float32)
+    assert plan_rotation_format(EncodeOptions(preset=preset), formats, q, scales)["rotation"] == "cube8x4"
+    on_grid_q = _round_trip(q, "norm8x4")
+    assert plan_rotation_format(EncodeOptions(preset=preset), formats, on_grid_q, scales)["rotation"] == "norm8x4"
+
+    g, _, _ = medium_low_scene
+    m = encode_gaussians(g, tmp_path / "off", EncodeOptions(preset=preset, lod=False))
+    assert m.version == (1, 14) and m.formats == {**formats, "rotation": "cube8x4"}
+    dec = decode_scene(tmp_path / "off")
+    assert np.all(dec.rotations[:, 0] >= 0.85)  # the cube gauge
+    err = rotation_error_deg(g.rotations, g.log_scales, preset, m.formats)
+    assert err.max() < 0.40 and err.mean() < 0.25
+
+    on_grid = replace(g, rotations=_round_trip(g.rotations, "norm8x4"))
+    with caplog.at_level(logging.INFO, logger="splatstream.encode"):
+        kept = encode_gaussians(on_grid, tmp_path / "on", EncodeOptions(preset=preset, lod=False))
+    assert kept.formats == formats and kept.version < (1, 14)
+    assert f"{preset} rotations: norm8x4 (mean angle error norm8x4 0.0" in caplog.text
+    forced = encode_gaussians(on_grid, tmp_path / "f", EncodeOptions(preset=preset, lod=False,
+                                                                     overrides={"rotation": "norm8x4"}))
+    assert forced.formats == kept.formats
+    assert np.array_equal(decode_scene(tmp_path / "on").rotations, decode_scene(tmp_path / "f").rotations)
+    # info calls the measured rotation the preset's own
+    line = next(s for s in run_cli("info", tmp_path / "off").stdout.splitlines() if s.startswith("preset"))
+    assert preset in line and "differs from it in" not in line

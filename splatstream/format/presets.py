@@ -429,7 +429,10 @@ PRESET_ROTATION_GAUGE: dict[str, str] = {
 # bits) cube8x4 is the closer, +0.2 to +2.9 dB (bench/rot_range_probe.py, rotrange32). The measure decides where the
 # input lies without a test for grids: chosen on fruit_drops and guitar, held out on the 14 other real scenes
 # (BENCHMARKS.md, "medium-low's rotations over the cube gauge's range").
-PRESET_ROTATION_CHOICES: dict[str, tuple[str, ...]] = {"medium-low": ("norm8x4", "cube8x4")}
+# medium-low-sh16 and medium-low-sh8 (issue 32, shvariants32) are medium-low's planes with per-splat SH bands, so
+# their rotations are the same question and take the same measure.
+PRESET_ROTATION_CHOICES: dict[str, tuple[str, ...]] = dict.fromkeys(("medium-low", "medium-low-sh16", "medium-low-sh8"),
+                                                                    ("norm8x4", "cube8x4"))
 
 
 def rotation_choices(preset: str, overrides: dict[str, str] | None = None) -> tuple[str, ...]:
