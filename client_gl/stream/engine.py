@@ -314,7 +314,10 @@ def root_frame_box(planes: dict, splats: int) -> tuple[np.ndarray, np.ndarray]:
     colour plane's alpha). The root tile holds the whole scene, coarsely: its box is the scene's within a few %
     (BENCHMARKS.md, "The F key frames the scene")."""
     positions = decode_plane(planes["position"], splats)[:, 0]
-    alpha = np.clip(decode_plane(planes["color"], splats)[:, 0, 3].astype(np.float64), 1e-6, 1.0 - 1e-6)
+    try:
+        alpha = np.clip(decode_plane(planes["color"], splats)[:, 0, 3].astype(np.float64), 1e-6, 1.0 - 1e-6)
+    except UsageError:  # BC7 colour without the 'bc' extra (the GPU decodes it, this could not): every splat
+        return framing_box(positions)
     return framing_box(positions, np.log(alpha) - np.log1p(-alpha))
 
 
