@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from splatstream.camera import Camera
+from splatstream.camera import Camera, framing_view
 
 ORBIT_DEG_PER_PX = 0.3
 LOOK_DEG_PER_PX = 0.15
@@ -40,10 +40,13 @@ class CameraState:
 @dataclass
 class CameraController:
     home: CameraState  # R returns here (the scene's suggested camera)
-    scene_center: np.ndarray  # F frames this sphere
+    scene_center: np.ndarray  # the scene's bounding sphere (every splat, strays included): the fly speed, near/far
     scene_radius: float
     mode: str = "orbit"  # or "fly"
     speed: float = 0.0  # fly speed, world units per second (0: from the scene size)
+    # F frames this box (camera.framing_box of the root tile's splats, set once they are decoded), as the suggested
+    # camera frames the scene; the bounding sphere until then.
+    frame_box: tuple[np.ndarray, np.ndarray] | None = None
     goal: CameraState = field(init=False)
     now: CameraState = field(init=False)
 
@@ -142,9 +145,14 @@ class CameraController:
         self.goal = self.home.copy()
 
     def frame_scene(self, aspect: float) -> None:
-        """F: look at the scene's bounding sphere from the current direction, fitting it in view."""
+        """F: look at the scene from the current direction, fitting it in view: its framing box (frame_box, the
+        suggested camera's rule: camera.framing_view) where known, else its bounding sphere."""
         g = self.goal
         _, _, forward = self._basis(g)
+        if self.frame_box is not None:
+            g.target, dist = framing_view(*self.frame_box, -forward, g.up, g.fov_y, aspect)
+            g.eye = g.target - forward * dist
+            return
         half = math.radians(g.fov_y) / 2.0
         half = min(half, math.atan(math.tan(half) * aspect))
         dist = self.scene_radius / math.sin(half)

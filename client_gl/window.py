@@ -44,7 +44,7 @@ CONTROLS = [
     ("shift", "move faster"),
     ("C", "switch orbit / fly camera"),
     ("R", "reset to the scene's camera"),
-    ("F", "frame the whole scene"),
+    ("F", "frame the scene (stray splats left out)"),
     ("B", "show tile bounds, coloured by LOD level"),
     ("space", "pause / resume streaming"),
     ("P", "save a screenshot (PNG, full resolution, no overlay)"),
@@ -315,6 +315,8 @@ class Viewer:
             elif key == keys.R:
                 self.controller.reset()
             elif key == keys.F:
+                if self.controller.frame_box is None and self.session is not None:
+                    self.controller.frame_box = self.session.engine.frame_box  # once the root's base has decoded
                 w, h = self.wnd.buffer_size
                 self.controller.frame_scene(w / max(1, h))
             elif key == keys.SPACE and self.session is not None:

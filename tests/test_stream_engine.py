@@ -161,6 +161,24 @@ def test_budget_holds_and_eviction_follows_the_camera():
     engine.close()
 
 
+def test_the_root_tiles_framing_box_once_its_base_has_decoded(store):
+    """What the viewer's F frames (issue 31): camera.framing_box of the root tile's splats, as decoded by the
+    engine (positions, and opacities from the colour plane's alpha), within the quantisation of the planes."""
+    from splatstream.camera import framing_box
+    from splatstream.scene_decode import decode_scene
+
+    m = read_manifest(store)
+    engine = StreamEngine(StepFetcher(store), CountingPool(10_000), StreamOptions(SelectionOptions(max_sse=1.0)))
+    assert engine.frame_box is None
+    run_until_converged(engine, orbit(m, 1.6, 0.3))
+    root = decode_scene(store, 0, [m.root], m)
+    lo, hi = framing_box(root.positions, root.opacity_logits)
+    size = float(np.linalg.norm(hi - lo))
+    np.testing.assert_allclose(engine.frame_box[0], lo, atol=1e-3 * size)
+    np.testing.assert_allclose(engine.frame_box[1], hi, atol=1e-3 * size)
+    engine.close()
+
+
 def test_coarse_to_fine_fills_each_level_before_the_next(store):
     m = read_manifest(store)
     a = m.arrays

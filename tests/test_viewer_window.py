@@ -2,6 +2,7 @@
 camera, the screenshot key saves the frame without the overlay, and the frame matches the headless render of the
 same camera. Skipped where Xvfb or xdotool are missing (.ci/run installs both)."""
 import json
+import math
 import os
 import shutil
 import signal
@@ -335,3 +336,58 @@ def test_window_controls_list_fits_a_short_window(display, served, tmp_path):
     # its last line (Esc) is inside the window: the list's bottom edge is above the window's
     rows = np.abs(shown[:, 20:200] - without[:, 20:200]).mean(axis=(1, 2))
     assert rows[-8:].max() < rows[SIZE[1] - 60:SIZE[1] - 20].max(), rows[-60:]
+
+
+def test_window_f_frames_the_box_the_suggested_camera_frames(display, served, tmp_path):
+    """F in a window (issue 31): the view frames the box of the root tile's splats (camera.framing_box, the suggested
+    camera's rule) from the current direction, not the bounding sphere of every splat. Pressed at the suggested
+    camera, it comes back to about that camera (the root tile's box is the coarse stand-in for the scene's)."""
+    import urllib.request
+
+    from splatstream.format.manifest import parse_manifest
+
+    with urllib.request.urlopen(served + "/manifest.msgpack", timeout=10) as resp:
+        m = parse_manifest(resp.read())
+    home, root = m.camera, m.tile(m.root)
+    env = {**os.environ, "DISPLAY": display, "SPLATSTREAM_CACHE_DIR": str(tmp_path / "cache")}
+    viewer = subprocess.Popen([sys.executable, "-m", "cli", "view", served, "--size", f"{SIZE[0]}x{SIZE[1]}",
+                               "--gpu-mem-mb", "64", "--no-vsync"], env=env, cwd=tmp_path,
+                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    output = ViewerOutput(viewer.stdout)
+    try:
+        window = wait_for_window(display, viewer, output)
+        seen = output.wait_for("view: converged", -1, "converged view of the scene")
+        xdo(display, "windowfocus", "--sync", window)
+        xdo(display, "key", "f")
+        shot_line = ""
+        for _ in range(5):  # the camera glides to the framed view: a screenshot once it is at rest there
+            seen = output.wait_for("view: converged", seen, "converged view after F")
+            xdo(display, "windowfocus", "--sync", window)
+            xdo(display, "key", "p")
+            seen = output.wait_for("saved ", seen, "line for the screenshot (P)")
+            shot_line = output.lines[seen]
+            if "; converged; " in shot_line:
+                break
+        assert "; converged; " in shot_line, f"no screenshot of the view at rest:\n{output.text()}"
+        xdo(display, "key", "Escape")
+        viewer.wait(HANG_S)
+        output.join()
+    finally:
+        if viewer.poll() is None:
+            viewer.kill()
+            viewer.wait()
+    assert viewer.returncode == 0, output.text()
+    cam = json.loads(Path(shot_line[len("saved "):].split(" (", 1)[0] + ".camera.json").read_text())
+    home_dist = float(np.linalg.norm(np.subtract(home.eye, home.target)))
+    dist = float(np.linalg.norm(np.subtract(cam["eye"], cam["target"])))
+    # the same direction, about the suggested camera's distance and target (the donut's root box: 0.88 of the
+    # full detail's diagonal, BENCHMARKS.md "The F key frames the scene")
+    view = np.subtract(cam["target"], cam["eye"]) / dist
+    home_view = np.subtract(home.target, home.eye) / home_dist
+    assert float(view @ home_view) > 0.999
+    assert 0.8 * home_dist < dist < 1.05 * home_dist, (dist, home_dist)
+    assert np.linalg.norm(np.subtract(cam["target"], home.target)) < 0.05 * home_dist
+    # the bounding sphere's framing (before issue 31) stood much farther back
+    half = math.radians(home.fov_y) / 2.0
+    half = min(half, math.atan(math.tan(half) * SIZE[0] / SIZE[1]))
+    assert dist < 0.7 * root.sphere_radius / math.sin(half)

@@ -28,9 +28,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from splatstream.camera import Camera
+from splatstream.camera import Camera, framing_box
 from splatstream.errors import SplatstreamError, UsageError
-from splatstream.format.codec import palette_as_ranged
+from splatstream.format.codec import decode_plane, palette_as_ranged
 from splatstream.format.container import VerifiedPayload
 from splatstream.format.decode import codebook_index, decode_payload, decode_payloads
 from splatstream.format.manifest import Manifest, PayloadEntry, indexable
@@ -321,6 +321,18 @@ def decode_batch_job(jobs: list[tuple], between=None) -> list[tuple[dict, Any] |
     return out
 
 
+def root_frame_box(planes: dict, splats: int) -> tuple[np.ndarray, np.ndarray]:
+    """camera.framing_box of a tile's splats from its decoded base planes (positions, and opacities from the
+    colour plane's alpha). The root tile holds the whole scene, coarsely: its box is the scene's within a few %
+    (BENCHMARKS.md, "The F key frames the scene")."""
+    positions = decode_plane(planes["position"], splats)[:, 0]
+    try:
+        alpha = np.clip(decode_plane(planes["color"], splats)[:, 0, 3].astype(np.float64), 1e-6, 1.0 - 1e-6)
+    except UsageError:  # BC7 colour without the 'bc' extra (the GPU decodes it, this could not): every splat
+        return framing_box(positions)
+    return framing_box(positions, np.log(alpha) - np.log1p(-alpha))
+
+
 def _warm_up() -> bool:
     """Runs once in each decode process before it takes payloads: the imports are done by then."""
     return True
@@ -424,6 +436,9 @@ class StreamEngine:
         self._ready_bytes = 0
         self._decoding: set[Key] = set()
         self._decoded: queue.Queue = queue.Queue()
+        # The root tile's framing box (camera.framing_box of its splats: the rule of the suggested camera), once its
+        # base has decoded: what the viewer's F key frames (the bounding sphere holds every stray splat).
+        self.frame_box: tuple[np.ndarray, np.ndarray] | None = None
         self._pool = ThreadPoolExecutor(max_workers=options.decode_workers, thread_name_prefix="splat-decode")
         self._closing = False
         # Set while the frame loop is not in its CPU work (engine update, draw submission): decode threads run each
@@ -992,6 +1007,8 @@ class StreamEngine:
                     reject(self.entry(key))
                 continue
             ready = item[1]
+            if self.frame_box is None and key[1] == "base" and key[0] == self.manifest.root:
+                self.frame_box = root_frame_box(ready.planes, self.manifest.tile(key[0]).splats)
             self._ready[key] = ready
             self._ready_bytes += ready.nbytes
 
