@@ -9,9 +9,11 @@ memory is not another's; RSS sampled every 2 ms. One JSON line a size: the peak 
 
     PYTHONPATH=. nice -n 19 python bench/refiner_memory.py SCENE.ply 16384 32768 65536 131072 262144 \
         [--json OUT.jsonl]
-    # on the GPU machine (16 cores, 128 GB), a scene of 2^21 splats or more first:
-    python /work/shared/tools/make_scene.py --splats 2200000 --seed 0 --out /tmp/big.ply
-    PYTHONPATH=. python bench/refiner_memory.py /tmp/big.ply 1048576 2097152 --json refiner_memory_gpu.jsonl
+    # on the GPU machine (16 cores, 128 GB), a scene of 2^21 splats or more first (donut copies: nothing outside the
+    # repository), then one size a call:
+    python bench/tile_scene.py samples/donut.ply --splats 2100000 --out /tmp/big.ply
+    PYTHONPATH=. python bench/refiner_memory.py /tmp/big.ply 1048576 --json refiner_memory_gpu.jsonl
+    PYTHONPATH=. python bench/refiner_memory.py /tmp/big.ply 2097152 --json refiner_memory_gpu.jsonl
 
 A size above the scene's splats is skipped.
 """
