@@ -15,6 +15,7 @@ peer at all 48 points.
 """
 from __future__ import annotations
 
+import math
 import os
 import time
 from collections.abc import Callable
@@ -55,6 +56,10 @@ from . import raster
 # first, compiling fit: 30.4 MiB, 14.4 once compiled; on the safe side).
 PAIRS_PER_PIXEL = 32
 SPLAT_COPIES = 14
+# and what the first fit of a process adds whatever its size: numba's cached kernels loaded and its threads started
+# (45 MiB measured over a fit of 3,000 splats at 8 px; bench/refiner_memory.py at 64 px measured 80 MiB above the tree
+# where the rest of the model gave 61)
+KERNELS_BYTES = 48 << 20
 VARIANT = "A"  # the one variant fitted here (lod_refine.VARIANT_FIELDS): opacity and DC colour, the geometry fixed
 
 
@@ -125,22 +130,35 @@ class CpuLevelRefiner:
 
     def peak_bytes(self, splats: int, splat_bytes: int) -> int:
         """The fit's own peak over a tree of `splats` full-detail splats of `splat_bytes` bytes each, beyond the tree
-        (a model, for the memory a refined partition task needs; partitioned.py): the clamped targets (float32 RGB,
-        every near and far camera), the training set's pair lists (raster.PairLists: a pixel offset and
-        PAIRS_PER_PIXEL pairs of 8 bytes a pixel, far cameras counted at the full size), and a full-detail splat's
-        share: each training camera's projected splat (16 bytes) and SPLAT_COPIES copies of its values (the level
-        cuts' concatenations, the fit's and the tree's copies). Measured (BENCHMARKS.md, "Upper domains", the
-        refiner's memory): the peak RSS above the tree 242 / 349 / 574 MiB on biker (SH0) slices of 20k / 60k / 153k
-        splats (the first fit of each process: numba's compilation included), this model 878 / 941 / 1,088 MiB;
-        tracemalloc's peak 14.4 / 128.9 MiB on fruit_drops (SH3, 4,721 splats) at 32 / 128 px once compiled (30.4 at
-        32 px compiling), this model 32 / 230 MiB; 5,030 MiB for a 2^20-splat SH3 domain at the defaults (not
-        measured at that size: the pairs a splat fell from 8.7 to 4.2 KB between biker's 20k and 153k)."""
+        (a model, for the memory a refined partition task needs; partitioned.py): numba's kernels (KERNELS_BYTES),
+        the clamped targets (float32 RGB, every near and far camera at the full size), the training set's pair lists
+        (raster.PairLists: a pixel offset and PAIRS_PER_PIXEL pairs of 8 bytes a pixel, a far camera at its largest
+        crop), and a full-detail splat's share: each training camera's projected splat (16 bytes), the fit kernel's
+        per-camera tables (one a gradient row) and SPLAT_COPIES copies of its values (the level cuts'
+        concatenations, the fit's and the tree's copies). Measured (bench/refiner_memory.py; BENCHMARKS.md, "The
+        fit's kernel, and the refiner's memory measured again"): the peak RSS above the tree, the first fit of each
+        process (numba's cached kernels loaded), 220 / 273 / 381 / 561 MiB on biker (SH0) slices of 2^14 / 2^15 /
+        2^16 / 2^17 splats, this model 821 / 851 / 911 / 1,031 MiB (1.8-3.7x); 438 and 495 MiB (two runs) on a
+        2^18-splat slice of flowers (SH2), the model 1,607 MiB; 80 MiB at 64 px on 2^13 splats of donut copies
+        (bench/tile_scene.py), the model 109; tracemalloc's peak (numpy's arrays: the model less KERNELS_BYTES)
+        14.4 / 128.9 MiB on fruit_drops (SH3, 4,721 splats) at 32 / 128 px once compiled (30.4 at 32 px compiling),
+        31.6 / 206 MiB; 5,231 MiB for a 2^20-splat SH3 domain at the defaults (not measured at that size: the pairs a
+        near pixel grew from 4 to 21 between biker's 2^14 and 2^17 slices, past the 32 assumed is not ruled out)."""
         s = self.settings
         pixels = s.size * s.size
         near_and_far = s.training_cameras + s.validation_cameras + s.far_training_cameras + s.far_validation_cameras
         training = s.training_cameras + s.far_training_cameras
-        return int(12 * pixels * near_and_far + (8 + 8 * PAIRS_PER_PIXEL) * pixels * training
-                   + (16 * training + SPLAT_COPIES * splat_bytes) * splats)
+        # a far camera is a crop of side at most FAR_FILL x size / the nearest far distance (lod_refine's
+        # far_level_cameras; its range starts at DISTANCE_RANGE[1] or beyond): its pair lists at that side, not the
+        # full size (its targets stay counted at the full size: every level's are held through the fit)
+        far_side = min(s.size, max(lod_refine.FAR_MIN_PX,
+                                   math.ceil(lod_refine.FAR_FILL * s.size / lod_refine.DISTANCE_RANGE[1])))
+        training_pixels = s.training_cameras * pixels + s.far_training_cameras * far_side * far_side
+        # raster.loss_and_grad's per-camera tables (raster.PACKED_COLUMNS float64 a projected splat), one a gradient
+        # row at most, each at most every splat
+        tables = raster.GRADIENT_ROWS * raster.PACKED_COLUMNS * 8
+        return int(KERNELS_BYTES + 12 * pixels * near_and_far + (8 + 8 * PAIRS_PER_PIXEL) * training_pixels
+                   + (16 * training + tables + SPLAT_COPIES * splat_bytes) * splats)
 
     def __call__(self, g: Gaussians, tiles: list[Tile], up, progress, frame: lod_refine.CameraFrame | None = None
                  ) -> tuple[dict[int, Gaussians], LodRefinement]:

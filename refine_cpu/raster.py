@@ -503,10 +503,16 @@ class PairLists:
     cameras: int
     width: int
     height: int
+    projected: np.ndarray      # (C + 1,) int64: camera c's projected splats are [projected[c], projected[c + 1])
 
     @property
     def nbytes(self) -> int:
-        return sum(a.nbytes for a in (self.pixel_offsets, self.proj, self.g, self.splat, self.base))
+        return sum(a.nbytes for a in (self.pixel_offsets, self.proj, self.g, self.splat, self.base, self.projected))
+
+    @property
+    def max_projected(self) -> int:
+        """The most projected splats of one camera (the size of loss_and_grad's per-camera table)."""
+        return int(np.diff(self.projected).max(initial=0))
 
     @property
     def max_pairs(self) -> int:
@@ -561,7 +567,7 @@ def pair_lists(g: Gaussians, cams: list[Camera], sh_degree: int | None = None) -
                              no_counts, True, pixel_offsets[c * hw:(c + 1) * hw + 1], proj, pair_g)
             proj[s:e] += projected[c]
         del p
-    return PairLists(pixel_offsets, proj, pair_g, splat, base, len(cams), width, height)
+    return PairLists(pixel_offsets, proj, pair_g, splat, base, len(cams), width, height, projected)
 
 
 # The gradient rows of loss_and_grad (cameras round-robin over them, each row summed alone, the rows added in order):
@@ -579,32 +585,56 @@ def loss_and_grad(pl: PairLists, opacity: np.ndarray, dc_colour: np.ndarray, tar
     `dc_colour` (N, 3) = SH_C0 sh_dc are per splat of the set the lists were made of."""
     n = len(opacity)
     nt = GRADIENT_ROWS
-    g_op = np.zeros((nt, n if grad else 0))
-    g_dc = np.zeros((nt, n if grad else 0, 3))
+    # each row's opacity and DC gradients side by side (a splat's four in one cache line of the scatter)
+    grads = np.zeros((nt, n if grad else 0, 4))
     losses = np.zeros(pl.cameras)
     tgt = np.ascontiguousarray(target, np.float32).reshape(pl.cameras, -1, 3)
     scale = 2.0 / (tgt.size)
-    _loss_grad(pl.pixel_offsets, pl.proj, pl.g, pl.splat, pl.base, np.ascontiguousarray(opacity, np.float64),
-               np.ascontiguousarray(dc_colour, np.float64), tgt, pl.cameras, pl.width * pl.height,
-               max(1, pl.max_pairs), grad, scale, nt, losses, g_op, g_dc)
+    _loss_grad(pl.pixel_offsets, pl.proj, pl.g, pl.splat, pl.base, pl.projected,
+               np.ascontiguousarray(opacity, np.float64), np.ascontiguousarray(dc_colour, np.float64), tgt,
+               pl.cameras, pl.width * pl.height, max(1, pl.max_pairs), max(1, pl.max_projected), grad, scale, nt,
+               losses, grads)
     loss = float(losses.sum()) / tgt.size
     if not grad:
         return loss, np.zeros(0), np.zeros((0, 3))
-    return loss, g_op.sum(0), g_dc.sum(0)
+    # the rows added in order, as the (rows, N) and (rows, N, 3) arrays were before (the same bits)
+    total = grads.sum(0)
+    return loss, np.ascontiguousarray(total[:, 0]), np.ascontiguousarray(total[:, 1:])
+
+
+# A projected splat's row of a camera's table (_pack_camera): its opacity and its clamped colour (3), 32 bytes, so
+# that a pair's forward reads one row where it read the splat index, the opacity, the fixed colour part and the DC
+# term (four places in memory: the pair loops' cost is those reads more than their arithmetic).
+PACKED_COLUMNS = 4
+
+
+@numba.njit(inline="always")
+def _pack_camera(splat, base, opacity, dc, lo, hi, packed):
+    """packed[b - lo] = (opacity, max(base + dc, 0) per channel) of projected splats lo <= b < hi (one camera's;
+    splat[b] its splat): the values _loss_grad's pairs read, each computed once a camera and step rather than once a
+    pair, by the same operations (so the same bits)."""
+    for b in range(lo, hi):
+        i = splat[b]
+        packed[b - lo, 0] = opacity[i]
+        packed[b - lo, 1] = max(base[b, 0] + dc[i, 0], 0.0)
+        packed[b - lo, 2] = max(base[b, 1] + dc[i, 1], 0.0)
+        packed[b - lo, 3] = max(base[b, 2] + dc[i, 2], 0.0)
 
 
 @numba.njit(parallel=True, cache=True)
-def _loss_grad(pixel_offsets, proj, pg, splat, base, opacity, dc, target, ncam, hw, max_pairs, grad, scale, nt,
-               losses, g_op, g_dc):
+def _loss_grad(pixel_offsets, proj, pg, splat, base, projected, opacity, dc, target, ncam, hw, max_pairs,
+               max_projected, grad, scale, nt, losses, grads):
     for t in numba.prange(nt):
+        packed = np.empty((max_projected, PACKED_COLUMNS))
         # what the forward pass met, per blended pair, for the backward pass (no second gather of the same values)
         alphas = np.empty(max_pairs)
-        ks = np.empty(max_pairs, np.int64)
-        splats = np.empty(max_pairs, np.int64)
-        cols = np.empty((max_pairs, 3))
+        gs = np.empty(max_pairs)
+        bs = np.empty(max_pairs, np.int64)
         for c in range(ncam):
             if c % nt != t:  # cameras round-robin over threads, each thread its own gradient row
                 continue
+            lo = projected[c]
+            _pack_camera(splat, base, opacity, dc, lo, projected[c + 1], packed)
             cam_loss = 0.0
             for q in range(hw):
                 row = c * hw + q
@@ -615,30 +645,27 @@ def _loss_grad(pixel_offsets, proj, pg, splat, base, opacity, dc, target, ncam, 
                 r2 = 0.0
                 m = 0
                 for k in range(s, e):
-                    i = splat[proj[k]]
-                    alpha = opacity[i] * pg[k]
+                    b = proj[k] - lo
+                    gk = np.float64(pg[k])
+                    alpha = packed[b, 0] * gk
                     if alpha > ALPHA_MAX:
                         alpha = ALPHA_MAX
-                    if alpha < ALPHA_MIN:
-                        continue
+                    # a pair under the cut blends as alpha 0, without a branch the CPU would mispredict: T * (1 - 0)
+                    # is T and r + 0 c is r (r >= 0), bit for bit, and it is not counted (m) for the backward pass
+                    keep = alpha >= ALPHA_MIN
+                    if not keep:
+                        alpha = 0.0
                     tn = trans * (1.0 - alpha)
                     if tn < T_MIN:
                         break
-                    b = proj[k]
                     w = alpha * trans
-                    c0 = max(base[b, 0] + dc[i, 0], 0.0)
-                    c1 = max(base[b, 1] + dc[i, 1], 0.0)
-                    c2 = max(base[b, 2] + dc[i, 2], 0.0)
-                    r0 += w * c0
-                    r1 += w * c1
-                    r2 += w * c2
+                    r0 += w * packed[b, 1]
+                    r1 += w * packed[b, 2]
+                    r2 += w * packed[b, 3]
                     alphas[m] = alpha
-                    ks[m] = k
-                    splats[m] = i
-                    cols[m, 0] = c0
-                    cols[m, 1] = c1
-                    cols[m, 2] = c2
-                    m += 1
+                    gs[m] = gk
+                    bs[m] = b
+                    m += keep
                     trans = tn
                 d0 = min(r0, 1.0) - target[c, q, 0]
                 d1 = min(r1, 1.0) - target[c, q, 1]
@@ -659,23 +686,24 @@ def _loss_grad(pixel_offsets, proj, pg, splat, base, opacity, dc, target, ncam, 
                 tj = trans
                 for j in range(m - 1, -1, -1):
                     a = alphas[j]
-                    i = splats[j]
+                    b = bs[j]
+                    i = splat[b + lo]
                     tj = tj / (1.0 - a)
-                    c0 = cols[j, 0]
-                    c1 = cols[j, 1]
-                    c2 = cols[j, 2]
+                    c0 = packed[b, 1]
+                    c1 = packed[b, 2]
+                    c2 = packed[b, 3]
                     w = a * tj
                     # max(p, 0) > 0 exactly where p > 0: the gradient through the colour clamp
                     if c0 > 0.0:
-                        g_dc[t, i, 0] += e0 * w
+                        grads[t, i, 1] += e0 * w
                     if c1 > 0.0:
-                        g_dc[t, i, 1] += e1 * w
+                        grads[t, i, 2] += e1 * w
                     if c2 > 0.0:
-                        g_dc[t, i, 2] += e2 * w
+                        grads[t, i, 3] += e2 * w
                     inv = 1.0 / (1.0 - a)
                     da = (e0 * (c0 * tj - s0 * inv) + e1 * (c1 * tj - s1 * inv) + e2 * (c2 * tj - s2 * inv))
                     if a < ALPHA_MAX:  # the 0.99 clamp: alpha < 0.99 exactly where o g < 0.99
-                        g_op[t, i] += da * pg[ks[j]]
+                        grads[t, i, 0] += da * gs[j]
                     s0 += c0 * w
                     s1 += c1 * w
                     s2 += c2 * w

@@ -209,6 +209,80 @@ def test_gradients_match_finite_differences(part):
             assert fd == pytest.approx(g_dc[i, ch], abs=1e-4 * np.abs(g_dc[i]).max() + 1e-12)
 
 
+def reference_loss_and_grad(pl, opacity, dc, target):
+    """raster.loss_and_grad in plain Python, as its kernel computed it before the per-camera table (refinefast31):
+    each pair's splat, opacity, fixed colour part and DC term read where they lie, the gradient rows
+    (raster.GRADIENT_ROWS, cameras round-robin) summed in order. Float64 scalars: the kernel's operations, so its
+    bits."""
+    n, nt, hw = len(opacity), raster.GRADIENT_ROWS, pl.width * pl.height
+    tgt = np.asarray(target, np.float32).reshape(pl.cameras, -1, 3)
+    scale = 2.0 / tgt.size
+    g_op, g_dc = np.zeros((nt, n)), np.zeros((nt, n, 3))
+    losses = np.zeros(pl.cameras)
+    f = np.float64
+    for c in range(pl.cameras):
+        t = c % nt
+        for q in range(hw):
+            s, e = pl.pixel_offsets[c * hw + q], pl.pixel_offsets[c * hw + q + 1]
+            trans, rgb, met = f(1.0), [f(0.0)] * 3, []
+            for k in range(s, e):
+                b = pl.proj[k]
+                i = pl.splat[b]
+                alpha = min(f(raster.ALPHA_MAX), f(opacity[i]) * f(pl.g[k]))
+                if alpha < raster.ALPHA_MIN:
+                    continue
+                tn = trans * (f(1.0) - alpha)
+                if tn < raster.T_MIN:
+                    break
+                w = alpha * trans
+                col = [max(f(pl.base[b, ch]) + f(dc[i, ch]), f(0.0)) for ch in range(3)]
+                rgb = [rgb[ch] + w * col[ch] for ch in range(3)]
+                met.append((alpha, k, i, col))
+                trans = tn
+            d = [min(rgb[ch], f(1.0)) - f(tgt[c, q, ch]) for ch in range(3)]
+            losses[c] += d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+            err = [scale * d[ch] if rgb[ch] < 1.0 else f(0.0) for ch in range(3)]
+            if err == [0.0, 0.0, 0.0]:
+                continue
+            behind, tj = [f(0.0)] * 3, trans
+            for a, k, i, col in reversed(met):
+                tj = tj / (f(1.0) - a)
+                w = a * tj
+                for ch in range(3):
+                    if col[ch] > 0.0:
+                        g_dc[t, i, ch] += err[ch] * w
+                inv = f(1.0) / (f(1.0) - a)
+                da = (err[0] * (col[0] * tj - behind[0] * inv) + err[1] * (col[1] * tj - behind[1] * inv)
+                      + err[2] * (col[2] * tj - behind[2] * inv))
+                if a < raster.ALPHA_MAX:
+                    g_op[t, i] += da * f(pl.g[k])
+                behind = [behind[ch] + col[ch] * w for ch in range(3)]
+    return float(losses.sum()) / tgt.size, g_op.sum(0), g_dc.sum(0)
+
+
+def test_the_compiled_loss_and_gradients_are_the_references_bit_for_bit(part):
+    # the kernel reads each camera's table of projected splats (opacity, clamped colour), computed once a step, and
+    # blends a pair under the alpha cut as alpha 0 without a branch: neither may move a bit of the loss or of any
+    # gradient (the refined scene's bytes depend on them). Colours clamped at 0 and alphas at 0.99 both occur.
+    cams = refine_cameras(part.positions, (0.0, 1.0, 0.0), 3, 20, seed=7)
+    pl = raster.pair_lists(part, cams)
+    assert len(pl.g) > 2000 and pl.max_projected == np.diff(pl.projected).max() > 0
+    rng = np.random.default_rng(1)
+    op = np.clip(part.opacities.astype(np.float64) * rng.uniform(0.5, 1.6, len(part)), 0.0, 0.999)
+    dc = raster.SH_C0 * part.sh_dc.astype(np.float64) + rng.normal(0.0, 0.3, (len(part), 3))
+    clean = np.stack([raster.render(part, c) for c in cams])
+    target = np.clip(clean * 0.9 + rng.normal(0, 0.05, clean.shape), 0, 1).astype(np.float32)
+    assert (op[pl.splat[pl.proj]] * pl.g > raster.ALPHA_MAX).any() and (pl.base + dc[pl.splat] < 0).any()
+    assert (op[pl.splat[pl.proj]] * pl.g < raster.ALPHA_MIN).any()
+    loss, g_op, g_dc = raster.loss_and_grad(pl, op, dc, target)
+    want_loss, want_op, want_dc = reference_loss_and_grad(pl, op, dc, target)
+    assert np.abs(g_op).max() > 0 and np.abs(g_dc).max() > 0
+    assert loss == want_loss
+    assert np.array_equal(g_op.view(np.uint64), want_op.view(np.uint64))
+    assert np.array_equal(g_dc.view(np.uint64), want_dc.view(np.uint64))
+    assert raster.loss_and_grad(pl, op, dc, target, grad=False)[0] == want_loss
+
+
 def test_the_refiner_fits_the_merged_levels_and_keeps_only_what_validates(part):
     tiles = build_tiles(part, 256, 2.0, merge="auto")
     cuts = level_cuts(tiles)
