@@ -1,6 +1,7 @@
 """The interactive viewer in a real window on a virtual display (Xvfb): real X input events (xdotool) drive the
 camera, the screenshot key saves the frame without the overlay, and the frame matches the headless render of the
 same camera. Skipped where Xvfb or xdotool are missing (.ci/run installs both)."""
+import contextlib
 import json
 import math
 import os
@@ -115,6 +116,30 @@ def wait_for_window(display: str, viewer: subprocess.Popen, output: ViewerOutput
             search.communicate()
 
 
+@contextlib.contextmanager
+def open_viewer(display: str, source: str, tmp_path: Path, *extra: str):
+    """`view SOURCE` in a window of SIZE on the display (its own disk cache under tmp_path), yielded as (viewer, its
+    output, the window's id) once the window is mapped; killed on the way out if a test left it running."""
+    env = {**os.environ, "DISPLAY": display, "SPLATSTREAM_CACHE_DIR": str(tmp_path / "cache")}
+    viewer = subprocess.Popen([sys.executable, "-m", "cli", "view", source, "--size", f"{SIZE[0]}x{SIZE[1]}",
+                               "--no-vsync", *extra], env=env, cwd=tmp_path, stdout=subprocess.PIPE,
+                              stderr=subprocess.STDOUT, text=True)
+    output = ViewerOutput(viewer.stdout)
+    try:
+        yield viewer, output, wait_for_window(display, viewer, output)
+    finally:
+        if viewer.poll() is None:
+            viewer.kill()
+            viewer.wait()
+
+
+def quit_viewer(display: str, viewer: subprocess.Popen, output: ViewerOutput) -> None:
+    """Esc, as a user quits, and the viewer's exit and output awaited."""
+    xdo(display, "key", "Escape")
+    viewer.wait(HANG_S)
+    output.join()
+
+
 def grab(display: str, window: str) -> np.ndarray:
     """The window's pixels as the X server shows them (overlay included)."""
     from Xlib import X
@@ -142,14 +167,8 @@ def psnr(a, b) -> float:
 def test_window_input_screenshot_and_overlay(display, served, tmp_path):
     from PIL import Image
 
-    env = {**os.environ, "DISPLAY": display, "SPLATSTREAM_CACHE_DIR": str(tmp_path / "cache")}
-    viewer = subprocess.Popen([sys.executable, "-m", "cli", "view", served, "--size",
-                               f"{SIZE[0]}x{SIZE[1]}", "--gpu-mem-mb", "64", "--no-vsync",
-                               "--record", str(tmp_path / "record.json")], env=env, cwd=tmp_path,
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    output = ViewerOutput(viewer.stdout)
-    try:
-        window = wait_for_window(display, viewer, output)
+    with open_viewer(display, served, tmp_path, "--gpu-mem-mb", "64", "--record",
+                     str(tmp_path / "record.json")) as (viewer, output, window):
         xdo(display, "windowfocus", "--sync", window)
         # The viewer prints "view: converged" each time the view comes to rest (every wanted tile resident, nothing
         # in flight, the camera still): here, the scene has streamed in.
@@ -175,13 +194,7 @@ def test_window_input_screenshot_and_overlay(display, served, tmp_path):
         assert shot.parent == tmp_path and shot.name.startswith("splatstream-"), shot_line
         window_pixels = grab(display, window)  # the window shows the same view at rest (and the overlay)
         assert window_pixels.shape[0] >= SIZE[1] and window_pixels.shape[1] >= SIZE[0], window_pixels.shape
-        xdo(display, "key", "Escape")
-        viewer.wait(HANG_S)
-        output.join()
-    finally:
-        if viewer.poll() is None:
-            viewer.kill()
-            viewer.wait()
+        quit_viewer(display, viewer, output)
     out = output.text()
     assert viewer.returncode == 0, out
     assert "Traceback" not in out
@@ -257,25 +270,13 @@ def test_window_says_which_payload_keeps_failing(display, tmp_path):
                               stderr=subprocess.PIPE, stdout=subprocess.DEVNULL, text=True)
     try:
         url = server.stderr.readline().split("at ", 1)[1].split(" ", 1)[0].rstrip("/") + "/scenes/donut"
-        env = {**os.environ, "DISPLAY": display, "SPLATSTREAM_CACHE_DIR": str(tmp_path / "cache")}
-        viewer = subprocess.Popen([sys.executable, "-m", "cli", "view", url, "--size", f"{SIZE[0]}x{SIZE[1]}",
-                                   "--no-vsync"], env=env, cwd=tmp_path, stdout=subprocess.PIPE,
-                                  stderr=subprocess.STDOUT, text=True)
-        output = ViewerOutput(viewer.stdout)
-        try:
-            window = wait_for_window(display, viewer, output)
+        with open_viewer(display, url, tmp_path) as (viewer, output, window):
             said = output.wait_for(f"view: {url}/data/", -1, "line naming the failing payload")
             line = output.lines[said]
             assert "not on the server (404" in line and line.endswith("; retrying"), line
             assert viewer.poll() is None  # still open, retrying
             xdo(display, "windowfocus", "--sync", window)
-            xdo(display, "key", "Escape")
-            viewer.wait(HANG_S)
-            output.join()
-        finally:
-            if viewer.poll() is None:
-                viewer.kill()
-                viewer.wait()
+            quit_viewer(display, viewer, output)
     finally:
         server.send_signal(signal.SIGTERM)
         server.wait(10)
@@ -297,12 +298,6 @@ def test_overlay_gpu_line_says_the_budget_as_given():
 def test_window_controls_list_fits_a_short_window(display, served, tmp_path):
     """H in a window shorter than the controls list below the stats (a 960x600 window cut off its last lines, Esc
     among them): the list is placed from the window's bottom up, so all of it shows."""
-    env = {**os.environ, "DISPLAY": display, "SPLATSTREAM_CACHE_DIR": str(tmp_path / "cache")}
-    viewer = subprocess.Popen([sys.executable, "-m", "cli", "view", served, "--size", f"{SIZE[0]}x{SIZE[1]}",
-                               "--gpu-mem-mb", "64", "--no-vsync"], env=env, cwd=tmp_path,
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    output = ViewerOutput(viewer.stdout)
-
     def frame_after(keys: list[str], seen: int) -> tuple[np.ndarray, int]:
         """The window's pixels once `keys` and a screenshot key have been handled: events are handled in order,
         between frames, so each 'saved' line comes a frame or more after the keys before it."""
@@ -310,8 +305,7 @@ def test_window_controls_list_fits_a_short_window(display, served, tmp_path):
         seen = output.wait_for("saved ", seen, "line for the screenshot (P)")
         return grab(display, window), seen
 
-    try:
-        window = wait_for_window(display, viewer, output)
+    with open_viewer(display, served, tmp_path, "--gpu-mem-mb", "64") as (viewer, output, window):
         seen = output.wait_for("view: converged", -1, "converged view of the scene")
         xdo(display, "windowfocus", "--sync", window)
         without, seen = frame_after([], seen)
@@ -323,13 +317,7 @@ def test_window_controls_list_fits_a_short_window(display, served, tmp_path):
             if np.abs(shown[130:300, 400:520] - without[130:300, 400:520]).mean() > 0.02:
                 break
             shown, seen = frame_after([], seen)
-        xdo(display, "key", "Escape")
-        viewer.wait(HANG_S)
-        output.join()
-    finally:
-        if viewer.poll() is None:
-            viewer.kill()
-            viewer.wait()
+        quit_viewer(display, viewer, output)
     assert viewer.returncode == 0, output.text()
     band = np.abs(shown[130:300, 400:520] - without[130:300, 400:520]).mean()
     assert band > 0.02, band
@@ -349,13 +337,7 @@ def test_window_f_frames_the_box_the_suggested_camera_frames(display, served, tm
     with urllib.request.urlopen(served + "/manifest.msgpack", timeout=10) as resp:
         m = parse_manifest(resp.read())
     home, root = m.camera, m.tile(m.root)
-    env = {**os.environ, "DISPLAY": display, "SPLATSTREAM_CACHE_DIR": str(tmp_path / "cache")}
-    viewer = subprocess.Popen([sys.executable, "-m", "cli", "view", served, "--size", f"{SIZE[0]}x{SIZE[1]}",
-                               "--gpu-mem-mb", "64", "--no-vsync"], env=env, cwd=tmp_path,
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
-    output = ViewerOutput(viewer.stdout)
-    try:
-        window = wait_for_window(display, viewer, output)
+    with open_viewer(display, served, tmp_path, "--gpu-mem-mb", "64") as (viewer, output, window):
         seen = output.wait_for("view: converged", -1, "converged view of the scene")
         xdo(display, "windowfocus", "--sync", window)
         xdo(display, "key", "f")
@@ -369,13 +351,7 @@ def test_window_f_frames_the_box_the_suggested_camera_frames(display, served, tm
             if "; converged; " in shot_line:
                 break
         assert "; converged; " in shot_line, f"no screenshot of the view at rest:\n{output.text()}"
-        xdo(display, "key", "Escape")
-        viewer.wait(HANG_S)
-        output.join()
-    finally:
-        if viewer.poll() is None:
-            viewer.kill()
-            viewer.wait()
+        quit_viewer(display, viewer, output)
     assert viewer.returncode == 0, output.text()
     cam = json.loads(Path(shot_line[len("saved "):].split(" (", 1)[0] + ".camera.json").read_text())
     home_dist = float(np.linalg.norm(np.subtract(home.eye, home.target)))
