@@ -142,8 +142,9 @@ class CpuLevelRefiner:
         2^18-splat slice of flowers (SH2), the model 1,607 MiB; 80 MiB at 64 px on 2^13 splats of donut copies
         (bench/tile_scene.py), the model 109; tracemalloc's peak (numpy's arrays: the model less KERNELS_BYTES)
         14.4 / 128.9 MiB on fruit_drops (SH3, 4,721 splats) at 32 / 128 px once compiled (30.4 at 32 px compiling),
-        31.6 / 206 MiB; 5,231 MiB for a 2^20-splat SH3 domain at the defaults (not measured at that size: the pairs a
-        near pixel grew from 4 to 21 between biker's 2^14 and 2^17 slices, past the 32 assumed is not ruled out)."""
+        31.6 / 206 MiB; 990 / 1,741 MiB on 2^20 / 2^21 splats of donut copies (SH0, the GPU machine's 16 threads),
+        the model 2,711 / 4,631 (2.7x; a near pixel held 10.7 / 18 pairs, under the 32 assumed); 5,231 MiB for a
+        2^20-splat SH3 domain at the defaults."""
         s = self.settings
         pixels = s.size * s.size
         near_and_far = s.training_cameras + s.validation_cameras + s.far_training_cameras + s.far_validation_cameras
