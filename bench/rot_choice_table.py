@@ -19,14 +19,11 @@ import argparse
 import json
 import sys
 
+from rot_range_table import preset_rows  # bench/ is the script's directory
+
 PRESET = "medium-low"
 TWIN = 1.01  # rows within 1 % of medium-low's bytes are not its neighbours
 PSNR_NOISE = 0.001  # dB: the same encode drawn twice by the GL client differs by up to 5e-5 dB
-
-
-def preset_rows(path: str) -> dict[str, dict]:
-    return {r["preset"]: r for r in json.load(open(path))["rows"] if r.get("kind", "preset") == "preset"
-            and "preset" in r and not r.get("overrides")}
 
 
 def neighbours(rows: dict[str, dict], preset: str = PRESET) -> tuple[str, str]:

@@ -140,6 +140,19 @@ def quit_viewer(display: str, viewer: subprocess.Popen, output: ViewerOutput) ->
     output.join()
 
 
+def screenshot_at_rest(display: str, window: str, output: ViewerOutput, seen: int, what: str) -> tuple[Path, int]:
+    """P until the screenshot's line says the view was at rest ("converged"), waiting for the next "view:
+    converged" between tries: (the screenshot's path, the index of its line)."""
+    for _ in range(5):
+        xdo(display, "windowfocus", "--sync", window)
+        xdo(display, "key", "p")
+        seen = output.wait_for("saved ", seen, "line for the screenshot (P)")
+        if "; converged; " in output.lines[seen]:
+            return Path(output.lines[seen][len("saved "):].split(" (", 1)[0]), seen
+        seen = output.wait_for("view: converged", seen, what)
+    raise AssertionError(f"no screenshot of the view at rest:\n{output.text()}")
+
+
 def grab(display: str, window: str) -> np.ndarray:
     """The window's pixels as the X server shows them (overlay included)."""
     from Xlib import X
@@ -179,19 +192,9 @@ def test_window_input_screenshot_and_overlay(display, served, tmp_path):
             xdo(display, "mousemove", "--window", window, str(x), "305")
         xdo(display, "mouseup", "1")
         # X delivers the key after the drag, so the screenshot's line comes after the orbit was applied; it says
-        # whether the view was at rest ("converged") or not. Until it was: the next "view: converged", and P again.
-        shot_line = ""
-        for _ in range(5):
-            xdo(display, "windowfocus", "--sync", window)
-            xdo(display, "key", "p")
-            seen = output.wait_for("saved ", seen, "line for the screenshot (P)")
-            shot_line = output.lines[seen]
-            if "; converged; " in shot_line:
-                break
-            seen = output.wait_for("view: converged", seen, "converged view after the orbit")
-        assert "; converged; " in shot_line, f"no screenshot of the view at rest:\n{output.text()}"
-        shot = Path(shot_line[len("saved "):].split(" (", 1)[0])
-        assert shot.parent == tmp_path and shot.name.startswith("splatstream-"), shot_line
+        # whether the view was at rest ("converged") or not.
+        shot, seen = screenshot_at_rest(display, window, output, seen, "converged view after the orbit")
+        assert shot.parent == tmp_path and shot.name.startswith("splatstream-"), output.lines[seen]
         window_pixels = grab(display, window)  # the window shows the same view at rest (and the overlay)
         assert window_pixels.shape[0] >= SIZE[1] and window_pixels.shape[1] >= SIZE[0], window_pixels.shape
         quit_viewer(display, viewer, output)
@@ -341,19 +344,12 @@ def test_window_f_frames_the_box_the_suggested_camera_frames(display, served, tm
         seen = output.wait_for("view: converged", -1, "converged view of the scene")
         xdo(display, "windowfocus", "--sync", window)
         xdo(display, "key", "f")
-        shot_line = ""
-        for _ in range(5):  # the camera glides to the framed view: a screenshot once it is at rest there
-            seen = output.wait_for("view: converged", seen, "converged view after F")
-            xdo(display, "windowfocus", "--sync", window)
-            xdo(display, "key", "p")
-            seen = output.wait_for("saved ", seen, "line for the screenshot (P)")
-            shot_line = output.lines[seen]
-            if "; converged; " in shot_line:
-                break
-        assert "; converged; " in shot_line, f"no screenshot of the view at rest:\n{output.text()}"
+        # the camera glides to the framed view: a screenshot once it is at rest there
+        seen = output.wait_for("view: converged", seen, "converged view after F")
+        shot, seen = screenshot_at_rest(display, window, output, seen, "converged view after F")
         quit_viewer(display, viewer, output)
     assert viewer.returncode == 0, output.text()
-    cam = json.loads(Path(shot_line[len("saved "):].split(" (", 1)[0] + ".camera.json").read_text())
+    cam = json.loads(Path(str(shot) + ".camera.json").read_text())
     home_dist = float(np.linalg.norm(np.subtract(home.eye, home.target)))
     dist = float(np.linalg.norm(np.subtract(cam["eye"], cam["target"])))
     # the same direction, about the suggested camera's distance and target (the donut's root box: 0.88 of the
