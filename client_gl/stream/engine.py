@@ -881,24 +881,35 @@ class StreamEngine:
     def _coarse_to_fine(self, keys: list[Key], sel: Selection) -> list[Key]:
         """The wish list with the ancestors of every cut tile not resident yet, bases ordered by level (then by
         the cut's priority: an ancestor takes the rank of its first descendant), SH bands after every base."""
-        a = self.arrays
         cut = sel.cut_at
         # A page head whose page is loading stands for the children the cut wants: an ancestor, not a cut tile
         loading = np.isin(self.ids[cut], [k[0] for k in self._pages_wanted]) if self._pages_wanted else None
-        if not self._ancestors_worth(cut, loading):  # the cut itself (the root only where it is a cut tile)
-            base = cut if loading is None else cut[~loading]
-            if self._drawn_ids is None and loading is not None and loading.any():
-                self._root_first = True
-            if (self.options.root_first or self._root_first and self._drawn_ids is None) and \
-                    not (base == self.root).any():
-                # nothing drawn yet and part of the cut waits for its page (a round trip more than the root): the
-                # root, until the first frame draws, so that it comes as soon as without paging (root_first: always)
-                base = np.concatenate(([self.root], base)).astype(np.intp)
-            self._bases = base
-            self._filling = np.zeros(len(self.resident), bool)
-            made = self._sh_blocks
-            sh = keys[made[1]:] if made is not None and made[0] is keys else [k for k in keys if k[1] != "base"]
-            return list(zip(self.ids[self._bases].tolist(), repeat("base"))) + sh
+        if self._ancestors_worth(cut, loading):
+            base = self._with_ancestors(cut, loading)
+        else:
+            base = self._cut_alone(cut, loading)
+        self._bases = base  # positions of the list's bases, in its order
+        made = self._sh_blocks  # the keys' SH part (after their bases) as _make_keys made it
+        sh = keys[made[1]:] if made is not None and made[0] is keys else [k for k in keys if k[1] != "base"]
+        return list(zip(self.ids[base].tolist(), repeat("base"))) + sh
+
+    def _cut_alone(self, cut: np.ndarray, loading: np.ndarray | None) -> np.ndarray:
+        """The bases of a cut fetched without its ancestors (the root only where it is a cut tile), self._filling
+        cleared."""
+        base = cut if loading is None else cut[~loading]
+        if self._drawn_ids is None and loading is not None and loading.any():
+            self._root_first = True
+        if (self.options.root_first or self._root_first and self._drawn_ids is None) and \
+                not (base == self.root).any():
+            # nothing drawn yet and part of the cut waits for its page (a round trip more than the root): the
+            # root, until the first frame draws, so that it comes as soon as without paging (root_first: always)
+            base = np.concatenate(([self.root], base)).astype(np.intp)
+        self._filling = np.zeros(len(self.resident), bool)
+        return base
+
+    def _with_ancestors(self, cut: np.ndarray, loading: np.ndarray | None) -> np.ndarray:
+        """The bases of the cut and of its ancestors, coarse to fine, self._filling set (fill_levels)."""
+        a = self.arrays
         gap, step = self.options.fill_gap, self.options.fill_step
         # Every fill_step-th ancestor, from fill_gap levels up, of each cut tile not resident: levels `reduction`
         # apart in splats would otherwise add about as many bytes as the cut itself (1/2 + 1/4 + ... at reduction
@@ -915,10 +926,7 @@ class StreamEngine:
             # fill rule names levels fill_gap apart, not the level just above them (it was drawn, then replaced:
             # 0.53-0.59x of the drawn bytes at 50 % with --page-levels 4); its ancestors are named from it
             base = base[~np.isin(base, cut[loading])]
-        self._bases = base  # positions of the list's bases, in its order
-        made = self._sh_blocks  # the keys' SH part (after their bases) as _make_keys made it
-        sh = keys[made[1]:] if made is not None and made[0] is keys else [k for k in keys if k[1] != "base"]
-        return list(zip(self.ids[base].tolist(), repeat("base"))) + sh
+        return base
 
     def _ancestors_worth(self, cut: np.ndarray, loading: np.ndarray | None) -> bool:
         """Whether the cut's ancestors (the root included) are worth fetching: its missing base payloads exceed
