@@ -54,7 +54,6 @@ CONTROLS = [
 ]
 
 
-
 def gpu_line(resident_bytes: int, budget_bytes: int) -> str:
     """The overlay's GPU memory line. The budget as given, as the headless summary writes it: `--gpu-mem-mb 0.5`
     showed 'GPU 0.5 MiB resident of 0 MiB budget', read as over budget."""
