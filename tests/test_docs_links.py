@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 from conftest import ROOT
 
-DOCS = ["README.md", "ARCHITECTURE.md"]
+DOCS = ["README.md", "ARCHITECTURE.md", "docs/other_clients.md"]
 LINK = re.compile(r"!?\[(?:[^\[\]]|\[[^\[\]]*\])*\]\(([^()\s]+)\)")
 
 
