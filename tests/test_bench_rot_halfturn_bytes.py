@@ -26,8 +26,9 @@ def test_both_encodes_leave_the_preset_table_as_it_was(tmp_path):
     report = {"input": {"path": str(path), "bytes": path.stat().st_size}, "camera_rule": {"up": UP},
               "encode_options": {"lod": False, "zstd_level": None}}
     table = dict(P.PRESET_ROTATION_GAUGE)
-    off = H.encoded_bytes(g, "low-plus", report, None, str(tmp_path / "off"))
-    half = H.encoded_bytes(g, "low-plus", report, "half-turns", str(tmp_path / "half"))
+    # low-plus-9bit: low-plus measures cube8x4 on fruit_drops since cube8x4all32, whose gauge is the cube in both arms
+    off = H.encoded_bytes(g, "low-plus-9bit", report, None, str(tmp_path / "off"))
+    half = H.encoded_bytes(g, "low-plus-9bit", report, "half-turns", str(tmp_path / "half"))
     assert P.PRESET_ROTATION_GAUGE == table
     # the same texel formats and GPU bytes; the rotation plane's bytes move (its values in another order)
     assert {a: s["format"] for a, s in half["attributes"].items()} == {a: s["format"] for a, s in
