@@ -5,7 +5,10 @@ slice so that a small one has merged levels too), then one `refine_tree` at
 the refiner's defaults (256 px, 32 + 16 near and each level's far cameras) but `--iterations` steps (the peak does not
 grow with the steps: every step's buffers are the first's). Each size runs in its own process, so that one fit's
 memory is not another's; RSS sampled every 2 ms. One JSON line a size: the peak RSS above the tree (MiB), the model
-(MiB), their ratio (model / measured: it must stay >= 1), the largest level's pair lists, CPU seconds.
+(MiB) with the scene's own pairs a pixel (`with_scene_pairs`, estimated from the slice before its fit: branch
+memmodel31) and with the constant 32 (`constant_model_mib`), their ratios (model / measured: they must stay >= 1), the
+estimate (before PAIRS_MARGIN) and its CPU seconds, the largest level's pair lists and training pairs a training
+pixel (near at the size, far at their crop), CPU seconds.
 
     PYTHONPATH=. nice -n 19 python bench/refiner_memory.py SCENE.ply 16384 32768 65536 131072 262144 \
         [--json OUT.jsonl]
