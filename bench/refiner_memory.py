@@ -5,7 +5,10 @@ slice so that a small one has merged levels too), then one `refine_tree` at
 the refiner's defaults (256 px, 32 + 16 near and each level's far cameras) but `--iterations` steps (the peak does not
 grow with the steps: every step's buffers are the first's). Each size runs in its own process, so that one fit's
 memory is not another's; RSS sampled every 2 ms. One JSON line a size: the peak RSS above the tree (MiB), the model
-(MiB), their ratio (model / measured: it must stay >= 1), the largest level's pair lists, CPU seconds.
+(MiB) with the scene's own pairs a pixel (`with_scene_pairs`, estimated from the slice before its fit: branch
+memmodel31) and with the constant 32 (`constant_model_mib`), their ratios (model / measured: they must stay >= 1), the
+estimate (before PAIRS_MARGIN) and its CPU seconds, the largest level's pair lists and training pairs a training
+pixel (near at the size, far at their crop), CPU seconds.
 
     PYTHONPATH=. nice -n 19 python bench/refiner_memory.py SCENE.ply 16384 32768 65536 131072 262144 \
         [--json OUT.jsonl]
@@ -40,7 +43,7 @@ def one_size(path: str, splats: int, iterations: int, size: int) -> dict:
     """The peak above the tree of one refine_tree over `splats` splats of `path` (run in a process of its own)."""
     import numpy as np
 
-    from refine_cpu.levels import CpuLevelRefiner, CpuRefineSettings
+    from refine_cpu.levels import PAIRS_MARGIN, CpuLevelRefiner, CpuRefineSettings
     from splatstream.encode.partitioned import routed_row_bytes
     from splatstream.io import read_gaussians
     from splatstream.lod import build_tiles
@@ -69,13 +72,29 @@ def one_size(path: str, splats: int, iterations: int, size: int) -> dict:
     cpu = time.process_time() - t0
     stop[0] = True
     sampler.join()
-    model = refiner.peak_bytes(len(g), routed_row_bytes(g.sh_degree))
+    up = (0.0, 0.0, 1.0)
+    constant = refiner.peak_bytes(len(g), routed_row_bytes(g.sh_degree))  # PAIRS_PER_PIXEL, as before memmodel31
+    t1 = time.process_time()
+    scene = refiner.with_scene_pairs(g, len(g), g.positions, up)  # the scene's own pairs a pixel (x PAIRS_MARGIN)
+    estimate_cpu = time.process_time() - t1
+    model = scene.peak_bytes(len(g), routed_row_bytes(g.sh_degree))
     above = peak[0] - before
+    s = refiner.settings
+    # the largest level's training pairs over the training pixels the model counts (near at the size, far at theirs)
+    far_px = max((r["far_px"] for r in refiner.report), default=0)
+    training_pixels = s.training_cameras * size * size + s.far_training_cameras * far_px * far_px
     import numba
     return {"input": path, "splats": len(g), "sh": g.sh_degree, "leaf": leaf, "size": size, "iterations": iterations,
             "levels": len(refiner.report), "numba_threads": numba.get_num_threads(),
             "before_mib": round(before / 2**20, 1), "peak_above_mib": round(above / 2**20, 1),
             "model_mib": round(model / 2**20, 1), "model_over_measured": round(model / max(above, 1), 2),
+            "constant_model_mib": round(constant / 2**20, 1),
+            "constant_over_measured": round(constant / max(above, 1), 2),
+            "estimated_pairs_per_pixel": round(scene.settings.pairs_per_pixel / PAIRS_MARGIN, 2),
+            "pairs_margin": PAIRS_MARGIN, "estimate_cpu_s": round(estimate_cpu, 2),
+            "max_training_pairs_per_pixel": round(max(r["training_pairs"] for r in refiner.report)
+                                                  / max(training_pixels, 1), 2),
+            "max_training_pair_mib": round(max(r["training_pair_bytes"] for r in refiner.report) / 2**20, 1),
             "max_pair_mib": round(max(r["pair_bytes"] for r in refiner.report) / 2**20, 1),
             "max_pairs_per_near_pixel": round(max(r["pairs"] for r in refiner.report)
                                                   / ((refiner.settings.training_cameras

@@ -27,7 +27,7 @@ import numpy as np
 from splatstream import lod_refine
 from splatstream.format.manifest import LevelRefinement, LodRefinement
 from splatstream.gaussians import Gaussians, covariances
-from splatstream.lod import Tile
+from splatstream.lod import Tile, split_axis
 from splatstream.lod_refine import (
     CPU_FAR_TRAINING_CAMERAS,
     CPU_FAR_TRAINING_SEED,
@@ -55,6 +55,18 @@ from . import raster
 # full-detail splat's values held at the peak (fitted to fruit_drops at 32 px, where the splats dominate, on its
 # first, compiling fit: 30.4 MiB, 14.4 once compiled; on the safe side).
 PAIRS_PER_PIXEL = 32
+# The scene's own pairs a pixel, where the caller gives a sample of its splats (CpuLevelRefiner.with_scene_pairs,
+# estimate_pairs; issue 31, branch memmodel31): the estimate, of the full detail, times this margin, chosen on donut
+# copies (bench/tile_scene.py) from 2^13 to 2^18 splats (BENCHMARKS.md, "The refiner's memory from the scene's own
+# pairs a pixel"). The fit holds the largest MERGED level's pairs, measured 0.38-0.67x the full detail's estimate
+# there (and 0.43-0.52x on the held-out real scenes); their peaks needed at most 0.59x it in the pair term (RSS of one
+# run of 2^13 splats; 0.51 in the other), so 0.8 leaves 1.2x over the largest level's pairs and 1.36x over the
+# peaks' need. At most PAIRS_SAMPLE of its splats (every k-th), on the fit's near training cameras, in tiles of
+# PAIRS_TILE px.
+PAIRS_MARGIN = 0.8
+PAIRS_SAMPLE = 16384
+PAIRS_TILE = 16
+PAIRS_GRID = 4  # the depth map's cells (px): a splat's box is widened to them
 SPLAT_COPIES = 14
 # and what the first fit of a process adds whatever its size: numba's cached kernels loaded and its threads started
 # (45 MiB measured over a fit of 3,000 splats at 8 px; bench/refiner_memory.py at 64 px measured 80 MiB above the tree
@@ -86,6 +98,9 @@ class CpuRefineSettings(lod_refine.SharedRefineSettings):
     # share this machine) CpuLevelRefiner.for_concurrent_fits sets it to the cores / the fits that run at once.
     threads: int = 0
     share_cores: bool = False
+    # the pairs a pixel peak_bytes counts; None: PAIRS_PER_PIXEL (no sample of the scene given); with_scene_pairs
+    # sets the scene's own (its estimate times PAIRS_MARGIN). The fit never reads it: the bytes do not depend on it.
+    pairs_per_pixel: float | None = None
 
     def far_cameras(self, positions: np.ndarray | lod_refine.CameraFrame, up, tiles: list[Tile],
                     cuts: list[lod_refine.LevelCut]) -> list[tuple[list, list, tuple[float, float] | None]]:
@@ -112,6 +127,9 @@ class CpuLevelRefiner:
     Picklable (its settings' log included, by Dask's cloudpickle), so it runs in a partitioned encode's tasks."""
 
     name = "--lod-refine cpu"
+    # the pairs a pixel peak_bytes counts without the scene's (partitioned.py: also the most it counts for the levels
+    # above the merge domains, fitted over merged roots the scene's sample does not hold)
+    default_pairs_per_pixel = PAIRS_PER_PIXEL
     # a partitioned encode refines its merge domains with it, each in its own task (lod.md 6, "The refinement by
     # partitions"): its fit's bytes do not depend on the threads it runs on (raster.GRADIENT_ROWS)
     runs_by_partitions = True
@@ -128,22 +146,45 @@ class CpuLevelRefiner:
             return self
         return CpuLevelRefiner(replace(self.settings, threads=max(1, (os.cpu_count() or 1) // max(1, fits))))
 
+    def with_scene_pairs(self, sample: Gaussians, splats: int, placed_by: np.ndarray | lod_refine.CameraFrame, up,
+                         cell_depth: int = 0) -> CpuLevelRefiner:
+        """This refiner with the pairs a pixel of peak_bytes estimated from the scene: `sample` some of its
+        `splats` splats (every k-th: estimate_pairs keeps at most PAIRS_SAMPLE of them), seen from the fit's near
+        training cameras (placed by `placed_by`, as __call__'s), times PAIRS_MARGIN. `cell_depth` > 0: a fit over one
+        kd subtree of that depth (a partitioned encode's merge domain, or an upper domain, seen from the whole
+        scene's cameras: its splats alone, where they fall in the images), the most of the sample's kd cells."""
+        return self.with_pairs_per_pixel(self.scene_pairs(sample, splats, placed_by, up, (cell_depth,))[cell_depth])
+
+    def scene_pairs(self, sample: Gaussians, splats: int, placed_by: np.ndarray | lod_refine.CameraFrame, up,
+                    cell_depths: tuple[int, ...]) -> dict[int, float]:
+        """with_scene_pairs' pairs a pixel (PAIRS_MARGIN included) for each of `cell_depths`, at one pass."""
+        train, _ = self.settings.cameras(placed_by, up)
+        return {d: PAIRS_MARGIN * v for d, v in estimate_pairs(sample, splats, train, cell_depths).items()}
+
+    def with_pairs_per_pixel(self, pairs: float | None) -> CpuLevelRefiner:
+        """This refiner with peak_bytes counting `pairs` a pixel (0: a lower bound of the fit, the pairs left out;
+        None: PAIRS_PER_PIXEL)."""
+        return CpuLevelRefiner(replace(self.settings, pairs_per_pixel=pairs))
+
     def peak_bytes(self, splats: int, splat_bytes: int) -> int:
-        """The fit's own peak over a tree of `splats` full-detail splats of `splat_bytes` bytes each, beyond the tree
-        (a model, for the memory a refined partition task needs; partitioned.py): numba's kernels (KERNELS_BYTES),
-        the clamped targets (float32 RGB, every near and far camera at the full size), the training set's pair lists
-        (raster.PairLists: a pixel offset and PAIRS_PER_PIXEL pairs of 8 bytes a pixel, a far camera at its largest
-        crop), and a full-detail splat's share: each training camera's projected splat (16 bytes), the fit kernel's
+        """The fit's own peak over a tree of `splats` full-detail splats of `splat_bytes` bytes each, beyond the
+        tree (a model, for the memory a refined partition task needs; partitioned.py): numba's kernels
+        (KERNELS_BYTES), the clamped targets (float32 RGB, every near and far camera at the full size), the training
+        set's pair lists (raster.PairLists: a pixel offset and PAIRS_PER_PIXEL pairs of 8 bytes a pixel, or
+        settings.pairs_per_pixel where set, the scene's own: with_scene_pairs; a far camera at its largest crop),
+        and a full-detail splat's share: each training camera's projected splat (16 bytes), the fit kernel's
         per-camera tables (one a gradient row) and SPLAT_COPIES copies of its values (the level cuts'
-        concatenations, the fit's and the tree's copies). Measured (bench/refiner_memory.py; BENCHMARKS.md, "The
-        fit's kernel, and the refiner's memory measured again"): the peak RSS above the tree, the first fit of each
+        concatenations, the fit's and the tree's copies). With the scene's pairs: BENCHMARKS.md, "The refiner's
+        memory from the scene's own pairs a pixel" (1.4-2.6x the peaks from 2^13 to 2^18 splats, where the splats'
+        share is the most of the rest). Before it, measured (bench/refiner_memory.py; BENCHMARKS.md, "The fit's
+        kernel, and the refiner's memory measured again"): the peak RSS above the tree, the first fit of each
         process (numba's cached kernels loaded), 220 / 273 / 381 / 561 MiB on biker (SH0) slices of 2^14 / 2^15 /
         2^16 / 2^17 splats, this model 821 / 851 / 911 / 1,031 MiB (1.8-3.7x); 438 and 495 MiB (two runs) on a
         2^18-splat slice of flowers (SH2), the model 1,607 MiB; 80 MiB at 64 px on 2^13 splats of donut copies
-        (bench/tile_scene.py), the model 109; tracemalloc's peak (numpy's arrays: the model less KERNELS_BYTES)
-        14.4 / 128.9 MiB on fruit_drops (SH3, 4,721 splats) at 32 / 128 px once compiled (30.4 at 32 px compiling),
-        31.6 / 206 MiB; 990 / 1,741 MiB on 2^20 / 2^21 splats of donut copies (SH0, the GPU machine's 16 threads),
-        the model 2,711 / 4,631 (2.7x; a near pixel held 10.7 / 18 pairs, under the 32 assumed); 5,231 MiB for a
+        (bench/tile_scene.py), the model 109; tracemalloc's peak (numpy's arrays: the model less KERNELS_BYTES) 14.4
+        / 128.9 MiB on fruit_drops (SH3, 4,721 splats) at 32 / 128 px once compiled (30.4 at 32 px compiling), 31.6
+        / 206 MiB; 990 / 1,741 MiB on 2^20 / 2^21 splats of donut copies (SH0, the GPU machine's 16 threads), the
+        model 2,711 / 4,631 (2.7x; a near pixel held 10.7 / 18 pairs, under the 32 assumed); 5,231 MiB for a
         2^20-splat SH3 domain at the defaults."""
         s = self.settings
         pixels = s.size * s.size
@@ -158,7 +199,8 @@ class CpuLevelRefiner:
         # raster.loss_and_grad's per-camera tables (raster.PACKED_COLUMNS float64 a projected splat), one a gradient
         # row at most, each at most every splat
         tables = raster.GRADIENT_ROWS * raster.PACKED_COLUMNS * 8
-        return int(KERNELS_BYTES + 12 * pixels * near_and_far + (8 + 8 * PAIRS_PER_PIXEL) * training_pixels
+        pairs = PAIRS_PER_PIXEL if s.pairs_per_pixel is None else s.pairs_per_pixel
+        return int(KERNELS_BYTES + 12 * pixels * near_and_far + (8 + 8 * pairs) * training_pixels
                    + (16 * training + tables + SPLAT_COPIES * splat_bytes) * splats)
 
     def __call__(self, g: Gaussians, tiles: list[Tile], up, progress, frame: lod_refine.CameraFrame | None = None
@@ -242,6 +284,7 @@ class CpuLevelRefiner:
             levels.append(level)
             self.report.append({"level": cut.level, "merged_splats": len(merged), "splats": len(whole),
                                 "pairs": train_pairs + sum(len(pl.g) for pl, _, _ in vsets),
+                                "training_pairs": train_pairs, "training_pair_bytes": train_bytes,
                                 "pair_bytes": train_bytes + sum(pl.nbytes for pl, _, _ in vsets),
                                 "validation_psnr": psnr,
                                 "validation_psnr_near_far": {
@@ -295,3 +338,113 @@ def fit_opacity_dc(sets: list[tuple[raster.PairLists, np.ndarray, float]], whole
             p -= lr * (a / (1 - b1 ** it)) / (np.sqrt(b / (1 - b2 ** it)) + eps)
         on_step(it)
     return logits.astype(np.float32), in_domain("sh_dc", sh_dc).astype(np.float32)
+
+
+def _sample_rows(splats: int, keep: int) -> np.ndarray:
+    """Every k-th of `splats` rows, at most `keep` of them (the first and the last included): a fixed choice."""
+    return np.linspace(0, splats - 1, keep).astype(np.int64) if splats > keep else np.arange(splats)
+
+
+def kd_cells(positions: np.ndarray, depth: int) -> list[np.ndarray]:
+    """The rows of `positions` in 2^depth cells, split as the tile tree splits (lod.split_axis: the longest side of
+    the cell's centre box; at the median, ties by row): the sample's own approximation of a partitioned encode's
+    kd subtrees at that depth (their splits are exact over the whole scene: partitioned._top_splits)."""
+    cells = [np.arange(len(positions))]
+    for _ in range(depth):
+        nxt = []
+        for rows in cells:
+            if len(rows) < 2:
+                nxt += [rows, rows[:0]]
+                continue
+            p = positions[rows]
+            axis = split_axis(p.min(axis=0), p.max(axis=0))
+            order = rows[np.argsort(p[:, axis], kind="stable")]
+            nxt += [np.sort(order[:len(order) // 2]), np.sort(order[len(order) // 2:])]
+        cells = nxt
+    return cells
+
+
+def estimate_pairs(sample: Gaussians, splats: int, cams: list, cell_depths: tuple[int, ...] = (0,)
+                   ) -> dict[int, float]:
+    """The pairs a pixel of `cams` (raster.PairLists: every (pixel, splat) with g >= 1/255 until T < T_STORE) that a
+    fit over one kd cell of each depth of `cell_depths` (kd_cells; depth 0: the whole scene) can make, the most over
+    that depth's cells, for a scene of `splats` splats of which `sample` is an even share (every k-th), estimated
+    without any pair list.
+
+    Each sampled splat's footprint (the ellipse where g >= 1/255: 2 pi ln 255 / sqrt(det conic) px, by
+    raster.project's conventions, the low-pass included) times splats / the sample, spread evenly over its box (in
+    cells of PAIRS_GRID px, the box widened to them) and summed per cell of the scene into a depth map averaged per
+    tile of PAIRS_TILE px (D, a pixel's pairs without occlusion); a pixel's pairs capped where T falls under T_STORE:
+    at most K = (ln(1 / T_STORE) + ln(1 / (1 - ALPHA_MAX))) / tau, tau the footprint-weighted mean of -ln(1 - alpha)
+    over the cell's pairs (g is log-uniform over a Gaussian's footprint; alpha = min(0.99, opacity g), 0 under
+    1/255: Wald's bound on the pairs until the optical depth passes ln(1 / T_STORE)). Per tile min(D, K), summed over
+    the tiles and the cameras, over their pixels. Spreading a splat over its box and a tile evens D out, which only
+    raises the sum of min(D, K) (it is concave): on the safe side. A cell's fit sees only its own splats, so its D is
+    its own, where they fall in the images. At least 64 sampled splats a cell where the sample has them.
+    Deterministic: the same sample, cameras and depths give the same numbers."""
+    out = {d: 0.0 for d in cell_depths}
+    if len(sample) == 0 or not cams:
+        return out
+    rows = _sample_rows(len(sample), max(PAIRS_SAMPLE, 64 << max(cell_depths)))
+    g = sample if len(rows) == len(sample) else sample.subset(rows)
+    share = splats / len(g)
+    cov3d = covariances(g)
+    opacity = g.opacities.astype(np.float64)
+    cut = math.log(1.0 / raster.ALPHA_MIN)  # ln 255: the footprint's edge, g = exp(-u) for u in [0, cut]
+    u = (np.arange(32) + 0.5) / 32 * cut
+    alpha = np.minimum(raster.ALPHA_MAX, opacity[:, None] * np.exp(-u)[None, :])
+    tau = np.where(alpha >= raster.ALPHA_MIN, -np.log1p(-alpha), 0.0).mean(axis=1)  # per splat, over its pairs
+    stop = math.log(1.0 / raster.T_STORE) + math.log(1.0 / (1.0 - raster.ALPHA_MAX))
+    labels = {}
+    for depth in cell_depths:
+        lab = np.zeros(len(g), np.int64)
+        for k, cell in enumerate(kd_cells(g.positions, depth)):
+            lab[cell] = k
+        labels[depth] = (lab, 1 << depth)
+    per = PAIRS_TILE // PAIRS_GRID  # grid cells a tile side
+    totals = {d: np.zeros(n) for d, (_, n) in labels.items()}
+    pixels = 0
+    for cam in cams:
+        w, h = cam.width, cam.height
+        pixels += w * h
+        p = raster.project(g, cam, 0, cov3d)
+        if len(p.index) == 0:
+            continue
+        a, b, c = p.conic[:, 0], p.conic[:, 1], p.conic[:, 2]
+        det = np.maximum(a * c - b * b, 1e-300)
+        area = 2.0 * math.pi * cut / np.sqrt(det)  # px where g >= 1/255
+        rx, ry = np.sqrt(2.0 * cut * c / det), np.sqrt(2.0 * cut * a / det)  # the ellipse's half extents
+        gw, gh = -(-w // PAIRS_TILE) * per, -(-h // PAIRS_TILE) * per  # the grid, whole tiles
+        # the box in grid cells, widened to whole cells, and the part of it inside the image's
+        x0 = np.floor((p.xy[:, 0] - rx) / PAIRS_GRID)
+        x1 = np.floor((p.xy[:, 0] + rx) / PAIRS_GRID) + 1
+        y0 = np.floor((p.xy[:, 1] - ry) / PAIRS_GRID)
+        y1 = np.floor((p.xy[:, 1] + ry) / PAIRS_GRID) + 1
+        density = share * area / ((x1 - x0) * (y1 - y0))  # a grid cell's pairs from this splat
+        cx0, cx1 = np.clip(x0, 0, gw), np.clip(x1, 0, gw)
+        cy0, cy1 = np.clip(y0, 0, gh), np.clip(y1, 0, gh)
+        inside = (cx1 > cx0) & (cy1 > cy0)
+        if not inside.any():
+            continue
+        ix0, ix1, iy0, iy1 = (v[inside].astype(np.int64) for v in (cx0, cx1, cy0, cy1))
+        d = density[inside]
+        weight = d * (iy1 - iy0) * (ix1 - ix0)  # each splat's pairs inside the image
+        splat = p.index[inside]
+        for depth, (lab, n) in labels.items():
+            cell = lab[splat]
+            diff = np.zeros((n, gh + 1, gw + 1))
+            np.add.at(diff, (cell, iy0, ix0), d)
+            np.add.at(diff, (cell, iy0, ix1), -d)
+            np.add.at(diff, (cell, iy1, ix0), -d)
+            np.add.at(diff, (cell, iy1, ix1), d)
+            grid = diff.cumsum(axis=1).cumsum(axis=2)[:, :gh, :gw]
+            tile = grid.reshape(n, gh // per, per, gw // per, per).sum(axis=(2, 4)) / (PAIRS_TILE * PAIRS_TILE)
+            tw = np.bincount(cell, weight, n)
+            mean_tau = np.bincount(cell, weight * tau[splat], n) / np.maximum(tw, 1e-300)
+            cap = np.where(mean_tau > 0, stop / np.maximum(mean_tau, 1e-300), np.inf)
+            # the tiles' pixels inside the image (the last row and column of tiles may hang over its edge)
+            tx = np.minimum(PAIRS_TILE, w - PAIRS_TILE * np.arange(gw // per))
+            ty = np.minimum(PAIRS_TILE, h - PAIRS_TILE * np.arange(gh // per))
+            inside_px = ty[:, None] * tx[None, :]
+            totals[depth] += np.sum(inside_px[None] * np.minimum(tile, cap[:, None, None]), axis=(1, 2))
+    return {d: float(t.max()) / pixels for d, t in totals.items()}

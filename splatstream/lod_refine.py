@@ -88,7 +88,9 @@ FAR_FILL = 1.25  # a far camera's side: this x the px the scene's fitted extent 
 # it has one, is how messages name it; `for_concurrent_fits(n)`, where it has one, gives the refiner to run when n
 # fits run at once (a share of the machine's cores each; partitioned.py asks it before the partitions and the upper
 # levels); `peak_bytes(splats)`, where it has one, the memory its fit of a tree of that many full-detail splats takes
-# beyond the tree (partitioned.py counts it in what a refined partition task needs of --memory-per-worker).
+# beyond the tree (partitioned.py counts it in what a refined partition task needs of --memory-per-worker), and
+# `scene_pairs(sample, splats, frame, up, kd depths)` with `with_pairs_per_pixel(p)`, where it has them, let that
+# model count the scene's own pairs a pixel (the CPU refiner's; partitioned._check_scene_pairs).
 LodRefiner = Callable[[Gaussians, list[Tile], tuple[float, float, float], Callable[[str, float], None]],
                       tuple[dict[int, Gaussians], LodRefinement]]
 

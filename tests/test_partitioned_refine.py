@@ -195,14 +195,22 @@ def test_a_domain_over_the_memory_and_a_refiner_that_does_not_run_by_partitions_
 
 def test_the_fit_memory_is_counted_in_what_a_domain_needs(tmp_path):
     """A worker that holds a domain's build (0.84 MiB) but not its fit (CpuLevelRefiner.peak_bytes: about 70 MiB at
-    32 px) is refused, in one line naming the setting and the fit's share, before anything is written; the fit's
-    model bounds what a real fit of the whole scene takes (tracemalloc: the pair lists and targets are numpy
-    arrays)."""
+    32 px) is refused, in one line naming the domain, the setting and the fit's share, before anything is written:
+    before the route pass where even the fit without its pairs does not fit ("at least", 61 MiB), after it with the
+    pairs a pixel estimated from the scene's sample (71 MiB: the levels above the domains, at the refiner's constant
+    32 pairs a pixel, which the scene's estimate passes at 32 px); the fit's model bounds what a real fit of the
+    whole scene takes (tracemalloc: the pair lists and targets are numpy arrays)."""
     src = real("fruit_drops_sh3.ply")
-    with pytest.raises(UsageError, match=r"needs 71 MiB per worker \(the refiner's renders, targets and pair lists "
-                                         r"70 MiB of it: a smaller --lod-refine-size takes less\), more than the "
-                                         r"memory per worker \(20 MiB\): give more --memory-per-worker"):
+    with pytest.raises(UsageError, match=r"a subtree of at most 700 splats\) in one task, which needs at least 61 MiB "
+                                         r"per worker \(the refiner's renders, targets and pair lists 60 MiB of it: a "
+                                         r"smaller --lod-refine-size takes less\), more than the memory per worker "
+                                         r"\(20 MiB\): give more --memory-per-worker"):
         encode_file(src, tmp_path / "a", memory_per_worker=20 << 20, lod_refiner=refiner(), **TREE)
+    with pytest.raises(UsageError, match=r"a subtree of at most 700 splats\) in one task, which needs 71 MiB per "
+                                         r"worker \(the refiner's renders, targets and pair lists 70 MiB of it: a "
+                                         r"smaller --lod-refine-size takes less\), more than the memory per worker "
+                                         r"\(64 MiB\): give more --memory-per-worker"):
+        encode_file(src, tmp_path / "a", memory_per_worker=64 << 20, lod_refiner=refiner(), **TREE)
     assert not (tmp_path / "a").exists()
     g = read_gaussians(src)
     tiles = build_tiles(g, 300, 2.0, merge="auto")

@@ -643,33 +643,42 @@ def _merge_domains(shape: TreeShape, row_bytes: int, opts: EncodeOptions, extra_
     return domain, largest, largest * (row_bytes * PARTITION_MEMORY_FACTOR + extra_bytes)
 
 
-def _refined_domain_too_big(opts: EncodeOptions, need: int, engine: Engine, fit: int = 0) -> UsageError:
+def _refined_domain_too_big(opts: EncodeOptions, need: int, engine: Engine, fit: int = 0, at_least: bool = False
+                            ) -> UsageError:
+    """The refusal of a refined task over the memory per worker; `at_least`: `need` is a lower bound (the refiner's
+    pairs not yet counted: _check_refined_need before the scene's sample)."""
     fit_part = (f" (the refiner's renders, targets and pair lists {math.ceil(fit / 2**20):,} MiB of it: a smaller "
                 f"--lod-refine-size takes less)") if fit else ""
     return UsageError(f"--lod-refine by partitions refines each merge domain (a subtree of at most "
                       f"{opts.lod_merge_domain_splats:,} splats) in one task, which needs "
+                      f"{'at least ' if at_least else ''}"
                       f"{math.ceil(need / 2**20):,} MiB per worker{fit_part}, more than the memory per worker "
                       f"({engine.memory_per_worker // 2**20:,} MiB): give more --memory-per-worker")
 
 
 def refined_task_need(shape: TreeShape, row_bytes: int, opts: EncodeOptions, domain: int, largest: int,
-                      build_need: int) -> tuple[int, int]:
+                      build_need: int, refiner_at: Callable[[int], LodRefiner] | None = None) -> tuple[int, int]:
     """Bytes the largest refined task needs (a merge domain's, or an upper domain's: upper_domain_levels), and of
     them the refiner's own fit (LodRefiner's optional peak_bytes; 0 where it has none). A domain's fit follows its
     build in the same task, the build's temporaries freed: the tree held (its originals and merged levels, about
     twice the originals) and the fit's peak; an upper domain's task holds its roots (at most max_leaf_splats each) as
-    its full detail, and the tiles above them."""
+    its full detail, and the tiles above them. `refiner_at(level)`: the refiner whose peak_bytes counts a fit over
+    one tile of that level (its pairs a pixel the scene's own there: _check_scene_pairs); else opts.lod_refiner's."""
     peak = getattr(opts.lod_refiner, "peak_bytes", None)
     if peak is None:
         return build_need, 0
+
+    def peak_at(level: int) -> Callable[[int, int], int]:
+        return peak if refiner_at is None else refiner_at(level).peak_bytes  # type: ignore[attr-defined]
+
     need, fit = build_need, 0
     if domain < shape.leaf_level:  # a partition of a single leaf has no merged level of its own
-        fit = peak(largest, row_bytes)
+        fit = peak_at(domain)(largest, row_bytes)
         need = max(build_need, 2 * largest * row_bytes + fit)
     bottom = domain
     for top in upper_domain_levels(shape, domain, opts.lod_upper_domain_roots):
         roots = 2 ** (shape.kd_depths[bottom] - shape.kd_depths[top]) * shape.max_leaf_splats
-        upper_fit = peak(roots, row_bytes)
+        upper_fit = peak_at(top)(roots, row_bytes)
         if 2 * roots * row_bytes + upper_fit > need:
             need, fit = 2 * roots * row_bytes + upper_fit, upper_fit
         bottom = top
@@ -678,8 +687,39 @@ def refined_task_need(shape: TreeShape, row_bytes: int, opts: EncodeOptions, dom
 
 def _check_refined_need(shape: TreeShape, row_bytes: int, opts: EncodeOptions, engine: Engine, domain: int,
                         largest: int, build_need: int) -> None:
-    """Refused (UsageError, one line naming --memory-per-worker) where a refined task does not fit a worker."""
+    """Refused (UsageError, one line naming --memory-per-worker) where a refined task does not fit a worker. Before
+    the scene's sample (the route's), a refiner that estimates its pairs from the scene (`scene_pairs`) counts
+    none (`with_pairs_per_pixel(0)`: a lower bound, so that what cannot fit is refused before the route pass);
+    _check_scene_pairs checks again with the scene's own once the sample is in."""
+    estimates = getattr(opts.lod_refiner, "scene_pairs", None)
+    if estimates is not None:
+        opts = replace(opts, lod_refiner=opts.lod_refiner.with_pairs_per_pixel(0.0))  # type: ignore[union-attr]
     need, fit = refined_task_need(shape, row_bytes, opts, domain, largest, build_need)
+    if need > engine.memory_per_worker:
+        raise _refined_domain_too_big(opts, need, engine, fit, at_least=estimates is not None)
+
+
+def _check_scene_pairs(shape: TreeShape, row_bytes: int, opts: EncodeOptions, engine: Engine, merge: str,
+                       sample: SceneSample, frame: CameraFrame, up) -> None:
+    """The refined tasks' need with the pairs a pixel the refiner estimates from the scene (`scene_pairs`: the
+    route's sample of splats, every k-th, seen from the fits' own cameras, the whole scene's frame and up; for a
+    merge domain's fit the most over the sample's kd cells of the domains' depth, for each tier of upper domains
+    that of its level's depth, at most the refiner's constant); refused as _check_refined_need refuses. The sample
+    is the same whatever the engine and workers, and so is the refusal. Without such a refiner, nothing to check."""
+    refiner = opts.lod_refiner
+    if getattr(refiner, "scene_pairs", None) is None:
+        return
+    domain, largest, build_need = _merge_domains(shape, row_bytes, opts,
+                                                 AUTO_GROUPING_BYTES if merge == "auto" else 0)
+    levels = [domain, *upper_domain_levels(shape, domain, opts.lod_upper_domain_roots)]
+    depths = tuple(sorted({shape.kd_depths[lvl] for lvl in levels}))
+    pairs = refiner.scene_pairs(sample.orient, shape.splats, frame, up, depths)  # type: ignore[union-attr]
+    # the levels above the domains are fitted over their roots (merged splats, not the sample's originals): their
+    # cells' estimate where it is under the refiner's constant, else the constant, as before the estimate
+    upper = getattr(refiner, "default_pairs_per_pixel", math.inf)
+    at = {lvl: refiner.with_pairs_per_pixel(  # type: ignore[union-attr]
+        pairs[shape.kd_depths[lvl]] if lvl == domain else min(upper, pairs[shape.kd_depths[lvl]])) for lvl in levels}
+    need, fit = refined_task_need(shape, row_bytes, opts, domain, largest, build_need, at.__getitem__)
     if need > engine.memory_per_worker:
         raise _refined_domain_too_big(opts, need, engine, fit)
 
@@ -944,6 +984,8 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
     # where every refined fit's cameras are placed (the domains' and the levels above's): the whole scene's frame,
     # from the scene's sample of centres (every centre up to 2M: the in-memory encode's frame)
     frame = CameraFrame.of(sample.positions) if refiner is not None else None
+    if frame is not None:  # the refined tasks' memory with the scene's own pairs a pixel, before any task runs
+        _check_scene_pairs(shape, row_bytes, opts, engine, merge, sample, frame, scene.up)
     # the refiner for the fits that run at once: the partitions (at most one per worker); each tier of upper domains
     # asks again in _upper_tiles
     partition_refiner = _for_fits(refiner, min(engine.workers, partitions))
