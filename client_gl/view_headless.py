@@ -16,7 +16,7 @@ import numpy as np
 from PIL import Image
 
 from splatstream.atomic import atomic_file
-from splatstream.camera import Camera, look_at_near_far
+from splatstream.camera import Camera, look_at_near_far, turn_about_up
 from splatstream.camera_path import CameraPath
 from splatstream.progress import ProgressPrinter
 
@@ -43,11 +43,14 @@ class HeadlessRun:
     sh_degree: int | None = None
     quiet: bool = False
     measure_frames: int = 0  # once converged, time this many frames (glFinish each) into the report
+    camera_azimuth_deg: float = 0.0  # the scene's camera turned about up (view --camera-azimuth)
 
 
-def scene_camera(session: StreamingSession, size: tuple[int, int]) -> Camera:
+def scene_camera(session: StreamingSession, size: tuple[int, int], azimuth_deg: float = 0.0) -> Camera:
+    """The manifest's camera at `size`, turned by `azimuth_deg` about its up (camera.turn_about_up)."""
     c = session.manifest.camera
-    return Camera(c.eye, c.target, c.up, c.fov_y, size[0], size[1], *look_at_near_far(c.eye, c.target))
+    eye = turn_about_up(c.eye, c.target, c.up, azimuth_deg) if azimuth_deg else c.eye
+    return Camera(eye, c.target, c.up, c.fov_y, size[0], size[1], *look_at_near_far(eye, c.target))
 
 
 def write_png(path: str, image) -> None:
@@ -114,7 +117,7 @@ def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
     freeze_long_lived()
     try:
         w, h = run.size
-        fixed = run.camera or scene_camera(session, run.size)
+        fixed = run.camera or scene_camera(session, run.size, run.camera_azimuth_deg)
         start = time.perf_counter()
         frame = 0
         last_line = 0.0

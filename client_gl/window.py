@@ -20,12 +20,12 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from splatstream.atomic import atomic_file
-from splatstream.camera import Camera
+from splatstream.camera import Camera, turn_about_up
 from splatstream.camera_path import CameraPath
 from splatstream.errors import SplatstreamError, UsageError
 from splatstream.progress import mib
 
-from .camera_control import CameraController, state_from_camera
+from .camera_control import TURN_STEP_DEG, CameraController, state_from_camera
 from .gpu.gl import fence, gpu_wait
 from .render_thread import WAIT_S, Frame, RenderThread
 from .streaming import PreparedSource, StreamingSession, ViewOptions, freeze_long_lived
@@ -45,6 +45,8 @@ CONTROLS = [
     ("C", "switch orbit / fly camera"),
     ("R", "reset to the scene's camera"),
     ("F", "frame the scene (stray splats left out)"),
+    ("T", "turn to the other side of the target"),
+    ("left / right arrow", f"turn {TURN_STEP_DEG:g} degrees about the target"),
     ("B", "show tile bounds, coloured by LOD level"),
     ("space", "pause / resume streaming"),
     ("P", "save a screenshot (PNG, full resolution, no overlay)"),
@@ -105,6 +107,7 @@ class WindowRun:
     record: str | None = None  # metrics JSON at exit (as view --headless writes it)
     overlay: bool = True  # the overlay shown on open (O toggles it)
     measure_frames: int = 0  # with exit_when_converged: time this many more frames (swap and glFinish) first
+    camera_azimuth_deg: float = 0.0  # the scene's camera turned about up (view --camera-azimuth); R returns there
 
 
 def open_window(size: tuple[int, int], vsync: bool, title: str):
@@ -224,7 +227,9 @@ class Viewer:
             home = state_from_camera(self.run.camera)
         else:
             c = m.camera
-            home = state_from_camera(Camera(c.eye, c.target, c.up, c.fov_y, w, h))
+            eye = turn_about_up(c.eye, c.target, c.up, self.run.camera_azimuth_deg) if self.run.camera_azimuth_deg \
+                else c.eye
+            home = state_from_camera(Camera(eye, c.target, c.up, c.fov_y, w, h))
         root = m.tile(m.root)
         self.controller = CameraController(home, np.array(root.sphere_center), float(root.sphere_radius))
 
@@ -318,6 +323,10 @@ class Viewer:
                     self.controller.frame_box = self.session.engine.frame_box  # once the root's base has decoded
                 w, h = self.wnd.buffer_size
                 self.controller.frame_scene(w / max(1, h))
+            elif key == keys.T:
+                self.controller.turn(180.0)
+            elif key in (keys.LEFT, keys.RIGHT):  # as a drag that way turns the scene (orbit: right is negative)
+                self.controller.turn(TURN_STEP_DEG if key == keys.LEFT else -TURN_STEP_DEG)
             elif key == keys.SPACE and self.session is not None:
                 self.session.paused = not self.session.paused
 
@@ -531,7 +540,7 @@ class Viewer:
         was at rest (settled(): "converged"; else "streaming" or "camera moving") and the camera."""
         if self.session is None:
             return None
-        moving = self.controller is not None and self.controller.update(0.0)
+        moving = self.controller is not None and (self.controller.update(0.0) or not self._camera_shown())
         state = "converged" if self.settled() else "camera moving" if moving else "streaming"
         path = path or self.run.screenshot or os.path.abspath(time.strftime("splatstream-%Y%m%d-%H%M%S.png"))
         if os.path.exists(path) and not self.run.screenshot:
@@ -621,7 +630,21 @@ class Viewer:
             return False
         if self.run.path is not None and time.perf_counter() - self.path_start < self.run.path.end:
             return False
-        return not self.controller.update(0.0) if self.controller else True
+        return not self.controller.update(0.0) and self._camera_shown() if self.controller else True
+
+    def _camera_shown(self) -> bool:
+        """The frame shown was drawn from the controller's camera (or a camera path drives the view). A key that
+        moves the camera at once (T, the arrows) leaves it still, with the frame before on screen: 'converged'
+        was said of that frame (the window test's screenshot after T held the camera before it)."""
+        shown = getattr(self, "last_camera", None)
+        if self.run.path is not None or self.controller is None:
+            return True
+        if shown is None:
+            return False
+        now = self.controller.now
+        scale = max(1e-9, float(np.linalg.norm(now.target - now.eye)))
+        return bool(np.abs(np.subtract(shown.eye, now.eye)).max() <= 1e-9 * scale
+                    and np.abs(np.subtract(shown.target, now.target)).max() <= 1e-9 * scale)
 
     def _measure(self) -> None:
         """Time converged frames through the window path (draw, copy, overlay, swap), two ways: one at a time

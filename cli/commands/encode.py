@@ -31,7 +31,15 @@ from splatstream.rad_import import read_tree as rad_read_tree
 from splatstream.sog_import import encode_tree_to
 from splatstream.sog_import import read_tree as sog_read_tree
 
-from .args import MAX_RENDER_SIDE, add_edit_arguments, edit_report, edits_from, parse_bytes, parse_vector
+from .args import (
+    MAX_RENDER_SIDE,
+    add_edit_arguments,
+    edit_report,
+    edits_from,
+    parse_azimuth,
+    parse_bytes,
+    parse_vector,
+)
 from .renderers import pick_renderer
 
 # The views --target-psnr / --target-size measure presets on: `splatstream eval`'s defaults.
@@ -131,6 +139,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "lod-meta.json or meta.json, its directory's)")
     p.add_argument("--up", help="up vector of the scene, e.g. 0,-1,0 (3DGS/COLMAP captures) or 0,0,1 (z-up tools); "
                                "default: detected (y down unless the splats' surfaces show z up)")
+    p.add_argument("--camera-azimuth", metavar="DEG",
+                   help="turn the scene's suggested camera (the manifest's camera: where a viewer opens) by DEG "
+                        "degrees about up, around what it looks at (180: the other side; positive: counter-clockwise "
+                        "seen from above); default 0, the suggested camera as framed")
     p.add_argument("--drop-invalid", action="store_true",
                    help="drop splats with non-finite values or zero-length quaternions (with a warning)")
     cluster = p.add_argument_group(
@@ -195,6 +207,7 @@ def run(args: argparse.Namespace) -> int:
     if args.zstd_level is not None and not 1 <= args.zstd_level <= 22:
         raise UsageError("--zstd-level must be between 1 and 22")
     up = parse_vector(args.up, "--up", nonzero=True) if args.up else None
+    azimuth = parse_azimuth(args.camera_azimuth)
     workers = None
     if args.workers is not None:
         if args.workers == "auto":
@@ -237,7 +250,8 @@ def run(args: argparse.Namespace) -> int:
                             lod=not args.no_lod, max_leaf_splats=args.max_leaf_splats, reduction=args.reduction,
                             lod_merge=args.lod_merge, name=args.name, up=up, chunk_order=args.chunk_order,
                             sh_codebook=args.sh_codebook, page_tiles=args.page_tiles, page_levels=args.page_levels,
-                            compact_table=not args.no_compact_table, lod_refiner=lod_refiner)
+                            compact_table=not args.no_compact_table, lod_refiner=lod_refiner,
+                            camera_azimuth_deg=azimuth)
     if not args.quiet:
         print(f"wrote {args.output_dir}: {m.splats:,} splats, SH degree {m.sh_degree}, preset {m.preset}, "
               f"{count(len(m.tiles), 'tile')}, {m.bytes_on_disk / 1e6:.2f} MB on disk "
@@ -337,7 +351,8 @@ def _encode_foreign_tree(args: argparse.Namespace, kind: str, preset: str, overr
     opts = EncodeOptions(preset=preset, overrides=overrides, sh_degree=args.sh_degree,
                          zstd_level=args.zstd_level, transport=args.transport, name=args.name, up=up,
                          chunk_order=args.chunk_order, sh_codebook=args.sh_codebook, page_tiles=args.page_tiles,
-                         page_levels=args.page_levels, compact_table=not args.no_compact_table)
+                         page_levels=args.page_levels, compact_table=not args.no_compact_table,
+                         camera_azimuth_deg=parse_azimuth(args.camera_azimuth))
     return encode_tree_to(reader(args.input[0], progress), args.output_dir, args.input[0], opts, progress)
 
 

@@ -14,7 +14,7 @@ from splatstream.errors import UsageError
 from splatstream.format.names import MANIFEST_NAME
 from splatstream.progress import mib
 
-from .args import check_look, parse_size, parse_vector
+from .args import check_look, parse_azimuth, parse_size, parse_vector
 from .renderers import gl_client
 
 DRAWS = ["auto", "compute", "fetch", "points", "instanced", "triangles"]
@@ -42,6 +42,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     cam.add_argument("--up", help="up vector X,Y,Z (default: the scene's)")
     cam.add_argument("--fov-y", type=float, help="vertical field of view in degrees")
     cam.add_argument("--size", default="1280x720", help="image (framebuffer) size WxH (default 1280x720)")
+    cam.add_argument("--camera-azimuth", metavar="DEG",
+                     help="open at the scene's camera turned by DEG degrees about up, around what it looks at (180: "
+                          "the other side; positive: counter-clockwise seen from above; R returns there)")
     cam.add_argument("--camera-path", metavar="PATH.json",
                      help="keyframes {time, eye, target[, up][, fov_y]} played on the wall clock")
     s = p.add_argument_group("streaming")
@@ -195,6 +198,10 @@ def run(args: argparse.Namespace) -> int:
     size = parse_size(args.size)
     options = _options(args)
     camera = _fixed_camera(args, size)
+    azimuth = parse_azimuth(args.camera_azimuth)
+    if args.camera_azimuth is not None and (camera is not None or args.camera_path):
+        other = "--eye/--target" if camera is not None else "--camera-path"
+        raise UsageError(f"--camera-azimuth turns the scene's camera; {other} gives another camera: give one of them")
     path = None
     if args.camera_path:
         path = load_camera_path(args.camera_path)
@@ -207,7 +214,7 @@ def run(args: argparse.Namespace) -> int:
                                     exit_when_converged=args.exit_when_converged, vsync=not args.no_vsync,
                                     timeout_s=args.timeout, quiet=args.quiet, sh_degree=args.sh_degree,
                                     record=args.record, measure_frames=args.measure_frames,
-                                    overlay=not args.no_overlay))
+                                    overlay=not args.no_overlay, camera_azimuth_deg=azimuth))
     from client_gl.view_headless import HeadlessRun, run_headless  # the GL client: see _options
 
     ctx = offscreen.create_context()
@@ -216,7 +223,7 @@ def run(args: argparse.Namespace) -> int:
             args.source, options, size, camera, path, until_converged=args.until_converged or path is None,
             timeout_s=args.timeout, record=args.record, screenshot=args.screenshot, frames_dir=args.frames_dir,
             frame_every=args.frame_every, sh_degree=args.sh_degree, quiet=args.quiet,
-            measure_frames=args.measure_frames), ctx)
+            measure_frames=args.measure_frames, camera_azimuth_deg=azimuth), ctx)
     finally:
         ctx.release()
     if not args.quiet:
