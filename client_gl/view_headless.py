@@ -180,7 +180,7 @@ def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
             report["measured_back_to_back_ms"] = back_to_back
         report.update({"source": run.source, "frames_rendered": frame, "size": [w, h],
                        "camera_path": run.path is not None, "gl_renderer": ctx.info.get("GL_RENDERER", "?"),
-                       "draw": session.renderer.draw_mode if session.renderer.sort_mode == "gpu" else "cpu"})
+                       "sort": session.renderer.sort_mode, "draw": session.renderer.draw_path})
         if run.record:
             with atomic_file(run.record) as f:
                 f.write(json.dumps(report, indent=1).encode())

@@ -62,6 +62,12 @@ def gpu_line(resident_bytes: int, budget_bytes: int) -> str:
     return f"GPU     {resident_bytes / 2**20:.1f} MiB resident of {mib(budget_bytes)} MiB budget"
 
 
+def draw_path_line(renderer) -> str:
+    """The overlay's draw path ("CPU sort, raster draw"): the renderer's sort_mode and draw_path, the two words
+    `--record` writes as `sort` and `draw` (a window's record said "fetch" where this line said "raster")."""
+    return f"{renderer.sort_mode.upper()} sort, {renderer.draw_path} draw"
+
+
 _BLIT_VS = """#version 410
 out vec2 uv;
 void main() {
@@ -481,11 +487,7 @@ class Viewer:
             self._rate_window.pop(0)
         (t0, b0), (t1, b1) = self._rate_window[0], self._rate_window[-1]
         self.rate = (b1 - b0) / max(1e-6, t1 - t0)
-        path = s.renderer.sort_mode
-        if path == "gpu":
-            path = f"GPU sort, {s.renderer.draw_mode} draw"
-        else:
-            path = "CPU sort, raster draw"
+        path = draw_path_line(s.renderer)
         imgui.text(f"{self.fps:6.1f} fps   frame {self.frame_ms:6.2f} ms (CPU)")
         imgui.text(f"splats  {u.drawn_splats if u else 0:,} drawn / {u.resident_splats if u else 0:,} resident")
         imgui.text(f"tiles   {u.resident_tiles if u else 0} resident / {u.in_flight if u else 0} in flight"
@@ -688,7 +690,7 @@ class Viewer:
         report.update({"source": self.run.source, "window": True, "window_backend": self.wnd.name,
                        "size": list(self.wnd.buffer_size),
                        "gl_renderer": self.ctx.info.get("GL_RENDERER", "?"), "gl_version": self.ctx.version_code,
-                       "sort": self.session.renderer.sort_mode, "draw": self.session.renderer.draw_mode,
+                       "sort": self.session.renderer.sort_mode, "draw": self.session.renderer.draw_path,
                        "overlay": self.show_overlay})
         if getattr(self, "measured", None):
             report["measured_frames_ms"] = self.measured

@@ -75,3 +75,30 @@ def test_missing_input(tmp_path):
     r = run_cli("render", tmp_path / "nope.ply", "--out", tmp_path / "x.png")
     assert r.returncode == 2
     assert "no such file" in r.stderr
+
+
+@pytest.mark.parametrize("sort", ["cpu", "gpu"])
+def test_view_record_says_the_draw_the_overlay_says(gl_ok, gl_context, tmp_path, sort):
+    """The record's `sort` and `draw` and the window overlay's draw path line are the renderer's sort_mode and
+    draw_path: with the CPU sort the draw is "raster" (the window's record said "fetch", the headless one "cpu",
+    where the overlay said "CPU sort, raster draw")."""
+    import json
+
+    from client_gl.offscreen import HeadlessRenderer, RenderOptions
+    from client_gl.window import draw_path_line
+    from splatstream.io import read_gaussians
+
+    if sort == "gpu" and gl_context.version_code < 430:
+        pytest.skip("the GPU sort needs GL 4.3 compute shaders")
+    r = run_cli("view", real("fruit_drops_sh3.ply"), "--headless", "--size", "64x48", "--sort", sort, "--record",
+                tmp_path / "rec.json", "--no-cache", "-q")
+    assert r.returncode == 0, r.stderr
+    record = json.loads((tmp_path / "rec.json").read_text())
+    assert record["sort"] == sort
+    assert record["draw"] == ("raster" if sort == "cpu" else "fetch")  # fetch: the GPU path's draw on a software GL
+    h = HeadlessRenderer(RenderOptions(sort=sort), ctx=gl_context)
+    try:
+        h.load_gaussians(read_gaussians(real("fruit_drops_sh3.ply")))
+        assert draw_path_line(h.renderer) == f"{sort.upper()} sort, {record['draw']} draw"
+    finally:
+        h.unload()

@@ -205,6 +205,7 @@ def test_window_input_screenshot_and_overlay(display, served, tmp_path):
     assert record["window_backend"] == "glfw"  # not pyglet's fallback
     assert record["gl_version"] >= 430  # compute shaders in the window
     assert record["sort"] == "cpu"  # as choose_sort picks on a software GL (llvmpipe); the GPU sort on a real GPU
+    assert record["draw"] == "raster"  # what the overlay says (draw_path_line); it said "fetch", the GPU path's draw
     cam = json.loads(Path(str(shot) + ".camera.json").read_text())
     shot = np.asarray(Image.open(shot), np.float32) / 255.0
     assert shot.shape == (SIZE[1], SIZE[0], 3)

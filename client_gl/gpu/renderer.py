@@ -455,6 +455,14 @@ class SplatRenderer:
         self._start_gpu_path()
 
     @property
+    def draw_path(self) -> str:
+        """How frames are drawn now, as the window's overlay and every `--record` say it: the GPU path's draw mode
+        (fetch, compute, points, instanced, triangles), or "raster" on the CPU sort path (section 4 of
+        renderer.md: instanced quads of splat.vert). `draw_mode` alone kept "fetch", the GPU path's first draw,
+        while the CPU sort drew (a window's record said "fetch" where its overlay said "raster")."""
+        return self.draw_mode if self.sort_mode == "gpu" else "raster"
+
+    @property
     def cpu_first_pending(self) -> bool:
         """True while the CPU-first frames draw (RenderOptions.cpu_first): the pool's host mirror is still read."""
         return self._gpu_pending is not None
