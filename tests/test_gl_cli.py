@@ -102,3 +102,41 @@ def test_view_record_says_the_draw_the_overlay_says(gl_ok, gl_context, tmp_path,
         assert draw_path_line(h.renderer) == f"{sort.upper()} sort, {record['draw']} draw"
     finally:
         h.unload()
+
+
+@pytest.mark.parametrize("command", ["render", "view"])
+@pytest.mark.parametrize("draw", ["compute", "points"])
+def test_draw_with_the_cpu_sort_is_refused_naming_both(tmp_path, command, draw):
+    """--draw picks the GPU path's rasterizer: with --sort cpu a raster draw was ignored without a word and compute
+    refused in a line naming neither option (newuser61)."""
+    out = ["--out", tmp_path / "x.png"] if command == "render" else ["--headless"]
+    r = run_cli(command, real("fruit_drops_sh3.ply"), "--sort", "cpu", "--draw", draw, *out)
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and f"--draw {draw} and --sort cpu" in lines[0], r.stderr
+    assert not (tmp_path / "x.png").exists()
+
+
+def test_a_named_draw_takes_the_gpu_sort_under_auto(gl_ok, gl_compute_context, tmp_path):
+    """`render --draw points` on a software GL (sort auto: the CPU sort there) drew with the CPU sort's raster, the
+    draw named ignored without a word; it now takes the GPU path, as --draw compute did."""
+    r = run_cli("render", real("fruit_drops_sh3.ply"), "--draw", "points", "--size", "64x48", "--out",
+                tmp_path / "x.png")
+    assert r.returncode == 0, r.stderr
+    assert "sort gpu, draw points" in r.stderr, r.stderr
+
+
+def test_render_options_for_the_other_kind_of_source_are_refused(tmp_path):
+    """--preset sets the formats of a splat file encoded in memory (an encoded scene is drawn in its own) and
+    --max-sse draws an encoded scene's streamed tiles (a splat file is drawn whole): each was ignored without a word
+    for the other kind of source (newuser61)."""
+    scene = tmp_path / "fruit"
+    r = run_cli("encode", real("fruit_drops_sh3.ply"), scene, "--preset", "medium", "-q")
+    assert r.returncode == 0, r.stderr
+    for source, option, said in ((scene, ["--preset", "low"], "--preset low: "),
+                                 (real("fruit_drops_sh3.ply"), ["--max-sse", "2"], "--max-sse 2: ")):
+        r = run_cli("render", source, *option, "--out", tmp_path / "x.png")
+        assert r.returncode == 2, r.stderr
+        lines = r.stderr.strip().splitlines()
+        assert len(lines) == 1 and lines[0].startswith(f"splatstream render: error: {said}"), r.stderr
+        assert not (tmp_path / "x.png").exists()

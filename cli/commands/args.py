@@ -57,6 +57,14 @@ def parse_azimuth(text: str | None, what: str = "--camera-azimuth") -> float:
                          "the other side)") from None
 
 
+def check_sort_draw(sort: str, draw: str) -> None:
+    """--draw names a GPU-path rasterizer: with --sort cpu it was ignored (a raster draw) or refused in a line naming
+    neither option (compute)."""
+    if sort == "cpu" and draw != "auto":
+        raise UsageError(f"--draw {draw} and --sort cpu: --draw picks the GPU sort path's rasterizer, and the CPU "
+                         "sort draws its own; give one of them")
+
+
 # The largest side of a picture the commands render (render, view --size; encode --lod-refine-size).
 MAX_RENDER_SIDE = 16384
 

@@ -14,7 +14,7 @@ from splatstream.errors import UsageError
 from splatstream.format.names import MANIFEST_NAME
 from splatstream.progress import mib
 
-from .args import check_look, parse_azimuth, parse_size, parse_vector
+from .args import check_look, check_sort_draw, parse_azimuth, parse_size, parse_vector
 from .renderers import gl_client
 
 DRAWS = ["auto", "compute", "fetch", "points", "instanced", "triangles"]
@@ -70,7 +70,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "KiB of the wanted tiles are missing (default: the client's, 64: a small cut is fetched and "
                         "drawn directly; 0: always coarse to fine)")
     s.add_argument("--sort", default="auto", choices=["auto", "cpu", "gpu"], help="depth sort (as `render`)")
-    s.add_argument("--draw", default="auto", choices=DRAWS, help="GPU-path rasterizer (as `render`)")
+    s.add_argument("--draw", default="auto", choices=DRAWS,
+                   help="GPU-path rasterizer (as `render`: a draw named takes the GPU sort; not with --sort cpu)")
     h = p.add_argument_group("headless output")
     h.add_argument("--until-converged", action="store_true",
                    help="with --camera-path: keep going after the path ends until the view has converged")
@@ -118,6 +119,7 @@ def _options(args):
         raise UsageError(f"--fill-gap {args.fill_gap}: expected 1 or more levels")
     if args.fov_y is not None and not 0 < args.fov_y < 180:
         raise UsageError(f"--fov-y {args.fov_y}: expected degrees in (0, 180)")
+    check_sort_draw(args.sort, args.draw)
     return ViewOptions(gpu_mem_mb=args.gpu_mem_mb, max_splats=args.max_splats, max_sse=args.max_sse,
                        sh_degree=3 if args.sh_degree is None else args.sh_degree, prefetch=not args.no_prefetch,
                        fill_levels=not args.skip_levels, fill_gap=args.fill_gap,
