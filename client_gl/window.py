@@ -20,7 +20,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from splatstream.atomic import atomic_file
-from splatstream.camera import Camera, turn_about_up
+from splatstream.camera import Camera
 from splatstream.camera_path import CameraPath
 from splatstream.errors import SplatstreamError, UsageError
 from splatstream.progress import mib
@@ -29,7 +29,7 @@ from .camera_control import TURN_STEP_DEG, CameraController, state_from_camera
 from .gpu.gl import fence, gpu_wait
 from .render_thread import WAIT_S, Frame, RenderThread
 from .streaming import PreparedSource, StreamingSession, ViewOptions, freeze_long_lived
-from .view_headless import RETRIES_BEFORE_A_WARNING, new_version_line, write_png
+from .view_headless import RETRIES_BEFORE_A_WARNING, new_version_line, start_camera, write_png
 
 EXIT_OK = 0
 EXIT_NOT_CONVERGED = 1
@@ -114,6 +114,8 @@ class WindowRun:
     overlay: bool = True  # the overlay shown on open (O toggles it)
     measure_frames: int = 0  # with exit_when_converged: time this many more frames (swap and glFinish) first
     camera_azimuth_deg: float = 0.0  # the scene's camera turned about up (view --camera-azimuth); R returns there
+    up: tuple[float, float, float] | None = None  # view --up (None: the scene's)
+    fov_y: float | None = None  # view --fov-y (None: the camera's)
 
 
 def open_window(size: tuple[int, int], vsync: bool, title: str):
@@ -229,13 +231,8 @@ class Viewer:
             self.session = StreamingSession(self.prepared, self.ctx, self.run.options)
             freeze_long_lived()
         w, h = self.wnd.buffer_size
-        if self.run.camera is not None:
-            home = state_from_camera(self.run.camera)
-        else:
-            c = m.camera
-            eye = turn_about_up(c.eye, c.target, c.up, self.run.camera_azimuth_deg) if self.run.camera_azimuth_deg \
-                else c.eye
-            home = state_from_camera(Camera(eye, c.target, c.up, c.fov_y, w, h))
+        r = self.run
+        home = state_from_camera(start_camera(m, r.camera, (w, h), r.camera_azimuth_deg, r.up, r.fov_y))
         root = m.tile(m.root)
         self.controller = CameraController(home, np.array(root.sphere_center), float(root.sphere_radius))
 

@@ -140,3 +140,33 @@ def test_render_options_for_the_other_kind_of_source_are_refused(tmp_path):
         lines = r.stderr.strip().splitlines()
         assert len(lines) == 1 and lines[0].startswith(f"splatstream render: error: {said}"), r.stderr
         assert not (tmp_path / "x.png").exists()
+
+
+def test_view_eye_target_take_the_scenes_up_and_fov_alone_applies(gl_ok, tmp_path):
+    """`view SCENE --eye E --target T` took +z as up where the help says 'default: the scene's' (a y-down capture drew
+    rolled), and --fov-y or --up without --eye/--target were ignored (newuser61): at the scene's own eye and target
+    the view is the scene camera's; --fov-y alone narrows that camera's view, as with --eye/--target."""
+    import json
+
+    from PIL import Image
+
+    from splatstream.store import load_manifest
+
+    scene = tmp_path / "fruit"
+    r = run_cli("encode", real("fruit_drops_sh3.ply"), scene, "--up", "0,-1,0", "--no-lod", "-q")
+    assert r.returncode == 0, r.stderr
+    c = load_manifest(scene).camera
+    look = ["--eye=" + ",".join(map(repr, c.eye)), "--target=" + ",".join(map(repr, c.target))]
+
+    def shot(name: str, *extra: str) -> np.ndarray:
+        r = run_cli("view", scene, "--headless", "--size", "96x64", "--screenshot", tmp_path / f"{name}.png",
+                    "--record", tmp_path / f"{name}.json", "--no-cache", "-q", *extra)
+        assert r.returncode == 0, r.stderr
+        assert json.loads((tmp_path / f"{name}.json").read_text())["converged_s"] is not None
+        return np.asarray(Image.open(tmp_path / f"{name}.png"), np.float32)
+
+    home = shot("home")
+    assert np.abs(shot("look", *look) - home).max() <= 1.0  # the scene's up, not +z
+    narrow = shot("narrow", "--fov-y", "25")
+    assert np.abs(narrow - home).mean() > 5.0  # applied
+    assert np.abs(narrow - shot("narrow_look", *look, "--fov-y", "25")).max() <= 1.0

@@ -147,7 +147,8 @@ def _band_shares(text: str) -> dict:
 
 
 def _fixed_camera(args, size):
-    """A camera from --eye/--target (both needed), or None for the scene's suggested camera."""
+    """A camera from --eye/--target (both needed), or None for the scene's suggested camera. Its up is +z until
+    the scene's is known (view_headless.start_camera) where --up is not given."""
     if args.eye is None and args.target is None:
         return None
     if args.eye is None or args.target is None:
@@ -200,6 +201,7 @@ def run(args: argparse.Namespace) -> int:
     size = parse_size(args.size)
     options = _options(args)
     camera = _fixed_camera(args, size)
+    up = parse_vector(args.up, "--up", nonzero=True) if args.up else None
     azimuth = parse_azimuth(args.camera_azimuth)
     if args.camera_azimuth is not None and (camera is not None or args.camera_path):
         other = "--eye/--target" if camera is not None else "--camera-path"
@@ -216,7 +218,8 @@ def run(args: argparse.Namespace) -> int:
                                     exit_when_converged=args.exit_when_converged, vsync=not args.no_vsync,
                                     timeout_s=args.timeout, quiet=args.quiet, sh_degree=args.sh_degree,
                                     record=args.record, measure_frames=args.measure_frames,
-                                    overlay=not args.no_overlay, camera_azimuth_deg=azimuth))
+                                    overlay=not args.no_overlay, camera_azimuth_deg=azimuth, up=up,
+                                    fov_y=args.fov_y))
     from client_gl.view_headless import HeadlessRun, run_headless  # the GL client: see _options
 
     ctx = offscreen.create_context()
@@ -225,7 +228,7 @@ def run(args: argparse.Namespace) -> int:
             args.source, options, size, camera, path, until_converged=args.until_converged or path is None,
             timeout_s=args.timeout, record=args.record, screenshot=args.screenshot, frames_dir=args.frames_dir,
             frame_every=args.frame_every, sh_degree=args.sh_degree, quiet=args.quiet,
-            measure_frames=args.measure_frames, camera_azimuth_deg=azimuth), ctx)
+            measure_frames=args.measure_frames, camera_azimuth_deg=azimuth, up=up, fov_y=args.fov_y), ctx)
     finally:
         ctx.release()
     if not args.quiet:
