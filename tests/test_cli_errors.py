@@ -95,6 +95,11 @@ def cases(tmp, scene):
         (["view", scene, "--frames-dir", tmp], "--frames-dir: only with --headless"),
         (["view", scene, "--until-converged"], "--until-converged: only with --headless"),
         (["view", scene, "--headless", "--measure-frames", "-3"], "--measure-frames -3: expected 0 or more"),
+        # a window's options with --headless, --frame-every without --frames-dir: taken without a word (newuser61)
+        (["view", scene, "--headless", "--no-overlay"], "--no-overlay and --headless: --no-overlay is a window's"),
+        (["view", scene, "--headless", "--no-vsync"], "--no-vsync and --headless"),
+        (["view", scene, "--headless", "--exit-when-converged"], "--exit-when-converged and --headless"),
+        (["view", scene, "--headless", "--frame-every", "3"], "--frame-every 3: spaces the PNGs of --frames-dir"),
         (["export-3dtiles", tmp / "missing", tmp / "t"], "missing"),
         (["export-3dtiles", scene, tmp / "t", "--latitude", "10"], "--longitude"),
         (["export-3dtiles", scene, tmp / "t", "--content", "weird"], "--content"),

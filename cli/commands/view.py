@@ -83,7 +83,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="write the converged frame (headless: the last one; a window that stays open: the first "
                         "converged one, without the overlay)")
     h.add_argument("--frames-dir", metavar="DIR", help="write a PNG every --frame-every frames")
-    h.add_argument("--frame-every", type=int, default=10, metavar="N")
+    h.add_argument("--frame-every", type=int, default=None, metavar="N",
+                   help="with --frames-dir: a PNG every N frames (default 10)")
     h.add_argument("--measure-frames", type=int, default=0, metavar="N",
                    help="once converged, time N more frames (GPU work included) into --record's measured_frames_ms")
     w = p.add_argument_group("window")
@@ -109,7 +110,7 @@ def _options(args):
         raise UsageError(f"--max-splats {args.max_splats}: expected at least 1")
     if not args.timeout > 0:
         raise UsageError(f"--timeout {args.timeout}: expected a positive number of seconds")
-    if args.frame_every < 1:
+    if args.frame_every is not None and args.frame_every < 1:
         raise UsageError(f"--frame-every {args.frame_every}: expected at least 1")
     if args.measure_frames < 0:  # was taken as 0 without a word
         raise UsageError(f"--measure-frames {args.measure_frames}: expected 0 or more frames")
@@ -191,6 +192,15 @@ def _check_outputs(args) -> None:
     for flag, given in (("--frames-dir", args.frames_dir), ("--until-converged", args.until_converged)):
         if given and not args.headless:
             raise UsageError(f"{flag}: only with --headless (a window saves its frame with P, or --screenshot)")
+    # and the window's own options with --headless, or --frame-every without frames to space, were taken without a
+    # word (newuser61)
+    for flag, given in (("--exit-when-converged", args.exit_when_converged), ("--no-vsync", args.no_vsync),
+                        ("--no-overlay", args.no_overlay)):
+        if given and args.headless:
+            raise UsageError(f"{flag} and --headless: {flag} is a window's (--headless shows no window, draws no "
+                             "overlay and ends by itself)")
+    if args.frame_every is not None and not args.frames_dir:
+        raise UsageError(f"--frame-every {args.frame_every}: spaces the PNGs of --frames-dir, and none is given")
     if args.frames_dir:
         if not os.path.isdir(args.frames_dir):
             raise UsageError(f"--frames-dir {args.frames_dir}: no such directory")
@@ -227,7 +237,8 @@ def run(args: argparse.Namespace) -> int:
         code, report = run_headless(HeadlessRun(
             args.source, options, size, camera, path, until_converged=args.until_converged or path is None,
             timeout_s=args.timeout, record=args.record, screenshot=args.screenshot, frames_dir=args.frames_dir,
-            frame_every=args.frame_every, sh_degree=args.sh_degree, quiet=args.quiet,
+            frame_every=10 if args.frame_every is None else args.frame_every, sh_degree=args.sh_degree,
+            quiet=args.quiet,
             measure_frames=args.measure_frames, camera_azimuth_deg=azimuth, up=up, fov_y=args.fov_y), ctx)
     finally:
         ctx.release()
