@@ -100,6 +100,12 @@ def cases(tmp, scene):
         (["view", scene, "--headless", "--no-vsync"], "--no-vsync and --headless"),
         (["view", scene, "--headless", "--exit-when-converged"], "--exit-when-converged and --headless"),
         (["view", scene, "--headless", "--frame-every", "3"], "--frame-every 3: spaces the PNGs of --frames-dir"),
+        # the path's keyframes place the camera; --until-converged is for a path (newuser61)
+        (["view", scene, "--headless", "--camera-path", tmp / "p.json", "--eye", "1,1,1", "--target", "0,0,0"],
+         "--camera-path and --eye/--target: the path's keyframes place the camera"),
+        (["view", scene, "--headless", "--camera-path", tmp / "p.json", "--fov-y", "30", "--up", "0,1,0"],
+         "--camera-path and --up, --fov-y"),
+        (["view", scene, "--headless", "--until-converged"], "--until-converged: keeps a --camera-path view going"),
         (["export-3dtiles", tmp / "missing", tmp / "t"], "missing"),
         (["export-3dtiles", scene, tmp / "t", "--latitude", "10"], "--longitude"),
         (["export-3dtiles", scene, tmp / "t", "--content", "weird"], "--content"),

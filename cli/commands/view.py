@@ -216,6 +216,17 @@ def run(args: argparse.Namespace) -> int:
     if args.camera_azimuth is not None and (camera is not None or args.camera_path):
         other = "--eye/--target" if camera is not None else "--camera-path"
         raise UsageError(f"--camera-azimuth turns the scene's camera; {other} gives another camera: give one of them")
+    # The path's keyframes place the camera: --eye/--target, --up and --fov-y beside it were ignored without a word,
+    # and so was --until-converged without a path (newuser61)
+    if args.camera_path:
+        beside = [flag for flag, given in (("--eye/--target", camera is not None), ("--up", args.up is not None),
+                                           ("--fov-y", args.fov_y is not None)) if given]
+        if beside:
+            raise UsageError(f"--camera-path and {', '.join(beside)}: the path's keyframes place the camera (their "
+                             "eye, target, up and fov_y); give one or the other")
+    elif args.until_converged and args.headless:  # (in a window: refused as a headless option, below)
+        raise UsageError("--until-converged: keeps a --camera-path view going after the path ends, and no "
+                         "--camera-path is given (without one the view runs until converged anyway)")
     path = None
     if args.camera_path:
         path = load_camera_path(args.camera_path)
