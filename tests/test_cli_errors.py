@@ -25,6 +25,7 @@ def scene(tmp_path_factory):
 def cases(tmp, scene):
     (tmp / "a_file").write_text("x")
     (tmp / "a_dir").mkdir()
+    (tmp / "p.json").write_text('{"keyframes": [{"time": 0, "eye": [1, 1, 1], "target": [0, 0, 0]}]}')
     broken = read_gaussians(DONUT)
     broken.positions[7] = np.nan
     write_gaussians_ply(broken, tmp / "nan.ply")
