@@ -12,10 +12,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from splatstream.camera import Camera, framing_view
+from splatstream.camera import Camera, framing_view, turn_about_up
 
 ORBIT_DEG_PER_PX = 0.3
 LOOK_DEG_PER_PX = 0.15
+# The arrow keys' turn about the target: 8 presses go round, 4 to the other side (a scene's front is found in a few).
+TURN_STEP_DEG = 45.0
 ZOOM_PER_NOTCH = 0.85  # distance factor per wheel notch (toward the cursor)
 SMOOTHING_PER_S = 18.0  # the camera covers 1 - exp(-18 dt) of the way each frame: 90 % in about 0.13 s
 MIN_PITCH_COS = 0.999  # keep the view off the up axis (no flip at the poles)
@@ -139,6 +141,14 @@ class CameraController:
         shift = (forward * f + right * r + up * _unit(g.up)) * step
         g.eye = g.eye + shift
         g.target = g.target + shift
+
+    def turn(self, degrees: float) -> None:
+        """T (180 degrees: the other side of the target) and the arrow keys (TURN_STEP_DEG): the eye turned about
+        the line through the target along up, same distance and elevation (camera.turn_about_up, the rule of
+        `--camera-azimuth`). At once, not glided: the glide goes straight from eye to eye, through the target for a
+        half turn."""
+        for s in (self.goal, self.now):
+            s.eye = np.array(turn_about_up(s.eye, s.target, self.goal.up, degrees))
 
     def reset(self) -> None:
         """R: back to the scene's suggested camera."""

@@ -16,7 +16,7 @@ import numpy as np
 from PIL import Image
 
 from splatstream.atomic import atomic_file
-from splatstream.camera import Camera, look_at_near_far
+from splatstream.camera import Camera, look_at_near_far, turn_about_up
 from splatstream.camera_path import CameraPath
 from splatstream.progress import ProgressPrinter
 
@@ -43,11 +43,22 @@ class HeadlessRun:
     sh_degree: int | None = None
     quiet: bool = False
     measure_frames: int = 0  # once converged, time this many frames (glFinish each) into the report
+    camera_azimuth_deg: float = 0.0  # the scene's camera turned about up (view --camera-azimuth)
+    up: tuple[float, float, float] | None = None  # view --up (None: the scene's)
+    fov_y: float | None = None  # view --fov-y (None: the camera's)
 
 
-def scene_camera(session: StreamingSession, size: tuple[int, int]) -> Camera:
-    c = session.manifest.camera
-    return Camera(c.eye, c.target, c.up, c.fov_y, size[0], size[1], *look_at_near_far(c.eye, c.target))
+def start_camera(manifest, fixed: Camera | None, size: tuple[int, int], azimuth_deg: float = 0.0,
+                 up: tuple[float, float, float] | None = None, fov_y: float | None = None) -> Camera:
+    """The camera a view starts from: `fixed` (view --eye/--target; its up the scene's unless --up was given), else
+    the manifest's camera at `size`, turned by `azimuth_deg` about its up (camera.turn_about_up), with --up and
+    --fov-y where given. --eye/--target took +z as up where --up was not given (a 3DGS capture, y down, drew rolled)
+    and --up or --fov-y without them were ignored (newuser61)."""
+    c = manifest.camera
+    if fixed is not None:
+        return fixed if up is not None else replace(fixed, up=tuple(c.up))
+    eye = turn_about_up(c.eye, c.target, c.up, azimuth_deg) if azimuth_deg else c.eye
+    return Camera(eye, c.target, up or c.up, fov_y or c.fov_y, size[0], size[1], *look_at_near_far(eye, c.target))
 
 
 def write_png(path: str, image) -> None:
@@ -114,7 +125,7 @@ def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
     freeze_long_lived()
     try:
         w, h = run.size
-        fixed = run.camera or scene_camera(session, run.size)
+        fixed = start_camera(session.manifest, run.camera, run.size, run.camera_azimuth_deg, run.up, run.fov_y)
         start = time.perf_counter()
         frame = 0
         last_line = 0.0
@@ -177,7 +188,7 @@ def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
             report["measured_back_to_back_ms"] = back_to_back
         report.update({"source": run.source, "frames_rendered": frame, "size": [w, h],
                        "camera_path": run.path is not None, "gl_renderer": ctx.info.get("GL_RENDERER", "?"),
-                       "draw": session.renderer.draw_mode if session.renderer.sort_mode == "gpu" else "cpu"})
+                       "sort": session.renderer.sort_mode, "draw": session.renderer.draw_path})
         if run.record:
             with atomic_file(run.record) as f:
                 f.write(json.dumps(report, indent=1).encode())

@@ -25,11 +25,11 @@ from splatstream.camera_path import CameraPath
 from splatstream.errors import SplatstreamError, UsageError
 from splatstream.progress import mib
 
-from .camera_control import CameraController, state_from_camera
+from .camera_control import TURN_STEP_DEG, CameraController, state_from_camera
 from .gpu.gl import fence, gpu_wait
 from .render_thread import WAIT_S, Frame, RenderThread
 from .streaming import PreparedSource, StreamingSession, ViewOptions, freeze_long_lived
-from .view_headless import RETRIES_BEFORE_A_WARNING, new_version_line, write_png
+from .view_headless import RETRIES_BEFORE_A_WARNING, new_version_line, start_camera, write_png
 
 EXIT_OK = 0
 EXIT_NOT_CONVERGED = 1
@@ -45,6 +45,8 @@ CONTROLS = [
     ("C", "switch orbit / fly camera"),
     ("R", "reset to the scene's camera"),
     ("F", "frame the scene (stray splats left out)"),
+    ("T", "turn to the other side of the target"),
+    ("left / right arrow", f"turn {TURN_STEP_DEG:g} degrees about the target"),
     ("B", "show tile bounds, coloured by LOD level"),
     ("space", "pause / resume streaming"),
     ("P", "save a screenshot (PNG, full resolution, no overlay)"),
@@ -58,6 +60,12 @@ def gpu_line(resident_bytes: int, budget_bytes: int) -> str:
     """The overlay's GPU memory line. The budget as given, as the headless summary writes it: `--gpu-mem-mb 0.5`
     showed 'GPU 0.5 MiB resident of 0 MiB budget', read as over budget."""
     return f"GPU     {resident_bytes / 2**20:.1f} MiB resident of {mib(budget_bytes)} MiB budget"
+
+
+def draw_path_line(renderer) -> str:
+    """The overlay's draw path ("CPU sort, raster draw"): the renderer's sort_mode and draw_path, the two words
+    `--record` writes as `sort` and `draw` (a window's record said "fetch" where this line said "raster")."""
+    return f"{renderer.sort_mode.upper()} sort, {renderer.draw_path} draw"
 
 
 _BLIT_VS = """#version 410
@@ -105,6 +113,9 @@ class WindowRun:
     record: str | None = None  # metrics JSON at exit (as view --headless writes it)
     overlay: bool = True  # the overlay shown on open (O toggles it)
     measure_frames: int = 0  # with exit_when_converged: time this many more frames (swap and glFinish) first
+    camera_azimuth_deg: float = 0.0  # the scene's camera turned about up (view --camera-azimuth); R returns there
+    up: tuple[float, float, float] | None = None  # view --up (None: the scene's)
+    fov_y: float | None = None  # view --fov-y (None: the camera's)
 
 
 def open_window(size: tuple[int, int], vsync: bool, title: str):
@@ -220,11 +231,8 @@ class Viewer:
             self.session = StreamingSession(self.prepared, self.ctx, self.run.options)
             freeze_long_lived()
         w, h = self.wnd.buffer_size
-        if self.run.camera is not None:
-            home = state_from_camera(self.run.camera)
-        else:
-            c = m.camera
-            home = state_from_camera(Camera(c.eye, c.target, c.up, c.fov_y, w, h))
+        r = self.run
+        home = state_from_camera(start_camera(m, r.camera, (w, h), r.camera_azimuth_deg, r.up, r.fov_y))
         root = m.tile(m.root)
         self.controller = CameraController(home, np.array(root.sphere_center), float(root.sphere_radius))
 
@@ -318,6 +326,10 @@ class Viewer:
                     self.controller.frame_box = self.session.engine.frame_box  # once the root's base has decoded
                 w, h = self.wnd.buffer_size
                 self.controller.frame_scene(w / max(1, h))
+            elif key == keys.T:
+                self.controller.turn(180.0)
+            elif key in (keys.LEFT, keys.RIGHT):  # as a drag that way turns the scene (orbit: right is negative)
+                self.controller.turn(TURN_STEP_DEG if key == keys.LEFT else -TURN_STEP_DEG)
             elif key == keys.SPACE and self.session is not None:
                 self.session.paused = not self.session.paused
 
@@ -472,11 +484,7 @@ class Viewer:
             self._rate_window.pop(0)
         (t0, b0), (t1, b1) = self._rate_window[0], self._rate_window[-1]
         self.rate = (b1 - b0) / max(1e-6, t1 - t0)
-        path = s.renderer.sort_mode
-        if path == "gpu":
-            path = f"GPU sort, {s.renderer.draw_mode} draw"
-        else:
-            path = "CPU sort, raster draw"
+        path = draw_path_line(s.renderer)
         imgui.text(f"{self.fps:6.1f} fps   frame {self.frame_ms:6.2f} ms (CPU)")
         imgui.text(f"splats  {u.drawn_splats if u else 0:,} drawn / {u.resident_splats if u else 0:,} resident")
         imgui.text(f"tiles   {u.resident_tiles if u else 0} resident / {u.in_flight if u else 0} in flight"
@@ -531,7 +539,7 @@ class Viewer:
         was at rest (settled(): "converged"; else "streaming" or "camera moving") and the camera."""
         if self.session is None:
             return None
-        moving = self.controller is not None and self.controller.update(0.0)
+        moving = self.controller is not None and (self.controller.update(0.0) or not self._camera_shown())
         state = "converged" if self.settled() else "camera moving" if moving else "streaming"
         path = path or self.run.screenshot or os.path.abspath(time.strftime("splatstream-%Y%m%d-%H%M%S.png"))
         if os.path.exists(path) and not self.run.screenshot:
@@ -621,7 +629,21 @@ class Viewer:
             return False
         if self.run.path is not None and time.perf_counter() - self.path_start < self.run.path.end:
             return False
-        return not self.controller.update(0.0) if self.controller else True
+        return not self.controller.update(0.0) and self._camera_shown() if self.controller else True
+
+    def _camera_shown(self) -> bool:
+        """The frame shown was drawn from the controller's camera (or a camera path drives the view). A key that
+        moves the camera at once (T, the arrows) leaves it still, with the frame before on screen: 'converged'
+        was said of that frame (the window test's screenshot after T held the camera before it)."""
+        shown = getattr(self, "last_camera", None)
+        if self.run.path is not None or self.controller is None:
+            return True
+        if shown is None:
+            return False
+        now = self.controller.now
+        scale = max(1e-9, float(np.linalg.norm(now.target - now.eye)))
+        return bool(np.abs(np.subtract(shown.eye, now.eye)).max() <= 1e-9 * scale
+                    and np.abs(np.subtract(shown.target, now.target)).max() <= 1e-9 * scale)
 
     def _measure(self) -> None:
         """Time converged frames through the window path (draw, copy, overlay, swap), two ways: one at a time
@@ -665,7 +687,7 @@ class Viewer:
         report.update({"source": self.run.source, "window": True, "window_backend": self.wnd.name,
                        "size": list(self.wnd.buffer_size),
                        "gl_renderer": self.ctx.info.get("GL_RENDERER", "?"), "gl_version": self.ctx.version_code,
-                       "sort": self.session.renderer.sort_mode, "draw": self.session.renderer.draw_mode,
+                       "sort": self.session.renderer.sort_mode, "draw": self.session.renderer.draw_path,
                        "overlay": self.show_overlay})
         if getattr(self, "measured", None):
             report["measured_frames_ms"] = self.measured

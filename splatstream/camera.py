@@ -370,6 +370,32 @@ def suggested_camera(positions: np.ndarray | None = None, up: Sequence[float] = 
     return Camera(tuple(eye), tuple(med), tuple(up), fov_y_deg, width, height, near, far)
 
 
+# `encode --camera-azimuth` / `view --camera-azimuth`: turns beyond a whole turn either way are refused (a typo, not
+# a wish); any angle within is taken as given.
+MAX_AZIMUTH_DEG = 360.0
+
+
+def check_azimuth(degrees: float) -> float:
+    """`degrees` as a float when it is a finite number within +-MAX_AZIMUTH_DEG, else a ValueError saying so."""
+    value = float(degrees)
+    if not (math.isfinite(value) and abs(value) <= MAX_AZIMUTH_DEG):
+        raise ValueError(f"expected degrees from -{MAX_AZIMUTH_DEG:g} to {MAX_AZIMUTH_DEG:g}, got {degrees!r}")
+    return value
+
+
+def turn_about_up(eye: Sequence[float], target: Sequence[float], up: Sequence[float], degrees: float) -> Vec3:
+    """The eye turned by `degrees` of azimuth about the line through `target` along `up` (right-handed:
+    counter-clockwise seen from above, +up towards the viewer); distance to the target and elevation unchanged.
+    180 degrees looks at the other side of the target (camera.md, "Standard views"). The target and up stay."""
+    axis = _normalize(np.asarray(up, dtype=np.float64))
+    t = np.asarray(target, dtype=np.float64)
+    v = np.asarray(eye, dtype=np.float64) - t
+    a = math.radians(float(degrees))
+    c, s = math.cos(a), math.sin(a)
+    turned = v * c + np.cross(axis, v) * s + axis * float(axis @ v) * (1.0 - c)  # Rodrigues' rotation
+    return _vec3(t + turned, "eye")
+
+
 def look_at_near_far(eye: Sequence[float], target: Sequence[float]) -> tuple[float, float]:
     """The near and far planes of a camera placed by its eye and target (`view --eye/--target`, a headless view's
     scene camera, the LOD refinement's cameras): 1 % of the distance, at most 0.01; 100x it, at least 1000."""

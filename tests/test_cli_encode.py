@@ -154,3 +154,28 @@ def test_target_on_a_kept_tree_names_both_ways_out(tmp_path):
     assert r.stderr.strip().endswith("add --rebuild-lod to build ours from its finest level, or --no-lod for its "
                                      "finest level alone"), r.stderr
     assert "--target-psnr/--target-size applies only to a tree we build" in r.stderr, r.stderr
+
+
+@pytest.mark.parametrize("options", [["--lod-merge", "cost"], ["--max-leaf-splats", "4096", "--page-tiles", "3"],
+                                     ["--reduction", "3"], ["--page-levels", "2"], ["--rebuild-lod"]])
+def test_no_lod_with_the_tree_options_is_refused_naming_both(tmp_path, options):
+    """`encode --no-lod --lod-merge cost` (or --max-leaf-splats, --reduction, the page options) wrote one tile and took
+    the tree's option without a word (newuser61)."""
+    r = run_cli("encode", real("fruit_drops_sh3.ply"), tmp_path / "scene", "--no-lod", *options)
+    assert r.returncode == 2 and not (tmp_path / "scene").exists(), r.stderr
+    lines = r.stderr.strip().splitlines()
+    flags = ", ".join(o for o in options if o.startswith("--"))
+    assert len(lines) == 1 and f"--no-lod and {flags}: --no-lod writes one tile" in lines[0], r.stderr
+
+
+def test_a_kept_tree_refuses_the_options_of_a_tree_we_build(tmp_path):
+    """A streamed SOG's tree is kept as read: --max-leaf-splats, --reduction and --lod-merge were taken without a
+    word (the help says they 'then follow it'); refused as edits and --lod-refine are (newuser61)."""
+    sog = Path(__file__).parent / "fixtures" / "foreign" / "fruit_drops_lod" / "lod-meta.json"
+    r = run_cli("encode", sog, tmp_path / "scene", "--max-leaf-splats", "4096", "--lod-merge", "grid")
+    assert r.returncode == 2 and not (tmp_path / "scene").exists(), r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "--max-leaf-splats, --lod-merge apply only to a tree we build" in lines[0], r.stderr
+    assert lines[0].endswith("add --rebuild-lod to build ours from its finest level"), r.stderr
+    r = run_cli("encode", sog, tmp_path / "scene", "--max-leaf-splats", "4096", "--rebuild-lod", "-q")
+    assert r.returncode == 0, r.stderr

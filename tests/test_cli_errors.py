@@ -25,6 +25,7 @@ def scene(tmp_path_factory):
 def cases(tmp, scene):
     (tmp / "a_file").write_text("x")
     (tmp / "a_dir").mkdir()
+    (tmp / "p.json").write_text('{"keyframes": [{"time": 0, "eye": [1, 1, 1], "target": [0, 0, 0]}]}')
     broken = read_gaussians(DONUT)
     broken.positions[7] = np.nan
     write_gaussians_ply(broken, tmp / "nan.ply")
@@ -95,6 +96,17 @@ def cases(tmp, scene):
         (["view", scene, "--frames-dir", tmp], "--frames-dir: only with --headless"),
         (["view", scene, "--until-converged"], "--until-converged: only with --headless"),
         (["view", scene, "--headless", "--measure-frames", "-3"], "--measure-frames -3: expected 0 or more"),
+        # a window's options with --headless, --frame-every without --frames-dir: taken without a word (newuser61)
+        (["view", scene, "--headless", "--no-overlay"], "--no-overlay and --headless: --no-overlay is a window's"),
+        (["view", scene, "--headless", "--no-vsync"], "--no-vsync and --headless"),
+        (["view", scene, "--headless", "--exit-when-converged"], "--exit-when-converged and --headless"),
+        (["view", scene, "--headless", "--frame-every", "3"], "--frame-every 3: spaces the PNGs of --frames-dir"),
+        # the path's keyframes place the camera; --until-converged is for a path (newuser61)
+        (["view", scene, "--headless", "--camera-path", tmp / "p.json", "--eye", "1,1,1", "--target", "0,0,0"],
+         "--camera-path and --eye/--target: the path's keyframes place the camera"),
+        (["view", scene, "--headless", "--camera-path", tmp / "p.json", "--fov-y", "30", "--up", "0,1,0"],
+         "--camera-path and --up, --fov-y"),
+        (["view", scene, "--headless", "--until-converged"], "--until-converged: keeps a --camera-path view going"),
         (["export-3dtiles", tmp / "missing", tmp / "t"], "missing"),
         (["export-3dtiles", scene, tmp / "t", "--latitude", "10"], "--longitude"),
         (["export-3dtiles", scene, tmp / "t", "--content", "weird"], "--content"),

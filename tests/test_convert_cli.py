@@ -124,3 +124,17 @@ def test_convert_to_sog_shows_the_writing_progress(tmp_path):
     assert r.returncode == 0 and "writing" not in r.stderr
     assert out.read_bytes() == quiet.read_bytes()
     assert len(read_gaussians(str(out))) == 4721
+
+
+@pytest.mark.parametrize("output, option", [("x.ply", ["--spz-version", "3"]),
+                                            ("x.sog", ["--glb-compression", "spz"]),
+                                            ("x.spz", ["--glb-compression", "none"]),
+                                            ("x.glb", ["--spz-version", "4"])])
+def test_an_output_option_for_another_format_is_refused(tmp_path, capsys, output, option):
+    """`convert logo x.ply --spz-version 3` wrote a PLY and `x.sog --glb-compression spz` a SOG, the option taken
+    without a word (newuser61); --lod-level and --spz-axes rdf were already refused for an input they do not fit."""
+    out = tmp_path / output
+    assert main(["convert", str(FIXTURES / "fruit_drops_sub16.ply"), str(out), *option]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"{option[0]} {option[1]}: only for" in err[0] and output in err[0], err
+    assert not out.exists()

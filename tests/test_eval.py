@@ -75,6 +75,10 @@ def test_eval_api_reproducible_cameras_and_encoded_dir(tmp_path):
     (["--views", "0"], "--views"),
     (["--views", "8000"], "--views must be at most 1024"),
     (["--compare", "/nonexistent/x.ply"], "no such file"),
+    # taken without a word (newuser61): no --compare file to apply to; an orbit over the pole
+    (["--spz-axes", "rdf"], "--spz-axes rdf: the axes of SPZ files given to --compare, and none is given"),
+    (["--elevation", "95"], "--elevation 95: expected degrees in (-90, 90)"),
+    (["--elevation", "-90"], "--elevation -90: expected degrees in (-90, 90)"),
 ])
 def test_eval_cli_bad_arguments(args, message, capsys):
     rc = main(["eval", str(real("fruit_drops_sh3.ply")), "--renderer", "ref", "--size", "32x32", "-q", *args])

@@ -122,7 +122,8 @@ def test_cli_export_and_errors(exported, tmp_path):
     assert units and all("shN" not in u for u in units)
     for args, message in (([tmp_path / "missing", tmp_path / "o"], "missing"),
                           ([work / "scene", work / "scene"], "the output directory is the scene itself"),
-                          ([work / "scene", tmp_path / "o", "--unit-splats", "0"], "unit size")):
+                          # the option named (it said 'unit size 0', newuser61)
+                          ([work / "scene", tmp_path / "o", "--unit-splats", "0"], "--unit-splats 0: expected")):
         r = subprocess.run([*cli, "export-sog-lod", *map(str, args)], capture_output=True, text=True, timeout=300)
         assert r.returncode == 2 and message in r.stderr and "Traceback" not in r.stderr, r.stderr
 

@@ -293,6 +293,9 @@ def test_export_replaces_atomically_and_refuses_bad_input_in_one_line(scenes, tm
         (("export-3dtiles", scene, tmp_path / "o3", "--latitude", "95", "--longitude", "0"), "--latitude"),
         (("export-3dtiles", scene, scene), "the output directory is the scene itself"),
         (("export-3dtiles", scene, tmp_path / "o4", "--content", "plain", "--spz-axes", "rub"), "--spz-axes"),
+        # taken without a word with plain content (newuser61)
+        (("export-3dtiles", scene, tmp_path / "o5", "--content", "plain", "--spz-version", "4"),
+         "--spz-version 4 and --content plain"),
     ]
     for args, message in cases:
         r = run_cli(*args)

@@ -205,6 +205,7 @@ def test_window_input_screenshot_and_overlay(display, served, tmp_path):
     assert record["window_backend"] == "glfw"  # not pyglet's fallback
     assert record["gl_version"] >= 430  # compute shaders in the window
     assert record["sort"] == "cpu"  # as choose_sort picks on a software GL (llvmpipe); the GPU sort on a real GPU
+    assert record["draw"] == "raster"  # what the overlay says (draw_path_line); it said "fetch", the GPU path's draw
     cam = json.loads(Path(str(shot) + ".camera.json").read_text())
     shot = np.asarray(Image.open(shot), np.float32) / 255.0
     assert shot.shape == (SIZE[1], SIZE[0], 3)
@@ -363,3 +364,34 @@ def test_window_f_frames_the_box_the_suggested_camera_frames(display, served, tm
     half = math.radians(home.fov_y) / 2.0
     half = min(half, math.atan(math.tan(half) * SIZE[0] / SIZE[1]))
     assert dist < 0.7 * root.sphere_radius / math.sin(half)
+
+
+def test_window_t_and_arrows_turn_about_the_target(display, served, tmp_path):
+    """The suggested camera's side (issues 31 and 32): `view --camera-azimuth 90` opens at the scene's camera turned
+    90 degrees about up, T turns to the other side of the target (+180), the left arrow 45 degrees more, the right
+    arrow back: each camera is the scene's turned by camera.turn_about_up (same target, distance and elevation),
+    and R returns to the turned home."""
+    import urllib.request
+
+    from splatstream.camera import turn_about_up
+    from splatstream.format.manifest import parse_manifest
+
+    with urllib.request.urlopen(served + "/manifest.msgpack", timeout=10) as resp:
+        home = parse_manifest(resp.read()).camera
+    cams = []
+    with open_viewer(display, served, tmp_path, "--gpu-mem-mb", "64", "--camera-azimuth", "90") as (viewer, output,
+                                                                                                   window):
+        seen = output.wait_for("view: converged", -1, "converged view of the scene")
+        for keys in ([], ["t"], ["Left"], ["Right", "Right"], ["r"]):
+            xdo(display, "windowfocus", "--sync", window)
+            if keys:
+                xdo(display, "key", *keys)
+            shot, seen = screenshot_at_rest(display, window, output, seen, f"converged view after {keys}")
+            cams.append(json.loads(Path(str(shot) + ".camera.json").read_text()))
+        quit_viewer(display, viewer, output)
+    assert viewer.returncode == 0, output.text()
+    dist = float(np.linalg.norm(np.subtract(home.eye, home.target)))
+    for cam, degrees in zip(cams, (90.0, 270.0, 315.0, 225.0, 90.0), strict=True):
+        want = turn_about_up(home.eye, home.target, home.up, degrees)
+        assert np.linalg.norm(np.subtract(cam["eye"], want)) < 1e-4 * dist, (degrees, cam["eye"], want)
+        assert np.linalg.norm(np.subtract(cam["target"], home.target)) < 1e-4 * dist

@@ -6,6 +6,7 @@ import argparse
 import math
 import re
 
+from splatstream.camera import MAX_AZIMUTH_DEG, check_azimuth
 from splatstream.edit import (
     Box,
     DensityFilter,
@@ -43,6 +44,25 @@ def check_look(eye, target, fov_y: float | None) -> None:
                          "a target the camera looks at from the eye")
     if fov_y is not None and not 0 < fov_y < 180:
         raise UsageError(f"--fov-y {fov_y:g}: expected degrees in (0, 180)")
+
+
+def parse_azimuth(text: str | None, what: str = "--camera-azimuth") -> float:
+    """--camera-azimuth DEG: degrees (camera.check_azimuth's range); 0 where not given."""
+    if text is None:
+        return 0.0
+    try:
+        return check_azimuth(float(text))
+    except ValueError:
+        raise UsageError(f"{what} {text}: expected degrees from -{MAX_AZIMUTH_DEG:g} to {MAX_AZIMUTH_DEG:g} (180: "
+                         "the other side)") from None
+
+
+def check_sort_draw(sort: str, draw: str) -> None:
+    """--draw names a GPU-path rasterizer: with --sort cpu it was ignored (a raster draw) or refused in a line naming
+    neither option (compute)."""
+    if sort == "cpu" and draw != "auto":
+        raise UsageError(f"--draw {draw} and --sort cpu: --draw picks the GPU sort path's rasterizer, and the CPU "
+                         "sort draws its own; give one of them")
 
 
 # The largest side of a picture the commands render (render, view --size; encode --lod-refine-size).

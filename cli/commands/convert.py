@@ -44,9 +44,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="axes of an SPZ input: rub, as the format specifies (Niantic's library, splat-transform 2.x; "
                         "default), or rdf for files stored without the axis turn (splat-transform 3.x), which read "
                         "turned 180 degrees about x otherwise")
-    p.add_argument("--spz-version", type=int, choices=(3, 4), default=4,
+    p.add_argument("--spz-version", type=int, choices=(3, 4), default=None,
                    help="SPZ version for .spz output: 4 (zstd streams, default) or 3 (gzip, for older readers)")
-    p.add_argument("--glb-compression", choices=("none", "spz"), default="none",
+    p.add_argument("--glb-compression", choices=("none", "spz"), default=None,
                    help="for .glb output: plain float accessors (default) or SPZ-compressed content "
                         "(KHR_gaussian_splatting_compression_spz_2)")
     p.add_argument("--lod-level", type=int, default=None, metavar="L",
@@ -70,6 +70,14 @@ def run(args: argparse.Namespace) -> int:
         wrong = [s.path for s in sources if s.format != wanted]
         if given and wrong:
             raise UsageError(f"{flag}: {wrong[0]} is not {'a streamed SOG' if wanted == 'lod_sog' else 'an SPZ file'}")
+    # An output option for another format was taken without a word (`x.ply --spz-version 3` wrote a PLY).
+    for flag, value, wanted in (("--spz-version", args.spz_version, "spz"),
+                                ("--glb-compression", args.glb_compression, "gltf")):
+        if value is not None and out_format != wanted:
+            raise UsageError(f"{flag} {value}: only for {'.spz' if wanted == 'spz' else '.glb'} output, and "
+                             f"{args.output} is written as {FORMAT_NAMES[out_format]}")
+    spz_version = args.spz_version or 4
+    glb_compression = args.glb_compression or "none"
     check_output(args.output)
     edits = edits_from(args)  # a bad edit value is refused before the (possibly long) read, as encode does
     start = time.perf_counter()
@@ -105,12 +113,12 @@ def run(args: argparse.Namespace) -> int:
         raise UsageError(f"{' + '.join(args.input)}: the edits keep no splats; nothing to convert")
     if (kept_sh := written_sh_degree(out_format, g.sh_degree)) < g.sh_degree:
         say(f"note: .splat has no SH bands; bands {kept_sh + 1}..{g.sh_degree} are dropped")
-    glb = "SPZ-compressed splats" if args.glb_compression == "spz" else "uncompressed splats"
-    detail = {"spz": f", version {args.spz_version}", "gltf": f", {glb}"}
+    glb = "SPZ-compressed splats" if glb_compression == "spz" else "uncompressed splats"
+    detail = {"spz": f", version {spz_version}", "gltf": f", {glb}"}
     say(f"writing {args.output} ({FORMAT_NAMES[out_format]}{detail.get(out_format, '')})")
     # A .sog's SH palette fit takes seconds (5.6 s on playbot) and was one silent step: its share is shown.
     bar = ProgressPrinter("convert", enabled=not args.quiet)
-    write_gaussians(g, args.output, spz_version=args.spz_version, glb_compression=args.glb_compression,
+    write_gaussians(g, args.output, spz_version=spz_version, glb_compression=glb_compression,
                     progress=lambda fraction: bar("writing", fraction))
     say("done")
     return 0

@@ -31,7 +31,15 @@ from splatstream.rad_import import read_tree as rad_read_tree
 from splatstream.sog_import import encode_tree_to
 from splatstream.sog_import import read_tree as sog_read_tree
 
-from .args import MAX_RENDER_SIDE, add_edit_arguments, edit_report, edits_from, parse_bytes, parse_vector
+from .args import (
+    MAX_RENDER_SIDE,
+    add_edit_arguments,
+    edit_report,
+    edits_from,
+    parse_azimuth,
+    parse_bytes,
+    parse_vector,
+)
 from .renderers import pick_renderer
 
 # The views --target-psnr / --target-size measure presets on: `splatstream eval`'s defaults.
@@ -88,9 +96,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="a streamed SOG (lod-meta.json) or a Spark .rad: build our own LOD tree from its finest "
                         "level (default: keep its own tree, level for level; --max-leaf-splats and --reduction then "
                         "follow it)")
-    p.add_argument("--max-leaf-splats", type=int, default=16384,
+    p.add_argument("--max-leaf-splats", type=int, default=None,
                    help="splats per leaf tile at most (default 16384: measured best for streaming)")
-    p.add_argument("--reduction", type=float, default=2.0,
+    p.add_argument("--reduction", type=float, default=None,
                    help="each LOD level keeps about 1/REDUCTION of the splats of the level below (default 2)")
     p.add_argument("--lod-merge", choices=LOD_MERGES, default=EncodeOptions.lod_merge,
                    help="how LOD levels are merged: grid (a Morton grid per tile, every tile halved) or "
@@ -102,11 +110,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "over --memory-per-worker) runs it inside partitions of at most "
                         f"{EncodeOptions.lod_merge_domain_splats:,} splats and over the levels above them, and "
                         "takes the grid where such a partition does not fit a worker")
-    p.add_argument("--page-tiles", type=int, default=EncodeOptions.page_tiles,
+    p.add_argument("--page-tiles", type=int, default=None,
                    help="write a tree of more than N tiles as a root manifest and manifest pages, so a client needs "
                         f"only the tree's top before its first frame (format 1.5; 0: never; default "
                         f"{EncodeOptions.page_tiles}: measured, BENCHMARKS.md)")
-    p.add_argument("--page-levels", type=int, default=EncodeOptions.page_levels,
+    p.add_argument("--page-levels", type=int, default=None,
                    help=f"tree levels in the root manifest and in each page (default {EncodeOptions.page_levels})")
     p.add_argument("--no-compact-table", action="store_true",
                    help="write a tree's tiles as format 1.8's tile table, not the compact one of 1.12 (f32 bounds "
@@ -131,6 +139,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    "lod-meta.json or meta.json, its directory's)")
     p.add_argument("--up", help="up vector of the scene, e.g. 0,-1,0 (3DGS/COLMAP captures) or 0,0,1 (z-up tools); "
                                "default: detected (y down unless the splats' surfaces show z up)")
+    p.add_argument("--camera-azimuth", metavar="DEG",
+                   help="turn the scene's suggested camera (the manifest's camera: where a viewer opens) by DEG "
+                        "degrees about up, around what it looks at (180: the other side; positive: counter-clockwise "
+                        "seen from above); default 0, the suggested camera as framed")
     p.add_argument("--drop-invalid", action="store_true",
                    help="drop splats with non-finite values or zero-length quaternions (with a warning)")
     cluster = p.add_argument_group(
@@ -184,7 +196,29 @@ def _refiner_name(value: str) -> str:
                                      "output directory after it, write --lod-refine=gpu, or put the option last)")
 
 
+def _tree_options_given(args: argparse.Namespace) -> list[str]:
+    """The options of the LOD tree we build given on the command line (each None where not given)."""
+    return [flag for flag, given in (("--max-leaf-splats", args.max_leaf_splats is not None),
+                                     ("--reduction", args.reduction is not None),
+                                     ("--lod-merge", args.lod_merge is not None),
+                                     ("--page-tiles", args.page_tiles is not None),
+                                     ("--page-levels", args.page_levels is not None),
+                                     ("--rebuild-lod", args.rebuild_lod)) if given]
+
+
 def run(args: argparse.Namespace) -> int:
+    # --no-lod writes one tile: the tree's options were taken without a word (newuser61)
+    tree_given = _tree_options_given(args)
+    if args.no_lod and tree_given:
+        named = ", ".join(tree_given)
+        raise UsageError(f"--no-lod and {named}: --no-lod writes one tile holding every splat, with no LOD tree for "
+                         f"{named} to shape; give one or the other")
+    args.tree_options_given = tree_given
+    defaults = EncodeOptions()
+    args.max_leaf_splats = defaults.max_leaf_splats if args.max_leaf_splats is None else args.max_leaf_splats
+    args.reduction = defaults.reduction if args.reduction is None else args.reduction
+    args.page_tiles = defaults.page_tiles if args.page_tiles is None else args.page_tiles
+    args.page_levels = defaults.page_levels if args.page_levels is None else args.page_levels
     overrides = {a: getattr(args, f"fmt_{a}") for a in ATTRIBUTES if getattr(args, f"fmt_{a}")}
     if args.max_leaf_splats < 256:
         raise UsageError("--max-leaf-splats must be at least 256 (one chunk)")
@@ -195,6 +229,7 @@ def run(args: argparse.Namespace) -> int:
     if args.zstd_level is not None and not 1 <= args.zstd_level <= 22:
         raise UsageError("--zstd-level must be between 1 and 22")
     up = parse_vector(args.up, "--up", nonzero=True) if args.up else None
+    azimuth = parse_azimuth(args.camera_azimuth)
     workers = None
     if args.workers is not None:
         if args.workers == "auto":
@@ -237,7 +272,8 @@ def run(args: argparse.Namespace) -> int:
                             lod=not args.no_lod, max_leaf_splats=args.max_leaf_splats, reduction=args.reduction,
                             lod_merge=args.lod_merge, name=args.name, up=up, chunk_order=args.chunk_order,
                             sh_codebook=args.sh_codebook, page_tiles=args.page_tiles, page_levels=args.page_levels,
-                            compact_table=not args.no_compact_table, lod_refiner=lod_refiner)
+                            compact_table=not args.no_compact_table, lod_refiner=lod_refiner,
+                            camera_azimuth_deg=azimuth)
     if not args.quiet:
         print(f"wrote {args.output_dir}: {m.splats:,} splats, SH degree {m.sh_degree}, preset {m.preset}, "
               f"{count(len(m.tiles), 'tile')}, {m.bytes_on_disk / 1e6:.2f} MB on disk "
@@ -322,12 +358,17 @@ def _foreign_tree(args: argparse.Namespace) -> str | None:
     given = [flag for flag, on in (("edits", bool(edits_from(args))), ("--workers", args.workers is not None),
                                    ("--scheduler", bool(args.scheduler)), ("--lod-refine", args.lod_refine),
                                    ("--target-psnr/--target-size",
-                                    args.target_psnr is not None or args.target_size is not None)) if on]
+                                    args.target_psnr is not None or args.target_size is not None),
+                                   # its tree kept: these were taken without a word (newuser61)
+                                   *((flag, True) for flag in args.tree_options_given
+                                     if flag in ("--max-leaf-splats", "--reduction", "--lod-merge"))) if on]
     if given:
         verb = "applies" if len(given) == 1 else "apply"
+        # --no-lod goes with neither --lod-refine nor the tree's own options
+        no_lod = not (args.lod_refine or set(given) & {"--max-leaf-splats", "--reduction", "--lod-merge"})
         raise UsageError(f"{args.input[0]} holds its own LOD tree, which encode keeps (in memory, as read): "
                          f"{', '.join(given)} {verb} only to a tree we build; add --rebuild-lod to build ours from "
-                         "its finest level" + ("" if args.lod_refine else ", or --no-lod for its finest level alone"))
+                         "its finest level" + (", or --no-lod for its finest level alone" if no_lod else ""))
     return kind
 
 
@@ -337,7 +378,8 @@ def _encode_foreign_tree(args: argparse.Namespace, kind: str, preset: str, overr
     opts = EncodeOptions(preset=preset, overrides=overrides, sh_degree=args.sh_degree,
                          zstd_level=args.zstd_level, transport=args.transport, name=args.name, up=up,
                          chunk_order=args.chunk_order, sh_codebook=args.sh_codebook, page_tiles=args.page_tiles,
-                         page_levels=args.page_levels, compact_table=not args.no_compact_table)
+                         page_levels=args.page_levels, compact_table=not args.no_compact_table,
+                         camera_azimuth_deg=parse_azimuth(args.camera_azimuth))
     return encode_tree_to(reader(args.input[0], progress), args.output_dir, args.input[0], opts, progress)
 
 

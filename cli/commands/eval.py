@@ -40,7 +40,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--plot", metavar="OUT.png", help="write a rate-versus-PSNR plot (PNG)")
     p.add_argument("--markdown", metavar="OUT.md", help="also write the table to this file")
     p.add_argument("--encoded", metavar="DIR", help="keep the encoded scenes under DIR/<preset> (default: discard)")
-    p.add_argument("--spz-axes", choices=("rub", "rdf", "auto"), default="rub",
+    p.add_argument("--spz-axes", choices=("rub", "rdf", "auto"), default=None,
                    help="axes of SPZ files given to --compare: rub, as the format specifies (Niantic's library, "
                         "splat-transform 2.x; default: a file that reads turned against the input is warned about), "
                         "rdf, stored without the axis turn (splat-transform 3.x), or auto: whichever matches the input")
@@ -79,6 +79,12 @@ def run(args: argparse.Namespace) -> int:
     presets = [] if args.presets.strip().lower() == "none" else parse_list(args.presets)
     if not presets and not args.compare and not args.variants:
         raise UsageError("nothing to evaluate: give --presets, --variants or --compare")
+    # Each was taken without a word (newuser61): the axes of no --compare file; an orbit over the pole (its views
+    # upside down, the up vector unchanged).
+    if args.spz_axes is not None and not args.compare:
+        raise UsageError(f"--spz-axes {args.spz_axes}: the axes of SPZ files given to --compare, and none is given")
+    if not -90.0 < args.elevation < 90.0:
+        raise UsageError(f"--elevation {args.elevation:g}: expected degrees in (-90, 90)")
     # Checked before the encodes and renders: the plot is written last, and PIL picks its format by extension.
     if args.plot and os.path.splitext(args.plot)[1].lower() != ".png":
         raise UsageError(f"--plot: only .png images are written, got {args.plot!r}")
@@ -92,7 +98,7 @@ def run(args: argparse.Namespace) -> int:
     up = parse_vector(args.up, "--up", nonzero=True) if args.up else None
     opts = EvalOptions(presets=presets, views=args.views, width=w, height=h, up=up,
                        elevation_deg=args.elevation, encoded_dir=args.encoded, compare=args.compare,
-                       spz_axes=args.spz_axes, lod=args.lod, attribution=parse_list(args.attribution),
+                       spz_axes=args.spz_axes or "rub", lod=args.lod, attribution=parse_list(args.attribution),
                        variants=args.variants)
     log = None if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
     report = evaluate(args.input, opts, log, pick_renderer(args.renderer))

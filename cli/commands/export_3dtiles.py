@@ -42,7 +42,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--spz-axes", choices=("luf", "rub"), default=None,
                    help="how SPZ content stores glTF's axes: luf (glTF values unconverted: what CesiumJS reads, the "
                         "default) or rub (the extension text's SPZ axes)")
-    p.add_argument("--spz-version", type=int, choices=(3, 4), default=3,
+    p.add_argument("--spz-version", type=int, choices=(3, 4), default=None,
                    help="SPZ version of the content: 3 (gzip, default; what the extension references) or 4 (zstd)")
     p.add_argument("--external-tilesets", choices=("auto", "always", "never"), default="auto",
                    help="auto (default): a paged scene (encode --page-tiles) as a root tileset.json of the root "
@@ -56,7 +56,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     # Imported when the command runs: the exporter and the glTF and SPZ writers it pulls in took about a tenth of
     # the start-up of every other command (python -X importtime), which builds this parser too.
-    from splatstream.tiles3d import DEFAULT_SPZ_AXES, ExportOptions, Placement, export_tileset
+    from splatstream.tiles3d import DEFAULT_SPZ_AXES, DEFAULT_SPZ_VERSION, ExportOptions, Placement, export_tileset
 
     located = args.longitude is not None or args.latitude is not None or args.height is not None
     if located and (args.longitude is None or args.latitude is None):
@@ -64,10 +64,13 @@ def run(args: argparse.Namespace) -> int:
     placement = Placement(longitude=args.longitude or 0.0, latitude=args.latitude or 0.0,
                           height=args.height or 0.0, heading=args.heading,
                           anchor=args.anchor or ("origin" if located else "ground"), georeferenced=located)
-    if args.spz_axes is not None and args.content != "spz":
-        raise UsageError("--spz-axes applies to --content spz only")
+    # --spz-version with plain content was taken without a word (newuser61), where --spz-axes was refused
+    for flag, value in (("--spz-axes", args.spz_axes), ("--spz-version", args.spz_version)):
+        if value is not None and args.content != "spz":
+            raise UsageError(f"{flag} {value} and --content {args.content}: {flag} applies to --content spz only")
     options = ExportOptions(content=args.content, spz_axes=args.spz_axes or DEFAULT_SPZ_AXES,
-                            spz_version=args.spz_version, placement=placement, sh_degree=args.sh_degree,
+                            spz_version=args.spz_version or DEFAULT_SPZ_VERSION,
+                            placement=placement, sh_degree=args.sh_degree,
                             external_tilesets=args.external_tilesets)
     start = time.perf_counter()
     progress = ProgressPrinter("export-3dtiles", enabled=not args.quiet)

@@ -6,6 +6,7 @@ import argparse
 import sys
 import time
 
+from splatstream.errors import UsageError
 from splatstream.progress import ProgressPrinter, count
 from splatstream.sog_export import export_streamed_sog
 from splatstream.writers.sog_lod import UNIT_SPLATS
@@ -30,6 +31,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    if args.unit_splats is not None and args.unit_splats < 1:  # the library's 'unit size 0' named no option
+        raise UsageError(f"--unit-splats {args.unit_splats}: expected at least 1 splat")
     start = time.perf_counter()
     progress = ProgressPrinter("export-sog-lod", enabled=not args.quiet)
     report = export_streamed_sog(args.scene, args.output_dir, args.sh_degree,

@@ -109,6 +109,15 @@ def _bytes_per_level(m: Manifest) -> list[dict]:
     return [levels[k] for k in sorted(levels)]
 
 
+def camera_line(cam: dict) -> str:
+    """The scene's suggested camera, where a viewer opens (encode --camera-azimuth turns it about up)."""
+    def vec(v) -> str:
+        return ",".join(f"{x:.4g}" for x in v)
+
+    return (f"camera     eye {vec(cam['eye'])} looking at {vec(cam['target'])}, up {vec(cam['up'])}, "
+            f"fov_y {cam['fov_y']:g} deg (where a viewer opens; encode --camera-azimuth turns it)")
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("info", help="describe an encoded scene directory",
                        description="Print the facts of an encoded scene: splats, SH degree, preset, sizes on disk and "
@@ -140,6 +149,7 @@ def run(args: argparse.Namespace) -> int:
     refined = _refinement_line(info["lod"])
     if refined:
         print(f"refined    {refined}")
+    print(camera_line(info["camera"]))
     print(f"on disk    {info['bytes_on_disk']:,} bytes ({info['bytes_per_splat_on_disk']:.2f} B/splat, all levels)")
     print(f"GPU        {info['gpu_bytes']:,} bytes ({info['gpu_bytes_per_splat']:.2f} B/splat, full detail)")
     for name, a in (info["attributes"] or {}).items():

@@ -16,7 +16,7 @@ from splatstream.io import read_gaussians, scene_up
 from splatstream.orientation import view_side
 from splatstream.store import is_scene_dir, load_manifest
 
-from .args import check_look, parse_size, parse_vector
+from .args import check_look, check_sort_draw, parse_size, parse_vector
 from .renderers import gl_client
 
 DEFAULT_SIZE = (1280, 720)
@@ -47,10 +47,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "(gpu unless compute shaders are missing or the GL is a software renderer)")
     p.add_argument("--draw", default="auto", choices=["auto", "compute", "fetch", "points", "instanced", "triangles"],
                    help="GPU-path rasterizer: compute (compute-shader tile rasterizer), the hardware raster draws "
-                        "fetch, points, instanced, triangles, or auto (compute on a hardware GL); compute also runs "
-                        "on a software GL (forces the GPU sort)")
-    p.add_argument("--preset", default="very-high",
-                   help="texel formats for a splat file encoded in memory (default very-high: f32 planes)")
+                        "fetch, points, instanced, triangles, or auto (compute on a hardware GL); a draw named takes "
+                        "the GPU sort (also on a software GL; not with --sort cpu)")
+    p.add_argument("--preset", default=None,
+                   help="texel formats for a splat file encoded in memory (default very-high: f32 planes; a scene "
+                        "directory is drawn in its own)")
     p.add_argument("--max-sse", type=float, metavar="PX",
                    help="draw the tiles and SH bands `view` streams for this camera at this screen-space error "
                         "(default: every full-detail tile with all its bands)")
@@ -89,7 +90,9 @@ def run(args: argparse.Namespace) -> int:
     if background is not None and not all(0.0 <= v <= 1.0 for v in background):
         # The help says [0, 1]; `--background 2,0,0` or `-1,0,0` (a 0..255 colour, a typo) drew without a word.
         raise UsageError(f"--background {args.background}: expected R,G,B each in [0, 1] (1,1,1 is white)")
-    if args.preset not in PRESETS:
+    check_sort_draw(args.sort, args.draw)
+    preset = args.preset or "very-high"
+    if preset not in PRESETS:
         raise UsageError(f"unknown preset {args.preset!r} (choose one of {', '.join(PRESETS)})")
     ext = os.path.splitext(args.out)[1].lower()
     if ext not in (".png", ""):
@@ -100,11 +103,17 @@ def run(args: argparse.Namespace) -> int:
     # A directory is an encoded scene (or a damaged one: it has data/), else a SOG scene directory or nothing
     # readable, which read_gaussians reports.
     if os.path.isdir(args.scene) and (is_scene_dir(args.scene) or os.path.isdir(os.path.join(args.scene, "data"))):
+        if args.preset is not None:  # was ignored without a word
+            raise UsageError(f"--preset {args.preset}: {args.scene} is an encoded scene, drawn in the formats it was "
+                             "encoded with; --preset sets those of a splat file encoded in memory")
         manifest = load_manifest(args.scene)
         cam = _camera(args, manifest.camera.to_dict(), None, manifest.up, size)
         source = ("scene", args.scene)
         splats = manifest.splats
     else:
+        if args.max_sse is not None:  # was ignored without a word: every splat was drawn
+            raise UsageError(f"--max-sse {args.max_sse:g}: draws the tiles `view` streams, which an encoded scene "
+                             f"directory has; {args.scene} is a splat file or SOG, drawn whole (encode it first)")
         g = read_gaussians(args.scene)
         if len(g) == 0:
             raise UsageError(f"{args.scene}: no splats to render")
@@ -116,7 +125,7 @@ def run(args: argparse.Namespace) -> int:
             # A splat file is encoded in memory before it is drawn: seconds for a large one (playbot's 500,000
             # splats: 13 s of "load" on a busy 2-core machine, with nothing printed before the last line).
             print(f"render: {len(g):,} splats read from {args.scene} ({time.perf_counter() - t0:.1f}s); encoding "
-                  f"them at {args.preset} for the GPU", file=sys.stderr, flush=True)
+                  f"them at {preset} for the GPU", file=sys.stderr, flush=True)
     renderer = offscreen.HeadlessRenderer(offscreen.RenderOptions(sort=args.sort, draw=args.draw))
     try:
         if source[0] == "scene" and args.max_sse is not None:
@@ -132,7 +141,7 @@ def run(args: argparse.Namespace) -> int:
         elif source[0] == "scene":
             renderer.load_scene(source[1], args.sh_degree)
         else:
-            renderer.load_gaussians(source[1], args.preset, args.sh_degree)
+            renderer.load_gaussians(source[1], preset, args.sh_degree)
         t1 = time.perf_counter()
         img = renderer.render(cam, args.sh_degree, background)
         t2 = time.perf_counter()

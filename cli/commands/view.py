@@ -14,7 +14,7 @@ from splatstream.errors import UsageError
 from splatstream.format.names import MANIFEST_NAME
 from splatstream.progress import mib
 
-from .args import check_look, parse_size, parse_vector
+from .args import check_look, check_sort_draw, parse_azimuth, parse_size, parse_vector
 from .renderers import gl_client
 
 DRAWS = ["auto", "compute", "fetch", "points", "instanced", "triangles"]
@@ -42,6 +42,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     cam.add_argument("--up", help="up vector X,Y,Z (default: the scene's)")
     cam.add_argument("--fov-y", type=float, help="vertical field of view in degrees")
     cam.add_argument("--size", default="1280x720", help="image (framebuffer) size WxH (default 1280x720)")
+    cam.add_argument("--camera-azimuth", metavar="DEG",
+                     help="open at the scene's camera turned by DEG degrees about up, around what it looks at (180: "
+                          "the other side; positive: counter-clockwise seen from above; R returns there)")
     cam.add_argument("--camera-path", metavar="PATH.json",
                      help="keyframes {time, eye, target[, up][, fov_y]} played on the wall clock")
     s = p.add_argument_group("streaming")
@@ -67,7 +70,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "KiB of the wanted tiles are missing (default: the client's, 64: a small cut is fetched and "
                         "drawn directly; 0: always coarse to fine)")
     s.add_argument("--sort", default="auto", choices=["auto", "cpu", "gpu"], help="depth sort (as `render`)")
-    s.add_argument("--draw", default="auto", choices=DRAWS, help="GPU-path rasterizer (as `render`)")
+    s.add_argument("--draw", default="auto", choices=DRAWS,
+                   help="GPU-path rasterizer (as `render`: a draw named takes the GPU sort; not with --sort cpu)")
     h = p.add_argument_group("headless output")
     h.add_argument("--until-converged", action="store_true",
                    help="with --camera-path: keep going after the path ends until the view has converged")
@@ -79,7 +83,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="write the converged frame (headless: the last one; a window that stays open: the first "
                         "converged one, without the overlay)")
     h.add_argument("--frames-dir", metavar="DIR", help="write a PNG every --frame-every frames")
-    h.add_argument("--frame-every", type=int, default=10, metavar="N")
+    h.add_argument("--frame-every", type=int, default=None, metavar="N",
+                   help="with --frames-dir: a PNG every N frames (default 10)")
     h.add_argument("--measure-frames", type=int, default=0, metavar="N",
                    help="once converged, time N more frames (GPU work included) into --record's measured_frames_ms")
     w = p.add_argument_group("window")
@@ -105,7 +110,7 @@ def _options(args):
         raise UsageError(f"--max-splats {args.max_splats}: expected at least 1")
     if not args.timeout > 0:
         raise UsageError(f"--timeout {args.timeout}: expected a positive number of seconds")
-    if args.frame_every < 1:
+    if args.frame_every is not None and args.frame_every < 1:
         raise UsageError(f"--frame-every {args.frame_every}: expected at least 1")
     if args.measure_frames < 0:  # was taken as 0 without a word
         raise UsageError(f"--measure-frames {args.measure_frames}: expected 0 or more frames")
@@ -115,6 +120,7 @@ def _options(args):
         raise UsageError(f"--fill-gap {args.fill_gap}: expected 1 or more levels")
     if args.fov_y is not None and not 0 < args.fov_y < 180:
         raise UsageError(f"--fov-y {args.fov_y}: expected degrees in (0, 180)")
+    check_sort_draw(args.sort, args.draw)
     return ViewOptions(gpu_mem_mb=args.gpu_mem_mb, max_splats=args.max_splats, max_sse=args.max_sse,
                        sh_degree=3 if args.sh_degree is None else args.sh_degree, prefetch=not args.no_prefetch,
                        fill_levels=not args.skip_levels, fill_gap=args.fill_gap,
@@ -142,7 +148,8 @@ def _band_shares(text: str) -> dict:
 
 
 def _fixed_camera(args, size):
-    """A camera from --eye/--target (both needed), or None for the scene's suggested camera."""
+    """A camera from --eye/--target (both needed), or None for the scene's suggested camera. Its up is +z until
+    the scene's is known (view_headless.start_camera) where --up is not given."""
     if args.eye is None and args.target is None:
         return None
     if args.eye is None or args.target is None:
@@ -185,6 +192,15 @@ def _check_outputs(args) -> None:
     for flag, given in (("--frames-dir", args.frames_dir), ("--until-converged", args.until_converged)):
         if given and not args.headless:
             raise UsageError(f"{flag}: only with --headless (a window saves its frame with P, or --screenshot)")
+    # and the window's own options with --headless, or --frame-every without frames to space, were taken without a
+    # word (newuser61)
+    for flag, given in (("--exit-when-converged", args.exit_when_converged), ("--no-vsync", args.no_vsync),
+                        ("--no-overlay", args.no_overlay)):
+        if given and args.headless:
+            raise UsageError(f"{flag} and --headless: {flag} is a window's (--headless shows no window, draws no "
+                             "overlay and ends by itself)")
+    if args.frame_every is not None and not args.frames_dir:
+        raise UsageError(f"--frame-every {args.frame_every}: spaces the PNGs of --frames-dir, and none is given")
     if args.frames_dir:
         if not os.path.isdir(args.frames_dir):
             raise UsageError(f"--frames-dir {args.frames_dir}: no such directory")
@@ -195,6 +211,22 @@ def run(args: argparse.Namespace) -> int:
     size = parse_size(args.size)
     options = _options(args)
     camera = _fixed_camera(args, size)
+    up = parse_vector(args.up, "--up", nonzero=True) if args.up else None
+    azimuth = parse_azimuth(args.camera_azimuth)
+    if args.camera_azimuth is not None and (camera is not None or args.camera_path):
+        other = "--eye/--target" if camera is not None else "--camera-path"
+        raise UsageError(f"--camera-azimuth turns the scene's camera; {other} gives another camera: give one of them")
+    # The path's keyframes place the camera: --eye/--target, --up and --fov-y beside it were ignored without a word,
+    # and so was --until-converged without a path (newuser61)
+    if args.camera_path:
+        beside = [flag for flag, given in (("--eye/--target", camera is not None), ("--up", args.up is not None),
+                                           ("--fov-y", args.fov_y is not None)) if given]
+        if beside:
+            raise UsageError(f"--camera-path and {', '.join(beside)}: the path's keyframes place the camera (their "
+                             "eye, target, up and fov_y); give one or the other")
+    elif args.until_converged and args.headless:  # (in a window: refused as a headless option, below)
+        raise UsageError("--until-converged: keeps a --camera-path view going after the path ends, and no "
+                         "--camera-path is given (without one the view runs until converged anyway)")
     path = None
     if args.camera_path:
         path = load_camera_path(args.camera_path)
@@ -207,7 +239,8 @@ def run(args: argparse.Namespace) -> int:
                                     exit_when_converged=args.exit_when_converged, vsync=not args.no_vsync,
                                     timeout_s=args.timeout, quiet=args.quiet, sh_degree=args.sh_degree,
                                     record=args.record, measure_frames=args.measure_frames,
-                                    overlay=not args.no_overlay))
+                                    overlay=not args.no_overlay, camera_azimuth_deg=azimuth, up=up,
+                                    fov_y=args.fov_y))
     from client_gl.view_headless import HeadlessRun, run_headless  # the GL client: see _options
 
     ctx = offscreen.create_context()
@@ -215,8 +248,9 @@ def run(args: argparse.Namespace) -> int:
         code, report = run_headless(HeadlessRun(
             args.source, options, size, camera, path, until_converged=args.until_converged or path is None,
             timeout_s=args.timeout, record=args.record, screenshot=args.screenshot, frames_dir=args.frames_dir,
-            frame_every=args.frame_every, sh_degree=args.sh_degree, quiet=args.quiet,
-            measure_frames=args.measure_frames), ctx)
+            frame_every=10 if args.frame_every is None else args.frame_every, sh_degree=args.sh_degree,
+            quiet=args.quiet,
+            measure_frames=args.measure_frames, camera_azimuth_deg=azimuth, up=up, fov_y=args.fov_y), ctx)
     finally:
         ctx.release()
     if not args.quiet:

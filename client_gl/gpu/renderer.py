@@ -217,6 +217,13 @@ def resolve_sort(ctx, options: RenderOptions) -> str:
             return "gpu"  # the compute rasterizer needs the GPU path, also on a software GL
         if options.sort != "gpu":
             raise UsageError("the compute draw mode needs OpenGL 4.3 compute shaders and the GPU sort")
+    elif options.draw != "auto" and options.sort != "cpu":
+        # A raster draw named is a GPU-path draw: under sort "auto" a software GL took the CPU sort, which draws its
+        # own raster, and `--draw points` was ignored without a word (newuser61).
+        if not has_compute(ctx):
+            raise UsageError(f"the {options.draw} draw mode is the GPU path's, which needs OpenGL 4.3 compute shaders; "
+                             "this GL has none (leave the draw mode at auto)")
+        return "gpu"
     sort = choose_sort(ctx, options.sort)
     if options.front_to_back and sort != "gpu":
         raise UsageError("the front-to-back draw needs the GPU sort")
@@ -453,6 +460,14 @@ class SplatRenderer:
         self._cpu_sorter = self._vao_cpu = self._index_buffer = self._cpu_program = None
         self.sort_mode = "gpu"
         self._start_gpu_path()
+
+    @property
+    def draw_path(self) -> str:
+        """How frames are drawn now, as the window's overlay and every `--record` say it: the GPU path's draw mode
+        (fetch, compute, points, instanced, triangles), or "raster" on the CPU sort path (section 4 of
+        renderer.md: instanced quads of splat.vert). `draw_mode` alone kept "fetch", the GPU path's first draw,
+        while the CPU sort drew (a window's record said "fetch" where its overlay said "raster")."""
+        return self.draw_mode if self.sort_mode == "gpu" else "raster"
 
     @property
     def cpu_first_pending(self) -> bool:

@@ -13,6 +13,7 @@ from collections.abc import Sequence
 from dataclasses import replace
 
 from ..atomic import check_output
+from ..camera import check_azimuth
 from ..edit import Pipeline
 from ..errors import UsageError
 from ..format.manifest import Manifest
@@ -105,6 +106,10 @@ def encode_file(input_path: str | os.PathLike | Sequence[str | os.PathLike], out
     plan_formats(opts)  # fail before the (possibly long) read
     if opts.lod_merge is not None and opts.lod_merge not in LOD_MERGES:
         raise UsageError(f"unknown LOD merge {opts.lod_merge!r} (one of {', '.join(LOD_MERGES)})")
+    try:
+        check_azimuth(opts.camera_azimuth_deg)
+    except ValueError as exc:
+        raise UsageError(f"camera azimuth: {exc}") from None
     if opts.sh_codebook is not None:
         parse_entries(opts.sh_codebook, 1)
     # a missing, unreadable or unknown input fails before any output or progress

@@ -90,6 +90,9 @@ class EncodeOptions:
     compact_table: bool = True
     name: str | None = None
     up: tuple[float, float, float] | None = None
+    # The suggested camera (the manifest's `camera`) turned by this many degrees about up (camera.turn_about_up;
+    # `encode --camera-azimuth`): no rule from the splats alone tells a scene's front (camera.md), the user can.
+    camera_azimuth_deg: float = 0.0
     chunk_order: str = "auto"  # "morton", "luminance", or "auto" (luminance when only colour/SH are BC-compressed)
     # SH codebook: None = the preset's choice, "off", "auto" or an entry count (format_spec/format.md 4.7).
     sh_codebook: str | int | None = None

@@ -1012,7 +1012,8 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
     elif refiner is not None:
         log.info("LOD refinement: the tree is one tile (%s splats, under --max-leaf-splats), with no merged level; "
                  "nothing refined", f"{splats:,}")
-    m = build_manifest(scene, sample.camera(scene.up), sorted(entries, key=lambda t: t.id), codebook_entry)
+    m = build_manifest(scene, sample.camera(scene.up, scene.camera_azimuth_deg), sorted(entries, key=lambda t: t.id),
+                       codebook_entry)
     engine.settle()
     return write_scene_manifest(writer, m, opts.page_tiles, opts.page_levels, opts.compact_table)
 

@@ -94,6 +94,8 @@ class ScenePlan:
     # The merged levels' refinement (EncodeOptions.lod_refiner, lod_refine.py; the manifest's lod.refinement, 1.11),
     # None where the tree was not refined.
     lod_refinement: LodRefinement | None = None
+    # The suggested camera turned about up by this much (EncodeOptions.camera_azimuth_deg).
+    camera_azimuth_deg: float = 0.0
 
 
 @dataclass
@@ -202,7 +204,8 @@ def plan_scene(opts: EncodeOptions, formats: dict[str, str], chunk_order: str, s
                           steps, palettes, preset_block_slack(opts.preset), preset_zstd_min_match(opts.preset),
                           preset_one_block_slack(opts.preset), rotation_gauge(opts.preset, formats))
     return ScenePlan(context, opts.preset, name, splats, bounds, up, opts.max_leaf_splats, float(opts.reduction),
-                     lod_merge, viewing_scales_px() if lod_merge is not None else None), sample
+                     lod_merge, viewing_scales_px() if lod_merge is not None else None,
+                     camera_azimuth_deg=opts.camera_azimuth_deg), sample
 
 
 def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progress,
@@ -327,7 +330,7 @@ def plan_up(opts: EncodeOptions, sample: SceneSample) -> tuple[float, float, flo
 
 def plan_camera(plan: EncodePlan) -> CameraEntry:
     """The suggested initial camera (format_spec/camera.md), from the scene sample."""
-    return plan.sample.camera(plan.scene.up)
+    return plan.sample.camera(plan.scene.up, plan.scene.camera_azimuth_deg)
 
 
 def positions_box(positions: np.ndarray) -> Box:

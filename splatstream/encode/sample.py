@@ -20,7 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..camera import suggested_camera
+from ..camera import suggested_camera, turn_about_up
 from ..format.codec import PaletteValues, palette_values, plane_values
 from ..format.manifest import CameraEntry
 from ..format.planes import BASE_PLANES
@@ -101,14 +101,16 @@ class SceneSample:
     def up(self) -> UpChoice:
         return detect_up(self.orient, self.positions)
 
-    def camera(self, up: tuple[float, float, float]) -> CameraEntry:
-        """The suggested initial camera (format_spec/camera.md)."""
+    def camera(self, up: tuple[float, float, float], azimuth_deg: float = 0.0) -> CameraEntry:
+        """The suggested initial camera (format_spec/camera.md), turned by `azimuth_deg` about up
+        (camera.turn_about_up; `encode --camera-azimuth`)."""
         if len(self.orient) >= 16:  # framed by the splats that are not nearly transparent (camera.framing_box)
             cam = suggested_camera(self.orient.positions, up=up, side=view_side(self.orient, up),
                                    opacity_logits=self.orient.opacity_logits)
         else:
             cam = suggested_camera(self.positions, up=up, side=view_side(self.orient, up))
-        return CameraEntry(tuple(float(v) for v in cam.eye), tuple(float(v) for v in cam.target),
+        eye = turn_about_up(cam.eye, cam.target, cam.up, azimuth_deg) if azimuth_deg else cam.eye
+        return CameraEntry(tuple(float(v) for v in eye), tuple(float(v) for v in cam.target),
                            tuple(float(v) for v in cam.up), float(cam.fov_y_deg))
 
     def codebook(self, choice: str | int) -> Codebook | None:
