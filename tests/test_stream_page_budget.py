@@ -103,20 +103,6 @@ def test_a_page_is_wanted_where_the_budget_could_let_its_children_in(budget, wan
         assert refined == {0, 1}  # at 350 head 2's page is wanted and not used: the rule is conservative
 
 
-def test_in_motion_nothing_is_set_aside():
-    """set_aside False (the engine while the camera moves): every head whose children could fit at its turn."""
-    _, held, _, view = _views(CAM)
-    cost = held.gpu_bytes.astype(float)
-    opts = SelectionOptions(max_sse=0.1, max_splats=250, budget=1e9)
-    sel = select(held, view, cost, 0, opts, reduction=REDUCTION)
-    heads = np.array([1, 2], np.intp)
-    now, later = pages_the_budget_can_use(held, view, cost, 0, sel, heads, opts, REDUCTION, CHUNK, 1000.0,
-                                          set_aside=False)
-    assert now.tolist() == [True, True] and not later.any()
-    now, later = pages_the_budget_can_use(held, view, cost, 0, sel, heads, opts, REDUCTION, CHUNK, 1000.0)
-    assert now.tolist() == [True, False] and later.tolist() == [False, True]
-
-
 def test_the_byte_budget_bounds_pages_as_the_splat_budget_does():
     held = _tree(PARENT[:3], [1000] * 3, CENTRE[:3], HALF[:3], ERROR[:3])  # 4 chunks of 1,000 B a tile
     view = view_numbers(held, CAM)

@@ -116,10 +116,11 @@ class StreamOptions:
     # manifest, before the view was known (streaming.root_wanted: no splat budget that bounds the cut), so that the
     # root it fetched anyway is drawn first, as before, rather than dropped.
     root_first: bool = False
-    # A paged scene's page is wanted only where the budget (--max-splats, the pool's byte share) could let its
-    # head's children into the cut (selection.pages_the_budget_can_use, client.md 1.11): a page it cannot use is
-    # neither fetched nor parsed (donut and biker, --page-levels 4 and 5, at 2-50 %: BENCHMARKS.md, "Pages a budget
-    # cannot use"). False: the page of every cut tile the view would refine, as before.
+    # While the camera rests, a paged scene's page is wanted only where the budget (--max-splats, the pool's byte
+    # share) could let its head's children into the cut (selection.pages_the_budget_can_use, client.md 1.11): a
+    # page it cannot use is neither fetched nor parsed (donut and biker, --page-levels 4 and 5, at 2-50 %:
+    # BENCHMARKS.md, "Pages a budget cannot use"). False (and while the camera moves): the page of every cut tile
+    # the view would refine, as before.
     pages_by_budget: bool = True
     decode_workers: int = 2
     # Decode threads that run while the camera moves (all decode_workers while it rests): each thread decoding
@@ -702,13 +703,14 @@ class StreamEngine:
         if self.pages is not None:  # pages below cut tiles the view would refine: fetched before their payloads
             heads = self.pages.heads_to_refine(cut, view.sse, view.visible, opts.max_sse)
             waiting = heads[:0]
-            if len(heads) and self.options.pages_by_budget:  # and whose children the budget could let in
-                # the likely additions set aside only while the camera rests: in motion the view changes before
-                # a page held back would come (on bench_pages' city path, setting them aside read 1.7 % more
-                # payload bytes; without, every frame is as before)
+            # and, while the camera rests, whose children the budget could let in. While it moves every such page
+            # is wanted, as before: a page the budget cannot use in this frame is often used a few frames on (on
+            # bench_pages' city path at 250M, refusing them in motion read 0.8 % more payload bytes, and setting
+            # aside the heads' likely additions 1.7 % more at 60M; BENCHMARKS.md, "Pages a budget cannot use")
+            if len(heads) and self.options.pages_by_budget and not self._moving:
                 now, _ = pages_the_budget_can_use(a, view, self.cost, self.root, sel, heads, sel_opts,
                                                   self.manifest.lod.reduction, self.manifest.chunk_size,
-                                                  self.slot_bytes, set_aside=not self._moving)
+                                                  self.slot_bytes)
                 heads, waiting = heads[now], heads[~now]
             self._pages_wanted = [k for k in zip(self.ids[heads].tolist(), repeat(PAGE_GROUP))
                                   if k not in self.failed]

@@ -925,8 +925,7 @@ PAGE_CHILDREN_SHARE = 0.75
 
 def pages_the_budget_can_use(a: TileArrays, view, cost: np.ndarray, root: int, sel: Selection, heads: np.ndarray,
                              opts: SelectionOptions, reduction: float, chunk_splats: int, chunk_bytes: float,
-                             children_share: float = PAGE_CHILDREN_SHARE,
-                             set_aside: bool = True) -> tuple[np.ndarray, np.ndarray]:
+                             children_share: float = PAGE_CHILDREN_SHARE) -> tuple[np.ndarray, np.ndarray]:
     """(wanted, waiting), each (len(heads),) bool: whether the budget could let the children of a page head in
     (client.md 1.11), its page wanted now or waiting for earlier heads' pages (below). `heads` are
     cut tiles whose page is not read and that the selection would refine (visible, sse above max_sse), leaves of
@@ -942,10 +941,10 @@ def pages_the_budget_can_use(a: TileArrays, view, cost: np.ndarray, root: int, s
     the order of their turns, each sets aside its children's likely addition (reduction times its splats, where
     all are visible) for the heads after it, so that pages wanted only if earlier heads' children do not fit wait
     for those heads' pages (a frame later): such a head is `waiting` (it stands for its children as a head whose
-    page loads does; where the earlier heads' children fit it becomes a cut tile again). `set_aside` False:
-    nothing set aside (every head that passes is wanted: the engine's choice while the camera moves). Without a
-    budget: every page wanted. `view`: the frame's TileView or PartialView (the numbers of the cut and refined
-    tiles computed); `chunk_splats`, `chunk_bytes`: the pool's slot (`cost` counts whole slots)."""
+    page loads does; where the earlier heads' children fit it becomes a cut tile again). Without a budget: every
+    page wanted (the engine asks only while the camera rests). `view`: the frame's TileView or PartialView (the
+    numbers of the cut and refined tiles computed); `chunk_splats`, `chunk_bytes`: the pool's slot (`cost` counts
+    whole slots)."""
     heads = np.asarray(heads, np.intp)
     if not len(heads) or (opts.max_splats is None and opts.budget is None):
         return np.ones(len(heads), bool), np.zeros(len(heads), bool)
@@ -1012,9 +1011,8 @@ def pages_the_budget_can_use(a: TileArrays, view, cost: np.ndarray, root: int, s
         if (s_add[j] <= 0 or s_at[j] + held_splats + s_add[j] <= max_splats) and \
                 (c_add[j] <= 0 or c_at[j] + held_cost + c_add[j] <= budget):
             wanted[j] = True
-            if set_aside:
-                held_splats += set_splats[j]
-                held_cost += set_cost[j]
+            held_splats += set_splats[j]
+            held_cost += set_cost[j]
     return wanted, fits & ~wanted
 
 
