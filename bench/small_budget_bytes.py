@@ -123,8 +123,10 @@ def measure_view(scene_dir: str, n: int, cam, size: int, prefetch: bool, ctx, tr
         while a is not None:
             ancestors.add(a)
             a = parent.get(a)
-    out = {"manifest": 0, "pages": 0, "n_pages": 0, "drawn": 0, "ancestors": 0, "n_ancestors": 0, "other": 0,
-           "n_other": 0, "rt_converged": 0}
+    # a page is used when it holds a tile drawn at convergence or an ancestor of one (the page the cut went through)
+    used_heads = {home[t] for t in drawn | ancestors} - {None}
+    out = {"manifest": 0, "pages": 0, "n_pages": 0, "pages_used": 0, "n_pages_used": 0, "drawn": 0, "ancestors": 0,
+           "n_ancestors": 0, "other": 0, "n_other": 0, "rt_converged": 0}
     for f, nb in log:
         if f == "manifest.msgpack":
             out["manifest"] += nb
@@ -132,6 +134,9 @@ def measure_view(scene_dir: str, n: int, cam, size: int, prefetch: bool, ctx, tr
         elif f in page_of:
             out["pages"] += nb
             out["n_pages"] += 1
+            if page_of[f] in used_heads:
+                out["pages_used"] += nb
+                out["n_pages_used"] += 1
             d = file_depth(page_of[f])
         else:
             tid, _ = payload_of[f]
@@ -147,6 +152,7 @@ def measure_view(scene_dir: str, n: int, cam, size: int, prefetch: bool, ctx, tr
         out["rt_converged"] = max(out["rt_converged"], d)
     out["rt_first_frame"] = max(file_depth(home[t]) + 1 for t in first_draw)
     out["drawn_tiles"] = len(draw)
+    out["draw"] = sorted(draw)  # the cut drawn at convergence (the same cut: the same PSNR)
     out["drawn_tile_bytes"] = sum(g.bytes for t in draw for g in by_id[t].groups.values())
     out["downloaded"] = downloaded
     out["logged"] = sum(nb for _, nb in log)
@@ -204,7 +210,7 @@ def main(argv: list[str] | None = None) -> int:
     for b in (float(x) for x in args.budgets.split(",")):
         n = int(b) if b > 1 else max(1, int(round(b * splats)))
         views = [measure_view(args.scene_dir, n, c, args.size, args.prefetch, ctx, tree, args.view_args) for c in cams]
-        mean = {k: sum(v[k] for v in views) / len(views) for k in views[0]}
+        mean = {k: sum(v[k] for v in views) / len(views) for k in views[0] if k != "draw"}
         row = {"budget": n, "fraction": b, "views": views,
                "ratio": mean["downloaded"] / mean["drawn_tile_bytes"],
                "ratio_no_manifest": (mean["downloaded"] - mean["manifest"]) / mean["drawn_tile_bytes"],
@@ -213,7 +219,8 @@ def main(argv: list[str] | None = None) -> int:
                "least_ratio_without_root": mean["least_without_root"] / mean["drawn_tile_bytes"]}
         rows.append(row)
         print(f"{d['scene']} {n:>8,}: {row['ratio']:.3f}x (payloads alone {row['ratio_no_manifest_or_pages']:.3f}x): "
-              f"manifest {mean['manifest']:,.0f} B, pages {mean['pages']:,.0f} B ({mean['n_pages']:.1f}), drawn "
+              f"manifest {mean['manifest']:,.0f} B, pages {mean['pages']:,.0f} B ({mean['n_pages']:.1f}, used "
+              f"{mean['n_pages_used']:.1f}: {mean['pages_used']:,.0f} B), drawn "
               f"{mean['drawn']:,.0f} B ({mean['drawn_tiles']:.1f} tiles), ancestors {mean['ancestors']:,.0f} B "
               f"({mean['n_ancestors']:.1f}), other {mean['other']:,.0f} B ({mean['n_other']:.1f}); round trips "
               f"first frame {[v['rt_first_frame'] for v in views]}, converged {[v['rt_converged'] for v in views]}; "

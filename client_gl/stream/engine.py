@@ -45,6 +45,7 @@ from .selection import (
     TileView,
     ViewBuffers,
     draw_set,
+    pages_the_budget_can_use,
     prefetch,
     select,
     select_near,
@@ -115,6 +116,12 @@ class StreamOptions:
     # manifest, before the view was known (streaming.root_wanted: no splat budget that bounds the cut), so that the
     # root it fetched anyway is drawn first, as before, rather than dropped.
     root_first: bool = False
+    # While the camera rests, a paged scene's page is wanted only where the budget (--max-splats, the pool's byte
+    # share) could let its head's children into the cut (selection.pages_the_budget_can_use, client.md 1.11): a
+    # page it cannot use is neither fetched nor parsed (donut and biker, --page-levels 4 and 5, at 2-50 %:
+    # BENCHMARKS.md, "Pages a budget cannot use"). False (and while the camera moves): the page of every cut tile
+    # the view would refine, as before.
+    pages_by_budget: bool = True
     decode_workers: int = 2
     # Decode threads that run while the camera moves (all decode_workers while it rests): each thread decoding
     # Python takes the interpreter lock from the frame loop in the frames of a flight (the slow frames of the 250M
@@ -397,6 +404,8 @@ class StreamEngine:
                              f"tile holds {root_splats:,} splats): expected at least {root_splats:,}")
         self.codebook_bands: set[int] = set()
         self._pages_wanted: list[Key] = []
+        self._heads_waiting: list[Key] = []  # heads the budget could refine whose pages wait (pages_by_budget)
+        self._moving = False  # the camera differs from the last frame's (_set_moving)
         self._pages_arrived: dict[int, Future] = {}  # tile id -> its page's tiles, being parsed
         self._page_frame: dict[int, int] = {}  # tile id -> the frame its page was added in
         self._last_cut = np.zeros(0, np.intp)  # the last selection's cut (positions): kept from eviction, and where
@@ -646,7 +655,7 @@ class StreamEngine:
         The same camera and options give the same answer (the selection is idempotent under its own hysteresis),
         so a still camera costs nothing here after its first frame."""
         key = (cam.eye, cam.target, cam.up, cam.fov_y_deg, cam.width, cam.height, self.options,
-               self.residency.capacity_slots)
+               self.residency.capacity_slots, self._moving)
         if self._wanted_cache is not None and self._wanted_cache[0] == key:
             return self._wanted_cache[1]
         a, opts = self.arrays, self.options.selection
@@ -692,8 +701,24 @@ class StreamEngine:
         cut = sel.cut_at
         self.refined, self._last_cut = sel.refined_at, cut
         if self.pages is not None:  # pages below cut tiles the view would refine: fetched before their payloads
-            self._pages_wanted = [k for k in self.pages.wanted_pages(cut, view.sse, view.visible, opts.max_sse)
+            heads = self.pages.heads_to_refine(cut, view.sse, view.visible, opts.max_sse)
+            waiting = heads[:0]
+            # and, while the camera rests, whose children the budget could let in. While it moves every such page
+            # is wanted, as before: a page the budget cannot use in this frame is often used a few frames on (on
+            # bench_pages' city path at 250M, refusing them in motion read 0.8 % more payload bytes, and setting
+            # aside the heads' likely additions 1.7 % more at 60M; BENCHMARKS.md, "Pages a budget cannot use")
+            if len(heads) and self.options.pages_by_budget and not self._moving:
+                now, _ = pages_the_budget_can_use(a, view, self.cost, self.root, sel, heads, sel_opts,
+                                                  self.manifest.lod.reduction, self.manifest.chunk_size,
+                                                  self.slot_bytes)
+                heads, waiting = heads[now], heads[~now]
+            self._pages_wanted = [k for k in zip(self.ids[heads].tolist(), repeat(PAGE_GROUP))
                                   if k not in self.failed]
+            # The other heads the view would refine are not fetched while pages are wanted (as when every such
+            # page was wanted): the pages that come can move the budget, and a head fetched now was then often
+            # left out of the cut (donut, --page-levels 4, at 25 %: 27-35 KB of such payloads against 0-7 KB)
+            self._heads_waiting = [k for k in zip(self.ids[waiting].tolist(), repeat(PAGE_GROUP))
+                                   if k not in self.failed]
         bands = wanted_bands_at(a, view, cut, opts, self.manifest.sh_degree)  # the cut's, in its order
         self._bands_wanted = (cut, bands)
         keys = self._make_keys(cut, bands)
@@ -883,7 +908,8 @@ class StreamEngine:
         the cut's priority: an ancestor takes the rank of its first descendant), SH bands after every base."""
         cut = sel.cut_at
         # A page head whose page is loading stands for the children the cut wants: an ancestor, not a cut tile
-        loading = np.isin(self.ids[cut], [k[0] for k in self._pages_wanted]) if self._pages_wanted else None
+        loading = np.isin(self.ids[cut], [k[0] for k in chain(self._pages_wanted, self._heads_waiting)]) \
+            if self._pages_wanted else None  # (no head waits where no page is wanted)
         if self._ancestors_worth(cut, loading):
             base = self._with_ancestors(cut, loading)
         else:
@@ -1081,6 +1107,7 @@ class StreamEngine:
 
     def _set_moving(self, moving: bool) -> None:
         """Fewer decode threads while the camera moves, all of them while it rests."""
+        self._moving = moving
         few = self.options.decode_workers_moving
         limit = few if moving and 0 < few < self.options.decode_workers else self.options.decode_workers
         self.moving_frames += moving

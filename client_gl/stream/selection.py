@@ -912,3 +912,114 @@ def prefetch(a: TileArrays, view: TileView, sel: Selection, opts: SelectionOptio
         spent = list(accumulate(cost[[i for _, i in out]].tolist()))
         out = out[:bisect_right(spent, allowance)]
     return out
+
+
+# The least the children of a page head hold, as a share of `lod.reduction` times its splats, for the page rule
+# below (`pages_the_budget_can_use`). Not a rule of the format (lod.md 1: a reader must not rely on the tree's
+# shape): on the 13 real trees of BENCHMARKS.md (default encode, its merge "auto") a tile's children hold 0.87 to
+# 1.27 times reduction x its splats (0.93 on donut and biker, where this share was chosen, 0.87 on playbot and
+# statue-trumpet, held out); 0.75 keeps a margin under every one of them. A tree below it would only have a page
+# left unread that the budget could have used (its head drawn instead of its children).
+PAGE_CHILDREN_SHARE = 0.75
+
+
+def pages_the_budget_can_use(a: TileArrays, view, cost: np.ndarray, root: int, sel: Selection, heads: np.ndarray,
+                             opts: SelectionOptions, reduction: float, chunk_splats: int, chunk_bytes: float,
+                             children_share: float = PAGE_CHILDREN_SHARE) -> tuple[np.ndarray, np.ndarray]:
+    """(wanted, waiting), each (len(heads),) bool: whether the budget could let the children of a page head in
+    (client.md 1.11), its page wanted now or waiting for earlier heads' pages (below). `heads` are
+    cut tiles whose page is not read and that the selection would refine (visible, sse above max_sse), leaves of
+    the tree held. A head's refinement would be decided at its turn in the selection's order (select's queue: the
+    refinement keys, a tile whose key is not above its parent's right after the parent), against the cut's splats
+    and cost at that moment: the root's plus every refinement decided before it (refined tiles' visible children
+    less themselves). Its page is wanted unless even the least its children could add would not fit: where the
+    head's box lies inside every frustum plane (then so do its children's: lod.md 2, every child visible), that is
+    `children_share * reduction` times its splats (and those splats' chunks' bytes) less its own; where its box
+    crosses a plane its children may all be outside (the refinement could shrink the cut), and its page is wanted.
+    So where the budget lets a page's children in, the page is wanted: the cut that converges is the one it is when
+    every page is read (the selection's history to that head is the same either way). Of the heads that pass, in
+    the order of their turns, each sets aside its children's likely addition (reduction times its splats, where
+    all are visible) for the heads after it, so that pages wanted only if earlier heads' children do not fit wait
+    for those heads' pages (a frame later): such a head is `waiting` (it stands for its children as a head whose
+    page loads does; where the earlier heads' children fit it becomes a cut tile again). Without a budget: every
+    page wanted (the engine asks only while the camera rests). `view`: the frame's TileView or PartialView (the
+    numbers of the cut and refined tiles computed); `chunk_splats`, `chunk_bytes`: the pool's slot (`cost` counts
+    whole slots)."""
+    heads = np.asarray(heads, np.intp)
+    if not len(heads) or (opts.max_splats is None and opts.budget is None):
+        return np.ones(len(heads), bool), np.zeros(len(heads), bool)
+    cut, refined = sel.cut_at, np.asarray(sel.refined_at, np.intp)
+    splats = a.splats_f64
+    step = refinement_level_step(reduction)
+    # the refinements' turns: each refined tile's key, or its parent's turn where that is later (select's queue
+    # hands out a child whose key is below its parent's right after the parent)
+    slot = np.full(len(a.parent) + 1, -1, np.intp)  # position -> index in `refined`; the last: no parent (-1)
+    slot[refined] = np.arange(len(refined))
+    parent_slot = slot[a.parent[refined]]
+    turn = refinement_keys(a.level[refined], view.distance[refined], view.sse[refined], step)
+    levels = a.level[refined]
+    for lv in np.unique(levels).tolist():  # parents before children
+        at = np.flatnonzero((levels == lv) & (parent_slot >= 0))
+        turn[at] = np.maximum(turn[at], turn[parent_slot[at]])
+    # each refinement's change to the cut: its visible children (cut or refined tiles) less itself
+    members = np.concatenate([cut, refined])
+    members = members[a.parent[members] >= 0]
+    owner = slot[a.parent[members]]
+    add_splats = np.bincount(owner, splats[members], len(refined)) - splats[refined]
+    add_cost = np.bincount(owner, cost[members], len(refined)) - cost[refined]
+    order = np.lexsort((refined, turn))
+    turns = turn[order]
+    before_splats = np.concatenate([[0.0], np.cumsum(add_splats[order])])
+    before_cost = np.concatenate([[0.0], np.cumsum(add_cost[order])])
+    # the heads' turns, and the refinements decided before them (ties of key: the later side, where the head
+    # follows its parent; the earlier, where its own key orders it)
+    head_key = refinement_keys(a.level[heads], view.distance[heads], view.sse[heads], step)
+    head_parent = slot[a.parent[heads]]  # a cut tile's parent is refined; the root has none
+    parent_turn = np.full(len(heads), -INF)
+    parent_turn[head_parent >= 0] = turn[head_parent[head_parent >= 0]]
+    follows = head_key <= parent_turn
+    head_turn = np.maximum(head_key, parent_turn)
+    n_before = np.where(follows, np.searchsorted(turns, head_turn, "right"), np.searchsorted(turns, head_turn, "left"))
+    at_splats = splats[root] + before_splats[n_before]
+    at_cost = cost[root] + before_cost[n_before]
+    # the least the refinement could add, where every child is visible
+    least_children = np.ceil(children_share * reduction * splats[heads])
+    add_splats_least = least_children - splats[heads]
+    add_cost_least = np.ceil(least_children / chunk_splats) * chunk_bytes - cost[heads]
+    planes = frustum_planes(view.wide_frustum[1], 1.0, view.wide_frustum[2])
+    inside = boxes_inside_frustum(a.box_corners[heads], planes)
+    add_splats_least = np.where(inside, add_splats_least, -splats[heads])  # all children may be outside
+    add_cost_least = np.where(inside, add_cost_least, -cost[heads])
+    # In the order of the heads' turns, each wanted page's likely addition (its children at reduction times its
+    # splats, where all are visible; nothing set aside for a head crossing the frustum) is set aside for the heads
+    # after it: a page the budget could use only if an earlier head's children do not come in waits for that page
+    # (a frame later; where the earlier head's children fit, it is not read at all). Once no page is wanted
+    # nothing is set aside, so the test that decides convergence is the one above.
+    likely = np.ceil(reduction * splats[heads])
+    set_splats = np.where(inside, np.maximum(likely - splats[heads], 0.0), 0.0).tolist()
+    set_cost = np.where(inside, np.maximum(np.ceil(likely / chunk_splats) * chunk_bytes - cost[heads], 0.0),
+                        0.0).tolist()
+    max_splats = INF if opts.max_splats is None else float(opts.max_splats)
+    budget = INF if opts.budget is None else float(opts.budget)
+    fits = ((add_splats_least <= 0) | (at_splats + add_splats_least <= max_splats)) & \
+        ((add_cost_least <= 0) | (at_cost + add_cost_least <= budget))
+    wanted = np.zeros(len(heads), bool)
+    held_splats = held_cost = 0.0
+    s_at, c_at = at_splats.tolist(), at_cost.tolist()
+    s_add, c_add = add_splats_least.tolist(), add_cost_least.tolist()
+    for j in np.flatnonzero(fits)[np.lexsort((heads[fits], head_turn[fits]))].tolist():
+        if (s_add[j] <= 0 or s_at[j] + held_splats + s_add[j] <= max_splats) and \
+                (c_add[j] <= 0 or c_at[j] + held_cost + c_add[j] <= budget):
+            wanted[j] = True
+            held_splats += set_splats[j]
+            held_cost += set_cost[j]
+    return wanted, fits & ~wanted
+
+
+def boxes_inside_frustum(corners: np.ndarray, planes: np.ndarray) -> np.ndarray:
+    """(T,) True where an axis-aligned box ((T, 6) [max, min] corners) lies inside every plane: its corner least
+    along each plane's normal (the "negative vertex") is inside, so every box within it is visible."""
+    n = planes[:, :3]
+    split = np.concatenate([np.minimum(n, 0.0), np.maximum(n, 0.0)], axis=1)  # [max, min] weights, negative vertex
+    s = planes[None, :, 3] + np.einsum("tk,pk->tp", corners, split)
+    return np.all(s >= 0, axis=1)
