@@ -670,3 +670,30 @@ def test_a_bad_range_in_a_group_is_refused_as_by_the_numpy_path(numpy_path, frui
         container.unpack_payloads(items, "base", sources)
     assert str(by_kernel.value) == str(by_numpy.value)
     assert "\n" not in str(by_kernel.value)
+
+
+def test_install_never_hands_a_kernel_back_while_decode_threads_may_run(numpy_path, monkeypatch):
+    """install() hands every kernel in before warming it up, so warm_up's hand-ins and put-backs do not take a kernel
+    away from a decode thread that checked it was there (pagebudget31: "'NoneType' object is not callable", the view
+    stalled). Every module's kernel, once handed in, is never handed back to None during install."""
+    seen: dict[str, list[bool]] = {}
+
+    def recording(name, module, attr):
+        real_use = getattr(module, attr)
+
+        def use(*kernels):
+            seen.setdefault(name, []).append(all(k is not None for k in kernels))
+            return real_use(*kernels)
+        monkeypatch.setattr(module, attr, use)
+
+    for name, module, attr in (("fields", transport, "use_fields_kernel"),
+                               ("batch", transport, "use_batch_kernels"),
+                               ("whole", transport, "use_whole_kernel"),
+                               ("unshuffle", transport, "use_unshuffle_kernel"),
+                               ("morton", keyed, "use_morton_kernel"),
+                               ("ranges", container, "use_ranges_kernel")):
+        recording(name, module, attr)
+    decode_jit.install()
+    assert set(seen) == {"fields", "batch", "whole", "unshuffle", "morton", "ranges"}
+    for name, handed in seen.items():
+        assert handed[0] and all(handed), (name, handed)  # the kernel first, then never None

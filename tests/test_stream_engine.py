@@ -1201,3 +1201,32 @@ def is_valid_cut_of(a, drawn) -> bool:
             if k in drawn:
                 return False
     return True
+
+
+def test_a_decode_failing_inside_splatstream_is_said_and_the_view_still_converges(store, monkeypatch):
+    """An exception a decode thread did not expect (not a bad payload: decode_job returns those as their message;
+    pagebudget31 met a TypeError from a kernel handed back during decode_jit's warm-up) used to stay in the pool's
+    future: the payload stayed in _decoding and the view never converged. It is a failed payload now, said in one
+    line that names its tile and group."""
+    from client_gl.stream import engine as engine_module
+
+    calls = []
+
+    def broken_once(real_job):
+        def job(*args, **kwargs):
+            calls.append(1)
+            if len(calls) == 2:  # a payload after the root's
+                raise TypeError("'NoneType' object is not callable")
+            return real_job(*args, **kwargs)
+        return job
+
+    monkeypatch.setattr(engine_module, "decode_job", broken_once(engine_module.decode_job))
+    monkeypatch.setattr(engine_module, "decode_batch_job", broken_once(engine_module.decode_batch_job))
+    m = read_manifest(store)
+    engine = StreamEngine(StepFetcher(store), CountingPool(10_000),
+                          StreamOptions(SelectionOptions(max_sse=1.0), prefetch=False))
+    run_until_converged(engine, orbit(m, 1.6, 0.3))
+    failed = [e for e in engine.errors if "decoding failed inside splatstream: TypeError" in e]
+    assert len(failed) >= 1 and all(e.startswith("tile ") for e in failed)
+    assert not engine._decoding
+    engine.close()

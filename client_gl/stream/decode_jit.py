@@ -424,9 +424,13 @@ def ranges_kernel(pairs, low, high):
     return True
 
 
-def warm_up() -> None:
+def warm_up(whole: bool = True) -> None:
     """Compile (or load from the cache) the kernel for the argument types of real calls: a content as a writable
-    buffer's view (a payload's kept buffer) and as read-only bytes, into texels of 1, 2 and 4-byte words."""
+    buffer's view (a payload's kept buffer) and as read-only bytes, into texels of 1, 2 and 4-byte words. Each kernel
+    is handed to format.transport / keyed for its calls and the one before put back, so in a process whose decode
+    threads are running call it only with those kernels installed already (install): a thread that saw a kernel and
+    then called it after it was put back to None failed ('NoneType' object is not callable). `whole`: the whole
+    kernel too."""
     previous = transport.use_fields_kernel(fields1_kernel)
     try:
         for fmt in ("norm8x4", "norm565", "norm11"):
@@ -448,21 +452,8 @@ def warm_up() -> None:
         transport.unshuffle_at(np.zeros(32, np.uint8), [(0, 16), (16, 16)], 4)
     finally:
         transport.use_batch_kernels(*previous)
-    previous = transport.use_whole_kernel(whole_kernel)
-    try:  # sections of every word size and a unit in one call: the one argument type of every call
-        parts, sections, at = [], [], 0
-        for fmt in ("norm8x4", "norm565", "norm11"):
-            bits = transport.field_bits(fmt)
-            content = bytes([transport.FIELDS_VERSION]) + bytes([transport.MODE_DELTA] * len(bits)) \
-                + bytes(256 * sum((b + 7) // 8 for b in bits))
-            at += -at % 16
-            parts.append(bytes(at - sum(len(p) for p in parts)) + content)
-            sections.append((fmt, 1, at, len(content), 16, 16))
-            at += len(content)
-        raw = np.frombuffer(b"".join(parts) + bytes(32), np.uint8).copy()
-        transport.unfilter_whole(raw, sections, [(at, 16, 4), (at + 16, 16, 2)])
-    finally:
-        transport.use_whole_kernel(previous)
+    if whole:
+        _warm_up_whole()
     previous = keyed.use_morton_kernel(morton_kernel)
     try:  # a content in a payload's kept buffer (a writable view) and as read-only bytes
         content = np.zeros(8 * 256, np.uint8)
@@ -482,9 +473,31 @@ def warm_up() -> None:
         unshuffle_kernel(u, 4, np.empty(16, np.uint8))
 
 
+def _warm_up_whole() -> None:
+    """warm_up's whole kernel."""
+    previous = transport.use_whole_kernel(whole_kernel)
+    try:  # sections of every word size and a unit in one call: the one argument type of every call
+        parts, sections, at = [], [], 0
+        for fmt in ("norm8x4", "norm565", "norm11"):
+            bits = transport.field_bits(fmt)
+            content = bytes([transport.FIELDS_VERSION]) + bytes([transport.MODE_DELTA] * len(bits)) \
+                + bytes(256 * sum((b + 7) // 8 for b in bits))
+            at += -at % 16
+            parts.append(bytes(at - sum(len(p) for p in parts)) + content)
+            sections.append((fmt, 1, at, len(content), 16, 16))
+            at += len(content)
+        raw = np.frombuffer(b"".join(parts) + bytes(32), np.uint8).copy()
+        transport.unfilter_whole(raw, sections, [(at, 16, 4), (at + 16, 16, 2)])
+    finally:
+        transport.use_whole_kernel(previous)
+
+
 def install() -> None:
-    """format.transport decodes fields1 with the compiled kernel from now on (in every thread of this process)."""
-    warm_up()
+    """format.transport decodes fields1 with the compiled kernel from now on (in every thread of this process).
+    The kernels are handed in first and warmed up after, so that warm_up's hand-ins and put-backs change nothing the
+    decode threads see (the child process of engine.CompiledSelection has compiled them into numba's cache by then;
+    a decode thread that calls one before it is loaded waits for numba's compile lock)."""
+    whole = os.environ.get(WHOLE_ENV, "1") != "0"
     transport.use_fields_kernel(fields1_kernel)
     transport.use_unshuffle_kernel(unshuffle_kernel)
     transport.use_batch_kernels(fields1_many_kernel, unshuffle_many_kernel)
@@ -493,7 +506,12 @@ def install() -> None:
     # SPLATSTREAM_DECODE_WHOLE=0: a plane at a time as before the whole kernel (for A/B runs of the fly-through:
     # the whole kernel gives the lock up twice a payload instead of about five times, for 10-20 us more of Python
     # holding it; BENCHMARKS.md, "Decode speed")
-    transport.use_whole_kernel(whole_kernel if os.environ.get(WHOLE_ENV, "1") != "0" else None)
+    transport.use_whole_kernel(whole_kernel if whole else None)
+    try:
+        warm_up(whole)
+    except Exception:  # a kernel that does not compile: back to the numpy path (the same bytes), and say so
+        uninstall()
+        raise
 
 
 def uninstall() -> None:

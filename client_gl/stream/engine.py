@@ -307,6 +307,13 @@ def _as_held(planes: dict, group: str, where: str, codebook_tile: bool, splats: 
     return planes, (host_mirror(planes, splats) if with_mirror else None)
 
 
+def _internal_error(key: Key, exc: Exception) -> str:
+    """A decode thread's error that is not the payload's (decode_job returns those as their message): the payload
+    is marked failed with this line, which the errors list and the window show, where the exception used to stay in
+    the pool's future, unseen, and the payload in _decoding for ever, so that the view never converged."""
+    return f"tile {key[0]} {key[1]}: decoding failed inside splatstream: {type(exc).__name__}: {exc}"
+
+
 def decode_batch_job(jobs: list[tuple], between=None) -> list[tuple[dict, Any] | str]:
     """decode_job of several payloads of one group (each item decode_job's arguments) in one decode_payloads call:
     the same results, bit for bit. A batch that does not decode is decoded again one payload at a time, so that the
@@ -1077,6 +1084,8 @@ class StreamEngine:
         try:
             self._wait_for_loop()
             result = decode_job(*self._job_args(key, entry, data), between=self._wait_for_loop)
+        except Exception as exc:  # not the payload's fault (decode_job says those): see _internal_error
+            result = _internal_error(key, exc)
         finally:
             self._end_turn()
         self._decoded.put((key, self._finish(key, result)))
@@ -1087,6 +1096,8 @@ class StreamEngine:
         try:
             self._wait_for_loop()
             results = decode_batch_job([self._job_args(*item) for item in items], between=self._wait_for_loop)
+        except Exception as exc:  # as _decode's
+            results = [_internal_error(item[0], exc) for item in items]
         finally:
             self._end_turn()
         for (key, _, _), result in zip(items, results, strict=True):
