@@ -572,9 +572,12 @@ def pair_lists(g: Gaussians, cams: list[Camera], sh_degree: int | None = None) -
 
 # The gradient rows of loss_and_grad (cameras round-robin over them, each row summed alone, the rows added in order):
 # a constant, not the thread count, so that the fit's floats, and the refined bytes, are the same on any number of
-# threads (a partitioned encode refines in Dask workers and in this process alike; branch partrefine31). 8 rows of the
-# whole splat set, as the most threads took before (each thread now takes rows in turn where there are fewer).
-GRADIENT_ROWS = 8
+# threads (a partitioned encode refines in Dask workers and in this process alike; branch partrefine31). The rows are
+# the fit's most threads: 16, so that a 16-core host (the GPU machine) fits on all its cores, not 8 (refinewall31;
+# 32 training cameras, two a row, 16 far ones, one a row). Each row is GRADIENT_COLUMNS float64 a splat of the set;
+# fewer threads take rows in turn.
+GRADIENT_ROWS = 16
+GRADIENT_COLUMNS = 4  # a splat's opacity gradient and its three DC ones, side by side
 
 
 def loss_and_grad(pl: PairLists, opacity: np.ndarray, dc_colour: np.ndarray, target: np.ndarray,
@@ -586,7 +589,7 @@ def loss_and_grad(pl: PairLists, opacity: np.ndarray, dc_colour: np.ndarray, tar
     n = len(opacity)
     nt = GRADIENT_ROWS
     # each row's opacity and DC gradients side by side (a splat's four in one cache line of the scatter)
-    grads = np.zeros((nt, n if grad else 0, 4))
+    grads = np.zeros((nt, n if grad else 0, GRADIENT_COLUMNS))
     losses = np.zeros(pl.cameras)
     tgt = np.ascontiguousarray(target, np.float32).reshape(pl.cameras, -1, 3)
     scale = 2.0 / (tgt.size)
@@ -597,9 +600,31 @@ def loss_and_grad(pl: PairLists, opacity: np.ndarray, dc_colour: np.ndarray, tar
     loss = float(losses.sum()) / tgt.size
     if not grad:
         return loss, np.zeros(0), np.zeros((0, 3))
-    # the rows added in order, as the (rows, N) and (rows, N, 3) arrays were before (the same bits)
-    total = grads.sum(0)
-    return loss, np.ascontiguousarray(total[:, 0]), np.ascontiguousarray(total[:, 1:])
+    # the rows added in order, as numpy's grads.sum(0) adds them (the same bits), in parallel over the splats: with 16
+    # rows a serial sum would be a step's largest serial part on many cores
+    g_op = np.empty(n)
+    g_dc = np.empty((n, 3))
+    _sum_rows(grads, g_op, g_dc)
+    return loss, g_op, g_dc
+
+
+@numba.njit(parallel=True, cache=True)
+def _sum_rows(grads, g_op, g_dc):
+    """g_op[i], g_dc[i] = grads[0, i] + grads[1, i] + ... in row order (numpy's sum over axis 0, bit for bit)."""
+    for i in numba.prange(grads.shape[1]):
+        a0 = grads[0, i, 0]
+        a1 = grads[0, i, 1]
+        a2 = grads[0, i, 2]
+        a3 = grads[0, i, 3]
+        for r in range(1, grads.shape[0]):
+            a0 += grads[r, i, 0]
+            a1 += grads[r, i, 1]
+            a2 += grads[r, i, 2]
+            a3 += grads[r, i, 3]
+        g_op[i] = a0
+        g_dc[i, 0] = a1
+        g_dc[i, 1] = a2
+        g_dc[i, 2] = a3
 
 
 # A projected splat's row of a camera's table (_pack_camera): its opacity and its clamped colour (3), 32 bytes, so
