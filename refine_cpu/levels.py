@@ -185,7 +185,8 @@ class CpuLevelRefiner:
         / 128.9 MiB on fruit_drops (SH3, 4,721 splats) at 32 / 128 px once compiled (30.4 at 32 px compiling), 31.6
         / 206 MiB; 990 / 1,741 MiB on 2^20 / 2^21 splats of donut copies (SH0, the GPU machine's 16 threads), the
         model 2,711 / 4,631 (2.7x; a near pixel held 10.7 / 18 pairs, under the 32 assumed); 5,231 MiB for a
-        2^20-splat SH3 domain at the defaults."""
+        2^20-splat SH3 domain at the defaults. The model figures above are before raster.GRADIENT_ROWS went 8 -> 16
+        and the gradient rows were counted (refinewall31): 768 B a splat more since."""
         s = self.settings
         pixels = s.size * s.size
         near_and_far = s.training_cameras + s.validation_cameras + s.far_training_cameras + s.far_validation_cameras
@@ -197,8 +198,9 @@ class CpuLevelRefiner:
                                    math.ceil(lod_refine.FAR_FILL * s.size / lod_refine.DISTANCE_RANGE[1])))
         training_pixels = s.training_cameras * pixels + s.far_training_cameras * far_side * far_side
         # raster.loss_and_grad's per-camera tables (raster.PACKED_COLUMNS float64 a projected splat), one a gradient
-        # row at most, each at most every splat
-        tables = raster.GRADIENT_ROWS * raster.PACKED_COLUMNS * 8
+        # row at most, each at most every splat, and the gradient rows (raster.GRADIENT_COLUMNS float64 a splat a row;
+        # SPLAT_COPIES' fit held 8 rows of them, so counting all 16 is on the safe side by 8)
+        tables = raster.GRADIENT_ROWS * (raster.PACKED_COLUMNS + raster.GRADIENT_COLUMNS) * 8
         pairs = PAIRS_PER_PIXEL if s.pairs_per_pixel is None else s.pairs_per_pixel
         return int(KERNELS_BYTES + 12 * pixels * near_and_far + (8 + 8 * pairs) * training_pixels
                    + (16 * training + tables + SPLAT_COPIES * splat_bytes) * splats)

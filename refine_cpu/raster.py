@@ -572,9 +572,12 @@ def pair_lists(g: Gaussians, cams: list[Camera], sh_degree: int | None = None) -
 
 # The gradient rows of loss_and_grad (cameras round-robin over them, each row summed alone, the rows added in order):
 # a constant, not the thread count, so that the fit's floats, and the refined bytes, are the same on any number of
-# threads (a partitioned encode refines in Dask workers and in this process alike; branch partrefine31). 8 rows of the
-# whole splat set, as the most threads took before (each thread now takes rows in turn where there are fewer).
-GRADIENT_ROWS = 8
+# threads (a partitioned encode refines in Dask workers and in this process alike; branch partrefine31). The rows are
+# the fit's most threads: 16, so that a 16-core host (the GPU machine) fits on all its cores, not 8 (refinewall31;
+# 32 training cameras, two a row, 16 far ones, one a row). Each row is GRADIENT_COLUMNS float64 a splat of the set;
+# fewer threads take rows in turn.
+GRADIENT_ROWS = 16
+GRADIENT_COLUMNS = 4  # a splat's opacity gradient and its three DC ones, side by side
 
 
 def loss_and_grad(pl: PairLists, opacity: np.ndarray, dc_colour: np.ndarray, target: np.ndarray,
@@ -586,7 +589,7 @@ def loss_and_grad(pl: PairLists, opacity: np.ndarray, dc_colour: np.ndarray, tar
     n = len(opacity)
     nt = GRADIENT_ROWS
     # each row's opacity and DC gradients side by side (a splat's four in one cache line of the scatter)
-    grads = np.zeros((nt, n if grad else 0, 4))
+    grads = np.zeros((nt, n if grad else 0, GRADIENT_COLUMNS))
     losses = np.zeros(pl.cameras)
     tgt = np.ascontiguousarray(target, np.float32).reshape(pl.cameras, -1, 3)
     scale = 2.0 / (tgt.size)
@@ -597,9 +600,31 @@ def loss_and_grad(pl: PairLists, opacity: np.ndarray, dc_colour: np.ndarray, tar
     loss = float(losses.sum()) / tgt.size
     if not grad:
         return loss, np.zeros(0), np.zeros((0, 3))
-    # the rows added in order, as the (rows, N) and (rows, N, 3) arrays were before (the same bits)
-    total = grads.sum(0)
-    return loss, np.ascontiguousarray(total[:, 0]), np.ascontiguousarray(total[:, 1:])
+    # the rows added in order, as numpy's grads.sum(0) adds them (the same bits), in parallel over the splats: with 16
+    # rows a serial sum would be a step's largest serial part on many cores
+    g_op = np.empty(n)
+    g_dc = np.empty((n, 3))
+    _sum_rows(grads, g_op, g_dc)
+    return loss, g_op, g_dc
+
+
+@numba.njit(parallel=True, cache=True)
+def _sum_rows(grads, g_op, g_dc):
+    """g_op[i], g_dc[i] = grads[0, i] + grads[1, i] + ... in row order (numpy's sum over axis 0, bit for bit)."""
+    for i in numba.prange(grads.shape[1]):
+        a0 = grads[0, i, 0]
+        a1 = grads[0, i, 1]
+        a2 = grads[0, i, 2]
+        a3 = grads[0, i, 3]
+        for r in range(1, grads.shape[0]):
+            a0 += grads[r, i, 0]
+            a1 += grads[r, i, 1]
+            a2 += grads[r, i, 2]
+            a3 += grads[r, i, 3]
+        g_op[i] = a0
+        g_dc[i, 0] = a1
+        g_dc[i, 1] = a2
+        g_dc[i, 2] = a3
 
 
 # A projected splat's row of a camera's table (_pack_camera): its opacity and its clamped colour (3), 32 bytes, so
@@ -626,10 +651,12 @@ def _loss_grad(pixel_offsets, proj, pg, splat, base, projected, opacity, dc, tar
                max_projected, grad, scale, nt, losses, grads):
     for t in numba.prange(nt):
         packed = np.empty((max_projected, PACKED_COLUMNS))
-        # what the forward pass met, per blended pair, for the backward pass (no second gather of the same values)
+        # what the forward pass met, per blended pair, for the backward pass (no second gather of the same values),
+        # and the transmittance in front of it (the backward reads it rather than dividing it back out)
         alphas = np.empty(max_pairs)
         gs = np.empty(max_pairs)
         bs = np.empty(max_pairs, np.int64)
+        ts = np.empty(max_pairs)
         for c in range(ncam):
             if c % nt != t:  # cameras round-robin over threads, each thread its own gradient row
                 continue
@@ -665,6 +692,7 @@ def _loss_grad(pixel_offsets, proj, pg, splat, base, projected, opacity, dc, tar
                     alphas[m] = alpha
                     gs[m] = gk
                     bs[m] = b
+                    ts[m] = trans
                     m += keep
                     trans = tn
                 d0 = min(r0, 1.0) - target[c, q, 0]
@@ -679,16 +707,18 @@ def _loss_grad(pixel_offsets, proj, pg, splat, base, projected, opacity, dc, tar
                 e2 = scale * d2 if r2 < 1.0 else 0.0
                 if e0 == 0.0 and e1 == 0.0 and e2 == 0.0:
                     continue
-                # back to front: T_j = T_{j+1} / (1 - a_j); behind = sum over later splats of c a T
+                # back to front; behind = sum over later splats of c a T. T_j is the forward's own (stored), not
+                # T_{j+1} / (1 - a_j) divided back from the last: no serial chain of divisions a pixel (the loop's
+                # latency), and the T the forward blended with rather than one carrying every later division's
+                # rounding (amplified by 1 / (1 - a) up to 100x at the 0.99 clamp; tests/test_refine_cpu.py)
                 s0 = 0.0
                 s1 = 0.0
                 s2 = 0.0
-                tj = trans
                 for j in range(m - 1, -1, -1):
                     a = alphas[j]
                     b = bs[j]
                     i = splat[b + lo]
-                    tj = tj / (1.0 - a)
+                    tj = ts[j]
                     c0 = packed[b, 1]
                     c1 = packed[b, 2]
                     c2 = packed[b, 3]

@@ -209,17 +209,19 @@ def test_gradients_match_finite_differences(part):
             assert fd == pytest.approx(g_dc[i, ch], abs=1e-4 * np.abs(g_dc[i]).max() + 1e-12)
 
 
-def reference_loss_and_grad(pl, opacity, dc, target):
-    """raster.loss_and_grad in plain Python, as its kernel computed it before the per-camera table (refinefast31):
+def reference_loss_and_grad(pl, opacity, dc, target, f=np.float64, divide=False):
+    """raster.loss_and_grad in plain Python, as its kernel computes it but for the per-camera table (refinefast31):
     each pair's splat, opacity, fixed colour part and DC term read where they lie, the gradient rows
-    (raster.GRADIENT_ROWS, cameras round-robin) summed in order. Float64 scalars: the kernel's operations, so its
-    bits."""
+    (raster.GRADIENT_ROWS, cameras round-robin) summed in order. Scalars of type `f`: float64 is the kernel's
+    operations, so its bits; np.longdouble (x87's 64-bit mantissa here) the same sums with 11 more bits, the yardstick
+    of test_the_stored_transmittance_gives_gradients_closer_than_the_division_chain. The backward pass reads each
+    pair's transmittance as the forward met it (refinewall31); `divide`: as the kernel did before, T_j = T_{j+1} /
+    (1 - a_j) from the pixel's last T."""
     n, nt, hw = len(opacity), raster.GRADIENT_ROWS, pl.width * pl.height
     tgt = np.asarray(target, np.float32).reshape(pl.cameras, -1, 3)
-    scale = 2.0 / tgt.size
-    g_op, g_dc = np.zeros((nt, n)), np.zeros((nt, n, 3))
-    losses = np.zeros(pl.cameras)
-    f = np.float64
+    scale = f(2.0) / f(tgt.size)
+    g_op, g_dc = np.zeros((nt, n), f), np.zeros((nt, n, 3), f)
+    losses = np.zeros(pl.cameras, f)
     for c in range(pl.cameras):
         t = c % nt
         for q in range(hw):
@@ -237,7 +239,7 @@ def reference_loss_and_grad(pl, opacity, dc, target):
                 w = alpha * trans
                 col = [max(f(pl.base[b, ch]) + f(dc[i, ch]), f(0.0)) for ch in range(3)]
                 rgb = [rgb[ch] + w * col[ch] for ch in range(3)]
-                met.append((alpha, k, i, col))
+                met.append((alpha, k, i, col, trans))
                 trans = tn
             d = [min(rgb[ch], f(1.0)) - f(tgt[c, q, ch]) for ch in range(3)]
             losses[c] += d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
@@ -245,8 +247,8 @@ def reference_loss_and_grad(pl, opacity, dc, target):
             if err == [0.0, 0.0, 0.0]:
                 continue
             behind, tj = [f(0.0)] * 3, trans
-            for a, k, i, col in reversed(met):
-                tj = tj / (f(1.0) - a)
+            for a, k, i, col, t_in_front in reversed(met):
+                tj = tj / (f(1.0) - a) if divide else t_in_front
                 w = a * tj
                 for ch in range(3):
                     if col[ch] > 0.0:
@@ -260,18 +262,25 @@ def reference_loss_and_grad(pl, opacity, dc, target):
     return float(losses.sum()) / tgt.size, g_op.sum(0), g_dc.sum(0)
 
 
-def test_the_compiled_loss_and_gradients_are_the_references_bit_for_bit(part):
-    # the kernel reads each camera's table of projected splats (opacity, clamped colour), computed once a step, and
-    # blends a pair under the alpha cut as alpha 0 without a branch: neither may move a bit of the loss or of any
-    # gradient (the refined scene's bytes depend on them). Colours clamped at 0 and alphas at 0.99 both occur.
+def _clamping_case(part):
+    """Cameras, pair lists, opacities, DC colours and targets where colours clamp at 0, alphas at 0.99 and pairs fall
+    under the alpha cut."""
     cams = refine_cameras(part.positions, (0.0, 1.0, 0.0), 3, 20, seed=7)
     pl = raster.pair_lists(part, cams)
-    assert len(pl.g) > 2000 and pl.max_projected == np.diff(pl.projected).max() > 0
     rng = np.random.default_rng(1)
     op = np.clip(part.opacities.astype(np.float64) * rng.uniform(0.5, 1.6, len(part)), 0.0, 0.999)
     dc = raster.SH_C0 * part.sh_dc.astype(np.float64) + rng.normal(0.0, 0.3, (len(part), 3))
     clean = np.stack([raster.render(part, c) for c in cams])
     target = np.clip(clean * 0.9 + rng.normal(0, 0.05, clean.shape), 0, 1).astype(np.float32)
+    return pl, op, dc, target
+
+
+def test_the_compiled_loss_and_gradients_are_the_references_bit_for_bit(part):
+    # the kernel reads each camera's table of projected splats (opacity, clamped colour), computed once a step, and
+    # blends a pair under the alpha cut as alpha 0 without a branch: neither may move a bit of the loss or of any
+    # gradient (the refined scene's bytes depend on them). Colours clamped at 0 and alphas at 0.99 both occur.
+    pl, op, dc, target = _clamping_case(part)
+    assert len(pl.g) > 2000 and pl.max_projected == np.diff(pl.projected).max() > 0
     assert (op[pl.splat[pl.proj]] * pl.g > raster.ALPHA_MAX).any() and (pl.base + dc[pl.splat] < 0).any()
     assert (op[pl.splat[pl.proj]] * pl.g < raster.ALPHA_MIN).any()
     loss, g_op, g_dc = raster.loss_and_grad(pl, op, dc, target)
@@ -281,6 +290,23 @@ def test_the_compiled_loss_and_gradients_are_the_references_bit_for_bit(part):
     assert np.array_equal(g_op.view(np.uint64), want_op.view(np.uint64))
     assert np.array_equal(g_dc.view(np.uint64), want_dc.view(np.uint64))
     assert raster.loss_and_grad(pl, op, dc, target, grad=False)[0] == want_loss
+
+
+def test_the_stored_transmittance_gives_gradients_closer_than_the_division_chain(part):
+    # refinewall31 changed the backward pass's bits (the forward's stored T_j for T_{j+1} / (1 - a_j)): the new bits
+    # must be at least as good. Yardstick: the same sums in long double (11 more mantissa bits, the stored T); the
+    # kernel's gradients are nearer it than the division chain's, whose rounding grows by 1 / (1 - a) a pair.
+    pl, op, dc, target = _clamping_case(part)
+    _, g_op, g_dc = raster.loss_and_grad(pl, op, dc, target)
+    _, div_op, div_dc = reference_loss_and_grad(pl, op, dc, target, divide=True)
+    _, ref_op, ref_dc = reference_loss_and_grad(pl, op, dc, target, f=np.longdouble)
+    if np.finfo(np.longdouble).nmant <= 52:
+        pytest.skip("long double is float64 on this platform: no yardstick")
+    for new, old, ref in ((g_op, div_op, ref_op), (g_dc, div_dc, ref_dc)):
+        new_err = np.abs(new - ref.astype(np.float64)).max()
+        old_err = np.abs(old - ref.astype(np.float64)).max()
+        assert old_err > 0 and new_err <= old_err, (new_err, old_err)
+        assert np.abs(new - ref.astype(np.float64)).sum() < np.abs(old - ref.astype(np.float64)).sum()
 
 
 def test_the_refiner_fits_the_merged_levels_and_keeps_only_what_validates(part):
