@@ -427,10 +427,10 @@ def ranges_kernel(pairs, low, high):
 def warm_up(whole: bool = True) -> None:
     """Compile (or load from the cache) the kernel for the argument types of real calls: a content as a writable
     buffer's view (a payload's kept buffer) and as read-only bytes, into texels of 1, 2 and 4-byte words. Each kernel
-    is handed to format.transport / keyed for its calls and the one before put back, so in a process whose decode
-    threads are running call it only with those kernels installed already (install): a thread that saw a kernel and
-    then called it after it was put back to None failed ('NoneType' object is not callable). `whole`: the whole
-    kernel too."""
+    is handed to format.transport / keyed for its calls and the one before put back, while the decode threads of
+    the process may be decoding with the numpy path: every call site there reads its kernel once (a thread that
+    read a kernel and then called the module's, put back to None meanwhile, failed with "'NoneType' object is not
+    callable" and its view never converged: pagebudget31). `whole`: the whole kernel too."""
     previous = transport.use_fields_kernel(fields1_kernel)
     try:
         for fmt in ("norm8x4", "norm565", "norm11"):
@@ -494,10 +494,10 @@ def _warm_up_whole() -> None:
 
 def install() -> None:
     """format.transport decodes fields1 with the compiled kernel from now on (in every thread of this process).
-    The kernels are handed in first and warmed up after, so that warm_up's hand-ins and put-backs change nothing the
-    decode threads see (the child process of engine.CompiledSelection has compiled them into numba's cache by then;
-    a decode thread that calls one before it is loaded waits for numba's compile lock)."""
+    Warmed up first, so that the decode threads keep the numpy path until every kernel is loaded (handed in first,
+    the first frame's decode waited for the loads: 1M first frame 0.086 -> 0.157 s on the GPU machine, r23)."""
     whole = os.environ.get(WHOLE_ENV, "1") != "0"
+    warm_up(whole)
     transport.use_fields_kernel(fields1_kernel)
     transport.use_unshuffle_kernel(unshuffle_kernel)
     transport.use_batch_kernels(fields1_many_kernel, unshuffle_many_kernel)
@@ -507,11 +507,6 @@ def install() -> None:
     # the whole kernel gives the lock up twice a payload instead of about five times, for 10-20 us more of Python
     # holding it; BENCHMARKS.md, "Decode speed")
     transport.use_whole_kernel(whole_kernel if whole else None)
-    try:
-        warm_up(whole)
-    except Exception:  # a kernel that does not compile: back to the numpy path (the same bytes), and say so
-        uninstall()
-        raise
 
 
 def uninstall() -> None:

@@ -977,6 +977,8 @@ def _texels_at(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], sec
     for fmt, ks in fields.items():
         got = unfilter_fields_at(whole, fmt, count, [(firsts[k] + secs[k].offset, secs[k].size, secs[k].width,
                                                       secs[k].height) for k in ks])
+        if got is None:  # the batch kernel handed back since `batched` was read (decode_jit.warm_up): each below
+            continue
         for k, texels in zip(ks, got, strict=True):
             if texels is not None:
                 unit = texels.size // count

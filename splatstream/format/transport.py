@@ -727,9 +727,10 @@ def unshuffle(buf: np.ndarray, element: int) -> np.ndarray:
     """Inverse byte shuffle (format.md 5.1) of one unit, as bytes (a view of `buf` when there is nothing to do)."""
     if element <= 1 or buf.size % element:
         return buf
-    if _unshuffle_kernel is not None and buf.size > SMALL_UNSHUFFLE_BYTES:
+    kernel = _unshuffle_kernel  # read once: another thread may hand it back meanwhile (decode_jit.warm_up)
+    if kernel is not None and buf.size > SMALL_UNSHUFFLE_BYTES:
         out = np.empty(buf.size, np.uint8)
-        _unshuffle_kernel(buf, element, out)
+        kernel(buf, element, out)
         return out
     if buf.size <= SMALL_UNSHUFFLE_BYTES:  # ranges: one transposing copy beats the shifts' several numpy calls
         return np.ascontiguousarray(buf.reshape(element, -1).T).reshape(-1)
@@ -1057,10 +1058,11 @@ def _kernel_plan(fmt: str, width: int, height: int, layers: int, head: bytes) ->
             slot_to_texel(width, height), len(lay.bits), n * lay.texel_bytes * layers)
 
 
-def _kernel_unfilter(raw: np.ndarray, fmt: str, width: int, height: int, layers: int) -> np.ndarray | None:
-    """unfilter_fields' bytes by the handed-in kernel; None where the content is not well-formed (the numpy path
-    then raises its FormatError). The checks and the kernel's arguments come from one cached lookup per geometry
-    and header: a section's Python around the kernel was as long as the kernel on small tiles."""
+def _kernel_unfilter(kernel, raw: np.ndarray, fmt: str, width: int, height: int, layers: int) -> np.ndarray | None:
+    """unfilter_fields' bytes by the handed-in `kernel` (as its caller read it); None where the content is not
+    well-formed (the numpy path then raises its FormatError). The checks and the kernel's arguments come from one
+    cached lookup per geometry and header: a section's Python around the kernel was as long as the kernel on small
+    tiles."""
     nf = len(FIELD_LAYOUTS[fmt][2]) * FIELD_LAYOUTS[fmt][1] if fmt in FIELD_LAYOUTS else 0
     if not nf or type(layers) is not int or layers < 1:
         return None
@@ -1070,7 +1072,7 @@ def _kernel_unfilter(raw: np.ndarray, fmt: str, width: int, height: int, layers:
     _, params_at, planes_at, n, words, fields, modes, word, order, nf, out_bytes = plan
     out = np.empty(out_bytes, np.uint8)
     work = _scratch("kernel", 8 * nf * n).view(np.int64).reshape(nf, n)
-    _fields_kernel(raw, planes_at, params_at, n, layers, words, fields, modes, order, work, out.view(word))
+    kernel(raw, planes_at, params_at, n, layers, words, fields, modes, order, work, out.view(word))
     return out
 
 
@@ -1085,8 +1087,9 @@ def unfilter_fields(raw: np.ndarray | bytes, fmt: str, width: int, height: int, 
     modulo 2^32, then cut to each field's bits, equals the spec's arithmetic modulo 2^|T|; the running sums run on
     an int32 view, which numpy accumulates about 3x faster than uint32 (the same bits: both wrap modulo 2^32)."""
     raw = np.frombuffer(raw, np.uint8) if isinstance(raw, bytes | bytearray | memoryview) else raw
-    if _fields_kernel is not None:
-        out = _kernel_unfilter(raw, fmt, width, height, layers)
+    kernel = _fields_kernel  # read once: another thread may hand it back meanwhile (decode_jit.warm_up)
+    if kernel is not None:
+        out = _kernel_unfilter(kernel, raw, fmt, width, height, layers)
         if out is not None:
             return out
     _check_geometry(fmt, width, height, layers, source)
@@ -1320,12 +1323,13 @@ def unshuffle_many(units: list[np.ndarray], element: int) -> list[np.ndarray]:
     sizes = [u.size // element for u in units]
     total = sum(sizes)
     out = []
-    if _unshuffle_kernel is not None:  # one call a unit into one array
+    kernel = _unshuffle_kernel  # read once, as unshuffle's
+    if kernel is not None:  # one call a unit into one array
         dst = np.empty(total * element, np.uint8)
         at = 0
         for u, m in zip(units, sizes, strict=True):
             part = dst[at:at + m * element]
-            _unshuffle_kernel(u, element, part)
+            kernel(u, element, part)
             out.append(part)
             at += m * element
         return out
@@ -1458,6 +1462,9 @@ def unshuffle_at(raw: np.ndarray, units: list[tuple[int, int]], element: int) ->
 
 
 _whole_kernel = None  # see use_whole_kernel
+# the last whole kernel handed in: run_whole's call, planned by a caller that saw one, runs on it even where another
+# thread handed it back meanwhile (decode_jit.warm_up hands each kernel in for its calls and back)
+_whole_kernel_planned = None
 
 
 def use_whole_kernel(kernel) -> object:
@@ -1476,8 +1483,10 @@ def use_whole_kernel(kernel) -> object:
     after each one (issue 38: the frame thread waits for it; issue 32: that Python is most of a small payload's
     decode). With this kernel a payload's, or a group's, decode is two calls that release the lock (zstd, then this),
     with one stretch of Python before and one after (unfilter_whole)."""
-    global _whole_kernel
+    global _whole_kernel, _whole_kernel_planned
     previous, _whole_kernel = _whole_kernel, kernel
+    if kernel is not None:
+        _whole_kernel_planned = kernel
     return previous
 
 
@@ -1644,7 +1653,8 @@ def run_whole(raw: np.ndarray, flat: list[int], keys: tuple, unit_rows: list[int
         rows = np.array(row_list, np.int64).reshape(-1, 13)
     out = np.empty(out_bytes + -out_bytes % 16, np.uint8)
     work = _scratch("kernel", 8 * most_f * most_n).view(np.int64).reshape(most_f, most_n)
-    status = _whole_kernel(raw, rows, fields, modes, orders, work, out, out.view(np.uint16), out.view(np.uint32),
+    kernel = _whole_kernel or _whole_kernel_planned
+    status = kernel(raw, rows, fields, modes, orders, work, out, out.view(np.uint16), out.view(np.uint32),
                            out.view(np.float32), np.array(unit_rows, np.int64).reshape(-1, 5),
                            np.array(span_rows or (), np.int64).reshape(-1, 4), _NO_BOUNDS if bounds is None else bounds)
     return out, int(status)
