@@ -453,8 +453,12 @@ class StreamEngine:
         self._decoding: set[Key] = set()
         self._decoded: queue.Queue = queue.Queue()
         # The root tile's framing box (camera.framing_box of its splats: the rule of the suggested camera), once its
-        # base has decoded: what the viewer's F key frames (the bounding sphere holds every stray splat).
-        self.frame_box: tuple[np.ndarray, np.ndarray] | None = None
+        # base has decoded: what the viewer's F key frames (the bounding sphere holds every stray splat). Computed
+        # when first asked for (frame_box), from the root's planes kept here: computed in the frame that collected
+        # the root, it held the first frame's engine.update at 50-80 ms where it had taken 5-7 (the GPU machine, 1M
+        # splats, r23: frame31's box on the frame loop, beside the decode kernels' loading)
+        self._frame_box: tuple[np.ndarray, np.ndarray] | None = None
+        self._root_planes: tuple[dict, int] | None = None
         self._pool = ThreadPoolExecutor(max_workers=options.decode_workers, thread_name_prefix="splat-decode")
         self._closing = False
         # Set while the frame loop is not in its CPU work (engine update, draw submission): decode threads run each
@@ -1048,8 +1052,8 @@ class StreamEngine:
                     reject(self.entry(key))
                 continue
             ready = item[1]
-            if self.frame_box is None and key[1] == "base" and key[0] == self.manifest.root:
-                self.frame_box = root_frame_box(ready.planes, self.manifest.tile(key[0]).splats)
+            if self._frame_box is None and key[1] == "base" and key[0] == self.manifest.root:
+                self._root_planes = (ready.planes, self.manifest.tile(key[0]).splats)
             self._ready[key] = ready
             self._ready_bytes += ready.nbytes
 
@@ -1061,6 +1065,15 @@ class StreamEngine:
         band = _GROUP_BAND[group]
         # a page that did not parse blocks no payload: its tile is drawn as a leaf
         return any(k[0] == tile_id and _GROUP_BAND.get(k[1], 4) <= band for k in self.failed)
+
+    @property
+    def frame_box(self) -> tuple[np.ndarray, np.ndarray] | None:
+        """The root tile's framing box (root_frame_box), None until its base has decoded; computed once, when first
+        asked for (the viewer's F key)."""
+        if self._frame_box is None and self._root_planes is not None:
+            self._frame_box = root_frame_box(*self._root_planes)
+            self._root_planes = None
+        return self._frame_box
 
     @property
     def loop_idle(self) -> threading.Event:
