@@ -54,6 +54,7 @@ def cases(tmp, scene):
         (["decode", tmp / "missing", tmp / "o.ply"], "missing"),
         (["decode", scene, "/proc/o.ply"], "/proc/o.ply"),
         (["decode", scene, tmp / "a_dir"], "a_dir"),
+        (["decode", scene, tmp / "o.ply", "--tiles", ""], "--tiles: expected comma-separated integers, got ''"),
         (["info", tmp / "missing"], "missing"),
         (["info", tmp / "a_file"], "a_file"),
         (["info", tmp / "a_dir"], "a_dir"),

@@ -24,7 +24,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 def run(args: argparse.Namespace) -> int:
     tiles: str | list[int] = "leaves"
-    if args.tiles:
+    if args.tiles is not None:  # "" is a list of no ids, not the leaves (newuser61)
         try:
             tiles = [int(t) for t in args.tiles.split(",")]
         except ValueError:
