@@ -263,7 +263,7 @@ def run(args: argparse.Namespace) -> int:
     progress = ProgressPrinter("encode", enabled=not args.quiet)
     with progress.library_notes():
         if tree_kind is not None:
-            m = _encode_foreign_tree(args, tree_kind, preset, overrides, up, progress)
+            m = _encode_foreign_tree(args, tree_kind, preset, overrides, up, azimuth, progress)
         else:
             m = encode_file(args.input, args.output_dir, preset=preset, drop_invalid=args.drop_invalid,
                             progress=progress, workers=workers, scheduler=args.scheduler, memory_per_worker=memory,
@@ -372,14 +372,15 @@ def _foreign_tree(args: argparse.Namespace) -> str | None:
     return kind
 
 
-def _encode_foreign_tree(args: argparse.Namespace, kind: str, preset: str, overrides: dict, up, progress):
+def _encode_foreign_tree(args: argparse.Namespace, kind: str, preset: str, overrides: dict, up, azimuth: float,
+                         progress):
     """Their tree kept: read whole (sog_import / rad_import.read_tree) and encoded level for level."""
     reader = sog_read_tree if kind == "lod_sog" else rad_read_tree
     opts = EncodeOptions(preset=preset, overrides=overrides, sh_degree=args.sh_degree,
                          zstd_level=args.zstd_level, transport=args.transport, name=args.name, up=up,
                          chunk_order=args.chunk_order, sh_codebook=args.sh_codebook, page_tiles=args.page_tiles,
                          page_levels=args.page_levels, compact_table=not args.no_compact_table,
-                         camera_azimuth_deg=parse_azimuth(args.camera_azimuth))
+                         camera_azimuth_deg=azimuth)
     return encode_tree_to(reader(args.input[0], progress), args.output_dir, args.input[0], opts, progress)
 
 
