@@ -200,11 +200,14 @@ ctx.release()
 """
 
 
-def _cache_entries(directory: pathlib.Path) -> set[str]:
-    return {str(p.relative_to(directory)) for p in directory.rglob("*") if p.is_file() and "index" not in p.name}
+def _cache_entries(directory: pathlib.Path) -> set[tuple[str, int]]:
+    """The cache's files and sizes (a miss adds a file, or grows one where the cache is a single file; its LRU index
+    is rewritten on every use, so it is left out)."""
+    return {(str(p.relative_to(directory)), p.stat().st_size) for p in directory.rglob("*")
+            if p.is_file() and p.name != "index"}
 
 
-def _run_probe(tmp_path, cache, vert, frag, how) -> set[str]:
+def _run_probe(tmp_path, cache, vert, frag, how) -> set[tuple[str, int]]:
     spec = tmp_path / "probe.json"
     spec.write_text(json.dumps([vert, frag, how]))
     env = dict(os.environ, MESA_SHADER_CACHE_DIR=str(cache), PYTHONPATH=str(ROOT))
