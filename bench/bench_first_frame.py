@@ -76,9 +76,6 @@ def main() -> None:
                     help="RenderOptions.warm_compile=False: the programs deferred from the first frame compiled cold "
                          "by the frame loop (the A/B of the warmer thread; see the compiles after the first frame with "
                          "--frames-after 30)")
-    ap.add_argument("--no-warm-first", action="store_true",
-                    help="RenderOptions.warm_first=False: the renderer's first-frame program compiled cold after the "
-                         "pool's instead of linked on a thread beside it (the A/B of the two compiles side by side)")
     ap.add_argument("--as-hardware", action="store_true",
                     help="treat a software GL (llvmpipe) as hardware in the renderer's auto choices (GPU sort, "
                          "compute draw): the GPU machine's programs, their count and order, here")
@@ -120,9 +117,6 @@ def main() -> None:
     tl.wrap(engine, "decode_batch_job", "decode batch (thread)")
     tl.wrap(renderer.SplatRenderer, "render", "render")
     tl.wrap(pool.ChunkPool, "join", "pool.join")
-    tl.wrap(pool.ChunkPool, "prime_atlases", "pool.prime_atlases")
-    if hasattr(renderer, "FirstFrameCompiles"):  # the first frame's compiles side by side (RenderOptions.warm_first)
-        tl.wrap(renderer.FirstFrameCompiles, "__init__", "first compiles (renderer's linked here)")
     if args.sync:
         steps = [(renderer.SplatRenderer, ("_ensure_work", "_start_cull", "_cull", "check_bins")),
                  (sort.GpuRadixSort, ("sort",)),
@@ -138,8 +132,7 @@ def main() -> None:
             renderer.SOFTWARE_RENDERERS = ()
         render = RenderOptions(sort=args.sort, draw=args.draw, sort_pass_programs=args.sort_pass_programs,
                                defer_compute=not args.no_defer, cpu_first=not args.no_cpu_first,
-                               warm_compile=not args.no_warm_compile,
-                               **({"warm_first": False} if args.no_warm_first else {}))
+                               warm_compile=not args.no_warm_compile)
         view = ViewOptions(cache=False, render=render, **({"gpu_mem_mb": args.gpu_mem_mb} if args.gpu_mem_mb else {}))
         prepared = PreparedSource.open(url, view)
         session = StreamingSession(prepared, ctx, view)
@@ -180,9 +173,6 @@ def main() -> None:
                    warmer_ms={k: round(v * 1e3, 1) for k, v in session.renderer.warm_compile_seconds.items()},
                    loop_compile_ms={k: round(v * 1e3, 2) for k, v in session.renderer.compile_seconds.items()},
                    warm_compile_missed=session.renderer.warm_compile_missed)
-        out.update(warm_first=not args.no_warm_first,
-                   first_compiles_ms={k: (round(v * 1e3, 2) if isinstance(v, float) else v)
-                                      for k, v in session.first_compiles.seconds.items()})
         out.update(first_frame_s=m.first_frame_s, manifest_s=m.manifest_s, pool_s=m.pool_s, built_s=m.built_s,
                    frames=frames, sort_pass_programs=args.sort_pass_programs, programs_compiled=len(compiles),
                    programs_compiled_after=compiles_after, draw=args.draw, defer_compute=not args.no_defer,
@@ -196,7 +186,7 @@ def main() -> None:
     for t_ms, label, ms in tl.events:
         print(f"{t_ms:9.1f} ms  {label:34s} {ms:8.1f} ms")
     print({k: out[k] for k in ("first_frame_s", "manifest_s", "pool_s", "built_s", "context_ms", "programs_compiled",
-                               "compile_ms", "programs_compiled_after", "first_sort", "first_compiles_ms")})
+                               "compile_ms", "programs_compiled_after", "first_sort")})
     if args.frames_after:
         print({k: out[k] for k in ("compile_after_ms", "compile_after_max_ms", "frames_to_compute", "warmer_ms",
                                    "loop_compile_ms", "warm_compile_missed")})

@@ -25,17 +25,16 @@ import time
 def sources():
     from client_gl.gpu import shadergen
     from client_gl.gpu.compute_raster import raster_sources
-    from client_gl.gpu.renderer import program_stages
     from client_gl.gpu.sort import compute_program_source, sort_programs
-    from client_gl.gpu.warm_compile import GL_COMPUTE_SHADER
+    from client_gl.gpu.warm_compile import GL_COMPUTE_SHADER, GL_FRAGMENT_SHADER, GL_VERTEX_SHADER
 
     progs = {}
     for name, src in raster_sources("f4", True, 7).items():
         progs[name] = ((GL_COMPUTE_SHADER, src),)
     for spec in sort_programs(7) + sort_programs(6):
         progs[f"{spec[0]}/{spec[2]}"] = ((GL_COMPUTE_SHADER, compute_program_source(*spec)),)
-    # the renderer's stages (program_stages strips the pair as moderngl does: unstripped, it missed on both drivers)
-    progs["fetch"] = program_stages("fetch", shadergen.projected_render_sources("fetch"))
+    vert, frag = shadergen.projected_render_sources("fetch")
+    progs["fetch"] = ((GL_VERTEX_SHADER, vert), (GL_FRAGMENT_SHADER, frag))
     return progs
 
 

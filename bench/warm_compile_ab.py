@@ -6,10 +6,6 @@ warmer should take away (issue 38; BENCHMARKS.md, "Deferred compiles warmed off 
     python bench/warm_compile_ab.py --scene S --rounds 5 [--cache off] -- --as-hardware --size 640x360 --gpu-mem-mb 64
 
 On the GPU machine (NVIDIA) use --cache nvidia: a fresh __GL_SHADER_DISK_CACHE_PATH per cold run.
-
---toggle names the option whose runs alternate with the default's (default --no-warm-compile); --toggle
---no-warm-first is the A/B of RenderOptions.warm_first, the first frame's two compiles side by side (issue 31;
-BENCHMARKS.md, "The first frame's two compiles side by side"), best with --frames-after 0.
 """
 from __future__ import annotations
 
@@ -22,13 +18,12 @@ import sys
 import tempfile
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-KEYS = ("first_frame_s", "built_s", "compile_ms", "compile_after_ms", "compile_after_max_ms", "frames_to_compute")
+KEYS = ("first_frame_s", "compile_ms", "compile_after_ms", "compile_after_max_ms", "frames_to_compute")
 
 
-def run(scene: str, extra: list[str], env: dict, warm: bool, frames_after: int, out_json: str,
-        toggle: str = "--no-warm-compile") -> dict:
+def run(scene: str, extra: list[str], env: dict, warm: bool, frames_after: int, out_json: str) -> dict:
     cmd = [sys.executable, os.path.join(HERE, "bench_first_frame.py"), "--scene", scene, "--frames-after",
-           str(frames_after), "--json", out_json, *extra] + ([] if warm else [toggle])
+           str(frames_after), "--json", out_json, *extra] + ([] if warm else ["--no-warm-compile"])
     subprocess.run(cmd, env=env, check=True, stdout=subprocess.DEVNULL)
     with open(out_json) as f:
         d = json.load(f)
@@ -43,8 +38,6 @@ def main() -> None:
     ap.add_argument("--frames-after", type=int, default=30)
     ap.add_argument("--cache", choices=("mesa", "off", "nvidia"), default="mesa")
     ap.add_argument("--json", dest="json_out")
-    ap.add_argument("--toggle", default="--no-warm-compile",
-                    help="the bench_first_frame.py option of the runs without (default: the warmer's)")
     ap.add_argument("extra", nargs="*", help="bench_first_frame.py arguments (after --)")
     args = ap.parse_args()
     rows = []
@@ -64,10 +57,8 @@ def main() -> None:
                     env["__GL_SHADER_DISK_CACHE"] = "0"
                 passes = ("cold", "warm") if args.cache != "off" else ("cold",)
                 for p in passes:
-                    d = run(args.scene, args.extra, env, warm, args.frames_after, os.path.join(tmp, "ff.json"),
-                            args.toggle)
+                    d = run(args.scene, args.extra, env, warm, args.frames_after, os.path.join(tmp, "ff.json"))
                     row = {"round": r, "warmer": warm, "cache": p, "load": d["load"],
-                           "first_compiles_ms": d.get("first_compiles_ms"),
                            "each_after_ms": d["compile_after_each_ms"], "warmer_ms": d["warmer_ms"],
                            "loop_compile_ms": d["loop_compile_ms"], "missed": d["warm_compile_missed"],
                            **{k: d[k] for k in KEYS}}
@@ -80,14 +71,13 @@ def main() -> None:
             sel = [row for row in rows if row["warmer"] == warm and row["cache"] == p]
             if not sel:
                 continue
-            on, off = ("warmer", "no warmer") if args.toggle == "--no-warm-compile" else ("default", args.toggle)
-            summary[f"{on if warm else off}, {p}"] = {
+            summary[f"{'warmer' if warm else 'no warmer'}, {p}"] = {
                 k: (round(statistics.median(row[k] for row in sel), 3), round(min(row[k] for row in sel), 3))
                 for k in KEYS if all(row[k] is not None for row in sel)}
     print(json.dumps(summary, indent=1))
     if args.json_out:
         with open(args.json_out, "w") as f:
-            json.dump({"rows": rows, "summary": summary, "median_min": True, "toggle": args.toggle}, f, indent=1)
+            json.dump({"rows": rows, "summary": summary, "median_min": True}, f, indent=1)
 
 
 if __name__ == "__main__":

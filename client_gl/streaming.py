@@ -24,14 +24,7 @@ from splatstream.errors import UsageError
 from splatstream.format.manifest import Manifest
 
 from .gpu.pool import ChunkPool
-from .gpu.renderer import (
-    FirstFrameCompiles,
-    FrameStats,
-    RenderOptions,
-    SplatRenderer,
-    draws_cpu_first,
-    resolve_sort,
-)
+from .gpu.renderer import FrameStats, RenderOptions, SplatRenderer, draws_cpu_first, resolve_sort
 from .gpu.residency_layout import CodebookLayout, PoolLayout
 from .stream.cache import DiskCache
 from .stream.engine import DECODE_WAIT_S, FrameUpdate, StreamEngine, StreamOptions
@@ -184,7 +177,6 @@ class StreamingSession:
         self.source = prepared.source
         self.fetcher = prepared.fetcher
         self.manifest: Manifest = prepared.manifest
-        self.first_compiles = FirstFrameCompiles.none()
         try:
             self._build(ctx, options)
         except BaseException:
@@ -210,24 +202,8 @@ class StreamingSession:
         # frames of a GPU-path renderer that draws them with the CPU sort (RenderOptions.cpu_first; dropped at its
         # switch to the GPU path, frame()).
         self.with_mirror = resolve_sort(ctx, options.render) == "cpu" or draws_cpu_first(ctx, options.render)
-        # The first frame's two programs compiled side by side from here (RenderOptions.warm_first): the pool's on a
-        # thread, the renderer's now on this one; the pool made unprimed, primed once the thread has linked its
-        # program (after the renderer).
-        self.first_compiles.close()
-        self.first_compiles = FirstFrameCompiles(ctx, PoolLayout(m.formats, degree, codebook), self.with_mirror,
-                                                 options.render)
-        try:
-            self._build_with(ctx, options, m, degree, codebook)
-        except BaseException:
-            self.first_compiles.close()
-            raise
-
-    def _build_with(self, ctx, options: ViewOptions, m: Manifest, degree: int,
-                    codebook: CodebookLayout | None) -> None:
-        """_build's pool, engine and renderer."""
-        first = self.first_compiles
         self.pool = ChunkPool.for_budget(ctx, self.budget, m.formats, degree, codebook=codebook,
-                                         host_mirror=self.with_mirror, prime=first.warmer is None)
+                                         host_mirror=self.with_mirror)
         self._pool_done = time.perf_counter()
         layout: PoolLayout = self.pool.layout
         stream_opts = StreamOptions(selection=replace(options.selection(), sh_degree=degree),
@@ -248,7 +224,6 @@ class StreamingSession:
         try:
             self.engine.take_arrived()
             self.renderer = SplatRenderer(ctx, self.pool, options.render)
-            first.prime(self.pool)  # before any upload (the first is the next frame's)
             if options.max_splats is not None:  # the budget's work buffers now, not in the frames that reach it
                 self.renderer.reserve_work(options.max_splats)
             self.engine.take_arrived()
@@ -411,7 +386,6 @@ class StreamingSession:
     def close(self) -> None:
         self.fetcher.close()
         self.engine.close()
-        self.first_compiles.close()
         self.renderer.release()
         self.pool.release()
 

@@ -35,16 +35,7 @@ from splatstream.format.codec import EncodedPlane, palette_as_ranged
 from splatstream.format.texformats import PALETTE_FORMATS, get_format
 
 from ..tiledata import HostMirror, TileData
-from .gl import (
-    BLOCK_BYTES,
-    GL_RG8UI,
-    GL_RGBA32UI,
-    IMAGE_WORD_FORMATS,
-    INTERNAL_FORMATS,
-    PIXEL_TRANSFER,
-    RawTexture,
-    StagingBuffer,
-)
+from .gl import BLOCK_BYTES, GL_RG8UI, GL_RGBA32UI, IMAGE_WORD_FORMATS, INTERNAL_FORMATS, RawTexture, StagingBuffer
 from .residency_layout import (
     BASE_PLANE_NAMES,
     BLOCK,
@@ -103,20 +94,6 @@ def _chunk_blocks(plane: EncodedPlane, layer: int, chunks: int) -> np.ndarray:
     return img.transpose(0, 2, 1, 3, 4).reshape(-1, side, side, unit)[:chunks]
 
 
-def prime_program_specs(layout: PoolLayout) -> list[tuple[str, str]]:
-    """The compute_program (name, defines) that ChunkPool.prime_atlases compiles for a pool of this layout, in order
-    (one per texel size among its uncompressed atlases), for a thread that links them ahead."""
-    specs: list[tuple[str, str]] = []
-    for plane in layout.planes:
-        internal = INTERNAL_FORMATS[get_format(layout.plane_format(plane)).gl_internal]
-        if internal in BLOCK_BYTES:
-            continue
-        spec = ("prime_texels.comp", f"#define TEXEL_FORMAT {IMAGE_WORD_FORMATS[PIXEL_TRANSFER[internal][2]][0]}\n")
-        if spec not in specs:
-            specs.append(spec)
-    return specs
-
-
 def _put_ranges(records: np.ndarray, name: str, ranges: np.ndarray, dtype: str) -> None:
     """Write per-chunk ranges (chunks, 2, L, C) as `dtype` words at RANGE_WORDS[name] of (chunks, 64) records."""
     chunks = len(records)
@@ -131,12 +108,10 @@ class ChunkPool:
     codebook: the scene's SH codebook shape for scenes encoded with one (its bands come with set_codebook_band).
     host_mirror: keep the CPU-sort path's per-splat centres, opacities and largest log scales (tiles must then
     carry TileData.mirror).
-    prime: prime the atlases (prime_atlases) now; False: later, by the caller or at the first upload (the streaming
-    session compiles their program after the renderer's, once a thread has linked it: RenderOptions.warm_first).
     """
 
     def __init__(self, ctx, formats: Mapping[str, str], sh_degree: int, slots: int, *,
-                 codebook: CodebookLayout | None = None, host_mirror: bool = True, prime: bool = True):
+                 codebook: CodebookLayout | None = None, host_mirror: bool = True):
         self.ctx = ctx
         self.layout = PoolLayout(formats, int(sh_degree), codebook)
         cols, rows = atlas_grid(slots)
@@ -155,9 +130,7 @@ class ChunkPool:
                                               self.layout.plane_layers(plane))
         self._gpu_bytes: int | None = None
         self._staging = StagingBuffer(ctx)  # texel uploads go through it (the GPU copies, not the driver's CPU)
-        self._primed = False
-        if prime:
-            self.prime_atlases()
+        self._prime_atlases()
         self._ranges = RawTexture(GL_RGBA32UI, width, rows)
         self._state_texture = RawTexture(GL_RG8UI, cols, rows)
         self._records = np.zeros((capacity, RANGE_RECORD_WORDS), np.uint32)  # host copy of the range table
@@ -193,13 +166,10 @@ class ChunkPool:
         # slots are handed out lowest first, so every one of those has been written by a join (or a leave). At a
         # 4 GB budget the upload of the whole table took most of the two seconds before a first frame (llvmpipe).
 
-    def prime_atlases(self) -> None:
+    def _prime_atlases(self) -> None:
         """A shader writes one texel of every atlas that uploads go to through the staging buffer, before the first
         upload (prime_texels.comp says why: otherwise the first frame with splats moves whole atlases through host
-        memory). Once: later calls, and the first upload's, do nothing."""
-        if self._primed:
-            return
-        self._primed = True
+        memory)."""
         if self.ctx.version_code < 430:
             return
         for tex in self._atlases.values():
@@ -211,17 +181,12 @@ class ChunkPool:
             prog.run(1)
         self.ctx.memory_barrier()
 
-    @property
-    def primed(self) -> bool:
-        return self._primed
-
     @classmethod
     def for_budget(cls, ctx, gpu_budget_bytes: int, formats: Mapping[str, str], sh_degree: int, *,
-                   codebook: CodebookLayout | None = None, host_mirror: bool = True,
-                   prime: bool = True) -> ChunkPool:
+                   codebook: CodebookLayout | None = None, host_mirror: bool = True) -> ChunkPool:
         """The largest pool whose GPU bytes (gpu_bytes) stay within `gpu_budget_bytes`."""
         slots = slots_for_budget(gpu_budget_bytes, formats, sh_degree, codebook)
-        return cls(ctx, formats, sh_degree, slots, codebook=codebook, host_mirror=host_mirror, prime=prime)
+        return cls(ctx, formats, sh_degree, slots, codebook=codebook, host_mirror=host_mirror)
 
     # --- what the renderer reads ----------------------------------------------------------------------------
     @property
@@ -580,7 +545,6 @@ class ChunkPool:
         """Uncompressed planes: each run of slots takes the matching blocks of the tile's texture as rectangles read
         in place (a tile's chunk c is the block at (c mod tw, c div tw) of its texture, format.md 4.1), so a 16,384-
         splat tile's plane goes up in one call per layer, with no copy on the CPU."""
-        self.prime_atlases()  # a pool made with prime=False: before its first upload through the staging buffer
         tw = plane.width // BLOCK
         for layer in range(max(1, tex.layers)):
             with self._staging.staged(layer_blob(plane, layer)):

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import functools
 import math
-import os
 import struct
 import time
 from collections.abc import Iterable
@@ -40,11 +39,10 @@ from . import shadergen
 from .compute_raster import ComputeRaster, default_entries, raster_sources
 from .gl import flush as gl_flush
 from .gl import texture_barrier, work_buffer
-from .pool import ChunkPool, prime_program_specs
-from .residency_layout import TEXTURE_UNITS, PoolLayout
+from .pool import ChunkPool
+from .residency_layout import TEXTURE_UNITS
 from .sort import (
     CHAIN_BARRIER,
-    RADIX_BITS,
     RADIX_CHOICES,
     CpuSorter,
     GpuRadixSort,
@@ -54,7 +52,7 @@ from .sort import (
     sort_programs,
 )
 from .uniforms import ProgramUniforms
-from .warm_compile import GL_COMPUTE_SHADER, GL_FRAGMENT_SHADER, GL_VERTEX_SHADER, ShaderWarmer, Stages, link_here
+from .warm_compile import GL_COMPUTE_SHADER, GL_FRAGMENT_SHADER, GL_VERTEX_SHADER, ShaderWarmer, Stages
 
 SOFTWARE_RENDERERS = ("llvmpipe", "softpipe", "swiftshader", "software rasterizer")
 MAX_GROUPS_PER_DISPATCH = 65535
@@ -93,10 +91,6 @@ WARM_COMPILE_WAIT_S = 1.0
 # its disk cache off: BENCHMARKS.md, "Deferred compiles warmed off the frame loop").
 WARM_MISS_RATIO = 0.5
 WARM_MISS_MIN_S = 0.010
-# RenderOptions.warm_first: the pool's priming waits this long at most for the thread that began linking its programs
-# (FirstFrameCompiles.prime), then compiles them anyway (a thread slowed down by other work cannot hold the first
-# frame back by more).
-FIRST_WARM_WAIT_S = 1.0
 
 
 def has_compute(ctx) -> bool:
@@ -186,14 +180,6 @@ class RenderOptions:
     # for it): the frame's compile is then the driver shader cache's hit instead of a cold compile on the frame loop
     # (issue 38; BENCHMARKS.md, "Deferred compiles warmed off the frame loop"). False: the frames compile them cold.
     warm_compile: bool = True
-    # The two programs compiled before a streamed first frame (the pool's prime_texels, the renderer's splat.vert)
-    # compiled side by side from the manifest on, each made through moderngl as the driver cache's hit: the pool's
-    # linked on a ShaderWarmer thread, the renderer's on the main thread's context through raw GL calls that release
-    # the interpreter lock (FirstFrameCompiles; the streaming session's). On a fresh H200 they were 80 + 87 ms one
-    # after the other of a 0.276 s cold first frame (issue 31; BENCHMARKS.md, "The first frame's two compiles side by
-    # side"). Not where the driver's disk cache is off (nothing carries over). False: compiled cold, one after the
-    # other.
-    warm_first: bool = True
 
     def __post_init__(self) -> None:
         if self.sort not in SORT_MODES:
@@ -249,106 +235,6 @@ def draws_cpu_first(ctx, options: RenderOptions) -> bool:
     with a host mirror: RenderOptions.cpu_first)."""
     return (options.cpu_first and options.sort == "auto" and options.draw == "auto" and options.raster_defaults
             and resolve_sort(ctx, options) == "gpu")
-
-
-def shader_disk_cache_off() -> bool:
-    """Whether the environment switches the driver's shader disk cache off (Mesa's MESA_SHADER_CACHE_DISABLE, NVIDIA's
-    __GL_SHADER_DISK_CACHE=0): a program linked on another context is then compiled again from nothing (measured on
-    both: BENCHMARKS.md, "Deferred compiles warmed off the frame loop")."""
-    mesa_off = os.environ.get("MESA_SHADER_CACHE_DISABLE", "").strip().lower() in ("1", "true", "yes", "on")
-    return mesa_off or os.environ.get("__GL_SHADER_DISK_CACHE", "").strip() in ("0", "false")
-
-
-def first_frame_programs(ctx, layout: PoolLayout, host_mirror: bool, options: RenderOptions) -> list[Stages]:
-    """The programs a SplatRenderer with these options compiles when made on a pool of this layout, in order, where
-    FirstFrameCompiles links them ahead: the CPU sort path's one (splat.vert's: CPU-sorted first frames, or the CPU
-    sort itself). The GPU path's up front (cpu_first=False, an explicit sort or draw) are not listed."""
-    sort = resolve_sort(ctx, options)
-    if sort == "gpu" and not (host_mirror and draws_cpu_first(ctx, options)):
-        return []
-    if not host_mirror:
-        return []  # the renderer raises (the CPU sort needs the mirror)
-    header = shadergen.decode_header(layout)
-    return [program_stages("raster", shadergen.render_sources(header, 430 if has_compute(ctx) else 410))]
-
-
-class FirstFrameCompiles:
-    """RenderOptions.warm_first: the two programs compiled before a streamed first frame (the pool's prime_texels,
-    the renderer's splat.vert) compiled side by side instead of one after the other, both then made through moderngl
-    as the driver shader cache's hits. Made on the renderer's thread, as soon as the manifest gives the pool's
-    layout and before the pool: a ShaderWarmer thread (its own EGL context) links the pool's programs while this
-    thread links the renderer's through raw GL calls on its own context (they release the interpreter lock, which a
-    moderngl compile holds: the thread and the root's decode run meanwhile); then the pool is made with prime=False
-    and the renderer (its compile the cache's hit of this thread's link), and prime(pool) waits for the thread where
-    it has begun compiling (FIRST_WARM_WAIT_S at most) and primes (its compile the hit of the thread's). The thread
-    and this thread release the lock only inside GL calls: a moderngl compile here would hold the thread between
-    two of its calls, hence the raw link here. Nothing when the option is off or the driver's disk cache is
-    (shader_disk_cache_off: nothing would carry over); a thread that fails only loses the overlap (the pool compiles
-    its program cold)."""
-
-    def __init__(self, ctx, layout: PoolLayout, host_mirror: bool, options: RenderOptions):
-        self.active = options.warm_first and not shader_disk_cache_off()
-        self.warmer: ShaderWarmer | None = None
-        self.linked_here_s: float | None = None  # this thread's raw compile + link of the renderer's program(s)
-        self.wait_s: float | None = None  # prime()'s wait for the thread
-        self.failed: str | None = None  # this thread's raw link failed (the renderer compiles as without it)
-        if not self.active:
-            return
-        specs = [(name, defines, RADIX_BITS) for name, defines in prime_program_specs(layout)]
-        pool_programs = [program_stages(None, spec) for spec in specs if not _cached_compute_program(ctx, spec)]
-        if pool_programs and has_compute(ctx):
-            self.warmer = ShaderWarmer(pool_programs)
-        t = time.perf_counter()
-        try:
-            for stages in first_frame_programs(ctx, layout, host_mirror, options):
-                link_here(stages)
-        except Exception as exc:  # noqa: BLE001 - an optimisation only: moderngl compiles (and reports) as before
-            self.failed = f"{type(exc).__name__}: {exc}"
-        self.linked_here_s = time.perf_counter() - t
-
-    @classmethod
-    def none(cls) -> FirstFrameCompiles:
-        """One that compiled nothing (a session's before its first build)."""
-        out = cls.__new__(cls)
-        out.active, out.warmer, out.linked_here_s, out.wait_s, out.failed = False, None, None, None, None
-        return out
-
-    def prime(self, pool: ChunkPool) -> None:
-        """Prime the pool's atlases (ChunkPool.prime_atlases) once the thread has linked their programs; at once
-        where it has not begun compiling yet (its context still being made: compiled here, as without it; with a
-        warm driver cache that compile is a hit, and the first frame does not wait for the thread's context)."""
-        warmer = self.warmer
-        if warmer is not None and warmer.started and not pool.primed:
-            t = time.perf_counter()
-            warmer.wait(warmer.programs, FIRST_WARM_WAIT_S)
-            self.wait_s = time.perf_counter() - t
-        pool.prime_atlases()
-        if warmer is not None:
-            warmer.stop(wait=False)  # done (or late: its programs are compiled here as without it)
-
-    def close(self) -> None:
-        """Join the thread (its context is on the renderer's display: gone before that one goes)."""
-        if self.warmer is not None:
-            self.warmer.stop()
-
-    @property
-    def seconds(self) -> dict[str, float | str]:
-        """For benchmarks: "here" (this thread's raw links), "wait" (prime's), the thread's compile + link of each
-        program by its define ("prime r32ui", ...), "failed" where it or this thread failed."""
-        out: dict[str, float | str] = {}
-        if self.linked_here_s is not None:
-            out["here"] = self.linked_here_s
-        if self.wait_s is not None:
-            out["wait"] = self.wait_s
-        warmer = self.warmer
-        if warmer is not None:
-            for stages, t in warmer.seconds.items():
-                out["prime " + stages[0][1].split("TEXEL_FORMAT ", 1)[1].split("\n", 1)[0]] = t
-            if warmer.failed:
-                out["failed"] = warmer.failed
-        if self.failed:
-            out["failed here"] = self.failed
-        return out
 
 
 @dataclass

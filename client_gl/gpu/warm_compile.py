@@ -105,10 +105,8 @@ class ShaderWarmer:
         self._done: set[Stages] = set()
         self.seconds: dict[Stages, float] = {}  # each program's compile + link on the thread (wall clock)
         self.failed: str | None = None
-        self._lock = threading.Condition()  # notified at each program linked and when the thread ends
+        self._lock = threading.Lock()
         self._stop = False
-        self._over = False  # the thread has compiled all it will
-        self.started = False  # its context is made: it is compiling
         self.thread: threading.Thread | None = None
         egl = _egl()
         if egl is None:
@@ -138,23 +136,10 @@ class ShaderWarmer:
         with self._lock:
             return stages in self._done
 
-    def wait(self, programs: Iterable[Stages], timeout_s: float) -> bool:
-        """Block (the interpreter lock released) until every one of `programs` is linked here, the thread is over
-        or `timeout_s` passed; True when they all were linked."""
-        wanted = set(programs)
-        deadline = time.perf_counter() + timeout_s
-        with self._lock:
-            while not wanted <= self._done and not self.finished:
-                left = deadline - time.perf_counter()
-                if left <= 0:
-                    break
-                self._lock.wait(left)
-            return wanted <= self._done
-
     @property
     def finished(self) -> bool:
-        """The thread is over (all compiled, stopped or failed; its context may still be being destroyed)."""
-        return self.thread is None or self._over or not self.thread.is_alive()
+        """The thread is over (all compiled, stopped or failed)."""
+        return self.thread is None or not self.thread.is_alive()
 
     def stop(self, wait: bool = True) -> None:
         """No more programs after the one being compiled (the renderer is released); wait: join the thread."""
@@ -185,7 +170,6 @@ class ShaderWarmer:
                 raise RuntimeError(f"eglCreateContext failed (0x{egl.eglGetError():x})")
             if not egl.eglMakeCurrent(display, None, None, context):
                 raise RuntimeError(f"eglMakeCurrent failed (0x{egl.eglGetError():x})")
-            self.started = True
             for stages in self.programs:
                 if self._stop:
                     break
@@ -194,25 +178,14 @@ class ShaderWarmer:
                 with self._lock:
                     self.seconds[stages] = time.perf_counter() - t0
                     self._done.add(stages)
-                    self._lock.notify_all()
         except Exception as exc:  # noqa: BLE001 - an optimisation only: the frame loop compiles as before
             self.failed = f"{type(exc).__name__}: {exc}"
         finally:
-            with self._lock:  # a waiter stops waiting (`finished` reads the thread's state: wake it to look again)
-                self._over = True
-                self._lock.notify_all()
             if context and display:
                 egl.eglMakeCurrent(display, None, None, None)
                 egl.eglDestroyContext(display, context)
             if egl is not None:
                 egl.eglReleaseThread()
-
-
-def link_here(stages: Stages) -> None:
-    """Compile and link one program on the calling thread's current GL context through the same raw calls (the
-    interpreter lock released through each) and delete it: the driver's cache keeps it for moderngl's compile of the
-    same sources on this context (renderer.FirstFrameCompiles). Raises where an entry point is missing."""
-    _compile_and_link(_gl_functions(), stages)
 
 
 def _compile_and_link(gl, stages: Stages) -> None:
