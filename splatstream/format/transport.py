@@ -1320,7 +1320,9 @@ _slabs = threading.local()
 # The whole kernel's outputs kept per thread for reuse (texel_slab), up to this many bytes in all; sizes rounded up to
 # SLAB_STEP so that a run's slab fits the next pass's run of about its size.
 KEEP_SLAB_BYTES = 1 << 25
+KEEP_SLABS = 32  # and at most this many (each call looks at every one)
 SLAB_STEP = 1 << 16
+SLAB_MIN_BYTES = 1 << 17  # smaller outputs a fresh array as before (glibc's default mmap threshold: its heap's)
 
 
 def _free_slab_refs() -> int:
@@ -1342,9 +1344,10 @@ def _slab_free(slabs: list[np.ndarray], i: int) -> bool:
 def texel_slab(size: int) -> np.ndarray:
     """`size` bytes for the whole kernel's texels (contents undefined): a view of the smallest of this thread's kept
     slabs that fits it (at most twice its size) and that no plane views any more, else of a new slab kept while this
-    thread's slabs take at most KEEP_SLAB_BYTES (slabs nothing views are let go, oldest first, to make room), else a
-    fresh array, as before. Planes returned earlier keep their slab, and their bytes, for as long as they are held:
-    a slab is handed out again only once nothing views it.
+    thread's slabs are at most KEEP_SLABS and take at most KEEP_SLAB_BYTES (slabs nothing views are let go, oldest
+    first, to make room), else a fresh array, as before; below SLAB_MIN_BYTES a fresh array. Planes returned earlier
+    keep their slab, and their bytes, for as long as they are held: a slab is handed out again only once nothing
+    views it.
 
     Why: a group's texels were a fresh array a run (about 1 MB; very-high's pass on the LOD tree 14 MB), and whether
     malloc hands back pages already mapped or new ones that fault in on the kernel's first write depends on what the
@@ -1352,6 +1355,8 @@ def texel_slab(size: int) -> np.ndarray:
     tree took 12.5 ms in a process whose runs faulted (about 3,000 faults a pass, zstd's joined frames included)
     and 8.3 in one whose runs did not, with the same code (issue 32: r23's host read very-high at 9.8-10.0 M
     splats/s; BENCHMARKS.md, "Decode speed", vhdecode32). Kept slabs make that the same in every process."""
+    if size < SLAB_MIN_BYTES:
+        return np.empty(size, np.uint8)
     slabs = getattr(_slabs, "kept", None)
     if slabs is None:
         slabs = _slabs.kept = []
@@ -1367,13 +1372,13 @@ def texel_slab(size: int) -> np.ndarray:
     want = max(SLAB_STEP, size + -size % SLAB_STEP)
     held = sum(s.size for s in slabs)
     i = 0
-    while held + want > KEEP_SLAB_BYTES and i < len(slabs):  # room: let go of slabs nothing views, oldest first
-        if _slab_free(slabs, i):
+    while (held + want > KEEP_SLAB_BYTES or len(slabs) >= KEEP_SLABS) and i < len(slabs):
+        if _slab_free(slabs, i):  # room: let go of slabs nothing views, oldest first
             held -= slabs[i].size
             del slabs[i]
         else:
             i += 1
-    if held + want > KEEP_SLAB_BYTES:
+    if held + want > KEEP_SLAB_BYTES or len(slabs) >= KEEP_SLABS:
         return np.empty(size, np.uint8)
     slabs.append(np.empty(want, np.uint8))
     return slabs[-1][:size]
