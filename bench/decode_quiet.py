@@ -28,7 +28,10 @@ median and best of --runs passes. The split of a `group` pass: sha256, zstd, unf
 unfiltering, range checks, copies and the Python around them) and check (= group - verified: the SHA-256 and its
 Python). Per payload, one at a time (`one` with the last kernel, each payload alone, least of 2 calls), fitted as
 fixed + per splat (least squares), beside SHA-256's and zstd's fits: the fixed cost less theirs is a payload's
-Python and numpy-call overhead. Texels are checked equal across variants and kernels. Prints one JSON object
+Python and numpy-call overhead. Texels are checked equal across variants and kernels. `faults_a_pass`: the
+median minor page faults of this thread in a pass of each decoding variant (a pass that faults its output's pages in
+again each time reads very-high 1.3-2x slower: whether it does depends on the process's malloc state; vhdecode32's
+kept texel slabs and frames buffer leave it none; BENCHMARKS.md, "Decode speed", vhdecode32). Prints one JSON object
 (and writes it to $OUT/decode_quiet.json when OUT is set, or to --json).
 """
 from __future__ import annotations
@@ -48,6 +51,11 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as the CLI sets it; the en
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.abspath(__file__)), ".."))
 
 import numpy as np  # noqa: E402
+
+try:
+    import resource  # Unix: the page faults a pass
+except ImportError:  # pragma: no cover - not on Linux
+    resource = None
 
 from splatstream.encode import EncodeOptions  # noqa: E402
 from splatstream.encode.local import encode_in_memory  # noqa: E402
@@ -115,10 +123,12 @@ class Case:
         self.tiles = len(m.tiles)
         self.bytes = sum(len(d) for v in self.groups.values() for d, _ in v)
         self.raw_bytes = sum(e.raw_bytes for v in self.groups.values() for _, e in v)
+        self.faults: dict[str, list[int]] = {}  # minor page faults of each pass, by variant
 
     def run(self, variant: str) -> float:
-        """CPU seconds of this thread for one pass of `variant` over every payload."""
+        """CPU seconds of this thread for one pass of `variant` over every payload (its page faults noted)."""
         cb = self.codebook
+        faults = _faults()
         start = time.thread_time()
         if variant == "group":
             for group, items in self.groups.items():
@@ -139,7 +149,9 @@ class Case:
                 for data, entry in items:
                     buf, _ = container._raw_buffer(entry.raw_bytes)
                     container._decompress_into(data, buf, "bench")
-        return time.thread_time() - start
+        took = time.thread_time() - start
+        self.faults.setdefault(variant, []).append(_faults() - faults)
+        return took
 
     def texels(self) -> list[bytes]:
         """Every texel and range byte, decoded by each variant (which must agree)."""
@@ -192,6 +204,11 @@ class Case:
         out["overhead_us_per_payload"] = round(out["one"]["fixed_us"] - out["sha256"]["fixed_us"]
                                                - out["zstd"]["fixed_us"], 1)
         return out
+
+
+def _faults() -> int:
+    """This thread's minor page faults so far (0 where the platform does not count them)."""
+    return resource.getrusage(getattr(resource, "RUSAGE_THREAD", resource.RUSAGE_SELF)).ru_minflt if resource else 0
 
 
 def _bytes(planes: dict) -> list[bytes]:
@@ -297,10 +314,12 @@ def main() -> None:
                 raise SystemExit(f"{scene} {preset}: the {name} kernel decodes to other texels")
             reference = got
         times: dict[tuple, list[float]] = {v: [] for v in variants}
+        faults: dict[tuple, list[int]] = {v: [] for v in variants}
         for _ in range(args.runs):  # the texel check above was the warm-up (allocations, caches, kernels)
             for v in variants:
                 _use(kernels.get(v[1]))
                 times[v].append(case.run(v[0]))
+                faults[v].append(case.faults[v[0]][-1])
         med = {v: statistics.median(ts) for v, ts in times.items()}
         row = {
             "scene": scene, "preset": preset, "tiles": case.tiles, "payloads": case.payloads,
@@ -319,6 +338,7 @@ def main() -> None:
                 "check": round((med["group", name] - med["verified", name]) * 1e3, 3),
                 "group": round(med["group", name] * 1e3, 3),
             }
+            k["faults_a_pass"] = {v: statistics.median(faults[v, name]) for v in decodes}
             row[name] = k
         if not args.no_fit:
             _use(kernels[list(kernels)[-1]])
@@ -328,6 +348,7 @@ def main() -> None:
         print(f"{scene:>24} {preset:>20}: " + "; ".join(
             f"{name} group {row[name]['group']:6.2f} (best {row[name]['group_best']:6.2f}) verified "
             f"{row[name]['verified']:6.2f}" + (f" one {row[name]['one']:6.2f}" if args.one else "")
+            + f" ({row[name]['faults_a_pass']['verified']:.0f} faults a pass)"
             for name in kernels)
             + f" M splats/s; {case.payloads} payloads", file=sys.stderr, flush=True)
     _use(None)

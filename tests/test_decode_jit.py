@@ -710,3 +710,53 @@ def test_a_kernel_handed_back_during_a_call_does_not_break_it(numpy_path, fruit,
         return real_step(*args, **kwargs)
     monkeypatch.setattr(module, name, step)
     assert decode_all() == by_numpy
+
+
+@pytest.fixture(scope="module")
+def winter_fountain_very_high():
+    """winter_fountain (a bundled real scene, SH0) encoded with very-high and the encoder's defaults (the LOD tree
+    bench/decode_quiet.py reads: 221 payloads of a few hundred splats, every texel plane f32x4)."""
+    store = encode_in_memory(read_gaussians(real("winter_fountain.splat")), EncodeOptions(preset="very-high"))
+    m = read_manifest(store)
+    return m, payloads_by_group(store, m)
+
+
+def test_very_high_decodes_with_the_kernels_as_the_numpy_path(numpy_path, winter_fountain_very_high):
+    # f32x4's own path in fields1_kernel (_f32x4_layer: uint32 residuals, the running sums taken as the texels are
+    # written) on a real scene's very-high payloads, every delta mode the encoder chose among them: the numpy path's
+    # bytes, bit for bit, a whole group at once (the whole kernel, in runs), each payload alone, and a section at a
+    # time (the fields kernel without the whole one)
+    m, by_group = winter_fountain_very_high
+    fields1 = [s for items in by_group.values() for _, e in items for s in e.sections if s.filter == "fields1"]
+    assert fields1 and {s.format for s in fields1} == {"f32x4"}
+    by_numpy = _planes_of_groups(by_group, m, alone=3)
+    decode_jit.install()
+    assert _planes_of_groups(by_group, m, alone=3) == by_numpy
+    transport.use_whole_kernel(None)
+    transport.use_batch_kernels(None, None)
+    assert _planes_of_groups(by_group, m, alone=3) == by_numpy
+
+
+def test_planes_kept_from_an_earlier_decode_keep_their_bytes(numpy_path, winter_fountain_very_high, fruit):
+    # the whole kernel writes into this thread's kept slabs (transport.texel_slab): planes still held from an earlier
+    # decode keep their bytes while other groups are decoded into slabs again and again, and a slab is written again
+    # only once nothing views it
+    m, by_group = winter_fountain_very_high
+    decode_jit.install()
+    items = by_group["base"]
+    kept = container.unpack_payloads(items[:40], "base", ["kept"] * 40)
+    expected = [planes_bytes(p) for p in kept]
+    store = encode_in_memory(fruit, EncodeOptions(preset="medium", max_leaf_splats=512))
+    others = payloads_by_group(store, read_manifest(store))
+    for _ in range(3):
+        container.unpack_payloads(items, "base", ["all"] * len(items))
+        for group, its in others.items():
+            container.unpack_payloads(its, group, ["fruit"] * len(its))
+    assert [planes_bytes(p) for p in kept] == expected
+    slabs = transport._slabs.kept
+    held = [i for i in range(len(slabs)) if not transport._slab_free(slabs, i)]
+    assert held  # the kept planes' slab, not handed out again
+    views = [a for p in kept for q in p.values() for a in q.layers]
+    assert all(any(np.shares_memory(v, slabs[i]) for i in held) for v in views)
+    del kept, views
+    assert all(transport._slab_free(slabs, i) for i in range(len(slabs)))

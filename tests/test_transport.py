@@ -426,3 +426,49 @@ def test_damaged_fields1_sections_in_a_payload_raise_format_error(tmp_path):
         forged_entry = replace(entry, sha256=sha, file=f"data/{sha}.bin", bytes=len(forged))
         with pytest.raises(FormatError, match="section position"):
             decode_payload(forged, forged_entry, "base", "forged")
+
+
+def test_texel_slabs_are_handed_out_again_only_once_nothing_views_them(monkeypatch):
+    # transport.texel_slab (the whole kernel's output): a slab comes back for the next call of about its size once no
+    # array views it, never while one does (planes held from an earlier decode keep their bytes); at most
+    # KEEP_SLAB_BYTES are kept per thread, beyond it a fresh array; each thread has its own slabs
+    import threading
+
+    from splatstream.format import transport
+    monkeypatch.setattr(transport._slabs, "kept", [], raising=False)
+    a = transport.texel_slab(300_000)
+    a[:] = 7
+    layer = a[1000:2000]  # a plane's view, as the planes returned hold
+    del a
+    b = transport.texel_slab(300_000)
+    assert not np.shares_memory(b, layer) and (layer == 7).all()
+    del layer
+    c = transport.texel_slab(290_000)  # the first slab again (the smallest free one that fits), not a third
+    assert len(transport._slabs.kept) == 2 and np.shares_memory(c, transport._slabs.kept[0])
+    del b, c
+    small = transport.texel_slab(1000)  # below SLAB_MIN_BYTES: a fresh array, no slab
+    assert small.size == 1000 and len(transport._slabs.kept) == 2
+    del small
+    unit = transport.SLAB_MIN_BYTES
+    assert unit % transport.SLAB_STEP == 0
+    monkeypatch.setattr(transport, "KEEP_SLAB_BYTES", 4 * unit)
+    transport._slabs.kept = []
+    held = [transport.texel_slab(unit) for _ in range(6)]  # four kept, then fresh arrays: every one its own bytes
+    assert [s.size for s in transport._slabs.kept] == [unit] * 4 and all(h.size == unit for h in held)
+    assert sum(any(np.shares_memory(h, s) for s in transport._slabs.kept) for h in held) == 4
+    assert not any(np.shares_memory(x, y) for i, x in enumerate(held) for y in held[i + 1:])
+    last = held[3]
+    del held
+    large = transport.texel_slab(3 * unit)  # slabs nothing views let go, oldest first, to make room for a larger one
+    assert [s.size for s in transport._slabs.kept] == [unit, 3 * unit]
+    assert np.shares_memory(last, transport._slabs.kept[0]) and np.shares_memory(large, transport._slabs.kept[1])
+    monkeypatch.setattr(transport, "KEEP_SLAB_BYTES", 1 << 30)
+    monkeypatch.setattr(transport, "KEEP_SLABS", 3)
+    more = [transport.texel_slab(2 * unit) for _ in range(3)]  # at most KEEP_SLABS slabs, whatever their bytes
+    assert len(transport._slabs.kept) == 3 and sum(any(np.shares_memory(m, s) for s in transport._slabs.kept)
+                                                   for m in more) == 1
+    other: list = []
+    thread = threading.Thread(target=lambda: other.append((transport.texel_slab(unit), transport._slabs.kept)))
+    thread.start()
+    thread.join()
+    assert other[0][1] is not transport._slabs.kept and np.shares_memory(other[0][0], other[0][1][0])

@@ -48,6 +48,48 @@ WHOLE_ENV = "SPLATSTREAM_DECODE_WHOLE"  # "0": install() leaves the whole kernel
 
 
 @njit(**_JIT)
+def _f32x4_layer(raw, base, n, deltas, work, slot_to_texel, o):
+    """One layer of an f32x4 fields1 content (`o`: its texels' words, texture order), the general loops' bytes: each
+    field's zigzag residuals from its four byte planes into a row of `work` taken as uint32, then one loop over the
+    slots that adds the four running sums (four chains that do not wait on each other; a field that is not delta
+    starts each slot from 0: its mask) and writes each texel's four words.
+
+    Why its own path: very-high, every plane f32x4, was the slowest preset on a slow core (issue 32: 9.8-10.0 M
+    splats/s on r23's host). In uint32 a residual loop takes twice the values a vector instruction of int64 takes
+    (a 32-bit field's sum modulo 2^32 is uint32's own wrap: no mask), and the running sums taken while the texels are
+    written save the separate pass over each row (about 0.8x of the general loops' time on very-high's sections:
+    BENCHMARKS.md, "Decode speed", vhdecode32)."""
+    for f in range(4):
+        b0 = raw[base + 4 * f * n:base + (4 * f + 1) * n]
+        b1 = raw[base + (4 * f + 1) * n:base + (4 * f + 2) * n]
+        b2 = raw[base + (4 * f + 2) * n:base + (4 * f + 3) * n]
+        b3 = raw[base + (4 * f + 3) * n:base + (4 * f + 4) * n]
+        row = work[f].view(np.uint32)
+        for i in range(n):
+            c = (np.uint32(b0[i]) | (np.uint32(b1[i]) << np.uint32(8)) | (np.uint32(b2[i]) << np.uint32(16))
+                 | (np.uint32(b3[i]) << np.uint32(24)))
+            row[i] = (c >> np.uint32(1)) ^ (np.uint32(0) - (c & np.uint32(1)))
+    keep0 = np.uint32(0xFFFFFFFF) if deltas[0] else np.uint32(0)
+    keep1 = np.uint32(0xFFFFFFFF) if deltas[1] else np.uint32(0)
+    keep2 = np.uint32(0xFFFFFFFF) if deltas[2] else np.uint32(0)
+    keep3 = np.uint32(0xFFFFFFFF) if deltas[3] else np.uint32(0)
+    r0, r1 = work[0].view(np.uint32)[:n], work[1].view(np.uint32)[:n]
+    r2, r3 = work[2].view(np.uint32)[:n], work[3].view(np.uint32)[:n]
+    s0 = s1 = s2 = s3 = np.uint32(0)
+    for i in range(n):
+        s0 = (s0 & keep0) + r0[i]
+        s1 = (s1 & keep1) + r1[i]
+        s2 = (s2 & keep2) + r2[i]
+        s3 = (s3 & keep3) + r3[i]
+        # an unsigned index: numba checks a signed one for a negative value (wraparound) on every write
+        t = np.uint64(slot_to_texel[i]) * np.uint64(4)
+        o[t] = s0
+        o[t + np.uint64(1)] = s1
+        o[t + np.uint64(2)] = s2
+        o[t + np.uint64(3)] = s3
+
+
+@njit(**_JIT)
 def fields1_kernel(raw, planes_at, params_at, n, layers, words, fields, modes, slot_to_texel, work, out):
     """Decode a fields1 content's layers into `out` (its texel words, native order, texture order); `work` is
     (fields, n) int64 scratch; `fields` and `modes` are transport._kernel_args' tables (few arguments: each one
@@ -60,6 +102,15 @@ def fields1_kernel(raw, planes_at, params_at, n, layers, words, fields, modes, s
     blocks = n // 256
     plane_bytes = plane_index[nf - 1] + nbytes[nf - 1]
     pos = planes_at
+    words32 = words == 4 and nf == 4 and plane_bytes == 16  # f32x4: four 32-bit fields, a word each
+    for k in range(layers * nf):
+        words32 = words32 and refs[k] < 0  # (the header check refuses a predicted field wider than 16 bits)
+    if words32:
+        for layer in range(layers):
+            _f32x4_layer(raw, pos, n, deltas[layer * 4:layer * 4 + 4], work, slot_to_texel,
+                         out[layer * n * 4:(layer + 1) * n * 4])
+            pos += n * 16
+        return
     for layer in range(layers):
         mode = layer * nf
         for f in range(nf):

@@ -585,14 +585,21 @@ def _decompress_group(items: list[tuple[bytes | memoryview, PayloadEntry]], size
     of a small payload's zstd (issue 32: the LOD tree's payloads of a few hundred splats); one reader for a group
     of them pays it once (measured 1.3-2 us a payload less, the frames' copy end to end included). Groups above
     GROUP_READ_MAX_BYTES compressed go a payload at a time: no copy of their frames."""
-    if len(items) < 2 or sum(len(data) for data, _ in items) > GROUP_READ_MAX_BYTES:
+    joined = sum(len(data) for data, _ in items)
+    if len(items) < 2 or joined > GROUP_READ_MAX_BYTES:
         return False
     try:
         for (data, _), size in zip(items, sizes, strict=True):
             if zstandard.frame_content_size(data) != size:
                 return False
         total = whole.size
-        with _decompressor().stream_reader(b"".join([data for data, _ in items]), read_across_frames=True) as reader:
+        frames = _frames_buffer(joined)
+        at = 0
+        for data, _ in items:  # a memoryview's slices: about 0.6 us a frame, where numpy's concatenate took 0.9
+            end = at + len(data)
+            frames[at:end] = data
+            at = end
+        with _decompressor().stream_reader(frames[:joined], read_across_frames=True) as reader:
             got = reader.readinto(whole)
             while got < total:
                 k = reader.readinto(whole[got:])
@@ -602,6 +609,18 @@ def _decompress_group(items: list[tuple[bytes | memoryview, PayloadEntry]], size
             return got == total and not reader.read(1)
     except zstandard.ZstdError:
         return False
+
+
+def _frames_buffer(size: int) -> memoryview:
+    """A memoryview of this thread's kept buffer for a group's frames end to end (_decompress_group), at least `size`
+    bytes (grown in powers of two, at most GROUP_READ_MAX_BYTES). Why kept: the frames joined into fresh bytes (a
+    run's 0.4-0.7 MB) faulted their pages in again each run in a process whose malloc handed back new pages, about
+    2,000 of a 12.5 ms pass's 5,300 faults on very-high's LOD tree on this VM (issue 32; BENCHMARKS.md, "Decode
+    speed", vhdecode32)."""
+    view = getattr(_local, "frames", None)
+    if view is None or len(view) < size:
+        view = _local.frames = memoryview(np.empty(1 << max(16, (size - 1).bit_length()), np.uint8)).cast("B")
+    return view
 
 
 def _batchable(entry: PayloadEntry) -> bool:

@@ -20,6 +20,7 @@ size (plus its small per-block parameters).
 from __future__ import annotations
 
 import functools
+import sys
 import threading
 from collections.abc import Iterable
 from dataclasses import dataclass, field
@@ -1315,6 +1316,74 @@ def _scratch(name: str, size: int) -> np.ndarray:
     return buf[:size]
 
 
+_slabs = threading.local()
+# The whole kernel's outputs kept per thread for reuse (texel_slab), up to this many bytes in all; sizes rounded up to
+# SLAB_STEP so that a run's slab fits the next pass's run of about its size.
+KEEP_SLAB_BYTES = 1 << 25
+KEEP_SLABS = 32  # and at most this many (each call looks at every one)
+SLAB_STEP = 1 << 16
+SLAB_MIN_BYTES = 1 << 17  # smaller outputs a fresh array as before (glibc's default mmap threshold: its heap's)
+
+
+def _free_slab_refs() -> int:
+    """A slab's reference count, as _slab_free reads it, when only its list holds it (the interpreter's own count of
+    an argument and a subscript's result differ between Python versions: measured, not assumed)."""
+    probe = [np.empty(0)]
+    return sys.getrefcount(probe[0])
+
+
+_FREE_SLAB_REFS = _free_slab_refs()
+
+
+def _slab_free(slabs: list[np.ndarray], i: int) -> bool:
+    """Whether slabs[i] is held by its list alone: no array viewing it is left (a view's base is the slab itself:
+    numpy points a view of a view at the array that owns the memory), so its bytes may be written again."""
+    return sys.getrefcount(slabs[i]) <= _FREE_SLAB_REFS
+
+
+def texel_slab(size: int) -> np.ndarray:
+    """`size` bytes for the whole kernel's texels (contents undefined): a view of the smallest of this thread's kept
+    slabs that fits it (at most twice its size) and that no plane views any more, else of a new slab kept while this
+    thread's slabs are at most KEEP_SLABS and take at most KEEP_SLAB_BYTES (slabs nothing views are let go, oldest
+    first, to make room), else a fresh array, as before; below SLAB_MIN_BYTES a fresh array. Planes returned earlier
+    keep their slab, and their bytes, for as long as they are held: a slab is handed out again only once nothing
+    views it.
+
+    Why: a group's texels were a fresh array a run (about 1 MB; very-high's pass on the LOD tree 14 MB), and whether
+    malloc hands back pages already mapped or new ones that fault in on the kernel's first write depends on what the
+    process freed before (glibc's mmap threshold and heap trimming): on this VM a `verified` pass of very-high's LOD
+    tree took 12.5 ms in a process whose runs faulted (about 3,000 faults a pass, zstd's joined frames included)
+    and 8.3 in one whose runs did not, with the same code (issue 32: r23's host read very-high at 9.8-10.0 M
+    splats/s; BENCHMARKS.md, "Decode speed", vhdecode32). Kept slabs make that the same in every process."""
+    if size < SLAB_MIN_BYTES:
+        return np.empty(size, np.uint8)
+    slabs = getattr(_slabs, "kept", None)
+    if slabs is None:
+        slabs = _slabs.kept = []
+    best = -1
+    fit = 2 * size + SLAB_STEP  # the most a slab may hold for this size
+    free, refs = _FREE_SLAB_REFS, sys.getrefcount
+    for i in range(len(slabs)):
+        have = slabs[i].size
+        if size <= have < fit and refs(slabs[i]) <= free:  # _slab_free, inline (a run's call, a dozen slabs)
+            best, fit = i, have
+    if best >= 0:
+        return slabs[best][:size]
+    want = max(SLAB_STEP, size + -size % SLAB_STEP)
+    held = sum(s.size for s in slabs)
+    i = 0
+    while (held + want > KEEP_SLAB_BYTES or len(slabs) >= KEEP_SLABS) and i < len(slabs):
+        if _slab_free(slabs, i):  # room: let go of slabs nothing views, oldest first
+            held -= slabs[i].size
+            del slabs[i]
+        else:
+            i += 1
+    if held + want > KEEP_SLAB_BYTES or len(slabs) >= KEEP_SLABS:
+        return np.empty(size, np.uint8)
+    slabs.append(np.empty(want, np.uint8))
+    return slabs[-1][:size]
+
+
 def unshuffle_many(units: list[np.ndarray], element: int) -> list[np.ndarray]:
     """unshuffle of several units of one element size, the same bytes in fresh arrays (views of one array), in a
     few numpy calls for them all plus one copy a unit (small units' per-call overhead: issue 32)."""
@@ -1651,7 +1720,7 @@ def run_whole(raw: np.ndarray, flat: list[int], keys: tuple, unit_rows: list[int
             f, m, nm, o, check = columns[u]
             row_list += (planes_at, params_at, n, o, first, length, f, nf, m, nm, words, size_of, check)
         rows = np.array(row_list, np.int64).reshape(-1, 13)
-    out = np.empty(out_bytes + -out_bytes % 16, np.uint8)
+    out = texel_slab(out_bytes + -out_bytes % 16)
     work = _scratch("kernel", 8 * most_f * most_n).view(np.int64).reshape(most_f, most_n)
     kernel = _whole_kernel or _whole_kernel_planned
     status = kernel(raw, rows, fields, modes, orders, work, out, out.view(np.uint16), out.view(np.uint32),
