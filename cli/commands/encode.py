@@ -88,8 +88,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sh-codebook", metavar="off|auto|fine|large|N",
                    help="vector-quantise SH bands 1..3 into a scene-wide codebook of N entries (at most 65536; "
                         "auto: about one per 64 splats; fine: about one per 16, 256..16384; large: about one per 8, "
-                        "256..65536) with a 16-bit index per "
-                        "splat; the sh format then applies to the codebook. Default: the preset's choice ("
+                        "256..65536) with a 16-bit index per splat; the sh format then applies to the codebook; "
+                        "refused, but for off, where the scene keeps no SH band (an SH0 input, --sh-degree 0). "
+                        "Default: the preset's choice ("
                         + ", ".join(f"{k}: {v}" for k, v in PRESET_SH_CODEBOOK.items()) + "; the others: off)")
     p.add_argument("--no-lod", action="store_true", help="write one tile holding every splat (no LOD tree)")
     p.add_argument("--rebuild-lod", action="store_true",
