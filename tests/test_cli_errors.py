@@ -60,6 +60,8 @@ def cases(tmp, scene):
         (["info", tmp / "a_dir"], "a_dir"),
         (["decode", STREAMED_SOG, tmp / "o.ply"], "lod-meta.json here: a SOG scene"),  # says what reads it
         (["info", STREAMED_SOG / "lod-meta.json"], "lod-meta.json is read by `splatstream encode`, `convert`"),
+        # render and eval read such a file too, and the hint left them out (newuser62)
+        (["export-rad", DONUT, tmp / "o.rad"], "`convert`, `view`, `render` and `eval`)"),
         (["convert", tmp / "missing.ply", tmp / "o.ply"], "missing.ply"),
         (["convert", DONUT, tmp / "o.xyz"], "o.xyz"),
         (["convert", DONUT, tmp / "o.ply", "--scale", "0"], "--scale"),  # edits checked before the read
