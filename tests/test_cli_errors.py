@@ -44,6 +44,12 @@ def cases(tmp, scene):
         (["encode", DONUT, tmp / "a_file"], "a_file"),
         (["encode", DONUT, tmp / "o", "--preset", "ultra"], "--preset"),
         (["encode", DONUT, tmp / "o", "--zstd-level", "99"], "--zstd-level"),
+        # a number said back as given, not reformatted ("--target-size -3.0": newuser62)
+        (["encode", DONUT, tmp / "o", "--target-size", "-3"], "--target-size -3: expected a size above 0"),
+        (["encode", DONUT, tmp / "o", "--target-psnr", "0"], "--target-psnr 0: expected a PSNR above 0 dB"),
+        (["render", scene, "--max-sse", "-1", "--out", tmp / "o.png"], "--max-sse -1: expected 0 or more pixels"),
+        (["view", scene, "--headless", "--gpu-mem-mb", "-2"], "--gpu-mem-mb -2: expected a positive number"),
+        (["view", scene, "--headless", "--timeout", "0"], "--timeout 0: expected a positive number of seconds"),
         (["encode", DONUT, tmp / "o", "--sh-codebook", "many"], "many"),
         (["encode", tmp / "a_dir", tmp / "o"], "a_dir"),
         # one of our own scenes as input: it said only 'a directory without meta.json or lod-meta.json'

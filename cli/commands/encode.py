@@ -394,9 +394,9 @@ def target_lod_merge(named: str | None, distributed: bool) -> str:
 def _preset_for_target(args: argparse.Namespace, up: tuple[float, float, float] | None, distributed: bool) -> str:
     """Measure every preset on the input (splatstream.evaluate) and pick the one the target asks for."""
     if args.target_psnr is not None and not args.target_psnr > 0:
-        raise UsageError(f"--target-psnr {args.target_psnr}: expected a PSNR above 0 dB")
+        raise UsageError(f"--target-psnr {args.target_psnr:g}: expected a PSNR above 0 dB")
     if args.target_size is not None and not args.target_size > 0:
-        raise UsageError(f"--target-size {args.target_size}: expected a size above 0 bytes per splat")
+        raise UsageError(f"--target-size {args.target_size:g}: expected a size above 0 bytes per splat")
     if args.target_views < 1:
         raise UsageError(f"--target-views {args.target_views}: expected at least 1")
 

@@ -117,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
     if ext not in (".png", ""):
         raise UsageError(f"--out: only .png images are written, got {args.out!r}")
     if args.max_sse is not None and not args.max_sse >= 0:
-        raise UsageError(f"--max-sse {args.max_sse}: expected 0 or more pixels")
+        raise UsageError(f"--max-sse {args.max_sse:g}: expected 0 or more pixels")
     t0 = time.perf_counter()
     # A directory is an encoded scene (or a damaged one: it has data/), else a SOG scene directory or nothing
     # readable, which read_gaussians reports.
