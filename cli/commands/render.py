@@ -173,7 +173,7 @@ def run(args: argparse.Namespace) -> int:
         renderer.close()
     _write_png(args.out, img)
     if not args.quiet:
-        print(f"wrote {args.out}: {cam.width}x{cam.height}, {splats} splats, sort {sort}, {gl_name}, "
+        print(f"wrote {args.out}: {cam.width}x{cam.height}, {splats:,} splats, sort {sort}, {gl_name}, "
               f"{per_splat:.1f} GPU B/splat, load {t1 - t0:.2f}s, render {(t2 - t1) * 1e3:.0f} ms", file=sys.stderr)
     return 0
 
