@@ -14,6 +14,7 @@ import warnings
 
 from splatstream import __version__
 from splatstream.errors import SplatstreamError
+from splatstream.progress import end_open_line
 
 from .commands.edit_flags import attach_negative_values  # numpy-free: see the BLAS note below
 
@@ -137,6 +138,7 @@ def _output_named(args: argparse.Namespace, exc: OSError) -> str:
 
 
 def _show_warning(message, category, filename, lineno, file=None, line=None):
+    end_open_line()
     print(f"splatstream: warning: {message}", file=sys.stderr)
 
 
@@ -147,7 +149,10 @@ def main(argv: list[str] | None = None) -> int:
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _on_sigterm)  # `serve` installs its own (aiohttp's graceful shutdown)
     try:
-        rc = args.func(args)
+        try:
+            rc = args.func(args)
+        finally:
+            end_open_line()  # a progress bar left mid-line on a terminal: a failure's line starts a line of its own
     except SplatstreamError as exc:
         print(f"splatstream {args.command}: error: {exc}", file=sys.stderr)
         return EXIT_BAD_INPUT

@@ -18,7 +18,7 @@ from PIL import Image
 from splatstream.atomic import atomic_file
 from splatstream.camera import Camera, look_at_near_far, turn_about_up
 from splatstream.camera_path import CameraPath
-from splatstream.progress import ProgressPrinter
+from splatstream.progress import ProgressPrinter, bar_drawn, end_open_line
 
 from .gpu.gl import wait_for_gpu
 from .streaming import StreamingSession, ViewOptions, freeze_long_lived
@@ -110,7 +110,11 @@ def _measure_frames(session: StreamingSession, ctx, cam: Camera, sh_degree: int 
 
 def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
     """Stream until done; (exit code, metrics JSON)."""
-    say = (lambda msg: None) if run.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
+    def say(msg: str) -> None:
+        if not run.quiet:
+            end_open_line()  # below a terminal's status line, not glued onto it
+            print(msg, file=sys.stderr, flush=True)
+
     tty = sys.stderr.isatty() and not run.quiet
 
     # Reading and encoding a file or a foreign tree before the first frame (playbot's streamed SOG: 10-20 s) shows
@@ -148,12 +152,14 @@ def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
                 if tty:
                     sys.stderr.write("\r" + line + ("\n" if done else ""))
                     sys.stderr.flush()
+                    bar_drawn(sys.stderr, ended=done)  # a failure's line then starts a line of its own
                 elif done or frame % 20 == 1:
                     say(line)
             if session.manifest_changes != versions:
                 versions = session.manifest_changes
                 if tty:
                     sys.stderr.write("\n")
+                    bar_drawn(sys.stderr, ended=True)
                 say(new_version_line(session))
             failing = None if warned or done else session.fetcher.failing()
             if failing and failing[0][2] >= RETRIES_BEFORE_A_WARNING:

@@ -290,6 +290,14 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
     log(f"read {input_path}: {len(g):,} splats, SH degree {g.sh_degree} ({time.perf_counter() - t:.1f} s)")
     if len(g) == 0:
         raise InputError(input_path, None, "the scene holds no splats")
+    for name, _, _, sh_degree, sh_codebook in variants:
+        # refused by the encode (encode.codebook.check_codebook_option) after the presets' runs, naming --sh-codebook,
+        # which eval has not: said at once, naming the variant (newuser62)
+        kept = g.sh_degree if sh_degree is None else min(sh_degree, g.sh_degree)
+        if sh_codebook not in (None, "off", "0") and kept < 1:
+            raise UsageError(f"variant {name!r}: sh_codebook={sh_codebook} needs SH bands 1..3, and {input_path} keeps "
+                             f"none (SH degree {g.sh_degree}" + (f", sh_degree={sh_degree}" if sh_degree is not None
+                                                                 else "") + "); leave sh_codebook out")
     evr = renderer or reference_renderer()
     renderer, renderer_name, renderer_kind = evr.render, evr.name, evr.kind
     up = opts.up if opts.up is not None else scene_up(input_path, g).up

@@ -42,6 +42,26 @@ class Tally:
         self.report(1.0)
 
 
+# The stream whose last line is a progress bar not yet ended by a newline (a terminal's "\r"-redrawn bar), or None: a
+# command that fails mid-stage printed its one-line error glued onto the bar ("...  0.0%     0.0ssplatstream encode:
+# error: ..."; newuser62), so the CLI ends that line first (end_open_line).
+_open_line: list = [None]
+
+
+def bar_drawn(stream, ended: bool) -> None:
+    """Record that a redrawn status line was written to `stream`: left open (no newline yet), or `ended`."""
+    _open_line[0] = None if ended else stream
+
+
+def end_open_line() -> None:
+    """End a progress bar left open on its terminal, so that what is printed next starts a line of its own."""
+    stream, _open_line[0] = _open_line[0], None
+    if stream is not None:
+        with contextlib.suppress(OSError, ValueError):
+            stream.write("\n")
+            stream.flush()
+
+
 class ProgressPrinter:
     def __init__(self, label: str, stream=None, enabled: bool = True):
         self.label = label
@@ -68,6 +88,7 @@ class ProgressPrinter:
             if fraction >= 1.0:
                 self.stream.write("\n")
             self.stream.flush()
+            bar_drawn(self.stream, ended=fraction >= 1.0)
             self._last_stage = stage
             return
         step = int(fraction * 4)
@@ -82,6 +103,8 @@ class ProgressPrinter:
             return
         self.stream.write(("\r\033[K" if self.tty else "") + f"{self.label}: {message}\n")
         self.stream.flush()
+        if self.tty:
+            bar_drawn(self.stream, ended=True)  # the bar was cleared: the note ends its line
         self._last_draw = 0.0
 
     @contextlib.contextmanager

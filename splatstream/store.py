@@ -78,8 +78,8 @@ class DirectoryStore:
         if not os.path.isdir(self.path):
             what = "no such directory" if not os.path.exists(self.path) else "not a directory"
             # `info playbot/lod-meta.json` is a new user's first try: say which commands read such a file
-            hint = ("; a splat file or a streamed SOG's lod-meta.json is read by `splatstream encode`, `convert` "
-                    "and `view`" if os.path.isfile(self.path) else "")
+            hint = ("; a splat file or a streamed SOG's lod-meta.json is read by `splatstream encode`, `convert`, "
+                    "`view`, `render` and `eval`" if os.path.isfile(self.path) else "")
             raise FormatError(self.path, None, f"{what} (expected a scene directory holding {MANIFEST_NAME}{hint})")
 
     @property

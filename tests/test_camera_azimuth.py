@@ -88,9 +88,10 @@ def test_encode_camera_azimuth_of_a_foreign_tree(tmp_path):
 
 
 @pytest.mark.parametrize("value", ["400", "-361", "nan", "inf", "half", "1,2"])
-@pytest.mark.parametrize("command", ["encode", "view"])
+@pytest.mark.parametrize("command", ["encode", "view", "render"])
 def test_bad_camera_azimuth_is_refused_in_one_line(donut_default, tmp_path, command, value):
-    args = [DONUT, tmp_path / "out"] if command == "encode" else [donut_default, "--headless"]
+    args = {"encode": [DONUT, tmp_path / "out"], "view": [donut_default, "--headless"],
+            "render": [DONUT, "--out", tmp_path / "out"]}[command]
     r = run_cli(command, *args, f"--camera-azimuth={value}")
     assert r.returncode == 2, r.stderr
     lines = r.stderr.strip().splitlines()
@@ -104,6 +105,38 @@ def test_view_camera_azimuth_with_another_camera_is_refused(donut_default, tmp_p
     assert r.returncode == 2, r.stderr
     lines = r.stderr.strip().splitlines()
     assert len(lines) == 1 and "--camera-azimuth" in lines[0] and other[0] in lines[0], r.stderr
+
+
+@pytest.mark.parametrize("other", [["--eye", "1,1,1", "--target", "0,0,0"], ["--eye", "1,1,1"], ["--target", "0,0,0"]])
+def test_render_camera_azimuth_with_another_camera_is_refused(donut_default, tmp_path, other):
+    r = run_cli("render", donut_default, "--out", tmp_path / "x.png", "--camera-azimuth", "90", *other)
+    assert r.returncode == 2, r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and "--camera-azimuth" in lines[0] and other[0] in lines[0], r.stderr
+    assert not (tmp_path / "x.png").exists()
+
+
+def test_render_camera_azimuth_draws_the_scene_encoded_turned(donut_default, tmp_path, gl_context):
+    """`render` had no --camera-azimuth though encode and view take it (newuser62): `render SCENE --camera-azimuth
+    180` draws what `encode --camera-azimuth 180` makes the scene's own camera, and `render FILE --camera-azimuth 180`
+    the file's suggested camera turned so (the donut's: the one encode stores)."""
+    from PIL import Image
+
+    turned = tmp_path / "turned"
+    r = run_cli("encode", DONUT, turned, "--max-leaf-splats", "8000", "--camera-azimuth", "180", "-q")
+    assert r.returncode == 0, r.stderr
+    shots = {}
+    for name, source, extra in (("render", donut_default, ["--camera-azimuth", "180"]), ("encode", turned, []),
+                                ("home", donut_default, []),
+                                ("file", DONUT, ["--camera-azimuth", "180", "--preset", "medium"])):
+        r = run_cli("render", source, "--out", tmp_path / f"{name}.png", "--size", "160x120", "-q", *extra)
+        assert r.returncode == 0, r.stderr
+        shots[name] = np.asarray(Image.open(tmp_path / f"{name}.png"), np.float32)
+    d = np.abs(shots["render"] - shots["encode"])  # the same camera, the same tiles: the same picture
+    assert d.max() <= 1.0 and (d > 0).mean() < 1e-3, (d.max(), (d > 0).sum())
+    assert np.abs(shots["render"] - shots["home"]).mean() > 1.0  # the other side: another picture
+    # the file drawn whole in memory (other chunks than the scene's tiles): the same view, a few pixels apart
+    assert np.abs(shots["file"] - shots["encode"]).mean() < 0.5
 
 
 def test_view_camera_azimuth_draws_the_scene_encoded_turned(donut_default, tmp_path, gl_context):

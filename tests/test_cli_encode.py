@@ -4,7 +4,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from conftest import real, run_cli
+from conftest import ROOT, real, run_cli
 
 from cli.main import COMMANDS, build_parser
 from splatstream.encode import EncodeOptions, encode_gaussians
@@ -154,6 +154,22 @@ def test_target_on_a_kept_tree_names_both_ways_out(tmp_path):
     assert r.stderr.strip().endswith("add --rebuild-lod to build ours from its finest level, or --no-lod for its "
                                      "finest level alone"), r.stderr
     assert "--target-psnr/--target-size applies only to a tree we build" in r.stderr, r.stderr
+
+
+def test_rebuild_lod_where_no_input_has_a_tree_is_refused(tmp_path):
+    """`encode logo/meta.json --rebuild-lod` (a SOG v1, no tree of its own) was taken without a word (newuser62):
+    refused in one line naming the option, the input and what it is; a streamed SOG still takes it."""
+    sog_v1 = ROOT / "tests" / "fixtures" / "foreign" / "logo_v1_sub300"
+    for inputs in ([sog_v1], [real("fruit_drops_sh3.ply"), sog_v1]):
+        r = run_cli("encode", *inputs, tmp_path / "scene", "--rebuild-lod")
+        assert r.returncode == 2 and not (tmp_path / "scene").exists(), r.stderr
+        lines = r.stderr.strip().splitlines()
+        assert len(lines) == 1, r.stderr
+        assert lines[0].startswith("splatstream encode: error: --rebuild-lod builds our LOD tree"), r.stderr
+        assert f"{sog_v1} is a PlayCanvas SOG" in lines[0] and "leave the option out" in lines[0], r.stderr
+    streamed = ROOT / "tests" / "fixtures" / "foreign" / "fruit_drops_lod"
+    r = run_cli("encode", streamed, tmp_path / "scene", "--rebuild-lod", "-q")
+    assert r.returncode == 0, r.stderr
 
 
 @pytest.mark.parametrize("options", [["--lod-merge", "cost"], ["--max-leaf-splats", "4096", "--page-tiles", "3"],

@@ -44,6 +44,12 @@ def cases(tmp, scene):
         (["encode", DONUT, tmp / "a_file"], "a_file"),
         (["encode", DONUT, tmp / "o", "--preset", "ultra"], "--preset"),
         (["encode", DONUT, tmp / "o", "--zstd-level", "99"], "--zstd-level"),
+        # a number said back as given, not reformatted ("--target-size -3.0": newuser62)
+        (["encode", DONUT, tmp / "o", "--target-size", "-3"], "--target-size -3: expected a size above 0"),
+        (["encode", DONUT, tmp / "o", "--target-psnr", "0"], "--target-psnr 0: expected a PSNR above 0 dB"),
+        (["render", scene, "--max-sse", "-1", "--out", tmp / "o.png"], "--max-sse -1: expected 0 or more pixels"),
+        (["view", scene, "--headless", "--gpu-mem-mb", "-2"], "--gpu-mem-mb -2: expected a positive number"),
+        (["view", scene, "--headless", "--timeout", "0"], "--timeout 0: expected a positive number of seconds"),
         (["encode", DONUT, tmp / "o", "--sh-codebook", "many"], "many"),
         (["encode", tmp / "a_dir", tmp / "o"], "a_dir"),
         # one of our own scenes as input: it said only 'a directory without meta.json or lod-meta.json'
@@ -60,6 +66,8 @@ def cases(tmp, scene):
         (["info", tmp / "a_dir"], "a_dir"),
         (["decode", STREAMED_SOG, tmp / "o.ply"], "lod-meta.json here: a SOG scene"),  # says what reads it
         (["info", STREAMED_SOG / "lod-meta.json"], "lod-meta.json is read by `splatstream encode`, `convert`"),
+        # render and eval read such a file too, and the hint left them out (newuser62)
+        (["export-rad", DONUT, tmp / "o.rad"], "`convert`, `view`, `render` and `eval`)"),
         (["convert", tmp / "missing.ply", tmp / "o.ply"], "missing.ply"),
         (["convert", DONUT, tmp / "o.xyz"], "o.xyz"),
         (["convert", DONUT, tmp / "o.ply", "--scale", "0"], "--scale"),  # edits checked before the read
@@ -318,3 +326,73 @@ def test_info_of_a_scene_manifest_reads_its_scene(scene):
     by_dir, by_manifest = run_cli("info", scene), run_cli("info", scene / "manifest.msgpack")
     assert by_manifest.returncode == 0, by_manifest.stderr
     assert by_manifest.stdout == by_dir.stdout and "splats" in by_dir.stdout
+
+
+def run_cli_on_a_terminal(*args: str, cwd=None) -> str:
+    """The CLI with its stderr on a pseudo-terminal (the progress bar redrawn with carriage returns, as a user sees
+    it): what the terminal received."""
+    import pty
+    import subprocess
+    import sys
+
+    master, slave = pty.openpty()
+    try:
+        proc = subprocess.Popen([sys.executable, "-m", "cli", *map(str, args)], stdin=subprocess.DEVNULL,
+                                stdout=subprocess.DEVNULL, stderr=slave, cwd=cwd)
+        os.close(slave)
+        chunks = []
+        while True:
+            try:
+                data = os.read(master, 65536)
+            except OSError:  # EIO: the child closed the terminal
+                break
+            if not data:
+                break
+            chunks.append(data)
+        proc.wait(timeout=600)
+    finally:
+        os.close(master)
+    return b"".join(chunks).decode(errors="replace").replace("\r\n", "\n")
+
+
+@pytest.mark.parametrize("command", ["encode", "view"])
+def test_a_failure_mid_stage_starts_its_own_line_on_a_terminal(tmp_path, command):
+    """On a terminal, a command that failed while its progress bar was drawn printed its error glued onto the bar
+    ("encode: read [   ]   0.0%     0.0ssplatstream encode: error: ..."; newuser62): the bar's line is ended first."""
+    import shutil
+
+    src = tmp_path / "logo"  # a SOG whose scales plane is cut short: found while reading it, the bar drawn
+    shutil.copytree(ROOT / "tests" / "fixtures" / "foreign" / "logo_v1_sub300", src)
+    (src / "scales.webp").write_bytes((src / "scales.webp").read_bytes()[:100])
+    args = [src, tmp_path / "o"] if command == "encode" else [src, "--headless"]
+    said = run_cli_on_a_terminal(command, *args)
+    error = next(line for line in said.split("\n") if "error:" in line)
+    assert error.startswith(f"splatstream {command}: error: {src}"), said  # a line of its own
+    assert "scales.files[0]" in error, said
+    assert "0.0%" in said and not (tmp_path / "o").exists()
+
+
+def test_end_open_line_ends_a_bar_left_open_once():
+    """The progress printer records a bar left mid-line on a terminal; end_open_line ends it once, and not a bar
+    that ended (100 %) or was cleared by a note."""
+    import io
+
+    from splatstream.progress import ProgressPrinter, end_open_line
+
+    class Terminal(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    term = Terminal()
+    bar = ProgressPrinter("encode", stream=term)
+    bar("read", 0.0)
+    end_open_line()
+    end_open_line()
+    assert term.getvalue().endswith("0.0s\n") and term.getvalue().count("\n") == 1
+    bar("read", 1.0)  # ends its own line
+    end_open_line()
+    assert term.getvalue().endswith("100.0%     0.0s\n") and term.getvalue().count("\n") == 2
+    bar("tiles", 0.5)
+    bar.note("up 0,0,1")  # clears the bar and ends its line
+    end_open_line()
+    assert term.getvalue().endswith("encode: up 0,0,1\n") and term.getvalue().count("\n") == 3

@@ -196,6 +196,25 @@ def test_variants_parse_and_run():
     assert "| low-sh1 | norm8x4 | cube565 | norm8x4 | norm8x4 | norm565 VQ64 (SH1) |" in report_markdown(rep)
 
 
+def test_a_codebook_variant_where_no_sh_band_is_kept_is_refused_before_any_run():
+    """`--variants cb:low,sh_codebook=auto` on an SH0 scene (or with sh_degree=0) failed after the presets' runs,
+    naming encode's --sh-codebook (newuser62): refused at once, naming the variant, before a reference view."""
+    from splatstream.errors import UsageError
+
+    said = []
+    donut = str(real("donut_sh0_no_normals.ply"))
+    with pytest.raises(UsageError, match=r"variant 'cb': sh_codebook=auto needs SH bands 1..3, and .* keeps none "
+                                         r"\(SH degree 0\); leave sh_codebook out"):
+        evaluate(donut, EvalOptions(presets=["low"], variants=["cb:low,sh_codebook=auto"], views=1, width=32,
+                                    height=32), log=said.append)
+    assert not any("rendered" in line or "low:" in line for line in said), said
+    with pytest.raises(UsageError, match=r"variant 'cb0': sh_codebook=64 .* \(SH degree 3, sh_degree=0\)"):
+        evaluate(str(real("fruit_drops_sh3.ply")),
+                 EvalOptions(presets=[], variants=["cb0:low,sh_degree=0,sh_codebook=64"], views=1, width=32, height=32))
+    rep = evaluate(donut, EvalOptions(presets=[], variants=["off:low,sh_codebook=off"], views=1, width=32, height=32))
+    assert [r["label"] for r in rep["rows"]] == ["off"]
+
+
 def test_reference_table_only_on_request(tmp_path):
     src = real("fruit_drops_sh3.ply")
     res = run_cli("eval", src, "--presets", "medium", "--views", "1", "--size", "32x32", "--renderer", "ref",

@@ -47,6 +47,8 @@ def test_render_ply_with_camera(gl_ok, tmp_path):
     # a splat file is encoded in memory first (seconds for a large one): said before it happens
     assert r.stderr.startswith(f"render: 4,721 splats read from {real('fruit_drops_sh3.ply')} ("), r.stderr
     assert "encoding them at very-high for the GPU\nwrote " in r.stderr, r.stderr
+    # the count as the line before says it ("4721 splats" after "4,721 splats read": newuser62)
+    assert f"wrote {out}: 64x48, 4,721 splats, sort " in r.stderr, r.stderr
     img = _png(out)
     assert img.shape == (48, 64, 3)
     # The camera the command builds from these arguments (near = 1% of the eye's distance: render.py).

@@ -217,6 +217,33 @@ def test_cli_codebook_option(tmp_path):
     assert not (tmp_path / "x").exists()
 
 
+def test_codebook_option_refused_where_no_sh_band_is_kept(tmp_path):
+    """--sh-codebook on an SH0 input (or with --sh-degree 0) was taken without a word and the scene written without a
+    codebook (newuser62): refused in one line naming the option, the input and its SH degree, nothing written. `off`
+    is still taken, and the presets whose own codebook is on keep encoding SH0 inputs."""
+    donut = str(real("donut_sh0_no_normals.ply"))
+    r = run_cli("encode", donut, str(tmp_path / "x"), "--sh-codebook", "fine", "--no-lod", "-q")
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert r.stderr.strip().count("\n") == 0 and "--sh-codebook fine" in r.stderr and donut in r.stderr
+    assert "SH degree 0" in r.stderr and not (tmp_path / "x").exists()
+    # a partitioned encode refuses it too, before its scan
+    r = run_cli("encode", donut, str(tmp_path / "x"), "--sh-codebook", "64", "--memory-per-worker", "2MB", "-q")
+    assert r.returncode == 2 and "--sh-codebook 64" in r.stderr and not (tmp_path / "x").exists(), r.stderr
+    fruit_path = str(real("fruit_drops_sh3.ply"))
+    r = run_cli("encode", fruit_path, str(tmp_path / "x"), "--sh-codebook", "auto", "--sh-degree", "0", "-q")
+    assert r.returncode == 2 and "--sh-degree 0" in r.stderr and "SH degree 3" in r.stderr, r.stderr
+    assert not (tmp_path / "x").exists()
+    r = run_cli("encode", donut, str(tmp_path / "off"), "--sh-codebook", "off", "--no-lod", "-q")
+    assert r.returncode == 0, r.stderr
+    for preset in ("medium-low", "low", "low-plus-10bit-cb8"):  # codebooks of their own: still encode SH0 inputs
+        r = run_cli("encode", donut, str(tmp_path / preset), "--preset", preset, "--no-lod", "-q")
+        assert r.returncode == 0, r.stderr
+        m = load_manifest(tmp_path / preset)
+        assert m.sh_degree == 0 and m.sh_codebook is None
+    with pytest.raises(UsageError, match="--sh-codebook 32"):
+        encode_gaussians(read_gaussians_ply(donut), tmp_path / "y", EncodeOptions(sh_codebook=32, lod=False))
+
+
 def test_renumbering_by_use_keeps_every_assignment(monkeypatch):
     """ordered_by_use permutes the entries; every row still gets the same entry (now under its new number), through
     the value lookup and through the tree search alike."""

@@ -23,7 +23,7 @@ from splatstream.format.presets import (
 )
 from splatstream.format.texformats import VALUE_FORMATS
 from splatstream.format.transport import TRANSPORTS
-from splatstream.io import open_input
+from splatstream.io import FORMAT_NAMES, open_input
 from splatstream.lod import LOD_MERGES
 from splatstream.lod_refine import CPU_ITERATIONS, CPU_SIZE_PX, GPU_ITERATIONS, GPU_SIZE_PX, LodRefiner
 from splatstream.progress import ProgressPrinter, count
@@ -88,14 +88,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--sh-codebook", metavar="off|auto|fine|large|N",
                    help="vector-quantise SH bands 1..3 into a scene-wide codebook of N entries (at most 65536; "
                         "auto: about one per 64 splats; fine: about one per 16, 256..16384; large: about one per 8, "
-                        "256..65536) with a 16-bit index per "
-                        "splat; the sh format then applies to the codebook. Default: the preset's choice ("
+                        "256..65536) with a 16-bit index per splat; the sh format then applies to the codebook; "
+                        "refused, but for off, where the scene keeps no SH band (an SH0 input, --sh-degree 0). "
+                        "Default: the preset's choice ("
                         + ", ".join(f"{k}: {v}" for k, v in PRESET_SH_CODEBOOK.items()) + "; the others: off)")
     p.add_argument("--no-lod", action="store_true", help="write one tile holding every splat (no LOD tree)")
     p.add_argument("--rebuild-lod", action="store_true",
                    help="a streamed SOG (lod-meta.json) or a Spark .rad: build our own LOD tree from its finest "
                         "level (default: keep its own tree, level for level; --max-leaf-splats and --reduction then "
-                        "follow it)")
+                        "follow it); refused where no input has a tree of its own")
     p.add_argument("--max-leaf-splats", type=int, default=None,
                    help="splats per leaf tile at most (default 16384: measured best for streaming)")
     p.add_argument("--reduction", type=float, default=None,
@@ -350,6 +351,14 @@ def _foreign_tree(args: argparse.Namespace) -> str | None:
             if os.path.exists(path) and open_input(path).format in ("lod_sog", "rad"):
                 print(f"encode: {path} holds its own LOD tree; merged with the other inputs its finest level is "
                       "read and our tree built over all of them", file=sys.stderr)
+    if args.rebuild_lod and all(os.path.exists(path) for path in args.input):
+        # taken without a word where no input has a tree of its own (a SOG v1, a PLY): ours is built anyway (newuser62)
+        kinds = [open_input(path).format for path in args.input]
+        if not {"lod_sog", "rad"} & set(kinds):
+            held = "; ".join(f"{path} is a {FORMAT_NAMES.get(kind, kind)}" for path, kind in zip(args.input, kinds,
+                                                                                                  strict=True))
+            raise UsageError(f"--rebuild-lod builds our LOD tree in place of a streamed SOG's (lod-meta.json) or a "
+                             f".rad's own; {held}, with no tree of its own: ours is built anyway, leave the option out")
     if len(args.input) != 1 or args.no_lod or args.rebuild_lod or not os.path.exists(args.input[0]):
         return None  # (a missing input fails in encode_file, with its usual message)
     kind = open_input(args.input[0]).format
@@ -393,9 +402,9 @@ def target_lod_merge(named: str | None, distributed: bool) -> str:
 def _preset_for_target(args: argparse.Namespace, up: tuple[float, float, float] | None, distributed: bool) -> str:
     """Measure every preset on the input (splatstream.evaluate) and pick the one the target asks for."""
     if args.target_psnr is not None and not args.target_psnr > 0:
-        raise UsageError(f"--target-psnr {args.target_psnr}: expected a PSNR above 0 dB")
+        raise UsageError(f"--target-psnr {args.target_psnr:g}: expected a PSNR above 0 dB")
     if args.target_size is not None and not args.target_size > 0:
-        raise UsageError(f"--target-size {args.target_size}: expected a size above 0 bytes per splat")
+        raise UsageError(f"--target-size {args.target_size:g}: expected a size above 0 bytes per splat")
     if args.target_views < 1:
         raise UsageError(f"--target-views {args.target_views}: expected at least 1")
 

@@ -9,14 +9,14 @@ import time
 import numpy as np
 
 from splatstream.atomic import atomic_file
-from splatstream.camera import DEFAULT_FOV_Y_DEG, REFERENCE_NEAR, Camera, suggested_camera
+from splatstream.camera import DEFAULT_FOV_Y_DEG, REFERENCE_NEAR, Camera, suggested_camera, turn_about_up
 from splatstream.errors import UsageError
 from splatstream.format.presets import PRESETS
 from splatstream.io import read_gaussians, scene_up
 from splatstream.orientation import view_side
 from splatstream.store import is_scene_dir, load_manifest
 
-from .args import check_look, check_sort_draw, parse_size, parse_vector
+from .args import check_look, check_sort_draw, parse_azimuth, parse_size, parse_vector
 from .renderers import gl_client
 
 DEFAULT_SIZE = (1280, 720)
@@ -39,6 +39,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--target", help="point looked at X,Y,Z")
     p.add_argument("--up", help="up vector X,Y,Z (default: the scene's; for a splat file, detected as `encode` does)")
     p.add_argument("--fov-y", type=float, help=f"vertical field of view in degrees (default {DEFAULT_FOV_Y_DEG:g})")
+    p.add_argument("--camera-azimuth", metavar="DEG",
+                   help="draw from the scene's camera (the manifest's; for a splat file, the suggested camera framing "
+                        "its splats) turned by DEG degrees about up, around what it looks at (180: the other side; "
+                        "positive: counter-clockwise seen from above), as `encode` and `view` take it; not with "
+                        "--eye/--target")
     p.add_argument("--size", default=f"{DEFAULT_SIZE[0]}x{DEFAULT_SIZE[1]}", help="image size WxH (default 1280x720)")
     p.add_argument("--sh-degree", type=int, choices=[0, 1, 2, 3], help="SH bands to evaluate (default: all)")
     p.add_argument("--background", default="0,0,0", help="background colour R,G,B in [0, 1] (default black)")
@@ -69,6 +74,10 @@ def _camera(args, scene_camera: dict | None, positions: np.ndarray | None, scene
     else:
         default = suggested_camera(positions, up=up, width=width, height=height, side=side,
                                    opacity_logits=opacity_logits)
+    azimuth = _azimuth(args)
+    if azimuth:  # about the camera's own up (the scene's), as encode stores and view opens it (camera.md)
+        default = Camera(turn_about_up(default.eye, default.target, default.up, azimuth), default.target, default.up,
+                         default.fov_y_deg, width, height, default.near, default.far)
     eye = _optional_vector(args.eye, "--eye") or default.eye
     target = _optional_vector(args.target, "--target") or default.target
     if args.up is None and scene_camera is not None:
@@ -83,6 +92,15 @@ def _camera(args, scene_camera: dict | None, positions: np.ndarray | None, scene
         raise UsageError(f"bad camera: {exc}") from None
 
 
+def _azimuth(args) -> float:
+    """--camera-azimuth in degrees (0 where not given), refused beside --eye/--target as `view` refuses it: it turns
+    the scene's camera, which they replace."""
+    if args.camera_azimuth is not None and (args.eye is not None or args.target is not None):
+        given = "/".join(flag for flag, value in (("--eye", args.eye), ("--target", args.target)) if value is not None)
+        raise UsageError(f"--camera-azimuth turns the scene's camera; {given} gives another camera: give one of them")
+    return parse_azimuth(args.camera_azimuth)
+
+
 def run(args: argparse.Namespace) -> int:
     offscreen = gl_client()
     size = parse_size(args.size)
@@ -91,6 +109,7 @@ def run(args: argparse.Namespace) -> int:
         # The help says [0, 1]; `--background 2,0,0` or `-1,0,0` (a 0..255 colour, a typo) drew without a word.
         raise UsageError(f"--background {args.background}: expected R,G,B each in [0, 1] (1,1,1 is white)")
     check_sort_draw(args.sort, args.draw)
+    _azimuth(args)  # refused before a splat file is read
     preset = args.preset or "very-high"
     if preset not in PRESETS:
         raise UsageError(f"unknown preset {args.preset!r} (choose one of {', '.join(PRESETS)})")
@@ -98,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
     if ext not in (".png", ""):
         raise UsageError(f"--out: only .png images are written, got {args.out!r}")
     if args.max_sse is not None and not args.max_sse >= 0:
-        raise UsageError(f"--max-sse {args.max_sse}: expected 0 or more pixels")
+        raise UsageError(f"--max-sse {args.max_sse:g}: expected 0 or more pixels")
     t0 = time.perf_counter()
     # A directory is an encoded scene (or a damaged one: it has data/), else a SOG scene directory or nothing
     # readable, which read_gaussians reports.
@@ -154,7 +173,7 @@ def run(args: argparse.Namespace) -> int:
         renderer.close()
     _write_png(args.out, img)
     if not args.quiet:
-        print(f"wrote {args.out}: {cam.width}x{cam.height}, {splats} splats, sort {sort}, {gl_name}, "
+        print(f"wrote {args.out}: {cam.width}x{cam.height}, {splats:,} splats, sort {sort}, {gl_name}, "
               f"{per_splat:.1f} GPU B/splat, load {t1 - t0:.2f}s, render {(t2 - t1) * 1e3:.0f} ms", file=sys.stderr)
     return 0
 

@@ -103,13 +103,13 @@ def _options(args):
     from client_gl.streaming import ViewOptions
 
     if not (args.gpu_mem_mb > 0 and math.isfinite(args.gpu_mem_mb)):
-        raise UsageError(f"--gpu-mem-mb {args.gpu_mem_mb}: expected a positive number of megabytes")
+        raise UsageError(f"--gpu-mem-mb {args.gpu_mem_mb:g}: expected a positive number of megabytes")
     if not (args.max_sse >= 0 and math.isfinite(args.max_sse)):
-        raise UsageError(f"--max-sse {args.max_sse}: expected 0 or more pixels")
+        raise UsageError(f"--max-sse {args.max_sse:g}: expected 0 or more pixels")
     if args.max_splats is not None and args.max_splats < 1:
         raise UsageError(f"--max-splats {args.max_splats}: expected at least 1")
     if not args.timeout > 0:
-        raise UsageError(f"--timeout {args.timeout}: expected a positive number of seconds")
+        raise UsageError(f"--timeout {args.timeout:g}: expected a positive number of seconds")
     if args.frame_every is not None and args.frame_every < 1:
         raise UsageError(f"--frame-every {args.frame_every}: expected at least 1")
     if args.measure_frames < 0:  # was taken as 0 without a word
@@ -119,7 +119,7 @@ def _options(args):
     if args.fill_gap < 1:
         raise UsageError(f"--fill-gap {args.fill_gap}: expected 1 or more levels")
     if args.fov_y is not None and not 0 < args.fov_y < 180:
-        raise UsageError(f"--fov-y {args.fov_y}: expected degrees in (0, 180)")
+        raise UsageError(f"--fov-y {args.fov_y:g}: expected degrees in (0, 180)")
     check_sort_draw(args.sort, args.draw)
     return ViewOptions(gpu_mem_mb=args.gpu_mem_mb, max_splats=args.max_splats, max_sse=args.max_sse,
                        sh_degree=3 if args.sh_degree is None else args.sh_degree, prefetch=not args.no_prefetch,

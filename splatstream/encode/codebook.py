@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..errors import UsageError
 from ..format.codec import EncodedPlane, codebook_band_values, encode_plane
 from ..format.planes import band_plane
 from ..format.presets import PRESET_SH_CODEBOOK
@@ -42,6 +43,22 @@ def codebook_choice(opts, sh_degree: int) -> str | int:
     if sh_degree < 1 or choice in ("off", 0, "0"):
         return "off"
     return choice
+
+
+def check_codebook_option(opts, input_sh_degree: int, source_name: str | None) -> None:
+    """Refuse a codebook asked for by name (opts.sh_codebook, `encode --sh-codebook`) where the scene keeps no SH band
+    1..3 for it to hold: it was taken without a word and the scene written without one (newuser62). A preset's own
+    codebook (medium-low and below) stays silent on such scenes: the presets must encode every input."""
+    choice = opts.sh_codebook
+    if choice is None or choice in ("off", 0, "0"):
+        return
+    source = source_name or "the input"
+    if input_sh_degree < 1:
+        raise UsageError(f"--sh-codebook {choice}: {source} has SH degree 0 (colour only), no SH bands 1..3 for a "
+                         "codebook to hold; leave the option out")
+    if opts.sh_degree is not None and opts.sh_degree < 1:
+        raise UsageError(f"--sh-codebook {choice}: --sh-degree {opts.sh_degree} drops every SH band 1..3 of {source} "
+                         f"(SH degree {input_sh_degree}) that a codebook would hold; give one of the two")
 
 
 def fit_sh_codebook(g: Gaussians, preset: str, choice: str | int | None, sh_degree: int) -> Codebook | None:

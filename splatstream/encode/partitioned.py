@@ -72,7 +72,7 @@ from ..lod_refine import CameraFrame, LodRefiner, domains_record, refine_subtree
 from ..ply import RowStats, VertexLayout, check_rows, read_ply_rows
 from ..progress import count
 from ..store import SceneWriter, write_scene_manifest
-from .codebook import codebook_choice
+from .codebook import check_codebook_option, codebook_choice
 from .jobs import encode_codebook, encode_tile
 from .options import EncodeOptions, Progress, no_progress
 from .plan import TileContext, log, palette_planes, plan_formats, plan_scene, scene_name
@@ -933,6 +933,7 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
         # The cost merge groups a whole tree level at once; partitions build their subtrees apart (issue 31).
         raise UsageError(f"--lod-merge {merge} runs only in-process (one machine, the scene in memory): a "
                          f"partitioned encode merges with {' or '.join(PARTITIONED_MERGES)}")
+    check_codebook_option(opts, rows.sh_degree, source_name)
     sh_degree = opts.sh_degree if opts.sh_degree is not None else rows.sh_degree
     sh_degree = min(sh_degree, rows.sh_degree)
     row_bytes = routed_row_bytes(sh_degree)

@@ -40,7 +40,7 @@ from ..lod_refine import refine_tree
 from ..rotation_canon import canonical_gauge
 from ..store import is_url
 from ..vq import Codebook
-from .codebook import codebook_choice
+from .codebook import check_codebook_option, codebook_choice
 from .options import EncodeOptions, Progress, no_progress
 from .sample import SceneSample
 
@@ -224,6 +224,7 @@ def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progr
     violations = [] if screened else domain_violations(g)
     if violations:
         raise InputError(source_name or "<gaussians>", None, describe_violations(violations, len(g))[1])
+    check_codebook_option(opts, g.sh_degree, source_name)
     sh_degree = resolve_sh_degree(opts, g)
     if sh_degree != g.sh_degree:
         g = g.with_sh_degree(sh_degree)
