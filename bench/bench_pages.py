@@ -274,7 +274,7 @@ class _NoDecodeEngine(StreamEngine):
         super().__init__(*args, **kwargs)
         # the root's framing box is read from its decoded positions, which this engine does not make: a box set
         # now (the engine then reads none; without it the first collect of the root failed, KeyError 'position')
-        self.frame_box = (np.zeros(3), np.ones(3))
+        self._frame_box = (np.zeros(3), np.ones(3))
 
     def _submit(self, key, entry, data) -> None:
         self._decoded.put((key, _Ready(key, {}, None, int(entry.bytes))))
