@@ -27,9 +27,11 @@ from splatstream.encode.local import encode_gaussians  # noqa: E402
 from splatstream.encode.options import EncodeOptions  # noqa: E402
 from splatstream.evaluate import cameras_from_report  # noqa: E402
 from splatstream.format.layout import morton_order  # noqa: E402
+from splatstream.format.presets import resolve_formats, rotation_gauge  # noqa: E402
 from splatstream.gaussians import Gaussians, normalize_quaternions  # noqa: E402
 from splatstream.io import read_gaussians  # noqa: E402
 from splatstream.metrics import psnr_from_mse  # noqa: E402
+from splatstream.rotation_canon import canonical_gauge  # noqa: E402
 from splatstream.scene_decode import decode_scene  # noqa: E402
 
 ARMS = {"half": {"rotation": "norm8x4"}, "cube": {"rotation": "cube8x4"}}
@@ -67,12 +69,16 @@ def covariances(rotations: np.ndarray, log_scales: np.ndarray) -> np.ndarray:
 
 
 def measures(g: Gaussians, decoded: Gaussians) -> dict[str, float]:
-    """Candidate per-scene measures of how far the decoded covariances are from the input's: the decode is in
-    input's order, in Morton order of its positions (one tile, no LOD) or matched splat by splat, checked."""
+    """Candidate per-scene measures of how far the decoded covariances are from the input's."""
+    return _measures(g, decoded, input_index(g, decoded))
+
+
+def input_index(g: Gaussians, decoded: Gaussians) -> np.ndarray:
+    """For each decoded splat the input splat it stores: the decode is in the input's order, in Morton order of its
+    positions (one tile, no LOD) or matched splat by splat; checked by position."""
     tolerance = 0.01 * float(np.ptp(g.positions))
     if len(decoded) == len(g) and float(np.abs(decoded.positions - g.positions).max()) <= tolerance:
-        order = np.arange(len(g))  # the input's order kept (a chunk-quantised input, e.g. a compressed PLY)
-        return _measures(g, decoded, order)
+        return np.arange(len(g))  # the input's order kept (a chunk-quantised input, e.g. a compressed PLY)
     order = morton_order(g.positions)
     if not len(decoded) == len(g) or float(np.abs(decoded.positions - g.positions[order]).max()) > tolerance:
         # the keyed transport stores the splats in another order: each decoded splat matched to the input's
@@ -85,7 +91,7 @@ def measures(g: Gaussians, decoded: Gaussians) -> dict[str, float]:
             order[s:s + 256] = np.argmin(d, axis=1)
     if float(np.abs(decoded.positions - g.positions[order]).max()) > tolerance:
         raise SystemExit("the decode's splats do not match the input's")
-    return _measures(g, decoded, order)
+    return order
 
 
 def _measures(g: Gaussians, decoded: Gaussians, order: np.ndarray) -> dict[str, float]:
@@ -117,6 +123,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--log-scale", type=float, default=0.02, help="the log-scale dither's half width")
     ap.add_argument("--angle", type=float, default=0.5, help="the rotation dither's largest angle, degrees")
     ap.add_argument("--measures", action="store_true", help="also candidate covariance measures per arm")
+    ap.add_argument("--decompose", action="store_true",
+                    help="also each arm with the input's scales, and with the input's rotations (renders)")
     ap.add_argument("--psnr-from", help="an earlier output of this script (same scene, dither and seeds): its PSNR "
                     "taken as they are, only the encodes and --measures run (no renders)")
     ap.add_argument("--json")
@@ -139,7 +147,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for seed in range(args.seeds):
         g = dithered(g0, seed, args.log_scale, args.angle)
-        refs = None if earlier else [np.asarray(evr.render(g, c), np.float64) for c in cameras]
+        refs = None if earlier and not args.decompose else [np.asarray(evr.render(g, c), np.float64) for c in cameras]
         for p in presets:
             row = {"seed": seed, "preset": p}
             old = earlier.get((seed, p))
@@ -153,9 +161,19 @@ def main(argv: list[str] | None = None) -> int:
                 row[f"{arm}_bytes"] = m.bytes_on_disk / len(g)
                 if old and row[f"{arm}_bytes"] != old[f"{arm}_bytes"]:
                     raise SystemExit(f"{args.psnr_from}: seed {seed}, {p}, {arm}: other bytes, another encoder")
+                if args.measures or args.decompose:
+                    decoded = decode_scene(d)
+                    order = input_index(g, decoded)
                 if args.measures:
-                    for k, v in measures(g, decode_scene(d)).items():
+                    for k, v in _measures(g, decoded, order).items():
                         row[f"{arm}_{k}"] = v
+                if args.decompose:
+                    # the arm's rotations with the input's scales, and its scales with the input's rotations (both
+                    # in the arm's gauge: the cube permutes the scales): what each attribute's rounding costs
+                    gauge = rotation_gauge(p, {**resolve_formats(p), **ov})
+                    q_in, ls_in = canonical_gauge(g.rotations[order], g.log_scales[order], gauge)
+                    row[f"{arm}_exact_scales"] = psnr(evr.render, replace(decoded, log_scales=ls_in), cameras, refs)
+                    row[f"{arm}_exact_rotations"] = psnr(evr.render, replace(decoded, rotations=q_in), cameras, refs)
             row["delta"] = row["cube"] - row["half"]
             rows.append(row)
             print(json.dumps(row), flush=True)
