@@ -142,7 +142,8 @@ def main(argv: list[str] | None = None) -> int:
         if (old["log_scale"], old["angle_deg"]) != (args.log_scale, args.angle):
             raise SystemExit(f"{args.psnr_from}: another dither")
         earlier = {(r["seed"], r["preset"]): r for r in old["rows"]}
-    root = tempfile.mkdtemp(prefix="cube9bit32_dither_")
+    scratch = tempfile.TemporaryDirectory(prefix="rot_choice_dither_")  # the encodes, removed at exit
+    root = scratch.name
     presets = args.presets.split(",")
     rows = []
     for seed in range(args.seeds):

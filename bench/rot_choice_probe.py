@@ -115,7 +115,8 @@ def main(argv: list[str] | None = None) -> int:
     render = evr.render
     g = read_gaussians(args.scene)
     refs = [np.asarray(render(g, c), np.float64) for c in cameras]
-    root = args.keep or tempfile.mkdtemp(prefix="cube9bit32_probe_")
+    scratch = None if args.keep else tempfile.TemporaryDirectory(prefix="rot_choice_probe_")  # removed at exit
+    root = args.keep or scratch.name
     out: dict = {"scene": args.scene, "preset": args.preset, "splats": len(g), "views": len(cameras)}
     arms = {"half": {"rotation": "norm8x4"}, "cube": {"rotation": "cube8x4"}}
     dec: dict[str, Gaussians] = {}
