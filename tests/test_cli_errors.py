@@ -9,6 +9,7 @@ from conftest import ROOT, run_cli
 from cli.main import main
 from splatstream.io import read_gaussians
 from splatstream.ply import write_gaussians_ply
+from splatstream.store import load_manifest
 
 DONUT = ROOT / "samples" / "donut.ply"
 STREAMED_SOG = ROOT / "tests" / "fixtures" / "foreign" / "fruit_drops_lod"  # another tool's scene directory
@@ -134,6 +135,34 @@ def test_bad_arguments_exit_2_with_one_line(tmp_path, scene):
         assert named in lines[0], (where, lines[0])
         assert not (tmp_path / "o").exists() and not (tmp_path / "o.ply").exists() and not (tmp_path / "o.png").exists()
         assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")], where  # no temporaries left
+
+
+def test_encode_sh_format_refused_where_no_sh_band_is_kept(tmp_path, scene):
+    """`encode --sh FORMAT` on an SH0 input (or with --sh-degree 0) was taken without a word, with no SH plane to
+    format (newuser62): refused once the input is read, in one line naming the option, the input and its SH degree,
+    nothing written; in memory, by partitions, and for a kept foreign tree. The presets (each with an SH format of its
+    own) still encode SH0 inputs, and --sh on an input with SH bands is taken."""
+    def refused(*args: object, said: tuple[str, ...]) -> None:
+        r = run_cli("encode", *args, tmp_path / "o", "-q")
+        assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+        assert r.stderr.strip().count("\n") == 0 and all(s in r.stderr for s in said), r.stderr
+        assert not (tmp_path / "o").exists()
+
+    refused(DONUT, "--sh", "f16x4", "--no-lod", said=("--sh f16x4: ", str(DONUT), "has SH degree 0"))
+    refused(DONUT, "--sh", "norm8x4", "--memory-per-worker", "2MB", said=("--sh norm8x4: ", "has SH degree 0"))
+    fruit = ROOT / "tests" / "data" / "real" / "fruit_drops_sh3.ply"
+    refused(fruit, "--sh", "f16x4", "--sh-degree", "0", "--no-lod",
+            said=("--sh f16x4: --sh-degree 0 drops every SH band", str(fruit), "(SH degree 3)"))
+    r = run_cli("export-sog-lod", scene, tmp_path / "sog", "-q")  # an SH0 streamed SOG: its tree is kept
+    assert r.returncode == 0, r.stderr
+    refused(tmp_path / "sog", "--sh", "f16x4", said=("--sh f16x4: ", str(tmp_path / "sog"), "has SH degree 0"))
+    for preset in ("very-high", "medium", "low"):
+        r = run_cli("encode", DONUT, tmp_path / preset, "--preset", preset, "--no-lod", "-q")
+        assert r.returncode == 0, r.stderr
+        assert load_manifest(tmp_path / preset).sh_degree == 0
+    r = run_cli("encode", fruit, tmp_path / "sh", "--sh", "f16x4", "--no-lod", "-q")
+    assert r.returncode == 0, r.stderr
+    assert load_manifest(tmp_path / "sh").formats["sh"] == "f16x4"
 
 
 def test_a_directory_of_other_files_is_never_replaced(tmp_path, scene):

@@ -154,6 +154,21 @@ def test_encode_keeps_splat_transforms_tree_and_view_streams_it(name, tmp_path, 
     drawn = [f["drawn_splats"] for f in json.loads((tmp_path / "m.json").read_text())["frames"]]
     first = next(d for d in drawn if d > 0)
     assert first < drawn[-1] and drawn == sorted(drawn)
+    # `render --max-sse K` draws the kept tree's cut: every leaf while K is below its finest interior tiles' errors
+    # on screen (1.5-11 px at 64 rows from the suggested camera: 17-128 px at 720), coarser above, the root alone
+    # past the root's 75 px; its last line names the cut's tiles and levels (newuser62 read the same count at
+    # every small K as the option ignored).
+    counts, lines = [], []
+    for k in (1, 4, 16, 100):
+        r = run_cli("render", tmp_path / "scene", "--max-sse", str(k), "--size", "96x64", "--out", tmp_path / "r.png")
+        assert r.returncode == 0, r.stderr
+        last = r.stderr.splitlines()[-1]
+        lines.append(last)
+        counts.append(int(last.split(" splats")[0].rsplit(" ", 1)[1].replace(",", "")))
+        assert f"(--max-sse {k}: " in last and f"of {len(m.tiles)} tiles" in last, last
+    assert counts[0] == m.splats and "level 3 of 0-3; every tile drawn is a leaf: full detail" in lines[0], lines[0]
+    assert counts == sorted(counts, reverse=True) and counts[1] < counts[0] and counts[2] < counts[1], counts
+    assert counts[-1] == m.tile(m.root).splats and f"1 of {len(m.tiles)} tiles, level 0 of 0-3)" in last, last
 
 
 if not FLOWERS_CASES:  # without the shared data these cases are not collected (conftest.NOT_BUNDLED), not skipped

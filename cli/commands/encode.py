@@ -83,7 +83,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                         "faster and noisier)")
     for attr in ATTRIBUTES:
         p.add_argument(f"--{attr}", dest=f"fmt_{attr}", choices=list(VALUE_FORMATS), metavar="FORMAT",
-                       help=f"texel format of {attr}, overriding the preset ({', '.join(VALUE_FORMATS)})")
+                       help=f"texel format of {attr}, overriding the preset ({', '.join(VALUE_FORMATS)})"
+                            + ("; refused where the scene keeps no SH band 1..3 (an SH0 input, --sh-degree 0)"
+                               if attr == "sh" else ""))
     p.add_argument("--sh-degree", type=int, choices=[0, 1, 2, 3], help="drop SH bands above this degree")
     p.add_argument("--sh-codebook", metavar="off|auto|fine|large|N",
                    help="vector-quantise SH bands 1..3 into a scene-wide codebook of N entries (at most 65536; "
@@ -262,6 +264,10 @@ def run(args: argparse.Namespace) -> int:
                              "formats, --sh-degree or --sh-codebook")
         preset = _preset_for_target(args, up, distributed=workers is not None or bool(args.scheduler))
     progress = ProgressPrinter("encode", enabled=not args.quiet)
+
+    def check_read(sh_degree: int) -> None:
+        _check_sh_format(args, overrides, " + ".join(args.input), sh_degree)
+
     with progress.library_notes():
         if tree_kind is not None:
             m = _encode_foreign_tree(args, tree_kind, preset, overrides, up, azimuth, progress)
@@ -274,7 +280,7 @@ def run(args: argparse.Namespace) -> int:
                             lod_merge=args.lod_merge, name=args.name, up=up, chunk_order=args.chunk_order,
                             sh_codebook=args.sh_codebook, page_tiles=args.page_tiles, page_levels=args.page_levels,
                             compact_table=not args.no_compact_table, lod_refiner=lod_refiner,
-                            camera_azimuth_deg=azimuth)
+                            camera_azimuth_deg=azimuth, on_read=check_read)
     if not args.quiet:
         print(f"wrote {args.output_dir}: {m.splats:,} splats, SH degree {m.sh_degree}, preset {m.preset}, "
               f"{count(len(m.tiles), 'tile')}, {m.bytes_on_disk / 1e6:.2f} MB on disk "
@@ -282,6 +288,21 @@ def run(args: argparse.Namespace) -> int:
               f"with all LOD levels), {m.gpu_bytes_per_splat:.2f} B/splat on the GPU, "
               f"{time.perf_counter() - t0:.2f}s", file=sys.stderr)
     return 0
+
+
+def _check_sh_format(args: argparse.Namespace, overrides: dict, source: str, sh_degree: int) -> None:
+    """Refuse `--sh FORMAT` where the scene keeps no SH band 1..3 for it to format (an SH0 input, or --sh-degree 0):
+    it was taken without a word (newuser62), as --sh-codebook was. Here, once the input is read, and not in the core:
+    eval's attribution runs give every scene an `sh` override, and a preset's own SH format encodes any input."""
+    fmt = overrides.get("sh")
+    if fmt is None:
+        return
+    if sh_degree < 1:
+        raise UsageError(f"--sh {fmt}: {source} has SH degree 0 (colour only), no SH bands 1..3 for an SH format to "
+                         "store; leave the option out")
+    if args.sh_degree is not None and args.sh_degree < 1:
+        raise UsageError(f"--sh {fmt}: --sh-degree {args.sh_degree} drops every SH band 1..3 of {source} (SH degree "
+                         f"{sh_degree}) that the format would store; give one of the two")
 
 
 def _lod_refiner(args: argparse.Namespace, workers: int | None) -> LodRefiner:
@@ -390,7 +411,11 @@ def _encode_foreign_tree(args: argparse.Namespace, kind: str, preset: str, overr
                          chunk_order=args.chunk_order, sh_codebook=args.sh_codebook, page_tiles=args.page_tiles,
                          page_levels=args.page_levels, compact_table=not args.no_compact_table,
                          camera_azimuth_deg=azimuth)
-    return encode_tree_to(reader(args.input[0], progress), args.output_dir, args.input[0], opts, progress)
+    tree = reader(args.input[0], progress)
+    if "sh" in overrides:
+        _check_sh_format(args, overrides, args.input[0],
+                         max((g.sh_degree for levels in tree.splats.values() for g in levels.values()), default=0))
+    return encode_tree_to(tree, args.output_dir, args.input[0], opts, progress)
 
 
 def target_lod_merge(named: str | None, distributed: bool) -> str:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import os
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import replace
 
 from ..atomic import check_output
@@ -92,7 +92,8 @@ def encode_file(input_path: str | os.PathLike | Sequence[str | os.PathLike], out
                 preset: str | None = None,
                 drop_invalid: bool = False, progress: Progress | None = None, workers: int | None = None,
                 scheduler: str | None = None, memory_per_worker: int | None = None, scratch: str | None = None,
-                edits: Pipeline | None = None, **options) -> Manifest:
+                edits: Pipeline | None = None, on_read: Callable[[int], None] | None = None,
+                **options) -> Manifest:
     """Read any supported splat file, or several merged (read_merged; a list of paths), and encode it into `out_dir`
     (a directory or an fsspec URL).
 
@@ -101,7 +102,10 @@ def encode_file(input_path: str | os.PathLike | Sequence[str | os.PathLike], out
     of that many processes) or `scheduler` (an existing Dask cluster) run the partitions on Dask
     (encode/distributed.py). `edits` (edit.Pipeline) run on the splats as read, whole or chunk by chunk. The output
     is the same in every case, except that the default merge (auto) by partitions groups inside merge domains of at
-    most `lod_merge_domain_splats` splats: a scene above that encodes otherwise in memory (partitioned.py)."""
+    most `lod_merge_domain_splats` splats: a scene above that encodes otherwise in memory (partitioned.py).
+    `on_read` hears the SH degree of the input as read (merged inputs: the highest) before anything is encoded or
+    written, on either engine: a caller's check that needs the input (the CLI's of options an SH0 input gives nothing
+    to, `encode --sh`) raises there, and nothing is written."""
     opts = EncodeOptions(preset=preset or DEFAULT_PRESET, reorder_input=True, **options)
     plan_formats(opts)  # fail before the (possibly long) read
     if opts.lod_merge is not None and opts.lod_merge not in LOD_MERGES:
@@ -140,6 +144,8 @@ def encode_file(input_path: str | os.PathLike | Sequence[str | os.PathLike], out
     if in_memory:
         progress("read", 0.0)
         g = read_merged(sources, drop_invalid)
+        if on_read is not None:
+            on_read(g.sh_degree)
         if edits:
             g = edits.apply(g)
         progress("read", 1.0)
@@ -162,6 +168,8 @@ def encode_file(input_path: str | os.PathLike | Sequence[str | os.PathLike], out
                 parts = [open_rows(s, layout, space, 1 << 20, drop_invalid, progress, f"input{k}")
                          for k, (s, layout) in enumerate(zip(sources, layouts, strict=True))]
                 rows = parts[0] if len(parts) == 1 else ConcatRows(parts)
+                if on_read is not None:
+                    on_read(rows.sh_degree)
                 return encode_partitioned(rows, writer, opts, engine, space, progress, source.path, out_name,
                                           drop_invalid, edits)
             finally:
