@@ -2,7 +2,7 @@
 and selection.select, bit for bit, in a fraction of the time (format_spec/client.md 1.2; BENCHMARKS.md, "Manifest
 pages").
 
-selection.select's greedy loop, run as it is written (a queue of candidates by refinement key, then position),
+selection.select's greedy loop, run as it is written (a queue of candidates by refinement key, then tile id),
 needs the numbers of the root and of the children of every tile it takes from the queue, nothing else. Here that
 loop and the per-tile numbers (frustum test, sse, projected radius and area, distance: the same operations in the
 same order as selection._numbers, so the same bits) are compiled kernels over the tree's arrays, and a tile's
