@@ -11,6 +11,7 @@ import pytest
 from conftest import real
 from test_stream_engine import orbit
 from test_stream_pages import _stream
+from test_stream_select_near import PATHS, check_same
 from test_stream_select_near import whole as whole  # noqa: F401 (the fixture)
 
 from client_gl.stream.engine import StreamOptions
@@ -286,3 +287,71 @@ def test_reading_the_pages_the_rule_wants_converges_to_the_whole_trees_cut(whole
                 got, want = _cut_ids(tree.manifest, cam, opts, cost)[0], _cut_ids(whole, cam, opts, whole_cost)[0]
                 assert got == want, (by_rule, cams.index(cam), budget, by_bytes)
     assert read_rule < read_all, (read_rule, read_all)
+
+
+def _land_in_random_order(root_manifest, files, cam: Camera, opts: SelectionOptions, rnd: random.Random) -> PagedTree:
+    """The engine's page loop without the network (pagepair31's landing_orders.py), the pages landing when they will:
+    each frame selects over the tree held and asks for the pages the rule wants (those on their way that it no longer
+    wants are cancelled), and a random part of the pages on their way lands. The tree held once no page is wanted:
+    its rows in the order its pages arrived in."""
+    tree = PagedTree(root_manifest)
+    on_way: list[int] = []
+    for _ in range(200):
+        m = tree.manifest
+        cost = np.array([t.chunks for t in m.tiles], np.float64) * 4096.0
+        _, sel, view = _cut_ids(m, cam, opts, cost)
+        heads = tree.heads_to_refine(sel.cut, view.sse, view.visible, opts.max_sse)
+        now, _ = pages_the_budget_can_use(m.arrays, view, cost, m.index_of[m.root], sel, heads, opts,
+                                          m.lod.reduction, m.chunk_size, 4096.0)
+        wanted = m.arrays.ids[heads[now]].tolist()
+        on_way = [t for t in on_way if t in wanted] + [t for t in wanted if t not in on_way]
+        if not on_way:
+            return tree
+        land = [t for t in on_way if rnd.random() < 0.5] or [rnd.choice(on_way)]
+        for tile_id in land:
+            tree.add_page(tile_id, files[tree.entry(tile_id).file])
+        on_way = [t for t in on_way if t not in land]
+    raise AssertionError("pages wanted after 200 frames")
+
+
+@pytest.mark.parametrize("path", PATHS)
+def test_a_view_inside_tiles_converges_to_one_cut_whatever_order_the_pages_land_in(whole, path):
+    """Issue 31 (client.md 1.2's tie-break): with the eye inside tiles' spheres many refinement keys tie (-inf), and
+    equal keys are taken in the order of the tiles' ids, not of their rows in the tree held (which follow the order
+    the pages arrived in). So a view converges to one cut, the whole tree's (the same tiles in the same order, the
+    same refined tiles and priorities), whatever order its pages land in; and on each tree held the scan and the
+    compiled selection are select's (test_stream_select_near.check_same). Before, the rows broke the ties: the same
+    views gave several cuts."""
+    paged = split_pages(whole, 2)
+    files = {ref.file: raw for ref, raw in paged.pages}
+    whole_cost = np.array([t.chunks for t in whole.tiles], np.float64) * 4096.0
+    root = whole.tiles[whole.index_of[whole.root]]
+    c, r = np.array(root.sphere_center), root.sphere_radius
+    rnd = random.Random(31)
+    tied = 0
+    for v in range(6):
+        d = np.array([rnd.gauss(0, 1) for _ in range(3)])
+        eye = c + d / np.linalg.norm(d) * r * rnd.choice([0.05, 0.3, 0.5])  # inside the root's sphere
+        cam = Camera(tuple(eye), tuple(c + np.array([rnd.gauss(0, r) for _ in range(3)])), (0.0, 0.0, 1.0),
+                     rnd.choice([40.0, 60.0, 90.0]), 320, 240, near=0.001 * r)
+        by_bytes = v % 3 == 2
+        budget = rnd.choice([3, 5, 10, 20]) * root.splats
+        opts = SelectionOptions(max_sse=1.0, max_splats=None if by_bytes else budget,
+                                budget=budget / whole.chunk_size * 4096.0 * 1.5 if by_bytes else None)
+        want_sel, want_view = _cut_ids(whole, cam, opts, whole_cost)[1:]
+        ids = whole.arrays.ids
+        want = ([int(ids[i]) for i in want_sel.cut], sorted(ids[list(want_sel.refined)].tolist()),
+                [want_sel.priority[i] for i in want_sel.cut])
+        # the eye inside refined tiles' spheres: their sse infinite, their keys -inf, tied
+        tied += int(np.isinf(want_view.sse[list(want_sel.refined)]).sum() > 1)
+        for _ in range(4):
+            tree = _land_in_random_order(paged.root, files, cam, opts, random.Random(rnd.random()))
+            m = tree.manifest
+            cost = np.array([t.chunks for t in m.tiles], np.float64) * 4096.0
+            sel = _cut_ids(m, cam, opts, cost)[1]
+            a_ids = m.arrays.ids
+            got = ([int(a_ids[i]) for i in sel.cut], sorted(a_ids[list(sel.refined)].tolist()),
+                   [sel.priority[i] for i in sel.cut])
+            assert got == want, v
+            check_same(m, cam, opts, frozenset(), (), np.ones(len(m.tiles), bool), rnd, path)
+    assert tied >= 3, tied  # the views do tie keys (several refined tiles with the eye inside them)

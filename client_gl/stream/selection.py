@@ -457,16 +457,19 @@ def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: Sel
     prio = refinement_keys(a.level, view.distance, view.sse, refinement_level_step(reduction)).tolist()
     kid_cost_l, kid_splats_l = kid_cost.tolist(), kid_splats.tolist()
     visible_l = visible.tolist()
+    # ties of key by tile id (client.md 1.2), not by position: a paged tree's rows follow the order its pages
+    # arrived in, the ids are the manifest's, the same for every client and every order of arrival
+    ids = a.ids.tolist()
 
     refined: set[int] = set()
     cut: set[int] = {root}
     priority: dict[int, float] = {root: INF}
     splats = int(splats_l[root])
     total = float(cost_l[root])
-    heap: list[tuple[float, int]] = [(prio[root], root)] if candidate[root] else []
+    heap: list[tuple[float, int, int]] = [(prio[root], ids[root], root)] if candidate[root] else []
     limited = False
     while heap:
-        neg_priority, i = heapq.heappop(heap)
+        neg_priority, _, i = heapq.heappop(heap)
         new_splats = splats - int(splats_l[i]) + int(kid_splats_l[i])
         new_total = total - cost_l[i] + kid_cost_l[i]
         # A refinement that does not fit is skipped, not the end: a smaller one further down the queue may fit, so
@@ -486,10 +489,11 @@ def select(a: TileArrays, view: TileView, cost: np.ndarray, root: int, opts: Sel
             cut.add(k)
             priority[k] = -neg_priority
             if candidate[k]:
-                heapq.heappush(heap, (prio[k], k))
+                heapq.heappush(heap, (prio[k], ids[k], k))
     distance = view.distance.tolist()
-    # ties (equal priority and distance) by position: the order then does not depend on the set's history
-    cut_sorted = tuple(sorted(cut, key=lambda i: (-priority[i], distance[i], i)))
+    # ties (equal priority and distance) by tile id: the order then depends neither on the set's history nor on the
+    # rows a paged tree gave its tiles
+    cut_sorted = tuple(sorted(cut, key=lambda i: (-priority[i], distance[i], ids[i])))
     return Selection(cut_sorted, frozenset(refined), {i: priority.get(i, 0.0) for i in cut_sorted}, splats, total,
                      limited)
 
@@ -499,12 +503,12 @@ def select_near(a: TileArrays, view: PartialView, cost: np.ndarray, root: int, o
     """select's cut (the same tiles, order, priorities, splats, cost and budget flag) from the tiles near the last
     frame's cut, as one ordered scan instead of a heap of every reached tile (client.md 1.2).
 
-    select's heap hands out the tiles it reaches in the order of their refinement keys (key, then position, as the
+    select's heap hands out the tiles it reaches in the order of their refinement keys (key, then tile id, as the
     heap compares them) wherever a candidate's key is above its parent's: a tile enters the heap when its parent is
     refined, and the parent's key is smaller. So the loop here is a scan over the set's candidates sorted once by
     key (numpy), deciding each whose parent was refined (reached) with select's budget test; no heap pushes, no walk
     over children. The few candidates whose key is below their parent's (a child's sphere reaching nearer the eye
-    than its parent's; the tiles with the eye inside their spheres, ordered by position) enter a small heap when
+    than its parent's; the tiles with the eye inside their spheres, ordered by tile id) enter a small heap when
     their parent is refined, as they would enter select's, and that heap is emptied before the scan goes on (its
     tiles are smaller than every tile the scan has left, so select pops them first); their candidate children below
     the scan's position join that heap, the others wait for the scan. The set starts as the root and `near` (the
@@ -523,34 +527,34 @@ def select_near(a: TileArrays, view: PartialView, cost: np.ndarray, root: int, o
     j0 = index[root]
     splats, total = int(s.splats[j0]), float(s.cost[j0])
     limited = False
-    low: list[tuple[float, int, int]] = []  # (key, position, index in the set): tiles popped before the scan goes on
-    at = (-INF, -1)  # (key, position) of the last tile the scan decided
+    low: list[tuple[float, int, int]] = []  # (key, tile id, index in the set): tiles popped before the scan goes on
+    at = (-INF, -1)  # (key, tile id) of the last tile the scan decided
     last = None  # its index in the set
     while True:
         n = len(s.tiles)
         refd += bytes(n - len(refd))
-        tiles, prio, cand, parent = s.tiles_a, s.prio_a, s.cand_a, s.parent_a
+        tiles, prio, cand, parent, tid = s.tiles_a, s.prio_a, s.cand_a, s.parent_a, s.ids_a
         pj = np.where(parent >= 0, s.local[np.maximum(parent, 0)], -1)
         cj = np.flatnonzero(cand)
         if np.isnan(prio[cj]).any():  # no order to scan in (select's heap compares NaN keys its own way)
             return select_near_heap(a, view, cost, root, opts, previous_refined, near)
-        order = cj[np.lexsort((tiles[cj], prio[cj]))].tolist()
+        order = cj[np.lexsort((tid[cj], prio[cj]))].tolist()  # ties of key by tile id (client.md 1.2)
         # candidates below their candidate parent in the heap's order: they skip the scan's turn
         pc = pj[cj]
         ok = pc >= 0
         ok[ok] = cand[pc[ok]]
         cw, pw = cj[ok], pc[ok]
-        below = (prio[cw] < prio[pw]) | ((prio[cw] == prio[pw]) & (tiles[cw] < tiles[pw]))
+        below = (prio[cw] < prio[pw]) | ((prio[cw] == prio[pw]) & (tid[cw] < tid[pw]))
         early: dict[int, list[int]] = {}
         for c, p in zip(cw[below].tolist(), pw[below].tolist(), strict=True):
             early.setdefault(p, []).append(c)
         pj_l, need_l = pj.tolist(), (s.kids_in != s.kids_all).tolist()
-        sp, co, pr, tl = s.splats, s.cost, s.prio, s.tiles
+        sp, co, pr, tl, il = s.splats, s.cost, s.prio, s.tiles, s.ids
         ksp, kco = s.kid_splats.tolist(), s.kid_cost.tolist()
         cand_l = s.candidate
         start = order.index(last) + 1 if last is not None else 0
 
-        lists = (need_l, sp, ksp, co, kco, refd, tl, cand_l, pr, children, index)
+        lists = (need_l, sp, ksp, co, kco, refd, tl, il, cand_l, pr, children, index)
         stopped, splats, total, limited = _drain(low, at, lists, splats, total, limited, opts)
         if not stopped:
             for j in order[start:] if start else order:
@@ -563,7 +567,7 @@ def select_near(a: TileArrays, view: PartialView, cost: np.ndarray, root: int, o
                     break
                 new_splats = splats - sp[j] + int(ksp[j])
                 new_total = total - co[j] + kco[j]
-                at, last = (pr[j], tl[j]), j
+                at, last = (pr[j], il[j]), j
                 if max_splats is not None and new_splats > max_splats and new_splats > splats:
                     limited = True
                     continue
@@ -574,7 +578,7 @@ def select_near(a: TileArrays, view: PartialView, cost: np.ndarray, root: int, o
                 splats, total = new_splats, new_total
                 if j in early:
                     for c in early[j]:
-                        heapq.heappush(low, (pr[c], tl[c], c))
+                        heapq.heappush(low, (pr[c], il[c], c))
                     stopped, splats, total, limited = _drain(low, at, lists, splats, total, limited, opts)
                     if stopped:
                         break
@@ -594,7 +598,7 @@ def select_near(a: TileArrays, view: PartialView, cost: np.ndarray, root: int, o
         cj = np.append(cj, j0)
         pri = np.append(pri, INF)
     ct = tiles[cj]
-    rank = np.lexsort((ct, view.distance[ct], -pri))
+    rank = np.lexsort((tid[cj], view.distance[ct], -pri))
     return Selection.of_arrays(ct[rank], pri[rank], tiles[refined_m], splats, total, limited)
 
 
@@ -612,7 +616,7 @@ def _drain(low: list, at: tuple[float, int], lists: tuple, splats: int, total: f
            opts: SelectionOptions) -> tuple[bool, int, float, bool]:
     """select_near's small heap popped empty, as select pops those tiles before the scan's next one: (stopped at a
     tile whose children are not all in the set, splats, total, budget flag)."""
-    need_l, sp, ksp, co, kco, refd, tl, cand_l, pr, children, index = lists
+    need_l, sp, ksp, co, kco, refd, tl, il, cand_l, pr, children, index = lists
     max_splats, budget = opts.max_splats, opts.budget
     while low:
         c = low[0][2]
@@ -631,8 +635,8 @@ def _drain(low: list, at: tuple[float, int], lists: tuple, splats: int, total: f
         splats, total = new_splats, new_total
         for k in children[tl[c]]:  # its candidate children below the scan's position join the heap
             jk = index[k]
-            if cand_l[jk] and (pr[jk], k) < at:
-                heapq.heappush(low, (pr[jk], k, jk))
+            if cand_l[jk] and (pr[jk], il[jk]) < at:
+                heapq.heappush(low, (pr[jk], il[jk], jk))
     return False, splats, total, limited
 
 
@@ -657,10 +661,10 @@ def select_near_heap(a: TileArrays, view: PartialView, cost: np.ndarray, root: i
     j = index[root]
     splats = int(s.splats[j])
     total = float(s.cost[j])
-    heap: list[tuple[float, int]] = [(s.prio[j], root)] if s.candidate[j] else []
+    heap: list[tuple[float, int, int]] = [(s.prio[j], s.ids[j], root)] if s.candidate[j] else []
     limited = False
     while heap:
-        neg_priority, i = heapq.heappop(heap)
+        neg_priority, _, i = heapq.heappop(heap)
         j = index[i]
         if s.kids_in[j] != s.kids_all[j]:
             s.add_children_of_candidates()
@@ -683,9 +687,9 @@ def select_near_heap(a: TileArrays, view: PartialView, cost: np.ndarray, root: i
             cut.add(k)
             priority[k] = -neg_priority
             if candidate[jk]:
-                heapq.heappush(heap, (prio[jk], k))
-    distance = view.distance
-    cut_sorted = tuple(sorted(cut, key=lambda i: (-priority[i], float(distance[i]), i)))
+                heapq.heappush(heap, (prio[jk], s.ids[jk], k))
+    distance, ids = view.distance, s.ids
+    cut_sorted = tuple(sorted(cut, key=lambda i: (-priority[i], float(distance[i]), ids[index[i]])))
     return Selection(cut_sorted, frozenset(refined), {i: priority.get(i, 0.0) for i in cut_sorted}, splats, total,
                      limited)
 
@@ -699,6 +703,7 @@ class _NearSet:
         self.high = float(opts.max_sse)
         self.low = self.high * opts.hysteresis  # select's threshold of a tile refined last frame (float64, as numpy)
         self.tiles: list[int] = []
+        self.ids: list[int] = []  # their tile ids (the tie-break of equal keys: client.md 1.2)
         self.index: dict[int, int] = {}
         self.local = np.full(len(a.parent), -1, np.intp)  # position -> index in `tiles`
         self.visible: list[bool] = []
@@ -713,7 +718,7 @@ class _NearSet:
             self.was_refined = np.zeros(len(a.parent), bool)
             self.was_refined[positions(previous_refined)] = True
         # the same as arrays (select_near's scan sorts and tests them in numpy)
-        self.tiles_a, self.prio_a = np.zeros(0, np.intp), np.zeros(0)
+        self.tiles_a, self.prio_a, self.ids_a = np.zeros(0, np.intp), np.zeros(0), np.zeros(0, np.int64)
         self.cand_a, self.parent_a = np.zeros(0, bool), np.zeros(0, np.intp)
 
     def add(self, at: np.ndarray) -> None:
@@ -726,6 +731,9 @@ class _NearSet:
         self.local[at] = np.arange(start, start + len(new))
         self.index.update(zip(new, range(start, start + len(new)), strict=True))
         self.tiles += new
+        ids = a.ids[at]
+        self.ids += ids.tolist()
+        self.ids_a = np.concatenate([self.ids_a, ids])
         vis, sse = view.visible[at], view.sse[at]
         threshold = np.full(len(new), self.high)
         if len(self.previous):
@@ -967,7 +975,7 @@ def pages_the_budget_can_use(a: TileArrays, view, cost: np.ndarray, root: int, s
     owner = slot[a.parent[members]]
     add_splats = np.bincount(owner, splats[members], len(refined)) - splats[refined]
     add_cost = np.bincount(owner, cost[members], len(refined)) - cost[refined]
-    order = np.lexsort((refined, turn))
+    order = np.lexsort((a.ids[refined], turn))  # ties of key by tile id, as the selection's (client.md 1.2)
     turns = turn[order]
     before_splats = np.concatenate([[0.0], np.cumsum(add_splats[order])])
     before_cost = np.concatenate([[0.0], np.cumsum(add_cost[order])])
@@ -1007,7 +1015,7 @@ def pages_the_budget_can_use(a: TileArrays, view, cost: np.ndarray, root: int, s
     held_splats = held_cost = 0.0
     s_at, c_at = at_splats.tolist(), at_cost.tolist()
     s_add, c_add = add_splats_least.tolist(), add_cost_least.tolist()
-    for j in np.flatnonzero(fits)[np.lexsort((heads[fits], head_turn[fits]))].tolist():
+    for j in np.flatnonzero(fits)[np.lexsort((a.ids[heads[fits]], head_turn[fits]))].tolist():
         if (s_add[j] <= 0 or s_at[j] + held_splats + s_add[j] <= max_splats) and \
                 (c_add[j] <= 0 or c_at[j] + held_cost + c_add[j] <= budget):
             wanted[j] = True

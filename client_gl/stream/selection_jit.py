@@ -2,7 +2,7 @@
 and selection.select, bit for bit, in a fraction of the time (format_spec/client.md 1.2; BENCHMARKS.md, "Manifest
 pages").
 
-selection.select's greedy loop, run as it is written (a queue of candidates by refinement key, then position),
+selection.select's greedy loop, run as it is written (a queue of candidates by refinement key, then tile id),
 needs the numbers of the root and of the children of every tile it takes from the queue, nothing else. Here that
 loop and the per-tile numbers (frustum test, sse, projected radius and area, distance: the same operations in the
 same order as selection._numbers, so the same bits) are compiled kernels over the tree's arrays, and a tile's
@@ -11,7 +11,7 @@ of every tile in its queue that lack them are computed in one pass. The one thin
 key's log2: numpy's vectorised log2 and the C library's differ in the last bit for about 1 value in 2,000 (438 of
 10^6 here), and the keys order the loop and are the cut's priorities, so a key's log2 is numpy's: one np.log2
 over the new candidates of each pass (the kernels gather its argument and finish the keys, the same operations as
-selection.refinement_keys). The loop pops (key, position) pairs, all distinct, so any correct queue pops them in the
+selection.refinement_keys). The loop pops (key, tile id) pairs, all distinct, so any correct queue pops them in the
 order of select's heapq.
 
 The kernels compile on first use or load from numba's cache (cache=True); `warm_up` calls each once on a tiny tree
@@ -182,16 +182,19 @@ def _seed(head, parents, more_parents, g, kids, known, sse, visible, radius_px, 
 
 
 @njit(inline="always")
-def _less(ka, ta, kb, tb):
-    return ka < kb or (ka == kb and ta < tb)
+def _less(ka, ta, kb, tb, ids):
+    """Whether queued tile ta (key ka) comes out before tb: key, then tile id (client.md 1.2: not the position, which
+    in a paged tree follows the order its pages arrived in)."""
+    return ka < kb or (ka == kb and ids[ta] < ids[tb])
 
 
 @njit(**_JIT)
 def _refine(g, kids, splats_of, cost, prio, known, sse, visible, radius_px, area_px, distance, cand, heap_k, heap_t,
-            st, total_a, refd, reflist, max_splats, budget, pending, lg, m_keys, level, step, root):
+            st, total_a, refd, reflist, max_splats, budget, pending, lg, m_keys, level, step, root, ids):
     """select's greedy loop from where it stopped (st: queue size, splats, budget flag, refined count, tiles looked
-    at, whether the root is still to be queued; total_a: the cost), once the keys of the m_keys candidates
-    pending[:m_keys] are finished (lg: numpy's log2 of their _log_arg). Returns 0 when the queue is empty, m > 0
+    at, whether the root is still to be queued; total_a: the cost; ids: the tile ids, the order of equal keys),
+    once the keys of the m_keys candidates pending[:m_keys] are finished (lg: numpy's log2 of their _log_arg).
+    Returns 0 when the queue is empty, m > 0
     when it stopped to have the log2 of m new candidates taken (pending[:m], their _log_arg in lg[:m]; the queue's
     top is taken again then), -1 at a NaN key (select's heapq orders those its own way: the caller falls back to
     the numpy path). max_splats < 0, budget NaN: no limit."""
@@ -237,9 +240,9 @@ def _refine(g, kids, splats_of, cost, prio, known, sse, visible, radius_px, area
                 c = 2 * h + 1
                 if c >= size:
                     break
-                if c + 1 < size and _less(heap_k[c + 1], heap_t[c + 1], heap_k[c], heap_t[c]):
+                if c + 1 < size and _less(heap_k[c + 1], heap_t[c + 1], heap_k[c], heap_t[c], ids):
                     c += 1
-                if _less(heap_k[c], heap_t[c], lk, lt):
+                if _less(heap_k[c], heap_t[c], lk, lt, ids):
                     heap_k[h], heap_t[h] = heap_k[c], heap_t[c]
                     h = c
                 else:
@@ -275,7 +278,7 @@ def _refine(g, kids, splats_of, cost, prio, known, sse, visible, radius_px, area
                 size += 1
                 while h > 0:
                     p = (h - 1) // 2
-                    if _less(k, c, heap_k[p], heap_t[p]):
+                    if _less(k, c, heap_k[p], heap_t[p], ids):
                         heap_k[h], heap_t[h] = heap_k[p], heap_t[p]
                         h = p
                     else:
@@ -289,9 +292,9 @@ def _refine(g, kids, splats_of, cost, prio, known, sse, visible, radius_px, area
 
 
 @njit(inline="always")
-def _before(pa, da, ta, pb, db, tb):
-    """Whether cut tile a comes before b: np.lexsort((tiles, distance, -priority))'s order (priority descending,
-    then distance, then position; NaN after every number, as numpy sorts it)."""
+def _before(pa, da, ta, pb, db, tb, ids):
+    """Whether cut tile a comes before b: np.lexsort((ids, distance, -priority))'s order (priority descending,
+    then distance, then tile id; NaN after every number, as numpy sorts it)."""
     if pa != pb:
         if pa != pa:
             return False
@@ -304,14 +307,14 @@ def _before(pa, da, ta, pb, db, tb):
         if db != db:
             return True
         return da < db
-    return ta < tb
+    return ids[ta] < ids[tb]
 
 
 @njit(**_JIT)
-def _cut(first, last, kids, visible, distance, refd, reflist, nref, prio, root, out_t, out_p, tmp_t, tmp_p):
+def _cut(first, last, kids, visible, distance, refd, reflist, nref, prio, root, out_t, out_p, tmp_t, tmp_p, ids):
     """The cut: the visible children of refined tiles that were not refined themselves (priority: minus the
     parent's key), and the root unless refined (inf), sorted in the fetch order (_before: priority descending,
-    distance, position; all distinct, so any correct sort gives the lexsort's order). Returns its size."""
+    distance, tile id; all distinct, so any correct sort gives the lexsort's order). Returns its size."""
     m = 0
     for r in range(nref):
         i = reflist[r]
@@ -337,7 +340,7 @@ def _cut(first, last, kids, visible, distance, refd, reflist, nref, prio, root, 
             a, b, k = lo, mid, lo
             while a < mid and b < hi:
                 ta, tb = src_t[a], src_t[b]
-                if _before(src_p[b], distance[tb], tb, src_p[a], distance[ta], ta):
+                if _before(src_p[b], distance[tb], tb, src_p[a], distance[ta], ta, ids):
                     dst_t[k], dst_p[k] = tb, src_p[b]
                     b += 1
                 else:
@@ -819,6 +822,7 @@ def select_near_compiled(a: TileArrays, view: PartialView, cost: np.ndarray, roo
     lg = buf.get("log2", n, f64)  # the new candidates' _log_arg, then numpy's log2 of it (their keys' one term
     # numba's log2 would not give bit for bit)
     splats_of = np.ascontiguousarray(a.splats, np.int64)
+    ids = np.ascontiguousarray(a.ids, np.int64)  # ties of key broken by tile id (client.md 1.2)
     # the loop's state: queue size, splats, budget flag, refined tiles, tiles looked at, the root still to be queued
     st = np.array([0, splats_of[root], 0, 0, 0, 1], np.int64)
     m = _seed(head, parents, more_parents, g, kids, known, sse, visible, radius_px, area_px, distance, cand, pending,
@@ -835,7 +839,7 @@ def select_near_compiled(a: TileArrays, view: PartialView, cost: np.ndarray, roo
         for s in range(0, m, _KEEPS_LOCK):
             np.log2(lg[s:min(s + _KEEPS_LOCK, m)], out=lg[s:min(s + _KEEPS_LOCK, m)])
         m = _refine(g, kids, splats_of, cost, prio, known, sse, visible, radius_px, area_px, distance, cand, heap_k,
-                    heap_t, st, total, refd, reflist, max_splats, budget, pending, lg, m, level, step, root)
+                    heap_t, st, total, refd, reflist, max_splats, budget, pending, lg, m, level, step, root, ids)
         if m <= 0:
             break
     view.looked_at += int(st[4])
@@ -845,7 +849,7 @@ def select_near_compiled(a: TileArrays, view: PartialView, cost: np.ndarray, roo
     nref = int(st[3])
     out_t, out_p = buf.get("out_t", n, i64), buf.get("out_p", n, f64)
     c = _cut(lo, hi, kids, visible, distance, refd, reflist, nref, prio, root, out_t, out_p,
-             buf.get("sort_t", n, i64), buf.get("sort_p", n, f64))
+             buf.get("sort_t", n, i64), buf.get("sort_p", n, f64), ids)
     return Selection.of_arrays(out_t[:c].copy(), out_p[:c].copy(), reflist[:nref].copy(), int(st[1]),
                                float(total[0]), bool(st[2]))
 
@@ -1081,5 +1085,6 @@ class _Tiny:
 
     def __init__(self, parent, level, splats, centre, radius, err, corners):
         self.parent, self.level, self.splats, self.sphere_center = parent, level, splats, centre
+        self.ids = np.arange(len(parent), dtype=np.int64)
         self.children = tuple(tuple(np.flatnonzero(parent == i).tolist()) for i in range(len(parent)))
         self.sphere_radius, self.geometric_error, self.box_corners = radius, err, corners
