@@ -600,7 +600,7 @@ def pair_lists(g: Gaussians, cams: list[Camera], sh_degree: int | None = None) -
     pages, it does not copy them), so the pairs are held once at the peak, with one camera's more (the walk buffer:
     WALK_ROOM_PAIRS a pixel, or a quarter over the largest camera's pairs; while the lists are built the fit's
     tables and gradient rows, which CpuLevelRefiner.peak_bytes counts, are not held). Before (branch pairwalk31): a
-    count walk over every camera, then a fill walk projecting each camera again, the same arrays at 1.7x the CPU
+    count walk over every camera, then a fill walk projecting each camera again, the same arrays at 1.5-2x the CPU
     (BENCHMARKS.md, "The pair lists in one walk")."""
     width, height = cams[0].width, cams[0].height
     if any((cam.width, cam.height) != (width, height) for cam in cams):
