@@ -440,54 +440,127 @@ def _view_colours(ok, pos, sh_rest, eye, coeffs, base):
 
 # --- pair lists (fixed geometry) -----------------------------------------------------------------------------------
 
+@intrinsic
+def _fetch_add(typingctx, ary, val):
+    """ary[0] += val as one atomic step; returns ary[0] before it (llvm's atomicrmw add)."""
+    sig = types.int64(ary, types.int64)
+
+    def codegen(context, builder, signature, args):
+        a = context.make_array(signature.args[0])(context, builder, args[0])
+        return builder.atomic_rmw("add", a.data, args[1], "monotonic")
+    return sig, codegen
+
+
+@numba.njit(cache=True)
+def _grown(proj, g, n, room):
+    """proj, g with room for `room`, their first n kept."""
+    grown_proj = np.empty(room, np.int32)
+    grown_g = np.empty(room, np.float32)
+    grown_proj[:n] = proj[:n]
+    grown_g[:n] = g[:n]
+    return grown_proj, grown_g
+
+
+@numba.njit(cache=True)
+def _walk_tile(xy, conic, opacity, tile_ids, tile_offsets, width, height, t, counts):
+    """Tile t's pairs (its pixels row-major, each pixel's in depth order: the splats with g >= ALPHA_MIN until T under
+    the opacities passes under T_STORE) and counts[pixel] of its pixels; returns (pairs, proj, g), the arrays grown as
+    the pairs come (a tile's count is known only at its end)."""
+    grid_x = (width + TILE - 1) // TILE
+    ty = t // grid_x
+    tx = t - ty * grid_x
+    s, e = tile_offsets[t], tile_offsets[t + 1]
+    row_i = np.empty(e - s, np.int64)
+    row_lo = np.empty(e - s, np.int64)
+    row_hi = np.empty(e - s, np.int64)
+    room = max(1024, 4 * (e - s))
+    own_proj = np.empty(room, np.int32)
+    own_g = np.empty(room, np.float32)
+    nt = 0
+    x0 = tx * TILE
+    x1 = min(x0 + TILE, width)
+    for y in range(ty * TILE, min(ty * TILE + TILE, height)):
+        nr = _row_candidates(xy, conic, opacity, tile_ids, s, e, y, x0, x1, True, row_i, row_lo, row_hi)
+        # the row's pairs are at most its candidates' columns: room for them before the row, not a check a pair
+        most = nt
+        for k in range(nr):
+            most += row_hi[k] - row_lo[k] + 1
+        if most > room:
+            room = max(2 * room, most)
+            own_proj, own_g = _grown(own_proj, own_g, nt, room)
+        for x in range(x0, x1):
+            n0 = nt
+            trans = 1.0
+            for k in range(nr):
+                if x < row_lo[k] or x > row_hi[k]:
+                    continue
+                i = row_i[k]
+                dx = xy[i, 0] - x
+                dy = xy[i, 1] - y
+                power = -0.5 * (conic[i, 0] * dx * dx + conic[i, 2] * dy * dy) - conic[i, 1] * dx * dy
+                if power > 0.0 or power < POWER_SKIP:
+                    continue
+                g = math.exp(power)
+                if g < ALPHA_MIN:
+                    continue
+                own_proj[nt] = i
+                own_g[nt] = g
+                nt += 1
+                alpha = min(ALPHA_MAX, opacity[i] * g)
+                if alpha >= ALPHA_MIN:
+                    trans *= 1.0 - alpha
+                    if trans < T_STORE:
+                        break
+            counts[y * width + x] = nt - n0
+    return nt, own_proj, own_g
+
+
 @numba.njit(parallel=True, cache=True)
-def _pairs_per_pixel(xy, conic, opacity, tile_ids, tile_offsets, width, height, counts, fill, out_off, out_proj,
-                     out_g):
-    """Pass 1 (fill False): counts[pixel]; pass 2 (fill True): the pairs at out_off[pixel]."""
+def _walk_tiles(xy, conic, opacity, tile_ids, tile_offsets, width, height, tiles, counts, tile_pairs, tile_start,
+                cursor, out_proj, out_g):
+    """One walk over the tiles `tiles` of a camera (_walk_tile each): counts[pixel] (every pixel of the tiles),
+    tile_pairs[tile], and each tile's pairs copied to out_proj / out_g from tile_start[tile], a run reserved at
+    cursor[0] (atomically: the tiles finish in any order). A tile whose run would pass the arrays' end keeps
+    tile_start -1 and writes nothing there (pair_lists walks it again with room)."""
+    cap = len(out_proj)
+    for j in numba.prange(len(tiles)):
+        t = tiles[j]
+        nt, own_proj, own_g = _walk_tile(xy, conic, opacity, tile_ids, tile_offsets, width, height, t, counts)
+        tile_pairs[t] = nt
+        at = _fetch_add(cursor, nt) if nt else 0
+        if at + nt > cap:
+            tile_start[t] = -1
+        else:
+            tile_start[t] = at
+            out_proj[at:at + nt] = own_proj[:nt]
+            out_g[at:at + nt] = own_g[:nt]
+
+
+@numba.njit(parallel=True, cache=True)
+def _place_pairs(width, height, counts, tile_start, walked_proj, walked_g, pixel_offsets, first, shift, proj, pair_g):
+    """The walked pairs (tile by tile, _walk_tiles') into the lists' pixel order: pixel q's at pixel_offsets[q] -
+    first of proj / pair_g, their projected ids plus `shift` (the camera's first projected splat)."""
     grid_x = (width + TILE - 1) // TILE
     grid_y = (height + TILE - 1) // TILE
     for t in numba.prange(grid_x * grid_y):
         ty = t // grid_x
         tx = t - ty * grid_x
-        s, e = tile_offsets[t], tile_offsets[t + 1]
-        row_i = np.empty(e - s, np.int64)
-        row_lo = np.empty(e - s, np.int64)
-        row_hi = np.empty(e - s, np.int64)
+        at = tile_start[t]
         x0 = tx * TILE
         x1 = min(x0 + TILE, width)
-        for ly in range(TILE):
-            y = ty * TILE + ly
-            if y >= height:
-                break
-            nr = _row_candidates(xy, conic, opacity, tile_ids, s, e, y, x0, x1, True, row_i, row_lo, row_hi)
+        for y in range(ty * TILE, min(ty * TILE + TILE, height)):
             for x in range(x0, x1):
                 pix = y * width + x
-                n = 0
-                pos = out_off[pix] if fill else 0
-                trans = 1.0
-                for k in range(nr):
-                    if x < row_lo[k] or x > row_hi[k]:
-                        continue
-                    i = row_i[k]
-                    dx = xy[i, 0] - x
-                    dy = xy[i, 1] - y
-                    power = -0.5 * (conic[i, 0] * dx * dx + conic[i, 2] * dy * dy) - conic[i, 1] * dx * dy
-                    if power > 0.0 or power < POWER_SKIP:
-                        continue
-                    g = math.exp(power)
-                    if g < ALPHA_MIN:
-                        continue
-                    if fill:
-                        out_proj[pos + n] = i
-                        out_g[pos + n] = g
-                    n += 1
-                    alpha = min(ALPHA_MAX, opacity[i] * g)
-                    if alpha >= ALPHA_MIN:
-                        trans *= 1.0 - alpha
-                        if trans < T_STORE:
-                            break
-                if not fill:
-                    counts[pix] = n
+                to = pixel_offsets[pix] - first
+                for k in range(counts[pix]):
+                    proj[to + k] = walked_proj[at + k] + shift
+                    pair_g[to + k] = walked_g[at + k]
+                at += counts[pix]
+
+
+# The walk's first room, in pairs a pixel of one camera (grown to the largest camera's pairs and a quarter as they
+# come; a camera that passes it walks its tiles that did not fit again, once the room is there)
+WALK_ROOM_PAIRS = 32
 
 
 @dataclass
@@ -522,50 +595,71 @@ class PairLists:
 def pair_lists(g: Gaussians, cams: list[Camera], sh_degree: int | None = None) -> PairLists:
     """The pair lists of `g` seen from `cams` (all of one size).
 
-    Two passes, so the pairs are written once into arrays of their final size (no per-camera pieces concatenated:
-    that held the pairs twice at the peak): each camera's per-pixel counts first, then the pairs. The second pass
-    projects each camera again (the same bits) and writes what the lists keep of it (16 B a projected splat) straight
-    into place, rather than keeping every camera's projection from the first: at a million splats 32 projections
-    held 2-3 GB (about 80 B a splat)."""
+    One walk a camera: its tiles' pairs go to a walk buffer (one camera's, reused), then into the lists in pixel
+    order; the lists' arrays grow by each camera's pairs in place (ndarray.resize: a large array's realloc moves its
+    pages, it does not copy them), so the pairs are held once at the peak, with one camera's more (the walk buffer:
+    WALK_ROOM_PAIRS a pixel, or a quarter over the largest camera's pairs; while the lists are built the fit's
+    tables and gradient rows, which CpuLevelRefiner.peak_bytes counts, are not held). Before (branch pairwalk31): a
+    count walk over every camera, then a fill walk projecting each camera again, the same arrays at 1.5-2x the CPU
+    (BENCHMARKS.md, "The pair lists in one walk")."""
     width, height = cams[0].width, cams[0].height
     if any((cam.width, cam.height) != (width, height) for cam in cams):
         raise ValueError("pair_lists: the cameras differ in size")
     hw = width * height
+    n_tiles = -(-width // TILE) * -(-height // TILE)
     opacity_all = g.opacities.astype(np.float64)
     cov3d = covariances(g)
-    empty_i = np.zeros(0, np.int32)
-    empty_f = np.zeros(0, np.float32)
-    no_counts = np.zeros(0, np.int64)  # pass 2 writes no counts (an int64 array: pass 1's compiled signature)
     pixel_offsets = np.zeros(len(cams) * hw + 1, np.int64)
     projected = np.zeros(len(cams) + 1, np.int64)  # camera c's projected splats: [projected[c], projected[c + 1])
+    proj = np.empty(0, np.int32)
+    pair_g = np.empty(0, np.float32)
+    splat = np.empty(0, np.int32)
+    base = np.empty((0, 3), np.float32)
+    walked_proj = np.empty(WALK_ROOM_PAIRS * hw, np.int32)
+    walked_g = np.empty(WALK_ROOM_PAIRS * hw, np.float32)
+    counts = np.empty(hw, np.int64)
+    tile_pairs = np.empty(n_tiles, np.int64)
+    tile_start = np.empty(n_tiles, np.int64)
+    cursor = np.zeros(1, np.int64)
+    every_tile = np.arange(n_tiles, dtype=np.int64)
     total = 0
     for c, cam in enumerate(cams):
         p = project(g, cam, sh_degree, cov3d)
-        counts = np.zeros(hw, np.int64)
-        if len(p.index):
-            _pairs_per_pixel(p.xy, p.conic, opacity_all[p.index], p.tile_ids, p.tile_offsets, width, height, counts,
-                             False, counts, empty_i, empty_f)
+        m = len(p.index)
+        projected[c + 1] = projected[c] + m
         off = pixel_offsets[c * hw:(c + 1) * hw + 1]
-        np.cumsum(counts, out=off[1:])
-        off[1:] += total
-        total = int(off[-1])
-        projected[c + 1] = projected[c] + len(p.index)
-        del p
-    proj = np.empty(total, np.int32)
-    pair_g = np.empty(total, np.float32)
-    splat = np.empty(projected[-1], np.int32)
-    base = np.empty((projected[-1], 3), np.float32)
-    for c, cam in enumerate(cams):
-        if projected[c + 1] == projected[c]:
+        if m == 0:
+            off[:] = total
             continue
-        p = project(g, cam, sh_degree, cov3d)
-        splat[projected[c]:projected[c + 1]] = p.index
-        base[projected[c]:projected[c + 1]] = p.base
-        s, e = pixel_offsets[c * hw], pixel_offsets[(c + 1) * hw]
-        if e > s:
-            _pairs_per_pixel(p.xy, p.conic, opacity_all[p.index], p.tile_ids, p.tile_offsets, width, height,
-                             no_counts, True, pixel_offsets[c * hw:(c + 1) * hw + 1], proj, pair_g)
-            proj[s:e] += projected[c]
+        splat.resize(projected[c + 1], refcheck=False)
+        base.resize((projected[c + 1], 3), refcheck=False)
+        splat[projected[c]:] = p.index
+        base[projected[c]:] = p.base
+        opacity = opacity_all[p.index]
+        tiles = every_tile
+        cursor[0] = 0
+        while True:
+            _walk_tiles(p.xy, p.conic, opacity, p.tile_ids, p.tile_offsets, width, height, tiles, counts, tile_pairs,
+                        tile_start, cursor, walked_proj, walked_g)
+            missed = tiles[tile_start[tiles] < 0]
+            if not len(missed):
+                break
+            # the tiles that fitted hold [0, used) (every reservation before the first that passed the end fitted,
+            # every one after it passed it too); make room for the others and the camera's next a quarter more
+            used = int(tile_pairs.sum() - tile_pairs[missed].sum())
+            room = int(1.25 * tile_pairs.sum()) + 1
+            walked_proj.resize(room, refcheck=False)
+            walked_g.resize(room, refcheck=False)
+            cursor[0] = used
+            tiles = missed
+        np.cumsum(counts, out=off[1:])
+        off[0] = 0
+        off += total
+        first, total = total, int(off[-1])
+        proj.resize(total, refcheck=False)
+        pair_g.resize(total, refcheck=False)
+        _place_pairs(width, height, counts, tile_start, walked_proj, walked_g, off, first, np.int32(projected[c]),
+                     proj[first:], pair_g[first:])
         del p
     return PairLists(pixel_offsets, proj, pair_g, splat, base, len(cams), width, height, projected)
 

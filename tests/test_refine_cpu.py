@@ -163,8 +163,8 @@ def test_pair_lists_draw_the_same_picture(part):
 
 
 def test_pair_lists_of_several_cameras_are_each_cameras_lists_in_turn(part):
-    # pair_lists writes every camera's pairs into arrays of their final size (two passes): the same arrays as the
-    # cameras' own lists, concatenated
+    # pair_lists grows its arrays by each camera's pairs (one walk a camera): the same arrays as the cameras' own
+    # lists, concatenated
     cams = scene_orbit_views(part.positions, 3, 40, 32, elevation_deg=25.0)
     whole = raster.pair_lists(part, cams)
     ones = [raster.pair_lists(part, [c]) for c in cams]
@@ -178,6 +178,33 @@ def test_pair_lists_of_several_cameras_are_each_cameras_lists_in_turn(part):
     assert len(whole.g) == pair_off and len(whole.splat) == proj_off > 0
     assert np.array_equal(whole.splat, np.concatenate([o.splat for o in ones]))
     assert np.array_equal(whole.base, np.concatenate([o.base for o in ones]))
+
+
+def test_pair_lists_whose_walk_buffer_is_too_small_walk_the_missed_tiles_again(part, monkeypatch):
+    # a camera's tiles reserve runs of one walk buffer; the tiles that do not fit are walked again once it has room.
+    # Room for 0 pairs a pixel: no tile fits; for the fewest a pixel that hold the largest tile's pairs (and not a
+    # camera's): the first tiles to finish fit and the others not, whatever the order; the default: all fit. The same
+    # arrays, on any number of threads.
+    side = 96
+    cams = scene_orbit_views(part.positions, 2, side, side, elevation_deg=25.0)
+    want = raster.pair_lists(part, cams)
+    hw, tiles = side * side, side // render_ref.TILE
+    counts = np.diff(want.pixel_offsets).reshape(2, tiles, render_ref.TILE, tiles, render_ref.TILE)
+    partial = -(-counts.sum(axis=(2, 4)).max() // hw)
+    assert (counts.sum(axis=(1, 2, 3, 4)) > partial * hw).all()
+    assert (counts.sum(axis=(1, 2, 3, 4)) <= raster.WALK_ROOM_PAIRS * hw).all()  # the default: one walk, no tile missed
+    runs = [(room, 0) for room in (0, partial)]
+    runs.append((raster.WALK_ROOM_PAIRS, 1))  # and on one thread (the tiles reserve their runs in another order)
+    before = raster.numba.get_num_threads()
+    try:
+        for room, threads in runs:
+            monkeypatch.setattr(raster, "WALK_ROOM_PAIRS", room)
+            raster.numba.set_num_threads(threads or before)
+            got = raster.pair_lists(part, cams)
+            for name in ("pixel_offsets", "proj", "g", "splat", "base", "projected"):
+                assert np.array_equal(getattr(got, name), getattr(want, name)), (room, threads, name)
+    finally:
+        raster.numba.set_num_threads(before)
 
 
 def test_gradients_match_finite_differences(part):

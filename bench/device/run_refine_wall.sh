@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # `encode --lod-refine cpu`'s wall clock on a many-core host, this tree's refine_cpu against an older one's (issue 31,
-# branch refinewall31: the fit's 16 gradient rows, the backward from the stored transmittance). Before the device call,
-# here, put the older refine_cpu beside the tree (untracked and not ignored, so it travels):
+# branch refinewall31: the fit's 16 gradient rows, the backward from the stored transmittance; again for pairwalk31:
+# the pair lists in one walk, OLD_COMMIT 1f03469). Before the device call, here, put the older refine_cpu beside the
+# tree (untracked and not ignored, so it travels):
 #
 #   mkdir -p .refine_old && git archive OLD_COMMIT refine_cpu | tar -x -C .refine_old
 #   # run (nvidia-h200, 16 cores), carry [".whl_refine"], timeout 600:
