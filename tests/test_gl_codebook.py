@@ -8,6 +8,7 @@ from conftest import real
 
 from splatstream import render_ref
 from splatstream.camera import suggested_camera
+from splatstream.errors import UsageError
 from splatstream.io import read_gaussians
 from splatstream.metrics import psnr
 
@@ -272,7 +273,10 @@ def test_in_memory_codebook_tiles(gl_context, gaussians):
     assert sorted(scene.codebook) == ["sh1", "sh2", "sh3"] and "sh_index" in tile.planes
     assert scene.codebook["sh1"].format == scene.formats["sh"]
     assert tiles_from_gaussians(gaussians, "medium", sh_codebook="off").codebook is None
-    assert tiles_from_gaussians(gaussians, "medium", sh_degree=0, sh_codebook=K).codebook is None
+    # a codebook asked for by name where --sh-degree 0 keeps no band for it is refused (newuser62), not dropped
+    with pytest.raises(UsageError, match="--sh-degree 0 drops every SH band"):
+        tiles_from_gaussians(gaussians, "medium", sh_degree=0, sh_codebook=K)
+    assert tiles_from_gaussians(gaussians, "medium", sh_degree=0, sh_codebook="off").codebook is None
     n = tile.splats
     idx = decode_index_plane(tile.planes["sh_index"], n)
     values = {s.name: decode_plane(tile.planes[s.name], n) for s in BASE_PLANES}
