@@ -79,6 +79,9 @@ def main() -> None:
     ap.add_argument("--as-hardware", action="store_true",
                     help="treat a software GL (llvmpipe) as hardware in the renderer's auto choices (GPU sort, "
                          "compute draw): the GPU machine's programs, their count and order, here")
+    ap.add_argument("--probe-first-clear", action="store_true",
+                    help="before the timed window: one clear of a framebuffer of --size, finished, its wall and CPU "
+                         "ms reported (is a fresh machine's 57-58 ms first clear per process, and GPU or CPU time?)")
     ap.add_argument("--gpu-mem-mb", type=float, help="ViewOptions.gpu_mem_mb (default: the viewer's)")
     args = ap.parse_args()
     import moderngl
@@ -95,6 +98,20 @@ def main() -> None:
     t = time.perf_counter()
     ctx = create_context()
     context_ms = (time.perf_counter() - t) * 1e3
+    probe_clear = None
+    if args.probe_first_clear:
+        w0, h0 = (int(v) for v in args.size.split("x"))
+        t, c = time.perf_counter(), time.process_time()
+        fbo = ctx.framebuffer(color_attachments=[ctx.texture((w0, h0), 4)],
+                              depth_attachment=ctx.depth_renderbuffer((w0, h0)))
+        made_ms = (time.perf_counter() - t) * 1e3
+        fbo.clear(0.0, 0.0, 0.0, 1.0)
+        issued_ms = (time.perf_counter() - t) * 1e3
+        ctx.finish()
+        probe_clear = {"made_ms": round(made_ms, 2), "clear_issued_ms": round(issued_ms, 2),
+                       "finished_ms": round((time.perf_counter() - t) * 1e3, 2),
+                       "cpu_ms": round((time.process_time() - c) * 1e3, 2)}
+        print("probe first clear", probe_clear, flush=True)
     tl = Timeline()
     tl.wrap(moderngl.Context, "compute_shader", "compile compute")
     tl.wrap(moderngl.Context, "program", "compile program")
@@ -126,7 +143,7 @@ def main() -> None:
             for name in names:
                 tl.wrap(owner, name, f"step {owner.__name__}.{name} (+GPU)", finish=ctx.finish)
     out: dict = {"url": url, "size": [w, h], "gl_renderer": ctx.info.get("GL_RENDERER"), "context_ms": context_ms,
-                 "sync_steps": bool(args.sync)}
+                 "sync_steps": bool(args.sync), "probe_first_clear": probe_clear}
     try:
         if args.as_hardware:
             renderer.SOFTWARE_RENDERERS = ()

@@ -14,7 +14,8 @@
 #                shader cache), the manifest bytes before it (bench_pages.py --first-frame), and the fly-through
 #                (bench_flythrough.py, 3M splat budget), and the first frame with the shader caches off, the sort
 #                passes' programs shared and per pass; FLY_ONLY=1: the fly-through only; FLY_ARGS: more of its
-#                options, FLY_NAME: its JSON's name under $OUT (default flythrough)
+#                options, FLY_NAME: its JSON's name under $OUT (default flythrough); FIRST_FRAME_ARGS: more
+#                bench_first_frame.py options for the sizes' first frames (e.g. --probe-first-clear)
 # The scene stays under /tmp/city while the machine is warm, so the second call must follow the first at once.
 set -u
 [ -d /tmp/site/distributed ] || python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir \
@@ -64,7 +65,7 @@ if [ "$what" = sizes ]; then
     echo "$splats: made and encoded in $(( $(date +%s) - start )) s"
     python3 bench/bench_pages.py --first-frame $s/scene --runs 5 2>&1 | tail -3 > "$d/first_frame_nogl.txt"
     for run in cold warm; do
-      python3 bench/bench_first_frame.py --scene $s/scene --json "$d/first_frame_$run.json" 2>&1 | tail -2
+      python3 bench/bench_first_frame.py --scene $s/scene ${FIRST_FRAME_ARGS:-} --json "$d/first_frame_$run.json" 2>&1 | tail -3
     done
     # WARM_AB_ROUNDS=N: the shader warmer's A/B on this scene (bench/warm_compile_ab.py: N rounds of the first frame
     # with and without it, each cold on a fresh NVIDIA shader cache and then warm)
