@@ -22,6 +22,8 @@ import numpy as np
 
 sys.path.insert(0, os.path.join(os.path.dirname(__file__), ".."))
 
+from rot_choice_probe import covariances  # noqa: E402  (bench/ is not a package: run from it or with it on sys.path)
+
 from cli.commands.renderers import gl_renderer  # noqa: E402
 from splatstream.encode.local import encode_gaussians  # noqa: E402
 from splatstream.encode.options import EncodeOptions  # noqa: E402
@@ -55,17 +57,6 @@ def dithered(g: Gaussians, seed: int, log_scale: float, angle_deg: float) -> Gau
     turned = np.stack([w1 * w2 - x1 * x2 - y1 * y2 - z1 * z2, w1 * x2 + x1 * w2 + y1 * z2 - z1 * y2,
                        w1 * y2 - x1 * z2 + y1 * w2 + z1 * x2, w1 * z2 + x1 * y2 - y1 * x2 + z1 * w2], axis=1)
     return replace(g, log_scales=ls, rotations=normalize_quaternions(turned))
-
-
-def covariances(rotations: np.ndarray, log_scales: np.ndarray) -> np.ndarray:
-    q = rotations.astype(np.float64)
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    w, x, y, z = q.T
-    r = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-                  2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-                  2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=1).reshape(-1, 3, 3)
-    s2 = np.exp(2 * log_scales.astype(np.float64))
-    return np.einsum("nij,nj,nkj->nik", r, s2, r)
 
 
 def measures(g: Gaussians, decoded: Gaussians) -> dict[str, float]:

@@ -37,7 +37,7 @@ from splatstream.encode.options import EncodeOptions  # noqa: E402
 from splatstream.encode.plan import rotation_error_deg  # noqa: E402
 from splatstream.evaluate import cameras_from_report  # noqa: E402
 from splatstream.format.presets import resolve_formats, rotation_gauge  # noqa: E402
-from splatstream.gaussians import Gaussians  # noqa: E402
+from splatstream.gaussians import Gaussians, rotation_matrices  # noqa: E402
 from splatstream.io import read_gaussians  # noqa: E402
 from splatstream.metrics import psnr_from_mse  # noqa: E402
 from splatstream.rotation_canon import canonical_gauge  # noqa: E402
@@ -68,14 +68,10 @@ def mixed(base: Gaussians, other: Gaussians, fields: tuple[str, ...], mask: np.n
 
 
 def covariances(rotations: np.ndarray, log_scales: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) covariances R S S^T R^T, float64, of rotations not necessarily unit (an input PLY's)."""
     q = rotations.astype(np.float64)
-    q = q / np.linalg.norm(q, axis=1, keepdims=True)
-    w, x, y, z = q.T
-    r = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
-                  2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
-                  2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], axis=1).reshape(-1, 3, 3)
-    s2 = np.exp(2 * log_scales.astype(np.float64))
-    return np.einsum("nij,nj,nkj->nik", r, s2, r)
+    m = rotation_matrices(q / np.linalg.norm(q, axis=1, keepdims=True)) * np.exp(log_scales.astype(np.float64))[:, None]
+    return m @ np.transpose(m, (0, 2, 1))
 
 
 def input_order(decoded: Gaussians, g: Gaussians) -> np.ndarray:
