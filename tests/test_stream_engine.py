@@ -539,20 +539,25 @@ def test_a_view_inside_the_scene_converges_to_one_cut_whatever_order_pages_are_a
     """Issue 31 (client.md 1.2): the view of the bounded-tree test above (the eye inside the scene, 34 refined tiles
     with key -inf) under its small pool, the pages and payloads handed over in random orders and numbers: one
     converged cut. Ties of key broke by position in the tree held (the order pages were added) before: the whole tree
-    read in 30 random page orders gave 12 cuts there (BENCHMARKS.md, "Ties broken by tile id")."""
+    read in 30 random page orders gave 12 cuts there (BENCHMARKS.md, "Ties broken by tile id"). The SH bands the cut
+    wants (ties of area per byte by tile id too, bandtie31) are one as well (this view prefetches nothing:
+    tests/test_stream_page_budget.py checks the prefetch list's order)."""
     opts = StreamOptions(SelectionOptions(max_sse=1.0, band_area_share=(0.95, 0.8, 0.6)), prefetch=False)
     whole = read_manifest(paged_store)
     top = whole.tiles[0]
     c, r = np.array(top.sphere_center), top.sphere_radius
     d = np.array([np.cos(0.3), np.sin(0.3), 0.0])
     cam = Camera(tuple(c + 0.3 * r * d), tuple(c + 2 * r * d), (0, 0, 1), 40.0, 320, 240, near=0.001 * r)
-    cuts = set()
+    cuts, bands = set(), set()
     for seed in range(6):
         engine = StreamEngine(ShuffledPagedFetcher(paged_store, random.Random(seed)), CountingPool(26), opts)
         _, u = run_until_converged(engine, cam)
         cuts.add(tuple(sorted(u.draw)))
+        cut, wanted = engine._bands_wanted  # the last frame's cut (positions) and the bands its tiles want
+        bands.add(tuple(zip(engine.ids[cut].tolist(), wanted.tolist(), strict=True)))
         engine.close()
     assert len(cuts) == 1, len(cuts)
+    assert len(bands) == 1, len(bands)
 
 
 def test_the_per_key_maps_are_bounded_by_the_tree_held_and_come_back_with_a_page(paged_store):

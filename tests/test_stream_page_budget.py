@@ -5,6 +5,7 @@ a small budget, reading no page none of whose tiles is drawn, to the unpaged sce
 from __future__ import annotations
 
 import random
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -22,8 +23,11 @@ from client_gl.stream.selection import (
     boxes_inside_frustum,
     frustum_planes,
     pages_the_budget_can_use,
+    prefetch,
     select,
     view_numbers,
+    wanted_bands,
+    wanted_bands_at,
 )
 from server.testing import ServerThread
 from splatstream.camera import Camera
@@ -314,6 +318,25 @@ def _land_in_random_order(root_manifest, files, cam: Camera, opts: SelectionOpti
     raise AssertionError("pages wanted after 200 frames")
 
 
+def _bands_and_prefetch(m, view, sel, opts: SelectionOptions, cost: np.ndarray) -> tuple[list, list]:
+    """By tile id: the SH bands the cut wants (wanted_bands, and wanted_bands_at, the engine's, which must agree),
+    under the view's areas and under areas that tie every cut tile's area per byte of band 1 (as the eye inside
+    tiles of one size would: which tiles get band 1 under a share below 1 is then the tie rule alone); and the
+    prefetch list, with the engine's allowance and with one that lets every tile in."""
+    a, ids = m.arrays, m.arrays.ids
+    tied = replace(view, area_px=np.maximum(1.0, a.band_bytes[:, 0].astype(np.float64)) * 3.0)
+    bands = []
+    for v in (view, tied):
+        for o in (opts, replace(opts, band_area_share=(0.5, 0.3, 0.1))):
+            by_dict = wanted_bands(a, v, sel.cut, o, m.sh_degree)
+            at = wanted_bands_at(a, v, sel.cut_at, o, m.sh_degree).tolist()
+            assert at == [by_dict[i] for i in sel.cut]
+            bands.append(sorted((int(ids[i]), b) for i, b in zip(sel.cut, at, strict=True)))
+    fetched = [[(score, int(ids[i])) for score, i in prefetch(a, view, sel, o, cost)]
+               for o in (opts, replace(opts, prefetch_share=100.0))]
+    return bands, fetched
+
+
 @pytest.mark.parametrize("path", PATHS)
 def test_a_view_inside_tiles_converges_to_one_cut_whatever_order_the_pages_land_in(whole, path):
     """Issue 31 (client.md 1.2's tie-break): with the eye inside tiles' spheres many refinement keys tie (-inf), and
@@ -328,7 +351,7 @@ def test_a_view_inside_tiles_converges_to_one_cut_whatever_order_the_pages_land_
     root = whole.tiles[whole.index_of[whole.root]]
     c, r = np.array(root.sphere_center), root.sphere_radius
     rnd = random.Random(31)
-    tied = 0
+    tied = prefetched = 0
     for v in range(6):
         d = np.array([rnd.gauss(0, 1) for _ in range(3)])
         eye = c + d / np.linalg.norm(d) * r * rnd.choice([0.05, 0.3, 0.5])  # inside the root's sphere
@@ -338,20 +361,35 @@ def test_a_view_inside_tiles_converges_to_one_cut_whatever_order_the_pages_land_
         budget = rnd.choice([3, 5, 10, 20]) * root.splats
         opts = SelectionOptions(max_sse=1.0, max_splats=None if by_bytes else budget,
                                 budget=budget / whole.chunk_size * 4096.0 * 1.5 if by_bytes else None)
-        want_sel, want_view = _cut_ids(whole, cam, opts, whole_cost)[1:]
-        ids = whole.arrays.ids
-        want = ([int(ids[i]) for i in want_sel.cut], sorted(ids[list(want_sel.refined)].tolist()),
-                [want_sel.priority[i] for i in want_sel.cut])
-        # the eye inside refined tiles' spheres: their sse infinite, their keys -inf, tied
-        tied += int(np.isinf(want_view.sse[list(want_sel.refined)]).sum() > 1)
-        for _ in range(4):
-            tree = _land_in_random_order(paged.root, files, cam, opts, random.Random(rnd.random()))
-            m = tree.manifest
-            cost = np.array([t.chunks for t in m.tiles], np.float64) * 4096.0
-            sel = _cut_ids(m, cam, opts, cost)[1]
-            a_ids = m.arrays.ids
-            got = ([int(a_ids[i]) for i in sel.cut], sorted(a_ids[list(sel.refined)].tolist()),
-                   [sel.priority[i] for i in sel.cut])
-            assert got == want, v
-            check_same(m, cam, opts, frozenset(), (), np.ones(len(m.tiles), bool), rnd, path)
+        # under the budget, and without one (more refined tiles, so more tiles just outside the frustum to prefetch,
+        # tied at score 0.5)
+        for o in (opts, SelectionOptions(max_sse=1.0)):
+            want_sel, want_view = _cut_ids(whole, cam, o, whole_cost)[1:]
+            ids = whole.arrays.ids
+            want = ([int(ids[i]) for i in want_sel.cut], sorted(ids[list(want_sel.refined)].tolist()),
+                    [want_sel.priority[i] for i in want_sel.cut])
+            if o is opts:  # the eye inside refined tiles' spheres: their sse infinite, their keys -inf, tied
+                tied += int(np.isinf(want_view.sse[list(want_sel.refined)]).sum() > 1)
+            want_bands, (_, want_prefetch) = _bands_and_prefetch(whole, want_view, want_sel, o, whole_cost)
+            first_prefetch = None
+            for _ in range(4):
+                tree = _land_in_random_order(paged.root, files, cam, o, random.Random(rnd.random()))
+                m = tree.manifest
+                cost = np.array([t.chunks for t in m.tiles], np.float64) * 4096.0
+                sel, view = _cut_ids(m, cam, o, cost)[1:]
+                a_ids = m.arrays.ids
+                got = ([int(a_ids[i]) for i in sel.cut], sorted(a_ids[list(sel.refined)].tolist()),
+                       [sel.priority[i] for i in sel.cut])
+                assert got == want, v
+                # issue 31's other orders (bandtie31): the SH bands each cut tile wants and the prefetch list, ties by
+                # tile id too: the bands the whole tree's; the prefetch list one whatever the order, and with every
+                # tile let in the whole tree's less the tiles not held (children of cut tiles whose pages are not read)
+                bands, fetched = _bands_and_prefetch(m, view, sel, o, cost)
+                assert bands == want_bands, v
+                first_prefetch = fetched if first_prefetch is None else first_prefetch
+                assert fetched == first_prefetch, v
+                assert fetched[1] == [(score, t) for score, t in want_prefetch if t in m.index_of], v
+                prefetched += len(fetched[1])
+                check_same(m, cam, o, frozenset(), (), np.ones(len(m.tiles), bool), rnd, path)
     assert tied >= 3, tied  # the views do tie keys (several refined tiles with the eye inside them)
+    assert prefetched >= 4, prefetched  # and some prefetch (tiles tied at score 0.5, just outside the frustum)

@@ -796,13 +796,17 @@ def wanted_bands(a: TileArrays, view: TileView, tiles: tuple[int, ...] | list[in
         return dict.fromkeys(tiles, top)
     if top <= 0:
         return out
-    area = dict(zip(tiles, view.area_px[np.asarray(tiles, np.intp)].tolist(), strict=True))
+    at = np.asarray(tiles, np.intp)
+    area = dict(zip(tiles, view.area_px[at].tolist(), strict=True))
+    # ties of area per byte by tile id (client.md 1.2's tie rule), not by position: a paged tree's positions follow
+    # the order its pages arrived in
+    tile_id = dict(zip(tiles, a.ids[at].tolist(), strict=True))
     total = sum(area.values())
     for b in range(1, top + 1):
         share = opts.band_area_share[b - 1]
         band_bytes = a.band_bytes[:, b - 1]
         order = sorted((i for i in tiles if out[i] == b - 1),
-                       key=lambda i: (-area[i] / max(1.0, float(band_bytes[i])), i))
+                       key=lambda i: (-area[i] / max(1.0, float(band_bytes[i])), tile_id[i]))
         covered = 0.0
         for i in order:
             if covered >= share * total and share < 1.0:
@@ -835,7 +839,7 @@ def wanted_bands_at(a: TileArrays, view: TileView, cut_at: np.ndarray, opts: Sel
         if not idx.size:
             break
         key = -area[idx] / np.maximum(1.0, a.band_bytes[at[idx], b - 1].astype(np.float64))
-        order = idx[np.lexsort((at[idx], key))]
+        order = idx[np.lexsort((a.ids[at[idx]], key))]  # ties by tile id, as wanted_bands'
         if share < 1.0:  # the first tile reached with the covered area at or above the share stops the band
             covered = np.cumsum(area[order])  # one addition at a time, in order: the loop's running sum
             before = np.concatenate([[0.0], covered[:-1]])
@@ -901,9 +905,12 @@ def prefetch(a: TileArrays, view: TileView, sel: Selection, opts: SelectionOptio
     near_cut = []
     if not sel.budget_limited and opts.max_sse > 0:
         near_cut = [i for i in sel.cut if children[i] and sse[i] > opts.max_sse / opts.prefetch_margin]
-    # just outside the frustum, children of refined tiles (a cut tile is visible, so never one of these), in
-    # position order
-    edge = sorted(k for r in sel.refined for k in children[r])
+    # just outside the frustum, children of refined tiles (a cut tile is visible, so never one of these), in tile
+    # id order (client.md 1.2's tie rule; the scores below tie at 0.5): a paged tree's positions follow the order its
+    # pages arrived in, the ids do not. The children of the cut tiles above come in the cut's order (its ties by id)
+    # and each tile's children in the manifest's order, neither of them the positions'
+    edge = [k for r in sel.refined for k in children[r]]
+    edge = [k for _, k in sorted(zip(a.ids[np.asarray(edge, np.intp)].tolist(), edge, strict=True))]
     view.ensure(edge)
     look = edge + [k for i in near_cut for k in children[i]]
     wide = dict(zip(look, wide_visible(view, look, boxes), strict=True))
@@ -912,7 +919,7 @@ def prefetch(a: TileArrays, view: TileView, sel: Selection, opts: SelectionOptio
         out += [(score, k) for k in children[i] if wide[k]]
     visible = view.visible
     out += [(0.5, k) for k in edge if wide[k] and not visible[k]]
-    out.sort(key=lambda x: -x[0])
+    out.sort(key=lambda x: -x[0])  # stable: equal scores keep the order above
     if cost is not None:
         allowance = opts.prefetch_share * sel.cost
         # Python's running sum and bisect (np.cumsum's sums in its order, searchsorted's side="right"): numpy's let
