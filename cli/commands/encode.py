@@ -8,6 +8,7 @@ import time
 from collections.abc import Callable
 
 from splatstream.encode import encode_file
+from splatstream.encode.codebook import refuse_without_sh_bands
 from splatstream.encode.driver import count_edits
 from splatstream.encode.options import EncodeOptions, default_lod_merge
 from splatstream.errors import UsageError
@@ -291,18 +292,12 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _check_sh_format(args: argparse.Namespace, overrides: dict, source: str, sh_degree: int) -> None:
-    """Refuse `--sh FORMAT` where the scene keeps no SH band 1..3 for it to format (an SH0 input, or --sh-degree 0):
-    it was taken without a word (newuser62), as --sh-codebook was. Here, once the input is read, and not in the core:
-    eval's attribution runs give every scene an `sh` override, and a preset's own SH format encodes any input."""
+    """Refuse `--sh FORMAT` where the scene keeps no SH band 1..3 for it to format (an SH0 input, or --sh-degree 0),
+    as --sh-codebook is. Here, once the input is read, and not in the core: eval's attribution runs give every scene
+    an `sh` override, and a preset's own SH format encodes any input."""
     fmt = overrides.get("sh")
-    if fmt is None:
-        return
-    if sh_degree < 1:
-        raise UsageError(f"--sh {fmt}: {source} has SH degree 0 (colour only), no SH bands 1..3 for an SH format to "
-                         "store; leave the option out")
-    if args.sh_degree is not None and args.sh_degree < 1:
-        raise UsageError(f"--sh {fmt}: --sh-degree {args.sh_degree} drops every SH band 1..3 of {source} (SH degree "
-                         f"{sh_degree}) that the format would store; give one of the two")
+    if fmt is not None:
+        refuse_without_sh_bands(f"--sh {fmt}", source, sh_degree, args.sh_degree, "an SH format")
 
 
 def _lod_refiner(args: argparse.Namespace, workers: int | None) -> LodRefiner:

@@ -45,20 +45,28 @@ def codebook_choice(opts, sh_degree: int) -> str | int:
     return choice
 
 
+def refuse_without_sh_bands(option: str, source: str, input_sh_degree: int, sh_degree: int | None,
+                            holder: str) -> None:
+    """Refuse `option` (e.g. "--sh-codebook 64", "--sh f16x4") where the scene keeps no SH band 1..3 for `holder`
+    ("a codebook", "an SH format") to hold: an SH0 input, or `sh_degree` (--sh-degree) 0. One line naming the option,
+    the input and its SH degree (newuser62: both options were taken without a word)."""
+    if input_sh_degree < 1:
+        raise UsageError(f"{option}: {source} has SH degree 0 (colour only), no SH bands 1..3 for {holder} to hold; "
+                         "leave the option out")
+    if sh_degree is not None and sh_degree < 1:
+        raise UsageError(f"{option}: --sh-degree {sh_degree} drops every SH band 1..3 of {source} (SH degree "
+                         f"{input_sh_degree}) that {holder} would hold; give one of the two")
+
+
 def check_codebook_option(opts, input_sh_degree: int, source_name: str | None) -> None:
     """Refuse a codebook asked for by name (opts.sh_codebook, `encode --sh-codebook`) where the scene keeps no SH band
-    1..3 for it to hold: it was taken without a word and the scene written without one (newuser62). A preset's own
-    codebook (medium-low and below) stays silent on such scenes: the presets must encode every input."""
+    1..3 for it to hold (refuse_without_sh_bands). A preset's own codebook (medium-low and below) stays silent on
+    such scenes: the presets must encode every input."""
     choice = opts.sh_codebook
     if choice is None or choice in ("off", 0, "0"):
         return
-    source = source_name or "the input"
-    if input_sh_degree < 1:
-        raise UsageError(f"--sh-codebook {choice}: {source} has SH degree 0 (colour only), no SH bands 1..3 for a "
-                         "codebook to hold; leave the option out")
-    if opts.sh_degree is not None and opts.sh_degree < 1:
-        raise UsageError(f"--sh-codebook {choice}: --sh-degree {opts.sh_degree} drops every SH band 1..3 of {source} "
-                         f"(SH degree {input_sh_degree}) that a codebook would hold; give one of the two")
+    refuse_without_sh_bands(f"--sh-codebook {choice}", source_name or "the input", input_sh_degree, opts.sh_degree,
+                            "a codebook")
 
 
 def fit_sh_codebook(g: Gaussians, preset: str, choice: str | int | None, sh_degree: int) -> Codebook | None:
