@@ -238,10 +238,10 @@ def test_dry_run_prints_each_step_and_writes_nothing(scene_ply, tmp_path, capsys
     g = read_gaussians(scene_ply)
     _, counts = EDITS.run(g)
     lines = capsys.readouterr().out.splitlines()
-    assert lines[0] == f"read {scene_ply}: {len(g)} splats"
-    assert [line.split(": keeps ")[1].split(" of ")[0] for line in lines[1:]] == [str(n) for _, n in counts]
+    assert lines[0] == f"read {scene_ply}: {len(g):,} splats"
+    assert [line.split(": keeps ")[1].split(" of ")[0] for line in lines[1:]] == [f"{n:,}" for _, n in counts]
     assert [n for _, n in counts] == [4721, 3643, 1941, 1798]
-    assert lines[1] == "  translate 0.75,0.1,2.15 rotate 0,30,0: keeps 4721 of 4721 (0 dropped)"
+    assert lines[1] == "  translate 0.75,0.1,2.15 rotate 0,30,0: keeps 4,721 of 4,721 (0 dropped)"
     assert not out.exists()
 
 
@@ -318,8 +318,8 @@ def test_encode_takes_several_inputs_on_the_command_line(scene_ply, second_ply, 
     lines = capsys.readouterr().out.splitlines()
     kept = len(parse_filter("opacity>0.05").keep(read_gaussians(scene_ply)).nonzero()[0]) + len(
         parse_filter("opacity>0.05").keep(read_gaussians(second_ply)).nonzero()[0])
-    assert lines[0] == f"read {scene_ply} + {second_ply}: 7721 splats"
-    assert lines[1] == f"  filter-value opacity,gt,0.05: keeps {kept} of 7721 ({7721 - kept} dropped)"
+    assert lines[0] == f"read {scene_ply} + {second_ply}: 7,721 splats"
+    assert lines[1] == f"  filter-value opacity,gt,0.05: keeps {kept:,} of 7,721 ({7721 - kept:,} dropped)"
     assert main(["encode", scene_ply, second_ply, str(tmp_path / "out"), "-q", "--target-psnr", "30"]) == 2
     assert "one input" in capsys.readouterr().err
 
@@ -352,7 +352,7 @@ def test_density_filter_runs_in_memory_and_is_refused_by_partitions(scene_ply, t
     assert not (tmp_path / "parts").exists()
     assert main(["encode", scene_ply, str(tmp_path / "out"), "--filter-density", "0.01,4", "--dry-run",
                  "--memory-per-worker", "1MiB"]) == 0
-    assert capsys.readouterr().out.splitlines()[1] == "  filter-density 0.01,4: keeps 4531 of 4721 (190 dropped)"
+    assert capsys.readouterr().out.splitlines()[1] == "  filter-density 0.01,4: keeps 4,531 of 4,721 (190 dropped)"
     assert main(["convert", scene_ply, str(tmp_path / "c.ply"), "-q", "--filter-density", "0.01,2.5"]) == 2
     assert "whole minimum count" in capsys.readouterr().err
 

@@ -174,10 +174,10 @@ def edits_from(args: argparse.Namespace) -> Pipeline:
 
 def edit_report(path: str, read: int, counts: list[tuple[str, int]]) -> str:
     """--dry-run's lines: the splats read, then each step and the splats it keeps."""
-    lines = [f"read {path}: {read} splats"]
+    lines = [f"read {path}: {read:,} splats"]
     before = read
     for label, kept in counts:
-        lines.append(f"  {label}: keeps {kept} of {before} ({before - kept} dropped)")
+        lines.append(f"  {label}: keeps {kept:,} of {before:,} ({before - kept:,} dropped)")
         before = kept
     if not counts:
         lines.append("  (no edits)")

@@ -105,7 +105,7 @@ def run(args: argparse.Namespace) -> int:
     read = len(g)
     g, counts = edits.run(g)
     for label, kept in counts:
-        say(f"{label}: {kept} splats kept")
+        say(f"{label}: {kept:,} splats kept")
     if args.dry_run:
         print(edit_report(" + ".join(args.input), read, counts))
         return 0
