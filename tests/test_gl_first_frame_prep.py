@@ -242,3 +242,34 @@ def test_prepared_source_closes_its_fetcher_when_the_early_work_fails(scene_dir,
     with pytest.raises(RuntimeError, match="no framebuffer"):
         PreparedSource.open(str(scene_dir), ViewOptions(cache=False), while_fetching=fail)
     assert len(closed) == 1 and closed[0]._closed
+
+
+def test_the_primes_probe_runs_every_variant(ctx):
+    """bench/probe_gpu_alloc.py --primes (the GPU machine's measurement of the clear prime) runs every variant on a
+    fresh pool, and after each the first uploads land (its import had broken unnoticed: a renamed helper)."""
+    from conftest import load_bench
+
+    probe = load_bench("probe_gpu_alloc")
+    rows = probe.prime_steps(ctx, 8, list(probe.PRIME_VARIANTS), 1)
+    runs = [r for r in rows if "round" in r]
+    assert [r["variant"] for r in runs] == list(probe.PRIME_VARIANTS)
+    for r in runs:
+        assert set(r["atlases"]) >= {"position", "scale", "color"}  # the uncompressed ones (SH0: no sh atlas)
+        assert all(a["first_upload_ms"] >= 0 for a in r["atlases"].values())
+
+
+def test_the_ab_pairs_each_variant_with_the_first_of_its_round():
+    """first_frame_variants_ab.summarize: medians and minima a variant and pass, and each run's difference from the
+    first variant's run of the same round and pass."""
+    from conftest import load_bench
+
+    ab = load_bench("first_frame_variants_ab")
+    rows = [{"round": r, "variant": v, "cache": p, **{k: None for k in ab.KEYS},
+             "first_frame_s": t + (0.1 if p == "cold" else 0.0)}
+            for r, (a, b) in enumerate([(0.30, 0.20), (0.34, 0.22), (0.28, 0.25)])
+            for v, t in (("main", a), ("new", b)) for p in ("cold", "warm")]
+    s = ab.summarize(rows, ["main", "new"])
+    assert s["main, cold"]["first_frame_s"] == (0.4, 0.38)
+    assert s["new, warm"]["first_frame_s"] == (0.22, 0.2)
+    paired = s["new, cold"]["first_frame_s minus main's, paired: median, each"]
+    assert paired[0] == -0.1 and paired[1] == [-0.1, -0.12, -0.03]
