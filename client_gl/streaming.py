@@ -25,7 +25,15 @@ from splatstream.errors import UsageError
 from splatstream.format.manifest import Manifest
 
 from .gpu.pool import ChunkPool
-from .gpu.renderer import FrameStats, RenderOptions, SplatRenderer, draws_cpu_first, prepare_target, resolve_sort
+from .gpu.renderer import (
+    FrameStats,
+    RenderOptions,
+    SplatRenderer,
+    draws_cpu_first,
+    is_software,
+    prepare_target,
+    resolve_sort,
+)
 from .gpu.residency_layout import CodebookLayout, PoolLayout
 from .stream.cache import DiskCache
 from .stream.engine import DECODE_WAIT_S, FrameUpdate, StreamEngine, StreamOptions
@@ -400,9 +408,12 @@ class StreamingSession:
 def early_target(ctx, options: ViewOptions, size: tuple[int, int] | None) -> Callable[[], None] | None:
     """PreparedSource.open's while_fetching for a session whose output size is known before its manifest: the first
     frame's framebuffer made and cleared (renderer.prepare_target; RenderOptions.early_target), so that a cold
-    driver's first clear runs while the manifest is in flight instead of inside the first frame. None without a size
-    or with early_target off (the window: its loading frames already clear while the manifest is fetched)."""
-    if size is None or not options.render.early_target:
+    driver's first clear runs while the manifest is in flight instead of inside the first frame. None without a size,
+    with early_target off (the window: its loading frames already clear while the manifest is fetched) and on a
+    software GL: llvmpipe's clear is a fill of the target by its threads, 4-43 ms at 1920x1080 on the shared 2-core
+    VM, which the first frame's own clear then does again (17 ms), so early it is only more work beside the
+    manifest's parse (BENCHMARKS.md, "The first frame's prime and framebuffer off the serial path")."""
+    if size is None or not options.render.early_target or is_software(ctx):
         return None
     width, height = size
     return lambda: prepare_target(ctx, int(width), int(height), options.render.color_dtype)

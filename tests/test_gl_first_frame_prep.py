@@ -29,6 +29,14 @@ def ctx(gl_context):
     return gl_context
 
 
+@pytest.fixture
+def as_hardware(monkeypatch):
+    """llvmpipe counted as a hardware GL: the early target is made only there (streaming.early_target)."""
+    from client_gl.gpu import renderer
+
+    monkeypatch.setattr(renderer, "SOFTWARE_RENDERERS", ())
+
+
 @pytest.fixture(scope="module")
 def fruit():
     return read_gaussians(real("fruit_drops_sh3.ply"))
@@ -168,7 +176,7 @@ def _stream(ctx, source, render, size=(W, H), timeout_s=60.0):
 
 
 @pytest.mark.parametrize("sort", ["cpu", "gpu"])
-def test_the_picture_is_mains_with_the_early_target_and_the_clear_prime(ctx, scene_dir, sort):
+def test_the_picture_is_mains_with_the_early_target_and_the_clear_prime(ctx, scene_dir, sort, as_hardware):
     """A headless session converges to the same picture, pixel for pixel, with the framebuffer made and cleared
     while the manifest is fetched and with the atlases primed by a clear, each alone and both, as with neither
     (main's behaviour: the compute prime, the framebuffer made by the first frame); the CPU sort path and the GPU
@@ -192,9 +200,11 @@ def test_the_picture_is_mains_with_the_early_target_and_the_clear_prime(ctx, sce
 
 
 def test_view_headless_gives_the_session_its_output_size(ctx, scene_dir, monkeypatch, tmp_path):
-    """`view --headless` (run_headless) opens its session with its output size, so the framebuffer is made and
-    cleared before the manifest is waited for (once, at that size); with early_target off it is not."""
+    """`view --headless` (run_headless) opens its session with its output size, so that on a hardware GL the
+    framebuffer is made and cleared before the manifest is waited for (once, at that size); with early_target off,
+    and on a software GL (llvmpipe as it is), it is not."""
     from client_gl import streaming
+    from client_gl.gpu import renderer
     from client_gl.gpu.renderer import RenderOptions
     from client_gl.streaming import ViewOptions
     from client_gl.view_headless import HeadlessRun, run_headless
@@ -213,13 +223,16 @@ def test_view_headless_gives_the_session_its_output_size(ctx, scene_dir, monkeyp
 
     monkeypatch.setattr(streaming, "prepare_target", prepare)
     monkeypatch.setattr(streaming.Fetcher, "manifest", manifest)
-    for early in (True, False):
+    software = renderer.SOFTWARE_RENDERERS
+    for early, hardware in ((True, True), (False, True), (True, False)):
         calls.clear()
-        opts = ViewOptions(gpu_mem_mb=32.0, cache=False, render=RenderOptions(early_target=early))
+        monkeypatch.setattr(renderer, "SOFTWARE_RENDERERS", () if hardware else software)
+        opts = ViewOptions(gpu_mem_mb=32.0, cache=False, render=RenderOptions(sort="cpu", early_target=early))
         code, report = run_headless(HeadlessRun(str(scene_dir), opts, (W, H), timeout_s=60, quiet=True,
-                                                screenshot=str(tmp_path / f"{early}.png")), ctx)
+                                                screenshot=str(tmp_path / f"{early}{hardware}.png")), ctx)
         assert code == 0 and report["first_frame_s"] is not None
-        want = [("prepare", (W, H, "f4")), ("manifest",)] if early else [("manifest",)]
+        made = early and (hardware or not renderer.is_software(ctx))
+        want = [("prepare", (W, H, "f4")), ("manifest",)] if made else [("manifest",)]
         assert calls[:len(want)] == want and ("prepare", (W, H, "f4")) not in calls[len(want):]
 
 

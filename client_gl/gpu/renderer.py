@@ -187,7 +187,7 @@ class RenderOptions:
     # BENCHMARKS.md, "The first frame's prime and framebuffer off the serial path").
     atlas_prime: str = "compute"
     # A session that knows its output size before the manifest (`view --headless`, StreamingSession.open with
-    # target_size) makes the first frame's framebuffer and clears it while the manifest is fetched
+    # target_size) on a hardware GL makes the first frame's framebuffer and clears it while the manifest is fetched
     # (prepare_target), not in the first frame: a cold driver's first clear took 57 ms there (r24). The picture is
     # the same (the first frame clears or overwrites its target). False: made by the first frame, as the window's.
     early_target: bool = True
