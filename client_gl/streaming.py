@@ -411,7 +411,7 @@ def early_target(ctx, options: ViewOptions, size: tuple[int, int] | None) -> Cal
     driver's first clear runs while the manifest is in flight instead of inside the first frame. None without a size,
     with early_target off (the window: its loading frames already clear while the manifest is fetched) and on a
     software GL: llvmpipe's clear is a fill of the target by its threads, 4-43 ms at 1920x1080 on the shared 2-core
-    VM, which the first frame's own clear then does again (17 ms), so early it is only more work beside the
+    VM, which the first frame's own clear then does again (6-43 ms), so early it is only more work beside the
     manifest's parse (BENCHMARKS.md, "The first frame's prime and framebuffer off the serial path")."""
     if size is None or not options.render.early_target or is_software(ctx):
         return None
