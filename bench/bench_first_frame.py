@@ -76,6 +76,12 @@ def main() -> None:
                     help="RenderOptions.warm_compile=False: the programs deferred from the first frame compiled cold "
                          "by the frame loop (the A/B of the warmer thread; see the compiles after the first frame with "
                          "--frames-after 30)")
+    ap.add_argument("--atlas-prime", default="compute", choices=("compute", "clear", "none"),
+                    help="RenderOptions.atlas_prime: how the pool's atlases are made GPU-written before their first "
+                         "upload (compute: prime_texels.comp; clear: glClearTexSubImage, no compile; none)")
+    ap.add_argument("--no-early-target", action="store_true",
+                    help="RenderOptions.early_target=False: the first frame's framebuffer made and first cleared by "
+                         "the first frame, not while the manifest is fetched (view --headless's order before)")
     ap.add_argument("--as-hardware", action="store_true",
                     help="treat a software GL (llvmpipe) as hardware in the renderer's auto choices (GPU sort, "
                          "compute draw): the GPU machine's programs, their count and order, here")
@@ -86,11 +92,12 @@ def main() -> None:
     args = ap.parse_args()
     import moderngl
 
+    from client_gl import streaming
     from client_gl.gpu import compute_raster, pool, renderer, sort
     from client_gl.gpu.renderer import RenderOptions
     from client_gl.offscreen import create_context
     from client_gl.stream import engine
-    from client_gl.streaming import PreparedSource, StreamingSession, ViewOptions
+    from client_gl.streaming import PreparedSource, StreamingSession, ViewOptions, early_target
     from splatstream.camera import Camera
 
     w, h = (int(v) for v in args.size.split("x"))
@@ -123,6 +130,10 @@ def main() -> None:
     tl.wrap(moderngl.Context, "framebuffer", "gl framebuffer")
     tl.wrap(moderngl.Framebuffer, "clear", "gl clear", finish=ctx.finish if args.sync else None)
     tl.wrap(PreparedSource, "open", "manifest (PreparedSource.open)")
+    # the first frame's framebuffer made and cleared while the manifest is fetched (RenderOptions.early_target), and
+    # the pool's prime (RenderOptions.atlas_prime)
+    tl.wrap(streaming, "prepare_target", "gl early target")
+    tl.wrap(pool.ChunkPool, "_prime_atlases", "gl prime atlases")
     tl.wrap(pool.ChunkPool, "__init__", "pool")
     tl.wrap(renderer.SplatRenderer, "__init__", "renderer")
     tl.wrap(compute_raster.ComputeRaster, "__init__", "compute raster")
@@ -133,7 +144,7 @@ def main() -> None:
     tl.wrap(engine, "decode_job", "decode (thread)")  # a payload decoded on a decode thread (the root's first)
     tl.wrap(engine, "decode_batch_job", "decode batch (thread)")
     tl.wrap(renderer.SplatRenderer, "render", "render")
-    tl.wrap(pool.ChunkPool, "join", "pool.join")
+    tl.wrap(pool.ChunkPool, "join", "gl pool.join")  # recorded inside engine.update too (a first upload's cost)
     if args.sync:
         steps = [(renderer.SplatRenderer, ("_ensure_work", "_start_cull", "_cull", "check_bins")),
                  (sort.GpuRadixSort, ("sort",)),
@@ -149,9 +160,11 @@ def main() -> None:
             renderer.SOFTWARE_RENDERERS = ()
         render = RenderOptions(sort=args.sort, draw=args.draw, sort_pass_programs=args.sort_pass_programs,
                                defer_compute=not args.no_defer, cpu_first=not args.no_cpu_first,
-                               warm_compile=not args.no_warm_compile)
+                               warm_compile=not args.no_warm_compile, atlas_prime=args.atlas_prime,
+                               early_target=not args.no_early_target)
         view = ViewOptions(cache=False, render=render, **({"gpu_mem_mb": args.gpu_mem_mb} if args.gpu_mem_mb else {}))
-        prepared = PreparedSource.open(url, view)
+        # as `view --headless` opens its session (StreamingSession.open with its output size)
+        prepared = PreparedSource.open(url, view, while_fetching=early_target(ctx, view, (w, h)))
         session = StreamingSession(prepared, ctx, view)
         cam_info = session.manifest.camera
         cam = Camera(cam_info.eye, cam_info.target, cam_info.up, cam_info.fov_y, w, h)
@@ -190,6 +203,12 @@ def main() -> None:
                    warmer_ms={k: round(v * 1e3, 1) for k, v in session.renderer.warm_compile_seconds.items()},
                    loop_compile_ms={k: round(v * 1e3, 2) for k, v in session.renderer.compile_seconds.items()},
                    warm_compile_missed=session.renderer.warm_compile_missed)
+        def first_ms(label: str) -> float | None:
+            return next((ms for _, name, ms in tl.events if name == label), None)
+
+        out.update(atlas_prime=args.atlas_prime, early_target=not args.no_early_target,
+                   early_target_ms=first_ms("gl early target"), prime_ms=first_ms("gl prime atlases"),
+                   first_clear_ms=first_ms("gl clear"), first_join_ms=first_ms("gl pool.join"))
         out.update(first_frame_s=m.first_frame_s, manifest_s=m.manifest_s, pool_s=m.pool_s, built_s=m.built_s,
                    frames=frames, sort_pass_programs=args.sort_pass_programs, programs_compiled=len(compiles),
                    programs_compiled_after=compiles_after, draw=args.draw, defer_compute=not args.no_defer,
@@ -203,7 +222,8 @@ def main() -> None:
     for t_ms, label, ms in tl.events:
         print(f"{t_ms:9.1f} ms  {label:34s} {ms:8.1f} ms")
     print({k: out[k] for k in ("first_frame_s", "manifest_s", "pool_s", "built_s", "context_ms", "programs_compiled",
-                               "compile_ms", "programs_compiled_after", "first_sort")})
+                               "compile_ms", "programs_compiled_after", "first_sort", "early_target_ms", "prime_ms",
+                               "first_clear_ms", "first_join_ms")})
     if args.frames_after:
         print({k: out[k] for k in ("compile_after_ms", "compile_after_max_ms", "frames_to_compute", "warmer_ms",
                                    "loop_compile_ms", "warm_compile_missed")})

@@ -72,7 +72,8 @@ class HeadlessRenderer:
         """Make a pool of exactly the scene's slots and upload all its tiles (with their SH bands)."""
         self.unload()
         self.pool = ChunkPool(self.ctx, scene.formats, scene.sh_degree, max(1, scene.slots),
-                              codebook=scene.codebook_layout, host_mirror=self.needs_host_mirror)
+                              codebook=scene.codebook_layout, host_mirror=self.needs_host_mirror,
+                              prime=self.options.atlas_prime)
         for name, plane in sorted((scene.codebook or {}).items()):
             self.pool.set_codebook_band(int(name[2:]), plane)
         for tile_id, tile in scene.tiles.items():

@@ -15,6 +15,7 @@ import gc
 import math
 import os
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -24,7 +25,15 @@ from splatstream.errors import UsageError
 from splatstream.format.manifest import Manifest
 
 from .gpu.pool import ChunkPool
-from .gpu.renderer import FrameStats, RenderOptions, SplatRenderer, draws_cpu_first, resolve_sort
+from .gpu.renderer import (
+    FrameStats,
+    RenderOptions,
+    SplatRenderer,
+    draws_cpu_first,
+    is_software,
+    prepare_target,
+    resolve_sort,
+)
 from .gpu.residency_layout import CodebookLayout, PoolLayout
 from .stream.cache import DiskCache
 from .stream.engine import DECODE_WAIT_S, FrameUpdate, StreamEngine, StreamOptions
@@ -145,7 +154,9 @@ class PreparedSource:
 
     @classmethod
     def open(cls, spec: str | os.PathLike | SceneSource, options: ViewOptions = ViewOptions(),
-             progress: Progress | None = None) -> PreparedSource:
+             progress: Progress | None = None,
+             while_fetching: Callable[[], None] | None = None) -> PreparedSource:
+        """while_fetching: called once the manifest is asked for, before it is waited for (early_target's work)."""
         start = time.perf_counter()
         source = spec if isinstance(spec, SceneSource) else open_source(spec, progress=progress)
         cache = None
@@ -157,6 +168,8 @@ class PreparedSource:
                           manifest_timeout_s=options.manifest_timeout_s)
         fetcher.start()
         try:
+            if while_fetching is not None:
+                while_fetching()
             manifest = fetcher.manifest()  # parsed once, there; the engine is handed this one
         except BaseException:
             fetcher.close()
@@ -203,7 +216,7 @@ class StreamingSession:
         # switch to the GPU path, frame()).
         self.with_mirror = resolve_sort(ctx, options.render) == "cpu" or draws_cpu_first(ctx, options.render)
         self.pool = ChunkPool.for_budget(ctx, self.budget, m.formats, degree, codebook=codebook,
-                                         host_mirror=self.with_mirror)
+                                         host_mirror=self.with_mirror, prime=options.render.atlas_prime)
         self._pool_done = time.perf_counter()
         layout: PoolLayout = self.pool.layout
         stream_opts = StreamOptions(selection=replace(options.selection(), sh_degree=degree),
@@ -233,9 +246,11 @@ class StreamingSession:
 
     @classmethod
     def open(cls, spec: str | os.PathLike, ctx, options: ViewOptions = ViewOptions(),
-             progress: Progress | None = None) -> StreamingSession:
-        """A session for a URL, a scene directory or a splat file (encoded in memory, with progress)."""
-        return cls(PreparedSource.open(spec, options, progress), ctx, options)
+             progress: Progress | None = None, target_size: tuple[int, int] | None = None) -> StreamingSession:
+        """A session for a URL, a scene directory or a splat file (encoded in memory, with progress). target_size:
+        the (width, height) its frames will have, where known before the manifest (`view --headless`): the first
+        frame's framebuffer is then made and cleared while the manifest is fetched (early_target)."""
+        return cls(PreparedSource.open(spec, options, progress, early_target(ctx, options, target_size)), ctx, options)
 
     def reconfigure(self, options: ViewOptions) -> None:
         """New streaming options: the selection's change at once; a new GPU budget, SH degree or draw path builds
@@ -388,6 +403,20 @@ class StreamingSession:
         self.engine.close()
         self.renderer.release()
         self.pool.release()
+
+
+def early_target(ctx, options: ViewOptions, size: tuple[int, int] | None) -> Callable[[], None] | None:
+    """PreparedSource.open's while_fetching for a session whose output size is known before its manifest: the first
+    frame's framebuffer made and cleared (renderer.prepare_target; RenderOptions.early_target), so that a cold
+    driver's first clear runs while the manifest is in flight instead of inside the first frame. None without a size,
+    with early_target off (the window: its loading frames already clear while the manifest is fetched) and on a
+    software GL: llvmpipe's clear is a fill of the target by its threads, 4-43 ms at 1920x1080 on the shared 2-core
+    VM, which the first frame's own clear then does again (6-43 ms), so early it is only more work beside the
+    manifest's parse (BENCHMARKS.md, "The first frame's prime and framebuffer off the serial path")."""
+    if size is None or not options.render.early_target or is_software(ctx):
+        return None
+    width, height = size
+    return lambda: prepare_target(ctx, int(width), int(height), options.render.color_dtype)
 
 
 def freeze_long_lived() -> None:

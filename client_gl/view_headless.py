@@ -125,7 +125,9 @@ def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
     # A request that takes half the timeout (a server dripping bytes) fails and is named before the timeout ends.
     options = replace(run.options, manifest_timeout_s=min(run.options.manifest_timeout_s, run.timeout_s),
                       request_deadline_s=min(run.options.request_deadline_s, max(5.0, run.timeout_s / 2)))
-    session = StreamingSession.open(run.source, ctx, options, progress=encode_progress)
+    # The output size is known now: the first frame's framebuffer is made and cleared while the manifest is fetched
+    # (RenderOptions.early_target), not inside the first frame.
+    session = StreamingSession.open(run.source, ctx, options, progress=encode_progress, target_size=run.size)
     freeze_long_lived()
     try:
         w, h = run.size

@@ -114,6 +114,7 @@ _SIGNATURES = {
     "glGenBuffers": (None, (_i, _p)),
     "glDeleteBuffers": (None, (_i, _p)),
     "glBufferStorage": (None, (_u, ctypes.c_ssize_t, _p, _u)),
+    "glClearTexSubImage": (None, (_u, _i, _i, _i, _i, _i, _i, _i, _u, _u, _p)),
     "glFenceSync": (_p, (_u, _u)),
     "glWaitSync": (None, (_p, _u, ctypes.c_uint64)),
     "glDeleteSync": (None, (_p,)),
@@ -217,6 +218,30 @@ def wait_for_gpu() -> None:
     GPU is when the fetch and decode threads run their Python, instead of in the frame loop's next CPU work (where
     each of them takes up to a switch interval, 5 ms, from it)."""
     _finish_releasing_gil()()
+
+
+GL_COLOR = 0x1800
+GL_DEPTH = 0x1801
+
+
+@lru_cache(maxsize=1)
+def _framebuffer_clears_releasing_gil():
+    clear = ctypes.CFUNCTYPE(None, _u, _u, _i, ctypes.POINTER(ctypes.c_float))(
+        gl_function_address("glClearNamedFramebufferfv"))
+    return clear, ctypes.CFUNCTYPE(None)(gl_function_address("glFlush"))
+
+
+def clear_framebuffer_releasing_gil(glo: int, color: tuple[float, float, float, float], depth: float) -> None:
+    """Clear colour attachment 0 and the depth of framebuffer `glo` (glClearNamedFramebufferfv, GL 4.5: no binding
+    changes, so moderngl's idea of the bound framebuffer stays true) and flush, with the interpreter lock released
+    through each call: a cold driver's first clear is tens of milliseconds of its CPU time (BENCHMARKS.md, r25), which
+    the fetcher's thread can spend parsing the manifest meanwhile. The scissor test and the write masks apply as to
+    any clear."""
+    clear, flush_ = _framebuffer_clears_releasing_gil()
+    clear(glo, GL_COLOR, 0, (ctypes.c_float * 4)(*color))
+    clear(glo, GL_DEPTH, 0, (ctypes.c_float * 1)(depth))
+    flush_()
+    check(f"clearing framebuffer {glo}")
 
 
 def fence() -> int:
@@ -422,6 +447,13 @@ class RawTexture:
     @property
     def texel_bytes(self) -> int:
         return PIXEL_TRANSFER[self.internal][2]
+
+    def clear_texel(self, x: int = 0, y: int = 0, layer: int = 0) -> None:
+        """Set one texel to zero on the GPU (glClearTexSubImage, GL 4.4; uncompressed formats): the pool's prime
+        without a shader (ChunkPool's prime="clear")."""
+        fmt, typ, _ = PIXEL_TRANSFER[self.internal]
+        gl.glClearTexSubImage(self.glo, 0, x, y, layer, 1, 1, 1, fmt, typ, None)
+        check(f"clearing texel ({x}, {y}) layer {layer}")
 
     def bind_image_words(self, unit: int, layer: int = 0) -> str:
         """Bind one layer of this (uncompressed) texture to image unit `unit` for writing, in the unsigned image

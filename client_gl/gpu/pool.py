@@ -51,6 +51,9 @@ from .residency_layout import (
 from .slots import SlotAllocator, slots_for_budget
 from .sort import compute_program
 
+# How a new pool's atlases are made GPU-written before their first upload (ChunkPool._prime_atlases).
+PRIMES = ("compute", "clear", "none")
+
 
 @dataclass
 class _Resident:
@@ -108,10 +111,13 @@ class ChunkPool:
     codebook: the scene's SH codebook shape for scenes encoded with one (its bands come with set_codebook_band).
     host_mirror: keep the CPU-sort path's per-splat centres, opacities and largest log scales (tiles must then
     carry TileData.mirror).
+    prime: how the atlases are made GPU-written before their first upload (PRIMES, _prime_atlases).
     """
 
     def __init__(self, ctx, formats: Mapping[str, str], sh_degree: int, slots: int, *,
-                 codebook: CodebookLayout | None = None, host_mirror: bool = True):
+                 codebook: CodebookLayout | None = None, host_mirror: bool = True, prime: str = "compute"):
+        if prime not in PRIMES:
+            raise UsageError(f"unknown atlas prime {prime!r} (choose one of {', '.join(PRIMES)})")
         self.ctx = ctx
         self.layout = PoolLayout(formats, int(sh_degree), codebook)
         cols, rows = atlas_grid(slots)
@@ -130,7 +136,7 @@ class ChunkPool:
                                               self.layout.plane_layers(plane))
         self._gpu_bytes: int | None = None
         self._staging = StagingBuffer(ctx)  # texel uploads go through it (the GPU copies, not the driver's CPU)
-        self._prime_atlases()
+        self._prime_atlases(prime)
         self._ranges = RawTexture(GL_RGBA32UI, width, rows)
         self._state_texture = RawTexture(GL_RG8UI, cols, rows)
         self._records = np.zeros((capacity, RANGE_RECORD_WORDS), np.uint32)  # host copy of the range table
@@ -166,15 +172,22 @@ class ChunkPool:
         # slots are handed out lowest first, so every one of those has been written by a join (or a leave). At a
         # 4 GB budget the upload of the whole table took most of the two seconds before a first frame (llvmpipe).
 
-    def _prime_atlases(self) -> None:
-        """A shader writes one texel of every atlas that uploads go to through the staging buffer, before the first
-        upload (prime_texels.comp says why: otherwise the first frame with splats moves whole atlases through host
-        memory)."""
-        if self.ctx.version_code < 430:
+    def _prime_atlases(self, how: str) -> None:
+        """The GPU writes one texel (0, 0 of layer 0) of every atlas that uploads go to through the staging buffer,
+        before the first upload (prime_texels.comp says why: otherwise the first frame with splats moves whole atlases
+        through host memory). how (PRIMES): "compute", a shader's imageStore (GL 4.3; a program to compile before
+        the first frame: 37-80 ms on a cold NVIDIA driver, BENCHMARKS.md r24); "clear", glClearTexSubImage of that
+        texel (GL 4.4, no compile; whether the NVIDIA driver then treats the atlas as GPU-written as after the shader
+        is what bench/probe_gpu_alloc.py --primes measures), the shader where the GL is older; "none", nothing (the
+        probe's baseline). The texel is slot 0's, which its first join overwrites."""
+        if how == "none" or self.ctx.version_code < 430:
             return
-        for tex in self._atlases.values():
-            if tex.compressed:
-                continue
+        atlases = [tex for tex in self._atlases.values() if not tex.compressed]
+        if how == "clear" and self.ctx.version_code >= 440:
+            for tex in atlases:
+                tex.clear_texel()
+            return
+        for tex in atlases:
             fmt = IMAGE_WORD_FORMATS[tex.texel_bytes][0]
             prog = compute_program(self.ctx, "prime_texels.comp", f"#define TEXEL_FORMAT {fmt}\n")
             tex.bind_image_words(0)
@@ -183,10 +196,11 @@ class ChunkPool:
 
     @classmethod
     def for_budget(cls, ctx, gpu_budget_bytes: int, formats: Mapping[str, str], sh_degree: int, *,
-                   codebook: CodebookLayout | None = None, host_mirror: bool = True) -> ChunkPool:
+                   codebook: CodebookLayout | None = None, host_mirror: bool = True,
+                   prime: str = "compute") -> ChunkPool:
         """The largest pool whose GPU bytes (gpu_bytes) stay within `gpu_budget_bytes`."""
         slots = slots_for_budget(gpu_budget_bytes, formats, sh_degree, codebook)
-        return cls(ctx, formats, sh_degree, slots, codebook=codebook, host_mirror=host_mirror)
+        return cls(ctx, formats, sh_degree, slots, codebook=codebook, host_mirror=host_mirror, prime=prime)
 
     # --- what the renderer reads ----------------------------------------------------------------------------
     @property

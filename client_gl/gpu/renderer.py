@@ -37,9 +37,9 @@ from splatstream.errors import UsageError
 
 from . import shadergen
 from .compute_raster import ComputeRaster, default_entries, raster_sources
+from .gl import clear_framebuffer_releasing_gil, texture_barrier, work_buffer
 from .gl import flush as gl_flush
-from .gl import texture_barrier, work_buffer
-from .pool import ChunkPool
+from .pool import PRIMES, ChunkPool
 from .residency_layout import TEXTURE_UNITS
 from .sort import (
     CHAIN_BARRIER,
@@ -180,6 +180,17 @@ class RenderOptions:
     # for it): the frame's compile is then the driver shader cache's hit instead of a cold compile on the frame loop
     # (issue 38; BENCHMARKS.md, "Deferred compiles warmed off the frame loop"). False: the frames compile them cold.
     warm_compile: bool = True
+    # How the pool made for this renderer primes its atlases (pool.PRIMES, ChunkPool._prime_atlases): "compute", a
+    # one-texel shader whose compile was 37-80 ms of a cold NVIDIA driver's first frame (BENCHMARKS.md, r24), or
+    # "clear", glClearTexSubImage of that texel with no compile. "compute" stays the default until the GPU machine's
+    # bench/probe_gpu_alloc.py --primes shows that the driver treats a cleared atlas as GPU-written (issue 31;
+    # BENCHMARKS.md, "The first frame's prime and framebuffer off the serial path").
+    atlas_prime: str = "compute"
+    # A session that knows its output size before the manifest (`view --headless`, StreamingSession.open with
+    # target_size) on a hardware GL makes the first frame's framebuffer and clears it while the manifest is fetched
+    # (prepare_target), not in the first frame: a cold driver's first clear took 57 ms there (r24). The picture is
+    # the same (the first frame clears or overwrites its target). False: made by the first frame, as the window's.
+    early_target: bool = True
 
     def __post_init__(self) -> None:
         if self.sort not in SORT_MODES:
@@ -200,6 +211,8 @@ class RenderOptions:
             raise UsageError("the compute draw mode takes no raster-draw options (front_to_back, depth_test, blend)")
         if self.front_to_back and (self.sort == "cpu" or self.draw not in ("auto", "fetch", "points")):
             raise UsageError("the front-to-back draw needs the GPU sort and the fetch or points draw mode")
+        if self.atlas_prime not in PRIMES:
+            raise UsageError(f"unknown atlas prime {self.atlas_prime!r} (choose one of {', '.join(PRIMES)})")
 
     @property
     def raster_defaults(self) -> bool:
@@ -319,6 +332,35 @@ def program_stages(key: str | None, src) -> Stages:
 def _cached_compute_program(ctx, spec) -> bool:
     """Whether compute_program(ctx, *spec) finds its program in the context's cache (compiles nothing)."""
     return isinstance(ctx.extra, dict) and ("compute_program", *spec) in ctx.extra
+
+
+def output_framebuffer(ctx, width: int, height: int, color_dtype: str = "f4", output_target: int = 0):
+    """The offscreen target (colour + depth) of this size, colour type and output target, made once and kept in
+    ctx.extra for the context's lifetime (SplatRenderer.framebuffer): moderngl re-binds the last framebuffer after
+    creating another one, so releasing a bound one leaves a dangling binding (GL_INVALID_OPERATION)."""
+    cache = ctx.extra if isinstance(ctx.extra, dict) else {}
+    ctx.extra = cache
+    key = ("splat_fbo", width, height, color_dtype, output_target)
+    fbo = cache.get(key)
+    if fbo is None:
+        color = ctx.texture((width, height), 4, dtype=color_dtype)
+        depth = ctx.depth_renderbuffer((width, height))
+        fbo = cache[key] = ctx.framebuffer([color], depth)
+    return fbo
+
+
+def prepare_target(ctx, width: int, height: int, color_dtype: str = "f4") -> None:
+    """The framebuffer a renderer's first frame of this size draws into (output target 0), made now and cleared
+    once (RenderOptions.early_target): a cold driver's first clear is its start-up work, tens of milliseconds of CPU
+    (BENCHMARKS.md r24/r25), done here while the manifest is fetched instead of inside the first frame. The clear
+    releases the interpreter lock where the GL has glClearNamedFramebufferfv (4.5), so the fetcher's thread parses
+    meanwhile; moderngl's clear otherwise. The first frame clears (or, drawing "compute", overwrites) the target
+    again: its picture does not depend on this."""
+    fbo = output_framebuffer(ctx, width, height, color_dtype)
+    if ctx.version_code >= 450:
+        clear_framebuffer_releasing_gil(fbo.glo, (0.0, 0.0, 0.0, 0.0), 1.0)
+    else:
+        fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
 
 
 def program_name(key: str | None, src) -> str:
@@ -631,19 +673,9 @@ class SplatRenderer:
 
     # --- framebuffer ---------------------------------------------------------------------------------------
     def framebuffer(self, width: int, height: int):
-        """The offscreen target (colour + depth) for this size, shared by all renderers of the context.
-
-        Framebuffers are kept for the context's lifetime: moderngl re-binds the last framebuffer after creating
-        another one, so releasing a bound one leaves a dangling binding (GL_INVALID_OPERATION).
-        """
-        cache = self.ctx.extra if isinstance(self.ctx.extra, dict) else {}
-        self.ctx.extra = cache
-        key = ("splat_fbo", width, height, self.options.color_dtype, self.output_target)
-        if key not in cache:
-            color = self.ctx.texture((width, height), 4, dtype=self.options.color_dtype)
-            depth = self.ctx.depth_renderbuffer((width, height))
-            cache[key] = self.ctx.framebuffer([color], depth)
-        self._fbo = cache[key]
+        """The offscreen target (colour + depth) for this size, shared by all renderers of the context and kept for
+        its lifetime (output_framebuffer; prepare_target makes the first one ahead)."""
+        self._fbo = output_framebuffer(self.ctx, width, height, self.options.color_dtype, self.output_target)
         self._fbo_size = (width, height)
         return self._fbo
 
