@@ -76,7 +76,7 @@ def main() -> None:
                     help="RenderOptions.warm_compile=False: the programs deferred from the first frame compiled cold "
                          "by the frame loop (the A/B of the warmer thread; see the compiles after the first frame with "
                          "--frames-after 30)")
-    ap.add_argument("--atlas-prime", default="compute", choices=("compute", "clear", "none"),
+    ap.add_argument("--atlas-prime", default="clear", choices=("compute", "clear", "none"),
                     help="RenderOptions.atlas_prime: how the pool's atlases are made GPU-written before their first "
                          "upload (compute: prime_texels.comp; clear: glClearTexSubImage, no compile; none)")
     ap.add_argument("--no-early-target", action="store_true",

@@ -70,10 +70,11 @@ def as_hardware(ctx, monkeypatch):
 
 
 def test_first_frames_cpu_sorted_then_the_gpu_path(ctx, fruit, as_hardware, monkeypatch):
-    """2 programs before the first frame instead of 7; the GPU path's 6 compile one a frame (a zero budget) after
-    the first frame with splats, the frame after the last switches to the GPU path (fetch, nothing compiled in it),
-    then the compute draw's 9 as before; the CPU-sorted picture is the GPU path's up to the raster's rounding and
-    the final one equals that of a renderer that compiled everything up front."""
+    """1 program before the first frame instead of 6 (the pool's prime is a clear: nothing compiled); the GPU path's
+    6 compile one a frame (a zero budget) after the first frame with splats, the frame after the last switches to
+    the GPU path (fetch, nothing compiled in it), then the compute draw's 9 as before; the CPU-sorted picture is
+    the GPU path's up to the raster's rounding and the final one equals that of a renderer that compiled everything
+    up front."""
     from client_gl.gpu import renderer as renderer_mod
     from client_gl.gpu.pool import ChunkPool
     from client_gl.gpu.renderer import RenderOptions, SplatRenderer
@@ -95,19 +96,19 @@ def test_first_frames_cpu_sorted_then_the_gpu_path(ctx, fruit, as_hardware, monk
 
     up_front, pool_a = fresh(RenderOptions(cpu_first=False, defer_compute=False))
     up_front.render(cam)
-    assert up_front.sort_mode == "gpu" and up_front.draw_mode == "compute" and len(compiled) == 16
+    assert up_front.sort_mode == "gpu" and up_front.draw_mode == "compute" and len(compiled) == 15
     want = up_front.read_image()
     fetch, pool_f = fresh(RenderOptions(sort="gpu", draw="fetch"))
     fetch.render(cam)
     want_fetch = fetch.read_image()
 
     r, pool = fresh(RenderOptions())
-    assert r.sort_mode == "cpu" and r.cpu_first_pending and compiled == ["compute_shader", "program"]
+    assert r.sort_mode == "cpu" and r.cpu_first_pending and compiled == ["program"]
     reserved = 3 * len(fruit)  # a session's splat budget (more than twice the drawn splats): made at the switch
     assert reserved < pool.splat_capacity
     r.reserve_work(reserved)
     stats = r.render(cam)
-    assert stats.sort == "cpu" and stats.visible > 1000 and len(compiled) == 2
+    assert stats.sort == "cpu" and stats.visible > 1000 and len(compiled) == 1
     first = r.read_image()
     # The CPU sort's frame against the GPU path's of the same splats (fetch: the same back-to-front blending; on
     # llvmpipe bit for bit, splat.vert and cull.comp projecting alike; the bound leaves a hardware GL its rounding)
@@ -119,13 +120,13 @@ def test_first_frames_cpu_sorted_then_the_gpu_path(ctx, fruit, as_hardware, monk
         r.render(cam)
         paths.append((r.sort_mode, r.draw_mode, len(compiled)))
     # 6 frames compile the cull, the sort's setup and 3 pass programs, the fetch draw's; the 7th switches.
-    assert paths[:6] == [("cpu", "fetch", 2 + i) for i in range(1, 7)]
-    assert paths[6] == ("gpu", "fetch", 8) and not r.cpu_first_pending and r._cpu_program is None
+    assert paths[:6] == [("cpu", "fetch", 1 + i) for i in range(1, 7)]
+    assert paths[6] == ("gpu", "fetch", 7) and not r.cpu_first_pending and r._cpu_program is None
     assert r._work_splats == reserved and r.work_bytes > 0
-    assert paths[7:] == [("gpu", "fetch", 8 + i) for i in range(1, 9)] + [("gpu", "compute", 17)]
+    assert paths[7:] == [("gpu", "fetch", 7 + i) for i in range(1, 9)] + [("gpu", "compute", 16)]
     assert np.abs(r.read_image() - want).max() <= 1e-4  # the compute draw's own frame-to-frame noise
     r.render(cam)  # warm: nothing compiles, the picture stays
-    assert len(compiled) == 17 and np.abs(r.read_image() - want).max() <= 1e-4
+    assert len(compiled) == 16 and np.abs(r.read_image() - want).max() <= 1e-4
     for rr, p in ((up_front, pool_a), (fetch, pool_f), (r, pool)):
         rr.release()
         p.release()
@@ -279,7 +280,7 @@ def test_warm_compile_waits_for_the_warmer_and_draws_the_same_frames(ctx, fruit,
                                               "radix_scanadd.comp", "radix_scatter_local.comp", "count_shader",
                                               "scan_shader", "emit_shader", "ranges_shader", "raster_shader"}
     assert len(warm._warmer.programs) == 15  # the depth and tile sorts' programs differ in their digit width
-    assert [p for p, _ in got] == [p for p, _ in want] and want[-1][0] == ("gpu", "compute", 17)
+    assert [p for p, _ in got] == [p for p, _ in want] and want[-1][0] == ("gpu", "compute", 16)
     for (path, a), (_, b) in zip(want, got, strict=True):
         if path[0] == "cpu":
             assert np.array_equal(a, b), path
@@ -302,11 +303,11 @@ def test_warm_compile_waits_for_the_warmer_and_draws_the_same_frames(ctx, fruit,
     pool.release()
     r, pool, seen = frames(RenderOptions(), 5, gate=(3, lambda r: r._warmer.ready.add(
         program_stages("cull", r._gpu_pending[0][1]))))
-    assert [p for p, _ in seen] == [("cpu", "fetch", 2)] * 3 + [("cpu", "fetch", 3), ("cpu", "fetch", 3)]
+    assert [p for p, _ in seen] == [("cpu", "fetch", 1)] * 3 + [("cpu", "fetch", 2), ("cpu", "fetch", 2)]
     assert set(r.compile_seconds) == {"cull"}
     monkeypatch.setattr(renderer_mod, "WARM_COMPILE_WAIT_S", 0.0)
     r.render(cam)  # waited long enough: compiled by the frame loop
-    assert len(compiled) == 4 and not r.warm_compile_missed
+    assert len(compiled) == 3 and not r.warm_compile_missed
     r.release()
     pool.release()
 
@@ -322,8 +323,8 @@ def test_warm_compile_waits_for_the_warmer_and_draws_the_same_frames(ctx, fruit,
     assert r.warm_compile_missed and r._warmer.stopped
     r._warmer.ready.clear()  # the warmer has linked nothing more: compiled regardless, one a frame
     r.render(cam)
-    assert [p for p, _ in seen][1:] == [("cpu", "fetch", 3), ("cpu", "fetch", 4), ("cpu", "fetch", 5)]
-    assert len(compiled) == 6
+    assert [p for p, _ in seen][1:] == [("cpu", "fetch", 2), ("cpu", "fetch", 3), ("cpu", "fetch", 4)]
+    assert len(compiled) == 5
     r.release()
     pool.release()
 

@@ -177,7 +177,8 @@ def _stream(ctx, source, render, size=(W, H), timeout_s=60.0):
 
 @pytest.mark.parametrize("sort", ["cpu", "gpu"])
 def test_the_picture_is_mains_with_the_early_target_and_the_clear_prime(ctx, scene_dir, sort, as_hardware):
-    """A headless session converges to the same picture, pixel for pixel, with the framebuffer made and cleared
+    """A headless session converges to the same picture (but for the last bits of a few blends, which equal sort
+    keys take in the tiles' landing order), with the framebuffer made and cleared
     while the manifest is fetched and with the atlases primed by a clear, each alone and both, as with neither
     (main's behaviour: the compute prime, the framebuffer made by the first frame); the CPU sort path and the GPU
     path's fetch draw (llvmpipe's auto choice is the CPU sort)."""
@@ -196,7 +197,11 @@ def test_the_picture_is_mains_with_the_early_target_and_the_clear_prime(ctx, sce
     main = images[(False, "compute")]
     assert main.max() > 0.1  # the scene is drawn
     for key, image in images.items():
-        np.testing.assert_array_equal(image, main, err_msg=str(key))
+        # Either sort takes splats of equal depth keys in slot order, and slots follow the order the tiles landed
+        # in (the fetch threads'): a few pixels' blends then differ in the last bits (12 pixels by up to 2.4e-5 seen,
+        # the same between any two runs alike, whatever the switches): no test may hang on that order.
+        np.testing.assert_allclose(image, main, rtol=0, atol=2e-4, err_msg=str(key))
+        assert np.mean(image != main) < 0.01, key
 
 
 def test_view_headless_gives_the_session_its_output_size(ctx, scene_dir, monkeypatch, tmp_path):

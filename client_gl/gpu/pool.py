@@ -115,7 +115,7 @@ class ChunkPool:
     """
 
     def __init__(self, ctx, formats: Mapping[str, str], sh_degree: int, slots: int, *,
-                 codebook: CodebookLayout | None = None, host_mirror: bool = True, prime: str = "compute"):
+                 codebook: CodebookLayout | None = None, host_mirror: bool = True, prime: str = "clear"):
         if prime not in PRIMES:
             raise UsageError(f"unknown atlas prime {prime!r} (choose one of {', '.join(PRIMES)})")
         self.ctx = ctx
@@ -177,9 +177,9 @@ class ChunkPool:
         before the first upload (prime_texels.comp says why: otherwise the first frame with splats moves whole atlases
         through host memory). how (PRIMES): "compute", a shader's imageStore (GL 4.3; a program to compile before
         the first frame: 37-80 ms on a cold NVIDIA driver, BENCHMARKS.md r24); "clear", glClearTexSubImage of that
-        texel (GL 4.4, no compile; whether the NVIDIA driver then treats the atlas as GPU-written as after the shader
-        is what bench/probe_gpu_alloc.py --primes measures), the shader where the GL is older; "none", nothing (the
-        probe's baseline). The texel is slot 0's, which its first join overwrites."""
+        texel (GL 4.4, no compile; the default: on the H200 the first uploads after it took 0.1-0.2 ms with no page
+        faults, as after the shader, bench/probe_gpu_alloc.py --primes, r26), the shader where the GL is older;
+        "none", nothing (the probe's baseline). The texel is slot 0's, which its first join overwrites."""
         if how == "none" or self.ctx.version_code < 430:
             return
         atlases = [tex for tex in self._atlases.values() if not tex.compressed]
@@ -197,7 +197,7 @@ class ChunkPool:
     @classmethod
     def for_budget(cls, ctx, gpu_budget_bytes: int, formats: Mapping[str, str], sh_degree: int, *,
                    codebook: CodebookLayout | None = None, host_mirror: bool = True,
-                   prime: str = "compute") -> ChunkPool:
+                   prime: str = "clear") -> ChunkPool:
         """The largest pool whose GPU bytes (gpu_bytes) stay within `gpu_budget_bytes`."""
         slots = slots_for_budget(gpu_budget_bytes, formats, sh_degree, codebook)
         return cls(ctx, formats, sh_degree, slots, codebook=codebook, host_mirror=host_mirror, prime=prime)

@@ -180,12 +180,13 @@ class RenderOptions:
     # for it): the frame's compile is then the driver shader cache's hit instead of a cold compile on the frame loop
     # (issue 38; BENCHMARKS.md, "Deferred compiles warmed off the frame loop"). False: the frames compile them cold.
     warm_compile: bool = True
-    # How the pool made for this renderer primes its atlases (pool.PRIMES, ChunkPool._prime_atlases): "compute", a
-    # one-texel shader whose compile was 37-80 ms of a cold NVIDIA driver's first frame (BENCHMARKS.md, r24), or
-    # "clear", glClearTexSubImage of that texel with no compile. "compute" stays the default until the GPU machine's
-    # bench/probe_gpu_alloc.py --primes shows that the driver treats a cleared atlas as GPU-written (issue 31;
-    # BENCHMARKS.md, "The first frame's prime and framebuffer off the serial path").
-    atlas_prime: str = "compute"
+    # How the pool made for this renderer primes its atlases (pool.PRIMES, ChunkPool._prime_atlases): "clear",
+    # glClearTexSubImage of one texel with nothing compiled (GL 4.4; the compute prime below 4.4), or "compute", a
+    # one-texel shader whose compile was 37-80 ms of a cold NVIDIA driver's first frame (BENCHMARKS.md, r24). On the
+    # H200 (r26) the first pixel-unpack uploads after either took 0.1-0.2 ms with no page faults, against 122-138 ms
+    # and 131,072 faults unprimed: the driver treats a cleared atlas as GPU-written (issue 31; BENCHMARKS.md, "The
+    # first frame's prime and framebuffer off the serial path").
+    atlas_prime: str = "clear"
     # A session that knows its output size before the manifest (`view --headless`, StreamingSession.open with
     # target_size) on a hardware GL makes the first frame's framebuffer and clears it while the manifest is fetched
     # (prepare_target), not in the first frame: a cold driver's first clear took 57 ms there (r24). The picture is
