@@ -4,6 +4,9 @@ quiet machine, no shared data needed.
 
     python bench/decode_quiet.py [--scenes a,b] [--presets p,q] [--runs 5] [--jobs N] [--json PATH]
 
+A scene given as name=path (a file of any input format, relative to the repo root or absolute) is read from there,
+e.g. a million-splat SH3 PLY made by tests/tools/make_scene.py (issue 32, dec32: a LOD tree of large tiles).
+
 Each bundled scene of tests/data/real (guitar.compressed.ply, fruit_drops_sh3.ply, lod_tile_sh3_zero_rest.ply,
 winter_fountain.splat, flowers_lod/3_0: flowers' coarsest SOG unit) is encoded in memory with each preset and the
 encoder's defaults (LOD tree); the encodes run in --jobs processes (default: every core, they are not what is
@@ -88,13 +91,15 @@ def scene_gaussians(names: str):
         yield scene, read_gaussians(os.path.join(ROOT, SCENES[scene]))
 
 
-def encode(scene: str, preset: str):
-    """(scene, preset, MemoryStore or the reason it was skipped, encode CPU s) in a worker process."""
+def encode(scene: str, preset: str, path: str | None = None):
+    """(scene, preset, MemoryStore or the reason it was skipped, encode CPU s) in a worker process; `path`: the
+    scene's file where it is not one of SCENES (--scenes name=path: a worker process has only SCENES' own)."""
     t = time.process_time()
+    path = path or SCENES[scene]
     try:  # a scene this machine cannot read (the SOG unit's WebP planes need Pillow) is skipped, and said so
-        g = read_gaussians(os.path.join(ROOT, SCENES[scene]))
+        g = read_gaussians(os.path.join(ROOT, path))
     except Exception as e:  # any reason, reported in the JSON's "skipped"
-        return scene, preset, f"reading {SCENES[scene]}: {type(e).__name__}: {e}", 0.0
+        return scene, preset, f"reading {path}: {type(e).__name__}: {e}", 0.0
     try:
         store = encode_in_memory(g, EncodeOptions(preset=preset))
     except UsageError as e:  # very-low's BC7 colour without the `bc` extra
@@ -261,8 +266,10 @@ def main() -> None:
     args = ap.parse_args()
     wall = time.time()
     scenes, presets = args.scenes.split(","), args.presets.split(",")
+    paths = dict(s.split("=", 1) if "=" in s else (s, SCENES[s]) for s in scenes)  # name=path: another scene
+    scenes = list(paths)
     stores, skipped, encode_s = {}, {}, {}
-    work = [(s, p) for s in scenes for p in presets]
+    work = [(s, p, paths[s]) for s in scenes for p in presets]
     kernels = {"numpy": None}
     compile_s = None
     if args.jobs > 1:
@@ -274,7 +281,7 @@ def main() -> None:
                 compile_s = round(time.time() - t, 1)
             done = list(pending)
     else:
-        done = [encode(s, p) for s, p in work]
+        done = [encode(*w) for w in work]
         if {"numba", "numba1", "numbap"} & set(args.kernels.split(",")):
             t = time.time()
             kernel, why = _numba_kernel()

@@ -760,3 +760,47 @@ def test_planes_kept_from_an_earlier_decode_keep_their_bytes(numpy_path, winter_
     assert all(any(np.shares_memory(v, slabs[i]) for i in held) for v in views)
     del kept, views
     assert all(transport._slab_free(slabs, i) for i in range(len(slabs)))
+
+
+@pytest.mark.parametrize("texel_bytes", [2, 4, 8, 16])
+@pytest.mark.parametrize("geometry", [(16, 16), (48, 32), (32, 64), (992, 16), (16, 48)])
+def test_pair_stores_put_each_texel_where_slot_to_texel_says(texel_bytes, geometry):
+    # fields1_kernel packs a layer in slot order and stores it two texels at a time (_store_pairs: slots 2k and
+    # 2k + 1 side by side in a row, each block laid out as the first): every texel at slot_to_texel's place, as a
+    # texel at a time puts it, on one block, several in a row, in a column and both
+    width, height = geometry
+    n = width * height
+    order = transport.slot_to_texel(width, height)
+    rng = np.random.default_rng(texel_bytes * 7919 + n)
+    packed = rng.integers(0, 256, n * texel_bytes).astype(np.uint8)
+    expected = np.zeros((n, texel_bytes), np.uint8)
+    expected[order] = packed.reshape(n, texel_bytes)
+    got = np.zeros(n * texel_bytes, np.uint8)
+    decode_jit._store_pairs(packed, got, order, texel_bytes)
+    assert got.tobytes() == expected.tobytes()
+
+
+@pytest.mark.parametrize("preset", ["medium", "medium-low", "low-plus-9bit", "low", "very-low", "medium-12bit"])
+def test_lossy_presets_on_wide_tiles_decode_with_the_kernels_as_the_numpy_path(numpy_path, fruit, preset):
+    # the packed texel paths stored two at a time (norm565 SH bands, norm11 / norm9x3 positions, norm10_2
+    # rotations, norm8x4 colour, index16 codebook indices) on the encoder's default tiles (fruit_drops_sh3 in one
+    # tile: textures of many blocks in a row) and on small ones: the numpy path's bytes, bit for bit, a group in one
+    # call (the whole kernel), a plane of a group a call (the batch kernels) and a section a call
+    widest = []
+    for options in (EncodeOptions(preset=preset), EncodeOptions(preset=preset, max_leaf_splats=512)):
+        store = encode_in_memory(fruit, options)
+        m = read_manifest(store)
+        by_group = payloads_by_group(store, m)
+        widths = {s.width for items in by_group.values() for _, e in items for s in e.sections if s.width}
+        transport.use_fields_kernel(None)
+        transport.use_batch_kernels(None, None)
+        transport.use_whole_kernel(None)
+        by_numpy = _planes_of_groups(by_group, m, alone=1)
+        decode_jit.install()
+        assert _planes_of_groups(by_group, m, alone=1) == by_numpy, (preset, widths)
+        transport.use_whole_kernel(None)
+        assert _planes_of_groups(by_group, m, alone=1) == by_numpy, (preset, widths)
+        transport.use_batch_kernels(None, None)
+        assert _planes_of_groups(by_group, m, alone=1) == by_numpy, (preset, widths)
+        widest.append(max(widths))
+    assert widest[0] > 16  # the default tile: blocks side by side

@@ -10,6 +10,14 @@
 #   cp bench/device/decode_ab_old_new.sh .oldvh/vhdec4_ab.sh   (and drop .oldvh/bench/results and all of .oldvh/tests/data but guitar and winter_fountain: 61 of the 64 MiB)
 # vhdec5 (very-high's payloads above 256 KB join their zstd blocks): guitar and winter_fountain have no such payload;
 # keep tests/data/real/fruit_drops_sh3.ply (1.2 MB) in .oldvh too and run with SCENES=fruit_drops_sh3 PRESETS=very-high.
+# dec32 (fields1's packed texels stored two at a time, the lossy presets): .oldvh from this branch's base, bf3f94e
+# (`git archive bf3f94e splatstream client_gl cli bench tests | tar -x -C .oldvh`), with this branch's
+# bench/decode_quiet.py copied into .oldvh/bench/ and tests/data/real's guitar, winter_fountain and fruit_drops_sh3
+# kept; then four calls of about 5-7 minutes each (ROUNDS=1: new, old), the preset sets swapped:
+#   SCENES=guitar,winter_fountain,fruit_drops_sh3 PRESETS=medium,medium-low,low-plus-9bit,very-high ROUNDS=1
+#   SCENES=guitar,winter_fountain,fruit_drops_sh3 PRESETS=low,very-low,medium-12bit,medium ROUNDS=1
+# (medium in both: four of its pairs). The bundled scenes are SH0 small tiles and one SH3 tile; the 1M SH3 LOD tree
+# this change helps most (decode_quiet --scenes s1m=PATH) needs make_scene.py's source scenes, not in the repo.
 # If a call nears the run tool's 600 s, run it as two calls with ROUNDS=1 (the order then: new, old) or PRESETS fewer.
 # Knobs (environment; defaults are the device's): PY (python3), CORES (2-5), ROUNDS (2), RUNS (3), JOBS (8),
 # SCENES (guitar,winter_fountain), PRESETS (very-high,medium,high). About 4-5 minutes a round on the H200 host.

@@ -4,8 +4,9 @@ the bytes of transport.unfilter_fields' numpy path, bit for bit, in one pass ove
 The numpy path decodes a layer in a dozen to two dozen whole-array steps (zigzag, running sums, masks, cross
 predictions, packing, the gather into texture order), each a numpy call and a pass over a work array; on the LOD
 tree's tiles of a few hundred splats that was most of a payload's decode (issue 32; BENCHMARKS.md, "Decode speed").
-Here each slot's fields are read from their byte planes, summed, predicted, masked and packed into its texel,
-written straight to its place in texture order.
+Here each slot's fields are read from their byte planes, summed, predicted, masked and packed into its texel in
+slot order, and a layer's texels then stored at their places in texture order two at a time (a pair of slots is a
+pair of texels side by side: _store_pairs).
 
 The arithmetic is the spec's read literally, in int64: a field of up to 8 bits is its byte, a wider one its zigzag
 code's residual; a delta field's running sum (int64 sums of residuals under 2^32 cannot overflow in a section of
@@ -90,6 +91,53 @@ def _f32x4_layer(raw, base, n, deltas, work, slot_to_texel, o):
 
 
 @njit(**_JIT)
+def _store_pairs(packed, o, order, texel_bytes):
+    """A layer's texels, packed in slot order in `packed` (bytes), stored at their places in `o` (the layer's texels
+    as bytes, texture order; `order`: slot_to_texel), two at a time: slots 2k and 2k + 1 are the texels t and t + 1
+    of one row, t even (transport.slot_to_texel: Morton order inside a 16 x 16 block, x its lowest bit), so a pair is
+    one 4 or 8-byte store (two for 8-byte texels) where a texel at a time took one to four stores each. Every block
+    of 256 slots lies alike about its first texel (blocks at multiples of 16 texels in both directions): a pair's
+    place is its block's first texel plus its place in the first block, read from the first block's 256 entries
+    (in cache) rather than from `order`'s 8 bytes a slot."""
+    first = order[:256]
+    at0 = first[0]
+    blocks = order.shape[0] // 256
+    if texel_bytes == 2:
+        src = packed.view(np.uint32)
+        dst = o.view(np.uint32)
+        for b in range(blocks):
+            base = order[b * 256] - at0
+            s = src[b * 128:(b + 1) * 128]
+            for k in range(128):
+                dst[np.uint64(base + first[2 * k]) >> np.uint64(1)] = s[k]
+        return
+    src64 = packed.view(np.uint64)
+    dst64 = o.view(np.uint64)
+    if texel_bytes == 4:
+        for b in range(blocks):
+            base = order[b * 256] - at0
+            s = src64[b * 128:(b + 1) * 128]
+            for k in range(128):
+                dst64[np.uint64(base + first[2 * k]) >> np.uint64(1)] = s[k]
+    elif texel_bytes == 8:  # norm16x4, f16x4: two words of 8 bytes a pair
+        for b in range(blocks):
+            base = order[b * 256] - at0
+            s = src64[b * 256:(b + 1) * 256]
+            for k in range(128):
+                at = np.uint64(base + first[2 * k])
+                dst64[at] = s[2 * k]
+                dst64[at + np.uint64(1)] = s[2 * k + 1]
+    else:  # wider texels (none of FIELD_LAYOUTS' packed paths): texel_bytes // 8 words of 8 bytes a texel
+        per = texel_bytes // 8
+        for b in range(blocks):
+            base = order[b * 256] - at0
+            for k in range(128):
+                at = np.uint64((base + first[2 * k]) * per)
+                for w in range(2 * per):
+                    dst64[at + np.uint64(w)] = src64[(b * 256 + 2 * k) * per + w]
+
+
+@njit(**_JIT)
 def fields1_kernel(raw, planes_at, params_at, n, layers, words, fields, modes, slot_to_texel, work, out):
     """Decode a fields1 content's layers into `out` (its texel words, native order, texture order); `work` is
     (fields, n) int64 scratch; `fields` and `modes` are transport._kernel_args' tables (few arguments: each one
@@ -111,6 +159,7 @@ def fields1_kernel(raw, planes_at, params_at, n, layers, words, fields, modes, s
                          out[layer * n * 4:(layer + 1) * n * 4])
             pos += n * 16
         return
+    packed = np.empty_like(out[:n * words])  # a layer's texels in slot order (the packing below)
     for layer in range(layers):
         mode = layer * nf
         for f in range(nf):
@@ -193,40 +242,46 @@ def fields1_kernel(raw, planes_at, params_at, n, layers, words, fields, modes, s
                         row[i] = (row[i] + ((slope * anchor[i] + bias) >> 6)) & m
         first = layer * n
         # the texels' packing spelt out for each layout of FIELD_LAYOUTS (about a fifth of the kernel's time on
-        # 16-bit and four-field formats against the general loops below them; issue 32)
+        # 16-bit and four-field formats against the general loops below them; issue 32): packed in slot order into
+        # `packed` (loops the compiler vectorises), then stored two texels at a time (_store_pairs: a pair of slots
+        # is a pair of texels side by side). A texel at a time, the stores to scattered places were about half of
+        # the kernel's time on the SH bands' norm565 (issue 32, dec32).
         if words == 1 and nf == 3:  # fields packed in one word (norm11, norm9x3, norm565)
             s1, s2 = shifts[1], shifts[2]
-            r0, r1, r2 = work[0], work[1], work[2]
-            o = out[first:first + n]
-            for i in range(n):  # an unsigned index: no check for a negative one on every write (numba's wraparound)
-                o[np.uint64(slot_to_texel[i])] = r0[i] | (r1[i] << s1) | (r2[i] << s2)
+            r0, r1, r2 = work[0, :n], work[1, :n], work[2, :n]
+            p = packed[:n]
+            for i in range(n):
+                p[i] = r0[i] | (r1[i] << s1) | (r2[i] << s2)
+            _store_pairs(p.view(np.uint8), out[first:first + n].view(np.uint8), slot_to_texel, out.itemsize)
         elif words == 1 and nf == 4:  # norm10_2
             s1, s2, s3 = shifts[1], shifts[2], shifts[3]
             r0, r1, r2, r3 = work[0, :n], work[1, :n], work[2, :n], work[3, :n]
-            o = out[first:first + n]
+            p = packed[:n]
             for i in range(n):
-                o[np.uint64(slot_to_texel[i])] = r0[i] | (r1[i] << s1) | (r2[i] << s2) | (r3[i] << s3)
+                p[i] = r0[i] | (r1[i] << s1) | (r2[i] << s2) | (r3[i] << s3)
+            _store_pairs(p.view(np.uint8), out[first:first + n].view(np.uint8), slot_to_texel, out.itemsize)
         elif words == 1 and nf == 1:  # index16
             r0 = work[0, :n]
-            o = out[first:first + n]
+            p = packed[:n]
             for i in range(n):
-                o[np.uint64(slot_to_texel[i])] = r0[i]
+                p[i] = r0[i]
+            _store_pairs(p.view(np.uint8), out[first:first + n].view(np.uint8), slot_to_texel, out.itemsize)
         elif words == 1:
             for i in range(n):
                 v = np.int64(0)
                 for f in range(nf):
                     v |= work[f, i] << shifts[f]
                 out[first + slot_to_texel[i]] = v
-        elif words == 4 and nf == 4:  # one field a word (norm8x4, norm16x4, f16x4, f32x4): a texel's four at once
+        elif words == 4 and nf == 4:  # one field a word (norm8x4, norm16x4, f16x4): a texel's four at once
             r0, r1, r2, r3 = work[0, :n], work[1, :n], work[2, :n], work[3, :n]
-            o = out[first * 4:(first + n) * 4]
+            p = packed[:4 * n]
             for i in range(n):
-                # an unsigned index: numba checks a signed one for a negative value (wraparound) on every write
-                t = np.uint64(slot_to_texel[i]) * np.uint64(4)
-                o[t] = r0[i]
-                o[t + np.uint64(1)] = r1[i]
-                o[t + np.uint64(2)] = r2[i]
-                o[t + np.uint64(3)] = r3[i]
+                p[4 * i] = r0[i]
+                p[4 * i + 1] = r1[i]
+                p[4 * i + 2] = r2[i]
+                p[4 * i + 3] = r3[i]
+            _store_pairs(p.view(np.uint8), out[first * 4:(first + n) * 4].view(np.uint8), slot_to_texel,
+                         4 * out.itemsize)
         else:  # one field a word
             for f in range(nf):
                 row = work[f]
