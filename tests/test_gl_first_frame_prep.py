@@ -291,3 +291,20 @@ def test_the_ab_pairs_each_variant_with_the_first_of_its_round():
     assert s["new, warm"]["first_frame_s"] == (0.22, 0.2)
     paired = s["new, cold"]["first_frame_s minus main's, paired: median, each"]
     assert paired[0] == -0.1 and paired[1] == [-0.1, -0.12, -0.03]
+
+
+def test_later_gl_features_found_by_extension_in_a_4_3_context(ctx):
+    """The NVIDIA driver makes the 4.3 context moderngl asks for ("4.3.0 NVIDIA 580.159.04") and offers 4.4/4.5
+    features as extensions: the clear prime, the early target's lock-free clear and immutable work buffers must be
+    found there by extension (r27: the prime compiled its shader, 46 ms of a cold first frame)."""
+    from types import SimpleNamespace
+
+    from client_gl.gpu.gl import has_gl
+
+    nvidia_43 = SimpleNamespace(version_code=430, extensions={"GL_ARB_clear_texture", "GL_ARB_buffer_storage",
+                                                              "GL_ARB_direct_state_access"})
+    assert has_gl(nvidia_43, 440, "GL_ARB_clear_texture") and has_gl(nvidia_43, 450, "GL_ARB_direct_state_access")
+    assert not has_gl(SimpleNamespace(version_code=430, extensions=set()), 440, "GL_ARB_clear_texture")
+    assert has_gl(SimpleNamespace(version_code=450, extensions=set()), 440, "GL_ARB_clear_texture")
+    # this context (llvmpipe 4.5) offers them both ways
+    assert has_gl(ctx, 440, "GL_ARB_clear_texture") and "GL_ARB_clear_texture" in ctx.extensions

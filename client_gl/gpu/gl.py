@@ -276,6 +276,14 @@ def gl_version() -> int:
     return 10 * major.value + minor.value
 
 
+def has_gl(ctx, version_code: int, extension: str) -> bool:
+    """Whether the context offers a feature that became core in `version_code` (e.g. 440) through its version or
+    its ARB extension. The NVIDIA driver makes the 4.3 context asked for (moderngl's require=430: "4.3.0 NVIDIA
+    580.159.04", version_code 430) and offers the later features as extensions, so a version check alone took
+    the slower fallback there (r27: the atlases' prime compiled its shader, 46 ms of a cold first frame)."""
+    return ctx.version_code >= version_code or extension in ctx.extensions
+
+
 class WorkBuffer(moderngl.Buffer):
     """A moderngl Buffer over immutable storage (glBufferStorage) that it owns: moderngl's own buffers are mutable
     (glBufferData), and the NVIDIA driver allocated those at their first use, inside the frame loop
@@ -293,9 +301,10 @@ class WorkBuffer(moderngl.Buffer):
 
 def work_buffer(ctx, size: int) -> moderngl.Buffer:
     """A GPU buffer of `size` bytes (contents undefined) that shaders fill: written by write() and read back by
-    read() like any moderngl Buffer. Immutable storage where the GL has it (4.4), else ctx.buffer(reserve=size)."""
+    read() like any moderngl Buffer. Immutable storage where the GL has it (4.4 or ARB_buffer_storage: the NVIDIA
+    driver's 4.3 context has the extension), else ctx.buffer(reserve=size)."""
     size = max(4, int(size))
-    if gl_version() < 44 or size >= 1 << 32:  # moderngl's external_buffer takes a 32-bit size
+    if not has_gl(ctx, 440, "GL_ARB_buffer_storage") or size >= 1 << 32:  # external_buffer: a 32-bit size
         return ctx.buffer(reserve=size)
     name = _u(0)
     gl.glGenBuffers(1, ctypes.byref(name))

@@ -35,7 +35,16 @@ from splatstream.format.codec import EncodedPlane, palette_as_ranged
 from splatstream.format.texformats import PALETTE_FORMATS, get_format
 
 from ..tiledata import HostMirror, TileData
-from .gl import BLOCK_BYTES, GL_RG8UI, GL_RGBA32UI, IMAGE_WORD_FORMATS, INTERNAL_FORMATS, RawTexture, StagingBuffer
+from .gl import (
+    BLOCK_BYTES,
+    GL_RG8UI,
+    GL_RGBA32UI,
+    IMAGE_WORD_FORMATS,
+    INTERNAL_FORMATS,
+    RawTexture,
+    StagingBuffer,
+    has_gl,
+)
 from .residency_layout import (
     BASE_PLANE_NAMES,
     BLOCK,
@@ -177,13 +186,14 @@ class ChunkPool:
         before the first upload (prime_texels.comp says why: otherwise the first frame with splats moves whole atlases
         through host memory). how (PRIMES): "compute", a shader's imageStore (GL 4.3; a program to compile before
         the first frame: 37-80 ms on a cold NVIDIA driver, BENCHMARKS.md r24); "clear", glClearTexSubImage of that
-        texel (GL 4.4, no compile; the default: on the H200 the first uploads after it took 0.1-0.2 ms with no page
-        faults, as after the shader, bench/probe_gpu_alloc.py --primes, r26), the shader where the GL is older;
+        texel (GL 4.4 or ARB_clear_texture, no compile; the default: on the H200 the first uploads after it took
+        0.1-0.2 ms with no page faults, as after the shader, bench/probe_gpu_alloc.py --primes, r26), the shader
+        where the GL has neither;
         "none", nothing (the probe's baseline). The texel is slot 0's, which its first join overwrites."""
         if how == "none" or self.ctx.version_code < 430:
             return
         atlases = [tex for tex in self._atlases.values() if not tex.compressed]
-        if how == "clear" and self.ctx.version_code >= 440:
+        if how == "clear" and has_gl(self.ctx, 440, "GL_ARB_clear_texture"):
             for tex in atlases:
                 tex.clear_texel()
             return

@@ -37,7 +37,7 @@ from splatstream.errors import UsageError
 
 from . import shadergen
 from .compute_raster import ComputeRaster, default_entries, raster_sources
-from .gl import clear_framebuffer_releasing_gil, texture_barrier, work_buffer
+from .gl import clear_framebuffer_releasing_gil, has_gl, texture_barrier, work_buffer
 from .gl import flush as gl_flush
 from .pool import PRIMES, ChunkPool
 from .residency_layout import TEXTURE_UNITS
@@ -354,11 +354,11 @@ def prepare_target(ctx, width: int, height: int, color_dtype: str = "f4") -> Non
     """The framebuffer a renderer's first frame of this size draws into (output target 0), made now and cleared
     once (RenderOptions.early_target): a cold driver's first clear is its start-up work, tens of milliseconds of CPU
     (BENCHMARKS.md r24/r25), done here while the manifest is fetched instead of inside the first frame. The clear
-    releases the interpreter lock where the GL has glClearNamedFramebufferfv (4.5), so the fetcher's thread parses
-    meanwhile; moderngl's clear otherwise. The first frame clears (or, drawing "compute", overwrites) the target
-    again: its picture does not depend on this."""
+    releases the interpreter lock where the GL has glClearNamedFramebufferfv (4.5 or ARB_direct_state_access), so
+    the fetcher's thread parses meanwhile; moderngl's clear otherwise. The first frame clears (or, drawing
+    "compute", overwrites) the target again: its picture does not depend on this."""
     fbo = output_framebuffer(ctx, width, height, color_dtype)
-    if ctx.version_code >= 450:
+    if has_gl(ctx, 450, "GL_ARB_direct_state_access"):
         clear_framebuffer_releasing_gil(fbo.glo, (0.0, 0.0, 0.0, 0.0), 1.0)
     else:
         fbo.clear(0.0, 0.0, 0.0, 0.0, depth=1.0)
