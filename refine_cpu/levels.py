@@ -16,7 +16,6 @@ peer at all 48 points.
 from __future__ import annotations
 
 import math
-import os
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, replace
@@ -25,6 +24,7 @@ import numba
 import numpy as np
 
 from splatstream import lod_refine
+from splatstream.cores import available_cores
 from splatstream.format.manifest import LevelRefinement, LodRefinement
 from splatstream.gaussians import Gaussians, covariances
 from splatstream.lod import Tile, split_axis
@@ -144,7 +144,7 @@ class CpuLevelRefiner:
         every core; without share_cores (an existing cluster's machines) itself."""
         if not self.settings.share_cores:
             return self
-        return CpuLevelRefiner(replace(self.settings, threads=max(1, (os.cpu_count() or 1) // max(1, fits))))
+        return CpuLevelRefiner(replace(self.settings, threads=max(1, available_cores() // max(1, fits))))
 
     def with_scene_pairs(self, sample: Gaussians, splats: int, placed_by: np.ndarray | lod_refine.CameraFrame, up,
                          cell_depth: int = 0) -> CpuLevelRefiner:

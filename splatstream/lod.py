@@ -24,13 +24,13 @@ original counts with its merged splat's error), at least its children's errors (
 from __future__ import annotations
 
 import math
-import os
 from collections.abc import Callable
 from concurrent.futures import Executor, ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
 
+from .cores import available_cores
 from .format.layout import morton_codes
 from .format.limits import MAX_LOG_SCALE, MIN_LOG_SCALE
 from .gaussians import SH_C0, Gaussians, normalize_quaternions, rotation_matrices
@@ -957,7 +957,7 @@ def build_subtree(g: Gaussians, index: np.ndarray, shape: TreeShape, level: int 
 
     # The tiles of one level are independent: merged on threads (numpy's sorts, reductions and eigh release the
     # interpreter), each a pure function of its children, so the tree is the same with any number of threads.
-    with ThreadPoolExecutor(max_workers=max(1, threads or os.cpu_count() or 1)) as pool:
+    with ThreadPoolExecutor(max_workers=max(1, threads or available_cores())) as pool:
         for lvl in range(leaf_level - 1, level - 1, -1):
             jobs = []
             level_tiles = []

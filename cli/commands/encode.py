@@ -7,6 +7,7 @@ import sys
 import time
 from collections.abc import Callable
 
+from splatstream.cores import available_cores
 from splatstream.encode import encode_file
 from splatstream.encode.codebook import refuse_without_sh_bands
 from splatstream.encode.driver import count_edits
@@ -237,7 +238,7 @@ def run(args: argparse.Namespace) -> int:
     workers = None
     if args.workers is not None:
         if args.workers == "auto":
-            workers = os.cpu_count() or 1
+            workers = available_cores()
         elif args.workers.isdigit() and int(args.workers) >= 1:
             workers = int(args.workers)
         else:

@@ -15,6 +15,7 @@ import threading
 import time
 import uuid
 
+from ..cores import available_cores
 from ..errors import UsageError
 from .options import Progress
 
@@ -43,7 +44,7 @@ class DaskEngine:
             except (OSError, TimeoutError) as exc:
                 raise UsageError(f"--scheduler {scheduler}: cannot reach the Dask scheduler ({exc})") from None
         else:
-            n = workers or os.cpu_count() or 1
+            n = workers or available_cores()
             _keep_malloc_adaptive()
             self._config = _fork_workers()
             # env: a forked worker would otherwise see the environment of the first engine in this process

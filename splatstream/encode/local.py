@@ -12,6 +12,7 @@ import os
 from collections.abc import Iterator
 from concurrent.futures import ThreadPoolExecutor
 
+from ..cores import available_cores
 from ..format.manifest import Manifest, TileEntry
 from ..gaussians import Gaussians
 from ..lod import Tile
@@ -109,7 +110,7 @@ class LocalEngine:
 
     def __init__(self, memory_per_worker: int | None = None, threads: int | None = None):
         self.memory_per_worker = int(memory_per_worker or default_memory_per_worker())
-        self.threads_per_task = threads or min(2, os.cpu_count() or 1)
+        self.threads_per_task = threads or min(2, available_cores())
 
     def map(self, fn, args: list[tuple], stage: str, progress: Progress, heavy: bool = False,
             task_progress: bool = False) -> list:
