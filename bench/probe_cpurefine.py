@@ -45,9 +45,14 @@ def main() -> None:
     ap.add_argument("--iterations", type=int, default=CpuRefineSettings.iterations)
     ap.add_argument("--size", type=int, default=CpuRefineSettings.size)
     ap.add_argument("--training-cameras", type=int, default=CpuRefineSettings.training_cameras)
+    ap.add_argument("--validation-cameras", type=int, default=CpuRefineSettings.validation_cameras)
     ap.add_argument("--far-training-cameras", type=int, default=CpuRefineSettings.far_training_cameras,
                     help="each level's far training cameras (0: none, the refinement before far31)")
     ap.add_argument("--far-validation-cameras", type=int, default=CpuRefineSettings.far_validation_cameras)
+    ap.add_argument("--lr-opacity", type=float, default=CpuRefineSettings.lr_opacity_logit)
+    ap.add_argument("--lr-dc", type=float, default=CpuRefineSettings.lr_sh_dc)
+    ap.add_argument("--lr-final", type=float, default=CpuRefineSettings.lr_final)
+    ap.add_argument("--batches", type=int, default=CpuRefineSettings.batches)
     ap.add_argument("--far-weight", type=float, default=CpuRefineSettings.far_weight)
     args = ap.parse_args()
     os.makedirs(args.out, exist_ok=True)
@@ -58,15 +63,21 @@ def main() -> None:
         print("plain", res["plain"], flush=True)
     refiner = CpuLevelRefiner(CpuRefineSettings(iterations=args.iterations, size=args.size,
                                            training_cameras=args.training_cameras,
+                                           validation_cameras=args.validation_cameras,
                                            far_training_cameras=args.far_training_cameras,
                                            far_validation_cameras=args.far_validation_cameras,
-                                           far_weight=args.far_weight,
+                                           far_weight=args.far_weight, lr_opacity_logit=args.lr_opacity,
+                                           lr_sh_dc=args.lr_dc, lr_final=args.lr_final,
+                                           batches=args.batches,
                                            log=lambda m: print("lod-refine:", m, flush=True)))
     res["refined"] = timed_encode(args.full_ply, os.path.join(args.out, "refined", scene), lod_refiner=refiner)
     res["refined"]["levels"] = refiner.report
     res["settings"] = {"iterations": args.iterations, "size": args.size, "training_cameras": args.training_cameras,
+                       "validation_cameras": args.validation_cameras,
                        "far_training_cameras": args.far_training_cameras,
-                       "far_validation_cameras": args.far_validation_cameras, "far_weight": args.far_weight}
+                       "far_validation_cameras": args.far_validation_cameras, "far_weight": args.far_weight,
+                       "lr_opacity": args.lr_opacity, "lr_dc": args.lr_dc, "lr_final": args.lr_final,
+                       "batches": args.batches}
     print("refined", json.dumps(res["refined"]), flush=True)
     json.dump(res, open(os.path.join(args.out, f"probe_{scene}.json"), "w"), indent=1)
 

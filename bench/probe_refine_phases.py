@@ -49,6 +49,9 @@ def main() -> None:
     ap.add_argument("out")
     ap.add_argument("--label", default="")
     ap.add_argument("--json", help="append the line to this file")
+    ap.add_argument("--before-refinecheap31", action="store_true",
+                    help="the settings before branch refinecheap31: 60 full-batch steps at learning rates 0.1 / 0.02, "
+                         "16 validation cameras, 16 + 8 far cameras a level")
     args = ap.parse_args()
     phases = {"renders": 0.0, "pair_lists": 0.0, "fit_steps": 0.0, "validation": 0.0}
     calls = {k: 0 for k in phases}
@@ -72,11 +75,16 @@ def main() -> None:
     out = os.path.join(args.out, "refined")
     if os.path.exists(out):
         shutil.rmtree(out)
-    refiner = CpuLevelRefiner(CpuRefineSettings())
+    settings = CpuRefineSettings()
+    if args.before_refinecheap31:
+        settings = CpuRefineSettings(iterations=60, batches=1, lr_opacity_logit=0.1, lr_sh_dc=0.02, lr_final=1.0,
+                                     validation_cameras=16, far_training_cameras=16, far_validation_cameras=8)
+    refiner = CpuLevelRefiner(settings)
     c0, w0 = cpu_seconds(), time.perf_counter()
     encode_file(args.full_ply, out, lod_refiner=refiner)
     cpu, wall = cpu_seconds() - c0, time.perf_counter() - w0
-    row = {"label": args.label, "input": args.full_ply, "cpu_s": round(cpu, 1), "wall_s": round(wall, 1),
+    row = {"label": args.label, "before_refinecheap31": args.before_refinecheap31,
+           "input": args.full_ply, "cpu_s": round(cpu, 1), "wall_s": round(wall, 1),
            "phases_cpu_s": {k: round(v, 1) for k, v in phases.items()},
            "rest_cpu_s": round(cpu - sum(phases.values()), 1), "calls": calls,
            "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss // 1024,

@@ -2,16 +2,17 @@
 variant A, each merged splat's opacity logit and DC colour fitted with the geometry fixed.
 
 Each merged level is refined ALONE, drawn as its whole cut (lod_refine.level_cuts: its merged tiles and the
-shallower leaves, the originals fixed), by full-batch Adam on the MSE of the clamped images against renders of the
-full detail (refine_cpu.raster, our renderer's conventions) from lod_refine.refine_cameras' training cameras. With
-the geometry fixed, each camera's per-pixel (splat, gaussian weight) pairs are built once per level and every step
-is a sparse forward and backward pass over them (raster.loss_and_grad). The fit, and the level as built, are then
+shallower leaves, the originals fixed), by Adam on the MSE of the clamped images against renders of the full detail
+(refine_cpu.raster, our renderer's conventions) from lod_refine.refine_cameras' training cameras. With the geometry
+fixed, each camera's per-pixel (splat, gaussian weight) pairs are built once per level and every step is a sparse
+forward and backward pass over them (raster.loss_and_grad), each step over one batch of the training cameras in turn
+(since refinecheap31: 2 batches, the learning rates falling linearly). The fit, and the level as built, are then
 judged on VALIDATION cameras (the same rule, another seed and count), and the fit is kept only where it beats the
 level as built. Each level's loss and validation error also count, weighted 0.1, small FAR cameras where a client
 without a budget draws that level (lod_refine.level_far_range, far_level_cameras; branch far31), so the coarse
-levels seen from far away keep what the near cameras alone traded away. Phase 1 (BENCHMARKS.md, "Refining the
-merged levels against the originals", variant A on gsplat) measured this variant +1.02 dB or more above the best
-peer at all 48 points.
+levels seen from far away keep what the near cameras alone traded away. Phase 1 (BENCHMARKS.md, "Refining the merged
+levels against the originals", variant A on gsplat) measured this variant +1.02 dB or more above the best peer at
+all 48 points.
 """
 from __future__ import annotations
 
@@ -29,12 +30,16 @@ from splatstream.format.manifest import LevelRefinement, LodRefinement
 from splatstream.gaussians import Gaussians, covariances
 from splatstream.lod import Tile, split_axis
 from splatstream.lod_refine import (
+    CPU_BATCHES,
     CPU_FAR_TRAINING_CAMERAS,
     CPU_FAR_TRAINING_SEED,
     CPU_FAR_VALIDATION_CAMERAS,
     CPU_FAR_VALIDATION_SEED,
     CPU_FAR_WEIGHT,
     CPU_ITERATIONS,
+    CPU_LR_FINAL,
+    CPU_LR_OPACITY_LOGIT,
+    CPU_LR_SH_DC,
     CPU_SIZE_PX,
     CPU_TRAINING_CAMERAS,
     CPU_TRAINING_SEED,
@@ -78,16 +83,23 @@ VARIANT = "A"  # the one variant fitted here (lod_refine.VARIANT_FIELDS): opacit
 @dataclass
 class CpuRefineSettings(lod_refine.SharedRefineSettings):
     """The CPU fit's settings (BENCHMARKS.md, "Refining the merged levels on the CPU"): 256 px renders, 32 training
-    and 16 validation cameras, full-batch Adam at these learning rates; per level 16 + 8 far cameras whose error
-    counts 0.1 (BENCHMARKS.md, "The CPU refinement's far cameras")."""
+    and 8 validation cameras, Adam at these learning rates, 30 steps each over one of 2 batches of the training
+    cameras, the rates falling linearly to 0.1x; per level 8 + 4 far cameras whose error counts 0.1 (BENCHMARKS.md,
+    "The CPU refinement's far cameras"; the steps, batches, rates and counts since refinecheap31: "The CPU refinement
+    at 0.4x its CPU")."""
     iterations: int = CPU_ITERATIONS
     size: int = CPU_SIZE_PX
     training_cameras: int = CPU_TRAINING_CAMERAS
     validation_cameras: int = CPU_VALIDATION_CAMERAS
     training_seed: int = CPU_TRAINING_SEED
     validation_seed: int = CPU_VALIDATION_SEED
-    lr_opacity_logit: float = 0.1
-    lr_sh_dc: float = 0.02
+    lr_opacity_logit: float = CPU_LR_OPACITY_LOGIT
+    lr_sh_dc: float = CPU_LR_SH_DC
+    # the learning rates' multiplier at the last step, linear from 1 at the first (1: constant)
+    lr_final: float = CPU_LR_FINAL
+    # the training cameras (near and far) in this many batches, camera k in batch k % batches; step t fits batch
+    # (t - 1) % batches (1: every step every camera, full batch)
+    batches: int = CPU_BATCHES
     # each level's far cameras (lod_refine.far_level_cameras; 0: none, the fit of the near cameras alone)
     far_training_cameras: int = CPU_FAR_TRAINING_CAMERAS
     far_validation_cameras: int = CPU_FAR_VALIDATION_CAMERAS
@@ -202,7 +214,11 @@ class CpuLevelRefiner:
         # SPLAT_COPIES' fit held 8 rows of them, so counting all 16 is on the safe side by 8)
         tables = raster.GRADIENT_ROWS * (raster.PACKED_COLUMNS + raster.GRADIENT_COLUMNS) * 8
         pairs = PAIRS_PER_PIXEL if s.pairs_per_pixel is None else s.pairs_per_pixel
-        return int(KERNELS_BYTES + 12 * pixels * near_and_far + (8 + 8 * pairs) * training_pixels
+        # a step over one of several batches reads its targets (every batches-th camera's, a strided view) through a
+        # contiguous copy (raster.loss_and_grad), held for the step
+        batch = 0 if s.batches <= 1 else 12 * (pixels * -(-s.training_cameras // s.batches)
+                                               + far_side * far_side * -(-s.far_training_cameras // s.batches))
+        return int(KERNELS_BYTES + 12 * pixels * near_and_far + batch + (8 + 8 * pairs) * training_pixels
                    + (16 * training + tables + SPLAT_COPIES * splat_bytes) * splats)
 
     def __call__(self, g: Gaussians, tiles: list[Tile], up, progress, frame: lod_refine.CameraFrame | None = None
@@ -253,12 +269,17 @@ class CpuLevelRefiner:
             whole = Gaussians.concatenate(parts)
             first = len(whole) - len(merged)  # the merged splats come last
             (far_train, far_valid, far_range), (far_gt_train, far_gt_valid) = far[k], far_gt[k]
-            sets = [(raster.pair_lists(whole, train, degree), gt, 1.0)]
-            if far_train:
-                sets.append((raster.pair_lists(whole, far_train, degree), far_gt_train, s.far_weight))
+            sets, batch_of = [], []
+            for b in range(max(1, s.batches)):
+                step = max(1, s.batches)
+                for cams, targets, weight in ((train, gt, 1.0), (far_train, far_gt_train, s.far_weight)):
+                    if cams[b::step]:
+                        sets.append((raster.pair_lists(whole, cams[b::step], degree),
+                                     targets[b::step], weight))
+                        batch_of.append(b)
             # the fit's last step is not the level's end (its validation follows): below k + 2, so that the last
             # level's "100%" comes after its line, not a minute before it (newuser57, donut: 58 s)
-            logits, dc = fit_opacity_dc(sets, whole, first, s, lambda it, k=k: progress(
+            logits, dc = fit_opacity_dc(sets, whole, first, s, batch_of, lambda it, k=k: progress(
                 "refine", (k + 1 + min(it / s.iterations, 0.99)) / steps))
             # the validation pairs only once the training pairs are gone: the peak holds one set, not both
             train_pairs, train_bytes = sum(len(pl.g) for pl, _, _ in sets), sum(pl.nbytes for pl, _, _ in sets)
@@ -307,11 +328,13 @@ def _sigmoid(x: np.ndarray) -> np.ndarray:
 
 
 def fit_opacity_dc(sets: list[tuple[raster.PairLists, np.ndarray, float]], whole: Gaussians, first: int,
-                   s: CpuRefineSettings, on_step: Callable[[int], None] = lambda it: None,
-                   ) -> tuple[np.ndarray, np.ndarray]:
-    """Full-batch Adam on the opacity logits and DC colour of splats `first`: of `whole` (the rest fixed) against
-    each set's target (its cameras' full-detail renders, clamped; a set: cameras of one size, the near ones and a
-    level's far ones), the loss the sum of the sets' mean errors times their weights; `on_step(steps done)` after
+                   s: CpuRefineSettings, batch_of: list[int] | None = None,
+                   on_step: Callable[[int], None] = lambda it: None) -> tuple[np.ndarray, np.ndarray]:
+    """Adam on the opacity logits and DC colour of splats `first`: of `whole` (the rest fixed) against each set's
+    target (its cameras' full-detail renders, clamped; a set: cameras of one size, the near ones and a level's far
+    ones), the loss the sum of the sets' mean errors times their weights. `batch_of[i]`: set i's batch; step t uses
+    the sets of batch (t - 1) % s.batches (None: every set every step, full batch). The learning rates fall linearly
+    from themselves at the first step to s.lr_final x themselves at the last. `on_step(steps done)` after
     each step (the encode's progress: a large level's fit takes minutes). Returns the fitted logits and sh_dc
     (float32; sh_dc within the format's limits), after `s.iterations` steps."""
     logits = whole.opacity_logits[first:].astype(np.float64).copy()
@@ -324,11 +347,15 @@ def fit_opacity_dc(sets: list[tuple[raster.PairLists, np.ndarray, float]], whole
     m2 = [np.zeros_like(p) for p in params]
     b1, b2, eps = 0.9, 0.999, 1e-15
     for it in range(1, s.iterations + 1):
+        decay = 1.0 - (1.0 - s.lr_final) * (it - 1) / max(1, s.iterations - 1)
         sig = _sigmoid(logits)
         op_all[first:] = sig
         dc_all[first:] = raster.SH_C0 * sh_dc
         g_op, g_dc = 0.0, 0.0
-        for pl, target, weight in sets:
+        batch = (it - 1) % max(1, s.batches)
+        for i, (pl, target, weight) in enumerate(sets):
+            if batch_of is not None and batch_of[i] != batch:
+                continue
             _, g_o, g_d = raster.loss_and_grad(pl, op_all, dc_all, target)
             g_op, g_dc = g_op + weight * g_o, g_dc + weight * g_d
         grads = [g_op[first:] * sig * (1.0 - sig), g_dc[first:] * raster.SH_C0]
@@ -337,7 +364,7 @@ def fit_opacity_dc(sets: list[tuple[raster.PairLists, np.ndarray, float]], whole
             a += (1 - b1) * gr
             b *= b2
             b += (1 - b2) * gr * gr
-            p -= lr * (a / (1 - b1 ** it)) / (np.sqrt(b / (1 - b2 ** it)) + eps)
+            p -= decay * lr * (a / (1 - b1 ** it)) / (np.sqrt(b / (1 - b2 ** it)) + eps)
         on_step(it)
     return logits.astype(np.float32), in_domain("sh_dc", sh_dc).astype(np.float32)
 

@@ -56,17 +56,23 @@ VALIDATION_SEED = 1
 # originals"): Adam steps per level and variant, render size; its cameras are the rule's defaults above.
 GPU_ITERATIONS = 300
 GPU_SIZE_PX = 384
-# The CPU refiner's (refine_cpu/, BENCHMARKS.md "Refining the merged levels on the CPU"): full-batch steps per level,
-# render size, camera counts and seeds.
-CPU_ITERATIONS = 60
+# The CPU refiner's (refine_cpu/, BENCHMARKS.md "Refining the merged levels on the CPU"): Adam steps per level,
+# render size, camera counts and seeds; since refinecheap31 (BENCHMARKS.md, "The CPU refinement at 0.4x its CPU") 30
+# steps, each over one of 2 batches of the training cameras, at 4x the learning rates falling linearly to 0.1x, and
+# half the validation and far cameras (60 full-batch steps at 0.1 / 0.02, 16 validation, 16 + 8 far before).
+CPU_ITERATIONS = 30
 CPU_SIZE_PX = 256
 CPU_TRAINING_CAMERAS = 32
-CPU_VALIDATION_CAMERAS = 16
+CPU_VALIDATION_CAMERAS = 8
 CPU_TRAINING_SEED = 1000
 CPU_VALIDATION_SEED = 1001
+CPU_BATCHES = 2  # step t fits training camera k where k % CPU_BATCHES == (t - 1) % CPU_BATCHES
+CPU_LR_OPACITY_LOGIT = 0.4
+CPU_LR_SH_DC = 0.08
+CPU_LR_FINAL = 0.1  # the learning rates' multiplier at the last step, linear from 1 at the first
 # and its far cameras per level (lod_refine.far_level_cameras; the seeds + the level)
-CPU_FAR_TRAINING_CAMERAS = 16
-CPU_FAR_VALIDATION_CAMERAS = 8
+CPU_FAR_TRAINING_CAMERAS = 8
+CPU_FAR_VALIDATION_CAMERAS = 4
 CPU_FAR_TRAINING_SEED = 2000
 CPU_FAR_VALIDATION_SEED = 3000
 CPU_FAR_WEIGHT = 0.1  # the far cameras' mean squared error x this in the loss, the near cameras' x 1

@@ -29,7 +29,7 @@ from refine_cpu.levels import KERNELS_BYTES, CpuLevelRefiner, CpuRefineSettings 
 # 3, 8 partitions of 665-666 splats, three levels above them (1, 2 and 4 tiles) refined against their roots.
 TREE = {"preset": "low", "max_leaf_splats": 300, "lod_merge_domain_splats": 700}
 TIERS = {"lod_upper_domain_roots": 2}
-# A domain's task fits (its build 0.84 MiB; with the fit at 32 px, CpuLevelRefiner.peak_bytes, about 73 MiB: 25 and
+# A domain's task fits (its build 0.84 MiB; with the fit at 32 px, CpuLevelRefiner.peak_bytes, about 72 MiB: 24 and
 # the 48 MiB of numba's kernels; the upper domains' the largest), the scene's in-memory encode does not (4.4 MiB, about
 # 86 MiB with the fit): partitioned in this process
 MEMORY = 74 << 20
@@ -194,20 +194,20 @@ def test_a_domain_over_the_memory_and_a_refiner_that_does_not_run_by_partitions_
 
 
 def test_the_fit_memory_is_counted_in_what_a_domain_needs(tmp_path):
-    """A worker that holds a domain's build (0.84 MiB) but not its fit (CpuLevelRefiner.peak_bytes: about 73 MiB at
+    """A worker that holds a domain's build (0.84 MiB) but not its fit (CpuLevelRefiner.peak_bytes: about 72 MiB at
     32 px) is refused, in one line naming the domain, the setting and the fit's share, before anything is written:
-    before the route pass where even the fit without its pairs does not fit ("at least", 63 MiB), after it with the
-    pairs a pixel estimated from the scene's sample (73 MiB: the levels above the domains, at the refiner's constant
+    before the route pass where even the fit without its pairs does not fit ("at least", 62 MiB), after it with the
+    pairs a pixel estimated from the scene's sample (72 MiB: the levels above the domains, at the refiner's constant
     32 pairs a pixel, which the scene's estimate passes at 32 px); the fit's model bounds what a real fit of the
     whole scene takes (tracemalloc: the pair lists and targets are numpy arrays)."""
     src = real("fruit_drops_sh3.ply")
-    with pytest.raises(UsageError, match=r"a subtree of at most 700 splats\) in one task, which needs at least 63 MiB "
-                                         r"per worker \(the refiner's renders, targets and pair lists 62 MiB of it: a "
+    with pytest.raises(UsageError, match=r"a subtree of at most 700 splats\) in one task, which needs at least 62 MiB "
+                                         r"per worker \(the refiner's renders, targets and pair lists 61 MiB of it: a "
                                          r"smaller --lod-refine-size takes less\), more than the memory per worker "
                                          r"\(20 MiB\): give more --memory-per-worker"):
         encode_file(src, tmp_path / "a", memory_per_worker=20 << 20, lod_refiner=refiner(), **TREE)
-    with pytest.raises(UsageError, match=r"a subtree of at most 700 splats\) in one task, which needs 73 MiB per "
-                                         r"worker \(the refiner's renders, targets and pair lists 72 MiB of it: a "
+    with pytest.raises(UsageError, match=r"a subtree of at most 700 splats\) in one task, which needs 72 MiB per "
+                                         r"worker \(the refiner's renders, targets and pair lists 70 MiB of it: a "
                                          r"smaller --lod-refine-size takes less\), more than the memory per worker "
                                          r"\(64 MiB\): give more --memory-per-worker"):
         encode_file(src, tmp_path / "a", memory_per_worker=64 << 20, lod_refiner=refiner(), **TREE)

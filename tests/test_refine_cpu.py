@@ -336,6 +336,41 @@ def test_the_stored_transmittance_gives_gradients_closer_than_the_division_chain
         assert np.abs(new - ref.astype(np.float64)).sum() < np.abs(old - ref.astype(np.float64)).sum()
 
 
+def test_a_batched_step_fits_its_own_cameras_and_the_learning_rate_falls_to_its_final_share(part):
+    # refinecheap31: step t fits batch (t - 1) % batches (camera k in batch k % batches), the learning rates falling
+    # linearly to lr_final x themselves at the last step
+    from refine_cpu.levels import fit_opacity_dc
+
+    cams = scene_orbit_views(part.positions, 4, 32, 32, elevation_deg=25.0)
+    target = np.clip(np.stack([render_ref.render(part, c) for c in cams]), 0, 1)
+    first = len(part) // 2  # the second half fitted, the first fixed
+    # the full detail's own opacities against a darker target, so that the fit moves
+    darker = target * 0.8
+    one = [(raster.pair_lists(part, cams), darker, 1.0)]
+    halves = [(raster.pair_lists(part, cams[b::2]), np.ascontiguousarray(darker[b::2]), 1.0) for b in (0, 1)]
+    s = CpuRefineSettings(iterations=1)
+    full = fit_opacity_dc(one, part, first, s)
+    # one step of two batches: the first batch's cameras alone
+    batched = fit_opacity_dc(halves, part, first, CpuRefineSettings(iterations=1, batches=2), [0, 1])
+    alone = fit_opacity_dc(halves[:1], part, first, s)
+    assert all(np.array_equal(a, b) for a, b in zip(batched, alone, strict=True))
+    assert not np.array_equal(batched[1], full[1])
+    # a second step at lr_final = 0 moves nothing: the first step's values
+    still = fit_opacity_dc(one, part, first, CpuRefineSettings(iterations=2, lr_final=0.0))
+    assert all(np.array_equal(a, b) for a, b in zip(still, full, strict=True))
+    # and at lr_final = 1 (constant) it does
+    moved = fit_opacity_dc(one, part, first, CpuRefineSettings(iterations=2, lr_final=1.0))
+    assert not np.array_equal(moved[1], full[1])
+    # the fit lowers the loss
+    dc = raster.SH_C0 * part.sh_dc.astype(np.float64)
+    op = part.opacities.astype(np.float64)
+    before = raster.loss_and_grad(one[0][0], op, dc, darker, grad=False)[0]
+    op_fit, dc_fit = op.copy(), dc.copy()
+    op_fit[first:] = 1 / (1 + np.exp(-moved[0].astype(np.float64)))
+    dc_fit[first:] = raster.SH_C0 * moved[1].astype(np.float64)
+    assert raster.loss_and_grad(one[0][0], op_fit, dc_fit, darker, grad=False)[0] < before
+
+
 def test_the_refiner_fits_the_merged_levels_and_keeps_only_what_validates(part):
     tiles = build_tiles(part, 256, 2.0, merge="auto")
     cuts = level_cuts(tiles)

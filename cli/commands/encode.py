@@ -183,7 +183,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                              "in-memory encodes only")
     refine.add_argument("--lod-refine-iters", type=int, default=None, metavar="N",
                         help=f"optimiser steps per level and variant (default {GPU_ITERATIONS} on the GPU, "
-                             f"{CPU_ITERATIONS} full-batch steps on the CPU)")
+                             f"{CPU_ITERATIONS} steps on the CPU, each over half its cameras)")
     refine.add_argument("--lod-refine-size", type=int, default=None, metavar="PX",
                         help=f"square size of the training and validation renders (default {GPU_SIZE_PX} on the GPU, "
                              f"{CPU_SIZE_PX} on the CPU)")
