@@ -430,7 +430,8 @@ def _preset_for_target(args: argparse.Namespace, up: tuple[float, float, float] 
 
     def log(msg: str) -> None:
         if not args.quiet:
-            print(f"target: {msg.strip()}", file=sys.stderr)
+            # rstrip only: the rows' labels are padded so that their numbers stand in columns
+            print(f"target: {msg.rstrip()}", file=sys.stderr)
 
     # Every preset encoded as this encode will write it (the LOD tree and its options, pages, transport, chunk
     # order), so the bytes compared with --target-size are those of the scene on disk, not of its full detail only.
