@@ -283,7 +283,7 @@ def run(args: argparse.Namespace) -> int:
                             compact_table=not args.no_compact_table, lod_refiner=lod_refiner,
                             camera_azimuth_deg=azimuth, on_read=check_read)
     if not args.quiet:
-        print(f"wrote {args.output_dir}: {m.splats:,} splats, SH degree {m.sh_degree}, preset {m.preset}, "
+        print(f"wrote {args.output_dir}: {count(m.splats, 'splat')}, SH degree {m.sh_degree}, preset {m.preset}, "
               f"{count(len(m.tiles), 'tile')}, {m.bytes_on_disk / 1e6:.2f} MB on disk "
               f"({m.leaf_bytes_on_disk / m.splats:.2f} B/splat at full detail, {m.bytes_on_disk / m.splats:.2f} "
               f"with all LOD levels), {m.gpu_bytes_per_splat:.2f} B/splat on the GPU, "
