@@ -287,7 +287,7 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
     t = time.perf_counter()
     g = read_gaussians(input_path)
     input_size = path_size(input_path)
-    log(f"read {input_path}: {len(g):,} splats, SH degree {g.sh_degree} ({time.perf_counter() - t:.1f} s)")
+    log(f"read {input_path}: {count(len(g), 'splat')}, SH degree {g.sh_degree} ({time.perf_counter() - t:.1f} s)")
     if len(g) == 0:
         raise InputError(input_path, None, "the scene holds no splats")
     for name, _, _, sh_degree, sh_codebook in variants:
@@ -535,7 +535,7 @@ def report_markdown(report: dict, reference_table: bool = False) -> str:
     shown = os.path.basename(os.path.abspath(inp["path"]))
     if shown.lower() in ("lod-meta.json", "meta.json"):  # the format's name: its directory says which scene
         shown = f"{os.path.basename(os.path.dirname(os.path.abspath(inp['path'])))}/{shown}"
-    lines = [f"Scene `{shown}`: {inp['splats']:,} splats, SH{inp['sh_degree']}, "
+    lines = [f"Scene `{shown}`: {count(inp['splats'], 'splat')}, SH{inp['sh_degree']}, "
              f"{inp['bytes']:,} bytes ({inp['bytes_per_splat']:.1f} B/splat). "
              f"{count(len(report['cameras']), 'view')} at {report['size'][0]}x{report['size'][1]}, "
              f"renderer: {report['renderer']}. PSNR/SSIM: mean over views "
@@ -684,7 +684,7 @@ def plot_rate_distortion(report: dict, path: str, size: tuple[int, int] = (900, 
     d.text(((left + right) / 2 - 110, h - 30), "bytes per splat on disk (log scale)", fill="black", font=font)
     d.text((left - 70, top - 24), "PSNR (dB), mean over views", fill="black", font=font)  # under the title
     inp = report["input"]
-    title = f"{os.path.basename(inp['path'])}: {inp['splats']:,} splats, SH{inp['sh_degree']}"
+    title = f"{os.path.basename(inp['path'])}: {count(inp['splats'], 'splat')}, SH{inp['sh_degree']}"
     d.text(((left + right) / 2 - d.textlength(title, font=font) / 2, 4), title, fill="black", font=font)
 
     ly = top

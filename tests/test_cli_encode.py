@@ -225,3 +225,6 @@ def test_a_one_splat_scene_is_said_in_the_singular_and_decode_takes_quiet(tmp_pa
     r = run_cli("render", tmp_path / "one.ply", "--out", tmp_path / "one.png", "--size", "64x48")
     assert r.returncode == 0 and "render: 1 splat read from" in r.stderr, r.stderr
     assert "64x48, 1 splat, sort" in r.stderr, r.stderr
+    r = run_cli("eval", tmp_path / "one.ply", "--presets", "medium", "--views", "1", "--size", "32x32")
+    assert r.returncode == 0 and f"read {tmp_path / 'one.ply'}: 1 splat, SH degree 3" in r.stderr, r.stderr
+    assert "Scene `one.ply`: 1 splat, SH3, " in r.stdout, r.stdout
