@@ -120,5 +120,6 @@ def run(args: argparse.Namespace) -> int:
     bar = ProgressPrinter("convert", enabled=not args.quiet)
     write_gaussians(g, args.output, spz_version=spz_version, glb_compression=glb_compression,
                     progress=lambda fraction: bar("writing", fraction))
-    say("done")
+    # what was written and where, as decode and encode end (it said 'done' alone: newuser63)
+    say(f"wrote {args.output}: {count(len(g), 'splat')}, SH degree {kept_sh}, {os.path.getsize(args.output):,} bytes")
     return 0
