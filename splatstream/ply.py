@@ -54,8 +54,10 @@ class PlyHeader:
     size: int  # bytes up to and including the end_header line
     comments: list[str] = field(default_factory=list)
     # Elements from the first one with a list property on (a mesh's `face`): their rows vary in size, so they and
-    # what follows them are not read, and the file's length is checked only to hold the elements before them.
+    # what follows them are not read, and where they hold rows (`unread_rows`) the file's length is checked only to
+    # hold the elements before them (with none, as `element face 0` is written, it must still match exactly).
     unread: list[str] = field(default_factory=list)
+    unread_rows: int = 0
 
     def element(self, name: str) -> PlyElement | None:
         return next((e for e in self.elements if e.name == name), None)
@@ -140,8 +142,10 @@ def read_header(path: str | os.PathLike, head: bytes | None = None) -> PlyHeader
             raise InputError(path, f"element {with_lists[0]}", "an element with a list property before element "
                              "vertex is not supported (its rows vary in size: the splats after it cannot be "
                              "found); put it after the splats")
+        unread_rows = sum(e.count for e in elements[first:])
         elements = elements[:first]
-    return PlyHeader(fmt, elements, nl + 1, comments, unread)
+        return PlyHeader(fmt, elements, nl + 1, comments, unread, unread_rows)
+    return PlyHeader(fmt, elements, nl + 1, comments)
 
 
 def read_elements(path: str | os.PathLike, header: PlyHeader | None = None) -> tuple[PlyHeader, dict[str, np.ndarray]]:
@@ -188,7 +192,7 @@ def read_elements(path: str | os.PathLike, header: PlyHeader | None = None) -> t
                 arr[name] = column
             out[el.name] = arr
             pos += need
-        if pos != len(tokens) and not header.unread:
+        if pos != len(tokens) and not header.unread_rows:
             raise InputError(path, "header", f"{len(tokens) - pos} values after the last element: "
                              "the element counts in the header do not match the data")
         return header, out
@@ -219,7 +223,7 @@ def check_element_sizes(path: str, header: PlyHeader) -> None:
                              f"({need} bytes) but only {have} bytes follow "
                              f"({have // max(itemsize, 1)} complete rows)")
         offset += need
-    if offset != file_size and not header.unread:
+    if offset != file_size and not header.unread_rows:
         raise InputError(path, "header", f"{file_size - offset} bytes after the last element: the element "
                          "counts in the header do not match the data")
 
@@ -351,7 +355,7 @@ def vertex_layout(path: str | os.PathLike, header: PlyHeader | None = None) -> V
         if el is vertex:
             vertex_offset = offset
         offset += need
-    if offset != file_size and not header.unread:
+    if offset != file_size and not header.unread_rows:
         raise InputError(path, "header", f"{file_size - offset} bytes after the last element: the element "
                          "counts in the header do not match the data")
     return VertexLayout(path, vertex.count, vertex_offset, vertex.dtype(order), n_rest,

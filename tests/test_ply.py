@@ -219,6 +219,11 @@ def test_a_face_element_after_the_splats_is_skipped(tmp_path, fmt, faces):
     layout = vertex_layout(tmp_path / "a.ply")
     assert layout is None if fmt == "ascii" else (layout.rows == 30 and layout.offset == (tmp_path / "a.ply")
                                                   .read_bytes().index(b"end_header\n") + len(b"end_header\n"))
+    if faces == 0:  # no rows to skip: the counts must still match the data (a row fewer declared is refused)
+        data = (tmp_path / "a.ply").read_bytes().replace(b"element vertex 30", b"element vertex 29", 1)
+        (tmp_path / "lying.ply").write_bytes(data)
+        with pytest.raises(InputError, match="do not match"):
+            read_gaussians_ply(tmp_path / "lying.ply")
     for kind, needle in (("before_vertex", "element face: an element with a list property before element vertex"),
                          ("in_vertex", "element vertex: list property 'uchar int ids' is not supported")):
         write_ply(tmp_path / f"{kind}.ply", rec, fmt=fmt)
