@@ -287,7 +287,7 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
     t = time.perf_counter()
     g = read_gaussians(input_path)
     input_size = path_size(input_path)
-    log(f"read {input_path}: {len(g):,} splats, SH degree {g.sh_degree} ({time.perf_counter() - t:.1f} s)")
+    log(f"read {input_path}: {count(len(g), 'splat')}, SH degree {g.sh_degree} ({time.perf_counter() - t:.1f} s)")
     if len(g) == 0:
         raise InputError(input_path, None, "the scene holds no splats")
     for name, _, _, sh_degree, sh_codebook in variants:
@@ -316,6 +316,12 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
         tmp = tempfile.mkdtemp(prefix="splatstream-eval-")
         out_root = tmp
     rows: list[Row] = []
+    # Every row's label padded to the longest of this run's, so the numbers stand in columns (`encode --target-*`
+    # printed them ragged where it stripped eval's fixed 28-character padding: newuser63)
+    label_width = max([len(name) for name in opts.presets] + [len(v[0]) for v in variants]
+                      + [len(c[0]) for c in compares]
+                      + [len(a[0]) for preset in opts.attribution for a in _attribution_runs(preset, g.sh_degree)]
+                      + [1])
     # The LOD tree depends on the splats and the LOD options only, not on the formats: built once, every encode
     # takes it (the same scenes to the byte as each building its own; the donut's tree is 0.3 CPU s with the grid
     # merge, 1.3 s with auto, saved for every preset but one: BENCHMARKS.md, "encode --target-size").
@@ -350,9 +356,9 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
                        "leaf_bytes_on_disk": leaf, "gpu_bytes": m.gpu_bytes,
                        "attributes": {a: s.to_dict() for a, s in m.attributes.items()},
                        "encoded_dir": out if tmp is None else None})
-            log(f"{label:>28}: {row.disk_bytes_per_splat:7.2f} B/splat disk, {row.gpu_bytes_per_splat:7.2f} GPU, "
-                f"PSNR {row.psnr_mean:6.2f} dB (worst {row.psnr_worst:6.2f}), SSIM {row.ssim_mean:.5f}, "
-                f"encode {enc_s:.2f} s")
+            log(f"{label:>{label_width}}: {row.disk_bytes_per_splat:7.2f} B/splat disk, "
+                f"{row.gpu_bytes_per_splat:7.2f} GPU, PSNR {row.psnr_mean:6.2f} dB (worst {row.psnr_worst:6.2f}), "
+                f"SSIM {row.ssim_mean:.5f}, encode {enc_s:.2f} s")
             return row
 
         for preset in opts.presets:
@@ -364,7 +370,7 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
                 rows.append(encode_and_measure(label, "attribution", preset, overrides, sh_codebook=sh_codebook))
         for label, path, size_path in compares:
             rows.append(_compare_row(label, path, size_path, g, input_size, opts.spz_axes, renderer, cameras,
-                                     references, log))
+                                     references, log, label_width))
     finally:
         if tmp is not None:
             shutil.rmtree(tmp, ignore_errors=True)
@@ -412,8 +418,9 @@ def _attribution_runs(preset: str, sh_degree: int) -> list[tuple[str, dict[str, 
 
 def _compare_row(label: str, path: str, size_path: str, g: Gaussians, input_size: int, spz_axes: str,
                  renderer: Renderer, cameras: list[Camera], references: list[np.ndarray],
-                 log: Callable[[str], None]) -> Row:
-    """The row of another tool's output (--compare): read, turned back if its SPZ axes differ, measured."""
+                 log: Callable[[str], None], label_width: int = 28) -> Row:
+    """The row of another tool's output (--compare): read, turned back if its SPZ axes differ, measured; its label
+    padded to `label_width` as the encodes' rows are."""
     other, clamped = read_compare(path)
     if len(other) != len(g):
         # `--compare other=guitar.spz` on the logo (another scene by mistake) gave 11.7 dB and 15.44 B/splat without
@@ -428,7 +435,7 @@ def _compare_row(label: str, path: str, size_path: str, g: Gaussians, input_size
     row = Row(label, "compare", {}, len(other), None, size, size / max(1, len(other)), input_size / size,
               ps, ss, None, {"file": path, "size_of": size_path, "opacity_logits_clamped": clamped,
                              "spz_turned_back": spz_turned})
-    log(f"{label:>28}: {row.disk_bytes_per_splat:7.2f} B/splat disk, PSNR {row.psnr_mean:6.2f} dB "
+    log(f"{label:>{label_width}}: {row.disk_bytes_per_splat:7.2f} B/splat disk, PSNR {row.psnr_mean:6.2f} dB "
         f"(worst {row.psnr_worst:6.2f}), SSIM {row.ssim_mean:.5f}")
     return row
 
@@ -528,7 +535,7 @@ def report_markdown(report: dict, reference_table: bool = False) -> str:
     shown = os.path.basename(os.path.abspath(inp["path"]))
     if shown.lower() in ("lod-meta.json", "meta.json"):  # the format's name: its directory says which scene
         shown = f"{os.path.basename(os.path.dirname(os.path.abspath(inp['path'])))}/{shown}"
-    lines = [f"Scene `{shown}`: {inp['splats']:,} splats, SH{inp['sh_degree']}, "
+    lines = [f"Scene `{shown}`: {count(inp['splats'], 'splat')}, SH{inp['sh_degree']}, "
              f"{inp['bytes']:,} bytes ({inp['bytes_per_splat']:.1f} B/splat). "
              f"{count(len(report['cameras']), 'view')} at {report['size'][0]}x{report['size'][1]}, "
              f"renderer: {report['renderer']}. PSNR/SSIM: mean over views "
@@ -677,7 +684,7 @@ def plot_rate_distortion(report: dict, path: str, size: tuple[int, int] = (900, 
     d.text(((left + right) / 2 - 110, h - 30), "bytes per splat on disk (log scale)", fill="black", font=font)
     d.text((left - 70, top - 24), "PSNR (dB), mean over views", fill="black", font=font)  # under the title
     inp = report["input"]
-    title = f"{os.path.basename(inp['path'])}: {inp['splats']:,} splats, SH{inp['sh_degree']}"
+    title = f"{os.path.basename(inp['path'])}: {count(inp['splats'], 'splat')}, SH{inp['sh_degree']}"
     d.text(((left + right) / 2 - d.textlength(title, font=font) / 2, 4), title, fill="black", font=font)
 
     ly = top

@@ -50,9 +50,14 @@ class PlyElement:
 @dataclass
 class PlyHeader:
     format: str  # "binary_little_endian" | "binary_big_endian" | "ascii"
-    elements: list[PlyElement]
+    elements: list[PlyElement]  # the fixed-size elements read, in file order (those before `unread`)
     size: int  # bytes up to and including the end_header line
     comments: list[str] = field(default_factory=list)
+    # Elements from the first one with a list property on (a mesh's `face`): their rows vary in size, so they and
+    # what follows them are not read, and where they hold rows (`unread_rows`) the file's length is checked only to
+    # hold the elements before them (with none, as `element face 0` is written, it must still match exactly).
+    unread: list[str] = field(default_factory=list)
+    unread_rows: int = 0
 
     def element(self, name: str) -> PlyElement | None:
         return next((e for e in self.elements if e.name == name), None)
@@ -80,6 +85,7 @@ def read_header(path: str | os.PathLike, head: bytes | None = None) -> PlyHeader
     fmt = None
     elements: list[PlyElement] = []
     comments: list[str] = []
+    with_lists: list[str] = []  # the elements that have a list property, in order
     for lineno, line in enumerate(lines[1:], start=2):
         words = line.split()
         if not words:
@@ -105,8 +111,17 @@ def read_header(path: str | os.PathLike, head: bytes | None = None) -> PlyHeader
             if not elements:
                 raise InputError(path, f"header line {lineno}", "property before any element")
             if len(words) >= 2 and words[1] == "list":
-                raise InputError(path, f"element {elements[-1].name}",
-                                 f"list property {' '.join(words[2:])!r} is not supported in splat files")
+                # `element face 0` / `property list uchar int vertex_indices` after the splats, as mesh tools
+                # write it, was refused (newuser63): such an element is skipped, unread (PlyHeader.unread).
+                if elements[-1].name == "vertex":
+                    raise InputError(path, "element vertex", f"list property {' '.join(words[2:])!r} is not "
+                                     "supported in splat files (a splat's row holds numbers only)")
+                if len(words) != 5 or words[2] not in PLY_TYPES or words[3] not in PLY_TYPES:
+                    raise InputError(path, f"header line {lineno}", f"bad property line {line!r} (expected "
+                                     "'property list COUNT_TYPE ITEM_TYPE NAME')")
+                if elements[-1].name not in with_lists:
+                    with_lists.append(elements[-1].name)
+                continue
             if len(words) != 3 or words[1] not in PLY_TYPES:
                 raise InputError(path, f"header line {lineno}",
                                  f"bad property line {line!r} (expected 'property TYPE NAME' with TYPE one of "
@@ -119,6 +134,17 @@ def read_header(path: str | os.PathLike, head: bytes | None = None) -> PlyHeader
             raise InputError(path, f"header line {lineno}", f"unknown header keyword {key!r}")
     if fmt is None:
         raise InputError(path, "header", "no 'format' line")
+    unread: list[str] = []
+    if with_lists:
+        first = next(i for i, e in enumerate(elements) if e.name == with_lists[0])
+        unread = [e.name for e in elements[first:]]
+        if "vertex" in unread:
+            raise InputError(path, f"element {with_lists[0]}", "an element with a list property before element "
+                             "vertex is not supported (its rows vary in size: the splats after it cannot be "
+                             "found); put it after the splats")
+        unread_rows = sum(e.count for e in elements[first:])
+        elements = elements[:first]
+        return PlyHeader(fmt, elements, nl + 1, comments, unread, unread_rows)
     return PlyHeader(fmt, elements, nl + 1, comments)
 
 
@@ -166,7 +192,7 @@ def read_elements(path: str | os.PathLike, header: PlyHeader | None = None) -> t
                 arr[name] = column
             out[el.name] = arr
             pos += need
-        if pos != len(tokens):
+        if pos != len(tokens) and not header.unread_rows:
             raise InputError(path, "header", f"{len(tokens) - pos} values after the last element: "
                              "the element counts in the header do not match the data")
         return header, out
@@ -197,7 +223,7 @@ def check_element_sizes(path: str, header: PlyHeader) -> None:
                              f"({need} bytes) but only {have} bytes follow "
                              f"({have // max(itemsize, 1)} complete rows)")
         offset += need
-    if offset != file_size:
+    if offset != file_size and not header.unread_rows:
         raise InputError(path, "header", f"{file_size - offset} bytes after the last element: the element "
                          "counts in the header do not match the data")
 
@@ -329,7 +355,7 @@ def vertex_layout(path: str | os.PathLike, header: PlyHeader | None = None) -> V
         if el is vertex:
             vertex_offset = offset
         offset += need
-    if offset != file_size:
+    if offset != file_size and not header.unread_rows:
         raise InputError(path, "header", f"{file_size - offset} bytes after the last element: the element "
                          "counts in the header do not match the data")
     return VertexLayout(path, vertex.count, vertex_offset, vertex.dtype(order), n_rest,

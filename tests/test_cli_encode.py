@@ -195,3 +195,36 @@ def test_a_kept_tree_refuses_the_options_of_a_tree_we_build(tmp_path):
     assert lines[0].endswith("add --rebuild-lod to build ours from its finest level"), r.stderr
     r = run_cli("encode", sog, tmp_path / "scene", "--max-leaf-splats", "4096", "--rebuild-lod", "-q")
     assert r.returncode == 0, r.stderr
+
+
+def test_a_one_splat_scene_is_said_in_the_singular_and_decode_takes_quiet(tmp_path):
+    """newuser63: a 1-splat scene went through every command, but each said '1 splats'; `decode -q` was refused as
+    an unknown option where encode, convert and the exports take it."""
+    g = read_gaussians_ply(real("fruit_drops_sh3.ply"))
+    from splatstream.ply import write_gaussians_ply
+
+    write_gaussians_ply(g.subset(np.arange(1)), tmp_path / "one.ply")
+    r = run_cli("encode", tmp_path / "one.ply", tmp_path / "one")
+    assert r.returncode == 0, r.stderr
+    assert f"wrote {tmp_path / 'one'}: 1 splat, SH degree 3" in r.stderr, r.stderr
+    r = run_cli("decode", tmp_path / "one", tmp_path / "back.ply")
+    assert r.returncode == 0 and "decode: 1 splat decoded" in r.stderr, r.stderr
+    assert ": 1 splat, SH degree 3" in r.stderr, r.stderr
+    r = run_cli("decode", tmp_path / "one", tmp_path / "quiet.ply", "-q")
+    assert r.returncode == 0 and r.stderr == "" and r.stdout == "", r.stderr
+    assert read_gaussians_ply(tmp_path / "quiet.ply").positions.tolist() == read_gaussians_ply(
+        tmp_path / "back.ply").positions.tolist()
+    r = run_cli("convert", tmp_path / "one.ply", tmp_path / "c.ply", "--filter-box", "-1e9,-1e9,-1e9,1e9,1e9,1e9")
+    assert r.returncode == 0 and "read 1 splat, SH degree 3" in r.stderr and ": 1 splat kept" in r.stderr, r.stderr
+    r = run_cli("convert", tmp_path / "one.ply", tmp_path / "d.ply", "--dry-run", "--translate", "1,0,0")
+    assert r.returncode == 0 and f"read {tmp_path / 'one.ply'}: 1 splat\n" in r.stdout, r.stdout
+    r = run_cli("export-rad", tmp_path / "one", tmp_path / "one.rad")
+    assert r.returncode == 0 and ", 1 splat of full detail (1 over all levels)" in r.stderr, r.stderr
+    r = run_cli("export-sog-lod", tmp_path / "one", tmp_path / "one_sog")
+    assert r.returncode == 0 and ", 1 splat at level 0 (1 over all levels)" in r.stderr, r.stderr
+    r = run_cli("render", tmp_path / "one.ply", "--out", tmp_path / "one.png", "--size", "64x48")
+    assert r.returncode == 0 and "render: 1 splat read from" in r.stderr, r.stderr
+    assert "64x48, 1 splat, sort" in r.stderr, r.stderr
+    r = run_cli("eval", tmp_path / "one.ply", "--presets", "medium", "--views", "1", "--size", "32x32")
+    assert r.returncode == 0 and f"read {tmp_path / 'one.ply'}: 1 splat, SH degree 3" in r.stderr, r.stderr
+    assert "Scene `one.ply`: 1 splat, SH3, " in r.stdout, r.stdout

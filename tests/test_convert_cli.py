@@ -20,7 +20,10 @@ def test_convert_to_ply_is_lossless(tmp_path, capsys, name):
     out = tmp_path / "out.ply"
     assert main(["convert", str(FIXTURES / name), str(out)]) == 0
     err = capsys.readouterr().err
-    assert "read 296 splats, SH degree 3" in err and "done" in err  # progress goes to stderr
+    assert "read 296 splats, SH degree 3" in err  # progress goes to stderr
+    # the last line says what was written, and where (it said 'done': newuser63)
+    assert err.strip().splitlines()[-1].startswith(f"convert: wrote {out}: 296 splats, SH degree 3, "
+                                                   f"{out.stat().st_size:,} bytes ("), err
     a, b = read_gaussians(FIXTURES / name), read_gaussians(out)
     for field in ("positions", "log_scales", "opacity_logits", "sh_dc", "sh_rest"):
         np.testing.assert_array_equal(getattr(a, field), getattr(b, field))

@@ -348,6 +348,11 @@ def test_encode_target_psnr_and_size_pick_what_eval_measures(tmp_path):
     res = run_cli("encode", src, tmp_path / "a", "--target-psnr", target_db, "--target-views", "2", "--no-lod")
     assert res.returncode == 0, res.stderr
     assert f"PSNR >= 40 dB: preset {want} (" in res.stderr
+    # each preset's numbers in one column (the rows were ragged, their labels' padding stripped: newuser63)
+    measured = [line for line in res.stderr.splitlines() if "B/splat disk" in line]
+    assert len(measured) == len(rows)
+    assert len({line.index("B/splat disk") for line in measured}) == 1, measured
+    assert min(len(line) - len(line.lstrip()) for line in (m.removeprefix("target:") for m in measured)) == 1
     assert json.loads(run_cli("info", tmp_path / "a", "--json").stdout)["preset"] == want
     size = preset_for_target(rows, target_psnr=target_db)["disk_bytes_per_splat"] - 0.01
     want_small = preset_for_target(rows, target_bytes=size)["label"]

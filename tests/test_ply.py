@@ -182,3 +182,70 @@ def test_infinite_opacity_is_alpha_one_or_zero(tmp_path):
     with pytest.raises(InputError, match="1 of 100 splats have non-finite values.*opacity: 1"), \
             pytest.warns(UserWarning, match="infinite opacity"):
         read_gaussians_ply(tmp_path / "nan.ply")
+
+
+def _with_face_element(path, faces, fmt="binary_little_endian", before_vertex=False, in_vertex=False):
+    """`path` rewritten with a mesh's `face` element (list property) after the splats (or before them, or a list
+    property in the vertex element itself), holding `faces` triangles."""
+    data = path.read_bytes()
+    end = data.index(b"end_header\n")
+    header, body = data[:end].decode(), data[end + len(b"end_header\n"):]
+    face = f"element face {faces}\nproperty list uchar int vertex_indices\n"
+    if in_vertex:
+        header = header.replace("property float x\n", "property list uchar int ids\nproperty float x\n")
+    elif before_vertex:
+        header = header.replace("element vertex", face + "element vertex")
+    else:
+        header += face
+    if fmt == "ascii":
+        rows = "".join("3 0 1 2\n" for _ in range(faces)).encode()
+    else:
+        rows = (np.array([3], np.uint8).tobytes() + np.array([0, 1, 2], "<i4").tobytes()) * faces
+    path.write_bytes(header.encode() + b"end_header\n" + (rows + body if before_vertex else body + rows))
+
+
+@pytest.mark.parametrize("fmt", ["binary_little_endian", "ascii"])
+@pytest.mark.parametrize("faces", [0, 2])
+def test_a_face_element_after_the_splats_is_skipped(tmp_path, fmt, faces):
+    """newuser63: a PLY with a mesh's `face` element (a list property) after its vertex element, as mesh tools
+    write one, was refused ('list property ... is not supported'); the splats are read, the faces skipped, and
+    the partitioned reader's row layout finds the same rows. A list before the splats or inside them is refused."""
+    from splatstream.ply import vertex_layout
+
+    g, rec = make_records(30)
+    write_ply(tmp_path / "a.ply", rec, fmt=fmt)
+    _with_face_element(tmp_path / "a.ply", faces, fmt)
+    assert_same(read_gaussians_ply(tmp_path / "a.ply"), g, atol=1e-5)
+    layout = vertex_layout(tmp_path / "a.ply")
+    assert layout is None if fmt == "ascii" else (layout.rows == 30 and layout.offset == (tmp_path / "a.ply")
+                                                  .read_bytes().index(b"end_header\n") + len(b"end_header\n"))
+    if faces == 0:  # no rows to skip: the counts must still match the data (a row fewer declared is refused)
+        data = (tmp_path / "a.ply").read_bytes().replace(b"element vertex 30", b"element vertex 29", 1)
+        (tmp_path / "lying.ply").write_bytes(data)
+        with pytest.raises(InputError, match="do not match"):
+            read_gaussians_ply(tmp_path / "lying.ply")
+    for kind, needle in (("before_vertex", "element face: an element with a list property before element vertex"),
+                         ("in_vertex", "element vertex: list property 'uchar int ids' is not supported")):
+        write_ply(tmp_path / f"{kind}.ply", rec, fmt=fmt)
+        _with_face_element(tmp_path / f"{kind}.ply", faces, fmt, **{kind: True})
+        r = run_cli("encode", tmp_path / f"{kind}.ply", tmp_path / f"out_{kind}", "-q")
+        assert r.returncode == 2 and needle in r.stderr and len(r.stderr.splitlines()) == 1, r.stderr
+        assert not (tmp_path / f"out_{kind}").exists()
+
+
+def test_a_compressed_ply_with_a_list_property_is_refused_naming_it(tmp_path):
+    """A compressed PLY's elements are fixed (chunk, vertex, sh): one with a list property, skipped in a standard
+    PLY after the splats, is refused there rather than read without it (an `sh` element would read as SH0)."""
+    from conftest import ROOT
+
+    data = (ROOT / "tests" / "fixtures" / "foreign" / "fruit_drops.compressed.ply").read_bytes()
+    end = data.index(b"end_header\n")
+    header, body = data[:end].decode(), data[end + len(b"end_header\n"):]
+    cases = {"face": header + "element face 0\nproperty list uchar int vertex_indices\n",
+             "sh": header.replace("property uchar f_rest_0\n",
+                                  "property list uchar int ids\nproperty uchar f_rest_0\n")}
+    for name, text in cases.items():
+        (tmp_path / f"{name}.ply").write_bytes(text.encode() + b"end_header\n" + body)
+        r = run_cli("encode", tmp_path / f"{name}.ply", tmp_path / f"out_{name}", "-q")
+        assert r.returncode == 2 and f"({name} from the first with a list property)" in r.stderr, r.stderr
+        assert len(r.stderr.splitlines()) == 1 and not (tmp_path / f"out_{name}").exists()

@@ -90,6 +90,35 @@ def test_encode_and_info_say_which_bytes_per_splat_is_which_in_plain_words(tmp_p
     assert "  level 0: 1 tile, 45,624 splats, " in r.stdout
 
 
+def test_info_gives_the_leaf_size_with_separators():
+    # playbot's kept tree: 'leaves of at most 251845 splats' (newuser63)
+    from cli.commands.info import _lod_line
+
+    lod = {"enabled": True, "max_leaf_splats": 251845, "reduction": 2.537496028288149, "merge": None,
+           "viewing_scale_px": None}
+    assert _lod_line(lod).endswith("; leaves of at most 251,845 splats, 2.5375x per level")
+
+
+def test_a_one_splat_scene_gives_its_bytes_per_splat_with_separators(tmp_path):
+    # newuser63: a 1-splat scene's encode said '0.00 MB on disk (105.00 B/splat at full detail, 2149.00 with all LOD
+    # levels), 4148.00 B/splat on the GPU' and info '4148.00 B/splat' where every other number has its separators
+    from splatstream.ply import read_gaussians_ply, write_gaussians_ply
+
+    write_gaussians_ply(read_gaussians_ply(ROOT / "samples" / "donut.ply").subset(np.arange(1)), tmp_path / "one.ply")
+    r = run_cli("encode", tmp_path / "one.ply", tmp_path / "one")
+    assert r.returncode == 0, r.stderr
+    info = json.loads(run_cli("info", tmp_path / "one", "--json").stdout)
+    disk, gpu = info["bytes_on_disk"], info["gpu_bytes"]
+    assert 1000 < disk < 10_000 and 1000 < gpu  # a manifest and one tile's planes for one splat
+    last = r.stderr.strip().splitlines()[-1]
+    assert f"1 tile, {disk:,} bytes on disk (" in last, last
+    assert f", {disk:,}.00 with all LOD levels), {gpu:,}.00 B/splat on the GPU" in last, last
+    text = run_cli("info", tmp_path / "one").stdout
+    assert f"on disk    {disk:,} bytes ({disk:,}.00 B/splat, all levels)" in text, text
+    assert f"GPU        {gpu:,} bytes ({gpu:,}.00 B/splat, full detail)" in text, text
+    assert re.search(r"  position  \S+ +GPU \d,\d{3}\.\d\d B/splat", text), text
+
+
 def test_labels_never_overlap_where_points_crowd():
     # nine points within a few pixels of each other, and a marker in the way
     anchors = [(300 + 3 * i, 200 + 2 * (i % 3)) for i in range(9)]

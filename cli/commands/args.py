@@ -19,6 +19,7 @@ from splatstream.edit import (
     translation,
 )
 from splatstream.errors import UsageError
+from splatstream.progress import count
 
 from .edit_flags import EDIT_OPTIONS
 
@@ -174,7 +175,7 @@ def edits_from(args: argparse.Namespace) -> Pipeline:
 
 def edit_report(path: str, read: int, counts: list[tuple[str, int]]) -> str:
     """--dry-run's lines: the splats read, then each step and the splats it keeps."""
-    lines = [f"read {path}: {read:,} splats"]
+    lines = [f"read {path}: {count(read, 'splat')}"]
     before = read
     for label, kept in counts:
         lines.append(f"  {label}: keeps {kept:,} of {before:,} ({before - kept:,} dropped)")

@@ -19,7 +19,7 @@ from splatstream.io import (
     write_gaussians,
     written_sh_degree,
 )
-from splatstream.progress import ProgressPrinter
+from splatstream.progress import ProgressPrinter, count
 from splatstream.readers.sog import read_sog_level
 
 from .args import add_edit_arguments, edit_report, edits_from
@@ -101,11 +101,11 @@ def run(args: argparse.Namespace) -> int:
         parts.append(g)
     # merged as io.read_merged merges them: missing SH bands are zeros, so every input looks as it did
     g = Gaussians.concatenate(parts)
-    say(f"read {len(g):,} splats, SH degree {g.sh_degree}")
+    say(f"read {count(len(g), 'splat')}, SH degree {g.sh_degree}")
     read = len(g)
     g, counts = edits.run(g)
     for label, kept in counts:
-        say(f"{label}: {kept:,} splats kept")
+        say(f"{label}: {count(kept, 'splat')} kept")
     if args.dry_run:
         print(edit_report(" + ".join(args.input), read, counts))
         return 0
@@ -120,5 +120,6 @@ def run(args: argparse.Namespace) -> int:
     bar = ProgressPrinter("convert", enabled=not args.quiet)
     write_gaussians(g, args.output, spz_version=spz_version, glb_compression=glb_compression,
                     progress=lambda fraction: bar("writing", fraction))
-    say("done")
+    # what was written and where, as decode and encode end (it said 'done' alone: newuser63)
+    say(f"wrote {args.output}: {count(len(g), 'splat')}, SH degree {kept_sh}, {os.path.getsize(args.output):,} bytes")
     return 0

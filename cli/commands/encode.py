@@ -284,10 +284,10 @@ def run(args: argparse.Namespace) -> int:
                             compact_table=not args.no_compact_table, lod_refiner=lod_refiner,
                             camera_azimuth_deg=azimuth, on_read=check_read)
     if not args.quiet:
-        print(f"wrote {args.output_dir}: {m.splats:,} splats, SH degree {m.sh_degree}, preset {m.preset}, "
-              f"{count(len(m.tiles), 'tile')}, {m.bytes_on_disk / 1e6:.2f} MB on disk "
-              f"({m.leaf_bytes_on_disk / m.splats:.2f} B/splat at full detail, {m.bytes_on_disk / m.splats:.2f} "
-              f"with all LOD levels), {m.gpu_bytes_per_splat:.2f} B/splat on the GPU, "
+        print(f"wrote {args.output_dir}: {count(m.splats, 'splat')}, SH degree {m.sh_degree}, preset {m.preset}, "
+              f"{count(len(m.tiles), 'tile')}, {_disk_size(m.bytes_on_disk)} on disk "
+              f"({m.leaf_bytes_on_disk / m.splats:,.2f} B/splat at full detail, {m.bytes_on_disk / m.splats:,.2f} "
+              f"with all LOD levels), {m.gpu_bytes_per_splat:,.2f} B/splat on the GPU, "
               f"{time.perf_counter() - t0:.2f}s", file=sys.stderr)
     return 0
 
@@ -420,6 +420,11 @@ def target_lod_merge(named: str | None, distributed: bool) -> str:
     return named if named is not None else default_lod_merge(in_memory=not distributed)
 
 
+def _disk_size(nbytes: int) -> str:
+    """'4.42 MB', or '2,149 bytes' below 10 kB (a tiny scene read '0.00 MB on disk': newuser63)."""
+    return f"{nbytes / 1e6:.2f} MB" if nbytes >= 10_000 else f"{nbytes:,} bytes"
+
+
 def _preset_for_target(args: argparse.Namespace, up: tuple[float, float, float] | None, distributed: bool) -> str:
     """Measure every preset on the input (splatstream.evaluate) and pick the one the target asks for."""
     if args.target_psnr is not None and not args.target_psnr > 0:
@@ -431,7 +436,8 @@ def _preset_for_target(args: argparse.Namespace, up: tuple[float, float, float] 
 
     def log(msg: str) -> None:
         if not args.quiet:
-            print(f"target: {msg.strip()}", file=sys.stderr)
+            # rstrip only: the rows' labels are padded so that their numbers stand in columns
+            print(f"target: {msg.rstrip()}", file=sys.stderr)
 
     # Every preset encoded as this encode will write it (the LOD tree and its options, pages, transport, chunk
     # order), so the bytes compared with --target-size are those of the scene on disk, not of its full detail only.

@@ -41,7 +41,8 @@ def run(args: argparse.Namespace) -> int:
     report = export_rad(args.scene, args.output, args.sh_degree, progress, args.encoding)
     if not args.quiet:
         print(f"export-rad: {count(report.tiles, 'tile')} -> {count(report.levels, 'tree level')}, "
-              f"{count(report.chunks, 'chunk')}, {report.leaf_splats:,} splats of full detail ({report.splats:,} over "
-              f"all levels), {report.bytes:,} bytes -> {args.output} ({time.perf_counter() - start:.1f}s)",
+              f"{count(report.chunks, 'chunk')}, {count(report.leaf_splats, 'splat')} of full detail "
+              f"({report.splats:,} over all levels), {report.bytes:,} bytes -> {args.output} "
+              f"({time.perf_counter() - start:.1f}s)",
               file=sys.stderr)
     return 0

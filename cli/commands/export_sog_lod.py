@@ -39,7 +39,8 @@ def run(args: argparse.Namespace) -> int:
                                  UNIT_SPLATS if args.unit_splats is None else args.unit_splats, progress)
     if not args.quiet:
         print(f"export-sog-lod: {count(report.tiles, 'tile')} -> {count(report.levels, 'LOD level')}, "
-              f"{count(report.units, 'SOG unit')}, {report.leaf_splats:,} splats at level 0 ({report.splats:,} over "
-              f"all levels), {report.bytes:,} bytes -> {args.output_dir} ({time.perf_counter() - start:.1f}s)",
+              f"{count(report.units, 'SOG unit')}, {count(report.leaf_splats, 'splat')} at level 0 "
+              f"({report.splats:,} over all levels), {report.bytes:,} bytes -> {args.output_dir} "
+              f"({time.perf_counter() - start:.1f}s)",
               file=sys.stderr)
     return 0

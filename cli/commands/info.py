@@ -59,7 +59,7 @@ def _lod_line(lod: dict) -> str | None:
     """How the tree was built, for the text output (None: no tree)."""
     if not lod["enabled"]:
         return None
-    shape = f"leaves of at most {lod['max_leaf_splats']} splats, {lod['reduction']:g}x per level"
+    shape = f"leaves of at most {lod['max_leaf_splats']:,} splats, {lod['reduction']:g}x per level"
     scales = lod["viewing_scale_px"]
     if lod["merge"] is None and scales is None:
         return f"merge and viewing scales not recorded (a scene before format 1.9, or a tree splatstream did not " \
@@ -150,11 +150,11 @@ def run(args: argparse.Namespace) -> int:
     if refined:
         print(f"refined    {refined}")
     print(camera_line(info["camera"]))
-    print(f"on disk    {info['bytes_on_disk']:,} bytes ({info['bytes_per_splat_on_disk']:.2f} B/splat, all levels)")
-    print(f"GPU        {info['gpu_bytes']:,} bytes ({info['gpu_bytes_per_splat']:.2f} B/splat, full detail)")
+    print(f"on disk    {info['bytes_on_disk']:,} bytes ({info['bytes_per_splat_on_disk']:,.2f} B/splat, all levels)")
+    print(f"GPU        {info['gpu_bytes']:,} bytes ({info['gpu_bytes_per_splat']:,.2f} B/splat, full detail)")
     for name, a in (info["attributes"] or {}).items():
-        print(f"  {name:<9} {a['format']:<9} GPU {a['gpu_bytes'] / info['splats']:7.2f} B/splat   "
-              f"disk {a['disk_bytes'] / info['splats']:7.2f} B/splat")
+        print(f"  {name:<9} {a['format']:<9} GPU {a['gpu_bytes'] / info['splats']:7,.2f} B/splat   "
+              f"disk {a['disk_bytes'] / info['splats']:7,.2f} B/splat")
     filters = ", ".join(f"{n} {f}" for f, n in info["section_filters"].items())
     print(f"payloads   sections stored as: {filters} (format.md 5)")
     cb = info["sh_codebook"]

@@ -14,6 +14,7 @@ from splatstream.errors import UsageError
 from splatstream.format.presets import PRESETS
 from splatstream.io import read_gaussians, scene_up
 from splatstream.orientation import view_side
+from splatstream.progress import count
 from splatstream.store import is_scene_dir, load_manifest
 
 from .args import check_look, check_sort_draw, parse_azimuth, parse_size, parse_vector
@@ -144,8 +145,8 @@ def run(args: argparse.Namespace) -> int:
         if not args.quiet:
             # A splat file is encoded in memory before it is drawn: seconds for a large one (playbot's 500,000
             # splats: 13 s of "load" on a busy 2-core machine, with nothing printed before the last line).
-            print(f"render: {len(g):,} splats read from {args.scene} ({time.perf_counter() - t0:.1f}s); encoding "
-                  f"them at {preset} for the GPU", file=sys.stderr, flush=True)
+            print(f"render: {count(len(g), 'splat')} read from {args.scene} ({time.perf_counter() - t0:.1f}s); "
+                  f"encoding them at {preset} for the GPU", file=sys.stderr, flush=True)
     renderer = offscreen.HeadlessRenderer(offscreen.RenderOptions(sort=args.sort, draw=args.draw))
     cut = ""
     try:
@@ -176,7 +177,7 @@ def run(args: argparse.Namespace) -> int:
         renderer.close()
     _write_png(args.out, img)
     if not args.quiet:
-        print(f"wrote {args.out}: {cam.width}x{cam.height}, {splats:,} splats{cut}, sort {sort}, {gl_name}, "
+        print(f"wrote {args.out}: {cam.width}x{cam.height}, {count(splats, 'splat')}{cut}, sort {sort}, {gl_name}, "
               f"{per_splat:.1f} GPU B/splat, load {t1 - t0:.2f}s, render {(t2 - t1) * 1e3:.0f} ms", file=sys.stderr)
     return 0
 

@@ -34,11 +34,12 @@ def is_compressed_ply(header: PlyHeader) -> bool:
 
 def _check_schema(path: str, header: PlyHeader) -> tuple[int, bool, int]:
     """Validate the element/property layout. Returns (splat count, has chunk colours, SH rest coeffs)."""
-    names = [e.name for e in header.elements]
+    names = [e.name for e in header.elements] + header.unread  # an element with a list property is refused here
     extra = [n for n in names if n not in ("chunk", "vertex", "sh")]
-    if extra or names[:2] != ["chunk", "vertex"] or len(names) != len(set(names)):
-        raise InputError(path, "header", f"elements {names}: a compressed PLY has the elements chunk, vertex "
-                         "and optionally sh, in that order")
+    if extra or header.unread or names[:2] != ["chunk", "vertex"] or len(names) != len(set(names)):
+        lists = f" ({', '.join(header.unread)} from the first with a list property)" if header.unread else ""
+        raise InputError(path, "header", f"elements {names}{lists}: a compressed PLY has the elements chunk, vertex "
+                         "and optionally sh, in that order, of numbers")
     chunk, vertex = header.element("chunk"), header.element("vertex")
     chunk_props = dict(chunk.properties)
     missing = [p for p in CHUNK_BOUNDS if p not in chunk_props]
