@@ -67,7 +67,8 @@ def register(sub: argparse._SubParsersAction) -> None:
 
 
 def _camera(args, scene_camera: dict | None, positions: np.ndarray | None, scene_up, size,
-            side: float = 0.0, opacity_logits: np.ndarray | None = None) -> Camera:
+            side: float = 0.0, opacity_logits: np.ndarray | None = None,
+            log_scales: np.ndarray | None = None) -> Camera:
     width, height = size
     up = _optional_vector(args.up, "--up") or tuple(scene_up)
     if scene_camera is not None:
@@ -75,7 +76,7 @@ def _camera(args, scene_camera: dict | None, positions: np.ndarray | None, scene
                          scene_camera.get("fov_y", scene_camera.get("fov_y_deg", DEFAULT_FOV_Y_DEG)), width, height)
     else:
         default = suggested_camera(positions, up=up, width=width, height=height, side=side,
-                                   opacity_logits=opacity_logits)
+                                   opacity_logits=opacity_logits, log_scales=log_scales)
     azimuth = _azimuth(args)
     if azimuth:  # about the camera's own up (the scene's), as encode stores and view opens it (camera.md)
         default = Camera(turn_about_up(default.eye, default.target, default.up, azimuth), default.target, default.up,
@@ -139,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
         if len(g) == 0:
             raise UsageError(f"{args.scene}: no splats to render")
         up = _optional_vector(args.up, "--up") or scene_up(args.scene, g).up
-        cam = _camera(args, None, g.positions, up, size, view_side(g, up), g.opacity_logits)
+        cam = _camera(args, None, g.positions, up, size, view_side(g, up), g.opacity_logits, g.log_scales)
         source = ("gaussians", g)
         splats = len(g)
         if not args.quiet:
