@@ -17,7 +17,7 @@ from splatstream.orientation import view_side
 from splatstream.progress import count
 from splatstream.store import is_scene_dir, load_manifest
 
-from .args import check_look, check_sort_draw, parse_azimuth, parse_size, parse_vector
+from .args import DROP_INVALID_HELP, check_look, check_sort_draw, parse_azimuth, parse_size, parse_vector
 from .renderers import gl_client
 
 DEFAULT_SIZE = (1280, 720)
@@ -62,6 +62,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="draw the tiles and SH bands `view` streams for this camera at this screen-space error "
                         "(default: every full-detail tile with all its bands); the last line names the cut's tiles and "
                         "levels")
+    p.add_argument("--drop-invalid", action="store_true", help=DROP_INVALID_HELP)
     p.add_argument("--quiet", "-q", action="store_true", help="print nothing on success")
     p.set_defaults(func=run)
 
@@ -128,6 +129,8 @@ def run(args: argparse.Namespace) -> int:
         if args.preset is not None:  # was ignored without a word
             raise UsageError(f"--preset {args.preset}: {args.scene} is an encoded scene, drawn in the formats it was "
                              "encoded with; --preset sets those of a splat file encoded in memory")
+        if args.drop_invalid:  # (an encoded scene's splats were screened when it was encoded)
+            raise UsageError(f"--drop-invalid: drops invalid splats of a splat file; {args.scene} is an encoded scene")
         manifest = load_manifest(args.scene)
         cam = _camera(args, manifest.camera.to_dict(), None, manifest.up, size)
         source = ("scene", args.scene)
@@ -136,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
         if args.max_sse is not None:  # was ignored without a word: every splat was drawn
             raise UsageError(f"--max-sse {args.max_sse:g}: draws the tiles `view` streams, which an encoded scene "
                              f"directory has; {args.scene} is a splat file or SOG, drawn whole (encode it first)")
-        g = read_gaussians(args.scene)
+        g = read_gaussians(args.scene, drop_invalid=args.drop_invalid)
         if len(g) == 0:
             raise UsageError(f"{args.scene}: no splats to render")
         up = _optional_vector(args.up, "--up") or scene_up(args.scene, g).up
