@@ -1025,7 +1025,9 @@ def scene_summary(m: Manifest) -> dict:
         "splats": m.splats,
         "sh_degree": m.sh_degree,
         "preset": m.preset,
-        "bounds": m.bounds.to_dict(),
+        # + 0.0 turns -0.0 into 0.0: a splat at x = -0.0 wrote '"min": [-0.0, ...]' into /api/scenes and info's JSON
+        # (newuser63); the manifest keeps its bounds as stored
+        "bounds": {k: [v + 0.0 for v in corner] for k, corner in m.bounds.to_dict().items()},
         "up": list(m.up),
         "bytes_on_disk": m.bytes_on_disk,
         "gpu_bytes": m.gpu_bytes,
