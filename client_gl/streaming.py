@@ -61,6 +61,7 @@ class ViewOptions:
     fill_gap: int = StreamOptions.fill_gap
     fill_min_bytes: int = StreamOptions.fill_min_bytes  # coarse to fine only above these missing bytes (--fill-min-kb)
     cache: bool = True  # disk cache of payloads (HTTP sources)
+    drop_invalid: bool = False  # a splat file's invalid splats dropped (a warning), not refused (io.read_gaussians)
     cache_dir: str | None = None
     max_in_flight: int = 6
     upload_bytes_per_frame: int = StreamOptions.upload_bytes_per_frame
@@ -158,7 +159,8 @@ class PreparedSource:
              while_fetching: Callable[[], None] | None = None) -> PreparedSource:
         """while_fetching: called once the manifest is asked for, before it is waited for (early_target's work)."""
         start = time.perf_counter()
-        source = spec if isinstance(spec, SceneSource) else open_source(spec, progress=progress)
+        source = spec if isinstance(spec, SceneSource) else open_source(spec, progress=progress,
+                                                                        drop_invalid=options.drop_invalid)
         cache = None
         if options.cache and getattr(source, "cache_key", None):
             cache = DiskCache(options.cache_dir)

@@ -277,12 +277,34 @@ FRAME_NARROWEST_ASPECT = 4.0 / 3.0
 # parts of the scene lie within the reach. Chosen on winter_fountain and guitar (BENCHMARKS.md, "The F key frames
 # the scene").
 FRAME_STRAY_REACH = 1.0
+# A box without extent (one splat, or every splat at one point) is framed by the splats' own size: a cube of
+# FRAME_POINT_SIGMAS standard deviations of the largest splat's largest axis either side of the point (its 3-sigma
+# extent, as a renderer draws it). The unit box framed before made a 1-splat scene's splat (0.01 across) 16 px
+# at 320x240 (newuser63).
+FRAME_POINT_SIGMAS = 3.0
 
 
 def framing_box(positions: np.ndarray, opacity_logits: np.ndarray | None = None,
-                percentile: float = FRAME_PERCENTILE) -> tuple[np.ndarray, np.ndarray]:
+                percentile: float = FRAME_PERCENTILE, log_scales: np.ndarray | None = None
+                ) -> tuple[np.ndarray, np.ndarray]:
     """(lo, hi): the central `percentile` % box of the positions of splats at least FRAME_MIN_OPACITY opaque (all
-    of them where fewer than a tenth are), far strays left out first (FRAME_STRAY_REACH)."""
+    of them where fewer than a tenth are), far strays left out first (FRAME_STRAY_REACH). Where that box has no
+    extent (every splat at one point), the cube of FRAME_POINT_SIGMAS times the largest of `log_scales`' standard
+    deviations either side of it (as given: a box of no extent without them; framing_view then frames a unit box)."""
+    lo, hi = _percentile_box(positions, opacity_logits, percentile)
+    if not np.linalg.norm(hi - lo) > 0 and log_scales is not None:
+        scales = np.asarray(log_scales, dtype=np.float64)
+        scales = scales[np.isfinite(scales)]
+        if scales.size:
+            half = FRAME_POINT_SIGMAS * math.exp(float(scales.max()))
+            if half > 0 and math.isfinite(half):
+                centre = (lo + hi) / 2.0
+                lo, hi = centre - half, centre + half
+    return lo, hi
+
+
+def _percentile_box(positions: np.ndarray, opacity_logits: np.ndarray | None,
+                    percentile: float) -> tuple[np.ndarray, np.ndarray]:
     p = np.asarray(positions, dtype=np.float64)
     ok = np.isfinite(p).all(axis=1)
     if opacity_logits is not None:
@@ -339,16 +361,18 @@ def suggested_camera(positions: np.ndarray | None = None, up: Sequence[float] = 
                      height: int = 720, fov_y_deg: float = DEFAULT_FOV_Y_DEG,
                      bounds: tuple[Sequence[float], Sequence[float]] | None = None,
                      center: Sequence[float] | None = None, percentile: float = FRAME_PERCENTILE,
-                     side: float = 0.0, opacity_logits: np.ndarray | None = None) -> Camera:
+                     side: float = 0.0, opacity_logits: np.ndarray | None = None,
+                     log_scales: np.ndarray | None = None) -> Camera:
     """Default camera for a scene: looks at the centre of its box along a diagonal, the whole box in view.
 
-    Give `positions` (N, 3) (with `opacity_logits`, nearly transparent splats are left out: framing_box), or
+    Give `positions` (N, 3) (with `opacity_logits`, nearly transparent splats are left out, and with `log_scales`
+    splats all at one point are framed by their size: framing_box), or
     `bounds=(lo, hi)` (and optionally `center`, the point looked at). The box is kept in view (fit_box_distance)
     for the given aspect or 4:3, whichever is narrower. `up` defaults to +z; the view direction is _diagonal's
     (from the front for 3DGS-convention scenes, else a diagonal).
     """
     if positions is not None:
-        lo, hi = framing_box(positions, opacity_logits, percentile)
+        lo, hi = framing_box(positions, opacity_logits, percentile, log_scales)
     elif bounds is not None:
         lo, hi = (np.asarray(b, dtype=np.float64) for b in bounds)
     else:

@@ -107,6 +107,7 @@ class EvalOptions:
     # SPZ compares: "rub" read as the format says (Niantic's reference; splat-transform 2.x), "rdf" as stored without
     # the axis turn (splat-transform 3.x), "auto" as whichever matches the input; a turned one is warned about.
     spz_axes: str = "rub"
+    drop_invalid: bool = False  # the input's invalid splats dropped (a warning), not refused (io.read_gaussians)
     extra: dict = field(default_factory=dict)
 
 
@@ -285,7 +286,7 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
     compares, variants = _checked_runs(opts)
     input_path = os.fspath(input_path)
     t = time.perf_counter()
-    g = read_gaussians(input_path)
+    g = read_gaussians(input_path, drop_invalid=opts.drop_invalid)
     input_size = path_size(input_path)
     log(f"read {input_path}: {count(len(g), 'splat')}, SH degree {g.sh_degree} ({time.perf_counter() - t:.1f} s)")
     if len(g) == 0:

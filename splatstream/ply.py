@@ -15,6 +15,7 @@ import numpy as np
 from .atomic import atomic_file
 from .errors import InputError
 from .gaussians import SH_REST_COEFFS, Gaussians, normalize_quaternions
+from .progress import some_of
 from .reader_support import DROP_INVALID_HINT, check_memory, model_bytes_per_splat, opacity_logits_from_unit
 
 PLY_TYPES = {
@@ -421,17 +422,18 @@ def check_rows(path: str, stats: RowStats, drop_invalid: bool) -> None:
     if stats.infinite:
         limit = float(opacity_logits_from_unit(np.ones(1))[0])
         warnings.warn(InfiniteOpacityWarning(
-            f"{path}: {stats.infinite} of {n} splats have an infinite opacity logit ({stats.infinite_positive} +inf "
-            f"= alpha 1, {stats.infinite - stats.infinite_positive} -inf = alpha 0); read as +-{limit:.2f}",
+            f"{path}: {some_of(stats.infinite, n, 'splats', ('has', 'have'))} an infinite opacity logit "
+            f"({stats.infinite_positive} +inf = alpha 1, {stats.infinite - stats.infinite_positive} -inf = alpha 0); "
+            f"read as +-{limit:.2f}",
             stats.infinite), stacklevel=3)
     if stats.bad_rows:
         detail = ", ".join(f"{k}: {v}" for k, v in stats.per_field.items())
-        msg = f"{stats.bad_rows} of {n} splats have non-finite values (NaN or inf) ({detail})"
+        msg = f"{some_of(stats.bad_rows, n, 'splats', ('has', 'have'))} non-finite values (NaN or inf) ({detail})"
         if not drop_invalid:
             raise InputError(path, "element vertex", f"{msg}; {DROP_INVALID_HINT}")
         warnings.warn(f"{path}: {msg}; dropped", stacklevel=3)
     if stats.zero_q:
-        msg = f"{stats.zero_q} of {n} splats have a zero-length quaternion (rot_0..rot_3 all 0)"
+        msg = f"{some_of(stats.zero_q, n, 'splats', ('has', 'have'))} a zero-length quaternion (rot_0..rot_3 all 0)"
         if not drop_invalid:
             raise InputError(path, "element vertex", f"{msg}; {DROP_INVALID_HINT}")
         warnings.warn(f"{path}: {msg}; dropped", stacklevel=3)

@@ -13,6 +13,12 @@ def count(n: int, noun: str, plural: str | None = None) -> str:
     return f"{n:,} {noun if n == 1 else (plural or noun + 's')}"
 
 
+def some_of(k: int, n: int, noun: str, verbs: tuple[str, str]) -> str:
+    """'1 of 20,000 splats has' / '2 of 20,000 splats have' (`verbs`: singular, plural): how many of a whole do
+    something, the verb agreeing with the count."""
+    return f"{k:,} of {n:,} {noun} {verbs[0] if k == 1 else verbs[1]}"
+
+
 def mib(nbytes: float) -> str:
     """A memory size given in MiB as a user reads it: '0.5', '1024', '1,000,000' (a plain .4g wrote '1e+06')."""
     value = nbytes / 2**20

@@ -10,9 +10,9 @@ import numpy as np
 
 from .errors import InputError, UsageError
 
-# What an invalid splat's error says to do. Only `encode` and `convert` take --drop-invalid: `view`, `render` and
-# `eval` said "pass --drop-invalid to drop them" and then refused the option as unrecognised.
-DROP_INVALID_HINT = "`encode` and `convert` drop them with --drop-invalid"
+# What an invalid splat's error says to do. Every command that reads a splat file takes --drop-invalid (view, render
+# and eval since newuser63's pass; before, they pointed at encode and convert, which alone took it).
+DROP_INVALID_HINT = "--drop-invalid drops them (encode, convert, render, view, eval)"
 
 # Opacity bytes of 0 and 255 have no finite logit; every 8-bit-alpha reader clamps the opacity to
 # [OPACITY_EPS, 1 - OPACITY_EPS] first (the same clamp as splat-transform's .splat reader), so logits stay

@@ -1,5 +1,6 @@
 import json
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,6 +15,8 @@ from splatstream.camera import (
     standard_benchmark_view,
     suggested_camera,
 )
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_view_matrix_is_look_at():
@@ -151,3 +154,47 @@ def test_camera_json_round_trip_and_validation():
     # up parallel to the view direction still gives a valid rotation
     v = look_at((0, 0, 5), (0, 0, 0), up=(0, 0, 1)).view_matrix()
     np.testing.assert_allclose(v[:3, :3] @ v[:3, :3].T, np.eye(3), atol=1e-12)
+
+
+def test_splats_at_one_point_are_framed_by_their_size():
+    """newuser63: a 1-splat scene (or every splat at one point) was framed as a unit box, so its splat (about 0.01
+    across) was 16 px at 320x240. The box is now FRAME_POINT_SIGMAS (3) standard deviations of the largest splat's
+    largest axis either side of the point, and the splat fills the view as a scene does."""
+    from splatstream.camera import FRAME_POINT_SIGMAS
+    from splatstream.encode.sample import SceneSample
+    from splatstream.ply import read_gaussians_ply
+
+    one = read_gaussians_ply(ROOT / "samples" / "donut.ply").subset(np.arange(1))
+    sigma = math.exp(float(one.log_scales.max()))  # 0.00798
+    lo, hi = framing_box(one.positions, one.opacity_logits, log_scales=one.log_scales)
+    np.testing.assert_allclose(hi - lo, [2 * FRAME_POINT_SIGMAS * sigma] * 3, rtol=1e-12)
+    np.testing.assert_allclose((lo + hi) / 2, one.positions[0], rtol=1e-12)
+    # 20 splats at one point: the largest frames them
+    many = one.subset(np.zeros(20, dtype=np.int64))
+    bigger = many.log_scales.copy()
+    bigger[7, 1] += 1.0
+    lo, hi = framing_box(many.positions, log_scales=bigger)
+    assert float(np.exp(bigger[7, 1])) > 1.9 * sigma
+    np.testing.assert_allclose(hi - lo, [2 * FRAME_POINT_SIGMAS * float(np.exp(bigger[7, 1]))] * 3, rtol=1e-6)
+    # the encoder's suggested camera (manifest camera): the splat's 3-sigma extent fills about the view's height
+    entry = SceneSample.of(one, with_codebook=False).camera((0.0, -1.0, 0.0))
+    cam = Camera(entry.eye, entry.target, entry.up, entry.fov_y, 320, 240)
+    uv, _ = cam.project(one.positions.astype(np.float64) + np.array([[0.0, 3 * sigma, 0.0]]))
+    centre, _ = cam.project(one.positions.astype(np.float64))
+    assert 40 < abs(uv[0, 1] - centre[0, 1]) < 120, (uv, centre)  # was 16 px across in all
+    assert math.dist(entry.eye, entry.target) < 0.2  # was 1.8 (a unit box)
+
+
+@pytest.mark.parametrize("name", ["samples/donut.ply", "tests/data/real/fruit_drops_sh3.ply",
+                                  "tests/data/real/lod_tile_sh3_zero_rest.ply"])
+def test_scenes_with_an_extent_are_framed_as_before_with_their_scales(name):
+    """The splats' scales change only a box without extent: the bundled samples' suggested cameras are the same
+    bits with them as without."""
+    from splatstream.io import read_gaussians
+
+    g = read_gaussians(ROOT / name)
+    for up in ((0.0, -1.0, 0.0), (0.0, 0.0, 1.0)):
+        before = suggested_camera(g.positions, up=up, opacity_logits=g.opacity_logits)
+        after = suggested_camera(g.positions, up=up, opacity_logits=g.opacity_logits, log_scales=g.log_scales)
+        assert after == before
+        assert framing_box(g.positions, log_scales=g.log_scales)[0].tolist() == framing_box(g.positions)[0].tolist()

@@ -30,14 +30,20 @@ def cases(tmp, scene):
     broken = read_gaussians(DONUT)
     broken.positions[7] = np.nan
     write_gaussians_ply(broken, tmp / "nan.ply")
-    # view, render and eval said "pass --drop-invalid to drop them" and then refused that option: the hint names
-    # the commands that take it
-    drop_hint = "`encode` and `convert` drop them with --drop-invalid"
+    # view, render and eval said "pass --drop-invalid to drop them" and then refused that option; then they pointed
+    # at encode and convert; every one takes it now (newuser63), and one splat of 45,624 "has", with separators
+    n = f"{len(broken):,}"
+    drop_hint = (f"1 of {n} splats has non-finite values (NaN or inf) (x: 1, y: 1, z: 1); --drop-invalid drops them "
+                 "(encode, convert, render, view, eval)")
     return [
         (["render", tmp / "nan.ply", "--out", tmp / "o.png", "-q"], drop_hint),  # -q: no progress lines first
         (["view", tmp / "nan.ply", "--headless", "-q"], drop_hint),
         (["eval", tmp / "nan.ply", "--presets", "low", "-q"], drop_hint),
         (["convert", tmp / "nan.ply", tmp / "o.ply", "-q"], drop_hint),
+        # an encoded scene has no invalid splats to drop: refused, not ignored
+        (["render", scene, "--drop-invalid", "--out", tmp / "o.png"], "--drop-invalid: drops invalid splats of a "
+                                                                      "splat file; "),
+        (["view", scene, "--headless", "--drop-invalid"], "--drop-invalid: drops invalid splats of a splat file; "),
         (["encode", tmp / "missing.ply", tmp / "o"], "missing.ply"),
         (["encode", DONUT, tmp / "o", "--up", "0,0,0"], "--up"),
         (["encode", DONUT, tmp / "o", "--up", "1,x,0"], "--up"),
@@ -425,3 +431,24 @@ def test_end_open_line_ends_a_bar_left_open_once():
     bar.note("up 0,0,1")  # clears the bar and ends its line
     end_open_line()
     assert term.getvalue().endswith("encode: up 0,0,1\n") and term.getvalue().count("\n") == 3
+
+
+def test_render_view_and_eval_drop_invalid_splats_as_encode_does(tmp_path):
+    """newuser63: render, view and eval refused a file with NaN rows and pointed at `encode`/`convert
+    --drop-invalid`; they take the option themselves now, with encode's meaning: the rows dropped, one warning."""
+    pytest.importorskip("moderngl")
+    broken = read_gaussians(DONUT).subset(np.arange(2000))
+    broken.positions[7] = np.nan
+    write_gaussians_ply(broken, tmp_path / "nan.ply")
+    said = "1 of 2,000 splats has non-finite values (NaN or inf) (x: 1, y: 1, z: 1); dropped"
+    r = run_cli("render", tmp_path / "nan.ply", "--out", tmp_path / "o.png", "--size", "64x48", "--drop-invalid")
+    assert r.returncode == 0 and said in r.stderr, r.stderr
+    assert "1,999 splats read" in r.stderr and (tmp_path / "o.png").stat().st_size > 0, r.stderr
+    r = run_cli("view", tmp_path / "nan.ply", "--headless", "--size", "64x48", "--drop-invalid", "-q")
+    assert r.returncode == 0 and said in r.stderr, r.stderr
+    r = run_cli("eval", tmp_path / "nan.ply", "--presets", "low", "--views", "1", "--size", "64x48", "--drop-invalid",
+                "--json", tmp_path / "e.json", "-q")
+    assert r.returncode == 0 and said in r.stderr, r.stderr
+    import json
+
+    assert json.loads((tmp_path / "e.json").read_text())["input"]["splats"] == 1999

@@ -208,9 +208,9 @@ def test_invalid_rows_are_reported_for_the_whole_file(scene, tmp_path):
     with pytest.raises(InputError) as partitioned:
         encode_file(path, tmp_path / "out", memory_per_worker=SMALL_MEMORY, **TREE)
     assert str(partitioned.value) == str(single.value)
-    assert "2 of 5321 splats have non-finite values (NaN or inf) (y: 2)" in str(single.value)
+    assert "2 of 5,321 splats have non-finite values (NaN or inf) (y: 2)" in str(single.value)
     assert not (tmp_path / "out").exists()
-    with pytest.warns(UserWarning, match="2 of 5321 splats have non-finite values .*; dropped"):
+    with pytest.warns(UserWarning, match="2 of 5,321 splats have non-finite values .*; dropped"):
         m = encode_file(path, tmp_path / "out", memory_per_worker=SMALL_MEMORY, drop_invalid=True, **TREE)
     assert m.splats == len(g) - 2
 

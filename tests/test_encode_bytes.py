@@ -250,3 +250,24 @@ if __name__ == "__main__":  # prints every case's digest with whichever splatstr
         paths = write_inputs(tmp)
         for i, case in enumerate(CASES):
             print(f"    {case!r}: \"{encode_case(paths, os.path.join(tmp, f'o{i}'), *case)}\",", flush=True)
+
+
+@pytest.mark.parametrize("variant", ["medium-low-sh16", "medium-low-sh8"])
+def test_a_per_splat_sh_preset_without_sh_bands_writes_its_bases_bytes(variant):
+    """newuser63: on an SH0 scene medium-low-sh16 and -sh8 wrote medium-low's planes at zstd level 12 (shortest match
+    6), 0.4 % more bytes than medium-low's level 9, where the README's table says "= medium-low (no SH bands)". Without
+    SH bands (as read, or kept by --sh-degree 0) a per-splat SH preset takes its base's zstd settings: every payload
+    the same bytes. With SH bands it keeps its own (its scenes' bytes unchanged)."""
+    sample = os.path.join(os.path.dirname(__file__), "..", "samples", "donut.ply")
+    donut = read_gaussians(sample).subset(np.arange(6000))
+    fruit = read_gaussians(real("fruit_drops_sh3.ply"))
+    for g, sh_degree in ((donut, None), (fruit, 0)):
+        assert g.sh_degree == 0 or sh_degree == 0
+        payloads = {}
+        for preset in ("medium-low", variant):
+            m = read_manifest(encode_in_memory(g, EncodeOptions(preset=preset, sh_degree=sh_degree, **TREE)))
+            payloads[preset] = sorted(e.sha256 for _, _, e in m.payloads())
+        assert payloads[variant] == payloads["medium-low"]
+    assert presets.compression_preset(variant, 3) == variant and presets.compression_preset(variant, 0) == "medium-low"
+    opts = EncodeOptions(preset=variant)
+    assert opts.zstd_level_for(1) == 12 and opts.zstd_level_for(0) == 9

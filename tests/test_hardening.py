@@ -71,7 +71,7 @@ def test_values_beyond_the_format_are_refused_naming_field_and_count(tmp_path, f
     rewrite_ply_field(real("fruit_drops_sh3.ply"), src, field, {17: value})
     # --max-leaf-splats 1024 builds LOD tiles (the eigh of finding 1) where the value got through.
     r = run_cli("encode", "-q", "--max-leaf-splats", "1024", src, tmp_path / "s")
-    fails_cleanly(r, str(src), what, "1 of 4721 splats", "first at splat 17", "--drop-invalid")
+    fails_cleanly(r, str(src), what, "1 of 4,721 splats has", "first at splat 17", "--drop-invalid")
     assert not (tmp_path / "s").exists()
     no_temp_left(tmp_path)
     r = run_cli("encode", "-q", "--max-leaf-splats", "1024", "--drop-invalid", src, tmp_path / "s")
@@ -295,7 +295,7 @@ def test_non_regular_files_inside_a_sog_directory_are_refused(tmp_path):
 def test_zero_filled_splat_file_is_not_a_splat_file(tmp_path):
     path = tmp_path / "zeros.splat"
     path.write_bytes(bytes(320_000))
-    fails_cleanly(run_cli("encode", "-q", path, tmp_path / "s"), str(path), "10000 of 10000 records are implausible",
+    fails_cleanly(run_cli("encode", "-q", path, tmp_path / "s"), str(path), "10,000 of 10,000 records are implausible",
                   "all-zero scale", "does not look like a .splat file")
 
 
@@ -307,7 +307,7 @@ def test_splat_records_with_all_scales_zero_are_invalid_and_one_zero_axis_is_fla
     records["scale"][6, 2] = 0.0
     path = tmp_path / "z.splat"
     path.write_bytes(records.tobytes())
-    with pytest.raises(InputError, match="1 of 74 splats are invalid"):
+    with pytest.raises(InputError, match="1 of 74 splats is invalid"):
         read_gaussians(path)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -446,7 +446,7 @@ def test_splat_writer_refuses_what_splat_readers_take_for_garbage(tmp_path):
 
     write_gaussians_ply(g, src)
     out = tmp_path / "far.splat"
-    fails_cleanly(run_cli("convert", "-q", src, out), str(out), "1 of 74 splats have a position beyond +-1e7")
+    fails_cleanly(run_cli("convert", "-q", src, out), str(out), "1 of 74 splats has a position beyond +-1e7")
     assert not out.exists()
     no_temp_left(tmp_path)
     fails_cleanly(run_cli("convert", "-q", src, tmp_path / "far.spz"), str(tmp_path / "far.spz"), "SPZ cannot hold")

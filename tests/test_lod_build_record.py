@@ -124,8 +124,8 @@ def test_a_scene_before_1_9_reads_and_info_says_not_recorded():
     m = load_manifest(scene)
     assert m.version == VERSION_1_8 and m.lod.enabled and m.lod.merge is None and m.lod.viewing_scale_px is None
     info = json.loads(run_cli("info", scene, "--json").stdout)
-    assert info["lod"] == {"enabled": True, "max_leaf_splats": 64, "reduction": 2.0, "refine": "replace",
-                           "merge": None, "viewing_scale_px": None, "refinement": None}
+    assert info["lod"] == {"enabled": True, "kept_from_input": False, "max_leaf_splats": 64, "reduction": 2.0,
+                           "refine": "replace", "merge": None, "viewing_scale_px": None, "refinement": None}
     text = run_cli("info", scene).stdout
     assert "LOD tree   merge and viewing scales not recorded" in text
 

@@ -179,7 +179,7 @@ def test_infinite_opacity_is_alpha_one_or_zero(tmp_path):
     assert np.array_equal(g.opacity_logits[others], rec["opacity"][others])
     rec["opacity"][9] = np.nan
     write_ply(tmp_path / "nan.ply", rec)
-    with pytest.raises(InputError, match="1 of 100 splats have non-finite values.*opacity: 1"), \
+    with pytest.raises(InputError, match="1 of 100 splats has non-finite values.*opacity: 1"), \
             pytest.warns(UserWarning, match="infinite opacity"):
         read_gaussians_ply(tmp_path / "nan.ply")
 

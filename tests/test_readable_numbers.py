@@ -204,3 +204,24 @@ def test_info_gives_byte_counts_with_thousands_separators(tmp_path):
     on_disk = re.search(r"^on disk +([\d,]+) bytes", out, re.M).group(1)
     per_level = re.findall(r"level \d+: .* ([\d,]+) bytes on disk$", out, re.M)
     assert "," in on_disk and all(re.fullmatch(r"\d{1,3}(,\d{3})*", n) for n in [on_disk, *per_level])
+
+
+def test_info_says_a_tree_kept_from_a_streamed_sog_was_kept(tmp_path):
+    """newuser63: `info` on a scene that kept a streamed SOG's own LOD tree said 'not recorded (a scene before
+    format 1.9, or a tree splatstream did not build)' of a 1.12 scene; from 1.9 a splatstream scene with a tree and
+    no build record holds a kept tree (format.md 6), and info says so. A tree it built says how, as before."""
+    sog = ROOT / "tests" / "fixtures" / "foreign" / "fruit_drops_lod"
+    r = run_cli("encode", sog, tmp_path / "kept", "-q")
+    assert r.returncode == 0, r.stderr
+    info = json.loads(run_cli("info", tmp_path / "kept", "--json").stdout)
+    assert info["version"] >= [1, 9] and info["lod"]["enabled"] and info["lod"]["merge"] is None
+    assert info["lod"]["kept_from_input"] is True
+    line = next(s for s in run_cli("info", tmp_path / "kept").stdout.splitlines() if s.startswith("LOD tree"))
+    assert line.startswith("LOD tree   kept from the input (its own LOD tree: a streamed SOG's or a .rad's; "
+                           "encode --rebuild-lod builds ours); leaves of at most "), line
+    r = run_cli("encode", ROOT / "samples" / "donut.ply", tmp_path / "built", "--max-leaf-splats", "8192", "-q")
+    assert r.returncode == 0, r.stderr
+    info = json.loads(run_cli("info", tmp_path / "built", "--json").stdout)
+    assert info["lod"]["enabled"] and info["lod"]["merge"] is not None and info["lod"]["kept_from_input"] is False
+    line = next(s for s in run_cli("info", tmp_path / "built").stdout.splitlines() if s.startswith("LOD tree"))
+    assert line.startswith(f"LOD tree   merge {info['lod']['merge']}, "), line

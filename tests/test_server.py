@@ -678,3 +678,27 @@ def test_cli_graceful_sigterm(tmp_path, workers):
         if proc.poll() is None:
             proc.kill()
             proc.wait()
+
+
+def test_scene_list_writes_no_negative_zero(tmp_path):
+    """newuser63: a scene whose splats lie at x = -0.0 listed '"min": [-0.0, ...]' in /api/scenes; the list says 0.0
+    (the manifest keeps its bounds as stored)."""
+    import numpy as np
+
+    from splatstream.ply import read_gaussians_ply, write_gaussians_ply
+
+    one = read_gaussians_ply(REPO / "samples" / "donut.ply").subset(np.arange(1))
+    one.positions[0] = (-0.0, 0.5, 1.0)
+    write_gaussians_ply(one, tmp_path / "one.ply")
+    root = tmp_path / "root"
+    r = subprocess.run([sys.executable, "-m", "cli.main", "encode", "-q", str(tmp_path / "one.ply"), str(root / "one")],
+                       cwd=REPO, capture_output=True, text=True)
+    assert r.returncode == 0, r.stderr
+    assert parse_manifest((root / "one" / MANIFEST_NAME).read_bytes()).bounds.min[0] == 0.0  # -0.0 as stored
+    s = ServerThread(root)
+    try:
+        status, _, body = request(s.port, "/api/scenes")
+    finally:
+        s.stop()
+    assert status == 200 and b"-0.0" not in body, body
+    assert json.loads(body)["scenes"][0]["bounds"] == {"min": [0.0, 0.5, 1.0], "max": [0.0, 0.5, 1.0]}

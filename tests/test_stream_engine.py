@@ -5,7 +5,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from conftest import real
+from conftest import ROOT, real
 
 from client_gl.stream.engine import COMPILED_SELECTION, StreamEngine, StreamOptions
 from client_gl.stream.fetch import FetchStats
@@ -1271,4 +1271,22 @@ def test_a_decode_failing_inside_splatstream_is_said_and_the_view_still_converge
     failed = [e for e in engine.errors if "decoding failed inside splatstream: TypeError" in e]
     assert len(failed) >= 1 and all(e.startswith("tile ") for e in failed)
     assert not engine._decoding
+    engine.close()
+
+
+def test_the_frame_box_of_one_splat_is_its_size():
+    """newuser63: the F key framed a 1-splat scene as a unit box (its splat 16 px at 320x240); the root tile's frame
+    box of splats all at one point is now 3 sigma of its largest splat either side (camera.framing_box), from the
+    decoded scale plane, as the encoder's suggested camera frames it."""
+    from splatstream.camera import FRAME_POINT_SIGMAS
+
+    one = read_gaussians_ply(ROOT / "samples" / "donut.ply").subset(np.arange(1))
+    store = encode_in_memory(one, EncodeOptions(preset="medium"))
+    m = read_manifest(store)
+    engine = StreamEngine(StepFetcher(store), CountingPool(10), StreamOptions(SelectionOptions(max_sse=1.0)))
+    run_until_converged(engine, Camera(m.camera.eye, m.camera.target, m.camera.up, m.camera.fov_y, 320, 240))
+    lo, hi = engine.frame_box
+    sigma = float(np.exp(one.log_scales.max()))
+    np.testing.assert_allclose(hi - lo, [2 * FRAME_POINT_SIGMAS * sigma] * 3, rtol=0.02)  # within the 11-bit scales
+    np.testing.assert_allclose((lo + hi) / 2, one.positions[0], atol=1e-6)
     engine.close()

@@ -23,6 +23,12 @@ from splatstream.progress import count
 
 from .edit_flags import EDIT_OPTIONS
 
+# --drop-invalid, in every command that reads a splat file (encode, convert, render, view, eval): one meaning, one
+# help. render, view and eval refused NaN rows pointing at encode and convert for it (newuser63); each reads its
+# splat file with read_gaussians, so dropping the rows there costs nothing more than in encode.
+DROP_INVALID_HELP = ("drop the splats a scene cannot hold (NaN, inf, a zero-length quaternion, values beyond "
+                     "format.md 4.8's limits; a warning says how many) instead of refusing the input")
+
 
 def parse_vector(text: str, what: str, nonzero: bool = False) -> tuple[float, float, float]:
     """'X,Y,Z' -> three finite floats (not all zero when `nonzero`); `what` names the option in errors."""

@@ -22,7 +22,7 @@ from splatstream.io import (
 from splatstream.progress import ProgressPrinter, count
 from splatstream.readers.sog import read_sog_level
 
-from .args import add_edit_arguments, edit_report, edits_from
+from .args import DROP_INVALID_HELP, add_edit_arguments, edit_report, edits_from
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -52,8 +52,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--lod-level", type=int, default=None, metavar="L",
                    help="for a streamed SOG input: the LOD level to convert (0, the finest, by default; every level "
                         "of the tree is readable)")
-    p.add_argument("--drop-invalid", action="store_true",
-                   help="drop splats with non-finite or degenerate values instead of refusing the input")
+    p.add_argument("--drop-invalid", action="store_true", help=DROP_INVALID_HELP)
     add_edit_arguments(p)
     p.add_argument("-q", "--quiet", action="store_true", help="no progress messages on stderr")
     p.set_defaults(func=run)

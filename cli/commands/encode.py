@@ -34,6 +34,7 @@ from splatstream.sog_import import encode_tree_to
 from splatstream.sog_import import read_tree as sog_read_tree
 
 from .args import (
+    DROP_INVALID_HELP,
     MAX_RENDER_SIDE,
     add_edit_arguments,
     edit_report,
@@ -148,8 +149,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="turn the scene's suggested camera (the manifest's camera: where a viewer opens) by DEG "
                         "degrees about up, around what it looks at (180: the other side; positive: counter-clockwise "
                         "seen from above); default 0, the suggested camera as framed")
-    p.add_argument("--drop-invalid", action="store_true",
-                   help="drop splats with non-finite values or zero-length quaternions (with a warning)")
+    p.add_argument("--drop-invalid", action="store_true", help=DROP_INVALID_HELP)
     cluster = p.add_argument_group(
         "large scenes and clusters",
         "Scenes that do not fit in memory are encoded by partitions (subtrees of the tile tree), in this process or "

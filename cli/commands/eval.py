@@ -13,7 +13,7 @@ from splatstream.evaluate import PRESET_ORDER, EvalOptions, evaluate, plot_rate_
 from splatstream.readers.sog import sog_kind
 from splatstream.store import is_scene_dir
 
-from .args import parse_size, parse_vector
+from .args import DROP_INVALID_HELP, parse_size, parse_vector
 from .renderers import RENDERER_CHOICES, pick_renderer
 
 
@@ -60,6 +60,7 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--reference-table", action="store_true",
                    help="also print the published preset table of a Unity splat renderer (Aras P., 2023; bike scene) "
                         "as a labelled reference")
+    p.add_argument("--drop-invalid", action="store_true", help=DROP_INVALID_HELP)
     p.add_argument("--quiet", "-q", action="store_true", help="no progress lines on stderr")
     p.set_defaults(func=run)
 
@@ -99,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
     opts = EvalOptions(presets=presets, views=args.views, width=w, height=h, up=up,
                        elevation_deg=args.elevation, encoded_dir=args.encoded, compare=args.compare,
                        spz_axes=args.spz_axes or "rub", lod=args.lod, attribution=parse_list(args.attribution),
-                       variants=args.variants)
+                       variants=args.variants, drop_invalid=args.drop_invalid)
     log = None if args.quiet else (lambda msg: print(msg, file=sys.stderr, flush=True))
     report = evaluate(args.input, opts, log, pick_renderer(args.renderer))
     md = report_markdown(report, reference_table=args.reference_table)

@@ -34,10 +34,12 @@ def scene_info(m: Manifest) -> dict:
 
 def _lod(m: Manifest) -> dict:
     """The manifest's `lod` map; `merge` and `viewing_scale_px` None where the scene does not record how its tree
-    was built (format 1.9: absent from older scenes and imported trees); `viewing_scale_px` has one px per level
-    from the first merged one where the scene records them so (1.10's `viewing_scale_levels_px`)."""
+    was built (format 1.9: absent from older scenes and imported trees); `kept_from_input` where the tree is one
+    the encoder kept from its input (Manifest.lod_tree_kept); `viewing_scale_px` has one px per level from the first
+    merged one where the scene records them so (1.10's `viewing_scale_levels_px`)."""
     lod = m.lod
-    return {"enabled": lod.enabled, "max_leaf_splats": lod.max_leaf_splats, "reduction": lod.reduction,
+    return {"enabled": lod.enabled, "kept_from_input": m.lod_tree_kept,
+            "max_leaf_splats": lod.max_leaf_splats, "reduction": lod.reduction,
             "refine": lod.refine, "merge": lod.merge,
             "viewing_scale_px": list(lod.viewing_scale_px) if lod.viewing_scale_px is not None else None,
             "refinement": lod.refinement.to_dict() if lod.refinement is not None else None}
@@ -61,9 +63,12 @@ def _lod_line(lod: dict) -> str | None:
         return None
     shape = f"leaves of at most {lod['max_leaf_splats']:,} splats, {lod['reduction']:g}x per level"
     scales = lod["viewing_scale_px"]
+    if lod.get("kept_from_input"):  # (a scene of 1.9 or later without the build record: Manifest.lod_tree_kept)
+        return f"kept from the input (its own LOD tree: a streamed SOG's or a .rad's; encode --rebuild-lod builds " \
+               f"ours); {shape}"
     if lod["merge"] is None and scales is None:
-        return f"merge and viewing scales not recorded (a scene before format 1.9, or a tree splatstream did not " \
-               f"build); {shape}"
+        return f"merge and viewing scales not recorded (a scene before format 1.9, whose tree may also be one kept " \
+               f"from a streamed SOG or .rad input); {shape}"
     merge = f"merge {lod['merge']}" if lod["merge"] is not None else "merge not recorded"
     if scales is None:
         viewing = "viewing scales not recorded"

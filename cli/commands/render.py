@@ -17,7 +17,7 @@ from splatstream.orientation import view_side
 from splatstream.progress import count
 from splatstream.store import is_scene_dir, load_manifest
 
-from .args import check_look, check_sort_draw, parse_azimuth, parse_size, parse_vector
+from .args import DROP_INVALID_HELP, check_look, check_sort_draw, parse_azimuth, parse_size, parse_vector
 from .renderers import gl_client
 
 DEFAULT_SIZE = (1280, 720)
@@ -62,12 +62,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="draw the tiles and SH bands `view` streams for this camera at this screen-space error "
                         "(default: every full-detail tile with all its bands); the last line names the cut's tiles and "
                         "levels")
+    p.add_argument("--drop-invalid", action="store_true", help=DROP_INVALID_HELP)
     p.add_argument("--quiet", "-q", action="store_true", help="print nothing on success")
     p.set_defaults(func=run)
 
 
 def _camera(args, scene_camera: dict | None, positions: np.ndarray | None, scene_up, size,
-            side: float = 0.0, opacity_logits: np.ndarray | None = None) -> Camera:
+            side: float = 0.0, opacity_logits: np.ndarray | None = None,
+            log_scales: np.ndarray | None = None) -> Camera:
     width, height = size
     up = _optional_vector(args.up, "--up") or tuple(scene_up)
     if scene_camera is not None:
@@ -75,7 +77,7 @@ def _camera(args, scene_camera: dict | None, positions: np.ndarray | None, scene
                          scene_camera.get("fov_y", scene_camera.get("fov_y_deg", DEFAULT_FOV_Y_DEG)), width, height)
     else:
         default = suggested_camera(positions, up=up, width=width, height=height, side=side,
-                                   opacity_logits=opacity_logits)
+                                   opacity_logits=opacity_logits, log_scales=log_scales)
     azimuth = _azimuth(args)
     if azimuth:  # about the camera's own up (the scene's), as encode stores and view opens it (camera.md)
         default = Camera(turn_about_up(default.eye, default.target, default.up, azimuth), default.target, default.up,
@@ -127,6 +129,8 @@ def run(args: argparse.Namespace) -> int:
         if args.preset is not None:  # was ignored without a word
             raise UsageError(f"--preset {args.preset}: {args.scene} is an encoded scene, drawn in the formats it was "
                              "encoded with; --preset sets those of a splat file encoded in memory")
+        if args.drop_invalid:  # (an encoded scene's splats were screened when it was encoded)
+            raise UsageError(f"--drop-invalid: drops invalid splats of a splat file; {args.scene} is an encoded scene")
         manifest = load_manifest(args.scene)
         cam = _camera(args, manifest.camera.to_dict(), None, manifest.up, size)
         source = ("scene", args.scene)
@@ -135,11 +139,11 @@ def run(args: argparse.Namespace) -> int:
         if args.max_sse is not None:  # was ignored without a word: every splat was drawn
             raise UsageError(f"--max-sse {args.max_sse:g}: draws the tiles `view` streams, which an encoded scene "
                              f"directory has; {args.scene} is a splat file or SOG, drawn whole (encode it first)")
-        g = read_gaussians(args.scene)
+        g = read_gaussians(args.scene, drop_invalid=args.drop_invalid)
         if len(g) == 0:
             raise UsageError(f"{args.scene}: no splats to render")
         up = _optional_vector(args.up, "--up") or scene_up(args.scene, g).up
-        cam = _camera(args, None, g.positions, up, size, view_side(g, up), g.opacity_logits)
+        cam = _camera(args, None, g.positions, up, size, view_side(g, up), g.opacity_logits, g.log_scales)
         source = ("gaussians", g)
         splats = len(g)
         if not args.quiet:

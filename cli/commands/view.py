@@ -14,7 +14,7 @@ from splatstream.errors import UsageError
 from splatstream.format.names import MANIFEST_NAME
 from splatstream.progress import mib
 
-from .args import check_look, check_sort_draw, parse_azimuth, parse_size, parse_vector
+from .args import DROP_INVALID_HELP, check_look, check_sort_draw, parse_azimuth, parse_size, parse_vector
 from .renderers import gl_client
 
 DRAWS = ["auto", "compute", "fetch", "points", "instanced", "triangles"]
@@ -92,6 +92,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="close the window once the view has converged (after --screenshot, if given)")
     w.add_argument("--no-vsync", action="store_true", help="draw as fast as possible")
     w.add_argument("--no-overlay", action="store_true", help="open with the overlay hidden (O shows it)")
+    p.add_argument("--drop-invalid", action="store_true", help=DROP_INVALID_HELP)
     p.add_argument("--quiet", "-q", action="store_true", help="no progress line")
     p.set_defaults(func=run)
 
@@ -126,7 +127,7 @@ def _options(args):
                        fill_levels=not args.skip_levels, fill_gap=args.fill_gap,
                        fill_min_bytes=ViewOptions.fill_min_bytes if args.fill_min_kb is None
                        else int(args.fill_min_kb * 1024),
-                       cache=not args.no_cache,
+                       cache=not args.no_cache, drop_invalid=args.drop_invalid,
                        render=RenderOptions(sort=args.sort, draw=args.draw),
                        **_band_shares(args.sh_bands))
 

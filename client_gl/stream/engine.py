@@ -336,15 +336,20 @@ def decode_batch_job(jobs: list[tuple], between=None) -> list[tuple[dict, Any] |
 
 
 def root_frame_box(planes: dict, splats: int) -> tuple[np.ndarray, np.ndarray]:
-    """camera.framing_box of a tile's splats from its decoded base planes (positions, and opacities from the
-    colour plane's alpha). The root tile holds the whole scene, coarsely: its box is the scene's within a few %
-    (BENCHMARKS.md, "The F key frames the scene")."""
+    """camera.framing_box of a tile's splats from its decoded base planes (positions, opacities from the colour
+    plane's alpha, and log scales, which frame splats all at one point). The root tile holds the whole scene,
+    coarsely: its box is the scene's within a few % (BENCHMARKS.md, "The F key frames the scene")."""
     positions = decode_plane(planes["position"], splats)[:, 0]
     try:
         alpha = np.clip(decode_plane(planes["color"], splats)[:, 0, 3].astype(np.float64), 1e-6, 1.0 - 1e-6)
+        logits = np.log(alpha) - np.log1p(-alpha)
     except UsageError:  # BC7 colour without the 'bc' extra (the GPU decodes it, this could not): every splat
-        return framing_box(positions)
-    return framing_box(positions, np.log(alpha) - np.log1p(-alpha))
+        logits = None
+    lo, hi = framing_box(positions, logits)
+    if np.linalg.norm(hi - lo) > 0:
+        return lo, hi
+    # every splat at one point (a 1-splat scene): framed by their size, so the scale plane is decoded only then
+    return framing_box(positions, logits, log_scales=decode_plane(planes["scale"], splats)[:, 0])
 
 
 def _warm_up() -> bool:

@@ -295,19 +295,21 @@ OBJECT_STORE_SCHEMES = ("s3", "gs", "gcs", "az", "abfs", "memory")
 
 
 def open_source(spec: str | os.PathLike, *, encode_options=None, progress: Progress | None = None,
-                connections: int = 8) -> SceneSource:
+                connections: int = 8, drop_invalid: bool = False) -> SceneSource:
     """A source for an `http(s)://` scene URL, a scene directory (or its manifest.msgpack), a PlayCanvas streamed
     SOG (lod-meta.json or its directory: its own LOD tree, encoded in memory), a Spark .rad (its own LoD tree,
     encoded in memory), or a splat file
     (3DGS PLY, compressed PLY, SPZ, .splat, SOG: a .sog, a meta.json or its directory: read and encoded in memory
     with LOD on; `progress(stage, fraction)`
-    follows the read and the encode; `encode_options` an EncodeOptions). Raises UsageError or InputError with
-    one line naming `spec` and what was expected."""
+    follows the read and the encode; `encode_options` an EncodeOptions; `drop_invalid`: a splat file's invalid
+    splats dropped, not refused, and refused for an encoded scene). Raises UsageError or InputError with one line
+    naming `spec` and what was expected."""
     text = os.fspath(spec)
     if text.startswith("file://"):
         text = text[len("file://"):]
     if "://" in text:
         scheme = text.split("://", 1)[0].lower()
+        _no_splats_to_drop(drop_invalid, text)
         if scheme in OBJECT_STORE_SCHEMES:
             # An object store (through fsspec): the scene layout read object by object.
             return StoreSource(FsspecStore(text))
@@ -335,14 +337,24 @@ def open_source(spec: str | os.PathLike, *, encode_options=None, progress: Progr
         if not os.path.isfile(os.path.join(text, MANIFEST_NAME)) and \
                 os.path.isfile(os.path.join(text, SOG_META_NAME)):
             # An unbundled SOG's directory, as `convert`, `render` and `encode` read it (its meta.json).
-            return StoreSource(encode_splat_file(os.path.join(text, SOG_META_NAME), encode_options, progress))
+            return StoreSource(encode_splat_file(os.path.join(text, SOG_META_NAME), encode_options, progress,
+                                                 drop_invalid))
         if not os.path.isfile(os.path.join(text, MANIFEST_NAME)):
             raise InputError(text, None, f"not a scene directory (no {MANIFEST_NAME}; encode a splat file with "
                              f"`splatstream encode`, or pass the splat file itself)")
+        _no_splats_to_drop(drop_invalid, text)
         return StoreSource(DirectoryStore(text))
     if os.path.basename(text) == MANIFEST_NAME:
+        _no_splats_to_drop(drop_invalid, text)
         return StoreSource(DirectoryStore(os.path.dirname(os.path.abspath(text))))
-    return StoreSource(encode_splat_file(text, encode_options, progress))
+    return StoreSource(encode_splat_file(text, encode_options, progress, drop_invalid))
+
+
+def _no_splats_to_drop(drop_invalid: bool, where: str) -> None:
+    """`view --drop-invalid` of an encoded scene (its splats were screened when it was encoded): refused, not
+    ignored."""
+    if drop_invalid:
+        raise UsageError(f"--drop-invalid: drops invalid splats of a splat file; {where} is an encoded scene")
 
 
 def _is_rad(path: str) -> bool:
@@ -361,13 +373,15 @@ def _is_streamed_sog(path: str) -> bool:
     return os.path.basename(path).lower() == "lod-meta.json"
 
 
-def encode_splat_file(path: str, encode_options=None, progress: Progress | None = None) -> MemoryStore:
-    """Read a splat file of any supported format and encode it in memory (LOD on unless the options say so)."""
+def encode_splat_file(path: str, encode_options=None, progress: Progress | None = None,
+                      drop_invalid: bool = False) -> MemoryStore:
+    """Read a splat file of any supported format and encode it in memory (LOD on unless the options say so;
+    `drop_invalid`: its invalid splats dropped, not refused)."""
     opts = encode_options if encode_options is not None else EncodeOptions(lod=True)
     opts = replace(opts, reorder_input=True)  # the Gaussians are ours: the LOD builder may permute them in place
     if progress:
         progress("read", 0.0)
-    g = read_gaussians(path)
+    g = read_gaussians(path, drop_invalid=drop_invalid)
     if progress:
         progress("read", 1.0)
     if opts.up is None:

@@ -5,7 +5,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 
 from ..format.container import DEFAULT_ZSTD_LEVEL
-from ..format.presets import DEFAULT_PRESET, preset_transport, preset_zstd_level
+from ..format.presets import DEFAULT_PRESET, compression_preset, preset_transport, preset_zstd_level
 from ..lod_refine import LodRefiner
 
 # progress(stage, fraction in [0, 1]); stages: codebook, tiles, encode
@@ -111,6 +111,14 @@ class EncodeOptions:
 
     @property
     def resolved_zstd_level(self) -> int:
-        """The zstd level the payloads are written with: the option, else the preset's, else the default."""
-        return self.zstd_level if self.zstd_level is not None else preset_zstd_level(self.preset, DEFAULT_ZSTD_LEVEL)
+        """The zstd level the payloads are written with: the option, else the preset's, else the default (of a
+        scene with SH bands: zstd_level_for gives a scene's)."""
+        return self.zstd_level_for(1)
+
+    def zstd_level_for(self, sh_degree: int) -> int:
+        """The zstd level the payloads of a scene keeping `sh_degree` SH bands are written with: the option, else
+        the preset's (its base's where no band is kept: presets.compression_preset), else the default."""
+        if self.zstd_level is not None:
+            return self.zstd_level
+        return preset_zstd_level(compression_preset(self.preset, sh_degree), DEFAULT_ZSTD_LEVEL)
 

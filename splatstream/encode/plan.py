@@ -23,6 +23,7 @@ from ..format.manifest import Box, CameraEntry, LodRefinement
 from ..format.planes import BASE_PLANES
 from ..format.presets import (
     PRESET_PALETTE_MERGE,
+    compression_preset,
     palette_fallback,
     preset_block_slack,
     preset_one_block_slack,
@@ -200,9 +201,11 @@ def plan_scene(opts: EncodeOptions, formats: dict[str, str], chunk_order: str, s
     up = plan_up(opts, sample)
     formats, steps, palettes = plan_palettes(opts, formats, sample.palettes)
     formats = plan_rotation_format(opts, formats, sample.orient.rotations, sample.orient.log_scales)
-    context = TileContext(formats, chunk_order, sh_degree, codebook, opts.resolved_zstd_level, opts.resolved_transport,
-                          steps, palettes, preset_block_slack(opts.preset), preset_zstd_min_match(opts.preset),
-                          preset_one_block_slack(opts.preset), rotation_gauge(opts.preset, formats))
+    packing = compression_preset(opts.preset, sh_degree)  # a per-splat SH preset's base where no SH band is kept
+    context = TileContext(formats, chunk_order, sh_degree, codebook, opts.zstd_level_for(sh_degree),
+                          opts.resolved_transport, steps, palettes, preset_block_slack(packing),
+                          preset_zstd_min_match(packing), preset_one_block_slack(packing),
+                          rotation_gauge(opts.preset, formats))
     return ScenePlan(context, opts.preset, name, splats, bounds, up, opts.max_leaf_splats, float(opts.reduction),
                      lod_merge, viewing_scales_px() if lod_merge is not None else None,
                      camera_azimuth_deg=opts.camera_azimuth_deg), sample

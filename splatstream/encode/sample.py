@@ -106,9 +106,10 @@ class SceneSample:
         (camera.turn_about_up; `encode --camera-azimuth`)."""
         if len(self.orient) >= 16:  # framed by the splats that are not nearly transparent (camera.framing_box)
             cam = suggested_camera(self.orient.positions, up=up, side=view_side(self.orient, up),
-                                   opacity_logits=self.orient.opacity_logits)
-        else:
-            cam = suggested_camera(self.positions, up=up, side=view_side(self.orient, up))
+                                   opacity_logits=self.orient.opacity_logits, log_scales=self.orient.log_scales)
+        else:  # (splats all at one point are framed by their size: the orientation sample's scales)
+            cam = suggested_camera(self.positions, up=up, side=view_side(self.orient, up),
+                                   log_scales=self.orient.log_scales)
         eye = turn_about_up(cam.eye, cam.target, cam.up, azimuth_deg) if azimuth_deg else cam.eye
         return CameraEntry(tuple(float(v) for v in eye), tuple(float(v) for v in cam.target),
                            tuple(float(v) for v in cam.up), float(cam.fov_y_deg))

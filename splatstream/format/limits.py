@@ -13,6 +13,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..gaussians import Gaussians
+from ..progress import some_of
 
 MAX_ABS_POSITION = 1e18
 MIN_LOG_SCALE = -80.0
@@ -62,5 +63,5 @@ def describe_violations(violations: list[tuple[str, np.ndarray]], n: int) -> tup
         bad |= mask
     detail = ", ".join(f"{what}: {int(mask.sum())}" for what, mask in violations)
     first = int(np.argmax(bad))
-    return bad, (f"{int(bad.sum())} of {n} splats have values outside what a scene can hold ({detail}; first at "
-                 f"splat {first}; format_spec/format.md 4.8)")
+    return bad, (f"{some_of(int(bad.sum()), n, 'splats', ('has', 'have'))} values outside what a scene can hold "
+                 f"({detail}; first at splat {first}; format_spec/format.md 4.8)")

@@ -198,7 +198,8 @@ PRESET_STEPS: dict[str, dict[str, TileStep]] = {
 # their decode: 0.4-4 % fewer bytes than level 1 on the real scenes and, with their parts joined within 2 %, zstd reads
 # them 10-20 % faster (issue 32; BENCHMARKS.md, "Decode speed", lossydec). medium-high took high's settings two rounds
 # later (tidy32): on SH0 scenes its planes are high's, and at level 1 its files were 0.4 % larger than high's there.
-# high-sh255 (hole32) takes them from the start, for the same reason.
+# high-sh255 (hole32) takes them from the start, for the same reason. On a scene without SH bands a per-splat SH preset
+# takes its base's level, shortest match and slacks (PRESET_SH_BASE, compression_preset).
 PRESET_ZSTD_LEVEL: dict[str, int] = {"very-high": 12, "medium-low": 9, "medium-low-12bit": 16, "medium-low-palette": 16,
                                      "medium-low-9bit": 16,
                                      "low-plus-9bit": 16, "low-plus-9bit-sh6": 16,
@@ -380,6 +381,22 @@ def palette_fallback(preset: str, overrides: dict[str, str] | None, unfit: set[s
 def preset_transport(preset: str, default: str) -> str:
     """The transport an encode of `preset` uses when none is given (`default`: the encoder's)."""
     return PRESET_TRANSPORT.get(preset, default)
+
+
+# The per-splat SH presets and their bases: the same planes but the SH bands'. On a scene without SH bands (SH degree
+# 0 as read, or kept by --sh-degree 0) a variant writes its base's planes, and it takes its base's zstd settings too
+# (level, shortest match, block slacks: compression_preset), so it writes its base's bytes, as the README's preset
+# table says ("= medium-low (no SH bands)"): medium-low-sh16 and -sh8 took level 12 with a shortest match of 6 where
+# medium-low takes level 9, 0.4 % more bytes on SH0 scenes (newuser63). A scene with SH bands is untouched.
+PRESET_SH_BASE: dict[str, str] = {"high-sh255": "high", "medium-high": "high", "medium-low-sh16": "medium-low",
+                                  "medium-low-sh8": "medium-low", "low-plus-9bit-sh6": "low-plus-9bit",
+                                  "low-plus-9bit-sh5": "low-plus-9bit"}
+
+
+def compression_preset(preset: str, sh_degree: int) -> str:
+    """The preset whose zstd settings (level, shortest match, block slacks) an encode of `preset` keeping
+    `sh_degree` SH bands takes: its base (PRESET_SH_BASE) where it keeps none, else itself."""
+    return PRESET_SH_BASE.get(preset, preset) if sh_degree == 0 else preset
 
 
 def preset_zstd_level(preset: str, default: int) -> int:

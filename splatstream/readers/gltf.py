@@ -25,6 +25,7 @@ from ..axes import RDF_TO_RUB, turn
 from ..errors import InputError
 from ..gaussians import SH_BAND_COEFFS, Gaussians, normalize_quaternions
 from ..gltf_splats import EXTENSION, PREFIX, SPZ_EXTENSION, sh_attribute_names
+from ..progress import some_of
 from ..reader_support import DROP_INVALID_HINT, memory_budget, opacity_logits_from_unit, read_regular_file
 from ..sh import sh_basis
 from .splat import MIN_LOG_SCALE
@@ -408,7 +409,7 @@ def _primitive(doc: _Document, mesh: int, number: int, primitive: dict, drop_inv
         bad |= mask
     if bad.any():
         detail = ", ".join(f"{int(mask.sum())} {what}" for what, mask in checks.items() if mask.any())
-        msg = f"{int(bad.sum())} of {n} splats are invalid ({detail})"
+        msg = f"{some_of(int(bad.sum()), n, 'splats', ('is', 'are'))} invalid ({detail})"
         if not drop_invalid:
             raise InputError(doc.path, field, f"{msg}; {DROP_INVALID_HINT}")
         warnings.warn(f"{doc.path}: {field}: {msg}; dropped", stacklevel=4)

@@ -13,6 +13,7 @@ import numpy as np
 from ..atomic import atomic_file
 from ..errors import InputError
 from ..gaussians import SH_C0, Gaussians, normalize_quaternions, sigmoid
+from ..progress import some_of
 from ..reader_support import DROP_INVALID_HINT, check_memory, model_bytes_per_splat, opacity_logits_from_unit
 
 SPLAT_RECORD = np.dtype([("position", "<f4", (3,)), ("scale", "<f4", (3,)), ("rgba", "u1", (4,)),
@@ -52,9 +53,9 @@ def read_splat(path: str | os.PathLike, drop_invalid: bool = False) -> Gaussians
                   f"{int(bad_scale.sum())} with a non-finite, negative, implausible (>= 1e7) or all-zero scale, "
                   f"{int(zero_rotation.sum())} with a zero-length quaternion (all four bytes 128)")
         if bad.sum() * 2 > n:
-            raise InputError(path, "records", f"{int(bad.sum())} of {n} records are implausible ({counts}): "
-                             "this does not look like a .splat file")
-        msg = f"{int(bad.sum())} of {n} splats are invalid ({counts})"
+            raise InputError(path, "records", f"{some_of(int(bad.sum()), n, 'records', ('is', 'are'))} implausible "
+                             f"({counts}): this does not look like a .splat file")
+        msg = f"{some_of(int(bad.sum()), n, 'splats', ('is', 'are'))} invalid ({counts})"
         if not drop_invalid:
             raise InputError(path, "records", f"{msg}; {DROP_INVALID_HINT}")
         warnings.warn(f"{path}: {msg}; dropped", stacklevel=2)
@@ -96,8 +97,8 @@ def write_splat(g: Gaussians, path: str | os.PathLike) -> None:
         implausible = ~(np.abs(records["position"]) < PLAUSIBLE_POSITION).all(axis=1) | \
             ~(records["scale"] < PLAUSIBLE_SCALE).all(axis=1) | (records["scale"] == 0).all(axis=1)
     if implausible.any():
-        raise InputError(path, None, f"{int(implausible.sum())} of {len(g)} splats have a position beyond +-1e7 or a "
-                         "scale of 1e7 or more (or none at all), which .splat readers take for garbage (the format has "
-                         "no header); write .ply, .spz or .glb instead")
+        raise InputError(path, None, f"{some_of(int(implausible.sum()), len(g), 'splats', ('has', 'have'))} a "
+                         "position beyond +-1e7 or a scale of 1e7 or more (or none at all), which .splat readers take "
+                         "for garbage (the format has no header); write .ply, .spz or .glb instead")
     with atomic_file(path) as f:
         records.tofile(f)

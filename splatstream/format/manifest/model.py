@@ -20,7 +20,7 @@ from ..names import payload_name
 from ..planes import MAX_SH_DEGREE, band_of, groups_for_degree
 from ..texformats import FORMATS, blob_size
 from .table import bounds_columns, compact_columns, tiles_body
-from .versions import FORMAT_NAME, VERSION_1_12
+from .versions import FORMAT_NAME, VERSION_1_9, VERSION_1_12
 from .wire import pack_manifest
 
 Vec3 = tuple[float, float, float]
@@ -385,6 +385,15 @@ class Manifest:
     @property
     def uses_codebook(self) -> bool:
         return self.sh_codebook is not None
+
+    @property
+    def lod_tree_kept(self) -> bool:
+        """Whether the LOD tree is one splatstream's encoder kept from its input (a streamed SOG's or a .rad's own
+        LOD; format.md 6, "The tree's build record"): from 1.9 splatstream records how it built every tree it builds,
+        so one of its scenes from 1.9 on with a tree and no record holds a tree it did not build. Before 1.9 the
+        absence says nothing (False)."""
+        return (self.lod.enabled and not self.lod.build_recorded and self.version >= VERSION_1_9
+                and self.generator.startswith("splatstream "))
 
     @property
     def levels(self) -> int:
@@ -1025,7 +1034,9 @@ def scene_summary(m: Manifest) -> dict:
         "splats": m.splats,
         "sh_degree": m.sh_degree,
         "preset": m.preset,
-        "bounds": m.bounds.to_dict(),
+        # + 0.0 turns -0.0 into 0.0: a splat at x = -0.0 wrote '"min": [-0.0, ...]' into /api/scenes and info's JSON
+        # (newuser63); the manifest keeps its bounds as stored
+        "bounds": {k: [v + 0.0 for v in corner] for k, corner in m.bounds.to_dict().items()},
         "up": list(m.up),
         "bytes_on_disk": m.bytes_on_disk,
         "gpu_bytes": m.gpu_bytes,
