@@ -270,12 +270,11 @@ class CpuLevelRefiner:
             first = len(whole) - len(merged)  # the merged splats come last
             (far_train, far_valid, far_range), (far_gt_train, far_gt_valid) = far[k], far_gt[k]
             sets, batch_of = [], []
-            for b in range(max(1, s.batches)):
-                step = max(1, s.batches)
+            batches = max(1, s.batches)
+            for b in range(batches):
                 for cams, targets, weight in ((train, gt, 1.0), (far_train, far_gt_train, s.far_weight)):
-                    if cams[b::step]:
-                        sets.append((raster.pair_lists(whole, cams[b::step], degree),
-                                     targets[b::step], weight))
+                    if cams[b::batches]:
+                        sets.append((raster.pair_lists(whole, cams[b::batches], degree), targets[b::batches], weight))
                         batch_of.append(b)
             # the fit's last step is not the level's end (its validation follows): below k + 2, so that the last
             # level's "100%" comes after its line, not a minute before it (newuser57, donut: 58 s)

@@ -60,8 +60,9 @@ from .residency_layout import (
 from .slots import SlotAllocator, slots_for_budget
 from .sort import compute_program
 
-# How a new pool's atlases are made GPU-written before their first upload (ChunkPool._prime_atlases).
+# How a new pool's atlases are made GPU-written before their first upload (ChunkPool._prime_atlases), and the default.
 PRIMES = ("compute", "clear", "none")
+DEFAULT_PRIME = "clear"
 
 
 @dataclass
@@ -124,7 +125,7 @@ class ChunkPool:
     """
 
     def __init__(self, ctx, formats: Mapping[str, str], sh_degree: int, slots: int, *,
-                 codebook: CodebookLayout | None = None, host_mirror: bool = True, prime: str = "clear"):
+                 codebook: CodebookLayout | None = None, host_mirror: bool = True, prime: str = DEFAULT_PRIME):
         if prime not in PRIMES:
             raise UsageError(f"unknown atlas prime {prime!r} (choose one of {', '.join(PRIMES)})")
         self.ctx = ctx
@@ -188,8 +189,8 @@ class ChunkPool:
         the first frame: 37-80 ms on a cold NVIDIA driver, BENCHMARKS.md r24); "clear", glClearTexSubImage of that
         texel (GL 4.4 or ARB_clear_texture, no compile; the default: on the H200 the first uploads after it took
         0.1-0.2 ms with no page faults, as after the shader, bench/probe_gpu_alloc.py --primes, r26), the shader
-        where the GL has neither;
-        "none", nothing (the probe's baseline). The texel is slot 0's, which its first join overwrites."""
+        where the GL has neither; "none", nothing (the probe's baseline). The texel is slot 0's, which its first
+        join overwrites."""
         if how == "none" or self.ctx.version_code < 430:
             return
         atlases = [tex for tex in self._atlases.values() if not tex.compressed]
@@ -207,7 +208,7 @@ class ChunkPool:
     @classmethod
     def for_budget(cls, ctx, gpu_budget_bytes: int, formats: Mapping[str, str], sh_degree: int, *,
                    codebook: CodebookLayout | None = None, host_mirror: bool = True,
-                   prime: str = "clear") -> ChunkPool:
+                   prime: str = DEFAULT_PRIME) -> ChunkPool:
         """The largest pool whose GPU bytes (gpu_bytes) stay within `gpu_budget_bytes`."""
         slots = slots_for_budget(gpu_budget_bytes, formats, sh_degree, codebook)
         return cls(ctx, formats, sh_degree, slots, codebook=codebook, host_mirror=host_mirror, prime=prime)

@@ -39,7 +39,7 @@ from . import shadergen
 from .compute_raster import ComputeRaster, default_entries, raster_sources
 from .gl import clear_framebuffer_releasing_gil, has_gl, texture_barrier, work_buffer
 from .gl import flush as gl_flush
-from .pool import PRIMES, ChunkPool
+from .pool import DEFAULT_PRIME, PRIMES, ChunkPool
 from .residency_layout import TEXTURE_UNITS
 from .sort import (
     CHAIN_BARRIER,
@@ -186,7 +186,7 @@ class RenderOptions:
     # H200 (r26) the first pixel-unpack uploads after either took 0.1-0.2 ms with no page faults, against 122-138 ms
     # and 131,072 faults unprimed: the driver treats a cleared atlas as GPU-written (issue 31; BENCHMARKS.md, "The
     # first frame's prime and framebuffer off the serial path").
-    atlas_prime: str = "clear"
+    atlas_prime: str = DEFAULT_PRIME
     # A session that knows its output size before the manifest (`view --headless`, StreamingSession.open with
     # target_size) on a hardware GL makes the first frame's framebuffer and clears it while the manifest is fetched
     # (prepare_target), not in the first frame: a cold driver's first clear took 57 ms there (r24). The picture is
