@@ -452,3 +452,24 @@ def test_render_view_and_eval_drop_invalid_splats_as_encode_does(tmp_path):
     import json
 
     assert json.loads((tmp_path / "e.json").read_text())["input"]["splats"] == 1999
+
+
+@pytest.mark.parametrize("args, said", [
+    # argparse's own message came from the top-level parser and named no command (newuser64):
+    # 'splatstream: error: unrecognized arguments: --target-psnr 50 (see splatstream --help)'
+    (["eval", "x.ply", "--target-psnr", "50"],
+     "splatstream eval: error: unrecognized arguments: --target-psnr 50 (--target-psnr is an option of encode) "
+     "(see splatstream eval --help)"),
+    (["view", "scene", "--maxsplats", "3"],
+     "splatstream view: error: unrecognized arguments: --maxsplats 3 (--maxsplats: did you mean --max-splats?) "
+     "(see splatstream view --help)"),
+    (["info", "scene", "extra"],
+     "splatstream info: error: unrecognized arguments: extra (see splatstream info --help)"),
+    (["decode", "scene", "o.ply", "--bogus=1"],
+     "splatstream decode: error: unrecognized arguments: --bogus=1 (see splatstream decode --help)"),
+])
+def test_an_unknown_argument_is_named_by_its_command(args, said, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(args)
+    assert exc.value.code == 2
+    assert capsys.readouterr().err.strip() == said
