@@ -1,12 +1,16 @@
 """One exit-code convention for every command: bad input or usage exits 2 with one line naming the path or option
 and what was expected; never a traceback; no output left behind."""
 import os
+import shutil
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 from conftest import ROOT, run_cli
 
 from cli.main import main
+from splatstream.atomic import is_mount_point, mountinfo_points
 from splatstream.io import read_gaussians
 from splatstream.ply import write_gaussians_ply
 from splatstream.store import load_manifest
@@ -290,6 +294,38 @@ def test_a_mount_point_is_refused_before_the_work_not_after(tmp_path, scene, mon
         assert not list(volume.iterdir()) and not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
     assert main(["encode", str(DONUT), str(volume / "scene"), "-q"]) == 0
     assert (volume / "scene" / "manifest.msgpack").is_file()
+
+
+def test_mountinfo_points_undo_the_kernels_escapes(tmp_path):
+    text = ("22 1 8:1 / / rw,relatime shared:1 - ext4 /dev/sda1 rw\n"
+            "95 22 8:1 /home/u/out /srv/my\\040volume rw,relatime shared:1 - ext4 /dev/sda1 rw\n")
+    assert mountinfo_points(text) == {"/", "/srv/my volume"}
+    (tmp_path / "vol").mkdir()
+    info = tmp_path / "mountinfo"
+    info.write_text(f"95 22 8:1 /x {tmp_path / 'vol'} rw - ext4 /dev/sda1 rw\n")
+    assert is_mount_point(str(tmp_path / "vol"), str(info)) and not is_mount_point(str(tmp_path), str(info))
+
+
+@pytest.mark.skipif(os.geteuid() != 0 or shutil.which("unshare") is None or shutil.which("mount") is None,
+                    reason="a bind mount needs root and unshare")
+def test_a_bind_mount_on_the_same_file_system_is_refused_before_the_work(tmp_path):
+    """os.path.ismount compares a directory's device with its parent's, so a bind mount within one file system (a
+    container volume from the host's disk, `mount --bind`) was not seen: `encode donut.ply VOL` ran the whole encode
+    and then failed with 'VOL: Device or resource busy', exit 1 (newuser64). The kernel's list of mount points is read
+    too now: one line before any work, exit 2. A private mount namespace (unshare -m) keeps the mount to the test."""
+    volume = tmp_path / "volume"
+    volume.mkdir()
+    script = (f'mount --bind "{volume}" "{volume}" || exit 99; '
+              f'exec "{sys.executable}" -m cli encode "{DONUT}" "{volume}" -q')
+    r = subprocess.run(["unshare", "-m", "sh", "-c", script], capture_output=True, text=True, cwd=ROOT,
+                       stdin=subprocess.DEVNULL, timeout=600)
+    if r.returncode == 99:
+        pytest.skip(f"no bind mount here: {r.stderr.strip()}")
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip() == (f"splatstream encode: error: {volume}: is a mount point, which the finished output "
+                                f"cannot replace (it is renamed into place); give a directory inside it, e.g. "
+                                f"{volume / 'scene'}"), r.stderr
+    assert not list(volume.iterdir()) and not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
 
 
 @pytest.mark.parametrize("argv, said", [
