@@ -48,6 +48,10 @@ def cases(tmp, scene):
         (["render", scene, "--drop-invalid", "--out", tmp / "o.png"], "--drop-invalid: drops invalid splats of a "
                                                                       "splat file; "),
         (["view", scene, "--headless", "--drop-invalid"], "--drop-invalid: drops invalid splats of a splat file; "),
+        # render takes an encoded scene too, which the reader's message did not name (newuser64)
+        (["render", tmp / "a_dir", "--out", tmp / "o.png"],
+         f"{tmp / 'a_dir'}: not a scene directory (no manifest.msgpack) nor a SOG directory (no meta.json or "
+         "lod-meta.json): render takes an encoded scene, a SOG or a splat file"),
         (["encode", tmp / "missing.ply", tmp / "o"], "missing.ply"),
         (["encode", DONUT, tmp / "o", "--up", "0,0,0"], "--up"),
         (["encode", DONUT, tmp / "o", "--up", "1,x,0"], "--up"),
