@@ -48,6 +48,15 @@ def cases(tmp, scene):
         (["render", scene, "--drop-invalid", "--out", tmp / "o.png"], "--drop-invalid: drops invalid splats of a "
                                                                       "splat file; "),
         (["view", scene, "--headless", "--drop-invalid"], "--drop-invalid: drops invalid splats of a splat file; "),
+        # a directory output named as the file an engine loads, or as a one-file format, was written as a directory
+        # of that name: sog/lod-meta.json/lod-meta.json (newuser64)
+        (["export-sog-lod", scene, tmp / "sog" / "lod-meta.json", "-q"],
+         f"{tmp / 'sog' / 'lod-meta.json'}: export-sog-lod writes a directory with lod-meta.json inside it; give the "
+         f"directory ({tmp / 'sog'})"),
+        (["export-sog-lod", scene, tmp / "g.sog", "-q"], "export-sog-lod writes a directory (lod-meta.json and its "
+                                                         "files), not a .sog file; `splatstream decode SCENE "),
+        (["export-3dtiles", scene, tmp / "t" / "tileset.json", "-q"],
+         f"{tmp / 't' / 'tileset.json'}: export-3dtiles writes a directory with tileset.json inside it"),
         # render takes an encoded scene too, which the reader's message did not name (newuser64)
         (["render", tmp / "a_dir", "--out", tmp / "o.png"],
          f"{tmp / 'a_dir'}: not a scene directory (no manifest.msgpack) nor a SOG directory (no meta.json or "
