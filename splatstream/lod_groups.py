@@ -297,8 +297,13 @@ def _neighbour_block(ctx: tuple, r0: int, block: int, ordered: bool) -> tuple[np
         d2s += t
     del at, t
     # Self and repeats (a candidate equal to the one before it in its sorted row) as one mask, one masked write.
-    drop = cs == rows[:, None]
-    drop[:, 1:] |= cs[:, 1:] == cs[:, :-1]
+    # The repeats compared over the flat rows at once (one contiguous pass, not one short loop per row), each row's
+    # first column then cleared: the same mask as cs[:, 1:] == cs[:, :-1] beside a False column.
+    drop = np.empty(cs.shape, bool)
+    flat, dflat = cs.reshape(-1), drop.reshape(-1)
+    np.equal(flat[1:], flat[:-1], out=dflat[1:])
+    drop[:, 0] = False
+    drop |= cs == rows[:, None]
     np.copyto(d2s, np.inf, where=drop)
     del drop
     if not ordered:  # the k smallest, ties to the lower id (the earlier column), as the stable sort picks
@@ -467,10 +472,20 @@ def _edge_costs(mu_t, cov_t, alpha, col, w, i, j, rule: GroupRule) -> np.ndarray
     di = d * pj
     dj = -d * pi
     ci, cj = np.take(cov_t, i, axis=1), np.take(cov_t, j, axis=1)  # (6, N)
+    # cm[k] = pi * (di[a] * di[b] + ci[k]) + pj * (dj[a] * dj[b] + cj[k]), the diagonal + 1e-20: the same operations
+    # in the same order (products commute exactly), in place in cm's rows and one work array.
     cm = np.empty_like(ci)
+    t = np.empty_like(pi)
     for k, (a, b) in enumerate(_SYM6):
-        cm[k] = pi * (di[a] * di[b] + ci[k]) + pj * (dj[a] * dj[b] + cj[k])
-    cm[[0, 3, 5]] += 1e-20
+        x = np.multiply(di[a], di[b], out=cm[k])
+        x += ci[k]
+        x *= pi
+        np.multiply(dj[a], dj[b], out=t)
+        t += cj[k]
+        t *= pj
+        x += t
+        if a == b:
+            x += 1e-20
     area_m = np.maximum(_area6(cm.T), 1e-300)
     am = np.minimum(1.0, W / area_m)
     bi, bj = np.take(col, i, axis=0), np.take(col, j, axis=0)  # rows: np.take is 4x fancy indexing
@@ -970,7 +985,8 @@ def group_errors(positions, log_scales, rotations, opacities, colours, masses, i
     cm = np.empty((groups, 6))
     for k, (x, y) in enumerate(_SYM6):
         cm[:, k] = np.bincount(sid, weights=f * (dm[:, x] * dm[:, y] + cov[:, k]), minlength=groups)
-    cm[:, [0, 3, 5]] += 1e-20
+    for k in (0, 3, 5):  # in place: the same sums as through a fancy-indexed copy
+        cm[:, k] += 1e-20
     am = np.minimum(1.0, W / np.maximum(_area6(cm), 1e-300))
     col_m = np.stack([np.bincount(sid, weights=f * c[:, k], minlength=groups) for k in range(3)], 1)
     err = np.bincount(sid, weights=own, minlength=groups)
