@@ -23,7 +23,7 @@
 set -uo pipefail
 cd "$(dirname "$0")/../.."
 ROOT=$PWD
-CARRY=$ROOT/.enc_carry
+CARRY=${CARRY:-$ROOT/.enc_carry}
 ROUNDS=${ROUNDS:-3}
 CORESETS=${CORESETS:-"0,1 0"}
 OUT=${OUT:-/tmp/encode_wall_out}

@@ -15,6 +15,7 @@ available to this process; otherwise the caller encodes every payload itself, as
 """
 from __future__ import annotations
 
+import gc
 import os
 import traceback
 from collections.abc import Callable
@@ -101,6 +102,7 @@ class ForkedPayloads:
         self.offered: set[int] = set()  # ids of the tiles offered so far
         self.running: list[tuple] = []  # (process, receiving end of its pipe)
         self.done: TilePayloads = {}
+        self._frozen = False  # this object froze the collector's objects (gc.freeze) and unfreezes them at the end
 
     def _reap(self, block: bool) -> None:
         still = []
@@ -139,6 +141,11 @@ class ForkedPayloads:
                 os._exit(1)
 
         proc = self._mp.Process(target=run, daemon=True)
+        if not self._frozen:
+            # Python's objects out of the collector's sight while children share them: a collection walks (and so
+            # writes) every tracked object, which copies its page into whichever process walks it
+            self._frozen = gc.get_freeze_count() == 0
+            gc.freeze()
         proc.start()
         send.close()
         self.running.append((proc, receive))
@@ -163,7 +170,13 @@ class ForkedPayloads:
                 self._start(part)
             self.done.update(here(parts[0]))
         self._reap(block=True)
+        self._unfreeze()
         return self.done
+
+    def _unfreeze(self) -> None:
+        if self._frozen:
+            gc.unfreeze()
+            self._frozen = False
 
     def close(self) -> None:
         for proc, conn in self.running:
@@ -171,3 +184,4 @@ class ForkedPayloads:
             proc.join()
             conn.close()
         self.running = []
+        self._unfreeze()
