@@ -13,11 +13,13 @@
 #   rm -rf .enc_carry && mkdir -p .enc_carry/old .enc_carry/base
 #   git archive 60c1b51 splatstream | tar -x -C .enc_carry/old
 #   git archive BASE_COMMIT splatstream cli | tar -x -C .enc_carry/base
-#   cp ../shared/tools/make_scene.py ../shared/data/real/biker.compressed.ply .enc_carry/
+#   mkdir -p .enc_carry/tools .enc_carry/data/real && cp ../shared/tools/make_scene.py .enc_carry/tools/
+#   (cd ../shared/data/real && cp biker.compressed.ply fruit_drops_sh3.ply lod_tile_sh3_zero_rest.ply \
+#     donut_sh0_no_normals.ply winter_fountain.splat "$OLDPWD/.enc_carry/data/real/")
 #   # run (nvidia-h200), carry [".whl", ".enc_carry"], timeout 600:
 #   bash bench/device/encode_wall_2core.sh
 #
-# (about 6 MB carried besides .whl; where .git does travel and .enc_carry/old or base is missing, they are made
+# (about 15 MB carried besides .whl; where .git does travel and .enc_carry/old or base is missing, they are made
 # with git archive here.) ROUNDS (3), CORESETS ("0,1 0"), ONLY_1M=1 / ONLY_BIKER=1 narrow it; the whole run is
 # about 300-400 s on that machine (not measured yet: the 1M encodes are most of it).
 set -uo pipefail
@@ -27,7 +29,8 @@ CARRY=${CARRY:-$ROOT/.enc_carry}
 ROUNDS=${ROUNDS:-3}
 CORESETS=${CORESETS:-"0,1 0"}
 OUT=${OUT:-/tmp/encode_wall_out}
-mkdir -p "$OUT" /tmp/ew
+SCRATCH=${SCRATCH:-/tmp/ew}
+mkdir -p "$OUT" "$SCRATCH"
 if [ -d .whl ]; then
   [ -d /tmp/site/zstandard ] || python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir \
     --upgrade --target /tmp/site .whl/*.whl || exit 1
@@ -42,9 +45,9 @@ for v in old base; do
   fi
 done
 nproc; python3 -c "import numpy, zstandard; print('numpy', numpy.__version__, 'zstandard', zstandard.__version__)" || exit 1
-S1M=/tmp/ew/s1m.ply
-[ -f $S1M ] || python3 "$CARRY/make_scene.py" --splats 1000000 --seed 0 --out $S1M || exit 1
-BIKER=$CARRY/biker.compressed.ply
+S1M=$SCRATCH/s1m.ply
+[ -f $S1M ] || python3 "$CARRY/tools/make_scene.py" --splats 1000000 --seed 0 --out $S1M || exit 1
+BIKER=$CARRY/data/real/biker.compressed.ply
 declare -A CODE=([old]="$CARRY/old:splatstream.cli" [base]="$CARRY/base:cli" [new]="$ROOT:cli")
 cases=()
 [ "${ONLY_BIKER:-0}" = 1 ] || cases+=("$S1M medium")

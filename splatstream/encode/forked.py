@@ -10,13 +10,14 @@ two cores".
 
 The bytes do not depend on it: a payload job is a pure function of its tile and the context (jobs.py), its file is
 named by its checksum, and the manifest lists the tiles in the tree's order whoever encoded them. Only for a
-DirectoryWriter (files a child can write beside this process), where fork exists and more than one core is
-available to this process; otherwise the caller encodes every payload itself, as before.
+DirectoryWriter (files a child can write beside this process), on Linux, where more than one core is available
+to this process; otherwise the caller encodes every payload itself, as before.
 """
 from __future__ import annotations
 
 import gc
 import os
+import sys
 import traceback
 from collections.abc import Callable
 
@@ -40,8 +41,9 @@ def available_cores() -> int:
 
 def payload_processes(writer: SceneWriter, cores: int | None = None) -> int:
     """How many child processes encode payloads beside this one: one less than the cores available, none where a
-    child cannot write the payloads (a writer other than a DirectoryWriter) or cannot be forked."""
-    if not isinstance(writer, DirectoryWriter) or not hasattr(os, "fork"):
+    child cannot write the payloads (a writer other than a DirectoryWriter), and off Linux (macOS's system
+    libraries are not safe to use in a forked child; Windows has no fork)."""
+    if not isinstance(writer, DirectoryWriter) or not sys.platform.startswith("linux"):
         return 0
     return max(0, (available_cores() if cores is None else cores) - 1)
 
