@@ -1,15 +1,16 @@
 """Where one in-process encode's CPU and peak memory go: CPU per phase, and what runs at the peak RSS.
 
     PYTHONPATH=. python bench/encode_phases.py SCENE OUT_DIR [--preset medium] [--lod-merge grid|auto|cost]
-        [--threads]
+        [--threads | --timeline]
 
-Runs `encode_file` once in this process with every thread pool (the LOD tree's, the payloads') replaced by an
-inline executor, so that every job runs on the calling thread and the process CPU of each wrapped function is its
-own (inclusive: the grouping's row includes its k-NN, costs and matching). Without pools a phase's CPU is the
-work itself, not the interpreter-lock hand-offs of two threads (BENCHMARKS.md, "Where the grid encode's CPU goes");
-`--threads` keeps the pools as shipped. A thread samples the RSS every 3 ms and records, at its largest, the
-wrapped phases running and the main thread's innermost lines. Prints one JSON object: CPU s per wrapped function,
-the whole encode's CPU and wall, the peak RSS and where it was reached.
+Runs `encode_file` once in this process with every thread pool (the LOD tree's, the payloads') replaced by an inline
+executor, so that every job runs on the calling thread and the process CPU of each wrapped function is its own
+(inclusive: the grouping's row includes its k-NN, costs and matching). Without pools a phase's CPU is the work
+itself, not the interpreter-lock hand-offs of two threads (BENCHMARKS.md, "Where the grid encode's CPU goes");
+`--threads` keeps the pools as shipped. Either way the payloads stay in this process (no forked children);
+`--timeline` runs the encode exactly as shipped, children included. A thread samples the RSS every 3 ms and records,
+at its largest, the wrapped phases running and the main thread's innermost lines. Prints one JSON object: CPU s per
+wrapped function, the whole encode's CPU and wall, the peak RSS and where it was reached.
 """
 from __future__ import annotations
 
@@ -89,6 +90,9 @@ def main() -> None:
     args = ap.parse_args()
     if args.timeline:
         return timeline(args)
+    # The payloads in this process (no forked children, encode/forked.py): a child's CPU is not this process's, so
+    # the wrappers would miss it
+    local.payload_processes = lambda writer, cores=None: 0
     if not args.threads:
         lod.ThreadPoolExecutor = InlineExecutor
         local.ThreadPoolExecutor = InlineExecutor

@@ -43,9 +43,24 @@ def payload_processes(writer: SceneWriter, cores: int | None = None) -> int:
     """How many child processes encode payloads beside this one: one less than the cores available, none where a
     child cannot write the payloads (a writer other than a DirectoryWriter), and off Linux (macOS's system
     libraries are not safe to use in a forked child; Windows has no fork)."""
-    if not isinstance(writer, DirectoryWriter) or not sys.platform.startswith("linux"):
+    if not isinstance(writer, DirectoryWriter) or not sys.platform.startswith("linux") or _in_daemon():
         return 0
     return max(0, (available_cores() if cores is None else cores) - 1)
+
+
+def _die_with(parent: int) -> None:
+    """In a forked child: be killed when the parent dies (Linux's PR_SET_PDEATHSIG), so that a parent killed outright
+    (SIGKILL, the OOM killer) leaves no child writing into its temporary directory while the next encode removes it
+    (tests/test_hardening.py); exit at once if the parent is gone already."""
+    import ctypes
+    import signal
+
+    try:
+        ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL)  # 1: PR_SET_PDEATHSIG
+    except (OSError, AttributeError):
+        pass
+    if os.getppid() != parent:
+        os._exit(1)
 
 
 def _release_free_heap() -> None:
@@ -59,6 +74,13 @@ def _release_free_heap() -> None:
         ctypes.CDLL(None).malloc_trim(0)
     except (OSError, AttributeError):  # not glibc: nothing to give back this way
         pass
+
+
+def _in_daemon() -> bool:
+    """Whether this is a daemonic multiprocessing process (a Dask worker's, say), which may not start children."""
+    import multiprocessing
+
+    return bool(multiprocessing.current_process().daemon)
 
 
 def encode_tiles(tiles: list[Tile], groups: list[str], ctx: TileContext, writer) -> TilePayloads:
@@ -130,8 +152,11 @@ class ForkedPayloads:
         receive, send = self._mp.Pipe(duplex=False)
         groups, ctx, payloads = self.groups, self.ctx, self.payloads
 
+        parent = os.getpid()
+
         def run() -> None:
             receive.close()
+            _die_with(parent)
             _release_free_heap()
             try:
                 result = ("ok", encode_tiles(tiles, groups, ctx, payloads))
