@@ -17,35 +17,89 @@ from ..format.manifest import Manifest, TileEntry
 from ..gaussians import Gaussians
 from ..lod import Tile
 from ..store import DirectoryWriter, MemoryStore, MemoryWriter, SceneWriter, write_scene_manifest
+from .forked import ForkedPayloads, TilePayloads, encode_tiles, payload_processes
 from .jobs import encode_codebook, encode_group, tile_entry, tile_group_names, tile_order
 from .options import EncodeOptions, Progress, no_progress
-from .plan import plan_camera, plan_encode
+from .plan import TileContext, plan_camera, plan_encode
 from .reduce import build_manifest
 
 
 def encode_to(g: Gaussians, writer: SceneWriter, opts: EncodeOptions, progress: Progress = no_progress,
               source_name: str | None = None, out_name: str | None = None, screened: bool = False,
-              tiles: list[Tile] | None = None) -> Manifest:
+              tiles: list[Tile] | None = None, processes: int | None = None) -> Manifest:
     """Encode Gaussians through a writer (payloads as they are made, the manifest last); returns the manifest.
     `screened`: `g` comes from io.read_gaussians (plan.plan_encode). `tiles`: an LOD tree built already
-    (plan_encode)."""
-    plan = plan_encode(g, opts, progress, source_name, out_name, screened, tiles)
-    ctx = plan.context
+    (plan_encode). `processes`: child processes that encode payloads beside this one (forked.py; default
+    forked.payload_processes: one less than the cores available, 0 for a writer they cannot share); the bytes are
+    the same with any number."""
+    if processes is None:
+        processes = payload_processes(writer)
+    forked: ForkedPayloads | None = None
+
+    def start(ctx: TileContext) -> ForkedPayloads:
+        nonlocal forked
+        if forked is None:
+            forked = ForkedPayloads(processes, tile_group_names(ctx), ctx, writer.payload_writer())
+        return forked
+
+    try:
+        # A tree's levels go to the children as they are made (the leaves while the levels above are merged).
+        plan = plan_encode(g, opts, progress, source_name, out_name, screened, tiles,
+                           on_level=(lambda ctx, level: start(ctx).offer(level)) if processes else None)
+        ctx = plan.context
+        codebook = encode_codebook(ctx.codebook, ctx, writer) if ctx.codebook is not None else None
+        if processes and len(plan.tiles) > 1:
+            entries = _forked_entries(plan.tiles, start(ctx), ctx, writer, progress)
+        else:
+            entries = _threaded_entries(plan.tiles, ctx, writer, progress)
+        m = build_manifest(plan.scene, plan_camera(plan), entries, codebook)
+    finally:
+        if forked is not None:
+            forked.close()  # children still running (an encode that failed) stopped before the writer cleans up
+    return write_scene_manifest(writer, m, opts.page_tiles, opts.page_levels, opts.compact_table)
+
+
+def _forked_entries(tiles: list[Tile], forked: ForkedPayloads, ctx: TileContext, writer: SceneWriter,
+                    progress: Progress) -> list[TileEntry]:
+    """The tiles' entries, their payloads encoded by `forked`'s children and this process (forked.py): the tiles
+    not offered yet shared between the free children and this one."""
+    offered = forked.offered
     groups = tile_group_names(ctx)
-    total = sum(len(t.gaussians) for t in plan.tiles) * len(groups)
-    codebook = encode_codebook(ctx.codebook, ctx, writer) if ctx.codebook is not None else None
+    total = sum(len(t.gaussians) for t in tiles)
+    done = 0
+
+    def here(part: list[Tile]) -> TilePayloads:
+        nonlocal done
+        out = {}
+        for tile in part:
+            out |= encode_tiles([tile], groups, ctx, writer)
+            done += len(tile.gaussians)
+            progress("encode", done / total)
+        return out
+
+    progress("encode", 0.0)
+    forked.offer([t for t in tiles if t.id not in offered])
+    payloads = forked.finish(here)
+    progress("encode", 1.0)
+    return [tile_entry(tile, payloads[tile.id]) for tile in tiles]
+
+
+def _threaded_entries(tiles: list[Tile], ctx: TileContext, writer: SceneWriter, progress: Progress
+                      ) -> list[TileEntry]:
+    """The tiles' entries, their payloads encoded in this process."""
+    groups = tile_group_names(ctx)
+    total = sum(len(t.gaussians) for t in tiles) * len(groups)
     entries: list[TileEntry] = []
     # One worker: most payload jobs are many small numpy calls (a layer's mode trials on ~6 blocks), so two threads
     # spend their time handing the interpreter lock back and forth rather than overlapping.
     with _pool(1) as pool:
-        orders = list(pool.map(lambda t: tile_order(t.gaussians, ctx), plan.tiles))
-        camera = pool.submit(plan_camera, plan)
+        orders = list(pool.map(lambda t: tile_order(t.gaussians, ctx), tiles))
         # A single tile's bounds (the LOD tree computes its own) beside the payload jobs.
-        bounds = {id(t): pool.submit(tile_entry, t, {}) for t in plan.tiles if t.box_min is None}
-        jobs = [(tile, order, group) for tile, order in zip(plan.tiles, orders, strict=True) for group in groups]
+        bounds = {id(t): pool.submit(tile_entry, t, {}) for t in tiles if t.box_min is None}
+        jobs = [(tile, order, group) for tile, order in zip(tiles, orders, strict=True) for group in groups]
         results = iter(pool.map(lambda job: encode_group(job[0].gaussians, job[1], job[2], ctx, writer), jobs))
         done = 0
-        for tile in plan.tiles:
+        for tile in tiles:
             if id(tile) in bounds:
                 bounds[id(tile)].result()
             payloads = {}
@@ -54,8 +108,7 @@ def encode_to(g: Gaussians, writer: SceneWriter, opts: EncodeOptions, progress: 
                 done += len(tile.gaussians)
                 progress("encode", done / total)
             entries.append(tile_entry(tile, payloads))
-        m = build_manifest(plan.scene, camera.result(), entries, codebook)
-    return write_scene_manifest(writer, m, opts.page_tiles, opts.page_levels, opts.compact_table)
+    return entries
 
 
 @contextlib.contextmanager
