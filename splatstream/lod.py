@@ -881,7 +881,8 @@ def build_subtree(g: Gaussians, index: np.ndarray, shape: TreeShape, level: int 
     Leaves are slices of one array per attribute holding the splats in leaf order: a copy of `g` by default, or,
     with `reorder_input`, `g`'s own arrays reordered in place, which saves a copy. `on_level` hears each level's
     tiles once they are final (the leaves first, then each merged level): their splats are not written again, so
-    a caller may encode them while the levels above are merged (encode/forked.py)."""
+    a caller may encode them while the levels above are merged (encode/forked.py). The leaves' call comes before
+    the merge pool's threads start (forked.py forks its children there)."""
     if merge not in LOD_MERGES:
         raise ValueError(f"unknown LOD merge {merge!r} (one of {', '.join(LOD_MERGES)})")
     progress = progress or (lambda stage, fraction: None)

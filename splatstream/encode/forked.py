@@ -2,50 +2,75 @@
 
 Most of an in-memory encode runs on one core: the payload jobs are many small numpy calls that hold the
 interpreter lock (two threads hand it back and forth: BENCHMARKS.md, "Where the grid encode's CPU goes"), and so
-are most of the tree's grouping rounds. A forked process has its own interpreter and sees the tiles made so far
-without a copy (its pages are the parent's until one side writes them), so the payloads of the tree's finished
-levels (the leaves first: half of the payload work) are encoded there while this process merges the levels above,
-and the last levels' payloads are shared between this process and a child. BENCHMARKS.md, "The default encode on
-two cores".
+are most of the tree's grouping rounds. A forked process has its own interpreter, so the payloads of the tree's
+finished levels (the leaves first: half of the payload work) are encoded there while this process merges the
+levels above; after the tree this process and the children share what is left.
 
-The bytes do not depend on it: a payload job is a pure function of its tile and the context (jobs.py), its file is
-named by its checksum, and the manifest lists the tiles in the tree's order whoever encoded them. Only for a
-DirectoryWriter (files a child can write beside this process), on Linux, where more than one core is available
-to this process; otherwise the caller encodes every payload itself, as before.
+The children are forked once, at a moment this process runs no other thread: when the leaves are laid out, before
+the tree's merge pool starts (lod.build_subtree's first `on_level`), or, for a tree handed in, before the payloads.
+A child forked beside running threads may inherit a lock some thread held (and Python 3.12 warns); numpy's
+OpenBLAS keeps a thread pool, but its own fork handler (pthread_atfork) stops that pool before a fork, so the
+child starts with one thread (BENCHMARKS.md, "Payload processes forked before the tree's threads"). If another
+Python thread is running then (an encode called on a thread of its own), there are no children and this process
+encodes every payload, as on one core.
+
+The children see the tiles that exist at the fork (the leaves: slices of the tree's leaf-ordered copy) without a
+copy; the tiles made afterwards reach them over their pipes one at a time, when a child asks for work, so a child
+holds at most one such tile. Each child has a feeder thread here that answers its requests from one queue of
+tiles in the tree's order; after the tree this process takes from the same queue. The bytes do not depend on who
+encodes what: a payload job is a pure function of its tile and the context (jobs.py), its file is named by its
+checksum, and the manifest lists the tiles in the tree's order. Only for a DirectoryWriter (files a child can
+write beside this process), on Linux, where more than one core is available to this process, and not in a
+daemonic process; otherwise the caller encodes every payload itself.
 """
 from __future__ import annotations
 
+import collections
 import gc
+import logging
 import os
 import sys
+import threading
 import traceback
 from collections.abc import Callable
 
+import numpy as np
+
+from ..cores import available_cores
 from ..format.manifest import PayloadEntry
+from ..gaussians import Gaussians
 from ..lod import Tile
 from ..store import DirectoryPayloads, DirectoryWriter, SceneWriter
 from .jobs import encode_group, tile_order
 from .plan import TileContext
 
+log = logging.getLogger(__name__)
+
 # tile id -> its payloads, by group
 TilePayloads = dict[int, dict[str, PayloadEntry]]
 
-
-def available_cores() -> int:
-    """The cores this process may run on (its CPU affinity: `taskset`, a container's cpuset), else os.cpu_count()."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except (AttributeError, OSError):
-        return os.cpu_count() or 1
+_FIELDS = ("positions", "rotations", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
 
 
 def payload_processes(writer: SceneWriter, cores: int | None = None) -> int:
     """How many child processes encode payloads beside this one: one less than the cores available, none where a
-    child cannot write the payloads (a writer other than a DirectoryWriter), and off Linux (macOS's system
-    libraries are not safe to use in a forked child; Windows has no fork)."""
+    child cannot write the payloads (a writer other than a DirectoryWriter), off Linux (macOS's system libraries
+    are not safe to use in a forked child; Windows has no fork) and in a daemonic process (a Dask worker's)."""
     if not isinstance(writer, DirectoryWriter) or not sys.platform.startswith("linux") or _in_daemon():
         return 0
     return max(0, (available_cores() if cores is None else cores) - 1)
+
+
+def _in_daemon() -> bool:
+    """Whether this is a daemonic multiprocessing process (a Dask worker's, say), which may not start children."""
+    import multiprocessing
+
+    return bool(multiprocessing.current_process().daemon)
+
+
+def only_thread() -> bool:
+    """Whether this process runs no Python thread but this one (the moment a fork is safe for Python's locks)."""
+    return threading.active_count() == 1
 
 
 def _die_with(parent: int) -> None:
@@ -65,9 +90,7 @@ def _die_with(parent: int) -> None:
 
 def _release_free_heap() -> None:
     """In a forked child: give back the heap pages malloc holds free (glibc's malloc_trim). The child shares them
-    with the parent, which reuses them as it merges; each page it writes while the child still maps it is copied.
-    Without this the 1M encode's peak PSS (parent and children) was 891-937 MB, with it 779 MB, against 750-762 MB
-    in one process (BENCHMARKS.md, "The default encode on two cores")."""
+    with the parent, which reuses them as it merges; each page it writes while the child still maps it is copied."""
     try:
         import ctypes
 
@@ -76,129 +99,194 @@ def _release_free_heap() -> None:
         pass
 
 
-def _in_daemon() -> bool:
-    """Whether this is a daemonic multiprocessing process (a Dask worker's, say), which may not start children."""
-    import multiprocessing
+def encode_tile(g: Gaussians, groups: list[str], ctx: TileContext, writer) -> dict[str, PayloadEntry]:
+    """Every payload of one tile's splats (the jobs of whichever process takes it)."""
+    order = tile_order(g, ctx)
+    return {group: encode_group(g, order, group, ctx, writer) for group in groups}
 
-    return bool(multiprocessing.current_process().daemon)
+
+def _send_gaussians(conn, tile_id: int, g: Gaussians) -> None:
+    """A tile's splats down a pipe: a small header, then each array's bytes as they lie (no pickled copy)."""
+    arrays = [np.ascontiguousarray(getattr(g, name)) for name in _FIELDS]
+    conn.send(("tile", tile_id, [(a.dtype.str, a.shape) for a in arrays]))
+    for a in arrays:
+        conn.send_bytes(memoryview(a).cast("B") if a.nbytes else b"")  # (no SH bands: an empty sh_rest)
 
 
-def encode_tiles(tiles: list[Tile], groups: list[str], ctx: TileContext, writer) -> TilePayloads:
-    """Every payload of these tiles, in order (the jobs of one process)."""
+def _receive_gaussians(conn, header: list) -> Gaussians:
+    arrays = []
+    for dtype, shape in header:
+        a = np.empty(shape, dtype=np.dtype(dtype))
+        if a.nbytes:
+            conn.recv_bytes_into(memoryview(a).cast("B"))
+        else:
+            conn.recv_bytes()
+        arrays.append(a)
+    return Gaussians(*arrays)
+
+
+def _child(conn, shared: list[Tile], groups: list[str], ctx: TileContext, payloads: DirectoryPayloads,
+           parent: int) -> None:
+    """A child's loop: ask for work, encode it, until told to stop; then hand back every payload entry."""
+    _die_with(parent)
+    _release_free_heap()
     out: TilePayloads = {}
-    for tile in tiles:
-        order = tile_order(tile.gaussians, ctx)
-        out[tile.id] = {group: encode_group(tile.gaussians, order, group, ctx, writer) for group in groups}
-    return out
+    try:
+        while True:
+            conn.send(("ready", None))
+            msg = conn.recv()
+            if msg[0] == "shared":  # a tile that existed at the fork: this process has it already
+                tile = shared[msg[1]]
+                out[tile.id] = encode_tile(tile.gaussians, groups, ctx, payloads)
+            elif msg[0] == "tile":
+                out[msg[1]] = encode_tile(_receive_gaussians(conn, msg[2]), groups, ctx, payloads)
+            else:
+                break
+        conn.send(("ok", out))
+    except BaseException:  # noqa: BLE001 -- said to the parent, which raises it
+        try:
+            conn.send(("error", traceback.format_exc(limit=8)))
+        finally:
+            os._exit(1)
 
 
-def balanced_split(tiles: list[Tile], parts: int) -> list[list[Tile]]:
-    """`tiles` in `parts` lists of about equal splat counts (a payload job's work follows its splats), each in the
-    given order; the largest first onto the lightest list."""
-    bins: list[list[Tile]] = [[] for _ in range(parts)]
-    loads = [0] * parts
-    for tile in sorted(tiles, key=lambda t: -len(t.gaussians)):
-        k = loads.index(min(loads))
-        bins[k].append(tile)
-        loads[k] += len(tile.gaussians)
-    rank = {id(t): i for i, t in enumerate(tiles)}
-    return [sorted(b, key=lambda t: rank[id(t)]) for b in bins if b]
+class PayloadChildren:
+    """Children that encode payloads beside this process, forked once when `start` is first called.
 
-
-class ForkedPayloads:
-    """Children that encode the payloads of tiles offered to them, up to `processes` at a time.
-
-    `offer(tiles)` hands finished tiles over: split among the free children at once (forked then, so they see
-    the tiles as they are now), kept pending while none is free. `finish(here)` shares what is pending between
-    the free children and this process (`here` encodes its part), waits for every child and returns every tile's
-    payloads. `close()` stops children still running (an encode that failed or was interrupted): call it before
-    the writer removes its directory."""
+    `start(tiles)`: fork the children now (only where this process runs no other thread; otherwise there are none
+    and `started` stays False), the tiles that exist now queued (the children read them from their own copy).
+    `offer(tiles)`: queue more finished tiles (sent to a child when it asks). `finish(tiles, here)`: queue what is
+    not queued yet, encode from the queue here (`here(tile)` returns its payloads) while the children do too, wait
+    for them and return every tile's payloads. `close()`: stop children still running (an encode that failed or
+    was interrupted); call it before the writer removes its directory."""
 
     def __init__(self, processes: int, groups: list[str], ctx: TileContext, payloads: DirectoryPayloads):
-        import multiprocessing  # only where children are forked
-
-        self._mp = multiprocessing.get_context("fork")
         self.processes = processes
         self.groups = groups
         self.ctx = ctx
         self.payloads = payloads
-        self.pending: list[Tile] = []
-        self.offered: set[int] = set()  # ids of the tiles offered so far
-        self.running: list[tuple] = []  # (process, receiving end of its pipe)
+        self.started = False
+        self.queued: set[int] = set()  # ids of the tiles queued so far
+        self.queue: collections.deque[tuple[int, Tile]] = collections.deque()  # (index into shared or -1, tile)
+        self.cond = threading.Condition()
+        self.closed = False  # nothing more will be queued
+        self.children: list[tuple] = []  # (process, this end of its pipe)
+        self.feeders: list[threading.Thread] = []
         self.done: TilePayloads = {}
+        self.errors: list[str] = []
         self._frozen = False  # this object froze the collector's objects (gc.freeze) and unfreezes them at the end
 
-    def _reap(self, block: bool) -> None:
-        still = []
-        for proc, conn in self.running:
-            if block or conn.poll():
-                self._collect(proc, conn)
-            else:
-                still.append((proc, conn))
-        self.running = still
+    def start(self, tiles: list[Tile]) -> bool:
+        """Fork the children, `tiles` shared with them; False (and none forked) where another thread runs."""
+        if self.started or self.processes < 1:
+            return self.started
+        if not only_thread():
+            log.debug("payload processes: %d threads run here, none forked", threading.active_count())
+            self.processes = 0
+            return False
+        import multiprocessing  # only where children are forked
 
-    def _collect(self, proc, conn) -> None:
-        try:
-            status, value = conn.recv()
-        except EOFError:
-            status, value = "error", "the payload process ended without a result"
-        conn.close()
-        proc.join()
-        if status != "ok" or proc.exitcode != 0:
-            raise RuntimeError(f"a payload process failed (exit code {proc.exitcode}): {value}")
-        self.done.update(value)
-
-    def _start(self, tiles: list[Tile]) -> None:
-        receive, send = self._mp.Pipe(duplex=False)
-        groups, ctx, payloads = self.groups, self.ctx, self.payloads
-
+        mp = multiprocessing.get_context("fork")
+        shared = list(tiles)
+        # Python's objects out of the collector's sight while children share them: a collection walks (and so
+        # writes) every tracked object, which copies its page into whichever process walks it.
+        self._frozen = gc.get_freeze_count() == 0
+        gc.freeze()
         parent = os.getpid()
-
-        def run() -> None:
-            receive.close()
-            _die_with(parent)
-            _release_free_heap()
-            try:
-                result = ("ok", encode_tiles(tiles, groups, ctx, payloads))
-            except BaseException:  # noqa: BLE001 -- said to the parent, which raises it
-                result = ("error", traceback.format_exc(limit=8))
-            send.send(result)
-            send.close()
-            if result[0] != "ok":
-                os._exit(1)
-
-        proc = self._mp.Process(target=run, daemon=True)
-        if not self._frozen:
-            # Python's objects out of the collector's sight while children share them: a collection walks (and so
-            # writes) every tracked object, which copies its page into whichever process walks it
-            self._frozen = gc.get_freeze_count() == 0
-            gc.freeze()
-        proc.start()
-        send.close()
-        self.running.append((proc, receive))
+        for _ in range(self.processes):
+            here, there = mp.Pipe(duplex=True)
+            proc = mp.Process(target=_child, args=(there, shared, self.groups, self.ctx, self.payloads, parent),
+                              daemon=True)
+            proc.start()
+            there.close()
+            self.children.append((proc, here))
+        self.started = True
+        log.debug("payload processes: %d forked, %d tiles shared", self.processes, len(shared))
+        # Threads only now, every child forked: one feeder per child answers its requests.
+        for proc, conn in self.children:
+            feeder = threading.Thread(target=self._feed, args=(proc, conn), daemon=True, name="payload-feeder")
+            feeder.start()
+            self.feeders.append(feeder)
+        with self.cond:
+            self.queue.extend((i, t) for i, t in enumerate(shared))
+            self.queued.update(t.id for t in shared)
+            self.cond.notify_all()
+        return True
 
     def offer(self, tiles: list[Tile]) -> None:
-        self.pending.extend(tiles)
-        self.offered.update(t.id for t in tiles)
-        self._reap(block=False)
-        free = self.processes - len(self.running)
-        if free > 0 and self.pending:
-            for part in balanced_split(self.pending, free):
-                self._start(part)
-            self.pending = []
+        if not self.started:
+            return
+        with self.cond:
+            self.queue.extend((-1, t) for t in tiles if t.id not in self.queued)
+            self.queued.update(t.id for t in tiles)
+            self.cond.notify_all()
 
-    def finish(self, here: Callable[[list[Tile]], TilePayloads]) -> TilePayloads:
-        self._reap(block=False)
-        if self.pending:
-            free = self.processes - len(self.running)
-            parts = balanced_split(self.pending, free + 1)
-            self.pending = []
-            for part in parts[1:]:
-                self._start(part)
-            self.done.update(here(parts[0]))
-        self._reap(block=True)
+    def _take(self, wait: bool) -> tuple[int, Tile] | None:
+        with self.cond:
+            while wait and not self.queue and not self.closed:
+                self.cond.wait()
+            return self.queue.popleft() if self.queue else None
+
+    def _feed(self, proc, conn) -> None:
+        """One child's requests answered from the queue, until it is empty and closed; then its payloads taken."""
+        try:
+            while True:
+                status, value = conn.recv()
+                if status != "ready":
+                    self._failed(proc, value)
+                    return
+                item = self._take(wait=True)
+                if item is None:
+                    conn.send(("stop", None))
+                    status, value = conn.recv()
+                    if status != "ok":
+                        self._failed(proc, value)
+                        return
+                    with self.cond:
+                        self.done.update(value)
+                    return
+                index, tile = item
+                if index >= 0:
+                    conn.send(("shared", index))
+                else:
+                    _send_gaussians(conn, tile.id, tile.gaussians)
+        except (EOFError, OSError) as e:
+            self._failed(proc, f"the payload process ended without a result ({e.__class__.__name__})")
+        except BaseException:  # noqa: BLE001 -- a fault here: said by finish, which stops the child
+            self._failed(proc, traceback.format_exc(limit=8))
+
+    def _failed(self, proc, message: str) -> None:
+        with self.cond:
+            self.errors.append(message)
+            self.closed = True  # the others stop after their tile; this process encodes no more
+            self.queue.clear()
+            self.cond.notify_all()
+
+    def finish(self, tiles: list[Tile], here: Callable[[Tile], dict[str, PayloadEntry]]) -> TilePayloads:
+        """Every tile's payloads, the children's and this process's."""
+        if not self.started:
+            return {tile.id: here(tile) for tile in tiles}
+        self.offer(tiles)
+        mine: TilePayloads = {}
+        while (item := self._take(wait=False)) is not None:
+            mine[item[1].id] = here(item[1])
+        with self.cond:
+            self.closed = True
+            self.cond.notify_all()
+        for feeder in self.feeders:
+            feeder.join()
+        if self.errors:  # a child may still wait for a tile that will not come: stopped
+            self.close()
+            raise RuntimeError(f"a payload process failed: {self.errors[0]}")
+        for proc, conn in self.children:
+            conn.close()
+            proc.join()
+        self.children = []
         self._unfreeze()
-        return self.done
+        missing = [t.id for t in tiles if t.id not in mine and t.id not in self.done]
+        if missing:  # a child stopped without saying why
+            raise RuntimeError(f"a payload process failed: no payloads for {len(missing)} tiles")
+        return self.done | mine
 
     def _unfreeze(self) -> None:
         if self._frozen:
@@ -206,9 +294,15 @@ class ForkedPayloads:
             self._frozen = False
 
     def close(self) -> None:
-        for proc, conn in self.running:
+        with self.cond:
+            self.closed = True
+            self.queue.clear()
+            self.cond.notify_all()
+        for proc, conn in self.children:
             proc.terminate()
             proc.join()
             conn.close()
-        self.running = []
+        for feeder in self.feeders:
+            feeder.join(timeout=5)
+        self.children = []
         self._unfreeze()

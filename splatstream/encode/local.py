@@ -17,7 +17,7 @@ from ..format.manifest import Manifest, TileEntry
 from ..gaussians import Gaussians
 from ..lod import Tile
 from ..store import DirectoryWriter, MemoryStore, MemoryWriter, SceneWriter, write_scene_manifest
-from .forked import ForkedPayloads, TilePayloads, encode_tiles, payload_processes
+from .forked import PayloadChildren, encode_tile, payload_processes
 from .jobs import encode_codebook, encode_group, tile_entry, tile_group_names, tile_order
 from .options import EncodeOptions, Progress, no_progress
 from .plan import TileContext, plan_camera, plan_encode
@@ -34,52 +34,54 @@ def encode_to(g: Gaussians, writer: SceneWriter, opts: EncodeOptions, progress: 
     the same with any number."""
     if processes is None:
         processes = payload_processes(writer)
-    forked: ForkedPayloads | None = None
+    children: PayloadChildren | None = None
 
-    def start(ctx: TileContext) -> ForkedPayloads:
-        nonlocal forked
-        if forked is None:
-            forked = ForkedPayloads(processes, tile_group_names(ctx), ctx, writer.payload_writer())
-        return forked
+    def on_level(ctx: TileContext, level: list[Tile]) -> None:
+        # The first level is the leaves, laid out before the tree's merge pool starts: the children are forked
+        # then (no other thread runs), and each later level is queued for them as it is final.
+        nonlocal children
+        if children is None:
+            children = PayloadChildren(processes, tile_group_names(ctx), ctx, writer.payload_writer())
+            children.start(level)
+        else:
+            children.offer(level)
 
     try:
-        # A tree's levels go to the children as they are made (the leaves while the levels above are merged).
         plan = plan_encode(g, opts, progress, source_name, out_name, screened, tiles,
-                           on_level=(lambda ctx, level: start(ctx).offer(level)) if processes else None)
+                           on_level=on_level if processes else None)
         ctx = plan.context
         codebook = encode_codebook(ctx.codebook, ctx, writer) if ctx.codebook is not None else None
-        if processes and len(plan.tiles) > 1:
-            entries = _forked_entries(plan.tiles, start(ctx), ctx, writer, progress)
+        if processes and len(plan.tiles) > 1 and children is None and opts.lod_refiner is None:
+            # a tree handed in: fork before the payloads (not after a refinement, whose own threads may still run)
+            children = PayloadChildren(processes, tile_group_names(ctx), ctx, writer.payload_writer())
+            children.start(plan.tiles)
+        if children is not None and children.started:
+            entries = _forked_entries(plan.tiles, children, ctx, writer, progress)
         else:
             entries = _threaded_entries(plan.tiles, ctx, writer, progress)
         m = build_manifest(plan.scene, plan_camera(plan), entries, codebook)
     finally:
-        if forked is not None:
-            forked.close()  # children still running (an encode that failed) stopped before the writer cleans up
+        if children is not None:
+            children.close()  # children still running (an encode that failed) stopped before the writer cleans up
     return write_scene_manifest(writer, m, opts.page_tiles, opts.page_levels, opts.compact_table)
 
 
-def _forked_entries(tiles: list[Tile], forked: ForkedPayloads, ctx: TileContext, writer: SceneWriter,
+def _forked_entries(tiles: list[Tile], children: PayloadChildren, ctx: TileContext, writer: SceneWriter,
                     progress: Progress) -> list[TileEntry]:
-    """The tiles' entries, their payloads encoded by `forked`'s children and this process (forked.py): the tiles
-    not offered yet shared between the free children and this one."""
-    offered = forked.offered
+    """The tiles' entries, their payloads encoded by the children and this process (forked.py)."""
     groups = tile_group_names(ctx)
     total = sum(len(t.gaussians) for t in tiles)
     done = 0
 
-    def here(part: list[Tile]) -> TilePayloads:
+    def here(tile: Tile) -> dict:
         nonlocal done
-        out = {}
-        for tile in part:
-            out |= encode_tiles([tile], groups, ctx, writer)
-            done += len(tile.gaussians)
-            progress("encode", done / total)
+        out = encode_tile(tile.gaussians, groups, ctx, writer)
+        done += len(tile.gaussians)
+        progress("encode", done / total)  # this process's share: the bar may stop short of 1.0 until the end
         return out
 
     progress("encode", 0.0)
-    forked.offer([t for t in tiles if t.id not in offered])
-    payloads = forked.finish(here)
+    payloads = children.finish(tiles, here)
     progress("encode", 1.0)
     return [tile_entry(tile, payloads[tile.id]) for tile in tiles]
 
