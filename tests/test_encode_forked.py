@@ -41,7 +41,8 @@ def test_the_bytes_do_not_depend_on_the_payload_processes(tmp_path, options, mon
     start = PayloadChildren.start
 
     def counted(self, tiles):
-        forks.append((start(self, tiles), self.processes, threading.active_count()))
+        threads = threading.active_count()  # before the fork (the feeders start after it)
+        forks.append((start(self, tiles), self.processes, threads))
         return forks[-1][0]
 
     monkeypatch.setattr(PayloadChildren, "start", counted)

@@ -1,27 +1,28 @@
 #!/usr/bin/env bash
 # Issue 31's encode bound as a user sees it: the default encode's wall clock on 2 cores (and on 1), 60c1b51 (the
-# encoder the issue was filed against) against main before enc2core31 (base) and this tree (new), on the quiet
-# 16-core GPU machine: `taskset`-like pinning (bench/encode_wall.py --cores) to cores 0,1 and to core 0; the 1M
-# scene (make_scene.py --splats 1000000 --seed 0, SH3) at medium, biker at medium, low and very-high; 3 rounds, the
+# encoder the issue was filed against: "old") against main before this branch ("base") and this tree ("new"), on
+# the quiet 16-core GPU machine: `taskset`-like pinning (bench/encode_wall.py --cores) to cores 0,1 and to core 0;
+# the 1M scene (make_scene.py --splats 1000000 --seed 0, SH3) at medium, biker at medium, low and very-high; the
 # three versions' order turned each round. Wall, CPU (the encode and its forked children), ru_maxrss and the tree's
-# peak PSS per run, appended to $OUT/encode_wall.json; base's and new's output digests must agree.
+# peak PSS per run, appended to $OUT/encode_wall.json, then a table of medians; base's and new's output digests
+# must agree.
 #
-# The device call carries the working tree but not git's history, so the older trees travel in .enc_carry/. Here,
-# in the repository root, with the branch to measure checked out (BASE_COMMIT: main before the merge):
+# The device call carries the working tree but not git's history, so the older trees travel in .enc_carry/:
+#   old/splatstream       git archive 60c1b51 splatstream
+#   base/splatstream, base/cli   git archive BASE_COMMIT splatstream cli (encproc31: main 7909191)
+#   tools/make_scene.py   ../shared/tools/make_scene.py
+#   data/real/biker.compressed.ply   (the biker cases only)
+# (about 7 MB). The lead's /work/main/.enc_carry holds exactly these (its base/ = 7909191's files). In the root of
+# the tree to measure:
 #
-#   echo /.enc_carry/ >> .git/info/exclude
-#   rm -rf .enc_carry && mkdir -p .enc_carry/old .enc_carry/base
-#   git archive 60c1b51 splatstream | tar -x -C .enc_carry/old
-#   git archive BASE_COMMIT splatstream cli | tar -x -C .enc_carry/base
-#   mkdir -p .enc_carry/tools .enc_carry/data/real && cp ../shared/tools/make_scene.py .enc_carry/tools/
-#   (cd ../shared/data/real && cp biker.compressed.ply fruit_drops_sh3.ply lod_tile_sh3_zero_rest.ply \
-#     donut_sh0_no_normals.ply winter_fountain.splat "$OLDPWD/.enc_carry/data/real/")
-#   # run (nvidia-h200), carry [".whl", ".enc_carry"], timeout 600:
-#   bash bench/device/encode_wall_2core.sh
+#   rm -rf .enc_carry && cp -r /work/main/.enc_carry .enc_carry    # or make it with the git archive lines above
+#   # device run (nvidia-h200), carry [".whl", ".enc_carry"], timeout_s 600:
+#   ONLY_1M=1 ROUNDS=2 bash bench/device/encode_wall_2core.sh
 #
-# (about 15 MB carried besides .whl; where .git does travel and .enc_carry/old or base is missing, they are made
-# with git archive here.) ROUNDS (3), CORESETS ("0,1 0"), ONLY_1M=1 / ONLY_BIKER=1 narrow it; the whole run is
-# about 300-400 s on that machine (not measured yet: the 1M encodes are most of it).
+# Where .git does travel and .enc_carry/old or base is missing, they are made with git archive here. ROUNDS (3),
+# CORESETS ("0,1 0"), ONLY_1M=1 / ONLY_BIKER=1 narrow it. ONLY_1M=1 ROUNDS=2 is 12 encodes of the 1M scene: about
+# 350-420 s there by enc2core31's run (old 13-14 s, base 47-50 s, new 33-46 s on its cores), under the call's 600 s;
+# the whole default run does not fit one call (biker adds about 60 s a round).
 set -uo pipefail
 cd "$(dirname "$0")/../.."
 ROOT=$PWD
