@@ -11,11 +11,15 @@
 #   old/splatstream       git archive 60c1b51 splatstream
 #   base/splatstream, base/cli   git archive BASE_COMMIT splatstream cli (encproc31: main 7909191)
 #   tools/make_scene.py   ../shared/tools/make_scene.py
-#   data/real/biker.compressed.ply   (the biker cases only)
-# (about 7 MB). The lead's /work/main/.enc_carry holds exactly these (its base/ = 7909191's files). In the root of
-# the tree to measure:
+#   data/real/biker.compressed.ply   (the biker cases)
+#   data/real/fruit_drops_sh3.ply lod_tile_sh3_zero_rest.ply donut_sh0_no_normals.ply winter_fountain.splat
+#                         (make_scene.py's sources, for the 1M scene)
+# (about 15 MB). The lead's /work/main/.enc_carry holds old/, base/ (= 7909191's files), tools/, biker and donut,
+# but not the other three sources (make_scene.py fails without them). In the root of the tree to measure:
 #
 #   rm -rf .enc_carry && cp -r /work/main/.enc_carry .enc_carry    # or make it with the git archive lines above
+#   (cd /work/shared/data/real && cp fruit_drops_sh3.ply lod_tile_sh3_zero_rest.ply winter_fountain.splat \
+#     "$OLDPWD/.enc_carry/data/real/")
 #   # device run (nvidia-h200), carry [".whl", ".enc_carry"], timeout_s 600:
 #   ONLY_1M=1 ROUNDS=2 bash bench/device/encode_wall_2core.sh
 #
@@ -47,7 +51,9 @@ for v in old base; do
 done
 nproc; python3 -c "import numpy, zstandard; print('numpy', numpy.__version__, 'zstandard', zstandard.__version__)" || exit 1
 S1M=$SCRATCH/s1m.ply
-[ -f $S1M ] || python3 "$CARRY/tools/make_scene.py" --splats 1000000 --seed 0 --out $S1M || exit 1
+if [ "${ONLY_BIKER:-0}" != 1 ] && [ ! -f $S1M ]; then
+  python3 "$CARRY/tools/make_scene.py" --splats 1000000 --seed 0 --out $S1M || exit 1
+fi
 BIKER=$CARRY/data/real/biker.compressed.ply
 declare -A CODE=([old]="$CARRY/old:splatstream.cli" [base]="$CARRY/base:cli" [new]="$ROOT:cli")
 cases=()
