@@ -10,7 +10,7 @@ from conftest import real
 from test_encode_bytes import directory_digest
 
 from splatstream.cores import available_cores
-from splatstream.encode import EncodeOptions
+from splatstream.encode import EncodeOptions, forked
 from splatstream.encode.forked import (
     PayloadChildren,
     _receive_gaussians,
@@ -146,3 +146,28 @@ def test_a_failing_child_fails_the_encode(tmp_path):
             children.finish(plan.tiles, here)
     finally:
         children.close()
+
+
+def test_a_fault_in_a_feeder_fails_the_encode_and_stops_the_child(tmp_path, monkeypatch):
+    # the first version hung here: a feeder died on SH0's empty sh_rest, its child waited for a tile forever
+    plan, ctx, children = children_for(tmp_path)
+    leaves = [t for t in plan.tiles if not t.children]
+
+    def broken(conn, tile_id, g):
+        raise ValueError("cannot send")
+
+    monkeypatch.setattr(forked, "_send_gaussians", broken)
+
+    def here(tile):  # wait for the feeder's fault, so that the child asks for a merged tile first
+        with children.cond:
+            children.cond.wait_for(lambda: children.errors, timeout=60)
+        return {}
+
+    try:
+        assert children.start(leaves[:1])  # one leaf shared; every merged tile goes down the pipe
+        with pytest.raises(RuntimeError, match="cannot send"):
+            children.finish(plan.tiles, here)
+        assert not children.children  # stopped, not waited for
+    finally:
+        children.close()
+    assert threading.active_count() == 1
