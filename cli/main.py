@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import difflib
 import errno
 import importlib
 import os
@@ -103,6 +104,39 @@ class _Parser(argparse.ArgumentParser):
         return super().parse_known_args(join_negative_values(list(args), _single_value_options(self)), namespace)
 
 
+def _subcommands(parser: argparse.ArgumentParser) -> dict[str, argparse.ArgumentParser]:
+    for action in parser._actions:
+        if isinstance(action, argparse._SubParsersAction):
+            return dict(action.choices)
+    return {}
+
+
+def _options(parser: argparse.ArgumentParser) -> set[str]:
+    return {s for action in parser._actions for s in action.option_strings if s.startswith("--")}
+
+
+def unrecognized_message(parser: argparse.ArgumentParser, command: str, extra: list[str]) -> str:
+    """'unrecognized arguments: ...' for the subcommand that was given them, with the option meant where one is
+    close (`--max-splat`), or the command that has it (`eval --target-psnr`: an option of encode). argparse's own
+    message came from the top-level parser: `splatstream: error: ... (see splatstream --help)`, naming no command."""
+    commands = _subcommands(parser)
+    own = _options(commands[command])
+    hints = []
+    for arg in extra:
+        if not arg.startswith("--"):
+            continue
+        name = arg.split("=", 1)[0]
+        close = difflib.get_close_matches(name, sorted(own), n=1, cutoff=0.75)
+        if close:
+            hints.append(f"{name}: did you mean {close[0]}?")
+            continue
+        elsewhere = [other for other, sub in commands.items() if other != command and name in _options(sub)]
+        if elsewhere:
+            hints.append(f"{name} is an option of {', '.join(elsewhere[:3])}" + (", ..." if len(elsewhere) > 3
+                                                                                   else ""))
+    return f"unrecognized arguments: {' '.join(extra)}" + (f" ({'; '.join(hints)})" if hints else "")
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="splatstream",
@@ -145,7 +179,9 @@ def _show_warning(message, category, filename, lineno, file=None, line=None):
 def main(argv: list[str] | None = None) -> int:
     warnings.showwarning = _show_warning
     parser = build_parser()
-    args = parser.parse_args(attach_negative_values(sys.argv[1:] if argv is None else list(argv)))
+    args, extra = parser.parse_known_args(attach_negative_values(sys.argv[1:] if argv is None else list(argv)))
+    if extra:
+        _subcommands(parser)[args.command].error(unrecognized_message(parser, args.command, extra))
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _on_sigterm)  # `serve` installs its own (aiohttp's graceful shutdown)
     try:

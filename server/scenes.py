@@ -243,7 +243,9 @@ class SceneRoot:
                 "manifest": f"/scenes/{scene_id}/{MANIFEST_NAME}",
             }
         except SplatstreamError as exc:
-            log.warning("scene %s: skipped, its manifest is not valid: %s", scene_id, exc)
+            # 'skipped' read as not served, where its files still are (http.md 6; newuser64)
+            log.warning("scene %s: left out of /api/scenes (its files are still served), its manifest is not valid: "
+                        "%s", scene_id, exc)
             entry = {}
         self._summaries.put(key, entry)
         return entry or None

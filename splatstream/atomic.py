@@ -98,6 +98,34 @@ def remove_stale_temporaries(path: str | os.PathLike) -> list[str]:
     return removed
 
 
+MOUNTINFO = "/proc/self/mountinfo"
+
+
+def mountinfo_points(text: str) -> set[str]:
+    """The mount points a /proc/PID/mountinfo text lists (its fifth field, with the kernel's octal escapes of space,
+    tab, newline and backslash undone)."""
+    points = set()
+    for line in text.splitlines():
+        fields = line.split(" ")
+        if len(fields) > 4:
+            points.add(re.sub(r"\\([0-7]{3})", lambda m: chr(int(m.group(1), 8)), fields[4]))
+    return points
+
+
+def is_mount_point(path: str, mountinfo: str | None = None) -> bool:
+    """os.path.ismount, and the mount points the kernel lists: ismount compares a directory's device with its
+    parent's, so a bind mount within one file system (`mount --bind`, a container volume from the host's disk) was
+    not seen (newuser64: the encode ran to its end and failed with 'Device or resource busy')."""
+    if os.path.ismount(path):
+        return True
+    try:
+        with open(mountinfo or MOUNTINFO, encoding="utf-8", errors="surrogateescape") as f:
+            text = f.read()
+    except OSError:  # not Linux, or no /proc
+        return False
+    return os.path.realpath(path) in mountinfo_points(text)
+
+
 def check_replaceable(given: str, path: str, holds: str | None) -> None:
     """An existing directory that a directory output would replace must be empty or hold `holds` (the file every
     output of that kind has: manifest.msgpack, tileset.json, ...), so that a mistyped output path never deletes a
@@ -107,7 +135,7 @@ def check_replaceable(given: str, path: str, holds: str | None) -> None:
     busy'."""
     if not os.path.isdir(path) or os.path.islink(path):
         return
-    if os.path.ismount(path):
+    if is_mount_point(path):
         raise UsageError(f"{given}: is a mount point, which the finished output cannot replace (it is renamed into "
                          f"place); give a directory inside it, e.g. {os.path.join(given, 'scene')}")
     if holds is None:

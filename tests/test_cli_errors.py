@@ -1,12 +1,16 @@
 """One exit-code convention for every command: bad input or usage exits 2 with one line naming the path or option
 and what was expected; never a traceback; no output left behind."""
 import os
+import shutil
+import subprocess
+import sys
 
 import numpy as np
 import pytest
 from conftest import ROOT, run_cli
 
 from cli.main import main
+from splatstream.atomic import is_mount_point, mountinfo_points
 from splatstream.io import read_gaussians
 from splatstream.ply import write_gaussians_ply
 from splatstream.store import load_manifest
@@ -44,6 +48,19 @@ def cases(tmp, scene):
         (["render", scene, "--drop-invalid", "--out", tmp / "o.png"], "--drop-invalid: drops invalid splats of a "
                                                                       "splat file; "),
         (["view", scene, "--headless", "--drop-invalid"], "--drop-invalid: drops invalid splats of a splat file; "),
+        # a directory output named as the file an engine loads, or as a one-file format, was written as a directory
+        # of that name: sog/lod-meta.json/lod-meta.json (newuser64)
+        (["export-sog-lod", scene, tmp / "sog" / "lod-meta.json", "-q"],
+         f"{tmp / 'sog' / 'lod-meta.json'}: export-sog-lod writes a directory with lod-meta.json inside it; give the "
+         f"directory ({tmp / 'sog'})"),
+        (["export-sog-lod", scene, tmp / "g.sog", "-q"], "export-sog-lod writes a directory (lod-meta.json and its "
+                                                         "files), not a .sog file; `splatstream decode SCENE "),
+        (["export-3dtiles", scene, tmp / "t" / "tileset.json", "-q"],
+         f"{tmp / 't' / 'tileset.json'}: export-3dtiles writes a directory with tileset.json inside it"),
+        # render takes an encoded scene too, which the reader's message did not name (newuser64)
+        (["render", tmp / "a_dir", "--out", tmp / "o.png"],
+         f"{tmp / 'a_dir'}: not a scene directory (no manifest.msgpack) nor a SOG directory (no meta.json or "
+         "lod-meta.json): render takes an encoded scene, a SOG or a splat file"),
         (["encode", tmp / "missing.ply", tmp / "o"], "missing.ply"),
         (["encode", DONUT, tmp / "o", "--up", "0,0,0"], "--up"),
         (["encode", DONUT, tmp / "o", "--up", "1,x,0"], "--up"),
@@ -292,6 +309,38 @@ def test_a_mount_point_is_refused_before_the_work_not_after(tmp_path, scene, mon
     assert (volume / "scene" / "manifest.msgpack").is_file()
 
 
+def test_mountinfo_points_undo_the_kernels_escapes(tmp_path):
+    text = ("22 1 8:1 / / rw,relatime shared:1 - ext4 /dev/sda1 rw\n"
+            "95 22 8:1 /home/u/out /srv/my\\040volume rw,relatime shared:1 - ext4 /dev/sda1 rw\n")
+    assert mountinfo_points(text) == {"/", "/srv/my volume"}
+    (tmp_path / "vol").mkdir()
+    info = tmp_path / "mountinfo"
+    info.write_text(f"95 22 8:1 /x {tmp_path / 'vol'} rw - ext4 /dev/sda1 rw\n")
+    assert is_mount_point(str(tmp_path / "vol"), str(info)) and not is_mount_point(str(tmp_path), str(info))
+
+
+@pytest.mark.skipif(os.geteuid() != 0 or shutil.which("unshare") is None or shutil.which("mount") is None,
+                    reason="a bind mount needs root and unshare")
+def test_a_bind_mount_on_the_same_file_system_is_refused_before_the_work(tmp_path):
+    """os.path.ismount compares a directory's device with its parent's, so a bind mount within one file system (a
+    container volume from the host's disk, `mount --bind`) was not seen: `encode donut.ply VOL` ran the whole encode
+    and then failed with 'VOL: Device or resource busy', exit 1 (newuser64). The kernel's list of mount points is read
+    too now: one line before any work, exit 2. A private mount namespace (unshare -m) keeps the mount to the test."""
+    volume = tmp_path / "volume"
+    volume.mkdir()
+    script = (f'mount --bind "{volume}" "{volume}" || exit 99; '
+              f'exec "{sys.executable}" -m cli encode "{DONUT}" "{volume}" -q')
+    r = subprocess.run(["unshare", "-m", "sh", "-c", script], capture_output=True, text=True, cwd=ROOT,
+                       stdin=subprocess.DEVNULL, timeout=600)
+    if r.returncode == 99:
+        pytest.skip(f"no bind mount here: {r.stderr.strip()}")
+    assert r.returncode == 2, r.stderr
+    assert r.stderr.strip() == (f"splatstream encode: error: {volume}: is a mount point, which the finished output "
+                                f"cannot replace (it is renamed into place); give a directory inside it, e.g. "
+                                f"{volume / 'scene'}"), r.stderr
+    assert not list(volume.iterdir()) and not [p for p in tmp_path.iterdir() if p.name.startswith(".")]
+
+
 @pytest.mark.parametrize("argv, said", [
     (["info", "scene"], "splatstream info: terminated (SIGTERM)"),
     (["serve", "root"], "splatstream serve: terminated (SIGTERM)"),
@@ -452,3 +501,24 @@ def test_render_view_and_eval_drop_invalid_splats_as_encode_does(tmp_path):
     import json
 
     assert json.loads((tmp_path / "e.json").read_text())["input"]["splats"] == 1999
+
+
+@pytest.mark.parametrize("args, said", [
+    # argparse's own message came from the top-level parser and named no command (newuser64):
+    # 'splatstream: error: unrecognized arguments: --target-psnr 50 (see splatstream --help)'
+    (["eval", "x.ply", "--target-psnr", "50"],
+     "splatstream eval: error: unrecognized arguments: --target-psnr 50 (--target-psnr is an option of encode) "
+     "(see splatstream eval --help)"),
+    (["view", "scene", "--maxsplats", "3"],
+     "splatstream view: error: unrecognized arguments: --maxsplats 3 (--maxsplats: did you mean --max-splats?) "
+     "(see splatstream view --help)"),
+    (["info", "scene", "extra"],
+     "splatstream info: error: unrecognized arguments: extra (see splatstream info --help)"),
+    (["decode", "scene", "o.ply", "--bogus=1"],
+     "splatstream decode: error: unrecognized arguments: --bogus=1 (see splatstream decode --help)"),
+])
+def test_an_unknown_argument_is_named_by_its_command(args, said, capsys):
+    with pytest.raises(SystemExit) as exc:
+        main(args)
+    assert exc.value.code == 2
+    assert capsys.readouterr().err.strip() == said

@@ -392,3 +392,37 @@ def test_a_paged_scene_is_the_same_on_every_engine(scene_ply, tmp_path):
         encode_file(scene_ply, url, preset="low", memory_per_worker=SMALL_MEMORY, **PAGED, **TREE)
         m = load_manifest(FsspecStore(url))  # the pages read back from the store
         assert m.paged is not None and len(m.tiles) == m.paged.tiles
+
+
+@pytest.mark.skipif(importlib.util.find_spec("distributed") is None, reason="needs dask.distributed")
+def test_ctrl_c_from_a_terminal_reaches_the_workers_and_says_one_line(tmp_path):
+    """A terminal's Ctrl-C goes to the whole foreground process group, the local cluster's workers included: each
+    printed its KeyboardInterrupt traceback (about 60 lines) under 'splatstream encode: interrupted' (newuser64). The
+    workers ignore SIGINT now (encode/dask_worker_setup.py) and the encode answers it: one line, exit 130, nothing
+    left. The signal is sent once the workers are writing payloads (a file in the temporary scene), not at a time."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from conftest import ROOT
+
+    out = tmp_path / "scene"
+    proc = subprocess.Popen([sys.executable, "-m", "cli", "encode", "-q", "--workers", "2", "--preset", "very-high",
+                             "--zstd-level", "19", "--max-leaf-splats", "2048", str(ROOT / "samples" / "donut.ply"),
+                             str(out)], cwd=ROOT, stderr=subprocess.PIPE, text=True, stdin=subprocess.DEVNULL,
+                            start_new_session=True,  # its own process group, as a shell's foreground job
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    deadline = time.monotonic() + 300
+    while time.monotonic() < deadline and proc.poll() is None:
+        temps = [p for p in tmp_path.iterdir() if p.name.startswith(f".{out.name}.{proc.pid}.")]
+        if temps and any(temps[0].glob("data/*.bin")):
+            break
+        time.sleep(0.01)
+    if proc.poll() is not None:
+        pytest.fail(f"the encode ended before its workers wrote a payload: {proc.communicate()[1]}")
+    os.killpg(proc.pid, signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err
+    assert err.strip() == "splatstream encode: interrupted", err
+    assert list(tmp_path.iterdir()) == []

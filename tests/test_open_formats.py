@@ -306,6 +306,16 @@ def test_glb_spz_round_trip(tmp_path):
     np.testing.assert_allclose(stored.positions, turn(src, RDF_TO_LUF).positions, atol=0.5 / 4096 + 1e-6)
 
 
+@pytest.mark.parametrize("cut", [4, 7, 11])
+def test_a_glb_cut_inside_its_header_is_named_truncated(tmp_path, cut):
+    # said 'GLB header: version None (expected 2)' (newuser64)
+    path = tmp_path / "cut.glb"
+    path.write_bytes(glb_bytes(random_gaussians(10, 0))[:cut])
+    with pytest.raises(InputError) as exc:
+        read_gaussians(path)
+    assert str(exc.value) == f"{path}: GLB header: the file is {cut} bytes, a GLB header alone is 12: truncated?"
+
+
 def test_tool_glb_reads_like_its_source():
     """splat-transform's .glb (plain float accessors, linear scale, sigmoid opacity, its own quaternion
     convention for the PLY -> glTF turn): same splats as the source PLY, covariances included."""

@@ -205,3 +205,17 @@ def test_serve_refuses_a_root_with_neither_scene_nor_tileset(tmp_path):
         assert server.request("/scenes/ts/tileset.json")[0] == 200
     finally:
         server.stop()
+
+
+def test_serve_help_names_the_tilesets_it_serves(capsys):
+    # `serve --help` said ROOT holds scene directories and named only /scenes/<id>/... of a scene, where serve
+    # serves export-3dtiles tilesets too (README, Serve), and not what it leaves out (newuser64)
+    from cli.main import main
+
+    with pytest.raises(SystemExit):
+        main(["serve", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "every 3D Tiles tileset export-3dtiles wrote (a directory holding tileset.json) at " \
+           "/scenes/<id>/tileset.json" in text, text
+    assert "Streamed SOGs and .rad files are not served" in text
+    assert "directory holding scene directories and 3D Tiles tilesets" in text

@@ -29,7 +29,7 @@ from client_gl.stream.fetch import (
     Fetcher,
     RetryPolicy,
 )
-from client_gl.stream.sources import FetchError, HttpSource, StoreSource, open_source
+from client_gl.stream.sources import NOT_A_SCENE, FetchError, HttpSource, StoreSource, open_source
 from splatstream.errors import InputError
 from splatstream.format.container import VerifiedPayload
 from splatstream.format.manifest import Manifest
@@ -450,6 +450,23 @@ def test_a_local_manifest_that_does_not_parse_is_named_as_the_file(tmp_path):
         with pytest.raises(FetchError) as exc:
             f.manifest()
     assert str(exc.value).startswith(f"{scene / 'manifest.msgpack'}: not a splatstream manifest ("), str(exc.value)
+
+
+def test_a_local_manifest_with_a_flipped_byte_is_named_corrupt(tmp_path, root):
+    # `view SCENE` said 'not a splatstream manifest (checksum: checksum mismatch: the manifest is corrupt ...)' of a
+    # manifest with one byte flipped, where info and decode say it is corrupt (newuser64)
+    scene = tmp_path / "flipped"
+    shutil.copytree(root / SCENE, scene)
+    path = scene / "manifest.msgpack"
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 1
+    path.write_bytes(bytes(data))
+    with fetcher(open_source(scene)) as f:
+        with pytest.raises(FetchError) as exc:
+            f.manifest()
+    assert str(exc.value).startswith(f"{path}: checksum: checksum mismatch: the manifest is corrupt ("), str(exc.value)
+    assert exc.value.kind == NOT_A_SCENE and not exc.value.transient
+    assert "not a splatstream manifest" not in str(exc.value)
 
 
 def test_an_exported_3d_tiles_tileset_is_named_as_one(tmp_path):

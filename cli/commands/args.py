@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import math
+import os
 import re
 
 from splatstream.camera import MAX_AZIMUTH_DEG, check_azimuth
@@ -28,6 +29,22 @@ from .edit_flags import EDIT_OPTIONS
 # splat file with read_gaussians, so dropping the rows there costs nothing more than in encode.
 DROP_INVALID_HELP = ("drop the splats a scene cannot hold (NaN, inf, a zero-length quaternion, values beyond "
                      "format.md 4.8's limits; a warning says how many) instead of refusing the input")
+
+
+def check_directory_output(output_dir: str, command: str, index: str, file_suffixes: tuple[str, ...] = ()) -> None:
+    """A directory output (export-sog-lod's streamed SOG, export-3dtiles's tileset) named as the file an engine is
+    given (`sog/garden/lod-meta.json`, `tiles/garden/tileset.json`) or as a one-file format (`garden.sog`) was
+    written as a directory of that name: a lod-meta.json directory holding lod-meta.json (newuser64)."""
+    name = os.path.basename(os.path.normpath(output_dir))
+    parent = os.path.dirname(os.path.normpath(output_dir)) or "."
+    if name == index:
+        raise UsageError(f"{output_dir}: {command} writes a directory with {index} inside it; give the directory "
+                         f"({parent}), and {output_dir} is the file an engine loads")
+    for suffix in file_suffixes:
+        if name.lower().endswith(suffix):
+            raise UsageError(f"{output_dir}: {command} writes a directory ({index} and its files), not a {suffix} "
+                             f"file; `splatstream decode SCENE {output_dir}` writes one {suffix} file of the full "
+                             "detail")
 
 
 def parse_vector(text: str, what: str, nonzero: bool = False) -> tuple[float, float, float]:

@@ -58,6 +58,8 @@ def run(args: argparse.Namespace) -> int:
     # the start-up of every other command (python -X importtime), which builds this parser too.
     from splatstream.tiles3d import DEFAULT_SPZ_AXES, DEFAULT_SPZ_VERSION, ExportOptions, Placement, export_tileset
 
+    from .args import check_directory_output
+
     located = args.longitude is not None or args.latitude is not None or args.height is not None
     if located and (args.longitude is None or args.latitude is None):
         raise UsageError("--longitude and --latitude go together (and --height needs both)")
@@ -72,6 +74,7 @@ def run(args: argparse.Namespace) -> int:
                             spz_version=args.spz_version or DEFAULT_SPZ_VERSION,
                             placement=placement, sh_degree=args.sh_degree,
                             external_tilesets=args.external_tilesets)
+    check_directory_output(args.output_dir, "export-3dtiles", "tileset.json")
     start = time.perf_counter()
     progress = ProgressPrinter("export-3dtiles", enabled=not args.quiet)
     report = export_tileset(args.scene, args.output_dir, options, progress)

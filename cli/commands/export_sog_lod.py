@@ -11,6 +11,8 @@ from splatstream.progress import ProgressPrinter, count
 from splatstream.sog_export import export_streamed_sog
 from splatstream.writers.sog_lod import UNIT_SPLATS
 
+from .args import check_directory_output
+
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
@@ -33,6 +35,7 @@ def register(sub: argparse._SubParsersAction) -> None:
 def run(args: argparse.Namespace) -> int:
     if args.unit_splats is not None and args.unit_splats < 1:  # the library's 'unit size 0' named no option
         raise UsageError(f"--unit-splats {args.unit_splats}: expected at least 1 splat")
+    check_directory_output(args.output_dir, "export-sog-lod", "lod-meta.json", (".sog",))
     start = time.perf_counter()
     progress = ProgressPrinter("export-sog-lod", enabled=not args.quiet)
     report = export_streamed_sog(args.scene, args.output_dir, args.sh_degree,

@@ -10,11 +10,13 @@ import numpy as np
 
 from splatstream.atomic import atomic_file
 from splatstream.camera import DEFAULT_FOV_Y_DEG, REFERENCE_NEAR, Camera, suggested_camera, turn_about_up
-from splatstream.errors import UsageError
+from splatstream.errors import InputError, UsageError
+from splatstream.format.names import TILESET_NAME
 from splatstream.format.presets import PRESETS
 from splatstream.io import read_gaussians, scene_up
 from splatstream.orientation import view_side
 from splatstream.progress import count
+from splatstream.readers.sog import sog_kind
 from splatstream.store import is_scene_dir, load_manifest
 
 from .args import DROP_INVALID_HELP, check_look, check_sort_draw, parse_azimuth, parse_size, parse_vector
@@ -139,6 +141,12 @@ def run(args: argparse.Namespace) -> int:
         if args.max_sse is not None:  # was ignored without a word: every splat was drawn
             raise UsageError(f"--max-sse {args.max_sse:g}: draws the tiles `view` streams, which an encoded scene "
                              f"directory has; {args.scene} is a splat file or SOG, drawn whole (encode it first)")
+        if os.path.isdir(args.scene) and sog_kind(args.scene) is None and \
+                not os.path.isfile(os.path.join(args.scene, TILESET_NAME)):
+            # read_gaussians said 'expected a splat file or a SOG scene directory', naming neither of render's
+            # own kinds of directory, an encoded scene (newuser64)
+            raise InputError(args.scene, None, "not a scene directory (no manifest.msgpack) nor a SOG directory (no "
+                             "meta.json or lod-meta.json): render takes an encoded scene, a SOG or a splat file")
         g = read_gaussians(args.scene, drop_invalid=args.drop_invalid)
         if len(g) == 0:
             raise UsageError(f"{args.scene}: no splats to render")

@@ -15,9 +15,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser(
         "serve", help="serve every encoded scene under a directory over HTTP",
         description="Serve every scene directory under ROOT (any directory holding manifest.msgpack; its id is its "
-                    "path below ROOT) at /scenes/<id>/..., the scene list at /api/scenes and /healthz. "
-                    "The protocol, and how to serve the same ROOT from nginx or a CDN, is in format_spec/http.md.")
-    p.add_argument("root", metavar="ROOT", help="directory holding scene directories")
+                    "path below ROOT) at /scenes/<id>/..., the scene list at /api/scenes and /healthz, and every "
+                    "3D Tiles tileset export-3dtiles wrote (a directory holding tileset.json) at "
+                    "/scenes/<id>/tileset.json. Streamed SOGs and .rad files are not served (a static web server "
+                    "that answers Range requests serves them). The protocol, and how to serve the same ROOT from "
+                    "nginx or a CDN, is in format_spec/http.md.")
+    p.add_argument("root", metavar="ROOT", help="directory holding scene directories and 3D Tiles tilesets")
     p.add_argument("--host", default="127.0.0.1", help="address to listen on (default: %(default)s; 0.0.0.0 for all)")
     p.add_argument("--port", type=int, default=8000, help="TCP port (default: %(default)s; 0 picks a free one)")
     p.add_argument("--cors-origin", action="append", default=[], metavar="ORIGIN",

@@ -1,4 +1,4 @@
-"""The fields1 decoder (format_spec/format.md 5.2) compiled with numba (the optional extra `splatstream[fast]`):
+"""The fields1 decoder (format_spec/format.md 5.2) compiled with numba (the `view` extra, or `fast` alone):
 the bytes of transport.unfilter_fields' numpy path, bit for bit, in one pass over a section's slots.
 
 The numpy path decodes a layer in a dozen to two dozen whole-array steps (zigzag, running sums, masks, cross

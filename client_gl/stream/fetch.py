@@ -36,7 +36,7 @@ from dataclasses import dataclass, field
 
 from splatstream.errors import FormatError, UsageError
 from splatstream.format.container import VerifiedPayload, sha256_hex, verify_payload
-from splatstream.format.manifest import Manifest, PayloadEntry, parse_manifest
+from splatstream.format.manifest import CHECKSUM_KEY, Manifest, PayloadEntry, parse_manifest
 
 from .cache import DiskCache
 from .sources import (
@@ -663,9 +663,11 @@ class Fetcher:
                     parsed = parse_manifest(reply.data, self.source.location, lazy_payloads=True)
                 except FormatError as exc:
                     where = getattr(self.source, "manifest_location", self.source.location)
-                    raise FetchError(where, NOT_A_SCENE, f"not a splatstream manifest "
-                                     f"({exc.field + ': ' if exc.field else ''}{exc.problem})",
-                                     transient=False) from None
+                    detail = f"{exc.field + ': ' if exc.field else ''}{exc.problem}"
+                    # a manifest whose checksum does not match is a corrupt one, not another kind of file: said as
+                    # info and decode say it ('not a splatstream manifest (checksum: ...)' before, newuser64)
+                    raise FetchError(where, NOT_A_SCENE, detail if exc.field == CHECKSUM_KEY else
+                                     f"not a splatstream manifest ({detail})", transient=False) from None
                 if self.cache is not None and key:
                     await loop.run_in_executor(None, self.cache.put_manifest, key, reply.data, reply.etag)
                 self._manifest_data, self._manifest_etag = reply.data, reply.etag

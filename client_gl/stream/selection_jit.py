@@ -1,4 +1,4 @@
-"""select_near compiled with numba (the optional extra `splatstream[fast]`): the same cut as selection.select_near
+"""select_near compiled with numba (the `view` extra, or `fast` alone): the same cut as selection.select_near
 and selection.select, bit for bit, in a fraction of the time (format_spec/client.md 1.2; BENCHMARKS.md, "Manifest
 pages").
 

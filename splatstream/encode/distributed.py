@@ -49,7 +49,8 @@ class DaskEngine:
             self._config = _fork_workers()
             # env: a forked worker would otherwise see the environment of the first engine in this process
             # (the fork server's), not today's (e.g. object-store credentials set since)
-            extra = {"env": dict(os.environ)} if processes else {}
+            # preload: the worker processes ignore a terminal's Ctrl-C, which the encode handles (dask_worker_setup)
+            extra = {"env": dict(os.environ), "preload": [f"{__package__}.dask_worker_setup"]} if processes else {}
             # Workers' own logs only at CRITICAL: a task's failure reaches us through its future (and is reported
             # once, as a one-line error), while a worker's heartbeat racing the shutdown on a loaded machine logged a
             # traceback at ERROR after a successful encode (seen in 2 of 6 runs of the README's --workers 8 line).

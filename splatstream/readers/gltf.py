@@ -134,7 +134,10 @@ def _load(path: str) -> _Document:
     with open(path, "rb") as f:
         head = f.read(12)
         if head[:4] == b"glTF":
-            magic, version, length = GLB_HEADER.unpack(head) if len(head) == 12 else (None, None, None)
+            if len(head) < GLB_HEADER.size:  # said 'version None (expected 2)' (newuser64)
+                raise InputError(path, "GLB header", f"the file is {size} bytes, a GLB header alone is "
+                                 f"{GLB_HEADER.size}: truncated?")
+            magic, version, length = GLB_HEADER.unpack(head)
             if version != 2:
                 raise InputError(path, "GLB header", f"version {version!r} (expected 2)")
             if length != size:
