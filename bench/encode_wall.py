@@ -108,18 +108,27 @@ def run(code_dir: str, module: str, scene: str, args: list[str], cores: set[int]
     return row
 
 
+def cpu_list(text: str) -> set[int]:
+    """A CPU list as taskset takes it: "0,1", "0-7", "0-3,8-11"."""
+    cores: set[int] = set()
+    for part in text.split(","):
+        first, _, last = part.partition("-")
+        cores.update(range(int(first), int(last or first) + 1))
+    return cores
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--label", required=True)
     ap.add_argument("--code", required=True, help="DIR:MODULE, the checkout and its CLI module")
-    ap.add_argument("--cores", default=None, help="CPU list, e.g. 0,1 (default: as this process)")
+    ap.add_argument("--cores", default=None, help="CPU list, e.g. 0,1 or 0-7 (default: as this process)")
     ap.add_argument("--json", required=True)
     ap.add_argument("--tag", default="", help="free text kept in the row (the round, the scene's name)")
     ap.add_argument("scene")
     ap.add_argument("args", nargs=argparse.REMAINDER, help="encode arguments after the scene")
     a = ap.parse_args()
     code_dir, module = a.code.rsplit(":", 1)
-    cores = {int(c) for c in a.cores.split(",")} if a.cores else None
+    cores = cpu_list(a.cores) if a.cores else None
     row = {"label": a.label, "tag": a.tag, "scene": os.path.basename(a.scene), "args": " ".join(a.args),
            "cores": a.cores or "all", "load": round(os.getloadavg()[0], 2),
            **run(os.path.abspath(code_dir), module, a.scene, [x for x in a.args if x != "--"], cores)}

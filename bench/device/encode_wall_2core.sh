@@ -26,7 +26,9 @@
 # Where .git does travel and .enc_carry/old or base is missing, they are made with git archive here. ROUNDS (3),
 # CORESETS ("0,1 0"), ONLY_1M=1 / ONLY_BIKER=1 narrow it. ONLY_1M=1 ROUNDS=2 is 12 encodes of the 1M scene: about
 # 350-420 s there by enc2core31's run (old 13-14 s, base 47-50 s, new 33-46 s on its cores), under the call's 600 s;
-# the whole default run does not fit one call (biker adds about 60 s a round).
+# the whole default run does not fit one call (biker adds about 60 s a round). CORESETS takes taskset's CPU lists,
+# ranges too: CORESETS="0-7 0-15" ONLY_1M=1 ROUNDS=2 measures 8 and 16 cores (new forks at most 2 children,
+# forked.MAX_PAYLOAD_PROCESSES, whatever the cores).
 set -uo pipefail
 cd "$(dirname "$0")/../.."
 ROOT=$PWD
