@@ -1,6 +1,8 @@
 """The in-memory encode's payloads on forked processes (encode/forked.py): the same bytes with any number of them."""
 from __future__ import annotations
 
+import os
+import signal
 import sys
 import threading
 
@@ -70,8 +72,9 @@ def test_processes_only_for_a_directory_and_more_than_one_core(tmp_path):
     with DirectoryWriter(str(tmp_path / "d")) as writer:
         assert payload_processes(writer, cores=1) == 0
         assert payload_processes(writer, cores=2) == 1
-        assert payload_processes(writer, cores=16) == 15
-        assert payload_processes(writer) == available_cores() - 1
+        assert payload_processes(writer, cores=3) == 2
+        assert payload_processes(writer, cores=16) == forked.MAX_PAYLOAD_PROCESSES == 2  # the tree feeds only so many
+        assert payload_processes(writer) == min(2, available_cores() - 1)
     assert payload_processes(MemoryWriter(), cores=16) == 0  # a child's payloads would stay in the child
 
 
@@ -171,3 +174,80 @@ def test_a_fault_in_a_feeder_fails_the_encode_and_stops_the_child(tmp_path, monk
     finally:
         children.close()
     assert threading.active_count() == 1
+
+
+def test_the_bar_counts_the_childrens_payloads_and_ends_at_one(tmp_path):
+    plan, ctx, children = children_for(tmp_path, processes=1)
+    leaves = [t for t in plan.tiles if not t.children]
+    shares: list[float] = []
+    try:
+        assert children.start(leaves)
+        payloads = children.finish(plan.tiles, lambda t: encode_tile(t.gaussians, tile_group_names(ctx), ctx,
+                                                                     children.payloads), shares.append)
+    finally:
+        children.close()
+    assert children.done  # the child encoded some tiles, and the bar reached 1.0 only by counting them
+    assert sorted(payloads) == sorted(t.id for t in plan.tiles)
+    assert shares == sorted(shares) and len(set(shares)) == len(shares)  # it only moves forward
+    assert shares[-1] == 1.0 and all(0.0 <= s < 1.0 for s in shares[:-1])
+
+
+def test_the_encodes_progress_with_a_child(tmp_path):
+    g = read_gaussians(real("fruit_drops_sh3.ply"))
+    opts = EncodeOptions(max_leaf_splats=300)
+    stages = {}
+    for processes in (0, 1):
+        events: list[tuple[str, float]] = stages.setdefault(processes, [])
+        with DirectoryWriter(str(tmp_path / f"p{processes}")) as writer:
+            encode_to(g, writer, opts, lambda stage, f, events=events: events.append((stage, f)),
+                      processes=processes)
+    bar = [f for stage, f in stages[1] if stage == "encode"]
+    assert bar == sorted(bar) and bar[0] == 0.0 and bar[-1] == 1.0
+    assert len(set(bar)) > 2 and all(f < 1.0 for f in bar[:bar.index(1.0)])  # moves, and 1.0 only at the end
+    # the stages before the payloads report as they do without children
+    assert [e for e in stages[1] if e[0] != "encode"] == [e for e in stages[0] if e[0] != "encode"]
+
+
+def test_a_child_killed_mid_encode_fails_it_in_one_line(tmp_path, monkeypatch, capsys):
+    import splatstream.encode.local as local
+    from cli.main import main
+
+    monkeypatch.setattr(local, "payload_processes", lambda writer, cores=None: 1)
+    start = PayloadChildren.start
+    killed = []
+
+    def start_then_kill(self, tiles):  # the child is killed once the tree is under way, as the OOM killer would
+        started = start(self, tiles)
+        for proc, _ in self.children:
+            os.kill(proc.pid, signal.SIGKILL)
+            killed.append(proc.pid)
+        return started
+
+    monkeypatch.setattr(PayloadChildren, "start", start_then_kill)
+    out = tmp_path / "scene"
+    rc = main(["encode", str(real("fruit_drops_sh3.ply")), str(out), "-q", "--max-leaf-splats", "300"])
+    err = capsys.readouterr().err
+    assert killed and rc == 1
+    assert err.strip().splitlines() == [
+        f"splatstream encode: error: payload process {killed[0]} was killed by SIGKILL before its payloads were "
+        "done"]
+    assert os.listdir(tmp_path) == []  # neither the scene nor its temporary directory
+    assert threading.active_count() == 1
+
+
+def test_a_dead_child_is_seen_though_its_pipe_stays_open(tmp_path):
+    # The pipe's far end kept open here: no EOF comes, the liveness check (waitid, not a time limit) finds it.
+    import multiprocessing
+
+    plan, ctx, children = children_for(tmp_path)
+    here, there = multiprocessing.Pipe(duplex=True)
+    proc = multiprocessing.get_context("fork").Process(target=os._exit, args=(3,))
+    proc.start()
+    try:
+        with pytest.raises(EOFError):
+            children._receive(proc, here)
+        assert forked._exit_status(proc.pid) == "exited with status 3"
+    finally:
+        proc.join()
+        here.close()
+        there.close()

@@ -29,8 +29,10 @@ import collections
 import gc
 import logging
 import os
+import signal
 import sys
 import threading
+import time
 import traceback
 from collections.abc import Callable
 
@@ -51,14 +53,47 @@ TilePayloads = dict[int, dict[str, PayloadEntry]]
 
 _FIELDS = ("positions", "rotations", "log_scales", "opacity_logits", "sh_dc", "sh_rest")
 
+# At most this many children, whatever the cores. The tree is one serial producer of tiles (its grouping rounds hold
+# the interpreter lock), and one child already keeps up with it: on the 1M scene the payloads left after the tree
+# fell from 8.0 s to 0.04 s with one child (BENCHMARKS.md, "Payload processes forked before the tree's threads").
+# Each child costs its own interpreter's pages and the parent's copy-on-write copies: the tree's peak PSS with
+# 0/1/2/3/7 children (this 2-core VM, medium) read 138/154/167/176/220 MB on biker and 770/822/828/876/972 MB at
+# 1M. A second child is kept as slack (a tile as large as a level's backlog, a host whose cores are slower than
+# the tree's); a third and more only add memory (15 on the 16-core GPU machine before this cap).
+MAX_PAYLOAD_PROCESSES = 2
+
+# How often a feeder waiting on its child's pipe checks that the child still exists. Only a liveness check (a dead
+# child whose pipe some other process still holds open would otherwise never send EOF), never a time limit: a
+# child that is alive may take as long as its tile needs.
+_LIVENESS_S = 1.0
+
 
 def payload_processes(writer: SceneWriter, cores: int | None = None) -> int:
-    """How many child processes encode payloads beside this one: one less than the cores available, none where a
+    """How many child processes encode payloads beside this one: one less than the cores available, at most
+    MAX_PAYLOAD_PROCESSES, none where a
     child cannot write the payloads (a writer other than a DirectoryWriter), off Linux (macOS's system libraries
     are not safe to use in a forked child; Windows has no fork) and in a daemonic process (a Dask worker's)."""
     if not isinstance(writer, DirectoryWriter) or not sys.platform.startswith("linux") or _in_daemon():
         return 0
-    return max(0, (available_cores() if cores is None else cores) - 1)
+    return max(0, min(MAX_PAYLOAD_PROCESSES, (available_cores() if cores is None else cores) - 1))
+
+
+def _exit_status(pid: int, wait_s: float = 0.0) -> str | None:
+    """How a child of this process ended ('killed by SIGKILL', 'exited with status 1'), read without reaping it
+    (waitid's WNOWAIT: multiprocessing reaps it later); None while it still runs after `wait_s` seconds."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            info = os.waitid(os.P_PID, pid, os.WEXITED | os.WNOHANG | os.WNOWAIT)
+        except ChildProcessError:  # reaped already (close() stopped it)
+            return "ended"
+        if info is not None:
+            if info.si_code in (os.CLD_KILLED, os.CLD_DUMPED):
+                return f"was killed by {signal.Signals(info.si_status).name}"
+            return f"exited with status {info.si_status}"
+        if time.monotonic() >= deadline:
+            return None
+        time.sleep(0.01)
 
 
 def _in_daemon() -> bool:
@@ -155,10 +190,11 @@ class PayloadChildren:
 
     `start(tiles)`: fork the children now (only where this process runs no other thread; otherwise there are none
     and `started` stays False), the tiles that exist now queued (the children read them from their own copy).
-    `offer(tiles)`: queue more finished tiles (sent to a child when it asks). `finish(tiles, here)`: queue what is
-    not queued yet, encode from the queue here (`here(tile)` returns its payloads) while the children do too, wait
-    for them and return every tile's payloads. `close()`: stop children still running (an encode that failed or
-    was interrupted); call it before the writer removes its directory."""
+    `offer(tiles)`: queue more finished tiles (sent to a child when it asks); raises a child's failure at once.
+    `finish(tiles, here, progress)`: queue what is not queued yet, encode from the queue here (`here(tile)` returns
+    its payloads) while the children do too, wait for them and return every tile's payloads; `progress(f)` gets the
+    share of the tiles' splats whose payloads are done, the children's included. `close()`: stop children still
+    running (an encode that failed or was interrupted); call it before the writer removes its directory."""
 
     def __init__(self, processes: int, groups: list[str], ctx: TileContext, payloads: DirectoryPayloads):
         self.processes = processes
@@ -172,8 +208,10 @@ class PayloadChildren:
         self.closed = False  # nothing more will be queued
         self.children: list[tuple] = []  # (process, this end of its pipe)
         self.feeders: list[threading.Thread] = []
+        self.feeding = 0  # feeders still running
         self.done: TilePayloads = {}
-        self.errors: list[str] = []
+        self.done_splats = 0  # splats of the tiles the children have finished (their payloads written)
+        self.errors: list[Exception] = []
         self._frozen = False  # this object froze the collector's objects (gc.freeze) and unfreezes them at the end
 
     def start(self, tiles: list[Tile]) -> bool:
@@ -198,11 +236,12 @@ class PayloadChildren:
             proc = mp.Process(target=_child, args=(there, shared, self.groups, self.ctx, self.payloads, parent),
                               daemon=True)
             proc.start()
-            there.close()
+            there.close()  # before the next fork: only this child holds its end, so its death is an EOF here
             self.children.append((proc, here))
         self.started = True
         log.debug("payload processes: %d forked, %d tiles shared", self.processes, len(shared))
         # Threads only now, every child forked: one feeder per child answers its requests.
+        self.feeding = len(self.children)
         for proc, conn in self.children:
             feeder = threading.Thread(target=self._feed, args=(proc, conn), daemon=True, name="payload-feeder")
             feeder.start()
@@ -217,6 +256,8 @@ class PayloadChildren:
         if not self.started:
             return
         with self.cond:
+            if self.errors:  # a child failed: the encode stops now, not after the tree
+                raise self.errors[0]
             self.queue.extend((-1, t) for t in tiles if t.id not in self.queued)
             self.queued.update(t.id for t in tiles)
             self.cond.notify_all()
@@ -227,57 +268,103 @@ class PayloadChildren:
                 self.cond.wait()
             return self.queue.popleft() if self.queue else None
 
+    def _receive(self, proc, conn):
+        """The child's next message; EOFError if the child is gone (its pipe closed, or checked dead)."""
+        while not conn.poll(_LIVENESS_S):
+            if _exit_status(proc.pid) is not None:
+                raise EOFError
+        return conn.recv()
+
     def _feed(self, proc, conn) -> None:
         """One child's requests answered from the queue, until it is empty and closed; then its payloads taken."""
+        sent: Tile | None = None  # the tile the child is encoding
         try:
             while True:
-                status, value = conn.recv()
+                status, value = self._receive(proc, conn)
                 if status != "ready":
-                    self._failed(proc, value)
+                    self._failed(RuntimeError(f"a payload process failed: {value}"))
                     return
+                if sent is not None:  # "ready" again: the tile sent before is done
+                    with self.cond:
+                        self.done_splats += len(sent.gaussians)
+                        self.cond.notify_all()
+                    sent = None
                 item = self._take(wait=True)
                 if item is None:
                     conn.send(("stop", None))
-                    status, value = conn.recv()
+                    status, value = self._receive(proc, conn)
                     if status != "ok":
-                        self._failed(proc, value)
+                        self._failed(RuntimeError(f"a payload process failed: {value}"))
                         return
                     with self.cond:
                         self.done.update(value)
                     return
-                index, tile = item
+                index, sent = item
                 if index >= 0:
                     conn.send(("shared", index))
                 else:
-                    _send_gaussians(conn, tile.id, tile.gaussians)
-        except (EOFError, OSError) as e:
-            self._failed(proc, f"the payload process ended without a result ({e.__class__.__name__})")
+                    _send_gaussians(conn, sent.id, sent.gaussians)
+        except (EOFError, OSError):
+            how = _exit_status(proc.pid, wait_s=5.0) or "closed its pipe"
+            self._failed(ChildProcessError(f"payload process {proc.pid} {how} before its payloads were done"))
         except BaseException:  # noqa: BLE001 -- a fault here: said by finish, which stops the child
-            self._failed(proc, traceback.format_exc(limit=8))
+            self._failed(RuntimeError(f"a payload process failed: {traceback.format_exc(limit=8)}"))
+        finally:
+            with self.cond:
+                self.feeding -= 1
+                self.cond.notify_all()
 
-    def _failed(self, proc, message: str) -> None:
+    def _failed(self, error: Exception) -> None:
         with self.cond:
-            self.errors.append(message)
+            self.errors.append(error)
             self.closed = True  # the others stop after their tile; this process encodes no more
             self.queue.clear()
             self.cond.notify_all()
 
-    def finish(self, tiles: list[Tile], here: Callable[[Tile], dict[str, PayloadEntry]]) -> TilePayloads:
+    def finish(self, tiles: list[Tile], here: Callable[[Tile], dict[str, PayloadEntry]],
+               progress: Callable[[float], None] = lambda done: None) -> TilePayloads:
         """Every tile's payloads, the children's and this process's."""
+        total = max(1, sum(len(t.gaussians) for t in tiles))
         if not self.started:
-            return {tile.id: here(tile) for tile in tiles}
+            out: TilePayloads = {}
+            splats = 0
+            for tile in tiles:
+                out[tile.id] = here(tile)
+                splats += len(tile.gaussians)
+                progress(splats / total)
+            return out
         self.offer(tiles)
         mine: TilePayloads = {}
-        while (item := self._take(wait=False)) is not None:
+        mine_splats = 0
+        reported = -1.0
+
+        def report() -> None:  # this thread calls `progress`: the children's count read under the lock
+            nonlocal reported
+            with self.cond:
+                share = min(1.0, (mine_splats + self.done_splats) / total)
+            if share > reported:
+                reported = share
+                progress(share)
+
+        report()
+        while not self.errors and (item := self._take(wait=False)) is not None:
             mine[item[1].id] = here(item[1])
+            mine_splats += len(item[1].gaussians)
+            report()
         with self.cond:
             self.closed = True
             self.cond.notify_all()
+        while True:  # the children's last tiles: the bar moves as each is done
+            with self.cond:
+                if self.feeding == 0:
+                    break
+                self.cond.wait()
+            report()
         for feeder in self.feeders:
             feeder.join()
         if self.errors:  # a child may still wait for a tile that will not come: stopped
             self.close()
-            raise RuntimeError(f"a payload process failed: {self.errors[0]}")
+            raise self.errors[0]
         for proc, conn in self.children:
             conn.close()
             proc.join()

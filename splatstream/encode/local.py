@@ -70,18 +70,11 @@ def _forked_entries(tiles: list[Tile], children: PayloadChildren, ctx: TileConte
                     progress: Progress) -> list[TileEntry]:
     """The tiles' entries, their payloads encoded by the children and this process (forked.py)."""
     groups = tile_group_names(ctx)
-    total = sum(len(t.gaussians) for t in tiles)
-    done = 0
-
-    def here(tile: Tile) -> dict:
-        nonlocal done
-        out = encode_tile(tile.gaussians, groups, ctx, writer)
-        done += len(tile.gaussians)
-        progress("encode", done / total)  # this process's share: the bar may stop short of 1.0 until the end
-        return out
-
     progress("encode", 0.0)
-    payloads = children.finish(tiles, here)
+    # The bar counts every tile's splats once its payloads are written, the children's included (they may have
+    # done most of them while the tree merged: the bar starts there).
+    payloads = children.finish(tiles, lambda tile: encode_tile(tile.gaussians, groups, ctx, writer),
+                               lambda share: progress("encode", share))
     progress("encode", 1.0)
     return [tile_entry(tile, payloads[tile.id]) for tile in tiles]
 
