@@ -268,10 +268,10 @@ def merge_groups(g: Gaussians, mass: np.ndarray, order: np.ndarray, starts: np.n
     counts = np.diff(np.append(starts, n))
     group_of = np.repeat(np.arange(len(starts)), counts)
 
-    mass = mass[order]
+    mass = np.take(mass, order)
     w = mass + 1e-300  # all-transparent groups still get a defined (uniform) mean
     wsum = np.add.reduceat(w, starts)
-    wn = w / wsum[group_of]  # normalised weights, sum to 1 per group
+    wn = w / np.take(wsum, group_of)  # normalised weights, sum to 1 per group
 
     p = _rows(g.positions, order).astype(np.float64)
     origin = p.mean(axis=0)  # work relative to the set's centre for precision
@@ -307,7 +307,8 @@ def merge_groups(g: Gaussians, mass: np.ndarray, order: np.ndarray, starts: np.n
     alpha = merged_mass / _coverage_area(merged_log_scales)
     alpha = np.clip(alpha, 1e-7, MAX_MERGED_OPACITY)
     single = counts == 1
-    merged_logits = np.where(single, g.opacity_logits[order][starts], np.log(alpha / (1.0 - alpha)))
+    single_logits = np.take(g.opacity_logits, np.take(order, starts))
+    merged_logits = np.where(single, single_logits, np.log(alpha / (1.0 - alpha)))
 
     wn32 = wn.astype(np.float32)
     sh_dc = _rows(g.sh_dc, order)
@@ -429,7 +430,8 @@ def choice_members(members: Gaussians, blur: float) -> tuple[tuple, tuple[np.nda
 def _take(members: Gaussians, rows: np.ndarray) -> Gaussians:
     """The attributes choice_members reads, of `rows` of `members` (no SH rest: the choice never reads it)."""
     return Gaussians(_rows(members.positions, rows), _rows(members.rotations, rows), _rows(members.log_scales, rows),
-                     members.opacity_logits[rows], _rows(members.sh_dc, rows), np.zeros((len(rows), 0, 3), np.float32))
+                     np.take(members.opacity_logits, rows), _rows(members.sh_dc, rows),
+                     np.zeros((len(rows), 0, 3), np.float32))
 
 
 def _sampled_choice_error(members: Gaussians, ids: np.ndarray, inside: np.ndarray, sample: int, blur: float,
@@ -438,8 +440,9 @@ def _sampled_choice_error(members: Gaussians, ids: np.ndarray, inside: np.ndarra
     per-member inputs `prepared` of `members` (rows sliced: the same numbers as taken for those rows alone)."""
     args, terms = prepared
     rows = np.flatnonzero(inside)
-    return float(group_errors(members.positions[rows], *(a[rows] for a in args), ids[rows] // sample, proj=True,
-                              terms=tuple(t[rows] for t in terms)).sum())
+    return float(group_errors(_rows(members.positions, rows), *(_rows(a, rows) for a in args),
+                              np.take(ids, rows) // sample, proj=True,
+                              terms=tuple(_rows(t, rows) for t in terms)).sum())
 
 
 def _run_ids(order: np.ndarray, starts: np.ndarray, n: int) -> np.ndarray:
@@ -492,8 +495,8 @@ def auto_tile_choice(members: Gaussians, groups: tuple[np.ndarray, np.ndarray], 
     if sample > 1:  # every sample-th group of each grouping (ids follow the Morton order: spread over the tile)
         cost_in, grid_in = cost_ids % sample == 0, grid_ids % sample == 0
         judged = np.flatnonzero(cost_in | grid_in)
-        members, cost_ids, grid_ids = _take(members, judged), cost_ids[judged], grid_ids[judged]
-        cost_in, grid_in = cost_in[judged], grid_in[judged]
+        members, cost_ids, grid_ids = _take(members, judged), np.take(cost_ids, judged), np.take(grid_ids, judged)
+        cost_in, grid_in = np.take(cost_in, judged), np.take(grid_in, judged)
     prepared = choice_members(members, blur)  # the same members judged twice
     if sample > 1:
         cost_err = _sampled_choice_error(members, cost_ids, cost_in, sample, blur, prepared)
@@ -941,7 +944,7 @@ def build_subtree(g: Gaussians, index: np.ndarray, shape: TreeShape, level: int 
             merged, merged_mass, assign = merge_groups(members, member_mass, *groups)
         del members
         offsets = np.cumsum([0] + [len(k.gaussians) for k in kids])
-        rep = assign[np.concatenate([r + offsets[k] for k, r in enumerate(kid_reps)])]
+        rep = np.take(assign, np.concatenate([r + offsets[k] for k, r in enumerate(kid_reps)]))
         size = len(merged)
         # Errors and appearance are measured against the originals (lod.md 3, 6).
         far, near = error_extremes(ordered.positions[a:b], reach[a:b], merged.positions, rep, size)

@@ -166,7 +166,7 @@ def grid_group_starts(positions: np.ndarray, target: int) -> tuple[np.ndarray, n
     n = len(positions)
     codes = morton(positions)
     order = np.argsort(codes, kind="stable")
-    codes = codes[order]
+    codes = np.take(codes, order)
     if target >= n:
         return order, np.arange(n)
 
@@ -242,7 +242,7 @@ def neighbour_keys(p: np.ndarray, k: int, shifts: int = 3, block: int = 4096, po
     every = np.concatenate(keys)
     del keys  # the blocks' keys freed before the sort, which is in place: two copies of the keys at most, not four
     every.sort(kind="stable")  # sorted runs (the blocks' keys): merged by the timsort, 20x the default sort
-    return every[np.concatenate([[True], every[1:] != every[:-1]])]
+    return np.compress(np.concatenate([[True], every[1:] != every[:-1]]), every)
 
 
 def _shifted_orders(p: np.ndarray, k: int, shifts: int) -> tuple[np.ndarray, np.ndarray, int, int]:
@@ -297,8 +297,13 @@ def _neighbour_block(ctx: tuple, r0: int, block: int, ordered: bool) -> tuple[np
         d2s += t
     del at, t
     # Self and repeats (a candidate equal to the one before it in its sorted row) as one mask, one masked write.
-    drop = cs == rows[:, None]
-    drop[:, 1:] |= cs[:, 1:] == cs[:, :-1]
+    # The repeats compared over the flat rows at once (one contiguous pass, not one short loop per row), each row's
+    # first column then cleared: the same mask as cs[:, 1:] == cs[:, :-1] beside a False column.
+    drop = np.empty(cs.shape, bool)
+    flat, dflat = cs.reshape(-1), drop.reshape(-1)
+    np.equal(flat[1:], flat[:-1], out=dflat[1:])
+    drop[:, 0] = False
+    drop |= cs == rows[:, None]
     np.copyto(d2s, np.inf, where=drop)
     del drop
     if not ordered:  # the k smallest, ties to the lower id (the earlier column), as the stable sort picks
@@ -314,7 +319,7 @@ def _neighbour_block(ctx: tuple, r0: int, block: int, ordered: bool) -> tuple[np
         if len(short):
             sel[short] &= np.isfinite(d2s[short])
         # The selected (row, column) pairs in row-major order, as np.nonzero(sel) lists them (0.87x its time).
-        return np.repeat(rows, np.count_nonzero(sel, axis=1)), cs[sel].astype(np.int64)
+        return np.repeat(rows, np.count_nonzero(sel, axis=1)), np.compress(sel.reshape(-1), cs).astype(np.int64)
     pick = np.argsort(d2s, axis=1, kind="stable")[:, :k]
     nb = np.take_along_axis(cs, pick, axis=1).reshape(-1)
     ok = np.isfinite(np.take_along_axis(d2s, pick, axis=1)).reshape(-1)
@@ -333,6 +338,20 @@ def _neighbour_blocks(p: np.ndarray, k: int, shifts: int, block: int, ordered: b
 
 
 # ---------------------------------------------------------------------------------------------- costs
+
+
+def row_dots(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """np.einsum("ij,ij->i", a, b) of (N, 3) float64 rows, to the bit, in under half its time (einsum's loop per row
+    of three is the cost): numpy's sum-of-products loop adds a row's products as ((a0 b0 + a2 b2) + a1 b1) onto its
+    zero start (+ 0.0, which turns -0.0 into 0.0). The grouping's choices hang on these bits, so
+    tests/test_lod_groups.py checks them against einsum on rows of special values (signed zeros, subnormals, inf,
+    NaN) and random rows."""
+    with np.errstate(over="ignore", invalid="ignore"):  # einsum warns of nothing
+        out = a[:, 0] * b[:, 0]
+        out += a[:, 2] * b[:, 2]
+        out += a[:, 1] * b[:, 1]
+        out += 0.0
+    return out
 
 
 def _energy(alpha: np.ndarray, col2: np.ndarray, cov: np.ndarray) -> np.ndarray:
@@ -387,7 +406,7 @@ def edge_costs_at(out: np.ndarray, rows: np.ndarray, mu, cov, alpha, col, w, i, 
 
     def one(s: int) -> None:
         r = rows[s:s + block]
-        c = _edge_costs(mu_t, cov_t, alpha, col, w, i[r], j[r], rule)
+        c = _edge_costs(mu_t, cov_t, alpha, col, w, np.take(i, r), np.take(j, r), rule)
         c[~np.isfinite(c)] = np.finfo(np.float64).max
         out[r] = c
 
@@ -445,7 +464,7 @@ def _det2(c):
 def _edge_costs(mu_t, cov_t, alpha, col, w, i, j, rule: GroupRule) -> np.ndarray:
     """edge_costs of one block; mu_t (3, clusters) and cov_t (6, clusters): positions and covariances by row."""
     i, j = i.astype(np.intp, copy=False), j.astype(np.intp, copy=False)  # once, not at each of the gathers below
-    wi, wj = w[i], w[j]
+    wi, wj = np.take(w, i), np.take(w, j)
     W = wi + wj
     pi = wi / W
     pj = 1 - pi
@@ -453,18 +472,28 @@ def _edge_costs(mu_t, cov_t, alpha, col, w, i, j, rule: GroupRule) -> np.ndarray
     di = d * pj
     dj = -d * pi
     ci, cj = np.take(cov_t, i, axis=1), np.take(cov_t, j, axis=1)  # (6, N)
+    # cm[k] = pi * (di[a] * di[b] + ci[k]) + pj * (dj[a] * dj[b] + cj[k]), the diagonal + 1e-20: the same operations
+    # in the same order (products commute exactly), in place in cm's rows and one work array.
     cm = np.empty_like(ci)
+    t = np.empty_like(pi)
     for k, (a, b) in enumerate(_SYM6):
-        cm[k] = pi * (di[a] * di[b] + ci[k]) + pj * (dj[a] * dj[b] + cj[k])
-    cm[[0, 3, 5]] += 1e-20
+        x = np.multiply(di[a], di[b], out=cm[k])
+        x += ci[k]
+        x *= pi
+        np.multiply(dj[a], dj[b], out=t)
+        t += cj[k]
+        t *= pj
+        x += t
+        if a == b:
+            x += 1e-20
     area_m = np.maximum(_area6(cm.T), 1e-300)
     am = np.minimum(1.0, W / area_m)
     bi, bj = np.take(col, i, axis=0), np.take(col, j, axis=0)  # rows: np.take is 4x fancy indexing
-    bij = np.einsum("ij,ij->i", bi, bj)
-    bni, bnj = np.einsum("ij,ij->i", bi, bi), np.einsum("ij,ij->i", bj, bj)
+    bij = row_dots(bi, bj)
+    bni, bnj = row_dots(bi, bi), row_dots(bj, bj)
     bim, bjm = pi * bni + pj * bij, pi * bij + pj * bnj
     bnm = pi * pi * bni + 2 * pi * pj * bij + pj * pj * bnj
-    ai, aj = alpha[i], alpha[j]
+    ai, aj = np.take(alpha, i), np.take(alpha, j)
     if rule.proj:
         # Per plane the same products as one expression per term (left to right): the planes share their
         # prefixes (pi a_i^2 |b_i|^2, 2 a_i a_j b_ij, ...) and each 2D determinant is taken once.
@@ -536,11 +565,11 @@ def _greedy_pairs(count: int, i: np.ndarray, j: np.ndarray, cost: np.ndarray, qu
         best = np.full(count, -1)
         best[ii[::-1]] = jj[::-1]  # the first (cheapest) live edge of each node
         ok = best >= 0
-        mutual = ok & (best[np.where(ok, best, 0)] == ids) & (ids < best)
+        mutual = ok & (np.take(best, np.where(ok, best, 0)) == ids) & (ids < best)
         pa = np.flatnonzero(mutual)
         if not len(pa):
             break
-        pb = best[pa]
+        pb = np.take(best, pa)
         if matched + len(pa) > quota:  # each node's cheapest cost, needed only here
             best_cost = np.full(count, np.inf)
             best_cost[ii[::-1]] = cc[::-1]
@@ -591,7 +620,7 @@ def _cheapest_share(i, j, cost, take: int, mult: np.ndarray | None = None) -> tu
         every = cost if mult is None or total == len(cost) else np.repeat(cost, mult)
         thr = np.partition(every, limit - 1)[limit - 1]
         keep = cost <= thr
-        return i[keep], j[keep], cost[keep]
+        return np.compress(keep, i), np.compress(keep, j), np.compress(keep, cost)
     return i, j, cost
 
 
@@ -600,7 +629,7 @@ def _cheapest_share(i, j, cost, take: int, mult: np.ndarray | None = None) -> tu
 
 def _merge_pairs(state: dict, pa: np.ndarray, pb: np.ndarray) -> None:
     mu, cov, alpha, col, w = state["mu"], state["cov"], state["alpha"], state["col"], state["w"]
-    wa, wb = w[pa], w[pb]
+    wa, wb = np.take(w, pa), np.take(w, pb)
     ws = wa + wb
     fa, fb = wa / ws, wb / ws
     # Rows gathered by np.take (the same rows as mu[pa], 3-7x faster than fancy indexing on (N, 3) and (N, 6)).
@@ -627,7 +656,7 @@ def _drop(state: dict, label: np.ndarray, pa: np.ndarray, pb: np.ndarray) -> np.
     new_id = np.cumsum(alive) - 1
     for key in state:  # mu, cov, alpha, col, w and, with regions, region; np.compress: 2-4x a[alive]'s speed
         state[key] = np.compress(alive, state[key], axis=0)
-    return new_id[into[label]]
+    return np.take(new_id, np.take(into, label))
 
 
 def _morton_finish(state: dict, label: np.ndarray, target: int) -> np.ndarray:
@@ -665,7 +694,7 @@ def stable_int_argsort(ids: np.ndarray) -> np.ndarray:
 def _distinct(keys: np.ndarray, kind: str | None = None) -> np.ndarray:
     """np.unique of int64 keys (sorted, distinct) by a sort (`kind`: np.sort's), in place of a copy of the keys."""
     keys = np.sort(keys, kind=kind)
-    return keys[np.concatenate([[True], keys[1:] != keys[:-1]])] if len(keys) else keys
+    return np.compress(np.concatenate([[True], keys[1:] != keys[:-1]]), keys) if len(keys) else keys
 
 
 def _sorted_unique(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -674,9 +703,9 @@ def _sorted_unique(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray
     group_ids' keys come mostly in order (edge rows stay sorted by their first end): the stable sort (a timsort
     of integers, which takes the sorted runs as they are) is 3.4x the default on them (biker's first two levels)."""
     order = np.argsort(keys, kind="stable")  # equal keys fold integer counts only: any order of them would do
-    s = keys[order]
+    s = np.take(keys, order)
     first = np.flatnonzero(np.concatenate([[True], s[1:] != s[:-1]])) if len(s) else np.zeros(0, np.int64)
-    return s[first], order, first
+    return np.take(s, first), order, first
 
 
 class _ParkedRows:
@@ -715,9 +744,9 @@ class _ParkedRows:
         apart = pi != pj
         pi, pj, pm = np.compress(apart, pi), np.compress(apart, pj), np.compress(apart, pm)
         key, order, first = _sorted_unique(pi.astype(np.int64) * count + pj)
-        folded = np.add.reduceat(pm[order], first) if len(key) else pm[:0]
-        row = order[first]
-        return (np.concatenate([ei, pi[row]]), np.concatenate([ej, pj[row]]),
+        folded = np.add.reduceat(np.take(pm, order), first) if len(key) else pm[:0]
+        row = np.take(order, first)
+        return (np.concatenate([ei, np.take(pi, row)]), np.concatenate([ej, np.take(pj, row)]),
                 np.concatenate([mult, folded]).astype(mult.dtype, copy=False),
                 np.concatenate([ecost, np.full(len(key), np.nan)]))
 
@@ -783,8 +812,8 @@ def group_ids_of(inputs: dict, target: int, rule: GroupRule = DEFAULT_RULE,
     ei, ej = (a.astype(index) for a in np.divmod(key, n))  # one pass (int64 division has no SIMD loop)
     del key
     if region is not None:
-        inside = region[ei] == region[ej]
-        ei, ej = ei[inside], ej[inside]
+        inside = np.take(region, ei) == np.take(region, ej)
+        ei, ej = np.compress(inside, ei), np.compress(inside, ej)
         del inside
     del region
     # The edges between clusters: each splat edge mapped onto the clusters at its ends, as (label[ei], label[ej])
@@ -808,7 +837,7 @@ def group_ids_of(inputs: dict, target: int, rule: GroupRule = DEFAULT_RULE,
         # rows under the cap. After the last stage no row is read, so none is joined.
         parked = _ParkedRows()
         if cap:
-            ok = size[ei] + size[ej] <= cap
+            ok = np.take(size, ei) + np.take(size, ej) <= cap
             if not ok.all():
                 out = ~ok
                 parked.add(np.compress(out, ei), np.compress(out, ej), np.compress(out, mult))
@@ -842,7 +871,7 @@ def group_ids_of(inputs: dict, target: int, rule: GroupRule = DEFAULT_RULE,
             size = np.compress(alive, size)
             # The new ids as `index` (the edge rows' type): the rows gathered through it need no conversion.
             remap = _drop(state, np.arange(count), pa, pb).astype(index, copy=False)
-            label = remap[label]
+            label = np.take(remap, label)
             parked.step(remap)
             # Edges between unchanged clusters keep their rows and costs; the others are mapped onto the merged
             # clusters, those now over the cap parked as they are (folded at the stage's end: in the pairs stage
@@ -868,9 +897,9 @@ def group_ids_of(inputs: dict, target: int, rule: GroupRule = DEFAULT_RULE,
             ti, tj, tm = np.compress(apart, ti), np.compress(apart, tj), np.compress(apart, tm)
             count = len(size)
             key, order, first = _sorted_unique(ti.astype(np.int64) * count + tj)
-            folded = np.add.reduceat(tm[order], first) if len(key) else tm[:0]
-            row = order[first]  # a row of each distinct pair: its ends, as key // count and key % count gave them
-            ti, tj = ti[row], tj[row]
+            folded = np.add.reduceat(np.take(tm, order), first) if len(key) else tm[:0]
+            row = np.take(order, first)  # a row of each distinct pair: its ends (key // count, key % count)
+            ti, tj = np.take(ti, row), np.take(tj, row)
             ei = np.concatenate([np.take(remap, np.compress(kept, ei)), ti])
             ej = np.concatenate([np.take(remap, np.compress(kept, ej)), tj])
             mult = np.concatenate([np.compress(kept, mult), folded]).astype(index, copy=False)
@@ -884,20 +913,20 @@ def group_ids_of(inputs: dict, target: int, rule: GroupRule = DEFAULT_RULE,
         raise ValueError(f"grouping reached {groups} groups, not {target}")
     rank = np.empty(groups, np.int64)
     rank[np.argsort(morton_codes(state["mu"]), kind="stable")] = np.arange(groups)
-    return rank[label]
+    return np.take(rank, label)
 
 
 def group_runs(ids: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(order, starts) of group ids, as lod.merge_groups takes them: members of group g are order[starts[g]:...]."""
     order = stable_int_argsort(ids)
-    starts = np.concatenate([[0], np.flatnonzero(np.diff(ids[order])) + 1])
+    starts = np.concatenate([[0], np.flatnonzero(np.diff(np.take(ids, order))) + 1])
     return order, starts
 
 
 def _field_dot(ai, ci, covi, mui, aj, cj, covj, muj, proj: bool) -> np.ndarray:
     """<a_i c_i G_i, a_j c_j G_j> per row (summed over the colour channels): in 3D, or summed over the three
     axis-aligned projections."""
-    amp = ai * aj * np.einsum("ij,ij->i", ci, cj)
+    amp = ai * aj * row_dots(ci, cj)
     d = mui - muj
     if not proj:
         q, det = _quad6(covi + covj, d)
@@ -938,13 +967,13 @@ def group_errors(positions, log_scales, rotations, opacities, colours, masses, i
     same members (and `proj`), when known."""
     n = len(positions)
     order = stable_int_argsort(ids)
-    sid = ids[order]
+    sid = np.take(ids, order)
     groups = int(ids.max()) + 1 if n else 0
     p = np.take(positions.astype(np.float64), order, axis=0)  # rows: np.take, 3-7x fancy indexing
     p -= p.mean(axis=0) if n else 0.0
     if terms is None:
         terms = member_terms(log_scales, rotations, opacities, colours, proj)
-    cov, own = np.take(terms[0], order, axis=0), terms[1][order]
+    cov, own = np.take(terms[0], order, axis=0), np.take(terms[1], order)
     a = np.clip(opacities.astype(np.float64)[order], 0.0, 1.0)
     c = np.take(colours.astype(np.float64), order, axis=0)
     w = masses.astype(np.float64)[order] + 1e-30
@@ -956,7 +985,8 @@ def group_errors(positions, log_scales, rotations, opacities, colours, masses, i
     cm = np.empty((groups, 6))
     for k, (x, y) in enumerate(_SYM6):
         cm[:, k] = np.bincount(sid, weights=f * (dm[:, x] * dm[:, y] + cov[:, k]), minlength=groups)
-    cm[:, [0, 3, 5]] += 1e-20
+    for k in (0, 3, 5):  # in place: the same sums as through a fancy-indexed copy
+        cm[:, k] += 1e-20
     am = np.minimum(1.0, W / np.maximum(_area6(cm), 1e-300))
     col_m = np.stack([np.bincount(sid, weights=f * c[:, k], minlength=groups) for k in range(3)], 1)
     err = np.bincount(sid, weights=own, minlength=groups)

@@ -1031,6 +1031,57 @@ def pages_the_budget_can_use(a: TileArrays, view, cost: np.ndarray, root: int, s
     return wanted, fits & ~wanted
 
 
+def cut_a_page_may_undo(a: TileArrays, view, cost: np.ndarray, root: int, sel: Selection, heads: np.ndarray,
+                        opts: SelectionOptions, reduction: float) -> np.ndarray:
+    """(len(sel.cut_at),) bool: the cut tiles whose place in the cut a page still to come could undo (client.md
+    1.11), not fetched while the pages of `heads` (the heads whose pages are wanted or wait) load. A page brings its
+    head's subtree, which the selection refines at the head's turn and below it for as long as the budget lets it
+    (not only the children: pages_the_budget_can_use's least); every refinement decided after the earliest such
+    head's turn (select's order: pages_the_budget_can_use's turns) then sees less budget left, and one that no
+    longer fits is refused, and the tiles it brought leave the cut (a payload fetched for them was given up: donut
+    `--page-levels 5` at 50 %, 158 KB a view against 355 KB drawn). So where a budget can bind (`--max-splats`, or
+    the byte budget limited this selection), a cut tile below a refinement that adds splats or bytes and is
+    decided after that turn is held back; the refinements before it are the same whatever the pages bring
+    (pages_the_budget_can_use's "why the same cut"), and so are the cut tiles below them only. Decides when
+    payloads are fetched, never the cut."""
+    cut, refined = sel.cut_at, np.asarray(sel.refined_at, np.intp)
+    out = np.zeros(len(cut), bool)
+    heads = np.asarray(heads, np.intp)
+    if not len(heads) or not len(refined) or (opts.max_splats is None and not sel.budget_limited):
+        return out
+    step = refinement_level_step(reduction)
+    slot = np.full(len(a.parent) + 1, -1, np.intp)  # position -> index in `refined`; the last: no parent (-1)
+    slot[refined] = np.arange(len(refined))
+    parent_slot = slot[a.parent[refined]]
+    turn = refinement_keys(a.level[refined], view.distance[refined], view.sse[refined], step)
+    levels = a.level[refined]
+    by_level = np.unique(levels).tolist()
+    for lv in by_level:  # parents before children
+        at = np.flatnonzero((levels == lv) & (parent_slot >= 0))
+        turn[at] = np.maximum(turn[at], turn[parent_slot[at]])
+    # each refinement's change to the cut: its visible children (cut or refined tiles) less itself
+    members = np.concatenate([cut, refined])
+    members = members[a.parent[members] >= 0]
+    owner = slot[a.parent[members]]
+    adds = (np.bincount(owner, a.splats_f64[members], len(refined)) > a.splats_f64[refined]) | \
+        (np.bincount(owner, cost[members], len(refined)) > cost[refined])
+    # the earliest head's turn (a head's turn as pages_the_budget_can_use takes it: its key, or its parent's turn
+    # where that is later; a tie goes to the refinement, as a head that follows its parent would)
+    head_key = refinement_keys(a.level[heads], view.distance[heads], view.sse[heads], step)
+    head_parent = slot[a.parent[heads]]
+    parent_turn = np.full(len(heads), -INF)
+    parent_turn[head_parent >= 0] = turn[head_parent[head_parent >= 0]]
+    first = float(np.maximum(head_key, parent_turn).min())
+    undone = (turn > first) & adds
+    for lv in by_level:  # below an undone refinement everything may leave the cut too
+        at = np.flatnonzero((levels == lv) & (parent_slot >= 0))
+        undone[at] |= undone[parent_slot[at]]
+    up = slot[a.parent[cut]]
+    has = up >= 0
+    out[has] = undone[up[has]]
+    return out
+
+
 def boxes_inside_frustum(corners: np.ndarray, planes: np.ndarray) -> np.ndarray:
     """(T,) True where an axis-aligned box ((T, 6) [max, min] corners) lies inside every plane: its corner least
     along each plane's normal (the "negative vertex") is inside, so every box within it is visible."""
