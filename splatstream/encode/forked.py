@@ -57,9 +57,10 @@ _FIELDS = ("positions", "rotations", "log_scales", "opacity_logits", "sh_dc", "s
 # the interpreter lock), and one child already keeps up with it: on the 1M scene the payloads left after the tree
 # fell from 8.0 s to 0.04 s with one child (BENCHMARKS.md, "Payload processes forked before the tree's threads").
 # Each child costs its own interpreter's pages and the parent's copy-on-write copies: the tree's peak PSS with
-# 0/1/2/3/7 children (this 2-core VM, medium) read 138/154/167/176/220 MB on biker and 770/822/828/876/972 MB at
-# 1M. A second child is kept as slack (a tile as large as a level's backlog, a host whose cores are slower than
-# the tree's); a third and more only add memory (15 on the 16-core GPU machine before this cap).
+# 0/1/2/3/7 children (this 2-core VM, medium, two rounds) read 138/148-154/162-167/172-176/218-220 MB on biker and
+# 770-778/805-822/828-893/858-876/947-972 MB at 1M (about +13 MB a child on biker, +25-30 MB at 1M). A second
+# child is kept as slack (a level's backlog of tiles, a host whose cores are slower than its tree); a third and
+# more only add memory: they wait for tiles the tree has not made (15 on the 16-core GPU machine before this cap).
 MAX_PAYLOAD_PROCESSES = 2
 
 # How often a feeder waiting on its child's pipe checks that the child still exists. Only a liveness check (a dead

@@ -30,8 +30,8 @@ def encode_to(g: Gaussians, writer: SceneWriter, opts: EncodeOptions, progress: 
     """Encode Gaussians through a writer (payloads as they are made, the manifest last); returns the manifest.
     `screened`: `g` comes from io.read_gaussians (plan.plan_encode). `tiles`: an LOD tree built already
     (plan_encode). `processes`: child processes that encode payloads beside this one (forked.py; default
-    forked.payload_processes: one less than the cores available, 0 for a writer they cannot share); the bytes are
-    the same with any number."""
+    forked.payload_processes: one less than the cores available, at most 2, 0 for a writer they cannot share);
+    the bytes are the same with any number."""
     if processes is None:
         processes = payload_processes(writer)
     children: PayloadChildren | None = None
