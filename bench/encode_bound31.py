@@ -10,12 +10,13 @@ directory is both the working directory and PYTHONPATH: `python -m` puts the wor
 with `--lod-merge` where the variant names one. Every round runs every preset's variants back to back, the order
 of the variants turned by one each round, so that a slow minute of a shared machine falls on all of them.
 
-CPU = user + sys of the process tree. For an in-process encode that is the child's own rusage from wait4 (exact:
-the encode forks no processes). With --workers (a Dask cluster of processes, some not reaped by the encode's own
-process) the tree is also sampled with psutil every 0.1 s, per process its last CPU times, and the larger of the
-two sums is recorded (the sampled one misses at most each process's last 0.1 s). Peak RSS: the largest process's
-(wait4's ru_maxrss) and the sampled sum over the tree. A preset a checkout does not have is run as that
-checkout's `--baseline-preset` (default medium) and marked so.
+CPU = user + sys of the process tree. For an in-process encode that is the child's own rusage from wait4 (exact: the
+in-memory encode's payload children, encode/forked.py, are reaped by it, so their rusage is in its own). With
+--workers (a Dask cluster of processes, some not reaped by the encode's own process) the tree is also sampled with
+psutil every 0.1 s, per process its last CPU times, and the larger of the two sums is recorded (the sampled one
+misses at most each process's last 0.1 s). Peak RSS: the largest process's (wait4's ru_maxrss) and the sampled sum
+over the tree. A preset a checkout does not have is run as that checkout's `--baseline-preset` (default medium) and
+marked so.
 """
 from __future__ import annotations
 

@@ -1,15 +1,16 @@
 """Where one in-process encode's CPU and peak memory go: CPU per phase, and what runs at the peak RSS.
 
     PYTHONPATH=. python bench/encode_phases.py SCENE OUT_DIR [--preset medium] [--lod-merge grid|auto|cost]
-        [--threads]
+        [--threads | --timeline]
 
-Runs `encode_file` once in this process with every thread pool (the LOD tree's, the payloads') replaced by an
-inline executor, so that every job runs on the calling thread and the process CPU of each wrapped function is its
-own (inclusive: the grouping's row includes its k-NN, costs and matching). Without pools a phase's CPU is the
-work itself, not the interpreter-lock hand-offs of two threads (BENCHMARKS.md, "Where the grid encode's CPU goes");
-`--threads` keeps the pools as shipped. A thread samples the RSS every 3 ms and records, at its largest, the
-wrapped phases running and the main thread's innermost lines. Prints one JSON object: CPU s per wrapped function,
-the whole encode's CPU and wall, the peak RSS and where it was reached.
+Runs `encode_file` once in this process with every thread pool (the LOD tree's, the payloads') replaced by an inline
+executor, so that every job runs on the calling thread and the process CPU of each wrapped function is its own
+(inclusive: the grouping's row includes its k-NN, costs and matching). Without pools a phase's CPU is the work
+itself, not the interpreter-lock hand-offs of two threads (BENCHMARKS.md, "Where the grid encode's CPU goes");
+`--threads` keeps the pools as shipped. Either way the payloads stay in this process (no forked children);
+`--timeline` runs the encode exactly as shipped, children included. A thread samples the RSS every 3 ms and records,
+at its largest, the wrapped phases running and the main thread's innermost lines. Prints one JSON object: CPU s per
+wrapped function, the whole encode's CPU and wall, the peak RSS and where it was reached.
 """
 from __future__ import annotations
 
@@ -83,7 +84,15 @@ def main() -> None:
     ap.add_argument("--preset", default="medium")
     ap.add_argument("--lod-merge", default=None)
     ap.add_argument("--threads", action="store_true", help="keep the thread pools as shipped")
+    ap.add_argument("--timeline", action="store_true",
+                    help="pools as shipped, no wrappers: per progress stage its wall span and the process CPU in it "
+                         "(CPU / wall near 1: one core busy, near 2: two), as a user's encode runs")
     args = ap.parse_args()
+    if args.timeline:
+        return timeline(args)
+    # The payloads in this process (no forked children, encode/forked.py): a child's CPU is not this process's, so
+    # the wrappers would miss it
+    local.payload_processes = lambda writer, cores=None: 0
     if not args.threads:
         lod.ThreadPoolExecutor = InlineExecutor
         local.ThreadPoolExecutor = InlineExecutor
@@ -132,6 +141,35 @@ def main() -> None:
                       "peak_rss_mb": round(peak[0] / 2**20, 1), "peak_at": peak[1],
                       "maxrss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
                       **{name: round(s, 3) for name, s in cpu.items()}}, indent=1))
+
+
+def timeline(args) -> None:
+    """The encode as shipped (pools, processes), its progress stages stamped: wall and process CPU (this process
+    and its reaped children) at each stage's first and last report."""
+    spans: dict[str, list[float]] = {}
+
+    def cpu_now() -> float:
+        own, kids = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+        return own.ru_utime + own.ru_stime + kids.ru_utime + kids.ru_stime
+
+    t0, c0 = time.perf_counter(), cpu_now()
+
+    def progress(stage: str, fraction: float) -> None:
+        now, cpu_s = time.perf_counter() - t0, cpu_now() - c0
+        if stage not in spans:
+            spans[stage] = [now, cpu_s, now, cpu_s]
+        spans[stage][2:] = [now, cpu_s]
+
+    shutil.rmtree(args.out, ignore_errors=True)
+    options = {} if args.lod_merge is None else {"lod_merge": args.lod_merge}
+    driver.encode_file(args.scene, args.out, preset=args.preset, progress=progress, **options)
+    wall, total = time.perf_counter() - t0, cpu_now() - c0
+    rows = [{"stage": k, "wall_from": round(v[0], 2), "wall_to": round(v[2], 2), "cpu_s": round(v[3] - v[1], 2),
+             "cores": round((v[3] - v[1]) / max(v[2] - v[0], 1e-9), 2)} for k, v in spans.items()]
+    print(json.dumps({"wall_s": round(wall, 2), "cpu_s": round(total, 2), "load": os.getloadavg()[0],
+                      "maxrss_mb": round(resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024, 1),
+                      "children_maxrss_mb": round(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024, 1),
+                      "stages": rows}, indent=1))
 
 
 if __name__ == "__main__":

@@ -877,12 +877,15 @@ class Subtree:
 
 def build_subtree(g: Gaussians, index: np.ndarray, shape: TreeShape, level: int = 0, position: int = 0,
                   progress: Progress | None = None, reorder_input: bool = False, threads: int | None = None,
-                  merge: str = "grid") -> Subtree:
+                  merge: str = "grid", on_level: Callable[[list[Tile]], None] | None = None) -> Subtree:
     """The tiles under tile `position` of tile level `level` (the whole tree for level 0), from exactly that
     subtree's splats `g`, whose global indices `index` are ascending (the input's order). `merge`: LOD_MERGES.
 
     Leaves are slices of one array per attribute holding the splats in leaf order: a copy of `g` by default, or,
-    with `reorder_input`, `g`'s own arrays reordered in place, which saves a copy."""
+    with `reorder_input`, `g`'s own arrays reordered in place, which saves a copy. `on_level` hears each level's
+    tiles once they are final (the leaves first, then each merged level): their splats are not written again, so
+    a caller may encode them while the levels above are merged (encode/forked.py). The leaves' call comes before
+    the merge pool's threads start (forked.py forks its children there)."""
     if merge not in LOD_MERGES:
         raise ValueError(f"unknown LOD merge {merge!r} (one of {', '.join(LOD_MERGES)})")
     progress = progress or (lambda stage, fraction: None)
@@ -914,6 +917,8 @@ def build_subtree(g: Gaussians, index: np.ndarray, shape: TreeShape, level: int 
         masses[tid] = splat_mass(part)
         represented_by[tid] = np.arange(b - a)
     reach = original_reach(ordered)
+    if on_level is not None:
+        on_level([tiles[shape.tile_id(leaf_level, position * span(leaf_level) + j)] for j in range(span(leaf_level))])
 
     total_merges = sum(span(lvl) for lvl in range(level, leaf_level))
     merges_done = 0
@@ -999,6 +1004,8 @@ def build_subtree(g: Gaussians, index: np.ndarray, shape: TreeShape, level: int 
                 represented_by[tile.id] = rep
                 merges_done += 1
                 progress("lod-merge", merges_done / total_merges)
+            if on_level is not None:
+                on_level([tiles[tid] for tid, _, _, _ in level_tiles])
     root_id = shape.tile_id(level, position)
     if not total_merges:
         progress("lod-merge", 1.0)
@@ -1006,15 +1013,16 @@ def build_subtree(g: Gaussians, index: np.ndarray, shape: TreeShape, level: int 
 
 
 def build_tiles(g: Gaussians, max_leaf_splats: int = 16384, reduction: float = 2.0,
-                progress: Progress | None = None, reorder_input: bool = False, merge: str = "grid") -> list[Tile]:
+                progress: Progress | None = None, reorder_input: bool = False, merge: str = "grid",
+                on_level: Callable[[list[Tile]], None] | None = None) -> list[Tile]:
     """The LOD tile tree of `g`, as a list indexed by tile id (0 = root, breadth-first); `merge`: LOD_MERGES.
 
     Leaves are slices of one array per attribute holding the splats in leaf order: a copy of `g` by default, or,
     with `reorder_input`, `g`'s own arrays reordered in place (the caller's `g` then holds the same splats in
-    another order), which saves a copy of the whole scene."""
+    another order), which saves a copy of the whole scene. `on_level`: build_subtree's."""
     shape = TreeShape.of(len(g), max_leaf_splats, reduction)
     if len(g) == 0:
         progress and progress("lod-merge", 1.0)
         return [Tile(0, 0, [], g, 0.0, *extent_bounds(g))]
-    sub = build_subtree(g, np.arange(len(g)), shape, 0, 0, progress, reorder_input, merge=merge)
+    sub = build_subtree(g, np.arange(len(g)), shape, 0, 0, progress, reorder_input, merge=merge, on_level=on_level)
     return [sub.tiles[i] for i in range(shape.tiles)]

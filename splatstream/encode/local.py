@@ -17,35 +17,84 @@ from ..format.manifest import Manifest, TileEntry
 from ..gaussians import Gaussians
 from ..lod import Tile
 from ..store import DirectoryWriter, MemoryStore, MemoryWriter, SceneWriter, write_scene_manifest
+from .forked import PayloadChildren, encode_tile, payload_processes
 from .jobs import encode_codebook, encode_group, tile_entry, tile_group_names, tile_order
 from .options import EncodeOptions, Progress, no_progress
-from .plan import plan_camera, plan_encode
+from .plan import TileContext, plan_camera, plan_encode
 from .reduce import build_manifest
 
 
 def encode_to(g: Gaussians, writer: SceneWriter, opts: EncodeOptions, progress: Progress = no_progress,
               source_name: str | None = None, out_name: str | None = None, screened: bool = False,
-              tiles: list[Tile] | None = None) -> Manifest:
+              tiles: list[Tile] | None = None, processes: int | None = None) -> Manifest:
     """Encode Gaussians through a writer (payloads as they are made, the manifest last); returns the manifest.
     `screened`: `g` comes from io.read_gaussians (plan.plan_encode). `tiles`: an LOD tree built already
-    (plan_encode)."""
-    plan = plan_encode(g, opts, progress, source_name, out_name, screened, tiles)
-    ctx = plan.context
+    (plan_encode). `processes`: child processes that encode payloads beside this one (forked.py; default
+    forked.payload_processes: one less than the cores available, at most 2, 0 for a writer they cannot share);
+    the bytes are the same with any number."""
+    if processes is None:
+        processes = payload_processes(writer)
+    children: PayloadChildren | None = None
+
+    def on_level(ctx: TileContext, level: list[Tile]) -> None:
+        # The first level is the leaves, laid out before the tree's merge pool starts: the children are forked
+        # then (no other thread runs), and each later level is queued for them as it is final.
+        nonlocal children
+        if children is None:
+            children = PayloadChildren(processes, tile_group_names(ctx), ctx, writer.payload_writer())
+            children.start(level)
+        else:
+            children.offer(level)
+
+    try:
+        plan = plan_encode(g, opts, progress, source_name, out_name, screened, tiles,
+                           on_level=on_level if processes else None)
+        ctx = plan.context
+        codebook = encode_codebook(ctx.codebook, ctx, writer) if ctx.codebook is not None else None
+        if processes and len(plan.tiles) > 1 and children is None and opts.lod_refiner is None:
+            # a tree handed in: fork before the payloads (not after a refinement, whose own threads may still run)
+            children = PayloadChildren(processes, tile_group_names(ctx), ctx, writer.payload_writer())
+            children.start(plan.tiles)
+        if children is not None and children.started:
+            entries = _forked_entries(plan.tiles, children, ctx, writer, progress)
+        else:
+            entries = _threaded_entries(plan.tiles, ctx, writer, progress)
+        m = build_manifest(plan.scene, plan_camera(plan), entries, codebook)
+    finally:
+        if children is not None:
+            children.close()  # children still running (an encode that failed) stopped before the writer cleans up
+    return write_scene_manifest(writer, m, opts.page_tiles, opts.page_levels, opts.compact_table)
+
+
+def _forked_entries(tiles: list[Tile], children: PayloadChildren, ctx: TileContext, writer: SceneWriter,
+                    progress: Progress) -> list[TileEntry]:
+    """The tiles' entries, their payloads encoded by the children and this process (forked.py)."""
     groups = tile_group_names(ctx)
-    total = sum(len(t.gaussians) for t in plan.tiles) * len(groups)
-    codebook = encode_codebook(ctx.codebook, ctx, writer) if ctx.codebook is not None else None
+    progress("encode", 0.0)
+    # The bar counts every tile's splats once its payloads are written, the children's included (they may have
+    # done most of them while the tree merged: the bar starts there).
+    payloads = children.finish(tiles, lambda tile: encode_tile(tile.gaussians, groups, ctx, writer),
+                               lambda share: progress("encode", share))
+    progress("encode", 1.0)
+    return [tile_entry(tile, payloads[tile.id]) for tile in tiles]
+
+
+def _threaded_entries(tiles: list[Tile], ctx: TileContext, writer: SceneWriter, progress: Progress
+                      ) -> list[TileEntry]:
+    """The tiles' entries, their payloads encoded in this process."""
+    groups = tile_group_names(ctx)
+    total = sum(len(t.gaussians) for t in tiles) * len(groups)
     entries: list[TileEntry] = []
     # One worker: most payload jobs are many small numpy calls (a layer's mode trials on ~6 blocks), so two threads
     # spend their time handing the interpreter lock back and forth rather than overlapping.
     with _pool(1) as pool:
-        orders = list(pool.map(lambda t: tile_order(t.gaussians, ctx), plan.tiles))
-        camera = pool.submit(plan_camera, plan)
+        orders = list(pool.map(lambda t: tile_order(t.gaussians, ctx), tiles))
         # A single tile's bounds (the LOD tree computes its own) beside the payload jobs.
-        bounds = {id(t): pool.submit(tile_entry, t, {}) for t in plan.tiles if t.box_min is None}
-        jobs = [(tile, order, group) for tile, order in zip(plan.tiles, orders, strict=True) for group in groups]
+        bounds = {id(t): pool.submit(tile_entry, t, {}) for t in tiles if t.box_min is None}
+        jobs = [(tile, order, group) for tile, order in zip(tiles, orders, strict=True) for group in groups]
         results = iter(pool.map(lambda job: encode_group(job[0].gaussians, job[1], job[2], ctx, writer), jobs))
         done = 0
-        for tile in plan.tiles:
+        for tile in tiles:
             if id(tile) in bounds:
                 bounds[id(tile)].result()
             payloads = {}
@@ -54,8 +103,7 @@ def encode_to(g: Gaussians, writer: SceneWriter, opts: EncodeOptions, progress: 
                 done += len(tile.gaussians)
                 progress("encode", done / total)
             entries.append(tile_entry(tile, payloads))
-        m = build_manifest(plan.scene, camera.result(), entries, codebook)
-    return write_scene_manifest(writer, m, opts.page_tiles, opts.page_levels, opts.compact_table)
+    return entries
 
 
 @contextlib.contextmanager

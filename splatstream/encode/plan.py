@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -136,14 +137,16 @@ def scene_name(opts: EncodeOptions, source_name: str | None, out_name: str | Non
     return out_name or "scene"
 
 
-def plan_tiles(g: Gaussians, opts: EncodeOptions, progress: Progress) -> list[Tile]:
-    """The LOD tree, or one tile holding every splat (bounds left to the jobs) when LOD is off or not needed."""
+def plan_tiles(g: Gaussians, opts: EncodeOptions, progress: Progress,
+               on_level: Callable[[list[Tile]], None] | None = None) -> list[Tile]:
+    """The LOD tree, or one tile holding every splat (bounds left to the jobs) when LOD is off or not needed.
+    `on_level`: lod.build_subtree's (a tree's levels as they are final; not called for one tile)."""
     if opts.lod and len(g) > opts.max_leaf_splats:
         merge = opts.resolved_lod_merge(in_memory=True)
         log.info("LOD merge %s%s", merge, "" if opts.lod_merge is not None else " (the default in memory; "
                  "--lod-merge grid: a faster encode, 0.5-0.7x the CPU, and a blurrier picture at most splat budgets)")
         return build_tiles(g, max_leaf_splats=opts.max_leaf_splats, reduction=opts.reduction, progress=progress,
-                           reorder_input=opts.reorder_input, merge=merge)
+                           reorder_input=opts.reorder_input, merge=merge, on_level=on_level)
     limit = MAX_BLOCKS_PER_ROW * MAX_BLOCK_ROWS * CHUNK_SIZE
     if len(g) > limit:
         raise UsageError(f"{len(g)} splats do not fit one tile (at most {limit}); encode with LOD (drop --no-lod)")
@@ -213,11 +216,14 @@ def plan_scene(opts: EncodeOptions, formats: dict[str, str], chunk_order: str, s
 
 def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progress,
                 source_name: str | None = None, out_name: str | None = None, screened: bool = False,
-                tiles: list[Tile] | None = None) -> EncodePlan:
+                tiles: list[Tile] | None = None,
+                on_level: Callable[[TileContext, list[Tile]], None] | None = None) -> EncodePlan:
     """The in-memory engine's plan. `screened`: `g` was read through io.read_gaussians, which refused (or
     dropped) values beyond the format's domain already, so the check is not repeated. `tiles`: a tree built
     already (a foreign LOD tree: sog_import.py, with `opts.imported_tree`; or plan_tiles' own under these options:
-    evaluate.py), breadth-first with bounds and errors, its leaves holding `g`; otherwise the LOD builder makes one."""
+    evaluate.py), breadth-first with bounds and errors, its leaves holding `g`; otherwise the LOD builder makes one.
+    `on_level(context, tiles)`: the tiles of each level of the tree it builds, as they are final (plan_tiles); not
+    called where a refinement would replace them afterwards, nor for a tree handed in."""
     formats, chunk_order = plan_formats(opts)
     if len(g) == 0:
         raise InputError(source_name or "<gaussians>", None, "holds no splats (none, or none left after dropping "
@@ -243,7 +249,8 @@ def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progr
     progress("tiles", 0.0)
     own_tree = tiles is None
     if tiles is None:
-        tiles = plan_tiles(g, opts, progress)
+        final = on_level is not None and opts.lod_refiner is None
+        tiles = plan_tiles(g, opts, progress, (lambda level: on_level(scene.context, level)) if final else None)
     elif sh_degree != g.sh_degree or any(t.gaussians.sh_degree != sh_degree for t in tiles):
         tiles = [replace(t, gaussians=t.gaussians.with_sh_degree(sh_degree)) for t in tiles]
     progress("tiles", 1.0)
