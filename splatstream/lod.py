@@ -875,6 +875,13 @@ class Subtree:
     represented_by: np.ndarray  # per row of `ordered`: the root splat standing for it
 
 
+# The default thread count of a tree's merges: most of the work holds the interpreter lock, so more threads add CPU
+# and memory, not speed. The 1M encode on the GPU machine's 16 cores (BENCHMARKS.md, "Payload processes forked
+# before the tree's threads", the lead's thread-count runs): 16 threads 20.2 / 21.7 s wall, 59-62 CPU s, 1,103 MB
+# PSS; 4: 20.4 / 18.1 s, 45-51 CPU s; 2: 20.4 / 19.8 s, 42-43 CPU s, 846-930 MB; 1: 23.3 / 28.4 s.
+TREE_THREADS = 2
+
+
 def build_subtree(g: Gaussians, index: np.ndarray, shape: TreeShape, level: int = 0, position: int = 0,
                   progress: Progress | None = None, reorder_input: bool = False, threads: int | None = None,
                   merge: str = "grid", on_level: Callable[[list[Tile]], None] | None = None) -> Subtree:
@@ -965,7 +972,7 @@ def build_subtree(g: Gaussians, index: np.ndarray, shape: TreeShape, level: int 
 
     # The tiles of one level are independent: merged on threads (numpy's sorts, reductions and eigh release the
     # interpreter), each a pure function of its children, so the tree is the same with any number of threads.
-    with ThreadPoolExecutor(max_workers=max(1, threads or available_cores())) as pool:
+    with ThreadPoolExecutor(max_workers=max(1, threads or min(TREE_THREADS, available_cores()))) as pool:
         for lvl in range(leaf_level - 1, level - 1, -1):
             jobs = []
             level_tiles = []
