@@ -1,5 +1,6 @@
 """The encode / info / decode commands end to end, as a user runs them."""
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -65,6 +66,25 @@ def test_help_everywhere():
     for command in registered:
         r = run_cli(command, "--help")
         assert r.returncode == 0 and "usage:" in r.stdout, command
+
+
+# The names a command's description gives its arguments (export-rad's said OUT where its usage line said `output`:
+# newuser64)
+ARGUMENT_NAMES = {"IN", "INPUT", "OUT", "OUTPUT", "OUT_DIR", "OUTPUT_DIR", "SCENE", "SCENE_DIR", "SOURCE", "ROOT"}
+
+
+def test_every_help_names_its_arguments_as_its_usage_line_does():
+    parser = build_parser()
+    registered = next(a for a in parser._actions if a.dest == "command").choices
+    for command, sub in registered.items():
+        positionals = [a for a in sub._actions if not a.option_strings]
+        metavars = {a.metavar for a in positionals}
+        usage = sub.format_usage()
+        # every positional is named in capitals on the usage line, and so in the list below it
+        assert all(isinstance(m, str) and m.isupper() and m in usage.split() for m in metavars), (command, usage)
+        named = set(re.findall(r"\b[A-Z][A-Z_]*\b", sub.description or "")) & ARGUMENT_NAMES
+        assert named <= metavars, (command, named, metavars)
+    assert "SCENE_DIR OUT" in registered["export-rad"].format_usage()
 
 
 def test_failed_encode_leaves_old_scene_and_no_temporaries(tmp_path, monkeypatch):

@@ -16,8 +16,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("decode", help="decode a scene directory back to a standard 3DGS PLY",
                        description="Decode the full-detail splats of a scene directory (all leaf tiles) and write a "
                                    "standard binary 3DGS PLY. Every payload's checksum is verified.")
-    p.add_argument("scene_dir", help="encoded scene directory")
-    p.add_argument("output", help="output file (.ply; other writable formats by extension)")
+    p.add_argument("scene_dir", metavar="SCENE_DIR", help="encoded scene directory")
+    p.add_argument("output", metavar="OUT", help="output file (.ply; other writable formats by extension)")
     p.add_argument("--sh-degree", type=int, choices=[0, 1, 2, 3], help="decode SH bands up to this degree only")
     p.add_argument("--tiles", help="comma-separated tile ids to decode instead of the leaves (e.g. 0 for the root)")
     # as convert, encode and the exports take it (a script's `decode ... -q` was refused: newuser63)

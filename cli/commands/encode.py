@@ -60,12 +60,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                     + ". SH bands 1..3 in a scene-wide codebook: "
                     + ", ".join(f"{k} ({v})" for k, v in PRESET_SH_CODEBOOK.items()),
     )
-    p.add_argument("input", nargs="+", help="input splat file (.ply; other formats are detected by content); several "
-                                            "are merged into one scene, in the order given (SH bands an input "
-                                            "lacks are zeros; the edits apply to the merged splats)")
-    p.add_argument("output_dir", help="scene directory to write (replaced atomically if it exists), or an fsspec URL "
-                                      "(s3://bucket/scene, gs://..., needs the cluster extra): payloads first, the "
-                                      "manifest last")
+    p.add_argument("input", nargs="+", metavar="INPUT",
+                   help="input splat file (.ply; other formats are detected by content); several "
+                        "are merged into one scene, in the order given (SH bands an input "
+                        "lacks are zeros; the edits apply to the merged splats)")
+    p.add_argument("output_dir", metavar="OUTPUT_DIR",
+                   help="scene directory to write (replaced atomically if it exists), or an fsspec URL "
+                        "(s3://bucket/scene, gs://..., needs the cluster extra): payloads first, the "
+                        "manifest last")
     p.add_argument("--preset", default=None, choices=list(PRESETS), metavar="PRESET",
                    help="quality preset, from the largest files to the smallest: "
                         + "; ".join(f"{k} ({v})" for k, v in PRESET_SUMMARY.items()).replace("%", "%%")

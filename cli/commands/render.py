@@ -36,7 +36,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "splat file (encoded in memory at --preset) with the GL renderer. Camera defaults come from "
                     "the manifest's suggested camera, or for files from the scene's robust bounds.",
     )
-    p.add_argument("scene", help="scene directory (manifest.msgpack) or splat file (.ply, ...)")
+    p.add_argument("scene", metavar="SCENE", help="scene directory (manifest.msgpack) or splat file (.ply, ...)")
     p.add_argument("--out", "-o", required=True, help="output image (.png)")
     p.add_argument("--eye", help="camera position X,Y,Z")
     p.add_argument("--target", help="point looked at X,Y,Z")
