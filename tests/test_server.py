@@ -212,6 +212,30 @@ def test_range_ignored(srv, root, spec):
     assert status == 200 and body == data and "Content-Range" not in headers
 
 
+@pytest.mark.parametrize("fields", [
+    [("Range", "bytes=0-9"), ("Range", "bytes=10-19")],
+    [("Range", "bytes=0-9"), ("Range", "bytes=0-9")],
+    [("Range", "bytes=5000-"), ("Range", "bytes=0-9")],  # the first alone: 416
+    [("Range", "bytes=0-9"), ("If-Range", "ETAG"), ("If-Range", '"other"')],
+    [("Range", "bytes=0-9"), ("If-Range", "ETAG"), ("If-Range", "ETAG")],
+])
+def test_two_range_or_if_range_fields_are_ignored(srv, root, fields):
+    """Two Range fields (or two If-Range validators) in one request: neither is picked (the first was: newuser64);
+    the whole file, 200, as for several ranges in one field (http.md section 5, item 3)."""
+    name, data = next((n, d) for n, d in payloads(root, "a").items() if len(d) == 1000)
+    etag = f'"{name[:64]}"'
+    head = "".join(f"{k}: {etag if v == 'ETAG' else v}\r\n" for k, v in fields)
+    out = raw_request(srv.port, f"GET /scenes/a/data/{name} HTTP/1.1\r\nHost: x\r\n{head}Connection: close\r\n\r\n"
+                      .encode())
+    status_line, rest = out.split(b"\r\n", 1)
+    head_bytes, body = rest.split(b"\r\n\r\n", 1)
+    assert status_line.startswith(b"HTTP/1.1 200 "), out[:300]
+    assert b"content-range" not in head_bytes.lower() and body == data
+    # one of each still ranges
+    status, _, body = request(srv.port, f"/scenes/a/data/{name}", headers={"Range": "bytes=0-9", "If-Range": etag})
+    assert status == 206 and body == data[:10]
+
+
 @pytest.mark.parametrize("spec", ["bytes=1000-", "bytes=5000-6000", "bytes=-0", "bytes=18446744073709551616-",
                                   "bytes=18446744073709551615-18446744073709551616", "bytes=" + "9" * 5000 + "-"])
 def test_range_not_satisfiable(srv, root, spec):
