@@ -10,6 +10,7 @@ from splatstream.errors import UsageError
 from splatstream.io import FORMAT_NAMES, output_format, write_gaussians, written_sh_degree
 from splatstream.progress import count
 from splatstream.scene_decode import decode_scene
+from splatstream.sh import warn_sh_degree_above
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -36,6 +37,7 @@ def run(args: argparse.Namespace) -> int:
     check_output(args.output)
     start = time.perf_counter()
     g = decode_scene(args.scene_dir, sh_degree=args.sh_degree, tiles=tiles)
+    warn_sh_degree_above(args.sh_degree, g.sh_degree, args.scene_dir)  # (decoded at the scene's degree at most)
     # Writing can be the long part (a .sog's SH palette and WebP planes: 11 s for playbot's 500,000 splats on a busy
     # 2-core machine, with nothing printed before): say what is being written, as convert does.
     if not args.quiet:

@@ -30,6 +30,7 @@ from splatstream.lod import LOD_MERGES
 from splatstream.lod_refine import CPU_ITERATIONS, CPU_SIZE_PX, GPU_ITERATIONS, GPU_SIZE_PX, LodRefiner
 from splatstream.progress import ProgressPrinter, count
 from splatstream.rad_import import read_tree as rad_read_tree
+from splatstream.sh import warn_sh_degree_above
 from splatstream.sog_import import encode_tree_to
 from splatstream.sog_import import read_tree as sog_read_tree
 
@@ -271,6 +272,7 @@ def run(args: argparse.Namespace) -> int:
 
     def check_read(sh_degree: int) -> None:
         _check_sh_format(args, overrides, " + ".join(args.input), sh_degree)
+        warn_sh_degree_above(args.sh_degree, sh_degree, " + ".join(args.input))
 
     with progress.library_notes():
         if tree_kind is not None:
