@@ -654,6 +654,29 @@ def test_cli_names_the_exports_it_does_not_serve(tmp_path):
     assert proc.returncode == 2 and "a streamed SOG (lod-meta.json) or a Spark .rad is not served" in err, err
 
 
+def test_cli_names_a_scene_directory_that_also_holds_a_tileset(tmp_path):
+    """A scene directory with a tileset.json copied in serves its scene alone (http.md 14): its tileset.json answered
+    404 with nothing said at start ('1 scene from ...')."""
+    root = tmp_path / "root"
+    write_fake_scene(root / "garden", [100])
+    (root / "garden" / "tileset.json").write_text('{"asset": {"version": "1.1"}}')
+    proc = _cli(str(root), "--port", "0", "--no-access-log")
+    try:
+        note = proc.stderr.readline()
+        assert note.strip() == ("splatstream serve: note: 1 scene directory also holds tileset.json, not served (a "
+                                "scene directory serves its scene alone): garden/; export the tileset into a "
+                                "directory of its own (splatstream export-3dtiles SCENE_DIR OUT_DIR)"), note
+        started = proc.stderr.readline()
+        assert started.startswith(f"splatstream serve: 1 scene from {root} at "), started
+        port = int(re.search(r":(\d+)/ ", started).group(1))
+        status, _, body = request(port, "/scenes/garden/manifest.msgpack")
+        assert status == 200 and body == (root / "garden" / MANIFEST_NAME).read_bytes()
+        assert request(port, "/scenes/garden/tileset.json")[0] == 404
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.communicate(timeout=30)
+
+
 def test_cli_port_in_use(root):
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))
