@@ -248,3 +248,18 @@ def test_a_one_splat_scene_is_said_in_the_singular_and_decode_takes_quiet(tmp_pa
     r = run_cli("eval", tmp_path / "one.ply", "--presets", "medium", "--views", "1", "--size", "32x32")
     assert r.returncode == 0 and f"read {tmp_path / 'one.ply'}: 1 splat, SH degree 3" in r.stderr, r.stderr
     assert "Scene `one.ply`: 1 splat, SH3, " in r.stdout, r.stdout
+
+
+def test_ctrl_c_while_the_commands_are_imported_says_one_line(monkeypatch, capsys):
+    """build_parser imports every command's modules (a second on a busy machine): a Ctrl-C meanwhile printed the
+    import's traceback (polish64). The KeyboardInterrupt is raised where the import would take it."""
+    import cli.main as cli_main
+
+    def interrupted_import():
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli_main, "build_parser", interrupted_import)
+    assert cli_main.main(["encode", "-q", "--workers", "2", "in.ply", "out"]) == 130
+    assert capsys.readouterr().err == "splatstream encode: interrupted\n"
+    assert cli_main.main(["--version"]) == 130
+    assert capsys.readouterr().err == "splatstream: interrupted\n"
