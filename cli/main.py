@@ -178,8 +178,14 @@ def _show_warning(message, category, filename, lineno, file=None, line=None):
 
 def main(argv: list[str] | None = None) -> int:
     warnings.showwarning = _show_warning
-    parser = build_parser()
-    args, extra = parser.parse_known_args(attach_negative_values(sys.argv[1:] if argv is None else list(argv)))
+    argv = sys.argv[1:] if argv is None else list(argv)
+    try:
+        parser = build_parser()  # imports every command's modules (numpy and the core): a second on a busy machine
+    except KeyboardInterrupt:  # a Ctrl-C meanwhile printed the import's traceback (polish64)
+        named = next((a for a in argv if not a.startswith("-")), None)
+        print(f"splatstream{f' {named}' if named in COMMANDS else ''}: interrupted", file=sys.stderr)
+        return EXIT_INTERRUPTED
+    args, extra = parser.parse_known_args(attach_negative_values(argv))
     if extra:
         _subcommands(parser)[args.command].error(unrecognized_message(parser, args.command, extra))
     if threading.current_thread() is threading.main_thread():

@@ -452,7 +452,7 @@ def check_root_fits(manifest: Manifest, budget: int, sh_degree: int, codebook: C
     if budget < need:
         minimum = math.ceil(need / (1 << 20) * 100) / 100
         raise UsageError(f"--gpu-mem-mb {gpu_mem_mb:g}: too small for this scene: its root tile alone takes "
-                         f"{need} bytes of GPU memory (give --gpu-mem-mb {minimum:g} or more)")
+                         f"{need:,} bytes of GPU memory (give --gpu-mem-mb {minimum:g} or more)")
 
 
 def check_gpu_budget(options: ViewOptions) -> None:

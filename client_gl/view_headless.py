@@ -19,6 +19,7 @@ from splatstream.atomic import atomic_file
 from splatstream.camera import Camera, look_at_near_far, turn_about_up
 from splatstream.camera_path import CameraPath
 from splatstream.progress import ProgressPrinter, bar_drawn, end_open_line
+from splatstream.sh import warn_sh_degree_above
 
 from .gpu.gl import wait_for_gpu
 from .streaming import StreamingSession, ViewOptions, freeze_long_lived
@@ -129,6 +130,7 @@ def run_headless(run: HeadlessRun, ctx) -> tuple[int, dict]:
     # (RenderOptions.early_target), not inside the first frame.
     session = StreamingSession.open(run.source, ctx, options, progress=encode_progress, target_size=run.size)
     freeze_long_lived()
+    warn_sh_degree_above(run.sh_degree, session.manifest.sh_degree, run.source)
     try:
         w, h = run.size
         fixed = start_camera(session.manifest, run.camera, run.size, run.camera_azimuth_deg, run.up, run.fov_y)

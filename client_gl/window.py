@@ -24,6 +24,7 @@ from splatstream.camera import Camera
 from splatstream.camera_path import CameraPath
 from splatstream.errors import SplatstreamError, UsageError
 from splatstream.progress import mib
+from splatstream.sh import warn_sh_degree_above
 
 from .camera_control import TURN_STEP_DEG, CameraController, state_from_camera
 from .gpu.gl import fence, gpu_wait
@@ -218,6 +219,7 @@ class Viewer:
     def _start_session(self) -> None:
         """The session: on a render thread (it opens there; draw_frame picks it up when ready), or here."""
         m = self.prepared.manifest
+        warn_sh_degree_above(self.run.sh_degree, m.sh_degree, self.run.source)  # (the overlay shows it too)
         if self.threaded and self.ctx.version_code >= 430:
             prepared, options = self.prepared, self.run.options
             try:

@@ -175,10 +175,13 @@ def file_response(request: web.Request, opened: OpenedFile, content_type: str, c
         return web.Response(status=304, headers=headers)
     headers["Content-Type"] = content_type
     status, offset, count = 200, 0, size
-    if request.method == "GET" and "Range" in request.headers and \
-            h.if_range_allows(request.headers.get("If-Range"), etag):
+    # Range is one field, If-Range one validator (RFC 9110 14.2, 13.1.5): a request with two of either was answered
+    # with the first one's range (newuser64); it is ignored as several ranges in one field are: 200, the whole file.
+    ranges, if_ranges = request.headers.getall("Range", []), request.headers.getall("If-Range", [])
+    if request.method == "GET" and len(ranges) == 1 and len(if_ranges) <= 1 and \
+            h.if_range_allows(if_ranges[0] if if_ranges else None, etag):
         try:
-            rng = h.parse_range(request.headers["Range"], size)
+            rng = h.parse_range(ranges[0], size)
         except h.RangeNotSatisfiable:
             opened.close()
             return error_response(request, 416, f"range not satisfiable: the file has {size} bytes",

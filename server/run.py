@@ -159,6 +159,16 @@ def unserved_exports(root: str, limit: int = 5, max_dirs: int = 10_000) -> tuple
     return found.result()
 
 
+def tilesets_in_scenes(root: str, limit: int = 5) -> tuple[list[str], int]:
+    """Scene directories that also hold tileset.json (a tileset copied into a scene): a scene directory serves its
+    scene alone (http.md 14), so their tileset.json answered 404 with nothing said at start (polish64)."""
+    found = _Found(limit)
+    for sid, directory in SceneRoot(root).scan():
+        if os.path.isfile(os.path.join(directory, TILESET_NAME)):
+            found.add(f"{sid}/")
+    return found.result()
+
+
 def bind(host: str, port: int, backlog: int = 1024) -> socket.socket:
     try:
         infos = socket.getaddrinfo(host, port, type=socket.SOCK_STREAM, flags=socket.AI_PASSIVE)
@@ -260,6 +270,12 @@ def serve(root: str, host: str = "127.0.0.1", port: int = 8000, cors_origins: It
               f"scene directories and 3D Tiles tilesets): {_listing(named, exports)};"
               f" serve {'them' if exports != 1 else 'it'} with a static web server that answers Range requests "
               f"(nginx, an object store)", file=sys.stderr, flush=True)
+    named, mixed = tilesets_in_scenes(root)
+    if mixed:
+        print(f"splatstream serve: note: {mixed} scene director{'ies' if mixed != 1 else 'y'} also "
+              f"hold{'s' if mixed == 1 else ''} tileset.json, not served (a scene directory serves its scene alone): "
+              f"{_listing(named, mixed)}; export the tileset into a directory of its own (splatstream export-3dtiles "
+              f"SCENE_DIR OUT_DIR)", file=sys.stderr, flush=True)
     if lowered:
         print(f"splatstream serve: warning: --max-connections lowered from {requested.max_connections} to "
               f"{limits.max_connections} per worker to fit the file descriptor limit {fd_limit} (ulimit -n)",

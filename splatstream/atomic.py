@@ -126,13 +126,20 @@ def is_mount_point(path: str, mountinfo: str | None = None) -> bool:
     return os.path.realpath(path) in mountinfo_points(text)
 
 
+# The index file of each of our directory outputs and what it makes of its directory (format/names.py's
+# MANIFEST_NAME, TILESET_NAME and LOD_META_NAME: this module sits below format/, test_atomic checks they agree).
+DIRECTORY_OUTPUT_INDEXES = {"manifest.msgpack": "an encoded scene", "tileset.json": "a 3D Tiles tileset",
+                            "lod-meta.json": "a streamed SOG"}
+
+
 def check_replaceable(given: str, path: str, holds: str | None) -> None:
     """An existing directory that a directory output would replace must be empty or hold `holds` (the file every
     output of that kind has: manifest.msgpack, tileset.json, ...), so that a mistyped output path never deletes a
     directory of the user's own files (`encode scene.ply ~/Documents`). Nor may it be a mount point (a container's
     volume, `docker run -v $PWD/out:/out ... encode scene.ply /out`): the finished output takes its place by a
     rename, which cannot move a mount point, so the whole encode ran and then failed with 'Device or resource
-    busy'."""
+    busy'. Nor may it hold another output's index beside `holds` (a scene directory with a tileset.json copied
+    in: export-3dtiles replaced it, deleting the scene; encode, the tileset)."""
     if not os.path.isdir(path) or os.path.islink(path):
         return
     if is_mount_point(path):
@@ -141,7 +148,14 @@ def check_replaceable(given: str, path: str, holds: str | None) -> None:
     if holds is None:
         return
     entries = sorted(os.listdir(path))
-    if not entries or holds in entries:
+    if holds in entries:
+        other = next((name for name in DIRECTORY_OUTPUT_INDEXES if name != holds and name in entries), None)
+        if other is not None:
+            kind = DIRECTORY_OUTPUT_INDEXES[other]
+            raise UsageError(f"{given}: holds {kind} ({other}) beside {holds}: replacing it would delete that "
+                             f"{kind[kind.index(' ') + 1:]}; give a new or empty directory, or move one of them out")
+        return
+    if not entries:
         return
     shown = ", ".join(entries[:3]) + (", ..." if len(entries) > 3 else "")
     raise UsageError(f"{given}: exists and holds other files ({shown}) but no {holds}: not replaced; give a new "

@@ -36,6 +36,7 @@ from .progress import count
 from .readers.sog import finest_level_units, sog_kind
 from .render_ref import render
 from .scene_decode import decode_scene
+from .sh import warn_sh_degree_above
 from .vq import parse_entries
 
 Renderer = Callable[[Gaussians | str, Camera], np.ndarray]
@@ -294,6 +295,7 @@ def evaluate(input_path: str, opts: EvalOptions | None = None, log: Callable[[st
     for name, _, _, sh_degree, sh_codebook in variants:
         # refused by the encode (encode.codebook.check_codebook_option) after the presets' runs, naming --sh-codebook,
         # which eval has not: said at once, naming the variant (newuser62)
+        warn_sh_degree_above(sh_degree, g.sh_degree, input_path, f"variant {name!r}: sh_degree={sh_degree}")
         kept = g.sh_degree if sh_degree is None else min(sh_degree, g.sh_degree)
         if sh_codebook not in (None, "off", "0") and kept < 1:
             raise UsageError(f"variant {name!r}: sh_codebook={sh_codebook} needs SH bands 1..3, and {input_path} keeps "

@@ -16,6 +16,7 @@ from .format.codec import EncodedPlane
 from .format.decode import decode_payload, decode_planes, decode_tile_bytes, tile_groups_for
 from .format.manifest import Manifest, TileEntry
 from .gaussians import Gaussians
+from .sh import warn_sh_degree_above
 from .store import SceneStore, open_store, read_manifest
 from .writers.sog_lod import TreeTile
 
@@ -64,7 +65,8 @@ def decode_tree_tiles(store: SceneStore, manifest: Manifest, sh_degree: int | No
                       progress: Callable[[str, float], None]) -> tuple[int, dict[int, TreeTile]]:
     """Every tile of a scene decoded whole, with its depth and children, for the exports of our tree into foreign
     LOD formats (sog_export, rad_export): the SH degree kept (at most the scene's; None: the scene's) and the tiles
-    by id. Reports ("decode", fraction done)."""
+    by id. Reports ("decode", fraction done); warns where more SH bands are asked for than the scene has."""
+    warn_sh_degree_above(sh_degree, manifest.sh_degree, store.location)
     degree = manifest.sh_degree if sh_degree is None else max(0, min(sh_degree, manifest.sh_degree))
     planes = read_codebook(store, manifest, degree) if degree >= 1 else None
     codebook = decode_planes(planes, manifest.sh_codebook.entries) if planes is not None else None

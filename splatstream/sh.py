@@ -9,6 +9,9 @@ colour = max(sum_k basis_k(dir) * sh_k + 0.5, 0)   (clamped at 0 only, as the re
 """
 from __future__ import annotations
 
+import os
+import warnings
+
 import numpy as np
 
 SH_C0 = 0.28209479177387814
@@ -99,3 +102,15 @@ def eval_sh(sh_dc: np.ndarray, sh_rest: np.ndarray, dirs: np.ndarray, degree: in
 def splat_colors(g, eye, degree: int | None = None) -> np.ndarray:
     """Colour of every splat of `g` (a Gaussians) seen from `eye`, (N, 3) float64, clamped at 0."""
     return eval_sh(g.sh_dc, g.sh_rest, view_directions(g.positions, eye), degree)
+
+
+def warn_sh_degree_above(asked: int | None, scene_degree: int, where: str | os.PathLike,
+                         asked_as: str | None = None) -> None:
+    """Warn (one line: the CLI shows a warning as 'splatstream: warning: ...') that more SH bands were asked for
+    than the scene has, e.g. '--sh-degree 3: out/playbot has SH degree 2; 2 is used'. The scene's bands are used,
+    not refused: a script that asks every scene for degree 3 keeps working (decode, view, render, the exports,
+    encode and eval's variants took it without a word: newuser64). `asked_as`: how it was asked for (default
+    '--sh-degree N')."""
+    if asked is not None and asked > scene_degree:
+        said = asked_as or f"--sh-degree {asked}"
+        warnings.warn(f"{said}: {os.fspath(where)} has SH degree {scene_degree}; {scene_degree} is used", stacklevel=2)

@@ -40,6 +40,7 @@ from .gaussians import Gaussians, covariances, normalize_quaternions
 from .readers.gltf import sh_rotation
 from .readers.spz import decode_spz
 from .scene_decode import decode_tile, read_codebook
+from .sh import warn_sh_degree_above
 from .store import SceneStore, open_store, read_manifest
 from .writers.glb import DEFAULT_SPZ_VERSION, glb_bytes
 
@@ -501,6 +502,7 @@ def export_tileset(scene: str | os.PathLike | SceneStore, out_dir: str | os.Path
             os.path.realpath(out) == os.path.realpath(os.fspath(scene)):
         raise UsageError(f"{out}: the output directory is the scene itself")
     check_output(out, directory=True, holds=TILESET_NAME)
+    warn_sh_degree_above(options.sh_degree, manifest.sh_degree, store.location)
     degree = manifest.sh_degree if options.sh_degree is None else max(0, min(options.sh_degree, manifest.sh_degree))
     planes = read_codebook(store, manifest, degree) if degree >= 1 else None
     codebook = decode_planes(planes, manifest.sh_codebook.entries) if planes is not None else None

@@ -1,5 +1,6 @@
 """The encode / info / decode commands end to end, as a user runs them."""
 import json
+import re
 from pathlib import Path
 
 import numpy as np
@@ -65,6 +66,25 @@ def test_help_everywhere():
     for command in registered:
         r = run_cli(command, "--help")
         assert r.returncode == 0 and "usage:" in r.stdout, command
+
+
+# The names a command's description gives its arguments (export-rad's said OUT where its usage line said `output`:
+# newuser64)
+ARGUMENT_NAMES = {"IN", "INPUT", "OUT", "OUTPUT", "OUT_DIR", "OUTPUT_DIR", "SCENE", "SCENE_DIR", "SOURCE", "ROOT"}
+
+
+def test_every_help_names_its_arguments_as_its_usage_line_does():
+    parser = build_parser()
+    registered = next(a for a in parser._actions if a.dest == "command").choices
+    for command, sub in registered.items():
+        positionals = [a for a in sub._actions if not a.option_strings]
+        metavars = {a.metavar for a in positionals}
+        usage = sub.format_usage()
+        # every positional is named in capitals on the usage line, and so in the list below it
+        assert all(isinstance(m, str) and m.isupper() and m in usage.split() for m in metavars), (command, usage)
+        named = set(re.findall(r"\b[A-Z][A-Z_]*\b", sub.description or "")) & ARGUMENT_NAMES
+        assert named <= metavars, (command, named, metavars)
+    assert "SCENE_DIR OUT" in registered["export-rad"].format_usage()
 
 
 def test_failed_encode_leaves_old_scene_and_no_temporaries(tmp_path, monkeypatch):
@@ -228,3 +248,18 @@ def test_a_one_splat_scene_is_said_in_the_singular_and_decode_takes_quiet(tmp_pa
     r = run_cli("eval", tmp_path / "one.ply", "--presets", "medium", "--views", "1", "--size", "32x32")
     assert r.returncode == 0 and f"read {tmp_path / 'one.ply'}: 1 splat, SH degree 3" in r.stderr, r.stderr
     assert "Scene `one.ply`: 1 splat, SH3, " in r.stdout, r.stdout
+
+
+def test_ctrl_c_while_the_commands_are_imported_says_one_line(monkeypatch, capsys):
+    """build_parser imports every command's modules (a second on a busy machine): a Ctrl-C meanwhile printed the
+    import's traceback (polish64). The KeyboardInterrupt is raised where the import would take it."""
+    import cli.main as cli_main
+
+    def interrupted_import():
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(cli_main, "build_parser", interrupted_import)
+    assert cli_main.main(["encode", "-q", "--workers", "2", "in.ply", "out"]) == 130
+    assert capsys.readouterr().err == "splatstream encode: interrupted\n"
+    assert cli_main.main(["--version"]) == 130
+    assert capsys.readouterr().err == "splatstream: interrupted\n"

@@ -426,3 +426,66 @@ def test_ctrl_c_from_a_terminal_reaches_the_workers_and_says_one_line(tmp_path):
     assert proc.returncode == 130, err
     assert err.strip() == "splatstream encode: interrupted", err
     assert list(tmp_path.iterdir()) == []
+
+
+def _group_processes(group: int) -> list[str]:
+    """The command lines of the live (not zombie) processes of a process group, from /proc."""
+    found = []
+    for pid in filter(str.isdigit, os.listdir("/proc")):
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                fields = f.read().rsplit(")", 1)[1].split()
+            if int(fields[2]) == group and fields[0] != "Z":
+                with open(f"/proc/{pid}/cmdline", "rb") as f:
+                    found.append(f.read().replace(b"\0", b" ").decode(errors="replace"))
+        except (OSError, IndexError, ValueError):
+            pass  # gone meanwhile
+    return found
+
+
+@pytest.mark.skipif(importlib.util.find_spec("distributed") is None or not os.path.isdir("/proc"),
+                    reason="needs dask.distributed and /proc")
+@pytest.mark.parametrize("state, forked", [
+    ("its resource tracker runs", 0),          # the encode is starting the cluster, no fork server yet
+    ("its fork server runs", 1),               # the server imports Dask's preloads, no worker yet
+    ("its first worker process runs", 2),      # a worker in its own start-up
+    ("both worker processes run", 3),
+])
+def test_ctrl_c_while_the_local_cluster_starts_says_one_line(tmp_path, state, forked):
+    """A terminal's Ctrl-C in the local cluster's first second (the fork server importing Dask, a worker in its own
+    start) printed the fork server's and Dask's start-up tracebacks (30 to 180 lines: newuser64). The fork server and
+    its workers ignore SIGINT from their start (encode/forkserver_setup.py) and the encode holds it until the cluster
+    has started, then closes it: one line, exit 130, nothing left, no process. The signal goes to the process group
+    once the start has reached `state` (polled in /proc, not timed)."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    from conftest import ROOT
+
+    out = tmp_path / "scene"
+    proc = subprocess.Popen([sys.executable, "-m", "cli", "encode", "-q", "--workers", "2",
+                             str(ROOT / "samples" / "donut.ply"), str(out)], cwd=ROOT, stderr=subprocess.PIPE,
+                            text=True, stdin=subprocess.DEVNULL, start_new_session=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
+    deadline = time.monotonic() + 300
+    try:
+        while time.monotonic() < deadline and proc.poll() is None:
+            running = _group_processes(proc.pid)
+            servers = sum("multiprocessing.forkserver" in c for c in running)  # its workers share its command line
+            if any("multiprocessing.resource_tracker" in c for c in running) and servers >= forked:
+                break
+            time.sleep(0.005)
+        if proc.poll() is not None:
+            pytest.fail(f"the encode ended before {state}: {proc.communicate()[1]}")
+        os.killpg(proc.pid, signal.SIGINT)
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130 and err.strip() == "splatstream encode: interrupted", (state, err)
+    assert list(tmp_path.iterdir()) == []
+    while _group_processes(proc.pid) and time.monotonic() < deadline:  # the cluster's processes end with it
+        time.sleep(0.05)
+    assert _group_processes(proc.pid) == []

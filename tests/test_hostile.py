@@ -6,6 +6,7 @@ generous deadlines of the run itself."""
 from __future__ import annotations
 
 import hashlib
+import re
 import sys
 import time
 from pathlib import Path
@@ -214,3 +215,7 @@ def test_view_refuses_a_gpu_budget_below_the_root_tile(server, tmp_path):
     r = run_cli("view", server.url("s"), "--headless", "--gpu-mem-mb", "0.01", "--timeout", "60")
     assert r.returncode == 2, r.stderr
     assert "--gpu-mem-mb 0.01: too small for this scene" in r.stderr and "give --gpu-mem-mb" in r.stderr
+    # the bytes with thousands separators, as the CLI writes counts elsewhere ('33800 bytes' before: newuser64)
+    need = re.search(r"its root tile alone takes ([\d,]+) bytes", r.stderr)
+    assert need is not None, r.stderr
+    assert need.group(1) == f"{int(need.group(1).replace(',', '')):,}" and "," in need.group(1), r.stderr

@@ -75,7 +75,7 @@ def test_info_help_describes_its_positional():
     r = run_cli("info", "--help")
     assert r.returncode == 0
     after = r.stdout.split("positional arguments:")[1].split("options:")[0]
-    assert "scene_dir" in after and "manifest.msgpack" in after
+    assert "SCENE_DIR" in after and "manifest.msgpack" in after  # named as the usage line names it
 
 
 def test_encode_and_info_say_which_bytes_per_splat_is_which_in_plain_words(tmp_path):

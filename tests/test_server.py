@@ -212,6 +212,30 @@ def test_range_ignored(srv, root, spec):
     assert status == 200 and body == data and "Content-Range" not in headers
 
 
+@pytest.mark.parametrize("fields", [
+    [("Range", "bytes=0-9"), ("Range", "bytes=10-19")],
+    [("Range", "bytes=0-9"), ("Range", "bytes=0-9")],
+    [("Range", "bytes=5000-"), ("Range", "bytes=0-9")],  # the first alone: 416
+    [("Range", "bytes=0-9"), ("If-Range", "ETAG"), ("If-Range", '"other"')],
+    [("Range", "bytes=0-9"), ("If-Range", "ETAG"), ("If-Range", "ETAG")],
+])
+def test_two_range_or_if_range_fields_are_ignored(srv, root, fields):
+    """Two Range fields (or two If-Range validators) in one request: neither is picked (the first was: newuser64);
+    the whole file, 200, as for several ranges in one field (http.md section 5, item 3)."""
+    name, data = next((n, d) for n, d in payloads(root, "a").items() if len(d) == 1000)
+    etag = f'"{name[:64]}"'
+    head = "".join(f"{k}: {etag if v == 'ETAG' else v}\r\n" for k, v in fields)
+    out = raw_request(srv.port, f"GET /scenes/a/data/{name} HTTP/1.1\r\nHost: x\r\n{head}Connection: close\r\n\r\n"
+                      .encode())
+    status_line, rest = out.split(b"\r\n", 1)
+    head_bytes, body = rest.split(b"\r\n\r\n", 1)
+    assert status_line.startswith(b"HTTP/1.1 200 "), out[:300]
+    assert b"content-range" not in head_bytes.lower() and body == data
+    # one of each still ranges
+    status, _, body = request(srv.port, f"/scenes/a/data/{name}", headers={"Range": "bytes=0-9", "If-Range": etag})
+    assert status == 206 and body == data[:10]
+
+
 @pytest.mark.parametrize("spec", ["bytes=1000-", "bytes=5000-6000", "bytes=-0", "bytes=18446744073709551616-",
                                   "bytes=18446744073709551615-18446744073709551616", "bytes=" + "9" * 5000 + "-"])
 def test_range_not_satisfiable(srv, root, spec):
@@ -628,6 +652,29 @@ def test_cli_names_the_exports_it_does_not_serve(tmp_path):
     proc = _cli(str(root / "sog"), "--port", "0")
     out, err = proc.communicate(timeout=30)
     assert proc.returncode == 2 and "a streamed SOG (lod-meta.json) or a Spark .rad is not served" in err, err
+
+
+def test_cli_names_a_scene_directory_that_also_holds_a_tileset(tmp_path):
+    """A scene directory with a tileset.json copied in serves its scene alone (http.md 14): its tileset.json answered
+    404 with nothing said at start ('1 scene from ...')."""
+    root = tmp_path / "root"
+    write_fake_scene(root / "garden", [100])
+    (root / "garden" / "tileset.json").write_text('{"asset": {"version": "1.1"}}')
+    proc = _cli(str(root), "--port", "0", "--no-access-log")
+    try:
+        note = proc.stderr.readline()
+        assert note.strip() == ("splatstream serve: note: 1 scene directory also holds tileset.json, not served (a "
+                                "scene directory serves its scene alone): garden/; export the tileset into a "
+                                "directory of its own (splatstream export-3dtiles SCENE_DIR OUT_DIR)"), note
+        started = proc.stderr.readline()
+        assert started.startswith(f"splatstream serve: 1 scene from {root} at "), started
+        port = int(re.search(r":(\d+)/ ", started).group(1))
+        status, _, body = request(port, "/scenes/garden/manifest.msgpack")
+        assert status == 200 and body == (root / "garden" / MANIFEST_NAME).read_bytes()
+        assert request(port, "/scenes/garden/tileset.json")[0] == 404
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.communicate(timeout=30)
 
 
 def test_cli_port_in_use(root):

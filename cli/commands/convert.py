@@ -36,10 +36,11 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "glTF binary with KHR_gaussian_splatting (.glb) or PlayCanvas SOG (.sog, version 2, bundled), "
                     "chosen by OUT's extension. The output appears "
                     "only when complete. What each format keeps is documented in format_spec/foreign_formats.md.")
-    p.add_argument("input", nargs="+", help="input splat file or SOG directory; several are merged into one scene, in "
-                                            "the order given (SH bands an input lacks are zeros; the edits apply "
-                                            "to the merged splats)")
-    p.add_argument("output", help="output file (.ply, .splat, .spz, .glb or .sog)")
+    p.add_argument("input", nargs="+", metavar="INPUT",
+                   help="input splat file or SOG directory; several are merged into one scene, in "
+                        "the order given (SH bands an input lacks are zeros; the edits apply "
+                        "to the merged splats)")
+    p.add_argument("output", metavar="OUT", help="output file (.ply, .splat, .spz, .glb or .sog)")
     p.add_argument("--spz-axes", choices=("rub", "rdf"), default="rub",
                    help="axes of an SPZ input: rub, as the format specifies (Niantic's library, splat-transform 2.x; "
                         "default), or rdf for files stored without the axis turn (splat-transform 3.x), which read "

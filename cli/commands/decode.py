@@ -10,14 +10,15 @@ from splatstream.errors import UsageError
 from splatstream.io import FORMAT_NAMES, output_format, write_gaussians, written_sh_degree
 from splatstream.progress import count
 from splatstream.scene_decode import decode_scene
+from splatstream.sh import warn_sh_degree_above
 
 
 def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("decode", help="decode a scene directory back to a standard 3DGS PLY",
                        description="Decode the full-detail splats of a scene directory (all leaf tiles) and write a "
                                    "standard binary 3DGS PLY. Every payload's checksum is verified.")
-    p.add_argument("scene_dir", help="encoded scene directory")
-    p.add_argument("output", help="output file (.ply; other writable formats by extension)")
+    p.add_argument("scene_dir", metavar="SCENE_DIR", help="encoded scene directory")
+    p.add_argument("output", metavar="OUT", help="output file (.ply; other writable formats by extension)")
     p.add_argument("--sh-degree", type=int, choices=[0, 1, 2, 3], help="decode SH bands up to this degree only")
     p.add_argument("--tiles", help="comma-separated tile ids to decode instead of the leaves (e.g. 0 for the root)")
     # as convert, encode and the exports take it (a script's `decode ... -q` was refused: newuser63)
@@ -36,6 +37,7 @@ def run(args: argparse.Namespace) -> int:
     check_output(args.output)
     start = time.perf_counter()
     g = decode_scene(args.scene_dir, sh_degree=args.sh_degree, tiles=tiles)
+    warn_sh_degree_above(args.sh_degree, g.sh_degree, args.scene_dir)  # (decoded at the scene's degree at most)
     # Writing can be the long part (a .sog's SH palette and WebP planes: 11 s for playbot's 500,000 splats on a busy
     # 2-core machine, with nothing printed before): say what is being written, as convert does.
     if not args.quiet:

@@ -30,6 +30,7 @@ from splatstream.lod import LOD_MERGES
 from splatstream.lod_refine import CPU_ITERATIONS, CPU_SIZE_PX, GPU_ITERATIONS, GPU_SIZE_PX, LodRefiner
 from splatstream.progress import ProgressPrinter, count
 from splatstream.rad_import import read_tree as rad_read_tree
+from splatstream.sh import warn_sh_degree_above
 from splatstream.sog_import import encode_tree_to
 from splatstream.sog_import import read_tree as sog_read_tree
 
@@ -60,12 +61,14 @@ def register(sub: argparse._SubParsersAction) -> None:
                     + ". SH bands 1..3 in a scene-wide codebook: "
                     + ", ".join(f"{k} ({v})" for k, v in PRESET_SH_CODEBOOK.items()),
     )
-    p.add_argument("input", nargs="+", help="input splat file (.ply; other formats are detected by content); several "
-                                            "are merged into one scene, in the order given (SH bands an input "
-                                            "lacks are zeros; the edits apply to the merged splats)")
-    p.add_argument("output_dir", help="scene directory to write (replaced atomically if it exists), or an fsspec URL "
-                                      "(s3://bucket/scene, gs://..., needs the cluster extra): payloads first, the "
-                                      "manifest last")
+    p.add_argument("input", nargs="+", metavar="INPUT",
+                   help="input splat file (.ply; other formats are detected by content); several "
+                        "are merged into one scene, in the order given (SH bands an input "
+                        "lacks are zeros; the edits apply to the merged splats)")
+    p.add_argument("output_dir", metavar="OUTPUT_DIR",
+                   help="scene directory to write (replaced atomically if it exists), or an fsspec URL "
+                        "(s3://bucket/scene, gs://..., needs the cluster extra): payloads first, the "
+                        "manifest last")
     p.add_argument("--preset", default=None, choices=list(PRESETS), metavar="PRESET",
                    help="quality preset, from the largest files to the smallest: "
                         + "; ".join(f"{k} ({v})" for k, v in PRESET_SUMMARY.items()).replace("%", "%%")
@@ -269,6 +272,7 @@ def run(args: argparse.Namespace) -> int:
 
     def check_read(sh_degree: int) -> None:
         _check_sh_format(args, overrides, " + ".join(args.input), sh_degree)
+        warn_sh_degree_above(args.sh_degree, sh_degree, " + ".join(args.input))
 
     with progress.library_notes():
         if tree_kind is not None:

@@ -29,7 +29,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "per splat in GPU memory and on disk, compression against the input file, encode time. "
                     "Writes a Markdown table to stdout, and optionally JSON (with the cameras) and a plot.",
     )
-    p.add_argument("input", help="input scene (standard 3DGS PLY or another supported format)")
+    p.add_argument("input", metavar="INPUT", help="input scene (standard 3DGS PLY or another supported format)")
     p.add_argument("--presets", default=",".join(PRESET_ORDER),
                    help=f"comma-separated presets (default {','.join(PRESET_ORDER)}); 'none' for peers only")
     p.add_argument("--views", type=int, default=8, help="number of orbit views (default 8)")

@@ -23,8 +23,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "root manifest's levels and each manifest page becomes an external tileset "
                     "(OUT_DIR/tiles/<sha256>.json, see --external-tilesets). OUT_DIR is replaced atomically. "
                     "Conventions: format_spec/tiles3d.md.")
-    p.add_argument("scene", help="scene directory (manifest.msgpack)")
-    p.add_argument("output_dir", help="tileset directory to write (replaced atomically if it exists)")
+    p.add_argument("scene", metavar="SCENE_DIR", help="scene directory (manifest.msgpack)")
+    p.add_argument("output_dir", metavar="OUT_DIR",
+                   help="tileset directory to write (replaced atomically if it exists)")
     p.add_argument("--content", choices=("spz", "plain"), default="spz",
                    help="tile content: spz (KHR_gaussian_splatting_compression_spz_2, default; what CesiumJS draws as "
                         "splats) or plain (float accessors: larger, read by glTF tools; CesiumJS 1.145 draws only "

@@ -21,8 +21,8 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "splat of its parent tile) in chunks of 65536 splats that Spark's paged loader fetches by "
                     "range request. OUT is replaced atomically. Mapping and what is lost: "
                     "format_spec/foreign_formats.md.")
-    p.add_argument("scene", help="scene directory (manifest.msgpack)")
-    p.add_argument("output", help=".rad file to write (replaced atomically if it exists)")
+    p.add_argument("scene", metavar="SCENE_DIR", help="scene directory (manifest.msgpack)")
+    p.add_argument("output", metavar="OUT", help=".rad file to write (replaced atomically if it exists)")
     p.add_argument("--sh-degree", type=int, choices=(0, 1, 2, 3), help="SH bands to export (default: all)")
     p.add_argument("--encoding", choices=ENCODINGS, default="exact",
                    help="exact (default): our decoded values, f32 centres and scales, f16 colour, opacity and SH; "

@@ -23,8 +23,9 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "detail, level L our tiles L levels above the leaves) and one SOG version 2 unit per level and "
                     "about --unit-splats splats (OUT_DIR/<level>_<i>/meta.json + lossless WebP planes). OUT_DIR is "
                     "replaced atomically. Mapping and what is lost: format_spec/foreign_formats.md.")
-    p.add_argument("scene", help="scene directory (manifest.msgpack)")
-    p.add_argument("output_dir", help="streamed SOG directory to write (replaced atomically if it exists)")
+    p.add_argument("scene", metavar="SCENE_DIR", help="scene directory (manifest.msgpack)")
+    p.add_argument("output_dir", metavar="OUT_DIR",
+                   help="streamed SOG directory to write (replaced atomically if it exists)")
     p.add_argument("--sh-degree", type=int, choices=(0, 1, 2, 3), help="SH bands to export (default: all)")
     p.add_argument("--unit-splats", type=int, default=None,
                    help="splats per SOG unit before a new one starts (default 524288, splat-transform's)")

@@ -127,8 +127,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     p = sub.add_parser("info", help="describe an encoded scene directory",
                        description="Print the facts of an encoded scene: splats, SH degree, preset, sizes on disk and "
                                    "in GPU memory per attribute, tiles and levels.")
-    p.add_argument("scene_dir", help="an encoded scene directory (the one holding manifest.msgpack), as written "
-                                     "by `splatstream encode`")
+    p.add_argument("scene_dir", metavar="SCENE_DIR",
+                   help="an encoded scene directory (the one holding manifest.msgpack), as written "
+                        "by `splatstream encode`")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=run)
 

@@ -17,6 +17,7 @@ from splatstream.io import read_gaussians, scene_up
 from splatstream.orientation import view_side
 from splatstream.progress import count
 from splatstream.readers.sog import sog_kind
+from splatstream.sh import warn_sh_degree_above
 from splatstream.store import is_scene_dir, load_manifest
 
 from .args import DROP_INVALID_HELP, check_look, check_sort_draw, parse_azimuth, parse_size, parse_vector
@@ -36,7 +37,7 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "splat file (encoded in memory at --preset) with the GL renderer. Camera defaults come from "
                     "the manifest's suggested camera, or for files from the scene's robust bounds.",
     )
-    p.add_argument("scene", help="scene directory (manifest.msgpack) or splat file (.ply, ...)")
+    p.add_argument("scene", metavar="SCENE", help="scene directory (manifest.msgpack) or splat file (.ply, ...)")
     p.add_argument("--out", "-o", required=True, help="output image (.png)")
     p.add_argument("--eye", help="camera position X,Y,Z")
     p.add_argument("--target", help="point looked at X,Y,Z")
@@ -134,6 +135,7 @@ def run(args: argparse.Namespace) -> int:
         if args.drop_invalid:  # (an encoded scene's splats were screened when it was encoded)
             raise UsageError(f"--drop-invalid: drops invalid splats of a splat file; {args.scene} is an encoded scene")
         manifest = load_manifest(args.scene)
+        warn_sh_degree_above(args.sh_degree, manifest.sh_degree, args.scene)
         cam = _camera(args, manifest.camera.to_dict(), None, manifest.up, size)
         source = ("scene", args.scene)
         splats = manifest.splats
@@ -150,6 +152,7 @@ def run(args: argparse.Namespace) -> int:
         g = read_gaussians(args.scene, drop_invalid=args.drop_invalid)
         if len(g) == 0:
             raise UsageError(f"{args.scene}: no splats to render")
+        warn_sh_degree_above(args.sh_degree, g.sh_degree, args.scene)
         up = _optional_vector(args.up, "--up") or scene_up(args.scene, g).up
         cam = _camera(args, None, g.positions, up, size, view_side(g, up), g.opacity_logits, g.log_scales)
         source = ("gaussians", g)

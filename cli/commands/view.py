@@ -32,9 +32,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                     "thread and drawn coarse to fine; SH bands follow where they change the picture "
                     "(format_spec/client.md). Without --headless a window opens with orbit and fly cameras and an "
                     "overlay (H shows the controls).")
-    p.add_argument("source", help="http(s)://HOST/scenes/ID, a scene directory, a streamed SOG (lod-meta.json or its "
-                                  "directory), a Spark .rad, or a splat file (.ply, .spz, ...; a SOG: .sog, meta.json "
-                                  "or its directory)")
+    p.add_argument("source", metavar="SOURCE",
+                   help="http(s)://HOST/scenes/ID, a scene directory, a streamed SOG (lod-meta.json or its "
+                        "directory), a Spark .rad, or a splat file (.ply, .spz, ...; a SOG: .sog, meta.json "
+                        "or its directory)")
     p.add_argument("--headless", action="store_true", help="no window: stream, then write what is asked for")
     cam = p.add_argument_group("camera (default: the scene's suggested camera)")
     cam.add_argument("--eye", help="camera position X,Y,Z")

@@ -9,8 +9,10 @@ reaches the caller's progress display; partition tasks also report their own pro
 """
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
+import signal
 import threading
 import time
 import uuid
@@ -51,12 +53,26 @@ class DaskEngine:
             # (the fork server's), not today's (e.g. object-store credentials set since)
             # preload: the worker processes ignore a terminal's Ctrl-C, which the encode handles (dask_worker_setup)
             extra = {"env": dict(os.environ), "preload": [f"{__package__}.dask_worker_setup"]} if processes else {}
-            # Workers' own logs only at CRITICAL: a task's failure reaches us through its future (and is reported
-            # once, as a one-line error), while a worker's heartbeat racing the shutdown on a loaded machine logged a
-            # traceback at ERROR after a successful encode (seen in 2 of 6 runs of the README's --workers 8 line).
-            self.cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=processes,
-                                                    dashboard_address=None, silence_logs=logging.CRITICAL, **extra)
-            self.client = distributed.Client(self.cluster)
+            # A Ctrl-C while the cluster starts is held until it has started, then raised here, where the cluster
+            # is closed whole; one raised inside the start left Dask's start-up tracebacks (newuser64)
+            with _sigint_held() as held:
+                try:
+                    if processes and self._config is not None:
+                        _start_fork_server_ignoring_sigint()
+                    # Workers' own logs only at CRITICAL: a task's failure reaches us through its future (and is
+                    # reported once, as a one-line error), while a worker's heartbeat racing the shutdown on a loaded
+                    # machine logged a traceback at ERROR after a successful encode (seen in 2 of 6 runs of the
+                    # README's --workers 8 line).
+                    self.cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=processes,
+                                                            dashboard_address=None, silence_logs=logging.CRITICAL,
+                                                            **extra)
+                    self.client = distributed.Client(self.cluster)
+                except BaseException:
+                    self._close_started()
+                    raise
+            if held.interrupted:
+                self._close_started()
+                raise KeyboardInterrupt
         info = self.client.scheduler_info(n_workers=-1)["workers"] if _takes_n_workers(self.client) else \
             self.client.scheduler_info()["workers"]
         self.workers = max(1, len(info))
@@ -122,6 +138,18 @@ class DaskEngine:
         if behind:
             self.client.gather(behind)
 
+    def _close_started(self) -> None:
+        """Close what a start interrupted or failed part-way has started (the engine is not returned)."""
+        with contextlib.suppress(Exception):
+            if getattr(self, "client", None) is not None:
+                self.client.close()
+        with contextlib.suppress(Exception):
+            if self.cluster is not None:
+                self.cluster.close()
+        if self._config is not None:
+            self._config.__exit__(None, None, None)
+            self._config = None
+
     def close(self) -> None:
         self._behind = []
         try:
@@ -182,6 +210,58 @@ def _fork_workers():
     if "forkserver" not in multiprocessing.get_all_start_methods():
         return None
     return dask.config.set({"distributed.worker.multiprocessing-method": "forkserver"})
+
+
+class _Held:
+    interrupted = False
+
+
+@contextlib.contextmanager
+def _sigint_held():
+    """SIGINT recorded instead of raised while the block runs (in the main thread, where Python delivers it); the
+    caller raises KeyboardInterrupt after it where `interrupted`. Elsewhere, or where SIGINT is not Python's default
+    handler (ignored, or an embedding application's own), nothing is changed."""
+    held = _Held()
+    if threading.current_thread() is not threading.main_thread() or \
+            signal.getsignal(signal.SIGINT) is not signal.default_int_handler:
+        yield held
+        return
+
+    def record(signum, frame) -> None:
+        held.interrupted = True
+
+    signal.signal(signal.SIGINT, record)
+    try:
+        yield held
+    finally:
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+
+
+FORKSERVER_SETUP = f"{__package__}.forkserver_setup"
+
+
+def _start_fork_server_ignoring_sigint() -> None:
+    """Start the fork server that Dask's worker processes are forked from (Dask names its preloads) with
+    forkserver_setup first among them, so that each worker ignores SIGINT from its first instruction (a worker
+    interrupted in its own start printed Dask's start-up tracebacks). SIGINT is blocked in this thread while the
+    server is spawned, so that the server, which inherits the mask, is not interrupted before that preload runs
+    either; a Ctrl-C meanwhile stays pending here and reaches _sigint_held when unblocked. The resource tracker,
+    started first, ignores SIGINT itself (and unblocks the caller's signals after its own spawn). No-op where the
+    fork server already runs (its workers' preload, dask_worker_setup, still ignores SIGINT once it runs)."""
+    from multiprocessing import forkserver, resource_tracker
+
+    from distributed.utils import get_mp_context
+
+    get_mp_context()  # Dask sets the fork server's preloads here (once per process)
+    # (the list as set: the module's own state, as read since Python 3.4; ['__main__'] is its default)
+    preload = list(getattr(forkserver._forkserver, "_preload_modules", ["__main__"]))
+    forkserver.set_forkserver_preload([FORKSERVER_SETUP] + [m for m in preload if m != FORKSERVER_SETUP])
+    resource_tracker.ensure_running()
+    blocked = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        forkserver.ensure_running()
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, blocked)
 
 
 def _takes_n_workers(client) -> bool:
