@@ -1,6 +1,7 @@
 #!/usr/bin/env python3
 """The first picture and convergence over the reference access link (20 Mbit/s, 40 ms a request: server/throttle.py's
-Link) with two settings of `view` (arms: `--fill-min-kb 64` and `--fill-min-kb 160`, or `--fill-gap 4` and `5`),
+Link) with two settings of `view` (arms: `--fill-min-kb 64` and `--fill-min-kb 160`, or `--fill-gap 4` and `5`;
+`in_flight=N` in an arm: N requests in flight over N connections, the client's defaults 6 and 8),
 paired: for every run, budget and view the two arms stream back to back (their order alternating by run), the
 lod_vs_peers cameras, --no-prefetch, no disk cache (issue 31, branch fillmin31: what a larger threshold costs the
 first picture). One JSON line a stream on stdout.
@@ -20,6 +21,7 @@ import os
 import statistics
 import sys
 import time
+from dataclasses import replace
 
 
 def measure(serve_root: str, scene: str, lvp: str, budgets: list[float], runs: int, arms: list[str]) -> None:
@@ -31,6 +33,7 @@ def measure(serve_root: str, scene: str, lvp: str, budgets: list[float], runs: i
     from cli.main import build_parser
     from client_gl.gpu.gl import wait_for_gpu
     from client_gl.offscreen import create_context
+    from client_gl.stream.sources import open_source
     from client_gl.streaming import StreamingSession
     from server.testing import ServerThread
     from server.throttle import MBIT, Link
@@ -47,13 +50,21 @@ def measure(serve_root: str, scene: str, lvp: str, budgets: list[float], runs: i
                 for v, cam in enumerate(cams):
                     for arm in (arms if r % 2 == 0 else arms[::-1]):
                         url = f"http://127.0.0.1:{server.port}/scenes/{scene}/"
+                        # `in_flight=N`, an arm's token that no view option sets: N requests in flight and N
+                        # connections (ViewOptions.max_in_flight, 6, and the HTTP source's connections, 8, by default)
+                        in_flight = [int(t.split("=")[1]) for t in arm.split() if t.startswith("in_flight=")]
                         argv = view_argv(url, n, 384, cam.eye, cam.target, cam.up, cam.fov_y_deg) + \
-                            ["--quiet", "--no-cache", "--no-prefetch", *arm.split()]
+                            ["--quiet", "--no-cache", "--no-prefetch",
+                             *[t for t in arm.split() if not t.startswith("in_flight=")]]
                         args = build_parser().parse_args(argv)
                         options = view_cmd._options(args)
+                        spec = url
+                        if in_flight:
+                            options = replace(options, max_in_flight=in_flight[0])
+                            spec = open_source(url, connections=in_flight[0])
                         camera = view_cmd._fixed_camera(args, parse_size(args.size))
                         t0, c0 = time.perf_counter(), time.process_time()
-                        session = StreamingSession.open(url, ctx, options)
+                        session = StreamingSession.open(spec, ctx, options)
                         first_splats = None
                         try:
                             while True:
