@@ -938,6 +938,49 @@ def prefetch(a: TileArrays, view: TileView, sel: Selection, opts: SelectionOptio
 PAGE_CHILDREN_SHARE = 0.75
 
 
+@dataclass(frozen=True)
+class _RefinementTurns:
+    """The turns at which select decides a selection's refinements, and what each adds, for pages_the_budget_can_use
+    and cut_a_page_may_undo (client.md 1.11)."""
+    refined: np.ndarray  # positions of the refined tiles (sel.refined_at)
+    slot: np.ndarray  # position -> index in `refined`, -1 where not refined; its last entry: no parent
+    parent_slot: np.ndarray  # per refinement: its parent's index in `refined` (-1: the root)
+    levels: np.ndarray  # per refinement: its tile's level
+    by_level: list[int]  # the levels of `levels`, parents' before children's
+    turn: np.ndarray  # per refinement: its key, or its parent's turn where that is later
+    child_splats: np.ndarray  # per refinement: its visible children's (cut or refined tiles') splats
+    child_cost: np.ndarray  # and their cost
+    head_key: np.ndarray  # per head: its own refinement key
+    parent_turn: np.ndarray  # per head: its parent's turn (-inf for the root)
+
+
+def _refinement_turns(a: TileArrays, view, cost: np.ndarray, sel: Selection, heads: np.ndarray,
+                      reduction: float) -> _RefinementTurns:
+    cut, refined = sel.cut_at, np.asarray(sel.refined_at, np.intp)
+    step = refinement_level_step(reduction)
+    # each refined tile's key, or its parent's turn where that is later (select's queue hands out a child whose key
+    # is below its parent's right after the parent)
+    slot = np.full(len(a.parent) + 1, -1, np.intp)
+    slot[refined] = np.arange(len(refined))
+    parent_slot = slot[a.parent[refined]]
+    turn = refinement_keys(a.level[refined], view.distance[refined], view.sse[refined], step)
+    levels = a.level[refined]
+    by_level = np.unique(levels).tolist()
+    for lv in by_level:  # parents before children
+        at = np.flatnonzero((levels == lv) & (parent_slot >= 0))
+        turn[at] = np.maximum(turn[at], turn[parent_slot[at]])
+    members = np.concatenate([cut, refined])
+    members = members[a.parent[members] >= 0]
+    owner = slot[a.parent[members]]
+    head_key = refinement_keys(a.level[heads], view.distance[heads], view.sse[heads], step)
+    head_parent = slot[a.parent[heads]]  # a cut tile's parent is refined; the root has none
+    parent_turn = np.full(len(heads), -INF)
+    parent_turn[head_parent >= 0] = turn[head_parent[head_parent >= 0]]
+    return _RefinementTurns(refined, slot, parent_slot, levels, by_level, turn,
+                            np.bincount(owner, a.splats_f64[members], len(refined)),
+                            np.bincount(owner, cost[members], len(refined)), head_key, parent_turn)
+
+
 def pages_the_budget_can_use(a: TileArrays, view, cost: np.ndarray, root: int, sel: Selection, heads: np.ndarray,
                              opts: SelectionOptions, reduction: float, chunk_splats: int, chunk_bytes: float,
                              children_share: float = PAGE_CHILDREN_SHARE) -> tuple[np.ndarray, np.ndarray]:
@@ -963,35 +1006,17 @@ def pages_the_budget_can_use(a: TileArrays, view, cost: np.ndarray, root: int, s
     heads = np.asarray(heads, np.intp)
     if not len(heads) or (opts.max_splats is None and opts.budget is None):
         return np.ones(len(heads), bool), np.zeros(len(heads), bool)
-    cut, refined = sel.cut_at, np.asarray(sel.refined_at, np.intp)
     splats = a.splats_f64
-    step = refinement_level_step(reduction)
-    # the refinements' turns: each refined tile's key, or its parent's turn where that is later (select's queue
-    # hands out a child whose key is below its parent's right after the parent)
-    slot = np.full(len(a.parent) + 1, -1, np.intp)  # position -> index in `refined`; the last: no parent (-1)
-    slot[refined] = np.arange(len(refined))
-    parent_slot = slot[a.parent[refined]]
-    turn = refinement_keys(a.level[refined], view.distance[refined], view.sse[refined], step)
-    levels = a.level[refined]
-    for lv in np.unique(levels).tolist():  # parents before children
-        at = np.flatnonzero((levels == lv) & (parent_slot >= 0))
-        turn[at] = np.maximum(turn[at], turn[parent_slot[at]])
-    # each refinement's change to the cut: its visible children (cut or refined tiles) less itself
-    members = np.concatenate([cut, refined])
-    members = members[a.parent[members] >= 0]
-    owner = slot[a.parent[members]]
-    add_splats = np.bincount(owner, splats[members], len(refined)) - splats[refined]
-    add_cost = np.bincount(owner, cost[members], len(refined)) - cost[refined]
+    t = _refinement_turns(a, view, cost, sel, heads, reduction)
+    refined, turn, head_key, parent_turn = t.refined, t.turn, t.head_key, t.parent_turn
+    add_splats = t.child_splats - splats[refined]
+    add_cost = t.child_cost - cost[refined]
     order = np.lexsort((a.ids[refined], turn))  # ties of key by tile id, as the selection's (client.md 1.2)
     turns = turn[order]
     before_splats = np.concatenate([[0.0], np.cumsum(add_splats[order])])
     before_cost = np.concatenate([[0.0], np.cumsum(add_cost[order])])
-    # the heads' turns, and the refinements decided before them (ties of key: the later side, where the head
-    # follows its parent; the earlier, where its own key orders it)
-    head_key = refinement_keys(a.level[heads], view.distance[heads], view.sse[heads], step)
-    head_parent = slot[a.parent[heads]]  # a cut tile's parent is refined; the root has none
-    parent_turn = np.full(len(heads), -INF)
-    parent_turn[head_parent >= 0] = turn[head_parent[head_parent >= 0]]
+    # the refinements decided before each head (ties of key: the later side, where the head follows its parent;
+    # the earlier, where its own key orders it)
     follows = head_key <= parent_turn
     head_turn = np.maximum(head_key, parent_turn)
     n_before = np.where(follows, np.searchsorted(turns, head_turn, "right"), np.searchsorted(turns, head_turn, "left"))
@@ -1044,39 +1069,21 @@ def cut_a_page_may_undo(a: TileArrays, view, cost: np.ndarray, root: int, sel: S
     decided after that turn is held back; the refinements before it are the same whatever the pages bring
     (pages_the_budget_can_use's "why the same cut"), and so are the cut tiles below them only. Decides when
     payloads are fetched, never the cut."""
-    cut, refined = sel.cut_at, np.asarray(sel.refined_at, np.intp)
+    cut = sel.cut_at
     out = np.zeros(len(cut), bool)
     heads = np.asarray(heads, np.intp)
-    if not len(heads) or not len(refined) or (opts.max_splats is None and not sel.budget_limited):
+    if not len(heads) or not len(sel.refined_at) or (opts.max_splats is None and not sel.budget_limited):
         return out
-    step = refinement_level_step(reduction)
-    slot = np.full(len(a.parent) + 1, -1, np.intp)  # position -> index in `refined`; the last: no parent (-1)
-    slot[refined] = np.arange(len(refined))
-    parent_slot = slot[a.parent[refined]]
-    turn = refinement_keys(a.level[refined], view.distance[refined], view.sse[refined], step)
-    levels = a.level[refined]
-    by_level = np.unique(levels).tolist()
-    for lv in by_level:  # parents before children
-        at = np.flatnonzero((levels == lv) & (parent_slot >= 0))
-        turn[at] = np.maximum(turn[at], turn[parent_slot[at]])
-    # each refinement's change to the cut: its visible children (cut or refined tiles) less itself
-    members = np.concatenate([cut, refined])
-    members = members[a.parent[members] >= 0]
-    owner = slot[a.parent[members]]
-    adds = (np.bincount(owner, a.splats_f64[members], len(refined)) > a.splats_f64[refined]) | \
-        (np.bincount(owner, cost[members], len(refined)) > cost[refined])
-    # the earliest head's turn (a head's turn as pages_the_budget_can_use takes it: its key, or its parent's turn
-    # where that is later; a tie goes to the refinement, as a head that follows its parent would)
-    head_key = refinement_keys(a.level[heads], view.distance[heads], view.sse[heads], step)
-    head_parent = slot[a.parent[heads]]
-    parent_turn = np.full(len(heads), -INF)
-    parent_turn[head_parent >= 0] = turn[head_parent[head_parent >= 0]]
-    first = float(np.maximum(head_key, parent_turn).min())
-    undone = (turn > first) & adds
-    for lv in by_level:  # below an undone refinement everything may leave the cut too
-        at = np.flatnonzero((levels == lv) & (parent_slot >= 0))
+    t = _refinement_turns(a, view, cost, sel, heads, reduction)
+    refined, parent_slot = t.refined, t.parent_slot
+    adds = (t.child_splats > a.splats_f64[refined]) | (t.child_cost > cost[refined])
+    # the earliest head's turn (a tie goes to the refinement, as a head that follows its parent would)
+    first = float(np.maximum(t.head_key, t.parent_turn).min())
+    undone = (t.turn > first) & adds
+    for lv in t.by_level:  # below an undone refinement everything may leave the cut too
+        at = np.flatnonzero((t.levels == lv) & (parent_slot >= 0))
         undone[at] |= undone[parent_slot[at]]
-    up = slot[a.parent[cut]]
+    up = t.slot[a.parent[cut]]
     has = up >= 0
     out[has] = undone[up[has]]
     return out
