@@ -78,11 +78,18 @@ class Stages:
                 return got
             return call
 
-        transport.use_whole_kernel(timed_kernel)
+        self._previous = (transport.use_whole_kernel(timed_kernel), run_whole, unpack_group, decompress_group,
+                          decompress_into)
         container.run_whole = timed_run_whole
         container._unpack_group = timed_unpack_group
         container._decompress_group = timed(decompress_group)
         container._decompress_into = timed(decompress_into)
+
+    def close(self) -> None:
+        """Put back what __init__ wrapped (the whole kernel handed in before, container's own functions)."""
+        kernel, container.run_whole, container._unpack_group, container._decompress_group, \
+            container._decompress_into = self._previous
+        transport.use_whole_kernel(kernel)
 
     def reset(self) -> None:
         for k in self.spent:
