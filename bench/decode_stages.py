@@ -18,7 +18,8 @@ stage that calls them):
 * `rest`: the pass less all of those (decode_payloads' and unpack_payloads' Python, verified_bytes, the runs' loop).
 
 Medians over --runs passes (each stage's own median; `pass` the passes' median), in ms and as M splats/s of the
-pass. One JSON object on stdout (and in --json).
+pass. --run-bytes A,B,...: the pass with each size of the whole kernel's runs (container.RUN_RAW_BYTES), alternating
+in every round (a core with a larger L2 may take larger runs). One JSON object on stdout (and in --json).
 """
 from __future__ import annotations
 
@@ -101,8 +102,12 @@ def main() -> None:
     ap.add_argument("--scenes", default="guitar,winter_fountain")
     ap.add_argument("--presets", default="very-high,medium,high")
     ap.add_argument("--runs", type=int, default=20, help="timed passes of each case (after one untimed pass)")
+    ap.add_argument("--run-bytes", default=str(container.RUN_RAW_BYTES),
+                    help="comma-separated values of container.RUN_RAW_BYTES (the whole kernel's runs of decompressed "
+                    "bytes), each timed in turn in every round, alternating (default: the library's)")
     ap.add_argument("--json", help="also write the JSON here")
     args = ap.parse_args()
+    run_bytes = [int(v) for v in args.run_bytes.split(",")]
     kernels, why = decode_quiet._numba_kernel()
     if kernels is None:
         raise SystemExit(f"the numba kernels (the `fast` extra) are needed: {why}")
@@ -118,21 +123,27 @@ def main() -> None:
                 continue
             case = decode_quiet.Case(store)
             case.run("verified")  # warm-up: allocations, caches
-            passes, by_stage = [], {k: [] for k in STAGES}
+            passes = {b: [] for b in run_bytes}
+            by_stage = {b: {k: [] for k in STAGES} for b in run_bytes}
             for _ in range(args.runs):
-                stages.reset()
-                took = case.run("verified")
-                passes.append(took)
-                for k in STAGES[:-1]:
-                    by_stage[k].append(stages.spent[k])
-                by_stage["rest"].append(took - sum(stages.spent[k] for k in STAGES[:-1]))
-            ms = {k: round(statistics.median(v) * 1e3, 3) for k, v in by_stage.items()}
-            row = {"scene": scene, "preset": preset, "splats": case.splats, "payloads": case.payloads,
-                   "pass_ms": round(statistics.median(passes) * 1e3, 3),
-                   "m_splats_s": round(case.splats / statistics.median(passes) / 1e6, 2), "stages_ms": ms}
-            rows.append(row)
-            print(f"{scene:>16} {preset:>12}: pass {row['pass_ms']:7.3f} ms ({row['m_splats_s']:5.2f} M splats/s) "
-                  + " ".join(f"{k} {v:.3f}" for k, v in ms.items()), file=sys.stderr, flush=True)
+                for b in run_bytes:  # each run size once a round: any load falls on them alike
+                    container.RUN_RAW_BYTES = b
+                    stages.reset()
+                    took = case.run("verified")
+                    passes[b].append(took)
+                    for k in STAGES[:-1]:
+                        by_stage[b][k].append(stages.spent[k])
+                    by_stage[b]["rest"].append(took - sum(stages.spent[k] for k in STAGES[:-1]))
+            for b in run_bytes:
+                ms = {k: round(statistics.median(v) * 1e3, 3) for k, v in by_stage[b].items()}
+                row = {"scene": scene, "preset": preset, "run_raw_bytes": b, "splats": case.splats,
+                       "payloads": case.payloads, "pass_ms": round(statistics.median(passes[b]) * 1e3, 3),
+                       "m_splats_s": round(case.splats / statistics.median(passes[b]) / 1e6, 2), "stages_ms": ms}
+                rows.append(row)
+                print(f"{scene:>16} {preset:>12} runs of {b:>8} B: pass {row['pass_ms']:7.3f} ms "
+                      f"({row['m_splats_s']:5.2f} M splats/s) " + " ".join(f"{k} {v:.3f}" for k, v in ms.items()),
+                      file=sys.stderr, flush=True)
+            container.RUN_RAW_BYTES = run_bytes[0]
     report = {"bench": "bench/decode_stages.py", "argv": sys.argv[1:],
               "date_utc": time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime()), "cpu": decode_quiet._cpu_name(),
               "load_average_end": os.getloadavg(), "runs": args.runs, "cases": rows}
