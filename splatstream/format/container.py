@@ -482,8 +482,10 @@ def unpack_payloads(items: list[tuple[bytes | memoryview, PayloadEntry]], group:
 # kernel's output is a block malloc hands back warm. A whole group at once (very-high's LOD tree: 9-14 MB) went out
 # to memory and back twice: very-high's pass takes 5-7 % less time in runs, the lossy presets' (3-5 MB) the same
 # (issue 32; BENCHMARKS.md, "Decode speed", dec32). About this VM's L2 of a core: 256 KB paid the per-run Python,
-# 4 MB lost the cache.
-RUN_RAW_BYTES = 1 << 20
+# 4 MB lost the cache. 2 MB rather than 1 since vhdec32b: on the GPU machine's host (r31's kind, where very-high sits
+# at the 10 M splats/s line) very-high's pass 1.04-1.05x faster, medium 1.01-1.03x, high 1.00-1.01x; on this VM
+# very-high 1.03-1.05x, high 1.03x, medium 0.99-1.03x (BENCHMARKS.md, "very-high's decode, stage by stage").
+RUN_RAW_BYTES = 2 << 20
 
 
 def _unpack_run(items: list[tuple[bytes | memoryview, PayloadEntry]], sizes: list[int], total: int, group: str,
