@@ -17,9 +17,9 @@ import hashlib
 import os
 import resource
 import time
-from concurrent.futures import Future
 
 import numpy as np
+from encode_phases import InlineExecutor  # bench/ is the script's directory
 
 import splatstream.lod as lod
 import splatstream.lod_groups as lod_groups
@@ -33,27 +33,6 @@ PHASES = (
     (lod_groups, "_cheapest_share"), (lod_groups, "_merge_pairs"), (lod_groups, "_drop"),
     (lod_groups, "covariances6"), (lod_groups, "_sorted_unique"), (lod_groups, "_morton_finish"),
 )
-
-
-class InlineExecutor:
-    """A ThreadPoolExecutor stand-in that runs every job at once on the calling thread."""
-
-    def __init__(self, *args, **kwargs) -> None:
-        pass
-
-    def submit(self, fn, *args, **kwargs) -> Future:
-        done: Future = Future()
-        done.set_result(fn(*args, **kwargs))
-        return done
-
-    def map(self, fn, *iterables):
-        return [fn(*args) for args in zip(*iterables, strict=False)]
-
-    def __enter__(self) -> InlineExecutor:
-        return self
-
-    def __exit__(self, *exc) -> None:
-        pass
 
 
 def tree_digest(tiles: list) -> str:
