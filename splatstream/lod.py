@@ -100,6 +100,12 @@ COST_RULE = GroupRule(proj=1, first_cap=2, max_group=4)
 # grid was taken on 0-3 % of the tiles above it). About 0.7x the CPU of the grouping before, the streaming cut
 # within 0.1 dB (BENCHMARKS.md, "LOD groups by cost", the auto merge cheaper).
 AUTO_RULE = GroupRule(proj=1, first_cap=2, max_group=4, tail=0.05)
+# The first merged level's own rule (level_auto_groups: every tile at blur 0), today AUTO_RULE's. Branch edges31
+# measured cheaper graphs there and above (4-6 neighbours, 2 Morton orders, a wider candidate window: GroupRule's
+# neighbours, shifts, window): 1.17-1.44x less tree CPU, but every one that saved 1.15x or more moved the streamed
+# points by -0.1 to -0.6 dB somewhere (2-6 % with fewer edges above the first level; statue-massa's 50 % fell below
+# splat-transform), so none is the default (BENCHMARKS.md, "LOD tree", fewer costed edges).
+AUTO_FIRST_RULE = GroupRule(proj=1, first_cap=2, max_group=4, tail=0.05)
 AUTO_CHOICE_SAMPLE = 2
 Progress = Callable[[str, float], None]
 
@@ -452,7 +458,7 @@ def _run_ids(order: np.ndarray, starts: np.ndarray, n: int) -> np.ndarray:
 
 
 def level_auto_groups(members: list[Gaussians], masses: list[np.ndarray], targets: list[int], cap: int,
-                      blurs: list[float], rule: GroupRule = AUTO_RULE, pool: Executor | None = None,
+                      blurs: list[float], rule: GroupRule | None = None, pool: Executor | None = None,
                       sample: int = AUTO_CHOICE_SAMPLE, judge_every_level: bool = False
                       ) -> tuple[list[tuple[np.ndarray, np.ndarray]], list[bool]]:
     """The "auto" merge of one tree level (LOD_MERGES): the cost merge's groups (level_cost_groups), then per tile
@@ -462,6 +468,8 @@ def level_auto_groups(members: list[Gaussians], masses: list[np.ndarray], target
     tile's count are the cost merge's. Returns the groups and, per tile, whether the grid was chosen. `pool`:
     threads for the grouping's blocks and the tiles' choices (each a pure function of its tile: the same result
     with or without)."""
+    if rule is None:
+        rule = AUTO_FIRST_RULE if all(b == 0.0 for b in blurs) else AUTO_RULE
     groups = level_cost_groups(members, masses, targets, cap, rule, pool)
     # Judged only where the members are the originals (blur 0: the first merged level), unless judge_every_level.
     # Above it the choice took the grid on 0-3 % of the tiles (format_spec/lod.md 6) for as much CPU as the first

@@ -45,6 +45,8 @@ COLOUR_WEIGHT = 4 * math.pi * 1e-6
 @dataclass(frozen=True)
 class GroupRule:
     neighbours: int = 8  # K nearest clusters costed per cluster and round
+    shifts: int = 3  # shifted Morton orders the approximate k-NN draws its candidates from
+    window: int = 0  # candidates at ranks +-1 .. +-window in each order (0: neighbours)
     share: float = 0.5  # each round removes at most this share of what is left to remove
     colour: float = 1.0  # times COLOUR_WEIGHT
     proj: int = 0  # 1: field-L2 of the splats' footprints projected along x, y and z (2D), summed; 0: in 3D
@@ -218,8 +220,8 @@ def neighbour_edges(p: np.ndarray, k: int, shifts: int = 3, block: int = 4096) -
     return np.minimum(i, j), np.maximum(i, j)  # an edge both ends found comes twice: harmless for the matching
 
 
-def neighbour_keys(p: np.ndarray, k: int, shifts: int = 3, block: int = 4096, pool: Executor | None = None
-                   ) -> np.ndarray:
+def neighbour_keys(p: np.ndarray, k: int, shifts: int = 3, block: int = 4096, pool: Executor | None = None,
+                   window: int = 0) -> np.ndarray:
     """The distinct edges of neighbour_edges as sorted keys i * n + j (i < j), for group_ids: made block by block
     (each block's repeats dropped at once), so the level's edges are never held as four (2 k n) index arrays.
     `pool`: threads to make the blocks on (each block is a pure function of the orders, and numpy's sorts and
@@ -232,9 +234,9 @@ def neighbour_keys(p: np.ndarray, k: int, shifts: int = 3, block: int = 4096, po
         return _distinct(np.minimum(i, j) * n + np.maximum(i, j), kind="stable")
 
     if pool is None or n <= block:
-        keys = [block_keys(i, j) for i, j in _neighbour_blocks(p, k, shifts, block, ordered=False)]
+        keys = [block_keys(i, j) for i, j in _neighbour_blocks(p, k, shifts, block, ordered=False, window=window)]
     else:
-        ctx = _neighbour_context(p, k, shifts)
+        ctx = _neighbour_context(p, k, shifts, window)
         keys = list(pool.map(lambda r0: block_keys(*_neighbour_block(ctx, r0, block, False)), range(0, n, block)))
         del ctx
     if not keys:
@@ -245,12 +247,12 @@ def neighbour_keys(p: np.ndarray, k: int, shifts: int = 3, block: int = 4096, po
     return np.compress(np.concatenate([[True], every[1:] != every[:-1]]), every)
 
 
-def _shifted_orders(p: np.ndarray, k: int, shifts: int) -> tuple[np.ndarray, np.ndarray, int, int]:
+def _shifted_orders(p: np.ndarray, k: int, shifts: int, window: int = 0) -> tuple[np.ndarray, np.ndarray, int, int]:
     """The (shifts, n) Morton orders of the shifted boxes and each point's rank in them (int64), and the k and
     the window w (candidates at ranks +-1 .. +-w) that n points allow; n at least 2."""
     n = len(p)
     k = min(k, n - 1)
-    w = min(k, (n - 1) // 2 + 1)
+    w = min(max(k, window), (n - 1) // 2 + 1)
     lo, hi = p.min(axis=0), p.max(axis=0)
     span = float((hi - lo).max()) or 1.0
     orders = np.empty((shifts, n), np.int32 if n < 2**31 else np.int64)
@@ -264,10 +266,10 @@ def _shifted_orders(p: np.ndarray, k: int, shifts: int) -> tuple[np.ndarray, np.
     return orders, ranks, k, w
 
 
-def _neighbour_context(p: np.ndarray, k: int, shifts: int) -> tuple:
+def _neighbour_context(p: np.ndarray, k: int, shifts: int, window: int = 0) -> tuple:
     """What every block of _neighbour_blocks reads: the shifted orders and ranks, k, the rank steps and the
     coordinates as contiguous columns; n at least 2."""
-    orders, ranks, k, w = _shifted_orders(p, k, shifts)
+    orders, ranks, k, w = _shifted_orders(p, k, shifts, window)
     steps = np.stack([np.arange(1, w + 1), -np.arange(1, w + 1)], axis=1).reshape(-1)  # +1, -1, +2, -2, ...
     px, py, pz = (np.ascontiguousarray(p[:, a]) for a in range(3))
     return len(p), orders, ranks, k, steps, px, py, pz
@@ -326,13 +328,13 @@ def _neighbour_block(ctx: tuple, r0: int, block: int, ordered: bool) -> tuple[np
     return np.repeat(rows, k)[ok], nb[ok].astype(np.int64)
 
 
-def _neighbour_blocks(p: np.ndarray, k: int, shifts: int, block: int, ordered: bool = True):
+def _neighbour_blocks(p: np.ndarray, k: int, shifts: int, block: int, ordered: bool = True, window: int = 0):
     """neighbour_edges' (points, neighbours) index arrays, `block` points at a time; each point's neighbours
     nearest first, or (`ordered` False) the same neighbours in id order, chosen by a partition, not a sort."""
     n = len(p)
     if n < 2:
         return
-    ctx = _neighbour_context(p, k, shifts)
+    ctx = _neighbour_context(p, k, shifts, window)
     for r0 in range(0, n, block):
         yield _neighbour_block(ctx, r0, block, ordered)
 
@@ -799,7 +801,7 @@ def group_ids_of(inputs: dict, target: int, rule: GroupRule = DEFAULT_RULE,
     size = np.ones(n, np.int32 if n < 2**31 else np.int64)  # cluster sizes: gathered per edge for the cap mask
     # The neighbour graph of the level's splats, found once: a cluster's candidates are its members' neighbours.
     # As sorted distinct keys i * n + j (i < j).
-    key = (neighbour_keys(state["mu"], rule.neighbours, pool=pool) if edges is None
+    key = (neighbour_keys(state["mu"], rule.neighbours, rule.shifts, pool=pool, window=rule.window) if edges is None
            else _distinct(edges[0] * n + edges[1]))
     if region is not None:
         region = np.asarray(region, np.int64)

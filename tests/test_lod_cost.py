@@ -4,6 +4,7 @@ total, the tree's shape, "no holes" and REPLACE stay as with the grid."""
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import functools
 import hashlib
 
@@ -276,6 +277,60 @@ def test_neighbour_keys_break_distance_ties_as_neighbour_edges(n):
     p = rng.integers(0, 4, (n, 3)).astype(np.float64)
     i, j = lod_groups.neighbour_edges(p, 8, block=64)
     assert np.array_equal(lod_groups.neighbour_keys(p, 8, block=64), np.unique(i * n + j))
+
+
+def test_neighbour_window_widens_the_candidates_and_shifts_pass_through():
+    """GroupRule.window (edges31): the k nearest among the candidates at ranks +-window; at most k it is the k-NN
+    as before, wider it finds nearer neighbours (more of the exact k-NN). GroupRule.shifts and .window reach the
+    grouping's graph (group_ids_of)."""
+    g, alpha, colours, mass, _ = fruit_level()
+    p = g.positions.astype(np.float64)
+    n = len(p)
+    keys = lod_groups.neighbour_keys(p, 4)
+    for window in (0, 2, 4):
+        assert np.array_equal(lod_groups.neighbour_keys(p, 4, window=window), keys)
+    wide = lod_groups.neighbour_keys(p, 4, window=8)
+    assert 2 * n <= min(len(keys), len(wide)) and max(len(keys), len(wide)) <= 4 * n  # 4 a point, pairs found twice
+
+    def exact_recall(k: np.ndarray) -> float:  # the share of each point's 4 exact nearest found, over 500 points
+        i, j = np.divmod(k, n)
+        found = set(zip(i.tolist(), j.tolist(), strict=True))
+        hit = 0
+        for a in range(0, n, n // 500):
+            d = ((p - p[a]) ** 2).sum(axis=1)
+            d[a] = np.inf
+            hit += sum((min(a, b), max(a, b)) in found for b in np.argsort(d, kind="stable")[:4].tolist())
+        return hit / (4 * len(range(0, n, n // 500)))
+
+    narrow, wider = exact_recall(keys), exact_recall(wide)
+    assert 0.5 < narrow < wider <= 1.0
+    target = n // 3
+    default = lod_groups.group_ids(g.positions, g.log_scales, g.rotations, alpha, colours, mass, target, lod.AUTO_RULE)
+    for rule in (dataclasses.replace(lod.AUTO_RULE, shifts=2), dataclasses.replace(lod.AUTO_RULE, window=12)):
+        ids = lod_groups.group_ids(g.positions, g.log_scales, g.rotations, alpha, colours, mass, target, rule)
+        assert len(np.unique(ids)) == target and not np.array_equal(ids, default)
+
+
+def test_auto_merge_takes_the_first_rule_at_the_first_merged_level(monkeypatch):
+    """lod.AUTO_FIRST_RULE groups the levels whose tiles all have blur 0 (their members are the originals),
+    lod.AUTO_RULE every level above (today the same rule: edges31 measured others)."""
+    members, masses = two_tiles()
+    targets = [200, 200]
+    seen = []
+    original = lod.level_cost_groups
+
+    def record(*args, **kwargs):
+        seen.append(args[4])
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(lod, "level_cost_groups", record)
+    first, other = GroupRule(proj=1, neighbours=5), GroupRule(proj=1, neighbours=6)
+    monkeypatch.setattr(lod, "AUTO_FIRST_RULE", first)
+    monkeypatch.setattr(lod, "AUTO_RULE", other)
+    lod.level_auto_groups(members, masses, targets, 10_000, [0.0, 0.0])
+    lod.level_auto_groups(members, masses, targets, 10_000, [0.0, 0.01])
+    lod.level_auto_groups(members, masses, targets, 10_000, [0.0, 0.0], rule=lod_groups.DEFAULT_RULE)
+    assert seen == [first, other, lod_groups.DEFAULT_RULE]
 
 
 # The "auto" merge (lod.level_auto_groups): the cost merge's allocation, then per tile the cost merge's groups or
