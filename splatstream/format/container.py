@@ -955,6 +955,9 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], sizes: list[int], sectio
 _PALETTES: list[int] = []  # _unpack_group's mark of a palette plane in place of its ranges' offsets
 
 
+_SHAPE = operator.attrgetter("shape")
+
+
 def _named(sections: list[tuple[Section, ...]], name: str) -> list[Section]:
     """Each payload's section `name` (a validated entry has it): read at its place in the first payload's table where
     every payload's table has it there (a group's payloads list their sections in one order), else found by name."""
@@ -1114,6 +1117,8 @@ def _whole_ranges(out: np.ndarray, range_at: list[int], rs: list[Section], shape
         last = rs[-1]
         together = out[first:range_at[-1] + last.size].view(spec.range_dtype).reshape(-1, *shape)
         if passed or _ranges_ok(together, spec.name):
+            if len(set(map(_SHAPE, rs))) == 1:  # each payload's ranges of one shape: views by a reshape (vhdec33)
+                return list(together.reshape(len(rs), *rs[0].shape))
             views, chunk = [], 0
             for r in rs:
                 rows = r.shape[0]
