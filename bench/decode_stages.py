@@ -10,11 +10,11 @@ format.container's group path, which this script wraps (the wrappers' own cost, 
 stage that calls them):
 
 * `zstd`: container._decompress_group and _decompress_into (a run's frames into the kept buffer);
-* `plan`: container._unpack_group up to its call of run_whole (the Python walk over every section of every payload
-  of a run that plans the kernel's rows);
-* `call`: transport.run_whole less the kernel (the rows' arrays, the texel slab, the call's arguments);
+* `plan`: container._unpack_group up to its call of run_whole_at (run_whole before vhdec33; the Python walk over
+  every section of every payload of a run that plans the kernel's rows);
+* `call`: transport.run_whole_at (run_whole) less the kernel (the rows' arrays, the texel slab, the call's arguments);
 * `kernel`: decode_jit.whole_kernel itself (fields1 sections, shuffled units, float and range checks);
-* `views`: _unpack_group after run_whole (the views of each payload's planes, EncodedPlane, the ranges' views);
+* `views`: _unpack_group after run_whole_at (the views of each payload's planes, EncodedPlane, the ranges' views);
 * `rest`: the pass less all of those (decode_payloads' and unpack_payloads' Python, verified_bytes, the runs' loop).
 
 Medians over --runs passes (each stage's own median; `pass` the passes' median), in ms and as M splats/s of the
@@ -47,7 +47,9 @@ class Stages:
         self.spent = dict.fromkeys(STAGES, 0.0)
         self.group_start = self.call_end = 0.0
         clock, spent = time.thread_time, self.spent
-        run_whole, unpack_group = container.run_whole, container._unpack_group
+        # the call container's group path makes: run_whole_at since vhdec33 (3 ints a section), run_whole before
+        self._call = "run_whole_at" if hasattr(container, "run_whole_at") else "run_whole"
+        run_whole, unpack_group = getattr(container, self._call), container._unpack_group
         decompress_group, decompress_into = container._decompress_group, container._decompress_into
 
         def timed_kernel(*args):
@@ -81,15 +83,16 @@ class Stages:
 
         self._previous = (transport.use_whole_kernel(timed_kernel), run_whole, unpack_group, decompress_group,
                           decompress_into)
-        container.run_whole = timed_run_whole
+        setattr(container, self._call, timed_run_whole)
         container._unpack_group = timed_unpack_group
         container._decompress_group = timed(decompress_group)
         container._decompress_into = timed(decompress_into)
 
     def close(self) -> None:
         """Put back what __init__ wrapped (the whole kernel handed in before, container's own functions)."""
-        kernel, container.run_whole, container._unpack_group, container._decompress_group, \
+        kernel, run_whole, container._unpack_group, container._decompress_group, \
             container._decompress_into = self._previous
+        setattr(container, self._call, run_whole)
         transport.use_whole_kernel(kernel)
 
     def reset(self) -> None:

@@ -27,7 +27,7 @@ def test_stages_wrap_the_group_path_without_changing_its_texels_and_close_puts_i
     store = encode_in_memory(read_gaussians(real("lod_tile_sh3_zero_rest.ply")), EncodeOptions(preset="very-high"))
     case = quiet.Case(store)
     reference = case.texels()
-    originals = (container.run_whole, container._unpack_group, container._decompress_group,
+    originals = (container.run_whole_at, container._unpack_group, container._decompress_group,
                  container._decompress_into, transport.whole_kernel())
     stages = stages_module.Stages(transport.whole_kernel())
     try:
@@ -41,5 +41,5 @@ def test_stages_wrap_the_group_path_without_changing_its_texels_and_close_puts_i
         assert sum(spent.values()) <= took + 1e-6  # the stages are parts of the pass
     finally:
         stages.close()
-    assert (container.run_whole, container._unpack_group, container._decompress_group, container._decompress_into,
+    assert (container.run_whole_at, container._unpack_group, container._decompress_group, container._decompress_into,
             transport.whole_kernel()) == originals

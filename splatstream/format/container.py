@@ -15,6 +15,7 @@ from __future__ import annotations
 import functools
 import hashlib
 import io
+import itertools
 import math
 import operator
 import threading
@@ -47,7 +48,7 @@ from .transport import (
     field_bits,
     fields_kernel,
     filter_texels,
-    run_whole,
+    run_whole_at,
     shuffle,
     shuffle_filter,
     trial_size,
@@ -402,8 +403,8 @@ def unpack_payload(data: bytes | memoryview, entry: PayloadEntry, group: str, so
     palettes (Manifest.scene_palettes, format.md 4.3.2), for a palette plane whose payload has no palette section."""
     buf, kept = _decompress(data, entry.raw_bytes, source)
     if whole_kernel() is not None:  # every payload goes through the whole kernel where there is one
-        tables = [{s.name: s for s in entry.sections}]
-        return _unpack_group(buf, [0], [buf], tables, group, codebook, [source], between, kept, palettes)[0]
+        return _unpack_group(buf, [0], [buf.size], [entry.sections], group, codebook, [source], between, kept,
+                             palettes)[0]
     # What a small payload's decode spends beyond its splats is per-call Python and numpy work (issue 32: on the LOD
     # tree's tiles of a few hundred splats it was half the time), so this loop does only what each plane needs: the
     # section table read once into a dict, not searched per section; a view of the kept buffer found by its base.
@@ -496,18 +497,15 @@ def _unpack_run(items: list[tuple[bytes | memoryview, PayloadEntry]], sizes: lis
     time."""
     whole, kept = _raw_buffer(total)
     owner = whole if whole.base is None else whole.base
-    bufs, firsts, tables, at = [], [], [], 0
-    each = not _decompress_group(items, sizes, whole)  # else a payload at a time, which names a bad one
-    for (data, entry), size, source in zip(items, sizes, sources, strict=True):
-        buf = whole[at:at + size]
-        if each:
-            _decompress_into(data, buf, source)
-        bufs.append(buf)
-        firsts.append(at)
-        tables.append({s.name: s for s in entry.sections})
-        at += size
+    firsts = [0, *itertools.accumulate(sizes[:-1])]
+    if not _decompress_group(items, sizes, whole):  # else a payload at a time, which names a bad one
+        for (data, _), first, size, source in zip(items, firsts, sizes, sources, strict=True):
+            _decompress_into(data, whole[first:first + size], source)
     if in_one_call:  # the whole group in one compiled call
-        return _unpack_group(whole, firsts, bufs, tables, group, codebook, sources, between, kept, palettes)
+        return _unpack_group(whole, firsts, sizes, [entry.sections for _, entry in items], group, codebook, sources,
+                             between, kept, palettes)
+    bufs = [whole[first:first + size] for first, size in zip(firsts, sizes, strict=True)]
+    tables = [{s.name: s for s in entry.sections} for _, entry in items]
     out: list[dict[str, EncodedPlane]] = [{} for _ in items]
     batched = None not in batch_kernels()
     for spec in group_planes(group, codebook):
@@ -637,11 +635,11 @@ def _batchable(entry: PayloadEntry) -> bool:
     return not any(sec.filter == MORTON1 or sec.format in PALETTE_FORMATS for sec in entry.sections)
 
 
-def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], tables: list[dict], group: str,
-                  codebook: bool, sources: list[str], between: Callable[[], object] | None, kept: bool,
+def _unpack_group(whole: np.ndarray, firsts: list[int], sizes: list[int], sections: list[tuple[Section, ...]],
+                  group: str, codebook: bool, sources: list[str], between: Callable[[], object] | None, kept: bool,
                   palettes: Mapping[str, np.ndarray] | None) -> list[dict[str, EncodedPlane]]:
-    """Every plane of the payloads lying in `whole` (payload k from firsts[k], bufs[k] its bytes; tables[k] its
-    sections by name) by one call of the whole kernel (transport.run_whole): every well-formed fields1 section,
+    """Every plane of the payloads lying in `whole` (payload k from firsts[k], sizes[k] bytes; sections[k] its
+    entry's sections) by one call of the whole kernel (transport.run_whole_at): every well-formed fields1 section,
     every shuffled or stored texel section and every range section of them all, into one fresh array. One pass of
     Python over the planes of the payloads plans the call, and one after it takes the views and checks them:
 
@@ -663,14 +661,19 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
     lie in the kernel's output, are worked out in the one walk that finds it, and the views taken after the call from
     those offsets. (This folds decpy2's two planners, the fast one and the one that kept the refusals: issue 32.)"""
     specs = group_planes(group, codebook)
+    # Each payload's bytes and sections by name, made only where a rare path needs them (a section decoded alone, a
+    # palette or mixed plane): a dict and a slice a payload were about 1 us of its Python (vhdec33)
+    bufs: list[np.ndarray] = [whole[first:first + size] for first, size in zip(firsts, sizes, strict=True)] \
+        if len(firsts) == 1 else _LazyBufs(whole, firsts, sizes)
+    tables = _LazyTables(sections)
     view = whole.data  # the headers' bytes through a memoryview (a third of a numpy slice's cost)
     header_of, rows_of, elements, float_checks = FIELDS1_HEADER_BYTES, FIELDS1_ROWS, _ELEMENTS, FLOAT_CHECKS
     owner = whole if whole.base is None else whole.base
-    flat: list[int] = []  # run_whole's 9 ints a fields1 section
+    flat: list[int] = []  # run_whole_at's 3 ints a fields1 section
     unit_rows: list[int] = []  # and its 5 a shuffled unit
     span_rows: list[int] = []  # and its 4 a plane's ranges checked in the kernel
     index: dict[tuple, int] = {}  # (format, layers, header, width, height) -> its index in the tables' key
-    out_bytes = most_n = most_f = 0
+    out_bytes = 0
     plan = []  # per plane: (spec, per payload (section, where its texels start in out or -1: decoded alone, bytes,
     #            the layers' starts or None: the layers one after the other; or its layers decoded alone), where each
     #            payload's ranges start or _PALETTES or None, (float format, span, gaps) or None, floats a payload,
@@ -685,8 +688,73 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
         palette_plane = None  # whether the plane's payloads have palettes in place of ranges
         mixed = False  # palettes in some payloads only (payloads of two scenes): each read alone, as unpack_payload
         pads: list[tuple[int, int]] = []  # alignment gaps between the plane's texels (where, bytes)
-        for t, first in zip(tables, firsts, strict=True):  # each payload adds one entry to texels
-            s = t[name]
+        secs = _named(sections, name)
+        s = secs[0]
+        fmt, filt = s.format, s.filter
+        uniform = True  # every payload's section of one format and filter: what each needs decided once (below)
+        for s in secs:
+            if s.format != fmt or s.filter != filt:
+                uniform = False
+                break
+        per_layer = header_of.get(fmt) if filt == FIELDS1 else None
+        planned = False  # by one of the two loops for a uniform plane
+        views = True  # every payload's texels a stretch of out (none decoded alone, no layers apart)
+        if uniform and per_layer is not None and fmt not in PALETTE_FORMATS:
+            # the common case, a fields1 plane of one format (issue 32, vhdec33: the Python around the kernel, 10-13
+            # us a payload, was the largest part of a pass but zstd): each section a header read, a cached row and
+            # its run_whole_at row; what unpack_payload's checks need decided once for the plane
+            palette_plane = False
+            is_float = fmt in FLOAT_TEXEL_FORMATS
+            if is_float:
+                float_format = fmt
+            head = 1 + per_layer * count
+            for k, (s, first) in enumerate(zip(secs, firsts, strict=True)):
+                at = first + s.offset
+                key = (fmt, count, view[at:at + head].tobytes(), s.width, s.height)
+                row = rows_of[key]
+                if row is None or s.size != row[0]:  # not well-formed: decoded alone, which refuses it naming it
+                    add((s, -1, 0, _texels_alone(bufs[k], s, count, sources[k], kept, owner)))
+                    floats_each = floats_each or is_float
+                    views = False
+                    continue
+                nbytes = row[4]
+                pad = -out_bytes % 16
+                if pad:
+                    if plane_first >= 0:
+                        pads.append((out_bytes, pad))
+                    out_bytes += pad
+                u = index.get(key)
+                if u is None:
+                    u = index[key] = len(index)
+                flat += (at, out_bytes, u)
+                add((s, out_bytes, nbytes, None))
+                if plane_first < 0:
+                    plane_first = out_bytes
+                out_bytes += nbytes
+            planned = True
+        elif uniform and count == 1 and filt not in (FIELDS1, MORTON1) and fmt not in PALETTE_FORMATS:
+            # a shuffled (or stored) plane of one format and one layer: a unit a payload (as below)
+            palette_plane = False
+            if fmt in FLOAT_TEXEL_FORMATS:
+                float_format = fmt
+            element = elements.get(filt) or _element(filt)
+            check = float_checks.get(fmt, CHECK_NONE)
+            for s, first in zip(secs, firsts, strict=True):
+                unit = s.size
+                e = 1 if element <= 1 or unit % element else element
+                if e in (2, 4, 8):  # aligned for views of its elements
+                    pad = -out_bytes % e
+                    if pad:
+                        if plane_first >= 0:
+                            pads.append((out_bytes, pad))
+                        out_bytes += pad
+                unit_rows += (first + s.offset, unit // e, e, out_bytes, check)
+                if plane_first < 0:
+                    plane_first = out_bytes
+                add((s, out_bytes, unit, None))
+                out_bytes += unit
+            planned = True
+        for s, first in () if planned else zip(secs, firsts, strict=True):  # each payload adds one entry to texels
             fmt, filt = s.format, s.filter
             is_palette = fmt in PALETTE_FORMATS
             if palette_plane is None:
@@ -709,8 +777,9 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
                     k = len(texels)  # this payload's index
                     add((s, -1, 0, _texels_alone(bufs[k], s, count, sources[k], kept, owner)))
                     floats_each = floats_each or fmt in FLOAT_TEXEL_FORMATS
+                    views = False
                     continue
-                _, planes_at, params_at, n, nbytes, nf, words, size_of = row
+                nbytes = row[4]
                 pad = -out_bytes % 16
                 if pad and plane_first >= 0:
                     pads.append((out_bytes, pad))
@@ -718,18 +787,14 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
                 u = index.get(key)
                 if u is None:
                     u = index[key] = len(index)
-                flat += (at + planes_at, at + params_at, n, out_bytes // size_of, nbytes // size_of, nf, words,
-                         size_of, u)
+                flat += (at, out_bytes, u)
                 add((s, out_bytes, nbytes, None))
                 if plane_first < 0:
                     plane_first = out_bytes
                 out_bytes += nbytes
-                if n > most_n:
-                    most_n = n
-                if nf > most_f:
-                    most_f = nf
             elif filt == MORTON1:  # decoded alone after the call (format.md 5.4; the manifest checked its geometry)
                 add((s, -1, 0, None))
+                views = False
             else:  # shuffled (float formats too: checked by the kernel, CHECK_F32/F16), a unit a layer; "none" a unit
                 # of 1-byte elements, which the kernel copies
                 element = elements.get(filt) or _element(filt)
@@ -755,6 +820,7 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
                     out_bytes += unit
                 if starts is not None:
                     add((s, starts[0], unit, starts))
+                    views = False
         float_span = None
         ranges_checked = False  # the plane's ranges all checked by the kernel (a span of span_rows)
         if float_format is not None and not floats_each and plane_first >= 0:
@@ -773,29 +839,52 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
             range_dtype = spec.range_dtype
             range_check = CHECK_NONE if mixed else (_RANGE_CHECKS.get((name, range_dtype))
                                                     or _RANGE_CHECKS.get(("", range_dtype), CHECK_NONE))
-            for t, first in zip(tables, firsts, strict=True):
-                if mixed and (t[name].format in PALETTE_FORMATS or not spec.range_dtype):
-                    range_at.append(-1)  # its palettes (or no ranges): _mixed_plane
-                    continue
-                r = t[range_name]
-                size, filt = r.size, r.filter
-                element = elements.get(filt) or _element(filt)
-                if element <= 1 or size % element:
-                    element = 1
-                if element in (2, 4, 8):
-                    pad = -out_bytes % element
-                    if pad and range_sections:
+            if mixed:
+                for k, first in enumerate(firsts):
+                    if secs[k].format in PALETTE_FORMATS or not spec.range_dtype:
+                        range_at.append(-1)  # its palettes (or no ranges): _mixed_plane
+                        continue
+                    r = tables[k][range_name]
+                    size, filt = r.size, r.filter
+                    element = elements.get(filt) or _element(filt)
+                    if element <= 1 or size % element:
+                        element = 1
+                    if element in (2, 4, 8):
+                        pad = -out_bytes % element
+                        if pad and range_sections:
+                            in_row = False
+                        out_bytes += pad
+                    if range_sections:
+                        if r.shape[1:] != range_shape:
+                            in_row = False
+                    else:
+                        range_shape = r.shape[1:]
+                    range_sections.append(r)
+                    unit_rows += (first + r.offset, size // element, element, out_bytes, CHECK_NONE)
+                    range_at.append(out_bytes)
+                    out_bytes += size
+            else:  # a range section a payload, as above, with the first one's filter and shape looked at once
+                range_sections = _named(sections, range_name)
+                r = range_sections[0]
+                filt0, shape0 = r.filter, r.shape
+                range_shape = shape0[1:]
+                element0 = elements.get(filt0) or _element(filt0)
+                for r, first in zip(range_sections, firsts, strict=True):
+                    size, filt = r.size, r.filter
+                    element = element0 if filt == filt0 else elements.get(filt) or _element(filt)
+                    if element <= 1 or size % element:
+                        element = 1
+                    if element in (2, 4, 8):
+                        pad = -out_bytes % element
+                        if pad:
+                            if range_at:
+                                in_row = False
+                            out_bytes += pad
+                    if r.shape is not shape0 and r.shape[1:] != range_shape:
                         in_row = False
-                    out_bytes += pad
-                if range_sections:
-                    if r.shape[1:] != range_shape:
-                        in_row = False
-                else:
-                    range_shape = r.shape[1:]
-                range_sections.append(r)
-                unit_rows += (first + r.offset, size // element, element, out_bytes, CHECK_NONE)
-                range_at.append(out_bytes)
-                out_bytes += size
+                    unit_rows += (first + r.offset, size // element, element, out_bytes, CHECK_NONE)
+                    range_at.append(out_bytes)
+                    out_bytes += size
             if not in_row:
                 range_shape = None
             elif range_check != CHECK_NONE and range_sections:
@@ -807,16 +896,15 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
                     span_rows += (range_at[0], out_bytes - range_at[0], half, range_check)
                     ranges_checked = True
         plan.append((spec, texels, range_at, range_sections, range_shape, float_span, floats_each, mixed,
-                     ranges_checked))
+                     ranges_checked, views))
     if between is not None:
         between()
-    out, status = run_whole(whole, flat, tuple(index), unit_rows, out_bytes, most_n, most_f, span_rows,
-                            _CHECK_BOUNDS)
+    out, status = run_whole_at(whole, flat, tuple(index), unit_rows, out_bytes, span_rows, _CHECK_BOUNDS)
     floats_passed = not status & CHECK_FAILED_FLOATS  # every float texel the kernel wrote in [0, 1]
     ranges_passed = not status & CHECK_FAILED_RANGES  # every range it checked finite, ordered, in its domain
-    result: list[dict[str, EncodedPlane]] = [{} for _ in tables]
+    result: list[dict[str, EncodedPlane]] = [{} for _ in firsts]
     for (spec, texels, range_at, range_sections, range_shape, float_span, floats_each, mixed,
-         ranges_checked) in plan:
+         ranges_checked, views) in plan:
         if between is not None:
             between()
         count, name = spec.layers, spec.name
@@ -834,6 +922,12 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
         if float_span is not None and not (floats_passed and _whole_floats(*float_span)) \
                 and not _floats_ok(out, *float_span):
             floats_each = True  # some payload's texels leave [0, 1] (or the stretch is not whole floats): named below
+        if views and count == 1 and plane_palettes is None and not floats_each:
+            # the common case: each payload's one layer a view of out, its ranges checked above (vhdec33)
+            for planes, (s, first, size, _), plane_ranges in zip(result, texels, checked, strict=True):
+                planes[name] = EncodedPlane(spec, s.format, s.width, s.height, [out[first:first + size]],
+                                            plane_ranges)
+            continue
         for k, (planes, (s, first, size, starts), plane_ranges) in enumerate(zip(result, texels, checked,
                                                                                   strict=True)):
             if first < 0:
@@ -859,6 +953,74 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], bufs: list[np.ndarray], 
 
 
 _PALETTES: list[int] = []  # _unpack_group's mark of a palette plane in place of its ranges' offsets
+
+
+_SHAPE = operator.attrgetter("shape")
+
+
+def _named(sections: list[tuple[Section, ...]], name: str) -> list[Section]:
+    """Each payload's section `name` (a validated entry has it): read at its place in the first payload's table where
+    every payload's table has it there (a group's payloads list their sections in one order), else found by name."""
+    i = next((j for j, s in enumerate(sections[0]) if s.name == name), 0)
+    try:
+        got = [ss[i] for ss in sections]
+    except IndexError:
+        got = None
+    if got is not None:
+        for s in got:
+            if s.name != name:
+                got = None
+                break
+    if got is None:
+        got = [_section_named(ss, name) for ss in sections]
+    return got
+
+
+def _section_named(sections: tuple[Section, ...], name: str) -> Section:
+    for s in sections:
+        if s.name == name:
+            return s
+    raise KeyError(name)
+
+
+class _LazyTables:
+    """_unpack_group's payloads' sections by name (a dict a payload), each made when first read."""
+
+    __slots__ = ("sections", "made")
+
+    def __init__(self, sections: list[tuple[Section, ...]]):
+        self.sections, self.made = sections, {}
+
+    def __getitem__(self, k: int) -> dict[str, Section]:
+        t = self.made.get(k)
+        if t is None:
+            t = self.made[k] = {s.name: s for s in self.sections[k]}
+        return t
+
+    def __len__(self) -> int:
+        return len(self.sections)
+
+    def __iter__(self):
+        return (self[k] for k in range(len(self.sections)))
+
+
+class _LazyBufs:
+    """_unpack_group's payloads' bytes (payload k: whole[firsts[k]:firsts[k] + sizes[k]]), each sliced when read."""
+
+    __slots__ = ("whole", "firsts", "sizes")
+
+    def __init__(self, whole: np.ndarray, firsts: list[int], sizes: list[int]):
+        self.whole, self.firsts, self.sizes = whole, firsts, sizes
+
+    def __getitem__(self, k: int) -> np.ndarray:
+        first = self.firsts[k]
+        return self.whole[first:first + self.sizes[k]]
+
+    def __len__(self) -> int:
+        return len(self.firsts)
+
+    def __iter__(self):
+        return (self[k] for k in range(len(self.firsts)))
 
 
 def _mixed_plane(out: np.ndarray, range_at: list[int], bufs: list[np.ndarray], tables: list[dict], spec,
@@ -955,6 +1117,8 @@ def _whole_ranges(out: np.ndarray, range_at: list[int], rs: list[Section], shape
         last = rs[-1]
         together = out[first:range_at[-1] + last.size].view(spec.range_dtype).reshape(-1, *shape)
         if passed or _ranges_ok(together, spec.name):
+            if len(set(map(_SHAPE, rs))) == 1:  # each payload's ranges of one shape: views by a reshape (vhdec33)
+                return list(together.reshape(len(rs), *rs[0].shape))
             views, chunk = [], 0
             for r in rs:
                 rows = r.shape[0]

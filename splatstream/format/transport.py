@@ -1729,6 +1729,44 @@ def run_whole(raw: np.ndarray, flat: list[int], keys: tuple, unit_rows: list[int
     return out, int(status)
 
 
+def run_whole_at(raw: np.ndarray, flat: list[int], keys: tuple, unit_rows: list[int], out_bytes: int,
+                 span_rows: list[int] | None = None, bounds: np.ndarray | None = None) -> tuple[np.ndarray, int]:
+    """run_whole for fields1 sections given as 3 ints each in `flat`: where its content starts in `raw`, where its
+    texels start in out (bytes, a multiple of its word size), the index of its key in `keys` (whose FIELDS1_ROWS row,
+    well-formed, gives the rest of its row: numpy takes it from each distinct key's, not the caller a section; the
+    work array's shape from them too). The other arguments and what it returns: run_whole's.
+
+    Why: container's planner of a group's call wrote 9 ints a section, 6 of them its key's (issue 32, vhdec33: the
+    Python around the kernel, 10-13 us a small payload, was the largest part of a pass but zstd)."""
+    fields, modes, orders, _, _ = _whole_tables(keys)
+    template, most_n, most_f = _whole_key_rows(keys)
+    part = np.array(flat, np.int64).reshape(-1, 3)
+    rows = template[part[:, 2]]  # each section's key's row, less where the section lies (a copy: filled in below)
+    rows[:, 0] += part[:, 0]
+    rows[:, 1] += part[:, 0]
+    rows[:, 4] = part[:, 1] // rows[:, 11]
+    out = texel_slab(out_bytes + -out_bytes % 16)
+    work = _scratch("kernel", 8 * most_f * most_n).view(np.int64).reshape(most_f, most_n)
+    kernel = _whole_kernel or _whole_kernel_planned
+    status = kernel(raw, rows, fields, modes, orders, work, out, out.view(np.uint16), out.view(np.uint32),
+                    out.view(np.float32), np.array(unit_rows, np.int64).reshape(-1, 5),
+                    np.array(span_rows or (), np.int64).reshape(-1, 4), _NO_BOUNDS if bounds is None else bounds)
+    return out, int(status)
+
+
+@functools.lru_cache(maxsize=1024)
+def _whole_key_rows(keys: tuple) -> tuple[np.ndarray, int, int]:
+    """Each key's whole kernel row (run_whole's 13 columns) for a section at 0 in raw and in out, from FIELDS1_ROWS
+    and _whole_tables' columns, as an int64 array (len(keys), 13); and the most slots and fields of them (run_whole's
+    most_n, most_f)."""
+    rows = [FIELDS1_ROWS[key] for key in keys]
+    columns = _whole_tables(keys)[3]
+    table = np.array([(planes_at, params_at, n, o, 0, nbytes // size_of, f, nf, m, nm, words, size_of, check)
+                      for (_, planes_at, params_at, n, nbytes, nf, words, size_of), (f, m, nm, o, check)
+                      in zip(rows, columns, strict=True)], np.int64).reshape(-1, 13)
+    return table, max((r[3] for r in rows), default=0), max((r[5] for r in rows), default=0)
+
+
 # The whole kernel's row of a section from unfilter_whole's 9 flat ints and its combination's 5 columns: (planes at,
 # parameters at, slots, orders at, out at, out words, fields at, fields, modes at, modes, words a texel, word bytes,
 # its texels' check)
