@@ -113,8 +113,9 @@ def check_segment(seg: str) -> None:
 def parse_scene_path(raw_path: str) -> ScenePath:
     """Split a raw request path '/scenes/<scene id>/<file>' into scene id and file.
 
-    Served files are exactly '<scene id>/manifest.msgpack' and '<scene id>/data/<sha256 hex>.bin'; anything
-    else under /scenes/ is 404 (no directory listing, no other files). Raises PathRejected.
+    Served files are exactly '<scene id>/manifest.msgpack' and '<scene id>/data/<digest>.bin' (the SHA-256 in 64
+    hex digits, or its first 16 bytes in 32: format.md 6.2); anything else under /scenes/ is 404 (no directory
+    listing, no other files). Raises PathRejected.
     """
     if len(raw_path) > MAX_PATH_CHARS:
         raise PathRejected(400, f"path longer than {MAX_PATH_CHARS} characters")
