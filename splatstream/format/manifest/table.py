@@ -49,9 +49,10 @@ _TILE_COLUMNS = {"id": ("<u4", 1), "level": ("u1", 1), "children": ("<u4", 1), "
 _PAYLOAD_COLUMNS = {"layout": ("<u2", 1), "sha256": ("u1", 32), "bytes": ("<u4", 1)}
 _KEYS = ("count", *_TILE_COLUMNS, "child_ids", "groups", "layouts", *_PAYLOAD_COLUMNS, "sizes")
 _PAGE_KEYS = ("tile", "sha256", "bytes")
-# Version 1.15 (format.md 6.2, "Short digests"): a table names each payload and page by the first 16 bytes of its
-# SHA-256, in this column (and `page`'s) in place of `sha256`: 32 B a payload that do not compress were about half a
-# compact table (issue 31, branch digest31). A 1.8 to 1.14 reader finds `sha256` missing and rejects the table.
+# Version 1.15 (format.md 6.2, "Short digests and radii"): a compact table names each payload and page by the first
+# 16 bytes of its SHA-256, in this column (and `page`'s) in place of `sha256`: 32 B a payload that do not compress
+# were about half a compact table (issue 31, branch digest31). A 1.12 to 1.14 reader finds a column missing and
+# rejects the table.
 SHORT_DIGEST_KEY = "digest16"
 _PAYLOAD_COLUMNS_SHORT = {"layout": ("<u2", 1), SHORT_DIGEST_KEY: ("u1", SHORT_DIGEST_BYTES), "bytes": ("<u4", 1)}
 # and each tile's bounding sphere as its `radius` alone (f32[T]), its centre the middle of the tile's f32 box (which
