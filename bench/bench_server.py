@@ -73,7 +73,7 @@ NGINX_SNIPPET = r"""
         add_header Vary Origin always;
         if ($request_method = OPTIONS) {{ return 204; }}
     }}
-    location ~ "^/scenes/((?:[A-Za-z0-9_-][A-Za-z0-9._-]*/){{1,8}}data/[0-9a-f]{{64}}\.bin)$" {{
+    location ~ "^/scenes/((?:[A-Za-z0-9_-][A-Za-z0-9._-]*/){{1,8}}data/(?:[0-9a-f]{{32}}|[0-9a-f]{{64}})\.bin)$" {{
         alias {root}/$1;
         disable_symlinks on from={root};
         types {{ }}

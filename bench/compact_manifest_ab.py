@@ -30,7 +30,7 @@ def copy_compact(src_root: str, dst_root: str, names: list[str]) -> None:
         os.makedirs(dst, exist_ok=True)
         raw = open(os.path.join(src, "manifest.msgpack"), "rb").read()
         m = parse_manifest(raw)
-        compact = m.compacted()
+        compact = m.compacted(short=False)  # 1.12: the payloads keep their names (data/ is linked)
         new = pack_manifest(compact)
         assert parse_manifest(new) == compact  # what a reader gets back is what was written
         with open(os.path.join(dst, "manifest.msgpack"), "wb") as f:
@@ -42,7 +42,7 @@ def copy_compact(src_root: str, dst_root: str, names: list[str]) -> None:
 
 def page_estimate(scene_dir: str, bench_json: str, levels: list[int]) -> None:
     raw = open(os.path.join(scene_dir, "manifest.msgpack"), "rb").read()
-    m = parse_manifest(raw).compacted()
+    m = parse_manifest(raw).compacted(short=False)
     by_id = {t.id: t for t in m.tiles}
     parent = {c: t.id for t in m.tiles for c in t.children}
     d = json.load(open(bench_json))

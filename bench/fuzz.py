@@ -43,6 +43,7 @@ import contextlib
 import copy
 import dataclasses
 import gzip
+import hashlib
 import io
 import json
 import os
@@ -954,8 +955,10 @@ def mutate_gltf_dir(rng: random.Random, gltf: pathlib.Path) -> str:
 
 
 def _manifest_dict(scene: pathlib.Path) -> dict:
-    """The manifest map; an unpaged 1.8 or 1.12 tile table (format.md 6.2) as the same scene's 1.7 tile maps, so that a
-    campaign damages one tile's map as before (the table's own damage: tests/test_manifest_table.py)."""
+    """The manifest map; an unpaged 1.8, 1.12 or 1.15 tile table (format.md 6.2) as the same scene's 1.7 tile maps, so
+    that a campaign damages one tile's map as before (the table's own damage: tests/test_manifest_table.py). A 1.15
+    table's payloads, named by 16 bytes of their SHA-256, get their whole-SHA-256 names beside (hard links), which
+    1.7's maps name."""
     from dataclasses import replace
 
     import msgpack
@@ -967,6 +970,17 @@ def _manifest_dict(scene: pathlib.Path) -> dict:
     if not {"tile_table", "tile_table_zstd"} & d.keys() or "paged" in d:
         return d
     m = replace(manifest_from_dict(d), version=VERSION_1_7)
+    if any(len(e.sha256) != 64 for t in m.tiles for e in t.groups.values()):
+        tiles = []
+        for t in m.tiles:
+            groups = {}
+            for name, e in t.groups.items():
+                full = hashlib.sha256((scene / e.file).read_bytes()).hexdigest()
+                if not (scene / "data" / f"{full}.bin").exists():
+                    os.link(scene / e.file, scene / "data" / f"{full}.bin")
+                groups[name] = replace(e, sha256=full, file=f"data/{full}.bin")
+            tiles.append(replace(t, groups=groups))
+        m = replace(m, tiles=tuple(tiles))
     return m.with_bytes_on_disk(m.payload_bytes()).to_dict()
 
 
@@ -1674,7 +1688,7 @@ def cache_is_verified(cache: pathlib.Path) -> str:
     import hashlib
 
     for f in (cache / "payloads").rglob("*.bin") if (cache / "payloads").is_dir() else ():
-        if hashlib.sha256(f.read_bytes()).hexdigest() != f.stem:
+        if not hashlib.sha256(f.read_bytes()).hexdigest().startswith(f.stem) or len(f.stem) not in (32, 64):
             return str(f)
     return ""
 

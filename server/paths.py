@@ -10,7 +10,7 @@ import os
 import re
 from dataclasses import dataclass
 
-from splatstream.format.names import DATA_DIR, MANIFEST_NAME, PAYLOAD_NAME_RE
+from splatstream.format.names import DATA_DIR, DIGEST_HEX_PATTERN, MANIFEST_NAME, PAYLOAD_NAME_RE, PAYLOAD_SUFFIX
 
 SCENES_PREFIX = "/scenes/"
 SEGMENT_RE = re.compile(r"^[A-Za-z0-9_-][A-Za-z0-9._-]*$")  # a scene-id segment: safe characters, no leading dot
@@ -21,7 +21,7 @@ _HEX = frozenset("0123456789abcdefABCDEF")
 _BAD_CHAR_RE = re.compile(r"[^\x20-\x7e]")
 # The common case in one match: plain characters, a valid scene id, one of the two served file names.
 _FAST_RE = re.compile(rf"/scenes/((?:[A-Za-z0-9_-][A-Za-z0-9._-]{{0,254}}/){{1,{MAX_SCENE_DEPTH}}})"
-                      rf"({re.escape(MANIFEST_NAME)}|{re.escape(DATA_DIR)}/([0-9a-f]{{64}})\.bin)")
+                      rf"({re.escape(MANIFEST_NAME)}|{re.escape(DATA_DIR)}/({DIGEST_HEX_PATTERN})\.bin)")
 
 
 class PathRejected(ValueError):
@@ -36,9 +36,9 @@ class PathRejected(ValueError):
 @dataclass(frozen=True)
 class ScenePath:
     scene_id: str  # "a/b": segments joined with "/"
-    rel: str  # path inside the scene directory: "manifest.msgpack" or "data/<sha256>.bin"
+    rel: str  # path inside the scene directory: "manifest.msgpack" or "data/<digest>.bin" (64 or 32 hex, names.py)
     kind: str  # "manifest" or "payload"
-    sha256: str | None = None  # payloads: the content hash their name carries
+    sha256: str | None = None  # payloads: the content hash their name carries (whole, or its 1.15 16-byte prefix)
 
     @property
     def segments(self) -> list[str]:
@@ -113,8 +113,9 @@ def check_segment(seg: str) -> None:
 def parse_scene_path(raw_path: str) -> ScenePath:
     """Split a raw request path '/scenes/<scene id>/<file>' into scene id and file.
 
-    Served files are exactly '<scene id>/manifest.msgpack' and '<scene id>/data/<sha256 hex>.bin'; anything
-    else under /scenes/ is 404 (no directory listing, no other files). Raises PathRejected.
+    Served files are exactly '<scene id>/manifest.msgpack' and '<scene id>/data/<digest>.bin' (the SHA-256 in 64
+    hex digits, or its first 16 bytes in 32: format.md 6.2); anything else under /scenes/ is 404 (no directory
+    listing, no other files). Raises PathRejected.
     """
     if len(raw_path) > MAX_PATH_CHARS:
         raise PathRejected(400, f"path longer than {MAX_PATH_CHARS} characters")
@@ -140,7 +141,8 @@ def parse_scene_path_general(raw_path: str) -> ScenePath:
     if decoded[-1] == MANIFEST_NAME:
         scene, rel, kind, sha = decoded[:-1], MANIFEST_NAME, "manifest", None
     elif len(decoded) >= 2 and decoded[-2] == DATA_DIR and PAYLOAD_NAME_RE.match(decoded[-1]):
-        scene, rel, kind, sha = decoded[:-2], f"{DATA_DIR}/{decoded[-1]}", "payload", decoded[-1][:64]
+        scene, rel, kind, sha = decoded[:-2], f"{DATA_DIR}/{decoded[-1]}", "payload", \
+            decoded[-1].removesuffix(PAYLOAD_SUFFIX)
     else:
         raise PathRejected(404, f"a scene serves only {MANIFEST_NAME} and {DATA_DIR}/<sha256>.bin")
     if not scene:

@@ -250,6 +250,10 @@ class SceneWriter(Protocol):
 
     def write_manifest(self, m: Manifest) -> None: ...
 
+    def rename_payload(self, old: str, new: str) -> None:
+        """Give a written payload (`data/<digest>.bin`) another name (its short digest's: write_scene_manifest)."""
+        ...
+
     def payload_writer(self) -> PayloadWriter:
         """What a worker (another thread, process or machine) writes payloads through: small and picklable."""
         ...
@@ -260,14 +264,19 @@ class PayloadWriter(Protocol):
 
 
 def write_scene_manifest(writer: SceneWriter, m: Manifest, page_tiles: int, page_levels: int,
-                         compact_table: bool = False) -> Manifest:
+                         compact_table: bool = False, short_digests: bool = True) -> Manifest:
     """Publish a scene's manifest: as it is, or, for a tree of more than `page_tiles` tiles (0: never), as a root
     manifest and its pages (format.md 6.1), the pages written like payloads before the root that names them.
-    compact_table: a tree's tiles as the compact tile table (format.md 6.2, version 1.12: Manifest.compacted).
-    Returns the whole manifest as a reader of the scene gets it (load_manifest: every tile; a paged scene's
-    version, `paged` and `bytes_on_disk` from its root)."""
+    compact_table: a tree's tiles as the compact tile table (format.md 6.2: Manifest.compacted), its files named by
+    short digests (version 1.15: the tile payloads the writer holds under their whole SHA-256 are renamed to
+    `data/<32 hex>.bin` first, writer.rename_payload) unless short_digests is False (1.12). Returns the whole
+    manifest as a reader of the scene gets it (load_manifest: every tile; a paged scene's version, `paged` and
+    `bytes_on_disk` from its root)."""
     if compact_table and len(m.tiles) > 1:
-        m = m.compacted()
+        short = m.compacted(short_digests)
+        if short_digests:
+            _rename_to_short(writer, m, short)
+        m = short
     if not page_tiles or len(m.tiles) <= page_tiles:
         writer.write_manifest(m)
         return m
@@ -280,6 +289,24 @@ def write_scene_manifest(writer: SceneWriter, m: Manifest, page_tiles: int, page
     writer.write_manifest(paged.root)
     root = paged.root
     return replace(m, version=root.version, paged=root.paged, bytes_on_disk=root.bytes_on_disk)
+
+
+def _rename_to_short(writer: SceneWriter, whole: Manifest, short: Manifest) -> None:
+    """Rename each tile payload from its whole SHA-256's name to its short digest's (Manifest.compacted(short)):
+    a payload shared by tiles once; two different payloads whose names would be one (a 128-bit prefix collision,
+    never seen) refuse the scene rather than name two files alike."""
+    moves: dict[str, str] = {}
+    for a, b in zip(whole.tiles, short.tiles, strict=True):
+        for name in a.groups:
+            old, new = a.groups[name].file, b.groups[name].file
+            if moves.setdefault(old, new) != new:
+                raise AssertionError(f"{old}: two short names")
+    if len(set(moves.values())) != len(moves):
+        raise FormatError(whole.name, "tile_table", "two payloads whose SHA-256 share their first 16 bytes: the "
+                          "scene cannot be named by short digests (encode --no-short-digests)")
+    for old, new in moves.items():
+        if old != new:
+            writer.rename_payload(old, new)
 
 
 @dataclass
@@ -344,6 +371,9 @@ class DirectoryWriter:
     def payload_file(self) -> contextlib.AbstractContextManager[tuple[BinaryIO, callable]]:
         return self.payload_writer().payload_file()
 
+    def rename_payload(self, old: str, new: str) -> None:
+        os.replace(os.path.join(self.tmp, old), os.path.join(self.tmp, new))
+
     def write_manifest(self, m: Manifest) -> None:
         path = os.path.join(self.tmp, MANIFEST_NAME)
         with open(path, "wb") as f:
@@ -378,6 +408,9 @@ class MemoryWriter:
 
     def write_manifest(self, m: Manifest) -> None:
         self.manifest = m
+
+    def rename_payload(self, old: str, new: str) -> None:
+        self.payloads[new] = self.payloads.pop(old)
 
     def payload_writer(self) -> MemoryWriter:
         return self  # in this process only
@@ -428,6 +461,12 @@ class FsspecWriter:
             self.fs.pipe_file(f"{self.root}/{entry.file}", buf.getvalue())
 
         yield buf, finish
+
+    def rename_payload(self, old: str, new: str) -> None:
+        """An object store has no rename: the object is copied to its new name, then the old one deleted (an
+        encode interrupted between leaves an unreferenced object, as any interrupted encode may)."""
+        self.fs.copy(f"{self.root}/{old}", f"{self.root}/{new}")
+        self.fs.rm_file(f"{self.root}/{old}")
 
     def written_payloads(self) -> set[str]:
         try:

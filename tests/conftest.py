@@ -144,10 +144,28 @@ def group_planes_of(scene_dir, manifest, tile, group: str) -> dict:
 def read_manifest_dict(scene_dir) -> dict:
     """The raw manifest map, for tests that damage it on purpose; an unpaged 1.8 tile table (format.md 6.2) as the
     same scene's 1.7 tile maps (tile_maps), so that a test damages one tile's map as before. (The tile table's own
-    damage: tests/test_manifest_table.py.)"""
+    damage: tests/test_manifest_table.py.) A 1.15 table's payloads, named by 16 bytes of their SHA-256, are linked
+    under their whole SHA-256's names too, which the tile maps name."""
+    import hashlib
+    import os
+
     import msgpack
 
-    return tile_maps(msgpack.unpackb((pathlib.Path(scene_dir) / "manifest.msgpack").read_bytes(), raw=False))
+    scene_dir = pathlib.Path(scene_dir)
+    d = tile_maps(msgpack.unpackb((scene_dir / "manifest.msgpack").read_bytes(), raw=False))
+    renamed = False
+    for t in d.get("tiles", []) if "paged" not in d else []:
+        for e in t["groups"].values():
+            if len(e["sha256"]) == 64:
+                continue
+            full = hashlib.sha256((scene_dir / e["file"]).read_bytes()).hexdigest()
+            if not (scene_dir / "data" / f"{full}.bin").exists():
+                os.link(scene_dir / e["file"], scene_dir / "data" / f"{full}.bin")
+            e.update(sha256=full, file=f"data/{full}.bin")
+            renamed = True
+    if renamed:
+        settle_totals(d)  # the longer names: bytes_on_disk again
+    return d
 
 
 def tile_maps(d: dict) -> dict:

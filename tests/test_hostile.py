@@ -18,6 +18,7 @@ from hostile_server import HostileServer, Mode, texture_bomb_scene, undecodable_
 from client_gl.stream.cache import DiskCache
 from client_gl.stream.fetch import Fetcher, RetryPolicy
 from client_gl.stream.sources import FetchError, HttpSource
+from splatstream.format.names import digest_matches, payload_name
 from splatstream.store import load_manifest
 
 REPO = Path(__file__).resolve().parents[1]
@@ -44,7 +45,8 @@ def server(root):
 
 
 def cache_verified(cache: Path) -> bool:
-    return all(hashlib.sha256(f.read_bytes()).hexdigest() == f.stem for f in cache.rglob("*.bin"))
+    """Every cached payload's bytes hash to its name: the whole SHA-256, or its 16-byte prefix (format 1.15)."""
+    return all(digest_matches(hashlib.sha256(f.read_bytes()).hexdigest(), f.stem) for f in cache.rglob("*.bin"))
 
 
 def fetch_all(url: str, cache: Path, budget_s: float = 30.0, until_failing: bool = False,
@@ -156,8 +158,9 @@ def test_view_names_a_payload_that_does_not_decode_and_keeps_it_out_of_the_cache
     assert r.returncode == 1, r.stderr
     assert lines[-2].startswith(f"view: {server.url('s_bad')}/data/") and "does not decode" in lines[-2], r.stderr
     assert "Traceback" not in r.stderr
+    src = root / "root" / "s"  # its files named by 16 bytes of their SHA-256 (format 1.15), s_bad's by all 32
     bad = next(e.file for _, _, e in load_manifest(root / "root" / "s_bad").payloads()
-               if not (root / "root" / "s" / e.file).exists())
+               if not (src / e.file).exists() and not (src / payload_name(e.sha256[:32])).exists())
     cached = {f.name for f in (tmp_path / "cache").rglob("*.bin")}
     assert cached and bad.split("/")[-1] not in cached and cache_verified(tmp_path / "cache")
     # fetched once: not read again and again

@@ -11,7 +11,7 @@ from splatstream.encode import EncodeOptions, encode_in_memory
 from splatstream.errors import FormatError
 from splatstream.format.manifest import pack_manifest, pack_manifest_dict, parse_manifest, resolve_pages, split_pages
 from splatstream.format.manifest.table import compact_columns, down_f32, up_f32
-from splatstream.format.manifest.versions import VERSION_1_10, VERSION_1_12
+from splatstream.format.manifest.versions import VERSION_1_10, VERSION_1_12, VERSION_1_15
 from splatstream.ply import read_gaussians_ply
 from splatstream.store import MemoryStore, read_manifest
 
@@ -31,13 +31,18 @@ def test_a_tree_is_written_compact_and_reads_back_conservative(scenes):
     raw, m = scenes[True]
     plain_raw, plain = scenes[False]
     d = msgpack.unpackb(raw, strict_map_key=False)
-    assert d["version"] == [1, 12] and "tile_table_zstd" in d and "tile_table" not in d and "tiles" not in d
-    assert plain.version == VERSION_1_10 and m.version == VERSION_1_12
+    assert d["version"] == [1, 15] and "tile_table_zstd" in d and "tile_table" not in d and "tiles" not in d
+    assert plain.version == VERSION_1_10 and m.version == VERSION_1_15
     back = parse_manifest(raw)
     assert back == m  # the encoder's manifest is what a reader gets: its bounds are the table's f32 values
     assert len(m.tiles) == len(plain.tiles) > 1
     for a, b in zip(m.tiles, plain.tiles, strict=True):
-        assert a.groups == b.groups and a.children == b.children and a.splats == b.splats
+        assert a.children == b.children and a.splats == b.splats
+        # the same payloads, named by the first 16 bytes of their SHA-256 (1.15, format.md 6.2)
+        for name in b.groups:
+            x, y = a.groups[name], b.groups[name]
+            assert x.sha256 == y.sha256[:32] and x.file == f"data/{y.sha256[:32]}.bin"
+            assert (x.bytes, x.raw_bytes, x.gpu_bytes, x.sections) == (y.bytes, y.raw_bytes, y.gpu_bytes, y.sections)
         # outward: the f32 box holds the f64 one, the sphere the f64 sphere, the error is no smaller
         assert all(x <= y and float(np.float32(x)) == x for x, y in zip(a.box.min, b.box.min, strict=True))
         assert all(x >= y and float(np.float32(x)) == x for x, y in zip(a.box.max, b.box.max, strict=True))
@@ -47,8 +52,9 @@ def test_a_tree_is_written_compact_and_reads_back_conservative(scenes):
         assert a.geometric_error <= b.geometric_error * (1 + 2 ** -22)
     assert m.payload_bytes() == plain.payload_bytes() and m.gpu_bytes == plain.gpu_bytes
     assert m.bytes_on_disk == m.payload_bytes() + len(raw)
-    # 11,747 B against 21,930 on this 63-tile SH3 tree (four payloads a tile: their 32-byte digests do not compress)
-    assert len(raw) * 3 < len(plain_raw) * 2
+    # 7,717 B against 21,930 on this 63-tile SH3 tree (four payloads a tile: their 16-byte digests do not compress;
+    # 11,747 B with 32-byte ones, 1.12)
+    assert len(raw) * 5 < len(plain_raw) * 2
 
 
 def test_compacting_is_idempotent_and_rounds_outward():
@@ -71,7 +77,8 @@ def test_compacting_is_idempotent_and_rounds_outward():
 def test_a_paged_compact_tree_writes_compact_pages(scenes):
     _, m = scenes[True]
     paged = split_pages(m, 2)
-    assert paged.root.version == VERSION_1_12
+    assert paged.root.version == VERSION_1_15
+    assert all(len(ref.sha256) == 32 and ref.file == f"data/{ref.sha256}.bin" for ref, _ in paged.pages)
     for _, data in paged.pages:
         d = msgpack.unpackb(data, strict_map_key=False)
         assert "tile_table_zstd" in d and "tile_table" not in d
@@ -127,13 +134,16 @@ def test_a_compact_table_in_an_older_version_is_an_unknown_key(scenes):
 
 
 def test_encode_writes_the_compact_table_unless_told_not_to(tmp_path):
-    """`encode` writes a tree as 1.12 (the compact table); `--no-compact-table` as the 1.8 table, the same payloads."""
-    for name, extra in (("compact", []), ("plain", ["--no-compact-table"])):
+    """`encode` writes a tree as 1.15 (the compact table, short digests); `--no-short-digests` as 1.12,
+    `--no-compact-table` as the 1.8 table, the same payloads (the 1.15 scene's named by their digests' prefixes)."""
+    for name, extra in (("compact", []), ("plain", ["--no-compact-table"]), ("long", ["--no-short-digests"])):
         r = run_cli("encode", real("fruit_drops_sh3.ply"), tmp_path / name, "--max-leaf-splats", "2000", "-q", *extra)
         assert r.returncode == 0, r.stderr
-    compact, plain = ((tmp_path / n / "manifest.msgpack").read_bytes() for n in ("compact", "plain"))
+    compact, plain, long = ((tmp_path / n / "manifest.msgpack").read_bytes() for n in ("compact", "plain", "long"))
     assert "tile_table_zstd" in msgpack.unpackb(compact, strict_map_key=False)
     assert "tile_table" in msgpack.unpackb(plain, strict_map_key=False)
-    assert parse_manifest(compact).version == VERSION_1_12 and parse_manifest(plain).version == VERSION_1_10
-    assert sorted(p.name for p in (tmp_path / "compact" / "data").iterdir()) == sorted(
-        p.name for p in (tmp_path / "plain" / "data").iterdir())
+    assert parse_manifest(compact).version == VERSION_1_15 and parse_manifest(plain).version == VERSION_1_10
+    assert parse_manifest(long).version == VERSION_1_12
+    names = {n: sorted(p.name for p in (tmp_path / n / "data").iterdir()) for n in ("compact", "plain", "long")}
+    assert names["plain"] == names["long"] and all(len(n) == 64 + 4 for n in names["plain"])
+    assert names["compact"] == sorted(n[:32] + ".bin" for n in names["plain"])

@@ -155,16 +155,26 @@ def test_table_vector_reads_its_tile_tables_and_decodes_to_expected_values():
         assert np.array_equal(getattr(g, field), np.array(expected[field], np.float32)), field
 
 
-def test_compact_vector_holds_compact_tables_and_decodes_to_expected_values():
+COMPACT_VECTORS = {"compact": [1, 12], "digest16": [1, 15]}
+
+
+@pytest.mark.parametrize("name", sorted(COMPACT_VECTORS))
+def test_compact_vector_holds_compact_tables_and_decodes_to_expected_values(name):
     """format.md 6.2 and 8: the `compact` vector (1.12) is `levels`'s tree paged two levels to a file; its root
     manifest and every page hold `tile_table_zstd` (a zstd frame of the table with f32 bounds), and with every page
-    read it is `levels`'s tree: the same payloads, each tile's bounds `levels`'s rounded outward to float32."""
-    scene = VECTORS / "compact"
+    read it is `levels`'s tree: the same payloads, each tile's bounds `levels`'s rounded outward to float32.
+    `digest16` (1.15) is the same with its payloads and pages named by the first 16 bytes of their SHA-256 and its
+    spheres as radii about the boxes' middles."""
+    scene = VECTORS / name
+    version = COMPACT_VECTORS[name]
+    short = version >= [1, 15]
     raw = (scene / "manifest.msgpack").read_bytes()
     d = msgpack.unpackb(raw, strict_map_key=False)
-    assert "tile_table_zstd" in d and "tile_table" not in d and d["version"] == [1, 12]
+    assert "tile_table_zstd" in d and "tile_table" not in d and d["version"] == version
     table = msgpack.unpackb(zstandard.ZstdDecompressor().decompress(d["tile_table_zstd"]), strict_map_key=False)
     assert len(table["box"]) == table["count"] * 6 * 4  # f32
+    digests = table["digest16" if short else "sha256"]
+    assert ("sha256" in table) != short and len(digests) == table["count"] * 2 * (16 if short else 32)
     root = parse_manifest(raw)
     assert root.paged.page_levels == 2 and {t.level for t in root.tiles} == {0, 1}
     m = load_manifest(scene)
@@ -175,10 +185,20 @@ def test_compact_vector_holds_compact_tables_and_decodes_to_expected_values():
     assert len(pages) == root.paged.pages > 1
     for name in pages:
         page = msgpack.unpackb((scene / "data" / name).read_bytes(), strict_map_key=False)
-        assert "tile_table_zstd" in page and page["version"] == [1, 12]
+        assert "tile_table_zstd" in page and page["version"] == version
+        data = (scene / "data" / name).read_bytes()
+        assert hashlib.sha256(data).hexdigest().startswith(name.removesuffix(".bin"))
+        assert len(name) == (32 if short else 64) + 4
     for a, b in zip(m.tiles, plain.tiles, strict=True):
-        assert {k: e.sha256 for k, e in a.groups.items()} == {k: e.sha256 for k, e in b.groups.items()}
-        assert all(float(np.float32(v)) == v for v in (*a.box.min, *a.box.max, *a.sphere_center, a.sphere_radius))
+        assert {k: e.sha256 for k, e in a.groups.items()} == {k: e.sha256[:32] if short else e.sha256
+                                                              for k, e in b.groups.items()}
+        assert all(float(np.float32(v)) == v for v in (*a.box.min, *a.box.max, a.sphere_radius))
+        if short:  # 1.15: the sphere's centre is the f32 box's middle (its `radius` column alone is stored)
+            assert a.sphere_center == tuple((x + y) / 2 for x, y in zip(a.box.min, a.box.max, strict=True))
+            moved = float(np.linalg.norm(np.subtract(a.sphere_center, b.sphere_center)))
+            assert a.sphere_radius >= b.sphere_radius + moved
+        else:
+            assert all(float(np.float32(v)) == v for v in a.sphere_center)
         assert all(x <= y for x, y in zip(a.box.min, b.box.min, strict=True))
         assert all(x >= y for x, y in zip(a.box.max, b.box.max, strict=True))
         assert a.sphere_radius >= b.sphere_radius and a.geometric_error >= b.geometric_error
@@ -189,13 +209,14 @@ def test_compact_vector_holds_compact_tables_and_decodes_to_expected_values():
         assert np.array_equal(getattr(g, field), np.array(expected[field], np.float32)), field
 
 
-def test_compact_vector_is_what_the_encoder_writes_today(tmp_path):
+@pytest.mark.parametrize("name", sorted(COMPACT_VECTORS))
+def test_compact_vector_is_what_the_encoder_writes_today(tmp_path, name):
     """Encoded again by make_vectors: the same version, the same tiles (bounds included) and the same payloads'
     decompressed bytes (zstd's own bytes may differ between zstd versions: those are not pinned)."""
-    fresh = tmp_path / "compact"
-    make_vectors().encode_compact_vector(fresh)
-    regenerate = "regenerate it: PYTHONPATH=. python format_spec/vectors/make_vectors.py compact"
-    new, old = load_manifest(fresh), load_manifest(VECTORS / "compact")
+    fresh = tmp_path / name
+    make_vectors().encode_compact_vector(fresh, name=name)
+    regenerate = f"regenerate it: PYTHONPATH=. python format_spec/vectors/make_vectors.py {name}"
+    new, old = load_manifest(fresh), load_manifest(VECTORS / name)
     assert (new.version, new.lod, new.paged) == (old.version, old.lod, old.paged), regenerate
     unnamed = [[replace(t, page=None).to_dict() for t in m.tiles] for m in (new, old)]  # a page's name is its hash
     assert unnamed[0] == unnamed[1], regenerate

@@ -75,7 +75,7 @@ def test_a_splat_file_is_encoded_in_memory_with_progress():
     assert m.splats == 4721 and m.lod.enabled and len(m.tiles) == 39
     assert seen[0] == ("read", 0.0) and ("read", 1.0) in seen and seen[-1] == ("encode", 1.0)
     entry = m.tiles[0].groups["base"]
-    assert sha256_hex(asyncio.run(src.fetch_payload(entry))) == entry.sha256
+    assert sha256_hex(asyncio.run(src.fetch_payload(entry)))[:32] == entry.sha256  # 1.15: 16 bytes of it
 
 
 def test_a_local_store_reports_missing_payloads(tmp_path):

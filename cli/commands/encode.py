@@ -129,6 +129,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="write a tree's tiles as format 1.8's tile table, not the compact one of 1.12 (f32 bounds "
                         "rounded outward, zstd: a third of the manifest's bytes, which a small budget reads before "
                         "any tile; BENCHMARKS.md), for readers older than 1.12")
+    p.add_argument("--no-short-digests", action="store_true",
+                   help="name a tree's files by their whole SHA-256 (format 1.12), not by its first 16 bytes as "
+                        "1.15 does (16 B a payload less in the manifest a small budget reads first), for readers "
+                        "older than 1.15")
     p.add_argument("--zstd-level", type=int, default=None,
                    help=f"zstd level of the payloads (1..22; default {DEFAULT_ZSTD_LEVEL}, "
                         + ", ".join(f"{k} {v}" for k, v in PRESET_ZSTD_LEVEL.items())
@@ -285,7 +289,8 @@ def run(args: argparse.Namespace) -> int:
                             lod=not args.no_lod, max_leaf_splats=args.max_leaf_splats, reduction=args.reduction,
                             lod_merge=args.lod_merge, name=args.name, up=up, chunk_order=args.chunk_order,
                             sh_codebook=args.sh_codebook, page_tiles=args.page_tiles, page_levels=args.page_levels,
-                            compact_table=not args.no_compact_table, lod_refiner=lod_refiner,
+                            compact_table=not args.no_compact_table, short_digests=not args.no_short_digests,
+                            lod_refiner=lod_refiner,
                             camera_azimuth_deg=azimuth, on_read=check_read)
     if not args.quiet:
         print(f"wrote {args.output_dir}: {count(m.splats, 'splat')}, SH degree {m.sh_degree}, preset {m.preset}, "
@@ -410,7 +415,7 @@ def _encode_foreign_tree(args: argparse.Namespace, kind: str, preset: str, overr
                          zstd_level=args.zstd_level, transport=args.transport, name=args.name, up=up,
                          chunk_order=args.chunk_order, sh_codebook=args.sh_codebook, page_tiles=args.page_tiles,
                          page_levels=args.page_levels, compact_table=not args.no_compact_table,
-                         camera_azimuth_deg=azimuth)
+                         short_digests=not args.no_short_digests, camera_azimuth_deg=azimuth)
     tree = reader(args.input[0], progress)
     if "sh" in overrides:
         _check_sh_format(args, overrides, args.input[0],
@@ -451,6 +456,7 @@ def _preset_for_target(args: argparse.Namespace, up: tuple[float, float, float] 
                                        "lod_merge": target_lod_merge(args.lod_merge, distributed),
                                        "page_tiles": args.page_tiles, "page_levels": args.page_levels,
                                        "compact_table": not args.no_compact_table,
+                                       "short_digests": not args.no_short_digests,
                                        "transport": args.transport,
                                        "chunk_order": args.chunk_order})
     report = evaluate(args.input[0], opts, log=log, renderer=pick_renderer("auto"))

@@ -27,7 +27,7 @@ import msgpack
 from splatstream.errors import FormatError, UsageError
 from splatstream.format.container import VerifiedPayload, verify_payload
 from splatstream.format.manifest import MAX_MANIFEST_BYTES, PayloadEntry
-from splatstream.format.names import SHA256_HEX_RE
+from splatstream.format.names import DIGEST_HEX_RE
 
 CACHE_DIR_ENV = "SPLATSTREAM_CACHE_DIR"
 DEFAULT_MAX_BYTES = 2 << 30
@@ -108,7 +108,7 @@ class DiskCache:
                                     os.unlink(e.path)
                             continue
                         sha = e.name.removesuffix(".bin")
-                        if e.name.endswith(".bin") and SHA256_HEX_RE.match(sha):
+                        if e.name.endswith(".bin") and DIGEST_HEX_RE.match(sha):
                             index[sha] = (st.st_size, st.st_mtime)
         self._index = index
         self._total = sum(size for size, _ in index.values())

@@ -2,10 +2,10 @@
 
     PYTHONPATH=. python format_spec/vectors/make_vectors.py [NAME ...]
 
-NAME: high, medium, medium-low, low, very-low, paged, table, levels, refined, compact (default: all).
-tests/test_spec_vectors.py encodes the presets' scenes again with `encode_vector` (`levels`, `refined` with
-`encode_record_vector`, `compact` with `encode_compact_vector`) and fails when what the encoder writes today no
-longer matches the vector."""
+NAME: high, medium, medium-low, low, very-low, paged, table, levels, refined, compact, digest16 (default:
+all). tests/test_spec_vectors.py encodes the presets' scenes again with `encode_vector` (`levels`, `refined` with
+`encode_record_vector`, `compact` and `digest16` with `encode_compact_vector`) and fails when what the encoder
+writes today no longer matches the vector."""
 import json
 import pathlib
 import shutil
@@ -38,7 +38,11 @@ PAGED = {"max_leaf_splats": 64, "page_tiles": 1, "page_levels": 1, "sh_degree": 
 TREE = {"max_leaf_splats": 64, "sh_degree": 1, "lod_merge": "grid", "compact_table": False}
 # The compact tile table of format 1.12 (format.md 6.2): the same tree as `levels`, paged two levels to a file so that
 # the root manifest and its pages all hold `tile_table_zstd` (f32 bounds rounded outward, zstd-compressed).
+# Written with the whole SHA-256 (short_digests=False), so it stays a 1.12 vector.
 COMPACT = {"max_leaf_splats": 64, "sh_degree": 1, "lod_merge": "grid", "page_tiles": 1, "page_levels": 2}
+# `digest16`: the same encode as format 1.15 writes it (format.md 6.2, "Short digests"): the compact tables name
+# payloads and pages by the first 16 bytes of their SHA-256 (`digest16`, files `data/<32 hex>.bin`).
+COMPACT_VECTORS = {"compact": {"short_digests": False}, "digest16": {}}
 # `refined`'s record (informative metadata: fixed values, not a GPU's): every merged level tried B and C; the first
 # merged level kept B, the levels above it stayed as built.
 REFINED_PSNR = ((UNREFINED, 30.0), ("B", 31.5), ("C", 31.25))
@@ -98,25 +102,27 @@ def encode_record_vector(name: str, out: pathlib.Path, source=None) -> None:
 RECORDS = ["levels", "refined"]
 
 
-def encode_compact_vector(out: pathlib.Path, source=None) -> None:
-    """The compact-table vector (format 1.12, without expected.json)."""
+def encode_compact_vector(out: pathlib.Path, source=None, name: str = "compact") -> None:
+    """A compact-table vector (`compact`: format 1.12; `digest16`: 1.15), without expected.json."""
     source = read_gaussians_ply(SOURCE) if source is None else source
     g = source.subset(morton_order(source.positions)[:PAGED_SPLATS])
-    encode_gaussians(g, out, EncodeOptions(preset="medium", name="vector-compact", zstd_level=3, **COMPACT))
+    encode_gaussians(g, out, EncodeOptions(preset="medium", name=f"vector-{name}", zstd_level=3, **COMPACT,
+                                           **COMPACT_VECTORS[name]))
 
 
 def main(names: list[str]) -> None:
-    unknown = set(names) - {*PRESETS, "paged", "table", *RECORDS, "compact"}
+    unknown = set(names) - {*PRESETS, "paged", "table", *RECORDS, *COMPACT_VECTORS}
     if unknown:
         raise SystemExit(f"unknown vector {sorted(unknown)[0]!r} (choose from {', '.join(PRESETS)}, paged, table, "
-                         f"{', '.join(RECORDS)}, compact)")
+                         f"{', '.join(RECORDS)}, {', '.join(COMPACT_VECTORS)})")
     source = read_gaussians_ply(SOURCE)
-    if not names or "compact" in names:
-        out = HERE / "compact"
-        shutil.rmtree(out, ignore_errors=True)
-        encode_compact_vector(out, source)
-        (out / "expected.json").write_text(json.dumps(expected_values(decode_scene(out))) + "\n")
-        print("wrote", out)
+    for name in COMPACT_VECTORS:
+        if not names or name in names:
+            out = HERE / name
+            shutil.rmtree(out, ignore_errors=True)
+            encode_compact_vector(out, source, name)
+            (out / "expected.json").write_text(json.dumps(expected_values(decode_scene(out))) + "\n")
+            print("wrote", out)
     for name in RECORDS:
         if not names or name in names:
             out = HERE / name

@@ -88,6 +88,10 @@ class EncodeOptions:
     # zstd-compressed): a third of the 1.8 table's bytes on the real scenes, which a small budget reads before any
     # tile (issue 31; BENCHMARKS.md, "Manifest pages"). False: the 1.8 table and the version the scene needs.
     compact_table: bool = True
+    # The compact table's files named by the first 16 bytes of their SHA-256 (format.md 6.2, version 1.15: 16 B a
+    # payload in the table instead of 32, which do not compress: 5.5-6.8 KB of a 45-150k-splat scene's 11.8-13.5 KB
+    # manifest; issue 31, branch digest31). False: the whole SHA-256, version 1.12.
+    short_digests: bool = True
     name: str | None = None
     up: tuple[float, float, float] | None = None
     # The suggested camera (the manifest's `camera`) turned by this many degrees about up (camera.turn_about_up;

@@ -1016,7 +1016,8 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
     m = build_manifest(scene, sample.camera(scene.up, scene.camera_azimuth_deg), sorted(entries, key=lambda t: t.id),
                        codebook_entry)
     engine.settle()
-    return write_scene_manifest(writer, m, opts.page_tiles, opts.page_levels, opts.compact_table)
+    return write_scene_manifest(writer, m, opts.page_tiles, opts.page_levels, opts.compact_table,
+                                opts.short_digests)
 
 
 # The levels above the partitions refined (refine_upper) in a refined partitioned encode; False leaves them as built

@@ -31,7 +31,7 @@ from .keyed import MORTON1, MORTON_FORMATS, morton_content, unfilter_morton
 from .layout import ALIGN
 from .limits import MAX_ABS_POSITION, MAX_ABS_SH, MAX_LOG_SCALE, MIN_LOG_SCALE
 from .manifest import PayloadEntry, Section, filter_element
-from .names import payload_name, sha256_hex
+from .names import digest_matches, payload_name, sha256_hex
 from .planes import RANGE_DTYPE_NAMES, group_planes, palette_shape
 from .texformats import PALETTE_FORMATS, TEXEL_DTYPES
 from .transport import (
@@ -305,16 +305,18 @@ class VerifiedPayload:
         return f"VerifiedPayload({len(self.data)} bytes, sha256 {self.sha256[:12]}...)"
 
     def matches(self, entry: PayloadEntry) -> bool:
-        """These bytes are the payload `entry` names (its size and SHA-256)."""
+        """These bytes are the payload `entry` names (its size and digest: the SHA-256, or its 1.15 prefix)."""
         return self.sha256 == entry.sha256 and len(self.data) == entry.bytes
 
 
 def verify_payload(data: bytes | memoryview, entry: PayloadEntry, source: str) -> VerifiedPayload:
-    """Size and SHA-256 against the manifest: nothing unverified is ever decoded. The bytes, as `bytes`, come back
-    as a VerifiedPayload to hand on (a memoryview or bytearray is copied: a verified buffer must not change)."""
+    """Size and SHA-256 against the manifest: nothing unverified is ever decoded. The entry's digest is the whole
+    SHA-256 or (a 1.15 tile table's, format.md 6.2) its first 16 bytes, which the bytes' SHA-256 must begin with.
+    The bytes, as `bytes`, come back as a VerifiedPayload to hand on (a memoryview or bytearray is copied: a
+    verified buffer must not change)."""
     if len(data) != entry.bytes:
         raise FormatError(source, "bytes", f"payload is {len(data)} bytes, the manifest says {entry.bytes}")
-    if sha256_hex(data) != entry.sha256:
+    if not digest_matches(sha256_hex(data), entry.sha256):
         raise FormatError(source, "sha256", "checksum mismatch: the payload is corrupt or was replaced")
     return VerifiedPayload(data if type(data) is bytes else bytes(data), entry.sha256, _MINT)
 

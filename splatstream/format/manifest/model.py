@@ -16,11 +16,11 @@ from itertools import chain, islice
 import msgpack
 import numpy as np
 
-from ..names import payload_name
+from ..names import payload_name, short_digest
 from ..planes import MAX_SH_DEGREE, band_of, groups_for_degree
 from ..texformats import FORMATS, blob_size
 from .table import bounds_columns, compact_columns, tiles_body
-from .versions import FORMAT_NAME, VERSION_1_9, VERSION_1_12
+from .versions import FORMAT_NAME, VERSION_1_9, VERSION_1_12, VERSION_1_15
 from .wire import pack_manifest
 
 Vec3 = tuple[float, float, float]
@@ -460,16 +460,20 @@ class Manifest:
         1.8 on (format.md 6.2), else the array of tile maps."""
         return tiles_body(self.version, self.tiles, self.tile_groups())
 
-    def compacted(self) -> Manifest:
-        """This manifest as 1.12 writes it (format.md 6.2, the compact tile table): version at least 1.12, each
-        tile's bounds as the float32 values the table holds (table.compact_columns: rounded outward), so that what
-        a reader gets back is this manifest; `bytes_on_disk` settled again. An unchanged manifest where it is
-        already compact."""
-        box, sphere, error = (a.tolist() for a in compact_columns(*bounds_columns(self.tiles)))
+    def compacted(self, short: bool = True) -> Manifest:
+        """This manifest as 1.15 writes it (format.md 6.2, the compact tile table, short digests): version at least
+        1.15, each tile's bounds as the float32 values the table holds (table.compact_columns: rounded outward),
+        each sphere's centre its box's middle (1.15) and each tile payload named by the first 16 bytes of its
+        SHA-256 (`data/<32 hex>.bin`: the files must be renamed so, store.write_scene_manifest), so that what a
+        reader gets back is this manifest; `bytes_on_disk` settled again. short False: as 1.12 wrote it (the whole
+        SHA-256). An unchanged manifest where it is already compact. Tiles with a page (a paged manifest) cannot be
+        shortened: compact before paging."""
+        box, sphere, error = (a.tolist() for a in compact_columns(*bounds_columns(self.tiles), centre_from_box=short))
         tiles = tuple(replace(t, box=Box(tuple(b[:3]), tuple(b[3:])), sphere_center=tuple(s[:3]),
-                              sphere_radius=s[3], geometric_error=e)
+                              sphere_radius=s[3], geometric_error=e, **({"groups": _short_groups(t.groups)}
+                                                                         if short else {}))
                       for t, b, s, e in zip(self.tiles, box, sphere, error, strict=True))
-        m = replace(self, version=max(self.version, VERSION_1_12), tiles=tiles)
+        m = replace(self, version=max(self.version, VERSION_1_15 if short else VERSION_1_12), tiles=tiles)
         return m.with_bytes_on_disk(m.payload_bytes())
 
     def with_bytes_on_disk(self, payload_bytes: int) -> Manifest:
@@ -480,6 +484,17 @@ class Manifest:
         return m
 
 
+
+
+def _short_groups(groups: Mapping[str, PayloadEntry]) -> Mapping[str, PayloadEntry]:
+    """A tile's payload entries named by short digests (format.md 6.2, 1.15); unchanged where they are already."""
+    if all(len(e.sha256) != 64 for e in groups.values()):
+        return groups
+    out = {}
+    for name, e in groups.items():
+        h = short_digest(e.sha256)
+        out[name] = replace(e, sha256=h, file=payload_name(h))
+    return out
 
 
 def tile_rows(tiles: Sequence[TileEntry]) -> dict[str, np.ndarray]:

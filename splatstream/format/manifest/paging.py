@@ -15,9 +15,9 @@ from dataclasses import dataclass, replace
 import msgpack
 
 from ...errors import FormatError
-from ..names import payload_name
+from ..names import digest_hex, digest_matches, payload_name
 from .model import Manifest, PagedInfo, PageRef, TileEntry
-from .table import tiles_body
+from .table import short_digests, tiles_body
 from .validate import MAX_PAGE_BYTES, PAGE_FORMAT, check_whole_tree, page_tiles
 from .versions import VERSION_1_5
 from .wire import check_msgpack_bomb, pack_manifest
@@ -74,7 +74,7 @@ def split_pages(m: Manifest, page_levels: int) -> PagedScene:
     version = max(m.version, VERSION_1_5)
     for head in page_heads(m, k):
         raw = pack_page(version, head.id, [with_ref(t) for t in below(head)])
-        sha = hashlib.sha256(raw).hexdigest()
+        sha = digest_hex(raw, short_digests(version))  # 16 bytes of it from 1.15 (format.md 6.2)
         if len(raw) > MAX_PAGE_BYTES:
             raise FormatError(m.name, "paged", f"a page of {len(raw)} bytes: more than {MAX_PAGE_BYTES}; fewer "
                               "levels to a page")
@@ -98,7 +98,7 @@ def read_page(raw: bytes, ref: PageRef, root: Manifest, parent: TileEntry, sourc
     if len(raw) != ref.bytes:
         raise FormatError(source, None, f"{len(raw)} bytes, but the manifest names a page of {ref.bytes} bytes")
     actual = ref.sha256 if hashed else hashlib.sha256(raw).hexdigest()
-    if actual != ref.sha256:
+    if not digest_matches(actual, ref.sha256):
         raise FormatError(source, None, f"checksum mismatch: the page is corrupt (its bytes hash to {actual}, the "
                           f"manifest names {ref.sha256})")
     check_msgpack_bomb(raw, source)

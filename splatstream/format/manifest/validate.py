@@ -26,7 +26,7 @@ from ...errors import FormatError
 from ..keyed import MORTON1, MORTON_FORMATS
 from ..layout import ALIGN, BLOCK, CHUNK_SIZE
 from ..limits import MAX_ABS_SH, MAX_LOG_SCALE, MIN_LOG_SCALE
-from ..names import MANIFEST_NAME, SHA256_HEX_RE, payload_name
+from ..names import MANIFEST_NAME, SHA256_HEX_RE, SHORT_DIGEST_BYTES, payload_name
 from ..planes import (
     MAX_SH_DEGREE,
     PALETTE_ATTRIBUTES,
@@ -61,7 +61,7 @@ from .model import (
     filter_element,
     texels_size,
 )
-from .table import TABLE_KEY, TABLE_ZSTD_KEY, canonical_offsets, read_columns, unpack_compact_table
+from .table import TABLE_KEY, TABLE_ZSTD_KEY, canonical_offsets, read_columns, short_digests, unpack_compact_table
 from .versions import (
     CHECKSUM_VERSION,
     CHUNK_ORDERS_1_4,
@@ -379,14 +379,19 @@ _offset = operator.attrgetter("offset")
 
 
 def _payload(v, expect: list[tuple[str, dict]], chunks: int, strict: bool, source: str, path: str,
-             derived_gpu: bool = False) -> PayloadEntry:
+             derived_gpu: bool = False, short: bool = False) -> PayloadEntry:
     """A payload entry at `path`; `expect` is [(section name, {kind, format, layers, dtype, shape})]. derived_gpu:
-    the entry's `gpu_bytes` is what its sections decode to (a tile table's, format.md 6.2), not a stated value."""
+    the entry's `gpu_bytes` is what its sections decode to (a tile table's, format.md 6.2), not a stated value.
+    short: its digest is a 1.15 table's, the first 16 bytes of the SHA-256 (32 hex digits)."""
     if type(v) is not dict or v.keys() != _PAYLOAD_SET:
         _keys(v, _PAYLOAD_KEYS, source, path, strict)
     sha, file, raw_bytes, size, gpu_bytes, items = (v["sha256"], v["file"], v["raw_bytes"], v["bytes"],
                                                     v["gpu_bytes"], v["sections"])
-    if type(sha) is not str or not SHA256_HEX_RE.match(sha):
+    if short:
+        if type(sha) is not str or len(sha) != 2 * SHORT_DIGEST_BYTES:
+            _fail(source, path, "sha256", f"expected {2 * SHORT_DIGEST_BYTES} lowercase hex digits (a short digest), "
+                  f"got {sha!r}")
+    elif type(sha) is not str or not SHA256_HEX_RE.match(sha):
         _str(v, "sha256", source, path)
         _fail(source, path, "sha256", f"expected 64 lowercase hex digits, got {sha!r}")
     if file != payload_name(sha):
@@ -472,13 +477,14 @@ class _Scene:
     """What every tile of one manifest is checked against."""
 
     __slots__ = ("source", "strict", "formats", "format_items", "codebook", "group_names", "lazy", "expect",
-                 "tile_optional", "scene_palettes")
+                 "tile_optional", "scene_palettes", "short_digests")
 
     def __init__(self, source: str, strict: bool, formats: dict[str, str], sh_degree: int, codebook: bool,
                  lazy: bool, version: tuple[int, int] = FORMAT_VERSION, scene_palettes: tuple[str, ...] = ()):
         self.source, self.strict, self.formats, self.codebook, self.lazy = source, strict, formats, codebook, lazy
         self.scene_palettes = tuple(sorted(scene_palettes))
         self.tile_optional = ("page",) if version >= VERSION_1_5 else ()
+        self.short_digests = short_digests(version)  # a compact table's digests: 16 bytes from 1.15 (format.md 6.2)
         self.group_names = tuple(groups_for_degree(sh_degree, codebook))
         self.format_items = tuple(sorted(formats.items()))
         self.expect: dict[tuple[str, int], list] = {}  # (group, chunks) -> expected_sections: a few per scene
@@ -628,6 +634,11 @@ def _table_tile_checks(c, source: str) -> np.ndarray:
     return chunks
 
 
+def n_payloads(c) -> int:
+    """A tile table's payloads: its tiles x groups."""
+    return c.count * len(c.groups)
+
+
 def _table_payload_map(c, p: int, raw_bytes: int, first: int, scene: _Scene, chunks: int,
                        texture: tuple[int, int]) -> tuple[dict, list]:
     """Payload p of a tile table as the payload map of format.md 5 (each section's fixed fields as its plane must
@@ -636,7 +647,7 @@ def _table_payload_map(c, p: int, raw_bytes: int, first: int, scene: _Scene, chu
     name = c.groups[p % g]
     expect = _expected_sections(name, scene.codebook, scene.format_items, chunks, None, scene.scene_palettes)
     want = dict(expect)
-    sha = bytes(c.sha256.reshape(-1, 32)[p]).hex()
+    sha = bytes(c.sha256.reshape(n_payloads(c), -1)[p]).hex()
     layout = c.layouts[int(c.layout.reshape(-1)[p])]
     sizes = [int(size) for size in c.sizes[first:first + len(layout)]]
     sections = []
@@ -699,7 +710,8 @@ def _table_tiles(v, scene: _Scene, compact: bool = False) -> list[TileEntry]:
     source, strict = scene.source, scene.strict
     if compact:
         v = unpack_compact_table(v, source)
-    c = read_columns(v, source, strict, MAX_TILES, bool(scene.tile_optional), scene.group_names, compact)
+    short = compact and scene.short_digests  # 1.15's digests are the compact table's (format.md 6.2)
+    c = read_columns(v, source, strict, MAX_TILES, bool(scene.tile_optional), scene.group_names, compact, short)
     n, g = c.count, len(c.groups)
     chunks = _table_tile_checks(c, source)
     texture = c.texture.astype(np.int64) * BLOCK
@@ -724,7 +736,7 @@ def _table_tiles(v, scene: _Scene, compact: bool = False) -> list[TileEntry]:
         tex = (int(texture[i, 0]), int(texture[i, 1]))
         d, expect = _table_payload_map(c, p, int(raw_bytes[p]), int(first[p]), scene, int(chunks[i]), tex)
         return _payload(d, expect, int(chunks[i]), strict, source, f"{TABLE_KEY}[{i}].groups.{c.groups[p % g]}",
-                        derived_gpu=True)
+                        derived_gpu=True, short=short)
 
     bad = _first((raw_bytes > MAX_PAYLOAD_RAW_BYTES) | (nbytes > raw_bytes + raw_bytes // 128 + 1024))
     if bad is not None:
@@ -751,8 +763,8 @@ def _table_tiles(v, scene: _Scene, compact: bool = False) -> list[TileEntry]:
             check(int(members[i]))
         templates.append(template)
         gpu_of_kind[k] = gpu
-    table = Table(c.groups, c.sha256.reshape(-1, 32), nbytes, raw_bytes, gpu_of_kind[kind], sizes, offsets, first,
-                  templates, kind)
+    table = Table(c.groups, c.sha256.reshape(n_payloads(c), -1), nbytes, raw_bytes, gpu_of_kind[kind], sizes,
+                  offsets, first, templates, kind)
     pages = {}
     if c.page_tile is not None:
         for row, sha, size in zip(c.page_tile.tolist(), c.page_sha256, c.page_bytes.tolist(), strict=True):

@@ -4,7 +4,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 FORMAT_NAME = "splatstream"
-FORMAT_VERSION = (1, 14)  # (major, minor) this code reads; what it writes: writer_version
+FORMAT_VERSION = (1, 15)  # (major, minor) this code reads; what it writes: writer_version
 # Version 1.2 added two things (format.md, version history): the manifest's last key `checksum`, the SHA-256 of the
 # file with that value's 64 bytes read as ASCII '0' (format.md 6, "Checksum"), so a flipped byte in the manifest is
 # caught like one in a payload; and the `fields1` transport coding of texels sections (format.md 5.2).
@@ -83,3 +83,10 @@ VERSION_1_11 = (1, 11)
 # most of what a view read (issue 31). A 1.8 to 1.11 reader rejects it naming the missing `tiles` (it knows neither
 # key of a newer minor version): it fails cleanly and misreads nothing.
 VERSION_1_12 = (1, 12)
+# Version 1.15 added short digests in the tile table (format.md 6.2, "Short digests"): a table names each payload and
+# page by the first 16 bytes of its SHA-256 (the columns `digest16` and `page.digest16`, in place of the 32-byte
+# `sha256` ones), its file `data/<32 hex>.bin`, and a reader checks the payload's SHA-256 against that prefix. 128 bits
+# stay collision- and preimage-safe for content addressing; the 32-byte column was about half a compact table's bytes
+# (issue 31, branch digest31). Written by every tree splatstream encodes with the compact table (its pages too); a
+# 1.8 to 1.14 reader rejects it naming the missing column (`tile_table.sha256: missing`): it misreads nothing.
+VERSION_1_15 = (1, 15)
