@@ -1720,13 +1720,7 @@ def run_whole(raw: np.ndarray, flat: list[int], keys: tuple, unit_rows: list[int
             f, m, nm, o, check = columns[u]
             row_list += (planes_at, params_at, n, o, first, length, f, nf, m, nm, words, size_of, check)
         rows = np.array(row_list, np.int64).reshape(-1, 13)
-    out = texel_slab(out_bytes + -out_bytes % 16)
-    work = _scratch("kernel", 8 * most_f * most_n).view(np.int64).reshape(most_f, most_n)
-    kernel = _whole_kernel or _whole_kernel_planned
-    status = kernel(raw, rows, fields, modes, orders, work, out, out.view(np.uint16), out.view(np.uint32),
-                           out.view(np.float32), np.array(unit_rows, np.int64).reshape(-1, 5),
-                           np.array(span_rows or (), np.int64).reshape(-1, 4), _NO_BOUNDS if bounds is None else bounds)
-    return out, int(status)
+    return _call_whole(raw, rows, fields, modes, orders, most_f, most_n, out_bytes, unit_rows, span_rows, bounds)
 
 
 def run_whole_at(raw: np.ndarray, flat: list[int], keys: tuple, unit_rows: list[int], out_bytes: int,
@@ -1745,6 +1739,14 @@ def run_whole_at(raw: np.ndarray, flat: list[int], keys: tuple, unit_rows: list[
     rows[:, 0] += part[:, 0]
     rows[:, 1] += part[:, 0]
     rows[:, 4] = part[:, 1] // rows[:, 11]
+    return _call_whole(raw, rows, fields, modes, orders, most_f, most_n, out_bytes, unit_rows, span_rows, bounds)
+
+
+def _call_whole(raw: np.ndarray, rows: np.ndarray, fields: np.ndarray, modes: np.ndarray, orders: np.ndarray,
+                most_f: int, most_n: int, out_bytes: int, unit_rows: list[int], span_rows: list[int] | None,
+                bounds: np.ndarray | None) -> tuple[np.ndarray, int]:
+    """The whole kernel's call for run_whole and run_whole_at, once their rows are built: the texel slab, the
+    scratch, the unit and span rows as arrays. Returns (out, status) as they do."""
     out = texel_slab(out_bytes + -out_bytes % 16)
     work = _scratch("kernel", 8 * most_f * most_n).view(np.int64).reshape(most_f, most_n)
     kernel = _whole_kernel or _whole_kernel_planned
