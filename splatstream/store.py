@@ -23,6 +23,7 @@ from .format.manifest import (
     pack_manifest,
     parse_manifest,
     resolve_pages,
+    short_tile_names,
     split_pages,
 )
 from .format.names import DATA_DIR, MANIFEST_NAME, TILESET_NAME, is_payload_path
@@ -250,10 +251,6 @@ class SceneWriter(Protocol):
 
     def write_manifest(self, m: Manifest) -> None: ...
 
-    def rename_payload(self, old: str, new: str) -> None:
-        """Give a written payload (`data/<digest>.bin`) another name (its short digest's: write_scene_manifest)."""
-        ...
-
     def payload_writer(self) -> PayloadWriter:
         """What a worker (another thread, process or machine) writes payloads through: small and picklable."""
         ...
@@ -264,19 +261,24 @@ class PayloadWriter(Protocol):
 
 
 def write_scene_manifest(writer: SceneWriter, m: Manifest, page_tiles: int, page_levels: int,
-                         compact_table: bool = False, short_digests: bool = True) -> Manifest:
+                         compact_table: bool = False, short_digests: bool = True, *, short_names: bool) -> Manifest:
     """Publish a scene's manifest: as it is, or, for a tree of more than `page_tiles` tiles (0: never), as a root
     manifest and its pages (format.md 6.1), the pages written like payloads before the root that names them.
     compact_table: a tree's tiles as the compact tile table (format.md 6.2: Manifest.compacted), its files named by
-    short digests (version 1.15: the tile payloads the writer holds under their whole SHA-256 are renamed to
-    `data/<32 hex>.bin` first, writer.rename_payload) unless short_digests is False (1.12). Returns the whole
-    manifest as a reader of the scene gets it (load_manifest: every tile; a paged scene's version, `paged` and
-    `bytes_on_disk` from its root)."""
+    short digests (version 1.15: `data/<32 hex>.bin`) unless short_digests is False (1.12). short_names: the tile
+    payloads were written under their short digests' names (the payload jobs', TileContext.short_names): nothing is
+    renamed here, so it must be what these options make of `m` (table.short_tile_names; a ValueError otherwise).
+    Returns the whole manifest as a reader of the scene gets it (load_manifest: every tile; a paged scene's version,
+    `paged` and `bytes_on_disk` from its root)."""
+    short = short_tile_names(len(m.tiles) > 1, compact_table, short_digests)
+    if short != short_names:
+        raise ValueError(f"{m.name}: the tile payloads were written under {'short' if short_names else 'whole'} "
+                         f"digests' names, the manifest would name them by {'short' if short else 'whole'} ones")
     if compact_table and len(m.tiles) > 1:
-        short = m.compacted(short_digests)
-        if short_digests:
-            _rename_to_short(writer, m, short)
-        m = short
+        compact = m.compacted(short_digests)
+        if short:
+            _check_short_names(m, compact)
+        m = compact
     if not page_tiles or len(m.tiles) <= page_tiles:
         writer.write_manifest(m)
         return m
@@ -291,22 +293,16 @@ def write_scene_manifest(writer: SceneWriter, m: Manifest, page_tiles: int, page
     return replace(m, version=root.version, paged=root.paged, bytes_on_disk=root.bytes_on_disk)
 
 
-def _rename_to_short(writer: SceneWriter, whole: Manifest, short: Manifest) -> None:
-    """Rename each tile payload from its whole SHA-256's name to its short digest's (Manifest.compacted(short)):
-    a payload shared by tiles once; two different payloads whose names would be one (a 128-bit prefix collision,
-    never seen) refuse the scene rather than name two files alike."""
-    moves: dict[str, str] = {}
+def _check_short_names(whole: Manifest, short: Manifest) -> None:
+    """That no two tile payloads share a short name (Manifest.compacted(short)): two whose SHA-256 share their first
+    16 bytes (a 128-bit prefix collision, never seen) were written as one file, so they refuse the scene."""
+    named: dict[str, str] = {}
     for a, b in zip(whole.tiles, short.tiles, strict=True):
-        for name in a.groups:
-            old, new = a.groups[name].file, b.groups[name].file
-            if moves.setdefault(old, new) != new:
-                raise AssertionError(f"{old}: two short names")
-    if len(set(moves.values())) != len(moves):
-        raise FormatError(whole.name, "tile_table", "two payloads whose SHA-256 share their first 16 bytes: the "
-                          "scene cannot be named by short digests (encode --no-short-digests)")
-    for old, new in moves.items():
-        if old != new:
-            writer.rename_payload(old, new)
+        for name, e in a.groups.items():
+            file = b.groups[name].file
+            if named.setdefault(file, e.sha256) != e.sha256:
+                raise FormatError(whole.name, "tile_table", f"two payloads whose SHA-256 share their first 16 bytes "
+                                  f"({file}): the scene cannot be named by short digests (encode --no-short-digests)")
 
 
 @dataclass
@@ -371,9 +367,6 @@ class DirectoryWriter:
     def payload_file(self) -> contextlib.AbstractContextManager[tuple[BinaryIO, callable]]:
         return self.payload_writer().payload_file()
 
-    def rename_payload(self, old: str, new: str) -> None:
-        os.replace(os.path.join(self.tmp, old), os.path.join(self.tmp, new))
-
     def write_manifest(self, m: Manifest) -> None:
         path = os.path.join(self.tmp, MANIFEST_NAME)
         with open(path, "wb") as f:
@@ -408,9 +401,6 @@ class MemoryWriter:
 
     def write_manifest(self, m: Manifest) -> None:
         self.manifest = m
-
-    def rename_payload(self, old: str, new: str) -> None:
-        self.payloads[new] = self.payloads.pop(old)
 
     def payload_writer(self) -> MemoryWriter:
         return self  # in this process only
@@ -461,12 +451,6 @@ class FsspecWriter:
             self.fs.pipe_file(f"{self.root}/{entry.file}", buf.getvalue())
 
         yield buf, finish
-
-    def rename_payload(self, old: str, new: str) -> None:
-        """An object store has no rename: the object is copied to its new name, then the old one deleted (an
-        encode interrupted between leaves an unreferenced object, as any interrupted encode may)."""
-        self.fs.copy(f"{self.root}/{old}", f"{self.root}/{new}")
-        self.fs.rm_file(f"{self.root}/{old}")
 
     def written_payloads(self) -> set[str]:
         try:

@@ -14,6 +14,7 @@ from ..format.container import write_payload
 from ..format.keyed import MORTON_FORMATS, morton_keys
 from ..format.layout import CHUNK_SIZE, chunk_texel_index, morton_order, order_within_chunks, texture_size
 from ..format.manifest import Box, PayloadEntry, SHCodebookEntry, TileEntry
+from ..format.names import payload_name
 from ..format.planes import BASE_PLANES, SH_INDEX_FORMAT, band_of, band_plane, chunks_for, groups_for_degree
 from ..format.steps import TileStep, splat_sizes
 from ..gaussians import Gaussians
@@ -72,13 +73,18 @@ def tile_group_names(ctx: TileContext) -> list[str]:
     return groups_for_degree(ctx.sh_degree, ctx.codebook is not None)
 
 
-def write_planes(planes: list[EncodedPlane], chunks: int, ctx: TileContext, writer: SceneWriter) -> PayloadEntry:
+def write_planes(planes: list[EncodedPlane], chunks: int, ctx: TileContext, writer: SceneWriter,
+                 short_name: bool = False) -> PayloadEntry:
+    """One payload written through `writer` under its final name (`short_name`: its short digest's, a 1.15 scene's
+    tile payload, table.short_tile_names; else its whole SHA-256's), and its entry as the manifest holds it before
+    Manifest.compacted (the whole SHA-256 and its name: a 1.8 table packs it, for `bytes_on_disk`)."""
     with writer.payload_file() as (f, finish):
         entry = write_payload(planes, f, chunks, level=ctx.zstd_level, transport=ctx.transport,
                               block_slack=ctx.block_slack, min_match=ctx.zstd_min_match,
                               one_block_slack=ctx.one_block_slack)
         f.flush()
-        finish(entry)
+        # named once, as the published manifest will name it: an object store's rename would be a copy and a delete
+        finish(replace(entry, file=payload_name(entry.sha256, short_name)) if short_name else entry)
     return entry
 
 
@@ -105,7 +111,7 @@ def group_planes_of(g: Gaussians, order: np.ndarray, group: str, ctx: TileContex
 
 
 def encode_group(g: Gaussians, order: np.ndarray, group: str, ctx: TileContext, writer: SceneWriter) -> PayloadEntry:
-    return write_planes(group_planes_of(g, order, group, ctx), chunks_for(len(order)), ctx, writer)
+    return write_planes(group_planes_of(g, order, group, ctx), chunks_for(len(order)), ctx, writer, ctx.short_names)
 
 
 def tile_entry(tile: Tile, groups: dict[str, PayloadEntry]) -> TileEntry:
@@ -130,7 +136,8 @@ def encode_tile(tile: Tile, ctx: TileContext, writer: SceneWriter) -> TileEntry:
 
 
 def encode_codebook(codebook: Codebook, ctx: TileContext, writer: SceneWriter) -> SHCodebookEntry:
-    """The codebook's band payloads (one per band, so SH still loads band by band) and its manifest entry."""
+    """The codebook's band payloads (one per band, so SH still loads band by band) and its manifest entry. Named by
+    their whole SHA-256 in any version (format.md 6.2: short digests are the compact tile table's only)."""
     k = len(codebook.entries)
     fmt = ctx.formats["sh"]
     groups = {band: write_planes([plane], chunks_for(k), ctx, writer)

@@ -976,7 +976,7 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
     # The chunk order stays morton where the in-memory engine may keep an input's order (plan_encode): that needs
     # the whole scene in one tile, which a partitioned encode never has for more than one leaf of splats.
     scene, sample = plan_scene(opts, formats, chunk_order, sh_degree, sample, splats, bounds,
-                               scene_name(opts, source_name, out_name), progress, merge)
+                               scene_name(opts, source_name, out_name), progress, merge, tree=shape.tiles > 1)
     ctx = scene.context
     payloads = writer.payload_writer()
     codebook_entry = encode_codebook(ctx.codebook, ctx, payloads) if ctx.codebook is not None else None
@@ -1017,7 +1017,7 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
                        codebook_entry)
     engine.settle()
     return write_scene_manifest(writer, m, opts.page_tiles, opts.page_levels, opts.compact_table,
-                                opts.short_digests)
+                                opts.short_digests, short_names=ctx.short_names)
 
 
 # The levels above the partitions refined (refine_upper) in a refined partitioned encode; False leaves them as built

@@ -20,7 +20,7 @@ from ..format.codec import PaletteValues, chunk_ranges, decode_rotations, encode
 from ..format.container import DEFAULT_ZSTD_LEVEL
 from ..format.layout import CHUNK_SIZE, MAX_BLOCK_ROWS, MAX_BLOCKS_PER_ROW
 from ..format.limits import describe_violations, domain_violations
-from ..format.manifest import Box, CameraEntry, LodRefinement
+from ..format.manifest import Box, CameraEntry, LodRefinement, short_tile_names
 from ..format.planes import BASE_PLANES
 from ..format.presets import (
     PRESET_PALETTE_MERGE,
@@ -72,6 +72,9 @@ class TileContext:
     # Store each splat's rotation and scales as the equivalent pair whose rotation is closest to the identity in
     # this group (rotation_canon.canonical_gauge: "cube" or "half-turns"; the preset's: presets.rotation_gauge)
     rotation_gauge: str | None = None
+    # Name each tile payload by its short digest when it is written (data/<32 hex>.bin: a 1.15 scene, format.md 6.2;
+    # table.short_tile_names): its final name at once, so no payload is renamed (an object store's copy and delete)
+    short_names: bool = False
 
 
 @dataclass(frozen=True)
@@ -187,13 +190,14 @@ def plan_formats(opts: EncodeOptions) -> tuple[dict[str, str], str]:
 
 
 def plan_scene(opts: EncodeOptions, formats: dict[str, str], chunk_order: str, sh_degree: int, sample: SceneSample,
-               splats: int, bounds: Box, name: str, progress: Progress = no_progress, lod_merge: str | None = None
-               ) -> tuple[ScenePlan, SceneSample]:
+               splats: int, bounds: Box, name: str, progress: Progress = no_progress, lod_merge: str | None = None,
+               *, tree: bool) -> tuple[ScenePlan, SceneSample]:
     """The scene-wide decisions every engine takes from the scene sample: the SH codebook (fitted on the sample's
     rows, which are then dropped: below the sample size they are every splat's SH, 180 MB at 1M splats of SH3,
     which kept the codebook presets' LOD encode above 3x the input in peak memory) and the up direction. Returns
     the plan and the sample without its codebook rows (it still gives the camera). `lod_merge`: the merge the
-    engine builds its LOD tree with (recorded in the manifest), None for a tree it did not build."""
+    engine builds its LOD tree with (recorded in the manifest), None for a tree it did not build. `tree`: the scene
+    will have more than one tile (its tile payloads then named by short digests where the options write 1.15)."""
     choice = codebook_choice(opts, sh_degree)
     codebook = None
     if choice != "off":
@@ -208,7 +212,8 @@ def plan_scene(opts: EncodeOptions, formats: dict[str, str], chunk_order: str, s
     context = TileContext(formats, chunk_order, sh_degree, codebook, opts.zstd_level_for(sh_degree),
                           opts.resolved_transport, steps, palettes, preset_block_slack(packing),
                           preset_zstd_min_match(packing), preset_one_block_slack(packing),
-                          rotation_gauge(opts.preset, formats))
+                          rotation_gauge(opts.preset, formats),
+                          short_tile_names(tree, opts.compact_table, opts.short_digests))
     return ScenePlan(context, opts.preset, name, splats, bounds, up, opts.max_leaf_splats, float(opts.reduction),
                      lod_merge, viewing_scales_px() if lod_merge is not None else None,
                      camera_azimuth_deg=opts.camera_azimuth_deg), sample
@@ -245,7 +250,8 @@ def plan_encode(g: Gaussians, opts: EncodeOptions, progress: Progress = no_progr
                             palette_planes=palette_planes(formats))
     scene, sample = plan_scene(opts, formats, chunk_order, sh_degree, sample, len(g), positions_box(g.positions),
                                scene_name(opts, source_name, out_name), progress,
-                               None if tiles is not None and opts.imported_tree else opts.resolved_lod_merge(True))
+                               None if tiles is not None and opts.imported_tree else opts.resolved_lod_merge(True),
+                               tree=len(tiles) > 1 if tiles is not None else not one_tile)
     progress("tiles", 0.0)
     own_tree = tiles is None
     if tiles is None:

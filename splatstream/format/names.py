@@ -25,9 +25,10 @@ SHORT_DIGEST_BYTES = 16
 SCENES_URL_PREFIX = "/scenes/"
 
 
-def payload_name(sha256_hex: str) -> str:
-    """Relative path of a payload file: named by the SHA-256 of its bytes, so it is immutable."""
-    return f"{DATA_DIR}/{sha256_hex}{PAYLOAD_SUFFIX}"
+def payload_name(sha256_hex: str, short: bool = False) -> str:
+    """Relative path of a payload file: named by the SHA-256 of its bytes, so it is immutable; `short`: by the
+    first 16 bytes of a whole SHA-256 (a 1.15 tile table's name, format.md 6.2: short_digest)."""
+    return f"{DATA_DIR}/{short_digest(sha256_hex) if short else sha256_hex}{PAYLOAD_SUFFIX}"
 
 
 def sha256_hex(data: bytes | memoryview) -> str:

@@ -40,6 +40,7 @@ from .model import (
     tile_rows,
 )
 from .paging import PagedScene, pack_page, page_heads, read_page, resolve_pages, split_pages
+from .table import short_tile_names
 from .validate import (
     CHUNK_ORDER_NAMES,
     FILTERS_DOC,
@@ -88,4 +89,5 @@ __all__ = [
     "VERSION_1_4", "writer_version",
     "CHECKSUM_KEY", "CHECKSUM_PLACEHOLDER", "MAX_MANIFEST_BYTES", "MAX_MANIFEST_OBJECT_BYTES", "check_msgpack_bomb",
     "manifest_checksum", "pack_manifest", "pack_manifest_dict",
+    "short_tile_names",
 ]

@@ -464,10 +464,10 @@ class Manifest:
         """This manifest as 1.15 writes it (format.md 6.2, the compact tile table, short digests): version at least
         1.15, each tile's bounds as the float32 values the table holds (table.compact_columns: rounded outward),
         each sphere's centre its box's middle (1.15) and each tile payload named by the first 16 bytes of its
-        SHA-256 (`data/<32 hex>.bin`: the files must be renamed so, store.write_scene_manifest), so that what a
-        reader gets back is this manifest; `bytes_on_disk` settled again. short False: as 1.12 wrote it (the whole
-        SHA-256). An unchanged manifest where it is already compact. Tiles with a page (a paged manifest) cannot be
-        shortened: compact before paging."""
+        SHA-256 (`data/<32 hex>.bin`: the encoder writes the files under that name at once, table.short_tile_names),
+        so that what a reader gets back is this manifest; `bytes_on_disk` settled again. short False: as 1.12 wrote
+        it (the whole SHA-256). An unchanged manifest where it is already compact. Tiles with a page (a paged
+        manifest) cannot be shortened: compact before paging."""
         box, sphere, error = (a.tolist() for a in compact_columns(*bounds_columns(self.tiles), centre_from_box=short))
         tiles = tuple(replace(t, box=Box(tuple(b[:3]), tuple(b[3:])), sphere_center=tuple(s[:3]),
                               sphere_radius=s[3], geometric_error=e, **({"groups": _short_groups(t.groups)}

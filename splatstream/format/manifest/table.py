@@ -70,6 +70,15 @@ def short_digests(version: tuple[int, int]) -> bool:
     return tuple(version) >= VERSION_1_15
 
 
+def short_tile_names(tree: bool, compact_table: bool, short: bool) -> bool:
+    """Whether an encoder names a scene's tile payloads by short digests (`data/<32 hex>.bin`, format.md 6.2): a
+    tree (more than one tile: a single tile's `tiles` map keeps the whole SHA-256) written as the compact table
+    (`compact_table`) with short digests (`short`: 1.15). One rule for the payload jobs, which write each tile payload
+    under that name at once (no rename: an object store's rename is a copy and a delete), and for
+    store.write_scene_manifest, which refuses to publish a manifest that would name them otherwise."""
+    return tree and compact_table and short
+
+
 def digest_key(short: bool) -> str:
     """The column a table's digests are in: `digest16` (1.15), else `sha256`."""
     return SHORT_DIGEST_KEY if short else "sha256"
