@@ -235,8 +235,7 @@ def _numba_kernel():
     decode_jit.warm_up()
     return (decode_jit.fields1_kernel, decode_jit.unshuffle_kernel, decode_jit.fields1_many_kernel,
             decode_jit.unshuffle_many_kernel, decode_jit.whole_kernel, decode_jit.morton_kernel,
-            decode_jit.ranges_kernel, (decode_jit.fields1_keys_kernel, decode_jit.fields1_rows_kernel,
-                                       decode_jit.units_rows_kernel)), None
+            decode_jit.ranges_kernel), None
 
 
 def _use(kernels) -> None:
@@ -248,7 +247,6 @@ def _use(kernels) -> None:
     transport.use_whole_kernel(kernels[4] if kernels else None)
     keyed.use_morton_kernel(kernels[5] if kernels else None)
     container.use_ranges_kernel(kernels[6] if kernels and len(kernels) > 6 else None)
-    container.use_plan_kernels(*(kernels[7] if kernels and len(kernels) > 7 else (None, None, None)))
 
 
 def main() -> None:

@@ -25,18 +25,14 @@ for that lock; issue 32: that Python is most of a small payload's decode).
 `morton_kernel` decodes a `morton1` position section (format.md 5.4: keyed positions, the preset
 medium-low-palette) in one pass where numpy takes about fifteen calls (keyed.use_morton_kernel).
 
-`fields1_keys_kernel`, `fields1_rows_kernel` and `units_rows_kernel` plan a group's plane for the whole kernel (each
-section's key and its row) in a call or two where Python took about a microsecond a section
-(container.use_plan_kernels).
-
 `ranges_kernel` checks a plane's range values (finite, each minimum at most its maximum, inside the plane's domain:
 format.md 4.3, 4.8) in one pass where Python's floats took 5-6 us a call (container.use_ranges_kernel).
 
 `install()` compiles the kernels (or loads them from numba's cache: cache=True) with the argument types of a real
 call and hands them to format.transport (`use_fields_kernel`, `use_unshuffle_kernel`, `use_batch_kernels`,
-`use_whole_kernel`, keyed's `use_morton_kernel`, container's `use_ranges_kernel` and `use_plan_kernels`);
-`uninstall()` goes back to numpy. The core never imports numba (ARCHITECTURE.md): this module is the streaming
-client's, and benchmarks import it to compare both.
+`use_whole_kernel`, keyed's `use_morton_kernel`, container's `use_ranges_kernel`); `uninstall()` goes back to
+numpy. The core never imports numba (ARCHITECTURE.md): this module is the streaming client's, and benchmarks import
+it to compare both.
 """
 from __future__ import annotations
 
@@ -519,94 +515,6 @@ def morton_kernel(stored, slots, slot_to_texel, out):
 
 
 @njit(**_JIT)
-def fields1_keys_kernel(raw, cols, firsts, head, ats, ids, reps):
-    """container's planner of a group's fields1 plane (container.use_plan_kernels): `cols` the sections' (offset,
-    size, width, height) as rows (4, n), firsts[k] where payload k starts in raw; each section's content start into
-    ats[k], and its distinct key, (its `head` header bytes from there, its width, its height), numbered in order of
-    first appearance: ids[k] the number of section k's key, reps[j] the first section of key j. Returns how many keys,
-    or -1 where some header would reach past `raw` (the caller then plans the plane in Python, which refuses a bad
-    section naming it). A linear search over the keys seen: a plane of a run has a few to a few dozen (issue 32)."""
-    n = cols.shape[1]
-    end = raw.shape[0]
-    count = 0
-    for k in range(n):
-        a = cols[0, k] + firsts[k]
-        if a < 0 or a + head > end:
-            return -1
-        ats[k] = a
-        w = cols[2, k]
-        h = cols[3, k]
-        found = -1
-        for j in range(count):
-            r = reps[j]
-            if cols[2, r] != w or cols[3, r] != h:
-                continue
-            b = ats[r]
-            same = True
-            for i in range(head):
-                if raw[a + i] != raw[b + i]:
-                    same = False
-                    break
-            if same:
-                found = j
-                break
-        if found < 0:
-            found = count
-            reps[count] = k
-            count += 1
-        ids[k] = found
-    return count
-
-
-@njit(**_JIT)
-def fields1_rows_kernel(ids, ats, cols, expected, nbytes, keys, start, part):
-    """container's planner, after fields1_keys_kernel and the keys' rows: each section's run_whole_at row in `part`
-    ((n, 3): where its content starts, where its texels start in out, its key's index `keys[ids[k]]`), its texels at
-    16-byte offsets from `start` one after the other (each key's `nbytes`); returns where the last one ends, or -1
-    where a section's size (cols[1]) is not its key's `expected` content size (not well-formed: planned in Python)."""
-    at = start
-    for k in range(ids.shape[0]):
-        j = ids[k]
-        if cols[1, k] != expected[j]:
-            return -1
-        at += -at % 16
-        part[k, 0] = ats[k]
-        part[k, 1] = at
-        part[k, 2] = keys[j]
-        at += nbytes[j]
-    return at
-
-
-@njit(**_JIT)
-def units_rows_kernel(cols, firsts, element, check, start, rows):
-    """container's planner of a plane's shuffled (or stored) units, a section each (`cols` their (offset, size) as
-    rows (2, n), firsts[k] where payload k starts): each unit's run_whole_at unit row into `rows` (n, 5), one after the
-    other from `start` aligned to an `element` of 2, 4 or 8 bytes; returns where the last ends, or -1 where a gap would
-    fall between two (a size not a multiple of such an element, or an element copied whole): planned in Python."""
-    n = cols.shape[1]
-    e = element
-    if e == 2 or e == 4 or e == 8:
-        for k in range(n):
-            if cols[1, k] % e:
-                return -1
-        start += -start % e
-    elif e > 1:
-        return -1
-    else:
-        e = 1
-    at = start
-    for k in range(n):
-        size = cols[1, k]
-        rows[k, 0] = cols[0, k] + firsts[k]
-        rows[k, 1] = size // e
-        rows[k, 2] = e
-        rows[k, 3] = at
-        rows[k, 4] = check
-        at += size
-    return at
-
-
-@njit(**_JIT)
 def ranges_kernel(pairs, low, high):
     """container._ranges_ok's answer in one pass (container.use_ranges_kernel): every minimum and maximum of
     `pairs` ((chunks, 2, k) float32) finite, each minimum at most its maximum, all inside [low, high]. A NaN fails
@@ -664,12 +572,6 @@ def warm_up(whole: bool = True) -> None:
     read_only_pairs.setflags(write=False)
     for p in (pairs, read_only_pairs):
         ranges_kernel(p, -1.0, 1.0)
-    # the planner's (a run's kept buffer, int64 columns): compiled here, not in the first group's decode
-    one, cols = np.zeros(2, np.int64), np.zeros((4, 2), np.int64)
-    ids, reps, part = np.zeros(2, np.int64), np.zeros(2, np.int64), np.zeros((2, 3), np.int64)
-    fields1_keys_kernel(np.zeros(16, np.uint8), cols, one, 5, one.copy(), ids, reps)
-    fields1_rows_kernel(ids, one, cols, one, one, one, 0, part)
-    units_rows_kernel(cols[:2], one, 4, 0, 0, np.zeros((2, 5), np.int64))
     unit = np.zeros(16, np.uint8)
     read_only = unit.copy()
     read_only.setflags(write=False)
@@ -707,7 +609,6 @@ def install() -> None:
     transport.use_batch_kernels(fields1_many_kernel, unshuffle_many_kernel)
     keyed.use_morton_kernel(morton_kernel)
     container.use_ranges_kernel(ranges_kernel)
-    container.use_plan_kernels(fields1_keys_kernel, fields1_rows_kernel, units_rows_kernel)
     # SPLATSTREAM_DECODE_WHOLE=0: a plane at a time as before the whole kernel (for A/B runs of the fly-through:
     # the whole kernel gives the lock up twice a payload instead of about five times, for 10-20 us more of Python
     # holding it; BENCHMARKS.md, "Decode speed")
@@ -722,4 +623,3 @@ def uninstall() -> None:
     transport.use_whole_kernel(None)
     keyed.use_morton_kernel(None)
     container.use_ranges_kernel(None)
-    container.use_plan_kernels(None, None, None)

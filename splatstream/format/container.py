@@ -673,12 +673,6 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], sizes: list[int], sectio
     owner = whole if whole.base is None else whole.base
     flat: list[int] = []  # run_whole_at's 3 ints a fields1 section
     unit_rows: list[int] = []  # and its 5 a shuffled unit
-    # the compiled planner's (use_plan_kernels) rows of a plane at a time, as arrays, in plane order with what the
-    # Python loops wrote before them (flat and unit_rows, moved here as arrays when an array follows them)
-    flat_parts: list[np.ndarray] = []
-    unit_parts: list[np.ndarray] = []
-    at_firsts = np.array(firsts, np.int64) if len(firsts) >= PLAN_MIN_PAYLOADS \
-        and _plan_kernels[2] is not None else None
     span_rows: list[int] = []  # and its 4 a plane's ranges checked in the kernel
     index: dict[tuple, int] = {}  # (format, layers, header, width, height) -> its index in the tables' key
     out_bytes = 0
@@ -716,43 +710,29 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], sizes: list[int], sectio
             if is_float:
                 float_format = fmt
             head = 1 + per_layer * count
-            got = None if at_firsts is None else _plan_fields1(whole, secs, at_firsts, fmt, count, head, out_bytes,
-                                                               index)
-            if got is not None:  # the compiled planner (use_plan_kernels): every section well-formed
-                part, starts, nbytes_of, out_bytes = got
-                if flat:
-                    flat_parts.append(np.array(flat, np.int64).reshape(-1, 3))
-                    flat = []
-                flat_parts.append(part)
-                plane_first = starts[0]
-                if is_float:  # the gaps between its texels (none where every texel is 16 bytes: f32x4)
-                    pads += [(a + b, c - a - b) for a, b, c in zip(starts[:-1], nbytes_of[:-1], starts[1:], strict=True)
-                             if c != a + b]
-                texels += zip(secs, starts, nbytes_of, itertools.repeat(None))
-            else:
-                for k, (s, first) in enumerate(zip(secs, firsts, strict=True)):
-                    at = first + s.offset
-                    key = (fmt, count, view[at:at + head].tobytes(), s.width, s.height)
-                    row = rows_of[key]
-                    if row is None or s.size != row[0]:  # not well-formed: decoded alone, which refuses it naming it
-                        add((s, -1, 0, _texels_alone(bufs[k], s, count, sources[k], kept, owner)))
-                        floats_each = floats_each or is_float
-                        views = False
-                        continue
-                    nbytes = row[4]
-                    pad = -out_bytes % 16
-                    if pad:
-                        if plane_first >= 0:
-                            pads.append((out_bytes, pad))
-                        out_bytes += pad
-                    u = index.get(key)
-                    if u is None:
-                        u = index[key] = len(index)
-                    flat += (at, out_bytes, u)
-                    add((s, out_bytes, nbytes, None))
-                    if plane_first < 0:
-                        plane_first = out_bytes
-                    out_bytes += nbytes
+            for k, (s, first) in enumerate(zip(secs, firsts, strict=True)):
+                at = first + s.offset
+                key = (fmt, count, view[at:at + head].tobytes(), s.width, s.height)
+                row = rows_of[key]
+                if row is None or s.size != row[0]:  # not well-formed: decoded alone, which refuses it naming it
+                    add((s, -1, 0, _texels_alone(bufs[k], s, count, sources[k], kept, owner)))
+                    floats_each = floats_each or is_float
+                    views = False
+                    continue
+                nbytes = row[4]
+                pad = -out_bytes % 16
+                if pad:
+                    if plane_first >= 0:
+                        pads.append((out_bytes, pad))
+                    out_bytes += pad
+                u = index.get(key)
+                if u is None:
+                    u = index[key] = len(index)
+                flat += (at, out_bytes, u)
+                add((s, out_bytes, nbytes, None))
+                if plane_first < 0:
+                    plane_first = out_bytes
+                out_bytes += nbytes
             planned = True
         elif uniform and count == 1 and filt not in (FIELDS1, MORTON1) and fmt not in PALETTE_FORMATS:
             # a shuffled (or stored) plane of one format and one layer: a unit a payload (as below)
@@ -761,30 +741,20 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], sizes: list[int], sectio
                 float_format = fmt
             element = elements.get(filt) or _element(filt)
             check = float_checks.get(fmt, CHECK_NONE)
-            got = None if at_firsts is None else _plan_units(secs, at_firsts, element, check, out_bytes)
-            if got is not None:  # one array of unit rows for the plane: no gaps between its units
-                rows, starts, sizes_of, out_bytes = got
-                if unit_rows:
-                    unit_parts.append(np.array(unit_rows, np.int64).reshape(-1, 5))
-                    unit_rows = []
-                unit_parts.append(rows)
-                plane_first = starts[0]
-                texels += zip(secs, starts, sizes_of, itertools.repeat(None))
-            else:
-                for s, first in zip(secs, firsts, strict=True):
-                    unit = s.size
-                    e = 1 if element <= 1 or unit % element else element
-                    if e in (2, 4, 8):  # aligned for views of its elements
-                        pad = -out_bytes % e
-                        if pad:
-                            if plane_first >= 0:
-                                pads.append((out_bytes, pad))
-                            out_bytes += pad
-                    unit_rows += (first + s.offset, unit // e, e, out_bytes, check)
-                    if plane_first < 0:
-                        plane_first = out_bytes
-                    add((s, out_bytes, unit, None))
-                    out_bytes += unit
+            for s, first in zip(secs, firsts, strict=True):
+                unit = s.size
+                e = 1 if element <= 1 or unit % element else element
+                if e in (2, 4, 8):  # aligned for views of its elements
+                    pad = -out_bytes % e
+                    if pad:
+                        if plane_first >= 0:
+                            pads.append((out_bytes, pad))
+                        out_bytes += pad
+                unit_rows += (first + s.offset, unit // e, e, out_bytes, check)
+                if plane_first < 0:
+                    plane_first = out_bytes
+                add((s, out_bytes, unit, None))
+                out_bytes += unit
             planned = True
         for s, first in () if planned else zip(secs, firsts, strict=True):  # each payload adds one entry to texels
             fmt, filt = s.format, s.filter
@@ -901,23 +871,7 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], sizes: list[int], sectio
                 filt0, shape0 = r.filter, r.shape
                 range_shape = shape0[1:]
                 element0 = elements.get(filt0) or _element(filt0)
-                got = None
-                if at_firsts is not None:
-                    for r in range_sections:
-                        if r.filter != filt0:
-                            break
-                    else:  # one filter: the plane's unit rows as one array, if no gaps fall between them
-                        got = _plan_units(range_sections, at_firsts, element0, CHECK_NONE, out_bytes)
-                if got is not None:
-                    rows, range_at, _, out_bytes = got
-                    if unit_rows:
-                        unit_parts.append(np.array(unit_rows, np.int64).reshape(-1, 5))
-                        unit_rows = []
-                    unit_parts.append(rows)
-                    for shape in set(map(_SHAPE, range_sections)):
-                        if shape[1:] != range_shape:
-                            in_row = False
-                for r, first in () if got is not None else zip(range_sections, firsts, strict=True):
+                for r, first in zip(range_sections, firsts, strict=True):
                     size, filt = r.size, r.filter
                     element = element0 if filt == filt0 else elements.get(filt) or _element(filt)
                     if element <= 1 or size % element:
@@ -947,14 +901,6 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], sizes: list[int], sectio
                      ranges_checked, views))
     if between is not None:
         between()
-    if flat_parts:
-        if flat:
-            flat_parts.append(np.array(flat, np.int64).reshape(-1, 3))
-        flat = flat_parts[0] if len(flat_parts) == 1 else np.concatenate(flat_parts)
-    if unit_parts:
-        if unit_rows:
-            unit_parts.append(np.array(unit_rows, np.int64).reshape(-1, 5))
-        unit_rows = unit_parts[0] if len(unit_parts) == 1 else np.concatenate(unit_parts)
     out, status = run_whole_at(whole, flat, tuple(index), unit_rows, out_bytes, span_rows, _CHECK_BOUNDS)
     floats_passed = not status & CHECK_FAILED_FLOATS  # every float texel the kernel wrote in [0, 1]
     ranges_passed = not status & CHECK_FAILED_RANGES  # every range it checked finite, ordered, in its domain
@@ -1009,100 +955,6 @@ def _unpack_group(whole: np.ndarray, firsts: list[int], sizes: list[int], sectio
 
 
 _PALETTES: list[int] = []  # _unpack_group's mark of a palette plane in place of its ranges' offsets
-
-
-# The compiled planner of _unpack_group (use_plan_kernels), and the payloads in a run from which it plans: below, the
-# Python loops cost less than its few numpy and compiled calls a plane (a payload alone, the engine's few tiles)
-_plan_kernels: tuple = (None, None, None)
-PLAN_MIN_PAYLOADS = 8
-
-
-def use_plan_kernels(keys_kernel, rows_kernel, units_kernel) -> tuple:
-    """Plan a run's planes (_unpack_group) with compiled kernels (None, None, None: the Python loops, their
-    reference); returns the ones it replaces. Called as keys_kernel(raw, cols, firsts, head, ats, ids, reps) -> count
-    (each fields1 section's content start into ats and its distinct (header, width, height) numbered in order of
-    first appearance into ids, the first section of each into reps; -1: a header past raw), rows_kernel(ids, ats,
-    cols, expected, nbytes, keys, start, part) -> end (each section's run_whole_at row into part, its texels at 16-byte
-    offsets from start; -1: a section's size not its key's expected size) and units_kernel(cols, firsts, element,
-    check, start, rows) -> end (each unit's row into rows, one after the other from start aligned to element; -1:
-    a gap would fall between two). `cols` the sections' (offset, size, width, height), or (offset, size), as rows;
-    all int64 arrays but raw (uint8).
-
-    Why: the planning loops, a header read, a key, two dict lookups and a row a fields1 section, were about a
-    microsecond a section, the largest part of the Python around the whole kernel on very-high's LOD tree (issue 32,
-    decjit). The core never imports numba: the streaming client hands the kernels in
-    (client_gl/stream/decode_jit.py)."""
-    global _plan_kernels
-    previous, _plan_kernels = _plan_kernels, (keys_kernel, rows_kernel, units_kernel)
-    return previous
-
-
-def _plan_fields1(whole: np.ndarray, secs: list[Section], firsts: np.ndarray, fmt: str, count: int, head: int,
-                  out_bytes: int, index: dict[tuple, int]) -> tuple[np.ndarray, list[int], list[int], int] | None:
-    """_unpack_group's plan of a fields1 plane of one format by the compiled kernels (use_plan_kernels): (each
-    section's run_whole_at row (n, 3), where its texels start in out and their bytes, where the plane's texels end),
-    its keys added to `index`; or None (nothing added) where some section is not well-formed or no kernels were
-    handed in: the Python loop then plans it, decoding such a section alone (which refuses it naming it)."""
-    keys_kernel, rows_kernel, _ = _plan_kernels
-    if keys_kernel is None:
-        return None
-    n = len(secs)
-    # four list comprehensions and one conversion: a tuple a section, or numpy's from a list of them, cost more
-    cols = np.array([s.offset for s in secs] + [s.size for s in secs] + [s.width for s in secs]
-                    + [s.height for s in secs], np.int64).reshape(4, n)
-    ats = np.empty(n, np.int64)
-    ids = np.empty(n, np.int64)
-    reps = np.empty(n, np.int64)
-    distinct = keys_kernel(whole, cols, firsts, head, ats, ids, reps)
-    if distinct < 0:
-        return None
-    view, rows_of = whole.data, FIELDS1_ROWS
-    expected: list[int] = []
-    nbytes: list[int] = []
-    keys: list[int] = []
-    new: dict[tuple, int] = {}
-    for k in reps[:distinct].tolist():  # each distinct key's row, as the loop would look it up
-        s = secs[k]
-        at = int(ats[k])
-        key = (fmt, count, view[at:at + head].tobytes(), s.width, s.height)
-        row = rows_of[key]
-        if row is None:
-            return None
-        expected.append(row[0])
-        nbytes.append(row[4])
-        u = index.get(key)
-        if u is None:
-            u = new.get(key)
-            if u is None:
-                u = new[key] = len(index) + len(new)
-        keys.append(u)
-    by_key = np.array(expected + nbytes + keys, np.int64).reshape(3, distinct)
-    part = np.empty((n, 3), np.int64)
-    end = rows_kernel(ids, ats, cols, by_key[0], by_key[1], by_key[2], out_bytes, part)
-    if end < 0:
-        return None
-    index.update(new)  # in the order of their numbers
-    return part, part[:, 1].tolist(), by_key[1][ids].tolist(), int(end)
-
-
-def _plan_units(secs: list[Section], firsts: np.ndarray, element: int, check: int,
-                out_bytes: int) -> tuple[np.ndarray, list[int], list[int], int] | None:
-    """_unpack_group's plan of a plane's shuffled (or stored) sections of one filter, a unit each (one layer, or a
-    range section), by the compiled kernel (use_plan_kernels) as one array of run_whole_at's unit rows (n, 5): (rows,
-    where each unit starts in out, its bytes, where the last ends), the first aligned to `element` as the loop aligns
-    it; or None where the loop would leave a gap between two of them (a size not a multiple of an element of 2, 4 or
-    8 bytes, or an element it copies whole), or without the kernel."""
-    units_kernel = _plan_kernels[2]
-    if units_kernel is None:
-        return None
-    n = len(secs)
-    sizes = [s.size for s in secs]
-    cols = np.array([s.offset for s in secs] + sizes, np.int64).reshape(2, n)
-    rows = np.empty((n, 5), np.int64)
-    end = units_kernel(cols, firsts, element, check, out_bytes, rows)
-    if end < 0:
-        return None
-    return rows, rows[:, 3].tolist(), sizes, int(end)
 
 
 _SHAPE = operator.attrgetter("shape")

@@ -1723,20 +1723,18 @@ def run_whole(raw: np.ndarray, flat: list[int], keys: tuple, unit_rows: list[int
     return _call_whole(raw, rows, fields, modes, orders, most_f, most_n, out_bytes, unit_rows, span_rows, bounds)
 
 
-def run_whole_at(raw: np.ndarray, flat: list[int] | np.ndarray, keys: tuple, unit_rows: list[int] | np.ndarray,
-                 out_bytes: int,
+def run_whole_at(raw: np.ndarray, flat: list[int], keys: tuple, unit_rows: list[int], out_bytes: int,
                  span_rows: list[int] | None = None, bounds: np.ndarray | None = None) -> tuple[np.ndarray, int]:
     """run_whole for fields1 sections given as 3 ints each in `flat`: where its content starts in `raw`, where its
     texels start in out (bytes, a multiple of its word size), the index of its key in `keys` (whose FIELDS1_ROWS row,
     well-formed, gives the rest of its row: numpy takes it from each distinct key's, not the caller a section; the
-    work array's shape from them too). `flat` and `unit_rows` may be int64 arrays of those rows (n, 3) and (n, 5)
-    (container's compiled planner). The other arguments and what it returns: run_whole's.
+    work array's shape from them too). The other arguments and what it returns: run_whole's.
 
     Why: container's planner of a group's call wrote 9 ints a section, 6 of them its key's (issue 32, vhdec33: the
     Python around the kernel, 10-13 us a small payload, was the largest part of a pass but zstd)."""
     fields, modes, orders, _, _ = _whole_tables(keys)
     template, most_n, most_f = _whole_key_rows(keys)
-    part = np.asarray(flat, np.int64).reshape(-1, 3)  # a list, or the compiled planner's array (container)
+    part = np.array(flat, np.int64).reshape(-1, 3)
     rows = template[part[:, 2]]  # each section's key's row, less where the section lies (a copy: filled in below)
     rows[:, 0] += part[:, 0]
     rows[:, 1] += part[:, 0]
@@ -1753,7 +1751,7 @@ def _call_whole(raw: np.ndarray, rows: np.ndarray, fields: np.ndarray, modes: np
     work = _scratch("kernel", 8 * most_f * most_n).view(np.int64).reshape(most_f, most_n)
     kernel = _whole_kernel or _whole_kernel_planned
     status = kernel(raw, rows, fields, modes, orders, work, out, out.view(np.uint16), out.view(np.uint32),
-                    out.view(np.float32), np.asarray(unit_rows, np.int64).reshape(-1, 5),
+                    out.view(np.float32), np.array(unit_rows, np.int64).reshape(-1, 5),
                     np.array(span_rows or (), np.int64).reshape(-1, 4), _NO_BOUNDS if bounds is None else bounds)
     return out, int(status)
 
