@@ -425,6 +425,10 @@ class FsspecWriter:
     def __init__(self, url: str):
         self.url = url.rstrip("/")
         self.fs, self.root = fsspec_filesystem(url)
+        if not getattr(self.fs, "auto_mkdir", True):
+            # a filesystem of real directories (local://, file://) does not make a file's parent as an object
+            # store's key does: data/ first, or the first payload's write fails
+            self.fs.makedirs(f"{self.root}/{DATA_DIR}", exist_ok=True)
 
     def __enter__(self) -> FsspecWriter:
         return self

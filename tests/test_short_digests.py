@@ -215,3 +215,19 @@ def test_the_manifest_must_name_the_payloads_as_they_were_written(scenes):
     with pytest.raises(ValueError, match="written under short digests' names, the manifest would name them by whole"):
         write_scene_manifest(writer, m, 0, 0, compact_table=False, short_digests=True, short_names=True)
     assert writer.manifest is None
+
+
+def test_an_encode_to_a_local_url_makes_its_directories(tmp_path):
+    """local:// (fsspec's real directories: a parent is not made by writing its file, as an object store's key is)
+    gives the same scene as a plain directory, read back through the URL."""
+    pytest.importorskip("fsspec")
+    src = real("fruit_drops_sh3.ply")
+    url = f"local://{tmp_path}/as_url/scene"
+    for out in (url, tmp_path / "as_dir"):
+        r = run_cli("encode", src, out, "-q", "--max-leaf-splats", "300")
+        assert r.returncode == 0, r.stderr
+    a = read_manifest(FsspecStore(url))
+    b = read_manifest(FsspecStore(f"local://{tmp_path}/as_dir"))
+    assert a.tiles == b.tiles and len(a.tiles) > 1
+    manifest = "manifest.msgpack"
+    assert (tmp_path / "as_url/scene" / manifest).read_bytes() == (tmp_path / "as_dir" / manifest).read_bytes()
