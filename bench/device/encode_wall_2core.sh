@@ -28,7 +28,7 @@
 # 350-420 s there by enc2core31's run (old 13-14 s, base 47-50 s, new 33-46 s on its cores), under the call's 600 s;
 # the whole default run does not fit one call (biker adds about 60 s a round). CORESETS takes taskset's CPU lists,
 # ranges too: CORESETS="0-7 0-15" ONLY_1M=1 ROUNDS=2 measures 8 and 16 cores (new forks at most 2 children,
-# forked.MAX_PAYLOAD_PROCESSES, whatever the cores).
+# forked.MAX_PAYLOAD_PROCESSES, whatever the cores). VERSIONS="old new" leaves base out (this tree against 60c1b51).
 set -uo pipefail
 cd "$(dirname "$0")/../.."
 ROOT=$PWD
@@ -44,7 +44,9 @@ if [ -d .whl ]; then
   export PYTHONPATH=/tmp/site
 fi
 export PYTHONUNBUFFERED=1
+versions=(${VERSIONS:-old base new})
 for v in old base; do
+  [[ " ${versions[*]} " == *" $v "* ]] || continue
   if [ ! -d "$CARRY/$v/splatstream" ]; then
     commit=60c1b51; [ $v = base ] && commit=${BASE_COMMIT:-main}
     mkdir -p "$CARRY/$v" && git archive "$commit" splatstream cli | tar -x -C "$CARRY/$v" \
@@ -63,13 +65,12 @@ cases=()
 if [ "${ONLY_1M:-0}" != 1 ]; then
   for p in medium low very-high; do cases+=("$BIKER $p"); done
 fi
-versions=(old base new)
 t0=$SECONDS
 for round in $(seq 1 "$ROUNDS"); do
   for cores in $CORESETS; do
     for c in "${cases[@]}"; do
       set -- $c
-      k=$(( (round - 1) % 3 ))
+      k=$(( (round - 1) % ${#versions[@]} ))
       for v in "${versions[@]:$k}" "${versions[@]:0:$k}"; do
         python3 bench/encode_wall.py --label "$v" --code "${CODE[$v]}" --cores "$cores" --tag "round$round" \
           --json "$OUT/encode_wall.json" "$1" --preset "$2" | cut -c1-400
