@@ -696,3 +696,43 @@ def test_the_engine_makes_its_view_buffers_before_its_first_frame(paged_store):
         else:
             assert not held
         engine.close()
+
+
+def test_the_warm_up_child_leaves_when_its_parent_is_killed(tmp_path):
+    """The kernels' warm-up child (engine._WARM_UP) of a viewer killed while it compiles (SIGKILL: no clean-up runs)
+    exits instead of compiling on as an orphan. A parent process starts it as CompiledSelection does and is killed at
+    once, with numba's cache empty; the child must be gone (or a zombie) within a generous bound, not finish its
+    compile first."""
+    import os
+    import signal
+    import subprocess
+    import time
+
+    from client_gl.stream import engine
+
+    parent_code = ("import os, subprocess, sys, time\n"
+                   f"child = subprocess.Popen([sys.executable, '-c', {engine._WARM_UP!r}, str(os.getpid())])\n"
+                   "print(child.pid, flush=True)\n"
+                   "time.sleep(600)\n")
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(engine.__file__))))
+    env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path))  # an empty cache: killed while it compiles, the case seen
+    parent = subprocess.Popen([sys.executable, "-c", parent_code], stdout=subprocess.PIPE, text=True, cwd=root,
+                              env=env)
+    child = int(parent.stdout.readline())
+    parent.send_signal(signal.SIGKILL)
+    parent.wait()
+
+    def alive(pid: int) -> bool:
+        try:
+            with open(f"/proc/{pid}/stat") as f:
+                return f.read().rsplit(")", 1)[1].split()[0] != "Z"
+        except FileNotFoundError:
+            return False
+
+    for _ in range(600):  # a liveness bound (60 s), not a timing claim: the watch polls every 0.25 s
+        if not alive(child):
+            break
+        time.sleep(0.1)
+    else:
+        os.kill(child, signal.SIGKILL)
+        raise AssertionError("the warm-up child outlived its killed parent by 60 s")

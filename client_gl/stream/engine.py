@@ -13,6 +13,7 @@ drawn tiles nobody wants when slots run out; the root is never evicted), and com
 from __future__ import annotations
 
 import gc
+import os
 import queue
 import subprocess
 import sys
@@ -231,7 +232,7 @@ class CompiledSelection:
         # A child that fails (numba missing) leaves it to this thread; a frozen application has no interpreter to
         # start (sys.executable is the application).
         if not getattr(sys, "frozen", False):
-            subprocess.run([sys.executable, "-c", _WARM_UP], capture_output=True, check=False)
+            subprocess.run([sys.executable, "-c", _WARM_UP, str(os.getpid())], capture_output=True, check=False)
         try:
             # imported here: numba is an optional extra, and its import is what this thread keeps off the frames
             from . import selection_jit
@@ -252,8 +253,26 @@ class CompiledSelection:
         self._fn = selection_jit.select_near_compiled
 
 
-_WARM_UP = ("from client_gl.stream import selection_jit, decode_jit; selection_jit.warm_up(); "
-            "decode_jit.warm_up()")
+# The child leaves when its parent does: a viewer killed while the child compiles (SIGTERM, SIGKILL: nothing runs
+# subprocess.run's clean-up) would otherwise leave it compiling on, and a run of such kills left a dozen of them
+# fighting over numba's cache for minutes on the 2-core VM. On Linux the kernel kills it (PR_SET_PDEATHSIG, asked
+# for first thing; argv[1], the parent's pid, catches a parent gone before that); elsewhere a thread watches the
+# parent, which a compile in progress can starve until it ends.
+_WARM_UP = ("import os, sys, threading, time\n"
+            "parent = int(sys.argv[1])\n"
+            "if sys.platform.startswith('linux'):\n"
+            "    import ctypes, signal\n"
+            "    ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGKILL, 0, 0, 0)\n"
+            "def leave_with_parent():\n"
+            "    while os.getppid() == parent:\n"
+            "        time.sleep(0.25)\n"
+            "    os._exit(1)\n"
+            "if os.getppid() != parent:\n"
+            "    os._exit(1)\n"
+            "threading.Thread(target=leave_with_parent, daemon=True).start()\n"
+            "from client_gl.stream import selection_jit, decode_jit\n"
+            "selection_jit.warm_up()\n"
+            "decode_jit.warm_up()\n")
 
 
 COMPILED_SELECTION = CompiledSelection()
