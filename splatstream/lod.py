@@ -33,7 +33,7 @@ import numpy as np
 from .cores import available_cores
 from .format.layout import morton_codes
 from .format.limits import MAX_LOG_SCALE, MIN_LOG_SCALE
-from .gaussians import SH_C0, Gaussians, normalize_quaternions, rotation_matrices
+from .gaussians import SH_C0, Gaussians, normalize_quaternions, rotation_matrices, scaled_rotation_columns
 from .lod_groups import GroupRule, grid_group_starts, group_errors, group_ids_of, group_runs, member_terms
 
 # Bounds and errors use this many standard deviations (the 3DGS rasteriser's cut-off and KHR "ellipse" kernel).
@@ -284,19 +284,21 @@ def merge_groups(g: Gaussians, mass: np.ndarray, order: np.ndarray, starts: np.n
     p -= origin
     mu = np.add.reduceat(p * wn[:, None], starts)
     d = p - _rows(mu, group_of)
-    rot = rotation_matrices(_rows(g.rotations, order))
     log_s = _rows(g.log_scales, order)
-    m = rot * np.exp(log_s.astype(np.float64))[:, None, :]
+    # M = R S as nine contiguous columns (the same numbers as rotation_matrices(q) * s[:, None, :]): the products
+    # run on contiguous arrays, the same operations in the same order as on M's (N, 3, 3) strides.
+    m = scaled_rotation_columns(_rows(g.rotations, order), log_s)
     # The six distinct entries of w (Sigma_i + d d^T), reduced per group (cheaper than (N, 3, 3) products).
     cov = np.empty((n, 6))
     for k, (i, j) in enumerate(_SYM):
-        cov[:, k] = (m[:, i, 0] * m[:, j, 0] + m[:, i, 1] * m[:, j, 1] + m[:, i, 2] * m[:, j, 2] + d[:, i] * d[:, j])
+        cov[:, k] = (m[3 * i] * m[3 * j] + m[3 * i + 1] * m[3 * j + 1] + m[3 * i + 2] * m[3 * j + 2]
+                     + d[:, i] * d[:, j])
     cov *= wn[:, None]
     six = np.add.reduceat(cov, starts)
     merged_cov = np.empty((len(starts), 3, 3))
     for k, (i, j) in enumerate(_SYM):
         merged_cov[:, i, j] = merged_cov[:, j, i] = six[:, k]
-    del cov, m, rot
+    del cov, m
 
     evals, evecs = np.linalg.eigh(merged_cov)
     # A proper rotation: flip one axis of left-handed eigenbases.

@@ -31,7 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .format.layout import morton_codes
-from .gaussians import rotation_matrices
+from .gaussians import scaled_rotation_columns
 
 _SYM6 = ((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))
 _TWO_PI_1_5 = (2 * math.pi) ** 1.5
@@ -143,10 +143,12 @@ def _area6(c: np.ndarray) -> np.ndarray:
 
 def covariances6(rotations: np.ndarray, log_scales: np.ndarray) -> np.ndarray:
     """(N, 6) covariances (xx, xy, xz, yy, yz, zz) of unit quaternions (w, x, y, z) and log scales."""
-    m = rotation_matrices(rotations) * np.exp(log_scales.astype(np.float64))[:, None, :]
-    cov = np.empty((len(m), 6))
+    # M = R S as nine contiguous columns (the same numbers as rotation_matrices(q) * s[:, None, :]), so the products
+    # below run on contiguous arrays: the same operations in the same order as on M's (N, 3, 3) strides, 2-3x faster.
+    m = scaled_rotation_columns(rotations, log_scales)
+    cov = np.empty((len(rotations), 6))
     for k, (a, b) in enumerate(_SYM6):
-        cov[:, k] = m[:, a, 0] * m[:, b, 0] + m[:, a, 1] * m[:, b, 1] + m[:, a, 2] * m[:, b, 2]
+        cov[:, k] = m[3 * a] * m[3 * b] + m[3 * a + 1] * m[3 * b + 1] + m[3 * a + 2] * m[3 * b + 2]
     return cov
 
 

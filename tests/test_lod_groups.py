@@ -221,3 +221,28 @@ def test_row_dots_are_einsums_bits():
         both_nan = np.isnan(want) & np.isnan(got)
         assert np.array_equal(want.view(np.int64)[~both_nan], got.view(np.int64)[~both_nan])
         assert np.array_equal(np.isnan(want), np.isnan(got))
+
+
+def test_covariances_from_columns_are_the_strided_bits():
+    """covariances6 (and lod.merge_groups) take R S as nine contiguous columns (gaussians.scaled_rotation_columns):
+    the same bits as the products over rotation_matrices(q) * exp(s)[:, None, :]'s (N, 3, 3) strides, on random
+    and unnormalised quaternions, log scales of many magnitudes, signed zeros and non-finite entries."""
+    from splatstream.gaussians import rotation_matrices, scaled_rotation_columns
+
+    rng = np.random.default_rng(5)
+    n = 50_000
+    q = (rng.normal(size=(n, 4)) * 10.0 ** rng.integers(-20, 20, size=(n, 1))).astype(np.float32)
+    s = (rng.normal(size=(n, 3)) * 30).astype(np.float32)
+    q[:8] = [[0, 0, 0, 0], [-0.0, 0, -0.0, 1], [np.inf, 0, 0, 1], [np.nan, 1, 0, 0], [1, 0, 0, 0], [0, 1, 0, 0],
+             [0.5, -0.5, 0.5, -0.5], [1e-30, 1e30, 0, 0]]
+    s[:4] = [[-np.inf, 0, 1], [800, -800, 0], [np.nan, 0, 0], [-0.0, 0.0, -1e-40]]
+    with np.errstate(all="ignore"):
+        m = rotation_matrices(q) * np.exp(s.astype(np.float64))[:, None, :]
+        cols = scaled_rotation_columns(q, s)
+        want = np.empty((n, 6))
+        for k, (a, b) in enumerate(((0, 0), (0, 1), (0, 2), (1, 1), (1, 2), (2, 2))):
+            want[:, k] = m[:, a, 0] * m[:, b, 0] + m[:, a, 1] * m[:, b, 1] + m[:, a, 2] * m[:, b, 2]
+        got = lod_groups.covariances6(q, s)
+    for k in range(9):
+        assert np.array_equal(cols[k].view(np.int64), m[:, k // 3, k % 3].view(np.int64))
+    assert np.array_equal(want.view(np.int64), got.view(np.int64))
