@@ -27,7 +27,7 @@ that share of the scene's splats, level a):
 For `shared` and `bands` the part sizes are measured (the tiles packed as the encoder packs a page, the root with
 the manifest's keys and a page entry per part); a part is read where a drawn tile or an ancestor of one lies in
 it. Where a cut under `--fill-min-kb` waits for a page, today's client fetches the root tile's payload for the
-first frame (client.md 1.9): counted. Round trips to convergence: the manifest, each part the cut goes through,
+first frame (client.md 1.11): counted. Round trips to convergence: the manifest, each part the cut goes through,
 the payloads.
 
     PYTHONPATH=. python bench/small_root_estimate.py SCENE_DIR BEFORE.json [--share 0.02] [--band 2] [--out OUT.json]
