@@ -489,3 +489,24 @@ def test_ctrl_c_while_the_local_cluster_starts_says_one_line(tmp_path, state, fo
     while _group_processes(proc.pid) and time.monotonic() < deadline:  # the cluster's processes end with it
         time.sleep(0.05)
     assert _group_processes(proc.pid) == []
+
+
+def test_the_local_cluster_takes_a_free_local_port(scene_ply, tmp_path):
+    """With Dask's usual dashboard port held (another cluster, another program), `encode --workers` still prints
+    nothing but its result: the scheduler's HTTP server takes a free port on 127.0.0.1 (it bound 0.0.0.0:8787, and
+    a held port printed Dask's 'Port 8787 is already in use' warning into the CLI's stderr)."""
+    pytest.importorskip("distributed")
+    from conftest import run_cli
+
+    holder = socket.socket()
+    try:
+        holder.bind(("0.0.0.0", 8787))
+        holder.listen(1)
+    except OSError:
+        pass  # held already by someone else: the case itself
+    try:
+        r = run_cli("encode", "-q", "--workers", "2", scene_ply, tmp_path / "scene")
+    finally:
+        holder.close()
+    assert r.returncode == 0 and r.stderr == "", r.stderr
+    assert load_manifest(tmp_path / "scene").leaf_splats > 0

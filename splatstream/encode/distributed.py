@@ -59,13 +59,16 @@ class DaskEngine:
                 try:
                     if processes and self._config is not None:
                         _start_fork_server_ignoring_sigint()
+                    # The scheduler's HTTP server on a free port of this machine only: dashboard_address=None still
+                    # bound 0.0.0.0:8787 (every interface), and a second encode, or a test's cluster left running,
+                    # printed Dask's "Port 8787 is already in use" warning into a one-line stderr.
                     # Workers' own logs only at CRITICAL: a task's failure reaches us through its future (and is
                     # reported once, as a one-line error), while a worker's heartbeat racing the shutdown on a loaded
                     # machine logged a traceback at ERROR after a successful encode (seen in 2 of 6 runs of the
                     # README's --workers 8 line).
                     self.cluster = distributed.LocalCluster(n_workers=n, threads_per_worker=1, processes=processes,
-                                                            dashboard_address=None, silence_logs=logging.CRITICAL,
-                                                            **extra)
+                                                            dashboard_address="127.0.0.1:0",
+                                                            silence_logs=logging.CRITICAL, **extra)
                     self.client = distributed.Client(self.cluster)
                 except BaseException:
                     self._close_started()
