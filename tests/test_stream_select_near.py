@@ -15,7 +15,7 @@ from dataclasses import replace
 
 import numpy as np
 import pytest
-from conftest import real
+from conftest import ROOT, real
 from test_stream_engine import CountingPool, PagedFetcher, orbit
 
 from client_gl.stream.engine import COMPILED_SELECTION, StreamEngine, StreamOptions
@@ -714,9 +714,8 @@ def test_the_warm_up_child_leaves_when_its_parent_is_killed(tmp_path):
                    f"child = subprocess.Popen([sys.executable, '-c', {engine._WARM_UP!r}, str(os.getpid())])\n"
                    "print(child.pid, flush=True)\n"
                    "time.sleep(600)\n")
-    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(engine.__file__))))
     env = dict(os.environ, NUMBA_CACHE_DIR=str(tmp_path))  # an empty cache: killed while it compiles, the case seen
-    parent = subprocess.Popen([sys.executable, "-c", parent_code], stdout=subprocess.PIPE, text=True, cwd=root,
+    parent = subprocess.Popen([sys.executable, "-c", parent_code], stdout=subprocess.PIPE, text=True, cwd=ROOT,
                               env=env)
     child = int(parent.stdout.readline())
     parent.send_signal(signal.SIGKILL)
