@@ -239,6 +239,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--fill-min-kb", default=None, metavar="KB,KB,...",
                     help="view --fill-min-kb values to compare, interleaved run by run (each view and repeat runs "
                          "them in turn): one row per budget and value")
+    ap.add_argument("--compare", default=None, metavar="ARGS|ARGS|...",
+                    help="as --fill-min-kb, for any `splatstream view` options: each |-separated string is one row "
+                         "(e.g. \"--fill-min-kb 64|--skip-levels\")")
     ap.add_argument("--repeat", type=int, default=1, help="runs of each view and value (timing: median and range)")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
@@ -249,7 +252,12 @@ def main(argv: list[str] | None = None) -> int:
     cams = [Camera.from_dict(c) for c in d["cameras"]]
     splats = d["splats"]
     tree = _whole_tree(args.scene_dir)
+    if args.fill_min_kb is not None and args.compare is not None:
+        ap.error("--fill-min-kb and --compare: give one of them")
+    # each row's extra view options, and its label in the JSON
     fills: list[str | None] = [None] if args.fill_min_kb is None else args.fill_min_kb.split(",")
+    variants = [(f, "" if f is None else f" --fill-min-kb {f}") for f in fills] if args.compare is None else \
+        [(v.strip(), " " + v.strip()) for v in args.compare.split("|")]
     server, url = None, None
     if args.link:
         from bench_stream import serve
@@ -266,16 +274,16 @@ def main(argv: list[str] | None = None) -> int:
                          tree, args.view_args, url)
         for b in (float(x) for x in args.budgets.split(",")):
             n = int(b) if b > 1 else max(1, int(round(b * splats)))
-            runs: dict[str | None, list[dict]] = {f: [] for f in fills}
+            runs: dict[str | None, list[dict]] = {f: [] for f, _ in variants}
             for rep in range(args.repeat):
                 for i, c in enumerate(cams):
-                    for f in fills:
-                        extra = args.view_args + ("" if f is None else f" --fill-min-kb {f}")
-                        v = measure_view(args.scene_dir, n, c, args.size, args.prefetch, ctx, tree, extra, url)
+                    for f, extra in variants:
+                        v = measure_view(args.scene_dir, n, c, args.size, args.prefetch, ctx, tree,
+                                         args.view_args + extra, url)
                         v.update(view=i, repeat=rep)
                         runs[f].append(v)
-            for f in fills:
-                rows.append(_row(d["scene"], n, b, f, runs[f], args))
+            for f, _ in variants:
+                rows.append(_row(d["scene"], n, b, f, runs[f], args, args.compare is not None))
     finally:
         ctx.release()
         if server is not None:
@@ -286,12 +294,13 @@ def main(argv: list[str] | None = None) -> int:
     if args.out:
         json.dump({"scene": d["scene"], "scene_dir": args.scene_dir, "prefetch": args.prefetch, "link": args.link,
                    "repeat": args.repeat, "load_average_start": load_start, "load_average_end": os.getloadavg(),
-                   "view_args": args.view_args, "fill_min_kb": args.fill_min_kb, "rows": rows},
+                   "view_args": args.view_args, "fill_min_kb": args.fill_min_kb, "compare": args.compare,
+                   "rows": rows},
                   open(args.out, "w"), indent=1)
     return 0
 
 
-def _row(scene: str, n: int, b: float, fill: str | None, views: list[dict], args) -> dict:
+def _row(scene: str, n: int, b: float, fill: str | None, views: list[dict], args, variant: bool = False) -> dict:
     mean = {k: sum(v[k] for v in views) / len(views) for k in views[0]
             if k != "draw" and all(isinstance(w[k], (int, float)) for w in views)}
     row = {"budget": n, "fraction": b, "views": views,
@@ -300,7 +309,9 @@ def _row(scene: str, n: int, b: float, fill: str | None, views: list[dict], args
            "ratio_no_manifest_or_pages": (mean["downloaded"] - mean["manifest"] - mean["pages"])
            / mean["drawn_tile_bytes"], "least_ratio": mean["least"] / mean["drawn_tile_bytes"],
            "least_ratio_without_root": mean["least_without_root"] / mean["drawn_tile_bytes"]}
-    if fill is not None:
+    if variant:
+        row["variant"] = fill
+    elif fill is not None:
         row["fill_min_kb"] = float(fill)
     timing = ""
     if args.link:
@@ -309,7 +320,7 @@ def _row(scene: str, n: int, b: float, fill: str | None, views: list[dict], args
         ff, cv = row["first_frame_s"], row["converged_s"]
         timing = (f"; {args.link}: first frame {ff['median']:.3f} s ({ff['min']:.3f}-{ff['max']:.3f}), converged "
                   f"{cv['median']:.3f} s ({cv['min']:.3f}-{cv['max']:.3f}), n = {ff['n']}")
-    label = "" if fill is None else f" fill {float(fill):g} KiB"
+    label = "" if fill is None else f" [{fill}]" if variant else f" fill {float(fill):g} KiB"
     print(f"{scene} {n:>8,}{label}: {row['ratio']:.3f}x (payloads alone {row['ratio_no_manifest_or_pages']:.3f}x): "
           f"manifest {mean['manifest']:,.0f} B, pages {mean['pages']:,.0f} B ({mean['n_pages']:.1f}, used "
           f"{mean['n_pages_used']:.1f}: {mean['pages_used']:,.0f} B), drawn "
