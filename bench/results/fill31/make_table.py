@@ -12,7 +12,8 @@ import statistics
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 NAMES = {0.0: "0", 64.0: "64 KiB", 97.65625: "100 KB", 128.0: "128 KiB"}
-SCENES = ["donut", "biker", "statue-angel", "statue-narcissus"]
+SCENES = ["donut", "biker", "statue-angel", "statue-narcissus", "statue-angel-with-candlestick", "guitar",
+          "winter_fountain"]
 
 
 def ms(x: float) -> str:
