@@ -9,6 +9,13 @@ on what any manifest layout of the format could read for the same cut (`least_by
 
     PYTHONPATH=. python bench/small_budget_bytes.py SCENE_DIR LOD_VS_PEERS.json --budgets 0.02,0.06 \
         [--prefetch] [--view-args "--fill-gap 5"] [--out OUT.json]
+    PYTHONPATH=. python bench/small_budget_bytes.py SCENE_DIR LOD_VS_PEERS.json --budgets 0.06 --link 20:40 \
+        --fill-min-kb 0,64,97.65625,128 --repeat 3 --view-args "--gpu-mem-mb 32" --out OUT.json
+
+With `--link` the scene is served by `splatstream serve --throttle-mbps --latency-ms` on 127.0.0.1 and streamed
+from its URL by a cold client (issue 31, fill31): each run also records the time to the first frame with splats
+and to convergence (from the manifest request, StreamMetrics), and `--fill-min-kb` compares the client's small-cut
+thresholds run by run, interleaved, `--repeat` times each (the JSON: each run, and per row the median and range).
 
 `SCENE_DIR` is streamed as `splatstream view SCENE_DIR --headless --max-splats N [--no-prefetch]` streams it (the
 view command's option parsing, in this process); the JSON gives the cameras and the scene's splats.
@@ -38,7 +45,11 @@ def _whole_tree(scene_dir: str):
     return raw, root, whole
 
 
-def measure_view(scene_dir: str, n: int, cam, size: int, prefetch: bool, ctx, tree, view_args: str = "") -> dict:
+def measure_view(scene_dir: str, n: int, cam, size: int, prefetch: bool, ctx, tree, view_args: str = "",
+                 url: str | None = None) -> dict:
+    """One view streamed until converged: its bytes sorted (module doc) and its times (`first_frame_s`,
+    `converged_s`, from the manifest request: StreamMetrics). url: stream from this server URL of the scene instead
+    of the directory (with --no-cache: a cold client); the files are the directory's."""
     from lod_vs_peers import view_argv
 
     from cli.commands import view as view_cmd
@@ -50,7 +61,6 @@ def measure_view(scene_dir: str, n: int, cam, size: int, prefetch: bool, ctx, tr
 
     raw, root, whole = tree
     log: list[tuple[str, int]] = []
-    orig_payload, orig_manifest = sources.StoreSource.fetch_payload, sources.StoreSource.fetch_manifest
 
     async def fetch_payload(self, entry, on_bytes=None):
         data = await orig_payload(self, entry, on_bytes)
@@ -62,16 +72,27 @@ def measure_view(scene_dir: str, n: int, cam, size: int, prefetch: bool, ctx, tr
         log.append(("manifest.msgpack", len(data)))
         return data
 
-    sources.StoreSource.fetch_payload, sources.StoreSource.fetch_manifest = fetch_payload, fetch_manifest
+    async def revalidate_manifest(self, etag, on_bytes=None):  # HttpSource: what its fetcher asks the manifest with
+        reply = await orig_manifest(self, etag, on_bytes)
+        log.append(("manifest.msgpack", len(reply.data or b"")))
+        return reply
+
+    klass = sources.HttpSource if url else sources.StoreSource
+    manifest_method = "revalidate_manifest" if url else "fetch_manifest"
+    orig_payload, orig_manifest = klass.fetch_payload, getattr(klass, manifest_method)
+    klass.fetch_payload = fetch_payload
+    setattr(klass, manifest_method, revalidate_manifest if url else fetch_manifest)
     try:
-        argv = view_argv(scene_dir, n, size, cam.eye, cam.target, cam.up, cam.fov_y_deg) + ["--quiet"]
+        argv = view_argv(url or scene_dir, n, size, cam.eye, cam.target, cam.up, cam.fov_y_deg) + ["--quiet"]
+        if url:
+            argv.append("--no-cache")
         if not prefetch:
             argv.append("--no-prefetch")
         argv += shlex.split(view_args)
         args = build_parser().parse_args(argv)
         options = view_cmd._options(args)
         camera = view_cmd._fixed_camera(args, parse_size(args.size))
-        session = StreamingSession.open(scene_dir, ctx, options)
+        session = StreamingSession.open(url or scene_dir, ctx, options)
         first_draw = None
         try:
             t0 = time.perf_counter()
@@ -88,10 +109,13 @@ def measure_view(scene_dir: str, n: int, cam, size: int, prefetch: bool, ctx, tr
                     session.wait(0.005)
             draw = [int(t) for t in session.last.draw]
             downloaded = session.fetcher.stats().bytes_downloaded
+            times = {k: session.metrics.to_json()[k] for k in ("first_frame_s", "converged_s", "bytes_first_frame",
+                                                               "manifest_s", "pool_s", "built_s")}
         finally:
             session.close()
     finally:
-        sources.StoreSource.fetch_payload, sources.StoreSource.fetch_manifest = orig_payload, orig_manifest
+        klass.fetch_payload = orig_payload
+        setattr(klass, manifest_method, orig_manifest)
 
     # what each file is, and its depth in round trips
     by_id = {t.id: t for t in whole.tiles}
@@ -159,6 +183,8 @@ def measure_view(scene_dir: str, n: int, cam, size: int, prefetch: bool, ctx, tr
     out["drawn_splats"] = sum(by_id[t].splats for t in draw)
     out["least"] = least_bytes(tree, draw, parent)
     out["least_without_root"] = least_bytes(tree, draw, parent, with_root=False)
+    out["first_draw_tiles"] = len(first_draw)
+    out.update(times)
     return out
 
 
@@ -188,6 +214,15 @@ def least_bytes(tree, draw: list[int], parent: dict[int, int], with_root: bool =
     return int(keys + len(rows) * (32 * groups + rest_per_row) + payloads)
 
 
+def _stats(values: list[float]) -> dict:
+    v = sorted(x for x in values if x is not None)
+    if not v:
+        return {"median": None, "min": None, "max": None, "n": 0}
+    mid = len(v) // 2
+    median = v[mid] if len(v) % 2 else (v[mid - 1] + v[mid]) / 2
+    return {"median": median, "min": v[0], "max": v[-1], "n": len(v)}
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("scene_dir")
@@ -196,6 +231,18 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--size", type=int, default=384)
     ap.add_argument("--prefetch", action="store_true", help="the default prefetch (else --no-prefetch)")
     ap.add_argument("--view-args", default="", help="more `splatstream view` options, one string")
+    ap.add_argument("--link", default=None, metavar="MBIT:LATENCY_MS|loopback",
+                    help="stream from `splatstream serve` of the scene's parent directory on 127.0.0.1 over this "
+                         "simulated link (serve --throttle-mbps --latency-ms; e.g. 20:40, the reference link), a "
+                         "cold client (--no-cache), instead of reading the directory: the times then are a "
+                         "network's (first frame with splats, converged: from the manifest request)")
+    ap.add_argument("--fill-min-kb", default=None, metavar="KB,KB,...",
+                    help="view --fill-min-kb values to compare, interleaved run by run (each view and repeat runs "
+                         "them in turn): one row per budget and value")
+    ap.add_argument("--compare", default=None, metavar="ARGS|ARGS|...",
+                    help="as --fill-min-kb, for any `splatstream view` options: each |-separated string is one row "
+                         "(e.g. \"--fill-min-kb 64|--skip-levels\")")
+    ap.add_argument("--repeat", type=int, default=1, help="runs of each view and value (timing: median and range)")
     ap.add_argument("--out", default=None)
     args = ap.parse_args(argv)
     from client_gl.offscreen import create_context
@@ -205,32 +252,84 @@ def main(argv: list[str] | None = None) -> int:
     cams = [Camera.from_dict(c) for c in d["cameras"]]
     splats = d["splats"]
     tree = _whole_tree(args.scene_dir)
+    if args.fill_min_kb is not None and args.compare is not None:
+        ap.error("--fill-min-kb and --compare: give one of them")
+    # each row's extra view options, and its label in the JSON
+    fills: list[str | None] = [None] if args.fill_min_kb is None else args.fill_min_kb.split(",")
+    variants = [(f, "" if f is None else f" --fill-min-kb {f}") for f in fills] if args.compare is None else \
+        [(v.strip(), " " + v.strip()) for v in args.compare.split("|")]
+    server, url = None, None
+    if args.link:
+        from bench_stream import serve
+
+        scene = os.path.abspath(args.scene_dir)
+        server, base = serve(os.path.dirname(scene), args.link)
+        url = f"{base}/scenes/{os.path.basename(scene)}"
+    load_start = os.getloadavg()
     ctx = create_context()
     rows = []
-    for b in (float(x) for x in args.budgets.split(",")):
-        n = int(b) if b > 1 else max(1, int(round(b * splats)))
-        views = [measure_view(args.scene_dir, n, c, args.size, args.prefetch, ctx, tree, args.view_args) for c in cams]
-        mean = {k: sum(v[k] for v in views) / len(views) for k in views[0] if k != "draw"}
-        row = {"budget": n, "fraction": b, "views": views,
-               "ratio": mean["downloaded"] / mean["drawn_tile_bytes"],
-               "ratio_no_manifest": (mean["downloaded"] - mean["manifest"]) / mean["drawn_tile_bytes"],
-               "ratio_no_manifest_or_pages": (mean["downloaded"] - mean["manifest"] - mean["pages"])
-               / mean["drawn_tile_bytes"], "least_ratio": mean["least"] / mean["drawn_tile_bytes"],
-               "least_ratio_without_root": mean["least_without_root"] / mean["drawn_tile_bytes"]}
-        rows.append(row)
-        print(f"{d['scene']} {n:>8,}: {row['ratio']:.3f}x (payloads alone {row['ratio_no_manifest_or_pages']:.3f}x): "
-              f"manifest {mean['manifest']:,.0f} B, pages {mean['pages']:,.0f} B ({mean['n_pages']:.1f}, used "
-              f"{mean['n_pages_used']:.1f}: {mean['pages_used']:,.0f} B), drawn "
-              f"{mean['drawn']:,.0f} B ({mean['drawn_tiles']:.1f} tiles), ancestors {mean['ancestors']:,.0f} B "
-              f"({mean['n_ancestors']:.1f}), other {mean['other']:,.0f} B ({mean['n_other']:.1f}); round trips "
-              f"first frame {[v['rt_first_frame'] for v in views]}, converged {[v['rt_converged'] for v in views]}; "
-              f"floor {row['least_ratio']:.3f}x ({row['least_ratio_without_root']:.3f}x without the root)",
-              flush=True)
-    ctx.release()
+    try:
+        if url:  # one run first, not recorded: the process's first session imports and compiles what later ones reuse
+            measure_view(args.scene_dir, max(1, int(round(0.02 * splats))), cams[0], args.size, args.prefetch, ctx,
+                         tree, args.view_args, url)
+        for b in (float(x) for x in args.budgets.split(",")):
+            n = int(b) if b > 1 else max(1, int(round(b * splats)))
+            runs: dict[str | None, list[dict]] = {f: [] for f, _ in variants}
+            for rep in range(args.repeat):
+                for i, c in enumerate(cams):
+                    for f, extra in variants:
+                        v = measure_view(args.scene_dir, n, c, args.size, args.prefetch, ctx, tree,
+                                         args.view_args + extra, url)
+                        v.update(view=i, repeat=rep)
+                        runs[f].append(v)
+            for f, _ in variants:
+                rows.append(_row(d["scene"], n, b, f, runs[f], args, args.compare is not None))
+    finally:
+        ctx.release()
+        if server is not None:
+            import signal
+
+            server.send_signal(signal.SIGTERM)
+            server.wait(10)
     if args.out:
-        json.dump({"scene": d["scene"], "scene_dir": args.scene_dir, "prefetch": args.prefetch, "rows": rows},
+        json.dump({"scene": d["scene"], "scene_dir": args.scene_dir, "prefetch": args.prefetch, "link": args.link,
+                   "repeat": args.repeat, "load_average_start": load_start, "load_average_end": os.getloadavg(),
+                   "view_args": args.view_args, "fill_min_kb": args.fill_min_kb, "compare": args.compare,
+                   "rows": rows},
                   open(args.out, "w"), indent=1)
     return 0
+
+
+def _row(scene: str, n: int, b: float, fill: str | None, views: list[dict], args, variant: bool = False) -> dict:
+    mean = {k: sum(v[k] for v in views) / len(views) for k in views[0]
+            if k != "draw" and all(isinstance(w[k], (int, float)) for w in views)}
+    row = {"budget": n, "fraction": b, "views": views,
+           "ratio": mean["downloaded"] / mean["drawn_tile_bytes"],
+           "ratio_no_manifest": (mean["downloaded"] - mean["manifest"]) / mean["drawn_tile_bytes"],
+           "ratio_no_manifest_or_pages": (mean["downloaded"] - mean["manifest"] - mean["pages"])
+           / mean["drawn_tile_bytes"], "least_ratio": mean["least"] / mean["drawn_tile_bytes"],
+           "least_ratio_without_root": mean["least_without_root"] / mean["drawn_tile_bytes"]}
+    if variant:
+        row["variant"] = fill
+    elif fill is not None:
+        row["fill_min_kb"] = float(fill)
+    timing = ""
+    if args.link:
+        row["first_frame_s"] = _stats([v["first_frame_s"] for v in views])
+        row["converged_s"] = _stats([v["converged_s"] for v in views])
+        ff, cv = row["first_frame_s"], row["converged_s"]
+        timing = (f"; {args.link}: first frame {ff['median']:.3f} s ({ff['min']:.3f}-{ff['max']:.3f}), converged "
+                  f"{cv['median']:.3f} s ({cv['min']:.3f}-{cv['max']:.3f}), n = {ff['n']}")
+    label = "" if fill is None else f" [{fill}]" if variant else f" fill {float(fill):g} KiB"
+    print(f"{scene} {n:>8,}{label}: {row['ratio']:.3f}x (payloads alone {row['ratio_no_manifest_or_pages']:.3f}x): "
+          f"manifest {mean['manifest']:,.0f} B, pages {mean['pages']:,.0f} B ({mean['n_pages']:.1f}, used "
+          f"{mean['n_pages_used']:.1f}: {mean['pages_used']:,.0f} B), drawn "
+          f"{mean['drawn']:,.0f} B ({mean['drawn_tiles']:.1f} tiles), ancestors {mean['ancestors']:,.0f} B "
+          f"({mean['n_ancestors']:.1f}), other {mean['other']:,.0f} B ({mean['n_other']:.1f}); round trips "
+          f"first frame {sorted({v['rt_first_frame'] for v in views})}, converged "
+          f"{sorted({v['rt_converged'] for v in views})}; floor {row['least_ratio']:.3f}x "
+          f"({row['least_ratio_without_root']:.3f}x without the root){timing}", flush=True)
+    return row
 
 
 if __name__ == "__main__":
