@@ -2,7 +2,8 @@
 """Where a scene's manifest bytes go (issue 31, branch digest31): the root manifest's size, the compact tile table's
 bin, the keys outside it, and each column's share of the table as zstd compresses it (the table packed again at the
 writer's level without that column: its marginal bytes; the parts do not add up to the whole exactly), for scenes
-given as BEFORE:AFTER directory pairs (the same input encoded by two writers, e.g. 1.12 and 1.15).
+given as BEFORE:AFTER directory pairs (the same input encoded by two writers, e.g. 1.12 and 1.15), and the bounds
+columns' joint share (`bounds_marginal`: box and radius, or 1.16's anchor_box, box8, radius8 and radius_far).
 
     PYTHONPATH=. python bench/manifest_columns.py /tmp/before/donut:/tmp/after/donut ... [--out OUT.json]
 """
@@ -19,6 +20,8 @@ import zstandard
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from splatstream.format.manifest import parse_manifest  # noqa: E402
 from splatstream.format.manifest.table import COMPACT_TABLE_ZSTD_LEVEL, TABLE_ZSTD_KEY  # noqa: E402
+
+BOUNDS_KEYS = ("box", "sphere", "radius", "anchor_box", "box8", "radius8", "radius_far")
 
 
 def _z(d: dict) -> int:
@@ -47,6 +50,11 @@ def columns(scene_dir: str) -> dict:
         rest = {a: b for a, b in t.items() if a != k}
         marginal[k] = whole - _z(rest)
     out["column_marginal"] = marginal
+    # the bounds together (box and sphere or radius; 1.16's anchor_box, box8, radius8, radius_far): their joint
+    # marginal bytes, the table packed without all of them (box16)
+    bounds = [k for k in t if k in BOUNDS_KEYS]
+    out["bounds_keys"] = bounds
+    out["bounds_marginal"] = whole - _z({a: b for a, b in t.items() if a not in BOUNDS_KEYS})
     out["column_raw"] = {k: len(v) for k, v in t.items() if isinstance(v, bytes)}
     return out
 
@@ -65,7 +73,8 @@ def main(argv: list[str] | None = None) -> int:
         dig = {k: v for k, v in a.get("column_marginal", {}).items() if k in ("digest16", "sha256")}
         print(f"{name}: {b['manifest']:,} B ({'.'.join(map(str, b['version']))}) -> {a['manifest']:,} B "
               f"({'.'.join(map(str, a['version']))}), {a['tiles']} tiles, {a.get('payloads', 0)} payloads; "
-              f"digests {b.get('column_marginal', {}).get('sha256', 0):,} -> {sum(dig.values()):,} B; after: "
+              f"digests {b.get('column_marginal', {}).get('sha256', 0):,} -> {sum(dig.values()):,} B; bounds "
+              f"{b.get('bounds_marginal', 0):,} -> {a.get('bounds_marginal', 0):,} B; after: "
               + ", ".join(f"{k} {v:,}" for k, v in sorted(a.get("column_marginal", {}).items(),
                                                           key=lambda kv: -kv[1])[:8]))
     if args.out:

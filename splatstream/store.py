@@ -261,11 +261,14 @@ class PayloadWriter(Protocol):
 
 
 def write_scene_manifest(writer: SceneWriter, m: Manifest, page_tiles: int, page_levels: int,
-                         compact_table: bool = False, short_digests: bool = True, *, short_names: bool) -> Manifest:
+                         compact_table: bool = False, short_digests: bool = True, *, short_names: bool,
+                         relative_boxes: bool = True) -> Manifest:
     """Publish a scene's manifest: as it is, or, for a tree of more than `page_tiles` tiles (0: never), as a root
     manifest and its pages (format.md 6.1), the pages written like payloads before the root that names them.
     compact_table: a tree's tiles as the compact tile table (format.md 6.2: Manifest.compacted), its files named by
-    short digests (version 1.15: `data/<32 hex>.bin`) unless short_digests is False (1.12). short_names: the tile
+    short digests (version 1.15: `data/<32 hex>.bin`) unless short_digests is False (1.12), its boxes relative to
+    their parents' (1.16) unless relative_boxes is False (1.15; each page's top tiles are its table's anchors:
+    Manifest.compacted's page_levels). short_names: the tile
     payloads were written under their short digests' names (the payload jobs', TileContext.short_names): nothing is
     renamed here, so it must be what these options make of `m` (table.short_tile_names; a ValueError otherwise).
     Returns the whole manifest as a reader of the scene gets it (load_manifest: every tile; a paged scene's version,
@@ -275,7 +278,8 @@ def write_scene_manifest(writer: SceneWriter, m: Manifest, page_tiles: int, page
         raise ValueError(f"{m.name}: the tile payloads were written under {'short' if short_names else 'whole'} "
                          f"digests' names, the manifest would name them by {'short' if short else 'whole'} ones")
     if compact_table and len(m.tiles) > 1:
-        compact = m.compacted(short_digests)
+        paging = page_tiles and len(m.tiles) > page_tiles
+        compact = m.compacted(short_digests, relative_boxes, page_levels if paging else 0)
         if short:
             _check_short_names(m, compact)
         m = compact

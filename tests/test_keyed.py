@@ -90,6 +90,6 @@ def test_a_paged_keyed_scene_writes_its_pages_at_its_own_version(tmp_path):
     g = read_gaussians(real("statues/massa.sog")).subset(np.arange(3000))
     m = encode_gaussians(g, tmp_path / "s", EncodeOptions(preset="medium-low-12bit", transport="keyed",
                                                           max_leaf_splats=400, page_tiles=4, page_levels=1))
-    assert m.paged is not None and m.version == (1, 15)  # 1.6 morton1, 1.10 the lod record, 1.15 compact tables
+    assert m.paged is not None and m.version == (1, 16)  # 1.6 morton1, 1.10 the lod record, 1.16 compact tables
     d = decode_scene(tmp_path / "s")
     assert len(d) == len(g)

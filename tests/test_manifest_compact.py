@@ -11,18 +11,20 @@ from splatstream.encode import EncodeOptions, encode_in_memory
 from splatstream.errors import FormatError
 from splatstream.format.manifest import pack_manifest, pack_manifest_dict, parse_manifest, resolve_pages, split_pages
 from splatstream.format.manifest.table import compact_columns, down_f32, up_f32
-from splatstream.format.manifest.versions import VERSION_1_10, VERSION_1_12, VERSION_1_15
+from splatstream.format.manifest.versions import VERSION_1_10, VERSION_1_12, VERSION_1_15, VERSION_1_16
 from splatstream.ply import read_gaussians_ply
 from splatstream.store import MemoryStore, read_manifest
 
 
 @pytest.fixture(scope="module")
 def scenes():
-    """The same tree written compact (the default) and as the 1.8 table."""
+    """The same tree written compact with f32 boxes (1.15: relative_boxes off; 1.16's u8 boxes are
+    test_relative_boxes.py's) and as the 1.8 table."""
     g = read_gaussians_ply(real("fruit_drops_sh3.ply"))
     out = {}
     for compact in (True, False):
-        store = encode_in_memory(g, EncodeOptions(preset="medium", max_leaf_splats=300, compact_table=compact))
+        store = encode_in_memory(g, EncodeOptions(preset="medium", max_leaf_splats=300, compact_table=compact,
+                                                  relative_boxes=False))
         out[compact] = (store.read_manifest(), read_manifest(store))
     return out
 
@@ -134,16 +136,22 @@ def test_a_compact_table_in_an_older_version_is_an_unknown_key(scenes):
 
 
 def test_encode_writes_the_compact_table_unless_told_not_to(tmp_path):
-    """`encode` writes a tree as 1.15 (the compact table, short digests); `--no-short-digests` as 1.12,
-    `--no-compact-table` as the 1.8 table, the same payloads (the 1.15 scene's named by their digests' prefixes)."""
-    for name, extra in (("compact", []), ("plain", ["--no-compact-table"]), ("long", ["--no-short-digests"])):
+    """`encode` writes a tree as 1.16 (the compact table, short digests, relative boxes); `--no-relative-boxes` as
+    1.15, `--no-short-digests` as 1.12, `--no-compact-table` as the 1.8 table, the same payloads (the 1.15 and 1.16
+    scenes' named by their digests' prefixes)."""
+    for name, extra in (("compact", []), ("plain", ["--no-compact-table"]), ("long", ["--no-short-digests"]),
+                        ("f32", ["--no-relative-boxes"])):
         r = run_cli("encode", real("fruit_drops_sh3.ply"), tmp_path / name, "--max-leaf-splats", "2000", "-q", *extra)
         assert r.returncode == 0, r.stderr
     compact, plain, long = ((tmp_path / n / "manifest.msgpack").read_bytes() for n in ("compact", "plain", "long"))
     assert "tile_table_zstd" in msgpack.unpackb(compact, strict_map_key=False)
     assert "tile_table" in msgpack.unpackb(plain, strict_map_key=False)
-    assert parse_manifest(compact).version == VERSION_1_15 and parse_manifest(plain).version == VERSION_1_10
+    assert parse_manifest(compact).version == VERSION_1_16 and parse_manifest(plain).version == VERSION_1_10
     assert parse_manifest(long).version == VERSION_1_12
-    names = {n: sorted(p.name for p in (tmp_path / n / "data").iterdir()) for n in ("compact", "plain", "long")}
+    f32 = (tmp_path / "f32" / "manifest.msgpack").read_bytes()
+    assert parse_manifest(f32).version == VERSION_1_15 and len(compact) < len(f32)
+    names = {n: sorted(p.name for p in (tmp_path / n / "data").iterdir()) for n in ("compact", "plain", "long",
+                                                                                    "f32")}
+    assert names["f32"] == names["compact"]
     assert names["plain"] == names["long"] and all(len(n) == 64 + 4 for n in names["plain"])
     assert names["compact"] == sorted(n[:32] + ".bin" for n in names["plain"])

@@ -171,11 +171,16 @@ def test_encode_writes_pages_over_the_threshold_and_the_cli_reads_them(tmp_path)
 def test_export_3dtiles_of_a_paged_scene_is_the_unpaged_scenes(tmp_path):
     """The exporter reads every page (load_manifest): with --external-tilesets never, the same tileset as the
     scene's unpaged encode; by default the same content, the tree cut into external tilesets at the pages
-    (tests/test_tiles3d.py checks that tree tile for tile)."""
+    (tests/test_tiles3d.py checks that tree tile for tile). Encoded as 1.15 (f32 boxes): from 1.16 a page's top
+    tiles are its table's anchors (f32 boxes) where the unpaged table codes them against their parents, so the two
+    encodes' bounding volumes differ there by their rounding (both hold the tree's; format.md 6.2); their tiles'
+    content is the same (below)."""
     ply = str(real("fruit_drops_sh3.ply"))
-    for name, extra in (("paged", ["--page-tiles", "4", "--page-levels", "2"]), ("whole", [])):
+    for name, extra in (("paged", ["--page-tiles", "4", "--page-levels", "2"]), ("whole", []),
+                        ("paged16", ["--page-tiles", "4", "--page-levels", "2"]), ("whole16", [])):
+        f32 = [] if name.endswith("16") else ["--no-relative-boxes"]
         assert run_cli("encode", ply, str(tmp_path / name), "--max-leaf-splats", "300", "--quiet",
-                       *extra).returncode == 0
+                       *extra, *f32).returncode == 0
         r = run_cli("export-3dtiles", str(tmp_path / name), str(tmp_path / f"{name}.tiles"))
         assert r.returncode == 0, r.stderr
     r = run_cli("export-3dtiles", str(tmp_path / "paged"), str(tmp_path / "paged.single"), "--external-tilesets",
@@ -187,3 +192,8 @@ def test_export_3dtiles_of_a_paged_scene_is_the_unpaged_scenes(tmp_path):
     assert not list((b / "tiles").glob("*.json"))  # an unpaged scene: one tileset.json, as before
     assert len(list((external / "tiles").glob("*.json"))) == load_manifest(tmp_path / "paged").paged.pages
     assert sorted(p.name for p in (external / "tiles").glob("*.glb")) == sorted(p.name for p in (b / "tiles").iterdir())
+    # 1.16: the same tiles, payloads and content; the bounds each hold the unpaged tree's f64 ones
+    paged16, whole16 = load_manifest(tmp_path / "paged16"), load_manifest(tmp_path / "whole16")
+    assert paged16.version == whole16.version == (1, 16)
+    for x, y in zip(paged16.tiles, whole16.tiles, strict=True):
+        assert (x.id, x.children, x.splats, x.groups) == (y.id, y.children, y.splats, y.groups)

@@ -171,7 +171,7 @@ def test_a_sog_input_decodes_exactly_from_a_scene_with_scene_palettes(sog_scene)
 
 def test_lod_leaves_decode_exactly_and_payloads_carry_no_palettes(sog_lod_scene):
     g, out, m = sog_lod_scene
-    assert m.version == (1, 15) and len(m.tiles) > 3 and m.palettes  # 1.7 palettes, 1.10 lod, 1.15 compact table
+    assert m.version == (1, 16) and len(m.tiles) > 3 and m.palettes  # 1.7 palettes, 1.10 lod, 1.16 compact table
     assert _palette_sections(m, leaves_only=True) == 0
     _assert_exact(g, decode_scene(out))
 
@@ -206,7 +206,7 @@ def test_a_paged_scene_keeps_its_palettes_in_the_root_manifest(tmp_path):
     out = tmp_path / "paged"
     m = encode_gaussians(g, out, EncodeOptions(preset="medium-low-12bit", overrides=PAL, max_leaf_splats=400,
                                                page_tiles=4, page_levels=1))
-    assert m.paged is not None and m.version == (1, 15) and m.palettes
+    assert m.paged is not None and m.version == (1, 16) and m.palettes
     _assert_exact(g, decode_scene(out))
 
 

@@ -16,7 +16,7 @@ from splatstream.encode import EncodeOptions, encode_in_memory, encode_to
 from splatstream.errors import FormatError
 from splatstream.format.container import verify_payload
 from splatstream.format.manifest import pack_manifest, pack_manifest_dict, parse_manifest, resolve_pages, split_pages
-from splatstream.format.manifest.versions import VERSION_1_12, VERSION_1_15
+from splatstream.format.manifest.versions import VERSION_1_12, VERSION_1_15, VERSION_1_16
 from splatstream.format.names import digest_matches, is_payload_path, payload_name
 from splatstream.ply import read_gaussians_ply
 from splatstream.scene_decode import decode_scene
@@ -25,11 +25,13 @@ from splatstream.store import FsspecStore, FsspecWriter, MemoryStore, MemoryWrit
 
 @pytest.fixture(scope="module")
 def scenes(fruit):
-    """The same tree as 1.15 (the default) and as 1.12 (short_digests off): (store, manifest)."""
+    """The same tree as 1.15 (relative_boxes off: 1.16 is test_relative_boxes.py's) and as 1.12 (short_digests
+    off): (store, manifest)."""
     g = fruit
     out = {}
     for short in (True, False):
-        store = encode_in_memory(g, EncodeOptions(preset="medium", max_leaf_splats=300, short_digests=short))
+        store = encode_in_memory(g, EncodeOptions(preset="medium", max_leaf_splats=300, short_digests=short,
+                                                  relative_boxes=False))
         out[short] = (store, read_manifest(store))
     return out
 
@@ -100,7 +102,7 @@ def test_a_damaged_payload_is_refused_in_one_line_naming_the_file(tmp_path):
     r = run_cli("encode", real("fruit_drops_sh3.ply"), scene, "--max-leaf-splats", "2000", "-q")
     assert r.returncode == 0, r.stderr
     m = parse_manifest((scene / "manifest.msgpack").read_bytes())
-    assert m.version == VERSION_1_15
+    assert m.version == VERSION_1_16
     e = m.tiles[-1].groups["base"]
     path = scene / e.file
     data = bytearray(path.read_bytes())
@@ -182,7 +184,7 @@ def test_an_object_store_gets_each_payload_once_under_its_final_name(fruit, shor
     root = fsspec.core.url_to_fs(url)[1].rstrip("/")
     named = {p.file for _, _, p in m.payloads()}
     assert {p[len(root) + 1:] for p in puts} == named | {"manifest.msgpack"}
-    assert m.version == (VERSION_1_15 if short else VERSION_1_12) and m.sh_codebook is not None
+    assert m.version == (VERSION_1_16 if short else VERSION_1_12) and m.sh_codebook is not None
     for tile, _, p in m.payloads():
         assert len(p.sha256) == (32 if short and tile is not None else 64) and p.file == payload_name(p.sha256)
     back = read_manifest(FsspecStore(url))

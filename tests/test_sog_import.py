@@ -126,10 +126,10 @@ def test_encode_keeps_their_tree(exported, tmp_path):
     assert rebuilt.splats == 4721 and rebuilt.lod.max_leaf_splats == 4096 != kept.lod.max_leaf_splats
     assert sum(not t.children for t in rebuilt.tiles) < sum(not t.children for t in kept.tiles)
     # Their kept tree says nothing of how it was built; ours, rebuilt, records its merge and viewing scales (1.9).
-    # Both are written with the compact tile table (1.15, format.md 6.2), which says nothing of how a tree was built.
-    assert not kept.lod.build_recorded and kept.version == (1, 15)
+    # Both are written with the compact tile table (1.16, format.md 6.2), which says nothing of how a tree was built.
+    assert not kept.lod.build_recorded and kept.version == (1, 16)
     assert rebuilt.lod.merge == "auto" and rebuilt.lod.viewing_scale_px == (2.0, 8.0, 12.0, 16.0)
-    assert rebuilt.version == (1, 15)
+    assert rebuilt.version == (1, 16)
     r = run_cli("encode", exported / "sog", tmp_path / "x", "--workers", "2", "-q")
     assert r.returncode == 2 and "--rebuild-lod" in r.stderr and "Traceback" not in r.stderr, r.stderr
 

@@ -155,7 +155,7 @@ def test_table_vector_reads_its_tile_tables_and_decodes_to_expected_values():
         assert np.array_equal(getattr(g, field), np.array(expected[field], np.float32)), field
 
 
-COMPACT_VECTORS = {"compact": [1, 12], "digest16": [1, 15]}
+COMPACT_VECTORS = {"compact": [1, 12], "digest16": [1, 15], "relbox16": [1, 16]}
 
 
 @pytest.mark.parametrize("name", sorted(COMPACT_VECTORS))
@@ -164,15 +164,22 @@ def test_compact_vector_holds_compact_tables_and_decodes_to_expected_values(name
     manifest and every page hold `tile_table_zstd` (a zstd frame of the table with f32 bounds), and with every page
     read it is `levels`'s tree: the same payloads, each tile's bounds `levels`'s rounded outward to float32.
     `digest16` (1.15) is the same with its payloads and pages named by the first 16 bytes of their SHA-256 and its
-    spheres as radii about the boxes' middles."""
+    spheres as radii about the boxes' middles. `relbox16` (1.16) is `digest16` with its boxes as u8 steps of their
+    parents' (`box8`; the root's and each page's top tiles' f32, `anchor_box`) and its radii as u8 steps of the half
+    diagonal (`radius8`): `levels`'s bounds held, the root's box `digest16`'s."""
     scene = VECTORS / name
     version = COMPACT_VECTORS[name]
     short = version >= [1, 15]
+    relative = version >= [1, 16]
     raw = (scene / "manifest.msgpack").read_bytes()
     d = msgpack.unpackb(raw, strict_map_key=False)
     assert "tile_table_zstd" in d and "tile_table" not in d and d["version"] == version
     table = msgpack.unpackb(zstandard.ZstdDecompressor().decompress(d["tile_table_zstd"]), strict_map_key=False)
-    assert len(table["box"]) == table["count"] * 6 * 4  # f32
+    if relative:  # the root the one anchor of the root manifest, its 8 children steps of its box
+        assert len(table["anchor_box"]) == 6 * 4 and len(table["box8"]) == (table["count"] - 1) * 6
+        assert len(table["radius8"]) == table["count"] and "box" not in table
+    else:
+        assert len(table["box"]) == table["count"] * 6 * 4  # f32
     digests = table["digest16" if short else "sha256"]
     assert ("sha256" in table) != short and len(digests) == table["count"] * 2 * (16 if short else 32)
     root = parse_manifest(raw)
@@ -192,7 +199,8 @@ def test_compact_vector_holds_compact_tables_and_decodes_to_expected_values(name
     for a, b in zip(m.tiles, plain.tiles, strict=True):
         assert {k: e.sha256 for k, e in a.groups.items()} == {k: e.sha256[:32] if short else e.sha256
                                                               for k, e in b.groups.items()}
-        assert all(float(np.float32(v)) == v for v in (*a.box.min, *a.box.max, a.sphere_radius))
+        if not relative:
+            assert all(float(np.float32(v)) == v for v in (*a.box.min, *a.box.max, a.sphere_radius))
         if short:  # 1.15: the sphere's centre is the f32 box's middle (its `radius` column alone is stored)
             assert a.sphere_center == tuple((x + y) / 2 for x, y in zip(a.box.min, a.box.max, strict=True))
             moved = float(np.linalg.norm(np.subtract(a.sphere_center, b.sphere_center)))
@@ -202,6 +210,10 @@ def test_compact_vector_holds_compact_tables_and_decodes_to_expected_values(name
         assert all(x <= y for x, y in zip(a.box.min, b.box.min, strict=True))
         assert all(x >= y for x, y in zip(a.box.max, b.box.max, strict=True))
         assert a.sphere_radius >= b.sphere_radius and a.geometric_error >= b.geometric_error
+    if relative:  # the anchors (the root; each page's top tiles) as digest16's f32 boxes
+        f32 = {t.id: t.box for t in load_manifest(VECTORS / "digest16").tiles}
+        assert all(t.box == f32[t.id] for t in m.tiles if t.level % 2 == 0)
+        assert sum(t.box != f32[t.id] for t in m.tiles) > 0
     expected = json.loads((scene / "expected.json").read_text())
     g = decode_scene(scene)
     assert len(g) == expected["splats"] == m.splats == 600

@@ -251,6 +251,9 @@ def test_reading_the_pages_the_rule_wants_converges_to_the_whole_trees_cut(whole
     rule wants, select again, until none is wanted; the cut is then the whole tree's, at random views and budgets,
     and again after the camera moves (closer, or anywhere): a page needed later still comes. Fewer pages are read
     than by wanting the page of every head the view would refine."""
+    # format 1.16: the tree as it is held when paged 2 levels to a file (each page's top tiles are its table's f32
+    # anchors, format.md 6.2), which is what the pages give back
+    whole = whole.compacted(page_levels=2)
     paged = split_pages(whole, 2)
     files = {ref.file: raw for ref, raw in paged.pages}
     rnd = random.Random(31)
@@ -345,6 +348,7 @@ def test_a_view_inside_tiles_converges_to_one_cut_whatever_order_the_pages_land_
     same refined tiles and priorities), whatever order its pages land in; and on each tree held the scan and the
     compiled selection are select's (test_stream_select_near.check_same). Before, the rows broke the ties: the same
     views gave several cuts."""
+    whole = whole.compacted(page_levels=2)  # 1.16: as held when paged (the pages' top tiles f32 anchors)
     paged = split_pages(whole, 2)
     files = {ref.file: raw for ref, raw in paged.pages}
     whole_cost = np.array([t.chunks for t in whole.tiles], np.float64) * 4096.0

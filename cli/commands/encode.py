@@ -133,6 +133,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="name a tree's files by their whole SHA-256 (format 1.12), not by its first 16 bytes as "
                         "1.15 does (16 B a payload less in the manifest a small budget reads first), for readers "
                         "older than 1.15")
+    p.add_argument("--no-relative-boxes", action="store_true",
+                   help="write a tree's boxes and radii as f32 (format 1.15), not as u8 steps of the parent's box and "
+                        "of the half diagonal as 1.16 does (about 1.2 KB less in the manifest), for readers older "
+                        "than 1.16")
     p.add_argument("--zstd-level", type=int, default=None,
                    help=f"zstd level of the payloads (1..22; default {DEFAULT_ZSTD_LEVEL}, "
                         + ", ".join(f"{k} {v}" for k, v in PRESET_ZSTD_LEVEL.items())
@@ -290,7 +294,7 @@ def run(args: argparse.Namespace) -> int:
                             lod_merge=args.lod_merge, name=args.name, up=up, chunk_order=args.chunk_order,
                             sh_codebook=args.sh_codebook, page_tiles=args.page_tiles, page_levels=args.page_levels,
                             compact_table=not args.no_compact_table, short_digests=not args.no_short_digests,
-                            lod_refiner=lod_refiner,
+                            relative_boxes=not args.no_relative_boxes, lod_refiner=lod_refiner,
                             camera_azimuth_deg=azimuth, on_read=check_read)
     if not args.quiet:
         print(f"wrote {args.output_dir}: {count(m.splats, 'splat')}, SH degree {m.sh_degree}, preset {m.preset}, "
@@ -415,7 +419,8 @@ def _encode_foreign_tree(args: argparse.Namespace, kind: str, preset: str, overr
                          zstd_level=args.zstd_level, transport=args.transport, name=args.name, up=up,
                          chunk_order=args.chunk_order, sh_codebook=args.sh_codebook, page_tiles=args.page_tiles,
                          page_levels=args.page_levels, compact_table=not args.no_compact_table,
-                         short_digests=not args.no_short_digests, camera_azimuth_deg=azimuth)
+                         short_digests=not args.no_short_digests, relative_boxes=not args.no_relative_boxes,
+                         camera_azimuth_deg=azimuth)
     tree = reader(args.input[0], progress)
     if "sh" in overrides:
         _check_sh_format(args, overrides, args.input[0],
@@ -457,6 +462,7 @@ def _preset_for_target(args: argparse.Namespace, up: tuple[float, float, float] 
                                        "page_tiles": args.page_tiles, "page_levels": args.page_levels,
                                        "compact_table": not args.no_compact_table,
                                        "short_digests": not args.no_short_digests,
+                                       "relative_boxes": not args.no_relative_boxes,
                                        "transport": args.transport,
                                        "chunk_order": args.chunk_order})
     report = evaluate(args.input[0], opts, log=log, renderer=pick_renderer("auto"))

@@ -2,10 +2,10 @@
 
     PYTHONPATH=. python format_spec/vectors/make_vectors.py [NAME ...]
 
-NAME: high, medium, medium-low, low, very-low, paged, table, levels, refined, compact, digest16 (default:
+NAME: high, medium, medium-low, low, very-low, paged, table, levels, refined, compact, digest16, relbox16 (default:
 all). tests/test_spec_vectors.py encodes the presets' scenes again with `encode_vector` (`levels`, `refined` with
-`encode_record_vector`, `compact` and `digest16` with `encode_compact_vector`) and fails when what the encoder
-writes today no longer matches the vector."""
+`encode_record_vector`, `compact`, `digest16` and `relbox16` with `encode_compact_vector`) and fails when what the
+encoder writes today no longer matches the vector."""
 import json
 import pathlib
 import shutil
@@ -41,8 +41,12 @@ TREE = {"max_leaf_splats": 64, "sh_degree": 1, "lod_merge": "grid", "compact_tab
 # Written with the whole SHA-256 (short_digests=False), so it stays a 1.12 vector.
 COMPACT = {"max_leaf_splats": 64, "sh_degree": 1, "lod_merge": "grid", "page_tiles": 1, "page_levels": 2}
 # `digest16`: the same encode as format 1.15 writes it (format.md 6.2, "Short digests"): the compact tables name
-# payloads and pages by the first 16 bytes of their SHA-256 (`digest16`, files `data/<32 hex>.bin`).
-COMPACT_VECTORS = {"compact": {"short_digests": False}, "digest16": {}}
+# payloads and pages by the first 16 bytes of their SHA-256 (`digest16`, files `data/<32 hex>.bin`); written with
+# f32 boxes (relative_boxes=False), so it stays a 1.15 vector.
+# `relbox16`: the same encode as format 1.16 writes it (format.md 6.2, "Boxes relative to the parent's"): each box
+# as u8 steps of its parent's (`box8`), the root's and the pages' top tiles' as f32 (`anchor_box`), the radii as u8
+# steps of the half diagonal (`radius8`, `radius_far`).
+COMPACT_VECTORS = {"compact": {"short_digests": False}, "digest16": {"relative_boxes": False}, "relbox16": {}}
 # `refined`'s record (informative metadata: fixed values, not a GPU's): every merged level tried B and C; the first
 # merged level kept B, the levels above it stayed as built.
 REFINED_PSNR = ((UNREFINED, 30.0), ("B", 31.5), ("C", 31.25))
@@ -103,7 +107,7 @@ RECORDS = ["levels", "refined"]
 
 
 def encode_compact_vector(out: pathlib.Path, source=None, name: str = "compact") -> None:
-    """A compact-table vector (`compact`: format 1.12; `digest16`: 1.15), without expected.json."""
+    """A compact-table vector (`compact`: format 1.12; `digest16`: 1.15; `relbox16`: 1.16), without expected.json."""
     source = read_gaussians_ply(SOURCE) if source is None else source
     g = source.subset(morton_order(source.positions)[:PAGED_SPLATS])
     encode_gaussians(g, out, EncodeOptions(preset="medium", name=f"vector-{name}", zstd_level=3, **COMPACT,

@@ -64,7 +64,8 @@ def encode_to(g: Gaussians, writer: SceneWriter, opts: EncodeOptions, progress: 
         if children is not None:
             children.close()  # children still running (an encode that failed) stopped before the writer cleans up
     return write_scene_manifest(writer, m, opts.page_tiles, opts.page_levels, opts.compact_table,
-                                opts.short_digests, short_names=ctx.short_names)
+                                opts.short_digests, short_names=ctx.short_names,
+                                relative_boxes=opts.relative_boxes)
 
 
 def _forked_entries(tiles: list[Tile], children: PayloadChildren, ctx: TileContext, writer: SceneWriter,

@@ -92,6 +92,9 @@ class EncodeOptions:
     # payload in the table instead of 32, which do not compress: 5.5-6.8 KB of a 45-150k-splat scene's 11.8-13.5 KB
     # manifest; issue 31, branch digest31). False: the whole SHA-256, version 1.12.
     short_digests: bool = True
+    # With short digests, each box as u8 steps of its parent's and each radius as u8 steps of its box's half diagonal
+    # (format.md 6.2, version 1.16; issue 31, branch box16). False: the f32 boxes and radii, version 1.15.
+    relative_boxes: bool = True
     name: str | None = None
     up: tuple[float, float, float] | None = None
     # The suggested camera (the manifest's `camera`) turned by this many degrees about up (camera.turn_about_up;

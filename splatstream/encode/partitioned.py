@@ -1017,7 +1017,8 @@ def encode_partitioned(rows, writer: SceneWriter, opts: EncodeOptions, engine: E
                        codebook_entry)
     engine.settle()
     return write_scene_manifest(writer, m, opts.page_tiles, opts.page_levels, opts.compact_table,
-                                opts.short_digests, short_names=ctx.short_names)
+                                opts.short_digests, short_names=ctx.short_names,
+                                relative_boxes=opts.relative_boxes)
 
 
 # The levels above the partitions refined (refine_upper) in a refined partitioned encode; False leaves them as built

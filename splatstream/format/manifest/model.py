@@ -19,8 +19,8 @@ import numpy as np
 from ..names import payload_name, short_digest
 from ..planes import MAX_SH_DEGREE, band_of, groups_for_degree
 from ..texformats import FORMATS, blob_size
-from .table import bounds_columns, compact_columns, tiles_body
-from .versions import FORMAT_NAME, VERSION_1_9, VERSION_1_12, VERSION_1_15
+from .table import bounds_columns, compact_columns, relative_columns, tiles_body
+from .versions import FORMAT_NAME, VERSION_1_9, VERSION_1_12, VERSION_1_15, VERSION_1_16
 from .wire import pack_manifest
 
 Vec3 = tuple[float, float, float]
@@ -460,20 +460,30 @@ class Manifest:
         1.8 on (format.md 6.2), else the array of tile maps."""
         return tiles_body(self.version, self.tiles, self.tile_groups())
 
-    def compacted(self, short: bool = True) -> Manifest:
-        """This manifest as 1.15 writes it (format.md 6.2, the compact tile table, short digests): version at least
-        1.15, each tile's bounds as the float32 values the table holds (table.compact_columns: rounded outward),
-        each sphere's centre its box's middle (1.15) and each tile payload named by the first 16 bytes of its
-        SHA-256 (`data/<32 hex>.bin`: the encoder writes the files under that name at once, table.short_tile_names),
-        so that what a reader gets back is this manifest; `bytes_on_disk` settled again. short False: as 1.12 wrote
-        it (the whole SHA-256). An unchanged manifest where it is already compact. Tiles with a page (a paged
-        manifest) cannot be shortened: compact before paging."""
-        box, sphere, error = (a.tolist() for a in compact_columns(*bounds_columns(self.tiles), centre_from_box=short))
+    def compacted(self, short: bool = True, relative: bool = True, page_levels: int = 0) -> Manifest:
+        """This manifest as 1.16 writes it (format.md 6.2, the compact tile table, short digests, boxes relative to
+        the parent's): version at least 1.16, each tile's bounds as the values the table gives back (its box coded
+        against its parent's decoded box, its sphere about the box's middle with the radius coded as steps of the
+        half diagonal, its geometric error rounded up to f32: table.relative_columns), each tile payload named by
+        the first 16 bytes of its SHA-256 (`data/<32 hex>.bin`: the encoder writes the files under that name at
+        once, table.short_tile_names), so that what a reader gets back is this manifest; `bytes_on_disk` settled
+        again. page_levels k > 0: the manifest will be paged k levels to a file (6.1), so the tiles of levels 0, k,
+        2k, ... are the tables' anchors (their parents are in another file). relative False: as 1.15 wrote it (f32
+        bounds rounded outward: table.compact_columns, each sphere about its box's middle); short False: as 1.12
+        (the whole SHA-256, the spheres' own centres). An unchanged manifest where it is already compact. Tiles
+        with a page (a paged manifest) cannot be shortened: compact before paging."""
+        relative = relative and short
+        if relative:
+            box, sphere, error = (a.tolist() for a in relative_columns(self.tiles, page_levels)[:3])
+        else:
+            box, sphere, error = (a.tolist() for a in compact_columns(*bounds_columns(self.tiles),
+                                                                       centre_from_box=short))
         tiles = tuple(replace(t, box=Box(tuple(b[:3]), tuple(b[3:])), sphere_center=tuple(s[:3]),
                               sphere_radius=s[3], geometric_error=e, **({"groups": _short_groups(t.groups)}
                                                                          if short else {}))
                       for t, b, s, e in zip(self.tiles, box, sphere, error, strict=True))
-        m = replace(self, version=max(self.version, VERSION_1_15 if short else VERSION_1_12), tiles=tiles)
+        least = VERSION_1_16 if relative else VERSION_1_15 if short else VERSION_1_12
+        m = replace(self, version=max(self.version, least), tiles=tiles)
         return m.with_bytes_on_disk(m.payload_bytes())
 
     def with_bytes_on_disk(self, payload_bytes: int) -> Manifest:

@@ -49,7 +49,9 @@ def page_heads(m: Manifest, page_levels: int) -> list[TileEntry]:
 
 def split_pages(m: Manifest, page_levels: int) -> PagedScene:
     """The root manifest (levels 0..k-1) and the pages of a whole, unpaged manifest. Deterministic: the same
-    manifest gives the same bytes. A page's name depends on the pages below it, so the deepest are made first."""
+    manifest gives the same bytes. A page's name depends on the pages below it, so the deepest are made first.
+    From format 1.16 a page's top tiles are its table's anchors (f32 boxes, format.md 6.2), so the tree the pages
+    give back is `m.compacted(page_levels=k)`: m itself where it was compacted so (store.write_scene_manifest)."""
     if page_levels < 1:
         raise ValueError(page_levels)
     k = page_levels

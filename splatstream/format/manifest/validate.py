@@ -61,7 +61,15 @@ from .model import (
     filter_element,
     texels_size,
 )
-from .table import TABLE_KEY, TABLE_ZSTD_KEY, canonical_offsets, read_columns, short_digests, unpack_compact_table
+from .table import (
+    TABLE_KEY,
+    TABLE_ZSTD_KEY,
+    canonical_offsets,
+    read_columns,
+    relative_boxes,
+    short_digests,
+    unpack_compact_table,
+)
 from .versions import (
     CHECKSUM_VERSION,
     CHUNK_ORDERS_1_4,
@@ -477,7 +485,7 @@ class _Scene:
     """What every tile of one manifest is checked against."""
 
     __slots__ = ("source", "strict", "formats", "format_items", "codebook", "group_names", "lazy", "expect",
-                 "tile_optional", "scene_palettes", "short_digests")
+                 "tile_optional", "scene_palettes", "short_digests", "relative_boxes")
 
     def __init__(self, source: str, strict: bool, formats: dict[str, str], sh_degree: int, codebook: bool,
                  lazy: bool, version: tuple[int, int] = FORMAT_VERSION, scene_palettes: tuple[str, ...] = ()):
@@ -485,6 +493,7 @@ class _Scene:
         self.scene_palettes = tuple(sorted(scene_palettes))
         self.tile_optional = ("page",) if version >= VERSION_1_5 else ()
         self.short_digests = short_digests(version)  # a compact table's digests: 16 bytes from 1.15 (format.md 6.2)
+        self.relative_boxes = relative_boxes(version)  # its boxes relative to the parent's from 1.16 (format.md 6.2)
         self.group_names = tuple(groups_for_degree(sh_degree, codebook))
         self.format_items = tuple(sorted(formats.items()))
         self.expect: dict[tuple[str, int], list] = {}  # (group, chunks) -> expected_sections: a few per scene
@@ -711,7 +720,8 @@ def _table_tiles(v, scene: _Scene, compact: bool = False) -> list[TileEntry]:
     if compact:
         v = unpack_compact_table(v, source)
     short = compact and scene.short_digests  # 1.15's digests are the compact table's (format.md 6.2)
-    c = read_columns(v, source, strict, MAX_TILES, bool(scene.tile_optional), scene.group_names, compact, short)
+    c = read_columns(v, source, strict, MAX_TILES, bool(scene.tile_optional), scene.group_names, compact, short,
+                     compact and scene.relative_boxes)
     n, g = c.count, len(c.groups)
     chunks = _table_tile_checks(c, source)
     texture = c.texture.astype(np.int64) * BLOCK

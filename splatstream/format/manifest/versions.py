@@ -4,7 +4,7 @@ from __future__ import annotations
 from collections.abc import Mapping
 
 FORMAT_NAME = "splatstream"
-FORMAT_VERSION = (1, 15)  # (major, minor) this code reads; what it writes: writer_version
+FORMAT_VERSION = (1, 16)  # (major, minor) this code reads; what it writes: writer_version
 # Version 1.2 added two things (format.md, version history): the manifest's last key `checksum`, the SHA-256 of the
 # file with that value's 64 bytes read as ASCII '0' (format.md 6, "Checksum"), so a flipped byte in the manifest is
 # caught like one in a payload; and the `fields1` transport coding of texels sections (format.md 5.2).
@@ -90,3 +90,10 @@ VERSION_1_12 = (1, 12)
 # (issue 31, branch digest31). Written by every tree splatstream encodes with the compact table (its pages too); a
 # 1.8 to 1.14 reader rejects it naming the missing column (`tile_table.sha256: missing`): it misreads nothing.
 VERSION_1_15 = (1, 15)
+# Version 1.16 added boxes relative to the parent's in the compact tile table (format.md 6.2, "Boxes relative to the
+# parent's"): a tile whose parent is a row of the same table stores its box as u8 steps of the parent's decoded box
+# (`box8`), the others (a root manifest's root, a page's top tiles) as f32 (`anchor_box`), and every sphere's radius
+# as u8 steps of its box's half diagonal (`radius8`, `radius_far` beyond them). Written by every tree splatstream
+# encodes with the compact table and short digests (issue 31, branch box16); a 1.15 reader rejects it naming the
+# missing column (`tile_table.box: missing`), as a 1.12-1.14 one does: it misreads nothing.
+VERSION_1_16 = (1, 16)
