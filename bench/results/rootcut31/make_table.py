@@ -72,6 +72,28 @@ def table(files: list[str]) -> str:
     return "\n".join(out) + "\n"
 
 
+def bytes_table(files: list[str]) -> str:
+    """The directory runs (`bytes_*.json`, no link, one run a view): downloaded / drawn of both rows per scene and
+    budget, whether every view drew the same cut in both, and the cut's base bytes per view."""
+    out = ["| scene | budget | cut base B per view (tiles) | same cut | A: downloaded / drawn | B: downloaded / drawn "
+           "| B: ancestors B (n) |", "|---|---|---|---|---|---|---|"]
+    for f in files:
+        d = json.load(open(f))
+        sizes = base_bytes(d["scene_dir"])
+        rows = d["rows"]
+        for i in range(0, len(rows), 2):
+            a, b = rows[i], rows[i + 1]
+            cut = [sum(sizes[t] for t in v["draw"]) for v in a["views"]]
+            same = all(va["draw"] == vb["draw"] for va, vb in zip(a["views"], b["views"], strict=True))
+            tiles = statistics.mean(v["drawn_tiles"] for v in a["views"])
+            anc = statistics.mean(v["ancestors"] for v in b["views"])
+            nanc = statistics.mean(v["n_ancestors"] for v in b["views"])
+            out.append(f"| {d['scene']} | {100 * a['fraction']:g} % | {min(cut):,}-{max(cut):,} ({tiles:.0f}) | "
+                       f"{'yes' if same else '**no**'} | {a['ratio']:.3f} | {b['ratio']:.3f} | {anc:,.0f} "
+                       f"({nanc:.1f}) |")
+    return "\n".join(out) + "\n"
+
+
 def main(argv: list[str]) -> int:
     prefixes = argv or ["chosen", "heldout"]
     files = [f for p in prefixes for f in sorted(glob.glob(os.path.join(HERE, "runs", f"{p}_*_20-40.json")))]
@@ -81,6 +103,11 @@ def main(argv: list[str]) -> int:
             "second picture - first; B: converged - first where its second picture is the converged one). The cut's "
             "base bytes per view decide the band (64 KiB = 65,536; 128 KiB = 131,072; 256 KiB = 262,144; 512 KiB = "
             "524,288).\n\n" + table(files))
+    byte_files = sorted(glob.glob(os.path.join(HERE, "runs", "bytes_*.json")))
+    if byte_files:
+        text += ("\n## Bytes at 2 / 6 / 25 / 50 % (directory, no link, `--no-prefetch`, one run a view)\n\n"
+                 "A: `--fill-root-kb 0` (main's rule), B: `--fill-root-kb 512` (this branch's default).\n\n"
+                 + bytes_table(byte_files))
     open(os.path.join(HERE, "table.md"), "w").write(text)
     print(text)
     return 0
