@@ -328,6 +328,28 @@ def test_a_mid_size_cut_wants_the_root_then_the_cut(store):
     engine.close()
 
 
+def test_a_camera_move_into_the_band_fetches_the_new_cut_alone(store):
+    """A camera move whose new cut's missing bases fall between fill_min_bytes and fill_root_bytes behaves as a first
+    view in the band (client.md 1.4): the root (resident by then), then the cut, no ancestor fetched."""
+    m = read_manifest(store)
+    fetcher = StepFetcher(store, per_frame=2)
+    engine = StreamEngine(fetcher, CountingPool(10_000),
+                          StreamOptions(SelectionOptions(max_sse=1.0, max_splats=3000), prefetch=False,
+                                        fill_min_bytes=1, fill_root_bytes=1 << 30))  # every missing cut: the band
+    run_until_converged(engine, orbit(m, 1.6, 0.3))
+    before = len(fetcher.fetched)
+    cam = orbit(m, 1.2, 2.5)
+    _, sel, _, keys, _ = engine.wanted(cam)
+    cut = [int(engine.ids[i]) for i in sel.cut_at]
+    missing = [t for t in cut if not engine.resident[engine.manifest.index_of[t]]]
+    assert missing and engine.resident[engine.root]
+    assert [t for t, g in engine._coarse_to_fine(keys, sel) if g == "base"] == [m.root] + cut
+    _, u = run_until_converged(engine, cam)
+    assert sorted(u.draw) == sorted(cut)
+    assert {t for t, g in fetcher.fetched[before:] if g == "base"} == set(missing)  # the new cut's, nothing above
+    engine.close()
+
+
 def _coarse_to_fine_walk(engine, keys, sel):
     """The wish list's bases as a walk up from each cut tile (the engine's first version, kept as the reference of its
     numpy climb): ranks by first naming cut tile, ancestors every fill_step-th level from fill_gap up."""

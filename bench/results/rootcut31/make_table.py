@@ -95,7 +95,7 @@ def bytes_table(files: list[str]) -> str:
 
 
 def main(argv: list[str]) -> int:
-    prefixes = argv or ["chosen", "heldout"]
+    prefixes = argv or ["chosen", "heldout", "recheck"]
     files = [f for p in prefixes for f in sorted(glob.glob(os.path.join(HERE, "runs", f"{p}_*_20-40.json")))]
     text = ("# rootcut31: the root, then the cut, against main's rule (20 Mbit/s, 40 ms)\n\n"
             "A: the first row (`--fill-root-kb 0`, main's rule), B: the second. Times from the manifest request, "
