@@ -15,7 +15,9 @@ on what any manifest layout of the format could read for the same cut (`least_by
 With `--link` the scene is served by `splatstream serve --throttle-mbps --latency-ms` on 127.0.0.1 and streamed
 from its URL by a cold client (issue 31, fill31): each run also records the time to the first frame with splats
 and to convergence (from the manifest request, StreamMetrics), and `--fill-min-kb` compares the client's small-cut
-thresholds run by run, interleaved, `--repeat` times each (the JSON: each run, and per row the median and range).
+thresholds run by run, interleaved, `--repeat` times each (the JSON: each run, and per row the median and range);
+`second_picture_s` is the first frame whose drawn tiles differ from the first picture's (coarse to fine: its first
+refinement; none where the first picture was the converged one).
 
 `SCENE_DIR` is streamed as `splatstream view SCENE_DIR --headless --max-splats N [--no-prefetch]` streams it (the
 view command's option parsing, in this process); the JSON gives the cameras and the scene's splats.
@@ -93,7 +95,7 @@ def measure_view(scene_dir: str, n: int, cam, size: int, prefetch: bool, ctx, tr
         options = view_cmd._options(args)
         camera = view_cmd._fixed_camera(args, parse_size(args.size))
         session = StreamingSession.open(url or scene_dir, ctx, options)
-        first_draw = None
+        first_draw, second_s = None, None
         try:
             t0 = time.perf_counter()
             while True:
@@ -101,6 +103,8 @@ def measure_view(scene_dir: str, n: int, cam, size: int, prefetch: bool, ctx, tr
                 wait_for_gpu()
                 if first_draw is None and rec.drawn_splats:
                     first_draw = list(session.last.draw)
+                elif first_draw is not None and second_s is None and list(session.last.draw) != first_draw:
+                    second_s = rec.t  # the first picture after the first one (coarse to fine: its first refinement)
                 if session.converged:
                     break
                 if time.perf_counter() - t0 > 300:
@@ -111,6 +115,7 @@ def measure_view(scene_dir: str, n: int, cam, size: int, prefetch: bool, ctx, tr
             downloaded = session.fetcher.stats().bytes_downloaded
             times = {k: session.metrics.to_json()[k] for k in ("first_frame_s", "converged_s", "bytes_first_frame",
                                                                "manifest_s", "pool_s", "built_s")}
+            times["second_picture_s"] = second_s  # None: the first picture was the converged one
         finally:
             session.close()
     finally:
@@ -317,9 +322,11 @@ def _row(scene: str, n: int, b: float, fill: str | None, views: list[dict], args
     if args.link:
         row["first_frame_s"] = _stats([v["first_frame_s"] for v in views])
         row["converged_s"] = _stats([v["converged_s"] for v in views])
+        row["second_picture_s"] = _stats([v["second_picture_s"] for v in views])
         ff, cv = row["first_frame_s"], row["converged_s"]
         timing = (f"; {args.link}: first frame {ff['median']:.3f} s ({ff['min']:.3f}-{ff['max']:.3f}), converged "
-                  f"{cv['median']:.3f} s ({cv['min']:.3f}-{cv['max']:.3f}), n = {ff['n']}")
+                  f"{cv['median']:.3f} s ({cv['min']:.3f}-{cv['max']:.3f}), n = {ff['n']}; second picture "
+                  + (f"{sp['median']:.3f} s (n = {sp['n']})" if (sp := row['second_picture_s'])['n'] else "none"))
     label = "" if fill is None else f" [{fill}]" if variant else f" fill {float(fill):g} KiB"
     print(f"{scene} {n:>8,}{label}: {row['ratio']:.3f}x (payloads alone {row['ratio_no_manifest_or_pages']:.3f}x): "
           f"manifest {mean['manifest']:,.0f} B, pages {mean['pages']:,.0f} B ({mean['n_pages']:.1f}, used "

@@ -60,6 +60,8 @@ class ViewOptions:
     fill_levels: bool = StreamOptions.fill_levels  # coarse to fine through every level (False: --skip-levels)
     fill_gap: int = StreamOptions.fill_gap
     fill_min_bytes: int = StreamOptions.fill_min_bytes  # coarse to fine only above these missing bytes (--fill-min-kb)
+    # above fill_min_bytes and up to these missing bytes: the root, then the cut (--fill-root-kb)
+    fill_root_bytes: int = StreamOptions.fill_root_bytes
     cache: bool = True  # disk cache of payloads (HTTP sources)
     drop_invalid: bool = False  # a splat file's invalid splats dropped (a warning), not refused (io.read_gaussians)
     cache_dir: str | None = None
@@ -224,7 +226,8 @@ class StreamingSession:
         stream_opts = StreamOptions(selection=replace(options.selection(), sh_degree=degree),
                                     upload_bytes_per_frame=options.upload_bytes_per_frame, prefetch=options.prefetch,
                                     fill_levels=options.fill_levels, fill_gap=options.fill_gap,
-                                    fill_min_bytes=options.fill_min_bytes, root_first=root_wanted(m, options),
+                                    fill_min_bytes=options.fill_min_bytes, fill_root_bytes=options.fill_root_bytes,
+                                    root_first=root_wanted(m, options),
                                     decode_workers=options.decode_workers,
                                     decode_processes=options.decode_processes,
                                     decode_workers_moving=options.decode_workers_moving,
@@ -432,7 +435,8 @@ def freeze_long_lived() -> None:
 def root_wanted(manifest: Manifest, options: ViewOptions) -> bool:
     """Whether the first frame will want the root's base before any view is known: not where the splat budget
     bounds the cut's base payloads (estimated at the root's bytes a splat) to fill_min_bytes or less, since the
-    engine then fetches the cut itself, without its ancestors (StreamEngine._ancestors_worth)."""
+    engine then fetches the cut itself, without its ancestors (StreamEngine._ancestors_worth). Above it the root
+    comes first either way: coarse to fine, or (up to fill_root_bytes) the root, then the cut (_root_worth)."""
     if not options.fill_levels or options.fill_min_bytes <= 0 or options.max_splats is None:
         return True
     root = manifest.tile(manifest.root)

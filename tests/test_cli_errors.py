@@ -123,6 +123,7 @@ def cases(tmp, scene):
         (["view", scene, "--headless", "--size", "0x0"], "--size"),
         (["view", scene, "--headless", "--screenshot", tmp / "o.jpg"], "o.jpg"),
         (["view", scene, "--headless", "--fill-gap", "0"], "--fill-gap"),
+        (["view", scene, "--headless", "--fill-root-kb", "-1"], "--fill-root-kb -1: expected 0 or more kilobytes"),
         (["view", scene, "--headless", "--eye", "1,1,1", "--target", "1,1,1"], "--eye and --target"),
         (["view", scene, "--headless", "--sh-bands", "0.9,x,1"], "--sh-bands"),
         # taken in a window without a word, and nothing written or kept (newuser60)

@@ -4,7 +4,8 @@ guitar (90,854 splats, 221 tiles, SH0, the default encode) at 25 % and 60 % of i
 scene's camera: the pool is allocated for the budget (before the atlas grid of the fewest rows, 60 % got one row
 of 128 slots: 58 % of the budget, and drew 23,433 splats, 42 % of it); the cut fills the byte budget (80 % of the
 pool, client.md 2) to within its slots; with the ancestors kept for coarse to fine the resident splats use most of
-the rest. Numbers: BENCHMARKS.md, "GPU memory budget filled"."""
+the rest (at 60 %; at 25 % the cut loads as the root, then the cut: no ancestors held). Numbers: BENCHMARKS.md,
+"GPU memory budget filled"."""
 from pathlib import Path
 
 import pytest
@@ -44,7 +45,10 @@ def test_a_converged_view_fills_its_gpu_memory_budget(gl_context, guitar, share,
     assert all(f["gpu_bytes"] <= budget for f in report["frames"])
     pool = report["gpu_bytes_peak"]
     assert 0.97 * budget <= pool <= budget  # measured 99.3-99.5 % (58 % at 60 % before)
-    assert 0.85 * budget <= report["resident_gpu_bytes"] <= pool  # measured 93.4-94.0 %
+    # measured 93.4-94.0 % with coarse to fine's ancestors kept; at 25 % the cut's missing bases (under 512 KiB)
+    # now load as the root, then the cut (client.md 1.4, fill_root_bytes): no ancestors held, the cut's slots and
+    # the root's, 79.8 %
+    assert {0.25: 0.78, 0.6: 0.85}[share] * budget <= report["resident_gpu_bytes"] <= pool
     # the drawn splats' bytes without their slots' rounding: 59.0 % and 73.3 % (42 % at 60 % before); the cut's
     # slots are 78.7 % and 79.3 % of the budget (the rest of the gap: tiles of fewer than 256 splats a slot)
     from client_gl.gpu.residency_layout import PoolLayout

@@ -186,7 +186,9 @@ def test_coarse_to_fine_fills_each_level_before_the_next(store):
     opts = SelectionOptions(max_sse=0.0)  # full detail: the cut is every visible leaf
     levels_drawn = []
     fetcher = StepFetcher(store, per_frame=1)
-    engine = StreamEngine(fetcher, CountingPool(10_000), StreamOptions(opts, prefetch=False, fill_gap=1, fill_step=1))
+    engine = StreamEngine(fetcher, CountingPool(10_000), StreamOptions(opts, prefetch=False, fill_gap=1, fill_step=1,
+                                                                      fill_root_bytes=0))  # coarse to fine (the cut
+    # is above fill_min_bytes but within the default fill_root_bytes: the root, then the cut, tested elsewhere)
     for _ in range(500):
         u = engine.update(cam)
         engine.wait(0.05)
@@ -210,7 +212,7 @@ def test_coarse_to_fine_fills_each_level_before_the_next(store):
     # By default only every fourth level above the cut is filled in (levels are 2x apart in splats): fewer
     # bases, still level by level from the root.
     stepping = StepFetcher(store, per_frame=1)
-    engine = StreamEngine(stepping, CountingPool(10_000), StreamOptions(opts, prefetch=False))
+    engine = StreamEngine(stepping, CountingPool(10_000), StreamOptions(opts, prefetch=False, fill_root_bytes=0))
     run_until_converged(engine, cam)
     stepped = [int(a.level[m.index_of[t]]) for t, g in stepping.fetched if g == "base"]
     assert stepped == sorted(stepped) and set(stepped) < set(fetched_levels)
@@ -254,6 +256,97 @@ def test_a_small_cut_draws_without_the_root_and_never_a_blank_frame(store):
     bases = [t for t, g in fetcher.fetched if g == "base"]
     assert m.root not in bases and len(bases) == len(set(bases))
     assert sum(m.tile(t).groups["base"].bytes for t in u.draw) <= StreamOptions.fill_min_bytes
+    engine.close()
+
+
+def _cut_bases_bytes(engine, sel) -> int:
+    return int(engine.arrays.base_bytes[sel.cut_at].sum())
+
+
+def test_a_mid_size_cut_wants_the_root_then_the_cut(store):
+    """Between fill_min_bytes and fill_root_bytes (client.md 1.4, issue 31 rootcut31) the wish list's bases are the
+    root, then the cut's in the cut's order, no ancestor between; below fill_min_bytes the cut alone; above
+    fill_root_bytes (or with fill_root_bytes 0, main's rule before) coarse to fine, the walk's list. Thresholds are
+    set around this view's cut bytes B, so the test holds whatever the encoder's sizes."""
+    m = read_manifest(store)
+    cam = orbit(m, 1.6, 0.3)
+    sel_opts = SelectionOptions(max_sse=1.0, max_splats=3000)
+    probe = StreamEngine(StepFetcher(store), CountingPool(10_000), StreamOptions(sel_opts, prefetch=False))
+    _, sel, _, _, _ = probe.wanted(cam)
+    B = _cut_bases_bytes(probe, sel)
+    probe.close()
+    cut_ids = [int(probe.ids[i]) for i in sel.cut_at]
+    assert len(cut_ids) > 4 and m.root not in cut_ids and B > 4096
+
+    def bases_listed(fill_min, fill_root):
+        engine = StreamEngine(StepFetcher(store), CountingPool(10_000),
+                              StreamOptions(sel_opts, prefetch=False, fill_min_bytes=fill_min,
+                                            fill_root_bytes=fill_root))
+        _, sel, _, keys, _ = engine.wanted(cam)
+        listed = [t for t, g in engine._coarse_to_fine(keys, sel) if g == "base"]
+        walk = [t for t, g in _coarse_to_fine_walk(engine, keys, sel)[0] if g == "base"]
+        filling = int(engine._filling.sum())
+        engine.close()
+        return listed, walk, filling
+
+    band, _, filling = bases_listed(B // 2, 2 * B)
+    assert band == [m.root] + cut_ids and filling == 0  # the root, then the cut in its order
+    below, _, _ = bases_listed(2 * B, 4 * B)
+    assert below == cut_ids  # a small cut: directly, no root (it would cost its bytes)
+    above, walk, filling = bases_listed(B // 4, B // 2)
+    assert above == walk and len(above) > len(cut_ids) + 1 and filling > 0  # coarse to fine
+    main_rule, walk, _ = bases_listed(B // 2, 0)
+    assert main_rule == walk  # fill_root_bytes 0: coarse to fine above fill_min_bytes, as before
+    assert bases_listed(0, 2 * B)[0] == walk  # fill_min_bytes 0: always coarse to fine (--fill-min-kb 0)
+
+    # streamed one payload a frame: the root, then the cut in its order; the first picture is the root, the
+    # converged one the cut, and nothing else is fetched
+    fetcher = StepFetcher(store, per_frame=1)
+    engine = StreamEngine(fetcher, CountingPool(10_000),
+                          StreamOptions(sel_opts, prefetch=False, fill_min_bytes=B // 2, fill_root_bytes=2 * B))
+    first = None
+    for _ in range(500):
+        u = engine.update(cam)
+        engine.wait(0.05)
+        if first is None and u.draw:
+            first = list(u.draw)
+        if u.converged:
+            break
+    assert u.converged and sorted(u.draw) == sorted(cut_ids)
+    assert first == [m.root]
+    assert [t for t, g in fetcher.fetched if g == "base"] == [m.root] + cut_ids
+    engine.close()
+
+    # once named, the root stays named until a frame draws, also where the cut's missing bytes fall under
+    # fill_min_bytes meanwhile (its request is not cancelled for a later first picture)
+    engine = StreamEngine(StepFetcher(store), CountingPool(10_000),
+                          StreamOptions(sel_opts, prefetch=False, fill_min_bytes=B // 2, fill_root_bytes=2 * B))
+    _, sel, _, keys, _ = engine.wanted(cam)
+    assert engine._coarse_to_fine(keys, sel)[0] == (m.root, "base")
+    engine.resident[sel.cut_at[: len(sel.cut_at) - 1]] = True  # all but one cut tile: under fill_min_bytes now
+    assert engine._coarse_to_fine(keys, sel)[0] == (m.root, "base")
+    engine.close()
+
+
+def test_a_camera_move_into_the_band_fetches_the_new_cut_alone(store):
+    """A camera move whose new cut's missing bases fall between fill_min_bytes and fill_root_bytes behaves as a first
+    view in the band (client.md 1.4): the root (resident by then), then the cut, no ancestor fetched."""
+    m = read_manifest(store)
+    fetcher = StepFetcher(store, per_frame=2)
+    engine = StreamEngine(fetcher, CountingPool(10_000),
+                          StreamOptions(SelectionOptions(max_sse=1.0, max_splats=3000), prefetch=False,
+                                        fill_min_bytes=1, fill_root_bytes=1 << 30))  # every missing cut: the band
+    run_until_converged(engine, orbit(m, 1.6, 0.3))
+    before = len(fetcher.fetched)
+    cam = orbit(m, 1.2, 2.5)
+    _, sel, _, keys, _ = engine.wanted(cam)
+    cut = [int(engine.ids[i]) for i in sel.cut_at]
+    missing = [t for t in cut if not engine.resident[engine.manifest.index_of[t]]]
+    assert missing and engine.resident[engine.root]
+    assert [t for t, g in engine._coarse_to_fine(keys, sel) if g == "base"] == [m.root] + cut
+    _, u = run_until_converged(engine, cam)
+    assert sorted(u.draw) == sorted(cut)
+    assert {t for t, g in fetcher.fetched[before:] if g == "base"} == set(missing)  # the new cut's, nothing above
     engine.close()
 
 
@@ -314,7 +407,8 @@ def test_fill_gap_skips_the_levels_just_above_the_cut():
     cam = orbit(m, 1.6, 0.3)
     fetcher = StepFetcher(store, per_frame=1)
     engine = StreamEngine(fetcher, CountingPool(10_000),
-                          StreamOptions(SelectionOptions(max_sse=0.0), prefetch=False, fill_gap=2))
+                          StreamOptions(SelectionOptions(max_sse=0.0), prefetch=False, fill_gap=2,
+                                        fill_root_bytes=0))  # coarse to fine at any cut above fill_min_bytes
     _, u = run_until_converged(engine, cam)
     cut = set(u.selection.cut)
     parents = {int(a.parent[i]) for i in cut} - {m.index_of[m.root]}

@@ -142,14 +142,15 @@ def test_a_small_cut_is_fetched_directly_without_the_root(root, server, budget):
 
 
 def test_a_large_cut_still_loads_coarse_to_fine(root, server):
-    """Above fill_min_bytes the root comes first and the ancestors are filled in (what a user sees while a large
-    cut loads does not change)."""
+    """Above fill_root_bytes (here no band: fill_root_bytes 0) the root comes first and the ancestors are filled in
+    (what a user sees while a large cut loads does not change)."""
     whole = load_manifest(root / "whole")
     cam = orbit(whole, 2.5, 0.3)
     sel = SelectionOptions(max_sse=1.0)
-    u, m, bases, _ = _stream(server, "whole", cam, StreamOptions(sel, prefetch=False, fill_min_bytes=16 << 10))
+    u, m, bases, _ = _stream(server, "whole", cam, StreamOptions(sel, prefetch=False, fill_min_bytes=16 << 10,
+                                                                 fill_root_bytes=0))
     assert sum(m.tile(t).groups["base"].bytes for t in u.draw) > 16 << 10
-    assert bases[0] == m.root and set(bases) > set(u.draw)
+    assert bases[0] == m.root and set(bases) - set(u.draw) - {m.root}  # ancestors other than the root
 
 
 def test_a_page_head_whose_page_loads_is_not_fetched_for_a_small_cut(root, server):
@@ -189,6 +190,35 @@ def test_a_page_head_whose_page_loads_is_not_fetched_for_a_small_cut(root, serve
     assert len(extra) <= 2  # (tiles of an earlier cut that the budget gave up when pages grew the tree)
 
 
+def test_a_mid_size_cut_fetches_the_root_then_the_cut_paged_or_not(root, server):
+    """Between fill_min_bytes and fill_root_bytes (client.md 1.4): the root, then the cut, no ancestor between; in a
+    paged scene the same, its pages after the root's base and no head whose page loads fetched (a loading head
+    counts `lod.reduction` times its bytes in the rule). Thresholds around the cut's bytes B: the test holds
+    whatever the encoder's sizes. With fill_root_bytes 0 the same cut loads coarse to fine (main's rule before)."""
+    whole = load_manifest(root / "whole")
+    cam = orbit(whole, 2.5, 0.3)
+    sel = SelectionOptions(max_sse=1.0, max_splats=2000)
+    u, m, _, _ = _stream(server, "whole", cam, StreamOptions(sel, prefetch=False))
+    B = sum(m.tile(t).groups["base"].bytes for t in u.draw)
+    band = StreamOptions(sel, prefetch=False, fill_min_bytes=B // 2, fill_root_bytes=8 * B)
+    ub, _, bases, _ = _stream(server, "whole", cam, band)
+    assert sorted(ub.draw) == sorted(u.draw) and m.root not in ub.draw
+    assert bases[0] == m.root and sorted(bases[1:]) == sorted(u.draw)  # the root, then the cut, each once
+    up, mp, bases_p, pages = _stream(server, "paged", cam, band)
+    assert sorted(up.draw) == sorted(u.draw)
+    head_of = {t.page.file: t.id for t in mp.tiles if t.page is not None}
+    heads = {head_of[p] for p in pages}
+    assert len(heads) >= 2
+    assert bases_p[0] == mp.root and len(bases_p) == len(set(bases_p))
+    assert not (set(bases_p) - set(up.draw)) & heads  # no head fetched while its page loaded
+    # (a base fetched and not drawn is a tile of an earlier cut that the budget gave up when pages grew the tree)
+    assert len(set(bases_p) - set(up.draw) - {mp.root}) <= 2
+    u0, _, bases0, _ = _stream(server, "whole", cam, StreamOptions(sel, prefetch=False, fill_min_bytes=B // 2,
+                                                                     fill_root_bytes=0))
+    assert sorted(u0.draw) == sorted(u.draw)
+    assert bases0[0] == m.root and len(set(bases0) - set(u.draw) - {m.root}) > 0  # the ancestors between
+
+
 def test_the_root_is_asked_for_early_only_where_the_cut_may_be_large(root):
     """PreparedSource.open asks for the root's base with the manifest unless the splat budget bounds the cut's bases
     (at the root's bytes a splat) to fill_min_bytes or less; --fill-min-kb sets the threshold (0: always)."""
@@ -210,3 +240,10 @@ def test_the_root_is_asked_for_early_only_where_the_cut_may_be_large(root):
     assert view_cmd._options(args).fill_min_bytes == 0
     args = build_parser().parse_args(["view", str(root / "whole"), "--headless"])
     assert view_cmd._options(args).fill_min_bytes == StreamOptions.fill_min_bytes
+    assert view_cmd._options(args).fill_root_bytes == StreamOptions.fill_root_bytes
+    args = build_parser().parse_args(["view", str(root / "whole"), "--headless", "--fill-root-kb", "256"])
+    assert view_cmd._options(args).fill_root_bytes == 256 << 10
+    # the root and the cut: the root is wanted early wherever the estimated cut exceeds fill_min_bytes, whatever
+    # fill_root_bytes (above it coarse to fine wants the root as well)
+    assert root_wanted(m, ViewOptions(max_splats=2 * small + 100, fill_root_bytes=0))
+    assert not root_wanted(m, ViewOptions(max_splats=small, fill_root_bytes=1 << 30))

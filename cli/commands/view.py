@@ -70,6 +70,10 @@ def register(sub: argparse._SubParsersAction) -> None:
                    help="fill in the LOD levels above the wanted tiles (the root included) only while more than KB "
                         "KiB of the wanted tiles are missing (default: the client's, 64: a small cut is fetched and "
                         "drawn directly; 0: always coarse to fine)")
+    s.add_argument("--fill-root-kb", type=float, metavar="KB",
+                   help="where more than --fill-min-kb but at most KB KiB of the wanted tiles are missing, fetch the "
+                        "root, then the wanted tiles, without the levels between (default: the client's, 512; 0: "
+                        "coarse to fine above --fill-min-kb)")
     s.add_argument("--sort", default="auto", choices=["auto", "cpu", "gpu"], help="depth sort (as `render`)")
     s.add_argument("--draw", default="auto", choices=DRAWS,
                    help="GPU-path rasterizer (as `render`: a draw named takes the GPU sort; not with --sort cpu)")
@@ -118,6 +122,8 @@ def _options(args):
         raise UsageError(f"--measure-frames {args.measure_frames}: expected 0 or more frames")
     if args.fill_min_kb is not None and not (args.fill_min_kb >= 0 and math.isfinite(args.fill_min_kb)):
         raise UsageError(f"--fill-min-kb {args.fill_min_kb:g}: expected 0 or more kilobytes")
+    if args.fill_root_kb is not None and not (args.fill_root_kb >= 0 and math.isfinite(args.fill_root_kb)):
+        raise UsageError(f"--fill-root-kb {args.fill_root_kb:g}: expected 0 or more kilobytes")
     if args.fill_gap < 1:
         raise UsageError(f"--fill-gap {args.fill_gap}: expected 1 or more levels")
     if args.fov_y is not None and not 0 < args.fov_y < 180:
@@ -128,6 +134,8 @@ def _options(args):
                        fill_levels=not args.skip_levels, fill_gap=args.fill_gap,
                        fill_min_bytes=ViewOptions.fill_min_bytes if args.fill_min_kb is None
                        else int(args.fill_min_kb * 1024),
+                       fill_root_bytes=ViewOptions.fill_root_bytes if args.fill_root_kb is None
+                       else int(args.fill_root_kb * 1024),
                        cache=not args.no_cache, drop_invalid=args.drop_invalid,
                        render=RenderOptions(sort=args.sort, draw=args.draw),
                        **_band_shares(args.sh_bands))

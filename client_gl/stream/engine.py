@@ -114,6 +114,18 @@ class StreamOptions:
     # drawn bytes on top (BENCHMARKS.md, "A small cut fetched directly"). 0: always coarse to fine (as before).
     # The `--fill-min-kb` default of commands/view.py is this one.
     fill_min_bytes: int = 64 << 10
+    # The root, then the cut (issue 31, rootcut31): where the cut's missing base payloads (counted as for
+    # fill_min_bytes) exceed fill_min_bytes but not this many bytes, the wish list is the root's base, then the cut's
+    # bases in the cut's order, without the ancestors between (what --skip-levels fetches at these cuts). Over
+    # HTTP/1.1 with 6 requests in flight such a cut is bound by request rounds, not bytes: the root gives the first
+    # picture in one round, as coarse to fine does, and the cut, freed of the ancestors' requests, converges sooner
+    # with fewer bytes. 512 KiB: chosen on donut and biker on the 20 Mbit/s, 40 ms link by
+    # bench/results/rootcut31/RULE.md (cuts of 126-459 KB: first picture -9..+6 ms, converged 48-490 ms sooner,
+    # 0.07-0.12 fewer bytes a drawn byte; the root alone 274-365 ms where coarse to fine refined it after 28-180 ms;
+    # BENCHMARKS.md, "The root, then the cut"). Above it, coarse to fine (not measured above 459 KB).
+    # 0 (or at most fill_min_bytes): no such band, coarse to fine above fill_min_bytes as before.
+    # The `--fill-root-kb` default of commands/view.py is this one.
+    fill_root_bytes: int = 512 << 10
     # The root's base stays in the wish list of a small cut too: set by a session that asked for the root with the
     # manifest, before the view was known (streaming.root_wanted: no splat budget that bounds the cut), so that the
     # root it fetched anyway is drawn first, as before, rather than dropped.
@@ -961,11 +973,12 @@ class StreamEngine:
         # 1.11): the page's children take budget that refinement had (donut --page-levels 5 at 50 %: 158 KB a
         # view fetched and given up, against 355 KB drawn)
         held = self._held_cut if self._pages_wanted and len(self._held_cut) else None
-        if self._ancestors_worth(cut, loading):
+        need = self._missing_need(cut, loading)
+        if self._ancestors_worth(need):
             base = self._with_ancestors(cut, loading)
         else:
             base = self._cut_alone(cut, loading if held is None else np.isin(cut, held) | (
-                False if loading is None else loading))
+                False if loading is None else loading), with_root=self._root_worth(need))
         if held is not None:
             base = base[~np.isin(base, held)]
         self._bases = base  # positions of the list's bases, in its order
@@ -976,13 +989,15 @@ class StreamEngine:
             sh = [k for k in sh if k[0] not in out]
         return list(zip(self.ids[base].tolist(), repeat("base"))) + sh
 
-    def _cut_alone(self, cut: np.ndarray, loading: np.ndarray | None) -> np.ndarray:
-        """The bases of a cut fetched without its ancestors (the root only where it is a cut tile), self._filling
-        cleared."""
+    def _cut_alone(self, cut: np.ndarray, loading: np.ndarray | None, with_root: bool = False) -> np.ndarray:
+        """The bases of a cut fetched without its ancestors, self._filling cleared: the root first where with_root
+        (the root, then the cut: fill_root_bytes), else only where it is a cut tile (a small cut)."""
         base = cut if loading is None else cut[~loading]
-        if self._drawn_ids is None and loading is not None and loading.any():
+        if self._drawn_ids is None and (with_root or loading is not None and loading.any()):
+            # (with_root: the root, once named, stays named until the first frame draws, also when the cut's missing
+            # bytes then fall under fill_min_bytes: a request in flight is not cancelled for a later first picture)
             self._root_first = True
-        if (self.options.root_first or self._root_first and self._drawn_ids is None) and \
+        if (with_root or self.options.root_first or self._root_first and self._drawn_ids is None) and \
                 not (base == self.root).any():
             # nothing drawn yet and part of the cut waits for its page (a round trip more than the root): the
             # root, until the first frame draws, so that it comes as soon as without paging (root_first: always)
@@ -1011,20 +1026,29 @@ class StreamEngine:
             base = base[~np.isin(base, cut[loading])]
         return base
 
-    def _ancestors_worth(self, cut: np.ndarray, loading: np.ndarray | None) -> bool:
-        """Whether the cut's ancestors (the root included) are worth fetching: its missing base payloads exceed
-        fill_min_bytes (a head whose page is loading counts `lod.reduction` times its own: its children's)."""
-        limit = self.options.fill_min_bytes
-        if limit <= 0:
-            return True
+    def _missing_need(self, cut: np.ndarray, loading: np.ndarray | None) -> int:
+        """The cut's missing base payloads' bytes, the measure of the fill rule (_ancestors_worth, _root_worth): a
+        head whose page is loading counts `lod.reduction` times its own (its children's)."""
         missing = ~self.resident[cut]
         nbytes = self.arrays.base_bytes
         if loading is None:
-            need = int(nbytes[cut[missing]].sum())
-        else:
-            need = int(nbytes[cut[missing & ~loading]].sum()) + \
-                int(float(self.manifest.lod.reduction) * nbytes[cut[missing & loading]].sum())
-        return need > limit
+            return int(nbytes[cut[missing]].sum())
+        return int(nbytes[cut[missing & ~loading]].sum()) + \
+            int(float(self.manifest.lod.reduction) * nbytes[cut[missing & loading]].sum())
+
+    def _ancestors_worth(self, need: int) -> bool:
+        """Whether the cut's ancestors (the root included) are worth fetching coarse to fine: its missing base
+        payloads (`need`, _missing_need) exceed fill_min_bytes and, where fill_root_bytes is above fill_min_bytes,
+        fill_root_bytes too (between the two: the root, then the cut, _root_worth)."""
+        low, high = self.options.fill_min_bytes, self.options.fill_root_bytes
+        if low <= 0:
+            return True
+        return need > max(low, high)
+
+    def _root_worth(self, need: int) -> bool:
+        """Whether a cut fetched without its ancestors wants the root first: its missing base payloads (`need`)
+        exceed fill_min_bytes (at most, fill_root_bytes: above it _ancestors_worth holds)."""
+        return 0 < self.options.fill_min_bytes < need
 
     def _coarse_to_fine_numpy(self, cut: np.ndarray, gap: int, step: int) -> np.ndarray:
         """_coarse_to_fine's bases in their order, and self._filling set, in numpy (the reference of
