@@ -197,3 +197,22 @@ def test_a_negative_far_radius_is_refused(scenes):
         t["radius_far"] = np.concatenate([[-1.0], far]).astype("<f4").tobytes()
     with pytest.raises(FormatError, match=r"tile_table.radius_far\[0\]: expected a finite radius >= 0, got -1.0"):
         parse_manifest(_edited(raw, None, edit))
+
+
+def test_a_1_16_parse_keeps_numpy_ma_off_the_first_frames_path(scenes, tmp_path):
+    """The first parse of a 1.16 table in a process (the first frame's manifest step) imports nothing beyond what a
+    1.15 parse does: numpy's first 1-D np.unique imports numpy.ma, which on the GPU machine added about 70 ms to a
+    fresh client's first frame (BENCHMARKS.md, r34)."""
+    import subprocess
+    import sys
+
+    from conftest import ROOT
+
+    for key in ("1.16", "1.15"):
+        path = tmp_path / f"{key}.msgpack"
+        path.write_bytes(scenes[key][0])
+        code = ("import sys; from splatstream.format.manifest import parse_manifest; "
+                f"parse_manifest(open({str(path)!r}, 'rb').read(), 'x', lazy_payloads=True); "
+                "print('numpy.ma' in sys.modules)")
+        out = subprocess.run([sys.executable, "-c", code], cwd=ROOT, capture_output=True, text=True, check=True)
+        assert out.stdout.strip() == "False", (key, out.stdout, out.stderr)
