@@ -324,7 +324,7 @@ def encode_relative(box: np.ndarray, sphere: np.ndarray, parent: np.ndarray, lev
         dec[rows] = decode_child_boxes(p, q[rows])
         if (dec[rows, :3] > box[rows, :3]).any() or (dec[rows, 3:] < box[rows, 3:]).any():
             raise ValueError("a child's box is not inside its parent's decoded box")  # growth makes it so
-    mid = (dec[:, :3] + dec[:, 3:]) * 0.5
+    mid = box_centres(dec)
     moved = np.sqrt(((mid - sphere[:, :3]) ** 2).sum(axis=1))
     need = np.where(moved == 0.0, sphere[:, 3], np.nextafter(sphere[:, 3] + moved, np.inf))
     h = half_diagonals(dec)
@@ -505,7 +505,7 @@ def _relative_bounds(d: dict, cols: dict, n: int, source: str) -> tuple[np.ndarr
         _fail(source, f"{BOX8_KEY}[{i}]", f"steps {box8[i].tolist()} make min {tuple(child[i, :3])} exceed max "
               f"{tuple(child[i, 3:])}")
     radius = decode_radii(half_diagonals(box), radius8, far)
-    return box, np.concatenate([(box[:, :3] + box[:, 3:]) * 0.5, radius[:, None]], axis=1)
+    return box, np.concatenate([box_centres(box), radius[:, None]], axis=1)
 
 
 def _first_row(mask: np.ndarray) -> int | None:
